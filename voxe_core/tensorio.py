@@ -1,0 +1,56 @@
+"""Tensor files without pickle: safetensors plus a JSON header with a format version.
+
+The authors' checkpoints pickled Python objects (unsafe, and unloadable on
+torch >= 2.6). Every file here is plain tensors and a versioned JSON header.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+
+HEADER_KEY = "voxe"
+
+
+class FormatError(ValueError):
+    """A tensor file that is not ours, is damaged, or is from a newer format version."""
+
+
+def save_tensors(path: str | os.PathLike, tensors: dict[str, torch.Tensor], kind: str, version: int, meta: dict) -> None:
+    """Write atomically (temporary name, then rename) so a crash never leaves a torn file."""
+    path = Path(path)
+    header = json.dumps({"kind": kind, "format_version": version, "meta": meta}, sort_keys=True)
+    tmp = path.with_name(path.name + ".tmp")
+    save_file({k: v.detach().contiguous().cpu() for k, v in tensors.items()}, str(tmp), metadata={HEADER_KEY: header})
+    os.replace(tmp, path)
+
+
+def load_tensors(path: str | os.PathLike, kind: str, max_version: int) -> tuple[dict[str, torch.Tensor], dict]:
+    """Read a file written by :func:`save_tensors`; returns (tensors, meta)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FormatError(f"{path}: no such file")
+    try:
+        from safetensors import safe_open
+
+        with safe_open(str(path), framework="pt") as handle:
+            raw_header = (handle.metadata() or {}).get(HEADER_KEY)
+        tensors = load_file(str(path))
+    except (SafetensorError, OSError, ValueError) as exc:
+        raise FormatError(f"{path}: not a readable safetensors file ({exc})") from exc
+    if raw_header is None:
+        raise FormatError(f"{path}: missing the '{HEADER_KEY}' header; not a Vox-E file")
+    header = json.loads(raw_header)
+    if header.get("kind") != kind:
+        raise FormatError(f"{path}: holds a '{header.get('kind')}', expected a '{kind}'")
+    version = int(header.get("format_version", -1))
+    if version > max_version:
+        raise FormatError(
+            f"{path}: format version {version} is newer than this voxe_core supports ({max_version}); upgrade voxe_core"
+        )
+    return tensors, header.get("meta", {})
