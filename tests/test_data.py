@@ -1,0 +1,363 @@
+"""Dataset loading: real NeRF-synthetic and instant-ngp scenes, and one test per validation error."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from voxe_core.data import DatasetError, Scene, detect_format, load_scene
+
+DATA_ROOT = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+MIC = DATA_ROOT / "nerf_synthetic_mic"
+FOX = DATA_ROOT / "fox"
+
+needs_data = pytest.mark.skipif(not (MIC.is_dir() and FOX.is_dir()), reason=f"shared data missing under {DATA_ROOT}")
+
+IDENTITY = np.eye(4).tolist()
+
+
+def pose(rotation=None, translation=(0.0, 0.0, 4.0)) -> list:
+    m = np.eye(4)
+    if rotation is not None:
+        m[:3, :3] = rotation
+    m[:3, 3] = translation
+    return m.tolist()
+
+
+def write_png(path: Path, size=(8, 6), mode="RGBA", color=(255, 0, 0, 128)) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.new(mode, size, color[: len(mode)] if isinstance(color, tuple) else color).save(path)
+
+
+def make_synthetic(root: Path, frames: list[dict] | None = None, n: int = 3, split="train", **top) -> Path:
+    """A tiny NeRF-synthetic folder; ``frames`` overrides the generated frame list."""
+    root.mkdir(parents=True, exist_ok=True)
+    if frames is None:
+        frames = []
+        for i in range(n):
+            write_png(root / "train" / f"r_{i}.png")
+            frames.append({"file_path": f"./train/r_{i}", "transform_matrix": pose(translation=(0, 0, 4.0 + i))})
+    meta = {"camera_angle_x": 0.69, **top, "frames": frames}
+    (root / f"transforms_{split}.json").write_text(json.dumps(meta))
+    return root
+
+
+def make_ngp(root: Path, n: int = 4, size=(8, 6), **top) -> Path:
+    frames = []
+    for i in range(n):
+        write_png(root / "images" / f"{i:04d}.png", size, mode="RGB", color=(10 * i, 20, 30))
+        frames.append({"file_path": f"images/{i:04d}.png", "transform_matrix": pose(translation=(i, 0, 4.0))})
+    meta = {"fl_x": 10.0, "w": size[0], "h": size[1], **top, "frames": frames}
+    (root / "transforms.json").write_text(json.dumps(meta))
+    return root
+
+
+def assert_names(err: pytest.ExceptionInfo, file_name: str, frame: int | None) -> None:
+    message = str(err.value)
+    assert file_name in message, message
+    if frame is not None:
+        assert f"frame {frame}" in message, message
+        assert err.value.frame == frame
+
+
+# ---------------------------------------------------------------- real data
+
+
+@needs_data
+def test_nerf_synthetic_mic_downsampled():
+    scene = load_scene(MIC, downsample=8, max_images=3)
+    meta = json.loads((MIC / "transforms_train.json").read_text())
+    assert isinstance(scene, Scene) and scene.format == "nerf_synthetic" and scene.split == "train"
+    assert scene.images.shape == (3, 100, 100, 3) and scene.images.dtype == torch.float32
+    assert scene.alphas is not None and scene.alphas.shape == (3, 100, 100) and scene.has_alpha
+    assert (scene.cameras.width, scene.cameras.height) == (100, 100)
+    focal = 0.5 * 100 / math.tan(0.5 * meta["camera_angle_x"])
+    assert torch.allclose(scene.cameras.fx, torch.full((3,), focal), atol=1e-4)
+    assert torch.allclose(scene.cameras.fy, torch.full((3,), focal), atol=1e-4)
+    assert torch.allclose(scene.cameras.cx, torch.full((3,), 50.0))
+    # Transparent background composited on white; everything stays in [0, 1].
+    assert torch.all(scene.images[:, 0, 0] == 1.0) and torch.all(scene.alphas[:, 0, 0] == 0.0)
+    assert scene.images.min() >= 0.0 and scene.images.max() <= 1.0
+    assert scene.images.min() < 0.5  # the microphone itself is dark, not all white
+    assert scene.names == [f["file_path"] for f in meta["frames"][:3]]
+    expected = torch.tensor(meta["frames"][1]["transform_matrix"], dtype=torch.float32)
+    assert torch.allclose(scene.cameras.c2w[1], expected)
+
+
+@needs_data
+def test_instant_ngp_fox_downsampled():
+    assert detect_format(FOX) == "instant_ngp"
+    meta = json.loads((FOX / "transforms.json").read_text())
+    scene = load_scene(FOX, downsample=8, max_images=2)
+    assert scene.format == "instant_ngp" and scene.alphas is None and not scene.has_alpha
+    assert scene.images.shape == (2, 240, 135, 3)
+    assert (scene.cameras.width, scene.cameras.height) == (135, 240)
+    assert torch.allclose(scene.cameras.fx, torch.full((2,), meta["fl_x"] / 8))
+    assert torch.allclose(scene.cameras.fy, torch.full((2,), meta["fl_y"] / 8))
+    assert torch.allclose(scene.cameras.cx, torch.full((2,), meta["cx"] / 8))
+    assert torch.allclose(scene.cameras.cy, torch.full((2,), meta["cy"] / 8))
+    assert scene.distortion == {k: meta[k] for k in ("k1", "k2", "p1", "p2")}
+    assert scene.aabb_scale == 4.0
+    assert 0.0 <= scene.images.min() and scene.images.max() <= 1.0 and scene.images.std() > 0.05
+
+
+# ---------------------------------------------------------------- image handling
+
+
+def test_downsample_is_premultiplied_and_box_filtered(tmp_path):
+    root = tmp_path / "s"
+    (root / "train").mkdir(parents=True)
+    rgba = np.zeros((4, 4, 4), np.uint8)
+    rgba[:, :2] = (0, 0, 0, 255)  # opaque black on the left half
+    rgba[:, 2:] = (255, 0, 0, 0)  # fully transparent *red* on the right half: its colour must not leak
+    Image.fromarray(rgba, "RGBA").save(root / "train" / "r_0.png")
+    make_synthetic(root, frames=[{"file_path": "./train/r_0", "transform_matrix": IDENTITY}])
+    scene = load_scene(root, downsample=4)
+    assert scene.images.shape == (1, 1, 1, 3)
+    # half black, half white background: 0.5 grey in every channel (no red tint)
+    assert torch.allclose(scene.images[0, 0, 0], torch.full((3,), 0.5))
+    assert torch.allclose(scene.alphas[0, 0, 0], torch.tensor(0.5))
+
+
+def test_odd_size_crops_to_multiple_and_scales_intrinsics(tmp_path):
+    root = make_ngp(tmp_path / "s", n=2, size=(9, 7), cx=4.5, cy=3.5)
+    scene = load_scene(root, downsample=2)
+    assert scene.images.shape == (2, 3, 4, 3)
+    assert (scene.cameras.width, scene.cameras.height) == (4, 3)
+    assert torch.allclose(scene.cameras.fx, torch.full((2,), 5.0))
+    assert torch.allclose(scene.cameras.cx, torch.full((2,), 2.25))
+
+
+def test_greyscale_sixteen_bit_png(tmp_path):
+    root = tmp_path / "s"
+    (root / "train").mkdir(parents=True)
+    grey = np.full((4, 4), 65535, np.uint16)
+    grey[0, 0] = 0
+    Image.fromarray(grey).save(root / "train" / "r_0.png")
+    make_synthetic(root, frames=[{"file_path": "./train/r_0", "transform_matrix": IDENTITY}])
+    scene = load_scene(root)
+    assert scene.alphas is None and scene.images.shape == (1, 4, 4, 3)
+    assert torch.all(scene.images[0, 0, 0] == 0.0) and torch.all(scene.images[0, 1:, 1:] == 1.0)
+
+
+def test_camera_angle_y_and_per_frame_overrides(tmp_path):
+    root = make_ngp(tmp_path / "s", n=2, size=(8, 6))
+    meta = json.loads((root / "transforms.json").read_text())
+    del meta["fl_x"]
+    meta.update(camera_angle_x=math.pi / 2, camera_angle_y=math.pi / 2)
+    meta["frames"][1]["fl_x"] = 7.0
+    (root / "transforms.json").write_text(json.dumps(meta))
+    scene = load_scene(root)
+    assert torch.allclose(scene.cameras.fx, torch.tensor([4.0, 7.0]))  # 0.5*8/tan(pi/4) = 4
+    assert torch.allclose(scene.cameras.fy, torch.tensor([3.0, 7.0]))  # 0.5*6/tan(pi/4) = 3; fl_x wins
+    assert scene.distortion is None
+
+
+def test_holdout_split_semantics(tmp_path):
+    root = make_ngp(tmp_path / "s", n=10)
+    assert len(load_scene(root)) == 10
+    assert len(load_scene(root, split="all", holdout_every=4)) == 10
+    train = load_scene(root, split="train", holdout_every=4)
+    test = load_scene(root, split="test", holdout_every=4)
+    assert test.names == ["images/0000.png", "images/0004.png", "images/0008.png"]
+    assert len(train) == 7 and not set(train.names) & set(test.names)
+    assert len(load_scene(root, split="train", holdout_every=4, max_images=2)) == 2
+    with pytest.raises(DatasetError, match="no test split") as err:
+        load_scene(root, split="test")
+    assert_names(err, "transforms.json", None)
+
+
+def test_detect_format(tmp_path):
+    assert detect_format(make_synthetic(tmp_path / "a", n=1)) == "nerf_synthetic"
+    assert detect_format(make_ngp(tmp_path / "b", n=1)) == "instant_ngp"
+    (tmp_path / "c").mkdir()
+    with pytest.raises(DatasetError, match="transforms_train.json") as err:
+        detect_format(tmp_path / "c")
+    assert err.value.path == tmp_path / "c"
+
+
+# ---------------------------------------------------------------- validation errors
+
+
+def test_missing_image(tmp_path):
+    root = make_synthetic(tmp_path / "s")
+    (root / "train" / "r_1.png").unlink()
+    with pytest.raises(DatasetError, match="image not found") as err:
+        load_scene(root)
+    assert_names(err, "transforms_train.json", 1)
+    assert "./train/r_1" in str(err.value)
+
+
+def test_unreadable_image(tmp_path):
+    root = make_synthetic(tmp_path / "s")
+    (root / "train" / "r_2.png").write_bytes(b"this is not a png at all")
+    with pytest.raises(DatasetError, match="cannot read image r_2.png") as err:
+        load_scene(root)
+    assert_names(err, "transforms_train.json", 2)
+    assert err.value.path == root / "train" / "r_2.png"
+
+
+def test_decompression_bomb_refused(tmp_path, monkeypatch):
+    root = make_synthetic(tmp_path / "s", n=1)
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 10)  # 48 pixels > 2x the limit
+    with pytest.raises(DatasetError, match="decompression bomb") as err:
+        load_scene(root)
+    assert_names(err, "transforms_train.json", 0)
+
+
+def test_mixed_image_sizes(tmp_path):
+    root = make_synthetic(tmp_path / "s")
+    write_png(root / "train" / "r_2.png", size=(5, 5))
+    with pytest.raises(DatasetError, match="image size 5x5 differs from frame 0") as err:
+        load_scene(root)
+    assert_names(err, "transforms_train.json", 2)
+    assert "8x6" in str(err.value)
+
+
+def test_size_disagrees_with_intrinsics(tmp_path):
+    root = make_ngp(tmp_path / "s", n=2, w=16)
+    with pytest.raises(DatasetError, match="w=16") as err:
+        load_scene(root)
+    assert_names(err, "transforms.json", 0)
+
+
+def test_nan_in_pose(tmp_path):
+    root = make_synthetic(tmp_path / "s")
+    meta = json.loads((root / "transforms_train.json").read_text())
+    meta["frames"][1]["transform_matrix"][0][3] = float("nan")
+    (root / "transforms_train.json").write_text(json.dumps(meta))  # json writes the NaN literal
+    with pytest.raises(DatasetError, match="NaN or Inf") as err:
+        load_scene(root)
+    assert_names(err, "transforms_train.json", 1)
+
+
+def test_pose_not_four_by_four_or_bad_last_row(tmp_path):
+    root = make_synthetic(tmp_path / "a")
+    meta = json.loads((root / "transforms_train.json").read_text())
+    meta["frames"][0]["transform_matrix"] = meta["frames"][0]["transform_matrix"][:3]
+    (root / "transforms_train.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match=r"shape \(3, 4\)") as err:
+        load_scene(root)
+    assert_names(err, "transforms_train.json", 0)
+
+    bad = pose()
+    bad[3] = [0.0, 0.0, 1.0, 1.0]
+    root = make_synthetic(tmp_path / "b", frames=[{"file_path": "x", "transform_matrix": bad}])
+    with pytest.raises(DatasetError, match="last row") as err:
+        load_scene(root)
+    assert_names(err, "transforms_train.json", 0)
+
+
+def test_non_rigid_rotation(tmp_path):
+    root = make_synthetic(tmp_path / "s")
+    meta = json.loads((root / "transforms_train.json").read_text())
+    meta["frames"][2]["transform_matrix"] = pose(rotation=2 * np.eye(3))
+    (root / "transforms_train.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match=r"not orthonormal \(max \|R\^T R - I\| = 3\)") as err:
+        load_scene(root)
+    assert_names(err, "transforms_train.json", 2)
+
+
+def test_reflection_rotation(tmp_path):
+    root = make_synthetic(tmp_path / "s")
+    meta = json.loads((root / "transforms_train.json").read_text())
+    meta["frames"][1]["transform_matrix"] = pose(rotation=np.diag([1.0, 1.0, -1.0]))
+    (root / "transforms_train.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match=r"reflection.*det R = -1") as err:
+        load_scene(root)
+    assert_names(err, "transforms_train.json", 1)
+
+
+def test_missing_intrinsics(tmp_path):
+    root = make_ngp(tmp_path / "s")
+    meta = json.loads((root / "transforms.json").read_text())
+    del meta["fl_x"]
+    meta["frames"][0]["fl_x"] = 10.0  # frame 0 has its own focal, frame 1 has none
+    (root / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match="missing intrinsics") as err:
+        load_scene(root)
+    assert_names(err, "transforms.json", 1)
+
+
+def test_zero_focal(tmp_path):
+    root = make_ngp(tmp_path / "a", fl_x=0.0)
+    with pytest.raises(DatasetError, match="'fl_x' = 0.0 must be positive") as err:
+        load_scene(root)
+    assert_names(err, "transforms.json", None)  # a top-level value: no single frame to blame
+    assert err.value.frame is None
+
+    root = make_ngp(tmp_path / "b")
+    meta = json.loads((root / "transforms.json").read_text())
+    meta["frames"][3]["fl_y"] = 1e-6
+    (root / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match="near-singular") as err:
+        load_scene(root)
+    assert_names(err, "transforms.json", 3)
+
+
+def test_bad_camera_angle(tmp_path):
+    root = make_synthetic(tmp_path / "a", camera_angle_x=4.0)
+    with pytest.raises(DatasetError, match=r"outside \(0, pi\)") as err:
+        load_scene(root)
+    assert_names(err, "transforms_train.json", None)
+    root = make_synthetic(tmp_path / "b", camera_angle_x=float("inf"))
+    with pytest.raises(DatasetError, match="not finite") as err:
+        load_scene(root)
+    assert_names(err, "transforms_train.json", None)
+
+
+def test_empty_frames(tmp_path):
+    root = make_synthetic(tmp_path / "s", frames=[])
+    with pytest.raises(DatasetError, match="empty split") as err:
+        load_scene(root)
+    assert_names(err, "transforms_train.json", None)
+
+
+def test_invalid_json(tmp_path):
+    root = tmp_path / "s"
+    root.mkdir()
+    (root / "transforms_train.json").write_text('{"camera_angle_x": 0.69,\n "frames": [,]}')
+    with pytest.raises(DatasetError, match="invalid JSON at line 2 column 13") as err:
+        load_scene(root)
+    assert_names(err, "transforms_train.json", None)
+
+
+def test_missing_split_file(tmp_path):
+    root = make_synthetic(tmp_path / "s")
+    with pytest.raises(DatasetError, match="not found") as err:
+        load_scene(root, split="val")
+    assert_names(err, "transforms_val.json", None)
+
+
+def test_frame_missing_keys(tmp_path):
+    root = make_synthetic(tmp_path / "s")
+    meta = json.loads((root / "transforms_train.json").read_text())
+    del meta["frames"][1]["transform_matrix"]
+    (root / "transforms_train.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match="missing 'transform_matrix'") as err:
+        load_scene(root)
+    assert_names(err, "transforms_train.json", 1)
+
+
+def test_duplicate_file_path(tmp_path):
+    root = make_synthetic(tmp_path / "s")
+    meta = json.loads((root / "transforms_train.json").read_text())
+    meta["frames"][2]["file_path"] = "train/r_0"  # same image as './train/r_0'
+    (root / "transforms_train.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match="duplicate file_path.*frame 0") as err:
+        load_scene(root)
+    assert_names(err, "transforms_train.json", 2)
+
+
+def test_bad_arguments_are_value_errors(tmp_path):
+    root = make_synthetic(tmp_path / "s")
+    for kwargs in ({"downsample": 0}, {"downsample": 1.5}, {"max_images": 0}, {"split": "../x"}):
+        with pytest.raises(ValueError) as err:
+            load_scene(root, **kwargs)
+        assert not isinstance(err.value, DatasetError)

@@ -1,0 +1,329 @@
+"""Posed image sets in the NeRF-synthetic and instant-ngp / nerfstudio layouts.
+
+Everything is validated up front so a broken upload fails with one message that
+names the file and frame, instead of a NaN loss an hour into a fit. Images come
+back float32 in [0, 1], composited on white (SPEC §0), on the CPU.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from .cameras import Cameras
+
+_INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y")
+_DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+_MIN_FOCAL = 1e-3  # pixels; below this the projection is numerically singular
+_SIXTEEN_BIT_MODES = ("I;16", "I;16L", "I;16B", "I;16N", "I")
+
+
+class DatasetError(ValueError):
+    """Bad data on disk. The message names the file and, where relevant, the frame."""
+
+    def __init__(self, message: str, path: str | os.PathLike | None = None, frame: int | None = None):
+        super().__init__(message)
+        self.path = None if path is None else Path(path)
+        self.frame = frame
+
+
+@dataclass
+class Scene:
+    """Images (N, H, W, 3) composited on white, their cameras, and what the file recorded."""
+
+    images: torch.Tensor
+    alphas: torch.Tensor | None
+    cameras: Cameras
+    names: list[str]
+    format: str
+    split: str
+    distortion: dict | None = None  # recorded, not applied
+    aabb_scale: float | None = None
+
+    @property
+    def has_alpha(self) -> bool:
+        return self.alphas is not None
+
+    def __len__(self) -> int:
+        return self.images.shape[0]
+
+
+class _Where:
+    """Builds DatasetErrors that say which json file and which frame."""
+
+    def __init__(self, json_path: Path, frames: list | None = None):
+        self.json_path, self.frames = json_path, frames or []
+
+    def __call__(self, message: str, frame: int | None = None, path=None) -> DatasetError:
+        prefix = self.json_path.name
+        if frame is not None:
+            fp = self.frames[frame].get("file_path") if isinstance(self.frames[frame], dict) else None
+            prefix += f" frame {frame}" + (f" ({fp!r})" if fp is not None else "")
+        return DatasetError(f"{prefix}: {message}", path or self.json_path, frame)
+
+
+def detect_format(root: str | os.PathLike) -> str:
+    """'nerf_synthetic' (transforms_{train,val,test}.json) or 'instant_ngp' (one transforms.json)."""
+    root = Path(root)
+    if not root.is_dir():
+        raise DatasetError(f"{root}: not a folder (expected a dataset folder with transforms json files)", root)
+    if any((root / f"transforms_{s}.json").is_file() for s in ("train", "val", "test")):
+        return "nerf_synthetic"
+    if (root / "transforms.json").is_file():
+        return "instant_ngp"
+    raise DatasetError(
+        f"{root}: no dataset found (expected transforms_train.json for NeRF-synthetic "
+        "or transforms.json for instant-ngp / nerfstudio)", root
+    )
+
+
+def load_scene(
+    root: str | os.PathLike,
+    split: str = "train",
+    downsample: int = 1,
+    max_images: int | None = None,
+    holdout_every: int | None = None,
+) -> Scene:
+    """Load one split of a dataset folder.
+
+    ``downsample`` is an integer box-filter factor (images are cropped to a multiple of
+    it at the right/bottom, which leaves the principal point where it was).
+    ``holdout_every`` (instant-ngp only; NeRF-synthetic has its own split files): frames
+    0, k, 2k, ... form "test" and the rest "train". ``max_images`` keeps the first k
+    frames of the split. Frame indices in errors are positions in the json's ``frames``.
+    """
+    if not isinstance(downsample, int) or downsample < 1:
+        raise ValueError(f"downsample must be a positive integer, got {downsample!r}")
+    if max_images is not None and max_images < 1:
+        raise ValueError(f"max_images must be at least 1, got {max_images!r}")
+    if holdout_every is not None and holdout_every < 2:
+        raise ValueError(f"holdout_every must be at least 2, got {holdout_every!r}")
+    if not re.fullmatch(r"\w+", split):
+        raise ValueError(f"split must be a plain name, got {split!r}")
+    root = Path(root)
+    fmt = detect_format(root)
+    json_path = root / (f"transforms_{split}.json" if fmt == "nerf_synthetic" else "transforms.json")
+    meta = _read_json(json_path)
+    where = _Where(json_path)
+    frames = meta.get("frames")
+    if not isinstance(frames, list):
+        raise where("'frames' is missing or not a list")
+    if not frames:
+        raise where("empty split: 'frames' has no entries")
+    where.frames = frames
+
+    top = _check_intrinsics(meta, where, None)
+    per_frame, paths = [], []
+    for i, frame in enumerate(frames):
+        if not isinstance(frame, dict):
+            raise where("frame entry is not an object", i)
+        for key in ("file_path", "transform_matrix"):
+            if key not in frame:
+                raise where(f"missing '{key}'", i)
+        if not isinstance(frame["file_path"], str) or not frame["file_path"]:
+            raise where("'file_path' must be a non-empty string", i)
+        merged = {**top, **_check_intrinsics(frame, where, i)}
+        if "fl_x" not in merged and "camera_angle_x" not in merged:
+            raise where("missing intrinsics: need 'camera_angle_x' or 'fl_x' (top level or per frame)", i)
+        per_frame.append(merged)
+        paths.append(frame["file_path"])
+    poses = _check_poses(frames, where)
+    seen: dict[str, int] = {}
+    for i, p in enumerate(paths):
+        key = os.path.normpath(p)
+        if key in seen:
+            raise where(f"duplicate file_path (same image as frame {seen[key]})", i)
+        seen[key] = i
+
+    keep = _split_indices(fmt, split, len(frames), holdout_every, where)
+    if max_images is not None:
+        keep = keep[:max_images]
+
+    images, alphas, size = None, None, None
+    for slot, i in enumerate(keep):
+        arr, image_path = _read_image(root, paths[i], where, i)
+        h, w = arr.shape[:2]
+        if size is None:
+            size, first = (w, h), i
+            if w < downsample or h < downsample:
+                raise where(f"image {w}x{h} is smaller than downsample {downsample}", i, image_path)
+            hd, wd = h // downsample, w // downsample
+            images = torch.empty(len(keep), hd, wd, 3)
+        elif (w, h) != size:
+            raise where(
+                f"image size {w}x{h} differs from frame {first} ({paths[first]!r}) size {size[0]}x{size[1]}; "
+                "all images of a split must share one size", i, image_path,
+            )
+        rgb, alpha = _composite_downsampled(arr, downsample)
+        images[slot] = torch.from_numpy(rgb)
+        if alpha is not None:
+            if alphas is None:
+                alphas = torch.ones(len(keep), hd, wd)
+            alphas[slot] = torch.from_numpy(alpha)
+
+    W, H = size
+    intr = np.array([_resolve_intrinsics(per_frame[i], W, H, where, i) for i in keep], dtype=np.float64)
+    c2w = torch.from_numpy(poses[keep]).float()
+    cams = Cameras(c2w, *(torch.from_numpy(intr[:, k]).float() for k in range(4)), W, H)
+    if downsample > 1:
+        cams.width, cams.height = wd * downsample, hd * downsample  # the crop kept by the box filter
+        cams = cams.scaled(1.0 / downsample)
+    distortion = {k: top[k] for k in _DISTORTION_KEYS if k in top} or None
+    aabb = meta.get("aabb_scale")
+    if aabb is not None:
+        aabb = _number(aabb, "aabb_scale", where, None)
+    return Scene(images, alphas, cams, [paths[i] for i in keep], fmt, split, distortion, aabb)
+
+
+def _read_json(path: Path) -> dict:
+    if not path.is_file():
+        raise DatasetError(f"{path.name}: not found in {path.parent}", path)
+    try:
+        meta = json.loads(path.read_bytes())
+    except json.JSONDecodeError as e:
+        raise DatasetError(f"{path.name}: invalid JSON at line {e.lineno} column {e.colno} (char {e.pos}): {e.msg}", path) from e
+    except (UnicodeDecodeError, OSError) as e:
+        raise DatasetError(f"{path.name}: cannot read as JSON text: {e}", path) from e
+    if not isinstance(meta, dict):
+        raise DatasetError(f"{path.name}: top level must be a JSON object, got {type(meta).__name__}", path)
+    return meta
+
+
+def _number(value, key: str, where: _Where, frame: int | None) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise where(f"'{key}' must be a number, got {value!r}", frame)
+    if not math.isfinite(value):
+        raise where(f"'{key}' is not finite ({value})", frame)
+    return float(value)
+
+
+def _check_intrinsics(source: dict, where: _Where, frame: int | None) -> dict[str, float]:
+    """Numeric, finite, in-range intrinsics/distortion keys present in ``source`` (top level or one frame)."""
+    out = {k: _number(source[k], k, where, frame) for k in _INTRINSIC_KEYS + _DISTORTION_KEYS if source.get(k) is not None}
+    for k in ("camera_angle_x", "camera_angle_y"):
+        if k in out and not 0.0 < out[k] < math.pi:
+            raise where(f"'{k}' = {out[k]} is outside (0, pi) radians", frame)
+    for k in ("fl_x", "fl_y"):
+        if k in out and out[k] <= 0:
+            raise where(f"focal length '{k}' = {out[k]} must be positive", frame)
+        if k in out and out[k] < _MIN_FOCAL:
+            raise where(f"focal length '{k}' = {out[k]} is near-singular (< {_MIN_FOCAL} pixels)", frame)
+    for k in ("w", "h"):
+        if k in out and out[k] < 1:
+            raise where(f"image size '{k}' = {out[k]} must be at least 1", frame)
+    return out
+
+
+def _check_poses(frames: list, where: _Where) -> np.ndarray:
+    """(N, 4, 4) float64 camera-to-world, checked to be finite rigid transforms."""
+    mats = []
+    for i, frame in enumerate(frames):
+        try:
+            m = np.asarray(frame["transform_matrix"], dtype=np.float64)
+        except (TypeError, ValueError):
+            raise where("transform_matrix is not a numeric 4x4 matrix", i) from None
+        if m.shape != (4, 4):
+            raise where(f"transform_matrix has shape {m.shape}, expected (4, 4)", i)
+        mats.append(m)
+    poses = np.stack(mats)
+    bad = ~np.isfinite(poses).all(axis=(1, 2))
+    if bad.any():
+        raise where("transform_matrix contains NaN or Inf", int(bad.argmax()))
+    row_dev = np.abs(poses[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1)
+    if (row_dev > 1e-4).any():
+        i = int((row_dev > 1e-4).argmax())
+        raise where(f"transform_matrix last row is {poses[i, 3].tolist()}, expected [0, 0, 0, 1]", i)
+    rot = poses[:, :3, :3]
+    ortho_dev = np.abs(rot.transpose(0, 2, 1) @ rot - np.eye(3)).max(axis=(1, 2))
+    if (ortho_dev > 1e-3).any():
+        i = int((ortho_dev > 1e-3).argmax())
+        raise where(f"rotation is not orthonormal (max |R^T R - I| = {ortho_dev[i]:.3g}); scale or shear in the pose", i)
+    det = np.linalg.det(rot)
+    if (det <= 0).any():
+        i = int((det <= 0).argmax())
+        raise where(f"rotation is a reflection, not a rigid rotation (det R = {det[i]:.3g})", i)
+    return poses
+
+
+def _split_indices(fmt: str, split: str, n: int, holdout_every: int | None, where: _Where) -> list[int]:
+    if fmt == "nerf_synthetic":
+        return list(range(n))  # the split is the file
+    if split == "all" or (split == "train" and holdout_every is None):
+        return list(range(n))
+    if split not in ("train", "test"):
+        raise where(f"no split {split!r} in a single transforms.json (use 'train', 'test' or 'all')")
+    if holdout_every is None:
+        raise where("no test split: a single transforms.json has no hold-out unless holdout_every is given")
+    held = split == "test"
+    keep = [i for i in range(n) if (i % holdout_every == 0) == held]
+    if not keep:
+        raise where(f"empty split: {split!r} with holdout_every={holdout_every} selects none of {n} frames")
+    return keep
+
+
+def _read_image(root: Path, file_path: str, where: _Where, frame: int) -> tuple[np.ndarray, Path]:
+    """(H, W, 3 or 4) float32 in [0, 1]; 8- and 16-bit, grey, palette and RGB(A) alike."""
+    candidates = [root / file_path, root / (file_path + ".png")]
+    path = next((p for p in candidates if p.is_file()), None)
+    if path is None:
+        raise where("image not found (tried " + ", ".join(str(p) for p in candidates) + ")", frame, candidates[0])
+    try:
+        with Image.open(path) as im:
+            im.load()
+            if im.mode in _SIXTEEN_BIT_MODES:
+                grey = np.asarray(im, dtype=np.float32) / 65535.0
+                return np.repeat(np.clip(grey, 0.0, 1.0)[..., None], 3, axis=2), path
+            has_alpha = "A" in im.mode or "a" in im.mode or "transparency" in im.info
+            arr = np.asarray(im.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
+            return arr, path
+    except Image.DecompressionBombError as e:
+        raise where(f"image {path.name} refused as a decompression bomb: {e}", frame, path) from e
+    except (OSError, SyntaxError, ValueError) as e:
+        raise where(f"cannot read image {path.name} (not an image or damaged): {e}", frame, path) from e
+
+
+def _composite_downsampled(arr: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """Box-filter premultiplied RGBA, then composite on white.
+
+    Averaging premultiplied colour keeps transparent pixels' (arbitrary) colour out of
+    the edges; it equals compositing first and averaging after, without 8-bit rounding.
+    """
+    h, w = arr.shape[0] // factor, arr.shape[1] // factor
+    if arr.shape[2] == 4:
+        arr = np.concatenate([arr[..., :3] * arr[..., 3:], arr[..., 3:]], axis=2)
+    if factor > 1:
+        arr = arr[: h * factor, : w * factor].reshape(h, factor, w, factor, -1).mean(axis=(1, 3), dtype=np.float32)
+    if arr.shape[2] == 3:
+        return np.ascontiguousarray(arr), None
+    alpha = arr[..., 3]
+    rgb = np.clip(arr[..., :3] + (1.0 - alpha[..., None]), 0.0, 1.0)
+    return np.ascontiguousarray(rgb), np.ascontiguousarray(alpha)
+
+
+def _resolve_intrinsics(v: dict, W: int, H: int, where: _Where, frame: int) -> tuple[float, float, float, float]:
+    """fx, fy, cx, cy in pixels of the full-size image; fl_* wins over camera_angle_*."""
+    for key, actual in (("w", W), ("h", H)):
+        if key in v and round(v[key]) != actual:
+            raise where(f"image is {W}x{H} but the intrinsics say {key}={v[key]:g}", frame)
+    if "fl_x" in v:
+        fx = v["fl_x"]
+    else:
+        fx = 0.5 * W / math.tan(0.5 * v["camera_angle_x"])
+    if "fl_y" in v:
+        fy = v["fl_y"]
+    elif "camera_angle_y" in v and "fl_x" not in v:
+        fy = 0.5 * H / math.tan(0.5 * v["camera_angle_y"])
+    else:
+        fy = fx
+    for name, f in (("fx", fx), ("fy", fy)):
+        if not math.isfinite(f) or f < _MIN_FOCAL:
+            raise where(f"focal length {name} = {f:.3g} pixels is non-finite or near-singular", frame)
+    return fx, fy, v.get("cx", W / 2), v.get("cy", H / 2)
