@@ -50,8 +50,10 @@ class Cameras:
 
     def scaled(self, factor: float) -> "Cameras":
         """Cameras for images resized by ``factor`` (0.25 = downsample 4)."""
-        width = max(1, int(round(self.width * factor)))
-        height = max(1, int(round(self.height * factor)))
+        return self.resized(max(1, int(round(self.width * factor))), max(1, int(round(self.height * factor))))
+
+    def resized(self, width: int, height: int) -> "Cameras":
+        """Cameras for images resampled to ``width`` x ``height`` over the same field of view."""
         sx, sy = width / self.width, height / self.height
         return Cameras(self.c2w, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height)
 

@@ -1,0 +1,196 @@
+"""The ReLU-field voxel grid: 1 density + 3 colour features per vertex (SH degree 0).
+
+Features are raw (pre-activation) values on the vertices of a regular grid
+spanning an axis-aligned box; samples interpolate trilinearly, then activate
+(density: ReLU as in the paper, or the authors' softplus; colour: sigmoid).
+Because interpolation happens before the ReLU, a cell whose eight corners are
+all <= 0 has exactly zero density everywhere inside: the occupancy structure
+built from corner maxima skips empty space without changing the render.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+
+from voxe_core.tensorio import load_tensors, save_tensors
+
+GRID_FORMAT_VERSION = 1
+DEFAULT_BOX = ((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5))
+Activation = Literal["relu", "softplus"]
+
+_CORNERS = torch.tensor(
+    [[0, 0, 0], [0, 0, 1], [0, 1, 0], [0, 1, 1], [1, 0, 0], [1, 0, 1], [1, 1, 0], [1, 1, 1]]
+)
+
+
+def default_density_scale(bbox_min, bbox_max) -> float:
+    """The authors' raw-density multiplier, 100·sqrt(3)/box diagonal (≈33.3 for the 3-unit box).
+
+    It lets Adam at lr 0.03 reach opaque densities in tens of steps, and keeps
+    optical depth per voxel independent of the scene's unit.
+    """
+    diagonal = math.dist(tuple(bbox_min), tuple(bbox_max))
+    return 100.0 * math.sqrt(3.0) / diagonal
+
+
+@dataclass
+class Occupancy:
+    """Which grid cells can hold density, and the tight box around them."""
+
+    cells: torch.Tensor  # (X-1, Y-1, Z-1) bool
+    bbox_min: torch.Tensor  # (3,) world coordinates of the occupied cells' box
+    bbox_max: torch.Tensor
+
+    @property
+    def fraction(self) -> float:
+        return float(self.cells.float().mean())
+
+    @property
+    def empty(self) -> bool:
+        return not bool(self.cells.any())
+
+
+class VoxelGrid(torch.nn.Module):
+    """Dense feature grid ``features[x, y, z, c]``; channel 0 density, 1:4 colour."""
+
+    def __init__(
+        self,
+        resolution: int | tuple[int, int, int] = 160,
+        bbox_min=DEFAULT_BOX[0],
+        bbox_max=DEFAULT_BOX[1],
+        activation: Activation = "relu",
+        density_scale: float | None = None,
+        init_density: float = 0.01,
+        features: torch.Tensor | None = None,
+    ):
+        super().__init__()
+        if activation not in ("relu", "softplus"):
+            raise ValueError(f"unknown density activation {activation!r}; use 'relu' or 'softplus'")
+        res = (resolution,) * 3 if isinstance(resolution, int) else tuple(int(r) for r in resolution)
+        if min(res) < 2:
+            raise ValueError(f"grid resolution must be >= 2 per axis, got {res}")
+        bbox_min = torch.as_tensor(bbox_min, dtype=torch.float32)
+        bbox_max = torch.as_tensor(bbox_max, dtype=torch.float32)
+        if not bool((bbox_max > bbox_min).all()):
+            raise ValueError(f"empty box: min {bbox_min.tolist()} max {bbox_max.tolist()}")
+        self.register_buffer("bbox_min", bbox_min)
+        self.register_buffer("bbox_max", bbox_max)
+        self.activation = activation
+        self.density_scale = float(density_scale or default_density_scale(bbox_min.tolist(), bbox_max.tolist()))
+        if features is None:
+            features = torch.zeros(*res, 4)
+            features[..., 0] = init_density
+        elif tuple(features.shape) != (*res, 4):
+            raise ValueError(f"features of shape {tuple(features.shape)} do not fit resolution {res}")
+        self.features = torch.nn.Parameter(features.float().contiguous())
+
+    # ------------------------------------------------------------------ basics
+    @property
+    def resolution(self) -> tuple[int, int, int]:
+        return tuple(self.features.shape[:3])
+
+    @property
+    def voxel_size(self) -> torch.Tensor:
+        return (self.bbox_max - self.bbox_min) / (torch.tensor(self.resolution, dtype=torch.float32) - 1)
+
+    def like(self, features: torch.Tensor) -> "VoxelGrid":
+        """A grid with this one's box and activation, holding ``features``."""
+        return VoxelGrid(
+            features.shape[:3], self.bbox_min, self.bbox_max, self.activation, self.density_scale, features=features
+        )
+
+    def clone_grid(self) -> "VoxelGrid":
+        return self.like(self.features.detach().clone())
+
+    def activate_density(self, raw: torch.Tensor) -> torch.Tensor:
+        scaled = raw * self.density_scale
+        return F.relu(scaled) if self.activation == "relu" else F.softplus(scaled)
+
+    @staticmethod
+    def activate_color(raw: torch.Tensor) -> torch.Tensor:
+        return torch.sigmoid(raw)
+
+    # ---------------------------------------------------------------- sampling
+    def interpolate(self, points: torch.Tensor, features: torch.Tensor | None = None) -> torch.Tensor:
+        """Raw trilinear interpolation at world points (N, 3) -> (N, C).
+
+        ``features`` (X, Y, Z, C) defaults to this grid's; attention grids pass
+        their own scalar features over the same lattice. Points outside the box
+        are clamped onto it (the renderer only samples inside).
+        """
+        feats = self.features if features is None else features
+        res = torch.tensor(self.resolution, device=points.device)
+        u = (points - self.bbox_min) / (self.bbox_max - self.bbox_min) * (res - 1).to(points.dtype)
+        u = torch.minimum(u.clamp_min(0), (res - 1).to(points.dtype))
+        base = torch.minimum(u.floor().long(), res - 2)
+        frac = (u - base.to(u.dtype)).to(feats.dtype)
+        strides = torch.tensor([res[1] * res[2], res[2], 1], device=points.device)
+        corner_offsets = (_CORNERS.to(points.device) * strides).sum(-1)  # (8,)
+        flat_index = (base * strides).sum(-1, keepdim=True) + corner_offsets  # (N, 8)
+        fx, fy, fz = frac.unbind(-1)
+        wx = torch.stack([1 - fx, fx], -1)
+        wy = torch.stack([1 - fy, fy], -1)
+        wz = torch.stack([1 - fz, fz], -1)
+        weights = (wx[:, :, None, None] * wy[:, None, :, None] * wz[:, None, None, :]).reshape(-1, 8)
+        values = feats.reshape(-1, feats.shape[-1])[flat_index.reshape(-1)].reshape(-1, 8, feats.shape[-1])
+        return torch.einsum("nk,nkc->nc", weights, values)
+
+    def query(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Activated (density (N,), colour (N, 3)) at world points."""
+        raw = self.interpolate(points)
+        return self.activate_density(raw[:, 0]), self.activate_color(raw[:, 1:])
+
+    # ----------------------------------------------------------- structure
+    def upsampled(self, resolution: int | tuple[int, int, int]) -> "VoxelGrid":
+        """Trilinear upsampling of the raw features (coarse-to-fine reconstruction)."""
+        res = (resolution,) * 3 if isinstance(resolution, int) else tuple(resolution)
+        volume = self.features.detach().permute(3, 0, 1, 2)[None]
+        up = F.interpolate(volume, size=res, mode="trilinear", align_corners=True)
+        return self.like(up[0].permute(1, 2, 3, 0).contiguous())
+
+    @torch.no_grad()
+    def occupancy(self, sigma_threshold: float = 1e-3) -> Occupancy:
+        """Cells whose density can exceed ``sigma_threshold`` anywhere inside.
+
+        Trilinear interpolation is bounded by the corner maximum and both
+        activations are monotone, so the test is conservative: with ReLU and
+        threshold 0 skipping is exact.
+        """
+        raw = self.features[..., 0][None, None]
+        corner_max = F.max_pool3d(raw, kernel_size=2, stride=1)[0, 0]
+        cells = self.activate_density(corner_max) > sigma_threshold
+        if cells.any():
+            idx = cells.nonzero()
+            lo, hi = idx.min(0).values, idx.max(0).values + 1
+            vox = self.voxel_size.to(raw.device)
+            box_min, box_max = self.bbox_min + lo * vox, self.bbox_min + hi * vox
+        else:
+            box_min, box_max = self.bbox_min.clone(), self.bbox_min.clone()
+        return Occupancy(cells, box_min, box_max)
+
+    # ------------------------------------------------------------- storage
+    def state_tensors(self) -> dict[str, torch.Tensor]:
+        return {"features": self.features.detach(), "bbox_min": self.bbox_min, "bbox_max": self.bbox_max}
+
+    def header(self) -> dict:
+        return {"activation": self.activation, "density_scale": self.density_scale, "resolution": list(self.resolution)}
+
+    def save(self, path) -> None:
+        save_tensors(path, self.state_tensors(), kind="voxel_grid", version=GRID_FORMAT_VERSION, meta=self.header())
+
+    @classmethod
+    def from_state(cls, tensors: dict[str, torch.Tensor], meta: dict) -> "VoxelGrid":
+        return cls(
+            tuple(tensors["features"].shape[:3]), tensors["bbox_min"], tensors["bbox_max"],
+            meta["activation"], meta["density_scale"], features=tensors["features"],
+        )
+
+    @classmethod
+    def load(cls, path) -> "VoxelGrid":
+        tensors, meta = load_tensors(path, kind="voxel_grid", max_version=GRID_FORMAT_VERSION)
+        return cls.from_state(tensors, meta)

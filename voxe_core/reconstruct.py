@@ -1,0 +1,171 @@
+"""Stage 1: fit a voxel grid G_i to posed images (coarse-to-fine, L1, Adam).
+
+Defaults are the authors' recipe (SPEC §1): 20³ → 40³ → 80³ → 160³ with
+trilinear upsampling between stages, 500 iterations each, 32,768 rays per step,
+images downsampled 8/4/2/1, Adam lr 0.03 decayed ×0.9 per stage and ×0.1 at
+iteration 400 of each stage. ``ReconstructConfig.fast()`` is the budget this
+project measured on a 2-core CPU (bench/reconstruction.py).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+from voxe_core.cameras import Cameras, pixel_rays
+from voxe_core.grid import Activation, VoxelGrid
+from voxe_core.progress import Callbacks, Progress
+from voxe_core.render import RenderConfig, render_rays
+from voxe_core.tensorio import load_tensors, save_tensors
+
+CHECKPOINT_FORMAT_VERSION = 1
+
+
+@dataclass
+class ReconstructConfig:
+    resolutions: tuple[int, ...] = (20, 40, 80, 160)
+    iterations: tuple[int, ...] = (500, 500, 500, 500)  # per stage
+    image_downsample: tuple[int, ...] = (8, 4, 2, 1)  # per stage, relative to the given images
+    rays_per_step: int = 32768
+    lr: float = 0.03
+    lr_stage_decay: float = 0.9
+    lr_drop_iteration: int = 400  # within each stage
+    lr_drop_factor: float = 0.1
+    activation: Activation = "relu"
+    init_density: float = 0.01
+    bbox_min: tuple[float, float, float] = (-1.5, -1.5, -1.5)
+    bbox_max: tuple[float, float, float] = (1.5, 1.5, 1.5)
+    render: RenderConfig = field(default_factory=lambda: RenderConfig(step_ratio=0.8))
+    occupancy_every: int = 16  # iterations between occupancy refreshes
+    seed: int = 0
+    checkpoint_every: int = 0  # 0: no checkpoints
+
+    def __post_init__(self):
+        n = len(self.resolutions)
+        if not (len(self.iterations) == len(self.image_downsample) == n) or n == 0:
+            raise ValueError("resolutions, iterations and image_downsample need one entry per stage")
+        if self.rays_per_step < 1 or any(i < 0 for i in self.iterations):
+            raise ValueError("rays_per_step must be >= 1 and iterations >= 0")
+
+    @classmethod
+    def fast(cls, **overrides) -> "ReconstructConfig":
+        """The CPU budget measured in bench/reconstruction.py (≈30.6 dB on mic at 200 px)."""
+        base = dict(
+            resolutions=(40, 80, 128),
+            iterations=(300, 500, 1200),
+            image_downsample=(4, 2, 1),
+            rays_per_step=4096,
+            lr_drop_iteration=1_000_000,
+        )
+        base.update(overrides)
+        return cls(**base)
+
+    @property
+    def total_iterations(self) -> int:
+        return sum(self.iterations)
+
+
+def _stage_data(images: torch.Tensor, cameras: Cameras, downsample: int):
+    """All rays and target colours of the images resampled for one stage."""
+    n, h, w, _ = images.shape
+    height, width = max(1, h // downsample), max(1, w // downsample)
+    if (height, width) != (h, w):
+        images = F.interpolate(images.permute(0, 3, 1, 2), size=(height, width), mode="area").permute(0, 2, 3, 1)
+    cams = cameras.resized(width, height)
+    cam_index = torch.arange(n).repeat_interleave(height * width)
+    v, u = torch.meshgrid(torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij")
+    origins, directions = pixel_rays(cams, cam_index, u.reshape(-1).repeat(n), v.reshape(-1).repeat(n))
+    return origins, directions, images.reshape(-1, 3).contiguous()
+
+
+def _learning_rate(config: ReconstructConfig, stage: int, iteration: int) -> float:
+    lr = config.lr * config.lr_stage_decay**stage
+    return lr * config.lr_drop_factor if iteration >= config.lr_drop_iteration else lr
+
+
+def _make_optimizer(grid: VoxelGrid, lr: float) -> torch.optim.Adam:
+    return torch.optim.Adam([grid.features], lr=lr, fused=True)
+
+
+def save_checkpoint(path, grid, optimizer, generator, occupancy_cells, stage: int, iteration: int) -> None:
+    state = optimizer.state[grid.features]
+    tensors = {
+        **grid.state_tensors(),
+        "adam_exp_avg": state["exp_avg"],
+        "adam_exp_avg_sq": state["exp_avg_sq"],
+        "adam_step": state["step"].reshape(1),
+        "rng_state": generator.get_state(),
+        "occupancy": occupancy_cells.to(torch.uint8),
+    }
+    meta = {**grid.header(), "stage": stage, "iteration": iteration}
+    save_tensors(path, tensors, kind="reconstruction_checkpoint", version=CHECKPOINT_FORMAT_VERSION, meta=meta)
+
+
+def reconstruct(
+    images: torch.Tensor,
+    cameras: Cameras,
+    config: ReconstructConfig = ReconstructConfig(),
+    callbacks: Callbacks = Callbacks(),
+    checkpoint_path: str | Path | None = None,
+    resume_from: str | Path | None = None,
+) -> VoxelGrid:
+    """Fit G_i to ``images`` (N, H, W, 3) on white seen from ``cameras``; deterministic under ``config.seed``."""
+    if images.shape[0] != len(cameras) or images.shape[1:3] != (cameras.height, cameras.width):
+        raise ValueError(
+            f"{images.shape[0]} images of {tuple(images.shape[1:3])} do not match "
+            f"{len(cameras)} cameras of {(cameras.height, cameras.width)}"
+        )
+    generator = torch.Generator().manual_seed(config.seed)
+    grid = VoxelGrid(config.resolutions[0], config.bbox_min, config.bbox_max, config.activation,
+                     init_density=config.init_density)
+    start_stage, start_iteration, resumed = 0, 0, None
+    if resume_from is not None:
+        tensors, meta = load_tensors(resume_from, kind="reconstruction_checkpoint", max_version=CHECKPOINT_FORMAT_VERSION)
+        grid = VoxelGrid.from_state(tensors, meta)
+        generator.set_state(tensors["rng_state"])
+        start_stage, start_iteration, resumed = meta["stage"], meta["iteration"], tensors
+
+    total = config.total_iterations
+    done = sum(config.iterations[:start_stage]) + start_iteration
+    for stage in range(start_stage, len(config.resolutions)):
+        if stage > start_stage or resumed is None:
+            if grid.resolution != (config.resolutions[stage],) * 3:
+                grid = grid.upsampled(config.resolutions[stage])
+        optimizer = _make_optimizer(grid, _learning_rate(config, stage, 0))
+        occupancy = grid.occupancy(config.render.sigma_threshold)
+        first = 0
+        if resumed is not None and stage == start_stage:
+            first = start_iteration
+            if first > 0:
+                optimizer.state[grid.features] = {
+                    "step": resumed["adam_step"].reshape(()).clone(),
+                    "exp_avg": resumed["adam_exp_avg"].clone(),
+                    "exp_avg_sq": resumed["adam_exp_avg_sq"].clone(),
+                }
+            occupancy.cells = resumed["occupancy"].bool()
+        origins, directions, targets = _stage_data(images, cameras, config.image_downsample[stage])
+        for iteration in range(first, config.iterations[stage]):
+            callbacks.check_cancel("reconstruct")
+            if iteration % config.occupancy_every == 0 and iteration != first:
+                occupancy = grid.occupancy(config.render.sigma_threshold)
+            for group in optimizer.param_groups:
+                group["lr"] = _learning_rate(config, stage, iteration)
+            batch = torch.randint(0, targets.shape[0], (config.rays_per_step,), generator=generator)
+            out = render_rays(grid, origins[batch], directions[batch], config.render, occupancy, generator)
+            loss = (out.rgb - targets[batch]).abs().mean()
+            optimizer.zero_grad(set_to_none=False)
+            loss.backward()
+            optimizer.step()
+            done += 1
+            callbacks.progress(Progress(
+                "reconstruct", done, total, {"l1": float(loss.detach())},
+                {"stage": stage, "resolution": config.resolutions[stage],
+                 "samples_per_ray": out.samples / config.rays_per_step},
+            ))
+            if checkpoint_path is not None and config.checkpoint_every and done % config.checkpoint_every == 0:
+                save_checkpoint(checkpoint_path, grid, optimizer, generator, occupancy.cells, stage, iteration + 1)
+                callbacks.checkpoint_written(str(checkpoint_path))
+    return grid
