@@ -87,12 +87,19 @@ class VoxelGrid(torch.nn.Module):
             features[..., 0] = init_density
         elif tuple(features.shape) != (*res, 4):
             raise ValueError(f"features of shape {tuple(features.shape)} do not fit resolution {res}")
-        self.features = torch.nn.Parameter(features.float().contiguous())
+        self._resolution = res
+        # Stored flat so a gather can return sparse gradients (see ``interpolate``).
+        self.flat_features = torch.nn.Parameter(features.float().reshape(-1, 4).contiguous())
 
     # ------------------------------------------------------------------ basics
     @property
+    def features(self) -> torch.Tensor:
+        """The raw features as an (X, Y, Z, 4) view of the flat parameter."""
+        return self.flat_features.view(*self._resolution, 4)
+
+    @property
     def resolution(self) -> tuple[int, int, int]:
-        return tuple(self.features.shape[:3])
+        return self._resolution
 
     @property
     def voxel_size(self) -> torch.Tensor:
@@ -116,12 +123,16 @@ class VoxelGrid(torch.nn.Module):
         return torch.sigmoid(raw)
 
     # ---------------------------------------------------------------- sampling
-    def interpolate(self, points: torch.Tensor, features: torch.Tensor | None = None) -> torch.Tensor:
+    def interpolate(
+        self, points: torch.Tensor, features: torch.Tensor | None = None, sparse_grad: bool = False
+    ) -> torch.Tensor:
         """Raw trilinear interpolation at world points (N, 3) -> (N, C).
 
         ``features`` (X, Y, Z, C) defaults to this grid's; attention grids pass
         their own scalar features over the same lattice. Points outside the box
-        are clamped onto it (the renderer only samples inside).
+        are clamped onto it (the renderer only samples inside). ``sparse_grad``
+        makes the gradient of this grid's features a sparse tensor holding only
+        the vertices touched, so a step costs what the batch saw, not the grid.
         """
         feats = self.features if features is None else features
         res = torch.tensor(self.resolution, device=points.device)
@@ -137,7 +148,8 @@ class VoxelGrid(torch.nn.Module):
         wy = torch.stack([1 - fy, fy], -1)
         wz = torch.stack([1 - fz, fz], -1)
         weights = (wx[:, :, None, None] * wy[:, None, :, None] * wz[:, None, None, :]).reshape(-1, 8)
-        values = feats.reshape(-1, feats.shape[-1])[flat_index.reshape(-1)].reshape(-1, 8, feats.shape[-1])
+        table = self.flat_features if features is None else feats.reshape(-1, feats.shape[-1])
+        values = F.embedding(flat_index, table, sparse=sparse_grad and features is None)
         return torch.einsum("nk,nkc->nc", weights, values)
 
     def query(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -161,8 +173,10 @@ class VoxelGrid(torch.nn.Module):
         activations are monotone, so the test is conservative: with ReLU and
         threshold 0 skipping is exact.
         """
-        raw = self.features[..., 0][None, None]
-        corner_max = F.max_pool3d(raw, kernel_size=2, stride=1)[0, 0]
+        raw = self.features[..., 0]
+        corner_max = torch.maximum(raw[:-1], raw[1:])
+        corner_max = torch.maximum(corner_max[:, :-1], corner_max[:, 1:])
+        corner_max = torch.maximum(corner_max[:, :, :-1], corner_max[:, :, 1:])
         cells = self.activate_density(corner_max) > sigma_threshold
         if cells.any():
             idx = cells.nonzero()

@@ -86,17 +86,67 @@ def _learning_rate(config: ReconstructConfig, stage: int, iteration: int) -> flo
     return lr * config.lr_drop_factor if iteration >= config.lr_drop_iteration else lr
 
 
-def _make_optimizer(grid: VoxelGrid, lr: float) -> torch.optim.Adam:
-    return torch.optim.Adam([grid.features], lr=lr, fused=True)
+class RowSparseAdam(torch.optim.Optimizer):
+    """Lazy Adam (as ``torch.optim.SparseAdam``) for one 2-D parameter with sparse row gradients.
+
+    The L1 loss reaches the grid only through sampled points, so dense Adam
+    would spend most of each step on empty space. Here a step costs the rows
+    the batch touched: gradients are summed into a persistent buffer and a
+    touched-row bitmap, and only those rows' moments and values change.
+    Moments of untouched rows are not decayed (the lazy-Adam semantics).
+    """
+
+    def __init__(self, param: torch.nn.Parameter, lr: float, betas=(0.9, 0.999), eps: float = 1e-8):
+        super().__init__([param], dict(lr=lr, betas=betas, eps=eps))
+        self.param = param
+        state = self.state[param]
+        state["step"] = 0
+        state["exp_avg"] = torch.zeros_like(param)
+        state["exp_avg_sq"] = torch.zeros_like(param)
+        self._grad_sum = torch.zeros_like(param)
+        self._touched = torch.zeros(param.shape[0], dtype=torch.bool, device=param.device)
+
+    @torch.no_grad()
+    def step(self, closure=None):
+        grad = self.param.grad
+        if grad is None:
+            return None
+        if grad.is_sparse:
+            index, values = grad._indices()[0], grad._values()
+            self._grad_sum.index_add_(0, index, values)
+            self._touched[index] = True
+            rows = self._touched.nonzero().squeeze(1)
+            g = self._grad_sum[rows]
+            self._grad_sum[rows] = 0
+            self._touched[rows] = False
+        else:
+            rows = torch.arange(self.param.shape[0], device=self.param.device)
+            g = grad
+        group, state = self.param_groups[0], self.state[self.param]
+        beta1, beta2 = group["betas"]
+        state["step"] += 1
+        step = state["step"]
+        m = state["exp_avg"][rows].mul_(beta1).add_(g, alpha=1 - beta1)
+        v = state["exp_avg_sq"][rows].mul_(beta2).addcmul_(g, g, value=1 - beta2)
+        state["exp_avg"][rows] = m
+        state["exp_avg_sq"][rows] = v
+        step_size = group["lr"] * (1 - beta2**step) ** 0.5 / (1 - beta1**step)
+        update = m / v.sqrt().add_(group["eps"] * (1 - beta2**step) ** 0.5)
+        self.param.index_add_(0, rows, update, alpha=-step_size)
+        return None
+
+
+def _make_optimizer(grid: VoxelGrid, lr: float) -> RowSparseAdam:
+    return RowSparseAdam(grid.flat_features, lr=lr)
 
 
 def save_checkpoint(path, grid, optimizer, generator, occupancy_cells, stage: int, iteration: int) -> None:
-    state = optimizer.state[grid.features]
+    state = optimizer.state[grid.flat_features]
     tensors = {
         **grid.state_tensors(),
         "adam_exp_avg": state["exp_avg"],
         "adam_exp_avg_sq": state["exp_avg_sq"],
-        "adam_step": state["step"].reshape(1),
+        "adam_step": torch.tensor([int(state["step"])]),
         "rng_state": generator.get_state(),
         "occupancy": occupancy_cells.to(torch.uint8),
     }
@@ -140,11 +190,11 @@ def reconstruct(
         if resumed is not None and stage == start_stage:
             first = start_iteration
             if first > 0:
-                optimizer.state[grid.features] = {
-                    "step": resumed["adam_step"].reshape(()).clone(),
-                    "exp_avg": resumed["adam_exp_avg"].clone(),
-                    "exp_avg_sq": resumed["adam_exp_avg_sq"].clone(),
-                }
+                optimizer.state[grid.flat_features].update(
+                    step=int(resumed["adam_step"]),
+                    exp_avg=resumed["adam_exp_avg"].clone(),
+                    exp_avg_sq=resumed["adam_exp_avg_sq"].clone(),
+                )
             occupancy.cells = resumed["occupancy"].bool()
         origins, directions, targets = _stage_data(images, cameras, config.image_downsample[stage])
         for iteration in range(first, config.iterations[stage]):
@@ -154,9 +204,11 @@ def reconstruct(
             for group in optimizer.param_groups:
                 group["lr"] = _learning_rate(config, stage, iteration)
             batch = torch.randint(0, targets.shape[0], (config.rays_per_step,), generator=generator)
-            out = render_rays(grid, origins[batch], directions[batch], config.render, occupancy, generator)
+            out = render_rays(
+                grid, origins[batch], directions[batch], config.render, occupancy, generator, sparse_grad=True
+            )
             loss = (out.rgb - targets[batch]).abs().mean()
-            optimizer.zero_grad(set_to_none=False)
+            optimizer.zero_grad()
             loss.backward()
             optimizer.step()
             done += 1

@@ -71,13 +71,14 @@ def render_rays(
     occupancy: Occupancy | None = None,
     generator: torch.Generator | None = None,
     color_features: torch.Tensor | None = None,
+    sparse_grad: bool = False,
 ) -> RenderOutput:
     """Render unit-direction rays through ``grid``.
 
     ``generator`` turns on stratified jitter (one uniform offset per ray, for
     training). ``color_features`` (X, Y, Z, C) replaces the grid's colour with
     other raw features, rendered without activation over the grid's density
-    (the 3D attention grids use it).
+    (the 3D attention grids use it). ``sparse_grad``: see ``VoxelGrid.interpolate``.
     """
     device = origins.device
     n_rays = origins.shape[0]
@@ -87,13 +88,21 @@ def render_rays(
         background = background.expand(channels)
     if config.skip_empty and occupancy is None:
         occupancy = grid.occupancy(config.sigma_threshold)
-    if config.skip_empty:
-        box_min, box_max = occupancy.bbox_min.to(device), occupancy.bbox_max.to(device)
-    else:
-        box_min, box_max = grid.bbox_min, grid.bbox_max
     step = float(config.step_ratio * grid.voxel_size.min())
-    t_near, t_far = ray_box_intersection(origins, directions, box_min, box_max)
-    n_steps = torch.ceil((t_far - t_near) / step).clamp_min(0).long()
+    # Samples sit on one lattice per ray anchored at the grid box, so skipping
+    # only drops samples and never moves them: with ReLU it is exact.
+    t_near, t_far = ray_box_intersection(origins, directions, grid.bbox_min, grid.bbox_max)
+    n_total = torch.ceil((t_far - t_near) / step).clamp_min(0).long()
+    first = torch.zeros_like(n_total)
+    last = n_total
+    if config.skip_empty:
+        tight_near, tight_far = ray_box_intersection(
+            origins, directions, occupancy.bbox_min.to(device), occupancy.bbox_max.to(device)
+        )
+        hit = tight_far > tight_near
+        first = torch.where(hit, ((tight_near - t_near) / step).floor().long().clamp_min(0), first)
+        last = torch.where(hit, torch.minimum(((tight_far - t_near) / step).ceil().long(), n_total), first)
+    n_steps = (last - first).clamp_min(0)
     if generator is not None:
         offset = torch.rand(n_rays, generator=generator, device=device)
     else:
@@ -115,9 +124,9 @@ def render_rays(
         rays = live.nonzero().squeeze(-1)
         if rays.numel() == 0:
             break
-        k = start + window  # (W,)
-        valid = k[None, :] < n_steps[rays, None]  # (A, W)
-        t = t_near[rays, None] + (k[None, :] + offset[rays, None]) * step
+        k = first[rays, None] + start + window[None, :]  # (A, W) lattice indices
+        valid = k < last[rays, None]
+        t = t_near[rays, None] + (k + offset[rays, None]) * step
         points = origins[rays, None, :] + t[..., None] * directions[rays, None, :]
         if config.skip_empty:
             cell = ((points - grid.bbox_min) / cell_extent).floor().long()
@@ -127,14 +136,14 @@ def render_rays(
         if n_valid == 0:
             continue
         samples += n_valid
-        raw = grid.interpolate(points[valid])
+        raw = grid.interpolate(points[valid], sparse_grad=sparse_grad)
         sigma = grid.activate_density(raw[:, 0])
         color = grid.activate_color(raw[:, 1:]) if color_features is None else grid.interpolate(
             points[valid], color_features
         )
         optical = torch.zeros(valid.shape, device=device, dtype=sigma.dtype)
         # The last segment of a ray is cut at the box exit so path lengths are exact.
-        delta = (t_far[rays, None] - t_near[rays, None] - k[None, :] * step).clamp(0.0, step)[valid]
+        delta = (t_far[rays, None] - t_near[rays, None] - k * step).clamp(0.0, step)[valid]
         optical = optical.index_put(valid.nonzero(as_tuple=True), (sigma * delta).clamp(max=MAX_SAMPLE_OPTICAL_DEPTH))
         inclusive = optical.cumsum(-1)
         t_before = transmittance[rays, None] * torch.exp(-(inclusive - optical))

@@ -1,0 +1,208 @@
+"""Renderer against analytic answers: slabs, empty grids, a sphere's silhouette, gradients, skipping."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from voxe_core.cameras import Cameras, camera_rays, look_at
+from voxe_core.grid import VoxelGrid
+from voxe_core.render import RenderConfig, ray_box_intersection, render_image, render_rays
+from voxe_core.tensorio import FormatError, save_tensors
+
+
+def uniform_grid(raw_density: float, resolution: int = 8, color_logit: float = 0.0, **kwargs) -> VoxelGrid:
+    grid = VoxelGrid(resolution, init_density=raw_density, **kwargs)
+    with torch.no_grad():
+        grid.features[..., 1:] = color_logit
+    return grid
+
+
+def sphere_grid(resolution=48, radius=0.8, inside=5.0, outside=-1.0) -> VoxelGrid:
+    grid = VoxelGrid(resolution)
+    axis = torch.linspace(-1.5, 1.5, resolution)
+    x, y, z = torch.meshgrid(axis, axis, axis, indexing="ij")
+    inside_mask = (x**2 + y**2 + z**2).sqrt() < radius
+    with torch.no_grad():
+        grid.features[..., 0] = torch.where(inside_mask, inside, outside)
+    return grid
+
+
+@pytest.mark.parametrize(
+    "origin,direction",
+    [
+        ((-3.0, 0.1, 0.2), (1.0, 0.0, 0.0)),  # axis-parallel, full 3-unit chord
+        ((-3.0, -3.0, 0.3), (1.0, 1.0, 0.0)),  # diagonal in a plane
+        ((0.2, -0.4, 4.0), (0.0, 0.0, -1.0)),  # from above
+    ],
+)
+def test_uniform_slab_transmittance_is_exp_minus_sigma_length(origin, direction):
+    grid = uniform_grid(0.01)
+    sigma = 0.01 * grid.density_scale
+    o = torch.tensor([origin])
+    d = torch.nn.functional.normalize(torch.tensor([direction]), dim=-1)
+    t_near, t_far = ray_box_intersection(o, d, grid.bbox_min, grid.bbox_max)
+    length = float(t_far - t_near)
+    for skip in (True, False):
+        out = render_rays(grid, o, d, RenderConfig(background=(0.0, 0.0, 0.0), skip_empty=skip))
+        assert out.opacity.item() == pytest.approx(1 - math.exp(-sigma * length), abs=1e-5)
+        # Uniform colour logit 0 -> sigmoid 0.5 on a black background.
+        assert out.rgb[0, 0].item() == pytest.approx(0.5 * (1 - math.exp(-sigma * length)), abs=1e-5)
+
+
+def test_slab_chord_lengths_are_exact_for_known_geometry():
+    o = torch.tensor([[-3.0, 0.0, 0.0], [0.0, 0.0, 0.0], [-3.0, 2.0, 0.0]])
+    d = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    t_near, t_far = ray_box_intersection(o, d, torch.full((3,), -1.5), torch.full((3,), 1.5))
+    assert torch.allclose(t_far - t_near, torch.tensor([3.0, 1.5, -2.0]).clamp_min(-10), atol=1e-6) or (
+        t_far[2] <= t_near[2]
+    )
+    assert float(t_far[0] - t_near[0]) == pytest.approx(3.0)
+    assert float(t_far[1] - t_near[1]) == pytest.approx(1.5)  # camera inside: starts at 0
+    assert t_far[2] <= t_near[2]  # misses the box
+
+
+def test_empty_grid_renders_the_background_exactly_with_no_samples():
+    grid = uniform_grid(-1.0)
+    cams = Cameras.from_fov(look_at(torch.tensor([[0.0, -4.0, 1.0]])), 0.7, 16, 12)
+    for background in [(1.0, 1.0, 1.0), (0.2, 0.4, 0.6)]:
+        out = render_image(grid, cams, 0, RenderConfig(background=background))
+        assert torch.equal(out.rgb, torch.tensor(background).expand(12, 16, 3))
+        assert out.samples == 0
+        assert torch.equal(out.depth, torch.zeros(12, 16))
+
+
+def test_sphere_silhouette_matches_the_analytic_disc():
+    radius = 0.8
+    grid = sphere_grid(radius=radius)
+    distance = 4.0
+    cams = Cameras.from_fov(look_at(torch.tensor([[0.0, -distance, 0.0]])), 0.8, 48, 48)
+    out = render_image(grid, cams, 0, RenderConfig(background=(1.0, 1.0, 1.0)))
+    origins, directions = camera_rays(cams, 0)
+    # Distance from the sphere centre to each pixel's ray.
+    miss_distance = torch.linalg.cross(directions, -origins, dim=-1).norm(dim=-1).reshape(48, 48)
+    voxel = float(grid.voxel_size[0])
+    inside = miss_distance < radius - 1.5 * voxel
+    outside = miss_distance > radius + 1.5 * voxel
+    assert inside.sum() > 200 and outside.sum() > 200
+    assert out.opacity[inside].min() > 0.99
+    assert out.opacity[outside].max() < 1e-6
+    # The front surface sits at distance - radius along the central ray.
+    assert out.depth[24, 24].item() == pytest.approx(distance - radius, abs=1.5 * voxel)
+
+
+def test_skipping_matches_the_dense_path_on_a_sparse_grid():
+    torch.manual_seed(0)
+    grid = sphere_grid(resolution=32, radius=0.6)
+    with torch.no_grad():
+        grid.features[..., 0] += 0.3 * torch.randn(32, 32, 32).clamp_max(0)  # ragged, still sparse
+        grid.features[..., 1:] = torch.randn(32, 32, 32, 3)
+    cams = Cameras.from_fov(look_at(torch.tensor([[1.0, -3.5, 1.5]])), 0.9, 24, 24)
+    exact = RenderConfig(sigma_threshold=0.0, early_stop=0.0)
+    dense = render_image(grid, cams, 0, RenderConfig(skip_empty=False, early_stop=0.0))
+    sparse = render_image(grid, cams, 0, exact)
+    assert sparse.samples * 3 < dense.samples
+    assert torch.allclose(sparse.rgb, dense.rgb, atol=2e-5)
+    default = render_image(grid, cams, 0, RenderConfig())
+    assert torch.allclose(default.rgb, dense.rgb, atol=1e-3)
+
+
+def test_gradient_matches_finite_differences():
+    torch.manual_seed(1)
+    grid = VoxelGrid(4, activation="softplus")
+    with torch.no_grad():
+        grid.features.copy_(0.05 * torch.randn(4, 4, 4, 4))
+    o = torch.tensor([[-3.0, 0.13, -0.21], [0.31, -3.0, 0.07]])
+    d = torch.nn.functional.normalize(torch.tensor([[1.0, 0.1, 0.05], [0.05, 1.0, -0.1]]), dim=-1)
+    config = RenderConfig(skip_empty=False, early_stop=0.0)
+    weights = torch.tensor([[0.3, -0.7, 0.2], [1.0, 0.4, -0.5]])
+
+    def objective() -> torch.Tensor:
+        return (render_rays(grid, o, d, config).rgb * weights).sum()
+
+    objective().backward()
+    analytic = grid.flat_features.grad.view(4, 4, 4, 4).clone()
+    eps = 1e-3
+    flat = grid.flat_features.data.view(-1)
+    picks = analytic.view(-1).abs().argsort(descending=True)[:12]
+    for index in picks.tolist():
+        saved = flat[index].item()
+        with torch.no_grad():
+            flat[index] = saved + eps
+            plus = objective().item()
+            flat[index] = saved - eps
+            minus = objective().item()
+            flat[index] = saved
+        numeric = (plus - minus) / (2 * eps)
+        assert numeric == pytest.approx(analytic.view(-1)[index].item(), rel=2e-2, abs=1e-4)
+
+
+def test_camera_inside_the_box_and_non_finite_rays():
+    grid = uniform_grid(0.02)
+    sigma = 0.02 * grid.density_scale
+    o = torch.tensor([[0.0, 0.0, 0.0], [float("nan"), 0.0, 0.0], [1.5, 0.0, 0.0]])
+    d = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+    out = render_rays(grid, o, d, RenderConfig(background=(0.0, 0.0, 0.0)))
+    assert out.opacity[0].item() == pytest.approx(1 - math.exp(-sigma * 1.5), abs=1e-5)
+    assert out.opacity[1].item() == 0.0 and torch.isfinite(out.rgb).all()
+    assert out.opacity[2].item() == pytest.approx(1 - math.exp(-sigma * 3.0), abs=1e-5)  # on the surface
+
+
+def test_saturated_density_has_finite_values_and_gradients():
+    grid = uniform_grid(1e6)
+    o, d = torch.tensor([[-3.0, 0.0, 0.0]]), torch.tensor([[1.0, 0.0, 0.0]])
+    out = render_rays(grid, o, d, RenderConfig(background=(1.0, 1.0, 1.0)))
+    out.rgb.sum().backward()
+    assert out.opacity.item() == pytest.approx(1.0)
+    assert out.rgb[0, 0].item() == pytest.approx(0.5, abs=1e-6)
+    assert out.depth.item() == pytest.approx(1.5, abs=float(grid.voxel_size[0]))
+    assert torch.isfinite(grid.flat_features.grad).all()
+
+
+def test_occupancy_is_exact_for_relu_and_reports_the_tight_box():
+    grid = sphere_grid(resolution=32, radius=0.5)
+    occupancy = grid.occupancy(sigma_threshold=0.0)
+    assert 0.01 < occupancy.fraction < 0.1
+    assert torch.all(occupancy.bbox_min > -0.8) and torch.all(occupancy.bbox_max < 0.8)
+    assert torch.all(occupancy.bbox_min < -0.45) and torch.all(occupancy.bbox_max > 0.45)
+    # Every point in an unoccupied cell has zero density.
+    points = torch.rand(20000, 3) * 3 - 1.5
+    sigma, _ = grid.query(points)
+    cell = ((points + 1.5) / grid.voxel_size).floor().long().clamp(0, 30)
+    unoccupied = ~occupancy.cells[cell[:, 0], cell[:, 1], cell[:, 2]]
+    assert unoccupied.sum() > 1000
+    assert torch.all(sigma[unoccupied] == 0)
+
+
+def test_grid_save_load_round_trip_and_version_check(tmp_path):
+    grid = sphere_grid(resolution=12)
+    grid = VoxelGrid(12, (-2, -1, -1), (2, 1, 1), "softplus", features=grid.features.detach() + 0.25)
+    path = tmp_path / "grid.safetensors"
+    grid.save(path)
+    loaded = VoxelGrid.load(path)
+    assert torch.equal(loaded.features, grid.features)
+    assert loaded.activation == "softplus" and loaded.density_scale == grid.density_scale
+    assert torch.equal(loaded.bbox_min, grid.bbox_min) and torch.equal(loaded.bbox_max, grid.bbox_max)
+    assert path.read_bytes()[:8] != b"\x80\x02\x80\x03"[:8]  # not a pickle
+    newer = tmp_path / "newer.safetensors"
+    save_tensors(newer, grid.state_tensors(), kind="voxel_grid", version=99, meta=grid.header())
+    with pytest.raises(FormatError, match="format version 99 is newer"):
+        VoxelGrid.load(newer)
+    junk = tmp_path / "junk.safetensors"
+    junk.write_bytes(b"not a tensor file")
+    with pytest.raises(FormatError, match="junk.safetensors"):
+        VoxelGrid.load(junk)
+
+
+def test_upsampling_preserves_trilinear_fields():
+    grid = VoxelGrid(5)
+    axis = torch.linspace(-1.5, 1.5, 5)
+    x, y, z = torch.meshgrid(axis, axis, axis, indexing="ij")
+    with torch.no_grad():
+        grid.features[..., 0] = 0.1 * x + 0.2 * y - 0.3 * z  # linear: reproduced exactly
+    up = grid.upsampled(9)
+    points = torch.rand(100, 3) * 3 - 1.5
+    assert torch.allclose(up.interpolate(points)[:, 0], grid.interpolate(points)[:, 0], atol=1e-5)
+    assert up.resolution == (9, 9, 9)
