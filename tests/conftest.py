@@ -1,0 +1,56 @@
+"""Shared test fixtures: where the shared data lives, and analytic grids built in code."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from voxe_core.grid import VoxelGrid
+
+# The repository sits beside ``shared/`` (locally /work/main and /work/shared; CI clones the same way).
+DATA_ROOT = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+MIC = DATA_ROOT / "nerf_synthetic_mic"
+
+SPHERE_RADIUS = 0.8
+RED_LOGITS = (4.0, -4.0, -4.0)  # sigmoid -> (0.982, 0.018, 0.018), uint8 (250, 5, 5)
+
+
+def make_sphere_grid(
+    resolution: int = 32,
+    radius: float = SPHERE_RADIUS,
+    center=(0.0, 0.0, 0.0),
+    color_logits=RED_LOGITS,
+    slope: float = 5.0,
+) -> VoxelGrid:
+    """A solid sphere: raw density ``slope`` per voxel of depth inside (> 0), negative outside.
+
+    The raw density is linear in the signed distance, so the level set of any
+    positive density is a sphere a known fraction of a voxel inside ``radius``.
+    """
+    grid = VoxelGrid(resolution)
+    axes = [torch.linspace(float(grid.bbox_min[d]), float(grid.bbox_max[d]), resolution) for d in range(3)]
+    x, y, z = torch.meshgrid(*axes, indexing="ij")
+    distance = ((x - center[0]) ** 2 + (y - center[1]) ** 2 + (z - center[2]) ** 2).sqrt()
+    with torch.no_grad():
+        grid.features[..., 0] = slope * (radius - distance) / float(grid.voxel_size.min())
+        grid.features[..., 1:] = torch.tensor(color_logits)
+    return grid
+
+
+@pytest.fixture
+def data_root() -> Path:
+    return DATA_ROOT
+
+
+@pytest.fixture
+def sphere_grid() -> VoxelGrid:
+    """32³ red sphere of radius 0.8 at the origin."""
+    return make_sphere_grid()
+
+
+@pytest.fixture(name="make_sphere_grid")
+def make_sphere_grid_fixture():
+    """The sphere factory, for tests that need another radius, centre or resolution."""
+    return make_sphere_grid

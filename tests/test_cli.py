@@ -1,0 +1,223 @@
+"""The ``voxe`` CLI end to end, in-process (plus one real subprocess), on tiny settings."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import imageio.v2 as imageio
+import numpy as np
+import pytest
+import torch
+import trimesh
+from PIL import Image
+
+import voxe_core.reconstruct
+from voxe_core.cli import main
+from voxe_core.data import load_scene
+from voxe_core.export import render_views
+from voxe_core.grid import VoxelGrid
+from voxe_core.metrics import psnr, ssim
+
+DATA_ROOT = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+MIC = DATA_ROOT / "nerf_synthetic_mic"
+REPO = Path(__file__).resolve().parents[1]
+
+needs_mic = pytest.mark.skipif(not MIC.is_dir(), reason=f"shared data missing under {DATA_ROOT}")
+
+# 4 training views of 50x50, 8³ -> 15³ -> 24³ with 3/3/4 iterations of 512 rays: about two seconds.
+TINY = ["--downsample", "16", "--max-images", "4", "--resolution", "24", "--iterations", "3,3,4",
+        "--rays", "512", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("fit") / "grid.safetensors"
+    assert main(["reconstruct", str(MIC), "--out", str(out), *TINY]) == 0
+    return out
+
+
+@pytest.fixture
+def sphere_file(sphere_grid, tmp_path) -> Path:
+    path = tmp_path / "sphere.safetensors"
+    sphere_grid.save(path)
+    return path
+
+
+# ---------------------------------------------------------------- reconstruct
+@needs_mic
+def test_reconstruct_writes_a_loadable_grid_with_the_asked_schedule(fitted, capsys):
+    grid = VoxelGrid.load(fitted)
+    assert grid.resolution == (24, 24, 24)
+    assert torch.isfinite(grid.features).all()
+    # It trained: the initial uniform raw density 0.01 is gone.
+    assert not torch.allclose(grid.features[..., 0], torch.full((24, 24, 24), 0.01))
+
+
+@needs_mic
+def test_reconstruct_reports_stats(tmp_path, capsys):
+    out = tmp_path / "g.safetensors"
+    args = ["--downsample", "16", "--max-images", "2", "--resolution", "24", "--iterations", "1,1,1", "--rays", "64"]
+    assert main(["reconstruct", str(MIC), "--out", str(out), *args]) == 0
+    captured = capsys.readouterr()
+    fraction = float(captured.out.split("occupied fraction")[1].split()[0])
+    assert fraction == pytest.approx(VoxelGrid.load(out).occupancy().fraction, abs=1e-4)
+    assert "fitting 2 train images of 50x50" in captured.err
+    assert "resolutions [8, 15, 24]" in captured.err and "iterations [1, 1, 1]" in captured.err
+    assert "reconstruct: 100%" in captured.err  # the progress bar ran to the end
+
+
+@needs_mic
+def test_ctrl_c_cancels_cleanly_and_resume_finishes_the_same_fit(fitted, tmp_path, monkeypatch, capsys):
+    real = voxe_core.reconstruct.reconstruct
+    seen = []
+
+    def interrupted(images, cameras, config, callbacks, checkpoint_path, resume_from):
+        report = callbacks.on_progress
+
+        def on_progress(p):
+            seen.append(p.iteration)
+            report(p)
+            if p.iteration == 5:
+                os.kill(os.getpid(), signal.SIGINT)  # what Ctrl-C does
+
+        callbacks.on_progress = on_progress
+        return real(images, cameras, config, callbacks, checkpoint_path, resume_from)
+
+    monkeypatch.setattr(voxe_core.reconstruct, "reconstruct", interrupted)
+    out, ck = tmp_path / "g.safetensors", tmp_path / "ck.safetensors"
+    previous_handler = signal.getsignal(signal.SIGINT)
+    code = main(["reconstruct", str(MIC), "--out", str(out), "--checkpoint", str(ck), "--checkpoint-every", "2", *TINY])
+    assert code == 130
+    assert seen == [1, 2, 3, 4, 5]  # stopped at the next cancellation check
+    assert not out.exists() and ck.is_file()
+    err = capsys.readouterr().err
+    assert "cancelled" in err and f"--resume {ck}" in err and "Traceback" not in err
+    assert signal.getsignal(signal.SIGINT) is previous_handler  # handler restored
+
+    monkeypatch.setattr(voxe_core.reconstruct, "reconstruct", real)
+    assert main(["reconstruct", str(MIC), "--out", str(out), "--resume", str(ck), *TINY]) == 0
+    resumed, uninterrupted = VoxelGrid.load(out), VoxelGrid.load(fitted)
+    assert torch.allclose(resumed.features, uninterrupted.features, atol=1e-5)
+
+
+def test_bad_data_dir_exits_2_with_a_message(tmp_path, capsys):
+    missing = tmp_path / "no_such_scene"
+    assert main(["reconstruct", str(missing), "--out", str(tmp_path / "g.safetensors")]) == 2
+    err = capsys.readouterr().err
+    assert str(missing) in err and "not a folder" in err and "Traceback" not in err
+
+    (tmp_path / "scene").mkdir()
+    (tmp_path / "scene" / "transforms_train.json").write_text("{not json")
+    assert main(["reconstruct", str(tmp_path / "scene"), "--out", str(tmp_path / "g.safetensors")]) == 2
+    assert "transforms_train.json" in capsys.readouterr().err
+
+
+def test_bad_option_values_exit_2(tmp_path, capsys):
+    args = ["reconstruct", str(tmp_path), "--out", str(tmp_path / "g.safetensors")]
+    assert main([*args, "--iterations", "1,2"]) == 2  # fast preset has 3 stages
+    assert "one per stage (3 stages)" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:  # argparse's own usage errors are exit 2 as well
+        main([*args, "--preset", "slow"])
+    assert exc.value.code == 2
+
+
+def test_cli_as_a_real_process_has_no_traceback(tmp_path):
+    result = subprocess.run(
+        [sys.executable, "-m", "voxe_core.cli", "export-mesh", str(tmp_path / "missing.safetensors"),
+         "--out", str(tmp_path / "m.ply")],
+        cwd=REPO, capture_output=True, text=True, timeout=120,
+    )
+    assert result.returncode == 2
+    assert "missing.safetensors: no such file" in result.stderr and "Traceback" not in result.stderr
+
+
+# --------------------------------------------------------------------- render
+@needs_mic
+def test_render_dataset_views_writes_pngs_and_metrics(sphere_grid, sphere_file, tmp_path, capsys):
+    out = tmp_path / "views"
+    assert main(["render", str(sphere_file), "--data", str(MIC), "--split", "test", "--downsample", "16",
+                 "--max-images", "2", "--out", str(out), "--quiet"]) == 0
+    scene = load_scene(MIC, "test", 16, 2)
+    expected = render_views(sphere_grid, scene.cameras)
+    pngs = sorted(out.glob("*.png"))
+    assert [p.name for p in pngs] == ["000_r_0.png", "001_r_10.png"]  # named after the split's frames
+    for png, frame in zip(pngs, expected):
+        written = np.asarray(Image.open(png)) / 255.0
+        assert np.abs(written - frame.numpy()).max() <= 0.5 / 255 + 1e-6  # the right cameras, size and grid
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["psnr"] == pytest.approx(float(psnr(expected, scene.images).mean()), abs=1e-4)
+    assert metrics["ssim"] == pytest.approx(float(ssim(expected, scene.images).mean()), abs=1e-4)
+    assert f"PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}" in capsys.readouterr().out
+
+
+def test_render_ring(sphere_file, tmp_path):
+    out = tmp_path / "ring"
+    assert main(["render", str(sphere_file), "--ring", "3", "--size", "16", "--out", str(out), "--quiet"]) == 0
+    pngs = sorted(out.glob("*.png"))
+    assert len(pngs) == 3 and not (out / "metrics.json").exists()
+    image = np.asarray(Image.open(pngs[0]))
+    assert image.shape == (16, 16, 3)
+    assert image[8, 8, 0] > 230 and image[8, 8, 1] < 25 and (image[0, 0] == 255).all()
+
+
+def test_render_needs_exactly_one_camera_source(sphere_file, tmp_path):
+    with pytest.raises(SystemExit) as exc:
+        main(["render", str(sphere_file), "--out", str(tmp_path)])
+    assert exc.value.code == 2
+
+
+# ------------------------------------------------------------- turntable, mesh
+def test_turntable_mp4_is_playable_with_the_right_frame_count(sphere_file, tmp_path):
+    out = tmp_path / "tt.mp4"
+    assert main(["turntable", str(sphere_file), "--out", str(out), "--frames", "6", "--size", "24", "--quiet"]) == 0
+    reader = imageio.get_reader(out, format="FFMPEG")
+    frames = [f for f in reader]
+    reader.close()
+    assert len(frames) == 6 and frames[0].shape == (24, 24, 3)
+    centre = frames[0][12, 12].astype(int)
+    assert centre[0] > 200 and centre[1] < 60  # the red sphere in the middle
+
+
+def test_turntable_gif_and_bad_suffix(make_sphere_grid, sphere_file, tmp_path, capsys):
+    # Off-centre, so the frames differ (Pillow folds identical consecutive GIF frames together).
+    moving = tmp_path / "moving.safetensors"
+    make_sphere_grid(resolution=24, radius=0.4, center=(0.6, 0.0, 0.0)).save(moving)
+    gif = tmp_path / "tt.gif"
+    assert main(["turntable", str(moving), "--out", str(gif), "--frames", "3", "--size", "16", "--fps", "5",
+                 "--quiet"]) == 0
+    with Image.open(gif) as im:
+        assert im.size == (16, 16) and im.n_frames == 3
+        assert im.info["loop"] == 0 and im.info["duration"] == 200
+    assert main(["turntable", str(sphere_file), "--out", str(tmp_path / "tt.webm"), "--quiet"]) == 2
+    assert "'.webm'" in capsys.readouterr().err
+
+
+def test_export_mesh_ply_and_glb(sphere_grid, sphere_file, tmp_path, capsys):
+    ply = tmp_path / "m.ply"
+    assert main(["export-mesh", str(sphere_file), "--out", str(ply)]) == 0
+    mesh = trimesh.load(ply, process=False)
+    voxel = float(sphere_grid.voxel_size.min())
+    assert np.abs(np.linalg.norm(mesh.vertices, axis=1) - 0.8).mean() < voxel
+    assert f"{len(mesh.vertices)} vertices" in capsys.readouterr().out
+    glb = tmp_path / "m.glb"
+    assert main(["export-mesh", str(sphere_file), "--out", str(glb), "--resolution", "48"]) == 0
+    assert len(trimesh.load(glb, force="mesh").vertices) > len(mesh.vertices)
+
+
+def test_export_mesh_errors_exit_2(sphere_file, tmp_path, capsys):
+    empty = tmp_path / "empty.safetensors"
+    VoxelGrid(8, init_density=-1.0).save(empty)
+    assert main(["export-mesh", str(empty), "--out", str(tmp_path / "m.ply")]) == 2
+    assert "grid has no surface at level" in capsys.readouterr().err
+    not_a_grid = tmp_path / "junk.safetensors"
+    not_a_grid.write_bytes(b"definitely not safetensors")
+    assert main(["export-mesh", str(not_a_grid), "--out", str(tmp_path / "m.ply")]) == 2
+    assert "not a readable safetensors file" in capsys.readouterr().err
+    assert main(["export-mesh", str(sphere_file), "--out", str(tmp_path / "m.stl")]) == 2
+    assert "'.stl'" in capsys.readouterr().err
+    assert not (tmp_path / "m.ply").exists()

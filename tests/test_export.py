@@ -1,0 +1,229 @@
+"""Export: PNG, batched renders, turntable cameras, MP4/GIF, marching-cubes meshes and mesh files."""
+
+from __future__ import annotations
+
+import math
+
+import imageio.v2 as imageio
+import numpy as np
+import pytest
+import torch
+import trimesh
+from PIL import Image
+
+from voxe_core.cameras import Cameras, look_at
+from voxe_core.export import (
+    default_mesh_level,
+    extract_mesh,
+    render_views,
+    save_mesh,
+    save_png,
+    turntable_cameras,
+    write_video,
+)
+from voxe_core.grid import VoxelGrid
+from voxe_core.progress import Callbacks, StageCancelled
+from voxe_core.render import RenderConfig, render_image
+
+R = 0.8
+
+
+def gradient_frames(n: int, h: int, w: int) -> torch.Tensor:
+    """Frames that fade from blue to red, so each frame differs and colours are checkable."""
+    t = torch.linspace(0, 1, n)[:, None, None]
+    frames = torch.zeros(n, h, w, 3)
+    frames[..., 0] = t
+    frames[..., 2] = 1 - t
+    return frames
+
+
+# ------------------------------------------------------------------------ PNG
+def test_png_round_trip_rounds_and_clamps(tmp_path):
+    image = torch.tensor([[[0.0, 0.5, 1.0], [-0.2, 1.3, 0.502]], [[0.1, 0.2, 0.3], [1.0, 1.0, 1.0]]])
+    save_png(tmp_path / "sub" / "a.png", image)
+    back = np.asarray(Image.open(tmp_path / "sub" / "a.png"))
+    assert back.dtype == np.uint8 and back.shape == (2, 2, 3)
+    expected = np.array([[[0, 128, 255], [0, 255, 128]], [[26, 51, 76], [255, 255, 255]]], dtype=np.uint8)
+    assert np.array_equal(back, expected)
+
+
+def test_png_rgba_and_bad_shape(tmp_path):
+    rgba = torch.rand(5, 6, 4, generator=torch.Generator().manual_seed(0))
+    save_png(tmp_path / "rgba.png", rgba)
+    back = np.asarray(Image.open(tmp_path / "rgba.png"))
+    assert back.shape == (5, 6, 4)
+    assert np.abs(back / 255.0 - rgba.numpy()).max() <= 0.5 / 255 + 1e-6
+    with pytest.raises(ValueError, match="H, W, 3"):
+        save_png(tmp_path / "bad.png", torch.zeros(5, 6, 2))
+
+
+# -------------------------------------------------------------------- renders
+def test_turntable_cameras_ring_geometry():
+    cams = turntable_cameras(n_frames=8, elevation_deg=30.0, size=40)
+    assert len(cams) == 8 and (cams.width, cams.height) == (40, 40)
+    eye = cams.c2w[:, :3, 3]
+    assert torch.allclose(eye.norm(dim=-1), torch.full((8,), 4.0311), atol=1e-4)
+    assert torch.allclose(eye[:, 2], torch.full((8,), 4.0311 * math.sin(math.radians(30))), atol=1e-4)
+    azimuth = torch.rad2deg(torch.atan2(eye[:, 1], eye[:, 0])) % 360
+    assert torch.allclose(azimuth, torch.arange(8) * 45.0, atol=1e-3)
+    # Every camera looks at the origin (-z axis towards it) with the NeRF-synthetic focal length.
+    forward = -cams.c2w[:, :3, 2]
+    assert torch.allclose(forward, -eye / eye.norm(dim=-1, keepdim=True), atol=1e-5)
+    assert torch.allclose(cams.fx, torch.full((8,), 0.5 * 40 / math.tan(0.5 * 0.6911)), rtol=1e-4)
+
+
+def test_render_views_matches_render_image_and_shows_the_sphere(sphere_grid):
+    cams = turntable_cameras(n_frames=3, elevation_deg=20.0, size=20)
+    seen = []
+    frames = render_views(sphere_grid, cams, RenderConfig(), Callbacks(on_progress=lambda p: seen.append(p.iteration)))
+    assert frames.shape == (3, 20, 20, 3)
+    assert seen == [1, 2, 3]
+    for i in range(3):
+        assert torch.allclose(frames[i], render_image(sphere_grid, cams, i).rgb, atol=1e-6)
+    centre, corner = frames[:, 10, 10], frames[:, 0, 0]
+    assert (centre[:, 0] > 0.9).all() and (centre[:, 1:] < 0.1).all()  # the red sphere
+    assert torch.allclose(corner, torch.ones(3, 3), atol=1e-4)  # white background
+
+
+def test_render_views_can_be_cancelled(sphere_grid):
+    cams = turntable_cameras(n_frames=4, size=8)
+    with pytest.raises(StageCancelled):
+        render_views(sphere_grid, cams, callbacks=Callbacks(should_cancel=lambda: True))
+
+
+# --------------------------------------------------------------------- videos
+def read_mp4(path):
+    reader = imageio.get_reader(path, format="FFMPEG")
+    try:
+        return [frame for frame in reader], reader.get_meta_data()
+    finally:
+        reader.close()
+
+
+def test_mp4_is_playable_with_even_size_and_right_colours(tmp_path):
+    frames = gradient_frames(7, 31, 33)  # odd sizes must be padded for yuv420p
+    path = write_video(tmp_path / "v.mp4", frames, fps=12)
+    decoded, meta = read_mp4(path)
+    assert len(decoded) == 7
+    assert decoded[0].shape == (32, 34, 3)
+    assert meta["fps"] == pytest.approx(12.0)
+    assert meta["codec"] == "h264" and meta["pix_fmt"].startswith("yuv420p")
+    first, last = decoded[0].astype(int), decoded[-1].astype(int)
+    assert first[16, 17, 2] > 240 and first[16, 17, 0] < 15  # blue
+    assert last[16, 17, 0] > 240 and last[16, 17, 2] < 15  # red
+    # The padding replicates the edge rather than adding black bars.
+    assert abs(first[31, 33, 2] - 255) < 20
+
+
+def test_gif_frames_loop_and_duration(tmp_path):
+    write_video(tmp_path / "v.gif", gradient_frames(5, 12, 10), fps=10)
+    with Image.open(tmp_path / "v.gif") as gif:
+        assert gif.n_frames == 5
+        assert gif.size == (10, 12)
+        assert gif.info["loop"] == 0
+        assert gif.info["duration"] == 100
+        gif.seek(4)
+        r, g, b = gif.convert("RGB").getpixel((5, 5))
+        assert r > 240 and b < 15
+
+
+def test_video_rejects_unknown_suffix_and_bad_frames(tmp_path):
+    with pytest.raises(ValueError, match=r"'\.avi'"):
+        write_video(tmp_path / "v.avi", gradient_frames(2, 4, 4))
+    with pytest.raises(ValueError, match="N, H, W, 3"):
+        write_video(tmp_path / "v.mp4", torch.zeros(0, 4, 4, 3))
+    assert not (tmp_path / "v.avi").exists()
+
+
+# ---------------------------------------------------------------------- meshes
+def test_default_level_is_half_opacity_over_one_voxel(sphere_grid):
+    level = default_mesh_level(sphere_grid)
+    voxel = float(sphere_grid.voxel_size.min())
+    assert 1 - math.exp(-level * voxel) == pytest.approx(0.5)
+
+
+def test_sphere_mesh_radius_colour_and_closure(sphere_grid):
+    mesh = extract_mesh(sphere_grid)
+    voxel = float(sphere_grid.voxel_size.min())
+    radius = np.linalg.norm(mesh.vertices, axis=1)
+    assert len(mesh.vertices) > 500
+    assert np.abs(radius - R).mean() < voxel
+    assert np.abs(radius - R).max() < 1.5 * voxel
+    colors = mesh.visual.vertex_colors
+    assert colors.dtype == np.uint8 and colors.shape == (len(mesh.vertices), 4)
+    assert (colors[:, 0] > 240).all() and (colors[:, 1:3] < 15).all() and (colors[:, 3] == 255).all()
+    assert mesh.is_watertight
+    # Outward normals: positive volume close to the ball's.
+    assert mesh.volume == pytest.approx(4 / 3 * math.pi * R**3, rel=0.12)
+
+
+def test_off_centre_sphere_lands_in_the_right_world_place(make_sphere_grid):
+    centre = np.array([0.45, -0.3, 0.2])
+    grid = make_sphere_grid(resolution=40, radius=0.5, center=tuple(centre))
+    voxel = float(grid.voxel_size.min())
+    for mesh in (extract_mesh(grid), extract_mesh(grid, resolution=61)):
+        radius = np.linalg.norm(mesh.vertices - centre, axis=1)
+        assert np.abs(radius - 0.5).mean() < voxel
+        assert np.allclose(mesh.vertices.mean(0), centre, atol=0.1 * voxel)
+
+
+def test_resolution_resamples_finer(sphere_grid):
+    coarse = extract_mesh(sphere_grid)
+    fine = extract_mesh(sphere_grid, resolution=64)
+    assert len(fine.vertices) > 3 * len(coarse.vertices)
+    err_fine = np.abs(np.linalg.norm(fine.vertices, axis=1) - R).mean()
+    assert err_fine < 0.5 * float(sphere_grid.voxel_size.min())
+    assert fine.is_watertight
+
+
+def test_higher_level_gives_a_smaller_surface(sphere_grid):
+    # Raw density grows 5 per voxel of depth: level at raw 2.5 lies half a voxel inside.
+    voxel = float(sphere_grid.voxel_size.min())
+    level = float(sphere_grid.activate_density(torch.tensor(2.5)))
+    mesh = extract_mesh(sphere_grid, level=level)
+    assert np.linalg.norm(mesh.vertices, axis=1).mean() == pytest.approx(R - 0.5 * voxel, abs=0.15 * voxel)
+
+
+def test_matter_touching_the_box_is_capped_on_the_box():
+    grid = VoxelGrid(6, init_density=1.0)  # dense everywhere
+    mesh = extract_mesh(grid)
+    assert np.allclose(mesh.bounds, [[-1.5] * 3, [1.5] * 3])
+    assert mesh.is_watertight and mesh.volume == pytest.approx(27.0, rel=1e-6)
+
+
+def test_empty_grid_raises_clear_error():
+    grid = VoxelGrid(8, init_density=-1.0)
+    with pytest.raises(ValueError, match="grid has no surface at level"):
+        extract_mesh(grid)
+    faint = VoxelGrid(8, init_density=0.01)  # density 0.33 everywhere, far below ln2/voxel
+    with pytest.raises(ValueError, match="grid has no surface at level"):
+        extract_mesh(faint)
+    assert len(extract_mesh(faint, level=0.1).vertices) > 0
+
+
+def test_ply_round_trip_keeps_vertices_and_colours(sphere_grid, tmp_path):
+    mesh = extract_mesh(sphere_grid)
+    path = save_mesh(mesh, tmp_path / "m.ply")
+    assert path.read_bytes().startswith(b"ply\nformat binary_little_endian")
+    back = trimesh.load(path, process=False)
+    assert len(back.vertices) == len(mesh.vertices) and len(back.faces) == len(mesh.faces)
+    assert np.allclose(back.vertices, mesh.vertices, atol=1e-5)
+    assert np.array_equal(back.visual.vertex_colors, mesh.visual.vertex_colors)
+
+
+def test_glb_round_trip_keeps_geometry_and_colours(sphere_grid, tmp_path):
+    mesh = extract_mesh(sphere_grid)
+    path = save_mesh(mesh, tmp_path / "m.glb")
+    assert path.read_bytes()[:4] == b"glTF"
+    back = trimesh.load(path, force="mesh")
+    # glTF readers may weld duplicate vertices; marching cubes emits none, so counts agree.
+    assert len(back.faces) == len(mesh.faces)
+    assert len(back.vertices) == len(np.unique(mesh.vertices.round(6), axis=0))
+    assert np.allclose(back.bounds, mesh.bounds, atol=1e-5)
+    colors = back.visual.vertex_colors
+    assert (colors[:, 0] > 240).all() and (colors[:, 1:3] < 15).all()
+
+
+def test_save_mesh_rejects_unknown_suffix(sphere_grid, tmp_path):
+    with pytest.raises(ValueError, match=r"'\.obj'"):
+        save_mesh(extract_mesh(sphere_grid), tmp_path / "m.obj")

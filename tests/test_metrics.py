@@ -1,0 +1,107 @@
+"""PSNR against closed forms; SSIM against scikit-image's reference implementation."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from skimage.metrics import structural_similarity
+
+from voxe_core.metrics import gaussian_window, psnr, ssim
+
+
+def skimage_ssim(a: torch.Tensor, b: torch.Tensor) -> float:
+    return structural_similarity(
+        a.double().numpy(), b.double().numpy(), gaussian_weights=True, sigma=1.5,
+        use_sample_covariance=False, data_range=1, channel_axis=-1,
+    )
+
+
+def smooth_noise(h: int, w: int, seed: int) -> torch.Tensor:
+    """Random-ish image: low-frequency structure plus pixel noise, in [0, 1]."""
+    g = torch.Generator().manual_seed(seed)
+    coarse = torch.rand(1, 3, h // 6 + 2, w // 6 + 2, generator=g)
+    smooth = torch.nn.functional.interpolate(coarse, size=(h, w), mode="bilinear", align_corners=False)[0]
+    noisy = smooth + 0.08 * torch.randn(3, h, w, generator=g)
+    return noisy.permute(1, 2, 0).clamp(0, 1)
+
+
+def test_psnr_closed_form_and_max_val():
+    a = torch.full((8, 9, 3), 0.5)
+    b = a + 0.1  # MSE 0.01 -> 20 dB
+    assert isinstance(psnr(a, b), float)
+    assert psnr(a, b) == pytest.approx(20.0, abs=1e-4)
+    # Same error on a 0..255 scale: MSE 0.01·255², max 255 -> still 20 dB.
+    assert psnr(a * 255, b * 255, max_val=255.0) == pytest.approx(20.0, abs=1e-4)
+    assert psnr(a, a) == math.inf
+
+
+def test_psnr_batch_gives_one_value_per_image():
+    a = torch.zeros(3, 6, 7, 3)
+    b = torch.zeros(3, 6, 7, 3)
+    b[0] += 0.1  # 20 dB
+    b[1] += 0.01  # 40 dB
+    b[2, 0, 0, 0] = 1.0  # MSE 1/126 -> 10·log10(126)
+    values = psnr(a, b)
+    assert isinstance(values, torch.Tensor) and values.shape == (3,)
+    assert values.tolist() == pytest.approx([20.0, 40.0, 10 * math.log10(6 * 7 * 3)], abs=1e-3)
+
+
+def test_gaussian_window_is_sigma_1_5_with_11_taps():
+    w = gaussian_window()
+    assert w.shape == (11,) and float(w.sum()) == pytest.approx(1.0)
+    x = torch.arange(11, dtype=torch.float64) - 5
+    expected = torch.exp(-x**2 / (2 * 1.5**2))
+    assert torch.allclose(w, expected / expected.sum())
+
+
+@pytest.mark.parametrize("shape,seed", [((32, 32), 0), ((27, 45), 1), ((64, 40), 2)])
+def test_ssim_matches_skimage(shape, seed):
+    a = smooth_noise(*shape, seed)
+    b = (a + 0.15 * torch.randn(a.shape, generator=torch.Generator().manual_seed(seed + 10))).clamp(0, 1)
+    ours = ssim(a, b)
+    ref = skimage_ssim(a, b)
+    assert isinstance(ours, float)
+    assert 0.05 < ref < 0.99  # a meaningful comparison, not a degenerate one
+    assert ours == pytest.approx(ref, abs=1e-4)
+    # Unrelated images: still matches, and far lower.
+    c = smooth_noise(*shape, seed + 100)
+    assert ssim(a, c) == pytest.approx(skimage_ssim(a, c), abs=1e-4)
+    assert ssim(a, c) < ours
+
+
+def test_ssim_is_one_for_identical_and_symmetric():
+    a = smooth_noise(24, 30, 3)
+    assert ssim(a, a) == pytest.approx(1.0, abs=1e-6)
+    b = (a * 0.8 + 0.1).clamp(0, 1)
+    assert ssim(a, b) == pytest.approx(ssim(b, a), abs=1e-7)
+    assert ssim(a, b) < 0.999
+
+
+def test_ssim_batch_matches_per_image_and_skimage():
+    imgs = torch.stack([smooth_noise(20, 22, s) for s in range(3)])
+    refs = torch.stack([smooth_noise(20, 22, s + 50) for s in range(3)])
+    refs[1] = imgs[1]
+    values = ssim(imgs, refs)
+    assert values.shape == (3,)
+    for i in range(3):
+        assert float(values[i]) == pytest.approx(skimage_ssim(imgs[i], refs[i]), abs=1e-4)
+    assert float(values[1]) == pytest.approx(1.0, abs=1e-6)
+
+
+def test_ssim_uses_per_channel_statistics():
+    # Swapping colour channels keeps every grey-level statistic but breaks per-channel structure.
+    a = smooth_noise(32, 32, 7)
+    swapped = a[..., [2, 0, 1]]
+    assert ssim(a, swapped) == pytest.approx(skimage_ssim(a, swapped), abs=1e-4)
+    assert ssim(a, swapped) < 0.9
+
+
+def test_metric_input_errors():
+    with pytest.raises(ValueError, match="shape"):
+        psnr(torch.zeros(4, 4, 3), torch.zeros(4, 5, 3))
+    with pytest.raises(ValueError, match="at least 11"):
+        ssim(torch.zeros(10, 30, 3), torch.zeros(10, 30, 3))
+    assert np.isfinite(ssim(torch.zeros(11, 11, 3), torch.zeros(11, 11, 3)))

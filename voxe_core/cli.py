@@ -1,0 +1,338 @@
+"""The ``voxe`` command line: a thin layer of argument parsing over voxe_core.
+
+    voxe reconstruct DATA_DIR --out grid.safetensors [--preset fast|paper] ...
+    voxe render GRID --data DATA_DIR --split test --out DIR   |   --ring N --size S
+    voxe turntable GRID --out turntable.mp4|.gif [--frames 180] [--size 256] [--elevation 30]
+    voxe export-mesh GRID --out mesh.ply|.glb [--level L] [--resolution N]
+
+Bad input (dataset, grid file, option values) prints one line on stderr and
+exits 2; Ctrl-C during a long stage cancels it cleanly and exits 130.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import json
+import signal
+import sys
+import threading
+from pathlib import Path
+from typing import Iterator, Sequence
+
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+
+
+class _Interrupt:
+    """SIGINT sets a flag that a stage polls through ``Callbacks.should_cancel``; a second Ctrl-C aborts at once."""
+
+    def __init__(self):
+        self.requested = False
+
+    def __call__(self) -> bool:
+        return self.requested
+
+    def _handle(self, signum, frame):
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        print("\nvoxe: interrupt received, stopping after this step (Ctrl-C again to abort)", file=sys.stderr)
+
+    @contextlib.contextmanager
+    def installed(self) -> Iterator["_Interrupt"]:
+        if threading.current_thread() is not threading.main_thread():
+            yield self  # signal handlers can only be set from the main thread
+            return
+        previous = signal.signal(signal.SIGINT, self._handle)
+        try:
+            yield self
+        finally:
+            signal.signal(signal.SIGINT, previous)
+
+
+@contextlib.contextmanager
+def progress_callbacks(
+    desc: str, unit: str = "it", should_cancel=None, quiet: bool = False, total: int | None = None
+):
+    """Callbacks whose ``on_progress`` drives one tqdm bar (total and losses taken from each report)."""
+    from tqdm import tqdm
+
+    from voxe_core.progress import Callbacks, Progress
+
+    bar = tqdm(desc=desc, unit=unit, total=total, disable=quiet, dynamic_ncols=True, file=sys.stderr)
+
+    def on_progress(report: Progress) -> None:
+        if bar.total != report.total:
+            bar.total = report.total
+        postfix = {k: f"{v:.4f}" for k, v in report.losses.items()}
+        for key in ("stage", "resolution"):
+            if key in report.info:
+                postfix[key] = report.info[key]
+        if postfix:
+            bar.set_postfix(postfix, refresh=False)
+        bar.update(report.iteration - bar.n)
+
+    try:
+        yield Callbacks(on_progress=on_progress, should_cancel=should_cancel)
+    finally:
+        bar.close()
+
+
+def run_stage(fn, desc: str, unit: str, total: int | None, quiet: bool = False):
+    """Run ``fn(callbacks)`` under a progress bar with Ctrl-C wired to cancellation.
+
+    Returns what ``fn`` returns, or None when the user interrupted it (the
+    stage raised ``StageCancelled`` at its next cancellation check).
+    """
+    from voxe_core.progress import StageCancelled
+
+    interrupt = _Interrupt()
+    with interrupt.installed(), progress_callbacks(desc, unit, interrupt, quiet, total) as callbacks:
+        try:
+            return fn(callbacks)
+        except StageCancelled:
+            return None
+
+
+def _int_list(text: str) -> list[int]:
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer or a comma-separated list of integers, got {text!r}")
+    if not values or any(v < 0 for v in values):
+        raise argparse.ArgumentTypeError(f"expected non-negative integers, got {text!r}")
+    return values
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="voxe", description="Vox-E voxel grids: reconstruct, render, export.")
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    rec = commands.add_parser("reconstruct", parents=[common], help="fit a voxel grid to posed images (SPEC §1)")
+    rec.add_argument("data", type=Path, metavar="DATA_DIR", help="NeRF-synthetic or instant-ngp dataset folder")
+    rec.add_argument("--out", type=Path, required=True, help="grid file to write (.safetensors)")
+    rec.add_argument("--split", default="train")
+    rec.add_argument("--downsample", type=_positive_int, default=4, help="integer image downsampling on load")
+    rec.add_argument("--max-images", type=_positive_int, default=None)
+    rec.add_argument("--preset", choices=("fast", "paper"), default="fast",
+                     help="fast: the CPU budget (40→80→128); paper: the authors' 20→40→80→160 × 500")
+    rec.add_argument("--resolution", type=_int_list, default=None, metavar="N[,N...]",
+                     help="final grid resolution (earlier stages scaled in proportion), or one per stage")
+    rec.add_argument("--iterations", type=_int_list, default=None, metavar="N[,N...]",
+                     help="iterations of the final stage, or one per stage")
+    rec.add_argument("--rays", type=_positive_int, default=None, help="rays per step")
+    rec.add_argument("--seed", type=int, default=0)
+    rec.add_argument("--checkpoint", type=Path, default=None, help="write a resumable checkpoint here")
+    rec.add_argument("--checkpoint-every", type=_positive_int, default=100, help="iterations between checkpoints")
+    rec.add_argument("--resume", type=Path, default=None, help="continue from this checkpoint")
+
+    ren = commands.add_parser("render", parents=[common], help="render PNG views of a grid (dataset cameras or a ring)")
+    ren.add_argument("grid", type=Path, metavar="GRID")
+    source = ren.add_mutually_exclusive_group(required=True)
+    source.add_argument("--data", type=Path, metavar="DATA_DIR", help="render this dataset split's cameras")
+    source.add_argument("--ring", type=_positive_int, metavar="N", help="render N views on a 360° ring instead")
+    ren.add_argument("--split", default="test")
+    ren.add_argument("--downsample", type=_positive_int, default=4)
+    ren.add_argument("--max-images", type=_positive_int, default=None)
+    ren.add_argument("--size", type=_positive_int, default=256, help="ring view size in pixels")
+    ren.add_argument("--elevation", type=float, default=30.0, help="ring elevation in degrees")
+    ren.add_argument("--out", type=Path, required=True, metavar="DIR")
+
+    tt = commands.add_parser("turntable", parents=[common], help="render a 360° turntable video (.mp4 or .gif)")
+    tt.add_argument("grid", type=Path, metavar="GRID")
+    tt.add_argument("--out", type=Path, required=True, help="video file, .mp4 or .gif")
+    tt.add_argument("--frames", type=_positive_int, default=180)
+    tt.add_argument("--size", type=_positive_int, default=256)
+    tt.add_argument("--elevation", type=float, default=30.0)
+    tt.add_argument("--fps", type=float, default=30.0)
+
+    mesh = commands.add_parser(
+        "export-mesh", parents=[common], help="marching-cubes mesh with vertex colours (.ply or .glb)"
+    )
+    mesh.add_argument("grid", type=Path, metavar="GRID")
+    mesh.add_argument("--out", type=Path, required=True, help="mesh file, .ply or .glb")
+    mesh.add_argument("--level", type=float, default=None, help="surface density (default ln 2 / voxel size)")
+    mesh.add_argument("--resolution", type=_positive_int, default=None, help="resample to N points per axis")
+    return parser
+
+
+# --------------------------------------------------------------------- commands
+def _per_stage(values: list[int], n_stages: int, what: str) -> list[int] | None:
+    if len(values) not in (1, n_stages):
+        raise ValueError(f"--{what} takes one value or one per stage ({n_stages} stages), got {len(values)}")
+    return None if len(values) == 1 else values
+
+
+def _reconstruct_config(args):
+    from voxe_core.reconstruct import ReconstructConfig
+
+    config = ReconstructConfig.fast() if args.preset == "fast" else ReconstructConfig()
+    overrides: dict = {"seed": args.seed}
+    n = len(config.resolutions)
+    if args.resolution is not None:
+        explicit = _per_stage(args.resolution, n, "resolution")
+        if explicit is None:
+            final = args.resolution[0]
+            explicit = [max(2, round(final * r / config.resolutions[-1])) for r in config.resolutions[:-1]] + [final]
+        if min(explicit) < 2:
+            raise ValueError(f"grid resolutions must be at least 2, got {explicit}")
+        overrides["resolutions"] = tuple(explicit)
+    if args.iterations is not None:
+        explicit = _per_stage(args.iterations, n, "iterations")
+        overrides["iterations"] = tuple(explicit or [*config.iterations[:-1], args.iterations[0]])
+    if args.rays is not None:
+        overrides["rays_per_step"] = args.rays
+    if args.checkpoint is not None:
+        overrides["checkpoint_every"] = args.checkpoint_every
+    return dataclasses.replace(config, **overrides)
+
+
+def cmd_reconstruct(args) -> int:
+    from voxe_core.data import load_scene
+    from voxe_core.reconstruct import reconstruct
+
+    config = _reconstruct_config(args)
+    scene = load_scene(args.data, args.split, args.downsample, args.max_images)
+    print(
+        f"fitting {len(scene)} {scene.split} images of {scene.cameras.width}x{scene.cameras.height} "
+        f"from {args.data}: resolutions {list(config.resolutions)}, iterations {list(config.iterations)}, "
+        f"{config.rays_per_step} rays/step",
+        file=sys.stderr,
+    )
+    grid = run_stage(
+        lambda callbacks: reconstruct(scene.images, scene.cameras, config, callbacks, args.checkpoint, args.resume),
+        "reconstruct", "it", config.total_iterations, args.quiet,
+    )
+    if grid is None:
+        hint = f"; resume with --resume {args.checkpoint}" if args.checkpoint and args.checkpoint.is_file() else ""
+        print(f"voxe: reconstruction cancelled, nothing written to {args.out}{hint}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    grid.save(args.out)
+    occupancy = grid.occupancy()
+    res = "x".join(str(r) for r in grid.resolution)
+    print(f"wrote {args.out}: {res} grid, occupied fraction {occupancy.fraction:.4f}")
+    return 0
+
+
+def _load_grid(path: Path):
+    from voxe_core.grid import VoxelGrid
+
+    return VoxelGrid.load(path)
+
+
+def cmd_render(args) -> int:
+    from voxe_core.export import render_views, save_png, turntable_cameras
+
+    grid = _load_grid(args.grid)
+    scene = None
+    if args.data is not None:
+        from voxe_core.data import load_scene
+
+        scene = load_scene(args.data, args.split, args.downsample, args.max_images)
+        cameras = scene.cameras
+        names = [f"{i:03d}_{Path(name).stem}.png" for i, name in enumerate(scene.names)]
+    else:
+        cameras = turntable_cameras(args.ring, args.elevation, args.size)
+        names = [f"{i:03d}.png" for i in range(args.ring)]
+    frames = run_stage(lambda cb: render_views(grid, cameras, callbacks=cb), "render", "view", len(cameras), args.quiet)
+    if frames is None:
+        print("voxe: rendering cancelled", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    for frame, name in zip(frames, names):
+        save_png(args.out / name, frame)
+    print(f"wrote {len(names)} views to {args.out}")
+    if scene is not None:
+        _report_metrics(frames, scene, names, args.out)
+    return 0
+
+
+def _report_metrics(frames, scene, names, out_dir: Path) -> None:
+    from voxe_core.metrics import SSIM_WINDOW, psnr, ssim
+
+    per_view_psnr = psnr(frames, scene.images).tolist()
+    height, width = frames.shape[1:3]
+    per_view_ssim = ssim(frames, scene.images).tolist() if min(height, width) >= SSIM_WINDOW else None
+    mean_psnr = sum(per_view_psnr) / len(per_view_psnr)
+    line = f"{scene.split}: PSNR {mean_psnr:.2f} dB"
+    summary = {"split": scene.split, "views": len(names), "psnr": mean_psnr, "ssim": None,
+               "per_view": [{"file": n, "psnr": p} for n, p in zip(names, per_view_psnr)]}
+    if per_view_ssim is not None:
+        summary["ssim"] = sum(per_view_ssim) / len(per_view_ssim)
+        for entry, s in zip(summary["per_view"], per_view_ssim):
+            entry["ssim"] = s
+        line += f", SSIM {summary['ssim']:.4f}"
+    else:
+        line += f" (SSIM needs views of at least {SSIM_WINDOW} px)"
+    print(f"{line} over {len(names)} views")
+    (out_dir / "metrics.json").write_text(json.dumps(summary, indent=2))
+
+
+def cmd_turntable(args) -> int:
+    from voxe_core.export import VIDEO_SUFFIXES, render_views, turntable_cameras, write_video
+
+    if args.out.suffix.lower() not in VIDEO_SUFFIXES:  # fail before rendering, not after
+        raise ValueError(f"unsupported video suffix {args.out.suffix!r}; use one of {', '.join(VIDEO_SUFFIXES)}")
+    grid = _load_grid(args.grid)
+    cameras = turntable_cameras(args.frames, args.elevation, args.size)
+    frames = run_stage(
+        lambda cb: render_views(grid, cameras, callbacks=cb), "turntable", "frame", len(cameras), args.quiet
+    )
+    if frames is None:
+        print("voxe: turntable cancelled, nothing written", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    write_video(args.out, frames, fps=args.fps)
+    print(f"wrote {args.out}: {args.frames} frames of {args.size}x{args.size}")
+    return 0
+
+
+def cmd_export_mesh(args) -> int:
+    from voxe_core.export import MESH_SUFFIXES, extract_mesh, save_mesh
+
+    if args.out.suffix.lower() not in MESH_SUFFIXES:
+        raise ValueError(f"unsupported mesh suffix {args.out.suffix!r}; use one of {', '.join(MESH_SUFFIXES)}")
+    grid = _load_grid(args.grid)
+    mesh = extract_mesh(grid, level=args.level, resolution=args.resolution)
+    save_mesh(mesh, args.out)
+    print(f"wrote {args.out}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces")
+    return 0
+
+
+COMMANDS = {
+    "reconstruct": cmd_reconstruct,
+    "render": cmd_render,
+    "turntable": cmd_turntable,
+    "export-mesh": cmd_export_mesh,
+}
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``voxe``; returns the exit status (0 ok, 2 bad input, 130 interrupted)."""
+    args = build_parser().parse_args(argv)
+    from voxe_core.data import DatasetError
+    from voxe_core.tensorio import FormatError
+
+    try:
+        return COMMANDS[args.command](args)
+    except (DatasetError, FormatError, ValueError, OSError) as exc:
+        kind = "dataset error" if isinstance(exc, DatasetError) else "error"
+        print(f"voxe {args.command}: {kind}: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print("\nvoxe: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+if __name__ == "__main__":
+    sys.exit(main())

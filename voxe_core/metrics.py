@@ -1,0 +1,88 @@
+"""Image-quality metrics for renders against reference views: PSNR and SSIM.
+
+Images are float tensors (..., H, W, 3) in [0, 1] (any channel count works).
+A single pair (H, W, C) gives a Python float; a batch (N, ..., H, W, C) gives a
+tensor with one value per image. SSIM is the standard one of Wang et al. 2004
+as scikit-image computes it with ``gaussian_weights=True, sigma=1.5,
+use_sample_covariance=False, data_range=1, channel_axis=-1``: an 11-tap
+Gaussian window (sigma 1.5), K1 = 0.01, K2 = 0.03, per channel, averaged over
+the 'valid' region (pixels at least 5 from the border) and the channels.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+SSIM_SIGMA = 1.5
+SSIM_WINDOW = 11  # 2 * int(3.5 * sigma + 0.5) + 1, scikit-image's truncation
+SSIM_K1 = 0.01
+SSIM_K2 = 0.03
+
+
+def _as_pair(a, b) -> tuple[torch.Tensor, torch.Tensor]:
+    a, b = torch.as_tensor(a), torch.as_tensor(b)
+    if a.shape != b.shape:
+        raise ValueError(f"images differ in shape: {tuple(a.shape)} vs {tuple(b.shape)}")
+    if a.dim() < 3:
+        raise ValueError(f"expected images shaped (..., H, W, C), got {tuple(a.shape)}")
+    return a, b.to(a.device)
+
+
+def _result(values: torch.Tensor, single: bool):
+    return float(values.reshape(())) if single else values
+
+
+def psnr(a, b, max_val: float = 1.0):
+    """Peak signal-to-noise ratio in dB, 10·log10(max_val² / MSE) per image.
+
+    (H, W, C) -> float; (..., H, W, C) -> tensor of shape (...). Identical images give inf.
+    """
+    a, b = _as_pair(a, b)
+    diff = a.double() - b.double()
+    mse = diff.square().flatten(-3).mean(-1)
+    values = 10.0 * torch.log10(max_val**2 / mse)  # mse 0 -> inf, as it should
+    return _result(values.to(torch.float32), a.dim() == 3)
+
+
+def gaussian_window(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA, dtype=torch.float64) -> torch.Tensor:
+    """The normalised 1-D Gaussian taps SSIM filters with (separable in x and y)."""
+    x = torch.arange(size, dtype=dtype) - (size - 1) / 2
+    w = torch.exp(-0.5 * (x / sigma) ** 2)
+    return w / w.sum()
+
+
+def ssim(a, b, data_range: float = 1.0):
+    """Structural similarity, matching ``skimage.metrics.structural_similarity`` (see module doc).
+
+    (H, W, C) -> float; (..., H, W, C) -> tensor of shape (...). Images must be
+    at least 11 pixels on each side.
+    """
+    a, b = _as_pair(a, b)
+    *batch, h, w, c = a.shape
+    if h < SSIM_WINDOW or w < SSIM_WINDOW:
+        raise ValueError(f"SSIM needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW} pixels, got {w}x{h}")
+    # float64 where it is cheap: the variance terms subtract nearly equal numbers.
+    dtype = torch.float64 if a.device.type == "cpu" else torch.float32
+    # (..., H, W, C) -> (B*C, 1, H, W): every channel is filtered on its own.
+    x = a.to(dtype).reshape(-1, h, w, c).permute(0, 3, 1, 2).reshape(-1, 1, h, w)
+    y = b.to(dtype).reshape(-1, h, w, c).permute(0, 3, 1, 2).reshape(-1, 1, h, w)
+    taps = gaussian_window(dtype=dtype).to(a.device)
+    kx, ky = taps.view(1, 1, 1, -1), taps.view(1, 1, -1, 1)
+
+    def blur(t: torch.Tensor) -> torch.Tensor:  # 'valid' separable convolution
+        return F.conv2d(F.conv2d(t, kx), ky)
+
+    stack = torch.cat([x, y, x * x, y * y, x * y])
+    mu_x, mu_y, xx, yy, xy = blur(stack).chunk(5)
+    var_x = xx - mu_x * mu_x
+    var_y = yy - mu_y * mu_y
+    cov = xy - mu_x * mu_y
+    c1, c2 = (SSIM_K1 * data_range) ** 2, (SSIM_K2 * data_range) ** 2
+    s = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x.square() + mu_y.square() + c1) * (var_x + var_y + c2))
+    per_image = s.reshape(-1, c, *s.shape[-2:]).mean(dim=(1, 2, 3))
+    values = per_image.reshape(batch).to(torch.float32)
+    return _result(values, not batch)
+
+
+__all__ = ["psnr", "ssim", "gaussian_window"]
