@@ -1,0 +1,337 @@
+"""Guidance interface, SDS and cross-attention capture on the tiny random-weight SD.
+
+The tiny model (voxe_core.tiny_sd) is a SMOKE-TEST MODEL: these tests check
+plumbing and maths (gradients, shapes, normalisation, loading), never quality.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+import torch
+
+from voxe_core.guidance import (
+    ATTENTION_MODEL_ID,
+    SDS_MODEL_ID,
+    CrossAttentionCapture,
+    AttentionStore,
+    Guidance,
+    ModelNotAvailableError,
+    StableDiffusionGuidance,
+    edit_prompt,
+    view_word,
+)
+from voxe_core.tiny_sd import build_tiny_stable_diffusion
+
+
+@pytest.fixture(autouse=True)
+def _single_thread():
+    # The tiny model's ops are microseconds long: OpenMP thread hand-offs
+    # dominate (and stall badly on a loaded 2-core box).
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="session")
+def tiny_path(tmp_path_factory):
+    return build_tiny_stable_diffusion(tmp_path_factory.mktemp("tiny_sd") / "model", seed=0)
+
+
+@pytest.fixture(scope="session")
+def guidance(tiny_path) -> StableDiffusionGuidance:
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("HF_HUB_OFFLINE", "1")
+        return StableDiffusionGuidance.from_pretrained(str(tiny_path))
+
+
+# ----------------------------------------------------------------- tiny model
+
+
+def test_tiny_model_layout_and_size(tiny_path):
+    index = json.loads((tiny_path / "model_index.json").read_text())
+    assert index["_class_name"] == "StableDiffusionPipeline"
+    assert index["unet"] == ["diffusers", "UNet2DConditionModel"]
+    assert index["tokenizer"] == ["transformers", "CLIPTokenizer"]
+    for sub in ("unet", "vae", "text_encoder", "tokenizer", "scheduler"):
+        assert (tiny_path / sub).is_dir()
+    assert (tiny_path / "tokenizer" / "vocab.json").is_file()
+    assert (tiny_path / "tokenizer" / "merges.txt").read_text().startswith("#version")
+    total = sum(f.stat().st_size for f in tiny_path.rglob("*") if f.is_file())
+    assert total < 5 * 1024 * 1024
+    assert "SMOKE-TEST MODEL" in (tiny_path / "README.md").read_text()
+
+
+def test_tiny_model_is_deterministic_per_seed(tiny_path, tmp_path):
+    weights = "unet/diffusion_pytorch_model.safetensors"
+    same = build_tiny_stable_diffusion(tmp_path / "same", seed=0)
+    other = build_tiny_stable_diffusion(tmp_path / "other", seed=1)
+    assert (same / weights).read_bytes() == (tiny_path / weights).read_bytes()
+    assert (same / "text_encoder/model.safetensors").read_bytes() == (tiny_path / "text_encoder/model.safetensors").read_bytes()
+    assert (other / weights).read_bytes() != (tiny_path / weights).read_bytes()
+
+
+def test_loads_offline_like_real_weights(guidance, tiny_path):
+    from diffusers.models.attention_processor import AttnProcessor2_0
+
+    assert isinstance(guidance, Guidance)
+    assert guidance.resolution == 64  # unet.sample_size 16 x VAE factor 4
+    assert guidance.num_train_timesteps == 1000
+    assert guidance.dtype == torch.float32 and guidance.device.type == "cpu"
+    assert guidance.latent_scale == pytest.approx(0.18215)
+    for module in (guidance.unet, guidance.vae, guidance.text_encoder):
+        assert not module.training
+        assert all(not p.requires_grad for p in module.parameters())
+    assert all(isinstance(p, AttnProcessor2_0) for p in guidance.unet.attn_processors.values())
+    # SD's noise schedule: scaled_linear betas 0.00085 -> 0.012 over 1000 steps
+    betas = torch.linspace(0.00085**0.5, 0.012**0.5, 1000, dtype=torch.float64) ** 2
+    expected = torch.cumprod(1 - betas, 0).float()
+    torch.testing.assert_close(guidance.alphas_cumprod, expected, rtol=1e-5, atol=1e-7)
+
+
+def test_encode_prompts_shape_and_cache(guidance):
+    emb = guidance.encode_prompts(["a render of a dog", "a render of a dog, side view"])
+    assert emb.shape == (2, 77, 32)
+    assert not torch.allclose(emb[0], emb[1])
+    again = guidance.encode_prompts(["a render of a dog, side view"])
+    torch.testing.assert_close(again[0], emb[1])
+    assert guidance.unconditional_embedding().shape == (1, 77, 32)
+
+
+# ----------------------------------------------------------------- SDS
+
+
+@pytest.mark.parametrize("t", [20, 980])
+def test_sds_gradient_reaches_the_image(guidance, t):
+    image = torch.rand(1, 3, 48, 48, generator=torch.Generator().manual_seed(1)).requires_grad_(True)
+    emb = guidance.encode_prompts([edit_prompt("a dog wearing big sunglasses", "front")])
+    loss, diag = guidance.sds_loss(image, emb, torch.tensor([t]), guidance_scale=100.0,
+                                   generator=torch.Generator().manual_seed(0))
+    assert loss.ndim == 0
+    loss.backward()
+    assert image.grad is not None and image.grad.shape == image.shape
+    assert torch.isfinite(image.grad).all()
+    assert image.grad.abs().sum() > 0
+    for key in ("vae_encode_ms", "unet_ms", "sds_ms", "grad_norm", "w_mean", "t_mean"):
+        assert isinstance(diag[key], float)
+    assert diag["t_mean"] == t
+    assert diag["w_mean"] == pytest.approx(1 - float(guidance.alphas_cumprod[t]), rel=1e-6)
+
+
+def test_sds_loss_is_reproducible_with_a_generator(guidance):
+    emb = guidance.encode_prompts(["a render of a dog"])
+    base = torch.rand(1, 3, 64, 64, generator=torch.Generator().manual_seed(2))
+    grads = []
+    for seed in (0, 0, 1):
+        image = base.clone().requires_grad_(True)
+        loss, _ = guidance.sds_loss(image, emb, torch.tensor([500]), generator=torch.Generator().manual_seed(seed))
+        loss.backward()
+        grads.append(image.grad)
+    torch.testing.assert_close(grads[0], grads[1])
+    assert not torch.allclose(grads[0], grads[2])
+
+
+def test_sds_gradient_is_weighted_cfg_residual(guidance):
+    """d(loss)/d(latents) == (1 - alphā_t)(eps_u + s(eps_c - eps_u) - eps), computed independently."""
+    g = torch.Generator().manual_seed(3)
+    latents = torch.randn(2, 4, 16, 16, generator=g).requires_grad_(True)
+    noise = torch.randn(2, 4, 16, 16, generator=g)
+    t = torch.tensor([20, 980])
+    cond = guidance.encode_prompts(["a render of a dog, front view", "a render of a cat, back view"])
+    scale = 7.5
+
+    loss, _ = guidance.sds_loss_on_latents(latents, cond, t, guidance_scale=scale, noise=noise)
+    loss.backward()
+
+    with torch.no_grad():
+        a = guidance.alphas_cumprod[t].reshape(2, 1, 1, 1)
+        noisy = a.sqrt() * latents + (1 - a).sqrt() * noise
+        uncond = guidance.unconditional_embedding().expand(2, -1, -1)
+        eps_u = guidance.unet(noisy, t, encoder_hidden_states=uncond).sample
+        eps_c = guidance.unet(noisy, t, encoder_hidden_states=cond).sample
+        expected = (1 - a) * (eps_u + scale * (eps_c - eps_u) - noise)
+    assert expected.abs().max() > 1e-3
+    torch.testing.assert_close(latents.grad, expected, rtol=1e-4, atol=1e-5)
+    direct, _ = guidance.sds_grad_on_latents(latents, cond, t, guidance_scale=scale, noise=noise)
+    torch.testing.assert_close(direct, expected, rtol=1e-4, atol=1e-5)
+
+
+def test_sds_rejects_out_of_range_timesteps(guidance):
+    emb = guidance.encode_prompts(["a dog"])
+    with pytest.raises(ValueError):
+        guidance.sds_grad_on_latents(torch.zeros(1, 4, 16, 16), emb, torch.tensor([1000]))
+
+
+# ----------------------------------------------------------------- cross-attention
+
+
+@pytest.mark.parametrize("resolution_filter, size", [(16, 16), (8, 8), (None, 16)])
+def test_cross_attention_maps_are_token_distributions(guidance, resolution_filter, size):
+    from diffusers.models.attention_processor import AttnProcessor2_0
+
+    image = torch.rand(1, 3, 64, 64, generator=torch.Generator().manual_seed(4))
+    maps = guidance.cross_attention_maps(image, "a dog wearing a party hat", timestep=200,
+                                         resolution_filter=resolution_filter,
+                                         generator=torch.Generator().manual_seed(0))
+    assert maps.shape == (77, size, size)
+    assert (maps >= 0).all()
+    torch.testing.assert_close(maps.sum(0), torch.ones(size, size), rtol=0, atol=1e-5)
+    # the default SDPA processors are back afterwards
+    assert all(isinstance(p, AttnProcessor2_0) for p in guidance.unet.attn_processors.values())
+
+
+def test_cross_attention_maps_equal_softmax_qk(guidance):
+    """Filter 8 selects the mid block's single cross-attention: compare with softmax(QKᵀ/√d) by hand."""
+    attn = guidance.unet.mid_block.attentions[0].transformer_blocks[0].attn2
+    seen = {}
+
+    def hook(module, args, kwargs):
+        seen["x"] = args[0] if args else kwargs["hidden_states"]
+        seen["ctx"] = kwargs["encoder_hidden_states"]
+
+    handle = attn.register_forward_pre_hook(hook, with_kwargs=True)
+    try:
+        image = torch.rand(1, 3, 64, 64, generator=torch.Generator().manual_seed(5))
+        maps = guidance.cross_attention_maps(image, "a dog", resolution_filter=8,
+                                             generator=torch.Generator().manual_seed(0))
+    finally:
+        handle.remove()
+    with torch.no_grad():
+        q = attn.to_q(seen["x"])  # (1, 64, C)
+        k = attn.to_k(seen["ctx"])  # (1, 77, C)
+        heads = attn.heads
+        d = q.shape[-1] // heads
+        q = q.reshape(1, -1, heads, d).transpose(1, 2)
+        k = k.reshape(1, -1, heads, d).transpose(1, 2)
+        probs = torch.softmax(q @ k.transpose(-1, -2) / d**0.5, dim=-1).mean(1)[0]  # (64, 77)
+    expected = probs.T.reshape(77, 8, 8)
+    torch.testing.assert_close(maps, expected, rtol=1e-4, atol=1e-6)
+
+
+def test_capture_processor_keeps_the_unet_output(guidance):
+    unet = guidance.unet
+    g = torch.Generator().manual_seed(6)
+    x = torch.randn(1, 4, 16, 16, generator=g)
+    ctx = guidance.encode_prompts(["a render of a dog wearing a party hat"])
+    t = torch.tensor([200])
+    with torch.no_grad():
+        reference = unet(x, t, encoder_hidden_states=ctx).sample
+        original = unet.attn_processors
+        store = AttentionStore((16, 16), None)
+        capture = CrossAttentionCapture(store)
+        unet.set_attn_processor({n: capture if n.endswith("attn2.processor") else p for n, p in original.items()})
+        try:
+            captured = unet(x, t, encoder_hidden_states=ctx).sample
+        finally:
+            unet.set_attn_processor(original)
+    assert len(store.maps) == 4  # down 16x16, mid 8x8, two up 16x16 cross-attentions
+    torch.testing.assert_close(captured, reference, rtol=1e-4, atol=1e-5)
+
+
+def test_unknown_attention_resolution_is_an_error(guidance):
+    with pytest.raises(ValueError, match="4x4"):
+        guidance.cross_attention_maps(torch.rand(1, 3, 64, 64), "a dog", resolution_filter=4)
+
+
+# ----------------------------------------------------------------- tokens
+
+
+def test_token_spans_phrase_repeats_and_subwords(guidance):
+    prompt = "a dog wearing a party hat"
+    # <start> a dog wearing a party hat <end> ...
+    assert guidance.token_spans(prompt, ["party hat"]) == [5, 6]
+    assert guidance.token_spans(prompt, ["a"]) == [1, 4]
+    assert guidance.token_spans(prompt, ["dog", "hat"]) == [2, 6]
+    n = len(guidance.tokenizer.tokenize("zebra"))
+    assert n > 1  # not in the tiny vocabulary: byte-level sub-tokens
+    assert guidance.token_spans("a zebra with a hat", ["zebra"]) == list(range(2, 2 + n))
+    assert guidance.content_token_indices(prompt) == [1, 2, 3, 4, 5, 6]
+    with pytest.raises(ValueError, match="sunglasses"):
+        guidance.token_spans(prompt, ["sunglasses"])
+
+
+# ----------------------------------------------------------------- missing weights
+
+
+def test_missing_hub_model_names_id_and_local_folder():
+    with pytest.raises(ModelNotAvailableError) as info:
+        StableDiffusionGuidance.from_pretrained("some-org/does-not-exist", local_files_only=True)
+    message = str(info.value)
+    assert "some-org/does-not-exist" in message
+    assert "local folder" in message
+    assert isinstance(info.value, RuntimeError)
+
+
+def test_offline_env_makes_local_files_only_the_default(monkeypatch):
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    with pytest.raises(ModelNotAvailableError, match="some-org/also-missing"):
+        StableDiffusionGuidance.from_pretrained("some-org/also-missing")
+
+
+def test_incomplete_local_folders_are_reported(tiny_path, tmp_path):
+    with pytest.raises(ModelNotAvailableError, match="local folder"):
+        StableDiffusionGuidance.from_pretrained(str(tmp_path / "nowhere"), local_files_only=True)
+    no_unet = tmp_path / "no_unet"
+    shutil.copytree(tiny_path, no_unet)
+    shutil.rmtree(no_unet / "unet")
+    with pytest.raises(ModelNotAvailableError, match="no_unet"):
+        StableDiffusionGuidance.from_pretrained(str(no_unet), local_files_only=True)
+    # transformers 5 silently builds an empty tokenizer for a missing folder
+    no_tok = tmp_path / "no_tokenizer"
+    shutil.copytree(tiny_path, no_tok)
+    shutil.rmtree(no_tok / "tokenizer")
+    with pytest.raises(ModelNotAvailableError, match="tokenizer"):
+        StableDiffusionGuidance.from_pretrained(str(no_tok), local_files_only=True)
+
+
+def test_default_model_ids():
+    assert SDS_MODEL_ID == "stabilityai/stable-diffusion-2-base"
+    assert ATTENTION_MODEL_ID == "CompVis/stable-diffusion-v1-4"
+
+
+# ----------------------------------------------------------------- prompts
+
+
+def test_edit_prompt():
+    assert edit_prompt("a dog wearing big sunglasses") == "a render of a dog wearing big sunglasses"
+    assert edit_prompt("a dog", "side") == "a render of a dog, side view"
+    assert edit_prompt("A render of a dog.", "front") == "A render of a dog, front view"
+    assert edit_prompt("  a   yarn doll of a dog ") == "a render of a yarn doll of a dog"
+    assert edit_prompt("a rendered dog") == "a render of a rendered dog"
+    with pytest.raises(ValueError):
+        edit_prompt("   ")
+    with pytest.raises(ValueError):
+        edit_prompt("a dog", "top")
+
+
+@pytest.mark.parametrize(
+    "elevation, azimuth, word",
+    [
+        (10, 0, "front"), (10, 45, "front"), (10, -45, "front"), (10, 315, "front"),
+        (10, 46, "side"), (10, 90, "side"), (10, 270, "side"), (10, -100, "side"),
+        (10, 135, "back"), (10, 180, "back"), (10, -170, "back"), (10, 540, "back"),
+        (60, 0, "front"), (61, 180, "overhead"), (75, 90, "overhead"),
+    ],
+)
+def test_view_word(elevation, azimuth, word):
+    assert view_word(elevation, azimuth) == word
+
+
+def test_half_precision_model_returns_float32_gradients(tiny_path):
+    """The CUDA default is fp16; bf16 on CPU exercises the same casts (UNet in model dtype, grad in fp32)."""
+    g = StableDiffusionGuidance.from_pretrained(str(tiny_path), dtype=torch.bfloat16, local_files_only=True)
+    assert all(p.dtype == torch.bfloat16 for p in g.unet.parameters())
+    assert all(p.dtype == torch.bfloat16 for p in g.text_encoder.parameters())
+    latents = torch.randn(1, 4, 16, 16, generator=torch.Generator().manual_seed(7))
+    grad, _ = g.sds_grad_on_latents(latents, g.encode_prompts(["a dog"]), torch.tensor([300]),
+                                    generator=torch.Generator().manual_seed(0))
+    assert grad.dtype == torch.float32 and torch.isfinite(grad).all()
+    image = torch.rand(1, 3, 64, 64).requires_grad_(True)
+    loss, _ = g.sds_loss(image, g.encode_prompts(["a dog"]), torch.tensor([300]),
+                         generator=torch.Generator().manual_seed(0))
+    assert loss.dtype == torch.float32
+    loss.backward()
+    assert image.grad.dtype == torch.float32 and torch.isfinite(image.grad).all() and image.grad.abs().sum() > 0

@@ -1,0 +1,172 @@
+import pytest
+import torch
+
+from voxe_core.losses import (
+    REGULARISERS,
+    correlation_loss,
+    correlation_loss_plus_rgb,
+    image_l1,
+    image_l2,
+    regulariser_loss,
+    volumetric_l1,
+    volumetric_l2,
+)
+
+
+def _grid(seed=0, shape=(12, 10, 8)):
+    return torch.randn(shape, generator=torch.Generator().manual_seed(seed))
+
+
+def _pearson64(a, b):
+    a = a.double().reshape(-1)
+    b = b.double().reshape(-1)
+    a = a - a.mean()
+    b = b - b.mean()
+    return (a * b).sum() / (a.norm() * b.norm())
+
+
+def test_identical_grids_give_zero():
+    g = _grid()
+    assert abs(float(correlation_loss(g, g.clone()))) < 1e-6
+
+
+def test_invariant_to_positive_affine_maps_of_edited():
+    a, b = _grid(0), _grid(1)
+    base = correlation_loss(a, b)
+    assert float(correlation_loss(a, b * 2 + 3)) == pytest.approx(float(base), abs=1e-6)
+    assert float(correlation_loss(a, a * 2 + 3)) == pytest.approx(0.0, abs=1e-6)
+    assert float(correlation_loss(a, b * 0.001 - 7)) == pytest.approx(float(base), abs=1e-5)
+
+
+def test_matches_float64_pearson_value_and_gradient():
+    a = _grid(0)
+    b = (0.5 * a + _grid(1)).requires_grad_(True)
+    loss = correlation_loss(a, b)
+    loss.backward()
+    b64 = b.detach().double().requires_grad_(True)
+    ref = 1 - _pearson64(a, b64)
+    ref.backward()
+    assert loss.item() == pytest.approx(ref.item(), abs=1e-6)
+    torch.testing.assert_close(b.grad.double(), b64.grad, rtol=1e-4, atol=1e-7)
+
+
+def test_negated_grid_gives_two():
+    g = _grid()
+    assert float(correlation_loss(g, -g)) == pytest.approx(2.0, abs=1e-6)
+
+
+def test_constant_grids_are_finite():
+    g = _grid()
+    const = torch.full_like(g, 0.37).requires_grad_(True)
+    loss = correlation_loss(g, const)
+    loss.backward()
+    assert loss.item() == 1.0
+    assert torch.isfinite(const.grad).all()
+
+    both = torch.full_like(g, 0.1).requires_grad_(True)
+    loss = correlation_loss(torch.full_like(g, -2.0), both)
+    loss.backward()
+    assert loss.item() == 1.0
+    assert torch.isfinite(both.grad).all()
+
+    edited = g.clone().requires_grad_(True)
+    loss = correlation_loss(torch.zeros_like(g), edited)  # constant initial grid
+    loss.backward()
+    assert loss.item() == 1.0 and torch.isfinite(edited.grad).all()
+
+
+def test_tiny_variance_and_huge_values():
+    g = _grid()
+    tiny = (1e-6 * g).requires_grad_(True)  # variance 1e-12
+    loss = correlation_loss(g, tiny)
+    loss.backward()
+    assert abs(loss.item()) < 1e-5  # scale does not matter
+    assert torch.isfinite(tiny.grad).all()
+
+    offset = (5.0 + 1e-3 * g).requires_grad_(True)  # tiny variance around a large mean
+    loss = correlation_loss(g, offset)
+    loss.backward()
+    assert abs(loss.item()) < 1e-3 and torch.isfinite(offset.grad).all()
+
+    huge = (1e30 * g).requires_grad_(True)
+    loss = correlation_loss(g, huge)
+    loss.backward()
+    assert torch.isfinite(loss) and abs(loss.item()) < 1e-5
+    assert torch.isfinite(huge.grad).all()
+    assert float(correlation_loss(1e30 * g + 1e30, -1e30 * g)) == pytest.approx(2.0, abs=1e-5)
+
+
+def test_autocast_bf16_inputs_compute_in_float32():
+    g = _grid()
+    edited = (g + 0.3 * _grid(1)).to(torch.bfloat16).requires_grad_(True)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        loss = correlation_loss(g.to(torch.bfloat16), edited)
+    assert loss.dtype == torch.float32
+    loss.backward()
+    assert edited.grad.dtype == torch.bfloat16 and torch.isfinite(edited.grad).all()
+    ref = 1 - _pearson64(g.to(torch.bfloat16).float(), edited.detach().float())
+    assert loss.item() == pytest.approx(float(ref), abs=1e-5)
+    half = g.half().requires_grad_(True)
+    loss = correlation_loss(g.half(), half)
+    loss.backward()
+    assert abs(loss.item()) < 1e-6 and torch.isfinite(half.grad).all()
+
+
+def test_shape_mismatch_raises():
+    with pytest.raises(ValueError):
+        correlation_loss(torch.zeros(3, 3), torch.zeros(9))
+
+
+def test_plus_rgb_adds_mean_colour_correlation():
+    init = torch.randn(6, 6, 6, 4, generator=torch.Generator().manual_seed(0))
+    edited = init.clone()
+    assert abs(float(correlation_loss_plus_rgb(init, edited))) < 1e-6
+    edited[..., 1] = -init[..., 1]  # one colour channel anti-correlated: +2/3
+    assert float(correlation_loss_plus_rgb(init, edited)) == pytest.approx(2 / 3, abs=1e-5)
+    edited[..., 0] = -init[..., 0]  # and density: +2
+    assert float(correlation_loss_plus_rgb(init, edited)) == pytest.approx(2 + 2 / 3, abs=1e-5)
+    assert float(regulariser_loss("reg3d_plus", init, edited)) == pytest.approx(2 + 2 / 3, abs=1e-5)
+    # plain reg3d ignores colour
+    edited2 = init.clone()
+    edited2[..., 1:] = torch.rand(6, 6, 6, 3)
+    assert abs(float(regulariser_loss("reg3d", init, edited2))) < 1e-6
+
+
+def test_volumetric_and_image_losses():
+    init = torch.zeros(4, 4, 4, 4)
+    edited = init.clone()
+    edited[..., 0] = 2.0  # density differs by 2 everywhere
+    edited[..., 1:] = 5.0  # colour must be ignored by the volumetric L1/L2
+    assert float(regulariser_loss("volumetric_l1", init, edited)) == pytest.approx(2.0)
+    assert float(regulariser_loss("volumetric_l2", init, edited)) == pytest.approx(4.0)
+    assert float(volumetric_l1(init[..., 0], edited[..., 0])) == pytest.approx(2.0)
+    assert float(volumetric_l2(init[..., 0], edited[..., 0])) == pytest.approx(4.0)
+    render = torch.full((1, 3, 4, 4), 0.5)
+    target = torch.zeros(1, 3, 4, 4)
+    target[..., :2, :] = 1.0  # half the pixels differ by 0.5 one way, half the other way
+    assert float(image_l1(render, target)) == pytest.approx(0.5)
+    assert float(image_l2(render, target)) == pytest.approx(0.25)
+    with pytest.raises(ValueError):
+        image_l1(render, target[..., :2])
+
+
+def test_regulariser_kinds():
+    assert REGULARISERS == ("reg3d", "reg3d_plus", "volumetric_l1", "volumetric_l2", "image_l1", "image_l2")
+    init = torch.randn(3, 3, 3, 4)
+    with pytest.raises(ValueError, match="image"):
+        regulariser_loss("image_l1", init, init)
+    with pytest.raises(ValueError, match="unknown"):
+        regulariser_loss("tv", init, init)
+    with pytest.raises(ValueError):
+        regulariser_loss("reg3d", init[..., :3], init[..., :3])
+
+
+def test_gradient_flows_into_feature_parameter():
+    init = torch.randn(5, 5, 5, 4, generator=torch.Generator().manual_seed(0))
+    param = torch.nn.Parameter(init + 0.1 * torch.randn(5, 5, 5, 4, generator=torch.Generator().manual_seed(1)))
+    for kind in ("reg3d", "reg3d_plus", "volumetric_l1", "volumetric_l2"):
+        param.grad = None
+        regulariser_loss(kind, init, param).backward()
+        assert torch.isfinite(param.grad).all() and param.grad.abs().sum() > 0
+        if kind in ("reg3d", "volumetric_l1", "volumetric_l2"):
+            assert param.grad[..., 1:].abs().sum() == 0  # density only

@@ -1,0 +1,157 @@
+"""Regularisers of the editing stage (paper §3.2 and its ablations, SPEC §2).
+
+* ``reg3d`` (default): L_reg3D = 1 − Pearson correlation between the raw
+  density features of the initial (fixed) and edited grids, over all voxels.
+* ``reg3d_plus``: L_reg3D++ = L_reg3D + the mean over R, G, B of the same
+  correlation loss on each raw colour channel (so the colour term has the
+  density term's scale; range [0, 4]).
+* ``volumetric_l1`` / ``volumetric_l2``: mean |Δ| / mean Δ² of raw density.
+* ``image_l1`` / ``image_l2``: mean |Δ| / mean Δ² between renders of the
+  edited grid and the input views (computed by the caller on images with
+  :func:`image_l1` / :func:`image_l2`; not volumetric).
+
+Features layout: ``(..., 4)`` with channel 0 the raw density and 1:4 the raw
+colour, as ``VoxelGrid.features`` ``(X, Y, Z, 4)``.
+
+All losses compute in float32 with autocast disabled (bf16/fp16 inputs are
+upcast); gradients flow back in the inputs' dtype.
+"""
+
+from __future__ import annotations
+
+from contextlib import ExitStack, contextmanager
+from typing import Literal, get_args
+
+import torch
+
+Regulariser = Literal["reg3d", "reg3d_plus", "volumetric_l1", "volumetric_l2", "image_l1", "image_l2"]
+REGULARISERS: tuple[str, ...] = get_args(Regulariser)
+VOLUMETRIC_REGULARISERS: tuple[str, ...] = ("reg3d", "reg3d_plus", "volumetric_l1", "volumetric_l2")
+IMAGE_REGULARISERS: tuple[str, ...] = ("image_l1", "image_l2")
+DEFAULT_REGULARISER: Regulariser = "reg3d"
+DEFAULT_REGULARISER_WEIGHT = 200.0
+
+
+@contextmanager
+def _full_precision(*tensors: torch.Tensor):
+    """Disable autocast on every device type the tensors live on."""
+    with ExitStack() as stack:
+        for device_type in sorted({t.device.type for t in tensors}):
+            if torch.amp.is_autocast_available(device_type):
+                stack.enter_context(torch.autocast(device_type=device_type, enabled=False))
+        yield
+
+
+def _standardise(x: torch.Tensor, eps: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Centred, unit-norm version of flattened ``x`` (float32) and whether ``x`` is constant.
+
+    Two detached rescalings make it robust at any magnitude: by max |x| (so
+    values up to float32's limit neither overflow in the mean nor in the
+    squares) and, after centring, by the range (so tiny-variance grids are as
+    well conditioned as any other). Neither changes the exact result, since the
+    standardised vector is scale invariant. Constant inputs give the zero
+    vector with zero gradient.
+    """
+    v = x.reshape(-1).float()
+    with torch.no_grad():
+        m = v.abs().amax()
+        m = torch.where((m > 0) & torch.isfinite(m), m, torch.ones_like(m))
+    v = v / m
+    v = v - v.mean()
+    with torch.no_grad():
+        r = v.amax() - v.amin()
+        constant = ~(r > 0)
+        r = torch.where(constant, torch.ones_like(r), r)
+    v = v / r
+    v = v / torch.sqrt((v * v).sum() + eps)
+    v = torch.where(constant, torch.zeros_like(v), v)
+    return v, constant
+
+
+def correlation_loss(initial_density: torch.Tensor, edited_density: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
+    """L_reg3D = 1 − Pearson correlation of two equally shaped tensors over all elements.
+
+    Computed on the raw values in float32. Invariant to positive affine maps
+    ``a·x + b`` (a > 0) of either argument; 0 for identical grids, 2 for a
+    grid and its negation. If either input is constant the correlation is
+    undefined: the loss is then exactly 1.0 with a zero (finite) gradient.
+    Non-finite inputs give a non-finite loss.
+    """
+    if initial_density.shape != edited_density.shape:
+        raise ValueError(
+            f"density shapes differ: initial {tuple(initial_density.shape)} vs edited {tuple(edited_density.shape)}"
+        )
+    with _full_precision(initial_density, edited_density):
+        a, _ = _standardise(initial_density, eps)
+        b, _ = _standardise(edited_density, eps)
+        corr = (a * b).sum()
+        return 1.0 - corr
+
+
+def correlation_loss_plus_rgb(initial_features: torch.Tensor, edited_features: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
+    """L_reg3D++ = correlation loss on density + mean of the correlation losses of R, G and B.
+
+    ``features`` are ``(..., 4)``: channel 0 raw density, 1:4 raw colour.
+    """
+    _check_features(initial_features, edited_features)
+    density = correlation_loss(initial_features[..., 0], edited_features[..., 0], eps)
+    colour = torch.stack(
+        [correlation_loss(initial_features[..., c], edited_features[..., c], eps) for c in (1, 2, 3)]
+    ).mean()
+    return density + colour
+
+
+def volumetric_l1(initial: torch.Tensor, edited: torch.Tensor) -> torch.Tensor:
+    """Mean absolute difference of raw values (float32)."""
+    with _full_precision(initial, edited):
+        return (edited.float() - initial.float()).abs().mean()
+
+
+def volumetric_l2(initial: torch.Tensor, edited: torch.Tensor) -> torch.Tensor:
+    """Mean squared difference of raw values (float32)."""
+    with _full_precision(initial, edited):
+        return (edited.float() - initial.float()).square().mean()
+
+
+def image_l1(render: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Mean absolute pixel difference between a render and its input view (float32)."""
+    if render.shape != target.shape:
+        raise ValueError(f"render {tuple(render.shape)} and target {tuple(target.shape)} differ in shape")
+    with _full_precision(render, target):
+        return (render.float() - target.float()).abs().mean()
+
+
+def image_l2(render: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Mean squared pixel difference between a render and its input view (float32)."""
+    if render.shape != target.shape:
+        raise ValueError(f"render {tuple(render.shape)} and target {tuple(target.shape)} differ in shape")
+    with _full_precision(render, target):
+        return (render.float() - target.float()).square().mean()
+
+
+def _check_features(initial: torch.Tensor, edited: torch.Tensor) -> None:
+    if initial.shape != edited.shape:
+        raise ValueError(f"feature shapes differ: initial {tuple(initial.shape)} vs edited {tuple(edited.shape)}")
+    if initial.shape[-1] != 4:
+        raise ValueError(f"expected features (..., 4) (density + RGB), got {tuple(initial.shape)}")
+
+
+def regulariser_loss(kind: Regulariser, initial_features: torch.Tensor, edited_features: torch.Tensor) -> torch.Tensor:
+    """The volumetric regulariser ``kind`` between ``(..., 4)`` feature grids (unweighted).
+
+    ``reg3d`` / ``volumetric_l1`` / ``volumetric_l2`` use the density channel
+    only; ``reg3d_plus`` adds the colour channels. Image-space kinds need
+    renders: use :func:`image_l1` / :func:`image_l2` (ValueError here).
+    """
+    if kind not in REGULARISERS:
+        raise ValueError(f"unknown regulariser {kind!r}; expected one of {REGULARISERS}")
+    if kind in IMAGE_REGULARISERS:
+        raise ValueError(f"{kind!r} is an image-space regulariser: compare renders with image_l1/image_l2")
+    _check_features(initial_features, edited_features)
+    if kind == "reg3d":
+        return correlation_loss(initial_features[..., 0], edited_features[..., 0])
+    if kind == "reg3d_plus":
+        return correlation_loss_plus_rgb(initial_features, edited_features)
+    if kind == "volumetric_l1":
+        return volumetric_l1(initial_features[..., 0], edited_features[..., 0])
+    return volumetric_l2(initial_features[..., 0], edited_features[..., 0])

@@ -1,0 +1,83 @@
+"""Time-step annealing for SDS (paper §3.2, SPEC §2).
+
+``t ~ U[t_min, k_i]·T`` where the upper fraction ``k`` is ``k0 = 0.98`` until
+iteration ``i_start = 4000``; then ``k ← k·0.75`` every ``f_a = 600``
+iterations, floored at 0.35 (paper) or 0.22 (authors' code,
+:data:`AUTHORS_FLOOR`).
+
+Decision: the first decay happens *at* ``i_start`` (iteration counted from 0),
+so k(3999) = 0.98, k(4000) = 0.735, k(4599) = 0.735, k(4600) = 0.55125, ...
+In general, for ``i >= i_start``: ``k = max(floor, k0 · factor^(1 + (i − i_start) // every))``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+PAPER_FLOOR = 0.35
+AUTHORS_FLOOR = 0.22
+
+
+@dataclass
+class TimestepSchedule:
+    """Annealed upper bound of the SDS time-step range; defaults are the paper's."""
+
+    k0: float = 0.98
+    t_min: float = 0.02
+    i_start: int = 4000
+    every: int = 600
+    factor: float = 0.75
+    floor: float = PAPER_FLOOR
+
+    def __post_init__(self):
+        if not 0.0 <= self.t_min < self.floor <= self.k0 <= 1.0:
+            raise ValueError(
+                f"need 0 <= t_min < floor <= k0 <= 1, got t_min={self.t_min}, floor={self.floor}, k0={self.k0}"
+            )
+        if self.every < 1:
+            raise ValueError(f"every must be >= 1, got {self.every}")
+        if self.i_start < 0:
+            raise ValueError(f"i_start must be >= 0, got {self.i_start}")
+        if not 0.0 < self.factor <= 1.0:
+            raise ValueError(f"factor must be in (0, 1], got {self.factor}")
+
+    @classmethod
+    def authors(cls, **overrides) -> "TimestepSchedule":
+        """The authors' code: floor 0.22 instead of the paper's 0.35."""
+        return cls(**{"floor": AUTHORS_FLOOR, **overrides})
+
+    def max_fraction(self, iteration: int) -> float:
+        """Upper bound ``k`` (fraction of T) at ``iteration`` (0-based)."""
+        if iteration < 0:
+            raise ValueError(f"iteration must be >= 0, got {iteration}")
+        if iteration < self.i_start:
+            return float(self.k0)
+        decays = 1 + (int(iteration) - self.i_start) // self.every
+        return float(max(self.floor, self.k0 * self.factor**decays))
+
+    def bounds(self, iteration: int, num_train_timesteps: int = 1000) -> tuple[int, int]:
+        """Inclusive integer range ``[floor(t_min·T), min(floor(k·T), T−1)]`` of time steps."""
+        T = int(num_train_timesteps)
+        lo = int(math.floor(self.t_min * T + 1e-9))
+        hi = min(int(math.floor(self.max_fraction(iteration) * T + 1e-9)), T - 1)
+        return lo, max(lo, hi)
+
+    def sample(
+        self,
+        iteration: int,
+        n: int = 1,
+        num_train_timesteps: int = 1000,
+        generator: torch.Generator | None = None,
+        device: torch.device | str | None = None,
+    ) -> torch.Tensor:
+        """``n`` time steps, uniform over the integers of :meth:`bounds` (LongTensor ``(n,)``).
+
+        Drawn on the generator's device (CPU by default), then moved to ``device``.
+        """
+        lo, hi = self.bounds(iteration, num_train_timesteps)
+        gen_device = generator.device if generator is not None else torch.device("cpu")
+        t = torch.randint(lo, hi + 1, (int(n),), generator=generator, device=gen_device, dtype=torch.long)
+        return t if device is None else t.to(device)
