@@ -153,9 +153,10 @@ class VoxelGrid(torch.nn.Module):
         return torch.einsum("nk,nkc->nc", weights, values)
 
     def query(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Activated (density (N,), colour (N, 3)) at world points."""
+        """Activated (density (N,), colour (N, 3)) at world points; density is 0 outside the box."""
         raw = self.interpolate(points)
-        return self.activate_density(raw[:, 0]), self.activate_color(raw[:, 1:])
+        inside = ((points >= self.bbox_min) & (points <= self.bbox_max)).all(-1)
+        return self.activate_density(raw[:, 0]) * inside, self.activate_color(raw[:, 1:])
 
     # ----------------------------------------------------------- structure
     def upsampled(self, resolution: int | tuple[int, int, int]) -> "VoxelGrid":
@@ -177,11 +178,14 @@ class VoxelGrid(torch.nn.Module):
         corner_max = torch.maximum(raw[:-1], raw[1:])
         corner_max = torch.maximum(corner_max[:, :-1], corner_max[:, 1:])
         corner_max = torch.maximum(corner_max[:, :, :-1], corner_max[:, :, 1:])
-        cells = self.activate_density(corner_max) > sigma_threshold
+        return self.occupancy_from_cells(self.activate_density(corner_max) > sigma_threshold)
+
+    def occupancy_from_cells(self, cells: torch.Tensor) -> Occupancy:
+        """Occupancy for a given cell mask (e.g. one restored from a checkpoint), with its tight box."""
         if cells.any():
             idx = cells.nonzero()
             lo, hi = idx.min(0).values, idx.max(0).values + 1
-            vox = self.voxel_size.to(raw.device)
+            vox = self.voxel_size.to(cells.device)
             box_min, box_max = self.bbox_min + lo * vox, self.bbox_min + hi * vox
         else:
             box_min, box_max = self.bbox_min.clone(), self.bbox_min.clone()

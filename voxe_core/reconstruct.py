@@ -195,7 +195,7 @@ def reconstruct(
                     exp_avg=resumed["adam_exp_avg"].clone(),
                     exp_avg_sq=resumed["adam_exp_avg_sq"].clone(),
                 )
-            occupancy.cells = resumed["occupancy"].bool()
+            occupancy = grid.occupancy_from_cells(resumed["occupancy"].bool())
         origins, directions, targets = _stage_data(images, cameras, config.image_downsample[stage])
         for iteration in range(first, config.iterations[stage]):
             callbacks.check_cancel("reconstruct")

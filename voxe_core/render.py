@@ -35,7 +35,7 @@ class RenderConfig:
 
 @dataclass
 class RenderOutput:
-    rgb: torch.Tensor  # (N, C) composited on the background
+    rgb: torch.Tensor  # (N, C), or (H, W, C) from render_image, composited on the background
     opacity: torch.Tensor  # (N,)
     depth: torch.Tensor  # (N,) expected depth, 0 where the ray hit nothing
     samples: int = 0  # grid evaluations

@@ -1,0 +1,169 @@
+"""Reconstruction speed against error on NeRF-synthetic mic (200 px, 25 train views, 20 test views).
+
+Each run trains in its own subprocess (so its peak RSS is its own), then renders
+the test views and scores them. Runs vary the final resolution, the iteration
+budget and empty-space skipping; the skipping comparison also renders the same
+trained grid both ways. Writes bench/results/reconstruction.json and
+reconstruction.png (PSNR against training seconds).
+
+    python bench/reconstruction.py            # the full table (~1 h on 2 cores)
+    python bench/reconstruction.py --quick    # a CI-sized subset (~5 min)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+HERE = Path(__file__).resolve().parent
+DATA = HERE.parent.parent / "shared" / "data" / "nerf_synthetic_mic"
+RESULTS = HERE / "results"
+
+FULL_RUNS = [
+    # (label, final resolution, per-stage iterations, skipping while training)
+    ("fast-64", 64, (300, 1500), True),
+    ("fast-96", 96, (300, 500, 1500), True),
+    ("fast-128", 128, (300, 500, 2000), True),
+    ("fast-160", 160, (300, 500, 3000), True),
+    ("fast-160-long", 160, (300, 500, 4500), True),
+    ("dense-128", 128, (300, 500, 800), False),
+    ("skip-128", 128, (300, 500, 800), True),
+]
+QUICK_RUNS = [
+    ("quick-64", 64, (200, 600), True),
+    ("quick-dense-64", 64, (200, 600), False),
+]
+
+
+def stage_resolutions(final: int, stages: int) -> tuple[int, ...]:
+    return tuple(final // 2 ** (stages - 1 - i) for i in range(stages))
+
+
+def run_single(label: str, final: int, iterations: tuple[int, ...], skipping: bool, downsample: int) -> dict:
+    from voxe_core.data import load_scene
+    from voxe_core.metrics import psnr, ssim
+    from voxe_core.reconstruct import ReconstructConfig, reconstruct
+    from voxe_core.render import RenderConfig, render_image
+
+    torch.set_num_threads(os.cpu_count() or 1)
+    train = load_scene(DATA, "train", downsample=downsample)
+    test = load_scene(DATA, "test", downsample=downsample)
+    stages = len(iterations)
+    config = ReconstructConfig.fast(
+        resolutions=stage_resolutions(final, stages),
+        iterations=iterations,
+        image_downsample=tuple(2 ** (stages - 1 - i) for i in range(stages)),
+        lr_drop_iteration=int(iterations[-1] * 0.8),
+    )
+    config.render.skip_empty = skipping
+    samples = []
+    start = time.perf_counter()
+    grid = reconstruct(train.images, train.cameras, config,
+                       callbacks=_sample_counter(samples, config.iterations[-1]))
+    seconds = time.perf_counter() - start
+
+    result = {
+        "scene": "nerf_synthetic_mic", "label": label, "resolution": final, "iterations": sum(iterations),
+        "stage_iterations": list(iterations), "skipping": skipping, "seconds": round(seconds, 2),
+        "rays_per_step": config.rays_per_step, "image_size": train.cameras.width,
+        "occupied_fraction": round(grid.occupancy(config.render.sigma_threshold).fraction, 5),
+        "train_samples_per_ray_final_stage": round(sum(samples) / max(1, len(samples)), 2),
+    }
+    for render_skipping in (True, False):
+        render_config = RenderConfig(step_ratio=config.render.step_ratio, skip_empty=render_skipping)
+        start = time.perf_counter()
+        renders = [render_image(grid, test.cameras, i, render_config) for i in range(len(test.cameras))]
+        render_seconds = (time.perf_counter() - start) / len(renders)
+        images = torch.stack([r.rgb for r in renders])
+        key = "" if render_skipping else "dense_render_"
+        result[f"{key}psnr"] = round(float(psnr(images, test.images).mean()), 3)
+        result[f"{key}ssim"] = round(float(ssim(images, test.images).mean()), 4)
+        result[f"{key}samples_per_ray"] = round(
+            sum(r.samples for r in renders) / (len(renders) * test.cameras.width * test.cameras.height), 2
+        )
+        result[f"{key}render_seconds_per_view"] = round(render_seconds, 3)
+    result["render_sample_ratio_dense_over_skip"] = round(
+        result["dense_render_samples_per_ray"] / max(result["samples_per_ray"], 1e-9), 1
+    )
+    result["render_time_ratio_dense_over_skip"] = round(
+        result["dense_render_render_seconds_per_view"] / result["render_seconds_per_view"], 2
+    )
+    result["machine"] = f"{os.cpu_count()} CPU cores, torch {torch.__version__}"
+    result["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
+    return result
+
+
+def _sample_counter(samples: list, final_iterations: int):
+    from voxe_core.progress import Callbacks
+
+    def record(progress):
+        if progress.iteration > progress.total - final_iterations:
+            samples.append(progress.info["samples_per_ray"])
+
+    return Callbacks(on_progress=record)
+
+
+def plot(runs: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    for run in runs:
+        marker = "o" if run["skipping"] else "s"
+        ax.scatter(run["seconds"], run["psnr"], marker=marker, color="C0" if run["skipping"] else "C3")
+        ax.annotate(f'{run["label"]}', (run["seconds"], run["psnr"]), fontsize=7, xytext=(4, 2),
+                    textcoords="offset points")
+    ax.axhline(30.6, color="grey", lw=0.8, ls="--", label="target 30.6 dB")
+    ax.axvline(300, color="grey", lw=0.8, ls=":", label="5 min")
+    ax.set_xlabel("training wall time (s, 2-core CPU)")
+    ax.set_ylabel("mean test PSNR (dB)")
+    ax.set_title("mic @200 px: PSNR vs training time (o skip, s dense)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="CI-sized subset at 100 px")
+    parser.add_argument("--only", nargs="*", help="labels to run")
+    parser.add_argument("--out", type=Path, default=RESULTS / "reconstruction.json")
+    parser.add_argument("--single", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.single:
+        print(json.dumps(run_single(*json.loads(args.single))))
+        return
+    if not DATA.is_dir():
+        sys.exit(f"mic data not found at {DATA}")
+    runs = QUICK_RUNS if args.quick else FULL_RUNS
+    if args.only:
+        runs = [r for r in runs if r[0] in args.only]
+    downsample = 8 if args.quick else 4
+    results = []
+    for label, final, iterations, skipping in runs:
+        spec = json.dumps([label, final, list(iterations), skipping, downsample])
+        out = subprocess.run([sys.executable, __file__, "--single", spec], capture_output=True, text=True, check=True)
+        result = json.loads(out.stdout.strip().splitlines()[-1])
+        results.append(result)
+        print(f'{label:15s} res {final:3d} it {sum(iterations):5d} skip {str(skipping):5s} '
+              f'{result["seconds"]:7.1f} s  PSNR {result["psnr"]:.2f}  SSIM {result["ssim"]:.4f}  '
+              f'samples/ray {result["samples_per_ray"]:.1f} (dense {result["dense_render_samples_per_ray"]:.1f})  '
+              f'render {result["render_seconds_per_view"]:.2f} s/view  RSS {result["peak_rss_mb"]:.0f} MB', flush=True)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(results, indent=1))
+    plot(results, args.out.with_suffix(".png"))
+    print(f"wrote {args.out} and {args.out.with_suffix('.png')}")
+
+
+if __name__ == "__main__":
+    main()
