@@ -54,3 +54,11 @@ def sphere_grid() -> VoxelGrid:
 def make_sphere_grid_fixture():
     """The sphere factory, for tests that need another radius, centre or resolution."""
     return make_sphere_grid
+
+
+@pytest.fixture(scope="session")
+def tiny_sd_path(tmp_path_factory) -> Path:
+    """The tiny random-weight Stable Diffusion (SMOKE-TEST MODEL, plumbing only), built once per session."""
+    from voxe_core.tiny_sd import build_tiny_stable_diffusion
+
+    return build_tiny_stable_diffusion(tmp_path_factory.mktemp("tiny_sd_shared") / "model", seed=0)

@@ -4,6 +4,8 @@
     voxe render GRID --data DATA_DIR --split test --out DIR   |   --ring N --size S
     voxe turntable GRID --out turntable.mp4|.gif [--frames 180] [--size 256] [--elevation 30]
     voxe export-mesh GRID --out mesh.ply|.glb [--level L] [--resolution N]
+    voxe edit GRID --prompt TEXT --out DIR [--model ID_OR_DIR] [--iterations N] [--render-size N] ...
+    voxe build-tiny-model DIR      (random-weight SMOKE-TEST Stable Diffusion, plumbing only)
 
 Bad input (dataset, grid file, option values) prints one line on stderr and
 exits 2; Ctrl-C during a long stage cancels it cleanly and exits 130.
@@ -164,7 +166,46 @@ def build_parser() -> argparse.ArgumentParser:
     mesh.add_argument("--out", type=Path, required=True, help="mesh file, .ply or .glb")
     mesh.add_argument("--level", type=float, default=None, help="surface density (default ln 2 / voxel size)")
     mesh.add_argument("--resolution", type=_positive_int, default=None, help="resample to N points per axis")
+    _add_edit_parsers(commands, common)
     return parser
+
+
+def _add_edit_parsers(commands, common) -> None:
+    ed = commands.add_parser("edit", parents=[common], help="text-guided editing of a grid with SDS (SPEC §2)")
+    ed.add_argument("grid", type=Path, metavar="GRID", help="initial grid G_i (.safetensors)")
+    ed.add_argument("--prompt", required=True, help='edit text, e.g. "a dog wearing big sunglasses"')
+    ed.add_argument("--out", type=Path, required=True, metavar="DIR",
+                    help="writes DIR/edited.safetensors, DIR/checkpoint.safetensors, DIR/previews/*.png")
+    ed.add_argument("--model", default=None, metavar="MODEL_ID_OR_PATH",
+                    help="diffusers-layout Stable Diffusion: hub id (from the local cache) or folder "
+                         "(default stabilityai/stable-diffusion-2-base)")
+    ed.add_argument("--offline", action="store_true", help="never contact the hub (as HF_HUB_OFFLINE=1)")
+    ed.add_argument("--device", choices=("cpu", "cuda"), default=None, help="default: cuda when available")
+    ed.add_argument("--iterations", type=int, default=8000)
+    ed.add_argument("--render-size", type=_positive_int, default=266, help="training render size in pixels")
+    ed.add_argument("--regulariser", default="reg3d",
+                    help="reg3d | reg3d_plus | volumetric_l1 | volumetric_l2 | image_l1 | image_l2 (image_* need --data)")
+    ed.add_argument("--reg-weight", type=float, default=200.0)
+    ed.add_argument("--guidance-scale", type=float, default=100.0)
+    ed.add_argument("--schedule", choices=("paper", "authors"), default="paper",
+                    help="time-step annealing floor: paper 0.35, authors' code 0.22")
+    ed.add_argument("--no-view-words", action="store_true", help="do not append ', front view' etc. to the prompt")
+    ed.add_argument("--autocast", choices=("bf16", "fp16"), default=None, help="run the guidance under autocast")
+    ed.add_argument("--seed", type=int, default=0)
+    ed.add_argument("--checkpoint-every", type=int, default=250, help="iterations between checkpoints (0: only at the end)")
+    ed.add_argument("--resume", type=Path, default=None, metavar="PATH", help="continue from this edit checkpoint")
+    ed.add_argument("--preview-every", type=int, default=250, help="iterations between preview PNGs (0: none)")
+    ed.add_argument("--data", type=Path, default=None, metavar="DATA_DIR", help="input views for image_l1 / image_l2")
+    ed.add_argument("--split", default="train")
+    ed.add_argument("--downsample", type=_positive_int, default=3, help="input view downsampling (800 px / 3 = 266)")
+    ed.add_argument("--max-images", type=_positive_int, default=None)
+
+    tiny = commands.add_parser(
+        "build-tiny-model", parents=[common],
+        help="write a tiny random-weight Stable Diffusion (SMOKE-TEST model: plumbing only, never quality)",
+    )
+    tiny.add_argument("out", type=Path, metavar="DIR")
+    tiny.add_argument("--seed", type=int, default=0)
 
 
 # --------------------------------------------------------------------- commands
@@ -309,11 +350,91 @@ def cmd_export_mesh(args) -> int:
     return 0
 
 
+def _edit_config(args):
+    from voxe_core.edit import EditConfig
+    from voxe_core.schedule import TimestepSchedule
+
+    schedule = TimestepSchedule.authors() if args.schedule == "authors" else TimestepSchedule()
+    return EditConfig(
+        iterations=args.iterations, render_size=args.render_size, regulariser=args.regulariser,
+        regulariser_weight=args.reg_weight, guidance_scale=args.guidance_scale, schedule=schedule,
+        view_words=not args.no_view_words, autocast_dtype=args.autocast, seed=args.seed,
+        checkpoint_every=args.checkpoint_every, preview_every=args.preview_every,
+    )
+
+
+def cmd_edit(args) -> int:
+    import torch
+
+    from voxe_core.edit import edit
+    from voxe_core.export import save_png
+    from voxe_core.guidance import SDS_MODEL_ID, ModelNotAvailableError, StableDiffusionGuidance
+    from voxe_core.losses import IMAGE_REGULARISERS
+
+    config = _edit_config(args)  # bad options fail before any loading
+    if not args.prompt.strip():
+        raise ValueError("the edit prompt is empty")
+    if config.regulariser in IMAGE_REGULARISERS and args.data is None:
+        raise ValueError(f"--regulariser {config.regulariser} compares renders with the input views: pass --data DATA_DIR")
+    if args.device == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda asked for, but no CUDA device is available")
+    grid = _load_grid(args.grid)
+    views = None
+    if args.data is not None and config.regulariser in IMAGE_REGULARISERS:
+        from voxe_core.data import load_scene
+
+        scene = load_scene(args.data, args.split, args.downsample, args.max_images)
+        views = (scene.images, scene.cameras)
+    model = args.model or SDS_MODEL_ID
+    try:
+        guidance = StableDiffusionGuidance.from_pretrained(
+            model, device=args.device, local_files_only=True if args.offline else None
+        )
+    except ModelNotAvailableError as exc:
+        print(f"voxe edit: model not available: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    args.out.mkdir(parents=True, exist_ok=True)
+    checkpoint = args.out / "checkpoint.safetensors"
+
+    def on_preview(iteration: int, image) -> None:
+        save_png(args.out / "previews" / f"preview_{iteration:05d}.png", image)
+
+    print(
+        f"editing {args.grid} ({'x'.join(map(str, grid.resolution))}) towards {args.prompt!r} with {model} "
+        f"on {guidance.device}: {config.iterations} iterations, {config.render_size} px renders, "
+        f"{config.regulariser} x {config.regulariser_weight:g}",
+        file=sys.stderr,
+    )
+    edited = run_stage(
+        lambda cb: edit(grid, args.prompt, guidance, config, cb, checkpoint, args.resume, views, on_preview),
+        "edit", "it", config.iterations, args.quiet,
+    )
+    if edited is None:
+        print(f"voxe: edit cancelled; resume with --resume {checkpoint}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    edited.save(args.out / "edited.safetensors")
+    print(f"wrote {args.out / 'edited.safetensors'} and {checkpoint}")
+    return 0
+
+
+def cmd_build_tiny_model(args) -> int:
+    from voxe_core.tiny_sd import build_tiny_stable_diffusion
+
+    path = build_tiny_stable_diffusion(args.out, seed=args.seed)
+    print(
+        f"wrote {path}: SMOKE-TEST MODEL with RANDOM WEIGHTS (seed {args.seed}), for plumbing only; "
+        f"edits made with it are noise and say nothing about quality. Use it as `voxe edit ... --model {path}`."
+    )
+    return 0
+
+
 COMMANDS = {
     "reconstruct": cmd_reconstruct,
     "render": cmd_render,
     "turntable": cmd_turntable,
     "export-mesh": cmd_export_mesh,
+    "edit": cmd_edit,
+    "build-tiny-model": cmd_build_tiny_model,
 }
 
 

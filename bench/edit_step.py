@@ -1,0 +1,304 @@
+"""Cost of one editing iteration (SPEC §2), split into render, VAE encode, UNet, backward and optimiser.
+
+Runs the real loop (``voxe_core.edit.edit``) a few iterations per configuration
+and averages the per-part timings it reports (``Progress.info``), after warm-up
+iterations. Models, all with RANDOM WEIGHTS (nothing can be downloaded here;
+the timings are a cost, never a quality):
+
+* ``tiny``: the smoke-test model of ``voxe_core.tiny_sd`` (64² images);
+* ``sd2-base-shaped``: UNet, VAE and CLIP text encoder built from the
+  Stable Diffusion 2 base configurations written out below (865M + 84M + 340M
+  parameters), saved to a temporary folder and loaded through
+  ``StableDiffusionGuidance.from_pretrained`` so the same code path runs. A
+  real CLIP tokenizer cannot be downloaded: the tiny model's tokenizer files
+  stand in (tokenisation cost is negligible and cached per view word).
+
+The grid is an analytic sphere at the paper's 160³ (so dense Adam and
+L_reg3D cost what they cost at paper scale).
+
+    python bench/edit_step.py            # CPU: tiny @64², full-size @64² and @128² (~5-10 min on 2 cores)
+    python bench/edit_step.py --quick    # CPU: tiny only
+    python bench/edit_step.py --gpu      # CUDA fp16: full-size @512² guidance with 266² renders, tiny @64²
+
+Writes bench/results/edit_step.json (a list of runs) and edit_step.png
+(per-run stacked bars) — ``--gpu`` writes edit_step_gpu.json / .png instead,
+so the CPU record is kept. Prints a table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+RESULTS = HERE / "results"
+sys.path.insert(0, str(REPO))
+
+PARTS = ("render", "vae", "unet", "backward", "optimizer", "other")
+GRID_RESOLUTION = 160
+COST_NOTE = "random weights: cost only"
+
+
+# ---------------------------------------------------------------- models
+def build_sd2_base_shaped(path: Path, tokenizer_from: Path, dtype: str = "float16") -> Path:
+    """Random-weight UNet / VAE / CLIP text encoder with Stable Diffusion 2 base's shapes, diffusers layout."""
+    import diffusers
+    from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
+    from transformers import CLIPTextConfig, CLIPTextModel, CLIPTokenizer
+
+    path.mkdir(parents=True, exist_ok=True)
+    shutil.copytree(tokenizer_from, path / "tokenizer", dirs_exist_ok=True)
+    tokenizer = CLIPTokenizer.from_pretrained(str(path / "tokenizer"))
+    save_dtype = getattr(torch, dtype)
+    torch.manual_seed(0)
+
+    unet = UNet2DConditionModel(
+        sample_size=64,
+        in_channels=4,
+        out_channels=4,
+        down_block_types=("CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "DownBlock2D"),
+        up_block_types=("UpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D"),
+        block_out_channels=(320, 640, 1280, 1280),
+        layers_per_block=2,
+        cross_attention_dim=1024,
+        attention_head_dim=(5, 10, 20, 20),
+        use_linear_projection=True,
+        norm_num_groups=32,
+        flip_sin_to_cos=True,
+        freq_shift=0,
+    )
+    unet.to(save_dtype).save_pretrained(str(path / "unet"))
+    del unet
+
+    vae = AutoencoderKL(
+        in_channels=3,
+        out_channels=3,
+        down_block_types=("DownEncoderBlock2D",) * 4,
+        up_block_types=("UpDecoderBlock2D",) * 4,
+        block_out_channels=(128, 256, 512, 512),
+        layers_per_block=2,
+        latent_channels=4,
+        norm_num_groups=32,
+        sample_size=512,
+        scaling_factor=0.18215,
+    )
+    vae.to(save_dtype).save_pretrained(str(path / "vae"))
+    del vae
+
+    text = CLIPTextModel(CLIPTextConfig(
+        vocab_size=49408,
+        hidden_size=1024,
+        intermediate_size=4096,
+        projection_dim=1024,
+        num_hidden_layers=23,
+        num_attention_heads=16,
+        max_position_embeddings=77,
+        hidden_act="gelu",
+        bos_token_id=tokenizer.bos_token_id,
+        eos_token_id=tokenizer.eos_token_id,
+        pad_token_id=tokenizer.eos_token_id,
+    ))
+    text.to(save_dtype).save_pretrained(str(path / "text_encoder"))
+    del text
+
+    DDIMScheduler(
+        num_train_timesteps=1000, beta_start=0.00085, beta_end=0.012, beta_schedule="scaled_linear",
+        clip_sample=False, set_alpha_to_one=False, steps_offset=1, prediction_type="epsilon",
+    ).save_pretrained(str(path / "scheduler"))
+    (path / "model_index.json").write_text(json.dumps({
+        "_class_name": "StableDiffusionPipeline",
+        "_diffusers_version": diffusers.__version__,
+        "_name_or_path": "sd2-base-shaped RANDOM WEIGHTS (benchmark only)",
+        "scheduler": ["diffusers", "DDIMScheduler"],
+        "text_encoder": ["transformers", "CLIPTextModel"],
+        "tokenizer": ["transformers", "CLIPTokenizer"],
+        "unet": ["diffusers", "UNet2DConditionModel"],
+        "vae": ["diffusers", "AutoencoderKL"],
+    }, indent=2))
+    return path
+
+
+def sphere_grid(resolution: int, radius: float = 0.8, slope: float = 5.0):
+    """Solid sphere, raw density linear in the signed distance (positive inside), reddish colour."""
+    from voxe_core.grid import VoxelGrid
+
+    grid = VoxelGrid(resolution)
+    axis = torch.linspace(-1.5, 1.5, resolution)
+    x, y, z = torch.meshgrid(axis, axis, axis, indexing="ij")
+    distance = (x * x + y * y + z * z).sqrt()
+    with torch.no_grad():
+        grid.features[..., 0] = slope * (radius - distance) / float(grid.voxel_size.min())
+        grid.features[..., 1:] = torch.tensor([2.0, -1.0, -1.0])
+    return grid
+
+
+# ---------------------------------------------------------------- one run
+def time_run(label: str, model_path: Path, device: str, dtype: torch.dtype, resolution: int, render_size: int,
+             warm: int, timed: int, note: str) -> dict:
+    from voxe_core.edit import EditConfig, edit
+    from voxe_core.guidance import StableDiffusionGuidance
+    from voxe_core.progress import Callbacks
+
+    t0 = time.perf_counter()
+    guidance = StableDiffusionGuidance.from_pretrained(
+        str(model_path), device=device, dtype=dtype, local_files_only=True, resolution=resolution
+    )
+    load_s = time.perf_counter() - t0
+    grid = sphere_grid(GRID_RESOLUTION)
+    reports = []
+    config = EditConfig(iterations=warm + timed, render_size=render_size, seed=0)
+    load_before = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    edit(grid, "a dog wearing big sunglasses", guidance, config, Callbacks(on_progress=reports.append))
+    wall = time.perf_counter() - t0
+    kept = [r.info for r in reports[warm:]]
+    mean = lambda key: statistics.fmean(i[key] for i in kept)  # noqa: E731
+    row = {
+        "model": label,
+        "device": device,
+        "dtype": str(dtype).replace("torch.", ""),
+        "resolution": resolution,
+        "render_size": render_size,
+        "grid_resolution": GRID_RESOLUTION,
+        "ms_render": mean("ms_render"),
+        "ms_vae": mean("ms_vae"),
+        "ms_unet": mean("ms_unet"),
+        "ms_backward": mean("ms_backward"),
+        "ms_optimizer": mean("ms_optimizer"),
+        "ms_total": mean("ms_step"),
+    }
+    ms_regulariser = mean("ms_regulariser")
+    row["ms_other"] = row["ms_total"] - sum(row[f"ms_{p}"] for p in PARTS[:-1])
+    row["edit_8000_minutes"] = row["ms_total"] * 8000 / 60000
+    row.update({
+        "ms_total_min": min(i["ms_step"] for i in kept),
+        "ms_total_max": max(i["ms_step"] for i in kept),
+        "iterations_warm": warm,
+        "iterations_timed": timed,
+        "ms_regulariser_forward": ms_regulariser,
+        "samples_per_ray": mean("samples_per_ray"),
+        "model_load_s": load_s,
+        "run_wall_s": wall,
+        "threads": torch.get_num_threads(),
+        "cpu_cores": os.cpu_count(),
+        "load_average_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],
+        "torch": torch.__version__,
+        "cpu": platform.processor() or platform.machine(),
+        "model_note": COST_NOTE,
+        "what_the_timing_buys": note,
+    })
+    del guidance
+    return row
+
+
+# ---------------------------------------------------------------- output
+def print_table(rows: list[dict]) -> None:
+    head = (f"{'model':<16} {'dev':<4} {'dtype':<8} {'res':>4} {'rend':>4} | {'render':>8} {'vae':>8} {'unet':>8} "
+            f"{'backward':>8} {'optim':>7} {'other':>7} | {'total ms':>9} {'8000 it (min)':>13}")
+    print(head)
+    print("-" * len(head))
+    for r in rows:
+        print(f"{r['model']:<16} {r['device']:<4} {r['dtype']:<8} {r['resolution']:>4} {r['render_size']:>4} | "
+              f"{r['ms_render']:>8.1f} {r['ms_vae']:>8.1f} {r['ms_unet']:>8.1f} {r['ms_backward']:>8.1f} "
+              f"{r['ms_optimizer']:>7.1f} {r['ms_other']:>7.1f} | {r['ms_total']:>9.1f} {r['edit_8000_minutes']:>13.1f}")
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = [f"{r['model']} {r['device']} {r['dtype']}\n{r['resolution']}² guidance, {r['render_size']}² render"
+              for r in rows]
+    colours = ["#4c72b0", "#dd8452", "#c44e52", "#8172b3", "#55a868", "#bbbbbb"]
+    fig, ax = plt.subplots(figsize=(10, 1.2 + 0.9 * len(rows)))
+    for i, r in enumerate(rows):
+        left = 0.0
+        for part, colour in zip(PARTS, colours):
+            share = max(0.0, r[f"ms_{part}"]) / r["ms_total"] * 100
+            ax.barh(i, share, left=left, color=colour, label=part if i == 0 else None)
+            left += share
+        ax.text(101, i, f"{r['ms_total']:.0f} ms/it\n8000 it: {r['edit_8000_minutes']:.1f} min", va="center",
+                fontsize=8)
+    ax.set_yticks(range(len(rows)), labels, fontsize=8)
+    ax.invert_yaxis()
+    ax.set_xlim(0, 125)
+    ax.set_xlabel("share of one editing iteration (%)  —  random-weight models: cost only")
+    ax.legend(ncol=len(PARTS), loc="upper center", bbox_to_anchor=(0.45, -0.35 if len(rows) < 3 else -0.18),
+              fontsize=8, frameon=False)
+    ax.set_title("Vox-E editing step: where the time goes")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--gpu", action="store_true", help="CUDA fp16, 512² guidance, 266² renders")
+    parser.add_argument("--quick", action="store_true", help="tiny model only")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch CPU threads (default 1: on a shared 2-core box OpenMP hand-offs cost more than they give)")
+    parser.add_argument("--build-full", type=Path, default=None, help=argparse.SUPPRESS)  # subprocess entry
+    parser.add_argument("--tokenizer-from", type=Path, default=None, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+
+    if args.build_full is not None:
+        build_sd2_base_shaped(args.build_full, args.tokenizer_from)
+        return
+
+    from voxe_core.tiny_sd import build_tiny_stable_diffusion
+
+    torch.set_num_threads(max(1, args.threads))
+    device = "cuda" if args.gpu else "cpu"
+    if args.gpu and not torch.cuda.is_available():
+        sys.exit("--gpu needs a CUDA device")
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="voxe_edit_bench_") as tmp:
+        tmp = Path(tmp)
+        tiny = build_tiny_stable_diffusion(tmp / "tiny", seed=0)
+        tiny_note = ("plumbing cost: render, regulariser and dense Adam on a 160³ grid around a toy network; "
+                     "nothing about edit quality")
+        rows.append(time_run("tiny", tiny, device, torch.float32, 64, 64, 5, 20, tiny_note))
+        print_table(rows[-1:])
+        if not args.quick:
+            t0 = time.perf_counter()
+            # Built in a subprocess so its memory is returned before the models are loaded again.
+            subprocess.run([sys.executable, __file__, "--build-full", str(tmp / "sd2"), "--tokenizer-from",
+                            str(tiny / "tokenizer")], check=True)
+            print(f"built the SD-2-base-shaped random model in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
+            full_note = ("cost of the real SD-2-base architecture ({}); quality not measured (random weights){}")
+            if args.gpu:
+                rows.append(time_run("sd2-base-shaped", tmp / "sd2", device, torch.float16, 512, 266, 5, 20,
+                                     full_note.format("paper settings: 512² guidance, 266² renders", "")))
+            else:
+                for res in (64, 128):
+                    rows.append(time_run(
+                        "sd2-base-shaped", tmp / "sd2", device, torch.float32, res, res, 3, 5,
+                        full_note.format(f"{res}² guidance on CPU",
+                                         "; real weights would guide poorly this far below their 512² training size"),
+                    ))
+                    print_table(rows[-1:])
+    suffix = "_gpu" if args.gpu else ""
+    (RESULTS / f"edit_step{suffix}.json").write_text(json.dumps(rows, indent=2) + "\n")
+    plot(rows, RESULTS / f"edit_step{suffix}.png")
+    print()
+    print_table(rows)
+    print(f"\nwrote {RESULTS / f'edit_step{suffix}.json'} and .png")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,332 @@
+"""Text-guided editing (SPEC §2): the SDS loop, its regularisers, checkpoints, resume and the CLI.
+
+The real path runs on the tiny random-weight Stable Diffusion (a SMOKE-TEST
+MODEL: it proves the plumbing, never edit quality). A fake guidance that
+implements the :class:`Guidance` protocol records what the loop sends it
+(prompts, image sizes, time steps) where the real model cannot tell us.
+"""
+
+from __future__ import annotations
+
+import shutil
+
+import pytest
+import torch
+
+import voxe_core.edit as edit_module
+from voxe_core.cameras import Cameras, spherical_poses
+from voxe_core.cli import main
+from voxe_core.edit import EditConfig, build_prompt, edit, learning_rate, load_edit_checkpoint
+from voxe_core.export import render_views
+from voxe_core.grid import VoxelGrid
+from voxe_core.guidance import Guidance, StableDiffusionGuidance
+from voxe_core.progress import Callbacks, StageCancelled
+
+SIZE = 32  # render size of every test run
+
+
+@pytest.fixture(autouse=True)
+def _single_thread():
+    # Tiny ops: OpenMP hand-offs dominate on a shared 2-core box.
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def tiny_guidance(tiny_sd_path) -> StableDiffusionGuidance:
+    return StableDiffusionGuidance.from_pretrained(str(tiny_sd_path), device="cpu", local_files_only=True)
+
+
+@pytest.fixture
+def small_sphere(make_sphere_grid) -> VoxelGrid:
+    return make_sphere_grid(20)
+
+
+class FakeGuidance:
+    """Implements the Guidance protocol; records prompts per SDS call. Its loss darkens the render."""
+
+    resolution = 32
+    num_train_timesteps = 1000
+
+    def __init__(self):
+        self.prompts: list[str] = []  # embedding index -> prompt
+        self.calls: list[dict] = []
+
+    def encode_prompts(self, prompts):
+        out = []
+        for p in prompts:
+            if p not in self.prompts:
+                self.prompts.append(p)
+            out.append(torch.full((4, 8), float(self.prompts.index(p))))
+        return torch.stack(out)
+
+    def unconditional_embedding(self):
+        return self.encode_prompts([""])
+
+    def sds_loss(self, images, text_embeddings, timesteps, guidance_scale=100.0, generator=None):
+        self.calls.append({
+            "prompts": [self.prompts[int(e[0, 0])] for e in text_embeddings],
+            "shape": tuple(images.shape),
+            "t": timesteps.tolist(),
+            "scale": guidance_scale,
+        })
+        return images.mean(), {}
+
+    def cross_attention_maps(self, image, prompt, timestep=200, resolution_filter=16, generator=None):
+        raise NotImplementedError
+
+    def token_spans(self, prompt, words):
+        raise NotImplementedError
+
+
+def _collect(reports):
+    return Callbacks(on_progress=reports.append)
+
+
+# ------------------------------------------------------------------ config / prompts
+
+
+def test_defaults_are_the_papers():
+    c = EditConfig()
+    assert (c.iterations, c.lr, c.betas, c.render_size, c.guidance_scale) == (8000, 0.03, (0.9, 0.999), 266, 100.0)
+    assert (c.regulariser, c.regulariser_weight, c.schedule.floor, c.batch_size) == ("reg3d", 200.0, 0.35, 1)
+    assert (c.radius, round(c.fov_x, 4), c.min_zenith_deg, c.max_zenith_deg) == (4.0311, 0.6911, 15.0, 90.0)
+    assert c.render.background == (1.0, 1.0, 1.0) and c.lr_decay and c.view_words
+    assert EditConfig.authors().schedule.floor == 0.22
+    with pytest.raises(ValueError, match="regulariser"):
+        EditConfig(regulariser="tv")
+    with pytest.raises(ValueError, match="autocast"):
+        EditConfig(autocast_dtype="fp8")
+
+
+def test_learning_rate_matches_the_authors_loop():
+    config = EditConfig()
+    lr, used = config.lr, []
+    for step in range(1, config.iterations + 1):  # the authors' loop: 1-based steps, decay after the step
+        used.append(lr)
+        if step % 400 == 0 and step >= 5000:
+            lr *= 0.96
+    assert [learning_rate(config, i) for i in range(config.iterations)] == pytest.approx(used, rel=1e-12)
+    assert learning_rate(config, 5199) == 0.03 and learning_rate(config, 5200) == pytest.approx(0.03 * 0.96)
+    off = EditConfig(lr_decay=False)
+    assert {learning_rate(off, i) for i in (0, 5200, 7999)} == {0.03}
+
+
+def test_build_prompt_prefix_and_view():
+    assert build_prompt("a dog", "side") == "a render of a dog, side view"
+    assert build_prompt("a dog", None, prefix=None) == "a dog"
+    assert build_prompt("a dog", "back", prefix="a photo of") == "a photo of a dog, back view"
+    with pytest.raises(ValueError):
+        build_prompt("   ", None)
+
+
+# ------------------------------------------------------------------ the loop on the real tiny SD
+
+
+def test_edit_with_tiny_sd_changes_the_grid_with_finite_losses(small_sphere, tiny_guidance):
+    reports, previews = [], []
+    config = EditConfig(iterations=3, render_size=SIZE, preview_every=2)
+    out = edit(small_sphere, "a dog", tiny_guidance, config, _collect(reports),
+               on_preview=lambda i, image: previews.append((i, image)))
+    assert [r.iteration for r in reports] == [1, 2, 3] and all(r.total == 3 and r.stage == "edit" for r in reports)
+    for r in reports:
+        assert all(torch.isfinite(torch.tensor(v)) for v in r.losses.values())
+        assert r.info["t_min"] <= r.info["t"] <= r.info["t_max"] and r.info["lr"] == 0.03
+    assert not torch.equal(out.features, small_sphere.features)
+    assert torch.isfinite(out.features).all()
+    # the initial grid is untouched (G_e is a copy)
+    assert out.flat_features is not small_sphere.flat_features
+    assert [i for i, _ in previews] == [0, 2, 3] and previews[0][1].shape == (SIZE, SIZE, 3)
+    # preview 0 is the initial grid: the sphere is red on white
+    assert previews[0][1][SIZE // 2, SIZE // 2, 0] > 0.8 and previews[0][1][SIZE // 2, SIZE // 2, 1] < 0.2
+
+
+def test_sds_gradient_reaches_occupied_voxels_only(small_sphere, tiny_guidance):
+    # No regulariser: after one Adam step exactly the voxels with a nonzero SDS gradient moved.
+    config = EditConfig(iterations=1, render_size=SIZE, regulariser_weight=0.0)
+    out = edit(small_sphere, "a dog", tiny_guidance, config)
+    moved = (out.features != small_sphere.features).detach()
+    cells = small_sphere.occupancy(config.render.sigma_threshold).cells
+    near = torch.zeros(small_sphere.resolution, dtype=torch.bool)
+    for dx in (0, 1):
+        for dy in (0, 1):
+            for dz in (0, 1):
+                near[dx:dx + cells.shape[0], dy:dy + cells.shape[1], dz:dz + cells.shape[2]] |= cells
+    assert moved[..., 0].sum() > 0 and moved[..., 1:].sum() > 0  # density and colour both get gradient
+    assert not moved[~near].any()  # ReLU field: nothing outside the occupied cells' vertices
+
+
+def test_resume_reproduces_the_uninterrupted_run_bit_for_bit(small_sphere, tiny_guidance, tmp_path):
+    config = EditConfig(iterations=5, render_size=SIZE, checkpoint_every=2, seed=3)
+    reference = edit(small_sphere, "a wooden dog", tiny_guidance, config)
+
+    checkpoint = tmp_path / "checkpoint.safetensors"
+    periodic = tmp_path / "at2.safetensors"
+    done = []
+
+    def on_checkpoint(path):
+        if done[-1] == 2:
+            shutil.copy(path, periodic)
+
+    callbacks = Callbacks(on_progress=lambda r: done.append(r.iteration), should_cancel=lambda: len(done) >= 3,
+                          on_checkpoint=on_checkpoint)
+    with pytest.raises(StageCancelled):
+        edit(small_sphere, "a wooden dog", tiny_guidance, config, callbacks, checkpoint_path=checkpoint)
+    _, meta = load_edit_checkpoint(checkpoint)
+    assert meta["iteration"] == 3  # written on cancellation
+    assert load_edit_checkpoint(periodic)[1]["iteration"] == 2
+
+    for start in (checkpoint, periodic):
+        resumed = edit(small_sphere, "a wooden dog", tiny_guidance, config, resume_from=start)
+        assert torch.equal(resumed.features, reference.features)
+    # a different seed is a different run (the test above is not vacuous)
+    other = edit(small_sphere, "a wooden dog", tiny_guidance, EditConfig(iterations=5, render_size=SIZE, seed=4))
+    assert not torch.equal(other.features, reference.features)
+
+
+def test_resume_refuses_another_prompt_or_grid(small_sphere, make_sphere_grid, tiny_guidance, tmp_path):
+    checkpoint = tmp_path / "c.safetensors"
+    config = EditConfig(iterations=1, render_size=SIZE)
+    edit(small_sphere, "a dog", tiny_guidance, config, checkpoint_path=checkpoint)
+    with pytest.raises(ValueError, match="prompt"):
+        edit(small_sphere, "a cat", tiny_guidance, config, resume_from=checkpoint)
+    with pytest.raises(ValueError, match="initial grid"):
+        edit(make_sphere_grid(20, radius=0.6), "a dog", tiny_guidance, config, resume_from=checkpoint)
+
+
+def test_bf16_autocast_on_cpu_runs(small_sphere, tiny_guidance):
+    reports = []
+    out = edit(small_sphere, "a dog", tiny_guidance, EditConfig(iterations=2, render_size=SIZE, autocast_dtype="bf16"),
+               _collect(reports))
+    assert out.features.dtype == torch.float32 and torch.isfinite(out.features).all()
+    assert not torch.equal(out.features, small_sphere.features)
+    assert all(torch.isfinite(torch.tensor(r.losses["total"])) for r in reports)
+
+
+# ------------------------------------------------------------------ the loop with a recording guidance
+
+
+def test_fake_guidance_satisfies_the_protocol():
+    assert isinstance(FakeGuidance(), Guidance)
+
+
+def test_cancellation_stops_within_one_iteration(small_sphere):
+    reports = []
+    callbacks = Callbacks(on_progress=reports.append, should_cancel=lambda: len(reports) >= 1)
+    with pytest.raises(StageCancelled, match="edit"):
+        edit(small_sphere, "a dog", FakeGuidance(), EditConfig(iterations=50, render_size=16), callbacks)
+    assert len(reports) == 1
+
+
+def test_errors_empty_prompt_and_image_regulariser_without_views(small_sphere):
+    with pytest.raises(ValueError, match="empty"):
+        edit(small_sphere, "  ", FakeGuidance(), EditConfig(iterations=1, render_size=16))
+    for kind in ("image_l1", "image_l2"):
+        with pytest.raises(ValueError, match="input_views"):
+            edit(small_sphere, "a dog", FakeGuidance(), EditConfig(iterations=1, render_size=16, regulariser=kind))
+
+
+def test_reg3d_is_zero_for_identical_grids_then_grows(small_sphere):
+    reports = []
+    edit(small_sphere, "a dog", FakeGuidance(), EditConfig(iterations=4, render_size=16), _collect(reports))
+    assert abs(reports[0].losses["reg"]) < 1e-6
+    assert reports[0].losses["total"] == pytest.approx(reports[0].losses["sds"] + 200 * reports[0].losses["reg"])
+    # unopposed (weight 0) and with big steps, the fake SDS changes G_e's density and L_reg3D sees it
+    free = []
+    edit(small_sphere, "a dog", FakeGuidance(), EditConfig(iterations=4, render_size=16, lr=2.0, regulariser_weight=0.0),
+         _collect(free))
+    assert free[-1].losses["reg"] > 1e-4
+
+
+def test_image_regulariser_against_the_grids_own_renders_is_small(small_sphere):
+    cameras = Cameras.from_fov(spherical_poses(torch.tensor([30.0, 10.0]), torch.tensor([0.0, 120.0])), 0.6911, 24, 24)
+    images = render_views(small_sphere, cameras, EditConfig().render)
+    reports = []
+    config = EditConfig(iterations=1, render_size=16, regulariser="image_l1", image_regulariser_rays=512)
+    edit(small_sphere, "a dog", FakeGuidance(), config, _collect(reports), input_views=(images, cameras))
+    # same grid, jittered vs midpoint samples: a few hundredths at most
+    assert 0.0 <= reports[0].losses["reg"] < 0.03
+    far = (torch.zeros_like(images), cameras)  # black targets: the red-on-white render is far from them
+    edit(small_sphere, "a dog", FakeGuidance(), config, _collect(reports), input_views=far)
+    assert reports[-1].losses["reg"] > 0.3
+
+
+def test_view_word_follows_the_pose(small_sphere, monkeypatch):
+    # (elevation, azimuth) -> expected word; the front is the camera on -y (azimuth 270°, the authors' convention)
+    script = [(20.0, 270.0, "front"), (20.0, 0.0, "side"), (20.0, 90.0, "back"), (10.0, 180.0, "side"),
+              (70.0, 123.0, "overhead"), (30.0, 300.0, "front")]
+    poses = iter(script)
+
+    def scripted(n, generator=None, radius=4.0311, min_zenith_deg=15.0, max_zenith_deg=90.0):
+        e, a, _ = next(poses)
+        el, az = torch.tensor([e]), torch.tensor([a])
+        torch.rand(2, generator=generator)  # keep the generator moving as the real draw does
+        return spherical_poses(el, az, radius), el, az
+
+    monkeypatch.setattr(edit_module, "random_hemisphere_poses", scripted)
+    fake, reports = FakeGuidance(), []
+    edit(small_sphere, "a dog", fake, EditConfig(iterations=len(script), render_size=24), _collect(reports))
+    assert [c["prompts"][0] for c in fake.calls] == [f"a render of a dog, {w} view" for *_, w in script]
+    assert [r.info["view"] for r in reports] == [w for *_, w in script]
+    assert all(c["shape"] == (1, 3, 24, 24) and c["scale"] == 100.0 and 20 <= c["t"][0] <= 980 for c in fake.calls)
+    # one text encoding per distinct prompt (cached per view word)
+    assert sorted(p for p in fake.prompts if p) == sorted({f"a render of a dog, {w} view" for *_, w in script})
+
+    monkeypatch.undo()
+    fake = FakeGuidance()
+    edit(small_sphere, "a dog", fake, EditConfig(iterations=2, render_size=16, view_words=False, prompt_prefix=None))
+    assert [c["prompts"][0] for c in fake.calls] == ["a dog", "a dog"]
+
+
+# ------------------------------------------------------------------ CLI
+
+
+def test_cli_builds_the_tiny_model_and_edits_with_it(tmp_path, make_sphere_grid, capsys):
+    model = tmp_path / "tiny"
+    assert main(["build-tiny-model", str(model)]) == 0
+    said = capsys.readouterr().out
+    assert "SMOKE-TEST" in said and "random" in said.lower() and (model / "model_index.json").is_file()
+
+    grid_file = tmp_path / "sphere.safetensors"
+    make_sphere_grid(16).save(grid_file)
+    out = tmp_path / "edit"
+    common = ["--prompt", "a dog", "--model", str(model), "--render-size", "24", "--device", "cpu", "--quiet",
+              "--offline", "--seed", "1"]
+    assert main(["edit", str(grid_file), "--out", str(out), "--iterations", "3", "--preview-every", "2",
+                 "--checkpoint-every", "2", *common]) == 0
+    edited = VoxelGrid.load(out / "edited.safetensors")
+    assert edited.resolution == (16, 16, 16)
+    assert not torch.equal(edited.features, VoxelGrid.load(grid_file).features)
+    assert load_edit_checkpoint(out / "checkpoint.safetensors")[1]["iteration"] == 3
+    assert sorted(p.name for p in (out / "previews").glob("*.png")) == [
+        "preview_00000.png", "preview_00002.png", "preview_00003.png"]
+
+    # --resume continues to a longer run and lands where a straight run does
+    assert main(["edit", str(grid_file), "--out", str(out), "--iterations", "4", "--resume",
+                 str(out / "checkpoint.safetensors"), *common]) == 0
+    straight = tmp_path / "straight"
+    assert main(["edit", str(grid_file), "--out", str(straight), "--iterations", "4", *common]) == 0
+    assert torch.equal(VoxelGrid.load(out / "edited.safetensors").features,
+                       VoxelGrid.load(straight / "edited.safetensors").features)
+
+
+def test_cli_missing_model_exits_2_naming_it(tmp_path, sphere_grid, capsys, monkeypatch):
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")  # no network retries in tests
+    grid_file = tmp_path / "g.safetensors"
+    sphere_grid.save(grid_file)
+    code = main(["edit", str(grid_file), "--prompt", "a dog", "--out", str(tmp_path / "o"),
+                 "--model", "does-not-exist/anywhere", "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "does-not-exist/anywhere" in err and "download" in err and "local folder" in err
+    assert not (tmp_path / "o" / "edited.safetensors").exists()
+
+
+def test_cli_image_regulariser_needs_data(tmp_path, sphere_grid, capsys):
+    grid_file = tmp_path / "g.safetensors"
+    sphere_grid.save(grid_file)
+    code = main(["edit", str(grid_file), "--prompt", "a dog", "--out", str(tmp_path / "o"),
+                 "--regulariser", "image_l2", "--quiet"])
+    assert code == 2 and "--data" in capsys.readouterr().err

@@ -1,0 +1,469 @@
+"""Stage 2: text-guided editing of a voxel grid with Score Distillation Sampling (paper §3.2, SPEC §2).
+
+The edited grid G_e starts as a copy of the initial grid G_i and all of its
+features are optimised with dense Adam (lr 0.03, betas 0.9/0.999; the volumetric
+regulariser touches every voxel, so sparse updates would buy nothing). One
+iteration:
+
+1. draw a random upper-hemisphere pose (zenith uniform in [15°, 90°], azimuth
+   in [0°, 360°), radius 4.0311, looking at the origin);
+2. render a ``render_size``² image of G_e from it, with gradient, on white,
+   with stratified jitter (the guidance resizes it to its own resolution);
+3. build the prompt ``"a render of <text>, <view> view"``, the view word
+   chosen from the pose (:func:`voxe_core.guidance.view_word`; embeddings are
+   cached per view word);
+4. SDS loss from the guidance with ``t`` from the annealed
+   :class:`~voxe_core.schedule.TimestepSchedule`, classifier-free guidance 100;
+5. plus ``weight × regulariser`` (default L_reg3D, weight 200: 1 − Pearson
+   correlation of the raw densities of G_i (fixed) and G_e over all voxels);
+6. backward, Adam step. The learning rate decays ×0.96 every 400 iterations
+   after iteration 5000, as the authors' code does.
+
+Determinism and resume. All randomness comes from two seeded generators: a
+CPU one for poses, time steps and image-regulariser rays, and one on the
+compute device for render jitter, the VAE posterior sample and the SDS noise.
+Checkpoints (``kind="edit_checkpoint"``, safetensors + JSON header, no pickle)
+hold G_e's features, Adam's moments and step, both generator states and the
+iteration, so a run interrupted after k iterations and resumed from its
+checkpoint ends with exactly the grid an uninterrupted run would (on CPU;
+on CUDA only as far as the kernels are deterministic: scatter-adds with atomics
+are not). A cancelled run writes a checkpoint before it stops.
+
+Mixed precision. ``autocast_dtype`` ("bf16" / "fp16") runs the guidance (VAE
+encoder forward and UNet) under ``torch.autocast``; on CPU only bfloat16 is
+used. The volume renderer and the regulariser always run in float32 (the
+renderer is not autocast-safe, and transmittance products want fp32 anyway).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import math
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+from voxe_core.cameras import NERF_SYNTHETIC_RADIUS, Cameras, camera_rays, pixel_rays, random_hemisphere_poses, spherical_poses
+from voxe_core.export import NERF_SYNTHETIC_FOV_X
+from voxe_core.grid import VoxelGrid
+from voxe_core.guidance import DEFAULT_GUIDANCE_SCALE, RENDER_PREFIX, VIEW_WORDS, Guidance, edit_prompt, view_word
+from voxe_core.losses import (
+    DEFAULT_REGULARISER,
+    DEFAULT_REGULARISER_WEIGHT,
+    IMAGE_REGULARISERS,
+    REGULARISERS,
+    Regulariser,
+    image_l1,
+    image_l2,
+    regulariser_loss,
+)
+from voxe_core.progress import Callbacks, Progress, StageCancelled
+from voxe_core.render import RenderConfig, render_image, render_rays
+from voxe_core.schedule import TimestepSchedule
+from voxe_core.tensorio import load_tensors, save_tensors
+
+EDIT_CHECKPOINT_KIND = "edit_checkpoint"
+EDIT_CHECKPOINT_VERSION = 1
+AUTOCAST_DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
+# Azimuth (degrees, spherical_poses convention: eye = r·(cos az, sin az, ·)) of the
+# object's front. The authors' code calls a camera "front" when its right vector
+# points along +x, i.e. a camera on the -y axis: azimuth 270°.
+AUTHORS_FRONT_AZIMUTH_DEG = 270.0
+
+
+@dataclass
+class EditConfig:
+    """Editing hyper-parameters; the defaults are the paper's (SPEC §2)."""
+
+    iterations: int = 8000
+    lr: float = 0.03
+    betas: tuple[float, float] = (0.9, 0.999)
+    # authors' code: lr ×0.96 after every 400th iteration from 5000 on (5200, 5600, ...)
+    lr_decay: bool = True
+    lr_decay_start: int = 5000
+    lr_decay_every: int = 400
+    lr_decay_factor: float = 0.96
+    render_size: int = 266  # px; < 266 is fine for CPU runs, the guidance resizes to its resolution
+    guidance_scale: float = DEFAULT_GUIDANCE_SCALE
+    regulariser: Regulariser = DEFAULT_REGULARISER
+    regulariser_weight: float = DEFAULT_REGULARISER_WEIGHT
+    image_regulariser_rays: int = 4096  # rays per iteration for image_l1 / image_l2 against the input views
+    schedule: TimestepSchedule = field(default_factory=TimestepSchedule)  # paper floor 0.35; .authors() for 0.22
+    view_words: bool = True  # append ", front/side/back/overhead view" from the pose
+    prompt_prefix: str | None = RENDER_PREFIX  # "a render of"; None for the bare prompt
+    front_azimuth_deg: float = AUTHORS_FRONT_AZIMUTH_DEG
+    # Training renders: white background, stratified jitter (from the seeded generator).
+    # step_ratio 0.6 ≈ the authors' 256 samples per ray across the box at 160³.
+    render: RenderConfig = field(default_factory=lambda: RenderConfig(step_ratio=0.6))
+    batch_size: int = 1  # poses (renders) per iteration
+    preview_every: int = 0  # 0: no previews
+    preview_elevation_deg: float = 20.0
+    checkpoint_every: int = 0  # 0: only on cancellation and at the end (when a checkpoint path is given)
+    seed: int = 0
+    radius: float = NERF_SYNTHETIC_RADIUS
+    fov_x: float = NERF_SYNTHETIC_FOV_X  # NeRF-synthetic camera_angle_x (rad)
+    min_zenith_deg: float = 15.0
+    max_zenith_deg: float = 90.0
+    autocast_dtype: str | None = None  # None | "bf16" | "fp16" (guidance only; CPU uses bf16)
+    sync_timing: bool = True  # synchronise CUDA around timed parts so per-part timings are true
+
+    def __post_init__(self):
+        if self.iterations < 0:
+            raise ValueError(f"iterations must be >= 0, got {self.iterations}")
+        if not self.lr > 0:
+            raise ValueError(f"lr must be > 0, got {self.lr}")
+        if self.render_size < 8:
+            raise ValueError(f"render_size must be at least 8 px, got {self.render_size}")
+        if self.regulariser not in REGULARISERS:
+            raise ValueError(f"unknown regulariser {self.regulariser!r}; expected one of {', '.join(REGULARISERS)}")
+        if self.regulariser_weight < 0:
+            raise ValueError(f"regulariser_weight must be >= 0, got {self.regulariser_weight}")
+        if self.autocast_dtype not in (None, *AUTOCAST_DTYPES):
+            raise ValueError(f"autocast_dtype must be None, 'bf16' or 'fp16', got {self.autocast_dtype!r}")
+        if self.batch_size < 1 or self.image_regulariser_rays < 1:
+            raise ValueError("batch_size and image_regulariser_rays must be >= 1")
+        if self.lr_decay_every < 1 or self.lr_decay_start < 0 or not 0 < self.lr_decay_factor <= 1:
+            raise ValueError("lr decay needs every >= 1, start >= 0 and a factor in (0, 1]")
+        if self.preview_every < 0 or self.checkpoint_every < 0:
+            raise ValueError("preview_every and checkpoint_every must be >= 0 (0 turns them off)")
+        if not 0.0 <= self.min_zenith_deg <= self.max_zenith_deg <= 180.0:
+            raise ValueError(f"need 0 <= min_zenith <= max_zenith <= 180, got {self.min_zenith_deg}, {self.max_zenith_deg}")
+
+    @classmethod
+    def authors(cls, **overrides) -> "EditConfig":
+        """The authors' code where it differs from the paper: time-step floor 0.22."""
+        return cls(**{"schedule": TimestepSchedule.authors(), **overrides})
+
+
+def learning_rate(config: EditConfig, iteration: int) -> float:
+    """Learning rate for 0-based ``iteration``.
+
+    As the authors' loop: after each completed (1-based) step ``s`` with
+    ``s % every == 0`` and ``s >= start`` the rate is multiplied by the factor.
+    With the defaults: 0.03 up to iteration 5199, 0.03·0.96 from 5200, ·0.96² from 5600, ...
+    """
+    if not config.lr_decay:
+        return config.lr
+    first = max(1, -(-config.lr_decay_start // config.lr_decay_every))  # first multiple of every >= start
+    decays = max(0, iteration // config.lr_decay_every - first + 1)
+    return config.lr * config.lr_decay_factor**decays
+
+
+def build_prompt(text: str, view: str | None, prefix: str | None = RENDER_PREFIX) -> str:
+    """The text given to the guidance: ``"<prefix> <text>[, <view> view]"`` (ValueError when empty)."""
+    if prefix == RENDER_PREFIX:
+        return edit_prompt(text, view)
+    body = " ".join(str(text).split()).rstrip(". ").strip()
+    if not body:
+        raise ValueError("the edit prompt is empty")
+    if prefix and not body.lower().startswith(prefix.lower() + " "):
+        body = f"{prefix} {body}"
+    if view is not None:
+        if view not in VIEW_WORDS:
+            raise ValueError(f"unknown view word {view!r}; expected one of {VIEW_WORDS}")
+        body = f"{body}, {view} view"
+    return body
+
+
+def pose_view_word(elevation_deg: float, azimuth_deg: float, front_azimuth_deg: float = AUTHORS_FRONT_AZIMUTH_DEG) -> str:
+    """View word of a pose whose azimuth is measured in the spherical_poses convention."""
+    return view_word(float(elevation_deg), float(azimuth_deg) - float(front_azimuth_deg))
+
+
+def initial_fingerprint(grid: VoxelGrid) -> str:
+    """Short SHA-256 of G_i's features: a checkpoint only resumes against the grid it started from."""
+    data = grid.features.detach().to("cpu", torch.float32).contiguous().numpy().tobytes()
+    return hashlib.sha256(data).hexdigest()[:32]
+
+
+def _sync(device: torch.device, enabled: bool) -> None:
+    if enabled and device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _autocast(device: torch.device, name: str | None):
+    if name is None:
+        return contextlib.nullcontext()
+    dtype = AUTOCAST_DTYPES[name]
+    if device.type == "cpu" and dtype != torch.bfloat16:
+        warnings.warn("fp16 autocast is not used on CPU; running the guidance under bfloat16 autocast", stacklevel=3)
+        dtype = torch.bfloat16
+    return torch.autocast(device_type=device.type, dtype=dtype)
+
+
+def _make_adam(param: torch.nn.Parameter, config: EditConfig) -> torch.optim.Adam:
+    try:
+        return torch.optim.Adam([param], lr=config.lr, betas=tuple(config.betas), fused=True)
+    except (RuntimeError, TypeError):  # fused kernels missing for this device / dtype
+        return torch.optim.Adam([param], lr=config.lr, betas=tuple(config.betas))
+
+
+def save_edit_checkpoint(
+    path, grid: VoxelGrid, optimizer: torch.optim.Adam, generators: dict[str, torch.Generator],
+    iteration: int, meta: dict,
+) -> None:
+    """G_e features, Adam moments and step, generator states and the iteration (tensorio, no pickle)."""
+    param = grid.flat_features
+    state = optimizer.state.get(param, {})
+    zeros = torch.zeros_like(param)
+    step = state.get("step", 0)
+    tensors = {
+        **grid.state_tensors(),
+        "adam_exp_avg": state.get("exp_avg", zeros),
+        "adam_exp_avg_sq": state.get("exp_avg_sq", zeros),
+        "adam_step": torch.as_tensor(step, dtype=torch.float64).reshape(1).cpu(),
+        **{f"rng_{name}": gen.get_state() for name, gen in generators.items()},
+    }
+    save_tensors(path, tensors, kind=EDIT_CHECKPOINT_KIND, version=EDIT_CHECKPOINT_VERSION,
+                 meta={**grid.header(), **meta, "iteration": int(iteration)})
+
+
+def load_edit_checkpoint(path) -> tuple[dict[str, torch.Tensor], dict]:
+    return load_tensors(path, kind=EDIT_CHECKPOINT_KIND, max_version=EDIT_CHECKPOINT_VERSION)
+
+
+def _check_views(input_views, device):
+    images, cameras = input_views
+    images = torch.as_tensor(images, dtype=torch.float32)
+    if images.ndim != 4 or images.shape[-1] != 3:
+        raise ValueError(f"input view images must be (N, H, W, 3) RGB on white, got {tuple(images.shape)}")
+    if images.shape[0] != len(cameras) or tuple(images.shape[1:3]) != (cameras.height, cameras.width):
+        raise ValueError(
+            f"{images.shape[0]} input images of {tuple(images.shape[1:3])} do not match "
+            f"{len(cameras)} cameras of {(cameras.height, cameras.width)}"
+        )
+    return images.reshape(-1, 3).to(device), cameras.to(device), images.shape[1], images.shape[2]
+
+
+def edit(
+    initial_grid: VoxelGrid,
+    prompt: str,
+    guidance: Guidance,
+    config: EditConfig = EditConfig(),
+    callbacks: Callbacks = Callbacks(),
+    checkpoint_path: str | Path | None = None,
+    resume_from: str | Path | None = None,
+    input_views: tuple[torch.Tensor, Cameras] | None = None,
+    on_preview: Callable[[int, torch.Tensor], None] | None = None,
+) -> VoxelGrid:
+    """Optimise G_e (a copy of ``initial_grid``) towards ``prompt`` under ``guidance``; returns G_e.
+
+    ``input_views`` ``(images (N, H, W, 3) on white, cameras)`` are needed by the
+    image-space regularisers only. ``on_preview(iteration, image (H, W, 3) CPU)``
+    receives a render from a fixed front pose at iteration 0 (fresh runs),
+    every ``preview_every`` iterations and at the end; previews draw no random
+    numbers, so they never change the result. ``callbacks`` gets a
+    ``Progress("edit", done, total, losses, info)`` per iteration: losses
+    ``sds`` (the SDS surrogate; its value means nothing, its gradient is SDS),
+    ``reg`` (unweighted regulariser) and ``total`` (sds + weight·reg); info
+    ``t``, ``t_min``, ``t_max``, ``lr``, ``view``, ``elevation``, ``azimuth``,
+    ``sds_grad_norm`` and per-part milliseconds ``ms_render``, ``ms_vae``
+    (VAE encoder forward), ``ms_unet`` (UNet incl. CFG), ``ms_backward``,
+    ``ms_optimizer``, ``ms_step``. Cancellation is checked before each
+    iteration (``StageCancelled``; a checkpoint is written first when
+    ``checkpoint_path`` is set). The returned grid lives on the guidance's
+    device (``guidance.device`` when it has one, else the initial grid's).
+    """
+    if not str(prompt).strip():
+        raise ValueError("the edit prompt is empty")
+    build_prompt(prompt, None, config.prompt_prefix)  # validate before any work
+    image_reg = config.regulariser in IMAGE_REGULARISERS
+    if image_reg and input_views is None:
+        raise ValueError(
+            f"the {config.regulariser!r} regulariser compares renders with the input views: pass "
+            "input_views=(images, cameras), or use a volumetric regulariser such as 'reg3d'"
+        )
+
+    device = torch.device(getattr(guidance, "device", initial_grid.flat_features.device))
+    sync = config.sync_timing
+    initial = initial_grid.features.detach().to(device).clone()
+    grid = initial_grid.clone_grid().to(device)
+    param = grid.flat_features
+    optimizer = _make_adam(param, config)
+    views = _check_views(input_views, device) if image_reg else None
+
+    host_gen = torch.Generator().manual_seed(config.seed)
+    device_gen = torch.Generator(device=device).manual_seed(config.seed + 1)
+    generators = {"host": host_gen, "device": device_gen}
+    fingerprint = initial_fingerprint(initial_grid) if (checkpoint_path or resume_from) else None
+    run_meta = {"prompt": str(prompt), "seed": config.seed, "initial_sha256": fingerprint,
+                "regulariser": config.regulariser, "model": str(getattr(guidance, "model_id", ""))}
+
+    start = 0
+    if resume_from is not None:
+        tensors, meta = load_edit_checkpoint(resume_from)
+        if tuple(tensors["features"].shape[:3]) != initial_grid.resolution:
+            raise ValueError(
+                f"{resume_from}: checkpoint grid is {tuple(tensors['features'].shape[:3])}, "
+                f"the initial grid {initial_grid.resolution}"
+            )
+        if meta.get("prompt") != str(prompt):
+            raise ValueError(f"{resume_from}: checkpoint was made for the prompt {meta.get('prompt')!r}, not {prompt!r}")
+        if meta.get("initial_sha256") != fingerprint:
+            raise ValueError(f"{resume_from}: checkpoint was made from a different initial grid")
+        with torch.no_grad():
+            param.copy_(tensors["features"].reshape(-1, 4).to(device))
+        if int(tensors["adam_step"].item()) > 0:
+            groups = optimizer.state_dict()["param_groups"]
+            optimizer.load_state_dict({
+                "state": {0: {"step": torch.tensor(float(tensors["adam_step"].item())),
+                              "exp_avg": tensors["adam_exp_avg"], "exp_avg_sq": tensors["adam_exp_avg_sq"]}},
+                "param_groups": groups,
+            })
+        for name, gen in generators.items():
+            gen.set_state(tensors[f"rng_{name}"])
+        start = int(meta["iteration"])
+
+    def checkpoint(done: int) -> None:
+        save_edit_checkpoint(checkpoint_path, grid, optimizer, generators, done, run_meta)
+        callbacks.checkpoint_written(str(checkpoint_path))
+
+    embeddings: dict[str | None, torch.Tensor] = {}
+
+    def embedding(view: str | None) -> torch.Tensor:
+        if view not in embeddings:
+            embeddings[view] = guidance.encode_prompts([build_prompt(prompt, view, config.prompt_prefix)])
+        return embeddings[view]
+
+    size = config.render_size
+    preview_cameras = Cameras.from_fov(
+        spherical_poses(torch.tensor([config.preview_elevation_deg]), torch.tensor([config.front_azimuth_deg]),
+                        config.radius),
+        config.fov_x, size, size,
+    ).to(device)
+
+    def preview(done: int) -> None:
+        if on_preview is not None and config.preview_every:
+            image = render_image(grid, preview_cameras, 0, config.render).rgb[..., :3]
+            on_preview(done, image.detach().to("cpu", torch.float32))
+
+    T = int(guidance.num_train_timesteps)
+    last_checkpoint = start
+    if start == 0:
+        preview(0)
+    done = start
+    try:
+        for iteration in range(start, config.iterations):
+            callbacks.check_cancel("edit")
+            lr = learning_rate(config, iteration)
+            for group in optimizer.param_groups:
+                group["lr"] = lr
+            _sync(device, sync)
+            t_start = time.perf_counter()
+
+            # ---- random draws from the host generator: poses, time steps, image-regulariser rays
+            c2w, elevation, azimuth = random_hemisphere_poses(
+                config.batch_size, host_gen, config.radius, config.min_zenith_deg, config.max_zenith_deg
+            )
+            views_words = [
+                pose_view_word(e, a, config.front_azimuth_deg) if config.view_words else None
+                for e, a in zip(elevation.tolist(), azimuth.tolist())
+            ]
+            timesteps = config.schedule.sample(iteration, config.batch_size, T, generator=host_gen)
+            text = torch.cat([embedding(v) for v in views_words])
+
+            # ---- render (fp32, with gradient, jitter from the device generator)
+            occupancy = grid.occupancy(config.render.sigma_threshold) if config.render.skip_empty else None
+            cameras = Cameras.from_fov(c2w, config.fov_x, size, size).to(device)
+            renders, samples = [], 0
+            for b in range(config.batch_size):
+                origins, directions = camera_rays(cameras, b)
+                out = render_rays(grid, origins, directions, config.render, occupancy, device_gen)
+                renders.append(out.rgb.reshape(size, size, 3).permute(2, 0, 1))
+                samples += out.samples
+            images = torch.stack(renders)
+            _sync(device, sync)
+            t_render = time.perf_counter()
+
+            # ---- SDS (optionally under autocast)
+            with _autocast(device, config.autocast_dtype):
+                sds, diagnostics = guidance.sds_loss(images, text, timesteps, config.guidance_scale, generator=device_gen)
+            _sync(device, sync)
+            t_sds = time.perf_counter()
+
+            # ---- regulariser, float32
+            if image_reg:
+                targets, view_cameras, height, width = views
+                pick = torch.randint(0, targets.shape[0], (config.image_regulariser_rays,), generator=host_gen)
+                pick = pick.to(device)
+                per_view = height * width
+                cam_index, pixel = pick // per_view, pick % per_view
+                u = (pixel % width).float() + 0.5
+                v = (pixel // width).float() + 0.5
+                origins, directions = pixel_rays(view_cameras, cam_index, u, v)
+                out = render_rays(grid, origins, directions, config.render, occupancy, device_gen)
+                compare = image_l1 if config.regulariser == "image_l1" else image_l2
+                reg = compare(out.rgb, targets[pick])
+            else:
+                reg = regulariser_loss(config.regulariser, initial, grid.features)
+            total = sds.float() + config.regulariser_weight * reg
+
+            optimizer.zero_grad(set_to_none=True)
+            _sync(device, sync)
+            t_reg = time.perf_counter()
+            total.backward()
+            _sync(device, sync)
+            t_backward = time.perf_counter()
+            optimizer.step()
+            _sync(device, sync)
+            t_end = time.perf_counter()
+            done = iteration + 1
+
+            sds_value, reg_value, total_value = torch.stack([sds.detach().float(), reg.detach(), total.detach()]).tolist()
+            t_lo, t_hi = config.schedule.bounds(iteration, T)
+            callbacks.progress(Progress(
+                "edit", done, config.iterations,
+                {"sds": sds_value, "reg": reg_value, "total": total_value},
+                {
+                    "t": timesteps.tolist() if config.batch_size > 1 else int(timesteps[0]),
+                    "t_min": t_lo, "t_max": t_hi, "lr": lr,
+                    "view": views_words if config.batch_size > 1 else views_words[0],
+                    "elevation": elevation.tolist() if config.batch_size > 1 else float(elevation[0]),
+                    "azimuth": azimuth.tolist() if config.batch_size > 1 else float(azimuth[0]),
+                    "sds_grad_norm": float(diagnostics.get("grad_norm", math.nan)),
+                    "samples_per_ray": samples / (config.batch_size * size * size),
+                    "ms_render": (t_render - t_start) * 1e3,
+                    "ms_vae": float(diagnostics.get("vae_encode_ms", math.nan)),
+                    "ms_unet": float(diagnostics.get("unet_ms", math.nan)),
+                    "ms_sds": (t_sds - t_render) * 1e3,
+                    "ms_regulariser": (t_reg - t_sds) * 1e3,
+                    "ms_backward": (t_backward - t_reg) * 1e3,
+                    "ms_optimizer": (t_end - t_backward) * 1e3,
+                    "ms_step": (t_end - t_start) * 1e3,
+                },
+            ))
+            if checkpoint_path is not None and config.checkpoint_every and done % config.checkpoint_every == 0:
+                checkpoint(done)
+                last_checkpoint = done
+            if config.preview_every and done % config.preview_every == 0:
+                preview(done)
+    except StageCancelled:
+        if checkpoint_path is not None and done != last_checkpoint:
+            checkpoint(done)
+        raise
+    if checkpoint_path is not None and (done != last_checkpoint or not Path(checkpoint_path).is_file()):
+        checkpoint(done)
+    if config.preview_every and done % config.preview_every != 0:
+        preview(done)
+    param.grad = None
+    return grid
+
+
+__all__ = [
+    "AUTHORS_FRONT_AZIMUTH_DEG",
+    "EDIT_CHECKPOINT_KIND",
+    "EDIT_CHECKPOINT_VERSION",
+    "EditConfig",
+    "build_prompt",
+    "edit",
+    "initial_fingerprint",
+    "learning_rate",
+    "load_edit_checkpoint",
+    "pose_view_word",
+    "save_edit_checkpoint",
+]
