@@ -1,0 +1,122 @@
+"""The FastAPI application factory. ``uvicorn api.main:app`` (or ``--factory api.main:create_app``)."""
+
+from __future__ import annotations
+
+import logging
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+from fastapi import FastAPI
+
+from api.settings import Settings, get_settings, model_label
+
+log = logging.getLogger("voxe.api")
+MIGRATIONS = Path(__file__).resolve().parent / "migrations"
+
+
+def run_migrations(database_url: str) -> None:
+    """``alembic upgrade head`` on ``database_url`` (no alembic.ini needed)."""
+    from alembic import command
+    from alembic.config import Config
+
+    from api.db import ensure_sqlite_dir
+
+    ensure_sqlite_dir(database_url)
+    config = Config()
+    config.set_main_option("script_location", str(MIGRATIONS))
+    config.set_main_option("sqlalchemy.url", database_url.replace("%", "%%"))
+    command.upgrade(config, "head")
+
+
+class UploadLimit:
+    """Answer 413 to a request body above ``max_bytes`` (by Content-Length, or counted while streaming)."""
+
+    def __init__(self, app, max_bytes: int):
+        self.app, self.max_bytes = app, max_bytes
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http" or scope["method"] not in ("POST", "PUT", "PATCH"):
+            return await self.app(scope, receive, send)
+        headers = dict(scope.get("headers") or [])
+        length = headers.get(b"content-length")
+        if length is not None and length.isdigit() and int(length) > self.max_bytes:
+            return await self._reject(send)
+        received = 0
+        started = False
+
+        async def counting_receive():
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > self.max_bytes:
+                    raise _TooLarge()
+            return message
+
+        async def tracking_send(message):
+            nonlocal started
+            if message["type"] == "http.response.start":
+                started = True
+            await send(message)
+
+        try:
+            await self.app(scope, counting_receive, tracking_send)
+        except _TooLarge:
+            if not started:
+                await self._reject(send)
+
+    async def _reject(self, send):
+        import json
+
+        body = json.dumps({"detail": f"request body over the upload limit of {self.max_bytes} bytes "
+                                     "(VOXE_MAX_UPLOAD_BYTES)"}).encode()
+        await send({"type": "http.response.start", "status": 413,
+                    "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]})
+        await send({"type": "http.response.body", "body": body})
+
+
+class _TooLarge(Exception):
+    pass
+
+
+def create_app(settings: Settings | None = None, migrate: bool = True) -> FastAPI:
+    settings = settings or get_settings()
+
+    @asynccontextmanager
+    async def lifespan(_app: FastAPI):
+        if migrate:
+            run_migrations(settings.database_url)
+        from api.storage import get_storage
+
+        get_storage(settings)  # fail at startup, not on the first request, when storage is misconfigured
+        log.info("Vox-E API ready: SDS model %s, attention model %s", model_label(settings.sds_model),
+                 model_label(settings.attention_model))
+        yield
+
+    app = FastAPI(
+        title="Vox-E",
+        version="1.0.0",
+        summary="Text-guided editing of 3D objects (Vox-E, ICCV 2023) as a job service",
+        description=(
+            "Upload a posed image set (`POST /v1/scenes`), create an edit job (`POST /v1/jobs`), poll it "
+            "(`GET /v1/jobs/{id}`) and download its artifacts: voxel grids, edit mask, renders, turntable "
+            "video and a mesh. A scene is reconstructed once per reconstruction-parameter set and reused by "
+            "every later job on it."
+        ),
+        lifespan=lifespan,
+    )
+    from api.routes import artifacts, health, jobs, scenes
+
+    app.include_router(health.router)
+    app.include_router(scenes.router)
+    app.include_router(jobs.router)
+    app.include_router(artifacts.router)
+    app.add_middleware(UploadLimit, max_bytes=settings.max_upload_bytes)
+    return app
+
+
+def __getattr__(name: str):  # ``uvicorn api.main:app`` builds the app on first access
+    if name == "app":
+        globals()["app"] = create_app()
+        return globals()["app"]
+    raise AttributeError(name)

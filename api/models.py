@@ -1,0 +1,171 @@
+"""Database tables: scenes, their cached reconstructions, jobs, job artifacts and worker heartbeats."""
+
+from __future__ import annotations
+
+import uuid
+from datetime import datetime, timezone
+
+from sqlalchemy import JSON, Boolean, DateTime, Float, ForeignKey, Integer, String, Text, TypeDecorator, UniqueConstraint
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+
+
+def utcnow() -> datetime:
+    return datetime.now(timezone.utc)
+
+
+def new_id() -> str:
+    return uuid.uuid4().hex
+
+
+class UTCDateTime(TypeDecorator):
+    """Timezone-aware UTC datetimes on every backend (SQLite stores them naive)."""
+
+    impl = DateTime(timezone=True)
+    cache_ok = True
+
+    def process_bind_param(self, value, dialect):
+        if value is not None and value.tzinfo is None:
+            value = value.replace(tzinfo=timezone.utc)
+        return value
+
+    def process_result_value(self, value, dialect):
+        if value is not None and value.tzinfo is None:
+            value = value.replace(tzinfo=timezone.utc)
+        return value
+
+
+class Base(DeclarativeBase):
+    pass
+
+
+# Job states and stages (strings in the database, enumerated in the API schema).
+QUEUED, RUNNING, SUCCEEDED, FAILED, CANCELED = "queued", "running", "succeeded", "failed", "canceled"
+TERMINAL_STATES = (SUCCEEDED, FAILED, CANCELED)
+STAGES = ("reconstruct", "edit", "refine", "export")
+# Reconstruction states.
+R_PENDING, R_RUNNING, R_SUCCEEDED, R_FAILED = "pending", "running", "succeeded", "failed"
+
+
+class Scene(Base):
+    __tablename__ = "scenes"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    name: Mapped[str] = mapped_column(String(255))
+    format: Mapped[str] = mapped_column(String(32))
+    image_count: Mapped[int] = mapped_column(Integer)
+    width: Mapped[int] = mapped_column(Integer)
+    height: Mapped[int] = mapped_column(Integer)
+    splits: Mapped[list] = mapped_column(JSON, default=list)
+    storage_key: Mapped[str] = mapped_column(String(512))  # the validated dataset, one zip archive
+    size_bytes: Mapped[int] = mapped_column(Integer)
+    sha256: Mapped[str] = mapped_column(String(64))
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+    jobs: Mapped[list["Job"]] = relationship(back_populates="scene", passive_deletes=True)
+    reconstructions: Mapped[list["Reconstruction"]] = relationship(back_populates="scene", passive_deletes=True)
+
+
+class Reconstruction(Base):
+    """G_i for one scene and one set of reconstruction parameters: fitted once, reused by every job.
+
+    The unique (scene_id, params_key) constraint makes creation race-free; a worker
+    claims the fit with a conditional UPDATE (state, lease), so exactly one runs it.
+    """
+
+    __tablename__ = "reconstructions"
+    __table_args__ = (UniqueConstraint("scene_id", "params_key", name="uq_reconstruction_scene_params"),)
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    scene_id: Mapped[str] = mapped_column(ForeignKey("scenes.id", ondelete="CASCADE"), index=True)
+    params_key: Mapped[str] = mapped_column(String(64))
+    params: Mapped[dict] = mapped_column(JSON)
+    state: Mapped[str] = mapped_column(String(16), default=R_PENDING)
+    run_count: Mapped[int] = mapped_column(Integer, default=0)  # how many times a fit was started
+    owner_job_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    lease_until: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    iteration: Mapped[int] = mapped_column(Integer, default=0)
+    total: Mapped[int] = mapped_column(Integer, default=0)
+    grid_key: Mapped[str | None] = mapped_column(String(512), nullable=True)
+    grid_size: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    grid_sha256: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    checkpoint_key: Mapped[str | None] = mapped_column(String(512), nullable=True)
+    error: Mapped[str | None] = mapped_column(Text, nullable=True)
+    worker_hostname: Mapped[str | None] = mapped_column(String(255), nullable=True)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    started_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+
+    scene: Mapped[Scene] = relationship(back_populates="reconstructions")
+
+
+class Job(Base):
+    __tablename__ = "jobs"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    scene_id: Mapped[str] = mapped_column(ForeignKey("scenes.id", ondelete="CASCADE"), index=True)
+    reconstruction_id: Mapped[str | None] = mapped_column(
+        ForeignKey("reconstructions.id", ondelete="SET NULL"), nullable=True, index=True
+    )
+    prompt: Mapped[str] = mapped_column(Text)
+    mode: Mapped[str] = mapped_column(String(16))
+    edit_words: Mapped[list] = mapped_column(JSON, default=list)
+    params: Mapped[dict] = mapped_column(JSON)
+    sds_model: Mapped[str] = mapped_column(String(512))
+    attention_model: Mapped[str] = mapped_column(String(512))
+    device: Mapped[str] = mapped_column(String(32))
+
+    state: Mapped[str] = mapped_column(String(16), default=QUEUED, index=True)
+    stage: Mapped[str | None] = mapped_column(String(16), nullable=True)
+    iteration: Mapped[int] = mapped_column(Integer, default=0)
+    total: Mapped[int] = mapped_column(Integer, default=0)
+    eta_seconds: Mapped[float | None] = mapped_column(Float, nullable=True)
+    stage_started_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    losses: Mapped[dict] = mapped_column(JSON, default=dict)
+    message: Mapped[str | None] = mapped_column(Text, nullable=True)
+    error: Mapped[str | None] = mapped_column(Text, nullable=True)
+    cancel_requested: Mapped[bool] = mapped_column(Boolean, default=False)
+    completed_stages: Mapped[list] = mapped_column(JSON, default=list)
+    reconstruction_reused: Mapped[bool | None] = mapped_column(Boolean, nullable=True)
+    preview_artifact: Mapped[str | None] = mapped_column(String(255), nullable=True)
+    worker_hostname: Mapped[str | None] = mapped_column(String(255), nullable=True)
+    task_id: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow, index=True)
+    started_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    updated_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+    scene: Mapped[Scene] = relationship(back_populates="jobs")
+    reconstruction: Mapped[Reconstruction | None] = relationship()
+    artifacts: Mapped[list["Artifact"]] = relationship(
+        back_populates="job", passive_deletes=True, order_by="Artifact.id"
+    )
+
+
+class Artifact(Base):
+    __tablename__ = "artifacts"
+    __table_args__ = (UniqueConstraint("job_id", "name", name="uq_artifact_job_name"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), index=True)
+    name: Mapped[str] = mapped_column(String(255))
+    key: Mapped[str] = mapped_column(String(512))
+    size: Mapped[int] = mapped_column(Integer)
+    content_type: Mapped[str] = mapped_column(String(128))
+    sha256: Mapped[str] = mapped_column(String(64))
+    kind: Mapped[str] = mapped_column(String(32))
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+    job: Mapped[Job] = relationship(back_populates="artifacts")
+
+
+class WorkerHeartbeat(Base):
+    """Workers write here every few seconds; readiness uses it where the broker cannot broadcast a ping."""
+
+    __tablename__ = "worker_heartbeats"
+
+    hostname: Mapped[str] = mapped_column(String(255), primary_key=True)
+    pid: Mapped[int] = mapped_column(Integer)
+    queues: Mapped[str] = mapped_column(String(255))
+    device: Mapped[str] = mapped_column(String(64))
+    started_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    last_seen: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)

@@ -1,0 +1,103 @@
+"""/v1/jobs/{id}/artifacts: list a job's files and download them (HTTP Range supported)."""
+
+from __future__ import annotations
+
+import re
+
+from fastapi import APIRouter, Depends, HTTPException, Request, Response, status
+from fastapi.responses import StreamingResponse
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from api.deps import get_session, storage_dep
+from api.models import Artifact
+from api.routes.jobs import get_job_or_404
+from api.schemas import ArtifactOut
+from api.storage import ObjectNotFound, Storage
+
+router = APIRouter(prefix="/v1/jobs/{job_id}/artifacts", tags=["artifacts"])
+
+_RANGE = re.compile(r"^\s*(\d*)\s*-\s*(\d*)\s*$")
+
+
+def artifact_out(job_id: str, artifact: Artifact) -> ArtifactOut:
+    return ArtifactOut(
+        name=artifact.name, kind=artifact.kind, size=artifact.size, content_type=artifact.content_type,
+        sha256=artifact.sha256, url=f"/v1/jobs/{job_id}/artifacts/{artifact.name}", created_at=artifact.created_at,
+    )
+
+
+def parse_range(header: str | None, size: int) -> tuple[int, int] | None:
+    """(first, last) inclusive for a single ``bytes=`` range; None to send the whole file; 416 when unsatisfiable."""
+    if not header:
+        return None
+    unit, _, spec = header.partition("=")
+    if unit.strip().lower() != "bytes":
+        return None  # unknown unit: ignore the header (RFC 9110 §14.2)
+    if "," in spec:
+        return None  # several ranges: answer with the whole file (allowed by RFC 9110)
+    match = _RANGE.match(spec)
+    if not match or (not match.group(1) and not match.group(2)):
+        raise _unsatisfiable(size, f"malformed range {header!r}")
+    first, last = match.group(1), match.group(2)
+    if not first:  # suffix: the last N bytes
+        n = int(last)
+        if n == 0 or size == 0:
+            raise _unsatisfiable(size, f"empty suffix range {header!r}")
+        return max(0, size - n), size - 1
+    start = int(first)
+    end = int(last) if last else size - 1
+    if start >= size or end < start:
+        raise _unsatisfiable(size, f"range {header!r} is outside the {size}-byte file")
+    return start, min(end, size - 1)
+
+
+def _unsatisfiable(size: int, detail: str) -> HTTPException:
+    return HTTPException(status.HTTP_416_REQUESTED_RANGE_NOT_SATISFIABLE, detail,
+                         headers={"Content-Range": f"bytes */{size}", "Accept-Ranges": "bytes"})
+
+
+@router.get("", response_model=list[ArtifactOut], responses={404: {"description": "no such job"}})
+def list_artifacts(job_id: str, session: Session = Depends(get_session)) -> list[ArtifactOut]:
+    get_job_or_404(session, job_id)
+    rows = session.scalars(select(Artifact).where(Artifact.job_id == job_id).order_by(Artifact.id))
+    return [artifact_out(job_id, a) for a in rows]
+
+
+@router.api_route(
+    "/{name}", methods=["GET", "HEAD"], response_class=StreamingResponse,
+    responses={200: {"description": "the whole file"}, 206: {"description": "the requested byte range"},
+               404: {"description": "no such job or artifact"}, 416: {"description": "range not satisfiable"}},
+    summary="Download an artifact (supports Range: bytes=...)",
+)
+def get_artifact(
+    job_id: str, name: str, request: Request,
+    session: Session = Depends(get_session), storage: Storage = Depends(storage_dep),
+) -> Response:
+    get_job_or_404(session, job_id)
+    # Only names recorded for this job are served: no path is ever built from the request.
+    artifact = session.scalars(select(Artifact).where(Artifact.job_id == job_id, Artifact.name == name)).first()
+    if artifact is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id!r} has no artifact {name!r}")
+    size = artifact.size
+    headers = {
+        "Accept-Ranges": "bytes",
+        "ETag": f'"{artifact.sha256}"',
+        "Content-Disposition": f'inline; filename="{artifact.name}"',
+        "X-Checksum-SHA256": artifact.sha256,
+    }
+    byte_range = parse_range(request.headers.get("range"), size)
+    if byte_range is None:
+        start, end, code = 0, size - 1, status.HTTP_200_OK
+    else:
+        start, end = byte_range
+        code = status.HTTP_206_PARTIAL_CONTENT
+        headers["Content-Range"] = f"bytes {start}-{end}/{size}"
+    headers["Content-Length"] = str(max(0, end - start + 1))
+    if request.method == "HEAD":
+        return Response(status_code=code, headers=headers, media_type=artifact.content_type)
+    try:
+        body = storage.open_range(artifact.key, start, end) if size else iter(())
+    except ObjectNotFound:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"artifact {name!r} is missing from storage") from None
+    return StreamingResponse(body, status_code=code, headers=headers, media_type=artifact.content_type)

@@ -1,0 +1,154 @@
+"""/v1/jobs: create (queues the stage chain), list, get, cancel."""
+
+from __future__ import annotations
+
+import logging
+
+from celery import Celery, chain
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, status
+from sqlalchemy import func, select, update
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from api.deps import celery_dep, get_session, settings_dep
+from api.models import (
+    CANCELED, FAILED, QUEUED, RUNNING, TERMINAL_STATES, Job, Reconstruction, new_id, utcnow,
+)
+from api.routes.scenes import get_scene_or_404
+from api.schemas import JobCreate, JobOut, JobReconstruction, JobState, Models, Page
+from api.settings import Settings, model_label
+from worker.celery_app import TASK_NAMES
+from worker.configs import reconstruction_key, reconstruction_params
+
+log = logging.getLogger("voxe.api")
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+
+_ERRORS = {404: {"description": "no such job"}}
+
+
+def job_out(job: Job, request: Request | None = None) -> JobOut:
+    rec = job.reconstruction
+    now = utcnow()
+    elapsed = ((job.finished_at or now) - job.started_at).total_seconds() if job.started_at else None
+    base = f"/v1/jobs/{job.id}"
+    return JobOut(
+        id=job.id, scene_id=job.scene_id, prompt=job.prompt, mode=job.mode, edit_words=job.edit_words,
+        params=job.params,
+        models=Models(sds=model_label(job.sds_model),
+                      attention=model_label(job.attention_model) if job.mode == "local" else None),
+        device=job.device, state=job.state, stage=job.stage, iteration=job.iteration, total=job.total,
+        progress=(job.iteration / job.total) if job.total else (1.0 if job.state == "succeeded" else 0.0),
+        completed_stages=job.completed_stages or [], elapsed_seconds=elapsed,
+        eta_seconds=job.eta_seconds if job.state == RUNNING else None, losses=job.losses or {},
+        message=job.message, error=job.error, cancel_requested=job.cancel_requested,
+        reconstruction=JobReconstruction(
+            id=rec.id if rec else None, state=rec.state if rec else None,
+            run_count=rec.run_count if rec else None, reused=job.reconstruction_reused,
+        ),
+        preview_url=f"{base}/artifacts/{job.preview_artifact}" if job.preview_artifact else None,
+        artifacts_url=f"{base}/artifacts", worker_hostname=job.worker_hostname,
+        created_at=job.created_at, started_at=job.started_at, finished_at=job.finished_at, updated_at=job.updated_at,
+    )
+
+
+def get_job_or_404(session: Session, job_id: str) -> Job:
+    job = session.get(Job, job_id)
+    if job is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id!r} not found")
+    return job
+
+
+def _reconstruction_for(session: Session, scene_id: str, params: dict) -> Reconstruction:
+    """The scene's reconstruction for these parameters, created if new (race-free: unique constraint)."""
+    rec_params = reconstruction_params(params)
+    key = reconstruction_key(rec_params)
+    query = select(Reconstruction).where(Reconstruction.scene_id == scene_id, Reconstruction.params_key == key)
+    rec = session.scalars(query).first()
+    if rec is not None:
+        return rec
+    try:
+        with session.begin_nested():
+            rec = Reconstruction(id=new_id(), scene_id=scene_id, params_key=key, params=rec_params)
+            session.add(rec)
+        return rec
+    except IntegrityError:  # another request created it first
+        return session.scalars(query).one()
+
+
+@router.post("", status_code=status.HTTP_201_CREATED, response_model=JobOut,
+             responses={404: {"description": "no such scene"}, 422: {"description": "invalid job"},
+                        503: {"description": "the job could not be queued (broker unreachable)"}},
+             summary="Create an edit job (queued at once)")
+def create_job(
+    body: JobCreate,
+    session: Session = Depends(get_session),
+    settings: Settings = Depends(settings_dep),
+    celery: Celery = Depends(celery_dep),
+) -> JobOut:
+    get_scene_or_404(session, body.scene_id)
+    params = body.params.model_dump(mode="json")
+    rec = _reconstruction_for(session, body.scene_id, params)
+    job = Job(
+        id=new_id(), scene_id=body.scene_id, reconstruction_id=rec.id, prompt=body.prompt, mode=body.mode,
+        edit_words=body.edit_words, params=params, sds_model=settings.sds_model,
+        attention_model=settings.attention_model, device=settings.device, state=QUEUED,
+    )
+    session.add(job)
+    session.commit()
+    stages = ["reconstruct", "edit"] + (["refine"] if body.mode == "local" else []) + ["export"]
+    try:
+        result = chain(
+            *(celery.signature(TASK_NAMES[s], args=(job.id,), immutable=True) for s in stages)
+        ).apply_async()
+    except Exception as exc:  # noqa: BLE001 - broker down: the job cannot run
+        log.exception("could not queue job %s", job.id)
+        session.execute(update(Job).where(Job.id == job.id).values(
+            state=FAILED, error=f"could not queue the job: {type(exc).__name__}: {exc}", finished_at=utcnow()))
+        session.commit()
+        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, f"could not queue the job: {exc}") from None
+    job.task_id = getattr(result, "id", None)
+    session.commit()
+    session.refresh(job)
+    return job_out(job)
+
+
+@router.get("", response_model=Page[JobOut], summary="List jobs, newest first")
+def list_jobs(
+    state: JobState | None = Query(None),
+    scene_id: str | None = Query(None),
+    limit: int = Query(20, ge=1, le=200),
+    offset: int = Query(0, ge=0),
+    session: Session = Depends(get_session),
+) -> Page[JobOut]:
+    filters = []
+    if state is not None:
+        filters.append(Job.state == state)
+    if scene_id is not None:
+        filters.append(Job.scene_id == scene_id)
+    total = session.scalar(select(func.count()).select_from(Job).where(*filters)) or 0
+    rows = session.scalars(select(Job).where(*filters).order_by(Job.created_at.desc(), Job.id)
+                           .limit(limit).offset(offset))
+    return Page[JobOut](items=[job_out(j) for j in rows], total=total, limit=limit, offset=offset)
+
+
+@router.get("/{job_id}", response_model=JobOut, responses=_ERRORS)
+def get_job(job_id: str, session: Session = Depends(get_session)) -> JobOut:
+    return job_out(get_job_or_404(session, job_id))
+
+
+@router.post("/{job_id}/cancel", response_model=JobOut,
+             responses={**_ERRORS, 409: {"description": "the job already succeeded or failed"}},
+             summary="Cancel a job (a queued job at once; a running one stops within a few iterations)")
+def cancel_job(job_id: str, session: Session = Depends(get_session)) -> JobOut:
+    job = get_job_or_404(session, job_id)
+    if job.state in TERMINAL_STATES and job.state != CANCELED:
+        raise HTTPException(status.HTTP_409_CONFLICT, f"job {job_id!r} already {job.state}")
+    now = utcnow()
+    session.execute(update(Job).where(Job.id == job_id, Job.state.not_in(TERMINAL_STATES))
+                    .values(cancel_requested=True, updated_at=now))
+    # A job no worker has started yet is canceled now; a running one when its task next checks the flag.
+    session.execute(update(Job).where(Job.id == job_id, Job.state == QUEUED)
+                    .values(state=CANCELED, finished_at=now, message="canceled before it started"))
+    session.commit()
+    session.refresh(job)
+    return job_out(job)

@@ -1,0 +1,239 @@
+"""Request and response bodies of the /v1 API (pydantic 2).
+
+Job parameters are typed with the paper's defaults (SPEC §1-§3) and forbid unknown
+fields, so a misspelt parameter is a 422 naming it instead of a silently ignored value.
+"""
+
+from __future__ import annotations
+
+import re
+from datetime import datetime
+from typing import Generic, Literal, TypeVar
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+T = TypeVar("T")
+
+Regulariser = Literal["reg3d", "reg3d_plus", "volumetric_l1", "volumetric_l2", "image_l1", "image_l2"]
+JobState = Literal["queued", "running", "succeeded", "failed", "canceled"]
+Stage = Literal["reconstruct", "edit", "refine", "export"]
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+# ------------------------------------------------------------------ job parameters
+class ReconstructionParams(Strict):
+    """How G_i is fitted (SPEC §1). Jobs with equal values (and downsample / max_images) share one fit."""
+
+    preset: Literal["fast", "paper"] = Field(
+        "fast", description="fast: 40→80→128 (the CPU budget); paper: the authors' 20→40→80→160 × 500 iterations"
+    )
+    resolution: int | None = Field(
+        None, ge=4, le=512, description="final grid resolution; earlier stages are scaled in proportion"
+    )
+    iterations: list[int] | int | None = Field(
+        None, description="iterations of the final stage, or one value per stage (the preset's otherwise)"
+    )
+    rays_per_step: int | None = Field(None, ge=1, le=1 << 20)
+    seed: int = Field(0, ge=0)
+
+    @field_validator("iterations")
+    @classmethod
+    def _iterations(cls, value):
+        values = [value] if isinstance(value, int) else value
+        if values is not None and (not values or any(v < 0 or v > 1_000_000 for v in values)):
+            raise ValueError("iterations must be integers in [0, 1000000]")
+        return value
+
+
+class RefineParams(Strict):
+    """Spatial refinement of local edits (SPEC §3)."""
+
+    iterations: int = Field(1500, ge=0, le=100_000, description="fitting iterations of the 3D attention grids")
+    lr: float = Field(0.035, gt=0)
+    tv_weight: float = Field(0.01, ge=0)
+    render_size: int | None = Field(None, ge=8, le=1024, description="attention render size (default: the edit's)")
+    views: int = Field(32, ge=1, le=1000, description="random upper-hemisphere poses whose 2D attention maps are lifted")
+    rays_per_step: int = Field(8192, ge=1, le=1 << 20)
+    edit_seeds: int = Field(300, ge=0, description="top voxels by P_edit tied to the 'edit' terminal")
+    object_seeds: int = Field(200, ge=0, description="top voxels by P_object tied to the 'object' terminal")
+    sigma: float = Field(0.1, gt=0, description="colour scale of the pairwise weights")
+    smoothness: float = Field(5.0, ge=0, description="graph-cut smoothness weight λ")
+
+
+class ExportParams(Strict):
+    views: int = Field(8, ge=0, le=360, description="PNG renders on a ring around the object")
+    view_size: int = Field(256, ge=8, le=2048)
+    turntable_frames: int = Field(100, ge=1, le=1000)
+    turntable_size: int = Field(256, ge=8, le=2048)
+    elevation: float = Field(30.0, ge=-89, le=89)
+    fps: float = Field(30.0, gt=0, le=120)
+    gif: bool = True
+    mesh: bool = True
+    mesh_resolution: int | None = Field(None, ge=2, le=1024)
+
+
+class JobParams(Strict):
+    # input images
+    downsample: int = Field(3, ge=1, le=64, description="integer image downsampling on load (paper: 800 px / 3)")
+    max_images: int | None = Field(None, ge=1, description="use only the first N training images")
+    # editing (SPEC §2)
+    iterations: int = Field(8000, ge=0, le=200_000, description="edit iterations")
+    render_size: int = Field(266, ge=8, le=1024, description="edit render size in pixels")
+    guidance_scale: float = Field(100.0, gt=0, le=1000)
+    lr: float = Field(0.03, gt=0, le=10)
+    regulariser: Regulariser = "reg3d"
+    regulariser_weight: float = Field(200.0, ge=0)
+    timestep_schedule: Literal["paper", "authors"] = Field(
+        "paper", description="annealing floor 0.35 (paper) or 0.22 (authors' code)"
+    )
+    batch_size: int = Field(1, ge=1, le=16)
+    autocast: Literal["bf16", "fp16"] | None = None
+    seed: int = Field(0, ge=0)
+    preview_every: int = Field(100, ge=0, description="iterations between preview renders (0: none)")
+    reconstruction: ReconstructionParams = Field(default_factory=ReconstructionParams)
+    refine: RefineParams = Field(default_factory=RefineParams)
+    export: ExportParams = Field(default_factory=ExportParams)
+
+
+_WORD = re.compile(r"[\w'-]+")
+
+
+def words_of(text: str) -> list[str]:
+    return [w.lower() for w in _WORD.findall(text)]
+
+
+class JobCreate(Strict):
+    scene_id: str = Field(min_length=1, max_length=64)
+    prompt: str = Field(min_length=1, max_length=500, description='e.g. "a microphone wearing big sunglasses"')
+    mode: Literal["global", "local"] = "global"
+    edit_words: list[str] = Field(
+        default_factory=list,
+        description="local edits: the word(s) of the prompt naming the edit (e.g. ['sunglasses'])",
+    )
+    params: JobParams = Field(default_factory=JobParams)
+
+    @field_validator("edit_words", mode="before")
+    @classmethod
+    def _one_word(cls, value):
+        return [value] if isinstance(value, str) else value
+
+    @field_validator("prompt")
+    @classmethod
+    def _prompt(cls, value: str) -> str:
+        value = " ".join(value.split())
+        if not words_of(value):
+            raise ValueError("the prompt has no words")
+        return value
+
+    @model_validator(mode="after")
+    def _edit_words(self):
+        if self.mode == "local":
+            if not self.edit_words:
+                raise ValueError("edit_words is required for a local edit: the word(s) of the prompt naming the edit")
+            prompt_words = words_of(self.prompt)
+            for phrase in self.edit_words:
+                words = words_of(phrase)
+                if not words:
+                    raise ValueError(f"edit word {phrase!r} has no letters")
+                n = len(words)
+                if not any(prompt_words[i:i + n] == words for i in range(len(prompt_words) - n + 1)):
+                    raise ValueError(f"edit word {phrase!r} does not occur in the prompt {self.prompt!r}")
+            if len(set(words_of(" ".join(self.edit_words)))) >= len(set(prompt_words)):
+                raise ValueError("edit_words cover the whole prompt: some other word must name the object")
+        elif self.edit_words:
+            raise ValueError("edit_words apply to local edits only (mode 'local')")
+        return self
+
+
+# ------------------------------------------------------------------ responses
+class Page(BaseModel, Generic[T]):
+    items: list[T]
+    total: int
+    limit: int
+    offset: int
+
+
+class SceneOut(BaseModel):
+    id: str
+    name: str
+    format: str
+    image_count: int
+    width: int
+    height: int
+    splits: list[str]
+    size_bytes: int
+    sha256: str
+    created_at: datetime
+
+
+class ReconstructionOut(BaseModel):
+    id: str
+    state: str
+    run_count: int = Field(description="how many times a fit was started (1 for a fit that ran once)")
+    iteration: int
+    total: int
+    params: dict
+    error: str | None
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+
+
+class JobReconstruction(BaseModel):
+    id: str | None
+    state: str | None
+    run_count: int | None
+    reused: bool | None = Field(description="true when this job used a reconstruction another job had fitted")
+
+
+class Models(BaseModel):
+    sds: str
+    attention: str | None
+
+
+class JobOut(BaseModel):
+    id: str
+    scene_id: str
+    prompt: str
+    mode: str
+    edit_words: list[str]
+    params: dict
+    models: Models
+    device: str
+    state: JobState
+    stage: Stage | None
+    iteration: int
+    total: int
+    progress: float = Field(description="fraction of the current stage done")
+    completed_stages: list[str]
+    elapsed_seconds: float | None
+    eta_seconds: float | None = Field(description="estimated seconds left in the current stage")
+    losses: dict
+    message: str | None
+    error: str | None
+    cancel_requested: bool
+    reconstruction: JobReconstruction
+    preview_url: str | None
+    artifacts_url: str
+    worker_hostname: str | None
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    updated_at: datetime
+
+
+class ArtifactOut(BaseModel):
+    name: str
+    kind: str
+    size: int
+    content_type: str
+    sha256: str
+    url: str
+    created_at: datetime
+
+
+class Problem(BaseModel):
+    detail: str | dict | list

@@ -1,0 +1,87 @@
+"""Service settings, shared by the API and the workers (environment variables prefixed ``VOXE_``).
+
+Every default is the embedded single-machine setup of ``bash .ci/serve``: SQLite
+metadata, a SQLite-backed Celery broker (kombu's SQLAlchemy transport), local
+artifact storage under ``./var``. docker-compose swaps in PostgreSQL, Redis and
+S3-compatible storage (MinIO) through the same variables.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from voxe_core.guidance import ATTENTION_MODEL_ID, SDS_MODEL_ID
+
+TINY_MODEL = "tiny"
+TINY_MODEL_LABEL = "tiny (smoke test, random weights)"
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="VOXE_", extra="ignore")
+
+    # --- metadata and queue
+    database_url: str = "sqlite:///./var/voxe.db"
+    broker_url: str = "sqla+sqlite:///./var/broker.db"
+    broker_polling_interval: float = Field(0.5, gt=0, description="seconds between polls of a polling broker (SQL)")
+
+    # --- storage
+    storage_backend: Literal["local", "s3"] = "local"
+    storage_dir: Path = Path("./var/storage")
+    s3_bucket: str = "voxe"
+    s3_endpoint_url: str | None = None
+    s3_region: str | None = None
+    s3_prefix: str = ""
+    work_dir: Path = Path("./var/work")  # per-machine scratch: upload staging, worker caches
+    model_dir: Path = Path("./var/models")  # where the `tiny` smoke-test model is built, per machine
+
+    # --- models and compute
+    sds_model: str = SDS_MODEL_ID
+    attention_model: str = ATTENTION_MODEL_ID
+    device: str = "auto"  # auto | cpu | cuda | cuda:N
+
+    # --- uploads
+    max_upload_bytes: int = Field(2 * 1024**3, gt=0)
+    max_extracted_bytes: int = Field(8 * 1024**3, gt=0)
+    max_upload_files: int = Field(20_000, gt=0)
+    validation_downsample: int = Field(8, ge=1)  # images are decoded at 1/8 size to validate an upload
+
+    # --- worker behaviour
+    progress_interval_s: float = Field(0.5, gt=0)  # at most one progress write per interval (2/s)
+    cancel_check_interval_s: float = Field(0.5, gt=0)
+    checkpoint_every: int = Field(200, ge=1)  # iterations between resumable checkpoints
+    preview_interval_s: float = Field(30.0, gt=0)
+    reconstruction_lease_s: float = Field(120.0, gt=0)  # a running reconstruction not heard from this long is taken over
+    task_soft_time_limit_s: int = 3 * 3600
+    task_time_limit_s: int = int(3.5 * 3600)
+    broker_visibility_timeout_s: int = 4 * 3600
+    worker_max_tasks_per_child: int = 20
+    worker_heartbeat_s: float = Field(5.0, gt=0)
+    readiness_timeout_s: float = Field(1.0, gt=0)
+
+    @field_validator("s3_endpoint_url", "s3_region", mode="before")
+    @classmethod
+    def _empty_is_none(cls, value):
+        return None if value == "" else value
+
+    @property
+    def resolved_device(self) -> str:
+        if self.device != "auto":
+            return self.device
+        import torch
+
+        return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def model_label(model: str) -> str:
+    """What job records show for a model setting (the smoke-test model is always labelled as such)."""
+    return TINY_MODEL_LABEL if model == TINY_MODEL else model
+
+
+@lru_cache
+def get_settings() -> Settings:
+    return Settings()

@@ -1,0 +1,358 @@
+"""Artifact storage: a small interface with a local-directory and an S3-compatible implementation.
+
+Both the API and the workers use it, so workers never need a filesystem shared with
+the API: they download inputs (datasets, grids, checkpoints) by key and upload what
+they produce. Writes are atomic (local: temporary name + rename; S3: a PUT is
+all-or-nothing) and return the object's size and SHA-256.
+
+Keys are relative POSIX paths (``scenes/<id>/dataset.zip``); ``..``, absolute paths
+and backslashes are refused, so a key can never leave the storage root.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+import shutil
+import tempfile
+import uuid
+from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+CHUNK = 1 << 20
+_KEY_PART = re.compile(r"^[A-Za-z0-9._-]+$")
+
+
+class StorageError(RuntimeError):
+    pass
+
+
+class ObjectNotFound(StorageError, KeyError):
+    pass
+
+
+@dataclass(frozen=True)
+class StoredObject:
+    key: str
+    size: int
+    sha256: str
+
+
+def check_key(key: str) -> str:
+    parts = key.split("/")
+    if not key or key.startswith("/") or any(p in ("", ".", "..") or not _KEY_PART.match(p) for p in parts):
+        raise StorageError(f"invalid storage key {key!r}")
+    return key
+
+
+def file_sha256(path: str | os.PathLike) -> tuple[int, str]:
+    digest, size = hashlib.sha256(), 0
+    with open(path, "rb") as handle:
+        while chunk := handle.read(CHUNK):
+            digest.update(chunk)
+            size += len(chunk)
+    return size, digest.hexdigest()
+
+
+class Storage(ABC):
+    """put / get / ranged read / list / delete by key."""
+
+    @abstractmethod
+    def put_file(self, key: str, path: str | os.PathLike, content_type: str | None = None) -> StoredObject: ...
+
+    def put_bytes(self, key: str, data: bytes, content_type: str | None = None) -> StoredObject:
+        with tempfile.NamedTemporaryFile(delete=False) as handle:
+            handle.write(data)
+        try:
+            return self.put_file(key, handle.name, content_type)
+        finally:
+            os.unlink(handle.name)
+
+    @abstractmethod
+    def get_file(self, key: str, dest: str | os.PathLike) -> Path:
+        """Download ``key`` to ``dest`` (atomically: a partial download never appears at ``dest``)."""
+
+    @abstractmethod
+    def size(self, key: str) -> int: ...
+
+    @abstractmethod
+    def open_range(self, key: str, start: int = 0, end: int | None = None) -> Iterator[bytes]:
+        """Bytes ``start`` .. ``end`` (inclusive; None: to the end) as a stream of chunks."""
+
+    @abstractmethod
+    def list(self, prefix: str = "") -> list[str]: ...
+
+    @abstractmethod
+    def delete(self, key: str) -> None:
+        """Delete one object; deleting a missing key is not an error."""
+
+    def delete_prefix(self, prefix: str) -> int:
+        keys = self.list(prefix)
+        for key in keys:
+            self.delete(key)
+        return len(keys)
+
+    def exists(self, key: str) -> bool:
+        try:
+            self.size(key)
+            return True
+        except ObjectNotFound:
+            return False
+
+    def check_writable(self) -> None:
+        """Write, read back and delete a probe object; raises StorageError when that fails."""
+        key = f"_probe/{uuid.uuid4().hex}"
+        try:
+            self.put_bytes(key, b"ok")
+            if b"".join(self.open_range(key)) != b"ok":
+                raise StorageError("probe object read back wrong")
+        finally:
+            try:
+                self.delete(key)
+            except Exception:  # noqa: BLE001 - the write error, if any, is the one to report
+                pass
+
+    def describe(self) -> str:
+        return type(self).__name__
+
+
+class LocalStorage(Storage):
+    """Objects are files under ``root``."""
+
+    def __init__(self, root: str | os.PathLike):
+        self.root = Path(root).resolve()
+        self.root.mkdir(parents=True, exist_ok=True)
+
+    def path(self, key: str) -> Path:
+        return self.root / check_key(key)
+
+    def put_file(self, key, path, content_type=None) -> StoredObject:
+        target = self.path(key)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        tmp = target.with_name(f".{target.name}.{uuid.uuid4().hex}.tmp")
+        digest, size = hashlib.sha256(), 0
+        try:
+            with open(path, "rb") as src, open(tmp, "wb") as dst:
+                while chunk := src.read(CHUNK):
+                    digest.update(chunk)
+                    size += len(chunk)
+                    dst.write(chunk)
+                dst.flush()
+                os.fsync(dst.fileno())
+            os.replace(tmp, target)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        return StoredObject(key, size, digest.hexdigest())
+
+    def get_file(self, key, dest) -> Path:
+        source = self.path(key)
+        if not source.is_file():
+            raise ObjectNotFound(key)
+        dest = Path(dest)
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        tmp = dest.with_name(f".{dest.name}.{uuid.uuid4().hex}.tmp")
+        try:
+            shutil.copyfile(source, tmp)
+            os.replace(tmp, dest)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        return dest
+
+    def size(self, key) -> int:
+        source = self.path(key)
+        if not source.is_file():
+            raise ObjectNotFound(key)
+        return source.stat().st_size
+
+    def open_range(self, key, start=0, end=None) -> Iterator[bytes]:
+        source = self.path(key)
+        if not source.is_file():
+            raise ObjectNotFound(key)
+        handle = open(source, "rb")
+
+        def chunks() -> Iterator[bytes]:
+            with handle:
+                handle.seek(start)
+                remaining = None if end is None else end - start + 1
+                while remaining is None or remaining > 0:
+                    chunk = handle.read(CHUNK if remaining is None else min(CHUNK, remaining))
+                    if not chunk:
+                        break
+                    if remaining is not None:
+                        remaining -= len(chunk)
+                    yield chunk
+
+        return chunks()
+
+    def list(self, prefix="") -> list[str]:
+        base = self.root
+        keys = []
+        for path in base.rglob("*"):
+            if path.is_file() and not path.name.endswith(".tmp"):
+                key = path.relative_to(base).as_posix()
+                if key.startswith(prefix):
+                    keys.append(key)
+        return sorted(keys)
+
+    def delete(self, key) -> None:
+        target = self.path(key)
+        target.unlink(missing_ok=True)
+        parent = target.parent
+        while parent != self.root:  # drop emptied folders
+            try:
+                parent.rmdir()
+            except OSError:
+                break
+            parent = parent.parent
+
+    def describe(self) -> str:
+        return f"local:{self.root}"
+
+
+class S3Storage(Storage):
+    """Objects in an S3-compatible bucket (AWS S3, MinIO, ...) through boto3.
+
+    Credentials come from boto3's usual chain (AWS_ACCESS_KEY_ID / AWS_SECRET_ACCESS_KEY,
+    a profile, an instance role); never from the service settings. The SHA-256 of each
+    object is stored as object metadata.
+    """
+
+    def __init__(self, bucket: str, endpoint_url: str | None = None, region: str | None = None,
+                 prefix: str = "", create_bucket: bool = True, client=None):
+        import boto3
+        from botocore.config import Config
+
+        self.bucket = bucket
+        self.prefix = prefix.strip("/") + "/" if prefix.strip("/") else ""
+        self.client = client or boto3.client(
+            "s3", endpoint_url=endpoint_url, region_name=region,
+            config=Config(retries={"max_attempts": 5, "mode": "standard"}, s3={"addressing_style": "path"}),
+        )
+        if create_bucket:
+            self._ensure_bucket()
+
+    def _ensure_bucket(self) -> None:
+        from botocore.exceptions import ClientError
+
+        try:
+            self.client.head_bucket(Bucket=self.bucket)
+        except ClientError as exc:
+            code = exc.response.get("Error", {}).get("Code")
+            if code not in ("404", "NoSuchBucket", "NotFound"):
+                raise StorageError(f"bucket {self.bucket!r} not accessible: {exc}") from exc
+            try:
+                self.client.create_bucket(Bucket=self.bucket)
+            except ClientError as create_exc:
+                if create_exc.response.get("Error", {}).get("Code") not in (
+                    "BucketAlreadyOwnedByYou", "BucketAlreadyExists"
+                ):
+                    raise
+
+    def _full(self, key: str) -> str:
+        return self.prefix + check_key(key)
+
+    def _not_found(self, exc) -> bool:
+        return exc.response.get("Error", {}).get("Code") in ("404", "NoSuchKey", "NotFound")
+
+    def put_file(self, key, path, content_type=None) -> StoredObject:
+        size, sha = file_sha256(path)
+        extra = {"Metadata": {"sha256": sha}}
+        if content_type:
+            extra["ContentType"] = content_type
+        self.client.upload_file(str(path), self.bucket, self._full(key), ExtraArgs=extra)
+        return StoredObject(key, size, sha)
+
+    def get_file(self, key, dest) -> Path:
+        from botocore.exceptions import ClientError
+
+        dest = Path(dest)
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        tmp = dest.with_name(f".{dest.name}.{uuid.uuid4().hex}.tmp")
+        try:
+            self.client.download_file(self.bucket, self._full(key), str(tmp))
+            os.replace(tmp, dest)
+        except ClientError as exc:
+            tmp.unlink(missing_ok=True)
+            if self._not_found(exc):
+                raise ObjectNotFound(key) from exc
+            raise
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        return dest
+
+    def size(self, key) -> int:
+        from botocore.exceptions import ClientError
+
+        try:
+            return int(self.client.head_object(Bucket=self.bucket, Key=self._full(key))["ContentLength"])
+        except ClientError as exc:
+            if self._not_found(exc):
+                raise ObjectNotFound(key) from exc
+            raise
+
+    def open_range(self, key, start=0, end=None) -> Iterator[bytes]:
+        from botocore.exceptions import ClientError
+
+        kwargs = {}
+        if start or end is not None:
+            kwargs["Range"] = f"bytes={start}-{'' if end is None else end}"
+        try:
+            body = self.client.get_object(Bucket=self.bucket, Key=self._full(key), **kwargs)["Body"]
+        except ClientError as exc:
+            if self._not_found(exc):
+                raise ObjectNotFound(key) from exc
+            raise
+
+        def chunks() -> Iterator[bytes]:
+            try:
+                yield from body.iter_chunks(CHUNK)
+            finally:
+                body.close()
+
+        return chunks()
+
+    def list(self, prefix="") -> list[str]:
+        keys = []
+        paginator = self.client.get_paginator("list_objects_v2")
+        for page in paginator.paginate(Bucket=self.bucket, Prefix=self.prefix + prefix):
+            keys += [obj["Key"][len(self.prefix):] for obj in page.get("Contents", [])]
+        return sorted(keys)
+
+    def delete(self, key) -> None:
+        self.client.delete_object(Bucket=self.bucket, Key=self._full(key))
+
+    def delete_prefix(self, prefix: str) -> int:
+        keys = self.list(prefix)
+        for start in range(0, len(keys), 1000):
+            batch = [{"Key": self.prefix + k} for k in keys[start:start + 1000]]
+            self.client.delete_objects(Bucket=self.bucket, Delete={"Objects": batch, "Quiet": True})
+        return len(keys)
+
+    def describe(self) -> str:
+        return f"s3:{self.bucket}/{self.prefix}"
+
+
+_instances: dict[tuple, Storage] = {}
+
+
+def get_storage(settings=None) -> Storage:
+    """The storage the settings describe (one instance per configuration and process)."""
+    from api.settings import get_settings
+
+    settings = settings or get_settings()
+    if settings.storage_backend == "s3":
+        key = ("s3", settings.s3_bucket, settings.s3_endpoint_url, settings.s3_region, settings.s3_prefix)
+        if key not in _instances:
+            _instances[key] = S3Storage(settings.s3_bucket, settings.s3_endpoint_url, settings.s3_region,
+                                        settings.s3_prefix)
+    else:
+        key = ("local", str(Path(settings.storage_dir).resolve()))
+        if key not in _instances:
+            _instances[key] = LocalStorage(settings.storage_dir)
+    return _instances[key]

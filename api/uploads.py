@@ -1,0 +1,221 @@
+"""Scene uploads: unpack into a staging folder, validate with voxe_core.data, package for storage.
+
+Nothing is committed until the dataset has loaded cleanly: the caller moves the
+packaged archive into storage and inserts the scene row only after
+:func:`ingest` returns, and the staging folder is always removed.
+
+Basic archive hygiene (a later issue hardens it further): entries with ``..``,
+absolute or drive paths, symbolic links, more than ``max_upload_files`` entries
+or more than ``max_extracted_bytes`` of content are refused, and sizes are
+counted while extracting (not trusted from the archive's directory).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import stat
+import tempfile
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+from typing import BinaryIO
+
+from PIL import Image
+
+from voxe_core.data import DatasetError, detect_format, load_scene
+
+_IGNORED = ("__MACOSX", ".DS_Store", "Thumbs.db")
+_STORED_SUFFIXES = {".png", ".jpg", ".jpeg", ".webp", ".exr", ".zip", ".gz"}
+
+
+class UploadError(ValueError):
+    """A bad upload; ``status`` is the HTTP status to answer with (422, or 413 for size limits)."""
+
+    def __init__(self, message: str, status: int = 422):
+        super().__init__(message)
+        self.status = status
+
+
+@dataclass
+class Ingested:
+    format: str
+    image_count: int
+    width: int
+    height: int
+    splits: list[str]
+    archive: Path  # the validated dataset, re-packed with the dataset folder at the archive root
+
+
+def safe_relative(name: str) -> PurePosixPath:
+    """The relative path of an archive entry or uploaded file name; UploadError on anything escaping."""
+    raw = name.replace("\\", "/")
+    if raw.startswith("/") or re.match(r"^[A-Za-z]:", raw):
+        raise UploadError(f"refused entry {name!r}: absolute paths are not allowed")
+    parts = [p for p in raw.split("/") if p not in ("", ".")]
+    if any(p == ".." for p in parts):
+        raise UploadError(f"refused entry {name!r}: '..' path components are not allowed")
+    if not parts:
+        raise UploadError(f"refused entry {name!r}: empty path")
+    if any("\x00" in p for p in parts):
+        raise UploadError(f"refused entry {name!r}: NUL in path")
+    return PurePosixPath(*parts)
+
+
+def _ignored(path: PurePosixPath) -> bool:
+    return any(part in _IGNORED or part.startswith("._") for part in path.parts)
+
+
+class _Budget:
+    def __init__(self, max_bytes: int, max_files: int):
+        self.max_bytes, self.max_files = max_bytes, max_files
+        self.bytes = self.files = 0
+
+    def add_file(self) -> None:
+        self.files += 1
+        if self.files > self.max_files:
+            raise UploadError(f"too many files: more than {self.max_files}", 413)
+
+    def add_bytes(self, n: int) -> None:
+        self.bytes += n
+        if self.bytes > self.max_bytes:
+            raise UploadError(f"upload too large: more than {self.max_bytes} bytes of content", 413)
+
+
+def _copy(src: BinaryIO, dest: Path, budget: _Budget) -> None:
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    with open(dest, "xb") as out:
+        while chunk := src.read(1 << 20):
+            budget.add_bytes(len(chunk))
+            out.write(chunk)
+
+
+def extract_zip(source: BinaryIO, dest: Path, budget: _Budget) -> None:
+    try:
+        archive = zipfile.ZipFile(source)
+    except (zipfile.BadZipFile, OSError, ValueError) as exc:
+        raise UploadError(f"archive is not a readable zip file: {exc}") from None
+    with archive:
+        entries = []
+        for info in archive.infolist():
+            path = safe_relative(info.filename)
+            if stat.S_ISLNK(info.external_attr >> 16):
+                raise UploadError(f"refused entry {info.filename!r}: symbolic links are not allowed")
+            if info.is_dir() or _ignored(path):
+                continue
+            if info.flag_bits & 0x1:
+                raise UploadError(f"refused entry {info.filename!r}: encrypted zip entries are not supported")
+            entries.append((info, path))
+        for info, path in entries:
+            budget.add_file()
+            try:
+                with archive.open(info) as member:
+                    _copy(member, dest / path, budget)
+            except FileExistsError:
+                raise UploadError(f"duplicate entry {info.filename!r} in the archive") from None
+            except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, NotImplementedError) as exc:
+                raise UploadError(f"cannot extract {info.filename!r}: {exc}") from None
+
+
+def save_files(files: list[tuple[str, BinaryIO]], dest: Path, budget: _Budget) -> None:
+    """Individual uploaded files; their names are paths relative to the dataset folder."""
+    for name, handle in files:
+        path = safe_relative(name or "")
+        if _ignored(path):
+            continue
+        budget.add_file()
+        try:
+            _copy(handle, dest / path, budget)
+        except FileExistsError:
+            raise UploadError(f"file {name!r} uploaded twice") from None
+
+
+def dataset_root(folder: Path) -> Path:
+    """The folder holding the transforms json: the upload itself, or its single top-level folder."""
+    root = folder
+    for _ in range(4):
+        if any((root / n).is_file() for n in ("transforms.json", "transforms_train.json",
+                                              "transforms_val.json", "transforms_test.json")):
+            return root
+        children = [c for c in root.iterdir() if not _ignored(PurePosixPath(c.name))]
+        if len(children) == 1 and children[0].is_dir():
+            root = children[0]
+            continue
+        break
+    return root
+
+
+def _image_size(root: Path, name: str) -> tuple[int, int]:
+    for candidate in (root / name, root / (name + ".png")):
+        if candidate.is_file():
+            with Image.open(candidate) as image:
+                return image.size
+    raise UploadError(f"image {name!r} disappeared during validation")
+
+
+def _relative_message(exc: Exception, staging: Path) -> str:
+    """A DatasetError's message with staging paths shown relative to the upload."""
+    message = str(exc)
+    for prefix in sorted({str(staging.resolve()), str(staging)}, key=len, reverse=True):
+        message = message.replace(prefix + os.sep, "").replace(prefix, "<upload>")
+    return message
+
+
+def validate(root: Path, staging: Path, downsample: int) -> tuple[str, int, int, int, list[str]]:
+    try:
+        fmt = detect_format(root)
+        try:
+            scene = load_scene(root, "train", downsample=downsample)
+        except DatasetError as exc:
+            if "smaller than downsample" not in str(exc):
+                raise
+            scene = load_scene(root, "train", downsample=1)
+    except DatasetError as exc:
+        raise UploadError(f"invalid dataset: {_relative_message(exc, staging)}") from None
+    width, height = _image_size(root, scene.names[0])
+    if fmt == "nerf_synthetic":
+        splits = [s for s in ("train", "val", "test") if (root / f"transforms_{s}.json").is_file()]
+    else:
+        splits = ["all"]
+    return fmt, len(scene), width, height, splits
+
+
+def package(root: Path, archive: Path) -> None:
+    """Re-pack the dataset folder (images stored, text deflated) with the folder at the archive root."""
+    with zipfile.ZipFile(archive, "w") as zf:
+        for path in sorted(root.rglob("*")):
+            if path.is_file() and not _ignored(PurePosixPath(path.name)):
+                compress = zipfile.ZIP_STORED if path.suffix.lower() in _STORED_SUFFIXES else zipfile.ZIP_DEFLATED
+                zf.write(path, path.relative_to(root).as_posix(), compress_type=compress)
+
+
+def ingest(
+    work_dir: Path,
+    archive: BinaryIO | None,
+    files: list[tuple[str, BinaryIO]],
+    max_bytes: int,
+    max_files: int,
+    validation_downsample: int,
+) -> tuple[Ingested, Path]:
+    """Unpack, validate and package an upload; returns (result, staging folder to remove after storing)."""
+    if (archive is None) == (not files):
+        raise UploadError("send either one zip 'archive' or the dataset's 'files' (with the transforms json)")
+    work_dir.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(dir=work_dir, prefix="upload-"))
+    try:
+        budget = _Budget(max_bytes, max_files)
+        unpacked = staging / "data"
+        unpacked.mkdir()
+        if archive is not None:
+            extract_zip(archive, unpacked, budget)
+        else:
+            save_files(files, unpacked, budget)
+        root = dataset_root(unpacked)
+        fmt, count, width, height, splits = validate(root, unpacked, validation_downsample)
+        packed = staging / "dataset.zip"
+        package(root, packed)
+        return Ingested(fmt, count, width, height, splits, packed), staging
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise

@@ -1,0 +1,176 @@
+"""Helpers for the service tests: environments, real subprocesses (uvicorn, celery, redis-server), datasets."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+import zipfile
+from pathlib import Path
+
+import httpx
+
+REPO = Path(__file__).resolve().parents[1]
+DATA_ROOT = REPO.parent / "shared" / "data"
+MIC = DATA_ROOT / "nerf_synthetic_mic"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def service_env(root: Path, broker_url: str | None = None, **extra: str) -> dict[str, str]:
+    """VOXE_* variables for a private service instance under ``root`` (embedded broker unless given)."""
+    env = {
+        "VOXE_DATABASE_URL": f"sqlite:///{root / 'voxe.db'}",
+        "VOXE_BROKER_URL": broker_url or f"sqla+sqlite:///{root / 'broker.db'}",
+        "VOXE_STORAGE_DIR": str(root / "storage"),
+        "VOXE_WORK_DIR": str(root / "work"),
+        "VOXE_MODEL_DIR": str(root / "models"),
+        "VOXE_SDS_MODEL": "tiny",
+        "VOXE_ATTENTION_MODEL": "tiny",
+        "VOXE_DEVICE": "cpu",
+    }
+    env.update(extra)
+    return env
+
+
+def zip_folder(folder: Path, dest: Path, prefix: str | None = None, only=None) -> Path:
+    """Zip ``folder`` (under ``prefix/`` inside the archive when given); ``only(rel)`` filters files."""
+    with zipfile.ZipFile(dest, "w") as zf:
+        for path in sorted(folder.rglob("*")):
+            if path.is_file():
+                rel = path.relative_to(folder).as_posix()
+                if only is None or only(rel):
+                    zf.write(path, f"{prefix}/{rel}" if prefix else rel)
+    return dest
+
+
+def small_mic(dest: Path, frames: int = 3) -> Path:
+    """A NeRF-synthetic folder with the first ``frames`` training frames of mic (fast to validate)."""
+    meta = json.loads((MIC / "transforms_train.json").read_text())
+    meta["frames"] = meta["frames"][:frames]
+    dest.mkdir(parents=True, exist_ok=True)
+    for frame in meta["frames"]:
+        src = MIC / (frame["file_path"] + ".png")
+        target = dest / (frame["file_path"] + ".png")
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(src, target)
+    (dest / "transforms_train.json").write_text(json.dumps(meta))
+    return dest
+
+
+class Process:
+    """A subprocess with its output in a log file; stopped with SIGTERM, then SIGKILL."""
+
+    def __init__(self, name: str, args: list[str], env: dict[str, str], log_dir: Path, cwd: Path = REPO):
+        self.name = name
+        self.log_path = log_dir / f"{name}.log"
+        self._log = open(self.log_path, "wb")
+        self.proc = subprocess.Popen(args, cwd=cwd, env=env, stdout=self._log, stderr=subprocess.STDOUT,
+                                     start_new_session=True)
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def tail(self, n: int = 60) -> str:
+        try:
+            lines = self.log_path.read_text(errors="replace").splitlines()
+        except OSError:
+            return ""
+        return f"--- {self.name} (last {n} lines) ---\n" + "\n".join(lines[-n:])
+
+    def stop(self, timeout: float = 20.0) -> None:
+        if self.alive():
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(10)
+        self._log.close()
+
+
+def wait_until(predicate, timeout: float, interval: float = 0.2, what: str = "condition", processes=()):
+    deadline = time.monotonic() + timeout
+    last = None
+    while time.monotonic() < deadline:
+        for p in processes:
+            if not p.alive():
+                raise RuntimeError(f"{p.name} exited with {p.proc.returncode} while waiting for {what}\n{p.tail()}")
+        try:
+            last = predicate()
+            if last:
+                return last
+        except (httpx.HTTPError, OSError) as exc:
+            last = exc
+        time.sleep(interval)
+    tails = "\n".join(p.tail() for p in processes)
+    raise TimeoutError(f"timed out after {timeout:.0f} s waiting for {what} (last: {last!r})\n{tails}")
+
+
+@contextlib.contextmanager
+def redis_server(root: Path):
+    """A private redis-server on a free port with append-only persistence in ``root``."""
+    exe = shutil.which("redis-server")
+    if exe is None:
+        raise FileNotFoundError("redis-server")
+    port = free_port()
+    root.mkdir(parents=True, exist_ok=True)
+    proc = Process("redis", [exe, "--port", str(port), "--bind", "127.0.0.1", "--dir", str(root),
+                             "--appendonly", "yes", "--save", "", "--protected-mode", "no"], dict(os.environ), root)
+    try:
+        import redis
+
+        client = redis.Redis(port=port, socket_timeout=1)
+        wait_until(lambda: _redis_ping(client), 20, what="redis-server", processes=[proc])
+        yield f"redis://127.0.0.1:{port}/0"
+    finally:
+        proc.stop()
+
+
+def _redis_ping(client) -> bool:
+    import redis
+
+    try:
+        return bool(client.ping())
+    except redis.RedisError:
+        return False
+
+
+@contextlib.contextmanager
+def service(root: Path, broker_url: str | None = None, **extra: str):
+    """Run the API (uvicorn) and one Celery worker as real subprocesses; yields (base_url, processes)."""
+    root.mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, **service_env(root, broker_url, **extra)}
+    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
+    env.setdefault("HF_HUB_OFFLINE", "1")
+    env.setdefault("OMP_NUM_THREADS", "2")
+    port = free_port()
+    base = f"http://127.0.0.1:{port}"
+    api = Process("api", [sys.executable, "-m", "uvicorn", "api.main:app", "--host", "127.0.0.1",
+                          "--port", str(port), "--log-level", "warning"], env, root)
+    processes = [api]
+    try:
+        # The API migrates the database at startup; start the worker once it has.
+        wait_until(lambda: httpx.get(f"{base}/healthz", timeout=2).status_code == 200, 90,
+                   what="the API to start", processes=processes)
+        worker = Process("worker", [sys.executable, "-m", "celery", "-A", "worker.celery_app", "worker",
+                                    "-Q", "gpu,celery", "--concurrency", "1", "--pool", "solo",
+                                    "--without-gossip", "--without-mingle", "--without-heartbeat",
+                                    "-n", f"voxe-test-{port}@%h", "-l", "info"], env, root)
+        processes.append(worker)
+        wait_until(lambda: httpx.get(f"{base}/readyz", timeout=10).status_code == 200, 120,
+                   what="readiness (a worker listening)", processes=processes)
+        yield base, processes
+    finally:
+        for p in reversed(processes):
+            p.stop()

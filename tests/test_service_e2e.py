@@ -1,0 +1,237 @@
+"""End to end over real HTTP: a uvicorn API and a Celery worker as subprocesses, run once with the
+embedded SQL broker and once with a real redis-server.
+
+The model is the random-weight SMOKE-TEST Stable Diffusion (VOXE_SDS_MODEL=tiny): these tests prove
+the plumbing (queueing, progress, reuse, cancellation, artifacts), never edit quality.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import shutil
+import time
+from dataclasses import dataclass, field
+
+import httpx
+import pytest
+
+from service_helpers import MIC, redis_server, service, zip_folder
+
+pytestmark = pytest.mark.slow
+
+RECONSTRUCTION = {"preset": "fast", "resolution": 24, "iterations": [10, 10, 20], "rays_per_step": 1024}
+PARAMS = {
+    "downsample": 16, "max_images": 8, "iterations": 5, "render_size": 48, "preview_every": 2,
+    "reconstruction": RECONSTRUCTION,
+    "refine": {"iterations": 20, "views": 4, "render_size": 64, "rays_per_step": 2048},
+    "export": {"views": 2, "view_size": 48, "turntable_frames": 8, "turntable_size": 48},
+}
+SMOKE_LABEL = "tiny (smoke test, random weights)"
+COMMON_ARTIFACTS = {"initial_grid.safetensors", "edited_grid.safetensors", "render_000.png", "render_001.png",
+                    "turntable.mp4", "turntable.gif", "mesh.ply", "mesh.glb", "preview.png"}
+LOCAL_ARTIFACTS = {"refined_grid.safetensors", "mask.safetensors", "attention_probabilities.safetensors",
+                   "mask_overlay.png"}
+
+
+@dataclass
+class Stack:
+    broker: str
+    client: httpx.Client
+    processes: list
+    scene: dict
+    jobs: dict = field(default_factory=dict)
+
+    def diagnostics(self) -> str:
+        return "\n".join(p.tail(40) for p in self.processes)
+
+
+@pytest.fixture(scope="session")
+def mic_zip(tmp_path_factory):
+    if not MIC.is_dir():
+        pytest.skip(f"shared data missing: {MIC}")
+    return zip_folder(MIC, tmp_path_factory.mktemp("upload") / "nerf_synthetic_mic.zip", prefix="nerf_synthetic_mic")
+
+
+@pytest.fixture(scope="module", params=["embedded", "redis"])
+def stack(request, tmp_path_factory, mic_zip):
+    broker = request.param
+    root = tmp_path_factory.mktemp(f"service-{broker}")
+    with contextlib_for(broker, root) as broker_url, service(root, broker_url) as (base, processes):
+        with httpx.Client(base_url=base, timeout=60) as client:
+            with open(mic_zip, "rb") as handle:
+                response = client.post("/v1/scenes", files={"archive": ("nerf_synthetic_mic.zip", handle,
+                                                                         "application/zip")})
+            assert response.status_code == 201, response.text
+            yield Stack(broker, client, processes, response.json())
+
+
+def contextlib_for(broker: str, root):
+    import contextlib
+
+    if broker == "embedded":
+        return contextlib.nullcontext(None)
+    if shutil.which("redis-server") is None:
+        pytest.skip("redis-server is not installed (.ci/test installs it)")
+    return redis_server(root / "redis")
+
+
+def wait_for_job(stack: Stack, job_id: str, timeout: float = 240, until=None) -> dict:
+    deadline = time.monotonic() + timeout
+    job = None
+    while time.monotonic() < deadline:
+        for p in stack.processes:
+            assert p.alive(), f"{p.name} died\n{stack.diagnostics()}"
+        job = stack.client.get(f"/v1/jobs/{job_id}").json()
+        if (until or (lambda j: j["state"] in ("succeeded", "failed", "canceled")))(job):
+            return job
+        time.sleep(0.25)
+    raise AssertionError(f"job {job_id} still {job and job['state']} after {timeout} s: {job}\n{stack.diagnostics()}")
+
+
+def create_job(stack: Stack, **body) -> dict:
+    response = stack.client.post("/v1/jobs", json={"scene_id": stack.scene["id"], **body})
+    assert response.status_code == 201, response.text
+    return response.json()
+
+
+# ---------------------------------------------------------------------------------------------- tests
+def test_scene_and_readiness(stack):
+    scene = stack.scene
+    assert scene["format"] == "nerf_synthetic"
+    assert scene["image_count"] > 0 and (scene["width"], scene["height"]) == (800, 800)
+    assert stack.client.get(f"/v1/scenes/{scene['id']}").json()["sha256"] == scene["sha256"]
+    ready = stack.client.get("/readyz")
+    assert ready.status_code == 200, ready.text
+    checks = ready.json()["checks"]
+    assert all(c["ok"] for c in checks.values())
+    assert checks["worker"]["workers"], checks
+    assert checks["worker"]["method"] == ("database heartbeat" if stack.broker == "embedded" else "celery control ping")
+    assert ready.json()["models"]["sds"] == SMOKE_LABEL
+
+
+def test_local_and_global_jobs_share_one_reconstruction(stack):
+    local = create_job(stack, prompt="a mic wearing big sunglasses", mode="local", edit_words=["sunglasses"],
+                       params=PARAMS)
+    global_ = create_job(stack, prompt="a wood carving of a mic", mode="global", params=PARAMS)
+    assert local["state"] == "queued" and local["models"] == {"sds": SMOKE_LABEL, "attention": SMOKE_LABEL}
+    assert local["reconstruction"]["id"] == global_["reconstruction"]["id"]
+    local, global_ = wait_for_job(stack, local["id"]), wait_for_job(stack, global_["id"])
+    for job in (local, global_):
+        assert job["state"] == "succeeded", f"{job}\n{stack.diagnostics()}"
+        assert job["error"] is None and job["worker_hostname"]
+        assert job["started_at"] and job["finished_at"] and job["elapsed_seconds"] > 0
+        assert job["preview_url"] == f"/v1/jobs/{job['id']}/artifacts/preview.png"
+    assert local["completed_stages"] == ["reconstruct", "edit", "refine", "export"]
+    assert global_["completed_stages"] == ["reconstruct", "edit", "export"]
+
+    # One fit, used by both jobs: the run counter says it ran once, and exactly one job reused it.
+    reconstructions = stack.client.get(f"/v1/scenes/{stack.scene['id']}/reconstructions").json()
+    assert len(reconstructions) == 1 and reconstructions[0]["state"] == "succeeded"
+    assert reconstructions[0]["run_count"] == 1
+    assert sorted([local["reconstruction"]["reused"], global_["reconstruction"]["reused"]]) == [False, True]
+
+    initial = verify_artifacts(stack, global_, COMMON_ARTIFACTS)
+    grids = verify_artifacts(stack, local, COMMON_ARTIFACTS | LOCAL_ARTIFACTS)
+    assert initial["initial_grid.safetensors"].resolution == grids["initial_grid.safetensors"].resolution == (24,) * 3
+    stack.jobs.update(local=local, global_=global_)
+
+
+def test_cancel_running_job(stack):
+    # Same reconstruction parameters (reused), an edit far too long to finish.
+    params = {**PARAMS, "iterations": 100_000, "render_size": 64}
+    job = create_job(stack, prompt="a mic wearing a party hat", mode="local", edit_words=["party hat"], params=params)
+    running = wait_for_job(stack, job["id"], until=lambda j: j["stage"] == "edit" and j["iteration"] >= 3
+                           or j["state"] in ("succeeded", "failed", "canceled"))
+    assert running["state"] == "running", running
+    assert running["reconstruction"]["reused"] is True
+    assert running["eta_seconds"] is not None and running["total"] == 100_000
+    response = stack.client.post(f"/v1/jobs/{job['id']}/cancel")
+    assert response.status_code == 200 and response.json()["cancel_requested"] is True
+    at_cancel = response.json()["iteration"]
+    started = time.monotonic()
+    final = wait_for_job(stack, job["id"], timeout=60)
+    assert final["state"] == "canceled", final
+    assert time.monotonic() - started < 30
+    assert final["stage"] == "edit" and final["iteration"] - at_cancel <= 25, (at_cancel, final["iteration"])
+    assert "edit" not in final["completed_stages"]
+    again = stack.client.post(f"/v1/jobs/{job['id']}/cancel")
+    assert again.status_code == 200 and again.json()["state"] == "canceled"
+    # The worker is free again and the reconstruction still ran only once.
+    reconstructions = stack.client.get(f"/v1/scenes/{stack.scene['id']}/reconstructions").json()
+    assert [r["run_count"] for r in reconstructions] == [1]
+
+
+def test_job_listing(stack):
+    jobs = stack.client.get("/v1/jobs", params={"scene_id": stack.scene["id"], "limit": 2}).json()
+    assert jobs["total"] == 3 and len(jobs["items"]) == 2 and jobs["limit"] == 2
+    succeeded = stack.client.get("/v1/jobs", params={"state": "succeeded"}).json()
+    assert succeeded["total"] == 2 and {j["state"] for j in succeeded["items"]} == {"succeeded"}
+    canceled = stack.client.get("/v1/jobs", params={"state": "canceled", "offset": 0}).json()
+    assert canceled["total"] == 1
+    assert stack.client.get("/v1/jobs", params={"state": "bogus"}).status_code == 422
+
+
+# ---------------------------------------------------------------------------------------------- checks
+def verify_artifacts(stack: Stack, job: dict, expected: set[str]) -> dict:
+    """Download every artifact, check size / sha256 / a Range request, and open it with a real reader."""
+    import imageio.v2 as imageio
+    import trimesh
+    from PIL import Image
+
+    from voxe_core.grid import VoxelGrid
+    from voxe_core.refine import load_mask, load_probabilities
+
+    listing = stack.client.get(f"/v1/jobs/{job['id']}/artifacts").json()
+    names = {a["name"] for a in listing}
+    assert expected <= names, f"missing {expected - names}"
+    tmp = stack.processes[0].log_path.parent / f"downloads-{job['id']}"
+    tmp.mkdir(exist_ok=True)
+    grids = {}
+    for artifact in listing:
+        response = stack.client.get(artifact["url"])
+        assert response.status_code == 200, artifact
+        data = response.content
+        assert len(data) == artifact["size"] and hashlib.sha256(data).hexdigest() == artifact["sha256"], artifact
+        assert response.headers["content-type"].startswith(artifact["content_type"])
+        assert response.headers["accept-ranges"] == "bytes"
+        # Range: a middle slice, a suffix, and an unsatisfiable one.
+        if len(data) > 20:
+            part = stack.client.get(artifact["url"], headers={"Range": "bytes=5-14"})
+            assert part.status_code == 206 and part.content == data[5:15]
+            assert part.headers["content-range"] == f"bytes 5-14/{len(data)}"
+            tail = stack.client.get(artifact["url"], headers={"Range": "bytes=-7"})
+            assert tail.status_code == 206 and tail.content == data[-7:]
+        bad = stack.client.get(artifact["url"], headers={"Range": f"bytes={len(data)}-"})
+        assert bad.status_code == 416 and bad.headers["content-range"] == f"bytes */{len(data)}"
+        path = tmp / artifact["name"]
+        path.write_bytes(data)
+        name = artifact["name"]
+        if name.endswith("_grid.safetensors"):
+            grids[name] = VoxelGrid.load(path)
+        elif name == "mask.safetensors":
+            grids["mask"] = load_mask(path)
+        elif name == "attention_probabilities.safetensors":
+            grids["probabilities"] = load_probabilities(path)
+        elif name.endswith(".png") or name.endswith(".gif"):
+            with Image.open(io.BytesIO(data)) as image:
+                image.load()
+                assert image.size[0] > 0
+        elif name.endswith(".mp4"):
+            reader = imageio.get_reader(path, format="FFMPEG")
+            frames = [frame for frame in reader]
+            reader.close()
+            assert len(frames) == job["params"]["export"]["turntable_frames"]
+            assert frames[0].shape[:2] == (48, 48)
+        elif name.endswith(".ply") or name.endswith(".glb"):
+            mesh = trimesh.load(path, force="mesh")
+            assert len(mesh.vertices) > 0 and len(mesh.faces) > 0
+    resolution = grids["edited_grid.safetensors"].resolution
+    if job["mode"] == "local":
+        assert tuple(grids["mask"].shape) == resolution == grids["refined_grid.safetensors"].resolution
+        edit_p, object_p, where = grids["probabilities"]
+        assert tuple(edit_p.shape) == tuple(object_p.shape) == tuple(where.shape) == resolution
+    # Names are looked up in the job's list only.
+    for bad_name in ("..%2F..%2Fscenes", "nope.png", "%2Fetc%2Fpasswd"):
+        assert stack.client.get(f"/v1/jobs/{job['id']}/artifacts/{bad_name}").status_code == 404
+    return grids

@@ -1,0 +1,65 @@
+"""The Celery application, configured from the service settings (shared with the API).
+
+Long GPU tasks: late acks, one prefetched message, a rejected (redelivered)
+message when the worker process dies, and a broker visibility timeout above the
+hard time limit so Redis never redelivers a task that is still running.
+"""
+
+from __future__ import annotations
+
+from celery import Celery
+from kombu import Queue
+
+from api.db import ensure_sqlite_dir
+from api.settings import get_settings
+from worker.broker import register as register_sql_transport
+
+GPU_QUEUE = "gpu"
+TASK_NAMES = {stage: f"voxe.{stage}" for stage in ("reconstruct", "edit", "refine", "export")}
+
+
+def is_sql_broker(url: str) -> bool:
+    return url.split("://", 1)[0].split("+", 1)[0] in ("sqla", "sqlalchemy")
+
+
+def broker_transport_options(settings) -> dict:
+    if is_sql_broker(settings.broker_url):
+        options = {"polling_interval": settings.broker_polling_interval}
+        if "+sqlite" in settings.broker_url.split("://", 1)[0]:
+            options["connect_args"] = {"timeout": 30}
+        return options
+    # Redis / SQS: a message not acked within this many seconds is redelivered.
+    return {"visibility_timeout": settings.broker_visibility_timeout_s}
+
+
+def create_celery_app() -> Celery:
+    settings = get_settings()
+    register_sql_transport()
+    if is_sql_broker(settings.broker_url):
+        ensure_sqlite_dir(settings.broker_url.split("+", 1)[1]) if "+sqlite" in settings.broker_url else None
+    app = Celery("voxe", broker=settings.broker_url, include=["worker.tasks"])
+    app.conf.update(
+        task_serializer="json",
+        accept_content=["json"],
+        result_backend=None,
+        task_ignore_result=True,
+        task_acks_late=True,
+        task_reject_on_worker_lost=True,
+        worker_prefetch_multiplier=1,
+        worker_max_tasks_per_child=settings.worker_max_tasks_per_child,
+        task_soft_time_limit=settings.task_soft_time_limit_s,
+        task_time_limit=settings.task_time_limit_s,
+        broker_transport_options=broker_transport_options(settings),
+        broker_connection_retry_on_startup=True,
+        task_default_queue="celery",
+        task_queues=(Queue(GPU_QUEUE), Queue("celery")),
+        task_routes={"voxe.*": {"queue": GPU_QUEUE}},
+        worker_send_task_events=False,
+        task_track_started=False,
+        worker_hijack_root_logger=False,
+    )
+    return app
+
+
+app = create_celery_app()
+celery_app = app

@@ -1,0 +1,99 @@
+"""Job parameters (the API's JSON, see api.schemas.JobParams) -> voxe_core stage configs."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the API imports this module for the cache key only; keep it light
+    from voxe_core.edit import EditConfig
+    from voxe_core.reconstruct import ReconstructConfig
+    from voxe_core.refine import RefineConfig
+
+
+def reconstruction_params(params: dict) -> dict:
+    """The part of a job's parameters that determines G_i (the reconstruction cache key)."""
+    rec = dict(params.get("reconstruction") or {})
+    return {
+        "split": "train",
+        "downsample": int(params.get("downsample", 3)),
+        "max_images": params.get("max_images"),
+        "preset": rec.get("preset", "fast"),
+        "resolution": rec.get("resolution"),
+        "iterations": rec.get("iterations"),
+        "rays_per_step": rec.get("rays_per_step"),
+        "seed": int(rec.get("seed", 0)),
+    }
+
+
+def reconstruction_key(rec_params: dict) -> str:
+    return hashlib.sha256(json.dumps(rec_params, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def reconstruct_config(rec_params: dict, checkpoint_every: int) -> "ReconstructConfig":
+    """As ``voxe reconstruct``: a preset, then the final resolution / iterations (one value or one per stage)."""
+    from voxe_core.reconstruct import ReconstructConfig
+
+    config = ReconstructConfig.fast() if rec_params["preset"] == "fast" else ReconstructConfig()
+    n = len(config.resolutions)
+    overrides: dict = {"seed": rec_params["seed"], "checkpoint_every": checkpoint_every}
+    if rec_params.get("resolution") is not None:
+        final = int(rec_params["resolution"])
+        overrides["resolutions"] = tuple(
+            [max(2, round(final * r / config.resolutions[-1])) for r in config.resolutions[:-1]] + [final]
+        )
+    iterations = rec_params.get("iterations")
+    if iterations is not None:
+        values = [iterations] if isinstance(iterations, int) else list(iterations)
+        if len(values) == 1:
+            values = [*config.iterations[:-1], values[0]]
+        elif len(values) != n:
+            raise ValueError(f"reconstruction.iterations takes one value or one per stage ({n} stages), got {len(values)}")
+        overrides["iterations"] = tuple(values)
+    if rec_params.get("rays_per_step") is not None:
+        overrides["rays_per_step"] = int(rec_params["rays_per_step"])
+    return dataclasses.replace(config, **overrides)
+
+
+def edit_config(params: dict, checkpoint_every: int) -> "EditConfig":
+    from voxe_core.edit import EditConfig
+    from voxe_core.schedule import TimestepSchedule
+
+    schedule = TimestepSchedule.authors() if params.get("timestep_schedule") == "authors" else TimestepSchedule()
+    return EditConfig(
+        iterations=params["iterations"],
+        render_size=params["render_size"],
+        guidance_scale=params["guidance_scale"],
+        lr=params["lr"],
+        regulariser=params["regulariser"],
+        regulariser_weight=params["regulariser_weight"],
+        schedule=schedule,
+        batch_size=params.get("batch_size", 1),
+        autocast_dtype=params.get("autocast"),
+        seed=params["seed"],
+        preview_every=params.get("preview_every", 0),
+        checkpoint_every=checkpoint_every,
+    )
+
+
+def refine_config(params: dict, attention_model: str) -> "RefineConfig":
+    from voxe_core.refine import RefineConfig
+
+    refine = params.get("refine") or {}
+    return RefineConfig(
+        iterations=refine.get("iterations", 1500),
+        lr=refine.get("lr", 0.035),
+        tv_weight=refine.get("tv_weight", 0.01),
+        render_size=refine.get("render_size") or params["render_size"],
+        views=refine.get("views", 32),
+        rays_per_step=refine.get("rays_per_step", 8192),
+        edit_seeds=refine.get("edit_seeds", 300),
+        object_seeds=refine.get("object_seeds", 200),
+        sigma=refine.get("sigma", 0.1),
+        smoothness=refine.get("smoothness", 5.0),
+        seed=params["seed"],
+        attention_model=attention_model,
+    )

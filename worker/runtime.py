@@ -1,0 +1,337 @@
+"""What the tasks share: job-record updates, throttled progress, cancellation, storage I/O, model cache.
+
+Nothing here knows the method; it moves data between the database, the storage
+and ``voxe_core`` calls, so the tasks in :mod:`worker.tasks` stay a few lines each.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import logging
+import math
+import os
+import shutil
+import tempfile
+import time
+import zipfile
+from dataclasses import dataclass
+from datetime import timedelta
+from pathlib import Path
+
+from sqlalchemy import func, select, update
+
+from api.db import session_scope
+from api.models import (
+    CANCELED, FAILED, QUEUED, R_PENDING, R_RUNNING, RUNNING, SUCCEEDED, TERMINAL_STATES,
+    Artifact, Job, Reconstruction, Scene, utcnow,
+)
+from api.settings import TINY_MODEL, Settings, get_settings
+from api.storage import Storage, StoredObject, file_sha256, get_storage
+from voxe_core.progress import Callbacks, Progress
+
+log = logging.getLogger("voxe.worker")
+
+CONTENT_TYPES = {
+    ".safetensors": "application/octet-stream",
+    ".png": "image/png",
+    ".mp4": "video/mp4",
+    ".gif": "image/gif",
+    ".ply": "application/octet-stream",
+    ".glb": "model/gltf-binary",
+    ".json": "application/json",
+}
+
+
+class JobSkipped(Exception):
+    """The job is no longer runnable (canceled, failed, deleted): the task ends quietly."""
+
+
+def content_type(name: str) -> str:
+    return CONTENT_TYPES.get(Path(name).suffix.lower(), "application/octet-stream")
+
+
+# --------------------------------------------------------------------------- job records
+def load_job(job_id: str) -> Job | None:
+    with session_scope() as session:
+        return session.get(Job, job_id)
+
+
+def update_job(job_id: str, **values) -> None:
+    with session_scope() as session:
+        session.execute(update(Job).where(Job.id == job_id).values(updated_at=utcnow(), **values))
+
+
+def begin_stage(job_id: str, stage: str, hostname: str | None, device: str) -> Job:
+    """Mark the job running in ``stage``; raise JobSkipped when it is terminal or the stage is done already."""
+    now = utcnow()
+    with session_scope() as session:
+        job = session.get(Job, job_id)
+        if job is None or job.state in TERMINAL_STATES:
+            raise JobSkipped(f"job {job_id} is {job.state if job else 'gone'}")
+        if job.cancel_requested:
+            _finish(session, job, CANCELED, message=f"canceled before {stage}")
+            raise JobSkipped(f"job {job_id} canceled")
+        if stage in (job.completed_stages or []):
+            raise JobSkipped(f"job {job_id}: {stage} already done (redelivered task)")
+        values = dict(state=RUNNING, stage=stage, iteration=0, total=0, eta_seconds=None, losses={},
+                      message=None, stage_started_at=now, worker_hostname=hostname, device=device, updated_at=now)
+        if job.started_at is None:
+            values["started_at"] = now
+        result = session.execute(
+            update(Job).where(Job.id == job_id, Job.state.in_((QUEUED, RUNNING))).values(**values)
+        )
+        if result.rowcount != 1:
+            raise JobSkipped(f"job {job_id} changed state")
+        session.refresh(job)
+        return job
+
+
+def complete_stage(job_id: str, stage: str, final: bool = False) -> None:
+    with session_scope() as session:
+        job = session.get(Job, job_id)
+        if job is None:
+            return
+        done = list(job.completed_stages or [])
+        if stage not in done:
+            done.append(stage)
+        values = dict(completed_stages=done, eta_seconds=0.0, updated_at=utcnow())
+        if final:
+            values.update(state=SUCCEEDED, finished_at=utcnow(), message=None)
+        session.execute(update(Job).where(Job.id == job_id, Job.state == RUNNING).values(**values))
+
+
+def _finish(session, job: Job, state: str, message: str | None = None, error: str | None = None) -> None:
+    now = utcnow()
+    session.execute(
+        update(Job).where(Job.id == job.id, Job.state.not_in(TERMINAL_STATES)).values(
+            state=state, finished_at=now, updated_at=now, eta_seconds=None,
+            message=message, error=error,
+        )
+    )
+
+
+def finish_job(job_id: str, state: str, message: str | None = None, error: str | None = None) -> None:
+    with session_scope() as session:
+        job = session.get(Job, job_id)
+        if job is not None:
+            _finish(session, job, state, message, error)
+
+
+def fail_job(job_id: str, error: str) -> None:
+    log.error("job %s failed: %s", job_id, error)
+    finish_job(job_id, FAILED, error=error)
+
+
+# --------------------------------------------------------------------------- callbacks
+class StageCallbacks:
+    """``voxe_core.progress.Callbacks`` for one stage of one job.
+
+    Progress is written at most once per ``progress_interval_s`` (and always for
+    the last iteration); the cancel flag is read at most once per
+    ``cancel_check_interval_s``. ``extra_progress`` is called on every write
+    (the reconstruction owner renews its lease there).
+    """
+
+    def __init__(self, job_id: str, stage: str, settings: Settings, extra_progress=None, on_checkpoint=None):
+        self.job_id, self.stage, self.settings = job_id, stage, settings
+        self.extra_progress = extra_progress
+        self._last_write = 0.0
+        self._last_check = 0.0
+        self._canceled = False
+        self._rate_origin: tuple[float, int] | None = None
+        self._last_report: Progress | None = None
+        self._written: Progress | None = None
+        self.callbacks = Callbacks(on_progress=self.on_progress, should_cancel=self.should_cancel,
+                                   on_checkpoint=on_checkpoint)
+
+    def on_progress(self, report: Progress) -> None:
+        now = time.monotonic()
+        if self._rate_origin is None or report.stage != getattr(self, "_sub_stage", None):
+            self._rate_origin, self._sub_stage = (now, report.iteration - 1), report.stage
+        self._last_report = report
+        final = report.iteration >= report.total
+        if not final and now - self._last_write < self.settings.progress_interval_s:
+            return
+        self._last_write = now
+        self._written = report
+        t0, i0 = self._rate_origin
+        eta = None
+        if report.iteration > i0 and now > t0:
+            eta = (now - t0) / (report.iteration - i0) * max(0, report.total - report.iteration)
+        losses = {k: round(float(v), 6) for k, v in report.losses.items() if math.isfinite(float(v))}
+        message = None if report.stage == self.stage else f"{self.stage}: {report.stage}"
+        update_job(self.job_id, iteration=int(report.iteration), total=int(report.total), eta_seconds=eta,
+                   losses=losses, message=message)
+        if self.extra_progress is not None:
+            self.extra_progress(report)
+
+    def should_cancel(self) -> bool:
+        if self._canceled:
+            return True
+        now = time.monotonic()
+        if now - self._last_check < self.settings.cancel_check_interval_s:
+            return False
+        self._last_check = now
+        with session_scope() as session:
+            row = session.execute(select(Job.cancel_requested, Job.state).where(Job.id == self.job_id)).first()
+        self._canceled = row is None or bool(row.cancel_requested) or row.state in TERMINAL_STATES
+        if self._canceled and self._last_report is not None and self._last_report is not self._written:
+            # Record where the stage stopped (the throttle may have held the last report back).
+            report = self._last_report
+            update_job(self.job_id, iteration=int(report.iteration), total=int(report.total))
+        return self._canceled
+
+
+# --------------------------------------------------------------------------- storage
+def scratch_dir(job_id: str, settings: Settings) -> Path:
+    path = Path(settings.work_dir) / "jobs" / job_id
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def cleanup_scratch(job_id: str, settings: Settings) -> None:
+    shutil.rmtree(Path(settings.work_dir) / "jobs" / job_id, ignore_errors=True)
+
+
+def job_key(job_id: str, name: str) -> str:
+    return f"jobs/{job_id}/{name}"
+
+
+def publish_artifact(job_id: str, name: str, path: str | os.PathLike, kind: str, storage: Storage | None = None,
+                     key: str | None = None) -> Artifact:
+    """Upload ``path`` as the job's artifact ``name`` (replacing an earlier one of that name)."""
+    storage = storage or get_storage()
+    if key is None:
+        stored = storage.put_file(job_key(job_id, name), path, content_type(name))
+    else:  # already in storage under another key (e.g. the shared reconstruction)
+        size, sha = file_sha256(path)
+        stored = StoredObject(key, size, sha)
+    with session_scope() as session:
+        artifact = session.execute(
+            select(Artifact).where(Artifact.job_id == job_id, Artifact.name == name)
+        ).scalar_one_or_none()
+        if artifact is None:
+            artifact = Artifact(job_id=job_id, name=name)
+            session.add(artifact)
+        artifact.key, artifact.size, artifact.sha256 = stored.key, stored.size, stored.sha256
+        artifact.content_type, artifact.kind, artifact.created_at = content_type(name), kind, utcnow()
+    return artifact
+
+
+def fetch(storage: Storage, key: str, dest: Path) -> Path:
+    if not dest.is_file():
+        storage.get_file(key, dest)
+    return dest
+
+
+def scene_dataset_dir(scene: Scene, settings: Settings, storage: Storage) -> Path:
+    """The scene's dataset folder on this machine: downloaded and unpacked once, then reused."""
+    root = Path(settings.work_dir) / "scenes" / f"{scene.id}-{scene.sha256[:12]}"
+    if (root / ".complete").is_file():
+        return root
+    root.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=root.parent, prefix=f".{scene.id}-"))
+    try:
+        archive = storage.get_file(scene.storage_key, tmp / "dataset.zip")
+        with zipfile.ZipFile(archive) as zf:
+            zf.extractall(tmp / "data")  # our own normalised archive: validated on upload
+        archive.unlink()
+        (tmp / "data" / ".complete").write_text("ok")
+        try:
+            os.rename(tmp / "data", root)
+        except OSError:  # another process on this machine finished first
+            if not (root / ".complete").is_file():
+                raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return root
+
+
+# --------------------------------------------------------------------------- reconstruction claim
+@dataclass
+class Claim:
+    reconstruction: Reconstruction
+    owner: bool  # this job runs the fit
+
+
+def try_claim_reconstruction(rec_id: str, job_id: str, hostname: str | None, settings: Settings,
+                             allow_failed: bool) -> bool:
+    """Atomically take the fit: pending (or failed, or a lapsed lease, or our own) -> running, owned by us."""
+    now = utcnow()
+    states = [R_PENDING] + (["failed"] if allow_failed else [])
+    with session_scope() as session:
+        result = session.execute(
+            update(Reconstruction)
+            .where(
+                Reconstruction.id == rec_id,
+                (Reconstruction.state.in_(states))
+                | ((Reconstruction.state == R_RUNNING)
+                   & ((Reconstruction.lease_until < now) | (Reconstruction.owner_job_id == job_id))),
+            )
+            .values(
+                state=R_RUNNING, owner_job_id=job_id, worker_hostname=hostname, error=None,
+                lease_until=now + timedelta(seconds=settings.reconstruction_lease_s),
+                run_count=Reconstruction.run_count + 1,
+                started_at=func.coalesce(Reconstruction.started_at, now),
+            )
+        )
+        return result.rowcount == 1
+
+
+def renew_lease(rec_id: str, job_id: str, settings: Settings, **values) -> None:
+    with session_scope() as session:
+        session.execute(
+            update(Reconstruction)
+            .where(Reconstruction.id == rec_id, Reconstruction.owner_job_id == job_id)
+            .values(lease_until=utcnow() + timedelta(seconds=settings.reconstruction_lease_s), **values)
+        )
+
+
+def set_reconstruction(rec_id: str, job_id: str, **values) -> None:
+    with session_scope() as session:
+        session.execute(
+            update(Reconstruction)
+            .where(Reconstruction.id == rec_id, Reconstruction.owner_job_id == job_id)
+            .values(**values)
+        )
+
+
+def load_reconstruction(rec_id: str) -> Reconstruction | None:
+    with session_scope() as session:
+        return session.get(Reconstruction, rec_id)
+
+
+# --------------------------------------------------------------------------- models
+_GUIDANCE_CACHE: dict[tuple[str, str], object] = {}
+
+
+def resolve_model(model: str, settings: Settings) -> str:
+    """A hub id or local folder as given; ``tiny`` builds the smoke-test model once on this machine."""
+    if model != TINY_MODEL:
+        return model
+    from voxe_core.tiny_sd import build_tiny_stable_diffusion
+
+    root = Path(settings.model_dir).resolve()
+    target = root / "tiny-stable-diffusion"
+    if (target / "model_index.json").is_file():
+        return str(target)
+    root.mkdir(parents=True, exist_ok=True)
+    with open(root / ".tiny.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (target / "model_index.json").is_file():
+            tmp = Path(tempfile.mkdtemp(dir=root, prefix=".tiny-"))
+            build_tiny_stable_diffusion(tmp)
+            os.rename(tmp, target)
+    return str(target)
+
+
+def get_guidance(model: str, device: str, settings: Settings):
+    """One StableDiffusionGuidance per (model, device) per worker process, loaded on first use."""
+    from voxe_core.guidance import StableDiffusionGuidance
+
+    key = (model, device)
+    if key not in _GUIDANCE_CACHE:
+        path = resolve_model(model, settings)
+        log.info("loading guidance model %s on %s", path, device)
+        _GUIDANCE_CACHE[key] = StableDiffusionGuidance.from_pretrained(path, device=device)
+    return _GUIDANCE_CACHE[key]

@@ -1,0 +1,411 @@
+"""Celery tasks: one per stage of a job, chained reconstruct -> edit -> [refine] -> export.
+
+Each task takes only the job id. It reads the job record, downloads its inputs
+from the storage, calls the ``voxe_core`` stage with callbacks that write
+progress into the job record (throttled) and poll the job's cancel flag, uploads
+what the stage produced, and records it. A stage already recorded as done (a
+redelivered message) or a job already finished is skipped, so the chain is
+safe to redeliver; long stages checkpoint every ``VOXE_CHECKPOINT_EVERY``
+iterations into the storage and resume from there.
+
+The reconstruction is shared: every job on the same scene with the same
+reconstruction parameters points at one ``reconstructions`` row. The first
+task to claim it (a conditional UPDATE) fits it; the others wait for it, and
+take it over when the fitter's lease lapses (a dead worker) or it was released
+(the fitting job was canceled).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import threading
+import time
+from pathlib import Path
+
+from celery import signals
+from celery.exceptions import SoftTimeLimitExceeded
+
+from api.models import CANCELED, R_FAILED, R_PENDING, R_SUCCEEDED, Job, Scene, WorkerHeartbeat, utcnow
+from api.settings import TINY_MODEL, get_settings
+from api.storage import StoredObject, get_storage
+from voxe_core.progress import Callbacks, Progress, StageCancelled
+from worker import runtime
+from worker.celery_app import app
+from worker.configs import edit_config, reconstruct_config, refine_config
+from worker.runtime import JobSkipped, StageCallbacks
+
+log = logging.getLogger("voxe.worker")
+
+PREVIEW = "preview.png"
+PREVIEW_SIZE = 128
+
+
+class ReconstructionFailed(RuntimeError):
+    pass
+
+
+# --------------------------------------------------------------------------- the common frame
+def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> dict:
+    settings = get_settings()
+    device = settings.resolved_device
+    try:
+        job = runtime.begin_stage(job_id, stage, task.request.hostname or socket.gethostname(), device)
+    except JobSkipped as skipped:
+        log.info("%s: skipped: %s", stage, skipped)
+        return {"job_id": job_id, "stage": stage, "skipped": str(skipped)}
+    log.info("job %s: %s started on %s", job_id, stage, device)
+    try:
+        body(job, settings, device, get_storage(settings))
+    except StageCancelled:
+        runtime.finish_job(job_id, CANCELED, message=f"canceled during {stage}")
+        _cleanup(job_id, settings)
+        return {"job_id": job_id, "stage": stage, "state": CANCELED}
+    except SoftTimeLimitExceeded:
+        runtime.fail_job(job_id, f"{stage}: time limit of {settings.task_soft_time_limit_s} s exceeded")
+        _cleanup(job_id, settings)
+        return {"job_id": job_id, "stage": stage, "state": "failed"}
+    except Exception as exc:  # noqa: BLE001 - every failure ends the job with its message
+        log.exception("job %s: %s failed", job_id, stage)
+        runtime.fail_job(job_id, _error_message(stage, exc, job))
+        _cleanup(job_id, settings)
+        return {"job_id": job_id, "stage": stage, "state": "failed"}
+    runtime.complete_stage(job_id, stage, final=final)
+    if final:
+        _cleanup(job_id, settings)
+    log.info("job %s: %s done", job_id, stage)
+    return {"job_id": job_id, "stage": stage, "state": "done"}
+
+
+def _error_message(stage: str, exc: Exception, job: Job) -> str:
+    from voxe_core.guidance import ModelNotAvailableError
+
+    if isinstance(exc, ModelNotAvailableError):
+        return (f"{stage}: {exc} Then restart the worker with VOXE_SDS_MODEL / VOXE_ATTENTION_MODEL set to the "
+                f"hub id or folder (VOXE_SDS_MODEL={TINY_MODEL} runs the random-weight smoke-test model).")
+    if isinstance(exc, ReconstructionFailed):
+        return str(exc)
+    return f"{stage}: {type(exc).__name__}: {exc}"
+
+
+def _cleanup(job_id: str, settings) -> None:
+    runtime.cleanup_scratch(job_id, settings)
+    try:
+        get_storage(settings).delete_prefix(runtime.job_key(job_id, "checkpoints/"))
+    except Exception:  # noqa: BLE001 - leftover checkpoints are harmless
+        log.warning("job %s: could not delete checkpoints", job_id, exc_info=True)
+
+
+def _scene(job: Job) -> Scene:
+    with runtime.session_scope() as session:
+        scene = session.get(Scene, job.scene_id)
+        if scene is None:
+            raise RuntimeError(f"scene {job.scene_id} was deleted")
+        return scene
+
+
+def _load_images(job: Job, rec_params: dict, settings, storage):
+    from voxe_core.data import load_scene
+
+    root = runtime.scene_dataset_dir(_scene(job), settings, storage)
+    return load_scene(root, rec_params["split"], rec_params["downsample"], rec_params["max_images"])
+
+
+def _preview(job_id: str, grid, settings, storage, device: str, image=None) -> None:
+    """Render (or take) a small front view and publish it as the job's preview.png."""
+    from voxe_core.export import render_views, save_png, turntable_cameras
+
+    path = runtime.scratch_dir(job_id, settings) / PREVIEW
+    if image is None:
+        cameras = turntable_cameras(1, 20.0, PREVIEW_SIZE).to(grid.bbox_min.device)
+        image = render_views(grid, cameras)[0]
+    save_png(path, image)
+    runtime.publish_artifact(job_id, PREVIEW, path, "preview", storage)
+    runtime.update_job(job_id, preview_artifact=PREVIEW)
+
+
+def _grid(job_id: str, name: str, settings, storage, key: str | None = None):
+    from voxe_core.grid import VoxelGrid
+
+    path = runtime.fetch(storage, key or runtime.job_key(job_id, name), runtime.scratch_dir(job_id, settings) / name)
+    return VoxelGrid.load(path)
+
+
+# --------------------------------------------------------------------------- reconstruct
+def _reconstruct(job: Job, settings, device: str, storage) -> None:
+    rec_id = job.reconstruction_id
+    if rec_id is None:
+        raise RuntimeError("job has no reconstruction record")
+    callbacks = StageCallbacks(job.id, "reconstruct", settings)
+    first = True
+    ran_here = False
+    while True:
+        rec = runtime.load_reconstruction(rec_id)
+        if rec is None:
+            raise RuntimeError(f"reconstruction {rec_id} was deleted")
+        if rec.state == R_SUCCEEDED:
+            break
+        if runtime.try_claim_reconstruction(rec_id, job.id, job.worker_hostname, settings, allow_failed=first):
+            _fit(job, runtime.load_reconstruction(rec_id), settings, storage)
+            ran_here = True
+            continue
+        if rec.state == R_FAILED:
+            raise ReconstructionFailed(f"reconstruct: the scene's reconstruction failed: {rec.error}")
+        first = False
+        owner = f" (fitted by job {rec.owner_job_id})" if rec.owner_job_id else ""
+        runtime.update_job(job.id, iteration=rec.iteration, total=rec.total,
+                           message=f"waiting for the scene's reconstruction {rec.id}{owner}")
+        if callbacks.should_cancel():
+            raise StageCancelled("reconstruct canceled while waiting")
+        time.sleep(min(1.0, settings.reconstruction_lease_s / 4))
+
+    rec = runtime.load_reconstruction(rec_id)
+    reused = not ran_here and rec.owner_job_id != job.id
+    runtime.update_job(job.id, reconstruction_reused=reused, iteration=rec.total, total=rec.total,
+                       message="reused the scene's reconstruction" if reused else None)
+    runtime.publish_artifact(job.id, "initial_grid.safetensors", _grid_file(job.id, rec, settings, storage),
+                             "grid", storage, key=rec.grid_key)
+    _preview(job.id, _grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key), settings,
+             storage, device)
+
+
+def _grid_file(job_id: str, rec, settings, storage) -> Path:
+    return runtime.fetch(storage, rec.grid_key, runtime.scratch_dir(job_id, settings) / "initial_grid.safetensors")
+
+
+def _fit(job: Job, rec, settings, storage) -> None:
+    """Fit G_i for ``rec`` (claimed by this job); resume from its stored checkpoint when there is one."""
+    from voxe_core.reconstruct import reconstruct
+    from voxe_core.tensorio import FormatError
+
+    scratch = runtime.scratch_dir(job.id, settings)
+    checkpoint = scratch / "reconstruction_checkpoint.safetensors"
+    checkpoint_key = f"reconstructions/{rec.id}/checkpoint.safetensors"
+
+    def on_checkpoint(path: str) -> None:
+        storage.put_file(checkpoint_key, path)
+        runtime.set_reconstruction(rec.id, job.id, checkpoint_key=checkpoint_key)
+
+    def on_progress(report: Progress) -> None:
+        runtime.renew_lease(rec.id, job.id, settings, iteration=report.iteration, total=report.total)
+
+    callbacks = StageCallbacks(job.id, "reconstruct", settings, on_progress, on_checkpoint)
+    try:
+        scene = _load_images(job, rec.params, settings, storage)
+        config = reconstruct_config(rec.params, settings.checkpoint_every)
+        runtime.renew_lease(rec.id, job.id, settings, total=config.total_iterations)
+        resume = None
+        if storage.exists(checkpoint_key):
+            resume = storage.get_file(checkpoint_key, checkpoint)
+        try:
+            grid = reconstruct(scene.images, scene.cameras, config, callbacks.callbacks, checkpoint, resume)
+        except FormatError:
+            if resume is None:
+                raise
+            log.warning("reconstruction %s: unreadable checkpoint, starting over", rec.id)
+            grid = reconstruct(scene.images, scene.cameras, config, callbacks.callbacks, checkpoint, None)
+    except StageCancelled:  # let a waiting job take over (from the checkpoint)
+        runtime.set_reconstruction(rec.id, job.id, state=R_PENDING, owner_job_id=None, lease_until=None)
+        raise
+    except BaseException as exc:
+        runtime.set_reconstruction(rec.id, job.id, state=R_FAILED, lease_until=None, finished_at=utcnow(),
+                                   error=f"{type(exc).__name__}: {exc}")
+        raise
+    path = scratch / "initial_grid.safetensors"
+    grid.save(path)
+    stored: StoredObject = storage.put_file(f"reconstructions/{rec.id}/grid.safetensors", path)
+    runtime.set_reconstruction(
+        rec.id, job.id, state=R_SUCCEEDED, grid_key=stored.key, grid_size=stored.size, grid_sha256=stored.sha256,
+        iteration=config.total_iterations, total=config.total_iterations, lease_until=None, finished_at=utcnow(),
+    )
+    storage.delete(checkpoint_key)
+
+
+# --------------------------------------------------------------------------- edit
+def _edit(job: Job, settings, device: str, storage) -> None:
+    from voxe_core.edit import edit
+
+    rec = runtime.load_reconstruction(job.reconstruction_id)
+    initial = _grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key)
+    guidance = runtime.get_guidance(job.sds_model, device, settings)
+    config = edit_config(job.params, settings.checkpoint_every)
+    scratch = runtime.scratch_dir(job.id, settings)
+    checkpoint = scratch / "edit_checkpoint.safetensors"
+    checkpoint_key = runtime.job_key(job.id, "checkpoints/edit.safetensors")
+    resume = storage.get_file(checkpoint_key, checkpoint) if storage.exists(checkpoint_key) else None
+    input_views = None
+    if config.regulariser.startswith("image_"):
+        scene = _load_images(job, rec.params, settings, storage)
+        input_views = (scene.images, scene.cameras)
+
+    last_preview = [0.0]
+
+    def on_preview(iteration: int, image) -> None:
+        now = time.monotonic()
+        if now - last_preview[0] >= settings.preview_interval_s or iteration >= config.iterations:
+            last_preview[0] = now
+            _preview(job.id, None, settings, storage, device, image=image)
+
+    callbacks = StageCallbacks(job.id, "edit", settings,
+                               on_checkpoint=lambda path: storage.put_file(checkpoint_key, path))
+    grid = edit(initial, job.prompt, guidance, config, callbacks.callbacks, checkpoint, resume,
+                input_views=input_views, on_preview=on_preview)
+    path = scratch / "edited_grid.safetensors"
+    grid.save(path)
+    runtime.publish_artifact(job.id, "edited_grid.safetensors", path, "grid", storage)
+
+
+# --------------------------------------------------------------------------- refine
+def _refine(job: Job, settings, device: str, storage) -> None:
+    from voxe_core.export import save_png, turntable_cameras
+    from voxe_core.refine import node_mask, refine, render_mask_overlay, save_mask, save_probabilities
+
+    rec = runtime.load_reconstruction(job.reconstruction_id)
+    initial = _grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key)
+    edited = _grid(job.id, "edited_grid.safetensors", settings, storage)
+    guidance = runtime.get_guidance(job.attention_model, device, settings)
+    config = refine_config(job.params, job.attention_model)
+    callbacks = StageCallbacks(job.id, "refine", settings)
+    result = refine(initial, edited, job.prompt, job.edit_words, guidance, config, callbacks.callbacks)
+
+    scratch = runtime.scratch_dir(job.id, settings)
+    refined = scratch / "refined_grid.safetensors"
+    result.refined_grid.save(refined)
+    runtime.publish_artifact(job.id, "refined_grid.safetensors", refined, "grid", storage)
+    mask = scratch / "mask.safetensors"
+    save_mask(mask, result.mask, {"prompt": job.prompt, "edit_words": list(job.edit_words)})
+    runtime.publish_artifact(job.id, "mask.safetensors", mask, "mask", storage)
+    probabilities = scratch / "attention_probabilities.safetensors"
+    save_probabilities(probabilities, result.edit_probability, result.object_probability,
+                       node_mask(edited, config.node_alpha))
+    runtime.publish_artifact(job.id, "attention_probabilities.safetensors", probabilities, "probabilities", storage)
+    size = job.params.get("export", {}).get("view_size", 256)
+    overlay = render_mask_overlay(edited, result.mask, turntable_cameras(1, 20.0, size).to(edited.bbox_min.device))
+    save_png(scratch / "mask_overlay.png", overlay[0])
+    runtime.publish_artifact(job.id, "mask_overlay.png", scratch / "mask_overlay.png", "render", storage)
+
+
+# --------------------------------------------------------------------------- export
+def _export(job: Job, settings, device: str, storage) -> None:
+    from voxe_core.export import extract_mesh, render_views, save_mesh, save_png, turntable_cameras, write_video
+
+    options = job.params.get("export", {})
+    name = "refined_grid.safetensors" if job.mode == "local" else "edited_grid.safetensors"
+    grid = _grid(job.id, name, settings, storage).to(device)
+    scratch = runtime.scratch_dir(job.id, settings)
+    views, frames = options.get("views", 8), options.get("turntable_frames", 100)
+    elevation = options.get("elevation", 30.0)
+    total = views + frames + (1 if options.get("mesh", True) else 0)
+    callbacks = StageCallbacks(job.id, "export", settings)
+
+    def offset(base: int) -> Callbacks:
+        return Callbacks(
+            on_progress=lambda r: callbacks.on_progress(Progress("export", base + r.iteration, total)),
+            should_cancel=callbacks.should_cancel,
+        )
+
+    if views:
+        images = render_views(grid, turntable_cameras(views, elevation, options.get("view_size", 256)).to(device),
+                              callbacks=offset(0))
+        for i, image in enumerate(images):
+            save_png(scratch / f"render_{i:03d}.png", image)
+            runtime.publish_artifact(job.id, f"render_{i:03d}.png", scratch / f"render_{i:03d}.png", "render", storage)
+    turntable = render_views(
+        grid, turntable_cameras(frames, elevation, options.get("turntable_size", 256)).to(device),
+        callbacks=offset(views),
+    )
+    fps = options.get("fps", 30.0)
+    write_video(scratch / "turntable.mp4", turntable, fps=fps)
+    runtime.publish_artifact(job.id, "turntable.mp4", scratch / "turntable.mp4", "video", storage)
+    if options.get("gif", True):
+        write_video(scratch / "turntable.gif", turntable, fps=fps)
+        runtime.publish_artifact(job.id, "turntable.gif", scratch / "turntable.gif", "video", storage)
+    if options.get("mesh", True):
+        callbacks.callbacks.check_cancel("export")
+        try:
+            mesh = extract_mesh(grid, resolution=options.get("mesh_resolution"))
+        except ValueError as exc:  # no surface at the level: report, keep the other artifacts
+            runtime.update_job(job.id, message=f"no mesh exported: {exc}")
+        else:
+            for suffix in ("ply", "glb"):
+                save_mesh(mesh, scratch / f"mesh.{suffix}")
+                runtime.publish_artifact(job.id, f"mesh.{suffix}", scratch / f"mesh.{suffix}", "mesh", storage)
+        callbacks.on_progress(Progress("export", total, total))
+    _preview(job.id, grid, settings, storage, device,
+             image=turntable[0] if options.get("turntable_size", 256) <= 512 else None)
+
+
+# --------------------------------------------------------------------------- tasks
+@app.task(name="voxe.reconstruct", bind=True)
+def reconstruct_task(self, job_id: str) -> dict:
+    return _run_stage(self, job_id, "reconstruct", _reconstruct)
+
+
+@app.task(name="voxe.edit", bind=True)
+def edit_task(self, job_id: str) -> dict:
+    return _run_stage(self, job_id, "edit", _edit)
+
+
+@app.task(name="voxe.refine", bind=True)
+def refine_task(self, job_id: str) -> dict:
+    return _run_stage(self, job_id, "refine", _refine)
+
+
+@app.task(name="voxe.export", bind=True)
+def export_task(self, job_id: str) -> dict:
+    return _run_stage(self, job_id, "export", _export, final=True)
+
+
+# --------------------------------------------------------------------------- worker lifecycle
+_heartbeat_stop = threading.Event()
+
+
+def _beat(hostname: str, queues: str, device: str) -> None:
+    settings = get_settings()
+    while not _heartbeat_stop.is_set():
+        try:
+            with runtime.session_scope() as session:
+                row = session.get(WorkerHeartbeat, hostname)
+                if row is None:
+                    row = WorkerHeartbeat(hostname=hostname, pid=os.getpid(), queues=queues, device=device)
+                    session.add(row)
+                row.pid, row.queues, row.device, row.last_seen = os.getpid(), queues, device, utcnow()
+        except Exception:  # noqa: BLE001 - a missed heartbeat is not fatal
+            log.warning("worker heartbeat failed", exc_info=True)
+        _heartbeat_stop.wait(settings.worker_heartbeat_s)
+
+
+@signals.worker_ready.connect
+def _start_heartbeat(sender=None, **_kwargs) -> None:
+    hostname = getattr(sender, "hostname", None) or socket.gethostname()
+    queues = ",".join(sorted(q.name for q in sender.app.amqp.queues.consume_from.values())) if sender else ""
+    device = get_settings().resolved_device
+    _heartbeat_stop.clear()
+    threading.Thread(target=_beat, args=(hostname, queues, device), name="voxe-heartbeat", daemon=True).start()
+    log.info("worker %s ready: queues %s, device %s, SDS model %s", hostname, queues, device, get_settings().sds_model)
+
+
+@signals.worker_shutdown.connect
+def _stop_heartbeat(sender=None, **_kwargs) -> None:
+    _heartbeat_stop.set()
+    hostname = getattr(sender, "hostname", None)
+    if hostname:
+        try:
+            with runtime.session_scope() as session:
+                row = session.get(WorkerHeartbeat, hostname)
+                if row is not None:
+                    session.delete(row)
+        except Exception:  # noqa: BLE001
+            pass
+
+
+@signals.worker_process_init.connect
+def _fresh_engine(**_kwargs) -> None:
+    """A forked pool process must not share the parent's database connections."""
+    from api.db import get_engine, get_sessionmaker
+
+    if get_engine.cache_info().currsize:
+        get_engine().dispose(close=False)
+    get_engine.cache_clear()
+    get_sessionmaker.cache_clear()
