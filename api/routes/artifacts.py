@@ -53,7 +53,7 @@ def parse_range(header: str | None, size: int) -> tuple[int, int] | None:
 
 
 def _unsatisfiable(size: int, detail: str) -> HTTPException:
-    return HTTPException(status.HTTP_416_REQUESTED_RANGE_NOT_SATISFIABLE, detail,
+    return HTTPException(status.HTTP_416_RANGE_NOT_SATISFIABLE, detail,
                          headers={"Content-Range": f"bytes */{size}", "Accept-Ranges": "bytes"})
 
 
@@ -64,8 +64,9 @@ def list_artifacts(job_id: str, session: Session = Depends(get_session)) -> list
     return [artifact_out(job_id, a) for a in rows]
 
 
-@router.api_route(
-    "/{name}", methods=["GET", "HEAD"], response_class=StreamingResponse,
+@router.head("/{name}", include_in_schema=False)
+@router.get(
+    "/{name}", response_class=StreamingResponse,
     responses={200: {"description": "the whole file"}, 206: {"description": "the requested byte range"},
                404: {"description": "no such job or artifact"}, 416: {"description": "range not satisfiable"}},
     summary="Download an artifact (supports Range: bytes=...)",

@@ -10,6 +10,7 @@ from sqlalchemy import func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
+from api.db import get_sessionmaker
 from api.deps import celery_dep, get_session, settings_dep
 from api.models import (
     CANCELED, FAILED, QUEUED, RUNNING, TERMINAL_STATES, Job, Reconstruction, new_id, utcnow,
@@ -59,20 +60,24 @@ def get_job_or_404(session: Session, job_id: str) -> Job:
 
 
 def _reconstruction_for(session: Session, scene_id: str, params: dict) -> Reconstruction:
-    """The scene's reconstruction for these parameters, created if new (race-free: unique constraint)."""
+    """The scene's reconstruction for these parameters, created if new.
+
+    Race-free through the unique (scene_id, params_key) constraint: the row is inserted in
+    its own short transaction, and a request that loses the race reads the winner's row.
+    """
     rec_params = reconstruction_params(params)
     key = reconstruction_key(rec_params)
     query = select(Reconstruction).where(Reconstruction.scene_id == scene_id, Reconstruction.params_key == key)
     rec = session.scalars(query).first()
     if rec is not None:
         return rec
-    try:
-        with session.begin_nested():
-            rec = Reconstruction(id=new_id(), scene_id=scene_id, params_key=key, params=rec_params)
-            session.add(rec)
-        return rec
-    except IntegrityError:  # another request created it first
-        return session.scalars(query).one()
+    with get_sessionmaker()() as insert:
+        try:
+            insert.add(Reconstruction(id=new_id(), scene_id=scene_id, params_key=key, params=rec_params))
+            insert.commit()
+        except IntegrityError:  # another request created it first
+            insert.rollback()
+    return session.scalars(query).one()
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=JobOut,

@@ -1,0 +1,368 @@
+"""Fast in-process tests of the HTTP API (FastAPI TestClient; no worker runs, queued tasks just wait)."""
+
+from __future__ import annotations
+
+import io
+import json
+import threading
+import zipfile
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+
+from service_helpers import MIC, service_env, small_mic, zip_folder
+
+
+def _reset() -> None:
+    from api import storage
+    from api.db import reset_caches
+    from api.deps import get_celery
+
+    reset_caches()
+    get_celery.cache_clear()
+    storage._instances.clear()
+
+
+@pytest.fixture
+def root(tmp_path, monkeypatch):
+    for key, value in service_env(tmp_path).items():
+        monkeypatch.setenv(key, value)
+    _reset()
+    yield tmp_path
+    _reset()
+
+
+@pytest.fixture
+def client(root):
+    from api.main import create_app
+
+    with TestClient(create_app()) as test_client:
+        yield test_client
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    if not MIC.is_dir():
+        pytest.skip(f"shared data missing: {MIC}")
+    return small_mic(tmp_path_factory.mktemp("data") / "mic_small")
+
+
+def upload_zip(client, path: Path, name: str = "scene.zip"):
+    with open(path, "rb") as handle:
+        return client.post("/v1/scenes", files={"archive": (name, handle, "application/zip")})
+
+
+def make_scene(client, dataset, tmp_path) -> dict:
+    response = upload_zip(client, zip_folder(dataset, tmp_path / "ok.zip", prefix="mic_small"))
+    assert response.status_code == 201, response.text
+    return response.json()
+
+
+def stored_files(root: Path) -> list[str]:
+    storage = root / "storage"
+    return sorted(p.relative_to(storage).as_posix() for p in storage.rglob("*") if p.is_file()) if storage.exists() else []
+
+
+def staged(root: Path) -> list[str]:
+    uploads = root / "work" / "uploads"
+    return sorted(p.name for p in uploads.iterdir()) if uploads.exists() else []
+
+
+JOB = {"prompt": "a mic wearing big sunglasses", "mode": "local", "edit_words": ["sunglasses"]}
+
+
+# ------------------------------------------------------------------------------------------ scenes
+def test_openapi_documents_the_v1_surface(client):
+    spec = client.get("/openapi.json").json()
+    for path in ("/v1/scenes", "/v1/scenes/{scene_id}", "/v1/jobs", "/v1/jobs/{job_id}",
+                 "/v1/jobs/{job_id}/cancel", "/v1/jobs/{job_id}/artifacts", "/v1/jobs/{job_id}/artifacts/{name}",
+                 "/healthz", "/readyz"):
+        assert path in spec["paths"], path
+    params = spec["components"]["schemas"]["JobParams"]["properties"]
+    assert params["iterations"]["default"] == 8000 and params["guidance_scale"]["default"] == 100.0
+    assert client.get("/healthz").json() == {"status": "ok"}
+
+
+def test_upload_zip_and_files(client, dataset, root):
+    scene = make_scene(client, dataset, root)
+    assert scene["format"] == "nerf_synthetic" and scene["image_count"] == 3
+    assert (scene["width"], scene["height"]) == (800, 800) and scene["splits"] == ["train"]
+    assert scene["name"] == "scene"  # the archive's name
+    assert stored_files(root) == [f"scenes/{scene['id']}/dataset.zip"]
+    assert staged(root) == []
+
+    files = [("files", (p.relative_to(dataset).as_posix(), open(p, "rb"))) for p in sorted(dataset.rglob("*"))
+             if p.is_file()]
+    try:
+        response = client.post("/v1/scenes", files=files, data={"name": "from files"})
+    finally:
+        for _, (_, handle) in files:
+            handle.close()
+    assert response.status_code == 201, response.text
+    assert response.json()["name"] == "from files" and response.json()["image_count"] == 3
+
+    page = client.get("/v1/scenes", params={"limit": 1, "offset": 1}).json()
+    assert page["total"] == 2 and len(page["items"]) == 1 and page["items"][0]["id"] == scene["id"]
+    assert client.get(f"/v1/scenes/{scene['id']}").json() == scene
+
+
+def _zip_bytes(entries: dict[str, bytes]) -> bytes:
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as zf:
+        for name, data in entries.items():
+            zf.writestr(name, data)
+    return buffer.getvalue()
+
+
+def _dataset_entries(dataset: Path, drop: str | None = None, json_text: str | None = None) -> dict[str, bytes]:
+    entries = {p.relative_to(dataset).as_posix(): p.read_bytes() for p in dataset.rglob("*") if p.is_file()}
+    if drop:
+        entries.pop(drop)
+    if json_text is not None:
+        entries["transforms_train.json"] = json_text.encode()
+    return entries
+
+
+@pytest.mark.parametrize("case, expected", [
+    ("not a zip", "not a readable zip"),
+    ("traversal", "'..' path components are not allowed"),
+    ("absolute", "absolute paths are not allowed"),
+    ("missing image", "transforms_train.json frame 1 ('./train/r_4'): image not found (tried train/r_4, train/r_4.png)"),
+    ("broken json", "transforms_train.json: invalid JSON"),
+    ("no dataset", "no dataset found"),
+])
+def test_bad_upload_is_422_and_leaves_nothing(client, dataset, root, case, expected):
+    if case == "not a zip":
+        body = b"this is not a zip"
+    elif case == "traversal":
+        body = _zip_bytes({**_dataset_entries(dataset), "../evil.txt": b"x"})
+    elif case == "absolute":
+        body = _zip_bytes({**_dataset_entries(dataset), "/etc/evil.txt": b"x"})
+    elif case == "missing image":
+        body = _zip_bytes(_dataset_entries(dataset, drop="train/r_4.png"))
+    elif case == "broken json":
+        body = _zip_bytes(_dataset_entries(dataset, json_text='{"frames": [}'))
+    else:
+        body = _zip_bytes({"readme.txt": b"hello"})
+    response = client.post("/v1/scenes", files={"archive": ("bad.zip", body, "application/zip")})
+    assert response.status_code == 422, response.text
+    assert expected in response.json()["detail"], response.json()
+    assert "/tmp" not in response.json()["detail"] and str(root) not in response.json()["detail"]
+    assert client.get("/v1/scenes").json()["total"] == 0
+    assert stored_files(root) == [] and staged(root) == []
+
+
+def test_upload_needs_exactly_one_source(client):
+    response = client.post("/v1/scenes", data={"name": "nothing"})
+    assert response.status_code == 422 and "either one zip" in response.json()["detail"]
+
+
+def test_upload_over_the_limit_is_413(root, monkeypatch, dataset):
+    monkeypatch.setenv("VOXE_MAX_UPLOAD_BYTES", "1000")
+    _reset()
+    from api.main import create_app
+
+    with TestClient(create_app()) as client:
+        response = upload_zip(client, zip_folder(dataset, root / "big.zip"))
+        assert response.status_code == 413 and "VOXE_MAX_UPLOAD_BYTES" in response.json()["detail"]
+        assert client.get("/v1/scenes").json()["total"] == 0
+
+
+# ------------------------------------------------------------------------------------------ jobs
+@pytest.mark.parametrize("body, location", [
+    ({"bogus": 1}, ["body", "bogus"]),
+    ({"params": {"iteratons": 10}}, ["body", "params", "iteratons"]),
+    ({"params": {"reconstruction": {"presett": "fast"}}}, ["body", "params", "reconstruction", "presett"]),
+    ({"params": {"export": {"frames": 3}}}, ["body", "params", "export", "frames"]),
+])
+def test_unknown_fields_are_422_naming_the_field(client, dataset, root, body, location):
+    scene = make_scene(client, dataset, root)
+    response = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB, **body})
+    assert response.status_code == 422
+    errors = response.json()["detail"]
+    assert any(e["loc"] == location and e["type"] == "extra_forbidden" for e in errors), errors
+
+
+@pytest.mark.parametrize("body, message", [
+    ({"edit_words": ["hat"]}, "edit word 'hat' does not occur in the prompt"),
+    ({"edit_words": []}, "edit_words is required for a local edit"),
+    ({"mode": "global"}, "edit_words apply to local edits only"),
+    ({"edit_words": ["a mic wearing big sunglasses"]}, "cover the whole prompt"),
+    ({"prompt": "   "}, "no words"),
+])
+def test_bad_edit_words_are_422(client, dataset, root, body, message):
+    scene = make_scene(client, dataset, root)
+    response = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB, **body})
+    assert response.status_code == 422
+    assert message in json.dumps(response.json()), response.json()
+
+
+def test_parameter_ranges_are_checked(client, dataset, root):
+    scene = make_scene(client, dataset, root)
+    for params in ({"iterations": -1}, {"render_size": 4}, {"guidance_scale": 0}, {"regulariser": "l3"},
+                   {"reconstruction": {"preset": "slow"}}, {"downsample": 0}):
+        response = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB, "params": params})
+        assert response.status_code == 422, params
+
+
+def test_jobs_share_a_reconstruction_per_parameter_set_and_cancel_when_queued(client, dataset, root):
+    scene = make_scene(client, dataset, root)
+    first = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB, "params": {"downsample": 8}}).json()
+    second = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a yarn doll of a mic",
+                                           "params": {"downsample": 8, "iterations": 10}}).json()
+    other = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB, "params": {"downsample": 4}}).json()
+    assert first["state"] == "queued" and first["params"]["iterations"] == 8000
+    assert first["reconstruction"]["id"] == second["reconstruction"]["id"] != other["reconstruction"]["id"]
+    assert first["models"]["sds"] == "tiny (smoke test, random weights)"
+    assert second["models"]["attention"] is None  # global edits never use the attention model
+    assert len(client.get(f"/v1/scenes/{scene['id']}/reconstructions").json()) == 2
+
+    canceled = client.post(f"/v1/jobs/{first['id']}/cancel")
+    assert canceled.status_code == 200 and canceled.json()["state"] == "canceled"
+    assert canceled.json()["finished_at"] is not None
+    assert client.post(f"/v1/jobs/{first['id']}/cancel").json()["state"] == "canceled"
+    listing = client.get("/v1/jobs", params={"state": "queued", "scene_id": scene["id"]}).json()
+    assert listing["total"] == 2 and {j["id"] for j in listing["items"]} == {second["id"], other["id"]}
+
+
+def test_reconstruction_creation_is_race_free(client, dataset, root):
+    from api.db import get_sessionmaker
+    from api.models import Reconstruction
+    from api.routes.jobs import _reconstruction_for
+
+    scene = make_scene(client, dataset, root)
+    params = {"downsample": 2, "max_images": None, "reconstruction": {"preset": "fast"}}
+    ids, errors = [], []
+    barrier = threading.Barrier(8)
+
+    def create():
+        try:
+            with get_sessionmaker()() as session:
+                barrier.wait()
+                ids.append(_reconstruction_for(session, scene["id"], params).id)
+        except Exception as exc:  # noqa: BLE001
+            errors.append(exc)
+
+    threads = [threading.Thread(target=create) for _ in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors and len(set(ids)) == 1 and len(ids) == 8
+    with get_sessionmaker()() as session:
+        assert session.query(Reconstruction).count() == 1
+
+
+def test_unknown_ids_are_404(client):
+    missing = "0" * 32
+    assert client.get(f"/v1/scenes/{missing}").status_code == 404
+    assert client.get(f"/v1/scenes/{missing}/reconstructions").status_code == 404
+    assert client.delete(f"/v1/scenes/{missing}").status_code == 404
+    assert client.get(f"/v1/jobs/{missing}").status_code == 404
+    assert client.post(f"/v1/jobs/{missing}/cancel").status_code == 404
+    assert client.get(f"/v1/jobs/{missing}/artifacts").status_code == 404
+    assert client.get(f"/v1/jobs/{missing}/artifacts/preview.png").status_code == 404
+    response = client.post("/v1/jobs", json={"scene_id": missing, **JOB})
+    assert response.status_code == 404 and missing in response.json()["detail"]
+
+
+# ------------------------------------------------------------------------------------------ artifacts
+def _job_with_artifact(client, dataset, root, data: bytes) -> tuple[str, str]:
+    from api.db import session_scope
+    from api.models import Artifact
+    from api.storage import get_storage
+
+    scene = make_scene(client, dataset, root)
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}).json()
+    stored = get_storage().put_bytes(f"jobs/{job['id']}/render_000.png", data)
+    with session_scope() as session:
+        session.add(Artifact(job_id=job["id"], name="render_000.png", key=stored.key, size=stored.size,
+                             sha256=stored.sha256, content_type="image/png", kind="render"))
+    # A file in storage that is not in the job's artifact list is never served.
+    get_storage().put_bytes(f"jobs/{job['id']}/secret.txt", b"secret")
+    return job["id"], scene["id"]
+
+
+def test_artifact_download_ranges_and_names(client, dataset, root):
+    import hashlib
+
+    data = bytes(range(256)) * 40  # 10240 bytes
+    job_id, _ = _job_with_artifact(client, dataset, root, data)
+    url = f"/v1/jobs/{job_id}/artifacts/render_000.png"
+    listing = client.get(f"/v1/jobs/{job_id}/artifacts").json()
+    assert listing == [{**listing[0], "name": "render_000.png", "size": len(data),
+                        "sha256": hashlib.sha256(data).hexdigest(), "url": url}]
+    full = client.get(url)
+    assert full.status_code == 200 and full.content == data and full.headers["accept-ranges"] == "bytes"
+    for header, expected, first, last in (("bytes=0-99", data[:100], 0, 99),
+                                          ("bytes=10000-", data[10000:], 10000, 10239),
+                                          ("bytes=-40", data[-40:], 10200, 10239),
+                                          ("bytes=10200-999999", data[10200:], 10200, 10239)):
+        part = client.get(url, headers={"Range": header})
+        assert part.status_code == 206 and part.content == expected, header
+        assert part.headers["content-range"] == f"bytes {first}-{last}/{len(data)}"
+        assert int(part.headers["content-length"]) == len(expected)
+    for header in ("bytes=10240-", "bytes=50-10", "bytes=abc", "bytes=-0"):
+        bad = client.get(url, headers={"Range": header})
+        assert bad.status_code == 416, header
+        assert bad.headers["content-range"] == f"bytes */{len(data)}"
+    assert client.get(url, headers={"Range": "bytes=0-1,5-6"}).content == data  # several ranges: whole file
+    head = client.head(url)
+    assert head.status_code == 200 and head.headers["content-length"] == str(len(data)) and head.content == b""
+    for name in ("secret.txt", "..%2Fsecret.txt", "..%2F..%2Fscenes", "%2Fetc%2Fpasswd", "render_000.png%00",
+                 "%2E%2E%2Fsecret.txt", "RENDER_000.PNG"):
+        assert client.get(f"/v1/jobs/{job_id}/artifacts/{name}").status_code == 404, name
+
+
+def test_delete_scene(client, dataset, root):
+    job_id, scene_id = _job_with_artifact(client, dataset, root, b"png")
+    response = client.delete(f"/v1/scenes/{scene_id}")
+    assert response.status_code == 409 and "queued or running" in response.json()["detail"]
+    client.post(f"/v1/jobs/{job_id}/cancel")
+    assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204
+    assert client.get(f"/v1/scenes/{scene_id}").status_code == 404
+    assert client.get(f"/v1/jobs/{job_id}").status_code == 404
+    assert stored_files(root) == []
+
+
+def test_readiness_reports_the_missing_worker(client):
+    response = client.get("/readyz")
+    assert response.status_code == 503
+    checks = response.json()["checks"]
+    assert checks["database"]["ok"] and checks["broker"]["ok"] and checks["storage"]["ok"]
+    assert checks["worker"] == {"ok": False, "method": "database heartbeat", "workers": []}
+
+
+def test_sql_broker_takes_a_polling_interval(tmp_path):
+    from kombu import Connection
+
+    from worker.broker import register
+
+    register()
+    url = f"sqla+sqlite:///{tmp_path / 'broker.db'}"
+    with Connection(url, transport_options={"polling_interval": 0.05, "connect_args": {"timeout": 30}}) as conn:
+        assert conn.transport.polling_interval == 0.05
+        with conn.SimpleQueue("q") as queue:
+            queue.put({"n": 1})
+            assert queue.get(timeout=2).payload == {"n": 1}
+
+
+def test_celery_app_configuration(root):
+    from worker.celery_app import create_celery_app
+
+    app = create_celery_app()
+    conf = app.conf
+    assert conf.task_acks_late and conf.task_reject_on_worker_lost and conf.worker_prefetch_multiplier == 1
+    assert conf.task_time_limit > conf.task_soft_time_limit
+    assert conf.broker_transport_options["polling_interval"] == 0.5
+    assert app.amqp.router.route({}, "voxe.edit")["queue"].name == "gpu"
+
+
+def test_redis_visibility_timeout_exceeds_the_hard_time_limit(root, monkeypatch):
+    monkeypatch.setenv("VOXE_BROKER_URL", "redis://127.0.0.1:1/0")
+    _reset()
+    from worker.celery_app import create_celery_app
+
+    conf = create_celery_app().conf
+    assert conf.broker_transport_options["visibility_timeout"] > conf.task_time_limit
