@@ -118,6 +118,22 @@ def wait_until(predicate, timeout: float, interval: float = 0.2, what: str = "co
 
 
 @contextlib.contextmanager
+def moto_s3():
+    """moto's S3 server on a free port (real HTTP); yields the variables that point boto3 at it."""
+    from moto.server import ThreadedMotoServer
+
+    port = free_port()
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
+    server.start()
+    try:
+        yield {"VOXE_STORAGE_BACKEND": "s3", "VOXE_S3_BUCKET": "voxe", "VOXE_S3_ENDPOINT_URL": f"http://127.0.0.1:{port}",
+               "VOXE_S3_REGION": "us-east-1", "AWS_ACCESS_KEY_ID": "testing", "AWS_SECRET_ACCESS_KEY": "testing",
+               "AWS_DEFAULT_REGION": "us-east-1"}
+    finally:
+        server.stop()
+
+
+@contextlib.contextmanager
 def redis_server(root: Path):
     """A private redis-server on a free port with append-only persistence in ``root``."""
     exe = shutil.which("redis-server")
@@ -146,31 +162,66 @@ def _redis_ping(client) -> bool:
         return False
 
 
+class Service:
+    """The API (uvicorn) and one Celery worker as real subprocesses."""
+
+    def __init__(self, root: Path, env: dict[str, str], worker_env: dict[str, str] | None):
+        self.root, self.env, self.worker_env = root, env, worker_env or {}
+        self.port = free_port()
+        self.base = f"http://127.0.0.1:{self.port}"
+        self.api = None
+        self.worker = None
+        self.generation = 0
+
+    @property
+    def processes(self) -> list[Process]:
+        return [p for p in (self.api, self.worker) if p is not None]
+
+    def start_api(self) -> None:
+        self.api = Process("api", [sys.executable, "-m", "uvicorn", "api.main:app", "--host", "127.0.0.1",
+                                   "--port", str(self.port), "--log-level", "warning"], self.env, self.root)
+        # The API migrates the database at startup; the worker starts once it has.
+        wait_until(lambda: httpx.get(f"{self.base}/healthz", timeout=2).status_code == 200, 90,
+                   what="the API to start", processes=self.processes)
+
+    def start_worker(self) -> None:
+        self.generation += 1
+        self.worker = Process(
+            f"worker-{self.generation}",
+            [sys.executable, "-m", "celery", "-A", "worker.celery_app", "worker", "-Q", "gpu,celery",
+             "--concurrency", "1", "--pool", "solo", "--without-gossip", "--without-mingle", "--without-heartbeat",
+             "-n", f"voxe-test-{self.port}@%h", "-l", "info"],
+            {**self.env, **self.worker_env}, self.root,
+        )
+        wait_until(lambda: httpx.get(f"{self.base}/readyz", timeout=10).status_code == 200, 120,
+                   what="readiness (a worker listening)", processes=self.processes)
+
+    def kill_worker(self) -> None:
+        """SIGKILL, as a crashed machine or an OOM kill would."""
+        self.worker.proc.kill()
+        self.worker.proc.wait(10)
+        self.worker.stop()
+
+    def stop(self) -> None:
+        for p in reversed(self.processes):
+            p.stop()
+
+
 @contextlib.contextmanager
-def service(root: Path, broker_url: str | None = None, **extra: str):
-    """Run the API (uvicorn) and one Celery worker as real subprocesses; yields (base_url, processes)."""
+def service(root: Path, broker_url: str | None = None, worker_env: dict[str, str] | None = None, **extra: str):
+    """Run the API and one worker with a private database, broker and storage under ``root``.
+
+    ``worker_env`` overrides variables for the worker only (e.g. its own VOXE_WORK_DIR).
+    """
     root.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, **service_env(root, broker_url, **extra)}
     env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
     env.setdefault("HF_HUB_OFFLINE", "1")
     env.setdefault("OMP_NUM_THREADS", "2")
-    port = free_port()
-    base = f"http://127.0.0.1:{port}"
-    api = Process("api", [sys.executable, "-m", "uvicorn", "api.main:app", "--host", "127.0.0.1",
-                          "--port", str(port), "--log-level", "warning"], env, root)
-    processes = [api]
+    handle = Service(root, env, worker_env)
     try:
-        # The API migrates the database at startup; start the worker once it has.
-        wait_until(lambda: httpx.get(f"{base}/healthz", timeout=2).status_code == 200, 90,
-                   what="the API to start", processes=processes)
-        worker = Process("worker", [sys.executable, "-m", "celery", "-A", "worker.celery_app", "worker",
-                                    "-Q", "gpu,celery", "--concurrency", "1", "--pool", "solo",
-                                    "--without-gossip", "--without-mingle", "--without-heartbeat",
-                                    "-n", f"voxe-test-{port}@%h", "-l", "info"], env, root)
-        processes.append(worker)
-        wait_until(lambda: httpx.get(f"{base}/readyz", timeout=10).status_code == 200, 120,
-                   what="readiness (a worker listening)", processes=processes)
-        yield base, processes
+        handle.start_api()
+        handle.start_worker()
+        yield handle
     finally:
-        for p in reversed(processes):
-            p.stop()
+        handle.stop()

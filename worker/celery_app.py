@@ -18,6 +18,18 @@ GPU_QUEUE = "gpu"
 TASK_NAMES = {stage: f"voxe.{stage}" for stage in ("reconstruct", "edit", "refine", "export")}
 
 
+def job_stages(mode: str) -> list[str]:
+    return ["reconstruct", "edit"] + (["refine"] if mode == "local" else []) + ["export"]
+
+
+def stage_chain(celery: Celery, job_id: str, mode: str, done=()):
+    """The Celery chain of a job's stages not in ``done`` (each task takes only the job id)."""
+    from celery import chain
+
+    stages = [s for s in job_stages(mode) if s not in done]
+    return chain(*(celery.signature(TASK_NAMES[s], args=(job_id,), immutable=True) for s in stages))
+
+
 def is_sql_broker(url: str) -> bool:
     return url.split("://", 1)[0].split("+", 1)[0] in ("sqla", "sqlalchemy")
 

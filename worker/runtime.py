@@ -132,8 +132,9 @@ class StageCallbacks:
     (the reconstruction owner renews its lease there).
     """
 
-    def __init__(self, job_id: str, stage: str, settings: Settings, extra_progress=None, on_checkpoint=None):
-        self.job_id, self.stage, self.settings = job_id, stage, settings
+    def __init__(self, job_id: str, stage: str, settings: Settings, extra_progress=None, on_checkpoint=None,
+                 note: str | None = None):
+        self.job_id, self.stage, self.settings, self.note = job_id, stage, settings, note
         self.extra_progress = extra_progress
         self._last_write = 0.0
         self._last_check = 0.0
@@ -159,7 +160,7 @@ class StageCallbacks:
         if report.iteration > i0 and now > t0:
             eta = (now - t0) / (report.iteration - i0) * max(0, report.total - report.iteration)
         losses = {k: round(float(v), 6) for k, v in report.losses.items() if math.isfinite(float(v))}
-        message = None if report.stage == self.stage else f"{self.stage}: {report.stage}"
+        message = self.note if report.stage == self.stage else f"{self.stage}: {report.stage}"
         update_job(self.job_id, iteration=int(report.iteration), total=int(report.total), eta_seconds=eta,
                    losses=losses, message=message)
         if self.extra_progress is not None:

@@ -32,7 +32,7 @@ from api.settings import TINY_MODEL, get_settings
 from api.storage import StoredObject, get_storage
 from voxe_core.progress import Callbacks, Progress, StageCancelled
 from worker import runtime
-from worker.celery_app import app
+from worker.celery_app import app, is_sql_broker, stage_chain
 from worker.configs import edit_config, reconstruct_config, refine_config
 from worker.runtime import JobSkipped, StageCallbacks
 
@@ -198,6 +198,7 @@ def _fit(job: Job, rec, settings, storage) -> None:
         resume = None
         if storage.exists(checkpoint_key):
             resume = storage.get_file(checkpoint_key, checkpoint)
+            log.info("reconstruction %s: resuming from its checkpoint", rec.id)
         try:
             grid = reconstruct(scene.images, scene.cameras, config, callbacks.callbacks, checkpoint, resume)
         except FormatError:
@@ -233,7 +234,14 @@ def _edit(job: Job, settings, device: str, storage) -> None:
     scratch = runtime.scratch_dir(job.id, settings)
     checkpoint = scratch / "edit_checkpoint.safetensors"
     checkpoint_key = runtime.job_key(job.id, "checkpoints/edit.safetensors")
-    resume = storage.get_file(checkpoint_key, checkpoint) if storage.exists(checkpoint_key) else None
+    resume, note = None, None
+    if storage.exists(checkpoint_key):  # a redelivered / re-queued task: go on from the last checkpoint
+        from voxe_core.edit import load_edit_checkpoint
+
+        resume = storage.get_file(checkpoint_key, checkpoint)
+        note = f"resumed from the checkpoint at iteration {load_edit_checkpoint(resume)[1]['iteration']}"
+        log.info("job %s: edit %s", job.id, note)
+        runtime.update_job(job.id, message=note)
     input_views = None
     if config.regulariser.startswith("image_"):
         scene = _load_images(job, rec.params, settings, storage)
@@ -247,7 +255,7 @@ def _edit(job: Job, settings, device: str, storage) -> None:
             last_preview[0] = now
             _preview(job.id, None, settings, storage, device, image=image)
 
-    callbacks = StageCallbacks(job.id, "edit", settings,
+    callbacks = StageCallbacks(job.id, "edit", settings, note=note,
                                on_checkpoint=lambda path: storage.put_file(checkpoint_key, path))
     grid = edit(initial, job.prompt, guidance, config, callbacks.callbacks, checkpoint, resume,
                 input_views=input_views, on_preview=on_preview)
@@ -376,11 +384,36 @@ def _beat(hostname: str, queues: str, device: str) -> None:
         _heartbeat_stop.wait(settings.worker_heartbeat_s)
 
 
+def recover_interrupted_jobs(hostname: str) -> list[str]:
+    """Re-queue the remaining stages of jobs this worker was running when it died (SQL broker only).
+
+    kombu's SQL transport never redelivers a message whose consumer was killed (it stays
+    invisible), so without this a job would stay "running" for ever. The stages are
+    idempotent (done stages are skipped, long ones resume from their checkpoints).
+    """
+    from sqlalchemy import select
+
+    with runtime.session_scope() as session:
+        jobs = list(session.scalars(select(Job).where(Job.state == "running", Job.worker_hostname == hostname)))
+    for job in jobs:
+        stage_chain(app, job.id, job.mode, done=job.completed_stages or []).apply_async()
+        runtime.update_job(job.id, message=f"re-queued after the worker restarted (was in {job.stage})")
+        log.warning("job %s was interrupted in %s; re-queued its remaining stages", job.id, job.stage)
+    return [job.id for job in jobs]
+
+
 @signals.worker_ready.connect
 def _start_heartbeat(sender=None, **_kwargs) -> None:
     hostname = getattr(sender, "hostname", None) or socket.gethostname()
     queues = ",".join(sorted(q.name for q in sender.app.amqp.queues.consume_from.values())) if sender else ""
-    device = get_settings().resolved_device
+    # Not settings.resolved_device: torch.cuda.is_available() here would initialise CUDA in the
+    # parent of a prefork pool, and forked children could not use it.
+    device = get_settings().device
+    if is_sql_broker(get_settings().broker_url):
+        try:
+            recover_interrupted_jobs(hostname)
+        except Exception:  # noqa: BLE001 - never keep the worker from starting
+            log.exception("could not re-queue interrupted jobs")
     _heartbeat_stop.clear()
     threading.Thread(target=_beat, args=(hostname, queues, device), name="voxe-heartbeat", daemon=True).start()
     log.info("worker %s ready: queues %s, device %s, SDS model %s", hostname, queues, device, get_settings().sds_model)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 
-from celery import Celery, chain
+from celery import Celery
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, status
 from sqlalchemy import func, select, update
 from sqlalchemy.exc import IntegrityError
@@ -18,7 +18,7 @@ from api.models import (
 from api.routes.scenes import get_scene_or_404
 from api.schemas import JobCreate, JobOut, JobReconstruction, JobState, Models, Page
 from api.settings import Settings, model_label
-from worker.celery_app import TASK_NAMES
+from worker.celery_app import stage_chain
 from worker.configs import reconstruction_key, reconstruction_params
 
 log = logging.getLogger("voxe.api")
@@ -100,11 +100,8 @@ def create_job(
     )
     session.add(job)
     session.commit()
-    stages = ["reconstruct", "edit"] + (["refine"] if body.mode == "local" else []) + ["export"]
     try:
-        result = chain(
-            *(celery.signature(TASK_NAMES[s], args=(job.id,), immutable=True) for s in stages)
-        ).apply_async()
+        result = stage_chain(celery, job.id, body.mode).apply_async()
     except Exception as exc:  # noqa: BLE001 - broker down: the job cannot run
         log.exception("could not queue job %s", job.id)
         session.execute(update(Job).where(Job.id == job.id).values(
