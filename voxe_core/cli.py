@@ -4,6 +4,7 @@
     voxe render GRID --data DATA_DIR --split test --out DIR   |   --ring N --size S
     voxe turntable GRID --out turntable.mp4|.gif [--frames 180] [--size 256] [--elevation 30]
     voxe export-mesh GRID --out mesh.ply|.glb [--level L] [--resolution N]
+    voxe refine EDITED_GRID --initial GRID --prompt TEXT --edit-words WORDS --out DIR [--model ID_OR_DIR] ...
     voxe edit GRID --prompt TEXT --out DIR [--model ID_OR_DIR] [--iterations N] [--render-size N] ...
     voxe build-tiny-model DIR      (random-weight SMOKE-TEST Stable Diffusion, plumbing only)
 
@@ -167,6 +168,7 @@ def build_parser() -> argparse.ArgumentParser:
     mesh.add_argument("--level", type=float, default=None, help="surface density (default ln 2 / voxel size)")
     mesh.add_argument("--resolution", type=_positive_int, default=None, help="resample to N points per axis")
     _add_edit_parsers(commands, common)
+    _add_refine_parser(commands, common)
     return parser
 
 
@@ -428,6 +430,109 @@ def cmd_build_tiny_model(args) -> int:
     return 0
 
 
+def _add_refine_parser(commands, common) -> None:
+    ref = commands.add_parser(
+        "refine", parents=[common],
+        help="localise an edit: 3D cross-attention grids, graph-cut mask, merge with the initial grid (SPEC §3)",
+    )
+    ref.add_argument("edited", type=Path, metavar="EDITED_GRID", help="the edited grid G_e (.safetensors)")
+    ref.add_argument("--initial", type=Path, required=True, metavar="GRID", help="the initial grid G_i the edit started from")
+    ref.add_argument("--prompt", required=True, help='the edit text, e.g. "a dog wearing big sunglasses"')
+    ref.add_argument("--edit-words", required=True, metavar="WORDS",
+                     help='comma-separated words or phrases of the prompt that name the edit, e.g. "sunglasses" or "party hat"')
+    ref.add_argument("--out", type=Path, required=True, metavar="DIR",
+                     help="writes refined.safetensors, mask.safetensors, probabilities.safetensors, refine.json, renders/*.png")
+    ref.add_argument("--model", default=None, metavar="MODEL_ID_OR_PATH",
+                     help="diffusers-layout Stable Diffusion for the cross-attention maps: hub id (from the local cache) "
+                          "or folder (default CompVis/stable-diffusion-v1-4)")
+    ref.add_argument("--offline", action="store_true", help="never contact the hub (as HF_HUB_OFFLINE=1)")
+    ref.add_argument("--device", choices=("cpu", "cuda"), default=None, help="default: cuda when available")
+    ref.add_argument("--iterations", type=int, default=1500, help="attention-grid fitting iterations")
+    ref.add_argument("--render-size", type=_positive_int, default=266, help="render / attention-map size in pixels")
+    ref.add_argument("--views", type=_positive_int, default=32, help="random upper-hemisphere views for the 2D maps")
+    ref.add_argument("--preview-views", type=int, default=4, help="ring views rendered as PNGs (0: none)")
+    ref.add_argument("--seed", type=int, default=0)
+
+
+def cmd_refine(args) -> int:
+    import dataclasses as _dc
+    import warnings
+
+    import torch
+
+    from voxe_core.export import save_png, turntable_cameras
+    from voxe_core.guidance import ATTENTION_MODEL_ID, ModelNotAvailableError, StableDiffusionGuidance
+    from voxe_core.refine import (
+        RefineConfig, check_compatible, node_mask, refine, render_attention, render_mask_overlay,
+        save_mask, save_probabilities,
+    )
+
+    if args.iterations < 0 or args.preview_views < 0:
+        raise ValueError("--iterations and --preview-views must be non-negative")
+    words = [w.strip() for w in args.edit_words.split(",") if w.strip()]
+    if not words:
+        raise ValueError("--edit-words names no word")
+    if args.device == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda asked for, but no CUDA device is available")
+    model = args.model or ATTENTION_MODEL_ID
+    config = RefineConfig(iterations=args.iterations, render_size=args.render_size, views=args.views,
+                          seed=args.seed, attention_model=model)
+    initial, edited = _load_grid(args.initial), _load_grid(args.edited)
+    check_compatible(initial, edited)
+    try:
+        guidance = StableDiffusionGuidance.from_pretrained(
+            model, device=args.device, local_files_only=True if args.offline else None
+        )
+    except ModelNotAvailableError as exc:
+        print(f"voxe refine: model not available: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    print(f"refining {args.edited} against {args.initial} for {words} of {args.prompt!r} with {model} on "
+          f"{guidance.device}: {config.views} views of {config.render_size} px, {config.iterations} iterations",
+          file=sys.stderr)
+    with warnings.catch_warnings():  # seed shortfalls are reported below from the result
+        warnings.filterwarnings("ignore", message=r"only \d+ of \d+ (edit|object) seeds")
+        result = run_stage(
+            lambda cb: refine(initial, edited, args.prompt, words, guidance, config, cb),
+            "refine", "it", None, args.quiet,
+        )
+    if result is None:
+        print("voxe: refinement cancelled, nothing written", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    out = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    result.refined_grid.save(out / "refined.safetensors")
+    save_mask(out / "mask.safetensors", result.mask, meta={"prompt": result.info["prompt"], "edit_words": words})
+    nodes = node_mask(edited, config.node_alpha)
+    save_probabilities(out / "probabilities.safetensors", result.edit_probability, result.object_probability, nodes)
+    renders = out / "renders"
+    if args.preview_views:
+        cameras = turntable_cameras(args.preview_views, 30.0, args.render_size)
+        groups = {
+            "attention_edit": render_attention(edited, result.edit_field, cameras),
+            "attention_object": render_attention(edited, result.object_field, cameras),
+            "probability_edit": render_attention(edited, result.edit_probability, cameras),
+            "mask": render_mask_overlay(edited, result.mask, cameras),
+            "refined": render_mask_overlay(result.refined_grid, torch.zeros_like(result.mask), cameras, strength=0.0),
+        }
+        for name, frames in groups.items():
+            for i, frame in enumerate(frames):
+                save_png(renders / f"{name}_{i:02d}.png", frame)
+    for i in range(min(args.preview_views, len(result.edit_maps))):
+        save_png(renders / f"map2d_edit_{i:02d}.png", result.edit_maps[i].cpu()[..., None].expand(-1, -1, 3))
+        save_png(renders / f"map2d_object_{i:02d}.png", result.object_maps[i].cpu()[..., None].expand(-1, -1, 3))
+    stats = _dc.asdict(result.stats)
+    summary = {"prompt": result.info["prompt"], "edit_words": words, "model": model,
+               "settings": {"views": config.views, "render_size": config.render_size, "iterations": config.iterations,
+                            "seed": config.seed},
+               "graph_cut": stats, "masked_voxels": int(result.mask.sum())}
+    (out / "refine.json").write_text(json.dumps(summary, indent=2))
+    for note in result.stats.notes:
+        print(f"voxe refine: note: {note}", file=sys.stderr)
+    print(f"wrote {out}: {stats['edit_voxels']} of {stats['nodes']} occupied voxels take the edit "
+          f"({stats['edit_seeds']} edit / {stats['object_seeds']} object seeds)")
+    return 0
+
+
 COMMANDS = {
     "reconstruct": cmd_reconstruct,
     "render": cmd_render,
@@ -435,6 +540,7 @@ COMMANDS = {
     "export-mesh": cmd_export_mesh,
     "edit": cmd_edit,
     "build-tiny-model": cmd_build_tiny_model,
+    "refine": cmd_refine,
 }
 
 

@@ -1,0 +1,376 @@
+"""Spatial refinement (SPEC §3): attention maps, attention-grid lifting, graph cut, merge, storage, CLI.
+
+Token spans (multi-token words, phrases, repeats) and the per-pixel token
+distribution of the captured maps are covered in tests/test_guidance.py; here
+the tiny random-weight SD (SMOKE-TEST MODEL) only proves the refine plumbing.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+
+import pytest
+import torch
+
+from voxe_core.cameras import Cameras, random_hemisphere_poses
+from voxe_core.cli import main
+from voxe_core.grid import VoxelGrid
+from voxe_core.guidance import StableDiffusionGuidance
+from voxe_core.progress import Callbacks, StageCancelled
+from voxe_core.refine import (
+    RefineConfig,
+    SegmentationError,
+    attention_maps_2d,
+    combine_token_maps,
+    fit_attention_grids,
+    gaussian_blur2d,
+    graph_cut,
+    graph_cut_detailed,
+    load_mask,
+    load_probabilities,
+    merge,
+    node_mask,
+    probabilities,
+    refine,
+    render_attention,
+    render_feature_views,
+    render_mask_overlay,
+    save_mask,
+    save_probabilities,
+    token_groups,
+)
+from voxe_core.tensorio import FormatError
+
+
+@pytest.fixture(autouse=True)
+def _single_thread():
+    # tiny tensors: thread hand-offs cost more than they save on the shared 2-core box
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def tiny_model(request, tmp_path_factory):
+    """The session's shared tiny SD (conftest ``tiny_sd_path``) when there is one, else a module-local build."""
+    try:
+        return request.getfixturevalue("tiny_sd_path")
+    except pytest.FixtureLookupError:
+        from voxe_core.tiny_sd import build_tiny_stable_diffusion
+
+        return build_tiny_stable_diffusion(tmp_path_factory.mktemp("tiny_sd_refine") / "model", seed=0)
+
+
+@pytest.fixture(scope="module")
+def tiny_guidance(tiny_model) -> StableDiffusionGuidance:
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("HF_HUB_OFFLINE", "1")
+        return StableDiffusionGuidance.from_pretrained(str(tiny_model), device="cpu")
+
+
+def box_grid(resolution, boxes, density=5.0, outside=-1.0) -> VoxelGrid:
+    """Grid whose vertices inside each (lo, hi, rgb) index box have raw density ``density`` and colour rgb."""
+    grid = VoxelGrid(resolution)
+    with torch.no_grad():
+        grid.features[..., 0] = outside
+        grid.features[..., 1:] = 0.0
+        for lo, hi, rgb in boxes:
+            region = tuple(slice(a, b) for a, b in zip(lo, hi))
+            grid.features[region + (0,)] = density
+            c = torch.tensor(rgb, dtype=torch.float32).clamp(1e-3, 1 - 1e-3)
+            grid.features[region + (slice(1, 4),)] = torch.log(c / (1 - c))
+    return grid
+
+
+def cameras_around(n, size, seed=0) -> Cameras:
+    c2w, _, _ = random_hemisphere_poses(n, torch.Generator().manual_seed(seed))
+    return Cameras.from_fov(c2w, 0.6911112070083618, size, size)
+
+
+# ----------------------------------------------------------------- 2D maps
+
+
+def test_token_groups_split_edit_and_object_tokens(tiny_guidance):
+    prompt = "a render of a dog wearing a party hat"
+    edit, others = token_groups(tiny_guidance, prompt, ["party hat"])
+    content = tiny_guidance.content_token_indices(prompt)
+    assert edit == tiny_guidance.token_spans(prompt, ["party hat"]) and len(edit) == 2
+    assert set(edit) | set(others) == set(content) and not set(edit) & set(others)
+    assert 0 not in others and max(others) < 1 + len(content)  # no start, end or padding token
+    with pytest.raises(ValueError, match="nothing names the object"):
+        token_groups(tiny_guidance, "sunglasses", ["sunglasses"])
+    with pytest.raises(ValueError, match="no edit words"):
+        token_groups(tiny_guidance, prompt, [" "])
+
+
+def test_combine_token_maps_mean_of_edit_max_of_others():
+    maps = torch.rand(77, 4, 4, generator=torch.Generator().manual_seed(0))
+    edit, obj = combine_token_maps(maps, [5, 6], [1, 2, 3, 4])
+    torch.testing.assert_close(edit, (maps[5] + maps[6]) / 2)
+    torch.testing.assert_close(obj, maps[1:5].amax(0))
+    edit_max, _ = combine_token_maps(maps, [5, 6], [1], reduce="max")
+    torch.testing.assert_close(edit_max, torch.maximum(maps[5], maps[6]))
+
+
+def test_gaussian_blur_keeps_constants_and_spreads_a_delta_by_sigma():
+    const = torch.full((2, 9, 9), 0.3)
+    torch.testing.assert_close(gaussian_blur2d(const, 1.0), const)
+    delta = torch.zeros(1, 41, 41)
+    delta[0, 20, 20] = 1.0
+    out = gaussian_blur2d(delta, 2.0)[0]
+    assert abs(float(out.sum()) - 1.0) < 1e-5
+    x = torch.arange(41.0) - 20
+    std = float((out.sum(0) * x**2).sum().sqrt())
+    assert abs(std - 2.0) < 0.05
+
+
+def test_attention_maps_2d_are_normalised_per_view(tiny_guidance, make_sphere_grid):
+    grid = make_sphere_grid(12)
+    cams = cameras_around(2, 24)
+    config = RefineConfig(render_size=24, views=2)
+    edit, obj = attention_maps_2d(tiny_guidance, grid, cams, "a render of a dog wearing sunglasses", ["sunglasses"], config)
+    assert edit.shape == obj.shape == (2, 24, 24)
+    for maps in (edit, obj):
+        assert torch.isfinite(maps).all()
+        torch.testing.assert_close(maps.amin(dim=(1, 2)), torch.zeros(2))
+        torch.testing.assert_close(maps.amax(dim=(1, 2)), torch.ones(2))
+
+
+# ----------------------------------------------------------------- lifting
+
+
+def test_fit_recovers_a_known_field_from_exact_maps(make_sphere_grid):
+    # semi-transparent sphere (optical depth ~1.5 through the middle): every voxel is seen,
+    # so the field is identifiable from its renders
+    res = 12
+    grid = make_sphere_grid(res, radius=0.9)
+    with torch.no_grad():
+        inside = grid.features[..., 0] > 0
+        grid.features[..., 0] = torch.where(inside, torch.tensor(1.0 / grid.density_scale), torch.tensor(-1.0))
+    axes = torch.linspace(-1.5, 1.5, res)
+    x, y, z = torch.meshgrid(axes, axes, axes, indexing="ij")
+    truth = (0.5 + 0.45 * torch.tanh(2.0 * (x + 0.5 * z)))[..., None]
+    cams = cameras_around(12, 16, seed=3)
+    maps = render_feature_views(grid, cams, torch.cat([truth, 1 - truth], -1), background=(0.0,))
+    config = RefineConfig(iterations=80, lr=0.08, rays_per_step=512, tv_weight=0.01)
+    edit, obj = fit_attention_grids(grid, cams, maps[..., 0], maps[..., 1], config)
+    assert edit.shape == obj.shape == (res, res, res, 1)
+    # interior vertices (all 6 neighbours inside): boundary ones share their cells with empty space
+    core = inside & torch.roll(inside, 1, 0) & torch.roll(inside, -1, 0) & torch.roll(inside, 1, 1) \
+        & torch.roll(inside, -1, 1) & torch.roll(inside, 1, 2) & torch.roll(inside, -1, 2)
+    assert int(core.sum()) > 50
+    err_e = (edit[..., 0] - truth[..., 0])[core].abs().mean()  # from 0.5 at the start
+    err_o = (obj[..., 0] - (1 - truth[..., 0]))[core].abs().mean()
+    assert err_e < 0.08 and err_o < 0.08, (float(err_e), float(err_o))
+    corr = torch.corrcoef(torch.stack([edit[..., 0][core], truth[..., 0][core]]))[0, 1]
+    assert corr > 0.95
+
+
+def test_fit_reports_progress_and_cancels(make_sphere_grid):
+    grid = make_sphere_grid(10)
+    cams = cameras_around(2, 8)
+    maps = torch.zeros(2, 8, 8)
+    seen = []
+    cb = Callbacks(on_progress=lambda p: seen.append(p.iteration), should_cancel=lambda: len(seen) >= 3)
+    with pytest.raises(StageCancelled):
+        fit_attention_grids(grid, cams, maps, maps, RefineConfig(iterations=10, rays_per_step=64), cb)
+    assert seen == [1, 2, 3]
+    with pytest.raises(ValueError, match="do not match"):
+        fit_attention_grids(grid, cams, torch.zeros(3, 8, 8), torch.zeros(3, 8, 8), RefineConfig(iterations=1))
+
+
+# ----------------------------------------------------------------- graph cut
+
+
+def two_blobs():
+    """Two adjacent 6x8x8 boxes, red (edit, x in [3, 9)) and green (object, x in [9, 15))."""
+    grid = box_grid(18, [((3, 5, 5), (9, 13, 13), (0.9, 0.1, 0.1)), ((9, 5, 5), (15, 13, 13), (0.1, 0.9, 0.1))])
+    truth = torch.zeros(grid.resolution, dtype=torch.bool)
+    truth[3:9, 5:13, 5:13] = True
+    return grid, truth
+
+
+def test_graph_cut_two_blobs_gives_the_expected_partition():
+    grid, truth = two_blobs()
+    g = torch.Generator().manual_seed(0)
+    noise = 0.45 * torch.randn(grid.resolution, generator=g)
+    e = truth.float() + noise
+    o = 1.0 - truth.float() - noise
+    nodes = node_mask(grid)
+    p_e, _ = probabilities(e, o)
+    assert ((p_e > 0.5) != truth)[nodes].sum() > 10  # the unary alone mislabels voxels...
+    mask, stats = graph_cut_detailed(grid, e, o, RefineConfig(edit_seeds=50, object_seeds=50))
+    assert torch.equal(mask, truth)  # ...the cut recovers the partition exactly
+    assert stats.nodes == 2 * 6 * 8 * 8 and stats.edit_voxels == 6 * 8 * 8
+    # 6-neighbour edges along all three axes between occupied vertices: a 12x8x8 box
+    a, b, c = 12, 8, 8
+    assert stats.edges == (a - 1) * b * c + a * (b - 1) * c + a * b * (c - 1)
+    assert stats.edit_seeds == 50 and stats.object_seeds == 50 and not stats.notes
+
+
+def test_graph_cut_smoothness_uses_the_z_axis_too():
+    # a one-voxel-wide column along z: its only neighbours are along z; without z edges
+    # the lone mislabelled middle voxel would keep its unary label
+    grid = box_grid(12, [((5, 5, 1), (6, 6, 11), (0.5, 0.5, 0.5))])
+    e = torch.zeros(grid.resolution)
+    e[5, 5, 1:11] = 1.0
+    e[5, 5, 6] = -0.3  # slightly prefers "object"
+    o = torch.zeros(grid.resolution)
+    mask = graph_cut(grid, e, o, RefineConfig(edit_seeds=3, object_seeds=0))
+    assert mask[5, 5, 1:11].all() and int(mask.sum()) == 10
+
+
+def test_no_occupied_voxels_is_a_clear_error():
+    grid = VoxelGrid(8, init_density=-1.0)
+    with pytest.raises(SegmentationError, match="no occupied voxels"):
+        graph_cut(grid, torch.zeros(8, 8, 8), torch.zeros(8, 8, 8))
+
+
+def test_all_equal_probabilities_have_no_seeds():
+    grid, _ = two_blobs()
+    with pytest.raises(SegmentationError, match="no seeds"):
+        graph_cut(grid, torch.full(grid.resolution, 0.7), torch.full(grid.resolution, 0.7))
+
+
+def test_fewer_candidates_than_seeds_uses_what_exists():
+    grid, truth = two_blobs()
+    e = torch.where(truth, 1.0, -1.0)
+    e[3, 5, 5] = e[3, 5, 6] = 0.0  # tie the first two: still candidates of neither label
+    with pytest.warns(UserWarning, match="of 500 edit seeds"):  # 384 - 2 voxels prefer "edit"
+        mask, stats = graph_cut_detailed(grid, e, -e, RefineConfig(edit_seeds=500, object_seeds=200))
+    n_edit = int(truth.sum()) - 2
+    assert stats.edit_seeds == n_edit and stats.object_seeds == 200
+    assert any("edit seeds" in n for n in stats.notes)
+    assert torch.equal(mask, truth)
+
+
+def test_huge_logits_give_finite_probabilities_and_a_cut():
+    grid, truth = two_blobs()
+    e = torch.where(truth, 1e4, -1e4)
+    p_e, p_o = probabilities(e, -e)
+    assert torch.isfinite(p_e).all() and torch.isfinite(p_o).all()
+    torch.testing.assert_close(p_e + p_o, torch.ones_like(p_e))
+    assert torch.equal(p_e > 0.5, truth)
+    mask, stats = graph_cut_detailed(grid, e[..., None], -e[..., None])  # (X, Y, Z, 1) fields work as well
+    assert torch.equal(mask, truth) and math.isfinite(stats.flow)
+
+
+@pytest.mark.parametrize("edit_value, expected", [(2.0, True), (-2.0, False)])
+def test_one_voxel_object(edit_value, expected):
+    grid = box_grid(6, [((3, 3, 3), (4, 4, 4), (0.5, 0.5, 0.5))])
+    e = torch.full(grid.resolution, edit_value)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        mask, stats = graph_cut_detailed(grid, e, torch.zeros(grid.resolution))
+    assert stats.nodes == 1 and stats.edges == 0
+    assert int(mask.sum()) == int(expected) and bool(mask[3, 3, 3]) == expected
+
+
+# ----------------------------------------------------------------- merge, storage, renders
+
+
+def test_merge_selects_voxelwise_and_keeps_unmasked_bits():
+    g = torch.Generator().manual_seed(1)
+    initial = VoxelGrid(9, features=torch.randn(9, 9, 9, 4, generator=g))
+    edited = VoxelGrid(9, features=torch.randn(9, 9, 9, 4, generator=g))
+    with torch.no_grad():
+        initial.features[0, 0, 0, 0] = -0.0  # signed zero and NaN survive bit for bit
+        initial.features[0, 0, 1, 1] = float("nan")
+    mask = torch.rand(9, 9, 9, generator=g) > 0.6
+    mask[0, 0, :2] = False
+    merged = merge(initial, edited, mask)
+    bits = lambda t: t.detach().view(torch.int32)  # noqa: E731
+    assert torch.equal(bits(merged.features)[~mask], bits(initial.features)[~mask])
+    assert torch.equal(merged.features[mask], edited.features.detach()[mask])
+    assert merged.features.data_ptr() != initial.features.data_ptr()
+    with pytest.raises(ValueError, match="mask of shape"):
+        merge(initial, edited, mask[:-1])
+    with pytest.raises(ValueError, match="initial grid is"):
+        merge(VoxelGrid(8), edited, mask)
+
+
+def test_sparse_mask_and_probabilities_round_trip(tmp_path):
+    g = torch.Generator().manual_seed(2)
+    mask = torch.rand(20, 18, 16, generator=g) > 0.97
+    save_mask(tmp_path / "mask.safetensors", mask)
+    assert torch.equal(load_mask(tmp_path / "mask.safetensors"), mask)
+    assert (tmp_path / "mask.safetensors").stat().st_size < mask.numel() // 4  # ~3% set: far below a dense byte mask
+    where = torch.rand(mask.shape, generator=g) > 0.8
+    p = torch.rand(mask.shape, generator=g)
+    save_probabilities(tmp_path / "p.safetensors", p, 1 - p, where)
+    pe, po, w = load_probabilities(tmp_path / "p.safetensors")
+    assert torch.equal(w, where) and torch.equal(pe[where], p[where]) and torch.equal(po[where], (1 - p)[where])
+    assert (pe[~where] == 0).all()
+    with pytest.raises(FormatError, match="expected a 'edit_mask'"):
+        load_mask(tmp_path / "p.safetensors")
+
+
+def test_renders_grey_attention_and_red_mask(make_sphere_grid):
+    grid = make_sphere_grid(16)
+    with torch.no_grad():
+        grid.features[..., 1:] = 2.0  # near-white object
+    cams = Cameras.from_fov(torch.tensor([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 4.0], [0, 0, 0, 1]]), 0.69, 24, 24)
+    half = torch.zeros(grid.resolution, dtype=torch.bool)
+    half[:8] = True  # x < 0: the left of the image for a camera on +z looking down
+    grey = render_attention(grid, half.float(), cams)[0]
+    assert torch.equal(grey[..., 0], grey[..., 1]) and grey[12, 8, 0] > 0.9 and grey[12, 16, 0] < 0.1
+    assert grey[0, 0].abs().max() == 0  # black background
+    over = render_mask_overlay(grid, half, cams)[0]
+    assert over[12, 8, 0] > 0.8 and over[12, 8, 1] < 0.5  # tinted red where the mask is
+    assert over[12, 16].min() > 0.8 and over[0, 0].min() == 1.0  # untouched (white) elsewhere
+
+
+# ----------------------------------------------------------------- end to end
+
+
+def test_refine_end_to_end_with_tiny_model(tiny_guidance, make_sphere_grid):
+    initial = make_sphere_grid(12)
+    edited = initial.clone_grid()
+    with torch.no_grad():
+        edited.features[..., 1:] = torch.randn(12, 12, 12, 3, generator=torch.Generator().manual_seed(0))
+    config = RefineConfig(views=2, render_size=24, iterations=40, rays_per_step=256, edit_seeds=5, object_seeds=5)
+    stages = set()
+    result = refine(initial, edited, "a dog wearing sunglasses", ["sunglasses"], tiny_guidance, config,
+                    Callbacks(on_progress=lambda p: stages.add(p.stage)))
+    assert stages == {"attention_maps", "attention_grids", "graph_cut"}
+    assert result.info["prompt"] == "a render of a dog wearing sunglasses"
+    nodes = node_mask(edited)
+    assert result.mask.shape == nodes.shape and not (result.mask & ~nodes).any()
+    torch.testing.assert_close(result.edit_probability + result.object_probability, torch.ones(12, 12, 12))
+    assert torch.equal(result.refined_grid.features, merge(initial, edited, result.mask).features)
+    assert result.edit_maps.shape == (2, 24, 24) and result.edit_field.shape == (12, 12, 12, 1)
+    with pytest.raises(ValueError, match="does not occur"):
+        refine(initial, edited, "a dog", ["zebra"], tiny_guidance, config)
+
+
+def test_cli_refine_smoke(tmp_path, tiny_model, make_sphere_grid):
+    initial = make_sphere_grid(12)
+    edited = initial.clone_grid()
+    with torch.no_grad():
+        edited.features[:, :, 6:, 1:] = torch.tensor([-3.0, -3.0, 3.0])  # a blue top half
+    initial.save(tmp_path / "initial.safetensors")
+    edited.save(tmp_path / "edited.safetensors")
+    out = tmp_path / "out"
+    def argv(model=str(tiny_model), words="party hat"):
+        return ["refine", str(tmp_path / "edited.safetensors"), "--initial", str(tmp_path / "initial.safetensors"),
+                "--prompt", "a dog wearing a party hat", "--edit-words", words, "--out", str(out),
+                "--model", model, "--offline", "--device", "cpu", "--iterations", "40", "--render-size", "16",
+                "--views", "2", "--preview-views", "1", "--quiet"]
+
+    assert main(argv()) == 0
+    mask = load_mask(out / "mask.safetensors")
+    refined = VoxelGrid.load(out / "refined.safetensors")
+    assert torch.equal(refined.features, merge(initial, edited, mask).features)
+    summary = json.loads((out / "refine.json").read_text())
+    assert summary["masked_voxels"] == int(mask.sum()) and summary["edit_words"] == ["party hat"]
+    pngs = {p.name for p in (out / "renders").glob("*.png")}
+    assert {"mask_00.png", "attention_edit_00.png", "attention_object_00.png", "refined_00.png", "map2d_edit_00.png"} <= pngs
+    _, _, where = load_probabilities(out / "probabilities.safetensors")
+    assert torch.equal(where, node_mask(edited))
+
+    assert main(argv(model=str(tmp_path / "no_such_model"))) == 2  # ModelNotAvailableError -> exit 2
+    assert main(argv(words=" , ")) == 2
+    assert main(argv(words="zebra")) == 2  # not in the prompt
