@@ -366,3 +366,35 @@ def test_redis_visibility_timeout_exceeds_the_hard_time_limit(root, monkeypatch)
 
     conf = create_celery_app().conf
     assert conf.broker_transport_options["visibility_timeout"] > conf.task_time_limit
+
+
+def test_missing_model_fails_the_job_with_a_clear_message(root, monkeypatch, dataset):
+    """Default (real) model ids without downloaded weights: the job fails naming the model and the fix."""
+    monkeypatch.delenv("VOXE_SDS_MODEL")
+    monkeypatch.delenv("VOXE_ATTENTION_MODEL")
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    monkeypatch.setenv("HF_HOME", str(root / "empty-hf-home"))
+    _reset()
+    from sqlalchemy import update
+
+    from api.db import session_scope
+    from api.main import create_app
+    from api.models import Job
+    from voxe_core.guidance import SDS_MODEL_ID
+    from worker import tasks
+
+    with TestClient(create_app()) as client:
+        scene = make_scene(client, dataset, root)
+        job = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a yarn doll of a mic"}).json()
+        assert job["models"]["sds"] == SDS_MODEL_ID
+        with session_scope() as session:  # as if the reconstruction stage had run
+            session.execute(update(Job).where(Job.id == job["id"]).values(completed_stages=["reconstruct"]))
+        result = tasks.edit_task.apply(args=(job["id"],)).get()
+        assert result["state"] == "failed"
+        failed = client.get(f"/v1/jobs/{job['id']}").json()
+        assert failed["state"] == "failed" and failed["finished_at"]
+        for part in (SDS_MODEL_ID, "not available offline", "huggingface-cli download", "HF_HOME",
+                     "VOXE_SDS_MODEL=tiny"):
+            assert part in failed["error"], failed["error"]
+        # The rest of the chain sees a finished job and does nothing.
+        assert "skipped" in tasks.export_task.apply(args=(job["id"],)).get()

@@ -82,8 +82,11 @@ def _error_message(stage: str, exc: Exception, job: Job) -> str:
     from voxe_core.guidance import ModelNotAvailableError
 
     if isinstance(exc, ModelNotAvailableError):
-        return (f"{stage}: {exc} Then restart the worker with VOXE_SDS_MODEL / VOXE_ATTENTION_MODEL set to the "
-                f"hub id or folder (VOXE_SDS_MODEL={TINY_MODEL} runs the random-weight smoke-test model).")
+        text = str(exc).rstrip()
+        return (f"{stage}: {text}{'' if text.endswith('.') else '.'} The worker reads the model from "
+                f"VOXE_SDS_MODEL / VOXE_ATTENTION_MODEL (a hub id in the HF_HOME cache, or a local folder); "
+                f"VOXE_SDS_MODEL={TINY_MODEL} VOXE_ATTENTION_MODEL={TINY_MODEL} runs the random-weight "
+                f"smoke-test model, which proves the plumbing only.")
     if isinstance(exc, ReconstructionFailed):
         return str(exc)
     return f"{stage}: {type(exc).__name__}: {exc}"
@@ -227,9 +230,9 @@ def _fit(job: Job, rec, settings, storage) -> None:
 def _edit(job: Job, settings, device: str, storage) -> None:
     from voxe_core.edit import edit
 
+    guidance = runtime.get_guidance(job.sds_model, device, settings)  # first: a missing model fails fast
     rec = runtime.load_reconstruction(job.reconstruction_id)
     initial = _grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key)
-    guidance = runtime.get_guidance(job.sds_model, device, settings)
     config = edit_config(job.params, settings.checkpoint_every)
     scratch = runtime.scratch_dir(job.id, settings)
     checkpoint = scratch / "edit_checkpoint.safetensors"
@@ -269,10 +272,10 @@ def _refine(job: Job, settings, device: str, storage) -> None:
     from voxe_core.export import save_png, turntable_cameras
     from voxe_core.refine import node_mask, refine, render_mask_overlay, save_mask, save_probabilities
 
+    guidance = runtime.get_guidance(job.attention_model, device, settings)
     rec = runtime.load_reconstruction(job.reconstruction_id)
     initial = _grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key)
     edited = _grid(job.id, "edited_grid.safetensors", settings, storage)
-    guidance = runtime.get_guidance(job.attention_model, device, settings)
     config = refine_config(job.params, job.attention_model)
     callbacks = StageCallbacks(job.id, "refine", settings)
     result = refine(initial, edited, job.prompt, job.edit_words, guidance, config, callbacks.callbacks)
