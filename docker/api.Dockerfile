@@ -1,0 +1,28 @@
+# The Vox-E API: FastAPI under uvicorn, CPU-only torch (the API validates uploads with voxe_core.data).
+#   docker build -f docker/api.Dockerfile -t voxe-api .
+FROM python:3.11-slim
+
+ARG TORCH_SPEC="torch==2.13.0"
+ARG TORCH_INDEX="https://download.pytorch.org/whl/cpu"
+
+ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    PYTHONPATH=/app
+
+WORKDIR /app
+# Dependencies first (cached layer): torch from the CPU index, then the project's own.
+RUN pip install --index-url "$TORCH_INDEX" "$TORCH_SPEC"
+COPY pyproject.toml README.md ./
+COPY voxe_core ./voxe_core
+COPY api ./api
+COPY worker ./worker
+COPY alembic.ini ./
+RUN pip install ".[s3,postgres]" \
+    && useradd --create-home --uid 10001 voxe \
+    && mkdir -p /app/var && chown voxe /app/var
+USER voxe
+
+EXPOSE 8000
+HEALTHCHECK --interval=15s --timeout=5s --start-period=30s --retries=5 \
+    CMD python -c "import urllib.request,sys; sys.exit(urllib.request.urlopen('http://127.0.0.1:8000/healthz', timeout=4).status != 200)"
+# The app runs `alembic upgrade head` at startup.
+CMD ["uvicorn", "api.main:app", "--host", "0.0.0.0", "--port", "8000", "--proxy-headers"]

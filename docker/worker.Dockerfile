@@ -1,0 +1,33 @@
+# A Vox-E GPU worker: Celery consuming the `gpu` queue, one task at a time per GPU, CUDA torch.
+#   docker build -f docker/worker.Dockerfile -t voxe-worker .
+# Run one container per GPU (concurrency 1); models come from the Hugging Face cache in HF_HOME.
+FROM nvidia/cuda:12.6.3-cudnn-runtime-ubuntu24.04
+
+ARG TORCH_SPEC="torch"
+ARG TORCH_INDEX="https://download.pytorch.org/whl/cu126"
+
+ENV DEBIAN_FRONTEND=noninteractive PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1 PYTHONPATH=/app PATH=/opt/venv/bin:$PATH \
+    HF_HOME=/models/hf VOXE_MODEL_DIR=/models/voxe VOXE_DEVICE=cuda \
+    PYTORCH_NVML_BASED_CUDA_CHECK=1
+
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends python3 python3-venv ca-certificates \
+    && rm -rf /var/lib/apt/lists/* \
+    && python3 -m venv /opt/venv
+
+WORKDIR /app
+RUN pip install --index-url "$TORCH_INDEX" "$TORCH_SPEC"
+COPY pyproject.toml README.md ./
+COPY voxe_core ./voxe_core
+COPY api ./api
+COPY worker ./worker
+RUN pip install ".[s3,postgres]" \
+    && useradd --create-home --uid 10001 voxe \
+    && mkdir -p /models /app/var && chown voxe /models /app/var
+USER voxe
+
+# prefork with one process: soft / hard time limits work and the process is recycled every
+# VOXE_WORKER_MAX_TASKS_PER_CHILD tasks (models stay loaded in between).
+CMD ["celery", "-A", "worker.celery_app", "worker", "-Q", "gpu", "--concurrency", "1", "--pool", "prefork", \
+     "-n", "gpu@%h", "-l", "info"]
