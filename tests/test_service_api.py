@@ -398,3 +398,93 @@ def test_missing_model_fails_the_job_with_a_clear_message(root, monkeypatch, dat
             assert part in failed["error"], failed["error"]
         # The rest of the chain sees a finished job and does nothing.
         assert "skipped" in tasks.export_task.apply(args=(job["id"],)).get()
+
+
+# ------------------------------------------------------------------------------------------ reconstruction sharing
+def _two_jobs(client, dataset, root):
+    scene = make_scene(client, dataset, root)
+    body = {"scene_id": scene["id"], "prompt": "a yarn doll of a mic"}
+    a, b = client.post("/v1/jobs", json=body).json(), client.post("/v1/jobs", json=body).json()
+    assert a["reconstruction"]["id"] == b["reconstruction"]["id"]
+    return a, b, a["reconstruction"]["id"]
+
+
+def test_reconstruction_claims(client, dataset, root):
+    """Exactly one job fits; a lapsed lease or a released claim lets another take over."""
+    from datetime import timedelta
+
+    from api.models import utcnow
+    from api.settings import get_settings
+    from worker import runtime
+
+    a, b, rec_id = _two_jobs(client, dataset, root)
+    settings = get_settings()
+    assert runtime.try_claim_reconstruction(rec_id, a["id"], "host-a", settings, allow_failed=True)
+    assert not runtime.try_claim_reconstruction(rec_id, b["id"], "host-b", settings, allow_failed=True)
+    assert runtime.try_claim_reconstruction(rec_id, a["id"], "host-a", settings, allow_failed=True)  # redelivered
+    runtime.set_reconstruction(rec_id, a["id"], lease_until=utcnow() - timedelta(seconds=1))  # a's worker died
+    assert runtime.try_claim_reconstruction(rec_id, b["id"], "host-b", settings, allow_failed=False)
+    assert not runtime.try_claim_reconstruction(rec_id, a["id"], "host-a", settings, allow_failed=True)
+    runtime.set_reconstruction(rec_id, b["id"], state="pending", owner_job_id=None, lease_until=None)  # b canceled
+    assert runtime.try_claim_reconstruction(rec_id, a["id"], "host-a", settings, allow_failed=False)
+    assert runtime.load_reconstruction(rec_id).run_count == 4
+    runtime.set_reconstruction(rec_id, a["id"], state="failed", lease_until=None)
+    assert not runtime.try_claim_reconstruction(rec_id, b["id"], "host-b", settings, allow_failed=False)  # waiters fail
+    assert runtime.try_claim_reconstruction(rec_id, b["id"], "host-b", settings, allow_failed=True)  # new jobs retry
+
+
+def test_a_job_waits_for_the_fit_another_job_runs(client, dataset, root):
+    import torch
+    from sqlalchemy import update
+
+    from api.db import session_scope
+    from api.models import Job
+    from api.settings import get_settings
+    from api.storage import get_storage
+    from voxe_core.grid import VoxelGrid
+    from voxe_core.progress import StageCancelled
+    from worker import runtime, tasks
+
+    a, b, rec_id = _two_jobs(client, dataset, root)
+    settings = get_settings()
+    assert runtime.try_claim_reconstruction(rec_id, a["id"], "host-a", settings, allow_failed=True)
+    with session_scope() as session:
+        session.execute(update(Job).values(state="running"))
+    outcome = {}
+
+    def wait_as_b():
+        try:
+            tasks._reconstruct(runtime.load_job(b["id"]), settings, "cpu", get_storage())
+            outcome["ok"] = True
+        except BaseException as exc:  # noqa: BLE001
+            outcome["error"] = exc
+
+    thread = threading.Thread(target=wait_as_b)
+    thread.start()
+    thread.join(1.5)
+    assert thread.is_alive()  # waiting
+    waiting = client.get(f"/v1/jobs/{b['id']}").json()
+    assert waiting["message"].startswith(f"waiting for the scene's reconstruction {rec_id} (fitted by job {a['id']})")
+
+    grid = VoxelGrid(8)
+    with torch.no_grad():
+        grid.features[2:6, 2:6, 2:6, 0] = 50.0
+    grid.save(root / "g.safetensors")
+    stored = get_storage().put_file(f"reconstructions/{rec_id}/grid.safetensors", root / "g.safetensors")
+    runtime.set_reconstruction(rec_id, a["id"], state="succeeded", grid_key=stored.key, grid_size=stored.size,
+                               grid_sha256=stored.sha256)
+    thread.join(20)
+    assert outcome == {"ok": True}
+    job = client.get(f"/v1/jobs/{b['id']}").json()
+    assert job["reconstruction"]["reused"] is True and job["reconstruction"]["run_count"] == 1
+    names = [x["name"] for x in client.get(f"/v1/jobs/{b['id']}/artifacts").json()]
+    assert names == ["initial_grid.safetensors", "preview.png"]
+
+    # A waiting job that is canceled stops waiting.
+    c = client.post("/v1/jobs", json={"scene_id": a["scene_id"], "prompt": "a mic", "params": {"downsample": 5}}).json()
+    d = client.post("/v1/jobs", json={"scene_id": a["scene_id"], "prompt": "a mic", "params": {"downsample": 5}}).json()
+    assert runtime.try_claim_reconstruction(c["reconstruction"]["id"], c["id"], "host-c", settings, True)
+    with session_scope() as session:
+        session.execute(update(Job).where(Job.id == d["id"]).values(state="running", cancel_requested=True))
+    with pytest.raises(StageCancelled):
+        tasks._reconstruct(runtime.load_job(d["id"]), settings, "cpu", get_storage())
