@@ -274,8 +274,8 @@ def _refine(job: Job, settings, device: str, storage) -> None:
 
     guidance = runtime.get_guidance(job.attention_model, device, settings)
     rec = runtime.load_reconstruction(job.reconstruction_id)
-    initial = _grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key)
-    edited = _grid(job.id, "edited_grid.safetensors", settings, storage)
+    initial = _grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key).to(device)
+    edited = _grid(job.id, "edited_grid.safetensors", settings, storage).to(device)
     config = refine_config(job.params, job.attention_model)
     callbacks = StageCallbacks(job.id, "refine", settings)
     result = refine(initial, edited, job.prompt, job.edit_words, guidance, config, callbacks.callbacks)
