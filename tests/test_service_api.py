@@ -488,3 +488,17 @@ def test_a_job_waits_for_the_fit_another_job_runs(client, dataset, root):
         session.execute(update(Job).where(Job.id == d["id"]).values(state="running", cancel_requested=True))
     with pytest.raises(StageCancelled):
         tasks._reconstruct(runtime.load_job(d["id"]), settings, "cpu", get_storage())
+
+
+def test_migrations_match_the_models(tmp_path):
+    from alembic import command
+    from alembic.config import Config
+
+    from api.main import MIGRATIONS, run_migrations
+
+    url = f"sqlite:///{tmp_path / 'migrated.db'}"
+    run_migrations(url)
+    config = Config()
+    config.set_main_option("script_location", str(MIGRATIONS))
+    config.set_main_option("sqlalchemy.url", url)
+    command.check(config)  # raises when the models have changes no migration covers
