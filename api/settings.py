@@ -62,6 +62,11 @@ class Settings(BaseSettings):
     worker_max_tasks_per_child: int = 20
     worker_heartbeat_s: float = Field(5.0, gt=0)
     readiness_timeout_s: float = Field(1.0, gt=0)
+    # A running job whose worker sent no heartbeat and the job no progress for this long was
+    # not redelivered: the API's reaper marks it failed (api/reaper.py). Also fails queued jobs
+    # the API never handed to the broker.
+    job_stale_timeout_s: float = Field(900.0, gt=0)
+    reaper_interval_s: float = Field(60.0, gt=0)
 
     @field_validator("s3_endpoint_url", "s3_region", mode="before")
     @classmethod

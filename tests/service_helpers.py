@@ -43,6 +43,17 @@ def service_env(root: Path, broker_url: str | None = None, **extra: str) -> dict
     return env
 
 
+def reset_service_caches() -> None:
+    """Forget cached settings, engine, Celery app and storage (in-process tests that change VOXE_*)."""
+    from api import storage
+    from api.db import reset_caches
+    from api.deps import get_celery
+
+    reset_caches()
+    get_celery.cache_clear()
+    storage._instances.clear()
+
+
 def zip_folder(folder: Path, dest: Path, prefix: str | None = None, only=None) -> Path:
     """Zip ``folder`` (under ``prefix/`` inside the archive when given); ``only(rel)`` filters files."""
     with zipfile.ZipFile(dest, "w") as zf:

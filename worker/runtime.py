@@ -13,6 +13,7 @@ import os
 import shutil
 import tempfile
 import time
+import uuid
 import zipfile
 from dataclasses import dataclass
 from datetime import timedelta
@@ -200,10 +201,18 @@ def job_key(job_id: str, name: str) -> str:
 
 def publish_artifact(job_id: str, name: str, path: str | os.PathLike, kind: str, storage: Storage | None = None,
                      key: str | None = None) -> Artifact:
-    """Upload ``path`` as the job's artifact ``name`` (replacing an earlier one of that name)."""
+    """Upload ``path`` as the job's artifact ``name``, then record it with the stored bytes' size and SHA-256.
+
+    The row is written only once the bytes are final, so a failed or killed upload is never listed.
+    A replaced artifact goes to a fresh key and the row switches to it in one update (the old
+    object is deleted after): the listed size and checksum always describe the bytes of its key.
+    """
     storage = storage or get_storage()
+    previous = recorded_key(job_id, name)
     if key is None:
-        stored = storage.put_file(job_key(job_id, name), path, content_type(name))
+        fixed = job_key(job_id, name)
+        key = fixed if previous != fixed else job_key(job_id, f"v-{uuid.uuid4().hex[:12]}/{name}")
+        stored = storage.put_file(key, path, content_type(name))
     else:  # already in storage under another key (e.g. the shared reconstruction)
         size, sha = file_sha256(path)
         stored = StoredObject(key, size, sha)
@@ -216,7 +225,22 @@ def publish_artifact(job_id: str, name: str, path: str | os.PathLike, kind: str,
             session.add(artifact)
         artifact.key, artifact.size, artifact.sha256 = stored.key, stored.size, stored.sha256
         artifact.content_type, artifact.kind, artifact.created_at = content_type(name), kind, utcnow()
+    if previous and previous != stored.key and previous.startswith(job_key(job_id, "")):
+        storage.delete(previous)  # never the shared reconstruction's grid: that lives outside jobs/<id>/
     return artifact
+
+
+def recorded_key(job_id: str, name: str) -> str | None:
+    """The storage key the job's artifact ``name`` is recorded under (it moves when the artifact is replaced)."""
+    with session_scope() as session:
+        return session.scalar(select(Artifact.key).where(Artifact.job_id == job_id, Artifact.name == name))
+
+
+def artifact_key(job_id: str, name: str) -> str:
+    key = recorded_key(job_id, name)
+    if key is None:
+        raise RuntimeError(f"job {job_id} has no artifact {name!r}")
+    return key
 
 
 def fetch(storage: Storage, key: str, dest: Path) -> Path:

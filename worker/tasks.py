@@ -131,7 +131,8 @@ def _preview(job_id: str, grid, settings, storage, device: str, image=None) -> N
 def _grid(job_id: str, name: str, settings, storage, key: str | None = None):
     from voxe_core.grid import VoxelGrid
 
-    path = runtime.fetch(storage, key or runtime.job_key(job_id, name), runtime.scratch_dir(job_id, settings) / name)
+    key = key or runtime.artifact_key(job_id, name)
+    path = runtime.fetch(storage, key, runtime.scratch_dir(job_id, settings) / name)
     return VoxelGrid.load(path)
 
 

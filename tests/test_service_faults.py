@@ -1,0 +1,235 @@
+"""Faults: orphaned jobs (the reaper), uploads that fail half way, an API and a Redis that restart.
+
+The in-process tests run on a private SQLite database and storage; the process tests start real
+uvicorn / Celery / redis-server subprocesses (tests/service_helpers.py) with the random-weight
+SMOKE-TEST model (VOXE_SDS_MODEL=tiny): they prove the plumbing, never edit quality.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from datetime import timedelta
+
+import pytest
+
+from service_helpers import reset_service_caches, service_env
+
+
+@pytest.fixture
+def db(tmp_path, monkeypatch):
+    """A migrated private database and local storage under ``tmp_path``; yields the settings."""
+    for key, value in service_env(tmp_path).items():
+        monkeypatch.setenv(key, value)
+    reset_service_caches()
+    from api.main import run_migrations
+    from api.settings import get_settings
+
+    settings = get_settings()
+    run_migrations(settings.database_url)
+    yield settings
+    reset_service_caches()
+
+
+def owner() -> dict:
+    """The owning API key's column, where the schema has one (the built-in key of the embedded default)."""
+    from api import models
+
+    return {"owner_key_id": models.LOCAL_KEY_ID} if hasattr(models.Scene, "owner_key_id") else {}
+
+
+def add_scene() -> str:
+    from api.db import session_scope
+    from api.models import Scene
+
+    with session_scope() as session:
+        scene = Scene(name="s", format="nerf_synthetic", image_count=1, width=8, height=8, splits=["train"],
+                      storage_key="scenes/s/dataset.zip", size_bytes=1, sha256="0" * 64, **owner())
+        session.add(scene)
+        session.flush()
+        return scene.id
+
+
+def add_job(scene_id: str, state: str, age_s: float, worker: str | None = None, stage: str | None = None,
+            task_id: str | None = "task") -> str:
+    from api.db import session_scope
+    from api.models import Job, utcnow
+
+    then = utcnow() - timedelta(seconds=age_s)
+    with session_scope() as session:
+        job = Job(scene_id=scene_id, prompt="a yarn doll of a mic", mode="global", params={}, sds_model="tiny",
+                  attention_model="tiny", device="cpu", state=state, stage=stage, worker_hostname=worker,
+                  task_id=task_id, created_at=then, updated_at=then, **owner())
+        session.add(job)
+        session.flush()
+        return job.id
+
+
+def add_heartbeat(hostname: str, age_s: float) -> None:
+    from api.db import session_scope
+    from api.models import WorkerHeartbeat, utcnow
+
+    with session_scope() as session:
+        session.add(WorkerHeartbeat(hostname=hostname, pid=1, queues="gpu", device="cpu",
+                                    last_seen=utcnow() - timedelta(seconds=age_s)))
+
+
+def job_row(job_id: str):
+    from worker.runtime import load_job
+
+    return load_job(job_id)
+
+
+# ---------------------------------------------------------------------------------------------- the reaper
+def test_reaper_fails_only_jobs_nothing_will_finish(db):
+    from api.reaper import reap_orphaned_jobs
+
+    timeout = db.job_stale_timeout_s
+    scene = add_scene()
+    add_heartbeat("alive@host", age_s=1)
+    add_heartbeat("dead@host", age_s=2 * timeout)
+    orphans = {
+        "dead worker": add_job(scene, "running", 2 * timeout, "dead@host", "edit"),
+        "no heartbeat ever": add_job(scene, "running", 2 * timeout, "gone@host", "refine"),
+        "no worker recorded": add_job(scene, "running", 2 * timeout, None, "reconstruct"),
+        "never queued": add_job(scene, "queued", 2 * timeout, task_id=None),
+    }
+    kept = {
+        "worker alive (re-queued, waiting its turn)": add_job(scene, "running", 2 * timeout, "alive@host", "edit"),
+        "recent progress": add_job(scene, "running", timeout / 2, "dead@host", "edit"),
+        "queued in the broker": add_job(scene, "queued", 2 * timeout),
+        "queued just now, not yet sent": add_job(scene, "queued", timeout / 2, task_id=None),
+        "succeeded": add_job(scene, "succeeded", 2 * timeout, "dead@host", "export"),
+        "canceled": add_job(scene, "canceled", 2 * timeout, "dead@host", "edit"),
+    }
+    assert sorted(reap_orphaned_jobs(db)) == sorted(orphans.values())
+    dead = job_row(orphans["dead worker"])
+    assert dead.state == "failed" and dead.finished_at is not None
+    assert dead.error == (f"worker dead@host stopped while the job was in edit: no heartbeat and no progress for "
+                          f"{timeout:.0f} s, and the task was not redelivered (VOXE_JOB_STALE_TIMEOUT_S)")
+    assert job_row(orphans["no worker recorded"]).error.startswith("worker (unknown) stopped while the job was in "
+                                                                   "reconstruct")
+    assert job_row(orphans["never queued"]).error.startswith("the job was never handed to the broker")
+    for what, job_id in kept.items():
+        before = job_row(job_id)
+        assert before.error is None and before.state in ("running", "queued", "succeeded", "canceled"), what
+    assert {job_row(j).state for j in kept.values()} == {"running", "queued", "succeeded", "canceled"}
+    assert reap_orphaned_jobs(db) == []  # nothing left to do: a second pass changes nothing
+
+
+def test_api_startup_reaps_and_deletes_the_orphans_checkpoints(db):
+    """The reaper runs in the API process: a restarted API fails what a dead worker left running."""
+    import time
+
+    from fastapi.testclient import TestClient
+
+    from api.main import create_app
+    from api.storage import get_storage
+
+    scene = add_scene()
+    orphan = add_job(scene, "running", 2 * db.job_stale_timeout_s, "dead@host", "edit")
+    storage = get_storage(db)
+    storage.put_bytes(f"jobs/{orphan}/checkpoints/edit.safetensors", b"state")
+    with TestClient(create_app()) as client:
+        deadline = time.monotonic() + 10
+        while client.get(f"/v1/jobs/{orphan}").json()["state"] != "failed" and time.monotonic() < deadline:
+            time.sleep(0.05)
+        job = client.get(f"/v1/jobs/{orphan}").json()
+        assert job["state"] == "failed" and "worker dead@host stopped" in job["error"], job
+        deadline = time.monotonic() + 10
+        while storage.list(f"jobs/{orphan}/") and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert storage.list(f"jobs/{orphan}/") == []
+
+
+# ---------------------------------------------------------------------------------------------- atomic artifacts
+class Crash(Exception):
+    """Stands in for a worker dying half way through an upload."""
+
+
+def listed(job_id: str) -> list[tuple[str, int, str]]:
+    from sqlalchemy import select
+
+    from api.db import session_scope
+    from api.models import Artifact
+
+    with session_scope() as session:
+        return [(a.name, a.size, a.sha256) for a in session.scalars(select(Artifact).where(Artifact.job_id == job_id))]
+
+
+def stored_bytes(storage, job_id: str, name: str) -> bytes:
+    from worker.runtime import artifact_key
+
+    return b"".join(storage.open_range(artifact_key(job_id, name)))
+
+
+def test_an_upload_failing_mid_write_is_never_listed_and_leaves_no_file(db, tmp_path, monkeypatch):
+    from api.storage import get_storage
+    from worker.runtime import publish_artifact
+
+    storage = get_storage(db)
+    job_id = add_job(add_scene(), "running", 0, "w@host", "export")
+    old, new = tmp_path / "old.bin", tmp_path / "new.bin"
+    old.write_bytes(b"first version " * 1000)
+    new.write_bytes(b"second, longer version " * 5000)
+    job_files = lambda: sorted(p.name for p in (tmp_path / "storage" / "jobs").rglob("*") if p.is_file())  # noqa: E731
+
+    def crash_after_the_bytes(_fd):  # the bytes are in the temporary file; it dies before the rename
+        raise Crash()
+
+    monkeypatch.setattr("api.storage.os.fsync", crash_after_the_bytes)
+    with pytest.raises(Crash):
+        publish_artifact(job_id, "render_000.png", old, "render", storage)
+    assert listed(job_id) == [] and job_files() == []
+
+    monkeypatch.undo()
+    publish_artifact(job_id, "render_000.png", old, "render", storage)
+    first = ("render_000.png", old.stat().st_size, hashlib.sha256(old.read_bytes()).hexdigest())
+    assert listed(job_id) == [first]
+
+    monkeypatch.setattr("api.storage.os.fsync", crash_after_the_bytes)
+    with pytest.raises(Crash):  # replacing it fails half way: the old version stays listed, whole
+        publish_artifact(job_id, "render_000.png", new, "render", storage)
+    assert listed(job_id) == [first] and stored_bytes(storage, job_id, "render_000.png") == old.read_bytes()
+    assert job_files() == ["render_000.png"]
+
+    monkeypatch.undo()
+    publish_artifact(job_id, "render_000.png", new, "render", storage)
+    data = stored_bytes(storage, job_id, "render_000.png")
+    assert data == new.read_bytes()
+    assert listed(job_id) == [("render_000.png", len(data), hashlib.sha256(data).hexdigest())]
+    assert job_files() == ["render_000.png"]  # the replaced version was deleted
+
+
+def test_a_multipart_s3_upload_failing_half_way_is_never_listed(db, tmp_path, monkeypatch):
+    """boto3 uploads large files in parts; a part that fails aborts the upload: no object, no row."""
+    from api.storage import S3Storage
+    from service_helpers import moto_s3
+    from worker.runtime import publish_artifact
+
+    with moto_s3() as env:
+        for key in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_DEFAULT_REGION"):
+            monkeypatch.setenv(key, env[key])
+        storage = S3Storage("voxe-faults", endpoint_url=env["VOXE_S3_ENDPOINT_URL"], region="us-east-1")
+        job_id = add_job(add_scene(), "running", 0, "w@host", "edit")
+        big = tmp_path / "grid.safetensors"
+        big.write_bytes(os.urandom(20 * 1024 * 1024))  # above boto3's 8 MiB multipart threshold
+        parts = []
+
+        def fail_the_second_part(**_kwargs):
+            parts.append(1)
+            if len(parts) == 2:
+                raise Crash()
+
+        storage.client.meta.events.register("before-call.s3.UploadPart", fail_the_second_part)
+        with pytest.raises(Crash):
+            publish_artifact(job_id, "edited_grid.safetensors", big, "grid", storage)
+        assert len(parts) >= 2
+        assert listed(job_id) == [] and storage.list("jobs/") == []
+        assert storage.client.list_multipart_uploads(Bucket="voxe-faults").get("Uploads", []) == []
+
+        storage.client.meta.events.unregister("before-call.s3.UploadPart", fail_the_second_part)
+        publish_artifact(job_id, "edited_grid.safetensors", big, "grid", storage)
+        data = stored_bytes(storage, job_id, "edited_grid.safetensors")
+        assert listed(job_id) == [("edited_grid.safetensors", len(data), hashlib.sha256(data).hexdigest())]
+        assert data == big.read_bytes()
