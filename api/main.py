@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import logging
+import math
 from contextlib import asynccontextmanager
 from pathlib import Path
 
 from fastapi import FastAPI
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
 
 from api.settings import Settings, get_settings, model_label
 
@@ -84,6 +88,10 @@ def create_app(settings: Settings | None = None, migrate: bool = True) -> FastAP
 
     @asynccontextmanager
     async def lifespan(_app: FastAPI):
+        from api.auth import check_startup
+
+        auth_line = check_startup(settings)  # refuses auth off on a reachable address before anything else
+        (log.info if settings.auth_enabled else log.warning)("Vox-E API: %s", auth_line)
         if migrate:
             run_migrations(settings.database_url)
         from api.storage import get_storage
@@ -118,7 +126,24 @@ def create_app(settings: Settings | None = None, migrate: bool = True) -> FastAP
     app.include_router(jobs.router)
     app.include_router(artifacts.router)
     app.add_middleware(UploadLimit, max_bytes=settings.max_upload_bytes)
+    app.add_exception_handler(RequestValidationError, validation_error)
     return app
+
+
+def _json_safe(value):
+    """JSON-encodable errors: non-finite floats (a body may send NaN or Infinity) become their names."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+async def validation_error(_request, exc: RequestValidationError) -> JSONResponse:
+    """FastAPI's 422, but never a 500 when the offending input was NaN or Infinity."""
+    return JSONResponse(status_code=422, content={"detail": _json_safe(jsonable_encoder(exc.errors()))})
 
 
 def __getattr__(name: str):  # ``uvicorn api.main:app`` builds the app on first access

@@ -1,11 +1,12 @@
-"""Database tables: scenes, their cached reconstructions, jobs, job artifacts and worker heartbeats."""
+"""Database tables: API keys, scenes, their cached reconstructions, jobs, job artifacts, idempotency records
+and worker heartbeats."""
 
 from __future__ import annotations
 
 import uuid
 from datetime import datetime, timezone
 
-from sqlalchemy import JSON, Boolean, DateTime, Float, ForeignKey, Integer, String, Text, TypeDecorator, UniqueConstraint
+from sqlalchemy import JSON, BigInteger, Boolean, DateTime, Float, ForeignKey, Integer, String, Text, TypeDecorator, UniqueConstraint
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 
 
@@ -46,10 +47,33 @@ STAGES = ("reconstruct", "edit", "refine", "export")
 R_PENDING, R_RUNNING, R_SUCCEEDED, R_FAILED = "pending", "running", "succeeded", "failed"
 
 
+# The key every request acts as while authentication is off (loopback only); it has no token.
+LOCAL_KEY_ID = "local"
+
+
+class ApiKey(Base):
+    """A client's key. Only the sha256 of the token is stored; the token is shown once, at creation.
+
+    Tokens read ``voxe_<id>_<secret>``: the id finds the row, the hash is compared in constant time.
+    Quota columns left NULL fall back to the service-wide defaults.
+    """
+
+    __tablename__ = "api_keys"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    name: Mapped[str] = mapped_column(String(255))
+    token_sha256: Mapped[str | None] = mapped_column(String(64), nullable=True)  # NULL: cannot authenticate
+    max_active_jobs: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    max_upload_bytes: Mapped[int | None] = mapped_column(BigInteger, nullable=True)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    revoked_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+
+
 class Scene(Base):
     __tablename__ = "scenes"
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    owner_key_id: Mapped[str] = mapped_column(ForeignKey("api_keys.id"), index=True)
     name: Mapped[str] = mapped_column(String(255))
     format: Mapped[str] = mapped_column(String(32))
     image_count: Mapped[int] = mapped_column(Integer)
@@ -103,6 +127,7 @@ class Job(Base):
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
     scene_id: Mapped[str] = mapped_column(ForeignKey("scenes.id", ondelete="CASCADE"), index=True)
+    owner_key_id: Mapped[str] = mapped_column(ForeignKey("api_keys.id"), index=True)
     reconstruction_id: Mapped[str | None] = mapped_column(
         ForeignKey("reconstructions.id", ondelete="SET NULL"), nullable=True, index=True
     )
@@ -156,6 +181,25 @@ class Artifact(Base):
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
 
     job: Mapped[Job] = relationship(back_populates="artifacts")
+
+
+class IdempotencyRecord(Base):
+    """The resource a request with an ``Idempotency-Key`` created, so a retry returns it instead of a twin.
+
+    Unique per (key owner, endpoint, Idempotency-Key); ``request_sha256`` tells a retry from a
+    different request reusing the same Idempotency-Key.
+    """
+
+    __tablename__ = "idempotency_records"
+    __table_args__ = (UniqueConstraint("owner_key_id", "endpoint", "idempotency_key", name="uq_idempotency"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    owner_key_id: Mapped[str] = mapped_column(ForeignKey("api_keys.id"))
+    endpoint: Mapped[str] = mapped_column(String(32))  # "scenes" or "jobs"
+    idempotency_key: Mapped[str] = mapped_column(String(255))
+    request_sha256: Mapped[str] = mapped_column(String(64))
+    resource_id: Mapped[str] = mapped_column(String(32))
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
 
 
 class WorkerHeartbeat(Base):

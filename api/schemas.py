@@ -7,8 +7,9 @@ fields, so a misspelt parameter is a 422 naming it instead of a silently ignored
 from __future__ import annotations
 
 import re
+import unicodedata
 from datetime import datetime
-from typing import Generic, Literal, TypeVar
+from typing import Annotated, Generic, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -19,8 +20,13 @@ JobState = Literal["queued", "running", "succeeded", "failed", "canceled"]
 Stage = Literal["reconstruct", "edit", "refine", "export"]
 
 
+MAX_SEED = 2**32 - 1  # numpy's seed range
+
+
 class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    """Unknown fields and non-finite numbers (JSON's NaN / Infinity extensions) are 422s naming the field."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 # ------------------------------------------------------------------ job parameters
@@ -37,14 +43,14 @@ class ReconstructionParams(Strict):
         None, description="iterations of the final stage, or one value per stage (the preset's otherwise)"
     )
     rays_per_step: int | None = Field(None, ge=1, le=1 << 20)
-    seed: int = Field(0, ge=0)
+    seed: int = Field(0, ge=0, le=MAX_SEED)
 
     @field_validator("iterations")
     @classmethod
     def _iterations(cls, value):
         values = [value] if isinstance(value, int) else value
-        if values is not None and (not values or any(v < 0 or v > 1_000_000 for v in values)):
-            raise ValueError("iterations must be integers in [0, 1000000]")
+        if values is not None and (not values or len(values) > 8 or any(v < 0 or v > 1_000_000 for v in values)):
+            raise ValueError("iterations must be 1-8 integers in [0, 1000000]")
         return value
 
 
@@ -52,15 +58,16 @@ class RefineParams(Strict):
     """Spatial refinement of local edits (SPEC §3)."""
 
     iterations: int = Field(1500, ge=0, le=100_000, description="fitting iterations of the 3D attention grids")
-    lr: float = Field(0.035, gt=0)
-    tv_weight: float = Field(0.01, ge=0)
+    lr: float = Field(0.035, gt=0, le=10)
+    tv_weight: float = Field(0.01, ge=0, le=1e6)
     render_size: int | None = Field(None, ge=8, le=1024, description="attention render size (default: the edit's)")
     views: int = Field(32, ge=1, le=1000, description="random upper-hemisphere poses whose 2D attention maps are lifted")
     rays_per_step: int = Field(8192, ge=1, le=1 << 20)
-    edit_seeds: int = Field(300, ge=0, description="top voxels by P_edit tied to the 'edit' terminal")
-    object_seeds: int = Field(200, ge=0, description="top voxels by P_object tied to the 'object' terminal")
-    sigma: float = Field(0.1, gt=0, description="colour scale of the pairwise weights")
-    smoothness: float = Field(5.0, ge=0, description="graph-cut smoothness weight λ")
+    edit_seeds: int = Field(300, ge=0, le=10_000_000, description="top voxels by P_edit tied to the 'edit' terminal")
+    object_seeds: int = Field(200, ge=0, le=10_000_000,
+                              description="top voxels by P_object tied to the 'object' terminal")
+    sigma: float = Field(0.1, gt=0, le=1e6, description="colour scale of the pairwise weights")
+    smoothness: float = Field(5.0, ge=0, le=1e6, description="graph-cut smoothness weight λ")
 
 
 class ExportParams(Strict):
@@ -78,21 +85,21 @@ class ExportParams(Strict):
 class JobParams(Strict):
     # input images
     downsample: int = Field(3, ge=1, le=64, description="integer image downsampling on load (paper: 800 px / 3)")
-    max_images: int | None = Field(None, ge=1, description="use only the first N training images")
+    max_images: int | None = Field(None, ge=1, le=100_000, description="use only the first N training images")
     # editing (SPEC §2)
     iterations: int = Field(8000, ge=0, le=200_000, description="edit iterations")
     render_size: int = Field(266, ge=8, le=1024, description="edit render size in pixels")
     guidance_scale: float = Field(100.0, gt=0, le=1000)
     lr: float = Field(0.03, gt=0, le=10)
     regulariser: Regulariser = "reg3d"
-    regulariser_weight: float = Field(200.0, ge=0)
+    regulariser_weight: float = Field(200.0, ge=0, le=1e6)
     timestep_schedule: Literal["paper", "authors"] = Field(
         "paper", description="annealing floor 0.35 (paper) or 0.22 (authors' code)"
     )
     batch_size: int = Field(1, ge=1, le=16)
     autocast: Literal["bf16", "fp16"] | None = None
-    seed: int = Field(0, ge=0)
-    preview_every: int = Field(100, ge=0, description="iterations between preview renders (0: none)")
+    seed: int = Field(0, ge=0, le=MAX_SEED)
+    preview_every: int = Field(100, ge=0, le=200_000, description="iterations between preview renders (0: none)")
     reconstruction: ReconstructionParams = Field(default_factory=ReconstructionParams)
     refine: RefineParams = Field(default_factory=RefineParams)
     export: ExportParams = Field(default_factory=ExportParams)
@@ -109,8 +116,8 @@ class JobCreate(Strict):
     scene_id: str = Field(min_length=1, max_length=64)
     prompt: str = Field(min_length=1, max_length=500, description='e.g. "a microphone wearing big sunglasses"')
     mode: Literal["global", "local"] = "global"
-    edit_words: list[str] = Field(
-        default_factory=list,
+    edit_words: list[Annotated[str, Field(min_length=1, max_length=100)]] = Field(
+        default_factory=list, max_length=16,
         description="local edits: the word(s) of the prompt naming the edit (e.g. ['sunglasses'])",
     )
     params: JobParams = Field(default_factory=JobParams)
@@ -123,6 +130,8 @@ class JobCreate(Strict):
     @field_validator("prompt")
     @classmethod
     def _prompt(cls, value: str) -> str:
+        if any(unicodedata.category(c) == "Cc" and not c.isspace() for c in value):
+            raise ValueError("the prompt contains control characters")
         value = " ".join(value.split())
         if not words_of(value):
             raise ValueError("the prompt has no words")

@@ -8,6 +8,7 @@ S3-compatible storage (MinIO) through the same variables.
 
 from __future__ import annotations
 
+import ipaddress
 from functools import lru_cache
 from pathlib import Path
 from typing import Literal
@@ -49,6 +50,15 @@ class Settings(BaseSettings):
     max_extracted_bytes: int = Field(8 * 1024**3, gt=0)
     max_upload_files: int = Field(20_000, gt=0)
     validation_downsample: int = Field(8, ge=1)  # images are decoded at 1/8 size to validate an upload
+    max_compression_ratio: float = Field(200.0, gt=1)  # a zip entry inflating more than this is a bomb
+    max_image_pixels: int = Field(50_000_000, gt=0)  # per image, read from its header before decoding
+
+    # --- access: API keys (python -m api.admin) and per-key quotas
+    host: str = "127.0.0.1"  # the address the API listens on (.ci/serve passes it to uvicorn)
+    auth: Literal["auto", "on", "off"] = "auto"  # auto: off on a loopback host, on anywhere else
+    max_active_jobs_per_key: int = Field(20, ge=1)  # queued + running jobs; a key's own value wins
+    max_upload_bytes_per_key: int = Field(50 * 1024**3, ge=1)  # stored scene bytes; a key's own value wins
+    quota_retry_after_s: int = Field(60, ge=1)
 
     # --- worker behaviour
     progress_interval_s: float = Field(0.5, gt=0)  # at most one progress write per interval (2/s)
@@ -74,12 +84,26 @@ class Settings(BaseSettings):
         return None if value == "" else value
 
     @property
+    def auth_enabled(self) -> bool:
+        return self.auth == "on" or (self.auth == "auto" and not is_loopback(self.host))
+
+    @property
     def resolved_device(self) -> str:
         if self.device != "auto":
             return self.device
         import torch
 
         return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def is_loopback(host: str) -> bool:
+    """True for localhost and loopback addresses (127.0.0.0/8, ::1); a name other than localhost is not."""
+    if host.strip().lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip().strip("[]")).is_loopback
+    except ValueError:
+        return False
 
 
 def model_label(model: str) -> str:

@@ -4,10 +4,13 @@ Nothing is committed until the dataset has loaded cleanly: the caller moves the
 packaged archive into storage and inserts the scene row only after
 :func:`ingest` returns, and the staging folder is always removed.
 
-Basic archive hygiene (a later issue hardens it further): entries with ``..``,
-absolute or drive paths, symbolic links, more than ``max_upload_files`` entries
-or more than ``max_extracted_bytes`` of content are refused, and sizes are
-counted while extracting (not trusted from the archive's directory).
+Hostile archives: entries with ``..``, absolute or drive paths, symbolic links or
+encryption, more than ``max_upload_files`` files, more than ``max_extracted_bytes``
+of content, or an entry inflating more than ``max_compression_ratio`` times the
+compressed bytes it was read from are refused. Sizes and ratios are counted while
+extracting, from the bytes actually read and written, never from the archive's
+directory. Images are checked against ``max_image_pixels`` from their headers
+before any is decoded (decompression bombs).
 """
 
 from __future__ import annotations
@@ -17,16 +20,18 @@ import re
 import shutil
 import stat
 import tempfile
+import warnings
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import BinaryIO
 
-from PIL import Image
+from PIL import Image, UnidentifiedImageError
 
 from voxe_core.data import DatasetError, detect_format, load_scene
 
 _IGNORED = ("__MACOSX", ".DS_Store", "Thumbs.db")
+_RATIO_FLOOR = 4 << 20  # below this many bytes out of an entry, any ratio is fine (small text compresses well)
 _STORED_SUFFIXES = {".png", ".jpg", ".jpeg", ".webp", ".exr", ".zip", ".gz"}
 
 
@@ -68,36 +73,71 @@ def _ignored(path: PurePosixPath) -> bool:
 
 
 class _Budget:
-    def __init__(self, max_bytes: int, max_files: int):
-        self.max_bytes, self.max_files = max_bytes, max_files
+    def __init__(self, max_bytes: int, max_files: int, max_ratio: float):
+        self.max_bytes, self.max_files, self.max_ratio = max_bytes, max_files, max_ratio
         self.bytes = self.files = 0
 
     def add_file(self) -> None:
         self.files += 1
         if self.files > self.max_files:
-            raise UploadError(f"too many files: more than {self.max_files}", 413)
+            raise UploadError(f"too many files: more than {self.max_files} (VOXE_MAX_UPLOAD_FILES)", 413)
 
     def add_bytes(self, n: int) -> None:
         self.bytes += n
         if self.bytes > self.max_bytes:
-            raise UploadError(f"upload too large: more than {self.max_bytes} bytes of content", 413)
+            raise UploadError(f"upload too large: more than {self.max_bytes} bytes of content "
+                              "(VOXE_MAX_EXTRACTED_BYTES)", 413)
+
+    def check_ratio(self, name: str, written: int, compressed: int) -> None:
+        if written > _RATIO_FLOOR and written > self.max_ratio * max(compressed, 1):
+            raise UploadError(f"refused entry {name!r}: it inflates more than {self.max_ratio:g} times the "
+                              f"{compressed} compressed bytes read so far (a zip bomb?; "
+                              "VOXE_MAX_COMPRESSION_RATIO)", 413)
 
 
-def _copy(src: BinaryIO, dest: Path, budget: _Budget) -> None:
+class _CountingReader:
+    """A seekable file that counts the bytes read from it: what a zip entry really consumed."""
+
+    def __init__(self, raw: BinaryIO):
+        self.raw, self.consumed = raw, 0
+
+    def read(self, n: int = -1) -> bytes:
+        data = self.raw.read(n)
+        self.consumed += len(data)
+        return data
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        return self.raw.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self.raw.tell()
+
+    def seekable(self) -> bool:
+        return True
+
+
+def _copy(src: BinaryIO, dest: Path, budget: _Budget, consumed=None, name: str = "") -> None:
+    """Stream ``src`` into a new file, charging the budget; ``consumed()`` (compressed bytes so far) bounds the ratio."""
     dest.parent.mkdir(parents=True, exist_ok=True)
+    written = 0
     with open(dest, "xb") as out:
         while chunk := src.read(1 << 20):
             budget.add_bytes(len(chunk))
+            written += len(chunk)
+            if consumed is not None:
+                budget.check_ratio(name, written, consumed())
             out.write(chunk)
 
 
 def extract_zip(source: BinaryIO, dest: Path, budget: _Budget) -> None:
+    """Check every entry's name and type first, then stream the entries out under the budget."""
+    reader = _CountingReader(source)
     try:
-        archive = zipfile.ZipFile(source)
-    except (zipfile.BadZipFile, OSError, ValueError) as exc:
+        archive = zipfile.ZipFile(reader)
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
         raise UploadError(f"archive is not a readable zip file: {exc}") from None
     with archive:
-        entries = []
+        entries, seen = [], {}
         for info in archive.infolist():
             path = safe_relative(info.filename)
             if stat.S_ISLNK(info.external_attr >> 16):
@@ -106,15 +146,20 @@ def extract_zip(source: BinaryIO, dest: Path, budget: _Budget) -> None:
                 continue
             if info.flag_bits & 0x1:
                 raise UploadError(f"refused entry {info.filename!r}: encrypted zip entries are not supported")
+            if path in seen:
+                raise UploadError(f"duplicate entry {info.filename!r} in the archive (same path as {seen[path]!r})")
+            seen[path] = info.filename
+            budget.add_file()
             entries.append((info, path))
         for info, path in entries:
-            budget.add_file()
             try:
                 with archive.open(info) as member:
-                    _copy(member, dest / path, budget)
+                    start = reader.consumed
+                    _copy(member, dest / path, budget, lambda: reader.consumed - start, info.filename)
             except FileExistsError:
-                raise UploadError(f"duplicate entry {info.filename!r} in the archive") from None
-            except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, NotImplementedError) as exc:
+                raise UploadError(f"entry {info.filename!r} collides with another entry's path") from None
+            except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, NotImplementedError,
+                    ValueError, RuntimeError) as exc:
                 raise UploadError(f"cannot extract {info.filename!r}: {exc}") from None
 
 
@@ -128,7 +173,9 @@ def save_files(files: list[tuple[str, BinaryIO]], dest: Path, budget: _Budget) -
         try:
             _copy(handle, dest / path, budget)
         except FileExistsError:
-            raise UploadError(f"file {name!r} uploaded twice") from None
+            raise UploadError(f"file {name!r} uploaded twice (or collides with another file's path)") from None
+        except OSError as exc:
+            raise UploadError(f"cannot store file {name!r}: {exc.strerror or exc}") from None
 
 
 def dataset_root(folder: Path) -> Path:
@@ -144,6 +191,27 @@ def dataset_root(folder: Path) -> Path:
             continue
         break
     return root
+
+
+def check_image_pixels(folder: Path, max_pixels: int) -> None:
+    """413 for any image whose header declares more than ``max_pixels`` pixels (nothing is decoded)."""
+    for path in sorted(folder.rglob("*")):
+        if not path.is_file():
+            continue
+        name = path.relative_to(folder).as_posix()
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+                with Image.open(path) as image:
+                    width, height = image.size
+        except Image.DecompressionBombError:
+            width = height = None
+        except (UnidentifiedImageError, OSError, SyntaxError, ValueError):
+            continue  # not an image (the json, a readme); the loader reports referenced images it cannot read
+        if width is None or width * height > max_pixels:
+            size = f"{width}x{height} ({width * height} pixels)" if width is not None else "huge"
+            raise UploadError(f"image {name!r} is {size}, over the limit of {max_pixels} pixels per image "
+                              "(a decompression bomb?; VOXE_MAX_IMAGE_PIXELS)", 413)
 
 
 def _image_size(root: Path, name: str) -> tuple[int, int]:
@@ -197,6 +265,8 @@ def ingest(
     max_bytes: int,
     max_files: int,
     validation_downsample: int,
+    max_ratio: float,
+    max_image_pixels: int,
 ) -> tuple[Ingested, Path]:
     """Unpack, validate and package an upload; returns (result, staging folder to remove after storing)."""
     if (archive is None) == (not files):
@@ -204,13 +274,14 @@ def ingest(
     work_dir.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(dir=work_dir, prefix="upload-"))
     try:
-        budget = _Budget(max_bytes, max_files)
+        budget = _Budget(max_bytes, max_files, max_ratio)
         unpacked = staging / "data"
         unpacked.mkdir()
         if archive is not None:
             extract_zip(archive, unpacked, budget)
         else:
             save_files(files, unpacked, budget)
+        check_image_pixels(unpacked, max_image_pixels)
         root = dataset_root(unpacked)
         fmt, count, width, height, splits = validate(root, unpacked, validation_downsample)
         packed = staging / "dataset.zip"

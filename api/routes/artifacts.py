@@ -9,8 +9,9 @@ from fastapi.responses import StreamingResponse
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from api.auth import current_key
 from api.deps import get_session, storage_dep
-from api.models import Artifact
+from api.models import ApiKey, Artifact
 from api.routes.jobs import get_job_or_404
 from api.schemas import ArtifactOut
 from api.storage import ObjectNotFound, Storage
@@ -57,9 +58,11 @@ def _unsatisfiable(size: int, detail: str) -> HTTPException:
                          headers={"Content-Range": f"bytes */{size}", "Accept-Ranges": "bytes"})
 
 
-@router.get("", response_model=list[ArtifactOut], responses={404: {"description": "no such job"}})
-def list_artifacts(job_id: str, session: Session = Depends(get_session)) -> list[ArtifactOut]:
-    get_job_or_404(session, job_id)
+@router.get("", response_model=list[ArtifactOut], responses={404: {"description": "no such job (or another key's)"}})
+def list_artifacts(
+    job_id: str, session: Session = Depends(get_session), key: ApiKey = Depends(current_key)
+) -> list[ArtifactOut]:
+    get_job_or_404(session, job_id, key)
     rows = session.scalars(select(Artifact).where(Artifact.job_id == job_id).order_by(Artifact.id))
     return [artifact_out(job_id, a) for a in rows]
 
@@ -74,8 +77,9 @@ def list_artifacts(job_id: str, session: Session = Depends(get_session)) -> list
 def get_artifact(
     job_id: str, name: str, request: Request,
     session: Session = Depends(get_session), storage: Storage = Depends(storage_dep),
+    key: ApiKey = Depends(current_key),
 ) -> Response:
-    get_job_or_404(session, job_id)
+    get_job_or_404(session, job_id, key)
     # Only names recorded for this job are served: no path is ever built from the request.
     artifact = session.scalars(select(Artifact).where(Artifact.job_id == job_id, Artifact.name == name)).first()
     if artifact is None:

@@ -1,21 +1,24 @@
-"""/v1/jobs: create (queues the stage chain), list, get, cancel."""
+"""/v1/jobs: create (queues the stage chain), list, get, cancel; each key sees only its own."""
 
 from __future__ import annotations
 
 import logging
 
 from celery import Celery
-from fastapi import APIRouter, Depends, HTTPException, Query, Request, status
+import hashlib
+
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response, status
 from sqlalchemy import func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
+from api.auth import REPLAYED_HEADER, Idempotency, check_active_jobs, current_key, idempotency_key, lock_key
 from api.db import get_sessionmaker
 from api.deps import celery_dep, get_session, settings_dep
 from api.models import (
-    CANCELED, FAILED, QUEUED, RUNNING, TERMINAL_STATES, Job, Reconstruction, new_id, utcnow,
+    CANCELED, FAILED, QUEUED, RUNNING, TERMINAL_STATES, ApiKey, Job, Reconstruction, new_id, utcnow,
 )
-from api.routes.scenes import get_scene_or_404
+from api.routes.scenes import MAX_OFFSET, get_scene_or_404
 from api.schemas import JobCreate, JobOut, JobReconstruction, JobState, Models, Page
 from api.settings import Settings, model_label
 from worker.celery_app import stage_chain
@@ -24,7 +27,7 @@ from worker.configs import reconstruction_key, reconstruction_params
 log = logging.getLogger("voxe.api")
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
-_ERRORS = {404: {"description": "no such job"}}
+_ERRORS = {404: {"description": "no such job (or another key's)"}}
 
 
 def job_out(job: Job, request: Request | None = None) -> JobOut:
@@ -52,9 +55,10 @@ def job_out(job: Job, request: Request | None = None) -> JobOut:
     )
 
 
-def get_job_or_404(session: Session, job_id: str) -> Job:
+def get_job_or_404(session: Session, job_id: str, key: ApiKey) -> Job:
+    """The key's job; another key's job is as absent as a missing one."""
     job = session.get(Job, job_id)
-    if job is None:
+    if job is None or job.owner_key_id != key.id:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id!r} not found")
     return job
 
@@ -80,26 +84,63 @@ def _reconstruction_for(session: Session, scene_id: str, params: dict) -> Recons
     return session.scalars(query).one()
 
 
+def _replay(response: Response, job: Job | None, idem: Idempotency, job_id: str) -> JobOut:
+    if job is None:
+        raise HTTPException(status.HTTP_409_CONFLICT, f"the job {job_id!r} that Idempotency-Key {idem.key!r} "
+                                                      "created has been deleted (with its scene); use a new key")
+    response.status_code = status.HTTP_200_OK
+    response.headers[REPLAYED_HEADER] = "true"
+    return job_out(job)
+
+
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=JobOut,
-             responses={404: {"description": "no such scene"}, 422: {"description": "invalid job"},
+             responses={200: {"description": "a retry with the same Idempotency-Key: the job it created"},
+                        401: {"description": "missing or invalid API key"},
+                        404: {"description": "no such scene (or another key's)"},
+                        422: {"description": "invalid job (the field is named), or an Idempotency-Key reused "
+                                             "with a different body"},
+                        429: {"description": "the key's quota of queued + running jobs is used up (Retry-After)"},
                         503: {"description": "the job could not be queued (broker unreachable)"}},
-             summary="Create an edit job (queued at once)")
+             summary="Create an edit job (queued at once; optionally with an Idempotency-Key header)")
 def create_job(
     body: JobCreate,
+    request: Request,
+    response: Response,
     session: Session = Depends(get_session),
     settings: Settings = Depends(settings_dep),
     celery: Celery = Depends(celery_dep),
+    key: ApiKey = Depends(current_key),
 ) -> JobOut:
-    get_scene_or_404(session, body.scene_id)
+    """201 with the queued job; 200 with the original one for a retry carrying the same Idempotency-Key."""
+    idem_key = idempotency_key(request)
+    idem = None
+    if idem_key:
+        idem = Idempotency(idem_key, hashlib.sha256(body.model_dump_json().encode()).hexdigest(), "jobs")
+        if (original := idem.original(session, key)) is not None:
+            return _replay(response, session.get(Job, original), idem, original)
+    get_scene_or_404(session, body.scene_id, key)
     params = body.params.model_dump(mode="json")
     rec = _reconstruction_for(session, body.scene_id, params)
     job = Job(
-        id=new_id(), scene_id=body.scene_id, reconstruction_id=rec.id, prompt=body.prompt, mode=body.mode,
-        edit_words=body.edit_words, params=params, sds_model=settings.sds_model,
+        id=new_id(), scene_id=body.scene_id, owner_key_id=key.id, reconstruction_id=rec.id, prompt=body.prompt,
+        mode=body.mode, edit_words=body.edit_words, params=params, sds_model=settings.sds_model,
         attention_model=settings.attention_model, device=settings.device, state=QUEUED,
     )
-    session.add(job)
-    session.commit()
+    try:
+        lock_key(session, key)
+        session.add(job)
+        if idem is not None:
+            idem.record(session, key, job.id)
+        session.flush()
+        check_active_jobs(session, key, settings)
+        session.commit()
+    except BaseException as exc:
+        session.rollback()
+        if idem is not None and isinstance(exc, IntegrityError):  # a concurrent retry created it first
+            original = idem.original(session, key)
+            if original is not None:
+                return _replay(response, session.get(Job, original), idem, original)
+        raise
     try:
         result = stage_chain(celery, job.id, body.mode).apply_async()
     except Exception as exc:  # noqa: BLE001 - broker down: the job cannot run
@@ -119,10 +160,11 @@ def list_jobs(
     state: JobState | None = Query(None),
     scene_id: str | None = Query(None),
     limit: int = Query(20, ge=1, le=200),
-    offset: int = Query(0, ge=0),
+    offset: int = Query(0, ge=0, le=MAX_OFFSET),
     session: Session = Depends(get_session),
+    key: ApiKey = Depends(current_key),
 ) -> Page[JobOut]:
-    filters = []
+    filters = [Job.owner_key_id == key.id]
     if state is not None:
         filters.append(Job.state == state)
     if scene_id is not None:
@@ -134,15 +176,15 @@ def list_jobs(
 
 
 @router.get("/{job_id}", response_model=JobOut, responses=_ERRORS)
-def get_job(job_id: str, session: Session = Depends(get_session)) -> JobOut:
-    return job_out(get_job_or_404(session, job_id))
+def get_job(job_id: str, session: Session = Depends(get_session), key: ApiKey = Depends(current_key)) -> JobOut:
+    return job_out(get_job_or_404(session, job_id, key))
 
 
 @router.post("/{job_id}/cancel", response_model=JobOut,
              responses={**_ERRORS, 409: {"description": "the job already succeeded or failed"}},
              summary="Cancel a job (a queued job at once; a running one stops within a few iterations)")
-def cancel_job(job_id: str, session: Session = Depends(get_session)) -> JobOut:
-    job = get_job_or_404(session, job_id)
+def cancel_job(job_id: str, session: Session = Depends(get_session), key: ApiKey = Depends(current_key)) -> JobOut:
+    job = get_job_or_404(session, job_id, key)
     if job.state in TERMINAL_STATES and job.state != CANCELED:
         raise HTTPException(status.HTTP_409_CONFLICT, f"job {job_id!r} already {job.state}")
     now = utcnow()

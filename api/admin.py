@@ -1,0 +1,71 @@
+"""Admin commands for API keys, run on a machine with the service's settings (VOXE_DATABASE_URL).
+
+    python -m api.admin create-key --name alice [--max-active-jobs 5] [--max-upload-bytes 10000000000]
+    python -m api.admin list-keys
+    python -m api.admin revoke-key <key id>
+
+``create-key`` prints the token once; only its sha256 is stored, so a lost token means a new key.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from sqlalchemy import select
+
+from api.auth import create_key
+from api.db import session_scope
+from api.main import run_migrations
+from api.models import LOCAL_KEY_ID, ApiKey, utcnow
+from api.settings import get_settings
+
+
+def _positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m api.admin", description="Manage the Vox-E service's API keys.")
+    commands = parser.add_subparsers(dest="command", required=True)
+    create = commands.add_parser("create-key", help="create a key and print its token (shown only once)")
+    create.add_argument("--name", required=True, help="who or what the key is for")
+    create.add_argument("--max-active-jobs", type=_positive, help="queued + running jobs (default: "
+                        "VOXE_MAX_ACTIVE_JOBS_PER_KEY)")
+    create.add_argument("--max-upload-bytes", type=_positive, help="bytes of stored scenes (default: "
+                        "VOXE_MAX_UPLOAD_BYTES_PER_KEY)")
+    commands.add_parser("list-keys", help="list keys (never their tokens)")
+    revoke = commands.add_parser("revoke-key", help="revoke a key: its token stops working at once")
+    revoke.add_argument("key_id")
+    args = parser.parse_args(argv)
+
+    run_migrations(get_settings().database_url)
+    with session_scope() as session:
+        if args.command == "create-key":
+            if not args.name.strip() or len(args.name) > 255:
+                parser.error("--name must be 1-255 characters")
+            key, token = create_key(session, args.name.strip(), args.max_active_jobs, args.max_upload_bytes)
+            print(f"created key {key.id} ({key.name}); its token, shown only this once:", file=sys.stderr)
+            print(token)
+        elif args.command == "list-keys":
+            for key in session.scalars(select(ApiKey).where(ApiKey.id != LOCAL_KEY_ID).order_by(ApiKey.created_at)):
+                state = f"revoked {key.revoked_at.isoformat()}" if key.revoked_at else "active"
+                print(f"{key.id}\t{key.name}\t{state}\tcreated {key.created_at.isoformat()}\t"
+                      f"max_active_jobs={key.max_active_jobs or 'default'}\t"
+                      f"max_upload_bytes={key.max_upload_bytes or 'default'}")
+        else:
+            key = session.get(ApiKey, args.key_id)
+            if key is None or key.id == LOCAL_KEY_ID:
+                print(f"no API key {args.key_id!r} (python -m api.admin list-keys shows them)", file=sys.stderr)
+                return 1
+            if key.revoked_at is None:
+                key.revoked_at = utcnow()
+            print(f"revoked key {key.id} ({key.name})", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

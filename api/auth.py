@@ -1,0 +1,171 @@
+"""Access: API keys (hashed tokens), the current-key dependency, per-key quotas and Idempotency-Key replay.
+
+Tokens read ``voxe_<key id>_<secret>`` (32 random bytes of secret). The database keeps only the
+sha256 of the whole token; the id finds the row and the hashes are compared in constant time.
+With authentication off (allowed on a loopback host only, see :func:`check_startup`) every
+request acts as the built-in ``local`` key, so the same ownership rules hold either way.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import re
+import secrets
+from dataclasses import dataclass
+
+from fastapi import Depends, HTTPException, Request, status
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from api.db import get_session
+from api.models import LOCAL_KEY_ID, QUEUED, RUNNING, ApiKey, IdempotencyRecord, Job, Scene, utcnow
+from api.settings import Settings, get_settings, is_loopback
+
+TOKEN_PREFIX = "voxe_"
+_TOKEN = re.compile(r"^voxe_([0-9a-f]{12})_[A-Za-z0-9_-]{20,}$")
+IDEMPOTENCY_HEADER = "Idempotency-Key"
+REPLAYED_HEADER = "Idempotent-Replayed"
+
+
+def hash_token(token: str) -> str:
+    return hashlib.sha256(token.encode()).hexdigest()
+
+
+def create_key(session: Session, name: str, max_active_jobs: int | None = None,
+               max_upload_bytes: int | None = None) -> tuple[ApiKey, str]:
+    """A new key row and its token (the only time the token exists outside the client)."""
+    key_id = secrets.token_hex(6)
+    token = f"{TOKEN_PREFIX}{key_id}_{secrets.token_urlsafe(32)}"
+    key = ApiKey(id=key_id, name=name, token_sha256=hash_token(token), max_active_jobs=max_active_jobs,
+                 max_upload_bytes=max_upload_bytes)
+    session.add(key)
+    session.commit()
+    return key, token
+
+
+def authenticate(session: Session, token: str) -> ApiKey | None:
+    """The live key a token belongs to, or None."""
+    match = _TOKEN.match(token)
+    if not match:
+        return None
+    key = session.get(ApiKey, match.group(1))
+    if key is None or key.token_sha256 is None or key.revoked_at is not None:
+        return None
+    return key if hmac.compare_digest(key.token_sha256, hash_token(token)) else None
+
+
+def presented_token(request: Request) -> str | None:
+    """``Authorization: Bearer <token>`` or ``X-API-Key: <token>``."""
+    header = request.headers.get("authorization")
+    if header:
+        scheme, _, value = header.partition(" ")
+        return value.strip() if scheme.lower() == "bearer" else None
+    return request.headers.get("x-api-key")
+
+
+def current_key(request: Request, session: Session = Depends(get_session)) -> ApiKey:
+    """FastAPI dependency: the key this request acts as (401 when authentication is on and it has none)."""
+    if not get_settings().auth_enabled:
+        return session.get(ApiKey, LOCAL_KEY_ID)
+    token = presented_token(request)
+    key = authenticate(session, token) if token else None
+    if key is None:
+        problem = "missing API key" if not token else "invalid or revoked API key"
+        raise HTTPException(status.HTTP_401_UNAUTHORIZED,
+                            f"{problem}: send 'Authorization: Bearer <key>' or 'X-API-Key: <key>' "
+                            "(keys come from 'python -m api.admin create-key')",
+                            headers={"WWW-Authenticate": "Bearer"})
+    return key
+
+
+def check_startup(settings: Settings) -> str:
+    """The startup line about authentication; RuntimeError when it would be off on a reachable address."""
+    if settings.auth_enabled:
+        return f"authentication ON (VOXE_AUTH={settings.auth}, host {settings.host}): every request needs an API key"
+    if not is_loopback(settings.host):
+        raise RuntimeError(f"refusing to start: VOXE_AUTH=off on the non-loopback host {settings.host!r}; "
+                           "authentication may be off only on 127.0.0.1 / ::1 / localhost")
+    return (f"authentication OFF (VOXE_AUTH={settings.auth}, loopback host {settings.host}): every request acts "
+            "as the local key; set VOXE_AUTH=on to require API keys")
+
+
+# ------------------------------------------------------------------ quotas
+class QuotaExceeded(HTTPException):
+    def __init__(self, message: str, settings: Settings):
+        super().__init__(status.HTTP_429_TOO_MANY_REQUESTS, message,
+                         headers={"Retry-After": str(settings.quota_retry_after_s)})
+
+
+def lock_key(session: Session, key: ApiKey) -> None:
+    """Serialise a key's quota checks until the transaction ends (row lock; SQLite serialises writers anyway)."""
+    session.execute(select(ApiKey.id).where(ApiKey.id == key.id).with_for_update())
+
+
+def check_active_jobs(session: Session, key: ApiKey, settings: Settings) -> None:
+    """With the new job's row flushed: 429 when the key now has more queued + running jobs than allowed."""
+    limit = key.max_active_jobs or settings.max_active_jobs_per_key
+    active = session.scalar(select(func.count()).select_from(Job)
+                            .where(Job.owner_key_id == key.id, Job.state.in_((QUEUED, RUNNING)))) or 0
+    if active > limit:
+        raise QuotaExceeded(f"quota of concurrent jobs exceeded: key {key.name!r} already has {active - 1} queued "
+                            f"or running job(s), the limit is {limit} (VOXE_MAX_ACTIVE_JOBS_PER_KEY or the key's "
+                            "own); retry when one finishes, or cancel one", settings)
+
+
+def check_upload_bytes(session: Session, key: ApiKey, settings: Settings, adding: int,
+                       including_new: bool = False) -> None:
+    """429 when the key's stored scenes plus ``adding`` bytes exceed its upload quota.
+
+    ``including_new``: the new scene's row (of ``adding`` bytes) is already flushed into the sum.
+    """
+    limit = key.max_upload_bytes or settings.max_upload_bytes_per_key
+    total = session.scalar(select(func.coalesce(func.sum(Scene.size_bytes), 0))
+                           .where(Scene.owner_key_id == key.id)) or 0
+    stored = total - adding if including_new else total
+    if stored + adding > limit:
+        raise QuotaExceeded(f"quota of upload bytes exceeded: key {key.name!r} stores {stored} bytes of scenes, "
+                            f"this upload adds {adding}, the limit is {limit} (VOXE_MAX_UPLOAD_BYTES_PER_KEY or "
+                            "the key's own); delete scenes to free space", settings)
+
+
+# ------------------------------------------------------------------ Idempotency-Key
+@dataclass
+class Idempotency:
+    """A request's Idempotency-Key and the digest of what it asks for."""
+
+    key: str
+    request_sha256: str
+    endpoint: str
+
+    def record(self, session: Session, owner: ApiKey, resource_id: str) -> None:
+        """Add the record to the session that creates the resource (one transaction; a racing twin fails it)."""
+        session.add(IdempotencyRecord(owner_key_id=owner.id, endpoint=self.endpoint, idempotency_key=self.key,
+                                      request_sha256=self.request_sha256, resource_id=resource_id,
+                                      created_at=utcnow()))
+
+    def original(self, session: Session, owner: ApiKey) -> str | None:
+        """The id the first request with this key created, None if none did; 422 if it asked for something else."""
+        row = session.scalars(select(IdempotencyRecord).where(
+            IdempotencyRecord.owner_key_id == owner.id, IdempotencyRecord.endpoint == self.endpoint,
+            IdempotencyRecord.idempotency_key == self.key)).first()
+        if row is None:
+            return None
+        if not hmac.compare_digest(row.request_sha256, self.request_sha256):
+            raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                                f"Idempotency-Key {self.key!r} was already used with a different request body "
+                                f"(it created {self.endpoint} {row.resource_id!r}); use a new key for a new request")
+        return row.resource_id
+
+
+def idempotency_key(request: Request) -> str | None:
+    """The request's Idempotency-Key header (422 when empty or longer than 255 characters)."""
+    value = request.headers.get(IDEMPOTENCY_HEADER)
+    if value is None:
+        return None
+    value = value.strip()
+    if not value or len(value) > 255:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                            f"{IDEMPOTENCY_HEADER} header must be 1-255 characters, got {len(value)}")
+    return value
+
