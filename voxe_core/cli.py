@@ -7,6 +7,7 @@
     voxe refine EDITED_GRID --initial GRID --prompt TEXT --edit-words WORDS --out DIR [--model ID_OR_DIR] ...
     voxe edit GRID --prompt TEXT --out DIR [--model ID_OR_DIR] [--iterations N] [--render-size N] ...
     voxe build-tiny-model DIR      (random-weight SMOKE-TEST Stable Diffusion, plumbing only)
+    voxe evaluate GRID --edit EDITED_GRID PROMPT [MASK] ... --object NAME --out DIR [--clip-model ID_OR_DIR] ...
 
 Bad input (dataset, grid file, option values) prints one line on stderr and
 exits 2; Ctrl-C during a long stage cancels it cleanly and exits 130.
@@ -169,6 +170,7 @@ def build_parser() -> argparse.ArgumentParser:
     mesh.add_argument("--resolution", type=_positive_int, default=None, help="resample to N points per axis")
     _add_edit_parsers(commands, common)
     _add_refine_parser(commands, common)
+    _add_evaluate_parser(commands, common)
     return parser
 
 
@@ -533,6 +535,88 @@ def cmd_refine(args) -> int:
     return 0
 
 
+def _add_evaluate_parser(commands, common) -> None:
+    ev = commands.add_parser(
+        "evaluate", parents=[common],
+        help="the paper's metrics on a 360° ring: CLIP_sim, CLIP_dir, FID_rec / FID_input, PSNR / SSIM outside the mask (SPEC §4)",
+    )
+    ev.add_argument("initial", type=Path, metavar="GRID", help="the initial grid G_i (.safetensors)")
+    ev.add_argument("--edit", nargs="+", action="append", required=True, metavar="ARG",
+                    help="EDITED_GRID PROMPT [MASK]: an edit, its prompt and, for a refined local edit, "
+                         "its mask.safetensors (repeat --edit for several edits)")
+    ev.add_argument("--object", required=True, help='what the object is, for the source text "a render of a <object>"')
+    ev.add_argument("--out", type=Path, required=True, metavar="DIR",
+                    help="writes evaluation.json, evaluation.md and the ring renders ring/<name>/NNN.png")
+    ev.add_argument("--clip-model", default=None, metavar="MODEL_ID_OR_PATH",
+                    help="transformers CLIPModel: hub id (from the local cache) or folder (default openai/clip-vit-base-patch32)")
+    ev.add_argument("--inception", type=Path, default=None, metavar="PATH",
+                    help="TorchScript Inception file (inception-2015-12-05.pt) or its folder; without it no FID")
+    ev.add_argument("--offline", action="store_true", help="never contact the hub (as HF_HUB_OFFLINE=1)")
+    ev.add_argument("--device", choices=("cpu", "cuda"), default=None, help="default: cuda when available")
+    ev.add_argument("--data", type=Path, default=None, metavar="DATA_DIR", help="input views for FID_input")
+    ev.add_argument("--split", default="train")
+    ev.add_argument("--downsample", type=_positive_int, default=3)
+    ev.add_argument("--max-images", type=_positive_int, default=None)
+    ev.add_argument("--views", type=_positive_int, default=100, help="ring views (the paper: 100)")
+    ev.add_argument("--elevation", type=float, default=30.0, help="ring elevation in degrees")
+    ev.add_argument("--size", type=_positive_int, default=266, help="ring render size in pixels")
+
+
+def cmd_evaluate(args) -> int:
+    import torch
+
+    from voxe_core.evaluate import (
+        CLIP_MODEL_ID, ClipScorer, EditSample, EvaluateConfig, InceptionFeatures, evaluate, format_table, save_png_set,
+    )
+    from voxe_core.guidance import ModelNotAvailableError
+    from voxe_core.refine import load_mask
+
+    config = EvaluateConfig(views=args.views, elevation=args.elevation, size=args.size)
+    for values in args.edit:
+        if len(values) not in (2, 3):
+            raise ValueError(f"--edit takes EDITED_GRID PROMPT [MASK], got {len(values)} values: {values}")
+    if args.device == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda asked for, but no CUDA device is available")
+    initial = _load_grid(args.initial).to(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    edits = []
+    for k, (grid_path, prompt, *mask_path) in enumerate(args.edit):
+        mask = load_mask(Path(mask_path[0])) if mask_path else None
+        edits.append(EditSample(f"edit{k:02d}", prompt, _load_grid(Path(grid_path)).to(initial.bbox_min.device), mask))
+    input_images = None
+    if args.data is not None:
+        from voxe_core.data import load_scene
+
+        input_images = load_scene(args.data, args.split, args.downsample, args.max_images).images
+    model = args.clip_model or CLIP_MODEL_ID
+    try:
+        clip = ClipScorer.from_pretrained(model, device=args.device, local_files_only=True if args.offline else None)
+        fid = InceptionFeatures.load(args.inception, device=args.device) if args.inception is not None else None
+    except ModelNotAvailableError as exc:
+        print(f"voxe evaluate: model not available: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    result = run_stage(
+        lambda cb: evaluate(initial, edits, args.object, clip, fid, input_images, config, cb),
+        "evaluate", "view", (1 + len(edits)) * config.views, args.quiet,
+    )
+    if result is None:
+        print("voxe: evaluation cancelled, nothing written", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    out = args.out
+    save_png_set(out / "ring" / "initial", result.initial_frames)
+    for name, frames in result.edit_frames.items():
+        save_png_set(out / "ring" / name, frames)
+    summary = {**result.summary(), "object": args.object, "clip_model": model,
+               "inception": str(args.inception) if args.inception else None,
+               "ring": {"views": config.views, "elevation": config.elevation, "size": config.size},
+               "edits": [{"name": e.name, "grid": str(g[0]), "mask": g[2] if len(g) > 2 else None}
+                         for e, g in zip(edits, args.edit)]}
+    (out / "evaluation.json").write_text(json.dumps(summary, indent=2))
+    table = format_table(result.rows, extra_columns=("name",))
+    (out / "evaluation.md").write_text(table)
+    print(table, end="")
+    return 0
+
+
 COMMANDS = {
     "reconstruct": cmd_reconstruct,
     "render": cmd_render,
@@ -541,6 +625,7 @@ COMMANDS = {
     "edit": cmd_edit,
     "build-tiny-model": cmd_build_tiny_model,
     "refine": cmd_refine,
+    "evaluate": cmd_evaluate,
 }
 
 

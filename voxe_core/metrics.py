@@ -7,6 +7,11 @@ as scikit-image computes it with ``gaussian_weights=True, sigma=1.5,
 use_sample_covariance=False, data_range=1, channel_axis=-1``: an 11-tap
 Gaussian window (sigma 1.5), K1 = 0.01, K2 = 0.03, per channel, averaged over
 the 'valid' region (pixels at least 5 from the border) and the channels.
+
+Both take an optional ``keep`` mask (..., H, W) bool: the pixels the metric is
+about (e.g. outside a local edit). PSNR averages the squared error over kept
+pixels; SSIM over the window centres whose whole 11x11 window is kept, so no
+excluded pixel leaks into the score. An image with nothing kept gives NaN.
 """
 
 from __future__ import annotations
@@ -29,18 +34,36 @@ def _as_pair(a, b) -> tuple[torch.Tensor, torch.Tensor]:
     return a, b.to(a.device)
 
 
+def _keep_mask(keep, a: torch.Tensor) -> torch.Tensor | None:
+    if keep is None:
+        return None
+    keep = torch.as_tensor(keep, device=a.device)
+    if keep.dtype != torch.bool or tuple(keep.shape) != tuple(a.shape[:-1]):
+        raise ValueError(f"keep must be a bool mask shaped {tuple(a.shape[:-1])}, got {keep.dtype} {tuple(keep.shape)}")
+    return keep
+
+
+def _masked_mean(values: torch.Tensor, keep: torch.Tensor | None) -> torch.Tensor:
+    """Mean over the last two (pixel) dims, only where ``keep``; NaN where nothing is kept."""
+    if keep is None:
+        return values.mean(dim=(-2, -1))
+    weights = keep.to(values.dtype)
+    return (values * weights).sum(dim=(-2, -1)) / weights.sum(dim=(-2, -1))  # 0/0 -> NaN
+
+
 def _result(values: torch.Tensor, single: bool):
     return float(values.reshape(())) if single else values
 
 
-def psnr(a, b, max_val: float = 1.0):
-    """Peak signal-to-noise ratio in dB, 10·log10(max_val² / MSE) per image.
+def psnr(a, b, max_val: float = 1.0, keep=None):
+    """Peak signal-to-noise ratio in dB, 10·log10(max_val² / MSE) per image (MSE over ``keep`` pixels).
 
     (H, W, C) -> float; (..., H, W, C) -> tensor of shape (...). Identical images give inf.
     """
     a, b = _as_pair(a, b)
+    keep = _keep_mask(keep, a)
     diff = a.double() - b.double()
-    mse = diff.square().flatten(-3).mean(-1)
+    mse = _masked_mean(diff.square().mean(-1), keep)
     values = 10.0 * torch.log10(max_val**2 / mse)  # mse 0 -> inf, as it should
     return _result(values.to(torch.float32), a.dim() == 3)
 
@@ -52,13 +75,14 @@ def gaussian_window(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA, dtype=to
     return w / w.sum()
 
 
-def ssim(a, b, data_range: float = 1.0):
+def ssim(a, b, data_range: float = 1.0, keep=None):
     """Structural similarity, matching ``skimage.metrics.structural_similarity`` (see module doc).
 
     (H, W, C) -> float; (..., H, W, C) -> tensor of shape (...). Images must be
-    at least 11 pixels on each side.
+    at least 11 pixels on each side. ``keep``: average only over windows lying wholly in it.
     """
     a, b = _as_pair(a, b)
+    keep = _keep_mask(keep, a)
     *batch, h, w, c = a.shape
     if h < SSIM_WINDOW or w < SSIM_WINDOW:
         raise ValueError(f"SSIM needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW} pixels, got {w}x{h}")
@@ -80,7 +104,11 @@ def ssim(a, b, data_range: float = 1.0):
     cov = xy - mu_x * mu_y
     c1, c2 = (SSIM_K1 * data_range) ** 2, (SSIM_K2 * data_range) ** 2
     s = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x.square() + mu_y.square() + c1) * (var_x + var_y + c2))
-    per_image = s.reshape(-1, c, *s.shape[-2:]).mean(dim=(1, 2, 3))
+    window_kept = None
+    if keep is not None:  # a window is kept when none of its pixels is excluded (an 11x11 min-pool)
+        excluded = (~keep).reshape(-1, 1, h, w).to(dtype)
+        window_kept = F.max_pool2d(excluded, SSIM_WINDOW, stride=1)[:, 0] == 0
+    per_image = _masked_mean(s.reshape(-1, c, *s.shape[-2:]).mean(dim=1), window_kept)
     values = per_image.reshape(batch).to(torch.float32)
     return _result(values, not batch)
 

@@ -1,0 +1,304 @@
+"""The evaluation protocol (SPEC §4): ring geometry, Fréchet distance, CLIP metrics, preservation outside the mask.
+
+CLIP and Inception here are the tiny random-weight SMOKE-TEST models of
+voxe_core.tiny_eval: they exercise the real loading and scoring code, never quality.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from voxe_core.cameras import NERF_SYNTHETIC_RADIUS, ring_poses
+from voxe_core.evaluate import (
+    INCEPTION_FILE, INCEPTION_URL, ClipScorer, EditSample, EvaluateConfig, InceptionFeatures, clip_direction,
+    clip_similarity, evaluate, feature_statistics, fid_from_features, format_table, frechet_distance, mask_footprint,
+    paper_protocol, preservation, render_ring,
+)
+from voxe_core.guidance import ModelNotAvailableError
+from voxe_core.metrics import psnr, ssim
+from voxe_core.progress import Callbacks
+from voxe_core.refine import merge
+
+
+@pytest.fixture(scope="module")
+def tiny_clip_path(tmp_path_factory):
+    from voxe_core.tiny_eval import build_tiny_clip
+
+    return build_tiny_clip(tmp_path_factory.mktemp("tiny_clip") / "clip")
+
+
+@pytest.fixture(scope="module")
+def tiny_inception_path(tmp_path_factory):
+    from voxe_core.tiny_eval import build_tiny_inception
+
+    return build_tiny_inception(tmp_path_factory.mktemp("tiny_inception") / INCEPTION_FILE)
+
+
+# ------------------------------------------------------------------------------------------ ring
+def test_ring_poses_are_evenly_spaced_at_the_radius_and_elevation_looking_at_the_origin():
+    poses = ring_poses(100, elevation_deg=25.0)
+    eye = poses[:, :3, 3].double()
+    assert poses.shape == (100, 4, 4)
+    assert torch.allclose(eye.norm(dim=-1), torch.full((100,), NERF_SYNTHETIC_RADIUS, dtype=torch.float64), atol=1e-5)
+    elevation = torch.rad2deg(torch.asin(eye[:, 2] / eye.norm(dim=-1)))
+    assert torch.allclose(elevation, torch.full((100,), 25.0, dtype=torch.float64), atol=1e-4)
+    azimuth = torch.rad2deg(torch.atan2(eye[:, 1], eye[:, 0]))
+    steps = torch.remainder(azimuth.roll(-1) - azimuth, 360.0)  # includes the wrap from the last pose to the first
+    assert torch.allclose(steps, torch.full((100,), 3.6, dtype=torch.float64), atol=1e-4)
+    forward = -poses[:, :3, 2].double()  # OpenGL cameras look down -z
+    assert torch.allclose(forward, -eye / eye.norm(dim=-1, keepdim=True), atol=1e-6)
+    rotation = poses[:, :3, :3].double()
+    assert torch.allclose(rotation.transpose(1, 2) @ rotation, torch.eye(3, dtype=torch.float64).expand(100, 3, 3), atol=1e-6)
+    assert bool((poses[:, 2, 1] > 0).all())  # image up tilts towards world +z: no roll, upright views
+
+
+def test_ring_renders_are_the_ring_cameras(sphere_grid):
+    frames = render_ring(sphere_grid, 3, 30.0, 16)
+    assert frames.shape == (3, 16, 16, 3)
+    # A sphere at the origin looks the same from every azimuth: red centre, white corners.
+    assert torch.allclose(frames[0], frames[1], atol=1e-3) and torch.allclose(frames[0], frames[2], atol=1e-3)
+    assert frames[0, 8, 8, 0] > 0.9 and frames[0, 8, 8, 1] < 0.1 and bool((frames[:, 0, 0] > 0.99).all())
+
+
+def test_evaluate_config_refuses_degenerate_rings():
+    with pytest.raises(ValueError, match="at least 2 views"):
+        EvaluateConfig(views=1)
+    with pytest.raises(ValueError, match="at least 11 px"):
+        EvaluateConfig(size=8)
+    with pytest.raises(ValueError, match="strictly between -90 and 90"):
+        EvaluateConfig(elevation=90.0)
+
+
+# ------------------------------------------------------------------------------------------ Fréchet distance
+def test_frechet_distance_matches_the_closed_form_of_commuting_covariances():
+    rng = np.random.default_rng(0)
+    d = 6
+    mu1, mu2 = rng.normal(size=d), rng.normal(size=d)
+    a, b = rng.uniform(0.1, 3.0, size=d), rng.uniform(0.1, 3.0, size=d)
+    expected = float(np.sum((mu1 - mu2) ** 2) + np.sum((np.sqrt(a) - np.sqrt(b)) ** 2))
+    assert frechet_distance(mu1, np.diag(a), mu2, np.diag(b)) == pytest.approx(expected, rel=1e-10)
+    # The same Gaussians in a rotated basis: non-diagonal covariances, same distance.
+    q, _ = np.linalg.qr(rng.normal(size=(d, d)))
+    rotated = frechet_distance(q @ mu1, q @ np.diag(a) @ q.T, q @ mu2, q @ np.diag(b) @ q.T)
+    assert rotated == pytest.approx(expected, rel=1e-9)
+
+
+def test_frechet_distance_of_singular_covariances_is_finite_and_exact():
+    # Zero covariances: only the means differ.
+    assert frechet_distance([0.0, 0.0], np.zeros((2, 2)), [3.0, 4.0], np.zeros((2, 2))) == pytest.approx(25.0)
+    # Rank-1 against zero: tr(S1) = 4.
+    s1 = np.outer([2.0, 0.0], [2.0, 0.0]) / 1.0
+    assert frechet_distance([0, 0], s1, [0, 0], np.zeros((2, 2))) == pytest.approx(4.0)
+    with pytest.raises(ValueError, match="mismatched Gaussians"):
+        frechet_distance([0, 0], np.eye(2), [0, 0, 0], np.eye(3))
+
+
+def test_fid_of_identical_sets_is_zero_even_with_fewer_samples_than_dimensions():
+    rng = np.random.default_rng(1)
+    full_rank = rng.normal(size=(200, 16))
+    rank_deficient = rng.normal(size=(10, 64))  # covariance of rank 9 in 64 dimensions
+    assert fid_from_features(full_rank, full_rank) == pytest.approx(0.0, abs=1e-8)
+    assert fid_from_features(rank_deficient, rank_deficient) == pytest.approx(0.0, abs=1e-8)
+    shifted = full_rank + 2.0
+    assert fid_from_features(full_rank, shifted) == pytest.approx(4.0 * 16, rel=1e-9)  # ||Δmu||², same covariance
+    other = rng.normal(size=(200, 16)) * 1.5
+    assert fid_from_features(full_rank, other) == pytest.approx(fid_from_features(other, full_rank), rel=1e-9)
+
+
+def test_fid_refuses_too_few_or_non_finite_features():
+    with pytest.raises(ValueError, match="at least 2 feature vectors"):
+        feature_statistics(np.ones((1, 4)))
+    bad = np.ones((3, 4))
+    bad[1, 2] = np.nan
+    with pytest.raises(ValueError, match="NaN or inf"):
+        feature_statistics(bad)
+
+
+# ------------------------------------------------------------------------------------------ CLIP metrics
+def test_clip_direction_sign_on_synthetic_embeddings():
+    e = torch.eye(4)
+    source, target = e[0], e[1]  # text directions: "a render of a dog" -> "... wearing sunglasses"
+    recon = torch.stack([e[0], e[2]])
+    towards = torch.stack([e[0] + e[1], e[2] + e[1]])  # both views gained the target concept
+    away = torch.stack([e[0] - e[1], e[2] - e[1]])
+    # View 0 turns by 45° from source to target: its change is at 22.5° to the text change. View 1's
+    # change is the same turn seen from e2, only half of it (1/√2) along the text change.
+    expected = math.cos(math.pi / 8) * (1 + 1 / math.sqrt(2)) / 2
+    assert clip_direction(towards, recon, target, source) == pytest.approx(expected, abs=1e-6)
+    assert clip_direction(away, recon, target, source) < -0.5
+    assert clip_direction(recon, recon, target, source) == 0.0  # no image change: zero, not NaN
+    with pytest.raises(ValueError, match="pairs views"):
+        clip_direction(towards[:1], recon, target, source)
+
+
+def test_clip_similarity_is_the_mean_cosine():
+    text = torch.tensor([1.0, 0.0])
+    images = torch.tensor([[1.0, 0.0], [1.0, math.sqrt(3.0)], [0.0, 5.0]])  # cos 1, 0.5, 0
+    assert clip_similarity(images, text) == pytest.approx(0.5, abs=1e-6)
+
+
+# ------------------------------------------------------------------------------------------ tiny models
+def test_tiny_clip_loads_through_the_real_loader(tiny_clip_path):
+    clip = ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")
+    images = torch.rand(3, 40, 50, 3, generator=torch.Generator().manual_seed(0))
+    embeddings = clip.image_embeddings(images)
+    assert embeddings.shape == (3, 32)
+    assert torch.allclose(embeddings.norm(dim=-1), torch.ones(3), atol=1e-5)
+    assert torch.allclose(clip.image_embeddings(images[1:2]), embeddings[1:2], atol=1e-5)  # batching changes nothing
+    texts = clip.text_embeddings(["a render of a mic", "a render of a mic wearing big sunglasses"])
+    assert texts.shape == (2, 32) and not torch.allclose(texts[0], texts[1])
+
+
+def test_missing_clip_weights_name_the_model(tmp_path):
+    with pytest.raises(ModelNotAvailableError, match="'voxe-test/no-such-clip' are not available"):
+        ClipScorer.from_pretrained("voxe-test/no-such-clip", device="cpu", local_files_only=True)
+    with pytest.raises(ModelNotAvailableError, match="does not exist"):
+        ClipScorer.from_pretrained(str(tmp_path / "absent"), device="cpu")
+
+
+def test_inception_loader_tiny_file_and_missing_file(tiny_inception_path, tmp_path):
+    features = InceptionFeatures.load(tiny_inception_path.parent, device="cpu", batch_size=2)  # a folder works too
+    images = torch.rand(5, 30, 30, 3, generator=torch.Generator().manual_seed(1))
+    values = features.features(images)
+    assert values.shape == (5, 64) and values.dtype == torch.float64
+    assert fid_from_features(values, features.features(images)) == pytest.approx(0.0, abs=1e-9)
+    assert fid_from_features(values, features.features(1.0 - images)) > 1e-6
+    with pytest.raises(ModelNotAvailableError) as missing:
+        InceptionFeatures.load(tmp_path / "nowhere.pt")
+    assert "nowhere.pt" in str(missing.value) and INCEPTION_URL in str(missing.value)
+    (tmp_path / "junk.pt").write_bytes(b"not torchscript")
+    with pytest.raises(ModelNotAvailableError, match="not a TorchScript Inception file"):
+        InceptionFeatures.load(tmp_path / "junk.pt")
+
+
+# ------------------------------------------------------------------------------------------ masked metrics
+def test_masked_psnr_and_ssim_ignore_excluded_pixels():
+    g = torch.Generator().manual_seed(2)
+    a = torch.rand(2, 32, 32, 3, generator=g)
+    b = a.clone()
+    b[:, 4:12, 20:28] = 1.0 - b[:, 4:12, 20:28]  # changed patch
+    keep = torch.ones(2, 32, 32, dtype=torch.bool)
+    keep[:, 4:12, 20:28] = False
+    assert psnr(a, b, keep=keep).tolist() == [math.inf, math.inf]
+    assert ssim(a, b, keep=keep).tolist() == pytest.approx([1.0, 1.0], abs=1e-6)  # no window touches the patch
+    assert bool((ssim(a, b) < 0.99).all()) and bool((psnr(a, b) < 30).all())
+    everything = torch.ones(2, 32, 32, dtype=torch.bool)
+    assert torch.allclose(psnr(a, b, keep=everything), psnr(a, b)) and torch.allclose(ssim(a, b, keep=everything), ssim(a, b))
+    assert math.isnan(psnr(a[0], b[0], keep=torch.zeros(32, 32, dtype=torch.bool)))
+    with pytest.raises(ValueError, match="bool mask shaped"):
+        psnr(a, b, keep=keep.float())
+
+
+def _local_edit(sphere_grid):
+    """G_e: the sphere turned blue with a blob on its +x side; the mask: G_e's occupied voxels beyond x = 0.5."""
+    edited = sphere_grid.clone_grid()
+    axes = torch.linspace(-1.5, 1.5, sphere_grid.resolution[0])
+    x = axes[:, None, None].expand(sphere_grid.resolution)
+    with torch.no_grad():
+        edited.features[..., 1:] = torch.tensor([-4.0, -4.0, 4.0])
+        blob = ((x - 1.0) ** 2 + axes[None, :, None] ** 2 + axes[None, None, :] ** 2).sqrt() < 0.35
+        edited.features[..., 0][blob] = 20.0
+    mask = (x > 0.5) & (edited.features[..., 0].detach() > 0)
+    return edited, mask
+
+
+def test_preservation_outside_the_mask_footprint_is_exact_for_a_merged_grid(sphere_grid):
+    edited, mask = _local_edit(sphere_grid)
+    refined = merge(sphere_grid, edited, mask)
+    config = EvaluateConfig(views=4, elevation=20.0, size=24)
+    recon = render_ring(sphere_grid, config.views, config.elevation, config.size)
+    footprint = mask_footprint(sphere_grid, mask, config.views, config.elevation, config.size)
+    assert 0.0 < footprint.float().mean() < 1.0
+    local = preservation(render_ring(refined, 4, 20.0, 24), recon, EditSample("r", "x", refined, mask), sphere_grid, config)
+    assert local["region"] == "outside mask" and local["psnr"] > 60.0 and local["ssim"] == pytest.approx(1.0, abs=1e-4)
+    # The unrefined edit recoloured the whole sphere: outside the footprint it differs from G_i.
+    unrefined = preservation(render_ring(edited, 4, 20.0, 24), recon, EditSample("e", "x", edited, mask), sphere_grid, config)
+    assert unrefined["psnr"] < 20.0
+    whole = preservation(render_ring(edited, 4, 20.0, 24), recon, EditSample("g", "x", edited), sphere_grid, config)
+    assert whole["region"] == "whole image" and whole["kept_fraction"] == 1.0
+    empty = mask_footprint(sphere_grid, torch.zeros_like(mask), 2, 20.0, 16)
+    assert not bool(empty.any())
+
+
+# ------------------------------------------------------------------------------------------ end to end
+def test_evaluate_scores_edits_and_an_unchanged_grid_scores_as_identical(sphere_grid, tiny_clip_path, tiny_inception_path):
+    clip = ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")
+    fid = InceptionFeatures.load(tiny_inception_path, device="cpu")
+    edited, mask = _local_edit(sphere_grid)
+    refined = merge(sphere_grid, edited, mask)
+    inputs = render_ring(sphere_grid, 5, 45.0, 24)
+    edits = [EditSample("same", "a claymation ball", sphere_grid), EditSample("hat", "a ball wearing a party hat", refined, mask)]
+    reports = []
+    result = evaluate(sphere_grid, edits, "ball", clip, fid, inputs, EvaluateConfig(views=4, elevation=20.0, size=24),
+                      callbacks=Callbacks(on_progress=reports.append))
+    same, hat = result.rows
+    assert same["mode"] == "global" and hat["mode"] == "local"
+    assert same["fid_rec"] == pytest.approx(0.0, abs=1e-6) and same["clip_dir"] == 0.0
+    assert same["psnr"] == 100.0 and same["ssim"] == pytest.approx(1.0)
+    assert hat["fid_rec"] > 0 and hat["fid_input"] > 0 and hat["psnr"] > 60.0
+    expected_sim = clip_similarity(clip.image_embeddings(result.initial_frames),
+                                   clip.text_embeddings(["a render of a claymation ball"])[0])
+    assert same["clip_sim"] == pytest.approx(expected_sim, abs=1e-5)
+    assert [r.iteration for r in reports][-1] == 12 and {r.total for r in reports} == {12}
+    table = format_table(result.rows, extra_columns=("name",))
+    assert "| hat | a ball wearing a party hat | local |" in table and "**mean (2)**" in table
+    assert json.loads(json.dumps(result.summary()))["means"]["local"]["count"] == 1
+
+
+def test_paper_protocol_is_six_prompts_with_local_edit_words_in_them():
+    edits = paper_protocol(" hot  dog ")
+    assert [e.prompt for e in edits] == [
+        "a hot dog wearing big sunglasses", "a hot dog wearing a Christmas sweater",
+        "a hot dog wearing a birthday party hat", "a yarn doll of a hot dog", "a wood carving of a hot dog",
+        "a claymation hot dog",
+    ]
+    assert [e.mode for e in edits] == ["local"] * 3 + ["global"] * 3
+    for e in edits[:3]:
+        assert e.edit_words and all(w in e.prompt for w in e.edit_words)
+    assert all(not e.edit_words for e in edits[3:])
+    with pytest.raises(ValueError, match="object name is empty"):
+        paper_protocol("  ")
+
+
+# ------------------------------------------------------------------------------------------ CLI
+def test_cli_evaluate_writes_json_table_and_ring_png_sets(sphere_grid, tiny_clip_path, tiny_inception_path, tmp_path,
+                                                         capsys):
+    from PIL import Image
+
+    from voxe_core.cli import main
+    from voxe_core.refine import save_mask
+
+    edited, mask = _local_edit(sphere_grid)
+    sphere_grid.save(tmp_path / "initial.safetensors")
+    merge(sphere_grid, edited, mask).save(tmp_path / "refined.safetensors")
+    edited.save(tmp_path / "edited.safetensors")
+    save_mask(tmp_path / "mask.safetensors", mask)
+    out = tmp_path / "eval"
+    common = [str(tmp_path / "initial.safetensors"), "--object", "ball", "--out", str(out),
+              "--clip-model", str(tiny_clip_path), "--views", "3", "--size", "16", "-q"]
+    code = main(["evaluate", *common, "--inception", str(tiny_inception_path),
+                 "--edit", str(tmp_path / "refined.safetensors"), "a ball wearing a party hat", str(tmp_path / "mask.safetensors"),
+                 "--edit", str(tmp_path / "edited.safetensors"), "a wood carving of a ball"])
+    assert code == 0
+    summary = json.loads((out / "evaluation.json").read_text())
+    assert [r["name"] for r in summary["rows"]] == ["edit00", "edit01"]
+    assert [r["mode"] for r in summary["rows"]] == ["local", "global"]
+    assert summary["rows"][0]["region"] == "outside mask" and summary["rows"][0]["psnr"] > 60
+    assert summary["rows"][1]["fid_input"] is None  # no --data: no input views to compare with
+    assert summary["ring"] == {"views": 3, "elevation": 30.0, "size": 16}
+    for name in ("initial", "edit00", "edit01"):
+        pngs = sorted((out / "ring" / name).glob("*.png"))
+        assert [p.name for p in pngs] == ["000.png", "001.png", "002.png"]
+        assert Image.open(pngs[0]).size == (16, 16)
+    assert (out / "evaluation.md").read_text() in capsys.readouterr().out
+
+    assert main(["evaluate", *common, "--edit", str(tmp_path / "edited.safetensors")]) == 2
+    assert "--edit takes EDITED_GRID PROMPT [MASK], got 1 values" in capsys.readouterr().err
+    assert main(["evaluate", *common[:-7], "--clip-model", "voxe-test/no-such-clip", "--offline",
+                 "--edit", str(tmp_path / "edited.safetensors"), "a wood carving of a ball"]) == 2
+    assert "model not available: CLIP weights 'voxe-test/no-such-clip'" in capsys.readouterr().err

@@ -1,0 +1,468 @@
+"""The paper's evaluation (SPEC §4): ring renders, CLIP similarity / direction, FID, and preservation.
+
+For the initial grid G_i and each edit, :func:`evaluate` renders the same ring
+of poses (100 evenly spaced over 360° by default) and computes
+
+* ``clip_sim``: mean over views of cos(CLIP image, CLIP text of the edit
+  prompt "a render of <text>");
+* ``clip_dir``: mean over views of cos(image_edit − image_recon, text_edit −
+  text_source), with source text "a render of a <object>" (the CLIP
+  directional similarity the paper reports);
+* ``fid_rec`` / ``fid_input``: Fréchet distance between Inception pool
+  features of the edit's renders and G_i's renders / the input images;
+* ``psnr`` / ``ssim`` against G_i's renders *outside the 3D edit mask* (how
+  well a local edit kept the rest; a metric the paper lacks). A pixel is
+  excluded when its ray takes a render sample in a grid cell with a masked
+  corner vertex. Those are the only cells whose trilinear features a merge
+  G_r = M·G_e + (1 − M)·G_i can change, so for a refined grid every kept
+  pixel is, by construction, rendered from G_i's features alone: a drop
+  there is a real change. Global edits (no mask) are compared on the whole
+  image.
+
+Models: CLIP through transformers' ``CLIPModel`` (default
+``openai/clip-vit-base-patch32``, as the paper's ViT-B/32), loaded offline-aware
+with an error naming the model when it is missing; FID features from a
+TorchScript Inception file (``inception-2015-12-05.pt``, the network used by
+StyleGAN2-ADA / clean-fid) given by path. :mod:`voxe_core.tiny_eval` builds
+random-weight smoke-test stand-ins for both, loaded through the same code.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol, Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from voxe_core.export import render_views, save_png, turntable_cameras
+from voxe_core.grid import VoxelGrid
+from voxe_core.guidance import ModelNotAvailableError, _loading_errors, _offline_env, edit_prompt
+from voxe_core.metrics import SSIM_WINDOW, psnr, ssim
+from voxe_core.progress import Callbacks, Progress
+from voxe_core.render import RenderConfig, render_image
+
+CLIP_MODEL_ID = "openai/clip-vit-base-patch32"
+INCEPTION_FILE = "inception-2015-12-05.pt"
+INCEPTION_URL = "https://nvlabs-fi-cdn.nvidia.com/stylegan2-ada-pytorch/pretrained/metrics/inception-2015-12-05.pt"
+PAPER_RING_VIEWS = 100
+SOURCE_TEMPLATE = "a render of a {object}"
+
+# SPEC §4: (prompt template, mode, words naming the edit for the refinement).
+PAPER_PROMPTS: tuple[tuple[str, str, tuple[str, ...]], ...] = (
+    ("a {object} wearing big sunglasses", "local", ("sunglasses",)),
+    ("a {object} wearing a Christmas sweater", "local", ("sweater",)),
+    ("a {object} wearing a birthday party hat", "local", ("party hat",)),
+    ("a yarn doll of a {object}", "global", ()),
+    ("a wood carving of a {object}", "global", ()),
+    ("a claymation {object}", "global", ()),
+)
+
+
+@dataclass(frozen=True)
+class ProtocolEdit:
+    prompt: str
+    mode: str
+    edit_words: tuple[str, ...]
+
+
+def paper_protocol(object_name: str) -> list[ProtocolEdit]:
+    """The six edits of SPEC §4 for one object (local ones carry the words the refinement localises)."""
+    name = " ".join(str(object_name).split())
+    if not name:
+        raise ValueError("the object name is empty")
+    return [ProtocolEdit(t.format(object=name), mode, words) for t, mode, words in PAPER_PROMPTS]
+
+
+def source_text(object_name: str) -> str:
+    name = " ".join(str(object_name).split())
+    if not name:
+        raise ValueError("the object name is empty")
+    return SOURCE_TEMPLATE.format(object=name)
+
+
+# --------------------------------------------------------------------------- ring renders
+def render_ring(grid: VoxelGrid, views: int, elevation_deg: float, size: int, callbacks: Callbacks = Callbacks()):
+    """``views`` renders (N, H, W, 3) on the evaluation ring, looking at the origin."""
+    cameras = turntable_cameras(views, elevation_deg, size).to(grid.bbox_min.device)
+    return render_views(grid, cameras, callbacks=callbacks)
+
+
+def save_png_set(folder, frames: torch.Tensor) -> list[Path]:
+    """Write frames as ``folder/000.png``, ``001.png``, ... and return the paths."""
+    folder = Path(folder)
+    paths = [folder / f"{i:03d}.png" for i in range(len(frames))]
+    for path, frame in zip(paths, frames):
+        save_png(path, frame)
+    return paths
+
+
+@torch.no_grad()
+def mask_footprint(grid: VoxelGrid, mask: torch.Tensor, views: int, elevation_deg: float, size: int) -> torch.Tensor:
+    """(N, H, W) bool: pixels of the ring views whose ray samples a cell with a masked corner vertex.
+
+    Rendered through the same renderer and sample lattice as the views (same
+    box, resolution and step) over an opaque stand-in grid that is dense
+    exactly in those cells, so "no hit" means no sample of that ray saw them.
+    """
+    if tuple(mask.shape) != tuple(grid.resolution):
+        raise ValueError(f"mask of shape {tuple(mask.shape)} does not fit the grid {grid.resolution}")
+    features = torch.zeros(*grid.resolution, 4, device=grid.bbox_min.device)
+    # Raw 1e3 at masked vertices: any sample with a positive trilinear weight on one is near-opaque.
+    features[..., 0] = mask.to(features.device, torch.float32) * 1e3
+    stand_in = VoxelGrid(grid.resolution, grid.bbox_min, grid.bbox_max, "relu", grid.density_scale, features=features)
+    cameras = turntable_cameras(views, elevation_deg, size).to(grid.bbox_min.device)
+    config = RenderConfig(sigma_threshold=0.0)  # every cell touching a masked vertex is 'occupied'
+    occupancy = stand_in.occupancy(config.sigma_threshold)
+    hits = torch.zeros(views, size, size, dtype=torch.bool)
+    if occupancy.empty:
+        return hits
+    for i in range(views):
+        hits[i] = render_image(stand_in, cameras, i, config, occupancy).opacity.cpu() > 0
+    return hits
+
+
+# --------------------------------------------------------------------------- Fréchet distance
+def _sqrt_psd(matrix: np.ndarray) -> np.ndarray:
+    """Square root of a symmetric positive semi-definite matrix (eigh; round-off negatives clamped to 0)."""
+    symmetric = 0.5 * (matrix + matrix.T)
+    values, vectors = np.linalg.eigh(symmetric)
+    return (vectors * np.sqrt(np.clip(values, 0.0, None))) @ vectors.T
+
+
+def frechet_distance(mu1, sigma1, mu2, sigma2) -> float:
+    """Fréchet distance of two Gaussians: ||mu1 − mu2||² + tr(S1 + S2 − 2 (S1^½ S2 S1^½)^½).
+
+    tr((S1 S2)^½) is computed as the trace of the square root of the symmetric
+    PSD product S1^½ S2 S1^½ (the same eigenvalues), by eigendecomposition, so
+    singular or rank-deficient covariances (fewer samples than feature
+    dimensions, the usual case here) never produce complex parts or NaNs.
+    """
+    mu1, mu2 = np.asarray(mu1, np.float64), np.asarray(mu2, np.float64)
+    s1, s2 = np.atleast_2d(np.asarray(sigma1, np.float64)), np.atleast_2d(np.asarray(sigma2, np.float64))
+    if mu1.shape != mu2.shape or s1.shape != s2.shape or s1.shape != (mu1.size, mu1.size):
+        raise ValueError(f"mismatched Gaussians: means {mu1.shape} / {mu2.shape}, covariances {s1.shape} / {s2.shape}")
+    root1 = _sqrt_psd(s1)
+    cross = np.clip(np.linalg.eigvalsh(0.5 * ((root1 @ s2 @ root1) + (root1 @ s2 @ root1).T)), 0.0, None)
+    value = float(np.sum((mu1 - mu2) ** 2) + np.trace(s1) + np.trace(s2) - 2.0 * np.sum(np.sqrt(cross)))
+    return max(value, 0.0)  # a distance: round-off below zero is zero
+
+
+def feature_statistics(features) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and (N − 1)-normalised covariance of (N, D) features; needs N >= 2."""
+    x = np.asarray(features, np.float64)
+    if x.ndim != 2 or x.shape[0] < 2:
+        raise ValueError(f"FID needs at least 2 feature vectors shaped (N, D), got {x.shape}")
+    if not np.isfinite(x).all():
+        raise ValueError("FID features contain NaN or inf")
+    return x.mean(axis=0), np.cov(x, rowvar=False).reshape(x.shape[1], x.shape[1])
+
+
+def fid_from_features(features_a, features_b) -> float:
+    return frechet_distance(*feature_statistics(features_a), *feature_statistics(features_b))
+
+
+# --------------------------------------------------------------------------- FID features
+class FeatureExtractor(Protocol):
+    """Maps images (N, H, W, 3) in [0, 1] to feature vectors (N, D)."""
+
+    name: str
+
+    def features(self, images: torch.Tensor) -> torch.Tensor:
+        ...
+
+
+class InceptionFeatures:
+    """Pool features of a TorchScript Inception file called as ``model(uint8 NCHW, return_features=True)``.
+
+    That is the calling convention of ``inception-2015-12-05.pt`` (StyleGAN2-ADA's
+    FID network, 2048 features, resizing to 299 px inside), and of the tiny random
+    file :func:`voxe_core.tiny_eval.build_tiny_inception` writes.
+    """
+
+    def __init__(self, module: torch.jit.ScriptModule, name: str, device, batch_size: int = 25):
+        self.module, self.name, self.device, self.batch_size = module, name, torch.device(device), batch_size
+
+    @classmethod
+    def load(cls, path, device=None, batch_size: int = 25) -> "InceptionFeatures":
+        path = Path(path).expanduser()
+        if path.is_dir():
+            path = path / INCEPTION_FILE
+        if not path.is_file():
+            raise ModelNotAvailableError(
+                f"FID Inception weights not found at {path}: download {INCEPTION_URL} once on a machine with "
+                f"internet and pass its path (or a folder holding {INCEPTION_FILE})"
+            )
+        device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+        try:
+            module = torch.jit.load(str(path), map_location=device).eval()
+        except RuntimeError as exc:
+            raise ModelNotAvailableError(f"{path} is not a TorchScript Inception file: {exc}") from exc
+        return cls(module, str(path), device, batch_size)
+
+    @torch.no_grad()
+    def features(self, images: torch.Tensor) -> torch.Tensor:
+        parts = []
+        for start in range(0, len(images), self.batch_size):
+            batch = images[start : start + self.batch_size].to(self.device, torch.float32)
+            pixels = (batch.clamp(0, 1) * 255).round().to(torch.uint8).permute(0, 3, 1, 2).contiguous()
+            parts.append(self.module(pixels, return_features=True).reshape(len(batch), -1).double().cpu())
+        return torch.cat(parts)
+
+
+# --------------------------------------------------------------------------- CLIP
+class ClipScorer:
+    """Normalised CLIP image and text embeddings (transformers ``CLIPModel``)."""
+
+    def __init__(self, model, tokenizer, image_mean, image_std, image_size: int, name: str, device, batch_size=32):
+        self.model, self.tokenizer, self.name = model.eval().requires_grad_(False), tokenizer, name
+        self.device = torch.device(device)
+        self.image_mean = torch.tensor(image_mean, dtype=torch.float32).view(1, 3, 1, 1)
+        self.image_std = torch.tensor(image_std, dtype=torch.float32).view(1, 3, 1, 1)
+        self.image_size, self.batch_size = int(image_size), batch_size
+
+    @classmethod
+    def from_pretrained(cls, model_id: str = CLIP_MODEL_ID, device=None, local_files_only: bool | None = None):
+        """Load a hub id (from the local cache when offline) or a folder; ModelNotAvailableError names the model."""
+        from transformers import CLIPModel, CLIPTokenizer
+        from transformers.utils import cached_file
+
+        device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+        kwargs = {"local_files_only": _offline_env() if local_files_only is None else bool(local_files_only)}
+        looks_local = model_id.startswith((".", "/", "~")) or os.path.isabs(model_id)
+        if looks_local and not Path(model_id).expanduser().is_dir():
+            raise ModelNotAvailableError(f"CLIP model folder '{model_id}' does not exist")
+        try:
+            model = CLIPModel.from_pretrained(model_id, **kwargs).to(device)
+            tokenizer = CLIPTokenizer.from_pretrained(model_id, **kwargs)
+            # The preprocessing constants only (the processor class itself wants torchvision).
+            preprocessing = json.loads(Path(cached_file(model_id, "preprocessor_config.json", **kwargs)).read_text())
+        except _loading_errors() as exc:
+            raise ModelNotAvailableError(
+                f"CLIP weights '{model_id}' are not available: download them once with `hf download {model_id}` "
+                f"on a machine with internet and point HF_HOME at that cache, or pass a local folder holding a "
+                f"CLIPModel with its tokenizer and image processor. Underlying error: {type(exc).__name__}: "
+                f"{' '.join(str(exc).split())[:300]}"
+            ) from exc
+        crop = preprocessing["crop_size"]
+        size = crop["height"] if isinstance(crop, dict) else int(crop)
+        return cls(model, tokenizer, preprocessing["image_mean"], preprocessing["image_std"], size, model_id, device)
+
+    def _preprocess(self, images: torch.Tensor) -> torch.Tensor:
+        """CLIP's preprocessing on tensors: shortest side to the crop size (bicubic), centre crop, normalise."""
+        x = images.to(torch.float32).permute(0, 3, 1, 2)
+        h, w = x.shape[-2:]
+        scale = self.image_size / min(h, w)
+        size = (max(self.image_size, round(h * scale)), max(self.image_size, round(w * scale)))
+        x = F.interpolate(x, size=size, mode="bicubic", align_corners=False, antialias=True).clamp(0, 1)
+        top, left = (size[0] - self.image_size) // 2, (size[1] - self.image_size) // 2
+        x = x[..., top : top + self.image_size, left : left + self.image_size]
+        return (x - self.image_mean) / self.image_std
+
+    @torch.no_grad()
+    def image_embeddings(self, images: torch.Tensor) -> torch.Tensor:
+        parts = []
+        for start in range(0, len(images), self.batch_size):
+            pixels = self._preprocess(images[start : start + self.batch_size]).to(self.device)
+            parts.append(_unit(_tensor_of(self.model.get_image_features(pixel_values=pixels)).float().cpu()))
+        return torch.cat(parts)
+
+    @torch.no_grad()
+    def text_embeddings(self, texts: Sequence[str]) -> torch.Tensor:
+        tokens = self.tokenizer(list(texts), padding=True, truncation=True, return_tensors="pt").to(self.device)
+        return _unit(_tensor_of(self.model.get_text_features(**tokens)).float().cpu())
+
+
+def _tensor_of(output) -> torch.Tensor:
+    """get_*_features returns a tensor in most transformers versions and an output object in some."""
+    return output if isinstance(output, torch.Tensor) else output.pooler_output
+
+
+def _unit(x: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
+    """Rows scaled to unit length; a zero row stays zero (its cosine with anything is 0, not NaN)."""
+    return x / x.norm(dim=-1, keepdim=True).clamp_min(eps)
+
+
+def clip_similarity(image_embeddings: torch.Tensor, text_embedding: torch.Tensor) -> float:
+    """Mean cosine between each image embedding (N, D) and one text embedding (D,)."""
+    return float((_unit(image_embeddings) @ _unit(text_embedding.reshape(-1))).mean())
+
+
+def clip_direction(edit_images: torch.Tensor, recon_images: torch.Tensor, edit_text: torch.Tensor,
+                   source_text_embedding: torch.Tensor) -> float:
+    """Mean over view pairs of cos(image_edit − image_recon, text_edit − text_source).
+
+    Embeddings are unit-normalised first (as CLIP compares them). A view whose
+    image did not change contributes 0.
+    """
+    if edit_images.shape != recon_images.shape:
+        raise ValueError(f"CLIP_dir pairs views: {tuple(edit_images.shape)} vs {tuple(recon_images.shape)}")
+    image_change = _unit(_unit(edit_images) - _unit(recon_images))
+    text_change = _unit(_unit(edit_text.reshape(-1)) - _unit(source_text_embedding.reshape(-1)))
+    return float((image_change @ text_change).mean())
+
+
+# --------------------------------------------------------------------------- the evaluation
+@dataclass
+class EvaluateConfig:
+    views: int = PAPER_RING_VIEWS
+    elevation: float = 30.0  # degrees above the horizon
+    size: int = 266  # ring render size (the paper's edit render size)
+
+    def __post_init__(self):
+        if self.views < 2:
+            raise ValueError(f"the evaluation ring needs at least 2 views (FID needs two samples), got {self.views}")
+        if self.size < SSIM_WINDOW:
+            raise ValueError(f"ring renders must be at least {SSIM_WINDOW} px (SSIM's window), got {self.size}")
+        if not -90.0 < self.elevation < 90.0:
+            raise ValueError(f"ring elevation must lie strictly between -90 and 90 degrees, got {self.elevation}")
+
+
+@dataclass
+class EditSample:
+    """One edit to score: its user prompt, its grid, and the 3D mask of a refined local edit (None: global)."""
+
+    name: str
+    prompt: str
+    grid: VoxelGrid
+    mask: torch.Tensor | None = None
+
+
+@dataclass
+class Evaluation:
+    rows: list[dict]  # one per edit: name, prompt, mode and the metrics
+    initial_frames: torch.Tensor
+    edit_frames: dict[str, torch.Tensor] = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        return {"rows": self.rows, "means": mean_by_mode(self.rows)}
+
+
+METRICS = ("clip_sim", "clip_dir", "fid_rec", "fid_input", "psnr", "ssim")
+
+
+def evaluate(
+    initial: VoxelGrid,
+    edits: Sequence[EditSample],
+    object_name: str,
+    clip: ClipScorer,
+    fid: FeatureExtractor | None = None,
+    input_images: torch.Tensor | None = None,
+    config: EvaluateConfig = EvaluateConfig(),
+    callbacks: Callbacks = Callbacks(),
+) -> Evaluation:
+    """Score ``edits`` of ``initial`` on the ring (see the module doc); FID only when ``fid`` is given.
+
+    Progress: one step per rendered view ("evaluate", i, (1 + len(edits))·views).
+    """
+    if not edits:
+        raise ValueError("nothing to evaluate: no edits given")
+    source = source_text(object_name)
+    total = (1 + len(edits)) * config.views
+    done = [0]
+
+    def stage_callbacks() -> Callbacks:
+        base = done[0]
+        done[0] += config.views
+        return Callbacks(on_progress=lambda r: callbacks.progress(Progress("evaluate", base + r.iteration, total)),
+                         should_cancel=callbacks.should_cancel)
+
+    recon = render_ring(initial, config.views, config.elevation, config.size, stage_callbacks())
+    recon_clip = clip.image_embeddings(recon)
+    texts = clip.text_embeddings([source] + [edit_prompt(e.prompt) for e in edits])
+    recon_features = fid.features(recon) if fid is not None else None
+    input_features = fid.features(input_images) if fid is not None and input_images is not None else None
+    if input_features is not None and len(input_features) < 2:
+        raise ValueError("FID_input needs at least 2 input images")
+    rows, frames = [], {}
+    for k, sample in enumerate(edits):
+        if sample.mask is not None and sample.grid.resolution != initial.resolution:
+            raise ValueError(f"edit {sample.name!r}: a masked edit must share the initial grid's resolution "
+                             f"{initial.resolution}, got {sample.grid.resolution}")
+        images = render_ring(sample.grid, config.views, config.elevation, config.size, stage_callbacks())
+        embeddings = clip.image_embeddings(images)
+        row = {"name": sample.name, "prompt": sample.prompt, "mode": "local" if sample.mask is not None else "global",
+               "clip_sim": clip_similarity(embeddings, texts[k + 1]),
+               "clip_dir": clip_direction(embeddings, recon_clip, texts[k + 1], texts[0])}
+        if recon_features is not None:
+            features = fid.features(images)
+            row["fid_rec"] = fid_from_features(features, recon_features)
+            row["fid_input"] = fid_from_features(features, input_features) if input_features is not None else None
+        row.update(preservation(images, recon, sample, initial, config))
+        rows.append(row)
+        frames[sample.name] = images
+    return Evaluation(rows, recon, frames)
+
+
+def preservation(images: torch.Tensor, recon: torch.Tensor, sample: EditSample, initial: VoxelGrid,
+                 config: EvaluateConfig) -> dict:
+    """PSNR / SSIM of an edit's ring renders against G_i's, outside the mask's footprint (whole image if no mask)."""
+    if sample.mask is None:
+        keep = torch.ones(images.shape[:3], dtype=torch.bool)
+        region = "whole image"
+    else:
+        keep = ~mask_footprint(initial, sample.mask, config.views, config.elevation, config.size)
+        region = "outside mask"
+    psnr_values = psnr(images, recon, keep=keep)
+    ssim_values = ssim(images, recon, keep=keep)
+    return {"psnr": _finite_mean(psnr_values), "ssim": _finite_mean(ssim_values),
+            "region": region, "kept_fraction": float(keep.float().mean())}
+
+
+PSNR_CAP_DB = 100.0  # identical views have infinite PSNR; averaged as this so one of them cannot swamp the mean
+
+
+def _finite_mean(values: torch.Tensor) -> float | None:
+    """Mean over views with a defined value (a view with no kept pixel is NaN and left out); None if none."""
+    defined = values[~torch.isnan(values)]
+    if defined.numel() == 0:
+        return None
+    return float(defined.clamp(max=PSNR_CAP_DB).mean())
+
+
+def mean_by_mode(rows: Sequence[dict]) -> dict:
+    """Per mode (local / global / all), the mean of each metric over the rows that have it."""
+    out = {}
+    for mode in ("local", "global", "all"):
+        chosen = [r for r in rows if mode == "all" or r.get("mode") == mode]
+        if not chosen:
+            continue
+        means = {"count": len(chosen)}
+        for metric in METRICS:
+            values = [r[metric] for r in chosen if isinstance(r.get(metric), (int, float)) and math.isfinite(r[metric])]
+            means[metric] = sum(values) / len(values) if values else None
+        out[mode] = means
+    return out
+
+
+def format_table(rows: Sequence[dict], extra_columns: Sequence[str] = ()) -> str:
+    """A Markdown table: one line per row, then the local / global / all means."""
+    columns = [*extra_columns, "prompt", "mode", *METRICS]
+
+    def cell(value) -> str:
+        if value is None:
+            return "–"
+        if isinstance(value, float):
+            return f"{value:.4f}" if abs(value) < 10 else f"{value:.2f}"
+        return str(value).replace("|", "\\|")
+
+    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    lines += ["| " + " | ".join(cell(row.get(c)) for c in columns) + " |" for row in rows]
+    for mode, means in mean_by_mode(rows).items():
+        label = {c: "" for c in extra_columns} | {"prompt": f"**mean ({means['count']})**", "mode": mode}
+        lines.append("| " + " | ".join(cell(label.get(c, means.get(c))) for c in columns) + " |")
+    return "\n".join(lines) + "\n"
+
+
+__all__ = [
+    "CLIP_MODEL_ID", "INCEPTION_FILE", "INCEPTION_URL", "PAPER_PROMPTS", "PAPER_RING_VIEWS", "METRICS",
+    "ClipScorer", "EditSample", "EvaluateConfig", "Evaluation", "FeatureExtractor", "InceptionFeatures",
+    "ProtocolEdit", "clip_direction", "clip_similarity", "evaluate", "feature_statistics", "fid_from_features",
+    "format_table", "frechet_distance", "mask_footprint", "mean_by_mode", "paper_protocol", "preservation",
+    "render_ring", "save_png_set", "source_text",
+]
