@@ -156,6 +156,8 @@ def extract_zip(source: BinaryIO, dest: Path, budget: _Budget) -> None:
                 with archive.open(info) as member:
                     start = reader.consumed
                     _copy(member, dest / path, budget, lambda: reader.consumed - start, info.filename)
+            except UploadError:
+                raise
             except FileExistsError:
                 raise UploadError(f"entry {info.filename!r} collides with another entry's path") from None
             except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, NotImplementedError,

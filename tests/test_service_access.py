@@ -1,0 +1,302 @@
+"""Access to the API: hashed keys, ownership (another key's resources are 404), the auth switch and its
+loopback rule, per-key quotas (429 + Retry-After) and Idempotency-Key replay. In-process (TestClient)."""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import threading
+
+import pytest
+from fastapi.testclient import TestClient
+
+from service_helpers import zip_folder
+from test_service_api import JOB, _reset, dataset, root, staged, stored_files  # noqa: F401 - fixtures
+
+
+def _create_key(name: str, **quota) -> tuple[str, str]:
+    from api.auth import create_key
+    from api.db import session_scope
+
+    with session_scope() as session:
+        key, token = create_key(session, name, **quota)
+        return key.id, token
+
+
+def bearer(token: str) -> dict:
+    return {"Authorization": f"Bearer {token}"}
+
+
+@pytest.fixture
+def auth_client(root, monkeypatch):  # noqa: F811 - the fixture imported above
+    monkeypatch.setenv("VOXE_AUTH", "on")
+    _reset()
+    from api.main import create_app
+
+    with TestClient(create_app()) as client:
+        yield client
+
+
+@pytest.fixture
+def local_client(root):  # noqa: F811
+    """Authentication off (the embedded default on loopback): every request acts as the local key."""
+    from api.main import create_app
+
+    with TestClient(create_app()) as client:
+        yield client
+
+
+@pytest.fixture(scope="module")
+def mic_zip(dataset, tmp_path_factory):  # noqa: F811
+    return zip_folder(dataset, tmp_path_factory.mktemp("zips") / "mic.zip", prefix="mic_small")
+
+
+def _upload(client, mic_zip, headers=None, name="mic.zip"):
+    with open(mic_zip, "rb") as handle:
+        return client.post("/v1/scenes", files={"archive": (name, handle, "application/zip")}, headers=headers or {})
+
+
+# ------------------------------------------------------------------------------------------ keys
+def test_requests_need_a_valid_live_key(auth_client, mic_zip):
+    from api.db import session_scope
+    from api.models import ApiKey, utcnow
+
+    for headers in ({}, bearer("voxe_000000000000_" + "x" * 43), bearer("garbage"), {"Authorization": "Basic abc"},
+                    {"X-API-Key": "voxe_nope"}):
+        response = auth_client.get("/v1/scenes", headers=headers)
+        assert response.status_code == 401, headers
+        assert response.headers["www-authenticate"] == "Bearer"
+        assert "API key" in response.json()["detail"] and "api.admin create-key" in response.json()["detail"]
+    key_id, token = _create_key("alice")
+    assert auth_client.get("/v1/scenes", headers=bearer(token)).status_code == 200
+    assert auth_client.get("/v1/scenes", headers={"X-API-Key": token}).status_code == 200
+    # A token for the right id with a wrong secret, and the local key (no token at all), never authenticate.
+    assert auth_client.get("/v1/scenes", headers=bearer(token[:-4] + "AAAA")).status_code == 401
+    assert auth_client.get("/v1/scenes", headers=bearer("voxe_local_" + "x" * 43)).status_code == 401
+    with session_scope() as session:
+        session.get(ApiKey, key_id).revoked_at = utcnow()
+    revoked = auth_client.get("/v1/scenes", headers=bearer(token))
+    assert revoked.status_code == 401 and "invalid or revoked" in revoked.json()["detail"]
+    assert auth_client.get("/healthz").status_code == 200  # liveness needs no key
+
+
+def test_only_the_tokens_hash_is_stored(auth_client):
+    from sqlalchemy import text
+
+    from api.db import session_scope
+
+    key_id, token = _create_key("bob")
+    assert token.startswith(f"voxe_{key_id}_") and len(token) > 50
+    with session_scope() as session:
+        rows = [tuple(r) for r in session.execute(text("SELECT * FROM api_keys"))]
+    assert not any(token in str(value) for row in rows for value in row)
+    assert any(hashlib.sha256(token.encode()).hexdigest() in row for row in rows)
+
+
+def test_another_keys_resources_answer_404(auth_client, mic_zip, root):  # noqa: F811
+    from api.db import session_scope
+    from api.models import Artifact
+    from api.storage import get_storage
+
+    _, alice = _create_key("alice")
+    _, bob = _create_key("bob")
+    scene = _upload(auth_client, mic_zip, bearer(alice)).json()
+    job = auth_client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}, headers=bearer(alice)).json()
+    stored = get_storage().put_bytes(f"jobs/{job['id']}/preview.png", b"png")
+    with session_scope() as session:
+        session.add(Artifact(job_id=job["id"], name="preview.png", key=stored.key, size=stored.size,
+                             sha256=stored.sha256, content_type="image/png", kind="preview"))
+    urls = [f"/v1/scenes/{scene['id']}", f"/v1/scenes/{scene['id']}/reconstructions", f"/v1/jobs/{job['id']}",
+            f"/v1/jobs/{job['id']}/artifacts", f"/v1/jobs/{job['id']}/artifacts/preview.png"]
+    for url in urls:
+        assert auth_client.get(url, headers=bearer(alice)).status_code == 200, url
+        missing = auth_client.get(url, headers=bearer(bob))
+        assert missing.status_code == 404 and "not found" in missing.json()["detail"], url
+    assert auth_client.post(f"/v1/jobs/{job['id']}/cancel", headers=bearer(bob)).status_code == 404
+    assert auth_client.delete(f"/v1/scenes/{scene['id']}", headers=bearer(bob)).status_code == 404
+    assert auth_client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}, headers=bearer(bob)).status_code == 404
+    assert auth_client.get("/v1/scenes", headers=bearer(bob)).json()["total"] == 0
+    assert auth_client.get("/v1/jobs", headers=bearer(bob)).json()["total"] == 0
+    assert auth_client.get("/v1/jobs", headers=bearer(alice)).json()["total"] == 1
+    assert auth_client.get(f"/v1/jobs/{job['id']}", headers=bearer(alice)).json()["state"] == "queued"
+
+
+def test_admin_cli_creates_lists_and_revokes_keys(auth_client, capsys):
+    from api import admin
+
+    assert admin.main(["create-key", "--name", "ci robot", "--max-active-jobs", "3"]) == 0
+    out = capsys.readouterr()
+    token = out.out.strip()
+    assert "shown only this once" in out.err and token.startswith("voxe_")
+    key_id = token.split("_")[1]
+    assert auth_client.get("/v1/jobs", headers=bearer(token)).status_code == 200
+
+    assert admin.main(["list-keys"]) == 0
+    listing = capsys.readouterr().out
+    assert f"{key_id}\tci robot\tactive" in listing and "max_active_jobs=3" in listing
+    assert token not in listing and "local" not in listing
+
+    assert admin.main(["revoke-key", key_id]) == 0
+    assert auth_client.get("/v1/jobs", headers=bearer(token)).status_code == 401
+    assert admin.main(["list-keys"]) == 0 and "revoked" in capsys.readouterr().out
+    assert admin.main(["revoke-key", "nosuchkey"]) == 1
+    assert "no API key 'nosuchkey'" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        admin.main(["create-key", "--name", "x", "--max-active-jobs", "0"])
+
+
+# ------------------------------------------------------------------------------------------ the auth switch
+def test_auth_is_off_only_on_loopback(root, monkeypatch, caplog):  # noqa: F811
+    from api.main import create_app
+    from api.settings import Settings, is_loopback
+
+    for host in ("127.0.0.1", "127.8.9.1", "::1", "[::1]", "localhost"):
+        assert is_loopback(host) and not Settings(host=host).auth_enabled, host
+    for host in ("0.0.0.0", "::", "10.0.0.5", "example.com", ""):
+        assert not is_loopback(host) and Settings(host=host).auth_enabled, host
+    assert Settings(host="127.0.0.1", auth="on").auth_enabled
+
+    with caplog.at_level(logging.WARNING, logger="voxe.api"):
+        with TestClient(create_app()) as client:
+            assert client.get("/v1/scenes").status_code == 200  # no key needed
+    assert "authentication OFF" in caplog.text and "loopback host 127.0.0.1" in caplog.text
+
+    monkeypatch.setenv("VOXE_HOST", "0.0.0.0")
+    monkeypatch.setenv("VOXE_AUTH", "off")
+    _reset()
+    with pytest.raises(RuntimeError, match="refusing to start: VOXE_AUTH=off on the non-loopback host '0.0.0.0'"):
+        with TestClient(create_app()):
+            pass
+
+    monkeypatch.setenv("VOXE_AUTH", "auto")  # a reachable host turns authentication on by itself
+    _reset()
+    with TestClient(create_app()) as client:
+        assert client.get("/v1/scenes").status_code == 401
+
+
+def test_resources_made_before_keys_belong_to_the_local_key(tmp_path):
+    from alembic import command
+    from alembic.config import Config
+    from sqlalchemy import create_engine, text
+
+    from api.main import MIGRATIONS
+
+    url = f"sqlite:///{tmp_path / 'old.db'}"
+    config = Config()
+    config.set_main_option("script_location", str(MIGRATIONS))
+    config.set_main_option("sqlalchemy.url", url)
+    command.upgrade(config, "0001")
+    engine = create_engine(url)
+    with engine.begin() as conn:
+        conn.execute(text("INSERT INTO scenes (id, name, format, image_count, width, height, splits, storage_key, "
+                          "size_bytes, sha256, created_at) VALUES ('s1', 'old', 'nerf_synthetic', 1, 8, 8, '[]', "
+                          "'k', 1, 'x', '2026-01-01 00:00:00')"))
+    command.upgrade(config, "head")
+    with engine.begin() as conn:
+        assert conn.execute(text("SELECT owner_key_id FROM scenes")).scalar_one() == "local"
+        assert conn.execute(text("SELECT token_sha256 FROM api_keys WHERE id = 'local'")).scalar_one() is None
+    command.downgrade(config, "0001")
+    with engine.begin() as conn:
+        assert conn.execute(text("SELECT name FROM scenes")).scalar_one() == "old"
+    engine.dispose()
+
+
+# ------------------------------------------------------------------------------------------ quotas
+def test_concurrent_job_quota_is_429_with_retry_after(auth_client, mic_zip):
+    _, token = _create_key("small", max_active_jobs=2)
+    scene = _upload(auth_client, mic_zip, bearer(token)).json()
+    body = {"scene_id": scene["id"], **JOB}
+    first, second = (auth_client.post("/v1/jobs", json=body, headers=bearer(token)) for _ in range(2))
+    assert first.status_code == second.status_code == 201
+    refused = auth_client.post("/v1/jobs", json=body, headers=bearer(token))
+    assert refused.status_code == 429 and refused.headers["retry-after"] == "60"
+    assert "quota of concurrent jobs exceeded" in refused.json()["detail"] and "limit is 2" in refused.json()["detail"]
+    assert auth_client.get("/v1/jobs", headers=bearer(token)).json()["total"] == 2  # nothing half made
+    auth_client.post(f"/v1/jobs/{first.json()['id']}/cancel", headers=bearer(token))
+    assert auth_client.post("/v1/jobs", json=body, headers=bearer(token)).status_code == 201
+    # The service-wide default applies to keys without their own value.
+    _, other = _create_key("default")
+    scene = _upload(auth_client, mic_zip, bearer(other)).json()
+    for _ in range(3):
+        assert auth_client.post("/v1/jobs", json={**body, "scene_id": scene["id"]}, headers=bearer(other)).status_code == 201
+
+
+def test_upload_quota_is_429_and_leaves_nothing(auth_client, mic_zip, root):  # noqa: F811
+    _, probe = _create_key("probe")
+    size = _upload(auth_client, mic_zip, bearer(probe)).json()["size_bytes"]
+    _, token = _create_key("small", max_upload_bytes=size + size // 2)
+    first = _upload(auth_client, mic_zip, bearer(token))
+    assert first.status_code == 201
+    before = stored_files(root)
+    refused = _upload(auth_client, mic_zip, bearer(token))
+    assert refused.status_code == 429 and refused.headers["retry-after"] == "60"
+    detail = refused.json()["detail"]
+    assert "quota of upload bytes exceeded" in detail and f"stores {size} bytes" in detail and f"adds {size}" in detail
+    assert auth_client.get("/v1/scenes", headers=bearer(token)).json()["total"] == 1
+    assert stored_files(root) == before and staged(root) == []
+    assert auth_client.delete(f"/v1/scenes/{first.json()['id']}", headers=bearer(token)).status_code == 204
+    assert _upload(auth_client, mic_zip, bearer(token)).status_code == 201  # space freed
+
+
+# ------------------------------------------------------------------------------------------ Idempotency-Key
+def test_job_creation_is_idempotent(auth_client, mic_zip):
+    _, alice = _create_key("alice")
+    _, bob = _create_key("bob")
+    scene = _upload(auth_client, mic_zip, bearer(alice)).json()
+    body = {"scene_id": scene["id"], **JOB}
+    headers = {**bearer(alice), "Idempotency-Key": "retry-1"}
+    created = auth_client.post("/v1/jobs", json=body, headers=headers)
+    replayed = auth_client.post("/v1/jobs", json=body, headers=headers)
+    assert created.status_code == 201 and "idempotent-replayed" not in created.headers
+    assert replayed.status_code == 200 and replayed.headers["idempotent-replayed"] == "true"
+    assert replayed.json()["id"] == created.json()["id"]
+    assert auth_client.get("/v1/jobs", headers=bearer(alice)).json()["total"] == 1
+
+    conflict = auth_client.post("/v1/jobs", json={**body, "prompt": "a mic wearing a hat", "edit_words": ["hat"]},
+                                headers=headers)
+    assert conflict.status_code == 422
+    assert "Idempotency-Key 'retry-1' was already used with a different request body" in conflict.json()["detail"]
+    assert created.json()["id"] in conflict.json()["detail"]
+    # Keys are per API key: bob's "retry-1" is his own (and alice's scene is not his).
+    assert auth_client.post("/v1/jobs", json=body, headers={**bearer(bob), "Idempotency-Key": "retry-1"}).status_code == 404
+    for bad in ("", " ", "k" * 256):
+        response = auth_client.post("/v1/jobs", json=body, headers={**bearer(alice), "Idempotency-Key": bad})
+        assert response.status_code == 422 and "Idempotency-Key header must be 1-255 characters" in response.text
+
+
+def test_concurrent_retries_create_one_job(auth_client, mic_zip):
+    _, token = _create_key("racer")
+    scene = _upload(auth_client, mic_zip, bearer(token)).json()
+    headers = {**bearer(token), "Idempotency-Key": "same"}
+    barrier, results = threading.Barrier(4), []
+
+    def post():
+        barrier.wait()
+        results.append(auth_client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}, headers=headers))
+
+    threads = [threading.Thread(target=post) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert sorted(r.status_code for r in results) == [200, 200, 200, 201]
+    assert len({r.json()["id"] for r in results}) == 1
+    assert auth_client.get("/v1/jobs", headers=bearer(token)).json()["total"] == 1
+
+
+def test_scene_creation_is_idempotent(local_client, mic_zip, dataset, root, tmp_path):  # noqa: F811
+    headers = {"Idempotency-Key": "upload-1"}
+    created = _upload(local_client, mic_zip, headers)
+    replayed = _upload(local_client, mic_zip, headers, name="renamed-by-the-client-library.zip")
+    assert created.status_code == 201 and replayed.status_code == 200
+    assert replayed.json() == created.json() and replayed.headers["idempotent-replayed"] == "true"
+    assert stored_files(root) == [f"scenes/{created.json()['id']}/dataset.zip"] and staged(root) == []
+
+    other = zip_folder(dataset, tmp_path / "two.zip", prefix="mic_small", only=lambda rel: "r_4" not in rel)
+    conflict = _upload(local_client, other, headers)
+    assert conflict.status_code == 422 and "different request body" in conflict.json()["detail"]
+    assert local_client.get("/v1/scenes").json()["total"] == 1
+
+    assert local_client.delete(f"/v1/scenes/{created.json()['id']}").status_code == 204
+    gone = _upload(local_client, mic_zip, headers)
+    assert gone.status_code == 409 and "has been deleted" in gone.json()["detail"]

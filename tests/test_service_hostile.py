@@ -1,0 +1,291 @@
+"""Hostile input: every bad upload or job body is a 4xx naming the problem and leaves no row, no stored object
+and no staging folder; a property-based test (hypothesis) throws malformed uploads and parameter sets at the
+in-process app and asserts it never answers 5xx."""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import random
+import stat
+import zipfile
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from PIL import Image
+
+from test_service_api import JOB, _reset, client, dataset, make_scene, root, staged, stored_files  # noqa: F401
+
+
+def _entries(dataset: Path) -> dict[str, bytes]:
+    return {p.relative_to(dataset).as_posix(): p.read_bytes() for p in sorted(dataset.rglob("*")) if p.is_file()}
+
+
+def _meta(dataset: Path) -> dict:
+    return json.loads((dataset / "transforms_train.json").read_text())
+
+
+def _zip(entries: dict[str, bytes] | list[tuple[str | zipfile.ZipInfo, bytes]],
+         compression: int = zipfile.ZIP_STORED) -> bytes:
+    buffer = io.BytesIO()
+    items = entries.items() if isinstance(entries, dict) else entries
+    with zipfile.ZipFile(buffer, "w", compression) as zf:
+        for name, data in items:
+            zf.writestr(name, data, compress_type=compression)
+    return buffer.getvalue()
+
+
+def _with_json(dataset: Path, change) -> bytes:
+    meta = _meta(dataset)
+    change(meta)
+    return _zip({**_entries(dataset), "transforms_train.json": json.dumps(meta).encode()})
+
+
+def _png(size: tuple[int, int], mode: str = "RGB") -> bytes:
+    buffer = io.BytesIO()
+    Image.new(mode, size).save(buffer, "PNG")
+    return buffer.getvalue()
+
+
+def _set(frame: int, key: str, value):
+    def change(meta):
+        meta["frames"][frame][key] = value
+    return change
+
+
+def _symlink_entry() -> zipfile.ZipInfo:
+    info = zipfile.ZipInfo("train/link.png")
+    info.external_attr = (stat.S_IFLNK | 0o777) << 16
+    return info
+
+
+def _scaled_pose(meta):
+    meta["frames"][1]["transform_matrix"] = [[2 * v for v in row[:3]] + [row[3]] for row in
+                                             meta["frames"][1]["transform_matrix"][:3]] + [[0, 0, 0, 1]]
+
+
+HOSTILE_UPLOADS = {
+    # name: (build(dataset) -> zip bytes, expected status, words in the message)
+    "zip slip ..": (lambda d: _zip({**_entries(d), "../../evil.sh": b"x"}), 422, "'..' path components"),
+    "zip slip backslash": (lambda d: _zip({**_entries(d), "train\\..\\..\\evil.sh": b"x"}), 422,
+                           "'..' path components"),
+    "zip slip absolute": (lambda d: _zip({**_entries(d), "/etc/cron.d/evil": b"x"}), 422, "absolute paths"),
+    "zip slip drive": (lambda d: _zip({**_entries(d), "C:/evil.bat": b"x"}), 422, "absolute paths"),
+    "symlink entry": (lambda d: _zip([*_entries(d).items(), (_symlink_entry(), b"/etc/passwd")]), 422,
+                      "symbolic links are not allowed"),
+    "zip bomb": (lambda d: _zip({**_entries(d), "pad.bin": bytes(16 << 20)}, zipfile.ZIP_DEFLATED), 413,
+                 "inflates more than 200 times"),
+    "duplicate entry": (lambda d: _zip([*_entries(d).items(), ("train//r_0.png", b"again")]), 422,
+                        "duplicate entry 'train//r_0.png' in the archive (same path as 'train/r_0.png')"),
+    "not an image": (lambda d: _zip({**_entries(d), "train/r_8.png": b"GIF89a but not really"}), 422,
+                     "frame 2 ('./train/r_8'): cannot read image r_8.png (not an image or damaged)"),
+    "truncated image": (lambda d: _zip({**_entries(d), "train/r_8.png": _entries(d)["train/r_8.png"][:3000]}), 422,
+                        "frame 2 ('./train/r_8'): cannot read image r_8.png"),
+    "decompression bomb": (lambda d: _zip({**_entries(d), "train/r_8.png": _png((8000, 8000), "1")}), 413,
+                           "'train/r_8.png' is 8000x8000 (64000000 pixels), over the limit of 50000000 pixels"),
+    "mismatched sizes": (lambda d: _zip({**_entries(d), "train/r_8.png": _png((400, 400))}), 422,
+                         "frame 2 ('./train/r_8'): image size 400x400 differs from frame 0"),
+    "json not json": (lambda d: _zip({**_entries(d), "transforms_train.json": b"\x89PNG\r\n"}), 422,
+                      "transforms_train.json: cannot read as JSON text"),
+    "json not an object": (lambda d: _zip({**_entries(d), "transforms_train.json": b"[1, 2]"}), 422,
+                           "top level must be a JSON object, got list"),
+    "no frames": (lambda d: _with_json(d, lambda m: m.pop("frames")), 422, "'frames' is missing or not a list"),
+    "empty frames": (lambda d: _with_json(d, lambda m: m.update(frames=[])), 422, "empty split"),
+    "frame without pose": (lambda d: _with_json(d, lambda m: m["frames"][1].pop("transform_matrix")), 422,
+                           "frame 1 ('./train/r_4'): missing 'transform_matrix'"),
+    "NaN pose": (lambda d: _with_json(d, lambda m: m["frames"][1]["transform_matrix"][0].__setitem__(3, math.nan)),
+                 422, "frame 1 ('./train/r_4'): transform_matrix contains NaN or Inf"),
+    "Inf pose": (lambda d: _with_json(d, lambda m: m["frames"][2]["transform_matrix"][1].__setitem__(0, math.inf)),
+                 422, "frame 2 ('./train/r_8'): transform_matrix contains NaN or Inf"),
+    "scaled pose": (lambda d: _with_json(d, _scaled_pose), 422, "frame 1 ('./train/r_4'): rotation is not orthonormal"),
+    "zero focal": (lambda d: _with_json(d, lambda m: m.update(camera_angle_x=0)), 422,
+                   "'camera_angle_x' = 0.0 is outside (0, pi) radians"),
+    "negative focal": (lambda d: _with_json(d, _set(0, "fl_x", -300.0)), 422,
+                       "frame 0 ('./train/r_0'): focal length 'fl_x' = -300.0 must be positive"),
+    "duplicate file_path": (lambda d: _with_json(d, _set(2, "file_path", "train/r_0")), 422,
+                            "frame 2 ('train/r_0'): duplicate file_path (same image as frame 0)"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(HOSTILE_UPLOADS))
+def test_hostile_upload_is_a_4xx_naming_it_and_leaves_nothing(client, dataset, root, case):  # noqa: F811
+    build, expected_status, expected = HOSTILE_UPLOADS[case]
+    response = client.post("/v1/scenes", files={"archive": ("bad.zip", build(dataset), "application/zip")})
+    assert response.status_code == expected_status, response.text
+    assert expected in response.json()["detail"], response.json()
+    assert str(root) not in response.json()["detail"]
+    assert client.get("/v1/scenes").json()["total"] == 0
+    assert stored_files(root) == [] and staged(root) == []
+
+
+def test_file_count_and_content_caps_count_while_extracting(root, monkeypatch):  # noqa: F811
+    from api.main import create_app
+
+    monkeypatch.setenv("VOXE_MAX_UPLOAD_FILES", "5")
+    monkeypatch.setenv("VOXE_MAX_EXTRACTED_BYTES", str(3 << 20))
+    _reset()
+    with TestClient(create_app()) as test_client:
+        many = _zip({f"f{i}.txt": b"x" for i in range(6)})
+        response = test_client.post("/v1/scenes", files={"archive": ("many.zip", many, "application/zip")})
+        assert response.status_code == 413 and "too many files: more than 5 (VOXE_MAX_UPLOAD_FILES)" in response.text
+        # 4 MiB of random (incompressible) bytes in two entries: the cap trips on the bytes written.
+        rng = random.Random(0)
+        big = _zip({"a.bin": rng.randbytes(2 << 20), "b.bin": rng.randbytes(2 << 20)})
+        response = test_client.post("/v1/scenes", files={"archive": ("big.zip", big, "application/zip")})
+        assert response.status_code == 413 and "more than 3145728 bytes of content" in response.text
+        assert stored_files(root) == [] and staged(root) == []
+
+
+def test_duplicate_and_unwritable_multipart_files(client, dataset, root):  # noqa: F811
+    files = [("files", (name, data)) for name, data in _entries(dataset).items()]
+    twice = client.post("/v1/scenes", files=files + [("files", ("./train/r_0.png", b"again"))])
+    assert twice.status_code == 422 and "file './train/r_0.png' uploaded twice" in twice.json()["detail"]
+    long_name = client.post("/v1/scenes", files=files + [("files", ("x" * 300 + ".png", b"a"))])
+    assert long_name.status_code == 422 and "cannot store file" in long_name.json()["detail"]
+    assert client.get("/v1/scenes").json()["total"] == 0 and stored_files(root) == [] and staged(root) == []
+
+
+def test_a_failure_after_storing_rolls_everything_back(client, dataset, root, monkeypatch):  # noqa: F811
+    """The dataset is in storage when the row fails to insert: the stored object goes too."""
+    from api.routes import scenes
+
+    def fail_once_stored(*_args, including_new=False):
+        if including_new:  # the check that runs with the dataset stored and the row flushed
+            raise RuntimeError("database went away")
+
+    monkeypatch.setattr(scenes, "check_upload_bytes", fail_once_stored)
+    failing = TestClient(client.app, raise_server_exceptions=False)
+    response = failing.post("/v1/scenes", files={"archive": ("ok.zip", _zip(_entries(dataset)), "application/zip")})
+    assert response.status_code == 500
+    assert client.get("/v1/scenes").json()["total"] == 0
+    assert stored_files(root) == [] and staged(root) == []
+
+
+# ------------------------------------------------------------------------------------------ job bodies
+@pytest.mark.parametrize("change, location, message", [
+    ({"prompt": ""}, ["body", "prompt"], "at least 1 character"),
+    ({"prompt": "a mic wearing big sunglasses " + "very " * 100}, ["body", "prompt"], "at most 500 characters"),
+    ({"prompt": "a mic wearing big sunglasses\x00"}, ["body", "prompt"], "control characters"),
+    ({"edit_words": ["hat"]}, ["body"], "edit word 'hat' does not occur in the prompt"),
+    ({"edit_words": [""]}, ["body", "edit_words", 0], "at least 1 character"),
+    ({"edit_words": ["sunglasses"] * 17}, ["body", "edit_words"], "at most 16 items"),
+    ({"params": {"seed": 2**40}}, ["body", "params", "seed"], "less than or equal to 4294967295"),
+    ({"params": {"iterations": 10**9}}, ["body", "params", "iterations"], "less than or equal to 200000"),
+    ({"params": {"max_images": 0}}, ["body", "params", "max_images"], "greater than or equal to 1"),
+    ({"params": {"regulariser_weight": 1e300}}, ["body", "params", "regulariser_weight"], "less than or equal"),
+    ({"params": {"refine": {"sigma": -1}}}, ["body", "params", "refine", "sigma"], "greater than 0"),
+    ({"params": {"reconstruction": {"iterations": [1] * 9}}}, ["body", "params", "reconstruction", "iterations"],
+     "1-8 integers"),
+    ({"params": {"export": {"fps": 0}}}, ["body", "params", "export", "fps"], "greater than 0"),
+    ({"params": {"downsample": "three"}}, ["body", "params", "downsample"], "valid integer"),
+    ({"colour": "red"}, ["body", "colour"], "Extra inputs are not permitted"),
+])
+def test_bad_job_fields_are_422_naming_the_field(client, dataset, root, change, location, message):  # noqa: F811
+    scene = make_scene(client, dataset, root)
+    response = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB, **change})
+    assert response.status_code == 422, response.text
+    errors = response.json()["detail"]
+    assert any(e["loc"] == location and message in e["msg"] for e in errors), errors
+
+
+@pytest.mark.parametrize("raw, location", [
+    ('"guidance_scale": NaN', ["body", "params", "guidance_scale"]),
+    ('"lr": Infinity', ["body", "params", "lr"]),
+    ('"regulariser_weight": -Infinity', ["body", "params", "regulariser_weight"]),
+    ('"refine": {"tv_weight": NaN}', ["body", "params", "refine", "tv_weight"]),
+    ('"seed": NaN', ["body", "params", "seed"]),
+])
+def test_non_finite_numbers_are_422_not_500(client, dataset, root, raw, location):  # noqa: F811
+    scene = make_scene(client, dataset, root)
+    body = '{"scene_id": "%s", "prompt": "a yarn doll of a mic", "params": {%s}}' % (scene["id"], raw)
+    response = client.post("/v1/jobs", content=body, headers={"content-type": "application/json"})
+    assert response.status_code == 422, response.text
+    assert any(e["loc"] == location for e in response.json()["detail"]), response.json()
+
+
+def test_query_parameters_out_of_range_are_422(client):
+    for url in ("/v1/scenes?offset=100000000000000000000", "/v1/jobs?offset=-1", "/v1/jobs?limit=0",
+                "/v1/jobs?state=lost"):
+        assert client.get(url).status_code == 422, url
+
+
+# ------------------------------------------------------------------------------------------ property-based
+_NAMES = st.sampled_from(["transforms_train.json", "transforms.json", "train/r_0.png", "train/r_1.png", "../up.txt",
+                          "/abs.txt", "a\\..\\..\\b", "C:/x", "images/0.png", "d/", "x" * 300, "nul\x00.txt",
+                          "__MACOSX/._r_0.png", "train/r_0.png/inner"])
+_NUMBER = st.one_of(st.integers(-10**20, 10**20), st.floats(allow_nan=True, allow_infinity=True), st.booleans(),
+                    st.none(), st.text(max_size=5))
+_MATRIX = st.one_of(st.lists(st.lists(_NUMBER, max_size=5), max_size=5), _NUMBER)
+_FRAME = st.fixed_dictionaries({}, optional={"file_path": st.one_of(st.sampled_from(["./train/r_0", "train/r_1.png",
+                                                                                     "../../etc/passwd", ""]), _NUMBER),
+                                             "transform_matrix": _MATRIX, "fl_x": _NUMBER, "w": _NUMBER})
+_META = st.fixed_dictionaries({}, optional={"camera_angle_x": _NUMBER, "frames": st.one_of(st.lists(_FRAME, max_size=3),
+                                                                                          _NUMBER)})
+
+
+@st.composite
+def _uploads(draw, images: dict[str, bytes]):
+    """Zip archives of hostile names and contents: broken json, real and fake images, random bytes."""
+    if draw(st.integers(0, 9)) == 0:
+        return draw(st.binary(max_size=512))  # not a zip at all
+    content = st.one_of(
+        st.builds(lambda meta: json.dumps(meta).encode(), _META),
+        st.sampled_from(sorted(images)).map(images.__getitem__),  # drawn by name: short failure reports
+        st.binary(max_size=256),
+    )
+    entries = draw(st.lists(st.tuples(_NAMES, content), min_size=1, max_size=5))
+    return _zip(entries, draw(st.sampled_from([zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED])))
+
+
+_JSON_LEAF = st.one_of(st.none(), st.booleans(), st.integers(-2**70, 2**70), st.floats(), st.text(max_size=20))
+_JSON = st.recursive(_JSON_LEAF, lambda inner: st.one_of(st.lists(inner, max_size=3),
+                                                         st.dictionaries(st.text(max_size=8), inner, max_size=3)),
+                     max_leaves=8)
+_PARAM_KEYS = ["downsample", "iterations", "render_size", "guidance_scale", "lr", "regulariser", "seed", "batch_size",
+               "autocast", "preview_every", "max_images", "reconstruction", "refine", "export", "bogus"]
+_JOB_BODIES = st.fixed_dictionaries({}, optional={
+    "prompt": st.one_of(st.text(max_size=600), _JSON_LEAF),
+    "mode": st.one_of(st.sampled_from(["global", "local", "LOCAL"]), _JSON_LEAF),
+    "edit_words": st.one_of(st.lists(st.text(max_size=12), max_size=4), _JSON_LEAF),
+    "params": st.one_of(st.dictionaries(st.sampled_from(_PARAM_KEYS), _JSON, max_size=4), _JSON_LEAF),
+    "extra": _JSON,
+})
+
+
+@pytest.fixture
+def lenient_client(root):  # noqa: F811
+    """A client that reports a server error as a 500 response instead of raising it."""
+    from api.main import create_app
+
+    with TestClient(create_app(), raise_server_exceptions=False) as test_client:
+        yield test_client
+
+
+@pytest.mark.filterwarnings("ignore:Duplicate name")  # the generator writes duplicate entries on purpose
+def test_malformed_uploads_and_job_bodies_never_get_a_5xx(lenient_client, dataset, root):  # noqa: F811
+    images = {name: data for name, data in _entries(dataset).items() if name.endswith(".png")}
+    scene = make_scene(lenient_client, dataset, root)
+    hostile = settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck), database=None)
+
+    @hostile
+    @given(_uploads(images))
+    def upload(body):
+        response = lenient_client.post("/v1/scenes", files={"archive": ("x.zip", body, "application/zip")})
+        assert response.status_code < 500, response.text
+
+    @hostile
+    @given(_JOB_BODIES, st.booleans())
+    def job(body, own_scene):
+        if own_scene:
+            body = {**body, "scene_id": scene["id"]}
+        raw = json.dumps(body)  # NaN / Infinity floats go out as the JSON extensions Python accepts
+        response = lenient_client.post("/v1/jobs", content=raw, headers={"content-type": "application/json"})
+        assert response.status_code < 500, response.text
+
+    upload()
+    job()
+    assert staged(root) == []
