@@ -14,7 +14,7 @@ import re
 import secrets
 from dataclasses import dataclass
 
-from fastapi import Depends, HTTPException, Request, status
+from fastapi import Depends, HTTPException, Request, Response, status
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
@@ -143,6 +143,20 @@ class Idempotency:
         session.add(IdempotencyRecord(owner_key_id=owner.id, endpoint=self.endpoint, idempotency_key=self.key,
                                       request_sha256=self.request_sha256, resource_id=resource_id,
                                       created_at=utcnow()))
+
+    def replayed(self, session: Session, owner: ApiKey, response: Response, model: type):
+        """For a retry: the ``model`` row the first request created, answered 200 with ``Idempotent-Replayed:
+        true`` (409 if it has been deleted since); None when this Idempotency-Key is new."""
+        resource_id = self.original(session, owner)
+        if resource_id is None:
+            return None
+        resource = session.get(model, resource_id)
+        if resource is None:
+            raise HTTPException(status.HTTP_409_CONFLICT, f"the {self.endpoint[:-1]} {resource_id!r} that "
+                                f"Idempotency-Key {self.key!r} created has been deleted; use a new key")
+        response.status_code = status.HTTP_200_OK
+        response.headers[REPLAYED_HEADER] = "true"
+        return resource
 
     def original(self, session: Session, owner: ApiKey) -> str | None:
         """The id the first request with this key created, None if none did; 422 if it asked for something else."""

@@ -12,7 +12,7 @@ from sqlalchemy import func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from api.auth import REPLAYED_HEADER, Idempotency, check_active_jobs, current_key, idempotency_key, lock_key
+from api.auth import Idempotency, check_active_jobs, current_key, idempotency_key, lock_key
 from api.db import get_sessionmaker
 from api.deps import celery_dep, get_session, settings_dep
 from api.models import (
@@ -84,15 +84,6 @@ def _reconstruction_for(session: Session, scene_id: str, params: dict) -> Recons
     return session.scalars(query).one()
 
 
-def _replay(response: Response, job: Job | None, idem: Idempotency, job_id: str) -> JobOut:
-    if job is None:
-        raise HTTPException(status.HTTP_409_CONFLICT, f"the job {job_id!r} that Idempotency-Key {idem.key!r} "
-                                                      "created has been deleted (with its scene); use a new key")
-    response.status_code = status.HTTP_200_OK
-    response.headers[REPLAYED_HEADER] = "true"
-    return job_out(job)
-
-
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=JobOut,
              responses={200: {"description": "a retry with the same Idempotency-Key: the job it created"},
                         401: {"description": "missing or invalid API key"},
@@ -116,8 +107,8 @@ def create_job(
     idem = None
     if idem_key:
         idem = Idempotency(idem_key, hashlib.sha256(body.model_dump_json().encode()).hexdigest(), "jobs")
-        if (original := idem.original(session, key)) is not None:
-            return _replay(response, session.get(Job, original), idem, original)
+        if (replayed := idem.replayed(session, key, response, Job)) is not None:
+            return job_out(replayed)
     get_scene_or_404(session, body.scene_id, key)
     params = body.params.model_dump(mode="json")
     rec = _reconstruction_for(session, body.scene_id, params)
@@ -137,9 +128,8 @@ def create_job(
     except BaseException as exc:
         session.rollback()
         if idem is not None and isinstance(exc, IntegrityError):  # a concurrent retry created it first
-            original = idem.original(session, key)
-            if original is not None:
-                return _replay(response, session.get(Job, original), idem, original)
+            if (replayed := idem.replayed(session, key, response, Job)) is not None:
+                return job_out(replayed)
         raise
     try:
         result = stage_chain(celery, job.id, body.mode).apply_async()

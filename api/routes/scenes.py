@@ -13,9 +13,7 @@ from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from api.auth import (
-    REPLAYED_HEADER, Idempotency, check_upload_bytes, current_key, idempotency_key, lock_key,
-)
+from api.auth import Idempotency, check_upload_bytes, current_key, idempotency_key, lock_key
 from api.deps import get_session, settings_dep, storage_dep
 from api.models import QUEUED, RUNNING, ApiKey, Job, Reconstruction, Scene, new_id
 from api.schemas import Page, ReconstructionOut, SceneOut
@@ -54,15 +52,6 @@ def _upload_digest(archive: BinaryIO | None, files: list[tuple[str, BinaryIO]], 
     return digest.hexdigest()
 
 
-def _replay(response: Response, scene: Scene | None, idem: Idempotency, scene_id: str) -> SceneOut:
-    if scene is None:
-        raise HTTPException(status.HTTP_409_CONFLICT, f"the scene {scene_id!r} that Idempotency-Key {idem.key!r} "
-                                                      "created has been deleted; use a new key")
-    response.status_code = status.HTTP_200_OK
-    response.headers[REPLAYED_HEADER] = "true"
-    return scene_out(scene)
-
-
 @router.post(
     "",
     status_code=status.HTTP_201_CREATED,
@@ -95,8 +84,8 @@ def create_scene(
     uploaded = [(f.filename or "", f.file) for f in files or []]
     idem_key = idempotency_key(request)
     idem = Idempotency(idem_key, _upload_digest(source, uploaded, name), "scenes") if idem_key else None
-    if idem is not None and (original := idem.original(session, key)) is not None:
-        return _replay(response, session.get(Scene, original), idem, original)
+    if idem is not None and (replayed := idem.replayed(session, key, response, Scene)) is not None:
+        return scene_out(replayed)
     check_upload_bytes(session, key, settings, 0)  # already over: answer before unpacking anything
     try:
         result, staging = ingest(
@@ -127,9 +116,8 @@ def create_scene(
         session.rollback()
         storage.delete(storage_key)
         if idem is not None and isinstance(exc, IntegrityError):  # a concurrent retry created it first
-            original = idem.original(session, key)
-            if original is not None:
-                return _replay(response, session.get(Scene, original), idem, original)
+            if (replayed := idem.replayed(session, key, response, Scene)) is not None:
+                return scene_out(replayed)
         raise
     finally:
         shutil.rmtree(staging, ignore_errors=True)
