@@ -24,5 +24,7 @@ USER voxe
 EXPOSE 8000
 HEALTHCHECK --interval=15s --timeout=5s --start-period=30s --retries=5 \
     CMD python -c "import urllib.request,sys; sys.exit(urllib.request.urlopen('http://127.0.0.1:8000/healthz', timeout=4).status != 200)"
-# The app runs `alembic upgrade head` at startup.
+# The app runs `alembic upgrade head` at startup. It listens on every interface, so authentication is on
+# (VOXE_AUTH=auto): create keys with `docker compose exec api python -m api.admin create-key --name <who>`.
+ENV VOXE_HOST=0.0.0.0
 CMD ["uvicorn", "api.main:app", "--host", "0.0.0.0", "--port", "8000", "--proxy-headers"]
