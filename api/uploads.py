@@ -32,6 +32,9 @@ from voxe_core.data import DatasetError, detect_format, load_scene
 
 _IGNORED = ("__MACOSX", ".DS_Store", "Thumbs.db")
 _RATIO_FLOOR = 4 << 20  # below this many bytes out of an entry, any ratio is fine (small text compresses well)
+# Small reads: zipfile reads ahead as many compressed bytes as were asked for, and with a lying directory
+# (an entry claiming more compressed bytes than its stream has) that read-ahead would pad the ratio's divisor.
+_CHUNK = 64 << 10
 _STORED_SUFFIXES = {".png", ".jpg", ".jpeg", ".webp", ".exr", ".zip", ".gz"}
 
 
@@ -117,11 +120,12 @@ class _CountingReader:
 
 
 def _copy(src: BinaryIO, dest: Path, budget: _Budget, consumed=None, name: str = "") -> None:
-    """Stream ``src`` into a new file, charging the budget; ``consumed()`` (compressed bytes so far) bounds the ratio."""
+    """Stream ``src`` into a new file, charging the budget; ``consumed()`` (compressed bytes read so far)
+    bounds the inflation ratio."""
     dest.parent.mkdir(parents=True, exist_ok=True)
     written = 0
     with open(dest, "xb") as out:
-        while chunk := src.read(1 << 20):
+        while chunk := src.read(_CHUNK):
             budget.add_bytes(len(chunk))
             written += len(chunk)
             if consumed is not None:

@@ -218,7 +218,8 @@ def test_concurrent_job_quota_is_429_with_retry_after(auth_client, mic_zip):
     _, other = _create_key("default")
     scene = _upload(auth_client, mic_zip, bearer(other)).json()
     for _ in range(3):
-        assert auth_client.post("/v1/jobs", json={**body, "scene_id": scene["id"]}, headers=bearer(other)).status_code == 201
+        response = auth_client.post("/v1/jobs", json={**body, "scene_id": scene["id"]}, headers=bearer(other))
+        assert response.status_code == 201
 
 
 def test_upload_quota_is_429_and_leaves_nothing(auth_client, mic_zip, root):  # noqa: F811
@@ -258,7 +259,8 @@ def test_job_creation_is_idempotent(auth_client, mic_zip):
     assert "Idempotency-Key 'retry-1' was already used with a different request body" in conflict.json()["detail"]
     assert created.json()["id"] in conflict.json()["detail"]
     # Keys are per API key: bob's "retry-1" is his own (and alice's scene is not his).
-    assert auth_client.post("/v1/jobs", json=body, headers={**bearer(bob), "Idempotency-Key": "retry-1"}).status_code == 404
+    response = auth_client.post("/v1/jobs", json=body, headers={**bearer(bob), "Idempotency-Key": "retry-1"})
+    assert response.status_code == 404
     for bad in ("", " ", "k" * 256):
         response = auth_client.post("/v1/jobs", json=body, headers={**bearer(alice), "Idempotency-Key": bad})
         assert response.status_code == 422 and "Idempotency-Key header must be 1-255 characters" in response.text

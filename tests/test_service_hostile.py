@@ -9,6 +9,7 @@ import json
 import math
 import random
 import stat
+import struct
 import zipfile
 from pathlib import Path
 
@@ -18,11 +19,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
-from test_service_api import JOB, _reset, client, dataset, make_scene, root, staged, stored_files  # noqa: F401
-
-
-def _entries(dataset: Path) -> dict[str, bytes]:
-    return {p.relative_to(dataset).as_posix(): p.read_bytes() for p in sorted(dataset.rglob("*")) if p.is_file()}
+from test_service_api import (  # noqa: F401 - client, dataset and root are fixtures
+    JOB, _dataset_entries, _reset, client, dataset, make_scene, root, staged, stored_files,
+)
 
 
 def _meta(dataset: Path) -> dict:
@@ -42,7 +41,7 @@ def _zip(entries: dict[str, bytes] | list[tuple[str | zipfile.ZipInfo, bytes]],
 def _with_json(dataset: Path, change) -> bytes:
     meta = _meta(dataset)
     change(meta)
-    return _zip({**_entries(dataset), "transforms_train.json": json.dumps(meta).encode()})
+    return _zip(_dataset_entries(dataset, json_text=json.dumps(meta)))
 
 
 def _png(size: tuple[int, int], mode: str = "RGB") -> bytes:
@@ -70,28 +69,29 @@ def _scaled_pose(meta):
 
 HOSTILE_UPLOADS = {
     # name: (build(dataset) -> zip bytes, expected status, words in the message)
-    "zip slip ..": (lambda d: _zip({**_entries(d), "../../evil.sh": b"x"}), 422, "'..' path components"),
-    "zip slip backslash": (lambda d: _zip({**_entries(d), "train\\..\\..\\evil.sh": b"x"}), 422,
+    "zip slip ..": (lambda d: _zip({**_dataset_entries(d), "../../evil.sh": b"x"}), 422, "'..' path components"),
+    "zip slip backslash": (lambda d: _zip({**_dataset_entries(d), "train\\..\\..\\evil.sh": b"x"}), 422,
                            "'..' path components"),
-    "zip slip absolute": (lambda d: _zip({**_entries(d), "/etc/cron.d/evil": b"x"}), 422, "absolute paths"),
-    "zip slip drive": (lambda d: _zip({**_entries(d), "C:/evil.bat": b"x"}), 422, "absolute paths"),
-    "symlink entry": (lambda d: _zip([*_entries(d).items(), (_symlink_entry(), b"/etc/passwd")]), 422,
+    "zip slip absolute": (lambda d: _zip({**_dataset_entries(d), "/etc/cron.d/evil": b"x"}), 422, "absolute paths"),
+    "zip slip drive": (lambda d: _zip({**_dataset_entries(d), "C:/evil.bat": b"x"}), 422, "absolute paths"),
+    "symlink entry": (lambda d: _zip([*_dataset_entries(d).items(), (_symlink_entry(), b"/etc/passwd")]), 422,
                       "symbolic links are not allowed"),
-    "zip bomb": (lambda d: _zip({**_entries(d), "pad.bin": bytes(16 << 20)}, zipfile.ZIP_DEFLATED), 413,
+    "zip bomb": (lambda d: _zip({**_dataset_entries(d), "pad.bin": bytes(16 << 20)}, zipfile.ZIP_DEFLATED), 413,
                  "inflates more than 200 times"),
-    "duplicate entry": (lambda d: _zip([*_entries(d).items(), ("train//r_0.png", b"again")]), 422,
+    "duplicate entry": (lambda d: _zip([*_dataset_entries(d).items(), ("train//r_0.png", b"again")]), 422,
                         "duplicate entry 'train//r_0.png' in the archive (same path as 'train/r_0.png')"),
-    "not an image": (lambda d: _zip({**_entries(d), "train/r_8.png": b"GIF89a but not really"}), 422,
+    "not an image": (lambda d: _zip({**_dataset_entries(d), "train/r_8.png": b"GIF89a but not really"}), 422,
                      "frame 2 ('./train/r_8'): cannot read image r_8.png (not an image or damaged)"),
-    "truncated image": (lambda d: _zip({**_entries(d), "train/r_8.png": _entries(d)["train/r_8.png"][:3000]}), 422,
+    "truncated image": (lambda d: _zip({**_dataset_entries(d),
+                                        "train/r_8.png": (d / "train/r_8.png").read_bytes()[:3000]}), 422,
                         "frame 2 ('./train/r_8'): cannot read image r_8.png"),
-    "decompression bomb": (lambda d: _zip({**_entries(d), "train/r_8.png": _png((8000, 8000), "1")}), 413,
+    "decompression bomb": (lambda d: _zip({**_dataset_entries(d), "train/r_8.png": _png((8000, 8000), "1")}), 413,
                            "'train/r_8.png' is 8000x8000 (64000000 pixels), over the limit of 50000000 pixels"),
-    "mismatched sizes": (lambda d: _zip({**_entries(d), "train/r_8.png": _png((400, 400))}), 422,
+    "mismatched sizes": (lambda d: _zip({**_dataset_entries(d), "train/r_8.png": _png((400, 400))}), 422,
                          "frame 2 ('./train/r_8'): image size 400x400 differs from frame 0"),
-    "json not json": (lambda d: _zip({**_entries(d), "transforms_train.json": b"\x89PNG\r\n"}), 422,
+    "json not json": (lambda d: _zip({**_dataset_entries(d), "transforms_train.json": b"\x89PNG\r\n"}), 422,
                       "transforms_train.json: cannot read as JSON text"),
-    "json not an object": (lambda d: _zip({**_entries(d), "transforms_train.json": b"[1, 2]"}), 422,
+    "json not an object": (lambda d: _zip({**_dataset_entries(d), "transforms_train.json": b"[1, 2]"}), 422,
                            "top level must be a JSON object, got list"),
     "no frames": (lambda d: _with_json(d, lambda m: m.pop("frames")), 422, "'frames' is missing or not a list"),
     "empty frames": (lambda d: _with_json(d, lambda m: m.update(frames=[])), 422, "empty split"),
@@ -122,6 +122,29 @@ def test_hostile_upload_is_a_4xx_naming_it_and_leaves_nothing(client, dataset, r
     assert stored_files(root) == [] and staged(root) == []
 
 
+def _lying_directory_bomb() -> bytes:
+    """32 MiB of zeros (a 32 KiB deflate stream) whose headers claim 2 MiB of compressed bytes: a ratio taken
+    from the directory (16:1) looks harmless, the bytes really read show over 200:1."""
+    data = bytearray(_zip([("pad.bin", bytes(32 << 20)), ("filler.bin", random.Random(0).randbytes(2 << 20))],
+                          zipfile.ZIP_DEFLATED))
+    with zipfile.ZipFile(io.BytesIO(bytes(data))) as zf:
+        info = zf.getinfo("pad.bin")
+    claimed = struct.pack("<I", 2 << 20)
+    data[info.header_offset + 18:info.header_offset + 22] = claimed  # local header: compressed size
+    central = data.index(b"PK\x01\x02")  # the first directory record
+    assert data[central + 46:central + 53] == b"pad.bin"
+    data[central + 20:central + 24] = claimed  # central directory: compressed size
+    with zipfile.ZipFile(io.BytesIO(bytes(data))) as zf:
+        assert zf.getinfo("pad.bin").compress_size == 2 << 20 and zf.read("pad.bin") == bytes(32 << 20)
+    return bytes(data)
+
+
+def test_a_directory_that_lies_about_compressed_sizes_is_still_a_bomb(client, root):  # noqa: F811
+    response = client.post("/v1/scenes", files={"archive": ("lie.zip", _lying_directory_bomb(), "application/zip")})
+    assert response.status_code == 413 and "refused entry 'pad.bin': it inflates more than 200 times" in response.text
+    assert stored_files(root) == [] and staged(root) == []
+
+
 def test_file_count_and_content_caps_count_while_extracting(root, monkeypatch):  # noqa: F811
     from api.main import create_app
 
@@ -141,7 +164,7 @@ def test_file_count_and_content_caps_count_while_extracting(root, monkeypatch): 
 
 
 def test_duplicate_and_unwritable_multipart_files(client, dataset, root):  # noqa: F811
-    files = [("files", (name, data)) for name, data in _entries(dataset).items()]
+    files = [("files", (name, data)) for name, data in _dataset_entries(dataset).items()]
     twice = client.post("/v1/scenes", files=files + [("files", ("./train/r_0.png", b"again"))])
     assert twice.status_code == 422 and "file './train/r_0.png' uploaded twice" in twice.json()["detail"]
     long_name = client.post("/v1/scenes", files=files + [("files", ("x" * 300 + ".png", b"a"))])
@@ -159,7 +182,8 @@ def test_a_failure_after_storing_rolls_everything_back(client, dataset, root, mo
 
     monkeypatch.setattr(scenes, "check_upload_bytes", fail_once_stored)
     failing = TestClient(client.app, raise_server_exceptions=False)
-    response = failing.post("/v1/scenes", files={"archive": ("ok.zip", _zip(_entries(dataset)), "application/zip")})
+    upload = _zip(_dataset_entries(dataset))
+    response = failing.post("/v1/scenes", files={"archive": ("ok.zip", upload, "application/zip")})
     assert response.status_code == 500
     assert client.get("/v1/scenes").json()["total"] == 0
     assert stored_files(root) == [] and staged(root) == []
@@ -267,7 +291,7 @@ def lenient_client(root):  # noqa: F811
 
 @pytest.mark.filterwarnings("ignore:Duplicate name")  # the generator writes duplicate entries on purpose
 def test_malformed_uploads_and_job_bodies_never_get_a_5xx(lenient_client, dataset, root):  # noqa: F811
-    images = {name: data for name, data in _entries(dataset).items() if name.endswith(".png")}
+    images = {name: data for name, data in _dataset_entries(dataset).items() if name.endswith(".png")}
     scene = make_scene(lenient_client, dataset, root)
     hostile = settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck), database=None)
 

@@ -133,7 +133,8 @@ def list_scenes(
 ) -> Page[SceneOut]:
     mine = Scene.owner_key_id == key.id
     total = session.scalar(select(func.count()).select_from(Scene).where(mine)) or 0
-    rows = session.scalars(select(Scene).where(mine).order_by(Scene.created_at.desc(), Scene.id).limit(limit).offset(offset))
+    rows = session.scalars(select(Scene).where(mine).order_by(Scene.created_at.desc(), Scene.id)
+                           .limit(limit).offset(offset))
     return Page[SceneOut](items=[scene_out(s) for s in rows], total=total, limit=limit, offset=offset)
 
 
