@@ -168,7 +168,19 @@ class VoxelGrid(torch.nn.Module):
 
     @torch.no_grad()
     def occupancy(self, sigma_threshold: float = 1e-3) -> Occupancy:
-        """Cells whose density can exceed ``sigma_threshold`` anywhere inside.
+        """Cells worth rendering: density above ``sigma_threshold`` as measured in the default 3-unit box.
+
+        The threshold is scaled by (default box diagonal / this box's diagonal),
+        as ``default_density_scale`` is, so skipping drops the same optical
+        depth along a ray at any scene scale (an absolute 1e-3 would skip an
+        opaque object in a box of 1e3 units). The default box uses it as given.
+        """
+        reference = math.dist(*DEFAULT_BOX)
+        return self.occupancy_above(sigma_threshold * reference / math.dist(self.bbox_min.tolist(), self.bbox_max.tolist()))
+
+    @torch.no_grad()
+    def occupancy_above(self, density: float) -> Occupancy:
+        """Cells whose activated density can exceed ``density`` (absolute, 1 / world unit) anywhere inside.
 
         Trilinear interpolation is bounded by the corner maximum and both
         activations are monotone, so the test is conservative: with ReLU and
@@ -178,7 +190,7 @@ class VoxelGrid(torch.nn.Module):
         corner_max = torch.maximum(raw[:-1], raw[1:])
         corner_max = torch.maximum(corner_max[:, :-1], corner_max[:, 1:])
         corner_max = torch.maximum(corner_max[:, :, :-1], corner_max[:, :, 1:])
-        return self.occupancy_from_cells(self.activate_density(corner_max) > sigma_threshold)
+        return self.occupancy_from_cells(self.activate_density(corner_max) > density)
 
     def occupancy_from_cells(self, cells: torch.Tensor) -> Occupancy:
         """Occupancy for a given cell mask (e.g. one restored from a checkpoint), with its tight box."""

@@ -60,7 +60,7 @@ def _standardise(x: torch.Tensor, eps: float) -> tuple[torch.Tensor, torch.Tenso
     v = v - v.mean()
     with torch.no_grad():
         r = v.amax() - v.amin()
-        constant = ~(r > 0)
+        constant = r == 0  # a NaN range (non-finite input) is not "constant": it must propagate
         r = torch.where(constant, torch.ones_like(r), r)
     v = v / r
     v = v / torch.sqrt((v * v).sum() + eps)

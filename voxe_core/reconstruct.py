@@ -209,8 +209,11 @@ def reconstruct(
             )
             loss = (out.rgb - targets[batch]).abs().mean()
             optimizer.zero_grad()
-            loss.backward()
-            optimizer.step()
+            # No sample in occupied space (e.g. an object-free, all-white scene whose density has
+            # died): the batch rendered pure background, nothing here depends on the grid.
+            if loss.requires_grad:
+                loss.backward()
+                optimizer.step()
             done += 1
             callbacks.progress(Progress(
                 "reconstruct", done, total, {"l1": float(loss.detach())},

@@ -165,11 +165,17 @@ def gaussian_blur2d(maps: torch.Tensor, sigma: float) -> torch.Tensor:
 
 
 def normalize_maps(maps: torch.Tensor) -> torch.Tensor:
-    """Min-max normalise each (H, W) map of (N, H, W) to [0, 1]; a constant map becomes 0."""
+    """Min-max normalise each (H, W) map of (N, H, W) to [0, 1]; a constant map becomes 0.
+
+    "Constant" is relative to the map's magnitude (span below 1e-5 of it, ~100
+    float32 ulps), so the rounding left by blurring and resampling a flat map
+    is not stretched into a full-range pattern of noise.
+    """
     lo = maps.amin(dim=(-2, -1), keepdim=True)
     hi = maps.amax(dim=(-2, -1), keepdim=True)
     span = hi - lo
-    return torch.where(span > 1e-12, (maps - lo) / span.clamp_min(1e-12), torch.zeros_like(maps))
+    flat = span <= 1e-5 * torch.maximum(lo.abs(), hi.abs()) + 1e-12
+    return torch.where(flat, torch.zeros_like(maps), (maps - lo) / span.clamp_min(1e-12))
 
 
 def attention_cameras(config: RefineConfig, generator: torch.Generator | None = None) -> Cameras:

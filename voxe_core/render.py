@@ -79,7 +79,18 @@ def render_rays(
     training). ``color_features`` (X, Y, Z, C) replaces the grid's colour with
     other raw features, rendered without activation over the grid's density
     (the 3D attention grids use it). ``sparse_grad``: see ``VoxelGrid.interpolate``.
+
+    Always computes in float32, autocast disabled: cumulative optical depths
+    and transmittance products lose too much in bf16/fp16, and mixed dtypes
+    would break the scatters. Under autocast the result is the fp32 render.
     """
+    with torch.autocast(origins.device.type, enabled=False):
+        return _render_rays(
+            grid, origins.float(), directions.float(), config, occupancy, generator, color_features, sparse_grad
+        )
+
+
+def _render_rays(grid, origins, directions, config, occupancy, generator, color_features, sparse_grad) -> RenderOutput:
     device = origins.device
     n_rays = origins.shape[0]
     channels = 3 if color_features is None else color_features.shape[-1]
@@ -171,10 +182,11 @@ def render_image(
     config: RenderConfig = RenderConfig(),
     occupancy: Occupancy | None = None,
 ) -> RenderOutput:
-    """Whole image (H, W, 3) from camera ``index``, rendered in ray chunks to bound memory."""
+    """Whole image (H, W, 3) from camera ``index``, rendered in ray chunks to bound memory (float32, as render_rays)."""
     if config.skip_empty and occupancy is None:
         occupancy = grid.occupancy(config.sigma_threshold)
-    origins, directions = camera_rays(cameras, index)
+    with torch.autocast(cameras.c2w.device.type, enabled=False):
+        origins, directions = camera_rays(cameras, index)
     parts = [
         render_rays(grid, origins[s : s + config.chunk_rays], directions[s : s + config.chunk_rays], config, occupancy)
         for s in range(0, origins.shape[0], config.chunk_rays)
