@@ -119,12 +119,13 @@ def create_app(settings: Settings | None = None, migrate: bool = True) -> FastAP
         ),
         lifespan=lifespan,
     )
-    from api.routes import artifacts, health, jobs, scenes
+    from api.routes import artifacts, evaluations, health, jobs, scenes
 
     app.include_router(health.router)
     app.include_router(scenes.router)
     app.include_router(jobs.router)
     app.include_router(artifacts.router)
+    app.include_router(evaluations.router)
     app.add_middleware(UploadLimit, max_bytes=settings.max_upload_bytes)
     app.add_exception_handler(RequestValidationError, validation_error)
     return app

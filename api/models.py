@@ -42,7 +42,8 @@ class Base(DeclarativeBase):
 # Job states and stages (strings in the database, enumerated in the API schema).
 QUEUED, RUNNING, SUCCEEDED, FAILED, CANCELED = "queued", "running", "succeeded", "failed", "canceled"
 TERMINAL_STATES = (SUCCEEDED, FAILED, CANCELED)
-STAGES = ("reconstruct", "edit", "refine", "export")
+STAGES = ("reconstruct", "edit", "refine", "export", "evaluate")
+EVALUATE = "evaluate"  # the mode of an evaluation job (SPEC §4): its one stage scores other jobs' edits
 # Reconstruction states.
 R_PENDING, R_RUNNING, R_SUCCEEDED, R_FAILED = "pending", "running", "succeeded", "failed"
 
@@ -154,6 +155,10 @@ class Job(Base):
     preview_artifact: Mapped[str | None] = mapped_column(String(255), nullable=True)
     worker_hostname: Mapped[str | None] = mapped_column(String(255), nullable=True)
     task_id: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    # Evaluation jobs (mode "evaluate"): the edit jobs scored, the metrics; sweeps: the batch a job belongs to.
+    source_job_ids: Mapped[list | None] = mapped_column(JSON, nullable=True)
+    result: Mapped[dict | None] = mapped_column(JSON, nullable=True)
+    batch_id: Mapped[str | None] = mapped_column(String(32), nullable=True, index=True)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow, index=True)
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)

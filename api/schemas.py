@@ -11,13 +11,13 @@ import unicodedata
 from datetime import datetime
 from typing import Annotated, Generic, Literal, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator, model_validator
 
 T = TypeVar("T")
 
 Regulariser = Literal["reg3d", "reg3d_plus", "volumetric_l1", "volumetric_l2", "image_l1", "image_l2"]
 JobState = Literal["queued", "running", "succeeded", "failed", "canceled"]
-Stage = Literal["reconstruct", "edit", "refine", "export"]
+Stage = Literal["reconstruct", "edit", "refine", "export", "evaluate"]
 
 
 MAX_SEED = 2**32 - 1  # numpy's seed range
@@ -108,6 +108,16 @@ class JobParams(Strict):
 _WORD = re.compile(r"[\w'-]+")
 
 
+def clean_text(value: str, what: str) -> str:
+    """Free text with whitespace collapsed; control characters or no word at all are errors naming ``what``."""
+    if any(unicodedata.category(c) == "Cc" and not c.isspace() for c in value):
+        raise ValueError(f"{what} contains control characters")
+    value = " ".join(value.split())
+    if not words_of(value):
+        raise ValueError(f"{what} has no words")
+    return value
+
+
 def words_of(text: str) -> list[str]:
     return [w.lower() for w in _WORD.findall(text)]
 
@@ -130,12 +140,7 @@ class JobCreate(Strict):
     @field_validator("prompt")
     @classmethod
     def _prompt(cls, value: str) -> str:
-        if any(unicodedata.category(c) == "Cc" and not c.isspace() for c in value):
-            raise ValueError("the prompt contains control characters")
-        value = " ".join(value.split())
-        if not words_of(value):
-            raise ValueError("the prompt has no words")
-        return value
+        return clean_text(value, "the prompt")
 
     @model_validator(mode="after")
     def _edit_words(self):
@@ -155,6 +160,75 @@ class JobCreate(Strict):
         elif self.edit_words:
             raise ValueError("edit_words apply to local edits only (mode 'local')")
         return self
+
+
+# ------------------------------------------------------------------ evaluation (SPEC §4)
+class EvaluationParams(Strict):
+    """The ring the edits are scored on, and what they are compared with."""
+
+    views: int = Field(100, ge=2, le=360, description="poses evenly on a 360° ring (the paper: 100)")
+    elevation: float = Field(30.0, gt=-90, lt=90, description="ring elevation above the horizon, degrees")
+    size: int = Field(266, ge=11, le=1024, description="ring render size in pixels")
+    fid_input: bool = Field(True, description="also FID against the scene's input images (FID_input)")
+    save_renders: bool = Field(True, description="publish the ring renders as PNG artifacts")
+
+
+ObjectName = Annotated[str, Field(min_length=1, max_length=100),
+                      AfterValidator(lambda value: clean_text(value, "the object name"))]
+
+
+class EvaluationCreate(Strict):
+    job_ids: list[str] = Field(min_length=1, max_length=60, description="finished edit jobs of one scene")
+    object: ObjectName = Field(description='what the object is: the source text is "a render of a <object>"')
+    params: EvaluationParams = Field(default_factory=EvaluationParams)
+
+    @field_validator("job_ids")
+    @classmethod
+    def _unique(cls, value: list[str]) -> list[str]:
+        if len(set(value)) != len(value):
+            raise ValueError("job_ids lists a job twice")
+        return value
+
+
+class SweepScene(Strict):
+    scene_id: str = Field(min_length=1, max_length=64)
+    object: ObjectName = Field(description='the object\'s name in the prompts, e.g. "microphone"')
+
+
+class SweepCreate(Strict):
+    """The paper's protocol: every scene × the six prompts of SPEC §4 (local ones refined), each edit then evaluated."""
+
+    scenes: list[SweepScene] = Field(min_length=1, max_length=20)
+    params: JobParams = Field(default_factory=JobParams)
+    evaluation: EvaluationParams = Field(default_factory=EvaluationParams)
+
+    @field_validator("scenes")
+    @classmethod
+    def _unique(cls, value: list[SweepScene]) -> list[SweepScene]:
+        if len({s.scene_id for s in value}) != len(value):
+            raise ValueError("scenes lists a scene twice")
+        return value
+
+
+class SweepEntry(BaseModel):
+    scene_id: str
+    object: str
+    prompt: str
+    mode: str
+    edit_job_id: str
+    edit_state: JobState
+    evaluation_job_id: str
+    evaluation_state: JobState
+
+
+class SweepOut(BaseModel):
+    id: str
+    state: JobState = Field(description="succeeded / failed / canceled once every job is finished, else running or queued")
+    counts: dict[str, int] = Field(description="jobs of the sweep (edits and evaluations) per state")
+    entries: list[SweepEntry]
+    rows: list[dict] = Field(description="one per evaluated edit: scene, object, prompt, mode and the metrics")
+    means: dict = Field(description="metric means over the local edits, the global ones and all")
+    table: str = Field(description="the rows and means as a Markdown table")
 
 
 # ------------------------------------------------------------------ responses
@@ -199,8 +273,10 @@ class JobReconstruction(BaseModel):
 
 
 class Models(BaseModel):
-    sds: str
+    sds: str | None
     attention: str | None
+    clip: str | None = None
+    fid: str | None = None
 
 
 class JobOut(BaseModel):
@@ -228,6 +304,9 @@ class JobOut(BaseModel):
     preview_url: str | None
     artifacts_url: str
     worker_hostname: str | None
+    source_job_ids: list[str] | None = Field(None, description="evaluation jobs: the edit jobs scored")
+    result: dict | None = Field(None, description="evaluation jobs: the metrics (also the evaluation.json artifact)")
+    batch_id: str | None = Field(None, description="the sweep this job belongs to")
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None

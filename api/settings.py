@@ -16,6 +16,7 @@ from typing import Literal
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from voxe_core.evaluate import CLIP_MODEL_ID
 from voxe_core.guidance import ATTENTION_MODEL_ID, SDS_MODEL_ID
 
 TINY_MODEL = "tiny"
@@ -43,6 +44,10 @@ class Settings(BaseSettings):
     # --- models and compute
     sds_model: str = SDS_MODEL_ID
     attention_model: str = ATTENTION_MODEL_ID
+    # Evaluation jobs (SPEC §4): a CLIPModel (hub id, folder or `tiny`) and a TorchScript Inception
+    # file for FID (path, `tiny`, or empty: <model_dir>/inception-2015-12-05.pt).
+    clip_model: str = CLIP_MODEL_ID
+    fid_model: str = ""
     device: str = "auto"  # auto | cpu | cuda | cuda:N
 
     # --- uploads

@@ -302,3 +302,164 @@ def test_cli_evaluate_writes_json_table_and_ring_png_sets(sphere_grid, tiny_clip
     assert main(["evaluate", *common[:-7], "--clip-model", "voxe-test/no-such-clip", "--offline",
                  "--edit", str(tmp_path / "edited.safetensors"), "a wood carving of a ball"]) == 2
     assert "model not available: CLIP weights 'voxe-test/no-such-clip'" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------------------ service
+@pytest.fixture
+def service(tmp_path, monkeypatch):
+    """The API in-process (embedded broker, no worker) with the tiny evaluation models; tasks run via .apply()."""
+    from fastapi.testclient import TestClient
+
+    from service_helpers import MIC, reset_service_caches, service_env, small_mic, zip_folder
+
+    if not MIC.is_dir():
+        pytest.skip(f"shared data missing: {MIC}")
+    for key, value in service_env(tmp_path, VOXE_CLIP_MODEL="tiny", VOXE_FID_MODEL="tiny").items():
+        monkeypatch.setenv(key, value)
+    reset_service_caches()
+    from api.main import create_app
+
+    with TestClient(create_app()) as client:
+        archive = zip_folder(small_mic(tmp_path / "mic_small"), tmp_path / "mic.zip", prefix="mic_small")
+        with open(archive, "rb") as handle:
+            scene = client.post("/v1/scenes", files={"archive": ("mic.zip", handle, "application/zip")})
+        assert scene.status_code == 201, scene.text
+        yield client, scene.json()["id"], tmp_path
+    reset_service_caches()
+
+
+def _as_if_edited(job_id: str, initial, edited, mask=None, scratch=None) -> None:
+    """Record ``job_id`` as succeeded with the artifacts its stages publish (the stages have their own tests)."""
+    from sqlalchemy import update
+
+    from api.db import session_scope
+    from api.models import Job, Reconstruction
+    from api.storage import get_storage
+    from voxe_core.refine import save_mask
+    from worker import runtime
+
+    storage = get_storage()
+    job = runtime.load_job(job_id)
+    initial.save(scratch / "initial.safetensors")
+    stored = storage.put_file(f"reconstructions/{job.reconstruction_id}/grid.safetensors", scratch / "initial.safetensors")
+    if mask is None:
+        edited.save(scratch / f"{job_id}.safetensors")
+        runtime.publish_artifact(job_id, "edited_grid.safetensors", scratch / f"{job_id}.safetensors", "grid", storage)
+    else:
+        merge(initial, edited, mask).save(scratch / f"{job_id}.safetensors")
+        runtime.publish_artifact(job_id, "refined_grid.safetensors", scratch / f"{job_id}.safetensors", "grid", storage)
+        save_mask(scratch / f"{job_id}_mask.safetensors", mask)
+        runtime.publish_artifact(job_id, "mask.safetensors", scratch / f"{job_id}_mask.safetensors", "mask", storage)
+    with session_scope() as session:
+        session.execute(update(Reconstruction).where(Reconstruction.id == job.reconstruction_id)
+                        .values(state="succeeded", grid_key=stored.key))
+        session.execute(update(Job).where(Job.id == job_id).values(state="succeeded"))
+
+
+RING = {"views": 4, "elevation": 20.0, "size": 24}
+
+
+def test_evaluation_job_end_to_end_through_the_api(service, sphere_grid):
+    from worker import tasks
+
+    client, scene_id, root = service
+    edited, mask = _local_edit(sphere_grid)
+    local = client.post("/v1/jobs", json={"scene_id": scene_id, "prompt": "a mic wearing a party hat", "mode": "local",
+                                          "edit_words": ["hat"]}).json()
+    glob = client.post("/v1/jobs", json={"scene_id": scene_id, "prompt": "a wood carving of a mic"}).json()
+    body = {"job_ids": [local["id"], glob["id"]], "object": "mic", "params": RING}
+    queued = client.post("/v1/evaluations", json=body)
+    assert queued.status_code == 409 and f"job {local['id']!r} is queued" in queued.json()["detail"]
+
+    _as_if_edited(local["id"], sphere_grid, edited, mask, root)
+    _as_if_edited(glob["id"], sphere_grid, edited, None, root)
+    created = client.post("/v1/evaluations", json=body)
+    assert created.status_code == 201, created.text
+    job = created.json()
+    assert job["mode"] == "evaluate" and job["state"] == "queued" and job["source_job_ids"] == body["job_ids"]
+    assert job["models"] == {"sds": None, "attention": None, "clip": "tiny (smoke test, random weights)",
+                             "fid": "tiny (smoke test, random weights)"}
+
+    assert tasks.evaluate_task.apply(args=(job["id"],)).get()["state"] == "done"
+    done = client.get(f"/v1/jobs/{job['id']}").json()
+    assert done["state"] == "succeeded" and done["completed_stages"] == ["evaluate"]
+    rows = done["result"]["rows"]
+    assert [(r["job_id"], r["mode"]) for r in rows] == [(local["id"], "local"), (glob["id"], "global")]
+    assert rows[0]["region"] == "outside mask" and rows[0]["psnr"] > 60  # the refined edit kept the rest exactly
+    assert rows[1]["psnr"] < rows[0]["psnr"] and all(r["fid_rec"] > 0 and r["fid_input"] > 0 for r in rows)
+    names = {a["name"] for a in client.get(f"/v1/jobs/{job['id']}/artifacts").json()}
+    assert {"evaluation.json", "evaluation.md", "ring_initial_003.png", f"ring_{local['id']}_000.png"} <= names
+    table = client.get(f"/v1/jobs/{job['id']}/artifacts/evaluation.md")
+    assert table.text == done["result"]["table"] and table.headers["content-type"].startswith("text/markdown")
+    assert json.loads(client.get(f"/v1/jobs/{job['id']}/artifacts/evaluation.json").content)["rows"] == rows
+
+    # Bad requests name the problem.
+    again = client.post("/v1/evaluations", json={**body, "job_ids": [job["id"]]})
+    assert again.status_code == 422 and "is an evaluation, not an edit" in again.json()["detail"]
+    assert client.post("/v1/evaluations", json={**body, "job_ids": ["nope"]}).status_code == 404
+    blank = client.post("/v1/evaluations", json={**body, "object": "  "})
+    assert blank.status_code == 422 and "object name has no words" in blank.text
+    twice = client.post("/v1/evaluations", json={**body, "job_ids": [glob["id"], glob["id"]]})
+    assert twice.status_code == 422 and "lists a job twice" in twice.text
+
+
+def test_evaluation_of_a_job_that_failed_after_queueing_fails_with_the_reason(service, sphere_grid):
+    from sqlalchemy import update
+
+    from api.db import session_scope
+    from api.models import Job
+    from worker import tasks
+
+    client, scene_id, root = service
+    edit = client.post("/v1/jobs", json={"scene_id": scene_id, "prompt": "a wood carving of a mic"}).json()
+    _as_if_edited(edit["id"], sphere_grid, sphere_grid, None, root)
+    job = client.post("/v1/evaluations", json={"job_ids": [edit["id"]], "object": "mic", "params": RING}).json()
+    with session_scope() as session:  # e.g. deleted and re-run meanwhile: the source is no longer a success
+        session.execute(update(Job).where(Job.id == edit["id"]).values(state="failed", error="edit: boom"))
+    assert tasks.evaluate_task.apply(args=(job["id"],)).get()["state"] == "failed"
+    failed = client.get(f"/v1/jobs/{job['id']}").json()
+    assert failed["error"] == f"evaluate: source job {edit['id']} failed: edit: boom"
+    assert client.get(f"/v1/jobs/{job['id']}/artifacts").json() == []  # nothing half written
+
+
+def test_sweep_submits_the_paper_protocol_as_one_batch_with_one_table(service, sphere_grid):
+    from worker import tasks
+
+    client, scene_id, root = service
+    params = {"iterations": 2, "reconstruction": {"resolution": 8, "iterations": 1}}
+    created = client.post("/v1/sweeps", json={"scenes": [{"scene_id": scene_id, "object": "mic"}], "params": params,
+                                              "evaluation": RING})
+    assert created.status_code == 201, created.text
+    sweep = created.json()
+    assert sweep["state"] == "queued" and sweep["counts"] == {"queued": 12} and sweep["rows"] == []
+    entries = sweep["entries"]
+    assert [e["prompt"] for e in entries] == [e.prompt for e in paper_protocol("mic")]
+    assert [e["mode"] for e in entries] == ["local"] * 3 + ["global"] * 3
+    edit_jobs = [client.get(f"/v1/jobs/{e['edit_job_id']}").json() for e in entries]
+    assert [j["edit_words"] for j in edit_jobs[:3]] == [["sunglasses"], ["sweater"], ["party hat"]]
+    assert {j["batch_id"] for j in edit_jobs} == {sweep["id"]} and edit_jobs[0]["params"]["iterations"] == 2
+    assert len({j["reconstruction"]["id"] for j in edit_jobs}) == 1  # one fit shared by the six edits
+
+    from worker import runtime
+    from worker.evaluation import evaluations_waiting_on
+
+    # A worker that died mid-edit re-queues the edit's remaining stages followed by its evaluation.
+    assert evaluations_waiting_on(runtime.load_job(entries[1]["edit_job_id"])) == [entries[1]["evaluation_job_id"]]
+    assert evaluations_waiting_on(runtime.load_job(entries[1]["evaluation_job_id"])) == []
+
+    edited, mask = _local_edit(sphere_grid)
+    for entry in (entries[0], entries[4]):  # one local and one global edit finish; their evaluations run
+        _as_if_edited(entry["edit_job_id"], sphere_grid, edited, mask if entry["mode"] == "local" else None, root)
+        assert tasks.evaluate_task.apply(args=(entry["evaluation_job_id"],)).get()["state"] == "done"
+    summary = client.get(f"/v1/sweeps/{sweep['id']}").json()
+    assert summary["state"] == "running" and summary["counts"] == {"queued": 8, "succeeded": 4}
+    assert [r["prompt"] for r in summary["rows"]] == [entries[0]["prompt"], entries[4]["prompt"]]
+    assert summary["means"]["local"]["count"] == 1 and summary["means"]["all"]["count"] == 2
+    assert "| mic | a mic wearing big sunglasses | local |" in summary["table"]
+    assert client.get("/v1/sweeps/nope").status_code == 404
+    bad = client.post("/v1/sweeps", json={"scenes": [{"scene_id": "nope", "object": "mic"}]})
+    assert bad.status_code == 404
+    control = client.post("/v1/sweeps", json={"scenes": [{"scene_id": scene_id, "object": "mic\u0007"}]})
+    assert control.status_code == 422 and "object name contains control characters" in control.text
+    twice = client.post("/v1/sweeps", json={"scenes": [{"scene_id": scene_id, "object": "mic"}] * 2})
+    assert twice.status_code == 422 and "lists a scene twice" in twice.text

@@ -15,19 +15,26 @@ from api.settings import get_settings
 from worker.broker import register as register_sql_transport
 
 GPU_QUEUE = "gpu"
-TASK_NAMES = {stage: f"voxe.{stage}" for stage in ("reconstruct", "edit", "refine", "export")}
+TASK_NAMES = {stage: f"voxe.{stage}" for stage in ("reconstruct", "edit", "refine", "export", "evaluate")}
 
 
 def job_stages(mode: str) -> list[str]:
+    if mode == "evaluate":  # an evaluation job (SPEC §4) has one stage
+        return ["evaluate"]
     return ["reconstruct", "edit"] + (["refine"] if mode == "local" else []) + ["export"]
 
 
-def stage_chain(celery: Celery, job_id: str, mode: str, done=()):
-    """The Celery chain of a job's stages not in ``done`` (each task takes only the job id)."""
+def stage_chain(celery: Celery, job_id: str, mode: str, done=(), then_evaluate=()):
+    """The Celery chain of a job's stages not in ``done`` (each task takes only the job id).
+
+    ``then_evaluate``: evaluation jobs whose task follows the last stage (a sweep scores each
+    edit once it is done; a failed or canceled edit still lets the evaluation record why).
+    """
     from celery import chain
 
     stages = [s for s in job_stages(mode) if s not in done]
-    return chain(*(celery.signature(TASK_NAMES[s], args=(job_id,), immutable=True) for s in stages))
+    return chain(*(celery.signature(TASK_NAMES[s], args=(job_id,), immutable=True) for s in stages),
+                 *(celery.signature(TASK_NAMES["evaluate"], args=(e,), immutable=True) for e in then_evaluate))
 
 
 def is_sql_broker(url: str) -> bool:

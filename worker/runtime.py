@@ -40,6 +40,7 @@ CONTENT_TYPES = {
     ".ply": "application/octet-stream",
     ".glb": "model/gltf-binary",
     ".json": "application/json",
+    ".md": "text/markdown; charset=utf-8",
 }
 
 
@@ -336,18 +337,27 @@ def resolve_model(model: str, settings: Settings) -> str:
         return model
     from voxe_core.tiny_sd import build_tiny_stable_diffusion
 
+    return str(build_once(settings, "tiny-stable-diffusion", "model_index.json", build_tiny_stable_diffusion))
+
+
+def build_once(settings: Settings, name: str, marker: str, build) -> Path:
+    """``<model_dir>/<name>``, written by ``build(folder)`` once per machine (smoke-test models).
+
+    Processes serialise on a file lock; the folder is built aside and renamed into
+    place, so ``marker`` inside it means it is complete.
+    """
     root = Path(settings.model_dir).resolve()
-    target = root / "tiny-stable-diffusion"
-    if (target / "model_index.json").is_file():
-        return str(target)
+    target = root / name
+    if (target / marker).is_file():
+        return target
     root.mkdir(parents=True, exist_ok=True)
     with open(root / ".tiny.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        if not (target / "model_index.json").is_file():
+        if not (target / marker).is_file():
             tmp = Path(tempfile.mkdtemp(dir=root, prefix=".tiny-"))
-            build_tiny_stable_diffusion(tmp)
+            build(tmp)
             os.rename(tmp, target)
-    return str(target)
+    return target
 
 
 def get_guidance(model: str, device: str, settings: Settings):

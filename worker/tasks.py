@@ -87,7 +87,9 @@ def _error_message(stage: str, exc: Exception, job: Job) -> str:
                 f"VOXE_SDS_MODEL / VOXE_ATTENTION_MODEL (a hub id in the HF_HOME cache, or a local folder); "
                 f"VOXE_SDS_MODEL={TINY_MODEL} VOXE_ATTENTION_MODEL={TINY_MODEL} runs the random-weight "
                 f"smoke-test model, which proves the plumbing only.")
-    if isinstance(exc, ReconstructionFailed):
+    from worker.evaluation import EvaluationFailed
+
+    if isinstance(exc, (ReconstructionFailed, EvaluationFailed)):
         return str(exc)
     return f"{stage}: {type(exc).__name__}: {exc}"
 
@@ -369,6 +371,13 @@ def export_task(self, job_id: str) -> dict:
     return _run_stage(self, job_id, "export", _export, final=True)
 
 
+@app.task(name="voxe.evaluate", bind=True)
+def evaluate_task(self, job_id: str) -> dict:
+    from worker.evaluation import run_evaluation
+
+    return _run_stage(self, job_id, "evaluate", run_evaluation, final=True)
+
+
 # --------------------------------------------------------------------------- worker lifecycle
 _heartbeat_stop = threading.Event()
 
@@ -399,8 +408,11 @@ def recover_interrupted_jobs(hostname: str) -> list[str]:
 
     with runtime.session_scope() as session:
         jobs = list(session.scalars(select(Job).where(Job.state == "running", Job.worker_hostname == hostname)))
+    from worker.evaluation import evaluations_waiting_on
+
     for job in jobs:
-        stage_chain(app, job.id, job.mode, done=job.completed_stages or []).apply_async()
+        stage_chain(app, job.id, job.mode, done=job.completed_stages or [],
+                    then_evaluate=evaluations_waiting_on(job)).apply_async()
         runtime.update_job(job.id, message=f"re-queued after the worker restarted (was in {job.stage})")
         log.warning("job %s was interrupted in %s; re-queued its remaining stages", job.id, job.stage)
     return [job.id for job in jobs]

@@ -16,7 +16,7 @@ from api.auth import Idempotency, check_active_jobs, current_key, idempotency_ke
 from api.db import get_sessionmaker
 from api.deps import celery_dep, get_session, settings_dep
 from api.models import (
-    CANCELED, FAILED, QUEUED, RUNNING, TERMINAL_STATES, ApiKey, Job, Reconstruction, new_id, utcnow,
+    CANCELED, EVALUATE, FAILED, QUEUED, RUNNING, TERMINAL_STATES, ApiKey, Job, Reconstruction, new_id, utcnow,
 )
 from api.routes.scenes import MAX_OFFSET, get_scene_or_404
 from api.schemas import JobCreate, JobOut, JobReconstruction, JobState, Models, Page
@@ -38,8 +38,7 @@ def job_out(job: Job, request: Request | None = None) -> JobOut:
     return JobOut(
         id=job.id, scene_id=job.scene_id, prompt=job.prompt, mode=job.mode, edit_words=job.edit_words,
         params=job.params,
-        models=Models(sds=model_label(job.sds_model),
-                      attention=model_label(job.attention_model) if job.mode == "local" else None),
+        models=_models(job),
         device=job.device, state=job.state, stage=job.stage, iteration=job.iteration, total=job.total,
         progress=(job.iteration / job.total) if job.total else (1.0 if job.state == "succeeded" else 0.0),
         completed_stages=job.completed_stages or [], elapsed_seconds=elapsed,
@@ -51,8 +50,42 @@ def job_out(job: Job, request: Request | None = None) -> JobOut:
         ),
         preview_url=f"{base}/artifacts/{job.preview_artifact}" if job.preview_artifact else None,
         artifacts_url=f"{base}/artifacts", worker_hostname=job.worker_hostname,
+        source_job_ids=job.source_job_ids, result=job.result, batch_id=job.batch_id,
         created_at=job.created_at, started_at=job.started_at, finished_at=job.finished_at, updated_at=job.updated_at,
     )
+
+
+def _models(job: Job) -> Models:
+    if job.mode == EVALUATE:  # an evaluation's models live in its params, fixed when it was created
+        return Models(sds=None, attention=None, clip=model_label(job.params.get("clip_model", "")),
+                      fid=model_label(job.params.get("fid_model") or "inception-2015-12-05.pt in VOXE_MODEL_DIR"))
+    return Models(sds=model_label(job.sds_model),
+                  attention=model_label(job.attention_model) if job.mode == "local" else None)
+
+
+def new_edit_job(body: JobCreate, key: ApiKey, settings: Settings, rec: Reconstruction, batch_id: str | None = None) -> Job:
+    """The queued record of an edit job (not yet added to a session)."""
+    return Job(
+        id=new_id(), scene_id=body.scene_id, owner_key_id=key.id, reconstruction_id=rec.id, prompt=body.prompt,
+        mode=body.mode, edit_words=body.edit_words, params=body.params.model_dump(mode="json"),
+        sds_model=settings.sds_model, attention_model=settings.attention_model, device=settings.device, state=QUEUED,
+        batch_id=batch_id,
+    )
+
+
+def queue_chain(session: Session, chain, jobs: list[Job]) -> None:
+    """Hand ``chain`` to the broker and record its id on ``jobs``; when the broker is down, fail them and 503."""
+    try:
+        result = chain.apply_async()
+    except Exception as exc:  # noqa: BLE001 - broker down: the jobs cannot run
+        log.exception("could not queue job(s) %s", [j.id for j in jobs])
+        session.execute(update(Job).where(Job.id.in_([j.id for j in jobs])).values(
+            state=FAILED, error=f"could not queue the job: {type(exc).__name__}: {exc}", finished_at=utcnow()))
+        session.commit()
+        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, f"could not queue the job: {exc}") from None
+    for job in jobs:
+        job.task_id = getattr(result, "id", None)
+    session.commit()
 
 
 def get_job_or_404(session: Session, job_id: str, key: ApiKey) -> Job:
@@ -110,13 +143,8 @@ def create_job(
         if (replayed := idem.replayed(session, key, response, Job)) is not None:
             return job_out(replayed)
     get_scene_or_404(session, body.scene_id, key)
-    params = body.params.model_dump(mode="json")
-    rec = _reconstruction_for(session, body.scene_id, params)
-    job = Job(
-        id=new_id(), scene_id=body.scene_id, owner_key_id=key.id, reconstruction_id=rec.id, prompt=body.prompt,
-        mode=body.mode, edit_words=body.edit_words, params=params, sds_model=settings.sds_model,
-        attention_model=settings.attention_model, device=settings.device, state=QUEUED,
-    )
+    rec = _reconstruction_for(session, body.scene_id, body.params.model_dump(mode="json"))
+    job = new_edit_job(body, key, settings, rec)
     try:
         lock_key(session, key)
         session.add(job)
@@ -131,16 +159,7 @@ def create_job(
             if (replayed := idem.replayed(session, key, response, Job)) is not None:
                 return job_out(replayed)
         raise
-    try:
-        result = stage_chain(celery, job.id, body.mode).apply_async()
-    except Exception as exc:  # noqa: BLE001 - broker down: the job cannot run
-        log.exception("could not queue job %s", job.id)
-        session.execute(update(Job).where(Job.id == job.id).values(
-            state=FAILED, error=f"could not queue the job: {type(exc).__name__}: {exc}", finished_at=utcnow()))
-        session.commit()
-        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, f"could not queue the job: {exc}") from None
-    job.task_id = getattr(result, "id", None)
-    session.commit()
+    queue_chain(session, stage_chain(celery, job.id, body.mode), [job])
     session.refresh(job)
     return job_out(job)
 

@@ -1,0 +1,148 @@
+"""The evaluate stage (SPEC §4): score finished edit jobs of one scene on the ring, publish JSON and a table.
+
+An evaluation job lists its source jobs (``source_job_ids``) and carries its settings
+in ``params`` (ring, object name, the CLIP and FID models fixed when it was created).
+Every source must have succeeded; the edit scored is the refined grid (with its
+mask) of a local edit and the edited grid of a global one, against the sources'
+shared reconstruction G_i. Results: ``evaluation.json`` (also the job's ``result``),
+``evaluation.md`` and, unless disabled, the ring renders ``ring_initial_NNN.png`` and
+``ring_<source job id>_NNN.png``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+from api.models import EVALUATE, QUEUED, SUCCEEDED, Job
+from api.settings import TINY_MODEL, Settings
+from worker import runtime
+from worker.runtime import StageCallbacks
+
+log = logging.getLogger("voxe.worker")
+
+_SCORERS: dict[tuple[str, str, str], object] = {}  # one loaded model per (kind, model, device) per process
+
+
+class EvaluationFailed(RuntimeError):
+    """The evaluation cannot run (a source job did not succeed, a model is missing); the message says why."""
+
+
+def fid_model_path(model: str, settings: Settings) -> str:
+    """What ``VOXE_FID_MODEL`` names: a file or folder, ``tiny``, or (empty) the Inception file in the model dir."""
+    from voxe_core.evaluate import INCEPTION_FILE
+
+    if model == TINY_MODEL:
+        from voxe_core.tiny_eval import build_tiny_inception
+
+        folder = runtime.build_once(settings, "tiny-inception", INCEPTION_FILE,
+                                    lambda tmp: build_tiny_inception(Path(tmp) / INCEPTION_FILE))
+        return str(folder / INCEPTION_FILE)
+    return model or str(Path(settings.model_dir) / INCEPTION_FILE)
+
+
+def _scorer(kind: str, model: str, device: str, settings: Settings):
+    from voxe_core.evaluate import ClipScorer, InceptionFeatures
+    from voxe_core.guidance import ModelNotAvailableError
+
+    key = (kind, model, device)
+    if key not in _SCORERS:
+        try:
+            if kind == "clip":
+                path = model
+                if model == TINY_MODEL:
+                    from voxe_core.tiny_eval import build_tiny_clip
+
+                    path = str(runtime.build_once(settings, "tiny-clip", "config.json", build_tiny_clip))
+                _SCORERS[key] = ClipScorer.from_pretrained(path, device=device)
+            else:
+                _SCORERS[key] = InceptionFeatures.load(fid_model_path(model, settings), device=device)
+        except ModelNotAvailableError as exc:
+            variable = "VOXE_CLIP_MODEL" if kind == "clip" else "VOXE_FID_MODEL"
+            raise EvaluationFailed(
+                f"evaluate: {exc}. The worker reads this model from {variable}; {variable}={TINY_MODEL} runs the "
+                "random-weight smoke-test model, which proves the plumbing only."
+            ) from exc
+    return _SCORERS[key]
+
+
+def _sources(job: Job) -> list[Job]:
+    jobs = []
+    for source_id in job.source_job_ids or []:
+        source = runtime.load_job(source_id)
+        if source is None:
+            raise EvaluationFailed(f"evaluate: source job {source_id} was deleted")
+        if source.state != SUCCEEDED:
+            why = f": {source.error or source.message}" if (source.error or source.message) else ""
+            raise EvaluationFailed(f"evaluate: source job {source_id} {source.state}{why}")
+        jobs.append(source)
+    if not jobs:
+        raise EvaluationFailed("evaluate: the job lists no source jobs")
+    if len({s.reconstruction_id for s in jobs}) != 1:
+        raise EvaluationFailed("evaluate: the source jobs do not share one reconstruction")
+    return jobs
+
+
+def evaluations_waiting_on(job: Job) -> list[str]:
+    """Queued evaluation jobs of ``job``'s sweep that score it (their task follows its chain)."""
+    if job.batch_id is None or job.mode == EVALUATE:
+        return []
+    from sqlalchemy import select
+
+    with runtime.session_scope() as session:
+        waiting = session.scalars(select(Job).where(Job.batch_id == job.batch_id, Job.mode == EVALUATE,
+                                                    Job.state == QUEUED))
+        return [e.id for e in waiting if job.id in (e.source_job_ids or [])]
+
+
+def run_evaluation(job: Job, settings: Settings, device: str, storage) -> None:
+    """The evaluate stage body (called by the task frame in :mod:`worker.tasks`)."""
+    from voxe_core.evaluate import EditSample, EvaluateConfig, evaluate, format_table
+    from voxe_core.export import save_png
+    from voxe_core.refine import load_mask
+    from worker.tasks import _grid, _load_images
+
+    params = job.params
+    sources = _sources(job)
+    clip = _scorer("clip", params["clip_model"], device, settings)
+    fid = _scorer("fid", params["fid_model"], device, settings)
+    rec = runtime.load_reconstruction(sources[0].reconstruction_id)
+    if rec is None or rec.grid_key is None:
+        raise EvaluationFailed("evaluate: the source jobs' reconstruction is gone")
+    initial = _grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key).to(device)
+    edits = []
+    for source in sources:
+        name = "refined_grid.safetensors" if source.mode == "local" else "edited_grid.safetensors"
+        grid = _grid(job.id, f"{source.id}_{name}", settings, storage, runtime.artifact_key(source.id, name)).to(device)
+        mask = None
+        if source.mode == "local":
+            mask_path = runtime.fetch(storage, runtime.artifact_key(source.id, "mask.safetensors"),
+                                      runtime.scratch_dir(job.id, settings) / f"{source.id}_mask.safetensors")
+            mask = load_mask(mask_path)
+        edits.append(EditSample(source.id, source.prompt, grid, mask))
+    input_images = _load_images(sources[0], rec.params, settings, storage).images if params["fid_input"] else None
+    config = EvaluateConfig(views=params["views"], elevation=params["elevation"], size=params["size"])
+    callbacks = StageCallbacks(job.id, "evaluate", settings)
+    result = evaluate(initial, edits, params["object"], clip, fid, input_images, config, callbacks.callbacks)
+
+    scratch = runtime.scratch_dir(job.id, settings)
+    if params.get("save_renders", True):
+        sets = {"initial": result.initial_frames, **result.edit_frames}
+        for label, frames in sets.items():
+            for i, frame in enumerate(frames):
+                name = f"ring_{label}_{i:03d}.png"
+                save_png(scratch / name, frame)
+                runtime.publish_artifact(job.id, name, scratch / name, "render", storage)
+    for row, source in zip(result.rows, sources):  # rows are named by their source job's id
+        row.update(job_id=row.pop("name"), scene_id=source.scene_id, object=params["object"])
+    table = format_table(result.rows, extra_columns=("job_id",))
+    summary = {**result.summary(), "object": params["object"], "clip_model": params["clip_model"],
+               "fid_model": params["fid_model"], "reconstruction_id": rec.id,
+               "ring": {"views": config.views, "elevation": config.elevation, "size": config.size}, "table": table}
+    (scratch / "evaluation.json").write_text(json.dumps(summary, indent=2))
+    (scratch / "evaluation.md").write_text(table)
+    runtime.publish_artifact(job.id, "evaluation.json", scratch / "evaluation.json", "evaluation", storage)
+    runtime.publish_artifact(job.id, "evaluation.md", scratch / "evaluation.md", "evaluation", storage)
+    runtime.update_job(job.id, result=summary)
+    log.info("job %s: evaluated %d edit(s) of scene %s", job.id, len(sources), sources[0].scene_id)
