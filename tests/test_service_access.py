@@ -302,3 +302,27 @@ def test_scene_creation_is_idempotent(local_client, mic_zip, dataset, root, tmp_
     assert local_client.delete(f"/v1/scenes/{created.json()['id']}").status_code == 204
     gone = _upload(local_client, mic_zip, headers)
     assert gone.status_code == 409 and "has been deleted" in gone.json()["detail"]
+
+
+def test_malformed_credentials_are_401_never_5xx(root, monkeypatch):  # noqa: F811
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    from api.main import create_app
+
+    monkeypatch.setenv("VOXE_AUTH", "on")
+    _reset()
+    header_text = st.text(st.characters(min_codepoint=32, max_codepoint=126), max_size=80)
+    token_like = st.builds(lambda i, s: f"voxe_{i}_{s}", st.text("0123456789abcdefl", max_size=14), header_text)
+    with TestClient(create_app(), raise_server_exceptions=False) as client:
+        _, token = _create_key("real")
+
+        @settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck), database=None)
+        @given(st.sampled_from(["authorization", "x-api-key"]), st.sampled_from(["", "Bearer ", "bearer ", "Basic "]),
+               st.one_of(header_text, token_like, st.just(token[:-1]), st.just(token + "x")))
+        def probe(header, scheme, value):
+            response = client.get("/v1/jobs", headers={header: scheme + value})
+            assert response.status_code == 401, (header, scheme, value, response.text)
+
+        probe()
+        assert client.get("/v1/jobs", headers=bearer(token)).status_code == 200
