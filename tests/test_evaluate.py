@@ -463,3 +463,41 @@ def test_sweep_submits_the_paper_protocol_as_one_batch_with_one_table(service, s
     assert control.status_code == 422 and "object name contains control characters" in control.text
     twice = client.post("/v1/sweeps", json={"scenes": [{"scene_id": scene_id, "object": "mic"}] * 2})
     assert twice.status_code == 422 and "lists a scene twice" in twice.text
+
+
+def test_cli_sweep_submits_to_the_service_and_prints_the_table(service, tmp_path, capsys):
+    import threading
+
+    import uvicorn
+
+    from service_helpers import free_port
+    from api.main import create_app
+    from voxe_core.cli import main
+
+    client, scene_id, _ = service
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(create_app(), host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    try:
+        while not server.started:
+            thread.join(0.05)
+        api = f"http://127.0.0.1:{port}"
+        out = tmp_path / "sweep.json"
+        code = main(["sweep", "--api", api, "--scene", f"{scene_id}=mic", "--evaluation", json.dumps(RING),
+                     "--params", '{"iterations": 2}', "--out", str(out)])
+        assert code == 0
+        sweep = json.loads(out.read_text())
+        assert len(sweep["entries"]) == 6 and sweep["state"] == "queued"
+        assert client.get(f"/v1/sweeps/{sweep['id']}").json()["counts"] == {"queued": 12}
+        assert client.get(f"/v1/jobs/{sweep['entries'][0]['edit_job_id']}").json()["params"]["iterations"] == 2
+        printed = capsys.readouterr()
+        assert printed.out == sweep["table"] and f"sweep {sweep['id']}: 6 edits of 1 scene(s) queued" in printed.err
+        assert main(["sweep", "--api", api, "--scene", "nope=mic"]) == 2
+        assert "POST /v1/sweeps: HTTP 404: scene 'nope' not found" in capsys.readouterr().err
+    finally:
+        server.should_exit = True
+        thread.join(10)
+    with pytest.raises(SystemExit):
+        main(["sweep", "--scene", "no-object-given"])
+    assert "expected SCENE_ID=OBJECT" in capsys.readouterr().err

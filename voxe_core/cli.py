@@ -8,6 +8,7 @@
     voxe edit GRID --prompt TEXT --out DIR [--model ID_OR_DIR] [--iterations N] [--render-size N] ...
     voxe build-tiny-model DIR      (random-weight SMOKE-TEST Stable Diffusion, plumbing only)
     voxe evaluate GRID --edit EDITED_GRID PROMPT [MASK] ... --object NAME --out DIR [--clip-model ID_OR_DIR] ...
+    voxe sweep --api URL --scene SCENE_ID=OBJECT ... [--params JSON] [--evaluation JSON] [--wait]   (the service)
 
 Bad input (dataset, grid file, option values) prints one line on stderr and
 exits 2; Ctrl-C during a long stage cancels it cleanly and exits 130.
@@ -171,6 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_edit_parsers(commands, common)
     _add_refine_parser(commands, common)
     _add_evaluate_parser(commands, common)
+    _add_sweep_parser(commands, common)
     return parser
 
 
@@ -617,6 +619,96 @@ def cmd_evaluate(args) -> int:
     return 0
 
 
+def _scene_object(text: str) -> dict:
+    scene_id, sep, name = text.partition("=")
+    if not sep or not scene_id.strip() or not name.strip():
+        raise argparse.ArgumentTypeError(f"expected SCENE_ID=OBJECT (e.g. 3f2a...=microphone), got {text!r}")
+    return {"scene_id": scene_id.strip(), "object": name.strip()}
+
+
+def _json_object(text: str) -> dict:
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise argparse.ArgumentTypeError(f"not JSON: {exc}") from None
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError(f"expected a JSON object, got {text!r}")
+    return value
+
+
+def _add_sweep_parser(commands, common) -> None:
+    sw = commands.add_parser(
+        "sweep", parents=[common],
+        help="submit the paper's protocol to the service: scenes × the six prompts of SPEC §4, each edit evaluated",
+    )
+    sw.add_argument("--api", default="http://127.0.0.1:8000", metavar="URL", help="the service's base URL")
+    sw.add_argument("--scene", type=_scene_object, action="append", required=True, metavar="SCENE_ID=OBJECT",
+                    help="an uploaded scene and what its object is called in the prompts (repeat for several)")
+    sw.add_argument("--params", type=_json_object, default=None, metavar="JSON", help="edit job params (POST /v1/jobs)")
+    sw.add_argument("--evaluation", type=_json_object, default=None, metavar="JSON",
+                    help='evaluation params, e.g. \'{"views": 100, "size": 266}\'')
+    sw.add_argument("--api-key", default=None, help="API key (default: $VOXE_API_KEY; none needed on a loopback service)")
+    sw.add_argument("--wait", action="store_true", help="poll until every job of the sweep is finished")
+    sw.add_argument("--poll", type=float, default=10.0, help="seconds between polls with --wait")
+    sw.add_argument("--out", type=Path, default=None, metavar="FILE", help="also write the final summary JSON here")
+
+
+class ServiceError(ValueError):
+    """The service answered with an error status (its detail is the message)."""
+
+
+def _service_call(base: str, path: str, api_key: str | None, body: dict | None = None) -> dict:
+    import urllib.error
+    import urllib.request
+
+    headers = {"content-type": "application/json", "accept": "application/json"}
+    if api_key:
+        headers["authorization"] = f"Bearer {api_key}"
+    request = urllib.request.Request(base.rstrip("/") + path, headers=headers, method="GET" if body is None else "POST",
+                                     data=None if body is None else json.dumps(body).encode())
+    try:
+        with urllib.request.urlopen(request, timeout=60) as response:
+            return json.loads(response.read())
+    except urllib.error.HTTPError as exc:
+        try:
+            detail = json.loads(exc.read()).get("detail")
+        except (ValueError, AttributeError):
+            detail = exc.reason
+        raise ServiceError(f"{request.method} {path}: HTTP {exc.code}: {detail}") from None
+    except urllib.error.URLError as exc:
+        raise ServiceError(f"cannot reach the service at {base}: {exc.reason}") from None
+
+
+def cmd_sweep(args) -> int:
+    import os
+    import time
+
+    api_key = args.api_key or os.environ.get("VOXE_API_KEY")
+    body = {"scenes": args.scene}
+    if args.params is not None:
+        body["params"] = args.params
+    if args.evaluation is not None:
+        body["evaluation"] = args.evaluation
+    sweep = _service_call(args.api, "/v1/sweeps", api_key, body)
+    print(f"sweep {sweep['id']}: {len(sweep['entries'])} edits of {len(args.scene)} scene(s) queued, each followed by "
+          f"its evaluation; GET {args.api.rstrip('/')}/v1/sweeps/{sweep['id']}", file=sys.stderr)
+    interrupt = _Interrupt()
+    with interrupt.installed():
+        while args.wait and sweep["state"] in ("queued", "running") and not interrupt.requested:
+            if not args.quiet:
+                print(f"sweep {sweep['id']}: {sweep['state']}, jobs {sweep['counts']}", file=sys.stderr)
+            time.sleep(args.poll)
+            sweep = _service_call(args.api, f"/v1/sweeps/{sweep['id']}", api_key)
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(sweep, indent=2))
+    print(sweep["table"], end="")
+    if interrupt.requested:
+        print(f"voxe sweep: stopped waiting; the sweep {sweep['id']} goes on in the service", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    return 0
+
+
 COMMANDS = {
     "reconstruct": cmd_reconstruct,
     "render": cmd_render,
@@ -626,6 +718,7 @@ COMMANDS = {
     "build-tiny-model": cmd_build_tiny_model,
     "refine": cmd_refine,
     "evaluate": cmd_evaluate,
+    "sweep": cmd_sweep,
 }
 
 
