@@ -240,11 +240,11 @@ def validate(root: Path, staging: Path, downsample: int) -> tuple[str, int, int,
     try:
         fmt = detect_format(root)
         try:
-            scene = load_scene(root, "train", downsample=downsample)
+            scene = load_scene(root, "train", downsample=downsample, confine_paths=True)
         except DatasetError as exc:
             if "smaller than downsample" not in str(exc):
                 raise
-            scene = load_scene(root, "train", downsample=1)
+            scene = load_scene(root, "train", downsample=1, confine_paths=True)
     except DatasetError as exc:
         raise UploadError(f"invalid dataset: {_relative_message(exc, staging)}") from None
     width, height = _image_size(root, scene.names[0])

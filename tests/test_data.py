@@ -355,6 +355,31 @@ def test_duplicate_file_path(tmp_path):
     assert_names(err, "transforms_train.json", 2)
 
 
+def test_confined_paths_stay_inside_the_dataset(tmp_path):
+    """A local dataset may reach a sibling folder; an upload (confine_paths) may not, nor by an absolute path."""
+    write_png(tmp_path / "shared" / "r_0.png")
+    frames = [{"file_path": "../shared/r_0", "transform_matrix": pose()}]
+    root = make_synthetic(tmp_path / "s", frames=frames)
+    assert len(load_scene(root)) == 1
+    with pytest.raises(DatasetError, match="'file_path' leads outside the dataset folder") as err:
+        load_scene(root, confine_paths=True)
+    assert_names(err, "transforms_train.json", 0)
+    frames[0]["file_path"] = str(tmp_path / "shared" / "r_0")
+    make_synthetic(root, frames=frames)
+    assert len(load_scene(root)) == 1
+    with pytest.raises(DatasetError, match="leads outside the dataset folder"):
+        load_scene(root, confine_paths=True)
+    frames[0]["file_path"] = "./inner/../r_0"  # '..' that stays inside is fine
+    write_png(root / "r_0.png")
+    (root / "inner").mkdir()
+    make_synthetic(root, frames=frames)
+    assert load_scene(root, confine_paths=True).names == ["./inner/../r_0"]
+    frames[0]["file_path"] = "r_0\x00.png"
+    make_synthetic(root, frames=frames)
+    with pytest.raises(DatasetError, match="'file_path' contains a NUL character"):
+        load_scene(root)
+
+
 def test_bad_arguments_are_value_errors(tmp_path):
     root = make_synthetic(tmp_path / "s")
     for kwargs in ({"downsample": 0}, {"downsample": 1.5}, {"max_images": 0}, {"split": "../x"}):

@@ -106,6 +106,12 @@ HOSTILE_UPLOADS = {
                    "'camera_angle_x' = 0.0 is outside (0, pi) radians"),
     "negative focal": (lambda d: _with_json(d, _set(0, "fl_x", -300.0)), 422,
                        "frame 0 ('./train/r_0'): focal length 'fl_x' = -300.0 must be positive"),
+    "file_path outside": (lambda d: _with_json(d, _set(1, "file_path", "../../../../../../etc/hostname")), 422,
+                          "frame 1 ('../../../../../../etc/hostname'): 'file_path' leads outside the dataset folder"),
+    "file_path absolute": (lambda d: _with_json(d, _set(1, "file_path", str(d / "train" / "r_0"))), 422,
+                           "'file_path' leads outside the dataset folder (absolute or through '..')"),
+    "file_path NUL": (lambda d: _with_json(d, _set(2, "file_path", "train/r_8\u0000.png")), 422,
+                      "'file_path' contains a NUL character"),
     "duplicate file_path": (lambda d: _with_json(d, _set(2, "file_path", "train/r_0")), 422,
                             "frame 2 ('train/r_0'): duplicate file_path (same image as frame 0)"),
 }

@@ -91,6 +91,7 @@ def load_scene(
     downsample: int = 1,
     max_images: int | None = None,
     holdout_every: int | None = None,
+    confine_paths: bool = False,
 ) -> Scene:
     """Load one split of a dataset folder.
 
@@ -99,6 +100,8 @@ def load_scene(
     ``holdout_every`` (instant-ngp only; NeRF-synthetic has its own split files): frames
     0, k, 2k, ... form "test" and the rest "train". ``max_images`` keeps the first k
     frames of the split. Frame indices in errors are positions in the json's ``frames``.
+    ``confine_paths``: refuse a ``file_path`` that leads outside ``root`` (absolute, or up
+    through ``..``), so an untrusted upload cannot read other files on the machine.
     """
     if not isinstance(downsample, int) or downsample < 1:
         raise ValueError(f"downsample must be a positive integer, got {downsample!r}")
@@ -130,6 +133,10 @@ def load_scene(
                 raise where(f"missing '{key}'", i)
         if not isinstance(frame["file_path"], str) or not frame["file_path"]:
             raise where("'file_path' must be a non-empty string", i)
+        if "\0" in frame["file_path"]:
+            raise where("'file_path' contains a NUL character", i)
+        if confine_paths and not _inside(root, frame["file_path"]):
+            raise where("'file_path' leads outside the dataset folder (absolute or through '..')", i)
         merged = {**top, **_check_intrinsics(frame, where, i)}
         if "fl_x" not in merged and "camera_angle_x" not in merged:
             raise where("missing intrinsics: need 'camera_angle_x' or 'fl_x' (top level or per frame)", i)
@@ -181,6 +188,11 @@ def load_scene(
     if aabb is not None:
         aabb = _number(aabb, "aabb_scale", where, None)
     return Scene(images, alphas, cams, [paths[i] for i in keep], fmt, split, distortion, aabb)
+
+
+def _inside(root: Path, file_path: str) -> bool:
+    resolved_root = root.resolve()
+    return (resolved_root / file_path).resolve().is_relative_to(resolved_root)
 
 
 def _read_json(path: Path) -> dict:
