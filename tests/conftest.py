@@ -62,3 +62,12 @@ def tiny_sd_path(tmp_path_factory) -> Path:
     from voxe_core.tiny_sd import build_tiny_stable_diffusion
 
     return build_tiny_stable_diffusion(tmp_path_factory.mktemp("tiny_sd_shared") / "model", seed=0)
+
+
+@pytest.fixture
+def single_thread():
+    """One torch thread for the test: on tiny tensors OpenMP hand-offs cost more than they save on a shared 2-core box."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

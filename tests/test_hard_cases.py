@@ -48,6 +48,8 @@ from voxe_core.render import RenderConfig, render_image, render_rays
 
 from conftest import make_sphere_grid
 
+pytestmark = pytest.mark.usefixtures("single_thread")
+
 CUDA = torch.cuda.is_available()
 needs_cuda = pytest.mark.skipif(not CUDA, reason="fp16 autocast needs a CUDA device")
 # Relative L2 error of the SDS latent gradient under bf16 autocast against fp32, at the paper's guidance
@@ -586,15 +588,6 @@ def tiny_guidance(tiny_sd_path) -> StableDiffusionGuidance:
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("HF_HUB_OFFLINE", "1")
         return StableDiffusionGuidance.from_pretrained(str(tiny_sd_path), device="cpu")
-
-
-@pytest.fixture(autouse=True)
-def _single_thread():
-    # small tensors: OpenMP hand-offs cost more than they save on a shared 2-core box
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 @pytest.mark.parametrize(
