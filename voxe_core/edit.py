@@ -31,8 +31,8 @@ are not). A cancelled run writes a checkpoint before it stops.
 
 Mixed precision. ``autocast_dtype`` ("bf16" / "fp16") runs the guidance (VAE
 encoder forward and UNet) under ``torch.autocast``; on CPU only bfloat16 is
-used. The volume renderer and the regulariser always run in float32 (the
-renderer is not autocast-safe, and transmittance products want fp32 anyway).
+used. The volume renderer and the regulariser always run in float32 (both
+disable autocast inside: transmittance products and correlations want fp32).
 """
 
 from __future__ import annotations
