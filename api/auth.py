@@ -14,11 +14,13 @@ import re
 import secrets
 from dataclasses import dataclass
 
+import anyio
 from fastapi import Depends, HTTPException, Request, Response, status
+from fastapi.responses import JSONResponse
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from api.db import get_session
+from api.db import get_session, get_sessionmaker
 from api.models import LOCAL_KEY_ID, QUEUED, RUNNING, ApiKey, IdempotencyRecord, Job, Scene, utcnow
 from api.settings import Settings, get_settings, is_loopback
 
@@ -64,19 +66,53 @@ def presented_token(request: Request) -> str | None:
     return request.headers.get("x-api-key")
 
 
+_CHALLENGE = {"WWW-Authenticate": "Bearer"}
+
+
+def _unauthorized(token: str | None) -> str:
+    problem = "missing API key" if not token else "invalid or revoked API key"
+    return (f"{problem}: send 'Authorization: Bearer <key>' or 'X-API-Key: <key>' "
+            "(keys come from 'python -m api.admin create-key')")
+
+
 def current_key(request: Request, session: Session = Depends(get_session)) -> ApiKey:
-    """FastAPI dependency: the key this request acts as (401 when authentication is on and it has none)."""
+    """FastAPI dependency: the key this request acts as (401 when authentication is on and it has none).
+
+    :class:`RequireKey` has already authenticated /v1 requests; its key id is only looked up again.
+    """
     if not get_settings().auth_enabled:
         return session.get(ApiKey, LOCAL_KEY_ID)
+    key_id = getattr(request.state, "api_key_id", None)
     token = presented_token(request)
-    key = authenticate(session, token) if token else None
-    if key is None:
-        problem = "missing API key" if not token else "invalid or revoked API key"
-        raise HTTPException(status.HTTP_401_UNAUTHORIZED,
-                            f"{problem}: send 'Authorization: Bearer <key>' or 'X-API-Key: <key>' "
-                            "(keys come from 'python -m api.admin create-key')",
-                            headers={"WWW-Authenticate": "Bearer"})
+    key = session.get(ApiKey, key_id) if key_id else authenticate(session, token) if token else None
+    if key is None or key.revoked_at is not None:
+        raise HTTPException(status.HTTP_401_UNAUTHORIZED, _unauthorized(token), headers=_CHALLENGE)
     return key
+
+
+def _live_key_id(token: str) -> str | None:
+    with get_sessionmaker()() as session:
+        key = authenticate(session, token)
+        return key.id if key else None
+
+
+class RequireKey:
+    """ASGI middleware: with authentication on, a /v1 request without a live key is answered 401 before its
+    body is read, so an anonymous client cannot make the server receive and spool an upload."""
+
+    def __init__(self, app):
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http" or not scope["path"].startswith("/v1") or not get_settings().auth_enabled:
+            return await self.app(scope, receive, send)
+        token = presented_token(Request(scope))
+        key_id = await anyio.to_thread.run_sync(_live_key_id, token) if token else None
+        if key_id is None:
+            response = JSONResponse({"detail": _unauthorized(token)}, status.HTTP_401_UNAUTHORIZED, headers=_CHALLENGE)
+            return await response(scope, receive, send)
+        scope.setdefault("state", {})["api_key_id"] = key_id
+        await self.app(scope, receive, send)
 
 
 def check_startup(settings: Settings) -> str:

@@ -126,6 +126,9 @@ def create_app(settings: Settings | None = None, migrate: bool = True) -> FastAP
     app.include_router(jobs.router)
     app.include_router(artifacts.router)
     app.include_router(evaluations.router)
+    from api.auth import RequireKey
+
+    app.add_middleware(RequireKey)  # inside UploadLimit: an over-size body is 413 first, then a missing key 401
     app.add_middleware(UploadLimit, max_bytes=settings.max_upload_bytes)
     app.add_exception_handler(RequestValidationError, validation_error)
     return app

@@ -7,6 +7,7 @@ import hashlib
 import logging
 import threading
 
+import anyio
 import pytest
 from fastapi.testclient import TestClient
 
@@ -326,3 +327,39 @@ def test_malformed_credentials_are_401_never_5xx(root, monkeypatch):  # noqa: F8
 
         probe()
         assert client.get("/v1/jobs", headers=bearer(token)).status_code == 200
+
+
+def test_an_anonymous_upload_is_refused_before_its_body_is_read(auth_client):
+    """The 401 comes from the middleware: neither the body nor the route is ever touched."""
+    from api.auth import RequireKey
+
+    def untouchable(*_args):
+        raise AssertionError("the request body or the route was reached")
+
+    sent = []
+
+    async def send(message):
+        sent.append(message)
+
+    async def run(headers):
+        scope = {"type": "http", "method": "POST", "path": "/v1/scenes", "headers": headers, "query_string": b""}
+        await RequireKey(untouchable)(scope, untouchable, send)
+
+    for headers in ([], [(b"authorization", b"Bearer voxe_0123456789ab_" + b"x" * 43)]):
+        sent.clear()
+        anyio.run(run, [(b"content-length", b"2000000000"), *headers])
+        assert sent[0]["status"] == 401 and b"API key" in sent[1]["body"]
+
+    _, token = _create_key("uploader")
+    passed = []
+
+    async def route(scope, _receive, _send):
+        passed.append(scope["state"]["api_key_id"])
+
+    async def run_valid():
+        scope = {"type": "http", "method": "POST", "path": "/v1/scenes", "query_string": b"",
+                 "headers": [(b"authorization", f"Bearer {token}".encode())]}
+        await RequireKey(route)(scope, untouchable, send)
+
+    anyio.run(run_valid)
+    assert passed == [token.split("_")[1]]
