@@ -105,6 +105,10 @@ CASES: list[Case] = []
 
 
 def case(name: str, expect: str, error: tuple[type[BaseException], str] | None = None, cuda: bool = False):
+    """Register the decorated ``run(fixtures)`` as the row ``name`` with its expected behaviour."""
+    if expect not in ("finite", "exact", "error") or (error is None) == (expect == "error"):
+        raise ValueError(f"row {name!r}: expect must be finite/exact, or error with (exception, pattern)")
+
     def register(run):
         CASES.append(Case(name, expect, run, error, cuda))
         return run
