@@ -413,14 +413,18 @@ def build_report(results: Path, report: Path, notes: dict[str, str], mode: str) 
                         f"`python bench/{stage.script}` (or `bench/report.py --quick`).", ""]
             continue
         out += [f"Source: `{relative(path, report)}`.", ""]
-        if stage.name == "reconstruction":
-            lines, bullets = reconstruction_section(data, results, report)
-        elif stage.name == "segmentation":
-            lines, bullets = segmentation_section(data, results, report)
-        elif stage.name == "edit_step":
-            lines, bullets = edit_step_section(data, load_json(results / "edit_step_gpu.json"), results, report)
-        else:
-            lines, bullets = service_load_section(data, results, report)
+        try:
+            if stage.name == "reconstruction":
+                lines, bullets = reconstruction_section(data, results, report)
+            elif stage.name == "segmentation":
+                lines, bullets = segmentation_section(data, results, report)
+            elif stage.name == "edit_step":
+                lines, bullets = edit_step_section(data, load_json(results / "edit_step_gpu.json"), results, report)
+            else:
+                lines, bullets = service_load_section(data, results, report)
+        except (KeyError, TypeError, ValueError, AttributeError) as error:  # a benchmark changed its schema
+            lines, bullets = [f"**Could not summarise** `{relative(path, report)}` ({type(error).__name__}: {error}); "
+                              f"bench/report.py needs updating to its current layout."], []
         out += lines + [""]
         tradeoffs += bullets
     out += ["## Trade-offs a user chooses between", ""]
