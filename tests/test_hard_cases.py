@@ -47,6 +47,7 @@ from voxe_core.refine import (
 from voxe_core.render import RenderConfig, render_image, render_rays
 
 from conftest import make_sphere_grid
+from test_render import uniform_grid  # constant raw density, colour logit 0 (sigmoid 0.5)
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 
@@ -117,14 +118,6 @@ def case(name: str, expect: str, error: tuple[type[BaseException], str] | None =
 
 
 # --------------------------------------------------------------------------- helpers
-
-
-def uniform_grid(raw_density: float, resolution: int = 8, **box) -> VoxelGrid:
-    """Constant raw density, colour logit 0 (sigmoid 0.5) everywhere."""
-    grid = VoxelGrid(resolution, init_density=raw_density, **box)
-    with torch.no_grad():
-        grid.features[..., 1:] = 0.0
-    return grid
 
 
 def rays(origins, directions) -> tuple[torch.Tensor, torch.Tensor]:
