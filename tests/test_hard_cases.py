@@ -271,6 +271,14 @@ for _scale in (1e-3, 1e3):
     case(f"render/scene-scale-{_scale:g}-units", "exact")(_scene_scale(_scale))
 
 
+@case("render/voxel-size-lives-on-the-grid-device", "exact")
+def _(fx):
+    # the 'meta' device enforces the same rule as CUDA (no mixing with non-scalar CPU tensors);
+    # regression: voxel_size divided by a CPU tensor, so every render of a CUDA grid raised
+    grid = VoxelGrid(5).to("meta")
+    return [("on the grid's device", torch.tensor(grid.voxel_size.device == grid.bbox_min.device), torch.tensor(True), 0.0)]
+
+
 def _autocast_render(device: str, dtype: torch.dtype):
     def run(fx):
         grid = random_grid().to(device)

@@ -103,7 +103,8 @@ class VoxelGrid(torch.nn.Module):
 
     @property
     def voxel_size(self) -> torch.Tensor:
-        return (self.bbox_max - self.bbox_min) / (torch.tensor(self.resolution, dtype=torch.float32) - 1)
+        res = torch.tensor(self.resolution, dtype=torch.float32, device=self.bbox_min.device)
+        return (self.bbox_max - self.bbox_min) / (res - 1)
 
     def like(self, features: torch.Tensor) -> "VoxelGrid":
         """A grid with this one's box and activation, holding ``features``."""
