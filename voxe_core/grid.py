@@ -216,6 +216,10 @@ class VoxelGrid(torch.nn.Module):
 
     @classmethod
     def from_state(cls, tensors: dict[str, torch.Tensor], meta: dict) -> "VoxelGrid":
+        if cls is VoxelGrid and meta.get("backbone") == "scene":  # written by voxe_core.scene_grid.SceneGrid
+            from voxe_core.scene_grid import SceneGrid
+
+            return SceneGrid.from_state(tensors, meta)
         return cls(
             tuple(tensors["features"].shape[:3]), tensors["bbox_min"], tensors["bbox_max"],
             meta["activation"], meta["density_scale"], features=tensors["features"],

@@ -161,16 +161,22 @@ def reconstruct(
     callbacks: Callbacks = Callbacks(),
     checkpoint_path: str | Path | None = None,
     resume_from: str | Path | None = None,
+    initial_grid: VoxelGrid | None = None,
 ) -> VoxelGrid:
-    """Fit G_i to ``images`` (N, H, W, 3) on white seen from ``cameras``; deterministic under ``config.seed``."""
+    """Fit G_i to ``images`` (N, H, W, 3) on white seen from ``cameras``; deterministic under ``config.seed``.
+
+    ``initial_grid`` (e.g. a ``SceneGrid`` at ``config.resolutions[0]``) replaces the fresh
+    ReLU-field grid; its type, box and activation win over ``config.bbox_*`` and ``activation``.
+    """
     if images.shape[0] != len(cameras) or images.shape[1:3] != (cameras.height, cameras.width):
         raise ValueError(
             f"{images.shape[0]} images of {tuple(images.shape[1:3])} do not match "
             f"{len(cameras)} cameras of {(cameras.height, cameras.width)}"
         )
     generator = torch.Generator().manual_seed(config.seed)
-    grid = VoxelGrid(config.resolutions[0], config.bbox_min, config.bbox_max, config.activation,
-                     init_density=config.init_density)
+    grid = initial_grid if initial_grid is not None else VoxelGrid(
+        config.resolutions[0], config.bbox_min, config.bbox_max, config.activation, init_density=config.init_density
+    )
     start_stage, start_iteration, resumed = 0, 0, None
     if resume_from is not None:
         tensors, meta = load_tensors(resume_from, kind="reconstruction_checkpoint", max_version=CHECKPOINT_FORMAT_VERSION)

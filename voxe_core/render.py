@@ -84,6 +84,8 @@ def render_rays(
     and transmittance products lose too much in bf16/fp16, and mixed dtypes
     would break the scatters. Under autocast the result is the fp32 render.
     """
+    if hasattr(grid, "render_rays"):  # a backbone with its own sampling (voxe_core.scene_grid.SceneGrid)
+        return grid.render_rays(origins, directions, config, occupancy, generator, color_features, sparse_grad)
     with torch.autocast(origins.device.type, enabled=False):
         return _render_rays(
             grid, origins.float(), directions.float(), config, occupancy, generator, color_features, sparse_grad

@@ -1,0 +1,208 @@
+"""The DVGO-style scene backbone: contraction, ray bins, analytic renders, interface, frames, fitting, editing."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from voxe_core.cameras import Cameras, camera_rays, look_at, ring_poses
+from voxe_core.edit import EditConfig, edit
+from voxe_core.grid import VoxelGrid
+from voxe_core.guidance import StableDiffusionGuidance
+from voxe_core.metrics import psnr
+from voxe_core.reconstruct import ReconstructConfig, reconstruct
+from voxe_core.render import RenderConfig, render_image, render_rays
+from voxe_core.scene_grid import (
+    SceneGrid, apply_frame, contract, detect_backbone, real_scene_edit_config, scene_frame,
+)
+
+
+pytestmark = pytest.mark.usefixtures("single_thread")
+
+
+def _raw_for_density(grid: SceneGrid, sigma: float) -> float:
+    return sigma / grid.density_scale  # ReLU: density = scale · raw
+
+
+# ----------------------------------------------------------------- contraction
+def test_contraction_is_identity_inside_and_bounded_outside():
+    inside = torch.tensor([[0.3, -0.9, 1.0], [0.0, 0.0, 0.0]])
+    assert torch.equal(contract(inside), inside)
+    # ||q||∞ = 2 -> 2 - 1/2 = 1.5 along q / ||q||∞
+    assert torch.allclose(contract(torch.tensor([[2.0, 1.0, -0.5]])), torch.tensor([[1.5, 0.75, -0.375]]))
+    far = contract(torch.tensor([[1e30, 0.0, 0.0], [math.inf, -math.inf, 1.0], [-math.inf, 0.0, 0.0]]))
+    assert torch.isfinite(far).all()
+    assert torch.allclose(far, torch.tensor([[2.0, 0.0, 0.0], [2.0, -2.0, 0.0], [-2.0, 0.0, 0.0]]))
+    # continuous across the cube face
+    a, b = contract(torch.tensor([[1.0 - 1e-6, 0.2, 0.0]])), contract(torch.tensor([[1.0 + 1e-6, 0.2, 0.0]]))
+    assert torch.allclose(a, b, atol=1e-5)
+
+
+def test_ray_bins_partition_the_ray_and_are_linear_in_inverse_depth_beyond():
+    grid = SceneGrid(33, foreground_extent=1.5, near_samples=8, far_samples=16, far_ratio=100.0)
+    origins = torch.tensor([[4.0, 0.0, 0.0], [0.0, 0.0, 0.0], [4.0, -4.0, 0.0]])
+    directions = torch.tensor([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])  # through, inside, miss
+    edges, exists = grid.ray_bins(origins, directions, step_ratio=0.5)
+    assert (edges[:, 1:] >= edges[:, :-1]).all() and (edges[:, 0] == 0).all()
+    step = 0.5 * float(grid.voxel_size.min()) * 1.5
+    # Ray 0: near bins to the cube at t = 2.5, foreground to 5.5, inverse-depth bins out to 100 · 5.5.
+    assert torch.allclose(edges[0, 8], torch.tensor(2.5)) and int(exists[0, :8].sum()) == 8
+    fg = edges[0, 8 : -16]
+    assert torch.allclose(fg[1:][fg[1:] < 5.5] - fg[:-1][fg[1:] < 5.5], torch.tensor(step), atol=1e-5)
+    far = edges[0, -17:]
+    assert torch.allclose(far[0], torch.tensor(5.5)) and torch.allclose(far[-1], torch.tensor(550.0))
+    inverse_steps = (1.0 / far).diff()
+    assert torch.allclose(inverse_steps, inverse_steps[0].expand_as(inverse_steps), rtol=1e-4)
+    # Ray 1 starts inside the cube: no near bins; ray 2 misses it: far bins from its closest approach (t = 4).
+    assert not exists[1, :8].any()
+    assert torch.allclose(edges[2, -17], torch.tensor(4.0))
+
+
+# ----------------------------------------------------------------- rendering
+def test_uniform_density_renders_the_analytic_colour():
+    grid = SceneGrid(9, far_samples=16, far_ratio=10.0)
+    sigma = 0.05
+    with torch.no_grad():
+        grid.features[..., 0] = _raw_for_density(grid, sigma)
+        grid.features[..., 1:] = torch.tensor([2.0, 0.0, -2.0])
+    origins, directions = torch.zeros(2, 3), torch.tensor([[1.0, 0.0, 0.0], [0.6, 0.8, 0.0]])
+    out = render_rays(grid, origins, directions, RenderConfig(skip_empty=False, background=(0.0, 0.0, 0.0)))
+    # path length: far_ratio times the exit distance from the cube of half-extent 1.5
+    exit_t = torch.tensor([1.5, 1.5 / 0.8])
+    opacity = 1.0 - torch.exp(-sigma * 10.0 * exit_t)
+    assert torch.allclose(out.opacity, opacity, atol=1e-5)
+    assert torch.allclose(out.rgb, opacity[:, None] * torch.sigmoid(torch.tensor([2.0, 0.0, -2.0])), atol=1e-5)
+
+
+def test_empty_space_skipping_is_exact_and_saturated_density_stays_finite():
+    grid = SceneGrid(17)
+    generator = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        grid.features.copy_(torch.randn(*grid.features.shape, generator=generator))
+        grid.features[..., 0] -= 1.0  # most cells empty
+        grid.features[8, 8, 8, 0] = 1e9  # a saturated vertex
+    cameras = Cameras.from_fov(ring_poses(1, 20.0), 0.7, 12, 10)
+    skipped = render_image(grid, cameras, 0, RenderConfig(step_ratio=0.5))
+    dense = render_image(grid, cameras, 0, RenderConfig(step_ratio=0.5, skip_empty=False))
+    assert torch.isfinite(skipped.rgb).all()
+    assert torch.allclose(skipped.rgb, dense.rgb, atol=1e-6) and skipped.samples < dense.samples
+
+
+def test_gradients_reach_the_background_shell():
+    grid = SceneGrid(9)
+    origins, directions = torch.tensor([[0.0, 0.0, 0.0]]), torch.tensor([[1.0, 0.0, 0.0]])
+    out = render_rays(grid, origins, directions, RenderConfig(skip_empty=False))
+    out.rgb.sum().backward()
+    touched = grid.flat_features.grad.abs().sum(-1).view(grid.resolution) > 0
+    assert touched[-1].any() and touched[4].any()  # the contracted boundary x = 2 and the centre
+
+
+# ----------------------------------------------------------------- interface
+def test_grid_interface_round_trips_and_keeps_the_backbone(tmp_path):
+    frame = torch.diag(torch.tensor([2.0, 2.0, 2.0, 1.0]))
+    grid = SceneGrid(8, foreground_extent=1.2, near_samples=4, far_samples=8, far_ratio=50.0, frame=frame)
+    with torch.no_grad():
+        grid.features.normal_()
+    grid.save(tmp_path / "scene.safetensors")
+    loaded = VoxelGrid.load(tmp_path / "scene.safetensors")
+    assert isinstance(loaded, SceneGrid) and loaded.header() == grid.header()
+    assert torch.equal(loaded.features, grid.features)
+    for derived in (grid.clone_grid(), grid.upsampled(12)):
+        assert isinstance(derived, SceneGrid) and derived.foreground_extent == 1.2 and torch.equal(derived.frame, frame)
+    assert grid.upsampled(12).resolution == (12, 12, 12)
+
+
+def test_occupancy_box_is_in_the_canonical_frame_or_unbounded():
+    grid = SceneGrid(9, foreground_extent=1.5)  # lattice spacing 0.5 in contracted units
+    with torch.no_grad():
+        grid.features[..., 0] = -1.0
+        grid.features[4, 4, 4, 0] = 1.0  # the centre vertex: cells [3, 5)^3, contracted [-0.5, 0.5]
+    occupancy = grid.occupancy()
+    assert torch.allclose(occupancy.bbox_min, torch.full((3,), -0.75)) and torch.allclose(occupancy.bbox_max, torch.full((3,), 0.75))
+    with torch.no_grad():
+        grid.features[8, 4, 4, 0] = 1.0  # the background boundary
+    assert float(grid.occupancy().bbox_max.min()) > 1e5
+
+
+# ----------------------------------------------------------------- frames and selection
+def test_scene_frame_centres_levels_and_scales_a_tilted_capture():
+    tilt = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.8, -0.6], [0.0, 0.6, 0.8]])  # up z -> (0, -0.6, 0.8)
+    centre = torch.tensor([3.0, -2.0, 1.0])
+    ring = ring_poses(12, 25.0, radius=7.0)
+    c2w = ring.clone()
+    c2w[:, :3, :3] = tilt @ ring[:, :3, :3]
+    c2w[:, :3, 3] = (tilt @ ring[:, :3, 3, None])[..., 0] + centre
+    cameras = Cameras.from_fov(c2w, 0.7, 16, 16)
+    moved = apply_frame(cameras, scene_frame(cameras, radius=4.0))
+    assert torch.allclose(moved.c2w, Cameras.from_fov(ring_poses(12, 25.0, radius=4.0), 0.7, 16, 16).c2w, atol=1e-4)
+
+
+def test_scene_frame_refuses_parallel_axes_and_cameras_on_the_centre():
+    forward_facing = torch.eye(4).repeat(5, 1, 1)
+    forward_facing[:, 0, 3] = torch.arange(5.0)
+    with pytest.raises(ValueError, match="optical axes are \\(nearly\\) parallel"):
+        scene_frame(Cameras.from_fov(forward_facing, 0.7, 8, 8))
+    centred = look_at(torch.tensor([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]]))
+    centred[:, :3, 3] = 0.0
+    with pytest.raises(ValueError, match="sit on the point they look at"):
+        scene_frame(Cameras.from_fov(centred, 0.7, 8, 8))
+
+
+def test_backbone_detection_from_alpha():
+    assert detect_backbone(None) == "scene"
+    assert detect_backbone(torch.ones(2, 8, 8)) == "scene"  # RGBA photos, opaque everywhere
+    object_on_transparent = torch.ones(2, 8, 8)
+    object_on_transparent[:, :, :4] = 0.0
+    assert detect_backbone(object_on_transparent) == "relu_field"
+
+
+def test_real_scene_edit_preset_is_the_specs():
+    config = real_scene_edit_config(seed=3)
+    assert (config.iterations, config.schedule.i_start, config.schedule.every, config.seed) == (5000, 3000, 400, 3)
+    # the project's schedule decays first at i_start, then every f_a
+    assert config.schedule.max_fraction(2999) == pytest.approx(0.98)
+    assert config.schedule.max_fraction(3399) == pytest.approx(0.98 * 0.75)
+    assert config.schedule.max_fraction(3400) == pytest.approx(0.98 * 0.75**2)
+
+
+# ----------------------------------------------------------------- fitting and editing
+def _background_scene() -> SceneGrid:
+    """Ground truth: a green foreground ball in a blue room far behind it (the contracted shell)."""
+    grid = SceneGrid(17)
+    axes = torch.linspace(-2.0, 2.0, 17)
+    x, y, z = torch.meshgrid(axes, axes, axes, indexing="ij")
+    radius = torch.stack([x, y, z], -1).norm(dim=-1)
+    norm = torch.stack([x, y, z], -1).abs().amax(-1)
+    with torch.no_grad():
+        grid.features[..., 0] = torch.where((radius < 0.5) | (norm > 1.9), 1.0, -1.0)
+        grid.features[..., 1:] = torch.where((radius < 0.5)[..., None], torch.tensor([-3.0, 3.0, -3.0]),
+                                             torch.tensor([-3.0, -3.0, 3.0]))
+    return grid
+
+
+def test_scene_backbone_fits_a_background_the_relu_field_cannot():
+    """Capacity, on the training views: rays that miss the object box can only be white for a ReLU field.
+
+    (Generalisation to held-out views is measured on fox in bench/real_scenes.py; from ten
+    16-pixel views a background at infinity is ambiguous with paint on the far wall.)
+    """
+    truth = _background_scene()
+    cameras = Cameras.from_fov(ring_poses(10, 20.0), 0.9, 16, 16)
+    images = torch.stack([render_image(truth, cameras, i).rgb for i in range(len(cameras))])
+    config = ReconstructConfig.fast(resolutions=(17,), iterations=(120,), image_downsample=(1,), rays_per_step=512)
+    scene = reconstruct(images, cameras, config, initial_grid=SceneGrid(17))
+    relu = reconstruct(images, cameras, config)
+    assert isinstance(scene, SceneGrid)
+    scene_psnr = float(psnr(torch.stack([render_image(scene, cameras, i).rgb for i in range(10)]), images).mean())
+    relu_psnr = float(psnr(torch.stack([render_image(relu, cameras, i).rgb for i in range(10)]), images).mean())
+    assert scene_psnr > 25.0 and scene_psnr > relu_psnr + 5.0
+
+
+def test_edit_runs_unchanged_on_a_scene_grid(tiny_sd_path):
+    guidance = StableDiffusionGuidance.from_pretrained(str(tiny_sd_path), device="cpu", local_files_only=True)
+    initial = _background_scene()
+    out = edit(initial, "a fox", guidance, EditConfig(iterations=2, render_size=32))
+    assert isinstance(out, SceneGrid) and out.header() == initial.header()
+    assert torch.isfinite(out.features).all() and not torch.equal(out.features, initial.features)
