@@ -11,7 +11,7 @@ import unicodedata
 from datetime import datetime
 from typing import Annotated, Generic, Literal, TypeVar
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator, model_serializer, model_validator
 
 T = TypeVar("T")
 
@@ -275,8 +275,13 @@ class JobReconstruction(BaseModel):
 class Models(BaseModel):
     sds: str | None
     attention: str | None
-    clip: str | None = None
-    fid: str | None = None
+    clip: str | None = Field(None, description="evaluation jobs only")
+    fid: str | None = Field(None, description="evaluation jobs only")
+
+    @model_serializer(mode="wrap")
+    def _evaluation_models_only_when_set(self, handler):
+        """An edit job's models read {sds, attention} as they always did."""
+        return {k: v for k, v in handler(self).items() if k in ("sds", "attention") or v is not None}
 
 
 class JobOut(BaseModel):
