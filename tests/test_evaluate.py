@@ -456,6 +456,10 @@ def test_sweep_submits_the_paper_protocol_as_one_batch_with_one_table(service, s
     assert [r["prompt"] for r in summary["rows"]] == [entries[0]["prompt"], entries[4]["prompt"]]
     assert summary["means"]["local"]["count"] == 1 and summary["means"]["all"]["count"] == 2
     assert "| mic | a mic wearing big sunglasses | local |" in summary["table"]
+    canceled = client.post(f"/v1/sweeps/{sweep['id']}/cancel").json()
+    assert canceled["state"] == "canceled" and canceled["counts"] == {"canceled": 8, "succeeded": 4}
+    assert len(canceled["rows"]) == 2  # finished evaluations keep their results
+    assert client.post("/v1/sweeps/nope/cancel").status_code == 404
     assert client.get("/v1/sweeps/nope").status_code == 404
     bad = client.post("/v1/sweeps", json={"scenes": [{"scene_id": "nope", "object": "mic"}]})
     assert bad.status_code == 404

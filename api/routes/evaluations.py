@@ -22,7 +22,7 @@ from api.deps import celery_dep, get_session, settings_dep
 from api.models import (
     CANCELED, EVALUATE, FAILED, QUEUED, RUNNING, SUCCEEDED, TERMINAL_STATES, ApiKey, Job, new_id, utcnow,
 )
-from api.routes.jobs import _reconstruction_for, get_job_or_404, job_out, new_edit_job, queue_chain
+from api.routes.jobs import _reconstruction_for, get_job_or_404, job_out, new_edit_job, queue_chain, request_cancel
 from api.routes.scenes import get_scene_or_404
 from api.schemas import (
     EvaluationCreate, EvaluationParams, JobCreate, JobOut, SweepCreate, SweepEntry, SweepOut,
@@ -142,6 +142,17 @@ def get_sweep(sweep_id: str, session: Session = Depends(get_session), key: ApiKe
     return sweep_out(session, sweep_id, key)
 
 
+@router.post("/v1/sweeps/{sweep_id}/cancel", response_model=SweepOut,
+             responses={404: {"description": "no such sweep (or another key's)"}},
+             summary="Cancel every unfinished job of a sweep (finished ones and their results stay)")
+def cancel_sweep(sweep_id: str, session: Session = Depends(get_session),
+                 key: ApiKey = Depends(current_key)) -> SweepOut:
+    jobs = _sweep_jobs(session, sweep_id, key)
+    request_cancel(session, [j.id for j in jobs])
+    session.expire_all()
+    return sweep_out(session, sweep_id, key)
+
+
 def sweep_state(states: list[str]) -> str:
     """Queued until a job starts, running until all are finished; then failed / canceled if any was, else succeeded."""
     if all(s == QUEUED for s in states):
@@ -154,10 +165,15 @@ def sweep_state(states: list[str]) -> str:
     return SUCCEEDED
 
 
-def sweep_out(session: Session, sweep_id: str, key: ApiKey) -> SweepOut:
+def _sweep_jobs(session: Session, sweep_id: str, key: ApiKey) -> list[Job]:
     jobs = list(session.scalars(select(Job).where(Job.batch_id == sweep_id, Job.owner_key_id == key.id)))
     if not jobs:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"sweep {sweep_id!r} not found")
+    return jobs
+
+
+def sweep_out(session: Session, sweep_id: str, key: ApiKey) -> SweepOut:
+    jobs = _sweep_jobs(session, sweep_id, key)
     edits = {j.id: j for j in jobs if j.mode != EVALUATE}
     evaluations = sorted((j for j in jobs if j.mode == EVALUATE), key=lambda j: j.params.get("sweep_index", 0))
     entries, rows = [], []

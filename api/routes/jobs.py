@@ -196,12 +196,16 @@ def cancel_job(job_id: str, session: Session = Depends(get_session), key: ApiKey
     job = get_job_or_404(session, job_id, key)
     if job.state in TERMINAL_STATES and job.state != CANCELED:
         raise HTTPException(status.HTTP_409_CONFLICT, f"job {job_id!r} already {job.state}")
-    now = utcnow()
-    session.execute(update(Job).where(Job.id == job_id, Job.state.not_in(TERMINAL_STATES))
-                    .values(cancel_requested=True, updated_at=now))
-    # A job no worker has started yet is canceled now; a running one when its task next checks the flag.
-    session.execute(update(Job).where(Job.id == job_id, Job.state == QUEUED)
-                    .values(state=CANCELED, finished_at=now, message="canceled before it started"))
-    session.commit()
+    request_cancel(session, [job_id])
     session.refresh(job)
     return job_out(job)
+
+
+def request_cancel(session: Session, job_ids: list[str]) -> None:
+    """Flag the unfinished ``job_ids`` canceled: queued ones at once, running ones when their task next checks."""
+    now = utcnow()
+    session.execute(update(Job).where(Job.id.in_(job_ids), Job.state.not_in(TERMINAL_STATES))
+                    .values(cancel_requested=True, updated_at=now))
+    session.execute(update(Job).where(Job.id.in_(job_ids), Job.state == QUEUED)
+                    .values(state=CANCELED, finished_at=now, message="canceled before it started"))
+    session.commit()
