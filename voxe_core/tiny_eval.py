@@ -108,4 +108,3 @@ def _smoke_test_readme(root: Path, builder: str) -> None:
         "It proves the plumbing only; its scores say nothing about edit quality.\n",
         encoding="utf-8",
     )
-    (root / "voxe_smoke_test.json").write_text(json.dumps({"smoke_test": True, "builder": builder}) + "\n")
