@@ -1,0 +1,163 @@
+"""Meshes as input: loading and normalisation, the z-buffer rasteriser, voxelisation and the mesh round trip."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+from PIL import Image
+
+from conftest import DATA_ROOT
+from voxe_core.cameras import Cameras, look_at
+from voxe_core.export import extract_mesh
+from voxe_core.metrics import psnr
+from voxe_core.mesh_input import (
+    MeshError, VoxelizeConfig, chamfer_distance, hemisphere_cameras, load_mesh, rasterize, render_mesh_views,
+    sample_texture, voxelize,
+)
+from voxe_core.reconstruct import ReconstructConfig, reconstruct
+from voxe_core.render import render_image
+
+SPOT = DATA_ROOT / "meshes" / "spot"
+pytestmark = pytest.mark.usefixtures("single_thread")
+RED, BLUE = (255, 0, 0, 255), (0, 0, 255, 255)
+
+
+def _square(y: float, half: float, color) -> trimesh.Trimesh:
+    """A square in the plane y = const, x and z in [-half, half], one colour."""
+    v = np.array([[-half, y, -half], [half, y, -half], [half, y, half], [-half, y, half]])
+    return trimesh.Trimesh(v, [[0, 1, 2], [0, 2, 3]], vertex_colors=np.tile(color, (4, 1)), process=False)
+
+
+def _write_ply(path, *meshes) -> str:
+    trimesh.util.concatenate(meshes).export(path)
+    return str(path)
+
+
+def _camera_on_minus_y(size: int = 64, distance: float = 4.0) -> Cameras:
+    return Cameras.from_fov(look_at(torch.tensor([[0.0, -distance, 0.0]])), 0.6911112070083618, size, size)
+
+
+# ------------------------------------------------------------------ rasteriser
+def test_square_covers_its_projected_area_in_its_vertex_colour(tmp_path):
+    degenerate = trimesh.Trimesh([[0, 0, 0], [0, 0, 0], [0.1, 0, 0]], [[0, 1, 2]], process=False)
+    mesh = load_mesh(_write_ply(tmp_path / "square.ply", _square(0.0, 1.0, RED), degenerate), up_axis="z")
+    cameras = _camera_on_minus_y()
+    rgb, alpha = rasterize(mesh, cameras, 0, supersample=4)
+    side = 2 * float(cameras.fx[0]) * 1.0 / 4.0  # pixels spanned by the 2-unit square at distance 4
+    assert float(alpha.sum()) == pytest.approx(side**2, rel=0.01)
+    assert torch.isfinite(rgb).all()
+    assert torch.equal(rgb[32, 32], torch.tensor([1.0, 0.0, 0.0])) and torch.equal(rgb[0, 0], torch.ones(3))
+
+
+@pytest.mark.parametrize("near_first", [True, False])
+def test_the_nearer_surface_wins_whatever_the_face_order(tmp_path, near_first):
+    near, far = _square(-0.5, 0.5, RED), _square(0.5, 1.0, BLUE)
+    mesh = load_mesh(_write_ply(tmp_path / "two.ply", *((near, far) if near_first else (far, near))), up_axis="z")
+    cameras = _camera_on_minus_y()
+    rgb, _ = rasterize(mesh, cameras, 0)
+    # far square's half-width 1 at distance 4.5 -> 19.8 px; the near one's 0.5 at 3.5 -> 12.7 px
+    assert torch.allclose(rgb[32, 32], torch.tensor([1.0, 0.0, 0.0]))
+    assert torch.allclose(rgb[32, 32 + 17], torch.tensor([0.0, 0.0, 1.0]))
+
+
+def test_obj_texture_is_mapped_upright_with_v_up(tmp_path):
+    texel = np.array([[[255, 0, 0], [0, 255, 0]], [[0, 0, 255], [255, 255, 255]]], dtype=np.uint8)  # row 0 on top
+    Image.fromarray(texel).save(tmp_path / "tex.png")
+    (tmp_path / "quad.obj").write_text(
+        "v -1 -1 0\nv 1 -1 0\nv 1 1 0\nv -1 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nf 1/1 2/2 3/3\nf 1/1 3/3 4/4\n"
+    )
+    mesh = load_mesh(tmp_path / "quad.obj", tmp_path / "tex.png")  # y up: the quad faces +x, its +x is +y
+    cameras = Cameras.from_fov(look_at(torch.tensor([[4.0, 0.0, 0.0]])), 0.6911112070083618, 64, 64)
+    rgb, _ = rasterize(mesh, cameras, 0)
+    assert torch.allclose(rgb[20, 20], torch.tensor([1.0, 0.0, 0.0]))  # top left
+    assert torch.allclose(rgb[20, 44], torch.tensor([0.0, 1.0, 0.0]))  # top right
+    assert torch.allclose(rgb[44, 20], torch.tensor([0.0, 0.0, 1.0]))  # bottom left
+    # bilinear between texel centres, wrapping in u and v
+    mid = sample_texture(texel / 255.0, np.array([[0.5, 0.75], [1.25, 0.75]]))
+    assert np.allclose(mid, [[0.5, 0.5, 0.0], [1.0, 0.0, 0.0]])
+
+
+def test_hemisphere_cameras_and_a_view_that_sees_nothing(tmp_path):
+    cameras = hemisphere_cameras(100, 16, seed=1)
+    assert len(cameras) == 100 and bool((cameras.c2w[:, 2, 3] >= -1e-6).all())
+    mesh = load_mesh(_write_ply(tmp_path / "square.ply", _square(0.0, 1.0, RED)), up_axis="z")
+    away = Cameras.from_fov(look_at(torch.tensor([[0.0, -4.0, 0.0]]), torch.tensor([0.0, -8.0, 0.0])), 0.7, 8, 8)
+    rgb, alpha = rasterize(mesh, away, 0)
+    assert torch.equal(rgb, torch.ones(8, 8, 3)) and not alpha.any()
+
+
+# ------------------------------------------------------------------ loading errors
+def test_loading_normalises_and_refuses_bad_files(tmp_path):
+    mesh = load_mesh(SPOT / "spot_triangulated.obj", SPOT / "spot_texture.png", extent=1.2)
+    assert np.allclose(np.abs(mesh.vertices).max(0).max(), 1.2) and mesh.texture is not None
+    assert np.allclose(mesh.vertices.min(0) + mesh.vertices.max(0), 0.0)
+    with pytest.raises(MeshError, match=r"cube.stl: unsupported mesh type '.stl'"):
+        load_mesh(tmp_path / "cube.stl")
+    (tmp_path / "points.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n")
+    with pytest.raises(MeshError, match="points.obj: no triangles"):
+        load_mesh(tmp_path / "points.obj")
+    (tmp_path / "nan.obj").write_text("v nan 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    with pytest.raises(MeshError, match="nan.obj: vertex coordinates contain NaN or Inf"):
+        load_mesh(tmp_path / "nan.obj")
+    (tmp_path / "point.obj").write_text("v 1 1 1\nv 1 1 1\nv 1 1 1\nf 1 2 3\n")
+    with pytest.raises(MeshError, match="point.obj: all vertices coincide"):
+        load_mesh(tmp_path / "point.obj")
+    ply = _write_ply(tmp_path / "square.ply", _square(0.0, 1.0, RED))
+    with pytest.raises(MeshError, match="square.ply: a texture was given but the mesh has no texture coordinates"):
+        load_mesh(ply, SPOT / "spot_texture.png")
+    (tmp_path / "bad.png").write_bytes(b"not a png")
+    with pytest.raises(MeshError, match="bad.png: cannot read the texture image"):
+        load_mesh(SPOT / "spot_triangulated.obj", tmp_path / "bad.png")
+
+
+# ------------------------------------------------------------------ voxelisation
+@pytest.fixture(scope="module")
+def green_sphere(tmp_path_factory):
+    sphere = trimesh.creation.icosphere(subdivisions=4)
+    sphere.visual.vertex_colors = np.tile([0, 255, 0, 255], (len(sphere.vertices), 1))
+    return load_mesh(_write_ply(tmp_path_factory.mktemp("sphere") / "sphere.ply", sphere), up_axis="z")
+
+
+def test_voxelised_sphere_has_its_surface_at_the_radius_and_renders_like_the_mesh(green_sphere):
+    grid = voxelize(green_sphere, VoxelizeConfig(resolution=49))  # voxel 1/16
+    radial = torch.linspace(0.8, 1.2, 401)[:, None] * torch.tensor([[0.6, 0.0, 0.8]])
+    density, color = grid.query(radial)
+    surface = float(radial.norm(dim=-1)[density > 0].max())
+    assert surface == pytest.approx(1.0, abs=0.25 / 16)
+    assert torch.allclose(color[390], torch.tensor([0.0, 1.0, 0.0]), atol=2e-3)
+    cameras = hemisphere_cameras(3, 48, seed=2)
+    for i in range(3):
+        truth, alpha = rasterize(green_sphere, cameras, i)
+        out = render_image(grid, cameras, i)
+        iou = float(torch.minimum(out.opacity, alpha).sum() / torch.maximum(out.opacity, alpha).sum())
+        assert iou > 0.95 and psnr(out.rgb, truth) > 25.0
+
+
+def test_mesh_grid_mesh_round_trip_chamfer_is_below_half_a_voxel():
+    mesh = load_mesh(SPOT / "spot_triangulated.obj", SPOT / "spot_texture.png")
+    grid = voxelize(mesh, VoxelizeConfig(resolution=97))
+    voxel = float(grid.voxel_size.min())
+    distance = chamfer_distance(mesh.trimesh(), extract_mesh(grid))
+    print(f"spot round trip at 97³: Chamfer {distance:.5f} = {distance / voxel:.3f} voxel")
+    assert distance < 0.5 * voxel
+
+
+def test_chamfer_of_concentric_spheres_is_their_gap():
+    inner = trimesh.creation.icosphere(subdivisions=4)
+    outer = trimesh.creation.icosphere(subdivisions=4, radius=1.1)
+    assert chamfer_distance(inner, outer) == pytest.approx(0.1, abs=0.003)
+    assert chamfer_distance(inner, inner) < 0.01
+
+
+def test_rendered_views_reconstruct_the_mesh(green_sphere):
+    """Route (a) end to end at toy size: rasterised hemisphere views, then the usual reconstruction."""
+    cameras = hemisphere_cameras(16, 24, seed=3)
+    images, alphas = render_mesh_views(green_sphere, cameras)
+    assert images.shape == (16, 24, 24, 3) and float(alphas.mean()) > 0.1
+    config = ReconstructConfig.fast(resolutions=(24,), iterations=(80,), image_downsample=(1,), rays_per_step=1024)
+    grid = reconstruct(images[1:], cameras[1:], config)
+    assert psnr(render_image(grid, cameras, 0).rgb, images[0]) > 20.0
