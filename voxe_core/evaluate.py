@@ -29,7 +29,6 @@ random-weight smoke-test stand-ins for both, loaded through the same code.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from dataclasses import dataclass, field
@@ -38,9 +37,8 @@ from typing import Protocol, Sequence
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
-from voxe_core.export import render_views, save_png, turntable_cameras
+from voxe_core.export import render_views, save_png, to_uint8, turntable_cameras
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance import ModelNotAvailableError, _loading_errors, _offline_env, edit_prompt
 from voxe_core.metrics import SSIM_WINDOW, psnr, ssim
@@ -216,21 +214,32 @@ class InceptionFeatures:
 
 
 # --------------------------------------------------------------------------- CLIP
-class ClipScorer:
-    """Normalised CLIP image and text embeddings (transformers ``CLIPModel``)."""
+def _clip_image_processor_class():
+    """CLIP's own PIL preprocessing (bicubic resize, centre crop, normalise), as the CLIP scores were defined on.
 
-    def __init__(self, model, tokenizer, image_mean, image_std, image_size: int, name: str, device, batch_size=32):
+    transformers >= 5 names the PIL implementation ``CLIPImageProcessorPil`` (its default
+    class wants torchvision); older versions have only ``CLIPImageProcessor``, which is it.
+    """
+    import transformers
+
+    return getattr(transformers, "CLIPImageProcessorPil", None) or transformers.CLIPImageProcessor
+
+
+class ClipScorer:
+    """Normalised CLIP image and text embeddings (transformers ``CLIPModel``).
+
+    Images go through the checkpoint's own image processor as 8-bit pixels, exactly as
+    saved renders would, so scores match CLIP's reference preprocessing.
+    """
+
+    def __init__(self, model, tokenizer, image_processor, name: str, device, batch_size: int = 32):
         self.model, self.tokenizer, self.name = model.eval().requires_grad_(False), tokenizer, name
-        self.device = torch.device(device)
-        self.image_mean = torch.tensor(image_mean, dtype=torch.float32).view(1, 3, 1, 1)
-        self.image_std = torch.tensor(image_std, dtype=torch.float32).view(1, 3, 1, 1)
-        self.image_size, self.batch_size = int(image_size), batch_size
+        self.image_processor, self.device, self.batch_size = image_processor, torch.device(device), batch_size
 
     @classmethod
     def from_pretrained(cls, model_id: str = CLIP_MODEL_ID, device=None, local_files_only: bool | None = None):
         """Load a hub id (from the local cache when offline) or a folder; ModelNotAvailableError names the model."""
         from transformers import CLIPModel, CLIPTokenizer
-        from transformers.utils import cached_file
 
         device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
         kwargs = {"local_files_only": _offline_env() if local_files_only is None else bool(local_files_only)}
@@ -240,8 +249,7 @@ class ClipScorer:
         try:
             model = CLIPModel.from_pretrained(model_id, **kwargs).to(device)
             tokenizer = CLIPTokenizer.from_pretrained(model_id, **kwargs)
-            # The preprocessing constants only (the processor class itself wants torchvision).
-            preprocessing = json.loads(Path(cached_file(model_id, "preprocessor_config.json", **kwargs)).read_text())
+            image_processor = _clip_image_processor_class().from_pretrained(model_id, **kwargs)
         except _loading_errors() as exc:
             raise ModelNotAvailableError(
                 f"CLIP weights '{model_id}' are not available: download them once with `hf download {model_id}` "
@@ -249,20 +257,12 @@ class ClipScorer:
                 f"CLIPModel with its tokenizer and image processor. Underlying error: {type(exc).__name__}: "
                 f"{' '.join(str(exc).split())[:300]}"
             ) from exc
-        crop = preprocessing["crop_size"]
-        size = crop["height"] if isinstance(crop, dict) else int(crop)
-        return cls(model, tokenizer, preprocessing["image_mean"], preprocessing["image_std"], size, model_id, device)
+        return cls(model, tokenizer, image_processor, model_id, device)
 
     def _preprocess(self, images: torch.Tensor) -> torch.Tensor:
-        """CLIP's preprocessing on tensors: shortest side to the crop size (bicubic), centre crop, normalise."""
-        x = images.to(torch.float32).permute(0, 3, 1, 2)
-        h, w = x.shape[-2:]
-        scale = self.image_size / min(h, w)
-        size = (max(self.image_size, round(h * scale)), max(self.image_size, round(w * scale)))
-        x = F.interpolate(x, size=size, mode="bicubic", align_corners=False, antialias=True).clamp(0, 1)
-        top, left = (size[0] - self.image_size) // 2, (size[1] - self.image_size) // 2
-        x = x[..., top : top + self.image_size, left : left + self.image_size]
-        return (x - self.image_mean) / self.image_std
+        """(N, H, W, 3) floats in [0, 1] -> the processor's normalised (N, 3, S, S) pixel values."""
+        pixels = [frame for frame in to_uint8(images)]
+        return torch.as_tensor(np.asarray(self.image_processor(images=pixels, return_tensors="np")["pixel_values"]))
 
     @torch.no_grad()
     def image_embeddings(self, images: torch.Tensor) -> torch.Tensor:
