@@ -223,6 +223,10 @@ def test_preservation_outside_the_mask_footprint_is_exact_for_a_merged_grid(sphe
     assert whole["region"] == "whole image" and whole["kept_fraction"] == 1.0
     empty = mask_footprint(sphere_grid, torch.zeros_like(mask), 2, 20.0, 16)
     assert not bool(empty.any())
+    # A mask over the whole grid hides every pixel: nothing is left to compare, and the scores say so.
+    everything = torch.ones_like(mask)
+    hidden = preservation(recon, recon, EditSample("all", "x", refined, everything), sphere_grid, config)
+    assert hidden["kept_fraction"] == 0.0 and hidden["psnr"] is None and hidden["ssim"] is None
 
 
 # ------------------------------------------------------------------------------------------ end to end
