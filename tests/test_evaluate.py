@@ -429,10 +429,23 @@ def test_evaluation_of_a_job_that_failed_after_queueing_fails_with_the_reason(se
 def test_sweep_submits_the_paper_protocol_as_one_batch_with_one_table(service, sphere_grid):
     from worker import tasks
 
+    from sqlalchemy import func, select, update
+
+    from api.db import session_scope
+    from api.models import LOCAL_KEY_ID, ApiKey, Job
+
     client, scene_id, root = service
     params = {"iterations": 2, "reconstruction": {"resolution": 8, "iterations": 1}}
-    created = client.post("/v1/sweeps", json={"scenes": [{"scene_id": scene_id, "object": "mic"}], "params": params,
-                                              "evaluation": RING})
+    body = {"scenes": [{"scene_id": scene_id, "object": "mic"}], "params": params, "evaluation": RING}
+    with session_scope() as session:  # one job short of the sweep's 6 edits + 6 evaluations
+        session.execute(update(ApiKey).where(ApiKey.id == LOCAL_KEY_ID).values(max_active_jobs=11))
+    over = client.post("/v1/sweeps", json=body)
+    assert over.status_code == 429 and "quota of concurrent jobs exceeded" in over.json()["detail"]
+    with session_scope() as session:  # all or nothing: no job of the refused sweep was kept
+        assert session.scalar(select(func.count()).select_from(Job)) == 0
+        session.execute(update(ApiKey).where(ApiKey.id == LOCAL_KEY_ID).values(max_active_jobs=None))
+    assert {"/v1/evaluations", "/v1/sweeps", "/v1/sweeps/{sweep_id}"} <= set(client.get("/openapi.json").json()["paths"])
+    created = client.post("/v1/sweeps", json=body)
     assert created.status_code == 201, created.text
     sweep = created.json()
     assert sweep["state"] == "queued" and sweep["counts"] == {"queued": 12} and sweep["rows"] == []
