@@ -161,3 +161,19 @@ def test_rendered_views_reconstruct_the_mesh(green_sphere):
     config = ReconstructConfig.fast(resolutions=(24,), iterations=(80,), image_downsample=(1,), rays_per_step=1024)
     grid = reconstruct(images[1:], cameras[1:], config)
     assert psnr(render_image(grid, cameras, 0).rgb, images[0]) > 20.0
+
+
+# ------------------------------------------------------------------ CLI
+def test_cli_mesh_to_grid_writes_a_grid_or_names_the_problem(tmp_path, capsys):
+    from voxe_core.cli import main
+    from voxe_core.grid import VoxelGrid
+
+    out = tmp_path / "spot.safetensors"
+    args = ["mesh-to-grid", str(SPOT / "spot_triangulated.obj"), "--texture", str(SPOT / "spot_texture.png"), "-q"]
+    assert main([*args, "--resolution", "24", "--out", str(out)]) == 0
+    assert VoxelGrid.load(out).resolution == (24, 24, 24)
+    ply = _write_ply(tmp_path / "square.ply", _square(0.0, 1.0, RED))
+    bad = tmp_path / "bad.safetensors"
+    assert main(["mesh-to-grid", ply, "--texture", str(SPOT / "spot_texture.png"), "--out", str(bad)]) == 2
+    assert "square.ply: a texture was given but the mesh has no texture coordinates" in capsys.readouterr().err
+    assert not bad.exists()

@@ -206,3 +206,19 @@ def test_edit_runs_unchanged_on_a_scene_grid(tiny_sd_path):
     out = edit(initial, "a fox", guidance, EditConfig(iterations=2, render_size=32))
     assert isinstance(out, SceneGrid) and out.header() == initial.header()
     assert torch.isfinite(out.features).all() and not torch.equal(out.features, initial.features)
+
+
+# ----------------------------------------------------------------- CLI
+def test_cli_picks_the_scene_backbone_for_photos_and_renders_in_its_frame(tmp_path, capsys):
+    from conftest import DATA_ROOT
+    from voxe_core.cli import main
+
+    fox, out = DATA_ROOT / "fox", tmp_path / "fox.safetensors"
+    small = ["--downsample", "32", "--max-images", "8", "-q"]  # the first 8 frames span enough of the orbit
+    assert main(["reconstruct", str(fox), "--out", str(out), *small, "--resolution", "12",
+                 "--iterations", "2,2,2", "--rays", "64"]) == 0
+    assert "(scene backbone)" in capsys.readouterr().err
+    grid = VoxelGrid.load(out)
+    assert isinstance(grid, SceneGrid) and not torch.equal(grid.frame, torch.eye(4))
+    assert main(["render", str(out), "--data", str(fox), "--split", "train", *small, "--out", str(tmp_path / "views")]) == 0
+    assert len(list((tmp_path / "views").glob("*.png"))) == 8

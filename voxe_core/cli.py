@@ -141,6 +141,9 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--checkpoint", type=Path, default=None, help="write a resumable checkpoint here")
     rec.add_argument("--checkpoint-every", type=_positive_int, default=100, help="iterations between checkpoints")
     rec.add_argument("--resume", type=Path, default=None, help="continue from this checkpoint")
+    rec.add_argument("--backbone", choices=("auto", "relu_field", "scene"), default="auto",
+                     help="relu_field: objects on a transparent background; scene: captured photos with a "
+                          "background (DVGO-style, SPEC §5); auto: from the images' alpha")
 
     ren = commands.add_parser("render", parents=[common], help="render PNG views of a grid (dataset cameras or a ring)")
     ren.add_argument("grid", type=Path, metavar="GRID")
@@ -169,11 +172,32 @@ def build_parser() -> argparse.ArgumentParser:
     mesh.add_argument("--out", type=Path, required=True, help="mesh file, .ply or .glb")
     mesh.add_argument("--level", type=float, default=None, help="surface density (default ln 2 / voxel size)")
     mesh.add_argument("--resolution", type=_positive_int, default=None, help="resample to N points per axis")
+    _add_mesh_input_parser(commands, common)
     _add_edit_parsers(commands, common)
     _add_refine_parser(commands, common)
     _add_evaluate_parser(commands, common)
     _add_sweep_parser(commands, common)
     return parser
+
+
+def _add_mesh_input_parser(commands, common) -> None:
+    mg = commands.add_parser("mesh-to-grid", parents=[common],
+                             help="an initial grid from an OBJ (+ texture) or PLY (vertex colours) mesh")
+    mg.add_argument("mesh", type=Path, metavar="MESH", help=".obj or .ply")
+    mg.add_argument("--texture", type=Path, default=None, help="the OBJ's texture image")
+    mg.add_argument("--up", choices=("x", "y", "z"), default="y", help="the mesh file's up axis (OBJ: y)")
+    mg.add_argument("--route", choices=("voxelize", "render"), default="voxelize",
+                    help="voxelize: write the mesh into the grid; render: reconstruct from rendered views")
+    mg.add_argument("--out", type=Path, required=True, help="grid file to write (.safetensors)")
+    mg.add_argument("--views", type=_positive_int, default=100, help="render route: upper-hemisphere views")
+    mg.add_argument("--size", type=_positive_int, default=200, help="render route: view size in pixels")
+    mg.add_argument("--preset", choices=("fast", "paper"), default="fast", help="render route: reconstruction preset")
+    mg.add_argument("--resolution", type=_int_list, default=None, metavar="N[,N...]",
+                    help="grid resolution (voxelize: default 160; render: as voxe reconstruct)")
+    mg.add_argument("--iterations", type=_int_list, default=None, metavar="N[,N...]", help="render route: as voxe reconstruct")
+    mg.add_argument("--rays", type=_positive_int, default=None, help="render route: rays per step")
+    mg.add_argument("--seed", type=int, default=0)
+    mg.set_defaults(checkpoint=None)
 
 
 def _add_edit_parsers(commands, common) -> None:
@@ -187,14 +211,15 @@ def _add_edit_parsers(commands, common) -> None:
                          "(default stabilityai/stable-diffusion-2-base)")
     ed.add_argument("--offline", action="store_true", help="never contact the hub (as HF_HUB_OFFLINE=1)")
     ed.add_argument("--device", choices=("cpu", "cuda"), default=None, help="default: cuda when available")
-    ed.add_argument("--iterations", type=int, default=8000)
+    ed.add_argument("--iterations", type=int, default=None, help="default 8000; 5000 with --schedule real-scene")
     ed.add_argument("--render-size", type=_positive_int, default=266, help="training render size in pixels")
     ed.add_argument("--regulariser", default="reg3d",
                     help="reg3d | reg3d_plus | volumetric_l1 | volumetric_l2 | image_l1 | image_l2 (image_* need --data)")
     ed.add_argument("--reg-weight", type=float, default=200.0)
     ed.add_argument("--guidance-scale", type=float, default=100.0)
-    ed.add_argument("--schedule", choices=("paper", "authors"), default="paper",
-                    help="time-step annealing floor: paper 0.35, authors' code 0.22")
+    ed.add_argument("--schedule", choices=("paper", "authors", "real-scene"), default="paper",
+                    help="time-step annealing: paper (floor 0.35), authors' code (floor 0.22), "
+                         "real-scene (SPEC §5: 5000 iterations, i_start 3000, f_a 400)")
     ed.add_argument("--no-view-words", action="store_true", help="do not append ', front view' etc. to the prompt")
     ed.add_argument("--autocast", choices=("bf16", "fp16"), default=None, help="run the guidance under autocast")
     ed.add_argument("--seed", type=int, default=0)
@@ -249,16 +274,23 @@ def cmd_reconstruct(args) -> int:
     from voxe_core.data import load_scene
     from voxe_core.reconstruct import reconstruct
 
+    from voxe_core.scene_grid import SceneGrid, apply_frame, detect_backbone, scene_frame
+
     config = _reconstruct_config(args)
     scene = load_scene(args.data, args.split, args.downsample, args.max_images)
+    backbone = detect_backbone(scene.alphas) if args.backbone == "auto" else args.backbone
+    cameras, initial = scene.cameras, None
+    if backbone == "scene":  # fitted in the canonical frame, which the grid records
+        frame = scene_frame(scene.cameras)
+        cameras, initial = apply_frame(scene.cameras, frame), SceneGrid(config.resolutions[0], frame=frame)
     print(
         f"fitting {len(scene)} {scene.split} images of {scene.cameras.width}x{scene.cameras.height} "
-        f"from {args.data}: resolutions {list(config.resolutions)}, iterations {list(config.iterations)}, "
-        f"{config.rays_per_step} rays/step",
+        f"from {args.data} ({backbone} backbone): resolutions {list(config.resolutions)}, "
+        f"iterations {list(config.iterations)}, {config.rays_per_step} rays/step",
         file=sys.stderr,
     )
     grid = run_stage(
-        lambda callbacks: reconstruct(scene.images, scene.cameras, config, callbacks, args.checkpoint, args.resume),
+        lambda callbacks: reconstruct(scene.images, cameras, config, callbacks, args.checkpoint, args.resume, initial),
         "reconstruct", "it", config.total_iterations, args.quiet,
     )
     if grid is None:
@@ -287,8 +319,11 @@ def cmd_render(args) -> int:
     if args.data is not None:
         from voxe_core.data import load_scene
 
+        from voxe_core.scene_grid import SceneGrid, apply_frame
+
         scene = load_scene(args.data, args.split, args.downsample, args.max_images)
-        cameras = scene.cameras
+        # A scene grid lives in the canonical frame it was fitted in: move the dataset's cameras there.
+        cameras = apply_frame(scene.cameras, grid.frame) if isinstance(grid, SceneGrid) else scene.cameras
         names = [f"{i:03d}_{Path(name).stem}.png" for i, name in enumerate(scene.names)]
     else:
         cameras = turntable_cameras(args.ring, args.elevation, args.size)
@@ -356,13 +391,41 @@ def cmd_export_mesh(args) -> int:
     return 0
 
 
+def cmd_mesh_to_grid(args) -> int:
+    from voxe_core.mesh_input import VoxelizeConfig, hemisphere_cameras, load_mesh, render_mesh_views, voxelize
+    from voxe_core.reconstruct import reconstruct
+
+    mesh = load_mesh(args.mesh, args.texture, args.up)
+    if args.route == "voxelize":
+        if args.resolution is not None and len(args.resolution) != 1:
+            raise ValueError(f"--resolution takes one value for the voxelize route, got {len(args.resolution)}")
+        resolution = 160 if args.resolution is None else args.resolution[0]
+        grid = voxelize(mesh, VoxelizeConfig(resolution=resolution, seed=args.seed))
+    else:
+        config = _reconstruct_config(args)
+        cameras = hemisphere_cameras(args.views, args.size, args.seed)
+        images, _ = render_mesh_views(mesh, cameras)
+        grid = run_stage(lambda callbacks: reconstruct(images, cameras, config, callbacks),
+                         "reconstruct", "it", config.total_iterations, args.quiet)
+        if grid is None:
+            print(f"voxe: reconstruction cancelled, nothing written to {args.out}", file=sys.stderr)
+            return EXIT_INTERRUPTED
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    grid.save(args.out)
+    print(f"wrote {args.out}: {'x'.join(map(str, grid.resolution))} grid from {args.mesh.name} ({args.route})")
+    return 0
+
+
 def _edit_config(args):
     from voxe_core.edit import EditConfig
     from voxe_core.schedule import TimestepSchedule
 
-    schedule = TimestepSchedule.authors() if args.schedule == "authors" else TimestepSchedule()
+    from voxe_core.scene_grid import real_scene_edit_config
+
+    base = real_scene_edit_config() if args.schedule == "real-scene" else EditConfig()
+    schedule = TimestepSchedule.authors() if args.schedule == "authors" else base.schedule
     return EditConfig(
-        iterations=args.iterations, render_size=args.render_size, regulariser=args.regulariser,
+        iterations=base.iterations if args.iterations is None else args.iterations, render_size=args.render_size, regulariser=args.regulariser,
         regulariser_weight=args.reg_weight, guidance_scale=args.guidance_scale, schedule=schedule,
         view_words=not args.no_view_words, autocast_dtype=args.autocast, seed=args.seed,
         checkpoint_every=args.checkpoint_every, preview_every=args.preview_every,
@@ -714,6 +777,7 @@ COMMANDS = {
     "render": cmd_render,
     "turntable": cmd_turntable,
     "export-mesh": cmd_export_mesh,
+    "mesh-to-grid": cmd_mesh_to_grid,
     "edit": cmd_edit,
     "build-tiny-model": cmd_build_tiny_model,
     "refine": cmd_refine,
