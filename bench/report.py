@@ -384,6 +384,29 @@ def service_load_section(data, results: Path, report: Path) -> tuple[list[str], 
     return lines, []
 
 
+def other_results_section(results: Path, report: Path) -> list[str]:
+    """Results of benchmarks outside the four stages (e.g. real scenes), shown as their scalar fields and own plot."""
+    known = {stage.result for stage in STAGES} | {"edit_step_gpu.json"}
+    lines = []
+    for path in sorted(results.glob("*.json")):
+        data = load_json(path)
+        if path.name in known or data is None:
+            continue
+        runs = as_runs(data)
+        lines += [f"### `{path.stem}`", "", f"Source: `{relative(path, report)}` (see `bench/{path.stem}.py`); "
+                  "its scalar fields as written, speed and accuracy side by side in each row.", ""]
+        columns = [k for k in dict.fromkeys(k for r in runs for k in r)
+                   if all(isinstance(r.get(k), (int, float, str, bool, type(None))) for r in runs)][:12]
+        if runs and columns:
+            lines += table(columns, [[r.get(k) for k in columns] for r in runs]) + [""]
+        summary = data.get("summary") if isinstance(data, dict) else None
+        if isinstance(summary, dict):
+            lines += [f"- {k}: {fmt(v, 3)}" for k, v in summary.items() if not isinstance(v, (dict, list))] + [""]
+        if path.with_suffix(".png").is_file():
+            lines += [f"![{path.stem}]({relative(path.with_suffix('.png'), report)})", ""]
+    return (["## Other benchmark results", ""] + lines) if lines else []
+
+
 # ------------------------------------------------------------------ report
 
 
@@ -427,6 +450,7 @@ def build_report(results: Path, report: Path, notes: dict[str, str], mode: str) 
                               f"bench/report.py needs updating to its current layout."], []
         out += lines + [""]
         tradeoffs += bullets
+    out += other_results_section(results, report)
     out += ["## Trade-offs a user chooses between", ""]
     out += [f"- {b}" for b in tradeoffs] or ["- No benchmark results to draw them from."]
     for name in ("Grid resolution", "Iteration budget", "Skipping", "Samples per ray", "fp16 vs fp32"):
