@@ -177,3 +177,14 @@ def test_cli_mesh_to_grid_writes_a_grid_or_names_the_problem(tmp_path, capsys):
     assert main(["mesh-to-grid", ply, "--texture", str(SPOT / "spot_texture.png"), "--out", str(bad)]) == 2
     assert "square.ply: a texture was given but the mesh has no texture coordinates" in capsys.readouterr().err
     assert not bad.exists()
+
+
+def test_mesh_dataset_loads_back_as_the_rasterised_views(tmp_path, green_sphere):
+    from voxe_core.data import load_scene
+    from voxe_core.mesh_input import write_mesh_dataset
+
+    write_mesh_dataset(green_sphere, tmp_path / "ds", views=3, size=24, test_views=2)
+    train, test = load_scene(tmp_path / "ds", "train"), load_scene(tmp_path / "ds", "test")
+    assert (len(train), len(test)) == (3, 2) and train.has_alpha
+    rgb, alpha = rasterize(green_sphere, train.cameras, 1)
+    assert torch.allclose(train.images[1], rgb, atol=1.5 / 255) and torch.allclose(train.alphas[1], alpha, atol=0.6 / 255)

@@ -15,7 +15,7 @@ from voxe_core.metrics import psnr
 from voxe_core.reconstruct import ReconstructConfig, reconstruct
 from voxe_core.render import RenderConfig, render_image, render_rays
 from voxe_core.scene_grid import (
-    SceneGrid, apply_frame, contract, detect_backbone, real_scene_edit_config, scene_frame,
+    SceneGrid, apply_frame, contract, detect_backbone, prepare_backbone, real_scene_edit_config, scene_frame,
 )
 
 
@@ -151,6 +151,8 @@ def test_scene_frame_refuses_parallel_axes_and_cameras_on_the_centre():
 
 
 def test_backbone_detection_from_alpha():
+    with pytest.raises(ValueError, match="unknown backbone .dvgo.; use .auto., .relu_field. or .scene."):
+        prepare_backbone("dvgo", None, Cameras.from_fov(ring_poses(3), 0.7, 4, 4), 8)
     assert detect_backbone(None) == "scene"
     assert detect_backbone(torch.ones(2, 8, 8)) == "scene"  # RGBA photos, opaque everywhere
     object_on_transparent = torch.ones(2, 8, 8)

@@ -274,15 +274,11 @@ def cmd_reconstruct(args) -> int:
     from voxe_core.data import load_scene
     from voxe_core.reconstruct import reconstruct
 
-    from voxe_core.scene_grid import SceneGrid, apply_frame, detect_backbone, scene_frame
+    from voxe_core.scene_grid import prepare_backbone
 
     config = _reconstruct_config(args)
     scene = load_scene(args.data, args.split, args.downsample, args.max_images)
-    backbone = detect_backbone(scene.alphas) if args.backbone == "auto" else args.backbone
-    cameras, initial = scene.cameras, None
-    if backbone == "scene":  # fitted in the canonical frame, which the grid records
-        frame = scene_frame(scene.cameras)
-        cameras, initial = apply_frame(scene.cameras, frame), SceneGrid(config.resolutions[0], frame=frame)
+    backbone, cameras, initial = prepare_backbone(args.backbone, scene.alphas, scene.cameras, config.resolutions[0])
     print(
         f"fitting {len(scene)} {scene.split} images of {scene.cameras.width}x{scene.cameras.height} "
         f"from {args.data} ({backbone} backbone): resolutions {list(config.resolutions)}, "

@@ -20,6 +20,7 @@ view). ``chamfer_distance`` closes the loop with ``export.extract_mesh``.
 
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -222,6 +223,34 @@ def render_mesh_views(mesh: SurfaceMesh, cameras: Cameras, supersample: int = 2)
     """Route (a)'s input: every camera's unlit render, (N, H, W, 3) on white and alphas (N, H, W)."""
     views = [rasterize(mesh, cameras, i, supersample) for i in range(len(cameras))]
     return torch.stack([v[0] for v in views]), torch.stack([v[1] for v in views])
+
+
+def write_mesh_dataset(
+    mesh: SurfaceMesh, folder: str | os.PathLike, views: int = 100, size: int = 400, test_views: int = 20, seed: int = 0
+) -> Path:
+    """Route (a) as a dataset: a NeRF-synthetic folder of RGBA renders, so uploads of meshes flow like photos.
+
+    ``transforms_train.json``: ``views`` upper-hemisphere cameras; ``transforms_test.json``:
+    ``test_views`` on the 30° evaluation ring. PNGs store the un-premultiplied albedo.
+    """
+    from voxe_core.cameras import ring_poses
+    from voxe_core.export import save_png
+
+    folder = Path(folder)
+    splits = {
+        "train": hemisphere_cameras(views, size, seed),
+        "test": Cameras.from_fov(ring_poses(test_views, 30.0), NERF_SYNTHETIC_FOV_X, size, size),
+    }
+    for split, cameras in splits.items():
+        frames = []
+        for i in range(len(cameras)):
+            rgb, alpha = rasterize(mesh, cameras, i)
+            colour = (rgb - (1.0 - alpha[..., None])) / alpha[..., None].clamp_min(1e-6)  # undo the white composite
+            save_png(folder / split / f"r_{i:03d}.png", torch.cat([colour.clamp(0, 1), alpha[..., None]], -1))
+            frames.append({"file_path": f"./{split}/r_{i:03d}", "transform_matrix": cameras.c2w[i].tolist()})
+        meta = {"camera_angle_x": NERF_SYNTHETIC_FOV_X, "frames": frames}
+        (folder / f"transforms_{split}.json").write_text(json.dumps(meta, indent=1))
+    return folder
 
 
 # -------------------------------------------------------------- voxeliser

@@ -288,6 +288,21 @@ def detect_backbone(alphas: torch.Tensor | None) -> str:
     return "relu_field" if transparent >= TRANSPARENT_FRACTION else SCENE_BACKBONE
 
 
+def prepare_backbone(backbone: str, alphas: torch.Tensor | None, cameras: Cameras, resolution: int):
+    """Resolve ``backbone`` ('auto' | 'relu_field' | 'scene') for a loaded scene.
+
+    Returns (name, cameras to fit with, initial grid for ``reconstruct`` or None):
+    a scene grid is fitted in the canonical frame of ``scene_frame``, which it records.
+    """
+    if backbone not in ("auto", *BACKBONES):
+        raise ValueError(f"unknown backbone {backbone!r}; use 'auto', 'relu_field' or 'scene'")
+    name = detect_backbone(alphas) if backbone == "auto" else backbone
+    if name != SCENE_BACKBONE:
+        return name, cameras, None
+    frame = scene_frame(cameras)
+    return name, apply_frame(cameras, frame), SceneGrid(resolution, frame=frame)
+
+
 def real_scene_edit_config(**overrides) -> EditConfig:
     """SPEC §5's edit schedule for captured scenes: 5000 iterations, annealing from 3000 every 400."""
     schedule = TimestepSchedule(i_start=3000, every=400)
