@@ -44,6 +44,10 @@ class ReconstructionParams(Strict):
     )
     rays_per_step: int | None = Field(None, ge=1, le=1 << 20)
     seed: int = Field(0, ge=0, le=MAX_SEED)
+    backbone: Literal["auto", "relu_field", "scene"] = Field(
+        "auto", description="relu_field: objects on a transparent background; scene: captured photos with a "
+        "background (DVGO-style, SPEC §5); auto: from the images' alpha"
+    )
 
     @field_validator("iterations")
     @classmethod

@@ -11,6 +11,11 @@ compressed bytes it was read from are refused. Sizes and ratios are counted whil
 extracting, from the bytes actually read and written, never from the archive's
 directory. Images are checked against ``max_image_pixels`` from their headers
 before any is decoded (decompression bombs).
+
+Meshes: an upload with no transforms json but one ``.obj`` (with at most one
+texture image) or ``.ply`` (vertex colours) is rendered into a NeRF-synthetic
+dataset (``voxe_core.mesh_input.write_mesh_dataset``, mesh input route (a)),
+which is then validated and stored like any other.
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ from typing import BinaryIO
 from PIL import Image, UnidentifiedImageError
 
 from voxe_core.data import DatasetError, detect_format, load_scene
+from voxe_core.mesh_input import MESH_INPUT_SUFFIXES, TEXTURE_SUFFIXES, MeshError, load_mesh, write_mesh_dataset
 
 _IGNORED = ("__MACOSX", ".DS_Store", "Thumbs.db")
 _RATIO_FLOOR = 4 << 20  # below this many bytes out of an entry, any ratio is fine (small text compresses well)
@@ -36,6 +42,8 @@ _RATIO_FLOOR = 4 << 20  # below this many bytes out of an entry, any ratio is fi
 # (an entry claiming more compressed bytes than its stream has) that read-ahead would pad the ratio's divisor.
 _CHUNK = 64 << 10
 _STORED_SUFFIXES = {".png", ".jpg", ".jpeg", ".webp", ".exr", ".zip", ".gz"}
+_TRANSFORMS = ("transforms.json", "transforms_train.json", "transforms_val.json", "transforms_test.json")
+MESH_VIEWS, MESH_VIEW_SIZE = 100, 256  # renders of an uploaded mesh (the paper: 100 upper-hemisphere views)
 
 
 class UploadError(ValueError):
@@ -188,8 +196,7 @@ def dataset_root(folder: Path) -> Path:
     """The folder holding the transforms json: the upload itself, or its single top-level folder."""
     root = folder
     for _ in range(4):
-        if any((root / n).is_file() for n in ("transforms.json", "transforms_train.json",
-                                              "transforms_val.json", "transforms_test.json")):
+        if any((root / n).is_file() for n in _TRANSFORMS):
             return root
         children = [c for c in root.iterdir() if not _ignored(PurePosixPath(c.name))]
         if len(children) == 1 and children[0].is_dir():
@@ -197,6 +204,30 @@ def dataset_root(folder: Path) -> Path:
             continue
         break
     return root
+
+
+def render_mesh_upload(root: Path, dest: Path) -> Path | None:
+    """The dataset folder rendered from the upload's mesh, or None when the upload is not a mesh."""
+    if any((root / n).is_file() for n in _TRANSFORMS):
+        return None
+    files = sorted(p for p in root.rglob("*") if p.is_file() and not _ignored(PurePosixPath(p.name)))
+    meshes = [p for p in files if p.suffix.lower() in MESH_INPUT_SUFFIXES]
+    if not meshes:
+        return None
+    names = lambda paths: ", ".join(repr(p.relative_to(root).as_posix()) for p in paths)  # noqa: E731
+    if len(meshes) > 1:
+        raise UploadError(f"the upload holds several meshes ({names(meshes)}); send one")
+    texture = None
+    if meshes[0].suffix.lower() == ".obj":
+        images = [p for p in files if p.suffix.lower() in TEXTURE_SUFFIXES]
+        if len(images) > 1:
+            raise UploadError(f"the OBJ comes with several images ({names(images)}); send one texture")
+        texture = images[0] if images else None
+    try:
+        mesh = load_mesh(meshes[0], texture)
+    except MeshError as exc:
+        raise UploadError(f"invalid mesh: {exc}") from None
+    return write_mesh_dataset(mesh, dest, MESH_VIEWS, MESH_VIEW_SIZE)
 
 
 def check_image_pixels(folder: Path, max_pixels: int) -> None:
@@ -289,6 +320,7 @@ def ingest(
             save_files(files, unpacked, budget)
         check_image_pixels(unpacked, max_image_pixels)
         root = dataset_root(unpacked)
+        root = render_mesh_upload(root, staging / "rendered") or root
         fmt, count, width, height, splits = validate(root, unpacked, validation_downsample)
         packed = staging / "dataset.zip"
         package(root, packed)

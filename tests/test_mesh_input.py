@@ -188,3 +188,42 @@ def test_mesh_dataset_loads_back_as_the_rasterised_views(tmp_path, green_sphere)
     assert (len(train), len(test)) == (3, 2) and train.has_alpha
     rgb, alpha = rasterize(green_sphere, train.cameras, 1)
     assert torch.allclose(train.images[1], rgb, atol=1.5 / 255) and torch.allclose(train.alphas[1], alpha, atol=0.6 / 255)
+
+
+# ------------------------------------------------------------------ service upload
+def _ingest(tmp_path, files):
+    from api.uploads import ingest
+
+    opened = [(name, open(path, "rb")) for name, path in files]
+    try:
+        return ingest(tmp_path / "work", None, opened, 1 << 30, 100, 8, 1000.0, 1 << 26)
+    finally:
+        for _, f in opened:
+            f.close()
+
+
+def test_a_mesh_upload_is_stored_as_its_rendered_views(tmp_path, monkeypatch):
+    import zipfile
+
+    import api.uploads
+
+    monkeypatch.setattr(api.uploads, "MESH_VIEWS", 4)
+    monkeypatch.setattr(api.uploads, "MESH_VIEW_SIZE", 32)
+    result, staging = _ingest(tmp_path, [("spot/spot.obj", SPOT / "spot_triangulated.obj"),
+                                         ("spot/spot.png", SPOT / "spot_texture.png")])
+    assert (result.format, result.image_count, result.width, result.splits) == ("nerf_synthetic", 4, 32, ["train", "test"])
+    names = zipfile.ZipFile(result.archive).namelist()
+    assert "transforms_train.json" in names and "train/r_003.png" in names
+
+
+def test_a_bad_mesh_upload_is_a_422_naming_the_problem_and_leaves_nothing(tmp_path):
+    from api.uploads import UploadError
+
+    (tmp_path / "nan.obj").write_text("v nan 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    with pytest.raises(UploadError, match="invalid mesh: nan.obj: vertex coordinates contain NaN or Inf") as info:
+        _ingest(tmp_path, [("nan.obj", tmp_path / "nan.obj")])
+    assert info.value.status == 422
+    with pytest.raises(UploadError, match="several images .'a.png', 'b.png'.; send one texture"):
+        _ingest(tmp_path, [("m.obj", SPOT / "spot_triangulated.obj"), ("a.png", SPOT / "spot_texture.png"),
+                           ("b.png", SPOT / "spot_texture.png")])
+    assert list((tmp_path / "work").iterdir()) == []

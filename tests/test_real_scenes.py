@@ -224,3 +224,20 @@ def test_cli_picks_the_scene_backbone_for_photos_and_renders_in_its_frame(tmp_pa
     assert isinstance(grid, SceneGrid) and not torch.equal(grid.frame, torch.eye(4))
     assert main(["render", str(out), "--data", str(fox), "--split", "train", *small, "--out", str(tmp_path / "views")]) == 0
     assert len(list((tmp_path / "views").glob("*.png"))) == 8
+
+
+# ----------------------------------------------------------------- service parameters
+def test_job_parameter_chooses_the_backbone_and_auto_keeps_old_cache_keys():
+    from pydantic import ValidationError
+
+    from api.schemas import ReconstructionParams
+    from worker.configs import reconstruction_key, reconstruction_params
+
+    assert ReconstructionParams().backbone == "auto"
+    assert ReconstructionParams(backbone="scene").backbone == "scene"
+    with pytest.raises(ValidationError, match="backbone"):
+        ReconstructionParams(backbone="dvgo")
+    legacy = reconstruction_key(reconstruction_params({}))
+    assert reconstruction_key(reconstruction_params({"reconstruction": {"backbone": "auto"}})) == legacy
+    assert reconstruction_params({"reconstruction": {"backbone": "scene"}})["backbone"] == "scene"
+    assert reconstruction_key(reconstruction_params({"reconstruction": {"backbone": "relu_field"}})) != legacy

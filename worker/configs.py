@@ -17,7 +17,10 @@ if TYPE_CHECKING:  # the API imports this module for the cache key only; keep it
 def reconstruction_params(params: dict) -> dict:
     """The part of a job's parameters that determines G_i (the reconstruction cache key)."""
     rec = dict(params.get("reconstruction") or {})
+    # "auto" adds nothing, so fits made before the backbone choice existed keep their keys.
+    backbone = {} if rec.get("backbone", "auto") == "auto" else {"backbone": rec["backbone"]}
     return {
+        **backbone,
         "split": "train",
         "downsample": int(params.get("downsample", 3)),
         "max_images": params.get("max_images"),

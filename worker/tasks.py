@@ -198,20 +198,24 @@ def _fit(job: Job, rec, settings, storage) -> None:
 
     callbacks = StageCallbacks(job.id, "reconstruct", settings, on_progress, on_checkpoint)
     try:
+        from voxe_core.scene_grid import prepare_backbone
+
         scene = _load_images(job, rec.params, settings, storage)
         config = reconstruct_config(rec.params, settings.checkpoint_every)
+        _, cameras, initial = prepare_backbone(rec.params.get("backbone", "auto"), scene.alphas, scene.cameras,
+                                               config.resolutions[0])
         runtime.renew_lease(rec.id, job.id, settings, total=config.total_iterations)
         resume = None
         if storage.exists(checkpoint_key):
             resume = storage.get_file(checkpoint_key, checkpoint)
             log.info("reconstruction %s: resuming from its checkpoint", rec.id)
         try:
-            grid = reconstruct(scene.images, scene.cameras, config, callbacks.callbacks, checkpoint, resume)
+            grid = reconstruct(scene.images, cameras, config, callbacks.callbacks, checkpoint, resume, initial)
         except FormatError:
             if resume is None:
                 raise
             log.warning("reconstruction %s: unreadable checkpoint, starting over", rec.id)
-            grid = reconstruct(scene.images, scene.cameras, config, callbacks.callbacks, checkpoint, None)
+            grid = reconstruct(scene.images, cameras, config, callbacks.callbacks, checkpoint, None, initial)
     except StageCancelled:  # let a waiting job take over (from the checkpoint)
         runtime.set_reconstruction(rec.id, job.id, state=R_PENDING, owner_job_id=None, lease_until=None)
         raise
@@ -250,8 +254,12 @@ def _edit(job: Job, settings, device: str, storage) -> None:
         runtime.update_job(job.id, message=note)
     input_views = None
     if config.regulariser.startswith("image_"):
+        from voxe_core.scene_grid import SceneGrid, apply_frame
+
         scene = _load_images(job, rec.params, settings, storage)
-        input_views = (scene.images, scene.cameras)
+        # a scene grid was fitted in its canonical frame: the input cameras move there too
+        cameras = apply_frame(scene.cameras, initial.frame) if isinstance(initial, SceneGrid) else scene.cameras
+        input_views = (scene.images, cameras)
 
     last_preview = [0.0]
 
