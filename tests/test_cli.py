@@ -76,7 +76,7 @@ def test_ctrl_c_cancels_cleanly_and_resume_finishes_the_same_fit(fitted, tmp_pat
     real = voxe_core.reconstruct.reconstruct
     seen = []
 
-    def interrupted(images, cameras, config, callbacks, checkpoint_path, resume_from):
+    def interrupted(images, cameras, config, callbacks, checkpoint_path, resume_from, initial_grid=None):
         report = callbacks.on_progress
 
         def on_progress(p):
@@ -86,7 +86,7 @@ def test_ctrl_c_cancels_cleanly_and_resume_finishes_the_same_fit(fitted, tmp_pat
                 os.kill(os.getpid(), signal.SIGINT)  # what Ctrl-C does
 
         callbacks.on_progress = on_progress
-        return real(images, cameras, config, callbacks, checkpoint_path, resume_from)
+        return real(images, cameras, config, callbacks, checkpoint_path, resume_from, initial_grid)
 
     monkeypatch.setattr(voxe_core.reconstruct, "reconstruct", interrupted)
     out, ck = tmp_path / "g.safetensors", tmp_path / "ck.safetensors"
