@@ -276,7 +276,8 @@ def voxelize(mesh: SurfaceMesh, config: VoxelizeConfig = VoxelizeConfig()) -> Vo
     (exact on flat patches); beyond it only inside/outside matters, taken
     from a hole fill (scipy) of the voxels the surface passes through, so
     meshes need to be closed up to a voxel. Colour: the albedo of the
-    nearest surface sample, as a logit.
+    nearest surface sample as a logit (beyond the band, that of the nearest
+    band vertex, so carving an edit into the interior shows the surface colour).
     """
     import trimesh
     from scipy import ndimage
