@@ -144,24 +144,47 @@ def moto_s3():
         server.stop()
 
 
-@contextlib.contextmanager
-def redis_server(root: Path):
-    """A private redis-server on a free port with append-only persistence in ``root``."""
-    exe = shutil.which("redis-server")
-    if exe is None:
-        raise FileNotFoundError("redis-server")
-    port = free_port()
-    root.mkdir(parents=True, exist_ok=True)
-    proc = Process("redis", [exe, "--port", str(port), "--bind", "127.0.0.1", "--dir", str(root),
-                             "--appendonly", "yes", "--save", "", "--protected-mode", "no"], dict(os.environ), root)
-    try:
+class RedisServer:
+    """A private redis-server on a free port with append-only persistence (fsync per write) in ``root``."""
+
+    def __init__(self, root: Path):
+        exe = shutil.which("redis-server")
+        if exe is None:
+            raise FileNotFoundError("redis-server")
+        self.root, self.port, self.generation = root, free_port(), 0
+        self.url = f"redis://127.0.0.1:{self.port}/0"
+        self.args = [exe, "--port", str(self.port), "--bind", "127.0.0.1", "--dir", str(root), "--appendonly", "yes",
+                     "--appendfsync", "always", "--save", "", "--protected-mode", "no"]
+        root.mkdir(parents=True, exist_ok=True)
+        self.proc: Process | None = None
+
+    def start(self) -> None:
         import redis
 
-        client = redis.Redis(port=port, socket_timeout=1)
-        wait_until(lambda: _redis_ping(client), 20, what="redis-server", processes=[proc])
-        yield f"redis://127.0.0.1:{port}/0"
+        self.generation += 1
+        self.proc = Process(f"redis-{self.generation}", self.args, dict(os.environ), self.root)
+        client = redis.Redis(port=self.port, socket_timeout=1)
+        wait_until(lambda: _redis_ping(client), 20, what="redis-server", processes=[self.proc])
+
+    def restart(self) -> None:
+        """Stop (SIGTERM: redis finishes its append-only file) and start again on the same port and folder."""
+        self.proc.stop()
+        self.start()
+
+    def stop(self) -> None:
+        if self.proc is not None:
+            self.proc.stop()
+
+
+@contextlib.contextmanager
+def redis_server(root: Path):
+    """A :class:`RedisServer` started in ``root``; yields it (``.url``, ``.restart()``)."""
+    server = RedisServer(root)
+    try:
+        server.start()
+        yield server
     finally:
-        proc.stop()
+        server.stop()
 
 
 def _redis_ping(client) -> bool:
@@ -189,7 +212,8 @@ class Service:
         return [p for p in (self.api, self.worker) if p is not None]
 
     def start_api(self) -> None:
-        self.api = Process("api", [sys.executable, "-m", "uvicorn", "api.main:app", "--host", "127.0.0.1",
+        self.api_generation = getattr(self, "api_generation", 0) + 1
+        self.api = Process(f"api-{self.api_generation}", [sys.executable, "-m", "uvicorn", "api.main:app", "--host", "127.0.0.1",
                                    "--port", str(self.port), "--log-level", "warning"], self.env, self.root)
         # The API migrates the database at startup; the worker starts once it has.
         wait_until(lambda: httpx.get(f"{self.base}/healthz", timeout=2).status_code == 200, 90,
@@ -209,13 +233,23 @@ class Service:
 
     def kill_worker(self) -> None:
         """SIGKILL, as a crashed machine or an OOM kill would."""
-        self.worker.proc.kill()
-        self.worker.proc.wait(10)
-        self.worker.stop()
+        _kill(self.worker)
+        self.worker = None
+
+    def restart_api(self) -> None:
+        """SIGKILL the API and start it again on the same port, database and storage."""
+        _kill(self.api)
+        self.start_api()
 
     def stop(self) -> None:
         for p in reversed(self.processes):
             p.stop()
+
+
+def _kill(process: Process) -> None:
+    process.proc.kill()
+    process.proc.wait(10)
+    process.stop()
 
 
 @contextlib.contextmanager
@@ -236,3 +270,70 @@ def service(root: Path, broker_url: str | None = None, worker_env: dict[str, str
         yield handle
     finally:
         handle.stop()
+
+
+def verify_artifacts(client: httpx.Client, job: dict, expected: set[str], download_root: Path) -> dict:
+    """Download every artifact, check size / sha256 / a Range request, and open it with a real reader."""
+    import hashlib
+    import io
+
+    import imageio.v2 as imageio
+    import trimesh
+    from PIL import Image
+
+    from voxe_core.grid import VoxelGrid
+    from voxe_core.refine import load_mask, load_probabilities
+
+    listing = client.get(f"/v1/jobs/{job['id']}/artifacts").json()
+    names = {a["name"] for a in listing}
+    assert expected <= names, f"missing {expected - names}"
+    tmp = download_root / f"downloads-{job['id']}"
+    tmp.mkdir(exist_ok=True)
+    grids = {}
+    for artifact in listing:
+        response = client.get(artifact["url"])
+        assert response.status_code == 200, artifact
+        data = response.content
+        assert len(data) == artifact["size"] and hashlib.sha256(data).hexdigest() == artifact["sha256"], artifact
+        assert response.headers["content-type"].startswith(artifact["content_type"])
+        assert response.headers["accept-ranges"] == "bytes"
+        # Range: a middle slice, a suffix, and an unsatisfiable one.
+        if len(data) > 20:
+            part = client.get(artifact["url"], headers={"Range": "bytes=5-14"})
+            assert part.status_code == 206 and part.content == data[5:15]
+            assert part.headers["content-range"] == f"bytes 5-14/{len(data)}"
+            tail = client.get(artifact["url"], headers={"Range": "bytes=-7"})
+            assert tail.status_code == 206 and tail.content == data[-7:]
+        bad = client.get(artifact["url"], headers={"Range": f"bytes={len(data)}-"})
+        assert bad.status_code == 416 and bad.headers["content-range"] == f"bytes */{len(data)}"
+        path = tmp / artifact["name"]
+        path.write_bytes(data)
+        name = artifact["name"]
+        if name.endswith("_grid.safetensors"):
+            grids[name] = VoxelGrid.load(path)
+        elif name == "mask.safetensors":
+            grids["mask"] = load_mask(path)
+        elif name == "attention_probabilities.safetensors":
+            grids["probabilities"] = load_probabilities(path)
+        elif name.endswith(".png") or name.endswith(".gif"):
+            with Image.open(io.BytesIO(data)) as image:
+                image.load()
+                assert image.size[0] > 0
+        elif name.endswith(".mp4"):
+            reader = imageio.get_reader(path, format="FFMPEG")
+            frames = [frame for frame in reader]
+            reader.close()
+            assert len(frames) == job["params"]["export"]["turntable_frames"]
+            assert frames[0].shape[:2] == (48, 48)
+        elif name.endswith(".ply") or name.endswith(".glb"):
+            mesh = trimesh.load(path, force="mesh")
+            assert len(mesh.vertices) > 0 and len(mesh.faces) > 0
+    resolution = grids["edited_grid.safetensors"].resolution
+    if job["mode"] == "local":
+        assert tuple(grids["mask"].shape) == resolution == grids["refined_grid.safetensors"].resolution
+        edit_p, object_p, where = grids["probabilities"]
+        assert tuple(edit_p.shape) == tuple(object_p.shape) == tuple(where.shape) == resolution
+    # Names are looked up in the job's list only.
+    for bad_name in ("..%2F..%2Fscenes", "nope.png", "%2Fetc%2Fpasswd"):
+        assert client.get(f"/v1/jobs/{job['id']}/artifacts/{bad_name}").status_code == 404
+    return grids

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import io
 import shutil
 import time
 from dataclasses import dataclass, field
@@ -21,7 +20,7 @@ from dataclasses import dataclass, field
 import httpx
 import pytest
 
-from service_helpers import MIC, moto_s3, redis_server, service, zip_folder
+from service_helpers import MIC, moto_s3, redis_server, service, verify_artifacts, zip_folder
 
 pytestmark = pytest.mark.slow
 
@@ -35,6 +34,8 @@ PARAMS = {
 SMOKE_LABEL = "tiny (smoke test, random weights)"
 COMMON_ARTIFACTS = {"initial_grid.safetensors", "edited_grid.safetensors", "render_000.png", "render_001.png",
                     "turntable.mp4", "turntable.gif", "mesh.ply", "mesh.glb", "preview.png"}
+RESUMED_ARTIFACTS = {"initial_grid.safetensors", "edited_grid.safetensors", "render_000.png", "render_001.png",
+                     "turntable.mp4", "preview.png"}  # no gif, no mesh
 LOCAL_ARTIFACTS = {"refined_grid.safetensors", "mask.safetensors", "attention_probabilities.safetensors",
                    "mask_overlay.png"}
 
@@ -72,7 +73,7 @@ def stack(request, tmp_path_factory, mic_zip):
         if broker == "redis":
             if shutil.which("redis-server") is None:
                 pytest.skip("redis-server is not installed (.ci/test installs it)")
-            broker_url = stack_.enter_context(redis_server(root / "redis"))
+            broker_url = stack_.enter_context(redis_server(root / "redis")).url
             extra = stack_.enter_context(moto_s3())
             worker_env = {"VOXE_WORK_DIR": str(root / "worker-work"), "VOXE_MODEL_DIR": str(root / "worker-models")}
         svc = stack_.enter_context(service(root, broker_url, worker_env, VOXE_CHECKPOINT_EVERY="10", **extra))
@@ -97,10 +98,63 @@ def wait_for_job(stack: Stack, job_id: str, timeout: float = 240, until=None) ->
     raise AssertionError(f"job {job_id} still {job and job['state']} after {timeout} s: {job}\n{stack.diagnostics()}")
 
 
+def wait_for_resumed_job(stack: Stack, job_id: str) -> tuple[dict, int, list[int]]:
+    """Wait for a job whose worker was killed: (final record, resumed-at iteration, edit iterations polled)."""
+    messages, edit_iterations = [], []
+
+    def progress(j):
+        messages.append(j["message"])
+        if j["stage"] == "edit" and j["total"] and j["state"] == "running":
+            edit_iterations.append(j["iteration"])
+        return j["state"] in ("succeeded", "failed", "canceled")
+
+    final = wait_for_job(stack, job_id, until=progress)
+    assert final["state"] == "succeeded", f"{final}\n{stack.diagnostics()}"
+    resumed = {m for m in messages if m and m.startswith("resumed from the checkpoint at iteration ")}
+    assert len(resumed) == 1, set(messages)
+    return final, int(resumed.pop().rsplit(" ", 1)[1]), edit_iterations
+
+
 def create_job(stack: Stack, **body) -> dict:
     response = stack.client.post("/v1/jobs", json={"scene_id": stack.scene["id"], **body})
     assert response.status_code == 201, response.text
     return response.json()
+
+
+STAGE_OUTPUTS = {"reconstruct": {"initial_grid.safetensors"}, "edit": {"edited_grid.safetensors"},
+                 "refine": LOCAL_ARTIFACTS, "export": {"turntable.mp4", "turntable.gif", "mesh.ply", "mesh.glb"}}
+
+
+def cancel_during(stack: Stack, stage: str, **body) -> tuple[dict, dict, int]:
+    """Create a job and cancel it a few iterations into ``stage``; check it stops promptly and consistently.
+
+    Returns (the record while running, the final record, the iteration when the cancel was accepted).
+    """
+    job = create_job(stack, **body)
+    running = wait_for_job(stack, job["id"], until=lambda j: j["stage"] == stage and j["iteration"] >= 3 and j["total"]
+                           or j["state"] in ("succeeded", "failed", "canceled"))
+    assert running["state"] == "running" and running["stage"] == stage, running
+    response = stack.client.post(f"/v1/jobs/{job['id']}/cancel")
+    assert response.status_code == 200 and response.json()["cancel_requested"] is True
+    started = time.monotonic()
+    final = wait_for_job(stack, job["id"], timeout=60)
+    assert time.monotonic() - started < 30, f"cancel during {stage} took {time.monotonic() - started:.0f} s"
+    assert final["state"] == "canceled" and final["stage"] == stage, final
+    assert final["message"] == f"canceled during {stage}" and final["error"] is None, final
+    assert final["finished_at"] and final["eta_seconds"] is None and final["cancel_requested"] is True
+    stages = ["reconstruct", "edit"] + (["refine"] if final["mode"] == "local" else []) + ["export"]
+    assert final["completed_stages"] == stages[:stages.index(stage)], final
+    # Nothing half done is listed: none of the stage's outputs, and every listed artifact is whole.
+    listing = stack.client.get(f"/v1/jobs/{job['id']}/artifacts").json()
+    assert not {a["name"] for a in listing} & STAGE_OUTPUTS[stage], listing
+    for artifact in listing:
+        data = stack.client.get(artifact["url"]).content
+        assert len(data) == artifact["size"] and hashlib.sha256(data).hexdigest() == artifact["sha256"], artifact
+    if stack.broker == "embedded":  # the job's checkpoints were deleted from the (local) storage
+        assert not (stack.root / "storage" / "jobs" / job["id"] / "checkpoints").exists()
+    again = stack.client.post(f"/v1/jobs/{job['id']}/cancel")
+    assert again.status_code == 200 and again.json()["state"] == "canceled"
+    return running, final, response.json()["iteration"]
 
 
 # ---------------------------------------------------------------------------------------------- tests
@@ -140,8 +194,8 @@ def test_local_and_global_jobs_share_one_reconstruction(stack):
     assert reconstructions[0]["run_count"] == 1
     assert sorted([local["reconstruction"]["reused"], global_["reconstruction"]["reused"]]) == [False, True]
 
-    initial = verify_artifacts(stack, global_, COMMON_ARTIFACTS)
-    grids = verify_artifacts(stack, local, COMMON_ARTIFACTS | LOCAL_ARTIFACTS)
+    initial = verify_artifacts(stack.client, global_, COMMON_ARTIFACTS, stack.root)
+    grids = verify_artifacts(stack.client, local, COMMON_ARTIFACTS | LOCAL_ARTIFACTS, stack.root)
     assert initial["initial_grid.safetensors"].resolution == grids["initial_grid.safetensors"].resolution == (24,) * 3
     stack.jobs.update(local=local, global_=global_)
 
@@ -149,23 +203,11 @@ def test_local_and_global_jobs_share_one_reconstruction(stack):
 def test_cancel_running_job(stack):
     # Same reconstruction parameters (reused), an edit far too long to finish.
     params = {**PARAMS, "iterations": 100_000, "render_size": 64}
-    job = create_job(stack, prompt="a mic wearing a party hat", mode="local", edit_words=["party hat"], params=params)
-    running = wait_for_job(stack, job["id"], until=lambda j: j["stage"] == "edit" and j["iteration"] >= 3
-                           or j["state"] in ("succeeded", "failed", "canceled"))
-    assert running["state"] == "running", running
+    running, final, at_cancel = cancel_during(stack, "edit", prompt="a mic wearing a party hat", mode="local",
+                                              edit_words=["party hat"], params=params)
     assert running["reconstruction"]["reused"] is True
     assert running["eta_seconds"] is not None and running["total"] == 100_000
-    response = stack.client.post(f"/v1/jobs/{job['id']}/cancel")
-    assert response.status_code == 200 and response.json()["cancel_requested"] is True
-    at_cancel = response.json()["iteration"]
-    started = time.monotonic()
-    final = wait_for_job(stack, job["id"], timeout=60)
-    assert final["state"] == "canceled", final
-    assert time.monotonic() - started < 30
-    assert final["stage"] == "edit" and final["iteration"] - at_cancel <= 25, (at_cancel, final["iteration"])
-    assert "edit" not in final["completed_stages"]
-    again = stack.client.post(f"/v1/jobs/{job['id']}/cancel")
-    assert again.status_code == 200 and again.json()["state"] == "canceled"
+    assert final["iteration"] - at_cancel <= 25, (at_cancel, final["iteration"])
     # The worker is free again and the reconstruction still ran only once.
     reconstructions = stack.client.get(f"/v1/scenes/{stack.scene['id']}/reconstructions").json()
     assert [r["run_count"] for r in reconstructions] == [1]
@@ -183,22 +225,14 @@ def test_killed_worker_resumes_the_edit_from_its_checkpoint(stack):
     stack.service.kill_worker()
     killed_at = stack.client.get(f"/v1/jobs/{job['id']}").json()["iteration"]
     stack.service.start_worker()
-    messages = []
-
-    def progress(j):
-        messages.append(j["message"])
-        return j["state"] in ("succeeded", "failed", "canceled")
-
-    final = wait_for_job(stack, job["id"], until=progress)
-    assert final["state"] == "succeeded", f"{final}\n{stack.diagnostics()}"
+    final, at, edit_iterations = wait_for_resumed_job(stack, job["id"])
     assert final["completed_stages"] == ["reconstruct", "edit", "export"]
-    # Resumed from its last checkpoint (every 10 iterations), not from iteration 0.
-    resumed = {m for m in messages if m and m.startswith("resumed from the checkpoint at iteration ")}
-    assert resumed, (killed_at, set(messages))
-    at = int(resumed.pop().rsplit(" ", 1)[1])
+    # Resumed from its last checkpoint (every 10 iterations), not from iteration 0: the message says
+    # where, and no edit progress seen after the kill was below it (the killed run's, then the resumed one's).
     assert 10 <= at <= killed_at and at % 10 == 0, (at, killed_at)
-    names = {a["name"] for a in stack.client.get(f"/v1/jobs/{job['id']}/artifacts").json()}
-    assert {"edited_grid.safetensors", "turntable.mp4"} <= names
+    assert edit_iterations and min(edit_iterations) >= at, (at, edit_iterations)
+    # Complete: every artifact listed, each download matching its recorded size and sha256.
+    verify_artifacts(stack.client, final, RESUMED_ARTIFACTS, stack.root)
 
 
 def test_job_listing(stack):
@@ -212,6 +246,26 @@ def test_job_listing(stack):
     assert stack.client.get("/v1/jobs", params={"state": "bogus"}).status_code == 422
 
 
+@pytest.mark.parametrize("stage", ["reconstruct", "refine", "export"])
+def test_cancel_during_each_stage(stack, stage):
+    """Cancellation reads the job's flag in the database (no broker involved): the embedded run covers it."""
+    if stack.broker != "embedded":
+        pytest.skip("cancellation does not depend on the broker")
+    params = {**PARAMS, "iterations": 5}
+    if stage == "reconstruct":  # parameters of their own: a fresh fit, far too long to finish
+        params["reconstruction"] = {**RECONSTRUCTION, "iterations": [2000, 2000, 2000]}
+    elif stage == "refine":
+        params["refine"] = {**PARAMS["refine"], "iterations": 100_000}
+    else:
+        params["export"] = {**PARAMS["export"], "turntable_frames": 1000, "turntable_size": 64}
+    mode = {"mode": "local", "edit_words": ["sunglasses"]} if stage == "refine" else {"mode": "global"}
+    _, final, _ = cancel_during(stack, stage, prompt="a mic wearing big sunglasses", params=params, **mode)
+    if stage == "reconstruct":  # the canceled fitter handed the reconstruction back for a later job
+        rec = next(r for r in stack.client.get(f"/v1/scenes/{stack.scene['id']}/reconstructions").json()
+                   if r["id"] == final["reconstruction"]["id"])
+        assert rec["state"] == "pending" and rec["run_count"] == 1, rec
+
+
 def test_nothing_shared_but_storage(stack):
     """With S3 storage nothing is written to a local storage folder; the worker used its own scratch."""
     if stack.broker != "redis":
@@ -219,68 +273,3 @@ def test_nothing_shared_but_storage(stack):
     assert not (stack.root / "storage").exists()
     assert (stack.root / "worker-work" / "scenes").is_dir()  # the worker's own copy of the dataset
     assert not (stack.root / "work" / "scenes").exists()  # the API never unpacks for the worker
-
-
-# ---------------------------------------------------------------------------------------------- checks
-def verify_artifacts(stack: Stack, job: dict, expected: set[str]) -> dict:
-    """Download every artifact, check size / sha256 / a Range request, and open it with a real reader."""
-    import imageio.v2 as imageio
-    import trimesh
-    from PIL import Image
-
-    from voxe_core.grid import VoxelGrid
-    from voxe_core.refine import load_mask, load_probabilities
-
-    listing = stack.client.get(f"/v1/jobs/{job['id']}/artifacts").json()
-    names = {a["name"] for a in listing}
-    assert expected <= names, f"missing {expected - names}"
-    tmp = stack.root / f"downloads-{job['id']}"
-    tmp.mkdir(exist_ok=True)
-    grids = {}
-    for artifact in listing:
-        response = stack.client.get(artifact["url"])
-        assert response.status_code == 200, artifact
-        data = response.content
-        assert len(data) == artifact["size"] and hashlib.sha256(data).hexdigest() == artifact["sha256"], artifact
-        assert response.headers["content-type"].startswith(artifact["content_type"])
-        assert response.headers["accept-ranges"] == "bytes"
-        # Range: a middle slice, a suffix, and an unsatisfiable one.
-        if len(data) > 20:
-            part = stack.client.get(artifact["url"], headers={"Range": "bytes=5-14"})
-            assert part.status_code == 206 and part.content == data[5:15]
-            assert part.headers["content-range"] == f"bytes 5-14/{len(data)}"
-            tail = stack.client.get(artifact["url"], headers={"Range": "bytes=-7"})
-            assert tail.status_code == 206 and tail.content == data[-7:]
-        bad = stack.client.get(artifact["url"], headers={"Range": f"bytes={len(data)}-"})
-        assert bad.status_code == 416 and bad.headers["content-range"] == f"bytes */{len(data)}"
-        path = tmp / artifact["name"]
-        path.write_bytes(data)
-        name = artifact["name"]
-        if name.endswith("_grid.safetensors"):
-            grids[name] = VoxelGrid.load(path)
-        elif name == "mask.safetensors":
-            grids["mask"] = load_mask(path)
-        elif name == "attention_probabilities.safetensors":
-            grids["probabilities"] = load_probabilities(path)
-        elif name.endswith(".png") or name.endswith(".gif"):
-            with Image.open(io.BytesIO(data)) as image:
-                image.load()
-                assert image.size[0] > 0
-        elif name.endswith(".mp4"):
-            reader = imageio.get_reader(path, format="FFMPEG")
-            frames = [frame for frame in reader]
-            reader.close()
-            assert len(frames) == job["params"]["export"]["turntable_frames"]
-            assert frames[0].shape[:2] == (48, 48)
-        elif name.endswith(".ply") or name.endswith(".glb"):
-            mesh = trimesh.load(path, force="mesh")
-            assert len(mesh.vertices) > 0 and len(mesh.faces) > 0
-    resolution = grids["edited_grid.safetensors"].resolution
-    if job["mode"] == "local":
-        assert tuple(grids["mask"].shape) == resolution == grids["refined_grid.safetensors"].resolution
-        edit_p, object_p, where = grids["probabilities"]
-        assert tuple(edit_p.shape) == tuple(object_p.shape) == tuple(where.shape) == resolution
-    # Names are looked up in the job's list only.
-    for bad_name in ("..%2F..%2Fscenes", "nope.png", "%2Fetc%2Fpasswd"):
-        assert stack.client.get(f"/v1/jobs/{job['id']}/artifacts/{bad_name}").status_code == 404
-    return grids

@@ -233,3 +233,145 @@ def test_a_multipart_s3_upload_failing_half_way_is_never_listed(db, tmp_path, mo
         data = stored_bytes(storage, job_id, "edited_grid.safetensors")
         assert listed(job_id) == [("edited_grid.safetensors", len(data), hashlib.sha256(data).hexdigest())]
         assert data == big.read_bytes()
+
+
+# ---------------------------------------------------------------------------------------------- real processes
+RECONSTRUCTION = {"preset": "fast", "resolution": 24, "iterations": [10, 10, 20], "rays_per_step": 1024}
+EXPORT = {"views": 2, "view_size": 48, "turntable_frames": 8, "turntable_size": 48, "gif": False, "mesh": False}
+PARAMS = {"downsample": 16, "max_images": 8, "iterations": 5, "render_size": 48, "reconstruction": RECONSTRUCTION,
+          "export": EXPORT}
+ARTIFACTS = {"initial_grid.safetensors", "edited_grid.safetensors", "render_000.png", "render_001.png",
+             "turntable.mp4", "preview.png"}
+FINISHED = ("succeeded", "failed", "canceled")
+
+
+@pytest.fixture(scope="module")
+def scene_zip(tmp_path_factory):
+    from service_helpers import MIC, small_mic, zip_folder
+
+    if not MIC.is_dir():
+        pytest.skip(f"shared data missing: {MIC}")
+    folder = tmp_path_factory.mktemp("scene")
+    return zip_folder(small_mic(folder / "mic", frames=3), folder / "mic.zip")
+
+
+class Client:
+    """HTTP against a running service, checking its processes stay up while waiting."""
+
+    def __init__(self, svc):
+        import httpx
+
+        self.svc, self.http = svc, httpx.Client(base_url=svc.base, timeout=60)
+
+    def upload(self, archive) -> dict:
+        with open(archive, "rb") as handle:
+            response = self.http.post("/v1/scenes", files={"archive": ("mic.zip", handle, "application/zip")})
+        assert response.status_code == 201, response.text
+        return response.json()
+
+    def create_job(self, scene: dict, **body) -> dict:
+        response = self.http.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a yarn doll of a mic",
+                                                    "params": PARAMS, **body})
+        assert response.status_code == 201, response.text
+        return response.json()
+
+    def wait(self, job_id: str, until=lambda j: j["state"] in FINISHED, timeout: float = 240, seen=None) -> dict:
+        import time
+
+        deadline = time.monotonic() + timeout
+        job = None
+        while time.monotonic() < deadline:
+            for p in self.svc.processes:
+                assert p.alive(), f"{p.name} died\n{self.diagnostics()}"
+            job = self.http.get(f"/v1/jobs/{job_id}").json()
+            if seen is not None:
+                seen.append(job)
+            if until(job):
+                return job
+            time.sleep(0.25)
+        raise AssertionError(f"job {job_id} still {job and job['state']} after {timeout} s: {job}\n{self.diagnostics()}")
+
+    def diagnostics(self) -> str:
+        return "\n".join(p.tail(40) for p in self.svc.processes)
+
+
+def in_edit(min_iteration: int):
+    return lambda j: j["stage"] == "edit" and j["iteration"] >= min_iteration and j["total"] or j["state"] in FINISHED
+
+
+@pytest.mark.slow
+def test_api_restart_loses_nothing_and_the_reaper_fails_a_job_whose_worker_died(tmp_path, scene_zip):
+    """SIGKILL the API while jobs run and start it again: every job finishes. Then SIGKILL the worker for
+    good: the restarted API's reaper fails its job with the reason, after VOXE_JOB_STALE_TIMEOUT_S."""
+    from service_helpers import service
+
+    with service(tmp_path, VOXE_JOB_STALE_TIMEOUT_S="6", VOXE_REAPER_INTERVAL_S="1", VOXE_WORKER_HEARTBEAT_S="1",
+                 VOXE_CHECKPOINT_EVERY="10") as svc:
+        client = Client(svc)
+        scene = client.upload(scene_zip)
+        running = client.create_job(scene, params={**PARAMS, "iterations": 20})
+        queued = client.create_job(scene, prompt="a wood carving of a mic")
+        client.wait(running["id"], until=in_edit(3))
+        svc.restart_api()
+        for job in (running, queued):
+            final = client.wait(job["id"])
+            assert final["state"] == "succeeded" and final["error"] is None, f"{final}\n{client.diagnostics()}"
+            names = {a["name"] for a in client.http.get(f"/v1/jobs/{job['id']}/artifacts").json()}
+            assert ARTIFACTS <= names, names
+        listing = client.http.get("/v1/jobs", params={"scene_id": scene["id"]}).json()
+        assert sorted(j["id"] for j in listing["items"]) == sorted([running["id"], queued["id"]])
+
+        orphan = client.create_job(scene, params={**PARAMS, "iterations": 100_000})
+        client.wait(orphan["id"], until=in_edit(3))
+        svc.kill_worker()  # never restarted: nothing will redeliver it
+        failed = client.wait(orphan["id"], timeout=60)
+        assert failed["state"] == "failed" and failed["stage"] == "edit" and failed["finished_at"], failed
+        assert failed["error"].startswith(f"worker voxe-test-{svc.port}@"), failed["error"]
+        assert failed["error"].endswith("stopped while the job was in edit: no heartbeat and no progress for 6 s, "
+                                        "and the task was not redelivered (VOXE_JOB_STALE_TIMEOUT_S)")
+        assert not (tmp_path / "storage" / "jobs" / orphan["id"] / "checkpoints").exists()
+
+
+@pytest.mark.slow
+def test_redis_restart_keeps_queued_jobs_and_a_killed_worker_task_is_redelivered(tmp_path, scene_zip):
+    """A worker SIGKILLed in the middle of an edit, jobs queued behind it, then Redis (append-only persistence)
+    restarted: the API reconnects by itself, and a fresh worker gets the killed task redelivered (its message
+    was unacknowledged for longer than the visibility timeout), resumes the edit from its last checkpoint,
+    then runs every queued job."""
+    import shutil
+    import time
+
+    from service_helpers import redis_server, service, verify_artifacts
+
+    if shutil.which("redis-server") is None:
+        pytest.skip("redis-server is not installed (.ci/test installs it)")
+    visibility = 8
+    with redis_server(tmp_path / "redis") as redis, \
+            service(tmp_path, redis.url, VOXE_BROKER_VISIBILITY_TIMEOUT_S=str(visibility),
+                    VOXE_CHECKPOINT_EVERY="10") as svc:
+        client = Client(svc)
+        scene = client.upload(scene_zip)
+        long_job = client.create_job(scene, params={**PARAMS, "iterations": 40})
+        client.wait(long_job["id"], until=in_edit(12))
+        svc.kill_worker()
+        killed_at = time.monotonic()
+        killed = client.http.get(f"/v1/jobs/{long_job['id']}").json()
+        queued = [client.create_job(scene, prompt="a wood carving of a mic")]
+        redis.restart()
+        queued.append(client.create_job(scene, prompt="a claymation mic"))  # the API reconnected by itself
+        time.sleep(max(0.0, killed_at + visibility + 1 - time.monotonic()))  # the edit's message is overdue now
+        svc.start_worker()  # a starting worker re-queues overdue unacknowledged messages
+
+        seen: list[dict] = []
+        final = client.wait(long_job["id"], seen=seen)
+        assert final["state"] == "succeeded", f"{final}\n{client.diagnostics()}"
+        resumed = {j["message"] for j in seen if (j["message"] or "").startswith("resumed from the checkpoint")}
+        assert len(resumed) == 1, {j["message"] for j in seen}
+        at = int(resumed.pop().rsplit(" ", 1)[1])
+        assert 10 <= at <= killed["iteration"] and at % 10 == 0, (at, killed["iteration"])
+        assert min(j["iteration"] for j in seen if j["stage"] == "edit" and j["total"]) >= at
+        verify_artifacts(client.http, final, ARTIFACTS, tmp_path)
+        for job in queued:
+            done = client.wait(job["id"])
+            assert done["state"] == "succeeded", f"{done}\n{client.diagnostics()}"
+            verify_artifacts(client.http, done, ARTIFACTS, tmp_path)
