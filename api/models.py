@@ -165,7 +165,8 @@ class Job(Base):
     updated_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
 
     scene: Mapped[Scene] = relationship(back_populates="jobs")
-    reconstruction: Mapped[Reconstruction | None] = relationship()
+    # Joined: every job read (the status poll above all) needs it, in one query instead of two.
+    reconstruction: Mapped[Reconstruction | None] = relationship(lazy="joined")
     artifacts: Mapped[list["Artifact"]] = relationship(
         back_populates="job", passive_deletes=True, order_by="Artifact.id"
     )

@@ -375,3 +375,46 @@ def test_redis_restart_keeps_queued_jobs_and_a_killed_worker_task_is_redelivered
             done = client.wait(job["id"])
             assert done["state"] == "succeeded", f"{done}\n{client.diagnostics()}"
             verify_artifacts(client.http, done, ARTIFACTS, tmp_path)
+
+
+# ---------------------------------------------------------------------------------------------- the status hot path
+def test_a_job_and_its_reconstruction_load_in_one_query(db):
+    """The status poll (bench/service_load.py) reads the job with its reconstruction in a single SELECT."""
+    from sqlalchemy import event, update
+
+    from api.db import get_engine, get_sessionmaker, session_scope
+    from api.models import Job, Reconstruction
+
+    job_id = add_job(add_scene(), "queued", 0)
+    with session_scope() as session:
+        rec = Reconstruction(scene_id=job_row(job_id).scene_id, params_key="k", params={})
+        session.add(rec)
+        session.flush()
+        session.execute(update(Job).where(Job.id == job_id).values(reconstruction_id=rec.id))
+    statements = []
+    listener = lambda *args: statements.append(args[2])  # noqa: E731 - (conn, cursor, statement, ...)
+    event.listen(get_engine(), "before_cursor_execute", listener)
+    try:
+        with get_sessionmaker()() as session:
+            job = session.get(Job, job_id)
+            assert job.reconstruction.params_key == "k"
+    finally:
+        event.remove(get_engine(), "before_cursor_execute", listener)
+    assert len([s for s in statements if s.lstrip().upper().startswith("SELECT")]) == 1, statements
+
+
+def test_the_sql_broker_keeps_sqlite_in_wal_mode(tmp_path):
+    """Publishing (the API) never waits for a polling worker's read, and each commit is one WAL append."""
+    import sqlite3
+
+    from kombu import Connection
+
+    from worker.broker import register
+
+    register()
+    with Connection(f"sqla+sqlite:///{tmp_path / 'broker.db'}", transport_options={"polling_interval": 0.05}) as conn:
+        with conn.SimpleQueue("q") as queue:
+            queue.put({"n": 1})
+            assert queue.get(timeout=2).payload == {"n": 1}
+    with sqlite3.connect(tmp_path / "broker.db") as connection:
+        assert connection.execute("PRAGMA journal_mode").fetchone()[0] == "wal"

@@ -14,6 +14,9 @@ from __future__ import annotations
 from kombu.transport import TRANSPORT_ALIASES
 from kombu.transport import sqlalchemy as _sqla
 from sqlalchemy import create_engine
+from sqlalchemy.engine import make_url
+
+from api.db import make_engine
 
 # Options kombu / Celery use themselves; none of them is a create_engine() argument.
 _NOT_ENGINE_OPTIONS = frozenset({
@@ -26,6 +29,10 @@ _NOT_ENGINE_OPTIONS = frozenset({
 class Channel(_sqla.Channel):
     def _engine_from_config(self):
         conninfo = self.connection.client
+        if make_url(conninfo.hostname).get_backend_name() == "sqlite":
+            # The metadata database's SQLite setup: WAL (the API publishing never waits for a polling
+            # worker's read, and a commit is one WAL append) and a 30 s busy timeout.
+            return make_engine(conninfo.hostname)
         options = {k: v for k, v in conninfo.transport_options.items() if k not in _NOT_ENGINE_OPTIONS}
         return create_engine(conninfo.hostname, **options)
 

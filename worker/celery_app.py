@@ -43,10 +43,7 @@ def is_sql_broker(url: str) -> bool:
 
 def broker_transport_options(settings) -> dict:
     if is_sql_broker(settings.broker_url):
-        options = {"polling_interval": settings.broker_polling_interval}
-        if "+sqlite" in settings.broker_url.split("://", 1)[0]:
-            options["connect_args"] = {"timeout": 30}
-        return options
+        return {"polling_interval": settings.broker_polling_interval}  # SQLite: WAL and timeouts in worker.broker
     # Redis / SQS: a message not acked within this many seconds is redelivered.
     return {"visibility_timeout": settings.broker_visibility_timeout_s}
 
