@@ -94,9 +94,9 @@ def load_json(path: Path):
 
 
 def as_runs(data) -> list[dict]:
-    """Benchmarks write either a list of runs or a dict holding them under "runs"."""
+    """Benchmarks write either a list of runs or a dict holding them under "runs" (or "rows")."""
     if isinstance(data, dict):
-        data = data.get("runs", [])
+        data = data.get("runs", data.get("rows", []))
     return [r for r in data or [] if isinstance(r, dict)]
 
 
@@ -398,10 +398,12 @@ def other_results_section(results: Path, report: Path) -> list[str]:
         columns = [k for k in dict.fromkeys(k for r in runs for k in r)
                    if all(isinstance(r.get(k), (int, float, str, bool, type(None))) for r in runs)][:12]
         if runs and columns:
-            lines += table(columns, [[r.get(k) for k in columns] for r in runs]) + [""]
+            cell = lambda v: f"{v:.4g}" if isinstance(v, float) else v  # noqa: E731
+            lines += table(columns, [[cell(r.get(k)) for k in columns] for r in runs]) + [""]
         summary = data.get("summary") if isinstance(data, dict) else None
-        if isinstance(summary, dict):
-            lines += [f"- {k}: {fmt(v, 3)}" for k, v in summary.items() if not isinstance(v, (dict, list))] + [""]
+        scalars = [f"- {k}: {fmt(v, 3)}" for k, v in summary.items()
+                   if not isinstance(v, (dict, list))] if isinstance(summary, dict) else []
+        lines += scalars + [""] if scalars else []
         if path.with_suffix(".png").is_file():
             lines += [f"![{path.stem}]({relative(path.with_suffix('.png'), report)})", ""]
     return (["## Other benchmark results", ""] + lines) if lines else []
