@@ -317,7 +317,8 @@ def measure(tree: Path, args) -> tuple[dict, dict, str]:
         "pollers": args.pollers, "poll_interval_s": args.poll_interval, "submitters": args.submitters,
         "api_workers": args.api_workers,
         **outcome,
-        "jobs_accepted": len(accepted), "jobs_listed": len(listed), "duplicate_listings": len(listed) - len(set(listed)),
+        "jobs_accepted": len(accepted), "jobs_listed": len(listed),
+        "duplicate_listings": len(listed) - len(set(listed)),
         "jobs_queued_in_broker": len(queued), "broker_messages": len(broker_ids), "lost_jobs": len(lost),
         "lost_samples": lost[:5],
     }

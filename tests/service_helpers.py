@@ -206,20 +206,24 @@ class Service:
         self.api = None
         self.worker = None
         self.generation = 0
+        self.api_generation = 0
 
     @property
     def processes(self) -> list[Process]:
         return [p for p in (self.api, self.worker) if p is not None]
 
     def start_api(self) -> None:
-        self.api_generation = getattr(self, "api_generation", 0) + 1
-        self.api = Process(f"api-{self.api_generation}", [sys.executable, "-m", "uvicorn", "api.main:app", "--host", "127.0.0.1",
-                                   "--port", str(self.port), "--log-level", "warning"], self.env, self.root)
+        self.api_generation += 1
+        args = [sys.executable, "-m", "uvicorn", "api.main:app", "--host", "127.0.0.1", "--port", str(self.port),
+                "--log-level", "warning"]
+        self.api = Process(f"api-{self.api_generation}", args, self.env, self.root)
         # The API migrates the database at startup; the worker starts once it has.
         wait_until(lambda: httpx.get(f"{self.base}/healthz", timeout=2).status_code == 200, 90,
                    what="the API to start", processes=self.processes)
 
-    def start_worker(self) -> None:
+    def start_worker(self, wait_ready: bool = True) -> None:
+        """Start a worker; wait for readiness unless it will pick up a task at once (the solo pool of a busy
+        worker cannot answer Redis' control ping until the task ends)."""
         self.generation += 1
         self.worker = Process(
             f"worker-{self.generation}",
@@ -228,8 +232,9 @@ class Service:
              "-n", f"voxe-test-{self.port}@%h", "-l", "info"],
             {**self.env, **self.worker_env}, self.root,
         )
-        wait_until(lambda: httpx.get(f"{self.base}/readyz", timeout=10).status_code == 200, 120,
-                   what="readiness (a worker listening)", processes=self.processes)
+        if wait_ready:
+            wait_until(lambda: httpx.get(f"{self.base}/readyz", timeout=10).status_code == 200, 120,
+                       what="readiness (a worker listening)", processes=self.processes)
 
     def kill_worker(self) -> None:
         """SIGKILL, as a crashed machine or an OOM kill would."""
@@ -244,6 +249,32 @@ class Service:
     def stop(self) -> None:
         for p in reversed(self.processes):
             p.stop()
+
+    def diagnostics(self) -> str:
+        return "\n".join(p.tail(40) for p in self.processes)
+
+
+FINISHED = ("succeeded", "failed", "canceled")
+
+
+def poll_job(client: httpx.Client, svc: Service, job_id: str, until=None, timeout: float = 240,
+             seen: list | None = None) -> dict:
+    """Poll the job until ``until(job)`` (default: finished), failing as soon as a service process dies.
+
+    ``seen`` collects every record polled (to check what happened along the way).
+    """
+    deadline = time.monotonic() + timeout
+    job = None
+    while time.monotonic() < deadline:
+        for p in svc.processes:
+            assert p.alive(), f"{p.name} died\n{svc.diagnostics()}"
+        job = client.get(f"/v1/jobs/{job_id}").json()
+        if seen is not None:
+            seen.append(job)
+        if (until or (lambda j: j["state"] in FINISHED))(job):
+            return job
+        time.sleep(0.25)
+    raise AssertionError(f"job {job_id} still {job and job['state']} after {timeout} s: {job}\n{svc.diagnostics()}")
 
 
 def _kill(process: Process) -> None:

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import httpx
 import pytest
 
-from service_helpers import MIC, moto_s3, redis_server, service, verify_artifacts, zip_folder
+from service_helpers import MIC, moto_s3, poll_job, redis_server, service, verify_artifacts, zip_folder
 
 pytestmark = pytest.mark.slow
 
@@ -49,12 +49,8 @@ class Stack:
     jobs: dict = field(default_factory=dict)
     root: object = None
 
-    @property
-    def processes(self) -> list:
-        return self.service.processes
-
     def diagnostics(self) -> str:
-        return "\n".join(p.tail(40) for p in self.processes)
+        return self.service.diagnostics()
 
 
 @pytest.fixture(scope="session")
@@ -86,16 +82,7 @@ def stack(request, tmp_path_factory, mic_zip):
 
 
 def wait_for_job(stack: Stack, job_id: str, timeout: float = 240, until=None) -> dict:
-    deadline = time.monotonic() + timeout
-    job = None
-    while time.monotonic() < deadline:
-        for p in stack.processes:
-            assert p.alive(), f"{p.name} died\n{stack.diagnostics()}"
-        job = stack.client.get(f"/v1/jobs/{job_id}").json()
-        if (until or (lambda j: j["state"] in ("succeeded", "failed", "canceled")))(job):
-            return job
-        time.sleep(0.25)
-    raise AssertionError(f"job {job_id} still {job and job['state']} after {timeout} s: {job}\n{stack.diagnostics()}")
+    return poll_job(stack.client, stack.service, job_id, until, timeout)
 
 
 def wait_for_resumed_job(stack: Stack, job_id: str) -> tuple[dict, int, list[int]]:
