@@ -15,7 +15,8 @@ from voxe_core.metrics import psnr
 from voxe_core.reconstruct import ReconstructConfig, reconstruct
 from voxe_core.render import RenderConfig, render_image, render_rays
 from voxe_core.scene_grid import (
-    SceneGrid, apply_frame, contract, detect_backbone, prepare_backbone, real_scene_edit_config, scene_frame,
+    SceneGrid, apply_frame, contract, dataset_cameras, detect_backbone, prepare_backbone, real_scene_edit_config,
+    scene_frame,
 )
 
 
@@ -241,3 +242,12 @@ def test_job_parameter_chooses_the_backbone_and_auto_keeps_old_cache_keys():
     assert reconstruction_key(reconstruction_params({"reconstruction": {"backbone": "auto"}})) == legacy
     assert reconstruction_params({"reconstruction": {"backbone": "scene"}})["backbone"] == "scene"
     assert reconstruction_key(reconstruction_params({"reconstruction": {"backbone": "relu_field"}})) != legacy
+
+
+def test_dataset_cameras_move_into_a_scene_grids_frame_only():
+    cameras = Cameras.from_fov(ring_poses(2, 10.0, radius=2.0), 0.7, 4, 4)
+    frame = torch.diag(torch.tensor([2.0, 2.0, 2.0, 1.0]))
+    moved = dataset_cameras(SceneGrid(4, frame=frame), cameras)
+    assert torch.allclose(moved.c2w[:, :3, 3], 2 * cameras.c2w[:, :3, 3])
+    assert torch.allclose(moved.c2w[:, :3, :3], cameras.c2w[:, :3, :3])
+    assert dataset_cameras(VoxelGrid(4), cameras) is cameras

@@ -315,11 +315,10 @@ def cmd_render(args) -> int:
     if args.data is not None:
         from voxe_core.data import load_scene
 
-        from voxe_core.scene_grid import SceneGrid, apply_frame
+        from voxe_core.scene_grid import dataset_cameras
 
         scene = load_scene(args.data, args.split, args.downsample, args.max_images)
-        # A scene grid lives in the canonical frame it was fitted in: move the dataset's cameras there.
-        cameras = apply_frame(scene.cameras, grid.frame) if isinstance(grid, SceneGrid) else scene.cameras
+        cameras = dataset_cameras(grid, scene.cameras)
         names = [f"{i:03d}_{Path(name).stem}.png" for i, name in enumerate(scene.names)]
     else:
         cameras = turntable_cameras(args.ring, args.elevation, args.size)
@@ -447,9 +446,10 @@ def cmd_edit(args) -> int:
     views = None
     if args.data is not None and config.regulariser in IMAGE_REGULARISERS:
         from voxe_core.data import load_scene
+        from voxe_core.scene_grid import dataset_cameras
 
         scene = load_scene(args.data, args.split, args.downsample, args.max_images)
-        views = (scene.images, scene.cameras)
+        views = (scene.images, dataset_cameras(grid, scene.cameras))
     model = args.model or SDS_MODEL_ID
     try:
         guidance = StableDiffusionGuidance.from_pretrained(

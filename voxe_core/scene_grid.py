@@ -275,6 +275,11 @@ def apply_frame(cameras: Cameras, frame: torch.Tensor) -> Cameras:
     return Cameras(c2w, cameras.fx, cameras.fy, cameras.cx, cameras.cy, cameras.width, cameras.height)
 
 
+def dataset_cameras(grid: VoxelGrid, cameras: Cameras) -> Cameras:
+    """A dataset's cameras in the frame ``grid`` lives in (a scene grid's canonical frame; object grids: as given)."""
+    return apply_frame(cameras, grid.frame) if isinstance(grid, SceneGrid) else cameras
+
+
 # --------------------------------------------------------------- selection
 def detect_backbone(alphas: torch.Tensor | None) -> str:
     """'relu_field' for objects on a transparent background, 'scene' for opaque photos.

@@ -254,12 +254,10 @@ def _edit(job: Job, settings, device: str, storage) -> None:
         runtime.update_job(job.id, message=note)
     input_views = None
     if config.regulariser.startswith("image_"):
-        from voxe_core.scene_grid import SceneGrid, apply_frame
+        from voxe_core.scene_grid import dataset_cameras
 
         scene = _load_images(job, rec.params, settings, storage)
-        # a scene grid was fitted in its canonical frame: the input cameras move there too
-        cameras = apply_frame(scene.cameras, initial.frame) if isinstance(initial, SceneGrid) else scene.cameras
-        input_views = (scene.images, cameras)
+        input_views = (scene.images, dataset_cameras(initial, scene.cameras))
 
     last_preview = [0.0]
 
