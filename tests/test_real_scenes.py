@@ -203,12 +203,18 @@ def test_scene_backbone_fits_a_background_the_relu_field_cannot():
     assert scene_psnr > 25.0 and scene_psnr > relu_psnr + 5.0
 
 
-def test_edit_runs_unchanged_on_a_scene_grid(tiny_sd_path):
+def test_edit_and_refinement_run_unchanged_on_a_scene_grid(tiny_sd_path):
+    from voxe_core.refine import RefineConfig, merge, refine
+
     guidance = StableDiffusionGuidance.from_pretrained(str(tiny_sd_path), device="cpu", local_files_only=True)
     initial = _background_scene()
-    out = edit(initial, "a fox", guidance, EditConfig(iterations=2, render_size=32))
-    assert isinstance(out, SceneGrid) and out.header() == initial.header()
-    assert torch.isfinite(out.features).all() and not torch.equal(out.features, initial.features)
+    edited = edit(initial, "a fox", guidance, EditConfig(iterations=2, render_size=32))
+    assert isinstance(edited, SceneGrid) and edited.header() == initial.header()
+    assert torch.isfinite(edited.features).all() and not torch.equal(edited.features, initial.features)
+    config = RefineConfig(views=2, render_size=24, iterations=20, rays_per_step=256, edit_seeds=5, object_seeds=5)
+    result = refine(initial, edited, "a fox wearing sunglasses", ["sunglasses"], guidance, config)
+    assert isinstance(result.refined_grid, SceneGrid)
+    assert torch.equal(result.refined_grid.features, merge(initial, edited, result.mask).features)
 
 
 # ----------------------------------------------------------------- CLI
