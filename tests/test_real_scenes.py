@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -257,3 +258,18 @@ def test_dataset_cameras_move_into_a_scene_grids_frame_only():
     assert torch.allclose(moved.c2w[:, :3, 3], 2 * cameras.c2w[:, :3, 3])
     assert torch.allclose(moved.c2w[:, :3, :3], cameras.c2w[:, :3, :3])
     assert dataset_cameras(VoxelGrid(4), cameras) is cameras
+
+
+def test_mesh_export_of_a_scene_grid_is_its_foreground_in_the_canonical_frame():
+    from voxe_core.export import extract_mesh
+
+    grid = _background_scene()  # ball of contracted radius 0.5 -> 0.75 canonical units; room at infinity
+    with torch.no_grad():
+        grid.features.add_(0.01 * torch.randn(grid.features.shape, generator=torch.Generator().manual_seed(0)))
+    foreground = grid.foreground_grid()
+    assert foreground.resolution == (9, 9, 9) and torch.allclose(foreground.bbox_max, torch.full((3,), 1.5))
+    points = (torch.rand(200, 3, generator=torch.Generator().manual_seed(1)) * 2 - 1) * 1.5
+    assert torch.allclose(foreground.interpolate(points), grid.interpolate(grid.lattice_points(points)), atol=1e-5)
+    mesh = extract_mesh(grid)
+    assert abs(mesh.vertices).max() < 1.5  # the room is not in it
+    assert 0.5 < float(np.linalg.norm(mesh.vertices, axis=1).mean()) < 1.0

@@ -181,6 +181,8 @@ def extract_mesh(grid: VoxelGrid, level: float | None = None, resolution: int | 
     import trimesh
     from skimage.measure import marching_cubes
 
+    if hasattr(grid, "foreground_grid"):  # a scene grid (voxe_core.scene_grid): its object, not the background
+        grid = grid.foreground_grid()
     if grid.bbox_min.device.type != "cpu":  # marching cubes runs on the CPU; leave the caller's grid where it is
         grid = VoxelGrid(
             grid.resolution, grid.bbox_min.cpu(), grid.bbox_max.cpu(), grid.activation, grid.density_scale,

@@ -118,6 +118,22 @@ class SceneGrid(VoxelGrid):
             return Occupancy(cells, lattice.bbox_min * self.foreground_extent, lattice.bbox_max * self.foreground_extent)
         return Occupancy(cells, torch.full_like(lattice.bbox_min, -_UNBOUNDED), torch.full_like(lattice.bbox_max, _UNBOUNDED))
 
+    @torch.no_grad()
+    def foreground_grid(self) -> VoxelGrid:
+        """The foreground cube as a ReLU-field grid in the canonical frame, at this lattice's spacing.
+
+        The contraction is the identity there, so this is the object without its
+        background (``export.extract_mesh`` meshes it). Exact when (resolution − 1)
+        is a multiple of 4 (the cube's faces fall on lattice vertices), resampled otherwise.
+        """
+        fg = self.foreground_extent
+        n = [(r - 1) // 2 + 1 for r in self.resolution]
+        axes = [torch.linspace(-fg, fg, k) for k in n]
+        points = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+        features = self.interpolate(self.lattice_points(points.to(self.bbox_min.device)))
+        return VoxelGrid(tuple(n), (-fg,) * 3, (fg,) * 3, self.activation, self.density_scale,
+                         features=features.reshape(*n, 4))
+
     def lattice_points(self, points: torch.Tensor) -> torch.Tensor:
         """Canonical-frame points -> the contracted coordinates the lattice is indexed by."""
         return contract(points / self.foreground_extent)
