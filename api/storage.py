@@ -199,6 +199,15 @@ class LocalStorage(Storage):
                     keys.append(key)
         return sorted(keys)
 
+    def delete_prefix(self, prefix: str) -> int:
+        """Also removes the temporary files of writers killed mid-write under ``prefix`` (never listed)."""
+        count = super().delete_prefix(prefix)
+        for leftover in list(self.root.rglob("*.tmp")):
+            key = leftover.relative_to(self.root).as_posix()
+            if leftover.is_file() and key.startswith(prefix):
+                self.delete(key)
+        return count
+
     def delete(self, key) -> None:
         target = self.path(key)
         target.unlink(missing_ok=True)

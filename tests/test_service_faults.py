@@ -201,6 +201,36 @@ def test_an_upload_failing_mid_write_is_never_listed_and_leaves_no_file(db, tmp_
     assert job_files() == ["render_000.png"]  # the replaced version was deleted
 
 
+def test_a_writer_killed_mid_write_leaves_nothing_listed_and_deleting_the_job_removes_the_debris(tmp_path):
+    """SIGKILL a process whose upload has written every byte to the temporary name but not renamed it."""
+    import signal
+    import subprocess
+    import sys
+
+    from api.storage import LocalStorage
+    from service_helpers import REPO
+
+    source = tmp_path / "edited_grid.safetensors"
+    source.write_bytes(os.urandom(3 * 1024 * 1024))
+    writer = ("import sys, time\n"
+              "import api.storage as storage\n"
+              "storage.os.fsync = lambda fd: (print('written', flush=True), time.sleep(60))\n"
+              "storage.LocalStorage(sys.argv[1]).put_file('jobs/j/edited_grid.safetensors', sys.argv[2])\n")
+    proc = subprocess.Popen([sys.executable, "-c", writer, str(tmp_path / "store"), str(source)], cwd=REPO,
+                            stdout=subprocess.PIPE, env={**os.environ, "PYTHONPATH": str(REPO)})
+    try:
+        assert proc.stdout.readline().strip() == b"written"
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+    store = LocalStorage(tmp_path / "store")
+    assert store.list() == [] and not store.exists("jobs/j/edited_grid.safetensors")
+    debris = [p for p in (tmp_path / "store").rglob("*") if p.is_file()]
+    assert [p.stat().st_size for p in debris] == [source.stat().st_size] and debris[0].name.endswith(".tmp")
+    assert store.delete_prefix("jobs/j/") == 0
+    assert not (tmp_path / "store" / "jobs").exists()
+
+
 def test_a_multipart_s3_upload_failing_half_way_is_never_listed(db, tmp_path, monkeypatch):
     """boto3 uploads large files in parts; a part that fails aborts the upload: no object, no row."""
     from api.storage import S3Storage
