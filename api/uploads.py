@@ -15,7 +15,8 @@ before any is decoded (decompression bombs).
 Meshes: an upload with no transforms json but one ``.obj`` (with at most one
 texture image) or ``.ply`` (vertex colours) is rendered into a NeRF-synthetic
 dataset (``voxe_core.mesh_input.write_mesh_dataset``, mesh input route (a)),
-which is then validated and stored like any other.
+which is then validated and stored like any other, with the mesh (and texture)
+kept under ``mesh/`` for route (b) and the scene's format set to ``mesh``.
 """
 
 from __future__ import annotations
@@ -44,6 +45,8 @@ _CHUNK = 64 << 10
 _STORED_SUFFIXES = {".png", ".jpg", ".jpeg", ".webp", ".exr", ".zip", ".gz"}
 _TRANSFORMS = ("transforms.json", "transforms_train.json", "transforms_val.json", "transforms_test.json")
 MESH_VIEWS, MESH_VIEW_SIZE = 100, 256  # renders of an uploaded mesh (the paper: 100 upper-hemisphere views)
+MESH_FORMAT = "mesh"  # a scene's format when it was uploaded as a mesh (its archive: the renders + MESH_FOLDER)
+MESH_FOLDER = "mesh"  # the uploaded mesh as ``mesh.obj`` / ``mesh.ply`` with an OBJ's texture as ``texture.<ext>``
 
 
 class UploadError(ValueError):
@@ -207,7 +210,7 @@ def dataset_root(folder: Path) -> Path:
 
 
 def render_mesh_upload(root: Path, dest: Path) -> Path | None:
-    """The dataset folder rendered from the upload's mesh, or None when the upload is not a mesh."""
+    """The dataset folder rendered from the upload's mesh (the mesh kept beside it), or None when not a mesh."""
     if any((root / n).is_file() for n in _TRANSFORMS):
         return None
     files = sorted(p for p in root.rglob("*") if p.is_file() and not _ignored(PurePosixPath(p.name)))
@@ -227,7 +230,23 @@ def render_mesh_upload(root: Path, dest: Path) -> Path | None:
         mesh = load_mesh(meshes[0], texture)
     except MeshError as exc:
         raise UploadError(f"invalid mesh: {exc}") from None
-    return write_mesh_dataset(mesh, dest, MESH_VIEWS, MESH_VIEW_SIZE)
+    write_mesh_dataset(mesh, dest, MESH_VIEWS, MESH_VIEW_SIZE)
+    kept = dest / MESH_FOLDER
+    kept.mkdir()
+    shutil.copyfile(meshes[0], kept / f"mesh{meshes[0].suffix.lower()}")
+    if texture is not None:
+        shutil.copyfile(texture, kept / f"texture{texture.suffix.lower()}")
+    return dest
+
+
+def load_stored_mesh(dataset: Path):
+    """The mesh a mesh scene's archive keeps under ``mesh/`` (validated on upload), as ``load_mesh`` read it."""
+    kept = dataset / MESH_FOLDER
+    meshes = [p for p in sorted(kept.glob("mesh.*")) if p.suffix in MESH_INPUT_SUFFIXES]
+    if len(meshes) != 1:
+        raise MeshError(f"the scene's archive holds no {MESH_FOLDER}/mesh.obj or .ply (not uploaded as a mesh?)")
+    textures = [p for p in sorted(kept.glob("texture.*")) if p.suffix in TEXTURE_SUFFIXES]
+    return load_mesh(meshes[0], textures[0] if textures else None)
 
 
 def check_image_pixels(folder: Path, max_pixels: int) -> None:
@@ -320,8 +339,10 @@ def ingest(
             save_files(files, unpacked, budget)
         check_image_pixels(unpacked, max_image_pixels)
         root = dataset_root(unpacked)
-        root = render_mesh_upload(root, staging / "rendered") or root
-        fmt, count, width, height, splits = validate(root, unpacked, validation_downsample)
+        rendered = render_mesh_upload(root, staging / "rendered")
+        fmt, count, width, height, splits = validate(rendered or root, unpacked, validation_downsample)
+        if rendered is not None:
+            root, fmt = rendered, MESH_FORMAT
         packed = staging / "dataset.zip"
         package(root, packed)
         return Ingested(fmt, count, width, height, splits, packed), staging

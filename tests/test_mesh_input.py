@@ -211,9 +211,9 @@ def test_a_mesh_upload_is_stored_as_its_rendered_views(tmp_path, monkeypatch):
     monkeypatch.setattr(api.uploads, "MESH_VIEW_SIZE", 32)
     result, staging = _ingest(tmp_path, [("spot/spot.obj", SPOT / "spot_triangulated.obj"),
                                          ("spot/spot.png", SPOT / "spot_texture.png")])
-    assert (result.format, result.image_count, result.width, result.splits) == ("nerf_synthetic", 4, 32, ["train", "test"])
+    assert (result.format, result.image_count, result.width, result.splits) == ("mesh", 4, 32, ["train", "test"])
     names = zipfile.ZipFile(result.archive).namelist()
-    assert "transforms_train.json" in names and "train/r_003.png" in names
+    assert {"transforms_train.json", "train/r_003.png", "mesh/mesh.obj", "mesh/texture.png"} <= set(names)
 
 
 def test_a_bad_mesh_upload_is_a_422_naming_the_problem_and_leaves_nothing(tmp_path):
