@@ -48,6 +48,10 @@ class ReconstructionParams(Strict):
         "auto", description="relu_field: objects on a transparent background; scene: captured photos with a "
         "background (DVGO-style, SPEC §5); auto: from the images' alpha"
     )
+    route: Literal["auto", "fit", "voxelize"] = Field(
+        "auto", description="fit: optimise G_i on the images; voxelize: write an uploaded mesh straight into G_i "
+        "at the final resolution (mesh scenes only); auto: voxelize for mesh scenes, fit otherwise"
+    )
 
     @field_validator("iterations")
     @classmethod
@@ -56,6 +60,12 @@ class ReconstructionParams(Strict):
         if values is not None and (not values or len(values) > 8 or any(v < 0 or v > 1_000_000 for v in values)):
             raise ValueError("iterations must be 1-8 integers in [0, 1000000]")
         return value
+
+    @model_validator(mode="after")
+    def _route(self):
+        if self.route == "voxelize" and self.backbone == "scene":
+            raise ValueError("route 'voxelize' writes an object grid: it cannot give backbone 'scene'")
+        return self
 
 
 class RefineParams(Strict):

@@ -490,6 +490,99 @@ def test_a_job_waits_for_the_fit_another_job_runs(client, dataset, root):
         tasks._reconstruct(runtime.load_job(d["id"]), settings, "cpu", get_storage())
 
 
+# ------------------------------------------------------------------------------------------ mesh scenes
+SPOT = MIC.parent / "meshes" / "spot"
+
+
+def _mesh_scene(client, monkeypatch) -> dict:
+    """Spot uploaded as OBJ + texture, rendered into 4 views of 32 px (fast)."""
+    import api.uploads
+
+    if not SPOT.is_dir():
+        pytest.skip(f"shared data missing: {SPOT}")
+    monkeypatch.setattr(api.uploads, "MESH_VIEWS", 4)
+    monkeypatch.setattr(api.uploads, "MESH_VIEW_SIZE", 32)
+    with open(SPOT / "spot_triangulated.obj", "rb") as obj, open(SPOT / "spot_texture.png", "rb") as png:
+        response = client.post("/v1/scenes", files=[("files", ("spot.obj", obj)), ("files", ("spot.png", png))])
+    assert response.status_code == 201, response.text
+    return response.json()
+
+
+def test_a_mesh_scene_job_voxelizes_the_uploaded_mesh_instead_of_fitting(client, root, monkeypatch):
+    import voxe_core.reconstruct
+    from api.storage import get_storage
+    from voxe_core.grid import VoxelGrid
+    import torch
+
+    from voxe_core.mesh_input import VoxelizeConfig, load_mesh, voxelize
+    from worker import runtime, tasks
+
+    scene = _mesh_scene(client, monkeypatch)
+    assert scene["format"] == "mesh" and scene["image_count"] == 4
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a cow wearing a hat", "mode": "global",
+                                        "params": {"reconstruction": {"resolution": 24}}}).json()
+
+    def no_fit(*_args, **_kwargs):
+        raise AssertionError("route auto on a mesh scene must not fit")
+
+    monkeypatch.setattr(voxe_core.reconstruct, "reconstruct", no_fit)
+    assert tasks.reconstruct_task.apply(args=(job["id"],)).get()["state"] == "done"
+    done = client.get(f"/v1/jobs/{job['id']}").json()
+    assert (done["iteration"], done["total"]) == (1, 1)
+    rec = runtime.load_reconstruction(job["reconstruction"]["id"])
+    assert rec.params["route"] == "voxelize" and (rec.iteration, rec.total) == (1, 1)
+    grid = VoxelGrid.load(get_storage().get_file(rec.grid_key, root / "g.safetensors"))
+    expected = voxelize(load_mesh(SPOT / "spot_triangulated.obj", SPOT / "spot_texture.png"),
+                        VoxelizeConfig(resolution=24))
+    assert grid.resolution == expected.resolution == (24, 24, 24)
+    assert torch.equal(grid.flat_features, expected.flat_features)
+    assert torch.equal(grid.bbox_min, expected.bbox_min) and grid.density_scale == expected.density_scale
+    names = [a["name"] for a in client.get(f"/v1/jobs/{job['id']}/artifacts").json()]
+    assert names == ["initial_grid.safetensors", "preview.png"]
+
+
+def test_a_mesh_scene_archive_keeps_the_uploaded_mesh(client, root, monkeypatch):
+    from api.db import session_scope
+    from api.models import Scene
+
+    scene = _mesh_scene(client, monkeypatch)
+    with session_scope() as session:
+        key = session.get(Scene, scene["id"]).storage_key
+    with zipfile.ZipFile(root / "storage" / key) as archive:
+        names = set(archive.namelist())
+        assert archive.read("mesh/mesh.obj") == (SPOT / "spot_triangulated.obj").read_bytes()
+        assert archive.read("mesh/texture.png") == (SPOT / "spot_texture.png").read_bytes()
+    assert {"transforms_train.json", "train/r_003.png", "mesh/mesh.obj", "mesh/texture.png"} <= names
+
+
+def test_route_voxelize_on_an_image_scene_is_a_422_naming_the_field(client, dataset, root):
+    scene = make_scene(client, dataset, root)
+    body = {"scene_id": scene["id"], **JOB, "params": {"reconstruction": {"route": "voxelize"}}}
+    response = client.post("/v1/jobs", json=body)
+    assert response.status_code == 422
+    assert response.json()["detail"] == (f"reconstruction.route 'voxelize' needs a scene uploaded as a mesh; scene "
+                                          f"{scene['id']!r} is 'nerf_synthetic' images: use route 'fit' or 'auto'")
+    sweep = client.post("/v1/sweeps", json={"scenes": [{"scene_id": scene["id"], "object": "mic"}],
+                                            "params": {"reconstruction": {"route": "voxelize"}}})
+    assert sweep.status_code == 422 and "reconstruction.route 'voxelize'" in sweep.json()["detail"]
+    assert client.get(f"/v1/scenes/{scene['id']}/reconstructions").json() == []  # nothing half made
+    both = {"scene_id": scene["id"], **JOB, "params": {"reconstruction": {"route": "voxelize", "backbone": "scene"}}}
+    errors = client.post("/v1/jobs", json=both).json()["detail"]
+    assert any(e["loc"] == ["body", "params", "reconstruction"] and "backbone 'scene'" in e["msg"] for e in errors)
+
+
+def test_route_auto_and_fit_keep_an_image_scenes_reconstruction_key():
+    from worker.configs import reconstruction_params
+
+    plain = reconstruction_params({})
+    assert "route" not in plain
+    for route in ("auto", "fit"):
+        assert reconstruction_params({"reconstruction": {"route": route}}) == plain
+    assert reconstruction_params({}, mesh_scene=True) == {**plain, "route": "voxelize"}
+    assert reconstruction_params({"reconstruction": {"route": "fit"}}, mesh_scene=True) == plain
+    assert "route" not in reconstruction_params({"reconstruction": {"backbone": "scene"}}, mesh_scene=True)
+
+
 def test_migrations_match_the_models(tmp_path):
     from alembic import command
     from alembic.config import Config

@@ -14,13 +14,25 @@ if TYPE_CHECKING:  # the API imports this module for the cache key only; keep it
     from voxe_core.refine import RefineConfig
 
 
-def reconstruction_params(params: dict) -> dict:
+def reconstruction_route(params: dict, mesh_scene: bool) -> str:
+    """'fit' or 'voxelize': "auto" voxelizes a mesh scene (faster and closer to the mesh, bench/results/mesh_input.json)
+    unless the scene backbone was asked for, and fits everything else."""
+    rec = params.get("reconstruction") or {}
+    route = rec.get("route", "auto")
+    if route == "auto":
+        return "voxelize" if mesh_scene and rec.get("backbone", "auto") != "scene" else "fit"
+    return route
+
+
+def reconstruction_params(params: dict, mesh_scene: bool = False) -> dict:
     """The part of a job's parameters that determines G_i (the reconstruction cache key)."""
     rec = dict(params.get("reconstruction") or {})
-    # "auto" adds nothing, so fits made before the backbone choice existed keep their keys.
+    # "auto" (and route "fit") add nothing, so fits made before these choices existed keep their keys.
     backbone = {} if rec.get("backbone", "auto") == "auto" else {"backbone": rec["backbone"]}
+    route = reconstruction_route(params, mesh_scene)
     return {
         **backbone,
+        **({} if route == "fit" else {"route": route}),
         "split": "train",
         "downsample": int(params.get("downsample", 3)),
         "max_images": params.get("max_images"),

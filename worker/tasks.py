@@ -180,11 +180,20 @@ def _grid_file(job_id: str, rec, settings, storage) -> Path:
     return runtime.fetch(storage, rec.grid_key, runtime.scratch_dir(job_id, settings) / "initial_grid.safetensors")
 
 
-def _fit(job: Job, rec, settings, storage) -> None:
-    """Fit G_i for ``rec`` (claimed by this job); resume from its stored checkpoint when there is one."""
-    from voxe_core.reconstruct import reconstruct
-    from voxe_core.tensorio import FormatError
+def _voxelize(job: Job, rec, settings, storage):
+    """Route (b): the mesh scene's uploaded mesh written straight into G_i at the reconstruction's final resolution."""
+    from voxe_core.mesh_input import VoxelizeConfig, voxelize
 
+    from api.uploads import load_stored_mesh
+
+    mesh = load_stored_mesh(runtime.scene_dataset_dir(_scene(job), settings, storage))
+    config = reconstruct_config(rec.params, settings.checkpoint_every)
+    return voxelize(mesh, VoxelizeConfig(resolution=config.resolutions[-1], bbox_min=config.bbox_min,
+                                         bbox_max=config.bbox_max, seed=rec.params["seed"]))
+
+
+def _fit(job: Job, rec, settings, storage) -> None:
+    """Make G_i for ``rec`` (claimed by this job): voxelize its mesh, or fit, resuming from a stored checkpoint."""
     scratch = runtime.scratch_dir(job.id, settings)
     checkpoint = scratch / "reconstruction_checkpoint.safetensors"
     checkpoint_key = f"reconstructions/{rec.id}/checkpoint.safetensors"
@@ -198,24 +207,11 @@ def _fit(job: Job, rec, settings, storage) -> None:
 
     callbacks = StageCallbacks(job.id, "reconstruct", settings, on_progress, on_checkpoint)
     try:
-        from voxe_core.scene_grid import prepare_backbone
-
-        scene = _load_images(job, rec.params, settings, storage)
-        config = reconstruct_config(rec.params, settings.checkpoint_every)
-        _, cameras, initial = prepare_backbone(rec.params.get("backbone", "auto"), scene.alphas, scene.cameras,
-                                               config.resolutions[0])
-        runtime.renew_lease(rec.id, job.id, settings, total=config.total_iterations)
-        resume = None
-        if storage.exists(checkpoint_key):
-            resume = storage.get_file(checkpoint_key, checkpoint)
-            log.info("reconstruction %s: resuming from its checkpoint", rec.id)
-        try:
-            grid = reconstruct(scene.images, cameras, config, callbacks.callbacks, checkpoint, resume, initial)
-        except FormatError:
-            if resume is None:
-                raise
-            log.warning("reconstruction %s: unreadable checkpoint, starting over", rec.id)
-            grid = reconstruct(scene.images, cameras, config, callbacks.callbacks, checkpoint, None, initial)
+        if rec.params.get("route") == "voxelize":  # one step: reported once, at completion
+            grid, total = _voxelize(job, rec, settings, storage), 1
+            callbacks.on_progress(Progress("reconstruct", total, total))
+        else:
+            grid, total = _fit_grid(job, rec, settings, storage, callbacks, checkpoint, checkpoint_key)
     except StageCancelled:  # let a waiting job take over (from the checkpoint)
         runtime.set_reconstruction(rec.id, job.id, state=R_PENDING, owner_job_id=None, lease_until=None)
         raise
@@ -228,9 +224,34 @@ def _fit(job: Job, rec, settings, storage) -> None:
     stored: StoredObject = storage.put_file(f"reconstructions/{rec.id}/grid.safetensors", path)
     runtime.set_reconstruction(
         rec.id, job.id, state=R_SUCCEEDED, grid_key=stored.key, grid_size=stored.size, grid_sha256=stored.sha256,
-        iteration=config.total_iterations, total=config.total_iterations, lease_until=None, finished_at=utcnow(),
+        iteration=total, total=total, lease_until=None, finished_at=utcnow(),
     )
     storage.delete(checkpoint_key)
+
+
+def _fit_grid(job: Job, rec, settings, storage, callbacks: StageCallbacks, checkpoint: Path, checkpoint_key: str):
+    """Route (a) and image scenes: G_i fitted to the scene's images; returns (grid, total iterations)."""
+    from voxe_core.reconstruct import reconstruct
+    from voxe_core.scene_grid import prepare_backbone
+    from voxe_core.tensorio import FormatError
+
+    scene = _load_images(job, rec.params, settings, storage)
+    config = reconstruct_config(rec.params, settings.checkpoint_every)
+    _, cameras, initial = prepare_backbone(rec.params.get("backbone", "auto"), scene.alphas, scene.cameras,
+                                           config.resolutions[0])
+    runtime.renew_lease(rec.id, job.id, settings, total=config.total_iterations)
+    resume = None
+    if storage.exists(checkpoint_key):
+        resume = storage.get_file(checkpoint_key, checkpoint)
+        log.info("reconstruction %s: resuming from its checkpoint", rec.id)
+    try:
+        grid = reconstruct(scene.images, cameras, config, callbacks.callbacks, checkpoint, resume, initial)
+    except FormatError:
+        if resume is None:
+            raise
+        log.warning("reconstruction %s: unreadable checkpoint, starting over", rec.id)
+        grid = reconstruct(scene.images, cameras, config, callbacks.callbacks, checkpoint, None, initial)
+    return grid, config.total_iterations
 
 
 # --------------------------------------------------------------------------- edit

@@ -22,7 +22,9 @@ from api.deps import celery_dep, get_session, settings_dep
 from api.models import (
     CANCELED, EVALUATE, FAILED, QUEUED, RUNNING, SUCCEEDED, TERMINAL_STATES, ApiKey, Job, new_id, utcnow,
 )
-from api.routes.jobs import _reconstruction_for, get_job_or_404, job_out, new_edit_job, queue_chain, request_cancel
+from api.routes.jobs import (
+    _reconstruction_for, check_route, get_job_or_404, job_out, new_edit_job, queue_chain, request_cancel,
+)
 from api.routes.scenes import get_scene_or_404
 from api.schemas import (
     EvaluationCreate, EvaluationParams, JobCreate, JobOut, SweepCreate, SweepEntry, SweepOut,
@@ -107,8 +109,8 @@ def create_sweep(
     celery: Celery = Depends(celery_dep),
     key: ApiKey = Depends(current_key),
 ) -> SweepOut:
-    for scene in body.scenes:
-        get_scene_or_404(session, scene.scene_id, key)
+    for scene in body.scenes:  # every scene checked before any reconstruction row is made
+        check_route(get_scene_or_404(session, scene.scene_id, key), body.params.model_dump(mode="json"))
     batch_id = new_id()
     pairs: list[tuple[Job, Job]] = []
     for scene in body.scenes:

@@ -16,11 +16,12 @@ from api.auth import Idempotency, check_active_jobs, current_key, idempotency_ke
 from api.db import get_sessionmaker
 from api.deps import celery_dep, get_session, settings_dep
 from api.models import (
-    CANCELED, EVALUATE, FAILED, QUEUED, RUNNING, TERMINAL_STATES, ApiKey, Job, Reconstruction, new_id, utcnow,
+    CANCELED, EVALUATE, FAILED, QUEUED, RUNNING, TERMINAL_STATES, ApiKey, Job, Reconstruction, Scene, new_id, utcnow,
 )
 from api.routes.scenes import MAX_OFFSET, get_scene_or_404
 from api.schemas import JobCreate, JobOut, JobReconstruction, JobState, Models, Page
 from api.settings import Settings, model_label
+from api.uploads import MESH_FORMAT
 from worker.celery_app import stage_chain
 from worker.configs import reconstruction_key, reconstruction_params
 
@@ -96,13 +97,24 @@ def get_job_or_404(session: Session, job_id: str, key: ApiKey) -> Job:
     return job
 
 
+def check_route(scene: Scene, params: dict) -> None:
+    """422 for ``reconstruction.route`` "voxelize" on a scene that has no mesh to voxelize."""
+    route = (params.get("reconstruction") or {}).get("route", "auto")
+    if route == "voxelize" and scene.format != MESH_FORMAT:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                            f"reconstruction.route 'voxelize' needs a scene uploaded as a mesh; scene {scene.id!r} "
+                            f"is {scene.format!r} images: use route 'fit' or 'auto'")
+
+
 def _reconstruction_for(session: Session, scene_id: str, params: dict) -> Reconstruction:
     """The scene's reconstruction for these parameters, created if new.
 
     Race-free through the unique (scene_id, params_key) constraint: the row is inserted in
     its own short transaction, and a request that loses the race reads the winner's row.
     """
-    rec_params = reconstruction_params(params)
+    scene = session.get(Scene, scene_id)  # already loaded by the caller's 404 check
+    check_route(scene, params)
+    rec_params = reconstruction_params(params, mesh_scene=scene.format == MESH_FORMAT)
     key = reconstruction_key(rec_params)
     query = select(Reconstruction).where(Reconstruction.scene_id == scene_id, Reconstruction.params_key == key)
     rec = session.scalars(query).first()
