@@ -157,15 +157,16 @@ def reconstruction_section(data, results: Path, report: Path) -> tuple[list[str]
     if not runs:
         return ["No runs in the file."], []
     lines = [
-        "Each run trains in its own process on the shared CPU; test PSNR/SSIM are over the held-out views. "
+        "Each run trains in its own process on the shared CPU (`CPU s`: its CPU seconds, which say how much of the "
+        "wall time was its own); test PSNR/SSIM are over the held-out views. "
         "`samples/ray` counts grid evaluations per test ray with skipping on (`dense`: the same trained grid "
         "rendered without skipping).", "",
     ]
     lines += table(
-        ["run", "scene", "grid", "iterations", "skipping", "train s", "PSNR dB", "SSIM", "samples/ray (dense)",
+        ["run", "scene", "grid", "iterations", "skipping", "train s", "CPU s", "PSNR dB", "SSIM", "samples/ray (dense)",
          "render s/view (dense)", "peak RSS MB"],
         [[r.get("label", "–"), r.get("scene"), r.get("resolution"), r.get("iterations"), r.get("skipping"),
-          r.get("seconds"), r.get("psnr"), fmt(r.get("ssim"), 4),
+          r.get("seconds"), r.get("cpu_seconds", "–"), r.get("psnr"), fmt(r.get("ssim"), 4),
           f"{fmt(r.get('samples_per_ray'), 1)} ({fmt(r.get('dense_render_samples_per_ray'), 1)})",
           f"{fmt(r.get('render_seconds_per_view'), 3)} ({fmt(r.get('dense_render_render_seconds_per_view'), 3)})",
           fmt(r.get("peak_rss_mb"), 0)] for r in runs],
