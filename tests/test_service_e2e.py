@@ -216,7 +216,9 @@ def test_killed_worker_resumes_the_edit_from_its_checkpoint(stack):
     assert final["completed_stages"] == ["reconstruct", "edit", "export"]
     # Resumed from its last checkpoint (every 10 iterations), not from iteration 0: the message says
     # where, and no edit progress seen after the kill was below it (the killed run's, then the resumed one's).
-    assert 10 <= at <= killed_at and at % 10 == 0, (at, killed_at)
+    # The recorded iteration is throttled progress: the run may have passed it (and another checkpoint)
+    # before the kill, but the checkpoint at or below it was stored inside the loop for sure.
+    assert at % 10 == 0 and max(10, killed_at // 10 * 10) <= at < 40, (at, killed_at)
     assert edit_iterations and min(edit_iterations) >= at, (at, edit_iterations)
     # Complete: every artifact listed, each download matching its recorded size and sha256.
     verify_artifacts(stack.client, final, RESUMED_ARTIFACTS, stack.root)

@@ -384,7 +384,10 @@ def test_redis_restart_keeps_queued_jobs_and_a_killed_worker_task_is_redelivered
         resumed = {j["message"] for j in seen if (j["message"] or "").startswith("resumed from the checkpoint")}
         assert len(resumed) == 1, {j["message"] for j in seen}
         at = int(resumed.pop().rsplit(" ", 1)[1])
-        assert 10 <= at <= killed["iteration"] and at % 10 == 0, (at, killed["iteration"])
+        # The job row's iteration is throttled progress, so the run may have gone past it (and past
+        # another checkpoint) before the kill; checkpoints are stored inside the loop, so the one at
+        # or below the recorded iteration is there for sure.
+        assert at % 10 == 0 and max(10, killed["iteration"] // 10 * 10) <= at < 40, (at, killed["iteration"])
         assert min(j["iteration"] for j in seen if j["stage"] == "edit" and j["total"]) >= at
         verify_artifacts(client.http, final, ARTIFACTS, tmp_path)
         for job in queued:
