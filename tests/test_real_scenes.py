@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from voxe_core.cameras import Cameras, camera_rays, look_at, ring_poses
+from voxe_core.cameras import Cameras, look_at, ring_poses
 from voxe_core.edit import EditConfig, edit
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance import StableDiffusionGuidance

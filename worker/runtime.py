@@ -26,7 +26,7 @@ from api.models import (
     CANCELED, FAILED, QUEUED, R_PENDING, R_RUNNING, RUNNING, SUCCEEDED, TERMINAL_STATES,
     Artifact, Job, Reconstruction, Scene, utcnow,
 )
-from api.settings import TINY_MODEL, Settings, get_settings
+from api.settings import TINY_MODEL, Settings
 from api.storage import Storage, StoredObject, file_sha256, get_storage
 from voxe_core.progress import Callbacks, Progress
 
