@@ -109,6 +109,24 @@ def test_skipping_matches_the_dense_path_on_a_sparse_grid():
     assert torch.allclose(default.rgb, dense.rgb, atol=1e-3)
 
 
+@pytest.mark.parametrize("step_ratio", [0.3, 0.8, 2.5])
+def test_segment_skipping_keeps_every_sample_near_isolated_voxels(step_ratio):
+    """Scattered single occupied vertices in an anisotropic box: the block test must drop no sample that counts."""
+    torch.manual_seed(2)
+    grid = VoxelGrid((37, 23, 51), bbox_min=(-1.2, -0.7, -1.5), bbox_max=(1.3, 0.9, 1.4), init_density=-1.0)
+    with torch.no_grad():
+        picks = torch.randint(0, 37 * 23 * 51, (40,))
+        grid.flat_features[picks, 0] = 4.0 * torch.rand(40) + 0.5
+        grid.flat_features[:, 1:] = torch.randn(37 * 23 * 51, 3)
+    cams = Cameras.from_fov(look_at(torch.tensor([[2.0, -3.0, 1.2]])), 0.9, 40, 40)
+    dense = render_image(grid, cams, 0, RenderConfig(step_ratio=step_ratio, skip_empty=False, early_stop=0.0))
+    sparse = render_image(grid, cams, 0, RenderConfig(step_ratio=step_ratio, sigma_threshold=0.0, early_stop=0.0))
+    assert dense.opacity.max() > 0.05  # the voxels are in view
+    assert sparse.samples * 10 < dense.samples
+    assert torch.allclose(sparse.rgb, dense.rgb, atol=2e-5)
+    assert torch.allclose(sparse.opacity, dense.opacity, atol=2e-5)
+
+
 def test_gradient_matches_finite_differences():
     torch.manual_seed(1)
     grid = VoxelGrid(4, activation="softplus")

@@ -11,7 +11,7 @@ built from corner maxima skips empty space without changing the render.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import torch
@@ -45,6 +45,19 @@ class Occupancy:
     cells: torch.Tensor  # (X-1, Y-1, Z-1) bool
     bbox_min: torch.Tensor  # (3,) world coordinates of the occupied cells' box
     bbox_max: torch.Tensor
+    _dilated_blocks: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def dilated_blocks(self, size: int) -> torch.Tensor:
+        """Cells pooled into ``size``³ blocks, then dilated by one block (cached per size).
+
+        Block ``b`` is marked when any occupied cell lies in ``b`` or a neighbour:
+        a point whose block is unmarked has no occupied cell within ``size``
+        cells of it, which lets the renderer drop whole ray segments at once.
+        """
+        if size not in self._dilated_blocks:
+            pooled = F.max_pool3d(self.cells[None, None].float(), size, stride=size, ceil_mode=True)
+            self._dilated_blocks[size] = F.max_pool3d(pooled, 3, stride=1, padding=1)[0, 0] > 0
+        return self._dilated_blocks[size]
 
     @property
     def fraction(self) -> float:

@@ -10,12 +10,15 @@ occupied space a ray actually sees.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import torch
 
 from voxe_core.cameras import Cameras, camera_rays
 from voxe_core.grid import Occupancy, VoxelGrid
+
+SEGMENT = 16  # lattice samples per skipping segment (see _ray_segments)
 
 # Optical depth per sample beyond which alpha is 1 in float32; clamping there keeps
 # cumulative sums finite for saturated densities without changing the image.
@@ -92,6 +95,49 @@ def render_rays(
         )
 
 
+def _ray_segments(grid, occupancy, origins, directions, t_near, step, first, last, skip_empty):
+    """Per ray, the lattice segments worth sampling, in marching order: (R, S) indices and (R,) counts.
+
+    A segment is ``SEGMENT`` consecutive lattice samples. When skipping, a
+    segment survives when its midpoint's block in ``occupancy.dilated_blocks``
+    is marked, so every sample of a dropped segment lies in an empty cell and
+    dropping it never changes the render; the fine per-cell test then runs only
+    on the segments kept.
+    """
+    seg_first = torch.div(first, SEGMENT, rounding_mode="floor")
+    n_segments = torch.where(last > first, torch.div(last - 1, SEGMENT, rounding_mode="floor") - seg_first + 1, 0)
+    max_segments = int(n_segments.max()) if n_segments.numel() else 0
+    segments = seg_first[:, None] + torch.arange(max_segments, device=origins.device)[None, :]
+    if not skip_empty or max_segments == 0:
+        return segments, n_segments
+    # Every sample of a segment lies within SEGMENT / 2 steps of its midpoint, so within
+    # ``size`` cells of it per axis, so in the midpoint's block or one of its neighbours.
+    longest = float(directions.norm(dim=-1).nan_to_num(0.0, 0.0, 0.0).max().clamp_min(1.0))
+    size = max(1, math.ceil(SEGMENT / 2 * step * longest / float(grid.voxel_size.min())))
+    keep = torch.arange(max_segments, device=origins.device)[None, :] < n_segments[:, None]
+    mid = t_near[:, None] + (segments * SEGMENT + SEGMENT / 2) * step
+    block = _cell_index(grid, origins[:, None, :] + mid[..., None] * directions[:, None, :]) // size
+    keep &= _lookup(occupancy.dilated_blocks(size), block)
+    # Stable sort puts each ray's kept segments first, still in marching order.
+    order = torch.sort((~keep).to(torch.uint8), dim=1, stable=True).indices
+    n_kept = keep.sum(1)
+    width = int(n_kept.max())
+    return segments.gather(1, order[:, :width]), n_kept
+
+
+def _cell_index(grid, points: torch.Tensor) -> torch.Tensor:
+    """Integer (…, 3) index of the grid cell holding each point, clamped into the grid."""
+    res = torch.tensor(grid.resolution, device=points.device)
+    cell = ((points - grid.bbox_min) / ((grid.bbox_max - grid.bbox_min) / (res - 1))).floor().long()
+    return torch.minimum(cell.clamp_min(0), res - 2)
+
+
+def _lookup(mask: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """``mask[index[..., 0], index[..., 1], index[..., 2]]`` through one flat gather (cheaper than three)."""
+    _, ny, nz = mask.shape
+    return mask.reshape(-1)[(index[..., 0] * ny + index[..., 1]) * nz + index[..., 2]]
+
+
 def _render_rays(grid, origins, directions, config, occupancy, generator, color_features, sparse_grad) -> RenderOutput:
     device = origins.device
     n_rays = origins.shape[0]
@@ -115,7 +161,11 @@ def _render_rays(grid, origins, directions, config, occupancy, generator, color_
         hit = tight_far > tight_near
         first = torch.where(hit, ((tight_near - t_near) / step).floor().long().clamp_min(0), first)
         last = torch.where(hit, torch.minimum(((tight_far - t_near) / step).ceil().long(), n_total), first)
-    n_steps = (last - first).clamp_min(0)
+    candidates = int((last - first).clamp_min(0).sum())
+    segments, n_segments = _ray_segments(
+        grid, occupancy, origins, directions, t_near, step, first, last, config.skip_empty
+    )
+    n_steps = n_segments * SEGMENT  # samples per ray on the kept segments
     if generator is not None:
         offset = torch.rand(n_rays, generator=generator, device=device)
     else:
@@ -126,10 +176,7 @@ def _render_rays(grid, origins, directions, config, occupancy, generator, color_
     opacity = torch.zeros(n_rays, device=device)
     depth = torch.zeros(n_rays, device=device)
     samples = 0
-    candidates = int(n_steps.sum())
     max_steps = int(n_steps.max()) if n_rays else 0
-    res = torch.tensor(grid.resolution, device=device)
-    cell_extent = (grid.bbox_max - grid.bbox_min) / (res - 1)
     window = torch.arange(config.window, device=device)
 
     for start in range(0, max_steps, config.window):
@@ -137,14 +184,13 @@ def _render_rays(grid, origins, directions, config, occupancy, generator, color_
         rays = live.nonzero().squeeze(-1)
         if rays.numel() == 0:
             break
-        k = first[rays, None] + start + window[None, :]  # (A, W) lattice indices
-        valid = k < last[rays, None]
+        column = ((start + window) // SEGMENT).clamp_max(segments.shape[1] - 1)
+        k = segments[rays][:, column] * SEGMENT + ((start + window) % SEGMENT)[None, :]  # (A, W) lattice indices
+        valid = (start + window[None, :] < n_steps[rays, None]) & (k >= first[rays, None]) & (k < last[rays, None])
         t = t_near[rays, None] + (k + offset[rays, None]) * step
         points = origins[rays, None, :] + t[..., None] * directions[rays, None, :]
         if config.skip_empty:
-            cell = ((points - grid.bbox_min) / cell_extent).floor().long()
-            cell = torch.minimum(cell.clamp_min(0), res - 2)
-            valid &= occupancy.cells[cell[..., 0], cell[..., 1], cell[..., 2]]
+            valid &= _lookup(occupancy.cells, _cell_index(grid, points))
         n_valid = int(valid.sum())
         if n_valid == 0:
             continue
