@@ -27,19 +27,22 @@ HERE = Path(__file__).resolve().parent
 DATA = HERE.parent.parent / "shared" / "data" / "nerf_synthetic_mic"
 RESULTS = HERE / "results"
 
+# The previous fast recipe: the last iterate, lr ×0.1 for the last 20 % of the final stage, one lr for all features.
+LAST_ITERATE = {"average_from": 1.0, "lr_drop_fraction": 0.8, "color_lr_scale": 1.0}
 FULL_RUNS = [
-    # (label, final resolution, per-stage iterations, skipping while training)
-    ("fast-64", 64, (300, 1500), True),
-    ("fast-96", 96, (300, 500, 1500), True),
-    ("fast-128", 128, (300, 500, 2000), True),
-    ("fast-160", 160, (300, 500, 3000), True),
-    ("fast-160-long", 160, (300, 500, 4500), True),
-    ("dense-128", 128, (300, 500, 800), False),
-    ("skip-128", 128, (300, 500, 800), True),
+    # (label, final resolution, per-stage iterations, skipping while training, ReconstructConfig.fast overrides)
+    ("fast-64", 64, (300, 1500), True, {}),
+    ("fast-96", 96, (300, 500, 1500), True, {}),
+    ("fast-128", 128, (300, 500, 2000), True, {}),
+    ("fast-160", 160, (300, 500, 3000), True, {}),
+    ("fast-160-last-iterate", 160, (300, 500, 3000), True, LAST_ITERATE),
+    ("fast-160-long", 160, (300, 500, 4500), True, {}),
+    ("dense-128", 128, (300, 500, 800), False, LAST_ITERATE),
+    ("skip-128", 128, (300, 500, 800), True, LAST_ITERATE),
 ]
 QUICK_RUNS = [
-    ("quick-64", 64, (200, 600), True),
-    ("quick-dense-64", 64, (200, 600), False),
+    ("quick-64", 64, (200, 600), True, {}),
+    ("quick-dense-64", 64, (200, 600), False, {}),
 ]
 
 
@@ -47,7 +50,9 @@ def stage_resolutions(final: int, stages: int) -> tuple[int, ...]:
     return tuple(final // 2 ** (stages - 1 - i) for i in range(stages))
 
 
-def run_single(label: str, final: int, iterations: tuple[int, ...], skipping: bool, downsample: int) -> dict:
+def run_single(
+    label: str, final: int, iterations: tuple[int, ...], skipping: bool, overrides: dict, downsample: int
+) -> dict:
     from voxe_core.data import load_scene
     from voxe_core.metrics import psnr, ssim
     from voxe_core.reconstruct import ReconstructConfig, reconstruct
@@ -57,11 +62,14 @@ def run_single(label: str, final: int, iterations: tuple[int, ...], skipping: bo
     train = load_scene(DATA, "train", downsample=downsample)
     test = load_scene(DATA, "test", downsample=downsample)
     stages = len(iterations)
+    overrides = dict(overrides)
+    if "lr_drop_fraction" in overrides:
+        overrides["lr_drop_iteration"] = int(iterations[-1] * overrides.pop("lr_drop_fraction"))
     config = ReconstructConfig.fast(
         resolutions=stage_resolutions(final, stages),
         iterations=iterations,
         image_downsample=tuple(2 ** (stages - 1 - i) for i in range(stages)),
-        lr_drop_iteration=int(iterations[-1] * 0.8),
+        **overrides,
     )
     config.render.skip_empty = skipping
     samples = []
@@ -79,6 +87,8 @@ def run_single(label: str, final: int, iterations: tuple[int, ...], skipping: bo
         # The machine is shared: CPU seconds and the load average say how much of the wall time was ours.
         "cpu_seconds": round(cpu_seconds, 2), "load_average_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],
         "rays_per_step": config.rays_per_step, "image_size": train.cameras.width,
+        "lr": config.lr, "lr_drop_iteration": config.lr_drop_iteration, "average_from": config.average_from,
+        "color_lr_scale": config.color_lr_scale,
         "occupied_fraction": round(grid.occupancy(config.render.sigma_threshold).fraction, 5),
         "train_samples_per_ray_final_stage": round(sum(samples) / max(1, len(samples)), 2),
     }
@@ -102,8 +112,19 @@ def run_single(label: str, final: int, iterations: tuple[int, ...], skipping: bo
         result["dense_render_render_seconds_per_view"] / result["render_seconds_per_view"], 2
     )
     result["machine"] = f"{os.cpu_count()} CPU cores, torch {torch.__version__}"
+    result["commit"] = _commit()
+    result["measured_on"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     result["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
     return result
+
+
+def _commit() -> str:
+    """The code measured: HEAD, marked ``+dirty`` when voxe_core has uncommitted changes."""
+    def git(*args):
+        return subprocess.run(["git", *args], cwd=HERE.parent, capture_output=True, text=True).stdout.strip()
+
+    head = git("rev-parse", "--short", "HEAD") or "unknown"
+    return head + ("+dirty" if git("status", "--porcelain", "voxe_core") else "")
 
 
 def _cpu_seconds() -> float:
@@ -146,7 +167,7 @@ def plot(runs: list[dict], path: Path) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="CI-sized subset at 100 px")
-    parser.add_argument("--only", nargs="*", help="labels to run")
+    parser.add_argument("--only", nargs="*", help="labels to run; their results replace those runs in --out")
     parser.add_argument("--out", type=Path, default=RESULTS / "reconstruction.json")
     parser.add_argument("--single", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -159,9 +180,12 @@ def main() -> None:
     if args.only:
         runs = [r for r in runs if r[0] in args.only]
     downsample = 8 if args.quick else 4
-    results = []
-    for label, final, iterations, skipping in runs:
-        spec = json.dumps([label, final, list(iterations), skipping, downsample])
+    # --only reruns some runs: the others keep their earlier results (each run names its commit and date).
+    kept = json.loads(args.out.read_text()) if args.only and args.out.is_file() else []
+    labels = [r[0] for r in runs]
+    results = [r for r in kept if r["label"] not in labels]
+    for label, final, iterations, skipping, overrides in runs:
+        spec = json.dumps([label, final, list(iterations), skipping, overrides, downsample])
         out = subprocess.run([sys.executable, __file__, "--single", spec], capture_output=True, text=True, check=True)
         result = json.loads(out.stdout.strip().splitlines()[-1])
         results.append(result)
@@ -170,6 +194,8 @@ def main() -> None:
               f'samples/ray {result["samples_per_ray"]:.1f} (dense {result["dense_render_samples_per_ray"]:.1f})  '
               f'render {result["render_seconds_per_view"]:.2f} s/view  RSS {result["peak_rss_mb"]:.0f} MB', flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
+    order = {r[0]: i for i, r in enumerate(FULL_RUNS + QUICK_RUNS)}
+    results.sort(key=lambda r: order.get(r["label"], len(order)))
     args.out.write_text(json.dumps(results, indent=1))
     plot(results, args.out.with_suffix(".png"))
     print(f"wrote {args.out} and {args.out.with_suffix('.png')}")

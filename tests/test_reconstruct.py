@@ -54,10 +54,14 @@ def test_fit_is_deterministic_under_a_seed_and_reduces_error():
     assert not torch.equal(first.features, other.features)
 
 
-@pytest.mark.parametrize("stop_after", [10, 15, 22])  # mid-stage, stage boundary, second stage
-def test_resume_from_checkpoint_is_bit_exact(tmp_path, stop_after):
+@pytest.mark.parametrize(
+    "stop_after,average_from",
+    [(10, 1.0), (15, 1.0), (22, 1.0),  # mid-stage, stage boundary, second stage
+     (22, 0.4), (27, 0.4)],  # inside the averaged tail of the final stage
+)
+def test_resume_from_checkpoint_is_bit_exact(tmp_path, stop_after, average_from):
     images, cams = synthetic_views()
-    config = tiny_config(checkpoint_every=1)
+    config = tiny_config(checkpoint_every=1, average_from=average_from, average_every=2)
     uninterrupted = reconstruct(images, cams, config)
 
     checkpoint = tmp_path / "ckpt.safetensors"
@@ -71,6 +75,21 @@ def test_resume_from_checkpoint_is_bit_exact(tmp_path, stop_after):
                     checkpoint_path=checkpoint)
     resumed = reconstruct(images, cams, config, resume_from=checkpoint)
     assert torch.equal(resumed.features, uninterrupted.features)
+
+
+def test_averaging_returns_the_mean_of_the_final_iterates():
+    images, cams = synthetic_views()
+    grid = VoxelGrid(24)
+    snapshots = []
+
+    def snapshot(progress):
+        if progress.iteration > 5:  # iterations 5..9 of 10 (0-based) are averaged
+            snapshots.append(grid.flat_features.detach().clone())
+
+    config = tiny_config(resolutions=(24,), iterations=(10,), image_downsample=(1,), average_from=0.5, average_every=1)
+    result = reconstruct(images, cams, config, Callbacks(on_progress=snapshot), initial_grid=grid)
+    assert len(snapshots) == 5 and not torch.equal(snapshots[0], snapshots[-1])
+    assert torch.allclose(result.flat_features, torch.stack(snapshots).mean(0), atol=1e-6)
 
 
 def test_progress_reports_every_iteration_and_cancellation_stops_early():
@@ -104,6 +123,19 @@ def test_row_sparse_adam_matches_dense_adam_when_every_row_is_touched():
         b[index].sub(target.repeat(2, 1)).pow(2).sum().backward()
         dense_opt.step()
     assert torch.allclose(a, b, atol=1e-5)
+
+
+def test_row_sparse_adam_scales_each_columns_step():
+    grads = torch.randn(5, 4)
+    steps = []
+    for scale in (None, torch.tensor([1.0, 0.5, 0.5, 0.5])):
+        a = torch.nn.Parameter(torch.zeros(5, 4))
+        opt = RowSparseAdam(a, lr=0.1, column_lr_scale=scale)
+        a.grad = grads.clone()
+        opt.step()
+        steps.append(a.detach().clone())
+    assert torch.allclose(steps[1][:, 0], steps[0][:, 0]) and torch.allclose(steps[1][:, 1:], 0.5 * steps[0][:, 1:])
+    assert steps[0].abs().min() > 0.09  # Adam's first step is lr in size
 
 
 def test_row_sparse_adam_leaves_untouched_rows_alone():

@@ -34,12 +34,17 @@ class ReconstructConfig:
     lr_stage_decay: float = 0.9
     lr_drop_iteration: int = 400  # within each stage
     lr_drop_factor: float = 0.1
+    color_lr_scale: float = 1.0  # colour features' lr relative to ``lr`` (density keeps ``lr``)
     activation: Activation = "relu"
     init_density: float = 0.01
     bbox_min: tuple[float, float, float] = (-1.5, -1.5, -1.5)
     bbox_max: tuple[float, float, float] = (1.5, 1.5, 1.5)
     render: RenderConfig = field(default_factory=lambda: RenderConfig(step_ratio=0.8))
     occupancy_every: int = 16  # iterations between occupancy refreshes
+    # Polyak averaging: from this fraction of the final stage on, the result is the mean of the
+    # grid's iterates (one every ``average_every`` iterations) rather than the last one. 1.0: off.
+    average_from: float = 1.0
+    average_every: int = 8
     seed: int = 0
     checkpoint_every: int = 0  # 0: no checkpoints
 
@@ -49,16 +54,26 @@ class ReconstructConfig:
             raise ValueError("resolutions, iterations and image_downsample need one entry per stage")
         if self.rays_per_step < 1 or any(i < 0 for i in self.iterations):
             raise ValueError("rays_per_step must be >= 1 and iterations >= 0")
+        if not 0.0 <= self.average_from <= 1.0 or self.average_every < 1:
+            raise ValueError("average_from must lie in [0, 1] and average_every be >= 1")
 
     @classmethod
     def fast(cls, **overrides) -> "ReconstructConfig":
-        """The CPU budget measured in bench/reconstruction.py (≈30.6 dB on mic at 200 px)."""
+        """The CPU budget measured in bench/reconstruction.py (mic at 200 px: see bench/README.md).
+
+        Three stages instead of four and 4,096 rays per step. The lr never drops;
+        instead the second half of the final stage is averaged (Polyak), and colour
+        learns at half the density's rate: both damp the speckle that single-batch
+        steps leave in the last iterate.
+        """
         base = dict(
-            resolutions=(40, 80, 128),
-            iterations=(300, 500, 1200),
+            resolutions=(40, 80, 160),
+            iterations=(300, 500, 3000),
             image_downsample=(4, 2, 1),
             rays_per_step=4096,
             lr_drop_iteration=1_000_000,
+            average_from=0.5,
+            color_lr_scale=0.5,
         )
         base.update(overrides)
         return cls(**base)
@@ -96,9 +111,13 @@ class RowSparseAdam(torch.optim.Optimizer):
     Moments of untouched rows are not decayed (the lazy-Adam semantics).
     """
 
-    def __init__(self, param: torch.nn.Parameter, lr: float, betas=(0.9, 0.999), eps: float = 1e-8):
+    def __init__(
+        self, param: torch.nn.Parameter, lr: float, betas=(0.9, 0.999), eps: float = 1e-8,
+        column_lr_scale: torch.Tensor | None = None,
+    ):
         super().__init__([param], dict(lr=lr, betas=betas, eps=eps))
         self.param = param
+        self.column_lr_scale = column_lr_scale  # (C,) multiplier of each column's step, None: all 1
         state = self.state[param]
         state["step"] = 0
         state["exp_avg"] = torch.zeros_like(param)
@@ -132,17 +151,57 @@ class RowSparseAdam(torch.optim.Optimizer):
         state["exp_avg_sq"][rows] = v
         step_size = group["lr"] * (1 - beta2**step) ** 0.5 / (1 - beta1**step)
         update = m / v.sqrt().add_(group["eps"] * (1 - beta2**step) ** 0.5)
+        if self.column_lr_scale is not None:
+            update.mul_(self.column_lr_scale)
         self.param.index_add_(0, rows, update, alpha=-step_size)
         return None
 
 
-def _make_optimizer(grid: VoxelGrid, lr: float) -> RowSparseAdam:
-    return RowSparseAdam(grid.flat_features, lr=lr)
+def _make_optimizer(grid: VoxelGrid, config: ReconstructConfig, lr: float) -> RowSparseAdam:
+    scale = None
+    if config.color_lr_scale != 1.0:
+        scale = torch.full((grid.flat_features.shape[1],), config.color_lr_scale, device=grid.flat_features.device)
+        scale[0] = 1.0
+    return RowSparseAdam(grid.flat_features, lr=lr, column_lr_scale=scale)
 
 
-def save_checkpoint(path, grid, optimizer, generator, occupancy_cells, stage: int, iteration: int) -> None:
+class _IterateAverage:
+    """Running mean of the final stage's iterates: it cancels the batch noise the last iterate carries."""
+
+    def __init__(self, config: ReconstructConfig):
+        self.start = int(config.average_from * config.iterations[-1])
+        self.every = config.average_every
+        self.active = config.average_from < 1.0
+        self.total: torch.Tensor | None = None
+        self.count = 0
+
+    def after_step(self, grid: VoxelGrid, iteration: int) -> None:
+        if self.active and iteration >= self.start and (iteration - self.start) % self.every == 0:
+            features = grid.flat_features.detach()
+            self.total = features.clone() if self.total is None else self.total.add_(features)
+            self.count += 1
+
+    def finish(self, grid: VoxelGrid) -> None:
+        if self.count:
+            with torch.no_grad():
+                grid.flat_features.copy_(self.total / self.count)
+
+    def state_tensors(self) -> dict[str, torch.Tensor]:
+        if self.total is None:
+            return {}
+        return {"average_total": self.total, "average_count": torch.tensor([self.count])}
+
+    def load(self, tensors: dict[str, torch.Tensor]) -> None:
+        if "average_total" in tensors:
+            self.total, self.count = tensors["average_total"].clone(), int(tensors["average_count"])
+
+
+def save_checkpoint(
+    path, grid, optimizer, generator, occupancy_cells, stage: int, iteration: int, average: _IterateAverage | None = None
+) -> None:
     state = optimizer.state[grid.flat_features]
     tensors = {
+        **(average.state_tensors() if average is not None else {}),
         **grid.state_tensors(),
         "adam_exp_avg": state["exp_avg"],
         "adam_exp_avg_sq": state["exp_avg_sq"],
@@ -190,7 +249,7 @@ def reconstruct(
         if stage > start_stage or resumed is None:
             if grid.resolution != (config.resolutions[stage],) * 3:
                 grid = grid.upsampled(config.resolutions[stage])
-        optimizer = _make_optimizer(grid, _learning_rate(config, stage, 0))
+        optimizer = _make_optimizer(grid, config, _learning_rate(config, stage, 0))
         occupancy = grid.occupancy(config.render.sigma_threshold)
         first = 0
         if resumed is not None and stage == start_stage:
@@ -202,6 +261,10 @@ def reconstruct(
                     exp_avg_sq=resumed["adam_exp_avg_sq"].clone(),
                 )
             occupancy = grid.occupancy_from_cells(resumed["occupancy"].bool())
+        final_stage = stage == len(config.resolutions) - 1
+        average = _IterateAverage(config)
+        if resumed is not None and stage == start_stage:
+            average.load(resumed)
         origins, directions, targets = _stage_data(images, cameras, config.image_downsample[stage])
         for iteration in range(first, config.iterations[stage]):
             callbacks.check_cancel("reconstruct")
@@ -221,12 +284,18 @@ def reconstruct(
                 loss.backward()
                 optimizer.step()
             done += 1
+            if final_stage:
+                average.after_step(grid, iteration)
             callbacks.progress(Progress(
                 "reconstruct", done, total, {"l1": float(loss.detach())},
                 {"stage": stage, "resolution": config.resolutions[stage],
                  "samples_per_ray": out.samples / config.rays_per_step},
             ))
             if checkpoint_path is not None and config.checkpoint_every and done % config.checkpoint_every == 0:
-                save_checkpoint(checkpoint_path, grid, optimizer, generator, occupancy.cells, stage, iteration + 1)
+                save_checkpoint(
+                    checkpoint_path, grid, optimizer, generator, occupancy.cells, stage, iteration + 1, average
+                )
                 callbacks.checkpoint_written(str(checkpoint_path))
+        if final_stage:
+            average.finish(grid)
     return grid
