@@ -8,6 +8,8 @@ reconstruction.png (PSNR against training seconds).
 
     python bench/reconstruction.py            # the full table (~1 h on 2 cores)
     python bench/reconstruction.py --quick    # a CI-sized subset (~5 min)
+    python bench/reconstruction.py --ablations  # one recipe knob at a time (~25 min)
+    python bench/reconstruction.py --only fast-160 skip-128  # rerun some; the other results are kept
 """
 
 from __future__ import annotations
@@ -39,6 +41,16 @@ FULL_RUNS = [
     ("fast-160-long", 160, (300, 500, 4500), True, {}),
     ("dense-128", 128, (300, 500, 800), False, LAST_ITERATE),
     ("skip-128", 128, (300, 500, 800), True, LAST_ITERATE),
+]
+# One knob at a time against the last-iterate recipe at 160³ with 1,500 final-stage iterations (--ablations).
+ABLATION_BASE = (160, (300, 500, 1500), True)
+ABLATION_RUNS = [
+    (f"ablate-{name}", *ABLATION_BASE, {**LAST_ITERATE, **change})
+    for name, change in [
+        ("none", {}), ("lr-0.01", {"lr": 0.01}), ("lr-0.04", {"lr": 0.04}), ("rays-8192", {"rays_per_step": 8192}),
+        ("colour-lr-0.5", {"color_lr_scale": 0.5}), ("colour-lr-2", {"color_lr_scale": 2.0}),
+        ("average-half", {"average_from": 0.5, "lr_drop_fraction": 100.0}), ("softplus", {"activation": "softplus"}),
+    ]
 ]
 QUICK_RUNS = [
     ("quick-64", 64, (200, 600), True, {}),
@@ -167,6 +179,7 @@ def plot(runs: list[dict], path: Path) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="CI-sized subset at 100 px")
+    parser.add_argument("--ablations", action="store_true", help="one recipe knob at a time (160³, 1,500 final iterations)")
     parser.add_argument("--only", nargs="*", help="labels to run; their results replace those runs in --out")
     parser.add_argument("--out", type=Path, default=RESULTS / "reconstruction.json")
     parser.add_argument("--single", help=argparse.SUPPRESS)
@@ -176,9 +189,9 @@ def main() -> None:
         return
     if not DATA.is_dir():
         sys.exit(f"mic data not found at {DATA}")
-    runs = QUICK_RUNS if args.quick else FULL_RUNS
+    runs = QUICK_RUNS if args.quick else ABLATION_RUNS if args.ablations else FULL_RUNS
     if args.only:
-        runs = [r for r in runs if r[0] in args.only]
+        runs = [r for r in (QUICK_RUNS if args.quick else FULL_RUNS + ABLATION_RUNS) if r[0] in args.only]
     downsample = 8 if args.quick else 4
     # --only reruns some runs: the others keep their earlier results (each run names its commit and date).
     kept = json.loads(args.out.read_text()) if args.only and args.out.is_file() else []
@@ -194,7 +207,7 @@ def main() -> None:
               f'samples/ray {result["samples_per_ray"]:.1f} (dense {result["dense_render_samples_per_ray"]:.1f})  '
               f'render {result["render_seconds_per_view"]:.2f} s/view  RSS {result["peak_rss_mb"]:.0f} MB', flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    order = {r[0]: i for i, r in enumerate(FULL_RUNS + QUICK_RUNS)}
+    order = {r[0]: i for i, r in enumerate(FULL_RUNS + ABLATION_RUNS + QUICK_RUNS)}
     results.sort(key=lambda r: order.get(r["label"], len(order)))
     args.out.write_text(json.dumps(results, indent=1))
     plot(results, args.out.with_suffix(".png"))
