@@ -34,9 +34,7 @@ class ReconstructionParams(Strict):
     """How G_i is fitted (SPEC §1). Jobs with equal values (and downsample / max_images) share one fit."""
 
     preset: Literal["fast", "paper"] = Field(
-        "fast",
-        description="fast: 40→80→160, 300+500+3000 iterations, the last half averaged (the CPU budget); "
-        "paper: the authors' 20→40→80→160 × 500 iterations",
+        "fast", description="fast: 40→80→128 (the CPU budget); paper: the authors' 20→40→80→160 × 500 iterations"
     )
     resolution: int | None = Field(
         None, ge=4, le=512, description="final grid resolution; earlier stages are scaled in proportion"

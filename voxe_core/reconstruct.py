@@ -59,21 +59,18 @@ class ReconstructConfig:
 
     @classmethod
     def fast(cls, **overrides) -> "ReconstructConfig":
-        """The CPU budget measured in bench/reconstruction.py (mic at 200 px: see bench/README.md).
+        """The CPU budget of the service: three stages, 4,096 rays per step, the lr never dropped.
 
-        Three stages instead of four and 4,096 rays per step. The lr never drops;
-        instead the second half of the final stage is averaged (Polyak), and colour
-        learns at half the density's rate: both damp the speckle that single-batch
-        steps leave in the last iterate.
+        bench/reconstruction.py's fast-160 adds ``average_from=0.5, color_lr_scale=0.5`` at
+        40→80→160 (see bench/README.md); they stay off here because short fits (a few hundred
+        iterations) lose more from averaging their early iterates than they gain.
         """
         base = dict(
-            resolutions=(40, 80, 160),
-            iterations=(300, 500, 3000),
+            resolutions=(40, 80, 128),
+            iterations=(300, 500, 1200),
             image_downsample=(4, 2, 1),
             rays_per_step=4096,
             lr_drop_iteration=1_000_000,
-            average_from=0.5,
-            color_lr_scale=0.5,
         )
         base.update(overrides)
         return cls(**base)
