@@ -165,10 +165,10 @@ def _make_optimizer(grid: VoxelGrid, config: ReconstructConfig, lr: float) -> Ro
 class _IterateAverage:
     """Running mean of the final stage's iterates: it cancels the batch noise the last iterate carries."""
 
-    def __init__(self, config: ReconstructConfig):
+    def __init__(self, config: ReconstructConfig, stage: int):
         self.start = int(config.average_from * config.iterations[-1])
         self.every = config.average_every
-        self.active = config.average_from < 1.0
+        self.active = config.average_from < 1.0 and stage == len(config.iterations) - 1
         self.total: torch.Tensor | None = None
         self.count = 0
 
@@ -258,8 +258,7 @@ def reconstruct(
                     exp_avg_sq=resumed["adam_exp_avg_sq"].clone(),
                 )
             occupancy = grid.occupancy_from_cells(resumed["occupancy"].bool())
-        final_stage = stage == len(config.resolutions) - 1
-        average = _IterateAverage(config)
+        average = _IterateAverage(config, stage)
         if resumed is not None and stage == start_stage:
             average.load(resumed)
         origins, directions, targets = _stage_data(images, cameras, config.image_downsample[stage])
@@ -281,8 +280,7 @@ def reconstruct(
                 loss.backward()
                 optimizer.step()
             done += 1
-            if final_stage:
-                average.after_step(grid, iteration)
+            average.after_step(grid, iteration)
             callbacks.progress(Progress(
                 "reconstruct", done, total, {"l1": float(loss.detach())},
                 {"stage": stage, "resolution": config.resolutions[stage],
@@ -293,6 +291,5 @@ def reconstruct(
                     checkpoint_path, grid, optimizer, generator, occupancy.cells, stage, iteration + 1, average
                 )
                 callbacks.checkpoint_written(str(checkpoint_path))
-        if final_stage:
-            average.finish(grid)
+        average.finish(grid)
     return grid

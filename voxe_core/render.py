@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import torch
 
 from voxe_core.cameras import Cameras, camera_rays
-from voxe_core.grid import Occupancy, VoxelGrid
+from voxe_core.grid import Occupancy, VoxelGrid, gather_3d
 
 SEGMENT = 16  # lattice samples per skipping segment (see _ray_segments)
 
@@ -116,26 +116,13 @@ def _ray_segments(grid, occupancy, origins, directions, t_near, step, first, las
     size = max(1, math.ceil(SEGMENT / 2 * step * longest / float(grid.voxel_size.min())))
     keep = torch.arange(max_segments, device=origins.device)[None, :] < n_segments[:, None]
     mid = t_near[:, None] + (segments * SEGMENT + SEGMENT / 2) * step
-    block = _cell_index(grid, origins[:, None, :] + mid[..., None] * directions[:, None, :]) // size
-    keep &= _lookup(occupancy.dilated_blocks(size), block)
+    block = grid.cell_index(origins[:, None, :] + mid[..., None] * directions[:, None, :]) // size
+    keep &= gather_3d(occupancy.dilated_blocks(size), block)
     # Stable sort puts each ray's kept segments first, still in marching order.
     order = torch.sort((~keep).to(torch.uint8), dim=1, stable=True).indices
     n_kept = keep.sum(1)
     width = int(n_kept.max())
     return segments.gather(1, order[:, :width]), n_kept
-
-
-def _cell_index(grid, points: torch.Tensor) -> torch.Tensor:
-    """Integer (…, 3) index of the grid cell holding each point, clamped into the grid."""
-    res = torch.tensor(grid.resolution, device=points.device)
-    cell = ((points - grid.bbox_min) / ((grid.bbox_max - grid.bbox_min) / (res - 1))).floor().long()
-    return torch.minimum(cell.clamp_min(0), res - 2)
-
-
-def _lookup(mask: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-    """``mask[index[..., 0], index[..., 1], index[..., 2]]`` through one flat gather (cheaper than three)."""
-    _, ny, nz = mask.shape
-    return mask.reshape(-1)[(index[..., 0] * ny + index[..., 1]) * nz + index[..., 2]]
 
 
 def _render_rays(grid, origins, directions, config, occupancy, generator, color_features, sparse_grad) -> RenderOutput:
@@ -190,7 +177,7 @@ def _render_rays(grid, origins, directions, config, occupancy, generator, color_
         t = t_near[rays, None] + (k + offset[rays, None]) * step
         points = origins[rays, None, :] + t[..., None] * directions[rays, None, :]
         if config.skip_empty:
-            valid &= _lookup(occupancy.cells, _cell_index(grid, points))
+            valid &= occupancy.occupied(grid.cell_index(points))
         n_valid = int(valid.sum())
         if n_valid == 0:
             continue

@@ -212,10 +212,7 @@ class SceneGrid(VoxelGrid):
         points = self.lattice_points(origins[:, None, :] + t[..., None] * directions[:, None, :])
         candidates = int(valid.sum())
         if config.skip_empty:
-            res = torch.tensor(self.resolution, device=device)
-            cell = ((points - self.bbox_min) / self.voxel_size.to(device)).floor().long()
-            cell = torch.minimum(cell.clamp_min(0), res - 2)
-            valid = valid & occupancy.cells.to(device)[cell[..., 0], cell[..., 1], cell[..., 2]]
+            valid = valid & occupancy.occupied(self.cell_index(points))
         index = valid.nonzero(as_tuple=True)
         optical = torch.zeros(valid.shape, device=device)
         color = torch.zeros(*valid.shape, channels, device=device)
