@@ -174,17 +174,17 @@ def _(fx):
     return checks
 
 
-@case("render/transmittance-underflows-across-windows", "exact")
+@case("render/transmittance-underflows-across-passes", "exact")
 def _(fx):
-    # optical depth 60 per sample: T underflows to exactly 0 after two samples; windows of 2 make
-    # the product cross window boundaries with early stopping off
+    # optical depth 60 per sample: T underflows to exactly 0 after two samples; passes of two samples
+    # put each ray in a group of its own (early stopping off)
     grid = uniform_grid(1.0)
     step = 0.5 * float(grid.voxel_size.min())
     with torch.no_grad():
         grid.features[..., 0] = 60.0 / step / grid.density_scale
     o, d = rays([[-3.0, 0.3, -0.2], [0.2, 0.1, 4.0]], [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
     checks = []
-    for out in both_paths(grid, o, d, early_stop=0.0, window=2):
+    for out in both_paths(grid, o, d, early_stop=0.0, samples_per_pass=2):
         out.rgb.sum().backward()
         assert torch.isfinite(grid.flat_features.grad).all()
         checks += [("opacity", out.opacity, torch.ones(2), 1e-6), ("colour", out.rgb, torch.full((2, 3), 0.5), 1e-6)]

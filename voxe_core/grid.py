@@ -41,7 +41,8 @@ def default_density_scale(bbox_min, bbox_max) -> float:
 def gather_3d(mask: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     """``mask[index[..., 0], index[..., 1], index[..., 2]]`` through one flat gather (cheaper than three)."""
     _, ny, nz = mask.shape
-    return mask.reshape(-1)[(index[..., 0] * ny + index[..., 1]) * nz + index[..., 2]]
+    flat = (index[..., 0] * ny + index[..., 1]) * nz + index[..., 2]
+    return mask.reshape(-1).index_select(0, flat.reshape(-1)).reshape(flat.shape)
 
 
 @dataclass

@@ -2,10 +2,11 @@
 
 Samples are spaced evenly (``step_ratio`` voxels apart) along each ray's
 intersection with the box: the grid's box for the dense path, the tight box of
-occupied cells when skipping. Rays march in windows of ``window`` samples; in
-each window only samples inside occupied cells are evaluated, and a ray stops
-once its transmittance falls below ``early_stop``. Cost therefore follows the
-occupied space a ray actually sees.
+occupied cells when skipping. The samples of all rays are packed into one
+list: when skipping, only those in occupied cells are kept; a density-only
+pass without gradient then drops those behind the point where a ray's
+transmittance falls below ``early_stop``, and only the rest are evaluated and
+composited. Cost therefore follows the occupied space a ray actually sees.
 """
 
 from __future__ import annotations
@@ -31,8 +32,8 @@ class RenderConfig:
     background: tuple[float, ...] = (1.0, 1.0, 1.0)
     skip_empty: bool = True
     sigma_threshold: float = 1e-3  # cells whose density stays below this are skipped
-    early_stop: float = 1e-4  # transmittance at which a ray stops marching
-    window: int = 64  # samples per ray evaluated per marching step
+    early_stop: float = 1e-4  # transmittance below which a ray's samples are not evaluated
+    samples_per_pass: int = 1 << 20  # lattice samples held at once (rays are grouped to fit)
     chunk_rays: int = 32768  # rays per chunk in whole-image renders
 
 
@@ -152,61 +153,87 @@ def _render_rays(grid, origins, directions, config, occupancy, generator, color_
     segments, n_segments = _ray_segments(
         grid, occupancy, origins, directions, t_near, step, first, last, config.skip_empty
     )
-    n_steps = n_segments * SEGMENT  # samples per ray on the kept segments
     if generator is not None:
         offset = torch.rand(n_rays, generator=generator, device=device)
     else:
         offset = torch.full((n_rays,), 0.5, device=device)
 
-    transmittance = torch.ones(n_rays, device=device)
+    start = t_near + offset * step  # first lattice sample of each ray
+    length = t_far - t_near
     accumulated = torch.zeros(n_rays, channels, device=device)
     opacity = torch.zeros(n_rays, device=device)
     depth = torch.zeros(n_rays, device=device)
     samples = 0
-    max_steps = int(n_steps.max()) if n_rays else 0
-    window = torch.arange(config.window, device=device)
-
-    for start in range(0, max_steps, config.window):
-        live = (n_steps > start) & (transmittance.detach() > config.early_stop)
-        rays = live.nonzero().squeeze(-1)
-        if rays.numel() == 0:
-            break
-        column = ((start + window) // SEGMENT).clamp_max(segments.shape[1] - 1)
-        k = segments[rays][:, column] * SEGMENT + ((start + window) % SEGMENT)[None, :]  # (A, W) lattice indices
-        valid = (start + window[None, :] < n_steps[rays, None]) & (k >= first[rays, None]) & (k < last[rays, None])
-        t = t_near[rays, None] + (k + offset[rays, None]) * step
-        points = origins[rays, None, :] + t[..., None] * directions[rays, None, :]
-        if config.skip_empty:
-            valid &= occupancy.occupied(grid.cell_index(points))
-        n_valid = int(valid.sum())
-        if n_valid == 0:
+    # Consecutive groups of rays whose lattice samples fit in one pass (bounds memory on dense renders).
+    per_ray = n_segments * SEGMENT
+    group = torch.div(per_ray.cumsum(0) - per_ray, config.samples_per_pass, rounding_mode="floor")
+    ends = torch.unique_consecutive(group, return_counts=True)[1].cumsum(0).tolist()
+    for lo, hi in zip([0] + ends[:-1], ends):
+        ray, k, t, points = _packed_samples(
+            grid, occupancy if config.skip_empty else None, origins, directions, start, step,
+            first, last, segments[lo:hi], n_segments[lo:hi], lo,
+        )
+        # The last sample of a ray is cut at the box exit so path lengths are exact.
+        delta = (length.index_select(0, ray) - k * step).clamp(0.0, step)
+        if config.early_stop > 0 and ray.numel():
+            # Densities without gradient find where each ray's transmittance falls below
+            # ``early_stop``; only the samples before that are evaluated for the render.
+            with torch.no_grad():
+                probe = grid.activate_density(grid.interpolate(points)[:, 0])
+                optical = (probe * delta).clamp(max=MAX_SAMPLE_OPTICAL_DEPTH)
+                reached = _transmittance(optical, ray) > config.early_stop
+            samples += ray.numel()
+            pick = reached.nonzero().squeeze(1)
+            ray, t, points, delta = (x.index_select(0, pick) for x in (ray, t, points, delta))
+        if ray.numel() == 0:
             continue
-        samples += n_valid
-        raw = grid.interpolate(points[valid], sparse_grad=sparse_grad)
+        samples += ray.numel()
+        raw = grid.interpolate(points, sparse_grad=sparse_grad)
         sigma = grid.activate_density(raw[:, 0])
-        color = grid.activate_color(raw[:, 1:]) if color_features is None else grid.interpolate(
-            points[valid], color_features
-        )
-        optical = torch.zeros(valid.shape, device=device, dtype=sigma.dtype)
-        # The last segment of a ray is cut at the box exit so path lengths are exact.
-        delta = (t_far[rays, None] - t_near[rays, None] - k * step).clamp(0.0, step)[valid]
-        optical = optical.index_put(valid.nonzero(as_tuple=True), (sigma * delta).clamp(max=MAX_SAMPLE_OPTICAL_DEPTH))
-        inclusive = optical.cumsum(-1)
-        t_before = transmittance[rays, None] * torch.exp(-(inclusive - optical))
-        weights = t_before * (-torch.expm1(-optical))  # (A, W)
-        w_valid = weights[valid]
-        ray_of_sample = valid.nonzero(as_tuple=True)[0]
-        window_color = torch.zeros(rays.numel(), channels, device=device, dtype=color.dtype).index_add(
-            0, ray_of_sample, w_valid[:, None] * color.to(w_valid.dtype)
-        )
-        accumulated = accumulated.index_add(0, rays, window_color)
-        opacity = opacity.index_add(0, rays, weights.sum(-1))
-        depth = depth.index_add(0, rays, (weights * t).sum(-1))
-        transmittance = transmittance.index_put((rays,), transmittance[rays] * torch.exp(-inclusive[:, -1]))
+        color = grid.activate_color(raw[:, 1:]) if color_features is None else grid.interpolate(points, color_features)
+        optical = (sigma * delta).clamp(max=MAX_SAMPLE_OPTICAL_DEPTH)
+        weights = _transmittance(optical, ray) * (-torch.expm1(-optical))
+        accumulated = accumulated.index_add(0, ray, weights[:, None] * color.to(weights.dtype))
+        opacity = opacity.index_add(0, ray, weights)
+        depth = depth.index_add(0, ray, weights * t)
 
     rgb = accumulated + (1.0 - opacity)[:, None] * background
     expected_depth = torch.where(opacity > 1e-6, depth / opacity.clamp_min(1e-6), torch.zeros_like(depth))
     return RenderOutput(rgb, opacity, expected_depth, samples, candidates)
+
+
+def _packed_samples(grid, occupancy, origins, directions, start, step, first, last, segments, n_segments, ray_offset):
+    """The samples of the kept segments (in occupied cells when ``occupancy`` is given), packed ray
+    by ray in marching order: ray index, lattice index, distance and point of each.
+
+    Work is laid out per segment (16 samples wide) so the per-ray values are
+    gathered once per segment, not once per sample.
+    """
+    kept = torch.arange(segments.shape[1], device=segments.device)[None, :] < n_segments[:, None]
+    seg_ray = kept.nonzero()[:, 0] + ray_offset
+    k = segments[kept][:, None] * SEGMENT + torch.arange(SEGMENT, device=segments.device)  # (G, SEGMENT)
+    inside = (k >= first.index_select(0, seg_ray)[:, None]) & (k < last.index_select(0, seg_ray)[:, None])
+    t = start.index_select(0, seg_ray)[:, None] + k * step
+    points = origins.index_select(0, seg_ray)[:, None, :] + t[..., None] * directions.index_select(0, seg_ray)[:, None, :]
+    if occupancy is not None:
+        inside &= occupancy.occupied(grid.cell_index(points))
+    pick = inside.reshape(-1).nonzero().squeeze(1)
+    ray = seg_ray.index_select(0, torch.div(pick, SEGMENT, rounding_mode="floor"))
+    return ray, k.reshape(-1).index_select(0, pick), t.reshape(-1).index_select(0, pick), points.reshape(-1, 3).index_select(0, pick)
+
+
+def _transmittance(optical, ray):
+    """Transmittance in front of each packed sample: exp of minus the optical depth before it on its ray.
+
+    One float64 prefix sum over all rays, minus each ray's value at its first
+    sample: in float32 a ray behind rays of large optical depth would lose its own.
+    """
+    wide = optical.double()
+    before = wide.cumsum(0) - wide
+    starts = torch.ones_like(ray, dtype=torch.bool)
+    starts[1:] = ray[1:] != ray[:-1]
+    before = before - before[starts][starts.cumsum(0) - 1]
+    return torch.exp(-before).to(optical.dtype)
 
 
 @torch.no_grad()
