@@ -40,7 +40,7 @@ FULL_RUNS = [
     ("fast-128", 128, (300, 500, 2000), True, AVERAGED),
     ("fast-160", 160, (300, 500, 3000), True, AVERAGED),
     ("fast-160-last-iterate", 160, (300, 500, 3000), True, LAST_ITERATE),
-    ("fast-160-long", 160, (300, 500, 4500), True, AVERAGED),
+    ("fast-160-long", 160, (300, 500, 6000), True, AVERAGED),
     ("dense-128", 128, (300, 500, 800), False, LAST_ITERATE),
     ("skip-128", 128, (300, 500, 800), True, LAST_ITERATE),
 ]

@@ -127,6 +127,32 @@ def test_segment_skipping_keeps_every_sample_near_isolated_voxels(step_ratio):
     assert torch.allclose(sparse.opacity, dense.opacity, atol=2e-5)
 
 
+def test_a_ray_packed_behind_saturated_rays_keeps_its_own_transmittance():
+    # Rays share one prefix sum of optical depth; ray 1's ~1e6 must not swallow ray 2's ~1e-3 per sample.
+    grid = uniform_grid(1e-4, resolution=32)
+    with torch.no_grad():
+        grid.features[:, :, :16, 0] = 1e3  # z < 0: saturated, optical depth per sample clamped at 1e4
+    o = torch.tensor([[-3.0, 0.1, -0.7], [-3.0, 0.1, 0.7]])
+    d = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    config = RenderConfig(skip_empty=False, early_stop=0.0)
+    both = render_rays(grid, o, d, config)
+    alone = render_rays(grid, o[1:], d[1:], config)
+    sigma = 1e-4 * grid.density_scale
+    assert both.opacity[0].item() == 1.0
+    assert both.opacity[1].item() == pytest.approx(1 - math.exp(-sigma * 3.0), rel=1e-5)
+    assert torch.equal(both.opacity[1:], alone.opacity) and torch.equal(both.rgb[1:], alone.rgb)
+
+
+def test_early_stopping_changes_a_pixel_by_at_most_the_threshold_and_saves_samples():
+    grid = sphere_grid()
+    cams = Cameras.from_fov(look_at(torch.tensor([[0.3, -4.0, 0.8]])), 0.6, 24, 24)
+    exact = render_image(grid, cams, 0, RenderConfig(early_stop=0.0))
+    stopped = render_image(grid, cams, 0, RenderConfig(early_stop=1e-4))
+    assert (stopped.rgb - exact.rgb).abs().max() <= 1e-4
+    # The density-only pass probes every occupied sample; the evaluated ones stop at the surface.
+    assert stopped.samples < 2 * exact.samples
+
+
 def test_gradient_matches_finite_differences():
     torch.manual_seed(1)
     grid = VoxelGrid(4, activation="softplus")
