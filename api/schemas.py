@@ -31,7 +31,7 @@ class Strict(BaseModel):
 
 # ------------------------------------------------------------------ job parameters
 class ReconstructionParams(Strict):
-    """How G_i is fitted (SPEC §1). Jobs with equal values (and downsample / max_images) share one fit."""
+    """How G_i is fitted (SPEC §1). Jobs with equal values (and downsample / resample / max_images) share one fit."""
 
     preset: Literal["fast", "paper"] = Field(
         "fast", description="fast: 40→80→128 (the CPU budget); paper: the authors' 20→40→80→160 × 500 iterations"
@@ -99,6 +99,9 @@ class ExportParams(Strict):
 class JobParams(Strict):
     # input images
     downsample: int = Field(3, ge=1, le=64, description="integer image downsampling on load (paper: 800 px / 3)")
+    resample: Literal["bilinear", "box"] = Field(
+        "bilinear", description="the downsampling's antialiasing filter (bilinear: as the authors' loader)"
+    )
     max_images: int | None = Field(None, ge=1, le=100_000, description="use only the first N training images")
     # editing (SPEC §2)
     iterations: int = Field(8000, ge=0, le=200_000, description="edit iterations")

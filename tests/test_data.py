@@ -110,7 +110,8 @@ def test_instant_ngp_fox_downsampled():
 # ---------------------------------------------------------------- image handling
 
 
-def test_downsample_is_premultiplied_and_box_filtered(tmp_path):
+@pytest.mark.parametrize("resample", ["bilinear", "box"])
+def test_downsample_is_premultiplied(tmp_path, resample):
     root = tmp_path / "s"
     (root / "train").mkdir(parents=True)
     rgba = np.zeros((4, 4, 4), np.uint8)
@@ -118,11 +119,30 @@ def test_downsample_is_premultiplied_and_box_filtered(tmp_path):
     rgba[:, 2:] = (255, 0, 0, 0)  # fully transparent *red* on the right half: its colour must not leak
     Image.fromarray(rgba, "RGBA").save(root / "train" / "r_0.png")
     make_synthetic(root, frames=[{"file_path": "./train/r_0", "transform_matrix": IDENTITY}])
-    scene = load_scene(root, downsample=4)
+    scene = load_scene(root, downsample=4, resample=resample)
     assert scene.images.shape == (1, 1, 1, 3)
     # half black, half white background: 0.5 grey in every channel (no red tint)
     assert torch.allclose(scene.images[0, 0, 0], torch.full((3,), 0.5))
     assert torch.allclose(scene.alphas[0, 0, 0], torch.tensor(0.5))
+
+
+def test_bilinear_downsampling_matches_pillow_and_box_does_not(tmp_path):
+    """The default filter is PIL's antialiased bilinear resize of RGBA (the authors' loader), then white."""
+    root = tmp_path / "s"
+    (root / "train").mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    rgba = rng.integers(0, 256, (24, 32, 4), dtype=np.uint8)
+    rgba[..., 3] = np.where(rng.random((24, 32)) < 0.3, 0, rgba[..., 3])  # a third fully transparent
+    Image.fromarray(rgba, "RGBA").save(root / "train" / "r_0.png")
+    make_synthetic(root, frames=[{"file_path": "./train/r_0", "transform_matrix": IDENTITY}])
+    pillow = np.asarray(Image.fromarray(rgba, "RGBA").resize((8, 6), Image.BILINEAR), np.float32) / 255.0
+    expected = torch.from_numpy(pillow[..., :3] * pillow[..., 3:] + 1.0 - pillow[..., 3:])
+    # Pillow premultiplies in 8 bits; ours is float, so they agree to a few levels of 255.
+    error = (load_scene(root, downsample=4).images[0] - expected).abs()
+    assert error.max() < 3 / 255 and error.mean() < 1 / 255, (error.max(), error.mean())
+    assert (load_scene(root, downsample=4, resample="box").images[0] - expected).abs().mean() > 4 / 255
+    with pytest.raises(ValueError, match="resample must be one of bilinear, box"):
+        load_scene(root, downsample=4, resample="lanczos")
 
 
 def test_odd_size_crops_to_multiple_and_scales_intrinsics(tmp_path):

@@ -201,7 +201,7 @@ def test_bad_edit_words_are_422(client, dataset, root, body, message):
 def test_parameter_ranges_are_checked(client, dataset, root):
     scene = make_scene(client, dataset, root)
     for params in ({"iterations": -1}, {"render_size": 4}, {"guidance_scale": 0}, {"regulariser": "l3"},
-                   {"reconstruction": {"preset": "slow"}}, {"downsample": 0}):
+                   {"reconstruction": {"preset": "slow"}}, {"downsample": 0}, {"resample": "lanczos"}):
         response = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB, "params": params})
         assert response.status_code == 422, params
 
@@ -212,18 +212,22 @@ def test_jobs_share_a_reconstruction_per_parameter_set_and_cancel_when_queued(cl
     second = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a yarn doll of a mic",
                                            "params": {"downsample": 8, "iterations": 10}}).json()
     other = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB, "params": {"downsample": 4}}).json()
+    boxed = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB,
+                                          "params": {"downsample": 8, "resample": "box"}}).json()
     assert first["state"] == "queued" and first["params"]["iterations"] == 8000
+    assert first["params"]["resample"] == "bilinear"
     assert first["reconstruction"]["id"] == second["reconstruction"]["id"] != other["reconstruction"]["id"]
+    assert boxed["reconstruction"]["id"] not in (first["reconstruction"]["id"], other["reconstruction"]["id"])
     assert first["models"]["sds"] == "tiny (smoke test, random weights)"
     assert second["models"]["attention"] is None  # global edits never use the attention model
-    assert len(client.get(f"/v1/scenes/{scene['id']}/reconstructions").json()) == 2
+    assert len(client.get(f"/v1/scenes/{scene['id']}/reconstructions").json()) == 3
 
     canceled = client.post(f"/v1/jobs/{first['id']}/cancel")
     assert canceled.status_code == 200 and canceled.json()["state"] == "canceled"
     assert canceled.json()["finished_at"] is not None
     assert client.post(f"/v1/jobs/{first['id']}/cancel").json()["state"] == "canceled"
     listing = client.get("/v1/jobs", params={"state": "queued", "scene_id": scene["id"]}).json()
-    assert listing["total"] == 2 and {j["id"] for j in listing["items"]} == {second["id"], other["id"]}
+    assert listing["total"] == 3 and {j["id"] for j in listing["items"]} == {second["id"], other["id"], boxed["id"]}
 
 
 def test_reconstruction_creation_is_race_free(client, dataset, root):

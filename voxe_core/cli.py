@@ -118,6 +118,23 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _add_view_arguments(parser: argparse.ArgumentParser, split: str, downsample: int) -> None:
+    """Which dataset images a command reads, and how they are downsampled on load."""
+    parser.add_argument("--split", default=split)
+    parser.add_argument("--downsample", type=_positive_int, default=downsample,
+                        help=f"integer image downsampling on load (default {downsample})")
+    # voxe_core.data.RESAMPLE_FILTERS, spelt out: importing it here would load torch for --help.
+    parser.add_argument("--resample", choices=("bilinear", "box"), default="bilinear",
+                        help="the downsampling's antialiasing filter (bilinear: as the authors' loader)")
+    parser.add_argument("--max-images", type=_positive_int, default=None, help="use only the first N images")
+
+
+def _load_views(args: argparse.Namespace):
+    from voxe_core.data import load_scene
+
+    return load_scene(args.data, args.split, args.downsample, args.max_images, resample=args.resample)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="voxe", description="Vox-E voxel grids: reconstruct, render, export.")
     common = argparse.ArgumentParser(add_help=False)
@@ -127,9 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec = commands.add_parser("reconstruct", parents=[common], help="fit a voxel grid to posed images (SPEC §1)")
     rec.add_argument("data", type=Path, metavar="DATA_DIR", help="NeRF-synthetic or instant-ngp dataset folder")
     rec.add_argument("--out", type=Path, required=True, help="grid file to write (.safetensors)")
-    rec.add_argument("--split", default="train")
-    rec.add_argument("--downsample", type=_positive_int, default=4, help="integer image downsampling on load")
-    rec.add_argument("--max-images", type=_positive_int, default=None)
+    _add_view_arguments(rec, "train", 4)
     rec.add_argument("--preset", choices=("fast", "paper"), default="fast",
                      help="fast: the CPU budget (40→80→128); paper: the authors' 20→40→80→160 × 500")
     rec.add_argument("--resolution", type=_int_list, default=None, metavar="N[,N...]",
@@ -150,9 +165,7 @@ def build_parser() -> argparse.ArgumentParser:
     source = ren.add_mutually_exclusive_group(required=True)
     source.add_argument("--data", type=Path, metavar="DATA_DIR", help="render this dataset split's cameras")
     source.add_argument("--ring", type=_positive_int, metavar="N", help="render N views on a 360° ring instead")
-    ren.add_argument("--split", default="test")
-    ren.add_argument("--downsample", type=_positive_int, default=4)
-    ren.add_argument("--max-images", type=_positive_int, default=None)
+    _add_view_arguments(ren, "test", 4)
     ren.add_argument("--size", type=_positive_int, default=256, help="ring view size in pixels")
     ren.add_argument("--elevation", type=float, default=30.0, help="ring elevation in degrees")
     ren.add_argument("--out", type=Path, required=True, metavar="DIR")
@@ -227,9 +240,7 @@ def _add_edit_parsers(commands, common) -> None:
     ed.add_argument("--resume", type=Path, default=None, metavar="PATH", help="continue from this edit checkpoint")
     ed.add_argument("--preview-every", type=int, default=250, help="iterations between preview PNGs (0: none)")
     ed.add_argument("--data", type=Path, default=None, metavar="DATA_DIR", help="input views for image_l1 / image_l2")
-    ed.add_argument("--split", default="train")
-    ed.add_argument("--downsample", type=_positive_int, default=3, help="input view downsampling (800 px / 3 = 266)")
-    ed.add_argument("--max-images", type=_positive_int, default=None)
+    _add_view_arguments(ed, "train", 3)
 
     tiny = commands.add_parser(
         "build-tiny-model", parents=[common],
@@ -271,13 +282,11 @@ def _reconstruct_config(args):
 
 
 def cmd_reconstruct(args) -> int:
-    from voxe_core.data import load_scene
     from voxe_core.reconstruct import reconstruct
-
     from voxe_core.scene_grid import prepare_backbone
 
     config = _reconstruct_config(args)
-    scene = load_scene(args.data, args.split, args.downsample, args.max_images)
+    scene = _load_views(args)
     backbone, cameras, initial = prepare_backbone(args.backbone, scene.alphas, scene.cameras, config.resolutions[0])
     print(
         f"fitting {len(scene)} {scene.split} images of {scene.cameras.width}x{scene.cameras.height} "
@@ -313,11 +322,9 @@ def cmd_render(args) -> int:
     grid = _load_grid(args.grid)
     scene = None
     if args.data is not None:
-        from voxe_core.data import load_scene
-
         from voxe_core.scene_grid import dataset_cameras
 
-        scene = load_scene(args.data, args.split, args.downsample, args.max_images)
+        scene = _load_views(args)
         cameras = dataset_cameras(grid, scene.cameras)
         names = [f"{i:03d}_{Path(name).stem}.png" for i, name in enumerate(scene.names)]
     else:
@@ -445,10 +452,9 @@ def cmd_edit(args) -> int:
     grid = _load_grid(args.grid)
     views = None
     if args.data is not None and config.regulariser in IMAGE_REGULARISERS:
-        from voxe_core.data import load_scene
         from voxe_core.scene_grid import dataset_cameras
 
-        scene = load_scene(args.data, args.split, args.downsample, args.max_images)
+        scene = _load_views(args)
         views = (scene.images, dataset_cameras(grid, scene.cameras))
     model = args.model or SDS_MODEL_ID
     try:
@@ -615,9 +621,7 @@ def _add_evaluate_parser(commands, common) -> None:
     ev.add_argument("--offline", action="store_true", help="never contact the hub (as HF_HUB_OFFLINE=1)")
     ev.add_argument("--device", choices=("cpu", "cuda"), default=None, help="default: cuda when available")
     ev.add_argument("--data", type=Path, default=None, metavar="DATA_DIR", help="input views for FID_input")
-    ev.add_argument("--split", default="train")
-    ev.add_argument("--downsample", type=_positive_int, default=3)
-    ev.add_argument("--max-images", type=_positive_int, default=None)
+    _add_view_arguments(ev, "train", 3)
     ev.add_argument("--views", type=_positive_int, default=100, help="ring views (the paper: 100)")
     ev.add_argument("--elevation", type=float, default=30.0, help="ring elevation in degrees")
     ev.add_argument("--size", type=_positive_int, default=266, help="ring render size in pixels")
@@ -645,9 +649,7 @@ def cmd_evaluate(args) -> int:
         edits.append(EditSample(f"edit{k:02d}", prompt, _load_grid(Path(grid_path)).to(initial.bbox_min.device), mask))
     input_images = None
     if args.data is not None:
-        from voxe_core.data import load_scene
-
-        input_images = load_scene(args.data, args.split, args.downsample, args.max_images).images
+        input_images = _load_views(args).images
     model = args.clip_model or CLIP_MODEL_ID
     try:
         clip = ClipScorer.from_pretrained(model, device=args.device, local_files_only=True if args.offline else None)

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from PIL import Image
 
 from .cameras import Cameras
@@ -24,6 +25,7 @@ _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "came
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 _MIN_FOCAL = 1e-3  # pixels; below this the projection is numerically singular
 _SIXTEEN_BIT_MODES = ("I;16", "I;16L", "I;16B", "I;16N", "I")
+RESAMPLE_FILTERS = ("bilinear", "box")
 
 
 class DatasetError(ValueError):
@@ -92,11 +94,15 @@ def load_scene(
     max_images: int | None = None,
     holdout_every: int | None = None,
     confine_paths: bool = False,
+    resample: str = "bilinear",
 ) -> Scene:
     """Load one split of a dataset folder.
 
-    ``downsample`` is an integer box-filter factor (images are cropped to a multiple of
-    it at the right/bottom, which leaves the principal point where it was).
+    ``downsample`` is an integer factor (images are cropped to a multiple of it at the
+    right/bottom, which leaves the principal point where it was). ``resample`` is its
+    antialiasing filter: "bilinear" (a triangle of the factor's width, as PIL's and
+    torchvision's resize, which the authors' loader uses) or "box" (the mean of each
+    factor x factor block).
     ``holdout_every`` (instant-ngp only; NeRF-synthetic has its own split files): frames
     0, k, 2k, ... form "test" and the rest "train". ``max_images`` keeps the first k
     frames of the split. Frame indices in errors are positions in the json's ``frames``.
@@ -105,6 +111,8 @@ def load_scene(
     """
     if not isinstance(downsample, int) or downsample < 1:
         raise ValueError(f"downsample must be a positive integer, got {downsample!r}")
+    if resample not in RESAMPLE_FILTERS:
+        raise ValueError(f"resample must be one of {', '.join(RESAMPLE_FILTERS)}, got {resample!r}")
     if max_images is not None and max_images < 1:
         raise ValueError(f"max_images must be at least 1, got {max_images!r}")
     if holdout_every is not None and holdout_every < 2:
@@ -169,7 +177,7 @@ def load_scene(
                 f"image size {w}x{h} differs from frame {first} ({paths[first]!r}) size {size[0]}x{size[1]}; "
                 "all images of a split must share one size", i, image_path,
             )
-        rgb, alpha = _composite_downsampled(arr, downsample)
+        rgb, alpha = _composite_downsampled(arr, downsample, resample)
         images[slot] = torch.from_numpy(rgb)
         if alpha is not None:
             if alphas is None:
@@ -181,7 +189,7 @@ def load_scene(
     c2w = torch.from_numpy(poses[keep]).float()
     cams = Cameras(c2w, *(torch.from_numpy(intr[:, k]).float() for k in range(4)), W, H)
     if downsample > 1:
-        cams.width, cams.height = wd * downsample, hd * downsample  # the crop kept by the box filter
+        cams.width, cams.height = wd * downsample, hd * downsample  # the crop that was resampled
         cams = cams.scaled(1.0 / downsample)
     distortion = {k: top[k] for k in _DISTORTION_KEYS if k in top} or None
     aabb = meta.get("aabb_scale")
@@ -302,20 +310,26 @@ def _read_image(root: Path, file_path: str, where: _Where, frame: int) -> tuple[
         raise where(f"cannot read image {path.name} (not an image or damaged): {e}", frame, path) from e
 
 
-def _composite_downsampled(arr: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray | None]:
-    """Box-filter premultiplied RGBA, then composite on white.
+def _composite_downsampled(arr: np.ndarray, factor: int, resample: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """Downsample premultiplied RGBA, then composite on white.
 
-    Averaging premultiplied colour keeps transparent pixels' (arbitrary) colour out of
-    the edges; it equals compositing first and averaging after, without 8-bit rounding.
+    Filtering premultiplied colour keeps transparent pixels' (arbitrary) colour out of
+    the edges; it equals compositing first and filtering after, without 8-bit rounding.
     """
     h, w = arr.shape[0] // factor, arr.shape[1] // factor
     if arr.shape[2] == 4:
         arr = np.concatenate([arr[..., :3] * arr[..., 3:], arr[..., 3:]], axis=2)
     if factor > 1:
-        arr = arr[: h * factor, : w * factor].reshape(h, factor, w, factor, -1).mean(axis=(1, 3), dtype=np.float32)
+        arr = arr[: h * factor, : w * factor]
+        if resample == "box":
+            arr = arr.reshape(h, factor, w, factor, -1).mean(axis=(1, 3), dtype=np.float32)
+        else:
+            planes = torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1)[None]
+            planes = F.interpolate(planes, size=(h, w), mode="bilinear", antialias=True, align_corners=False)
+            arr = planes[0].permute(1, 2, 0).numpy()
     if arr.shape[2] == 3:
-        return np.ascontiguousarray(arr), None
-    alpha = arr[..., 3]
+        return np.ascontiguousarray(np.clip(arr, 0.0, 1.0)), None
+    alpha = np.clip(arr[..., 3], 0.0, 1.0)
     rgb = np.clip(arr[..., :3] + (1.0 - alpha[..., None]), 0.0, 1.0)
     return np.ascontiguousarray(rgb), np.ascontiguousarray(alpha)
 

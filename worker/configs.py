@@ -35,6 +35,7 @@ def reconstruction_params(params: dict, mesh_scene: bool = False) -> dict:
         **({} if route == "fit" else {"route": route}),
         "split": "train",
         "downsample": int(params.get("downsample", 3)),
+        "resample": params.get("resample", "bilinear"),
         "max_images": params.get("max_images"),
         "preset": rec.get("preset", "fast"),
         "resolution": rec.get("resolution"),
