@@ -26,6 +26,11 @@ SEGMENT = 16  # lattice samples per skipping segment (see _ray_segments)
 MAX_SAMPLE_OPTICAL_DEPTH = 1e4
 
 
+def optical_depth(sigma: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+    """sigma * delta per sample, clamped to ``MAX_SAMPLE_OPTICAL_DEPTH``."""
+    return (sigma * delta).clamp(max=MAX_SAMPLE_OPTICAL_DEPTH)
+
+
 @dataclass
 class RenderConfig:
     step_ratio: float = 0.5  # sample spacing in units of the smallest voxel edge
@@ -180,7 +185,7 @@ def _render_rays(grid, origins, directions, config, occupancy, generator, color_
             # ``early_stop``; only the samples before that are evaluated for the render.
             with torch.no_grad():
                 probe = grid.activate_density(grid.interpolate(points)[:, 0])
-                optical = (probe * delta).clamp(max=MAX_SAMPLE_OPTICAL_DEPTH)
+                optical = optical_depth(probe, delta)
                 reached = _transmittance(optical, ray) > config.early_stop
             samples += ray.numel()
             pick = reached.nonzero().squeeze(1)
@@ -191,7 +196,7 @@ def _render_rays(grid, origins, directions, config, occupancy, generator, color_
         raw = grid.interpolate(points, sparse_grad=sparse_grad)
         sigma = grid.activate_density(raw[:, 0])
         color = grid.activate_color(raw[:, 1:]) if color_features is None else grid.interpolate(points, color_features)
-        optical = (sigma * delta).clamp(max=MAX_SAMPLE_OPTICAL_DEPTH)
+        optical = optical_depth(sigma, delta)
         weights = _transmittance(optical, ray) * (-torch.expm1(-optical))
         accumulated = accumulated.index_add(0, ray, weights[:, None] * color.to(weights.dtype))
         opacity = opacity.index_add(0, ray, weights)

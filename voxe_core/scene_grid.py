@@ -36,7 +36,7 @@ import torch
 from voxe_core.cameras import NERF_SYNTHETIC_RADIUS, Cameras
 from voxe_core.edit import EditConfig
 from voxe_core.grid import Activation, Occupancy, VoxelGrid, default_density_scale
-from voxe_core.render import MAX_SAMPLE_OPTICAL_DEPTH, RenderConfig, RenderOutput, ray_box_intersection
+from voxe_core.render import RenderConfig, RenderOutput, optical_depth, ray_box_intersection
 from voxe_core.schedule import TimestepSchedule
 
 BACKBONES = ("relu_field", "scene")
@@ -219,7 +219,7 @@ class SceneGrid(VoxelGrid):
         if index[0].numel():
             raw = self.interpolate(points[index], sparse_grad=sparse_grad)
             sigma = self.activate_density(raw[:, 0])
-            optical = optical.index_put(index, (sigma * delta[index]).clamp(max=MAX_SAMPLE_OPTICAL_DEPTH))
+            optical = optical.index_put(index, optical_depth(sigma, delta[index]))
             values = (self.activate_color(raw[:, 1:]) if color_features is None
                       else self.interpolate(points[index], color_features))
             color = color.index_put(index, values.float())
