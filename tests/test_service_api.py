@@ -587,6 +587,29 @@ def test_route_auto_and_fit_keep_an_image_scenes_reconstruction_key():
     assert "route" not in reconstruction_params({"reconstruction": {"backbone": "scene"}}, mesh_scene=True)
 
 
+def test_reconstruction_key_follows_the_recipe_not_only_the_parameters(monkeypatch):
+    """A fit cached under an older fast() is not reused once the preset changes."""
+    from voxe_core.reconstruct import ReconstructConfig
+
+    from worker.configs import reconstruction_key, reconstruction_params
+
+    params = reconstruction_params({})
+    before = reconstruction_key(params)
+    assert reconstruction_key(reconstruction_params({})) == before  # deterministic
+    fast = ReconstructConfig.fast
+    monkeypatch.setattr(ReconstructConfig, "fast", classmethod(lambda cls, **kw: fast(**{"lr": 0.02, **kw})))
+    assert reconstruction_key(params) != before
+
+
+def test_reconstruction_iterations_that_fit_no_stage_count_are_a_422(client, dataset, root):
+    scene = make_scene(client, dataset, root)
+    body = {"scene_id": scene["id"], **JOB, "params": {"reconstruction": {"iterations": [10, 20]}}}
+    response = client.post("/v1/jobs", json=body)
+    assert response.status_code == 422, response.json()
+    assert "one value or one per stage (3 stages), got 2" in response.json()["detail"]
+    assert client.get(f"/v1/scenes/{scene['id']}/reconstructions").json() == []  # nothing half made
+
+
 def test_migrations_match_the_models(tmp_path):
     from alembic import command
     from alembic.config import Config

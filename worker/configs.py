@@ -8,7 +8,7 @@ import json
 
 from typing import TYPE_CHECKING
 
-if TYPE_CHECKING:  # the API imports this module for the cache key only; keep it light
+if TYPE_CHECKING:  # voxe_core is imported where it is used, so importing this module stays light
     from voxe_core.edit import EditConfig
     from voxe_core.reconstruct import ReconstructConfig
     from voxe_core.refine import RefineConfig
@@ -46,7 +46,15 @@ def reconstruction_params(params: dict, mesh_scene: bool = False) -> dict:
 
 
 def reconstruction_key(rec_params: dict) -> str:
-    return hashlib.sha256(json.dumps(rec_params, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+    """A hash of the parameters and of the recipe they resolve to today, so that a fit cached
+    before voxe_core's presets or defaults changed is refitted rather than reused.
+
+    Raises ValueError for parameters that resolve to no recipe (as ``reconstruct_config``).
+    """
+    recipe = dataclasses.asdict(reconstruct_config(rec_params, checkpoint_every=0))
+    del recipe["checkpoint_every"]  # how often progress is saved, not what is fitted
+    payload = {"params": rec_params, "recipe": recipe}
+    return hashlib.sha256(json.dumps(payload, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
 def reconstruct_config(rec_params: dict, checkpoint_every: int) -> "ReconstructConfig":

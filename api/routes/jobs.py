@@ -115,7 +115,10 @@ def _reconstruction_for(session: Session, scene_id: str, params: dict) -> Recons
     scene = session.get(Scene, scene_id)  # already loaded by the caller's 404 check
     check_route(scene, params)
     rec_params = reconstruction_params(params, mesh_scene=scene.format == MESH_FORMAT)
-    key = reconstruction_key(rec_params)
+    try:
+        key = reconstruction_key(rec_params)
+    except ValueError as exc:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"params.reconstruction: {exc}") from exc
     query = select(Reconstruction).where(Reconstruction.scene_id == scene_id, Reconstruction.params_key == key)
     rec = session.scalars(query).first()
     if rec is not None:
