@@ -1,7 +1,9 @@
 """Reconstruction speed against error on NeRF-synthetic mic (200 px, 25 train views, 20 test views).
 
 Each run trains in its own subprocess (so its peak RSS is its own), then renders
-the test views and scores them. Runs vary the final resolution, the iteration
+the test views and scores them. Training images and ground truth share one
+antialiasing filter (``--resample``; bilinear, as the authors' loader, unless
+asked), and every run also scores its renders against the other filter's ground truth. Runs vary the final resolution, the iteration
 budget and empty-space skipping; the skipping comparison also renders the same
 trained grid both ways. Writes bench/results/reconstruction.json and
 reconstruction.png (PSNR against training seconds).
@@ -10,6 +12,7 @@ reconstruction.png (PSNR against training seconds).
     python bench/reconstruction.py --quick    # a CI-sized subset (~5 min)
     python bench/reconstruction.py --ablations  # one recipe knob at a time (~25 min)
     python bench/reconstruction.py --only fast-160 skip-128  # rerun some; the other results are kept
+    python bench/reconstruction.py --resample box --only fast-160  # box-filtered images: row fast-160-box
 """
 
 from __future__ import annotations
@@ -209,9 +212,12 @@ def main() -> None:
     downsample = 8 if args.quick else 4
     # --only reruns some runs: the others keep their earlier results (each run names its commit and date).
     kept = json.loads(args.out.read_text()) if args.only and args.out.is_file() else []
-    labels = [r[0] for r in runs]
+    suffix = "" if args.resample == "bilinear" else f"-{args.resample}"
+    labels = [r[0] + suffix for r in runs]
     results = [r for r in kept if r["label"] not in labels]
-    for label, final, iterations, skipping, overrides in runs:
+    for base_label, final, iterations, skipping, overrides in runs:
+        # Runs on the box filter are rows of their own beside the default bilinear ones.
+        label = base_label if args.resample == "bilinear" else f"{base_label}-{args.resample}"
         spec = json.dumps([label, final, list(iterations), skipping, overrides, downsample, args.resample])
         out = subprocess.run([sys.executable, __file__, "--single", spec], capture_output=True, text=True, check=True)
         result = json.loads(out.stdout.strip().splitlines()[-1])
@@ -222,7 +228,7 @@ def main() -> None:
               f'render {result["render_seconds_per_view"]:.2f} s/view  RSS {result["peak_rss_mb"]:.0f} MB', flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     order = {r[0]: i for i, r in enumerate(FULL_RUNS + ABLATION_RUNS + QUICK_RUNS)}
-    results.sort(key=lambda r: order.get(r["label"], len(order)))
+    results.sort(key=lambda r: (order.get(r["label"].removesuffix("-box"), len(order)), r["label"]))
     args.out.write_text(json.dumps(results, indent=1))
     plot(results, args.out.with_suffix(".png"))
     print(f"wrote {args.out} and {args.out.with_suffix('.png')}")

@@ -160,13 +160,15 @@ def reconstruction_section(data, results: Path, report: Path) -> tuple[list[str]
         "Each run trains in its own process on the shared CPU (`CPU s`: its CPU seconds, which say how much of the "
         "wall time was its own); test PSNR/SSIM are over the held-out views. "
         "`samples/ray` counts grid evaluations per test ray with skipping on (`dense`: the same trained grid "
-        "rendered without skipping).", "",
+        "rendered without skipping). `filter`: the images' antialiasing filter for training and ground truth; "
+        "`other GT`: the same renders scored against the other filter's ground truth.", "",
     ]
     lines += table(
-        ["run", "scene", "grid", "iterations", "skipping", "train s", "CPU s", "PSNR dB", "SSIM", "samples/ray (dense)",
-         "render s/view (dense)", "peak RSS MB"],
+        ["run", "scene", "grid", "iterations", "skipping", "filter", "train s", "CPU s", "PSNR dB", "SSIM",
+         "other GT PSNR / SSIM", "samples/ray (dense)", "render s/view (dense)", "peak RSS MB"],
         [[r.get("label", "–"), r.get("scene"), r.get("resolution"), r.get("iterations"), r.get("skipping"),
-          r.get("seconds"), r.get("cpu_seconds", "–"), r.get("psnr"), fmt(r.get("ssim"), 4),
+          r.get("resample", "box"), r.get("seconds"), r.get("cpu_seconds", "–"), r.get("psnr"), fmt(r.get("ssim"), 4),
+          _other_ground_truth(r),
           f"{fmt(r.get('samples_per_ray'), 1)} ({fmt(r.get('dense_render_samples_per_ray'), 1)})",
           f"{fmt(r.get('render_seconds_per_view'), 3)} ({fmt(r.get('dense_render_render_seconds_per_view'), 3)})",
           fmt(r.get("peak_rss_mb"), 0)] for r in runs],
@@ -189,6 +191,13 @@ def reconstruction_section(data, results: Path, report: Path) -> tuple[list[str]
     ax.set_title("Reconstruction: PSNR vs seconds (o skipping, s dense)")
     lines += figure_link(fig, plot, report, "PSNR vs seconds")
     return lines, reconstruction_tradeoffs(runs)
+
+
+def _other_ground_truth(run: dict) -> str:
+    other = "box" if run.get("resample") == "bilinear" else "bilinear"
+    if run.get(f"psnr_{other}_gt") is None:
+        return "–"
+    return f"{other}: {run[f'psnr_{other}_gt']} / {fmt(run.get(f'ssim_{other}_gt'), 4)}"
 
 
 def reconstruction_tradeoffs(runs: list[dict]) -> list[str]:
