@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from voxe_core.cameras import Cameras, camera_rays, look_at
-from voxe_core.grid import VoxelGrid
+from voxe_core.grid import Occupancy, VoxelGrid
 from voxe_core.render import RenderConfig, ray_box_intersection, render_image, render_rays
 from voxe_core.tensorio import FormatError, save_tensors
 
@@ -250,3 +250,15 @@ def test_upsampling_preserves_trilinear_fields():
     points = torch.rand(100, 3) * 3 - 1.5
     assert torch.allclose(up.interpolate(points)[:, 0], grid.interpolate(points)[:, 0], atol=1e-5)
     assert up.resolution == (9, 9, 9)
+
+
+@pytest.mark.parametrize("shape,size", [((9, 7, 5), 1), ((9, 7, 5), 2), ((13, 4, 10), 3), ((8, 8, 8), 16)])
+def test_dilated_blocks_mark_every_block_with_an_occupied_cell_in_reach(shape, size):
+    """Block b is marked iff some occupied cell lies in b or one of its 26 neighbours (partial blocks included)."""
+    cells = torch.rand(shape, generator=torch.Generator().manual_seed(size)) < 0.03
+    blocks = Occupancy(cells, torch.zeros(3), torch.ones(3)).dilated_blocks(size)
+    assert blocks.shape == tuple(-(-n // size) for n in shape)
+    occupied = cells.nonzero() // size
+    for b in torch.cartesian_prod(*(torch.arange(n) for n in blocks.shape)):
+        in_reach = bool(((occupied - b).abs() <= 1).all(1).any())
+        assert bool(blocks[tuple(b)]) == in_reach, b

@@ -62,8 +62,14 @@ class Occupancy:
         cells of it, which lets the renderer drop whole ray segments at once.
         """
         if size not in self._dilated_blocks:
-            pooled = F.max_pool3d(self.cells[None, None].float(), size, stride=size, ceil_mode=True)
-            self._dilated_blocks[size] = F.max_pool3d(pooled, 3, stride=1, padding=1)[0, 0] > 0
+            # Pooled as bytes (a float copy of the cells would be 0.5 GB at 512³); only the
+            # small block grid is dilated in float.
+            blocks = [-(-n // size) for n in self.cells.shape]
+            padded = self.cells.new_zeros([b * size for b in blocks])
+            padded[: self.cells.shape[0], : self.cells.shape[1], : self.cells.shape[2]] = self.cells
+            pooled = padded.view(blocks[0], size, blocks[1], size, blocks[2], size).any(5).any(3).any(1)
+            dilated = F.max_pool3d(pooled[None, None].float(), 3, stride=1, padding=1)[0, 0] > 0
+            self._dilated_blocks[size] = dilated
         return self._dilated_blocks[size]
 
     def occupied(self, cell: torch.Tensor) -> torch.Tensor:
@@ -72,7 +78,7 @@ class Occupancy:
 
     @property
     def fraction(self) -> float:
-        return float(self.cells.float().mean())
+        return self.cells.count_nonzero().item() / self.cells.numel()
 
     @property
     def empty(self) -> bool:
