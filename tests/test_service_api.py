@@ -9,6 +9,7 @@ import zipfile
 from pathlib import Path
 
 import pytest
+import torch
 from fastapi.testclient import TestClient
 
 from service_helpers import MIC, service_env, small_mic, zip_folder
@@ -599,6 +600,23 @@ def test_reconstruction_key_follows_the_recipe_not_only_the_parameters(monkeypat
     fast = ReconstructConfig.fast
     monkeypatch.setattr(ReconstructConfig, "fast", classmethod(lambda cls, **kw: fast(**{"lr": 0.02, **kw})))
     assert reconstruction_key(params) != before
+
+
+def test_reconstructions_stored_before_the_resample_option_load_box_filtered_images(monkeypatch):
+    """A row written before ``resample`` existed resumes on the images it was fitted on."""
+    import worker.tasks as tasks
+    from voxe_core.data import load_scene
+
+    from worker.configs import reconstruction_params
+
+    monkeypatch.setattr(tasks, "_scene", lambda job: None)
+    monkeypatch.setattr(tasks.runtime, "scene_dataset_dir", lambda scene, settings, storage: MIC)
+    current = reconstruction_params({"downsample": 16, "max_images": 2})
+    legacy = {k: v for k, v in current.items() if k != "resample"}
+    assert current["resample"] == "bilinear"
+    for params, resample in ((legacy, "box"), (current, "bilinear")):
+        loaded = tasks._load_images(None, params, None, None).images
+        assert torch.equal(loaded, load_scene(MIC, "train", 16, 2, resample=resample).images), resample
 
 
 def test_reconstruction_iterations_that_fit_no_stage_count_are_a_422(client, dataset, root):

@@ -114,9 +114,9 @@ def _load_images(job: Job, rec_params: dict, settings, storage):
     from voxe_core.data import load_scene
 
     root = runtime.scene_dataset_dir(_scene(job), settings, storage)
-    return load_scene(
-        root, rec_params["split"], rec_params["downsample"], rec_params["max_images"], resample=rec_params["resample"]
-    )
+    # Reconstructions stored before the option existed were fitted on box-filtered images.
+    resample = rec_params.get("resample", "box")
+    return load_scene(root, rec_params["split"], rec_params["downsample"], rec_params["max_images"], resample=resample)
 
 
 def _preview(job_id: str, grid, settings, storage, device: str, image=None) -> None:
