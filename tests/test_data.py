@@ -127,15 +127,15 @@ def test_downsample_is_premultiplied(tmp_path, resample):
 
 
 def test_bilinear_downsampling_matches_pillow_and_box_does_not(tmp_path):
-    """The default filter is PIL's antialiased bilinear resize of RGBA (the authors' loader), then white."""
+    """The default filter is PIL's antialiased bilinear resize of the cropped RGBA (the authors' loader), then white."""
     root = tmp_path / "s"
     (root / "train").mkdir(parents=True)
     rng = np.random.default_rng(0)
-    rgba = rng.integers(0, 256, (24, 32, 4), dtype=np.uint8)
-    rgba[..., 3] = np.where(rng.random((24, 32)) < 0.3, 0, rgba[..., 3])  # a third fully transparent
+    rgba = rng.integers(0, 256, (26, 35, 4), dtype=np.uint8)  # not a multiple of 4: cropped to 24 x 32 first
+    rgba[..., 3] = np.where(rng.random((26, 35)) < 0.3, 0, rgba[..., 3])  # a third fully transparent
     Image.fromarray(rgba, "RGBA").save(root / "train" / "r_0.png")
     make_synthetic(root, frames=[{"file_path": "./train/r_0", "transform_matrix": IDENTITY}])
-    pillow = np.asarray(Image.fromarray(rgba, "RGBA").resize((8, 6), Image.BILINEAR), np.float32) / 255.0
+    pillow = np.asarray(Image.fromarray(rgba[:24, :32], "RGBA").resize((8, 6), Image.BILINEAR), np.float32) / 255.0
     expected = torch.from_numpy(pillow[..., :3] * pillow[..., 3:] + 1.0 - pillow[..., 3:])
     # Pillow premultiplies in 8 bits; ours is float, so they agree to a few levels of 255.
     error = (load_scene(root, downsample=4).images[0] - expected).abs()

@@ -235,7 +235,7 @@ def test_cli_picks_the_scene_backbone_for_photos_and_renders_in_its_frame(tmp_pa
 
 
 # ----------------------------------------------------------------- service parameters
-def test_job_parameter_chooses_the_backbone_and_auto_keeps_old_cache_keys():
+def test_job_parameter_chooses_the_backbone_and_auto_shares_the_default_fit():
     from pydantic import ValidationError
 
     from api.schemas import ReconstructionParams
@@ -245,10 +245,10 @@ def test_job_parameter_chooses_the_backbone_and_auto_keeps_old_cache_keys():
     assert ReconstructionParams(backbone="scene").backbone == "scene"
     with pytest.raises(ValidationError, match="backbone"):
         ReconstructionParams(backbone="dvgo")
-    legacy = reconstruction_key(reconstruction_params({}))
-    assert reconstruction_key(reconstruction_params({"reconstruction": {"backbone": "auto"}})) == legacy
+    default = reconstruction_key(reconstruction_params({}))
+    assert reconstruction_key(reconstruction_params({"reconstruction": {"backbone": "auto"}})) == default
     assert reconstruction_params({"reconstruction": {"backbone": "scene"}})["backbone"] == "scene"
-    assert reconstruction_key(reconstruction_params({"reconstruction": {"backbone": "relu_field"}})) != legacy
+    assert reconstruction_key(reconstruction_params({"reconstruction": {"backbone": "relu_field"}})) != default
 
 
 def test_dataset_cameras_move_into_a_scene_grids_frame_only():

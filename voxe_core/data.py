@@ -100,9 +100,10 @@ def load_scene(
 
     ``downsample`` is an integer factor (images are cropped to a multiple of it at the
     right/bottom, which leaves the principal point where it was). ``resample`` is its
-    antialiasing filter: "bilinear" (a triangle of the factor's width, as PIL's and
-    torchvision's resize, which the authors' loader uses) or "box" (the mean of each
-    factor x factor block).
+    antialiasing filter on that crop: "bilinear" (a triangle of the factor's width: PIL's
+    and torchvision's resize, which the authors' loader uses; where the size is not a
+    multiple, theirs resizes the uncropped image by a slightly larger factor) or "box"
+    (the mean of each factor x factor block).
     ``holdout_every`` (instant-ngp only; NeRF-synthetic has its own split files): frames
     0, k, 2k, ... form "test" and the rest "train". ``max_images`` keeps the first k
     frames of the split. Frame indices in errors are positions in the json's ``frames``.

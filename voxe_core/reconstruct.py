@@ -81,7 +81,11 @@ class ReconstructConfig:
 
 
 def _stage_data(images: torch.Tensor, cameras: Cameras, downsample: int):
-    """All rays and target colours of the images resampled for one stage."""
+    """All rays and target colours of the images resampled for one stage.
+
+    Coarse stages average blocks of the loaded images (already antialiased by the loader's
+    filter); the final stage (downsample 1) trains on the loaded images themselves.
+    """
     n, h, w, _ = images.shape
     height, width = max(1, h // downsample), max(1, w // downsample)
     if (height, width) != (h, w):

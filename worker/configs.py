@@ -27,7 +27,7 @@ def reconstruction_route(params: dict, mesh_scene: bool) -> str:
 def reconstruction_params(params: dict, mesh_scene: bool = False) -> dict:
     """The part of a job's parameters that determines G_i (the reconstruction cache key)."""
     rec = dict(params.get("reconstruction") or {})
-    # "auto" (and route "fit") add nothing, so fits made before these choices existed keep their keys.
+    # "auto" (and route "fit") add nothing, so jobs that leave them out and jobs that name them share a fit.
     backbone = {} if rec.get("backbone", "auto") == "auto" else {"backbone": rec["backbone"]}
     route = reconstruction_route(params, mesh_scene)
     return {
@@ -52,7 +52,8 @@ def reconstruction_key(rec_params: dict) -> str:
     Raises ValueError for parameters that resolve to no recipe (as ``reconstruct_config``).
     """
     recipe = dataclasses.asdict(reconstruct_config(rec_params, checkpoint_every=0))
-    del recipe["checkpoint_every"]  # how often progress is saved, not what is fitted
+    # How often progress is saved and how much memory a pass may hold: not what is fitted.
+    del recipe["checkpoint_every"], recipe["render"]["samples_per_pass"], recipe["render"]["chunk_rays"]
     payload = {"params": rec_params, "recipe": recipe}
     return hashlib.sha256(json.dumps(payload, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
