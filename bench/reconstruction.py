@@ -3,12 +3,13 @@
 Each run trains in its own subprocess (so its peak RSS is its own), then renders
 the test views and scores them. Training images and ground truth share one
 antialiasing filter (``--resample``; bilinear, as the authors' loader, unless
-asked), and every run also scores its renders against the other filter's ground truth. Runs vary the final resolution, the iteration
-budget and empty-space skipping; the skipping comparison also renders the same
-trained grid both ways. Writes bench/results/reconstruction.json and
-reconstruction.png (PSNR against training seconds).
+asked), and every run also scores its renders against the other filter's ground
+truth. Runs vary the final resolution, the iteration budget and empty-space
+skipping; the skipping comparison also renders the same trained grid both ways.
+Writes bench/results/reconstruction.json and reconstruction.png (PSNR against
+training seconds).
 
-    python bench/reconstruction.py            # the full table (~1 h on 2 cores)
+    python bench/reconstruction.py            # the full table (~20 min to > 1 h on 2 cores)
     python bench/reconstruction.py --quick    # a CI-sized subset (~5 min)
     python bench/reconstruction.py --ablations  # one recipe knob at a time (~25 min)
     python bench/reconstruction.py --only fast-160 skip-128  # rerun some; the other results are kept
@@ -27,6 +28,8 @@ import time
 from pathlib import Path
 
 import torch
+
+from voxe_core.data import RESAMPLE_FILTERS
 
 HERE = Path(__file__).resolve().parent
 DATA = HERE.parent.parent / "shared" / "data" / "nerf_synthetic_mic"
@@ -195,7 +198,7 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="CI-sized subset at 100 px")
     parser.add_argument("--ablations", action="store_true", help="one recipe knob at a time (160³, 1,500 final iterations)")
     parser.add_argument("--only", nargs="*", help="labels to run; their results replace those runs in --out")
-    parser.add_argument("--resample", choices=("bilinear", "box"), default="bilinear",
+    parser.add_argument("--resample", choices=RESAMPLE_FILTERS, default=RESAMPLE_FILTERS[0],
                         help="the images' antialiasing filter, for training and ground truth alike "
                              "(bilinear: the authors' loader, as the issue's reference figures)")
     parser.add_argument("--out", type=Path, default=RESULTS / "reconstruction.json")
@@ -212,12 +215,11 @@ def main() -> None:
     downsample = 8 if args.quick else 4
     # --only reruns some runs: the others keep their earlier results (each run names its commit and date).
     kept = json.loads(args.out.read_text()) if args.only and args.out.is_file() else []
+    # Runs on the box filter are rows of their own beside the default bilinear ones.
     suffix = "" if args.resample == "bilinear" else f"-{args.resample}"
     labels = [r[0] + suffix for r in runs]
     results = [r for r in kept if r["label"] not in labels]
-    for base_label, final, iterations, skipping, overrides in runs:
-        # Runs on the box filter are rows of their own beside the default bilinear ones.
-        label = base_label if args.resample == "bilinear" else f"{base_label}-{args.resample}"
+    for label, (_, final, iterations, skipping, overrides) in zip(labels, runs):
         spec = json.dumps([label, final, list(iterations), skipping, overrides, downsample, args.resample])
         out = subprocess.run([sys.executable, __file__, "--single", spec], capture_output=True, text=True, check=True)
         result = json.loads(out.stdout.strip().splitlines()[-1])
