@@ -145,6 +145,16 @@ def test_bilinear_downsampling_matches_pillow_and_box_does_not(tmp_path):
         load_scene(root, downsample=4, resample="lanczos")
 
 
+def test_bilinear_downsampling_keeps_white_at_most_one(tmp_path):
+    """Float32 filter weights can sum to an ulp above 1; images stay in [0, 1] all the same."""
+    root = tmp_path / "s"
+    (root / "train").mkdir(parents=True)
+    Image.fromarray(np.full((64, 64, 3), 255, np.uint8), "RGB").save(root / "train" / "r_0.png")
+    make_synthetic(root, frames=[{"file_path": "./train/r_0", "transform_matrix": IDENTITY}])
+    images = load_scene(root, downsample=4).images
+    assert images.max() <= 1.0 and torch.allclose(images, torch.ones_like(images))
+
+
 def test_odd_size_crops_to_multiple_and_scales_intrinsics(tmp_path):
     root = make_ngp(tmp_path / "s", n=2, size=(9, 7), cx=4.5, cy=3.5)
     scene = load_scene(root, downsample=2)

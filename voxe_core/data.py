@@ -327,10 +327,11 @@ def _composite_downsampled(arr: np.ndarray, factor: int, resample: str) -> tuple
         else:
             planes = torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1)[None]
             planes = F.interpolate(planes, size=(h, w), mode="bilinear", antialias=True, align_corners=False)
-            arr = planes[0].permute(1, 2, 0).numpy()
+            # Its weights are computed in float32: a constant 1 can come back an ulp above 1.
+            arr = np.clip(planes[0].permute(1, 2, 0).numpy(), 0.0, 1.0)
     if arr.shape[2] == 3:
-        return np.ascontiguousarray(np.clip(arr, 0.0, 1.0)), None
-    alpha = np.clip(arr[..., 3], 0.0, 1.0)
+        return np.ascontiguousarray(arr), None
+    alpha = arr[..., 3]
     rgb = np.clip(arr[..., :3] + (1.0 - alpha[..., None]), 0.0, 1.0)
     return np.ascontiguousarray(rgb), np.ascontiguousarray(alpha)
 
