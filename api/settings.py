@@ -16,8 +16,7 @@ from typing import Literal
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from voxe_core.evaluate import CLIP_MODEL_ID
-from voxe_core.guidance import ATTENTION_MODEL_ID, SDS_MODEL_ID
+from voxe_core.constants import ATTENTION_MODEL_ID, CLIP_MODEL_ID, SDS_MODEL_ID
 
 TINY_MODEL = "tiny"
 TINY_MODEL_LABEL = "tiny (smoke test, random weights)"

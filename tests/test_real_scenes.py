@@ -239,7 +239,7 @@ def test_job_parameter_chooses_the_backbone_and_auto_shares_the_default_fit():
     from pydantic import ValidationError
 
     from api.schemas import ReconstructionParams
-    from worker.configs import reconstruction_key, reconstruction_params
+    from voxe_core.presets import reconstruction_key, reconstruction_params
 
     assert ReconstructionParams().backbone == "auto"
     assert ReconstructionParams(backbone="scene").backbone == "scene"

@@ -577,7 +577,7 @@ def test_route_voxelize_on_an_image_scene_is_a_422_naming_the_field(client, data
 
 
 def test_route_auto_and_fit_keep_an_image_scenes_reconstruction_key():
-    from worker.configs import reconstruction_params
+    from voxe_core.presets import reconstruction_params
 
     plain = reconstruction_params({})
     assert "route" not in plain
@@ -592,7 +592,7 @@ def test_reconstruction_key_follows_the_recipe_not_only_the_parameters(monkeypat
     """A fit cached under an older fast() is not reused once the preset changes."""
     from voxe_core.reconstruct import ReconstructConfig
 
-    from worker.configs import reconstruction_key, reconstruction_params
+    from voxe_core.presets import reconstruction_key, reconstruction_params
 
     params = reconstruction_params({})
     before = reconstruction_key(params)
@@ -607,7 +607,7 @@ def test_reconstructions_stored_before_the_resample_option_load_box_filtered_ima
     import worker.tasks as tasks
     from voxe_core.data import load_scene
 
-    from worker.configs import reconstruction_params
+    from voxe_core.presets import reconstruction_params
 
     monkeypatch.setattr(tasks, "_scene", lambda job: None)
     monkeypatch.setattr(tasks.runtime, "scene_dataset_dir", lambda scene, settings, storage: MIC)

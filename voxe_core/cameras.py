@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import torch
 
-NERF_SYNTHETIC_RADIUS = 4.0311
+from voxe_core.constants import NERF_SYNTHETIC_RADIUS  # noqa: F401 - re-exported
 
 
 @dataclass

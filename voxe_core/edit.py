@@ -49,7 +49,7 @@ from typing import Callable
 import torch
 
 from voxe_core.cameras import NERF_SYNTHETIC_RADIUS, Cameras, camera_rays, pixel_rays, random_hemisphere_poses, spherical_poses
-from voxe_core.export import NERF_SYNTHETIC_FOV_X
+from voxe_core.constants import NERF_SYNTHETIC_FOV_X
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance import DEFAULT_GUIDANCE_SCALE, RENDER_PREFIX, VIEW_WORDS, Guidance, edit_prompt, view_word
 from voxe_core.losses import (

@@ -38,6 +38,7 @@ from typing import Protocol, Sequence
 import numpy as np
 import torch
 
+from voxe_core.constants import CLIP_MODEL_ID, INCEPTION_FILE  # noqa: F401 - re-exported
 from voxe_core.export import render_views, save_png, to_uint8, turntable_cameras
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance import ModelNotAvailableError, _loading_errors, _offline_env, edit_prompt
@@ -45,8 +46,6 @@ from voxe_core.metrics import SSIM_WINDOW, psnr, ssim
 from voxe_core.progress import Callbacks, Progress
 from voxe_core.render import RenderConfig, render_image
 
-CLIP_MODEL_ID = "openai/clip-vit-base-patch32"
-INCEPTION_FILE = "inception-2015-12-05.pt"
 INCEPTION_URL = "https://nvlabs-fi-cdn.nvidia.com/stylegan2-ada-pytorch/pretrained/metrics/inception-2015-12-05.pt"
 PAPER_RING_VIEWS = 100
 SOURCE_TEMPLATE = "a render of a {object}"

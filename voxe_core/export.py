@@ -16,12 +16,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from voxe_core.cameras import NERF_SYNTHETIC_RADIUS, Cameras, ring_poses
+from voxe_core.cameras import Cameras, ring_poses
+from voxe_core.constants import NERF_SYNTHETIC_FOV_X, NERF_SYNTHETIC_RADIUS  # noqa: F401 - FOV re-exported
 from voxe_core.grid import VoxelGrid
 from voxe_core.progress import Callbacks, Progress
 from voxe_core.render import RenderConfig, render_image
 
-NERF_SYNTHETIC_FOV_X = 0.6911112070083618  # camera_angle_x of the NeRF-synthetic scenes
 VIDEO_SUFFIXES = (".mp4", ".gif")
 MESH_SUFFIXES = (".ply", ".glb")
 _QUERY_CHUNK = 1 << 18  # points per grid query when sampling a mesh or a resampled lattice

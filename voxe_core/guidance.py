@@ -47,11 +47,7 @@ from typing import Protocol, Sequence, runtime_checkable
 import torch
 import torch.nn.functional as F
 
-SDS_MODEL_ID = "stabilityai/stable-diffusion-2-base"
-"""The model the authors' code uses for SDS (the paper cites SD 2.1)."""
-
-ATTENTION_MODEL_ID = "CompVis/stable-diffusion-v1-4"
-"""The model the authors use for cross-attention maps."""
+from voxe_core.constants import ATTENTION_MODEL_ID, SDS_MODEL_ID  # noqa: F401 - re-exported
 
 DEFAULT_GUIDANCE_SCALE = 100.0
 DEFAULT_ATTENTION_TIMESTEP = 200

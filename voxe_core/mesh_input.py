@@ -30,7 +30,7 @@ import torch
 import torch.nn.functional as F
 
 from voxe_core.cameras import Cameras, random_hemisphere_poses
-from voxe_core.export import NERF_SYNTHETIC_FOV_X
+from voxe_core.constants import NERF_SYNTHETIC_FOV_X
 from voxe_core.grid import DEFAULT_BOX, VoxelGrid
 
 MESH_INPUT_SUFFIXES = (".obj", ".ply")

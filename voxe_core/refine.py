@@ -58,6 +58,7 @@ import torch
 import torch.nn.functional as F
 
 from voxe_core.cameras import Cameras, camera_rays, random_hemisphere_poses
+from voxe_core.constants import NERF_SYNTHETIC_FOV_X
 from voxe_core.grid import Occupancy, VoxelGrid
 from voxe_core.guidance import ATTENTION_MODEL_ID, DEFAULT_ATTENTION_TIMESTEP, edit_prompt
 from voxe_core.progress import Callbacks, Progress
@@ -66,7 +67,6 @@ from voxe_core.tensorio import FormatError, load_tensors, save_tensors
 
 MASK_FORMAT_VERSION = 1
 PROBABILITY_FORMAT_VERSION = 1
-NERF_SYNTHETIC_FOV_X = 0.6911112070083618  # camera_angle_x of the NeRF-synthetic scenes
 
 
 class SegmentationError(ValueError):

@@ -33,7 +33,7 @@ from api.storage import StoredObject, get_storage
 from voxe_core.progress import Callbacks, Progress, StageCancelled
 from worker import runtime
 from worker.celery_app import app, is_sql_broker, stage_chain
-from worker.configs import edit_config, reconstruct_config, refine_config
+from voxe_core.presets import edit_config, reconstruct_config, refine_config
 from worker.runtime import JobSkipped, StageCallbacks
 
 log = logging.getLogger("voxe.worker")

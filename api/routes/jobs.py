@@ -23,7 +23,7 @@ from api.schemas import JobCreate, JobOut, JobReconstruction, JobState, Models, 
 from api.settings import Settings, model_label
 from api.uploads import MESH_FORMAT
 from worker.celery_app import stage_chain
-from worker.configs import reconstruction_key, reconstruction_params
+from voxe_core.presets import reconstruction_key, reconstruction_params
 
 log = logging.getLogger("voxe.api")
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])

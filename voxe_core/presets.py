@@ -1,4 +1,4 @@
-"""Job parameters (the API's JSON, see api.schemas.JobParams) -> voxe_core stage configs."""
+"""Job parameters (the API's JSON, see api.schemas.JobParams) -> voxe_core stage configs: the one place presets resolve."""
 
 from __future__ import annotations
 
