@@ -1,6 +1,7 @@
 """Request and response bodies of the /v1 API (pydantic 2).
 
-Job parameters are typed with the paper's defaults (SPEC §1-§3) and forbid unknown
+Job parameters are typed with the paper's defaults (SPEC §1-§3), read from ``voxe_core.presets`` and
+``voxe_core.constants`` (torch-free) so the CLI and the service share one set, and forbid unknown
 fields, so a misspelt parameter is a 422 naming it instead of a silently ignored value.
 """
 
@@ -12,6 +13,9 @@ from datetime import datetime
 from typing import Annotated, Generic, Literal, TypeVar
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator, model_serializer, model_validator
+
+from voxe_core import constants as paper
+from voxe_core import presets
 
 T = TypeVar("T")
 
@@ -34,7 +38,7 @@ class ReconstructionParams(Strict):
     """How G_i is fitted (SPEC §1). Jobs with equal values (and downsample / resample / max_images) share one fit."""
 
     preset: Literal["fast", "paper"] = Field(
-        "fast", description="fast: 40→80→128 (the CPU budget); paper: the authors' 20→40→80→160 × 500 iterations"
+        presets.RECONSTRUCTION_PRESET, description="fast: 40→80→128 (the CPU budget); paper: the authors' 20→40→80→160 × 500 iterations"
     )
     resolution: int | None = Field(
         None, ge=4, le=512, description="final grid resolution; earlier stages are scaled in proportion"
@@ -43,7 +47,7 @@ class ReconstructionParams(Strict):
         None, description="iterations of the final stage, or one value per stage (the preset's otherwise)"
     )
     rays_per_step: int | None = Field(None, ge=1, le=1 << 20)
-    seed: int = Field(0, ge=0, le=MAX_SEED)
+    seed: int = Field(presets.SEED, ge=0, le=MAX_SEED)
     backbone: Literal["auto", "relu_field", "scene"] = Field(
         "auto", description="relu_field: objects on a transparent background; scene: captured photos with a "
         "background (DVGO-style, SPEC §5); auto: from the images' alpha"
@@ -71,52 +75,65 @@ class ReconstructionParams(Strict):
 class RefineParams(Strict):
     """Spatial refinement of local edits (SPEC §3)."""
 
-    iterations: int = Field(1500, ge=0, le=100_000, description="fitting iterations of the 3D attention grids")
-    lr: float = Field(0.035, gt=0, le=10)
-    tv_weight: float = Field(0.01, ge=0, le=1e6)
+    iterations: int = Field(paper.REFINE_ITERATIONS, ge=0, le=100_000, description="fitting iterations of the 3D attention grids")
+    lr: float = Field(paper.REFINE_LR, gt=0, le=10)
+    tv_weight: float = Field(paper.REFINE_TV_WEIGHT, ge=0, le=1e6)
     render_size: int | None = Field(None, ge=8, le=1024, description="attention render size (default: the edit's)")
-    views: int = Field(32, ge=1, le=1000, description="random upper-hemisphere poses whose 2D attention maps are lifted")
-    rays_per_step: int = Field(8192, ge=1, le=1 << 20)
-    edit_seeds: int = Field(300, ge=0, le=10_000_000, description="top voxels by P_edit tied to the 'edit' terminal")
-    object_seeds: int = Field(200, ge=0, le=10_000_000,
+    views: int = Field(paper.REFINE_VIEWS, ge=1, le=1000,
+                       description="random upper-hemisphere poses whose 2D attention maps are lifted")
+    rays_per_step: int = Field(paper.REFINE_RAYS_PER_STEP, ge=1, le=1 << 20)
+    edit_seeds: int = Field(paper.EDIT_SEEDS, ge=0, le=10_000_000,
+                            description="top voxels by P_edit tied to the 'edit' terminal")
+    object_seeds: int = Field(paper.OBJECT_SEEDS, ge=0, le=10_000_000,
                               description="top voxels by P_object tied to the 'object' terminal")
-    sigma: float = Field(0.1, gt=0, le=1e6, description="colour scale of the pairwise weights")
-    smoothness: float = Field(5.0, ge=0, le=1e6, description="graph-cut smoothness weight λ")
+    sigma: float = Field(paper.CUT_SIGMA, gt=0, le=1e6, description="colour scale of the pairwise weights")
+    smoothness: float = Field(paper.CUT_SMOOTHNESS, ge=0, le=1e6, description="graph-cut smoothness weight λ")
 
 
 class ExportParams(Strict):
-    views: int = Field(8, ge=0, le=360, description="PNG renders on a ring around the object")
-    view_size: int = Field(256, ge=8, le=2048)
-    turntable_frames: int = Field(100, ge=1, le=1000)
-    turntable_size: int = Field(256, ge=8, le=2048)
-    elevation: float = Field(30.0, ge=-89, le=89)
-    fps: float = Field(30.0, gt=0, le=120)
-    gif: bool = True
-    mesh: bool = True
-    mesh_resolution: int | None = Field(None, ge=2, le=1024)
+    """What the export stage writes (``voxe_core.presets.ExportConfig``)."""
+
+    views: int = Field(presets.ExportConfig.views, ge=0, le=360, description="PNG renders on a ring around the object")
+    view_size: int = Field(presets.ExportConfig.view_size, ge=8, le=2048)
+    turntable_frames: int = Field(presets.ExportConfig.turntable_frames, ge=1, le=1000)
+    turntable_size: int = Field(presets.ExportConfig.turntable_size, ge=8, le=2048)
+    elevation: float = Field(presets.ExportConfig.elevation, ge=-89, le=89)
+    fps: float = Field(presets.ExportConfig.fps, gt=0, le=120)
+    gif: bool = presets.ExportConfig.gif
+    mesh: bool = presets.ExportConfig.mesh
+    mesh_resolution: int | None = Field(presets.ExportConfig.mesh_resolution, ge=2, le=1024)
 
 
 class JobParams(Strict):
     # input images
-    downsample: int = Field(3, ge=1, le=64, description="integer image downsampling on load (paper: 800 px / 3)")
+    downsample: int = Field(presets.DOWNSAMPLE, ge=1, le=64,
+                            description="integer image downsampling on load (paper: 800 px / 3)")
     resample: Literal["bilinear", "box"] = Field(
-        "bilinear", description="the downsampling's antialiasing filter (bilinear: as the authors' loader)"
+        presets.RESAMPLE, description="the downsampling's antialiasing filter (bilinear: as the authors' loader)"
     )
     max_images: int | None = Field(None, ge=1, le=100_000, description="use only the first N training images")
     # editing (SPEC §2)
-    iterations: int = Field(8000, ge=0, le=200_000, description="edit iterations")
-    render_size: int = Field(266, ge=8, le=1024, description="edit render size in pixels")
-    guidance_scale: float = Field(100.0, gt=0, le=1000)
-    lr: float = Field(0.03, gt=0, le=10)
-    regulariser: Regulariser = "reg3d"
-    regulariser_weight: float = Field(200.0, ge=0, le=1e6)
-    timestep_schedule: Literal["paper", "authors"] = Field(
-        "paper", description="annealing floor 0.35 (paper) or 0.22 (authors' code)"
+    iterations: int = Field(
+        paper.EDIT_ITERATIONS, ge=0, le=200_000,
+        description=f"edit iterations; on a scene-backbone G_i the default {paper.EDIT_ITERATIONS} means SPEC §5's "
+        f"{presets.EDIT_SCHEDULES['scene'].iterations} (any other count runs as given)",
     )
+    render_size: int = Field(paper.RENDER_SIZE, ge=8, le=1024, description="edit render size in pixels")
+    guidance_scale: float = Field(paper.DEFAULT_GUIDANCE_SCALE, gt=0, le=1000)
+    lr: float = Field(paper.EDIT_LR, gt=0, le=10)
+    regulariser: Regulariser = paper.DEFAULT_REGULARISER
+    regulariser_weight: float = Field(paper.DEFAULT_REGULARISER_WEIGHT, ge=0, le=1e6)
+    timestep_schedule: Literal["paper", "authors"] = Field(
+        presets.TIMESTEP_SCHEDULES[0],
+        description="annealing floor 0.35 (paper) or 0.22 (authors' code); a scene-backbone G_i anneals from "
+        f"iteration {presets.EDIT_SCHEDULES['scene'].i_start} every {presets.EDIT_SCHEDULES['scene'].every} (SPEC §5)",
+    )
+    view_words: bool = Field(True, description="append ', front view' etc. to the prompt from the pose (the authors' code)")
     batch_size: int = Field(1, ge=1, le=16)
     autocast: Literal["bf16", "fp16"] | None = None
-    seed: int = Field(0, ge=0, le=MAX_SEED)
-    preview_every: int = Field(100, ge=0, le=200_000, description="iterations between preview renders (0: none)")
+    seed: int = Field(presets.SEED, ge=0, le=MAX_SEED)
+    preview_every: int = Field(presets.PREVIEW_EVERY, ge=0, le=200_000,
+                               description="iterations between preview renders (0: none)")
     reconstruction: ReconstructionParams = Field(default_factory=ReconstructionParams)
     refine: RefineParams = Field(default_factory=RefineParams)
     export: ExportParams = Field(default_factory=ExportParams)

@@ -148,7 +148,7 @@ def sphere_grid(resolution: int, radius: float = 0.8, slope: float = 5.0):
 def time_run(label: str, model_path: Path, device: str, dtype: torch.dtype, resolution: int, render_size: int,
              warm: int, timed: int, note: str) -> dict:
     from voxe_core.edit import EditConfig, edit
-    from voxe_core.guidance import StableDiffusionGuidance
+    from voxe_core.guidance.sds import StableDiffusionGuidance
     from voxe_core.progress import Callbacks
 
     t0 = time.perf_counter()

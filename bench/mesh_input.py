@@ -52,7 +52,7 @@ def score(grid, mesh, truth, cameras) -> dict:
 def run_mesh(name: str, args) -> list[dict]:
     from voxe_core.cameras import ring_poses
     from voxe_core.cameras import Cameras
-    from voxe_core.export import NERF_SYNTHETIC_FOV_X
+    from voxe_core.constants import NERF_SYNTHETIC_FOV_X
     from voxe_core.mesh_input import VoxelizeConfig, hemisphere_cameras, load_mesh, render_mesh_views, voxelize
     from voxe_core.reconstruct import ReconstructConfig, reconstruct
 

@@ -33,13 +33,14 @@ BACKBONE_NAMES = ("scene", "relu_field")
 
 
 def run_single(backbone: str, args) -> dict:
+    from voxe_core.backbones import grid_from_state
     from voxe_core.cameras import camera_rays
     from voxe_core.data import load_scene
-    from voxe_core.grid import DEFAULT_BOX, VoxelGrid
+    from voxe_core.grid import DEFAULT_BOX, ray_box_intersection
     from voxe_core.metrics import psnr
     from voxe_core.progress import Callbacks
     from voxe_core.reconstruct import CHECKPOINT_FORMAT_VERSION, ReconstructConfig, reconstruct
-    from voxe_core.render import RenderConfig, ray_box_intersection, render_image
+    from voxe_core.render import RenderConfig, render_image
     from voxe_core.scene_grid import SceneGrid, apply_frame, scene_frame
     from voxe_core.tensorio import load_tensors
 
@@ -74,7 +75,7 @@ def run_single(backbone: str, args) -> dict:
     def on_checkpoint(path: str) -> None:
         t0 = time.perf_counter()
         tensors, meta = load_tensors(path, kind="reconstruction_checkpoint", max_version=CHECKPOINT_FORMAT_VERSION)
-        grid = VoxelGrid.from_state(tensors, meta)
+        grid = grid_from_state(tensors, meta)
         done = sum(config.iterations[: meta["stage"]]) + meta["iteration"]
         curve.append({"iteration": done, "train_s": t0 - start - paused[0], **evaluate(grid)})
         paused[0] += time.perf_counter() - t0

@@ -23,8 +23,8 @@ as a grey value over the object's density (edit) and the rest of the object
   map and removed from the object map (token probabilities sum to one);
 
 then clipped and min-max normalised like the real maps. The maps are lifted
-with :func:`voxe_core.refine.fit_attention_grids` and cut with
-:func:`voxe_core.refine.graph_cut_detailed`. Methods compared, by 3D IoU of
+with :func:`voxe_core.refine.lifting.fit_attention_grids` and cut with
+:func:`voxe_core.refine.cut.graph_cut_detailed`. Methods compared, by 3D IoU of
 the predicted edit voxels against the truth over the occupied voxels (the
 graph's nodes); ``iou_surface`` restricts to nodes seen by at least one view:
 
@@ -72,18 +72,12 @@ import torch.nn.functional as F
 
 from voxe_core.cameras import Cameras, random_hemisphere_poses
 from voxe_core.grid import VoxelGrid
-from voxe_core.refine import (
-    RefineConfig,
-    fit_attention_grids,
-    gaussian_blur2d,
-    graph_cut_detailed,
-    node_mask,
-    normalize_maps,
-    probabilities,
-    render_feature_views,
-    save_mask,
-    save_probabilities,
-)
+from voxe_core.refine.config import RefineConfig
+from voxe_core.refine.cut import graph_cut_detailed, node_mask, probabilities
+from voxe_core.refine.lifting import fit_attention_grids
+from voxe_core.refine.maps import gaussian_blur2d, normalize_maps
+from voxe_core.refine.renders import render_feature_views
+from voxe_core.refine.storage import save_mask, save_probabilities
 from voxe_core.render import render_image
 from voxe_core.tensorio import save_tensors
 
@@ -268,7 +262,7 @@ def run_level(grids, truth, nodes, cameras, noise, config, seed):
 def views_figure(grid, truth, cameras, artefacts, path, n_views=4):
     """Rows: object, corrupted 2D edit map, lifted edit grid, P_e, graph-cut mask (red), true region (red)."""
     from voxe_core.export import render_views, save_png
-    from voxe_core.refine import render_attention, render_mask_overlay
+    from voxe_core.refine.renders import render_attention, render_mask_overlay
 
     cams = cameras[0:n_views]
     rows = [

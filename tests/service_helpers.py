@@ -312,8 +312,8 @@ def verify_artifacts(client: httpx.Client, job: dict, expected: set[str], downlo
     import trimesh
     from PIL import Image
 
-    from voxe_core.grid import VoxelGrid
-    from voxe_core.refine import load_mask, load_probabilities
+    from voxe_core.backbones import load_grid
+    from voxe_core.refine.storage import load_mask, load_probabilities
 
     listing = client.get(f"/v1/jobs/{job['id']}/artifacts").json()
     names = {a["name"] for a in listing}
@@ -341,7 +341,7 @@ def verify_artifacts(client: httpx.Client, job: dict, expected: set[str], downlo
         path.write_bytes(data)
         name = artifact["name"]
         if name.endswith("_grid.safetensors"):
-            grids[name] = VoxelGrid.load(path)
+            grids[name] = load_grid(path)
         elif name == "mask.safetensors":
             grids["mask"] = load_mask(path)
         elif name == "attention_probabilities.safetensors":

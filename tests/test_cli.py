@@ -17,6 +17,7 @@ import trimesh
 from PIL import Image
 
 import voxe_core.reconstruct
+from voxe_core.backbones import load_grid
 from voxe_core.cli import main
 from voxe_core.data import load_scene
 from voxe_core.export import render_views
@@ -51,7 +52,7 @@ def sphere_file(sphere_grid, tmp_path) -> Path:
 # ---------------------------------------------------------------- reconstruct
 @needs_mic
 def test_reconstruct_writes_a_loadable_grid_with_the_asked_schedule(fitted, capsys):
-    grid = VoxelGrid.load(fitted)
+    grid = load_grid(fitted)
     assert grid.resolution == (24, 24, 24)
     assert torch.isfinite(grid.features).all()
     # It trained: the initial uniform raw density 0.01 is gone.
@@ -65,7 +66,7 @@ def test_reconstruct_reports_stats(tmp_path, capsys):
     assert main(["reconstruct", str(MIC), "--out", str(out), *args]) == 0
     captured = capsys.readouterr()
     fraction = float(captured.out.split("occupied fraction")[1].split()[0])
-    assert fraction == pytest.approx(VoxelGrid.load(out).occupancy().fraction, abs=1e-4)
+    assert fraction == pytest.approx(load_grid(out).occupancy().fraction, abs=1e-4)
     assert "fitting 2 train images of 50x50" in captured.err
     assert "resolutions [8, 15, 24]" in captured.err and "iterations [1, 1, 1]" in captured.err
     assert "reconstruct: 100%" in captured.err  # the progress bar ran to the end
@@ -101,7 +102,7 @@ def test_ctrl_c_cancels_cleanly_and_resume_finishes_the_same_fit(fitted, tmp_pat
 
     monkeypatch.setattr(voxe_core.reconstruct, "reconstruct", real)
     assert main(["reconstruct", str(MIC), "--out", str(out), "--resume", str(ck), *TINY]) == 0
-    resumed, uninterrupted = VoxelGrid.load(out), VoxelGrid.load(fitted)
+    resumed, uninterrupted = load_grid(out), load_grid(fitted)
     assert torch.allclose(resumed.features, uninterrupted.features, atol=1e-5)
 
 

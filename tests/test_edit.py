@@ -14,12 +14,14 @@ import pytest
 import torch
 
 import voxe_core.edit as edit_module
+from voxe_core.backbones import load_grid
 from voxe_core.cameras import Cameras, spherical_poses
 from voxe_core.cli import main
 from voxe_core.edit import EditConfig, build_prompt, edit, learning_rate, load_edit_checkpoint
 from voxe_core.export import render_views
 from voxe_core.grid import VoxelGrid
-from voxe_core.guidance import Guidance, StableDiffusionGuidance
+from voxe_core.guidance import Guidance
+from voxe_core.guidance.sds import StableDiffusionGuidance
 from voxe_core.progress import Callbacks, StageCancelled
 
 SIZE = 32  # render size of every test run
@@ -296,9 +298,9 @@ def test_cli_builds_the_tiny_model_and_edits_with_it(tmp_path, make_sphere_grid,
               "--offline", "--seed", "1"]
     assert main(["edit", str(grid_file), "--out", str(out), "--iterations", "3", "--preview-every", "2",
                  "--checkpoint-every", "2", *common]) == 0
-    edited = VoxelGrid.load(out / "edited.safetensors")
+    edited = load_grid(out / "edited.safetensors")
     assert edited.resolution == (16, 16, 16)
-    assert not torch.equal(edited.features, VoxelGrid.load(grid_file).features)
+    assert not torch.equal(edited.features, load_grid(grid_file).features)
     assert load_edit_checkpoint(out / "checkpoint.safetensors")[1]["iteration"] == 3
     assert sorted(p.name for p in (out / "previews").glob("*.png")) == [
         "preview_00000.png", "preview_00002.png", "preview_00003.png"]
@@ -308,8 +310,8 @@ def test_cli_builds_the_tiny_model_and_edits_with_it(tmp_path, make_sphere_grid,
                  str(out / "checkpoint.safetensors"), *common]) == 0
     straight = tmp_path / "straight"
     assert main(["edit", str(grid_file), "--out", str(straight), "--iterations", "4", *common]) == 0
-    assert torch.equal(VoxelGrid.load(out / "edited.safetensors").features,
-                       VoxelGrid.load(straight / "edited.safetensors").features)
+    assert torch.equal(load_grid(out / "edited.safetensors").features,
+                       load_grid(straight / "edited.safetensors").features)
 
 
 def test_cli_missing_model_exits_2_naming_it(tmp_path, sphere_grid, capsys, monkeypatch):

@@ -13,16 +13,17 @@ import numpy as np
 import pytest
 import torch
 
-from voxe_core.cameras import NERF_SYNTHETIC_RADIUS, ring_poses
+from voxe_core.cameras import ring_poses
+from voxe_core.constants import NERF_SYNTHETIC_RADIUS
 from voxe_core.evaluate import (
     INCEPTION_FILE, INCEPTION_URL, ClipScorer, EditSample, EvaluateConfig, InceptionFeatures, clip_direction,
     clip_similarity, evaluate, feature_statistics, fid_from_features, format_table, frechet_distance, mask_footprint,
     paper_protocol, preservation, render_ring,
 )
-from voxe_core.guidance import ModelNotAvailableError
+from voxe_core.guidance.loading import ModelNotAvailableError
 from voxe_core.metrics import psnr, ssim
 from voxe_core.progress import Callbacks
-from voxe_core.refine import merge
+from voxe_core.refine.pipeline import merge
 
 
 @pytest.fixture(scope="module")
@@ -275,7 +276,7 @@ def test_cli_evaluate_writes_json_table_and_ring_png_sets(sphere_grid, tiny_clip
     from PIL import Image
 
     from voxe_core.cli import main
-    from voxe_core.refine import save_mask
+    from voxe_core.refine.storage import save_mask
 
     edited, mask = _local_edit(sphere_grid)
     sphere_grid.save(tmp_path / "initial.safetensors")
@@ -339,7 +340,7 @@ def _as_if_edited(job_id: str, initial, edited, mask=None, scratch=None) -> None
     from api.db import session_scope
     from api.models import Job, Reconstruction
     from api.storage import get_storage
-    from voxe_core.refine import save_mask
+    from voxe_core.refine.storage import save_mask
     from worker import runtime
 
     storage = get_storage()

@@ -12,17 +12,12 @@ import shutil
 import pytest
 import torch
 
-from voxe_core.guidance import (
-    ATTENTION_MODEL_ID,
-    SDS_MODEL_ID,
-    CrossAttentionCapture,
-    AttentionStore,
-    Guidance,
-    ModelNotAvailableError,
-    StableDiffusionGuidance,
-    edit_prompt,
-    view_word,
-)
+from voxe_core.constants import ATTENTION_MODEL_ID, SDS_MODEL_ID
+from voxe_core.guidance import Guidance
+from voxe_core.guidance.attention import AttentionStore, CrossAttentionCapture
+from voxe_core.guidance.loading import ModelNotAvailableError
+from voxe_core.guidance.prompts import edit_prompt, view_word
+from voxe_core.guidance.sds import StableDiffusionGuidance
 from voxe_core.tiny_sd import build_tiny_stable_diffusion
 
 

@@ -32,18 +32,14 @@ from PIL import Image
 from voxe_core.cameras import Cameras, camera_rays, look_at, random_hemisphere_poses
 from voxe_core.data import DatasetError, load_scene
 from voxe_core.grid import VoxelGrid
-from voxe_core.guidance import AttentionStore, CrossAttentionCapture, StableDiffusionGuidance
+from voxe_core.guidance.attention import AttentionStore, CrossAttentionCapture
+from voxe_core.guidance.sds import StableDiffusionGuidance
 from voxe_core.losses import correlation_loss, correlation_loss_plus_rgb
 from voxe_core.reconstruct import ReconstructConfig, reconstruct
-from voxe_core.refine import (
-    RefineConfig,
-    SegmentationError,
-    fit_attention_grids,
-    graph_cut,
-    graph_cut_detailed,
-    postprocess_maps,
-    probabilities,
-)
+from voxe_core.refine.config import RefineConfig, SegmentationError
+from voxe_core.refine.cut import graph_cut, graph_cut_detailed, probabilities
+from voxe_core.refine.lifting import fit_attention_grids
+from voxe_core.refine.maps import postprocess_maps
 from voxe_core.render import RenderConfig, render_image, render_rays
 
 from conftest import make_sphere_grid

@@ -164,13 +164,13 @@ def test_rendered_views_reconstruct_the_mesh(green_sphere):
 
 # ------------------------------------------------------------------ CLI
 def test_cli_mesh_to_grid_writes_a_grid_or_names_the_problem(tmp_path, capsys):
+    from voxe_core.backbones import load_grid
     from voxe_core.cli import main
-    from voxe_core.grid import VoxelGrid
 
     out = tmp_path / "spot.safetensors"
     args = ["mesh-to-grid", str(SPOT / "spot_triangulated.obj"), "--texture", str(SPOT / "spot_texture.png"), "-q"]
     assert main([*args, "--resolution", "24", "--out", str(out)]) == 0
-    assert VoxelGrid.load(out).resolution == (24, 24, 24)
+    assert load_grid(out).resolution == (24, 24, 24)
     ply = _write_ply(tmp_path / "square.ply", _square(0.0, 1.0, RED))
     bad = tmp_path / "bad.safetensors"
     assert main(["mesh-to-grid", ply, "--texture", str(SPOT / "spot_texture.png"), "--out", str(bad)]) == 2

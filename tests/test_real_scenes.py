@@ -8,17 +8,16 @@ import numpy as np
 import pytest
 import torch
 
+from voxe_core.backbones import detect_backbone, load_grid, prepare_backbone
 from voxe_core.cameras import Cameras, look_at, ring_poses
 from voxe_core.edit import EditConfig, edit
 from voxe_core.grid import VoxelGrid
-from voxe_core.guidance import StableDiffusionGuidance
+from voxe_core.guidance.sds import StableDiffusionGuidance
 from voxe_core.metrics import psnr
+from voxe_core.presets import edit_config
 from voxe_core.reconstruct import ReconstructConfig, reconstruct
 from voxe_core.render import RenderConfig, render_image, render_rays
-from voxe_core.scene_grid import (
-    SceneGrid, apply_frame, contract, dataset_cameras, detect_backbone, prepare_backbone, real_scene_edit_config,
-    scene_frame,
-)
+from voxe_core.scene_grid import SceneGrid, apply_frame, contract, scene_frame
 
 
 pytestmark = pytest.mark.usefixtures("single_thread")
@@ -108,7 +107,7 @@ def test_grid_interface_round_trips_and_keeps_the_backbone(tmp_path):
     with torch.no_grad():
         grid.features.normal_()
     grid.save(tmp_path / "scene.safetensors")
-    loaded = VoxelGrid.load(tmp_path / "scene.safetensors")
+    loaded = load_grid(tmp_path / "scene.safetensors")
     assert isinstance(loaded, SceneGrid) and loaded.header() == grid.header()
     assert torch.equal(loaded.features, grid.features)
     for derived in (grid.clone_grid(), grid.upsampled(12)):
@@ -163,7 +162,7 @@ def test_backbone_detection_from_alpha():
 
 
 def test_real_scene_edit_preset_is_the_specs():
-    config = real_scene_edit_config(seed=3)
+    config = edit_config({"seed": 3}, backbone="scene")
     assert (config.iterations, config.schedule.i_start, config.schedule.every, config.seed) == (5000, 3000, 400, 3)
     # the project's schedule decays first at i_start, then every f_a
     assert config.schedule.max_fraction(2999) == pytest.approx(0.98)
@@ -205,7 +204,8 @@ def test_scene_backbone_fits_a_background_the_relu_field_cannot():
 
 
 def test_edit_and_refinement_run_unchanged_on_a_scene_grid(tiny_sd_path):
-    from voxe_core.refine import RefineConfig, merge, refine
+    from voxe_core.refine.config import RefineConfig
+    from voxe_core.refine.pipeline import merge, refine
 
     guidance = StableDiffusionGuidance.from_pretrained(str(tiny_sd_path), device="cpu", local_files_only=True)
     initial = _background_scene()
@@ -228,7 +228,7 @@ def test_cli_picks_the_scene_backbone_for_photos_and_renders_in_its_frame(tmp_pa
     assert main(["reconstruct", str(fox), "--out", str(out), *small, "--resolution", "12",
                  "--iterations", "2,2,2", "--rays", "64"]) == 0
     assert "(scene backbone)" in capsys.readouterr().err
-    grid = VoxelGrid.load(out)
+    grid = load_grid(out)
     assert isinstance(grid, SceneGrid) and not torch.equal(grid.frame, torch.eye(4))
     assert main(["render", str(out), "--data", str(fox), "--split", "train", *small, "--out", str(tmp_path / "views")]) == 0
     assert len(list((tmp_path / "views").glob("*.png"))) == 8
@@ -254,10 +254,10 @@ def test_job_parameter_chooses_the_backbone_and_auto_shares_the_default_fit():
 def test_dataset_cameras_move_into_a_scene_grids_frame_only():
     cameras = Cameras.from_fov(ring_poses(2, 10.0, radius=2.0), 0.7, 4, 4)
     frame = torch.diag(torch.tensor([2.0, 2.0, 2.0, 1.0]))
-    moved = dataset_cameras(SceneGrid(4, frame=frame), cameras)
+    moved = SceneGrid(4, frame=frame).dataset_cameras(cameras)
     assert torch.allclose(moved.c2w[:, :3, 3], 2 * cameras.c2w[:, :3, 3])
     assert torch.allclose(moved.c2w[:, :3, :3], cameras.c2w[:, :3, :3])
-    assert dataset_cameras(VoxelGrid(4), cameras) is cameras
+    assert VoxelGrid(4).dataset_cameras(cameras) is cameras
 
 
 def test_mesh_export_of_a_scene_grid_is_its_foreground_in_the_canonical_frame():

@@ -14,33 +14,19 @@ import warnings
 import pytest
 import torch
 
+from voxe_core.backbones import load_grid
 from voxe_core.cameras import Cameras, random_hemisphere_poses
 from voxe_core.cli import main
 from voxe_core.grid import VoxelGrid
-from voxe_core.guidance import StableDiffusionGuidance
+from voxe_core.guidance.sds import StableDiffusionGuidance
 from voxe_core.progress import Callbacks, StageCancelled
-from voxe_core.refine import (
-    RefineConfig,
-    SegmentationError,
-    attention_maps_2d,
-    combine_token_maps,
-    fit_attention_grids,
-    gaussian_blur2d,
-    graph_cut,
-    graph_cut_detailed,
-    load_mask,
-    load_probabilities,
-    merge,
-    node_mask,
-    probabilities,
-    refine,
-    render_attention,
-    render_feature_views,
-    render_mask_overlay,
-    save_mask,
-    save_probabilities,
-    token_groups,
-)
+from voxe_core.refine.config import RefineConfig, SegmentationError
+from voxe_core.refine.cut import graph_cut, graph_cut_detailed, node_mask, probabilities
+from voxe_core.refine.lifting import fit_attention_grids
+from voxe_core.refine.maps import attention_maps_2d, combine_token_maps, gaussian_blur2d, token_groups
+from voxe_core.refine.pipeline import merge, refine
+from voxe_core.refine.renders import render_attention, render_feature_views, render_mask_overlay
+from voxe_core.refine.storage import load_mask, load_probabilities, save_mask, save_probabilities
 from voxe_core.tensorio import FormatError
 
 
@@ -362,7 +348,7 @@ def test_cli_refine_smoke(tmp_path, tiny_model, make_sphere_grid):
 
     assert main(argv()) == 0
     mask = load_mask(out / "mask.safetensors")
-    refined = VoxelGrid.load(out / "refined.safetensors")
+    refined = load_grid(out / "refined.safetensors")
     assert torch.equal(refined.features, merge(initial, edited, mask).features)
     summary = json.loads((out / "refine.json").read_text())
     assert summary["masked_voxels"] == int(mask.sum()) and summary["edit_words"] == ["party hat"]

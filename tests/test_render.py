@@ -7,9 +7,10 @@ import math
 import pytest
 import torch
 
+from voxe_core.backbones import load_grid
 from voxe_core.cameras import Cameras, camera_rays, look_at
-from voxe_core.grid import Occupancy, VoxelGrid
-from voxe_core.render import RenderConfig, ray_box_intersection, render_image, render_rays
+from voxe_core.grid import Occupancy, VoxelGrid, ray_box_intersection
+from voxe_core.render import RenderConfig, render_image, render_rays
 from voxe_core.tensorio import FormatError, save_tensors
 
 
@@ -225,7 +226,7 @@ def test_grid_save_load_round_trip_and_version_check(tmp_path):
     grid = VoxelGrid(12, (-2, -1, -1), (2, 1, 1), "softplus", features=grid.features.detach() + 0.25)
     path = tmp_path / "grid.safetensors"
     grid.save(path)
-    loaded = VoxelGrid.load(path)
+    loaded = load_grid(path)
     assert torch.equal(loaded.features, grid.features)
     assert loaded.activation == "softplus" and loaded.density_scale == grid.density_scale
     assert torch.equal(loaded.bbox_min, grid.bbox_min) and torch.equal(loaded.bbox_max, grid.bbox_max)
@@ -233,11 +234,11 @@ def test_grid_save_load_round_trip_and_version_check(tmp_path):
     newer = tmp_path / "newer.safetensors"
     save_tensors(newer, grid.state_tensors(), kind="voxel_grid", version=99, meta=grid.header())
     with pytest.raises(FormatError, match="format version 99 is newer"):
-        VoxelGrid.load(newer)
+        load_grid(newer)
     junk = tmp_path / "junk.safetensors"
     junk.write_bytes(b"not a tensor file")
     with pytest.raises(FormatError, match="junk.safetensors"):
-        VoxelGrid.load(junk)
+        load_grid(junk)
 
 
 def test_upsampling_preserves_trilinear_fields():

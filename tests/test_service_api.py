@@ -385,7 +385,7 @@ def test_missing_model_fails_the_job_with_a_clear_message(root, monkeypatch, dat
     from api.db import session_scope
     from api.main import create_app
     from api.models import Job
-    from voxe_core.guidance import SDS_MODEL_ID
+    from voxe_core.constants import SDS_MODEL_ID
     from worker import tasks
 
     with TestClient(create_app()) as client:
@@ -516,7 +516,7 @@ def _mesh_scene(client, monkeypatch) -> dict:
 def test_a_mesh_scene_job_voxelizes_the_uploaded_mesh_instead_of_fitting(client, root, monkeypatch):
     import voxe_core.reconstruct
     from api.storage import get_storage
-    from voxe_core.grid import VoxelGrid
+    from voxe_core.backbones import load_grid
     import torch
 
     from voxe_core.mesh_input import VoxelizeConfig, load_mesh, voxelize
@@ -536,7 +536,7 @@ def test_a_mesh_scene_job_voxelizes_the_uploaded_mesh_instead_of_fitting(client,
     assert (done["iteration"], done["total"]) == (1, 1)
     rec = runtime.load_reconstruction(job["reconstruction"]["id"])
     assert rec.params["route"] == "voxelize" and (rec.iteration, rec.total) == (1, 1)
-    grid = VoxelGrid.load(get_storage().get_file(rec.grid_key, root / "g.safetensors"))
+    grid = load_grid(get_storage().get_file(rec.grid_key, root / "g.safetensors"))
     expected = voxelize(load_mesh(SPOT / "spot_triangulated.obj", SPOT / "spot_texture.png"),
                         VoxelizeConfig(resolution=24))
     assert grid.resolution == expected.resolution == (24, 24, 24)

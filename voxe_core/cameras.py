@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import torch
 
-from voxe_core.constants import NERF_SYNTHETIC_RADIUS  # noqa: F401 - re-exported
+from voxe_core.constants import NERF_SYNTHETIC_RADIUS
 
 
 @dataclass

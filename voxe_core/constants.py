@@ -1,8 +1,8 @@
 """The method's fixed numbers and default model ids, importable without torch.
 
-The service's settings read the model ids from here, so the API process never imports
-torch or diffusers to learn three strings; the library modules import them from here too,
-so each value is written once.
+The service's settings and the API's job schema read them from here, so the API process never
+imports torch or diffusers to learn a model id or a default; the library's stage configs
+(``EditConfig``, ``RefineConfig``) take their defaults from here too, so each value is written once.
 """
 
 SDS_MODEL_ID = "stabilityai/stable-diffusion-2-base"
@@ -22,3 +22,53 @@ NERF_SYNTHETIC_RADIUS = 4.0311
 
 NERF_SYNTHETIC_FOV_X = 0.6911112070083618
 """camera_angle_x of the NeRF-synthetic scenes (radians)."""
+
+# ------------------------------------------------------------------ editing (SPEC §2)
+EDIT_ITERATIONS = 8000
+"""Edit iterations of the paper (objects; real scenes: ``voxe_core.presets.EDIT_SCHEDULES``)."""
+
+EDIT_LR = 0.03
+"""Adam's learning rate on G_e."""
+
+RENDER_SIZE = 266
+"""Pixels of the edit's and the refinement's renders: the paper's 800 px inputs downsampled 3×."""
+
+DEFAULT_GUIDANCE_SCALE = 100.0
+"""Classifier-free guidance scale of SDS."""
+
+DEFAULT_REGULARISER = "reg3d"
+"""L_reg3D: 1 − Pearson correlation of G_i's and G_e's raw densities."""
+
+DEFAULT_REGULARISER_WEIGHT = 200.0
+"""Weight of the volumetric regulariser."""
+
+# ------------------------------------------------------------------ refinement (SPEC §3)
+DEFAULT_ATTENTION_TIMESTEP = 200
+"""The fixed diffusion time step (of 1000) of the cross-attention maps."""
+
+REFINE_ITERATIONS = 1500
+"""Fitting iterations of the 3D attention grids."""
+
+REFINE_LR = 0.035
+"""Adam's learning rate on the attention grids."""
+
+REFINE_TV_WEIGHT = 0.01
+"""Weight of the attention grids' total variation."""
+
+REFINE_VIEWS = 32
+"""Random upper-hemisphere poses whose 2D maps are lifted (ours; the authors use the training views)."""
+
+REFINE_RAYS_PER_STEP = 8192
+"""Rays per attention-grid fitting step."""
+
+EDIT_SEEDS = 300
+"""Voxels of highest P_edit tied to the graph cut's edit terminal."""
+
+OBJECT_SEEDS = 200
+"""Voxels of highest P_object tied to the object terminal."""
+
+CUT_SIGMA = 0.1
+"""Colour scale of the graph cut's pairwise weights."""
+
+CUT_SMOOTHNESS = 5.0
+"""The graph cut's smoothness weight λ."""

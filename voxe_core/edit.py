@@ -10,7 +10,7 @@ iteration:
 2. render a ``render_size``² image of G_e from it, with gradient, on white,
    with stratified jitter (the guidance resizes it to its own resolution);
 3. build the prompt ``"a render of <text>, <view> view"``, the view word
-   chosen from the pose (:func:`voxe_core.guidance.view_word`; embeddings are
+   chosen from the pose (:func:`voxe_core.guidance.prompts.view_word`; embeddings are
    cached per view word);
 4. SDS loss from the guidance with ``t`` from the annealed
    :class:`~voxe_core.schedule.TimestepSchedule`, classifier-free guidance 100;
@@ -48,13 +48,21 @@ from typing import Callable
 
 import torch
 
-from voxe_core.cameras import NERF_SYNTHETIC_RADIUS, Cameras, camera_rays, pixel_rays, random_hemisphere_poses, spherical_poses
-from voxe_core.constants import NERF_SYNTHETIC_FOV_X
-from voxe_core.grid import VoxelGrid
-from voxe_core.guidance import DEFAULT_GUIDANCE_SCALE, RENDER_PREFIX, VIEW_WORDS, Guidance, edit_prompt, view_word
-from voxe_core.losses import (
+from voxe_core.cameras import Cameras, camera_rays, pixel_rays, random_hemisphere_poses, spherical_poses
+from voxe_core.constants import (
+    DEFAULT_GUIDANCE_SCALE,
     DEFAULT_REGULARISER,
     DEFAULT_REGULARISER_WEIGHT,
+    EDIT_ITERATIONS,
+    EDIT_LR,
+    NERF_SYNTHETIC_FOV_X,
+    NERF_SYNTHETIC_RADIUS,
+    RENDER_SIZE,
+)
+from voxe_core.grid import VoxelGrid
+from voxe_core.guidance import Guidance
+from voxe_core.guidance.prompts import RENDER_PREFIX, VIEW_WORDS, edit_prompt, view_word
+from voxe_core.losses import (
     IMAGE_REGULARISERS,
     REGULARISERS,
     Regulariser,
@@ -80,15 +88,15 @@ AUTHORS_FRONT_AZIMUTH_DEG = 270.0
 class EditConfig:
     """Editing hyper-parameters; the defaults are the paper's (SPEC §2)."""
 
-    iterations: int = 8000
-    lr: float = 0.03
+    iterations: int = EDIT_ITERATIONS
+    lr: float = EDIT_LR
     betas: tuple[float, float] = (0.9, 0.999)
     # authors' code: lr ×0.96 after every 400th iteration from 5000 on (5200, 5600, ...)
     lr_decay: bool = True
     lr_decay_start: int = 5000
     lr_decay_every: int = 400
     lr_decay_factor: float = 0.96
-    render_size: int = 266  # px; < 266 is fine for CPU runs, the guidance resizes to its resolution
+    render_size: int = RENDER_SIZE  # px; < 266 is fine for CPU runs, the guidance resizes to its resolution
     guidance_scale: float = DEFAULT_GUIDANCE_SCALE
     regulariser: Regulariser = DEFAULT_REGULARISER
     regulariser_weight: float = DEFAULT_REGULARISER_WEIGHT

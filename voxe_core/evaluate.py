@@ -38,10 +38,11 @@ from typing import Protocol, Sequence
 import numpy as np
 import torch
 
-from voxe_core.constants import CLIP_MODEL_ID, INCEPTION_FILE  # noqa: F401 - re-exported
+from voxe_core.constants import CLIP_MODEL_ID, INCEPTION_FILE
 from voxe_core.export import render_views, save_png, to_uint8, turntable_cameras
 from voxe_core.grid import VoxelGrid
-from voxe_core.guidance import ModelNotAvailableError, _loading_errors, _offline_env, edit_prompt
+from voxe_core.guidance.loading import ModelNotAvailableError, loading_errors, offline_env
+from voxe_core.guidance.prompts import edit_prompt
 from voxe_core.metrics import SSIM_WINDOW, psnr, ssim
 from voxe_core.progress import Callbacks, Progress
 from voxe_core.render import RenderConfig, render_image
@@ -241,7 +242,7 @@ class ClipScorer:
         from transformers import CLIPModel, CLIPTokenizer
 
         device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
-        kwargs = {"local_files_only": _offline_env() if local_files_only is None else bool(local_files_only)}
+        kwargs = {"local_files_only": offline_env() if local_files_only is None else bool(local_files_only)}
         looks_local = model_id.startswith((".", "/", "~")) or os.path.isabs(model_id)
         if looks_local and not Path(model_id).expanduser().is_dir():
             raise ModelNotAvailableError(f"CLIP model folder '{model_id}' does not exist")
@@ -249,7 +250,7 @@ class ClipScorer:
             model = CLIPModel.from_pretrained(model_id, **kwargs).to(device)
             tokenizer = CLIPTokenizer.from_pretrained(model_id, **kwargs)
             image_processor = _clip_image_processor_class().from_pretrained(model_id, **kwargs)
-        except _loading_errors() as exc:
+        except loading_errors() as exc:
             raise ModelNotAvailableError(
                 f"CLIP weights '{model_id}' are not available: download them once with `hf download {model_id}` "
                 f"on a machine with internet and point HF_HOME at that cache, or pass a local folder holding a "
@@ -459,7 +460,7 @@ def format_table(rows: Sequence[dict], extra_columns: Sequence[str] = ()) -> str
 
 
 __all__ = [
-    "CLIP_MODEL_ID", "INCEPTION_FILE", "INCEPTION_URL", "PAPER_PROMPTS", "PAPER_RING_VIEWS", "METRICS",
+    "INCEPTION_URL", "PAPER_PROMPTS", "PAPER_RING_VIEWS", "METRICS",
     "ClipScorer", "EditSample", "EvaluateConfig", "Evaluation", "FeatureExtractor", "InceptionFeatures",
     "ProtocolEdit", "clip_direction", "clip_similarity", "evaluate", "feature_statistics", "fid_from_features",
     "format_table", "frechet_distance", "mask_footprint", "mean_by_mode", "paper_protocol", "preservation",

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from voxe_core.cameras import Cameras, ring_poses
-from voxe_core.constants import NERF_SYNTHETIC_FOV_X, NERF_SYNTHETIC_RADIUS  # noqa: F401 - FOV re-exported
+from voxe_core.constants import NERF_SYNTHETIC_FOV_X, NERF_SYNTHETIC_RADIUS
 from voxe_core.grid import VoxelGrid
 from voxe_core.progress import Callbacks, Progress
 from voxe_core.render import RenderConfig, render_image
@@ -166,6 +166,8 @@ def _lattice_density(grid: VoxelGrid, lo: torch.Tensor, hi: torch.Tensor, spacin
 def extract_mesh(grid: VoxelGrid, level: float | None = None, resolution: int | None = None):
     """Marching cubes on the activated density -> ``trimesh.Trimesh`` in world coordinates.
 
+    The mesh is of ``grid.foreground_grid()``: a scene grid's object in its canonical frame.
+
     ``level``: density of the surface, default :func:`default_mesh_level`
     (ln 2 / voxel size, computed on the grid's own voxels whatever ``resolution``).
     ``resolution``: sample the density on a lattice of this many points per axis
@@ -181,8 +183,7 @@ def extract_mesh(grid: VoxelGrid, level: float | None = None, resolution: int | 
     import trimesh
     from skimage.measure import marching_cubes
 
-    if hasattr(grid, "foreground_grid"):  # a scene grid (voxe_core.scene_grid): its object, not the background
-        grid = grid.foreground_grid()
+    grid = grid.foreground_grid()  # a scene grid's object, not its background
     if grid.bbox_min.device.type != "cpu":  # marching cubes runs on the CPU; leave the caller's grid where it is
         grid = VoxelGrid(
             grid.resolution, grid.bbox_min.cpu(), grid.bbox_max.cpu(), grid.activation, grid.density_scale,

@@ -1,4 +1,4 @@
-"""The ReLU-field voxel grid: 1 density + 3 colour features per vertex (SH degree 0).
+"""The ReLU-field voxel grid: 1 density + 3 colour features per vertex (SH degree 0), and where its rays are sampled.
 
 Features are raw (pre-activation) values on the vertices of a regular grid
 spanning an axis-aligned box; samples interpolate trilinearly, then activate
@@ -6,22 +6,34 @@ spanning an axis-aligned box; samples interpolate trilinearly, then activate
 Because interpolation happens before the ReLU, a cell whose eight corners are
 all <= 0 has exactly zero density everywhere inside: the occupancy structure
 built from corner maxima skips empty space without changing the render.
+
+Sampling is the grid's (as nerfacc's occupancy-grid estimator), compositing the
+renderer's (``voxe_core.render``): :meth:`VoxelGrid.ray_samples` places samples
+evenly (``step_ratio`` voxels apart) along each ray's intersection with the box,
+on one lattice per ray anchored at the box, keeps only those in occupied cells
+when given an occupancy, and yields them packed ray by ray
+(:class:`RaySamples`). Another backbone (``voxe_core.scene_grid.SceneGrid``)
+overrides where the samples go and nothing else.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import ClassVar, Iterator, Literal
 
 import torch
 import torch.nn.functional as F
 
-from voxe_core.tensorio import load_tensors, save_tensors
+from voxe_core.cameras import Cameras
+from voxe_core.tensorio import save_tensors
+from voxe_core.volrend import RaySamples, optical_depth, transmittance
 
 GRID_FORMAT_VERSION = 1
+GRID_KIND = "voxel_grid"  # the tensorio kind of every saved grid, whatever its backbone
 DEFAULT_BOX = ((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5))
 Activation = Literal["relu", "softplus"]
+SEGMENT = 16  # lattice samples per skipping segment (see _ray_segments)
 
 _CORNERS = torch.tensor(
     [[0, 0, 0], [0, 0, 1], [0, 1, 0], [0, 1, 1], [1, 0, 0], [1, 0, 1], [1, 1, 0], [1, 1, 1]]
@@ -43,6 +55,32 @@ def gather_3d(mask: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     _, ny, nz = mask.shape
     flat = (index[..., 0] * ny + index[..., 1]) * nz + index[..., 2]
     return mask.reshape(-1).index_select(0, flat.reshape(-1)).reshape(flat.shape)
+
+
+def ray_box_intersection(
+    origins: torch.Tensor, directions: torch.Tensor, box_min: torch.Tensor, box_max: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Slab test of rays (N, 3) against a box (3,): (t_near, t_far), each (N,), t_near clamped at 0 for cameras inside.
+
+    Misses and non-finite rays get t_far <= t_near. Axis-parallel rays use a
+    signed tiny reciprocal instead of dividing by zero.
+
+    Examples:
+        >>> near, far = ray_box_intersection(torch.tensor([[0.0, 0, -3]]), torch.tensor([[0.0, 0, 1]]),
+        ...                                  -torch.ones(3), torch.ones(3))
+        >>> near.tolist(), far.tolist()
+        ([2.0], [4.0])
+    """
+    tiny = torch.full_like(directions, 1e-12)
+    safe = torch.where(directions.abs() < 1e-12, torch.where(directions < 0, -tiny, tiny), directions)
+    inv = 1.0 / safe
+    t0, t1 = (box_min - origins) * inv, (box_max - origins) * inv
+    t_near = torch.minimum(t0, t1).amax(-1).clamp_min(0.0)
+    t_far = torch.maximum(t0, t1).amin(-1)
+    finite = torch.isfinite(origins).all(-1) & torch.isfinite(directions).all(-1) & torch.isfinite(t_far)
+    t_far = torch.where(finite & torch.isfinite(t_near), t_far, torch.zeros_like(t_far))
+    t_near = torch.where(finite & torch.isfinite(t_near), t_near, torch.zeros_like(t_near))
+    return t_near, t_far
 
 
 @dataclass
@@ -86,7 +124,12 @@ class Occupancy:
 
 
 class VoxelGrid(torch.nn.Module):
-    """Dense feature grid ``features[x, y, z, c]``; channel 0 density, 1:4 colour."""
+    """Dense feature grid ``features[x, y, z, c]``; channel 0 density, 1:4 colour.
+
+    ``kind`` names the backbone in saved headers (``voxe_core.backbones`` finds the class by it).
+    """
+
+    kind: ClassVar[str] = "relu_field"
 
     def __init__(
         self,
@@ -195,6 +238,82 @@ class VoxelGrid(torch.nn.Module):
         inside = ((points >= self.bbox_min) & (points <= self.bbox_max)).all(-1)
         return self.activate_density(raw[:, 0]) * inside, self.activate_color(raw[:, 1:])
 
+    # ------------------------------------------------------------ rays
+    def ray_samples(
+        self,
+        origins: torch.Tensor,
+        directions: torch.Tensor,
+        offsets: torch.Tensor,
+        step_ratio: float,
+        occupancy: Occupancy | None = None,
+        samples_per_pass: int = 1 << 20,
+        early_stop: float = 0.0,
+    ) -> Iterator[RaySamples]:
+        """Where the rays (N, 3) are sampled: groups of consecutive rays whose lattice samples fit in ``samples_per_pass``.
+
+        Samples lie ``step_ratio`` smallest voxel edges apart on one lattice per ray
+        anchored at the box; ``offsets`` (N,) in [0, 1) places each ray's first sample
+        within its first step (0.5: midpoints; uniform: stratified jitter). With an
+        ``occupancy``, only samples in its occupied cells inside its tight box are
+        kept, so skipping only drops samples and never moves them: with ReLU it is
+        exact. The last sample of a ray is cut at the box exit, so path lengths are exact.
+        ``early_stop`` > 0: a density pass without gradient drops the samples behind
+        the point where a ray's transmittance falls below it (each sample stands for
+        at most one step, so what is dropped weighs less than ``early_stop`` in the
+        render and in its gradient).
+
+        Examples:
+            >>> grid = VoxelGrid(5)
+            >>> rays = torch.tensor([[0.0, 0, -3]]), torch.tensor([[0.0, 0, 1]])
+            >>> group = next(grid.ray_samples(*rays, torch.full((1,), 0.5), step_ratio=1.0))
+            >>> group.points.shape, float(group.delta.sum())  # 4 steps of 0.75 through the 3-unit box
+            (torch.Size([4, 3]), 3.0)
+        """
+        step = float(step_ratio * self.voxel_size.min())
+        t_near, t_far = ray_box_intersection(origins, directions, self.bbox_min, self.bbox_max)
+        n_total = torch.ceil((t_far - t_near) / step).clamp_min(0).long()
+        first = torch.zeros_like(n_total)
+        last = n_total
+        if occupancy is not None:
+            device = origins.device
+            tight_near, tight_far = ray_box_intersection(
+                origins, directions, occupancy.bbox_min.to(device), occupancy.bbox_max.to(device)
+            )
+            hit = tight_far > tight_near
+            first = torch.where(hit, ((tight_near - t_near) / step).floor().long().clamp_min(0), first)
+            last = torch.where(hit, torch.minimum(((tight_far - t_near) / step).ceil().long(), n_total), first)
+        segments, n_segments = _ray_segments(self, occupancy, origins, directions, t_near, step, first, last)
+        start = t_near + offsets * step  # first lattice sample of each ray
+        length = t_far - t_near
+        # Consecutive groups of rays whose lattice samples fit in one pass (bounds memory on dense renders).
+        per_ray = n_segments * SEGMENT
+        group = torch.div(per_ray.cumsum(0) - per_ray, samples_per_pass, rounding_mode="floor")
+        ends = torch.unique_consecutive(group, return_counts=True)[1].cumsum(0).tolist()
+        for lo, hi in zip([0] + ends[:-1], ends):
+            ray, k, t, points = _packed_samples(
+                self, occupancy, origins, directions, start, step, first, last, segments[lo:hi], n_segments[lo:hi], lo
+            )
+            delta = (length.index_select(0, ray) - k * step).clamp(0.0, step)
+            samples = RaySamples(ray, t, delta, points, int((last[lo:hi] - first[lo:hi]).clamp_min(0).sum()))
+            yield self._stop_early(samples, early_stop) if early_stop > 0 and ray.numel() else samples
+
+    @torch.no_grad()
+    def _stop_early(self, samples: RaySamples, early_stop: float) -> RaySamples:
+        """``samples`` up to where each ray's transmittance falls below ``early_stop`` (densities without gradient)."""
+        density = self.activate_density(self.interpolate(samples.points)[:, 0])
+        reached = transmittance(optical_depth(density, samples.delta), samples.ray) > early_stop
+        kept = samples.select(reached.nonzero().squeeze(1))
+        kept.probed = samples.ray.numel()
+        return kept
+
+    def dataset_cameras(self, cameras: Cameras) -> Cameras:
+        """A capture's cameras in the frame this grid lives in: an object grid lives in the capture's own."""
+        return cameras
+
+    def foreground_grid(self) -> "VoxelGrid":
+        """The object without its background, as a ReLU-field grid (what a mesh is made of): all of an object grid."""
+        return self
+
     # ----------------------------------------------------------- structure
     def upsampled(self, resolution: int | tuple[int, int, int]) -> "VoxelGrid":
         """Trilinear upsampling of the raw features (coarse-to-fine reconstruction)."""
@@ -245,23 +364,66 @@ class VoxelGrid(torch.nn.Module):
         return {"features": self.features.detach(), "bbox_min": self.bbox_min, "bbox_max": self.bbox_max}
 
     def header(self) -> dict:
-        return {"activation": self.activation, "density_scale": self.density_scale, "resolution": list(self.resolution)}
+        return {"backbone": self.kind, "activation": self.activation, "density_scale": self.density_scale,
+                "resolution": list(self.resolution)}
 
     def save(self, path) -> None:
-        save_tensors(path, self.state_tensors(), kind="voxel_grid", version=GRID_FORMAT_VERSION, meta=self.header())
+        save_tensors(path, self.state_tensors(), kind=GRID_KIND, version=GRID_FORMAT_VERSION, meta=self.header())
 
     @classmethod
     def from_state(cls, tensors: dict[str, torch.Tensor], meta: dict) -> "VoxelGrid":
-        if cls is VoxelGrid and meta.get("backbone") == "scene":  # written by voxe_core.scene_grid.SceneGrid
-            from voxe_core.scene_grid import SceneGrid
-
-            return SceneGrid.from_state(tensors, meta)
+        """This class's grid from saved tensors and header (``voxe_core.backbones.load_grid`` picks the class)."""
         return cls(
             tuple(tensors["features"].shape[:3]), tensors["bbox_min"], tensors["bbox_max"],
             meta["activation"], meta["density_scale"], features=tensors["features"],
         )
 
-    @classmethod
-    def load(cls, path) -> "VoxelGrid":
-        tensors, meta = load_tensors(path, kind="voxel_grid", max_version=GRID_FORMAT_VERSION)
-        return cls.from_state(tensors, meta)
+
+def _ray_segments(grid, occupancy, origins, directions, t_near, step, first, last):
+    """Per ray, the lattice segments worth sampling, in marching order: (R, S) indices and (R,) counts.
+
+    A segment is ``SEGMENT`` consecutive lattice samples. With an occupancy, a
+    segment survives when its midpoint's block in ``occupancy.dilated_blocks``
+    is marked, so every sample of a dropped segment lies in an empty cell and
+    dropping it never changes the render; the fine per-cell test then runs only
+    on the segments kept.
+    """
+    seg_first = torch.div(first, SEGMENT, rounding_mode="floor")
+    n_segments = torch.where(last > first, torch.div(last - 1, SEGMENT, rounding_mode="floor") - seg_first + 1, 0)
+    max_segments = int(n_segments.max()) if n_segments.numel() else 0
+    segments = seg_first[:, None] + torch.arange(max_segments, device=origins.device)[None, :]
+    if occupancy is None or max_segments == 0:
+        return segments, n_segments
+    # Every sample of a segment lies within SEGMENT / 2 steps of its midpoint, so within
+    # ``size`` cells of it per axis, so in the midpoint's block or one of its neighbours.
+    longest = float(directions.norm(dim=-1).nan_to_num(0.0, 0.0, 0.0).max().clamp_min(1.0))
+    size = max(1, math.ceil(SEGMENT / 2 * step * longest / float(grid.voxel_size.min())))
+    keep = torch.arange(max_segments, device=origins.device)[None, :] < n_segments[:, None]
+    mid = t_near[:, None] + (segments * SEGMENT + SEGMENT / 2) * step
+    block = grid.cell_index(origins[:, None, :] + mid[..., None] * directions[:, None, :]) // size
+    keep &= gather_3d(occupancy.dilated_blocks(size), block)
+    # Stable sort puts each ray's kept segments first, still in marching order.
+    order = torch.sort((~keep).to(torch.uint8), dim=1, stable=True).indices
+    n_kept = keep.sum(1)
+    width = int(n_kept.max())
+    return segments.gather(1, order[:, :width]), n_kept
+
+
+def _packed_samples(grid, occupancy, origins, directions, start, step, first, last, segments, n_segments, ray_offset):
+    """The samples of the kept segments (in occupied cells when ``occupancy`` is given), packed ray
+    by ray in marching order: ray index, lattice index, distance and point of each.
+
+    Work is laid out per segment (16 samples wide) so the per-ray values are
+    gathered once per segment, not once per sample.
+    """
+    kept = torch.arange(segments.shape[1], device=segments.device)[None, :] < n_segments[:, None]
+    seg_ray = kept.nonzero()[:, 0] + ray_offset
+    k = segments[kept][:, None] * SEGMENT + torch.arange(SEGMENT, device=segments.device)  # (G, SEGMENT)
+    inside = (k >= first.index_select(0, seg_ray)[:, None]) & (k < last.index_select(0, seg_ray)[:, None])
+    t = start.index_select(0, seg_ray)[:, None] + k * step
+    points = origins.index_select(0, seg_ray)[:, None, :] + t[..., None] * directions.index_select(0, seg_ray)[:, None, :]
+    if occupancy is not None:
+        inside &= occupancy.occupied(grid.cell_index(points))
+    pick = inside.reshape(-1).nonzero().squeeze(1)
+    ray = seg_ray.index_select(0, torch.div(pick, SEGMENT, rounding_mode="floor"))
+    return ray, k.reshape(-1).index_select(0, pick), t.reshape(-1).index_select(0, pick), points.reshape(-1, 3).index_select(0, pick)

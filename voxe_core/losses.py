@@ -28,8 +28,6 @@ Regulariser = Literal["reg3d", "reg3d_plus", "volumetric_l1", "volumetric_l2", "
 REGULARISERS: tuple[str, ...] = get_args(Regulariser)
 VOLUMETRIC_REGULARISERS: tuple[str, ...] = ("reg3d", "reg3d_plus", "volumetric_l1", "volumetric_l2")
 IMAGE_REGULARISERS: tuple[str, ...] = ("image_l1", "image_l2")
-DEFAULT_REGULARISER: Regulariser = "reg3d"
-DEFAULT_REGULARISER_WEIGHT = 200.0
 
 
 @contextmanager

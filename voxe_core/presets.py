@@ -1,19 +1,84 @@
-"""Job parameters (the API's JSON, see api.schemas.JobParams) -> voxe_core stage configs: the one place presets resolve."""
+"""Job parameters -> voxe_core stage configs: the one place presets resolve and job-parameter defaults live.
+
+Job parameters are the service's JSON (``api.schemas.JobParams``, whose defaults are read from here
+and from ``voxe_core.constants``) and what the options of ``voxe`` build (``voxe_core.cli``); both
+go through the functions below, so equal parameters give equal configs. A key left out (or None)
+takes its default here. Importing this module loads no torch: each stage module is imported where
+its config is built.
+
+Real scenes (SPEC §5): an edit of a scene-backbone G_i (``grid.kind == "scene"``) anneals the
+time-step range from iteration 3,000 every 400 (``EDIT_SCHEDULES``) instead of 4,000 / 600, with the
+floor ``timestep_schedule`` picks (paper 0.35, authors 0.22), and runs 5,000 iterations where
+``iterations`` is left at the paper's object count of 8,000 (the default); any other count runs as given.
+
+Examples:
+    >>> edit_config({}).iterations, edit_config({}, backbone="scene").iterations
+    (8000, 5000)
+    >>> edit_config({"iterations": 300}, backbone="scene").schedule.i_start
+    3000
+    >>> export_config({"export": {"views": 2}}).views, export_config({}).views
+    (2, 8)
+"""
 
 from __future__ import annotations
 
 import dataclasses
 import hashlib
 import json
-
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-if TYPE_CHECKING:  # voxe_core is imported where it is used, so importing this module stays light
+from voxe_core import constants as paper
+
+if TYPE_CHECKING:  # the stage modules are imported where a config is built, so importing this module stays light
     from voxe_core.edit import EditConfig
     from voxe_core.reconstruct import ReconstructConfig
-    from voxe_core.refine import RefineConfig
+    from voxe_core.refine.config import RefineConfig
+
+# ------------------------------------------------------------------ defaults of the job parameters
+DOWNSAMPLE = 3
+"""Integer image downsampling on load: the paper edits its 800 px inputs at 266 px (SPEC §1)."""
+RESAMPLE = "bilinear"
+"""The downsampling's antialiasing filter, as the authors' loader (``voxe_core.data.RESAMPLE_FILTERS``)."""
+RECONSTRUCTION_PRESETS = ("fast", "paper")
+"""``ReconstructConfig.fast()`` (the CPU budget) or ``ReconstructConfig()`` (the authors' recipe)."""
+RECONSTRUCTION_PRESET = "fast"
+TIMESTEP_SCHEDULES = ("paper", "authors")
+"""The annealing floor: 0.35 (paper) or 0.22 (authors' code)."""
+PREVIEW_EVERY = 100
+"""Edit iterations between preview renders (0: none)."""
+SEED = 0
 
 
+@dataclass(frozen=True)
+class EditSchedule:
+    """How long an edit runs and when its time-step range anneals (``TimestepSchedule.i_start`` / ``every``)."""
+
+    iterations: int
+    i_start: int
+    every: int
+
+
+EDIT_SCHEDULES: dict[str, EditSchedule] = {"scene": EditSchedule(iterations=5000, i_start=3000, every=400)}
+"""Backbone kind -> its edit schedule where it is not SPEC §2's (8,000 iterations, 4,000 / 600): SPEC §5's for scenes."""
+
+
+@dataclass(frozen=True)
+class ExportConfig:
+    """What the export stage writes (the job parameters' ``export``): ring PNGs, a turntable video, a mesh."""
+
+    views: int = 8  # PNG renders on a ring around the object (0: none)
+    view_size: int = 256
+    turntable_frames: int = 100
+    turntable_size: int = 256
+    elevation: float = 30.0  # degrees above the horizon, of the ring and the turntable
+    fps: float = 30.0
+    gif: bool = True  # also a looping GIF of the turntable
+    mesh: bool = True  # marching-cubes mesh as PLY and GLB
+    mesh_resolution: int | None = None  # None: the grid's own vertices
+
+
+# ------------------------------------------------------------------ reconstruction
 def reconstruction_route(params: dict, mesh_scene: bool) -> str:
     """'fit' or 'voxelize': "auto" voxelizes a mesh scene (faster and closer to the mesh, bench/results/mesh_input.json)
     unless the scene backbone was asked for, and fits everything else."""
@@ -34,14 +99,14 @@ def reconstruction_params(params: dict, mesh_scene: bool = False) -> dict:
         **backbone,
         **({} if route == "fit" else {"route": route}),
         "split": "train",
-        "downsample": int(params.get("downsample", 3)),
-        "resample": params.get("resample", "bilinear"),
+        "downsample": int(_given(params, "downsample", DOWNSAMPLE)),
+        "resample": _given(params, "resample", RESAMPLE),
         "max_images": params.get("max_images"),
-        "preset": rec.get("preset", "fast"),
+        "preset": _given(rec, "preset", RECONSTRUCTION_PRESET),
         "resolution": rec.get("resolution"),
         "iterations": rec.get("iterations"),
         "rays_per_step": rec.get("rays_per_step"),
-        "seed": int(rec.get("seed", 0)),
+        "seed": int(_given(rec, "seed", SEED)),
     }
 
 
@@ -58,67 +123,102 @@ def reconstruction_key(rec_params: dict) -> str:
     return hashlib.sha256(json.dumps(payload, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
-def reconstruct_config(rec_params: dict, checkpoint_every: int) -> "ReconstructConfig":
-    """As ``voxe reconstruct``: a preset, then the final resolution / iterations (one value or one per stage)."""
+def reconstruct_config(rec_params: dict, checkpoint_every: int = 0) -> "ReconstructConfig":
+    """A preset, then the final resolution and iterations: each one value (the final stage's; earlier
+    resolutions scaled in proportion) or one per stage. ValueError for lists that fit no stage count."""
     from voxe_core.reconstruct import ReconstructConfig
 
-    config = ReconstructConfig.fast() if rec_params["preset"] == "fast" else ReconstructConfig()
-    n = len(config.resolutions)
-    overrides: dict = {"seed": rec_params["seed"], "checkpoint_every": checkpoint_every}
-    if rec_params.get("resolution") is not None:
-        final = int(rec_params["resolution"])
-        overrides["resolutions"] = tuple(
-            [max(2, round(final * r / config.resolutions[-1])) for r in config.resolutions[:-1]] + [final]
-        )
-    iterations = rec_params.get("iterations")
+    preset = _given(rec_params, "preset", RECONSTRUCTION_PRESET)
+    if preset not in RECONSTRUCTION_PRESETS:
+        raise ValueError(f"unknown reconstruction preset {preset!r}; use {' or '.join(RECONSTRUCTION_PRESETS)}")
+    config = ReconstructConfig.fast() if preset == "fast" else ReconstructConfig()
+    overrides: dict = {"seed": int(_given(rec_params, "seed", SEED)), "checkpoint_every": checkpoint_every}
+    resolution = _per_stage(rec_params.get("resolution"), len(config.resolutions), "resolution")
+    if resolution is not None:
+        if len(resolution) == 1:
+            final = resolution[0]
+            resolution = [max(2, round(final * r / config.resolutions[-1])) for r in config.resolutions[:-1]] + [final]
+        if min(resolution) < 2:
+            raise ValueError(f"grid resolutions must be at least 2, got {resolution}")
+        overrides["resolutions"] = tuple(resolution)
+    iterations = _per_stage(rec_params.get("iterations"), len(config.resolutions), "iterations")
     if iterations is not None:
-        values = [iterations] if isinstance(iterations, int) else list(iterations)
-        if len(values) == 1:
-            values = [*config.iterations[:-1], values[0]]
-        elif len(values) != n:
-            raise ValueError(f"reconstruction.iterations takes one value or one per stage ({n} stages), got {len(values)}")
-        overrides["iterations"] = tuple(values)
+        overrides["iterations"] = tuple([*config.iterations[:-1], *iterations] if len(iterations) == 1 else iterations)
     if rec_params.get("rays_per_step") is not None:
         overrides["rays_per_step"] = int(rec_params["rays_per_step"])
     return dataclasses.replace(config, **overrides)
 
 
-def edit_config(params: dict, checkpoint_every: int) -> "EditConfig":
+def _per_stage(value, n_stages: int, what: str) -> list[int] | None:
+    """``value`` (None, one int or a list) as a list of one value or one per stage."""
+    if value is None:
+        return None
+    values = [int(value)] if isinstance(value, int) else [int(v) for v in value]
+    if len(values) not in (1, n_stages):
+        raise ValueError(f"{what} takes one value or one per stage ({n_stages} stages), got {len(values)}")
+    return values
+
+
+# ------------------------------------------------------------------ editing and refinement
+def edit_config(params: dict, backbone: str = "relu_field", checkpoint_every: int = 0) -> "EditConfig":
+    """The edit of a job whose G_i is a ``backbone`` grid (its ``kind``): SPEC §2, or §5 for scenes (module doc)."""
     from voxe_core.edit import EditConfig
     from voxe_core.schedule import TimestepSchedule
 
-    schedule = TimestepSchedule.authors() if params.get("timestep_schedule") == "authors" else TimestepSchedule()
+    floor = _given(params, "timestep_schedule", TIMESTEP_SCHEDULES[0])
+    if floor not in TIMESTEP_SCHEDULES:
+        raise ValueError(f"unknown timestep_schedule {floor!r}; use {' or '.join(TIMESTEP_SCHEDULES)}")
+    special = EDIT_SCHEDULES.get(backbone)
+    timing = {} if special is None else {"i_start": special.i_start, "every": special.every}
+    schedule = TimestepSchedule.authors(**timing) if floor == "authors" else TimestepSchedule(**timing)
+    iterations = _given(params, "iterations", paper.EDIT_ITERATIONS)
+    if special is not None and iterations == paper.EDIT_ITERATIONS:
+        iterations = special.iterations
     return EditConfig(
-        iterations=params["iterations"],
-        render_size=params["render_size"],
-        guidance_scale=params["guidance_scale"],
-        lr=params["lr"],
-        regulariser=params["regulariser"],
-        regulariser_weight=params["regulariser_weight"],
+        iterations=iterations,
+        render_size=_given(params, "render_size", paper.RENDER_SIZE),
+        guidance_scale=_given(params, "guidance_scale", paper.DEFAULT_GUIDANCE_SCALE),
+        lr=_given(params, "lr", paper.EDIT_LR),
+        regulariser=_given(params, "regulariser", paper.DEFAULT_REGULARISER),
+        regulariser_weight=_given(params, "regulariser_weight", paper.DEFAULT_REGULARISER_WEIGHT),
         schedule=schedule,
-        batch_size=params.get("batch_size", 1),
+        view_words=_given(params, "view_words", True),
+        batch_size=_given(params, "batch_size", 1),
         autocast_dtype=params.get("autocast"),
-        seed=params["seed"],
-        preview_every=params.get("preview_every", 0),
+        seed=_given(params, "seed", SEED),
+        preview_every=_given(params, "preview_every", PREVIEW_EVERY),
         checkpoint_every=checkpoint_every,
     )
 
 
 def refine_config(params: dict, attention_model: str) -> "RefineConfig":
-    from voxe_core.refine import RefineConfig
+    """The refinement of a local edit (the job parameters' ``refine``; its render size defaults to the edit's)."""
+    from voxe_core.refine.config import RefineConfig
 
     refine = params.get("refine") or {}
     return RefineConfig(
-        iterations=refine.get("iterations", 1500),
-        lr=refine.get("lr", 0.035),
-        tv_weight=refine.get("tv_weight", 0.01),
-        render_size=refine.get("render_size") or params["render_size"],
-        views=refine.get("views", 32),
-        rays_per_step=refine.get("rays_per_step", 8192),
-        edit_seeds=refine.get("edit_seeds", 300),
-        object_seeds=refine.get("object_seeds", 200),
-        sigma=refine.get("sigma", 0.1),
-        smoothness=refine.get("smoothness", 5.0),
-        seed=params["seed"],
+        iterations=_given(refine, "iterations", paper.REFINE_ITERATIONS),
+        lr=_given(refine, "lr", paper.REFINE_LR),
+        tv_weight=_given(refine, "tv_weight", paper.REFINE_TV_WEIGHT),
+        render_size=refine.get("render_size") or _given(params, "render_size", paper.RENDER_SIZE),
+        views=_given(refine, "views", paper.REFINE_VIEWS),
+        rays_per_step=_given(refine, "rays_per_step", paper.REFINE_RAYS_PER_STEP),
+        edit_seeds=_given(refine, "edit_seeds", paper.EDIT_SEEDS),
+        object_seeds=_given(refine, "object_seeds", paper.OBJECT_SEEDS),
+        sigma=_given(refine, "sigma", paper.CUT_SIGMA),
+        smoothness=_given(refine, "smoothness", paper.CUT_SMOOTHNESS),
+        seed=_given(params, "seed", SEED),
         attention_model=attention_model,
     )
+
+
+def export_config(params: dict) -> ExportConfig:
+    """The job parameters' ``export`` (None values take the defaults)."""
+    export = params.get("export") or {}
+    return ExportConfig(**{k: v for k, v in export.items() if v is not None})
+
+
+def _given(params: dict, key: str, default):
+    """``params[key]`` unless it is missing or None."""
+    value = params.get(key)
+    return default if value is None else value

@@ -15,6 +15,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
+from voxe_core.backbones import grid_from_state
 from voxe_core.cameras import Cameras, pixel_rays
 from voxe_core.grid import Activation, VoxelGrid
 from voxe_core.progress import Callbacks, Progress
@@ -246,7 +247,7 @@ def reconstruct(
     start_stage, start_iteration, resumed = 0, 0, None
     if resume_from is not None:
         tensors, meta = load_tensors(resume_from, kind="reconstruction_checkpoint", max_version=CHECKPOINT_FORMAT_VERSION)
-        grid = VoxelGrid.from_state(tensors, meta)
+        grid = grid_from_state(tensors, meta)
         generator.set_state(tensors["rng_state"])
         start_stage, start_iteration, resumed = meta["stage"], meta["iteration"], tensors
 

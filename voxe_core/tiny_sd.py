@@ -1,7 +1,7 @@
 """A tiny, randomly initialised Stable Diffusion in the real diffusers layout.
 
 SMOKE-TEST MODEL. Its weights are random: it proves the plumbing only (loading
-through :meth:`voxe_core.guidance.StableDiffusionGuidance.from_pretrained`,
+through :meth:`voxe_core.guidance.sds.StableDiffusionGuidance.from_pretrained`,
 shapes, dtypes, gradients flowing from the SDS loss into a render, attention
 capture, tokenisation) and says nothing, ever, about edit quality. Never use
 it to judge or demonstrate an edit.

@@ -44,7 +44,7 @@ def fid_model_path(model: str, settings: Settings) -> str:
 
 def _scorer(kind: str, model: str, device: str, settings: Settings):
     from voxe_core.evaluate import ClipScorer, InceptionFeatures
-    from voxe_core.guidance import ModelNotAvailableError
+    from voxe_core.guidance.loading import ModelNotAvailableError
 
     key = (kind, model, device)
     if key not in _SCORERS:
@@ -100,7 +100,7 @@ def run_evaluation(job: Job, settings: Settings, device: str, storage) -> None:
     """The evaluate stage body (called by the task frame in :mod:`worker.tasks`)."""
     from voxe_core.evaluate import EditSample, EvaluateConfig, evaluate, format_table
     from voxe_core.export import save_png
-    from voxe_core.refine import load_mask
+    from voxe_core.refine.storage import load_mask
     from worker.tasks import _grid, _load_images
 
     params = job.params

@@ -362,7 +362,7 @@ def build_once(settings: Settings, name: str, marker: str, build) -> Path:
 
 def get_guidance(model: str, device: str, settings: Settings):
     """One StableDiffusionGuidance per (model, device) per worker process, loaded on first use."""
-    from voxe_core.guidance import StableDiffusionGuidance
+    from voxe_core.guidance.sds import StableDiffusionGuidance
 
     key = (model, device)
     if key not in _GUIDANCE_CACHE:

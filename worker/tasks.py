@@ -33,7 +33,7 @@ from api.storage import StoredObject, get_storage
 from voxe_core.progress import Callbacks, Progress, StageCancelled
 from worker import runtime
 from worker.celery_app import app, is_sql_broker, stage_chain
-from voxe_core.presets import edit_config, reconstruct_config, refine_config
+from voxe_core.presets import edit_config, export_config, reconstruct_config, refine_config
 from worker.runtime import JobSkipped, StageCallbacks
 
 log = logging.getLogger("voxe.worker")
@@ -79,7 +79,7 @@ def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> dict
 
 
 def _error_message(stage: str, exc: Exception, job: Job) -> str:
-    from voxe_core.guidance import ModelNotAvailableError
+    from voxe_core.guidance.loading import ModelNotAvailableError
 
     if isinstance(exc, ModelNotAvailableError):
         text = str(exc).rstrip()
@@ -133,11 +133,11 @@ def _preview(job_id: str, grid, settings, storage, device: str, image=None) -> N
 
 
 def _grid(job_id: str, name: str, settings, storage, key: str | None = None):
-    from voxe_core.grid import VoxelGrid
+    from voxe_core.backbones import load_grid
 
     key = key or runtime.artifact_key(job_id, name)
     path = runtime.fetch(storage, key, runtime.scratch_dir(job_id, settings) / name)
-    return VoxelGrid.load(path)
+    return load_grid(path)
 
 
 # --------------------------------------------------------------------------- reconstruct
@@ -234,7 +234,7 @@ def _fit(job: Job, rec, settings, storage) -> None:
 def _fit_grid(job: Job, rec, settings, storage, callbacks: StageCallbacks, checkpoint: Path, checkpoint_key: str):
     """Route (a) and image scenes: G_i fitted to the scene's images; returns (grid, total iterations)."""
     from voxe_core.reconstruct import reconstruct
-    from voxe_core.scene_grid import prepare_backbone
+    from voxe_core.backbones import prepare_backbone
     from voxe_core.tensorio import FormatError
 
     scene = _load_images(job, rec.params, settings, storage)
@@ -263,7 +263,7 @@ def _edit(job: Job, settings, device: str, storage) -> None:
     guidance = runtime.get_guidance(job.sds_model, device, settings)  # first: a missing model fails fast
     rec = runtime.load_reconstruction(job.reconstruction_id)
     initial = _grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key)
-    config = edit_config(job.params, settings.checkpoint_every)
+    config = edit_config(job.params, initial.kind, settings.checkpoint_every)  # SPEC §5's schedule for a scene G_i
     scratch = runtime.scratch_dir(job.id, settings)
     checkpoint = scratch / "edit_checkpoint.safetensors"
     checkpoint_key = runtime.job_key(job.id, "checkpoints/edit.safetensors")
@@ -277,10 +277,8 @@ def _edit(job: Job, settings, device: str, storage) -> None:
         runtime.update_job(job.id, message=note)
     input_views = None
     if config.regulariser.startswith("image_"):
-        from voxe_core.scene_grid import dataset_cameras
-
         scene = _load_images(job, rec.params, settings, storage)
-        input_views = (scene.images, dataset_cameras(initial, scene.cameras))
+        input_views = (scene.images, initial.dataset_cameras(scene.cameras))
 
     last_preview = [0.0]
 
@@ -302,7 +300,10 @@ def _edit(job: Job, settings, device: str, storage) -> None:
 # --------------------------------------------------------------------------- refine
 def _refine(job: Job, settings, device: str, storage) -> None:
     from voxe_core.export import save_png, turntable_cameras
-    from voxe_core.refine import node_mask, refine, render_mask_overlay, save_mask, save_probabilities
+    from voxe_core.refine.cut import node_mask
+    from voxe_core.refine.pipeline import refine
+    from voxe_core.refine.renders import render_mask_overlay
+    from voxe_core.refine.storage import save_mask, save_probabilities
 
     guidance = runtime.get_guidance(job.attention_model, device, settings)
     rec = runtime.load_reconstruction(job.reconstruction_id)
@@ -323,7 +324,7 @@ def _refine(job: Job, settings, device: str, storage) -> None:
     save_probabilities(probabilities, result.edit_probability, result.object_probability,
                        node_mask(edited, config.node_alpha))
     runtime.publish_artifact(job.id, "attention_probabilities.safetensors", probabilities, "probabilities", storage)
-    size = job.params.get("export", {}).get("view_size", 256)
+    size = export_config(job.params).view_size
     overlay = render_mask_overlay(edited, result.mask, turntable_cameras(1, 20.0, size).to(edited.bbox_min.device))
     save_png(scratch / "mask_overlay.png", overlay[0])
     runtime.publish_artifact(job.id, "mask_overlay.png", scratch / "mask_overlay.png", "render", storage)
@@ -333,13 +334,12 @@ def _refine(job: Job, settings, device: str, storage) -> None:
 def _export(job: Job, settings, device: str, storage) -> None:
     from voxe_core.export import extract_mesh, render_views, save_mesh, save_png, turntable_cameras, write_video
 
-    options = job.params.get("export", {})
+    options = export_config(job.params)
     name = "refined_grid.safetensors" if job.mode == "local" else "edited_grid.safetensors"
     grid = _grid(job.id, name, settings, storage).to(device)
     scratch = runtime.scratch_dir(job.id, settings)
-    views, frames = options.get("views", 8), options.get("turntable_frames", 100)
-    elevation = options.get("elevation", 30.0)
-    total = views + frames + (1 if options.get("mesh", True) else 0)
+    views, frames = options.views, options.turntable_frames
+    total = views + frames + (1 if options.mesh else 0)
     callbacks = StageCallbacks(job.id, "export", settings)
 
     def offset(base: int) -> Callbacks:
@@ -349,25 +349,24 @@ def _export(job: Job, settings, device: str, storage) -> None:
         )
 
     if views:
-        images = render_views(grid, turntable_cameras(views, elevation, options.get("view_size", 256)).to(device),
+        images = render_views(grid, turntable_cameras(views, options.elevation, options.view_size).to(device),
                               callbacks=offset(0))
         for i, image in enumerate(images):
             save_png(scratch / f"render_{i:03d}.png", image)
             runtime.publish_artifact(job.id, f"render_{i:03d}.png", scratch / f"render_{i:03d}.png", "render", storage)
     turntable = render_views(
-        grid, turntable_cameras(frames, elevation, options.get("turntable_size", 256)).to(device),
+        grid, turntable_cameras(frames, options.elevation, options.turntable_size).to(device),
         callbacks=offset(views),
     )
-    fps = options.get("fps", 30.0)
-    write_video(scratch / "turntable.mp4", turntable, fps=fps)
+    write_video(scratch / "turntable.mp4", turntable, fps=options.fps)
     runtime.publish_artifact(job.id, "turntable.mp4", scratch / "turntable.mp4", "video", storage)
-    if options.get("gif", True):
-        write_video(scratch / "turntable.gif", turntable, fps=fps)
+    if options.gif:
+        write_video(scratch / "turntable.gif", turntable, fps=options.fps)
         runtime.publish_artifact(job.id, "turntable.gif", scratch / "turntable.gif", "video", storage)
-    if options.get("mesh", True):
+    if options.mesh:
         callbacks.callbacks.check_cancel("export")
         try:
-            mesh = extract_mesh(grid, resolution=options.get("mesh_resolution"))
+            mesh = extract_mesh(grid, resolution=options.mesh_resolution)
         except ValueError as exc:  # no surface at the level: report, keep the other artifacts
             runtime.update_job(job.id, message=f"no mesh exported: {exc}")
         else:
@@ -376,7 +375,7 @@ def _export(job: Job, settings, device: str, storage) -> None:
                 runtime.publish_artifact(job.id, f"mesh.{suffix}", scratch / f"mesh.{suffix}", "mesh", storage)
         callbacks.on_progress(Progress("export", total, total))
     _preview(job.id, grid, settings, storage, device,
-             image=turntable[0] if options.get("turntable_size", 256) <= 512 else None)
+             image=turntable[0] if options.turntable_size <= 512 else None)
 
 
 # --------------------------------------------------------------------------- tasks

@@ -1,13 +1,4 @@
-"""Diffusion guidance behind one small, model-agnostic interface (paper §3.2, §3.3).
-
-The editing loop only needs three things from a text-to-image diffusion model:
-text embeddings, the Score Distillation Sampling (SDS) gradient for a batch of
-renders, and (for the spatial refinement) per-token cross-attention maps.
-:class:`Guidance` is that interface; :class:`StableDiffusionGuidance` implements
-it over diffusers' ``UNet2DConditionModel`` / ``AutoencoderKL`` and
-transformers' CLIP text encoder, for any checkpoint in the diffusers layout
-(hub id or local folder). Model-specific code stays in this module, as
-diffusers keeps it behind its pipelines.
+"""Score Distillation Sampling over Stable Diffusion (SPEC §2): :class:`StableDiffusionGuidance`.
 
 SDS (SPEC §2). For renders ``x`` in [0, 1]:
 
@@ -30,262 +21,22 @@ latents is exactly ``grad`` (summed, not averaged, over the batch), so
 the images. The *value* of this loss means nothing; log the diagnostics
 instead.
 
-Cross-attention maps (SPEC §3). One UNet pass on the noised latent of a render
-at a fixed timestep with the conditional prompt only; a capturing attention
-processor (:class:`CrossAttentionCapture`, a diffusers ``AttnProcessor``)
-is installed on the cross-attention (``attn2``) layers only for the duration
-of the pass, every other layer keeps PyTorch SDPA (``AttnProcessor2_0``).
+Cross-attention maps (SPEC §3) come from one more UNet pass with a capturing
+processor (:mod:`voxe_core.guidance.attention`).
 """
 
 from __future__ import annotations
 
-import math
 import os
 import time
-from typing import Protocol, Sequence, runtime_checkable
+from typing import Sequence
 
 import torch
 import torch.nn.functional as F
 
-from voxe_core.constants import ATTENTION_MODEL_ID, SDS_MODEL_ID  # noqa: F401 - re-exported
-
-DEFAULT_GUIDANCE_SCALE = 100.0
-DEFAULT_ATTENTION_TIMESTEP = 200
-RENDER_PREFIX = "a render of"
-VIEW_WORDS = ("front", "side", "back", "overhead")
-
-_DIFFUSERS_LAYOUT = "model_index.json, unet/, vae/, text_encoder/, tokenizer/, scheduler/"
-
-
-class ModelNotAvailableError(RuntimeError):
-    """The requested diffusion weights cannot be loaded (not cached, offline, or incomplete)."""
-
-
-# --------------------------------------------------------------------------- prompts
-
-
-def view_word(elevation_deg: float, azimuth_deg: float) -> str:
-    """The view word for a camera pose, as the authors append to the prompt.
-
-    ``overhead`` when the elevation above the horizon is more than 60°; else by
-    azimuth (degrees, any range, 0 = the object's front in the caller's pose
-    convention): ``front`` when within ±45° of 0, ``back`` within ±45° of 180,
-    ``side`` otherwise. Boundaries (exactly ±45°, ±135°) go to front/back.
-    """
-    if elevation_deg > 60.0:
-        return "overhead"
-    az = (float(azimuth_deg) + 180.0) % 360.0 - 180.0  # [-180, 180)
-    if abs(az) <= 45.0:
-        return "front"
-    if abs(az) >= 135.0:
-        return "back"
-    return "side"
-
-
-def edit_prompt(user_text: str, view_word: str | None = None) -> str:
-    """``"a render of <text>[, <view> view]"`` (SPEC §2).
-
-    Whitespace is collapsed and trailing full stops dropped. The prefix is not
-    doubled when the user already wrote it (any case). ``view_word`` is one of
-    :data:`VIEW_WORDS` or ``None`` for no view suffix.
-    """
-    text = " ".join(str(user_text).split()).rstrip(". ").strip()
-    if not text:
-        raise ValueError("the edit prompt is empty")
-    if text.lower() == RENDER_PREFIX:
-        raise ValueError("the edit prompt has only the prefix 'a render of' and no content")
-    if not text.lower().startswith(RENDER_PREFIX + " "):
-        text = f"{RENDER_PREFIX} {text}"
-    if view_word is not None:
-        if view_word not in VIEW_WORDS:
-            raise ValueError(f"unknown view word {view_word!r}; expected one of {VIEW_WORDS}")
-        text = f"{text}, {view_word} view"
-    return text
-
-
-# --------------------------------------------------------------------------- interface
-
-
-@runtime_checkable
-class Guidance(Protocol):
-    """What the editing and refinement stages need from a text-to-image diffusion model."""
-
-    resolution: int
-    """Square image size (pixels) the model works at; renders are resized to it."""
-
-    num_train_timesteps: int
-    """Length of the model's training noise schedule (1000 for SD)."""
-
-    def encode_prompts(self, prompts: list[str]) -> torch.Tensor:
-        """Text embeddings ``(len(prompts), L, D)`` for conditioning."""
-        ...
-
-    def unconditional_embedding(self) -> torch.Tensor:
-        """Embedding ``(1, L, D)`` of the empty prompt (classifier-free guidance)."""
-        ...
-
-    def sds_loss(
-        self,
-        images: torch.Tensor,
-        text_embeddings: torch.Tensor,
-        timesteps: torch.Tensor,
-        guidance_scale: float = DEFAULT_GUIDANCE_SCALE,
-        generator: torch.Generator | None = None,
-    ) -> tuple[torch.Tensor, dict[str, float]]:
-        """Scalar surrogate loss whose latent gradient is ``w(t)(ε̂ − ε)``, plus diagnostics."""
-        ...
-
-    def cross_attention_maps(
-        self,
-        image: torch.Tensor,
-        prompt: str,
-        timestep: int = DEFAULT_ATTENTION_TIMESTEP,
-        resolution_filter: int | None = 16,
-        generator: torch.Generator | None = None,
-    ) -> torch.Tensor:
-        """Per-token cross-attention probabilities ``(tokens, h, w)``, summing to 1 per pixel."""
-        ...
-
-    def token_spans(self, prompt: str, words: Sequence[str]) -> list[int]:
-        """Token positions (in the padded prompt) of every occurrence of each word."""
-        ...
-
-
-# --------------------------------------------------------------------------- attention capture
-
-
-class AttentionStore:
-    """Accumulates head-averaged cross-attention probabilities per layer during one UNet pass."""
-
-    def __init__(self, latent_hw: tuple[int, int], resolution_filter: int | None):
-        self.latent_hw = latent_hw
-        self.resolution_filter = resolution_filter
-        self.maps: list[torch.Tensor] = []  # each (B, h, w, tokens), float32
-        self.seen_resolutions: set[tuple[int, int]] = set()
-
-    def layer_hw(self, sequence_length: int) -> tuple[int, int]:
-        """Spatial size of a layer's query map from its length, given the latent size."""
-        h, w = self.latent_hw
-        for k in range(8):
-            f = 2**k
-            lh, lw = math.ceil(h / f), math.ceil(w / f)
-            if lh * lw == sequence_length:
-                return lh, lw
-        side = math.isqrt(sequence_length)
-        if side * side == sequence_length:
-            return side, side
-        raise ValueError(f"cannot infer the query map size of a layer with {sequence_length} positions")
-
-    def wants(self, hw: tuple[int, int]) -> bool:
-        self.seen_resolutions.add(hw)
-        return self.resolution_filter is None or hw == (self.resolution_filter, self.resolution_filter)
-
-    def add(self, probs: torch.Tensor, heads: int, hw: tuple[int, int]) -> None:
-        # probs: (B*heads, h*w, tokens)
-        bh, n, tokens = probs.shape
-        mean = probs.reshape(bh // heads, heads, n, tokens).mean(dim=1)
-        self.maps.append(mean.reshape(bh // heads, hw[0], hw[1], tokens))
-
-
-class CrossAttentionCapture:
-    """Attention processor that records ``softmax(QKᵀ/√d)`` of a cross-attention layer.
-
-    It computes attention explicitly (as diffusers' ``AttnProcessor``), records
-    the head-averaged probabilities in float32 in its :class:`AttentionStore`
-    when the layer's query map passes the store's resolution filter, and
-    returns the same output as the default processor. Layers the filter
-    rejects go through the fast SDPA processor unchanged.
-    """
-
-    def __init__(self, store: AttentionStore):
-        from diffusers.models.attention_processor import AttnProcessor2_0
-
-        self.store = store
-        self._fast = AttnProcessor2_0()
-
-    def __call__(
-        self,
-        attn,
-        hidden_states: torch.Tensor,
-        encoder_hidden_states: torch.Tensor | None = None,
-        attention_mask: torch.Tensor | None = None,
-        temb: torch.Tensor | None = None,
-        *args,
-        **kwargs,
-    ) -> torch.Tensor:
-        if encoder_hidden_states is None or hidden_states.ndim != 3 or attn.spatial_norm is not None:
-            # not a text cross-attention of a transformer block: nothing to record
-            return self._fast(attn, hidden_states, encoder_hidden_states, attention_mask, temb, *args, **kwargs)
-        hw = self.store.layer_hw(hidden_states.shape[1])
-        if not self.store.wants(hw):
-            return self._fast(attn, hidden_states, encoder_hidden_states, attention_mask, temb, *args, **kwargs)
-
-        residual = hidden_states
-        batch_size, _, _ = encoder_hidden_states.shape
-        attention_mask = attn.prepare_attention_mask(attention_mask, encoder_hidden_states.shape[1], batch_size)
-        if attn.group_norm is not None:
-            hidden_states = attn.group_norm(hidden_states.transpose(1, 2)).transpose(1, 2)
-        query = attn.to_q(hidden_states)
-        if attn.norm_cross:
-            encoder_hidden_states = attn.norm_encoder_hidden_states(encoder_hidden_states)
-        key = attn.to_k(encoder_hidden_states)
-        value = attn.to_v(encoder_hidden_states)
-
-        query = attn.head_to_batch_dim(query)
-        key = attn.head_to_batch_dim(key)
-        value = attn.head_to_batch_dim(value)
-
-        scores = torch.bmm(query.float(), key.float().transpose(-1, -2)) * attn.scale
-        if attention_mask is not None:
-            scores = scores + attention_mask.float()
-        probs = scores.softmax(dim=-1)
-        self.store.add(probs, attn.heads, hw)
-
-        hidden_states = torch.bmm(probs.to(value.dtype), value)
-        hidden_states = attn.batch_to_head_dim(hidden_states)
-        hidden_states = attn.to_out[0](hidden_states)
-        hidden_states = attn.to_out[1](hidden_states)
-        if attn.residual_connection:
-            hidden_states = hidden_states + residual
-        return hidden_states / attn.rescale_output_factor
-
-
-# --------------------------------------------------------------------------- Stable Diffusion
-
-
-def _offline_env() -> bool:
-    return os.environ.get("HF_HUB_OFFLINE", "").strip().lower() in ("1", "true", "yes", "on")
-
-
-def _not_available_message(model: str, cause: BaseException | None) -> str:
-    msg = (
-        f"Stable Diffusion weights '{model}' are not available offline: download them once with "
-        f"`huggingface-cli download {model}` (or `hf download {model}`) on a machine with internet and "
-        f"point HF_HOME at that cache, or pass a local folder in the diffusers layout ({_DIFFUSERS_LAYOUT})."
-    )
-    if cause is not None:
-        detail = " ".join(str(cause).split())
-        if len(detail) > 400:
-            detail = detail[:400] + "..."
-        msg += f" Underlying error: {type(cause).__name__}: {detail}"
-    return msg
-
-
-def _loading_errors() -> tuple[type[BaseException], ...]:
-    errors: list[type[BaseException]] = [OSError]
-    try:
-        from huggingface_hub.errors import HFValidationError, HfHubHTTPError
-
-        errors += [HFValidationError, HfHubHTTPError]
-    except ImportError:  # pragma: no cover - very old huggingface_hub
-        pass
-    try:
-        import httpx
-
-        errors.append(httpx.HTTPError)
-    except ImportError:  # pragma: no cover
-        pass
-    return tuple(errors)
+from voxe_core.constants import DEFAULT_ATTENTION_TIMESTEP, DEFAULT_GUIDANCE_SCALE, SDS_MODEL_ID
+from voxe_core.guidance.attention import AttentionStore, capturing
+from voxe_core.guidance.loading import load_stable_diffusion
 
 
 def _sync(guidance: "StableDiffusionGuidance") -> None:
@@ -375,41 +126,11 @@ class StableDiffusionGuidance:
         ``resolution`` overrides the image size derived from the configs
         (``unet.sample_size · 2^(len(vae.block_out_channels) − 1)``, 512 for SD).
         """
-        from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
-        from transformers import CLIPTextModel, CLIPTokenizer
-
-        model_str = os.fspath(model)
         device = torch.device(device) if device is not None else torch.device("cuda" if torch.cuda.is_available() else "cpu")
         if dtype is None:
             dtype = torch.float16 if device.type == "cuda" else torch.float32
-        if local_files_only is None:
-            local_files_only = _offline_env()
-        kwargs = {"local_files_only": bool(local_files_only)}
-        if revision is not None:
-            kwargs["revision"] = revision
-
-        looks_local = os.path.isabs(model_str) or model_str.startswith(".") or os.path.exists(model_str)
-        if looks_local and not os.path.isdir(model_str):
-            raise ModelNotAvailableError(_not_available_message(model_str, FileNotFoundError(f"no folder {model_str}")))
-
-        try:
-            unet = UNet2DConditionModel.from_pretrained(model_str, subfolder="unet", torch_dtype=dtype, **kwargs)
-            vae = AutoencoderKL.from_pretrained(model_str, subfolder="vae", torch_dtype=dtype, **kwargs)
-            text_encoder = CLIPTextModel.from_pretrained(model_str, subfolder="text_encoder", dtype=dtype, **kwargs)
-            tokenizer = CLIPTokenizer.from_pretrained(model_str, subfolder="tokenizer", **kwargs)
-            scheduler = DDIMScheduler.from_pretrained(model_str, subfolder="scheduler", **kwargs)
-        except _loading_errors() as exc:
-            raise ModelNotAvailableError(_not_available_message(model_str, exc)) from exc
-        # transformers >= 5 returns an empty tokenizer instead of failing when
-        # the tokenizer files are missing: check it is the real one.
-        if len(tokenizer) <= 3 or len(tokenizer) > text_encoder.config.vocab_size + 16:
-            raise ModelNotAvailableError(
-                _not_available_message(
-                    model_str,
-                    OSError(f"tokenizer/ has {len(tokenizer)} tokens but the text encoder expects "
-                            f"{text_encoder.config.vocab_size}: tokenizer files missing or wrong"),
-                )
-            )
+        model_str = os.fspath(model)
+        unet, vae, text_encoder, tokenizer, scheduler = load_stable_diffusion(model_str, dtype, local_files_only, revision)
         return cls(
             unet, vae, text_encoder, tokenizer, scheduler,
             model_id=model_str, device=device, dtype=dtype, resolution=resolution, sync_timing=sync_timing,
@@ -637,44 +358,6 @@ class StableDiffusionGuidance:
         text = self._expand_text(self.encode_prompts([prompt]), 1)
 
         store = AttentionStore(tuple(latents.shape[-2:]), resolution_filter)
-        original = self.unet.attn_processors
-        capture = CrossAttentionCapture(store)
-        self.unet.set_attn_processor(
-            {name: (capture if name.endswith("attn2.processor") else proc) for name, proc in original.items()}
-        )
-        try:
+        with capturing(self.unet, store):
             self.unet(noisy.to(self.dtype), t, encoder_hidden_states=text)
-        finally:
-            self.unet.set_attn_processor(original)
-
-        if not store.maps:
-            available = sorted({hw[0] for hw in store.seen_resolutions if hw[0] == hw[1]})
-            raise ValueError(
-                f"no cross-attention layer has a {resolution_filter}x{resolution_filter} query map; "
-                f"this model has {sorted(store.seen_resolutions)} (use one of {available} or None)"
-            )
-        size = max((m.shape[1], m.shape[2]) for m in store.maps)
-        total = torch.zeros(1, store.maps[0].shape[-1], *size, device=self.device, dtype=torch.float32)
-        for m in store.maps:
-            m = m.permute(0, 3, 1, 2)  # (1, tokens, h, w)
-            if tuple(m.shape[-2:]) != size:
-                m = F.interpolate(m, size=size, mode="bilinear", align_corners=False)
-            total += m
-        return total[0] / len(store.maps)
-
-
-__all__ = [
-    "ATTENTION_MODEL_ID",
-    "AttentionStore",
-    "CrossAttentionCapture",
-    "DEFAULT_ATTENTION_TIMESTEP",
-    "DEFAULT_GUIDANCE_SCALE",
-    "Guidance",
-    "ModelNotAvailableError",
-    "RENDER_PREFIX",
-    "SDS_MODEL_ID",
-    "StableDiffusionGuidance",
-    "VIEW_WORDS",
-    "edit_prompt",
-    "view_word",
-]
+        return store.average()

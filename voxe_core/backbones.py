@@ -1,0 +1,85 @@
+"""The grid backbones by name: a registry, the one loader of saved grids, and the choice of a backbone for a capture.
+
+* ``relu_field`` (:class:`~voxe_core.grid.VoxelGrid`): objects on a transparent background (SPEC §1);
+* ``scene`` (:class:`~voxe_core.scene_grid.SceneGrid`): captured 360° photos with a background (SPEC §5).
+
+Every saved grid names its backbone in its header (``kind``; files written before
+the key existed are ReLU-field grids), so :func:`load_grid` returns the right class
+without the grid modules knowing each other.
+
+Examples:
+    >>> grid = BACKBONES["scene"](8)
+    >>> import tempfile, os
+    >>> path = os.path.join(tempfile.mkdtemp(), "g.safetensors")
+    >>> grid.save(path)
+    >>> type(load_grid(path)).__name__
+    'SceneGrid'
+"""
+
+from __future__ import annotations
+
+import torch
+
+from voxe_core.cameras import Cameras
+from voxe_core.grid import GRID_FORMAT_VERSION, GRID_KIND, VoxelGrid
+from voxe_core.scene_grid import SceneGrid, apply_frame, scene_frame
+from voxe_core.tensorio import FormatError, load_tensors
+
+BACKBONES: dict[str, type[VoxelGrid]] = {cls.kind: cls for cls in (VoxelGrid, SceneGrid)}
+BACKBONE_CHOICES = ("auto", *BACKBONES)  # what a user may ask for ("auto": from the images' alpha)
+OPAQUE_ALPHA = 0.5  # a pixel with alpha below this is transparent background
+TRANSPARENT_FRACTION = 0.01  # images with at least this share of transparent pixels are objects on a background
+
+
+def find_backbone(name: str) -> type[VoxelGrid]:
+    """The grid class registered as ``name`` (ValueError naming the known ones otherwise)."""
+    try:
+        return BACKBONES[name]
+    except KeyError:
+        raise ValueError(f"unknown backbone {name!r}; use {' or '.join(map(repr, BACKBONES))}") from None
+
+
+def grid_from_state(tensors: dict[str, torch.Tensor], meta: dict) -> VoxelGrid:
+    """A grid of the backbone its header names, from saved tensors (grid files and checkpoints alike)."""
+    kind = meta.get("backbone", VoxelGrid.kind)
+    try:
+        cls = find_backbone(kind)
+    except ValueError as exc:
+        raise FormatError(f"the grid's header names {exc}") from None
+    return cls.from_state(tensors, meta)
+
+
+def load_grid(path) -> VoxelGrid:
+    """The grid saved at ``path`` by ``VoxelGrid.save``, of whichever backbone wrote it.
+
+    Raises ``FormatError`` (naming the file) for a missing, unreadable or newer-format file.
+    """
+    return grid_from_state(*load_tensors(path, kind=GRID_KIND, max_version=GRID_FORMAT_VERSION))
+
+
+def detect_backbone(alphas: torch.Tensor | None) -> str:
+    """'relu_field' for objects on a transparent background, 'scene' for opaque photos.
+
+    ``alphas`` is ``Scene.alphas`` (None when the images carry no alpha). An
+    alpha channel that is opaque nearly everywhere is a photo saved as RGBA.
+    """
+    if alphas is None or alphas.numel() == 0:
+        return SceneGrid.kind
+    transparent = float((alphas < OPAQUE_ALPHA).float().mean())
+    return VoxelGrid.kind if transparent >= TRANSPARENT_FRACTION else SceneGrid.kind
+
+
+def prepare_backbone(backbone: str, alphas: torch.Tensor | None, cameras: Cameras, resolution: int):
+    """Resolve ``backbone`` ('auto' | 'relu_field' | 'scene') for a loaded scene.
+
+    Returns (name, cameras to fit with, initial grid for ``reconstruct`` or None):
+    a scene grid is fitted in the canonical frame of ``scene_frame``, which it records.
+    """
+    if backbone not in BACKBONE_CHOICES:
+        raise ValueError(f"unknown backbone {backbone!r}; use {', '.join(map(repr, BACKBONE_CHOICES[:-1]))} "
+                         f"or {BACKBONE_CHOICES[-1]!r}")
+    name = detect_backbone(alphas) if backbone == "auto" else backbone
+    if name != SceneGrid.kind:
+        return name, cameras, None
+    frame = scene_frame(cameras)
+    return name, apply_frame(cameras, frame), SceneGrid(resolution, frame=frame)

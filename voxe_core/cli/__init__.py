@@ -1,0 +1,55 @@
+"""The ``voxe`` command line: a thin layer of argument parsing over voxe_core, one module per command group.
+
+    voxe reconstruct DATA_DIR --out grid.safetensors [--preset fast|paper] ...                    (reconstruct)
+    voxe render GRID --data DATA_DIR --split test --out DIR   |   --ring N --size S                (render)
+    voxe turntable GRID --out turntable.mp4|.gif [--frames 100] [--size 256] [--elevation 30]    (render)
+    voxe export-mesh GRID --out mesh.ply|.glb [--level L] [--resolution N]                        (mesh)
+    voxe mesh-to-grid MESH --out grid.safetensors [--texture PNG] [--route voxelize|render]       (mesh)
+    voxe edit GRID --prompt TEXT --out DIR [--model ID_OR_DIR] [--iterations N] [--render-size N] ...  (edit)
+    voxe build-tiny-model DIR      (random-weight SMOKE-TEST Stable Diffusion, plumbing only)     (edit)
+    voxe refine EDITED_GRID --initial GRID --prompt TEXT --edit-words WORDS --out DIR ...         (refine)
+    voxe evaluate GRID --edit EDITED_GRID PROMPT [MASK] ... --object NAME --out DIR ...          (evaluate)
+    voxe sweep --api URL --scene SCENE_ID=OBJECT ... [--params JSON] [--evaluation JSON] [--wait] (service)
+
+Options that are job parameters of the service take their defaults from ``voxe_core.presets`` and
+resolve to stage configs there, as the worker's do. Bad input (dataset, grid file, option values)
+prints one line on stderr and exits 2; Ctrl-C during a long stage cancels it cleanly and exits 130.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Sequence
+
+from voxe_core.cli import edit, evaluate, mesh, reconstruct, refine, render, service
+from voxe_core.cli.common import EXIT_INTERRUPTED, EXIT_USAGE
+
+COMMAND_GROUPS = (reconstruct, render, mesh, edit, refine, evaluate, service)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="voxe", description="Vox-E voxel grids: reconstruct, render, export.")
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for group in COMMAND_GROUPS:
+        group.add_parsers(commands, common)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``voxe``; returns the exit status (0 ok, 2 bad input, 130 interrupted)."""
+    args = build_parser().parse_args(argv)
+    from voxe_core.data import DatasetError
+    from voxe_core.tensorio import FormatError
+
+    try:
+        return args.run(args)
+    except (DatasetError, FormatError, ValueError, OSError) as exc:
+        kind = "dataset error" if isinstance(exc, DatasetError) else "error"
+        print(f"voxe {args.command}: {kind}: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print("\nvoxe: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED

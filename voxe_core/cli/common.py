@@ -1,0 +1,163 @@
+"""What every ``voxe`` command shares: exit codes, Ctrl-C as cancellation, progress bars, option types, dataset views.
+
+Nothing here imports torch, so ``voxe --help`` stays instant; the commands import the library where they run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import signal
+import sys
+import threading
+from typing import Iterator
+
+from voxe_core.presets import DOWNSAMPLE, RESAMPLE
+
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+
+
+class Interrupt:
+    """SIGINT sets a flag that a stage polls through ``Callbacks.should_cancel``; a second Ctrl-C aborts at once."""
+
+    def __init__(self):
+        self.requested = False
+
+    def __call__(self) -> bool:
+        return self.requested
+
+    def _handle(self, signum, frame):
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        print("\nvoxe: interrupt received, stopping after this step (Ctrl-C again to abort)", file=sys.stderr)
+
+    @contextlib.contextmanager
+    def installed(self) -> Iterator["Interrupt"]:
+        if threading.current_thread() is not threading.main_thread():
+            yield self  # signal handlers can only be set from the main thread
+            return
+        previous = signal.signal(signal.SIGINT, self._handle)
+        try:
+            yield self
+        finally:
+            signal.signal(signal.SIGINT, previous)
+
+
+@contextlib.contextmanager
+def progress_callbacks(
+    desc: str, unit: str = "it", should_cancel=None, quiet: bool = False, total: int | None = None
+):
+    """Callbacks whose ``on_progress`` drives one tqdm bar (total and losses taken from each report)."""
+    from tqdm import tqdm
+
+    from voxe_core.progress import Callbacks, Progress
+
+    bar = tqdm(desc=desc, unit=unit, total=total, disable=quiet, dynamic_ncols=True, file=sys.stderr)
+
+    def on_progress(report: Progress) -> None:
+        if bar.total != report.total:
+            bar.total = report.total
+        postfix = {k: f"{v:.4f}" for k, v in report.losses.items()}
+        for key in ("stage", "resolution"):
+            if key in report.info:
+                postfix[key] = report.info[key]
+        if postfix:
+            bar.set_postfix(postfix, refresh=False)
+        bar.update(report.iteration - bar.n)
+
+    try:
+        yield Callbacks(on_progress=on_progress, should_cancel=should_cancel)
+    finally:
+        bar.close()
+
+
+def run_stage(fn, desc: str, unit: str, total: int | None, quiet: bool = False):
+    """Run ``fn(callbacks)`` under a progress bar with Ctrl-C wired to cancellation.
+
+    Returns what ``fn`` returns, or None when the user interrupted it (the
+    stage raised ``StageCancelled`` at its next cancellation check).
+    """
+    from voxe_core.progress import StageCancelled
+
+    interrupt = Interrupt()
+    with interrupt.installed(), progress_callbacks(desc, unit, interrupt, quiet, total) as callbacks:
+        try:
+            return fn(callbacks)
+        except StageCancelled:
+            return None
+
+
+def int_list(text: str) -> list[int]:
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer or a comma-separated list of integers, got {text!r}")
+    if not values or any(v < 0 for v in values):
+        raise argparse.ArgumentTypeError(f"expected non-negative integers, got {text!r}")
+    return values
+
+
+def one_or_list(values: list[int] | None) -> int | list[int] | None:
+    """An ``int_list`` option as the job parameters write it: one value as an int (so both share a cache key)."""
+    return values[0] if values is not None and len(values) == 1 else values
+
+
+def positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def add_view_arguments(parser: argparse.ArgumentParser, split: str) -> None:
+    """Which dataset images a command reads, and how they are downsampled on load (the job parameters' defaults)."""
+    parser.add_argument("--split", default=split)
+    parser.add_argument("--downsample", type=positive_int, default=DOWNSAMPLE,
+                        help=f"integer image downsampling on load (default {DOWNSAMPLE}: the paper's 800 px at 266)")
+    # voxe_core.data.RESAMPLE_FILTERS, spelt out: importing it here would load torch for --help.
+    parser.add_argument("--resample", choices=("bilinear", "box"), default=RESAMPLE,
+                        help="the downsampling's antialiasing filter (bilinear: as the authors' loader)")
+    parser.add_argument("--max-images", type=positive_int, default=None, help="use only the first N images")
+
+
+def add_model_arguments(parser: argparse.ArgumentParser, flag: str, what: str, default: str) -> None:
+    """Which weights a command loads (``flag``, e.g. ``--model``; ``what`` they are) and where it runs them."""
+    parser.add_argument(flag, default=None, metavar="MODEL_ID_OR_PATH",
+                        help=f"{what}: hub id (from the local cache) or folder (default {default})")
+    parser.add_argument("--offline", action="store_true", help="never contact the hub (as HF_HUB_OFFLINE=1)")
+    parser.add_argument("--device", choices=("cpu", "cuda"), default=None, help="default: cuda when available")
+
+
+def check_device(args: argparse.Namespace) -> None:
+    """ValueError when ``--device cuda`` was asked for on a machine without CUDA."""
+    import torch
+
+    if args.device == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda asked for, but no CUDA device is available")
+
+
+def load_guidance(args: argparse.Namespace, model: str):
+    """The Stable Diffusion guidance ``model`` on ``args.device``; None, said on stderr, when its weights are missing."""
+    from voxe_core.guidance.loading import ModelNotAvailableError
+    from voxe_core.guidance.sds import StableDiffusionGuidance
+
+    try:
+        return StableDiffusionGuidance.from_pretrained(
+            model, device=args.device, local_files_only=True if args.offline else None
+        )
+    except ModelNotAvailableError as exc:
+        print(f"voxe {args.command}: model not available: {exc}", file=sys.stderr)
+        return None
+
+
+def view_params(args: argparse.Namespace) -> dict:
+    """The job parameters of the dataset options of ``add_view_arguments``."""
+    return {"downsample": args.downsample, "resample": args.resample, "max_images": args.max_images}
+
+
+def load_views(args: argparse.Namespace):
+    from voxe_core.data import load_scene
+
+    return load_scene(args.data, args.split, args.downsample, args.max_images, resample=args.resample)

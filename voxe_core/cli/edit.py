@@ -1,0 +1,124 @@
+"""``voxe edit`` (text-guided SDS editing, SPEC §2; SPEC §5's schedule for scene grids) and ``voxe build-tiny-model``.
+
+The edit options are the job parameters of the service (``api.schemas.JobParams``) and resolve through
+``voxe_core.presets.edit_config``, as the worker's do.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from voxe_core import constants as paper
+from voxe_core.cli.common import (
+    EXIT_INTERRUPTED, EXIT_USAGE, add_model_arguments, add_view_arguments, check_device, load_guidance, load_views,
+    positive_int, run_stage,
+)
+from voxe_core.presets import EDIT_SCHEDULES, PREVIEW_EVERY, SEED, TIMESTEP_SCHEDULES, edit_config
+
+_SCENE = EDIT_SCHEDULES["scene"]
+
+
+def add_parsers(commands, common) -> None:
+    ed = commands.add_parser("edit", parents=[common], help="text-guided editing of a grid with SDS (SPEC §2)")
+    ed.add_argument("grid", type=Path, metavar="GRID", help="initial grid G_i (.safetensors)")
+    ed.add_argument("--prompt", required=True, help='edit text, e.g. "a dog wearing big sunglasses"')
+    ed.add_argument("--out", type=Path, required=True, metavar="DIR",
+                    help="writes DIR/edited.safetensors, DIR/checkpoint.safetensors, DIR/previews/*.png")
+    add_model_arguments(ed, "--model", "diffusers-layout Stable Diffusion", paper.SDS_MODEL_ID)
+    ed.add_argument("--iterations", type=int, default=None,
+                    help=f"default {paper.EDIT_ITERATIONS}; {_SCENE.iterations} for a scene-backbone grid (SPEC §5)")
+    ed.add_argument("--render-size", type=positive_int, default=paper.RENDER_SIZE, help="training render size in pixels")
+    ed.add_argument("--lr", type=float, default=paper.EDIT_LR, help="Adam's learning rate")
+    ed.add_argument("--regulariser", default=paper.DEFAULT_REGULARISER,
+                    help="reg3d | reg3d_plus | volumetric_l1 | volumetric_l2 | image_l1 | image_l2 (image_* need --data)")
+    ed.add_argument("--reg-weight", type=float, default=paper.DEFAULT_REGULARISER_WEIGHT)
+    ed.add_argument("--guidance-scale", type=float, default=paper.DEFAULT_GUIDANCE_SCALE)
+    ed.add_argument("--schedule", choices=TIMESTEP_SCHEDULES, default=TIMESTEP_SCHEDULES[0],
+                    help="time-step annealing floor: paper 0.35, authors' code 0.22; a scene-backbone grid "
+                         f"anneals from iteration {_SCENE.i_start} every {_SCENE.every} instead (SPEC §5)")
+    ed.add_argument("--batch-size", type=positive_int, default=1, help="poses (renders) per iteration")
+    ed.add_argument("--no-view-words", action="store_true", help="do not append ', front view' etc. to the prompt")
+    ed.add_argument("--autocast", choices=("bf16", "fp16"), default=None, help="run the guidance under autocast")
+    ed.add_argument("--seed", type=int, default=SEED)
+    ed.add_argument("--checkpoint-every", type=int, default=250, help="iterations between checkpoints (0: only at the end)")
+    ed.add_argument("--resume", type=Path, default=None, metavar="PATH", help="continue from this edit checkpoint")
+    ed.add_argument("--preview-every", type=int, default=PREVIEW_EVERY, help="iterations between preview PNGs (0: none)")
+    ed.add_argument("--data", type=Path, default=None, metavar="DATA_DIR", help="input views for image_l1 / image_l2")
+    add_view_arguments(ed, "train")
+    ed.set_defaults(run=cmd_edit)
+
+    tiny = commands.add_parser(
+        "build-tiny-model", parents=[common],
+        help="write a tiny random-weight Stable Diffusion (SMOKE-TEST model: plumbing only, never quality)",
+    )
+    tiny.add_argument("out", type=Path, metavar="DIR")
+    tiny.add_argument("--seed", type=int, default=0)
+    tiny.set_defaults(run=cmd_build_tiny_model)
+
+
+def job_params(args: argparse.Namespace) -> dict:
+    """What ``voxe edit``'s options say, as the service's job parameters."""
+    return {
+        "iterations": args.iterations, "render_size": args.render_size, "guidance_scale": args.guidance_scale,
+        "lr": args.lr, "regulariser": args.regulariser, "regulariser_weight": args.reg_weight,
+        "timestep_schedule": args.schedule, "view_words": not args.no_view_words, "batch_size": args.batch_size,
+        "autocast": args.autocast, "seed": args.seed, "preview_every": args.preview_every,
+    }
+
+
+def cmd_edit(args) -> int:
+    from voxe_core.backbones import load_grid
+    from voxe_core.edit import edit
+    from voxe_core.export import save_png
+    from voxe_core.losses import IMAGE_REGULARISERS
+
+    if not args.prompt.strip():
+        raise ValueError("the edit prompt is empty")
+    grid = load_grid(args.grid)
+    config = edit_config(job_params(args), grid.kind, args.checkpoint_every)  # bad options fail before the model loads
+    if config.regulariser in IMAGE_REGULARISERS and args.data is None:
+        raise ValueError(f"--regulariser {config.regulariser} compares renders with the input views: pass --data DATA_DIR")
+    check_device(args)
+    views = None
+    if args.data is not None and config.regulariser in IMAGE_REGULARISERS:
+        scene = load_views(args)
+        views = (scene.images, grid.dataset_cameras(scene.cameras))
+    model = args.model or paper.SDS_MODEL_ID
+    guidance = load_guidance(args, model)
+    if guidance is None:
+        return EXIT_USAGE
+    args.out.mkdir(parents=True, exist_ok=True)
+    checkpoint = args.out / "checkpoint.safetensors"
+
+    def on_preview(iteration: int, image) -> None:
+        save_png(args.out / "previews" / f"preview_{iteration:05d}.png", image)
+
+    print(
+        f"editing {args.grid} ({'x'.join(map(str, grid.resolution))}, {grid.kind} backbone) towards {args.prompt!r} "
+        f"with {model} on {guidance.device}: {config.iterations} iterations, {config.render_size} px renders, "
+        f"{config.regulariser} x {config.regulariser_weight:g}",
+        file=sys.stderr,
+    )
+    edited = run_stage(
+        lambda cb: edit(grid, args.prompt, guidance, config, cb, checkpoint, args.resume, views, on_preview),
+        "edit", "it", config.iterations, args.quiet,
+    )
+    if edited is None:
+        print(f"voxe: edit cancelled; resume with --resume {checkpoint}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    edited.save(args.out / "edited.safetensors")
+    print(f"wrote {args.out / 'edited.safetensors'} and {checkpoint}")
+    return 0
+
+
+def cmd_build_tiny_model(args) -> int:
+    from voxe_core.tiny_sd import build_tiny_stable_diffusion
+
+    path = build_tiny_stable_diffusion(args.out, seed=args.seed)
+    print(
+        f"wrote {path}: SMOKE-TEST MODEL with RANDOM WEIGHTS (seed {args.seed}), for plumbing only; "
+        f"edits made with it are noise and say nothing about quality. Use it as `voxe edit ... --model {path}`."
+    )
+    return 0

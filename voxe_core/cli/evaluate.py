@@ -1,0 +1,89 @@
+"""``voxe evaluate``: the paper's metrics on a 360° ring (SPEC §4): CLIP_sim, CLIP_dir, FID, PSNR / SSIM outside the mask."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from voxe_core.cli.common import (
+    EXIT_INTERRUPTED, EXIT_USAGE, add_model_arguments, add_view_arguments, check_device, load_views, positive_int,
+    run_stage,
+)
+from voxe_core.constants import CLIP_MODEL_ID, INCEPTION_FILE
+
+
+def add_parsers(commands, common) -> None:
+    ev = commands.add_parser(
+        "evaluate", parents=[common],
+        help="the paper's metrics on a 360° ring: CLIP_sim, CLIP_dir, FID_rec / FID_input, PSNR / SSIM outside the mask (SPEC §4)",
+    )
+    ev.add_argument("initial", type=Path, metavar="GRID", help="the initial grid G_i (.safetensors)")
+    ev.add_argument("--edit", nargs="+", action="append", required=True, metavar="ARG",
+                    help="EDITED_GRID PROMPT [MASK]: an edit, its prompt and, for a refined local edit, "
+                         "its mask.safetensors (repeat --edit for several edits)")
+    ev.add_argument("--object", required=True, help='what the object is, for the source text "a render of a <object>"')
+    ev.add_argument("--out", type=Path, required=True, metavar="DIR",
+                    help="writes evaluation.json, evaluation.md and the ring renders ring/<name>/NNN.png")
+    add_model_arguments(ev, "--clip-model", "transformers CLIPModel", CLIP_MODEL_ID)
+    ev.add_argument("--inception", type=Path, default=None, metavar="PATH",
+                    help=f"TorchScript Inception file ({INCEPTION_FILE}) or its folder; without it no FID")
+    ev.add_argument("--data", type=Path, default=None, metavar="DATA_DIR", help="input views for FID_input")
+    add_view_arguments(ev, "train")
+    ev.add_argument("--views", type=positive_int, default=100, help="ring views (the paper: 100)")
+    ev.add_argument("--elevation", type=float, default=30.0, help="ring elevation in degrees")
+    ev.add_argument("--size", type=positive_int, default=266, help="ring render size in pixels")
+    ev.set_defaults(run=cmd_evaluate)
+
+
+def cmd_evaluate(args) -> int:
+    import torch
+
+    from voxe_core.backbones import load_grid
+    from voxe_core.evaluate import (
+        ClipScorer, EditSample, EvaluateConfig, InceptionFeatures, evaluate, format_table, save_png_set,
+    )
+    from voxe_core.guidance.loading import ModelNotAvailableError
+    from voxe_core.refine.storage import load_mask
+
+    config = EvaluateConfig(views=args.views, elevation=args.elevation, size=args.size)
+    for values in args.edit:
+        if len(values) not in (2, 3):
+            raise ValueError(f"--edit takes EDITED_GRID PROMPT [MASK], got {len(values)} values: {values}")
+    check_device(args)
+    initial = load_grid(args.initial).to(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    edits = []
+    for k, (grid_path, prompt, *mask_path) in enumerate(args.edit):
+        mask = load_mask(Path(mask_path[0])) if mask_path else None
+        edits.append(EditSample(f"edit{k:02d}", prompt, load_grid(Path(grid_path)).to(initial.bbox_min.device), mask))
+    input_images = None
+    if args.data is not None:
+        input_images = load_views(args).images
+    model = args.clip_model or CLIP_MODEL_ID
+    try:
+        clip = ClipScorer.from_pretrained(model, device=args.device, local_files_only=True if args.offline else None)
+        fid = InceptionFeatures.load(args.inception, device=args.device) if args.inception is not None else None
+    except ModelNotAvailableError as exc:
+        print(f"voxe evaluate: model not available: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    result = run_stage(
+        lambda cb: evaluate(initial, edits, args.object, clip, fid, input_images, config, cb),
+        "evaluate", "view", (1 + len(edits)) * config.views, args.quiet,
+    )
+    if result is None:
+        print("voxe: evaluation cancelled, nothing written", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    out = args.out
+    save_png_set(out / "ring" / "initial", result.initial_frames)
+    for name, frames in result.edit_frames.items():
+        save_png_set(out / "ring" / name, frames)
+    summary = {**result.summary(), "object": args.object, "clip_model": model,
+               "inception": str(args.inception) if args.inception else None,
+               "ring": {"views": config.views, "elevation": config.elevation, "size": config.size},
+               "edits": [{"name": e.name, "grid": str(g[0]), "mask": g[2] if len(g) > 2 else None}
+                         for e, g in zip(edits, args.edit)]}
+    (out / "evaluation.json").write_text(json.dumps(summary, indent=2))
+    table = format_table(result.rows, extra_columns=("name",))
+    (out / "evaluation.md").write_text(table)
+    print(table, end="")
+    return 0

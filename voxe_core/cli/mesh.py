@@ -1,0 +1,79 @@
+"""Meshes out and in: ``voxe export-mesh`` (marching cubes, PLY / GLB) and ``voxe mesh-to-grid`` (an OBJ or PLY as G_i)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from voxe_core.cli.common import EXIT_INTERRUPTED, int_list, positive_int, run_stage
+from voxe_core.cli.reconstruct import recipe_params
+from voxe_core.presets import RECONSTRUCTION_PRESET, RECONSTRUCTION_PRESETS, SEED, ExportConfig, reconstruct_config
+
+
+def add_parsers(commands, common) -> None:
+    mesh = commands.add_parser(
+        "export-mesh", parents=[common], help="marching-cubes mesh with vertex colours (.ply or .glb)"
+    )
+    mesh.add_argument("grid", type=Path, metavar="GRID")
+    mesh.add_argument("--out", type=Path, required=True, help="mesh file, .ply or .glb")
+    mesh.add_argument("--level", type=float, default=None, help="surface density (default ln 2 / voxel size)")
+    mesh.add_argument("--resolution", type=positive_int, default=ExportConfig.mesh_resolution,
+                      help="resample to N points per axis")
+    mesh.set_defaults(run=cmd_export_mesh)
+
+    mg = commands.add_parser("mesh-to-grid", parents=[common],
+                             help="an initial grid from an OBJ (+ texture) or PLY (vertex colours) mesh")
+    mg.add_argument("mesh", type=Path, metavar="MESH", help=".obj or .ply")
+    mg.add_argument("--texture", type=Path, default=None, help="the OBJ's texture image")
+    mg.add_argument("--up", choices=("x", "y", "z"), default="y", help="the mesh file's up axis (OBJ: y)")
+    mg.add_argument("--route", choices=("voxelize", "render"), default="voxelize",
+                    help="voxelize: write the mesh into the grid; render: reconstruct from rendered views")
+    mg.add_argument("--out", type=Path, required=True, help="grid file to write (.safetensors)")
+    mg.add_argument("--views", type=positive_int, default=100, help="render route: upper-hemisphere views")
+    mg.add_argument("--size", type=positive_int, default=200, help="render route: view size in pixels")
+    mg.add_argument("--preset", choices=RECONSTRUCTION_PRESETS, default=RECONSTRUCTION_PRESET,
+                    help="render route: reconstruction preset")
+    mg.add_argument("--resolution", type=int_list, default=None, metavar="N[,N...]",
+                    help="grid resolution (voxelize: default 160; render: as voxe reconstruct)")
+    mg.add_argument("--iterations", type=int_list, default=None, metavar="N[,N...]", help="render route: as voxe reconstruct")
+    mg.add_argument("--rays", type=positive_int, default=None, help="render route: rays per step")
+    mg.add_argument("--seed", type=int, default=SEED)
+    mg.set_defaults(run=cmd_mesh_to_grid)
+
+
+def cmd_export_mesh(args) -> int:
+    from voxe_core.backbones import load_grid
+    from voxe_core.export import MESH_SUFFIXES, extract_mesh, save_mesh
+
+    if args.out.suffix.lower() not in MESH_SUFFIXES:
+        raise ValueError(f"unsupported mesh suffix {args.out.suffix!r}; use one of {', '.join(MESH_SUFFIXES)}")
+    grid = load_grid(args.grid)
+    mesh = extract_mesh(grid, level=args.level, resolution=args.resolution)
+    save_mesh(mesh, args.out)
+    print(f"wrote {args.out}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces")
+    return 0
+
+
+def cmd_mesh_to_grid(args) -> int:
+    from voxe_core.mesh_input import VoxelizeConfig, hemisphere_cameras, load_mesh, render_mesh_views, voxelize
+    from voxe_core.reconstruct import reconstruct
+
+    mesh = load_mesh(args.mesh, args.texture, args.up)
+    if args.route == "voxelize":
+        if args.resolution is not None and len(args.resolution) != 1:
+            raise ValueError(f"--resolution takes one value for the voxelize route, got {len(args.resolution)}")
+        resolution = 160 if args.resolution is None else args.resolution[0]
+        grid = voxelize(mesh, VoxelizeConfig(resolution=resolution, seed=args.seed))
+    else:
+        config = reconstruct_config(recipe_params(args))
+        cameras = hemisphere_cameras(args.views, args.size, args.seed)
+        images, _ = render_mesh_views(mesh, cameras)
+        grid = run_stage(lambda callbacks: reconstruct(images, cameras, config, callbacks),
+                         "reconstruct", "it", config.total_iterations, args.quiet)
+        if grid is None:
+            print(f"voxe: reconstruction cancelled, nothing written to {args.out}", file=sys.stderr)
+            return EXIT_INTERRUPTED
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    grid.save(args.out)
+    print(f"wrote {args.out}: {'x'.join(map(str, grid.resolution))} grid from {args.mesh.name} ({args.route})")
+    return 0

@@ -1,0 +1,80 @@
+"""``voxe reconstruct``: fit G_i to posed images (SPEC §1); its recipe options are the job parameters' ``reconstruction``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from voxe_core.cli.common import (
+    EXIT_INTERRUPTED, add_view_arguments, int_list, load_views, one_or_list, positive_int, run_stage, view_params,
+)
+from voxe_core.presets import RECONSTRUCTION_PRESET, RECONSTRUCTION_PRESETS, SEED, reconstruct_config, reconstruction_params
+
+
+def add_parsers(commands, common) -> None:
+    rec = commands.add_parser("reconstruct", parents=[common], help="fit a voxel grid to posed images (SPEC §1)")
+    rec.add_argument("data", type=Path, metavar="DATA_DIR", help="NeRF-synthetic or instant-ngp dataset folder")
+    rec.add_argument("--out", type=Path, required=True, help="grid file to write (.safetensors)")
+    add_view_arguments(rec, "train")
+    add_recipe_arguments(rec)
+    rec.add_argument("--checkpoint", type=Path, default=None, help="write a resumable checkpoint here")
+    rec.add_argument("--checkpoint-every", type=positive_int, default=100, help="iterations between checkpoints")
+    rec.add_argument("--resume", type=Path, default=None, help="continue from this checkpoint")
+    # voxe_core.backbones.BACKBONE_CHOICES, spelt out: importing it here would load torch for --help.
+    rec.add_argument("--backbone", choices=("auto", "relu_field", "scene"), default="auto",
+                     help="relu_field: objects on a transparent background; scene: captured photos with a "
+                          "background (DVGO-style, SPEC §5); auto: from the images' alpha")
+    rec.set_defaults(run=cmd_reconstruct)
+
+
+def add_recipe_arguments(parser: argparse.ArgumentParser) -> None:
+    """The reconstruction recipe: the job parameters' ``reconstruction``."""
+    parser.add_argument("--preset", choices=RECONSTRUCTION_PRESETS, default=RECONSTRUCTION_PRESET,
+                        help="fast: the CPU budget (40→80→128); paper: the authors' 20→40→80→160 × 500")
+    parser.add_argument("--resolution", type=int_list, default=None, metavar="N[,N...]",
+                        help="final grid resolution (earlier stages scaled in proportion), or one per stage")
+    parser.add_argument("--iterations", type=int_list, default=None, metavar="N[,N...]",
+                        help="iterations of the final stage, or one per stage")
+    parser.add_argument("--rays", type=positive_int, default=None, help="rays per step")
+    parser.add_argument("--seed", type=int, default=SEED)
+
+
+def recipe_params(args: argparse.Namespace) -> dict:
+    """The job parameters' ``reconstruction`` from the options of ``add_recipe_arguments``."""
+    return {"preset": args.preset, "resolution": one_or_list(args.resolution),
+            "iterations": one_or_list(args.iterations), "rays_per_step": args.rays, "seed": args.seed}
+
+
+def job_params(args: argparse.Namespace) -> dict:
+    """What ``voxe reconstruct``'s options say, as the service's job parameters."""
+    return {**view_params(args), "reconstruction": {**recipe_params(args), "backbone": args.backbone}}
+
+
+def cmd_reconstruct(args) -> int:
+    from voxe_core.backbones import prepare_backbone
+    from voxe_core.reconstruct import reconstruct
+
+    config = reconstruct_config(reconstruction_params(job_params(args)), args.checkpoint_every if args.checkpoint else 0)
+    scene = load_views(args)
+    backbone, cameras, initial = prepare_backbone(args.backbone, scene.alphas, scene.cameras, config.resolutions[0])
+    print(
+        f"fitting {len(scene)} {scene.split} images of {scene.cameras.width}x{scene.cameras.height} "
+        f"from {args.data} ({backbone} backbone): resolutions {list(config.resolutions)}, "
+        f"iterations {list(config.iterations)}, {config.rays_per_step} rays/step",
+        file=sys.stderr,
+    )
+    grid = run_stage(
+        lambda callbacks: reconstruct(scene.images, cameras, config, callbacks, args.checkpoint, args.resume, initial),
+        "reconstruct", "it", config.total_iterations, args.quiet,
+    )
+    if grid is None:
+        hint = f"; resume with --resume {args.checkpoint}" if args.checkpoint and args.checkpoint.is_file() else ""
+        print(f"voxe: reconstruction cancelled, nothing written to {args.out}{hint}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    grid.save(args.out)
+    occupancy = grid.occupancy()
+    res = "x".join(str(r) for r in grid.resolution)
+    print(f"wrote {args.out}: {res} grid, occupied fraction {occupancy.fraction:.4f}")
+    return 0

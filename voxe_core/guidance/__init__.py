@@ -1,0 +1,70 @@
+"""Diffusion guidance behind one small, model-agnostic interface (paper §3.2, §3.3).
+
+The editing loop only needs three things from a text-to-image diffusion model:
+text embeddings, the Score Distillation Sampling (SDS) gradient for a batch of
+renders, and (for the spatial refinement) per-token cross-attention maps.
+:class:`Guidance` is that interface, the type every stage that takes a model
+names. The package holds one module per concept:
+
+* :mod:`~voxe_core.guidance.prompts`: "a render of <text>, <view> view" (SPEC §2);
+* :mod:`~voxe_core.guidance.loading`: finding diffusers-layout weights, the clear error when they are missing;
+* :mod:`~voxe_core.guidance.attention`: the attention processor that records cross-attention maps (SPEC §3);
+* :mod:`~voxe_core.guidance.sds`: :class:`~voxe_core.guidance.sds.StableDiffusionGuidance`, the
+  interface over diffusers' Stable Diffusion parts, and its SDS gradient.
+
+This module imports neither torch nor diffusers (only the annotations name torch).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Protocol, Sequence, runtime_checkable
+
+from voxe_core.constants import DEFAULT_ATTENTION_TIMESTEP, DEFAULT_GUIDANCE_SCALE
+
+if TYPE_CHECKING:
+    import torch
+
+
+@runtime_checkable
+class Guidance(Protocol):
+    """What the editing and refinement stages need from a text-to-image diffusion model."""
+
+    resolution: int
+    """Square image size (pixels) the model works at; renders are resized to it."""
+
+    num_train_timesteps: int
+    """Length of the model's training noise schedule (1000 for SD)."""
+
+    def encode_prompts(self, prompts: list[str]) -> torch.Tensor:
+        """Text embeddings ``(len(prompts), L, D)`` for conditioning."""
+        ...
+
+    def unconditional_embedding(self) -> torch.Tensor:
+        """Embedding ``(1, L, D)`` of the empty prompt (classifier-free guidance)."""
+        ...
+
+    def sds_loss(
+        self,
+        images: torch.Tensor,
+        text_embeddings: torch.Tensor,
+        timesteps: torch.Tensor,
+        guidance_scale: float = DEFAULT_GUIDANCE_SCALE,
+        generator: torch.Generator | None = None,
+    ) -> tuple[torch.Tensor, dict[str, float]]:
+        """Scalar surrogate loss whose latent gradient is ``w(t)(ε̂ − ε)``, plus diagnostics."""
+        ...
+
+    def cross_attention_maps(
+        self,
+        image: torch.Tensor,
+        prompt: str,
+        timestep: int = DEFAULT_ATTENTION_TIMESTEP,
+        resolution_filter: int | None = 16,
+        generator: torch.Generator | None = None,
+    ) -> torch.Tensor:
+        """Per-token cross-attention probabilities ``(tokens, h, w)``, summing to 1 per pixel."""
+        ...
+
+    def token_spans(self, prompt: str, words: Sequence[str]) -> list[int]:
+        """Token positions (in the padded prompt) of every occurrence of each word."""
+        ...

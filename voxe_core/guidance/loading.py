@@ -1,0 +1,94 @@
+"""Loading diffusers-layout weights: hub ids from the local cache or folders, and the clear error when they are missing.
+
+Real weights are never substituted: a model that cannot be loaded is a
+:class:`ModelNotAvailableError` naming it and saying how to provide it.
+"""
+
+from __future__ import annotations
+
+import os
+
+DIFFUSERS_LAYOUT = "model_index.json, unet/, vae/, text_encoder/, tokenizer/, scheduler/"
+
+
+class ModelNotAvailableError(RuntimeError):
+    """The requested diffusion weights cannot be loaded (not cached, offline, or incomplete)."""
+
+
+def offline_env() -> bool:
+    """Whether the environment forbids the hub (``HF_HUB_OFFLINE=1``): the default of ``local_files_only``."""
+    return os.environ.get("HF_HUB_OFFLINE", "").strip().lower() in ("1", "true", "yes", "on")
+
+
+def not_available_message(model: str, cause: BaseException | None) -> str:
+    """The error text for missing weights: which model, how to get it, and what failed underneath."""
+    msg = (
+        f"Stable Diffusion weights '{model}' are not available offline: download them once with "
+        f"`huggingface-cli download {model}` (or `hf download {model}`) on a machine with internet and "
+        f"point HF_HOME at that cache, or pass a local folder in the diffusers layout ({DIFFUSERS_LAYOUT})."
+    )
+    if cause is not None:
+        detail = " ".join(str(cause).split())
+        if len(detail) > 400:
+            detail = detail[:400] + "..."
+        msg += f" Underlying error: {type(cause).__name__}: {detail}"
+    return msg
+
+
+def loading_errors() -> tuple[type[BaseException], ...]:
+    """The exceptions by which the hub libraries say weights are missing (caught and turned into ours)."""
+    errors: list[type[BaseException]] = [OSError]
+    try:
+        from huggingface_hub.errors import HFValidationError, HfHubHTTPError
+
+        errors += [HFValidationError, HfHubHTTPError]
+    except ImportError:  # pragma: no cover - very old huggingface_hub
+        pass
+    try:
+        import httpx
+
+        errors.append(httpx.HTTPError)
+    except ImportError:  # pragma: no cover
+        pass
+    return tuple(errors)
+
+
+def load_stable_diffusion(model: str, dtype, local_files_only: bool | None = None, revision: str | None = None):
+    """(unet, vae, text_encoder, tokenizer, scheduler) of the diffusers-layout ``model`` in ``dtype``.
+
+    ``model`` is a hub id (from the Hugging Face cache, see ``HF_HOME``) or a local
+    folder; ``local_files_only`` defaults to :func:`offline_env`. Raises
+    :class:`ModelNotAvailableError` naming the model when anything is missing.
+    """
+    from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
+    from transformers import CLIPTextModel, CLIPTokenizer
+
+    if local_files_only is None:
+        local_files_only = offline_env()
+    kwargs = {"local_files_only": bool(local_files_only)}
+    if revision is not None:
+        kwargs["revision"] = revision
+
+    looks_local = os.path.isabs(model) or model.startswith(".") or os.path.exists(model)
+    if looks_local and not os.path.isdir(model):
+        raise ModelNotAvailableError(not_available_message(model, FileNotFoundError(f"no folder {model}")))
+
+    try:
+        unet = UNet2DConditionModel.from_pretrained(model, subfolder="unet", torch_dtype=dtype, **kwargs)
+        vae = AutoencoderKL.from_pretrained(model, subfolder="vae", torch_dtype=dtype, **kwargs)
+        text_encoder = CLIPTextModel.from_pretrained(model, subfolder="text_encoder", dtype=dtype, **kwargs)
+        tokenizer = CLIPTokenizer.from_pretrained(model, subfolder="tokenizer", **kwargs)
+        scheduler = DDIMScheduler.from_pretrained(model, subfolder="scheduler", **kwargs)
+    except loading_errors() as exc:
+        raise ModelNotAvailableError(not_available_message(model, exc)) from exc
+    # transformers >= 5 returns an empty tokenizer instead of failing when
+    # the tokenizer files are missing: check it is the real one.
+    if len(tokenizer) <= 3 or len(tokenizer) > text_encoder.config.vocab_size + 16:
+        raise ModelNotAvailableError(
+            not_available_message(
+                model,
+                OSError(f"tokenizer/ has {len(tokenizer)} tokens but the text encoder expects "
+                        f"{text_encoder.config.vocab_size}: tokenizer files missing or wrong"),
+            )
+        )
+    return unet, vae, text_encoder, tokenizer, scheduler

@@ -1,0 +1,45 @@
+"""The prompt the diffusion model sees: "a render of <text>[, <view> view]" (SPEC §2), view words from the pose."""
+
+from __future__ import annotations
+
+RENDER_PREFIX = "a render of"
+VIEW_WORDS = ("front", "side", "back", "overhead")
+
+
+def view_word(elevation_deg: float, azimuth_deg: float) -> str:
+    """The view word for a camera pose, as the authors append to the prompt.
+
+    ``overhead`` when the elevation above the horizon is more than 60°; else by
+    azimuth (degrees, any range, 0 = the object's front in the caller's pose
+    convention): ``front`` when within ±45° of 0, ``back`` within ±45° of 180,
+    ``side`` otherwise. Boundaries (exactly ±45°, ±135°) go to front/back.
+    """
+    if elevation_deg > 60.0:
+        return "overhead"
+    az = (float(azimuth_deg) + 180.0) % 360.0 - 180.0  # [-180, 180)
+    if abs(az) <= 45.0:
+        return "front"
+    if abs(az) >= 135.0:
+        return "back"
+    return "side"
+
+
+def edit_prompt(user_text: str, view_word: str | None = None) -> str:
+    """``"a render of <text>[, <view> view]"`` (SPEC §2).
+
+    Whitespace is collapsed and trailing full stops dropped. The prefix is not
+    doubled when the user already wrote it (any case). ``view_word`` is one of
+    :data:`VIEW_WORDS` or ``None`` for no view suffix.
+    """
+    text = " ".join(str(user_text).split()).rstrip(". ").strip()
+    if not text:
+        raise ValueError("the edit prompt is empty")
+    if text.lower() == RENDER_PREFIX:
+        raise ValueError("the edit prompt has only the prefix 'a render of' and no content")
+    if not text.lower().startswith(RENDER_PREFIX + " "):
+        text = f"{RENDER_PREFIX} {text}"
+    if view_word is not None:
+        if view_word not in VIEW_WORDS:
+            raise ValueError(f"unknown view word {view_word!r}; expected one of {VIEW_WORDS}")
+        text = f"{text}, {view_word} view"
+    return text

@@ -1,0 +1,70 @@
+"""The refinement's hyper-parameters (SPEC §3) and its one error."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from voxe_core.constants import (
+    ATTENTION_MODEL_ID,
+    CUT_SIGMA,
+    CUT_SMOOTHNESS,
+    DEFAULT_ATTENTION_TIMESTEP,
+    EDIT_SEEDS,
+    NERF_SYNTHETIC_FOV_X,
+    OBJECT_SEEDS,
+    REFINE_ITERATIONS,
+    REFINE_LR,
+    REFINE_RAYS_PER_STEP,
+    REFINE_TV_WEIGHT,
+    REFINE_VIEWS,
+    RENDER_SIZE,
+)
+from voxe_core.render import RenderConfig
+
+
+class SegmentationError(ValueError):
+    """The graph cut cannot run: nothing occupied, no seeds, or mismatched inputs."""
+
+
+@dataclass
+class RefineConfig:
+    """Defaults are the paper's / the authors' (SPEC §3) unless marked otherwise."""
+
+    # 2D cross-attention maps
+    timestep: int = DEFAULT_ATTENTION_TIMESTEP  # t = 200 of 1000
+    resolution_filter: int | None = 16  # keep only the 16x16-query cross-attention layers
+    smoothing_sigma: float = 1.0  # Gaussian std in pixels of the attention map (16x16); 0 = none
+    edit_token_reduce: Literal["mean", "max"] = "mean"  # how the edit words' sub-tokens combine
+    render_size: int = RENDER_SIZE  # pixels of the renders (paper: 800 px / 3)
+    views: int = REFINE_VIEWS  # random upper-hemisphere poses (ours; the authors use the training views)
+    fov_x: float = NERF_SYNTHETIC_FOV_X
+    # 3D attention grids
+    iterations: int = REFINE_ITERATIONS
+    lr: float = REFINE_LR
+    tv_weight: float = REFINE_TV_WEIGHT
+    init_value: float = 0.0  # see the voxe_core.refine docstring; the authors use -20
+    rays_per_step: int = REFINE_RAYS_PER_STEP
+    render: RenderConfig = field(default_factory=lambda: RenderConfig(background=(0.0,)))
+    # graph cut
+    edit_seeds: int = EDIT_SEEDS
+    object_seeds: int = OBJECT_SEEDS
+    sigma: float = CUT_SIGMA  # colour scale of the pairwise weights
+    smoothness: float = CUT_SMOOTHNESS  # lambda
+    node_alpha: float = 0.01  # a vertex is a node when one voxel of its density is this opaque
+    # misc
+    seed: int = 0
+    attention_model: str = ATTENTION_MODEL_ID
+
+    def __post_init__(self):
+        if self.edit_token_reduce not in ("mean", "max"):
+            raise ValueError(f"edit_token_reduce must be 'mean' or 'max', got {self.edit_token_reduce!r}")
+        for name in ("render_size", "views", "rays_per_step"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if self.iterations < 0 or self.edit_seeds < 0 or self.object_seeds < 0:
+            raise ValueError("iterations and seed counts must be non-negative")
+        if self.sigma <= 0 or self.smoothness < 0 or self.smoothing_sigma < 0:
+            raise ValueError("sigma must be positive; smoothness and smoothing_sigma non-negative")
+        if not 0.0 < self.node_alpha < 1.0:
+            raise ValueError(f"node_alpha must lie in (0, 1), got {self.node_alpha}")

@@ -1,0 +1,103 @@
+"""Step 2: the 2D maps lifted into two scalar grids over G_e's frozen density (SPEC §3).
+
+A field's value is rendered raw over a black background and fitted by L1 to
+the maps plus ``tv_weight`` · TV, with Adam (see the package docstring for why
+raw and why the start at 0).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from voxe_core.cameras import Cameras, camera_rays
+from voxe_core.grid import Occupancy, VoxelGrid, ray_box_intersection
+from voxe_core.progress import Callbacks, Progress
+from voxe_core.refine.config import RefineConfig, SegmentationError
+from voxe_core.render import render_rays
+
+
+def frozen_density(grid: VoxelGrid) -> VoxelGrid:
+    """A copy of ``grid`` whose features take no gradient (the attention fits never touch G_e)."""
+    frozen = grid.like(grid.features.detach().clone())
+    frozen.flat_features.requires_grad_(False)
+    return frozen
+
+
+def all_camera_rays(cameras: Cameras) -> tuple[torch.Tensor, torch.Tensor]:
+    """Origins and directions of every pixel of every camera, (N*H*W, 3) each, view-major."""
+    parts = [camera_rays(cameras, i) for i in range(len(cameras))]
+    return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
+
+
+def total_variation(values: torch.Tensor) -> torch.Tensor:
+    """Mean squared difference between 6-neighbours, summed over the three axes, of (X, Y, Z, C)."""
+    tv = values.new_zeros(())
+    for axis in range(3):
+        if values.shape[axis] > 1:
+            tv = tv + torch.diff(values, dim=axis).pow(2).mean()
+    return tv
+
+
+def _occupied_slices(occupancy: Occupancy) -> tuple[slice, slice, slice]:
+    """Vertex index ranges of the occupied cells' box (the only part of a field a render can see)."""
+    idx = occupancy.cells.nonzero()
+    lo, hi = idx.min(0).values, idx.max(0).values + 2  # cells [i, i+1] use vertices i and i+1
+    return tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
+
+
+def fit_attention_grids(
+    grid: VoxelGrid,
+    cameras: Cameras,
+    edit_maps: torch.Tensor,
+    object_maps: torch.Tensor,
+    config: RefineConfig = RefineConfig(),
+    callbacks: Callbacks = Callbacks(),
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Lift 2D maps to two scalar grids ``(X, Y, Z, 1)`` over ``grid``'s frozen density.
+
+    Both fields are fitted together (one render of a 2-channel field per step)
+    on ``rays_per_step`` random pixels of all views, rendered raw over a black
+    background, with L1 + ``tv_weight``·TV (TV over the occupied box), Adam at
+    ``lr``; stratified jitter along the rays. Pixels whose ray misses the
+    occupied box render 0 whatever the field holds and are left out.
+    Deterministic for ``config.seed``; reports ``Progress("attention_grids")``
+    every step and may be cancelled between steps.
+    """
+    n_views, height, width = edit_maps.shape
+    if object_maps.shape != edit_maps.shape:
+        raise ValueError(f"edit maps {tuple(edit_maps.shape)} and object maps {tuple(object_maps.shape)} differ")
+    if n_views != len(cameras) or (height, width) != (cameras.height, cameras.width):
+        raise ValueError(
+            f"{n_views} maps of {height}x{width} do not match {len(cameras)} cameras of {cameras.height}x{cameras.width}"
+        )
+    device = grid.bbox_min.device
+    frozen = frozen_density(grid)
+    occupancy = frozen.occupancy(config.render.sigma_threshold)
+    if occupancy.empty:
+        raise SegmentationError("the edited grid has no occupied voxels: there is nothing to attach attention to")
+    origins, directions = all_camera_rays(cameras.to(device))
+    targets = torch.stack([edit_maps, object_maps], -1).reshape(-1, 2).to(device=device, dtype=torch.float32)
+    near, far = ray_box_intersection(origins, directions, occupancy.bbox_min.to(device), occupancy.bbox_max.to(device))
+    keep = (far > near).nonzero().squeeze(-1)
+    origins, directions, targets = origins[keep], directions[keep], targets[keep]
+
+    values = torch.full((*grid.resolution, 2), float(config.init_value), device=device, requires_grad=True)
+    optimizer = torch.optim.Adam([values], lr=config.lr)
+    box = _occupied_slices(occupancy)
+    generator = torch.Generator(device=device).manual_seed(config.seed)
+    n_rays = origins.shape[0]
+    for iteration in range(config.iterations):
+        callbacks.check_cancel("attention_grids")
+        batch = torch.randint(0, n_rays, (min(config.rays_per_step, n_rays),), generator=generator, device=device)
+        out = render_rays(frozen, origins[batch], directions[batch], config.render, occupancy, generator,
+                          color_features=values)
+        l1 = (out.rgb - targets[batch]).abs().mean()
+        tv = total_variation(values[box])
+        loss = l1 + config.tv_weight * tv
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        callbacks.progress(Progress("attention_grids", iteration + 1, config.iterations,
+                                    {"l1": float(l1.detach()), "tv": float(tv.detach())}, {"stage": "attention grids"}))
+    values = values.detach()
+    return values[..., 0:1].contiguous(), values[..., 1:2].contiguous()

@@ -1,0 +1,85 @@
+"""The whole of SPEC §3 (:func:`refine`): maps -> attention grids -> graph cut -> merge (step 5)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import torch
+
+from voxe_core.cameras import Cameras
+from voxe_core.grid import VoxelGrid
+from voxe_core.guidance.prompts import edit_prompt
+from voxe_core.progress import Callbacks, Progress
+from voxe_core.refine.config import RefineConfig
+from voxe_core.refine.cut import GraphCutStats, graph_cut_detailed, probabilities
+from voxe_core.refine.lifting import fit_attention_grids
+from voxe_core.refine.maps import attention_cameras, attention_maps_2d, token_groups
+
+
+@dataclass
+class RefineResult:
+    refined_grid: VoxelGrid
+    mask: torch.Tensor  # (X, Y, Z) bool, True = take G_e
+    edit_probability: torch.Tensor  # (X, Y, Z) float32
+    object_probability: torch.Tensor  # (X, Y, Z) float32
+    edit_field: torch.Tensor  # (X, Y, Z, 1) fitted raw values
+    object_field: torch.Tensor  # (X, Y, Z, 1)
+    cameras: Cameras | None = None  # the poses the maps were taken from
+    edit_maps: torch.Tensor | None = None  # (N, H, W) the 2D maps the grids were fitted to
+    object_maps: torch.Tensor | None = None
+    stats: GraphCutStats | None = None
+    info: dict = field(default_factory=dict)
+
+
+def check_compatible(initial_grid: VoxelGrid, edited_grid: VoxelGrid) -> None:
+    if initial_grid.resolution != edited_grid.resolution:
+        raise ValueError(f"the initial grid is {initial_grid.resolution} but the edited grid {edited_grid.resolution}")
+    if not (torch.equal(initial_grid.bbox_min.cpu(), edited_grid.bbox_min.cpu())
+            and torch.equal(initial_grid.bbox_max.cpu(), edited_grid.bbox_max.cpu())):
+        raise ValueError("the initial and edited grids span different boxes")
+
+
+@torch.no_grad()
+def merge(initial_grid: VoxelGrid, edited_grid: VoxelGrid, mask: torch.Tensor) -> VoxelGrid:
+    """G_r = M·G_e + (1 − M)·G_i on all features, as a selection: unmasked voxels are G_i's exact bits."""
+    check_compatible(initial_grid, edited_grid)
+    if tuple(mask.shape) != tuple(initial_grid.resolution):
+        raise ValueError(f"mask of shape {tuple(mask.shape)} does not fit the grids {initial_grid.resolution}")
+    m = mask.to(device=initial_grid.features.device, dtype=torch.bool)[..., None]
+    merged = torch.where(m, edited_grid.features.detach().to(initial_grid.features.device), initial_grid.features.detach())
+    return initial_grid.like(merged)
+
+
+def refine(
+    initial_grid: VoxelGrid,
+    edited_grid: VoxelGrid,
+    prompt: str,
+    edit_words: Sequence[str],
+    guidance,
+    config: RefineConfig = RefineConfig(),
+    callbacks: Callbacks = Callbacks(),
+) -> RefineResult:
+    """The whole of SPEC §3: maps -> attention grids -> graph cut -> merge.
+
+    ``prompt`` is the edit's text; the "a render of" prefix is added when
+    missing (as the edit stage prompts the model). ``edit_words`` name the
+    edit (words or phrases of the prompt, e.g. ``["sunglasses"]`` or
+    ``["party hat"]``).
+    """
+    check_compatible(initial_grid, edited_grid)
+    text = edit_prompt(prompt)
+    token_groups(guidance, text, edit_words)  # fail on a bad word before rendering anything
+    cameras = attention_cameras(config)
+    edit_maps, object_maps = attention_maps_2d(guidance, edited_grid, cameras, text, edit_words, config, callbacks)
+    edit_field, object_field = fit_attention_grids(edited_grid, cameras, edit_maps, object_maps, config, callbacks)
+    callbacks.check_cancel("graph_cut")
+    mask, stats = graph_cut_detailed(edited_grid, edit_field, object_field, config)
+    p_e, p_o = probabilities(edit_field, object_field)
+    refined = merge(initial_grid, edited_grid, mask)
+    callbacks.progress(Progress("graph_cut", 1, 1, info={"stage": "graph cut", "nodes": stats.nodes,
+                                                        "edit_voxels": stats.edit_voxels}))
+    return RefineResult(
+        refined, mask, p_e, p_o, edit_field, object_field, cameras, edit_maps, object_maps, stats,
+        info={"prompt": text, "edit_words": list(edit_words) if not isinstance(edit_words, str) else [edit_words]},
+    )

@@ -1,0 +1,82 @@
+"""The refinement's files: sparse edit masks and probability grids (versioned safetensors, no pickle).
+
+:func:`save_mask` keeps only the flat indices (int32) of the set voxels plus the
+grid shape; :func:`save_probabilities` keeps the probability grids at the
+occupied voxels only (indices + values).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from voxe_core.tensorio import FormatError, load_tensors, save_tensors
+
+MASK_FORMAT_VERSION = 1
+PROBABILITY_FORMAT_VERSION = 1
+
+
+def save_mask(path, mask: torch.Tensor, meta: dict | None = None) -> None:
+    """Sparse mask file: flat indices (int32, C order) of the set voxels plus the grid shape."""
+    mask = mask.detach().cpu().bool()
+    if mask.dim() != 3:
+        raise ValueError(f"expected an (X, Y, Z) mask, got shape {tuple(mask.shape)}")
+    if mask.numel() >= 2**31:
+        raise ValueError("grid too large for int32 voxel indices")
+    indices = mask.reshape(-1).nonzero().squeeze(-1).to(torch.int32)
+    save_tensors(path, {"indices": indices, "shape": torch.tensor(mask.shape, dtype=torch.int64)},
+                 kind="edit_mask", version=MASK_FORMAT_VERSION, meta={"set_voxels": int(indices.numel()), **(meta or {})})
+
+
+def _indices_and_shape(tensors: dict, path) -> tuple[torch.Tensor, tuple[int, int, int]]:
+    if "indices" not in tensors or "shape" not in tensors:
+        raise FormatError(f"{path}: missing 'indices' or 'shape'")
+    shape = tuple(int(s) for s in tensors["shape"].tolist())
+    indices = tensors["indices"].long().reshape(-1)
+    if len(shape) != 3 or min(shape) < 1:
+        raise FormatError(f"{path}: bad grid shape {shape}")
+    total = shape[0] * shape[1] * shape[2]
+    if indices.numel() and (int(indices.min()) < 0 or int(indices.max()) >= total):
+        raise FormatError(f"{path}: voxel indices outside a grid of {shape}")
+    return indices, shape
+
+
+def load_mask(path) -> torch.Tensor:
+    """The (X, Y, Z) bool mask written by :func:`save_mask`."""
+    tensors, _ = load_tensors(path, kind="edit_mask", max_version=MASK_FORMAT_VERSION)
+    indices, shape = _indices_and_shape(tensors, path)
+    mask = torch.zeros(math.prod(shape), dtype=torch.bool)
+    mask[indices] = True
+    return mask.reshape(shape)
+
+
+def save_probabilities(path, edit_probability: torch.Tensor, object_probability: torch.Tensor, where: torch.Tensor) -> None:
+    """Probability grids stored only at the voxels ``where`` (the graph's nodes): indices + float32 values."""
+    where = where.detach().cpu().bool()
+    flat = where.reshape(-1).nonzero().squeeze(-1)
+    tensors = {
+        "indices": flat.to(torch.int32),
+        "shape": torch.tensor(where.shape, dtype=torch.int64),
+        "edit": edit_probability.detach().cpu().float().reshape(-1)[flat],
+        "object": object_probability.detach().cpu().float().reshape(-1)[flat],
+    }
+    save_tensors(path, tensors, kind="attention_probabilities", version=PROBABILITY_FORMAT_VERSION,
+                 meta={"stored_voxels": int(flat.numel())})
+
+
+def load_probabilities(path) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(edit, object, where): dense (X, Y, Z) float32 grids, 0 outside ``where`` (the stored voxels)."""
+    tensors, _ = load_tensors(path, kind="attention_probabilities", max_version=PROBABILITY_FORMAT_VERSION)
+    indices, shape = _indices_and_shape(tensors, path)
+    out = []
+    for name in ("edit", "object"):
+        values = tensors.get(name)
+        if values is None or values.numel() != indices.numel():
+            raise FormatError(f"{path}: '{name}' values do not match the stored indices")
+        dense = torch.zeros(math.prod(shape))
+        dense[indices] = values.float()
+        out.append(dense.reshape(shape))
+    where = torch.zeros(math.prod(shape), dtype=torch.bool)
+    where[indices] = True
+    return out[0], out[1], where.reshape(shape)

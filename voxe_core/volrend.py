@@ -1,0 +1,65 @@
+"""Volume-rendering arithmetic shared by the samplers and the compositor (as nerfacc's ``volrend.py``).
+
+Samples are packed: the samples of all rays in one list, ray by ray in marching
+order (:class:`RaySamples`). Transmittance comes from one float64 prefix sum over
+the list, so a ray behind rays of large optical depth keeps its own.
+
+Examples:
+    >>> ray = torch.tensor([0, 0, 1])
+    >>> transmittance(torch.tensor([1.0, 1.0, 2.0]), ray).tolist()  # exp(-optical depth in front of each)
+    [1.0, 0.3678794503211975, 1.0]
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+# Optical depth per sample beyond which alpha is 1 in float32; clamping there keeps
+# cumulative sums finite for saturated densities without changing the image.
+MAX_SAMPLE_OPTICAL_DEPTH = 1e4
+
+
+@dataclass
+class RaySamples:
+    """The samples of a group of rays, packed ray by ray in marching order: what a grid's sampler yields.
+
+    ``ray`` (S,) indexes the rays given to the sampler; ``t`` (S,) is each sample's distance along
+    its ray, ``delta`` (S,) the path length it stands for, ``points`` (S, 3) where the field is
+    evaluated, in the grid's lattice coordinates (what ``VoxelGrid.interpolate`` takes).
+    ``candidates`` counts the samples the group's rays had before the occupancy test, ``probed``
+    the density evaluations spent finding where the rays stop (early stopping).
+    """
+
+    ray: torch.Tensor
+    t: torch.Tensor
+    delta: torch.Tensor
+    points: torch.Tensor
+    candidates: int = 0
+    probed: int = 0
+
+    def select(self, index: torch.Tensor) -> "RaySamples":
+        """The samples at ``index`` (kept in order), with the same counts."""
+        return RaySamples(self.ray.index_select(0, index), self.t.index_select(0, index),
+                          self.delta.index_select(0, index), self.points.index_select(0, index),
+                          self.candidates, self.probed)
+
+
+def optical_depth(sigma: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+    """sigma * delta per sample, clamped to ``MAX_SAMPLE_OPTICAL_DEPTH``."""
+    return (sigma * delta).clamp(max=MAX_SAMPLE_OPTICAL_DEPTH)
+
+
+def transmittance(optical: torch.Tensor, ray: torch.Tensor) -> torch.Tensor:
+    """Transmittance in front of each packed sample (S,): exp of minus the optical depth before it on its ray.
+
+    One float64 prefix sum over all rays, minus each ray's value at its first
+    sample: in float32 a ray behind rays of large optical depth would lose its own.
+    """
+    wide = optical.double()
+    before = wide.cumsum(0) - wide
+    starts = torch.ones_like(ray, dtype=torch.bool)
+    starts[1:] = ray[1:] != ray[:-1]
+    before = before - before[starts][starts.cumsum(0) - 1]
+    return torch.exp(-before).to(optical.dtype)
