@@ -1,0 +1,17 @@
+"""The ``Examples:`` blocks of the docstrings run and print what they say (doctest)."""
+
+from __future__ import annotations
+
+import doctest
+import importlib
+
+import pytest
+
+MODULES = ["voxe_core.grid", "voxe_core.volrend", "voxe_core.render", "voxe_core.backbones", "voxe_core.presets",
+           "voxe_client.client"]
+
+
+@pytest.mark.parametrize("name", MODULES)
+def test_docstring_examples_hold(name):
+    result = doctest.testmod(importlib.import_module(name), optionflags=doctest.ELLIPSIS)
+    assert result.attempted > 0 and result.failed == 0, f"{name}: {result.failed} of {result.attempted} examples failed"

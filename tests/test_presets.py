@@ -1,0 +1,204 @@
+"""One presets module: the CLI's options and the service's job parameters give the same stage configs,
+and a real-scene job (scene-backbone G_i) gets SPEC §5's edit schedule through the worker.
+
+The worker tests run the real Celery task bodies in-process (``task.apply``) on a throwaway embedded
+service with the random-weight SMOKE-TEST model: they prove which configs the worker builds, never quality.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+from fastapi.testclient import TestClient
+
+from api.schemas import JobParams
+from service_helpers import MIC, reset_service_caches, service_env, small_mic, zip_folder
+from voxe_core.cli import build_parser
+from voxe_core.cli import edit as edit_command
+from voxe_core.cli import reconstruct as reconstruct_command
+from voxe_core.cli import refine as refine_command
+from voxe_core.constants import ATTENTION_MODEL_ID, EDIT_ITERATIONS
+from voxe_core.presets import (
+    EDIT_SCHEDULES,
+    ExportConfig,
+    edit_config,
+    export_config,
+    reconstruct_config,
+    reconstruction_key,
+    reconstruction_params,
+    refine_config,
+)
+from voxe_core.schedule import AUTHORS_FLOOR, PAPER_FLOOR, TimestepSchedule
+
+EDIT = ["edit", "g.safetensors", "--prompt", "a dog", "--out", "o"]
+REFINE = ["refine", "e.safetensors", "--initial", "g.safetensors", "--prompt", "a dog in a hat", "--edit-words", "hat",
+          "--out", "o"]
+
+# (CLI options, the same parameters as the service's JSON); the first of each pair: all defaults.
+EDIT_CASES = [
+    ([], {}),
+    (["--iterations", "120", "--render-size", "64", "--guidance-scale", "7.5", "--lr", "0.01", "--regulariser",
+      "volumetric_l2", "--reg-weight", "3", "--schedule", "authors", "--batch-size", "2", "--autocast", "bf16",
+      "--seed", "5", "--preview-every", "7", "--no-view-words"],
+     {"iterations": 120, "render_size": 64, "guidance_scale": 7.5, "lr": 0.01, "regulariser": "volumetric_l2",
+      "regulariser_weight": 3, "timestep_schedule": "authors", "batch_size": 2, "autocast": "bf16", "seed": 5,
+      "preview_every": 7, "view_words": False}),
+    (["--iterations", str(EDIT_ITERATIONS)], {"iterations": EDIT_ITERATIONS}),
+]
+REFINE_CASES = [
+    ([], {}),
+    (["--iterations", "40", "--lr", "0.1", "--tv-weight", "0.5", "--render-size", "96", "--views", "6", "--rays", "512",
+      "--edit-seeds", "9", "--object-seeds", "8", "--sigma", "0.3", "--smoothness", "2", "--seed", "4"],
+     {"seed": 4, "refine": {"iterations": 40, "lr": 0.1, "tv_weight": 0.5, "render_size": 96, "views": 6,
+                            "rays_per_step": 512, "edit_seeds": 9, "object_seeds": 8, "sigma": 0.3, "smoothness": 2}}),
+]
+RECONSTRUCT_CASES = [
+    ([], {}),
+    (["--downsample", "8", "--resample", "box", "--max-images", "5", "--preset", "paper", "--resolution", "96",
+      "--iterations", "7", "--rays", "1024", "--seed", "3", "--backbone", "scene"],
+     {"downsample": 8, "resample": "box", "max_images": 5, "reconstruction": {
+         "preset": "paper", "resolution": 96, "iterations": 7, "rays_per_step": 1024, "seed": 3, "backbone": "scene"}}),
+    (["--iterations", "3,4,5"], {"reconstruction": {"iterations": [3, 4, 5]}}),
+]
+
+
+def service_json(params: dict) -> dict:
+    """The job parameters as the API stores them: validated, every default filled in."""
+    return JobParams.model_validate(params).model_dump(mode="json")
+
+
+@pytest.mark.parametrize("options,params", EDIT_CASES)
+@pytest.mark.parametrize("backbone", ["relu_field", "scene"])
+def test_the_cli_and_the_service_build_the_same_edit(options, params, backbone):
+    args = build_parser().parse_args([*EDIT, *options])
+    cli = edit_config(edit_command.job_params(args), backbone, checkpoint_every=25)
+    assert cli == edit_config(service_json(params), backbone, checkpoint_every=25)
+
+
+@pytest.mark.parametrize("options,params", REFINE_CASES)
+def test_the_cli_and_the_service_build_the_same_refinement(options, params):
+    args = build_parser().parse_args([*REFINE, *options])
+    cli = refine_config(refine_command.job_params(args), ATTENTION_MODEL_ID)
+    assert cli == refine_config(service_json(params), ATTENTION_MODEL_ID)
+
+
+@pytest.mark.parametrize("options,params", RECONSTRUCT_CASES)
+def test_the_cli_and_the_service_fit_the_same_reconstruction(options, params):
+    """Same parameters, same recipe and the same cache key (so a CLI fit could be the service's)."""
+    args = build_parser().parse_args(["reconstruct", "data", "--out", "g.safetensors", *options])
+    cli = reconstruction_params(reconstruct_command.job_params(args))
+    service = reconstruction_params(service_json(params))
+    assert cli == service and reconstruction_key(cli) == reconstruction_key(service)
+    assert reconstruct_config(cli, 10) == reconstruct_config(service, 10)
+
+
+def test_default_downsampling_is_the_papers_everywhere():
+    parser = build_parser()
+    for command in (["reconstruct", "d", "--out", "g"], ["render", "g", "--data", "d", "--out", "o"], EDIT,
+                    ["evaluate", "g", "--edit", "e", "p", "--object", "mic", "--out", "o"]):
+        assert parser.parse_args(command).downsample == 3 == service_json({})["downsample"], command
+
+
+def test_export_parameters_are_the_export_config():
+    assert service_json({})["export"] == dataclasses.asdict(ExportConfig())
+    given = {"views": 0, "view_size": 64, "turntable_frames": 5, "turntable_size": 32, "elevation": -10.0, "fps": 12.0,
+             "gif": False, "mesh": False, "mesh_resolution": 40}
+    assert export_config(service_json({"export": given})) == ExportConfig(**given)
+    assert export_config({}) == ExportConfig()
+    parser = build_parser()
+    turntable = parser.parse_args(["turntable", "g", "--out", "t.mp4"])
+    assert (turntable.frames, turntable.size, turntable.elevation, turntable.fps) == (100, 256, 30.0, 30.0)
+
+
+# ------------------------------------------------------------------ SPEC §5 for real scenes
+def test_a_scene_backbone_gets_the_real_scene_schedule_and_objects_keep_the_papers():
+    objects, scene = edit_config(service_json({})), edit_config(service_json({}), backbone="scene")
+    assert (objects.iterations, objects.schedule) == (8000, TimestepSchedule())
+    assert (objects.schedule.i_start, objects.schedule.every) == (4000, 600)
+    assert (scene.iterations, scene.schedule.i_start, scene.schedule.every, scene.schedule.floor) == (
+        5000, 3000, 400, PAPER_FLOOR)
+    assert dataclasses.replace(scene, iterations=8000, schedule=TimestepSchedule()) == objects  # nothing else moves
+    authors = edit_config(service_json({"timestep_schedule": "authors"}), backbone="scene")
+    assert (authors.schedule.i_start, authors.schedule.every, authors.schedule.floor) == (3000, 400, AUTHORS_FLOOR)
+    # An explicit count other than the object default runs as given, with the real-scene annealing.
+    short = edit_config(service_json({"iterations": 300}), backbone="scene")
+    assert (short.iterations, short.schedule.i_start) == (300, 3000)
+    assert EDIT_SCHEDULES["scene"].iterations == 5000
+    with pytest.raises(ValueError, match="unknown timestep_schedule 'fast'"):
+        edit_config({"timestep_schedule": "fast"})
+
+
+@pytest.fixture
+def service(tmp_path, monkeypatch):
+    """An embedded service (no worker process) with a 3-view mic scene; yields (client, scene id)."""
+    if not MIC.is_dir():
+        pytest.skip(f"shared data missing: {MIC}")
+    for key, value in service_env(tmp_path, VOXE_CHECKPOINT_EVERY=str(CHECKPOINT_EVERY)).items():
+        monkeypatch.setenv(key, value)
+    reset_service_caches()
+    from api.main import create_app
+
+    archive = zip_folder(small_mic(tmp_path / "mic_small"), tmp_path / "mic.zip", prefix="mic_small")
+    with TestClient(create_app()) as client:
+        with open(archive, "rb") as handle:
+            response = client.post("/v1/scenes", files={"archive": ("mic.zip", handle, "application/zip")})
+        assert response.status_code == 201, response.text
+        yield client, response.json()["id"]
+    reset_service_caches()
+
+
+CHECKPOINT_EVERY = 50
+TINY_FIT = {"downsample": 16, "reconstruction": {"resolution": 12, "iterations": [2, 2, 2], "rays_per_step": 64}}
+
+
+def _reconstructed_job(client, scene_id: str, backbone: str, **params) -> dict:
+    """A job whose reconstruct task ran for real (a tiny fit of the given backbone)."""
+    from worker import tasks
+
+    body = {**TINY_FIT, **params, "reconstruction": {**TINY_FIT["reconstruction"], "backbone": backbone}}
+    job = client.post("/v1/jobs", json={"scene_id": scene_id, "prompt": "a mic", "params": body}).json()
+    assert tasks.reconstruct_task.apply(args=(job["id"],)).get()["state"] == "done"
+    return job
+
+
+@pytest.mark.parametrize("backbone,iterations,i_start,every", [("scene", 5000, 3000, 400), ("relu_field", 8000, 4000, 600)])
+def test_the_worker_edits_a_scene_grid_with_the_real_scene_schedule(service, monkeypatch, backbone, iterations,
+                                                                    i_start, every):
+    """Default job parameters through the worker: the edit task builds SPEC §5's config for a scene G_i."""
+    import voxe_core.edit
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job = _reconstructed_job(client, scene_id, backbone)
+    seen = {}
+
+    def recorded_edit(initial, prompt, guidance, config, *args, **kwargs):
+        seen["kind"], seen["config"] = initial.kind, config
+        return initial.clone_grid()
+
+    monkeypatch.setattr(runtime, "get_guidance", lambda *args: None)  # the recorded edit needs no model
+    monkeypatch.setattr(voxe_core.edit, "edit", recorded_edit)
+    assert tasks.edit_task.apply(args=(job["id"],)).get()["state"] == "done"
+    config = seen["config"]
+    assert seen["kind"] == backbone
+    assert (config.iterations, config.schedule.i_start, config.schedule.every) == (iterations, i_start, every)
+    assert config == edit_config(service_json({**TINY_FIT, "reconstruction": {**TINY_FIT["reconstruction"],
+                                                                              "backbone": backbone}}),
+                                 backbone, CHECKPOINT_EVERY)
+
+
+def test_a_real_scene_edit_runs_through_the_worker_on_the_smoke_test_model(service, tmp_path):
+    """A short real edit (the tiny random-weight model) of a scene G_i: the job counts the iterations it ran."""
+    from voxe_core.backbones import load_grid
+    from worker import tasks
+
+    client, scene_id = service
+    job = _reconstructed_job(client, scene_id, "scene", iterations=3, render_size=16, preview_every=0)
+    assert tasks.edit_task.apply(args=(job["id"],)).get()["state"] == "done"
+    done = client.get(f"/v1/jobs/{job['id']}").json()
+    assert (done["iteration"], done["total"]) == (3, 3) and done["completed_stages"] == ["reconstruct", "edit"]
+    edited = client.get(f"/v1/jobs/{job['id']}/artifacts/edited_grid.safetensors")
+    assert edited.status_code == 200
+    (tmp_path / "edited.safetensors").write_bytes(edited.content)
+    assert load_grid(tmp_path / "edited.safetensors").kind == "scene"
