@@ -13,6 +13,7 @@ WORKDIR /app
 RUN pip install --index-url "$TORCH_INDEX" "$TORCH_SPEC"
 COPY pyproject.toml README.md ./
 COPY voxe_core ./voxe_core
+COPY voxe_client ./voxe_client
 COPY api ./api
 COPY worker ./worker
 COPY alembic.ini ./
