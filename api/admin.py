@@ -15,10 +15,9 @@ import sys
 from sqlalchemy import select
 
 from api.auth import create_key
-from api.db import session_scope
-from api.main import run_migrations
-from api.models import LOCAL_KEY_ID, ApiKey, utcnow
-from api.settings import get_settings
+from voxe_service.db import run_migrations, session_scope
+from voxe_service.models import LOCAL_KEY_ID, ApiKey, utcnow
+from voxe_service.settings import get_settings
 
 
 def _positive(text: str) -> int:

@@ -3,7 +3,8 @@
 Tokens read ``voxe_<key id>_<secret>`` (32 random bytes of secret). The database keeps only the
 sha256 of the whole token; the id finds the row and the hashes are compared in constant time.
 With authentication off (allowed on a loopback host only, see :func:`check_startup`) every
-request acts as the built-in ``local`` key, so the same ownership rules hold either way.
+request acts as the built-in ``local`` key, so the same ownership rules hold either way. The
+``CurrentKey`` dependency itself is in :mod:`api.deps`.
 """
 
 from __future__ import annotations
@@ -15,14 +16,14 @@ import secrets
 from dataclasses import dataclass
 
 import anyio
-from fastapi import Depends, HTTPException, Request, Response, status
+from fastapi import HTTPException, Request, Response, status
 from fastapi.responses import JSONResponse
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from api.db import get_session, get_sessionmaker
-from api.models import LOCAL_KEY_ID, QUEUED, RUNNING, ApiKey, IdempotencyRecord, Job, Scene, utcnow
-from api.settings import Settings, get_settings, is_loopback
+from voxe_service.db import get_sessionmaker
+from voxe_service.models import QUEUED, RUNNING, ApiKey, IdempotencyRecord, Job, Scene, utcnow
+from voxe_service.settings import Settings, get_settings, is_loopback
 
 TOKEN_PREFIX = "voxe_"
 _TOKEN = re.compile(r"^voxe_([0-9a-f]{12})_[A-Za-z0-9_-]{20,}$")
@@ -66,28 +67,13 @@ def presented_token(request: Request) -> str | None:
     return request.headers.get("x-api-key")
 
 
-_CHALLENGE = {"WWW-Authenticate": "Bearer"}
+CHALLENGE = {"WWW-Authenticate": "Bearer"}
 
 
-def _unauthorized(token: str | None) -> str:
+def unauthorized(token: str | None) -> str:
     problem = "missing API key" if not token else "invalid or revoked API key"
     return (f"{problem}: send 'Authorization: Bearer <key>' or 'X-API-Key: <key>' "
             "(keys come from 'python -m api.admin create-key')")
-
-
-def current_key(request: Request, session: Session = Depends(get_session)) -> ApiKey:
-    """FastAPI dependency: the key this request acts as (401 when authentication is on and it has none).
-
-    :class:`RequireKey` has already authenticated /v1 requests; its key id is only looked up again.
-    """
-    if not get_settings().auth_enabled:
-        return session.get(ApiKey, LOCAL_KEY_ID)
-    key_id = getattr(request.state, "api_key_id", None)
-    token = presented_token(request)
-    key = session.get(ApiKey, key_id) if key_id else authenticate(session, token) if token else None
-    if key is None or key.revoked_at is not None:
-        raise HTTPException(status.HTTP_401_UNAUTHORIZED, _unauthorized(token), headers=_CHALLENGE)
-    return key
 
 
 def _live_key_id(token: str) -> str | None:
@@ -109,7 +95,7 @@ class RequireKey:
         token = presented_token(Request(scope))
         key_id = await anyio.to_thread.run_sync(_live_key_id, token) if token else None
         if key_id is None:
-            response = JSONResponse({"detail": _unauthorized(token)}, status.HTTP_401_UNAUTHORIZED, headers=_CHALLENGE)
+            response = JSONResponse({"detail": unauthorized(token)}, status.HTTP_401_UNAUTHORIZED, headers=CHALLENGE)
             return await response(scope, receive, send)
         scope.setdefault("state", {})["api_key_id"] = key_id
         await self.app(scope, receive, send)
@@ -180,9 +166,9 @@ class Idempotency:
                                       request_sha256=self.request_sha256, resource_id=resource_id,
                                       created_at=utcnow()))
 
-    def replayed(self, session: Session, owner: ApiKey, response: Response, model: type):
-        """For a retry: the ``model`` row the first request created, answered 200 with ``Idempotent-Replayed:
-        true`` (409 if it has been deleted since); None when this Idempotency-Key is new."""
+    def replayed(self, session: Session, owner: ApiKey, model: type):
+        """For a retry: the ``model`` row the first request created (409 if it has been deleted since); None
+        when this Idempotency-Key is new."""
         resource_id = self.original(session, owner)
         if resource_id is None:
             return None
@@ -190,8 +176,6 @@ class Idempotency:
         if resource is None:
             raise HTTPException(status.HTTP_409_CONFLICT, f"the {self.endpoint[:-1]} {resource_id!r} that "
                                 f"Idempotency-Key {self.key!r} created has been deleted; use a new key")
-        response.status_code = status.HTTP_200_OK
-        response.headers[REPLAYED_HEADER] = "true"
         return resource
 
     def original(self, session: Session, owner: ApiKey) -> str | None:
@@ -206,6 +190,12 @@ class Idempotency:
                                 f"Idempotency-Key {self.key!r} was already used with a different request body "
                                 f"(it created {self.endpoint} {row.resource_id!r}); use a new key for a new request")
         return row.resource_id
+
+
+def mark_replayed(response: Response) -> None:
+    """A retry answers 200 with ``Idempotent-Replayed: true`` and the resource the first request created."""
+    response.status_code = status.HTTP_200_OK
+    response.headers[REPLAYED_HEADER] = "true"
 
 
 def idempotency_key(request: Request) -> str | None:

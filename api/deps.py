@@ -1,14 +1,22 @@
-"""FastAPI dependencies: settings, database session, storage, Celery app."""
+"""FastAPI dependencies as ``Annotated`` aliases: the session, settings, storage, task queue and current key.
+
+Routes declare ``session: SessionDep, key: CurrentKey`` and hand them to the keyword-only
+service functions in :mod:`api.services`; nothing here builds anything at import.
+"""
 
 from __future__ import annotations
 
-from functools import lru_cache
+from typing import Annotated
 
-from celery import Celery
+from fastapi import Depends, HTTPException, Request, status
+from sqlalchemy.orm import Session
 
-from api.db import get_session  # noqa: F401 - re-exported for the routes
-from api.settings import Settings, get_settings
-from api.storage import Storage, get_storage
+from api.auth import CHALLENGE, authenticate, idempotency_key, presented_token, unauthorized
+from voxe_service.db import get_session
+from voxe_service.models import LOCAL_KEY_ID, ApiKey
+from voxe_service.queue import TaskQueue, get_queue
+from voxe_service.settings import Settings, get_settings
+from voxe_service.storage import Storage, get_storage
 
 
 def settings_dep() -> Settings:
@@ -19,13 +27,31 @@ def storage_dep() -> Storage:
     return get_storage(get_settings())
 
 
-@lru_cache
-def get_celery() -> Celery:
-    """The Celery app the API sends job chains with (configured from the same settings as the workers)."""
-    from worker.celery_app import create_celery_app
-
-    return create_celery_app()
+def queue_dep() -> TaskQueue:
+    """The sender of task messages (by name: the API imports no worker code)."""
+    return get_queue()
 
 
-def celery_dep() -> Celery:
-    return get_celery()
+SessionDep = Annotated[Session, Depends(get_session)]
+SettingsDep = Annotated[Settings, Depends(settings_dep)]
+StorageDep = Annotated[Storage, Depends(storage_dep)]
+QueueDep = Annotated[TaskQueue, Depends(queue_dep)]
+IdempotencyKey = Annotated[str | None, Depends(idempotency_key)]
+
+
+def current_key(request: Request, session: SessionDep) -> ApiKey:
+    """The key this request acts as (401 when authentication is on and it has none).
+
+    :class:`api.auth.RequireKey` has already authenticated /v1 requests; its key id is only looked up again.
+    """
+    if not get_settings().auth_enabled:
+        return session.get(ApiKey, LOCAL_KEY_ID)
+    key_id = getattr(request.state, "api_key_id", None)
+    token = presented_token(request)
+    key = session.get(ApiKey, key_id) if key_id else authenticate(session, token) if token else None
+    if key is None or key.revoked_at is not None:
+        raise HTTPException(status.HTTP_401_UNAUTHORIZED, unauthorized(token), headers=CHALLENGE)
+    return key
+
+
+CurrentKey = Annotated[ApiKey, Depends(current_key)]

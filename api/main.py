@@ -5,31 +5,16 @@ from __future__ import annotations
 import logging
 import math
 from contextlib import asynccontextmanager
-from pathlib import Path
 
 from fastapi import FastAPI
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
-from api.settings import Settings, get_settings, model_label
+from voxe_service.db import run_migrations
+from voxe_service.settings import Settings, get_settings, model_label
 
 log = logging.getLogger("voxe.api")
-MIGRATIONS = Path(__file__).resolve().parent / "migrations"
-
-
-def run_migrations(database_url: str) -> None:
-    """``alembic upgrade head`` on ``database_url`` (no alembic.ini needed)."""
-    from alembic import command
-    from alembic.config import Config
-
-    from api.db import ensure_sqlite_dir
-
-    ensure_sqlite_dir(database_url)
-    config = Config()
-    config.set_main_option("script_location", str(MIGRATIONS))
-    config.set_main_option("sqlalchemy.url", database_url.replace("%", "%%"))
-    command.upgrade(config, "head")
 
 
 class UploadLimit:
@@ -94,7 +79,7 @@ def create_app(settings: Settings | None = None, migrate: bool = True) -> FastAP
         (log.info if settings.auth_enabled else log.warning)("Vox-E API: %s", auth_line)
         if migrate:
             run_migrations(settings.database_url)
-        from api.storage import get_storage
+        from voxe_service.storage import get_storage
 
         get_storage(settings)  # fail at startup, not on the first request, when storage is misconfigured
         log.info("Vox-E API ready: SDS model %s, attention model %s", model_label(settings.sds_model),

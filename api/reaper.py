@@ -7,8 +7,14 @@ A job is orphaned when
   (the worker is gone: killed, its machine lost). A worker that comes back under the same name
   heartbeats again and re-queues its jobs itself (SQL broker); Redis redelivers after its
   visibility timeout -- either way the job is not orphaned while that can still happen in time;
-* or it is ``queued`` with no task id for as long: the API stopped between recording the job
-  and handing its chain to the broker, so no message exists.
+* or it is ``queued`` with no task id for as long on a scene that is not processing: the API
+  stopped between recording the job and handing its chain to the broker, so no message exists
+  (a job on a processing scene waits for the scene's ingest to send it).
+
+A scene is orphaned, and fails with the reason (the jobs waiting on it with it), when it is
+``processing`` and unchanged for as long, and either its ingest was never handed to the
+broker or the worker that took it has stopped heartbeating. A processing scene whose ingest
+waits in the broker for a worker is not orphaned, as a queued job is not.
 
 The API runs :func:`reap_orphaned_jobs` at startup and then every ``VOXE_REAPER_INTERVAL_S`` in a
 background thread (:class:`Reaper`). Every update is conditional on the row still being what the
@@ -22,32 +28,35 @@ import logging
 import threading
 from datetime import datetime, timedelta
 
-from sqlalchemy import or_, select, update
+from sqlalchemy import or_, select
 
-from api.db import session_scope
-from api.models import FAILED, QUEUED, RUNNING, Job, WorkerHeartbeat, utcnow
-from api.settings import Settings
+from voxe_service.db import session_scope
+from voxe_service.jobs import finish_jobs
+from voxe_service.models import FAILED, PROCESSING, QUEUED, RUNNING, Job, Scene, WorkerHeartbeat, utcnow
+from voxe_service.scenes import fail_scene
+from voxe_service.settings import Settings
+from voxe_service.storage import get_storage, job_key, scene_key
 
 log = logging.getLogger("voxe.reaper")
 
 
-def _fail(session, job_id: str, seen_updated_at: datetime, seen_state: str, error: str, now: datetime) -> bool:
-    result = session.execute(
-        update(Job)
-        .where(Job.id == job_id, Job.state == seen_state, Job.updated_at == seen_updated_at)
-        .values(state=FAILED, error=error, finished_at=now, updated_at=now, eta_seconds=None)
-    )
-    return result.rowcount == 1
+def _fail(session, job_id: str, seen_updated_at: datetime, seen_state: str, error: str) -> bool:
+    return bool(finish_jobs(session, [job_id], FAILED, error=error,
+                            where=[Job.state == seen_state, Job.updated_at == seen_updated_at]))
+
+
+def _stale_window(settings: Settings, now: datetime | None):
+    """(timeout, cutoff, the hostnames of workers heard from since the cutoff) for one pass."""
+    timeout = settings.job_stale_timeout_s
+    cutoff = (now or utcnow()) - timedelta(seconds=timeout)
+    return timeout, cutoff, select(WorkerHeartbeat.hostname).where(WorkerHeartbeat.last_seen >= cutoff)
 
 
 def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[str]:
     """Mark orphaned jobs failed with the reason; returns their ids."""
-    now = now or utcnow()
-    timeout = settings.job_stale_timeout_s
-    cutoff = now - timedelta(seconds=timeout)
+    timeout, cutoff, alive = _stale_window(settings, now)
     reaped = []
     with session_scope() as session:
-        alive = select(WorkerHeartbeat.hostname).where(WorkerHeartbeat.last_seen >= cutoff)
         running = session.execute(
             select(Job.id, Job.stage, Job.worker_hostname, Job.updated_at).where(
                 Job.state == RUNNING, Job.updated_at < cutoff,
@@ -58,31 +67,53 @@ def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[
             error = (f"worker {job.worker_hostname or '(unknown)'} stopped while the job was in {job.stage}: "
                      f"no heartbeat and no progress for {timeout:.0f} s, and the task was not redelivered "
                      f"(VOXE_JOB_STALE_TIMEOUT_S)")
-            if _fail(session, job.id, job.updated_at, RUNNING, error, now):
+            if _fail(session, job.id, job.updated_at, RUNNING, error):
                 reaped.append(job.id)
+        waiting_for_ingest = select(Scene.id).where(Scene.state == PROCESSING)
         never_sent = session.execute(
-            select(Job.id, Job.updated_at).where(Job.state == QUEUED, Job.task_id.is_(None), Job.updated_at < cutoff)
+            select(Job.id, Job.updated_at).where(Job.state == QUEUED, Job.task_id.is_(None), Job.updated_at < cutoff,
+                                                 Job.scene_id.not_in(waiting_for_ingest))
         ).all()
         for job in never_sent:
             error = (f"the job was never handed to the broker (the API stopped while creating it); "
                      f"failed after {timeout:.0f} s (VOXE_JOB_STALE_TIMEOUT_S): create it again")
-            if _fail(session, job.id, job.updated_at, QUEUED, error, now):
+            if _fail(session, job.id, job.updated_at, QUEUED, error):
                 reaped.append(job.id)
     for job_id in reaped:
         log.warning("reaper: job %s failed as orphaned", job_id)
     return reaped
 
 
-def _delete_checkpoints(job_ids: list[str], settings: Settings) -> None:
-    from api.storage import get_storage
-    from worker.runtime import job_key
+def reap_orphaned_scenes(settings: Settings, now: datetime | None = None) -> list[str]:
+    """Fail processing scenes whose ingest nothing will run, with the reason; returns their ids."""
+    timeout, cutoff, alive = _stale_window(settings, now)
+    reaped = []
+    with session_scope() as session:
+        stale = session.execute(select(Scene.id, Scene.task_id, Scene.worker_hostname, Scene.updated_at).where(
+            Scene.state == PROCESSING, Scene.updated_at < cutoff,
+            or_(Scene.task_id.is_(None), Scene.worker_hostname.not_in(alive)))).all()
+        for scene in stale:
+            if scene.task_id is None:
+                reason = (f"the upload was never handed to a worker (the API stopped while storing it); failed after "
+                          f"{timeout:.0f} s (VOXE_JOB_STALE_TIMEOUT_S): upload it again")
+            else:
+                reason = (f"worker {scene.worker_hostname} stopped while processing the upload: no heartbeat for "
+                          f"{timeout:.0f} s, and the ingest was not redelivered (VOXE_JOB_STALE_TIMEOUT_S): upload "
+                          "it again")
+            if fail_scene(session, scene.id, reason, where=[Scene.updated_at == scene.updated_at]):
+                reaped.append(scene.id)
+    for scene_id in reaped:
+        log.warning("reaper: scene %s failed as orphaned", scene_id)
+    return reaped
 
+
+def _delete_prefixes(prefixes: list[str], settings: Settings) -> None:
     storage = get_storage(settings)
-    for job_id in job_ids:
+    for prefix in prefixes:
         try:
-            storage.delete_prefix(job_key(job_id, "checkpoints/"))
-        except Exception:  # noqa: BLE001 - leftover checkpoints are harmless
-            log.warning("reaper: could not delete the checkpoints of job %s", job_id, exc_info=True)
+            storage.delete_prefix(prefix)
+        except Exception:  # noqa: BLE001 - leftover objects of a failed job or scene are harmless
+            log.warning("reaper: could not delete the objects under %s", prefix, exc_info=True)
 
 
 class Reaper:
@@ -104,7 +135,10 @@ class Reaper:
     def _run(self) -> None:
         while not self._stop.is_set():
             try:
-                _delete_checkpoints(reap_orphaned_jobs(self.settings), self.settings)
+                scenes = reap_orphaned_scenes(self.settings)  # first: their waiting jobs fail with them
+                prefixes = [scene_key(s) for s in scenes]
+                prefixes += [job_key(j, "checkpoints/") for j in reap_orphaned_jobs(self.settings)]
+                _delete_prefixes(prefixes, self.settings)
             except Exception:  # noqa: BLE001 - a failed pass is retried on the next one
                 log.warning("reaper pass failed", exc_info=True)
             self._stop.wait(self.settings.reaper_interval_s)

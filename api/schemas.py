@@ -21,6 +21,7 @@ T = TypeVar("T")
 
 Regulariser = Literal["reg3d", "reg3d_plus", "volumetric_l1", "volumetric_l2", "image_l1", "image_l2"]
 JobState = Literal["queued", "running", "succeeded", "failed", "canceled"]
+SceneState = Literal["processing", "ready", "failed"]
 Stage = Literal["reconstruct", "edit", "refine", "export", "evaluate"]
 
 
@@ -277,11 +278,14 @@ class SceneOut(BaseModel):
     id: str
     name: str
     format: str
+    state: SceneState = Field(description="processing: stored, its images being decoded (a mesh rendered) by a "
+                                          "worker; ready: jobs run on it; failed: see error")
+    error: str | None = Field(description="why the scene failed (the file and frame, as a 422 would say)")
     image_count: int
     width: int
     height: int
     splits: list[str]
-    size_bytes: int
+    size_bytes: int = Field(description="bytes stored (0 once failed: a failed upload is not kept)")
     sha256: str
     created_at: datetime
 
@@ -342,6 +346,7 @@ class JobOut(BaseModel):
     reconstruction: JobReconstruction
     preview_url: str | None
     artifacts_url: str
+    events_url: str = Field(description="the job's timeline: stages, checkpoints, resumes, its end")
     worker_hostname: str | None
     source_job_ids: list[str] | None = Field(None, description="evaluation jobs: the edit jobs scored")
     result: dict | None = Field(None, description="evaluation jobs: the metrics (also the evaluation.json artifact)")
@@ -350,6 +355,17 @@ class JobOut(BaseModel):
     started_at: datetime | None
     finished_at: datetime | None
     updated_at: datetime
+
+
+class JobEventOut(BaseModel):
+    id: int
+    kind: str = Field(description="stage_started, stage_completed, checkpoint, resumed, requeued, succeeded, "
+                                  "failed or canceled")
+    stage: str | None
+    iteration: int | None = Field(description="checkpoint: the iteration it holds; resumed: where the stage went on")
+    worker_hostname: str | None
+    detail: str | None
+    at: datetime
 
 
 class ArtifactOut(BaseModel):

@@ -1,8 +1,10 @@
-"""Scene uploads: unpack into a staging folder, validate with voxe_core.data, package for storage.
+"""Scene uploads: unpack into a staging folder, check what is cheap to check, pack it for storage.
 
-Nothing is committed until the dataset has loaded cleanly: the caller moves the
-packaged archive into storage and inserts the scene row only after
-:func:`ingest` returns, and the staging folder is always removed.
+Everything answered here is answered at once (4xx) and leaves nothing behind: the caller
+stores the packed archive and inserts the scene row only after :func:`stage_upload`
+returns, and the staging folder is always removed. What only decoding every image (or
+loading and rendering a mesh) can find is the worker's ingest (``worker/ingest.py``): the
+scene is ``processing`` until it is ``ready``, or ``failed`` with the reason.
 
 Hostile archives: entries with ``..``, absolute or drive paths, symbolic links or
 encryption, more than ``max_upload_files`` files, more than ``max_extracted_bytes``
@@ -12,15 +14,19 @@ extracting, from the bytes actually read and written, never from the archive's
 directory. Images are checked against ``max_image_pixels`` from their headers
 before any is decoded (decompression bombs).
 
-Meshes: an upload with no transforms json but one ``.obj`` (with at most one
-texture image) or ``.ply`` (vertex colours) is rendered into a NeRF-synthetic
-dataset (``voxe_core.mesh_input.write_mesh_dataset``, mesh input route (a)),
-which is then validated and stored like any other, with the mesh (and texture)
-kept under ``mesh/`` for route (b) and the scene's format set to ``mesh``.
+Datasets: ``voxe_core.data.load_scene`` checks the transforms json with only its first
+image decoded (frames, poses, intrinsics, paths inside the upload); then every frame's
+image must exist and have a readable header of the first image's size.
+
+Meshes: an upload with no transforms json but one ``.obj`` (with at most one texture
+image) or ``.ply`` (vertex colours) is packed under ``mesh/`` (``voxe_service.datasets``);
+the ingest loads it and renders it into a NeRF-synthetic dataset (mesh input route (a)),
+kept for route (b), and the scene's format is ``mesh``.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -35,18 +41,15 @@ from typing import BinaryIO
 from PIL import Image, UnidentifiedImageError
 
 from voxe_core.data import DatasetError, detect_format, load_scene
-from voxe_core.mesh_input import MESH_INPUT_SUFFIXES, TEXTURE_SUFFIXES, MeshError, load_mesh, write_mesh_dataset
+from voxe_core.mesh_input import MESH_INPUT_SUFFIXES, TEXTURE_SUFFIXES
+from voxe_service import datasets
+from voxe_service.datasets import DATASET_ARCHIVE, MESH_FOLDER, MESH_FORMAT, MESH_NAMES, UPLOAD_ARCHIVE, ignored, package
 
-_IGNORED = ("__MACOSX", ".DS_Store", "Thumbs.db")
 _RATIO_FLOOR = 4 << 20  # below this many bytes out of an entry, any ratio is fine (small text compresses well)
 # Small reads: zipfile reads ahead as many compressed bytes as were asked for, and with a lying directory
 # (an entry claiming more compressed bytes than its stream has) that read-ahead would pad the ratio's divisor.
 _CHUNK = 64 << 10
-_STORED_SUFFIXES = {".png", ".jpg", ".jpeg", ".webp", ".exr", ".zip", ".gz"}
 _TRANSFORMS = ("transforms.json", "transforms_train.json", "transforms_val.json", "transforms_test.json")
-MESH_VIEWS, MESH_VIEW_SIZE = 100, 256  # renders of an uploaded mesh (the paper: 100 upper-hemisphere views)
-MESH_FORMAT = "mesh"  # a scene's format when it was uploaded as a mesh (its archive: the renders + MESH_FOLDER)
-MESH_FOLDER = "mesh"  # the uploaded mesh as ``mesh.obj`` / ``mesh.ply`` with an OBJ's texture as ``texture.<ext>``
 
 
 class UploadError(ValueError):
@@ -58,13 +61,16 @@ class UploadError(ValueError):
 
 
 @dataclass
-class Ingested:
+class StagedUpload:
+    """An upload that passed the cheap checks, packed for storage (``archive_name`` under the scene's prefix)."""
+
     format: str
     image_count: int
     width: int
     height: int
     splits: list[str]
-    archive: Path  # the validated dataset, re-packed with the dataset folder at the archive root
+    archive: Path
+    archive_name: str
 
 
 def safe_relative(name: str) -> PurePosixPath:
@@ -80,10 +86,6 @@ def safe_relative(name: str) -> PurePosixPath:
     if any("\x00" in p for p in parts):
         raise UploadError(f"refused entry {name!r}: NUL in path")
     return PurePosixPath(*parts)
-
-
-def _ignored(path: PurePosixPath) -> bool:
-    return any(part in _IGNORED or part.startswith("._") for part in path.parts)
 
 
 class _Budget:
@@ -157,7 +159,7 @@ def extract_zip(source: BinaryIO, dest: Path, budget: _Budget) -> None:
             path = safe_relative(info.filename)
             if stat.S_ISLNK(info.external_attr >> 16):
                 raise UploadError(f"refused entry {info.filename!r}: symbolic links are not allowed")
-            if info.is_dir() or _ignored(path):
+            if info.is_dir() or ignored(path):
                 continue
             if info.flag_bits & 0x1:
                 raise UploadError(f"refused entry {info.filename!r}: encrypted zip entries are not supported")
@@ -184,7 +186,7 @@ def save_files(files: list[tuple[str, BinaryIO]], dest: Path, budget: _Budget) -
     """Individual uploaded files; their names are paths relative to the dataset folder."""
     for name, handle in files:
         path = safe_relative(name or "")
-        if _ignored(path):
+        if ignored(path):
             continue
         budget.add_file()
         try:
@@ -201,7 +203,7 @@ def dataset_root(folder: Path) -> Path:
     for _ in range(4):
         if any((root / n).is_file() for n in _TRANSFORMS):
             return root
-        children = [c for c in root.iterdir() if not _ignored(PurePosixPath(c.name))]
+        children = [c for c in root.iterdir() if not ignored(PurePosixPath(c.name))]
         if len(children) == 1 and children[0].is_dir():
             root = children[0]
             continue
@@ -209,11 +211,14 @@ def dataset_root(folder: Path) -> Path:
     return root
 
 
-def render_mesh_upload(root: Path, dest: Path) -> Path | None:
-    """The dataset folder rendered from the upload's mesh (the mesh kept beside it), or None when not a mesh."""
+def pack_mesh_upload(root: Path, dest: Path) -> Path | None:
+    """The upload's mesh (and texture) copied to ``dest/mesh/`` for the ingest, or None when it is not a mesh.
+
+    The file rules are checked here: one mesh, and for an OBJ at most one texture image.
+    """
     if any((root / n).is_file() for n in _TRANSFORMS):
         return None
-    files = sorted(p for p in root.rglob("*") if p.is_file() and not _ignored(PurePosixPath(p.name)))
+    files = sorted(p for p in root.rglob("*") if p.is_file() and not ignored(PurePosixPath(p.name)))
     meshes = [p for p in files if p.suffix.lower() in MESH_INPUT_SUFFIXES]
     if not meshes:
         return None
@@ -226,27 +231,15 @@ def render_mesh_upload(root: Path, dest: Path) -> Path | None:
         if len(images) > 1:
             raise UploadError(f"the OBJ comes with several images ({names(images)}); send one texture")
         texture = images[0] if images else None
-    try:
-        mesh = load_mesh(meshes[0], texture)
-    except MeshError as exc:
-        raise UploadError(f"invalid mesh: {exc}") from None
-    write_mesh_dataset(mesh, dest, MESH_VIEWS, MESH_VIEW_SIZE)
     kept = dest / MESH_FOLDER
-    kept.mkdir()
-    shutil.copyfile(meshes[0], kept / f"mesh{meshes[0].suffix.lower()}")
-    if texture is not None:
-        shutil.copyfile(texture, kept / f"texture{texture.suffix.lower()}")
+    kept.mkdir(parents=True)
+    names = {}
+    for source, stem in ((meshes[0], "mesh"), (texture, "texture")):
+        if source is not None:
+            shutil.copyfile(source, kept / f"{stem}{source.suffix.lower()}")
+            names[f"{stem}{source.suffix.lower()}"] = source.relative_to(root).as_posix()
+    (kept / MESH_NAMES).write_text(json.dumps(names))  # the ingest's messages name the files as uploaded
     return dest
-
-
-def load_stored_mesh(dataset: Path):
-    """The mesh a mesh scene's archive keeps under ``mesh/`` (validated on upload), as ``load_mesh`` read it."""
-    kept = dataset / MESH_FOLDER
-    meshes = [p for p in sorted(kept.glob("mesh.*")) if p.suffix in MESH_INPUT_SUFFIXES]
-    if len(meshes) != 1:
-        raise MeshError(f"the scene's archive holds no {MESH_FOLDER}/mesh.obj or .ply (not uploaded as a mesh?)")
-    textures = [p for p in sorted(kept.glob("texture.*")) if p.suffix in TEXTURE_SUFFIXES]
-    return load_mesh(meshes[0], textures[0] if textures else None)
 
 
 def check_image_pixels(folder: Path, max_pixels: int) -> None:
@@ -270,51 +263,69 @@ def check_image_pixels(folder: Path, max_pixels: int) -> None:
                               "(a decompression bomb?; VOXE_MAX_IMAGE_PIXELS)", 413)
 
 
-def _image_size(root: Path, name: str) -> tuple[int, int]:
-    for candidate in (root / name, root / (name + ".png")):
-        if candidate.is_file():
-            with Image.open(candidate) as image:
-                return image.size
-    raise UploadError(f"image {name!r} disappeared during validation")
-
-
-def _relative_message(exc: Exception, staging: Path) -> str:
-    """A DatasetError's message with staging paths shown relative to the upload."""
-    message = str(exc)
+def _relative_message(message: str, staging: Path) -> str:
+    """A message with staging paths shown relative to the upload."""
     for prefix in sorted({str(staging.resolve()), str(staging)}, key=len, reverse=True):
         message = message.replace(prefix + os.sep, "").replace(prefix, "<upload>")
     return message
 
 
-def validate(root: Path, staging: Path, downsample: int) -> tuple[str, int, int, int, list[str]]:
+def _invalid(message: str, staging: Path) -> UploadError:
+    return UploadError(f"invalid dataset: {_relative_message(message, staging)}")
+
+
+def check_dataset(root: Path, staging: Path, downsample: int) -> tuple[str, int, int, int, list[str]]:
+    """(format, images, width, height, splits) of a dataset folder, from its json and its images' headers.
+
+    ``load_scene`` with ``max_images=1`` checks every frame's entry and pose but decodes one image.
+    """
     try:
         fmt = detect_format(root)
         try:
-            scene = load_scene(root, "train", downsample=downsample, confine_paths=True)
+            load_scene(root, "train", downsample=downsample, max_images=1, confine_paths=True)
         except DatasetError as exc:
             if "smaller than downsample" not in str(exc):
                 raise
-            scene = load_scene(root, "train", downsample=1, confine_paths=True)
+            load_scene(root, "train", downsample=1, max_images=1, confine_paths=True)
     except DatasetError as exc:
-        raise UploadError(f"invalid dataset: {_relative_message(exc, staging)}") from None
-    width, height = _image_size(root, scene.names[0])
+        raise _invalid(str(exc), staging) from None
+    json_path = root / ("transforms_train.json" if fmt == "nerf_synthetic" else "transforms.json")
+    frames = json.loads(json_path.read_bytes())["frames"]  # parsed and checked by load_scene
+    width, height = _check_frame_images(root, json_path.name, frames, staging)
     if fmt == "nerf_synthetic":
         splits = [s for s in ("train", "val", "test") if (root / f"transforms_{s}.json").is_file()]
     else:
         splits = ["all"]
-    return fmt, len(scene), width, height, splits
+    return fmt, len(frames), width, height, splits
 
 
-def package(root: Path, archive: Path) -> None:
-    """Re-pack the dataset folder (images stored, text deflated) with the folder at the archive root."""
-    with zipfile.ZipFile(archive, "w") as zf:
-        for path in sorted(root.rglob("*")):
-            if path.is_file() and not _ignored(PurePosixPath(path.name)):
-                compress = zipfile.ZIP_STORED if path.suffix.lower() in _STORED_SUFFIXES else zipfile.ZIP_DEFLATED
-                zf.write(path, path.relative_to(root).as_posix(), compress_type=compress)
+def _check_frame_images(root: Path, json_name: str, frames: list[dict], staging: Path) -> tuple[int, int]:
+    """Every frame's image exists with a readable header, all of one size (as the loader names them); that size."""
+    first = None
+    for i, frame in enumerate(frames):
+        file_path = frame["file_path"]
+        where = f"{json_name} frame {i} ({file_path!r})"
+        candidates = [root / file_path, root / (file_path + ".png")]
+        path = next((p for p in candidates if p.is_file()), None)
+        if path is None:
+            raise _invalid(f"{where}: image not found (tried {', '.join(map(str, candidates))})", staging)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+                with Image.open(path) as image:
+                    size = image.size
+        except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+            raise _invalid(f"{where}: cannot read image {path.name} (not an image or damaged): {exc}", staging) from None
+        if first is None:
+            first = (size, file_path)
+        elif size != first[0]:
+            (w, h), ((fw, fh), first_path) = size, first
+            raise _invalid(f"{where}: image size {w}x{h} differs from frame 0 ({first_path!r}) size {fw}x{fh}; all "
+                           "images of a split must share one size", staging)
+    return first[0]
 
 
-def ingest(
+def stage_upload(
     work_dir: Path,
     archive: BinaryIO | None,
     files: list[tuple[str, BinaryIO]],
@@ -323,8 +334,8 @@ def ingest(
     validation_downsample: int,
     max_ratio: float,
     max_image_pixels: int,
-) -> tuple[Ingested, Path]:
-    """Unpack, validate and package an upload; returns (result, staging folder to remove after storing)."""
+) -> tuple[StagedUpload, Path]:
+    """Unpack, check and pack an upload; returns (result, staging folder to remove after storing)."""
     if (archive is None) == (not files):
         raise UploadError("send either one zip 'archive' or the dataset's 'files' (with the transforms json)")
     work_dir.mkdir(parents=True, exist_ok=True)
@@ -339,13 +350,18 @@ def ingest(
             save_files(files, unpacked, budget)
         check_image_pixels(unpacked, max_image_pixels)
         root = dataset_root(unpacked)
-        rendered = render_mesh_upload(root, staging / "rendered")
-        fmt, count, width, height, splits = validate(rendered or root, unpacked, validation_downsample)
-        if rendered is not None:
-            root, fmt = rendered, MESH_FORMAT
-        packed = staging / "dataset.zip"
-        package(root, packed)
-        return Ingested(fmt, count, width, height, splits, packed), staging
+        packed = staging / "packed.zip"
+        mesh = pack_mesh_upload(root, staging / "mesh_upload")
+        if mesh is not None:  # rendered by the ingest into MESH_VIEWS views of MESH_VIEW_SIZE px (train and test)
+            package(mesh, packed)
+            size = datasets.MESH_VIEW_SIZE
+            result = StagedUpload(MESH_FORMAT, datasets.MESH_VIEWS, size, size, ["train", "test"], packed,
+                                  UPLOAD_ARCHIVE)
+        else:
+            fmt, count, width, height, splits = check_dataset(root, unpacked, validation_downsample)
+            package(root, packed)
+            result = StagedUpload(fmt, count, width, height, splits, packed, DATASET_ARCHIVE)
+        return result, staging
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise

@@ -1,4 +1,5 @@
-# The Vox-E API: FastAPI under uvicorn, CPU-only torch (the API validates uploads with voxe_core.data).
+# The Vox-E API: FastAPI under uvicorn, CPU-only torch (the API checks uploads with voxe_core.data; decoding them
+# in full is the worker's ingest). It holds no worker code: it sends tasks by name (voxe_service.queue).
 #   docker build -f docker/api.Dockerfile -t voxe-api .
 FROM python:3.11-slim
 
@@ -14,8 +15,8 @@ RUN pip install --index-url "$TORCH_INDEX" "$TORCH_SPEC"
 COPY pyproject.toml README.md ./
 COPY voxe_core ./voxe_core
 COPY voxe_client ./voxe_client
+COPY voxe_service ./voxe_service
 COPY api ./api
-COPY worker ./worker
 COPY alembic.ini ./
 RUN pip install ".[s3,postgres]" \
     && useradd --create-home --uid 10001 voxe \
@@ -25,7 +26,7 @@ USER voxe
 EXPOSE 8000
 HEALTHCHECK --interval=15s --timeout=5s --start-period=30s --retries=5 \
     CMD python -c "import urllib.request,sys; sys.exit(urllib.request.urlopen('http://127.0.0.1:8000/healthz', timeout=4).status != 200)"
-# The app runs `alembic upgrade head` at startup. It listens on every interface, so authentication is on
+# The app runs `alembic upgrade head` (voxe_service/migrations) at startup. It listens on every interface, so authentication is on
 # (VOXE_AUTH=auto): create keys with `docker compose exec api python -m api.admin create-key --name <who>`.
 ENV VOXE_HOST=0.0.0.0
 CMD ["uvicorn", "api.main:app", "--host", "0.0.0.0", "--port", "8000", "--proxy-headers"]

@@ -1,4 +1,5 @@
-# A Vox-E GPU worker: Celery consuming the `gpu` queue, one task at a time per GPU, CUDA torch.
+# A Vox-E GPU worker: Celery consuming the `gpu` queue (job stages and upload ingests), one task at a time per GPU,
+# CUDA torch. It holds no API code (the service core and voxe_core only).
 #   docker build -f docker/worker.Dockerfile -t voxe-worker .
 # Run one container per GPU (concurrency 1); models come from the Hugging Face cache in HF_HOME.
 FROM nvidia/cuda:12.6.3-cudnn-runtime-ubuntu24.04
@@ -21,7 +22,7 @@ RUN pip install --index-url "$TORCH_INDEX" "$TORCH_SPEC"
 COPY pyproject.toml README.md ./
 COPY voxe_core ./voxe_core
 COPY voxe_client ./voxe_client
-COPY api ./api
+COPY voxe_service ./voxe_service
 COPY worker ./worker
 RUN pip install ".[s3,postgres]" \
     && useradd --create-home --uid 10001 voxe \

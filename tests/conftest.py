@@ -1,4 +1,5 @@
-"""Shared test fixtures: where the shared data lives, and analytic grids built in code."""
+"""Shared test fixtures: where the shared data lives, analytic grids built in code, and the database servers
+the service tests run against (SQLite and a throwaway PostgreSQL)."""
 
 from __future__ import annotations
 
@@ -7,11 +8,17 @@ from pathlib import Path
 import pytest
 import torch
 
+from needs import DATA_ROOT, MIC, require_data  # noqa: F401 - DATA_ROOT and MIC are imported from here by tests
 from voxe_core.grid import VoxelGrid
 
-# The repository sits beside ``shared/`` (locally /work/main and /work/shared; CI clones the same way).
-DATA_ROOT = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-MIC = DATA_ROOT / "nerf_synthetic_mic"
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "needs_data(*paths): reads the shared data (skips without it; fails in CI)")
+
+
+def pytest_runtest_setup(item):
+    for mark in item.iter_markers("needs_data"):
+        require_data(*mark.args)
 
 SPHERE_RADIUS = 0.8
 RED_LOGITS = (4.0, -4.0, -4.0)  # sigmoid -> (0.982, 0.018, 0.018), uint8 (250, 5, 5)
@@ -71,3 +78,29 @@ def single_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+# ------------------------------------------------------------------ databases
+@pytest.fixture(scope="session")
+def postgres_server(tmp_path_factory):
+    """One throwaway PostgreSQL cluster for the session (skipped without PostgreSQL; a failure in CI)."""
+    from needs import missing
+    from service_helpers import PostgresServer
+
+    try:
+        server = PostgresServer(tmp_path_factory.mktemp("postgres"))
+    except FileNotFoundError as exc:
+        missing(f"PostgreSQL is not installed ({exc}; .ci/test installs it)")
+    server.start()
+    try:
+        yield server
+    finally:
+        server.stop()
+
+
+@pytest.fixture(params=["sqlite", "postgres"])
+def database_url(request, tmp_path) -> str:
+    """A fresh, empty database: a SQLite file, then a new database on the session's PostgreSQL."""
+    if request.param == "sqlite":
+        return f"sqlite:///{tmp_path / 'voxe.db'}"
+    return request.getfixturevalue("postgres_server").create_database()

@@ -1,8 +1,11 @@
-"""Helpers for the service tests: environments, real subprocesses (uvicorn, celery, redis-server), datasets."""
+"""Helpers for the service tests: environments, real subprocesses (uvicorn, celery, redis-server, PostgreSQL),
+datasets."""
 
 from __future__ import annotations
 
 import contextlib
+import glob
+import itertools
 import json
 import os
 import shutil
@@ -10,15 +13,16 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 import zipfile
 from pathlib import Path
 
 import httpx
 
+from needs import DATA_ROOT, MIC  # noqa: F401 - re-exported for the service tests and bench/service_load.py
+
 REPO = Path(__file__).resolve().parents[1]
-DATA_ROOT = REPO.parent / "shared" / "data"
-MIC = DATA_ROOT / "nerf_synthetic_mic"
 
 
 def free_port() -> int:
@@ -27,10 +31,11 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def service_env(root: Path, broker_url: str | None = None, **extra: str) -> dict[str, str]:
-    """VOXE_* variables for a private service instance under ``root`` (embedded broker unless given)."""
+def service_env(root: Path, broker_url: str | None = None, database_url: str | None = None,
+                **extra: str) -> dict[str, str]:
+    """VOXE_* variables for a private service instance under ``root`` (embedded broker and SQLite unless given)."""
     env = {
-        "VOXE_DATABASE_URL": f"sqlite:///{root / 'voxe.db'}",
+        "VOXE_DATABASE_URL": database_url or f"sqlite:///{root / 'voxe.db'}",
         "VOXE_BROKER_URL": broker_url or f"sqla+sqlite:///{root / 'broker.db'}",
         "VOXE_STORAGE_DIR": str(root / "storage"),
         "VOXE_WORK_DIR": str(root / "work"),
@@ -44,14 +49,37 @@ def service_env(root: Path, broker_url: str | None = None, **extra: str) -> dict
 
 
 def reset_service_caches() -> None:
-    """Forget cached settings, engine, Celery app and storage (in-process tests that change VOXE_*)."""
-    from api import storage
-    from api.db import reset_caches
-    from api.deps import get_celery
+    """Forget cached settings, engine, task queue and storage (in-process tests that change VOXE_*)."""
+    from voxe_service import storage
+    from voxe_service.db import reset_caches
+    from voxe_service.queue import reset_queue
 
     reset_caches()
-    get_celery.cache_clear()
+    reset_queue()
     storage._instances.clear()
+
+
+def ingest(scene_id: str) -> dict:
+    """Run the scene's ingest here, as a worker would (in-process tests have no worker)."""
+    from worker import tasks
+
+    return tasks.ingest_task.apply(args=(scene_id,)).get()
+
+
+def database_at(database_url: str, revision: str, *inserts: str):
+    """A database migrated to an older ``revision`` holding the rows ``inserts`` write: (alembic config, engine)."""
+    from alembic import command
+    from sqlalchemy import create_engine, text
+
+    from voxe_service.db import alembic_config
+
+    config = alembic_config(database_url)
+    command.upgrade(config, revision)
+    engine = create_engine(database_url)
+    with engine.begin() as conn:
+        for statement in inserts:
+            conn.execute(text(statement))
+    return config, engine
 
 
 def zip_folder(folder: Path, dest: Path, prefix: str | None = None, only=None) -> Path:
@@ -196,8 +224,98 @@ def _redis_ping(client) -> bool:
         return False
 
 
+class PostgresServer:
+    """A throwaway PostgreSQL cluster on a free loopback port, in a temporary folder removed on :meth:`stop`.
+
+    PostgreSQL refuses to run as root: under root (CI) the cluster belongs to the ``postgres``
+    user (Debian's package creates it) or ``nobody``, and its programs run through ``setpriv``.
+    Durability is off (fsync, synchronous commit): the data dies with the test session anyway.
+    """
+
+    def __init__(self, root: Path):
+        self.bin = _postgres_bin()
+        self.root, self.port = Path(tempfile.mkdtemp(prefix="voxe-postgres-")), free_port()
+        self.log_dir, self.proc, self._names = root, None, itertools.count()
+        self.run_as: list[str] = []
+        if os.geteuid() == 0:
+            import pwd
+
+            user = next((u for u in ("postgres", "nobody") if _has_user(u)), None)
+            if user is None:
+                raise FileNotFoundError("no unprivileged user (postgres or nobody) to run PostgreSQL as")
+            entry = pwd.getpwnam(user)
+            os.chown(self.root, entry.pw_uid, entry.pw_gid)
+            self.run_as = ["setpriv", f"--reuid={entry.pw_uid}", f"--regid={entry.pw_gid}", "--clear-groups", "--"]
+
+    def start(self) -> None:
+        data = self.root / "data"
+        subprocess.run([*self.run_as, str(self.bin / "initdb"), "-D", str(data), "-U", "voxe", "--auth=trust",
+                        "-E", "UTF8", "--no-sync"], check=True, capture_output=True, cwd=self.root)
+        self.proc = Process("postgres", [*self.run_as, str(self.bin / "postgres"), "-D", str(data), "-p",
+                                         str(self.port), "-k", str(self.root), "-c", "listen_addresses=127.0.0.1",
+                                         "-c", "fsync=off", "-c", "synchronous_commit=off", "-c",
+                                         "full_page_writes=off", "-c", "max_connections=300"],
+                            dict(os.environ), self.log_dir, cwd=self.root)
+        wait_until(self._accepts, 60, what="PostgreSQL", processes=[self.proc])
+
+    def url(self, database: str) -> str:
+        return f"postgresql+psycopg://voxe@127.0.0.1:{self.port}/{database}"
+
+    def create_database(self) -> str:
+        """A new, empty database on the cluster; its SQLAlchemy URL."""
+        import psycopg
+
+        name = f"voxe_test_{next(self._names)}"
+        with psycopg.connect(f"host=127.0.0.1 port={self.port} user=voxe dbname=postgres", autocommit=True) as conn:
+            conn.execute(f'CREATE DATABASE "{name}"')
+        return self.url(name)
+
+    def _accepts(self) -> bool:
+        import psycopg
+
+        try:
+            psycopg.connect(f"host=127.0.0.1 port={self.port} user=voxe dbname=postgres", connect_timeout=2).close()
+            return True
+        except psycopg.OperationalError:
+            return False
+
+    def stop(self) -> None:
+        """Fast shutdown (SIGINT: open sessions are ended, not waited for), then the folder goes."""
+        if self.proc is not None and self.proc.alive():
+            self.proc.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.proc.wait(30)
+            except subprocess.TimeoutExpired:
+                self.proc.proc.kill()
+                self.proc.proc.wait(10)
+        if self.proc is not None:
+            self.proc.stop()
+        shutil.rmtree(self.root, ignore_errors=True)
+
+
+def _postgres_bin() -> Path:
+    """The folder of ``initdb`` and ``postgres``: on PATH, or Debian's /usr/lib/postgresql/<version>/bin."""
+    found = shutil.which("initdb")
+    if found:
+        return Path(found).parent
+    versions = sorted(glob.glob("/usr/lib/postgresql/*/bin/initdb"), key=lambda p: int(p.split("/")[4]))
+    if not versions:
+        raise FileNotFoundError("initdb (PostgreSQL's server programs)")
+    return Path(versions[-1]).parent
+
+
+def _has_user(name: str) -> bool:
+    import pwd
+
+    try:
+        pwd.getpwnam(name)
+        return True
+    except KeyError:
+        return False
+
+
 class Service:
-    """The API (uvicorn) and one Celery worker as real subprocesses."""
+    """The API (uvicorn) and Celery workers as real subprocesses."""
 
     def __init__(self, root: Path, env: dict[str, str], worker_env: dict[str, str] | None):
         self.root, self.env, self.worker_env = root, env, worker_env or {}
@@ -205,12 +323,13 @@ class Service:
         self.base = f"http://127.0.0.1:{self.port}"
         self.api = None
         self.worker = None
+        self.extra_workers: list[Process] = []
         self.generation = 0
         self.api_generation = 0
 
     @property
     def processes(self) -> list[Process]:
-        return [p for p in (self.api, self.worker) if p is not None]
+        return [p for p in (self.api, self.worker, *self.extra_workers) if p is not None]
 
     def start_api(self) -> None:
         self.api_generation += 1
@@ -221,20 +340,37 @@ class Service:
         wait_until(lambda: httpx.get(f"{self.base}/healthz", timeout=2).status_code == 200, 90,
                    what="the API to start", processes=self.processes)
 
-    def start_worker(self, wait_ready: bool = True) -> None:
+    def worker_name(self, suffix: str = "") -> str:
+        return f"voxe-test-{self.port}{suffix}@{socket.gethostname()}"
+
+    def start_worker(self, wait_ready: bool = True, suffix: str = "", env: dict[str, str] | None = None) -> None:
         """Start a worker; wait for readiness unless it will pick up a task at once (the solo pool of a busy
-        worker cannot answer Redis' control ping until the task ends)."""
+        worker cannot answer Redis' control ping until the task ends).
+
+        ``suffix`` starts another worker beside the first, named ``voxe-test-<port><suffix>@<host>``,
+        with its own ``env`` overrides (e.g. its own VOXE_WORK_DIR).
+        """
         self.generation += 1
-        self.worker = Process(
-            f"worker-{self.generation}",
+        process = Process(
+            f"worker{suffix}-{self.generation}",
             [sys.executable, "-m", "celery", "-A", "worker.celery_app", "worker", "-Q", "gpu,celery",
              "--concurrency", "1", "--pool", "solo", "--without-gossip", "--without-mingle", "--without-heartbeat",
-             "-n", f"voxe-test-{self.port}@%h", "-l", "info"],
-            {**self.env, **self.worker_env}, self.root,
+             "-n", self.worker_name(suffix), "-l", "info"],
+            {**self.env, **self.worker_env, **(env or {})}, self.root,
         )
+        if suffix:
+            self.extra_workers.append(process)
+        else:
+            self.worker = process
         if wait_ready:
-            wait_until(lambda: httpx.get(f"{self.base}/readyz", timeout=10).status_code == 200, 120,
-                       what="readiness (a worker listening)", processes=self.processes)
+            name = self.worker_name(suffix)
+            wait_until(lambda: name in self.ready_workers(), 120, what=f"readiness of {name}",
+                       processes=self.processes)
+
+    def ready_workers(self) -> list[str]:
+        """The workers /readyz finds listening (none while it answers 503)."""
+        response = httpx.get(f"{self.base}/readyz", timeout=10)
+        return response.json()["checks"]["worker"].get("workers", []) if response.status_code == 200 else []
 
     def kill_worker(self) -> None:
         """SIGKILL, as a crashed machine or an OOM kill would."""
@@ -277,6 +413,74 @@ def poll_job(client: httpx.Client, svc: Service, job_id: str, until=None, timeou
     raise AssertionError(f"job {job_id} still {job and job['state']} after {timeout} s: {job}\n{svc.diagnostics()}")
 
 
+def job_events(client: httpx.Client, job_id: str) -> list[dict]:
+    response = client.get(f"/v1/jobs/{job_id}/events")
+    assert response.status_code == 200, response.text
+    return response.json()
+
+
+def wait_for_event(client: httpx.Client, svc: Service, job_id: str, matches, timeout: float = 240,
+                   what: str = "an event") -> list[dict]:
+    """Poll the job's timeline until an event satisfies ``matches(event)``; every event so far.
+
+    Events are recorded when the thing happened (a checkpoint stored, a stage entered), so a
+    test that waits on them does not depend on how fast the worker runs or the poll samples.
+    """
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        for p in svc.processes:
+            assert p.alive(), f"{p.name} died\n{svc.diagnostics()}"
+        events = job_events(client, job_id)
+        if any(matches(e) for e in events):
+            return events
+        if events and events[-1]["kind"] in FINISHED:
+            raise AssertionError(f"job {job_id} finished before {what}: {events}\n{svc.diagnostics()}")
+        time.sleep(0.1)
+    raise AssertionError(f"no {what} for job {job_id} after {timeout} s\n{svc.diagnostics()}")
+
+
+def entered(stage: str):
+    """An event matcher: the job's task entered ``stage``."""
+    return lambda e: e["kind"] == "stage_started" and e["stage"] == stage
+
+
+def checkpoint_at_least(stage: str, iteration: int):
+    """An event matcher: a checkpoint of ``stage`` at ``iteration`` or later is in the storage."""
+    return lambda e: e["kind"] == "checkpoint" and e["stage"] == stage and e["iteration"] >= iteration
+
+
+def check_resumed_from_the_last_checkpoint(events_at_kill: list[dict], events: list[dict], total: int,
+                                           every: int) -> int:
+    """The redelivered edit went on from the last checkpoint the killed run stored; where it resumed.
+
+    Read after the kill, the killed run's last ``checkpoint`` event is the last checkpoint it
+    stored, unless it died between storing the next one and recording it: so the resumed
+    run starts there or one interval later, and then checkpoints every interval to the end.
+    """
+    stored = [e["iteration"] for e in events_at_kill if e["kind"] == "checkpoint" and e["stage"] == "edit"]
+    resumed = [e for e in events if e["kind"] == "resumed" and e["stage"] == "edit"]
+    assert len(resumed) == 1, events
+    at = resumed[0]["iteration"]
+    assert stored and at in (stored[-1], stored[-1] + every) and at < total, (at, stored)
+    after = [e["iteration"] for e in events[events.index(resumed[0]):]
+             if e["kind"] == "checkpoint" and e["stage"] == "edit"]
+    assert after == list(range(at + every, total + 1, every)), (at, after)
+    return at
+
+
+def wait_for_scene(client: httpx.Client, svc: Service, scene_id: str, timeout: float = 240) -> dict:
+    """Poll the scene until its ingest is done (ready or failed)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        for p in svc.processes:
+            assert p.alive(), f"{p.name} died\n{svc.diagnostics()}"
+        scene = client.get(f"/v1/scenes/{scene_id}").json()
+        if scene["state"] != "processing":
+            return scene
+        time.sleep(0.2)
+    raise AssertionError(f"scene {scene_id} still processing after {timeout} s\n{svc.diagnostics()}")
+
+
 def _kill(process: Process) -> None:
     process.proc.kill()
     process.proc.wait(10)
@@ -284,13 +488,14 @@ def _kill(process: Process) -> None:
 
 
 @contextlib.contextmanager
-def service(root: Path, broker_url: str | None = None, worker_env: dict[str, str] | None = None, **extra: str):
+def service(root: Path, broker_url: str | None = None, worker_env: dict[str, str] | None = None,
+            database_url: str | None = None, **extra: str):
     """Run the API and one worker with a private database, broker and storage under ``root``.
 
     ``worker_env`` overrides variables for the worker only (e.g. its own VOXE_WORK_DIR).
     """
     root.mkdir(parents=True, exist_ok=True)
-    env = {**os.environ, **service_env(root, broker_url, **extra)}
+    env = {**os.environ, **service_env(root, broker_url, database_url, **extra)}
     env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
     env.setdefault("HF_HUB_OFFLINE", "1")
     env.setdefault("OMP_NUM_THREADS", "2")

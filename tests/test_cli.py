@@ -24,11 +24,11 @@ from voxe_core.export import render_views
 from voxe_core.grid import VoxelGrid
 from voxe_core.metrics import psnr, ssim
 
-DATA_ROOT = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-MIC = DATA_ROOT / "nerf_synthetic_mic"
+from needs import MIC, needs_data
+
 REPO = Path(__file__).resolve().parents[1]
 
-needs_mic = pytest.mark.skipif(not MIC.is_dir(), reason=f"shared data missing under {DATA_ROOT}")
+needs_mic = needs_data(MIC)
 
 # 4 training views of 50x50, 8³ -> 15³ -> 24³ with 3/3/4 iterations of 512 rays: about two seconds.
 TINY = ["--downsample", "16", "--max-images", "4", "--resolution", "24", "--iterations", "3,3,4",

@@ -13,11 +13,10 @@ from PIL import Image
 
 from voxe_core.data import DatasetError, Scene, detect_format, load_scene
 
-DATA_ROOT = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-MIC = DATA_ROOT / "nerf_synthetic_mic"
-FOX = DATA_ROOT / "fox"
+import needs
+from needs import FOX, MIC
 
-needs_data = pytest.mark.skipif(not (MIC.is_dir() and FOX.is_dir()), reason=f"shared data missing under {DATA_ROOT}")
+needs_data = needs.needs_data(MIC, FOX)
 
 IDENTITY = np.eye(4).tolist()
 

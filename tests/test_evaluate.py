@@ -315,10 +315,10 @@ def service(tmp_path, monkeypatch):
     """The API in-process (embedded broker, no worker) with the tiny evaluation models; tasks run via .apply()."""
     from fastapi.testclient import TestClient
 
-    from service_helpers import MIC, reset_service_caches, service_env, small_mic, zip_folder
+    from needs import require_data
+    from service_helpers import MIC, ingest, reset_service_caches, service_env, small_mic, zip_folder
 
-    if not MIC.is_dir():
-        pytest.skip(f"shared data missing: {MIC}")
+    require_data(MIC)
     for key, value in service_env(tmp_path, VOXE_CLIP_MODEL="tiny", VOXE_FID_MODEL="tiny").items():
         monkeypatch.setenv(key, value)
     reset_service_caches()
@@ -329,6 +329,7 @@ def service(tmp_path, monkeypatch):
         with open(archive, "rb") as handle:
             scene = client.post("/v1/scenes", files={"archive": ("mic.zip", handle, "application/zip")})
         assert scene.status_code == 201, scene.text
+        assert ingest(scene.json()["id"])["state"] == "ready"
         yield client, scene.json()["id"], tmp_path
     reset_service_caches()
 
@@ -337,9 +338,9 @@ def _as_if_edited(job_id: str, initial, edited, mask=None, scratch=None) -> None
     """Record ``job_id`` as succeeded with the artifacts its stages publish (the stages have their own tests)."""
     from sqlalchemy import update
 
-    from api.db import session_scope
-    from api.models import Job, Reconstruction
-    from api.storage import get_storage
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, Reconstruction
+    from voxe_service.storage import get_storage
     from voxe_core.refine.storage import save_mask
     from worker import runtime
 
@@ -411,8 +412,8 @@ def test_evaluation_job_end_to_end_through_the_api(service, sphere_grid):
 def test_evaluation_of_a_job_that_failed_after_queueing_fails_with_the_reason(service, sphere_grid):
     from sqlalchemy import update
 
-    from api.db import session_scope
-    from api.models import Job
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
     from worker import tasks
 
     client, scene_id, root = service
@@ -432,8 +433,8 @@ def test_sweep_submits_the_paper_protocol_as_one_batch_with_one_table(service, s
 
     from sqlalchemy import func, select, update
 
-    from api.db import session_scope
-    from api.models import LOCAL_KEY_ID, ApiKey, Job
+    from voxe_service.db import session_scope
+    from voxe_service.models import LOCAL_KEY_ID, ApiKey, Job
 
     client, scene_id, root = service
     params = {"iterations": 2, "reconstruction": {"resolution": 8, "iterations": 1}}
@@ -458,12 +459,14 @@ def test_sweep_submits_the_paper_protocol_as_one_batch_with_one_table(service, s
     assert {j["batch_id"] for j in edit_jobs} == {sweep["id"]} and edit_jobs[0]["params"]["iterations"] == 2
     assert len({j["reconstruction"]["id"] for j in edit_jobs}) == 1  # one fit shared by the six edits
 
-    from worker import runtime
-    from worker.evaluation import evaluations_waiting_on
+    from voxe_service.db import session_scope
+    from voxe_service.queue import evaluations_waiting_on
 
     # A worker that died mid-edit re-queues the edit's remaining stages followed by its evaluation.
-    assert evaluations_waiting_on(runtime.load_job(entries[1]["edit_job_id"])) == [entries[1]["evaluation_job_id"]]
-    assert evaluations_waiting_on(runtime.load_job(entries[1]["evaluation_job_id"])) == []
+    with session_scope() as session:
+        edit_job, evaluation_job = (session.get(Job, entries[1][k]) for k in ("edit_job_id", "evaluation_job_id"))
+        assert evaluations_waiting_on(session, edit_job) == [entries[1]["evaluation_job_id"]]
+        assert evaluations_waiting_on(session, evaluation_job) == []
 
     edited, mask = _local_edit(sphere_grid)
     for entry in (entries[0], entries[4]):  # one local and one global edit finish; their evaluations run

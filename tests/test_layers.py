@@ -144,25 +144,18 @@ def test_the_checker_finds_lazy_relative_and_dynamic_circles(tmp_path):
 
 # ---------------------------------------------------------------------------------- the repository
 PACKAGES = ("voxe_core", "voxe_client", "voxe_service", "api", "worker")
-WORKER_CIRCLE = ("worker/evaluation.py imports worker.tasks' private _grid / _load_images (lazily) and worker/tasks.py "
-                 "imports worker.evaluation: the service-core branch moves those helpers; drop this mark on merge")
 
 
 def test_every_package_is_checked():
     assert {top(m) for m in package_modules()} <= set(PACKAGES)
 
 
-@pytest.mark.parametrize("package", [
-    pytest.param(p, marks=pytest.mark.xfail(strict=True, reason=WORKER_CIRCLE)) if p == "worker" else p
-    for p in PACKAGES
-])
+@pytest.mark.parametrize("package", PACKAGES)
 def test_no_import_circle_touches_the_package(package):
     found = [c for c in circles(import_graph(package_modules())) if any(top(m) == package for m in c)]
     assert not found, "import circles (lazy imports count): " + "; ".join(" <-> ".join(c) for c in found)
 
 
-@pytest.mark.xfail(strict=True, reason="api/ and worker/ still import each other on this branch; the service-core "
-                                       "branch (voxe_service) removes those imports: drop this mark on merge")
 def test_api_and_worker_never_import_each_other():
     modules = package_modules()
     crossing = [f"{i.importer} -> {i.target} (line {i.line})"

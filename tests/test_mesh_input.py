@@ -190,39 +190,69 @@ def test_mesh_dataset_loads_back_as_the_rasterised_views(tmp_path, green_sphere)
 
 
 # ------------------------------------------------------------------ service upload
-def _ingest(tmp_path, files):
-    from api.uploads import ingest
+def _stage(tmp_path, files):
+    from api.uploads import stage_upload
 
     opened = [(name, open(path, "rb")) for name, path in files]
     try:
-        return ingest(tmp_path / "work", None, opened, 1 << 30, 100, 8, 1000.0, 1 << 26)
+        return stage_upload(tmp_path / "work", None, opened, 1 << 30, 100, 8, 1000.0, 1 << 26)
     finally:
         for _, f in opened:
             f.close()
 
 
+def _ingest_mesh_upload(tmp_path, files):
+    """What the API stores for a mesh upload, then what the worker's ingest makes of it:
+    (staged, the stored archive's names, the dataset folder, its image count)."""
+    import zipfile
+
+    from worker.ingest import decode, render_mesh
+
+    import shutil
+
+    staged, staging = _stage(tmp_path, files)
+    root = tmp_path / "ingested"
+    try:
+        with zipfile.ZipFile(staged.archive) as archive:
+            archive.extractall(root)
+            stored = archive.namelist()
+    finally:
+        shutil.rmtree(staging)
+    render_mesh(root)
+    return staged, stored, root, decode(root, 8)
+
+
 def test_a_mesh_upload_is_stored_as_its_rendered_views(tmp_path, monkeypatch):
     import zipfile
 
-    import api.uploads
+    from voxe_service import datasets
+    from voxe_service.datasets import package
 
-    monkeypatch.setattr(api.uploads, "MESH_VIEWS", 4)
-    monkeypatch.setattr(api.uploads, "MESH_VIEW_SIZE", 32)
-    result, staging = _ingest(tmp_path, [("spot/spot.obj", SPOT / "spot_triangulated.obj"),
-                                         ("spot/spot.png", SPOT / "spot_texture.png")])
-    assert (result.format, result.image_count, result.width, result.splits) == ("mesh", 4, 32, ["train", "test"])
-    names = zipfile.ZipFile(result.archive).namelist()
+    monkeypatch.setattr(datasets, "MESH_VIEWS", 4)
+    monkeypatch.setattr(datasets, "MESH_VIEW_SIZE", 32)
+    staged, stored, root, count = _ingest_mesh_upload(tmp_path, [("spot/spot.obj", SPOT / "spot_triangulated.obj"),
+                                                         ("spot/spot.png", SPOT / "spot_texture.png")])
+    assert (staged.format, staged.image_count, staged.width, staged.splits) == ("mesh", 4, 32, ["train", "test"])
+    # Rendered by the ingest: the upload keeps the mesh, its texture and the names they were uploaded under.
+    assert stored == ["mesh/mesh.obj", "mesh/names.json", "mesh/texture.png"]
+    assert count == 4
+    package(root, tmp_path / "dataset.zip")
+    names = zipfile.ZipFile(tmp_path / "dataset.zip").namelist()
     assert {"transforms_train.json", "train/r_003.png", "mesh/mesh.obj", "mesh/texture.png"} <= set(names)
 
 
-def test_a_bad_mesh_upload_is_a_422_naming_the_problem_and_leaves_nothing(tmp_path):
+def test_a_bad_mesh_upload_names_the_problem_and_leaves_nothing(tmp_path):
+    """File rules are a 422 at once; a mesh that does not load fails the scene's ingest, naming the problem."""
     from api.uploads import UploadError
+    from worker.ingest import IngestError
 
     (tmp_path / "nan.obj").write_text("v nan 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
-    with pytest.raises(UploadError, match="invalid mesh: nan.obj: vertex coordinates contain NaN or Inf") as info:
-        _ingest(tmp_path, [("nan.obj", tmp_path / "nan.obj")])
+    with pytest.raises(IngestError, match="invalid mesh: nan.obj: vertex coordinates contain NaN or Inf"):
+        _ingest_mesh_upload(tmp_path, [("nan.obj", tmp_path / "nan.obj")])
+    with pytest.raises(UploadError, match="several images .'a.png', 'b.png'.; send one texture") as info:
+        _stage(tmp_path, [("m.obj", SPOT / "spot_triangulated.obj"), ("a.png", SPOT / "spot_texture.png"),
+                          ("b.png", SPOT / "spot_texture.png")])
     assert info.value.status == 422
-    with pytest.raises(UploadError, match="several images .'a.png', 'b.png'.; send one texture"):
-        _ingest(tmp_path, [("m.obj", SPOT / "spot_triangulated.obj"), ("a.png", SPOT / "spot_texture.png"),
-                           ("b.png", SPOT / "spot_texture.png")])
+    with pytest.raises(UploadError, match="several meshes .'a.obj', 'b.ply'.; send one"):
+        _stage(tmp_path, [("a.obj", SPOT / "spot_triangulated.obj"), ("b.ply", SPOT / "spot_triangulated.obj")])
     assert list((tmp_path / "work").iterdir()) == []

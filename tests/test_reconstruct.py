@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import pytest
 import torch
@@ -15,9 +14,9 @@ from voxe_core.progress import Callbacks, StageCancelled
 from voxe_core.reconstruct import ReconstructConfig, RowSparseAdam, reconstruct
 from voxe_core.render import RenderConfig, render_image
 
-DATA_ROOT = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-MIC = DATA_ROOT / "nerf_synthetic_mic"
-needs_mic = pytest.mark.skipif(not MIC.is_dir(), reason=f"shared data missing under {DATA_ROOT}")
+from needs import MIC, needs_data
+
+needs_mic = needs_data(MIC)
 
 
 def tiny_config(**overrides) -> ReconstructConfig:

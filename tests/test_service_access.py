@@ -12,12 +12,12 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service_helpers import zip_folder
-from test_service_api import JOB, _reset, dataset, root, staged, stored_files  # noqa: F401 - fixtures
+from test_service_api import BOTH_DATABASES, JOB, _reset, dataset, root, staged, stored_files  # noqa: F401 - fixtures
 
 
 def _create_key(name: str, **quota) -> tuple[str, str]:
     from api.auth import create_key
-    from api.db import session_scope
+    from voxe_service.db import session_scope
 
     with session_scope() as session:
         key, token = create_key(session, name, **quota)
@@ -59,8 +59,8 @@ def _upload(client, mic_zip, headers=None, name="mic.zip"):
 
 # ------------------------------------------------------------------------------------------ keys
 def test_requests_need_a_valid_live_key(auth_client, mic_zip):
-    from api.db import session_scope
-    from api.models import ApiKey, utcnow
+    from voxe_service.db import session_scope
+    from voxe_service.models import ApiKey, utcnow
 
     for headers in ({}, bearer("voxe_000000000000_" + "x" * 43), bearer("garbage"), {"Authorization": "Basic abc"},
                     {"X-API-Key": "voxe_nope"}):
@@ -84,7 +84,7 @@ def test_requests_need_a_valid_live_key(auth_client, mic_zip):
 def test_only_the_tokens_hash_is_stored(auth_client):
     from sqlalchemy import text
 
-    from api.db import session_scope
+    from voxe_service.db import session_scope
 
     key_id, token = _create_key("bob")
     assert token.startswith(f"voxe_{key_id}_") and len(token) > 50
@@ -95,9 +95,9 @@ def test_only_the_tokens_hash_is_stored(auth_client):
 
 
 def test_another_keys_resources_answer_404(auth_client, mic_zip, root):  # noqa: F811
-    from api.db import session_scope
-    from api.models import Artifact
-    from api.storage import get_storage
+    from voxe_service.db import session_scope
+    from voxe_service.models import Artifact
+    from voxe_service.storage import get_storage
 
     _, alice = _create_key("alice")
     _, bob = _create_key("bob")
@@ -149,7 +149,7 @@ def test_admin_cli_creates_lists_and_revokes_keys(auth_client, capsys):
 # ------------------------------------------------------------------------------------------ the auth switch
 def test_auth_is_off_only_on_loopback(root, monkeypatch, caplog):  # noqa: F811
     from api.main import create_app
-    from api.settings import Settings, is_loopback
+    from voxe_service.settings import Settings, is_loopback
 
     for host in ("127.0.0.1", "127.8.9.1", "::1", "[::1]", "localhost"):
         assert is_loopback(host) and not Settings(host=host).auth_enabled, host
@@ -175,23 +175,16 @@ def test_auth_is_off_only_on_loopback(root, monkeypatch, caplog):  # noqa: F811
         assert client.get("/v1/scenes").status_code == 401
 
 
-def test_resources_made_before_keys_belong_to_the_local_key(tmp_path):
+def test_resources_made_before_keys_belong_to_the_local_key(database_url):
     from alembic import command
-    from alembic.config import Config
-    from sqlalchemy import create_engine, text
+    from sqlalchemy import text
 
-    from api.main import MIGRATIONS
+    from service_helpers import database_at
 
-    url = f"sqlite:///{tmp_path / 'old.db'}"
-    config = Config()
-    config.set_main_option("script_location", str(MIGRATIONS))
-    config.set_main_option("sqlalchemy.url", url)
-    command.upgrade(config, "0001")
-    engine = create_engine(url)
-    with engine.begin() as conn:
-        conn.execute(text("INSERT INTO scenes (id, name, format, image_count, width, height, splits, storage_key, "
-                          "size_bytes, sha256, created_at) VALUES ('s1', 'old', 'nerf_synthetic', 1, 8, 8, '[]', "
-                          "'k', 1, 'x', '2026-01-01 00:00:00')"))
+    config, engine = database_at(
+        database_url, "0001", "INSERT INTO scenes (id, name, format, image_count, width, height, splits, storage_key, "
+        "size_bytes, sha256, created_at) VALUES ('s1', 'old', 'nerf_synthetic', 1, 8, 8, '[]', 'k', 1, 'x', "
+        "'2026-01-01 00:00:00')")
     command.upgrade(config, "head")
     with engine.begin() as conn:
         assert conn.execute(text("SELECT owner_key_id FROM scenes")).scalar_one() == "local"
@@ -203,6 +196,7 @@ def test_resources_made_before_keys_belong_to_the_local_key(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------ quotas
+@BOTH_DATABASES
 def test_concurrent_job_quota_is_429_with_retry_after(auth_client, mic_zip):
     _, token = _create_key("small", max_active_jobs=2)
     scene = _upload(auth_client, mic_zip, bearer(token)).json()
@@ -223,6 +217,7 @@ def test_concurrent_job_quota_is_429_with_retry_after(auth_client, mic_zip):
         assert response.status_code == 201
 
 
+@BOTH_DATABASES
 def test_upload_quota_is_429_and_leaves_nothing(auth_client, mic_zip, root):  # noqa: F811
     _, probe = _create_key("probe")
     size = _upload(auth_client, mic_zip, bearer(probe)).json()["size_bytes"]
@@ -267,6 +262,7 @@ def test_job_creation_is_idempotent(auth_client, mic_zip):
         assert response.status_code == 422 and "Idempotency-Key header must be 1-255 characters" in response.text
 
 
+@BOTH_DATABASES
 def test_concurrent_retries_create_one_job(auth_client, mic_zip):
     _, token = _create_key("racer")
     scene = _upload(auth_client, mic_zip, bearer(token)).json()

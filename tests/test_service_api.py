@@ -12,26 +12,25 @@ import pytest
 import torch
 from fastapi.testclient import TestClient
 
-from service_helpers import MIC, service_env, small_mic, zip_folder
-
-
-def _reset() -> None:
-    from api import storage
-    from api.db import reset_caches
-    from api.deps import get_celery
-
-    reset_caches()
-    get_celery.cache_clear()
-    storage._instances.clear()
+from needs import SPOT, require_data
+from service_helpers import MIC, ingest, reset_service_caches as _reset, service_env, small_mic, zip_folder
 
 
 @pytest.fixture
-def root(tmp_path, monkeypatch):
-    for key, value in service_env(tmp_path).items():
+def root(request, tmp_path, monkeypatch):
+    """A private service environment under ``tmp_path``: SQLite, or PostgreSQL for tests parametrized with
+    ``@pytest.mark.parametrize("root", ["sqlite", "postgres"], indirect=True)``."""
+    database_url = None
+    if getattr(request, "param", "sqlite") == "postgres":
+        database_url = request.getfixturevalue("postgres_server").create_database()
+    for key, value in service_env(tmp_path, database_url=database_url).items():
         monkeypatch.setenv(key, value)
     _reset()
     yield tmp_path
     _reset()
+
+
+BOTH_DATABASES = pytest.mark.parametrize("root", ["sqlite", "postgres"], indirect=True)
 
 
 @pytest.fixture
@@ -44,8 +43,7 @@ def client(root):
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory) -> Path:
-    if not MIC.is_dir():
-        pytest.skip(f"shared data missing: {MIC}")
+    require_data(MIC)
     return small_mic(tmp_path_factory.mktemp("data") / "mic_small")
 
 
@@ -55,9 +53,12 @@ def upload_zip(client, path: Path, name: str = "scene.zip"):
 
 
 def make_scene(client, dataset, tmp_path) -> dict:
+    """Upload the dataset and run its ingest (no worker runs here): the scene, ready."""
     response = upload_zip(client, zip_folder(dataset, tmp_path / "ok.zip", prefix="mic_small"))
     assert response.status_code == 201, response.text
-    return response.json()
+    assert response.json()["state"] == "processing"
+    assert ingest(response.json()["id"])["state"] == "ready"
+    return client.get(f"/v1/scenes/{response.json()['id']}").json()
 
 
 def stored_files(root: Path) -> list[str]:
@@ -78,7 +79,7 @@ def test_openapi_documents_the_v1_surface(client):
     spec = client.get("/openapi.json").json()
     for path in ("/v1/scenes", "/v1/scenes/{scene_id}", "/v1/jobs", "/v1/jobs/{job_id}",
                  "/v1/jobs/{job_id}/cancel", "/v1/jobs/{job_id}/artifacts", "/v1/jobs/{job_id}/artifacts/{name}",
-                 "/healthz", "/readyz"):
+                 "/v1/jobs/{job_id}/events", "/healthz", "/readyz"):
         assert path in spec["paths"], path
     params = spec["components"]["schemas"]["JobParams"]["properties"]
     assert params["iterations"]["default"] == 8000 and params["guidance_scale"]["default"] == 100.0
@@ -87,6 +88,7 @@ def test_openapi_documents_the_v1_surface(client):
 
 def test_upload_zip_and_files(client, dataset, root):
     scene = make_scene(client, dataset, root)
+    assert scene["state"] == "ready" and scene["error"] is None
     assert scene["format"] == "nerf_synthetic" and scene["image_count"] == 3
     assert (scene["width"], scene["height"]) == (800, 800) and scene["splits"] == ["train"]
     assert scene["name"] == "scene"  # the archive's name
@@ -106,6 +108,66 @@ def test_upload_zip_and_files(client, dataset, root):
     page = client.get("/v1/scenes", params={"limit": 1, "offset": 1}).json()
     assert page["total"] == 2 and len(page["items"]) == 1 and page["items"][0]["id"] == scene["id"]
     assert client.get(f"/v1/scenes/{scene['id']}").json() == scene
+
+
+def test_a_scene_is_processing_until_its_ingest_and_jobs_on_it_wait_without_a_message_in_the_broker(
+        client, dataset, root):
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, Scene
+
+    response = upload_zip(client, zip_folder(dataset, root / "ok.zip", prefix="mic_small"))
+    assert response.status_code == 201, response.text
+    scene = response.json()
+    # The cheap checks filled in what the json and the image headers say; decoding is the ingest's.
+    assert (scene["state"], scene["error"], scene["image_count"], scene["width"]) == ("processing", None, 3, 800)
+    assert client.get(f"/v1/scenes/{scene['id']}").json()["state"] == "processing"
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}).json()
+    assert job["state"] == "queued" and job["message"] == (f"waiting for the scene {scene['id']} to be processed "
+                                                           "(its upload is being decoded)")
+    with session_scope() as session:
+        assert session.get(Job, job["id"]).task_id is None  # not sent: no worker is held waiting for the scene
+        assert session.get(Scene, scene["id"]).task_id is not None  # the ingest's message is in the broker
+
+    assert ingest(scene["id"]) == {"scene_id": scene["id"], "state": "ready"}
+    ready = client.get(f"/v1/scenes/{scene['id']}").json()
+    assert ready == {**scene, "state": "ready"}
+    sent = client.get(f"/v1/jobs/{job['id']}").json()
+    assert sent["state"] == "queued" and sent["message"] is None
+    with session_scope() as session:
+        assert session.get(Job, job["id"]).task_id is not None  # the ingest sent the job that waited
+    assert ingest(scene["id"])["skipped"] == f"scene {scene['id']} is ready"  # a redelivered ingest does nothing
+    later = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}).json()
+    assert later["message"] is None  # on a ready scene: sent at once
+    with session_scope() as session:
+        assert session.get(Job, later["id"]).task_id is not None
+
+
+def test_a_processing_scene_can_be_deleted_and_its_ingest_keeps_nothing(client, dataset, root):
+    scene = upload_zip(client, zip_folder(dataset, root / "ok.zip", prefix="mic_small")).json()
+    assert stored_files(root) == [f"scenes/{scene['id']}/dataset.zip"]
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}).json()
+    assert client.delete(f"/v1/scenes/{scene['id']}").status_code == 409  # a job waits on it
+    client.post(f"/v1/jobs/{job['id']}/cancel")
+    assert client.delete(f"/v1/scenes/{scene['id']}").status_code == 204
+    assert ingest(scene["id"])["skipped"] == f"scene {scene['id']} is gone"
+    assert stored_files(root) == [] and client.get(f"/v1/scenes/{scene['id']}").status_code == 404
+
+
+def test_the_api_process_imports_no_worker_code():
+    """The API sends tasks by name: building the app and a sender imports nothing of worker/."""
+    import subprocess
+    import sys
+
+    from service_helpers import REPO
+
+    code = ("import sys\n"
+            "from api.main import create_app\n"
+            "create_app()\n"
+            "from voxe_service.queue import get_queue\n"
+            "get_queue()\n"
+            "print(sorted(m for m in sys.modules if m == 'worker' or m.startswith('worker.')))\n")
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr
 
 
 def _zip_bytes(entries: dict[str, bytes]) -> bytes:
@@ -231,10 +293,11 @@ def test_jobs_share_a_reconstruction_per_parameter_set_and_cancel_when_queued(cl
     assert listing["total"] == 3 and {j["id"] for j in listing["items"]} == {second["id"], other["id"], boxed["id"]}
 
 
+@BOTH_DATABASES
 def test_reconstruction_creation_is_race_free(client, dataset, root):
-    from api.db import get_sessionmaker
-    from api.models import Reconstruction
-    from api.routes.jobs import _reconstruction_for
+    from api.services.jobs import reconstruction_for
+    from voxe_service.db import get_sessionmaker
+    from voxe_service.models import Reconstruction, Scene
 
     scene = make_scene(client, dataset, root)
     params = {"downsample": 2, "max_images": None, "reconstruction": {"preset": "fast"}}
@@ -244,8 +307,9 @@ def test_reconstruction_creation_is_race_free(client, dataset, root):
     def create():
         try:
             with get_sessionmaker()() as session:
+                row = session.get(Scene, scene["id"])
                 barrier.wait()
-                ids.append(_reconstruction_for(session, scene["id"], params).id)
+                ids.append(reconstruction_for(session=session, scene=row, params=params).id)
         except Exception as exc:  # noqa: BLE001
             errors.append(exc)
 
@@ -274,9 +338,9 @@ def test_unknown_ids_are_404(client):
 
 # ------------------------------------------------------------------------------------------ artifacts
 def _job_with_artifact(client, dataset, root, data: bytes) -> tuple[str, str]:
-    from api.db import session_scope
-    from api.models import Artifact
-    from api.storage import get_storage
+    from voxe_service.db import session_scope
+    from voxe_service.models import Artifact
+    from voxe_service.storage import get_storage
 
     scene = make_scene(client, dataset, root)
     job = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}).json()
@@ -320,6 +384,7 @@ def test_artifact_download_ranges_and_names(client, dataset, root):
         assert client.get(f"/v1/jobs/{job_id}/artifacts/{name}").status_code == 404, name
 
 
+@BOTH_DATABASES
 def test_delete_scene(client, dataset, root):
     job_id, scene_id = _job_with_artifact(client, dataset, root, b"png")
     response = client.delete(f"/v1/scenes/{scene_id}")
@@ -342,7 +407,7 @@ def test_readiness_reports_the_missing_worker(client):
 def test_sql_broker_takes_a_polling_interval(tmp_path):
     from kombu import Connection
 
-    from worker.broker import register
+    from voxe_service.broker import register
 
     register()
     url = f"sqla+sqlite:///{tmp_path / 'broker.db'}"
@@ -354,7 +419,7 @@ def test_sql_broker_takes_a_polling_interval(tmp_path):
 
 
 def test_celery_app_configuration(root):
-    from worker.celery_app import create_celery_app
+    from voxe_service.queue import create_celery_app
 
     app = create_celery_app()
     conf = app.conf
@@ -367,7 +432,7 @@ def test_celery_app_configuration(root):
 def test_redis_visibility_timeout_exceeds_the_hard_time_limit(root, monkeypatch):
     monkeypatch.setenv("VOXE_BROKER_URL", "redis://127.0.0.1:1/0")
     _reset()
-    from worker.celery_app import create_celery_app
+    from voxe_service.queue import create_celery_app
 
     conf = create_celery_app().conf
     assert conf.broker_transport_options["visibility_timeout"] > conf.task_time_limit
@@ -382,10 +447,10 @@ def test_missing_model_fails_the_job_with_a_clear_message(root, monkeypatch, dat
     _reset()
     from sqlalchemy import update
 
-    from api.db import session_scope
     from api.main import create_app
-    from api.models import Job
     from voxe_core.constants import SDS_MODEL_ID
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
     from worker import tasks
 
     with TestClient(create_app()) as client:
@@ -403,6 +468,9 @@ def test_missing_model_fails_the_job_with_a_clear_message(root, monkeypatch, dat
             assert part in failed["error"], failed["error"]
         # The rest of the chain sees a finished job and does nothing.
         assert "skipped" in tasks.export_task.apply(args=(job["id"],)).get()
+        events = client.get(f"/v1/jobs/{job['id']}/events").json()
+        assert [(e["kind"], e["stage"]) for e in events] == [("stage_started", "edit"), ("failed", "edit")]
+        assert events[1]["detail"] == failed["error"] and events[0]["worker_hostname"]
 
 
 # ------------------------------------------------------------------------------------------ reconstruction sharing
@@ -414,12 +482,13 @@ def _two_jobs(client, dataset, root):
     return a, b, a["reconstruction"]["id"]
 
 
+@BOTH_DATABASES
 def test_reconstruction_claims(client, dataset, root):
     """Exactly one job fits; a lapsed lease or a released claim lets another take over."""
     from datetime import timedelta
 
-    from api.models import utcnow
-    from api.settings import get_settings
+    from voxe_service.models import utcnow
+    from voxe_service.settings import get_settings
     from worker import runtime
 
     a, b, rec_id = _two_jobs(client, dataset, root)
@@ -439,15 +508,17 @@ def test_reconstruction_claims(client, dataset, root):
 
 
 def test_a_job_waits_for_the_fit_another_job_runs(client, dataset, root):
+    import time
+
     import torch
     from sqlalchemy import update
 
-    from api.db import session_scope
-    from api.models import Job
-    from api.settings import get_settings
-    from api.storage import get_storage
     from voxe_core.grid import VoxelGrid
     from voxe_core.progress import StageCancelled
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+    from voxe_service.settings import get_settings
+    from voxe_service.storage import get_storage
     from worker import runtime, tasks
 
     a, b, rec_id = _two_jobs(client, dataset, root)
@@ -466,8 +537,11 @@ def test_a_job_waits_for_the_fit_another_job_runs(client, dataset, root):
 
     thread = threading.Thread(target=wait_as_b)
     thread.start()
-    thread.join(1.5)
-    assert thread.is_alive()  # waiting
+    deadline = time.monotonic() + 60  # until b has recorded that it waits (however busy the machine is)
+    while not (client.get(f"/v1/jobs/{b['id']}").json()["message"] or "").startswith("waiting") \
+            and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert thread.is_alive()  # waiting: the fit it waits for is a's, and a never ran it
     waiting = client.get(f"/v1/jobs/{b['id']}").json()
     assert waiting["message"].startswith(f"waiting for the scene's reconstruction {rec_id} (fitted by job {a['id']})")
 
@@ -496,30 +570,28 @@ def test_a_job_waits_for_the_fit_another_job_runs(client, dataset, root):
 
 
 # ------------------------------------------------------------------------------------------ mesh scenes
-SPOT = MIC.parent / "meshes" / "spot"
-
-
 def _mesh_scene(client, monkeypatch) -> dict:
-    """Spot uploaded as OBJ + texture, rendered into 4 views of 32 px (fast)."""
-    import api.uploads
+    """Spot uploaded as OBJ + texture, rendered by its ingest into 4 views of 32 px (fast)."""
+    from voxe_service import datasets
 
-    if not SPOT.is_dir():
-        pytest.skip(f"shared data missing: {SPOT}")
-    monkeypatch.setattr(api.uploads, "MESH_VIEWS", 4)
-    monkeypatch.setattr(api.uploads, "MESH_VIEW_SIZE", 32)
+    require_data(SPOT)
+    monkeypatch.setattr(datasets, "MESH_VIEWS", 4)
+    monkeypatch.setattr(datasets, "MESH_VIEW_SIZE", 32)
     with open(SPOT / "spot_triangulated.obj", "rb") as obj, open(SPOT / "spot_texture.png", "rb") as png:
         response = client.post("/v1/scenes", files=[("files", ("spot.obj", obj)), ("files", ("spot.png", png))])
     assert response.status_code == 201, response.text
-    return response.json()
+    assert response.json()["state"] == "processing"
+    assert ingest(response.json()["id"])["state"] == "ready"
+    return client.get(f"/v1/scenes/{response.json()['id']}").json()
 
 
 def test_a_mesh_scene_job_voxelizes_the_uploaded_mesh_instead_of_fitting(client, root, monkeypatch):
     import voxe_core.reconstruct
-    from api.storage import get_storage
-    from voxe_core.backbones import load_grid
     import torch
 
+    from voxe_core.backbones import load_grid
     from voxe_core.mesh_input import VoxelizeConfig, load_mesh, voxelize
+    from voxe_service.storage import get_storage
     from worker import runtime, tasks
 
     scene = _mesh_scene(client, monkeypatch)
@@ -547,10 +619,11 @@ def test_a_mesh_scene_job_voxelizes_the_uploaded_mesh_instead_of_fitting(client,
 
 
 def test_a_mesh_scene_archive_keeps_the_uploaded_mesh(client, root, monkeypatch):
-    from api.db import session_scope
-    from api.models import Scene
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
 
     scene = _mesh_scene(client, monkeypatch)
+    assert stored_files(root) == [f"scenes/{scene['id']}/dataset.zip"]  # the upload's archive was replaced
     with session_scope() as session:
         key = session.get(Scene, scene["id"]).storage_key
     with zipfile.ZipFile(root / "storage" / key) as archive:
@@ -604,18 +677,18 @@ def test_reconstruction_key_follows_the_recipe_not_only_the_parameters(monkeypat
 
 def test_reconstructions_stored_before_the_resample_option_load_box_filtered_images(monkeypatch):
     """A row written before ``resample`` existed resumes on the images it was fitted on."""
-    import worker.tasks as tasks
+    import worker.inputs as inputs
     from voxe_core.data import load_scene
-
     from voxe_core.presets import reconstruction_params
 
-    monkeypatch.setattr(tasks, "_scene", lambda job: None)
-    monkeypatch.setattr(tasks.runtime, "scene_dataset_dir", lambda scene, settings, storage: MIC)
+    require_data(MIC)
+    monkeypatch.setattr(inputs, "job_scene", lambda job: None)
+    monkeypatch.setattr(inputs.runtime, "scene_dataset_dir", lambda scene, settings, storage: MIC)
     current = reconstruction_params({"downsample": 16, "max_images": 2})
     legacy = {k: v for k, v in current.items() if k != "resample"}
     assert current["resample"] == "bilinear"
     for params, resample in ((legacy, "box"), (current, "bilinear")):
-        loaded = tasks._load_images(None, params, None, None).images
+        loaded = inputs.load_images(None, params, None, None).images
         assert torch.equal(loaded, load_scene(MIC, "train", 16, 2, resample=resample).images), resample
 
 
@@ -628,15 +701,12 @@ def test_reconstruction_iterations_that_fit_no_stage_count_are_a_422(client, dat
     assert client.get(f"/v1/scenes/{scene['id']}/reconstructions").json() == []  # nothing half made
 
 
-def test_migrations_match_the_models(tmp_path):
+def test_migrations_match_the_models(database_url):
     from alembic import command
-    from alembic.config import Config
 
-    from api.main import MIGRATIONS, run_migrations
+    from voxe_service.db import alembic_config, run_migrations
 
-    url = f"sqlite:///{tmp_path / 'migrated.db'}"
+    url = database_url
     run_migrations(url)
-    config = Config()
-    config.set_main_option("script_location", str(MIGRATIONS))
-    config.set_main_option("sqlalchemy.url", url)
+    config = alembic_config(url)
     command.check(config)  # raises when the models have changes no migration covers

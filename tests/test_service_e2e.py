@@ -20,7 +20,11 @@ from dataclasses import dataclass, field
 import httpx
 import pytest
 
-from service_helpers import MIC, moto_s3, poll_job, redis_server, service, verify_artifacts, zip_folder
+from needs import MIC, missing, require_data
+from service_helpers import (
+    check_resumed_from_the_last_checkpoint, checkpoint_at_least, job_events, moto_s3, poll_job, redis_server, service,
+    verify_artifacts, wait_for_event, wait_for_scene, zip_folder,
+)
 
 pytestmark = pytest.mark.slow
 
@@ -55,8 +59,7 @@ class Stack:
 
 @pytest.fixture(scope="session")
 def mic_zip(tmp_path_factory):
-    if not MIC.is_dir():
-        pytest.skip(f"shared data missing: {MIC}")
+    require_data(MIC)
     return zip_folder(MIC, tmp_path_factory.mktemp("upload") / "nerf_synthetic_mic.zip", prefix="nerf_synthetic_mic")
 
 
@@ -68,7 +71,7 @@ def stack(request, tmp_path_factory, mic_zip):
         broker_url, extra, worker_env = None, {}, None
         if broker == "redis":
             if shutil.which("redis-server") is None:
-                pytest.skip("redis-server is not installed (.ci/test installs it)")
+                missing("redis-server is not installed (.ci/test installs it)")
             broker_url = stack_.enter_context(redis_server(root / "redis")).url
             extra = stack_.enter_context(moto_s3())
             worker_env = {"VOXE_WORK_DIR": str(root / "worker-work"), "VOXE_MODEL_DIR": str(root / "worker-models")}
@@ -78,34 +81,12 @@ def stack(request, tmp_path_factory, mic_zip):
             response = client.post("/v1/scenes", files={"archive": ("nerf_synthetic_mic.zip", handle,
                                                                      "application/zip")})
         assert response.status_code == 201, response.text
-        yield Stack(broker, client, svc, response.json(), root=root)
+        assert response.json()["state"] == "processing"  # decoded by the worker's ingest, off the request path
+        yield Stack(broker, client, svc, wait_for_scene(client, svc, response.json()["id"]), root=root)
 
 
 def wait_for_job(stack: Stack, job_id: str, timeout: float = 240, until=None) -> dict:
     return poll_job(stack.client, stack.service, job_id, until, timeout)
-
-
-def wait_for_resumed_job(stack: Stack, job_id: str) -> tuple[dict, int, list[int]]:
-    """Wait for a job whose worker was killed.
-
-    Returns (final record, resumed-at iteration, edit iterations polled from the resume message on).
-    Rows polled before it may still show the killed run's last throttled progress, which can lie
-    below the checkpoint that run stored just before the kill.
-    """
-    messages, edit_iterations = [], []
-
-    def progress(j):
-        messages.append(j["message"])
-        resumed = any(m and m.startswith("resumed from the checkpoint at iteration ") for m in messages)
-        if resumed and j["stage"] == "edit" and j["total"] and j["state"] == "running":
-            edit_iterations.append(j["iteration"])
-        return j["state"] in ("succeeded", "failed", "canceled")
-
-    final = wait_for_job(stack, job_id, until=progress)
-    assert final["state"] == "succeeded", f"{final}\n{stack.diagnostics()}"
-    resumed = {m for m in messages if m and m.startswith("resumed from the checkpoint at iteration ")}
-    assert len(resumed) == 1, set(messages)
-    return final, int(resumed.pop().rsplit(" ", 1)[1]), edit_iterations
 
 
 def create_job(stack: Stack, **body) -> dict:
@@ -153,6 +134,7 @@ def cancel_during(stack: Stack, stage: str, **body) -> tuple[dict, dict, int]:
 # ---------------------------------------------------------------------------------------------- tests
 def test_scene_and_readiness(stack):
     scene = stack.scene
+    assert scene["state"] == "ready" and scene["error"] is None, scene
     assert scene["format"] == "nerf_synthetic"
     assert scene["image_count"] > 0 and (scene["width"], scene["height"]) == (800, 800)
     assert stack.client.get(f"/v1/scenes/{scene['id']}").json()["sha256"] == scene["sha256"]
@@ -210,22 +192,28 @@ def test_killed_worker_resumes_the_edit_from_its_checkpoint(stack):
     """SIGKILL the worker mid-edit and start a new one: the job goes on from the last checkpoint."""
     if stack.broker != "embedded":
         pytest.skip("Redis redelivers only after the visibility timeout (hours); the SQL broker path is re-queued")
-    params = {**PARAMS, "iterations": 40, "export": {**PARAMS["export"], "gif": False, "mesh": False}}
+    from datetime import datetime
+
+    total = 60
+    params = {**PARAMS, "iterations": total, "export": {**PARAMS["export"], "gif": False, "mesh": False}}
     job = create_job(stack, prompt="a yarn doll of a mic", params=params)
-    running = wait_for_job(stack, job["id"], until=lambda j: j["stage"] == "edit" and j["iteration"] >= 12
-                           or j["state"] != "queued" and j["state"] != "running")
-    assert running["state"] == "running", running
+    wait_for_event(stack.client, stack.service, job["id"], checkpoint_at_least("edit", 10), what="an edit checkpoint")
     stack.service.kill_worker()
-    killed_at = stack.client.get(f"/v1/jobs/{job['id']}").json()["iteration"]
+    at_kill = job_events(stack.client, job["id"])
     stack.service.start_worker()
-    final, at, edit_iterations = wait_for_resumed_job(stack, job["id"])
+    seen: list[dict] = []
+    final = poll_job(stack.client, stack.service, job["id"], seen=seen)
+    assert final["state"] == "succeeded", f"{final}\n{stack.diagnostics()}"
     assert final["completed_stages"] == ["reconstruct", "edit", "export"]
-    # Resumed from its last checkpoint (every 10 iterations), not from iteration 0: the message says
-    # where, and no edit progress the resumed run reported was below it.
-    # The recorded iteration is throttled progress: the run may have passed it (and another checkpoint)
-    # before the kill, but the checkpoint at or below it was stored inside the loop for sure.
-    assert at % 10 == 0 and max(10, killed_at // 10 * 10) <= at < 40, (at, killed_at)
-    assert edit_iterations and min(edit_iterations) >= at, (at, edit_iterations)
+    # Resumed from its last checkpoint (every 10 iterations), not from iteration 0; the restarted worker
+    # re-queued it, and no edit progress the resumed run recorded was below where it resumed.
+    events = job_events(stack.client, job["id"])
+    at = check_resumed_from_the_last_checkpoint(at_kill, events, total, 10)
+    assert [e["stage"] for e in events if e["kind"] == "requeued"] == ["edit"], events
+    resumed_at = datetime.fromisoformat(next(e["at"] for e in events if e["kind"] == "resumed"))
+    later = [j["iteration"] for j in seen if j["stage"] == "edit" and j["total"]
+             and datetime.fromisoformat(j["updated_at"]) >= resumed_at]
+    assert min(later, default=at) >= at, (at, later)
     # Complete: every artifact listed, each download matching its recorded size and sha256.
     verify_artifacts(stack.client, final, RESUMED_ARTIFACTS, stack.root)
 

@@ -82,9 +82,6 @@ HOSTILE_UPLOADS = {
                         "duplicate entry 'train//r_0.png' in the archive (same path as 'train/r_0.png')"),
     "not an image": (lambda d: _zip({**_dataset_entries(d), "train/r_8.png": b"GIF89a but not really"}), 422,
                      "frame 2 ('./train/r_8'): cannot read image r_8.png (not an image or damaged)"),
-    "truncated image": (lambda d: _zip({**_dataset_entries(d),
-                                        "train/r_8.png": (d / "train/r_8.png").read_bytes()[:3000]}), 422,
-                        "frame 2 ('./train/r_8'): cannot read image r_8.png"),
     "decompression bomb": (lambda d: _zip({**_dataset_entries(d), "train/r_8.png": _png((8000, 8000), "1")}), 413,
                            "'train/r_8.png' is 8000x8000 (64000000 pixels), over the limit of 50000000 pixels"),
     "mismatched sizes": (lambda d: _zip({**_dataset_entries(d), "train/r_8.png": _png((400, 400))}), 422,
@@ -125,6 +122,39 @@ def test_hostile_uploads_are_4xx_naming_the_problem_and_leave_nothing(client, da
         assert str(root) not in response.json()["detail"], case
         assert client.get("/v1/scenes").json()["total"] == 0, case
         assert stored_files(root) == [] and staged(root) == [], case
+
+
+# What only decoding every image finds: the upload is stored (201, processing), its ingest fails the scene.
+DECODE_FAILURES = {
+    "truncated image": (lambda d: _zip({**_dataset_entries(d),
+                                        "train/r_8.png": (d / "train/r_8.png").read_bytes()[:3000]}),
+                        "invalid dataset: transforms_train.json frame 2 ('./train/r_8'): cannot read image r_8.png "
+                        "(not an image or damaged)"),
+}
+
+
+def test_uploads_only_a_full_decode_refuses_fail_the_scene_with_the_reason(client, dataset, root):  # noqa: F811
+    from service_helpers import ingest
+
+    for case, (build, expected) in DECODE_FAILURES.items():
+        response = client.post("/v1/scenes", files={"archive": ("bad.zip", build(dataset), "application/zip")})
+        assert response.status_code == 201 and response.json()["state"] == "processing", (case, response.text)
+        scene_id = response.json()["id"]
+        job = client.post("/v1/jobs", json={"scene_id": scene_id, **JOB})  # queued: it waits for the scene
+        assert job.status_code == 201 and job.json()["state"] == "queued", job.text
+        assert ingest(scene_id)["state"] == "failed"
+        scene = client.get(f"/v1/scenes/{scene_id}").json()
+        assert scene["state"] == "failed" and scene["error"].startswith(expected), (case, scene)
+        assert str(root) not in scene["error"] and scene["size_bytes"] == 0, case
+        waited = client.get(f"/v1/jobs/{job.json()['id']}").json()  # the waiting job fails naming the reason
+        assert waited["state"] == "failed" and waited["error"] == (f"the scene's upload failed processing: "
+                                                                  f"{scene['error']}"), waited
+        refused = client.post("/v1/jobs", json={"scene_id": scene_id, **JOB})
+        assert refused.status_code == 409, refused.text
+        assert refused.json()["detail"] == f"scene {scene_id!r} failed processing: {scene['error']}; upload it again"
+        assert stored_files(root) == [] and staged(root) == [], case  # a failed upload is not kept
+        assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204
+        assert client.get("/v1/scenes").json()["total"] == 0, case
 
 
 def _lying_directory_bomb() -> bytes:
@@ -179,7 +209,7 @@ def test_duplicate_and_unwritable_multipart_files(client, dataset, root):  # noq
 
 def test_a_failure_after_storing_rolls_everything_back(client, dataset, root, monkeypatch):  # noqa: F811
     """The dataset is in storage when the row fails to insert: the stored object goes too."""
-    from api.routes import scenes
+    from api.services import scenes
 
     def fail_once_stored(*_args, including_new=False):
         if including_new:  # the check that runs with the dataset stored and the row flushed

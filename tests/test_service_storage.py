@@ -6,7 +6,7 @@ import hashlib
 
 import pytest
 
-from api.storage import LocalStorage, ObjectNotFound, S3Storage, StorageError, check_key
+from voxe_service.storage import LocalStorage, ObjectNotFound, S3Storage, StorageError, check_key
 from service_helpers import free_port
 
 
@@ -94,7 +94,7 @@ def test_local_writes_are_atomic(tmp_path, monkeypatch):
     def failing_replace(src, dst):
         raise Boom()
 
-    monkeypatch.setattr("api.storage.os.replace", failing_replace)
+    monkeypatch.setattr("voxe_service.storage.os.replace", failing_replace)
     with pytest.raises(Boom):
         store.put_bytes("a/b.bin", b"new")
     monkeypatch.undo()
@@ -106,18 +106,16 @@ def test_api_stores_uploads_in_s3(tmp_path, monkeypatch, aws_env, s3_endpoint):
     """The API with VOXE_STORAGE_BACKEND=s3: an upload lands in the bucket, nothing on the local disk."""
     from fastapi.testclient import TestClient
 
-    from api import storage as storage_module
-    from api.db import reset_caches
-    from api.deps import get_celery
-    from service_helpers import MIC, service_env, small_mic, zip_folder
+    from needs import require_data
+    from service_helpers import MIC, reset_service_caches, service_env, small_mic, zip_folder
+    from voxe_service import storage as storage_module
 
-    if not MIC.is_dir():
-        pytest.skip(f"shared data missing: {MIC}")
+    require_data(MIC)
     env = service_env(tmp_path, VOXE_STORAGE_BACKEND="s3", VOXE_S3_BUCKET="voxe-api", VOXE_S3_ENDPOINT_URL=s3_endpoint,
                       VOXE_S3_REGION="us-east-1")
     for key, value in env.items():
         monkeypatch.setenv(key, value)
-    reset_caches(), get_celery.cache_clear(), storage_module._instances.clear()
+    reset_service_caches()
     try:
         from api.main import create_app
 
@@ -137,4 +135,4 @@ def test_api_stores_uploads_in_s3(tmp_path, monkeypatch, aws_env, s3_endpoint):
             assert s3.list("scenes/") == []
         assert not (tmp_path / "storage").exists()
     finally:
-        reset_caches(), get_celery.cache_clear(), storage_module._instances.clear()
+        reset_service_caches()

@@ -15,9 +15,10 @@ import json
 import logging
 from pathlib import Path
 
-from api.models import EVALUATE, QUEUED, SUCCEEDED, Job
-from api.settings import TINY_MODEL, Settings
+from voxe_service.models import SUCCEEDED, Job
+from voxe_service.settings import TINY_MODEL, Settings
 from worker import runtime
+from worker.inputs import fetch_grid, load_images
 from worker.runtime import StageCallbacks
 
 log = logging.getLogger("voxe.worker")
@@ -84,24 +85,11 @@ def _sources(job: Job) -> list[Job]:
     return jobs
 
 
-def evaluations_waiting_on(job: Job) -> list[str]:
-    """Queued evaluation jobs of ``job``'s sweep that score it (their task follows its chain)."""
-    if job.batch_id is None or job.mode == EVALUATE:
-        return []
-    from sqlalchemy import select
-
-    with runtime.session_scope() as session:
-        waiting = session.scalars(select(Job).where(Job.batch_id == job.batch_id, Job.mode == EVALUATE,
-                                                    Job.state == QUEUED))
-        return [e.id for e in waiting if job.id in (e.source_job_ids or [])]
-
-
 def run_evaluation(job: Job, settings: Settings, device: str, storage) -> None:
     """The evaluate stage body (called by the task frame in :mod:`worker.tasks`)."""
     from voxe_core.evaluate import EditSample, EvaluateConfig, evaluate, format_table
     from voxe_core.export import save_png
     from voxe_core.refine.storage import load_mask
-    from worker.tasks import _grid, _load_images
 
     params = job.params
     sources = _sources(job)
@@ -110,18 +98,18 @@ def run_evaluation(job: Job, settings: Settings, device: str, storage) -> None:
     rec = runtime.load_reconstruction(sources[0].reconstruction_id)
     if rec is None or rec.grid_key is None:
         raise EvaluationFailed("evaluate: the source jobs' reconstruction is gone")
-    initial = _grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key).to(device)
+    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key).to(device)
     edits = []
     for source in sources:
         name = "refined_grid.safetensors" if source.mode == "local" else "edited_grid.safetensors"
-        grid = _grid(job.id, f"{source.id}_{name}", settings, storage, runtime.artifact_key(source.id, name)).to(device)
+        grid = fetch_grid(job.id, f"{source.id}_{name}", settings, storage, runtime.artifact_key(source.id, name)).to(device)
         mask = None
         if source.mode == "local":
             mask_path = runtime.fetch(storage, runtime.artifact_key(source.id, "mask.safetensors"),
                                       runtime.scratch_dir(job.id, settings) / f"{source.id}_mask.safetensors")
             mask = load_mask(mask_path)
         edits.append(EditSample(source.id, source.prompt, grid, mask))
-    input_images = _load_images(sources[0], rec.params, settings, storage).images if params["fid_input"] else None
+    input_images = load_images(sources[0], rec.params, settings, storage).images if params["fid_input"] else None
     config = EvaluateConfig(views=params["views"], elevation=params["elevation"], size=params["size"])
     callbacks = StageCallbacks(job.id, "evaluate", settings)
     result = evaluate(initial, edits, params["object"], clip, fid, input_images, config, callbacks.callbacks)

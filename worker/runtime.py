@@ -14,21 +14,22 @@ import shutil
 import tempfile
 import time
 import uuid
-import zipfile
 from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
 
 from sqlalchemy import func, select, update
 
-from api.db import session_scope
-from api.models import (
+from voxe_core.progress import Callbacks, Progress
+from voxe_service import datasets
+from voxe_service.db import session_scope
+from voxe_service.jobs import finish_jobs, record_event
+from voxe_service.models import (
     CANCELED, FAILED, QUEUED, R_PENDING, R_RUNNING, RUNNING, SUCCEEDED, TERMINAL_STATES,
     Artifact, Job, Reconstruction, Scene, utcnow,
 )
-from api.settings import TINY_MODEL, Settings
-from api.storage import Storage, StoredObject, file_sha256, get_storage
-from voxe_core.progress import Callbacks, Progress
+from voxe_service.settings import TINY_MODEL, Settings
+from voxe_service.storage import Storage, StoredObject, file_sha256, get_storage, job_key
 
 log = logging.getLogger("voxe.worker")
 
@@ -71,7 +72,7 @@ def begin_stage(job_id: str, stage: str, hostname: str | None, device: str) -> J
         if job is None or job.state in TERMINAL_STATES:
             raise JobSkipped(f"job {job_id} is {job.state if job else 'gone'}")
         if job.cancel_requested:
-            _finish(session, job, CANCELED, message=f"canceled before {stage}")
+            finish_jobs(session, [job_id], CANCELED, message=f"canceled before {stage}")
             raise JobSkipped(f"job {job_id} canceled")
         if stage in (job.completed_stages or []):
             raise JobSkipped(f"job {job_id}: {stage} already done (redelivered task)")
@@ -84,6 +85,7 @@ def begin_stage(job_id: str, stage: str, hostname: str | None, device: str) -> J
         )
         if result.rowcount != 1:
             raise JobSkipped(f"job {job_id} changed state")
+        record_event(session, job_id, "stage_started", stage=stage, worker=hostname)
         session.refresh(job)
         return job
 
@@ -99,24 +101,22 @@ def complete_stage(job_id: str, stage: str, final: bool = False) -> None:
         values = dict(completed_stages=done, eta_seconds=0.0, updated_at=utcnow())
         if final:
             values.update(state=SUCCEEDED, finished_at=utcnow(), message=None)
-        session.execute(update(Job).where(Job.id == job_id, Job.state == RUNNING).values(**values))
-
-
-def _finish(session, job: Job, state: str, message: str | None = None, error: str | None = None) -> None:
-    now = utcnow()
-    session.execute(
-        update(Job).where(Job.id == job.id, Job.state.not_in(TERMINAL_STATES)).values(
-            state=state, finished_at=now, updated_at=now, eta_seconds=None,
-            message=message, error=error,
-        )
-    )
+        result = session.execute(update(Job).where(Job.id == job_id, Job.state == RUNNING).values(**values))
+        if result.rowcount == 1:
+            record_event(session, job_id, "stage_completed", stage=stage, worker=job.worker_hostname)
+            if final:
+                record_event(session, job_id, SUCCEEDED, stage=stage)
 
 
 def finish_job(job_id: str, state: str, message: str | None = None, error: str | None = None) -> None:
     with session_scope() as session:
-        job = session.get(Job, job_id)
-        if job is not None:
-            _finish(session, job, state, message, error)
+        finish_jobs(session, [job_id], state, message=message, error=error)
+
+
+def record_job_event(job_id: str, kind: str, **fields) -> None:
+    """One event on the job's timeline, in its own transaction (checkpoints, resumes)."""
+    with session_scope() as session:
+        record_event(session, job_id, kind, **fields)
 
 
 def fail_job(job_id: str, error: str) -> None:
@@ -131,7 +131,8 @@ class StageCallbacks:
     Progress is written at most once per ``progress_interval_s`` (and always for
     the last iteration); the cancel flag is read at most once per
     ``cancel_check_interval_s``. ``extra_progress`` is called on every write
-    (the reconstruction owner renews its lease there).
+    (the reconstruction owner renews its lease there). ``on_checkpoint(path)`` stores
+    a checkpoint; a ``checkpoint`` event at the iteration it was taken follows it.
     """
 
     def __init__(self, job_id: str, stage: str, settings: Settings, extra_progress=None, on_checkpoint=None,
@@ -144,8 +145,15 @@ class StageCallbacks:
         self._rate_origin: tuple[float, int] | None = None
         self._last_report: Progress | None = None
         self._written: Progress | None = None
+        self._store_checkpoint = on_checkpoint
         self.callbacks = Callbacks(on_progress=self.on_progress, should_cancel=self.should_cancel,
-                                   on_checkpoint=on_checkpoint)
+                                   on_checkpoint=self.on_checkpoint if on_checkpoint else None)
+
+    def on_checkpoint(self, path: str) -> None:
+        """Store the checkpoint, then record where it was taken (stages report progress just before)."""
+        self._store_checkpoint(path)
+        iteration = self._last_report.iteration if self._last_report is not None else 0
+        record_job_event(self.job_id, "checkpoint", stage=self.stage, iteration=int(iteration))
 
     def on_progress(self, report: Progress) -> None:
         now = time.monotonic()
@@ -194,10 +202,6 @@ def scratch_dir(job_id: str, settings: Settings) -> Path:
 
 def cleanup_scratch(job_id: str, settings: Settings) -> None:
     shutil.rmtree(Path(settings.work_dir) / "jobs" / job_id, ignore_errors=True)
-
-
-def job_key(job_id: str, name: str) -> str:
-    return f"jobs/{job_id}/{name}"
 
 
 def publish_artifact(job_id: str, name: str, path: str | os.PathLike, kind: str, storage: Storage | None = None,
@@ -258,9 +262,8 @@ def scene_dataset_dir(scene: Scene, settings: Settings, storage: Storage) -> Pat
     root.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=root.parent, prefix=f".{scene.id}-"))
     try:
-        archive = storage.get_file(scene.storage_key, tmp / "dataset.zip")
-        with zipfile.ZipFile(archive) as zf:
-            zf.extractall(tmp / "data")  # our own normalised archive: validated on upload
+        archive = storage.get_file(scene.storage_key, tmp / datasets.DATASET_ARCHIVE)
+        datasets.unpack(archive, tmp / "data")
         archive.unlink()
         (tmp / "data" / ".complete").write_text("ok")
         try:

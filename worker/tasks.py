@@ -1,4 +1,5 @@
-"""Celery tasks: one per stage of a job, chained reconstruct -> edit -> [refine] -> export.
+"""Celery tasks: one per stage of a job, chained reconstruct -> edit -> [refine] -> export, and the ingest
+of an upload (``worker/ingest.py``). Task names and messages are the contract of ``voxe_service.queue``.
 
 Each task takes only the job id. It reads the job record, downloads its inputs
 from the storage, calls the ``voxe_core`` stage with callbacks that write
@@ -26,14 +27,21 @@ from pathlib import Path
 
 from celery import signals
 from celery.exceptions import SoftTimeLimitExceeded
+from sqlalchemy import select
 
-from api.models import CANCELED, R_FAILED, R_PENDING, R_SUCCEEDED, Job, Scene, WorkerHeartbeat, utcnow
-from api.settings import TINY_MODEL, get_settings
-from api.storage import StoredObject, get_storage
-from voxe_core.progress import Callbacks, Progress, StageCancelled
-from worker import runtime
-from worker.celery_app import app, is_sql_broker, stage_chain
 from voxe_core.presets import edit_config, export_config, reconstruct_config, refine_config
+from voxe_core.progress import Callbacks, Progress, StageCancelled
+from voxe_service.models import (
+    CANCELED, PROCESSING, R_FAILED, R_PENDING, R_SUCCEEDED, RUNNING, Job, Scene, WorkerHeartbeat, utcnow,
+)
+from voxe_service.queue import INGEST_TASK, STAGE_TASKS, TaskResult, dispatch_job, get_queue, is_sql_broker, reset_queue
+from voxe_service.settings import TINY_MODEL, get_settings
+from voxe_service.storage import StoredObject, get_storage, job_key, reconstruction_storage_key
+from worker import runtime
+from worker.celery_app import app
+from worker.evaluation import EvaluationFailed, run_evaluation
+from worker.ingest import ingest_scene, load_stored_mesh
+from worker.inputs import fetch_grid, job_scene, load_images
 from worker.runtime import JobSkipped, StageCallbacks
 
 log = logging.getLogger("voxe.worker")
@@ -47,7 +55,7 @@ class ReconstructionFailed(RuntimeError):
 
 
 # --------------------------------------------------------------------------- the common frame
-def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> dict:
+def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> TaskResult:
     settings = get_settings()
     device = settings.resolved_device
     try:
@@ -87,8 +95,6 @@ def _error_message(stage: str, exc: Exception, job: Job) -> str:
                 f"VOXE_SDS_MODEL / VOXE_ATTENTION_MODEL (a hub id in the HF_HOME cache, or a local folder); "
                 f"VOXE_SDS_MODEL={TINY_MODEL} VOXE_ATTENTION_MODEL={TINY_MODEL} runs the random-weight "
                 f"smoke-test model, which proves the plumbing only.")
-    from worker.evaluation import EvaluationFailed
-
     if isinstance(exc, (ReconstructionFailed, EvaluationFailed)):
         return str(exc)
     return f"{stage}: {type(exc).__name__}: {exc}"
@@ -97,26 +103,9 @@ def _error_message(stage: str, exc: Exception, job: Job) -> str:
 def _cleanup(job_id: str, settings) -> None:
     runtime.cleanup_scratch(job_id, settings)
     try:
-        get_storage(settings).delete_prefix(runtime.job_key(job_id, "checkpoints/"))
+        get_storage(settings).delete_prefix(job_key(job_id, "checkpoints/"))
     except Exception:  # noqa: BLE001 - leftover checkpoints are harmless
         log.warning("job %s: could not delete checkpoints", job_id, exc_info=True)
-
-
-def _scene(job: Job) -> Scene:
-    with runtime.session_scope() as session:
-        scene = session.get(Scene, job.scene_id)
-        if scene is None:
-            raise RuntimeError(f"scene {job.scene_id} was deleted")
-        return scene
-
-
-def _load_images(job: Job, rec_params: dict, settings, storage):
-    from voxe_core.data import load_scene
-
-    root = runtime.scene_dataset_dir(_scene(job), settings, storage)
-    # Reconstructions stored before the option existed were fitted on box-filtered images.
-    resample = rec_params.get("resample", "box")
-    return load_scene(root, rec_params["split"], rec_params["downsample"], rec_params["max_images"], resample=resample)
 
 
 def _preview(job_id: str, grid, settings, storage, device: str, image=None) -> None:
@@ -130,14 +119,6 @@ def _preview(job_id: str, grid, settings, storage, device: str, image=None) -> N
     save_png(path, image)
     runtime.publish_artifact(job_id, PREVIEW, path, "preview", storage)
     runtime.update_job(job_id, preview_artifact=PREVIEW)
-
-
-def _grid(job_id: str, name: str, settings, storage, key: str | None = None):
-    from voxe_core.backbones import load_grid
-
-    key = key or runtime.artifact_key(job_id, name)
-    path = runtime.fetch(storage, key, runtime.scratch_dir(job_id, settings) / name)
-    return load_grid(path)
 
 
 # --------------------------------------------------------------------------- reconstruct
@@ -174,7 +155,7 @@ def _reconstruct(job: Job, settings, device: str, storage) -> None:
                        message="reused the scene's reconstruction" if reused else None)
     runtime.publish_artifact(job.id, "initial_grid.safetensors", _grid_file(job.id, rec, settings, storage),
                              "grid", storage, key=rec.grid_key)
-    _preview(job.id, _grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key), settings,
+    _preview(job.id, fetch_grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key), settings,
              storage, device)
 
 
@@ -186,9 +167,7 @@ def _voxelize(job: Job, rec, settings, storage):
     """Route (b): the mesh scene's uploaded mesh written straight into G_i at the reconstruction's final resolution."""
     from voxe_core.mesh_input import VoxelizeConfig, voxelize
 
-    from api.uploads import load_stored_mesh
-
-    mesh = load_stored_mesh(runtime.scene_dataset_dir(_scene(job), settings, storage))
+    mesh = load_stored_mesh(runtime.scene_dataset_dir(job_scene(job), settings, storage))
     config = reconstruct_config(rec.params, settings.checkpoint_every)
     return voxelize(mesh, VoxelizeConfig(resolution=config.resolutions[-1], bbox_min=config.bbox_min,
                                          bbox_max=config.bbox_max, seed=rec.params["seed"]))
@@ -198,7 +177,7 @@ def _fit(job: Job, rec, settings, storage) -> None:
     """Make G_i for ``rec`` (claimed by this job): voxelize its mesh, or fit, resuming from a stored checkpoint."""
     scratch = runtime.scratch_dir(job.id, settings)
     checkpoint = scratch / "reconstruction_checkpoint.safetensors"
-    checkpoint_key = f"reconstructions/{rec.id}/checkpoint.safetensors"
+    checkpoint_key = reconstruction_storage_key(rec.id, "checkpoint.safetensors")
 
     def on_checkpoint(path: str) -> None:
         storage.put_file(checkpoint_key, path)
@@ -223,7 +202,7 @@ def _fit(job: Job, rec, settings, storage) -> None:
         raise
     path = scratch / "initial_grid.safetensors"
     grid.save(path)
-    stored: StoredObject = storage.put_file(f"reconstructions/{rec.id}/grid.safetensors", path)
+    stored: StoredObject = storage.put_file(reconstruction_storage_key(rec.id, "grid.safetensors"), path)
     runtime.set_reconstruction(
         rec.id, job.id, state=R_SUCCEEDED, grid_key=stored.key, grid_size=stored.size, grid_sha256=stored.sha256,
         iteration=total, total=total, lease_until=None, finished_at=utcnow(),
@@ -237,7 +216,7 @@ def _fit_grid(job: Job, rec, settings, storage, callbacks: StageCallbacks, check
     from voxe_core.backbones import prepare_backbone
     from voxe_core.tensorio import FormatError
 
-    scene = _load_images(job, rec.params, settings, storage)
+    scene = load_images(job, rec.params, settings, storage)
     config = reconstruct_config(rec.params, settings.checkpoint_every)
     _, cameras, initial = prepare_backbone(rec.params.get("backbone", "auto"), scene.alphas, scene.cameras,
                                            config.resolutions[0])
@@ -246,6 +225,8 @@ def _fit_grid(job: Job, rec, settings, storage, callbacks: StageCallbacks, check
     if storage.exists(checkpoint_key):
         resume = storage.get_file(checkpoint_key, checkpoint)
         log.info("reconstruction %s: resuming from its checkpoint", rec.id)
+        runtime.record_job_event(job.id, "resumed", stage="reconstruct",
+                                 detail=f"reconstruction {rec.id} from its stored checkpoint")
     try:
         grid = reconstruct(scene.images, cameras, config, callbacks.callbacks, checkpoint, resume, initial)
     except FormatError:
@@ -262,22 +243,24 @@ def _edit(job: Job, settings, device: str, storage) -> None:
 
     guidance = runtime.get_guidance(job.sds_model, device, settings)  # first: a missing model fails fast
     rec = runtime.load_reconstruction(job.reconstruction_id)
-    initial = _grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key)
+    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key)
     config = edit_config(job.params, initial.kind, settings.checkpoint_every)  # SPEC §5's schedule for a scene G_i
     scratch = runtime.scratch_dir(job.id, settings)
     checkpoint = scratch / "edit_checkpoint.safetensors"
-    checkpoint_key = runtime.job_key(job.id, "checkpoints/edit.safetensors")
+    checkpoint_key = job_key(job.id, "checkpoints/edit.safetensors")
     resume, note = None, None
     if storage.exists(checkpoint_key):  # a redelivered / re-queued task: go on from the last checkpoint
         from voxe_core.edit import load_edit_checkpoint
 
         resume = storage.get_file(checkpoint_key, checkpoint)
-        note = f"resumed from the checkpoint at iteration {load_edit_checkpoint(resume)[1]['iteration']}"
+        at = int(load_edit_checkpoint(resume)[1]["iteration"])
+        note = f"resumed from the checkpoint at iteration {at}"
         log.info("job %s: edit %s", job.id, note)
         runtime.update_job(job.id, message=note)
+        runtime.record_job_event(job.id, "resumed", stage="edit", iteration=at, worker=job.worker_hostname)
     input_views = None
     if config.regulariser.startswith("image_"):
-        scene = _load_images(job, rec.params, settings, storage)
+        scene = load_images(job, rec.params, settings, storage)
         input_views = (scene.images, initial.dataset_cameras(scene.cameras))
 
     last_preview = [0.0]
@@ -307,8 +290,8 @@ def _refine(job: Job, settings, device: str, storage) -> None:
 
     guidance = runtime.get_guidance(job.attention_model, device, settings)
     rec = runtime.load_reconstruction(job.reconstruction_id)
-    initial = _grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key).to(device)
-    edited = _grid(job.id, "edited_grid.safetensors", settings, storage).to(device)
+    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key).to(device)
+    edited = fetch_grid(job.id, "edited_grid.safetensors", settings, storage).to(device)
     config = refine_config(job.params, job.attention_model)
     callbacks = StageCallbacks(job.id, "refine", settings)
     result = refine(initial, edited, job.prompt, job.edit_words, guidance, config, callbacks.callbacks)
@@ -336,7 +319,7 @@ def _export(job: Job, settings, device: str, storage) -> None:
 
     options = export_config(job.params)
     name = "refined_grid.safetensors" if job.mode == "local" else "edited_grid.safetensors"
-    grid = _grid(job.id, name, settings, storage).to(device)
+    grid = fetch_grid(job.id, name, settings, storage).to(device)
     scratch = runtime.scratch_dir(job.id, settings)
     views, frames = options.views, options.turntable_frames
     total = views + frames + (1 if options.mesh else 0)
@@ -379,31 +362,35 @@ def _export(job: Job, settings, device: str, storage) -> None:
 
 
 # --------------------------------------------------------------------------- tasks
-@app.task(name="voxe.reconstruct", bind=True)
-def reconstruct_task(self, job_id: str) -> dict:
+@app.task(name=STAGE_TASKS["reconstruct"].name, bind=True)
+def reconstruct_task(self, job_id: str) -> TaskResult:
     return _run_stage(self, job_id, "reconstruct", _reconstruct)
 
 
-@app.task(name="voxe.edit", bind=True)
-def edit_task(self, job_id: str) -> dict:
+@app.task(name=STAGE_TASKS["edit"].name, bind=True)
+def edit_task(self, job_id: str) -> TaskResult:
     return _run_stage(self, job_id, "edit", _edit)
 
 
-@app.task(name="voxe.refine", bind=True)
-def refine_task(self, job_id: str) -> dict:
+@app.task(name=STAGE_TASKS["refine"].name, bind=True)
+def refine_task(self, job_id: str) -> TaskResult:
     return _run_stage(self, job_id, "refine", _refine)
 
 
-@app.task(name="voxe.export", bind=True)
-def export_task(self, job_id: str) -> dict:
+@app.task(name=STAGE_TASKS["export"].name, bind=True)
+def export_task(self, job_id: str) -> TaskResult:
     return _run_stage(self, job_id, "export", _export, final=True)
 
 
-@app.task(name="voxe.evaluate", bind=True)
-def evaluate_task(self, job_id: str) -> dict:
-    from worker.evaluation import run_evaluation
-
+@app.task(name=STAGE_TASKS["evaluate"].name, bind=True)
+def evaluate_task(self, job_id: str) -> TaskResult:
     return _run_stage(self, job_id, "evaluate", run_evaluation, final=True)
+
+
+@app.task(name=INGEST_TASK.name, bind=True)
+def ingest_task(self, scene_id: str) -> TaskResult:
+    settings = get_settings()
+    return ingest_scene(scene_id, settings, get_storage(settings), self.request.hostname or socket.gethostname())
 
 
 # --------------------------------------------------------------------------- worker lifecycle
@@ -426,24 +413,29 @@ def _beat(hostname: str, queues: str, device: str) -> None:
 
 
 def recover_interrupted_jobs(hostname: str) -> list[str]:
-    """Re-queue the remaining stages of jobs this worker was running when it died (SQL broker only).
+    """Re-queue the remaining stages of jobs, and the ingests of scenes, this worker was running when it died
+    (SQL broker only).
 
     kombu's SQL transport never redelivers a message whose consumer was killed (it stays
-    invisible), so without this a job would stay "running" for ever. The stages are
-    idempotent (done stages are skipped, long ones resume from their checkpoints).
+    invisible), so without this a job would stay "running" (a scene "processing") for ever.
+    The stages are idempotent (done stages are skipped, long ones resume from their
+    checkpoints); an ingest starts over.
     """
-    from sqlalchemy import select
-
+    queue = get_queue()
     with runtime.session_scope() as session:
-        jobs = list(session.scalars(select(Job).where(Job.state == "running", Job.worker_hostname == hostname)))
-    from worker.evaluation import evaluations_waiting_on
-
-    for job in jobs:
-        stage_chain(app, job.id, job.mode, done=job.completed_stages or [],
-                    then_evaluate=evaluations_waiting_on(job)).apply_async()
-        runtime.update_job(job.id, message=f"re-queued after the worker restarted (was in {job.stage})")
-        log.warning("job %s was interrupted in %s; re-queued its remaining stages", job.id, job.stage)
-    return [job.id for job in jobs]
+        jobs = list(session.scalars(select(Job).where(Job.state == RUNNING, Job.worker_hostname == hostname)))
+        for job in jobs:
+            dispatch_job(session, queue, job, done=job.completed_stages or [])
+            message = f"re-queued after the worker restarted (was in {job.stage})"
+            runtime.update_job(job.id, message=message)
+            runtime.record_job_event(job.id, "requeued", stage=job.stage, worker=hostname, detail=message)
+            log.warning("job %s was interrupted in %s; re-queued its remaining stages", job.id, job.stage)
+        scenes = list(session.scalars(select(Scene.id).where(Scene.state == PROCESSING,
+                                                             Scene.worker_hostname == hostname)))
+    for scene_id in scenes:
+        queue.send_ingest(scene_id)
+        log.warning("the ingest of scene %s was interrupted; re-queued it", scene_id)
+    return [job.id for job in jobs] + scenes
 
 
 @signals.worker_ready.connect
@@ -479,10 +471,11 @@ def _stop_heartbeat(sender=None, **_kwargs) -> None:
 
 @signals.worker_process_init.connect
 def _fresh_engine(**_kwargs) -> None:
-    """A forked pool process must not share the parent's database connections."""
-    from api.db import get_engine, get_sessionmaker
+    """A forked pool process must not share the parent's database or broker connections."""
+    from voxe_service.db import get_engine, get_sessionmaker
 
     if get_engine.cache_info().currsize:
         get_engine().dispose(close=False)
     get_engine.cache_clear()
     get_sessionmaker.cache_clear()
+    reset_queue()

@@ -4,17 +4,15 @@ from __future__ import annotations
 
 import re
 
-from fastapi import APIRouter, Depends, HTTPException, Request, Response, status
+from fastapi import APIRouter, HTTPException, Request, Response, status
 from fastapi.responses import StreamingResponse
 from sqlalchemy import select
-from sqlalchemy.orm import Session
 
-from api.auth import current_key
-from api.deps import get_session, storage_dep
-from api.models import ApiKey, Artifact
-from api.routes.jobs import get_job_or_404
+from api.deps import CurrentKey, SessionDep, StorageDep
 from api.schemas import ArtifactOut
-from api.storage import ObjectNotFound, Storage
+from api.services.jobs import get_job
+from voxe_service.models import Artifact
+from voxe_service.storage import ObjectNotFound
 
 router = APIRouter(prefix="/v1/jobs/{job_id}/artifacts", tags=["artifacts"])
 
@@ -59,10 +57,8 @@ def _unsatisfiable(size: int, detail: str) -> HTTPException:
 
 
 @router.get("", response_model=list[ArtifactOut], responses={404: {"description": "no such job (or another key's)"}})
-def list_artifacts(
-    job_id: str, session: Session = Depends(get_session), key: ApiKey = Depends(current_key)
-) -> list[ArtifactOut]:
-    get_job_or_404(session, job_id, key)
+def list_artifacts(job_id: str, session: SessionDep, key: CurrentKey) -> list[ArtifactOut]:
+    get_job(session=session, key=key, job_id=job_id)
     rows = session.scalars(select(Artifact).where(Artifact.job_id == job_id).order_by(Artifact.id))
     return [artifact_out(job_id, a) for a in rows]
 
@@ -74,12 +70,9 @@ def list_artifacts(
                404: {"description": "no such job or artifact"}, 416: {"description": "range not satisfiable"}},
     summary="Download an artifact (supports Range: bytes=...)",
 )
-def get_artifact(
-    job_id: str, name: str, request: Request,
-    session: Session = Depends(get_session), storage: Storage = Depends(storage_dep),
-    key: ApiKey = Depends(current_key),
-) -> Response:
-    get_job_or_404(session, job_id, key)
+def get_artifact(job_id: str, name: str, request: Request, session: SessionDep, storage: StorageDep,
+                 key: CurrentKey) -> Response:
+    get_job(session=session, key=key, job_id=job_id)
     # Only names recorded for this job are served: no path is ever built from the request.
     artifact = session.scalars(select(Artifact).where(Artifact.job_id == job_id, Artifact.name == name)).first()
     if artifact is None:

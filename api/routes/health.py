@@ -6,14 +6,14 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from datetime import timedelta
 
-from fastapi import APIRouter, Depends
+from fastapi import APIRouter
 from fastapi.responses import JSONResponse
 from sqlalchemy import select, text
 
-from api.db import session_scope
-from api.deps import celery_dep, settings_dep, storage_dep
-from api.models import WorkerHeartbeat, utcnow
-from api.settings import Settings, model_label
+from api.deps import QueueDep, SettingsDep, StorageDep
+from voxe_service.db import session_scope
+from voxe_service.models import WorkerHeartbeat, utcnow
+from voxe_service.settings import Settings, model_label
 
 router = APIRouter(tags=["health"])
 
@@ -56,7 +56,8 @@ def _check_workers(celery, settings: Settings) -> dict:
 
 @router.get("/readyz", summary="Readiness: database, broker, storage and at least one worker",
             responses={503: {"description": "a dependency is down; the body says which"}})
-def readyz(settings: Settings = Depends(settings_dep), celery=Depends(celery_dep), storage=Depends(storage_dep)):
+def readyz(settings: SettingsDep, queue: QueueDep, storage: StorageDep):
+    celery = queue.app
     checks = {
         "database": lambda: _check_db(),
         "broker": lambda: _check_broker(celery, settings.readiness_timeout_s),

@@ -1,37 +1,24 @@
-"""/v1/jobs: create (queues the stage chain), list, get, cancel; each key sees only its own."""
+"""/v1/jobs: create (queued at once), list, get, cancel, and a job's event timeline; each key sees only its own."""
 
 from __future__ import annotations
 
-import logging
+from fastapi import APIRouter, Query, Response, status
+from sqlalchemy import select
 
-from celery import Celery
-import hashlib
+from api.auth import mark_replayed
+from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep
+from api.routes.scenes import MAX_OFFSET
+from api.schemas import JobCreate, JobEventOut, JobOut, JobReconstruction, JobState, Models, Page
+from api.services import jobs
+from voxe_service.models import EVALUATE, RUNNING, Job, JobEvent, utcnow
+from voxe_service.settings import model_label
 
-from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response, status
-from sqlalchemy import func, select, update
-from sqlalchemy.exc import IntegrityError
-from sqlalchemy.orm import Session
-
-from api.auth import Idempotency, check_active_jobs, current_key, idempotency_key, lock_key
-from api.db import get_sessionmaker
-from api.deps import celery_dep, get_session, settings_dep
-from api.models import (
-    CANCELED, EVALUATE, FAILED, QUEUED, RUNNING, TERMINAL_STATES, ApiKey, Job, Reconstruction, Scene, new_id, utcnow,
-)
-from api.routes.scenes import MAX_OFFSET, get_scene_or_404
-from api.schemas import JobCreate, JobOut, JobReconstruction, JobState, Models, Page
-from api.settings import Settings, model_label
-from api.uploads import MESH_FORMAT
-from worker.celery_app import stage_chain
-from voxe_core.presets import reconstruction_key, reconstruction_params
-
-log = logging.getLogger("voxe.api")
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
 _ERRORS = {404: {"description": "no such job (or another key's)"}}
 
 
-def job_out(job: Job, request: Request | None = None) -> JobOut:
+def job_out(job: Job) -> JobOut:
     rec = job.reconstruction
     now = utcnow()
     elapsed = ((job.finished_at or now) - job.started_at).total_seconds() if job.started_at else None
@@ -50,7 +37,7 @@ def job_out(job: Job, request: Request | None = None) -> JobOut:
             run_count=rec.run_count if rec else None, reused=job.reconstruction_reused,
         ),
         preview_url=f"{base}/artifacts/{job.preview_artifact}" if job.preview_artifact else None,
-        artifacts_url=f"{base}/artifacts", worker_hostname=job.worker_hostname,
+        artifacts_url=f"{base}/artifacts", events_url=f"{base}/events", worker_hostname=job.worker_hostname,
         source_job_ids=job.source_job_ids, result=job.result, batch_id=job.batch_id,
         created_at=job.created_at, started_at=job.started_at, finished_at=job.finished_at, updated_at=job.updated_at,
     )
@@ -64,163 +51,55 @@ def _models(job: Job) -> Models:
                   attention=model_label(job.attention_model) if job.mode == "local" else None)
 
 
-def new_edit_job(body: JobCreate, key: ApiKey, settings: Settings, rec: Reconstruction, batch_id: str | None = None) -> Job:
-    """The queued record of an edit job (not yet added to a session)."""
-    return Job(
-        id=new_id(), scene_id=body.scene_id, owner_key_id=key.id, reconstruction_id=rec.id, prompt=body.prompt,
-        mode=body.mode, edit_words=body.edit_words, params=body.params.model_dump(mode="json"),
-        sds_model=settings.sds_model, attention_model=settings.attention_model, device=settings.device, state=QUEUED,
-        batch_id=batch_id,
-    )
-
-
-def queue_chain(session: Session, chain, jobs: list[Job]) -> None:
-    """Hand ``chain`` to the broker and record its id on ``jobs``; when the broker is down, fail them and 503."""
-    try:
-        result = chain.apply_async()
-    except Exception as exc:  # noqa: BLE001 - broker down: the jobs cannot run
-        log.exception("could not queue job(s) %s", [j.id for j in jobs])
-        session.execute(update(Job).where(Job.id.in_([j.id for j in jobs])).values(
-            state=FAILED, error=f"could not queue the job: {type(exc).__name__}: {exc}", finished_at=utcnow()))
-        session.commit()
-        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, f"could not queue the job: {exc}") from None
-    for job in jobs:
-        job.task_id = getattr(result, "id", None)
-    session.commit()
-
-
-def get_job_or_404(session: Session, job_id: str, key: ApiKey) -> Job:
-    """The key's job; another key's job is as absent as a missing one."""
-    job = session.get(Job, job_id)
-    if job is None or job.owner_key_id != key.id:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id!r} not found")
-    return job
-
-
-def check_route(scene: Scene, params: dict) -> None:
-    """422 for ``reconstruction.route`` "voxelize" on a scene that has no mesh to voxelize."""
-    route = (params.get("reconstruction") or {}).get("route", "auto")
-    if route == "voxelize" and scene.format != MESH_FORMAT:
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
-                            f"reconstruction.route 'voxelize' needs a scene uploaded as a mesh; scene {scene.id!r} "
-                            f"is {scene.format!r} images: use route 'fit' or 'auto'")
-
-
-def _reconstruction_for(session: Session, scene_id: str, params: dict) -> Reconstruction:
-    """The scene's reconstruction for these parameters, created if new.
-
-    Race-free through the unique (scene_id, params_key) constraint: the row is inserted in
-    its own short transaction, and a request that loses the race reads the winner's row.
-    """
-    scene = session.get(Scene, scene_id)  # already loaded by the caller's 404 check
-    check_route(scene, params)
-    rec_params = reconstruction_params(params, mesh_scene=scene.format == MESH_FORMAT)
-    try:
-        key = reconstruction_key(rec_params)
-    except ValueError as exc:
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"params.reconstruction: {exc}") from exc
-    query = select(Reconstruction).where(Reconstruction.scene_id == scene_id, Reconstruction.params_key == key)
-    rec = session.scalars(query).first()
-    if rec is not None:
-        return rec
-    with get_sessionmaker()() as insert:
-        try:
-            insert.add(Reconstruction(id=new_id(), scene_id=scene_id, params_key=key, params=rec_params))
-            insert.commit()
-        except IntegrityError:  # another request created it first
-            insert.rollback()
-    return session.scalars(query).one()
-
-
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=JobOut,
              responses={200: {"description": "a retry with the same Idempotency-Key: the job it created"},
                         401: {"description": "missing or invalid API key"},
                         404: {"description": "no such scene (or another key's)"},
+                        409: {"description": "the scene failed processing (the reason is named)"},
                         422: {"description": "invalid job (the field is named), or an Idempotency-Key reused "
                                              "with a different body"},
                         429: {"description": "the key's quota of queued + running jobs is used up (Retry-After)"},
                         503: {"description": "the job could not be queued (broker unreachable)"}},
              summary="Create an edit job (queued at once; optionally with an Idempotency-Key header)")
-def create_job(
-    body: JobCreate,
-    request: Request,
-    response: Response,
-    session: Session = Depends(get_session),
-    settings: Settings = Depends(settings_dep),
-    celery: Celery = Depends(celery_dep),
-    key: ApiKey = Depends(current_key),
-) -> JobOut:
-    """201 with the queued job; 200 with the original one for a retry carrying the same Idempotency-Key."""
-    idem_key = idempotency_key(request)
-    idem = None
-    if idem_key:
-        idem = Idempotency(idem_key, hashlib.sha256(body.model_dump_json().encode()).hexdigest(), "jobs")
-        if (replayed := idem.replayed(session, key, response, Job)) is not None:
-            return job_out(replayed)
-    get_scene_or_404(session, body.scene_id, key)
-    rec = _reconstruction_for(session, body.scene_id, body.params.model_dump(mode="json"))
-    job = new_edit_job(body, key, settings, rec)
-    try:
-        lock_key(session, key)
-        session.add(job)
-        if idem is not None:
-            idem.record(session, key, job.id)
-        session.flush()
-        check_active_jobs(session, key, settings)
-        session.commit()
-    except BaseException as exc:
-        session.rollback()
-        if idem is not None and isinstance(exc, IntegrityError):  # a concurrent retry created it first
-            if (replayed := idem.replayed(session, key, response, Job)) is not None:
-                return job_out(replayed)
-        raise
-    queue_chain(session, stage_chain(celery, job.id, body.mode), [job])
-    session.refresh(job)
+def create_job(body: JobCreate, response: Response, session: SessionDep, settings: SettingsDep, queue: QueueDep,
+               key: CurrentKey, idempotency_key: IdempotencyKey) -> JobOut:
+    """201 with the queued job (on a scene still processing, it starts once the scene is ready); 200 with the
+    original one for a retry carrying the same Idempotency-Key."""
+    job, replayed = jobs.create_job(session=session, settings=settings, queue=queue, key=key, body=body,
+                                    idempotency_key=idempotency_key)
+    if replayed:
+        mark_replayed(response)
     return job_out(job)
 
 
 @router.get("", response_model=Page[JobOut], summary="List jobs, newest first")
 def list_jobs(
+    session: SessionDep,
+    key: CurrentKey,
     state: JobState | None = Query(None),
     scene_id: str | None = Query(None),
     limit: int = Query(20, ge=1, le=200),
     offset: int = Query(0, ge=0, le=MAX_OFFSET),
-    session: Session = Depends(get_session),
-    key: ApiKey = Depends(current_key),
 ) -> Page[JobOut]:
-    filters = [Job.owner_key_id == key.id]
-    if state is not None:
-        filters.append(Job.state == state)
-    if scene_id is not None:
-        filters.append(Job.scene_id == scene_id)
-    total = session.scalar(select(func.count()).select_from(Job).where(*filters)) or 0
-    rows = session.scalars(select(Job).where(*filters).order_by(Job.created_at.desc(), Job.id)
-                           .limit(limit).offset(offset))
+    rows, total = jobs.list_jobs(session=session, key=key, state=state, scene_id=scene_id, limit=limit, offset=offset)
     return Page[JobOut](items=[job_out(j) for j in rows], total=total, limit=limit, offset=offset)
 
 
 @router.get("/{job_id}", response_model=JobOut, responses=_ERRORS)
-def get_job(job_id: str, session: Session = Depends(get_session), key: ApiKey = Depends(current_key)) -> JobOut:
-    return job_out(get_job_or_404(session, job_id, key))
+def get_job(job_id: str, session: SessionDep, key: CurrentKey) -> JobOut:
+    return job_out(jobs.get_job(session=session, key=key, job_id=job_id))
+
+
+@router.get("/{job_id}/events", response_model=list[JobEventOut], responses=_ERRORS,
+            summary="The job's timeline: stages started and completed, checkpoints stored, resumes, its end")
+def list_events(job_id: str, session: SessionDep, key: CurrentKey) -> list[JobEventOut]:
+    jobs.get_job(session=session, key=key, job_id=job_id)
+    rows = session.scalars(select(JobEvent).where(JobEvent.job_id == job_id).order_by(JobEvent.id))
+    return [JobEventOut.model_validate(e, from_attributes=True) for e in rows]
 
 
 @router.post("/{job_id}/cancel", response_model=JobOut,
              responses={**_ERRORS, 409: {"description": "the job already succeeded or failed"}},
              summary="Cancel a job (a queued job at once; a running one stops within a few iterations)")
-def cancel_job(job_id: str, session: Session = Depends(get_session), key: ApiKey = Depends(current_key)) -> JobOut:
-    job = get_job_or_404(session, job_id, key)
-    if job.state in TERMINAL_STATES and job.state != CANCELED:
-        raise HTTPException(status.HTTP_409_CONFLICT, f"job {job_id!r} already {job.state}")
-    request_cancel(session, [job_id])
-    session.refresh(job)
-    return job_out(job)
-
-
-def request_cancel(session: Session, job_ids: list[str]) -> None:
-    """Flag the unfinished ``job_ids`` canceled: queued ones at once, running ones when their task next checks."""
-    now = utcnow()
-    session.execute(update(Job).where(Job.id.in_(job_ids), Job.state.not_in(TERMINAL_STATES))
-                    .values(cancel_requested=True, updated_at=now))
-    session.execute(update(Job).where(Job.id.in_(job_ids), Job.state == QUEUED)
-                    .values(state=CANCELED, finished_at=now, message="canceled before it started"))
-    session.commit()
+def cancel_job(job_id: str, session: SessionDep, key: CurrentKey) -> JobOut:
+    return job_out(jobs.cancel_job(session=session, key=key, job_id=job_id))

@@ -7,14 +7,14 @@ from logging.config import fileConfig
 from alembic import context
 from sqlalchemy import engine_from_config, pool
 
-from api.models import Base
+from voxe_service.models import Base
 
 config = context.config
 if config.config_file_name is not None and config.get_section("loggers"):
     fileConfig(config.config_file_name, disable_existing_loggers=False)
 
 if not config.get_main_option("sqlalchemy.url"):
-    from api.settings import get_settings
+    from voxe_service.settings import get_settings
 
     config.set_main_option("sqlalchemy.url", get_settings().database_url.replace("%", "%%"))
 

@@ -1,4 +1,4 @@
-"""Database engine and sessions (one engine per process, for the API and the workers alike)."""
+"""Database engine, sessions and migrations (one engine per process, for the API and the workers alike)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,9 @@ from sqlalchemy import Engine, create_engine, event
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session, sessionmaker
 
-from api.settings import get_settings
+from voxe_service.settings import get_settings
+
+MIGRATIONS = Path(__file__).resolve().parent / "migrations"
 
 
 def ensure_sqlite_dir(url: str) -> None:
@@ -65,6 +67,24 @@ def session_scope() -> Iterator[Session]:
         except BaseException:
             session.rollback()
             raise
+
+
+def alembic_config(database_url: str):
+    """Alembic's configuration for the service's migrations on ``database_url`` (no alembic.ini needed)."""
+    from alembic.config import Config
+
+    config = Config()
+    config.set_main_option("script_location", str(MIGRATIONS))
+    config.set_main_option("sqlalchemy.url", database_url.replace("%", "%%"))
+    return config
+
+
+def run_migrations(database_url: str) -> None:
+    """``alembic upgrade head`` on ``database_url``; existing databases upgrade in place."""
+    from alembic import command
+
+    ensure_sqlite_dir(database_url)
+    command.upgrade(alembic_config(database_url), "head")
 
 
 def reset_caches() -> None:

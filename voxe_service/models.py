@@ -1,5 +1,5 @@
-"""Database tables: API keys, scenes, their cached reconstructions, jobs, job artifacts, idempotency records
-and worker heartbeats."""
+"""Database tables: API keys, scenes, their cached reconstructions, jobs and their events, job artifacts,
+idempotency records and worker heartbeats."""
 
 from __future__ import annotations
 
@@ -46,6 +46,10 @@ STAGES = ("reconstruct", "edit", "refine", "export", "evaluate")
 EVALUATE = "evaluate"  # the mode of an evaluation job (SPEC §4): its one stage scores other jobs' edits
 # Reconstruction states.
 R_PENDING, R_RUNNING, R_SUCCEEDED, R_FAILED = "pending", "running", "succeeded", "failed"
+# Scene states: an upload is stored after its cheap checks, then a worker's ingest decodes (and for a mesh
+# renders) it: processing -> ready, or failed with the reason.
+PROCESSING, READY = "processing", "ready"
+SCENE_STATES = (PROCESSING, READY, FAILED)
 
 
 # The key every request acts as while authentication is off (loopback only); it has no token.
@@ -71,6 +75,12 @@ class ApiKey(Base):
 
 
 class Scene(Base):
+    """An uploaded dataset. ``storage_key`` is its archive: the dataset a job reads once ``state`` is ready.
+
+    ``task_id`` records that the ingest was handed to the broker; ``worker_hostname`` the worker
+    running it (the reaper fails a scene whose ingest nothing will finish, as it does for jobs).
+    """
+
     __tablename__ = "scenes"
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
@@ -84,7 +94,12 @@ class Scene(Base):
     storage_key: Mapped[str] = mapped_column(String(512))  # the validated dataset, one zip archive
     size_bytes: Mapped[int] = mapped_column(Integer)
     sha256: Mapped[str] = mapped_column(String(64))
+    state: Mapped[str] = mapped_column(String(16), default=PROCESSING, index=True)
+    error: Mapped[str | None] = mapped_column(Text, nullable=True)  # why a failed scene failed
+    task_id: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    worker_hostname: Mapped[str | None] = mapped_column(String(255), nullable=True)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    updated_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
 
     jobs: Mapped[list["Job"]] = relationship(back_populates="scene", passive_deletes=True)
     reconstructions: Mapped[list["Reconstruction"]] = relationship(back_populates="scene", passive_deletes=True)
@@ -170,6 +185,29 @@ class Job(Base):
     artifacts: Mapped[list["Artifact"]] = relationship(
         back_populates="job", passive_deletes=True, order_by="Artifact.id"
     )
+
+
+class JobEvent(Base):
+    """A job's timeline: what happened when, written in the same transaction as the change it records.
+
+    Kinds: ``stage_started`` / ``stage_completed`` (``stage``, the worker), ``checkpoint`` (a resumable
+    checkpoint of ``stage`` at ``iteration`` is in the storage: the event is written after the upload),
+    ``resumed`` (a redelivered stage went on from the checkpoint at ``iteration``), ``requeued`` (a
+    restarted worker sent the remaining stages again), and the terminal ``succeeded`` / ``failed`` /
+    ``canceled`` (``detail``: the error or message). Unlike the throttled progress columns of the job,
+    every event is kept.
+    """
+
+    __tablename__ = "job_events"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), index=True)
+    kind: Mapped[str] = mapped_column(String(32))
+    stage: Mapped[str | None] = mapped_column(String(16), nullable=True)
+    iteration: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    worker_hostname: Mapped[str | None] = mapped_column(String(255), nullable=True)
+    detail: Mapped[str | None] = mapped_column(Text, nullable=True)
+    at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
 
 
 class Artifact(Base):

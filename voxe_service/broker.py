@@ -16,7 +16,7 @@ from kombu.transport import sqlalchemy as _sqla
 from sqlalchemy import create_engine
 from sqlalchemy.engine import make_url
 
-from api.db import make_engine
+from voxe_service.db import make_engine
 
 # Options kombu / Celery use themselves; none of them is a create_engine() argument.
 _NOT_ENGINE_OPTIONS = frozenset({
@@ -42,4 +42,4 @@ class Transport(_sqla.Transport):
 
 
 def register() -> None:
-    TRANSPORT_ALIASES["sqla"] = TRANSPORT_ALIASES["sqlalchemy"] = "worker.broker:Transport"
+    TRANSPORT_ALIASES["sqla"] = TRANSPORT_ALIASES["sqlalchemy"] = "voxe_service.broker:Transport"

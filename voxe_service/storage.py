@@ -41,6 +41,20 @@ class StoredObject:
     sha256: str
 
 
+# The key layout: everything of a scene, a job or a reconstruction under its own prefix, so deleting
+# one is deleting a prefix. ``name`` "" gives the prefix itself.
+def scene_key(scene_id: str, name: str = "") -> str:
+    return f"scenes/{scene_id}/{name}"
+
+
+def job_key(job_id: str, name: str = "") -> str:
+    return f"jobs/{job_id}/{name}"
+
+
+def reconstruction_storage_key(reconstruction_id: str, name: str = "") -> str:
+    return f"reconstructions/{reconstruction_id}/{name}"
+
+
 def check_key(key: str) -> str:
     parts = key.split("/")
     if not key or key.startswith("/") or any(p in ("", ".", "..") or not _KEY_PART.match(p) for p in parts):
@@ -352,7 +366,7 @@ _instances: dict[tuple, Storage] = {}
 
 def get_storage(settings=None) -> Storage:
     """The storage the settings describe (one instance per configuration and process)."""
-    from api.settings import get_settings
+    from voxe_service.settings import get_settings
 
     settings = settings or get_settings()
     if settings.storage_backend == "s3":

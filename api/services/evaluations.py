@@ -1,0 +1,113 @@
+"""Evaluations (SPEC §4) as jobs, and sweeps: the paper's protocol submitted as one batch.
+
+An evaluation is a job of mode ``evaluate`` over finished edit jobs of one scene. A sweep
+is every scene × the six prompts of SPEC §4 (local ones refined), each edit followed by its
+own evaluation in the same Celery chain, so the batch spreads over every listening worker.
+"""
+
+from __future__ import annotations
+
+from fastapi import HTTPException, status
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from api.schemas import EvaluationCreate, EvaluationParams, JobCreate, SweepCreate
+from api.services.jobs import (
+    add_jobs, fail_unsent, get_job, new_edit_job, reconstruction_for, request_cancel, send, usable_scene,
+)
+from voxe_core.evaluate import paper_protocol
+from voxe_service.models import (
+    CANCELED, EVALUATE, FAILED, QUEUED, RUNNING, SUCCEEDED, TERMINAL_STATES, ApiKey, Job, new_id,
+)
+from voxe_service.queue import QueueUnavailable, TaskQueue, dispatch_job
+from voxe_service.settings import Settings
+
+
+def new_evaluation_job(key: ApiKey, settings: Settings, sources: list[Job], object_name: str,
+                       params: EvaluationParams, batch_id: str | None = None, index: int = 0) -> Job:
+    """The queued record of an evaluation of ``sources`` (edit jobs of one scene and reconstruction)."""
+    first = sources[0]
+    return Job(
+        id=new_id(), scene_id=first.scene_id, owner_key_id=key.id, reconstruction_id=first.reconstruction_id,
+        prompt=f"evaluate {len(sources)} edit(s) of a {object_name}", mode=EVALUATE, edit_words=[],
+        params={**params.model_dump(mode="json"), "object": object_name, "clip_model": settings.clip_model,
+                "fid_model": settings.fid_model, "sweep_index": index},
+        sds_model="", attention_model="", device=settings.device, state=QUEUED,
+        source_job_ids=[s.id for s in sources], batch_id=batch_id,
+    )
+
+
+def create_evaluation(*, session: Session, settings: Settings, queue: TaskQueue, key: ApiKey,
+                      body: EvaluationCreate) -> Job:
+    """Record and queue an evaluation of succeeded edit jobs of one scene and reconstruction."""
+    sources = [get_job(session=session, key=key, job_id=job_id) for job_id in body.job_ids]
+    for source in sources:
+        if source.mode == EVALUATE:
+            raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"job {source.id!r} is an evaluation, not an edit")
+        if source.state != SUCCEEDED:
+            raise HTTPException(status.HTTP_409_CONFLICT, f"job {source.id!r} is {source.state}: only succeeded "
+                                                          "edit jobs can be evaluated")
+    if len({s.scene_id for s in sources}) > 1:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "the jobs belong to different scenes: an "
+                                                                  "evaluation scores edits of one object")
+    if len({s.reconstruction_id for s in sources}) > 1:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "the jobs edit different reconstructions of the "
+                                                                  "scene (reconstruction parameters differ)")
+    job = new_evaluation_job(key, settings, sources, body.object, body.params)
+    send(session=session, queue=queue, jobs=add_jobs(session=session, key=key, settings=settings, jobs=[job]))
+    session.refresh(job)
+    return job
+
+
+def create_sweep(*, session: Session, settings: Settings, queue: TaskQueue, key: ApiKey, body: SweepCreate) -> str:
+    """Record every scene × protocol prompt edit with its evaluation, all or none; send them; the sweep's id."""
+    params = body.params.model_dump(mode="json")
+    scenes = [usable_scene(session=session, key=key, scene_id=s.scene_id, params=params) for s in body.scenes]
+    batch_id = new_id()  # every scene checked above, before any reconstruction row is made
+    jobs: list[Job] = []
+    for scene, entry in zip(scenes, body.scenes):
+        rec = reconstruction_for(session=session, scene=scene, params=params)
+        for edit in paper_protocol(entry.object):
+            # Through JobCreate, so each edit is exactly what POST /v1/jobs would accept (a valid object
+            # name always gives valid protocol prompts: short, and "wearing" / "a" besides the edit words).
+            request = JobCreate(scene_id=scene.id, prompt=edit.prompt, mode=edit.mode,
+                                edit_words=list(edit.edit_words), params=body.params)
+            job = new_edit_job(request, key, settings, rec, batch_id)
+            jobs += [job, new_evaluation_job(key, settings, [job], entry.object, body.evaluation, batch_id,
+                                             index=len(jobs) // 2)]
+    to_send = add_jobs(session=session, key=key, settings=settings, jobs=jobs)
+    for k, job in enumerate(to_send):
+        try:
+            dispatch_job(session, queue, job)
+        except QueueUnavailable as exc:  # the broker went away mid-batch: nothing after this edit can run either
+            later_edits = {j.id for j in to_send[k + 1:]}
+            later = [j.id for j in jobs if j.id in later_edits or (j.source_job_ids or [None])[0] in later_edits]
+            fail_unsent(session=session, job_ids=later, reason="could not queue the sweep: the broker became "
+                                                                "unreachable")
+            raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(exc)) from None
+    return batch_id
+
+
+def sweep_jobs(*, session: Session, key: ApiKey, sweep_id: str) -> list[Job]:
+    jobs = list(session.scalars(select(Job).where(Job.batch_id == sweep_id, Job.owner_key_id == key.id)))
+    if not jobs:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"sweep {sweep_id!r} not found")
+    return jobs
+
+
+def cancel_sweep(*, session: Session, key: ApiKey, sweep_id: str) -> None:
+    """Cancel every unfinished job of the sweep (finished ones and their results stay)."""
+    request_cancel(session=session, job_ids=[j.id for j in sweep_jobs(session=session, key=key, sweep_id=sweep_id)])
+    session.expire_all()
+
+
+def sweep_state(states: list[str]) -> str:
+    """Queued until a job starts, running until all are finished; then failed / canceled if any was, else succeeded."""
+    if all(s == QUEUED for s in states):
+        return QUEUED
+    if any(s not in TERMINAL_STATES for s in states):
+        return RUNNING
+    for state in (FAILED, CANCELED):
+        if state in states:
+            return state
+    return SUCCEEDED

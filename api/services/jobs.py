@@ -1,0 +1,195 @@
+"""Jobs: creation (the shared reconstruction, the key's quota, idempotency, the scene's state), listing, cancel.
+
+A job is recorded ``queued``; its stage chain goes to the broker at once when its scene is
+ready, or later, from the scene's ingest, when the scene is still processing (it waits without
+holding a worker). A failed scene refuses new jobs with a 409 naming its reason.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from collections.abc import Iterable
+
+from fastapi import HTTPException, status
+from sqlalchemy import func, select, update
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from api.auth import Idempotency, check_active_jobs, lock_key
+from api.schemas import JobCreate
+from api.services.scenes import get_scene, refuse_unless_usable
+from voxe_core.presets import reconstruction_key, reconstruction_params
+from voxe_service.datasets import MESH_FORMAT
+from voxe_service.db import get_sessionmaker
+from voxe_service.jobs import finish_jobs
+from voxe_service.models import (
+    CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, READY, TERMINAL_STATES, ApiKey, Job, Reconstruction, Scene,
+    new_id, utcnow,
+)
+from voxe_service.queue import QueueUnavailable, TaskQueue, dispatch_job
+from voxe_service.scenes import lock_scene
+from voxe_service.settings import Settings
+
+log = logging.getLogger("voxe.api")
+
+
+def get_job(*, session: Session, key: ApiKey, job_id: str) -> Job:
+    """The key's job; another key's job is as absent as a missing one."""
+    job = session.get(Job, job_id)
+    if job is None or job.owner_key_id != key.id:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id!r} not found")
+    return job
+
+
+def check_route(scene: Scene, params: dict) -> None:
+    """422 for ``reconstruction.route`` "voxelize" on a scene that has no mesh to voxelize."""
+    route = (params.get("reconstruction") or {}).get("route", "auto")
+    if route == "voxelize" and scene.format != MESH_FORMAT:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                            f"reconstruction.route 'voxelize' needs a scene uploaded as a mesh; scene {scene.id!r} "
+                            f"is {scene.format!r} images: use route 'fit' or 'auto'")
+
+
+def usable_scene(*, session: Session, key: ApiKey, scene_id: str, params: dict) -> Scene:
+    """The key's scene, if jobs with these parameters can run on it (404, 409 for a failed scene, 422)."""
+    scene = get_scene(session=session, key=key, scene_id=scene_id)
+    refuse_unless_usable(scene)
+    check_route(scene, params)
+    return scene
+
+
+def reconstruction_for(*, session: Session, scene: Scene, params: dict) -> Reconstruction:
+    """The scene's reconstruction for these parameters, created if new.
+
+    Race-free through the unique (scene_id, params_key) constraint: the row is inserted in
+    its own short transaction, and a request that loses the race reads the winner's row.
+    """
+    rec_params = reconstruction_params(params, mesh_scene=scene.format == MESH_FORMAT)
+    try:
+        params_key = reconstruction_key(rec_params)
+    except ValueError as exc:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"params.reconstruction: {exc}") from exc
+    query = select(Reconstruction).where(Reconstruction.scene_id == scene.id, Reconstruction.params_key == params_key)
+    rec = session.scalars(query).first()
+    if rec is not None:
+        return rec
+    with get_sessionmaker()() as insert:
+        try:
+            insert.add(Reconstruction(id=new_id(), scene_id=scene.id, params_key=params_key, params=rec_params))
+            insert.commit()
+        except IntegrityError:  # another request created it first
+            insert.rollback()
+    return session.scalars(query).one()
+
+
+def new_edit_job(body: JobCreate, key: ApiKey, settings: Settings, rec: Reconstruction,
+                 batch_id: str | None = None) -> Job:
+    """The queued record of an edit job (not yet added to a session)."""
+    return Job(
+        id=new_id(), scene_id=body.scene_id, owner_key_id=key.id, reconstruction_id=rec.id, prompt=body.prompt,
+        mode=body.mode, edit_words=body.edit_words, params=body.params.model_dump(mode="json"),
+        sds_model=settings.sds_model, attention_model=settings.attention_model, device=settings.device, state=QUEUED,
+        batch_id=batch_id,
+    )
+
+
+def add_jobs(*, session: Session, key: ApiKey, settings: Settings, jobs: list[Job],
+             idempotency: Idempotency | None = None) -> list[Job]:
+    """Record ``jobs`` within the key's quota of active jobs, all or none; the ones to send now.
+
+    The scenes' states are read after the jobs' rows are written, under a lock on each scene's
+    row, so an ingest finishing meanwhile either sees these jobs or is seen as done: jobs on a
+    ready scene are returned to be sent, jobs on a processing one are left for its ingest, and a
+    scene that failed meanwhile refuses them all (409).
+    """
+    try:
+        lock_key(session, key)
+        session.add_all(jobs)
+        if idempotency is not None:
+            idempotency.record(session, key, jobs[0].id)
+        session.flush()
+        check_active_jobs(session, key, settings)
+        states = {}
+        for scene_id in sorted({j.scene_id for j in jobs}):
+            scene = lock_scene(session, scene_id)
+            refuse_unless_usable(scene)
+            states[scene_id] = scene.state
+        for job in jobs:
+            if states[job.scene_id] == PROCESSING:
+                job.message = f"waiting for the scene {job.scene_id} to be processed (its upload is being decoded)"
+        session.commit()
+    except BaseException:
+        session.rollback()
+        raise
+    # A sweep's evaluation is not sent on its own: its task follows its edit's chain.
+    return [j for j in jobs if states[j.scene_id] == READY and not (j.mode == EVALUATE and j.batch_id)]
+
+
+def send(*, session: Session, queue: TaskQueue, jobs: Iterable[Job]) -> None:
+    """Hand each job's chain (with the evaluations following it) to the broker; 503 when it is down."""
+    for job in jobs:
+        try:
+            dispatch_job(session, queue, job)
+        except QueueUnavailable as exc:
+            raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(exc)) from None
+
+
+def create_job(*, session: Session, settings: Settings, queue: TaskQueue, key: ApiKey, body: JobCreate,
+               idempotency_key: str | None) -> tuple[Job, bool]:
+    """Record and queue an edit job; (the job, whether this was a replay of an earlier request)."""
+    idem = None
+    if idempotency_key:
+        idem = Idempotency(idempotency_key, hashlib.sha256(body.model_dump_json().encode()).hexdigest(), "jobs")
+        if (replayed := idem.replayed(session, key, Job)) is not None:
+            return replayed, True
+    params = body.params.model_dump(mode="json")
+    scene = usable_scene(session=session, key=key, scene_id=body.scene_id, params=params)
+    job = new_edit_job(body, key, settings, reconstruction_for(session=session, scene=scene, params=params))
+    try:
+        to_send = add_jobs(session=session, key=key, settings=settings, jobs=[job], idempotency=idem)
+    except IntegrityError:
+        if idem is not None and (replayed := idem.replayed(session, key, Job)) is not None:
+            return replayed, True  # a concurrent retry created it first
+        raise
+    send(session=session, queue=queue, jobs=to_send)
+    session.refresh(job)
+    return job, False
+
+
+def list_jobs(*, session: Session, key: ApiKey, state: str | None, scene_id: str | None, limit: int,
+              offset: int) -> tuple[list[Job], int]:
+    """A page of the key's jobs, newest first, and how many match."""
+    filters = [Job.owner_key_id == key.id]
+    if state is not None:
+        filters.append(Job.state == state)
+    if scene_id is not None:
+        filters.append(Job.scene_id == scene_id)
+    total = session.scalar(select(func.count()).select_from(Job).where(*filters)) or 0
+    rows = session.scalars(select(Job).where(*filters).order_by(Job.created_at.desc(), Job.id)
+                           .limit(limit).offset(offset))
+    return list(rows), total
+
+
+def cancel_job(*, session: Session, key: ApiKey, job_id: str) -> Job:
+    """Cancel the key's job (409 once it succeeded or failed); canceling a canceled job changes nothing."""
+    job = get_job(session=session, key=key, job_id=job_id)
+    if job.state in TERMINAL_STATES and job.state != CANCELED:
+        raise HTTPException(status.HTTP_409_CONFLICT, f"job {job_id!r} already {job.state}")
+    request_cancel(session=session, job_ids=[job_id])
+    session.refresh(job)
+    return job
+
+
+def request_cancel(*, session: Session, job_ids: list[str]) -> None:
+    """Flag the unfinished ``job_ids`` canceled: queued ones at once, running ones when their task next checks."""
+    session.execute(update(Job).where(Job.id.in_(job_ids), Job.state.not_in(TERMINAL_STATES))
+                    .values(cancel_requested=True, updated_at=utcnow()))
+    finish_jobs(session, job_ids, CANCELED, message="canceled before it started", where=[Job.state == QUEUED])
+    session.commit()
+
+
+def fail_unsent(*, session: Session, job_ids: list[str], reason: str) -> None:
+    """Fail jobs that were recorded but will never be sent (the broker went away mid-batch)."""
+    finish_jobs(session, job_ids, FAILED, error=reason)
+    session.commit()

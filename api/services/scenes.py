@@ -1,0 +1,165 @@
+"""Scenes: an upload checked and stored at once, its ingest queued; listing, lookup, deletion."""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import BinaryIO
+
+from fastapi import HTTPException, status
+from sqlalchemy import func, select
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from api.auth import Idempotency, check_upload_bytes, lock_key
+from api.uploads import UploadError, stage_upload
+from voxe_service.models import FAILED, QUEUED, RUNNING, ApiKey, Job, Reconstruction, Scene, new_id
+from voxe_service.queue import TaskQueue
+from voxe_service.scenes import fail_scene
+from voxe_service.settings import Settings
+from voxe_service.storage import Storage, job_key, reconstruction_storage_key, scene_key
+
+log = logging.getLogger("voxe.api")
+
+
+@dataclass
+class Upload:
+    """What a POST /v1/scenes sent: one zip, or files named by their paths, and an optional display name."""
+
+    archive: BinaryIO | None
+    archive_name: str | None
+    files: list[tuple[str, BinaryIO]]
+    name: str | None
+
+    def digest(self) -> str:
+        """sha256 of what the upload asks for (field names, file names and bytes), not of its multipart framing."""
+        digest = hashlib.sha256(repr(self.name).encode())
+        parts = [("archive", self.archive)] if self.archive is not None else [(f"files:{n}", h) for n, h in self.files]
+        for label, handle in parts:
+            digest.update(b"\0" + label.encode() + b"\0")
+            while chunk := handle.read(1 << 20):
+                digest.update(chunk)
+            handle.seek(0)
+        return digest.hexdigest()
+
+
+def get_scene(*, session: Session, key: ApiKey, scene_id: str) -> Scene:
+    """The key's scene; another key's scene is as absent as a missing one."""
+    scene = session.get(Scene, scene_id)
+    if scene is None or scene.owner_key_id != key.id:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"scene {scene_id!r} not found")
+    return scene
+
+
+def create_scene(*, session: Session, settings: Settings, storage: Storage, queue: TaskQueue, key: ApiKey,
+                 upload: Upload, idempotency_key: str | None) -> tuple[Scene, bool]:
+    """Check, store and record an upload, then queue its ingest; (the scene, whether this was a replay).
+
+    Cheap checks answer 4xx at once with nothing stored; the scene is ``processing`` until a
+    worker's ingest has decoded it.
+    """
+    idem = Idempotency(idempotency_key, upload.digest(), "scenes") if idempotency_key else None
+    if idem is not None and (replayed := idem.replayed(session, key, Scene)) is not None:
+        return replayed, True
+    check_upload_bytes(session, key, settings, 0)  # already over: answer before unpacking anything
+    try:
+        staged, staging = stage_upload(
+            Path(settings.work_dir) / "uploads", upload.archive, upload.files, settings.max_extracted_bytes,
+            settings.max_upload_files, settings.validation_downsample, settings.max_compression_ratio,
+            settings.max_image_pixels,
+        )
+    except UploadError as exc:
+        raise HTTPException(exc.status, str(exc)) from None
+    scene_id = new_id()
+    storage_key = scene_key(scene_id, staged.archive_name)
+    try:
+        stored = storage.put_file(storage_key, staged.archive, "application/zip")
+        default_name = Path(upload.archive_name or "").stem[:255] if upload.archive is not None else ""
+        scene = Scene(
+            id=scene_id, owner_key_id=key.id, name=upload.name or default_name or f"scene-{scene_id[:8]}",
+            format=staged.format, image_count=staged.image_count, width=staged.width, height=staged.height,
+            splits=staged.splits, storage_key=storage_key, size_bytes=stored.size, sha256=stored.sha256,
+        )
+        lock_key(session, key)
+        session.add(scene)
+        if idem is not None:
+            idem.record(session, key, scene_id)
+        session.flush()
+        check_upload_bytes(session, key, settings, stored.size, including_new=True)
+        session.commit()
+    except BaseException as exc:
+        session.rollback()
+        storage.delete(storage_key)
+        if idem is not None and isinstance(exc, IntegrityError):  # a concurrent retry created it first
+            if (replayed := idem.replayed(session, key, Scene)) is not None:
+                return replayed, True
+        raise
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    _queue_ingest(session, storage, queue, scene)
+    return scene, False
+
+
+def _queue_ingest(session: Session, storage: Storage, queue: TaskQueue, scene: Scene) -> None:
+    """Hand the ingest to the broker; when it is down the scene fails with the reason (its bytes deleted), 503."""
+    try:
+        task_id = queue.send_ingest(scene.id)
+    except Exception as exc:  # noqa: BLE001 - broker down: nothing will ingest it
+        log.exception("could not queue the ingest of scene %s", scene.id)
+        reason = f"could not queue the ingest: {type(exc).__name__}: {exc}"
+        fail_scene(session, scene.id, reason)
+        session.commit()
+        storage.delete_prefix(scene_key(scene.id))
+        session.refresh(scene)
+        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, reason) from None
+    scene.task_id = task_id
+    session.commit()
+
+
+def list_scenes(*, session: Session, key: ApiKey, limit: int, offset: int) -> tuple[list[Scene], int]:
+    """A page of the key's scenes, newest first, and how many there are."""
+    mine = Scene.owner_key_id == key.id
+    total = session.scalar(select(func.count()).select_from(Scene).where(mine)) or 0
+    rows = session.scalars(select(Scene).where(mine).order_by(Scene.created_at.desc(), Scene.id)
+                           .limit(limit).offset(offset))
+    return list(rows), total
+
+
+def list_reconstructions(*, session: Session, key: ApiKey, scene_id: str) -> list[Reconstruction]:
+    get_scene(session=session, key=key, scene_id=scene_id)
+    return list(session.scalars(select(Reconstruction).where(Reconstruction.scene_id == scene_id)
+                                .order_by(Reconstruction.created_at)))
+
+
+def delete_scene(*, session: Session, storage: Storage, key: ApiKey, scene_id: str) -> None:
+    """Delete the scene with its jobs, reconstructions and stored objects; 409 while a job is queued or running.
+
+    A processing scene can be deleted too: its ingest finds it gone and keeps nothing.
+    """
+    scene = get_scene(session=session, key=key, scene_id=scene_id)
+    active = session.scalar(select(func.count()).select_from(Job)
+                            .where(Job.scene_id == scene_id, Job.state.in_((QUEUED, RUNNING))))
+    if active:
+        raise HTTPException(status.HTTP_409_CONFLICT,
+                            f"scene {scene_id!r} has {active} queued or running job(s); cancel them first")
+    job_ids = list(session.scalars(select(Job.id).where(Job.scene_id == scene_id)))
+    rec_ids = list(session.scalars(select(Reconstruction.id).where(Reconstruction.scene_id == scene_id)))
+    session.delete(scene)  # jobs, artifacts and reconstructions go with it (ON DELETE CASCADE)
+    session.commit()
+    # Rows first, then objects: a crash in between leaves unreferenced objects, never dangling rows.
+    prefixes = [scene_key(scene_id)] + [job_key(j) for j in job_ids] + [reconstruction_storage_key(r) for r in rec_ids]
+    for prefix in prefixes:
+        try:
+            storage.delete_prefix(prefix)
+        except Exception:  # noqa: BLE001
+            log.warning("could not delete stored objects under %s", prefix, exc_info=True)
+
+
+def refuse_unless_usable(scene: Scene) -> None:
+    """409 for a failed scene: no job can run on it (the reason is named); processing and ready are fine."""
+    if scene.state == FAILED:
+        raise HTTPException(status.HTTP_409_CONFLICT, f"scene {scene.id!r} failed processing: {scene.error}; "
+                                                      "upload it again")

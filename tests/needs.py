@@ -1,0 +1,43 @@
+"""What a test needs from outside the repository, and what happens when it is missing.
+
+The shared data sits beside the repository (``<repo>/../shared/data``; CI clones the same
+way). A test that needs it, or a server (redis-server, PostgreSQL), skips on a developer's
+machine that lacks it, but fails in CI (``CI=true``): CI never passes on what it did not run.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+DATA_ROOT = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+MIC = DATA_ROOT / "nerf_synthetic_mic"
+FOX = DATA_ROOT / "fox"
+SPOT = DATA_ROOT / "meshes" / "spot"
+
+
+def in_ci() -> bool:
+    return os.environ.get("CI", "").strip().lower() in ("1", "true", "yes")
+
+
+def missing(reason: str):
+    """Skip the test, or fail it in CI."""
+    import pytest
+
+    if in_ci():
+        pytest.fail(f"{reason} (CI=true: a test never skips on a missing dependency)", pytrace=False)
+    pytest.skip(reason)
+
+
+def require_data(*paths: Path) -> None:
+    """Skip (fail in CI) unless every path of the shared data exists."""
+    absent = [p for p in paths if not p.exists()]
+    if absent:
+        missing(f"shared data missing: {', '.join(map(str, absent))}")
+
+
+def needs_data(*paths: Path):
+    """A mark for tests that read the shared data: conftest's setup hook calls :func:`require_data`."""
+    import pytest
+
+    return pytest.mark.needs_data(*paths)

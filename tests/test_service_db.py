@@ -1,0 +1,228 @@
+"""The database under real concurrency, on SQLite and on PostgreSQL (the deployment's database): migrations
+in place, the reconstruction claim raced by workers, the per-key quota raced by submissions, and the handover
+of jobs waiting on a scene to the scene's ingest raced by new submissions."""
+
+from __future__ import annotations
+
+import threading
+from datetime import timedelta
+
+import pytest
+from fastapi import HTTPException
+
+from service_helpers import reset_service_caches, service_env
+
+RACERS = 8
+ROUNDS = 30
+
+
+@pytest.fixture
+def db(tmp_path, monkeypatch, database_url):
+    """A migrated private database (SQLite, then PostgreSQL); the settings."""
+    for key, value in service_env(tmp_path, database_url=database_url).items():
+        monkeypatch.setenv(key, value)
+    reset_service_caches()
+    from voxe_service.db import run_migrations
+    from voxe_service.settings import get_settings
+
+    run_migrations(get_settings().database_url)
+    yield get_settings()
+    reset_service_caches()
+
+
+def race(target, n: int = RACERS) -> list:
+    """Run ``target(i)`` in ``n`` threads released together; their results (an exception is a result)."""
+    barrier, results = threading.Barrier(n), [None] * n
+
+    def run(i):
+        barrier.wait()
+        try:
+            results[i] = target(i)
+        except Exception as exc:  # noqa: BLE001 - returned for the test to judge
+            results[i] = exc
+
+    threads = [threading.Thread(target=run, args=(i,)) for i in range(n)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(120)
+    return results
+
+
+def add_scene(state: str = "ready") -> str:
+    from voxe_service.db import session_scope
+    from voxe_service.models import LOCAL_KEY_ID, Scene
+
+    with session_scope() as session:
+        scene = Scene(name="s", format="nerf_synthetic", image_count=1, width=8, height=8, splits=["train"],
+                      storage_key="scenes/s/dataset.zip", size_bytes=1, sha256="0" * 64, state=state,
+                      task_id="ingest", owner_key_id=LOCAL_KEY_ID)
+        session.add(scene)
+        session.flush()
+        return scene.id
+
+
+class RecordingQueue:
+    """The real sender's chains, recorded instead of published: which job each chain starts with."""
+
+    def __init__(self):
+        from voxe_service.queue import TaskQueue, create_celery_app
+
+        self.queue = TaskQueue(create_celery_app())
+        self.sent: list[str] = []
+        self._lock = threading.Lock()
+
+    def stage_chain(self, *args, **kwargs):
+        return self.queue.stage_chain(*args, **kwargs)
+
+    def send(self, signature) -> str:
+        with self._lock:
+            self.sent.append(signature.tasks[0].args[0])
+        return f"task-{len(self.sent)}"
+
+
+# ------------------------------------------------------------------------------------------ migrations
+def test_a_database_of_the_previous_head_upgrades_in_place(database_url):
+    """Rows written before scenes had states keep their data and become ready; downgrading gives them back."""
+    from alembic import command
+    from sqlalchemy import inspect, text
+
+    from service_helpers import database_at
+
+    config, engine = database_at(
+        database_url, "0003_evaluation",
+        "INSERT INTO scenes (id, owner_key_id, name, format, image_count, width, height, splits, storage_key, "
+        "size_bytes, sha256, created_at) VALUES ('s1', 'local', 'old', 'nerf_synthetic', 3, 8, 8, '[\"train\"]', "
+        "'scenes/s1/dataset.zip', 10, 'x', '2026-01-01 00:00:00+00')",
+        "INSERT INTO jobs (id, scene_id, owner_key_id, prompt, mode, edit_words, params, sds_model, attention_model, "
+        "device, state, iteration, total, losses, cancel_requested, completed_stages, created_at, updated_at) VALUES "
+        "('j1', 's1', 'local', 'a mic', 'global', '[]', '{}', 'tiny', 'tiny', 'cpu', 'succeeded', 0, 0, '{}', false, "
+        "'[]', '2026-01-01 00:00:00+00', '2026-01-01 00:00:00+00')")
+    command.upgrade(config, "head")
+    with engine.begin() as conn:
+        row = conn.execute(text("SELECT state, error, task_id, updated_at, created_at, size_bytes FROM scenes")).one()
+        assert (row.state, row.error, row.task_id, row.size_bytes) == ("ready", None, None, 10)
+        assert str(row.updated_at) == str(row.created_at)
+        conn.execute(text("INSERT INTO job_events (job_id, kind, at) VALUES ('j1', 'succeeded', "
+                          "'2026-01-01 00:00:00+00')"))
+    command.check(config)  # the upgraded schema is exactly the models'
+    command.downgrade(config, "0003_evaluation")
+    with engine.begin() as conn:
+        assert conn.execute(text("SELECT name FROM scenes")).scalar_one() == "old"
+        assert conn.execute(text("SELECT state FROM jobs")).scalar_one() == "succeeded"
+    tables = inspect(engine)
+    assert "job_events" not in tables.get_table_names()
+    assert "state" not in {c["name"] for c in tables.get_columns("scenes")}
+    engine.dispose()
+
+
+# ------------------------------------------------------------------------------------------ the reconstruction claim
+def test_exactly_one_of_many_racing_workers_claims_a_reconstruction(db):
+    """The conditional UPDATE lets one claim win per round, however many workers race it at once."""
+    from sqlalchemy import update
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, Reconstruction, utcnow
+    from worker import runtime
+
+    scene = add_scene()
+    with session_scope() as session:
+        rec = Reconstruction(scene_id=scene, params_key="k", params={})
+        session.add(rec)
+        session.flush()
+        rec_id = rec.id
+        jobs = [Job(scene_id=scene, owner_key_id="local", prompt="a mic", mode="global", params={}, sds_model="tiny",
+                    attention_model="tiny", device="cpu", reconstruction_id=rec_id) for _ in range(RACERS)]
+        session.add_all(jobs)
+        session.flush()
+        job_ids = [j.id for j in jobs]
+    for round_ in range(6):
+        wins = race(lambda i: runtime.try_claim_reconstruction(rec_id, job_ids[i], f"host-{i}", db,
+                                                                allow_failed=True))
+        assert not [w for w in wins if isinstance(w, Exception)], wins
+        assert wins.count(True) == 1, (round_, wins)
+        winner = runtime.load_reconstruction(rec_id)
+        assert winner.owner_job_id == job_ids[wins.index(True)] and winner.run_count == round_ + 1
+        if round_ % 2:  # the fitter handed it back (canceled) ...
+            runtime.set_reconstruction(rec_id, winner.owner_job_id, state="pending", owner_job_id=None,
+                                       lease_until=None)
+        else:  # ... or its lease lapsed (a dead worker): either way the next round races for it again
+            with session_scope() as session:
+                session.execute(update(Reconstruction).where(Reconstruction.id == rec_id)
+                                .values(lease_until=utcnow() - timedelta(seconds=1)))
+
+
+# ------------------------------------------------------------------------------------------ the quota lock
+def test_concurrent_submissions_never_exceed_the_keys_quota(db):
+    """Twice as many submissions as the key may have active jobs, all at once: exactly the quota is accepted."""
+    from sqlalchemy import func, select, update
+
+    from api.schemas import JobCreate
+    from api.services.jobs import create_job
+    from voxe_service.db import get_sessionmaker, session_scope
+    from voxe_service.models import LOCAL_KEY_ID, ApiKey, Job
+
+    quota = RACERS // 2
+    with session_scope() as session:
+        session.execute(update(ApiKey).where(ApiKey.id == LOCAL_KEY_ID).values(max_active_jobs=quota))
+    scenes = [add_scene(), add_scene("processing")]  # sent at once, and waiting for an ingest: both count
+    queue = RecordingQueue()
+
+    def submit(i):
+        with get_sessionmaker()() as session:
+            key = session.get(ApiKey, LOCAL_KEY_ID)
+            body = JobCreate(scene_id=scenes[i % 2], prompt="a wood carving of a mic")
+            return create_job(session=session, settings=db, queue=queue, key=key, body=body, idempotency_key=None)[0].id
+
+    for round_ in range(2):
+        results = race(submit)
+        accepted = [r for r in results if isinstance(r, str)]
+        refused = [r for r in results if isinstance(r, HTTPException)]
+        assert len(accepted) == quota and len(refused) == RACERS - quota, results
+        assert {r.status_code for r in refused} == {429}
+        with session_scope() as session:
+            active = session.scalar(select(func.count()).select_from(Job).where(Job.state == "queued"))
+            assert active == quota, round_
+            session.execute(update(Job).values(state="canceled"))  # the next round starts from none active
+    assert len(set(queue.sent)) == len(queue.sent)  # no job was sent twice
+
+
+# ------------------------------------------------------------------------------------------ waiting for a scene
+def test_jobs_racing_a_scenes_ingest_are_each_sent_exactly_once(db):
+    """Submissions while the ingest marks the scene ready: whichever side saw it ready sends a job, never both,
+    and no job is left unsent."""
+    from sqlalchemy import select, update
+
+    from api.schemas import JobCreate
+    from api.services.jobs import create_job
+    from voxe_service.db import get_sessionmaker, session_scope
+    from voxe_service.models import LOCAL_KEY_ID, ApiKey, Job
+    from voxe_service.queue import dispatch_job
+    from voxe_service.scenes import mark_ready
+
+    with session_scope() as session:
+        session.execute(update(ApiKey).where(ApiKey.id == LOCAL_KEY_ID).values(max_active_jobs=1000))
+    for round_ in range(ROUNDS):
+        scene = add_scene("processing")
+        queue = RecordingQueue()
+
+        def act(i):
+            with get_sessionmaker()() as session:
+                if i == 0:  # the ingest: ready, then send the jobs that waited
+                    waiting = mark_ready(session, scene)
+                    session.commit()
+                    for job in waiting:
+                        dispatch_job(session, queue, job)
+                    return "ready"
+                key = session.get(ApiKey, LOCAL_KEY_ID)
+                body = JobCreate(scene_id=scene, prompt="a wood carving of a mic")
+                return create_job(session=session, settings=db, queue=queue, key=key, body=body,
+                                  idempotency_key=None)[0].id
+
+        results = race(act)
+        assert not [r for r in results if isinstance(r, Exception)], results
+        job_ids = sorted(r for r in results if r != "ready")
+        assert sorted(queue.sent) == job_ids, (round_, queue.sent, job_ids)  # each once, none missing
+        with session_scope() as session:
+            unsent = session.scalars(select(Job.id).where(Job.scene_id == scene, Job.task_id.is_(None))).all()
+        assert unsent == [], round_

@@ -1,0 +1,42 @@
+"""The stored scene archive: one zip per scene, the dataset folder at its root.
+
+The API packs what it accepted (``scenes/<id>/dataset.zip`` for images; ``scenes/<id>/upload.zip``
+holding only ``mesh/`` for a mesh); the worker's ingest decodes it, renders a mesh into a
+NeRF-synthetic dataset beside ``mesh/`` and packs that as the mesh scene's ``dataset.zip``.
+Jobs read ``Scene.storage_key``, always the dataset archive once the scene is ready.
+"""
+
+from __future__ import annotations
+
+import zipfile
+from pathlib import Path, PurePosixPath
+
+IGNORED = ("__MACOSX", ".DS_Store", "Thumbs.db")
+STORED_SUFFIXES = {".png", ".jpg", ".jpeg", ".webp", ".exr", ".zip", ".gz"}  # already compressed
+DATASET_ARCHIVE = "dataset.zip"
+UPLOAD_ARCHIVE = "upload.zip"  # a mesh upload before its ingest rendered it
+MESH_FORMAT = "mesh"  # a scene's format when it was uploaded as a mesh (its archive: the renders + MESH_FOLDER)
+MESH_FOLDER = "mesh"  # the uploaded mesh as ``mesh.obj`` / ``mesh.ply`` with an OBJ's texture as ``texture.<ext>``
+MESH_NAMES = "names.json"  # in MESH_FOLDER: {kept name: the name it was uploaded under}
+MESH_VIEWS, MESH_VIEW_SIZE = 100, 256  # renders of an uploaded mesh (the paper: 100 upper-hemisphere views)
+
+
+def ignored(path: PurePosixPath) -> bool:
+    """Desktop debris (macOS resource forks, thumbnails) that is neither checked nor stored."""
+    return any(part in IGNORED or part.startswith("._") for part in path.parts)
+
+
+def package(root: Path, archive: Path) -> None:
+    """Pack the dataset folder (images stored, text deflated) with the folder at the archive root."""
+    with zipfile.ZipFile(archive, "w") as zf:
+        for path in sorted(root.rglob("*")):
+            if path.is_file() and not ignored(PurePosixPath(path.name)):
+                compress = zipfile.ZIP_STORED if path.suffix.lower() in STORED_SUFFIXES else zipfile.ZIP_DEFLATED
+                zf.write(path, path.relative_to(root).as_posix(), compress_type=compress)
+
+
+def unpack(archive: Path, dest: Path) -> Path:
+    """Unpack a stored archive (the service's own, checked when it was packed) into ``dest``."""
+    with zipfile.ZipFile(archive) as zf:
+        zf.extractall(dest)
+    return dest

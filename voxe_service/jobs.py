@@ -1,0 +1,43 @@
+"""A job's lifecycle as the API, the reaper and the workers all write it: terminal states and the event timeline.
+
+Every state change is a conditional UPDATE (the row must still be unfinished, and whatever
+else the caller saw), so concurrent writers never overwrite each other's ending, and each
+change that took effect is recorded as a :class:`~voxe_service.models.JobEvent` in the same
+transaction.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+from sqlalchemy import update
+from sqlalchemy.orm import Session
+
+from voxe_service.models import TERMINAL_STATES, Job, JobEvent, utcnow
+
+
+def record_event(session: Session, job_id: str, kind: str, *, stage: str | None = None,
+                 iteration: int | None = None, worker: str | None = None, detail: str | None = None) -> None:
+    """Add one event to the job's timeline (committed with the caller's transaction)."""
+    session.add(JobEvent(job_id=job_id, kind=kind, stage=stage, iteration=iteration, worker_hostname=worker,
+                         detail=detail, at=utcnow()))
+
+
+def finish_jobs(session: Session, job_ids: Iterable[str], state: str, *, message: str | None = None,
+                error: str | None = None, where: Iterable = ()) -> list[str]:
+    """Move the unfinished jobs among ``job_ids`` (that also match ``where``) to the terminal ``state``.
+
+    Returns the ids that changed, each with a ``state`` event carrying the error or message.
+    """
+    ids = list(job_ids)
+    if not ids:
+        return []
+    now = utcnow()
+    changed = session.execute(
+        update(Job).where(Job.id.in_(ids), Job.state.not_in(TERMINAL_STATES), *where)
+        .values(state=state, finished_at=now, updated_at=now, eta_seconds=None, message=message, error=error)
+        .returning(Job.id, Job.stage)
+    ).all()
+    for job_id, stage in changed:
+        record_event(session, job_id, state, stage=stage, detail=error or message)
+    return [job_id for job_id, _ in changed]

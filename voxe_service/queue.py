@@ -1,0 +1,187 @@
+"""The queue contract between the API and the workers: queues, task names and messages, the stage chain,
+a Celery app factory and the sender.
+
+Every task message carries one positional argument, an id (:class:`TaskSpec`); everything
+else a task needs is in the database and the storage, so a message can be redelivered or
+re-sent at any time. The API only *sends* by name (:class:`TaskQueue`); the worker builds
+its own app with the same factory and registers the tasks (``worker/celery_app.py``).
+Importing this module builds nothing: apps come from :func:`create_celery_app`.
+
+Long GPU tasks: late acks, one prefetched message, a rejected (redelivered) message when
+the worker process dies, and a broker visibility timeout above the hard time limit so
+Redis never redelivers a task that is still running.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import TYPE_CHECKING, TypedDict
+
+from sqlalchemy import select, update
+from sqlalchemy.orm import Session
+
+from voxe_service.jobs import finish_jobs
+from voxe_service.models import EVALUATE, FAILED, QUEUED, Job
+from voxe_service.settings import Settings, get_settings
+
+if TYPE_CHECKING:
+    from celery import Celery
+    from celery.canvas import Signature
+
+log = logging.getLogger("voxe.queue")
+
+GPU_QUEUE = "gpu"  # every voxe task: one per GPU worker at a time
+DEFAULT_QUEUE = "celery"
+STAGES = ("reconstruct", "edit", "refine", "export", "evaluate")
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """A task of the contract: its Celery name, its queue and the id its one positional argument is."""
+
+    name: str
+    argument: str
+    queue: str = GPU_QUEUE
+
+
+STAGE_TASKS = {stage: TaskSpec(f"voxe.{stage}", "job_id") for stage in STAGES}
+INGEST_TASK = TaskSpec("voxe.ingest", "scene_id")  # decode (and for a mesh, render) an upload
+TASK_NAMES = {stage: spec.name for stage, spec in STAGE_TASKS.items()}
+
+
+class TaskResult(TypedDict, total=False):
+    """What a task returns (logged by Celery; the service keeps no results: the database has the state)."""
+
+    job_id: str
+    scene_id: str
+    stage: str
+    state: str  # "done", "failed", "canceled", "ready"
+    skipped: str  # why nothing ran (a redelivered or stale message)
+
+
+class QueueUnavailable(RuntimeError):
+    """The broker refused a message; the jobs (or the scene) it was for have been failed with the reason."""
+
+
+def job_stages(mode: str) -> list[str]:
+    if mode == EVALUATE:  # an evaluation job (SPEC §4) has one stage
+        return ["evaluate"]
+    return ["reconstruct", "edit"] + (["refine"] if mode == "local" else []) + ["export"]
+
+
+def is_sql_broker(url: str) -> bool:
+    return url.split("://", 1)[0].split("+", 1)[0] in ("sqla", "sqlalchemy")
+
+
+def broker_transport_options(settings: Settings) -> dict:
+    if is_sql_broker(settings.broker_url):
+        return {"polling_interval": settings.broker_polling_interval}  # SQLite: WAL and timeouts in voxe_service.broker
+    # Redis / SQS: a message not acked within this many seconds is redelivered.
+    return {"visibility_timeout": settings.broker_visibility_timeout_s}
+
+
+def create_celery_app(settings: Settings | None = None, include: Sequence[str] = ()) -> Celery:
+    """A Celery app on the settings' broker; ``include``: task modules a worker imports (none for a sender)."""
+    from celery import Celery
+    from kombu import Queue
+
+    from voxe_service.broker import register as register_sql_transport
+    from voxe_service.db import ensure_sqlite_dir
+
+    settings = settings or get_settings()
+    register_sql_transport()
+    if is_sql_broker(settings.broker_url) and "+sqlite" in settings.broker_url:
+        ensure_sqlite_dir(settings.broker_url.split("+", 1)[1])
+    app = Celery("voxe", broker=settings.broker_url, include=list(include))
+    app.conf.update(
+        task_serializer="json",
+        accept_content=["json"],
+        result_backend=None,
+        task_ignore_result=True,
+        task_acks_late=True,
+        task_reject_on_worker_lost=True,
+        worker_prefetch_multiplier=1,
+        worker_max_tasks_per_child=settings.worker_max_tasks_per_child,
+        task_soft_time_limit=settings.task_soft_time_limit_s,
+        task_time_limit=settings.task_time_limit_s,
+        broker_transport_options=broker_transport_options(settings),
+        broker_connection_retry_on_startup=True,
+        task_default_queue=DEFAULT_QUEUE,
+        task_queues=(Queue(GPU_QUEUE), Queue(DEFAULT_QUEUE)),
+        task_routes={"voxe.*": {"queue": GPU_QUEUE}},
+        worker_send_task_events=False,
+        task_track_started=False,
+        worker_hijack_root_logger=False,
+    )
+    return app
+
+
+class TaskQueue:
+    """Sends the contract's messages by task name: the sender needs none of the task code."""
+
+    def __init__(self, app: Celery):
+        self.app = app
+
+    def stage_chain(self, job_id: str, mode: str, done: Iterable[str] = (), then_evaluate: Iterable[str] = ()):
+        """The Celery chain of a job's stages not in ``done``.
+
+        ``then_evaluate``: evaluation jobs whose task follows the last stage (a sweep scores each
+        edit once it is done; a failed or canceled edit still lets the evaluation record why).
+        """
+        from celery import chain
+
+        done = set(done)
+        stages = [s for s in job_stages(mode) if s not in done]
+        return chain(*(self._message(STAGE_TASKS[s], job_id) for s in stages),
+                     *(self._message(STAGE_TASKS["evaluate"], e) for e in then_evaluate))
+
+    def send(self, signature) -> str | None:
+        """Hand a signature or chain to the broker; its task id."""
+        return getattr(signature.apply_async(), "id", None)
+
+    def send_ingest(self, scene_id: str) -> str | None:
+        return self.send(self._message(INGEST_TASK, scene_id))
+
+    def _message(self, spec: TaskSpec, object_id: str) -> Signature:
+        return self.app.signature(spec.name, args=(object_id,), immutable=True, queue=spec.queue)
+
+
+@lru_cache
+def get_queue() -> TaskQueue:
+    """The process's sender, on the broker of the settings (``reset_queue`` forgets it)."""
+    return TaskQueue(create_celery_app())
+
+
+def reset_queue() -> None:
+    get_queue.cache_clear()
+
+
+# ------------------------------------------------------------------ dispatch
+def evaluations_waiting_on(session: Session, job: Job) -> list[str]:
+    """Queued evaluation jobs of ``job``'s sweep that score it (their task follows its chain)."""
+    if job.batch_id is None or job.mode == EVALUATE:
+        return []
+    waiting = session.scalars(select(Job).where(Job.batch_id == job.batch_id, Job.mode == EVALUATE,
+                                                Job.state == QUEUED))
+    return [e.id for e in waiting if job.id in (e.source_job_ids or [])]
+
+
+def dispatch_job(session: Session, queue: TaskQueue, job: Job, done: Iterable[str] = ()) -> None:
+    """Send the job's remaining stages (and the evaluations waiting on it), recording the task id on each.
+
+    When the broker refuses, the jobs are failed with the reason and :class:`QueueUnavailable` is raised.
+    """
+    ids = [job.id, *evaluations_waiting_on(session, job)]
+    try:
+        task_id = queue.send(queue.stage_chain(job.id, job.mode, done, ids[1:]))
+    except Exception as exc:  # noqa: BLE001 - broker down: the jobs cannot run
+        log.exception("could not queue job(s) %s", ids)
+        reason = f"could not queue the job: {type(exc).__name__}: {exc}"
+        finish_jobs(session, ids, FAILED, error=reason)
+        session.commit()
+        raise QueueUnavailable(reason) from None
+    session.execute(update(Job).where(Job.id.in_(ids)).values(task_id=task_id, message=None))
+    session.commit()

@@ -1,0 +1,151 @@
+"""The ingest stage of an upload: decode every image (and load and render a mesh) off the request path.
+
+The API stored what passed its cheap checks and left the scene ``processing``
+(``api/uploads.py``). Here the stored archive is unpacked, a mesh upload is rendered into
+``MESH_VIEWS`` upper-hemisphere views (``voxe_core.mesh_input.write_mesh_dataset``) and
+packed with the mesh as the scene's dataset archive, and the dataset is loaded in full
+with ``voxe_core.data.load_scene`` at ``VOXE_VALIDATION_DOWNSAMPLE``. Then the scene is
+``ready`` and the jobs waiting on it are dispatched, or ``failed`` with the message of the
+error (file and frame, as the API's 422s) and the jobs waiting on it fail naming it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import shutil
+import tempfile
+from pathlib import Path
+
+from sqlalchemy import update
+
+from voxe_core.data import DatasetError, load_scene
+from voxe_core.mesh_input import MESH_INPUT_SUFFIXES, TEXTURE_SUFFIXES, MeshError, load_mesh, write_mesh_dataset
+from voxe_service import datasets
+from voxe_service.db import session_scope
+from voxe_service.models import PROCESSING, Scene, utcnow
+from voxe_service.queue import QueueUnavailable, TaskResult, dispatch_job, get_queue
+from voxe_service.scenes import fail_scene, mark_ready
+from voxe_service.settings import Settings
+from voxe_service.storage import Storage, scene_key
+
+log = logging.getLogger("voxe.worker")
+
+
+class IngestError(ValueError):
+    """The upload is not a usable dataset; the message is the scene's failure reason."""
+
+
+def load_stored_mesh(dataset: Path):
+    """The mesh a mesh scene's archive keeps under ``mesh/`` (as the API packed it), as ``load_mesh`` reads it."""
+    kept = dataset / datasets.MESH_FOLDER
+    meshes = [p for p in sorted(kept.glob("mesh.*")) if p.suffix in MESH_INPUT_SUFFIXES]
+    if len(meshes) != 1:
+        raise MeshError(f"the scene's archive holds no {datasets.MESH_FOLDER}/mesh.obj or .ply (not uploaded as a mesh?)")
+    textures = [p for p in sorted(kept.glob("texture.*")) if p.suffix in TEXTURE_SUFFIXES]
+    return load_mesh(meshes[0], textures[0] if textures else None)
+
+
+def render_mesh(root: Path) -> None:
+    """Render the mesh kept in ``root/mesh/`` into a NeRF-synthetic dataset in ``root`` (mesh input route (a))."""
+    try:
+        mesh = load_stored_mesh(root)
+    except MeshError as exc:
+        raise IngestError(f"invalid mesh: {_as_uploaded(str(exc), root / datasets.MESH_FOLDER)}") from None
+    write_mesh_dataset(mesh, root, datasets.MESH_VIEWS, datasets.MESH_VIEW_SIZE)
+
+
+def _as_uploaded(message: str, kept: Path) -> str:
+    """A message naming the kept files (``mesh.obj: ...``) by the names they were uploaded under."""
+    names = kept / datasets.MESH_NAMES
+    for stored, uploaded in (json.loads(names.read_text()) if names.is_file() else {}).items():
+        message = re.sub(rf"(?<![\w.]){re.escape(stored)}\b", lambda _match, name=uploaded: name, message)
+    return message
+
+
+def _relative_message(exc: Exception, root: Path) -> str:
+    message = str(exc)
+    for prefix in sorted({str(root.resolve()), str(root)}, key=len, reverse=True):
+        message = message.replace(prefix + os.sep, "").replace(prefix, "<upload>")
+    return message
+
+
+def decode(root: Path, downsample: int) -> int:
+    """Load the dataset folder's training split in full (every image decoded); its number of images."""
+    try:
+        try:
+            scene = load_scene(root, "train", downsample=downsample, confine_paths=True)
+        except DatasetError as exc:
+            if "smaller than downsample" not in str(exc):
+                raise
+            scene = load_scene(root, "train", downsample=1, confine_paths=True)
+    except DatasetError as exc:
+        raise IngestError(f"invalid dataset: {_relative_message(exc, root)}") from None
+    return len(scene)
+
+
+def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: str | None) -> TaskResult:
+    """Take the scene's ingest (processing only), decode it, then mark it ready or failed."""
+    with session_scope() as session:
+        scene = session.get(Scene, scene_id)
+        if scene is None or scene.state != PROCESSING:
+            return {"scene_id": scene_id, "skipped": f"scene {scene_id} is {scene.state if scene else 'gone'}"}
+        session.execute(update(Scene).where(Scene.id == scene_id, Scene.state == PROCESSING)
+                        .values(worker_hostname=hostname, updated_at=utcnow()))
+        upload_key = scene.storage_key
+    mesh_upload = upload_key == scene_key(scene_id, datasets.UPLOAD_ARCHIVE)
+    work = Path(settings.work_dir) / "ingest"
+    work.mkdir(parents=True, exist_ok=True)
+    scratch = Path(tempfile.mkdtemp(dir=work, prefix=f"{scene_id}-"))
+    values: dict = {}
+    try:
+        root = datasets.unpack(storage.get_file(upload_key, scratch / "archive.zip"), scratch / "data")
+        if mesh_upload:
+            render_mesh(root)
+        count = decode(root, settings.validation_downsample)
+        if mesh_upload:  # the rendered dataset (and the mesh beside it) becomes the scene's archive
+            archive = scratch / datasets.DATASET_ARCHIVE
+            datasets.package(root, archive)
+            stored = storage.put_file(scene_key(scene_id, datasets.DATASET_ARCHIVE), archive, "application/zip")
+            size = datasets.MESH_VIEW_SIZE
+            values = dict(storage_key=stored.key, size_bytes=stored.size, sha256=stored.sha256, image_count=count,
+                          width=size, height=size, splits=["train", "test"])
+    except Exception as exc:  # noqa: BLE001 - every failure becomes the scene's reason
+        reason = str(exc) if isinstance(exc, IngestError) else f"ingest: {type(exc).__name__}: {exc}"
+        if not isinstance(exc, IngestError):
+            log.exception("scene %s: ingest failed", scene_id)
+        _fail(scene_id, reason, storage)
+        return {"scene_id": scene_id, "state": "failed"}
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    return _ready(scene_id, values, storage, upload_key if mesh_upload else None)
+
+
+def _fail(scene_id: str, reason: str, storage: Storage) -> None:
+    with session_scope() as session:
+        failed = fail_scene(session, scene_id, reason)
+    if failed:  # its bytes are of no use to any job: free the key's upload quota
+        storage.delete_prefix(scene_key(scene_id))
+        log.warning("scene %s failed: %s", scene_id, reason)
+
+
+def _ready(scene_id: str, values: dict, storage: Storage, replaced_key: str | None) -> TaskResult:
+    with session_scope() as session:
+        waiting = mark_ready(session, scene_id, **values)
+        if waiting is None:  # deleted (or failed by the reaper) while it was decoded: keep nothing of it
+            session.rollback()
+            storage.delete_prefix(scene_key(scene_id))
+            return {"scene_id": scene_id, "skipped": f"scene {scene_id} was deleted or failed meanwhile"}
+        session.commit()
+        if replaced_key:
+            storage.delete(replaced_key)
+        queue = get_queue()
+        for job in waiting:
+            try:
+                dispatch_job(session, queue, job)
+            except QueueUnavailable:  # recorded on the job; the rest may still go out
+                log.warning("scene %s: could not dispatch job %s", scene_id, job.id)
+    log.info("scene %s ready; dispatched %d waiting job(s)", scene_id, len(waiting))
+    return {"scene_id": scene_id, "state": "ready"}
