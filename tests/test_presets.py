@@ -13,7 +13,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from api.schemas import JobParams
-from service_helpers import MIC, reset_service_caches, service_env, small_mic, zip_folder
+from needs import require_data
+from service_helpers import MIC, ingest, reset_service_caches, service_env, small_mic, zip_folder
 from voxe_core.cli import build_parser
 from voxe_core.cli import edit as edit_command
 from voxe_core.cli import reconstruct as reconstruct_command
@@ -132,8 +133,7 @@ def test_a_scene_backbone_gets_the_real_scene_schedule_and_objects_keep_the_pape
 @pytest.fixture
 def service(tmp_path, monkeypatch):
     """An embedded service (no worker process) with a 3-view mic scene; yields (client, scene id)."""
-    if not MIC.is_dir():
-        pytest.skip(f"shared data missing: {MIC}")
+    require_data(MIC)
     for key, value in service_env(tmp_path, VOXE_CHECKPOINT_EVERY=str(CHECKPOINT_EVERY)).items():
         monkeypatch.setenv(key, value)
     reset_service_caches()
@@ -144,6 +144,7 @@ def service(tmp_path, monkeypatch):
         with open(archive, "rb") as handle:
             response = client.post("/v1/scenes", files={"archive": ("mic.zip", handle, "application/zip")})
         assert response.status_code == 201, response.text
+        assert ingest(response.json()["id"])["state"] == "ready"  # no worker process here: decode in-process
         yield client, response.json()["id"]
     reset_service_caches()
 
