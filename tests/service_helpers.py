@@ -138,10 +138,25 @@ class Process:
         self._log.close()
 
 
+class Deadline:
+    """A wait's limit in seconds of an unloaded machine: on a busy one (load average above the core count) it
+    stretches by load / cores, read afresh at every check, so a slow worker is waited for and a stuck one is not."""
+
+    def __init__(self, seconds: float):
+        self.seconds, self.start = seconds, time.monotonic()
+
+    def __bool__(self) -> bool:  # True while time is left
+        load = os.getloadavg()[0] / (os.cpu_count() or 1)
+        return time.monotonic() - self.start < self.seconds * max(1.0, load)
+
+    def __str__(self) -> str:
+        return f"{time.monotonic() - self.start:.0f} s (limit {self.seconds:.0f} s on an unloaded machine)"
+
+
 def wait_until(predicate, timeout: float, interval: float = 0.2, what: str = "condition", processes=()):
-    deadline = time.monotonic() + timeout
+    deadline = Deadline(timeout)
     last = None
-    while time.monotonic() < deadline:
+    while deadline:
         for p in processes:
             if not p.alive():
                 raise RuntimeError(f"{p.name} exited with {p.proc.returncode} while waiting for {what}\n{p.tail()}")
@@ -153,7 +168,7 @@ def wait_until(predicate, timeout: float, interval: float = 0.2, what: str = "co
             last = exc
         time.sleep(interval)
     tails = "\n".join(p.tail() for p in processes)
-    raise TimeoutError(f"timed out after {timeout:.0f} s waiting for {what} (last: {last!r})\n{tails}")
+    raise TimeoutError(f"timed out after {deadline} waiting for {what} (last: {last!r})\n{tails}")
 
 
 @contextlib.contextmanager
@@ -399,9 +414,9 @@ def poll_job(client: httpx.Client, svc: Service, job_id: str, until=None, timeou
 
     ``seen`` collects every record polled (to check what happened along the way).
     """
-    deadline = time.monotonic() + timeout
+    deadline = Deadline(timeout)
     job = None
-    while time.monotonic() < deadline:
+    while deadline:
         for p in svc.processes:
             assert p.alive(), f"{p.name} died\n{svc.diagnostics()}"
         job = client.get(f"/v1/jobs/{job_id}").json()
@@ -410,7 +425,7 @@ def poll_job(client: httpx.Client, svc: Service, job_id: str, until=None, timeou
         if (until or (lambda j: j["state"] in FINISHED))(job):
             return job
         time.sleep(0.25)
-    raise AssertionError(f"job {job_id} still {job and job['state']} after {timeout} s: {job}\n{svc.diagnostics()}")
+    raise AssertionError(f"job {job_id} still {job and job['state']} after {deadline}: {job}\n{svc.diagnostics()}")
 
 
 def job_events(client: httpx.Client, job_id: str) -> list[dict]:
@@ -426,8 +441,8 @@ def wait_for_event(client: httpx.Client, svc: Service, job_id: str, matches, tim
     Events are recorded when the thing happened (a checkpoint stored, a stage entered), so a
     test that waits on them does not depend on how fast the worker runs or the poll samples.
     """
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
+    deadline = Deadline(timeout)
+    while deadline:
         for p in svc.processes:
             assert p.alive(), f"{p.name} died\n{svc.diagnostics()}"
         events = job_events(client, job_id)
@@ -436,7 +451,7 @@ def wait_for_event(client: httpx.Client, svc: Service, job_id: str, matches, tim
         if events and events[-1]["kind"] in FINISHED:
             raise AssertionError(f"job {job_id} finished before {what}: {events}\n{svc.diagnostics()}")
         time.sleep(0.1)
-    raise AssertionError(f"no {what} for job {job_id} after {timeout} s\n{svc.diagnostics()}")
+    raise AssertionError(f"no {what} for job {job_id} after {deadline}\n{svc.diagnostics()}")
 
 
 def entered(stage: str):
@@ -470,15 +485,15 @@ def check_resumed_from_the_last_checkpoint(events_at_kill: list[dict], events: l
 
 def wait_for_scene(client: httpx.Client, svc: Service, scene_id: str, timeout: float = 240) -> dict:
     """Poll the scene until its ingest is done (ready or failed)."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
+    deadline = Deadline(timeout)
+    while deadline:
         for p in svc.processes:
             assert p.alive(), f"{p.name} died\n{svc.diagnostics()}"
         scene = client.get(f"/v1/scenes/{scene_id}").json()
         if scene["state"] != "processing":
             return scene
         time.sleep(0.2)
-    raise AssertionError(f"scene {scene_id} still processing after {timeout} s\n{svc.diagnostics()}")
+    raise AssertionError(f"scene {scene_id} still processing after {deadline}\n{svc.diagnostics()}")
 
 
 def _kill(process: Process) -> None:
