@@ -153,12 +153,12 @@ def time_run(label: str, model_path: Path, device: str, dtype: torch.dtype, reso
 
     t0 = time.perf_counter()
     guidance = StableDiffusionGuidance.from_pretrained(
-        str(model_path), device=device, dtype=dtype, local_files_only=True, resolution=resolution
+        str(model_path), device=device, dtype=dtype, local_files_only=True, resolution=resolution, sync_timing=True
     )
     load_s = time.perf_counter() - t0
     grid = sphere_grid(GRID_RESOLUTION)
     reports = []
-    config = EditConfig(iterations=warm + timed, render_size=render_size, seed=0)
+    config = EditConfig(iterations=warm + timed, render_size=render_size, seed=0, sync_timing=True)
     load_before = os.getloadavg()[0]
     t0 = time.perf_counter()
     edit(grid, "a dog wearing big sunglasses", guidance, config, Callbacks(on_progress=reports.append))
