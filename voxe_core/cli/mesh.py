@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from voxe_core.cli.common import EXIT_INTERRUPTED, int_list, positive_int, run_stage
+from voxe_core.cli.common import EXIT_INTERRUPTED, add_device_argument, check_device, int_list, positive_int, run_stage
 from voxe_core.cli.reconstruct import recipe_params
 from voxe_core.presets import RECONSTRUCTION_PRESET, RECONSTRUCTION_PRESETS, SEED, ExportConfig, reconstruct_config
 
@@ -19,6 +19,7 @@ def add_parsers(commands, common) -> None:
     mesh.add_argument("--level", type=float, default=None, help="surface density (default ln 2 / voxel size)")
     mesh.add_argument("--resolution", type=positive_int, default=ExportConfig.mesh_resolution,
                       help="resample to N points per axis")
+    add_device_argument(mesh)
     mesh.set_defaults(run=cmd_export_mesh)
 
     mg = commands.add_parser("mesh-to-grid", parents=[common],
@@ -47,7 +48,8 @@ def cmd_export_mesh(args) -> int:
 
     if args.out.suffix.lower() not in MESH_SUFFIXES:
         raise ValueError(f"unsupported mesh suffix {args.out.suffix!r}; use one of {', '.join(MESH_SUFFIXES)}")
-    grid = load_grid(args.grid)
+    device = check_device(args)
+    grid = load_grid(args.grid).to(device)  # the density lattice is sampled there; marching cubes runs on the CPU
     mesh = extract_mesh(grid, level=args.level, resolution=args.resolution)
     save_mesh(mesh, args.out)
     print(f"wrote {args.out}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces")
