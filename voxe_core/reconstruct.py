@@ -261,9 +261,9 @@ def reconstruct(
         tensors, meta = load_tensors(resume_from, kind="reconstruction_checkpoint", max_version=CHECKPOINT_FORMAT_VERSION)
         grid = grid_from_state(tensors, meta)
         generator.set_state(tensors["rng_state"])
-        tensors = {name: value.to(device) for name, value in tensors.items() if name != "rng_state"}
+        start_stage, start_iteration = meta["stage"], meta["iteration"]
+        resumed = {name: value.to(device) for name, value in tensors.items() if name != "rng_state"}
     grid = grid.to(device)
-        start_stage, start_iteration, resumed = meta["stage"], meta["iteration"], tensors
 
     total = config.total_iterations
     done = sum(config.iterations[:start_stage]) + start_iteration
