@@ -77,7 +77,7 @@ def test_ctrl_c_cancels_cleanly_and_resume_finishes_the_same_fit(fitted, tmp_pat
     real = voxe_core.reconstruct.reconstruct
     seen = []
 
-    def interrupted(images, cameras, config, callbacks, checkpoint_path, resume_from, initial_grid=None):
+    def interrupted(images, cameras, config, callbacks, checkpoint_path, resume_from, initial_grid=None, device="cpu"):
         report = callbacks.on_progress
 
         def on_progress(p):
@@ -87,7 +87,7 @@ def test_ctrl_c_cancels_cleanly_and_resume_finishes_the_same_fit(fitted, tmp_pat
                 os.kill(os.getpid(), signal.SIGINT)  # what Ctrl-C does
 
         callbacks.on_progress = on_progress
-        return real(images, cameras, config, callbacks, checkpoint_path, resume_from, initial_grid)
+        return real(images, cameras, config, callbacks, checkpoint_path, resume_from, initial_grid, device)
 
     monkeypatch.setattr(voxe_core.reconstruct, "reconstruct", interrupted)
     out, ck = tmp_path / "g.safetensors", tmp_path / "ck.safetensors"

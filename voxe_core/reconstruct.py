@@ -101,6 +101,11 @@ def _stage_data(images: torch.Tensor, cameras: Cameras, downsample: int):
     return origins, directions, images.reshape(-1, 3).contiguous()
 
 
+def _sampling_generator(device: torch.device, seed: int) -> torch.Generator:
+    """The seeded generator of ray batches and jitter, on the device they are drawn on (no host round trip)."""
+    return torch.Generator(device=device).manual_seed(seed)
+
+
 def _learning_rate(config: ReconstructConfig, stage: int, iteration: int) -> float:
     lr = config.lr * config.lr_stage_decay**stage
     return lr * config.lr_drop_factor if iteration >= config.lr_drop_iteration else lr
@@ -252,7 +257,7 @@ def reconstruct(
     device = resolve_device(device)
     memory = PeakMemory(device).start()
     images, cameras = images.to(device, torch.float32), cameras.to(device)
-    generator = torch.Generator(device=device).manual_seed(config.seed)
+    generator = _sampling_generator(device, config.seed)
     grid = initial_grid if initial_grid is not None else VoxelGrid(
         config.resolutions[0], config.bbox_min, config.bbox_max, config.activation, init_density=config.init_density
     )
