@@ -142,3 +142,50 @@ def test_stages_report_peak_memory_in_progress(make_sphere_grid):
     assert {r.stage for r in reports} == {"render", "reconstruct"}
     for report in reports:
         assert report.info["peak_memory_kind"] == "process_rss" and report.info["peak_memory_gb"] > 0.01
+
+
+# ----------------------------------------------------------------- host round trips of the hot loop
+HOST_READS = {"item", "tolist", "__bool__", "__int__", "__float__", "nonzero", "unique_consecutive", "cpu", "numpy"}
+
+
+class HostReads(torch.overrides.TorchFunctionMode):
+    """Counts the tensor operations that make a CUDA stream wait for the host (by name)."""
+
+    def __init__(self):
+        super().__init__()
+        self.calls: dict[str, int] = {}
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        name = getattr(func, "__name__", "")
+        if name in HOST_READS:
+            self.calls[name] = self.calls.get(name, 0) + 1
+        return func(*args, **(kwargs or {}))
+
+
+def test_the_renderers_hot_loop_reads_the_host_only_where_shapes_depend_on_data(make_sphere_grid):
+    """One edit-loop render: occupancy with no read at all; the sampler's data-dependent sizes in 6 reads
+    (segment width, groups, two packings, early stop, one batched tolist), not one per scalar."""
+    from voxe_core.cameras import camera_rays
+    from voxe_core.render import RenderConfig, render_rays
+
+    grid = make_sphere_grid(48)
+    config = RenderConfig(step_ratio=0.6)
+    origins, directions = camera_rays(_views(1, 32)[1], 0)
+    with HostReads() as occupancy_reads:
+        occupancy = grid.occupancy(config.sigma_threshold)
+    with HostReads() as render_reads:
+        out = render_rays(grid, origins, directions, config, occupancy, torch.Generator().manual_seed(0))
+    assert occupancy_reads.calls == {}
+    assert render_reads.calls == {"tolist": 2, "unique_consecutive": 1, "nonzero": 3}
+    assert out.samples > 0 and out.opacity.max() > 0.5  # the sphere was rendered
+
+
+def test_sync_free_occupancy_box_matches_the_occupied_cells(make_sphere_grid):
+    grid = make_sphere_grid(20, radius=0.5, center=(0.3, -0.2, 0.1))
+    occupancy = grid.occupancy()
+    index = occupancy.cells.nonzero()
+    vox = grid.voxel_size
+    torch.testing.assert_close(occupancy.bbox_min, grid.bbox_min + index.min(0).values * vox)
+    torch.testing.assert_close(occupancy.bbox_max, grid.bbox_min + (index.max(0).values + 1) * vox)
+    empty = grid.occupancy_from_cells(torch.zeros_like(occupancy.cells))
+    assert empty.empty and torch.equal(empty.bbox_min, grid.bbox_min) and torch.equal(empty.bbox_max, grid.bbox_min)
