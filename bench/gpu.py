@@ -72,18 +72,22 @@ class Profile:
     downsample: int
     max_images: int | None
     refine: dict
+    export: dict
 
     @classmethod
     def full(cls) -> "Profile":
         return cls("cuda", torch.float16, 512, 266, 160, 5, 20, 500, 500,
-                   {"fast": {"preset": "fast"}, "paper": {"preset": "paper"}}, 3, None, {})
+                   {"fast": {"preset": "fast"}, "paper": {"preset": "paper"}}, 3, None, {},
+                   {"views": 4, "turntable_frames": 30, "gif": False})
 
     @classmethod
     def smoke(cls) -> "Profile":
         tiny_fit = {"resolution": 24, "iterations": 20, "rays_per_step": 1024}  # enough for an occupied G_i
         return cls("cpu", torch.float32, 64, 24, 24, 1, 2, 3, 2,
                    {"fast": {"preset": "fast", **tiny_fit}, "paper": {"preset": "paper", **tiny_fit}}, 16, 8,
-                   {"views": 4, "iterations": 20, "render_size": 64, "rays_per_step": 2048})
+                   {"views": 4, "iterations": 20, "render_size": 64, "rays_per_step": 2048},
+                   {"views": 1, "view_size": 32, "turntable_frames": 4, "turntable_size": 32, "gif": False,
+                    "mesh_resolution": 32})
 
 
 def _synchronize(device: str) -> None:
@@ -277,7 +281,7 @@ def job_run(sd2: Path, sd14: Path, profile: Profile, data: Path, root: Path, loo
         archive = zip_folder(small_mic(root / "mic", frames=profile.max_images or 100), root / "mic.zip", prefix="mic")
         params = {"downsample": profile.downsample, "iterations": profile.job_iterations,
                   "reconstruction": profile.reconstruction["fast"], "refine": profile.refine,
-                  "export": {"views": 4, "turntable_frames": 30, "gif": False}}
+                  "export": profile.export}
         with TestClient(create_app()) as client, open(archive, "rb") as handle:
             scene = client.post("/v1/scenes", files={"archive": ("mic.zip", handle, "application/zip")}).json()
             ingest(scene["id"])
