@@ -129,6 +129,17 @@ def test_sds_loss_is_reproducible_with_a_generator(guidance):
     assert not torch.allclose(grads[0], grads[2])
 
 
+@torch.no_grad()
+def _expected_sds_grad(guidance, latents, noise, t, cond, scale):
+    """(1 - alphā_t)(eps_u + s(eps_c - eps_u) - eps) from the ε-predicting UNet, and (z_t, eps_c)."""
+    a = guidance.alphas_cumprod[t].reshape(-1, 1, 1, 1)
+    noisy = a.sqrt() * latents + (1 - a).sqrt() * noise
+    uncond = guidance.unconditional_embedding().expand(len(t), -1, -1)
+    eps_u = guidance.unet(noisy, t, encoder_hidden_states=uncond).sample
+    eps_c = guidance.unet(noisy, t, encoder_hidden_states=cond).sample
+    return (1 - a) * (eps_u + scale * (eps_c - eps_u) - noise), (noisy, eps_c)
+
+
 def test_sds_gradient_is_weighted_cfg_residual(guidance):
     """d(loss)/d(latents) == (1 - alphā_t)(eps_u + s(eps_c - eps_u) - eps), computed independently."""
     g = torch.Generator().manual_seed(3)
@@ -141,13 +152,7 @@ def test_sds_gradient_is_weighted_cfg_residual(guidance):
     loss, _ = guidance.sds_loss_on_latents(latents, cond, t, guidance_scale=scale, noise=noise)
     loss.backward()
 
-    with torch.no_grad():
-        a = guidance.alphas_cumprod[t].reshape(2, 1, 1, 1)
-        noisy = a.sqrt() * latents + (1 - a).sqrt() * noise
-        uncond = guidance.unconditional_embedding().expand(2, -1, -1)
-        eps_u = guidance.unet(noisy, t, encoder_hidden_states=uncond).sample
-        eps_c = guidance.unet(noisy, t, encoder_hidden_states=cond).sample
-        expected = (1 - a) * (eps_u + scale * (eps_c - eps_u) - noise)
+    expected, _ = _expected_sds_grad(guidance, latents, noise, t, cond, scale)
     assert expected.abs().max() > 1e-3
     torch.testing.assert_close(latents.grad, expected, rtol=1e-4, atol=1e-5)
     direct, _ = guidance.sds_grad_on_latents(latents, cond, t, guidance_scale=scale, noise=noise)
@@ -366,13 +371,8 @@ def test_v_prediction_output_is_converted_to_epsilon_for_sds(guidance, tiny_path
     t = torch.tensor([50, 900])
     cond = guidance.encode_prompts(["a render of a dog, front view", "a render of a cat, side view"])
     scale = 7.5
-    with torch.no_grad():  # ε̂ known exactly: the ε model's guided output
-        a = guidance.alphas_cumprod[t].reshape(2, 1, 1, 1)
-        noisy = a.sqrt() * latents + (1 - a).sqrt() * noise
-        uncond = guidance.unconditional_embedding().expand(2, -1, -1)
-        eps_u = guidance.unet(noisy, t, encoder_hidden_states=uncond).sample
-        eps_c = guidance.unet(noisy, t, encoder_hidden_states=cond).sample
-        expected = (1 - a) * (eps_u + scale * (eps_c - eps_u) - noise)
+    expected, (noisy, eps_c) = _expected_sds_grad(guidance, latents, noise, t, cond, scale)  # the ε model's: exact
+    with torch.no_grad():
         raw_v = v_guidance.unet(noisy, t, encoder_hidden_states=cond).sample
     assert (raw_v - eps_c).abs().max() > 0.1  # read as ε, the v output would give another gradient
 
