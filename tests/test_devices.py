@@ -189,3 +189,12 @@ def test_sync_free_occupancy_box_matches_the_occupied_cells(make_sphere_grid):
     torch.testing.assert_close(occupancy.bbox_max, grid.bbox_min + (index.max(0).values + 1) * vox)
     empty = grid.occupancy_from_cells(torch.zeros_like(occupancy.cells))
     assert empty.empty and torch.equal(empty.bbox_min, grid.bbox_min) and torch.equal(empty.bbox_max, grid.bbox_min)
+
+
+def test_peak_memory_survives_a_nested_reset():
+    outer = PeakMemory("cpu").start()
+    block = torch.ones(64 << 20)
+    seen = outer.peak_bytes()
+    del block
+    PeakMemory("cpu").start()  # a nested stage resets the process counter
+    assert outer.peak_bytes() >= seen

@@ -87,7 +87,9 @@ class PeakMemory:
 
     On CPU the figure is the whole process's resident peak since ``start`` (it
     includes the interpreter and loaded libraries: an upper bound on the stage);
-    where the peak cannot be reset it is the process's lifetime peak.
+    where the peak cannot be reset it is the process's lifetime peak. Each read
+    keeps a running maximum, so a nested stage that resets the counter (the
+    evaluation's ring renders) loses none of what was read before it.
 
     Examples:
         >>> memory = PeakMemory("cpu").start()
@@ -98,6 +100,7 @@ class PeakMemory:
 
     def __init__(self, device: torch.device | str):
         self.device = torch.device(device)
+        self._max_bytes: int | None = None
 
     @property
     def kind(self) -> str | None:
@@ -117,8 +120,12 @@ class PeakMemory:
 
     def peak_bytes(self) -> int | None:
         if self.device.type == "cuda":
-            return int(torch.cuda.max_memory_allocated(self.device))
-        return _rss_peak_bytes() if self.device.type == "cpu" else None
+            current = int(torch.cuda.max_memory_allocated(self.device))
+        else:
+            current = _rss_peak_bytes() if self.device.type == "cpu" else None
+        if current is not None:
+            self._max_bytes = current if self._max_bytes is None else max(self._max_bytes, current)
+        return self._max_bytes
 
     def info(self) -> dict[str, object]:
         """``{"peak_memory_gb": GiB or None, "peak_memory_kind": ...}``, for a Progress report's info."""

@@ -375,6 +375,7 @@ def evaluate(
     done = [0]
 
     def stage_callbacks() -> Callbacks:
+        memory.peak_bytes()  # read before the ring's renders reset the counter
         base = done[0]
         done[0] += config.views
         return Callbacks(on_progress=lambda r: callbacks.progress(
