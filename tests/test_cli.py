@@ -112,6 +112,7 @@ def test_ctrl_c_cancels_cleanly_and_resume_finishes_the_same_fit(fitted, tmp_pat
     ["render", "no_such_grid.safetensors", "--ring", "2", "--out", "renders"],
     ["turntable", "no_such_grid.safetensors", "--out", "t.mp4"],
     ["export-mesh", "no_such_grid.safetensors", "--out", "m.ply"],
+    ["mesh-to-grid", "no_such_mesh.obj", "--route", "render", "--out", "g.safetensors"],
     ["evaluate", "no_such_grid.safetensors", "--edit", "e.safetensors", "a dog", "--object", "dog", "--out", "eval"],
 ])
 def test_stage_commands_refuse_a_missing_device_before_reading_anything(command, tmp_path, capsys, monkeypatch):

@@ -39,6 +39,7 @@ def add_parsers(commands, common) -> None:
     mg.add_argument("--iterations", type=int_list, default=None, metavar="N[,N...]", help="render route: as voxe reconstruct")
     mg.add_argument("--rays", type=positive_int, default=None, help="render route: rays per step")
     mg.add_argument("--seed", type=int, default=SEED)
+    add_device_argument(mg)  # the render route's reconstruction (the voxeliser is CPU code)
     mg.set_defaults(run=cmd_mesh_to_grid)
 
 
@@ -60,6 +61,7 @@ def cmd_mesh_to_grid(args) -> int:
     from voxe_core.mesh_input import VoxelizeConfig, hemisphere_cameras, load_mesh, render_mesh_views, voxelize
     from voxe_core.reconstruct import reconstruct
 
+    device = check_device(args)
     mesh = load_mesh(args.mesh, args.texture, args.up)
     if args.route == "voxelize":
         if args.resolution is not None and len(args.resolution) != 1:
@@ -70,7 +72,7 @@ def cmd_mesh_to_grid(args) -> int:
         config = reconstruct_config(recipe_params(args))
         cameras = hemisphere_cameras(args.views, args.size, args.seed)
         images, _ = render_mesh_views(mesh, cameras)
-        grid = run_stage(lambda callbacks: reconstruct(images, cameras, config, callbacks),
+        grid = run_stage(lambda callbacks: reconstruct(images, cameras, config, callbacks, device=device),
                          "reconstruct", "it", config.total_iterations, args.quiet)
         if grid is None:
             print(f"voxe: reconstruction cancelled, nothing written to {args.out}", file=sys.stderr)
