@@ -294,7 +294,7 @@ def job_run(sd2: Path, sd14: Path, profile: Profile, data: Path, root: Path, loo
                 outcome = task.apply(args=(job["id"],)).get()
                 seconds[stage] = time.perf_counter() - start
                 if outcome.get("state") != "done":
-                    raise RuntimeError(f"{stage}: {client.get(f'/v1/jobs/' + job['id']).json().get('error')}")
+                    raise RuntimeError(f"{stage}: {client.get('/v1/jobs/' + job['id']).json().get('error')}")
             done = client.get(f"/v1/jobs/{job['id']}").json()
     finally:
         for key, value in saved.items():

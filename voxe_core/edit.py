@@ -300,7 +300,7 @@ def edit(
     device = resolve_device(device if device is not None else (guidance_device or initial_grid.flat_features.device))
     if guidance_device is not None and torch.device(guidance_device).type != device.type:
         raise ValueError(f"the edit runs on {device} but its guidance model is on {guidance_device}; "
-                         f"load the guidance on the same device")
+                         "load the guidance on the same device")
     memory = PeakMemory(device).start()
     sync = config.sync_timing
     initial = initial_grid.features.detach().to(device).clone()
