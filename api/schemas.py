@@ -349,7 +349,9 @@ class JobOut(BaseModel):
     events_url: str = Field(description="the job's timeline: stages, checkpoints, resumes, its end")
     worker_hostname: str | None
     source_job_ids: list[str] | None = Field(None, description="evaluation jobs: the edit jobs scored")
-    result: dict | None = Field(None, description="evaluation jobs: the metrics (also the evaluation.json artifact)")
+    result: dict | None = Field(None, description=(
+        "peak_memory_gb: each stage's peak memory in GiB (peak_memory_kind: cuda_allocated on a GPU worker, "
+        "process_rss on a CPU one); evaluation jobs: the metrics too (also the evaluation.json artifact)"))
     batch_id: str | None = Field(None, description="the sweep this job belongs to")
     created_at: datetime
     started_at: datetime | None

@@ -52,8 +52,21 @@ COST_NOTE = "random weights: cost only"
 
 
 # ---------------------------------------------------------------- models
-def build_sd2_base_shaped(path: Path, tokenizer_from: Path, dtype: str = "float16") -> Path:
-    """Random-weight UNet / VAE / CLIP text encoder with Stable Diffusion 2 base's shapes, diffusers layout."""
+# What SD 1.4 (the paper's attention model) changes from SD 2 base: CLIP ViT-L/14 text (768 wide, 12 layers),
+# 8-head attention everywhere, conv projections.
+FAMILIES = {
+    "sd2-base": dict(cross_attention_dim=1024, attention_head_dim=(5, 10, 20, 20), use_linear_projection=True,
+                     text=dict(hidden_size=1024, intermediate_size=4096, projection_dim=1024, num_hidden_layers=23,
+                               num_attention_heads=16, hidden_act="gelu")),
+    "sd1.4": dict(cross_attention_dim=768, attention_head_dim=8, use_linear_projection=False,
+                  text=dict(hidden_size=768, intermediate_size=3072, projection_dim=768, num_hidden_layers=12,
+                            num_attention_heads=12, hidden_act="quick_gelu")),
+}
+
+
+def build_sd2_base_shaped(path: Path, tokenizer_from: Path, dtype: str = "float16", family: str = "sd2-base") -> Path:
+    """Random-weight UNet / VAE / CLIP text encoder with Stable Diffusion 2 base's (or ``family``'s) shapes,
+    diffusers layout."""
     import diffusers
     from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
     from transformers import CLIPTextConfig, CLIPTextModel, CLIPTokenizer
@@ -63,6 +76,7 @@ def build_sd2_base_shaped(path: Path, tokenizer_from: Path, dtype: str = "float1
     tokenizer = CLIPTokenizer.from_pretrained(str(path / "tokenizer"))
     save_dtype = getattr(torch, dtype)
     torch.manual_seed(0)
+    shapes = FAMILIES[family]
 
     unet = UNet2DConditionModel(
         sample_size=64,
@@ -72,9 +86,9 @@ def build_sd2_base_shaped(path: Path, tokenizer_from: Path, dtype: str = "float1
         up_block_types=("UpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D"),
         block_out_channels=(320, 640, 1280, 1280),
         layers_per_block=2,
-        cross_attention_dim=1024,
-        attention_head_dim=(5, 10, 20, 20),
-        use_linear_projection=True,
+        cross_attention_dim=shapes["cross_attention_dim"],
+        attention_head_dim=shapes["attention_head_dim"],
+        use_linear_projection=shapes["use_linear_projection"],
         norm_num_groups=32,
         flip_sin_to_cos=True,
         freq_shift=0,
@@ -99,13 +113,8 @@ def build_sd2_base_shaped(path: Path, tokenizer_from: Path, dtype: str = "float1
 
     text = CLIPTextModel(CLIPTextConfig(
         vocab_size=49408,
-        hidden_size=1024,
-        intermediate_size=4096,
-        projection_dim=1024,
-        num_hidden_layers=23,
-        num_attention_heads=16,
         max_position_embeddings=77,
-        hidden_act="gelu",
+        **shapes["text"],
         bos_token_id=tokenizer.bos_token_id,
         eos_token_id=tokenizer.eos_token_id,
         pad_token_id=tokenizer.eos_token_id,
@@ -120,7 +129,7 @@ def build_sd2_base_shaped(path: Path, tokenizer_from: Path, dtype: str = "float1
     (path / "model_index.json").write_text(json.dumps({
         "_class_name": "StableDiffusionPipeline",
         "_diffusers_version": diffusers.__version__,
-        "_name_or_path": "sd2-base-shaped RANDOM WEIGHTS (benchmark only)",
+        "_name_or_path": f"{family}-shaped RANDOM WEIGHTS (benchmark only)",
         "scheduler": ["diffusers", "DDIMScheduler"],
         "text_encoder": ["transformers", "CLIPTextModel"],
         "tokenizer": ["transformers", "CLIPTokenizer"],
@@ -153,12 +162,12 @@ def time_run(label: str, model_path: Path, device: str, dtype: torch.dtype, reso
 
     t0 = time.perf_counter()
     guidance = StableDiffusionGuidance.from_pretrained(
-        str(model_path), device=device, dtype=dtype, local_files_only=True, resolution=resolution
+        str(model_path), device=device, dtype=dtype, local_files_only=True, resolution=resolution, sync_timing=True
     )
     load_s = time.perf_counter() - t0
     grid = sphere_grid(GRID_RESOLUTION)
     reports = []
-    config = EditConfig(iterations=warm + timed, render_size=render_size, seed=0)
+    config = EditConfig(iterations=warm + timed, render_size=render_size, seed=0, sync_timing=True)
     load_before = os.getloadavg()[0]
     t0 = time.perf_counter()
     edit(grid, "a dog wearing big sunglasses", guidance, config, Callbacks(on_progress=reports.append))
@@ -253,10 +262,11 @@ def main() -> None:
                         help="torch CPU threads (default 1: on a shared 2-core box OpenMP hand-offs cost more than they give)")
     parser.add_argument("--build-full", type=Path, default=None, help=argparse.SUPPRESS)  # subprocess entry
     parser.add_argument("--tokenizer-from", type=Path, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--family", choices=FAMILIES, default="sd2-base", help=argparse.SUPPRESS)
     args = parser.parse_args()
 
     if args.build_full is not None:
-        build_sd2_base_shaped(args.build_full, args.tokenizer_from)
+        build_sd2_base_shaped(args.build_full, args.tokenizer_from, family=args.family)
         return
 
     from voxe_core.tiny_sd import build_tiny_stable_diffusion

@@ -77,7 +77,7 @@ def test_ctrl_c_cancels_cleanly_and_resume_finishes_the_same_fit(fitted, tmp_pat
     real = voxe_core.reconstruct.reconstruct
     seen = []
 
-    def interrupted(images, cameras, config, callbacks, checkpoint_path, resume_from, initial_grid=None):
+    def interrupted(images, cameras, config, callbacks, checkpoint_path, resume_from, initial_grid=None, device="cpu"):
         report = callbacks.on_progress
 
         def on_progress(p):
@@ -87,7 +87,7 @@ def test_ctrl_c_cancels_cleanly_and_resume_finishes_the_same_fit(fitted, tmp_pat
                 os.kill(os.getpid(), signal.SIGINT)  # what Ctrl-C does
 
         callbacks.on_progress = on_progress
-        return real(images, cameras, config, callbacks, checkpoint_path, resume_from, initial_grid)
+        return real(images, cameras, config, callbacks, checkpoint_path, resume_from, initial_grid, device)
 
     monkeypatch.setattr(voxe_core.reconstruct, "reconstruct", interrupted)
     out, ck = tmp_path / "g.safetensors", tmp_path / "ck.safetensors"
@@ -104,6 +104,23 @@ def test_ctrl_c_cancels_cleanly_and_resume_finishes_the_same_fit(fitted, tmp_pat
     assert main(["reconstruct", str(MIC), "--out", str(out), "--resume", str(ck), *TINY]) == 0
     resumed, uninterrupted = load_grid(out), load_grid(fitted)
     assert torch.allclose(resumed.features, uninterrupted.features, atol=1e-5)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="shows the refusal of a device this machine lacks")
+@pytest.mark.parametrize("command", [
+    ["reconstruct", "no_such_scene", "--out", "g.safetensors"],
+    ["render", "no_such_grid.safetensors", "--ring", "2", "--out", "renders"],
+    ["turntable", "no_such_grid.safetensors", "--out", "t.mp4"],
+    ["export-mesh", "no_such_grid.safetensors", "--out", "m.ply"],
+    ["mesh-to-grid", "no_such_mesh.obj", "--route", "render", "--out", "g.safetensors"],
+    ["evaluate", "no_such_grid.safetensors", "--edit", "e.safetensors", "a dog", "--object", "dog", "--out", "eval"],
+])
+def test_stage_commands_refuse_a_missing_device_before_reading_anything(command, tmp_path, capsys, monkeypatch):
+    """--device cuda on a CPU machine: exit 2 naming the device, not the missing input read after it."""
+    monkeypatch.chdir(tmp_path)
+    assert main([*command, "--device", "cuda"]) == 2
+    err = capsys.readouterr().err
+    assert "'cuda' asked for" in err and "no usable CUDA device" in err and "no_such" not in err
 
 
 def test_bad_data_dir_exits_2_with_a_message(tmp_path, capsys):

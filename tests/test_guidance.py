@@ -129,6 +129,17 @@ def test_sds_loss_is_reproducible_with_a_generator(guidance):
     assert not torch.allclose(grads[0], grads[2])
 
 
+@torch.no_grad()
+def _expected_sds_grad(guidance, latents, noise, t, cond, scale):
+    """(1 - alphā_t)(eps_u + s(eps_c - eps_u) - eps) from the ε-predicting UNet, and (z_t, eps_c)."""
+    a = guidance.alphas_cumprod[t].reshape(-1, 1, 1, 1)
+    noisy = a.sqrt() * latents + (1 - a).sqrt() * noise
+    uncond = guidance.unconditional_embedding().expand(len(t), -1, -1)
+    eps_u = guidance.unet(noisy, t, encoder_hidden_states=uncond).sample
+    eps_c = guidance.unet(noisy, t, encoder_hidden_states=cond).sample
+    return (1 - a) * (eps_u + scale * (eps_c - eps_u) - noise), (noisy, eps_c)
+
+
 def test_sds_gradient_is_weighted_cfg_residual(guidance):
     """d(loss)/d(latents) == (1 - alphā_t)(eps_u + s(eps_c - eps_u) - eps), computed independently."""
     g = torch.Generator().manual_seed(3)
@@ -141,13 +152,7 @@ def test_sds_gradient_is_weighted_cfg_residual(guidance):
     loss, _ = guidance.sds_loss_on_latents(latents, cond, t, guidance_scale=scale, noise=noise)
     loss.backward()
 
-    with torch.no_grad():
-        a = guidance.alphas_cumprod[t].reshape(2, 1, 1, 1)
-        noisy = a.sqrt() * latents + (1 - a).sqrt() * noise
-        uncond = guidance.unconditional_embedding().expand(2, -1, -1)
-        eps_u = guidance.unet(noisy, t, encoder_hidden_states=uncond).sample
-        eps_c = guidance.unet(noisy, t, encoder_hidden_states=cond).sample
-        expected = (1 - a) * (eps_u + scale * (eps_c - eps_u) - noise)
+    expected, _ = _expected_sds_grad(guidance, latents, noise, t, cond, scale)
     assert expected.abs().max() > 1e-3
     torch.testing.assert_close(latents.grad, expected, rtol=1e-4, atol=1e-5)
     direct, _ = guidance.sds_grad_on_latents(latents, cond, t, guidance_scale=scale, noise=noise)
@@ -330,3 +335,73 @@ def test_half_precision_model_returns_float32_gradients(tiny_path):
     assert loss.dtype == torch.float32
     loss.backward()
     assert image.grad.dtype == torch.float32 and torch.isfinite(image.grad).all() and image.grad.abs().sum() > 0
+
+
+# ----------------------------------------------------------------- prediction types
+def _v_prediction_guidance(tiny_path) -> StableDiffusionGuidance:
+    """The tiny model turned v-predicting: its UNet's ε output ε_θ is rewritten as v = √ᾱ·ε_θ − √(1−ᾱ)·x̂_0.
+
+    ε recovered from it must be ε_θ exactly, so its SDS gradient must be the ε model's.
+    """
+    from diffusers import DDIMScheduler
+
+    from voxe_core.guidance.loading import load_stable_diffusion
+
+    unet, vae, text_encoder, tokenizer, scheduler = load_stable_diffusion(str(tiny_path), torch.float32, True)
+    v_scheduler = DDIMScheduler.from_config(scheduler.config, prediction_type="v_prediction")
+    alphas = v_scheduler.alphas_cumprod.float()
+
+    def as_v(module, args, kwargs, output):
+        noisy, t = args[0], args[1]
+        a = alphas[t.long()].reshape(-1, 1, 1, 1)
+        eps = output.sample
+        x0 = (noisy - (1 - a).sqrt() * eps) / a.sqrt()
+        return type(output)(sample=a.sqrt() * eps - (1 - a).sqrt() * x0)
+
+    unet.register_forward_hook(as_v, with_kwargs=True)
+    return StableDiffusionGuidance(unet, vae, text_encoder, tokenizer, v_scheduler, model_id="tiny-v")
+
+
+def test_v_prediction_output_is_converted_to_epsilon_for_sds(guidance, tiny_path):
+    v_guidance = _v_prediction_guidance(tiny_path)
+    assert (guidance.prediction_type, v_guidance.prediction_type) == ("epsilon", "v_prediction")
+    g = torch.Generator().manual_seed(5)
+    latents = torch.randn(2, 4, 16, 16, generator=g)
+    noise = torch.randn(2, 4, 16, 16, generator=g)
+    t = torch.tensor([50, 900])
+    cond = guidance.encode_prompts(["a render of a dog, front view", "a render of a cat, side view"])
+    scale = 7.5
+    expected, (noisy, eps_c) = _expected_sds_grad(guidance, latents, noise, t, cond, scale)  # the ε model's: exact
+    with torch.no_grad():
+        raw_v = v_guidance.unet(noisy, t, encoder_hidden_states=cond).sample
+    assert (raw_v - eps_c).abs().max() > 0.1  # read as ε, the v output would give another gradient
+
+    grad, _ = v_guidance.sds_grad_on_latents(latents, cond, t, guidance_scale=scale, noise=noise)
+    torch.testing.assert_close(grad, expected, rtol=1e-4, atol=1e-5)
+    x = latents.clone().requires_grad_(True)
+    loss, _ = v_guidance.sds_loss_on_latents(x, cond, t, guidance_scale=scale, noise=noise)
+    loss.backward()
+    torch.testing.assert_close(x.grad, expected, rtol=1e-4, atol=1e-5)
+
+
+def test_epsilon_from_output_inverts_the_v_parameterisation():
+    from voxe_core.guidance.sds import epsilon_from_output
+
+    g = torch.Generator().manual_seed(0)
+    z, eps = torch.randn(3, 4, generator=g), torch.randn(3, 4, generator=g)
+    a = torch.tensor([0.999, 0.5, 0.002])[:, None]
+    noisy = a.sqrt() * z + (1 - a).sqrt() * eps
+    v = a.sqrt() * eps - (1 - a).sqrt() * z
+    torch.testing.assert_close(epsilon_from_output(v, noisy, a, "v_prediction"), eps)
+    assert epsilon_from_output(eps, noisy, a, "epsilon") is eps
+
+
+def test_unknown_prediction_type_is_refused_by_name(tiny_path):
+    from diffusers import DDIMScheduler
+
+    from voxe_core.guidance.loading import load_stable_diffusion
+
+    unet, vae, text_encoder, tokenizer, scheduler = load_stable_diffusion(str(tiny_path), torch.float32, True)
+    sample = DDIMScheduler.from_config(scheduler.config, prediction_type="sample")
+    with pytest.raises(ValueError, match=r"predicts 'sample'.*'epsilon' or 'v_prediction'"):
+        StableDiffusionGuidance(unet, vae, text_encoder, tokenizer, sample)

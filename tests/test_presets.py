@@ -144,8 +144,9 @@ def service(tmp_path, monkeypatch):
         with open(archive, "rb") as handle:
             response = client.post("/v1/scenes", files={"archive": ("mic.zip", handle, "application/zip")})
         assert response.status_code == 201, response.text
-        assert ingest(response.json()["id"])["state"] == "ready"  # no worker process here: decode in-process
-        yield client, response.json()["id"]
+        scene_id = response.json()["id"]
+        assert ingest(scene_id)["state"] == "ready"  # in-process: no worker takes the ingest off the queue
+        yield client, scene_id
     reset_service_caches()
 
 
@@ -203,3 +204,37 @@ def test_a_real_scene_edit_runs_through_the_worker_on_the_smoke_test_model(servi
     assert edited.status_code == 200
     (tmp_path / "edited.safetensors").write_bytes(edited.content)
     assert load_grid(tmp_path / "edited.safetensors").kind == "scene"
+
+
+def test_the_worker_runs_every_stage_on_its_device_and_stores_their_peak_memory(service, monkeypatch):
+    """The worker's resolved VOXE_DEVICE (auto: cpu here) reaches each stage as its ``device``; each stage's
+    reported peak lands in Job.result."""
+    import voxe_core.edit
+    import voxe_core.export
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job = _reconstructed_job(client, scene_id, "relu_field", export={
+        "views": 1, "view_size": 16, "turntable_frames": 2, "turntable_size": 16, "gif": False, "mesh": False})
+    seen = {}
+
+    def recorded_edit(initial, prompt, guidance, config, *args, device=None, **kwargs):
+        seen["edit"] = device
+        return initial.clone_grid()
+
+    real_render_views = voxe_core.export.render_views
+
+    def recorded_render_views(grid, cameras, *args, device=None, **kwargs):
+        seen.setdefault("render", set()).add(device)
+        return real_render_views(grid, cameras, *args, device=device, **kwargs)
+
+    monkeypatch.setattr(runtime, "get_guidance", lambda *args: None)
+    monkeypatch.setattr(voxe_core.edit, "edit", recorded_edit)
+    monkeypatch.setattr(voxe_core.export, "render_views", recorded_render_views)
+    assert tasks.edit_task.apply(args=(job["id"],)).get()["state"] == "done"
+    assert tasks.export_task.apply(args=(job["id"],)).get()["state"] == "done"
+    assert seen == {"edit": "cpu", "render": {"cpu"}}
+    result = client.get(f"/v1/jobs/{job['id']}").json()["result"]
+    assert result["peak_memory_kind"] == "process_rss"
+    assert set(result["peak_memory_gb"]) == {"reconstruct", "export"}  # the recorded edit reported nothing
+    assert all(0.01 < gb < 64 for gb in result["peak_memory_gb"].values())

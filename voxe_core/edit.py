@@ -59,6 +59,7 @@ from voxe_core.constants import (
     NERF_SYNTHETIC_RADIUS,
     RENDER_SIZE,
 )
+from voxe_core.devices import PeakMemory, resolve_device
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance import Guidance
 from voxe_core.guidance.prompts import RENDER_PREFIX, VIEW_WORDS, edit_prompt, view_word
@@ -118,7 +119,9 @@ class EditConfig:
     min_zenith_deg: float = 15.0
     max_zenith_deg: float = 90.0
     autocast_dtype: str | None = None  # None | "bf16" | "fp16" (guidance only; CPU uses bf16)
-    sync_timing: bool = True  # synchronise CUDA around timed parts so per-part timings are true
+    # Synchronise CUDA around the timed parts so the ms_* diagnostics are true device times;
+    # off by default (each sync stalls the GPU queue), bench/ turns it on.
+    sync_timing: bool = False
 
     def __post_init__(self):
         if self.iterations < 0:
@@ -258,6 +261,7 @@ def edit(
     resume_from: str | Path | None = None,
     input_views: tuple[torch.Tensor, Cameras] | None = None,
     on_preview: Callable[[int, torch.Tensor], None] | None = None,
+    device: torch.device | str | None = None,
 ) -> VoxelGrid:
     """Optimise G_e (a copy of ``initial_grid``) towards ``prompt`` under ``guidance``; returns G_e.
 
@@ -274,8 +278,13 @@ def edit(
     (VAE encoder forward), ``ms_unet`` (UNet incl. CFG), ``ms_backward``,
     ``ms_optimizer``, ``ms_step``. Cancellation is checked before each
     iteration (``StageCancelled``; a checkpoint is written first when
-    ``checkpoint_path`` is set). The returned grid lives on the guidance's
-    device (``guidance.device`` when it has one, else the initial grid's).
+    ``checkpoint_path`` is set). Info also carries ``peak_memory_gb`` /
+    ``peak_memory_kind`` (:class:`voxe_core.devices.PeakMemory`).
+
+    Everything runs on ``device`` (None: ``guidance.device`` when the guidance
+    has one, else the initial grid's); G_i, G_e and the input views move there
+    once, and the returned grid lives there. A ``device`` other than the
+    guidance's is refused at once (every step would copy renders across).
     """
     if not str(prompt).strip():
         raise ValueError("the edit prompt is empty")
@@ -287,7 +296,12 @@ def edit(
             "input_views=(images, cameras), or use a volumetric regulariser such as 'reg3d'"
         )
 
-    device = torch.device(getattr(guidance, "device", initial_grid.flat_features.device))
+    guidance_device = getattr(guidance, "device", None)
+    device = resolve_device(device if device is not None else (guidance_device or initial_grid.flat_features.device))
+    if guidance_device is not None and torch.device(guidance_device).type != device.type:
+        raise ValueError(f"the edit runs on {device} but its guidance model is on {guidance_device}; "
+                         "load the guidance on the same device")
+    memory = PeakMemory(device).start()
     sync = config.sync_timing
     initial = initial_grid.features.detach().to(device).clone()
     grid = initial_grid.clone_grid().to(device)
@@ -443,6 +457,7 @@ def edit(
                     "ms_backward": (t_backward - t_reg) * 1e3,
                     "ms_optimizer": (t_end - t_backward) * 1e3,
                     "ms_step": (t_end - t_start) * 1e3,
+                    **memory.info(),
                 },
             ))
             if checkpoint_path is not None and config.checkpoint_every and done % config.checkpoint_every == 0:

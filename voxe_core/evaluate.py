@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from voxe_core.constants import CLIP_MODEL_ID, INCEPTION_FILE
+from voxe_core.devices import PeakMemory, resolve_device
 from voxe_core.export import render_views, save_png, to_uint8, turntable_cameras
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance.loading import ModelNotAvailableError, loading_errors, offline_env
@@ -85,10 +86,10 @@ def source_text(object_name: str) -> str:
 
 
 # --------------------------------------------------------------------------- ring renders
-def render_ring(grid: VoxelGrid, views: int, elevation_deg: float, size: int, callbacks: Callbacks = Callbacks()):
-    """``views`` renders (N, H, W, 3) on the evaluation ring, looking at the origin."""
-    cameras = turntable_cameras(views, elevation_deg, size).to(grid.bbox_min.device)
-    return render_views(grid, cameras, callbacks=callbacks)
+def render_ring(grid: VoxelGrid, views: int, elevation_deg: float, size: int, callbacks: Callbacks = Callbacks(),
+                device: torch.device | str | None = None):
+    """``views`` renders (N, H, W, 3, on the CPU) on the evaluation ring, looking at the origin, rendered on ``device``."""
+    return render_views(grid, turntable_cameras(views, elevation_deg, size), callbacks=callbacks, device=device)
 
 
 def save_png_set(folder, frames: torch.Tensor) -> list[Path]:
@@ -355,24 +356,32 @@ def evaluate(
     input_images: torch.Tensor | None = None,
     config: EvaluateConfig = EvaluateConfig(),
     callbacks: Callbacks = Callbacks(),
+    device: torch.device | str | None = None,
 ) -> Evaluation:
     """Score ``edits`` of ``initial`` on the ring (see the module doc); FID only when ``fid`` is given.
 
-    Progress: one step per rendered view ("evaluate", i, (1 + len(edits))·views).
+    The ring renders (and the masks' footprints) run on ``device`` (None: where
+    ``initial`` is); each grid moves there once. The scorers run where they were
+    loaded. Progress: one step per rendered view ("evaluate", i,
+    (1 + len(edits))·views), info carrying the peak memory of the renders so far.
     """
     if not edits:
         raise ValueError("nothing to evaluate: no edits given")
+    device = resolve_device(device if device is not None else initial.bbox_min.device)
+    memory = PeakMemory(device).start()
+    initial = initial.to(device)
     source = source_text(object_name)
     total = (1 + len(edits)) * config.views
     done = [0]
 
     def stage_callbacks() -> Callbacks:
+        memory.peak_bytes()  # read before the ring's renders reset the counter
         base = done[0]
         done[0] += config.views
-        return Callbacks(on_progress=lambda r: callbacks.progress(Progress("evaluate", base + r.iteration, total)),
-                         should_cancel=callbacks.should_cancel)
+        return Callbacks(on_progress=lambda r: callbacks.progress(
+            Progress("evaluate", base + r.iteration, total, info=memory.info())), should_cancel=callbacks.should_cancel)
 
-    recon = render_ring(initial, config.views, config.elevation, config.size, stage_callbacks())
+    recon = render_ring(initial, config.views, config.elevation, config.size, stage_callbacks(), device)
     recon_clip = clip.image_embeddings(recon)
     texts = clip.text_embeddings([source] + [edit_prompt(e.prompt) for e in edits])
     recon_features = fid.features(recon) if fid is not None else None
@@ -384,7 +393,7 @@ def evaluate(
         if sample.mask is not None and sample.grid.resolution != initial.resolution:
             raise ValueError(f"edit {sample.name!r}: a masked edit must share the initial grid's resolution "
                              f"{initial.resolution}, got {sample.grid.resolution}")
-        images = render_ring(sample.grid, config.views, config.elevation, config.size, stage_callbacks())
+        images = render_ring(sample.grid, config.views, config.elevation, config.size, stage_callbacks(), device)
         embeddings = clip.image_embeddings(images)
         row = {"name": sample.name, "prompt": sample.prompt, "mode": "local" if sample.mask is not None else "global",
                "clip_sim": clip_similarity(embeddings, texts[k + 1]),

@@ -18,6 +18,7 @@ import torch
 
 from voxe_core.cameras import Cameras, ring_poses
 from voxe_core.constants import NERF_SYNTHETIC_FOV_X, NERF_SYNTHETIC_RADIUS
+from voxe_core.devices import PeakMemory, resolve_device
 from voxe_core.grid import VoxelGrid
 from voxe_core.progress import Callbacks, Progress
 from voxe_core.render import RenderConfig, render_image
@@ -54,18 +55,25 @@ def render_views(
     cameras: Cameras,
     config: RenderConfig = RenderConfig(),
     callbacks: Callbacks = Callbacks(),
+    device: torch.device | str | None = None,
 ) -> torch.Tensor:
-    """Render every camera: (N, H, W, 3) on ``config.background``.
+    """Render every camera: (N, H, W, 3) on ``config.background``, returned on the CPU.
 
-    The occupancy structure is built once for all views. ``callbacks`` gets a
-    ``Progress("render", i, N)`` after each view and may cancel between views.
+    Renders run on ``device`` (None: where the grid is); grid (in place, as
+    ``nn.Module.to``) and cameras move there once. The occupancy structure is
+    built once for all views. ``callbacks`` gets a ``Progress("render", i, N)``
+    after each view (info: peak memory, :class:`voxe_core.devices.PeakMemory`)
+    and may cancel between views.
     """
+    device = resolve_device(device if device is not None else grid.bbox_min.device)
+    memory = PeakMemory(device).start()
+    grid, cameras = grid.to(device), cameras.to(device)
     occupancy = grid.occupancy(config.sigma_threshold) if config.skip_empty else None
     frames = torch.empty(len(cameras), cameras.height, cameras.width, 3)
     for i in range(len(cameras)):
         callbacks.check_cancel("render")
         frames[i] = render_image(grid, cameras, i, config, occupancy).rgb[..., :3].cpu()
-        callbacks.progress(Progress("render", i + 1, len(cameras)))
+        callbacks.progress(Progress("render", i + 1, len(cameras), info=memory.info()))
     return frames
 
 

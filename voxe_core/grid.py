@@ -161,6 +161,10 @@ class VoxelGrid(torch.nn.Module):
         elif tuple(features.shape) != (*res, 4):
             raise ValueError(f"features of shape {tuple(features.shape)} do not fit resolution {res}")
         self._resolution = res
+        # Host copies of the box's scalars: the sampler reads them every call, from the device they would
+        # cost a round trip each.
+        self.min_voxel_edge = float(((bbox_max - bbox_min) / (torch.tensor(res) - 1)).min())
+        self.box_diagonal = math.dist(bbox_min.tolist(), bbox_max.tolist())
         # Stored flat so a gather can return sparse gradients (see ``interpolate``).
         self.flat_features = torch.nn.Parameter(features.float().reshape(-1, 4).contiguous())
 
@@ -269,7 +273,7 @@ class VoxelGrid(torch.nn.Module):
             >>> group.points.shape, float(group.delta.sum())  # 4 steps of 0.75 through the 3-unit box
             (torch.Size([4, 3]), 3.0)
         """
-        step = float(step_ratio * self.voxel_size.min())
+        step = step_ratio * self.min_voxel_edge
         t_near, t_far = ray_box_intersection(origins, directions, self.bbox_min, self.bbox_max)
         n_total = torch.ceil((t_far - t_near) / step).clamp_min(0).long()
         first = torch.zeros_like(n_total)
@@ -288,13 +292,20 @@ class VoxelGrid(torch.nn.Module):
         # Consecutive groups of rays whose lattice samples fit in one pass (bounds memory on dense renders).
         per_ray = n_segments * SEGMENT
         group = torch.div(per_ray.cumsum(0) - per_ray, samples_per_pass, rounding_mode="floor")
-        ends = torch.unique_consecutive(group, return_counts=True)[1].cumsum(0).tolist()
-        for lo, hi in zip([0] + ends[:-1], ends):
+        ends = torch.unique_consecutive(group, return_counts=True)[1].cumsum(0)
+        # Segment width, group ends and each group's candidate count reach the host in one read.
+        candidates = (last - first).clamp_min(0).cumsum(0).index_select(0, ends - 1)
+        width = n_segments.amax().reshape(1) if n_segments.numel() else n_segments.new_zeros(1)
+        host = torch.cat([width, ends, candidates.diff(prepend=candidates.new_zeros(1))]).tolist()
+        segments = segments[:, : host[0]]
+        groups = len(ends)
+        ends, group_candidates = host[1 : 1 + groups], host[1 + groups :]
+        for lo, hi, n_candidates in zip([0] + ends[:-1], ends, group_candidates):
             ray, k, t, points = _packed_samples(
                 self, occupancy, origins, directions, start, step, first, last, segments[lo:hi], n_segments[lo:hi], lo
             )
             delta = (length.index_select(0, ray) - k * step).clamp(0.0, step)
-            samples = RaySamples(ray, t, delta, points, int((last[lo:hi] - first[lo:hi]).clamp_min(0).sum()))
+            samples = RaySamples(ray, t, delta, points, n_candidates)
             yield self._stop_early(samples, early_stop) if early_stop > 0 and ray.numel() else samples
 
     @torch.no_grad()
@@ -332,7 +343,7 @@ class VoxelGrid(torch.nn.Module):
         opaque object in a box of 1e3 units). The default box uses it as given.
         """
         reference = math.dist(*DEFAULT_BOX)
-        return self.occupancy_above(sigma_threshold * reference / math.dist(self.bbox_min.tolist(), self.bbox_max.tolist()))
+        return self.occupancy_above(sigma_threshold * reference / self.box_diagonal)
 
     @torch.no_grad()
     def occupancy_above(self, density: float) -> Occupancy:
@@ -349,14 +360,21 @@ class VoxelGrid(torch.nn.Module):
         return self.occupancy_from_cells(self.activate_density(corner_max) > density)
 
     def occupancy_from_cells(self, cells: torch.Tensor) -> Occupancy:
-        """Occupancy for a given cell mask (e.g. one restored from a checkpoint), with its tight box."""
-        if cells.any():
-            idx = cells.nonzero()
-            lo, hi = idx.min(0).values, idx.max(0).values + 1
-            vox = self.voxel_size.to(cells.device)
-            box_min, box_max = self.bbox_min + lo * vox, self.bbox_min + hi * vox
-        else:
-            box_min, box_max = self.bbox_min.clone(), self.bbox_min.clone()
+        """Occupancy for a given cell mask (e.g. one restored from a checkpoint), with its tight box.
+
+        The box is found without reading anything back to the host (the edit loop builds one
+        per iteration): per axis, the first and last occupied slice by argmax; an empty mask
+        gives an empty box at ``bbox_min``.
+        """
+        lo, hi = [], []
+        for axis in range(3):
+            along = cells.any(dim=[a for a in range(3) if a != axis]).to(torch.uint8)  # argmax: first maximum
+            lo.append(along.argmax())
+            hi.append(along.numel() - along.flip(0).argmax())
+        vox = self.voxel_size.to(cells.device)
+        occupied = cells.any()
+        box_min = torch.where(occupied, self.bbox_min + torch.stack(lo) * vox, self.bbox_min)
+        box_max = torch.where(occupied, self.bbox_min + torch.stack(hi) * vox, self.bbox_min)
         return Occupancy(cells, box_min, box_max)
 
     # ------------------------------------------------------------- storage
@@ -380,7 +398,8 @@ class VoxelGrid(torch.nn.Module):
 
 
 def _ray_segments(grid, occupancy, origins, directions, t_near, step, first, last):
-    """Per ray, the lattice segments worth sampling, in marching order: (R, S) indices and (R,) counts.
+    """Per ray, the lattice segments worth sampling, in marching order: (R, S) indices (the first ``counts[r]``
+    of row r are the kept ones) and (R,) counts.
 
     A segment is ``SEGMENT`` consecutive lattice samples. With an occupancy, a
     segment survives when its midpoint's block in ``occupancy.dilated_blocks``
@@ -390,23 +409,25 @@ def _ray_segments(grid, occupancy, origins, directions, t_near, step, first, las
     """
     seg_first = torch.div(first, SEGMENT, rounding_mode="floor")
     n_segments = torch.where(last > first, torch.div(last - 1, SEGMENT, rounding_mode="floor") - seg_first + 1, 0)
-    max_segments = int(n_segments.max()) if n_segments.numel() else 0
+    if not n_segments.numel():
+        return seg_first[:, None], n_segments
+    # One read for both scalars the layout needs: the widest ray and the longest direction.
+    longest_direction = directions.norm(dim=-1).nan_to_num(0.0, 0.0, 0.0).max().clamp_min(1.0)
+    max_segments, longest = torch.stack([n_segments.max().to(longest_direction.dtype), longest_direction]).tolist()
+    max_segments = int(max_segments)
     segments = seg_first[:, None] + torch.arange(max_segments, device=origins.device)[None, :]
     if occupancy is None or max_segments == 0:
         return segments, n_segments
     # Every sample of a segment lies within SEGMENT / 2 steps of its midpoint, so within
     # ``size`` cells of it per axis, so in the midpoint's block or one of its neighbours.
-    longest = float(directions.norm(dim=-1).nan_to_num(0.0, 0.0, 0.0).max().clamp_min(1.0))
-    size = max(1, math.ceil(SEGMENT / 2 * step * longest / float(grid.voxel_size.min())))
+    size = max(1, math.ceil(SEGMENT / 2 * step * longest / grid.min_voxel_edge))
     keep = torch.arange(max_segments, device=origins.device)[None, :] < n_segments[:, None]
     mid = t_near[:, None] + (segments * SEGMENT + SEGMENT / 2) * step
     block = grid.cell_index(origins[:, None, :] + mid[..., None] * directions[:, None, :]) // size
     keep &= gather_3d(occupancy.dilated_blocks(size), block)
     # Stable sort puts each ray's kept segments first, still in marching order.
     order = torch.sort((~keep).to(torch.uint8), dim=1, stable=True).indices
-    n_kept = keep.sum(1)
-    width = int(n_kept.max())
-    return segments.gather(1, order[:, :width]), n_kept
+    return segments.gather(1, order), keep.sum(1)  # the caller trims to the widest kept count
 
 
 def _packed_samples(grid, occupancy, origins, directions, start, step, first, last, segments, n_segments, ray_offset):

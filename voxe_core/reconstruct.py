@@ -17,6 +17,7 @@ import torch.nn.functional as F
 
 from voxe_core.backbones import grid_from_state
 from voxe_core.cameras import Cameras, pixel_rays
+from voxe_core.devices import PeakMemory, resolve_device
 from voxe_core.grid import Activation, VoxelGrid
 from voxe_core.progress import Callbacks, Progress
 from voxe_core.render import RenderConfig, render_rays
@@ -88,14 +89,21 @@ def _stage_data(images: torch.Tensor, cameras: Cameras, downsample: int):
     filter); the final stage (downsample 1) trains on the loaded images themselves.
     """
     n, h, w, _ = images.shape
+    device = images.device
     height, width = max(1, h // downsample), max(1, w // downsample)
     if (height, width) != (h, w):
         images = F.interpolate(images.permute(0, 3, 1, 2), size=(height, width), mode="area").permute(0, 2, 3, 1)
     cams = cameras.resized(width, height)
-    cam_index = torch.arange(n).repeat_interleave(height * width)
-    v, u = torch.meshgrid(torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij")
+    cam_index = torch.arange(n, device=device).repeat_interleave(height * width)
+    v, u = torch.meshgrid(torch.arange(height, device=device) + 0.5, torch.arange(width, device=device) + 0.5,
+                          indexing="ij")
     origins, directions = pixel_rays(cams, cam_index, u.reshape(-1).repeat(n), v.reshape(-1).repeat(n))
     return origins, directions, images.reshape(-1, 3).contiguous()
+
+
+def _sampling_generator(device: torch.device, seed: int) -> torch.Generator:
+    """The seeded generator of ray batches and jitter, on the device they are drawn on (no host round trip)."""
+    return torch.Generator(device=device).manual_seed(seed)
 
 
 def _learning_rate(config: ReconstructConfig, stage: int, iteration: int) -> float:
@@ -229,18 +237,27 @@ def reconstruct(
     checkpoint_path: str | Path | None = None,
     resume_from: str | Path | None = None,
     initial_grid: VoxelGrid | None = None,
+    device: torch.device | str = "cpu",
 ) -> VoxelGrid:
     """Fit G_i to ``images`` (N, H, W, 3) on white seen from ``cameras``; deterministic under ``config.seed``.
 
     ``initial_grid`` (e.g. a ``SceneGrid`` at ``config.resolutions[0]``) replaces the fresh
     ReLU-field grid; its type, box and activation win over ``config.bbox_*`` and ``activation``.
+    Everything runs on ``device``: images, cameras and the grid move there once, the rays of
+    each stage are built there, and the sampling generator lives there (so a run is
+    deterministic per device; CPU and CUDA runs of one seed draw different rays). The
+    returned grid lives on ``device``. Progress info carries the stage's peak memory
+    (:class:`voxe_core.devices.PeakMemory`).
     """
     if images.shape[0] != len(cameras) or images.shape[1:3] != (cameras.height, cameras.width):
         raise ValueError(
             f"{images.shape[0]} images of {tuple(images.shape[1:3])} do not match "
             f"{len(cameras)} cameras of {(cameras.height, cameras.width)}"
         )
-    generator = torch.Generator().manual_seed(config.seed)
+    device = resolve_device(device)
+    memory = PeakMemory(device).start()
+    images, cameras = images.to(device, torch.float32), cameras.to(device)
+    generator = _sampling_generator(device, config.seed)
     grid = initial_grid if initial_grid is not None else VoxelGrid(
         config.resolutions[0], config.bbox_min, config.bbox_max, config.activation, init_density=config.init_density
     )
@@ -249,7 +266,9 @@ def reconstruct(
         tensors, meta = load_tensors(resume_from, kind="reconstruction_checkpoint", max_version=CHECKPOINT_FORMAT_VERSION)
         grid = grid_from_state(tensors, meta)
         generator.set_state(tensors["rng_state"])
-        start_stage, start_iteration, resumed = meta["stage"], meta["iteration"], tensors
+        start_stage, start_iteration = meta["stage"], meta["iteration"]
+        resumed = {name: value.to(device) for name, value in tensors.items() if name != "rng_state"}
+    grid = grid.to(device)
 
     total = config.total_iterations
     done = sum(config.iterations[:start_stage]) + start_iteration
@@ -279,7 +298,7 @@ def reconstruct(
                 occupancy = grid.occupancy(config.render.sigma_threshold)
             for group in optimizer.param_groups:
                 group["lr"] = _learning_rate(config, stage, iteration)
-            batch = torch.randint(0, targets.shape[0], (config.rays_per_step,), generator=generator)
+            batch = torch.randint(0, targets.shape[0], (config.rays_per_step,), generator=generator, device=device)
             out = render_rays(
                 grid, origins[batch], directions[batch], config.render, occupancy, generator, sparse_grad=True
             )
@@ -295,7 +314,7 @@ def reconstruct(
             callbacks.progress(Progress(
                 "reconstruct", done, total, {"l1": float(loss.detach())},
                 {"stage": stage, "resolution": config.resolutions[stage],
-                 "samples_per_ray": out.samples / config.rays_per_step},
+                 "samples_per_ray": out.samples / config.rays_per_step, **memory.info()},
             ))
             if checkpoint_path is not None and config.checkpoint_every and done % config.checkpoint_every == 0:
                 save_checkpoint(

@@ -116,11 +116,14 @@ class SceneGrid(VoxelGrid):
         background the box is unbounded (a huge cube), which culls nothing.
         """
         lattice = super().occupancy_from_cells(cells)
-        if lattice.empty:
-            return lattice
-        if bool((lattice.bbox_min >= -1.0).all() and (lattice.bbox_max <= 1.0).all()):
-            return Occupancy(cells, lattice.bbox_min * self.foreground_extent, lattice.bbox_max * self.foreground_extent)
-        return Occupancy(cells, torch.full_like(lattice.bbox_min, -_UNBOUNDED), torch.full_like(lattice.bbox_max, _UNBOUNDED))
+        # Chosen on the device (no host read: the edit loop builds one occupancy per iteration).
+        inside = (lattice.bbox_min >= -1.0).all() & (lattice.bbox_max <= 1.0).all()
+        unbounded = torch.full_like(lattice.bbox_min, _UNBOUNDED)
+        box_min = torch.where(inside, lattice.bbox_min * self.foreground_extent, -unbounded)
+        box_max = torch.where(inside, lattice.bbox_max * self.foreground_extent, unbounded)
+        occupied = cells.any()  # an empty mask keeps the lattice's empty box
+        return Occupancy(cells, torch.where(occupied, box_min, lattice.bbox_min),
+                         torch.where(occupied, box_max, lattice.bbox_max))
 
     @torch.no_grad()
     def foreground_grid(self) -> VoxelGrid:

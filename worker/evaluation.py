@@ -98,11 +98,11 @@ def run_evaluation(job: Job, settings: Settings, device: str, storage) -> None:
     rec = runtime.load_reconstruction(sources[0].reconstruction_id)
     if rec is None or rec.grid_key is None:
         raise EvaluationFailed("evaluate: the source jobs' reconstruction is gone")
-    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key).to(device)
+    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key)
     edits = []
     for source in sources:
         name = "refined_grid.safetensors" if source.mode == "local" else "edited_grid.safetensors"
-        grid = fetch_grid(job.id, f"{source.id}_{name}", settings, storage, runtime.artifact_key(source.id, name)).to(device)
+        grid = fetch_grid(job.id, f"{source.id}_{name}", settings, storage, runtime.artifact_key(source.id, name))
         mask = None
         if source.mode == "local":
             mask_path = runtime.fetch(storage, runtime.artifact_key(source.id, "mask.safetensors"),
@@ -112,7 +112,8 @@ def run_evaluation(job: Job, settings: Settings, device: str, storage) -> None:
     input_images = load_images(sources[0], rec.params, settings, storage).images if params["fid_input"] else None
     config = EvaluateConfig(views=params["views"], elevation=params["elevation"], size=params["size"])
     callbacks = StageCallbacks(job.id, "evaluate", settings)
-    result = evaluate(initial, edits, params["object"], clip, fid, input_images, config, callbacks.callbacks)
+    result = evaluate(initial, edits, params["object"], clip, fid, input_images, config, callbacks.callbacks,
+                      device=device)
 
     scratch = runtime.scratch_dir(job.id, settings)
     if params.get("save_renders", True):
@@ -132,5 +133,5 @@ def run_evaluation(job: Job, settings: Settings, device: str, storage) -> None:
     (scratch / "evaluation.md").write_text(table)
     runtime.publish_artifact(job.id, "evaluation.json", scratch / "evaluation.json", "evaluation", storage)
     runtime.publish_artifact(job.id, "evaluation.md", scratch / "evaluation.md", "evaluation", storage)
-    runtime.update_job(job.id, result=summary)
+    runtime.merge_job_result(job.id, summary)
     log.info("job %s: evaluated %d edit(s) of scene %s", job.id, len(sources), sources[0].scene_id)

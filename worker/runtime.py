@@ -64,6 +64,26 @@ def update_job(job_id: str, **values) -> None:
         session.execute(update(Job).where(Job.id == job_id).values(updated_at=utcnow(), **values))
 
 
+def merge_job_result(job_id: str, values: dict) -> None:
+    """``Job.result`` updated with ``values``, keeping what other stages put there (e.g. their peak memory)."""
+    with session_scope() as session:
+        job = session.get(Job, job_id, with_for_update=True)
+        if job is not None:
+            job.result = {**(job.result or {}), **values}
+            job.updated_at = utcnow()
+
+
+def record_peak_memory(job_id: str, stage: str, peak_gb: float, kind: str | None) -> None:
+    """``Job.result["peak_memory_gb"][stage]`` (GiB) and ``["peak_memory_kind"]``, as a stage reported them."""
+    with session_scope() as session:
+        job = session.get(Job, job_id, with_for_update=True)
+        if job is not None:
+            result = dict(job.result or {})
+            result["peak_memory_gb"] = {**result.get("peak_memory_gb", {}), stage: peak_gb}
+            result["peak_memory_kind"] = kind
+            job.result = result
+
+
 def begin_stage(job_id: str, stage: str, hostname: str | None, device: str) -> Job:
     """Mark the job running in ``stage``; raise JobSkipped when it is terminal or the stage is done already."""
     now = utcnow()
@@ -146,6 +166,8 @@ class StageCallbacks:
         self._last_report: Progress | None = None
         self._written: Progress | None = None
         self._store_checkpoint = on_checkpoint
+        self.peak_memory_gb: float | None = None
+        self._peak_written: float | None = None
         self.callbacks = Callbacks(on_progress=self.on_progress, should_cancel=self.should_cancel,
                                    on_checkpoint=self.on_checkpoint if on_checkpoint else None)
 
@@ -160,6 +182,9 @@ class StageCallbacks:
         if self._rate_origin is None or report.stage != getattr(self, "_sub_stage", None):
             self._rate_origin, self._sub_stage = (now, report.iteration - 1), report.stage
         self._last_report = report
+        peak = report.info.get("peak_memory_gb")
+        if peak is not None and (self.peak_memory_gb is None or peak > self.peak_memory_gb):
+            self.peak_memory_gb = float(peak)
         final = report.iteration >= report.total
         if not final and now - self._last_write < self.settings.progress_interval_s:
             return
@@ -173,6 +198,9 @@ class StageCallbacks:
         message = self.note if report.stage == self.stage else f"{self.stage}: {report.stage}"
         update_job(self.job_id, iteration=int(report.iteration), total=int(report.total), eta_seconds=eta,
                    losses=losses, message=message)
+        if self.peak_memory_gb is not None and self.peak_memory_gb != self._peak_written:
+            record_peak_memory(self.job_id, self.stage, self.peak_memory_gb, report.info.get("peak_memory_kind"))
+            self._peak_written = self.peak_memory_gb
         if self.extra_progress is not None:
             self.extra_progress(report)
 

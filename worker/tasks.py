@@ -114,8 +114,7 @@ def _preview(job_id: str, grid, settings, storage, device: str, image=None) -> N
 
     path = runtime.scratch_dir(job_id, settings) / PREVIEW
     if image is None:
-        cameras = turntable_cameras(1, 20.0, PREVIEW_SIZE).to(grid.bbox_min.device)
-        image = render_views(grid, cameras)[0]
+        image = render_views(grid, turntable_cameras(1, 20.0, PREVIEW_SIZE), device=device)[0]
     save_png(path, image)
     runtime.publish_artifact(job_id, PREVIEW, path, "preview", storage)
     runtime.update_job(job_id, preview_artifact=PREVIEW)
@@ -136,7 +135,7 @@ def _reconstruct(job: Job, settings, device: str, storage) -> None:
         if rec.state == R_SUCCEEDED:
             break
         if runtime.try_claim_reconstruction(rec_id, job.id, job.worker_hostname, settings, allow_failed=first):
-            _fit(job, runtime.load_reconstruction(rec_id), settings, storage)
+            _fit(job, runtime.load_reconstruction(rec_id), settings, storage, device)
             ran_here = True
             continue
         if rec.state == R_FAILED:
@@ -173,7 +172,7 @@ def _voxelize(job: Job, rec, settings, storage):
                                          bbox_max=config.bbox_max, seed=rec.params["seed"]))
 
 
-def _fit(job: Job, rec, settings, storage) -> None:
+def _fit(job: Job, rec, settings, storage, device: str) -> None:
     """Make G_i for ``rec`` (claimed by this job): voxelize its mesh, or fit, resuming from a stored checkpoint."""
     scratch = runtime.scratch_dir(job.id, settings)
     checkpoint = scratch / "reconstruction_checkpoint.safetensors"
@@ -192,7 +191,7 @@ def _fit(job: Job, rec, settings, storage) -> None:
             grid, total = _voxelize(job, rec, settings, storage), 1
             callbacks.on_progress(Progress("reconstruct", total, total))
         else:
-            grid, total = _fit_grid(job, rec, settings, storage, callbacks, checkpoint, checkpoint_key)
+            grid, total = _fit_grid(job, rec, settings, storage, callbacks, checkpoint, checkpoint_key, device)
     except StageCancelled:  # let a waiting job take over (from the checkpoint)
         runtime.set_reconstruction(rec.id, job.id, state=R_PENDING, owner_job_id=None, lease_until=None)
         raise
@@ -210,8 +209,9 @@ def _fit(job: Job, rec, settings, storage) -> None:
     storage.delete(checkpoint_key)
 
 
-def _fit_grid(job: Job, rec, settings, storage, callbacks: StageCallbacks, checkpoint: Path, checkpoint_key: str):
-    """Route (a) and image scenes: G_i fitted to the scene's images; returns (grid, total iterations)."""
+def _fit_grid(job: Job, rec, settings, storage, callbacks: StageCallbacks, checkpoint: Path, checkpoint_key: str,
+              device: str):
+    """Route (a) and image scenes: G_i fitted to the scene's images on ``device``; returns (grid, total iterations)."""
     from voxe_core.reconstruct import reconstruct
     from voxe_core.backbones import prepare_backbone
     from voxe_core.tensorio import FormatError
@@ -228,12 +228,12 @@ def _fit_grid(job: Job, rec, settings, storage, callbacks: StageCallbacks, check
         runtime.record_job_event(job.id, "resumed", stage="reconstruct",
                                  detail=f"reconstruction {rec.id} from its stored checkpoint")
     try:
-        grid = reconstruct(scene.images, cameras, config, callbacks.callbacks, checkpoint, resume, initial)
+        grid = reconstruct(scene.images, cameras, config, callbacks.callbacks, checkpoint, resume, initial, device)
     except FormatError:
         if resume is None:
             raise
         log.warning("reconstruction %s: unreadable checkpoint, starting over", rec.id)
-        grid = reconstruct(scene.images, cameras, config, callbacks.callbacks, checkpoint, None, initial)
+        grid = reconstruct(scene.images, cameras, config, callbacks.callbacks, checkpoint, None, initial, device)
     return grid, config.total_iterations
 
 
@@ -274,7 +274,7 @@ def _edit(job: Job, settings, device: str, storage) -> None:
     callbacks = StageCallbacks(job.id, "edit", settings, note=note,
                                on_checkpoint=lambda path: storage.put_file(checkpoint_key, path))
     grid = edit(initial, job.prompt, guidance, config, callbacks.callbacks, checkpoint, resume,
-                input_views=input_views, on_preview=on_preview)
+                input_views=input_views, on_preview=on_preview, device=device)
     path = scratch / "edited_grid.safetensors"
     grid.save(path)
     runtime.publish_artifact(job.id, "edited_grid.safetensors", path, "grid", storage)
@@ -290,11 +290,11 @@ def _refine(job: Job, settings, device: str, storage) -> None:
 
     guidance = runtime.get_guidance(job.attention_model, device, settings)
     rec = runtime.load_reconstruction(job.reconstruction_id)
-    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key).to(device)
-    edited = fetch_grid(job.id, "edited_grid.safetensors", settings, storage).to(device)
+    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key)
+    edited = fetch_grid(job.id, "edited_grid.safetensors", settings, storage)
     config = refine_config(job.params, job.attention_model)
     callbacks = StageCallbacks(job.id, "refine", settings)
-    result = refine(initial, edited, job.prompt, job.edit_words, guidance, config, callbacks.callbacks)
+    result = refine(initial, edited, job.prompt, job.edit_words, guidance, config, callbacks.callbacks, device=device)
 
     scratch = runtime.scratch_dir(job.id, settings)
     refined = scratch / "refined_grid.safetensors"
@@ -319,7 +319,7 @@ def _export(job: Job, settings, device: str, storage) -> None:
 
     options = export_config(job.params)
     name = "refined_grid.safetensors" if job.mode == "local" else "edited_grid.safetensors"
-    grid = fetch_grid(job.id, name, settings, storage).to(device)
+    grid = fetch_grid(job.id, name, settings, storage)
     scratch = runtime.scratch_dir(job.id, settings)
     views, frames = options.views, options.turntable_frames
     total = views + frames + (1 if options.mesh else 0)
@@ -327,19 +327,18 @@ def _export(job: Job, settings, device: str, storage) -> None:
 
     def offset(base: int) -> Callbacks:
         return Callbacks(
-            on_progress=lambda r: callbacks.on_progress(Progress("export", base + r.iteration, total)),
+            on_progress=lambda r: callbacks.on_progress(Progress("export", base + r.iteration, total, info=r.info)),
             should_cancel=callbacks.should_cancel,
         )
 
     if views:
-        images = render_views(grid, turntable_cameras(views, options.elevation, options.view_size).to(device),
-                              callbacks=offset(0))
+        images = render_views(grid, turntable_cameras(views, options.elevation, options.view_size),
+                              callbacks=offset(0), device=device)
         for i, image in enumerate(images):
             save_png(scratch / f"render_{i:03d}.png", image)
             runtime.publish_artifact(job.id, f"render_{i:03d}.png", scratch / f"render_{i:03d}.png", "render", storage)
     turntable = render_views(
-        grid, turntable_cameras(frames, options.elevation, options.turntable_size).to(device),
-        callbacks=offset(views),
+        grid, turntable_cameras(frames, options.elevation, options.turntable_size), callbacks=offset(views), device=device,
     )
     write_video(scratch / "turntable.mp4", turntable, fps=options.fps)
     runtime.publish_artifact(job.id, "turntable.mp4", scratch / "turntable.mp4", "video", storage)

@@ -127,15 +127,23 @@ def add_model_arguments(parser: argparse.ArgumentParser, flag: str, what: str, d
     parser.add_argument(flag, default=None, metavar="MODEL_ID_OR_PATH",
                         help=f"{what}: hub id (from the local cache) or folder (default {default})")
     parser.add_argument("--offline", action="store_true", help="never contact the hub (as HF_HUB_OFFLINE=1)")
-    parser.add_argument("--device", choices=("cpu", "cuda"), default=None, help="default: cuda when available")
+    add_device_argument(parser)
 
 
-def check_device(args: argparse.Namespace) -> None:
-    """ValueError when ``--device cuda`` was asked for on a machine without CUDA."""
-    import torch
+def add_device_argument(parser: argparse.ArgumentParser) -> None:
+    """``--device``: where a stage command computes."""
+    parser.add_argument("--device", default=None, metavar="DEVICE",
+                        help="cpu, cuda or cuda:N (default: cuda when available, else cpu)")
 
-    if args.device == "cuda" and not torch.cuda.is_available():
-        raise ValueError("--device cuda asked for, but no CUDA device is available")
+
+def check_device(args: argparse.Namespace):
+    """``args.device`` resolved (``voxe_core.devices.resolve_device``) and written back; a ValueError
+    naming the device when this machine lacks it, raised before the command reads any data."""
+    from voxe_core.devices import resolve_device
+
+    device = resolve_device(args.device)
+    args.device = str(device)
+    return device
 
 
 def load_guidance(args: argparse.Namespace, model: str):

@@ -102,7 +102,8 @@ def cmd_edit(args) -> int:
         file=sys.stderr,
     )
     edited = run_stage(
-        lambda cb: edit(grid, args.prompt, guidance, config, cb, checkpoint, args.resume, views, on_preview),
+        lambda cb: edit(grid, args.prompt, guidance, config, cb, checkpoint, args.resume, views, on_preview,
+                        device=args.device),
         "edit", "it", config.iterations, args.quiet,
     )
     if edited is None:

@@ -37,8 +37,6 @@ def add_parsers(commands, common) -> None:
 
 
 def cmd_evaluate(args) -> int:
-    import torch
-
     from voxe_core.backbones import load_grid
     from voxe_core.evaluate import (
         ClipScorer, EditSample, EvaluateConfig, InceptionFeatures, evaluate, format_table, save_png_set,
@@ -50,12 +48,12 @@ def cmd_evaluate(args) -> int:
     for values in args.edit:
         if len(values) not in (2, 3):
             raise ValueError(f"--edit takes EDITED_GRID PROMPT [MASK], got {len(values)} values: {values}")
-    check_device(args)
-    initial = load_grid(args.initial).to(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    device = check_device(args)
+    initial = load_grid(args.initial)
     edits = []
     for k, (grid_path, prompt, *mask_path) in enumerate(args.edit):
         mask = load_mask(Path(mask_path[0])) if mask_path else None
-        edits.append(EditSample(f"edit{k:02d}", prompt, load_grid(Path(grid_path)).to(initial.bbox_min.device), mask))
+        edits.append(EditSample(f"edit{k:02d}", prompt, load_grid(Path(grid_path)), mask))
     input_images = None
     if args.data is not None:
         input_images = load_views(args).images
@@ -67,7 +65,7 @@ def cmd_evaluate(args) -> int:
         print(f"voxe evaluate: model not available: {exc}", file=sys.stderr)
         return EXIT_USAGE
     result = run_stage(
-        lambda cb: evaluate(initial, edits, args.object, clip, fid, input_images, config, cb),
+        lambda cb: evaluate(initial, edits, args.object, clip, fid, input_images, config, cb, device=device),
         "evaluate", "view", (1 + len(edits)) * config.views, args.quiet,
     )
     if result is None:

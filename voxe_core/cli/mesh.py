@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from voxe_core.cli.common import EXIT_INTERRUPTED, int_list, positive_int, run_stage
+from voxe_core.cli.common import EXIT_INTERRUPTED, add_device_argument, check_device, int_list, positive_int, run_stage
 from voxe_core.cli.reconstruct import recipe_params
 from voxe_core.presets import RECONSTRUCTION_PRESET, RECONSTRUCTION_PRESETS, SEED, ExportConfig, reconstruct_config
 
@@ -19,6 +19,7 @@ def add_parsers(commands, common) -> None:
     mesh.add_argument("--level", type=float, default=None, help="surface density (default ln 2 / voxel size)")
     mesh.add_argument("--resolution", type=positive_int, default=ExportConfig.mesh_resolution,
                       help="resample to N points per axis")
+    add_device_argument(mesh)
     mesh.set_defaults(run=cmd_export_mesh)
 
     mg = commands.add_parser("mesh-to-grid", parents=[common],
@@ -38,6 +39,7 @@ def add_parsers(commands, common) -> None:
     mg.add_argument("--iterations", type=int_list, default=None, metavar="N[,N...]", help="render route: as voxe reconstruct")
     mg.add_argument("--rays", type=positive_int, default=None, help="render route: rays per step")
     mg.add_argument("--seed", type=int, default=SEED)
+    add_device_argument(mg)  # the render route's reconstruction (the voxeliser is CPU code)
     mg.set_defaults(run=cmd_mesh_to_grid)
 
 
@@ -47,7 +49,8 @@ def cmd_export_mesh(args) -> int:
 
     if args.out.suffix.lower() not in MESH_SUFFIXES:
         raise ValueError(f"unsupported mesh suffix {args.out.suffix!r}; use one of {', '.join(MESH_SUFFIXES)}")
-    grid = load_grid(args.grid)
+    device = check_device(args)
+    grid = load_grid(args.grid).to(device)  # the density lattice is sampled there; marching cubes runs on the CPU
     mesh = extract_mesh(grid, level=args.level, resolution=args.resolution)
     save_mesh(mesh, args.out)
     print(f"wrote {args.out}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces")
@@ -58,6 +61,7 @@ def cmd_mesh_to_grid(args) -> int:
     from voxe_core.mesh_input import VoxelizeConfig, hemisphere_cameras, load_mesh, render_mesh_views, voxelize
     from voxe_core.reconstruct import reconstruct
 
+    device = check_device(args)
     mesh = load_mesh(args.mesh, args.texture, args.up)
     if args.route == "voxelize":
         if args.resolution is not None and len(args.resolution) != 1:
@@ -68,7 +72,7 @@ def cmd_mesh_to_grid(args) -> int:
         config = reconstruct_config(recipe_params(args))
         cameras = hemisphere_cameras(args.views, args.size, args.seed)
         images, _ = render_mesh_views(mesh, cameras)
-        grid = run_stage(lambda callbacks: reconstruct(images, cameras, config, callbacks),
+        grid = run_stage(lambda callbacks: reconstruct(images, cameras, config, callbacks, device=device),
                          "reconstruct", "it", config.total_iterations, args.quiet)
         if grid is None:
             print(f"voxe: reconstruction cancelled, nothing written to {args.out}", file=sys.stderr)

@@ -7,7 +7,8 @@ import sys
 from pathlib import Path
 
 from voxe_core.cli.common import (
-    EXIT_INTERRUPTED, add_view_arguments, int_list, load_views, one_or_list, positive_int, run_stage, view_params,
+    EXIT_INTERRUPTED, add_device_argument, add_view_arguments, check_device, int_list, load_views, one_or_list,
+    positive_int, run_stage, view_params,
 )
 from voxe_core.presets import RECONSTRUCTION_PRESET, RECONSTRUCTION_PRESETS, SEED, reconstruct_config, reconstruction_params
 
@@ -25,6 +26,7 @@ def add_parsers(commands, common) -> None:
     rec.add_argument("--backbone", choices=("auto", "relu_field", "scene"), default="auto",
                      help="relu_field: objects on a transparent background; scene: captured photos with a "
                           "background (DVGO-style, SPEC §5); auto: from the images' alpha")
+    add_device_argument(rec)
     rec.set_defaults(run=cmd_reconstruct)
 
 
@@ -56,16 +58,18 @@ def cmd_reconstruct(args) -> int:
     from voxe_core.reconstruct import reconstruct
 
     config = reconstruct_config(reconstruction_params(job_params(args)), args.checkpoint_every if args.checkpoint else 0)
+    device = check_device(args)
     scene = load_views(args)
     backbone, cameras, initial = prepare_backbone(args.backbone, scene.alphas, scene.cameras, config.resolutions[0])
     print(
         f"fitting {len(scene)} {scene.split} images of {scene.cameras.width}x{scene.cameras.height} "
-        f"from {args.data} ({backbone} backbone): resolutions {list(config.resolutions)}, "
+        f"from {args.data} ({backbone} backbone) on {device}: resolutions {list(config.resolutions)}, "
         f"iterations {list(config.iterations)}, {config.rays_per_step} rays/step",
         file=sys.stderr,
     )
     grid = run_stage(
-        lambda callbacks: reconstruct(scene.images, cameras, config, callbacks, args.checkpoint, args.resume, initial),
+        lambda callbacks: reconstruct(scene.images, cameras, config, callbacks, args.checkpoint, args.resume, initial,
+                                      device),
         "reconstruct", "it", config.total_iterations, args.quiet,
     )
     if grid is None:

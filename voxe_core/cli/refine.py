@@ -86,7 +86,7 @@ def cmd_refine(args) -> int:
     with warnings.catch_warnings():  # seed shortfalls are reported below from the result
         warnings.filterwarnings("ignore", message=r"only \d+ of \d+ (edit|object) seeds")
         result = run_stage(
-            lambda cb: refine(initial, edited, args.prompt, words, guidance, config, cb),
+            lambda cb: refine(initial, edited, args.prompt, words, guidance, config, cb, device=args.device),
             "refine", "it", None, args.quiet,
         )
     if result is None:

@@ -9,7 +9,9 @@ import json
 import sys
 from pathlib import Path
 
-from voxe_core.cli.common import EXIT_INTERRUPTED, add_view_arguments, load_views, positive_int, run_stage
+from voxe_core.cli.common import (
+    EXIT_INTERRUPTED, add_device_argument, add_view_arguments, check_device, load_views, positive_int, run_stage,
+)
 from voxe_core.presets import ExportConfig
 
 
@@ -23,6 +25,7 @@ def add_parsers(commands, common) -> None:
     ren.add_argument("--size", type=positive_int, default=ExportConfig.view_size, help="ring view size in pixels")
     ren.add_argument("--elevation", type=float, default=ExportConfig.elevation, help="ring elevation in degrees")
     ren.add_argument("--out", type=Path, required=True, metavar="DIR")
+    add_device_argument(ren)
     ren.set_defaults(run=cmd_render)
 
     tt = commands.add_parser("turntable", parents=[common], help="render a 360° turntable video (.mp4 or .gif)")
@@ -32,6 +35,7 @@ def add_parsers(commands, common) -> None:
     tt.add_argument("--size", type=positive_int, default=ExportConfig.turntable_size)
     tt.add_argument("--elevation", type=float, default=ExportConfig.elevation)
     tt.add_argument("--fps", type=float, default=ExportConfig.fps)
+    add_device_argument(tt)
     tt.set_defaults(run=cmd_turntable)
 
 
@@ -39,6 +43,7 @@ def cmd_render(args) -> int:
     from voxe_core.backbones import load_grid
     from voxe_core.export import render_views, save_png, turntable_cameras
 
+    device = check_device(args)
     grid = load_grid(args.grid)
     scene = None
     if args.data is not None:
@@ -48,7 +53,8 @@ def cmd_render(args) -> int:
     else:
         cameras = turntable_cameras(args.ring, args.elevation, args.size)
         names = [f"{i:03d}.png" for i in range(args.ring)]
-    frames = run_stage(lambda cb: render_views(grid, cameras, callbacks=cb), "render", "view", len(cameras), args.quiet)
+    frames = run_stage(lambda cb: render_views(grid, cameras, callbacks=cb, device=device), "render", "view",
+                       len(cameras), args.quiet)
     if frames is None:
         print("voxe: rendering cancelled", file=sys.stderr)
         return EXIT_INTERRUPTED
@@ -87,10 +93,12 @@ def cmd_turntable(args) -> int:
 
     if args.out.suffix.lower() not in VIDEO_SUFFIXES:  # fail before rendering, not after
         raise ValueError(f"unsupported video suffix {args.out.suffix!r}; use one of {', '.join(VIDEO_SUFFIXES)}")
+    device = check_device(args)
     grid = load_grid(args.grid)
     cameras = turntable_cameras(args.frames, args.elevation, args.size)
     frames = run_stage(
-        lambda cb: render_views(grid, cameras, callbacks=cb), "turntable", "frame", len(cameras), args.quiet
+        lambda cb: render_views(grid, cameras, callbacks=cb, device=device), "turntable", "frame", len(cameras),
+        args.quiet,
     )
     if frames is None:
         print("voxe: turntable cancelled, nothing written", file=sys.stderr)

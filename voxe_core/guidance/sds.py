@@ -14,6 +14,18 @@ SDS (SPEC §2). For renders ``x`` in [0, 1]:
 6. ``grad = w(t)·(ε̂ − ε)`` with ``w(t) = 1 − ᾱ_t``, computed in float32,
    non-finite entries set to 0.
 
+The UNet's output is read as its scheduler's ``prediction_type`` says: ε
+(``"epsilon"``, SD 1.x and SD 2 base) as it is, v (``"v_prediction"``, e.g.
+stabilityai/stable-diffusion-2-1 at 768²) converted to ε first,
+``ε̂ = √ᾱ_t·v + √(1 − ᾱ_t)·z_t`` (from ``v = √ᾱ·ε − √(1 − ᾱ)·z`` and
+``z_t = √ᾱ·z + √(1 − ᾱ)·ε``); any other type is refused when the guidance is
+built (:data:`PREDICTION_TYPES`).
+
+On CUDA the UNet and VAE run in float16 (``from_pretrained``'s default),
+``channels_last``, with PyTorch SDPA attention. Timing synchronisation
+(``sync_timing``) is off unless asked for: without it the ``*_ms`` diagnostics
+measure host-side dispatch only.
+
 The gradient is injected with the standard surrogate
 ``loss = (grad.detach() * latents).sum()``: its derivative with respect to the
 latents is exactly ``grad`` (summed, not averaged, over the batch), so
@@ -37,6 +49,37 @@ import torch.nn.functional as F
 from voxe_core.constants import DEFAULT_ATTENTION_TIMESTEP, DEFAULT_GUIDANCE_SCALE, SDS_MODEL_ID
 from voxe_core.guidance.attention import AttentionStore, capturing
 from voxe_core.guidance.loading import load_stable_diffusion
+
+
+PREDICTION_TYPES = ("epsilon", "v_prediction")
+
+
+def prediction_type(scheduler) -> str:
+    """The scheduler's ``prediction_type`` (``"epsilon"`` when it names none); ValueError for one SDS cannot use."""
+    kind = getattr(getattr(scheduler, "config", None), "prediction_type", None) or "epsilon"
+    if kind not in PREDICTION_TYPES:
+        raise ValueError(
+            f"the model's scheduler predicts {kind!r}; SDS here supports prediction_type "
+            f"{' or '.join(map(repr, PREDICTION_TYPES))} (convert the checkpoint or pick another model)"
+        )
+    return kind
+
+
+def epsilon_from_output(output: torch.Tensor, noisy: torch.Tensor, alpha_bar: torch.Tensor, kind: str) -> torch.Tensor:
+    """The noise estimate ε̂ from a UNet output of prediction type ``kind`` at ``z_t = noisy`` (float32).
+
+    Examples:
+        >>> a, z, eps = torch.tensor(0.64), torch.ones(1), torch.full((1,), 2.0)
+        >>> noisy = a.sqrt() * z + (1 - a).sqrt() * eps
+        >>> v = a.sqrt() * eps - (1 - a).sqrt() * z
+        >>> epsilon_from_output(v, noisy, a, "v_prediction").tolist()
+        [2.0]
+    """
+    if kind == "epsilon":
+        return output
+    if kind == "v_prediction":
+        return alpha_bar.sqrt() * output + (1.0 - alpha_bar).sqrt() * noisy
+    raise ValueError(f"unknown prediction_type {kind!r}; expected one of {PREDICTION_TYPES}")
 
 
 def _sync(guidance: "StableDiffusionGuidance") -> None:
@@ -64,9 +107,11 @@ class StableDiffusionGuidance:
         device: torch.device | str = "cpu",
         dtype: torch.dtype = torch.float32,
         resolution: int | None = None,
-        sync_timing: bool = True,
+        sync_timing: bool = False,
     ):
         from diffusers.models.attention_processor import AttnProcessor2_0
+
+        self.prediction_type = prediction_type(scheduler)  # refuse an unusable model before moving weights
 
         self.model_id = model_id
         self.device = torch.device(device)
@@ -85,6 +130,9 @@ class StableDiffusionGuidance:
         # PyTorch SDPA everywhere (diffusers' default on torch >= 2); the
         # attention-map pass swaps the cross-attention layers temporarily.
         self.unet.set_attn_processor(AttnProcessor2_0())
+        if self.device.type == "cuda":  # NHWC convolutions: faster tensor-core kernels for the fp16 UNet / VAE
+            self.unet.to(memory_format=torch.channels_last)
+            self.vae.to(memory_format=torch.channels_last)
 
         self.vae_scale_factor = 2 ** (len(vae.config.block_out_channels) - 1)
         self.resolution = int(resolution or unet.config.sample_size * self.vae_scale_factor)
@@ -96,8 +144,8 @@ class StableDiffusionGuidance:
         self.max_length = int(min(tokenizer.model_max_length, text_encoder.config.max_position_embeddings))
         self._embedding_cache: dict[str, torch.Tensor] = {}
         # Synchronise CUDA around the timed parts so the *_ms diagnostics are
-        # true device times (a few syncs per step); set False to skip them, the
-        # timings then only measure host-side dispatch.
+        # true device times (a few syncs per step, the benchmarks ask for it);
+        # off, the timings only measure host-side dispatch.
         self.sync_timing = bool(sync_timing)
 
     # ------------------------------------------------------------------ loading
@@ -112,7 +160,7 @@ class StableDiffusionGuidance:
         *,
         revision: str | None = None,
         resolution: int | None = None,
-        sync_timing: bool = True,
+        sync_timing: bool = False,
     ) -> "StableDiffusionGuidance":
         """Load UNet, VAE, CLIP text encoder, tokenizer and noise schedule of ``model``.
 
@@ -232,14 +280,15 @@ class StableDiffusionGuidance:
         return text
 
     def _timesteps(self, timesteps, batch: int) -> torch.Tensor:
-        t = torch.as_tensor(timesteps, device=self.device).long().reshape(-1)
+        """Checked where the time steps were drawn (the host, in the edit loop): no device round trip."""
+        t = torch.as_tensor(timesteps).long().reshape(-1)
         if t.numel() == 1 and batch > 1:
             t = t.expand(batch)
         if t.numel() != batch:
             raise ValueError(f"{t.numel()} timesteps for a batch of {batch}")
         if bool(((t < 0) | (t >= self.num_train_timesteps)).any()):
             raise ValueError(f"timesteps must lie in [0, {self.num_train_timesteps - 1}], got {t.tolist()}")
-        return t
+        return t.to(self.device, non_blocking=True)
 
     @torch.no_grad()
     def sds_grad_on_latents(
@@ -254,6 +303,7 @@ class StableDiffusionGuidance:
         """The SDS gradient ``w(t)·(ε̂ − ε)`` on (scaled) latents, float32, non-finite → 0.
 
         ``noise`` (float32, latent-shaped) overrides the draw from ``generator``.
+        ε̂ is the guided UNet output read as :attr:`prediction_type` says.
         Diagnostics: ``unet_ms`` (UNet forward incl. CFG), ``t_mean``,
         ``w_mean``, ``grad_norm``.
         """
@@ -274,8 +324,9 @@ class StableDiffusionGuidance:
         _sync(self)
         unet_ms = (time.perf_counter() - t0) * 1e3
 
-        eps_u, eps_c = out.float().chunk(2)
-        eps_hat = eps_u + float(guidance_scale) * (eps_c - eps_u)
+        out_u, out_c = out.float().chunk(2)
+        # CFG is linear, so guiding the raw outputs then converting equals converting each first.
+        eps_hat = epsilon_from_output(out_u + float(guidance_scale) * (out_c - out_u), noisy, a, self.prediction_type)
         w = 1.0 - a
         grad = torch.nan_to_num(w * (eps_hat - eps), nan=0.0, posinf=0.0, neginf=0.0)
         # one device->host copy for all scalar diagnostics

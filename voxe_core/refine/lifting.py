@@ -82,7 +82,7 @@ def fit_attention_grids(
     origins, directions, targets = origins[keep], directions[keep], targets[keep]
 
     values = torch.full((*grid.resolution, 2), float(config.init_value), device=device, requires_grad=True)
-    optimizer = torch.optim.Adam([values], lr=config.lr)
+    optimizer = torch.optim.Adam([values], lr=config.lr, fused=values.is_cuda or None)  # one kernel per step on CUDA
     box = _occupied_slices(occupancy)
     generator = torch.Generator(device=device).manual_seed(config.seed)
     n_rays = origins.shape[0]

@@ -8,6 +8,7 @@ from typing import Sequence
 import torch
 
 from voxe_core.cameras import Cameras
+from voxe_core.devices import PeakMemory, resolve_device
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance.prompts import edit_prompt
 from voxe_core.progress import Callbacks, Progress
@@ -59,6 +60,7 @@ def refine(
     guidance,
     config: RefineConfig = RefineConfig(),
     callbacks: Callbacks = Callbacks(),
+    device: torch.device | str | None = None,
 ) -> RefineResult:
     """The whole of SPEC §3: maps -> attention grids -> graph cut -> merge.
 
@@ -66,8 +68,16 @@ def refine(
     missing (as the edit stage prompts the model). ``edit_words`` name the
     edit (words or phrases of the prompt, e.g. ``["sunglasses"]`` or
     ``["party hat"]``).
+
+    The attention renders, the attention-grid fit and the graph cut's inputs run
+    on ``device`` (None: the guidance's, else the edited grid's); both grids are
+    moved there once (in place, as ``nn.Module.to``). The last progress report
+    carries the stage's peak memory (:class:`voxe_core.devices.PeakMemory`).
     """
     check_compatible(initial_grid, edited_grid)
+    device = resolve_device(device if device is not None else getattr(guidance, "device", edited_grid.bbox_min.device))
+    memory = PeakMemory(device).start()
+    initial_grid, edited_grid = initial_grid.to(device), edited_grid.to(device)
     text = edit_prompt(prompt)
     token_groups(guidance, text, edit_words)  # fail on a bad word before rendering anything
     cameras = attention_cameras(config)
@@ -78,7 +88,7 @@ def refine(
     p_e, p_o = probabilities(edit_field, object_field)
     refined = merge(initial_grid, edited_grid, mask)
     callbacks.progress(Progress("graph_cut", 1, 1, info={"stage": "graph cut", "nodes": stats.nodes,
-                                                        "edit_voxels": stats.edit_voxels}))
+                                                        "edit_voxels": stats.edit_voxels, **memory.info()}))
     return RefineResult(
         refined, mask, p_e, p_o, edit_field, object_field, cameras, edit_maps, object_maps, stats,
         info={"prompt": text, "edit_words": list(edit_words) if not isinstance(edit_words, str) else [edit_words]},

@@ -1,0 +1,423 @@
+"""The GPU path measured in one run (issue 17): edit-step speed-ups as ratios, an edit loop, reconstruction,
+refinement, a whole local-edit job through the worker, and each stage's peak memory.
+
+Models have RANDOM WEIGHTS (nothing can be downloaded on the device machine; the cost of a network does not
+depend on its weights): ``sd2-base-shaped`` (SDS) and ``sd1.4-shaped`` (attention) are built from the real
+architectures by ``bench/edit_step.py``'s builder, fp16, 512² guidance. Timings are costs, never quality.
+
+    python bench/gpu.py            # CUDA, full size: at most ~8 min on one H200
+    python bench/gpu.py --smoke    # CPU, tiny sizes: every section end to end in about a minute
+                                   # (tests/test_bench_gpu.py); its figures mean nothing
+
+Sections (each one's failure is recorded in its run, the others still run; the JSON is rewritten after each):
+
+a. ``edit_step``: one SDS editing step split into render / VAE / UNet / backward / optimiser (timing
+   synchronisation on, so the parts are device times), for the baseline (fp32, contiguous memory, for-each
+   Adam) and each speed-up added in turn (fp16, channels_last, fused Adam, timing synchronisation off); the
+   step's wall time (one synchronisation per run, not per part) and its ratio to the baseline;
+b. ``edit_loop``: >= 500 iterations of the default edit at 160³: ms per step, the projected 8,000-iteration
+   minutes;
+c. ``reconstruction``: mic with the ``fast`` and ``paper`` presets on the device: seconds, test PSNR / SSIM
+   (scored as bench/reconstruction.py scores them);
+d. ``refinement``: the attention pass over the views, the attention-grid fit and the graph cut at 160³;
+e. every run carries ``peak_memory_gb`` (the stage's ``torch.cuda.max_memory_allocated``, GiB);
+f. ``job``: one local-edit job (reconstruct -> edit -> refine -> export) through the worker's task bodies on an
+   embedded service, the SDS model the full-size random one; iterations reduced (``job_iterations``) to fit
+   the 8 minutes: its seconds are projected to 8,000 iterations from (b)'s ms per step.
+
+Writes bench/results/gpu.json (``{"runs": [...]}``; each run has ``name``, ``kind``, ``device``, ``dtype``,
+``model``, ``peak_memory_gb`` and, per kind, ``ms_step`` / ``edit_8000_minutes``, ``seconds`` / ``psnr`` /
+``ssim`` or ``seconds``) and gpu.png; ``--smoke`` writes gpu_smoke.json / .png instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+RESULTS = HERE / "results"
+MIC = REPO.parent / "shared" / "data" / "nerf_synthetic_mic"
+sys.path[:0] = [str(REPO), str(HERE), str(REPO / "tests")]
+
+PROMPT, EDIT_WORDS = "a dog wearing big sunglasses", ["sunglasses"]
+
+
+@dataclass
+class Profile:
+    """Sizes of one run of the script: the full GPU benchmark or the CPU smoke run."""
+
+    device: str
+    dtype: torch.dtype
+    guidance_resolution: int
+    render_size: int
+    grid_resolution: int
+    warm: int
+    timed: int
+    loop_iterations: int
+    job_iterations: int
+    reconstruction: dict  # preset name -> job parameters' "reconstruction" (None: the preset as it is)
+    downsample: int
+    max_images: int | None
+    refine: dict
+    export: dict
+
+    @classmethod
+    def full(cls) -> "Profile":
+        return cls("cuda", torch.float16, 512, 266, 160, 5, 20, 500, 500,
+                   {"fast": {"preset": "fast"}, "paper": {"preset": "paper"}}, 3, None, {},
+                   {"views": 4, "turntable_frames": 30, "gif": False})
+
+    @classmethod
+    def smoke(cls) -> "Profile":
+        tiny_fit = {"resolution": 24, "iterations": 20, "rays_per_step": 1024}  # enough for an occupied G_i
+        return cls("cpu", torch.float32, 64, 24, 24, 1, 2, 3, 2,
+                   {"fast": {"preset": "fast", **tiny_fit}, "paper": {"preset": "paper", **tiny_fit}}, 16, 8,
+                   {"views": 4, "iterations": 20, "render_size": 64, "rays_per_step": 2048},
+                   {"views": 1, "view_size": 32, "turntable_frames": 4, "turntable_size": 32, "gif": False,
+                    "mesh_resolution": 32})
+
+
+def _synchronize(device: str) -> None:
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize()
+
+
+def _peak(reports) -> float | None:
+    values = [r.info["peak_memory_gb"] for r in reports if r.info.get("peak_memory_gb") is not None]
+    return max(values) if values else None
+
+
+def _guidance(path: Path, profile: Profile, dtype: torch.dtype):
+    from voxe_core.guidance.sds import StableDiffusionGuidance
+
+    return StableDiffusionGuidance.from_pretrained(str(path), device=profile.device, dtype=dtype, local_files_only=True,
+                                                   resolution=profile.guidance_resolution)
+
+
+@contextlib.contextmanager
+def _adam(fused: bool):
+    """The edit's Adam as it is (fused where the device has the kernels) or the for-each one it replaced."""
+    import voxe_core.edit
+
+    real = voxe_core.edit._make_adam
+    if not fused:
+        voxe_core.edit._make_adam = lambda param, config: torch.optim.Adam(
+            [param], lr=config.lr, betas=tuple(config.betas), foreach=True)
+    try:
+        yield
+    finally:
+        voxe_core.edit._make_adam = real
+
+
+def _channels_last(guidance, enabled: bool) -> None:
+    layout = torch.channels_last if enabled else torch.contiguous_format
+    guidance.unet.to(memory_format=layout)
+    guidance.vae.to(memory_format=layout)
+
+
+def _edit_run(guidance, profile: Profile, iterations: int, sync: bool):
+    """(reports, wall seconds) of ``iterations`` default edit iterations on the 160³ sphere (one sync at the end)."""
+    from edit_step import sphere_grid
+
+    from voxe_core.edit import EditConfig, edit
+    from voxe_core.progress import Callbacks
+
+    reports = []
+    guidance.sync_timing = sync
+    config = EditConfig(iterations=iterations, render_size=profile.render_size, sync_timing=sync)
+    grid = sphere_grid(profile.grid_resolution)
+    _synchronize(profile.device)
+    start = time.perf_counter()
+    edit(grid, PROMPT, guidance, config, Callbacks(on_progress=reports.append), device=profile.device)
+    _synchronize(profile.device)
+    return reports, time.perf_counter() - start
+
+
+# ---------------------------------------------------------------- (a), (b)
+STEP_VARIANTS = (  # each adds one change to the one before
+    ("baseline: fp32, contiguous, for-each Adam, timing sync", dict(half=False, channels_last=False, fused=False, sync=True)),
+    ("+ fp16 UNet/VAE", dict(half=True, channels_last=False, fused=False, sync=True)),
+    ("+ channels_last", dict(half=True, channels_last=True, fused=False, sync=True)),
+    ("+ fused Adam", dict(half=True, channels_last=True, fused=True, sync=True)),
+    ("+ no timing sync (the default)", dict(half=True, channels_last=True, fused=True, sync=False)),
+)
+
+
+def edit_step_runs(sd2: Path, profile: Profile) -> list[dict]:
+    rows, baseline = [], None
+    loaded = {}
+    for name, variant in STEP_VARIANTS:
+        dtype = profile.dtype if variant["half"] else torch.float32
+        if dtype not in loaded:
+            loaded.clear()  # one model in memory at a time
+            loaded[dtype] = _guidance(sd2, profile, dtype)
+        guidance = loaded[dtype]
+        if profile.device == "cuda":
+            _channels_last(guidance, variant["channels_last"])
+        with _adam(variant["fused"]):
+            _edit_run(guidance, profile, profile.warm, variant["sync"])  # kernels picked, caches filled
+            timed, wall = _edit_run(guidance, profile, profile.timed, variant["sync"])
+        ms_step = wall * 1e3 / profile.timed
+        row = {"name": f"edit_step {name}", "kind": "edit_step", "device": profile.device,
+               "dtype": str(dtype).replace("torch.", ""), "model": "sd2-base-shaped (random weights)",
+               "ms_step": ms_step, "edit_8000_minutes": ms_step * 8000 / 60000, "peak_memory_gb": _peak(timed),
+               **variant}
+        if variant["sync"]:  # per-part device times
+            for part in ("render", "vae", "unet", "backward", "optimizer"):
+                row[f"ms_{part}"] = sum(r.info[f"ms_{part}"] for r in timed) / len(timed)
+        baseline = baseline or ms_step
+        row["speedup_over_baseline"] = baseline / ms_step
+        rows.append(row)
+    return rows
+
+
+def edit_loop_run(sd2: Path, profile: Profile) -> dict:
+    guidance = _guidance(sd2, profile, profile.dtype)
+    _channels_last(guidance, profile.device == "cuda")
+    _edit_run(guidance, profile, profile.warm, sync=False)
+    reports, wall = _edit_run(guidance, profile, profile.loop_iterations, sync=False)
+    ms_step = wall * 1e3 / profile.loop_iterations
+    return {"name": f"edit_loop {profile.loop_iterations} iterations at {profile.grid_resolution}³", "kind": "edit",
+            "device": profile.device, "dtype": str(profile.dtype).replace("torch.", ""),
+            "model": "sd2-base-shaped (random weights)", "iterations": profile.loop_iterations, "seconds": wall,
+            "iterations_per_second": profile.loop_iterations / wall, "ms_step": ms_step,
+            "edit_8000_minutes": ms_step * 8000 / 60000, "peak_memory_gb": _peak(reports),
+            "render_size": profile.render_size, "guidance_resolution": profile.guidance_resolution}
+
+
+# ---------------------------------------------------------------- (c)
+def reconstruction_runs(profile: Profile, data: Path) -> list[dict]:
+    from voxe_core.data import load_scene
+    from voxe_core.metrics import psnr, ssim
+    from voxe_core.presets import reconstruct_config, reconstruction_params
+    from voxe_core.progress import Callbacks
+    from voxe_core.reconstruct import reconstruct
+    from voxe_core.render import RenderConfig, render_image
+
+    train = load_scene(data, "train", profile.downsample, profile.max_images)
+    test = load_scene(data, "test", profile.downsample, profile.max_images)
+    rows = []
+    for preset, params in profile.reconstruction.items():
+        config = reconstruct_config(reconstruction_params({"reconstruction": params}), 0)
+        reports = []
+        _synchronize(profile.device)
+        start = time.perf_counter()
+        grid = reconstruct(train.images, train.cameras, config, Callbacks(on_progress=reports.append),
+                           device=profile.device)
+        _synchronize(profile.device)
+        seconds = time.perf_counter() - start
+        render = RenderConfig(step_ratio=config.render.step_ratio)
+        cameras = test.cameras.to(profile.device)
+        images = torch.stack([render_image(grid, cameras, i, render).rgb.cpu() for i in range(len(cameras))])
+        rows.append({"name": f"reconstruction mic {preset}", "kind": "reconstruction", "device": profile.device,
+                     "dtype": "float32", "model": f"ReLU-field grid {config.resolutions[-1]}³", "preset": preset,
+                     "seconds": seconds, "iterations": config.total_iterations,
+                     "psnr": float(psnr(images, test.images).mean()), "ssim": float(ssim(images, test.images).mean()),
+                     "peak_memory_gb": _peak(reports), "image_size": train.cameras.width})
+    return rows
+
+
+# ---------------------------------------------------------------- (d)
+def refinement_run(sd14: Path, profile: Profile) -> dict:
+    from edit_step import sphere_grid
+
+    from voxe_core.progress import Callbacks
+    from voxe_core.refine.config import RefineConfig
+    from voxe_core.refine.pipeline import refine
+
+    guidance = _guidance(sd14, profile, profile.dtype)
+    initial = sphere_grid(profile.grid_resolution)
+    edited = initial.clone_grid()
+    with torch.no_grad():  # an "edit": a second sphere beside the first
+        shifted = sphere_grid(profile.grid_resolution, radius=0.4).features.roll(profile.grid_resolution // 4, 0)
+        edited.features.copy_(torch.maximum(edited.features, shifted))
+    marks: dict[str, float] = {}
+    reports = []
+
+    def on_progress(report) -> None:
+        reports.append(report)
+        marks[report.stage] = time.perf_counter()
+
+    _synchronize(profile.device)
+    start = time.perf_counter()
+    result = refine(initial, edited, PROMPT, EDIT_WORDS, guidance, RefineConfig(**profile.refine),
+                    Callbacks(on_progress=on_progress), device=profile.device)
+    _synchronize(profile.device)
+    seconds = time.perf_counter() - start
+    maps_end, grids_end = marks.get("attention_maps", start), marks.get("attention_grids", start)
+    return {"name": f"refinement at {profile.grid_resolution}³", "kind": "refinement", "device": profile.device,
+            "dtype": str(profile.dtype).replace("torch.", ""), "model": "sd1.4-shaped (random weights)",
+            "seconds": seconds, "seconds_attention_maps": maps_end - start,
+            "seconds_attention_grids": grids_end - maps_end, "seconds_graph_cut": start + seconds - grids_end,
+            "edit_voxels": int(result.mask.sum()), "peak_memory_gb": _peak(reports)}
+
+
+# ---------------------------------------------------------------- (f)
+def job_run(sd2: Path, sd14: Path, profile: Profile, data: Path, root: Path, loop_ms_step: float | None) -> dict:
+    from fastapi.testclient import TestClient
+    from service_helpers import ingest, reset_service_caches, service_env, small_mic, zip_folder
+
+    env = service_env(root, VOXE_SDS_MODEL=str(sd2), VOXE_ATTENTION_MODEL=str(sd14), VOXE_DEVICE=profile.device)
+    saved = {key: os.environ.get(key) for key in env}
+    os.environ.update(env)
+    reset_service_caches()
+    try:
+        from api.main import create_app
+        from worker import tasks
+
+        archive = zip_folder(small_mic(root / "mic", frames=profile.max_images or 100), root / "mic.zip", prefix="mic")
+        params = {"downsample": profile.downsample, "iterations": profile.job_iterations,
+                  "reconstruction": profile.reconstruction["fast"], "refine": profile.refine,
+                  "export": profile.export}
+        with TestClient(create_app()) as client, open(archive, "rb") as handle:
+            scene = client.post("/v1/scenes", files={"archive": ("mic.zip", handle, "application/zip")}).json()
+            ingest(scene["id"])
+            job = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": PROMPT, "mode": "local",
+                                                "edit_words": EDIT_WORDS, "params": params}).json()
+            seconds = {}
+            for stage, task in (("reconstruct", tasks.reconstruct_task), ("edit", tasks.edit_task),
+                                ("refine", tasks.refine_task), ("export", tasks.export_task)):
+                start = time.perf_counter()
+                outcome = task.apply(args=(job["id"],)).get()
+                seconds[stage] = time.perf_counter() - start
+                if outcome.get("state") != "done":
+                    raise RuntimeError(f"{stage}: {client.get('/v1/jobs/' + job['id']).json().get('error')}")
+            done = client.get(f"/v1/jobs/{job['id']}").json()
+    finally:
+        for key, value in saved.items():
+            os.environ.pop(key, None) if value is None else os.environ.__setitem__(key, value)
+        reset_service_caches()
+    total = sum(seconds.values())
+    projected = None
+    if loop_ms_step is not None:
+        projected = total + (8000 - profile.job_iterations) * loop_ms_step / 1e3
+    memory = (done.get("result") or {}).get("peak_memory_gb", {})
+    return {"name": "local-edit job through the worker", "kind": "job", "device": profile.device,
+            "dtype": str(profile.dtype).replace("torch.", ""),
+            "model": "sd2-base-shaped SDS + sd1.4-shaped attention (random weights)", "seconds": total,
+            "seconds_per_stage": seconds, "edit_iterations": profile.job_iterations,
+            "seconds_projected_8000_iterations": projected, "state": done["state"],
+            "peak_memory_gb": max(memory.values()) if memory else None, "peak_memory_gb_per_stage": memory}
+
+
+# ---------------------------------------------------------------- output
+def plot(runs: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = [r for r in runs if r.get("kind") == "edit_step" and "ms_step" in r]
+    timed = [r for r in runs if r.get("kind") != "edit_step" and r.get("seconds") is not None]
+    fig, (left, right) = plt.subplots(1, 2, figsize=(13, 1.5 + 0.5 * max(len(steps), len(timed), 1)))
+    for i, r in enumerate(steps):
+        left.barh(i, r["ms_step"], color="#4c72b0")
+        left.text(r["ms_step"], i, f" {r['ms_step']:.0f} ms  ×{r['speedup_over_baseline']:.2f}", va="center", fontsize=8)
+    left.set_yticks(range(len(steps)), [r["name"].removeprefix("edit_step ") for r in steps], fontsize=8)
+    left.invert_yaxis()
+    left.set_xscale("log")
+    left.set_xlabel("ms per editing step (log)")
+    left.set_title("edit step: each speed-up added in turn")
+    for i, r in enumerate(timed):
+        right.barh(i, r["seconds"], color="#55a868")
+        memory = f", {r['peak_memory_gb']:.1f} GiB" if r.get("peak_memory_gb") is not None else ""
+        right.text(r["seconds"], i, f" {r['seconds']:.1f} s{memory}", va="center", fontsize=8)
+    right.set_yticks(range(len(timed)), [r["name"] for r in timed], fontsize=8)
+    right.invert_yaxis()
+    right.set_xscale("log")
+    right.set_xlabel("seconds (log)")
+    right.set_title(f"stages on {runs[0]['device'] if runs else '?'} — random-weight models: cost only")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--smoke", action="store_true", help="CPU, tiny sizes: check the script end to end")
+    parser.add_argument("--data", type=Path, default=MIC, help="the nerf_synthetic mic folder")
+    parser.add_argument("--out", type=Path, default=None, help="JSON to write (default bench/results/gpu[_smoke].json)")
+    parser.add_argument("--skip", default="", help="comma-separated sections to leave out (a,b,c,d,f)")
+    args = parser.parse_args(argv)
+    profile = Profile.smoke() if args.smoke else Profile.full()
+    if args.smoke:  # toy-sized ops: OpenMP hand-offs between threads would cost more than they give
+        torch.set_num_threads(1)
+    if profile.device == "cuda" and not torch.cuda.is_available():
+        print("bench/gpu.py needs a CUDA device (or --smoke)", file=sys.stderr)
+        return 2
+    out = args.out or RESULTS / ("gpu_smoke.json" if args.smoke else "gpu.json")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    skip = set(filter(None, args.skip.split(",")))
+    runs: list[dict] = []
+    started = time.perf_counter()
+    header = {"device": torch.cuda.get_device_name() if profile.device == "cuda" else f"{os.cpu_count()} CPU cores",
+              "torch": torch.__version__, "smoke": args.smoke,
+              "note": "random-weight models: costs only; peak_memory_gb is max_memory_allocated (GiB) on CUDA, "
+                      "process RSS peak on CPU"}
+
+    def save() -> None:
+        out.write_text(json.dumps({**header, "wall_seconds": time.perf_counter() - started, "runs": runs}, indent=2))
+
+    def section(name: str, kind: str, body) -> None:
+        if name in skip:
+            return
+        t0 = time.perf_counter()
+        try:
+            produced = body()
+            runs.extend(produced if isinstance(produced, list) else [produced])
+        except Exception as exc:  # noqa: BLE001 - one section's failure must not lose the others
+            traceback.print_exc()
+            runs.append({"name": f"section {name} failed", "kind": kind, "device": profile.device,
+                         "error": f"{type(exc).__name__}: {exc}"})
+        print(f"section {name} ({kind}): {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+        save()
+
+    with tempfile.TemporaryDirectory(prefix="voxe_gpu_bench_") as tmp:
+        tmp = Path(tmp)
+        from voxe_core.tiny_sd import build_tiny_stable_diffusion
+
+        tiny = build_tiny_stable_diffusion(tmp / "tiny", seed=0)
+        if args.smoke:
+            sd2 = sd14 = tiny
+        else:  # built in subprocesses so their memory is returned before the models load
+            sd2, sd14 = tmp / "sd2", tmp / "sd14"
+            for path, family in ((sd2, "sd2-base"), (sd14, "sd1.4")):
+                subprocess.run([sys.executable, str(HERE / "edit_step.py"), "--build-full", str(path),
+                                "--tokenizer-from", str(tiny / "tokenizer"), "--family", family], check=True)
+        section("a", "edit_step", lambda: edit_step_runs(sd2, profile))
+        section("b", "edit", lambda: edit_loop_run(sd2, profile))
+        if args.data.is_dir():
+            section("c", "reconstruction", lambda: reconstruction_runs(profile, args.data))
+        else:
+            runs.append({"name": "reconstruction skipped", "kind": "reconstruction", "error": f"no data at {args.data}"})
+        section("d", "refinement", lambda: refinement_run(sd14, profile))
+        loop = next((r for r in runs if r.get("kind") == "edit" and "ms_step" in r), None)
+        if args.data.is_dir():
+            section("f", "job", lambda: job_run(sd2, sd14, profile, args.data, tmp / "service",
+                                                loop["ms_step"] if loop else None))
+    save()
+    plot(runs, out.with_suffix(".png"))
+    for run in runs:
+        figures = {k: round(v, 3) if isinstance(v, float) else v for k, v in run.items()
+                   if k in ("ms_step", "edit_8000_minutes", "speedup_over_baseline", "seconds", "psnr", "ssim",
+                            "peak_memory_gb", "error")}
+        print(f"{run['name']:<60} {figures}")
+    print(f"wrote {out} and {out.with_suffix('.png')}")
+    return 1 if any("error" in r for r in runs if r.get("kind") != "reconstruction" or args.data.is_dir()) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,47 @@
+"""bench/gpu.py, the prepared GPU benchmark, runs end to end (its CPU --smoke profile: tiny sizes, the
+random-weight SMOKE-TEST model; the figures mean nothing, the test checks the record's shape)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+from needs import MIC
+
+pytestmark = pytest.mark.slow
+BENCH = Path(__file__).resolve().parents[1] / "bench" / "gpu.py"
+
+
+def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
+    if not MIC.is_dir():
+        pytest.skip(f"shared data missing: {MIC}")
+    spec = importlib.util.spec_from_file_location("bench_gpu", BENCH)
+    bench = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "bench_gpu", bench)  # dataclasses look their module up there
+    spec.loader.exec_module(bench)
+    out = tmp_path / "gpu.json"
+    assert bench.main(["--smoke", "--out", str(out)]) == 0
+    record = json.loads(out.read_text())
+    runs = record["runs"]
+    assert not [r for r in runs if "error" in r]
+    kinds = [r["kind"] for r in runs]
+    assert kinds == ["edit_step"] * len(bench.STEP_VARIANTS) + ["edit", "reconstruction", "reconstruction",
+                                                                  "refinement", "job"]
+    for run in runs:
+        assert {"name", "device", "dtype", "model", "peak_memory_gb"} <= set(run)
+        assert run["device"] == "cpu" and run["peak_memory_gb"] > 0
+    for run in runs[: len(bench.STEP_VARIANTS) + 1]:
+        assert run["ms_step"] > 0 and run["edit_8000_minutes"] == pytest.approx(run["ms_step"] * 8000 / 60000)
+    assert runs[0]["speedup_over_baseline"] == 1.0
+    assert all(r["ms_render"] > 0 and r["ms_unet"] > 0 for r in runs[:4])  # synchronised variants split the step
+    for run in runs:
+        if run["kind"] == "reconstruction":
+            assert run["seconds"] > 0 and 5 < run["psnr"] < 60 and 0 < run["ssim"] <= 1
+    job = runs[-1]
+    assert job["state"] == "succeeded"
+    assert set(job["peak_memory_gb_per_stage"]) == {"reconstruct", "edit", "refine", "export"}
+    assert (tmp_path / "gpu.png").stat().st_size > 1000
