@@ -91,6 +91,7 @@ def create_app(settings: Settings | None = None, migrate: bool = True) -> FastAP
             yield
         finally:
             reaper.stop()
+            await app.state.event_hub.close()
 
     app = FastAPI(
         title="Vox-E",
@@ -104,7 +105,10 @@ def create_app(settings: Settings | None = None, migrate: bool = True) -> FastAP
         ),
         lifespan=lifespan,
     )
+    from api.events import EventHub
     from api.routes import artifacts, evaluations, health, jobs, scenes
+
+    app.state.event_hub = EventHub(settings.progress_interval_s, jobs.progress_view)
 
     app.include_router(health.router)
     app.include_router(scenes.router)

@@ -359,8 +359,8 @@ class JobOut(BaseModel):
 
 class JobEventOut(BaseModel):
     id: int
-    kind: str = Field(description="stage_started, stage_completed, checkpoint, resumed, requeued, succeeded, "
-                                  "failed or canceled")
+    kind: str = Field(description="stage_started, stage_completed, checkpoint, resumed, requeued, artifact, "
+                                  "preview, succeeded, failed or canceled")
     stage: str | None
     iteration: int | None = Field(description="checkpoint: the iteration it holds; resumed: where the stage went on")
     worker_hostname: str | None

@@ -193,7 +193,8 @@ class JobEvent(Base):
     Kinds: ``stage_started`` / ``stage_completed`` (``stage``, the worker), ``checkpoint`` (a resumable
     checkpoint of ``stage`` at ``iteration`` is in the storage: the event is written after the upload),
     ``resumed`` (a redelivered stage went on from the checkpoint at ``iteration``), ``requeued`` (a
-    restarted worker sent the remaining stages again), and the terminal ``succeeded`` / ``failed`` /
+    restarted worker sent the remaining stages again), ``artifact`` / ``preview`` (``detail``: the name of an
+    artifact just published, or of a new preview image), and the terminal ``succeeded`` / ``failed`` /
     ``canceled`` (``detail``: the error or message). Unlike the throttled progress columns of the job,
     every event is kept.
     """

@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Query, Response, status
+from typing import Annotated
+
+from fastapi import APIRouter, Header, HTTPException, Query, Request, Response, status
+from fastapi.responses import StreamingResponse
 from sqlalchemy import select
 
 from api.auth import mark_replayed
+from api.events import SSE_MEDIA_TYPE
 from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep
 from api.routes.scenes import MAX_OFFSET
 from api.schemas import JobCreate, JobEventOut, JobOut, JobReconstruction, JobState, Models, Page
@@ -90,12 +94,44 @@ def get_job(job_id: str, session: SessionDep, key: CurrentKey) -> JobOut:
     return job_out(jobs.get_job(session=session, key=key, job_id=job_id))
 
 
-@router.get("/{job_id}/events", response_model=list[JobEventOut], responses=_ERRORS,
-            summary="The job's timeline: stages started and completed, checkpoints stored, resumes, its end")
-def list_events(job_id: str, session: SessionDep, key: CurrentKey) -> list[JobEventOut]:
+@router.get(
+    "/{job_id}/events", response_model=list[JobEventOut],
+    responses={**_ERRORS,
+               200: {"description": "the timeline as JSON; with `Accept: text/event-stream`, a live stream of "
+                                    "Server-Sent Events (api/events.py) ending when the job ends",
+                     "content": {SSE_MEDIA_TYPE: {"schema": {"type": "string"}}}},
+               422: {"description": "Last-Event-ID is not an event id"}},
+    summary="The job's timeline (stages, checkpoints, artifacts, its end), or a live stream of it",
+)
+def list_events(job_id: str, request: Request, session: SessionDep, key: CurrentKey,
+                last_event_id: Annotated[str | None, Header(description="stream: resume after this event id")] = None,
+                ) -> list[JobEventOut] | StreamingResponse:
     jobs.get_job(session=session, key=key, job_id=job_id)
+    if SSE_MEDIA_TYPE in request.headers.get("accept", ""):
+        after = _event_id(last_event_id)
+        session.close()  # the stream reads through the hub's short sessions: hold no connection meanwhile
+        return StreamingResponse(request.app.state.event_hub.stream(job_id, after), media_type=SSE_MEDIA_TYPE,
+                                 headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
     rows = session.scalars(select(JobEvent).where(JobEvent.job_id == job_id).order_by(JobEvent.id))
     return [JobEventOut.model_validate(e, from_attributes=True) for e in rows]
+
+
+def _event_id(value: str | None) -> int:
+    if value is None or not value.strip():
+        return 0
+    if not value.strip().isdigit():
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                            f"Last-Event-ID must be the id of an event (a non-negative integer), not {value!r}")
+    return int(value)
+
+
+def progress_view(job: Job) -> dict:
+    """What an event stream's ``progress`` event carries: the job resource's progress fields."""
+    return job_out(job).model_dump(mode="json", include=PROGRESS_FIELDS)
+
+
+PROGRESS_FIELDS = {"id", "state", "stage", "iteration", "total", "progress", "completed_stages", "eta_seconds",
+                   "losses", "message", "error", "preview_url"}
 
 
 @router.post("/{job_id}/cancel", response_model=JobOut,

@@ -1,0 +1,126 @@
+"""Live job events over real HTTP: a uvicorn API and a Celery worker (subprocesses) run a short job with the
+random-weight SMOKE-TEST model (VOXE_SDS_MODEL=tiny); a real httpx client reads its Server-Sent Events.
+
+Plumbing only, never edit quality.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+
+import httpx
+import pytest
+
+from needs import MIC, require_data
+from service_helpers import job_events, poll_job, service, small_mic, wait_for_scene, zip_folder
+
+pytestmark = pytest.mark.slow
+
+PARAMS = {
+    "downsample": 16, "max_images": 3, "iterations": 6, "render_size": 32, "preview_every": 2,
+    "reconstruction": {"preset": "fast", "resolution": 16, "iterations": [10, 10, 20], "rays_per_step": 512},
+    "refine": {"iterations": 10, "views": 2, "render_size": 32, "rays_per_step": 1024},
+    "export": {"views": 1, "view_size": 32, "turntable_frames": 4, "turntable_size": 32, "gif": False},
+}
+TERMINAL = ("succeeded", "failed", "canceled")
+
+
+def read_sse(response: httpx.Response, stop=None):
+    """Parse a text/event-stream into dicts {event, id, data, at}; stop early once ``stop(event)`` is true."""
+    events, fields = [], {}
+    for line in response.iter_lines():
+        if line == "":
+            if "data" in fields:
+                event = {"event": fields.get("event", "message"), "id": fields.get("id"),
+                         "data": json.loads(fields["data"]), "at": time.monotonic()}
+                events.append(event)
+                if stop is not None and stop(event):
+                    return events
+            fields = {}
+        elif not line.startswith(":"):
+            name, _, value = line.partition(":")
+            fields[name] = value[1:] if value.startswith(" ") else value
+    return events
+
+
+@pytest.fixture(scope="module")
+def live(tmp_path_factory):
+    require_data(MIC)
+    root = tmp_path_factory.mktemp("events")
+    data = small_mic(root / "mic_small", frames=3)
+    with service(root / "svc", VOXE_CHECKPOINT_EVERY="2", VOXE_PROGRESS_INTERVAL_S="0.5",
+                 VOXE_WEBHOOK_ALLOW_NETWORKS="127.0.0.0/8", VOXE_WEBHOOK_BACKOFF_S="0.2") as svc:
+        with httpx.Client(base_url=svc.base, timeout=60) as client:
+            with open(zip_folder(data, root / "mic.zip", prefix="mic_small"), "rb") as handle:
+                response = client.post("/v1/scenes", files={"archive": ("mic.zip", handle, "application/zip")})
+            assert response.status_code == 201, response.text
+            scene = wait_for_scene(client, svc, response.json()["id"])
+            assert scene["state"] == "ready", scene
+            yield svc, client, scene
+
+
+def test_a_stream_reconnected_with_last_event_id_misses_nothing(live):
+    svc, client, scene = live
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic wearing big sunglasses",
+                                        "mode": "local", "edit_words": ["sunglasses"], "params": PARAMS}).json()
+    url, sse = f"/v1/jobs/{job['id']}/events", {"Accept": "text/event-stream"}
+    # First connection: read until the first stage is done, then drop the connection.
+    with client.stream("GET", url, headers=sse) as response:
+        assert response.status_code == 200 and response.headers["content-type"].startswith("text/event-stream")
+        first = read_sse(response, stop=lambda e: e["event"] == "stage_completed")
+    assert first[-1]["data"]["stage"] == "reconstruct", first
+    last_id = [e["id"] for e in first if e["id"] is not None][-1]
+    # Reconnect where it stopped and read to the end: the server closes the stream after the terminal event.
+    with client.stream("GET", url, headers={**sse, "Last-Event-ID": last_id}) as response:
+        second = read_sse(response)
+    assert second[-1]["event"] == "progress" and second[-1]["data"]["state"] == "succeeded", second[-3:]
+    timeline = [e for e in first + second if e["id"] is not None]
+    stored = job_events(client, job["id"])
+    assert [int(e["id"]) for e in timeline] == [e["id"] for e in stored]  # every event, in order, none twice
+    assert [e["data"] for e in timeline] == stored
+    kinds = [e["event"] for e in timeline]
+    assert kinds[-1] == "succeeded" and "preview" in kinds and "checkpoint" in kinds
+    published = {e["data"]["detail"] for e in timeline if e["event"] == "artifact"}
+    listed = {a["name"] for a in client.get(f"/v1/jobs/{job['id']}/artifacts").json()}
+    assert published == listed - {"preview.png"}, (published, listed)
+    # Progress: snapshots, at most one per poll interval (0.5 s), never a repeat, stages in order.
+    progress = [e for e in first + second if e["event"] == "progress"]
+    assert len(progress) >= 3
+    for stream in (first, second):
+        times = [e["at"] for e in stream if e["event"] == "progress"]
+        assert all(b - a > 0.3 for a, b in zip(times, times[1:])), times
+    assert all(a["data"] != b["data"] for a, b in zip(progress, progress[1:]))
+    # A finished job's stream replays its timeline and ends at once.
+    with client.stream("GET", url, headers={**sse, "Last-Event-ID": str(stored[-3]["id"])}) as response:
+        replay = read_sse(response)
+    assert [int(e["id"]) for e in replay if e["id"]] == [e["id"] for e in stored[-2:]]
+    # The JSON form is still the default.
+    assert client.get(url).json() == stored
+    bad = client.get(url, headers={**sse, "Last-Event-ID": "soon"})
+    assert bad.status_code == 422 and "Last-Event-ID" in bad.json()["detail"]
+
+
+def test_streams_hold_no_database_connection_between_polls(live):
+    """20 streams open on a queued job (no worker picks it up fast enough to matter) and the status
+    route still answers: the streams share the hub's polls instead of each holding a pooled connection
+    (SQLAlchemy's default pool has 5 + 10 overflow; 20 held ones would block the 21st request)."""
+    svc, client, scene = live
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold",
+                                        "params": PARAMS}).json()
+    url = f"{svc.base}/v1/jobs/{job['id']}/events"
+    clients = [httpx.Client(timeout=30) for _ in range(20)]
+    try:
+        streams = [c.stream("GET", url, headers={"Accept": "text/event-stream"}) for c in clients]
+        responses = [s.__enter__() for s in streams]
+        assert all(r.status_code == 200 for r in responses)
+        started = time.monotonic()
+        for _ in range(10):
+            assert client.get(f"/v1/jobs/{job['id']}", timeout=5).status_code == 200
+        assert time.monotonic() - started < 5
+        for s in streams:
+            s.__exit__(None, None, None)
+    finally:
+        for c in clients:
+            c.close()
+    poll_job(client, svc, job["id"])
