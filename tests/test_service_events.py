@@ -1,13 +1,19 @@
-"""Live job events over real HTTP: a uvicorn API and a Celery worker (subprocesses) run a short job with the
-random-weight SMOKE-TEST model (VOXE_SDS_MODEL=tiny); a real httpx client reads its Server-Sent Events.
+"""Live job events over real HTTP: a uvicorn API and a Celery worker (subprocesses) run short jobs with the
+random-weight SMOKE-TEST model (VOXE_SDS_MODEL=tiny); a real httpx client reads their Server-Sent Events, and
+a real local HTTP receiver takes their webhooks.
 
 Plumbing only, never edit quality.
 """
 
 from __future__ import annotations
 
+import base64
+import hashlib
+import hmac
 import json
+import threading
 import time
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import httpx
 import pytest
@@ -20,7 +26,6 @@ pytestmark = pytest.mark.slow
 PARAMS = {
     "downsample": 16, "max_images": 3, "iterations": 6, "render_size": 32, "preview_every": 2,
     "reconstruction": {"preset": "fast", "resolution": 16, "iterations": [10, 10, 20], "rays_per_step": 512},
-    "refine": {"iterations": 10, "views": 2, "render_size": 32, "rays_per_step": 1024},
     "export": {"views": 1, "view_size": 32, "turntable_frames": 4, "turntable_size": 32, "gif": False},
 }
 TERMINAL = ("succeeded", "failed", "canceled")
@@ -62,8 +67,8 @@ def live(tmp_path_factory):
 
 def test_a_stream_reconnected_with_last_event_id_misses_nothing(live):
     svc, client, scene = live
-    job = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic wearing big sunglasses",
-                                        "mode": "local", "edit_words": ["sunglasses"], "params": PARAMS}).json()
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold",
+                                        "params": PARAMS}).json()
     url, sse = f"/v1/jobs/{job['id']}/events", {"Accept": "text/event-stream"}
     # First connection: read until the first stage is done, then drop the connection.
     with client.stream("GET", url, headers=sse) as response:
@@ -124,3 +129,88 @@ def test_streams_hold_no_database_connection_between_polls(live):
         for c in clients:
             c.close()
     poll_job(client, svc, job["id"])
+
+
+class Receiver:
+    """A webhook receiver on loopback: records every request; answers 500 to the first, 200 after."""
+
+    def __init__(self):
+        self.requests: list[dict] = []
+        receiver = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def do_POST(self):
+                body = self.rfile.read(int(self.headers["content-length"]))
+                receiver.requests.append({"headers": {k.lower(): v for k, v in self.headers.items()}, "body": body})
+                self.send_response(500 if len(receiver.requests) == 1 else 200)
+                self.send_header("content-length", "0")
+                self.end_headers()
+
+            def log_message(self, *args):
+                pass
+
+        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.url = f"http://127.0.0.1:{self.server.server_address[1]}/hook"
+        threading.Thread(target=self.server.serve_forever, daemon=True).start()
+
+    def close(self):
+        self.server.shutdown()
+        self.server.server_close()
+
+
+def verify(secret: str, request: dict) -> bool:
+    """The Standard Webhooks check a receiver does: HMAC-SHA256 of "id.timestamp.body" under the secret."""
+    h = request["headers"]
+    signed = f"{h['webhook-id']}.{h['webhook-timestamp']}.".encode() + request["body"]
+    expected = base64.b64encode(hmac.new(base64.b64decode(secret.removeprefix("whsec_")), signed,
+                                         hashlib.sha256).digest()).decode()
+    return any(hmac.compare_digest(f"v1,{expected}", s) for s in h["webhook-signature"].split())
+
+
+def test_webhooks_are_signed_retried_and_deduplicable(live):
+    svc, client, scene = live
+    receiver = Receiver()
+    try:
+        body = {"scene_id": scene["id"], "prompt": "a mic made of wood", "params": PARAMS,
+                "webhook_url": receiver.url, "webhook_events": ["stage_completed", "succeeded"]}
+        job = client.post("/v1/jobs", json=body).json()
+        assert job["webhook_url"] == receiver.url, job
+        assert poll_job(client, svc, job["id"])["state"] == "succeeded"
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            deliveries = client.get(f"/v1/jobs/{job['id']}/webhooks").json()
+            if len(deliveries) == 4 and all(d["state"] == "delivered" for d in deliveries):
+                break
+            time.sleep(0.2)
+        assert [d["event_type"] for d in deliveries] == ["job.stage_completed"] * 3 + ["job.succeeded"], deliveries
+        assert all(d["state"] == "delivered" and d["last_status"] == 200 for d in deliveries), deliveries
+        assert deliveries[0]["attempts"] == 2 and [d["attempts"] for d in deliveries[1:]] == [1, 1, 1]
+        secret = client.get("/v1/webhooks/secret").json()["secret"]
+        requests = receiver.requests
+        assert len(requests) == 5 and all(verify(secret, r) for r in requests)
+        assert not verify(secret, {**requests[0], "body": requests[0]["body"] + b" "})  # a changed body fails
+        # The retry after the 500 is the same message: same webhook-id (the dedupe key), same bytes.
+        assert requests[0]["headers"]["webhook-id"] == requests[1]["headers"]["webhook-id"] == deliveries[0]["id"]
+        assert requests[0]["body"] == requests[1]["body"]
+        # One message per delivery (sent concurrently: receivers must not rely on their order).
+        assert sorted(r["headers"]["webhook-id"] for r in requests[1:]) == sorted(d["id"] for d in deliveries)
+        payloads = sorted((json.loads(r["body"]) for r in requests[1:]), key=lambda p: p["data"]["event"]["id"])
+        assert [p["data"]["event"]["stage"] for p in payloads] == ["reconstruct", "edit", "export", "export"]
+        assert payloads[-1]["type"] == "job.succeeded" and payloads[-1]["data"]["state"] == "succeeded"
+        stored = {e["id"] for e in job_events(client, job["id"])}
+        assert {d["event_id"] for d in deliveries} <= stored
+    finally:
+        receiver.close()
+
+
+@pytest.mark.parametrize("url, rule", [("http://10.1.2.3/hook", "private"), ("http://169.254.169.254/", "link-local"),
+                                       ("http://[::1]:9/hook", "loopback"), ("http://0.0.0.0/", "unspecified")])
+def test_a_webhook_to_a_private_address_is_refused_naming_the_rule(live, url, rule):
+    """127.0.0.0/8 is allowed here (VOXE_WEBHOOK_ALLOW_NETWORKS); every other private target is not."""
+    _svc, client, scene = live
+    before = client.get("/v1/jobs").json()["total"]
+    response = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of wood",
+                                             "webhook_url": url})
+    assert response.status_code == 422, response.text
+    assert f"a {rule} address" in response.json()["detail"] and "VOXE_WEBHOOK_ALLOW_NETWORKS" in response.json()["detail"]
+    assert client.get("/v1/jobs").json()["total"] == before  # nothing recorded
