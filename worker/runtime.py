@@ -40,6 +40,8 @@ CONTENT_TYPES = {
     ".gif": "image/gif",
     ".ply": "application/octet-stream",
     ".glb": "model/gltf-binary",
+    ".obj": "model/obj",
+    ".mtl": "model/mtl",
     ".json": "application/json",
     ".md": "text/markdown; charset=utf-8",
 }
