@@ -96,6 +96,8 @@ def test_a_stream_reconnected_with_last_event_id_misses_nothing(live):
         times = [e["at"] for e in stream if e["event"] == "progress"]
         assert all(b - a > 0.3 for a, b in zip(times, times[1:])), times
     assert all(a["data"] != b["data"] for a, b in zip(progress, progress[1:]))
+    overall = [e["data"]["overall_progress"] for e in progress]
+    assert overall == sorted(overall) and overall[-1] == 1.0, overall
     # A finished job's stream replays its timeline and ends at once.
     with client.stream("GET", url, headers={**sse, "Last-Event-ID": str(stored[-3]["id"])}) as response:
         replay = read_sse(response)
