@@ -159,6 +159,53 @@ class Pollers:
         self._stop.set()
 
 
+class Streams:
+    """S clients, each holding one Server-Sent Events stream (``GET /v1/jobs/{id}/events``,
+    ``Accept: text/event-stream``) open on a known job and reading whatever it sends until stopped."""
+
+    def __init__(self, host: str, port: int, count: int, job_ids: list[str]):
+        self.host, self.port, self.count, self.job_ids = host, port, count, job_ids
+        self.opened = 0
+        self.events = 0
+        self.errors: list[str] = []
+        self._stop = asyncio.Event()
+
+    async def _stream(self, index: int) -> None:
+        job_id = random.Random(1000 + index).choice(self.job_ids)
+        try:
+            reader, writer = await asyncio.open_connection(self.host, self.port)
+        except OSError as exc:
+            self.errors.append(f"{type(exc).__name__}: {exc}")
+            return
+        writer.write(f"GET /v1/jobs/{job_id}/events HTTP/1.1\r\nHost: {self.host}\r\n"
+                     "Accept: text/event-stream\r\n\r\n".encode())
+        try:
+            head = (await reader.readuntil(b"\r\n\r\n")).decode("latin-1")
+            if " 200 " not in head.split("\r\n")[0] or "text/event-stream" not in head:
+                self.errors.append(head.split("\r\n")[0])
+                return
+            self.opened += 1
+            while not self._stop.is_set():
+                try:
+                    line = await asyncio.wait_for(reader.readline(), 0.5)
+                except TimeoutError:
+                    continue  # a queued job's stream is quiet by design
+                if not line:
+                    self.errors.append(f"the stream of {job_id} ended early")
+                    return
+                self.events += line.startswith(b"event:")
+        except (OSError, asyncio.IncompleteReadError) as exc:
+            self.errors.append(f"{type(exc).__name__}: {exc}")
+        finally:
+            writer.close()
+
+    def start(self) -> list[asyncio.Task]:
+        return [asyncio.create_task(self._stream(i)) for i in range(self.count)]
+
+    def stop(self) -> None:
+        self._stop.set()
+
+
 async def submit_jobs(host: str, port: int, scene_id: str, count: int, concurrency: int, deadline: float,
                       accepted: list[str]) -> tuple[list[float], list[str]]:
     latencies, errors = [], []
@@ -221,6 +268,8 @@ async def run_load(base: str, scene_id: str, args) -> dict:
         accepted: list[str] = [seed.json()["id"]]
         pollers = Pollers(host, port, args.pollers, args.poll_interval, accepted)  # polls jobs as they are accepted
         tasks = pollers.start(args.max_seconds)
+        streams = Streams(host, port, args.streams, accepted)  # on the seed job: it stays queued, so do they
+        stream_tasks = streams.start()
 
         started = time.perf_counter()
         submit_latencies, submit_errors = await submit_jobs(
@@ -232,6 +281,14 @@ async def run_load(base: str, scene_id: str, args) -> dict:
         await asyncio.sleep(args.seconds)
         status_only, status_errors = pollers.take()
         status_seconds = time.perf_counter() - started
+        streams_open, stream_events = streams.opened, streams.events
+        streams.stop()
+        await asyncio.gather(*stream_tasks)
+        # The same pollers with no stream open: the streams' cost as a ratio measured in this run.
+        started = time.perf_counter()
+        await asyncio.sleep(args.seconds)
+        no_streams, no_streams_errors = pollers.take()
+        no_streams_seconds = time.perf_counter() - started
         pollers.stop()
         await asyncio.gather(*tasks)
 
@@ -244,7 +301,12 @@ async def run_load(base: str, scene_id: str, args) -> dict:
         "status_during_submit": {**summary(during_submit, len(during_submit_errors), submit_seconds),
                                  "error_samples": during_submit_errors[:5]},
         "status": {**summary(status_only, len(status_errors), status_seconds), "error_samples": status_errors[:5]},
-        "_latencies": {"status": status_only, "status_during_submit": during_submit, "submit": submit_latencies},
+        "status_without_streams": {**summary(no_streams, len(no_streams_errors), no_streams_seconds),
+                                   "error_samples": no_streams_errors[:5]},
+        "streams": {"requested": args.streams, "open_during_status": streams_open, "events_received": stream_events,
+                    "errors": len(streams.errors), "error_samples": streams.errors[:5]},
+        "_latencies": {"status": status_only, "status_during_submit": during_submit, "submit": submit_latencies,
+                       "status_without_streams": no_streams},
     }
 
 
@@ -256,9 +318,10 @@ def plot(runs: dict[str, tuple[dict, dict]], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7.5, 4.5))
-    colours = {"status": "C0", "status_during_submit": "C1", "submit": "C2"}
+    colours = {"status": "C0", "status_during_submit": "C1", "submit": "C2", "status_without_streams": "C3"}
     for label, (result, latencies) in runs.items():
-        names = {"status": f"status, {result['pollers']} pollers alone",
+        names = {"status": f"status, {result['pollers']} pollers + {result['streams']['requested']} event streams",
+                 "status_without_streams": f"status, {result['pollers']} pollers, no stream",
                  "status_during_submit": f"status, {result['pollers']} pollers during submissions",
                  "submit": f"POST /v1/jobs, {result['submitters']} submitters"}
         for name, values in latencies.items():
@@ -332,8 +395,12 @@ def measure(tree: Path, args) -> tuple[dict, dict, str]:
         "lost_samples": lost[:5],
     }
     status = result["status"]
+    if status["p99_ms"] and result["status_without_streams"]["p99_ms"]:
+        result["status_p99_with_over_without_streams"] = round(
+            status["p99_ms"] / result["status_without_streams"]["p99_ms"], 3)
     result["targets_met"] = bool(
         status["p99_ms"] is not None and status["p99_ms"] <= TARGET_P99_MS and status["errors"] == 0
+        and result["streams"]["open_during_status"] == args.streams and result["streams"]["errors"] == 0
         and result["status_during_submit"]["errors"] == 0 and result["submit"]["errors"] == 0
         and result["submit"]["accepted"] >= min(args.jobs, 1000) and result["lost_jobs"] == 0
     )
@@ -342,12 +409,14 @@ def measure(tree: Path, args) -> tuple[dict, dict, str]:
 
 def report(label: str, result: dict) -> None:
     print(f"--- {label} ({result['tree']})")
-    for name in ("submit", "status_during_submit", "status"):
+    for name in ("submit", "status_during_submit", "status", "status_without_streams"):
         s = result[name]
         print(f"{name:22s} n={s['requests']:6d} errors={s['errors']:3d} {s['requests_per_s']} req/s  "
               f"p50={s['p50_ms']:.1f} ms  p99={s['p99_ms']:.1f} ms  max={s['max_ms']:.1f} ms")
     print(f"accepted {result['jobs_accepted']} (incl. 1 seed job), listed {result['jobs_listed']}, "
           f"in the broker {result['jobs_queued_in_broker']}, lost {result['lost_jobs']}; "
+          f"event streams open {result['streams']['open_during_status']}/{result['streams']['requested']} "
+          f"({result['streams']['errors']} errors); "
           f"targets met: {result['targets_met']}")
 
 
@@ -357,6 +426,7 @@ def main() -> None:
     parser.add_argument("--poll-interval", type=float, default=0.5, help="seconds between one poller's requests")
     parser.add_argument("--jobs", type=int, default=1000, help="submissions (M)")
     parser.add_argument("--submitters", type=int, default=4, help="concurrent submitting clients")
+    parser.add_argument("--streams", type=int, default=50, help="open event streams (SSE) beside the pollers")
     parser.add_argument("--seconds", type=float, default=20.0, help="duration of the status-only phase")
     parser.add_argument("--api-workers", type=int, default=1, help="uvicorn worker processes (.ci/serve: 1)")
     parser.add_argument("--max-seconds", type=float, default=480.0,
@@ -380,9 +450,10 @@ def main() -> None:
     current = runs["current"][0]
     out = {
         "benchmark": "service_load",
-        "what": "status polling and job submission against the real API (uvicorn), embedded default, loopback; "
-                "no worker (jobs stay queued)",
-        "targets": {"status_p99_ms": TARGET_P99_MS, "status_errors": 0, "submissions": 1000, "lost_jobs": 0},
+        "what": "status polling and job submission against the real API (uvicorn), embedded default, loopback, "
+                "with open event streams (SSE) beside the pollers; no worker (jobs stay queued)",
+        "targets": {"status_p99_ms": TARGET_P99_MS, "status_errors": 0, "submissions": 1000, "lost_jobs": 0,
+                    "event_streams": args.streams},
         **current,
     }
     if "baseline" in runs:
