@@ -8,9 +8,12 @@ clients in this process:
 
 1. ``submit``: M job submissions (``POST /v1/jobs``, ``--submitters`` at a time) while the N
    pollers poll;
-2. ``status``: the N pollers alone, each ``GET /v1/jobs/{id}`` of a random submitted job every
+2. ``status``: the N pollers, each ``GET /v1/jobs/{id}`` of a random submitted job every
    ``--poll-interval`` seconds (default 0.5 s: workers write progress at most twice a second,
-   ``VOXE_PROGRESS_INTERVAL_S``, so faster polling sees nothing new), for ``--seconds``;
+   ``VOXE_PROGRESS_INTERVAL_S``, so faster polling sees nothing new), for ``--seconds`` with S event
+   streams (``--streams``, SSE on a queued job) open beside them and ``--seconds`` with none
+   (``status_without_streams``), alternating in ``--rounds`` rounds; the streams are open during
+   phase 1 too;
 3. accounting: every accepted job must be listed by ``GET /v1/jobs`` (paged) and have its chain's
    first task in the broker's message table; a job missing from either is *lost*.
 
@@ -268,7 +271,7 @@ async def run_load(base: str, scene_id: str, args) -> dict:
         accepted: list[str] = [seed.json()["id"]]
         pollers = Pollers(host, port, args.pollers, args.poll_interval, accepted)  # polls jobs as they are accepted
         tasks = pollers.start(args.max_seconds)
-        streams = Streams(host, port, args.streams, accepted)  # on the seed job: it stays queued, so do they
+        streams = Streams(host, port, args.streams, accepted[:1])  # on the seed job: queued, so they stay open
         stream_tasks = streams.start()
 
         started = time.perf_counter()
@@ -277,18 +280,34 @@ async def run_load(base: str, scene_id: str, args) -> dict:
         submit_seconds = time.perf_counter() - started
         during_submit, during_submit_errors = pollers.take()
 
-        started = time.perf_counter()
-        await asyncio.sleep(args.seconds)
-        status_only, status_errors = pollers.take()
-        status_seconds = time.perf_counter() - started
-        streams_open, stream_events = streams.opened, streams.events
+        # The pollers with the streams open, then with none, alternating in rounds so that a change in the
+        # machine's load falls on both: the streams' cost as a ratio measured in this run.
+        status_only, status_errors, no_streams, no_streams_errors = [], [], [], []
+        status_seconds = no_streams_seconds = 0.0
+        submit_streams = streams.opened
         streams.stop()
         await asyncio.gather(*stream_tasks)
-        # The same pollers with no stream open: the streams' cost as a ratio measured in this run.
-        started = time.perf_counter()
-        await asyncio.sleep(args.seconds)
-        no_streams, no_streams_errors = pollers.take()
-        no_streams_seconds = time.perf_counter() - started
+        opened, stream_events, stream_errors = [], 0, list(streams.errors)
+        for _ in range(args.rounds):
+            streams = Streams(host, port, args.streams, accepted)  # on jobs of the whole run (all queued)
+            stream_tasks = streams.start()
+            await asyncio.sleep(1.0)  # let them connect
+            pollers.take()
+            started = time.perf_counter()
+            await asyncio.sleep(args.seconds / args.rounds)
+            latencies, errors = pollers.take()
+            status_only, status_errors = status_only + latencies, status_errors + errors
+            status_seconds += time.perf_counter() - started
+            opened.append(streams.opened)
+            streams.stop()
+            await asyncio.gather(*stream_tasks)
+            stream_events, stream_errors = stream_events + streams.events, stream_errors + streams.errors
+            pollers.take()
+            started = time.perf_counter()
+            await asyncio.sleep(args.seconds / args.rounds)
+            latencies, errors = pollers.take()
+            no_streams, no_streams_errors = no_streams + latencies, no_streams_errors + errors
+            no_streams_seconds += time.perf_counter() - started
         pollers.stop()
         await asyncio.gather(*tasks)
 
@@ -303,8 +322,9 @@ async def run_load(base: str, scene_id: str, args) -> dict:
         "status": {**summary(status_only, len(status_errors), status_seconds), "error_samples": status_errors[:5]},
         "status_without_streams": {**summary(no_streams, len(no_streams_errors), no_streams_seconds),
                                    "error_samples": no_streams_errors[:5]},
-        "streams": {"requested": args.streams, "open_during_status": streams_open, "events_received": stream_events,
-                    "errors": len(streams.errors), "error_samples": streams.errors[:5]},
+        "streams": {"requested": args.streams, "open_during_submit": submit_streams,
+                    "open_during_status": min(opened, default=0), "events_received": stream_events,
+                    "rounds": args.rounds, "errors": len(stream_errors), "error_samples": stream_errors[:5]},
         "_latencies": {"status": status_only, "status_during_submit": during_submit, "submit": submit_latencies,
                        "status_without_streams": no_streams},
     }
@@ -427,6 +447,8 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=1000, help="submissions (M)")
     parser.add_argument("--submitters", type=int, default=4, help="concurrent submitting clients")
     parser.add_argument("--streams", type=int, default=50, help="open event streams (SSE) beside the pollers")
+    parser.add_argument("--rounds", type=int, default=4,
+                        help="status phase: rounds of (streams open, streams closed), --seconds each condition")
     parser.add_argument("--seconds", type=float, default=20.0, help="duration of the status-only phase")
     parser.add_argument("--api-workers", type=int, default=1, help="uvicorn worker processes (.ci/serve: 1)")
     parser.add_argument("--max-seconds", type=float, default=480.0,
