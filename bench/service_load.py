@@ -282,8 +282,17 @@ async def run_load(base: str, scene_id: str, args) -> dict:
 
         # The pollers with the streams open, then with none, alternating in rounds so that a change in the
         # machine's load falls on both: the streams' cost as a ratio measured in this run.
-        status_only, status_errors, no_streams, no_streams_errors = [], [], [], []
-        status_seconds = no_streams_seconds = 0.0
+        samples = {"status": ([], [], [0.0]), "status_without_streams": ([], [], [0.0])}  # latencies, errors, s
+
+        async def sample(phase: str) -> None:
+            pollers.take()
+            started = time.perf_counter()
+            await asyncio.sleep(args.seconds / args.rounds)
+            latencies, errors = pollers.take()
+            samples[phase][0].extend(latencies)
+            samples[phase][1].extend(errors)
+            samples[phase][2][0] += time.perf_counter() - started
+
         submit_streams = streams.opened
         streams.stop()
         await asyncio.gather(*stream_tasks)
@@ -292,22 +301,12 @@ async def run_load(base: str, scene_id: str, args) -> dict:
             streams = Streams(host, port, args.streams, accepted)  # on jobs of the whole run (all queued)
             stream_tasks = streams.start()
             await asyncio.sleep(1.0)  # let them connect
-            pollers.take()
-            started = time.perf_counter()
-            await asyncio.sleep(args.seconds / args.rounds)
-            latencies, errors = pollers.take()
-            status_only, status_errors = status_only + latencies, status_errors + errors
-            status_seconds += time.perf_counter() - started
+            await sample("status")
             opened.append(streams.opened)
             streams.stop()
             await asyncio.gather(*stream_tasks)
             stream_events, stream_errors = stream_events + streams.events, stream_errors + streams.errors
-            pollers.take()
-            started = time.perf_counter()
-            await asyncio.sleep(args.seconds / args.rounds)
-            latencies, errors = pollers.take()
-            no_streams, no_streams_errors = no_streams + latencies, no_streams_errors + errors
-            no_streams_seconds += time.perf_counter() - started
+            await sample("status_without_streams")
         pollers.stop()
         await asyncio.gather(*tasks)
 
@@ -319,14 +318,13 @@ async def run_load(base: str, scene_id: str, args) -> dict:
                    "accepted": len(accepted) - 1, "error_samples": submit_errors[:5]},
         "status_during_submit": {**summary(during_submit, len(during_submit_errors), submit_seconds),
                                  "error_samples": during_submit_errors[:5]},
-        "status": {**summary(status_only, len(status_errors), status_seconds), "error_samples": status_errors[:5]},
-        "status_without_streams": {**summary(no_streams, len(no_streams_errors), no_streams_seconds),
-                                   "error_samples": no_streams_errors[:5]},
+        **{phase: {**summary(latencies, len(errors), seconds[0]), "error_samples": errors[:5]}
+           for phase, (latencies, errors, seconds) in samples.items()},
         "streams": {"requested": args.streams, "open_during_submit": submit_streams,
                     "open_during_status": min(opened, default=0), "events_received": stream_events,
                     "rounds": args.rounds, "errors": len(stream_errors), "error_samples": stream_errors[:5]},
-        "_latencies": {"status": status_only, "status_during_submit": during_submit, "submit": submit_latencies,
-                       "status_without_streams": no_streams},
+        "_latencies": {"status_during_submit": during_submit, "submit": submit_latencies,
+                       **{phase: latencies for phase, (latencies, _, _) in samples.items()}},
     }
 
 

@@ -20,6 +20,8 @@ import pytest
 
 from needs import MIC, require_data
 from service_helpers import job_events, poll_job, service, small_mic, wait_for_scene, zip_folder
+from voxe_client import Client
+from voxe_client.client import parse_sse
 
 pytestmark = pytest.mark.slow
 
@@ -32,20 +34,12 @@ TERMINAL = ("succeeded", "failed", "canceled")
 
 
 def read_sse(response: httpx.Response, stop=None):
-    """Parse a text/event-stream into dicts {event, id, data, at}; stop early once ``stop(event)`` is true."""
-    events, fields = [], {}
-    for line in response.iter_lines():
-        if line == "":
-            if "data" in fields:
-                event = {"event": fields.get("event", "message"), "id": fields.get("id"),
-                         "data": json.loads(fields["data"]), "at": time.monotonic()}
-                events.append(event)
-                if stop is not None and stop(event):
-                    return events
-            fields = {}
-        elif not line.startswith(":"):
-            name, _, value = line.partition(":")
-            fields[name] = value[1:] if value.startswith(" ") else value
+    """The stream's events (voxe_client's parser), each stamped with its arrival; stop early once ``stop(event)``."""
+    events = []
+    for event in parse_sse(response.iter_lines()):
+        events.append({**event, "at": time.monotonic()})
+        if stop is not None and stop(event):
+            break
     return events
 
 
@@ -216,3 +210,22 @@ def test_a_webhook_to_a_private_address_is_refused_naming_the_rule(live, url, ru
     assert response.status_code == 422, response.text
     assert f"a {rule} address" in response.json()["detail"] and "VOXE_WEBHOOK_ALLOW_NETWORKS" in response.json()["detail"]
     assert client.get("/v1/jobs").json()["total"] == before  # nothing recorded
+
+
+def test_the_client_uploads_submits_waits_over_events_and_downloads_verified(live, tmp_path):
+    svc, _client, _scene = live
+    data = small_mic(tmp_path / "mic_small", frames=3)
+    seen = []
+    with Client(svc.base) as client:
+        scene = client.upload_scene(zip_folder(data, tmp_path / "mic.zip", prefix="mic_small"))
+        wait_for_scene(_client, svc, scene["id"])
+        job = client.create_job(scene["id"], "a mic made of glass", params=PARAMS)
+        done = client.wait(job["id"], on_progress=seen.append)
+        assert done["state"] == "succeeded" and done["overall_progress"] == 1.0, done
+        assert len(seen) >= 2 and seen[-1]["state"] == "succeeded"
+        assert [p["overall_progress"] for p in seen] == sorted(p["overall_progress"] for p in seen)
+        listing = client.artifacts(job["id"])
+        assert {"turntable.mp4", "mesh.obj", "mesh.mtl", "preview.png"} <= {a["name"] for a in listing}
+        for artifact in listing:
+            path = client.download(job["id"], artifact["name"], tmp_path / "out" / artifact["name"])
+            assert hashlib.sha256(path.read_bytes()).hexdigest() == artifact["sha256"]
