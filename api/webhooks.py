@@ -16,7 +16,7 @@ from concurrent.futures import ThreadPoolExecutor
 from datetime import timedelta
 
 import httpx
-from sqlalchemy import update
+from sqlalchemy import select, update
 
 from voxe_service.db import session_scope
 from voxe_service.models import ApiKey, Job, WebhookDelivery, utcnow
@@ -74,8 +74,8 @@ class WebhookSender:
         try:
             with session_scope() as session:
                 delivery = session.get(WebhookDelivery, delivery_id)
-                secret = session.query(ApiKey.webhook_secret).join(Job, Job.owner_key_id == ApiKey.id).filter(
-                    Job.id == delivery.job_id).scalar()
+                secret = session.scalar(select(ApiKey.webhook_secret).join(Job, Job.owner_key_id == ApiKey.id)
+                                        .where(Job.id == delivery.job_id))
             try:
                 status, error = attempt(delivery, secret, self._client, self.settings.webhook_networks)
                 refused = False
@@ -95,8 +95,10 @@ class WebhookSender:
         else:
             retry_at = now + timedelta(seconds=backoff_s(delivery.attempts, self.settings.webhook_backoff_s,
                                                          self.settings.webhook_max_backoff_s))
-            give_up = refused or retry_at > delivery.created_at + timedelta(seconds=self.settings.webhook_retry_for_s)
-            values.update(state=GAVE_UP, next_attempt_at=None) if give_up else values.update(next_attempt_at=retry_at)
+            if refused or retry_at > delivery.created_at + timedelta(seconds=self.settings.webhook_retry_for_s):
+                values.update(state=GAVE_UP, next_attempt_at=None)
+            else:
+                values.update(next_attempt_at=retry_at)
             log.info("webhook delivery %s (job %s) attempt %d: %s", delivery.id, delivery.job_id, delivery.attempts,
                      error)
         with session_scope() as session:

@@ -96,15 +96,14 @@ def new_edit_job(body: JobCreate, key: ApiKey, settings: Settings, rec: Reconstr
     )
 
 
-def check_webhook(*, session: Session, settings: Settings, key: ApiKey, body: JobCreate) -> None:
-    """422 naming the rule for a webhook target the service will not call; the key's secret made if new."""
+def check_webhook(*, settings: Settings, body: JobCreate) -> None:
+    """422 naming the rule for a webhook target the service will not call."""
     if body.webhook_url is None:
         return
     try:
         webhooks.check_target(body.webhook_url, settings.webhook_networks)
     except webhooks.TargetRefused as exc:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc)) from None
-    webhooks.key_secret(session, key)
 
 
 def add_jobs(*, session: Session, key: ApiKey, settings: Settings, jobs: list[Job],
@@ -158,8 +157,10 @@ def create_job(*, session: Session, settings: Settings, queue: TaskQueue, key: A
             return replayed, True
     params = body.params.model_dump(mode="json")
     scene = usable_scene(session=session, key=key, scene_id=body.scene_id, params=params)
-    check_webhook(session=session, settings=settings, key=key, body=body)
+    check_webhook(settings=settings, body=body)
     job = new_edit_job(body, key, settings, reconstruction_for(session=session, scene=scene, params=params))
+    if job.webhook_url:  # after reconstruction_for: its own transaction must not wait on this one's write
+        webhooks.key_secret(session, key)  # committed with the job
     try:
         to_send = add_jobs(session=session, key=key, settings=settings, jobs=[job], idempotency=idem)
     except IntegrityError:
