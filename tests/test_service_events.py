@@ -225,7 +225,7 @@ def test_the_client_uploads_submits_waits_over_events_and_downloads_verified(liv
         assert len(seen) >= 2 and seen[-1]["state"] == "succeeded"
         assert [p["overall_progress"] for p in seen] == sorted(p["overall_progress"] for p in seen)
         listing = client.artifacts(job["id"])
-        assert {"turntable.mp4", "mesh.obj", "mesh.mtl", "preview.png"} <= {a["name"] for a in listing}
+        assert {"edited_grid.safetensors", "turntable.mp4", "preview.png"} <= {a["name"] for a in listing}
         for artifact in listing:
             path = client.download(job["id"], artifact["name"], tmp_path / "out" / artifact["name"])
             assert hashlib.sha256(path.read_bytes()).hexdigest() == artifact["sha256"]
