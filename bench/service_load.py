@@ -171,7 +171,7 @@ class Streams:
         self.opened = 0
         self.events = 0
         self.errors: list[str] = []
-        self._stop = asyncio.Event()
+        self._tasks: list[asyncio.Task] = []
 
     async def _stream(self, index: int) -> None:
         job_id = random.Random(1000 + index).choice(self.job_ids)
@@ -188,25 +188,26 @@ class Streams:
                 self.errors.append(head.split("\r\n")[0])
                 return
             self.opened += 1
-            while not self._stop.is_set():
-                try:
-                    line = await asyncio.wait_for(reader.readline(), 0.5)
-                except TimeoutError:
-                    continue  # a queued job's stream is quiet by design
+            while True:  # until stop() cancels it: an idle reader costs this process nothing
+                line = await reader.readline()
                 if not line:
                     self.errors.append(f"the stream of {job_id} ended early")
                     return
                 self.events += line.startswith(b"event:")
+        except asyncio.CancelledError:
+            pass
         except (OSError, asyncio.IncompleteReadError) as exc:
             self.errors.append(f"{type(exc).__name__}: {exc}")
         finally:
             writer.close()
 
     def start(self) -> list[asyncio.Task]:
-        return [asyncio.create_task(self._stream(i)) for i in range(self.count)]
+        self._tasks = [asyncio.create_task(self._stream(i)) for i in range(self.count)]
+        return self._tasks
 
     def stop(self) -> None:
-        self._stop.set()
+        for task in self._tasks:
+            task.cancel()
 
 
 async def submit_jobs(host: str, port: int, scene_id: str, count: int, concurrency: int, deadline: float,
@@ -300,7 +301,11 @@ async def run_load(base: str, scene_id: str, args) -> dict:
         for _ in range(args.rounds):
             streams = Streams(host, port, args.streams, accepted)  # on jobs of the whole run (all queued)
             stream_tasks = streams.start()
-            await asyncio.sleep(1.0)  # let them connect
+            for _ in range(300):  # the connection burst is not the steady state measured: wait until all are open
+                if streams.opened + len(streams.errors) >= args.streams:
+                    break
+                await asyncio.sleep(0.1)
+            await asyncio.sleep(1.0)
             await sample("status")
             opened.append(streams.opened)
             streams.stop()

@@ -229,3 +229,22 @@ def test_the_client_uploads_submits_waits_over_events_and_downloads_verified(liv
         for artifact in listing:
             path = client.download(job["id"], artifact["name"], tmp_path / "out" / artifact["name"])
             assert hashlib.sha256(path.read_bytes()).hexdigest() == artifact["sha256"]
+
+
+def test_the_cli_submits_waits_downloads_and_reports_errors(live, tmp_path, capsys):
+    from voxe_core.cli import main
+
+    svc, client, scene = live
+    api = ["--api", svc.base]
+    assert main(["submit", "a mic made of copper", "--scene", scene["id"], "--params", json.dumps(PARAMS),
+                 "--wait", *api]) == 0
+    out = capsys.readouterr()
+    job = json.loads(out.out)
+    assert job["state"] == "succeeded" and "100.0%" in out.err  # the progress bar reached the end
+    assert main(["download", job["id"], "--name", "turntable.mp4", "--out", str(tmp_path), *api]) == 0
+    listed = {a["name"]: a for a in client.get(f"/v1/jobs/{job['id']}/artifacts").json()}
+    data = (tmp_path / "turntable.mp4").read_bytes()
+    assert hashlib.sha256(data).hexdigest() == listed["turntable.mp4"]["sha256"]
+    assert main(["status", job["id"], *api]) == 0 and json.loads(capsys.readouterr().out)["id"] == job["id"]
+    assert main(["cancel", job["id"], *api]) == 2  # a succeeded job cannot be canceled: the service's 409
+    assert "HTTP 409" in capsys.readouterr().err
