@@ -470,7 +470,7 @@ def main() -> None:
         result, latencies, log_tail = measure(tree, args)
         runs[label] = (result, latencies)
         report(label, result)
-        if result["lost_jobs"] or result["status"]["errors"]:
+        if result["lost_jobs"] or result["status"]["errors"] or result["streams"]["errors"]:
             print(log_tail)
     current = runs["current"][0]
     out = {
