@@ -86,9 +86,9 @@ def test_a_stream_reconnected_with_last_event_id_misses_nothing(live):
     # Progress: snapshots, at most one per poll interval (0.5 s), never a repeat, stages in order.
     progress = [e for e in first + second if e["event"] == "progress"]
     assert len(progress) >= 3
-    for stream in (first, second):
+    for stream in (first, second):  # counted, not spaced: a client's reads may bunch what was sent apart
         times = [e["at"] for e in stream if e["event"] == "progress"]
-        assert all(b - a > 0.3 for a, b in zip(times, times[1:])), times
+        assert len(times) <= 2 * (stream[-1]["at"] - stream[0]["at"]) + 2, times
     assert all(a["data"] != b["data"] for a, b in zip(progress, progress[1:]))
     overall = [e["data"]["overall_progress"] for e in progress]
     assert overall == sorted(overall) and overall[-1] == 1.0, overall
