@@ -86,11 +86,16 @@ def create_app(settings: Settings | None = None, migrate: bool = True) -> FastAP
                  model_label(settings.attention_model))
         from api.reaper import Reaper
 
+        from api.webhooks import WebhookSender
+
         reaper = Reaper(settings).start()  # fails orphaned jobs (a dead worker, never queued)
+        sender = WebhookSender(settings).start()  # POSTs job events to their webhooks, off the request path
         try:
             yield
         finally:
+            sender.stop()
             reaper.stop()
+            await app.state.event_hub.close()
 
     app = FastAPI(
         title="Vox-E",
@@ -104,13 +109,17 @@ def create_app(settings: Settings | None = None, migrate: bool = True) -> FastAP
         ),
         lifespan=lifespan,
     )
-    from api.routes import artifacts, evaluations, health, jobs, scenes
+    from api.events import EventHub
+    from api.routes import artifacts, evaluations, health, jobs, scenes, webhooks
+
+    app.state.event_hub = EventHub(settings.progress_interval_s, jobs.progress_view)
 
     app.include_router(health.router)
     app.include_router(scenes.router)
     app.include_router(jobs.router)
     app.include_router(artifacts.router)
     app.include_router(evaluations.router)
+    app.include_router(webhooks.router)
     from api.auth import RequireKey
 
     app.add_middleware(RequireKey)  # inside UploadLimit: an over-size body is 413 first, then a missing key 401

@@ -16,6 +16,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validat
 
 from voxe_core import constants as paper
 from voxe_core import presets
+from voxe_service.webhooks import DEFAULT_WEBHOOK_EVENTS, WEBHOOK_EVENTS
 
 T = TypeVar("T")
 
@@ -23,6 +24,7 @@ Regulariser = Literal["reg3d", "reg3d_plus", "volumetric_l1", "volumetric_l2", "
 JobState = Literal["queued", "running", "succeeded", "failed", "canceled"]
 SceneState = Literal["processing", "ready", "failed"]
 Stage = Literal["reconstruct", "edit", "refine", "export", "evaluate"]
+WebhookEvent = Literal[WEBHOOK_EVENTS]
 
 
 MAX_SEED = 2**32 - 1  # numpy's seed range
@@ -166,6 +168,22 @@ class JobCreate(Strict):
         description="local edits: the word(s) of the prompt naming the edit (e.g. ['sunglasses'])",
     )
     params: JobParams = Field(default_factory=JobParams)
+    webhook_url: str | None = Field(
+        None, max_length=2000, pattern=r"^https?://[^\s/?#]+[^\s]*$",
+        description="POST each event of `webhook_events` here, signed (Standard Webhooks; the secret is at "
+        "GET /v1/webhooks/secret); a public address unless the operator allows more (VOXE_WEBHOOK_ALLOW_NETWORKS)",
+    )
+    webhook_events: list[WebhookEvent] | None = Field(
+        None, min_length=1, max_length=len(WEBHOOK_EVENTS),
+        description=f"which job events to send (default: {', '.join(DEFAULT_WEBHOOK_EVENTS)})",
+    )
+
+    @field_validator("webhook_events")
+    @classmethod
+    def _distinct_events(cls, value):
+        if value is not None and len(set(value)) != len(value):
+            raise ValueError("webhook_events lists an event twice")
+        return value
 
     @field_validator("edit_words", mode="before")
     @classmethod
@@ -194,6 +212,12 @@ class JobCreate(Strict):
                 raise ValueError("edit_words cover the whole prompt: some other word must name the object")
         elif self.edit_words:
             raise ValueError("edit_words apply to local edits only (mode 'local')")
+        return self
+
+    @model_validator(mode="after")
+    def _events_need_a_url(self):
+        if self.webhook_events is not None and self.webhook_url is None:
+            raise ValueError("webhook_events needs a webhook_url to send them to")
         return self
 
 
@@ -339,6 +363,9 @@ class JobOut(BaseModel):
     completed_stages: list[str]
     elapsed_seconds: float | None
     eta_seconds: float | None = Field(description="estimated seconds left in the current stage")
+    overall_progress: float = Field(ge=0, le=1, description="fraction of the whole job done: its stages weighed "
+                                    "by their measured costs (voxe_service/progress.py)")
+    overall_eta_seconds: float | None = Field(description="estimated seconds left for the whole job (running jobs)")
     losses: dict
     message: str | None
     error: str | None
@@ -353,6 +380,9 @@ class JobOut(BaseModel):
         "peak_memory_gb: each stage's peak memory in GiB (peak_memory_kind: cuda_allocated on a GPU worker, "
         "process_rss on a CPU one); evaluation jobs: the metrics too (also the evaluation.json artifact)"))
     batch_id: str | None = Field(None, description="the sweep this job belongs to")
+    webhook_url: str | None = None
+    webhook_events: list[str] | None = None
+    webhooks_url: str = Field(description="the job's webhook deliveries and their attempts")
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
@@ -361,13 +391,32 @@ class JobOut(BaseModel):
 
 class JobEventOut(BaseModel):
     id: int
-    kind: str = Field(description="stage_started, stage_completed, checkpoint, resumed, requeued, succeeded, "
-                                  "failed or canceled")
+    kind: str = Field(description="stage_started, stage_completed, checkpoint, resumed, requeued, artifact, "
+                                  "preview, succeeded, failed or canceled")
     stage: str | None
     iteration: int | None = Field(description="checkpoint: the iteration it holds; resumed: where the stage went on")
     worker_hostname: str | None
     detail: str | None
     at: datetime
+
+
+class WebhookDeliveryOut(BaseModel):
+    id: str = Field(description="the webhook-id header: the same on every attempt (dedupe on it)")
+    event_id: int = Field(description="the timeline event delivered")
+    event_type: str = Field(description='"job." + the event kind, as the body\'s "type"')
+    url: str
+    state: Literal["pending", "delivered", "failed"] = Field(
+        description="pending: due at next_attempt_at; delivered: the receiver answered 2xx; failed: gave up")
+    attempts: int
+    last_status: int | None = Field(description="the receiver's last HTTP status (null: no answer)")
+    last_error: str | None
+    next_attempt_at: datetime | None
+    created_at: datetime
+    delivered_at: datetime | None
+
+
+class WebhookSecretOut(BaseModel):
+    secret: str = Field(description="whsec_<base64>: the HMAC-SHA256 key of this API key's webhook signatures")
 
 
 class ArtifactOut(BaseModel):

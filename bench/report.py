@@ -367,9 +367,13 @@ def edit_step_section(data, gpu, results: Path, report: Path) -> tuple[list[str]
 def service_load_section(data, results: Path, report: Path) -> tuple[list[str], list[str]]:
     if not isinstance(data, dict):
         return ["The file is not a JSON object."], []
-    phases = [p for p in ("submit", "status_during_submit", "status") if isinstance(data.get(p), dict)]
+    phases = [p for p in ("submit", "status_during_submit", "status", "status_without_streams")
+              if isinstance(data.get(p), dict)]
+    streams = data.get("streams") or {}
     lines = [data.get("what", ""), "",
-             f"{data.get('pollers')} pollers, {data.get('submitters')} submitters. Correctness beside speed: errors per "
+             f"{data.get('pollers')} pollers, {data.get('submitters')} submitters, {streams.get('requested', 0)} event "
+             f"streams open during `status` (none during `status_without_streams`; p99 ratio with / without: "
+             f"{data.get('status_p99_with_over_without_streams')}). Correctness beside speed: errors per "
              "phase, and jobs accepted but not listed or not queued (lost).", ""]
     lines += table(["phase", "requests", "req/s", "p50 ms", "p90 ms", "p99 ms", "max ms", "errors"],
                    [[p, data[p].get("requests"), data[p].get("requests_per_s"), fmt(data[p].get("p50_ms"), 1),

@@ -8,9 +8,12 @@ clients in this process:
 
 1. ``submit``: M job submissions (``POST /v1/jobs``, ``--submitters`` at a time) while the N
    pollers poll;
-2. ``status``: the N pollers alone, each ``GET /v1/jobs/{id}`` of a random submitted job every
+2. ``status``: the N pollers, each ``GET /v1/jobs/{id}`` of a random submitted job every
    ``--poll-interval`` seconds (default 0.5 s: workers write progress at most twice a second,
-   ``VOXE_PROGRESS_INTERVAL_S``, so faster polling sees nothing new), for ``--seconds``;
+   ``VOXE_PROGRESS_INTERVAL_S``, so faster polling sees nothing new), for ``--seconds`` with S event
+   streams (``--streams``, SSE on a queued job) open beside them and ``--seconds`` with none
+   (``status_without_streams``), alternating in ``--rounds`` rounds; the streams are open during
+   phase 1 too;
 3. accounting: every accepted job must be listed by ``GET /v1/jobs`` (paged) and have its chain's
    first task in the broker's message table; a job missing from either is *lost*.
 
@@ -159,6 +162,54 @@ class Pollers:
         self._stop.set()
 
 
+class Streams:
+    """S clients, each holding one Server-Sent Events stream (``GET /v1/jobs/{id}/events``,
+    ``Accept: text/event-stream``) open on a known job and reading whatever it sends until stopped."""
+
+    def __init__(self, host: str, port: int, count: int, job_ids: list[str]):
+        self.host, self.port, self.count, self.job_ids = host, port, count, job_ids
+        self.opened = 0
+        self.events = 0
+        self.errors: list[str] = []
+        self._tasks: list[asyncio.Task] = []
+
+    async def _stream(self, index: int) -> None:
+        job_id = random.Random(1000 + index).choice(self.job_ids)
+        try:
+            reader, writer = await asyncio.open_connection(self.host, self.port)
+        except OSError as exc:
+            self.errors.append(f"{type(exc).__name__}: {exc}")
+            return
+        writer.write(f"GET /v1/jobs/{job_id}/events HTTP/1.1\r\nHost: {self.host}\r\n"
+                     "Accept: text/event-stream\r\n\r\n".encode())
+        try:
+            head = (await reader.readuntil(b"\r\n\r\n")).decode("latin-1")
+            if " 200 " not in head.split("\r\n")[0] or "text/event-stream" not in head:
+                self.errors.append(head.split("\r\n")[0])
+                return
+            self.opened += 1
+            while True:  # until stop() cancels it: an idle reader costs this process nothing
+                line = await reader.readline()
+                if not line:
+                    self.errors.append(f"the stream of {job_id} ended early")
+                    return
+                self.events += line.startswith(b"event:")
+        except asyncio.CancelledError:
+            pass
+        except (OSError, asyncio.IncompleteReadError) as exc:
+            self.errors.append(f"{type(exc).__name__}: {exc}")
+        finally:
+            writer.close()
+
+    def start(self) -> list[asyncio.Task]:
+        self._tasks = [asyncio.create_task(self._stream(i)) for i in range(self.count)]
+        return self._tasks
+
+    def stop(self) -> None:
+        for task in self._tasks:
+            task.cancel()
+
+
 async def submit_jobs(host: str, port: int, scene_id: str, count: int, concurrency: int, deadline: float,
                       accepted: list[str]) -> tuple[list[float], list[str]]:
     latencies, errors = [], []
@@ -221,6 +272,8 @@ async def run_load(base: str, scene_id: str, args) -> dict:
         accepted: list[str] = [seed.json()["id"]]
         pollers = Pollers(host, port, args.pollers, args.poll_interval, accepted)  # polls jobs as they are accepted
         tasks = pollers.start(args.max_seconds)
+        streams = Streams(host, port, args.streams, accepted[:1])  # on the seed job: queued, so they stay open
+        stream_tasks = streams.start()
 
         started = time.perf_counter()
         submit_latencies, submit_errors = await submit_jobs(
@@ -228,10 +281,37 @@ async def run_load(base: str, scene_id: str, args) -> dict:
         submit_seconds = time.perf_counter() - started
         during_submit, during_submit_errors = pollers.take()
 
-        started = time.perf_counter()
-        await asyncio.sleep(args.seconds)
-        status_only, status_errors = pollers.take()
-        status_seconds = time.perf_counter() - started
+        # The pollers with the streams open, then with none, alternating in rounds so that a change in the
+        # machine's load falls on both: the streams' cost as a ratio measured in this run.
+        samples = {"status": ([], [], [0.0]), "status_without_streams": ([], [], [0.0])}  # latencies, errors, s
+
+        async def sample(phase: str) -> None:
+            pollers.take()
+            started = time.perf_counter()
+            await asyncio.sleep(args.seconds / args.rounds)
+            latencies, errors = pollers.take()
+            samples[phase][0].extend(latencies)
+            samples[phase][1].extend(errors)
+            samples[phase][2][0] += time.perf_counter() - started
+
+        submit_streams = streams.opened
+        streams.stop()
+        await asyncio.gather(*stream_tasks)
+        opened, stream_events, stream_errors = [], 0, list(streams.errors)
+        for _ in range(args.rounds):
+            streams = Streams(host, port, args.streams, accepted)  # on jobs of the whole run (all queued)
+            stream_tasks = streams.start()
+            for _ in range(300):  # the connection burst is not the steady state measured: wait until all are open
+                if streams.opened + len(streams.errors) >= args.streams:
+                    break
+                await asyncio.sleep(0.1)
+            await asyncio.sleep(1.0)
+            await sample("status")
+            opened.append(streams.opened)
+            streams.stop()
+            await asyncio.gather(*stream_tasks)
+            stream_events, stream_errors = stream_events + streams.events, stream_errors + streams.errors
+            await sample("status_without_streams")
         pollers.stop()
         await asyncio.gather(*tasks)
 
@@ -243,8 +323,13 @@ async def run_load(base: str, scene_id: str, args) -> dict:
                    "accepted": len(accepted) - 1, "error_samples": submit_errors[:5]},
         "status_during_submit": {**summary(during_submit, len(during_submit_errors), submit_seconds),
                                  "error_samples": during_submit_errors[:5]},
-        "status": {**summary(status_only, len(status_errors), status_seconds), "error_samples": status_errors[:5]},
-        "_latencies": {"status": status_only, "status_during_submit": during_submit, "submit": submit_latencies},
+        **{phase: {**summary(latencies, len(errors), seconds[0]), "error_samples": errors[:5]}
+           for phase, (latencies, errors, seconds) in samples.items()},
+        "streams": {"requested": args.streams, "open_during_submit": submit_streams,
+                    "open_during_status": min(opened, default=0), "events_received": stream_events,
+                    "rounds": args.rounds, "errors": len(stream_errors), "error_samples": stream_errors[:5]},
+        "_latencies": {"status_during_submit": during_submit, "submit": submit_latencies,
+                       **{phase: latencies for phase, (latencies, _, _) in samples.items()}},
     }
 
 
@@ -256,9 +341,10 @@ def plot(runs: dict[str, tuple[dict, dict]], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7.5, 4.5))
-    colours = {"status": "C0", "status_during_submit": "C1", "submit": "C2"}
+    colours = {"status": "C0", "status_during_submit": "C1", "submit": "C2", "status_without_streams": "C3"}
     for label, (result, latencies) in runs.items():
-        names = {"status": f"status, {result['pollers']} pollers alone",
+        names = {"status": f"status, {result['pollers']} pollers + {result['streams']['requested']} event streams",
+                 "status_without_streams": f"status, {result['pollers']} pollers, no stream",
                  "status_during_submit": f"status, {result['pollers']} pollers during submissions",
                  "submit": f"POST /v1/jobs, {result['submitters']} submitters"}
         for name, values in latencies.items():
@@ -332,8 +418,12 @@ def measure(tree: Path, args) -> tuple[dict, dict, str]:
         "lost_samples": lost[:5],
     }
     status = result["status"]
+    if status["p99_ms"] and result["status_without_streams"]["p99_ms"]:
+        result["status_p99_with_over_without_streams"] = round(
+            status["p99_ms"] / result["status_without_streams"]["p99_ms"], 3)
     result["targets_met"] = bool(
         status["p99_ms"] is not None and status["p99_ms"] <= TARGET_P99_MS and status["errors"] == 0
+        and result["streams"]["open_during_status"] == args.streams and result["streams"]["errors"] == 0
         and result["status_during_submit"]["errors"] == 0 and result["submit"]["errors"] == 0
         and result["submit"]["accepted"] >= min(args.jobs, 1000) and result["lost_jobs"] == 0
     )
@@ -342,12 +432,14 @@ def measure(tree: Path, args) -> tuple[dict, dict, str]:
 
 def report(label: str, result: dict) -> None:
     print(f"--- {label} ({result['tree']})")
-    for name in ("submit", "status_during_submit", "status"):
+    for name in ("submit", "status_during_submit", "status", "status_without_streams"):
         s = result[name]
         print(f"{name:22s} n={s['requests']:6d} errors={s['errors']:3d} {s['requests_per_s']} req/s  "
               f"p50={s['p50_ms']:.1f} ms  p99={s['p99_ms']:.1f} ms  max={s['max_ms']:.1f} ms")
     print(f"accepted {result['jobs_accepted']} (incl. 1 seed job), listed {result['jobs_listed']}, "
           f"in the broker {result['jobs_queued_in_broker']}, lost {result['lost_jobs']}; "
+          f"event streams open {result['streams']['open_during_status']}/{result['streams']['requested']} "
+          f"({result['streams']['errors']} errors); "
           f"targets met: {result['targets_met']}")
 
 
@@ -357,6 +449,9 @@ def main() -> None:
     parser.add_argument("--poll-interval", type=float, default=0.5, help="seconds between one poller's requests")
     parser.add_argument("--jobs", type=int, default=1000, help="submissions (M)")
     parser.add_argument("--submitters", type=int, default=4, help="concurrent submitting clients")
+    parser.add_argument("--streams", type=int, default=50, help="open event streams (SSE) beside the pollers")
+    parser.add_argument("--rounds", type=int, default=4,
+                        help="status phase: rounds of (streams open, streams closed), --seconds each condition")
     parser.add_argument("--seconds", type=float, default=20.0, help="duration of the status-only phase")
     parser.add_argument("--api-workers", type=int, default=1, help="uvicorn worker processes (.ci/serve: 1)")
     parser.add_argument("--max-seconds", type=float, default=480.0,
@@ -375,14 +470,15 @@ def main() -> None:
         result, latencies, log_tail = measure(tree, args)
         runs[label] = (result, latencies)
         report(label, result)
-        if result["lost_jobs"] or result["status"]["errors"]:
+        if result["lost_jobs"] or result["status"]["errors"] or result["streams"]["errors"]:
             print(log_tail)
     current = runs["current"][0]
     out = {
         "benchmark": "service_load",
-        "what": "status polling and job submission against the real API (uvicorn), embedded default, loopback; "
-                "no worker (jobs stay queued)",
-        "targets": {"status_p99_ms": TARGET_P99_MS, "status_errors": 0, "submissions": 1000, "lost_jobs": 0},
+        "what": "status polling and job submission against the real API (uvicorn), embedded default, loopback, "
+                "with open event streams (SSE) beside the pollers; no worker (jobs stay queued)",
+        "targets": {"status_p99_ms": TARGET_P99_MS, "status_errors": 0, "submissions": 1000, "lost_jobs": 0,
+                    "event_streams": args.streams},
         **current,
     }
     if "baseline" in runs:

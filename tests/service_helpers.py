@@ -576,9 +576,11 @@ def verify_artifacts(client: httpx.Client, job: dict, expected: set[str], downlo
             reader.close()
             assert len(frames) == job["params"]["export"]["turntable_frames"]
             assert frames[0].shape[:2] == (48, 48)
-        elif name.endswith(".ply") or name.endswith(".glb"):
+        elif name.endswith(".ply") or name.endswith(".glb") or name.endswith(".obj"):
             mesh = trimesh.load(path, force="mesh")
             assert len(mesh.vertices) > 0 and len(mesh.faces) > 0
+        elif name.endswith(".mtl"):
+            assert data.startswith(b"newmtl ")
     resolution = grids["edited_grid.safetensors"].resolution
     if job["mode"] == "local":
         assert tuple(grids["mask"].shape) == resolution == grids["refined_grid.safetensors"].resolution

@@ -218,7 +218,7 @@ def test_turntable_gif_and_bad_suffix(make_sphere_grid, sphere_file, tmp_path, c
     assert "'.webm'" in capsys.readouterr().err
 
 
-def test_export_mesh_ply_and_glb(sphere_grid, sphere_file, tmp_path, capsys):
+def test_export_mesh_ply_glb_and_obj(sphere_grid, sphere_file, tmp_path, capsys):
     ply = tmp_path / "m.ply"
     assert main(["export-mesh", str(sphere_file), "--out", str(ply)]) == 0
     mesh = trimesh.load(ply, process=False)
@@ -228,6 +228,10 @@ def test_export_mesh_ply_and_glb(sphere_grid, sphere_file, tmp_path, capsys):
     glb = tmp_path / "m.glb"
     assert main(["export-mesh", str(sphere_file), "--out", str(glb), "--resolution", "48"]) == 0
     assert len(trimesh.load(glb, force="mesh").vertices) > len(mesh.vertices)
+    obj = tmp_path / "m.obj"
+    assert main(["export-mesh", str(sphere_file), "--out", str(obj)]) == 0
+    assert len(trimesh.load(obj, force="mesh", process=False).vertices) == len(mesh.vertices)
+    assert (tmp_path / "m.mtl").is_file()
 
 
 def test_export_mesh_errors_exit_2(sphere_file, tmp_path, capsys):

@@ -54,3 +54,55 @@ def test_an_unreachable_service_is_a_service_error_naming_it():
         with pytest.raises(ServiceError, match="cannot reach the service at http://127.0.0.1:9: connection refused") as error:
             client.get_sweep("x")
     assert error.value.status is None
+
+
+class _Dropping(httpx.SyncByteStream):
+    """A response body that sends ``chunks`` and then loses the connection."""
+
+    def __init__(self, chunks: list[bytes]):
+        self.chunks = chunks
+
+    def __iter__(self):
+        yield from self.chunks
+        raise httpx.ReadError("connection reset")
+
+
+def test_events_resume_after_a_dropped_stream_with_last_event_id():
+    sent = []
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        sent.append(request.headers.get("last-event-id"))
+        headers = {"content-type": "text/event-stream"}
+        if len(sent) == 1:
+            return httpx.Response(200, headers=headers, stream=_Dropping([
+                b'id: 1\nevent: stage_started\ndata: {"stage": "edit"}\n\n',
+                b'event: progress\ndata: {"state": "running", "overall_progress": 0.5}\n\n']))
+        return httpx.Response(200, headers=headers, content=b'id: 2\nevent: succeeded\ndata: {"stage": "export"}\n\n'
+                                                            b'event: progress\ndata: {"state": "succeeded"}\n\n')
+
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        events = list(client.events("j1"))
+    assert sent == [None, "1"]  # the reconnect asked for what came after event 1
+    assert [(e["event"], e["id"]) for e in events] == [("stage_started", "1"), ("progress", None),
+                                                       ("succeeded", "2"), ("progress", None)]
+
+
+def test_download_checks_size_and_sha256_and_leaves_nothing_on_a_mismatch(tmp_path):
+    import hashlib
+
+    data = b"artifact bytes" * 1000
+    listing = [{"name": "good.bin", "size": len(data), "sha256": hashlib.sha256(data).hexdigest()},
+               {"name": "bad.bin", "size": len(data), "sha256": hashlib.sha256(data).hexdigest()}]
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        if request.url.path.endswith("/artifacts"):
+            return httpx.Response(200, json=listing)
+        return httpx.Response(200, content=data if request.url.path.endswith("good.bin") else data[:-1] + b"X")
+
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        assert client.download("j1", "good.bin", tmp_path / "good.bin").read_bytes() == data
+        with pytest.raises(ServiceError, match="sha256"):
+            client.download("j1", "bad.bin", tmp_path / "bad.bin")
+        with pytest.raises(ServiceError, match="no artifact 'nope.bin'"):
+            client.download("j1", "nope.bin", tmp_path / "nope.bin")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["good.bin"]  # no partial file, no bad one

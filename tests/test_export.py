@@ -224,6 +224,24 @@ def test_glb_round_trip_keeps_geometry_and_colours(sphere_grid, tmp_path):
     assert (colors[:, 0] > 240).all() and (colors[:, 1:3] < 15).all()
 
 
+def test_obj_round_trip_keeps_vertices_faces_and_colours(sphere_grid, tmp_path):
+    """Parsed by hand (the format, not one reader's leniency), then by trimesh as a user's tool would."""
+    mesh = extract_mesh(sphere_grid)
+    path = save_mesh(mesh, tmp_path / "m.obj")
+    lines = path.read_text().splitlines()
+    assert "mtllib m.mtl" in lines and (tmp_path / "m.mtl").is_file()
+    rows = np.array([[float(x) for x in line.split()[1:]] for line in lines if line.startswith("v ")])
+    faces = np.array([[int(x) for x in line.split()[1:]] for line in lines if line.startswith("f ")])
+    assert rows.shape == (len(mesh.vertices), 6) and np.array_equal(faces - 1, mesh.faces)
+    assert np.allclose(rows[:, :3], mesh.vertices, atol=1e-6)
+    assert np.array_equal(np.round(rows[:, 3:] * 255).astype(np.uint8), mesh.visual.vertex_colors[:, :3])
+    kd = next(line for line in (tmp_path / "m.mtl").read_text().splitlines() if line.startswith("Kd "))
+    assert np.allclose([float(x) for x in kd.split()[1:]], rows[:, 3:].mean(0), atol=1e-6)
+    back = trimesh.load(path, process=False, maintain_order=True, skip_materials=True)  # its reader prefers the MTL
+    assert len(back.vertices) == len(mesh.vertices) and len(back.faces) == len(mesh.faces)
+    assert (back.visual.vertex_colors[:, 0] > 240).all() and (back.visual.vertex_colors[:, 1:3] < 15).all()
+
+
 def test_save_mesh_rejects_unknown_suffix(sphere_grid, tmp_path):
-    with pytest.raises(ValueError, match=r"'\.obj'"):
-        save_mesh(extract_mesh(sphere_grid), tmp_path / "m.obj")
+    with pytest.raises(ValueError, match=r"'\.stl'"):
+        save_mesh(extract_mesh(sphere_grid), tmp_path / "m.stl")

@@ -113,6 +113,35 @@ def test_a_database_of_the_previous_head_upgrades_in_place(database_url):
     tables = inspect(engine)
     assert "job_events" not in tables.get_table_names()
     assert "state" not in {c["name"] for c in tables.get_columns("scenes")}
+
+
+def test_jobs_of_0004_upgrade_to_webhooks_off_and_back(database_url):
+    """0005 adds the webhook columns (NULL: no webhook) and the deliveries outbox; downgrading drops them."""
+    from alembic import command
+    from sqlalchemy import inspect, text
+
+    from service_helpers import database_at
+
+    config, engine = database_at(
+        database_url, "0004_ingest_and_events",
+        "INSERT INTO scenes (id, owner_key_id, name, format, image_count, width, height, splits, storage_key, "
+        "size_bytes, sha256, state, created_at, updated_at) VALUES ('s1', 'local', 'old', 'nerf_synthetic', 3, 8, 8, "
+        "'[\"train\"]', 'scenes/s1/dataset.zip', 10, 'x', 'ready', '2026-01-01 00:00:00+00', '2026-01-01 00:00:00+00')",
+        "INSERT INTO jobs (id, scene_id, owner_key_id, prompt, mode, edit_words, params, sds_model, attention_model, "
+        "device, state, iteration, total, losses, cancel_requested, completed_stages, created_at, updated_at) VALUES "
+        "('j1', 's1', 'local', 'a mic', 'global', '[]', '{}', 'tiny', 'tiny', 'cpu', 'succeeded', 0, 0, '{}', false, "
+        "'[]', '2026-01-01 00:00:00+00', '2026-01-01 00:00:00+00')")
+    command.upgrade(config, "0005_webhooks")
+    with engine.begin() as conn:
+        assert conn.execute(text("SELECT webhook_url, webhook_events FROM jobs")).one() == (None, None)
+        conn.execute(text("INSERT INTO webhook_deliveries (id, job_id, event_id, event_type, url, payload, state, "
+                          "attempts, created_at) VALUES ('msg_1', 'j1', 1, 'job.succeeded', 'https://example.com/h', "
+                          "'{}', 'pending', 0, '2026-01-01 00:00:00+00')"))
+    command.downgrade(config, "0004_ingest_and_events")
+    tables = inspect(engine)
+    assert "webhook_deliveries" not in tables.get_table_names()
+    assert "webhook_url" not in {c["name"] for c in tables.get_columns("jobs")}
+    assert "webhook_secret" not in {c["name"] for c in tables.get_columns("api_keys")}
     engine.dispose()
 
 

@@ -37,7 +37,7 @@ PARAMS = {
 }
 SMOKE_LABEL = "tiny (smoke test, random weights)"
 COMMON_ARTIFACTS = {"initial_grid.safetensors", "edited_grid.safetensors", "render_000.png", "render_001.png",
-                    "turntable.mp4", "turntable.gif", "mesh.ply", "mesh.glb", "preview.png"}
+                    "turntable.mp4", "turntable.gif", "mesh.ply", "mesh.glb", "mesh.obj", "mesh.mtl", "preview.png"}
 RESUMED_ARTIFACTS = {"initial_grid.safetensors", "edited_grid.safetensors", "render_000.png", "render_001.png",
                      "turntable.mp4", "preview.png"}  # no gif, no mesh
 LOCAL_ARTIFACTS = {"refined_grid.safetensors", "mask.safetensors", "attention_probabilities.safetensors",
@@ -96,7 +96,8 @@ def create_job(stack: Stack, **body) -> dict:
 
 
 STAGE_OUTPUTS = {"reconstruct": {"initial_grid.safetensors"}, "edit": {"edited_grid.safetensors"},
-                 "refine": LOCAL_ARTIFACTS, "export": {"turntable.mp4", "turntable.gif", "mesh.ply", "mesh.glb"}}
+                 "refine": LOCAL_ARTIFACTS, "export": {"turntable.mp4", "turntable.gif", "mesh.ply", "mesh.glb",
+                                                             "mesh.obj", "mesh.mtl"}}
 
 
 def cancel_during(stack: Stack, stage: str, **body) -> tuple[dict, dict, int]:

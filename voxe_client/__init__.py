@@ -3,8 +3,11 @@
     from voxe_client import Client
 
     with Client("http://127.0.0.1:8000", api_key="...") as client:
+        scene = client.upload_scene("mic.zip")
+        job = client.create_job(scene["id"], "a mic made of gold")
+        job = client.wait(job["id"], on_progress=lambda p: print(p["overall_progress"]))  # live, over SSE
+        client.download(job["id"], "turntable.mp4", "out/turntable.mp4")  # size and sha256 checked
         sweep = client.create_sweep([{"scene_id": scene_id, "object": "microphone"}])
-        sweep = client.get_sweep(sweep["id"])
 
 Errors the service answers with (4xx / 5xx) and unreachable services are :class:`ServiceError`.
 """

@@ -2,12 +2,19 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
+import os
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import httpx
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 DEFAULT_TIMEOUT_S = 60.0
+TERMINAL_STATES = ("succeeded", "failed", "canceled")
 
 
 class ServiceError(Exception):
@@ -56,19 +63,105 @@ class Client:
     def close(self) -> None:
         self._http.close()
 
-    def request(self, method: str, path: str, body: dict | None = None) -> Any:
-        """The decoded JSON answer of ``method path`` (``body`` sent as JSON); ServiceError for an error status."""
+    def request(self, method: str, path: str, body: dict | None = None, **kwargs) -> Any:
+        """The decoded JSON answer of ``method path`` (``body`` sent as JSON, ``kwargs`` to httpx);
+        ServiceError for an error status."""
         try:
-            response = self._http.request(method, path, json=body)
+            response = self._http.request(method, path, json=body, **kwargs)
         except httpx.TransportError as exc:
             raise ServiceError(f"cannot reach the service at {self.base_url}: {exc}") from None
-        if response.is_error:
-            try:
-                detail = response.json().get("detail")
-            except (ValueError, AttributeError):
-                detail = response.reason_phrase
-            raise ServiceError(f"{method} {path}: HTTP {response.status_code}: {detail}", response.status_code, detail)
+        _raise_for_error(response, method, path)
         return response.json()
+
+    # ------------------------------------------------------------------ scenes and jobs
+    def upload_scene(self, path: str | os.PathLike, name: str | None = None) -> dict:
+        """``POST /v1/scenes``: a dataset zip, or one mesh file (.obj / .ply); the scene, ``processing``."""
+        path = Path(path)
+        field = "archive" if path.suffix.lower() == ".zip" else "files"
+        with open(path, "rb") as handle:
+            return self.request("POST", "/v1/scenes", files={field: (name or path.name, handle)})
+
+    def create_job(self, scene_id: str, prompt: str, **fields) -> dict:
+        """``POST /v1/jobs``: ``fields`` are the body's other members (mode, edit_words, params, webhook_url, ...)."""
+        return self.request("POST", "/v1/jobs", {"scene_id": scene_id, "prompt": prompt, **fields})
+
+    def get_job(self, job_id: str) -> dict:
+        return self.request("GET", f"/v1/jobs/{job_id}")
+
+    def cancel_job(self, job_id: str) -> dict:
+        return self.request("POST", f"/v1/jobs/{job_id}/cancel")
+
+    def events(self, job_id: str, last_event_id: int | None = None, reconnects: int = 5) -> Iterator[dict]:
+        """The job's live events (``{"event", "id", "data"}``) until it ends, over Server-Sent Events.
+
+        A dropped connection is resumed with ``Last-Event-ID`` (at most ``reconnects`` times in a row),
+        so no timeline event is missed or repeated; ``progress`` snapshots carry no id.
+        """
+        failures = 0
+        while True:
+            headers = {"accept": "text/event-stream"}
+            if last_event_id is not None:
+                headers["last-event-id"] = str(last_event_id)
+            path = f"/v1/jobs/{job_id}/events"
+            try:
+                with self._http.stream("GET", path, headers=headers, timeout=httpx.Timeout(30.0, read=None)) as response:
+                    if response.is_error:
+                        response.read()
+                        _raise_for_error(response, "GET", path)
+                    for event in parse_sse(response.iter_lines()):
+                        failures = 0
+                        if event["id"] is not None:
+                            last_event_id = int(event["id"])
+                        yield event
+                return  # the server ended the stream: the job ended
+            except httpx.TransportError as exc:
+                failures += 1
+                if failures > reconnects:
+                    raise ServiceError(f"event stream of job {job_id} lost: {exc}") from None
+                time.sleep(min(5.0, 0.5 * 2 ** (failures - 1)))
+
+    def wait(self, job_id: str, on_progress: Callable[[dict], None] | None = None) -> dict:
+        """Follow the job's events until it ends, calling ``on_progress(snapshot)`` on each progress event;
+        the finished job."""
+        for event in self.events(job_id):
+            if event["event"] == "progress" and on_progress is not None:
+                on_progress(event["data"])
+        return self.get_job(job_id)
+
+    def artifacts(self, job_id: str) -> list[dict]:
+        return self.request("GET", f"/v1/jobs/{job_id}/artifacts")
+
+    def download(self, job_id: str, name: str, dest: str | os.PathLike) -> Path:
+        """Stream the artifact to ``dest`` and check its size and SHA-256 against the job's listing.
+
+        A mismatch is a ServiceError and leaves no file; the bytes land under ``dest`` only once checked.
+        """
+        listed = {a["name"]: a for a in self.artifacts(job_id)}
+        if name not in listed:
+            raise ServiceError(f"job {job_id} has no artifact {name!r}", 404)
+        expected, dest = listed[name], Path(dest)
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        partial = dest.with_name(f".{dest.name}.partial")
+        digest, size = hashlib.sha256(), 0
+        path = f"/v1/jobs/{job_id}/artifacts/{name}"
+        try:
+            with self._http.stream("GET", path) as response, open(partial, "wb") as out:
+                if response.is_error:
+                    response.read()
+                    _raise_for_error(response, "GET", path)
+                for chunk in response.iter_bytes(1 << 20):
+                    digest.update(chunk)
+                    size += len(chunk)
+                    out.write(chunk)
+            if size != expected["size"] or digest.hexdigest() != expected["sha256"]:
+                raise ServiceError(f"{name} of job {job_id}: downloaded {size} bytes with sha256 {digest.hexdigest()}, "
+                                   f"the service lists {expected['size']} bytes with sha256 {expected['sha256']}")
+            os.replace(partial, dest)
+        except httpx.TransportError as exc:
+            raise ServiceError(f"cannot download {name} of job {job_id}: {exc}") from None
+        finally:
+            partial.unlink(missing_ok=True)
+        return dest
 
     # ------------------------------------------------------------------ sweeps (SPEC §4)
     def create_sweep(self, scenes: list[dict], params: dict | None = None, evaluation: dict | None = None) -> dict:
@@ -83,3 +176,32 @@ class Client:
     def get_sweep(self, sweep_id: str) -> dict:
         """``GET /v1/sweeps/{id}``: the jobs' states and the summary table."""
         return self.request("GET", f"/v1/sweeps/{sweep_id}")
+
+
+def _raise_for_error(response: httpx.Response, method: str, path: str) -> None:
+    if response.is_error:
+        try:
+            detail = response.json().get("detail")
+        except (ValueError, AttributeError):
+            detail = response.reason_phrase
+        raise ServiceError(f"{method} {path}: HTTP {response.status_code}: {detail}", response.status_code, detail)
+
+
+def parse_sse(lines) -> Iterator[dict]:
+    """Server-Sent Events from text lines: ``{"event", "id", "data"}`` with ``data`` decoded as JSON.
+
+    Examples:
+        >>> list(parse_sse(["retry: 2000", "", "id: 7", "event: checkpoint", 'data: {"iteration": 4}', "",
+        ...                 ": keepalive", "", "event: progress", 'data: {"state": "running"}', ""]))
+        [{'event': 'checkpoint', 'id': '7', 'data': {'iteration': 4}}, {'event': 'progress', 'id': None, 'data': {'state': 'running'}}]
+    """
+    fields: dict[str, str] = {}
+    for line in lines:
+        if line == "":
+            if "data" in fields:
+                yield {"event": fields.get("event", "message"), "id": fields.get("id"), "data": json.loads(fields["data"])}
+            fields = {}
+        elif not line.startswith(":"):
+            name, _, value = line.partition(":")
+            value = value[1:] if value.startswith(" ") else value
+            fields[name] = fields[name] + "\n" + value if name == "data" and name in fields else value

@@ -24,7 +24,7 @@ from voxe_core.progress import Callbacks, Progress
 from voxe_core.render import RenderConfig, render_image
 
 VIDEO_SUFFIXES = (".mp4", ".gif")
-MESH_SUFFIXES = (".ply", ".glb")
+MESH_SUFFIXES = (".ply", ".glb", ".obj")
 _QUERY_CHUNK = 1 << 18  # points per grid query when sampling a mesh or a resampled lattice
 
 
@@ -248,15 +248,48 @@ def extract_mesh(grid: VoxelGrid, level: float | None = None, resolution: int | 
 
 
 def save_mesh(mesh, path: str | os.PathLike) -> Path:
-    """Write ``mesh`` by suffix: ``.ply`` (binary, with vertex colours) or ``.glb`` (glTF binary, COLOR_0)."""
+    """Write ``mesh`` by suffix: ``.ply`` (binary, with vertex colours), ``.glb`` (glTF binary, COLOR_0) or
+    ``.obj`` (Wavefront, with its ``.mtl`` beside it: :func:`save_obj`)."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in MESH_SUFFIXES:
         raise ValueError(f"unsupported mesh suffix {path.suffix!r} for {path}; use one of {', '.join(MESH_SUFFIXES)}")
     path.parent.mkdir(parents=True, exist_ok=True)
+    if suffix == ".obj":
+        return save_obj(mesh, path)
     if suffix == ".ply":
         data = mesh.export(file_type="ply", encoding="binary")
     else:
         data = mesh.export(file_type="glb")
     path.write_bytes(data)
+    return path
+
+
+def save_obj(mesh, path: str | os.PathLike) -> Path:
+    """Wavefront OBJ with per-vertex colours (``v x y z r g b``, colours in [0, 1]: the extension MeshLab,
+    Blender and trimesh read) and a material library ``<stem>.mtl`` beside it whose diffuse colour is the
+    mean vertex colour, for importers that ignore vertex colours. Faces are 1-based, counter-clockwise
+    seen from outside (as :func:`extract_mesh` winds them).
+
+    Examples:
+        >>> import tempfile, trimesh
+        >>> tri = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]],
+        ...                       vertex_colors=[[255, 0, 0, 255]] * 3, process=False)
+        >>> path = save_obj(tri, Path(tempfile.mkdtemp()) / "tri.obj")
+        >>> path.read_text().splitlines()[2:4]
+        ['usemtl voxe', 'v 0.000000 0.000000 0.000000 1.000000 0.000000 0.000000']
+        >>> path.with_suffix(".mtl").read_text().splitlines()[1]
+        'Kd 1.000000 0.000000 0.000000'
+    """
+    path = Path(path)
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces, dtype=np.int64) + 1
+    rgb = np.asarray(mesh.visual.vertex_colors, dtype=np.float64)[:, :3] / 255.0
+    mtl = path.with_suffix(".mtl")
+    kd = rgb.mean(0) if len(rgb) else np.full(3, 0.8)
+    mtl.write_text(f"newmtl voxe\nKd {kd[0]:.6f} {kd[1]:.6f} {kd[2]:.6f}\nKa 0 0 0\nKs 0 0 0\nd 1\nillum 1\n")
+    with open(path, "w") as out:
+        out.write(f"# Vox-E mesh: {len(vertices)} vertices, {len(faces)} faces\nmtllib {mtl.name}\nusemtl voxe\n")
+        np.savetxt(out, np.hstack([vertices, rgb]), fmt="v %.6f %.6f %.6f %.6f %.6f %.6f")
+        np.savetxt(out, faces, fmt="f %d %d %d")
     return path

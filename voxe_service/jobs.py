@@ -13,14 +13,19 @@ from collections.abc import Iterable
 from sqlalchemy import update
 from sqlalchemy.orm import Session
 
+from voxe_service import webhooks
 from voxe_service.models import TERMINAL_STATES, Job, JobEvent, utcnow
 
 
 def record_event(session: Session, job_id: str, kind: str, *, stage: str | None = None,
                  iteration: int | None = None, worker: str | None = None, detail: str | None = None) -> None:
-    """Add one event to the job's timeline (committed with the caller's transaction)."""
-    session.add(JobEvent(job_id=job_id, kind=kind, stage=stage, iteration=iteration, worker_hostname=worker,
-                         detail=detail, at=utcnow()))
+    """Add one event to the job's timeline, and its webhook delivery if the job wants one (both committed with
+    the caller's transaction)."""
+    event = JobEvent(job_id=job_id, kind=kind, stage=stage, iteration=iteration, worker_hostname=worker,
+                     detail=detail, at=utcnow())
+    session.add(event)
+    session.flush()  # the event's id, which its delivery names
+    webhooks.enqueue(session, job_id, event)
 
 
 def finish_jobs(session: Session, job_ids: Iterable[str], state: str, *, message: str | None = None,

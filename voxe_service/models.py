@@ -1,5 +1,5 @@
-"""Database tables: API keys, scenes, their cached reconstructions, jobs and their events, job artifacts,
-idempotency records and worker heartbeats."""
+"""Database tables: API keys, scenes, their cached reconstructions, jobs and their events, webhook deliveries,
+job artifacts, idempotency records and worker heartbeats."""
 
 from __future__ import annotations
 
@@ -72,6 +72,8 @@ class ApiKey(Base):
     max_upload_bytes: Mapped[int | None] = mapped_column(BigInteger, nullable=True)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     revoked_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    # Signs the key's webhook deliveries (Standard Webhooks "whsec_<base64>"); made when first needed.
+    webhook_secret: Mapped[str | None] = mapped_column(String(64), nullable=True)
 
 
 class Scene(Base):
@@ -174,6 +176,9 @@ class Job(Base):
     source_job_ids: Mapped[list | None] = mapped_column(JSON, nullable=True)
     result: Mapped[dict | None] = mapped_column(JSON, nullable=True)
     batch_id: Mapped[str | None] = mapped_column(String(32), nullable=True, index=True)
+    # Where the job's events are POSTed (voxe_service.webhooks), and which kinds (NULL: the terminal ones).
+    webhook_url: Mapped[str | None] = mapped_column(Text, nullable=True)
+    webhook_events: Mapped[list | None] = mapped_column(JSON, nullable=True)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow, index=True)
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
@@ -193,7 +198,8 @@ class JobEvent(Base):
     Kinds: ``stage_started`` / ``stage_completed`` (``stage``, the worker), ``checkpoint`` (a resumable
     checkpoint of ``stage`` at ``iteration`` is in the storage: the event is written after the upload),
     ``resumed`` (a redelivered stage went on from the checkpoint at ``iteration``), ``requeued`` (a
-    restarted worker sent the remaining stages again), and the terminal ``succeeded`` / ``failed`` /
+    restarted worker sent the remaining stages again), ``artifact`` / ``preview`` (``detail``: the name of an
+    artifact just published, or of a new preview image), and the terminal ``succeeded`` / ``failed`` /
     ``canceled`` (``detail``: the error or message). Unlike the throttled progress columns of the job,
     every event is kept.
     """
@@ -208,6 +214,33 @@ class JobEvent(Base):
     worker_hostname: Mapped[str | None] = mapped_column(String(255), nullable=True)
     detail: Mapped[str | None] = mapped_column(Text, nullable=True)
     at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+class WebhookDelivery(Base):
+    """One job event to POST to the job's webhook: written with the event (an outbox), sent and retried by
+    the API's :class:`api.webhooks.WebhookSender`.
+
+    ``id`` is the Standard Webhooks ``webhook-id``, equal across retries so receivers can dedupe;
+    ``payload`` is the exact body, fixed at creation, so every attempt sends the same bytes.
+    States: ``pending`` (due at ``next_attempt_at``), ``delivered`` (a 2xx), ``failed`` (gave up).
+    """
+
+    __tablename__ = "webhook_deliveries"
+    __table_args__ = (UniqueConstraint("job_id", "event_id", name="uq_webhook_delivery_event"),)
+
+    id: Mapped[str] = mapped_column(String(40), primary_key=True)
+    job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), index=True)
+    event_id: Mapped[int] = mapped_column(Integer)
+    event_type: Mapped[str] = mapped_column(String(40))
+    url: Mapped[str] = mapped_column(Text)
+    payload: Mapped[str] = mapped_column(Text)
+    state: Mapped[str] = mapped_column(String(16), default="pending")
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    next_attempt_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True, index=True)
+    last_status: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    last_error: Mapped[str | None] = mapped_column(Text, nullable=True)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    delivered_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
 
 
 class Artifact(Base):

@@ -82,14 +82,35 @@ class Settings(BaseSettings):
     job_stale_timeout_s: float = Field(900.0, gt=0)
     reaper_interval_s: float = Field(60.0, gt=0)
 
+    # --- webhooks (voxe_service.webhooks; sent from the API process, api/webhooks.py)
+    webhook_allow_networks: str = ""  # comma-separated CIDRs a webhook may target though private (e.g. 10.0.0.0/8)
+    webhook_timeout_s: float = Field(10.0, gt=0)  # per attempt: connect, send and the receiver's answer
+    webhook_backoff_s: float = Field(5.0, gt=0)  # before the first retry; doubling per attempt
+    webhook_max_backoff_s: float = Field(3600.0, gt=0)
+    webhook_retry_for_s: float = Field(24 * 3600.0, gt=0)  # after this long since the event, a delivery gives up
+    webhook_poll_interval_s: float = Field(0.5, gt=0)
+    webhook_concurrency: int = Field(8, ge=1)  # attempts in flight per API process
+
     @field_validator("s3_endpoint_url", "s3_region", mode="before")
     @classmethod
     def _empty_is_none(cls, value):
         return None if value == "" else value
 
+    @field_validator("webhook_allow_networks")
+    @classmethod
+    def _networks(cls, value: str) -> str:
+        for network in filter(None, (n.strip() for n in value.split(","))):
+            ipaddress.ip_network(network, strict=False)  # a typo fails at startup, not on the first webhook
+        return value
+
     @property
     def auth_enabled(self) -> bool:
         return self.auth == "on" or (self.auth == "auto" and not is_loopback(self.host))
+
+    @property
+    def webhook_networks(self) -> list[ipaddress.IPv4Network | ipaddress.IPv6Network]:
+        return [ipaddress.ip_network(n.strip(), strict=False) for n in self.webhook_allow_networks.split(",")
+                if n.strip()]
 
     @property
     def resolved_device(self) -> str:

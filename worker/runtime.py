@@ -40,6 +40,8 @@ CONTENT_TYPES = {
     ".gif": "image/gif",
     ".ply": "application/octet-stream",
     ".glb": "model/gltf-binary",
+    ".obj": "model/obj",
+    ".mtl": "model/mtl",
     ".json": "application/json",
     ".md": "text/markdown; charset=utf-8",
 }
@@ -258,6 +260,8 @@ def publish_artifact(job_id: str, name: str, path: str | os.PathLike, kind: str,
             session.add(artifact)
         artifact.key, artifact.size, artifact.sha256 = stored.key, stored.size, stored.sha256
         artifact.content_type, artifact.kind, artifact.created_at = content_type(name), kind, utcnow()
+        # On the timeline in the same transaction: an event stream announces each artifact once it can be read.
+        record_event(session, job_id, "preview" if kind == "preview" else "artifact", detail=name)
     if previous and previous != stored.key and previous.startswith(job_key(job_id, "")):
         storage.delete(previous)  # never the shared reconstruction's grid: that lives outside jobs/<id>/
     return artifact

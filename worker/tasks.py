@@ -352,9 +352,10 @@ def _export(job: Job, settings, device: str, storage) -> None:
         except ValueError as exc:  # no surface at the level: report, keep the other artifacts
             runtime.update_job(job.id, message=f"no mesh exported: {exc}")
         else:
-            for suffix in ("ply", "glb"):
+            for suffix in ("ply", "glb", "obj"):
                 save_mesh(mesh, scratch / f"mesh.{suffix}")
                 runtime.publish_artifact(job.id, f"mesh.{suffix}", scratch / f"mesh.{suffix}", "mesh", storage)
+            runtime.publish_artifact(job.id, "mesh.mtl", scratch / "mesh.mtl", "mesh", storage)  # mesh.obj's material
         callbacks.on_progress(Progress("export", total, total))
     _preview(job.id, grid, settings, storage, device,
              image=turntable[0] if options.turntable_size <= 512 else None)

@@ -2,15 +2,22 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Query, Response, status
+from typing import Annotated
+
+from fastapi import APIRouter, Header, HTTPException, Query, Request, Response, status
+from fastapi.responses import StreamingResponse
 from sqlalchemy import select
 
 from api.auth import mark_replayed
 from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep
+from api.events import SSE_MEDIA_TYPE
 from api.routes.scenes import MAX_OFFSET
-from api.schemas import JobCreate, JobEventOut, JobOut, JobReconstruction, JobState, Models, Page
+from api.schemas import (
+    JobCreate, JobEventOut, JobOut, JobReconstruction, JobState, Models, Page, WebhookDeliveryOut,
+)
 from api.services import jobs
-from voxe_service.models import EVALUATE, RUNNING, Job, JobEvent, utcnow
+from voxe_service.models import EVALUATE, R_SUCCEEDED, RUNNING, SUCCEEDED, Job, JobEvent, utcnow
+from voxe_service.progress import overall, stage_costs
 from voxe_service.settings import model_label
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
@@ -31,6 +38,7 @@ def job_out(job: Job) -> JobOut:
         progress=(job.iteration / job.total) if job.total else (1.0 if job.state == "succeeded" else 0.0),
         completed_stages=job.completed_stages or [], elapsed_seconds=elapsed,
         eta_seconds=job.eta_seconds if job.state == RUNNING else None, losses=job.losses or {},
+        **dict(zip(("overall_progress", "overall_eta_seconds"), _overall(job, now))),
         message=job.message, error=job.error, cancel_requested=job.cancel_requested,
         reconstruction=JobReconstruction(
             id=rec.id if rec else None, state=rec.state if rec else None,
@@ -39,8 +47,25 @@ def job_out(job: Job) -> JobOut:
         preview_url=f"{base}/artifacts/{job.preview_artifact}" if job.preview_artifact else None,
         artifacts_url=f"{base}/artifacts", events_url=f"{base}/events", worker_hostname=job.worker_hostname,
         source_job_ids=job.source_job_ids, result=job.result, batch_id=job.batch_id,
+        webhook_url=job.webhook_url, webhook_events=job.webhook_events, webhooks_url=f"{base}/webhooks",
         created_at=job.created_at, started_at=job.started_at, finished_at=job.finished_at, updated_at=job.updated_at,
     )
+
+
+def _overall(job: Job, now) -> tuple[float, float | None]:
+    """(overall progress, seconds left for the job): voxe_service.progress over the job's stage costs."""
+    rec = job.reconstruction
+    if rec is not None and rec.state == R_SUCCEEDED and rec.owner_job_id != job.id:
+        units = 1  # reused: nothing to fit
+    else:
+        units = (rec.total if rec is not None else 0) or (job.total if job.stage == "reconstruct" else None)
+    costs = stage_costs(mode=job.mode, params=job.params, reconstruction_units=units)
+    fraction = job.iteration / job.total if job.total else 0.0
+    running = job.state == RUNNING
+    return overall(costs=costs, completed=job.completed_stages or [], stage=job.stage if running else None,
+                   stage_fraction=fraction, stage_eta_s=job.eta_seconds if running else None,
+                   stage_elapsed_s=(now - job.stage_started_at).total_seconds() if job.stage_started_at else None,
+                   finished=job.state == SUCCEEDED)
 
 
 def _models(job: Job) -> Models:
@@ -56,8 +81,9 @@ def _models(job: Job) -> Models:
                         401: {"description": "missing or invalid API key"},
                         404: {"description": "no such scene (or another key's)"},
                         409: {"description": "the scene failed processing (the reason is named)"},
-                        422: {"description": "invalid job (the field is named), or an Idempotency-Key reused "
-                                             "with a different body"},
+                        422: {"description": "invalid job (the field is named), an Idempotency-Key reused "
+                                             "with a different body, or a webhook_url the service will not call "
+                                             "(the rule is named)"},
                         429: {"description": "the key's quota of queued + running jobs is used up (Retry-After)"},
                         503: {"description": "the job could not be queued (broker unreachable)"}},
              summary="Create an edit job (queued at once; optionally with an Idempotency-Key header)")
@@ -90,12 +116,51 @@ def get_job(job_id: str, session: SessionDep, key: CurrentKey) -> JobOut:
     return job_out(jobs.get_job(session=session, key=key, job_id=job_id))
 
 
-@router.get("/{job_id}/events", response_model=list[JobEventOut], responses=_ERRORS,
-            summary="The job's timeline: stages started and completed, checkpoints stored, resumes, its end")
-def list_events(job_id: str, session: SessionDep, key: CurrentKey) -> list[JobEventOut]:
+@router.get(
+    "/{job_id}/events", response_model=list[JobEventOut],
+    responses={**_ERRORS,
+               200: {"description": "the timeline as JSON; with `Accept: text/event-stream`, a live stream of "
+                                    "Server-Sent Events (api/events.py) ending when the job ends",
+                     "content": {SSE_MEDIA_TYPE: {"schema": {"type": "string"}}}},
+               422: {"description": "Last-Event-ID is not an event id"}},
+    summary="The job's timeline (stages, checkpoints, artifacts, its end), or a live stream of it",
+)
+def list_events(job_id: str, request: Request, session: SessionDep, key: CurrentKey,
+                last_event_id: Annotated[str | None, Header(description="stream: resume after this event id")] = None,
+                ) -> list[JobEventOut] | StreamingResponse:
     jobs.get_job(session=session, key=key, job_id=job_id)
+    if SSE_MEDIA_TYPE in request.headers.get("accept", ""):
+        after = _event_id(last_event_id)
+        session.close()  # the stream reads through the hub's short sessions: hold no connection meanwhile
+        return StreamingResponse(request.app.state.event_hub.stream(job_id, after), media_type=SSE_MEDIA_TYPE,
+                                 headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
     rows = session.scalars(select(JobEvent).where(JobEvent.job_id == job_id).order_by(JobEvent.id))
     return [JobEventOut.model_validate(e, from_attributes=True) for e in rows]
+
+
+def _event_id(value: str | None) -> int:
+    if value is None or not value.strip():
+        return 0
+    if not value.strip().isdigit():
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                            f"Last-Event-ID must be the id of an event (a non-negative integer), not {value!r}")
+    return int(value)
+
+
+def progress_view(job: Job) -> dict:
+    """What an event stream's ``progress`` event carries: the job resource's progress fields."""
+    return job_out(job).model_dump(mode="json", include=PROGRESS_FIELDS)
+
+
+PROGRESS_FIELDS = {"id", "state", "stage", "iteration", "total", "progress", "overall_progress", "completed_stages",
+                   "eta_seconds", "overall_eta_seconds", "losses", "message", "error", "preview_url"}
+
+
+@router.get("/{job_id}/webhooks", response_model=list[WebhookDeliveryOut], responses=_ERRORS,
+            summary="The job's webhook deliveries: one per event sent, with its attempts and last answer")
+def list_webhooks(job_id: str, session: SessionDep, key: CurrentKey) -> list[WebhookDeliveryOut]:
+    rows = jobs.list_webhooks(session=session, key=key, job_id=job_id)
+    return [WebhookDeliveryOut.model_validate(d, from_attributes=True) for d in rows]
 
 
 @router.post("/{job_id}/cancel", response_model=JobOut,

@@ -1,4 +1,5 @@
-"""Jobs: creation (the shared reconstruction, the key's quota, idempotency, the scene's state), listing, cancel.
+"""Jobs: creation (the shared reconstruction, the key's quota, idempotency, the scene's state, the webhook
+target), listing, cancel, webhook deliveries.
 
 A job is recorded ``queued``; its stage chain goes to the broker at once when its scene is
 ready, or later, from the scene's ingest, when the scene is still processing (it waits without
@@ -21,11 +22,12 @@ from api.schemas import JobCreate
 from api.services.scenes import get_scene, refuse_unless_usable
 from voxe_core.presets import reconstruction_key, reconstruction_params
 from voxe_service.datasets import MESH_FORMAT
+from voxe_service import webhooks
 from voxe_service.db import get_sessionmaker
 from voxe_service.jobs import finish_jobs
 from voxe_service.models import (
     CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, READY, TERMINAL_STATES, ApiKey, Job, Reconstruction, Scene,
-    new_id, utcnow,
+    WebhookDelivery, new_id, utcnow,
 )
 from voxe_service.queue import QueueUnavailable, TaskQueue, dispatch_job
 from voxe_service.scenes import lock_scene
@@ -90,8 +92,18 @@ def new_edit_job(body: JobCreate, key: ApiKey, settings: Settings, rec: Reconstr
         id=new_id(), scene_id=body.scene_id, owner_key_id=key.id, reconstruction_id=rec.id, prompt=body.prompt,
         mode=body.mode, edit_words=body.edit_words, params=body.params.model_dump(mode="json"),
         sds_model=settings.sds_model, attention_model=settings.attention_model, device=settings.device, state=QUEUED,
-        batch_id=batch_id,
+        batch_id=batch_id, webhook_url=body.webhook_url, webhook_events=body.webhook_events,
     )
+
+
+def check_webhook(*, settings: Settings, body: JobCreate) -> None:
+    """422 naming the rule for a webhook target the service will not call."""
+    if body.webhook_url is None:
+        return
+    try:
+        webhooks.check_target(body.webhook_url, settings.webhook_networks)
+    except webhooks.TargetRefused as exc:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc)) from None
 
 
 def add_jobs(*, session: Session, key: ApiKey, settings: Settings, jobs: list[Job],
@@ -145,7 +157,10 @@ def create_job(*, session: Session, settings: Settings, queue: TaskQueue, key: A
             return replayed, True
     params = body.params.model_dump(mode="json")
     scene = usable_scene(session=session, key=key, scene_id=body.scene_id, params=params)
+    check_webhook(settings=settings, body=body)
     job = new_edit_job(body, key, settings, reconstruction_for(session=session, scene=scene, params=params))
+    if job.webhook_url:  # after reconstruction_for: its own transaction must not wait on this one's write
+        webhooks.key_secret(session, key)  # committed with the job
     try:
         to_send = add_jobs(session=session, key=key, settings=settings, jobs=[job], idempotency=idem)
     except IntegrityError:
@@ -193,3 +208,17 @@ def fail_unsent(*, session: Session, job_ids: list[str], reason: str) -> None:
     """Fail jobs that were recorded but will never be sent (the broker went away mid-batch)."""
     finish_jobs(session, job_ids, FAILED, error=reason)
     session.commit()
+
+
+def list_webhooks(*, session: Session, key: ApiKey, job_id: str) -> list[WebhookDelivery]:
+    """The job's webhook deliveries in the order of their events."""
+    get_job(session=session, key=key, job_id=job_id)
+    return list(session.scalars(select(WebhookDelivery).where(WebhookDelivery.job_id == job_id)
+                                .order_by(WebhookDelivery.event_id)))
+
+
+def webhook_secret(*, session: Session, key: ApiKey) -> str:
+    """The key's webhook signing secret (made on first request)."""
+    secret = webhooks.key_secret(session, key)
+    session.commit()
+    return secret

@@ -1,4 +1,4 @@
-"""Meshes out and in: ``voxe export-mesh`` (marching cubes, PLY / GLB) and ``voxe mesh-to-grid`` (an OBJ or PLY as G_i)."""
+"""Meshes out and in: ``voxe export-mesh`` (marching cubes, PLY / GLB / OBJ) and ``voxe mesh-to-grid`` (an OBJ or PLY as G_i)."""
 
 from __future__ import annotations
 
@@ -12,10 +12,10 @@ from voxe_core.presets import RECONSTRUCTION_PRESET, RECONSTRUCTION_PRESETS, SEE
 
 def add_parsers(commands, common) -> None:
     mesh = commands.add_parser(
-        "export-mesh", parents=[common], help="marching-cubes mesh with vertex colours (.ply or .glb)"
+        "export-mesh", parents=[common], help="marching-cubes mesh with vertex colours (.ply, .glb or .obj + .mtl)"
     )
     mesh.add_argument("grid", type=Path, metavar="GRID")
-    mesh.add_argument("--out", type=Path, required=True, help="mesh file, .ply or .glb")
+    mesh.add_argument("--out", type=Path, required=True, help="mesh file, .ply, .glb or .obj")
     mesh.add_argument("--level", type=float, default=None, help="surface density (default ln 2 / voxel size)")
     mesh.add_argument("--resolution", type=positive_int, default=ExportConfig.mesh_resolution,
                       help="resample to N points per axis")

@@ -1,7 +1,7 @@
-"""``voxe sweep``: the paper's protocol submitted to the job service (SPEC §4) over its HTTP API.
+"""The commands that talk to the job service over its HTTP API: ``voxe submit | status | wait | download |
+cancel`` for one job, ``voxe sweep`` for the paper's protocol (SPEC §4).
 
-The one command that talks to the service: it imports ``voxe_client`` (the HTTP client) where it
-runs, so the library itself holds no web code.
+They import ``voxe_client`` (the HTTP client) where they run, so the library itself holds no web code.
 """
 
 from __future__ import annotations
@@ -32,30 +32,138 @@ def _json_object(text: str) -> dict:
 
 
 def add_parsers(commands, common) -> None:
+    service = argparse.ArgumentParser(add_help=False)
+    service.add_argument("--api", default="http://127.0.0.1:8000", metavar="URL", help="the service's base URL")
+    service.add_argument("--api-key", default=None,
+                         help="API key (default: $VOXE_API_KEY; none needed on a loopback service)")
+
+    sub = commands.add_parser("submit", parents=[common, service], help="create an edit job on the service")
+    sub.add_argument("prompt")
+    where = sub.add_mutually_exclusive_group(required=True)
+    where.add_argument("--scene", metavar="SCENE_ID", help="an uploaded scene")
+    where.add_argument("--upload", type=Path, metavar="PATH", help="upload this dataset zip or mesh first")
+    sub.add_argument("--mode", choices=("global", "local"), default="global")
+    sub.add_argument("--edit-word", action="append", default=[], metavar="WORD", help="local edits (repeat)")
+    sub.add_argument("--params", type=_json_object, default=None, metavar="JSON", help="job params")
+    sub.add_argument("--webhook-url", default=None, metavar="URL", help="POST the job's events here, signed")
+    sub.add_argument("--wait", action="store_true", help="follow the job's events until it ends")
+    sub.set_defaults(run=cmd_submit)
+    for name, help_text in (("status", "the job's record as JSON"), ("wait", "follow the job's live events until "
+                            "it ends (a progress bar on stderr)"), ("cancel", "cancel the job")):
+        job = commands.add_parser(name, parents=[common, service], help=help_text)
+        job.add_argument("job_id")
+        job.set_defaults(run=cmd_job)
+    dl = commands.add_parser("download", parents=[common, service],
+                             help="download the job's artifacts, each size and SHA-256 checked")
+    dl.add_argument("job_id")
+    dl.add_argument("--name", action="append", default=None, metavar="NAME", help="only these artifacts (repeat)")
+    dl.add_argument("--out", type=Path, default=Path("."), metavar="DIR")
+    dl.set_defaults(run=cmd_download)
+
     sw = commands.add_parser(
-        "sweep", parents=[common],
+        "sweep", parents=[common, service],
         help="submit the paper's protocol to the service: scenes × the six prompts of SPEC §4, each edit evaluated",
     )
-    sw.add_argument("--api", default="http://127.0.0.1:8000", metavar="URL", help="the service's base URL")
     sw.add_argument("--scene", type=_scene_object, action="append", required=True, metavar="SCENE_ID=OBJECT",
                     help="an uploaded scene and what its object is called in the prompts (repeat for several)")
     sw.add_argument("--params", type=_json_object, default=None, metavar="JSON", help="edit job params (POST /v1/jobs)")
     sw.add_argument("--evaluation", type=_json_object, default=None, metavar="JSON",
                     help='evaluation params, e.g. \'{"views": 100, "size": 266}\'')
-    sw.add_argument("--api-key", default=None, help="API key (default: $VOXE_API_KEY; none needed on a loopback service)")
     sw.add_argument("--wait", action="store_true", help="poll until every job of the sweep is finished")
     sw.add_argument("--poll", type=float, default=10.0, help="seconds between polls with --wait")
     sw.add_argument("--out", type=Path, default=None, metavar="FILE", help="also write the final summary JSON here")
     sw.set_defaults(run=cmd_sweep)
 
 
-def cmd_sweep(args) -> int:
+def _client(args):
     import os
+
+    from voxe_client import Client
+
+    return Client(args.api, api_key=args.api_key or os.environ.get("VOXE_API_KEY"))
+
+
+def _progress_bar(quiet: bool):
+    """An ``on_progress`` callback drawing the job's overall progress on stderr."""
+    def draw(snapshot: dict) -> None:
+        if quiet:
+            return
+        done = snapshot.get("overall_progress") or 0.0
+        eta = snapshot.get("overall_eta_seconds")
+        bar = "#" * round(30 * done)
+        print(f"\r[{bar:<30}] {100 * done:5.1f}% {snapshot['state']} {snapshot.get('stage') or ''}"
+              f"{f' ~{eta:.0f} s left' if eta is not None else ''}   ", end="", file=sys.stderr, flush=True)
+    return draw
+
+
+def _follow(client, job_id: str, quiet: bool) -> int:
+    job = client.wait(job_id, on_progress=_progress_bar(quiet))
+    if not quiet:
+        print(file=sys.stderr)
+    print(json.dumps(job, indent=2))
+    return 0 if job["state"] == "succeeded" else 1
+
+
+def cmd_submit(args) -> int:
+    from voxe_client import ServiceError
+
+    with _client(args) as client:
+        try:
+            scene_id = args.scene
+            if args.upload is not None:
+                scene_id = client.upload_scene(args.upload)["id"]
+                print(f"uploaded {args.upload}: scene {scene_id}", file=sys.stderr)
+            fields = {"mode": args.mode, "edit_words": args.edit_word}
+            fields.update({k: v for k, v in (("params", args.params), ("webhook_url", args.webhook_url)) if v})
+            job = client.create_job(scene_id, args.prompt, **fields)
+            print(f"job {job['id']}: {job['state']}", file=sys.stderr)
+            if args.wait:
+                return _follow(client, job["id"], args.quiet)
+            print(job["id"])
+            return 0
+        except ServiceError as exc:
+            print(f"voxe submit: error: {exc}", file=sys.stderr)
+            return EXIT_USAGE
+
+
+def cmd_job(args) -> int:
+    """``voxe status | wait | cancel JOB_ID``."""
+    from voxe_client import ServiceError
+
+    with _client(args) as client:
+        try:
+            if args.command == "wait":
+                return _follow(client, args.job_id, args.quiet)
+            job = client.cancel_job(args.job_id) if args.command == "cancel" else client.get_job(args.job_id)
+        except ServiceError as exc:
+            print(f"voxe {args.command}: error: {exc}", file=sys.stderr)
+            return EXIT_USAGE
+    print(json.dumps(job, indent=2))
+    return 0
+
+
+def cmd_download(args) -> int:
+    from voxe_client import ServiceError
+
+    with _client(args) as client:
+        try:
+            names = args.name or [a["name"] for a in client.artifacts(args.job_id)]
+            for name in names:
+                path = client.download(args.job_id, name, args.out / name)
+                if not args.quiet:
+                    print(f"{path} (sha256 checked)", file=sys.stderr)
+        except ServiceError as exc:
+            print(f"voxe download: error: {exc}", file=sys.stderr)
+            return EXIT_USAGE
+    return 0
+
+
+def cmd_sweep(args) -> int:
     import time
 
-    from voxe_client import Client, ServiceError
+    from voxe_client import ServiceError
 
-    with Client(args.api, api_key=args.api_key or os.environ.get("VOXE_API_KEY")) as client:
+    with _client(args) as client:
         try:
             sweep = client.create_sweep(args.scene, params=args.params, evaluation=args.evaluation)
             print(f"sweep {sweep['id']}: {len(sweep['entries'])} edits of {len(args.scene)} scene(s) queued, each "

@@ -1,0 +1,164 @@
+"""Live job events as Server-Sent Events: one poller per API process serves every open stream.
+
+A stream holds no database session or connection: the :class:`EventHub` reads, once per
+``VOXE_PROGRESS_INTERVAL_S`` (twice a second by default), in one short session, which of the jobs
+that open streams watch changed (their ``updated_at`` and newest event id), then only those jobs
+and their new events, and hands each stream what is new for it. Streams on jobs where nothing
+happens cost two index lookups per poll (bench/service_load.py measures 50 of them beside the
+status pollers).
+
+What a stream sends (``event:`` names):
+
+* every timeline event (``stage_started``, ``stage_completed``, ``checkpoint``, ``resumed``,
+  ``requeued``, ``artifact``, ``preview``, then ``succeeded`` / ``failed`` / ``canceled``), with
+  its ``id:`` -- a client reconnecting with ``Last-Event-ID`` gets every event after it, none twice;
+* ``progress`` (no id: it is a snapshot, sent again on reconnect) when the job's state, stage,
+  iteration or losses changed since the last one, at most once per interval;
+* and the stream ends after the job's terminal event.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import math
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass, field
+
+import anyio
+from sqlalchemy import and_, func, or_, select
+
+from api.schemas import JobEventOut
+from voxe_service.db import get_sessionmaker
+from voxe_service.models import TERMINAL_STATES, Job, JobEvent
+
+log = logging.getLogger("voxe.api")
+
+SSE_MEDIA_TYPE = "text/event-stream"
+KEEPALIVE_S = 15.0  # a comment line this often keeps proxies from closing a quiet stream
+RETRY_MS = 2000  # what EventSource waits before reconnecting
+
+
+@dataclass
+class _Watch:
+    """One open stream: the job it follows and what the hub has handed it since it last woke."""
+
+    job_id: str
+    after_id: int
+    wake: asyncio.Event = field(default_factory=asyncio.Event)
+    events: list[dict] = field(default_factory=list)
+    job: dict | None = None
+    polled: bool = False
+
+
+def sse(data: dict, event: str, event_id: int | None = None) -> str:
+    """One Server-Sent Event; ``data`` as one line of JSON."""
+    head = f"id: {event_id}\n" if event_id is not None else ""
+    return f"{head}event: {event}\ndata: {json.dumps(data, separators=(',', ':'), default=str)}\n\n"
+
+
+class EventHub:
+    """The shared poller behind every event stream of one API process.
+
+    ``view(job) -> dict`` is what a ``progress`` event carries (the job resource's progress fields).
+    """
+
+    def __init__(self, interval_s: float, view: Callable[[Job], dict]):
+        self.interval_s, self.view = interval_s, view
+        self._watches: list[_Watch] = []
+        self._stamps: dict[str, tuple] = {}  # job id -> (updated_at, newest event id) at its last full read
+        self._task: asyncio.Task | None = None
+
+    async def stream(self, job_id: str, after_id: int = 0) -> AsyncIterator[str]:
+        """The job's events after ``after_id`` as SSE text, ending after its terminal event."""
+        watch = _Watch(job_id, after_id)
+        self._watches.append(watch)
+        if self._task is None or self._task.done():
+            self._task = asyncio.get_running_loop().create_task(self._run())
+        try:
+            yield f"retry: {RETRY_MS}\n\n"
+            sent_progress = None
+            while True:
+                try:
+                    await asyncio.wait_for(watch.wake.wait(), KEEPALIVE_S)
+                except TimeoutError:
+                    yield ": keepalive\n\n"
+                    continue
+                watch.wake.clear()
+                events, watch.events = watch.events, []
+                for event in events:
+                    yield sse(event, event["kind"], event["id"])
+                if watch.job is None:
+                    yield sse({"detail": f"job {job_id!r} was deleted"}, "error")
+                    return
+                if watch.job != sent_progress:
+                    sent_progress = watch.job
+                    yield sse(watch.job, "progress")
+                if watch.job["state"] in TERMINAL_STATES:
+                    return
+        finally:
+            self._watches.remove(watch)
+
+    async def _run(self) -> None:
+        while self._watches:
+            watches, after, fresh = list(self._watches), {}, set()
+            for watch in watches:
+                after[watch.job_id] = min(after.get(watch.job_id, math.inf), watch.after_id)
+                if not watch.polled:
+                    fresh.add(watch.job_id)
+            try:
+                stamps, jobs, events = await anyio.to_thread.run_sync(self._poll, after, fresh)
+            except Exception:  # noqa: BLE001 - a database hiccup: streams wait for the next poll
+                log.warning("event streams: poll failed", exc_info=True)
+            else:
+                self._stamps = {job_id: stamp for job_id, stamp in {**self._stamps, **stamps}.items()
+                                if job_id in after}
+                for watch in watches:  # one opened during this poll waits for the next
+                    new = [e for e in events.get(watch.job_id, ()) if e["id"] > watch.after_id]
+                    if new:
+                        watch.events.extend(new)
+                        watch.after_id = new[-1]["id"]
+                    if watch.job_id not in stamps:
+                        watch.job = None  # deleted
+                    elif watch.job_id in jobs:
+                        watch.job = jobs[watch.job_id]
+                    elif not new and watch.polled:
+                        continue  # nothing happened to its job
+                    watch.polled = True
+                    watch.wake.set()
+            await asyncio.sleep(self.interval_s)
+
+    def _poll(self, after: dict[str, int], fresh: set[str]):
+        """(every watched job's change stamp, the views of the jobs that changed, the events past ``after`` of
+        the jobs that have new ones), in one short session.
+
+        A poll where nothing happened costs two index lookups per job and builds nothing: what changed is
+        read from ``updated_at`` and the newest event id. Events are read after the job rows, so a job seen
+        terminal comes with its terminal event.
+        """
+        ids = list(after)
+        with get_sessionmaker()() as session:
+            updated = dict(session.execute(select(Job.id, Job.updated_at).where(Job.id.in_(ids))).all())
+            newest = dict(session.execute(select(JobEvent.job_id, func.max(JobEvent.id))
+                                          .where(JobEvent.job_id.in_(ids)).group_by(JobEvent.job_id)).all())
+            stamps = {job_id: (at, newest.get(job_id)) for job_id, at in updated.items()}
+            changed = [i for i in updated if i in fresh or self._stamps.get(i, (None, None))[0] != updated[i]]
+            jobs = {job.id: self.view(job) for job in session.scalars(select(Job).where(Job.id.in_(changed)))} \
+                if changed else {}
+            reading = [i for i in updated if i in jobs or (newest.get(i) or 0) > after[i]]
+            events: dict[str, list[dict]] = {}
+            if reading:
+                rows = session.scalars(
+                    select(JobEvent)
+                    .where(or_(*(and_(JobEvent.job_id == i, JobEvent.id > after[i]) for i in reading)))
+                    .order_by(JobEvent.id)
+                )
+                for e in rows:
+                    events.setdefault(e.job_id, []).append(
+                        JobEventOut.model_validate(e, from_attributes=True).model_dump(mode="json"))
+        return stamps, jobs, events
+
+    async def close(self) -> None:
+        if self._task is not None and not self._task.done():
+            self._task.cancel()

@@ -1,0 +1,17 @@
+"""/v1/webhooks: the key's signing secret (a job's deliveries are at /v1/jobs/{id}/webhooks)."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+
+from api.deps import CurrentKey, SessionDep
+from api.schemas import WebhookSecretOut
+from api.services import jobs
+
+router = APIRouter(prefix="/v1/webhooks", tags=["webhooks"])
+
+
+@router.get("/secret", response_model=WebhookSecretOut,
+            summary="This key's webhook secret: verify deliveries' webhook-signature with it (Standard Webhooks)")
+def get_secret(session: SessionDep, key: CurrentKey) -> WebhookSecretOut:
+    return WebhookSecretOut(secret=jobs.webhook_secret(session=session, key=key))

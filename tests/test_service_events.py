@@ -1,0 +1,250 @@
+"""Live job events over real HTTP: a uvicorn API and a Celery worker (subprocesses) run short jobs with the
+random-weight SMOKE-TEST model (VOXE_SDS_MODEL=tiny); a real httpx client reads their Server-Sent Events, and
+a real local HTTP receiver takes their webhooks.
+
+Plumbing only, never edit quality.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import hmac
+import json
+import threading
+import time
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+import httpx
+import pytest
+
+from needs import MIC, require_data
+from service_helpers import job_events, poll_job, service, small_mic, wait_for_scene, zip_folder
+from voxe_client import Client
+from voxe_client.client import parse_sse
+
+pytestmark = pytest.mark.slow
+
+PARAMS = {
+    "downsample": 16, "max_images": 3, "iterations": 6, "render_size": 32, "preview_every": 2,
+    "reconstruction": {"preset": "fast", "resolution": 16, "iterations": [10, 10, 20], "rays_per_step": 512},
+    "export": {"views": 1, "view_size": 32, "turntable_frames": 4, "turntable_size": 32, "gif": False},
+}
+TERMINAL = ("succeeded", "failed", "canceled")
+
+
+def read_sse(response: httpx.Response, stop=None):
+    """The stream's events (voxe_client's parser), each stamped with its arrival; stop early once ``stop(event)``."""
+    events = []
+    for event in parse_sse(response.iter_lines()):
+        events.append({**event, "at": time.monotonic()})
+        if stop is not None and stop(event):
+            break
+    return events
+
+
+@pytest.fixture(scope="module")
+def live(tmp_path_factory):
+    require_data(MIC)
+    root = tmp_path_factory.mktemp("events")
+    data = small_mic(root / "mic_small", frames=3)
+    with service(root / "svc", VOXE_CHECKPOINT_EVERY="2", VOXE_PROGRESS_INTERVAL_S="0.5",
+                 VOXE_WEBHOOK_ALLOW_NETWORKS="127.0.0.0/8", VOXE_WEBHOOK_BACKOFF_S="0.2") as svc:
+        with httpx.Client(base_url=svc.base, timeout=60) as client:
+            with open(zip_folder(data, root / "mic.zip", prefix="mic_small"), "rb") as handle:
+                response = client.post("/v1/scenes", files={"archive": ("mic.zip", handle, "application/zip")})
+            assert response.status_code == 201, response.text
+            scene = wait_for_scene(client, svc, response.json()["id"])
+            assert scene["state"] == "ready", scene
+            yield svc, client, scene
+
+
+def test_a_stream_reconnected_with_last_event_id_misses_nothing(live):
+    svc, client, scene = live
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold",
+                                        "params": PARAMS}).json()
+    url, sse = f"/v1/jobs/{job['id']}/events", {"Accept": "text/event-stream"}
+    # First connection: read until the first stage is done, then drop the connection.
+    with client.stream("GET", url, headers=sse) as response:
+        assert response.status_code == 200 and response.headers["content-type"].startswith("text/event-stream")
+        first = read_sse(response, stop=lambda e: e["event"] == "stage_completed")
+    assert first[-1]["data"]["stage"] == "reconstruct", first
+    last_id = [e["id"] for e in first if e["id"] is not None][-1]
+    # Reconnect where it stopped and read to the end: the server closes the stream after the terminal event.
+    with client.stream("GET", url, headers={**sse, "Last-Event-ID": last_id}) as response:
+        second = read_sse(response)
+    assert second[-1]["event"] == "progress" and second[-1]["data"]["state"] == "succeeded", second[-3:]
+    timeline = [e for e in first + second if e["id"] is not None]
+    stored = job_events(client, job["id"])
+    assert [int(e["id"]) for e in timeline] == [e["id"] for e in stored]  # every event, in order, none twice
+    assert [e["data"] for e in timeline] == stored
+    kinds = [e["event"] for e in timeline]
+    assert kinds[-1] == "succeeded" and "preview" in kinds and "checkpoint" in kinds
+    published = {e["data"]["detail"] for e in timeline if e["event"] == "artifact"}
+    listed = {a["name"] for a in client.get(f"/v1/jobs/{job['id']}/artifacts").json()}
+    assert published == listed - {"preview.png"}, (published, listed)
+    # Progress: snapshots, at most one per poll interval (0.5 s), never a repeat, stages in order.
+    progress = [e for e in first + second if e["event"] == "progress"]
+    assert len(progress) >= 3
+    for stream in (first, second):  # counted, not spaced: a client's reads may bunch what was sent apart
+        times = [e["at"] for e in stream if e["event"] == "progress"]
+        assert len(times) <= 2 * (stream[-1]["at"] - stream[0]["at"]) + 2, times
+    assert all(a["data"] != b["data"] for a, b in zip(progress, progress[1:]))
+    overall = [e["data"]["overall_progress"] for e in progress]
+    assert overall == sorted(overall) and overall[-1] == 1.0, overall
+    # A finished job's stream replays its timeline and ends at once.
+    with client.stream("GET", url, headers={**sse, "Last-Event-ID": str(stored[-3]["id"])}) as response:
+        replay = read_sse(response)
+    assert [int(e["id"]) for e in replay if e["id"]] == [e["id"] for e in stored[-2:]]
+    # The JSON form is still the default.
+    assert client.get(url).json() == stored
+    bad = client.get(url, headers={**sse, "Last-Event-ID": "soon"})
+    assert bad.status_code == 422 and "Last-Event-ID" in bad.json()["detail"]
+
+
+def test_streams_hold_no_database_connection_between_polls(live):
+    """20 streams open on a queued job (no worker picks it up fast enough to matter) and the status
+    route still answers: the streams share the hub's polls instead of each holding a pooled connection
+    (SQLAlchemy's default pool has 5 + 10 overflow; 20 held ones would block the 21st request)."""
+    svc, client, scene = live
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold",
+                                        "params": PARAMS}).json()
+    url = f"{svc.base}/v1/jobs/{job['id']}/events"
+    clients = [httpx.Client(timeout=30) for _ in range(20)]
+    try:
+        streams = [c.stream("GET", url, headers={"Accept": "text/event-stream"}) for c in clients]
+        responses = [s.__enter__() for s in streams]
+        assert all(r.status_code == 200 for r in responses)
+        started = time.monotonic()
+        for _ in range(10):
+            assert client.get(f"/v1/jobs/{job['id']}", timeout=5).status_code == 200
+        assert time.monotonic() - started < 5
+        for s in streams:
+            s.__exit__(None, None, None)
+    finally:
+        for c in clients:
+            c.close()
+    poll_job(client, svc, job["id"])
+
+
+class Receiver:
+    """A webhook receiver on loopback: records every request; answers 500 to the first, 200 after."""
+
+    def __init__(self):
+        self.requests: list[dict] = []
+        receiver = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def do_POST(self):
+                body = self.rfile.read(int(self.headers["content-length"]))
+                receiver.requests.append({"headers": {k.lower(): v for k, v in self.headers.items()}, "body": body})
+                self.send_response(500 if len(receiver.requests) == 1 else 200)
+                self.send_header("content-length", "0")
+                self.end_headers()
+
+            def log_message(self, *args):
+                pass
+
+        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.url = f"http://127.0.0.1:{self.server.server_address[1]}/hook"
+        threading.Thread(target=self.server.serve_forever, daemon=True).start()
+
+    def close(self):
+        self.server.shutdown()
+        self.server.server_close()
+
+
+def verify(secret: str, request: dict) -> bool:
+    """The Standard Webhooks check a receiver does: HMAC-SHA256 of "id.timestamp.body" under the secret."""
+    h = request["headers"]
+    signed = f"{h['webhook-id']}.{h['webhook-timestamp']}.".encode() + request["body"]
+    expected = base64.b64encode(hmac.new(base64.b64decode(secret.removeprefix("whsec_")), signed,
+                                         hashlib.sha256).digest()).decode()
+    return any(hmac.compare_digest(f"v1,{expected}", s) for s in h["webhook-signature"].split())
+
+
+def test_webhooks_are_signed_retried_and_deduplicable(live):
+    svc, client, scene = live
+    receiver = Receiver()
+    try:
+        body = {"scene_id": scene["id"], "prompt": "a mic made of wood", "params": PARAMS,
+                "webhook_url": receiver.url, "webhook_events": ["stage_completed", "succeeded"]}
+        job = client.post("/v1/jobs", json=body).json()
+        assert job["webhook_url"] == receiver.url, job
+        assert poll_job(client, svc, job["id"])["state"] == "succeeded"
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            deliveries = client.get(f"/v1/jobs/{job['id']}/webhooks").json()
+            if len(deliveries) == 4 and all(d["state"] == "delivered" for d in deliveries):
+                break
+            time.sleep(0.2)
+        assert [d["event_type"] for d in deliveries] == ["job.stage_completed"] * 3 + ["job.succeeded"], deliveries
+        assert all(d["state"] == "delivered" and d["last_status"] == 200 for d in deliveries), deliveries
+        assert deliveries[0]["attempts"] == 2 and [d["attempts"] for d in deliveries[1:]] == [1, 1, 1]
+        secret = client.get("/v1/webhooks/secret").json()["secret"]
+        requests = receiver.requests
+        assert len(requests) == 5 and all(verify(secret, r) for r in requests)
+        assert not verify(secret, {**requests[0], "body": requests[0]["body"] + b" "})  # a changed body fails
+        # The retry after the 500 is the same message: same webhook-id (the dedupe key), same bytes.
+        assert requests[0]["headers"]["webhook-id"] == requests[1]["headers"]["webhook-id"] == deliveries[0]["id"]
+        assert requests[0]["body"] == requests[1]["body"]
+        # One message per delivery (sent concurrently: receivers must not rely on their order).
+        assert sorted(r["headers"]["webhook-id"] for r in requests[1:]) == sorted(d["id"] for d in deliveries)
+        payloads = sorted((json.loads(r["body"]) for r in requests[1:]), key=lambda p: p["data"]["event"]["id"])
+        assert [p["data"]["event"]["stage"] for p in payloads] == ["reconstruct", "edit", "export", "export"]
+        assert payloads[-1]["type"] == "job.succeeded" and payloads[-1]["data"]["state"] == "succeeded"
+        stored = {e["id"] for e in job_events(client, job["id"])}
+        assert {d["event_id"] for d in deliveries} <= stored
+    finally:
+        receiver.close()
+
+
+@pytest.mark.parametrize("url, rule", [("http://10.1.2.3/hook", "private"), ("http://169.254.169.254/", "link-local"),
+                                       ("http://[::1]:9/hook", "loopback"), ("http://0.0.0.0/", "unspecified")])
+def test_a_webhook_to_a_private_address_is_refused_naming_the_rule(live, url, rule):
+    """127.0.0.0/8 is allowed here (VOXE_WEBHOOK_ALLOW_NETWORKS); every other private target is not."""
+    _svc, client, scene = live
+    before = client.get("/v1/jobs").json()["total"]
+    response = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of wood",
+                                             "webhook_url": url})
+    assert response.status_code == 422, response.text
+    assert f"a {rule} address" in response.json()["detail"] and "VOXE_WEBHOOK_ALLOW_NETWORKS" in response.json()["detail"]
+    assert client.get("/v1/jobs").json()["total"] == before  # nothing recorded
+
+
+def test_the_client_uploads_submits_waits_over_events_and_downloads_verified(live, tmp_path):
+    svc, _client, _scene = live
+    data = small_mic(tmp_path / "mic_small", frames=3)
+    seen = []
+    with Client(svc.base) as client:
+        scene = client.upload_scene(zip_folder(data, tmp_path / "mic.zip", prefix="mic_small"))
+        wait_for_scene(_client, svc, scene["id"])
+        job = client.create_job(scene["id"], "a mic made of glass", params=PARAMS)
+        done = client.wait(job["id"], on_progress=seen.append)
+        assert done["state"] == "succeeded" and done["overall_progress"] == 1.0, done
+        assert len(seen) >= 2 and seen[-1]["state"] == "succeeded"
+        assert [p["overall_progress"] for p in seen] == sorted(p["overall_progress"] for p in seen)
+        listing = client.artifacts(job["id"])
+        assert {"edited_grid.safetensors", "turntable.mp4", "preview.png"} <= {a["name"] for a in listing}
+        for artifact in listing:
+            path = client.download(job["id"], artifact["name"], tmp_path / "out" / artifact["name"])
+            assert hashlib.sha256(path.read_bytes()).hexdigest() == artifact["sha256"]
+
+
+def test_the_cli_submits_waits_downloads_and_reports_errors(live, tmp_path, capsys):
+    from voxe_core.cli import main
+
+    svc, client, scene = live
+    api = ["--api", svc.base]
+    assert main(["submit", "a mic made of copper", "--scene", scene["id"], "--params", json.dumps(PARAMS),
+                 "--wait", *api]) == 0
+    out = capsys.readouterr()
+    job = json.loads(out.out)
+    assert job["state"] == "succeeded" and "100.0%" in out.err  # the progress bar reached the end
+    assert main(["download", job["id"], "--name", "turntable.mp4", "--out", str(tmp_path), *api]) == 0
+    listed = {a["name"]: a for a in client.get(f"/v1/jobs/{job['id']}/artifacts").json()}
+    data = (tmp_path / "turntable.mp4").read_bytes()
+    assert hashlib.sha256(data).hexdigest() == listed["turntable.mp4"]["sha256"]
+    assert main(["status", job["id"], *api]) == 0 and json.loads(capsys.readouterr().out)["id"] == job["id"]
+    assert main(["cancel", job["id"], *api]) == 2  # a succeeded job cannot be canceled: the service's 409
+    assert "HTTP 409" in capsys.readouterr().err

@@ -1,0 +1,97 @@
+"""Overall progress and ETA of a job across its stages (voxe_service/progress.py): the weights are the
+benchmarks' measured figures, the fraction never goes back across stage boundaries, and the ETA scales the
+later stages by the speed the current one shows."""
+
+from __future__ import annotations
+
+import json
+from datetime import timedelta
+from pathlib import Path
+
+import pytest
+
+from voxe_service.models import Job, Reconstruction, utcnow
+from voxe_service.progress import SECONDS_PER_UNIT, overall, stage_costs
+
+RESULTS = Path(__file__).resolve().parents[1] / "bench" / "results"
+
+
+def test_stage_weights_are_the_benchmarks_figures():
+    reconstruction = json.loads((RESULTS / "reconstruction.json").read_text())[0]
+    edit = next(r for r in json.loads((RESULTS / "edit_step.json").read_text()) if r["model"] == "sd2-base-shaped"
+                and r["render_size"] == 64)
+    segmentation = json.loads((RESULTS / "segmentation.json").read_text())
+    assert SECONDS_PER_UNIT["reconstruct"] == pytest.approx(reconstruction["seconds"] / reconstruction["iterations"])
+    assert SECONDS_PER_UNIT["edit"] == pytest.approx(edit["ms_total"] / 1000, abs=1e-3)
+    assert SECONDS_PER_UNIT["refine"] == pytest.approx(
+        segmentation["runs"][0]["seconds"] / segmentation["settings"]["iterations"], rel=1e-3)
+    assert SECONDS_PER_UNIT["export"] == pytest.approx(reconstruction["render_seconds_per_view"])
+
+
+def test_stages_follow_the_mode_and_the_params():
+    assert [s for s, _ in stage_costs(mode="local", params={}, reconstruction_units=None)] == [
+        "reconstruct", "edit", "refine", "export"]
+    assert [s for s, _ in stage_costs(mode="global", params={}, reconstruction_units=None)] == [
+        "reconstruct", "edit", "export"]
+    short, long = (dict(stage_costs(mode="global", params={"iterations": n}, reconstruction_units=100))["edit"]
+                   for n in (10, 1000))
+    assert long == pytest.approx(100 * short)
+
+
+def _job(**values) -> Job:
+    base = dict(id="j", scene_id="s", owner_key_id="local", prompt="p", mode="local", edit_words=["x"],
+                params={"iterations": 100, "refine": {"iterations": 50}}, sds_model="tiny", attention_model="tiny",
+                device="cpu", state="queued", iteration=0, total=0, completed_stages=[], cancel_requested=False, created_at=utcnow(),
+                updated_at=utcnow())
+    base.update(values)
+    return Job(**base)
+
+
+def test_overall_progress_runs_from_0_to_1_and_never_goes_back():
+    """A job's records as its stages report (the job resource's view of them)."""
+    from api.routes.jobs import job_out
+
+    rec = Reconstruction(id="r", scene_id="s", params_key="k", params={}, state="running", owner_job_id="j", total=200)
+    seen = [job_out(_job(reconstruction=rec)).overall_progress]
+    done: list[str] = []
+    for stage, total in (("reconstruct", 200), ("edit", 100), ("refine", 50), ("export", 10)):
+        for iteration in (0, total // 3, total):
+            job = _job(reconstruction=rec, state="running", stage=stage, iteration=iteration, total=total,
+                       completed_stages=list(done), stage_started_at=utcnow() - timedelta(seconds=5),
+                       eta_seconds=1.0, started_at=utcnow())
+            seen.append(job_out(job).overall_progress)
+        done.append(stage)
+        seen.append(job_out(_job(reconstruction=rec, state="running", stage=stage, iteration=total, total=total,
+                                 completed_stages=list(done), started_at=utcnow())).overall_progress)
+    seen.append(job_out(_job(reconstruction=rec, state="succeeded", stage="export", completed_stages=done,
+                             started_at=utcnow(), finished_at=utcnow())).overall_progress)
+    assert seen[0] == 0.0 and seen[-1] == 1.0 and all(0 <= p <= 1 for p in seen)
+    assert seen == sorted(seen), seen
+    # Edit dominates: 100 edit iterations (5.1 s each) cost far more than 200 reconstruction ones (12 ms each).
+    after_reconstruct, after_edit = seen[4], seen[8]
+    assert after_reconstruct < 0.01 and after_edit > 0.95, seen
+
+
+def test_a_reused_reconstruction_weighs_nothing():
+    from api.routes.jobs import job_out
+
+    fitted_by_another = Reconstruction(id="r", scene_id="s", params_key="k", params={}, state="succeeded",
+                                       owner_job_id="other", total=100_000)
+    job = _job(reconstruction=fitted_by_another, state="running", stage="edit", iteration=50, total=100,
+               completed_stages=["reconstruct"], started_at=utcnow(), stage_started_at=utcnow())
+    costs = dict(stage_costs(mode="local", params=job.params, reconstruction_units=1))
+    expected = (costs["reconstruct"] + costs["edit"] / 2) / sum(costs.values())
+    assert job_out(job).overall_progress == pytest.approx(expected)
+
+
+def test_eta_scales_later_stages_by_the_current_stages_speed():
+    costs = [("reconstruct", 10.0), ("edit", 80.0), ("export", 10.0)]
+    args = dict(costs=costs, completed=["reconstruct"], stage="edit", stage_fraction=0.25, stage_eta_s=60.0,
+                finished=False)
+    assert overall(**args, stage_elapsed_s=20.0) == (0.3, 60.0 + 10.0)  # at the benchmark's speed
+    assert overall(**args, stage_elapsed_s=40.0) == (0.3, 60.0 + 20.0)  # twice as slow
+    assert overall(**{**args, "stage_eta_s": None}, stage_elapsed_s=20.0) == (0.3, None)
+    assert overall(**{**args, "stage_fraction": 0.0}, stage_elapsed_s=0.0)[1] == 60.0 + 10.0
+    assert overall(**args, stage_elapsed_s=1.0)[0] == overall(**args, stage_elapsed_s=99.0)[0]  # speed: ETA only
+    assert overall(costs=costs, completed=[], stage=None, stage_fraction=0.0, stage_eta_s=None, stage_elapsed_s=None,
+                   finished=True) == (1.0, 0.0)

@@ -1,0 +1,108 @@
+"""Webhook delivery against receivers that fail: in-process API (TestClient, its sender thread running), real
+sockets. A dead or slow receiver delays neither the API nor the job; retries stop after the bounded window.
+
+The happy path (signatures, a 500 then a 200 under one webhook-id) runs against a live service in
+tests/test_service_events.py.
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+import pytest
+from fastapi.testclient import TestClient
+
+from needs import MIC, require_data
+from service_helpers import reset_service_caches, service_env, small_mic
+from test_service_api import make_scene
+
+
+@pytest.fixture
+def client(tmp_path, monkeypatch):
+    require_data(MIC)
+    env = service_env(tmp_path, VOXE_WEBHOOK_ALLOW_NETWORKS="127.0.0.0/8", VOXE_WEBHOOK_BACKOFF_S="0.1",
+                      VOXE_WEBHOOK_RETRY_FOR_S="1.5", VOXE_WEBHOOK_TIMEOUT_S="0.5", VOXE_WEBHOOK_POLL_INTERVAL_S="0.1")
+    for key, value in env.items():
+        monkeypatch.setenv(key, value)
+    reset_service_caches()
+    from api.main import create_app
+
+    with TestClient(create_app()) as test_client:
+        yield test_client, make_scene(test_client, small_mic(tmp_path / "mic_small"), tmp_path)
+    reset_service_caches()
+
+
+def closed_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]  # nothing listens once it is closed
+
+
+class SlowReceiver:
+    """Answers 200, but only after ``delay`` seconds: longer than the sender's timeout."""
+
+    def __init__(self, delay: float):
+        self.hits = 0
+        outer = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def do_POST(self):
+                outer.hits += 1
+                time.sleep(delay)
+                self.send_response(200)
+                self.send_header("content-length", "0")
+                self.end_headers()
+
+            def log_message(self, *args):
+                pass
+
+        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.url = f"http://127.0.0.1:{self.server.server_address[1]}/hook"
+        threading.Thread(target=self.server.serve_forever, daemon=True).start()
+
+
+def deliveries_settled(client, job_id: str, timeout: float = 20.0) -> list[dict]:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        rows = client.get(f"/v1/jobs/{job_id}/webhooks").json()
+        if rows and all(d["state"] != "pending" for d in rows):
+            return rows
+        time.sleep(0.1)
+    raise AssertionError(f"deliveries still pending: {rows}")
+
+
+@pytest.mark.parametrize("receiver", ["dead", "slow"])
+def test_a_failing_receiver_blocks_nothing_and_is_given_up_on_in_bounded_time(client, receiver):
+    test_client, scene = client
+    slow = SlowReceiver(delay=3.0) if receiver == "slow" else None
+    url = slow.url if slow else f"http://127.0.0.1:{closed_port()}/hook"
+    job = test_client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold",
+                                             "webhook_url": url}).json()
+    started = time.monotonic()
+    canceled = test_client.post(f"/v1/jobs/{job['id']}/cancel")  # queued: canceled at once, one event to deliver
+    assert canceled.status_code == 200 and canceled.json()["state"] == "canceled"
+    for _ in range(5):  # the API answers while the sender is stuck on the receiver
+        assert test_client.get(f"/v1/jobs/{job['id']}").status_code == 200
+    assert time.monotonic() - started < 2.0
+    [delivery] = deliveries_settled(test_client, job["id"])
+    assert delivery["event_type"] == "job.canceled" and delivery["state"] == "failed", delivery
+    assert delivery["attempts"] >= 2 and delivery["last_status"] is None
+    assert ("Timeout" if slow else "Connect") in delivery["last_error"], delivery
+    if slow:
+        assert slow.hits == delivery["attempts"]
+        slow.server.shutdown()
+
+
+def test_webhook_events_need_a_url_and_name_known_kinds(client):
+    test_client, scene = client
+    body = {"scene_id": scene["id"], "prompt": "a mic made of gold"}
+    response = test_client.post("/v1/jobs", json={**body, "webhook_events": ["succeeded"]})
+    assert response.status_code == 422 and "webhook_events needs a webhook_url" in response.text
+    response = test_client.post("/v1/jobs", json={**body, "webhook_url": "http://127.0.0.1:9/h",
+                                                  "webhook_events": ["finished"]})
+    assert response.status_code == 422 and "webhook_events" in response.text
+    response = test_client.post("/v1/jobs", json={**body, "webhook_url": "ftp://example.com/h"})
+    assert response.status_code == 422 and "webhook_url" in response.text

@@ -1,0 +1,77 @@
+"""A job's progress across all its stages, and the time it has left, from measured stage costs.
+
+Each stage's cost is its units of work (iterations, rendered views) times seconds per unit measured
+by the benchmarks in ``bench/results`` (2 CPU cores, torch 2.13 CPU):
+
+* reconstruct: 20.98 s / 1,800 iterations (``reconstruction.json``, fast-64 on mic, 4,096 rays per step);
+* edit: 5.099 s per iteration (``edit_step.json``, the SD2-base-shaped UNet at 64 px: the real model's
+  cost, not the smoke-test one's);
+* refine: 47.85 s / 400 iterations (``segmentation.json``, runs[0], 96 px, 4,096 rays per step);
+* export: 0.066 s per rendered view (``reconstruction.json``, ``render_seconds_per_view`` at 200 px).
+
+The fraction weighs completed stages fully and the current one by its own progress. The time left
+is the current stage's own estimate (from its iteration rate) plus the later stages' costs, scaled
+by how fast this machine ran the current stage against the benchmark's figure for it.
+
+Examples:
+    >>> weights = stage_costs(mode="global", params={"iterations": 100, "export": {"views": 0,
+    ...                       "turntable_frames": 10, "mesh": False}}, reconstruction_units=1800)
+    >>> [(stage, round(seconds, 2)) for stage, seconds in weights]
+    [('reconstruct', 20.98), ('edit', 509.9), ('export', 0.66)]
+"""
+
+from __future__ import annotations
+
+from voxe_core import constants as paper
+from voxe_core.presets import ExportConfig
+
+SECONDS_PER_UNIT = {
+    "reconstruct": 20.98 / 1800,
+    "edit": 5.099,
+    "refine": 47.85 / 400,
+    "export": 0.066,
+    "evaluate": 0.066,  # ring renders dominate an evaluation
+}
+FAST_RECONSTRUCTION_ITERATIONS = 300 + 500 + 1200  # ReconstructConfig.fast(): what a queued job expects
+
+
+def stage_costs(*, mode: str, params: dict, reconstruction_units: int | None) -> list[tuple[str, float]]:
+    """(stage, expected seconds) for each stage of a job, in order."""
+    if mode == "evaluate":
+        views = (params.get("evaluation") or params).get("views", 100)
+        return [("evaluate", views * SECONDS_PER_UNIT["evaluate"])]
+    export = params.get("export") or {}
+    views = export.get("views", ExportConfig.views) + export.get("turntable_frames", ExportConfig.turntable_frames)
+    units = {
+        "reconstruct": reconstruction_units or FAST_RECONSTRUCTION_ITERATIONS,
+        "edit": params.get("iterations", paper.EDIT_ITERATIONS),
+        "refine": (params.get("refine") or {}).get("iterations", paper.REFINE_ITERATIONS),
+        "export": views + (1 if export.get("mesh", ExportConfig.mesh) else 0),
+    }
+    stages = ["reconstruct", "edit"] + (["refine"] if mode == "local" else []) + ["export"]
+    return [(stage, max(1, units[stage]) * SECONDS_PER_UNIT[stage]) for stage in stages]
+
+
+def overall(*, costs: list[tuple[str, float]], completed: list[str], stage: str | None, stage_fraction: float,
+            stage_eta_s: float | None, stage_elapsed_s: float | None, finished: bool) -> tuple[float, float | None]:
+    """(overall progress in [0, 1], seconds left for the whole job or None when unknown).
+
+    Examples:
+        >>> costs = [("reconstruct", 10.0), ("edit", 80.0), ("export", 10.0)]
+        >>> overall(costs=costs, completed=["reconstruct"], stage="edit", stage_fraction=0.5, stage_eta_s=20.0,
+        ...         stage_elapsed_s=20.0, finished=False)  # edit ran at half the benchmark's time per unit
+        (0.5, 25.0)
+    """
+    if finished:
+        return 1.0, 0.0
+    total = sum(seconds for _, seconds in costs) or 1.0
+    done = sum(seconds for name, seconds in costs if name in completed)
+    current = dict(costs).get(stage, 0.0) if stage not in completed else 0.0
+    fraction = min(1.0, max(0.0, (done + current * stage_fraction) / total))
+    if stage is None or stage_eta_s is None:
+        return fraction, None
+    later = [seconds for name, seconds in costs if name not in completed and name != stage]
+    speed = 1.0  # this machine's seconds per benchmark second, from the current stage
+    if stage_elapsed_s and stage_fraction > 0 and current > 0:
+        speed = stage_elapsed_s / (current * stage_fraction)
+    return fraction, stage_eta_s + speed * sum(later)

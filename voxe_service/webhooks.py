@@ -1,0 +1,163 @@
+"""Webhooks: which addresses a job may call, the Standard Webhooks signature, the outbox and one delivery attempt.
+
+A job created with a ``webhook_url`` gets one :class:`~voxe_service.models.WebhookDelivery` row per
+event of a kind it asked for, written in the event's own transaction (:func:`enqueue`), so a
+crash between the two loses nothing. The API's sender thread (:mod:`api.webhooks`) claims due
+rows and calls :func:`attempt`; neither a worker nor a request ever waits on a receiver.
+
+Signatures follow Standard Webhooks (standardwebhooks.com): headers ``webhook-id`` (stable across
+retries), ``webhook-timestamp`` (Unix seconds of the attempt) and ``webhook-signature``
+``v1,<base64 HMAC-SHA256 of "id.timestamp.body">`` under the key's ``whsec_<base64>`` secret.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import hmac
+import ipaddress
+import json
+import secrets
+import socket
+import time
+from datetime import datetime, timedelta
+from urllib.parse import urlsplit
+
+import httpx
+from sqlalchemy import select, update
+from sqlalchemy.orm import Session
+
+from voxe_service.models import ApiKey, Job, WebhookDelivery, utcnow
+
+WEBHOOK_EVENTS = ("stage_started", "stage_completed", "artifact", "preview", "succeeded", "failed", "canceled")
+DEFAULT_WEBHOOK_EVENTS = ("succeeded", "failed", "canceled")
+PENDING, DELIVERED, GAVE_UP = "pending", "delivered", "failed"
+SECRET_PREFIX = "whsec_"
+
+
+class TargetRefused(ValueError):
+    """A webhook URL the service will not call; the message names the rule and the setting that relaxes it."""
+
+
+def new_secret() -> str:
+    return SECRET_PREFIX + base64.b64encode(secrets.token_bytes(24)).decode()
+
+
+def sign(secret: str, message_id: str, timestamp: int, body: bytes) -> str:
+    """The ``webhook-signature`` header value: ``v1,<base64 HMAC-SHA256("id.timestamp.body")>``.
+
+    Examples:
+        >>> sign("whsec_MfKQ9r8GKYqrTwjUPD8ILPZIo2LaLaSw", "msg_p5jXN8AQM9LWM0D4loKWxJek", 1614265330,
+        ...      b'{"test": 2432232314}')  # the Standard Webhooks reference vector
+        'v1,g0hM9SsE+OTPJTGt/tmIKtSyZlE3uFJELVlNIOLJ1OE='
+    """
+    key = base64.b64decode(secret.removeprefix(SECRET_PREFIX))
+    signed = f"{message_id}.{timestamp}.".encode() + body
+    return "v1," + base64.b64encode(hmac.new(key, signed, hashlib.sha256).digest()).decode()
+
+
+def check_target(url: str, allow_networks: list[ipaddress._BaseNetwork]) -> None:
+    """Refuse (:class:`TargetRefused`) a URL that is not http(s) or whose host resolves to a loopback, private,
+    link-local, multicast, reserved or unspecified address outside ``allow_networks``.
+
+    Checked when the job is created and again before every attempt (a name may re-resolve elsewhere).
+    """
+    parts = urlsplit(url)
+    if parts.scheme not in ("http", "https") or not parts.hostname:
+        raise TargetRefused(f"webhook_url {url!r} must be an http:// or https:// URL with a host")
+    try:
+        port = parts.port or (443 if parts.scheme == "https" else 80)
+        infos = socket.getaddrinfo(parts.hostname, port, proto=socket.IPPROTO_TCP)
+    except (OSError, ValueError) as exc:
+        raise TargetRefused(f"webhook_url host {parts.hostname!r} does not resolve: {exc}") from None
+    for info in infos:
+        address = ipaddress.ip_address(info[4][0].split("%")[0])
+        if any(address in network for network in allow_networks):
+            continue
+        # The most specific name first: link-local and unspecified addresses are "private" to Python too.
+        for rule, refused in (("loopback", address.is_loopback), ("link-local", address.is_link_local),
+                              ("unspecified", address.is_unspecified), ("multicast", address.is_multicast),
+                              ("reserved", address.is_reserved), ("private", address.is_private)):
+            if refused:
+                raise TargetRefused(
+                    f"webhook_url host {parts.hostname!r} resolves to {address}, a {rule} address: webhooks go to "
+                    "public addresses only (an operator can allow networks with VOXE_WEBHOOK_ALLOW_NETWORKS)")
+
+
+def key_secret(session: Session, key: ApiKey) -> str:
+    """The key's webhook secret, made (and committed with the caller's transaction) on first use."""
+    if key.webhook_secret is None:
+        key.webhook_secret = new_secret()
+    return key.webhook_secret
+
+
+def enqueue(session: Session, job_id: str, event) -> None:
+    """Queue a delivery of ``event`` (a flushed JobEvent) when the job has a webhook wanting its kind."""
+    hook = session.execute(select(Job.webhook_url, Job.webhook_events, Job.state, Job.stage)
+                           .where(Job.id == job_id)).first()
+    if hook is None or not hook.webhook_url or event.kind not in (hook.webhook_events or DEFAULT_WEBHOOK_EVENTS):
+        return
+    body = {
+        "type": f"job.{event.kind}",
+        "timestamp": event.at.isoformat(),
+        "data": {"job_id": job_id, "state": hook.state, "stage": hook.stage,
+                 "event": {"id": event.id, "kind": event.kind, "stage": event.stage, "iteration": event.iteration,
+                           "detail": event.detail, "at": event.at.isoformat()},
+                 "job_url": f"/v1/jobs/{job_id}"},
+    }
+    if event.kind in ("artifact", "preview"):
+        body["data"]["artifact_url"] = f"/v1/jobs/{job_id}/artifacts/{event.detail}"
+    session.add(WebhookDelivery(
+        id=f"msg_{secrets.token_hex(16)}", job_id=job_id, event_id=event.id, event_type=body["type"],
+        url=hook.webhook_url, payload=json.dumps(body, separators=(",", ":")), state=PENDING, attempts=0,
+        next_attempt_at=utcnow(), created_at=utcnow(),
+    ))
+
+
+def claim_due(session: Session, now: datetime, lease_s: float, limit: int) -> list[str]:
+    """Take up to ``limit`` due deliveries: each moves its next attempt ``lease_s`` ahead (so no other sender
+    takes it meanwhile) and counts the attempt; the ids this caller won."""
+    due = session.scalars(select(WebhookDelivery.id)
+                          .where(WebhookDelivery.state == PENDING, WebhookDelivery.next_attempt_at <= now)
+                          .order_by(WebhookDelivery.next_attempt_at).limit(limit)).all()
+    won = []
+    for delivery_id in due:
+        result = session.execute(
+            update(WebhookDelivery)
+            .where(WebhookDelivery.id == delivery_id, WebhookDelivery.state == PENDING,
+                   WebhookDelivery.next_attempt_at <= now)
+            .values(next_attempt_at=now + timedelta(seconds=lease_s), attempts=WebhookDelivery.attempts + 1)
+        )
+        if result.rowcount == 1:
+            won.append(delivery_id)
+    return won
+
+
+def backoff_s(attempts: int, base_s: float, max_s: float) -> float:
+    """Seconds before attempt ``attempts + 1``: ``base_s`` doubling per attempt, at most ``max_s``.
+
+    Examples:
+        >>> [backoff_s(n, 5, 60) for n in (1, 2, 3, 4, 5)]
+        [5.0, 10.0, 20.0, 40.0, 60.0]
+    """
+    return float(min(max_s, base_s * 2 ** (attempts - 1)))
+
+
+def attempt(delivery: WebhookDelivery, secret: str, client: httpx.Client,
+            allow_networks: list[ipaddress._BaseNetwork]) -> tuple[int | None, str | None]:
+    """POST the delivery once: (the HTTP status or None, an error message or None for a 2xx).
+
+    Raises :class:`TargetRefused` when the URL now resolves to a refused address (not worth a retry).
+    """
+    check_target(delivery.url, allow_networks)
+    body = delivery.payload.encode()
+    timestamp = int(time.time())
+    headers = {"content-type": "application/json", "webhook-id": delivery.id,
+               "webhook-timestamp": str(timestamp), "webhook-signature": sign(secret, delivery.id, timestamp, body)}
+    try:
+        response = client.post(delivery.url, content=body, headers=headers)
+    except httpx.HTTPError as exc:
+        return None, f"{type(exc).__name__}: {exc}"
+    if 200 <= response.status_code < 300:
+        return response.status_code, None
+    return response.status_code, f"the receiver answered {response.status_code}"
