@@ -7,8 +7,8 @@ import importlib
 
 import pytest
 
-MODULES = ["voxe_core.grid", "voxe_core.volrend", "voxe_core.render", "voxe_core.backbones", "voxe_core.presets",
-           "voxe_client.client"]
+MODULES = ["voxe_core.grid", "voxe_core.gridfile", "voxe_core.volrend", "voxe_core.render", "voxe_core.backbones",
+           "voxe_core.presets", "voxe_core.guidance.loading", "voxe_service.model_inventory", "voxe_client.client"]
 
 
 @pytest.mark.parametrize("name", MODULES)

@@ -144,7 +144,7 @@ def test_dense_tensors_keeps_the_stored_dtype_and_other_tensors():
     cells[1, 2, 3] = True
     tensors, meta = sparse_tensors(features, cells, margin=0)
     half = {**tensors, "values": tensors["values"].half(), "fill": tensors["fill"].half(), "bbox_min": torch.zeros(3)}
-    restored = dense_tensors(half, {**meta, "resolution": [5, 5, 5]})
+    restored = dense_tensors(half, meta)
     assert restored["features"].dtype == torch.float16 and "bbox_min" in restored
     kept = stored_vertices(cells, 0)
     assert torch.equal(restored["features"][kept], features[kept].half())

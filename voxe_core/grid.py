@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from voxe_core.cameras import Cameras
-from voxe_core.gridfile import DEFAULT_MARGIN, GRID_FORMAT_VERSION, sparse_bytes, sparse_tensors
+from voxe_core.gridfile import DEFAULT_MARGIN, GRID_FORMAT_VERSION, payload_bytes, sparse_tensors
 from voxe_core.tensorio import save_tensors
 from voxe_core.volrend import RaySamples, optical_depth, transmittance
 
@@ -378,12 +378,10 @@ class VoxelGrid(torch.nn.Module):
         tensors, meta = self.state_tensors(), {**self.header(), "layout": "dense"}
         if not dense:
             cells = (self.occupancy_above(0.0) if self.activation == "relu" else self.occupancy()).cells
-            features = tensors.pop("features")
-            if sparse_bytes(features, cells, margin) < features.numel() * features.element_size():
-                packed, layout = sparse_tensors(features, cells, margin)
-                tensors, meta = {**tensors, **packed}, {**meta, **layout}
-            else:
-                tensors["features"] = features
+            packed, layout = sparse_tensors(tensors["features"], cells, margin)
+            if payload_bytes(packed) < payload_bytes({"features": tensors["features"]}):
+                tensors = {**{k: v for k, v in tensors.items() if k != "features"}, **packed}
+                meta = {**meta, **layout}
         save_tensors(path, tensors, kind=GRID_KIND, version=GRID_FORMAT_VERSION, meta=meta)
 
     @classmethod

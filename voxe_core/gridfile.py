@@ -65,7 +65,7 @@ def stored_vertices(cells: torch.Tensor, margin: int) -> torch.Tensor:
 def sparse_tensors(features: torch.Tensor, cells: torch.Tensor, margin: int = DEFAULT_MARGIN) -> tuple[dict, dict]:
     """The sparse layout of ``features`` (X, Y, Z, C) keeping the cells ``cells`` (X-1, Y-1, Z-1) plus ``margin``.
 
-    Returns (tensors, header fields). ``fill`` is the mean of the vertices left
+    Returns (tensors, header fields: layout, margin, resolution). ``fill`` is the mean of the vertices left
     out: each of those has a density no cell above the occupancy threshold
     needs, and a mean of values below a threshold stays below it.
     """
@@ -76,14 +76,13 @@ def sparse_tensors(features: torch.Tensor, cells: torch.Tensor, margin: int = DE
     dropped = features[~mask]
     fill = dropped.mean(0) if dropped.shape[0] else features.new_zeros(features.shape[-1])
     bits = torch.from_numpy(np.packbits(mask.numpy().reshape(-1)))
-    return {"stored_bits": bits, "values": features[mask], "fill": fill}, {"layout": "sparse", "margin": int(margin)}
+    layout = {"layout": "sparse", "margin": int(margin), "resolution": list(features.shape[:3])}
+    return {"stored_bits": bits, "values": features[mask], "fill": fill}, layout
 
 
-def sparse_bytes(features: torch.Tensor, cells: torch.Tensor, margin: int = DEFAULT_MARGIN) -> int:
-    """Payload bytes of the sparse layout (mask bits + stored values + fill), without building it."""
-    n_stored = int(stored_vertices(cells.cpu(), margin).sum())
-    channels = features.shape[-1]
-    return -(-features.shape[:3].numel() // 8) + (n_stored + 1) * channels * 4
+def payload_bytes(tensors: dict[str, torch.Tensor]) -> int:
+    """Bytes the tensors take in a file (what the sparse and dense layouts are compared by)."""
+    return sum(t.numel() * t.element_size() for t in tensors.values())
 
 
 def dense_tensors(tensors: dict[str, torch.Tensor], meta: dict) -> dict[str, torch.Tensor]:
