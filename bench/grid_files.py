@@ -5,14 +5,16 @@ reconstructed with the ``fast`` preset (final stage 128³; fox on the scene
 backbone), and the spot and horse meshes voxelised at 128³. Each grid is
 written dense (``dense=True``, today's 33.5 MB) and sparse at several margins
 (the default, ``voxe_core.gridfile.DEFAULT_MARGIN``, is the row that counts),
-then loaded back ``--repeats`` times (median seconds). In the same run: whether
+then loaded back and every feature read once, ``--repeats`` times (median
+seconds; a dense file is memory-mapped, so loading alone would read nothing). In the same run: whether
 every stored vertex is bit-identical, and the largest pixel difference of
 renders of the loaded grid against the original (with and without empty-space
 skipping). For comparison, the bytes a brick layout (8³-vertex bricks holding
 any stored vertex) would take. Writes bench/results/grid_files.json and .png.
 
     nice python bench/grid_files.py              # ~10 min on 2 shared cores (two fast-preset fits)
-    nice python bench/grid_files.py --quick      # short fits (~3 min), same grid size
+    nice python bench/grid_files.py --quick      # short fits, same grid size (fox's scene fit is the long one)
+    nice python bench/grid_files.py --only mic spot horse   # rerun some; the other grids' saved rows are kept
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ HERE = Path(__file__).resolve().parent
 DATA = HERE.parent.parent / "shared" / "data"
 RESULTS = HERE / "results"
 MARGINS = (0, 1, 2, 4)
+GRIDS = ("mic", "fox", "spot", "horse")
 BRICK = 8
 
 
@@ -44,6 +47,8 @@ def scene_grids(args) -> dict:
     grids = {}
     iterations = (60, 100, 200) if args.quick else (300, 500, 1200)
     for name, folder, downsample in (("mic", "nerf_synthetic_mic", 4), ("fox", "fox", 4)):
+        if name not in args.only:
+            continue
         scene = load_scene(DATA / folder, "train", downsample=downsample)
         config = ReconstructConfig.fast(resolutions=(args.resolution // 3, args.resolution // 3 * 2, args.resolution),
                                         iterations=iterations)
@@ -52,9 +57,20 @@ def scene_grids(args) -> dict:
         grids[name] = reconstruct(scene.images, cameras, config, initial_grid=initial)
         print(f"{name}: {backbone} grid fitted in {time.perf_counter() - t0:.0f} s", flush=True)
     for name, obj, texture in (("spot", "spot/spot_triangulated.obj", "spot/spot_texture.png"), ("horse", "horse/horse.obj", None)):
+        if name not in args.only:
+            continue
         mesh = load_mesh(DATA / "meshes" / obj, None if texture is None else DATA / "meshes" / texture)
         grids[name] = voxelize(mesh, VoxelizeConfig(resolution=args.resolution))
     return grids
+
+
+def read_all(path):
+    """``load_grid`` and one read of every feature (a dense file is memory-mapped: loading alone reads nothing)."""
+    from voxe_core.backbones import load_grid
+
+    grid = load_grid(path)
+    grid.features.detach().sum()
+    return grid
 
 
 def timed(fn, repeats: int) -> tuple[float, object]:
@@ -77,14 +93,13 @@ def render_difference(a, b, skip_empty: bool) -> float:
 
 
 def measure(name: str, grid, folder: Path, repeats: int) -> list[dict]:
-    from voxe_core.backbones import load_grid
     from voxe_core.gridfile import stored_vertices
 
     cells = (grid.occupancy_above(0.0) if grid.activation == "relu" else grid.occupancy()).cells
     rows = []
     dense_path = folder / f"{name}_dense.safetensors"
     save_s, _ = timed(lambda: grid.save(dense_path, dense=True), repeats)
-    load_s, _ = timed(lambda: load_grid(dense_path), repeats)
+    load_s, _ = timed(lambda: read_all(dense_path), repeats)
     dense_bytes = dense_path.stat().st_size
     rows.append({"grid": name, "backbone": grid.kind, "layout": "dense", "margin": None, "bytes": dense_bytes,
                  "save_s": save_s, "load_s": load_s, "occupied_fraction": float(cells.float().mean()),
@@ -92,7 +107,7 @@ def measure(name: str, grid, folder: Path, repeats: int) -> list[dict]:
     for margin in MARGINS:
         path = folder / f"{name}_sparse{margin}.safetensors"
         save_s, _ = timed(lambda: grid.save(path, margin=margin), repeats)
-        load_s, loaded = timed(lambda: load_grid(path), repeats)
+        load_s, loaded = timed(lambda: read_all(path), repeats)
         kept = stored_vertices(cells, margin)
         block_any = torch.nn.functional.pad(kept, [0, -kept.shape[2] % BRICK, 0, -kept.shape[1] % BRICK,
                                                    0, -kept.shape[0] % BRICK])
@@ -136,7 +151,7 @@ def plot(rows: list[dict], default_margin: int, path: Path) -> None:
         ax.set_ylabel(label)
         ax.legend(fontsize=8)
     ax_bytes.set_title("128³ grid files: bytes (renders identical)")
-    ax_load.set_title("load time, median (2 shared cores)")
+    ax_load.set_title("load + read every feature, median (2 shared cores)")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
 
@@ -148,13 +163,16 @@ def main() -> None:
     parser.add_argument("--resolution", type=int, default=128)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--quick", action="store_true", help="short reconstructions (same grid size)")
+    parser.add_argument("--only", nargs="+", choices=GRIDS, default=list(GRIDS),
+                        help="measure these grids; the saved rows of the others are kept")
     args = parser.parse_args()
     torch.set_num_threads(os.cpu_count() or 1)
-    rows = []
+    saved = RESULTS / "grid_files.json"
+    rows = [r for r in json.loads(saved.read_text())["rows"] if r["grid"] not in args.only] if saved.exists() else []
     with tempfile.TemporaryDirectory() as folder:
         for name, grid in scene_grids(args).items():
             for row in measure(name, grid, Path(folder), args.repeats):
-                rows.append(row)
+                rows.append({**row, "quick": args.quick})
                 print(f"{row['grid']:6s} {row['layout']:6s} margin {row['margin']!s:4s} {row['bytes'] / 1e6:8.3f} MB "
                       f"({row['bytes_ratio']:.4f}x)  save {row['save_s'] * 1e3:7.1f} ms  load {row['load_s'] * 1e3:7.1f} ms "
                       f"({row['load_ratio']:.2f}x)  occupied {row['occupied_fraction']:.2%}  stored {row['stored_fraction']:.2%}  "
