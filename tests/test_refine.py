@@ -337,14 +337,14 @@ def test_cli_refine_smoke(tmp_path, tiny_model, make_sphere_grid):
     edited = initial.clone_grid()
     with torch.no_grad():
         edited.features[:, :, 6:, 1:] = torch.tensor([-3.0, -3.0, 3.0])  # a blue top half
-    initial.save(tmp_path / "initial.safetensors")
-    edited.save(tmp_path / "edited.safetensors")
+    initial.save(tmp_path / "initial.safetensors", dense=True)  # dense in and out: every vertex compared
+    edited.save(tmp_path / "edited.safetensors", dense=True)
     out = tmp_path / "out"
     def argv(model=str(tiny_model), words="party hat"):
         return ["refine", str(tmp_path / "edited.safetensors"), "--initial", str(tmp_path / "initial.safetensors"),
                 "--prompt", "a dog wearing a party hat", "--edit-words", words, "--out", str(out),
                 "--model", model, "--offline", "--device", "cpu", "--iterations", "40", "--render-size", "16",
-                "--views", "2", "--preview-views", "1", "--quiet"]
+                "--views", "2", "--preview-views", "1", "--quiet", "--dense"]
 
     assert main(argv()) == 0
     mask = load_mask(out / "mask.safetensors")

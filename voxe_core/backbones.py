@@ -21,7 +21,8 @@ from __future__ import annotations
 import torch
 
 from voxe_core.cameras import Cameras
-from voxe_core.grid import GRID_FORMAT_VERSION, GRID_KIND, VoxelGrid
+from voxe_core.grid import GRID_KIND, VoxelGrid
+from voxe_core.gridfile import GRID_FORMAT_VERSION, dense_tensors
 from voxe_core.scene_grid import SceneGrid, apply_frame, scene_frame
 from voxe_core.tensorio import FormatError, load_tensors
 
@@ -46,11 +47,15 @@ def grid_from_state(tensors: dict[str, torch.Tensor], meta: dict) -> VoxelGrid:
         cls = find_backbone(kind)
     except ValueError as exc:
         raise FormatError(f"the grid's header names {exc}") from None
+    try:
+        tensors = dense_tensors(tensors, meta)
+    except (KeyError, ValueError) as exc:
+        raise FormatError(f"damaged sparse grid: {exc}") from None
     return cls.from_state(tensors, meta)
 
 
 def load_grid(path) -> VoxelGrid:
-    """The grid saved at ``path`` by ``VoxelGrid.save``, of whichever backbone wrote it.
+    """The grid saved at ``path`` by ``VoxelGrid.save``, of whichever backbone and layout (dense or sparse) wrote it.
 
     Raises ``FormatError`` (naming the file) for a missing, unreadable or newer-format file.
     """

@@ -26,10 +26,10 @@ import torch
 import torch.nn.functional as F
 
 from voxe_core.cameras import Cameras
+from voxe_core.gridfile import DEFAULT_MARGIN, GRID_FORMAT_VERSION, payload_bytes, sparse_tensors
 from voxe_core.tensorio import save_tensors
 from voxe_core.volrend import RaySamples, optical_depth, transmittance
 
-GRID_FORMAT_VERSION = 1
 GRID_KIND = "voxel_grid"  # the tensorio kind of every saved grid, whatever its backbone
 DEFAULT_BOX = ((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5))
 Activation = Literal["relu", "softplus"]
@@ -385,8 +385,22 @@ class VoxelGrid(torch.nn.Module):
         return {"backbone": self.kind, "activation": self.activation, "density_scale": self.density_scale,
                 "resolution": list(self.resolution)}
 
-    def save(self, path) -> None:
-        save_tensors(path, self.state_tensors(), kind=GRID_KIND, version=GRID_FORMAT_VERSION, meta=self.header())
+    def save(self, path, dense: bool = False, margin: int = DEFAULT_MARGIN) -> None:
+        """Write the grid file (``voxe_core.gridfile`` documents the format): sparse unless ``dense`` or not smaller.
+
+        The sparse layout keeps the cells that can hold density (with ReLU: raw
+        density above 0 at a corner, so a loaded grid renders identically with or
+        without empty-space skipping; with softplus: ``occupancy()``'s cells)
+        plus ``margin`` cells around them.
+        """
+        tensors, meta = self.state_tensors(), {**self.header(), "layout": "dense"}
+        if not dense:
+            cells = (self.occupancy_above(0.0) if self.activation == "relu" else self.occupancy()).cells
+            packed, layout = sparse_tensors(tensors["features"], cells, margin)
+            if payload_bytes(packed) < payload_bytes({"features": tensors["features"]}):
+                tensors = {**{k: v for k, v in tensors.items() if k != "features"}, **packed}
+                meta = {**meta, **layout}
+        save_tensors(path, tensors, kind=GRID_KIND, version=GRID_FORMAT_VERSION, meta=meta)
 
     @classmethod
     def from_state(cls, tensors: dict[str, torch.Tensor], meta: dict) -> "VoxelGrid":

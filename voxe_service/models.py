@@ -288,5 +288,7 @@ class WorkerHeartbeat(Base):
     pid: Mapped[int] = mapped_column(Integer)
     queues: Mapped[str] = mapped_column(String(255))
     device: Mapped[str] = mapped_column(String(64))
+    # role -> {"model", "present"} as voxe_service.model_inventory.check_models found them at the worker's start
+    models: Mapped[dict | None] = mapped_column(JSON, nullable=True)
     started_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     last_seen: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)

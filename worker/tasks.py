@@ -34,8 +34,11 @@ from voxe_core.progress import Callbacks, Progress, StageCancelled
 from voxe_service.models import (
     CANCELED, PROCESSING, R_FAILED, R_PENDING, R_SUCCEEDED, RUNNING, Job, Scene, WorkerHeartbeat, utcnow,
 )
-from voxe_service.queue import INGEST_TASK, STAGE_TASKS, TaskResult, dispatch_job, get_queue, is_sql_broker, reset_queue
-from voxe_service.settings import TINY_MODEL, get_settings
+from voxe_service.model_inventory import ROLES, check_models, job_models, missing_message, model_present
+from voxe_service.queue import (
+    INGEST_TASK, STAGE_TASKS, TaskResult, dispatch_job, get_queue, is_sql_broker, job_stages, reset_queue,
+)
+from voxe_service.settings import TINY_MODEL, get_settings, model_label
 from voxe_service.storage import StoredObject, get_storage, job_key, reconstruction_storage_key
 from worker import runtime
 from worker.celery_app import app
@@ -65,6 +68,8 @@ def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> Task
         return {"job_id": job_id, "stage": stage, "skipped": str(skipped)}
     log.info("job %s: %s started on %s", job_id, stage, device)
     try:
+        if stage == job_stages(job.mode)[0]:
+            _check_job_models(job, settings)
         body(job, settings, device, get_storage(settings))
     except StageCancelled:
         runtime.finish_job(job_id, CANCELED, message=f"canceled during {stage}")
@@ -86,6 +91,19 @@ def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> Task
     return {"job_id": job_id, "stage": stage, "state": "done"}
 
 
+class ModelMissing(RuntimeError):
+    """A model the job needs is not on this worker (found at the start of its chain); the message says how to add it."""
+
+
+def _check_job_models(job: Job, settings) -> None:
+    """Fail before the chain's first stage runs when a model the job will load is not here (no weights read)."""
+    needed = job_models(job.mode, job.sds_model, job.attention_model, job.params or {})
+    missing = [missing_message(role, model, "this worker")
+               for role, model in needed.items() if not model_present(ROLES[role], model, settings)]
+    if missing:
+        raise ModelMissing("; ".join(missing))
+
+
 def _error_message(stage: str, exc: Exception, job: Job) -> str:
     from voxe_core.guidance.loading import ModelNotAvailableError
 
@@ -95,6 +113,8 @@ def _error_message(stage: str, exc: Exception, job: Job) -> str:
                 f"VOXE_SDS_MODEL / VOXE_ATTENTION_MODEL (a hub id in the HF_HOME cache, or a local folder); "
                 f"VOXE_SDS_MODEL={TINY_MODEL} VOXE_ATTENTION_MODEL={TINY_MODEL} runs the random-weight "
                 f"smoke-test model, which proves the plumbing only.")
+    if isinstance(exc, ModelMissing):
+        return f"{stage}: not started: {exc}"
     if isinstance(exc, (ReconstructionFailed, EvaluationFailed)):
         return str(exc)
     return f"{stage}: {type(exc).__name__}: {exc}"
@@ -397,7 +417,7 @@ def ingest_task(self, scene_id: str) -> TaskResult:
 _heartbeat_stop = threading.Event()
 
 
-def _beat(hostname: str, queues: str, device: str) -> None:
+def _beat(hostname: str, queues: str, device: str, models: dict) -> None:
     settings = get_settings()
     while not _heartbeat_stop.is_set():
         try:
@@ -406,7 +426,8 @@ def _beat(hostname: str, queues: str, device: str) -> None:
                 if row is None:
                     row = WorkerHeartbeat(hostname=hostname, pid=os.getpid(), queues=queues, device=device)
                     session.add(row)
-                row.pid, row.queues, row.device, row.last_seen = os.getpid(), queues, device, utcnow()
+                row.pid, row.queues, row.device, row.models, row.last_seen = (
+                    os.getpid(), queues, device, models, utcnow())
         except Exception:  # noqa: BLE001 - a missed heartbeat is not fatal
             log.warning("worker heartbeat failed", exc_info=True)
         _heartbeat_stop.wait(settings.worker_heartbeat_s)
@@ -450,9 +471,15 @@ def _start_heartbeat(sender=None, **_kwargs) -> None:
             recover_interrupted_jobs(hostname)
         except Exception:  # noqa: BLE001 - never keep the worker from starting
             log.exception("could not re-queue interrupted jobs")
+    models = check_models(get_settings())
     _heartbeat_stop.clear()
-    threading.Thread(target=_beat, args=(hostname, queues, device), name="voxe-heartbeat", daemon=True).start()
-    log.info("worker %s ready: queues %s, device %s, SDS model %s", hostname, queues, device, get_settings().sds_model)
+    threading.Thread(target=_beat, args=(hostname, queues, device, models), name="voxe-heartbeat", daemon=True).start()
+    log.info("worker %s ready: queues %s, device %s, models %s", hostname, queues, device,
+             ", ".join(f"{role} {model_label(m['model']) or '(default)'} ({'present' if m['present'] else 'MISSING'})"
+                       for role, m in models.items()))
+    for role, m in models.items():
+        if not m["present"]:
+            log.warning("worker %s: %s", hostname, missing_message(role, m["model"], "this worker"))
 
 
 @signals.worker_shutdown.connect

@@ -4,15 +4,13 @@ from __future__ import annotations
 
 import time
 from concurrent.futures import ThreadPoolExecutor
-from datetime import timedelta
-
 from fastapi import APIRouter
 from fastapi.responses import JSONResponse
-from sqlalchemy import select, text
+from sqlalchemy import text
 
 from api.deps import QueueDep, SettingsDep, StorageDep
 from voxe_service.db import session_scope
-from voxe_service.models import WorkerHeartbeat, utcnow
+from voxe_service.model_inventory import ROLES, live_worker_models
 from voxe_service.settings import Settings, model_label
 
 router = APIRouter(tags=["health"])
@@ -48,10 +46,28 @@ def _check_workers(celery, settings: Settings) -> dict:
         names = sorted(name for reply in replies for name in reply)
         return {"ok": bool(names), "method": "celery control ping", "workers": names}
     # The SQL broker cannot broadcast: workers record a heartbeat in the database instead.
-    fresh = utcnow() - timedelta(seconds=max(3 * settings.worker_heartbeat_s, 15))
     with session_scope() as session:
-        names = sorted(session.scalars(select(WorkerHeartbeat.hostname).where(WorkerHeartbeat.last_seen >= fresh)))
+        names = sorted(live_worker_models(session, settings))
     return {"ok": bool(names), "method": "database heartbeat", "workers": names}
+
+
+def _model_report(settings: Settings) -> dict:
+    """Per role, the model jobs will ask for (this API's settings) and the live workers that have it / lack it.
+
+    From the workers' heartbeats (each checked its models offline at its start);
+    a worker configured with another model for a role is in neither list.
+    """
+    with session_scope() as session:
+        inventories = live_worker_models(session, settings)
+    report = {}
+    for role in ROLES.values():
+        model = getattr(settings, role.setting)
+        found = {host: inv[role.name]["present"] for host, inv in inventories.items()
+                 if inv and inv.get(role.name, {}).get("model") == model}
+        report[role.name] = {"model": model_label(model), "setting": role.variable,
+                             "workers_with": sorted(h for h, ok in found.items() if ok),
+                             "workers_without": sorted(h for h, ok in found.items() if not ok)}
+    return report
 
 
 @router.get("/readyz", summary="Readiness: database, broker, storage and at least one worker",
@@ -80,10 +96,15 @@ def readyz(settings: SettingsDep, queue: QueueDep, storage: StorageDep):
     finally:
         pool.shutdown(wait=False, cancel_futures=True)
     ready = all(r.get("ok") for r in results.values())
+    try:
+        availability = _model_report(settings)
+    except Exception as exc:  # noqa: BLE001 - the database check above says why
+        availability = {"error": f"{type(exc).__name__}: {exc}"}
     body = {
         "status": "ready" if ready else "not ready",
         "checks": results,
         "models": {"sds": model_label(settings.sds_model), "attention": model_label(settings.attention_model)},
+        "model_availability": availability,
         "seconds": round(time.monotonic() - started, 3),
     }
     return JSONResponse(body, status_code=200 if ready else 503)

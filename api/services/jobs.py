@@ -25,6 +25,7 @@ from voxe_service.datasets import MESH_FORMAT
 from voxe_service import webhooks
 from voxe_service.db import get_sessionmaker
 from voxe_service.jobs import finish_jobs
+from voxe_service.model_inventory import job_models, live_worker_models, unavailable_models
 from voxe_service.models import (
     CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, READY, TERMINAL_STATES, ApiKey, Job, Reconstruction, Scene,
     WebhookDelivery, new_id, utcnow,
@@ -106,15 +107,27 @@ def check_webhook(*, settings: Settings, body: JobCreate) -> None:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc)) from None
 
 
+def refuse_without_models(*, session: Session, settings: Settings, jobs: list[Job]) -> None:
+    """409 naming each model some job loads that every worker reporting on it lacks, and how to provide it."""
+    inventories = live_worker_models(session, settings)
+    messages = sorted({message for job in jobs for message in unavailable_models(
+        job_models(job.mode, job.sds_model, job.attention_model, job.params or {}), inventories)})
+    if messages:
+        raise HTTPException(status.HTTP_409_CONFLICT, "; ".join(messages))
+
+
 def add_jobs(*, session: Session, key: ApiKey, settings: Settings, jobs: list[Job],
              idempotency: Idempotency | None = None) -> list[Job]:
     """Record ``jobs`` within the key's quota of active jobs, all or none; the ones to send now.
+
+    Jobs whose model no worker has are refused first (``refuse_without_models``).
 
     The scenes' states are read after the jobs' rows are written, under a lock on each scene's
     row, so an ingest finishing meanwhile either sees these jobs or is seen as done: jobs on a
     ready scene are returned to be sent, jobs on a processing one are left for its ingest, and a
     scene that failed meanwhile refuses them all (409).
     """
+    refuse_without_models(session=session, settings=settings, jobs=jobs)
     try:
         lock_key(session, key)
         session.add_all(jobs)

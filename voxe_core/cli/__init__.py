@@ -5,6 +5,7 @@
     voxe turntable GRID --out turntable.mp4|.gif [--frames 100] [--size 256] [--elevation 30]    (render)
     voxe export-mesh GRID --out mesh.ply|.glb [--level L] [--resolution N]                        (mesh)
     voxe mesh-to-grid MESH --out grid.safetensors [--texture PNG] [--route voxelize|render]       (mesh)
+    voxe convert-grid GRID --out grid.safetensors [--dense] [--margin N]   (sparse <-> dense)    (grids)
     voxe edit GRID --prompt TEXT --out DIR [--model ID_OR_DIR] [--iterations N] [--render-size N] ...  (edit)
     voxe build-tiny-model DIR      (random-weight SMOKE-TEST Stable Diffusion, plumbing only)     (edit)
     voxe refine EDITED_GRID --initial GRID --prompt TEXT --edit-words WORDS --out DIR ...         (refine)
@@ -16,7 +17,7 @@
 
 Options that are job parameters of the service take their defaults from ``voxe_core.presets`` and
 resolve to stage configs there, as the worker's do. Bad input (dataset, grid file, option values)
-prints one line on stderr and exits 2; Ctrl-C during a long stage cancels it cleanly and exits 130.
+prints one line on stderr and exits 2; grids are written sparse unless ``--dense``; Ctrl-C during a long stage cancels it cleanly and exits 130.
 """
 
 from __future__ import annotations
@@ -25,10 +26,10 @@ import argparse
 import sys
 from typing import Sequence
 
-from voxe_core.cli import edit, evaluate, mesh, reconstruct, refine, render, service
+from voxe_core.cli import edit, evaluate, grids, mesh, reconstruct, refine, render, service
 from voxe_core.cli.common import EXIT_INTERRUPTED, EXIT_USAGE
 
-COMMAND_GROUPS = (reconstruct, render, mesh, edit, refine, evaluate, service)
+COMMAND_GROUPS = (reconstruct, render, mesh, grids, edit, refine, evaluate, service)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -111,6 +111,19 @@ def positive_int(text: str) -> int:
     return value
 
 
+def non_negative_int(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be at least 0, got {value}")
+    return value
+
+
+def add_grid_output_arguments(parser: argparse.ArgumentParser) -> None:
+    """How a command writes its grid files: sparse (occupied cells + margin, ``voxe_core.gridfile``) or dense."""
+    parser.add_argument("--dense", action="store_true",
+                        help="write grids with every vertex (default: sparse; voxe convert-grid converts)")
+
+
 def add_view_arguments(parser: argparse.ArgumentParser, split: str) -> None:
     """Which dataset images a command reads, and how they are downsampled on load (the job parameters' defaults)."""
     parser.add_argument("--split", default=split)

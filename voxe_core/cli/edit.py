@@ -12,7 +12,7 @@ from pathlib import Path
 
 from voxe_core import constants as paper
 from voxe_core.cli.common import (
-    EXIT_INTERRUPTED, EXIT_USAGE, add_model_arguments, add_view_arguments, check_device, load_guidance, load_views,
+    EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, add_view_arguments, check_device, load_guidance, load_views,
     positive_int, run_stage,
 )
 from voxe_core.presets import EDIT_SCHEDULES, PREVIEW_EVERY, SEED, TIMESTEP_SCHEDULES, edit_config
@@ -26,6 +26,7 @@ def add_parsers(commands, common) -> None:
     ed.add_argument("--prompt", required=True, help='edit text, e.g. "a dog wearing big sunglasses"')
     ed.add_argument("--out", type=Path, required=True, metavar="DIR",
                     help="writes DIR/edited.safetensors, DIR/checkpoint.safetensors, DIR/previews/*.png")
+    add_grid_output_arguments(ed)
     add_model_arguments(ed, "--model", "diffusers-layout Stable Diffusion", paper.SDS_MODEL_ID)
     ed.add_argument("--iterations", type=int, default=None,
                     help=f"default {paper.EDIT_ITERATIONS}; {_SCENE.iterations} for a scene-backbone grid (SPEC §5)")
@@ -109,7 +110,7 @@ def cmd_edit(args) -> int:
     if edited is None:
         print(f"voxe: edit cancelled; resume with --resume {checkpoint}", file=sys.stderr)
         return EXIT_INTERRUPTED
-    edited.save(args.out / "edited.safetensors")
+    edited.save(args.out / "edited.safetensors", dense=args.dense)
     print(f"wrote {args.out / 'edited.safetensors'} and {checkpoint}")
     return 0
 

@@ -5,7 +5,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from voxe_core.cli.common import EXIT_INTERRUPTED, add_device_argument, check_device, int_list, positive_int, run_stage
+from voxe_core.cli.common import (
+    EXIT_INTERRUPTED, add_device_argument, add_grid_output_arguments, check_device, int_list, positive_int, run_stage,
+)
 from voxe_core.cli.reconstruct import recipe_params
 from voxe_core.presets import RECONSTRUCTION_PRESET, RECONSTRUCTION_PRESETS, SEED, ExportConfig, reconstruct_config
 
@@ -30,6 +32,7 @@ def add_parsers(commands, common) -> None:
     mg.add_argument("--route", choices=("voxelize", "render"), default="voxelize",
                     help="voxelize: write the mesh into the grid; render: reconstruct from rendered views")
     mg.add_argument("--out", type=Path, required=True, help="grid file to write (.safetensors)")
+    add_grid_output_arguments(mg)
     mg.add_argument("--views", type=positive_int, default=100, help="render route: upper-hemisphere views")
     mg.add_argument("--size", type=positive_int, default=200, help="render route: view size in pixels")
     mg.add_argument("--preset", choices=RECONSTRUCTION_PRESETS, default=RECONSTRUCTION_PRESET,
@@ -78,6 +81,6 @@ def cmd_mesh_to_grid(args) -> int:
             print(f"voxe: reconstruction cancelled, nothing written to {args.out}", file=sys.stderr)
             return EXIT_INTERRUPTED
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    grid.save(args.out)
+    grid.save(args.out, dense=args.dense)
     print(f"wrote {args.out}: {'x'.join(map(str, grid.resolution))} grid from {args.mesh.name} ({args.route})")
     return 0

@@ -7,8 +7,8 @@ import sys
 from pathlib import Path
 
 from voxe_core.cli.common import (
-    EXIT_INTERRUPTED, add_device_argument, add_view_arguments, check_device, int_list, load_views, one_or_list,
-    positive_int, run_stage, view_params,
+    EXIT_INTERRUPTED, add_device_argument, add_grid_output_arguments, add_view_arguments, check_device, int_list,
+    load_views, one_or_list, positive_int, run_stage, view_params,
 )
 from voxe_core.presets import RECONSTRUCTION_PRESET, RECONSTRUCTION_PRESETS, SEED, reconstruct_config, reconstruction_params
 
@@ -17,6 +17,7 @@ def add_parsers(commands, common) -> None:
     rec = commands.add_parser("reconstruct", parents=[common], help="fit a voxel grid to posed images (SPEC §1)")
     rec.add_argument("data", type=Path, metavar="DATA_DIR", help="NeRF-synthetic or instant-ngp dataset folder")
     rec.add_argument("--out", type=Path, required=True, help="grid file to write (.safetensors)")
+    add_grid_output_arguments(rec)
     add_view_arguments(rec, "train")
     add_recipe_arguments(rec)
     rec.add_argument("--checkpoint", type=Path, default=None, help="write a resumable checkpoint here")
@@ -77,7 +78,7 @@ def cmd_reconstruct(args) -> int:
         print(f"voxe: reconstruction cancelled, nothing written to {args.out}{hint}", file=sys.stderr)
         return EXIT_INTERRUPTED
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    grid.save(args.out)
+    grid.save(args.out, dense=args.dense)
     occupancy = grid.occupancy()
     res = "x".join(str(r) for r in grid.resolution)
     print(f"wrote {args.out}: {res} grid, occupied fraction {occupancy.fraction:.4f}")

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from voxe_core import constants as paper
 from voxe_core.cli.common import (
-    EXIT_INTERRUPTED, EXIT_USAGE, add_model_arguments, check_device, load_guidance, positive_int, run_stage,
+    EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, check_device, load_guidance, positive_int, run_stage,
 )
 from voxe_core.presets import SEED, refine_config
 
@@ -31,6 +31,7 @@ def add_parsers(commands, common) -> None:
                      help='comma-separated words or phrases of the prompt that name the edit, e.g. "sunglasses" or "party hat"')
     ref.add_argument("--out", type=Path, required=True, metavar="DIR",
                      help="writes refined.safetensors, mask.safetensors, probabilities.safetensors, refine.json, renders/*.png")
+    add_grid_output_arguments(ref)
     add_model_arguments(ref, "--model", "diffusers-layout Stable Diffusion for the cross-attention maps",
                         paper.ATTENTION_MODEL_ID)
     ref.add_argument("--iterations", type=int, default=paper.REFINE_ITERATIONS, help="attention-grid fitting iterations")
@@ -94,7 +95,7 @@ def cmd_refine(args) -> int:
         return EXIT_INTERRUPTED
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
-    result.refined_grid.save(out / "refined.safetensors")
+    result.refined_grid.save(out / "refined.safetensors", dense=args.dense)
     save_mask(out / "mask.safetensors", result.mask, meta={"prompt": result.info["prompt"], "edit_words": words})
     nodes = node_mask(edited, config.node_alpha)
     save_probabilities(out / "probabilities.safetensors", result.edit_probability, result.object_probability, nodes)

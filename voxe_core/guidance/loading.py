@@ -35,6 +35,33 @@ def not_available_message(model: str, cause: BaseException | None) -> str:
     return msg
 
 
+def looks_local(model: str) -> bool:
+    """Whether ``model`` names a folder (absolute, relative, or existing) rather than a hub id."""
+    return os.path.isabs(model) or model.startswith(".") or os.path.exists(model)
+
+
+def model_file_present(model: str, filename: str) -> bool:
+    """Whether ``filename`` of ``model`` (a folder, or a hub id in the Hugging Face cache) is on this machine.
+
+    Offline and cheap: it looks for one small file (``model_index.json``,
+    ``config.json``) and reads no weights, so a worker can say at its start
+    which models it has without loading them.
+
+    Examples:
+        >>> model_file_present("no-such-owner/no-such-model", "model_index.json")
+        False
+    """
+    if looks_local(model):
+        return os.path.isfile(os.path.join(model, filename))
+    from huggingface_hub import try_to_load_from_cache
+    from huggingface_hub.errors import HFValidationError
+
+    try:
+        return isinstance(try_to_load_from_cache(model, filename), str)
+    except HFValidationError:  # not a valid hub id either
+        return False
+
+
 def loading_errors() -> tuple[type[BaseException], ...]:
     """The exceptions by which the hub libraries say weights are missing (caught and turned into ours)."""
     errors: list[type[BaseException]] = [OSError]
@@ -69,8 +96,7 @@ def load_stable_diffusion(model: str, dtype, local_files_only: bool | None = Non
     if revision is not None:
         kwargs["revision"] = revision
 
-    looks_local = os.path.isabs(model) or model.startswith(".") or os.path.exists(model)
-    if looks_local and not os.path.isdir(model):
+    if looks_local(model) and not os.path.isdir(model):
         raise ModelNotAvailableError(not_available_message(model, FileNotFoundError(f"no folder {model}")))
 
     try:

@@ -1,0 +1,188 @@
+"""Sparse grid files: exact on every stored vertex, identical renders, old dense files, users' own readers."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from safetensors import safe_open
+from safetensors.numpy import load_file
+
+from voxe_core.backbones import load_grid
+from voxe_core.cli import main
+from voxe_core.export import turntable_cameras
+from voxe_core.grid import VoxelGrid
+from voxe_core.gridfile import dense_tensors, dilate, sparse_tensors, stored_vertices
+from voxe_core.render import RenderConfig, render_image
+from voxe_core.scene_grid import SceneGrid
+from voxe_core.tensorio import FormatError, load_tensors, save_tensors
+
+
+def noisy_sphere(make_sphere_grid, resolution=40, seed=0) -> VoxelGrid:
+    """A small sphere off-centre with random colours and random negative empty space (not one constant)."""
+    grid = make_sphere_grid(resolution=resolution, radius=0.5, center=(0.3, -0.2, 0.1))
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        grid.features[..., 1:] = torch.randn(*grid.resolution, 3, generator=gen)
+        empty = grid.features[..., 0] <= 0
+        grid.features[..., 0][empty] = -torch.rand(int(empty.sum()), generator=gen) * 3
+    return grid
+
+
+def renders(grid: VoxelGrid, skip_empty: bool) -> torch.Tensor:
+    cameras = turntable_cameras(3, size=24)
+    config = RenderConfig(skip_empty=skip_empty)
+    return torch.stack([render_image(grid, cameras, i, config).rgb for i in range(len(cameras))])
+
+
+def user_reader(path) -> np.ndarray:
+    """The README's reader of downloaded grids: safetensors + numpy, no voxe_core."""
+    tensors = load_file(str(path))
+    with safe_open(str(path), framework="np") as handle:
+        meta = json.loads(handle.metadata()["voxe"])["meta"]
+    if meta.get("layout", "dense") == "dense":
+        return tensors["features"]
+    x, y, z = meta["resolution"]
+    mask = np.unpackbits(tensors["stored_bits"], count=x * y * z).astype(bool).reshape(x, y, z)
+    features = np.broadcast_to(tensors["fill"], (x, y, z, 4)).copy()
+    features[mask] = tensors["values"]
+    return features
+
+
+def test_dilation_is_a_cube_of_the_margin_clipped_at_the_edges():
+    cells = torch.zeros(11, 11, 11, dtype=torch.bool)
+    cells[5, 5, 5] = cells[0, 10, 0] = True
+    grown = dilate(cells, 2)
+    assert grown[3:8, 3:8, 3:8].all() and grown[:3, 8:, :3].all() and int(grown.sum()) == 5**3 + 3**3
+    assert not grown[2, 5, 5] and not grown[5, 5, 8]
+    assert torch.equal(dilate(cells, 0), cells)
+    # Vertices: the corners of the kept cells, one more per axis.
+    assert int(stored_vertices(cells, 0).sum()) == 2 * 8
+    assert stored_vertices(cells, 0).shape == (12, 12, 12)
+
+
+def test_relu_grid_round_trips_exactly_and_renders_identically(tmp_path, make_sphere_grid):
+    grid = noisy_sphere(make_sphere_grid)
+    sparse, dense = tmp_path / "sparse.safetensors", tmp_path / "dense.safetensors"
+    grid.save(sparse)
+    grid.save(dense, dense=True)
+    assert sparse.stat().st_size < dense.stat().st_size / 3
+    loaded = load_grid(sparse)
+    kept = stored_vertices(grid.occupancy_above(0.0).cells, 2)
+    assert 0 < kept.float().mean() < 0.5
+    assert torch.equal(loaded.features[kept], grid.features[kept])  # bit for bit on occupied cells + margin
+    assert not torch.equal(loaded.features, grid.features)  # empty space holds one fill value
+    assert float(loaded.features.detach()[~kept][:, 0].max()) <= 0  # ... that keeps it empty
+    assert torch.equal(loaded.occupancy().cells, grid.occupancy().cells)
+    for skip_empty in (True, False):
+        assert torch.equal(renders(loaded, skip_empty), renders(grid, skip_empty))
+    assert torch.equal(load_grid(dense).features, grid.features)
+    assert (loaded.activation, loaded.density_scale) == (grid.activation, grid.density_scale)
+    _, meta = load_tensors(sparse, kind="voxel_grid", max_version=2)
+    assert (meta["layout"], meta["margin"]) == ("sparse", 2)
+
+
+def test_softplus_and_scene_grids_keep_their_occupancy_and_renders(tmp_path, make_sphere_grid):
+    sphere = noisy_sphere(make_sphere_grid, resolution=33)
+    softplus = VoxelGrid(33, activation="softplus", features=sphere.features.detach() * 10)
+    frame = torch.eye(4)
+    frame[:3, 3] = torch.tensor([0.1, 0.2, 0.3])
+    scene = SceneGrid(33, foreground_extent=1.2, features=sphere.features.detach(), far_ratio=50.0, frame=frame)
+    for grid in (softplus, scene):
+        path = tmp_path / f"{grid.kind}_{grid.activation}.safetensors"
+        grid.save(path, margin=1)
+        loaded = load_grid(path)
+        assert type(loaded) is type(grid)
+        assert torch.equal(loaded.occupancy().cells, grid.occupancy().cells)
+        assert torch.equal(renders(loaded, skip_empty=True), renders(grid, skip_empty=True))
+    assert torch.equal(loaded.frame, frame) and loaded.far_ratio == 50.0 and loaded.foreground_extent == 1.2
+
+
+def test_a_grid_occupied_everywhere_is_written_dense_and_an_empty_one_as_a_mask(tmp_path):
+    full, empty = tmp_path / "full.safetensors", tmp_path / "empty.safetensors"
+    VoxelGrid(10).save(full)  # init density 0.01 > 0 everywhere: sparse would be larger
+    _, meta = load_tensors(full, kind="voxel_grid", max_version=2)
+    assert meta["layout"] == "dense"
+    assert torch.equal(load_grid(full).features, VoxelGrid(10).features)
+    VoxelGrid(10, init_density=-1.0).save(empty)
+    tensors, meta = load_tensors(empty, kind="voxel_grid", max_version=2)
+    assert meta["layout"] == "sparse" and tensors["values"].shape == (0, 4)
+    assert torch.equal(load_grid(empty).features, VoxelGrid(10, init_density=-1.0).features)
+    assert load_grid(empty).occupancy().empty
+
+
+def test_version_1_dense_files_still_load(tmp_path, make_sphere_grid):
+    grid = make_sphere_grid(resolution=12)
+    old = tmp_path / "v1.safetensors"
+    header = {k: v for k, v in grid.header().items()}
+    save_tensors(old, grid.state_tensors(), kind="voxel_grid", version=1, meta=header)
+    assert torch.equal(load_grid(old).features, grid.features)
+
+
+def test_damaged_or_unknown_sparse_files_are_named(tmp_path, make_sphere_grid):
+    grid = noisy_sphere(make_sphere_grid, resolution=16)
+    tensors, layout = sparse_tensors(grid.features, grid.occupancy_above(0.0).cells, 1)
+    meta = {**grid.header(), **layout}
+    short = tmp_path / "short.safetensors"
+    save_tensors(short, {**grid.state_tensors(), **tensors, "values": tensors["values"][:-1]},
+                 kind="voxel_grid", version=2, meta=meta)
+    with pytest.raises(FormatError, match="damaged sparse grid: the mask marks"):
+        load_grid(short)
+    odd = tmp_path / "odd.safetensors"
+    save_tensors(odd, grid.state_tensors(), kind="voxel_grid", version=2, meta={**meta, "layout": "octree"})
+    with pytest.raises(FormatError, match="unknown grid layout 'octree'"):
+        load_grid(odd)
+    with pytest.raises(ValueError, match="margin must be >= 0"):
+        sparse_tensors(grid.features, grid.occupancy().cells, -1)
+
+
+def test_dense_tensors_keeps_the_stored_dtype_and_other_tensors():
+    features = torch.randn(5, 5, 5, 4)
+    cells = torch.zeros(4, 4, 4, dtype=torch.bool)
+    cells[1, 2, 3] = True
+    tensors, meta = sparse_tensors(features, cells, margin=0)
+    half = {**tensors, "values": tensors["values"].half(), "fill": tensors["fill"].half(), "bbox_min": torch.zeros(3)}
+    restored = dense_tensors(half, meta)
+    assert restored["features"].dtype == torch.float16 and "bbox_min" in restored
+    kept = stored_vertices(cells, 0)
+    assert torch.equal(restored["features"][kept], features[kept].half())
+
+
+def test_users_read_downloads_with_numpy_alone(tmp_path, make_sphere_grid):
+    grid = noisy_sphere(make_sphere_grid, resolution=20)
+    for dense in (False, True):
+        path = tmp_path / f"g{dense}.safetensors"
+        grid.save(path, dense=dense)
+        assert np.array_equal(user_reader(path), load_grid(path).features.detach().numpy())
+
+
+def test_cli_converts_between_layouts(tmp_path, make_sphere_grid, capsys):
+    grid = noisy_sphere(make_sphere_grid, resolution=20)
+    sparse, dense, back = (tmp_path / f"{n}.safetensors" for n in ("sparse", "dense", "back"))
+    grid.save(sparse)
+    assert main(["convert-grid", str(sparse), "--out", str(dense), "--dense"]) == 0
+    assert "dense" in capsys.readouterr().out
+    assert load_tensors(dense, kind="voxel_grid", max_version=2)[1]["layout"] == "dense"
+    assert main(["convert-grid", str(dense), "--out", str(back), "--margin", "1"]) == 0
+    _, meta = load_tensors(back, kind="voxel_grid", max_version=2)
+    assert (meta["layout"], meta["margin"]) == ("sparse", 1)
+    assert torch.equal(load_grid(dense).features, load_grid(sparse).features)
+    assert main(["convert-grid", str(tmp_path / "missing.safetensors"), "--out", str(back)]) == 2
+    assert "no such file" in capsys.readouterr().err
+
+
+def test_commands_write_sparse_grids_unless_asked_for_dense(tmp_path, data_root):
+    spot = data_root / "meshes" / "spot"
+    written = {}
+    for flag in ([], ["--dense"]):
+        out = tmp_path / f"spot{len(flag)}.safetensors"
+        args = ["mesh-to-grid", str(spot / "spot_triangulated.obj"), "--texture", str(spot / "spot_texture.png"),
+                "--resolution", "24", "--out", str(out), *flag]
+        assert main(args) == 0
+        written[load_tensors(out, kind="voxel_grid", max_version=2)[1]["layout"]] = out
+    assert set(written) == {"sparse", "dense"}
+    assert written["sparse"].stat().st_size < written["dense"].stat().st_size
+    sparse, dense = load_grid(written["sparse"]), load_grid(written["dense"])
+    assert torch.equal(renders(sparse, skip_empty=False), renders(dense, skip_empty=False))

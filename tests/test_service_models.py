@@ -1,0 +1,165 @@
+"""Models known before jobs start: the worker's offline check, its heartbeat, /readyz, refusal at submission
+and failure at the start of the chain (SQLite, the in-process API and the real worker code)."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+from sqlalchemy import select
+
+from test_service_api import client, dataset, make_scene, root  # noqa: F401 - the service fixtures
+from voxe_core.guidance.loading import model_file_present
+from voxe_service.model_inventory import ROLES, check_models, unavailable_models
+
+ABSENT = "nobody-here/absent-diffusion-model"
+
+
+@pytest.fixture
+def hub_cache(tmp_path, monkeypatch):
+    """An empty Hugging Face hub cache; ``cache(repo, *files)`` puts a snapshot of ``repo`` holding ``files`` in it."""
+    import huggingface_hub.constants
+
+    folder = tmp_path / "hub"
+    folder.mkdir()
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_CACHE", str(folder))
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+
+    def cache(repo: str, *files: str) -> None:
+        repo_dir = folder / f"models--{repo.replace('/', '--')}"
+        (repo_dir / "refs").mkdir(parents=True)
+        (repo_dir / "refs" / "main").write_text("0" * 40)
+        snapshot = repo_dir / "snapshots" / ("0" * 40)
+        snapshot.mkdir(parents=True)
+        for name in files:
+            (snapshot / name).write_text("{}")
+
+    return cache
+
+
+def test_presence_is_one_small_file_in_a_folder_or_the_hub_cache(tmp_path, hub_cache):
+    folder = tmp_path / "sd"
+    folder.mkdir()
+    assert not model_file_present(str(folder), "model_index.json")
+    (folder / "model_index.json").write_text("{}")
+    assert model_file_present(str(folder), "model_index.json")
+    assert not model_file_present(str(tmp_path / "missing"), "model_index.json")
+    assert not model_file_present("owner/cached-model", "model_index.json")
+    hub_cache("owner/cached-model", "model_index.json")
+    assert model_file_present("owner/cached-model", "model_index.json")
+    assert not model_file_present("owner/cached-model", "config.json")
+    assert not model_file_present("not a valid id!", "model_index.json")
+
+
+def test_the_worker_inventory_counts_tiny_models_and_finds_the_missing(root, hub_cache, monkeypatch):
+    from voxe_service.settings import Settings
+
+    hub_cache("owner/clip", "config.json")
+    settings = Settings(sds_model="tiny", attention_model=ABSENT, clip_model="owner/clip", fid_model="")
+    assert check_models(settings) == {
+        "sds": {"model": "tiny", "present": True},
+        "attention": {"model": ABSENT, "present": False},
+        "clip": {"model": "owner/clip", "present": True},
+        "fid": {"model": "", "present": False},  # no Inception file in VOXE_MODEL_DIR
+    }
+    (root / "models").mkdir(exist_ok=True)
+    (root / "models" / "inception-2015-12-05.pt").write_bytes(b"x")
+    assert check_models(settings)["fid"]["present"]
+
+
+def test_a_model_is_refused_only_when_every_worker_reporting_on_it_lacks_it():
+    has = {"sds": {"model": "a/b", "present": True}}
+    lacks = {"sds": {"model": "a/b", "present": False}}
+    other = {"sds": {"model": "c/d", "present": True}}
+    assert unavailable_models({"sds": "a/b"}, {"w1": has, "w2": lacks}) == []
+    assert unavailable_models({"sds": "a/b"}, {"w1": other, "w2": None}) == []  # nobody checked a/b
+    (message,) = unavailable_models({"sds": "a/b"}, {"w2": lacks, "w3": other})
+    for part in ("sds model 'a/b'", "(w2)", "VOXE_SDS_MODEL", "HF_HOME", "hf download a/b", "VOXE_SDS_MODEL=tiny"):
+        assert part in message, message
+    (fid,) = unavailable_models({"fid": ""}, {"w": {"fid": {"model": "", "present": False}}})
+    assert "inception-2015-12-05.pt in the workers' VOXE_MODEL_DIR" in fid and "VOXE_FID_MODEL" in fid
+
+
+def start_worker_heartbeat() -> dict:
+    """The worker's start-up hook as Celery calls it (no sender): returns its heartbeat row once written."""
+    from voxe_service.db import session_scope
+    from voxe_service.models import WorkerHeartbeat
+    from worker import tasks
+
+    tasks._start_heartbeat(sender=None)
+    try:
+        for _ in range(100):
+            with session_scope() as session:
+                row = session.scalars(select(WorkerHeartbeat)).first()
+                if row is not None:
+                    return {"hostname": row.hostname, "models": row.models}
+            time.sleep(0.05)
+        raise AssertionError("no heartbeat written")
+    finally:
+        tasks._heartbeat_stop.set()
+
+
+def test_the_heartbeat_records_the_models_and_readyz_and_submission_use_them(root, client, dataset, hub_cache,
+                                                                             monkeypatch):
+    from voxe_service.settings import get_settings
+
+    monkeypatch.setattr(get_settings(), "sds_model", ABSENT)  # the worker's and the API's setting alike
+    beat = start_worker_heartbeat()
+    assert beat["models"]["sds"] == {"model": ABSENT, "present": False}
+    assert beat["models"]["attention"] == {"model": "tiny", "present": True}
+    ready = client.get("/readyz").json()
+    assert ready["checks"]["worker"]["workers"] == [beat["hostname"]]
+    assert ready["model_availability"]["sds"] == {"model": ABSENT, "setting": "VOXE_SDS_MODEL", "workers_with": [],
+                                                  "workers_without": [beat["hostname"]]}
+    assert ready["model_availability"]["attention"]["workers_with"] == [beat["hostname"]]
+
+    scene = make_scene(client, dataset, root)
+    refused = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold"})
+    assert refused.status_code == 409
+    for part in (f"sds model '{ABSENT}'", beat["hostname"], "VOXE_SDS_MODEL", "HF_HOME", f"hf download {ABSENT}"):
+        assert part in refused.json()["detail"], refused.json()["detail"]
+    assert client.get("/v1/jobs").json()["total"] == 0  # nothing recorded
+
+    monkeypatch.setattr(get_settings(), "sds_model", "tiny")  # jobs now ask for a model the worker has
+    accepted = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold"})
+    assert accepted.status_code == 201, accepted.text
+
+
+def test_a_job_sent_before_any_worker_reported_fails_at_the_start_of_its_chain(root, client, dataset, hub_cache,
+                                                                                monkeypatch):
+    from voxe_service.db import session_scope
+    from voxe_service.models import Reconstruction
+    from voxe_service.settings import get_settings
+    from worker import tasks
+
+    monkeypatch.setattr(get_settings(), "attention_model", ABSENT)
+    scene = make_scene(client, dataset, root)
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic wearing a party hat",
+                                        "mode": "local", "edit_words": ["party hat"]})
+    assert job.status_code == 201, job.text  # no worker has said what it has: accepted, queued
+    assert tasks.reconstruct_task.apply(args=(job.json()["id"],)).get()["state"] == "failed"
+    failed = client.get(f"/v1/jobs/{job.json()['id']}").json()
+    assert failed["state"] == "failed"
+    assert failed["error"].startswith(f"reconstruct: not started: the attention model '{ABSENT}' is not on this worker")
+    assert "VOXE_ATTENTION_MODEL" in failed["error"] and "HF_HOME" in failed["error"]
+    with session_scope() as session:  # the reconstruction never ran
+        rec = session.scalars(select(Reconstruction).where(Reconstruction.scene_id == scene["id"])).one()
+        assert rec.grid_key is None and rec.iteration == 0 and rec.owner_job_id is None
+
+
+def test_migration_0006_adds_the_models_column_and_removes_it(tmp_path):
+    from alembic import command
+    from sqlalchemy import inspect, text
+
+    from service_helpers import database_at
+
+    url = f"sqlite:///{tmp_path / 'm.db'}"
+    config, engine = database_at(url, "0005_webhooks",
+                                 "INSERT INTO worker_heartbeats (hostname, pid, queues, device, started_at, last_seen) "
+                                 "VALUES ('old', 1, 'gpu', 'cpu', '2026-01-01', '2026-01-01')")
+    command.upgrade(config, "0006_worker_models")
+    with engine.connect() as conn:
+        assert conn.execute(text("SELECT models FROM worker_heartbeats")).scalar_one() is None
+    command.downgrade(config, "0005_webhooks")
+    assert "models" not in {c["name"] for c in inspect(engine).get_columns("worker_heartbeats")}
+    assert set(ROLES) == {"sds", "attention", "clip", "fid"}

@@ -1,0 +1,107 @@
+"""Grid files hold only what a scene needs: the vertices of its occupied cells, dilated by a margin.
+
+A grid is 0.7–5 % occupied, yet its dense file is 16 bytes per vertex everywhere
+(33.5 MB at 128³). The ``sparse`` layout keeps the vertices of every occupied
+cell and of the cells within ``margin`` of one, bit-packed as a mask in C order,
+and one ``fill`` value for all the others (their mean). Cells the renderer
+renders read only stored vertices, so a loaded grid has the same occupancy
+and renders identically; every stored vertex round-trips bit for bit.
+
+Format (format version 2 of ``voxel_grid`` files; version 1 files, dense, still load):
+
+* ``layout: "dense"`` — tensor ``features`` (X, Y, Z, 4) float32;
+* ``layout: "sparse"`` — ``stored_bits`` (ceil(X·Y·Z / 8),) uint8, the vertex mask as
+  ``numpy.packbits`` writes it (C order, big-endian bits); ``values`` (N, 4) float32,
+  the stored vertices in C order; ``fill`` (4,) float32, every other vertex;
+
+both with ``bbox_min``/``bbox_max`` (3,) and, in the JSON header, ``resolution``,
+``layout`` and ``margin``. Channel 0 is raw density, 1:4 raw colour.
+
+Examples:
+    >>> cells = torch.zeros(7, 7, 7, dtype=torch.bool); cells[3, 3, 3] = True
+    >>> int(stored_vertices(cells, margin=1).sum())  # the 3³ cells around it have 4³ corners
+    64
+    >>> features = torch.randn(8, 8, 8, 4)
+    >>> tensors, meta = sparse_tensors(features, cells, margin=1)
+    >>> dense = dense_tensors(tensors, meta)["features"]
+    >>> bool((dense[stored_vertices(cells, 1)] == features[stored_vertices(cells, 1)]).all())
+    True
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+GRID_FORMAT_VERSION = 2  # 1: dense only, no ``layout`` key
+LAYOUTS = ("dense", "sparse")
+DEFAULT_MARGIN = 2  # cells kept around the occupied ones (room for an edit's first steps to grow the shape)
+
+
+def dilate(cells: torch.Tensor, margin: int) -> torch.Tensor:
+    """``cells`` (X, Y, Z) bool grown by ``margin`` cells along every axis (a cube, applied axis by axis)."""
+    grown = cells.clone()
+    for axis in range(3):
+        step = grown.clone()
+        n = grown.shape[axis]
+        for shift in range(1, min(margin, n - 1) + 1):
+            step.narrow(axis, shift, n - shift).logical_or_(grown.narrow(axis, 0, n - shift))
+            step.narrow(axis, 0, n - shift).logical_or_(grown.narrow(axis, shift, n - shift))
+        grown = step
+    return grown
+
+
+def stored_vertices(cells: torch.Tensor, margin: int) -> torch.Tensor:
+    """The vertices (X+1, Y+1, Z+1) bool that are corners of a cell within ``margin`` of an occupied cell."""
+    kept = dilate(cells, margin)
+    vertices = kept.new_zeros([n + 1 for n in kept.shape])
+    for dx in (0, 1):
+        for dy in (0, 1):
+            for dz in (0, 1):
+                vertices[dx: dx + kept.shape[0], dy: dy + kept.shape[1], dz: dz + kept.shape[2]] |= kept
+    return vertices
+
+
+def sparse_tensors(features: torch.Tensor, cells: torch.Tensor, margin: int = DEFAULT_MARGIN) -> tuple[dict, dict]:
+    """The sparse layout of ``features`` (X, Y, Z, C) keeping the cells ``cells`` (X-1, Y-1, Z-1) plus ``margin``.
+
+    Returns (tensors, header fields: layout, margin, resolution). ``fill`` is the mean of the vertices left
+    out: each of those has a density no cell above the occupancy threshold
+    needs, and a mean of values below a threshold stays below it.
+    """
+    if margin < 0:
+        raise ValueError(f"margin must be >= 0 cells, got {margin}")
+    features = features.detach().cpu().float()
+    mask = stored_vertices(cells.cpu(), margin)
+    dropped = features[~mask]
+    fill = dropped.mean(0) if dropped.shape[0] else features.new_zeros(features.shape[-1])
+    bits = torch.from_numpy(np.packbits(mask.numpy().reshape(-1)))
+    layout = {"layout": "sparse", "margin": int(margin), "resolution": list(features.shape[:3])}
+    return {"stored_bits": bits, "values": features[mask], "fill": fill}, layout
+
+
+def payload_bytes(tensors: dict[str, torch.Tensor]) -> int:
+    """Bytes the tensors take in a file (what the sparse and dense layouts are compared by)."""
+    return sum(t.numel() * t.element_size() for t in tensors.values())
+
+
+def dense_tensors(tensors: dict[str, torch.Tensor], meta: dict) -> dict[str, torch.Tensor]:
+    """``tensors`` of a grid file with ``features`` (X, Y, Z, C) dense, whichever layout wrote them."""
+    layout = meta.get("layout", "dense")
+    if layout == "dense":
+        return tensors
+    if layout != "sparse":
+        raise ValueError(f"unknown grid layout {layout!r}; this voxe_core reads {' and '.join(LAYOUTS)}")
+    resolution = tuple(int(n) for n in meta["resolution"])
+    count = int(np.prod(resolution))
+    bits = tensors["stored_bits"].numpy()
+    if bits.size * 8 < count:
+        raise ValueError(f"stored_bits holds {bits.size * 8} bits for a {'x'.join(map(str, resolution))} grid")
+    # Flat indices and one index_copy_: ~4x faster than a boolean-mask assignment at 128³.
+    stored = torch.from_numpy(np.flatnonzero(np.unpackbits(bits, count=count)))
+    values, fill = tensors["values"], tensors["fill"]
+    if stored.numel() != values.shape[0]:
+        raise ValueError(f"the mask marks {stored.numel()} vertices but {values.shape[0]} values are stored")
+    features = fill.to(values.dtype).repeat(count, 1).index_copy_(0, stored, values).view(*resolution, -1)
+    rest = {k: v for k, v in tensors.items() if k not in ("stored_bits", "values", "fill")}
+    return {**rest, "features": features}

@@ -1,0 +1,131 @@
+"""Which models the workers have, known before a job needs them.
+
+A worker checks at its start, offline and without loading weights, which of
+its configured models are on its machine (:func:`check_models`), and its
+heartbeat records the answer. The API reads those records: ``/readyz``
+reports them, and a job whose model no worker has is refused at submission
+(:func:`unavailable_models`); a job sent anyway (no worker had reported yet)
+fails at the start of its chain, not after its reconstruction, with the same
+message.
+
+Examples:
+    >>> job_models("local", "tiny", "tiny", {})
+    {'sds': 'tiny', 'attention': 'tiny'}
+    >>> sorted(job_models("evaluate", "", "", {"clip_model": "tiny", "fid_model": ""}))
+    ['clip', 'fid']
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from voxe_service.models import EVALUATE
+from voxe_service.settings import TINY_MODEL, Settings, model_label
+
+INCEPTION_FILE = "inception-2015-12-05.pt"  # voxe_core.evaluate.INCEPTION_FILE, without importing torch
+
+
+@dataclass(frozen=True)
+class ModelRole:
+    """A model a stage loads: the setting that names it and the one small file that proves it is there."""
+
+    name: str
+    setting: str  # attribute of Settings
+    marker: str | None  # file inside the model folder / hub repo; None: the model is one file
+
+    @property
+    def variable(self) -> str:
+        return f"VOXE_{self.setting.upper()}"
+
+
+ROLES = {role.name: role for role in (
+    ModelRole("sds", "sds_model", "model_index.json"),
+    ModelRole("attention", "attention_model", "model_index.json"),
+    ModelRole("clip", "clip_model", "config.json"),
+    ModelRole("fid", "fid_model", None),
+)}
+
+
+def model_present(role: ModelRole, model: str, settings: Settings) -> bool:
+    """Whether this machine has ``model`` for ``role`` (the smoke-test ``tiny`` models are built on demand: yes)."""
+    if model == TINY_MODEL:
+        return True
+    if role.marker is None:  # FID: a TorchScript file, by default in the model dir
+        return Path(model or Path(settings.model_dir) / INCEPTION_FILE).is_file()
+    from voxe_core.guidance.loading import model_file_present
+
+    return model_file_present(model, role.marker)
+
+
+def check_models(settings: Settings) -> dict[str, dict]:
+    """role -> {"model": its setting, "present": bool} for every model this worker is configured with."""
+    inventory = {}
+    for role in ROLES.values():
+        model = getattr(settings, role.setting)
+        inventory[role.name] = {"model": model, "present": model_present(role, model, settings)}
+    return inventory
+
+
+def job_models(mode: str, sds_model: str, attention_model: str, params: dict) -> dict[str, str]:
+    """role -> model for what a job of ``mode`` loads: an edit's SDS (and a local edit's attention) model,
+    an evaluation's CLIP and FID models."""
+    if mode == EVALUATE:
+        return {"clip": params.get("clip_model", ""), "fid": params.get("fid_model", "")}
+    models = {"sds": sds_model}
+    if mode == "local":
+        models["attention"] = attention_model
+    return models
+
+
+def how_to_provide(role_name: str, model: str) -> str:
+    """What a user does about a missing model: the setting, the Hugging Face cache, the smoke-test model."""
+    role = ROLES[role_name]
+    if role.marker is None:
+        where = (f"put the TorchScript Inception file at {model!r}" if model else
+                 f"put {INCEPTION_FILE} in the workers' VOXE_MODEL_DIR")
+        fix = f"{where}, or set {role.variable} to its path"
+    else:
+        fix = (f"download it into the workers' Hugging Face cache (HF_HOME) with `hf download {model}` on a machine "
+               f"with internet, or set {role.variable} to a local folder holding {role.marker}")
+    return f"{fix}; {role.variable}={TINY_MODEL} runs the random-weight smoke-test model, which proves the plumbing only"
+
+
+def missing_message(role_name: str, model: str, where: str) -> str:
+    return f"the {role_name} model {model_label(model) or '(default)'!r} is not on {where}: {how_to_provide(role_name, model)}"
+
+
+def unavailable_models(needed: dict[str, str], inventories: dict[str, dict | None]) -> list[str]:
+    """Messages for the models in ``needed`` (role -> model) that every worker reporting on them lacks.
+
+    ``inventories`` is hostname -> what its heartbeat recorded (None: nothing yet).
+    A model no worker has reported on is not refused: a worker configured for it
+    may start later, and its chain then checks at its start.
+    """
+    messages = []
+    for role, model in needed.items():
+        reports = {host: inv[role]["present"] for host, inv in inventories.items()
+                   if inv and inv.get(role, {}).get("model") == model}
+        if reports and not any(reports.values()):
+            messages.append(missing_message(role, model, f"any worker ({', '.join(sorted(reports))})"))
+    return messages
+
+
+def heartbeat_cutoff(settings: Settings):
+    """Heartbeats older than this are from workers that stopped (three missed beats, at least 15 s)."""
+    from datetime import timedelta
+
+    from voxe_service.models import utcnow
+
+    return utcnow() - timedelta(seconds=max(3 * settings.worker_heartbeat_s, 15))
+
+
+def live_worker_models(session, settings: Settings) -> dict[str, dict | None]:
+    """hostname -> the models its heartbeat recorded, for every worker heard from recently."""
+    from sqlalchemy import select
+
+    from voxe_service.models import WorkerHeartbeat
+
+    rows = session.execute(select(WorkerHeartbeat.hostname, WorkerHeartbeat.models)
+                           .where(WorkerHeartbeat.last_seen >= heartbeat_cutoff(settings)))
+    return {hostname: models for hostname, models in rows}
