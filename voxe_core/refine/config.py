@@ -43,7 +43,9 @@ class RefineConfig:
     iterations: int = REFINE_ITERATIONS
     lr: float = REFINE_LR
     tv_weight: float = REFINE_TV_WEIGHT
-    init_value: float = 0.0  # see the voxe_core.refine docstring; the authors use -20
+    init_value: float = 0.0  # start of lift_start="constant"; see the voxe_core.refine docstring; the authors use -20
+    lift_start: Literal["backprojection", "constant"] = "backprojection"  # ours; "constant": the paper's fit
+    backprojection_prior: float = 0.1  # pseudo-weight of "no attention" (0) in the back-projection's average
     rays_per_step: int = REFINE_RAYS_PER_STEP
     render: RenderConfig = field(default_factory=lambda: RenderConfig(background=(0.0,)))
     # graph cut
@@ -57,6 +59,10 @@ class RefineConfig:
     attention_model: str = ATTENTION_MODEL_ID
 
     def __post_init__(self):
+        if self.lift_start not in ("backprojection", "constant"):
+            raise ValueError(f"lift_start must be 'backprojection' or 'constant', got {self.lift_start!r}")
+        if self.backprojection_prior < 0:
+            raise ValueError(f"backprojection_prior must be non-negative, got {self.backprojection_prior}")
         if self.edit_token_reduce not in ("mean", "max"):
             raise ValueError(f"edit_token_reduce must be 'mean' or 'max', got {self.edit_token_reduce!r}")
         for name in ("render_size", "views", "rays_per_step"):
