@@ -80,10 +80,25 @@ def psnr(a: torch.Tensor, b: torch.Tensor, where: torch.Tensor | None = None) ->
     return float(-10 * torch.log10(mse.clamp_min(1e-10)))
 
 
+RING_EVERY = 2  # every other of the 24 ring views (12, 30° apart): renders of G_r dominate the run otherwise
+
+
 def ring_psnrs(scene, merged) -> tuple[float, float]:
-    renders = torch.stack([render_image(merged, scene.ring, i).rgb for i in range(len(scene.ring))])
-    outside = scene.ring_coverage[..., 0] < 0.5
-    return psnr(renders, scene.ring_edited), psnr(renders, scene.ring_original, outside)
+    views = range(0, len(scene.ring), RING_EVERY)
+    renders = torch.stack([render_image(merged, scene.ring, i).rgb for i in views])
+    outside = scene.ring_coverage[::RING_EVERY, ..., 0] < 0.5
+    return psnr(renders, scene.ring_edited[::RING_EVERY]), psnr(renders, scene.ring_original[::RING_EVERY], outside)
+
+
+def hemisphere_views(scene, resolution):
+    """Opacity and depth (V, H, W) of G_e in the hemisphere views (the 2D vote needs them), cached."""
+    from localisation_scenes import CACHE
+
+    path = CACHE / scene.name / f"views_{resolution}.pt"
+    if not path.exists():
+        views = [render_image(scene.edited, scene.cameras, i) for i in range(len(scene.cameras))]
+        torch.save((torch.stack([v.opacity for v in views]), torch.stack([v.depth for v in views])), path)
+    return torch.load(path)
 
 
 def run(scene, level_name, config, lift_name, seed, nodes, views_info):
@@ -164,7 +179,7 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, nargs="+", default=[0, 100],
                         help="Adam steps after the back-projection (each value is a run)")
     parser.add_argument("--paper-level", default="moderate", help="level of the paper-fit run per scene, or 'none'")
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (more stall on a shared, loaded box)")
     parser.add_argument("--out", type=Path, default=RESULTS / "localisation.json")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -177,8 +192,7 @@ def main() -> None:
     for name in scenes:
         scene = build_scene(name, args.resolution)
         nodes = node_mask(scene.edited)
-        views = [render_image(scene.edited, scene.cameras, i) for i in range(len(scene.cameras))]
-        views_info = (torch.stack([v.opacity for v in views]), torch.stack([v.depth for v in views]))
+        views_info = hemisphere_views(scene, args.resolution)
         for k, level in enumerate(levels):
             for iterations in args.iterations:
                 config = RefineConfig(iterations=iterations, render_size=scene.cameras.width, views=len(scene.cameras))
@@ -189,7 +203,7 @@ def main() -> None:
     result = {
         "description": "3D IoU of the edit mask against the true part of Blender-rendered meshes, ring PSNR of the "
                        "merged grid, seconds per step; see bench/localisation.py for the map model.",
-        "settings": {"resolution": args.resolution, "views": 100, "render_size": 200, "ring_views": 24,
+        "settings": {"resolution": args.resolution, "views": 100, "render_size": 200, "ring_views": 24 // RING_EVERY,
                      "levels": LEVELS, "threads": torch.get_num_threads(),
                      "refine_config": {k: v for k, v in vars(RefineConfig()).items() if k != "render"}},
         "runs": runs,

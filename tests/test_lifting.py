@@ -92,7 +92,7 @@ def test_fit_from_backprojection_with_no_steps_is_the_backprojection_and_unseen_
     cams = Cameras.from_fov(c2w, 0.7, 8, 8)
     gen = torch.Generator().manual_seed(8)
     edit, obj = torch.rand(2, 8, 8, generator=gen), torch.rand(2, 8, 8, generator=gen)
-    config = RefineConfig(iterations=0)
+    config = RefineConfig(iterations=0, backprojection_stride=1)
     e, o = fit_attention_grids(grid, cams, edit, obj, config)
     origins, directions = all_camera_rays(cams)
     values, weight = backproject(grid, origins, directions, torch.stack([edit, obj], -1).reshape(-1, 2), config)
@@ -108,6 +108,15 @@ def test_fit_from_backprojection_with_no_steps_is_the_backprojection_and_unseen_
         return float((out.rgb - torch.stack([edit, obj], -1).reshape(-1, 2)).abs().mean())
 
     assert l1(torch.cat([e2, o2], -1)) < l1(values)
+
+
+def test_strided_backprojection_covers_every_pixel_once_over_stride_squared_views():
+    from voxe_core.refine.lifting import strided_pixels
+
+    picks = strided_pixels(8, 6, 6, 2).view(8, 6, 6)
+    assert int(picks.sum()) == 8 * 36 // 4
+    assert (picks[:4].sum(0) == 1).all() and (picks[4:].sum(0) == 1).all()
+    assert strided_pixels(3, 5, 5, 1).all()
 
 
 @pytest.mark.parametrize("bad", [dict(lift_start="random"), dict(backprojection_prior=-1.0)])

@@ -46,6 +46,7 @@ class RefineConfig:
     init_value: float = 0.0  # start of lift_start="constant"; see the voxe_core.refine docstring; the authors use -20
     lift_start: Literal["backprojection", "constant"] = "backprojection"  # ours; "constant": the paper's fit
     backprojection_prior: float = 0.1  # pseudo-weight of "no attention" (0) in the back-projection's average
+    backprojection_stride: int = 2  # every n-th pixel row and column per view (maps are a 16x16 lattice upsampled)
     rays_per_step: int = REFINE_RAYS_PER_STEP
     render: RenderConfig = field(default_factory=lambda: RenderConfig(background=(0.0,)))
     # graph cut
@@ -65,7 +66,7 @@ class RefineConfig:
             raise ValueError(f"backprojection_prior must be non-negative, got {self.backprojection_prior}")
         if self.edit_token_reduce not in ("mean", "max"):
             raise ValueError(f"edit_token_reduce must be 'mean' or 'max', got {self.edit_token_reduce!r}")
-        for name in ("render_size", "views", "rays_per_step"):
+        for name in ("render_size", "views", "rays_per_step", "backprojection_stride"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
         if self.iterations < 0 or self.edit_seeds < 0 or self.object_seeds < 0:

@@ -101,6 +101,20 @@ def backproject(
     return values.reshape(*grid.resolution, -1), weight.reshape(grid.resolution)
 
 
+def strided_pixels(n_views: int, height: int, width: int, stride: int, device=None) -> torch.Tensor:
+    """(N*H*W,) bool, view-major: every ``stride``-th row and column, the lattice shifted from view to view.
+
+    Examples:
+        >>> strided_pixels(2, 2, 2, 2).view(2, 2, 2).int().tolist()
+        [[[1, 0], [0, 0]], [[0, 1], [0, 0]]]
+    """
+    view = torch.arange(n_views, device=device)[:, None, None]
+    rows = torch.arange(height, device=device)[None, :, None]
+    cols = torch.arange(width, device=device)[None, None, :]
+    pick = ((rows - view // stride) % stride == 0) & ((cols - view) % stride == 0)
+    return pick.reshape(-1)
+
+
 def fit_attention_grids(
     grid: VoxelGrid,
     cameras: Cameras,
@@ -111,7 +125,8 @@ def fit_attention_grids(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Lift 2D maps to two scalar grids ``(X, Y, Z, 1)`` over ``grid``'s frozen density.
 
-    Start: the weighted back-projection of the maps (:func:`backproject`),
+    Start: the weighted back-projection of the maps (:func:`backproject`) over
+    every ``backprojection_stride``-th pixel row and column (:func:`strided_pixels`),
     or ``config.init_value`` everywhere with ``lift_start="constant"`` (the
     paper's fit). Then both fields are fitted together (one render of a 2-channel field per step)
     on ``rays_per_step`` random pixels of all views, rendered raw over a black
@@ -136,10 +151,12 @@ def fit_attention_grids(
     origins, directions = all_camera_rays(cameras.to(device))
     targets = torch.stack([edit_maps, object_maps], -1).reshape(-1, 2).to(device=device, dtype=torch.float32)
     near, far = ray_box_intersection(origins, directions, occupancy.bbox_min.to(device), occupancy.bbox_max.to(device))
-    keep = (far > near).nonzero().squeeze(-1)
+    hits = far > near
+    keep = hits.nonzero().squeeze(-1)
+    strided = (hits & strided_pixels(n_views, height, width, config.backprojection_stride, device)).nonzero().squeeze(-1)
+    start, seen = backproject(frozen, origins[strided], directions[strided], targets[strided], config, occupancy)
     origins, directions, targets = origins[keep], directions[keep], targets[keep]
 
-    start, seen = backproject(frozen, origins, directions, targets, config, occupancy)
     if config.lift_start == "constant":
         start = torch.full_like(start, float(config.init_value))
     rows = (seen.reshape(-1) > 0).nonzero().squeeze(-1)  # vertices some pixel sees: the only ones L1 moves
