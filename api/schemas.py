@@ -85,7 +85,7 @@ class RefineParams(Strict):
     rays_per_step: int = Field(paper.REFINE_RAYS_PER_STEP, ge=1, le=1 << 20)
     edit_seeds: int = Field(paper.EDIT_SEEDS, ge=0, le=10_000_000,
                             description="top voxels by P_edit tied to the 'edit' terminal")
-    object_seeds: int = Field(paper.OBJECT_SEEDS, ge=0, le=10_000_000,
+    object_seeds: int = Field(paper.SERVICE_OBJECT_SEEDS, ge=0, le=10_000_000,
                               description="top voxels by P_object tied to the 'object' terminal")
     sigma: float = Field(paper.CUT_SIGMA, gt=0, le=1e6, description="colour scale of the pairwise weights")
     smoothness: float = Field(paper.CUT_SMOOTHNESS, ge=0, le=1e6, description="graph-cut smoothness weight λ")

@@ -26,6 +26,7 @@ the part, so a mask that takes too much loses preserved PSNR, one that takes too
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -35,6 +36,7 @@ import torch.nn.functional as F
 
 from localisation_scenes import SCENES, build_scene
 from segmentation import iou, vote_2d
+from voxe_core.constants import OBJECT_SEEDS
 from voxe_core.refine.config import RefineConfig
 from voxe_core.refine.cut import graph_cut_detailed, node_mask, probabilities
 from voxe_core.refine.lifting import fit_attention_grids
@@ -115,17 +117,19 @@ def run(scene, level_name, config, lift_name, seed, nodes, views_info):
     cut_s = stats.build_s + stats.solve_s
     p_e, _ = probabilities(e, o)
     t0 = time.perf_counter()
-    voted, _ = vote_2d(scene.edited, nodes, scene.cameras, edit_maps, object_maps, *views_info)
+    voted, _ = vote_2d(scene.edited, nodes, scene.cameras, edit_maps, object_maps, *views_info) if views_info else (mask, 0)
     vote_s = time.perf_counter() - t0
     rows = []
-    for method, pred, secs in (("graph_cut", mask, cut_s), ("threshold", (p_e > 0.5) & nodes, 0.0),
-                               ("vote_2d", voted, vote_s)):
-        if method != "graph_cut" and lift_name != "backprojection":
+    paper_seeds, paper_stats = graph_cut_detailed(scene.edited, e, o, dataclasses.replace(config, object_seeds=OBJECT_SEEDS))
+    methods = [("graph_cut", mask, cut_s), ("graph_cut_200_object_seeds", paper_seeds, paper_stats.build_s + paper_stats.solve_s),
+               ("threshold", (p_e > 0.5) & nodes, 0.0), ("vote_2d", voted, vote_s)]
+    for method, pred, secs in methods:
+        if method != "graph_cut" and (lift_name != "backprojection" or config.iterations):
             continue
         t1 = time.perf_counter()
         merged_psnr, preserved_psnr = ring_psnrs(scene, merge(scene.initial, scene.edited, pred))
         rows.append({
-            "scene": scene.name, "noise": level_name, "method": method, "lift": lift_name,
+            "scene": scene.name, "resolution": scene.truth.shape[0], "noise": level_name, "method": method, "lift": lift_name,
             "iterations": config.iterations, "iou": round(iou(pred, scene.truth, nodes), 4),
             "predicted_voxels": int((pred & nodes).sum()), "true_voxels": int((scene.truth & nodes).sum()),
             "maps_seconds": round(maps_s, 3), "lift_seconds": round(lift_s, 2) if method != "vote_2d" else 0.0,
@@ -149,7 +153,8 @@ def plot(runs, path):
     levels = list(LEVELS)
     for k, scene in enumerate(sorted({r["scene"] for r in runs})):
         for method, colour in (("graph_cut", "C0"), ("threshold", "C1"), ("vote_2d", "C2")):
-            sel = [r for r in runs if r["scene"] == scene and r["method"] == method and r["lift"] == "backprojection"]
+            sel = [r for r in runs if r["scene"] == scene and r["method"] == method and r["lift"] == "backprojection"
+               and r["iterations"] == 0 and r["resolution"] == runs[0]["resolution"]]
             pts = sorted((levels.index(r["noise"]), r["iou"]) for r in sel)
             if pts:
                 axes[0].plot(*zip(*pts), ["-", "--"][k % 2], marker="o", color=colour, label=f"{method} ({scene})")
@@ -179,6 +184,9 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, nargs="+", default=[0, 100],
                         help="Adam steps after the back-projection (each value is a run)")
     parser.add_argument("--paper-level", default="moderate", help="level of the paper-fit run per scene, or 'none'")
+    parser.add_argument("--paper-scenes", nargs="*", default=["spot_hat"], help="scenes of the paper-fit run")
+    parser.add_argument("--timing-resolution", type=int, default=160,
+                        help="one more back-projection run (spot_hat, moderate, no 2D vote) at this resolution; 0: none")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (more stall on a shared, loaded box)")
     parser.add_argument("--out", type=Path, default=RESULTS / "localisation.json")
     args = parser.parse_args()
@@ -194,12 +202,17 @@ def main() -> None:
         nodes = node_mask(scene.edited)
         views_info = hemisphere_views(scene, args.resolution)
         for k, level in enumerate(levels):
-            for iterations in args.iterations:
+            for iterations in (args.iterations if level == args.paper_level else args.iterations[:1]):
                 config = RefineConfig(iterations=iterations, render_size=scene.cameras.width, views=len(scene.cameras))
                 runs += run(scene, level, config, "backprojection", 100 + k, nodes, views_info)
-            if level == args.paper_level:
+            if level == args.paper_level and name in args.paper_scenes:
                 config = RefineConfig(lift_start="constant", render_size=scene.cameras.width, views=len(scene.cameras))
                 runs += run(scene, level, config, "paper_fit", 100 + k, nodes, views_info)
+    if args.timing_resolution and not args.quick:
+        scene = build_scene("spot_hat", args.timing_resolution)
+        config = RefineConfig(iterations=0, render_size=scene.cameras.width, views=len(scene.cameras))
+        runs += [r for r in run(scene, "moderate", config, "backprojection", 101, node_mask(scene.edited), None)
+                 if r["method"].startswith("graph_cut")]
     result = {
         "description": "3D IoU of the edit mask against the true part of Blender-rendered meshes, ring PSNR of the "
                        "merged grid, seconds per step; see bench/localisation.py for the map model.",

@@ -204,7 +204,7 @@ def refine_config(params: dict, attention_model: str) -> "RefineConfig":
         views=_given(refine, "views", paper.REFINE_VIEWS),
         rays_per_step=_given(refine, "rays_per_step", paper.REFINE_RAYS_PER_STEP),
         edit_seeds=_given(refine, "edit_seeds", paper.EDIT_SEEDS),
-        object_seeds=_given(refine, "object_seeds", paper.OBJECT_SEEDS),
+        object_seeds=_given(refine, "object_seeds", paper.SERVICE_OBJECT_SEEDS),
         sigma=_given(refine, "sigma", paper.CUT_SIGMA),
         smoothness=_given(refine, "smoothness", paper.CUT_SMOOTHNESS),
         seed=_given(params, "seed", SEED),

@@ -12,12 +12,12 @@ from voxe_core.constants import (
     DEFAULT_ATTENTION_TIMESTEP,
     EDIT_SEEDS,
     NERF_SYNTHETIC_FOV_X,
-    OBJECT_SEEDS,
     REFINE_ITERATIONS,
     REFINE_LR,
     REFINE_RAYS_PER_STEP,
     REFINE_TV_WEIGHT,
     REFINE_VIEWS,
+    SERVICE_OBJECT_SEEDS,
     RENDER_SIZE,
 )
 from voxe_core.render import RenderConfig
@@ -34,7 +34,7 @@ class RefineConfig:
     # 2D cross-attention maps
     timestep: int = DEFAULT_ATTENTION_TIMESTEP  # t = 200 of 1000
     resolution_filter: int | None = 16  # keep only the 16x16-query cross-attention layers
-    smoothing_sigma: float = 1.0  # Gaussian std in pixels of the attention map (16x16); 0 = none
+    smoothing_sigma: float = 0.5  # Gaussian std in pixels of the 16x16 map; 0 = none (ours 1.0 before issue 18; the authors' code 0.5)
     edit_token_reduce: Literal["mean", "max"] = "mean"  # how the edit words' sub-tokens combine
     render_size: int = RENDER_SIZE  # pixels of the renders (paper: 800 px / 3)
     views: int = REFINE_VIEWS  # random upper-hemisphere poses (ours; the authors use the training views)
@@ -51,7 +51,11 @@ class RefineConfig:
     render: RenderConfig = field(default_factory=lambda: RenderConfig(background=(0.0,)))
     # graph cut
     edit_seeds: int = EDIT_SEEDS
-    object_seeds: int = OBJECT_SEEDS
+    object_seeds: int = SERVICE_OBJECT_SEEDS  # the authors' code's count; the paper's text: OBJECT_SEEDS (200)
+    # "top": the edit_seeds highest P_e among P_e > 1/2 (the paper's text); "relative": every node with
+    # P_e >= edit_seed_ratio * max P_e, at least the top edit_seeds by P_e (the authors' code, build_graph)
+    edit_seed_rule: Literal["top", "relative"] = "top"
+    edit_seed_ratio: float = 0.992
     sigma: float = CUT_SIGMA  # colour scale of the pairwise weights
     smoothness: float = CUT_SMOOTHNESS  # lambda
     node_alpha: float = 0.01  # a vertex is a node when one voxel of its density is this opaque
@@ -64,6 +68,10 @@ class RefineConfig:
             raise ValueError(f"lift_start must be 'backprojection' or 'constant', got {self.lift_start!r}")
         if self.backprojection_prior < 0:
             raise ValueError(f"backprojection_prior must be non-negative, got {self.backprojection_prior}")
+        if self.edit_seed_rule not in ("top", "relative"):
+            raise ValueError(f"edit_seed_rule must be 'top' or 'relative', got {self.edit_seed_rule!r}")
+        if not 0.0 < self.edit_seed_ratio <= 1.0:
+            raise ValueError(f"edit_seed_ratio must lie in (0, 1], got {self.edit_seed_ratio}")
         if self.edit_token_reduce not in ("mean", "max"):
             raise ValueError(f"edit_token_reduce must be 'mean' or 'max', got {self.edit_token_reduce!r}")
         for name in ("render_size", "views", "rays_per_step", "backprojection_stride"):
