@@ -197,7 +197,9 @@ def refine_config(params: dict, attention_model: str) -> "RefineConfig":
 
     refine = params.get("refine") or {}
     return RefineConfig(
-        iterations=_given(refine, "iterations", paper.REFINE_ITERATIONS),
+        iterations=_given(refine, "iterations", paper.SERVICE_REFINE_ITERATIONS),
+        lift_start=_given(refine, "lift_start", "backprojection"),
+        smoothing_sigma=_given(refine, "smoothing_sigma", paper.SERVICE_SMOOTHING_SIGMA),
         lr=_given(refine, "lr", paper.REFINE_LR),
         tv_weight=_given(refine, "tv_weight", paper.REFINE_TV_WEIGHT),
         render_size=refine.get("render_size") or _given(params, "render_size", paper.RENDER_SIZE),

@@ -12,12 +12,13 @@ from voxe_core.constants import (
     DEFAULT_ATTENTION_TIMESTEP,
     EDIT_SEEDS,
     NERF_SYNTHETIC_FOV_X,
-    REFINE_ITERATIONS,
     REFINE_LR,
     REFINE_RAYS_PER_STEP,
     REFINE_TV_WEIGHT,
     REFINE_VIEWS,
     SERVICE_OBJECT_SEEDS,
+    SERVICE_REFINE_ITERATIONS,
+    SERVICE_SMOOTHING_SIGMA,
     RENDER_SIZE,
 )
 from voxe_core.render import RenderConfig
@@ -34,13 +35,13 @@ class RefineConfig:
     # 2D cross-attention maps
     timestep: int = DEFAULT_ATTENTION_TIMESTEP  # t = 200 of 1000
     resolution_filter: int | None = 16  # keep only the 16x16-query cross-attention layers
-    smoothing_sigma: float = 0.5  # Gaussian std in pixels of the 16x16 map; 0 = none (ours 1.0 before issue 18; the authors' code 0.5)
+    smoothing_sigma: float = SERVICE_SMOOTHING_SIGMA  # std in pixels of the 16x16 map; 0 = none (ours before issue 18: 1.0)
     edit_token_reduce: Literal["mean", "max"] = "mean"  # how the edit words' sub-tokens combine
     render_size: int = RENDER_SIZE  # pixels of the renders (paper: 800 px / 3)
     views: int = REFINE_VIEWS  # random upper-hemisphere poses (ours; the authors use the training views)
     fov_x: float = NERF_SYNTHETIC_FOV_X
     # 3D attention grids
-    iterations: int = REFINE_ITERATIONS
+    iterations: int = SERVICE_REFINE_ITERATIONS  # after the back-projection start; the paper: REFINE_ITERATIONS (1500)
     lr: float = REFINE_LR
     tv_weight: float = REFINE_TV_WEIGHT
     init_value: float = 0.0  # start of lift_start="constant"; see the voxe_core.refine docstring; the authors use -20
