@@ -12,12 +12,7 @@ from voxe_core.refine.lifting import all_camera_rays, backproject, fit_attention
 from voxe_core.render import render_rays
 
 
-@pytest.fixture(autouse=True)
-def _single_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("single_thread")  # tiny tensors: threads cost more than they save
 
 
 def cloud_grid(res=10, seed=0) -> VoxelGrid:
