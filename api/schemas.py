@@ -78,7 +78,12 @@ class ReconstructionParams(Strict):
 class RefineParams(Strict):
     """Spatial refinement of local edits (SPEC §3)."""
 
-    iterations: int = Field(paper.REFINE_ITERATIONS, ge=0, le=100_000, description="fitting iterations of the 3D attention grids")
+    iterations: int = Field(paper.SERVICE_REFINE_ITERATIONS, ge=0, le=100_000,
+                            description="fitting steps of the 3D attention grids after their back-projection start (the paper: 1500)")
+    lift_start: Literal["backprojection", "constant"] = Field(
+        "backprojection", description="start of the attention grids: the maps' weighted back-projection, or 0 (the paper's)")
+    smoothing_sigma: float = Field(paper.SERVICE_SMOOTHING_SIGMA, ge=0, le=16,
+                                   description="Gaussian std in attention cells of the 2D maps' smoothing")
     lr: float = Field(paper.REFINE_LR, gt=0, le=10)
     tv_weight: float = Field(paper.REFINE_TV_WEIGHT, ge=0, le=1e6)
     render_size: int | None = Field(None, ge=8, le=1024, description="attention render size (default: the edit's)")
@@ -87,7 +92,7 @@ class RefineParams(Strict):
     rays_per_step: int = Field(paper.REFINE_RAYS_PER_STEP, ge=1, le=1 << 20)
     edit_seeds: int = Field(paper.EDIT_SEEDS, ge=0, le=10_000_000,
                             description="top voxels by P_edit tied to the 'edit' terminal")
-    object_seeds: int = Field(paper.OBJECT_SEEDS, ge=0, le=10_000_000,
+    object_seeds: int = Field(paper.SERVICE_OBJECT_SEEDS, ge=0, le=10_000_000,
                               description="top voxels by P_object tied to the 'object' terminal")
     sigma: float = Field(paper.CUT_SIGMA, gt=0, le=1e6, description="colour scale of the pairwise weights")
     smoothness: float = Field(paper.CUT_SMOOTHNESS, ge=0, le=1e6, description="graph-cut smoothness weight λ")

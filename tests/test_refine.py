@@ -360,3 +360,23 @@ def test_cli_refine_smoke(tmp_path, tiny_model, make_sphere_grid):
     assert main(argv(model=str(tmp_path / "no_such_model"))) == 2  # ModelNotAvailableError -> exit 2
     assert main(argv(words=" , ")) == 2
     assert main(argv(words="zebra")) == 2  # not in the prompt
+
+
+def test_relative_edit_seeds_take_every_node_near_the_largest_edit_probability():
+    # the authors' rule: every node with P_e >= 0.992 max P_e (here 40 nodes), at least edit_seeds by P_e,
+    # never a node the object claims more
+    grid = box_grid(10, [((2, 2, 2), (8, 8, 8), (0.5, 0.5, 0.5))])
+    nodes = node_mask(grid)
+    e = torch.zeros(grid.resolution)
+    idx = nodes.nonzero()
+    e[tuple(idx[:40].T)] = 8.0  # P_e ~ 0.99966, all within 0.992 of the max
+    e[tuple(idx[40:45].T)] = 3.0  # P_e ~ 0.95: below the ratio
+    o = torch.zeros_like(e)
+    _, stats = graph_cut_detailed(grid, e, o, RefineConfig(edit_seed_rule="relative", edit_seeds=10, object_seeds=0))
+    assert stats.edit_seeds == 40
+    _, stats = graph_cut_detailed(grid, e, o, RefineConfig(edit_seed_rule="relative", edit_seeds=43, object_seeds=0))
+    assert stats.edit_seeds == 43  # the top-k floor, all of them still more likely edit than object
+    _, stats = graph_cut_detailed(grid, e, o, RefineConfig(edit_seed_rule="relative", edit_seeds=60, object_seeds=0))
+    assert stats.edit_seeds == 45  # nodes at P_e = 1/2 are never edit seeds
+    with pytest.raises(ValueError, match="edit_seed_rule"):
+        RefineConfig(edit_seed_rule="max")

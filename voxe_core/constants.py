@@ -49,6 +49,14 @@ DEFAULT_ATTENTION_TIMESTEP = 200
 REFINE_ITERATIONS = 1500
 """Fitting iterations of the 3D attention grids."""
 
+SERVICE_SMOOTHING_SIGMA = 0.5
+"""Gaussian std, in attention cells, of the 2D maps' smoothing: the authors' code's 0.5 (the paper names none);
+1.0 before issue 18 lost the clean-map IoU on bench/localisation.py (0.82 against 0.99)."""
+
+SERVICE_REFINE_ITERATIONS = 0
+"""The service's fitting steps instead: the back-projection start alone cuts as well as the 1,500-step fit
+(bench/localisation.py), and further steps did not buy IoU there."""
+
 REFINE_LR = 0.035
 """Adam's learning rate on the attention grids."""
 
@@ -66,6 +74,9 @@ EDIT_SEEDS = 300
 
 OBJECT_SEEDS = 200
 """Voxels of highest P_object tied to the object terminal."""
+
+SERVICE_OBJECT_SEEDS = 5000
+"""The service's object seeds instead (the authors' code's count): measured better on bench/localisation.py."""
 
 CUT_SIGMA = 0.1
 """Colour scale of the graph cut's pairwise weights."""

@@ -213,11 +213,21 @@ class VoxelGrid(torch.nn.Module):
         the vertices touched, so a step costs what the batch saw, not the grid.
         """
         feats = self.features if features is None else features
+        flat_index, weights = self.trilinear_corners(points, feats.dtype)
+        table = self.flat_features if features is None else feats.reshape(-1, feats.shape[-1])
+        values = F.embedding(flat_index, table, sparse=sparse_grad and features is None)
+        return torch.einsum("nk,nkc->nc", weights, values)
+
+    def trilinear_corners(self, points: torch.Tensor, dtype: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
+        """(flat vertex index (N, 8), trilinear weight (N, 8)) of world points (N, 3), clamped into the box.
+
+        What :meth:`interpolate` gathers with, and what a back-projection scatters with.
+        """
         res = torch.tensor(self.resolution, device=points.device)
         u = (points - self.bbox_min) / (self.bbox_max - self.bbox_min) * (res - 1).to(points.dtype)
         u = torch.minimum(u.clamp_min(0), (res - 1).to(points.dtype))
         base = torch.minimum(u.floor().long(), res - 2)
-        frac = (u - base.to(u.dtype)).to(feats.dtype)
+        frac = (u - base.to(u.dtype)).to(dtype)
         strides = torch.tensor([res[1] * res[2], res[2], 1], device=points.device)
         corner_offsets = (_CORNERS.to(points.device) * strides).sum(-1)  # (8,)
         flat_index = (base * strides).sum(-1, keepdim=True) + corner_offsets  # (N, 8)
@@ -225,10 +235,7 @@ class VoxelGrid(torch.nn.Module):
         wx = torch.stack([1 - fx, fx], -1)
         wy = torch.stack([1 - fy, fy], -1)
         wz = torch.stack([1 - fz, fz], -1)
-        weights = (wx[:, :, None, None] * wy[:, None, :, None] * wz[:, None, None, :]).reshape(-1, 8)
-        table = self.flat_features if features is None else feats.reshape(-1, feats.shape[-1])
-        values = F.embedding(flat_index, table, sparse=sparse_grad and features is None)
-        return torch.einsum("nk,nkc->nc", weights, values)
+        return flat_index, (wx[:, :, None, None] * wy[:, None, :, None] * wz[:, None, None, :]).reshape(-1, 8)
 
     def cell_index(self, points: torch.Tensor) -> torch.Tensor:
         """Integer (…, 3) index of the cell holding each world point, clamped into the grid."""

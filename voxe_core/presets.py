@@ -197,14 +197,16 @@ def refine_config(params: dict, attention_model: str) -> "RefineConfig":
 
     refine = params.get("refine") or {}
     return RefineConfig(
-        iterations=_given(refine, "iterations", paper.REFINE_ITERATIONS),
+        iterations=_given(refine, "iterations", paper.SERVICE_REFINE_ITERATIONS),
+        lift_start=_given(refine, "lift_start", "backprojection"),
+        smoothing_sigma=_given(refine, "smoothing_sigma", paper.SERVICE_SMOOTHING_SIGMA),
         lr=_given(refine, "lr", paper.REFINE_LR),
         tv_weight=_given(refine, "tv_weight", paper.REFINE_TV_WEIGHT),
         render_size=refine.get("render_size") or _given(params, "render_size", paper.RENDER_SIZE),
         views=_given(refine, "views", paper.REFINE_VIEWS),
         rays_per_step=_given(refine, "rays_per_step", paper.REFINE_RAYS_PER_STEP),
         edit_seeds=_given(refine, "edit_seeds", paper.EDIT_SEEDS),
-        object_seeds=_given(refine, "object_seeds", paper.OBJECT_SEEDS),
+        object_seeds=_given(refine, "object_seeds", paper.SERVICE_OBJECT_SEEDS),
         sigma=_given(refine, "sigma", paper.CUT_SIGMA),
         smoothness=_given(refine, "smoothness", paper.CUT_SMOOTHNESS),
         seed=_given(params, "seed", SEED),

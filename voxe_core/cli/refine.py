@@ -34,14 +34,20 @@ def add_parsers(commands, common) -> None:
     add_grid_output_arguments(ref)
     add_model_arguments(ref, "--model", "diffusers-layout Stable Diffusion for the cross-attention maps",
                         paper.ATTENTION_MODEL_ID)
-    ref.add_argument("--iterations", type=int, default=paper.REFINE_ITERATIONS, help="attention-grid fitting iterations")
+    ref.add_argument("--iterations", type=int, default=paper.SERVICE_REFINE_ITERATIONS,
+                     help=f"attention-grid fitting steps after the back-projection start (the paper: {paper.REFINE_ITERATIONS})")
+    ref.add_argument("--lift-start", choices=("backprojection", "constant"), default="backprojection",
+                     help="start of the attention grids: the maps' weighted back-projection, or 0 everywhere (the paper's fit)")
+    ref.add_argument("--smoothing-sigma", type=float, default=paper.SERVICE_SMOOTHING_SIGMA,
+                     help="Gaussian std (attention cells) of the 2D maps' smoothing (ours before issue 18: 1.0)")
     ref.add_argument("--lr", type=float, default=paper.REFINE_LR, help="Adam's learning rate on the attention grids")
     ref.add_argument("--tv-weight", type=float, default=paper.REFINE_TV_WEIGHT, help="total variation weight of the attention grids")
     ref.add_argument("--render-size", type=positive_int, default=paper.RENDER_SIZE, help="render / attention-map size in pixels")
     ref.add_argument("--views", type=positive_int, default=paper.REFINE_VIEWS, help="random upper-hemisphere views for the 2D maps")
     ref.add_argument("--rays", type=positive_int, default=paper.REFINE_RAYS_PER_STEP, help="rays per attention-grid step")
     ref.add_argument("--edit-seeds", type=int, default=paper.EDIT_SEEDS, help="top voxels by P_edit tied to the 'edit' terminal")
-    ref.add_argument("--object-seeds", type=int, default=paper.OBJECT_SEEDS, help="top voxels by P_object tied to the 'object' terminal")
+    ref.add_argument("--object-seeds", type=int, default=paper.SERVICE_OBJECT_SEEDS,
+                     help=f"top voxels by P_object tied to the 'object' terminal (the paper's text: {paper.OBJECT_SEEDS})")
     ref.add_argument("--sigma", type=float, default=paper.CUT_SIGMA, help="colour scale of the graph cut's pairwise weights")
     ref.add_argument("--smoothness", type=float, default=paper.CUT_SMOOTHNESS, help="graph-cut smoothness weight λ")
     ref.add_argument("--preview-views", type=int, default=4, help="ring views rendered as PNGs (0: none)")
@@ -52,7 +58,8 @@ def add_parsers(commands, common) -> None:
 def job_params(args: argparse.Namespace) -> dict:
     """What ``voxe refine``'s options say, as the service's job parameters."""
     return {"seed": args.seed, "refine": {
-        "iterations": args.iterations, "lr": args.lr, "tv_weight": args.tv_weight, "render_size": args.render_size,
+        "iterations": args.iterations, "lift_start": args.lift_start, "smoothing_sigma": args.smoothing_sigma,
+        "lr": args.lr, "tv_weight": args.tv_weight, "render_size": args.render_size,
         "views": args.views, "rays_per_step": args.rays, "edit_seeds": args.edit_seeds,
         "object_seeds": args.object_seeds, "sigma": args.sigma, "smoothness": args.smoothness,
     }}

@@ -14,13 +14,19 @@ Pipeline (``refine``):
    over the edit words' tokens (every sub-token of every occurrence), the
    *object* map the element-wise max over every other content token of the
    prompt (start, end and padding tokens excluded). Each map is smoothed with a
-   small Gaussian on the attention lattice (in its own pixels, on whatever
+   small Gaussian (std ``smoothing_sigma`` = 0.5 cells, the authors' code's) on the attention lattice (in its own pixels, on whatever
    device it lives), upsampled bilinearly to the render size and min-max
    normalised to [0, 1].
 2. :func:`fit_attention_grids` lifts both sets of maps into two scalar grids
    sharing G_e's frozen density. A field's value is rendered **raw** (no
    activation), as a grey value composited over a black background, and fitted
-   by L1 to the maps plus ``tv_weight`` · TV, with Adam.
+   by L1 to the maps plus ``tv_weight`` · TV, with Adam. The render is linear
+   in the field over the frozen density, so the fit starts from the weighted
+   back-projection of the maps (``lift_start="backprojection"``, every
+   ``backprojection_stride``-th pixel row and column) and Adam moves only the
+   vertices some pixel sees; on bench/localisation.py the back-projection alone
+   (``iterations=0``) cuts as well as the paper's 1,500-step fit from a
+   constant (``lift_start="constant"``).
 
    Initial value: the authors initialise the feature to −20. Rendered raw, an
    untrained −20 grid renders −20·opacity, far outside the [0, 1] range of the

@@ -12,12 +12,13 @@ from voxe_core.constants import (
     DEFAULT_ATTENTION_TIMESTEP,
     EDIT_SEEDS,
     NERF_SYNTHETIC_FOV_X,
-    OBJECT_SEEDS,
-    REFINE_ITERATIONS,
     REFINE_LR,
     REFINE_RAYS_PER_STEP,
     REFINE_TV_WEIGHT,
     REFINE_VIEWS,
+    SERVICE_OBJECT_SEEDS,
+    SERVICE_REFINE_ITERATIONS,
+    SERVICE_SMOOTHING_SIGMA,
     RENDER_SIZE,
 )
 from voxe_core.render import RenderConfig
@@ -34,21 +35,28 @@ class RefineConfig:
     # 2D cross-attention maps
     timestep: int = DEFAULT_ATTENTION_TIMESTEP  # t = 200 of 1000
     resolution_filter: int | None = 16  # keep only the 16x16-query cross-attention layers
-    smoothing_sigma: float = 1.0  # Gaussian std in pixels of the attention map (16x16); 0 = none
+    smoothing_sigma: float = SERVICE_SMOOTHING_SIGMA  # std in pixels of the 16x16 map; 0 = none (ours before issue 18: 1.0)
     edit_token_reduce: Literal["mean", "max"] = "mean"  # how the edit words' sub-tokens combine
     render_size: int = RENDER_SIZE  # pixels of the renders (paper: 800 px / 3)
     views: int = REFINE_VIEWS  # random upper-hemisphere poses (ours; the authors use the training views)
     fov_x: float = NERF_SYNTHETIC_FOV_X
     # 3D attention grids
-    iterations: int = REFINE_ITERATIONS
+    iterations: int = SERVICE_REFINE_ITERATIONS  # after the back-projection start; the paper: REFINE_ITERATIONS (1500)
     lr: float = REFINE_LR
     tv_weight: float = REFINE_TV_WEIGHT
-    init_value: float = 0.0  # see the voxe_core.refine docstring; the authors use -20
+    init_value: float = 0.0  # start of lift_start="constant"; see the voxe_core.refine docstring; the authors use -20
+    lift_start: Literal["backprojection", "constant"] = "backprojection"  # ours; "constant": the paper's fit
+    backprojection_prior: float = 0.1  # pseudo-weight of "no attention" (0) in the back-projection's average
+    backprojection_stride: int = 2  # every n-th pixel row and column per view (maps are a 16x16 lattice upsampled)
     rays_per_step: int = REFINE_RAYS_PER_STEP
     render: RenderConfig = field(default_factory=lambda: RenderConfig(background=(0.0,)))
     # graph cut
     edit_seeds: int = EDIT_SEEDS
-    object_seeds: int = OBJECT_SEEDS
+    object_seeds: int = SERVICE_OBJECT_SEEDS  # the authors' code's count; the paper's text: OBJECT_SEEDS (200)
+    # "top": the edit_seeds highest P_e among P_e > 1/2 (the paper's text); "relative": every node with
+    # P_e >= edit_seed_ratio * max P_e, at least the top edit_seeds by P_e (the authors' code, build_graph)
+    edit_seed_rule: Literal["top", "relative"] = "top"
+    edit_seed_ratio: float = 0.992
     sigma: float = CUT_SIGMA  # colour scale of the pairwise weights
     smoothness: float = CUT_SMOOTHNESS  # lambda
     node_alpha: float = 0.01  # a vertex is a node when one voxel of its density is this opaque
@@ -57,9 +65,17 @@ class RefineConfig:
     attention_model: str = ATTENTION_MODEL_ID
 
     def __post_init__(self):
+        if self.lift_start not in ("backprojection", "constant"):
+            raise ValueError(f"lift_start must be 'backprojection' or 'constant', got {self.lift_start!r}")
+        if self.backprojection_prior < 0:
+            raise ValueError(f"backprojection_prior must be non-negative, got {self.backprojection_prior}")
+        if self.edit_seed_rule not in ("top", "relative"):
+            raise ValueError(f"edit_seed_rule must be 'top' or 'relative', got {self.edit_seed_rule!r}")
+        if not 0.0 < self.edit_seed_ratio <= 1.0:
+            raise ValueError(f"edit_seed_ratio must lie in (0, 1], got {self.edit_seed_ratio}")
         if self.edit_token_reduce not in ("mean", "max"):
             raise ValueError(f"edit_token_reduce must be 'mean' or 'max', got {self.edit_token_reduce!r}")
-        for name in ("render_size", "views", "rays_per_step"):
+        for name in ("render_size", "views", "rays_per_step", "backprojection_stride"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
         if self.iterations < 0 or self.edit_seeds < 0 or self.object_seeds < 0:

@@ -87,7 +87,9 @@ def graph_cut_detailed(
 
     Energy: Σ_p −log P_{l_p}(p) + λ Σ_{p~q, l_p≠l_q} exp(−‖c_p − c_q‖²/2σ²),
     minimised exactly by max-flow. Seeds: the ``edit_seeds`` voxels of highest
-    P_e among those with P_e > 1/2 are tied to the edit terminal, the
+    P_e among those with P_e > 1/2 are tied to the edit terminal (``edit_seed_rule="relative"``:
+    every voxel within ``edit_seed_ratio`` of the largest P_e, at least ``edit_seeds`` of them, as the
+    authors' code), the
     ``object_seeds`` of highest P_obj among those with P_obj > 1/2 to the
     object terminal (so the two sets never overlap); when fewer voxels qualify
     the available ones are used and ``stats.notes`` (and a warning) says so.
@@ -115,7 +117,12 @@ def graph_cut_detailed(
     p_e, p_o = np.exp(log_e), np.exp(log_o)
 
     notes: list[str] = []
-    edit_seeds = _top_seeds(p_e, p_e > 0.5, config.edit_seeds)
+    if config.edit_seed_rule == "relative":
+        edit_seeds = np.union1d(np.flatnonzero(p_e >= config.edit_seed_ratio * p_e.max()),
+                                _top_seeds(p_e, np.ones_like(p_e, bool), config.edit_seeds))
+        edit_seeds = edit_seeds[p_e[edit_seeds] > p_o[edit_seeds]]  # never a voxel the object claims more
+    else:
+        edit_seeds = _top_seeds(p_e, p_e > 0.5, config.edit_seeds)
     object_seeds = _top_seeds(p_o, p_o > 0.5, config.object_seeds)
     if edit_seeds.size + object_seeds.size == 0:
         raise SegmentationError(

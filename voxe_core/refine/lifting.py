@@ -3,6 +3,14 @@
 A field's value is rendered raw over a black background and fitted by L1 to
 the maps plus ``tv_weight`` · TV, with Adam (see the package docstring for why
 raw and why the start at 0).
+
+The render is linear in the field over a frozen density: pixel = Σ_s w_s ·
+trilerp(v, x_s) = (A v)_pixel. So the fit starts (``lift_start="backprojection"``)
+from the weighted back-projection v = Aᵀm / (Aᵀ1 + prior), the per-vertex
+average of the map values of every pixel that sees the vertex, weighted by
+how much of that pixel it makes (one pass over all pixels, no gradients), and
+Adam then updates only the vertices some pixel sees (the rows of A that are
+not empty); the rest keep "no attention" (0) as the start says.
 """
 
 from __future__ import annotations
@@ -14,6 +22,7 @@ from voxe_core.grid import Occupancy, VoxelGrid, ray_box_intersection
 from voxe_core.progress import Callbacks, Progress
 from voxe_core.refine.config import RefineConfig, SegmentationError
 from voxe_core.render import render_rays
+from voxe_core.volrend import optical_depth, transmittance
 
 
 def frozen_density(grid: VoxelGrid) -> VoxelGrid:
@@ -45,6 +54,67 @@ def _occupied_slices(occupancy: Occupancy) -> tuple[slice, slice, slice]:
     return tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
 
 
+@torch.no_grad()
+def backproject(
+    grid: VoxelGrid,
+    origins: torch.Tensor,
+    directions: torch.Tensor,
+    targets: torch.Tensor,
+    config: RefineConfig = RefineConfig(),
+    occupancy: Occupancy | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Weighted back-projection of per-ray ``targets`` (N, C) through ``grid``'s density: (values (X, Y, Z, C), weight (X, Y, Z)).
+
+    weight = Aᵀ1 and values = Aᵀ targets / (weight + ``config.backprojection_prior``),
+    with A the (rays × vertices) matrix of the raw render (compositing weight
+    times trilinear weight, ray midpoints of ``config.render``'s lattice
+    steps). A vertex seen fully by k pixels of value m gets k·m / (k + prior).
+
+    Examples:
+        >>> grid = VoxelGrid(8, init_density=5.0)  # opaque everywhere
+        >>> o, d = torch.tensor([[0.0, 0.0, -3.0]]), torch.tensor([[0.0, 0.0, 1.0]])
+        >>> values, weight = backproject(grid, o, d, torch.tensor([[1.0]]), RefineConfig(backprojection_prior=0.0))
+        >>> round(float(values[weight > 0].max()), 4)  # every vertex the ray touches averages to the one value
+        1.0
+    """
+    occupancy = occupancy if occupancy is not None else grid.occupancy(config.render.sigma_threshold)
+    n_vertices = grid.flat_features.shape[0]
+    numerator = torch.zeros(n_vertices, targets.shape[1], device=targets.device)
+    weight = torch.zeros(n_vertices, device=targets.device)
+    chunk = config.render.chunk_rays
+    for start in range(0, origins.shape[0], chunk):
+        o, d, t = origins[start:start + chunk], directions[start:start + chunk], targets[start:start + chunk]
+        offsets = torch.full((o.shape[0],), 0.5, device=o.device)
+        for group in grid.ray_samples(o, d, offsets, config.render.step_ratio, occupancy,
+                                      config.render.samples_per_pass, config.render.early_stop):
+            if group.ray.numel() == 0:
+                continue
+            sigma = grid.activate_density(grid.interpolate(group.points)[:, 0])
+            optical = optical_depth(sigma, group.delta)
+            w = transmittance(optical, group.ray) * (-torch.expm1(-optical))
+            index, tri = grid.trilinear_corners(group.points)
+            contribution = (w.float()[:, None] * tri).reshape(-1)
+            index = index.reshape(-1)
+            weight.index_add_(0, index, contribution)
+            numerator.index_add_(0, index, contribution[:, None] * t[group.ray].repeat_interleave(8, 0))
+    values = numerator / (weight + config.backprojection_prior).clamp_min(1e-12)[:, None]
+    return values.reshape(*grid.resolution, -1), weight.reshape(grid.resolution)
+
+
+def strided_pixels(n_views: int, height: int, width: int, stride: int, device=None) -> torch.Tensor:
+    """(N*H*W,) bool, view-major: every ``stride``-th row and column, the lattice shifted from view to view.
+
+    Examples:
+        >>> strided_pixels(2, 2, 2, 2).view(2, 2, 2).int().tolist()
+        [[[1, 0], [0, 0]], [[0, 1], [0, 0]]]
+    """
+    view = torch.arange(n_views, device=device)[:, None, None]
+    rows = torch.arange(height, device=device)[None, :, None]
+    cols = torch.arange(width, device=device)[None, None, :]
+    pick = ((rows - view // stride) % stride == 0) & ((cols - view) % stride == 0)
+    return pick.reshape(-1)
+
+
 def fit_attention_grids(
     grid: VoxelGrid,
     cameras: Cameras,
@@ -55,7 +125,10 @@ def fit_attention_grids(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Lift 2D maps to two scalar grids ``(X, Y, Z, 1)`` over ``grid``'s frozen density.
 
-    Both fields are fitted together (one render of a 2-channel field per step)
+    Start: the weighted back-projection of the maps (:func:`backproject`) over
+    every ``backprojection_stride``-th pixel row and column (:func:`strided_pixels`),
+    or ``config.init_value`` everywhere with ``lift_start="constant"`` (the
+    paper's fit). Then both fields are fitted together (one render of a 2-channel field per step)
     on ``rays_per_step`` random pixels of all views, rendered raw over a black
     background, with L1 + ``tv_weight``·TV (TV over the occupied box), Adam at
     ``lr``; stratified jitter along the rays. Pixels whose ray misses the
@@ -78,16 +151,24 @@ def fit_attention_grids(
     origins, directions = all_camera_rays(cameras.to(device))
     targets = torch.stack([edit_maps, object_maps], -1).reshape(-1, 2).to(device=device, dtype=torch.float32)
     near, far = ray_box_intersection(origins, directions, occupancy.bbox_min.to(device), occupancy.bbox_max.to(device))
-    keep = (far > near).nonzero().squeeze(-1)
+    hits = far > near
+    keep = hits.nonzero().squeeze(-1)
+    strided = (hits & strided_pixels(n_views, height, width, config.backprojection_stride, device)).nonzero().squeeze(-1)
+    start, seen = backproject(frozen, origins[strided], directions[strided], targets[strided], config, occupancy)
     origins, directions, targets = origins[keep], directions[keep], targets[keep]
 
-    values = torch.full((*grid.resolution, 2), float(config.init_value), device=device, requires_grad=True)
-    optimizer = torch.optim.Adam([values], lr=config.lr, fused=values.is_cuda or None)  # one kernel per step on CUDA
+    if config.lift_start == "constant":
+        start = torch.full_like(start, float(config.init_value))
+    rows = (seen.reshape(-1) > 0).nonzero().squeeze(-1)  # vertices some pixel sees: the only ones L1 moves
+    flat_start = start.reshape(-1, 2)
+    active = flat_start[rows].clone().requires_grad_(True)
+    optimizer = torch.optim.Adam([active], lr=config.lr, fused=active.is_cuda or None)  # one kernel per step on CUDA
     box = _occupied_slices(occupancy)
     generator = torch.Generator(device=device).manual_seed(config.seed)
     n_rays = origins.shape[0]
     for iteration in range(config.iterations):
         callbacks.check_cancel("attention_grids")
+        values = flat_start.index_copy(0, rows, active).reshape(start.shape)
         batch = torch.randint(0, n_rays, (min(config.rays_per_step, n_rays),), generator=generator, device=device)
         out = render_rays(frozen, origins[batch], directions[batch], config.render, occupancy, generator,
                           color_features=values)
@@ -99,5 +180,5 @@ def fit_attention_grids(
         optimizer.step()
         callbacks.progress(Progress("attention_grids", iteration + 1, config.iterations,
                                     {"l1": float(l1.detach()), "tv": float(tv.detach())}, {"stage": "attention grids"}))
-    values = values.detach()
+    values = flat_start.index_copy(0, rows, active.detach()).reshape(start.shape)
     return values[..., 0:1].contiguous(), values[..., 1:2].contiguous()

@@ -1,0 +1,120 @@
+"""The fast lift (issue 18): the weighted back-projection of the maps is Aᵀ of the raw render, and the fit starts from it."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from voxe_core.cameras import Cameras, random_hemisphere_poses
+from voxe_core.grid import VoxelGrid
+from voxe_core.refine.config import RefineConfig
+from voxe_core.refine.lifting import all_camera_rays, backproject, fit_attention_grids
+from voxe_core.render import render_rays
+
+
+pytestmark = pytest.mark.usefixtures("single_thread")  # tiny tensors: threads cost more than they save
+
+
+def cloud_grid(res=10, seed=0) -> VoxelGrid:
+    """Semi-transparent random density: every ray sees several vertices with unequal weights."""
+    grid = VoxelGrid(res)
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        grid.features[..., 0] = torch.rand(grid.resolution, generator=gen) * 2.0 / grid.density_scale
+    return grid
+
+
+def some_rays(n_views=3, size=8, seed=1):
+    c2w, _, _ = random_hemisphere_poses(n_views, torch.Generator().manual_seed(seed))
+    return all_camera_rays(Cameras.from_fov(c2w, 0.7, size, size))
+
+
+def test_backprojection_is_the_adjoint_of_the_raw_render():
+    # <A v, m> = <v, Aᵀ m>: the numerator equals the gradient of sum(render(v) · m) with respect to v
+    grid = cloud_grid()
+    origins, directions = some_rays()
+    maps = torch.rand(origins.shape[0], 2, generator=torch.Generator().manual_seed(2))
+    config = RefineConfig(backprojection_prior=0.3)
+    values, weight = backproject(grid, origins, directions, maps, config)
+    field = torch.zeros(*grid.resolution, 2, requires_grad=True)
+    out = render_rays(grid, origins, directions, config.render, color_features=field)
+    (out.rgb * maps).sum().backward()
+    numerator = values * (weight + config.backprojection_prior)[..., None]
+    assert weight.sum() > 0
+    torch.testing.assert_close(numerator, field.grad, rtol=1e-4, atol=1e-5)
+    ones = torch.zeros(*grid.resolution, 1, requires_grad=True)
+    (render_rays(grid, origins, directions, config.render, color_features=ones).rgb.sum()).backward()
+    torch.testing.assert_close(weight, ones.grad[..., 0], rtol=1e-4, atol=1e-5)
+
+
+def test_backprojection_of_a_linear_map_recovers_it_on_the_surface():
+    # opaque half-space z < 0, rays straight down through vertex columns: each surface vertex is seen by
+    # exactly one pixel, whose map value is the vertex's x; with no prior it is recovered exactly
+    res = 9
+    grid = VoxelGrid(res)
+    axes = torch.linspace(-1.5, 1.5, res)
+    x, y, z = torch.meshgrid(axes, axes, axes, indexing="ij")
+    with torch.no_grad():
+        grid.features[..., 0] = torch.where(z < 0.1, 50.0, -1.0)
+    px, py = torch.meshgrid(axes[1:-1], axes[1:-1], indexing="ij")
+    origins = torch.stack([px.reshape(-1), py.reshape(-1), torch.full((px.numel(),), 3.0)], -1)
+    directions = torch.tensor([0.0, 0.0, -1.0]).expand_as(origins)
+    values, weight = backproject(grid, origins, directions, origins[:, :1].clone(), RefineConfig(backprojection_prior=0.0))
+    seen = weight > 1e-3
+    assert seen.any() and not seen[..., -1].any()  # the empty top layers are never reached
+    torch.testing.assert_close(values[..., 0][seen], x[seen], atol=1e-5, rtol=0)
+
+
+def test_backprojection_is_linear_and_the_prior_shrinks_toward_no_attention():
+    grid = cloud_grid(seed=3)
+    origins, directions = some_rays(seed=4)
+    gen = torch.Generator().manual_seed(5)
+    m1, m2 = torch.rand(origins.shape[0], 1, generator=gen), torch.rand(origins.shape[0], 1, generator=gen)
+    config = RefineConfig(backprojection_prior=0.5)
+    v1, w = backproject(grid, origins, directions, m1, config)
+    v2, _ = backproject(grid, origins, directions, m2, config)
+    v12, _ = backproject(grid, origins, directions, 2.0 * m1 - 3.0 * m2, config)
+    torch.testing.assert_close(v12, 2.0 * v1 - 3.0 * v2, atol=1e-5, rtol=1e-4)
+    constant, _ = backproject(grid, origins, directions, torch.full_like(m1, 0.8), config)
+    torch.testing.assert_close(constant[..., 0], 0.8 * w / (w + 0.5))
+    exact, _ = backproject(grid, origins, directions, torch.full_like(m1, 0.8), RefineConfig(backprojection_prior=0.0))
+    assert torch.allclose(exact[w > 0], torch.tensor(0.8))
+
+
+def test_fit_from_backprojection_with_no_steps_is_the_backprojection_and_unseen_vertices_stay_zero():
+    grid = cloud_grid(seed=6)
+    c2w, _, _ = random_hemisphere_poses(2, torch.Generator().manual_seed(7))
+    cams = Cameras.from_fov(c2w, 0.7, 8, 8)
+    gen = torch.Generator().manual_seed(8)
+    edit, obj = torch.rand(2, 8, 8, generator=gen), torch.rand(2, 8, 8, generator=gen)
+    config = RefineConfig(iterations=0, backprojection_stride=1)
+    e, o = fit_attention_grids(grid, cams, edit, obj, config)
+    origins, directions = all_camera_rays(cams)
+    values, weight = backproject(grid, origins, directions, torch.stack([edit, obj], -1).reshape(-1, 2), config)
+    torch.testing.assert_close(torch.cat([e, o], -1), values)
+    # a few steps move only the seen vertices and lower the L1 of the renders
+    e2, o2 = fit_attention_grids(grid, cams, edit, obj, RefineConfig(iterations=30, rays_per_step=128, tv_weight=0.0))
+    unseen = weight == 0
+    assert unseen.any() and (e2[..., 0][unseen] == 0).all() and (o2[..., 0][unseen] == 0).all()
+
+    @torch.no_grad()
+    def l1(field):
+        out = render_rays(grid, origins, directions, config.render, color_features=field)
+        return float((out.rgb - torch.stack([edit, obj], -1).reshape(-1, 2)).abs().mean())
+
+    assert l1(torch.cat([e2, o2], -1)) < l1(values)
+
+
+def test_strided_backprojection_covers_every_pixel_once_over_stride_squared_views():
+    from voxe_core.refine.lifting import strided_pixels
+
+    picks = strided_pixels(8, 6, 6, 2).view(8, 6, 6)
+    assert int(picks.sum()) == 8 * 36 // 4
+    assert (picks[:4].sum(0) == 1).all() and (picks[4:].sum(0) == 1).all()
+    assert strided_pixels(3, 5, 5, 1).all()
+
+
+@pytest.mark.parametrize("bad", [dict(lift_start="random"), dict(backprojection_prior=-1.0)])
+def test_lift_options_are_checked(bad):
+    with pytest.raises(ValueError, match=next(iter(bad))):
+        RefineConfig(**bad)
