@@ -66,24 +66,29 @@ def update_job(job_id: str, **values) -> None:
         session.execute(update(Job).where(Job.id == job_id).values(updated_at=utcnow(), **values))
 
 
+def _change_result(job_id: str, change) -> None:
+    """``Job.result`` replaced by ``change(result)`` under a row lock, so stages writing at once lose nothing.
+
+    ``of=Job`` locks the job's row alone: PostgreSQL refuses FOR UPDATE across the outer join that loads the
+    job's reconstruction with it.
+    """
+    with session_scope() as session:
+        job = session.get(Job, job_id, with_for_update={"of": Job})
+        if job is not None:
+            job.result = change(dict(job.result or {}))
+            job.updated_at = utcnow()
+
+
 def merge_job_result(job_id: str, values: dict) -> None:
     """``Job.result`` updated with ``values``, keeping what other stages put there (e.g. their peak memory)."""
-    with session_scope() as session:
-        job = session.get(Job, job_id, with_for_update=True)
-        if job is not None:
-            job.result = {**(job.result or {}), **values}
-            job.updated_at = utcnow()
+    _change_result(job_id, lambda result: {**result, **values})
 
 
 def record_peak_memory(job_id: str, stage: str, peak_gb: float, kind: str | None) -> None:
     """``Job.result["peak_memory_gb"][stage]`` (GiB) and ``["peak_memory_kind"]``, as a stage reported them."""
-    with session_scope() as session:
-        job = session.get(Job, job_id, with_for_update=True)
-        if job is not None:
-            result = dict(job.result or {})
-            result["peak_memory_gb"] = {**result.get("peak_memory_gb", {}), stage: peak_gb}
-            result["peak_memory_kind"] = kind
-            job.result = result
+    _change_result(job_id, lambda result: {**result, "peak_memory_gb": {**result.get("peak_memory_gb", {}),
+                                                                         stage: peak_gb},
+                                            "peak_memory_kind": kind})
 
 
 def begin_stage(job_id: str, stage: str, hostname: str | None, device: str) -> Job:
