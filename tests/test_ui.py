@@ -131,6 +131,7 @@ def test_upload_edit_and_watch_a_local_edit_to_its_video_and_3d_view(live, brows
     driver.find_element("css selector", "#job-form button").click()
     wait(lambda: "#/jobs/" in driver.current_url, "the job page", 20)
     job_id = driver.current_url.rsplit("/", 1)[1]
+    assert driver.find_element("id", "job").is_displayed() and not driver.find_element("id", "home").is_displayed()
 
     # Progress advances on the page without a reload: the event stream drives it.
     seen: list[float] = []
