@@ -108,6 +108,8 @@ def create_app(settings: Settings | None = None, migrate: bool = True) -> FastAP
             "every later job on it."
         ),
         lifespan=lifespan,
+        docs_url=None,  # served by api.ui from the vendored Swagger UI (FastAPI's default loads it from a CDN)
+        redoc_url=None,
     )
     from api.events import EventHub
     from api.routes import artifacts, evaluations, health, jobs, scenes, webhooks
@@ -120,6 +122,9 @@ def create_app(settings: Settings | None = None, migrate: bool = True) -> FastAP
     app.include_router(artifacts.router)
     app.include_router(evaluations.router)
     app.include_router(webhooks.router)
+    from api import ui
+
+    ui.mount(app)
     from api.auth import RequireKey
 
     app.add_middleware(RequireKey)  # inside UploadLimit: an over-size body is 413 first, then a missing key 401
