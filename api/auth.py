@@ -90,7 +90,8 @@ class RequireKey:
         self.app = app
 
     async def __call__(self, scope, receive, send):
-        if scope["type"] != "http" or not scope["path"].startswith("/v1") or not get_settings().auth_enabled:
+        if (scope["type"] != "http" or not scope["path"].startswith("/v1") or scope["method"] == "OPTIONS"
+                or not get_settings().auth_enabled):  # OPTIONS: the Allow header only (api/http_semantics.py)
             return await self.app(scope, receive, send)
         token = presented_token(Request(scope))
         key_id = await anyio.to_thread.run_sync(_live_key_id, token) if token else None
