@@ -1,0 +1,229 @@
+"""The OpenAPI document tells the truth: requests drawn from its own JSON schemas (hypothesis-jsonschema) are
+accepted unless a rule the document states in words refuses them, and requests it forbids are refused; every
+status the middleware and handlers answer (400, 405, OPTIONS) is documented, with a correct ``Allow``."""
+
+from __future__ import annotations
+
+import copy
+import json
+
+import jsonschema
+import pytest
+from fastapi.testclient import TestClient
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
+from hypothesis_jsonschema import from_schema
+
+from service_helpers import reset_service_caches, service_env
+from test_service_api import dataset, make_scene  # noqa: F401 - the fixture
+
+# Refusals for reasons a JSON schema cannot state (they relate two fields, or the scene); each is said in the
+# document's descriptions of the fields involved.
+BEYOND_SCHEMA = (
+    "edit_words is required for a local edit", "does not occur in the prompt", "cover the whole prompt",
+    "apply to local edits only", "webhook_events needs a webhook_url", "takes one value or one per stage",
+    "cannot give backbone 'scene'", "needs a scene uploaded as a mesh",
+)
+HOOK = "http://127.0.0.1:9/hook"
+LIMITED = settings(max_examples=60, deadline=None, database=None,
+                   suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+
+
+@pytest.fixture
+def root(tmp_path, monkeypatch):
+    env = service_env(tmp_path, VOXE_MAX_ACTIVE_JOBS_PER_KEY="100000", VOXE_WEBHOOK_ALLOW_NETWORKS="127.0.0.0/8")
+    for key, value in env.items():
+        monkeypatch.setenv(key, value)
+    reset_service_caches()
+    yield tmp_path
+    reset_service_caches()
+
+
+@pytest.fixture
+def client(root):
+    from api.main import create_app
+
+    with TestClient(create_app(), raise_server_exceptions=False) as test_client:
+        yield test_client
+
+
+@pytest.fixture
+def spec(client) -> dict:
+    return client.get("/openapi.json").json()
+
+
+def body_schema(spec: dict, name: str, **fixed: dict) -> dict:
+    """The component ``name`` as a standalone JSON schema (its refs resolvable), with ``fixed`` properties replaced."""
+    schema = copy.deepcopy(spec["components"]["schemas"][name])
+    schema["properties"].update(fixed)
+    return {**schema, "components": {"schemas": spec["components"]["schemas"]}}
+
+
+def refusal_reasons(response) -> list[str]:
+    detail = response.json()["detail"]
+    return [e["msg"] for e in detail] if isinstance(detail, list) else [detail]
+
+
+def post_json(client, path: str, body) -> object:
+    return client.post(path, content=json.dumps(body), headers={"content-type": "application/json"})
+
+
+def test_job_bodies_the_document_allows_are_accepted_unless_a_stated_cross_field_rule_refuses(
+        client, spec, dataset, root):  # noqa: F811
+    scene = make_scene(client, dataset, root)
+    schema = body_schema(spec, "JobCreate", scene_id={"const": scene["id"]},
+                         webhook_url={"anyOf": [{"const": HOOK}, {"type": "null"}]})
+    outcomes = {"accepted": 0, "beyond": 0}
+
+    @LIMITED
+    @given(from_schema(schema))
+    def allowed(body):
+        response = post_json(client, "/v1/jobs", body)
+        if response.status_code == 201:
+            outcomes["accepted"] += 1
+            return
+        assert response.status_code == 422, response.text
+        reasons = refusal_reasons(response)
+        assert all(any(rule in reason for rule in BEYOND_SCHEMA) for reason in reasons), reasons
+        outcomes["beyond"] += 1
+
+    allowed()
+    assert outcomes["accepted"] > 0  # the property was not met by refusing everything
+
+
+# What breaks one constraint of a JSON value: the wrong JSON type, or just past a bound the schema states.
+def _breakers(schema: dict) -> list:
+    out = [{"unexpected": "object"}]
+    kind = schema.get("type")
+    if kind == "boolean":
+        out += [1, 0, "true"]
+    if kind == "integer":
+        out += [1.5, "5", True]
+        out += [schema["maximum"] + 1] if "maximum" in schema else []
+        out += [schema["minimum"] - 1] if "minimum" in schema else []
+    if kind == "number":
+        out += ["1", True]
+        out += [schema["maximum"] * 2 + 1] if "maximum" in schema else []
+        out += [schema["minimum"] - 1] if "minimum" in schema else []
+        out += [schema["exclusiveMinimum"]] if "exclusiveMinimum" in schema else []
+    if kind == "string":
+        out += [5, ""] + (["x" * (schema["maxLength"] + 1)] if "maxLength" in schema else [])
+    if "enum" in schema:
+        out += ["not-" + str(schema["enum"][0])]
+    if kind == "array":
+        out += ["a string"] + ([[]] if schema.get("minItems") else [])
+    return out
+
+
+def _leaves(schema: dict, components: dict, path=()):
+    """(path, schema) of every property, depth first, refs followed and nullable anyOf unwrapped."""
+    if "$ref" in schema:
+        schema = components[schema["$ref"].rsplit("/", 1)[-1]]
+    for name, prop in schema.get("properties", {}).items():
+        variants = [v for v in prop.get("anyOf", [prop]) if v.get("type") != "null"]
+        for variant in variants:
+            resolved = components[variant["$ref"].rsplit("/", 1)[-1]] if "$ref" in variant else variant
+            yield path + (name,), resolved
+            if "properties" in resolved:
+                yield from _leaves(resolved, components, path + (name,))
+
+
+def _set(body: dict, path: tuple, value) -> dict:
+    body = copy.deepcopy(body)
+    node = body
+    for name in path[:-1]:
+        node = node.setdefault(name, {})
+        if not isinstance(node, dict):
+            return body
+    node[path[-1]] = value
+    return body
+
+
+def test_job_bodies_the_document_forbids_are_refused(client, spec, dataset, root):  # noqa: F811
+    scene = make_scene(client, dataset, root)
+    components = spec["components"]["schemas"]
+    schema = body_schema(spec, "JobCreate")
+    mutations = [(path, value) for path, leaf in _leaves(components["JobCreate"], components)
+                 for value in _breakers(leaf)] + [(("params", "bogus"), 1), (("bogus",), 1)]
+    base = {"scene_id": scene["id"], "prompt": "a mic wearing big sunglasses", "mode": "local",
+            "edit_words": ["sunglasses"]}
+    assert post_json(client, "/v1/jobs", base).status_code == 201
+
+    @LIMITED
+    @given(st.sampled_from(mutations))
+    def forbidden(mutation):
+        body = _set(base, *mutation)
+        with pytest.raises(jsonschema.ValidationError):  # the document forbids it ...
+            jsonschema.validate(body, schema)
+        response = post_json(client, "/v1/jobs", body)
+        assert response.status_code == 422, (mutation, response.text)  # ... and so does the server
+
+    forbidden()
+
+
+def test_listing_queries_follow_their_documented_parameters(client, spec):
+    parameters = {p["name"]: p["schema"] for p in spec["paths"]["/v1/jobs"]["get"]["parameters"]}
+    query = st.fixed_dictionaries({}, optional={name: from_schema(schema) for name, schema in parameters.items()})
+
+    @LIMITED
+    @given(query)
+    def allowed(params):
+        params = {k: v for k, v in params.items() if v is not None}
+        response = client.get("/v1/jobs", params=params)
+        assert response.status_code == 200, (params, response.text)
+
+    allowed()
+    for name, bad in [("limit", 0), ("limit", parameters["limit"]["maximum"] + 1), ("offset", -1),
+                      ("state", "sleeping"), ("limit", "1.5")]:
+        response = client.get("/v1/jobs", params={name: bad})
+        assert response.status_code == 422 and name in response.text, (name, bad)
+
+
+def test_strict_types_refuse_coercions(client):
+    for params in ({"view_words": 1}, {"iterations": "5"}, {"iterations": 5.0}, {"export": {"gif": "true"}}):
+        response = post_json(client, "/v1/jobs", {"scene_id": "x", "prompt": "a mic", "params": params})
+        assert response.status_code == 422, (params, response.text)
+    words = post_json(client, "/v1/jobs", {"scene_id": "x", "prompt": "a mic", "mode": "local", "edit_words": "mic"})
+    assert words.status_code == 422 and "edit_words" in words.text  # a list is documented: no string for one
+
+
+def test_prompt_pattern_states_the_text_rule():
+    from api.schemas import TEXT_PATTERN, clean_text
+    import re
+
+    for text in ("a mic", "é", "'", "mic\t\n", "mic\x1f", "!!!", "  ", "mic\x00", "mic\x7f", "\x85x", "?\x9f"):
+        try:
+            clean_text(text, "text")
+            server = True
+        except ValueError:
+            server = False
+        assert bool(re.search(TEXT_PATTERN, text)) == server, repr(text)
+
+
+def test_malformed_json_is_a_documented_400(client, spec):
+    for path in ("/v1/jobs", "/v1/evaluations", "/v1/sweeps"):
+        response = client.post(path, content=b'{"prompt": ', headers={"content-type": "application/json"})
+        assert response.status_code == 400 and response.json()["detail"].startswith("malformed JSON body"), path
+        assert "400" in spec["paths"][path]["post"]["responses"]
+    assert client.post("/v1/jobs", json={"prompt": 1}).status_code == 422  # JSON, but not the schema's: 422
+
+
+def test_options_and_405_answer_each_paths_documented_methods(client, spec):
+    for path, item in spec["paths"].items():
+        concrete = path.replace("{", "").replace("}", "")  # any value fills a path parameter
+        documented = sorted(m.upper() for m in item)
+        response = client.options(concrete)
+        assert response.status_code == 204 and response.headers["allow"] == ", ".join(documented), path
+        missing = next(m for m in ("PUT", "PATCH", "DELETE", "POST") if m not in documented)
+        refused = client.request(missing, concrete)
+        assert refused.status_code == 405 and refused.headers["allow"] == ", ".join(documented), (path, missing)
+        assert "405" in item["options"]["responses"]
+
+
+def test_every_v1_operation_documents_auth_and_body_statuses(spec):
+    for path, item in spec["paths"].items():
+        for method, operation in item.items():
+            if path.startswith("/v1") and method != "options":
+                assert "401" in operation["responses"] and operation["security"], (method, path)
+            if method == "post":
+                assert "413" in operation["responses"], path
