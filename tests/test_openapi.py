@@ -264,3 +264,17 @@ def test_every_v1_operation_documents_auth_and_body_statuses(spec):
                 assert "401" in operation["responses"] and operation["security"], (method, path)
             if method == "post":
                 assert "413" in operation["responses"], path
+
+
+def test_with_auth_on_options_needs_no_key_and_the_rest_answer_the_documented_401(root, monkeypatch):
+    from api.main import create_app
+
+    monkeypatch.setenv("VOXE_AUTH", "on")
+    reset_service_caches()
+    with TestClient(create_app()) as client:
+        spec = client.get("/openapi.json").json()
+        assert client.options("/v1/jobs").headers["allow"] == "GET, OPTIONS, POST"
+        refused = client.get("/v1/jobs")
+        assert refused.status_code == 401 and refused.headers["www-authenticate"] == "Bearer"
+        assert "401" in spec["paths"]["/v1/jobs"]["get"]["responses"]
+        assert set(spec["components"]["securitySchemes"]) == {"bearer", "apiKey"}
