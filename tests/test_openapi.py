@@ -176,15 +176,25 @@ def _set(body: dict, path: tuple, value) -> dict:
     return body
 
 
-def test_job_bodies_the_document_forbids_are_refused(client, spec, dataset, root):  # noqa: F811
-    scene = make_scene(client, dataset, root)
+FORBIDDEN_CASES = [  # (path, body component, a body the schema allows; None: a job on the test's scene)
+    ("/v1/jobs", "JobCreate", None),
+    ("/v1/evaluations", "EvaluationCreate", {"job_ids": ["x"], "object": "mic"}),
+    ("/v1/sweeps", "SweepCreate", {"scenes": [{"scene_id": "x", "object": "mic"}]}),
+]
+
+
+@pytest.mark.parametrize("path,component,base", FORBIDDEN_CASES)
+def test_bodies_the_document_forbids_are_refused(client, spec, dataset, root, path, component, base):  # noqa: F811
     components = spec["components"]["schemas"]
-    schema = body_schema(spec, "JobCreate")
-    mutations = [(path, value) for path, leaf in _leaves(components["JobCreate"], components)
+    schema = body_schema(spec, component)
+    mutations = [(name, value) for name, leaf in _leaves(components[component], components)
                  for value in _breakers(leaf)] + [(("params", "bogus"), 1), (("bogus",), 1)]
-    base = {"scene_id": scene["id"], "prompt": "a mic wearing big sunglasses", "mode": "local",
-            "edit_words": ["sunglasses"]}
-    assert post_json(client, "/v1/jobs", base).status_code == 201
+    if base is None:
+        scene = make_scene(client, dataset, root)
+        base = {"scene_id": scene["id"], "prompt": "a mic wearing big sunglasses", "mode": "local",
+                "edit_words": ["sunglasses"]}
+        assert post_json(client, path, base).status_code == 201
+    jsonschema.validate(base, schema)
 
     @LIMITED
     @given(st.sampled_from(mutations))
@@ -192,27 +202,28 @@ def test_job_bodies_the_document_forbids_are_refused(client, spec, dataset, root
         body = _set(base, *mutation)
         with pytest.raises(jsonschema.ValidationError):  # the document forbids it ...
             jsonschema.validate(body, schema)
-        response = post_json(client, "/v1/jobs", body)
+        response = post_json(client, path, body)
         assert response.status_code == 422, (mutation, response.text)  # ... and so does the server
 
     forbidden()
 
 
-def test_listing_queries_follow_their_documented_parameters(client, spec):
-    parameters = {p["name"]: p["schema"] for p in spec["paths"]["/v1/jobs"]["get"]["parameters"]}
+@pytest.mark.parametrize("path", ["/v1/jobs", "/v1/scenes"])
+def test_listing_queries_follow_their_documented_parameters(client, spec, path):
+    parameters = {p["name"]: p["schema"] for p in spec["paths"][path]["get"]["parameters"]}
     query = st.fixed_dictionaries({}, optional={name: from_schema(schema) for name, schema in parameters.items()})
 
     @LIMITED
     @given(query)
     def allowed(params):
         params = {k: v for k, v in params.items() if v is not None}
-        response = client.get("/v1/jobs", params=params)
+        response = client.get(path, params=params)
         assert response.status_code == 200, (params, response.text)
 
     allowed()
-    for name, bad in [("limit", 0), ("limit", parameters["limit"]["maximum"] + 1), ("offset", -1),
-                      ("state", "sleeping"), ("limit", "1.5")]:
-        response = client.get("/v1/jobs", params={name: bad})
+    bad_values = [("limit", 0), ("limit", parameters["limit"]["maximum"] + 1), ("offset", -1), ("limit", "1.5")]
+    for name, bad in bad_values + ([("state", "sleeping")] if "state" in parameters else []):
+        response = client.get(path, params={name: bad})
         assert response.status_code == 422 and name in response.text, (name, bad)
 
 
