@@ -289,3 +289,11 @@ def test_with_auth_on_options_needs_no_key_and_the_rest_answer_the_documented_40
         assert refused.status_code == 401 and refused.headers["www-authenticate"] == "Bearer"
         assert "401" in spec["paths"]["/v1/jobs"]["get"]["responses"]
         assert set(spec["components"]["securitySchemes"]) == {"bearer", "apiKey"}
+
+
+def test_the_idempotency_key_header_is_documented_with_the_length_the_server_enforces(client, spec):
+    header = next(p for p in spec["paths"]["/v1/jobs"]["post"]["parameters"] if p["name"] == "Idempotency-Key")
+    longest = header["schema"]["maxLength"]
+    body = {"scene_id": "x", "prompt": "a mic"}
+    assert client.post("/v1/jobs", json=body, headers={"Idempotency-Key": "k" * longest}).status_code == 404
+    assert client.post("/v1/jobs", json=body, headers={"Idempotency-Key": "k" * (longest + 1)}).status_code == 422
