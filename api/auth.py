@@ -14,9 +14,10 @@ import hmac
 import re
 import secrets
 from dataclasses import dataclass
+from typing import Annotated
 
 import anyio
-from fastapi import HTTPException, Request, Response, status
+from fastapi import Header, HTTPException, Request, Response, status
 from fastapi.responses import JSONResponse
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
@@ -90,7 +91,8 @@ class RequireKey:
         self.app = app
 
     async def __call__(self, scope, receive, send):
-        if scope["type"] != "http" or not scope["path"].startswith("/v1") or not get_settings().auth_enabled:
+        if (scope["type"] != "http" or not scope["path"].startswith("/v1") or scope["method"] == "OPTIONS"
+                or not get_settings().auth_enabled):  # OPTIONS: the Allow header only (api/http_semantics.py)
             return await self.app(scope, receive, send)
         token = presented_token(Request(scope))
         key_id = await anyio.to_thread.run_sync(_live_key_id, token) if token else None
@@ -198,9 +200,11 @@ def mark_replayed(response: Response) -> None:
     response.headers[REPLAYED_HEADER] = "true"
 
 
-def idempotency_key(request: Request) -> str | None:
-    """The request's Idempotency-Key header (422 when empty or longer than 255 characters)."""
-    value = request.headers.get(IDEMPOTENCY_HEADER)
+def idempotency_key(value: Annotated[str | None, Header(
+        alias=IDEMPOTENCY_HEADER, json_schema_extra={"minLength": 1, "maxLength": 255, "pattern": r"\S"},
+        description="a retry with the same key and body answers 200 with what the first request created")] = None,
+        ) -> str | None:
+    """The request's Idempotency-Key header (422 when blank or longer than 255 characters)."""
     if value is None:
         return None
     value = value.strip()

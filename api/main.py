@@ -11,6 +11,7 @@ from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
+from api import http_semantics
 from voxe_service.db import run_migrations
 from voxe_service.settings import Settings, get_settings, model_label
 
@@ -130,6 +131,7 @@ def create_app(settings: Settings | None = None, migrate: bool = True) -> FastAP
     app.add_middleware(RequireKey)  # inside UploadLimit: an over-size body is 413 first, then a missing key 401
     app.add_middleware(UploadLimit, max_bytes=settings.max_upload_bytes)
     app.add_exception_handler(RequestValidationError, validation_error)
+    http_semantics.install(app)
     return app
 
 
@@ -145,7 +147,9 @@ def _json_safe(value):
 
 
 async def validation_error(_request, exc: RequestValidationError) -> JSONResponse:
-    """FastAPI's 422, but never a 500 when the offending input was NaN or Infinity."""
+    """FastAPI's 422 (400 for a body that is not JSON), but never a 500 when the offending input was NaN or Infinity."""
+    if (malformed := http_semantics.malformed_body(exc)) is not None:
+        return malformed
     return JSONResponse(status_code=422, content={"detail": _json_safe(jsonable_encoder(exc.errors()))})
 
 

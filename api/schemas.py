@@ -28,12 +28,18 @@ WebhookEvent = Literal[WEBHOOK_EVENTS]
 
 
 MAX_SEED = 2**32 - 1  # numpy's seed range
+StageIterations = Annotated[int, Field(ge=0, le=1_000_000)]
+# What clean_text accepts, for the document: a word character somewhere, no control character but whitespace.
+_ALLOWED = r"[^\x00-\x08\x0e-\x1b\x7f-\x84\x86-\x9f]"
+TEXT_PATTERN = rf"^{_ALLOWED}*[\w'-]{_ALLOWED}*$"
+_TEXT_RULE = " (a word somewhere; no control characters but whitespace, which is collapsed)"
 
 
 class Strict(BaseModel):
-    """Unknown fields and non-finite numbers (JSON's NaN / Infinity extensions) are 422s naming the field."""
+    """Unknown fields, non-finite numbers (JSON's NaN / Infinity extensions) and coercions (1 for true, "5" for 5,
+    5.0 for an integer) are 422s naming the field: what the OpenAPI document says is all that is accepted."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
 
 
 # ------------------------------------------------------------------ job parameters
@@ -46,8 +52,9 @@ class ReconstructionParams(Strict):
     resolution: int | None = Field(
         None, ge=4, le=512, description="final grid resolution; earlier stages are scaled in proportion"
     )
-    iterations: list[int] | int | None = Field(
-        None, description="iterations of the final stage, or one value per stage (the preset's otherwise)"
+    iterations: Annotated[list[StageIterations], Field(min_length=1, max_length=8)] | StageIterations | None = Field(
+        None, description="iterations of the final stage, or one value per stage of the preset (fast: 3, paper: 4; "
+        "another count is a 422); the preset's otherwise"
     )
     rays_per_step: int | None = Field(None, ge=1, le=1 << 20)
     seed: int = Field(presets.SEED, ge=0, le=MAX_SEED)
@@ -59,14 +66,6 @@ class ReconstructionParams(Strict):
         "auto", description="fit: optimise G_i on the images; voxelize: write an uploaded mesh straight into G_i "
         "at the final resolution (mesh scenes only); auto: voxelize for mesh scenes, fit otherwise"
     )
-
-    @field_validator("iterations")
-    @classmethod
-    def _iterations(cls, value):
-        values = [value] if isinstance(value, int) else value
-        if values is not None and (not values or len(values) > 8 or any(v < 0 or v > 1_000_000 for v in values)):
-            raise ValueError("iterations must be 1-8 integers in [0, 1000000]")
-        return value
 
     @model_validator(mode="after")
     def _route(self):
@@ -166,11 +165,14 @@ def words_of(text: str) -> list[str]:
 
 class JobCreate(Strict):
     scene_id: str = Field(min_length=1, max_length=64)
-    prompt: str = Field(min_length=1, max_length=500, description='e.g. "a microphone wearing big sunglasses"')
-    mode: Literal["global", "local"] = "global"
-    edit_words: list[Annotated[str, Field(min_length=1, max_length=100)]] = Field(
+    prompt: str = Field(min_length=1, max_length=500, json_schema_extra={"pattern": TEXT_PATTERN},
+                        description='e.g. "a microphone wearing big sunglasses"' + _TEXT_RULE)
+    mode: Literal["global", "local"] = Field("global", description="local: refined to the edit_words' region")
+    edit_words: list[Annotated[str, Field(min_length=1, max_length=100, json_schema_extra={"pattern": TEXT_PATTERN})]] = Field(
         default_factory=list, max_length=16,
-        description="local edits: the word(s) of the prompt naming the edit (e.g. ['sunglasses'])",
+        description="local edits: the word(s) of the prompt naming the edit (e.g. ['sunglasses']); required "
+        "(non-empty) with mode 'local', empty otherwise. Rules beyond the schema (422 naming them): each occurs in "
+        "the prompt as whole words, and some other word of the prompt names the object",
     )
     params: JobParams = Field(default_factory=JobParams)
     webhook_url: str | None = Field(
@@ -179,8 +181,8 @@ class JobCreate(Strict):
         "GET /v1/webhooks/secret); a public address unless the operator allows more (VOXE_WEBHOOK_ALLOW_NETWORKS)",
     )
     webhook_events: list[WebhookEvent] | None = Field(
-        None, min_length=1, max_length=len(WEBHOOK_EVENTS),
-        description=f"which job events to send (default: {', '.join(DEFAULT_WEBHOOK_EVENTS)})",
+        None, min_length=1, max_length=len(WEBHOOK_EVENTS), json_schema_extra={"uniqueItems": True},
+        description=f"which job events to send (default: {', '.join(DEFAULT_WEBHOOK_EVENTS)}); needs webhook_url",
     )
 
     @field_validator("webhook_events")
@@ -189,11 +191,6 @@ class JobCreate(Strict):
         if value is not None and len(set(value)) != len(value):
             raise ValueError("webhook_events lists an event twice")
         return value
-
-    @field_validator("edit_words", mode="before")
-    @classmethod
-    def _one_word(cls, value):
-        return [value] if isinstance(value, str) else value
 
     @field_validator("prompt")
     @classmethod
@@ -237,12 +234,13 @@ class EvaluationParams(Strict):
     save_renders: bool = Field(True, description="publish the ring renders as PNG artifacts")
 
 
-ObjectName = Annotated[str, Field(min_length=1, max_length=100),
+ObjectName = Annotated[str, Field(min_length=1, max_length=100, json_schema_extra={"pattern": TEXT_PATTERN}),
                       AfterValidator(lambda value: clean_text(value, "the object name"))]
 
 
 class EvaluationCreate(Strict):
-    job_ids: list[str] = Field(min_length=1, max_length=60, description="finished edit jobs of one scene")
+    job_ids: list[str] = Field(min_length=1, max_length=60, json_schema_extra={"uniqueItems": True},
+                               description="succeeded edit jobs of one scene and reconstruction")
     object: ObjectName = Field(description='what the object is: the source text is "a render of a <object>"')
     params: EvaluationParams = Field(default_factory=EvaluationParams)
 
@@ -262,7 +260,7 @@ class SweepScene(Strict):
 class SweepCreate(Strict):
     """The paper's protocol: every scene × the six prompts of SPEC §4 (local ones refined), each edit then evaluated."""
 
-    scenes: list[SweepScene] = Field(min_length=1, max_length=20)
+    scenes: list[SweepScene] = Field(min_length=1, max_length=20, description="each scene_id once")
     params: JobParams = Field(default_factory=JobParams)
     evaluation: EvaluationParams = Field(default_factory=EvaluationParams)
 

@@ -63,7 +63,7 @@ def list_artifacts(job_id: str, session: SessionDep, key: CurrentKey) -> list[Ar
     return [artifact_out(job_id, a) for a in rows]
 
 
-@router.head("/{name}", include_in_schema=False)
+@router.head("/{name}", summary="An artifact's headers (size, checksum) without its bytes")
 @router.get(
     "/{name}", response_class=StreamingResponse,
     responses={200: {"description": "the whole file"}, 206: {"description": "the requested byte range"},

@@ -27,7 +27,7 @@ _QUOTA = {429: {"description": "the key's quota of queued + running jobs is used
 
 @router.post("/v1/evaluations", status_code=status.HTTP_201_CREATED, response_model=JobOut,
              responses={404: {"description": "a listed job does not exist (or is another key's)"},
-                        409: {"description": "a listed job has not succeeded"},
+                        409: {"description": "a listed job has not succeeded, or the workers lack a model it loads"},
                         422: {"description": "invalid request, an evaluation listed, or jobs of different scenes"},
                         **_QUOTA},
              summary="Evaluate finished edit jobs of one scene (CLIP_sim, CLIP_dir, FID, PSNR/SSIM outside the mask)")
@@ -38,7 +38,8 @@ def create_evaluation(body: EvaluationCreate, session: SessionDep, settings: Set
 
 @router.post("/v1/sweeps", status_code=status.HTTP_201_CREATED, response_model=SweepOut,
              responses={404: {"description": "no such scene (or another key's)"},
-                        409: {"description": "a scene failed processing (the reason is named)"},
+                        409: {"description": "a scene failed processing (the reason is named), or the workers lack "
+                                             "a model the jobs load"},
                         422: {"description": "invalid request (the field is named)"}, **_QUOTA},
              summary="Submit the paper's protocol: scenes × the six prompts of SPEC §4, each edit then evaluated")
 def create_sweep(body: SweepCreate, session: SessionDep, settings: SettingsDep, queue: QueueDep,

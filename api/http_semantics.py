@@ -1,0 +1,110 @@
+"""HTTP answers the routes themselves never give, made true to the OpenAPI document.
+
+* A body that is not JSON at all is a 400 ``malformed JSON body`` (FastAPI would say 422, the status
+  the document keeps for bodies that parse but break the schema).
+* A method a path does not serve is a 405 whose ``Allow`` lists every method of every route on that
+  path (Starlette names only the first route it tried), and ``OPTIONS`` on any path answers 204
+  with the same ``Allow``. Without a key too: it says nothing ``/openapi.json`` does not.
+
+Examples:
+    >>> allowed_methods(create_app(), "/v1/jobs")  # doctest: +SKIP
+    ['GET', 'OPTIONS', 'POST']
+"""
+
+from __future__ import annotations
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, Response
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
+
+_PROBLEM = {"application/json": {"schema": {"$ref": "#/components/schemas/Problem"}}}
+_ALLOW = {"Allow": {"description": "the methods this path serves", "schema": {"type": "string"}}}
+SECURITY_SCHEMES = {
+    "bearer": {"type": "http", "scheme": "bearer", "description": "Authorization: Bearer voxe_<id>_<secret>"},
+    "apiKey": {"type": "apiKey", "in": "header", "name": "X-API-Key", "description": "the same token"},
+}
+
+
+_METHODS = ("DELETE", "GET", "HEAD", "PATCH", "POST", "PUT")
+
+
+def allowed_methods(app: FastAPI, path: str) -> list[str]:
+    """Sorted methods some route fully matches on ``path`` (OPTIONS always among them).
+
+    Asked of each top-level route per method, so routes inside included routers count too.
+    """
+    def served(method: str) -> bool:
+        scope = {"type": "http", "path": path, "method": method, "root_path": ""}
+        return any(route.matches(scope)[0] == Match.FULL for route in app.router.routes)
+
+    return sorted({"OPTIONS", *filter(served, _METHODS)})
+
+
+async def method_not_allowed(request: Request, exc: StarletteHTTPException) -> Response:
+    """405 with the path's whole ``Allow``; OPTIONS answered 204 with it."""
+    allow = ", ".join(allowed_methods(request.app, request.url.path))
+    if request.method == "OPTIONS":
+        return Response(status_code=204, headers={"Allow": allow})
+    return JSONResponse({"detail": f"method {request.method} is not allowed on {request.url.path}; allowed: {allow}"},
+                        status_code=405, headers={"Allow": allow})
+
+
+def malformed_body(exc: RequestValidationError) -> JSONResponse | None:
+    """The 400 for a body that did not parse as JSON, else None (a schema error: the 422 stays)."""
+    for error in exc.errors():
+        if error.get("type") == "json_invalid":
+            reason = (error.get("ctx") or {}).get("error", "JSON decode error")
+            position = error.get("loc", [None, None])[-1]
+            return JSONResponse({"detail": f"malformed JSON body: {reason} (at character {position})"},
+                                status_code=400)
+    return None
+
+
+def install(app: FastAPI) -> None:
+    """Answer 405 / OPTIONS as above, and document them with the statuses no route declares itself."""
+    app.add_exception_handler(405, method_not_allowed)
+    generate = app.openapi
+
+    def openapi() -> dict:
+        if app.openapi_schema is None:
+            app.openapi_schema = document(generate())
+        return app.openapi_schema
+
+    app.openapi = openapi
+
+
+def document(schema: dict) -> dict:
+    """Add to each operation what middleware and handlers answer: 400 (a JSON body), 413 (any body), 401 and
+    the key schemes (/v1), and an OPTIONS operation per path (204 + Allow; other methods 405 + Allow)."""
+    components = schema.setdefault("components", {})
+    components.setdefault("securitySchemes", {}).update(SECURITY_SCHEMES)
+    components.setdefault("schemas", {})["Problem"] = {
+        "type": "object", "required": ["detail"], "title": "Problem",
+        "properties": {"detail": {"description": "what was wrong, naming the field, file or rule"}}}
+    for path, item in schema["paths"].items():
+        for method, operation in item.items():
+            responses = operation["responses"]
+            if "application/json" in operation.get("requestBody", {}).get("content", {}):
+                responses.setdefault("400", {"description": "malformed JSON body (it does not parse as JSON)",
+                                             "content": _PROBLEM})
+            if method in ("post", "put", "patch"):
+                responses.setdefault("413", {"description": "request body over the upload limit "
+                                                            "(VOXE_MAX_UPLOAD_BYTES)", "content": _PROBLEM})
+            if path.startswith("/v1"):
+                responses.setdefault("401", {"description": "authentication on (VOXE_AUTH) and no live API key "
+                                                            "sent", "content": _PROBLEM})
+                operation["security"] = [{"bearer": []}, {"apiKey": []}, {}]
+        methods = ", ".join(m.upper() for m in sorted({*item, "options"}))
+        item["options"] = {
+            "summary": "The methods this path serves", "operationId": "options" + path.replace("/", "_").replace(
+                "{", "").replace("}", ""),
+            "description": f"204 with `Allow: {methods}` (no key needed). Any other method answers 405 with the same "
+                           "`Allow` header.",
+            "responses": {"204": {"description": "the Allow header lists the path's methods", "headers": _ALLOW},
+                          "405": {"description": "(other methods) not served here; Allow lists those that are",
+                                  "headers": _ALLOW, "content": _PROBLEM}},
+            "security": [{}],
+        }
+    return schema
