@@ -318,10 +318,14 @@ def test_refine_end_to_end_with_tiny_model(tiny_guidance, make_sphere_grid):
     with torch.no_grad():
         edited.features[..., 1:] = torch.randn(12, 12, 12, 3, generator=torch.Generator().manual_seed(0))
     config = RefineConfig(views=2, render_size=24, iterations=40, rays_per_step=256, edit_seeds=5, object_seeds=5)
-    stages = set()
+    reports = []
     result = refine(initial, edited, "a dog wearing sunglasses", ["sunglasses"], tiny_guidance, config,
-                    Callbacks(on_progress=lambda p: stages.add(p.stage)))
-    assert stages == {"attention_maps", "attention_grids", "graph_cut"}
+                    Callbacks(on_progress=lambda p: reports.append((p.stage, p.iteration, p.total))))
+    assert {stage for stage, _, _ in reports} == {"attention_maps", "attention_grids", "graph_cut"}
+    # The sub-steps count on one scale (2 views + 40 fit steps + the cut): the stage's progress only rises.
+    assert {total for _, _, total in reports} == {2 + 40 + 1}
+    done = [iteration for _, iteration, _ in reports]
+    assert done == sorted(done) and done[-1] == 43 and reports[1][:2] == ("attention_maps", 2)
     assert result.info["prompt"] == "a render of a dog wearing sunglasses"
     nodes = node_mask(edited)
     assert result.mask.shape == nodes.shape and not (result.mask & ~nodes).any()

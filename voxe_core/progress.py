@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 
@@ -38,3 +38,33 @@ class Callbacks:
     def checkpoint_written(self, path: str) -> None:
         if self.on_checkpoint is not None:
             self.on_checkpoint(path)
+
+
+def in_phases(callbacks: Callbacks, sizes: dict[str, int]) -> Callbacks:
+    """``callbacks`` with the named sub-steps' reports counted on one scale of ``sum(sizes)`` units.
+
+    A stage made of sub-steps (refine: attention maps, then the grids' fit, then the cut) would
+    otherwise report each from 0 to its own total, and a job's progress would fall back at every
+    new sub-step. A report keeps its sub-step's name as its ``stage``; other names pass unchanged.
+
+    Examples:
+        >>> seen = []
+        >>> cb = in_phases(Callbacks(on_progress=lambda p: seen.append((p.stage, p.iteration, p.total))),
+        ...                {"maps": 4, "fit": 10, "cut": 1})
+        >>> cb.progress(Progress("maps", 4, 4)); cb.progress(Progress("fit", 5, 10)); cb.progress(Progress("cut", 1, 1))
+        >>> seen
+        [('maps', 4, 15), ('fit', 9, 15), ('cut', 15, 15)]
+    """
+    offsets, total = {}, 0
+    for name, size in sizes.items():
+        offsets[name], total = total, total + max(0, int(size))
+
+    def report(progress: Progress) -> None:
+        if progress.stage not in offsets:
+            callbacks.progress(progress)
+            return
+        size = max(0, int(sizes[progress.stage]))
+        done = size if progress.total <= 0 else round(size * min(progress.iteration, progress.total) / progress.total)
+        callbacks.progress(replace(progress, iteration=offsets[progress.stage] + done, total=total))
+
+    return replace(callbacks, on_progress=report if callbacks.on_progress is not None else None)

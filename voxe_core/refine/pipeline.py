@@ -11,7 +11,7 @@ from voxe_core.cameras import Cameras
 from voxe_core.devices import PeakMemory, resolve_device
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance.prompts import edit_prompt
-from voxe_core.progress import Callbacks, Progress
+from voxe_core.progress import Callbacks, Progress, in_phases
 from voxe_core.refine.config import RefineConfig
 from voxe_core.refine.cut import GraphCutStats, graph_cut_detailed, probabilities
 from voxe_core.refine.lifting import fit_attention_grids
@@ -81,6 +81,8 @@ def refine(
     text = edit_prompt(prompt)
     token_groups(guidance, text, edit_words)  # fail on a bad word before rendering anything
     cameras = attention_cameras(config)
+    callbacks = in_phases(callbacks, {"attention_maps": len(cameras), "attention_grids": config.iterations,
+                                      "graph_cut": 1})  # one scale: the stage's progress only rises
     edit_maps, object_maps = attention_maps_2d(guidance, edited_grid, cameras, text, edit_words, config, callbacks)
     edit_field, object_field = fit_attention_grids(edited_grid, cameras, edit_maps, object_maps, config, callbacks)
     callbacks.check_cancel("graph_cut")
