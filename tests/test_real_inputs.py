@@ -1,14 +1,15 @@
 """Captures as people have them: lens distortion, nerfstudio's camera models, COLMAP sparse models.
 
 The COLMAP model of fox is made here, in a temporary folder, from fox's own transforms.json
-(poses turned back into COLMAP's world-to-camera convention, written with pycolmap); its
-images folder is a link to the shared data, never a copy.
+(poses turned back into COLMAP's world-to-camera convention, written with pycolmap, the
+maintained writer); its images folder is a link to the shared data, never a copy.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,7 @@ import torch
 from PIL import Image
 
 from voxe_core.cameras import Cameras, camera_rays, distort_points, look_at, pixel_rays, undistort_points
+from voxe_core.colmap import ColmapError, read_model
 from voxe_core.data import DatasetError, detect_format, is_dataset_folder, load_scene
 
 import needs
@@ -285,13 +287,15 @@ def test_colmap_errors_name_file_frame_and_problem(tmp_path):
                                            "intrinsics say w=32"):
         load_scene(root)
 
-    (root / "sparse" / "0" / "points3D.bin").unlink()
-    with pytest.raises(DatasetError, match=r"sparse/0: points3D.bin not found beside cameras.bin"):
+    model = root / "sparse" / "0"
+    (model / "points3D.bin").unlink()  # not needed
+    (model / "frames.bin").unlink()  # nor COLMAP 4's rigs and frames
+    (model / "rigs.bin").unlink()
+    (model / "cameras.bin").write_bytes((model / "cameras.bin").read_bytes()[:-3])
+    with pytest.raises(DatasetError, match=r"^sparse/0/cameras.bin: truncated at byte 32 \(reading camera 1's 4 "):
         load_scene(root)
-
-    (root / "sparse" / "0" / "images.bin").write_bytes(b"\x05garbage")
-    (root / "sparse" / "0" / "points3D.bin").write_bytes(b"")
-    with pytest.raises(DatasetError, match=r"sparse/0: cannot read the COLMAP model"):
+    (model / "cameras.bin").unlink()
+    with pytest.raises(DatasetError, match=r"no dataset found"):
         load_scene(root)
 
 
@@ -300,3 +304,57 @@ def test_transforms_json_wins_over_a_colmap_model_beside_it(tmp_path):
     write_colmap_model(root / "sparse" / "0", [("PINHOLE", 16, 12, [12.0, 12.0, 8.0, 6.0])], [("000.png", 0, pose_at(0))])
     assert detect_format(root) == "instant_ngp"
     assert not is_dataset_folder(tmp_path / "nothing_here")
+
+
+def small_model(tmp_path: Path, binary: bool = True) -> Path:
+    return write_colmap_model(tmp_path / "m", [("OPENCV", 16, 12, [9.0, 9.5, 8.0, 6.0, 0.01, 0.0, 0.0, 0.0])],
+                              [("a.png", 0, pose_at(0)), ("b.png", 0, pose_at(1))], binary)
+
+
+def test_colmap_reader_matches_pycolmap_and_refuses_every_truncation(tmp_path):
+    import pycolmap
+
+    model = small_model(tmp_path)
+    cameras, images = read_model(model)
+    theirs = pycolmap.Reconstruction(str(model))
+    assert cameras[1].model == "OPENCV" and cameras[1].params == list(theirs.cameras[1].params)
+    for image in images:
+        ref = next(im for im in theirs.images.values() if im.name == image.name)
+        assert np.allclose(image.cam_from_world[:3], ref.cam_from_world().matrix(), atol=1e-12)
+    for name in ("cameras.bin", "images.bin"):
+        whole = (model / name).read_bytes()
+        for cut in range(len(whole)):
+            (model / name).write_bytes(whole[:cut])
+            with pytest.raises(ColmapError, match=rf"^{name}: (truncated at byte|claims|image name at byte)"):
+                read_model(model)
+        (model / name).write_bytes(whole + b"\0")
+        with pytest.raises(ColmapError, match=rf"^{name}: 1 unexpected bytes after the last entry"):
+            read_model(model)
+        (model / name).write_bytes(struct.pack("<Q", 2**62) + whole[8:])
+        with pytest.raises(ColmapError, match=rf"^{name}: claims {2**62} (cameras|images) at byte 0"):
+            read_model(model)
+        (model / name).write_bytes(whole)
+
+
+def test_colmap_text_errors_name_the_line(tmp_path):
+    model = small_model(tmp_path, binary=False)
+    cameras_txt = (model / "cameras.txt").read_text()
+    images_txt = (model / "images.txt").read_text()
+    header_lines = sum(line.startswith("#") for line in cameras_txt.splitlines())
+    assert read_model(model)[1][1].name == "b.png"
+    for bad, message in (("1 OPENCV 16 12 9 9.5 8 6", "camera model OPENCV has 8 parameters, got 4"),
+                         ("1 KANNALA 16 12 9", "unknown camera model 'KANNALA'"),
+                         ("1 PINHOLE 16 twelve 9 9 8 6", "image size 'twelve' is not a integer"),
+                         ("1 PINHOLE 16 12 9 nan 8 6", r"parameters \[9.0, nan, 8.0, 6.0\] are not all finite")):
+        (model / "cameras.txt").write_text("# c\n" * header_lines + bad + "\n")
+        with pytest.raises(ColmapError, match=rf"^cameras.txt: line {header_lines + 1}: {message}"):
+            read_model(model)
+    (model / "cameras.txt").write_text(cameras_txt)
+    lines = images_txt.splitlines()
+    first = next(i for i, line in enumerate(lines) if not line.startswith("#"))
+    fields = lines[first].split()
+    lines[first] = " ".join(fields[:1] + ["2", "0", "0", "0"] + fields[5:])
+    (model / "images.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(ColmapError, match=rf"^images.txt: line {first + 1}: image 1 \('a.png'\): rotation "
+                                          r"quaternion \[2.0, 0.0, 0.0, 0.0\] has norm 2, not 1"):
+        read_model(model)

@@ -9,7 +9,7 @@ Lens distortion is read into ``Cameras.distortion`` and applied by the rays
 OPENCV_FISHEYE with ``k1..k4, p1, p2`` (top level or per frame); instant-ngp's
 ``k1, k2, p1, p2`` without a ``camera_model`` are OPENCV. A COLMAP model
 (``sparse/0/cameras.bin|txt`` and ``images.bin|txt``, images under ``images/``)
-is read with pycolmap and turned into the same frames (its poses from OpenCV's
+is read by ``voxe_core.colmap`` and turned into the same frames (its poses from OpenCV's
 camera axes into the OpenGL ones, the world frame kept).
 """
 
@@ -28,6 +28,7 @@ import torch.nn.functional as F
 from PIL import Image
 
 from .cameras import DISTORTION_KEYS, Cameras, distort_points, undistort_points
+from .colmap import ColmapError, read_model
 
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y")
 # nerfstudio's camera_model -> Cameras.distortion_model (None: a pinhole)
@@ -297,37 +298,30 @@ def colmap_transforms(root: Path) -> tuple[Path, dict]:
     Frames are the model's images sorted by name (``images/<name>``), each with its camera's
     intrinsics and distortion and its pose as an OpenGL camera-to-world matrix.
     """
-    import pycolmap  # only COLMAP input needs it
-
     model_dir = root / COLMAP_MODEL_DIR
-    ext = "bin" if (model_dir / "cameras.bin").is_file() else "txt"
-    images_file = model_dir / f"images.{ext}"
-    absent = [f"{name}.{ext}" for name in ("images", "points3D") if not (model_dir / f"{name}.{ext}").is_file()]
-    if absent:
-        raise DatasetError(f"{COLMAP_MODEL_DIR.as_posix()}: {' and '.join(absent)} not found beside cameras.{ext} "
-                           "(a COLMAP sparse model is cameras, images and points3D files)", model_dir / absent[0])
     try:
-        reconstruction = pycolmap.Reconstruction(str(model_dir))
-    except Exception as e:  # noqa: BLE001 - pycolmap raises bare RuntimeErrors (and worse) on damaged files
-        raise DatasetError(f"{COLMAP_MODEL_DIR.as_posix()}: cannot read the COLMAP model: {e}", model_dir) from None
+        cameras, images = read_model(model_dir)
+    except ColmapError as e:
+        raise DatasetError(f"{COLMAP_MODEL_DIR.as_posix()}/{e}", e.path) from None
+    images_file = model_dir / ("images.bin" if (model_dir / "cameras.bin").is_file() else "images.txt")
     frames: list[dict] = []
     where = _Where(images_file, frames)
-    posed = [image for image in reconstruction.images.values() if image.has_pose]
-    for image in sorted(posed, key=lambda im: im.name):
-        camera = reconstruction.cameras[image.camera_id]
+    for image in sorted(images, key=lambda im: im.name):
         frame = {"file_path": f"{COLMAP_IMAGE_DIR}/{image.name}"}
         frames.append(frame)
-        if camera.model.name not in _COLMAP_MODELS:
-            raise where(f"camera {image.camera_id} has COLMAP model {camera.model.name}, which is not supported "
-                        f"(use one of {', '.join(_COLMAP_MODELS)})", len(frames) - 1)
-        names, camera_model = _COLMAP_MODELS[camera.model.name]
-        params = dict(zip(names, map(float, camera.params)))
+        camera = cameras.get(image.camera_id)
+        if camera is None:
+            raise where(f"camera {image.camera_id} is not in {COLMAP_MODEL_DIR.as_posix()}/cameras"
+                        f"{images_file.suffix}", len(frames) - 1)
+        if camera.model not in _COLMAP_MODELS:
+            raise where(f"camera {image.camera_id} has COLMAP model {camera.model}, which is not supported (use one "
+                        f"of {', '.join(_COLMAP_MODELS)})", len(frames) - 1)
+        names, camera_model = _COLMAP_MODELS[camera.model]
+        params = dict(zip(names, camera.params))
         if "f" in params:
             params["fl_x"] = params["fl_y"] = params.pop("f")
-        w2c = np.eye(4)
-        w2c[:3] = image.cam_from_world().matrix()
         frame.update(camera_model=camera_model, w=float(camera.width), h=float(camera.height), **params,
-                     transform_matrix=(np.linalg.inv(w2c) @ _OPENCV_TO_OPENGL).tolist())
+                     transform_matrix=(np.linalg.inv(image.cam_from_world) @ _OPENCV_TO_OPENGL).tolist())
     if not frames:
         raise where("the COLMAP model registers no images")
     return images_file, {"frames": frames}
