@@ -22,6 +22,7 @@ from voxe_core.colmap import ColmapError, read_model
 from voxe_core.data import DatasetError, detect_format, is_dataset_folder, load_scene
 
 import needs
+from captures import pose_at, square_capture, write_colmap_model
 from needs import FOX
 
 OPENCV = torch.tensor([0.0578, -0.0805, 0.01, -0.002, -0.00098, 0.00016], dtype=torch.float64)
@@ -160,7 +161,7 @@ def test_instant_ngp_coefficients_without_a_camera_model_are_opencv(tmp_path):
     ({"camera_model": "EQUIRECTANGULAR"}, None, None, "camera_model 'EQUIRECTANGULAR' is not supported"),
     ({}, {2: {"camera_model": "FISHEYE"}}, 2, "camera_model 'FISHEYE' is not supported"),
     ({"camera_model": "OPENCV"}, {1: {"camera_model": "OPENCV_FISHEYE"}}, 1,
-     "camera_model OPENCV_FISHEYE differs from frame 0's OPENCV"),
+     "camera_model OPENCV_FISHEYE differs from frame 0's OPENCV; the fisheye and the OPENCV model cannot be mixed"),
     ({"camera_model": "PINHOLE", "k1": 0.2}, None, 0, "camera_model PINHOLE has no such distortion term, but k1 = 0.2"),
     ({"camera_model": "OPENCV_FISHEYE", "p1": 0.01}, None, 0, "OPENCV_FISHEYE has no such distortion term, but p1"),
     ({"camera_model": "OPENCV", "k2": "0.1"}, None, None, "'k2' must be a number"),
@@ -186,26 +187,6 @@ def test_fox_distortion_is_applied():
 
 
 # ---------------------------------------------------------------- COLMAP sparse models
-
-
-def write_colmap_model(model_dir: Path, cameras: list[tuple[str, int, int, list[float]]],
-                       images: list[tuple[str, int, np.ndarray]], binary: bool = True) -> Path:
-    """``cameras``: (COLMAP model name, width, height, params); ``images``: (name, camera index, 4x4 OpenGL c2w)."""
-    import pycolmap
-
-    reconstruction = pycolmap.Reconstruction()
-    for camera_id, (model, width, height, params) in enumerate(cameras, start=1):
-        camera = pycolmap.Camera.create_from_model_name(camera_id, model, 1.0, width, height)
-        camera.params = params
-        reconstruction.add_camera_with_trivial_rig(camera)
-    for image_id, (name, camera_index, c2w) in enumerate(images, start=1):
-        w2c = np.linalg.inv(c2w @ np.diag([1.0, -1.0, -1.0, 1.0]))  # OpenGL axes -> OpenCV's, then invert
-        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(w2c[:3, :3]), w2c[:3, 3])
-        image = pycolmap.Image(name=name, camera_id=camera_index + 1, image_id=image_id)
-        reconstruction.add_image_with_trivial_frame(image, pose)
-    model_dir.mkdir(parents=True, exist_ok=True)
-    (reconstruction.write_binary if binary else reconstruction.write_text)(str(model_dir))
-    return model_dir
 
 
 def fox_as_colmap(root: Path, binary: bool, count: int = 3) -> Path:
@@ -236,20 +217,6 @@ def test_colmap_model_of_fox_loads_as_its_transforms(tmp_path, binary):
     assert held.names == ["images/0001.jpg", "images/0003.jpg"]
 
 
-def square_capture(tmp_path: Path, n: int = 3, size=(16, 12)) -> Path:
-    root = tmp_path / "cap"
-    (root / "images").mkdir(parents=True)
-    for i in range(n):
-        Image.new("RGB", size, (30 * i, 50, 70)).save(root / "images" / f"{i}.png")
-    return root
-
-
-def pose_at(x: float) -> np.ndarray:
-    c2w = np.eye(4)
-    c2w[:3, 3] = (x, 0.0, 4.0)
-    return c2w
-
-
 def test_colmap_simple_models_share_a_focal_and_fisheye_keeps_its_terms(tmp_path):
     root = square_capture(tmp_path)
     write_colmap_model(root / "sparse" / "0", [("SIMPLE_RADIAL", 16, 12, [13.0, 8.0, 6.0, 0.03]),
@@ -270,20 +237,20 @@ def test_colmap_errors_name_file_frame_and_problem(tmp_path):
     write_colmap_model(root / "sparse" / "0", [("PINHOLE", 16, 12, [12.0, 12.0, 8.0, 6.0]),
                                                ("FULL_OPENCV", 16, 12, [12.0, 12.0, 8.0, 6.0] + [0.0] * 8)],
                        [("0.png", 0, pose_at(0)), ("1.png", 1, pose_at(1))])
-    with pytest.raises(DatasetError, match=r"^images.bin frame 1 \('images/1.png'\): camera 2 has COLMAP model "
+    with pytest.raises(DatasetError, match=r"^sparse/0/images.bin frame 1 \('images/1.png'\): camera 2 has COLMAP model "
                                            "FULL_OPENCV, which is not supported"):
         load_scene(root)
 
     root = square_capture(tmp_path / "missing")
     write_colmap_model(root / "sparse" / "0", [("PINHOLE", 16, 12, [12.0, 12.0, 8.0, 6.0])],
                        [("0.png", 0, pose_at(0)), ("7.png", 0, pose_at(1))])
-    with pytest.raises(DatasetError, match=r"^images.bin frame 1 \('images/7.png'\): image not found"):
+    with pytest.raises(DatasetError, match=r"^sparse/0/images.bin frame 1 \('images/7.png'\): image not found"):
         load_scene(root)
 
     root = square_capture(tmp_path / "size")
     write_colmap_model(root / "sparse" / "0", [("PINHOLE", 32, 12, [12.0, 12.0, 8.0, 6.0])],
                        [("0.png", 0, pose_at(0))])
-    with pytest.raises(DatasetError, match=r"^images.bin frame 0 \('images/0.png'\): image is 16x12 but the "
+    with pytest.raises(DatasetError, match=r"^sparse/0/images.bin frame 0 \('images/0.png'\): image is 16x12 but the "
                                            "intrinsics say w=32"):
         load_scene(root)
 

@@ -85,11 +85,12 @@ class Scene:
 class _Where:
     """Builds DatasetErrors that say which json file and which frame."""
 
-    def __init__(self, json_path: Path, frames: list | None = None):
+    def __init__(self, json_path: Path, frames: list | None = None, label: str | None = None):
         self.json_path, self.frames = json_path, [] if frames is None else frames
+        self.label = label or json_path.name
 
     def __call__(self, message: str, frame: int | None = None, path=None) -> DatasetError:
-        prefix = self.json_path.name
+        prefix = self.label
         if frame is not None:
             fp = self.frames[frame].get("file_path") if isinstance(self.frames[frame], dict) else None
             prefix += f" frame {frame}" + (f" ({fp!r})" if fp is not None else "")
@@ -163,7 +164,7 @@ def load_scene(
     else:
         json_path = root / (f"transforms_{split}.json" if fmt == "nerf_synthetic" else "transforms.json")
         meta = _read_json(json_path)
-    where = _Where(json_path)
+    where = _Where(json_path, label=json_path.relative_to(root).as_posix())
     frames = meta.get("frames")
     if not isinstance(frames, list):
         raise where("'frames' is missing or not a list")
@@ -190,9 +191,11 @@ def load_scene(
         if "fl_x" not in merged and "camera_angle_x" not in merged:
             raise where("missing intrinsics: need 'camera_angle_x' or 'fl_x' (top level or per frame)", i)
         model = _camera_model(frame, where, i) or top_model or ("OPENCV" if _distorts(merged) else "PINHOLE")
-        if models and model != models[0]:
-            raise where(f"camera_model {model} differs from frame 0's {models[0]}; one capture, one lens model", i)
         _check_distortion(model, merged, where, i)
+        lens = next((j for j, m in enumerate(models) if m != "PINHOLE"), None)  # pinholes join either lens model
+        if model != "PINHOLE" and lens is not None and model != models[lens]:
+            raise where(f"camera_model {model} differs from frame {lens}'s {models[lens]}; the fisheye and the "
+                        "OPENCV model cannot be mixed in one capture", i)
         per_frame.append(merged)
         paths.append(frame["file_path"])
         models.append(model)
@@ -234,7 +237,7 @@ def load_scene(
     intr = np.array([_resolve_intrinsics(per_frame[i], W, H, where, i) for i in keep], dtype=np.float64)
     c2w = torch.from_numpy(poses[keep]).float()
     cams = Cameras(c2w, *(torch.from_numpy(intr[:, k]).float() for k in range(4)), W, H)
-    distortion_model = CAMERA_MODELS[models[0]]
+    distortion_model = CAMERA_MODELS[next((m for m in models if m != "PINHOLE"), "PINHOLE")]
     if distortion_model is not None and any(_distorts(per_frame[i]) for i in keep):
         cams.distortion = torch.tensor([[per_frame[i].get(k, 0.0) for k in DISTORTION_KEYS] for i in keep])
         cams.distortion_model = distortion_model
@@ -305,7 +308,7 @@ def colmap_transforms(root: Path) -> tuple[Path, dict]:
         raise DatasetError(f"{COLMAP_MODEL_DIR.as_posix()}/{e}", e.path) from None
     images_file = model_dir / ("images.bin" if (model_dir / "cameras.bin").is_file() else "images.txt")
     frames: list[dict] = []
-    where = _Where(images_file, frames)
+    where = _Where(images_file, frames, label=images_file.relative_to(root).as_posix())
     for image in sorted(images, key=lambda im: im.name):
         frame = {"file_path": f"{COLMAP_IMAGE_DIR}/{image.name}"}
         frames.append(frame)
