@@ -45,7 +45,8 @@ from PIL import Image, UnidentifiedImageError
 from voxe_core.data import DatasetError, colmap_transforms, detect_format, is_dataset_folder, load_scene
 from voxe_core.mesh_input import MESH_INPUT_SUFFIXES, TEXTURE_SUFFIXES
 from voxe_service import datasets
-from voxe_service.datasets import DATASET_ARCHIVE, MESH_FOLDER, MESH_FORMAT, MESH_NAMES, UPLOAD_ARCHIVE, ignored, package
+from voxe_service.datasets import (DATASET_ARCHIVE, MESH_FOLDER, MESH_FORMAT, MESH_NAMES, MESH_OPTIONS, UPLOAD_ARCHIVE,
+                                   ignored, package)
 
 _RATIO_FLOOR = 4 << 20  # below this many bytes out of an entry, any ratio is fine (small text compresses well)
 # Small reads: zipfile reads ahead as many compressed bytes as were asked for, and with a lying directory
@@ -212,8 +213,9 @@ def dataset_root(folder: Path) -> Path:
     return root
 
 
-def pack_mesh_upload(root: Path, dest: Path) -> Path | None:
-    """The upload's mesh (and texture) copied to ``dest/mesh/`` for the ingest, or None when it is not a mesh.
+def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto") -> Path | None:
+    """The upload's mesh (and texture) copied to ``dest/mesh/`` with its ``shading`` option for the ingest, or
+    None when it is not a mesh.
 
     The file rules are checked here: one mesh, and for an OBJ at most one texture image.
     A dataset folder is no mesh even with a mesh in it (COLMAP's fused.ply, say).
@@ -241,6 +243,7 @@ def pack_mesh_upload(root: Path, dest: Path) -> Path | None:
             shutil.copyfile(source, kept / f"{stem}{source.suffix.lower()}")
             names[f"{stem}{source.suffix.lower()}"] = source.relative_to(root).as_posix()
     (kept / MESH_NAMES).write_text(json.dumps(names))  # the ingest's messages name the files as uploaded
+    (kept / MESH_OPTIONS).write_text(json.dumps({"shading": shading}))
     return dest
 
 
@@ -340,8 +343,12 @@ def stage_upload(
     validation_downsample: int,
     max_ratio: float,
     max_image_pixels: int,
+    mesh_shading: str | None = None,
 ) -> tuple[StagedUpload, Path]:
-    """Unpack, check and pack an upload; returns (result, staging folder to remove after storing)."""
+    """Unpack, check and pack an upload; returns (result, staging folder to remove after storing).
+
+    ``mesh_shading`` (a mesh upload's ``voxe_core.mesh_input.shade_mesh`` mode; default "auto") is
+    refused for a dataset of images."""
     if (archive is None) == (not files):
         raise UploadError("send either one zip 'archive' or the dataset's 'files' (with the transforms json)")
     work_dir.mkdir(parents=True, exist_ok=True)
@@ -357,13 +364,16 @@ def stage_upload(
         check_image_pixels(unpacked, max_image_pixels)
         root = dataset_root(unpacked)
         packed = staging / "packed.zip"
-        mesh = pack_mesh_upload(root, staging / "mesh_upload")
+        mesh = pack_mesh_upload(root, staging / "mesh_upload", mesh_shading or "auto")
         if mesh is not None:  # rendered by the ingest into MESH_VIEWS views of MESH_VIEW_SIZE px (train and test)
             package(mesh, packed)
             size = datasets.MESH_VIEW_SIZE
             result = StagedUpload(MESH_FORMAT, datasets.MESH_VIEWS, size, size, ["train", "test"], packed,
                                   UPLOAD_ARCHIVE)
         else:
+            if mesh_shading is not None:
+                raise UploadError("mesh_shading applies to mesh uploads only (.obj or .ply); this upload is a "
+                                  "dataset of images")
             fmt, count, width, height, splits = check_dataset(root, unpacked, validation_downsample)
             package(root, packed)
             result = StagedUpload(fmt, count, width, height, splits, packed, DATASET_ARCHIVE)
