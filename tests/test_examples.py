@@ -8,6 +8,7 @@ import importlib
 import pytest
 
 MODULES = ["voxe_core.grid", "voxe_core.volrend", "voxe_core.render", "voxe_core.backbones", "voxe_core.presets",
+           "voxe_core.cameras", "voxe_core.mesh_input",
            "voxe_client.client"]
 
 
