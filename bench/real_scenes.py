@@ -21,6 +21,7 @@ scored on its own undistorted held-out images.
 
     python bench/real_scenes.py             # ~15 min on 2 shared cores (67x120 px, 64³)
     python bench/real_scenes.py --compare-lens --resolution 96 --iterations 200 600 --rays 2048
+    python bench/real_scenes.py --compare-lens --parallel   # all three at once (a shared, loaded machine)
 """
 
 from __future__ import annotations
@@ -187,6 +188,9 @@ def main() -> None:
     parser.add_argument("--eval-every", type=int, default=100)
     parser.add_argument("--compare-lens", action="store_true",
                         help="the scene backbone with each lens variant (rays, undistort, ignore) instead")
+    parser.add_argument("--parallel", action="store_true",
+                        help="run the variants at once: on a machine loaded by others they share its cores alike "
+                             "(sequential runs would each meet a different load)")
     parser.add_argument("--lens", choices=LENS_VARIANTS, default="rays", help=argparse.SUPPRESS)
     parser.add_argument("--single", choices=BACKBONE_NAMES, help=argparse.SUPPRESS)
     parser.add_argument("--scratch", help=argparse.SUPPRESS)
@@ -201,13 +205,29 @@ def main() -> None:
 
 def compare(args) -> None:
     runs = [("scene", lens) for lens in LENS_VARIANTS] if args.compare_lens else [(b, "rays") for b in BACKBONE_NAMES]
+    commands = [[sys.executable, __file__, "--single", backbone, "--lens", lens, "--downsample", str(args.downsample),
+                 "--resolution", str(args.resolution), "--iterations", *map(str, args.iterations),
+                 "--rays", str(args.rays), "--eval-every", str(args.eval_every), "--scratch", args.scratch]
+                for backbone, lens in runs]
+    prepare_s = None
+    if args.parallel:
+        if args.compare_lens:  # undistort before the runs start, so no run's clock includes another's preprocessing
+            t0 = time.perf_counter()
+            undistorted_copy(Path(args.scratch))
+            prepare_s = time.perf_counter() - t0
+        processes = [subprocess.Popen(c, stdout=subprocess.PIPE, text=True, cwd=HERE.parent) for c in commands]
+        outputs = [process.communicate()[0] for process in processes]
+        if any(process.returncode for process in processes):
+            raise SystemExit("a run failed")
+    else:
+        outputs = [subprocess.run(c, check=True, stdout=subprocess.PIPE, text=True, cwd=HERE.parent).stdout
+                   for c in commands]
     results = []
-    for backbone, lens in runs:
-        command = [sys.executable, __file__, "--single", backbone, "--lens", lens, "--downsample", str(args.downsample),
-                   "--resolution", str(args.resolution), "--iterations", *map(str, args.iterations),
-                   "--rays", str(args.rays), "--eval-every", str(args.eval_every), "--scratch", args.scratch]
-        out = subprocess.run(command, check=True, stdout=subprocess.PIPE, text=True, cwd=HERE.parent)
-        result = json.loads(out.stdout.strip().splitlines()[-1])
+    for (backbone, lens), output in zip(runs, outputs):
+        result = json.loads(output.strip().splitlines()[-1])
+        result["parallel"] = args.parallel
+        if lens == "undistort" and prepare_s is not None:
+            result["prepare_s"] = prepare_s
         results.append(result)
         own = f", own undistorted test {result['psnr_own_test']:.2f}" if "psnr_own_test" in result else ""
         print(f"{backbone:10s} {lens:9s} {result['train_s']:7.1f} s  PSNR {result['psnr']:.2f} dB "

@@ -189,10 +189,11 @@ def test_fox_distortion_is_applied():
 # ---------------------------------------------------------------- COLMAP sparse models
 
 
-def fox_as_colmap(root: Path, binary: bool, count: int = 3) -> Path:
+def fox_as_colmap(root: Path, binary: bool, count: int = 3, step: int = 1) -> Path:
+    """fox's first ``count`` frames (every ``step``-th) as a COLMAP model, its images folder a link to the data."""
     meta = json.loads((FOX / "transforms.json").read_text())
     params = [meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"], meta["k1"], meta["k2"], meta["p1"], meta["p2"]]
-    frames = meta["frames"][:count]
+    frames = meta["frames"][::step][:count]
     images = [(Path(f["file_path"]).name, 0, np.array(f["transform_matrix"])) for f in frames]
     write_colmap_model(root / "sparse" / "0", [("OPENCV", int(meta["w"]), int(meta["h"]), params)], images, binary)
     (root / "images").symlink_to(FOX / "images", target_is_directory=True)
@@ -325,3 +326,16 @@ def test_colmap_text_errors_name_the_line(tmp_path):
     with pytest.raises(ColmapError, match=rf"^images.txt: line {first + 1}: image 1 \('a.png'\): rotation "
                                           r"quaternion \[2.0, 0.0, 0.0, 0.0\] has norm 2, not 1"):
         read_model(model)
+
+
+@needs.needs_data(FOX)
+def test_cli_reconstructs_a_colmap_capture(tmp_path, capsys):
+    from voxe_core.backbones import load_grid
+    from voxe_core.cli import main
+
+    root = fox_as_colmap(tmp_path / "fox_colmap", binary=True, count=5, step=10)  # views around the fox
+    out = tmp_path / "fox.safetensors"
+    args = ["--downsample", "16", "--resolution", "16", "--iterations", "2", "--rays", "64", "-q"]
+    assert main(["reconstruct", str(root), "--out", str(out), *args]) == 0
+    grid = load_grid(out)
+    assert type(grid).__name__ == "SceneGrid" and torch.isfinite(grid.features).all()  # photos: the scene backbone
