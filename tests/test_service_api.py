@@ -257,6 +257,18 @@ def test_colmap_and_nerfstudio_uploads(client, root):
     assert client.get("/v1/scenes").json()["total"] == 1 and staged(root) == []
 
 
+def test_mesh_shading_is_checked_at_upload(client, dataset, root):
+    body = zip_folder(dataset, root / "mic.zip").read_bytes()
+    response = client.post("/v1/scenes", files={"archive": ("mic.zip", body, "application/zip")},
+                           data={"mesh_shading": "flat"})
+    assert response.status_code == 422 and response.json()["detail"][0]["loc"] == ["body", "mesh_shading"]
+    response = client.post("/v1/scenes", files={"archive": ("mic.zip", body, "application/zip")},
+                           data={"mesh_shading": "baked"})
+    assert response.status_code == 422
+    assert "mesh_shading applies to mesh uploads only" in response.json()["detail"]
+    assert client.get("/v1/scenes").json()["total"] == 0 and staged(root) == []
+
+
 def test_upload_needs_exactly_one_source(client):
     response = client.post("/v1/scenes", data={"name": "nothing"})
     assert response.status_code == 422 and "either one zip" in response.json()["detail"]
