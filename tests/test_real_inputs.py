@@ -160,6 +160,7 @@ def test_instant_ngp_coefficients_without_a_camera_model_are_opencv(tmp_path):
 @pytest.mark.parametrize("top, frame_extra, frame, message", [
     ({"camera_model": "EQUIRECTANGULAR"}, None, None, "camera_model 'EQUIRECTANGULAR' is not supported"),
     ({}, {2: {"camera_model": "FISHEYE"}}, 2, "camera_model 'FISHEYE' is not supported"),
+    ({}, {1: {"camera_model": ["OPENCV"]}}, 1, r"camera_model \['OPENCV'\] is not supported"),
     ({"camera_model": "OPENCV"}, {1: {"camera_model": "OPENCV_FISHEYE"}}, 1,
      "camera_model OPENCV_FISHEYE differs from frame 0's OPENCV; the fisheye and the OPENCV model cannot be mixed"),
     ({"camera_model": "PINHOLE", "k1": 0.2}, None, 0, "camera_model PINHOLE has no such distortion term, but k1 = 0.2"),

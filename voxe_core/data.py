@@ -253,7 +253,7 @@ def load_scene(
 
 def _camera_model(source: dict, where: _Where, frame: int | None) -> str | None:
     model = source.get("camera_model")
-    if model is not None and model not in CAMERA_MODELS:
+    if model is not None and (not isinstance(model, str) or model not in CAMERA_MODELS):
         raise where(f"camera_model {model!r} is not supported (use one of {', '.join(CAMERA_MODELS)})", frame)
     return model
 
