@@ -14,9 +14,11 @@ extracting, from the bytes actually read and written, never from the archive's
 directory. Images are checked against ``max_image_pixels`` from their headers
 before any is decoded (decompression bombs).
 
-Datasets: ``voxe_core.data.load_scene`` checks the transforms json with only its first
-image decoded (frames, poses, intrinsics, paths inside the upload); then every frame's
-image must exist and have a readable header of the first image's size.
+Datasets (NeRF-synthetic, instant-ngp / nerfstudio ``transforms.json``, a COLMAP model
+``sparse/0/cameras|images.bin|txt`` beside ``images/``): ``voxe_core.data.load_scene`` checks
+the cameras with only the first image decoded (frames, poses, intrinsics, lens distortion,
+paths inside the upload); then every frame's image must exist and have a readable header
+of the first image's size.
 
 Meshes: an upload with no transforms json but one ``.obj`` (with at most one texture
 image) or ``.ply`` (vertex colours) is packed under ``mesh/`` (``voxe_service.datasets``);
@@ -40,16 +42,16 @@ from typing import BinaryIO
 
 from PIL import Image, UnidentifiedImageError
 
-from voxe_core.data import DatasetError, detect_format, load_scene
+from voxe_core.data import DatasetError, colmap_transforms, detect_format, is_dataset_folder, load_scene
 from voxe_core.mesh_input import MESH_INPUT_SUFFIXES, TEXTURE_SUFFIXES
 from voxe_service import datasets
-from voxe_service.datasets import DATASET_ARCHIVE, MESH_FOLDER, MESH_FORMAT, MESH_NAMES, UPLOAD_ARCHIVE, ignored, package
+from voxe_service.datasets import (DATASET_ARCHIVE, MESH_FOLDER, MESH_FORMAT, MESH_NAMES, MESH_OPTIONS, UPLOAD_ARCHIVE,
+                                   ignored, package)
 
 _RATIO_FLOOR = 4 << 20  # below this many bytes out of an entry, any ratio is fine (small text compresses well)
 # Small reads: zipfile reads ahead as many compressed bytes as were asked for, and with a lying directory
 # (an entry claiming more compressed bytes than its stream has) that read-ahead would pad the ratio's divisor.
 _CHUNK = 64 << 10
-_TRANSFORMS = ("transforms.json", "transforms_train.json", "transforms_val.json", "transforms_test.json")
 
 
 class UploadError(ValueError):
@@ -198,10 +200,10 @@ def save_files(files: list[tuple[str, BinaryIO]], dest: Path, budget: _Budget) -
 
 
 def dataset_root(folder: Path) -> Path:
-    """The folder holding the transforms json: the upload itself, or its single top-level folder."""
+    """The dataset folder (transforms json or COLMAP model): the upload itself, or its single top-level folder."""
     root = folder
     for _ in range(4):
-        if any((root / n).is_file() for n in _TRANSFORMS):
+        if is_dataset_folder(root):
             return root
         children = [c for c in root.iterdir() if not ignored(PurePosixPath(c.name))]
         if len(children) == 1 and children[0].is_dir():
@@ -211,12 +213,14 @@ def dataset_root(folder: Path) -> Path:
     return root
 
 
-def pack_mesh_upload(root: Path, dest: Path) -> Path | None:
-    """The upload's mesh (and texture) copied to ``dest/mesh/`` for the ingest, or None when it is not a mesh.
+def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto") -> Path | None:
+    """The upload's mesh (and texture) copied to ``dest/mesh/`` with its ``shading`` option for the ingest, or
+    None when it is not a mesh.
 
     The file rules are checked here: one mesh, and for an OBJ at most one texture image.
+    A dataset folder is no mesh even with a mesh in it (COLMAP's fused.ply, say).
     """
-    if any((root / n).is_file() for n in _TRANSFORMS):
+    if is_dataset_folder(root):
         return None
     files = sorted(p for p in root.rglob("*") if p.is_file() and not ignored(PurePosixPath(p.name)))
     meshes = [p for p in files if p.suffix.lower() in MESH_INPUT_SUFFIXES]
@@ -239,6 +243,7 @@ def pack_mesh_upload(root: Path, dest: Path) -> Path | None:
             shutil.copyfile(source, kept / f"{stem}{source.suffix.lower()}")
             names[f"{stem}{source.suffix.lower()}"] = source.relative_to(root).as_posix()
     (kept / MESH_NAMES).write_text(json.dumps(names))  # the ingest's messages name the files as uploaded
+    (kept / MESH_OPTIONS).write_text(json.dumps({"shading": shading}))
     return dest
 
 
@@ -287,11 +292,15 @@ def check_dataset(root: Path, staging: Path, downsample: int) -> tuple[str, int,
             if "smaller than downsample" not in str(exc):
                 raise
             load_scene(root, "train", downsample=1, max_images=1, confine_paths=True)
+        if fmt == "colmap":
+            json_path, meta = colmap_transforms(root)
+        else:
+            json_path = root / ("transforms_train.json" if fmt == "nerf_synthetic" else "transforms.json")
+            meta = json.loads(json_path.read_bytes())  # parsed and checked by load_scene
     except DatasetError as exc:
         raise _invalid(str(exc), staging) from None
-    json_path = root / ("transforms_train.json" if fmt == "nerf_synthetic" else "transforms.json")
-    frames = json.loads(json_path.read_bytes())["frames"]  # parsed and checked by load_scene
-    width, height = _check_frame_images(root, json_path.name, frames, staging)
+    frames = meta["frames"]
+    width, height = _check_frame_images(root, json_path.relative_to(root).as_posix(), frames, staging)
     if fmt == "nerf_synthetic":
         splits = [s for s in ("train", "val", "test") if (root / f"transforms_{s}.json").is_file()]
     else:
@@ -334,8 +343,12 @@ def stage_upload(
     validation_downsample: int,
     max_ratio: float,
     max_image_pixels: int,
+    mesh_shading: str | None = None,
 ) -> tuple[StagedUpload, Path]:
-    """Unpack, check and pack an upload; returns (result, staging folder to remove after storing)."""
+    """Unpack, check and pack an upload; returns (result, staging folder to remove after storing).
+
+    ``mesh_shading`` (a mesh upload's ``voxe_core.mesh_input.shade_mesh`` mode; default "auto") is
+    refused for a dataset of images."""
     if (archive is None) == (not files):
         raise UploadError("send either one zip 'archive' or the dataset's 'files' (with the transforms json)")
     work_dir.mkdir(parents=True, exist_ok=True)
@@ -351,13 +364,16 @@ def stage_upload(
         check_image_pixels(unpacked, max_image_pixels)
         root = dataset_root(unpacked)
         packed = staging / "packed.zip"
-        mesh = pack_mesh_upload(root, staging / "mesh_upload")
+        mesh = pack_mesh_upload(root, staging / "mesh_upload", mesh_shading or "auto")
         if mesh is not None:  # rendered by the ingest into MESH_VIEWS views of MESH_VIEW_SIZE px (train and test)
             package(mesh, packed)
             size = datasets.MESH_VIEW_SIZE
             result = StagedUpload(MESH_FORMAT, datasets.MESH_VIEWS, size, size, ["train", "test"], packed,
                                   UPLOAD_ARCHIVE)
         else:
+            if mesh_shading is not None:
+                raise UploadError("mesh_shading applies to mesh uploads only (.obj or .ply); this upload is a "
+                                  "dataset of images")
             fmt, count, width, height, splits = check_dataset(root, unpacked, validation_downsample)
             package(root, packed)
             result = StagedUpload(fmt, count, width, height, splits, packed, DATASET_ARCHIVE)

@@ -101,7 +101,8 @@ def test_instant_ngp_fox_downsampled():
     assert torch.allclose(scene.cameras.fy, torch.full((2,), meta["fl_y"] / 8))
     assert torch.allclose(scene.cameras.cx, torch.full((2,), meta["cx"] / 8))
     assert torch.allclose(scene.cameras.cy, torch.full((2,), meta["cy"] / 8))
-    assert scene.distortion == {k: meta[k] for k in ("k1", "k2", "p1", "p2")}
+    k1, k2, p1, p2 = (meta[k] for k in ("k1", "k2", "p1", "p2"))
+    assert torch.allclose(scene.cameras.distortion, torch.tensor([k1, k2, 0.0, 0.0, p1, p2]).expand(2, 6))
     assert scene.aabb_scale == 4.0
     assert 0.0 <= scene.images.min() and scene.images.max() <= 1.0 and scene.images.std() > 0.05
 
@@ -185,7 +186,7 @@ def test_camera_angle_y_and_per_frame_overrides(tmp_path):
     scene = load_scene(root)
     assert torch.allclose(scene.cameras.fx, torch.tensor([4.0, 7.0]))  # 0.5*8/tan(pi/4) = 4
     assert torch.allclose(scene.cameras.fy, torch.tensor([3.0, 7.0]))  # 0.5*6/tan(pi/4) = 3; fl_x wins
-    assert scene.distortion is None
+    assert scene.cameras.distortion is None
 
 
 def test_holdout_split_semantics(tmp_path):

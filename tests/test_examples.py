@@ -8,7 +8,8 @@ import importlib
 import pytest
 
 MODULES = ["voxe_core.grid", "voxe_core.gridfile", "voxe_core.volrend", "voxe_core.render", "voxe_core.backbones",
-           "voxe_core.presets", "voxe_core.progress", "voxe_core.guidance.loading", "voxe_core.export", "voxe_client.client",
+           "voxe_core.presets", "voxe_core.progress", "voxe_core.guidance.loading", "voxe_core.export",
+           "voxe_core.cameras", "voxe_core.mesh_input", "voxe_client.client",
            "voxe_service.model_inventory", "voxe_service.progress", "voxe_service.webhooks"]
 
 

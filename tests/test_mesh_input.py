@@ -14,13 +14,14 @@ from voxe_core.cameras import Cameras, look_at
 from voxe_core.export import extract_mesh
 from voxe_core.metrics import psnr
 from voxe_core.mesh_input import (
-    MeshError, VoxelizeConfig, chamfer_distance, hemisphere_cameras, load_mesh, rasterize, render_mesh_views,
-    sample_texture, voxelize,
+    SHADING_AMBIENT, SHADING_LIGHT, MeshError, SurfaceMesh, VoxelizeConfig, chamfer_distance, hemisphere_cameras,
+    load_mesh, rasterize, render_mesh_views, sample_texture, shade_mesh, voxelize,
 )
 from voxe_core.reconstruct import ReconstructConfig, reconstruct
 from voxe_core.render import render_image
 
 SPOT = DATA_ROOT / "meshes" / "spot"
+HORSE = DATA_ROOT / "meshes" / "horse" / "horse.obj"
 pytestmark = pytest.mark.usefixtures("single_thread")
 RED, BLUE = (255, 0, 0, 255), (0, 0, 255, 255)
 
@@ -190,18 +191,18 @@ def test_mesh_dataset_loads_back_as_the_rasterised_views(tmp_path, green_sphere)
 
 
 # ------------------------------------------------------------------ service upload
-def _stage(tmp_path, files):
+def _stage(tmp_path, files, mesh_shading=None):
     from api.uploads import stage_upload
 
     opened = [(name, open(path, "rb")) for name, path in files]
     try:
-        return stage_upload(tmp_path / "work", None, opened, 1 << 30, 100, 8, 1000.0, 1 << 26)
+        return stage_upload(tmp_path / "work", None, opened, 1 << 30, 100, 8, 1000.0, 1 << 26, mesh_shading)
     finally:
         for _, f in opened:
             f.close()
 
 
-def _ingest_mesh_upload(tmp_path, files):
+def _ingest_mesh_upload(tmp_path, files, mesh_shading=None):
     """What the API stores for a mesh upload, then what the worker's ingest makes of it:
     (staged, the stored archive's names, the dataset folder, its image count)."""
     import zipfile
@@ -210,7 +211,7 @@ def _ingest_mesh_upload(tmp_path, files):
 
     import shutil
 
-    staged, staging = _stage(tmp_path, files)
+    staged, staging = _stage(tmp_path, files, mesh_shading)
     root = tmp_path / "ingested"
     try:
         with zipfile.ZipFile(staged.archive) as archive:
@@ -234,7 +235,7 @@ def test_a_mesh_upload_is_stored_as_its_rendered_views(tmp_path, monkeypatch):
                                                          ("spot/spot.png", SPOT / "spot_texture.png")])
     assert (staged.format, staged.image_count, staged.width, staged.splits) == ("mesh", 4, 32, ["train", "test"])
     # Rendered by the ingest: the upload keeps the mesh, its texture and the names they were uploaded under.
-    assert stored == ["mesh/mesh.obj", "mesh/names.json", "mesh/texture.png"]
+    assert stored == ["mesh/mesh.obj", "mesh/names.json", "mesh/options.json", "mesh/texture.png"]
     assert count == 4
     package(root, tmp_path / "dataset.zip")
     names = zipfile.ZipFile(tmp_path / "dataset.zip").namelist()
@@ -256,3 +257,93 @@ def test_a_bad_mesh_upload_names_the_problem_and_leaves_nothing(tmp_path):
     with pytest.raises(UploadError, match="several meshes .'a.obj', 'b.ply'.; send one"):
         _stage(tmp_path, [("a.obj", SPOT / "spot_triangulated.obj"), ("b.ply", SPOT / "spot_triangulated.obj")])
     assert list((tmp_path / "work").iterdir()) == []
+
+
+# ------------------------------------------------------------------ baked shading (meshes without colour)
+def _unit_normals(vertices: np.ndarray) -> np.ndarray:
+    return vertices / np.linalg.norm(vertices, axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize("flip_winding", [False, True])
+def test_a_ball_is_shaded_by_the_lambert_term_alone(flip_winding):
+    """Nothing occludes a convex surface: the shading is ambient + (1 - ambient) max(0, n.l), whatever the winding."""
+    ball = trimesh.creation.icosphere(subdivisions=3)
+    faces = np.asarray(ball.faces)[:, ::-1].copy() if flip_winding else np.asarray(ball.faces)
+    shaded = shade_mesh(SurfaceMesh(np.asarray(ball.vertices), faces))
+    light = np.asarray(SHADING_LIGHT) / np.linalg.norm(SHADING_LIGHT)
+    expected = SHADING_AMBIENT + (1 - SHADING_AMBIENT) * np.clip(_unit_normals(ball.vertices) @ light, 0, None)
+    assert np.abs(shaded.shading - expected).max() < 0.02  # vertex normals of a subdivided icosahedron
+
+
+def test_occlusion_darkens_a_narrow_gap():
+    """Two slabs 0.1 apart: the faces looking into the gap see little sky; the same faces outside see half of it."""
+    slabs = [trimesh.creation.box((0.4, 1.6, 1.6), trimesh.transformations.translation_matrix((x, 0, 0)))
+             for x in (-0.25, 0.25)]
+    mesh = trimesh.util.concatenate(slabs).subdivide_to_size(0.1)
+    shaded = shade_mesh(SurfaceMesh(np.asarray(mesh.vertices), np.asarray(mesh.faces)), "baked")
+    v = mesh.vertices
+    middle = (np.abs(v[:, 1]) < 0.5) & (np.abs(v[:, 2]) < 0.5)
+    in_gap = middle & np.isclose(np.abs(v[:, 0]), 0.05)
+    outside = middle & np.isclose(np.abs(v[:, 0]), 0.45)
+    assert in_gap.sum() > 10 and outside.sum() > 10
+    assert shaded.shading[in_gap].mean() < 0.5 * shaded.shading[outside].mean()
+
+
+def test_shading_modes_and_what_auto_picks():
+    spot = load_mesh(SPOT / "spot_triangulated.obj", SPOT / "spot_texture.png")
+    assert shade_mesh(spot, "auto") is spot and spot.shading is None  # coloured: left as it is
+    assert shade_mesh(spot, "baked").shading is not None
+    bare = SurfaceMesh(spot.vertices, spot.faces)
+    assert shade_mesh(bare, "none") is bare and shade_mesh(bare, "auto").shading is not None
+    with pytest.raises(MeshError, match="mesh_shading must be one of auto, baked, none, got 'flat'"):
+        shade_mesh(bare, "flat")
+
+
+@pytest.fixture(scope="module")
+def horse():
+    return load_mesh(HORSE)
+
+
+def test_the_horse_has_shape_once_shaded_on_both_routes(horse):
+    """The horse has no colour: unshaded it renders and voxelises as one grey; shaded, its surface varies."""
+    assert not horse.has_colour
+    shaded = shade_mesh(horse)  # auto
+    assert shaded.shading is not None and 0.0 <= shaded.shading.min() and shaded.shading.max() <= 1.0
+    cameras = hemisphere_cameras(2, 48, seed=3)
+    for mesh, flat in ((horse, True), (shaded, False)):
+        rgb, alpha = rasterize(mesh, cameras, 0)
+        surface = rgb[alpha > 0.999]
+        assert len(surface) > 100
+        assert (float(surface.std()) < 1e-4) == flat, float(surface.std())
+    for mesh, flat in ((horse, True), (shaded, False)):
+        grid = voxelize(mesh, VoxelizeConfig(resolution=32))
+        features = grid.features.detach()
+        colour = torch.sigmoid(features[..., 1:][features[..., 0] > 0])
+        assert (float(colour.std()) < 1e-4) == flat, float(colour.std())
+
+
+def test_mesh_shading_is_stored_with_the_upload_and_honoured_by_the_ingest(tmp_path, monkeypatch):
+    import json
+
+    from api.uploads import UploadError
+    from voxe_core.data import load_scene
+    from voxe_service import datasets
+
+    monkeypatch.setattr(datasets, "MESH_VIEWS", 2)
+    monkeypatch.setattr(datasets, "MESH_VIEW_SIZE", 32)
+    spread = {}
+    for mode in ("none", None):  # None: the default, auto
+        work = tmp_path / str(mode)
+        _, stored, root, _ = _ingest_mesh_upload(work, [("horse.obj", HORSE)], mode)
+        assert "mesh/options.json" in stored
+        assert json.loads((root / "mesh" / "options.json").read_text()) == {"shading": mode or "auto"}
+        scene = load_scene(root, "train")
+        spread[mode] = float(scene.images[scene.alphas > 0.999].std())
+    assert spread["none"] < 1e-3 < 0.03 < spread[None], spread
+    (tmp_path / "images").mkdir()
+    Image.new("RGB", (8, 6)).save(tmp_path / "images" / "0.png")
+    (tmp_path / "transforms.json").write_text(json.dumps(
+        {"fl_x": 8.0, "frames": [{"file_path": "images/0.png", "transform_matrix": np.eye(4).tolist()}]}))
+    with pytest.raises(UploadError, match="mesh_shading applies to mesh uploads only"):
+        _stage(tmp_path, [("transforms.json", tmp_path / "transforms.json"), ("images/0.png", tmp_path / "images/0.png")],
+               "baked")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import json
+import shutil
 import threading
 import zipfile
 from pathlib import Path
@@ -12,6 +13,7 @@ import pytest
 import torch
 from fastapi.testclient import TestClient
 
+from captures import pose_at, square_capture, write_colmap_model
 from needs import SPOT, require_data
 from service_helpers import MIC, ingest, reset_service_caches as _reset, service_env, small_mic, zip_folder
 
@@ -214,6 +216,57 @@ def test_bad_upload_is_422_and_leaves_nothing(client, dataset, root, case, expec
     assert "/tmp" not in response.json()["detail"] and str(root) not in response.json()["detail"]
     assert client.get("/v1/scenes").json()["total"] == 0
     assert stored_files(root) == [] and staged(root) == []
+
+
+def _colmap_capture(tmp_path: Path, second_model: str = "PINHOLE") -> Path:
+    root = square_capture(tmp_path)
+    params = [12.0, 12.0, 8.0, 6.0] + [0.0] * (8 if second_model == "FULL_OPENCV" else 0)
+    write_colmap_model(root / "sparse" / "0", [("OPENCV", 16, 12, [12.0, 12.0, 8.0, 6.0, 0.02, 0.0, 0.0, 0.0]),
+                                               (second_model, 16, 12, params)],
+                       [(f"{i}.png", i % 2, pose_at(i)) for i in range(3)])
+    (root / "dense").mkdir()
+    (root / "dense" / "fused.ply").write_bytes(b"ply\n")  # COLMAP's dense output: beside a model it is no mesh
+    return root
+
+
+def test_colmap_and_nerfstudio_uploads(client, root):
+    good = _colmap_capture(root / "good")
+    response = upload_zip(client, zip_folder(good, root / "colmap.zip", prefix="capture"))
+    assert response.status_code == 201, response.text
+    scene = response.json()
+    assert (scene["format"], scene["image_count"], scene["width"], scene["height"]) == ("colmap", 3, 16, 12)
+    assert ingest(scene["id"])["state"] == "ready"
+
+    bad = _colmap_capture(root / "bad", second_model="FULL_OPENCV")
+    response = upload_zip(client, zip_folder(bad, root / "bad.zip"))
+    assert response.status_code == 422
+    assert response.json()["detail"] == ("invalid dataset: sparse/0/images.bin frame 1 ('images/1.png'): camera 2 has "
+                                         "COLMAP model FULL_OPENCV, which is not supported (use one of SIMPLE_PINHOLE, "
+                                         "PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, SIMPLE_RADIAL_FISHEYE, "
+                                         "RADIAL_FISHEYE, OPENCV_FISHEYE)")
+    shutil.rmtree(good / "sparse")
+    frames = [{"file_path": f"images/{i}.png", "transform_matrix": pose_at(i).tolist()} for i in range(3)]
+    frames[2]["camera_model"] = "OPENCV_FISHEYE"
+    meta = {"camera_model": "OPENCV", "fl_x": 12.0, "k1": 0.02, "frames": frames}
+    (good / "transforms.json").write_text(json.dumps(meta))
+    response = upload_zip(client, zip_folder(good, root / "ns.zip"))
+    assert response.status_code == 422
+    assert response.json()["detail"] == ("invalid dataset: transforms.json frame 2 ('images/2.png'): camera_model "
+                                         "OPENCV_FISHEYE differs from frame 0's OPENCV; the fisheye and the OPENCV "
+                                         "model cannot be mixed in one capture")
+    assert client.get("/v1/scenes").json()["total"] == 1 and staged(root) == []
+
+
+def test_mesh_shading_is_checked_at_upload(client, dataset, root):
+    body = zip_folder(dataset, root / "mic.zip").read_bytes()
+    response = client.post("/v1/scenes", files={"archive": ("mic.zip", body, "application/zip")},
+                           data={"mesh_shading": "flat"})
+    assert response.status_code == 422 and response.json()["detail"][0]["loc"] == ["body", "mesh_shading"]
+    response = client.post("/v1/scenes", files={"archive": ("mic.zip", body, "application/zip")},
+                           data={"mesh_shading": "baked"})
+    assert response.status_code == 422
+    assert "mesh_shading applies to mesh uploads only" in response.json()["detail"]
+    assert client.get("/v1/scenes").json()["total"] == 0 and staged(root) == []
 
 
 def test_upload_needs_exactly_one_source(client):

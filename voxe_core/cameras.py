@@ -1,22 +1,39 @@
-"""Pinhole cameras in the NeRF / OpenGL convention and the poses the method draws.
+"""Cameras in the NeRF / OpenGL convention, their lens distortion, and the poses the method draws.
 
 Camera-to-world matrices look down -z with +y up; pixel centres sit at i + 0.5.
 Ray directions are unit length so ray parameters are world distances.
+Lens distortion (OpenCV's radial-tangential model or its fisheye model, as COLMAP and
+nerfstudio record them) is applied by casting each ray through the undistorted point
+of its pixel: the distortion is inverted by Newton's method in float64 per ray, so the
+images are used as captured (no resampling blur, no lost border).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
 from voxe_core.constants import NERF_SYNTHETIC_RADIUS
 
 
+DISTORTION_MODELS = ("opencv", "fisheye")
+DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")  # the columns of ``Cameras.distortion``
+_NEWTON_STEPS = 20
+_NEWTON_TOLERANCE = 1e-12  # in normalised image coordinates (about 1e-9 pixels)
+
+
 @dataclass
 class Cameras:
-    """A batch of pinhole cameras sharing one image size."""
+    """A batch of cameras sharing one image size (and one distortion model, if any).
+
+    ``distortion`` (N, 6) holds ``DISTORTION_KEYS`` per camera in OpenCV's normalised
+    coordinates (x right, y down, unit focal length), so resizing leaves it unchanged.
+    ``distortion_model``: "opencv" (radial k1..k4 as 1 + k1 r² + ... + k4 r⁸, tangential
+    p1, p2: OpenCV's and nerfstudio's OPENCV) or "fisheye" (θ_d = θ (1 + k1 θ² + ... + k4 θ⁸),
+    OpenCV's and nerfstudio's OPENCV_FISHEYE; p1, p2 unused). None: a pinhole.
+    """
 
     c2w: torch.Tensor  # (N, 4, 4) float32
     fx: torch.Tensor  # (N,)
@@ -25,6 +42,13 @@ class Cameras:
     cy: torch.Tensor  # (N,)
     width: int
     height: int
+    distortion: torch.Tensor | None = None  # (N, 6) float32, DISTORTION_KEYS
+    distortion_model: str = "opencv"
+
+    def __post_init__(self):
+        if self.distortion_model not in DISTORTION_MODELS:
+            raise ValueError(f"distortion_model must be one of {', '.join(DISTORTION_MODELS)}, "
+                             f"got {self.distortion_model!r}")
 
     def __len__(self) -> int:
         return self.c2w.shape[0]
@@ -32,9 +56,9 @@ class Cameras:
     def __getitem__(self, index) -> "Cameras":
         if isinstance(index, int):
             index = slice(index, index + 1)
-        return Cameras(
-            self.c2w[index], self.fx[index], self.fy[index], self.cx[index], self.cy[index],
-            self.width, self.height,
+        return replace(
+            self, c2w=self.c2w[index], fx=self.fx[index], fy=self.fy[index], cx=self.cx[index], cy=self.cy[index],
+            distortion=None if self.distortion is None else self.distortion[index],
         )
 
     @staticmethod
@@ -55,13 +79,18 @@ class Cameras:
     def resized(self, width: int, height: int) -> "Cameras":
         """Cameras for images resampled to ``width`` x ``height`` over the same field of view."""
         sx, sy = width / self.width, height / self.height
-        return Cameras(self.c2w, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height)
+        return replace(self, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy,
+                       width=width, height=height)
 
     def to(self, device) -> "Cameras":
-        return Cameras(
-            self.c2w.to(device), self.fx.to(device), self.fy.to(device), self.cx.to(device),
-            self.cy.to(device), self.width, self.height,
+        return replace(
+            self, c2w=self.c2w.to(device), fx=self.fx.to(device), fy=self.fy.to(device), cx=self.cx.to(device),
+            cy=self.cy.to(device), distortion=None if self.distortion is None else self.distortion.to(device),
         )
+
+    def undistorted(self) -> "Cameras":
+        """The same cameras as pinholes (distortion ignored)."""
+        return replace(self, distortion=None)
 
 
 def camera_rays(cameras: Cameras, index: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -78,15 +107,102 @@ def camera_rays(cameras: Cameras, index: int) -> tuple[torch.Tensor, torch.Tenso
 def pixel_rays(
     cameras: Cameras, camera_index: torch.Tensor, u: torch.Tensor, v: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rays through image coordinates (u right, v down, in pixels) of the given cameras."""
+    """Rays through image coordinates (u right, v down, in pixels) of the given cameras.
+
+    With lens distortion, each ray goes through the point whose distorted image is (u, v).
+    """
     fx, fy = cameras.fx[camera_index], cameras.fy[camera_index]
     cx, cy = cameras.cx[camera_index], cameras.cy[camera_index]
-    local = torch.stack([(u - cx) / fx, -(v - cy) / fy, -torch.ones_like(u)], dim=-1)
+    x, y = (u - cx) / fx, (v - cy) / fy
+    if cameras.distortion is not None:
+        x, y = undistort_points(x, y, cameras.distortion[camera_index], cameras.distortion_model)
+    local = torch.stack([x, -y, -torch.ones_like(u)], dim=-1)
     c2w = cameras.c2w[camera_index]
     directions = torch.einsum("nij,nj->ni", c2w[:, :3, :3], local)
     directions = directions / directions.norm(dim=-1, keepdim=True)
     origins = c2w[:, :3, 3].expand_as(directions)
     return origins.contiguous(), directions
+
+
+def distort_points(
+    x: torch.Tensor, y: torch.Tensor, coefficients: torch.Tensor, model: str = "opencv"
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where the lens images the normalised point (x, y) (OpenCV axes: y down, z forward).
+
+    ``x``, ``y``: (R,); ``coefficients``: (R, 6) or (6,), ``DISTORTION_KEYS``. Computed in the
+    inputs' dtype.
+
+    Examples:
+        >>> import torch
+        >>> k = torch.tensor([0.1, 0.0, 0.0, 0.0, 0.0, 0.0])
+        >>> xd, yd = distort_points(torch.tensor([0.5]), torch.tensor([0.0]), k)
+        >>> round(float(xd), 4)  # 0.5 * (1 + 0.1 * 0.25)
+        0.5125
+    """
+    k1, k2, k3, k4, p1, p2 = coefficients.to(x).expand(x.shape + (6,)).unbind(-1)
+    r2 = x * x + y * y
+    if model == "fisheye":
+        r = r2.sqrt()
+        theta = torch.atan(r)
+        t2 = theta * theta
+        theta_d = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+        ratio = torch.where(r > 1e-12, theta_d / r.clamp_min(1e-12), torch.ones_like(r))
+        return x * ratio, y * ratio
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * (k3 + r2 * k4)))
+    xy = x * y
+    return (x * radial + 2 * p1 * xy + p2 * (r2 + 2 * x * x),
+            y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * xy)
+
+
+def undistort_points(
+    xd: torch.Tensor, yd: torch.Tensor, coefficients: torch.Tensor, model: str = "opencv"
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The normalised points that ``distort_points`` takes to (xd, yd): Newton's method in float64.
+
+    ``xd``, ``yd``: (R,); ``coefficients``: (R, 6) or (6,). Returns the inputs' dtype. OpenCV's
+    model is inverted in 2-D with its exact Jacobian, the fisheye in 1-D on the angle θ (as
+    OpenCV does); both start at the distorted point, within the basin for real lenses. A
+    point no ray images (θ ≥ 90°) comes back NaN.
+
+    Examples:
+        >>> import torch
+        >>> k = torch.tensor([0.1, -0.05, 0.0, 0.0, 0.001, -0.002])
+        >>> x, y = undistort_points(*distort_points(torch.tensor([0.3]), torch.tensor([-0.2]), k), k)
+        >>> round(float(x), 6), round(float(y), 6)
+        (0.3, -0.2)
+    """
+    k1, k2, k3, k4, p1, p2 = coefficients.double().expand(xd.shape + (6,)).unbind(-1)
+    target_x, target_y = xd.double(), yd.double()
+    if model == "fisheye":
+        theta_d = torch.hypot(target_x, target_y)
+        theta = theta_d.clone()
+        for _ in range(_NEWTON_STEPS):
+            t2 = theta * theta
+            residual = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))) - theta_d
+            if residual.numel() == 0 or float(residual.abs().max()) < _NEWTON_TOLERANCE:
+                break
+            slope = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
+            theta = theta - residual / slope
+        scale = torch.where(theta_d > 1e-12, torch.tan(theta) / theta_d.clamp_min(1e-12), torch.ones_like(theta))
+        scale = torch.where((theta >= 0) & (theta < 0.5 * math.pi), scale, torch.full_like(scale, math.nan))
+        return (target_x * scale).to(xd.dtype), (target_y * scale).to(yd.dtype)
+    x, y = target_x.clone(), target_y.clone()
+    for _ in range(_NEWTON_STEPS):
+        fx, fy = distort_points(x, y, coefficients.double(), model)
+        rx, ry = fx - target_x, fy - target_y
+        if rx.numel() == 0 or max(float(rx.abs().max()), float(ry.abs().max())) < _NEWTON_TOLERANCE:
+            break
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * (k3 + r2 * k4)))
+        slope = k1 + r2 * (2 * k2 + r2 * (3 * k3 + r2 * 4 * k4))  # d radial / d r²
+        a = radial + 2 * x * x * slope + 2 * p1 * y + 6 * p2 * x  # J = [[a, b], [c, d]]
+        b = 2 * x * y * slope + 2 * p1 * x + 2 * p2 * y
+        c = 2 * x * y * slope + 2 * p1 * x + 2 * p2 * y
+        d = radial + 2 * y * y * slope + 6 * p1 * y + 2 * p2 * x
+        det = a * d - b * c
+        det = torch.where(det.abs() > 1e-12, det, torch.full_like(det, 1e-12))
+        x, y = x - (d * rx - b * ry) / det, y - (a * ry - c * rx) / det
+    return x.to(xd.dtype), y.to(yd.dtype)
 
 
 def look_at(eye: torch.Tensor, target: torch.Tensor | None = None, up=(0.0, 0.0, 1.0)) -> torch.Tensor:

@@ -1,8 +1,16 @@
-"""Posed image sets in the NeRF-synthetic and instant-ngp / nerfstudio layouts.
+"""Posed image sets: NeRF-synthetic, instant-ngp / nerfstudio ``transforms.json``, COLMAP sparse models.
 
 Everything is validated up front so a broken upload fails with one message that
 names the file and frame, instead of a NaN loss an hour into a fit. Images come
 back float32 in [0, 1], composited on white (SPEC §0), on the CPU.
+
+Lens distortion is read into ``Cameras.distortion`` and applied by the rays
+(``voxe_core.cameras``): nerfstudio's ``camera_model`` PINHOLE, OPENCV or
+OPENCV_FISHEYE with ``k1..k4, p1, p2`` (top level or per frame); instant-ngp's
+``k1, k2, p1, p2`` without a ``camera_model`` are OPENCV. A COLMAP model
+(``sparse/0/cameras.bin|txt`` and ``images.bin|txt``, images under ``images/``)
+is read by ``voxe_core.colmap`` and turned into the same frames (its poses from OpenCV's
+camera axes into the OpenGL ones, the world frame kept).
 """
 
 from __future__ import annotations
@@ -19,10 +27,27 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
-from .cameras import Cameras
+from .cameras import DISTORTION_KEYS, Cameras, distort_points, undistort_points
+from .colmap import ColmapError, read_model
 
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y")
-_DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+# nerfstudio's camera_model -> Cameras.distortion_model (None: a pinhole)
+CAMERA_MODELS = {"PINHOLE": None, "OPENCV": "opencv", "OPENCV_FISHEYE": "fisheye"}
+# COLMAP camera models: (their parameter names in order, the nerfstudio camera_model they are)
+_COLMAP_MODELS = {
+    "SIMPLE_PINHOLE": (("f", "cx", "cy"), "PINHOLE"),
+    "PINHOLE": (("fl_x", "fl_y", "cx", "cy"), "PINHOLE"),
+    "SIMPLE_RADIAL": (("f", "cx", "cy", "k1"), "OPENCV"),
+    "RADIAL": (("f", "cx", "cy", "k1", "k2"), "OPENCV"),
+    "OPENCV": (("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2"), "OPENCV"),
+    "SIMPLE_RADIAL_FISHEYE": (("f", "cx", "cy", "k1"), "OPENCV_FISHEYE"),
+    "RADIAL_FISHEYE": (("f", "cx", "cy", "k1", "k2"), "OPENCV_FISHEYE"),
+    "OPENCV_FISHEYE": (("fl_x", "fl_y", "cx", "cy", "k1", "k2", "k3", "k4"), "OPENCV_FISHEYE"),
+}
+COLMAP_MODEL_DIR = Path("sparse") / "0"
+COLMAP_IMAGE_DIR = "images"
+_OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])  # camera axes: y down, z forward -> y up, z backward
+_ROUND_TRIP_PIXELS = 1e-3  # undistort-then-distort must land this close on every sampled pixel
 _MIN_FOCAL = 1e-3  # pixels; below this the projection is numerically singular
 _SIXTEEN_BIT_MODES = ("I;16", "I;16L", "I;16B", "I;16N", "I")
 RESAMPLE_FILTERS = ("bilinear", "box")
@@ -47,7 +72,6 @@ class Scene:
     names: list[str]
     format: str
     split: str
-    distortion: dict | None = None  # recorded, not applied
     aabb_scale: float | None = None
 
     @property
@@ -61,11 +85,12 @@ class Scene:
 class _Where:
     """Builds DatasetErrors that say which json file and which frame."""
 
-    def __init__(self, json_path: Path, frames: list | None = None):
-        self.json_path, self.frames = json_path, frames or []
+    def __init__(self, json_path: Path, frames: list | None = None, label: str | None = None):
+        self.json_path, self.frames = json_path, [] if frames is None else frames
+        self.label = label or json_path.name
 
     def __call__(self, message: str, frame: int | None = None, path=None) -> DatasetError:
-        prefix = self.json_path.name
+        prefix = self.label
         if frame is not None:
             fp = self.frames[frame].get("file_path") if isinstance(self.frames[frame], dict) else None
             prefix += f" frame {frame}" + (f" ({fp!r})" if fp is not None else "")
@@ -73,7 +98,8 @@ class _Where:
 
 
 def detect_format(root: str | os.PathLike) -> str:
-    """'nerf_synthetic' (transforms_{train,val,test}.json) or 'instant_ngp' (one transforms.json)."""
+    """'nerf_synthetic' (transforms_{train,val,test}.json), 'instant_ngp' (one transforms.json, also
+    nerfstudio's) or 'colmap' (``sparse/0/cameras.bin|txt``); a transforms json wins over a COLMAP model."""
     root = Path(root)
     if not root.is_dir():
         raise DatasetError(f"{root}: not a folder (expected a dataset folder with transforms json files)", root)
@@ -81,10 +107,21 @@ def detect_format(root: str | os.PathLike) -> str:
         return "nerf_synthetic"
     if (root / "transforms.json").is_file():
         return "instant_ngp"
+    if any((root / COLMAP_MODEL_DIR / f"cameras.{ext}").is_file() for ext in ("bin", "txt")):
+        return "colmap"
     raise DatasetError(
-        f"{root}: no dataset found (expected transforms_train.json for NeRF-synthetic "
-        "or transforms.json for instant-ngp / nerfstudio)", root
+        f"{root}: no dataset found (expected transforms_train.json for NeRF-synthetic, transforms.json for "
+        f"instant-ngp / nerfstudio, or a COLMAP model {COLMAP_MODEL_DIR.as_posix()}/cameras.bin|txt)", root
     )
+
+
+def is_dataset_folder(root: str | os.PathLike) -> bool:
+    """Whether ``root`` holds a dataset ``load_scene`` recognises (its files are not checked)."""
+    try:
+        detect_format(root)
+    except DatasetError:
+        return False
+    return True
 
 
 def load_scene(
@@ -104,7 +141,7 @@ def load_scene(
     and torchvision's resize, which the authors' loader uses; where the size is not a
     multiple, theirs resizes the uncropped image by a slightly larger factor) or "box"
     (the mean of each factor x factor block).
-    ``holdout_every`` (instant-ngp only; NeRF-synthetic has its own split files): frames
+    ``holdout_every`` (instant-ngp and COLMAP; NeRF-synthetic has its own split files): frames
     0, k, 2k, ... form "test" and the rest "train". ``max_images`` keeps the first k
     frames of the split. Frame indices in errors are positions in the json's ``frames``.
     ``confine_paths``: refuse a ``file_path`` that leads outside ``root`` (absolute, or up
@@ -122,9 +159,12 @@ def load_scene(
         raise ValueError(f"split must be a plain name, got {split!r}")
     root = Path(root)
     fmt = detect_format(root)
-    json_path = root / (f"transforms_{split}.json" if fmt == "nerf_synthetic" else "transforms.json")
-    meta = _read_json(json_path)
-    where = _Where(json_path)
+    if fmt == "colmap":
+        json_path, meta = colmap_transforms(root)
+    else:
+        json_path = root / (f"transforms_{split}.json" if fmt == "nerf_synthetic" else "transforms.json")
+        meta = _read_json(json_path)
+    where = _Where(json_path, label=json_path.relative_to(root).as_posix())
     frames = meta.get("frames")
     if not isinstance(frames, list):
         raise where("'frames' is missing or not a list")
@@ -133,7 +173,8 @@ def load_scene(
     where.frames = frames
 
     top = _check_intrinsics(meta, where, None)
-    per_frame, paths = [], []
+    top_model = _camera_model(meta, where, None)
+    per_frame, paths, models = [], [], []
     for i, frame in enumerate(frames):
         if not isinstance(frame, dict):
             raise where("frame entry is not an object", i)
@@ -149,8 +190,15 @@ def load_scene(
         merged = {**top, **_check_intrinsics(frame, where, i)}
         if "fl_x" not in merged and "camera_angle_x" not in merged:
             raise where("missing intrinsics: need 'camera_angle_x' or 'fl_x' (top level or per frame)", i)
+        model = _camera_model(frame, where, i) or top_model or ("OPENCV" if _distorts(merged) else "PINHOLE")
+        _check_distortion(model, merged, where, i)
+        lens = next((j for j, m in enumerate(models) if m != "PINHOLE"), None)  # pinholes join either lens model
+        if model != "PINHOLE" and lens is not None and model != models[lens]:
+            raise where(f"camera_model {model} differs from frame {lens}'s {models[lens]}; the fisheye and the "
+                        "OPENCV model cannot be mixed in one capture", i)
         per_frame.append(merged)
         paths.append(frame["file_path"])
+        models.append(model)
     poses = _check_poses(frames, where)
     seen: dict[str, int] = {}
     for i, p in enumerate(paths):
@@ -189,14 +237,97 @@ def load_scene(
     intr = np.array([_resolve_intrinsics(per_frame[i], W, H, where, i) for i in keep], dtype=np.float64)
     c2w = torch.from_numpy(poses[keep]).float()
     cams = Cameras(c2w, *(torch.from_numpy(intr[:, k]).float() for k in range(4)), W, H)
+    distortion_model = CAMERA_MODELS[next((m for m in models if m != "PINHOLE"), "PINHOLE")]
+    if distortion_model is not None and any(_distorts(per_frame[i]) for i in keep):
+        cams.distortion = torch.tensor([[per_frame[i].get(k, 0.0) for k in DISTORTION_KEYS] for i in keep])
+        cams.distortion_model = distortion_model
+        _check_invertible(cams, keep, where)
     if downsample > 1:
         cams.width, cams.height = wd * downsample, hd * downsample  # the crop that was resampled
         cams = cams.scaled(1.0 / downsample)
-    distortion = {k: top[k] for k in _DISTORTION_KEYS if k in top} or None
     aabb = meta.get("aabb_scale")
     if aabb is not None:
         aabb = _number(aabb, "aabb_scale", where, None)
-    return Scene(images, alphas, cams, [paths[i] for i in keep], fmt, split, distortion, aabb)
+    return Scene(images, alphas, cams, [paths[i] for i in keep], fmt, split, aabb)
+
+
+def _camera_model(source: dict, where: _Where, frame: int | None) -> str | None:
+    model = source.get("camera_model")
+    if model is not None and (not isinstance(model, str) or model not in CAMERA_MODELS):
+        raise where(f"camera_model {model!r} is not supported (use one of {', '.join(CAMERA_MODELS)})", frame)
+    return model
+
+
+def _distorts(intrinsics: dict) -> bool:
+    return any(intrinsics.get(k, 0.0) != 0.0 for k in DISTORTION_KEYS)
+
+
+def _check_distortion(model: str, intrinsics: dict, where: _Where, frame: int) -> None:
+    """Coefficients the model has no use for are refused rather than silently dropped."""
+    unused = {"PINHOLE": DISTORTION_KEYS, "OPENCV_FISHEYE": ("p1", "p2")}.get(model, ())
+    stray = [f"{k} = {intrinsics[k]:g}" for k in unused if intrinsics.get(k, 0.0) != 0.0]
+    if stray:
+        raise where(f"camera_model {model} has no such distortion term, but {', '.join(stray)}", frame)
+
+
+def _check_invertible(cams: Cameras, keep: list[int], where: _Where) -> None:
+    """Every camera's distortion must be invertible over its image (else rays would go astray silently)."""
+    v, u = torch.meshgrid(torch.linspace(0, cams.height, 17, dtype=torch.float64),
+                          torch.linspace(0, cams.width, 17, dtype=torch.float64), indexing="ij")
+    u, v = u.reshape(-1), v.reshape(-1)
+    checked = set()
+    for slot, frame in enumerate(keep):
+        fx, fy, cx, cy = (float(t[slot]) for t in (cams.fx, cams.fy, cams.cx, cams.cy))
+        k = cams.distortion[slot].double()
+        lens = (fx, fy, cx, cy, *k.tolist())
+        if lens in checked:  # most captures share one lens
+            continue
+        checked.add(lens)
+        xd, yd = (u - cx) / fx, (v - cy) / fy
+        x, y = undistort_points(xd, yd, k, cams.distortion_model)
+        rx, ry = distort_points(x, y, k, cams.distortion_model)
+        error = torch.maximum((rx - xd).abs() * fx, (ry - yd).abs() * fy)
+        error = torch.where(torch.isfinite(error), error, torch.full_like(error, math.inf))
+        worst = int(error.argmax())
+        if not float(error[worst]) <= _ROUND_TRIP_PIXELS:
+            coefficients = ", ".join(f"{n} = {float(c):g}" for n, c in zip(DISTORTION_KEYS, k) if c != 0)
+            raise where(f"lens distortion ({coefficients}) cannot be inverted at pixel ({float(u[worst]):.0f}, "
+                        f"{float(v[worst]):.0f}) of the image: the coefficients fold the image over", frame)
+
+
+def colmap_transforms(root: Path) -> tuple[Path, dict]:
+    """A COLMAP model as a transforms.json would hold it: (the file errors name, the meta dict).
+
+    Frames are the model's images sorted by name (``images/<name>``), each with its camera's
+    intrinsics and distortion and its pose as an OpenGL camera-to-world matrix.
+    """
+    model_dir = root / COLMAP_MODEL_DIR
+    try:
+        cameras, images = read_model(model_dir)
+    except ColmapError as e:
+        raise DatasetError(f"{COLMAP_MODEL_DIR.as_posix()}/{e}", e.path) from None
+    images_file = model_dir / ("images.bin" if (model_dir / "cameras.bin").is_file() else "images.txt")
+    frames: list[dict] = []
+    where = _Where(images_file, frames, label=images_file.relative_to(root).as_posix())
+    for image in sorted(images, key=lambda im: im.name):
+        frame = {"file_path": f"{COLMAP_IMAGE_DIR}/{image.name}"}
+        frames.append(frame)
+        camera = cameras.get(image.camera_id)
+        if camera is None:
+            raise where(f"camera {image.camera_id} is not in {COLMAP_MODEL_DIR.as_posix()}/cameras"
+                        f"{images_file.suffix}", len(frames) - 1)
+        if camera.model not in _COLMAP_MODELS:
+            raise where(f"camera {image.camera_id} has COLMAP model {camera.model}, which is not supported (use one "
+                        f"of {', '.join(_COLMAP_MODELS)})", len(frames) - 1)
+        names, camera_model = _COLMAP_MODELS[camera.model]
+        params = dict(zip(names, camera.params))
+        if "f" in params:
+            params["fl_x"] = params["fl_y"] = params.pop("f")
+        frame.update(camera_model=camera_model, w=float(camera.width), h=float(camera.height), **params,
+                     transform_matrix=(np.linalg.inv(image.cam_from_world) @ _OPENCV_TO_OPENGL).tolist())
+    if not frames:
+        raise where("the COLMAP model registers no images")
+    return images_file, {"frames": frames}
 
 
 def _inside(root: Path, file_path: str) -> bool:
@@ -228,7 +359,7 @@ def _number(value, key: str, where: _Where, frame: int | None) -> float:
 
 def _check_intrinsics(source: dict, where: _Where, frame: int | None) -> dict[str, float]:
     """Numeric, finite, in-range intrinsics/distortion keys present in ``source`` (top level or one frame)."""
-    out = {k: _number(source[k], k, where, frame) for k in _INTRINSIC_KEYS + _DISTORTION_KEYS if source.get(k) is not None}
+    out = {k: _number(source[k], k, where, frame) for k in _INTRINSIC_KEYS + DISTORTION_KEYS if source.get(k) is not None}
     for k in ("camera_angle_x", "camera_angle_y"):
         if k in out and not 0.0 < out[k] < math.pi:
             raise where(f"'{k}' = {out[k]} is outside (0, pi) radians", frame)

@@ -6,6 +6,16 @@ Two routes into G_i:
   rendered 100 in Blender) with a vectorised z-buffer rasteriser, then
   reconstruct as usual. Colour is the unlit albedo (texture or vertex colour):
   the grid has no view dependence, so shading would only be baked in.
+
+A mesh without any colour would come out one flat grey, a silhouette with no shape
+cue for the diffusion model. ``shade_mesh`` bakes a fixed shading into its colour
+for both routes (``mesh_shading``: "auto" bakes it only for such meshes, "baked"
+always, "none" never): per vertex, ambient occlusion times (``SHADING_AMBIENT`` +
+(1 − ``SHADING_AMBIENT``)·max(0, n·l)) with l the key light ``SHADING_LIGHT`` (above,
+in front and to the left in the canonical frame, z up). Occlusion is the fraction
+of ``SHADING_AO_RAYS`` cosine-weighted rays from the vertex that leave the mesh's
+filled occupancy (``SHADING_AO_RESOLUTION``³ over its box) within ``SHADING_AO_REACH``
+(in canonical units, the mesh's half-extent being 1) without entering it.
 * (b) ``voxelize``: write the mesh straight into the grid's vertices. Density
   is a ramp in the signed distance to the surface (zero level on the surface,
   opaque a voxel inside), so trilinear interpolation puts the rendered
@@ -36,6 +46,12 @@ from voxe_core.grid import DEFAULT_BOX, VoxelGrid
 MESH_INPUT_SUFFIXES = (".obj", ".ply")
 TEXTURE_SUFFIXES = (".png", ".jpg", ".jpeg")
 DEFAULT_ALBEDO = (0.7, 0.7, 0.7)  # meshes without texture or vertex colours
+MESH_SHADING = ("auto", "baked", "none")
+SHADING_LIGHT = (-1.0, -1.0, 2.0)  # towards the key light, canonical frame (normalised where used)
+SHADING_AMBIENT = 0.35  # the share of light reaching a face turned away from the key light
+SHADING_AO_RAYS = 32
+SHADING_AO_RESOLUTION = 64
+SHADING_AO_REACH = 0.5
 UP_AXES = {"x": 0, "y": 1, "z": 2}
 _COLOR_EPS = 1e-3  # colours are clamped into (eps, 1 - eps) before the logit
 _MAX_PAIRS = 1 << 22  # (face, pixel) candidates rasterised together
@@ -54,6 +70,11 @@ class SurfaceMesh:
     uv: np.ndarray | None = None  # (V, 2), with texture
     texture: np.ndarray | None = None  # (H, W, 3) float32 in [0, 1], row 0 at the top (v = 1)
     vertex_colors: np.ndarray | None = None  # (V, 3) float32 in [0, 1]
+    shading: np.ndarray | None = None  # (V,) float32 in [0, 1], multiplies the albedo (``shade_mesh``)
+
+    @property
+    def has_colour(self) -> bool:
+        return self.texture is not None or self.vertex_colors is not None
 
     def trimesh(self):
         import trimesh
@@ -65,10 +86,14 @@ class SurfaceMesh:
         corners = self.faces[face_index]  # (N, 3)
         if self.texture is not None:
             uv = np.einsum("nk,nkc->nc", barycentric, self.uv[corners])
-            return sample_texture(self.texture, uv)
-        if self.vertex_colors is not None:
-            return np.einsum("nk,nkc->nc", barycentric, self.vertex_colors[corners]).astype(np.float32)
-        return np.broadcast_to(np.asarray(DEFAULT_ALBEDO, dtype=np.float32), (len(face_index), 3)).copy()
+            colour = sample_texture(self.texture, uv)
+        elif self.vertex_colors is not None:
+            colour = np.einsum("nk,nkc->nc", barycentric, self.vertex_colors[corners]).astype(np.float32)
+        else:
+            colour = np.broadcast_to(np.asarray(DEFAULT_ALBEDO, dtype=np.float32), (len(face_index), 3)).copy()
+        if self.shading is not None:
+            colour = colour * np.einsum("nk,nk->n", barycentric, self.shading[corners]).astype(np.float32)[:, None]
+        return colour
 
 
 def sample_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -137,6 +162,99 @@ def load_mesh(
         mesh.uv = np.asarray(uv, dtype=np.float64)  # an OBJ whose .mtl named its image
         mesh.texture = np.asarray(visual.material.image.convert("RGB"), dtype=np.float32) / 255.0
     return mesh
+
+
+# -------------------------------------------------------------- shading
+def shade_mesh(mesh: SurfaceMesh, mode: str = "auto", seed: int = 0) -> SurfaceMesh:
+    """The mesh with the fixed shading baked in (see the module docstring), or as it is.
+
+    ``mode``: "auto" (bake only when the mesh has neither texture nor vertex colours),
+    "baked" or "none".
+
+    Examples:
+        >>> import trimesh
+        >>> ball = trimesh.creation.icosphere(subdivisions=2)
+        >>> shaded = shade_mesh(SurfaceMesh(np.asarray(ball.vertices), np.asarray(ball.faces)))
+        >>> bool(shaded.shading.min() >= SHADING_AMBIENT - 0.05 and shaded.shading.max() > 0.95)
+        True
+    """
+    if mode not in MESH_SHADING:
+        raise MeshError(f"mesh_shading must be one of {', '.join(MESH_SHADING)}, got {mode!r}")
+    if mode == "none" or (mode == "auto" and mesh.has_colour):
+        return mesh
+    occupancy, lo, voxel = _filled_occupancy(mesh)
+    normals = _vertex_normals(mesh)
+
+    def occupied(points: np.ndarray) -> np.ndarray:
+        index = np.floor((points - lo) / voxel).astype(np.int64)
+        inside_box = ((index >= 0) & (index < occupancy.shape[0])).all(-1)
+        clipped = np.clip(index, 0, occupancy.shape[0] - 1)
+        return inside_box & occupancy[clipped[..., 0], clipped[..., 1], clipped[..., 2]]
+
+    # Normals that point into the filled volume are flipped (inconsistent winding).
+    step = 2.0 * voxel
+    inward = occupied(mesh.vertices + step * normals) & ~occupied(mesh.vertices - step * normals)
+    normals[inward] *= -1
+    visibility = np.empty(len(mesh.vertices))
+    directions = _cosine_directions(SHADING_AO_RAYS, seed)  # (K, 3) about +z
+    distances = np.arange(0.0, SHADING_AO_REACH + 1e-9, voxel)
+    origins = mesh.vertices + step * normals  # off the surface's own voxels, so grazing rays do not hit them
+    for start in range(0, len(mesh.vertices), 4096):
+        frame = _tangent_frames(normals[start:start + 4096])  # (B, 3, 3): columns t, b, n
+        rays = np.einsum("bij,kj->bki", frame, directions)  # (B, K, 3)
+        points = origins[start:start + 4096, None, None] + rays[:, :, None] * distances[None, None, :, None]
+        visibility[start:start + 4096] = 1.0 - occupied(points).any(-1).mean(-1)
+    light = np.asarray(SHADING_LIGHT) / np.linalg.norm(SHADING_LIGHT)
+    direct = SHADING_AMBIENT + (1 - SHADING_AMBIENT) * np.clip(normals @ light, 0.0, None)
+    return SurfaceMesh(mesh.vertices, mesh.faces, mesh.uv, mesh.texture, mesh.vertex_colors,
+                       (visibility * direct).astype(np.float32))
+
+
+def _filled_occupancy(mesh: SurfaceMesh) -> tuple[np.ndarray, np.ndarray, float]:
+    """Boolean (R, R, R) occupancy of the surface and its interior over the mesh's box; (grid, its corner, voxel)."""
+    import trimesh
+    from scipy import ndimage
+
+    lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
+    voxel = float((hi - lo).max()) * 1.1 / SHADING_AO_RESOLUTION
+    corner = (lo + hi) / 2 - voxel * SHADING_AO_RESOLUTION / 2
+    tm = mesh.trimesh()
+    count = int(np.clip(tm.area / voxel**2 * 8, 10_000, 2_000_000))
+    samples, _ = trimesh.sample.sample_surface(tm, count, seed=0)
+    index = np.clip(np.floor((np.concatenate([samples, mesh.vertices]) - corner) / voxel).astype(np.int64), 0,
+                    SHADING_AO_RESOLUTION - 1)
+    shell = np.zeros((SHADING_AO_RESOLUTION,) * 3, dtype=bool)
+    shell[index[:, 0], index[:, 1], index[:, 2]] = True
+    return ndimage.binary_fill_holes(shell), corner, voxel
+
+
+def _vertex_normals(mesh: SurfaceMesh) -> np.ndarray:
+    """Area-weighted unit vertex normals (V, 3) from the faces' winding."""
+    corners = mesh.vertices[mesh.faces]
+    face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])  # length: 2 x area
+    normals = np.zeros_like(mesh.vertices)
+    for k in range(3):
+        np.add.at(normals, mesh.faces[:, k], face_normals)
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    return np.where(length > 1e-20, normals / np.maximum(length, 1e-20), [0.0, 0.0, 1.0])
+
+
+def _cosine_directions(count: int, seed: int) -> np.ndarray:
+    """``count`` stratified cosine-weighted unit directions about +z (Malley's method)."""
+    rng = np.random.default_rng(seed)
+    side = int(np.ceil(np.sqrt(count)))
+    cells = np.stack(np.meshgrid(np.arange(side), np.arange(side), indexing="ij"), -1).reshape(-1, 2)[:count]
+    u = (cells + rng.random(cells.shape)) / side
+    radius, angle = np.sqrt(u[:, 0]), 2 * np.pi * u[:, 1]
+    return np.stack([radius * np.cos(angle), radius * np.sin(angle), np.sqrt(1 - u[:, 0])], -1)
+
+
+def _tangent_frames(normals: np.ndarray) -> np.ndarray:
+    """(B, 3, 3) rotations whose third column is each normal."""
+    helper = np.where(np.abs(normals[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    tangent = np.cross(helper, normals)
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    return np.stack([tangent, np.cross(normals, tangent), normals], -1)
 
 
 # -------------------------------------------------------------- rasteriser

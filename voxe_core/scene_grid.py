@@ -36,6 +36,7 @@ of a saved grid by its ``kind``.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import Iterator
 
 import torch
@@ -267,4 +268,4 @@ def apply_frame(cameras: Cameras, frame: torch.Tensor) -> Cameras:
     c2w = cameras.c2w.clone()
     c2w[:, :3, :3] = frame[:3, :3] @ cameras.c2w[:, :3, :3] / scale
     c2w[:, :3, 3] = (frame[:3, :3] @ cameras.c2w[:, :3, 3, None])[..., 0] + frame[:3, 3]
-    return Cameras(c2w, cameras.fx, cameras.fy, cameras.cx, cameras.cy, cameras.width, cameras.height)
+    return replace(cameras, c2w=c2w)  # intrinsics and lens distortion do not depend on the frame

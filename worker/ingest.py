@@ -22,7 +22,8 @@ from pathlib import Path
 from sqlalchemy import update
 
 from voxe_core.data import DatasetError, load_scene
-from voxe_core.mesh_input import MESH_INPUT_SUFFIXES, TEXTURE_SUFFIXES, MeshError, load_mesh, write_mesh_dataset
+from voxe_core.mesh_input import (MESH_INPUT_SUFFIXES, TEXTURE_SUFFIXES, MeshError, load_mesh, shade_mesh,
+                                  write_mesh_dataset)
 from voxe_service import datasets
 from voxe_service.db import session_scope
 from voxe_service.models import PROCESSING, Scene, utcnow
@@ -39,13 +40,17 @@ class IngestError(ValueError):
 
 
 def load_stored_mesh(dataset: Path):
-    """The mesh a mesh scene's archive keeps under ``mesh/`` (as the API packed it), as ``load_mesh`` reads it."""
+    """The mesh a mesh scene's archive keeps under ``mesh/`` (as the API packed it), as ``load_mesh`` reads it,
+    shaded as its upload asked (``mesh/options.json``; "auto" for archives packed before it existed): the render
+    route (this ingest) and the voxelize route (``worker.tasks``) both read the mesh through here."""
     kept = dataset / datasets.MESH_FOLDER
     meshes = [p for p in sorted(kept.glob("mesh.*")) if p.suffix in MESH_INPUT_SUFFIXES]
     if len(meshes) != 1:
         raise MeshError(f"the scene's archive holds no {datasets.MESH_FOLDER}/mesh.obj or .ply (not uploaded as a mesh?)")
     textures = [p for p in sorted(kept.glob("texture.*")) if p.suffix in TEXTURE_SUFFIXES]
-    return load_mesh(meshes[0], textures[0] if textures else None)
+    options = kept / datasets.MESH_OPTIONS
+    shading = json.loads(options.read_text()).get("shading", "auto") if options.is_file() else "auto"
+    return shade_mesh(load_mesh(meshes[0], textures[0] if textures else None), shading)
 
 
 def render_mesh(root: Path) -> None:

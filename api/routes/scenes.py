@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from fastapi import APIRouter, File, Form, Query, Response, UploadFile, status
 
 from api.auth import mark_replayed
@@ -41,18 +43,25 @@ def create_scene(
     key: CurrentKey,
     idempotency_key: IdempotencyKey,
     archive: UploadFile | None = File(
-        None, description="a zip of a NeRF-synthetic folder (transforms_train.json, ...) or an instant-ngp "
-                          "folder (transforms.json); the folder may be the archive root or its only top-level folder"),
+        None, description="a zip of a NeRF-synthetic folder (transforms_train.json, ...), an instant-ngp / "
+                          "nerfstudio folder (transforms.json, camera_model with k1..k4, p1, p2), a COLMAP model "
+                          "(sparse/0/cameras.bin|txt and images.bin|txt beside images/), or one mesh (.obj with "
+                          "its texture, or .ply); the folder may be the archive root or its only top-level folder"),
     files: list[UploadFile] | None = File(
         None, description="alternatively the dataset's files, each named by its path in the dataset folder "
                           "(e.g. transforms.json, images/0001.png)"),
     name: str | None = Form(None, max_length=255, description="display name (default: the upload's name)"),
+    mesh_shading: Literal["auto", "baked", "none"] | None = Form(
+        None, description="a mesh upload's colour: baked bakes a fixed key light and ambient occlusion into it, none "
+                          "keeps the bare albedo, auto (the default) bakes it only for a mesh without texture or "
+                          "vertex colours (else it would be one flat grey); refused for image datasets"),
 ) -> SceneOut:
     """201 with the new scene, ``processing`` until a worker has decoded it (then ``ready``, or ``failed`` with
     the reason); 200 with the original one for a retry carrying the same Idempotency-Key."""
     upload = scenes.Upload(archive=archive.file if archive is not None else None,
                            archive_name=archive.filename if archive is not None else None,
-                           files=[(f.filename or "", f.file) for f in files or []], name=name)
+                           files=[(f.filename or "", f.file) for f in files or []], name=name,
+                           mesh_shading=mesh_shading)
     scene, replayed = scenes.create_scene(session=session, settings=settings, storage=storage, queue=queue, key=key,
                                           upload=upload, idempotency_key=idempotency_key)
     if replayed:

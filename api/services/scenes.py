@@ -27,16 +27,18 @@ log = logging.getLogger("voxe.api")
 
 @dataclass
 class Upload:
-    """What a POST /v1/scenes sent: one zip, or files named by their paths, and an optional display name."""
+    """What a POST /v1/scenes sent: one zip, or files named by their paths, an optional display name and a mesh's
+    shading mode."""
 
     archive: BinaryIO | None
     archive_name: str | None
     files: list[tuple[str, BinaryIO]]
     name: str | None
+    mesh_shading: str | None = None
 
     def digest(self) -> str:
         """sha256 of what the upload asks for (field names, file names and bytes), not of its multipart framing."""
-        digest = hashlib.sha256(repr(self.name).encode())
+        digest = hashlib.sha256(repr((self.name, self.mesh_shading)).encode())
         parts = [("archive", self.archive)] if self.archive is not None else [(f"files:{n}", h) for n, h in self.files]
         for label, handle in parts:
             digest.update(b"\0" + label.encode() + b"\0")
@@ -69,7 +71,7 @@ def create_scene(*, session: Session, settings: Settings, storage: Storage, queu
         staged, staging = stage_upload(
             Path(settings.work_dir) / "uploads", upload.archive, upload.files, settings.max_extracted_bytes,
             settings.max_upload_files, settings.validation_downsample, settings.max_compression_ratio,
-            settings.max_image_pixels,
+            settings.max_image_pixels, upload.mesh_shading,
         )
     except UploadError as exc:
         raise HTTPException(exc.status, str(exc)) from None

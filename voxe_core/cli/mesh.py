@@ -29,6 +29,8 @@ def add_parsers(commands, common) -> None:
     mg.add_argument("mesh", type=Path, metavar="MESH", help=".obj or .ply")
     mg.add_argument("--texture", type=Path, default=None, help="the OBJ's texture image")
     mg.add_argument("--up", choices=("x", "y", "z"), default="y", help="the mesh file's up axis (OBJ: y)")
+    mg.add_argument("--shading", choices=("auto", "baked", "none"), default="auto",
+                    help="bake a fixed light + ambient occlusion into the colour (auto: for meshes without colour)")
     mg.add_argument("--route", choices=("voxelize", "render"), default="voxelize",
                     help="voxelize: write the mesh into the grid; render: reconstruct from rendered views")
     mg.add_argument("--out", type=Path, required=True, help="grid file to write (.safetensors)")
@@ -61,11 +63,12 @@ def cmd_export_mesh(args) -> int:
 
 
 def cmd_mesh_to_grid(args) -> int:
-    from voxe_core.mesh_input import VoxelizeConfig, hemisphere_cameras, load_mesh, render_mesh_views, voxelize
+    from voxe_core.mesh_input import (VoxelizeConfig, hemisphere_cameras, load_mesh, render_mesh_views, shade_mesh,
+                                      voxelize)
     from voxe_core.reconstruct import reconstruct
 
     device = check_device(args)
-    mesh = load_mesh(args.mesh, args.texture, args.up)
+    mesh = shade_mesh(load_mesh(args.mesh, args.texture, args.up), args.shading)
     if args.route == "voxelize":
         if args.resolution is not None and len(args.resolution) != 1:
             raise ValueError(f"--resolution takes one value for the voxelize route, got {len(args.resolution)}")

@@ -1,0 +1,218 @@
+"""A strict reader for COLMAP sparse models' cameras and images (``.bin`` or ``.txt``).
+
+Why not pycolmap's reader: uploads are untrusted, and pycolmap 4.2.1 hangs with its memory
+growing on some damaged files (of 48 randomly truncated, bit-flipped or count-inflated copies
+of a model it wrote, 7 never returned: a truncated ``images.bin`` or a damaged
+``points3D.bin``) and read 7 truncated ``cameras.bin`` without complaint. pycolmap stays the
+tests' writer: ``tests/test_real_inputs.py`` reads what it writes, binary and text.
+This reader needs only the cameras and the image poses (``points3D`` is not read),
+bounds every count by the bytes left, and names the file and the byte offset or line
+of what it cannot read. COLMAP 4's ``rigs`` and ``frames`` files are not needed: its
+``images`` file still holds each image's pose.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+# COLMAP's camera models: id -> (name, number of parameters)
+CAMERA_MODEL_IDS = {
+    0: ("SIMPLE_PINHOLE", 3), 1: ("PINHOLE", 4), 2: ("SIMPLE_RADIAL", 4), 3: ("RADIAL", 5),
+    4: ("OPENCV", 8), 5: ("OPENCV_FISHEYE", 8), 6: ("FULL_OPENCV", 12), 7: ("FOV", 5),
+    8: ("SIMPLE_RADIAL_FISHEYE", 4), 9: ("RADIAL_FISHEYE", 5), 10: ("THIN_PRISM_FISHEYE", 12),
+    11: ("RAD_TAN_THIN_PRISM_FISHEYE", 16),
+}
+_PARAM_COUNTS = {name: count for name, count in CAMERA_MODEL_IDS.values()}
+_MAX_NAME_BYTES = 4096
+
+
+class ColmapError(ValueError):
+    """A COLMAP file that cannot be read; the message names the file and where in it."""
+
+    def __init__(self, message: str, path: Path):
+        super().__init__(f"{path.name}: {message}")
+        self.path = path
+
+
+@dataclass
+class ColmapCamera:
+    model: str
+    width: int
+    height: int
+    params: list[float]
+
+
+@dataclass
+class ColmapImage:
+    name: str
+    camera_id: int
+    cam_from_world: np.ndarray  # (4, 4) float64: world -> camera in OpenCV axes (x right, y down, z forward)
+
+
+def read_model(model_dir: str | os.PathLike) -> tuple[dict[int, ColmapCamera], list[ColmapImage]]:
+    """Cameras by id and images of ``model_dir`` (``cameras.bin`` + ``images.bin``, else the ``.txt`` pair)."""
+    model_dir = Path(model_dir)
+    ext = "bin" if (model_dir / "cameras.bin").is_file() else "txt"
+    cameras_path, images_path = model_dir / f"cameras.{ext}", model_dir / f"images.{ext}"
+    for path in (cameras_path, images_path):
+        if not path.is_file():
+            raise ColmapError(f"not found in {model_dir} (a COLMAP sparse model needs cameras.{ext} and "
+                              f"images.{ext})", path)
+    if ext == "bin":
+        return _read_cameras_bin(cameras_path), _read_images_bin(images_path)
+    return _read_cameras_txt(cameras_path), _read_images_txt(images_path)
+
+
+class _Bytes:
+    def __init__(self, path: Path):
+        self.path, self.data, self.at = path, path.read_bytes(), 0
+
+    def take(self, fmt: str, what: str):
+        size = struct.calcsize(fmt)
+        if self.at + size > len(self.data):
+            raise ColmapError(f"truncated at byte {self.at} (reading {what})", self.path)
+        values = struct.unpack_from(fmt, self.data, self.at)
+        self.at += size
+        return values
+
+    def count(self, item_bytes: int, what: str) -> int:
+        (n,) = self.take("<Q", f"the number of {what}")
+        if n * item_bytes > len(self.data) - self.at:
+            raise ColmapError(f"claims {n} {what} at byte {self.at - 8}, more than the file's "
+                              f"{len(self.data) - self.at} remaining bytes can hold", self.path)
+        return n
+
+    def name(self) -> str:
+        end = self.data.find(b"\0", self.at, self.at + _MAX_NAME_BYTES)
+        if end < 0:
+            raise ColmapError(f"image name at byte {self.at} is not NUL-terminated within {_MAX_NAME_BYTES} bytes",
+                              self.path)
+        raw, self.at = self.data[self.at:end], end + 1
+        try:
+            return raw.decode("utf-8")
+        except UnicodeDecodeError:
+            raise ColmapError(f"image name at byte {self.at - len(raw) - 1} is not UTF-8", self.path) from None
+
+
+def _camera(model: str, width: int, height: int, params: list[float], where: str, path: Path) -> ColmapCamera:
+    if width < 1 or height < 1:
+        raise ColmapError(f"{where}: image size {width}x{height} must be at least 1x1", path)
+    if not all(math.isfinite(p) for p in params):
+        raise ColmapError(f"{where}: parameters {params} are not all finite", path)
+    return ColmapCamera(model, width, height, params)
+
+
+def _pose(values: tuple, where: str, path: Path) -> np.ndarray:
+    qw, qx, qy, qz, tx, ty, tz = values
+    q = np.array([qw, qx, qy, qz], dtype=np.float64)
+    norm = float(np.linalg.norm(q))
+    if not (np.isfinite(q).all() and math.isfinite(tx) and math.isfinite(ty) and math.isfinite(tz)):
+        raise ColmapError(f"{where}: pose (quaternion {q.tolist()}, translation {[tx, ty, tz]}) is not finite", path)
+    if abs(norm - 1.0) > 1e-3:
+        raise ColmapError(f"{where}: rotation quaternion {q.tolist()} has norm {norm:.4g}, not 1", path)
+    w, x, y, z = q / norm
+    matrix = np.eye(4)
+    matrix[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]
+    matrix[:3, 3] = (tx, ty, tz)
+    return matrix
+
+
+def _read_cameras_bin(path: Path) -> dict[int, ColmapCamera]:
+    reader, cameras = _Bytes(path), {}
+    for _ in range(reader.count(24, "cameras")):
+        start = reader.at
+        camera_id, model_id, width, height = reader.take("<iiQQ", "a camera")
+        if model_id not in CAMERA_MODEL_IDS:
+            raise ColmapError(f"camera {camera_id} at byte {start}: unknown camera model id {model_id}", path)
+        model, n = CAMERA_MODEL_IDS[model_id]
+        params = list(reader.take(f"<{n}d", f"camera {camera_id}'s {n} parameters"))
+        if camera_id in cameras:
+            raise ColmapError(f"camera {camera_id} at byte {start}: duplicate camera id", path)
+        cameras[camera_id] = _camera(model, width, height, params, f"camera {camera_id}", path)
+    _check_consumed(reader)
+    return cameras
+
+
+def _read_images_bin(path: Path) -> list[ColmapImage]:
+    reader, images = _Bytes(path), []
+    for _ in range(reader.count(64, "images")):
+        start = reader.at
+        (image_id,) = reader.take("<i", "an image id")
+        pose = reader.take("<7d", f"image {image_id}'s pose")
+        (camera_id,) = reader.take("<i", f"image {image_id}'s camera id")
+        name = reader.name()
+        points = reader.count(24, f"2-D points of image {image_id}")
+        reader.at += 24 * points  # (x, y, point3D id) each: not needed
+        images.append(ColmapImage(name, camera_id, _pose(pose, f"image {image_id} ({name!r}) at byte {start}", path)))
+    _check_consumed(reader)
+    return images
+
+
+def _check_consumed(reader: _Bytes) -> None:
+    if reader.at != len(reader.data):
+        raise ColmapError(f"{len(reader.data) - reader.at} unexpected bytes after the last entry (byte {reader.at})",
+                          reader.path)
+
+
+def _text_lines(path: Path) -> list[tuple[int, list[str]]]:
+    """(line number, fields) of the non-comment lines; blank lines kept (images.txt's empty point lists)."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise ColmapError(f"not UTF-8 text: {e}", path) from None
+    return [(i, line.split()) for i, line in enumerate(text.splitlines(), start=1) if not line.startswith("#")]
+
+
+def _parse(kind, field: str, what: str, line: int, path: Path):
+    try:
+        return kind(field)
+    except ValueError:
+        raise ColmapError(f"line {line}: {what} {field!r} is not a {'number' if kind is float else 'integer'}",
+                          path) from None
+
+
+def _read_cameras_txt(path: Path) -> dict[int, ColmapCamera]:
+    cameras = {}
+    for line, fields in _text_lines(path):
+        if not fields:
+            continue
+        if len(fields) < 4:
+            raise ColmapError(f"line {line}: expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[], got {len(fields)} fields",
+                              path)
+        camera_id = _parse(int, fields[0], "camera id", line, path)
+        model = fields[1]
+        if model not in _PARAM_COUNTS:
+            raise ColmapError(f"line {line}: unknown camera model {model!r}", path)
+        params = [_parse(float, f, "parameter", line, path) for f in fields[4:]]
+        if len(params) != _PARAM_COUNTS[model]:
+            raise ColmapError(f"line {line}: camera model {model} has {_PARAM_COUNTS[model]} parameters, "
+                              f"got {len(params)}", path)
+        if camera_id in cameras:
+            raise ColmapError(f"line {line}: duplicate camera id {camera_id}", path)
+        width, height = (_parse(int, f, "image size", line, path) for f in fields[2:4])
+        cameras[camera_id] = _camera(model, width, height, params, f"line {line}", path)
+    return cameras
+
+
+def _read_images_txt(path: Path) -> list[ColmapImage]:
+    lines, images = _text_lines(path), []
+    while lines and not lines[-1][1]:
+        lines.pop()
+    for (line, fields), _points in zip(lines[::2], lines[1::2] + [(0, [])]):
+        if len(fields) < 10:
+            raise ColmapError(f"line {line}: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, "
+                              f"got {len(fields)} fields", path)
+        image_id = _parse(int, fields[0], "image id", line, path)
+        pose = tuple(_parse(float, f, "pose value", line, path) for f in fields[1:8])
+        camera_id = _parse(int, fields[8], "camera id", line, path)
+        name = " ".join(fields[9:])
+        images.append(ColmapImage(name, camera_id, _pose(pose, f"line {line}: image {image_id} ({name!r})", path)))
+    return images
