@@ -148,12 +148,114 @@ def figure_link(fig, path: Path, report: Path, alt: str) -> list[str]:
     return ["", f"![{alt}]({relative(path, report)})"]
 
 
+# ------------------------------------------------------------------ speed-against-error plots
+
+# The authors' code on mic (SPEC: 30.61 dB after 1,591 s of training on this CPU class) and the paper's edit
+# (~50 min for 8,000 iterations on an RTX A5000): what every measured figure is read against.
+AUTHORS_MIC = (1591.0, 30.61)
+PAPER_EDIT_MINUTES = 50.0
+DEVICE_STYLE = {"cpu": ("o", "#4c72b0", "CPU run"), "cuda": ("^", "#dd8452", "GPU run")}
+
+
+def device_kind(run: dict) -> str:
+    """``"cuda"`` for a GPU run (any ``cuda:N``), else ``"cpu"`` (older results carry no ``device``)."""
+    return "cuda" if str(run.get("device") or "cpu").startswith("cuda") else "cpu"
+
+
+def pareto_front(points: list[tuple[float, float]]) -> list[int]:
+    """Indices of the points no other point beats (lower x and higher y), in order of increasing x.
+
+    Examples:
+        >>> pareto_front([(1, 1), (2, 3), (3, 2), (4, 4)])
+        [0, 1, 3]
+    """
+    order = sorted(range(len(points)), key=lambda i: (points[i][0], -points[i][1]))
+    front, best = [], float("-inf")
+    for i in order:
+        if points[i][1] > best:
+            front.append(i)
+            best = points[i][1]
+    return front
+
+
+def place_labels(anchors: list[tuple[float, float]], widths: list[float], height: float) -> list[float]:
+    """A y per label (display units) so that no two label boxes overlap.
+
+    Label ``i`` spans ``[x_i, x_i + widths[i]]`` horizontally and ``height`` vertically; it starts level
+    with its point and moves up past every already placed label it would overlap, lowest points first, so
+    labels stay as close to their points as the crowd allows.
+
+    Examples:
+        >>> place_labels([(0, 0), (0, 0), (100, 0)], [50, 50, 50], 10)
+        [0, 10, 0]
+    """
+    placed: list[tuple[float, float, float]] = []  # (x0, x1, y)
+    ys = [0.0] * len(anchors)
+    for i in sorted(range(len(anchors)), key=lambda i: anchors[i][1]):
+        x0, y = anchors[i]
+        x1 = x0 + widths[i]
+        moved = True
+        while moved:
+            moved = False
+            for a0, a1, ay in placed:
+                if a0 < x1 and x0 < a1 and abs(y - ay) < height * (1 - 1e-9):  # rounding: never loop
+                    y, moved = ay + height, True
+        placed.append((x0, x1, y))
+        ys[i] = y
+    return ys
+
+
+def speed_error_axes(ax, runs: list[dict], *, x: str, y: str, label, xlabel: str, ylabel: str, title: str,
+                     hollow=lambda run: False) -> None:
+    """Scatter ``runs`` as ``y`` against ``x`` (log axis), marker and colour by device, the Pareto front
+    (lower ``x``, higher ``y``) joined, each point labelled by ``label(run)`` without overlaps; draw anything
+    else (anchors) on ``ax`` before, since the labels are placed last."""
+    points = [r for r in runs if r.get(x) is not None and r.get(y) is not None]
+    ax.set_xscale("log")
+    for kind, (marker, colour, name) in DEVICE_STYLE.items():
+        mine = [r for r in points if device_kind(r) == kind]
+        if mine:
+            ax.scatter([r[x] for r in mine], [r[y] for r in mine], marker=marker, s=36, label=name, zorder=3,
+                       edgecolors=colour, facecolors=[("none" if hollow(r) else colour) for r in mine])
+    front = [points[i] for i in pareto_front([(r[x], r[y]) for r in points])]
+    if len(front) > 1:
+        ax.step([r[x] for r in front], [r[y] for r in front], where="post", color="0.45", linestyle="--",
+                linewidth=1, label="Pareto front (no run both faster and better)", zorder=2)
+    ax.grid(True, which="both", color="0.92", linewidth=0.6)
+    ax.margins(x=0.12, y=0.18)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.legend(fontsize=7, loc="lower right")
+    annotate_without_overlap(ax, [(r[x], r[y], label(r)) for r in points])
+
+
+def annotate_without_overlap(ax, labelled: list[tuple[float, float, str]], fontsize: int = 7) -> None:
+    """Write each label just right of its point, moved up as :func:`place_labels` says, with a leader line.
+
+    Placed twice: the labels change the tight layout, which moves the points on screen."""
+    fig = ax.figure
+    notes = [ax.annotate(text, (px, py), xytext=(px, py), fontsize=fontsize, va="center",
+                         arrowprops={"arrowstyle": "-", "color": "0.6", "linewidth": 0.5}) for px, py, text in labelled]
+    for _ in range(2):
+        fig.tight_layout()
+        fig.canvas.draw()
+        to_display, to_data = ax.transData.transform, ax.transData.inverted().transform
+        points = [tuple(to_display((px, py))) for px, py, _ in labelled]
+        gap = 6.0  # display units between a point and its label
+        boxes = [note.get_window_extent() for note in notes]
+        height = max((b.height for b in boxes), default=0) * 1.15
+        ys = place_labels([(px + gap, py) for px, py in points], [b.width for b in boxes], height)
+        for note, (px, _), y in zip(notes, points, ys):
+            note.xyann = tuple(to_data((px + gap, y)))
+
 # ------------------------------------------------------------------ stages
 
 
-def reconstruction_section(data, results: Path, report: Path) -> tuple[list[str], list[str]]:
-    """(section lines, trade-off bullets) from reconstruction.json."""
+def reconstruction_section(data, gpu, results: Path, report: Path) -> tuple[list[str], list[str]]:
+    """(section lines, trade-off bullets) from reconstruction.json, with gpu.json's reconstruction runs plotted beside."""
     runs = as_runs(data)
+    gpu_runs = [r for r in as_runs(gpu) if r.get("kind") == "reconstruction"]
     if not runs:
         return ["No runs in the file."], []
     lines = [
@@ -178,19 +280,21 @@ def reconstruction_section(data, results: Path, report: Path) -> tuple[list[str]
         lines += ["", f"Machine: {'; '.join(machines)}."]
     plot = results / "report_reconstruction.png"
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(6.5, 4.2))
-    for r in runs:
-        if r.get("seconds") is None or r.get("psnr") is None:
-            continue
-        ax.scatter(r["seconds"], r["psnr"], marker="o" if r.get("skipping") else "s",
-                   color=f"C{sorted({x.get('resolution') for x in runs}, key=str).index(r.get('resolution'))}")
-        ax.annotate(f"{r.get('label', '')} ({r.get('resolution')}³, {r.get('iterations')} it)",
-                    (r["seconds"], r["psnr"]), fontsize=7, xytext=(4, 2), textcoords="offset points")
-    ax.set_xlabel("training wall time (s)")
-    ax.set_ylabel("mean test PSNR (dB)")
-    ax.set_title("Reconstruction: PSNR vs seconds (o skipping, s dense)")
+    fig, ax = plt.subplots(figsize=(8.5, 5.2))
+    plotted = runs + gpu_runs
+    ax.scatter(*AUTHORS_MIC, marker="*", s=160, color="black", zorder=4,
+               label=f"authors' code, mic: {AUTHORS_MIC[1]} dB after {AUTHORS_MIC[0]:,.0f} s (CPU)")
+    speed_error_axes(ax, plotted, x="seconds", y="psnr", hollow=lambda r: r.get("skipping") is False,
+                     label=_reconstruction_label, xlabel="training wall time (s, log scale)",
+                     ylabel="mean test PSNR (dB)",
+                     title="Reconstruction of mic: PSNR against training time (hollow: no empty-space skipping)")
     lines += figure_link(fig, plot, report, "PSNR vs seconds")
     return lines, reconstruction_tradeoffs(runs)
+
+
+def _reconstruction_label(run: dict) -> str:
+    size = f"{run['resolution']}³, " if run.get("resolution") else ""
+    return f"{run.get('label') or run.get('preset') or run.get('name')} ({size}{run.get('iterations')} it)"
 
 
 def _other_ground_truth(run: dict) -> str:
@@ -285,15 +389,22 @@ def segmentation_section(data, results: Path, report: Path) -> tuple[list[str], 
     for i, (method, scene) in enumerate(keys):
         cells = sorted((s["noise"], s["iou_mean"]) for s in summary if (s["method"], s["scene"]) == (method, scene))
         left.plot([c[0] for c in cells], [c[1] for c in cells], marker="o", color=f"C{i}", label=f"{method} ({scene})")
-        sel = [r for r in runs if (r["method"], r["scene"]) == (method, scene)]
-        right.scatter([r.get("seconds") for r in sel], [r.get("iou") for r in sel], color=f"C{i}", s=14)
     left.set_xlabel("map corruption strength")
     left.set_ylabel("3D IoU of the edit region")
     left.set_title("IoU vs noise")
     left.legend(fontsize=7)
-    right.set_xlabel("seconds per run")
-    right.set_ylabel("3D IoU")
-    right.set_title("IoU vs seconds (every run)")
+    means = []
+    for method, scene in keys:
+        sel = [r for r in runs if (r["method"], r["scene"]) == (method, scene) and r.get("seconds") is not None]
+        if sel:
+            means.append({"label": f"{method} ({scene})", "device": sel[0].get("device"),
+                          "seconds": sum(r["seconds"] for r in sel) / len(sel),
+                          "iou": sum(r.get("iou") or 0.0 for r in sel) / len(sel)})
+    right.scatter([r.get("seconds") for r in runs], [r.get("iou") for r in runs], color="0.8", s=8,
+                  label="every run", zorder=1)
+    speed_error_axes(right, means, x="seconds", y="iou", label=lambda r: r["label"],
+                     xlabel="seconds per run (log scale)", ylabel="3D IoU",
+                     title="IoU vs seconds (mean over noise levels and draws)")
     lines += figure_link(fig, plot, report, "IoU vs noise and seconds")
     bullets = []
     gc = [s for s in summary if s["method"] == "graph_cut" and s["scene"] == "distinct"]
@@ -311,8 +422,19 @@ def segmentation_section(data, results: Path, report: Path) -> tuple[list[str], 
 EDIT_PARTS = ("render", "vae", "unet", "backward", "optimizer", "other")
 
 
+def _edit_label(run: dict) -> str:
+    return run.get("name") or f"{run.get('model')} {run.get('device')} {run.get('dtype')} {run.get('resolution')}²"
+
+
+def _edit_minutes(run: dict):
+    """Projected 8,000-iteration minutes (bench/gpu.py writes them; older rows only ``ms_total``)."""
+    ms = run.get("ms_total") or run.get("ms_step")
+    return run.get("edit_8000_minutes") or (ms * 8000 / 60000 if ms else None)
+
+
 def edit_step_section(data, gpu, results: Path, report: Path) -> tuple[list[str], list[str]]:
-    rows = as_runs(data) + as_runs(gpu)
+    """Edit-step rows of edit_step.json, then the GPU ones: ``gpu`` is edit_step_gpu.json's and gpu.json's runs."""
+    rows = as_runs(data) + [r for r in gpu if r.get("kind", "edit_step") in ("edit_step", "edit")]
     if not rows:
         return ["No runs in the file."], []
     lines = [
@@ -322,24 +444,40 @@ def edit_step_section(data, gpu, results: Path, report: Path) -> tuple[list[str]
     ]
     lines += table(["model", "device", "dtype", "guidance px", "render px", *[f"{p} ms" for p in EDIT_PARTS],
                     "total ms", "8000 it (min)", "what it buys"],
-                   [[r.get("model"), r.get("device"), r.get("dtype"), r.get("resolution"), r.get("render_size"),
-                     *[fmt(r.get(f"ms_{p}"), 1) for p in EDIT_PARTS], fmt(r.get("ms_total"), 1),
-                     fmt(r.get("edit_8000_minutes"), 1), r.get("what_the_timing_buys", "")] for r in rows])
+                   [[r.get("name") or r.get("model"), r.get("device"), r.get("dtype"),
+                     r.get("resolution") or r.get("guidance_resolution"), r.get("render_size"),
+                     *[fmt(r.get(f"ms_{p}"), 1) for p in EDIT_PARTS], fmt(r.get("ms_total") or r.get("ms_step"), 1),
+                     fmt(_edit_minutes(r), 1), r.get("what_the_timing_buys", "")] for r in rows])
     plot = results / "report_edit_step.png"
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(9, 1.4 + 0.7 * len(rows)))
+    fig, (parts, total) = plt.subplots(1, 2, figsize=(12, 1.8 + 0.55 * len(rows)), sharey=True,
+                                       gridspec_kw={"width_ratios": [1.2, 1]})
     for i, r in enumerate(rows):
         left = 0.0
         for j, part in enumerate(EDIT_PARTS):
             value = max(0.0, r.get(f"ms_{part}") or 0.0) / 1000
-            ax.barh(i, value, left=left, color=f"C{j}", label=part if i == 0 else None)
+            parts.barh(i, value, left=left, color=f"C{j}", label=part if i == 0 else None)
             left += value
-    ax.set_yticks(range(len(rows)), [f"{r.get('model')} {r.get('device')} {r.get('dtype')} {r.get('resolution')}²"
-                                     for r in rows], fontsize=8)
-    ax.invert_yaxis()
-    ax.set_xlabel("seconds per SDS iteration (random-weight models: cost only)")
-    ax.set_title("Editing step: seconds per iteration by part")
-    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.0, 0.5))
+    parts.set_yticks(range(len(rows)), [_edit_label(r) for r in rows], fontsize=8)
+    parts.invert_yaxis()
+    parts.set_xlabel("seconds per SDS iteration, by part (where timed per part)")
+    parts.set_title("Editing step: where an iteration goes")
+    parts.legend(fontsize=7, loc="lower right")
+    for kind, (marker, colour, name) in DEVICE_STYLE.items():
+        mine = [(i, r) for i, r in enumerate(rows) if device_kind(r) == kind and _edit_minutes(r)]
+        if mine:
+            total.scatter([_edit_minutes(r) for _, r in mine], [i for i, _ in mine], marker=marker, s=40,
+                          color=colour, label=name, zorder=3)
+            for i, r in mine:
+                total.annotate(f"   {_edit_minutes(r):,.0f} min", (_edit_minutes(r), i), fontsize=7, va="center")
+    total.axvline(PAPER_EDIT_MINUTES, color="black", linestyle="--", linewidth=1,
+                  label=f"paper: ~{PAPER_EDIT_MINUTES:.0f} min (8,000 it, RTX A5000)")
+    total.set_xscale("log")
+    total.margins(x=0.25)
+    total.grid(True, which="both", axis="x", color="0.92", linewidth=0.6)
+    total.set_xlabel("projected 8,000-iteration edit (minutes, log scale)")
+    total.set_title("Whole edit at this speed (random weights: cost only)")
+    total.legend(fontsize=7, loc="lower right")
     lines += figure_link(fig, plot, report, "seconds per SDS iteration by part")
     bullets = []
     for r in rows:
@@ -433,13 +571,14 @@ def build_report(results: Path, report: Path, notes: dict[str, str], mode: str) 
     out = [
         "# Speed against error: the whole pipeline",
         "",
-        f"Generated by `python bench/report.py {mode}` on {stamp} from `{results.relative_to(HERE.parent)}/*.json`. "
+        f"Generated by `python bench/report.py {mode}` on {stamp} from `{relative(results, HERE)}/*.json`. "
         "Each speed figure stands beside the accuracy measured in the same run; timings come from a shared CPU, so "
         "compare them within one table (as ratios), not across tables or machines. Regenerate with "
         "`python bench/report.py --collect-only` after re-running any benchmark.",
         "",
     ]
     tradeoffs: list[str] = []
+    gpu = load_json(results / "gpu.json")  # bench/gpu.py on the device machine; absent until it has run
     for stage in STAGES:
         out += [f"## {stage.title}", ""]
         path = results / stage.result
@@ -456,11 +595,12 @@ def build_report(results: Path, report: Path, notes: dict[str, str], mode: str) 
         out += [f"Source: `{relative(path, report)}`.", ""]
         try:
             if stage.name == "reconstruction":
-                lines, bullets = reconstruction_section(data, results, report)
+                lines, bullets = reconstruction_section(data, gpu, results, report)
             elif stage.name == "segmentation":
                 lines, bullets = segmentation_section(data, results, report)
             elif stage.name == "edit_step":
-                lines, bullets = edit_step_section(data, load_json(results / "edit_step_gpu.json"), results, report)
+                lines, bullets = edit_step_section(
+                    data, as_runs(load_json(results / "edit_step_gpu.json")) + as_runs(gpu), results, report)
             else:
                 lines, bullets = service_load_section(data, results, report)
         except (KeyError, TypeError, ValueError, AttributeError) as error:  # a benchmark changed its schema

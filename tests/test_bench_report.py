@@ -1,0 +1,50 @@
+"""bench/report.py: the Pareto front, label placement and the plots on a small synthetic record (no benchmark runs)."""
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+report = pytest.importorskip("report")
+pytest.importorskip("matplotlib")
+
+
+def test_pareto_front_keeps_exactly_the_undominated_points():
+    # (seconds, PSNR): (3, 2) is beaten by (2, 3); (2, 1) ties in time with (2, 3) but is worse; (5, 4) ties in
+    # quality with (4, 4) but is slower.
+    points = [(1, 1), (2, 3), (3, 2), (4, 4), (2, 1), (5, 4)]
+    assert report.pareto_front(points) == [0, 1, 3]
+    assert report.pareto_front([]) == []
+
+
+def test_labels_never_overlap_and_separate_ones_stay_level():
+    anchors = [(0, 0), (10, 3), (20, 5), (500, 0)]
+    ys = report.place_labels(anchors, [100, 100, 100, 100], 8)
+    assert ys[3] == 0  # far to the right: nothing to avoid
+    crowded = sorted(ys[:3])
+    assert all(b - a >= 8 * (1 - 1e-9) for a, b in zip(crowded, crowded[1:]))
+    assert all(y >= anchor[1] for y, anchor in zip(ys, anchors))  # labels only move up
+
+
+def test_report_plots_cpu_and_gpu_runs_and_handles_a_missing_gpu_json(tmp_path):
+    recon = [{"label": f"r{i}", "resolution": 64, "iterations": 100 * i, "skipping": True, "resample": "bilinear",
+              "seconds": 10.0 * i, "psnr": 25.0 + i * (1 if i % 2 else -1)} for i in range(1, 6)]
+    edit = [{"model": "tiny", "device": "cpu", "dtype": "float32", "resolution": 64, "ms_render": 10.0,
+             "ms_total": 30.0}]
+    (tmp_path / "reconstruction.json").write_text(json.dumps(recon))
+    (tmp_path / "edit_step.json").write_text(json.dumps(edit))
+    out = tmp_path / "REPORT.md"
+    text = report.build_report(tmp_path, out, {}, "--collect-only")  # no gpu.json
+    assert (tmp_path / "report_reconstruction.png").stat().st_size > 0
+    assert (tmp_path / "report_edit_step.png").stat().st_size > 0
+    assert "Could not summarise" not in text
+    gpu = {"runs": [{"name": "reconstruction mic fast", "kind": "reconstruction", "device": "cuda", "seconds": 5.0,
+                     "psnr": 29.0, "iterations": 300},
+                    {"name": "edit_loop", "kind": "edit", "device": "cuda", "dtype": "float16", "ms_step": 20.0,
+                     "edit_8000_minutes": 20.0 * 8000 / 60000}]}
+    (tmp_path / "gpu.json").write_text(json.dumps(gpu))
+    text = report.build_report(tmp_path, out, {}, "--collect-only")
+    assert "Could not summarise" not in text and "edit_loop" in text
+    assert report.device_kind({"device": "cuda:0"}) == "cuda" and report.device_kind({}) == "cpu"
