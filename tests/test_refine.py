@@ -7,10 +7,12 @@ the tiny random-weight SD (SMOKE-TEST MODEL) only proves the refine plumbing.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import warnings
 
+import numpy as np
 import pytest
 import torch
 
@@ -20,8 +22,15 @@ from voxe_core.cli import main
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance.sds import StableDiffusionGuidance
 from voxe_core.progress import Callbacks, StageCancelled
-from voxe_core.refine.config import RefineConfig, SegmentationError
-from voxe_core.refine.cut import graph_cut, graph_cut_detailed, node_mask, probabilities
+from voxe_core.refine.config import AUTHORS_CODE_CUT, RefineConfig, SegmentationError
+from voxe_core.refine.cut import (
+    graph_cut,
+    graph_cut_detailed,
+    node_mask,
+    object_seed_indices,
+    pairwise_weights,
+    probabilities,
+)
 from voxe_core.refine.lifting import fit_attention_grids
 from voxe_core.refine.maps import attention_maps_2d, combine_token_maps, gaussian_blur2d, token_groups
 from voxe_core.refine.pipeline import merge, refine
@@ -207,6 +216,59 @@ def test_graph_cut_smoothness_uses_the_z_axis_too():
     o = torch.zeros(grid.resolution)
     mask = graph_cut(grid, e, o, RefineConfig(edit_seeds=3, object_seeds=0))
     assert mask[5, 5, 1:11].all() and int(mask.sum()) == 10
+
+
+def test_pairwise_weights_text_and_code_formulas():
+    # ‖(0.06, 0.08, 0)‖ = 0.1: the code's weight is K·e^(−‖Δc‖/σ) = 5/e (an L1 distance, 0.14, would give 5·e^-1.4)
+    diff = np.array([[0.06, 0.08, 0.0], [0.0, 0.0, 0.0]])
+    code = pairwise_weights(diff, RefineConfig(pairwise_weight="exp_distance", sigma=0.1, smoothness=5.0))
+    text = pairwise_weights(diff, RefineConfig(pairwise_weight="gaussian", sigma=0.1, smoothness=5.0))
+    np.testing.assert_allclose(code, [5.0 * math.exp(-1.0), 5.0], rtol=1e-12)
+    np.testing.assert_allclose(text, [5.0 * math.exp(-0.5), 5.0], rtol=1e-12)  # 0.01 / (2·0.01)
+
+
+def test_maxpool_node_rule_is_the_occupied_set_dilated_by_one():
+    grid = box_grid(7, [((3, 3, 3), (4, 4, 4), (0.5, 0.5, 0.5)), ((0, 0, 0), (1, 1, 1), (0.5, 0.5, 0.5))])
+    assert int(node_mask(grid).sum()) == 2
+    pooled = node_mask(grid, rule="maxpool")
+    assert int(pooled.sum()) == 27 + 8  # a full 3x3x3 block in the middle, 2x2x2 at the corner
+    assert pooled[2:5, 2:5, 2:5].all() and pooled[:2, :2, :2].all()
+
+
+def test_without_unseeded_unary_the_cut_follows_the_colour_edge():
+    # a z column, red on z 1..4 and blue on z 5..10; the attention says "edit" on z 1..8
+    grid = box_grid(12, [((5, 5, 1), (6, 6, 5), (0.9, 0.1, 0.1)), ((5, 5, 5), (6, 6, 11), (0.1, 0.1, 0.9))])
+    e = torch.full(grid.resolution, -10.0)
+    e[5, 5, 1:9] = 10.0
+    o = -e
+    config = RefineConfig(edit_seeds=1, object_seeds=1)
+    with_unary = graph_cut(grid, e, o, config)
+    without = graph_cut(grid, e, o, dataclasses.replace(config, unseeded_unary="none"))
+    assert with_unary[5, 5, 1:9].all() and int(with_unary.sum()) == 8  # the unary outweighs one blue-blue edge
+    assert without[5, 5, 1:5].all() and int(without.sum()) == 4  # only seeds pull: the cheapest edge is red|blue
+
+
+def test_random_object_seeds_come_from_p_obj_above_p_e_else_the_top_fallback():
+    p_o = np.array([0.9, 0.2, 0.6, 0.7, 0.1, 0.8])
+    p_e = 1.0 - p_o
+    config = RefineConfig(object_seed_rule="random", object_seeds=3, object_seed_fallback=2, seed=4)
+    seeds = object_seed_indices(p_e, p_o, config)
+    assert len(set(seeds.tolist())) == 3 and set(seeds.tolist()) <= {0, 2, 3, 5}
+    np.testing.assert_array_equal(seeds, object_seed_indices(p_e, p_o, config))  # reproducible from config.seed
+    all_of_them = object_seed_indices(p_e, p_o, dataclasses.replace(config, object_seeds=10))
+    np.testing.assert_array_equal(all_of_them, [0, 2, 3, 5])  # fewer candidates than wanted: every one
+    none_qualify = object_seed_indices(np.full(6, 0.5), np.full(6, 0.5) - np.arange(6) * 0.01, config)
+    np.testing.assert_array_equal(none_qualify, [0, 1])  # the top object_seed_fallback by P_obj
+    with pytest.raises(ValueError, match="object_seed_rule"):
+        RefineConfig(object_seed_rule="best")
+
+
+def test_the_authors_code_cut_recovers_two_blobs():
+    grid, truth = two_blobs()
+    e = truth.float() * 4 - 2
+    mask, stats = graph_cut_detailed(grid, e, -e, RefineConfig(**AUTHORS_CODE_CUT, edit_seeds=50))
+    nodes = node_mask(grid)
+    assert torch.equal(mask[nodes], truth[nodes]) and stats.nodes > int(nodes.sum())  # dilated node set
 
 
 def test_no_occupied_voxels_is_a_clear_error():
