@@ -105,6 +105,8 @@ def _top_seeds(score: np.ndarray, candidates: np.ndarray, count: int) -> np.ndar
 
 def object_seed_indices(p_e: np.ndarray, p_o: np.ndarray, config: RefineConfig) -> np.ndarray:
     """Indices of the object seeds among the nodes, by ``config.object_seed_rule`` (see RefineConfig)."""
+    if config.object_seeds == 0:
+        return np.zeros(0, np.int64)
     if config.object_seed_rule == "random":
         idx = np.flatnonzero(p_o > p_e)
         if idx.size == 0:
@@ -161,7 +163,7 @@ def graph_cut_detailed(
     else:
         edit_seeds = _top_seeds(p_e, p_e > 0.5, config.edit_seeds)
     object_seeds = object_seed_indices(p_e, p_o, config)
-    if edit_seeds.size + object_seeds.size == 0:
+    if edit_seeds.size + object_seeds.size == 0 or not (p_e != p_o).any():  # a fallback seeds no preference
         raise SegmentationError(
             f"no seeds: none of the {n} occupied voxels is more likely edit than object or the reverse "
             "(the attention grids are equal everywhere: too few fitting iterations, or maps that do not tell "
