@@ -162,7 +162,7 @@ def graph_cut_detailed(
         edit_seeds = edit_seeds[p_e[edit_seeds] > p_o[edit_seeds]]  # never a voxel the object claims more
     else:
         edit_seeds = _top_seeds(p_e, p_e > 0.5, config.edit_seeds)
-    object_seeds = object_seed_indices(p_e, p_o, config)
+    object_seeds = np.setdiff1d(object_seed_indices(p_e, p_o, config), edit_seeds)  # a fallback may overlap
     if edit_seeds.size + object_seeds.size == 0 or not (p_e != p_o).any():  # a fallback seeds no preference
         raise SegmentationError(
             f"no seeds: none of the {n} occupied voxels is more likely edit than object or the reverse "
