@@ -3,16 +3,16 @@
 One lift per scene and noise level (bench/localisation.py's map model and back-projection lift, 96³), then the
 cut under each variant of ``RefineConfig``, all on the same attention grids so the differences are the cut's:
 
-* ``service``: the service default (text's unary and pairwise terms, 5,000 top object seeds);
-* ``paper_text``: the text throughout (300 / 200 top seeds with P > ½);
-* ``authors_code``: ``AUTHORS_CODE_CUT`` — no unary term for unseeded voxels, edit seeds P_e ≥ 0.992·max,
-  up to 5,000 random object seeds with P_obj > P_e, w = K·exp(−‖Δc‖/σ), 3×3×3 max-pooled node set;
-* ``code_<field>``: the service default with that one field switched to the code's choice.
+* ``text_5000``: the text's cut with the code's 5,000 object seeds (the service default before this bench);
+* ``paper_text``: ``PAPER_TEXT_CUT``, the text throughout (300 / 200 top seeds with P > ½);
+* ``authors_code``: ``AUTHORS_CODE_CUT`` (now the default) — no unary term for unseeded voxels, edit seeds
+  P_e ≥ 0.992·max, up to 5,000 random object seeds with P_obj > P_e, w = K·exp(−‖Δc‖/σ), 3×3×3 max-pooled nodes;
+* ``code_<field>``: ``text_5000`` with that one field switched to the code's choice.
 
 IoU is over the text's node set (the code's max-pooled set is a dilation of it, so the same voxels count for
 every variant). The grids are voxelised from the meshes (localisation_scenes.py), so this is also the
 "mesh-voxelised grid" measurement of issue 18 item 4. ``agreement`` is the IoU of each variant's mask with
-the service default's — the one figure that needs no ground truth.
+``text_5000``'s — the one figure that needs no ground truth.
 
     python bench/localisation_variants.py            # both scenes, clean + moderate (~4 min)
 """
@@ -31,8 +31,8 @@ import torch
 from localisation import LEVELS, lattice_maps, ring_psnrs
 from localisation_scenes import SCENES, build_scene
 from segmentation import iou
-from voxe_core.constants import OBJECT_SEEDS
-from voxe_core.refine.config import AUTHORS_CODE_CUT, RefineConfig
+from voxe_core.constants import SERVICE_OBJECT_SEEDS
+from voxe_core.refine.config import AUTHORS_CODE_CUT, PAPER_TEXT_CUT, RefineConfig
 from voxe_core.refine.cut import graph_cut_detailed, node_mask
 from voxe_core.refine.lifting import fit_attention_grids
 from voxe_core.refine.maps import postprocess_maps
@@ -41,18 +41,19 @@ from voxe_core.refine.pipeline import merge
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
 SINGLE_SWITCHES = ("edit_seed_rule", "object_seed_rule", "unseeded_unary", "pairwise_weight", "node_rule")
-WITH_PSNR = ("service", "paper_text", "authors_code")
+WITH_PSNR = ("text_5000", "paper_text", "authors_code")
 
 
 def variants(base: RefineConfig) -> dict[str, RefineConfig]:
     """Name -> cut config; every variant keeps ``base``'s lift settings."""
+    text_5000 = dataclasses.replace(base, **{**PAPER_TEXT_CUT, "object_seeds": SERVICE_OBJECT_SEEDS})
     out = {
-        "service": base,
-        "paper_text": dataclasses.replace(base, object_seeds=OBJECT_SEEDS, edit_seed_rule="top"),
+        "text_5000": text_5000,
+        "paper_text": dataclasses.replace(base, **PAPER_TEXT_CUT),
         "authors_code": dataclasses.replace(base, **AUTHORS_CODE_CUT),
     }
     for name in SINGLE_SWITCHES:
-        out[f"code_{name}"] = dataclasses.replace(base, **{name: AUTHORS_CODE_CUT[name]})
+        out[f"code_{name}"] = dataclasses.replace(text_5000, **{name: AUTHORS_CODE_CUT[name]})
     return out
 
 
