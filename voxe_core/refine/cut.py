@@ -124,8 +124,9 @@ def graph_cut_detailed(
 ) -> tuple[torch.Tensor, GraphCutStats]:
     """Binary edit mask (X, Y, Z) of the occupied voxels of ``grid`` (G_e), and what the cut did.
 
-    Energy: Σ_p −log P_{l_p}(p) + λ Σ_{p~q, l_p≠l_q} exp(−‖c_p − c_q‖²/2σ²),
-    minimised exactly by max-flow. Seeds: the ``edit_seeds`` voxels of highest
+    Energy (the text, ``PAPER_TEXT_CUT``): Σ_p −log P_{l_p}(p) + λ Σ_{p~q, l_p≠l_q} exp(−‖c_p − c_q‖²/2σ²),
+    minimised exactly by max-flow; the defaults are the authors' code's (``AUTHORS_CODE_CUT``: no unary
+    for unseeded voxels, λ·exp(−‖Δc‖/σ), random object seeds, max-pooled nodes; see RefineConfig). Seeds: the ``edit_seeds`` voxels of highest
     P_e among those with P_e > 1/2 are tied to the edit terminal (``edit_seed_rule="relative"``:
     every voxel within ``edit_seed_ratio`` of the largest P_e, at least ``edit_seeds`` of them, as the
     authors' code), the
