@@ -511,7 +511,7 @@ def _(fx):
     with torch.no_grad():
         grid.features[3, 2, 3, 0] = 5.0
     cams = hemisphere_cameras(3, 8)
-    config = RefineConfig(iterations=30, rays_per_step=64)
+    config = RefineConfig(iterations=30, rays_per_step=64, node_rule="alpha")  # the occupied voxel alone, undilated
     edit, obj = fit_attention_grids(grid, cams, torch.ones(3, 8, 8), torch.zeros(3, 8, 8), config)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # "only 1 of 300 edit seeds": expected here

@@ -7,10 +7,12 @@ the tiny random-weight SD (SMOKE-TEST MODEL) only proves the refine plumbing.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import warnings
 
+import numpy as np
 import pytest
 import torch
 
@@ -20,8 +22,15 @@ from voxe_core.cli import main
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance.sds import StableDiffusionGuidance
 from voxe_core.progress import Callbacks, StageCancelled
-from voxe_core.refine.config import RefineConfig, SegmentationError
-from voxe_core.refine.cut import graph_cut, graph_cut_detailed, node_mask, probabilities
+from voxe_core.refine.config import AUTHORS_CODE_CUT, PAPER_TEXT_CUT, RefineConfig, SegmentationError
+from voxe_core.refine.cut import (
+    graph_cut,
+    graph_cut_detailed,
+    node_mask,
+    object_seed_indices,
+    pairwise_weights,
+    probabilities,
+)
 from voxe_core.refine.lifting import fit_attention_grids
 from voxe_core.refine.maps import attention_maps_2d, combine_token_maps, gaussian_blur2d, token_groups
 from voxe_core.refine.pipeline import merge, refine
@@ -171,6 +180,11 @@ def test_fit_reports_progress_and_cancels(make_sphere_grid):
 # ----------------------------------------------------------------- graph cut
 
 
+def text_cut(**overrides) -> RefineConfig:
+    """The paper's text's graph cut (the unary term these tests rely on), with ``overrides``."""
+    return dataclasses.replace(RefineConfig(**PAPER_TEXT_CUT), **overrides)
+
+
 def two_blobs():
     """Two adjacent 6x8x8 boxes, red (edit, x in [3, 9)) and green (object, x in [9, 15))."""
     grid = box_grid(18, [((3, 5, 5), (9, 13, 13), (0.9, 0.1, 0.1)), ((9, 5, 5), (15, 13, 13), (0.1, 0.9, 0.1))])
@@ -188,7 +202,7 @@ def test_graph_cut_two_blobs_gives_the_expected_partition():
     nodes = node_mask(grid)
     p_e, _ = probabilities(e, o)
     assert ((p_e > 0.5) != truth)[nodes].sum() > 10  # the unary alone mislabels voxels...
-    mask, stats = graph_cut_detailed(grid, e, o, RefineConfig(edit_seeds=50, object_seeds=50))
+    mask, stats = graph_cut_detailed(grid, e, o, text_cut(edit_seeds=50, object_seeds=50))
     assert torch.equal(mask, truth)  # ...the cut recovers the partition exactly
     assert stats.nodes == 2 * 6 * 8 * 8 and stats.edit_voxels == 6 * 8 * 8
     # 6-neighbour edges along all three axes between occupied vertices: a 12x8x8 box
@@ -205,8 +219,62 @@ def test_graph_cut_smoothness_uses_the_z_axis_too():
     e[5, 5, 1:11] = 1.0
     e[5, 5, 6] = -0.3  # slightly prefers "object"
     o = torch.zeros(grid.resolution)
-    mask = graph_cut(grid, e, o, RefineConfig(edit_seeds=3, object_seeds=0))
+    mask = graph_cut(grid, e, o, text_cut(edit_seeds=3, object_seeds=0))
     assert mask[5, 5, 1:11].all() and int(mask.sum()) == 10
+
+
+def test_pairwise_weights_text_and_code_formulas():
+    # ‖(0.06, 0.08, 0)‖ = 0.1: the code's weight is K·e^(−‖Δc‖/σ) = 5/e (an L1 distance, 0.14, would give 5·e^-1.4)
+    diff = np.array([[0.06, 0.08, 0.0], [0.0, 0.0, 0.0]])
+    code = pairwise_weights(diff, RefineConfig(pairwise_weight="exp_distance", sigma=0.1, smoothness=5.0))
+    text = pairwise_weights(diff, RefineConfig(pairwise_weight="gaussian", sigma=0.1, smoothness=5.0))
+    np.testing.assert_allclose(code, [5.0 * math.exp(-1.0), 5.0], rtol=1e-12)
+    np.testing.assert_allclose(text, [5.0 * math.exp(-0.5), 5.0], rtol=1e-12)  # 0.01 / (2·0.01)
+
+
+def test_maxpool_node_rule_is_the_occupied_set_dilated_by_one():
+    grid = box_grid(7, [((3, 3, 3), (4, 4, 4), (0.5, 0.5, 0.5)), ((0, 0, 0), (1, 1, 1), (0.5, 0.5, 0.5))])
+    assert int(node_mask(grid).sum()) == 2
+    pooled = node_mask(grid, rule="maxpool")
+    assert int(pooled.sum()) == 27 + 8  # a full 3x3x3 block in the middle, 2x2x2 at the corner
+    assert pooled[2:5, 2:5, 2:5].all() and pooled[:2, :2, :2].all()
+
+
+def test_without_unseeded_unary_the_cut_follows_the_colour_edge():
+    # a z column, red on z 1..4 and blue on z 5..10; the attention says "edit" on z 1..8
+    grid = box_grid(12, [((5, 5, 1), (6, 6, 5), (0.9, 0.1, 0.1)), ((5, 5, 5), (6, 6, 11), (0.1, 0.1, 0.9))])
+    e = torch.full(grid.resolution, -10.0)
+    e[5, 5, 1:9] = 10.0
+    o = -e
+    config = text_cut(edit_seeds=1, object_seeds=1)
+    with_unary = graph_cut(grid, e, o, config)
+    without = graph_cut(grid, e, o, dataclasses.replace(config, unseeded_unary="none"))
+    assert with_unary[5, 5, 1:9].all() and int(with_unary.sum()) == 8  # the unary outweighs one blue-blue edge
+    assert without[5, 5, 1:5].all() and int(without.sum()) == 4  # only seeds pull: the cheapest edge is red|blue
+
+
+def test_random_object_seeds_come_from_p_obj_above_p_e_else_the_top_fallback():
+    p_o = np.array([0.9, 0.2, 0.6, 0.7, 0.1, 0.8])
+    p_e = 1.0 - p_o
+    config = RefineConfig(object_seed_rule="random", object_seeds=3, object_seed_fallback=2, seed=4)
+    seeds = object_seed_indices(p_e, p_o, config)
+    assert len(set(seeds.tolist())) == 3 and set(seeds.tolist()) <= {0, 2, 3, 5}
+    np.testing.assert_array_equal(seeds, object_seed_indices(p_e, p_o, config))  # reproducible from config.seed
+    all_of_them = object_seed_indices(p_e, p_o, dataclasses.replace(config, object_seeds=10))
+    np.testing.assert_array_equal(all_of_them, [0, 2, 3, 5])  # fewer candidates than wanted: every one
+    none_qualify = object_seed_indices(np.full(6, 0.5), np.full(6, 0.5) - np.arange(6) * 0.01, config)
+    np.testing.assert_array_equal(none_qualify, [0, 1])  # the top object_seed_fallback by P_obj
+    with pytest.raises(ValueError, match="object_seed_rule"):
+        RefineConfig(object_seed_rule="best")
+
+
+def test_the_authors_code_cut_is_the_default_and_recovers_two_blobs():
+    assert all(getattr(RefineConfig(), k) == v for k, v in AUTHORS_CODE_CUT.items())
+    grid, truth = two_blobs()
+    e = truth.float() * 4 - 2
+    mask, stats = graph_cut_detailed(grid, e, -e, RefineConfig(edit_seeds=50))
+    nodes = node_mask(grid)
+    assert torch.equal(mask[nodes], truth[nodes]) and stats.nodes > int(nodes.sum())  # dilated node set
 
 
 def test_no_occupied_voxels_is_a_clear_error():
@@ -226,7 +294,7 @@ def test_fewer_candidates_than_seeds_uses_what_exists():
     e = torch.where(truth, 1.0, -1.0)
     e[3, 5, 5] = e[3, 5, 6] = 0.0  # tie the first two: still candidates of neither label
     with pytest.warns(UserWarning, match="of 500 edit seeds"):  # 384 - 2 voxels prefer "edit"
-        mask, stats = graph_cut_detailed(grid, e, -e, RefineConfig(edit_seeds=500, object_seeds=200))
+        mask, stats = graph_cut_detailed(grid, e, -e, text_cut(edit_seeds=500, object_seeds=200))
     n_edit = int(truth.sum()) - 2
     assert stats.edit_seeds == n_edit and stats.object_seeds == 200
     assert any("edit seeds" in n for n in stats.notes)
@@ -240,7 +308,7 @@ def test_huge_logits_give_finite_probabilities_and_a_cut():
     assert torch.isfinite(p_e).all() and torch.isfinite(p_o).all()
     torch.testing.assert_close(p_e + p_o, torch.ones_like(p_e))
     assert torch.equal(p_e > 0.5, truth)
-    mask, stats = graph_cut_detailed(grid, e[..., None], -e[..., None])  # (X, Y, Z, 1) fields work as well
+    mask, stats = graph_cut_detailed(grid, e[..., None], -e[..., None], text_cut())  # (X, Y, Z, 1) fields work as well
     assert torch.equal(mask, truth) and math.isfinite(stats.flow)
 
 
@@ -250,7 +318,7 @@ def test_one_voxel_object(edit_value, expected):
     e = torch.full(grid.resolution, edit_value)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        mask, stats = graph_cut_detailed(grid, e, torch.zeros(grid.resolution))
+        mask, stats = graph_cut_detailed(grid, e, torch.zeros(grid.resolution), text_cut())
     assert stats.nodes == 1 and stats.edges == 0
     assert int(mask.sum()) == int(expected) and bool(mask[3, 3, 3]) == expected
 
@@ -327,7 +395,7 @@ def test_refine_end_to_end_with_tiny_model(tiny_guidance, make_sphere_grid):
     done = [iteration for _, iteration, _ in reports]
     assert done == sorted(done) and done[-1] == 43 and reports[1][:2] == ("attention_maps", 2)
     assert result.info["prompt"] == "a render of a dog wearing sunglasses"
-    nodes = node_mask(edited)
+    nodes = node_mask(edited, rule=config.node_rule)  # the mask never leaves the graph's nodes
     assert result.mask.shape == nodes.shape and not (result.mask & ~nodes).any()
     torch.testing.assert_close(result.edit_probability + result.object_probability, torch.ones(12, 12, 12))
     assert torch.equal(result.refined_grid.features, merge(initial, edited, result.mask).features)
@@ -376,11 +444,11 @@ def test_relative_edit_seeds_take_every_node_near_the_largest_edit_probability()
     e[tuple(idx[:40].T)] = 8.0  # P_e ~ 0.99966, all within 0.992 of the max
     e[tuple(idx[40:45].T)] = 3.0  # P_e ~ 0.95: below the ratio
     o = torch.zeros_like(e)
-    _, stats = graph_cut_detailed(grid, e, o, RefineConfig(edit_seed_rule="relative", edit_seeds=10, object_seeds=0))
+    _, stats = graph_cut_detailed(grid, e, o, text_cut(edit_seed_rule="relative", edit_seeds=10, object_seeds=0))
     assert stats.edit_seeds == 40
-    _, stats = graph_cut_detailed(grid, e, o, RefineConfig(edit_seed_rule="relative", edit_seeds=43, object_seeds=0))
+    _, stats = graph_cut_detailed(grid, e, o, text_cut(edit_seed_rule="relative", edit_seeds=43, object_seeds=0))
     assert stats.edit_seeds == 43  # the top-k floor, all of them still more likely edit than object
-    _, stats = graph_cut_detailed(grid, e, o, RefineConfig(edit_seed_rule="relative", edit_seeds=60, object_seeds=0))
+    _, stats = graph_cut_detailed(grid, e, o, text_cut(edit_seed_rule="relative", edit_seeds=60, object_seeds=0))
     assert stats.edit_seeds == 45  # nodes at P_e = 1/2 are never edit seeds
     with pytest.raises(ValueError, match="edit_seed_rule"):
         RefineConfig(edit_seed_rule="max")

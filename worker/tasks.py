@@ -325,7 +325,7 @@ def _refine(job: Job, settings, device: str, storage) -> None:
     runtime.publish_artifact(job.id, "mask.safetensors", mask, "mask", storage)
     probabilities = scratch / "attention_probabilities.safetensors"
     save_probabilities(probabilities, result.edit_probability, result.object_probability,
-                       node_mask(edited, config.node_alpha))
+                       node_mask(edited, config.node_alpha, config.node_rule))
     runtime.publish_artifact(job.id, "attention_probabilities.safetensors", probabilities, "probabilities", storage)
     size = export_config(job.params).view_size
     overlay = render_mask_overlay(edited, result.mask, turntable_cameras(1, 20.0, size).to(edited.bbox_min.device))

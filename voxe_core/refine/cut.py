@@ -3,7 +3,9 @@
 P_e, P_obj = softmax of the two attention values per voxel (in log space);
 Boykov–Kolmogorov max-flow (PyMaxflow) on a graph built vectorised: unary
 costs −log P of the label, seeds tied to their terminal, and 6-neighbour
-pairwise weights λ·exp(−‖c_p − c_q‖² / 2σ²) on G_e's colours.
+pairwise weights λ·exp(−‖c_p − c_q‖² / 2σ²) on G_e's colours. Each of the authors'
+code's differences (refinement_functions.py::build_graph) is a RefineConfig choice;
+``AUTHORS_CODE_CUT`` sets them all.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from voxe_core.grid import VoxelGrid
 from voxe_core.refine.config import RefineConfig, SegmentationError
@@ -57,15 +60,38 @@ def probabilities(edit_field: torch.Tensor, object_field: torch.Tensor) -> tuple
     return log_e.exp().float(), log_o.exp().float()
 
 
-def node_mask(grid: VoxelGrid, node_alpha: float = 0.01) -> torch.Tensor:
-    """(X, Y, Z) bool: vertices whose activated density would make one voxel length ``node_alpha`` opaque.
+def node_mask(grid: VoxelGrid, node_alpha: float = 0.01, rule: str = "alpha") -> torch.Tensor:
+    """(X, Y, Z) bool: the graph's nodes.
 
-    That is σ·Δ ≥ −ln(1 − node_alpha) with Δ the smallest voxel edge, so the
-    test means the same at every resolution and box size.
+    ``rule="alpha"``: vertices whose activated density would make one voxel length ``node_alpha``
+    opaque, σ·Δ ≥ −ln(1 − node_alpha) with Δ the smallest voxel edge, so the test means the same at
+    every resolution and box size. ``rule="maxpool"`` (the authors' code): vertices whose 3×3×3
+    max-pooled ReLU density (raw × scale, for either activation) is > 0 — the occupied set dilated by one.
+
+    Examples:
+        >>> nodes = node_mask(grid, rule="maxpool")  # a superset of node_mask(grid) for ReLU grids
     """
-    sigma = grid.activate_density(grid.features[..., 0].detach())
+    raw = grid.features[..., 0].detach()
+    if rule == "maxpool":
+        pooled = F.max_pool3d((raw * grid.density_scale)[None, None], 3, stride=1, padding=1)[0, 0]
+        return pooled > 0
+    sigma = grid.activate_density(raw)
     threshold = -math.log1p(-node_alpha) / float(grid.voxel_size.min())
     return sigma >= threshold
+
+
+def pairwise_weights(diff: np.ndarray, config: RefineConfig) -> np.ndarray:
+    """(E,) weights of neighbour pairs from their colour differences (E, 3).
+
+    ``"gaussian"`` (the text): λ·exp(−‖Δc‖²/2σ²); ``"exp_distance"`` (the code): λ·exp(−‖Δc‖/σ).
+
+    Examples:
+        >>> pairwise_weights(np.array([[0.1, 0.0, 0.0]]), RefineConfig(pairwise_weight="exp_distance"))  # 5·e⁻¹
+    """
+    squared = (diff * diff).sum(-1)
+    if config.pairwise_weight == "exp_distance":
+        return config.smoothness * np.exp(-np.sqrt(squared) / config.sigma)
+    return config.smoothness * np.exp(-squared / (2.0 * config.sigma**2))
 
 
 def _top_seeds(score: np.ndarray, candidates: np.ndarray, count: int) -> np.ndarray:
@@ -77,6 +103,19 @@ def _top_seeds(score: np.ndarray, candidates: np.ndarray, count: int) -> np.ndar
     return idx[order[:count]]
 
 
+def object_seed_indices(p_e: np.ndarray, p_o: np.ndarray, config: RefineConfig) -> np.ndarray:
+    """Indices of the object seeds among the nodes, by ``config.object_seed_rule`` (see RefineConfig)."""
+    if config.object_seeds == 0:
+        return np.zeros(0, np.int64)
+    if config.object_seed_rule == "random":
+        idx = np.flatnonzero(p_o > p_e)
+        if idx.size == 0:
+            return _top_seeds(p_o, np.ones_like(p_o, bool), config.object_seed_fallback)
+        rng = np.random.default_rng(config.seed)
+        return np.sort(rng.choice(idx, size=min(idx.size, config.object_seeds), replace=False))
+    return _top_seeds(p_o, p_o > 0.5, config.object_seeds)
+
+
 def graph_cut_detailed(
     grid: VoxelGrid,
     edit_field: torch.Tensor,
@@ -85,8 +124,9 @@ def graph_cut_detailed(
 ) -> tuple[torch.Tensor, GraphCutStats]:
     """Binary edit mask (X, Y, Z) of the occupied voxels of ``grid`` (G_e), and what the cut did.
 
-    Energy: Σ_p −log P_{l_p}(p) + λ Σ_{p~q, l_p≠l_q} exp(−‖c_p − c_q‖²/2σ²),
-    minimised exactly by max-flow. Seeds: the ``edit_seeds`` voxels of highest
+    Energy (the text, ``PAPER_TEXT_CUT``): Σ_p −log P_{l_p}(p) + λ Σ_{p~q, l_p≠l_q} exp(−‖c_p − c_q‖²/2σ²),
+    minimised exactly by max-flow; the defaults are the authors' code's (``AUTHORS_CODE_CUT``: no unary
+    for unseeded voxels, λ·exp(−‖Δc‖/σ), random object seeds, max-pooled nodes; see RefineConfig). Seeds: the ``edit_seeds`` voxels of highest
     P_e among those with P_e > 1/2 are tied to the edit terminal (``edit_seed_rule="relative"``:
     every voxel within ``edit_seed_ratio`` of the largest P_e, at least ``edit_seeds`` of them, as the
     authors' code), the
@@ -103,7 +143,7 @@ def graph_cut_detailed(
     shape = grid.resolution
     edit_field = _scalar_field(edit_field, shape, "edit_field")
     object_field = _scalar_field(object_field, shape, "object_field")
-    nodes = node_mask(grid, config.node_alpha).cpu()
+    nodes = node_mask(grid, config.node_alpha, config.node_rule).cpu()
     n = int(nodes.sum())
     if n == 0:
         raise SegmentationError(
@@ -123,8 +163,8 @@ def graph_cut_detailed(
         edit_seeds = edit_seeds[p_e[edit_seeds] > p_o[edit_seeds]]  # never a voxel the object claims more
     else:
         edit_seeds = _top_seeds(p_e, p_e > 0.5, config.edit_seeds)
-    object_seeds = _top_seeds(p_o, p_o > 0.5, config.object_seeds)
-    if edit_seeds.size + object_seeds.size == 0:
+    object_seeds = np.setdiff1d(object_seed_indices(p_e, p_o, config), edit_seeds)  # a fallback may overlap
+    if edit_seeds.size + object_seeds.size == 0 or not (p_e != p_o).any():  # a fallback seeds no preference
         raise SegmentationError(
             f"no seeds: none of the {n} occupied voxels is more likely edit than object or the reverse "
             "(the attention grids are equal everywhere: too few fitting iterations, or maps that do not tell "
@@ -135,14 +175,13 @@ def graph_cut_detailed(
             notes.append(f"only {got} of {wanted} {label} seeds: {got} occupied voxels are more likely {label}")
 
     # unary terms: the source side is "edit", so the source edge is cut (paid) when p ends up "object"
-    cap_source = -log_o
-    cap_sink = -log_e
+    cap_source = -log_o if config.unseeded_unary == "log_probability" else np.zeros(n)
+    cap_sink = -log_e if config.unseeded_unary == "log_probability" else np.zeros(n)
 
     # pairwise terms along all three axes between occupied neighbours
     ids = np.full(shape, -1, dtype=np.int64)
     ids[nodes_np] = np.arange(n)
     colors = torch.sigmoid(grid.features[..., 1:4].detach().float()).cpu().numpy()
-    two_sigma2 = 2.0 * config.sigma**2
     heads, tails, weights = [], [], []
     for axis in range(3):
         lo = [slice(None)] * 3
@@ -155,7 +194,7 @@ def graph_cut_detailed(
         diff = colors[lo][pair] - colors[hi][pair]
         heads.append(ids[lo][pair])
         tails.append(ids[hi][pair])
-        weights.append(config.smoothness * np.exp(-(diff * diff).sum(-1) / two_sigma2))
+        weights.append(pairwise_weights(diff, config))
     i = np.concatenate(heads) if heads else np.zeros(0, np.int64)
     j = np.concatenate(tails) if tails else np.zeros(0, np.int64)
     w = np.concatenate(weights) if weights else np.zeros(0)
