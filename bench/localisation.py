@@ -226,10 +226,15 @@ def main() -> None:
         "runs": runs,
         "total_seconds": round(time.perf_counter() - start, 1),
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2))
-    plot(runs, args.out.with_suffix(".png"))
-    print(f"wrote {args.out} and {args.out.with_suffix('.png')} in {result['total_seconds']} s")
+    write_results(result, args.out, plot)
+
+
+def write_results(result: dict, out: Path, plot_runs) -> None:
+    """``result`` as JSON at ``out`` and ``plot_runs(result["runs"], <out>.png)`` beside it."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2))
+    plot_runs(result["runs"], out.with_suffix(".png"))
+    print(f"wrote {out} and {out.with_suffix('.png')} in {result['total_seconds']} s")
 
 
 if __name__ == "__main__":

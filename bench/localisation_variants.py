@@ -21,14 +21,13 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import time
 import warnings
 from pathlib import Path
 
 import torch
 
-from localisation import LEVELS, lattice_maps, ring_psnrs
+from localisation import LEVELS, lattice_maps, ring_psnrs, write_results
 from localisation_scenes import SCENES, build_scene
 from segmentation import iou
 from voxe_core.constants import SERVICE_OBJECT_SEEDS
@@ -134,10 +133,7 @@ def main() -> None:
         "runs": runs,
         "total_seconds": round(time.perf_counter() - start, 1),
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2))
-    plot(runs, args.out.with_suffix(".png"))
-    print(f"wrote {args.out} and {args.out.with_suffix('.png')} in {result['total_seconds']} s")
+    write_results(result, args.out, plot)
 
 
 if __name__ == "__main__":

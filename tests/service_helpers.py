@@ -14,8 +14,10 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import zipfile
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import httpx
@@ -590,3 +592,35 @@ def verify_artifacts(client: httpx.Client, job: dict, expected: set[str], downlo
     for bad_name in ("..%2F..%2Fscenes", "nope.png", "%2Fetc%2Fpasswd"):
         assert client.get(f"/v1/jobs/{job['id']}/artifacts/{bad_name}").status_code == 404
     return grids
+
+
+class WebhookReceiver:
+    """A webhook receiver on loopback that records every request (headers lower-cased, body bytes).
+
+    ``fail_first``: the first request is answered 500 (to see the retry); ``delay``: seconds before
+    each answer (longer than the sender's timeout makes a slow receiver).
+    """
+
+    def __init__(self, fail_first: bool = False, delay: float = 0.0):
+        self.requests: list[dict] = []
+        receiver = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def do_POST(self):
+                body = self.rfile.read(int(self.headers["content-length"]))
+                receiver.requests.append({"headers": {k.lower(): v for k, v in self.headers.items()}, "body": body})
+                time.sleep(delay)
+                self.send_response(500 if fail_first and len(receiver.requests) == 1 else 200)
+                self.send_header("content-length", "0")
+                self.end_headers()
+
+            def log_message(self, *args):
+                pass
+
+        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.url = f"http://127.0.0.1:{self.server.server_address[1]}/hook"
+        threading.Thread(target=self.server.serve_forever, daemon=True).start()
+
+    def close(self) -> None:
+        self.server.shutdown()
+        self.server.server_close()

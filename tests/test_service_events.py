@@ -11,15 +11,13 @@ import base64
 import hashlib
 import hmac
 import json
-import threading
 import time
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import httpx
 import pytest
 
 from needs import MIC, require_data
-from service_helpers import job_events, poll_job, service, small_mic, wait_for_scene, zip_folder
+from service_helpers import WebhookReceiver, job_events, poll_job, service, small_mic, wait_for_scene, zip_folder
 from voxe_client import Client
 from voxe_client.client import parse_sse
 
@@ -127,33 +125,6 @@ def test_streams_hold_no_database_connection_between_polls(live):
     poll_job(client, svc, job["id"])
 
 
-class Receiver:
-    """A webhook receiver on loopback: records every request; answers 500 to the first, 200 after."""
-
-    def __init__(self):
-        self.requests: list[dict] = []
-        receiver = self
-
-        class Handler(BaseHTTPRequestHandler):
-            def do_POST(self):
-                body = self.rfile.read(int(self.headers["content-length"]))
-                receiver.requests.append({"headers": {k.lower(): v for k, v in self.headers.items()}, "body": body})
-                self.send_response(500 if len(receiver.requests) == 1 else 200)
-                self.send_header("content-length", "0")
-                self.end_headers()
-
-            def log_message(self, *args):
-                pass
-
-        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.url = f"http://127.0.0.1:{self.server.server_address[1]}/hook"
-        threading.Thread(target=self.server.serve_forever, daemon=True).start()
-
-    def close(self):
-        self.server.shutdown()
-        self.server.server_close()
-
-
 def verify(secret: str, request: dict) -> bool:
     """The Standard Webhooks check a receiver does: HMAC-SHA256 of "id.timestamp.body" under the secret."""
     h = request["headers"]
@@ -165,7 +136,7 @@ def verify(secret: str, request: dict) -> bool:
 
 def test_webhooks_are_signed_retried_and_deduplicable(live):
     svc, client, scene = live
-    receiver = Receiver()
+    receiver = WebhookReceiver(fail_first=True)  # a 500 to the first request, 200 after
     try:
         body = {"scene_id": scene["id"], "prompt": "a mic made of wood", "params": PARAMS,
                 "webhook_url": receiver.url, "webhook_events": ["stage_completed", "succeeded"]}

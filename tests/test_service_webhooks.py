@@ -8,15 +8,13 @@ tests/test_service_events.py.
 from __future__ import annotations
 
 import socket
-import threading
 import time
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
 from fastapi.testclient import TestClient
 
 from needs import MIC, require_data
-from service_helpers import reset_service_caches, service_env, small_mic
+from service_helpers import WebhookReceiver, reset_service_caches, service_env, small_mic
 from test_service_api import make_scene
 
 
@@ -41,29 +39,6 @@ def closed_port() -> int:
         return s.getsockname()[1]  # nothing listens once it is closed
 
 
-class SlowReceiver:
-    """Answers 200, but only after ``delay`` seconds: longer than the sender's timeout."""
-
-    def __init__(self, delay: float):
-        self.hits = 0
-        outer = self
-
-        class Handler(BaseHTTPRequestHandler):
-            def do_POST(self):
-                outer.hits += 1
-                time.sleep(delay)
-                self.send_response(200)
-                self.send_header("content-length", "0")
-                self.end_headers()
-
-            def log_message(self, *args):
-                pass
-
-        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.url = f"http://127.0.0.1:{self.server.server_address[1]}/hook"
-        threading.Thread(target=self.server.serve_forever, daemon=True).start()
-
-
 def deliveries_settled(client, job_id: str, timeout: float = 20.0) -> list[dict]:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -77,7 +52,7 @@ def deliveries_settled(client, job_id: str, timeout: float = 20.0) -> list[dict]
 @pytest.mark.parametrize("receiver", ["dead", "slow"])
 def test_a_failing_receiver_blocks_nothing_and_is_given_up_on_in_bounded_time(client, receiver):
     test_client, scene = client
-    slow = SlowReceiver(delay=3.0) if receiver == "slow" else None
+    slow = WebhookReceiver(delay=3.0) if receiver == "slow" else None
     url = slow.url if slow else f"http://127.0.0.1:{closed_port()}/hook"
     job = test_client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold",
                                              "webhook_url": url}).json()
@@ -92,8 +67,8 @@ def test_a_failing_receiver_blocks_nothing_and_is_given_up_on_in_bounded_time(cl
     assert delivery["attempts"] >= 2 and delivery["last_status"] is None
     assert ("Timeout" if slow else "Connect") in delivery["last_error"], delivery
     if slow:
-        assert slow.hits == delivery["attempts"]
-        slow.server.shutdown()
+        assert len(slow.requests) == delivery["attempts"]
+        slow.close()
 
 
 def test_webhook_events_need_a_url_and_name_known_kinds(client):
