@@ -400,13 +400,17 @@ def build_once(settings: Settings, name: str, marker: str, build) -> Path:
     return target
 
 
-def get_guidance(model: str, device: str, settings: Settings):
-    """One StableDiffusionGuidance per (model, device) per worker process, loaded on first use."""
+def get_guidance(model: str, device: str, settings: Settings, job_id: str | None = None):
+    """One StableDiffusionGuidance per (model, device) per worker process, loaded on first use.
+
+    A first-use download shows on ``job_id``'s message ("downloading <model> (N GB)").
+    """
     from voxe_core.guidance.sds import StableDiffusionGuidance
 
     key = (model, device)
     if key not in _GUIDANCE_CACHE:
         path = resolve_model(model, settings)
         log.info("loading guidance model %s on %s", path, device)
-        _GUIDANCE_CACHE[key] = StableDiffusionGuidance.from_pretrained(path, device=device)
+        on_message = (lambda text: update_job(job_id, message=text)) if job_id is not None else None
+        _GUIDANCE_CACHE[key] = StableDiffusionGuidance.from_pretrained(path, device=device, on_message=on_message)
     return _GUIDANCE_CACHE[key]

@@ -261,7 +261,7 @@ def _fit_grid(job: Job, rec, settings, storage, callbacks: StageCallbacks, check
 def _edit(job: Job, settings, device: str, storage) -> None:
     from voxe_core.edit import edit
 
-    guidance = runtime.get_guidance(job.sds_model, device, settings)  # first: a missing model fails fast
+    guidance = runtime.get_guidance(job.sds_model, device, settings, job.id)  # first: a missing model fails fast
     rec = runtime.load_reconstruction(job.reconstruction_id)
     initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key)
     config = edit_config(job.params, initial.kind, settings.checkpoint_every)  # SPEC §5's schedule for a scene G_i
@@ -308,7 +308,7 @@ def _refine(job: Job, settings, device: str, storage) -> None:
     from voxe_core.refine.renders import render_mask_overlay
     from voxe_core.refine.storage import save_mask, save_probabilities
 
-    guidance = runtime.get_guidance(job.attention_model, device, settings)
+    guidance = runtime.get_guidance(job.attention_model, device, settings, job.id)
     rec = runtime.load_reconstruction(job.reconstruction_id)
     initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key)
     edited = fetch_grid(job.id, "edited_grid.safetensors", settings, storage)

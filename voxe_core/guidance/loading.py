@@ -7,6 +7,7 @@ Real weights are never substituted: a model that cannot be loaded is a
 from __future__ import annotations
 
 import os
+from typing import Callable
 
 DIFFUSERS_LAYOUT = "model_index.json, unet/, vae/, text_encoder/, tokenizer/, scheduler/"
 
@@ -80,11 +81,43 @@ def loading_errors() -> tuple[type[BaseException], ...]:
     return tuple(errors)
 
 
-def load_stable_diffusion(model: str, dtype, local_files_only: bool | None = None, revision: str | None = None):
+def hub_download_bytes(model: str) -> int | None:
+    """Bytes of the files of hub model ``model``, or None when the hub cannot say (offline, unknown id)."""
+    from huggingface_hub import HfApi
+
+    try:
+        info = HfApi().model_info(model, files_metadata=True)
+    except loading_errors():
+        return None
+    return sum(s.size or 0 for s in info.siblings or []) or None
+
+
+def download_notice(model: str, local_files_only: bool,
+                    size_of: Callable[[str], int | None] = hub_download_bytes) -> str | None:
+    """What a user should see before ``model`` is fetched from the hub; None when nothing will be downloaded.
+
+    A download happens only for a hub id that is not in the local cache while downloads are allowed.
+    ``size_of`` asks the hub for the model's bytes (a parameter so it can be given another source).
+
+    Examples:
+        >>> download_notice("owner/model", local_files_only=False, size_of=lambda model: 5_210_000_000)
+        'downloading owner/model (5.2 GB)'
+        >>> download_notice("owner/model", local_files_only=True) is None
+        True
+    """
+    if local_files_only or looks_local(model) or model_file_present(model, "model_index.json"):
+        return None
+    size = size_of(model)
+    return f"downloading {model} ({size / 1e9:.1f} GB)" if size else f"downloading {model} (size unknown)"
+
+
+def load_stable_diffusion(model: str, dtype, local_files_only: bool | None = None, revision: str | None = None,
+                          on_message: Callable[[str], None] | None = None):
     """(unet, vae, text_encoder, tokenizer, scheduler) of the diffusers-layout ``model`` in ``dtype``.
 
     ``model`` is a hub id (from the Hugging Face cache, see ``HF_HOME``) or a local
-    folder; ``local_files_only`` defaults to :func:`offline_env`. Raises
+    folder; ``local_files_only`` defaults to :func:`offline_env`. ``on_message`` hears
+    :func:`download_notice` before a first-use download, so the wait is not silent. Raises
     :class:`ModelNotAvailableError` naming the model when anything is missing.
     """
     from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
@@ -98,6 +131,9 @@ def load_stable_diffusion(model: str, dtype, local_files_only: bool | None = Non
 
     if looks_local(model) and not os.path.isdir(model):
         raise ModelNotAvailableError(not_available_message(model, FileNotFoundError(f"no folder {model}")))
+    notice = download_notice(model, bool(local_files_only)) if on_message is not None else None
+    if notice is not None:
+        on_message(notice)
 
     try:
         unet = UNet2DConditionModel.from_pretrained(model, subfolder="unet", torch_dtype=dtype, **kwargs)

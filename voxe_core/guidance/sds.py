@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import os
 import time
-from typing import Sequence
+from typing import Callable, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -161,6 +161,7 @@ class StableDiffusionGuidance:
         revision: str | None = None,
         resolution: int | None = None,
         sync_timing: bool = False,
+        on_message: Callable[[str], None] | None = None,
     ) -> "StableDiffusionGuidance":
         """Load UNet, VAE, CLIP text encoder, tokenizer and noise schedule of ``model``.
 
@@ -171,6 +172,7 @@ class StableDiffusionGuidance:
         environment sets ``HF_HUB_OFFLINE=1``. Raises
         :class:`ModelNotAvailableError` (naming the model and how to provide it)
         when the weights cannot be found; never substitutes another model.
+        ``on_message`` hears "downloading <model> (N GB)" before a first-use download.
         ``resolution`` overrides the image size derived from the configs
         (``unet.sample_size · 2^(len(vae.block_out_channels) − 1)``, 512 for SD).
         """
@@ -178,7 +180,8 @@ class StableDiffusionGuidance:
         if dtype is None:
             dtype = torch.float16 if device.type == "cuda" else torch.float32
         model_str = os.fspath(model)
-        unet, vae, text_encoder, tokenizer, scheduler = load_stable_diffusion(model_str, dtype, local_files_only, revision)
+        unet, vae, text_encoder, tokenizer, scheduler = load_stable_diffusion(
+            model_str, dtype, local_files_only, revision, on_message)
         return cls(
             unet, vae, text_encoder, tokenizer, scheduler,
             model_id=model_str, device=device, dtype=dtype, resolution=resolution, sync_timing=sync_timing,
