@@ -6,6 +6,8 @@ depend on its weights): ``sd2-base-shaped`` (SDS) and ``sd1.4-shaped`` (attentio
 architectures by ``bench/edit_step.py``'s builder, fp16, 512² guidance. Timings are costs, never quality.
 
     python bench/gpu.py            # CUDA, full size: at most ~8 min on one H200
+    bash bench/gpu_carry.sh        # here: the wheels and mic views the lent GPU machine lacks, in .gpu_carry/
+    bash bench/gpu_device.sh       # there (device tool: carry [".gpu_carry"]): installs them, runs this script
     python bench/gpu.py --smoke    # CPU, tiny sizes: every section end to end in about a minute
                                    # (tests/test_bench_gpu.py); its figures mean nothing
 
@@ -49,8 +51,8 @@ import torch
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 RESULTS = HERE / "results"
-MIC = REPO.parent / "shared" / "data" / "nerf_synthetic_mic"
 sys.path[:0] = [str(REPO), str(HERE), str(REPO / "tests")]
+from needs import MIC  # noqa: E402 - ../shared/data, or $VOXE_DATA_ROOT (bench/gpu_device.sh on the GPU machine)
 
 PROMPT, EDIT_WORDS = "a dog wearing big sunglasses", ["sunglasses"]
 

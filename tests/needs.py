@@ -10,7 +10,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-DATA_ROOT = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+# VOXE_DATA_ROOT: elsewhere, e.g. the GPU machine, where bench/gpu_device.sh carries mic inside the repository.
+DATA_ROOT = Path(os.environ.get("VOXE_DATA_ROOT") or Path(__file__).resolve().parents[1].parent / "shared" / "data")
 MIC = DATA_ROOT / "nerf_synthetic_mic"
 FOX = DATA_ROOT / "fox"
 SPOT = DATA_ROOT / "meshes" / "spot"
