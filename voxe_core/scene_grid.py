@@ -150,6 +150,10 @@ class SceneGrid(VoxelGrid):
         """A capture's cameras moved into this grid's canonical frame."""
         return apply_frame(cameras, self.frame)
 
+    def orbit_centre(self) -> torch.Tensor:
+        """The foreground's ``matter_centre()``: the frame's origin is where the cameras look, not always where the object sits."""
+        return self.foreground_grid().matter_centre()
+
     # ------------------------------------------------------------ sampling
     def ray_samples(
         self,

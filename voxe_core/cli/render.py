@@ -51,7 +51,7 @@ def cmd_render(args) -> int:
         cameras = grid.dataset_cameras(scene.cameras)
         names = [f"{i:03d}_{Path(name).stem}.png" for i, name in enumerate(scene.names)]
     else:
-        cameras = turntable_cameras(args.ring, args.elevation, args.size)
+        cameras = turntable_cameras(args.ring, args.elevation, args.size, centre=grid.orbit_centre())
         names = [f"{i:03d}.png" for i in range(args.ring)]
     frames = run_stage(lambda cb: render_views(grid, cameras, callbacks=cb, device=device), "render", "view",
                        len(cameras), args.quiet)
@@ -95,7 +95,7 @@ def cmd_turntable(args) -> int:
         raise ValueError(f"unsupported video suffix {args.out.suffix!r}; use one of {', '.join(VIDEO_SUFFIXES)}")
     device = check_device(args)
     grid = load_grid(args.grid)
-    cameras = turntable_cameras(args.frames, args.elevation, args.size)
+    cameras = turntable_cameras(args.frames, args.elevation, args.size, centre=grid.orbit_centre())
     frames = run_stage(
         lambda cb: render_views(grid, cameras, callbacks=cb, device=device), "turntable", "frame", len(cameras),
         args.quiet,
