@@ -337,6 +337,10 @@ class VoxelGrid(torch.nn.Module):
         centres its object (SPEC §0), so the paper's poses and evaluation ring are kept exactly."""
         return torch.zeros(3)
 
+    def object_vertices(self) -> torch.Tensor:
+        """(X, Y, Z) bool: the vertices that can hold the object (a local edit's graph cut is among them): all of them."""
+        return torch.ones(self.resolution, dtype=torch.bool, device=self.bbox_min.device)
+
     @torch.no_grad()
     def matter_centre(self) -> torch.Tensor:
         """Centroid (3,) of the vertices, each weighted by the opacity of one voxel length of it, 1 − exp(−σ·Δ).

@@ -151,8 +151,15 @@ class SceneGrid(VoxelGrid):
         return apply_frame(cameras, self.frame)
 
     def orbit_centre(self) -> torch.Tensor:
-        """The foreground's ``matter_centre()``: the frame's origin is where the cameras look, not always where the object sits."""
+        """The foreground's ``matter_centre()``: the frame's origin is where the cameras look, not always where
+        the object sits."""
         return self.foreground_grid().matter_centre()
+
+    def object_vertices(self) -> torch.Tensor:
+        """The foreground cube's vertices (contracted coordinates in [-1, 1]³): the shell beyond is the room."""
+        inside = [torch.linspace(-CONTRACTED_EXTENT, CONTRACTED_EXTENT, n, device=self.bbox_min.device).abs()
+                  <= 1.0 + 1e-6 for n in self.resolution]
+        return inside[0][:, None, None] & inside[1][None, :, None] & inside[2][None, None, :]
 
     # ------------------------------------------------------------ sampling
     def ray_samples(
