@@ -22,15 +22,16 @@ how rays are sampled:
 
 The grid works in a canonical frame: scene centre at the origin, z up, the
 cameras at the NeRF-synthetic radius, so editing's random upper-hemisphere
-poses (radius 4.0311, looking at the origin) see the scene as they see an
-object. ``scene_frame`` finds that similarity from the capture's cameras; it is
-stored in the grid header so a dataset's cameras can be mapped again later
-(:meth:`SceneGrid.dataset_cameras`).
+poses (radius 4.0311) see the scene as they see an object. ``scene_frame`` finds
+that similarity from the capture's cameras; it is stored in the grid header so a
+dataset's cameras can be mapped again later (:meth:`SceneGrid.dataset_cameras`).
+The cameras' centre need not be the object's: poses and turntables look at
+:meth:`SceneGrid.orbit_centre`, the foreground's matter centre.
 
 What the renderer, the mesh export and the loaders need from a backbone are
 methods ``SceneGrid`` overrides (``ray_samples``, ``dataset_cameras``,
-``foreground_grid``, ``from_state``); ``voxe_core.backbones`` finds the class
-of a saved grid by its ``kind``.
+``foreground_grid``, ``orbit_centre``, ``object_vertices``, ``from_state``);
+``voxe_core.backbones`` finds the class of a saved grid by its ``kind``.
 """
 
 from __future__ import annotations
