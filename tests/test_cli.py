@@ -186,6 +186,30 @@ def test_render_ring(sphere_file, tmp_path):
     assert image[8, 8, 0] > 230 and image[8, 8, 1] < 25 and (image[0, 0] == 255).all()
 
 
+def test_ring_of_a_capture_grid_orbits_its_object_or_the_grid_named_by_centre_of(tmp_path, capsys):
+    """A scene grid's ball 0.69 units off its frame's origin is in the middle of every ring view; with
+    ``--centre-of`` a grid whose ball is at the origin, the ring looks at the origin and the ball moves off."""
+    from test_export import scene_blob
+
+    off, centred = tmp_path / "off.safetensors", tmp_path / "centred.safetensors"
+    scene_blob((0.5625, -0.375, 0.1875)).save(off)
+    scene_blob((0.0, 0.0, 0.0)).save(centred)
+
+    def ball_centroids(out: Path) -> np.ndarray:
+        images = [np.asarray(Image.open(p), dtype=np.float64) / 255.0 for p in sorted(out.glob("*.png"))]
+        ys, xs = np.mgrid[0:32, 0:32] + 0.5
+        return np.array([[(w * xs).sum() / w.sum(), (w * ys).sum() / w.sum()] for w in (1.0 - i[..., 1] for i in images)])
+
+    common = ["--ring", "3", "--size", "32", "--quiet"]
+    assert main(["render", str(off), *common, "--out", str(tmp_path / "own")]) == 0
+    assert np.abs(ball_centroids(tmp_path / "own") - 16).max() < 0.3
+    assert main(["render", str(off), *common, "--centre-of", str(centred), "--out", str(tmp_path / "other")]) == 0
+    assert np.abs(ball_centroids(tmp_path / "other") - 16).max() > 4.0
+    missing = tmp_path / "missing.safetensors"
+    assert main(["turntable", str(off), "--out", str(tmp_path / "t.gif"), "--centre-of", str(missing), "--quiet"]) == 2
+    assert f"{missing}: no such file" in capsys.readouterr().err and not (tmp_path / "t.gif").exists()
+
+
 def test_render_needs_exactly_one_camera_source(sphere_file, tmp_path):
     with pytest.raises(SystemExit) as exc:
         main(["render", str(sphere_file), "--out", str(tmp_path)])

@@ -261,11 +261,11 @@ def test_view_word_follows_the_pose(small_sphere, monkeypatch):
               (70.0, 123.0, "overhead"), (30.0, 300.0, "front")]
     poses = iter(script)
 
-    def scripted(n, generator=None, radius=4.0311, min_zenith_deg=15.0, max_zenith_deg=90.0):
+    def scripted(n, generator=None, radius=4.0311, min_zenith_deg=15.0, max_zenith_deg=90.0, centre=None):
         e, a, _ = next(poses)
         el, az = torch.tensor([e]), torch.tensor([a])
         torch.rand(2, generator=generator)  # keep the generator moving as the real draw does
-        return spherical_poses(el, az, radius), el, az
+        return spherical_poses(el, az, radius, centre), el, az
 
     monkeypatch.setattr(edit_module, "random_hemisphere_poses", scripted)
     fake, reports = FakeGuidance(), []

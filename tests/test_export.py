@@ -11,6 +11,7 @@ import torch
 import trimesh
 from PIL import Image
 
+from conftest import RED_LOGITS
 from voxe_core.cameras import Cameras, look_at
 from voxe_core.export import (
     default_mesh_level,
@@ -24,6 +25,7 @@ from voxe_core.export import (
 from voxe_core.grid import VoxelGrid
 from voxe_core.progress import Callbacks, StageCancelled
 from voxe_core.render import RenderConfig, render_image
+from voxe_core.scene_grid import SceneGrid
 
 R = 0.8
 
@@ -245,3 +247,79 @@ def test_obj_round_trip_keeps_vertices_faces_and_colours(sphere_grid, tmp_path):
 def test_save_mesh_rejects_unknown_suffix(sphere_grid, tmp_path):
     with pytest.raises(ValueError, match=r"'\.stl'"):
         save_mesh(extract_mesh(sphere_grid), tmp_path / "m.stl")
+
+
+# -------------------------------------------------------------- turntable centre
+BLOB_RADIUS = 0.45
+
+
+def scene_blob(centre) -> SceneGrid:
+    """A 33³ scene grid holding one ball of radius 0.45 (canonical units) at ``centre``; the background is empty.
+
+    Its foreground lattice (17³ over [-1.5, 1.5]³, spacing 0.1875) has a vertex at each centre used below,
+    so the ball's voxel weights are symmetric about it.
+    """
+    grid = SceneGrid(33)
+    axis = torch.linspace(-2.0, 2.0, 33)  # contracted coordinates of the lattice
+    contracted = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1)
+    canonical = contracted * grid.foreground_extent  # exact inside the foreground, where the ball is
+    distance = (canonical - torch.tensor(centre)).norm(dim=-1)
+    inside = contracted.abs().amax(-1) <= 1.0
+    with torch.no_grad():
+        grid.features[..., 0] = torch.where(inside, 40.0 * (BLOB_RADIUS - distance), torch.tensor(-1.0))
+        grid.features[..., 1:] = torch.tensor(RED_LOGITS)
+    return grid
+
+
+
+def image_centroids(grid, cameras) -> torch.Tensor:
+    """(N, 2) opacity-weighted (x, y) pixel centroid of each view (pixel centres at i + 0.5)."""
+    out = []
+    for i in range(len(cameras)):
+        opacity = render_image(grid, cameras, i).opacity
+        h, w = opacity.shape
+        ys, xs = torch.meshgrid(torch.arange(h) + 0.5, torch.arange(w) + 0.5, indexing="ij")
+        out.append(torch.stack([(opacity * xs).sum(), (opacity * ys).sum()]) / opacity.sum())
+    return torch.stack(out)
+
+
+def test_a_turntable_keeps_an_off_centre_capture_object_in_the_middle_of_every_frame():
+    """The capture frame's origin is where the cameras looked; the ball sits 0.69 units away from it."""
+    blob = (0.5625, -0.375, 0.1875)
+    grid = scene_blob(blob)
+    centre = grid.orbit_centre()
+    assert torch.allclose(centre, torch.tensor(blob), atol=1e-5)
+    size = 32
+    cameras = turntable_cameras(6, 30.0, size, centre=centre)
+    eye = cameras.c2w[:, :3, 3] - centre
+    assert torch.allclose(eye.norm(dim=-1), torch.full((6,), 4.0311), atol=1e-4)  # the ring's radius, about the ball
+    around_ball = image_centroids(grid, cameras)
+    assert (around_ball - size / 2).abs().max() < 0.25, around_ball  # the middle of every frame, to a quarter pixel
+    around_origin = image_centroids(grid, turntable_cameras(3, 30.0, size))
+    assert (around_origin - size / 2).abs().max() > 4.0, around_origin  # what an orbit of the frame's origin does
+
+
+def test_a_centred_capture_object_and_an_object_grid_keep_the_origin_ring(make_sphere_grid):
+    centred = scene_blob((0.0, 0.0, 0.0))
+    assert centred.orbit_centre().abs().max() < 1e-6
+    ring = turntable_cameras(8, 30.0, 32)
+    assert torch.allclose(turntable_cameras(8, 30.0, 32, centre=centred.orbit_centre()).c2w, ring.c2w, atol=1e-5)
+    # An object grid is centred by convention (SPEC §0): its ring stays the paper's even with the object off it.
+    off_centre = make_sphere_grid(center=(0.5, 0.0, 0.0))
+    assert torch.equal(off_centre.orbit_centre(), torch.zeros(3))
+    assert torch.equal(turntable_cameras(8, 30.0, 32, centre=off_centre.orbit_centre()).c2w, ring.c2w)
+    assert torch.allclose(off_centre.matter_centre(), torch.tensor([0.5, 0.0, 0.0]), atol=0.02)  # yet it knows where it is
+
+
+def test_matter_centre_weighs_by_opacity_and_is_the_box_centre_when_empty():
+    grid = VoxelGrid(5, (0.0, 0.0, 0.0), (4.0, 4.0, 4.0))  # vertices at 0, 1, 2, 3, 4
+    with torch.no_grad():
+        grid.features[..., 0] = -1.0
+    assert torch.equal(grid.matter_centre(), torch.tensor([2.0, 2.0, 2.0]))
+    with torch.no_grad():
+        grid.features[0, 0, 0, 0] = 1e4  # opaque: weight 1
+        grid.features[4, 0, 0, 0] = 1e4
+        grid.features[4, 4, 4, 0] = 1e-3 / grid.density_scale  # haze: weight 1 − e^(−0.001) ≈ 0.001
+    haze = -math.expm1(-1e-3)
+    expected = torch.tensor([(4.0 + 4.0 * haze), 4.0 * haze, 4.0 * haze]) / (2.0 + haze)
+    assert torch.allclose(grid.matter_centre(), expected, atol=1e-6)

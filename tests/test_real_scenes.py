@@ -216,6 +216,39 @@ def test_edit_and_refinement_run_unchanged_on_a_scene_grid(tiny_sd_path):
     result = refine(initial, edited, "a fox wearing sunglasses", ["sunglasses"], guidance, config)
     assert isinstance(result.refined_grid, SceneGrid)
     assert torch.equal(result.refined_grid.features, merge(initial, edited, result.mask).features)
+    assert not (result.mask & ~initial.object_vertices()).any()  # the room is never part of a local edit
+
+
+def test_a_local_edits_graph_cut_is_among_the_foregrounds_vertices():
+    """The room in the contracted shell is occupied, yet no node of the cut: a local edit is of the object."""
+    from voxe_core.refine.cut import node_mask
+
+    grid = _background_scene()
+    axes = torch.linspace(-2.0, 2.0, 17)
+    lattice = torch.stack(torch.meshgrid(axes, axes, axes, indexing="ij"), -1)
+    foreground = lattice.abs().amax(-1) <= 1.0
+    assert torch.equal(grid.object_vertices(), foreground) and int(foreground.sum()) == 9**3
+    room, ball = lattice.abs().amax(-1) > 1.9, lattice.norm(dim=-1) < 0.5
+    for rule in ("alpha", "maxpool"):
+        nodes = node_mask(grid, rule=rule)
+        assert nodes[ball].all() and not nodes[room].any() and not (nodes & ~foreground).any(), rule
+    assert VoxelGrid(4).object_vertices().all()
+
+
+def test_the_edit_looks_at_an_off_centre_capture_object(tiny_sd_path):
+    """G_i's orbit centre is where the edit's poses look: its preview of G_i has the ball in the middle."""
+    from test_export import scene_blob
+
+    guidance = StableDiffusionGuidance.from_pretrained(str(tiny_sd_path), device="cpu", local_files_only=True)
+    blob = (0.5625, -0.375, 0.1875)
+    initial = scene_blob(blob)
+    previews = {}
+    edit(initial, "a ball", guidance, EditConfig(iterations=1, render_size=32, preview_every=1),
+         on_preview=lambda iteration, image: previews.setdefault(iteration, image))
+    ball = 1.0 - previews[0][..., 1]  # red on white: green marks where the ball covers the pixel
+    ys, xs = torch.meshgrid(torch.arange(32) + 0.5, torch.arange(32) + 0.5, indexing="ij")
+    centroid = torch.stack([(ball * xs).sum(), (ball * ys).sum()]) / ball.sum()
+    assert float(ball.sum()) > 20 and (centroid - 16).abs().max() < 0.25, centroid
 
 
 # ----------------------------------------------------------------- CLI

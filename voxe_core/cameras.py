@@ -224,14 +224,22 @@ def look_at(eye: torch.Tensor, target: torch.Tensor | None = None, up=(0.0, 0.0,
 
 
 def spherical_poses(
-    elevation_deg: torch.Tensor, azimuth_deg: torch.Tensor, radius: float = NERF_SYNTHETIC_RADIUS
+    elevation_deg: torch.Tensor, azimuth_deg: torch.Tensor, radius: float = NERF_SYNTHETIC_RADIUS,
+    centre: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Poses on a sphere around the origin (elevation above the xy-plane, z up)."""
+    """Poses on a sphere around ``centre`` (None: the origin), looking at it (elevation above the xy-plane, z up).
+
+    The centre is where the object sits (``VoxelGrid.orbit_centre``): a capture's object need not sit at its
+    frame's origin, and an orbit about the origin would swing it across the image.
+    """
     el, az = torch.deg2rad(torch.as_tensor(elevation_deg, dtype=torch.float32)), torch.deg2rad(
         torch.as_tensor(azimuth_deg, dtype=torch.float32)
     )
     eye = radius * torch.stack([el.cos() * az.cos(), el.cos() * az.sin(), el.sin()], dim=-1)
-    return look_at(eye)
+    if centre is None:
+        return look_at(eye)
+    centre = torch.as_tensor(centre, dtype=torch.float32).reshape(3)
+    return look_at(eye + centre, centre)
 
 
 def random_hemisphere_poses(
@@ -240,20 +248,21 @@ def random_hemisphere_poses(
     radius: float = NERF_SYNTHETIC_RADIUS,
     min_zenith_deg: float = 15.0,
     max_zenith_deg: float = 90.0,
+    centre: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Upper-hemisphere training poses as the authors draw them (zenith uniform in [15°, 90°]).
+    """Upper-hemisphere training poses as the authors draw them (zenith uniform in [15°, 90°]), around ``centre``.
 
     Returns (c2w, elevation_deg, azimuth_deg) so callers can pick a view word.
     """
     zenith = min_zenith_deg + (max_zenith_deg - min_zenith_deg) * torch.rand(n, generator=generator)
     azimuth = 360.0 * torch.rand(n, generator=generator)
     elevation = 90.0 - zenith
-    return spherical_poses(elevation, azimuth, radius), elevation, azimuth
+    return spherical_poses(elevation, azimuth, radius, centre), elevation, azimuth
 
 
 def ring_poses(
-    n: int, elevation_deg: float = 30.0, radius: float = NERF_SYNTHETIC_RADIUS
+    n: int, elevation_deg: float = 30.0, radius: float = NERF_SYNTHETIC_RADIUS, centre: torch.Tensor | None = None
 ) -> torch.Tensor:
-    """``n`` poses evenly spaced on a 360° ring (turntables and the evaluation protocol)."""
+    """``n`` poses evenly spaced on a 360° ring around ``centre`` (turntables and the evaluation protocol)."""
     azimuth = torch.arange(n, dtype=torch.float32) * (360.0 / n)
-    return spherical_poses(torch.full((n,), float(elevation_deg)), azimuth, radius)
+    return spherical_poses(torch.full((n,), float(elevation_deg)), azimuth, radius, centre)

@@ -6,7 +6,8 @@ regulariser touches every voxel, so sparse updates would buy nothing). One
 iteration:
 
 1. draw a random upper-hemisphere pose (zenith uniform in [15°, 90°], azimuth
-   in [0°, 360°), radius 4.0311, looking at the origin);
+   in [0°, 360°), radius 4.0311, looking at the origin; on a capture, at G_i's
+   ``orbit_centre()``, where its object sits);
 2. render a ``render_size``² image of G_e from it, with gradient, on white,
    with stratified jitter (the guidance resizes it to its own resolution);
 3. build the prompt ``"a render of <text>, <view> view"``, the view word
@@ -353,9 +354,10 @@ def edit(
         return embeddings[view]
 
     size = config.render_size
+    centre = initial_grid.orbit_centre()  # G_i's, so a resumed run draws the same poses
     preview_cameras = Cameras.from_fov(
         spherical_poses(torch.tensor([config.preview_elevation_deg]), torch.tensor([config.front_azimuth_deg]),
-                        config.radius),
+                        config.radius, centre),
         config.fov_x, size, size,
     ).to(device)
 
@@ -380,7 +382,7 @@ def edit(
 
             # ---- random draws from the host generator: poses, time steps, image-regulariser rays
             c2w, elevation, azimuth = random_hemisphere_poses(
-                config.batch_size, host_gen, config.radius, config.min_zenith_deg, config.max_zenith_deg
+                config.batch_size, host_gen, config.radius, config.min_zenith_deg, config.max_zenith_deg, centre
             )
             views_words = [
                 pose_view_word(e, a, config.front_azimuth_deg) if config.view_words else None

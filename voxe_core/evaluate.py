@@ -87,9 +87,11 @@ def source_text(object_name: str) -> str:
 
 # --------------------------------------------------------------------------- ring renders
 def render_ring(grid: VoxelGrid, views: int, elevation_deg: float, size: int, callbacks: Callbacks = Callbacks(),
-                device: torch.device | str | None = None):
-    """``views`` renders (N, H, W, 3, on the CPU) on the evaluation ring, looking at the origin, rendered on ``device``."""
-    return render_views(grid, turntable_cameras(views, elevation_deg, size), callbacks=callbacks, device=device)
+                device: torch.device | str | None = None, centre: torch.Tensor | None = None):
+    """``views`` renders (N, H, W, 3, on the CPU) on the evaluation ring, looking at ``centre`` (None: the origin;
+    G_i's ``orbit_centre()`` for all grids of one evaluation, so theirs are the same views), rendered on ``device``."""
+    return render_views(grid, turntable_cameras(views, elevation_deg, size, centre=centre), callbacks=callbacks,
+                        device=device)
 
 
 def save_png_set(folder, frames: torch.Tensor) -> list[Path]:
@@ -102,7 +104,8 @@ def save_png_set(folder, frames: torch.Tensor) -> list[Path]:
 
 
 @torch.no_grad()
-def mask_footprint(grid: VoxelGrid, mask: torch.Tensor, views: int, elevation_deg: float, size: int) -> torch.Tensor:
+def mask_footprint(grid: VoxelGrid, mask: torch.Tensor, views: int, elevation_deg: float, size: int,
+                   centre: torch.Tensor | None = None) -> torch.Tensor:
     """(N, H, W) bool: pixels of the ring views whose ray samples a cell with a masked corner vertex.
 
     Rendered through the same renderer and sample lattice as the views (same
@@ -115,7 +118,7 @@ def mask_footprint(grid: VoxelGrid, mask: torch.Tensor, views: int, elevation_de
     # Raw 1e3 at masked vertices: any sample with a positive trilinear weight on one is near-opaque.
     features[..., 0] = mask.to(features.device, torch.float32) * 1e3
     stand_in = VoxelGrid(grid.resolution, grid.bbox_min, grid.bbox_max, "relu", grid.density_scale, features=features)
-    cameras = turntable_cameras(views, elevation_deg, size).to(grid.bbox_min.device)
+    cameras = turntable_cameras(views, elevation_deg, size, centre=centre).to(grid.bbox_min.device)
     config = RenderConfig(sigma_threshold=0.0)  # every cell touching a masked vertex is 'occupied'
     occupancy = stand_in.occupancy(config.sigma_threshold)
     hits = torch.zeros(views, size, size, dtype=torch.bool)
@@ -381,7 +384,8 @@ def evaluate(
         return Callbacks(on_progress=lambda r: callbacks.progress(
             Progress("evaluate", base + r.iteration, total, info=memory.info())), should_cancel=callbacks.should_cancel)
 
-    recon = render_ring(initial, config.views, config.elevation, config.size, stage_callbacks(), device)
+    centre = initial.orbit_centre()
+    recon = render_ring(initial, config.views, config.elevation, config.size, stage_callbacks(), device, centre)
     recon_clip = clip.image_embeddings(recon)
     texts = clip.text_embeddings([source] + [edit_prompt(e.prompt) for e in edits])
     recon_features = fid.features(recon) if fid is not None else None
@@ -393,7 +397,7 @@ def evaluate(
         if sample.mask is not None and sample.grid.resolution != initial.resolution:
             raise ValueError(f"edit {sample.name!r}: a masked edit must share the initial grid's resolution "
                              f"{initial.resolution}, got {sample.grid.resolution}")
-        images = render_ring(sample.grid, config.views, config.elevation, config.size, stage_callbacks(), device)
+        images = render_ring(sample.grid, config.views, config.elevation, config.size, stage_callbacks(), device, centre)
         embeddings = clip.image_embeddings(images)
         row = {"name": sample.name, "prompt": sample.prompt, "mode": "local" if sample.mask is not None else "global",
                "clip_sim": clip_similarity(embeddings, texts[k + 1]),
@@ -415,7 +419,8 @@ def preservation(images: torch.Tensor, recon: torch.Tensor, sample: EditSample, 
         keep = torch.ones(images.shape[:3], dtype=torch.bool)
         region = "whole image"
     else:
-        keep = ~mask_footprint(initial, sample.mask, config.views, config.elevation, config.size)
+        keep = ~mask_footprint(initial, sample.mask, config.views, config.elevation, config.size,
+                               initial.orbit_centre())
         region = "outside mask"
     psnr_values = psnr(images, recon, keep=keep)
     ssim_values = ssim(images, recon, keep=keep)

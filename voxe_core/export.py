@@ -83,11 +83,16 @@ def turntable_cameras(
     size: int = 256,
     fov_x: float = NERF_SYNTHETIC_FOV_X,
     radius: float = NERF_SYNTHETIC_RADIUS,
+    centre: torch.Tensor | None = None,
 ) -> Cameras:
-    """``n_frames`` square cameras evenly on a 360° ring ``elevation_deg`` above the horizon, looking at the origin."""
+    """``n_frames`` square cameras evenly on a 360° ring ``elevation_deg`` above the horizon, looking at ``centre``.
+
+    ``centre``: the grid's ``orbit_centre()`` (None: the origin, where an object grid's object sits), so a
+    capture whose object is off its frame's origin stays in the middle of every frame.
+    """
     if n_frames < 1 or size < 1:
         raise ValueError(f"a turntable needs at least one frame of at least 1 pixel, got {n_frames} frames of {size}")
-    return Cameras.from_fov(ring_poses(n_frames, elevation_deg, radius), fov_x, size, size)
+    return Cameras.from_fov(ring_poses(n_frames, elevation_deg, radius, centre), fov_x, size, size)
 
 
 # ---------------------------------------------------------------------- videos

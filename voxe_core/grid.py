@@ -332,6 +332,35 @@ class VoxelGrid(torch.nn.Module):
         """The object without its background, as a ReLU-field grid (what a mesh is made of): all of an object grid."""
         return self
 
+    def orbit_centre(self) -> torch.Tensor:
+        """The point (3,) that turntables and editing's random poses orbit: the origin, where an object box
+        centres its object (SPEC §0), so the paper's poses and evaluation ring are kept exactly."""
+        return torch.zeros(3)
+
+    def object_vertices(self) -> torch.Tensor:
+        """(X, Y, Z) bool: the vertices that can hold the object (a local edit's graph cut is among them): all of them."""
+        return torch.ones(self.resolution, dtype=torch.bool, device=self.bbox_min.device)
+
+    @torch.no_grad()
+    def matter_centre(self) -> torch.Tensor:
+        """Centroid (3,) of the vertices, each weighted by the opacity of one voxel length of it, 1 − exp(−σ·Δ).
+
+        Where the matter is: solid matter counts by its volume however dense it was fitted, a faint
+        haze barely at all. The box centre when the grid is empty. On the CPU, where poses are built.
+        """
+        sigma = self.activate_density(self.features[..., 0].detach())
+        weight = -torch.expm1(-sigma * self.min_voxel_edge).double()
+        total = float(weight.sum())
+        if not total > 0:
+            return ((self.bbox_min + self.bbox_max) / 2).cpu()
+        centre = []
+        for d, n in enumerate(self.resolution):
+            axis = torch.linspace(float(self.bbox_min[d]), float(self.bbox_max[d]), n, dtype=torch.float64,
+                                  device=weight.device)
+            marginal = weight.sum(dim=[e for e in range(3) if e != d])
+            centre.append(float((marginal * axis).sum()) / total)
+        return torch.tensor(centre, dtype=torch.float32)
+
     # ----------------------------------------------------------- structure
     def upsampled(self, resolution: int | tuple[int, int, int]) -> "VoxelGrid":
         """Trilinear upsampling of the raw features (coarse-to-fine reconstruction)."""

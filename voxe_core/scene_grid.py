@@ -22,15 +22,16 @@ how rays are sampled:
 
 The grid works in a canonical frame: scene centre at the origin, z up, the
 cameras at the NeRF-synthetic radius, so editing's random upper-hemisphere
-poses (radius 4.0311, looking at the origin) see the scene as they see an
-object. ``scene_frame`` finds that similarity from the capture's cameras; it is
-stored in the grid header so a dataset's cameras can be mapped again later
-(:meth:`SceneGrid.dataset_cameras`).
+poses (radius 4.0311) see the scene as they see an object. ``scene_frame`` finds
+that similarity from the capture's cameras; it is stored in the grid header so a
+dataset's cameras can be mapped again later (:meth:`SceneGrid.dataset_cameras`).
+The cameras' centre need not be the object's: poses and turntables look at
+:meth:`SceneGrid.orbit_centre`, the foreground's matter centre.
 
 What the renderer, the mesh export and the loaders need from a backbone are
 methods ``SceneGrid`` overrides (``ray_samples``, ``dataset_cameras``,
-``foreground_grid``, ``from_state``); ``voxe_core.backbones`` finds the class
-of a saved grid by its ``kind``.
+``foreground_grid``, ``orbit_centre``, ``object_vertices``, ``from_state``);
+``voxe_core.backbones`` finds the class of a saved grid by its ``kind``.
 """
 
 from __future__ import annotations
@@ -149,6 +150,17 @@ class SceneGrid(VoxelGrid):
     def dataset_cameras(self, cameras: Cameras) -> Cameras:
         """A capture's cameras moved into this grid's canonical frame."""
         return apply_frame(cameras, self.frame)
+
+    def orbit_centre(self) -> torch.Tensor:
+        """The foreground's ``matter_centre()``: the frame's origin is where the cameras look, not always where
+        the object sits."""
+        return self.foreground_grid().matter_centre()
+
+    def object_vertices(self) -> torch.Tensor:
+        """The foreground cube's vertices (contracted coordinates in [-1, 1]³): the shell beyond is the room."""
+        inside = [torch.linspace(-CONTRACTED_EXTENT, CONTRACTED_EXTENT, n, device=self.bbox_min.device).abs()
+                  <= 1.0 + 1e-6 for n in self.resolution]
+        return inside[0][:, None, None] & inside[1][None, :, None] & inside[2][None, None, :]
 
     # ------------------------------------------------------------ sampling
     def ray_samples(

@@ -128,13 +128,13 @@ def _cleanup(job_id: str, settings) -> None:
         log.warning("job %s: could not delete checkpoints", job_id, exc_info=True)
 
 
-def _preview(job_id: str, grid, settings, storage, device: str, image=None) -> None:
-    """Render (or take) a small front view and publish it as the job's preview.png."""
+def _preview(job_id: str, grid, settings, storage, device: str, image=None, centre=None) -> None:
+    """Render (or take) a small front view, looking at ``centre`` (G_i's orbit centre), and publish it as preview.png."""
     from voxe_core.export import render_views, save_png, turntable_cameras
 
     path = runtime.scratch_dir(job_id, settings) / PREVIEW
     if image is None:
-        image = render_views(grid, turntable_cameras(1, 20.0, PREVIEW_SIZE), device=device)[0]
+        image = render_views(grid, turntable_cameras(1, 20.0, PREVIEW_SIZE, centre=centre), device=device)[0]
     save_png(path, image)
     runtime.publish_artifact(job_id, PREVIEW, path, "preview", storage)
     runtime.update_job(job_id, preview_artifact=PREVIEW)
@@ -174,8 +174,15 @@ def _reconstruct(job: Job, settings, device: str, storage) -> None:
                        message="reused the scene's reconstruction" if reused else None)
     runtime.publish_artifact(job.id, "initial_grid.safetensors", _grid_file(job.id, rec, settings, storage),
                              "grid", storage, key=rec.grid_key)
-    _preview(job.id, fetch_grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key), settings,
-             storage, device)
+    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key)
+    _preview(job.id, initial, settings, storage, device, centre=initial.orbit_centre())
+
+
+def _orbit_centre(job: Job, settings, storage):
+    """G_i's ``orbit_centre()``: every stage's views of a job (edit poses, overlay, renders, turntable) look at
+    where the fitted object sits, the same point for the initial, edited and refined grids."""
+    rec = runtime.load_reconstruction(job.reconstruction_id)
+    return fetch_grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key).orbit_centre()
 
 
 def _grid_file(job_id: str, rec, settings, storage) -> Path:
@@ -265,6 +272,9 @@ def _edit(job: Job, settings, device: str, storage) -> None:
     rec = runtime.load_reconstruction(job.reconstruction_id)
     initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key)
     config = edit_config(job.params, initial.kind, settings.checkpoint_every)  # SPEC §5's schedule for a scene G_i
+    runtime.merge_job_result(job.id, {"edit_schedule": {
+        "backbone": initial.kind, "iterations": config.iterations, "i_start": config.schedule.i_start,
+        "every": config.schedule.every, "floor": config.schedule.floor}})
     scratch = runtime.scratch_dir(job.id, settings)
     checkpoint = scratch / "edit_checkpoint.safetensors"
     checkpoint_key = job_key(job.id, "checkpoints/edit.safetensors")
@@ -328,7 +338,8 @@ def _refine(job: Job, settings, device: str, storage) -> None:
                        node_mask(edited, config.node_alpha, config.node_rule))
     runtime.publish_artifact(job.id, "attention_probabilities.safetensors", probabilities, "probabilities", storage)
     size = export_config(job.params).view_size
-    overlay = render_mask_overlay(edited, result.mask, turntable_cameras(1, 20.0, size).to(edited.bbox_min.device))
+    cameras = turntable_cameras(1, 20.0, size, centre=_orbit_centre(job, settings, storage))
+    overlay = render_mask_overlay(edited, result.mask, cameras.to(edited.bbox_min.device))
     save_png(scratch / "mask_overlay.png", overlay[0])
     runtime.publish_artifact(job.id, "mask_overlay.png", scratch / "mask_overlay.png", "render", storage)
 
@@ -340,6 +351,8 @@ def _export(job: Job, settings, device: str, storage) -> None:
     options = export_config(job.params)
     name = "refined_grid.safetensors" if job.mode == "local" else "edited_grid.safetensors"
     grid = fetch_grid(job.id, name, settings, storage)
+    centre = _orbit_centre(job, settings, storage)
+    runtime.merge_job_result(job.id, {"orbit_centre": [round(float(c), 6) for c in centre]})
     scratch = runtime.scratch_dir(job.id, settings)
     views, frames = options.views, options.turntable_frames
     total = views + frames + (1 if options.mesh else 0)
@@ -352,13 +365,14 @@ def _export(job: Job, settings, device: str, storage) -> None:
         )
 
     if views:
-        images = render_views(grid, turntable_cameras(views, options.elevation, options.view_size),
+        images = render_views(grid, turntable_cameras(views, options.elevation, options.view_size, centre=centre),
                               callbacks=offset(0), device=device)
         for i, image in enumerate(images):
             save_png(scratch / f"render_{i:03d}.png", image)
             runtime.publish_artifact(job.id, f"render_{i:03d}.png", scratch / f"render_{i:03d}.png", "render", storage)
     turntable = render_views(
-        grid, turntable_cameras(frames, options.elevation, options.turntable_size), callbacks=offset(views), device=device,
+        grid, turntable_cameras(frames, options.elevation, options.turntable_size, centre=centre),
+        callbacks=offset(views), device=device,
     )
     write_video(scratch / "turntable.mp4", turntable, fps=options.fps)
     runtime.publish_artifact(job.id, "turntable.mp4", scratch / "turntable.mp4", "video", storage)
@@ -378,7 +392,7 @@ def _export(job: Job, settings, device: str, storage) -> None:
             runtime.publish_artifact(job.id, "mesh.mtl", scratch / "mesh.mtl", "mesh", storage)  # mesh.obj's material
         callbacks.on_progress(Progress("export", total, total))
     _preview(job.id, grid, settings, storage, device,
-             image=turntable[0] if options.turntable_size <= 512 else None)
+             image=turntable[0] if options.turntable_size <= 512 else None, centre=centre)
 
 
 # --------------------------------------------------------------------------- tasks

@@ -108,7 +108,7 @@ def cmd_refine(args) -> int:
     save_probabilities(out / "probabilities.safetensors", result.edit_probability, result.object_probability, nodes)
     renders = out / "renders"
     if args.preview_views:
-        cameras = turntable_cameras(args.preview_views, 30.0, config.render_size)
+        cameras = turntable_cameras(args.preview_views, 30.0, config.render_size, centre=initial.orbit_centre())
         groups = {
             "attention_edit": render_attention(edited, result.edit_field, cameras),
             "attention_object": render_attention(edited, result.object_field, cameras),

@@ -1,6 +1,8 @@
 """``voxe render`` (PNG views: a dataset's cameras, with PSNR / SSIM, or a ring) and ``voxe turntable`` (MP4 / GIF).
 
-Ring and turntable defaults are the export stage's (``voxe_core.presets.ExportConfig``).
+Ring and turntable defaults are the export stage's (``voxe_core.presets.ExportConfig``). Rings and turntables
+orbit the grid's ``orbit_centre()`` (a capture's object), or another grid's with ``--centre-of`` (an edit's
+initial grid, as the service's renders do).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ def add_parsers(commands, common) -> None:
     add_view_arguments(ren, "test")
     ren.add_argument("--size", type=positive_int, default=ExportConfig.view_size, help="ring view size in pixels")
     ren.add_argument("--elevation", type=float, default=ExportConfig.elevation, help="ring elevation in degrees")
+    add_centre_argument(ren)
     ren.add_argument("--out", type=Path, required=True, metavar="DIR")
     add_device_argument(ren)
     ren.set_defaults(run=cmd_render)
@@ -35,8 +38,22 @@ def add_parsers(commands, common) -> None:
     tt.add_argument("--size", type=positive_int, default=ExportConfig.turntable_size)
     tt.add_argument("--elevation", type=float, default=ExportConfig.elevation)
     tt.add_argument("--fps", type=float, default=ExportConfig.fps)
+    add_centre_argument(tt)
     add_device_argument(tt)
     tt.set_defaults(run=cmd_turntable)
+
+
+def add_centre_argument(parser) -> None:
+    parser.add_argument("--centre-of", type=Path, default=None, metavar="GRID",
+                        help="orbit this grid's orbit centre (e.g. the initial grid of an edit, as the service does) "
+                             "instead of the rendered grid's own")
+
+
+def orbit_centre(args, grid):
+    """The point the ring or turntable looks at: ``--centre-of``'s grid's orbit centre, else ``grid``'s."""
+    from voxe_core.backbones import load_grid
+
+    return (load_grid(args.centre_of) if args.centre_of is not None else grid).orbit_centre()
 
 
 def cmd_render(args) -> int:
@@ -51,7 +68,7 @@ def cmd_render(args) -> int:
         cameras = grid.dataset_cameras(scene.cameras)
         names = [f"{i:03d}_{Path(name).stem}.png" for i, name in enumerate(scene.names)]
     else:
-        cameras = turntable_cameras(args.ring, args.elevation, args.size)
+        cameras = turntable_cameras(args.ring, args.elevation, args.size, centre=orbit_centre(args, grid))
         names = [f"{i:03d}.png" for i in range(args.ring)]
     frames = run_stage(lambda cb: render_views(grid, cameras, callbacks=cb, device=device), "render", "view",
                        len(cameras), args.quiet)
@@ -95,7 +112,7 @@ def cmd_turntable(args) -> int:
         raise ValueError(f"unsupported video suffix {args.out.suffix!r}; use one of {', '.join(VIDEO_SUFFIXES)}")
     device = check_device(args)
     grid = load_grid(args.grid)
-    cameras = turntable_cameras(args.frames, args.elevation, args.size)
+    cameras = turntable_cameras(args.frames, args.elevation, args.size, centre=orbit_centre(args, grid))
     frames = run_stage(
         lambda cb: render_views(grid, cameras, callbacks=cb, device=device), "turntable", "frame", len(cameras),
         args.quiet,

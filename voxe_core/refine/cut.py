@@ -61,7 +61,8 @@ def probabilities(edit_field: torch.Tensor, object_field: torch.Tensor) -> tuple
 
 
 def node_mask(grid: VoxelGrid, node_alpha: float = 0.01, rule: str = "alpha") -> torch.Tensor:
-    """(X, Y, Z) bool: the graph's nodes.
+    """(X, Y, Z) bool: the graph's nodes, among the grid's ``object_vertices()`` (a capture's foreground: a local
+    edit is of the object, never of the room the contracted background holds).
 
     ``rule="alpha"``: vertices whose activated density would make one voxel length ``node_alpha``
     opaque, σ·Δ ≥ −ln(1 − node_alpha) with Δ the smallest voxel edge, so the test means the same at
@@ -74,10 +75,10 @@ def node_mask(grid: VoxelGrid, node_alpha: float = 0.01, rule: str = "alpha") ->
     raw = grid.features[..., 0].detach()
     if rule == "maxpool":
         pooled = F.max_pool3d((raw * grid.density_scale)[None, None], 3, stride=1, padding=1)[0, 0]
-        return pooled > 0
+        return (pooled > 0) & grid.object_vertices()
     sigma = grid.activate_density(raw)
     threshold = -math.log1p(-node_alpha) / float(grid.voxel_size.min())
-    return sigma >= threshold
+    return (sigma >= threshold) & grid.object_vertices()
 
 
 def pairwise_weights(diff: np.ndarray, config: RefineConfig) -> np.ndarray:

@@ -53,10 +53,12 @@ def normalize_maps(maps: torch.Tensor) -> torch.Tensor:
     return torch.where(flat, torch.zeros_like(maps), (maps - lo) / span.clamp_min(1e-12))
 
 
-def attention_cameras(config: RefineConfig, generator: torch.Generator | None = None) -> Cameras:
-    """``config.views`` random upper-hemisphere cameras (SPEC §0) of ``render_size`` pixels."""
+def attention_cameras(config: RefineConfig, generator: torch.Generator | None = None,
+                      centre: torch.Tensor | None = None) -> Cameras:
+    """``config.views`` random upper-hemisphere cameras (SPEC §0) of ``render_size`` pixels, looking at ``centre``
+    (the grid's ``orbit_centre()``; None: the origin)."""
     generator = generator or torch.Generator().manual_seed(config.seed)
-    c2w, _, _ = random_hemisphere_poses(config.views, generator)
+    c2w, _, _ = random_hemisphere_poses(config.views, generator, centre=centre)
     return Cameras.from_fov(c2w, config.fov_x, config.render_size, config.render_size)
 
 

@@ -80,7 +80,7 @@ def refine(
     initial_grid, edited_grid = initial_grid.to(device), edited_grid.to(device)
     text = edit_prompt(prompt)
     token_groups(guidance, text, edit_words)  # fail on a bad word before rendering anything
-    cameras = attention_cameras(config)
+    cameras = attention_cameras(config, centre=initial_grid.orbit_centre())  # G_i's: the object, wherever it sits
     callbacks = in_phases(callbacks, {"attention_maps": len(cameras), "attention_grids": config.iterations,
                                       "graph_cut": 1})  # one scale: the stage's progress only rises
     edit_maps, object_maps = attention_maps_2d(guidance, edited_grid, cameras, text, edit_words, config, callbacks)
