@@ -111,8 +111,8 @@ def run(scene, level_name, config, lift_name, seed, nodes, views_info):
     t0 = time.perf_counter()
     edit_cells, object_cells = lattice_maps(scene.coverage, LEVELS[level_name], seed)
     size = (scene.cameras.height, scene.cameras.width)
-    edit_maps = postprocess_maps(edit_cells, size, config.smoothing_sigma)
-    object_maps = postprocess_maps(object_cells, size, config.smoothing_sigma)
+    edit_maps = postprocess_maps(edit_cells, size, config)
+    object_maps = postprocess_maps(object_cells, size, config)
     maps_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     e, o = fit_attention_grids(scene.edited, scene.cameras, edit_maps, object_maps, config)

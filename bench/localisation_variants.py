@@ -60,8 +60,8 @@ def measure(scene, level_name: str, seed: int, with_psnr: bool) -> list[dict]:
     base = RefineConfig(iterations=0, render_size=scene.cameras.width, views=len(scene.cameras))
     edit_cells, object_cells = lattice_maps(scene.coverage, LEVELS[level_name], seed)
     size = (scene.cameras.height, scene.cameras.width)
-    edit_maps = postprocess_maps(edit_cells, size, base.smoothing_sigma)
-    object_maps = postprocess_maps(object_cells, size, base.smoothing_sigma)
+    edit_maps = postprocess_maps(edit_cells, size, base)
+    object_maps = postprocess_maps(object_cells, size, base)
     t0 = time.perf_counter()
     e, o = fit_attention_grids(scene.edited, scene.cameras, edit_maps, object_maps, base)
     lift_s = time.perf_counter() - t0

@@ -494,7 +494,7 @@ def _(fx):
 @case("segmentation/constant-attention-map-carries-no-evidence", "exact")
 def _(fx):
     maps = torch.full((2, 1, 1), 0.37)  # a 1x1 map (smaller than the blur kernel) and equal values
-    out = postprocess_maps(maps, (5, 4), sigma=1.0)
+    out = postprocess_maps(maps, (5, 4), RefineConfig(smoothing_sigma=1.0, map_scale="minmax"))
     return [("normalised to zero", out, torch.zeros(2, 5, 4), 0.0)]
 
 

@@ -52,6 +52,23 @@ def merge(initial_grid: VoxelGrid, edited_grid: VoxelGrid, mask: torch.Tensor) -
     return initial_grid.like(merged)
 
 
+def fresh_attention_views(guidance, grid: VoxelGrid, prompt: str, edit_words: Sequence[str], config: RefineConfig):
+    """``fit_views="fresh"``'s source: per fit step one new random pose and its maps (one diffusion pass each).
+
+    Poses and diffusion noise come from their own generators (``config.seed`` + 1), so the steps see
+    neither the start's poses nor its noise again.
+    """
+    poses = torch.Generator().manual_seed(config.seed + 1)
+    noise = torch.Generator().manual_seed(config.seed + 1)
+
+    def fresh_view(step: int):
+        camera = attention_cameras(config, poses, n=1)
+        edit_map, object_map = attention_maps_2d(guidance, grid, camera, prompt, edit_words, config, generator=noise)
+        return camera, edit_map, object_map
+
+    return fresh_view
+
+
 def refine(
     initial_grid: VoxelGrid,
     edited_grid: VoxelGrid,
@@ -81,10 +98,13 @@ def refine(
     text = edit_prompt(prompt)
     token_groups(guidance, text, edit_words)  # fail on a bad word before rendering anything
     cameras = attention_cameras(config)
+    fresh_view = fresh_attention_views(guidance, edited_grid, text, edit_words, config) \
+        if config.fit_views == "fresh" else None
     callbacks = in_phases(callbacks, {"attention_maps": len(cameras), "attention_grids": config.iterations,
                                       "graph_cut": 1})  # one scale: the stage's progress only rises
     edit_maps, object_maps = attention_maps_2d(guidance, edited_grid, cameras, text, edit_words, config, callbacks)
-    edit_field, object_field = fit_attention_grids(edited_grid, cameras, edit_maps, object_maps, config, callbacks)
+    edit_field, object_field = fit_attention_grids(edited_grid, cameras, edit_maps, object_maps, config, callbacks,
+                                                   fresh_view)
     callbacks.check_cancel("graph_cut")
     mask, stats = graph_cut_detailed(edited_grid, edit_field, object_field, config)
     p_e, p_o = probabilities(edit_field, object_field)
