@@ -80,6 +80,13 @@ def lattice_maps(coverage: torch.Tensor, level: dict, seed: int) -> tuple[torch.
     return both[:, 0], both[:, 1]
 
 
+def fewer_views(scene, views: int, size: int):
+    """``scene`` with its first ``views`` hemisphere views at ``size`` px (coverage kept at Blender's size: the maps
+    are pooled to the 16×16 lattice first); a different name, so its cached vote renders are its own."""
+    cameras = scene.cameras[:views].resized(size, size)
+    return dataclasses.replace(scene, name=f"{scene.name}_{views}v{size}", cameras=cameras, coverage=scene.coverage[:views])
+
+
 def psnr(a: torch.Tensor, b: torch.Tensor, where: torch.Tensor | None = None) -> float:
     err = (a - b).pow(2).mean(-1)
     mse = err.mean() if where is None else err[where].mean()
@@ -227,6 +234,16 @@ def main() -> None:
         "total_seconds": round(time.perf_counter() - start, 1),
     }
     write_results(result, args.out, plot)
+
+
+def parse_with_common_arguments(parser: argparse.ArgumentParser, out: Path | None, threads: int = 1) -> argparse.Namespace:
+    """``parser``'s arguments plus --resolution (96), --threads and --out; torch's thread count set from them."""
+    parser.add_argument("--resolution", type=int, default=96)
+    parser.add_argument("--threads", type=int, default=threads, help="torch threads (more stall on a shared, loaded box)")
+    parser.add_argument("--out", type=Path, default=out)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    return args
 
 
 def write_results(result: dict, out: Path, plot_runs) -> None:

@@ -5,7 +5,7 @@ nodes, merged and preserved PSNR, seconds per step) at the clean and moderate ma
 
 * ``fitted``: spot_hat and horse_saddlebag with G_i and G_e **reconstructed** (``ReconstructConfig.fast``,
   48³ → 96³) from Blender's 100 hemisphere views (200 px) of the original and of the edited object, instead of
-  voxelised from the meshes. The true part is still the voxelised part's vertices (its density above the
+  voxelised from the meshes; the maps are those of 32 of the views at 100 px (``--views``, ``--view-size``). The true part is still the voxelised part's vertices (its density above the
   object's); G_e carries the same colour drift outside it as in localisation_scenes.py. Ring PSNR is against
   Blender's ring renders, as in bench/localisation.py.
 * ``fox``: the real capture ``../shared/data/fox`` reconstructed as a scene grid (``SceneGrid``, 48³ → 96³,
@@ -30,17 +30,21 @@ import subprocess
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
-import torch.nn.functional as F
 
-from localisation import LEVELS, RING_EVERY, hemisphere_views, run, write_results
+from localisation import (
+    LEVELS,
+    RING_EVERY,
+    fewer_views,
+    hemisphere_views,
+    parse_with_common_arguments,
+    run,
+    write_results,
+)
 from localisation import plot as plot_levels
 from localisation_scenes import (
     CACHE,
     HERE,
-    MESHES,
-    RING,
     SAMPLES,
     SCENES,
     SIZE,
@@ -53,7 +57,6 @@ from localisation_scenes import (
     hemisphere_cameras,
 )
 from voxe_core.cameras import Cameras
-from voxe_core.constants import NERF_SYNTHETIC_FOV_X
 from voxe_core.grid import VoxelGrid
 from voxe_core.refine.config import RefineConfig
 from voxe_core.refine.cut import node_mask
@@ -196,19 +199,17 @@ def plot(runs, path):
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--case", nargs="+", default=["fox", "fitted"], choices=["fox", "fitted"])
-    parser.add_argument("--resolution", type=int, default=96)
     parser.add_argument("--levels", nargs="+", default=["clean", "moderate"])
     parser.add_argument("--downsample", type=int, default=16, help="fox training images (1080×1920 / 16)")
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--out", type=Path, default=RESULTS / "localisation_grids.json")
-    args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+    parser.add_argument("--views", type=int, default=32, help="hemisphere views of the fitted scenes' maps")
+    parser.add_argument("--view-size", type=int, default=100, help="their size in pixels (Blender's: 200)")
+    args = parse_with_common_arguments(parser, RESULTS / "localisation_grids.json", threads=2)
     start = time.perf_counter()
     scenes = []
     if "fox" in args.case:
         scenes.append(fox_scene(args.resolution, args.downsample, (36, 64), (72, 128)))
     if "fitted" in args.case:
-        scenes += [fitted_scene(name, args.resolution) for name in SCENES]
+        scenes += [fewer_views(fitted_scene(name, args.resolution), args.views, args.view_size) for name in SCENES]
     runs = []
     for scene in scenes:
         nodes = node_mask(scene.edited)
@@ -221,7 +222,8 @@ def main() -> None:
         "description": "bench/localisation.py's measurement on reconstructed mesh scenes (fitted) and on the fox capture "
                        "with a synthetic hat; see bench/localisation_grids.py.",
         "settings": {"resolution": args.resolution, "fit_iterations": list(FIT_ITERATIONS), "levels":
-                     {k: LEVELS[k] for k in args.levels}, "fox_downsample": args.downsample, "hat_half_extent": HAT_HALF,
+                     {k: LEVELS[k] for k in args.levels}, "fox_downsample": args.downsample,
+                     "fitted_views": args.views, "fitted_view_size": args.view_size, "hat_half_extent": HAT_HALF,
                      "threads": torch.get_num_threads(),
                      "refine_config": {k: v for k, v in vars(RefineConfig()).items() if k != "render"}},
         "runs": runs,

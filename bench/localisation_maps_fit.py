@@ -1,6 +1,7 @@
 """The paper's text against the authors' code (issue 18 item 5): 2D-map and fit variants on the localisation ground truth.
 
-bench/localisation.py's scenes (mesh-voxelised, 96³) and map model; the cut is the default (``AUTHORS_CODE_CUT``)
+bench/localisation.py's scenes (mesh-voxelised, 96³; the maps of ``--views`` 32 of the hemisphere views at 100 px)
+and map model; the cut is the default (``AUTHORS_CODE_CUT``)
 everywhere, so the differences are the maps' or the fit's. ``--part maps``: per variant the lattice maps are
 post-processed under its ``RefineConfig`` and lifted by the back-projection (0 steps):
 
@@ -15,7 +16,7 @@ Max vs mean over the edit tokens, the view word in the prompt and the end-of-tex
 change nothing here (one synthetic edit map, no prompt): the bench cannot tell them apart.
 
 ``--part fit``: maps as the default; the back-projection start then ``--steps`` Adam steps under each of
-``fit_views`` × ``fit_pixels``. "fresh" draws a random view of the 100 Blender views per step with fresh map
+``fit_views`` × ``fit_pixels``. "fresh" draws a random view of the 100 Blender views (at the same size) per step with fresh map
 noise (the diffusion pass's stand-in: a new seed of the level's degradation) and fits all its pixels.
 
     python bench/localisation_maps_fit.py --part maps    # ~10 min
@@ -32,8 +33,9 @@ from pathlib import Path
 
 import torch
 
-from localisation import LEVELS, lattice_maps, ring_psnrs, write_results
+from localisation import LEVELS, fewer_views, lattice_maps, parse_with_common_arguments, ring_psnrs, write_results
 from localisation_scenes import SCENES, build_scene
+from localisation_variants import plot
 from segmentation import iou
 from voxe_core.refine.config import AUTHORS_CODE_MAPS, PAPER_TEXT_MAPS, RefineConfig
 from voxe_core.refine.cut import graph_cut_detailed, node_mask
@@ -95,7 +97,8 @@ def measure_maps(scene, level: str, seed: int, with_psnr: bool) -> list[dict]:
     return rows
 
 
-def measure_fit(scene, level: str, seed: int, steps: int, with_psnr: bool) -> list[dict]:
+def measure_fit(scene, pool, level: str, seed: int, steps: int, with_psnr: bool) -> list[dict]:
+    """``pool``: the scene with all its views, the fresh steps' source."""
     base = RefineConfig(render_size=scene.cameras.width, views=len(scene.cameras))
     nodes = node_mask(scene.edited)
     edit_cells, object_cells = lattice_maps(scene.coverage, LEVELS[level], seed)
@@ -103,9 +106,9 @@ def measure_fit(scene, level: str, seed: int, steps: int, with_psnr: bool) -> li
     edit_maps, object_maps = postprocess_maps(edit_cells, size, base), postprocess_maps(object_cells, size, base)
 
     def fresh_view(step: int):
-        view = int(torch.randint(len(scene.cameras), (), generator=draws))
-        e_cells, o_cells = lattice_maps(scene.coverage[view:view + 1], LEVELS[level], 10_000 + step)
-        return scene.cameras[view], postprocess_maps(e_cells, size, base), postprocess_maps(o_cells, size, base)
+        view = int(torch.randint(len(pool.cameras), (), generator=draws))
+        e_cells, o_cells = lattice_maps(pool.coverage[view:view + 1], LEVELS[level], 10_000 + step)
+        return pool.cameras[view].resized(*size[::-1]), postprocess_maps(e_cells, size, base), postprocess_maps(o_cells, size, base)
 
     rows = []
     for name, choice in FIT_VARIANTS.items():
@@ -120,59 +123,38 @@ def measure_fit(scene, level: str, seed: int, steps: int, with_psnr: bool) -> li
     return rows
 
 
-def plot(runs: list[dict], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    names = list(dict.fromkeys(r["variant"] for r in runs))
-    cases = list(dict.fromkeys((r["scene"], r["noise"]) for r in runs))
-    fig, ax = plt.subplots(figsize=(10, 4))
-    width = 0.8 / len(cases)
-    for k, case in enumerate(cases):
-        ious = [next(r["iou"] for r in runs if (r["scene"], r["noise"]) == case and r["variant"] == n) for n in names]
-        ax.bar([i + k * width for i in range(len(names))], ious, width, label=" / ".join(case))
-    ax.set_xticks([i + 0.4 - width / 2 for i in range(len(names))], names, rotation=20, ha="right", fontsize=8)
-    ax.set_ylabel("3D IoU vs true part")
-    ax.set_ylim(0, 1)
-    ax.legend(fontsize=7)
-    ax.set_title("2D maps / fit: paper's text vs the authors' code (default cut, 96³)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--part", choices=["maps", "fit"], required=True)
-    parser.add_argument("--resolution", type=int, default=96)
     parser.add_argument("--levels", nargs="+", default=None, help="default: clean moderate (maps), moderate (fit)")
     parser.add_argument("--steps", type=int, default=150, help="Adam steps of the fit variants")
+    parser.add_argument("--views", type=int, default=32)
+    parser.add_argument("--view-size", type=int, default=100)
     parser.add_argument("--no-psnr", action="store_true")
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--out", type=Path, default=None)
-    args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+    args = parse_with_common_arguments(parser, None, threads=2)
     levels = args.levels or (["clean", "moderate"] if args.part == "maps" else ["moderate"])
     out = args.out or RESULTS / f"localisation_{args.part}_variants.json"
     start = time.perf_counter()
     runs = []
     for name in SCENES:
-        scene = build_scene(name, args.resolution)
+        pool = build_scene(name, args.resolution)
+        scene = fewer_views(pool, args.views, args.view_size)
         for level in levels:
             seed = 100 + list(LEVELS).index(level)
             runs += measure_maps(scene, level, seed, not args.no_psnr) if args.part == "maps" else \
-                measure_fit(scene, level, seed, args.steps, not args.no_psnr)
+                measure_fit(scene, pool, level, seed, args.steps, not args.no_psnr)
     result = {
         "description": f"2D-map / fit variants (paper's text vs TAU-VAILab/Vox-E) on the localisation ground truth, "
                        f"part {args.part}; see bench/localisation_maps_fit.py.",
-        "settings": {"resolution": args.resolution, "levels": {k: LEVELS[k] for k in levels}, "steps": args.steps,
+        "settings": {"resolution": args.resolution, "levels": {k: LEVELS[k] for k in levels}, "steps": args.steps, "views": args.views,
+                     "view_size": args.view_size,
                      "authors_code_maps": AUTHORS_CODE_MAPS, "paper_text_maps": PAPER_TEXT_MAPS,
                      "threads": torch.get_num_threads()},
         "runs": runs,
         "total_seconds": round(time.perf_counter() - start, 1),
     }
-    write_results(result, out, plot)
+    title = f"2D {args.part}: paper's text vs the authors' code (default cut, 96³)"
+    write_results(result, out, lambda runs, path: plot(runs, path, title))
 
 
 if __name__ == "__main__":
