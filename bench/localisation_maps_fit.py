@@ -149,6 +149,7 @@ def main() -> None:
         "settings": {"resolution": args.resolution, "levels": {k: LEVELS[k] for k in levels}, "steps": args.steps, "views": args.views,
                      "view_size": args.view_size,
                      "authors_code_maps": AUTHORS_CODE_MAPS, "paper_text_maps": PAPER_TEXT_MAPS,
+                     "refine_config": {k: v for k, v in vars(RefineConfig()).items() if k != "render"},
                      "threads": torch.get_num_threads()},
         "runs": runs,
         "total_seconds": round(time.perf_counter() - start, 1),

@@ -29,6 +29,7 @@ from voxe_core.refine.config import (
     PAPER_TEXT_CUT,
     PAPER_TEXT_FIT,
     PAPER_TEXT_MAPS,
+    SERVICE_MAPS,
     RefineConfig,
     SegmentationError,
 )
@@ -151,9 +152,10 @@ def test_attention_maps_2d_are_normalised_per_view(tiny_guidance, make_sphere_gr
         torch.testing.assert_close(maps.amax(dim=(1, 2)), torch.ones(2))
 
 
-def test_the_authors_code_maps_are_the_default_and_the_text_is_one_replace_away():
+def test_the_authors_code_maps_but_normalised_are_the_default_and_the_text_is_one_replace_away():
     config = RefineConfig()
-    assert {k: getattr(config, k) for k in AUTHORS_CODE_MAPS} == AUTHORS_CODE_MAPS
+    assert {k: getattr(config, k) for k in SERVICE_MAPS} == SERVICE_MAPS
+    assert SERVICE_MAPS == {**AUTHORS_CODE_MAPS, "map_scale": "minmax"} and AUTHORS_CODE_MAPS["map_scale"] == "raw"
     text = dataclasses.replace(config, **PAPER_TEXT_MAPS)
     assert (text.edit_token_reduce, text.map_scale, text.object_tokens) == ("mean", "minmax", "content")
     assert {k: getattr(config, k) for k in ("fit_pixels", "fit_views")} == {"fit_pixels": "rendered_positive",
@@ -201,9 +203,9 @@ def test_the_3x3_kernel_is_the_authors_sigma_half_gaussian():
 def test_raw_maps_keep_the_relative_scale_of_edit_and_object_minmax_does_not():
     cells = torch.rand(1, 16, 16, generator=torch.Generator().manual_seed(2))
     maps = torch.cat([0.2 * cells, cells])  # the edit token takes a fifth of the object's attention
-    raw = postprocess_maps(maps, (40, 40), RefineConfig())
+    raw = postprocess_maps(maps, (40, 40), RefineConfig(**AUTHORS_CODE_MAPS))
     torch.testing.assert_close(raw[0], 0.2 * raw[1])  # linear steps: smoothing, upsampling, smoothing
-    flat = postprocess_maps(torch.full((1, 16, 16), 0.3), (40, 40), RefineConfig())
+    flat = postprocess_maps(torch.full((1, 16, 16), 0.3), (40, 40), RefineConfig(map_scale="raw"))
     torch.testing.assert_close(flat, torch.full((1, 40, 40), 0.3))  # a constant probability stays what it is
     stretched = postprocess_maps(maps, (40, 40), RefineConfig(map_scale="minmax"))
     torch.testing.assert_close(stretched[0], stretched[1])
@@ -212,8 +214,8 @@ def test_raw_maps_keep_the_relative_scale_of_edit_and_object_minmax_does_not():
 
 def test_smoothing_after_upsampling_is_one_more_pass_of_the_same_kernel():
     cells = torch.rand(1, 16, 16, generator=torch.Generator().manual_seed(3))
-    once = postprocess_maps(cells, (48, 48), RefineConfig(smooth_upsampled=False))
-    twice = postprocess_maps(cells, (48, 48), RefineConfig())
+    once = postprocess_maps(cells, (48, 48), RefineConfig(smooth_upsampled=False, map_scale="raw"))
+    twice = postprocess_maps(cells, (48, 48), RefineConfig(map_scale="raw"))
     torch.testing.assert_close(twice, gaussian_blur2d(once, 0.5, radius=1))
     assert not torch.allclose(once, twice)
 
@@ -235,10 +237,12 @@ def test_attention_prompts_carry_each_views_word(tiny_guidance, make_sphere_grid
     prompt = "a render of a dog wearing sunglasses"
     edit, obj = attention_maps_2d(tiny_guidance, grid, cams, prompt, ["sunglasses"], RefineConfig(render_size=16))
     assert seen == [prompt + ", front view", prompt + ", back view"]
-    assert float(edit.min()) >= 0 and float(obj.max()) <= 1.0 + 1e-5  # raw probabilities, not stretched
+    torch.testing.assert_close(edit.amax(dim=(1, 2)), torch.ones(2))  # min-max normalised (the default)
     seen.clear()
-    attention_maps_2d(tiny_guidance, grid, cams, prompt, ["sunglasses"], RefineConfig(render_size=16, view_word_prompt=False))
+    raw, _ = attention_maps_2d(tiny_guidance, grid, cams, prompt, ["sunglasses"],
+                               RefineConfig(render_size=16, view_word_prompt=False, map_scale="raw"))
     assert seen == [prompt, prompt]
+    assert float(raw.min()) >= 0 and float(raw.max()) < 1.0  # raw probabilities: one token's share of each pixel
 
 
 # ----------------------------------------------------------------- lifting

@@ -37,8 +37,9 @@ class RefineConfig:
 
     The graph cut's defaults are the authors' code's (``AUTHORS_CODE_CUT``; issue 18: IoU 0.99 against the
     text's 0.85 on bench/localisation_variants.py's ground truth); ``PAPER_TEXT_CUT`` restores the text's.
-    The 2D maps' defaults are the authors' code's too (``AUTHORS_CODE_MAPS``, ``PAPER_TEXT_MAPS``), and so is
-    the fit's pixel rule; ``PAPER_TEXT_FIT`` / ``AUTHORS_CODE_FIT`` name both fits (README: the refine note).
+    The 2D maps' defaults are the authors' code's too (``AUTHORS_CODE_MAPS``, ``PAPER_TEXT_MAPS``) but for
+    ``map_scale`` (min-max, measured), and so is the fit's pixel rule; ``PAPER_TEXT_FIT`` / ``AUTHORS_CODE_FIT``
+    name both fits (README: the refine note).
     """
 
     # 2D cross-attention maps
@@ -48,9 +49,10 @@ class RefineConfig:
     # "3x3": a 3x3 kernel (the code's); "3sigma": radius ceil(3 sigma), the whole Gaussian (ours before issue 18)
     smoothing_kernel: Literal["3x3", "3sigma"] = "3x3"
     smooth_upsampled: bool = True  # smooth again after the bilinear upsampling, same kernel (the code)
-    # "raw": the attention probabilities as they come, edit and object maps on one scale (the code);
-    # "minmax": each map stretched to [0, 1] on its own (ours before issue 18)
-    map_scale: Literal["raw", "minmax"] = "raw"
+    # "minmax": each map stretched to [0, 1] on its own (the text, ours); "raw": the attention probabilities as they
+    # come, edit and object maps on one scale (the code). Not the code's: raw maps cut worse on every map of
+    # bench/localisation_maps_fit.py but one, and fail outright (IoU 0) when the edit token draws 0.3x the attention
+    map_scale: Literal["raw", "minmax"] = "minmax"
     edit_token_reduce: Literal["mean", "max"] = "max"  # how the edit words' sub-tokens combine (the code: max)
     # "content": the prompt's words minus the edit's; "through_end": also the first end-of-text token (the code)
     object_tokens: Literal["content", "through_end"] = "through_end"
@@ -144,7 +146,11 @@ PAPER_TEXT_CUT = dict(edit_seed_rule="top", object_seeds=OBJECT_SEEDS, object_se
 AUTHORS_CODE_MAPS = dict(edit_token_reduce="max", view_word_prompt=True, object_tokens="through_end",
                          smoothing_sigma=SERVICE_SMOOTHING_SIGMA, smoothing_kernel="3x3", smooth_upsampled=True,
                          map_scale="raw")
-"""The 2D maps of TAU-VAILab/Vox-E (``attn_grid_trainer.py``, ``cross_attn.py``; issue 18 item 5): the defaults."""
+"""The 2D maps of TAU-VAILab/Vox-E (``attn_grid_trainer.py``, ``cross_attn.py``; issue 18 item 5): the defaults
+but for ``map_scale`` (the defaults normalise: ``SERVICE_MAPS``)."""
+
+SERVICE_MAPS = {**AUTHORS_CODE_MAPS, "map_scale": "minmax"}
+"""The defaults: the code's maps, min-max normalised (bench/results/localisation_maps_variants.json)."""
 
 PAPER_TEXT_MAPS = dict(edit_token_reduce="mean", view_word_prompt=False, object_tokens="content",
                        smoothing_sigma=1.0, smoothing_kernel="3sigma", smooth_upsampled=False, map_scale="minmax")
