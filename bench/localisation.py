@@ -41,7 +41,7 @@ import torch.nn.functional as F
 from localisation_scenes import SCENES, build_scene
 from segmentation import iou, vote_2d
 from voxe_core.constants import OBJECT_SEEDS
-from voxe_core.refine.config import RefineConfig
+from voxe_core.refine.config import PAPER_TEXT_FIT, RefineConfig
 from voxe_core.refine.cut import graph_cut_detailed, node_mask, probabilities
 from voxe_core.refine.lifting import fit_attention_grids
 from voxe_core.refine.maps import postprocess_maps
@@ -214,10 +214,11 @@ def main() -> None:
         views_info = hemisphere_views(scene, args.resolution)
         for k, level in enumerate(levels):
             for iterations in (args.iterations if level == args.paper_level else args.iterations[:1]):
-                config = RefineConfig(iterations=iterations, render_size=scene.cameras.width, views=len(scene.cameras))
+                config = RefineConfig(iterations=iterations, render_size=scene.cameras.width, views=len(scene.cameras),
+                                      fit_views="fixed")
                 runs += run(scene, level, config, "backprojection", 100 + k, nodes, views_info)
             if level == args.paper_level and name in args.paper_scenes:
-                config = RefineConfig(lift_start="constant", render_size=scene.cameras.width, views=len(scene.cameras))
+                config = RefineConfig(render_size=scene.cameras.width, views=len(scene.cameras), **PAPER_TEXT_FIT)
                 runs += run(scene, level, config, "paper_fit", 100 + k, nodes, views_info)
     if args.timing_resolution and not args.quick:
         scene = build_scene("spot_hat", args.timing_resolution)

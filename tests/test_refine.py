@@ -29,7 +29,6 @@ from voxe_core.refine.config import (
     PAPER_TEXT_CUT,
     PAPER_TEXT_FIT,
     PAPER_TEXT_MAPS,
-    SERVICE_MAPS,
     RefineConfig,
     SegmentationError,
 )
@@ -152,14 +151,13 @@ def test_attention_maps_2d_are_normalised_per_view(tiny_guidance, make_sphere_gr
         torch.testing.assert_close(maps.amax(dim=(1, 2)), torch.ones(2))
 
 
-def test_the_authors_code_maps_but_normalised_are_the_default_and_the_text_is_one_replace_away():
+def test_the_authors_code_maps_and_fit_are_the_default_and_the_text_is_one_replace_away():
     config = RefineConfig()
-    assert {k: getattr(config, k) for k in SERVICE_MAPS} == SERVICE_MAPS
-    assert SERVICE_MAPS == {**AUTHORS_CODE_MAPS, "map_scale": "minmax"} and AUTHORS_CODE_MAPS["map_scale"] == "raw"
+    assert {k: getattr(config, k) for k in AUTHORS_CODE_MAPS} == AUTHORS_CODE_MAPS
     text = dataclasses.replace(config, **PAPER_TEXT_MAPS)
     assert (text.edit_token_reduce, text.map_scale, text.object_tokens) == ("mean", "minmax", "content")
     assert {k: getattr(config, k) for k in ("fit_pixels", "fit_views")} == {"fit_pixels": "rendered_positive",
-                                                                           "fit_views": "fixed"}
+                                                                           "fit_views": "fresh"}
     with pytest.raises(ValueError, match="map_scale"):
         RefineConfig(map_scale="sigmoid")
     with pytest.raises(ValueError, match="renders"):  # the masked L1 cannot move a start that renders nothing
@@ -237,12 +235,12 @@ def test_attention_prompts_carry_each_views_word(tiny_guidance, make_sphere_grid
     prompt = "a render of a dog wearing sunglasses"
     edit, obj = attention_maps_2d(tiny_guidance, grid, cams, prompt, ["sunglasses"], RefineConfig(render_size=16))
     assert seen == [prompt + ", front view", prompt + ", back view"]
-    torch.testing.assert_close(edit.amax(dim=(1, 2)), torch.ones(2))  # min-max normalised (the default)
+    assert float(edit.min()) >= 0 and float(obj.max()) < 1.0  # raw probabilities (the default), not stretched
     seen.clear()
-    raw, _ = attention_maps_2d(tiny_guidance, grid, cams, prompt, ["sunglasses"],
-                               RefineConfig(render_size=16, view_word_prompt=False, map_scale="raw"))
+    stretched, _ = attention_maps_2d(tiny_guidance, grid, cams, prompt, ["sunglasses"],
+                                     RefineConfig(render_size=16, view_word_prompt=False, map_scale="minmax"))
     assert seen == [prompt, prompt]
-    assert float(raw.min()) >= 0 and float(raw.max()) < 1.0  # raw probabilities: one token's share of each pixel
+    torch.testing.assert_close(stretched.amax(dim=(1, 2)), torch.ones(2))
 
 
 # ----------------------------------------------------------------- lifting
@@ -261,7 +259,7 @@ def test_fit_recovers_a_known_field_from_exact_maps(make_sphere_grid):
     truth = (0.5 + 0.45 * torch.tanh(2.0 * (x + 0.5 * z)))[..., None]
     cams = cameras_around(12, 16, seed=3)
     maps = render_feature_views(grid, cams, torch.cat([truth, 1 - truth], -1), background=(0.0,))
-    config = RefineConfig(iterations=80, lr=0.08, rays_per_step=512, tv_weight=0.01)
+    config = RefineConfig(iterations=80, lr=0.08, rays_per_step=512, tv_weight=0.01, fit_views="fixed")
     edit, obj = fit_attention_grids(grid, cams, maps[..., 0], maps[..., 1], config)
     assert edit.shape == obj.shape == (res, res, res, 1)
     # interior vertices (all 6 neighbours inside): boundary ones share their cells with empty space
@@ -282,10 +280,10 @@ def test_fit_reports_progress_and_cancels(make_sphere_grid):
     seen = []
     cb = Callbacks(on_progress=lambda p: seen.append(p.iteration), should_cancel=lambda: len(seen) >= 3)
     with pytest.raises(StageCancelled):
-        fit_attention_grids(grid, cams, maps, maps, RefineConfig(iterations=10, rays_per_step=64), cb)
+        fit_attention_grids(grid, cams, maps, maps, RefineConfig(iterations=10, rays_per_step=64, fit_views="fixed"), cb)
     assert seen == [1, 2, 3]
     with pytest.raises(ValueError, match="do not match"):
-        fit_attention_grids(grid, cams, torch.zeros(3, 8, 8), torch.zeros(3, 8, 8), RefineConfig(iterations=1))
+        fit_attention_grids(grid, cams, torch.zeros(3, 8, 8), torch.zeros(3, 8, 8), RefineConfig(iterations=1, fit_views="fixed"))
 
 
 # ----------------------------------------------------------------- graph cut

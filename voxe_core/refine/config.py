@@ -37,9 +37,9 @@ class RefineConfig:
 
     The graph cut's defaults are the authors' code's (``AUTHORS_CODE_CUT``; issue 18: IoU 0.99 against the
     text's 0.85 on bench/localisation_variants.py's ground truth); ``PAPER_TEXT_CUT`` restores the text's.
-    The 2D maps' defaults are the authors' code's too (``AUTHORS_CODE_MAPS``, ``PAPER_TEXT_MAPS``) but for
-    ``map_scale`` (min-max, measured), and so is the fit's pixel rule; ``PAPER_TEXT_FIT`` / ``AUTHORS_CODE_FIT``
-    name both fits (README: the refine note).
+    The 2D maps' defaults are the authors' code's too (``AUTHORS_CODE_MAPS``, ``PAPER_TEXT_MAPS``), and so is
+    the fit's (a fresh view per step, L1 where the render is > 0); ``PAPER_TEXT_FIT`` / ``AUTHORS_CODE_FIT`` name
+    both fits (README: the refine note).
     """
 
     # 2D cross-attention maps
@@ -49,10 +49,10 @@ class RefineConfig:
     # "3x3": a 3x3 kernel (the code's); "3sigma": radius ceil(3 sigma), the whole Gaussian (ours before issue 18)
     smoothing_kernel: Literal["3x3", "3sigma"] = "3x3"
     smooth_upsampled: bool = True  # smooth again after the bilinear upsampling, same kernel (the code)
-    # "minmax": each map stretched to [0, 1] on its own (the text, ours); "raw": the attention probabilities as they
-    # come, edit and object maps on one scale (the code). Not the code's: raw maps cut worse on every map of
-    # bench/localisation_maps_fit.py but one, and fail outright (IoU 0) when the edit token draws 0.3x the attention
-    map_scale: Literal["raw", "minmax"] = "minmax"
+    # "raw": the attention probabilities as they come, edit and object maps on one scale (the code); "minmax": each
+    # map stretched to [0, 1] on its own (the text as we read it). Measured both ways (bench/localisation_maps_fit.py,
+    # localisation_grids.py): neither wins everywhere, so the code's
+    map_scale: Literal["raw", "minmax"] = "raw"
     edit_token_reduce: Literal["mean", "max"] = "max"  # how the edit words' sub-tokens combine (the code: max)
     # "content": the prompt's words minus the edit's; "through_end": also the first end-of-text token (the code)
     object_tokens: Literal["content", "through_end"] = "through_end"
@@ -70,9 +70,9 @@ class RefineConfig:
     backprojection_prior: float = 0.1  # pseudo-weight of "no attention" (0) in the back-projection's average
     backprojection_stride: int = 2  # every n-th pixel row and column per view (maps are a 16x16 lattice upsampled)
     rays_per_step: int = REFINE_RAYS_PER_STEP
-    # "fixed": the steps draw rays_per_step pixels of the `views` maps (ours); "fresh": every step a new random
-    # pose and diffusion pass, all its pixels (the code; one UNet pass per step)
-    fit_views: Literal["fixed", "fresh"] = "fixed"
+    # "fresh": every step a new random pose and diffusion pass, all its pixels (the code; one UNet pass per step;
+    # better on bench/localisation_maps_fit.py); "fixed": rays_per_step pixels of the `views` maps (ours before)
+    fit_views: Literal["fixed", "fresh"] = "fresh"
     # "all": L1 over every pixel whose ray meets the object's box (ours); "rendered_positive": only pixels whose
     # rendered attention is > 0 (the code; it needs a start that renders positive: the back-projection)
     fit_pixels: Literal["all", "rendered_positive"] = "rendered_positive"
@@ -146,11 +146,7 @@ PAPER_TEXT_CUT = dict(edit_seed_rule="top", object_seeds=OBJECT_SEEDS, object_se
 AUTHORS_CODE_MAPS = dict(edit_token_reduce="max", view_word_prompt=True, object_tokens="through_end",
                          smoothing_sigma=SERVICE_SMOOTHING_SIGMA, smoothing_kernel="3x3", smooth_upsampled=True,
                          map_scale="raw")
-"""The 2D maps of TAU-VAILab/Vox-E (``attn_grid_trainer.py``, ``cross_attn.py``; issue 18 item 5): the defaults
-but for ``map_scale`` (the defaults normalise: ``SERVICE_MAPS``)."""
-
-SERVICE_MAPS = {**AUTHORS_CODE_MAPS, "map_scale": "minmax"}
-"""The defaults: the code's maps, min-max normalised (bench/results/localisation_maps_variants.json)."""
+"""The 2D maps of TAU-VAILab/Vox-E (``attn_grid_trainer.py``, ``cross_attn.py``; issue 18 item 5): the defaults."""
 
 PAPER_TEXT_MAPS = dict(edit_token_reduce="mean", view_word_prompt=False, object_tokens="content",
                        smoothing_sigma=1.0, smoothing_kernel="3sigma", smooth_upsampled=False, map_scale="minmax")
