@@ -6,7 +6,7 @@ word (``view_word_prompt``); the edit map is the max (or mean) over the edit
 words' tokens, the object map the max over the prompt's other tokens (with the
 first end-of-text token: ``object_tokens``); each smoothed on the attention
 lattice (and again after the bilinear upsampling to the render size) and
-min-max normalised to [0, 1], or kept as raw probabilities (``map_scale``).
+kept as raw probabilities, or min-max normalised to [0, 1] (``map_scale``).
 """
 
 from __future__ import annotations
