@@ -28,8 +28,8 @@ Pipeline (``refine``):
    activation), as a grey value composited over a black background, and fitted
    by L1 to the maps plus ``tv_weight`` · TV, with Adam; the L1 counts only the
    pixels whose rendered attention is > 0 (``fit_pixels``, the code's), and
-   ``fit_views="fresh"`` gives every step a new pose and diffusion pass (the
-   code's) instead of pixels of the fixed views. The render is linear
+   every step sees a new pose and diffusion pass (``fit_views="fresh"``, the
+   code's; ``"fixed"``: pixels of the start's views, no UNet pass). The render is linear
    in the field over the frozen density, so the fit starts from the weighted
    back-projection of the maps (``lift_start="backprojection"``, every
    ``backprojection_stride``-th pixel row and column) and Adam moves only the
