@@ -41,7 +41,7 @@ import torch.nn.functional as F
 from localisation_scenes import SCENES, build_scene
 from segmentation import iou, vote_2d
 from voxe_core.constants import OBJECT_SEEDS
-from voxe_core.refine.config import RefineConfig
+from voxe_core.refine.config import PAPER_TEXT_FIT, RefineConfig
 from voxe_core.refine.cut import graph_cut_detailed, node_mask, probabilities
 from voxe_core.refine.lifting import fit_attention_grids
 from voxe_core.refine.maps import postprocess_maps
@@ -80,6 +80,13 @@ def lattice_maps(coverage: torch.Tensor, level: dict, seed: int) -> tuple[torch.
     return both[:, 0], both[:, 1]
 
 
+def fewer_views(scene, views: int, size: int):
+    """``scene`` with its first ``views`` hemisphere views at ``size`` px (coverage kept at Blender's size: the maps
+    are pooled to the 16×16 lattice first); a different name, so its cached vote renders are its own."""
+    cameras = scene.cameras[:views].resized(size, size)
+    return dataclasses.replace(scene, name=f"{scene.name}_{views}v{size}", cameras=cameras, coverage=scene.coverage[:views])
+
+
 def psnr(a: torch.Tensor, b: torch.Tensor, where: torch.Tensor | None = None) -> float:
     err = (a - b).pow(2).mean(-1)
     mse = err.mean() if where is None else err[where].mean()
@@ -111,8 +118,8 @@ def run(scene, level_name, config, lift_name, seed, nodes, views_info):
     t0 = time.perf_counter()
     edit_cells, object_cells = lattice_maps(scene.coverage, LEVELS[level_name], seed)
     size = (scene.cameras.height, scene.cameras.width)
-    edit_maps = postprocess_maps(edit_cells, size, config.smoothing_sigma)
-    object_maps = postprocess_maps(object_cells, size, config.smoothing_sigma)
+    edit_maps = postprocess_maps(edit_cells, size, config)
+    object_maps = postprocess_maps(object_cells, size, config)
     maps_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     e, o = fit_attention_grids(scene.edited, scene.cameras, edit_maps, object_maps, config)
@@ -207,10 +214,11 @@ def main() -> None:
         views_info = hemisphere_views(scene, args.resolution)
         for k, level in enumerate(levels):
             for iterations in (args.iterations if level == args.paper_level else args.iterations[:1]):
-                config = RefineConfig(iterations=iterations, render_size=scene.cameras.width, views=len(scene.cameras))
+                config = RefineConfig(iterations=iterations, render_size=scene.cameras.width, views=len(scene.cameras),
+                                      fit_views="fixed")
                 runs += run(scene, level, config, "backprojection", 100 + k, nodes, views_info)
             if level == args.paper_level and name in args.paper_scenes:
-                config = RefineConfig(lift_start="constant", render_size=scene.cameras.width, views=len(scene.cameras))
+                config = RefineConfig(render_size=scene.cameras.width, views=len(scene.cameras), **PAPER_TEXT_FIT)
                 runs += run(scene, level, config, "paper_fit", 100 + k, nodes, views_info)
     if args.timing_resolution and not args.quick:
         scene = build_scene("spot_hat", args.timing_resolution)
@@ -227,6 +235,16 @@ def main() -> None:
         "total_seconds": round(time.perf_counter() - start, 1),
     }
     write_results(result, args.out, plot)
+
+
+def parse_with_common_arguments(parser: argparse.ArgumentParser, out: Path | None, threads: int = 1) -> argparse.Namespace:
+    """``parser``'s arguments plus --resolution (96), --threads and --out; torch's thread count set from them."""
+    parser.add_argument("--resolution", type=int, default=96)
+    parser.add_argument("--threads", type=int, default=threads, help="torch threads (more stall on a shared, loaded box)")
+    parser.add_argument("--out", type=Path, default=out)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    return args
 
 
 def write_results(result: dict, out: Path, plot_runs) -> None:

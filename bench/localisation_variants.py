@@ -27,7 +27,7 @@ from pathlib import Path
 
 import torch
 
-from localisation import LEVELS, lattice_maps, ring_psnrs, write_results
+from localisation import LEVELS, lattice_maps, parse_with_common_arguments, ring_psnrs, write_results
 from localisation_scenes import SCENES, build_scene
 from segmentation import iou
 from voxe_core.constants import SERVICE_OBJECT_SEEDS
@@ -60,8 +60,8 @@ def measure(scene, level_name: str, seed: int, with_psnr: bool) -> list[dict]:
     base = RefineConfig(iterations=0, render_size=scene.cameras.width, views=len(scene.cameras))
     edit_cells, object_cells = lattice_maps(scene.coverage, LEVELS[level_name], seed)
     size = (scene.cameras.height, scene.cameras.width)
-    edit_maps = postprocess_maps(edit_cells, size, base.smoothing_sigma)
-    object_maps = postprocess_maps(object_cells, size, base.smoothing_sigma)
+    edit_maps = postprocess_maps(edit_cells, size, base)
+    object_maps = postprocess_maps(object_cells, size, base)
     t0 = time.perf_counter()
     e, o = fit_attention_grids(scene.edited, scene.cameras, edit_maps, object_maps, base)
     lift_s = time.perf_counter() - t0
@@ -88,7 +88,9 @@ def measure(scene, level_name: str, seed: int, with_psnr: bool) -> list[dict]:
     return rows
 
 
-def plot(runs: list[dict], path: Path) -> None:
+def plot(runs: list[dict], path: Path,
+         title: str = "graph cut: paper's text vs the authors' code, same attention grids (96³)") -> None:
+    """IoU bars per variant, one colour per (scene, noise) case."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -105,20 +107,16 @@ def plot(runs: list[dict], path: Path) -> None:
     ax.set_ylabel("3D IoU vs true part")
     ax.set_ylim(0, 1)
     ax.legend(fontsize=7)
-    ax.set_title("graph cut: paper's text vs the authors' code, same attention grids (96³)")
+    ax.set_title(title)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--resolution", type=int, default=96)
     parser.add_argument("--levels", nargs="+", default=["clean", "moderate"])
     parser.add_argument("--no-psnr", action="store_true", help="skip the ring renders of the merged grid")
-    parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--out", type=Path, default=RESULTS / "localisation_variants.json")
-    args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+    args = parse_with_common_arguments(parser, RESULTS / "localisation_variants.json")
     start = time.perf_counter()
     runs = []
     for name in SCENES:

@@ -371,7 +371,8 @@ def main() -> None:
     if args.quick:
         args.repeats = 1
     iterations = 150 if args.quick else args.iterations
-    config = RefineConfig(iterations=iterations, rays_per_step=4096, render_size=args.size, views=args.views)
+    config = RefineConfig(iterations=iterations, rays_per_step=4096, render_size=args.size, views=args.views,
+                          fit_views="fixed")
     c2w, _, _ = random_hemisphere_poses(args.views, torch.Generator().manual_seed(1))
     cameras = Cameras.from_fov(c2w, config.fov_x, args.size, args.size)
 

@@ -494,7 +494,7 @@ def _(fx):
 @case("segmentation/constant-attention-map-carries-no-evidence", "exact")
 def _(fx):
     maps = torch.full((2, 1, 1), 0.37)  # a 1x1 map (smaller than the blur kernel) and equal values
-    out = postprocess_maps(maps, (5, 4), sigma=1.0)
+    out = postprocess_maps(maps, (5, 4), RefineConfig(smoothing_sigma=1.0, map_scale="minmax"))
     return [("normalised to zero", out, torch.zeros(2, 5, 4), 0.0)]
 
 
@@ -502,7 +502,7 @@ def _(fx):
       (SegmentationError, "no occupied voxels: there is nothing to attach attention to"))
 def _(fx):
     cams = hemisphere_cameras(2, 8)
-    fit_attention_grids(uniform_grid(-1.0), cams, torch.rand(2, 8, 8), torch.rand(2, 8, 8), RefineConfig(iterations=2))
+    fit_attention_grids(uniform_grid(-1.0), cams, torch.rand(2, 8, 8), torch.rand(2, 8, 8), RefineConfig(iterations=2, fit_views="fixed"))
 
 
 @case("segmentation/lifting-and-cutting-a-one-voxel-object", "exact")
@@ -511,7 +511,7 @@ def _(fx):
     with torch.no_grad():
         grid.features[3, 2, 3, 0] = 5.0
     cams = hemisphere_cameras(3, 8)
-    config = RefineConfig(iterations=30, rays_per_step=64, node_rule="alpha")  # the occupied voxel alone, undilated
+    config = RefineConfig(iterations=30, rays_per_step=64, node_rule="alpha", fit_views="fixed")  # the occupied voxel alone, undilated
     edit, obj = fit_attention_grids(grid, cams, torch.ones(3, 8, 8), torch.zeros(3, 8, 8), config)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # "only 1 of 300 edit seeds": expected here
@@ -527,7 +527,7 @@ def _(fx):
     grid = make_sphere_grid(10, radius=0.6)
     cams = hemisphere_cameras(2, 8)
     maps = torch.rand(2, 8, 8, generator=torch.Generator().manual_seed(5))
-    config = RefineConfig(iterations=10, rays_per_step=64)
+    config = RefineConfig(iterations=10, rays_per_step=64, fit_views="fixed")
     edit, obj = fit_attention_grids(grid, cams, maps, maps, config)
     assert torch.equal(edit, obj)  # the same targets fit bit-identical fields
     graph_cut(grid, edit, obj, config)

@@ -238,3 +238,9 @@ def test_the_worker_runs_every_stage_on_its_device_and_stores_their_peak_memory(
     assert result["peak_memory_kind"] == "process_rss"
     assert set(result["peak_memory_gb"]) == {"reconstruct", "export"}  # the recorded edit reported nothing
     assert all(0.01 < gb < 64 for gb in result["peak_memory_gb"].values())
+
+
+def test_the_papers_constant_start_fits_every_pixel_the_default_start_the_codes_positive_ones():
+    paper_fit = refine_config({"refine": {"lift_start": "constant", "iterations": 1500}}, ATTENTION_MODEL_ID)
+    assert (paper_fit.fit_pixels, paper_fit.iterations) == ("all", 1500)
+    assert refine_config({}, ATTENTION_MODEL_ID).fit_pixels == "rendered_positive"

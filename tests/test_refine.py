@@ -17,12 +17,21 @@ import pytest
 import torch
 
 from voxe_core.backbones import load_grid
-from voxe_core.cameras import Cameras, random_hemisphere_poses
+from voxe_core.cameras import Cameras, random_hemisphere_poses, spherical_poses
 from voxe_core.cli import main
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance.sds import StableDiffusionGuidance
 from voxe_core.progress import Callbacks, StageCancelled
-from voxe_core.refine.config import AUTHORS_CODE_CUT, PAPER_TEXT_CUT, RefineConfig, SegmentationError
+from voxe_core.refine.config import (
+    AUTHORS_CODE_CUT,
+    AUTHORS_CODE_FIT,
+    AUTHORS_CODE_MAPS,
+    PAPER_TEXT_CUT,
+    PAPER_TEXT_FIT,
+    PAPER_TEXT_MAPS,
+    RefineConfig,
+    SegmentationError,
+)
 from voxe_core.refine.cut import (
     graph_cut,
     graph_cut_detailed,
@@ -31,8 +40,16 @@ from voxe_core.refine.cut import (
     pairwise_weights,
     probabilities,
 )
-from voxe_core.refine.lifting import fit_attention_grids
-from voxe_core.refine.maps import attention_maps_2d, combine_token_maps, gaussian_blur2d, token_groups
+from voxe_core.refine.lifting import attention_l1, fit_attention_grids
+from voxe_core.refine.maps import (
+    attention_maps_2d,
+    camera_view_words,
+    combine_token_maps,
+    gaussian_blur2d,
+    gaussian_kernel1d,
+    postprocess_maps,
+    token_groups,
+)
 from voxe_core.refine.pipeline import merge, refine
 from voxe_core.refine.renders import render_attention, render_feature_views, render_mask_overlay
 from voxe_core.refine.storage import load_mask, load_probabilities, save_mask, save_probabilities
@@ -125,13 +142,105 @@ def test_gaussian_blur_keeps_constants_and_spreads_a_delta_by_sigma():
 def test_attention_maps_2d_are_normalised_per_view(tiny_guidance, make_sphere_grid):
     grid = make_sphere_grid(12)
     cams = cameras_around(2, 24)
-    config = RefineConfig(render_size=24, views=2)
+    config = RefineConfig(render_size=24, views=2, **PAPER_TEXT_MAPS)
     edit, obj = attention_maps_2d(tiny_guidance, grid, cams, "a render of a dog wearing sunglasses", ["sunglasses"], config)
     assert edit.shape == obj.shape == (2, 24, 24)
     for maps in (edit, obj):
         assert torch.isfinite(maps).all()
         torch.testing.assert_close(maps.amin(dim=(1, 2)), torch.zeros(2))
         torch.testing.assert_close(maps.amax(dim=(1, 2)), torch.ones(2))
+
+
+def test_the_authors_code_maps_and_fit_are_the_default_and_the_text_is_one_replace_away():
+    config = RefineConfig()
+    assert {k: getattr(config, k) for k in AUTHORS_CODE_MAPS} == AUTHORS_CODE_MAPS
+    text = dataclasses.replace(config, **PAPER_TEXT_MAPS)
+    assert (text.edit_token_reduce, text.map_scale, text.object_tokens) == ("mean", "minmax", "content")
+    assert {k: getattr(config, k) for k in ("fit_pixels", "fit_views")} == {"fit_pixels": "rendered_positive",
+                                                                           "fit_views": "fresh"}
+    with pytest.raises(ValueError, match="map_scale"):
+        RefineConfig(map_scale="sigmoid")
+    with pytest.raises(ValueError, match="renders"):  # the masked L1 cannot move a start that renders nothing
+        RefineConfig(lift_start="constant", iterations=10, init_value=-20.0, fit_pixels="rendered_positive")
+    RefineConfig(**PAPER_TEXT_FIT)
+    RefineConfig(**AUTHORS_CODE_FIT)
+
+
+def test_max_over_edit_tokens_is_the_max_of_the_per_token_maps():
+    maps = torch.rand(77, 6, 6, generator=torch.Generator().manual_seed(1))
+    edit, _ = combine_token_maps(maps, [3, 7, 9], [1], reduce=RefineConfig().edit_token_reduce)
+    for k in (3, 7, 9):
+        assert (edit >= maps[k]).all()
+    assert torch.equal(edit, torch.stack([maps[3], maps[7], maps[9]]).amax(0))
+
+
+def test_through_end_object_tokens_add_exactly_the_first_end_of_text_token(tiny_guidance):
+    prompt = "a render of a dog wearing a party hat"
+    edit, content_only = token_groups(tiny_guidance, prompt, ["party hat"], "content")
+    _, through_end = token_groups(tiny_guidance, prompt, ["party hat"], "through_end")
+    ids = tiny_guidance._tokenize([prompt])[0].tolist()
+    assert through_end[:-1] == content_only and len(through_end) == len(content_only) + 1
+    assert ids[through_end[-1]] == tiny_guidance.tokenizer.eos_token_id
+    assert all(ids[i] != tiny_guidance.tokenizer.eos_token_id for i in content_only + edit)
+
+
+def test_the_3x3_kernel_is_the_authors_sigma_half_gaussian():
+    taps = gaussian_kernel1d(0.5, radius=1)
+    e = math.exp(-2.0)  # exp(-1² / (2·0.5²))
+    torch.testing.assert_close(taps, torch.tensor([e, 1.0, e]) / (1 + 2 * e))
+    kernel2d = taps[:, None] * taps[None, :]
+    assert abs(float(kernel2d[1, 1]) - 1 / (1 + 2 * e) ** 2) < 1e-6 and abs(float(kernel2d.sum()) - 1) < 1e-6
+    delta = torch.zeros(1, 7, 7)
+    delta[0, 3, 3] = 1.0
+    blurred = gaussian_blur2d(delta, 0.5, radius=1)[0]
+    torch.testing.assert_close(blurred[2:5, 2:5], kernel2d)  # 3x3 support: nothing beyond one cell
+    assert float(blurred.sum()) == pytest.approx(1.0) and float(blurred[1].abs().sum()) == 0.0
+    assert gaussian_kernel1d(0.5).numel() == 5  # the whole Gaussian (radius ceil(3σ)) for "3sigma"
+
+
+def test_raw_maps_keep_the_relative_scale_of_edit_and_object_minmax_does_not():
+    cells = torch.rand(1, 16, 16, generator=torch.Generator().manual_seed(2))
+    maps = torch.cat([0.2 * cells, cells])  # the edit token takes a fifth of the object's attention
+    raw = postprocess_maps(maps, (40, 40), RefineConfig(**AUTHORS_CODE_MAPS))
+    torch.testing.assert_close(raw[0], 0.2 * raw[1])  # linear steps: smoothing, upsampling, smoothing
+    flat = postprocess_maps(torch.full((1, 16, 16), 0.3), (40, 40), RefineConfig(map_scale="raw"))
+    torch.testing.assert_close(flat, torch.full((1, 40, 40), 0.3))  # a constant probability stays what it is
+    stretched = postprocess_maps(maps, (40, 40), RefineConfig(map_scale="minmax"))
+    torch.testing.assert_close(stretched[0], stretched[1])
+    torch.testing.assert_close(stretched.amax(dim=(1, 2)), torch.ones(2))
+
+
+def test_smoothing_after_upsampling_is_one_more_pass_of_the_same_kernel():
+    cells = torch.rand(1, 16, 16, generator=torch.Generator().manual_seed(3))
+    once = postprocess_maps(cells, (48, 48), RefineConfig(smooth_upsampled=False, map_scale="raw"))
+    twice = postprocess_maps(cells, (48, 48), RefineConfig(map_scale="raw"))
+    torch.testing.assert_close(twice, gaussian_blur2d(once, 0.5, radius=1))
+    assert not torch.allclose(once, twice)
+
+
+def test_view_words_follow_the_pose_as_in_the_edit():
+    c2w = spherical_poses(torch.tensor([30.0, 30.0, 30.0, 30.0, 75.0]), torch.tensor([270.0, 90.0, 0.0, 180.0, 10.0]))
+    cams = Cameras.from_fov(c2w, 0.69, 8, 8)
+    assert camera_view_words(cams, 270.0) == ["front", "back", "side", "side", "overhead"]
+
+
+def test_attention_prompts_carry_each_views_word(tiny_guidance, make_sphere_grid, monkeypatch):
+    grid = make_sphere_grid(10)
+    c2w = spherical_poses(torch.tensor([30.0, 30.0]), torch.tensor([270.0, 90.0]))
+    cams = Cameras.from_fov(c2w, 0.69, 16, 16)
+    seen = []
+    original = tiny_guidance.cross_attention_maps
+    monkeypatch.setattr(tiny_guidance, "cross_attention_maps",
+                        lambda image, prompt, **kw: seen.append(prompt) or original(image, prompt, **kw))
+    prompt = "a render of a dog wearing sunglasses"
+    edit, obj = attention_maps_2d(tiny_guidance, grid, cams, prompt, ["sunglasses"], RefineConfig(render_size=16))
+    assert seen == [prompt + ", front view", prompt + ", back view"]
+    assert float(edit.min()) >= 0 and float(obj.max()) < 1.0  # raw probabilities (the default), not stretched
+    seen.clear()
+    stretched, _ = attention_maps_2d(tiny_guidance, grid, cams, prompt, ["sunglasses"],
+                                     RefineConfig(render_size=16, view_word_prompt=False, map_scale="minmax"))
+    assert seen == [prompt, prompt]
+    torch.testing.assert_close(stretched.amax(dim=(1, 2)), torch.ones(2))
 
 
 # ----------------------------------------------------------------- lifting
@@ -150,7 +259,7 @@ def test_fit_recovers_a_known_field_from_exact_maps(make_sphere_grid):
     truth = (0.5 + 0.45 * torch.tanh(2.0 * (x + 0.5 * z)))[..., None]
     cams = cameras_around(12, 16, seed=3)
     maps = render_feature_views(grid, cams, torch.cat([truth, 1 - truth], -1), background=(0.0,))
-    config = RefineConfig(iterations=80, lr=0.08, rays_per_step=512, tv_weight=0.01)
+    config = RefineConfig(iterations=80, lr=0.08, rays_per_step=512, tv_weight=0.01, fit_views="fixed")
     edit, obj = fit_attention_grids(grid, cams, maps[..., 0], maps[..., 1], config)
     assert edit.shape == obj.shape == (res, res, res, 1)
     # interior vertices (all 6 neighbours inside): boundary ones share their cells with empty space
@@ -171,10 +280,10 @@ def test_fit_reports_progress_and_cancels(make_sphere_grid):
     seen = []
     cb = Callbacks(on_progress=lambda p: seen.append(p.iteration), should_cancel=lambda: len(seen) >= 3)
     with pytest.raises(StageCancelled):
-        fit_attention_grids(grid, cams, maps, maps, RefineConfig(iterations=10, rays_per_step=64), cb)
+        fit_attention_grids(grid, cams, maps, maps, RefineConfig(iterations=10, rays_per_step=64, fit_views="fixed"), cb)
     assert seen == [1, 2, 3]
     with pytest.raises(ValueError, match="do not match"):
-        fit_attention_grids(grid, cams, torch.zeros(3, 8, 8), torch.zeros(3, 8, 8), RefineConfig(iterations=1))
+        fit_attention_grids(grid, cams, torch.zeros(3, 8, 8), torch.zeros(3, 8, 8), RefineConfig(iterations=1, fit_views="fixed"))
 
 
 # ----------------------------------------------------------------- graph cut
@@ -375,6 +484,48 @@ def test_renders_grey_attention_and_red_mask(make_sphere_grid):
     over = render_mask_overlay(grid, half, cams)[0]
     assert over[12, 8, 0] > 0.8 and over[12, 8, 1] < 0.5  # tinted red where the mask is
     assert over[12, 16].min() > 0.8 and over[0, 0].min() == 1.0  # untouched (white) elsewhere
+
+
+def test_masked_l1_ignores_pixels_whose_rendered_attention_is_not_positive():
+    rendered = torch.tensor([[0.4, 0.0], [0.0, -0.2], [0.9, 0.3]], requires_grad=True)
+    targets = torch.tensor([[0.0, 1.0], [1.0, 1.0], [0.1, 0.3]])
+    loss = attention_l1(rendered, targets, "rendered_positive")
+    loss.backward()
+    assert float(loss.detach()) == pytest.approx((0.4 + 0.8) / 6)
+    assert (rendered.grad[rendered.detach() <= 0] == 0).all() and (rendered.grad[0, 0] > 0)
+    assert float(attention_l1(rendered, targets)) == pytest.approx((0.4 + 1 + 1 + 1.2 + 0.8) / 6)
+
+
+def test_fresh_views_give_every_step_its_own_pose_and_maps(make_sphere_grid):
+    grid = make_sphere_grid(10)
+    cams = cameras_around(2, 8)
+    maps = torch.full((2, 8, 8), 0.5)
+    calls = []
+
+    def fresh_view(step):
+        calls.append(step)
+        return cameras_around(1, 8, seed=100 + step), torch.ones(1, 8, 8), torch.zeros(1, 8, 8)
+
+    config = RefineConfig(iterations=5, fit_views="fresh", fit_pixels="all", lr=0.2)
+    e, o = fit_attention_grids(grid, cams, maps, maps, config, fresh_view=fresh_view)
+    assert calls == [0, 1, 2, 3, 4]
+    seen = e[..., 0] != 0
+    assert float(e[..., 0][seen].mean()) > 0.5 > float(o[..., 0][seen].mean())  # pulled towards the fresh maps
+    with pytest.raises(ValueError, match="fresh_view"):
+        fit_attention_grids(grid, cams, maps, maps, config)
+
+
+def test_refine_with_the_authors_fresh_fit_runs_one_diffusion_pass_per_step(tiny_guidance, make_sphere_grid, monkeypatch):
+    initial = make_sphere_grid(10)
+    edited = initial.clone_grid()
+    passes = []
+    original = tiny_guidance.cross_attention_maps
+    monkeypatch.setattr(tiny_guidance, "cross_attention_maps",
+                        lambda image, prompt, **kw: passes.append(prompt) or original(image, prompt, **kw))
+    config = RefineConfig(views=2, render_size=16, edit_seeds=5, object_seeds=5, **{**AUTHORS_CODE_FIT, "iterations": 3})
+    result = refine(initial, edited, "a dog wearing sunglasses", ["sunglasses"], tiny_guidance, config)
+    assert len(passes) == 2 + 3 and all(p.endswith(" view") for p in passes)
+    assert result.mask.shape == (10, 10, 10)
 
 
 # ----------------------------------------------------------------- end to end

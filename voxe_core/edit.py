@@ -63,7 +63,13 @@ from voxe_core.constants import (
 from voxe_core.devices import PeakMemory, resolve_device
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance import Guidance
-from voxe_core.guidance.prompts import RENDER_PREFIX, VIEW_WORDS, edit_prompt, view_word
+from voxe_core.guidance.prompts import (
+    AUTHORS_FRONT_AZIMUTH_DEG,
+    RENDER_PREFIX,
+    VIEW_WORDS,
+    edit_prompt,
+    pose_view_word,
+)
 from voxe_core.losses import (
     IMAGE_REGULARISERS,
     REGULARISERS,
@@ -80,10 +86,6 @@ from voxe_core.tensorio import load_tensors, save_tensors
 EDIT_CHECKPOINT_KIND = "edit_checkpoint"
 EDIT_CHECKPOINT_VERSION = 1
 AUTOCAST_DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
-# Azimuth (degrees, spherical_poses convention: eye = r·(cos az, sin az, ·)) of the
-# object's front. The authors' code calls a camera "front" when its right vector
-# points along +x, i.e. a camera on the -y axis: azimuth 270°.
-AUTHORS_FRONT_AZIMUTH_DEG = 270.0
 
 
 @dataclass
@@ -180,11 +182,6 @@ def build_prompt(text: str, view: str | None, prefix: str | None = RENDER_PREFIX
             raise ValueError(f"unknown view word {view!r}; expected one of {VIEW_WORDS}")
         body = f"{body}, {view} view"
     return body
-
-
-def pose_view_word(elevation_deg: float, azimuth_deg: float, front_azimuth_deg: float = AUTHORS_FRONT_AZIMUTH_DEG) -> str:
-    """View word of a pose whose azimuth is measured in the spherical_poses convention."""
-    return view_word(float(elevation_deg), float(azimuth_deg) - float(front_azimuth_deg))
 
 
 def initial_fingerprint(grid: VoxelGrid) -> str:

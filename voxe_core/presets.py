@@ -196,9 +196,12 @@ def refine_config(params: dict, attention_model: str) -> "RefineConfig":
     from voxe_core.refine.config import RefineConfig
 
     refine = params.get("refine") or {}
+    lift_start = _given(refine, "lift_start", "backprojection")
     return RefineConfig(
         iterations=_given(refine, "iterations", paper.SERVICE_REFINE_ITERATIONS),
-        lift_start=_given(refine, "lift_start", "backprojection"),
+        lift_start=lift_start,
+        # the code's L1 counts only pixels that render positive: nothing does from the paper's start at 0
+        fit_pixels="all" if lift_start == "constant" else RefineConfig.fit_pixels,
         smoothing_sigma=_given(refine, "smoothing_sigma", paper.SERVICE_SMOOTHING_SIGMA),
         lr=_given(refine, "lr", paper.REFINE_LR),
         tv_weight=_given(refine, "tv_weight", paper.REFINE_TV_WEIGHT),

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 RENDER_PREFIX = "a render of"
 VIEW_WORDS = ("front", "side", "back", "overhead")
+AUTHORS_FRONT_AZIMUTH_DEG = 270.0
+"""Azimuth (degrees, ``spherical_poses``: eye = r·(cos az, sin az, ·)) of the object's front: the authors'
+code calls a camera "front" when its right vector points along +x, i.e. a camera on the −y axis."""
 
 
 def view_word(elevation_deg: float, azimuth_deg: float) -> str:
@@ -22,6 +25,11 @@ def view_word(elevation_deg: float, azimuth_deg: float) -> str:
     if abs(az) >= 135.0:
         return "back"
     return "side"
+
+
+def pose_view_word(elevation_deg: float, azimuth_deg: float, front_azimuth_deg: float = AUTHORS_FRONT_AZIMUTH_DEG) -> str:
+    """View word of a pose whose azimuth is measured in the spherical_poses convention."""
+    return view_word(float(elevation_deg), float(azimuth_deg) - float(front_azimuth_deg))
 
 
 def edit_prompt(user_text: str, view_word: str | None = None) -> str:

@@ -10,17 +10,26 @@ Pipeline (``refine``):
 
 1. :func:`attention_maps_2d` renders views of the edited grid G_e from random
    upper-hemisphere poses and asks the diffusion model for per-token
-   cross-attention maps (one UNet pass at t = 200). The *edit* map is the mean
-   over the edit words' tokens (every sub-token of every occurrence), the
-   *object* map the element-wise max over every other content token of the
-   prompt (start, end and padding tokens excluded). Each map is smoothed with a
-   small Gaussian (std ``smoothing_sigma`` = 0.5 cells, the authors' code's) on the attention lattice (in its own pixels, on whatever
-   device it lives), upsampled bilinearly to the render size and min-max
-   normalised to [0, 1].
+   cross-attention maps (one UNet pass at t = 200), the prompt carrying each
+   pose's view word (", front view", as in the edit). The *edit* map is the
+   max over the edit words' tokens (every sub-token of every occurrence), the
+   *object* map the element-wise max over every other token of the prompt and
+   the first end-of-text token (start and padding tokens excluded). Each map is
+   smoothed with a 3×3 Gaussian (σ = 0.5 cells) on the attention lattice (on
+   whatever device it lives), upsampled bilinearly to the render size, smoothed
+   again and kept as raw probabilities, so the two maps keep their relative
+   scale. All of this is the authors' code's (``AUTHORS_CODE_MAPS``; min-max
+   maps cut better on the mesh scenes of bench/localisation_maps_fit.py, raw
+   ones on the fox of bench/localisation_grids.py: no choice wins everywhere);
+   ``PAPER_TEXT_MAPS`` gives the mean over edit tokens, no view word, content
+   tokens only, one σ = 1 blur and min-max normalised maps.
 2. :func:`fit_attention_grids` lifts both sets of maps into two scalar grids
    sharing G_e's frozen density. A field's value is rendered **raw** (no
    activation), as a grey value composited over a black background, and fitted
-   by L1 to the maps plus ``tv_weight`` · TV, with Adam. The render is linear
+   by L1 to the maps plus ``tv_weight`` · TV, with Adam; the L1 counts only the
+   pixels whose rendered attention is > 0 (``fit_pixels``, the code's), and
+   every step sees a new pose and diffusion pass (``fit_views="fresh"``, the
+   code's; ``"fixed"``: pixels of the start's views, no UNet pass). The render is linear
    in the field over the frozen density, so the fit starts from the weighted
    back-projection of the maps (``lift_start="backprojection"``, every
    ``backprojection_stride``-th pixel row and column) and Adam moves only the

@@ -13,6 +13,7 @@ from voxe_core.constants import (
     EDIT_SEEDS,
     NERF_SYNTHETIC_FOV_X,
     OBJECT_SEEDS,
+    REFINE_ITERATIONS,
     REFINE_LR,
     REFINE_RAYS_PER_STEP,
     REFINE_TV_WEIGHT,
@@ -22,6 +23,7 @@ from voxe_core.constants import (
     SERVICE_SMOOTHING_SIGMA,
     RENDER_SIZE,
 )
+from voxe_core.guidance.prompts import AUTHORS_FRONT_AZIMUTH_DEG
 from voxe_core.render import RenderConfig
 
 
@@ -35,13 +37,27 @@ class RefineConfig:
 
     The graph cut's defaults are the authors' code's (``AUTHORS_CODE_CUT``; issue 18: IoU 0.99 against the
     text's 0.85 on bench/localisation_variants.py's ground truth); ``PAPER_TEXT_CUT`` restores the text's.
+    The 2D maps' defaults are the authors' code's too (``AUTHORS_CODE_MAPS``, ``PAPER_TEXT_MAPS``), and so is
+    the fit's (a fresh view per step, L1 where the render is > 0); ``PAPER_TEXT_FIT`` / ``AUTHORS_CODE_FIT`` name
+    both fits (README: the refine note).
     """
 
     # 2D cross-attention maps
     timestep: int = DEFAULT_ATTENTION_TIMESTEP  # t = 200 of 1000
     resolution_filter: int | None = 16  # keep only the 16x16-query cross-attention layers
     smoothing_sigma: float = SERVICE_SMOOTHING_SIGMA  # std in pixels of the 16x16 map; 0 = none (ours before issue 18: 1.0)
-    edit_token_reduce: Literal["mean", "max"] = "mean"  # how the edit words' sub-tokens combine
+    # "3x3": a 3x3 kernel (the code's); "3sigma": radius ceil(3 sigma), the whole Gaussian (ours before issue 18)
+    smoothing_kernel: Literal["3x3", "3sigma"] = "3x3"
+    smooth_upsampled: bool = True  # smooth again after the bilinear upsampling, same kernel (the code)
+    # "raw": the attention probabilities as they come, edit and object maps on one scale (the code); "minmax": each
+    # map stretched to [0, 1] on its own (the text as we read it). Measured both ways (bench/localisation_maps_fit.py,
+    # localisation_grids.py): neither wins everywhere, so the code's
+    map_scale: Literal["raw", "minmax"] = "raw"
+    edit_token_reduce: Literal["mean", "max"] = "max"  # how the edit words' sub-tokens combine (the code: max)
+    # "content": the prompt's words minus the edit's; "through_end": also the first end-of-text token (the code)
+    object_tokens: Literal["content", "through_end"] = "through_end"
+    view_word_prompt: bool = True  # ", front view" etc. from each view's pose in the attention prompt, as in the edit
+    front_azimuth_deg: float = AUTHORS_FRONT_AZIMUTH_DEG  # the object's front for the view word (EditConfig's)
     render_size: int = RENDER_SIZE  # pixels of the renders (paper: 800 px / 3)
     views: int = REFINE_VIEWS  # random upper-hemisphere poses (ours; the authors use the training views)
     fov_x: float = NERF_SYNTHETIC_FOV_X
@@ -54,6 +70,12 @@ class RefineConfig:
     backprojection_prior: float = 0.1  # pseudo-weight of "no attention" (0) in the back-projection's average
     backprojection_stride: int = 2  # every n-th pixel row and column per view (maps are a 16x16 lattice upsampled)
     rays_per_step: int = REFINE_RAYS_PER_STEP
+    # "fresh": every step a new random pose and diffusion pass, all its pixels (the code; one UNet pass per step;
+    # better on bench/localisation_maps_fit.py); "fixed": rays_per_step pixels of the `views` maps (ours before)
+    fit_views: Literal["fixed", "fresh"] = "fresh"
+    # "all": L1 over every pixel whose ray meets the object's box (ours); "rendered_positive": only pixels whose
+    # rendered attention is > 0 (the code; it needs a start that renders positive: the back-projection)
+    fit_pixels: Literal["all", "rendered_positive"] = "rendered_positive"
     render: RenderConfig = field(default_factory=lambda: RenderConfig(background=(0.0,)))
     # graph cut
     edit_seeds: int = EDIT_SEEDS
@@ -89,7 +111,10 @@ class RefineConfig:
         if not 0.0 < self.edit_seed_ratio <= 1.0:
             raise ValueError(f"edit_seed_ratio must lie in (0, 1], got {self.edit_seed_ratio}")
         for name, allowed in (("object_seed_rule", ("top", "random")), ("unseeded_unary", ("log_probability", "none")),
-                              ("pairwise_weight", ("gaussian", "exp_distance")), ("node_rule", ("alpha", "maxpool"))):
+                              ("pairwise_weight", ("gaussian", "exp_distance")), ("node_rule", ("alpha", "maxpool")),
+                              ("smoothing_kernel", ("3x3", "3sigma")), ("map_scale", ("raw", "minmax")),
+                              ("object_tokens", ("content", "through_end")), ("fit_views", ("fixed", "fresh")),
+                              ("fit_pixels", ("all", "rendered_positive"))):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}")
         if self.edit_token_reduce not in ("mean", "max"):
@@ -101,6 +126,10 @@ class RefineConfig:
             raise ValueError("iterations and seed counts must be non-negative")
         if self.sigma <= 0 or self.smoothness < 0 or self.smoothing_sigma < 0:
             raise ValueError("sigma must be positive; smoothness and smoothing_sigma non-negative")
+        if self.fit_pixels == "rendered_positive" and self.iterations and self.lift_start == "constant" \
+                and self.init_value <= 0:
+            raise ValueError("fit_pixels='rendered_positive' fits nothing from a constant start <= 0 (nothing renders "
+                             "positive, so no pixel is ever counted): use lift_start='backprojection' or fit_pixels='all'")
         if not 0.0 < self.node_alpha < 1.0:
             raise ValueError(f"node_alpha must lie in (0, 1), got {self.node_alpha}")
 
@@ -113,3 +142,20 @@ AUTHORS_CODE_CUT = dict(edit_seed_rule="relative", object_seeds=SERVICE_OBJECT_S
 PAPER_TEXT_CUT = dict(edit_seed_rule="top", object_seeds=OBJECT_SEEDS, object_seed_rule="top",
                       unseeded_unary="log_probability", pairwise_weight="gaussian", node_rule="alpha")
 """The paper's text: ``dataclasses.replace(config, **PAPER_TEXT_CUT)``."""
+
+AUTHORS_CODE_MAPS = dict(edit_token_reduce="max", view_word_prompt=True, object_tokens="through_end",
+                         smoothing_sigma=SERVICE_SMOOTHING_SIGMA, smoothing_kernel="3x3", smooth_upsampled=True,
+                         map_scale="raw")
+"""The 2D maps of TAU-VAILab/Vox-E (``attn_grid_trainer.py``, ``cross_attn.py``; issue 18 item 5): the defaults."""
+
+PAPER_TEXT_MAPS = dict(edit_token_reduce="mean", view_word_prompt=False, object_tokens="content",
+                       smoothing_sigma=1.0, smoothing_kernel="3sigma", smooth_upsampled=False, map_scale="minmax")
+"""The paper's text as this project read it before issue 18 (a small Gaussian, maps in [0, 1])."""
+
+AUTHORS_CODE_FIT = dict(lift_start="backprojection", fit_views="fresh", fit_pixels="rendered_positive",
+                        iterations=REFINE_ITERATIONS)
+"""The code's fit (a fresh pose and diffusion pass per step, 1,500 steps, L1 where the render is > 0) from
+the back-projection start (the code's −20 start renders nothing positive, so its masked L1 could not move it)."""
+
+PAPER_TEXT_FIT = dict(lift_start="constant", fit_views="fixed", fit_pixels="all", iterations=REFINE_ITERATIONS)
+"""The paper's text: 1,500 steps from a constant over fixed views, plain L1."""

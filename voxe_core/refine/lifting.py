@@ -15,6 +15,8 @@ not empty); the rest keep "no attention" (0) as the start says.
 
 from __future__ import annotations
 
+from typing import Callable
+
 import torch
 
 from voxe_core.cameras import Cameras, camera_rays
@@ -115,6 +117,25 @@ def strided_pixels(n_views: int, height: int, width: int, stride: int, device=No
     return pick.reshape(-1)
 
 
+FreshView = Callable[[int], tuple[Cameras, torch.Tensor, torch.Tensor]]
+"""step -> (one camera, its edit map (1, H, W), its object map): a new pose and diffusion pass per fit step."""
+
+
+def attention_l1(rendered: torch.Tensor, targets: torch.Tensor, pixels: str = "all") -> torch.Tensor:
+    """Mean L1 of rendered attention against its targets; ``pixels="rendered_positive"`` counts only the
+    entries whose render is > 0 (the authors' mask: where the attention grid renders something), the others 0.
+
+    Examples:
+        >>> r, t = torch.tensor([[0.5], [0.0], [-1.0]]), torch.tensor([[0.0], [1.0], [1.0]])
+        >>> float(attention_l1(r, t)), float(attention_l1(r, t, "rendered_positive"))
+        (1.1666666269302368, 0.1666666716337204)
+    """
+    error = (rendered - targets).abs()
+    if pixels == "rendered_positive":
+        error = error * (rendered.detach() > 0)
+    return error.mean()
+
+
 def fit_attention_grids(
     grid: VoxelGrid,
     cameras: Cameras,
@@ -122,6 +143,7 @@ def fit_attention_grids(
     object_maps: torch.Tensor,
     config: RefineConfig = RefineConfig(),
     callbacks: Callbacks = Callbacks(),
+    fresh_view: FreshView | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Lift 2D maps to two scalar grids ``(X, Y, Z, 1)`` over ``grid``'s frozen density.
 
@@ -129,8 +151,10 @@ def fit_attention_grids(
     every ``backprojection_stride``-th pixel row and column (:func:`strided_pixels`),
     or ``config.init_value`` everywhere with ``lift_start="constant"`` (the
     paper's fit). Then both fields are fitted together (one render of a 2-channel field per step)
-    on ``rays_per_step`` random pixels of all views, rendered raw over a black
-    background, with L1 + ``tv_weight``·TV (TV over the occupied box), Adam at
+    on ``rays_per_step`` random pixels of all views (``fit_views="fixed"``) or on
+    every pixel of the one new view ``fresh_view(step)`` gives (``"fresh"``, the
+    authors'), rendered raw over a black background, with L1 (over the pixels
+    ``fit_pixels`` names: :func:`attention_l1`) + ``tv_weight``·TV (TV over the occupied box), Adam at
     ``lr``; stratified jitter along the rays. Pixels whose ray misses the
     occupied box render 0 whatever the field holds and are left out.
     Deterministic for ``config.seed``; reports ``Progress("attention_grids")``
@@ -157,6 +181,8 @@ def fit_attention_grids(
     start, seen = backproject(frozen, origins[strided], directions[strided], targets[strided], config, occupancy)
     origins, directions, targets = origins[keep], directions[keep], targets[keep]
 
+    if config.fit_views == "fresh" and config.iterations and fresh_view is None:
+        raise ValueError("fit_views='fresh' needs fresh_view: a new pose and its maps for every step")
     if config.lift_start == "constant":
         start = torch.full_like(start, float(config.init_value))
     rows = (seen.reshape(-1) > 0).nonzero().squeeze(-1)  # vertices some pixel sees: the only ones L1 moves
@@ -169,10 +195,20 @@ def fit_attention_grids(
     for iteration in range(config.iterations):
         callbacks.check_cancel("attention_grids")
         values = flat_start.index_copy(0, rows, active).reshape(start.shape)
-        batch = torch.randint(0, n_rays, (min(config.rays_per_step, n_rays),), generator=generator, device=device)
-        out = render_rays(frozen, origins[batch], directions[batch], config.render, occupancy, generator,
-                          color_features=values)
-        l1 = (out.rgb - targets[batch]).abs().mean()
+        if config.fit_views == "fresh":
+            view, edit_map, object_map = fresh_view(iteration)
+            o, d = all_camera_rays(view.to(device))
+            t = torch.stack([edit_map, object_map], -1).reshape(-1, 2).to(device=device, dtype=torch.float32)
+            near, far = ray_box_intersection(o, d, occupancy.bbox_min.to(device), occupancy.bbox_max.to(device))
+            hit = far > near
+            o, d, t = o[hit], d[hit], t[hit]
+            if not hit.any():  # the pose missed the object: nothing to fit this step
+                continue
+        else:
+            batch = torch.randint(0, n_rays, (min(config.rays_per_step, n_rays),), generator=generator, device=device)
+            o, d, t = origins[batch], directions[batch], targets[batch]
+        out = render_rays(frozen, o, d, config.render, occupancy, generator, color_features=values)
+        l1 = attention_l1(out.rgb, t, config.fit_pixels)
         tv = total_variation(values[box])
         loss = l1 + config.tv_weight * tv
         optimizer.zero_grad(set_to_none=True)

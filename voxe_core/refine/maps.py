@@ -1,10 +1,12 @@
 """Step 1: per-view 2D edit and object maps from the diffusion model's cross-attention (SPEC §3).
 
 Renders of G_e from random upper-hemisphere poses; per token the model's
-cross-attention probabilities at t = 200; the edit map is the mean over the
-edit words' tokens, the object map the max over the prompt's other content
-tokens; each smoothed on the attention lattice, upsampled to the render size
-and min-max normalised to [0, 1].
+cross-attention probabilities at t = 200, the prompt carrying each pose's view
+word (``view_word_prompt``); the edit map is the max (or mean) over the edit
+words' tokens, the object map the max over the prompt's other tokens (with the
+first end-of-text token: ``object_tokens``); each smoothed on the attention
+lattice (and again after the bilinear upsampling to the render size) and
+kept as raw probabilities, or min-max normalised to [0, 1] (``map_scale``).
 """
 
 from __future__ import annotations
@@ -17,19 +19,34 @@ import torch.nn.functional as F
 
 from voxe_core.cameras import Cameras, random_hemisphere_poses
 from voxe_core.grid import VoxelGrid
+from voxe_core.guidance.prompts import edit_prompt, pose_view_word
 from voxe_core.progress import Callbacks, Progress
 from voxe_core.refine.config import RefineConfig
 from voxe_core.render import RenderConfig, render_image
 
 
-def gaussian_blur2d(maps: torch.Tensor, sigma: float) -> torch.Tensor:
-    """Separable Gaussian blur of (..., H, W) maps, std ``sigma`` pixels, reflect padding, on their device."""
+def gaussian_kernel1d(sigma: float, radius: int | None = None, device=None) -> torch.Tensor:
+    """Normalised 1D Gaussian taps, std ``sigma``, ``2·radius + 1`` of them (None: radius ceil(3σ), at least 1).
+
+    The 2D kernel is its outer product with itself: radius 1 at σ = 0.5 is the authors' 3×3 kernel.
+
+    Examples:
+        >>> [round(float(w), 4) for w in gaussian_kernel1d(0.5, radius=1)]
+        [0.1065, 0.787, 0.1065]
+    """
+    radius = max(1, int(math.ceil(3.0 * sigma))) if radius is None else int(radius)
+    x = torch.arange(-radius, radius + 1, device=device, dtype=torch.float32)
+    kernel = torch.exp(-0.5 * (x / sigma) ** 2)
+    return kernel / kernel.sum()
+
+
+def gaussian_blur2d(maps: torch.Tensor, sigma: float, radius: int | None = None) -> torch.Tensor:
+    """Separable Gaussian blur of (..., H, W) maps, std ``sigma`` pixels (``radius``: see
+    :func:`gaussian_kernel1d`), reflect padding, on their device."""
     if sigma <= 0:
         return maps
-    radius = max(1, int(math.ceil(3.0 * sigma)))
-    x = torch.arange(-radius, radius + 1, device=maps.device, dtype=torch.float32)
-    kernel = torch.exp(-0.5 * (x / sigma) ** 2)
-    kernel = (kernel / kernel.sum()).to(maps.dtype)
+    kernel = gaussian_kernel1d(sigma, radius, maps.device).to(maps.dtype)
+    radius = (kernel.numel() - 1) // 2
     shape = maps.shape
     flat = maps.reshape(-1, 1, *shape[-2:])
     # reflect padding needs pad < size; fall back to replicate on tiny maps
@@ -53,21 +70,33 @@ def normalize_maps(maps: torch.Tensor) -> torch.Tensor:
     return torch.where(flat, torch.zeros_like(maps), (maps - lo) / span.clamp_min(1e-12))
 
 
-def attention_cameras(config: RefineConfig, generator: torch.Generator | None = None,
+def attention_cameras(config: RefineConfig, generator: torch.Generator | None = None, n: int | None = None,
                       centre: torch.Tensor | None = None) -> Cameras:
-    """``config.views`` random upper-hemisphere cameras (SPEC §0) of ``render_size`` pixels, looking at ``centre``
-    (the grid's ``orbit_centre()``; None: the origin)."""
+    """``n`` (default ``config.views``) random upper-hemisphere cameras (SPEC §0) of ``render_size`` pixels, looking
+    at ``centre`` (the grid's ``orbit_centre()``; None: the origin)."""
     generator = generator or torch.Generator().manual_seed(config.seed)
-    c2w, _, _ = random_hemisphere_poses(config.views, generator, centre=centre)
+    c2w, _, _ = random_hemisphere_poses(config.views if n is None else n, generator, centre=centre)
     return Cameras.from_fov(c2w, config.fov_x, config.render_size, config.render_size)
 
 
-def token_groups(guidance, prompt: str, edit_words: Sequence[str]) -> tuple[list[int], list[int]]:
-    """(edit token positions, other content token positions) of ``prompt``.
+def camera_view_words(cameras: Cameras, front_azimuth_deg: float) -> list[str]:
+    """The view word ("front", "side", "back", "overhead") of each camera's position around the origin."""
+    eye = cameras.c2w[:, :3, 3].double()
+    elevation = torch.rad2deg(torch.asin((eye[:, 2] / eye.norm(dim=-1).clamp_min(1e-12)).clamp(-1, 1)))
+    azimuth = torch.rad2deg(torch.atan2(eye[:, 1], eye[:, 0]))
+    return [pose_view_word(e, a, front_azimuth_deg) for e, a in zip(elevation.tolist(), azimuth.tolist())]
+
+
+def token_groups(
+    guidance, prompt: str, edit_words: Sequence[str], object_tokens: str = "content"
+) -> tuple[list[int], list[int]]:
+    """(edit token positions, object token positions) of ``prompt``.
 
     Edit positions: every sub-token of every occurrence of each edit word or
     phrase (``guidance.token_spans``). Object positions: the prompt's content
-    tokens (no start / end / padding) minus the edit positions.
+    tokens (no start / end / padding) minus the edit positions, and with
+    ``object_tokens="through_end"`` the first end-of-text token too (the
+    authors' token range runs one past the last word).
     """
     if isinstance(edit_words, str):
         edit_words = [edit_words]
@@ -79,6 +108,8 @@ def token_groups(guidance, prompt: str, edit_words: Sequence[str]) -> tuple[list
     others = [i for i in content if i not in set(edit)]
     if not others:
         raise ValueError(f"the prompt {prompt!r} has no words besides the edit words {edit_words}: nothing names the object")
+    if object_tokens == "through_end":
+        others.append(content[-1] + 1)  # the first end-of-text token
     return edit, others
 
 
@@ -93,11 +124,17 @@ def combine_token_maps(
 
 
 @torch.no_grad()
-def postprocess_maps(maps: torch.Tensor, size: tuple[int, int], sigma: float) -> torch.Tensor:
-    """Smooth (in map pixels) -> bilinear upsample to ``size`` -> min-max normalise; (N, h, w) -> (N, H, W)."""
-    smoothed = gaussian_blur2d(maps.float(), sigma)
+def postprocess_maps(maps: torch.Tensor, size: tuple[int, int], config: RefineConfig = RefineConfig()) -> torch.Tensor:
+    """Smooth (in map pixels) -> bilinear upsample to ``size`` [-> smooth again] [-> min-max normalise]: (N, h, w) -> (N, H, W).
+
+    ``config``: ``smoothing_sigma``, ``smoothing_kernel``, ``smooth_upsampled`` and ``map_scale``.
+    """
+    radius = 1 if config.smoothing_kernel == "3x3" else None
+    smoothed = gaussian_blur2d(maps.float(), config.smoothing_sigma, radius)
     up = F.interpolate(smoothed[:, None], size=size, mode="bilinear", align_corners=False)[:, 0]
-    return normalize_maps(up)
+    if config.smooth_upsampled:
+        up = gaussian_blur2d(up, config.smoothing_sigma, radius)
+    return normalize_maps(up) if config.map_scale == "minmax" else up
 
 
 @torch.no_grad()
@@ -109,16 +146,21 @@ def attention_maps_2d(
     edit_words: Sequence[str],
     config: RefineConfig = RefineConfig(),
     callbacks: Callbacks = Callbacks(),
+    generator: torch.Generator | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-view edit and object maps ``(N, H, W)`` in [0, 1] for renders of ``grid`` (see the module docstring).
+    """Per-view edit and object maps ``(N, H, W)`` for renders of ``grid`` (see the module docstring).
 
     ``prompt`` is used as given (``refine`` adds the "a render of" prefix the
-    edit stage used). Renders are composited on white, as the edit stage's.
+    edit stage used), plus ", <view> view" per pose with ``view_word_prompt``.
+    Renders are composited on white, as the edit stage's. The diffusion noise
+    comes from ``generator`` (default: seeded with ``config.seed``).
     """
-    edit_tokens, object_tokens = token_groups(guidance, prompt, edit_words)
+    words = camera_view_words(cameras, config.front_azimuth_deg) if config.view_word_prompt else [None] * len(cameras)
+    prompts = [edit_prompt(prompt, word) if word else prompt for word in words]
+    groups = {text: token_groups(guidance, text, edit_words, config.object_tokens) for text in set(prompts)}
     device = grid.bbox_min.device
     occupancy = grid.occupancy(RenderConfig().sigma_threshold)
-    generator = torch.Generator().manual_seed(config.seed)
+    generator = generator or torch.Generator().manual_seed(config.seed)
     size = (cameras.height, cameras.width)
     edit_maps = torch.empty(len(cameras), *size, device=device)
     object_maps = torch.empty_like(edit_maps)
@@ -126,11 +168,11 @@ def attention_maps_2d(
         callbacks.check_cancel("attention_maps")
         image = render_image(grid, cameras, i, RenderConfig(), occupancy).rgb[..., :3]
         maps = guidance.cross_attention_maps(
-            image.permute(2, 0, 1)[None], prompt, timestep=config.timestep,
+            image.permute(2, 0, 1)[None], prompts[i], timestep=config.timestep,
             resolution_filter=config.resolution_filter, generator=generator,
         )
-        edit, obj = combine_token_maps(maps, edit_tokens, object_tokens, config.edit_token_reduce)
-        both = postprocess_maps(torch.stack([edit, obj]), size, config.smoothing_sigma)
+        edit, obj = combine_token_maps(maps, *groups[prompts[i]], config.edit_token_reduce)
+        both = postprocess_maps(torch.stack([edit, obj]), size, config)
         edit_maps[i], object_maps[i] = both[0].to(device), both[1].to(device)
         callbacks.progress(Progress("attention_maps", i + 1, len(cameras), info={"stage": "attention maps"}))
     return edit_maps, object_maps

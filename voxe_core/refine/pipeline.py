@@ -52,6 +52,25 @@ def merge(initial_grid: VoxelGrid, edited_grid: VoxelGrid, mask: torch.Tensor) -
     return initial_grid.like(merged)
 
 
+def fresh_attention_views(guidance, grid: VoxelGrid, prompt: str, edit_words: Sequence[str], config: RefineConfig,
+                          centre: torch.Tensor | None = None):
+    """``fit_views="fresh"``'s source: per fit step one new random pose (looking at ``centre``) and its maps (one
+    diffusion pass each).
+
+    Poses and diffusion noise come from their own generators (``config.seed`` + 1), so the steps see
+    neither the start's poses nor its noise again.
+    """
+    poses = torch.Generator().manual_seed(config.seed + 1)
+    noise = torch.Generator().manual_seed(config.seed + 1)
+
+    def fresh_view(step: int):
+        camera = attention_cameras(config, poses, n=1, centre=centre)
+        edit_map, object_map = attention_maps_2d(guidance, grid, camera, prompt, edit_words, config, generator=noise)
+        return camera, edit_map, object_map
+
+    return fresh_view
+
+
 def refine(
     initial_grid: VoxelGrid,
     edited_grid: VoxelGrid,
@@ -80,11 +99,15 @@ def refine(
     initial_grid, edited_grid = initial_grid.to(device), edited_grid.to(device)
     text = edit_prompt(prompt)
     token_groups(guidance, text, edit_words)  # fail on a bad word before rendering anything
-    cameras = attention_cameras(config, centre=initial_grid.orbit_centre())  # G_i's: the object, wherever it sits
+    centre = initial_grid.orbit_centre()  # G_i's: the object, wherever it sits
+    cameras = attention_cameras(config, centre=centre)
+    fresh_view = fresh_attention_views(guidance, edited_grid, text, edit_words, config, centre) \
+        if config.fit_views == "fresh" else None
     callbacks = in_phases(callbacks, {"attention_maps": len(cameras), "attention_grids": config.iterations,
                                       "graph_cut": 1})  # one scale: the stage's progress only rises
     edit_maps, object_maps = attention_maps_2d(guidance, edited_grid, cameras, text, edit_words, config, callbacks)
-    edit_field, object_field = fit_attention_grids(edited_grid, cameras, edit_maps, object_maps, config, callbacks)
+    edit_field, object_field = fit_attention_grids(edited_grid, cameras, edit_maps, object_maps, config, callbacks,
+                                                   fresh_view)
     callbacks.check_cancel("graph_cut")
     mask, stats = graph_cut_detailed(edited_grid, edit_field, object_field, config)
     p_e, p_o = probabilities(edit_field, object_field)
