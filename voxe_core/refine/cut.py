@@ -70,7 +70,11 @@ def node_mask(grid: VoxelGrid, node_alpha: float = 0.01, rule: str = "alpha") ->
     max-pooled ReLU density (raw × scale, for either activation) is > 0 — the occupied set dilated by one.
 
     Examples:
-        >>> nodes = node_mask(grid, rule="maxpool")  # a superset of node_mask(grid) for ReLU grids
+        >>> grid = VoxelGrid(resolution=8)
+        >>> grid.features.data[..., 0] = -1.0  # empty, but for one dense vertex
+        >>> grid.features.data[4, 4, 4, 0] = 10.0
+        >>> int(node_mask(grid).sum()), int(node_mask(grid, rule="maxpool").sum())  # maxpool: its 3×3×3 block
+        (1, 27)
     """
     raw = grid.features[..., 0].detach()
     if rule == "maxpool":
@@ -87,7 +91,9 @@ def pairwise_weights(diff: np.ndarray, config: RefineConfig) -> np.ndarray:
     ``"gaussian"`` (the text): λ·exp(−‖Δc‖²/2σ²); ``"exp_distance"`` (the code): λ·exp(−‖Δc‖/σ).
 
     Examples:
-        >>> pairwise_weights(np.array([[0.1, 0.0, 0.0]]), RefineConfig(pairwise_weight="exp_distance"))  # 5·e⁻¹
+        >>> weights = pairwise_weights(np.array([[0.1, 0.0, 0.0]]), RefineConfig(pairwise_weight="exp_distance"))
+        >>> round(float(weights[0]), 4)  # λ·e⁻¹ with λ = 5, σ = 0.1
+        1.8394
     """
     squared = (diff * diff).sum(-1)
     if config.pairwise_weight == "exp_distance":
