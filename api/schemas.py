@@ -82,7 +82,8 @@ class RefineParams(Strict):
     lift_start: Literal["backprojection", "constant"] = Field(
         "backprojection", description="start of the attention grids: the maps' weighted back-projection, or 0 (the paper's)")
     smoothing_sigma: float = Field(paper.SERVICE_SMOOTHING_SIGMA, ge=0, le=16,
-                                   description="Gaussian std in attention cells of the 2D maps' smoothing")
+                                   description="std in attention cells of the 2D maps' 3x3 Gaussian, applied on the 16x16 map and again "
+                                               "after upsampling (the authors' code)")
     lr: float = Field(paper.REFINE_LR, gt=0, le=10)
     tv_weight: float = Field(paper.REFINE_TV_WEIGHT, ge=0, le=1e6)
     render_size: int | None = Field(None, ge=8, le=1024, description="attention render size (default: the edit's)")

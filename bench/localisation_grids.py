@@ -203,6 +203,8 @@ def main() -> None:
     parser.add_argument("--downsample", type=int, default=16, help="fox training images (1080×1920 / 16)")
     parser.add_argument("--views", type=int, default=32, help="hemisphere views of the fitted scenes' maps")
     parser.add_argument("--view-size", type=int, default=100, help="their size in pixels (Blender's: 200)")
+    parser.add_argument("--map-scale", choices=["raw", "minmax"], default=RefineConfig.map_scale,
+                        help="RefineConfig.map_scale of every run (localisation_grids_minmax_maps.json: minmax)")
     args = parse_with_common_arguments(parser, RESULTS / "localisation_grids.json", threads=2)
     start = time.perf_counter()
     scenes = []
@@ -216,7 +218,8 @@ def main() -> None:
         (CACHE / scene.name).mkdir(parents=True, exist_ok=True)
         views_info = hemisphere_views(scene, args.resolution)
         for level in args.levels:
-            config = RefineConfig(iterations=0, render_size=scene.cameras.width, views=len(scene.cameras))
+            config = RefineConfig(iterations=0, render_size=scene.cameras.width, views=len(scene.cameras),
+                                  map_scale=args.map_scale)
             runs += run(scene, level, config, "backprojection", 100 + list(LEVELS).index(level), nodes, views_info)
     result = {
         "description": "bench/localisation.py's measurement on reconstructed mesh scenes (fitted) and on the fox capture "
@@ -225,7 +228,8 @@ def main() -> None:
                      {k: LEVELS[k] for k in args.levels}, "fox_downsample": args.downsample,
                      "fitted_views": args.views, "fitted_view_size": args.view_size, "hat_half_extent": HAT_HALF,
                      "threads": torch.get_num_threads(),
-                     "refine_config": {k: v for k, v in vars(RefineConfig()).items() if k != "render"}},
+                     "refine_config": {k: v for k, v in vars(RefineConfig(map_scale=args.map_scale)).items()
+                                       if k != "render"}},
         "runs": runs,
         "total_seconds": round(time.perf_counter() - start, 1),
     }

@@ -242,5 +242,13 @@ def test_the_worker_runs_every_stage_on_its_device_and_stores_their_peak_memory(
 
 def test_the_papers_constant_start_fits_every_pixel_the_default_start_the_codes_positive_ones():
     paper_fit = refine_config({"refine": {"lift_start": "constant", "iterations": 1500}}, ATTENTION_MODEL_ID)
-    assert (paper_fit.fit_pixels, paper_fit.iterations) == ("all", 1500)
-    assert refine_config({}, ATTENTION_MODEL_ID).fit_pixels == "rendered_positive"
+    assert (paper_fit.fit_views, paper_fit.fit_pixels, paper_fit.iterations) == ("fixed", "all", 1500)
+    default = refine_config({}, ATTENTION_MODEL_ID)
+    assert (default.fit_views, default.fit_pixels) == ("fresh", "rendered_positive")
+
+
+@pytest.mark.parametrize("view_words", [True, False])
+def test_the_refinements_attention_prompt_says_what_the_edits_prompt_said(view_words):
+    params = {"view_words": view_words}
+    assert edit_config(params).view_words is view_words
+    assert refine_config(params, ATTENTION_MODEL_ID).view_word_prompt is view_words

@@ -224,6 +224,15 @@ def test_view_words_follow_the_pose_as_in_the_edit():
     assert camera_view_words(cams, 270.0) == ["front", "back", "side", "side", "overhead"]
 
 
+def test_view_words_are_read_around_the_point_the_cameras_orbit():
+    """An off-centre capture's cameras orbit its centre: the words are the edit's for the same pose."""
+    elevation, azimuth = torch.tensor([30.0, 30.0, 30.0, 30.0, 75.0]), torch.tensor([270.0, 90.0, 0.0, 180.0, 10.0])
+    centre = torch.tensor([1.5, -2.0, 0.5])
+    cams = Cameras.from_fov(spherical_poses(elevation, azimuth, centre=centre), 0.69, 8, 8)
+    assert camera_view_words(cams, 270.0, centre) == ["front", "back", "side", "side", "overhead"]
+    assert camera_view_words(cams, 270.0) != camera_view_words(cams, 270.0, centre)  # around the origin: other words
+
+
 def test_attention_prompts_carry_each_views_word(tiny_guidance, make_sphere_grid, monkeypatch):
     grid = make_sphere_grid(10)
     c2w = spherical_poses(torch.tensor([30.0, 30.0]), torch.tensor([270.0, 90.0]))

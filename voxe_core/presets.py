@@ -195,13 +195,19 @@ def refine_config(params: dict, attention_model: str) -> "RefineConfig":
     """The refinement of a local edit (the job parameters' ``refine``; its render size defaults to the edit's)."""
     from voxe_core.refine.config import RefineConfig
 
+    from voxe_core.refine.config import PAPER_TEXT_FIT
+
     refine = params.get("refine") or {}
     lift_start = _given(refine, "lift_start", "backprojection")
+    # The paper's start at 0 takes the paper's fit (fixed views, every pixel): the code's L1 counts only pixels
+    # that render positive, and nothing does from 0.
+    paper_fit = lift_start == "constant"
     return RefineConfig(
         iterations=_given(refine, "iterations", paper.SERVICE_REFINE_ITERATIONS),
         lift_start=lift_start,
-        # the code's L1 counts only pixels that render positive: nothing does from the paper's start at 0
-        fit_pixels="all" if lift_start == "constant" else RefineConfig.fit_pixels,
+        fit_views=PAPER_TEXT_FIT["fit_views"] if paper_fit else RefineConfig.fit_views,
+        fit_pixels=PAPER_TEXT_FIT["fit_pixels"] if paper_fit else RefineConfig.fit_pixels,
+        view_word_prompt=_given(params, "view_words", True),  # the attention prompt says what the edit's said
         smoothing_sigma=_given(refine, "smoothing_sigma", paper.SERVICE_SMOOTHING_SIGMA),
         lr=_given(refine, "lr", paper.REFINE_LR),
         tv_weight=_given(refine, "tv_weight", paper.REFINE_TV_WEIGHT),

@@ -338,7 +338,7 @@ def _refine(job: Job, settings, device: str, storage) -> None:
                        node_mask(edited, config.node_alpha, config.node_rule))
     runtime.publish_artifact(job.id, "attention_probabilities.safetensors", probabilities, "probabilities", storage)
     size = export_config(job.params).view_size
-    cameras = turntable_cameras(1, 20.0, size, centre=_orbit_centre(job, settings, storage))
+    cameras = turntable_cameras(1, 20.0, size, centre=initial.orbit_centre())  # G_i's, as every stage
     overlay = render_mask_overlay(edited, result.mask, cameras.to(edited.bbox_min.device))
     save_png(scratch / "mask_overlay.png", overlay[0])
     runtime.publish_artifact(job.id, "mask_overlay.png", scratch / "mask_overlay.png", "render", storage)

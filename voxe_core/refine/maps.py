@@ -79,9 +79,12 @@ def attention_cameras(config: RefineConfig, generator: torch.Generator | None = 
     return Cameras.from_fov(c2w, config.fov_x, config.render_size, config.render_size)
 
 
-def camera_view_words(cameras: Cameras, front_azimuth_deg: float) -> list[str]:
-    """The view word ("front", "side", "back", "overhead") of each camera's position around the origin."""
+def camera_view_words(cameras: Cameras, front_azimuth_deg: float, centre: torch.Tensor | None = None) -> list[str]:
+    """The view word ("front", "side", "back", "overhead") of each camera's position around ``centre`` (the point
+    the cameras orbit, as the edit's poses do; None: the origin)."""
     eye = cameras.c2w[:, :3, 3].double()
+    if centre is not None:
+        eye = eye - centre.to(eye)
     elevation = torch.rad2deg(torch.asin((eye[:, 2] / eye.norm(dim=-1).clamp_min(1e-12)).clamp(-1, 1)))
     azimuth = torch.rad2deg(torch.atan2(eye[:, 1], eye[:, 0]))
     return [pose_view_word(e, a, front_azimuth_deg) for e, a in zip(elevation.tolist(), azimuth.tolist())]
@@ -147,15 +150,18 @@ def attention_maps_2d(
     config: RefineConfig = RefineConfig(),
     callbacks: Callbacks = Callbacks(),
     generator: torch.Generator | None = None,
+    centre: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-view edit and object maps ``(N, H, W)`` for renders of ``grid`` (see the module docstring).
 
     ``prompt`` is used as given (``refine`` adds the "a render of" prefix the
     edit stage used), plus ", <view> view" per pose with ``view_word_prompt``.
     Renders are composited on white, as the edit stage's. The diffusion noise
-    comes from ``generator`` (default: seeded with ``config.seed``).
+    comes from ``generator`` (default: seeded with ``config.seed``). ``centre`` (3,): the point the cameras
+    orbit, around which their view words are read (None: the origin).
     """
-    words = camera_view_words(cameras, config.front_azimuth_deg) if config.view_word_prompt else [None] * len(cameras)
+    words = camera_view_words(cameras, config.front_azimuth_deg, centre) if config.view_word_prompt \
+        else [None] * len(cameras)
     prompts = [edit_prompt(prompt, word) if word else prompt for word in words]
     groups = {text: token_groups(guidance, text, edit_words, config.object_tokens) for text in set(prompts)}
     device = grid.bbox_min.device

@@ -57,15 +57,16 @@ def fresh_attention_views(guidance, grid: VoxelGrid, prompt: str, edit_words: Se
     """``fit_views="fresh"``'s source: per fit step one new random pose (looking at ``centre``) and its maps (one
     diffusion pass each).
 
-    Poses and diffusion noise come from their own generators (``config.seed`` + 1), so the steps see
-    neither the start's poses nor its noise again.
+    Poses and diffusion noise come from generators of their own (``config.seed`` + 1 and + 2), so the steps see
+    neither the start's poses nor its noise again, and the noise is not drawn from the poses' stream.
     """
     poses = torch.Generator().manual_seed(config.seed + 1)
-    noise = torch.Generator().manual_seed(config.seed + 1)
+    noise = torch.Generator().manual_seed(config.seed + 2)
 
     def fresh_view(step: int):
         camera = attention_cameras(config, poses, n=1, centre=centre)
-        edit_map, object_map = attention_maps_2d(guidance, grid, camera, prompt, edit_words, config, generator=noise)
+        edit_map, object_map = attention_maps_2d(guidance, grid, camera, prompt, edit_words, config, generator=noise,
+                                                 centre=centre)
         return camera, edit_map, object_map
 
     return fresh_view
@@ -105,7 +106,8 @@ def refine(
         if config.fit_views == "fresh" else None
     callbacks = in_phases(callbacks, {"attention_maps": len(cameras), "attention_grids": config.iterations,
                                       "graph_cut": 1})  # one scale: the stage's progress only rises
-    edit_maps, object_maps = attention_maps_2d(guidance, edited_grid, cameras, text, edit_words, config, callbacks)
+    edit_maps, object_maps = attention_maps_2d(guidance, edited_grid, cameras, text, edit_words, config, callbacks,
+                                               centre=centre)
     edit_field, object_field = fit_attention_grids(edited_grid, cameras, edit_maps, object_maps, config, callbacks,
                                                    fresh_view)
     callbacks.check_cancel("graph_cut")
