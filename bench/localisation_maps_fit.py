@@ -5,7 +5,7 @@ and map model; the cut is the default (``AUTHORS_CODE_CUT``)
 everywhere, so the differences are the maps' or the fit's. ``--part maps``: per variant the lattice maps are
 post-processed under its ``RefineConfig`` and lifted by the back-projection (0 steps):
 
-* ``authors_code``: ``AUTHORS_CODE_MAPS`` (the default): 3×3 σ 0.5 smoothing before and after upsampling, raw maps;
+* ``authors_code``: ``AUTHORS_CODE_MAPS``: 3×3 σ 0.5 smoothing before and after upsampling, raw maps;
 * ``paper_text``: ``PAPER_TEXT_MAPS``: σ 1 Gaussian (radius 3σ) once, min-max normalised maps;
 * ``code_but_<field>``: the code's maps with that one choice the text's (``smoothing``: σ 0.5 with the whole
   Gaussian once, this project's setting before this bench; ``map_scale``: min-max);

@@ -29,6 +29,7 @@ from voxe_core.refine.config import (
     PAPER_TEXT_CUT,
     PAPER_TEXT_FIT,
     PAPER_TEXT_MAPS,
+    SERVICE_MAPS,
     RefineConfig,
     SegmentationError,
 )
@@ -151,9 +152,10 @@ def test_attention_maps_2d_are_normalised_per_view(tiny_guidance, make_sphere_gr
         torch.testing.assert_close(maps.amax(dim=(1, 2)), torch.ones(2))
 
 
-def test_the_authors_code_maps_and_fit_are_the_default_and_the_text_is_one_replace_away():
+def test_the_authors_code_maps_but_normalised_and_its_fit_are_the_default_and_the_text_is_one_replace_away():
     config = RefineConfig()
-    assert {k: getattr(config, k) for k in AUTHORS_CODE_MAPS} == AUTHORS_CODE_MAPS
+    assert {k: getattr(config, k) for k in SERVICE_MAPS} == SERVICE_MAPS
+    assert SERVICE_MAPS == {**AUTHORS_CODE_MAPS, "map_scale": "minmax"} and AUTHORS_CODE_MAPS["map_scale"] == "raw"
     text = dataclasses.replace(config, **PAPER_TEXT_MAPS)
     assert (text.edit_token_reduce, text.map_scale, text.object_tokens) == ("mean", "minmax", "content")
     assert {k: getattr(config, k) for k in ("fit_pixels", "fit_views")} == {"fit_pixels": "rendered_positive",
@@ -244,12 +246,12 @@ def test_attention_prompts_carry_each_views_word(tiny_guidance, make_sphere_grid
     prompt = "a render of a dog wearing sunglasses"
     edit, obj = attention_maps_2d(tiny_guidance, grid, cams, prompt, ["sunglasses"], RefineConfig(render_size=16))
     assert seen == [prompt + ", front view", prompt + ", back view"]
-    assert float(edit.min()) >= 0 and float(obj.max()) < 1.0  # raw probabilities (the default), not stretched
+    torch.testing.assert_close(edit.amax(dim=(1, 2)), torch.ones(2))  # min-max normalised (the default)
     seen.clear()
-    stretched, _ = attention_maps_2d(tiny_guidance, grid, cams, prompt, ["sunglasses"],
-                                     RefineConfig(render_size=16, view_word_prompt=False, map_scale="minmax"))
+    raw, _ = attention_maps_2d(tiny_guidance, grid, cams, prompt, ["sunglasses"],
+                               RefineConfig(render_size=16, view_word_prompt=False, map_scale="raw"))
     assert seen == [prompt, prompt]
-    torch.testing.assert_close(stretched.amax(dim=(1, 2)), torch.ones(2))
+    assert float(raw.min()) >= 0 and float(raw.max()) < 1.0  # raw probabilities: one token's share of each pixel
 
 
 # ----------------------------------------------------------------- lifting

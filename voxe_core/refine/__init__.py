@@ -17,12 +17,12 @@ Pipeline (``refine``):
    the first end-of-text token (start and padding tokens excluded). Each map is
    smoothed with a 3×3 Gaussian (σ = 0.5 cells) on the attention lattice (on
    whatever device it lives), upsampled bilinearly to the render size, smoothed
-   again and kept as raw probabilities, so the two maps keep their relative
-   scale. All of this is the authors' code's (``AUTHORS_CODE_MAPS``; min-max
-   maps cut better on the mesh scenes of bench/localisation_maps_fit.py, raw
-   ones on the fox of bench/localisation_grids.py: no choice wins everywhere);
-   ``PAPER_TEXT_MAPS`` gives the mean over edit tokens, no view word, content
-   tokens only, one σ = 1 blur and min-max normalised maps.
+   again and min-max normalised per view. All of this but the last step is the
+   authors' code's (``AUTHORS_CODE_MAPS`` keeps raw probabilities, so the two
+   maps keep their relative scale); min-max maps cut better on the mesh scenes
+   of bench/localisation_maps_fit.py and on the fox of bench/localisation_grids.py
+   (``SERVICE_MAPS``, the default). ``PAPER_TEXT_MAPS`` gives the mean over edit
+   tokens, no view word, content tokens only, one σ = 1 blur and min-max maps.
 2. :func:`fit_attention_grids` lifts both sets of maps into two scalar grids
    sharing G_e's frozen density. A field's value is rendered **raw** (no
    activation), as a grey value composited over a black background, and fitted

@@ -37,9 +37,10 @@ class RefineConfig:
 
     The graph cut's defaults are the authors' code's (``AUTHORS_CODE_CUT``; issue 18: IoU 0.99 against the
     text's 0.85 on bench/localisation_variants.py's ground truth); ``PAPER_TEXT_CUT`` restores the text's.
-    The 2D maps' defaults are the authors' code's too (``AUTHORS_CODE_MAPS``, ``PAPER_TEXT_MAPS``), and so is
-    the fit's (a fresh view per step, L1 where the render is > 0); ``PAPER_TEXT_FIT`` / ``AUTHORS_CODE_FIT`` name
-    both fits (README: the refine note).
+    The 2D maps' defaults are the authors' code's but for their scale (``SERVICE_MAPS``: min-max, measured
+    better on every ground truth; ``AUTHORS_CODE_MAPS``, ``PAPER_TEXT_MAPS``), and the fit's are the code's (a
+    fresh view per step, L1 where the render is > 0); ``PAPER_TEXT_FIT`` / ``AUTHORS_CODE_FIT`` name both fits
+    (README: the refine note).
     """
 
     # 2D cross-attention maps
@@ -51,8 +52,9 @@ class RefineConfig:
     smooth_upsampled: bool = True  # smooth again after the bilinear upsampling, same kernel (the code)
     # "raw": the attention probabilities as they come, edit and object maps on one scale (the code); "minmax": each
     # map stretched to [0, 1] on its own (the text as we read it). Measured both ways (bench/localisation_maps_fit.py,
-    # localisation_grids.py): neither wins everywhere, so the code's
-    map_scale: Literal["raw", "minmax"] = "raw"
+    # localisation_grids.py): min-max cut better on 10 of 12 mesh cases and on the fox capture (0.72 vs 0.07), and raw
+    # maps fail (IoU 0) when the edit word draws 0.3x the object's attention, so min-max is the default
+    map_scale: Literal["raw", "minmax"] = "minmax"
     edit_token_reduce: Literal["mean", "max"] = "max"  # how the edit words' sub-tokens combine (the code: max)
     # "content": the prompt's words minus the edit's; "through_end": also the first end-of-text token (the code)
     object_tokens: Literal["content", "through_end"] = "through_end"
@@ -147,6 +149,9 @@ AUTHORS_CODE_MAPS = dict(edit_token_reduce="max", view_word_prompt=True, object_
                          smoothing_sigma=SERVICE_SMOOTHING_SIGMA, smoothing_kernel="3x3", smooth_upsampled=True,
                          map_scale="raw")
 """The 2D maps of TAU-VAILab/Vox-E (``attn_grid_trainer.py``, ``cross_attn.py``; issue 18 item 5): the defaults."""
+
+SERVICE_MAPS = {**AUTHORS_CODE_MAPS, "map_scale": "minmax"}
+"""The defaults: the code's maps, min-max normalised (``map_scale``'s comment says why)."""
 
 PAPER_TEXT_MAPS = dict(edit_token_reduce="mean", view_word_prompt=False, object_tokens="content",
                        smoothing_sigma=1.0, smoothing_kernel="3sigma", smooth_upsampled=False, map_scale="minmax")
