@@ -46,8 +46,9 @@ class Strict(BaseModel):
 class ReconstructionParams(Strict):
     """How G_i is fitted (SPEC §1). Jobs with equal values (and downsample / resample / max_images) share one fit."""
 
-    preset: Literal["fast", "paper"] = Field(
-        presets.RECONSTRUCTION_PRESET, description="fast: 40→80→128 (the CPU budget); paper: the authors' 20→40→80→160 × 500 iterations"
+    preset: Literal["fast", "paper", "scene"] | None = Field(
+        None, description="fast: 40→80→128 (the CPU budget); paper: the authors' 20→40→80→160 × 500 iterations; "
+        "scene: 48→96 (the CPU budget of a scene-backbone fit); none: scene for a scene-backbone fit, fast otherwise"
     )
     resolution: int | None = Field(
         None, ge=4, le=512, description="final grid resolution; earlier stages are scaled in proportion"
