@@ -54,7 +54,7 @@ class ReconstructionParams(Strict):
         None, ge=4, le=512, description="final grid resolution; earlier stages are scaled in proportion"
     )
     iterations: Annotated[list[StageIterations], Field(min_length=1, max_length=8)] | StageIterations | None = Field(
-        None, description="iterations of the final stage, or one value per stage of the preset (fast: 3, paper: 4; "
+        None, description="iterations of the final stage, or one value per stage of the preset (fast: 3, paper: 4, scene: 2; "
         "another count is a 422); the preset's otherwise"
     )
     rays_per_step: int | None = Field(None, ge=1, le=1 << 20)
