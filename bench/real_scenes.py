@@ -225,7 +225,7 @@ def step_cost(args) -> dict:
                 record["wall_s"].append(wall)
                 record["cpu_s"].append(cpu)
                 record["samples_per_ray"].append(out.samples / config.rays_per_step)
-                record["l1"].append(float(loss))
+                record["l1"].append(float(loss.detach()))
     mean = lambda xs: sum(xs) / len(xs)  # noqa: E731
     summary = {name: {key: mean(values) for key, values in record.items()} for name, record in timings.items()}
     relu = summary["relu_field"]
