@@ -46,14 +46,15 @@ class Strict(BaseModel):
 class ReconstructionParams(Strict):
     """How G_i is fitted (SPEC §1). Jobs with equal values (and downsample / resample / max_images) share one fit."""
 
-    preset: Literal["fast", "paper"] = Field(
-        presets.RECONSTRUCTION_PRESET, description="fast: 40→80→128 (the CPU budget); paper: the authors' 20→40→80→160 × 500 iterations"
+    preset: Literal["fast", "paper", "scene"] | None = Field(
+        None, description="fast: 40→80→128 (the CPU budget); paper: the authors' 20→40→80→160 × 500 iterations; "
+        "scene: 48→96 (the CPU budget of a scene-backbone fit); none: scene for a scene-backbone fit, fast otherwise"
     )
     resolution: int | None = Field(
         None, ge=4, le=512, description="final grid resolution; earlier stages are scaled in proportion"
     )
     iterations: Annotated[list[StageIterations], Field(min_length=1, max_length=8)] | StageIterations | None = Field(
-        None, description="iterations of the final stage, or one value per stage of the preset (fast: 3, paper: 4; "
+        None, description="iterations of the final stage, or one value per stage of the preset (fast: 3, paper: 4, scene: 2; "
         "another count is a 422); the preset's otherwise"
     )
     rays_per_step: int | None = Field(None, ge=1, le=1 << 20)

@@ -158,7 +158,9 @@ def _reconstructed_job(client, scene_id: str, backbone: str, **params) -> dict:
     """A job whose reconstruct task ran for real (a tiny fit of the given backbone)."""
     from worker import tasks
 
-    body = {**TINY_FIT, **params, "reconstruction": {**TINY_FIT["reconstruction"], "backbone": backbone}}
+    stages = 2 if backbone == "scene" else 3  # the stage count of the backbone's default preset
+    body = {**TINY_FIT, **params, "reconstruction": {**TINY_FIT["reconstruction"], "backbone": backbone,
+                                                     "iterations": [2] * stages}}
     job = client.post("/v1/jobs", json={"scene_id": scene_id, "prompt": "a mic", "params": body}).json()
     assert tasks.reconstruct_task.apply(args=(job["id"],)).get()["state"] == "done"
     return job

@@ -259,7 +259,7 @@ def test_cli_picks_the_scene_backbone_for_photos_and_renders_in_its_frame(tmp_pa
     fox, out = DATA_ROOT / "fox", tmp_path / "fox.safetensors"
     small = ["--downsample", "32", "--max-images", "8", "-q"]  # the first 8 frames span enough of the orbit
     assert main(["reconstruct", str(fox), "--out", str(out), *small, "--resolution", "12",
-                 "--iterations", "2,2,2", "--rays", "64"]) == 0
+                 "--iterations", "2,2", "--rays", "64"]) == 0
     assert "(scene backbone)" in capsys.readouterr().err
     grid = load_grid(out)
     assert isinstance(grid, SceneGrid) and not torch.equal(grid.frame, torch.eye(4))
@@ -306,3 +306,42 @@ def test_mesh_export_of_a_scene_grid_is_its_foreground_in_the_canonical_frame():
     mesh = extract_mesh(grid)
     assert abs(mesh.vertices).max() < 1.5  # the room is not in it
     assert 0.5 < float(np.linalg.norm(mesh.vertices, axis=1).mean()) < 1.0
+
+
+def test_scene_fits_get_the_scene_preset_by_default_and_their_key_follows_it(monkeypatch):
+    """CLI and service resolve a scene-backbone fit to ReconstructConfig.scene() unless a preset is named;
+    a change to that preset changes the cache key of every fit that can become a scene fit."""
+    from voxe_core.cli import build_parser
+    from voxe_core.cli.reconstruct import job_params
+    from voxe_core.presets import reconstruct_config, reconstruction_key, reconstruction_params
+
+    cli = job_params(build_parser().parse_args(["reconstruct", "fox", "--out", "g.safetensors"]))
+    for params in (reconstruction_params(cli), reconstruction_params({})):
+        assert reconstruct_config(params, backbone="scene") == ReconstructConfig.scene()
+        assert reconstruct_config(params, backbone="relu_field") == ReconstructConfig.fast()
+    named = reconstruction_params({"reconstruction": {"preset": "fast"}})
+    assert reconstruct_config(named, backbone="scene") == ReconstructConfig.fast()
+    keys = {name: reconstruction_key(reconstruction_params({"reconstruction": {"backbone": name}}))
+            for name in ("auto", "scene", "relu_field")}
+    named_key = reconstruction_key(named)
+    scene = ReconstructConfig.scene
+    monkeypatch.setattr(ReconstructConfig, "scene", classmethod(lambda cls, **kw: scene(**{"rays_per_step": 4096, **kw})))
+    after = {name: reconstruction_key(reconstruction_params({"reconstruction": {"backbone": name}}))
+             for name in keys}
+    assert after["auto"] != keys["auto"] and after["scene"] != keys["scene"]
+    assert after["relu_field"] == keys["relu_field"] and reconstruction_key(named) == named_key
+    # Per-stage iterations sized for one preset are refused only when no backbone "auto" can become takes them.
+    reconstruction_key(reconstruction_params({"reconstruction": {"iterations": [1, 2, 3]}}))
+    with pytest.raises(ValueError, match="one per stage"):
+        reconstruction_key(reconstruction_params({"reconstruction": {"iterations": [1, 2, 3], "backbone": "scene"}}))
+
+
+def test_early_stop_in_the_contracted_shell_changes_the_render_by_less_than_its_threshold():
+    """The scene sampler's early stop drops only samples whose transmittance is below the cut."""
+    grid = _background_scene()
+    origins = torch.tensor([[4.0, 0.3, 0.5]]).expand(64, 3).contiguous()
+    directions = torch.nn.functional.normalize(torch.randn(64, 3, generator=torch.Generator().manual_seed(0)), dim=-1)
+    full = render_rays(grid, origins, directions, RenderConfig(early_stop=0.0))
+    cut = render_rays(grid, origins, directions, RenderConfig(early_stop=1e-3))  # capped at EARLY_STOP_CAP
+    assert cut.samples - full.samples < full.samples  # counts the probe (all of full's samples), then fewer kept
+    assert (cut.rgb - full.rgb).abs().max() <= 2e-6 and (cut.opacity - full.opacity).abs().max() <= 2e-6

@@ -74,16 +74,22 @@ def detect_backbone(alphas: torch.Tensor | None) -> str:
     return VoxelGrid.kind if transparent >= TRANSPARENT_FRACTION else SceneGrid.kind
 
 
+def resolve_backbone(backbone: str, alphas: torch.Tensor | None) -> str:
+    """The backbone kind ``backbone`` ('auto' | 'relu_field' | 'scene') means for images with ``alphas``
+    (what picks the fit's default preset, ``voxe_core.presets.reconstruct_config``)."""
+    if backbone not in BACKBONE_CHOICES:
+        raise ValueError(f"unknown backbone {backbone!r}; use {', '.join(map(repr, BACKBONE_CHOICES[:-1]))} "
+                         f"or {BACKBONE_CHOICES[-1]!r}")
+    return detect_backbone(alphas) if backbone == "auto" else backbone
+
+
 def prepare_backbone(backbone: str, alphas: torch.Tensor | None, cameras: Cameras, resolution: int):
     """Resolve ``backbone`` ('auto' | 'relu_field' | 'scene') for a loaded scene.
 
     Returns (name, cameras to fit with, initial grid for ``reconstruct`` or None):
     a scene grid is fitted in the canonical frame of ``scene_frame``, which it records.
     """
-    if backbone not in BACKBONE_CHOICES:
-        raise ValueError(f"unknown backbone {backbone!r}; use {', '.join(map(repr, BACKBONE_CHOICES[:-1]))} "
-                         f"or {BACKBONE_CHOICES[-1]!r}")
-    name = detect_backbone(alphas) if backbone == "auto" else backbone
+    name = resolve_backbone(backbone, alphas)
     if name != SceneGrid.kind:
         return name, cameras, None
     frame = scene_frame(cameras)

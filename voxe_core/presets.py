@@ -40,9 +40,15 @@ DOWNSAMPLE = 3
 """Integer image downsampling on load: the paper edits its 800 px inputs at 266 px (SPEC §1)."""
 RESAMPLE = "bilinear"
 """The downsampling's antialiasing filter, as the authors' loader (``voxe_core.data.RESAMPLE_FILTERS``)."""
-RECONSTRUCTION_PRESETS = ("fast", "paper")
-"""``ReconstructConfig.fast()`` (the CPU budget) or ``ReconstructConfig()`` (the authors' recipe)."""
+RECONSTRUCTION_PRESETS = ("fast", "paper", "scene")
+"""``ReconstructConfig.fast()`` (the CPU budget), ``ReconstructConfig()`` (the authors' recipe) or
+``ReconstructConfig.scene()`` (the CPU budget of a scene-backbone fit, measured on fox)."""
 RECONSTRUCTION_PRESET = "fast"
+"""The preset of a ReLU-field fit when none is named; a scene-backbone fit gets ``BACKBONE_PRESETS``'."""
+BACKBONE_PRESETS = {"scene": "scene"}
+"""Backbone kind -> the preset its fits get when none is named (others: ``RECONSTRUCTION_PRESET``)."""
+BACKBONE_KINDS = ("relu_field", "scene")
+"""What "auto" can resolve to (``voxe_core.backbones.BACKBONES``, spelt out: importing it loads torch)."""
 TIMESTEP_SCHEDULES = ("paper", "authors")
 """The annealing floor: 0.35 (paper) or 0.22 (authors' code)."""
 PREVIEW_EVERY = 100
@@ -102,7 +108,7 @@ def reconstruction_params(params: dict, mesh_scene: bool = False) -> dict:
         "downsample": int(_given(params, "downsample", DOWNSAMPLE)),
         "resample": _given(params, "resample", RESAMPLE),
         "max_images": params.get("max_images"),
-        "preset": _given(rec, "preset", RECONSTRUCTION_PRESET),
+        "preset": rec.get("preset"),  # None: the backbone's default preset (``default_preset``)
         "resolution": rec.get("resolution"),
         "iterations": rec.get("iterations"),
         "rays_per_step": rec.get("rays_per_step"),
@@ -114,24 +120,48 @@ def reconstruction_key(rec_params: dict) -> str:
     """A hash of the parameters and of the recipe they resolve to today, so that a fit cached
     before voxe_core's presets or defaults changed is refitted rather than reused.
 
-    Raises ValueError for parameters that resolve to no recipe (as ``reconstruct_config``).
+    The backbone "auto" resolves only once the images are loaded, so its key holds the recipe of
+    every backbone it can become: a change to either backbone's default preset refits it.
+    Raises ValueError for parameters that resolve to no recipe (as ``reconstruct_config``); under
+    "auto", only when they fit no backbone's (per-stage lists sized for one preset's stage count).
     """
-    recipe = dataclasses.asdict(reconstruct_config(rec_params, checkpoint_every=0))
-    # How often progress is saved and how much memory a pass may hold: not what is fitted.
-    del recipe["checkpoint_every"], recipe["render"]["samples_per_pass"], recipe["render"]["chunk_rays"]
-    payload = {"params": rec_params, "recipe": recipe}
+    backbone = rec_params.get("backbone", "auto")
+    recipes, errors = {}, []
+    for kind in BACKBONE_KINDS if backbone == "auto" else (backbone,):
+        try:
+            recipe = dataclasses.asdict(reconstruct_config(rec_params, checkpoint_every=0, backbone=kind))
+        except ValueError as exc:
+            errors.append(exc)
+            continue
+        # How often progress is saved and how much memory a pass may hold: not what is fitted.
+        del recipe["checkpoint_every"], recipe["render"]["samples_per_pass"], recipe["render"]["chunk_rays"]
+        recipes[kind] = recipe
+    if not recipes:
+        raise errors[0]
+    payload = {"params": rec_params, "recipe": recipes}
     return hashlib.sha256(json.dumps(payload, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
-def reconstruct_config(rec_params: dict, checkpoint_every: int = 0) -> "ReconstructConfig":
-    """A preset, then the final resolution and iterations: each one value (the final stage's; earlier
-    resolutions scaled in proportion) or one per stage. ValueError for lists that fit no stage count."""
+def default_preset(backbone: str) -> str:
+    """The preset a fit of a ``backbone`` grid (its resolved kind) gets when the parameters name none."""
+    return BACKBONE_PRESETS.get(backbone, RECONSTRUCTION_PRESET)
+
+
+def reconstruct_config(rec_params: dict, checkpoint_every: int = 0, backbone: str = "relu_field") -> "ReconstructConfig":
+    """A preset (named, or ``backbone``'s default: pass the resolved kind, not "auto"), then the final
+    resolution and iterations: each one value (the final stage's; earlier resolutions scaled in
+    proportion) or one per stage. ValueError for lists that fit no stage count.
+
+    Examples:
+        >>> reconstruct_config({}).resolutions, reconstruct_config({}, backbone="scene").resolutions
+        ((40, 80, 128), (48, 96))
+    """
     from voxe_core.reconstruct import ReconstructConfig
 
-    preset = _given(rec_params, "preset", RECONSTRUCTION_PRESET)
+    preset = _given(rec_params, "preset", default_preset(backbone))
     if preset not in RECONSTRUCTION_PRESETS:
-        raise ValueError(f"unknown reconstruction preset {preset!r}; use {' or '.join(RECONSTRUCTION_PRESETS)}")
-    config = ReconstructConfig.fast() if preset == "fast" else ReconstructConfig()
+        raise ValueError(f"unknown reconstruction preset {preset!r}; use {', '.join(RECONSTRUCTION_PRESETS)}")
+    config = {"fast": ReconstructConfig.fast, "scene": ReconstructConfig.scene, "paper": ReconstructConfig}[preset]()
     overrides: dict = {"seed": int(_given(rec_params, "seed", SEED)), "checkpoint_every": checkpoint_every}
     resolution = _per_stage(rec_params.get("resolution"), len(config.resolutions), "resolution")
     if resolution is not None:

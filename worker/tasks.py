@@ -240,13 +240,13 @@ def _fit_grid(job: Job, rec, settings, storage, callbacks: StageCallbacks, check
               device: str):
     """Route (a) and image scenes: G_i fitted to the scene's images on ``device``; returns (grid, total iterations)."""
     from voxe_core.reconstruct import reconstruct
-    from voxe_core.backbones import prepare_backbone
+    from voxe_core.backbones import prepare_backbone, resolve_backbone
     from voxe_core.tensorio import FormatError
 
     scene = load_images(job, rec.params, settings, storage)
-    config = reconstruct_config(rec.params, settings.checkpoint_every)
-    _, cameras, initial = prepare_backbone(rec.params.get("backbone", "auto"), scene.alphas, scene.cameras,
-                                           config.resolutions[0])
+    backbone = resolve_backbone(rec.params.get("backbone", "auto"), scene.alphas)
+    config = reconstruct_config(rec.params, settings.checkpoint_every, backbone)  # the backbone's default preset
+    _, cameras, initial = prepare_backbone(backbone, scene.alphas, scene.cameras, config.resolutions[0])
     runtime.renew_lease(rec.id, job.id, settings, total=config.total_iterations)
     resume = None
     if storage.exists(checkpoint_key):

@@ -33,8 +33,10 @@ def add_parsers(commands, common) -> None:
 
 def add_recipe_arguments(parser: argparse.ArgumentParser) -> None:
     """The reconstruction recipe: the job parameters' ``reconstruction``."""
-    parser.add_argument("--preset", choices=RECONSTRUCTION_PRESETS, default=RECONSTRUCTION_PRESET,
-                        help="fast: the CPU budget (40→80→128); paper: the authors' 20→40→80→160 × 500")
+    parser.add_argument("--preset", choices=RECONSTRUCTION_PRESETS, default=None,
+                        help="fast: the CPU budget (40→80→128); paper: the authors' 20→40→80→160 × 500; scene: "
+                             "the CPU budget of a scene-backbone fit (48→96); default: scene for a scene-backbone "
+                             f"fit, {RECONSTRUCTION_PRESET} otherwise")
     parser.add_argument("--resolution", type=int_list, default=None, metavar="N[,N...]",
                         help="final grid resolution (earlier stages scaled in proportion), or one per stage")
     parser.add_argument("--iterations", type=int_list, default=None, metavar="N[,N...]",
@@ -55,13 +57,15 @@ def job_params(args: argparse.Namespace) -> dict:
 
 
 def cmd_reconstruct(args) -> int:
-    from voxe_core.backbones import prepare_backbone
+    from voxe_core.backbones import prepare_backbone, resolve_backbone
     from voxe_core.reconstruct import reconstruct
 
-    config = reconstruct_config(reconstruction_params(job_params(args)), args.checkpoint_every if args.checkpoint else 0)
     device = check_device(args)
     scene = load_views(args)
-    backbone, cameras, initial = prepare_backbone(args.backbone, scene.alphas, scene.cameras, config.resolutions[0])
+    backbone = resolve_backbone(args.backbone, scene.alphas)
+    config = reconstruct_config(reconstruction_params(job_params(args)), args.checkpoint_every if args.checkpoint else 0,
+                                backbone)
+    _, cameras, initial = prepare_backbone(backbone, scene.alphas, scene.cameras, config.resolutions[0])
     print(
         f"fitting {len(scene)} {scene.split} images of {scene.cameras.width}x{scene.cameras.height} "
         f"from {args.data} ({backbone} backbone) on {device}: resolutions {list(config.resolutions)}, "
