@@ -30,7 +30,7 @@ pytestmark = pytest.mark.slow
 
 FRAMES = slice(0, 50, 5)  # ten photos spread over the capture's arc
 DOWNSAMPLE = 32  # 1080x1920 photos -> 33x60
-RECONSTRUCTION = {"resolution": 17, "iterations": [3, 3, 12], "rays_per_step": 256}  # no backbone: "auto"
+RECONSTRUCTION = {"resolution": 17, "iterations": [3, 12], "rays_per_step": 256}  # no backbone: "auto"; the scene preset: 2 stages
 SHORT_EDIT = 2
 PARAMS = {
     "downsample": DOWNSAMPLE, "iterations": SHORT_EDIT, "render_size": 32, "preview_every": 0,

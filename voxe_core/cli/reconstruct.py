@@ -10,7 +10,14 @@ from voxe_core.cli.common import (
     EXIT_INTERRUPTED, add_device_argument, add_grid_output_arguments, add_view_arguments, check_device, int_list,
     load_views, one_or_list, positive_int, run_stage, view_params,
 )
-from voxe_core.presets import RECONSTRUCTION_PRESET, RECONSTRUCTION_PRESETS, SEED, reconstruct_config, reconstruction_params
+from voxe_core.presets import (
+    RECONSTRUCTION_PRESET,
+    RECONSTRUCTION_PRESETS,
+    SEED,
+    reconstruct_config,
+    reconstruction_key,
+    reconstruction_params,
+)
 
 
 def add_parsers(commands, common) -> None:
@@ -61,10 +68,11 @@ def cmd_reconstruct(args) -> int:
     from voxe_core.reconstruct import reconstruct
 
     device = check_device(args)
+    params = reconstruction_params(job_params(args))
+    reconstruction_key(params)  # iterations that fit no backbone's preset are refused before any data is read
     scene = load_views(args)
     backbone = resolve_backbone(args.backbone, scene.alphas)
-    config = reconstruct_config(reconstruction_params(job_params(args)), args.checkpoint_every if args.checkpoint else 0,
-                                backbone)
+    config = reconstruct_config(params, args.checkpoint_every if args.checkpoint else 0, backbone)
     _, cameras, initial = prepare_backbone(backbone, scene.alphas, scene.cameras, config.resolutions[0])
     print(
         f"fitting {len(scene)} {scene.split} images of {scene.cameras.width}x{scene.cameras.height} "
