@@ -223,9 +223,7 @@ def edit_config(params: dict, backbone: str = "relu_field", checkpoint_every: in
 
 def refine_config(params: dict, attention_model: str) -> "RefineConfig":
     """The refinement of a local edit (the job parameters' ``refine``; its render size defaults to the edit's)."""
-    from voxe_core.refine.config import RefineConfig
-
-    from voxe_core.refine.config import PAPER_TEXT_FIT
+    from voxe_core.refine.config import PAPER_TEXT_FIT, RefineConfig
 
     refine = params.get("refine") or {}
     lift_start = _given(refine, "lift_start", "backprojection")
