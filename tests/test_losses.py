@@ -8,6 +8,7 @@ from voxe_core.losses import (
     image_l1,
     image_l2,
     regulariser_loss,
+    sampled_total_variation,
     volumetric_l1,
     volumetric_l2,
 )
@@ -170,3 +171,47 @@ def test_gradient_flows_into_feature_parameter():
         assert torch.isfinite(param.grad).all() and param.grad.abs().sum() > 0
         if kind in ("reg3d", "volumetric_l1", "volumetric_l2"):
             assert param.grad[..., 1:].abs().sum() == 0  # density only
+
+
+def _dense_total_variation(features: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
+    """Mean over the given cells of the squared forward differences at their lower corners, per channel (C,)."""
+    dx = (features[1:, :-1, :-1] - features[:-1, :-1, :-1]).square()
+    dy = (features[:-1, 1:, :-1] - features[:-1, :-1, :-1]).square()
+    dz = (features[:-1, :-1, 1:] - features[:-1, :-1, :-1]).square()
+    return ((dx + dy + dz) / 3)[cells].mean(0)
+
+
+def test_sampled_total_variation_estimates_the_dense_value_over_occupied_cells_only():
+    features = torch.randn(7, 6, 5, 4, generator=torch.Generator().manual_seed(0))
+    cells = torch.zeros(6, 5, 4, dtype=torch.bool)
+    cells[1:4, 2:4, 1:3] = True
+    features[~torch.nn.functional.pad(cells, (0, 1, 0, 1, 0, 1))] *= 100  # voxels no occupied cell starts at
+    flat_cells = cells.reshape(-1).nonzero()[:, 0]
+    estimate = sampled_total_variation(features.reshape(-1, 4), (7, 6, 5), flat_cells, 200_000,
+                                       torch.Generator().manual_seed(1))
+    exact = _dense_total_variation(features, cells)
+    assert torch.allclose(estimate, exact, rtol=0.03)
+    one_cell = torch.tensor([int(flat_cells[5])])  # a single cell: the estimate is exact
+    only = torch.zeros_like(cells).reshape(-1)
+    only[one_cell] = True
+    assert torch.allclose(sampled_total_variation(features.reshape(-1, 4), (7, 6, 5), one_cell, 3),
+                          _dense_total_variation(features, only.reshape(cells.shape)))
+
+
+def test_sampled_total_variation_gradient_is_sparse_and_local():
+    flat = torch.nn.Parameter(torch.randn(5 * 5 * 5, 4, generator=torch.Generator().manual_seed(0)))
+    cell = 1 * 16 + 2 * 4 + 3  # cell (1, 2, 3) of the 4³ cells; its lower corner is voxel (1, 2, 3)
+    sampled_total_variation(flat, (5, 5, 5), torch.tensor([cell]), 10).sum().backward()
+    assert flat.grad.is_sparse
+    grad = flat.grad.to_dense().reshape(5, 5, 5, 4)
+    touched = {tuple(i) for i in grad.abs().sum(-1).nonzero().tolist()}
+    assert touched == {(1, 2, 3), (2, 2, 3), (1, 3, 3), (1, 2, 4)}
+    value = flat.detach().reshape(5, 5, 5, 4)
+    expected = -2 / 3 * (value[2, 2, 3] + value[1, 3, 3] + value[1, 2, 4] - 3 * value[1, 2, 3])  # d/d corner
+    assert torch.allclose(grad[1, 2, 3], expected, atol=1e-5)
+
+
+def test_sampled_total_variation_of_empty_space_is_zero_and_costs_no_gather():
+    flat = torch.nn.Parameter(torch.randn(27, 4))
+    value = sampled_total_variation(flat, (3, 3, 3), torch.zeros(0, dtype=torch.long), 100)
+    assert torch.equal(value, torch.zeros(4)) and not value.requires_grad

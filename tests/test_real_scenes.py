@@ -345,3 +345,15 @@ def test_early_stop_in_the_contracted_shell_changes_the_render_by_less_than_its_
     cut = render_rays(grid, origins, directions, RenderConfig(early_stop=1e-3))  # capped at EARLY_STOP_CAP
     assert cut.samples - full.samples < full.samples  # counts the probe (all of full's samples), then fewer kept
     assert (cut.rgb - full.rgb).abs().max() <= 2e-6 and (cut.opacity - full.opacity).abs().max() <= 2e-6
+
+
+def test_vertex_positions_uncontract_the_lattice_and_rows_within_finds_them():
+    grid = SceneGrid(9, foreground_extent=1.5)
+    positions = grid.vertex_positions()
+    finite = torch.isfinite(positions).all(-1)
+    lattice = torch.stack(torch.meshgrid(*[torch.linspace(-2, 2, 9)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    assert torch.allclose(contract(positions[finite] / 1.5), lattice[finite], atol=1e-6)
+    assert not finite[lattice.abs().amax(-1) == 2].any()  # the outer faces lie at infinity
+    # Vertex (1.5, 0, 0) in the lattice is at 1.5 · 1/(1.5 · 0.5) = 2 foreground units, 3 canonical ones.
+    rows = grid.rows_within(torch.tensor([[3.0, 0.0, 0.0]]), torch.tensor([0.1]))
+    assert lattice[rows].tolist() == [[1.5, 0.0, 0.0]]

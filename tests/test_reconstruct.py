@@ -101,6 +101,26 @@ def test_progress_reports_every_iteration_and_cancellation_stops_early():
     assert all(p.total == 30 and p.stage == "reconstruct" and p.losses["l1"] > 0 for p in seen)
 
 
+def test_total_variation_smooths_the_fit_and_bad_weights_are_refused():
+    images, cams = synthetic_views()
+    plain = reconstruct(images, cams, tiny_config(iterations=(40, 40)))
+    smooth = reconstruct(images, cams, tiny_config(iterations=(40, 40), tv_density=0.05, tv_color=0.05))
+
+    cells = plain.occupancy().cells | smooth.occupancy().cells  # where either holds matter
+
+    def total_variation(grid):  # per channel, mean over those cells
+        f = grid.features.detach()
+        corner = f[:-1, :-1, :-1]
+        squares = [(f[1:, :-1, :-1] - corner) ** 2, (f[:-1, 1:, :-1] - corner) ** 2, (f[:-1, :-1, 1:] - corner) ** 2]
+        return sum(squares)[cells].mean(0)
+
+    assert (total_variation(smooth) < 0.5 * total_variation(plain)).all()
+    rendered = torch.stack([render_image(smooth, cams, i).rgb for i in range(len(cams))])
+    assert (rendered - images).abs().mean() < 0.35 * (images - 1.0).abs().mean()  # still a fit
+    with pytest.raises(ValueError, match="tv_density and tv_color must be >= 0"):
+        tiny_config(tv_color=-1.0)
+
+
 def test_mismatched_images_and_cameras_are_rejected():
     images, cams = synthetic_views()
     with pytest.raises(ValueError, match="do not match"):
@@ -159,3 +179,18 @@ def test_short_real_fit_on_mic_exceeds_a_psnr_floor():
     assert sum(scores) / len(scores) > 24.0
     occupancy = grid.occupancy()
     assert occupancy.fraction < 0.1  # the microphone fills little of its box
+
+
+def test_camera_clearance_keeps_the_space_around_each_camera_empty():
+    images, cams = synthetic_views()
+    grid = VoxelGrid(12, bbox_min=(-4.5,) * 3, bbox_max=(4.5,) * 3)  # a box that holds the cameras (radius ~4.3)
+    config = tiny_config(resolutions=(12,), iterations=(20,), image_downsample=(1,), init_density=0.5,
+                         camera_clearance=0.3)
+    fitted = reconstruct(images, cams, config, initial_grid=grid)
+    positions = fitted.vertex_positions()
+    centres = cams.c2w[:, :3, 3]
+    near = (torch.cdist(positions, centres) < 0.3 * centres.norm(dim=-1)).any(1)
+    assert near.sum() > 0 and (fitted.flat_features[near, 0] <= 0).all()
+    assert (fitted.flat_features[~near, 0] > 0).any()  # the rest of space is fitted as before
+    with pytest.raises(ValueError, match="camera_clearance"):
+        tiny_config(camera_clearance=1.0)

@@ -91,6 +91,13 @@ class Occupancy:
     bbox_min: torch.Tensor  # (3,) world coordinates of the occupied cells' box
     bbox_max: torch.Tensor
     _dilated_blocks: dict = field(default_factory=dict, repr=False, compare=False)
+    _flat_cells: torch.Tensor | None = field(default=None, repr=False, compare=False)
+
+    def flat_cells(self) -> torch.Tensor:
+        """(K,) flat indices into ``cells`` of the occupied cells (cached: one occupancy serves many steps)."""
+        if self._flat_cells is None:
+            self._flat_cells = self.cells.reshape(-1).nonzero()[:, 0]
+        return self._flat_cells
 
     def dilated_blocks(self, size: int) -> torch.Tensor:
         """Cells pooled into ``size``³ blocks, then dilated by one block (cached per size).
@@ -195,6 +202,11 @@ class VoxelGrid(torch.nn.Module):
     def activate_density(self, raw: torch.Tensor) -> torch.Tensor:
         scaled = raw * self.density_scale
         return F.relu(scaled) if self.activation == "relu" else F.softplus(scaled)
+
+    @property
+    def empty_raw_density(self) -> float:
+        """A raw density that activates to none: 0 under ReLU, far below the softplus knee (< 1e-13) otherwise."""
+        return 0.0 if self.activation == "relu" else -30.0 / self.density_scale
 
     @staticmethod
     def activate_color(raw: torch.Tensor) -> torch.Tensor:
@@ -323,6 +335,21 @@ class VoxelGrid(torch.nn.Module):
         kept = samples.select(reached.nonzero().squeeze(1))
         kept.probed = samples.ray.numel()
         return kept
+
+    def vertex_positions(self) -> torch.Tensor:
+        """Where each lattice vertex sits in this grid's frame, (X·Y·Z, 3) in the features' row order."""
+        axes = [torch.linspace(float(lo), float(hi), n, device=self.bbox_min.device)
+                for lo, hi, n in zip(self.bbox_min, self.bbox_max, self.resolution)]
+        return torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+    def rows_within(self, centres: torch.Tensor, radii: torch.Tensor) -> torch.Tensor:
+        """Feature rows (K,) of the vertices within ``radii`` (M,) of any of ``centres`` (M, 3), in this grid's frame."""
+        positions = self.vertex_positions()
+        near = torch.zeros(positions.shape[0], dtype=torch.bool, device=positions.device)
+        for start in range(0, positions.shape[0], 1 << 16):  # bounds the (chunk, M) distance matrix
+            chunk = positions[start : start + (1 << 16)]
+            near[start : start + chunk.shape[0]] = (torch.cdist(chunk, centres.to(chunk)) < radii.to(chunk)).any(1)
+        return near.nonzero()[:, 0]
 
     def dataset_cameras(self, cameras: Cameras) -> Cameras:
         """A capture's cameras in the frame this grid lives in: an object grid lives in the capture's own."""

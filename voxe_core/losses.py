@@ -153,3 +153,39 @@ def regulariser_loss(kind: Regulariser, initial_features: torch.Tensor, edited_f
     if kind == "volumetric_l1":
         return volumetric_l1(initial_features[..., 0], edited_features[..., 0])
     return volumetric_l2(initial_features[..., 0], edited_features[..., 0])
+
+
+def sampled_total_variation(
+    flat_features: torch.Tensor,
+    resolution: tuple[int, int, int],
+    occupied_cells: torch.Tensor,
+    count: int,
+    generator: torch.Generator | None = None,
+) -> torch.Tensor:
+    """Total variation of raw features (C,) over ``count`` voxels drawn from the occupied cells.
+
+    ``flat_features`` is ``VoxelGrid.flat_features`` (X·Y·Z, C) of a grid with ``resolution``;
+    ``occupied_cells`` (K,) are flat indices into its (X-1, Y-1, Z-1) cells
+    (``Occupancy.flat_cells``). Each drawn cell's lower corner is compared with its +x, +y and
+    +z neighbours (all inside the lattice), so the estimate is the mean squared forward
+    difference per channel over occupied space: it costs 4·``count`` gathers whatever the
+    grid's size, and empty space (no cells) costs nothing and returns zeros. The gradient
+    reaches ``flat_features`` as a sparse tensor, as the renderer's does.
+
+    Examples:
+        >>> grid = torch.arange(27.0).reshape(27, 1)  # 3³ voxels, value 9x + 3y + z
+        >>> sampled_total_variation(grid, (3, 3, 3), torch.arange(8), 64)  # (81 + 9 + 1) / 3
+        tensor([30.3333])
+    """
+    channels = flat_features.shape[1]
+    if occupied_cells.numel() == 0 or count < 1:
+        return flat_features.new_zeros(channels)
+    x, y, z = resolution
+    pick = torch.randint(0, occupied_cells.numel(), (count,), generator=generator, device=occupied_cells.device)
+    cell = occupied_cells[pick]
+    i, rest = cell // ((y - 1) * (z - 1)), cell % ((y - 1) * (z - 1))
+    j, k = rest // (z - 1), rest % (z - 1)
+    corner = (i * y + j) * z + k
+    index = torch.stack([corner, corner + y * z, corner + z, corner + 1])
+    values = torch.nn.functional.embedding(index, flat_features, sparse=flat_features.requires_grad)
+    return (values[1:] - values[:1]).square().mean(dim=(0, 1))

@@ -154,6 +154,14 @@ class SceneGrid(VoxelGrid):
         """Canonical-frame points -> the contracted coordinates the lattice is indexed by."""
         return contract(points / self.foreground_extent)
 
+    def vertex_positions(self) -> torch.Tensor:
+        """The vertices in the canonical frame (uncontracted; the lattice's outer faces lie at infinity)."""
+        lattice = super().vertex_positions()
+        norm = lattice.abs().amax(-1, keepdim=True)
+        outside = norm > 1.0
+        stretch = torch.where(outside, 1.0 / (norm * (CONTRACTED_EXTENT - norm)), torch.ones_like(norm))
+        return lattice * stretch * self.foreground_extent
+
     def dataset_cameras(self, cameras: Cameras) -> Cameras:
         """A capture's cameras moved into this grid's canonical frame."""
         return apply_frame(cameras, self.frame)
