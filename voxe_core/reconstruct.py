@@ -111,8 +111,8 @@ class ReconstructConfig:
             rays_per_step=2048,
             lr_drop_iteration=1_000_000,
             average_from=0.5,
-            tv_density=1e-3,
-            tv_color=1e-2,
+            tv_density=1e-2,
+            tv_color=5e-2,
             camera_clearance=0.4,
         )
         base.update(overrides)
