@@ -109,9 +109,10 @@ def plot(results: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, (ax, bars) = plt.subplots(1, 2, figsize=(13, 4.5))
-    for name, r in results.items():
+    for k, (name, r) in enumerate(results.items()):
         ax.plot([p["iteration"] for p in r["curve"]] + [sum(r["overrides"]["iterations"])],
-                [p["validation"]["psnr"] for p in r["curve"]] + [r["validation"]["psnr"]], "o-", ms=3, label=name)
+                [p["validation"]["psnr"] for p in r["curve"]] + [r["validation"]["psnr"]], "o-", ms=3, label=name,
+                color=plt.cm.tab20(k % 20))
     ax.set_xlabel("iteration (final point: the averaged grid)")
     ax.set_ylabel("validation PSNR (dB)")
     ax.legend(fontsize=7)
