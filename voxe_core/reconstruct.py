@@ -102,7 +102,8 @@ class ReconstructConfig:
         bench/README.md "Real scenes"). Without the two priors fox's held-out PSNR stopped near 20–22 dB
         after ~200 final-stage iterations while the training views went on to 28 dB: a camera between two
         training views sat inside a cloud the fit had put there to paint the room seen past it. The weights
-        were chosen on views split off the training set (never the held-out ones).
+        were chosen on views split off the training set (never the held-out ones); with them fox's held-out
+        PSNR is 26.1–26.3 dB over three seeds after 143–160 s of training on 2 CPU cores.
         """
         base = dict(
             resolutions=(48, 96),
