@@ -70,6 +70,20 @@ def undistorted_copy(scratch: Path) -> Path:
     return root
 
 
+def framed_splits(downsample: int):
+    """Fox's train and test splits (every 8th photo held out) and the canonical frame of its training cameras.
+
+    Returns (train scene, test scene, frame (4, 4), train cameras, test cameras), the cameras in that frame.
+    """
+    from voxe_core.data import load_scene
+    from voxe_core.scene_grid import apply_frame, scene_frame
+
+    train = load_scene(DATA, "train", downsample=downsample, holdout_every=8)
+    test = load_scene(DATA, "test", downsample=downsample, holdout_every=8)
+    frame = scene_frame(train.cameras)  # from all training cameras, as the preset's fit of them would
+    return train, test, frame, apply_frame(train.cameras, frame), apply_frame(test.cameras, frame)
+
+
 def box_hits(cameras) -> torch.Tensor:
     """(N, H, W) bool: which pixels' rays pass through the object box [-1.5, 1.5]³ of the canonical frame."""
     from voxe_core.cameras import camera_rays
@@ -103,14 +117,11 @@ def run_single(backbone: str, args) -> dict:
     from voxe_core.presets import reconstruct_config, reconstruction_params
     from voxe_core.progress import Callbacks
     from voxe_core.reconstruct import CHECKPOINT_FORMAT_VERSION, reconstruct
-    from voxe_core.scene_grid import SceneGrid, apply_frame, scene_frame
+    from voxe_core.scene_grid import SceneGrid
     from voxe_core.tensorio import load_tensors
 
     torch.set_num_threads(os.cpu_count() or 1)
-    train = load_scene(DATA, "train", downsample=args.downsample, holdout_every=8)
-    test = load_scene(DATA, "test", downsample=args.downsample, holdout_every=8)
-    frame = scene_frame(train.cameras)
-    train_cams, test_cams = apply_frame(train.cameras, frame), apply_frame(test.cameras, frame)
+    train, test, frame, train_cams, test_cams = framed_splits(args.downsample)
     train_images, own_test = train.images, None  # own_test: a variant's own held-out (images, cameras)
     prepare_s = 0.0  # undistorting the photos, once before training
     if args.lens == "ignore":
@@ -190,15 +201,11 @@ def step_cost(args) -> dict:
     so a change of the machine's load falls on all alike. Wall and process CPU seconds per step, the
     samples per ray, and the L1 loss of the timed steps (the accuracy they run at).
     """
-    from voxe_core.data import load_scene
     from voxe_core.reconstruct import _stage_data, make_optimizer, reconstruct, train_step
-    from voxe_core.scene_grid import SceneGrid, apply_frame, scene_frame
+    from voxe_core.scene_grid import SceneGrid
 
     torch.set_num_threads(os.cpu_count() or 1)
-    train = load_scene(DATA, "train", downsample=args.downsample, holdout_every=8)
-    test = load_scene(DATA, "test", downsample=args.downsample, holdout_every=8)
-    frame = scene_frame(train.cameras)
-    cams, test_cams = apply_frame(train.cameras, frame), apply_frame(test.cameras, frame)
+    train, test, frame, cams, test_cams = framed_splits(args.downsample)
     config = bench_config(args)
     fitted = {"relu_field": reconstruct(train.images, cams, config),
               "scene": reconstruct(train.images, cams, config, initial_grid=SceneGrid(config.resolutions[0], frame=frame))}

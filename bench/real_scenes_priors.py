@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch
 
-from real_scenes import DATA, RESULTS, box_hits, held_out_scores
+from real_scenes import RESULTS, box_hits, framed_splits, held_out_scores
 
 PRIORS_OFF = dict(tv_density=0.0, tv_color=0.0, camera_clearance=0.0)
 VARIANTS: dict[str, dict] = {
@@ -49,19 +49,15 @@ def rounded(scores: dict) -> dict:
 
 def run_variant(name: str, args) -> dict:
     from voxe_core.backbones import grid_from_state
-    from voxe_core.data import load_scene
     from voxe_core.metrics import psnr
     from voxe_core.progress import Callbacks
     from voxe_core.reconstruct import CHECKPOINT_FORMAT_VERSION, ReconstructConfig, reconstruct
     from voxe_core.render import RenderConfig, render_image
-    from voxe_core.scene_grid import SceneGrid, apply_frame, scene_frame
+    from voxe_core.scene_grid import SceneGrid
     from voxe_core.tensorio import load_tensors
 
     torch.set_num_threads(args.threads)
-    train = load_scene(DATA, "train", downsample=16, holdout_every=8)
-    test = load_scene(DATA, "test", downsample=16, holdout_every=8)
-    frame = scene_frame(train.cameras)  # from all training cameras, as the preset's fit of them would
-    cams, test_cams = apply_frame(train.cameras, frame), apply_frame(test.cameras, frame)
+    train, test, frame, cams, test_cams = framed_splits(16)
     validation = [i for i in range(len(cams)) if i % 8 == 3]
     fitting = [i for i in range(len(cams)) if i % 8 != 3]
     val = (train.images[validation], cams[torch.tensor(validation)])

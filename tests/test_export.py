@@ -12,7 +12,6 @@ import trimesh
 from PIL import Image
 
 from conftest import RED_LOGITS
-from voxe_core.cameras import Cameras, look_at
 from voxe_core.export import (
     default_mesh_level,
     extract_mesh,

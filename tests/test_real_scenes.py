@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -282,6 +283,26 @@ def test_job_parameter_chooses_the_backbone_and_auto_shares_the_default_fit():
     assert reconstruction_key(reconstruction_params({"reconstruction": {"backbone": "auto"}})) == default
     assert reconstruction_params({"reconstruction": {"backbone": "scene"}})["backbone"] == "scene"
     assert reconstruction_key(reconstruction_params({"reconstruction": {"backbone": "relu_field"}})) != default
+
+
+def test_fit_setup_resolves_the_backbone_from_alpha_and_frames_a_scene_fit():
+    """The CLI's and the worker's one set-up: photos get the scene preset in their canonical frame, objects on a
+    transparent background a fresh ReLU field with the fast preset and their own cameras."""
+    from voxe_core.presets import fit_setup, reconstruction_params
+
+    cameras = Cameras.from_fov(ring_poses(4, 20.0, radius=3.0), 0.7, 8, 8)
+    photos = fit_setup(reconstruction_params({}), None, cameras, checkpoint_every=7)
+    assert (photos.backbone, photos.config) == ("scene", dataclasses.replace(ReconstructConfig.scene(), checkpoint_every=7))
+    assert isinstance(photos.initial, SceneGrid) and photos.initial.resolution == (48, 48, 48)
+    assert torch.equal(photos.initial.frame, scene_frame(cameras))
+    assert torch.allclose(photos.cameras.c2w, apply_frame(cameras, scene_frame(cameras)).c2w)
+    alphas = torch.ones(4, 8, 8)
+    alphas[:, :, :4] = 0.0
+    objects = fit_setup(reconstruction_params({}), alphas, cameras)
+    assert (objects.backbone, objects.config, objects.initial) == ("relu_field", ReconstructConfig.fast(), None)
+    assert objects.cameras is cameras
+    forced = fit_setup(reconstruction_params({"reconstruction": {"backbone": "relu_field"}}), None, cameras)
+    assert forced.backbone == "relu_field" and forced.initial is None
 
 
 def test_dataset_cameras_move_into_a_scene_grids_frame_only():

@@ -26,11 +26,15 @@ import dataclasses
 import hashlib
 import json
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 from voxe_core import constants as paper
 
 if TYPE_CHECKING:  # the stage modules are imported where a config is built, so importing this module stays light
+    import torch
+
+    from voxe_core.cameras import Cameras
+    from voxe_core.grid import VoxelGrid
     from voxe_core.edit import EditConfig
     from voxe_core.reconstruct import ReconstructConfig
     from voxe_core.refine.config import RefineConfig
@@ -177,6 +181,30 @@ def reconstruct_config(rec_params: dict, checkpoint_every: int = 0, backbone: st
     if rec_params.get("rays_per_step") is not None:
         overrides["rays_per_step"] = int(rec_params["rays_per_step"])
     return dataclasses.replace(config, **overrides)
+
+
+class FitSetup(NamedTuple):
+    """What ``voxe_core.reconstruct.reconstruct`` needs beyond the images, for one loaded scene."""
+
+    backbone: str
+    """The resolved kind ("auto" decided from the images' alpha)."""
+    config: "ReconstructConfig"
+    cameras: "Cameras"
+    """The scene's cameras, in the canonical frame a scene grid is fitted in."""
+    initial: "VoxelGrid | None"
+    """The grid to start from (a scene grid carrying that frame), or None for a fresh ReLU field."""
+
+
+def fit_setup(rec_params: dict, alphas: "torch.Tensor | None", cameras: "Cameras",
+              checkpoint_every: int = 0) -> FitSetup:
+    """The backbone ``rec_params`` asks for (resolved for images with ``alphas``), its config and starting point:
+    what the CLI and the worker both run before ``reconstruct``."""
+    from voxe_core.backbones import prepare_backbone, resolve_backbone
+
+    backbone = resolve_backbone(rec_params.get("backbone", "auto"), alphas)
+    config = reconstruct_config(rec_params, checkpoint_every, backbone)  # the backbone's default preset
+    _, fit_cameras, initial = prepare_backbone(backbone, alphas, cameras, config.resolutions[0])
+    return FitSetup(backbone, config, fit_cameras, initial)
 
 
 def _per_stage(value, n_stages: int, what: str) -> list[int] | None:

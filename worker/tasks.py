@@ -29,7 +29,7 @@ from celery import signals
 from celery.exceptions import SoftTimeLimitExceeded
 from sqlalchemy import select
 
-from voxe_core.presets import edit_config, export_config, reconstruct_config, refine_config
+from voxe_core.presets import edit_config, export_config, fit_setup, reconstruct_config, refine_config
 from voxe_core.progress import Callbacks, Progress, StageCancelled
 from voxe_service.models import (
     CANCELED, PROCESSING, R_FAILED, R_PENDING, R_SUCCEEDED, RUNNING, Job, Scene, WorkerHeartbeat, utcnow,
@@ -240,13 +240,10 @@ def _fit_grid(job: Job, rec, settings, storage, callbacks: StageCallbacks, check
               device: str):
     """Route (a) and image scenes: G_i fitted to the scene's images on ``device``; returns (grid, total iterations)."""
     from voxe_core.reconstruct import reconstruct
-    from voxe_core.backbones import prepare_backbone, resolve_backbone
     from voxe_core.tensorio import FormatError
 
     scene = load_images(job, rec.params, settings, storage)
-    backbone = resolve_backbone(rec.params.get("backbone", "auto"), scene.alphas)
-    config = reconstruct_config(rec.params, settings.checkpoint_every, backbone)  # the backbone's default preset
-    _, cameras, initial = prepare_backbone(backbone, scene.alphas, scene.cameras, config.resolutions[0])
+    _, config, cameras, initial = fit_setup(rec.params, scene.alphas, scene.cameras, settings.checkpoint_every)
     runtime.renew_lease(rec.id, job.id, settings, total=config.total_iterations)
     resume = None
     if storage.exists(checkpoint_key):

@@ -14,7 +14,7 @@ from voxe_core.presets import (
     RECONSTRUCTION_PRESET,
     RECONSTRUCTION_PRESETS,
     SEED,
-    reconstruct_config,
+    fit_setup,
     reconstruction_key,
     reconstruction_params,
 )
@@ -64,16 +64,14 @@ def job_params(args: argparse.Namespace) -> dict:
 
 
 def cmd_reconstruct(args) -> int:
-    from voxe_core.backbones import prepare_backbone, resolve_backbone
     from voxe_core.reconstruct import reconstruct
 
     device = check_device(args)
     params = reconstruction_params(job_params(args))
     reconstruction_key(params)  # iterations that fit no backbone's preset are refused before any data is read
     scene = load_views(args)
-    backbone = resolve_backbone(args.backbone, scene.alphas)
-    config = reconstruct_config(params, args.checkpoint_every if args.checkpoint else 0, backbone)
-    _, cameras, initial = prepare_backbone(backbone, scene.alphas, scene.cameras, config.resolutions[0])
+    backbone, config, cameras, initial = fit_setup(params, scene.alphas, scene.cameras,
+                                                   args.checkpoint_every if args.checkpoint else 0)
     print(
         f"fitting {len(scene)} {scene.split} images of {scene.cameras.width}x{scene.cameras.height} "
         f"from {args.data} ({backbone} backbone) on {device}: resolutions {list(config.resolutions)}, "
