@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 
 import pytest
+import torch
 from fastapi.testclient import TestClient
 
 from api.schemas import JobParams
@@ -240,6 +241,42 @@ def test_the_worker_runs_every_stage_on_its_device_and_stores_their_peak_memory(
     assert result["peak_memory_kind"] == "process_rss"
     assert set(result["peak_memory_gb"]) == {"reconstruct", "export"}  # the recorded edit reported nothing
     assert all(0.01 < gb < 64 for gb in result["peak_memory_gb"].values())
+
+
+def test_the_export_reads_the_orbit_centre_its_reconstruction_recorded_and_fetches_no_initial_grid(service,
+                                                                                                  monkeypatch):
+    """On a scale-out, the export may run on a worker that never held G_i: it looks at the centre the reconstruct
+    stage recorded (exactly G_i's ``orbit_centre()``) and downloads only the grid it renders."""
+    import voxe_core.edit
+    import voxe_core.export
+    from voxe_core.backbones import load_grid
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job = _reconstructed_job(client, scene_id, "scene", export={
+        "views": 1, "view_size": 16, "turntable_frames": 2, "turntable_size": 16, "gif": False, "mesh": False})
+    initial = load_grid(runtime.scratch_dir(job["id"], tasks.get_settings()) / "initial_grid.safetensors")
+    recorded = client.get(f"/v1/jobs/{job['id']}").json()["result"]["orbit_centre"]
+    assert recorded == [float(c) for c in initial.orbit_centre()] and any(c != 0.0 for c in recorded)
+    monkeypatch.setattr(runtime, "get_guidance", lambda *args: None)
+    monkeypatch.setattr(voxe_core.edit, "edit", lambda initial, *args, **kwargs: initial.clone_grid())
+    assert tasks.edit_task.apply(args=(job["id"],)).get()["state"] == "done"
+    fetched, centres = [], []
+    real_fetch_grid, real_turntable_cameras = tasks.fetch_grid, voxe_core.export.turntable_cameras
+
+    def recorded_fetch_grid(job_id, name, *args, **kwargs):
+        fetched.append(name)
+        return real_fetch_grid(job_id, name, *args, **kwargs)
+
+    def recorded_turntable_cameras(*args, centre=None, **kwargs):
+        centres.append(centre)
+        return real_turntable_cameras(*args, centre=centre, **kwargs)
+
+    monkeypatch.setattr(tasks, "fetch_grid", recorded_fetch_grid)
+    monkeypatch.setattr(voxe_core.export, "turntable_cameras", recorded_turntable_cameras)
+    assert tasks.export_task.apply(args=(job["id"],)).get()["state"] == "done"
+    assert fetched == ["edited_grid.safetensors"]
+    assert centres and all(torch.equal(c, initial.orbit_centre()) for c in centres)
 
 
 def test_the_papers_constant_start_fits_every_pixel_the_default_start_the_codes_positive_ones():

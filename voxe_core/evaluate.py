@@ -406,21 +406,25 @@ def evaluate(
             features = fid.features(images)
             row["fid_rec"] = fid_from_features(features, recon_features)
             row["fid_input"] = fid_from_features(features, input_features) if input_features is not None else None
-        row.update(preservation(images, recon, sample, initial, config))
+        row.update(preservation(images, recon, sample, initial, config, centre))
         rows.append(row)
         frames[sample.name] = images
     return Evaluation(rows, recon, frames)
 
 
 def preservation(images: torch.Tensor, recon: torch.Tensor, sample: EditSample, initial: VoxelGrid,
-                 config: EvaluateConfig) -> dict:
-    """PSNR / SSIM of an edit's ring renders against G_i's, outside the mask's footprint (whole image if no mask)."""
+                 config: EvaluateConfig, centre: torch.Tensor | None = None) -> dict:
+    """PSNR / SSIM of an edit's ring renders against G_i's, outside the mask's footprint (whole image if no mask).
+
+    ``images``, ``recon``: (V, H, W, 3) renders of the ring looking at ``centre`` (3,), G_i's ``orbit_centre()``
+    (None: computed here; an evaluation of several edits passes the one it rendered them with).
+    """
     if sample.mask is None:
         keep = torch.ones(images.shape[:3], dtype=torch.bool)
         region = "whole image"
     else:
         keep = ~mask_footprint(initial, sample.mask, config.views, config.elevation, config.size,
-                               initial.orbit_centre())
+                               initial.orbit_centre() if centre is None else centre)
         region = "outside mask"
     psnr_values = psnr(images, recon, keep=keep)
     ssim_values = ssim(images, recon, keep=keep)

@@ -24,6 +24,7 @@ import socket
 import threading
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from celery import signals
 from celery.exceptions import SoftTimeLimitExceeded
@@ -46,6 +47,9 @@ from worker.evaluation import EvaluationFailed, run_evaluation
 from worker.ingest import ingest_scene, load_stored_mesh
 from worker.inputs import fetch_grid, job_scene, load_images
 from worker.runtime import JobSkipped, StageCallbacks
+
+if TYPE_CHECKING:
+    import torch
 
 log = logging.getLogger("voxe.worker")
 
@@ -175,14 +179,28 @@ def _reconstruct(job: Job, settings, device: str, storage) -> None:
     runtime.publish_artifact(job.id, "initial_grid.safetensors", _grid_file(job.id, rec, settings, storage),
                              "grid", storage, key=rec.grid_key)
     initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key)
-    _preview(job.id, initial, settings, storage, device, centre=initial.orbit_centre())
+    _preview(job.id, initial, settings, storage, device, centre=_record_orbit_centre(job.id, initial))
 
 
-def _orbit_centre(job: Job, settings, storage):
+def _record_orbit_centre(job_id: str, initial) -> "torch.Tensor":
+    """G_i's ``orbit_centre()``, kept in the job's result (float32 -> float is exact) so that later stages, on
+    whichever worker, read the very same point without fetching G_i."""
+    centre = initial.orbit_centre()
+    runtime.merge_job_result(job_id, {"orbit_centre": [float(c) for c in centre]})
+    return centre
+
+
+def _orbit_centre(job: Job, settings, storage) -> "torch.Tensor":
     """G_i's ``orbit_centre()``: every stage's views of a job (edit poses, overlay, renders, turntable) look at
-    where the fitted object sits, the same point for the initial, edited and refined grids."""
+    where the fitted object sits, the same point for the initial, edited and refined grids. Read from the job's
+    result, where its reconstruct stage put it; G_i is fetched only for a job reconstructed before it did."""
+    import torch
+
+    stored = (job.result or {}).get("orbit_centre")
+    if stored is not None:
+        return torch.tensor(stored, dtype=torch.float32)
     rec = runtime.load_reconstruction(job.reconstruction_id)
-    return fetch_grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key).orbit_centre()
+    return _record_orbit_centre(job.id, fetch_grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key))
 
 
 def _grid_file(job_id: str, rec, settings, storage) -> Path:
@@ -349,7 +367,6 @@ def _export(job: Job, settings, device: str, storage) -> None:
     name = "refined_grid.safetensors" if job.mode == "local" else "edited_grid.safetensors"
     grid = fetch_grid(job.id, name, settings, storage)
     centre = _orbit_centre(job, settings, storage)
-    runtime.merge_job_result(job.id, {"orbit_centre": [round(float(c), 6) for c in centre]})
     scratch = runtime.scratch_dir(job.id, settings)
     views, frames = options.views, options.turntable_frames
     total = views + frames + (1 if options.mesh else 0)
