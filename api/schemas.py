@@ -92,9 +92,12 @@ class RefineParams(Strict):
                        description="random upper-hemisphere poses whose 2D attention maps are lifted")
     rays_per_step: int = Field(paper.REFINE_RAYS_PER_STEP, ge=1, le=1 << 20)
     edit_seeds: int = Field(paper.EDIT_SEEDS, ge=0, le=10_000_000,
-                            description="top voxels by P_edit tied to the 'edit' terminal")
+                            description="at least this many voxels tied to the 'edit' terminal: every voxel with "
+                                        "P_edit >= 0.992 max P_edit, topped up by the highest P_edit (the authors' code)")
     object_seeds: int = Field(paper.SERVICE_OBJECT_SEEDS, ge=0, le=10_000_000,
-                              description="top voxels by P_object tied to the 'object' terminal")
+                              description="up to this many voxels tied to the 'object' terminal, drawn at random (the "
+                                          f"job's seed) among P_object > P_edit + {paper.SERVICE_OBJECT_SEED_MARGIN} "
+                                          "(the authors' code: among P_object > P_edit)")
     sigma: float = Field(paper.CUT_SIGMA, gt=0, le=1e6, description="colour scale of the pairwise weights")
     smoothness: float = Field(paper.CUT_SMOOTHNESS, ge=0, le=1e6, description="graph-cut smoothness weight λ")
 

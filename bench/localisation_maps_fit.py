@@ -1,7 +1,7 @@
 """The paper's text against the authors' code (issue 18 item 5): 2D-map and fit variants on the localisation ground truth.
 
 bench/localisation.py's scenes (mesh-voxelised, 96³; the maps of ``--views`` 32 of the hemisphere views at 100 px)
-and map model; the cut is the default (``AUTHORS_CODE_CUT``)
+and map model; the cut is the default (``SERVICE_CUT``)
 everywhere, so the differences are the maps' or the fit's. ``--part maps``: per variant the lattice maps are
 post-processed under its ``RefineConfig`` and lifted by the back-projection (0 steps):
 

@@ -5,8 +5,10 @@ cut under each variant of ``RefineConfig``, all on the same attention grids so t
 
 * ``text_5000``: the text's cut with the code's 5,000 object seeds (the service default before this bench);
 * ``paper_text``: ``PAPER_TEXT_CUT``, the text throughout (300 / 200 top seeds with P > ½);
-* ``authors_code``: ``AUTHORS_CODE_CUT`` (now the default) — no unary term for unseeded voxels, edit seeds
+* ``authors_code``: ``AUTHORS_CODE_CUT`` — no unary term for unseeded voxels, edit seeds
   P_e ≥ 0.992·max, up to 5,000 random object seeds with P_obj > P_e, w = K·exp(−‖Δc‖/σ), 3×3×3 max-pooled nodes;
+* ``default``: ``SERVICE_CUT``, the authors' code with its object seeds drawn among P_obj > P_e + 0.02
+  (bench/localisation_seeds.py);
 * ``code_<field>``: ``text_5000`` with that one field switched to the code's choice.
 
 IoU is over the text's node set (the code's max-pooled set is a dilation of it, so the same voxels count for
@@ -31,7 +33,7 @@ from localisation import LEVELS, lattice_maps, parse_with_common_arguments, ring
 from localisation_scenes import SCENES, build_scene
 from segmentation import iou
 from voxe_core.constants import SERVICE_OBJECT_SEEDS
-from voxe_core.refine.config import AUTHORS_CODE_CUT, PAPER_TEXT_CUT, RefineConfig
+from voxe_core.refine.config import AUTHORS_CODE_CUT, PAPER_TEXT_CUT, SERVICE_CUT, RefineConfig
 from voxe_core.refine.cut import graph_cut_detailed, node_mask
 from voxe_core.refine.lifting import fit_attention_grids
 from voxe_core.refine.maps import postprocess_maps
@@ -40,7 +42,7 @@ from voxe_core.refine.pipeline import merge
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
 SINGLE_SWITCHES = ("edit_seed_rule", "object_seed_rule", "unseeded_unary", "pairwise_weight", "node_rule")
-WITH_PSNR = ("text_5000", "paper_text", "authors_code")
+WITH_PSNR = ("text_5000", "paper_text", "authors_code", "default")
 
 
 def variants(base: RefineConfig) -> dict[str, RefineConfig]:
@@ -50,6 +52,7 @@ def variants(base: RefineConfig) -> dict[str, RefineConfig]:
         "text_5000": text_5000,
         "paper_text": dataclasses.replace(base, **PAPER_TEXT_CUT),
         "authors_code": dataclasses.replace(base, **AUTHORS_CODE_CUT),
+        "default": dataclasses.replace(base, **SERVICE_CUT),
     }
     for name in SINGLE_SWITCHES:
         out[f"code_{name}"] = dataclasses.replace(text_5000, **{name: AUTHORS_CODE_CUT[name]})
@@ -127,7 +130,7 @@ def main() -> None:
         "description": "Graph-cut variants (paper's text vs TAU-VAILab/Vox-E's build_graph) on the same lifted "
                        "attention grids of the localisation ground truth; see bench/localisation_variants.py.",
         "settings": {"resolution": args.resolution, "levels": {k: LEVELS[k] for k in args.levels},
-                     "authors_code_cut": AUTHORS_CODE_CUT, "threads": torch.get_num_threads()},
+                     "authors_code_cut": AUTHORS_CODE_CUT, "service_cut": SERVICE_CUT, "threads": torch.get_num_threads()},
         "runs": runs,
         "total_seconds": round(time.perf_counter() - start, 1),
     }

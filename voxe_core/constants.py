@@ -78,6 +78,12 @@ OBJECT_SEEDS = 200
 SERVICE_OBJECT_SEEDS = 5000
 """The service's object seeds instead (the authors' code's count): measured better on bench/localisation.py."""
 
+SERVICE_OBJECT_SEED_MARGIN = 0.02
+"""Random object seeds are drawn among P_obj > P_e + this (the authors' code: 0). On bench/localisation_seeds.py
+(3 cases × 2 noise levels, 25 draws each) it lifted the worst draw's IoU from 0.336 to 0.713 on the fox capture
+(clean maps; the default draw, seed 0, was that worst one) and the mean of every case's worst draw from 0.85 to
+0.87; chosen by the worst case over seeds 0–4 among 0 / 0.01 / 0.02 / 0.05."""
+
 CUT_SIGMA = 0.1
 """Colour scale of the graph cut's pairwise weights."""
 

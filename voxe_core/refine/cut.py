@@ -5,7 +5,8 @@ Boykov–Kolmogorov max-flow (PyMaxflow) on a graph built vectorised: unary
 costs −log P of the label, seeds tied to their terminal, and 6-neighbour
 pairwise weights λ·exp(−‖c_p − c_q‖² / 2σ²) on G_e's colours. Each of the authors'
 code's differences (refinement_functions.py::build_graph) is a RefineConfig choice;
-``AUTHORS_CODE_CUT`` sets them all.
+``AUTHORS_CODE_CUT`` sets them all; the defaults (``SERVICE_CUT``) are the code's but for a margin on its
+random object seeds.
 """
 
 from __future__ import annotations
@@ -115,7 +116,7 @@ def object_seed_indices(p_e: np.ndarray, p_o: np.ndarray, config: RefineConfig) 
     if config.object_seeds == 0:
         return np.zeros(0, np.int64)
     if config.object_seed_rule == "random":
-        idx = np.flatnonzero(p_o > p_e)
+        idx = np.flatnonzero(p_o > p_e + config.object_seed_margin)
         if idx.size == 0:
             return _top_seeds(p_o, np.ones_like(p_o, bool), config.object_seed_fallback)
         rng = np.random.default_rng(config.seed)
@@ -133,7 +134,8 @@ def graph_cut_detailed(
 
     Energy (the text, ``PAPER_TEXT_CUT``): Σ_p −log P_{l_p}(p) + λ Σ_{p~q, l_p≠l_q} exp(−‖c_p − c_q‖²/2σ²),
     minimised exactly by max-flow; the defaults are the authors' code's (``AUTHORS_CODE_CUT``: no unary
-    for unseeded voxels, λ·exp(−‖Δc‖/σ), random object seeds, max-pooled nodes; see RefineConfig). Seeds: the ``edit_seeds`` voxels of highest
+    for unseeded voxels, λ·exp(−‖Δc‖/σ), random object seeds, max-pooled nodes; see RefineConfig), the object
+    seeds drawn among P_obj > P_e + ``object_seed_margin`` (``SERVICE_CUT``). Seeds: the ``edit_seeds`` voxels of highest
     P_e among those with P_e > 1/2 are tied to the edit terminal (``edit_seed_rule="relative"``:
     every voxel within ``edit_seed_ratio`` of the largest P_e, at least ``edit_seeds`` of them, as the
     authors' code), the
