@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from api.schemas import JobParams
 from voxe_service.models import Job, Reconstruction, utcnow
 from voxe_service.progress import SECONDS_PER_UNIT, overall, stage_costs
 
@@ -20,11 +21,10 @@ def test_stage_weights_are_the_benchmarks_figures():
     reconstruction = json.loads((RESULTS / "reconstruction.json").read_text())[0]
     edit = next(r for r in json.loads((RESULTS / "edit_step.json").read_text()) if r["model"] == "sd2-base-shaped"
                 and r["render_size"] == 64)
-    segmentation = json.loads((RESULTS / "segmentation.json").read_text())
     assert SECONDS_PER_UNIT["reconstruct"] == pytest.approx(reconstruction["seconds"] / reconstruction["iterations"])
     assert SECONDS_PER_UNIT["edit"] == pytest.approx(edit["ms_total"] / 1000, abs=1e-3)
-    assert SECONDS_PER_UNIT["refine"] == pytest.approx(
-        segmentation["runs"][0]["seconds"] / segmentation["settings"]["iterations"], rel=1e-3)
+    attention_pass_ms = edit["ms_render"] + edit["ms_vae"] + edit["ms_unet"]  # forward only: no SDS backward
+    assert SECONDS_PER_UNIT["refine"] == pytest.approx(attention_pass_ms / 1000, abs=1e-3)
     assert SECONDS_PER_UNIT["export"] == pytest.approx(reconstruction["render_seconds_per_view"])
 
 
@@ -36,6 +36,39 @@ def test_stages_follow_the_mode_and_the_params():
     short, long = (dict(stage_costs(mode="global", params={"iterations": n}, reconstruction_units=100))["edit"]
                    for n in (10, 1000))
     assert long == pytest.approx(100 * short)
+
+
+def test_the_refinement_weighs_an_attention_pass_per_view_and_per_fitting_step():
+    per_pass = SECONDS_PER_UNIT["refine"]
+    assert dict(stage_costs(mode="local", params={}, reconstruction_units=1))["refine"] == pytest.approx(32 * per_pass)
+    fitted = {"refine": {"views": 8, "iterations": 100}}
+    assert dict(stage_costs(mode="local", params=fitted, reconstruction_units=1))["refine"] == pytest.approx(108 * per_pass)
+    stored = JobParams().model_dump()  # what a job holds: every default written out
+    assert dict(stage_costs(mode="local", params=stored, reconstruction_units=1))["refine"] == pytest.approx(
+        (stored["refine"]["views"] + stored["refine"]["iterations"]) * per_pass)
+
+
+def test_an_edit_is_weighed_by_what_its_schedule_runs_once_known():
+    """A capture's scene grid edits for 5,000 iterations where the job's parameters say 8,000."""
+    from api.routes.jobs import job_out
+
+    params = JobParams().model_dump()
+    before = dict(stage_costs(mode="global", params=params, reconstruction_units=1))["edit"]
+    known = dict(stage_costs(mode="global", params=params, reconstruction_units=1, edit_iterations=5000))["edit"]
+    assert before == pytest.approx(8000 * SECONDS_PER_UNIT["edit"]) and known == pytest.approx(5000 * SECONDS_PER_UNIT["edit"])
+    # Through the job resource: a job asking for 10 iterations whose schedule runs 1,000, halfway through its edit.
+    params = {**params, "iterations": 10}
+    rec = Reconstruction(id="r", scene_id="s", params_key="k", params={}, state="succeeded", owner_job_id="j", total=1)
+    running = dict(reconstruction=rec, mode="global", params=params, state="running", stage="edit", iteration=500,
+                   total=1000, completed_stages=["reconstruct"], started_at=utcnow(), stage_started_at=utcnow())
+
+    def halfway(edit_iterations):
+        costs = dict(stage_costs(mode="global", params=params, reconstruction_units=1, edit_iterations=edit_iterations))
+        return (costs["reconstruct"] + costs["edit"] / 2) / sum(costs.values())
+
+    assert job_out(_job(**running)).overall_progress == pytest.approx(halfway(None))  # weighed as 10 iterations
+    scheduled = job_out(_job(**running, result={"edit_schedule": {"iterations": 1000}})).overall_progress
+    assert scheduled == pytest.approx(halfway(1000)) and scheduled > halfway(None) + 0.05
 
 
 def _job(**values) -> Job:
@@ -67,9 +100,12 @@ def test_overall_progress_runs_from_0_to_1_and_never_goes_back():
                              started_at=utcnow(), finished_at=utcnow())).overall_progress)
     assert seen[0] == 0.0 and seen[-1] == 1.0 and all(0 <= p <= 1 for p in seen)
     assert seen == sorted(seen), seen
-    # Edit dominates: 100 edit iterations (5.1 s each) cost far more than 200 reconstruction ones (12 ms each).
-    after_reconstruct, after_edit = seen[4], seen[8]
-    assert after_reconstruct < 0.01 and after_edit > 0.95, seen
+    # 100 edit iterations (5.1 s each) and 82 attention passes (32 views + 50 steps, 4.1 s each) cost far more than
+    # 200 reconstruction iterations (12 ms each) or 108 export renders (66 ms each).
+    after_reconstruct, after_edit, after_refine = seen[4], seen[8], seen[12]
+    costs = dict(stage_costs(mode="local", params=_job().params, reconstruction_units=200))
+    assert after_edit == pytest.approx((costs["reconstruct"] + costs["edit"]) / sum(costs.values()))
+    assert after_reconstruct < 0.01 and 0.55 < after_edit < 0.65 and after_refine > 0.99, seen
 
 
 def test_a_reused_reconstruction_weighs_nothing():

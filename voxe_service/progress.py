@@ -6,8 +6,13 @@ by the benchmarks in ``bench/results`` (2 CPU cores, torch 2.13 CPU):
 * reconstruct: 20.98 s / 1,800 iterations (``reconstruction.json``, fast-64 on mic, 4,096 rays per step);
 * edit: 5.099 s per iteration (``edit_step.json``, the SD2-base-shaped UNet at 64 px: the real model's
   cost, not the smoke-test one's);
-* refine: 47.85 s / 400 iterations (``segmentation.json``, runs[0], 96 px, 4,096 rays per step);
+* refine: 4.06 s per attention pass (``edit_step.json``'s SD2-base-shaped run at 64 px: render + VAE + UNet
+  forward, no backward; the SD-1.4-shaped attention UNet is of its size): one per view, and one more per fitting
+  step (each draws a fresh view, ``RefineConfig.fit_views``); the back-projection and the cut are small beside them;
 * export: 0.066 s per rendered view (``reconstruction.json``, ``render_seconds_per_view`` at 200 px).
+
+An edit is weighed by its job's ``iterations`` until it starts, then by the count its schedule runs (a capture's
+scene grid runs 5,000 where the parameters say the objects' 8,000: ``Job.result["edit_schedule"]``).
 
 The fraction weighs completed stages fully and the current one by its own progress. The time left
 is the current stage's own estimate (from its iteration rate) plus the later stages' costs, scaled
@@ -18,6 +23,8 @@ Examples:
     ...                       "turntable_frames": 10, "mesh": False}}, reconstruction_units=1800)
     >>> [(stage, round(seconds, 2)) for stage, seconds in weights]
     [('reconstruct', 20.98), ('edit', 509.9), ('export', 0.66)]
+    >>> dict(stage_costs(mode="local", params={}, reconstruction_units=1))["refine"]  # 32 views, 0 fitting steps
+    129.92
 """
 
 from __future__ import annotations
@@ -28,24 +35,29 @@ from voxe_core.presets import ExportConfig
 SECONDS_PER_UNIT = {
     "reconstruct": 20.98 / 1800,
     "edit": 5.099,
-    "refine": 47.85 / 400,
+    "refine": (465.4 + 442.0 + 3152.6) / 1000,
     "export": 0.066,
     "evaluate": 0.066,  # ring renders dominate an evaluation
 }
 FAST_RECONSTRUCTION_ITERATIONS = 300 + 500 + 1200  # ReconstructConfig.fast(): what a queued job expects
 
 
-def stage_costs(*, mode: str, params: dict, reconstruction_units: int | None) -> list[tuple[str, float]]:
-    """(stage, expected seconds) for each stage of a job, in order."""
+def stage_costs(*, mode: str, params: dict, reconstruction_units: int | None,
+                edit_iterations: int | None = None) -> list[tuple[str, float]]:
+    """(stage, expected seconds) for each stage of a job, in order; ``edit_iterations``: what the edit's schedule
+    runs, once it is known (None: the parameters' count)."""
     if mode == "evaluate":
         views = (params.get("evaluation") or params).get("views", 100)
         return [("evaluate", views * SECONDS_PER_UNIT["evaluate"])]
     export = params.get("export") or {}
     views = export.get("views", ExportConfig.views) + export.get("turntable_frames", ExportConfig.turntable_frames)
+    refine = params.get("refine") or {}
+    fit_steps = refine.get("iterations")
     units = {
         "reconstruct": reconstruction_units or FAST_RECONSTRUCTION_ITERATIONS,
-        "edit": params.get("iterations", paper.EDIT_ITERATIONS),
-        "refine": (params.get("refine") or {}).get("iterations", paper.REFINE_ITERATIONS),
+        "edit": edit_iterations or params.get("iterations") or paper.EDIT_ITERATIONS,
+        "refine": (refine.get("views") or paper.REFINE_VIEWS)
+                  + (paper.SERVICE_REFINE_ITERATIONS if fit_steps is None else fit_steps),
         "export": views + (1 if export.get("mesh", ExportConfig.mesh) else 0),
     }
     stages = ["reconstruct", "edit"] + (["refine"] if mode == "local" else []) + ["export"]

@@ -59,7 +59,8 @@ def _overall(job: Job, now) -> tuple[float, float | None]:
         units = 1  # reused: nothing to fit
     else:
         units = (rec.total if rec is not None else 0) or (job.total if job.stage == "reconstruct" else None)
-    costs = stage_costs(mode=job.mode, params=job.params, reconstruction_units=units)
+    edit_iterations = ((job.result or {}).get("edit_schedule") or {}).get("iterations")
+    costs = stage_costs(mode=job.mode, params=job.params, reconstruction_units=units, edit_iterations=edit_iterations)
     fraction = job.iteration / job.total if job.total else 0.0
     running = job.state == RUNNING
     return overall(costs=costs, completed=job.completed_stages or [], stage=job.stage if running else None,
