@@ -185,13 +185,14 @@ def synthetic_maps(grid, truth, cameras, noise, seed):
 
 # ------------------------------------------------------------------ per-view 2D baseline
 def project(cameras: Cameras, points: torch.Tensor):
-    """Pixel (u, v) and ray distance t of world points in every camera: each (N_cams, P)."""
+    """Pixel (u, v) and ray distance t of world points in every camera: each (N_cams, P); u, v are NaN behind it."""
     r = cameras.c2w[:, :3, :3]
     o = cameras.c2w[:, :3, 3]
     local = torch.einsum("nji,npj->npi", r, points[None] - o[:, None])  # R^T (p - o)
     depth = -local[..., 2]
-    u = cameras.cx[:, None] + cameras.fx[:, None] * local[..., 0] / depth
-    v = cameras.cy[:, None] - cameras.fy[:, None] * local[..., 1] / depth
+    behind = torch.where(depth > 0, 0.0, torch.nan)  # a point behind a camera projects to no pixel of it
+    u = cameras.cx[:, None] + cameras.fx[:, None] * local[..., 0] / depth + behind
+    v = cameras.cy[:, None] - cameras.fy[:, None] * local[..., 1] / depth + behind
     return u, v, (points[None] - o[:, None]).norm(dim=-1)
 
 
@@ -200,14 +201,20 @@ def vote_2d(grid, nodes, cameras, edit_maps, object_maps, opacities, depths):
     from scipy.ndimage import distance_transform_edt
 
     idx = nodes.nonzero()
-    points = grid.bbox_min + idx.float() * grid.voxel_size
+    lattice = grid.vertex_positions().reshape(*grid.resolution, 3)  # the cameras' frame (a scene grid: uncontracted)
+    points = lattice[tuple(idx.T)]
     u, v, t = project(cameras, points)
     h, w = cameras.height, cameras.width
+    # a scene grid's outer vertices lie at infinity: no pixel sees them (NaN fails every comparison)
+    u, v = u.nan_to_num(nan=-1.0, posinf=-1.0, neginf=-1.0), v.nan_to_num(nan=-1.0, posinf=-1.0, neginf=-1.0)
     ui, vi = u.floor().long(), v.floor().long()
     inside = (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
     ui, vi = ui.clamp(0, w - 1), vi.clamp(0, h - 1)
     views = torch.arange(len(cameras))[:, None].expand_as(ui)
-    tol = 0.75 * float(grid.voxel_size.min())
+    centre = [n // 2 for n in grid.resolution]  # the lattice spacing where the object sits, in the cameras' frame
+    spacing = min(float((lattice[tuple(centre[:a] + [centre[a] + 1] + centre[a + 1:])] - lattice[tuple(centre)]).norm())
+                  for a in range(3))
+    tol = 0.75 * spacing
     visible = inside & (opacities[views, vi, ui] > 0.5) & (t <= depths[views, vi, ui] + tol)
     says_edit = edit_maps[views, vi, ui] > object_maps[views, vi, ui]
     n_visible = visible.sum(0)
