@@ -399,7 +399,9 @@ def compare(args) -> None:
         summary = {f"{r['lens']}_over_rays_train_time": r["train_s"] / rays["train_s"] for r in results[1:]}
         summary.update({f"{r['lens']}_minus_rays_psnr_db": r["psnr"] - rays["psnr"] for r in results[1:]})
         print(json.dumps(summary, indent=1))
-        (RESULTS / "lens_distortion.json").write_text(json.dumps({"runs": results, "summary": summary}, indent=1))
+        (RESULTS / "lens_distortion.json").write_text(json.dumps({
+            "description": "fox's lens distortion ignored, modelled or undistorted; see bench/real_scenes.py "
+                           "--compare-lens", "runs": results, "summary": summary}, indent=1))
         plot(results, RESULTS / "lens_distortion.png", key="lens")
         return
     scene, relu = results

@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -538,6 +539,17 @@ def service_load_section(data, results: Path, report: Path) -> tuple[list[str], 
     return lines, []
 
 
+def producer(path: Path, data) -> str:
+    """The script that writes a results file: the one its description names ("see bench/x.py"), else
+    ``bench/<stem>.py``, else the longest script name its stem starts with (``localisation_160`` ->
+    ``bench/localisation.py``)."""
+    named = re.search(r"see (bench/\w+\.py)", data.get("description", "") if isinstance(data, dict) else "")
+    if named:
+        return named.group(1)
+    scripts = sorted((p.stem for p in HERE.glob("*.py")), key=len, reverse=True)
+    return f"bench/{next((s for s in scripts if path.stem == s or path.stem.startswith(s + '_')), path.stem)}.py"
+
+
 def other_results_section(results: Path, report: Path) -> list[str]:
     """Results of benchmarks outside the four stages (e.g. real scenes), shown as their scalar fields and own plot."""
     known = {stage.result for stage in STAGES} | {"edit_step_gpu.json"}
@@ -547,7 +559,7 @@ def other_results_section(results: Path, report: Path) -> list[str]:
         if path.name in known or data is None:
             continue
         runs = as_runs(data)
-        lines += [f"### `{path.stem}`", "", f"Source: `{relative(path, report)}` (see `bench/{path.stem}.py`); "
+        lines += [f"### `{path.stem}`", "", f"Source: `{relative(path, report)}` (see `{producer(path, data)}`); "
                   "its scalar fields as written, speed and accuracy side by side in each row.", ""]
         columns = [k for k in dict.fromkeys(k for r in runs for k in r)
                    if all(isinstance(r.get(k), (int, float, str, bool, type(None))) for r in runs)][:12]

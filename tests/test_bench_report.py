@@ -48,3 +48,15 @@ def test_report_plots_cpu_and_gpu_runs_and_handles_a_missing_gpu_json(tmp_path):
     text = report.build_report(tmp_path, out, {}, "--collect-only")
     assert "Could not summarise" not in text and "edit_loop" in text
     assert report.device_kind({"device": "cuda:0"}) == "cuda" and report.device_kind({}) == "cpu"
+
+
+def test_every_results_file_names_a_script_that_exists():
+    from report import producer
+
+    results = Path(__file__).resolve().parents[1] / "bench" / "results"
+    for path in results.glob("*.json"):
+        script = producer(path, json.loads(path.read_text()))
+        assert (results.parent.parent / script).is_file(), (path.name, script)
+    assert producer(Path("localisation_160.json"), {}) == "bench/localisation.py"  # the longest script prefix
+    assert producer(Path("localisation_grids_fox.json"), {}) == "bench/localisation_grids.py"
+    assert producer(Path("x.json"), {"description": "…; see bench/real_scenes.py --compare-lens"}) == "bench/real_scenes.py"
