@@ -97,9 +97,9 @@ def measure_maps(scene, level: str, seed: int, with_psnr: bool) -> list[dict]:
     return rows
 
 
-def measure_fit(scene, pool, level: str, seed: int, steps: int, with_psnr: bool) -> list[dict]:
+def measure_fit(scene, pool, level: str, seed: int, steps: int, with_psnr: bool, map_scale: str) -> list[dict]:
     """``pool``: the scene with all its views, the fresh steps' source."""
-    base = RefineConfig(render_size=scene.cameras.width, views=len(scene.cameras))
+    base = RefineConfig(render_size=scene.cameras.width, views=len(scene.cameras), map_scale=map_scale)
     nodes = node_mask(scene.edited)
     edit_cells, object_cells = lattice_maps(scene.coverage, LEVELS[level], seed)
     size = (scene.cameras.height, scene.cameras.width)
@@ -131,6 +131,9 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=32)
     parser.add_argument("--view-size", type=int, default=100)
     parser.add_argument("--no-psnr", action="store_true")
+    parser.add_argument("--map-scale", choices=["raw", "minmax"], default=RefineConfig.map_scale,
+                        help="the fit part's RefineConfig.map_scale (localisation_fit_variants.json: raw, "
+                             "localisation_fit_variants_minmax_maps.json: minmax)")
     args = parse_with_common_arguments(parser, None, threads=2)
     levels = args.levels or (["clean", "moderate"] if args.part == "maps" else ["moderate"])
     out = args.out or RESULTS / f"localisation_{args.part}_variants.json"
@@ -142,14 +145,15 @@ def main() -> None:
         for level in levels:
             seed = 100 + list(LEVELS).index(level)
             runs += measure_maps(scene, level, seed, not args.no_psnr) if args.part == "maps" else \
-                measure_fit(scene, pool, level, seed, args.steps, not args.no_psnr)
+                measure_fit(scene, pool, level, seed, args.steps, not args.no_psnr, args.map_scale)
     result = {
         "description": f"2D-map / fit variants (paper's text vs TAU-VAILab/Vox-E) on the localisation ground truth, "
                        f"part {args.part}; see bench/localisation_maps_fit.py.",
         "settings": {"resolution": args.resolution, "levels": {k: LEVELS[k] for k in levels}, "steps": args.steps, "views": args.views,
                      "view_size": args.view_size,
                      "authors_code_maps": AUTHORS_CODE_MAPS, "paper_text_maps": PAPER_TEXT_MAPS,
-                     "refine_config": {k: v for k, v in vars(RefineConfig()).items() if k != "render"},
+                     "refine_config": {k: v for k, v in vars(RefineConfig(map_scale=args.map_scale)).items()
+                                       if k != "render"},
                      "threads": torch.get_num_threads()},
         "runs": runs,
         "total_seconds": round(time.perf_counter() - start, 1),

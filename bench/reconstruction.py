@@ -14,6 +14,7 @@ training seconds).
     python bench/reconstruction.py --ablations  # one recipe knob at a time (~25 min)
     python bench/reconstruction.py --only fast-160 skip-128  # rerun some; the other results are kept
     python bench/reconstruction.py --resample box --only fast-160  # box-filtered images: row fast-160-box
+    python bench/reconstruction.py --only preset-fast  # ReconstructConfig.fast() unchanged (the default)
 """
 
 from __future__ import annotations
@@ -51,6 +52,8 @@ FULL_RUNS = [
     ("authors-recipe", 160, (500, 500, 500, 500), True, LAST_ITERATE),
     ("dense-128", 128, (300, 500, 800), False, LAST_ITERATE),
     ("skip-128", 128, (300, 500, 800), True, LAST_ITERATE),
+    # ReconstructConfig.fast() as it is: what `voxe reconstruct` and jobs fit an object with by default.
+    ("preset-fast", 128, (300, 500, 1200), True, {"resolutions": (40, 80, 128)}),
 ]
 # One knob at a time against the last-iterate recipe at 160³ with 1,500 final-stage iterations (--ablations).
 ABLATION_BASE = (160, (300, 500, 1500), True)
@@ -92,7 +95,7 @@ def run_single(
     if "lr_drop_fraction" in overrides:
         overrides["lr_drop_iteration"] = int(iterations[-1] * overrides.pop("lr_drop_fraction"))
     config = ReconstructConfig.fast(
-        resolutions=stage_resolutions(final, stages),
+        resolutions=tuple(overrides.pop("resolutions", stage_resolutions(final, stages))),
         iterations=iterations,
         image_downsample=tuple(2 ** (stages - 1 - i) for i in range(stages)),
         **overrides,

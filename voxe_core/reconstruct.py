@@ -99,7 +99,7 @@ class ReconstructConfig:
         total variation over occupied space and free space around the cameras.
 
         Sized on fox by bench/real_scenes.py (every 8th view held out, 16× downsampled; figures in
-        bench/README.md "Real scenes"). Without the two priors fox's held-out PSNR stopped near 20–22 dB
+        bench/README.md "Real scenes"). Without the two priors fox's held-out PSNR stopped near 19–21 dB
         after ~200 final-stage iterations while the training views went on to 28 dB: a camera between two
         training views sat inside a cloud the fit had put there to paint the room seen past it. The weights
         were chosen on views split off the training set (never the held-out ones); with them fox's held-out

@@ -36,9 +36,9 @@ class SegmentationError(ValueError):
 class RefineConfig:
     """Defaults are the paper's / the authors' (SPEC §3) unless marked otherwise.
 
-    The graph cut's defaults are the authors' code's (``AUTHORS_CODE_CUT``; issue 18: IoU 0.98 against the
-    text's 0.85 on bench/localisation_variants.py's ground truth) but for the margin of its random object seeds
-    (``SERVICE_CUT``); ``PAPER_TEXT_CUT`` restores the text's.
+    The graph cut's defaults are the authors' code's (``AUTHORS_CODE_CUT``; issue 18: mean IoU 0.985 against
+    the text's 0.849 on bench/localisation_variants.py's ground truth) but for the margin of its random object
+    seeds (``SERVICE_CUT``: 0.990); ``PAPER_TEXT_CUT`` restores the text's.
     The 2D maps' defaults are the authors' code's but for their scale (``SERVICE_MAPS``: min-max, measured
     better on every ground truth; ``AUTHORS_CODE_MAPS``, ``PAPER_TEXT_MAPS``), and the fit's are the code's (a
     fresh view per step, L1 where the render is > 0); ``PAPER_TEXT_FIT`` / ``AUTHORS_CODE_FIT`` name both fits
@@ -93,7 +93,8 @@ class RefineConfig:
     object_seed_rule: Literal["top", "random"] = "random"
     # "random" draws among P_obj > P_e + this margin (the code: 0; ours: SERVICE_OBJECT_SEED_MARGIN). Voxels no view
     # resolves sit at P ≈ 1/2 on either side, inside the edited part too; a draw that lands a few seeds there cuts
-    # the part in two (bench/localisation_seeds.py: the fox's hat at IoU 0.34 for one draw in 30, 0.71–0.76 else)
+    # the part in two (bench/localisation_seeds.py: the fox's hat at IoU 0.29–0.34 for 2 draws in 30, the default
+    # seed 0 one of them, 0.71–0.76 for the others)
     object_seed_margin: float = SERVICE_OBJECT_SEED_MARGIN
     object_seed_fallback: int = OBJECT_SEEDS
     # unary −log P for the voxels no seed fixes (the text), or "none": only seeds pull (the code comments it out)
