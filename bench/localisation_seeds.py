@@ -8,11 +8,12 @@ the part in two. ``RefineConfig.object_seed_margin`` draws only among P_obj > P_
 
 One lift per case and noise level (bench/localisation.py's map model and back-projection lift, 96³), then the cut
 for every margin and every ``seed`` of the draw, all on the same attention grids. Cases: the two mesh-voxelised
-scenes of localisation_scenes.py and the fox capture with a synthetic hat (localisation_grids.py). The margin is
+scenes of localisation_scenes.py, the same two reconstructed from Blender's views (32 views at 100 px, as
+localisation_grids.py's "fitted") and the fox capture with a synthetic hat (localisation_grids.py). The margin is
 chosen on seeds 0–4 (``choose``) and reported on seeds 5–29 (``report``), so the reported spread is not the one it
 was picked on.
 
-    python bench/localisation_seeds.py      # 3 cases × clean, moderate × 4 margins × 30 seeds (~4 min)
+    python bench/localisation_seeds.py      # 5 scenes × clean, moderate × 4 margins × 30 seeds (~6 min)
 """
 
 from __future__ import annotations
@@ -26,8 +27,8 @@ from pathlib import Path
 
 import torch
 
-from localisation import LEVELS, lattice_maps, parse_with_common_arguments, write_results
-from localisation_grids import fox_scene
+from localisation import LEVELS, fewer_views, lattice_maps, parse_with_common_arguments, write_results
+from localisation_grids import fitted_scene, fox_scene
 from localisation_scenes import SCENES, build_scene
 from segmentation import iou
 from voxe_core.refine.config import RefineConfig
@@ -110,6 +111,7 @@ def main() -> None:
     args = parse_with_common_arguments(parser, RESULTS / "localisation_seeds.json")
     start = time.perf_counter()
     scenes = [build_scene(name, args.resolution) for name in SCENES]
+    scenes += [fewer_views(fitted_scene(name, args.resolution), 32, 100) for name in SCENES]
     scenes.append(fox_scene(args.resolution, 16, (36, 64), (72, 128)))
     runs = []
     for scene in scenes:
