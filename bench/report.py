@@ -539,6 +539,19 @@ def service_load_section(data, results: Path, report: Path) -> tuple[list[str], 
     return lines, []
 
 
+MAX_ROWS = 40  # rows of a results file's table in REPORT.md
+
+
+def scalar_table(rows: list[dict]) -> list[str]:
+    """``rows``' scalar fields (at most 12 columns) as a markdown table; none when no field is scalar in all."""
+    columns = [k for k in dict.fromkeys(k for r in rows for k in r)
+               if all(isinstance(r.get(k), (int, float, str, bool, type(None))) for r in rows)][:12]
+    if not rows or not columns:
+        return []
+    cell = lambda v: f"{v:.4g}" if isinstance(v, float) else v  # noqa: E731
+    return table(columns, [[cell(r.get(k)) for k in columns] for r in rows])
+
+
 def producer(path: Path, data) -> str:
     """The script that writes a results file: the one its description names ("see bench/x.py"), else
     ``bench/<stem>.py``, else the longest script name its stem starts with (``localisation_160`` ->
@@ -559,14 +572,14 @@ def other_results_section(results: Path, report: Path) -> list[str]:
         if path.name in known or data is None:
             continue
         runs = as_runs(data)
+        summary = data.get("summary") if isinstance(data, dict) else None
         lines += [f"### `{path.stem}`", "", f"Source: `{relative(path, report)}` (see `{producer(path, data)}`); "
                   "its scalar fields as written, speed and accuracy side by side in each row.", ""]
-        columns = [k for k in dict.fromkeys(k for r in runs for k in r)
-                   if all(isinstance(r.get(k), (int, float, str, bool, type(None))) for r in runs)][:12]
-        if runs and columns:
-            cell = lambda v: f"{v:.4g}" if isinstance(v, float) else v  # noqa: E731
-            lines += table(columns, [[cell(r.get(k)) for k in columns] for r in runs]) + [""]
-        summary = data.get("summary") if isinstance(data, dict) else None
+        if isinstance(summary, list) and summary and all(isinstance(r, dict) for r in summary):
+            lines += ["Its summary:", ""] + scalar_table(summary) + [""]
+        lines += scalar_table(runs[:MAX_ROWS])
+        lines += [f"(the first {MAX_ROWS} of {len(runs)} rows; all of them in the JSON)", ""] if len(runs) > MAX_ROWS \
+            else [""]
         scalars = [f"- {k}: {fmt(v, 3)}" for k, v in summary.items()
                    if not isinstance(v, (dict, list))] if isinstance(summary, dict) else []
         lines += scalars + [""] if scalars else []

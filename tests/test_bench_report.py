@@ -60,3 +60,12 @@ def test_every_results_file_names_a_script_that_exists():
     assert producer(Path("localisation_160.json"), {}) == "bench/localisation.py"  # the longest script prefix
     assert producer(Path("localisation_grids_fox.json"), {}) == "bench/localisation_grids.py"
     assert producer(Path("x.json"), {"description": "…; see bench/real_scenes.py --compare-lens"}) == "bench/real_scenes.py"
+
+
+def test_a_long_results_file_shows_its_summary_and_its_first_rows(tmp_path):
+    runs = [{"case": f"c{i}", "iou": i / 100} for i in range(report.MAX_ROWS + 10)]
+    summary = [{"case": "all", "mean_iou": 0.245}]
+    (tmp_path / "long_bench.json").write_text(json.dumps({"runs": runs, "summary": summary}))
+    text = "\n".join(report.other_results_section(tmp_path, tmp_path / "REPORT.md"))
+    assert "| all | 0.245 |" in text and f"(the first {report.MAX_ROWS} of {len(runs)} rows" in text
+    assert f"| c{report.MAX_ROWS - 1} |" in text and f"| c{report.MAX_ROWS} |" not in text
