@@ -136,7 +136,9 @@ def main() -> None:
                              "localisation_fit_variants_minmax_maps.json: minmax)")
     args = parse_with_common_arguments(parser, None, threads=2)
     levels = args.levels or (["clean", "moderate"] if args.part == "maps" else ["moderate"])
-    out = args.out or RESULTS / f"localisation_{args.part}_variants.json"
+    # the fit part's min-max run has its own file beside the raw-map one the README's table quotes
+    minmax_fit = args.part == "fit" and args.map_scale == "minmax"
+    out = args.out or RESULTS / f"localisation_{args.part}_variants{'_minmax_maps' if minmax_fit else ''}.json"
     start = time.perf_counter()
     runs = []
     for name in SCENES:

@@ -13,7 +13,7 @@ localisation_grids.py's "fitted") and the fox capture with a synthetic hat (loca
 chosen on seeds 0–4 (``choose``) and reported on seeds 5–29 (``report``), so the reported spread is not the one it
 was picked on.
 
-    python bench/localisation_seeds.py      # 5 scenes × clean, moderate × 4 margins × 30 seeds (~6 min)
+    python bench/localisation_seeds.py      # 5 scenes × clean, moderate × 4 margins × 30 seeds (~4 min)
 """
 
 from __future__ import annotations
@@ -123,7 +123,8 @@ def main() -> None:
         "settings": {"resolution": args.resolution, "levels": {k: LEVELS[k] for k in args.levels},
                      "margins": args.margins, "choose_seeds": list(CHOOSE), "report_seeds": list(REPORT),
                      "threads": torch.get_num_threads(),
-                     "refine_config": {k: v for k, v in vars(RefineConfig()).items() if k != "render"}},
+                     "refine_config": {k: v for k, v in vars(RefineConfig(iterations=0)).items()
+                                       if k not in ("render", "render_size", "views")}},  # those two: each scene's
         "summary": summarise(runs),
         "runs": runs,
         "total_seconds": round(time.perf_counter() - start, 1),

@@ -553,9 +553,9 @@ def scalar_table(rows: list[dict]) -> list[str]:
 
 
 def producer(path: Path, data) -> str:
-    """The script that writes a results file: the one its description names ("see bench/x.py"), else
-    ``bench/<stem>.py``, else the longest script name its stem starts with (``localisation_160`` ->
-    ``bench/localisation.py``)."""
+    """The script that writes a results file: the one its description names ("see bench/x.py"), else the
+    longest script whose name is its stem or starts it (``localisation_160`` -> ``bench/localisation.py``),
+    else ``bench/<stem>.py``."""
     named = re.search(r"see (bench/\w+\.py)", data.get("description", "") if isinstance(data, dict) else "")
     if named:
         return named.group(1)

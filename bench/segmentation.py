@@ -205,7 +205,7 @@ def vote_2d(grid, nodes, cameras, edit_maps, object_maps, opacities, depths):
     points = lattice[tuple(idx.T)]
     u, v, t = project(cameras, points)
     h, w = cameras.height, cameras.width
-    # a scene grid's outer vertices lie at infinity: no pixel sees them (NaN fails every comparison)
+    # a scene grid's outer vertices lie at infinity and project() gives NaN behind a camera: -1 is no pixel
     u, v = u.nan_to_num(nan=-1.0, posinf=-1.0, neginf=-1.0), v.nan_to_num(nan=-1.0, posinf=-1.0, neginf=-1.0)
     ui, vi = u.floor().long(), v.floor().long()
     inside = (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)

@@ -402,14 +402,14 @@ def test_the_default_cut_is_the_authors_code_but_for_the_seed_margin_and_recover
 
 @pytest.mark.filterwarnings("ignore:only .* seeds")
 def test_object_seeds_drawn_clear_of_one_half_keep_an_unresolved_inside_with_its_part():
-    """The red blob's inside is seen by no view: P_obj = 0.51 there, a hair above P_e. The code's draw (margin 0)
+    """The red blob's inside is seen by no view: P_obj = 0.505 there, a hair above P_e. The code's draw (margin 0)
     ties those voxels to the object and cuts the part hollow; with the default margin only the green blob's
     clear P_obj = 0.9 seeds the object, and the colour edge keeps the inside with its part."""
     grid, truth = two_blobs()
     p_e = torch.where(truth, 0.9, 0.1)
     inside = torch.zeros_like(truth)
     inside[4:8, 6:12, 6:12] = True
-    p_e[inside] = 0.49
+    p_e[inside] = 0.495
     e, o = torch.log(p_e), torch.log(1 - p_e)  # softmax(e, o) = (p_e, 1 - p_e)
     drawn_all = RefineConfig(object_seeds=10_000)  # more than the candidates: every one is drawn, whatever the seed
     codes = graph_cut(grid, e, o, dataclasses.replace(drawn_all, object_seed_margin=0.0))

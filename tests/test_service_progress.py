@@ -18,14 +18,18 @@ RESULTS = Path(__file__).resolve().parents[1] / "bench" / "results"
 
 
 def test_stage_weights_are_the_benchmarks_figures():
-    reconstruction = json.loads((RESULTS / "reconstruction.json").read_text())[0]
+    rows = {r["label"]: r for r in json.loads((RESULTS / "reconstruction.json").read_text())}
+    default_fit, fast_64 = rows["preset-fast"], rows["fast-64"]
+    segmentation = json.loads((RESULTS / "segmentation.json").read_text())
     edit = next(r for r in json.loads((RESULTS / "edit_step.json").read_text()) if r["model"] == "sd2-base-shaped"
                 and r["render_size"] == 64)
-    assert SECONDS_PER_UNIT["reconstruct"] == pytest.approx(reconstruction["seconds"] / reconstruction["iterations"])
+    assert SECONDS_PER_UNIT["reconstruct"] == pytest.approx(default_fit["seconds"] / default_fit["iterations"])
     assert SECONDS_PER_UNIT["edit"] == pytest.approx(edit["ms_total"] / 1000, abs=1e-3)
     attention_pass_ms = edit["ms_render"] + edit["ms_vae"] + edit["ms_unet"]  # forward only: no SDS backward
     assert SECONDS_PER_UNIT["refine"] == pytest.approx(attention_pass_ms / 1000, abs=1e-3)
-    assert SECONDS_PER_UNIT["export"] == pytest.approx(reconstruction["render_seconds_per_view"])
+    assert SECONDS_PER_UNIT["refine_fixed_step"] == pytest.approx(
+        segmentation["runs"][0]["seconds"] / segmentation["settings"]["iterations"])
+    assert SECONDS_PER_UNIT["export"] == pytest.approx(fast_64["render_seconds_per_view"])
 
 
 def test_stages_follow_the_mode_and_the_params():
@@ -46,6 +50,10 @@ def test_the_refinement_weighs_an_attention_pass_per_view_and_per_fitting_step()
     stored = JobParams().model_dump()  # what a job holds: every default written out
     assert dict(stage_costs(mode="local", params=stored, reconstruction_units=1))["refine"] == pytest.approx(
         (stored["refine"]["views"] + stored["refine"]["iterations"]) * per_pass)
+    # The paper's fit from a constant reuses its views' maps: 32 passes, then 1,500 cheap steps, not 1,532 passes.
+    paper = {"refine": {"lift_start": "constant", "iterations": 1500}}
+    assert dict(stage_costs(mode="local", params=paper, reconstruction_units=1))["refine"] == pytest.approx(
+        32 * per_pass + 1500 * SECONDS_PER_UNIT["refine_fixed_step"])
 
 
 def test_an_edit_is_weighed_by_what_its_schedule_runs_once_known():
@@ -56,6 +64,8 @@ def test_an_edit_is_weighed_by_what_its_schedule_runs_once_known():
     before = dict(stage_costs(mode="global", params=params, reconstruction_units=1))["edit"]
     known = dict(stage_costs(mode="global", params=params, reconstruction_units=1, edit_iterations=5000))["edit"]
     assert before == pytest.approx(8000 * SECONDS_PER_UNIT["edit"]) and known == pytest.approx(5000 * SECONDS_PER_UNIT["edit"])
+    none_asked = dict(stage_costs(mode="global", params={**params, "iterations": 0}, reconstruction_units=1))["edit"]
+    assert none_asked == pytest.approx(SECONDS_PER_UNIT["edit"])  # 0 iterations weigh one, not the default 8,000
     # Through the job resource: a job asking for 10 iterations whose schedule runs 1,000, halfway through its edit.
     params = {**params, "iterations": 10}
     rec = Reconstruction(id="r", scene_id="s", params_key="k", params={}, state="succeeded", owner_job_id="j", total=1)
@@ -101,7 +111,7 @@ def test_overall_progress_runs_from_0_to_1_and_never_goes_back():
     assert seen[0] == 0.0 and seen[-1] == 1.0 and all(0 <= p <= 1 for p in seen)
     assert seen == sorted(seen), seen
     # 100 edit iterations (5.1 s each) and 82 attention passes (32 views + 50 steps, 4.1 s each) cost far more than
-    # 200 reconstruction iterations (12 ms each) or 108 export renders (66 ms each).
+    # 200 reconstruction iterations (41 ms each) or 109 export renders (66 ms each).
     after_reconstruct, after_edit, after_refine = seen[4], seen[8], seen[12]
     costs = dict(stage_costs(mode="local", params=_job().params, reconstruction_units=200))
     assert after_edit == pytest.approx((costs["reconstruct"] + costs["edit"]) / sum(costs.values()))

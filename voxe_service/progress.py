@@ -3,12 +3,15 @@
 Each stage's cost is its units of work (iterations, rendered views) times seconds per unit measured
 by the benchmarks in ``bench/results`` (2 CPU cores, torch 2.13 CPU):
 
-* reconstruct: 20.98 s / 1,800 iterations (``reconstruction.json``, fast-64 on mic, 4,096 rays per step);
+* reconstruct: 81.47 s / 2,000 iterations (``reconstruction.json``, preset-fast on mic: ``ReconstructConfig.fast()``,
+  the default fit);
 * edit: 5.099 s per iteration (``edit_step.json``, the SD2-base-shaped UNet at 64 px: the real model's
   cost, not the smoke-test one's);
 * refine: 4.06 s per attention pass (``edit_step.json``'s SD2-base-shaped run at 64 px: render + VAE + UNet
   forward, no backward; the SD-1.4-shaped attention UNet is of its size): one per view, and one more per fitting
-  step (each draws a fresh view, ``RefineConfig.fit_views``); the back-projection and the cut are small beside them;
+  step from the back-projection start (each draws a fresh view, ``RefineConfig.fit_views``); the paper's fit from a
+  constant (``lift_start`` constant) reuses the views' maps: 0.066 s per step (``segmentation.json``, runs[0]:
+  26.4 s / 400 fixed-view steps at 96 px, 4,096 rays per step). The back-projection and the cut are small beside them;
 * export: 0.066 s per rendered view (``reconstruction.json``, ``render_seconds_per_view`` at 200 px).
 
 An edit is weighed by its job's ``iterations`` until it starts, then by the count its schedule runs (a capture's
@@ -22,7 +25,7 @@ Examples:
     >>> weights = stage_costs(mode="global", params={"iterations": 100, "export": {"views": 0,
     ...                       "turntable_frames": 10, "mesh": False}}, reconstruction_units=1800)
     >>> [(stage, round(seconds, 2)) for stage, seconds in weights]
-    [('reconstruct', 20.98), ('edit', 509.9), ('export', 0.66)]
+    [('reconstruct', 73.32), ('edit', 509.9), ('export', 0.66)]
     >>> dict(stage_costs(mode="local", params={}, reconstruction_units=1))["refine"]  # 32 views, 0 fitting steps
     129.92
 """
@@ -33,9 +36,10 @@ from voxe_core import constants as paper
 from voxe_core.presets import ExportConfig
 
 SECONDS_PER_UNIT = {
-    "reconstruct": 20.98 / 1800,
+    "reconstruct": 81.47 / 2000,
     "edit": 5.099,
-    "refine": (465.4 + 442.0 + 3152.6) / 1000,
+    "refine": (465.4 + 442.0 + 3152.6) / 1000,  # an attention pass
+    "refine_fixed_step": 26.403 / 400,  # a fitting step on the views' maps
     "export": 0.066,
     "evaluate": 0.066,  # ring renders dominate an evaluation
 }
@@ -51,17 +55,27 @@ def stage_costs(*, mode: str, params: dict, reconstruction_units: int | None,
         return [("evaluate", views * SECONDS_PER_UNIT["evaluate"])]
     export = params.get("export") or {}
     views = export.get("views", ExportConfig.views) + export.get("turntable_frames", ExportConfig.turntable_frames)
-    refine = params.get("refine") or {}
-    fit_steps = refine.get("iterations")
-    units = {
-        "reconstruct": reconstruction_units or FAST_RECONSTRUCTION_ITERATIONS,
-        "edit": edit_iterations or params.get("iterations") or paper.EDIT_ITERATIONS,
-        "refine": (refine.get("views") or paper.REFINE_VIEWS)
-                  + (paper.SERVICE_REFINE_ITERATIONS if fit_steps is None else fit_steps),
-        "export": views + (1 if export.get("mesh", ExportConfig.mesh) else 0),
+    edit = next((n for n in (edit_iterations, params.get("iterations")) if n is not None), paper.EDIT_ITERATIONS)
+    seconds = {
+        "reconstruct": max(1, reconstruction_units or FAST_RECONSTRUCTION_ITERATIONS) * SECONDS_PER_UNIT["reconstruct"],
+        "edit": max(1, edit) * SECONDS_PER_UNIT["edit"],
+        "refine": refine_seconds(params.get("refine") or {}),
+        "export": max(1, views + (1 if export.get("mesh", ExportConfig.mesh) else 0)) * SECONDS_PER_UNIT["export"],
     }
     stages = ["reconstruct", "edit"] + (["refine"] if mode == "local" else []) + ["export"]
-    return [(stage, max(1, units[stage]) * SECONDS_PER_UNIT[stage]) for stage in stages]
+    return [(stage, seconds[stage]) for stage in stages]
+
+
+def refine_seconds(refine: dict) -> float:
+    """The refinement's cost from the job parameters' ``refine``: an attention pass per view, and per fitting step
+    one more pass from the back-projection start (fresh views) or a fixed-view step from the paper's constant
+    start (``voxe_core.presets.refine_config`` pairs the two so)."""
+    views = refine.get("views") or paper.REFINE_VIEWS
+    steps = refine.get("iterations")
+    steps = paper.SERVICE_REFINE_ITERATIONS if steps is None else steps
+    if refine.get("lift_start") == "constant":
+        return views * SECONDS_PER_UNIT["refine"] + steps * SECONDS_PER_UNIT["refine_fixed_step"]
+    return (views + steps) * SECONDS_PER_UNIT["refine"]
 
 
 def overall(*, costs: list[tuple[str, float]], completed: list[str], stage: str | None, stage_fraction: float,

@@ -191,9 +191,9 @@ def _record_orbit_centre(job_id: str, initial) -> "torch.Tensor":
 
 
 def _orbit_centre(job: Job, settings, storage) -> "torch.Tensor":
-    """G_i's ``orbit_centre()``: every stage's views of a job (edit poses, overlay, renders, turntable) look at
-    where the fitted object sits, the same point for the initial, edited and refined grids. Read from the job's
-    result, where its reconstruct stage put it; G_i is fetched only for a job reconstructed before it did."""
+    """G_i's ``orbit_centre()`` for the export's renders and turntable: the point every stage's views of a job look
+    at (the edit's poses and the refinement's overlay take it from G_i, which they load anyway). Read from the
+    job's result, where its reconstruct stage put it; G_i is fetched only for a job reconstructed before it did."""
     import torch
 
     stored = (job.result or {}).get("orbit_centre")

@@ -45,9 +45,13 @@ def add_parsers(commands, common) -> None:
     ref.add_argument("--render-size", type=positive_int, default=paper.RENDER_SIZE, help="render / attention-map size in pixels")
     ref.add_argument("--views", type=positive_int, default=paper.REFINE_VIEWS, help="random upper-hemisphere views for the 2D maps")
     ref.add_argument("--rays", type=positive_int, default=paper.REFINE_RAYS_PER_STEP, help="rays per attention-grid step")
-    ref.add_argument("--edit-seeds", type=int, default=paper.EDIT_SEEDS, help="top voxels by P_edit tied to the 'edit' terminal")
+    ref.add_argument("--edit-seeds", type=int, default=paper.EDIT_SEEDS,
+                     help="at least this many voxels tied to the 'edit' terminal: every voxel with P_edit >= 0.992 "
+                          "max P_edit, topped up by the highest P_edit (the authors' code)")
     ref.add_argument("--object-seeds", type=int, default=paper.SERVICE_OBJECT_SEEDS,
-                     help=f"top voxels by P_object tied to the 'object' terminal (the paper's text: {paper.OBJECT_SEEDS})")
+                     help="up to this many voxels tied to the 'object' terminal, drawn at random (--seed) among "
+                          f"P_object > P_edit + {paper.SERVICE_OBJECT_SEED_MARGIN} (the authors' code: among "
+                          f"P_object > P_edit; the paper's text: the top {paper.OBJECT_SEEDS} by P_object)")
     ref.add_argument("--sigma", type=float, default=paper.CUT_SIGMA, help="colour scale of the graph cut's pairwise weights")
     ref.add_argument("--smoothness", type=float, default=paper.CUT_SMOOTHNESS, help="graph-cut smoothness weight λ")
     ref.add_argument("--preview-views", type=int, default=4, help="ring views rendered as PNGs (0: none)")

@@ -37,8 +37,8 @@ class RefineConfig:
     """Defaults are the paper's / the authors' (SPEC §3) unless marked otherwise.
 
     The graph cut's defaults are the authors' code's (``AUTHORS_CODE_CUT``; issue 18: mean IoU 0.985 against
-    the text's 0.849 on bench/localisation_variants.py's ground truth) but for the margin of its random object
-    seeds (``SERVICE_CUT``: 0.990); ``PAPER_TEXT_CUT`` restores the text's.
+    the text's 0.848 on bench/localisation_variants.py's ground truth) but for the margin of its random object
+    seeds (``SERVICE_CUT``: 0.991); ``PAPER_TEXT_CUT`` restores the text's.
     The 2D maps' defaults are the authors' code's but for their scale (``SERVICE_MAPS``: min-max, measured
     better on every ground truth; ``AUTHORS_CODE_MAPS``, ``PAPER_TEXT_MAPS``), and the fit's are the code's (a
     fresh view per step, L1 where the render is > 0); ``PAPER_TEXT_FIT`` / ``AUTHORS_CODE_FIT`` name both fits
