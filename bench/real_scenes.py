@@ -84,6 +84,15 @@ def framed_splits(downsample: int):
     return train, test, frame, apply_frame(train.cameras, frame), apply_frame(test.cameras, frame)
 
 
+def checkpoint_grid(path, config):
+    """The grid of a fit's checkpoint at ``path`` and how many of ``config``'s iterations it had done."""
+    from voxe_core.backbones import grid_from_state
+    from voxe_core.reconstruct import load_checkpoint
+
+    tensors, meta = load_checkpoint(path)
+    return grid_from_state(tensors, meta), sum(config.iterations[: meta["stage"]]) + meta["iteration"]
+
+
 def box_hits(cameras) -> torch.Tensor:
     """(N, H, W) bool: which pixels' rays pass through the object box [-1.5, 1.5]³ of the canonical frame."""
     from voxe_core.cameras import camera_rays
@@ -112,13 +121,11 @@ def held_out_scores(grid, images: torch.Tensor, cameras, hits: torch.Tensor) -> 
 
 
 def run_single(backbone: str, args) -> dict:
-    from voxe_core.backbones import grid_from_state
     from voxe_core.data import load_scene
     from voxe_core.presets import reconstruct_config, reconstruction_params
     from voxe_core.progress import Callbacks
-    from voxe_core.reconstruct import CHECKPOINT_FORMAT_VERSION, reconstruct
+    from voxe_core.reconstruct import reconstruct
     from voxe_core.scene_grid import SceneGrid
-    from voxe_core.tensorio import load_tensors
 
     torch.set_num_threads(os.cpu_count() or 1)
     train, test, frame, train_cams, test_cams = framed_splits(args.downsample)
@@ -152,9 +159,7 @@ def run_single(backbone: str, args) -> dict:
 
     def on_checkpoint(path: str) -> None:
         t0, c0 = time.perf_counter(), time.process_time()
-        tensors, meta = load_tensors(path, kind="reconstruction_checkpoint", max_version=CHECKPOINT_FORMAT_VERSION)
-        grid = grid_from_state(tensors, meta)
-        done = sum(config.iterations[: meta["stage"]]) + meta["iteration"]
+        grid, done = checkpoint_grid(path, config)
         curve.append({"iteration": done, "train_s": t0 - start - paused[0], "cpu_s": c0 - cpu_start - paused_cpu[0],
                       **evaluate(grid)})
         paused[0] += time.perf_counter() - t0

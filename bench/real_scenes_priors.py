@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch
 
-from real_scenes import RESULTS, box_hits, framed_splits, held_out_scores
+from real_scenes import RESULTS, box_hits, checkpoint_grid, framed_splits, held_out_scores
 
 PRIORS_OFF = dict(tv_density=0.0, tv_color=0.0, camera_clearance=0.0)
 VARIANTS: dict[str, dict] = {
@@ -48,13 +48,11 @@ def rounded(scores: dict) -> dict:
 
 
 def run_variant(name: str, args) -> dict:
-    from voxe_core.backbones import grid_from_state
     from voxe_core.metrics import psnr
     from voxe_core.progress import Callbacks
-    from voxe_core.reconstruct import CHECKPOINT_FORMAT_VERSION, ReconstructConfig, reconstruct
+    from voxe_core.reconstruct import ReconstructConfig, reconstruct
     from voxe_core.render import RenderConfig, render_image
     from voxe_core.scene_grid import SceneGrid
-    from voxe_core.tensorio import load_tensors
 
     torch.set_num_threads(args.threads)
     train, test, frame, cams, test_cams = framed_splits(16)
@@ -71,9 +69,8 @@ def run_variant(name: str, args) -> dict:
 
     def on_checkpoint(path: str) -> None:
         t0 = time.perf_counter()
-        tensors, meta = load_tensors(path, kind="reconstruction_checkpoint", max_version=CHECKPOINT_FORMAT_VERSION)
-        grid = grid_from_state(tensors, meta)
-        curve.append({"iteration": sum(config.iterations[: meta["stage"]]) + meta["iteration"],
+        grid, done = checkpoint_grid(path, config)
+        curve.append({"iteration": done,
                       "train_s": round(t0 - start - paused[0], 1),
                       "validation": rounded(held_out_scores(grid, *val, val_hits)),
                       "fitting_views_psnr": round(held_out_scores(grid, *seen, seen_hits)["psnr"], 2)})

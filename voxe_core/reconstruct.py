@@ -25,6 +25,7 @@ from voxe_core.render import RenderConfig, render_rays
 from voxe_core.tensorio import load_tensors, save_tensors
 
 CHECKPOINT_FORMAT_VERSION = 1
+CHECKPOINT_KIND = "reconstruction_checkpoint"
 
 
 @dataclass
@@ -312,7 +313,12 @@ def save_checkpoint(
         "occupancy": occupancy_cells.to(torch.uint8),
     }
     meta = {**grid.header(), "stage": stage, "iteration": iteration}
-    save_tensors(path, tensors, kind="reconstruction_checkpoint", version=CHECKPOINT_FORMAT_VERSION, meta=meta)
+    save_tensors(path, tensors, kind=CHECKPOINT_KIND, version=CHECKPOINT_FORMAT_VERSION, meta=meta)
+
+
+def load_checkpoint(path) -> tuple[dict[str, torch.Tensor], dict]:
+    """The tensors and header ``save_checkpoint`` wrote (``grid_from_state`` makes its grid)."""
+    return load_tensors(path, kind=CHECKPOINT_KIND, max_version=CHECKPOINT_FORMAT_VERSION)
 
 
 def reconstruct(
@@ -349,7 +355,7 @@ def reconstruct(
     )
     start_stage, start_iteration, resumed = 0, 0, None
     if resume_from is not None:
-        tensors, meta = load_tensors(resume_from, kind="reconstruction_checkpoint", max_version=CHECKPOINT_FORMAT_VERSION)
+        tensors, meta = load_checkpoint(resume_from)
         grid = grid_from_state(tensors, meta)
         generator.set_state(tensors["rng_state"])
         start_stage, start_iteration = meta["stage"], meta["iteration"]
