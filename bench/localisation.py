@@ -80,6 +80,14 @@ def lattice_maps(coverage: torch.Tensor, level: dict, seed: int) -> tuple[torch.
     return both[:, 0], both[:, 1]
 
 
+def scene_maps(scene, level_name: str, seed: int, config) -> tuple[torch.Tensor, torch.Tensor]:
+    """Edit and object maps (V, H, W) of ``scene``'s views at noise level ``level_name``: ``lattice_maps``, then
+    the pipeline's own ``postprocess_maps`` under ``config``."""
+    edit_cells, object_cells = lattice_maps(scene.coverage, LEVELS[level_name], seed)
+    size = (scene.cameras.height, scene.cameras.width)
+    return postprocess_maps(edit_cells, size, config), postprocess_maps(object_cells, size, config)
+
+
 def fewer_views(scene, views: int, size: int):
     """``scene`` with its first ``views`` hemisphere views at ``size`` px (coverage kept at Blender's size: the maps
     are pooled to the 16×16 lattice first); a different name, so its cached vote renders are its own."""
@@ -116,10 +124,7 @@ def hemisphere_views(scene, resolution):
 
 def run(scene, level_name, config, lift_name, seed, nodes, views_info):
     t0 = time.perf_counter()
-    edit_cells, object_cells = lattice_maps(scene.coverage, LEVELS[level_name], seed)
-    size = (scene.cameras.height, scene.cameras.width)
-    edit_maps = postprocess_maps(edit_cells, size, config)
-    object_maps = postprocess_maps(object_cells, size, config)
+    edit_maps, object_maps = scene_maps(scene, level_name, seed, config)
     maps_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     e, o = fit_attention_grids(scene.edited, scene.cameras, edit_maps, object_maps, config)

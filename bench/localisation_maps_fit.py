@@ -33,7 +33,7 @@ from pathlib import Path
 
 import torch
 
-from localisation import LEVELS, fewer_views, lattice_maps, parse_with_common_arguments, ring_psnrs, write_results
+from localisation import LEVELS, fewer_views, lattice_maps, parse_with_common_arguments, ring_psnrs, scene_maps, write_results
 from localisation_scenes import SCENES, build_scene
 from localisation_variants import plot
 from segmentation import iou
@@ -101,9 +101,8 @@ def measure_fit(scene, pool, level: str, seed: int, steps: int, with_psnr: bool,
     """``pool``: the scene with all its views, the fresh steps' source."""
     base = RefineConfig(render_size=scene.cameras.width, views=len(scene.cameras), map_scale=map_scale)
     nodes = node_mask(scene.edited)
-    edit_cells, object_cells = lattice_maps(scene.coverage, LEVELS[level], seed)
     size = (scene.cameras.height, scene.cameras.width)
-    edit_maps, object_maps = postprocess_maps(edit_cells, size, base), postprocess_maps(object_cells, size, base)
+    edit_maps, object_maps = scene_maps(scene, level, seed, base)
 
     def fresh_view(step: int):
         view = int(torch.randint(len(pool.cameras), (), generator=draws))

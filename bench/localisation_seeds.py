@@ -27,14 +27,13 @@ from pathlib import Path
 
 import torch
 
-from localisation import LEVELS, fewer_views, lattice_maps, parse_with_common_arguments, write_results
+from localisation import LEVELS, fewer_views, parse_with_common_arguments, scene_maps, write_results
 from localisation_grids import fitted_scene, fox_scene
 from localisation_scenes import SCENES, build_scene
 from segmentation import iou
 from voxe_core.refine.config import RefineConfig
 from voxe_core.refine.cut import graph_cut_detailed, node_mask
 from voxe_core.refine.lifting import fit_attention_grids
-from voxe_core.refine.maps import postprocess_maps
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
@@ -45,10 +44,7 @@ CHOOSE, REPORT = range(0, 5), range(5, 30)
 def measure(scene, level_name: str, map_seed: int, margins, seeds) -> list[dict]:
     """IoU of the default cut against the truth, per (margin, seed), on one lift of ``scene`` at ``level_name``."""
     base = RefineConfig(iterations=0, render_size=scene.cameras.width, views=len(scene.cameras))
-    edit_cells, object_cells = lattice_maps(scene.coverage, LEVELS[level_name], map_seed)
-    size = (scene.cameras.height, scene.cameras.width)
-    e, o = fit_attention_grids(scene.edited, scene.cameras, postprocess_maps(edit_cells, size, base),
-                               postprocess_maps(object_cells, size, base), base)
+    e, o = fit_attention_grids(scene.edited, scene.cameras, *scene_maps(scene, level_name, map_seed, base), base)
     nodes = node_mask(scene.edited)
     rows = []
     for margin in margins:

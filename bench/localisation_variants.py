@@ -29,14 +29,13 @@ from pathlib import Path
 
 import torch
 
-from localisation import LEVELS, lattice_maps, parse_with_common_arguments, ring_psnrs, write_results
+from localisation import LEVELS, parse_with_common_arguments, ring_psnrs, scene_maps, write_results
 from localisation_scenes import SCENES, build_scene
 from segmentation import iou
 from voxe_core.constants import SERVICE_OBJECT_SEEDS
 from voxe_core.refine.config import AUTHORS_CODE_CUT, PAPER_TEXT_CUT, SERVICE_CUT, RefineConfig
 from voxe_core.refine.cut import graph_cut_detailed, node_mask
 from voxe_core.refine.lifting import fit_attention_grids
-from voxe_core.refine.maps import postprocess_maps
 from voxe_core.refine.pipeline import merge
 
 HERE = Path(__file__).resolve().parent
@@ -61,10 +60,7 @@ def variants(base: RefineConfig) -> dict[str, RefineConfig]:
 
 def measure(scene, level_name: str, seed: int, with_psnr: bool) -> list[dict]:
     base = RefineConfig(iterations=0, render_size=scene.cameras.width, views=len(scene.cameras))
-    edit_cells, object_cells = lattice_maps(scene.coverage, LEVELS[level_name], seed)
-    size = (scene.cameras.height, scene.cameras.width)
-    edit_maps = postprocess_maps(edit_cells, size, base)
-    object_maps = postprocess_maps(object_cells, size, base)
+    edit_maps, object_maps = scene_maps(scene, level_name, seed, base)
     t0 = time.perf_counter()
     e, o = fit_attention_grids(scene.edited, scene.cameras, edit_maps, object_maps, base)
     lift_s = time.perf_counter() - t0
