@@ -13,6 +13,8 @@ from voxe_core.losses import (
     volumetric_l2,
 )
 
+from references import dense_total_variation
+
 
 def _grid(seed=0, shape=(12, 10, 8)):
     return torch.randn(shape, generator=torch.Generator().manual_seed(seed))
@@ -173,14 +175,6 @@ def test_gradient_flows_into_feature_parameter():
             assert param.grad[..., 1:].abs().sum() == 0  # density only
 
 
-def _dense_total_variation(features: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
-    """Mean over the given cells of the squared forward differences at their lower corners, per channel (C,)."""
-    dx = (features[1:, :-1, :-1] - features[:-1, :-1, :-1]).square()
-    dy = (features[:-1, 1:, :-1] - features[:-1, :-1, :-1]).square()
-    dz = (features[:-1, :-1, 1:] - features[:-1, :-1, :-1]).square()
-    return ((dx + dy + dz) / 3)[cells].mean(0)
-
-
 def test_sampled_total_variation_estimates_the_dense_value_over_occupied_cells_only():
     features = torch.randn(7, 6, 5, 4, generator=torch.Generator().manual_seed(0))
     cells = torch.zeros(6, 5, 4, dtype=torch.bool)
@@ -189,13 +183,13 @@ def test_sampled_total_variation_estimates_the_dense_value_over_occupied_cells_o
     flat_cells = cells.reshape(-1).nonzero()[:, 0]
     estimate = sampled_total_variation(features.reshape(-1, 4), (7, 6, 5), flat_cells, 200_000,
                                        torch.Generator().manual_seed(1))
-    exact = _dense_total_variation(features, cells)
+    exact = dense_total_variation(features, cells)
     assert torch.allclose(estimate, exact, rtol=0.03)
     one_cell = torch.tensor([int(flat_cells[5])])  # a single cell: the estimate is exact
     only = torch.zeros_like(cells).reshape(-1)
     only[one_cell] = True
     assert torch.allclose(sampled_total_variation(features.reshape(-1, 4), (7, 6, 5), one_cell, 3),
-                          _dense_total_variation(features, only.reshape(cells.shape)))
+                          dense_total_variation(features, only.reshape(cells.shape)))
 
 
 def test_sampled_total_variation_gradient_is_sparse_and_local():

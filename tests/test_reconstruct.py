@@ -15,6 +15,7 @@ from voxe_core.reconstruct import ReconstructConfig, RowSparseAdam, reconstruct
 from voxe_core.render import RenderConfig, render_image
 
 from needs import MIC, needs_data
+from references import dense_total_variation
 
 needs_mic = needs_data(MIC)
 
@@ -108,13 +109,8 @@ def test_total_variation_smooths_the_fit_and_bad_weights_are_refused():
 
     cells = plain.occupancy().cells | smooth.occupancy().cells  # where either holds matter
 
-    def total_variation(grid):  # per channel, mean over those cells
-        f = grid.features.detach()
-        corner = f[:-1, :-1, :-1]
-        squares = [(f[1:, :-1, :-1] - corner) ** 2, (f[:-1, 1:, :-1] - corner) ** 2, (f[:-1, :-1, 1:] - corner) ** 2]
-        return sum(squares)[cells].mean(0)
-
-    assert (total_variation(smooth) < 0.5 * total_variation(plain)).all()
+    assert (dense_total_variation(smooth.features.detach(), cells)
+            < 0.5 * dense_total_variation(plain.features.detach(), cells)).all()
     rendered = torch.stack([render_image(smooth, cams, i).rgb for i in range(len(cams))])
     assert (rendered - images).abs().mean() < 0.35 * (images - 1.0).abs().mean()  # still a fit
     with pytest.raises(ValueError, match="tv_density and tv_color must be >= 0"):
