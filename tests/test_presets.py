@@ -176,6 +176,9 @@ def test_the_worker_edits_a_scene_grid_with_the_real_scene_schedule(service, mon
 
     client, scene_id = service
     job = _reconstructed_job(client, scene_id, backbone)
+    known = client.get(f"/v1/jobs/{job['id']}").json()["result"]["edit_schedule"]  # from the reconstruct stage
+    assert (known["backbone"], known["iterations"], known["i_start"], known["every"]) == (backbone, iterations,
+                                                                                          i_start, every)
     seen = {}
 
     def recorded_edit(initial, prompt, guidance, config, *args, **kwargs):

@@ -14,8 +14,9 @@ by the benchmarks in ``bench/results`` (2 CPU cores, torch 2.13 CPU):
   26.4 s / 400 fixed-view steps at 96 px, 4,096 rays per step). The back-projection and the cut are small beside them;
 * export: 0.066 s per rendered view (``reconstruction.json``, ``render_seconds_per_view`` at 200 px).
 
-An edit is weighed by its job's ``iterations`` until it starts, then by the count its schedule runs (a capture's
-scene grid runs 5,000 where the parameters say the objects' 8,000: ``Job.result["edit_schedule"]``).
+An edit is weighed by its job's ``iterations`` until G_i's kind is known, then by the count its schedule runs (a
+capture's scene grid runs 5,000 where the parameters say the objects' 8,000): the reconstruct stage records it in
+``Job.result["edit_schedule"]`` as it ends.
 
 The fraction weighs completed stages fully and the current one by its own progress. The time left
 is the current stage's own estimate (from its iteration rate) plus the later stages' costs, scaled

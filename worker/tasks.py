@@ -51,6 +51,8 @@ from worker.runtime import JobSkipped, StageCallbacks
 if TYPE_CHECKING:
     import torch
 
+    from voxe_core.edit import EditConfig
+
 log = logging.getLogger("voxe.worker")
 
 PREVIEW = "preview.png"
@@ -179,7 +181,19 @@ def _reconstruct(job: Job, settings, device: str, storage) -> None:
     runtime.publish_artifact(job.id, "initial_grid.safetensors", _grid_file(job.id, rec, settings, storage),
                              "grid", storage, key=rec.grid_key)
     initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key)
+    _record_edit_schedule(job, initial.kind, settings)
     _preview(job.id, initial, settings, storage, device, centre=_record_orbit_centre(job.id, initial))
+
+
+def _record_edit_schedule(job: Job, kind: str, settings) -> "EditConfig":
+    """The edit's config for a G_i of ``kind``, its schedule kept in the job's result from the moment the kind is
+    known (the end of reconstruct), so that progress weighs the edit by the count it will run (a capture's scene
+    grid: SPEC §5's 5,000 where the parameters say 8,000) before it starts."""
+    config = edit_config(job.params, kind, settings.checkpoint_every)
+    runtime.merge_job_result(job.id, {"edit_schedule": {
+        "backbone": kind, "iterations": config.iterations, "i_start": config.schedule.i_start,
+        "every": config.schedule.every, "floor": config.schedule.floor}})
+    return config
 
 
 def _record_orbit_centre(job_id: str, initial) -> "torch.Tensor":
@@ -286,10 +300,7 @@ def _edit(job: Job, settings, device: str, storage) -> None:
     guidance = runtime.get_guidance(job.sds_model, device, settings, job.id)  # first: a missing model fails fast
     rec = runtime.load_reconstruction(job.reconstruction_id)
     initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key)
-    config = edit_config(job.params, initial.kind, settings.checkpoint_every)  # SPEC §5's schedule for a scene G_i
-    runtime.merge_job_result(job.id, {"edit_schedule": {
-        "backbone": initial.kind, "iterations": config.iterations, "i_start": config.schedule.i_start,
-        "every": config.schedule.every, "floor": config.schedule.floor}})
+    config = _record_edit_schedule(job, initial.kind, settings)  # SPEC §5's schedule for a scene G_i
     scratch = runtime.scratch_dir(job.id, settings)
     checkpoint = scratch / "edit_checkpoint.safetensors"
     checkpoint_key = job_key(job.id, "checkpoints/edit.safetensors")
