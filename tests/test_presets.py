@@ -196,6 +196,32 @@ def test_the_worker_edits_a_scene_grid_with_the_real_scene_schedule(service, mon
                                  backbone, CHECKPOINT_EVERY)
 
 
+def test_a_damaged_edit_checkpoint_is_dropped_and_the_edit_starts_over(service, monkeypatch):
+    """A redelivered edit whose stored checkpoint cannot be read runs from the start instead of failing every
+    redelivery: the damaged object is deleted and the job says why."""
+    import voxe_core.edit
+    from voxe_service.storage import get_storage, job_key
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job = _reconstructed_job(client, scene_id, "relu_field")
+    key = job_key(job["id"], "checkpoints/edit.safetensors")
+    get_storage().put_bytes(key, b"not a safetensors file")
+    seen = {}
+
+    def recorded_edit(initial, prompt, guidance, config, callbacks, checkpoint_path, resume_from, **kwargs):
+        seen["resume_from"] = resume_from
+        return initial.clone_grid()
+
+    monkeypatch.setattr(runtime, "get_guidance", lambda *args: None)
+    monkeypatch.setattr(voxe_core.edit, "edit", recorded_edit)
+    assert tasks.edit_task.apply(args=(job["id"],)).get()["state"] == "done"
+    assert seen == {"resume_from": None}
+    assert not get_storage().exists(key)
+    events = client.get(f"/v1/jobs/{job['id']}/events").json()
+    assert not any(e["kind"] == "resumed" and e.get("stage") == "edit" for e in events), events
+
+
 def test_a_real_scene_edit_runs_through_the_worker_on_the_smoke_test_model(service, tmp_path):
     """A short real edit (the tiny random-weight model) of a scene G_i: the job counts the iterations it ran."""
     from voxe_core.backbones import load_grid

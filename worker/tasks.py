@@ -307,13 +307,20 @@ def _edit(job: Job, settings, device: str, storage) -> None:
     resume, note = None, None
     if storage.exists(checkpoint_key):  # a redelivered / re-queued task: go on from the last checkpoint
         from voxe_core.edit import load_edit_checkpoint
+        from voxe_core.tensorio import FormatError
 
         resume = storage.get_file(checkpoint_key, checkpoint)
-        at = int(load_edit_checkpoint(resume)[1]["iteration"])
-        note = f"resumed from the checkpoint at iteration {at}"
-        log.info("job %s: edit %s", job.id, note)
+        try:
+            at = int(load_edit_checkpoint(resume)[1]["iteration"])
+        except FormatError as exc:  # a damaged checkpoint would fail every redelivery: start over instead
+            log.warning("job %s: unreadable edit checkpoint, starting over: %s", job.id, exc)
+            storage.delete(checkpoint_key)
+            resume, note = None, "the stored edit checkpoint was unreadable: started over"
+        else:
+            note = f"resumed from the checkpoint at iteration {at}"
+            log.info("job %s: edit %s", job.id, note)
+            runtime.record_job_event(job.id, "resumed", stage="edit", iteration=at, worker=job.worker_hostname)
         runtime.update_job(job.id, message=note)
-        runtime.record_job_event(job.id, "resumed", stage="edit", iteration=at, worker=job.worker_hostname)
     input_views = None
     if config.regulariser.startswith("image_"):
         scene = load_images(job, rec.params, settings, storage)
