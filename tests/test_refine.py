@@ -389,10 +389,11 @@ def test_random_object_seeds_come_from_p_obj_above_p_e_else_the_top_fallback():
         RefineConfig(object_seed_rule="best")
 
 
-def test_the_default_cut_is_the_authors_code_but_for_the_seed_margin_and_recovers_two_blobs():
+def test_the_default_cut_is_the_authors_code_but_for_the_seed_margin_and_seedless_pieces_and_recovers_two_blobs():
     assert all(getattr(RefineConfig(), k) == v for k, v in SERVICE_CUT.items())
     differs = {k for k, v in AUTHORS_CODE_CUT.items() if getattr(RefineConfig(), k) != v}
-    assert differs == {"object_seed_margin"} and AUTHORS_CODE_CUT["object_seed_margin"] == 0.0
+    assert differs == {"object_seed_margin", "unseeded_pieces"}
+    assert AUTHORS_CODE_CUT["object_seed_margin"] == 0.0 and AUTHORS_CODE_CUT["unseeded_pieces"] == "edit"
     grid, truth = two_blobs()
     e = truth.float() * 4 - 2
     mask, stats = graph_cut_detailed(grid, e, -e, RefineConfig(edit_seeds=50))
@@ -421,6 +422,30 @@ def test_object_seeds_drawn_clear_of_one_half_keep_an_unresolved_inside_with_its
     assert not inside[nodes].numpy()[candidates].any() and len(candidates) == int((nodes & ~truth).sum())
     with pytest.raises(ValueError, match="object_seed_margin must lie in"):
         RefineConfig(object_seed_margin=1.0)
+
+
+@pytest.mark.filterwarnings("ignore:only .* seeds")
+def test_a_piece_no_seed_reaches_takes_the_label_its_probabilities_favour():
+    """A detached green box that favours the object (P_obj 0.8) but holds no seed: with no unary max-flow leaves it
+    on the edit side (the code's rule, ``unseeded_pieces="edit"``), and the default gives it to the object. With
+    smoothness 0 every node is its own piece and takes its own preference."""
+    grid = box_grid(18, [((2, 5, 5), (7, 13, 13), (0.9, 0.1, 0.1)), ((10, 5, 5), (15, 13, 13), (0.1, 0.9, 0.1))])
+    red = torch.zeros(grid.resolution, dtype=torch.bool)
+    red[:9] = True  # the red box and its max-pooled shell; the green one's nodes start at x = 9
+    nodes = node_mask(grid, rule="maxpool")
+    p_e = torch.where(red, 0.9, 0.2)
+    p_e[12, 9, 9] = 0.7  # one green voxel leans to the edit
+    e, o = torch.log(p_e), torch.log(1 - p_e)
+    no_object_seeds = RefineConfig(object_seeds=0)
+    codes, code_stats = graph_cut_detailed(grid, e, o, dataclasses.replace(no_object_seeds, unseeded_pieces="edit"))
+    ours, stats = graph_cut_detailed(grid, e, o, no_object_seeds)
+    assert torch.equal(codes[nodes], nodes[nodes]) and code_stats.unseeded_voxels == 0  # all edit, green too
+    assert torch.equal(ours[nodes], red[nodes]) and stats.unseeded_voxels == int((nodes & ~red).sum())
+    assert stats.edit_voxels == int((nodes & red).sum())
+    alone = graph_cut(grid, e, o, dataclasses.replace(no_object_seeds, smoothness=0.0))
+    assert torch.equal(alone[nodes], (p_e > 0.5)[nodes])  # the leaning voxel goes with its own P_e
+    with pytest.raises(ValueError, match="unseeded_pieces must be one of"):
+        RefineConfig(unseeded_pieces="object")
 
 
 def test_no_occupied_voxels_is_a_clear_error():

@@ -101,6 +101,10 @@ class RefineConfig:
     object_seed_fallback: int = OBJECT_SEEDS
     # unary −log P for the voxels no seed fixes (the text), or "none": only seeds pull (the code comments it out)
     unseeded_unary: Literal["log_probability", "none"] = "none"
+    # With no unary, a piece of the graph that holds no seed (a detached part or floater the draw missed, or every
+    # piece when smoothness is 0) costs nothing either way and max-flow leaves it on the edit side: "edit" keeps
+    # that (the code); "preference" (ours) gives it the label its voxels favour together, Σ log P_e vs Σ log P_obj
+    unseeded_pieces: Literal["edit", "preference"] = "preference"
     # "gaussian": λ·exp(−‖Δc‖²/2σ²) (the text); "exp_distance": λ·exp(−‖Δc‖/σ), the L2 distance (the code)
     pairwise_weight: Literal["gaussian", "exp_distance"] = "exp_distance"
     sigma: float = CUT_SIGMA  # colour scale of the pairwise weights
@@ -122,6 +126,7 @@ class RefineConfig:
         if not 0.0 < self.edit_seed_ratio <= 1.0:
             raise ValueError(f"edit_seed_ratio must lie in (0, 1], got {self.edit_seed_ratio}")
         for name, allowed in (("object_seed_rule", ("top", "random")), ("unseeded_unary", ("log_probability", "none")),
+                              ("unseeded_pieces", ("edit", "preference")),
                               ("pairwise_weight", ("gaussian", "exp_distance")), ("node_rule", ("alpha", "maxpool")),
                               ("smoothing_kernel", ("3x3", "3sigma")), ("map_scale", ("raw", "minmax")),
                               ("object_tokens", ("content", "through_end")), ("fit_views", ("fixed", "fresh")),
@@ -149,11 +154,13 @@ class RefineConfig:
 
 AUTHORS_CODE_CUT = dict(edit_seed_rule="relative", object_seeds=SERVICE_OBJECT_SEEDS, object_seed_rule="random",
                         unseeded_unary="none", pairwise_weight="exp_distance", sigma=CUT_SIGMA,
-                        smoothness=CUT_SMOOTHNESS, node_rule="maxpool", object_seed_margin=0.0)
+                        smoothness=CUT_SMOOTHNESS, node_rule="maxpool", object_seed_margin=0.0,
+                        unseeded_pieces="edit")
 """The graph cut of TAU-VAILab/Vox-E's ``build_graph`` (issue 18 item 5)."""
 
-SERVICE_CUT = {**AUTHORS_CODE_CUT, "object_seed_margin": SERVICE_OBJECT_SEED_MARGIN}
-"""The defaults: the code's cut, its random object seeds drawn clear of P ≈ ½ (``object_seed_margin``'s comment)."""
+SERVICE_CUT = {**AUTHORS_CODE_CUT, "object_seed_margin": SERVICE_OBJECT_SEED_MARGIN, "unseeded_pieces": "preference"}
+"""The defaults: the code's cut, its random object seeds drawn clear of P ≈ ½ (``object_seed_margin``'s comment), a
+piece no seed reaches labelled by its probabilities rather than left to the edit side (``unseeded_pieces``)."""
 
 PAPER_TEXT_CUT = dict(edit_seed_rule="top", object_seeds=OBJECT_SEEDS, object_seed_rule="top",
                       unseeded_unary="log_probability", pairwise_weight="gaussian", node_rule="alpha",

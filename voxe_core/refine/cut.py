@@ -6,7 +6,7 @@ costs −log P of the label, seeds tied to their terminal, and 6-neighbour
 pairwise weights λ·exp(−‖c_p − c_q‖² / 2σ²) on G_e's colours. Each of the authors'
 code's differences (refinement_functions.py::build_graph) is a RefineConfig choice;
 ``AUTHORS_CODE_CUT`` sets them all; the defaults (``SERVICE_CUT``) are the code's but for a margin on its
-random object seeds.
+random object seeds and the label of a piece no seed reaches.
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ class GraphCutStats:
     object_seeds: int
     edit_voxels: int
     flow: float
+    unseeded_voxels: int  # nodes in pieces no seed reaches (``RefineConfig.unseeded_pieces``), 0 with a unary
     build_s: float
     solve_s: float
     notes: list[str] = field(default_factory=list)
@@ -124,6 +125,49 @@ def object_seed_indices(p_e: np.ndarray, p_o: np.ndarray, config: RefineConfig) 
     return _top_seeds(p_o, p_o > 0.5, config.object_seeds)
 
 
+def _node_test(config: RefineConfig) -> str:
+    """What no vertex passed, in ``config.node_rule``'s words."""
+    if config.node_rule == "maxpool":
+        return "no vertex of the edited grid's foreground has a positive density"
+    return f"the edited grid's density never makes a voxel {config.node_alpha:.0%} opaque"
+
+
+def label_unseeded_pieces(edit_side: np.ndarray, heads: np.ndarray, tails: np.ndarray, weights: np.ndarray,
+                          seeds: np.ndarray, log_e: np.ndarray, log_o: np.ndarray) -> tuple[np.ndarray, int]:
+    """Each piece of the graph (nodes joined by edges of positive weight) holding none of ``seeds`` takes the label
+    its voxels favour together (Σ log P_e > Σ log P_obj: edit): with no unary such a piece costs nothing either way,
+    and max-flow would leave it on the source (edit) side whatever its probabilities.
+
+    Args:
+        edit_side: (N,) bool, max-flow's labels. heads, tails, weights: (E,) the pairwise edges.
+        seeds: (S,) node indices tied to either terminal. log_e, log_o: (N,) log P_e, log P_obj.
+
+    Returns:
+        (N,) bool labels, and how many nodes lie in unseeded pieces.
+
+    Examples:
+        >>> labels, moved = label_unseeded_pieces(np.ones(4, bool), np.array([0, 2]), np.array([1, 3]),
+        ...                                       np.ones(2), np.array([0]), np.log([.9, .9, .2, .4]),
+        ...                                       np.log([.1, .1, .8, .6]))
+        >>> labels.tolist(), moved  # nodes 2-3 form a seedless piece that favours the object
+        ([True, True, False, False], 2)
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = edit_side.size
+    joined = weights > 0
+    adjacency = coo_matrix((np.ones(int(joined.sum())), (heads[joined], tails[joined])), shape=(n, n))
+    count, piece = connected_components(adjacency, directed=False)
+    seeded = np.zeros(count, bool)
+    seeded[piece[seeds]] = True
+    unseeded = ~seeded[piece]
+    favours_edit = np.bincount(piece, weights=log_e - log_o, minlength=count) > 0
+    labels = edit_side.copy()
+    labels[unseeded] = favours_edit[piece[unseeded]]
+    return labels, int(unseeded.sum())
+
+
 def graph_cut_detailed(
     grid: VoxelGrid,
     edit_field: torch.Tensor,
@@ -135,15 +179,18 @@ def graph_cut_detailed(
     Energy (the text, ``PAPER_TEXT_CUT``): Σ_p −log P_{l_p}(p) + λ Σ_{p~q, l_p≠l_q} exp(−‖c_p − c_q‖²/2σ²),
     minimised exactly by max-flow; the defaults are the authors' code's (``AUTHORS_CODE_CUT``: no unary
     for unseeded voxels, λ·exp(−‖Δc‖/σ), random object seeds, max-pooled nodes; see RefineConfig), the object
-    seeds drawn among P_obj > P_e + ``object_seed_margin`` (``SERVICE_CUT``). Seeds: the ``edit_seeds`` voxels of highest
-    P_e among those with P_e > 1/2 are tied to the edit terminal (``edit_seed_rule="relative"``:
-    every voxel within ``edit_seed_ratio`` of the largest P_e, at least ``edit_seeds`` of them, as the
-    authors' code), the
-    ``object_seeds`` of highest P_obj among those with P_obj > 1/2 to the
-    object terminal (so the two sets never overlap); when fewer voxels qualify
-    the available ones are used and ``stats.notes`` (and a warning) says so.
-    Raises :class:`SegmentationError` when no voxel is occupied or when no
-    voxel qualifies as a seed of either label (the grids carry no preference
+    seeds drawn among P_obj > P_e + ``object_seed_margin`` and a piece no seed reaches labelled by its
+    probabilities (``SERVICE_CUT``).
+
+    Edit seeds: every node within ``edit_seed_ratio`` of the largest P_e, topped up to ``edit_seeds`` by the
+    highest P_e, then only those with P_e > P_obj (``edit_seed_rule="relative"``, the code); or the
+    ``edit_seeds`` highest P_e among P_e > ½ ("top", the text). Object seeds (``object_seed_indices``): up to
+    ``object_seeds`` drawn at random (``seed``) among P_obj > P_e + margin, or when none qualifies the
+    ``object_seed_fallback`` highest P_obj whatever their preference ("random"); or the ``object_seeds``
+    highest P_obj among P_obj > ½ ("top"). A node in both sets stays an edit seed. When fewer seeds
+    than asked qualify, the available ones are used and ``stats.notes`` (and a warning) says so.
+    Raises :class:`SegmentationError` when no node is occupied or when no node
+    qualifies as a seed of either label (the grids carry no preference
     anywhere, e.g. all-equal probabilities).
     """
     import maxflow
@@ -156,8 +203,8 @@ def graph_cut_detailed(
     n = int(nodes.sum())
     if n == 0:
         raise SegmentationError(
-            f"no occupied voxels: the edited grid's density never makes a voxel {config.node_alpha:.0%} opaque, "
-            "so there is nothing to segment (is it an empty or untrained grid?)"
+            f"no occupied voxels: {_node_test(config)}, so there is nothing to segment "
+            "(is it an empty or untrained grid?)"
         )
     log_e, log_o = log_probabilities(edit_field.detach().cpu(), object_field.detach().cpu())
     nodes_np = nodes.numpy()
@@ -181,7 +228,7 @@ def graph_cut_detailed(
         )
     for label, got, wanted in (("edit", edit_seeds.size, config.edit_seeds), ("object", object_seeds.size, config.object_seeds)):
         if got < wanted:
-            notes.append(f"only {got} of {wanted} {label} seeds: {got} occupied voxels are more likely {label}")
+            notes.append(f"only {got} of {wanted} {label} seeds qualified")
 
     # unary terms: the source side is "edit", so the source edge is cut (paid) when p ends up "object"
     cap_source = -log_o if config.unseeded_unary == "log_probability" else np.zeros(n)
@@ -221,16 +268,20 @@ def graph_cut_detailed(
     build_s = time.perf_counter() - t0
     t1 = time.perf_counter()
     flow = graph.maxflow()
-    in_sink = graph.get_grid_segments(np.asarray(node_ids))  # True: object side
+    edit_side, unseeded = ~graph.get_grid_segments(np.asarray(node_ids)), 0  # get_grid_segments: True on the sink
+    if config.unseeded_unary == "none" and config.unseeded_pieces == "preference":
+        edit_side, unseeded = label_unseeded_pieces(edit_side, i, j, w, np.concatenate([edit_seeds, object_seeds]),
+                                                    log_e, log_o)
     solve_s = time.perf_counter() - t1
 
     mask = np.zeros(shape, dtype=bool)
-    mask[nodes_np] = ~in_sink
+    mask[nodes_np] = edit_side
     for note in notes:
         warnings.warn(note, stacklevel=2)
     stats = GraphCutStats(
         nodes=n, edges=int(i.size), edit_seeds=int(edit_seeds.size), object_seeds=int(object_seeds.size),
-        edit_voxels=int((~in_sink).sum()), flow=float(flow), build_s=build_s, solve_s=solve_s, notes=notes,
+        edit_voxels=int(edit_side.sum()), flow=float(flow), unseeded_voxels=unseeded, build_s=build_s,
+        solve_s=solve_s, notes=notes,
     )
     return torch.from_numpy(mask).to(grid.bbox_min.device), stats
 
