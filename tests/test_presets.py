@@ -222,6 +222,43 @@ def test_a_damaged_edit_checkpoint_is_dropped_and_the_edit_starts_over(service, 
     assert not any(e["kind"] == "resumed" and e.get("stage") == "edit" for e in events), events
 
 
+@pytest.mark.parametrize("going_down", [SystemExit, KeyboardInterrupt])
+def test_a_worker_going_down_mid_fit_hands_the_reconstruction_back_rather_than_failing_it(service, monkeypatch,
+                                                                                           going_down):
+    """A warm shutdown's SystemExit (or ^C) inside the fit is not the fit's failure: the shared reconstruction goes
+    back to pending with no owner, so the jobs waiting on it, or this one redelivered, fit it; a real error fails it."""
+    from voxe_service.db import session_scope
+    from voxe_service.models import Reconstruction
+    from worker import tasks
+
+    client, scene_id = service
+
+    def rec_of(job_id: str) -> tuple:
+        with session_scope() as session:
+            rec = session.get(Reconstruction, client.get(f"/v1/jobs/{job_id}").json()["reconstruction"]["id"])
+            return rec.state, rec.owner_job_id, rec.error
+
+    def submit() -> str:
+        body = {**TINY_FIT, "reconstruction": {**TINY_FIT["reconstruction"], "seed": 7}}
+        return client.post("/v1/jobs", json={"scene_id": scene_id, "prompt": "a mic", "params": body}).json()["id"]
+
+    def fit_going_down(*args, **kwargs):
+        raise going_down()
+
+    monkeypatch.setattr(tasks, "_fit_grid", fit_going_down)
+    job_id = submit()
+    with pytest.raises(going_down):
+        tasks.reconstruct_task.apply(args=(job_id,))
+    assert rec_of(job_id) == ("pending", None, None)
+
+    def fit_failing(*args, **kwargs):
+        raise RuntimeError("the fit diverged")
+
+    monkeypatch.setattr(tasks, "_fit_grid", fit_failing)
+    assert tasks.reconstruct_task.apply(args=(submit(),)).get()["state"] == "failed"
+    assert rec_of(job_id)[0] == "failed" and rec_of(job_id)[2] == "RuntimeError: the fit diverged"
+
+
 def test_a_real_scene_edit_runs_through_the_worker_on_the_smoke_test_model(service, tmp_path):
     """A short real edit (the tiny random-weight model) of a scene G_i: the job counts the iterations it ran."""
     from voxe_core.backbones import load_grid

@@ -251,12 +251,13 @@ def _fit(job: Job, rec, settings, storage, device: str) -> None:
             callbacks.on_progress(Progress("reconstruct", total, total))
         else:
             grid, total = _fit_grid(job, rec, settings, storage, callbacks, checkpoint, checkpoint_key, device)
-    except StageCancelled:  # let a waiting job take over (from the checkpoint)
-        runtime.set_reconstruction(rec.id, job.id, state=R_PENDING, owner_job_id=None, lease_until=None)
-        raise
     except BaseException as exc:
-        runtime.set_reconstruction(rec.id, job.id, state=R_FAILED, lease_until=None, finished_at=utcnow(),
-                                   error=f"{type(exc).__name__}: {exc}")
+        if isinstance(exc, Exception) and not isinstance(exc, StageCancelled):
+            runtime.set_reconstruction(rec.id, job.id, state=R_FAILED, lease_until=None, finished_at=utcnow(),
+                                       error=f"{type(exc).__name__}: {exc}")
+        else:  # canceled, or the worker going down (SystemExit, KeyboardInterrupt): not the fit's failure, so a
+            # waiting job, or this one redelivered, takes over from the checkpoint
+            runtime.set_reconstruction(rec.id, job.id, state=R_PENDING, owner_job_id=None, lease_until=None)
         raise
     path = scratch / "initial_grid.safetensors"
     grid.save(path)
