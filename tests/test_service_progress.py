@@ -130,6 +130,26 @@ def test_a_reused_reconstruction_weighs_nothing():
     assert job_out(job).overall_progress == pytest.approx(expected)
 
 
+def test_a_job_that_waited_for_another_jobs_fit_keeps_its_progress_when_the_fit_ends():
+    """The job's reconstruct stage follows the other job's fit (iteration of total); once that fit has succeeded the
+    waiting job's progress must not fall back as if the fit had been reused for free."""
+    from api.routes.jobs import job_out
+
+    began = utcnow() - timedelta(minutes=5)
+    fitting = Reconstruction(id="r", scene_id="s", params_key="k", params={}, state="running", owner_job_id="other",
+                             iteration=1800, total=2000)
+    waiting = _job(reconstruction=fitting, state="running", stage="reconstruct", iteration=1800, total=2000,
+                   started_at=began, stage_started_at=began)
+    fitted = Reconstruction(id="r", scene_id="s", params_key="k", params={}, state="succeeded", owner_job_id="other",
+                            iteration=2000, total=2000, finished_at=utcnow())
+    edit_began = _job(reconstruction=fitted, state="running", stage="edit", iteration=0, total=100,
+                      completed_stages=["reconstruct"], started_at=began, stage_started_at=utcnow())
+    before, after = job_out(waiting).overall_progress, job_out(edit_began).overall_progress
+    assert 0 < before <= after, (before, after)
+    costs = dict(stage_costs(mode="local", params=waiting.params, reconstruction_units=2000))
+    assert after == pytest.approx(costs["reconstruct"] / sum(costs.values()))
+
+
 def test_eta_scales_later_stages_by_the_current_stages_speed():
     costs = [("reconstruct", 10.0), ("edit", 80.0), ("export", 10.0)]
     args = dict(costs=costs, completed=["reconstruct"], stage="edit", stage_fraction=0.25, stage_eta_s=60.0,

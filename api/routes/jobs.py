@@ -55,8 +55,8 @@ def job_out(job: Job) -> JobOut:
 def _overall(job: Job, now) -> tuple[float, float | None]:
     """(overall progress, seconds left for the job): voxe_service.progress over the job's stage costs."""
     rec = job.reconstruction
-    if rec is not None and rec.state == R_SUCCEEDED and rec.owner_job_id != job.id:
-        units = 1  # reused: nothing to fit
+    if rec is not None and rec.state == R_SUCCEEDED and rec.owner_job_id != job.id and not _waited_for(job, rec):
+        units = 1  # reused a finished fit: nothing to fit or wait for
     else:
         units = (rec.total if rec is not None else 0) or (job.total if job.stage == "reconstruct" else None)
     edit_iterations = ((job.result or {}).get("edit_schedule") or {}).get("iterations")
@@ -67,6 +67,12 @@ def _overall(job: Job, now) -> tuple[float, float | None]:
                    stage_fraction=fraction, stage_eta_s=job.eta_seconds if running else None,
                    stage_elapsed_s=(now - job.stage_started_at).total_seconds() if job.stage_started_at else None,
                    finished=job.state == SUCCEEDED)
+
+
+def _waited_for(job: Job, rec) -> bool:
+    """Whether the job started before another job's fit of its reconstruction finished: it spent that fit's time
+    waiting, so the fit keeps its weight in the job's progress (which then never drops when the fit ends)."""
+    return job.started_at is not None and rec.finished_at is not None and rec.finished_at > job.started_at
 
 
 def _models(job: Job) -> Models:
@@ -143,7 +149,7 @@ def list_events(job_id: str, request: Request, session: SessionDep, key: Current
 def _event_id(value: str | None) -> int:
     if value is None or not value.strip():
         return 0
-    if not value.strip().isdigit():
+    if not (value.strip().isascii() and value.strip().isdigit()):  # "²".isdigit(), but int("²") fails
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
                             f"Last-Event-ID must be the id of an event (a non-negative integer), not {value!r}")
     return int(value)
