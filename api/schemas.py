@@ -55,7 +55,9 @@ class ReconstructionParams(Strict):
     )
     iterations: Annotated[list[StageIterations], Field(min_length=1, max_length=8)] | StageIterations | None = Field(
         None, description="iterations of the final stage, or one value per stage of the preset (fast: 3, paper: 4, scene: 2; "
-        "another count is a 422); the preset's otherwise"
+        "another count is a 422; under backbone auto, a count that fits neither preset is a 422 and one that "
+        "fits only the other backbone's fails the job as its reconstruction starts, naming the count it takes); "
+        "the preset's otherwise"
     )
     rays_per_step: int | None = Field(None, ge=1, le=1 << 20)
     seed: int = Field(presets.SEED, ge=0, le=MAX_SEED)
@@ -92,8 +94,9 @@ class RefineParams(Strict):
                        description="random upper-hemisphere poses whose 2D attention maps are lifted")
     rays_per_step: int = Field(paper.REFINE_RAYS_PER_STEP, ge=1, le=1 << 20)
     edit_seeds: int = Field(paper.EDIT_SEEDS, ge=0, le=10_000_000,
-                            description="at least this many voxels tied to the 'edit' terminal: every voxel with "
-                                        "P_edit >= 0.992 max P_edit, topped up by the highest P_edit (the authors' code)")
+                            description="voxels tied to the 'edit' terminal: every voxel with P_edit >= 0.992 max "
+                                        "P_edit, topped up to this many by the highest P_edit, then only those more "
+                                        "likely edit than object (the authors' code)")
     object_seeds: int = Field(paper.SERVICE_OBJECT_SEEDS, ge=0, le=10_000_000,
                               description="up to this many voxels tied to the 'object' terminal, drawn at random (the "
                                           f"job's seed) among P_object > P_edit + {paper.SERVICE_OBJECT_SEED_MARGIN} "

@@ -46,8 +46,9 @@ def add_parsers(commands, common) -> None:
     ref.add_argument("--views", type=positive_int, default=paper.REFINE_VIEWS, help="random upper-hemisphere views for the 2D maps")
     ref.add_argument("--rays", type=positive_int, default=paper.REFINE_RAYS_PER_STEP, help="rays per attention-grid step")
     ref.add_argument("--edit-seeds", type=int, default=paper.EDIT_SEEDS,
-                     help="at least this many voxels tied to the 'edit' terminal: every voxel with P_edit >= 0.992 "
-                          "max P_edit, topped up by the highest P_edit (the authors' code)")
+                     help="voxels tied to the 'edit' terminal: every voxel with P_edit >= 0.992 max P_edit, topped "
+                          "up to this many by the highest P_edit, then only those more likely edit than object "
+                          "(the authors' code)")
     ref.add_argument("--object-seeds", type=int, default=paper.SERVICE_OBJECT_SEEDS,
                      help="up to this many voxels tied to the 'object' terminal, drawn at random (--seed) among "
                           f"P_object > P_edit + {paper.SERVICE_OBJECT_SEED_MARGIN} (the authors' code: among "

@@ -171,7 +171,8 @@ it draws as the code does)."""
 AUTHORS_CODE_MAPS = dict(edit_token_reduce="max", view_word_prompt=True, object_tokens="through_end",
                          smoothing_sigma=SERVICE_SMOOTHING_SIGMA, smoothing_kernel="3x3", smooth_upsampled=True,
                          map_scale="raw")
-"""The 2D maps of TAU-VAILab/Vox-E (``attn_grid_trainer.py``, ``cross_attn.py``; issue 18 item 5): the defaults."""
+"""The 2D maps of TAU-VAILab/Vox-E (``attn_grid_trainer.py``, ``cross_attn.py``; issue 18 item 5): raw scale, where the
+defaults (``SERVICE_MAPS``) min-max normalise."""
 
 SERVICE_MAPS = {**AUTHORS_CODE_MAPS, "map_scale": "minmax"}
 """The defaults: the code's maps, min-max normalised (``map_scale``'s comment says why)."""
