@@ -128,6 +128,23 @@ def test_reaper_fails_only_jobs_nothing_will_finish(db):
     assert [e["kind"] for e in events_of(orphans["dead worker"])] == ["failed"]  # on the job's timeline too
 
 
+def test_a_cancel_that_lands_between_stages_ends_the_job_when_the_next_stage_begins(db):
+    """The cancel is seen as the next stage begins: that stage is skipped and the job ends canceled (the cancel
+    was once rolled back with the skip, leaving the job running for ever)."""
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+    from worker.runtime import JobSkipped, begin_stage
+
+    job_id = add_job(add_scene(), "running", 0, "w@host", "reconstruct")
+    with session_scope() as session:
+        job = session.get(Job, job_id)
+        job.completed_stages, job.cancel_requested = ["reconstruct"], True
+    with pytest.raises(JobSkipped, match="canceled"):
+        begin_stage(job_id, "edit", "w@host", "cpu")
+    ended = job_row(job_id)
+    assert ended.state == "canceled" and ended.message == "canceled before edit" and ended.finished_at is not None
+
+
 def events_of(job_id: str) -> list[dict]:
     from sqlalchemy import select
 

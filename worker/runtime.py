@@ -100,6 +100,7 @@ def begin_stage(job_id: str, stage: str, hostname: str | None, device: str) -> J
             raise JobSkipped(f"job {job_id} is {job.state if job else 'gone'}")
         if job.cancel_requested:
             finish_jobs(session, [job_id], CANCELED, message=f"canceled before {stage}")
+            session.commit()  # before raising: session_scope rolls back on the way out of an exception
             raise JobSkipped(f"job {job_id} canceled")
         if stage in (job.completed_stages or []):
             raise JobSkipped(f"job {job_id}: {stage} already done (redelivered task)")
