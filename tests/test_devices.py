@@ -23,6 +23,7 @@ from voxe_core.grid import VoxelGrid
 from voxe_core.progress import Callbacks
 from voxe_core.reconstruct import ReconstructConfig, reconstruct
 from voxe_core.refine.pipeline import refine
+from voxe_core.scene_grid import SceneGrid
 
 NO_CUDA = not torch.cuda.is_available()
 needs_no_cuda = pytest.mark.skipif(not NO_CUDA, reason="shows the refusal of a device this machine lacks")
@@ -198,3 +199,16 @@ def test_peak_memory_survives_a_nested_reset():
     del block
     PeakMemory("cpu").start()  # a nested stage resets the process counter
     assert outer.peak_bytes() >= seen
+
+
+@pytest.mark.parametrize("make", [lambda: VoxelGrid(4, (-1, -2, -3), (1, 2, 3)), lambda: SceneGrid(5, 1.5)])
+def test_grids_made_from_a_grid_on_a_device_stay_on_it(make):
+    """A multi-stage fit upsamples, an edit clones and a cut builds ``like`` grids on the stage's device: their box
+    buffers, features and host scalars come from the source grid without a tensor crossing devices."""
+    grid = make()
+    on_meta = grid.to("meta")
+    for made, resolution in ((on_meta.clone_grid(), grid.resolution), (on_meta.upsampled(7), (7, 7, 7)),
+                             (on_meta.like(torch.zeros(3, 3, 3, 4, device="meta")), (3, 3, 3))):
+        assert type(made) is type(grid) and made.resolution == resolution
+        assert {t.device.type for t in (made.bbox_min, made.bbox_max, made.features)} == {"meta"}
+        assert made.min_voxel_edge == grid.like(torch.zeros(*resolution, 4)).min_voxel_edge

@@ -154,24 +154,28 @@ class VoxelGrid(torch.nn.Module):
         res = (resolution,) * 3 if isinstance(resolution, int) else tuple(int(r) for r in resolution)
         if min(res) < 2:
             raise ValueError(f"grid resolution must be >= 2 per axis, got {res}")
-        bbox_min = torch.as_tensor(bbox_min, dtype=torch.float32)
-        bbox_max = torch.as_tensor(bbox_max, dtype=torch.float32)
-        if not bool((bbox_max > bbox_min).all()):
-            raise ValueError(f"empty box: min {bbox_min.tolist()} max {bbox_max.tolist()}")
-        self.register_buffer("bbox_min", bbox_min)
-        self.register_buffer("bbox_max", bbox_max)
+        # The box on the host (its scalars below, and ``like`` building grids on any device from it), and as
+        # buffers on the device of the features (or of a given box tensor), so every grid's tensors share one.
+        device = features.device if features is not None else getattr(bbox_min, "device", torch.device("cpu"))
+        host_min = torch.as_tensor(bbox_min, dtype=torch.float32).cpu()
+        host_max = torch.as_tensor(bbox_max, dtype=torch.float32).cpu()
+        if not bool((host_max > host_min).all()):
+            raise ValueError(f"empty box: min {host_min.tolist()} max {host_max.tolist()}")
+        self._host_box = (host_min, host_max)
+        self.register_buffer("bbox_min", host_min.to(device))
+        self.register_buffer("bbox_max", host_max.to(device))
         self.activation = activation
-        self.density_scale = float(density_scale or default_density_scale(bbox_min.tolist(), bbox_max.tolist()))
+        self.density_scale = float(density_scale or default_density_scale(host_min.tolist(), host_max.tolist()))
         if features is None:
-            features = torch.zeros(*res, 4)
+            features = torch.zeros(*res, 4, device=device)
             features[..., 0] = init_density
         elif tuple(features.shape) != (*res, 4):
             raise ValueError(f"features of shape {tuple(features.shape)} do not fit resolution {res}")
         self._resolution = res
         # Host copies of the box's scalars: the sampler reads them every call, from the device they would
         # cost a round trip each.
-        self.min_voxel_edge = float(((bbox_max - bbox_min) / (torch.tensor(res) - 1)).min())
-        self.box_diagonal = math.dist(bbox_min.tolist(), bbox_max.tolist())
+        self.min_voxel_edge = float(((host_max - host_min) / (torch.tensor(res) - 1)).min())
+        self.box_diagonal = math.dist(host_min.tolist(), host_max.tolist())
         # Stored flat so a gather can return sparse gradients (see ``interpolate``).
         self.flat_features = torch.nn.Parameter(features.float().reshape(-1, 4).contiguous())
 
@@ -193,7 +197,7 @@ class VoxelGrid(torch.nn.Module):
     def like(self, features: torch.Tensor) -> "VoxelGrid":
         """A grid with this one's box and activation, holding ``features``."""
         return VoxelGrid(
-            features.shape[:3], self.bbox_min, self.bbox_max, self.activation, self.density_scale, features=features
+            features.shape[:3], *self._host_box, self.activation, self.density_scale, features=features
         )
 
     def clone_grid(self) -> "VoxelGrid":
