@@ -188,6 +188,18 @@ def test_resume_reproduces_the_uninterrupted_run_bit_for_bit(small_sphere, tiny_
     assert not torch.equal(other.features, reference.features)
 
 
+def test_a_zero_iteration_edit_writes_a_checkpoint_with_zero_moments(small_sphere, tmp_path):
+    """No step taken: Adam holds no moments yet, and the checkpoint still writes (two zero tensors, not one
+    shared: safetensors refuses shared memory) beside the unchanged grid."""
+    checkpoint = tmp_path / "c.safetensors"
+    edited = edit(small_sphere, "a wooden dog", FakeGuidance(), EditConfig(iterations=0, render_size=SIZE),
+                  checkpoint_path=checkpoint)
+    assert torch.equal(edited.features, small_sphere.features)
+    tensors, meta = load_edit_checkpoint(checkpoint)
+    assert meta["iteration"] == 0 and int(tensors["adam_step"]) == 0
+    assert not tensors["adam_exp_avg"].any() and not tensors["adam_exp_avg_sq"].any()
+
+
 def test_resume_refuses_another_prompt_or_grid(small_sphere, make_sphere_grid, tiny_guidance, tmp_path):
     checkpoint = tmp_path / "c.safetensors"
     config = EditConfig(iterations=1, render_size=SIZE)

@@ -55,13 +55,15 @@ def test_fit_is_deterministic_under_a_seed_and_reduces_error():
 
 
 @pytest.mark.parametrize(
-    "stop_after,average_from",
-    [(10, 1.0), (15, 1.0), (22, 1.0),  # mid-stage, stage boundary, second stage
-     (22, 0.4), (27, 0.4)],  # inside the averaged tail of the final stage
+    "stop_after,average_from,occupancy_every",
+    [(10, 1.0, 16), (15, 1.0, 16), (22, 1.0, 16),  # mid-stage, stage boundary, second stage
+     (22, 0.4, 16), (27, 0.4, 16),  # inside the averaged tail of the final stage
+     (8, 1.0, 4), (23, 1.0, 4)],  # on an occupancy refresh, in either stage
 )
-def test_resume_from_checkpoint_is_bit_exact(tmp_path, stop_after, average_from):
+def test_resume_from_checkpoint_is_bit_exact(tmp_path, stop_after, average_from, occupancy_every):
     images, cams = synthetic_views()
-    config = tiny_config(checkpoint_every=1, average_from=average_from, average_every=2)
+    config = tiny_config(checkpoint_every=1, average_from=average_from, average_every=2,
+                         occupancy_every=occupancy_every)
     uninterrupted = reconstruct(images, cams, config)
 
     checkpoint = tmp_path / "ckpt.safetensors"

@@ -219,12 +219,11 @@ def save_edit_checkpoint(
     """G_e features, Adam moments and step, generator states and the iteration (tensorio, no pickle)."""
     param = grid.flat_features
     state = optimizer.state.get(param, {})
-    zeros = torch.zeros_like(param)
     step = state.get("step", 0)
-    tensors = {
+    tensors = {  # before the first step Adam holds no moments: two zero tensors (safetensors refuses shared memory)
         **grid.state_tensors(),
-        "adam_exp_avg": state.get("exp_avg", zeros),
-        "adam_exp_avg_sq": state.get("exp_avg_sq", zeros),
+        "adam_exp_avg": state["exp_avg"] if "exp_avg" in state else torch.zeros_like(param),
+        "adam_exp_avg_sq": state["exp_avg_sq"] if "exp_avg_sq" in state else torch.zeros_like(param),
         "adam_step": torch.as_tensor(step, dtype=torch.float64).reshape(1).cpu(),
         **{f"rng_{name}": gen.get_state() for name, gen in generators.items()},
     }

@@ -387,7 +387,8 @@ def reconstruct(
         clear_rows = camera_clear_rows(grid, cameras, config.camera_clearance)
         for iteration in range(first, config.iterations[stage]):
             callbacks.check_cancel("reconstruct")
-            if iteration % config.occupancy_every == 0 and iteration != first:
+            # Not at 0 (built just above); a run resumed on a refresh iteration refreshes as the uninterrupted one did.
+            if iteration % config.occupancy_every == 0 and iteration > 0:
                 occupancy = grid.occupancy(config.render.sigma_threshold)
             for group in optimizer.param_groups:
                 group["lr"] = _learning_rate(config, stage, iteration)
