@@ -15,7 +15,7 @@ import torch
 import voxe_core.export
 import voxe_core.reconstruct
 from voxe_core.cameras import Cameras, spherical_poses
-from voxe_core.devices import DeviceUnavailableError, PeakMemory, resolve_device
+from voxe_core.devices import DeviceUnavailableError, PeakMemory, resolve_device, same_device
 from voxe_core.edit import EditConfig, edit
 from voxe_core.evaluate import EditSample, evaluate
 from voxe_core.export import render_views, turntable_cameras
@@ -44,6 +44,13 @@ def test_resolve_device():
     assert resolve_device("auto") == resolve_device(None)
     with pytest.raises(DeviceUnavailableError, match="unknown device 'gpu0'"):
         resolve_device("gpu0")
+    with pytest.raises(DeviceUnavailableError, match="'mps' is not supported: .* float64"):
+        resolve_device("mps")  # refused with its reason whether or not this machine has MPS
+
+
+def test_devices_are_the_same_only_with_the_same_index():
+    assert same_device("cpu", torch.device("cpu")) and same_device("cuda:1", "cuda:1")
+    assert not same_device("cuda:0", "cuda:1") and not same_device("cuda:0", "cpu")  # edit refuses these pairs
 
 
 @needs_no_cuda

@@ -96,6 +96,19 @@ def test_encode_prompts_shape_and_cache(guidance):
     assert guidance.unconditional_embedding().shape == (1, 77, 32)
 
 
+def test_a_full_embedding_cache_still_answers_a_call_mixing_cached_and_new_prompts(guidance):
+    """When the bounded cache starts afresh in the middle of a call, the call's cached prompts are still returned
+    (they were once dropped before the stack: KeyError)."""
+    guidance._embedding_cache.clear()
+    filler = [f"a render of thing {i}" for i in range(256)]
+    guidance.encode_prompts(filler)
+    mixed = guidance.encode_prompts([filler[0], "a render of a new thing", filler[0]])
+    fresh = guidance.encode_prompts([filler[0], "a render of a new thing"])
+    torch.testing.assert_close(mixed, fresh[[0, 1, 0]])
+    assert len(guidance._embedding_cache) <= 256
+    guidance._embedding_cache.clear()
+
+
 # ----------------------------------------------------------------- SDS
 
 

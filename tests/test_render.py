@@ -63,6 +63,12 @@ def test_slab_chord_lengths_are_exact_for_known_geometry():
     assert float(t_far[0] - t_near[0]) == pytest.approx(3.0)
     assert float(t_far[1] - t_near[1]) == pytest.approx(1.5)  # camera inside: starts at 0
     assert t_far[2] <= t_near[2]  # misses the box
+    inside_still = ray_box_intersection(torch.tensor([[0.1, 0.2, 0.3]]), torch.zeros(1, 3), torch.full((3,), -1.5),
+                                        torch.full((3,), 1.5))
+    assert inside_still[1] <= inside_still[0]  # a zero direction from inside is no ray (not a 1e12-unit chord)
+    out = render_rays(uniform_grid(0.01), torch.tensor([[0.1, 0.2, 0.3]]), torch.zeros(1, 3),
+                      RenderConfig(background=(0.2, 0.4, 0.6)))
+    assert out.samples == 0 and torch.equal(out.rgb, torch.tensor([[0.2, 0.4, 0.6]]))
 
 
 def test_empty_grid_renders_the_background_exactly_with_no_samples():

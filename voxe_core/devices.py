@@ -62,9 +62,26 @@ def resolve_device(device: torch.device | str | None = None) -> torch.device:
         count = torch.cuda.device_count()
         if resolved.index is not None and resolved.index >= count:
             raise DeviceUnavailableError(f"device {str(resolved)!r} asked for, but this machine has {count} CUDA device(s)")
-    elif resolved.type == "mps" and not torch.backends.mps.is_available():
-        raise DeviceUnavailableError("device 'mps' asked for, but MPS is not available here; use device 'cpu'")
+    elif resolved.type == "mps":
+        raise DeviceUnavailableError("device 'mps' is not supported: the renderer's transmittance sums in float64, "
+                                     "which MPS lacks; use device 'cpu' (or a CUDA device)")
     return resolved
+
+
+def same_device(a: torch.device | str, b: torch.device | str) -> bool:
+    """Whether two devices are one: an index-less ``cuda`` is the current CUDA device.
+
+    Examples:
+        >>> same_device("cpu", "cpu"), same_device("cuda:0", "cuda:1"), same_device("cuda:1", "cpu")
+        (True, False, False)
+    """
+    a, b = torch.device(a), torch.device(b)
+    if a.type != b.type:
+        return False
+    if a.index is None or b.index is None:  # asks CUDA which device is current only then
+        current = torch.cuda.current_device() if a.type == "cuda" else 0
+        return (current if a.index is None else a.index) == (current if b.index is None else b.index)
+    return a.index == b.index
 
 
 def _rss_peak_bytes() -> int | None:

@@ -60,7 +60,7 @@ from voxe_core.constants import (
     NERF_SYNTHETIC_RADIUS,
     RENDER_SIZE,
 )
-from voxe_core.devices import PeakMemory, resolve_device
+from voxe_core.devices import PeakMemory, resolve_device, same_device
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance import Guidance
 from voxe_core.guidance.prompts import (
@@ -295,7 +295,7 @@ def edit(
 
     guidance_device = getattr(guidance, "device", None)
     device = resolve_device(device if device is not None else (guidance_device or initial_grid.flat_features.device))
-    if guidance_device is not None and torch.device(guidance_device).type != device.type:
+    if guidance_device is not None and not same_device(guidance_device, device):
         raise ValueError(f"the edit runs on {device} but its guidance model is on {guidance_device}; "
                          "load the guidance on the same device")
     memory = PeakMemory(device).start()

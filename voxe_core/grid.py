@@ -62,7 +62,7 @@ def ray_box_intersection(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Slab test of rays (N, 3) against a box (3,): (t_near, t_far), each (N,), t_near clamped at 0 for cameras inside.
 
-    Misses and non-finite rays get t_far <= t_near. Axis-parallel rays use a
+    Misses, non-finite rays and zero-length directions get t_far <= t_near. Axis-parallel rays use a
     signed tiny reciprocal instead of dividing by zero.
 
     Examples:
@@ -78,6 +78,7 @@ def ray_box_intersection(
     t_near = torch.minimum(t0, t1).amax(-1).clamp_min(0.0)
     t_far = torch.maximum(t0, t1).amin(-1)
     finite = torch.isfinite(origins).all(-1) & torch.isfinite(directions).all(-1) & torch.isfinite(t_far)
+    finite &= directions.abs().amax(-1) >= 1e-12  # no direction: not a ray (it would span ~1e12 units from inside)
     t_far = torch.where(finite & torch.isfinite(t_near), t_far, torch.zeros_like(t_far))
     t_near = torch.where(finite & torch.isfinite(t_near), t_near, torch.zeros_like(t_near))
     return t_near, t_far

@@ -52,6 +52,7 @@ from voxe_core.guidance.loading import load_stable_diffusion
 
 
 PREDICTION_TYPES = ("epsilon", "v_prediction")
+_EMBEDDING_CACHE_SIZE = 256  # prompts whose text embeddings a guidance keeps
 
 
 def prediction_type(scheduler) -> str:
@@ -206,11 +207,12 @@ class StableDiffusionGuidance:
         missing = [p for p in dict.fromkeys(prompts) if p not in self._embedding_cache]
         if missing:
             ids = self._tokenize(missing).to(self.device)
-            hidden = self.text_encoder(ids)[0]
-            for p, h in zip(missing, hidden):
-                if len(self._embedding_cache) > 256:
-                    self._embedding_cache.clear()
-                self._embedding_cache[p] = h
+            hidden = dict(zip(missing, self.text_encoder(ids)[0]))
+            found = {p: self._embedding_cache.get(p, hidden.get(p)) for p in prompts}
+            if len(self._embedding_cache) + len(missing) > _EMBEDDING_CACHE_SIZE:  # bounded: start afresh
+                self._embedding_cache.clear()
+            self._embedding_cache.update(hidden)
+            return torch.stack([found[p] for p in prompts])
         return torch.stack([self._embedding_cache[p] for p in prompts])
 
     def unconditional_embedding(self) -> torch.Tensor:
