@@ -126,15 +126,16 @@ def lock_key(session: Session, key: ApiKey) -> None:
     session.execute(select(ApiKey.id).where(ApiKey.id == key.id).with_for_update())
 
 
-def check_active_jobs(session: Session, key: ApiKey, settings: Settings) -> None:
-    """With the new job's row flushed: 429 when the key now has more queued + running jobs than allowed."""
+def check_active_jobs(session: Session, key: ApiKey, settings: Settings, adding: int = 1) -> None:
+    """With the ``adding`` new jobs' rows flushed: 429 when the key now has more queued + running jobs than allowed."""
     limit = key.max_active_jobs or settings.max_active_jobs_per_key
     active = session.scalar(select(func.count()).select_from(Job)
                             .where(Job.owner_key_id == key.id, Job.state.in_((QUEUED, RUNNING)))) or 0
     if active > limit:
-        raise QuotaExceeded(f"quota of concurrent jobs exceeded: key {key.name!r} already has {active - 1} queued "
-                            f"or running job(s), the limit is {limit} (VOXE_MAX_ACTIVE_JOBS_PER_KEY or the key's "
-                            "own); retry when one finishes, or cancel one", settings)
+        raise QuotaExceeded(f"quota of concurrent jobs exceeded: key {key.name!r} already has {active - adding} "
+                            f"queued or running job(s) and asked for {adding} more, the limit is {limit} "
+                            "(VOXE_MAX_ACTIVE_JOBS_PER_KEY or the key's own); retry when one finishes, or cancel one",
+                            settings)
 
 
 def check_upload_bytes(session: Session, key: ApiKey, settings: Settings, adding: int,

@@ -443,6 +443,7 @@ def test_sweep_submits_the_paper_protocol_as_one_batch_with_one_table(service, s
         session.execute(update(ApiKey).where(ApiKey.id == LOCAL_KEY_ID).values(max_active_jobs=11))
     over = client.post("/v1/sweeps", json=body)
     assert over.status_code == 429 and "quota of concurrent jobs exceeded" in over.json()["detail"]
+    assert "already has 0 queued or running job(s) and asked for 12 more, the limit is 11" in over.json()["detail"]
     with session_scope() as session:  # all or nothing: no job of the refused sweep was kept
         assert session.scalar(select(func.count()).select_from(Job)) == 0
         session.execute(update(ApiKey).where(ApiKey.id == LOCAL_KEY_ID).values(max_active_jobs=None))

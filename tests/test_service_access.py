@@ -205,7 +205,7 @@ def test_concurrent_job_quota_is_429_with_retry_after(auth_client, mic_zip):
     assert first.status_code == second.status_code == 201
     refused = auth_client.post("/v1/jobs", json=body, headers=bearer(token))
     assert refused.status_code == 429 and refused.headers["retry-after"] == "60"
-    assert "quota of concurrent jobs exceeded" in refused.json()["detail"] and "limit is 2" in refused.json()["detail"]
+    assert "already has 2 queued or running job(s) and asked for 1 more, the limit is 2" in refused.json()["detail"]
     assert auth_client.get("/v1/jobs", headers=bearer(token)).json()["total"] == 2  # nothing half made
     auth_client.post(f"/v1/jobs/{first.json()['id']}/cancel", headers=bearer(token))
     assert auth_client.post("/v1/jobs", json=body, headers=bearer(token)).status_code == 201

@@ -81,9 +81,11 @@ def reconstruction_for(*, session: Session, scene: Scene, params: dict) -> Recon
         try:
             insert.add(Reconstruction(id=new_id(), scene_id=scene.id, params_key=params_key, params=rec_params))
             insert.commit()
-        except IntegrityError:  # another request created it first
+        except IntegrityError:  # another request created it first, or the scene was deleted meanwhile
             insert.rollback()
-    return session.scalars(query).one()
+    if (rec := session.scalars(query).first()) is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"scene {scene.id!r} was deleted while the job was created")
+    return rec
 
 
 def new_edit_job(body: JobCreate, key: ApiKey, settings: Settings, rec: Reconstruction,
@@ -133,11 +135,19 @@ def add_jobs(*, session: Session, key: ApiKey, settings: Settings, jobs: list[Jo
         session.add_all(jobs)
         if idempotency is not None:
             idempotency.record(session, key, jobs[0].id)
-        session.flush()
-        check_active_jobs(session, key, settings)
+        try:
+            session.flush()
+        except IntegrityError:  # a racing Idempotency-Key twin (the caller replays it), or a scene deleted meanwhile
+            session.rollback()
+            scene_ids = {j.scene_id for j in jobs}
+            if session.scalar(select(func.count()).select_from(Scene).where(Scene.id.in_(scene_ids))) < len(scene_ids):
+                raise _scene_deleted(jobs) from None
+            raise
+        check_active_jobs(session, key, settings, adding=len(jobs))
         states = {}
         for scene_id in sorted({j.scene_id for j in jobs}):
-            scene = lock_scene(session, scene_id)
+            if (scene := lock_scene(session, scene_id)) is None:
+                raise _scene_deleted(jobs)
             refuse_unless_usable(scene)
             states[scene_id] = scene.state
         for job in jobs:
@@ -149,6 +159,11 @@ def add_jobs(*, session: Session, key: ApiKey, settings: Settings, jobs: list[Jo
         raise
     # A sweep's evaluation is not sent on its own: its task follows its edit's chain.
     return [j for j in jobs if states[j.scene_id] == READY and not (j.mode == EVALUATE and j.batch_id)]
+
+
+def _scene_deleted(jobs: list[Job]) -> HTTPException:
+    scenes = ", ".join(repr(s) for s in sorted({j.scene_id for j in jobs}))
+    return HTTPException(status.HTTP_404_NOT_FOUND, f"scene {scenes} was deleted while the job was created")
 
 
 def send(*, session: Session, queue: TaskQueue, jobs: Iterable[Job]) -> None:

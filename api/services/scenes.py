@@ -10,15 +10,15 @@ from pathlib import Path
 from typing import BinaryIO
 
 from fastapi import HTTPException, status
-from sqlalchemy import func, select
+from sqlalchemy import func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from api.auth import Idempotency, check_upload_bytes, lock_key
 from api.uploads import UploadError, stage_upload
-from voxe_service.models import FAILED, QUEUED, RUNNING, ApiKey, Job, Reconstruction, Scene, new_id
+from voxe_service.models import FAILED, QUEUED, RUNNING, ApiKey, Job, Reconstruction, Scene, new_id, utcnow
 from voxe_service.queue import TaskQueue
-from voxe_service.scenes import fail_scene
+from voxe_service.scenes import fail_scene, lock_scene
 from voxe_service.settings import Settings
 from voxe_service.storage import Storage, job_key, reconstruction_storage_key, scene_key
 
@@ -79,7 +79,8 @@ def create_scene(*, session: Session, settings: Settings, storage: Storage, queu
     storage_key = scene_key(scene_id, staged.archive_name)
     try:
         stored = storage.put_file(storage_key, staged.archive, "application/zip")
-        default_name = Path(upload.archive_name or "").stem[:255] if upload.archive is not None else ""
+        stem = Path(upload.archive_name or "").stem if upload.archive is not None else ""
+        default_name = "".join(c for c in stem if c.isprintable())[:255]  # a filename's control characters dropped
         scene = Scene(
             id=scene_id, owner_key_id=key.id, name=upload.name or default_name or f"scene-{scene_id[:8]}",
             format=staged.format, image_count=staged.image_count, width=staged.width, height=staged.height,
@@ -142,6 +143,10 @@ def delete_scene(*, session: Session, storage: Storage, key: ApiKey, scene_id: s
     A processing scene can be deleted too: its ingest finds it gone and keeps nothing.
     """
     scene = get_scene(session=session, key=key, scene_id=scene_id)
+    # Locked before counting, as creating a job locks it after writing its row (add_jobs): a job created meanwhile
+    # is either counted here (409) or refused there (404), never accepted and then deleted with the scene.
+    session.execute(update(Scene).where(Scene.id == scene_id).values(updated_at=utcnow()))  # SQLite's write lock
+    lock_scene(session, scene_id)  # PostgreSQL's row lock
     active = session.scalar(select(func.count()).select_from(Job)
                             .where(Job.scene_id == scene_id, Job.state.in_((QUEUED, RUNNING))))
     if active:
