@@ -2,6 +2,8 @@
 
 * A body that is not JSON at all is a 400 ``malformed JSON body`` (FastAPI would say 422, the status
   the document keeps for bodies that parse but break the schema).
+* A path holding a NUL character is a 404 (no resource is named so) and such a query string a 422: neither
+  reaches the database, whose PostgreSQL text cannot hold one.
 * A method a path does not serve is a 405 whose ``Allow`` lists every method of every route on that
   path (Starlette names only the first route it tried), and ``OPTIONS`` on any path answers 204
   with the same ``Allow``. Without a key too: it says nothing ``/openapi.json`` does not.
@@ -62,8 +64,27 @@ def malformed_body(exc: RequestValidationError) -> JSONResponse | None:
     return None
 
 
+class RefuseNul:
+    """The NUL answers above, before any route (ASGI middleware)."""
+
+    def __init__(self, app):
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] == "http":
+            query = scope.get("query_string", b"")
+            if "\x00" in scope["path"]:
+                return await JSONResponse({"detail": "not found: the path holds a NUL character"}, 404)(
+                    scope, receive, send)
+            if b"%00" in query or b"\x00" in query:
+                return await JSONResponse({"detail": "the query string holds a NUL character"}, 422)(
+                    scope, receive, send)
+        return await self.app(scope, receive, send)
+
+
 def install(app: FastAPI) -> None:
-    """Answer 405 / OPTIONS as above, and document them with the statuses no route declares itself."""
+    """Answer NUL paths, 405 and OPTIONS as above, and document them with the statuses no route declares itself."""
+    app.add_middleware(RefuseNul)
     app.add_exception_handler(405, method_not_allowed)
     generate = app.openapi
 

@@ -6,7 +6,7 @@ import logging
 import math
 from contextlib import asynccontextmanager
 
-from fastapi import FastAPI
+from fastapi import FastAPI, HTTPException
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
@@ -40,7 +40,7 @@ class UploadLimit:
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
                 if received > self.max_bytes:
-                    raise _TooLarge()
+                    raise _TooLarge(self.max_bytes)
             return message
 
         async def tracking_send(message):
@@ -58,15 +58,18 @@ class UploadLimit:
     async def _reject(self, send):
         import json
 
-        body = json.dumps({"detail": f"request body over the upload limit of {self.max_bytes} bytes "
-                                     "(VOXE_MAX_UPLOAD_BYTES)"}).encode()
+        body = json.dumps({"detail": _TooLarge(self.max_bytes).detail}).encode()
         await send({"type": "http.response.start", "status": 413,
                     "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]})
         await send({"type": "http.response.body", "body": body})
 
 
-class _TooLarge(Exception):
-    pass
+class _TooLarge(HTTPException):
+    """A body found too large while streaming. An HTTPException, so that FastAPI, reading the body for a route,
+    answers it as the 413 it is (any other exception there becomes its 400 "error parsing the body")."""
+
+    def __init__(self, max_bytes: int):
+        super().__init__(413, f"request body over the upload limit of {max_bytes} bytes (VOXE_MAX_UPLOAD_BYTES)")
 
 
 def create_app(settings: Settings | None = None, migrate: bool = True) -> FastAPI:
@@ -136,9 +139,12 @@ def create_app(settings: Settings | None = None, migrate: bool = True) -> FastAP
 
 
 def _json_safe(value):
-    """JSON-encodable errors: non-finite floats (a body may send NaN or Infinity) become their names."""
+    """JSON-encodable errors: non-finite floats (a body may send NaN or Infinity) become their names, and strings
+    holding lone surrogates (JSON may escape "\\ud800"; UTF-8 cannot encode it) their backslash escapes."""
     if isinstance(value, float) and not math.isfinite(value):
         return str(value)
+    if isinstance(value, str):
+        return value.encode("utf-8", "backslashreplace").decode("utf-8")
     if isinstance(value, dict):
         return {k: _json_safe(v) for k, v in value.items()}
     if isinstance(value, list):
@@ -147,7 +153,7 @@ def _json_safe(value):
 
 
 async def validation_error(_request, exc: RequestValidationError) -> JSONResponse:
-    """FastAPI's 422 (400 for a body that is not JSON), but never a 500 when the offending input was NaN or Infinity."""
+    """FastAPI's 422 (400 for a body that is not JSON), but never a 500 for the offending input it echoes."""
     if (malformed := http_semantics.malformed_body(exc)) is not None:
         return malformed
     return JSONResponse(status_code=422, content={"detail": _json_safe(jsonable_encoder(exc.errors()))})

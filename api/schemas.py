@@ -36,10 +36,26 @@ _TEXT_RULE = " (a word somewhere; no control characters but whitespace, which is
 
 
 class Strict(BaseModel):
-    """Unknown fields, non-finite numbers (JSON's NaN / Infinity extensions) and coercions (1 for true, "5" for 5,
-    5.0 for an integer) are 422s naming the field: what the OpenAPI document says is all that is accepted."""
+    """Unknown fields, non-finite numbers (JSON's NaN / Infinity extensions), coercions (1 for true, "5" for 5,
+    5.0 for an integer) and NUL characters in strings (PostgreSQL text cannot hold one) are 422s naming the field:
+    what the OpenAPI document says is all that is accepted."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
+
+    @field_validator("*", mode="after")
+    @classmethod
+    def _no_nul(cls, value):
+        if _holds_nul(value):
+            raise ValueError("contains a NUL character")
+        return value
+
+
+def _holds_nul(value) -> bool:
+    if isinstance(value, str):
+        return "\x00" in value
+    if isinstance(value, (list, tuple)):
+        return any(map(_holds_nul, value))
+    return isinstance(value, dict) and any(_holds_nul(k) or _holds_nul(v) for k, v in value.items())
 
 
 # ------------------------------------------------------------------ job parameters
@@ -171,12 +187,16 @@ def words_of(text: str) -> list[str]:
     return [w.lower() for w in _WORD.findall(text)]
 
 
+EditWord = Annotated[str, Field(min_length=1, max_length=100, json_schema_extra={"pattern": TEXT_PATTERN}),
+                     AfterValidator(lambda value: clean_text(value, "an edit word"))]
+
+
 class JobCreate(Strict):
     scene_id: str = Field(min_length=1, max_length=64)
     prompt: str = Field(min_length=1, max_length=500, json_schema_extra={"pattern": TEXT_PATTERN},
                         description='e.g. "a microphone wearing big sunglasses"' + _TEXT_RULE)
     mode: Literal["global", "local"] = Field("global", description="local: refined to the edit_words' region")
-    edit_words: list[Annotated[str, Field(min_length=1, max_length=100, json_schema_extra={"pattern": TEXT_PATTERN})]] = Field(
+    edit_words: list[EditWord] = Field(
         default_factory=list, max_length=16,
         description="local edits: the word(s) of the prompt naming the edit (e.g. ['sunglasses']); required "
         "(non-empty) with mode 'local', empty otherwise. Rules beyond the schema (422 naming them): each occurs in "

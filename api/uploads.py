@@ -315,7 +315,10 @@ def _check_frame_images(root: Path, json_name: str, frames: list[dict], staging:
         file_path = frame["file_path"]
         where = f"{json_name} frame {i} ({file_path!r})"
         candidates = [root / file_path, root / (file_path + ".png")]
-        path = next((p for p in candidates if p.is_file()), None)
+        try:
+            path = next((p for p in candidates if p.is_file()), None)
+        except OSError as exc:  # e.g. a name over the file system's length limit
+            raise _invalid(f"{where}: 'file_path' is not a usable path ({exc.strerror})", staging) from None
         if path is None:
             raise _invalid(f"{where}: image not found (tried {', '.join(map(str, candidates))})", staging)
         try:

@@ -314,7 +314,9 @@ def test_colmap_text_errors_name_the_line(tmp_path):
     for bad, message in (("1 OPENCV 16 12 9 9.5 8 6", "camera model OPENCV has 8 parameters, got 4"),
                          ("1 KANNALA 16 12 9", "unknown camera model 'KANNALA'"),
                          ("1 PINHOLE 16 twelve 9 9 8 6", "image size 'twelve' is not a integer"),
-                         ("1 PINHOLE 16 12 9 nan 8 6", r"parameters \[9.0, nan, 8.0, 6.0\] are not all finite")):
+                         ("1 PINHOLE 16 12 9 nan 8 6", r"parameters \[9.0, nan, 8.0, 6.0\] are not all finite"),
+                         ("1 PINHOLE 1" + "0" * 400 + " 12 9 9 8 6", r"image size 10{400}x12 must lie within 1x1 "
+                                                                      r"and 65536x65536")):
         (model / "cameras.txt").write_text("# c\n" * header_lines + bad + "\n")
         with pytest.raises(ColmapError, match=rf"^cameras.txt: line {header_lines + 1}: {message}"):
             read_model(model)

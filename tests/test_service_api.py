@@ -272,6 +272,8 @@ def test_mesh_shading_is_checked_at_upload(client, dataset, root):
 def test_upload_needs_exactly_one_source(client):
     response = client.post("/v1/scenes", data={"name": "nothing"})
     assert response.status_code == 422 and "either one zip" in response.json()["detail"]
+    response = client.post("/v1/scenes", data={"name": "no\x00thing"})  # checked first, and never stored
+    assert response.status_code == 422 and response.json()["detail"][0]["loc"] == ["body", "name"]
 
 
 def test_upload_over_the_limit_is_413(root, monkeypatch, dataset):
@@ -282,6 +284,18 @@ def test_upload_over_the_limit_is_413(root, monkeypatch, dataset):
     with TestClient(create_app()) as client:
         response = upload_zip(client, zip_folder(dataset, root / "big.zip"))
         assert response.status_code == 413 and "VOXE_MAX_UPLOAD_BYTES" in response.json()["detail"]
+        archive = (root / "big.zip").read_bytes()
+        boundary = "limit-test"
+        multipart = (f"--{boundary}\r\nContent-Disposition: form-data; name=\"archive\"; filename=\"big.zip\"\r\n"
+                     f"Content-Type: application/zip\r\n\r\n").encode() + archive + f"\r\n--{boundary}--\r\n".encode()
+        chunked = [  # no Content-Length: the limit is found while the body streams in
+            ("/v1/scenes", f"multipart/form-data; boundary={boundary}", multipart),
+            ("/v1/jobs", "application/json", b'{"scene_id": "x", "prompt": "' + b"a" * 2000 + b'"}'),
+        ]
+        for url, content_type, body in chunked:
+            response = client.post(url, content=iter([body[:500], body[500:]]), headers={"content-type": content_type})
+            assert "content-length" not in response.request.headers
+            assert response.status_code == 413 and "VOXE_MAX_UPLOAD_BYTES" in response.json()["detail"], url
         assert client.get("/v1/scenes").json()["total"] == 0
 
 
@@ -420,12 +434,14 @@ def test_artifact_download_ranges_and_names(client, dataset, root):
     for header, expected, first, last in (("bytes=0-99", data[:100], 0, 99),
                                           ("bytes=10000-", data[10000:], 10000, 10239),
                                           ("bytes=-40", data[-40:], 10200, 10239),
-                                          ("bytes=10200-999999", data[10200:], 10200, 10239)):
+                                          ("bytes=10200-999999", data[10200:], 10200, 10239),
+                                          ("bytes=10-" + "9" * 5000, data[10:], 10, 10239),  # past int()'s digits
+                                          ("bytes=-" + "9" * 5000, data, 0, 10239)):
         part = client.get(url, headers={"Range": header})
         assert part.status_code == 206 and part.content == expected, header
         assert part.headers["content-range"] == f"bytes {first}-{last}/{len(data)}"
         assert int(part.headers["content-length"]) == len(expected)
-    for header in ("bytes=10240-", "bytes=50-10", "bytes=abc", "bytes=-0"):
+    for header in ("bytes=10240-", "bytes=50-10", "bytes=abc", "bytes=-0", "bytes=" + "1" * 5000 + "-"):
         bad = client.get(url, headers={"Range": header})
         assert bad.status_code == 416, header
         assert bad.headers["content-range"] == f"bytes */{len(data)}"
@@ -435,6 +451,10 @@ def test_artifact_download_ranges_and_names(client, dataset, root):
     for name in ("secret.txt", "..%2Fsecret.txt", "..%2F..%2Fscenes", "%2Fetc%2Fpasswd", "render_000.png%00",
                  "%2E%2E%2Fsecret.txt", "RENDER_000.PNG"):
         assert client.get(f"/v1/jobs/{job_id}/artifacts/{name}").status_code == 404, name
+    # NUL never reaches the database (PostgreSQL text cannot hold it): a path naming nothing, a bad query
+    assert client.get(f"/v1/jobs/{job_id}%00/artifacts").status_code == 404
+    nul_query = client.get("/v1/jobs?scene_id=%00")
+    assert nul_query.status_code == 422 and "NUL" in nul_query.json()["detail"]
 
 
 @BOTH_DATABASES
@@ -447,6 +467,34 @@ def test_delete_scene(client, dataset, root):
     assert client.get(f"/v1/scenes/{scene_id}").status_code == 404
     assert client.get(f"/v1/jobs/{job_id}").status_code == 404
     assert stored_files(root) == []
+
+
+@BOTH_DATABASES
+def test_a_job_for_a_scene_deleted_while_it_is_created_is_404(client, dataset, root):
+    """The steps of creating a job after its scene's lookup, met by a scene deleted in between: a 404 naming it,
+    and no row left (the scene's deletion locks it before counting jobs, so no accepted job goes with it)."""
+    from fastapi import HTTPException
+
+    from api.services import jobs as job_service
+    from voxe_service.db import session_scope
+    from voxe_service.models import LOCAL_KEY_ID, ApiKey, Job, Scene
+    from voxe_service.settings import get_settings
+
+    scene = make_scene(client, dataset, root)
+    with session_scope() as session:
+        gone = session.get(Scene, scene["id"])
+        session.expunge(gone)
+    assert client.delete(f"/v1/scenes/{scene['id']}").status_code == 204
+    with session_scope() as session:
+        with pytest.raises(HTTPException, match="was deleted while the job was created") as lookup:
+            job_service.reconstruction_for(session=session, scene=gone, params={})
+        job = Job(scene_id=scene["id"], owner_key_id=LOCAL_KEY_ID, prompt="a mic", mode="global", params={},
+                  sds_model="tiny", attention_model="tiny", device="cpu", state="queued")
+        with pytest.raises(HTTPException, match="was deleted while the job was created") as adding:
+            job_service.add_jobs(session=session, key=session.get(ApiKey, LOCAL_KEY_ID), settings=get_settings(),
+                                 jobs=[job])
+    assert lookup.value.status_code == adding.value.status_code == 404
+    assert client.get("/v1/jobs").json()["total"] == 0
 
 
 def test_readiness_reports_the_missing_worker(client):

@@ -44,6 +44,13 @@ def _with_json(dataset: Path, change) -> bytes:
     return _zip(_dataset_entries(dataset, json_text=json.dumps(meta)))
 
 
+def _with_json_number(dataset: Path, key: str, digits: str) -> bytes:
+    """The dataset with ``key`` set to the literal ``digits`` (past what json.dumps can write for an int)."""
+    meta = _meta(dataset)
+    meta[key] = "PLACEHOLDER"
+    return _zip(_dataset_entries(dataset, json_text=json.dumps(meta).replace('"PLACEHOLDER"', digits)))
+
+
 def _png(size: tuple[int, int], mode: str = "RGB") -> bytes:
     buffer = io.BytesIO()
     Image.new(mode, size).save(buffer, "PNG")
@@ -111,6 +118,12 @@ HOSTILE_UPLOADS = {
                       "'file_path' contains a NUL character"),
     "duplicate file_path": (lambda d: _with_json(d, _set(2, "file_path", "train/r_0")), 422,
                             "frame 2 ('train/r_0'): duplicate file_path (same image as frame 0)"),
+    "file_path too long": (lambda d: _with_json(d, _set(1, "file_path", "b" * 300)), 422,
+                           "frame 1 ('" + "b" * 300 + "'): 'file_path' is not a usable path (File name too long)"),
+    "focal beyond float": (lambda d: _with_json(d, lambda m: m.update(camera_angle_x=10**400)), 422,
+                           "'camera_angle_x' is out of range (10000000000000000000..., 401 digits)"),
+    "number of 5000 digits": (lambda d: _with_json_number(d, "camera_angle_x", "1" * 5000), 422,
+                              "transforms_train.json: cannot read as JSON text: Exceeds the limit"),
 }
 
 
@@ -230,7 +243,12 @@ NO_SCENE = "0" * 32
 BAD_FIELDS = [
     ({"prompt": ""}, ["body", "prompt"], "at least 1 character"),
     ({"prompt": "a mic wearing big sunglasses " + "very " * 100}, ["body", "prompt"], "at most 500 characters"),
-    ({"prompt": "a mic wearing big sunglasses\x00"}, ["body", "prompt"], "control characters"),
+    ({"prompt": "a mic wearing big sunglasses\x00"}, ["body", "prompt"], "contains a NUL character"),
+    ({"prompt": "a mic wearing big sunglasses\x07"}, ["body", "prompt"], "control characters"),
+    ({"mode": "local", "prompt": "a mic wearing big sunglasses", "edit_words": ["sunglasses\x07"]},
+     ["body", "edit_words", 0], "an edit word contains control characters"),
+    ({"scene_id": "\x00" * 32}, ["body", "scene_id"], "contains a NUL character"),
+    ({"webhook_url": "http://example.com/\x00"}, ["body", "webhook_url"], "contains a NUL character"),
     ({"edit_words": ["hat"]}, ["body"], "edit word 'hat' does not occur in the prompt"),
     ({"edit_words": [""]}, ["body", "edit_words", 0], "at least 1 character"),
     ({"edit_words": ["sunglasses"] * 17}, ["body", "edit_words"], "at most 16 items"),
@@ -269,6 +287,15 @@ def test_non_finite_numbers_are_422_not_500(client):
         response = client.post("/v1/jobs", content=body, headers={"content-type": "application/json"})
         assert response.status_code == 422, (raw, response.text)
         assert any(e["loc"] == location for e in response.json()["detail"]), (raw, response.json())
+
+
+def test_a_lone_surrogate_is_422_not_500(client):
+    """JSON may escape a lone surrogate; the 422 echoing it (the scene id fails validation) stays encodable."""
+    body = '{"scene_id": "%s", "prompt": "a dog", "params": {"downsample": "\\ud800"}}' % NO_SCENE
+    response = client.post("/v1/jobs", content=body, headers={"content-type": "application/json"})
+    assert response.status_code == 422, response.text
+    (error,) = response.json()["detail"]
+    assert error["loc"] == ["body", "params", "downsample"] and error["input"] == "\\ud800"
 
 
 def test_query_parameters_out_of_range_are_422(client):

@@ -83,3 +83,8 @@ def test_webhook_events_need_a_url_and_name_known_kinds(client):
     assert response.status_code == 422 and "webhook_events" in response.text
     response = test_client.post("/v1/jobs", json={**body, "webhook_url": "ftp://example.com/h"})
     assert response.status_code == 422 and "webhook_url" in response.text
+    response = test_client.post("/v1/jobs", json={**body, "webhook_url": "http://[::1"})
+    assert response.status_code == 422 and "webhook_url 'http://[::1' is not a valid URL" in response.text
+    for address, rule in (("100.64.1.2", "non-public"), ("[2002:a01:203::1]", "private (as 10.1.2.3)")):
+        response = test_client.post("/v1/jobs", json={**body, "webhook_url": f"http://{address}/h"})
+        assert response.status_code == 422 and f"a {rule} address" in response.json()["detail"], address

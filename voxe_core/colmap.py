@@ -30,6 +30,7 @@ CAMERA_MODEL_IDS = {
 }
 _PARAM_COUNTS = {name: count for name, count in CAMERA_MODEL_IDS.values()}
 _MAX_NAME_BYTES = 4096
+MAX_IMAGE_SIDE = 65536  # pixels: a camera beyond it is a damaged file (and overflows float conversions)
 
 
 class ColmapError(ValueError):
@@ -101,8 +102,9 @@ class _Bytes:
 
 
 def _camera(model: str, width: int, height: int, params: list[float], where: str, path: Path) -> ColmapCamera:
-    if width < 1 or height < 1:
-        raise ColmapError(f"{where}: image size {width}x{height} must be at least 1x1", path)
+    if not (1 <= width <= MAX_IMAGE_SIDE and 1 <= height <= MAX_IMAGE_SIDE):
+        raise ColmapError(f"{where}: image size {width}x{height} must lie within 1x1 and "
+                          f"{MAX_IMAGE_SIDE}x{MAX_IMAGE_SIDE}", path)
     if not all(math.isfinite(p) for p in params):
         raise ColmapError(f"{where}: parameters {params} are not all finite", path)
     return ColmapCamera(model, width, height, params)

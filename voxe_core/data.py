@@ -342,7 +342,7 @@ def _read_json(path: Path) -> dict:
         meta = json.loads(path.read_bytes())
     except json.JSONDecodeError as e:
         raise DatasetError(f"{path.name}: invalid JSON at line {e.lineno} column {e.colno} (char {e.pos}): {e.msg}", path) from e
-    except (UnicodeDecodeError, OSError) as e:
+    except (UnicodeDecodeError, OSError, ValueError) as e:  # ValueError: e.g. an integer of over 4,300 digits
         raise DatasetError(f"{path.name}: cannot read as JSON text: {e}", path) from e
     if not isinstance(meta, dict):
         raise DatasetError(f"{path.name}: top level must be a JSON object, got {type(meta).__name__}", path)
@@ -352,9 +352,13 @@ def _read_json(path: Path) -> dict:
 def _number(value, key: str, where: _Where, frame: int | None) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise where(f"'{key}' must be a number, got {value!r}", frame)
-    if not math.isfinite(value):
+    try:
+        number = float(value)
+    except OverflowError:  # an integer beyond float range
+        raise where(f"'{key}' is out of range ({str(value)[:20]}..., {len(str(value))} digits)", frame) from None
+    if not math.isfinite(number):
         raise where(f"'{key}' is not finite ({value})", frame)
-    return float(value)
+    return number
 
 
 def _check_intrinsics(source: dict, where: _Where, frame: int | None) -> dict[str, float]:

@@ -62,26 +62,54 @@ def check_target(url: str, allow_networks: list[ipaddress._BaseNetwork]) -> None
 
     Checked when the job is created and again before every attempt (a name may re-resolve elsewhere).
     """
-    parts = urlsplit(url)
-    if parts.scheme not in ("http", "https") or not parts.hostname:
+    try:
+        parts = urlsplit(url)
+        host = parts.hostname
+    except ValueError as exc:  # e.g. an unclosed "[" of an IPv6 host
+        raise TargetRefused(f"webhook_url {url!r} is not a valid URL: {exc}") from None
+    if parts.scheme not in ("http", "https") or not host:
         raise TargetRefused(f"webhook_url {url!r} must be an http:// or https:// URL with a host")
     try:
         port = parts.port or (443 if parts.scheme == "https" else 80)
-        infos = socket.getaddrinfo(parts.hostname, port, proto=socket.IPPROTO_TCP)
+        infos = socket.getaddrinfo(host, port, proto=socket.IPPROTO_TCP)
     except (OSError, ValueError) as exc:
-        raise TargetRefused(f"webhook_url host {parts.hostname!r} does not resolve: {exc}") from None
+        raise TargetRefused(f"webhook_url host {host!r} does not resolve: {exc}") from None
     for info in infos:
         address = ipaddress.ip_address(info[4][0].split("%")[0])
         if any(address in network for network in allow_networks):
             continue
-        # The most specific name first: link-local and unspecified addresses are "private" to Python too.
-        for rule, refused in (("loopback", address.is_loopback), ("link-local", address.is_link_local),
-                              ("unspecified", address.is_unspecified), ("multicast", address.is_multicast),
-                              ("reserved", address.is_reserved), ("private", address.is_private)):
-            if refused:
-                raise TargetRefused(
-                    f"webhook_url host {parts.hostname!r} resolves to {address}, a {rule} address: webhooks go to "
-                    "public addresses only (an operator can allow networks with VOXE_WEBHOOK_ALLOW_NETWORKS)")
+        if (rule := refused_rule(address)) is not None:
+            raise TargetRefused(
+                f"webhook_url host {host!r} resolves to {address}, a {rule} address: webhooks go to "
+                "public addresses only (an operator can allow networks with VOXE_WEBHOOK_ALLOW_NETWORKS)")
+
+
+_NAT64 = ipaddress.ip_network("64:ff9b::/96")
+
+
+def refused_rule(address: ipaddress.IPv4Address | ipaddress.IPv6Address) -> str | None:
+    """Why a webhook may not go to ``address`` (None: a public address), the most specific name first.
+
+    An IPv6 address that carries an IPv4 one (mapped ``::ffff:a.b.c.d``, 6to4 ``2002::/16``, NAT64 ``64:ff9b::/96``)
+    is judged by it too; anything else that is not globally routable (e.g. carrier-grade NAT, 100.64.0.0/10) is
+    "non-public".
+
+    Examples:
+        >>> [refused_rule(ipaddress.ip_address(a)) for a in ("8.8.8.8", "10.1.2.3", "100.64.1.2", "2002:a01:203::1")]
+        [None, 'private', 'non-public', 'private (as 10.1.2.3)']
+    """
+    # Link-local and unspecified addresses are "private" to Python too: their own names come first.
+    for rule, refused in (("loopback", address.is_loopback), ("link-local", address.is_link_local),
+                          ("unspecified", address.is_unspecified), ("multicast", address.is_multicast),
+                          ("reserved", address.is_reserved), ("private", address.is_private)):
+        if refused:
+            return rule
+    if address.version == 6:
+        carried = address.ipv4_mapped or address.sixtofour or (
+            ipaddress.IPv4Address(int(address) & 0xFFFFFFFF) if address in _NAT64 else None)
+        if carried is not None and (rule := refused_rule(carried)) is not None:
+            return f"{rule} (as {carried})"
+    return None if address.is_global else "non-public"
 
 
 def key_secret(session: Session, key: ApiKey) -> str:

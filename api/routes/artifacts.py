@@ -40,15 +40,20 @@ def parse_range(header: str | None, size: int) -> tuple[int, int] | None:
         raise _unsatisfiable(size, f"malformed range {header!r}")
     first, last = match.group(1), match.group(2)
     if not first:  # suffix: the last N bytes
-        n = int(last)
+        n = _position(last)
         if n == 0 or size == 0:
             raise _unsatisfiable(size, f"empty suffix range {header!r}")
         return max(0, size - n), size - 1
-    start = int(first)
-    end = int(last) if last else size - 1
+    start = _position(first)
+    end = _position(last) if last else size - 1
     if start >= size or end < start:
         raise _unsatisfiable(size, f"range {header!r} is outside the {size}-byte file")
     return start, min(end, size - 1)
+
+
+def _position(digits: str) -> int:
+    """A byte position; past 18 digits, one beyond any file (``int`` refuses strings of over 4,300 digits)."""
+    return int(digits) if len(digits) <= 18 else 10**18
 
 
 def _unsatisfiable(size: int, detail: str) -> HTTPException:
