@@ -7,9 +7,11 @@ A job is orphaned when
   (the worker is gone: killed, its machine lost). A worker that comes back under the same name
   heartbeats again and re-queues its jobs itself (SQL broker); Redis redelivers after its
   visibility timeout -- either way the job is not orphaned while that can still happen in time;
-* or it is ``queued`` with no task id for as long on a scene that is not processing: the API
-  stopped between recording the job and handing its chain to the broker, so no message exists
-  (a job on a processing scene waits for the scene's ingest to send it).
+* or it is ``queued`` with no task id for as long on a scene that is not processing: the API (or the
+  ingest that readied its scene) stopped between recording the job and handing its chain to the
+  broker, so no message exists (a job on a processing scene waits for the scene's ingest to send
+  it). Such a job is not failed but sent now (``requeued`` on its timeline): it was accepted, and
+  nothing else will send it. A sweep's evaluation, which only its edit's chain sends, fails.
 
 A scene is orphaned, and fails with the reason (the jobs waiting on it with it), when it is
 ``processing`` and unchanged for as long, and either its ingest was never handed to the
@@ -28,11 +30,12 @@ import logging
 import threading
 from datetime import datetime, timedelta
 
-from sqlalchemy import or_, select
+from sqlalchemy import or_, select, update
 
 from voxe_service.db import session_scope
-from voxe_service.jobs import finish_jobs
-from voxe_service.models import FAILED, PROCESSING, QUEUED, RUNNING, Job, Scene, WorkerHeartbeat, utcnow
+from voxe_service.jobs import finish_jobs, record_event
+from voxe_service.models import EVALUATE, FAILED, PROCESSING, QUEUED, RUNNING, Job, Scene, WorkerHeartbeat, utcnow
+from voxe_service.queue import QueueUnavailable, dispatch_job, get_queue
 from voxe_service.scenes import fail_scene
 from voxe_service.settings import Settings
 from voxe_service.storage import get_storage, job_key, scene_key
@@ -71,17 +74,38 @@ def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[
                 reaped.append(job.id)
         waiting_for_ingest = select(Scene.id).where(Scene.state == PROCESSING)
         never_sent = session.execute(
-            select(Job.id, Job.updated_at).where(Job.state == QUEUED, Job.task_id.is_(None), Job.updated_at < cutoff,
+            select(Job.id, Job.mode, Job.batch_id, Job.updated_at).where(Job.state == QUEUED, Job.task_id.is_(None), Job.updated_at < cutoff,
                                                  Job.scene_id.not_in(waiting_for_ingest))
         ).all()
         for job in never_sent:
-            error = (f"the job was never handed to the broker (the API stopped while creating it); "
-                     f"failed after {timeout:.0f} s (VOXE_JOB_STALE_TIMEOUT_S): create it again")
+            if job.mode != EVALUATE or job.batch_id is None:
+                _send_now(session, job.id, job.updated_at, timeout)
+                continue
+            error = (f"the sweep's evaluation was never handed to the broker with its edit; failed after "
+                     f"{timeout:.0f} s (VOXE_JOB_STALE_TIMEOUT_S): create it again")
             if _fail(session, job.id, job.updated_at, QUEUED, error):
                 reaped.append(job.id)
     for job_id in reaped:
         log.warning("reaper: job %s failed as orphaned", job_id)
     return reaped
+
+
+def _send_now(session, job_id: str, seen_updated_at: datetime, timeout: float) -> None:
+    """Hand an accepted job nothing sent to the broker, once: claimed by a conditional update (several API
+    processes may reap side by side), then sent; a broker that refuses fails it with the reason (dispatch_job)."""
+    detail = (f"sent by the reaper: recorded but not handed to the broker for {timeout:.0f} s (the API or the "
+              "scene's ingest stopped in between)")
+    claimed = session.execute(update(Job).where(Job.id == job_id, Job.state == QUEUED, Job.task_id.is_(None),
+                                                Job.updated_at == seen_updated_at).values(updated_at=utcnow()))
+    if claimed.rowcount != 1:
+        return
+    record_event(session, job_id, "requeued", detail=detail)
+    session.commit()
+    try:
+        dispatch_job(session, get_queue(), session.get(Job, job_id))
+    except QueueUnavailable:
+        return
+    log.warning("reaper: job %s %s", job_id, detail)
 
 
 def reap_orphaned_scenes(settings: Settings, now: datetime | None = None) -> list[str]:

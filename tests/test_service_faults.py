@@ -100,8 +100,8 @@ def test_reaper_fails_only_jobs_nothing_will_finish(db):
         "dead worker": add_job(scene, "running", 2 * timeout, "dead@host", "edit"),
         "no heartbeat ever": add_job(scene, "running", 2 * timeout, "gone@host", "refine"),
         "no worker recorded": add_job(scene, "running", 2 * timeout, None, "reconstruct"),
-        "never queued": add_job(scene, "queued", 2 * timeout, task_id=None),
     }
+    never_sent = add_job(scene, "queued", 2 * timeout, task_id=None)  # accepted, never sent: sent now, not failed
     processing = add_scene("processing", age_s=1)
     kept = {
         "waiting for its scene's ingest": add_job(processing, "queued", 2 * timeout, task_id=None),
@@ -119,7 +119,10 @@ def test_reaper_fails_only_jobs_nothing_will_finish(db):
                           f"{timeout:.0f} s, and the task was not redelivered (VOXE_JOB_STALE_TIMEOUT_S)")
     assert job_row(orphans["no worker recorded"]).error.startswith("worker (unknown) stopped while the job was in "
                                                                    "reconstruct")
-    assert job_row(orphans["never queued"]).error.startswith("the job was never handed to the broker")
+    sent = job_row(never_sent)
+    assert sent.state == "queued" and sent.task_id not in (None, "task") and sent.error is None
+    assert [e["kind"] for e in events_of(never_sent)] == ["requeued"]
+    assert events_of(never_sent)[0]["detail"].startswith("sent by the reaper: recorded but not handed to the broker")
     for what, job_id in kept.items():
         before = job_row(job_id)
         assert before.error is None and before.state in ("running", "queued", "succeeded", "canceled"), what

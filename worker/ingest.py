@@ -144,13 +144,16 @@ def _ready(scene_id: str, values: dict, storage: Storage, replaced_key: str | No
             storage.delete_prefix(scene_key(scene_id))
             return {"scene_id": scene_id, "skipped": f"scene {scene_id} was deleted or failed meanwhile"}
         session.commit()
-        if replaced_key:
-            storage.delete(replaced_key)
-        queue = get_queue()
+        queue = get_queue()  # the waiting jobs first: should this worker stop before, the reaper sends them
         for job in waiting:
             try:
                 dispatch_job(session, queue, job)
             except QueueUnavailable:  # recorded on the job; the rest may still go out
                 log.warning("scene %s: could not dispatch job %s", scene_id, job.id)
+    if replaced_key:
+        try:
+            storage.delete(replaced_key)
+        except Exception:  # noqa: BLE001 - the mesh upload, now packaged: a leftover object harms no job
+            log.warning("scene %s: could not delete the replaced upload %s", scene_id, replaced_key, exc_info=True)
     log.info("scene %s ready; dispatched %d waiting job(s)", scene_id, len(waiting))
     return {"scene_id": scene_id, "state": "ready"}
