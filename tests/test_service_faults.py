@@ -148,6 +148,43 @@ def test_a_cancel_that_lands_between_stages_ends_the_job_when_the_next_stage_beg
     assert ended.state == "canceled" and ended.message == "canceled before edit" and ended.finished_at is not None
 
 
+def test_a_fits_lease_is_kept_without_progress_and_its_loss_is_seen(db, monkeypatch):
+    """The keeper renews a claimed fit's lease while nothing reports progress (loading images, voxelizing); once
+    the lease lapsed and another job claimed the fit, the first job's next renewal finds it gone and ``check``
+    raises LeaseLost, so it stops instead of writing the fit's results beside the new owner."""
+    import time
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Reconstruction, utcnow
+    from worker import runtime
+
+    monkeypatch.setattr(db, "reconstruction_lease_s", 0.4)
+    scene = add_scene()
+    first, second = (add_job(scene, "running", 0, "w@host", "reconstruct") for _ in range(2))
+    with session_scope() as session:
+        rec = Reconstruction(scene_id=scene, params_key="k", params={})
+        session.add(rec)
+        session.flush()
+        rec_id = rec.id
+
+    def lease_until():
+        with session_scope() as session:
+            return session.get(Reconstruction, rec_id).lease_until
+
+    assert runtime.try_claim_reconstruction(rec_id, first, "w@host", db, allow_failed=False)
+    claimed = lease_until()
+    with runtime.LeaseKeeper(rec_id, first, db) as lease:
+        time.sleep(1.0)  # no progress reported: only the keeper's thread renews
+        assert lease_until() > claimed + timedelta(seconds=0.3) and not lease.lost
+        with session_scope() as session:  # a stall outlived the lease, and another job claimed the fit
+            session.get(Reconstruction, rec_id).lease_until = utcnow() - timedelta(seconds=1)
+        assert runtime.try_claim_reconstruction(rec_id, second, "v@host", db, allow_failed=False)
+        assert not lease.renew()
+        with pytest.raises(runtime.LeaseLost, match="another job took the fit over"):
+            lease.check()
+    assert not runtime.set_reconstruction(rec_id, first, state="succeeded")  # the owner's alone to change
+
+
 def events_of(job_id: str) -> list[dict]:
     from sqlalchemy import select
 

@@ -12,6 +12,7 @@ import math
 import os
 import shutil
 import tempfile
+import threading
 import time
 import uuid
 from dataclasses import dataclass
@@ -345,22 +346,70 @@ def try_claim_reconstruction(rec_id: str, job_id: str, hostname: str | None, set
         return result.rowcount == 1
 
 
-def renew_lease(rec_id: str, job_id: str, settings: Settings, **values) -> None:
+def renew_lease(rec_id: str, job_id: str, settings: Settings, **values) -> bool:
+    """Extend the job's running claim on the fit (recording ``values``); False when it no longer holds it."""
     with session_scope() as session:
-        session.execute(
+        return session.execute(
             update(Reconstruction)
-            .where(Reconstruction.id == rec_id, Reconstruction.owner_job_id == job_id)
+            .where(Reconstruction.id == rec_id, Reconstruction.owner_job_id == job_id,
+                   Reconstruction.state == R_RUNNING)
             .values(lease_until=utcnow() + timedelta(seconds=settings.reconstruction_lease_s), **values)
-        )
+        ).rowcount == 1
 
 
-def set_reconstruction(rec_id: str, job_id: str, **values) -> None:
+def set_reconstruction(rec_id: str, job_id: str, **values) -> bool:
+    """Change the reconstruction if ``job_id`` owns it; whether it did."""
     with session_scope() as session:
-        session.execute(
+        return session.execute(
             update(Reconstruction)
             .where(Reconstruction.id == rec_id, Reconstruction.owner_job_id == job_id)
             .values(**values)
-        )
+        ).rowcount == 1
+
+
+class LeaseLost(RuntimeError):
+    """The claim on a fit lapsed and another job took it over: this one stops and waits for that one."""
+
+
+class LeaseKeeper:
+    """Holds a claimed fit's lease while it runs: a thread renews it every quarter lease (loading the images,
+    voxelizing or storing a checkpoint report no progress), and :meth:`check` raises :class:`LeaseLost` once a
+    renewal found another job holding it, so two jobs never both write the fit's results.
+
+    Use as ``with LeaseKeeper(rec_id, job_id, settings) as lease: ...``.
+    """
+
+    def __init__(self, rec_id: str, job_id: str, settings: Settings):
+        self.rec_id, self.job_id, self.settings = rec_id, job_id, settings
+        self.lost = False
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"voxe-lease-{rec_id}", daemon=True)
+
+    def __enter__(self) -> LeaseKeeper:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def renew(self, **values) -> bool:
+        """Renew now (recording ``values``, e.g. the fit's iteration); whether the job still holds the fit."""
+        held = renew_lease(self.rec_id, self.job_id, self.settings, **values)
+        self.lost = self.lost or not held
+        return held
+
+    def check(self) -> None:
+        if self.lost:
+            raise LeaseLost(f"reconstruction {self.rec_id}: its lease lapsed and another job took the fit over")
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.settings.reconstruction_lease_s / 4):
+            try:
+                if not self.renew():
+                    return
+            except Exception:  # noqa: BLE001 - a database hiccup: the next renewal tries again
+                log.warning("reconstruction %s: could not renew its lease", self.rec_id, exc_info=True)
 
 
 def load_reconstruction(rec_id: str) -> Reconstruction | None:

@@ -161,9 +161,14 @@ def _reconstruct(job: Job, settings, device: str, storage) -> None:
         if rec.state == R_SUCCEEDED:
             break
         if runtime.try_claim_reconstruction(rec_id, job.id, job.worker_hostname, settings, allow_failed=first):
-            _fit(job, runtime.load_reconstruction(rec_id), settings, storage, device)
-            ran_here = True
+            try:
+                _fit(job, runtime.load_reconstruction(rec_id), settings, storage, device)
+                ran_here = True
+            except runtime.LeaseLost as exc:  # another job holds the fit now: wait for it, as for any other
+                log.warning("job %s: %s", job.id, exc)
+            first = False
             continue
+        rec = runtime.load_reconstruction(rec_id) or rec  # as it is after the claim failed, not as it was before
         if rec.state == R_FAILED:
             raise ReconstructionFailed(f"reconstruct: the scene's reconstruction failed: {rec.error}")
         first = False
@@ -237,35 +242,44 @@ def _fit(job: Job, rec, settings, storage, device: str) -> None:
     checkpoint = scratch / "reconstruction_checkpoint.safetensors"
     checkpoint_key = reconstruction_storage_key(rec.id, "checkpoint.safetensors")
 
-    def on_checkpoint(path: str) -> None:
-        storage.put_file(checkpoint_key, path)
-        runtime.set_reconstruction(rec.id, job.id, checkpoint_key=checkpoint_key)
+    with runtime.LeaseKeeper(rec.id, job.id, settings) as lease:
+        def on_checkpoint(path: str) -> None:
+            lease.check()
+            storage.put_file(checkpoint_key, path)
+            runtime.set_reconstruction(rec.id, job.id, checkpoint_key=checkpoint_key)
 
-    def on_progress(report: Progress) -> None:
-        runtime.renew_lease(rec.id, job.id, settings, iteration=report.iteration, total=report.total)
+        def on_progress(report: Progress) -> None:
+            lease.renew(iteration=report.iteration, total=report.total)
+            lease.check()
 
-    callbacks = StageCallbacks(job.id, "reconstruct", settings, on_progress, on_checkpoint)
-    try:
-        if rec.params.get("route") == "voxelize":  # one step: reported once, at completion
-            grid, total = _voxelize(job, rec, settings, storage), 1
-            callbacks.on_progress(Progress("reconstruct", total, total))
-        else:
-            grid, total = _fit_grid(job, rec, settings, storage, callbacks, checkpoint, checkpoint_key, device)
-    except BaseException as exc:
-        if isinstance(exc, Exception) and not isinstance(exc, StageCancelled):
-            runtime.set_reconstruction(rec.id, job.id, state=R_FAILED, lease_until=None, finished_at=utcnow(),
-                                       error=f"{type(exc).__name__}: {exc}")
-        else:  # canceled, or the worker going down (SystemExit, KeyboardInterrupt): not the fit's failure, so a
-            # waiting job, or this one redelivered, takes over from the checkpoint
-            runtime.set_reconstruction(rec.id, job.id, state=R_PENDING, owner_job_id=None, lease_until=None)
-        raise
-    path = scratch / "initial_grid.safetensors"
-    grid.save(path)
-    stored: StoredObject = storage.put_file(reconstruction_storage_key(rec.id, "grid.safetensors"), path)
-    runtime.set_reconstruction(
-        rec.id, job.id, state=R_SUCCEEDED, grid_key=stored.key, grid_size=stored.size, grid_sha256=stored.sha256,
-        iteration=total, total=total, lease_until=None, finished_at=utcnow(),
-    )
+        callbacks = StageCallbacks(job.id, "reconstruct", settings, on_progress, on_checkpoint)
+        try:
+            if rec.params.get("route") == "voxelize":  # one step: reported once, at completion
+                grid, total = _voxelize(job, rec, settings, storage), 1
+                callbacks.on_progress(Progress("reconstruct", total, total))
+            else:
+                grid, total = _fit_grid(job, rec, settings, storage, callbacks, checkpoint, checkpoint_key, device)
+            lease.check()
+        except BaseException as exc:  # (each change below applies only while this job still owns the fit)
+            if isinstance(exc, Exception) and not isinstance(exc, (StageCancelled, runtime.LeaseLost)):
+                runtime.set_reconstruction(rec.id, job.id, state=R_FAILED, lease_until=None, finished_at=utcnow(),
+                                           error=f"{type(exc).__name__}: {exc}")
+            else:  # canceled, or the worker going down (SystemExit, KeyboardInterrupt): not the fit's failure, so
+                # a waiting job, or this one redelivered, takes over from the checkpoint
+                runtime.set_reconstruction(rec.id, job.id, state=R_PENDING, owner_job_id=None, lease_until=None)
+            raise
+        path = scratch / "initial_grid.safetensors"
+        grid.save(path)
+        # Under this job's own name: a job that lost the fit meanwhile never overwrites the recorded grid.
+        stored: StoredObject = storage.put_file(reconstruction_storage_key(rec.id, f"grid-{job.id}.safetensors"),
+                                                path)
+        done = runtime.set_reconstruction(
+            rec.id, job.id, state=R_SUCCEEDED, grid_key=stored.key, grid_size=stored.size,
+            grid_sha256=stored.sha256, iteration=total, total=total, lease_until=None, finished_at=utcnow(),
+        )
+    if not done:
+        storage.delete(stored.key)
+        raise runtime.LeaseLost(f"reconstruction {rec.id}: another job took the fit over before it was stored")
     storage.delete(checkpoint_key)
 
 
