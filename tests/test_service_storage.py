@@ -76,6 +76,40 @@ def test_put_get_range_list_delete(storage, tmp_path):
     assert storage.list() == []
 
 
+def test_both_backends_agree_on_tmp_keys_and_empty_ranges(storage):
+    """A key may end in .tmp (only a local writer's own temporary name is hidden), and a range that starts past
+    the end or ends before its start holds no bytes, on either backend."""
+    storage.put_bytes("jobs/t/notes.tmp", b"kept")
+    storage.put_bytes("jobs/t/data.bin", b"0123456789")
+    assert storage.list("jobs/t/") == ["jobs/t/data.bin", "jobs/t/notes.tmp"]
+    assert b"".join(storage.open_range("jobs/t/data.bin", 10)) == b""
+    assert b"".join(storage.open_range("jobs/t/data.bin", 50, 60)) == b""
+    assert b"".join(storage.open_range("jobs/t/data.bin", 5, 4)) == b""
+    with pytest.raises(ObjectNotFound):
+        storage.open_range("jobs/t/missing.bin", 5, 4)
+    assert storage.delete_prefix("jobs/t/") == 2 and storage.list() == []
+
+
+def test_s3_objects_a_delete_kept_are_an_error():
+    """S3's DeleteObjects answers 200 and names the objects it could not delete: that is a failure, as a local
+    delete that fails raises."""
+    class Pages:
+        def paginate(self, **kwargs):
+            return [{"Contents": [{"Key": "svc/jobs/j/a.png"}, {"Key": "svc/jobs/j/b.png"}]}]
+
+    class Client:
+        def get_paginator(self, name):
+            return Pages()
+
+        def delete_objects(self, Bucket, Delete):
+            return {"Errors": [{"Key": Delete["Objects"][1]["Key"], "Code": "AccessDenied"}]}
+
+    store = S3Storage("bucket", prefix="svc", create_bucket=False, client=Client())
+    with pytest.raises(StorageError, match=r"could not delete 1 object\(s\) under 'jobs/j/': svc/jobs/j/b.png "
+                                           r"\(AccessDenied\)"):
+        store.delete_prefix("jobs/j/")
+
+
 @pytest.mark.parametrize("key", ["../etc/passwd", "/abs", "a//b", "a/./b", "a/../b", "", "a\\b", "a/b c"])
 def test_keys_cannot_escape(storage, key):
     with pytest.raises(StorageError):

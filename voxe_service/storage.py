@@ -94,7 +94,8 @@ class Storage(ABC):
 
     @abstractmethod
     def open_range(self, key: str, start: int = 0, end: int | None = None) -> Iterator[bytes]:
-        """Bytes ``start`` .. ``end`` (inclusive; None: to the end) as a stream of chunks."""
+        """Bytes ``start`` .. ``end`` (inclusive; None: to the end) as a stream of chunks; none when ``start`` lies
+        past the end or ``end`` before ``start``."""
 
     @abstractmethod
     def list(self, prefix: str = "") -> list[str]: ...
@@ -207,7 +208,7 @@ class LocalStorage(Storage):
         base = self.root
         keys = []
         for path in base.rglob("*"):
-            if path.is_file() and not path.name.endswith(".tmp"):
+            if path.is_file() and not _WRITING.match(path.name):
                 key = path.relative_to(base).as_posix()
                 if key.startswith(prefix):
                     keys.append(key)
@@ -218,7 +219,7 @@ class LocalStorage(Storage):
         count = super().delete_prefix(prefix)
         for leftover in list(self.root.rglob("*.tmp")):
             key = leftover.relative_to(self.root).as_posix()
-            if leftover.is_file() and key.startswith(prefix):
+            if leftover.is_file() and _WRITING.match(leftover.name) and key.startswith(prefix):
                 self.delete(key)
         return count
 
@@ -235,6 +236,11 @@ class LocalStorage(Storage):
 
     def describe(self) -> str:
         return f"local:{self.root}"
+
+
+_WRITING = re.compile(r"^\..+\.[0-9a-f]{32}\.tmp$")
+"""The name of a file being written (``put_file``'s ``.<name>.<uuid hex>.tmp``): never a key, whereas any other
+name ending in ``.tmp`` is one, as on S3."""
 
 
 class S3Storage(Storage):
@@ -326,10 +332,15 @@ class S3Storage(Storage):
         if start or end is not None:
             kwargs["Range"] = f"bytes={start}-{'' if end is None else end}"
         try:
+            if end is not None and end < start:  # S3 would ignore such a range and send everything
+                self.size(key)  # (ObjectNotFound still applies)
+                return iter(())
             body = self.client.get_object(Bucket=self.bucket, Key=self._full(key), **kwargs)["Body"]
         except ClientError as exc:
             if self._not_found(exc):
                 raise ObjectNotFound(key) from exc
+            if exc.response.get("Error", {}).get("Code") == "InvalidRange":  # starts past the end: no bytes
+                return iter(())
             raise
 
         def chunks() -> Iterator[bytes]:
@@ -354,7 +365,11 @@ class S3Storage(Storage):
         keys = self.list(prefix)
         for start in range(0, len(keys), 1000):
             batch = [{"Key": self.prefix + k} for k in keys[start:start + 1000]]
-            self.client.delete_objects(Bucket=self.bucket, Delete={"Objects": batch, "Quiet": True})
+            errors = self.client.delete_objects(Bucket=self.bucket, Delete={"Objects": batch, "Quiet": True}).get(
+                "Errors", [])
+            if errors:  # S3 answers 200 and lists the objects it kept: left behind, as a local failure raises
+                shown = ", ".join(f"{e.get('Key')} ({e.get('Code')})" for e in errors[:3])
+                raise StorageError(f"could not delete {len(errors)} object(s) under {prefix!r}: {shown}")
         return len(keys)
 
     def describe(self) -> str:
