@@ -13,7 +13,12 @@ localisation_grids.py's "fitted") and the fox capture with a synthetic hat (loca
 chosen on seeds 0–4 (``choose``) and reported on seeds 5–29 (``report``), so the reported spread is not the one it
 was picked on.
 
-    python bench/localisation_seeds.py      # 5 scenes × clean, moderate × 4 margins × 30 seeds (~4 min)
+Beside the draws, each margin's ``every`` row ties every candidate (``object_seeds`` above the node count: no draw,
+so one answer): what a job gets from ``refine.object_seeds`` = 10,000,000. It trades the draws' spread for a
+stronger object prior, measured against the draws in the same run.
+
+    python bench/localisation_seeds.py      # 5 scenes × clean, moderate × 4 margins × (30 draws + every) (~4 min)
+    python bench/localisation_seeds.py --levels hard --out bench/results/localisation_seeds_hard.json
 """
 
 from __future__ import annotations
@@ -39,33 +44,37 @@ HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
 MARGINS = (0.0, 0.01, 0.02, 0.05)
 CHOOSE, REPORT = range(0, 5), range(5, 30)
+EVERY_CANDIDATE = 10_000_000  # object_seeds above any node count (the job schema's maximum): every candidate is tied
 
 
 def measure(scene, level_name: str, map_seed: int, margins, seeds) -> list[dict]:
-    """IoU of the default cut against the truth, per (margin, seed), on one lift of ``scene`` at ``level_name``."""
+    """IoU of the default cut against the truth, per (margin, seed) and per margin with every candidate tied
+    (``rule`` "draw" / "every"; "every" has no seed), on one lift of ``scene`` at ``level_name``."""
     base = RefineConfig(iterations=0, render_size=scene.cameras.width, views=len(scene.cameras))
     e, o = fit_attention_grids(scene.edited, scene.cameras, *scene_maps(scene, level_name, map_seed, base), base)
     nodes = node_mask(scene.edited)
     rows = []
     for margin in margins:
-        for seed in seeds:
-            config = dataclasses.replace(base, object_seed_margin=margin, seed=seed)
+        for rule, seed in [*(("draw", seed) for seed in seeds), ("every", None)]:
+            config = dataclasses.replace(base, object_seed_margin=margin, seed=seed or 0,
+                                         object_seeds=EVERY_CANDIDATE if rule == "every" else base.object_seeds)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # "only n of 5000 object seeds": expected at 96³
                 mask, stats = graph_cut_detailed(scene.edited, e, o, config)
-            rows.append({"scene": scene.name, "noise": level_name, "margin": margin, "seed": seed,
-                         "split": "choose" if seed in CHOOSE else "report",
+            rows.append({"scene": scene.name, "noise": level_name, "margin": margin, "rule": rule, "seed": seed,
+                         "split": "every" if rule == "every" else "choose" if seed in CHOOSE else "report",
                          "iou": round(iou(mask, scene.truth, nodes), 4), "predicted_voxels": int((mask & nodes).sum()),
                          "true_voxels": int((scene.truth & nodes).sum()), "object_seeds": stats.object_seeds,
                          "cut_seconds": round(stats.build_s + stats.solve_s, 3)})
-        ious = [r["iou"] for r in rows if r["margin"] == margin]
-        print(f"{scene.name:16s} {level_name:8s} margin {margin:<5} IoU " + " ".join(f"{v:.3f}" for v in ious),
-              flush=True)
+        ious = [r["iou"] for r in rows if r["margin"] == margin and r["rule"] == "draw"]
+        every = next(r for r in rows if r["margin"] == margin and r["rule"] == "every")
+        print(f"{scene.name:16s} {level_name:8s} margin {margin:<5} every {every['iou']:.3f} "
+              f"({every['object_seeds']} seeds) draws " + " ".join(f"{v:.3f}" for v in ious), flush=True)
     return rows
 
 
 def summarise(runs: list[dict]) -> list[dict]:
-    """Mean / min / max IoU per (case, margin, split)."""
+    """Mean / min / max IoU per (case, margin, split); split "every" is the one every-candidate cut."""
     groups: dict[tuple, list[float]] = {}
     for r in runs:
         groups.setdefault((r["scene"], r["noise"], r["margin"], r["split"]), []).append(r["iou"])
@@ -74,7 +83,8 @@ def summarise(runs: list[dict]) -> list[dict]:
 
 
 def plot(runs: list[dict], path: Path) -> None:
-    """IoU of every seed (dots) and its range (bar) per case, one colour per margin; seeds 5–29 only."""
+    """IoU of every draw (dots; seeds 5–29) and their range (bar) per case, one colour per margin; a black-edged
+    diamond: every candidate tied."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -91,11 +101,15 @@ def plot(runs: list[dict], path: Path) -> None:
             x = i + (k - (len(margins) - 1) / 2) * width
             ax.vlines(x, min(ious), max(ious), color=f"C{k}", lw=6, alpha=0.35)
             ax.scatter([x] * len(ious), ious, color=f"C{k}", s=12, label=f"margin {margin}" if i == 0 else None)
+            every = [r["iou"] for r in runs if (r["scene"], r["noise"]) == case and r["margin"] == margin
+                     and r["rule"] == "every"]
+            ax.scatter([x] * len(every), every, color=f"C{k}", marker="D", s=36, edgecolors="black", zorder=3,
+                       label="every candidate tied" if i == 0 and k == 0 else None)
     ax.set_xticks(range(len(cases)), [" / ".join(c) for c in cases], rotation=15, ha="right", fontsize=8)
     ax.set_ylabel("3D IoU vs true part")
     ax.set_ylim(0, 1)
     ax.legend(fontsize=8)
-    ax.set_title("default cut: random object seeds drawn among P_obj > P_e + margin (seeds 5–29, 96³)")
+    ax.set_title("default cut: object seeds drawn at random among P_obj > P_e + margin (dots, seeds 5–29), or all (◆)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
@@ -114,10 +128,12 @@ def main() -> None:
         for level in args.levels:
             runs += measure(scene, level, 100 + list(LEVELS).index(level), args.margins, [*CHOOSE, *REPORT])
     result = {
-        "description": "IoU of the default graph cut per random object-seed draw and object_seed_margin, on the "
-                       "same lifted attention grids; see bench/localisation_seeds.py.",
+        "description": "IoU of the default graph cut per random object-seed draw (rule 'draw') or with every "
+                       "candidate tied (rule 'every') and per object_seed_margin, on the same lifted attention grids; "
+                       "see bench/localisation_seeds.py.",
         "settings": {"resolution": args.resolution, "levels": {k: LEVELS[k] for k in args.levels},
                      "margins": args.margins, "choose_seeds": list(CHOOSE), "report_seeds": list(REPORT),
+                     "every_candidate_object_seeds": EVERY_CANDIDATE,
                      "threads": torch.get_num_threads(),
                      "refine_config": {k: v for k, v in vars(RefineConfig(iterations=0)).items()
                                        if k not in ("render", "render_size", "views")}},  # those two: each scene's
