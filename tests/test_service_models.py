@@ -163,3 +163,23 @@ def test_migration_0006_adds_the_models_column_and_removes_it(tmp_path):
     command.downgrade(config, "0005_webhooks")
     assert "models" not in {c["name"] for c in inspect(engine).get_columns("worker_heartbeats")}
     assert set(ROLES) == {"sds", "attention", "clip", "fid"}
+
+
+def test_a_failed_smoke_test_model_build_leaves_nothing_and_the_next_one_completes(tmp_path):
+    """build_once builds aside and renames into place: a build that fails half way leaves no folder behind."""
+    from types import SimpleNamespace
+
+    from worker.runtime import build_once
+
+    settings = SimpleNamespace(model_dir=str(tmp_path))
+
+    def failing(folder):
+        (folder / "half.bin").write_bytes(b"x")
+        raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        build_once(settings, "tiny-sd", "model_index.json", failing)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".tiny.lock"]
+    built = build_once(settings, "tiny-sd", "model_index.json", lambda folder: (folder / "model_index.json").write_text("{}"))
+    assert built == tmp_path / "tiny-sd" and (built / "model_index.json").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".tiny.lock", "tiny-sd"]

@@ -445,8 +445,11 @@ def build_once(settings: Settings, name: str, marker: str, build) -> Path:
         fcntl.flock(lock, fcntl.LOCK_EX)
         if not (target / marker).is_file():
             tmp = Path(tempfile.mkdtemp(dir=root, prefix=".tiny-"))
-            build(tmp)
-            os.rename(tmp, target)
+            try:
+                build(tmp)
+                os.rename(tmp, target)
+            finally:  # a failed build leaves no half-written folder behind
+                shutil.rmtree(tmp, ignore_errors=True)
     return target
 
 
