@@ -43,9 +43,9 @@ from voxe_service.storage import get_storage, job_key, scene_key
 log = logging.getLogger("voxe.reaper")
 
 
-def _fail(session, job_id: str, seen_updated_at: datetime, seen_state: str, error: str) -> bool:
+def _fail(session, job_id: str, seen_updated_at: datetime, seen_state: str, error: str, *where) -> bool:
     return bool(finish_jobs(session, [job_id], FAILED, error=error,
-                            where=[Job.state == seen_state, Job.updated_at == seen_updated_at]))
+                            where=[Job.state == seen_state, Job.updated_at == seen_updated_at, *where]))
 
 
 def _stale_window(settings: Settings, now: datetime | None):
@@ -74,16 +74,18 @@ def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[
                 reaped.append(job.id)
         waiting_for_ingest = select(Scene.id).where(Scene.state == PROCESSING)
         never_sent = session.execute(
-            select(Job.id, Job.mode, Job.batch_id, Job.updated_at).where(Job.state == QUEUED, Job.task_id.is_(None), Job.updated_at < cutoff,
-                                                 Job.scene_id.not_in(waiting_for_ingest))
+            select(Job.id, Job.mode, Job.batch_id, Job.updated_at).where(
+                Job.state == QUEUED, Job.task_id.is_(None), Job.updated_at < cutoff,
+                Job.scene_id.not_in(waiting_for_ingest))
         ).all()
+        evaluations = [job for job in never_sent if job.mode == EVALUATE and job.batch_id is not None]
         for job in never_sent:
-            if job.mode != EVALUATE or job.batch_id is None:
+            if job not in evaluations:  # (an edit sent now takes its sweep's evaluations along)
                 _send_now(session, job.id, job.updated_at, timeout)
-                continue
+        for job in evaluations:  # those still unsent: their edit's chain will never carry them
             error = (f"the sweep's evaluation was never handed to the broker with its edit; failed after "
                      f"{timeout:.0f} s (VOXE_JOB_STALE_TIMEOUT_S): create it again")
-            if _fail(session, job.id, job.updated_at, QUEUED, error):
+            if _fail(session, job.id, job.updated_at, QUEUED, error, Job.task_id.is_(None)):
                 reaped.append(job.id)
     for job_id in reaped:
         log.warning("reaper: job %s failed as orphaned", job_id)
@@ -131,15 +133,6 @@ def reap_orphaned_scenes(settings: Settings, now: datetime | None = None) -> lis
     return reaped
 
 
-def _delete_prefixes(prefixes: list[str], settings: Settings) -> None:
-    storage = get_storage(settings)
-    for prefix in prefixes:
-        try:
-            storage.delete_prefix(prefix)
-        except Exception:  # noqa: BLE001 - leftover objects of a failed job or scene are harmless
-            log.warning("reaper: could not delete the objects under %s", prefix, exc_info=True)
-
-
 class Reaper:
     """Runs :func:`reap_orphaned_jobs` now and every ``reaper_interval_s`` until :meth:`stop`."""
 
@@ -162,7 +155,7 @@ class Reaper:
                 scenes = reap_orphaned_scenes(self.settings)  # first: their waiting jobs fail with them
                 prefixes = [scene_key(s) for s in scenes]
                 prefixes += [job_key(j, "checkpoints/") for j in reap_orphaned_jobs(self.settings)]
-                _delete_prefixes(prefixes, self.settings)
+                get_storage(self.settings).discard_prefixes(*prefixes)
             except Exception:  # noqa: BLE001 - a failed pass is retried on the next one
                 log.warning("reaper pass failed", exc_info=True)
             self._stop.wait(self.settings.reaper_interval_s)

@@ -59,15 +59,15 @@ def add_scene(state: str = "ready", age_s: float = 0, task_id: str | None = "ing
 
 
 def add_job(scene_id: str, state: str, age_s: float, worker: str | None = None, stage: str | None = None,
-            task_id: str | None = "task") -> str:
+            task_id: str | None = "task", **columns) -> str:
     from voxe_service.db import session_scope
     from voxe_service.models import Job, utcnow
 
     then = utcnow() - timedelta(seconds=age_s)
     with session_scope() as session:
-        job = Job(scene_id=scene_id, prompt="a yarn doll of a mic", mode="global", params={}, sds_model="tiny",
-                  attention_model="tiny", device="cpu", state=state, stage=stage, worker_hostname=worker,
-                  task_id=task_id, created_at=then, updated_at=then, **owner())
+        job = Job(**{"mode": "global", **columns}, scene_id=scene_id, prompt="a yarn doll of a mic", params={},
+                  sds_model="tiny", attention_model="tiny", device="cpu", state=state, stage=stage,
+                  worker_hostname=worker, task_id=task_id, created_at=then, updated_at=then, **owner())
         session.add(job)
         session.flush()
         return job.id
@@ -102,6 +102,13 @@ def test_reaper_fails_only_jobs_nothing_will_finish(db):
         "no worker recorded": add_job(scene, "running", 2 * timeout, None, "reconstruct"),
     }
     never_sent = add_job(scene, "queued", 2 * timeout, task_id=None)  # accepted, never sent: sent now, not failed
+    # A sweep's evaluation goes with its edit's chain when that is sent; one whose edit is done has no chain left.
+    sweep_edit = add_job(scene, "queued", 2 * timeout, task_id=None, batch_id="b1")
+    carried = add_job(scene, "queued", 2 * timeout, task_id=None, mode="evaluate", batch_id="b1",
+                      source_job_ids=[sweep_edit])
+    orphans["evaluation of a finished edit"] = add_job(
+        scene, "queued", 2 * timeout, task_id=None, mode="evaluate", batch_id="b2",
+        source_job_ids=[add_job(scene, "succeeded", 2 * timeout, batch_id="b2")])
     processing = add_scene("processing", age_s=1)
     kept = {
         "waiting for its scene's ingest": add_job(processing, "queued", 2 * timeout, task_id=None),
@@ -121,6 +128,9 @@ def test_reaper_fails_only_jobs_nothing_will_finish(db):
                                                                    "reconstruct")
     sent = job_row(never_sent)
     assert sent.state == "queued" and sent.task_id not in (None, "task") and sent.error is None
+    assert job_row(carried).state == "queued" and job_row(carried).task_id == job_row(sweep_edit).task_id is not None
+    assert job_row(orphans["evaluation of a finished edit"]).error.startswith(
+        "the sweep's evaluation was never handed to the broker with its edit")
     assert [e["kind"] for e in events_of(never_sent)] == ["requeued"]
     assert events_of(never_sent)[0]["detail"].startswith("sent by the reaper: recorded but not handed to the broker")
     for what, job_id in kept.items():
@@ -176,13 +186,18 @@ def test_a_fits_lease_is_kept_without_progress_and_its_loss_is_seen(db, monkeypa
     with runtime.LeaseKeeper(rec_id, first, db) as lease:
         time.sleep(1.0)  # no progress reported: only the keeper's thread renews
         assert lease_until() > claimed + timedelta(seconds=0.3) and not lease.lost
-        with session_scope() as session:  # a stall outlived the lease, and another job claimed the fit
-            session.get(Reconstruction, rec_id).lease_until = utcnow() - timedelta(seconds=1)
-        assert runtime.try_claim_reconstruction(rec_id, second, "v@host", db, allow_failed=False)
-        assert not lease.renew()
+        with session_scope() as session:  # a stall outlived the lease, and another job claimed the fit (as
+            rec = session.get(Reconstruction, rec_id)  # try_claim_reconstruction does, in one statement)
+            rec.owner_job_id, rec.lease_until = second, utcnow() + timedelta(seconds=60)
+        for _ in range(50):  # the keeper's next renewal finds the fit gone
+            if lease.lost:
+                break
+            time.sleep(0.05)
         with pytest.raises(runtime.LeaseLost, match="another job took the fit over"):
             lease.check()
     assert not runtime.set_reconstruction(rec_id, first, state="succeeded")  # the owner's alone to change
+    with session_scope() as session:
+        assert session.get(Reconstruction, rec_id).owner_job_id == second
 
 
 def events_of(job_id: str) -> list[dict]:

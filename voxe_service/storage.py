@@ -12,6 +12,7 @@ and backslashes are refused, so a key can never leave the storage root.
 from __future__ import annotations
 
 import hashlib
+import logging
 import os
 import re
 import shutil
@@ -22,6 +23,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+log = logging.getLogger("voxe.storage")
 CHUNK = 1 << 20
 _KEY_PART = re.compile(r"^[A-Za-z0-9._-]+$")
 
@@ -109,6 +111,15 @@ class Storage(ABC):
         for key in keys:
             self.delete(key)
         return len(keys)
+
+    def discard_prefixes(self, *prefixes: str) -> None:
+        """Delete what lies under each prefix as cleanup: objects no record refers to any more, so a failure is
+        logged (the objects stay behind, harming nothing but space) rather than raised over the caller's answer."""
+        for prefix in prefixes:
+            try:
+                self.delete_prefix(prefix)
+            except Exception:  # noqa: BLE001 - see the docstring
+                log.warning("could not delete the stored objects under %s", prefix, exc_info=True)
 
     def exists(self, key: str) -> bool:
         try:

@@ -90,9 +90,9 @@ _NAT64 = ipaddress.ip_network("64:ff9b::/96")
 def refused_rule(address: ipaddress.IPv4Address | ipaddress.IPv6Address) -> str | None:
     """Why a webhook may not go to ``address`` (None: a public address), the most specific name first.
 
-    An IPv6 address that carries an IPv4 one (mapped ``::ffff:a.b.c.d``, 6to4 ``2002::/16``, NAT64 ``64:ff9b::/96``)
-    is judged by it too; anything else that is not globally routable (e.g. carrier-grade NAT, 100.64.0.0/10) is
-    "non-public".
+    An IPv6 address that carries an IPv4 one is judged by it too (6to4 ``2002::/16``; mapped ``::ffff:a.b.c.d`` and
+    NAT64 ``64:ff9b::/96`` addresses are already refused as reserved); anything else that is not globally routable
+    (e.g. carrier-grade NAT, 100.64.0.0/10) is "non-public".
 
     Examples:
         >>> [refused_rule(ipaddress.ip_address(a)) for a in ("8.8.8.8", "10.1.2.3", "100.64.1.2", "2002:a01:203::1")]

@@ -132,7 +132,7 @@ def _fail(scene_id: str, reason: str, storage: Storage) -> None:
     with session_scope() as session:
         failed = fail_scene(session, scene_id, reason)
     if failed:  # its bytes are of no use to any job: free the key's upload quota
-        storage.delete_prefix(scene_key(scene_id))
+        storage.discard_prefixes(scene_key(scene_id))
         log.warning("scene %s failed: %s", scene_id, reason)
 
 
@@ -141,7 +141,7 @@ def _ready(scene_id: str, values: dict, storage: Storage, replaced_key: str | No
         waiting = mark_ready(session, scene_id, **values)
         if waiting is None:  # deleted (or failed by the reaper) while it was decoded: keep nothing of it
             session.rollback()
-            storage.delete_prefix(scene_key(scene_id))
+            storage.discard_prefixes(scene_key(scene_id))
             return {"scene_id": scene_id, "skipped": f"scene {scene_id} was deleted or failed meanwhile"}
         session.commit()
         queue = get_queue()  # the waiting jobs first: should this worker stop before, the reaper sends them

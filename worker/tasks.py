@@ -128,10 +128,7 @@ def _error_message(stage: str, exc: Exception, job: Job) -> str:
 
 def _cleanup(job_id: str, settings) -> None:
     runtime.cleanup_scratch(job_id, settings)
-    try:
-        get_storage(settings).delete_prefix(job_key(job_id, "checkpoints/"))
-    except Exception:  # noqa: BLE001 - leftover checkpoints are harmless
-        log.warning("job %s: could not delete checkpoints", job_id, exc_info=True)
+    get_storage(settings).discard_prefixes(job_key(job_id, "checkpoints/"))
 
 
 def _preview(job_id: str, grid, settings, storage, device: str, image=None, centre=None) -> None:

@@ -52,7 +52,8 @@ def parse_range(header: str | None, size: int) -> tuple[int, int] | None:
 
 
 def _position(digits: str) -> int:
-    """A byte position; past 18 digits, one beyond any file (``int`` refuses strings of over 4,300 digits)."""
+    """A byte position; past 18 significant digits, one beyond any file (``int`` refuses over 4,300 digits)."""
+    digits = digits.lstrip("0") or "0"
     return int(digits) if len(digits) <= 18 else 10**18
 
 

@@ -115,7 +115,7 @@ def _queue_ingest(session: Session, storage: Storage, queue: TaskQueue, scene: S
         reason = f"could not queue the ingest: {type(exc).__name__}: {exc}"
         fail_scene(session, scene.id, reason)
         session.commit()
-        storage.delete_prefix(scene_key(scene.id))
+        storage.discard_prefixes(scene_key(scene.id))
         session.refresh(scene)
         raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, reason) from None
     scene.task_id = task_id
@@ -145,8 +145,8 @@ def delete_scene(*, session: Session, storage: Storage, key: ApiKey, scene_id: s
     scene = get_scene(session=session, key=key, scene_id=scene_id)
     # Locked before counting, as creating a job locks it after writing its row (add_jobs): a job created meanwhile
     # is either counted here (409) or refused there (404), never accepted and then deleted with the scene.
+    lock_scene(session, scene_id)  # PostgreSQL's row lock, taken first (an UPDATE first could deadlock with add_jobs)
     session.execute(update(Scene).where(Scene.id == scene_id).values(updated_at=utcnow()))  # SQLite's write lock
-    lock_scene(session, scene_id)  # PostgreSQL's row lock
     active = session.scalar(select(func.count()).select_from(Job)
                             .where(Job.scene_id == scene_id, Job.state.in_((QUEUED, RUNNING))))
     if active:
@@ -157,12 +157,7 @@ def delete_scene(*, session: Session, storage: Storage, key: ApiKey, scene_id: s
     session.delete(scene)  # jobs, artifacts and reconstructions go with it (ON DELETE CASCADE)
     session.commit()
     # Rows first, then objects: a crash in between leaves unreferenced objects, never dangling rows.
-    prefixes = [scene_key(scene_id)] + [job_key(j) for j in job_ids] + [reconstruction_storage_key(r) for r in rec_ids]
-    for prefix in prefixes:
-        try:
-            storage.delete_prefix(prefix)
-        except Exception:  # noqa: BLE001
-            log.warning("could not delete stored objects under %s", prefix, exc_info=True)
+    storage.discard_prefixes(scene_key(scene_id), *map(job_key, job_ids), *map(reconstruction_storage_key, rec_ids))
 
 
 def refuse_unless_usable(scene: Scene) -> None:

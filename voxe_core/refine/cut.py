@@ -32,7 +32,7 @@ class GraphCutStats:
     object_seeds: int
     edit_voxels: int
     flow: float
-    unseeded_voxels: int  # nodes in pieces no seed reaches (``RefineConfig.unseeded_pieces``), 0 with a unary
+    unseeded_voxels: int  # nodes relabelled in seedless pieces: only with unseeded_pieces="preference", no unary
     build_s: float
     solve_s: float
     notes: list[str] = field(default_factory=list)
