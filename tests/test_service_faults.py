@@ -200,6 +200,22 @@ def test_a_fits_lease_is_kept_without_progress_and_its_loss_is_seen(db, monkeypa
         assert session.get(Reconstruction, rec_id).owner_job_id == second
 
 
+def test_a_workers_scratch_of_ended_or_deleted_jobs_is_swept_and_a_live_jobs_kept(db):
+    """Only the worker running a job's last stage cleans its scratch; the sweep removes what other workers keep of
+    jobs that have ended (or been deleted), never a live job's."""
+    from pathlib import Path
+
+    from worker.runtime import scratch_dir, sweep_scratch
+
+    scene = add_scene()
+    live, ended = add_job(scene, "running", 0, "w@host", "edit"), add_job(scene, "succeeded", 0, "w@host", "export")
+    for job_id in (live, ended, "0" * 32):  # the last: a job deleted since
+        (scratch_dir(job_id, db) / "edited_grid.safetensors").write_bytes(b"grid")
+    assert sorted(sweep_scratch(db)) == sorted([ended, "0" * 32])
+    assert [p.name for p in (Path(db.work_dir) / "jobs").iterdir()] == [live]
+    assert sweep_scratch(db) == []
+
+
 def events_of(job_id: str) -> list[dict]:
     from sqlalchemy import select
 

@@ -81,20 +81,23 @@ def test_a_model_is_refused_only_when_every_worker_reporting_on_it_lacks_it():
 
 
 def start_worker_heartbeat() -> dict:
-    """The worker's start-up hook as Celery calls it (no sender): returns its heartbeat row once written."""
+    """The worker's start-up hook as Celery calls it (no sender): its heartbeat row, once written and once its
+    first scratch sweep removed the leftover folder of a job that no longer exists."""
     from voxe_service.db import session_scope
     from voxe_service.models import WorkerHeartbeat
-    from worker import tasks
+    from voxe_service.settings import get_settings
+    from worker import runtime, tasks
 
+    leftover = runtime.scratch_dir("f" * 32, get_settings())  # of no job: the first sweep removes it
     tasks._start_heartbeat(sender=None)
     try:
         for _ in range(100):
             with session_scope() as session:
                 row = session.scalars(select(WorkerHeartbeat)).first()
-                if row is not None:
-                    return {"hostname": row.hostname, "models": row.models}
+            if row is not None and not leftover.exists():
+                return {"hostname": row.hostname, "models": row.models}
             time.sleep(0.05)
-        raise AssertionError("no heartbeat written")
+        raise AssertionError("no heartbeat written, or the scratch sweep did not run")
     finally:
         tasks._heartbeat_stop.set()
 

@@ -241,6 +241,24 @@ def cleanup_scratch(job_id: str, settings: Settings) -> None:
     shutil.rmtree(Path(settings.work_dir) / "jobs" / job_id, ignore_errors=True)
 
 
+def sweep_scratch(settings: Settings) -> list[str]:
+    """Delete the scratch folders of jobs that have ended or are gone; the ids swept.
+
+    The worker that runs a job's last stage cleans its scratch; in a scale-out the workers that ran
+    its earlier stages would otherwise keep their copies of its grids and checkpoints for ever.
+    """
+    root = Path(settings.work_dir) / "jobs"
+    ids = [p.name for p in root.iterdir() if p.is_dir()] if root.is_dir() else []
+    if not ids:
+        return []
+    with session_scope() as session:
+        live = set(session.scalars(select(Job.id).where(Job.id.in_(ids), Job.state.not_in(TERMINAL_STATES))))
+    swept = [job_id for job_id in ids if job_id not in live]
+    for job_id in swept:
+        cleanup_scratch(job_id, settings)
+    return swept
+
+
 def publish_artifact(job_id: str, name: str, path: str | os.PathLike, kind: str, storage: Storage | None = None,
                      key: str | None = None) -> Artifact:
     """Upload ``path`` as the job's artifact ``name``, then record it with the stored bytes' size and SHA-256.

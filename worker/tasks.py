@@ -475,8 +475,12 @@ def ingest_task(self, scene_id: str) -> TaskResult:
 _heartbeat_stop = threading.Event()
 
 
+SCRATCH_SWEEP_S = 600.0  # how often the heartbeat thread also sweeps ended jobs' scratch (runtime.sweep_scratch)
+
+
 def _beat(hostname: str, queues: str, device: str, models: dict) -> None:
     settings = get_settings()
+    next_sweep = time.monotonic()  # at start, then every SCRATCH_SWEEP_S
     while not _heartbeat_stop.is_set():
         try:
             with runtime.session_scope() as session:
@@ -488,6 +492,13 @@ def _beat(hostname: str, queues: str, device: str, models: dict) -> None:
                     os.getpid(), queues, device, models, utcnow())
         except Exception:  # noqa: BLE001 - a missed heartbeat is not fatal
             log.warning("worker heartbeat failed", exc_info=True)
+        if time.monotonic() >= next_sweep:
+            next_sweep = time.monotonic() + SCRATCH_SWEEP_S
+            try:
+                if swept := runtime.sweep_scratch(settings):
+                    log.info("removed the scratch of %d ended job(s)", len(swept))
+            except Exception:  # noqa: BLE001 - retried on the next sweep
+                log.warning("scratch sweep failed", exc_info=True)
         _heartbeat_stop.wait(settings.worker_heartbeat_s)
 
 
