@@ -165,9 +165,10 @@ def _reconstruct(job: Job, settings, device: str, storage) -> None:
                 log.warning("job %s: %s", job.id, exc)
             first = False
             continue
-        rec = runtime.load_reconstruction(rec_id) or rec  # as it is after the claim failed, not as it was before
-        if rec.state == R_FAILED:
-            raise ReconstructionFailed(f"reconstruct: the scene's reconstruction failed: {rec.error}")
+        if rec.state == R_FAILED:  # as read before the claim, which may have lost to a job now re-running it
+            rec = runtime.load_reconstruction(rec_id) or rec
+            if rec.state == R_FAILED:
+                raise ReconstructionFailed(f"reconstruct: the scene's reconstruction failed: {rec.error}")
         first = False
         owner = f" (fitted by job {rec.owner_job_id})" if rec.owner_job_id else ""
         runtime.update_job(job.id, iteration=rec.iteration, total=rec.total,

@@ -147,12 +147,13 @@ def list_events(job_id: str, request: Request, session: SessionDep, key: Current
 
 
 def _event_id(value: str | None) -> int:
-    if value is None or not value.strip():
+    text = (value or "").strip()
+    if not text:
         return 0
-    if not (value.strip().isascii() and value.strip().isdigit()):  # "²".isdigit(), but int("²") fails
+    if not (text.isascii() and text.isdigit()):  # "²".isdigit(), but int("²") fails
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
                             f"Last-Event-ID must be the id of an event (a non-negative integer), not {value!r}")
-    return int(value)
+    return int(text)
 
 
 def progress_view(job: Job) -> dict:
