@@ -37,6 +37,7 @@ from voxe_core.refine.config import (
 from voxe_core.refine.cut import (
     graph_cut,
     graph_cut_detailed,
+    graph_pieces,
     node_mask,
     object_seed_indices,
     pairwise_weights,
@@ -446,6 +447,34 @@ def test_a_piece_no_seed_reaches_takes_the_label_its_probabilities_favour():
     assert torch.equal(alone[nodes], (p_e > 0.5)[nodes])  # the leaning voxel goes with its own P_e
     with pytest.raises(ValueError, match="unseeded_pieces must be one of"):
         RefineConfig(unseeded_pieces="object")
+
+
+def test_graph_pieces_are_the_graphs_connected_components_on_either_path():
+    """All weights positive: the node mask's 6-connected components (a lattice pass) equal the graph's connected
+    components; a zero weight cuts its edge (the graph path)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    nodes = np.random.default_rng(0).random((9, 8, 7)) < 0.45
+    ids = np.full(nodes.shape, -1)
+    ids[nodes] = np.arange(int(nodes.sum()))
+    heads, tails = [], []
+    for axis in range(3):
+        lo, hi = [slice(None)] * 3, [slice(None)] * 3
+        lo[axis], hi[axis] = slice(0, -1), slice(1, None)
+        pair = nodes[tuple(lo)] & nodes[tuple(hi)]
+        heads.append(ids[tuple(lo)][pair])
+        tails.append(ids[tuple(hi)][pair])
+    heads, tails = np.concatenate(heads), np.concatenate(tails)
+    n = int(nodes.sum())
+    count, reference = connected_components(coo_matrix((np.ones(heads.size), (heads, tails)), shape=(n, n)),
+                                            directed=False)
+    pieces = graph_pieces(nodes, heads, tails, np.ones(heads.size))
+    assert 1 < count < n and len(set(zip(pieces.tolist(), reference.tolist()))) == count == len(set(pieces.tolist()))
+    line = np.zeros((4, 1, 1), bool)
+    line[:, 0, 0] = True  # 0 - 1 - 2 - 3, the middle edge of weight 0
+    assert graph_pieces(line, np.array([0, 1, 2]), np.array([1, 2, 3]), np.array([1.0, 0.0, 1.0])).tolist() == [
+        0, 0, 1, 1]
 
 
 def test_no_occupied_voxels_is_a_clear_error():

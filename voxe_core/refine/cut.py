@@ -132,33 +132,51 @@ def _node_test(config: RefineConfig) -> str:
     return f"the edited grid's density never makes a voxel {config.node_alpha:.0%} opaque"
 
 
-def label_unseeded_pieces(edit_side: np.ndarray, heads: np.ndarray, tails: np.ndarray, weights: np.ndarray,
-                          seeds: np.ndarray, log_e: np.ndarray, log_o: np.ndarray) -> tuple[np.ndarray, int]:
-    """Each piece of the graph (nodes joined by edges of positive weight) holding none of ``seeds`` takes the label
-    its voxels favour together (Σ log P_e > Σ log P_obj: edit): with no unary such a piece costs nothing either way,
-    and max-flow would leave it on the source (edit) side whatever its probabilities.
+def graph_pieces(nodes: np.ndarray, heads: np.ndarray, tails: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(N,) the piece of each node: nodes joined by pairwise edges of positive weight share one.
+
+    Every edge joins 6-neighbour nodes, so while all weights are positive the pieces are the node mask's
+    6-connected components (``scipy.ndimage.label``, a pass over the lattice); a zero weight (smoothness 0, or
+    an underflow) cuts its edge, and the pieces come from the graph itself (sparse connected components).
 
     Args:
-        edit_side: (N,) bool, max-flow's labels. heads, tails, weights: (E,) the pairwise edges.
+        nodes: (X, Y, Z) bool, the graph's nodes (numbered in its raster order).
+        heads, tails, weights: (E,) the pairwise edges.
+    """
+    if (weights > 0).all():
+        from scipy import ndimage
+
+        lattice, _ = ndimage.label(nodes, structure=ndimage.generate_binary_structure(3, 1))
+        return lattice[nodes] - 1
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = int(nodes.sum())
+    joined = weights > 0
+    adjacency = coo_matrix((np.ones(int(joined.sum())), (heads[joined], tails[joined])), shape=(n, n))
+    return connected_components(adjacency, directed=False)[1]
+
+
+def label_unseeded_pieces(edit_side: np.ndarray, piece: np.ndarray, seeds: np.ndarray, log_e: np.ndarray,
+                          log_o: np.ndarray) -> tuple[np.ndarray, int]:
+    """Each piece of the graph (``graph_pieces``) holding none of ``seeds`` takes the label its voxels favour
+    together (Σ log P_e > Σ log P_obj: edit): with no unary such a piece costs nothing either way, and max-flow
+    would leave it on the source (edit) side whatever its probabilities.
+
+    Args:
+        edit_side: (N,) bool, max-flow's labels. piece: (N,) each node's piece.
         seeds: (S,) node indices tied to either terminal. log_e, log_o: (N,) log P_e, log P_obj.
 
     Returns:
         (N,) bool labels, and how many nodes lie in unseeded pieces.
 
     Examples:
-        >>> labels, moved = label_unseeded_pieces(np.ones(4, bool), np.array([0, 2]), np.array([1, 3]),
-        ...                                       np.ones(2), np.array([0]), np.log([.9, .9, .2, .4]),
-        ...                                       np.log([.1, .1, .8, .6]))
+        >>> labels, moved = label_unseeded_pieces(np.ones(4, bool), np.array([0, 0, 1, 1]), np.array([0]),
+        ...                                       np.log([.9, .9, .2, .4]), np.log([.1, .1, .8, .6]))
         >>> labels.tolist(), moved  # nodes 2-3 form a seedless piece that favours the object
         ([True, True, False, False], 2)
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    n = edit_side.size
-    joined = weights > 0
-    adjacency = coo_matrix((np.ones(int(joined.sum())), (heads[joined], tails[joined])), shape=(n, n))
-    count, piece = connected_components(adjacency, directed=False)
+    count = int(piece.max()) + 1
     seeded = np.zeros(count, bool)
     seeded[piece[seeds]] = True
     unseeded = ~seeded[piece]
@@ -270,8 +288,8 @@ def graph_cut_detailed(
     flow = graph.maxflow()
     edit_side, unseeded = ~graph.get_grid_segments(np.asarray(node_ids)), 0  # get_grid_segments: True on the sink
     if config.unseeded_unary == "none" and config.unseeded_pieces == "preference":
-        edit_side, unseeded = label_unseeded_pieces(edit_side, i, j, w, np.concatenate([edit_seeds, object_seeds]),
-                                                    log_e, log_o)
+        edit_side, unseeded = label_unseeded_pieces(edit_side, graph_pieces(nodes_np, i, j, w),
+                                                    np.concatenate([edit_seeds, object_seeds]), log_e, log_o)
     solve_s = time.perf_counter() - t1
 
     mask = np.zeros(shape, dtype=bool)
