@@ -3,15 +3,15 @@
 Each stage's cost is its units of work (iterations, rendered views) times seconds per unit measured
 by the benchmarks in ``bench/results`` (2 CPU cores, torch 2.13 CPU):
 
-* reconstruct: 81.47 s / 2,000 iterations (``reconstruction.json``, preset-fast on mic: ``ReconstructConfig.fast()``,
+* reconstruct: 63.62 s / 2,000 iterations (``reconstruction.json``, preset-fast on mic: ``ReconstructConfig.fast()``,
   the default fit);
 * edit: 5.099 s per iteration (``edit_step.json``, the SD2-base-shaped UNet at 64 px: the real model's
   cost, not the smoke-test one's);
 * refine: 4.06 s per attention pass (``edit_step.json``'s SD2-base-shaped run at 64 px: render + VAE + UNet
   forward, no backward; the SD-1.4-shaped attention UNet is of its size): one per view, and one more per fitting
   step from the back-projection start (each draws a fresh view, ``RefineConfig.fit_views``); the paper's fit from a
-  constant (``lift_start`` constant) reuses the views' maps: 0.066 s per step (``segmentation.json``, runs[0]:
-  26.4 s / 400 fixed-view steps at 96 px, 4,096 rays per step). The back-projection and the cut are small beside them;
+  constant (``lift_start`` constant) reuses the views' maps: 0.070 s per step (``segmentation.json``, runs[0]:
+  27.9 s / 400 fixed-view steps at 96 px, 4,096 rays per step). The back-projection and the cut are small beside them;
 * export: 0.066 s per rendered view (``reconstruction.json``, ``render_seconds_per_view`` at 200 px).
 
 An edit is weighed by its job's ``iterations`` until G_i's kind is known, then by the count its schedule runs (a
@@ -26,7 +26,7 @@ Examples:
     >>> weights = stage_costs(mode="global", params={"iterations": 100, "export": {"views": 0,
     ...                       "turntable_frames": 10, "mesh": False}}, reconstruction_units=1800)
     >>> [(stage, round(seconds, 2)) for stage, seconds in weights]
-    [('reconstruct', 73.32), ('edit', 509.9), ('export', 0.66)]
+    [('reconstruct', 57.26), ('edit', 509.9), ('export', 0.66)]
     >>> dict(stage_costs(mode="local", params={}, reconstruction_units=1))["refine"]  # 32 views, 0 fitting steps
     129.92
 """
@@ -37,10 +37,10 @@ from voxe_core import constants as paper
 from voxe_core.presets import ExportConfig
 
 SECONDS_PER_UNIT = {
-    "reconstruct": 81.47 / 2000,
+    "reconstruct": 63.62 / 2000,
     "edit": 5.099,
     "refine": (465.4 + 442.0 + 3152.6) / 1000,  # an attention pass
-    "refine_fixed_step": 26.403 / 400,  # a fitting step on the views' maps
+    "refine_fixed_step": 27.885 / 400,  # a fitting step on the views' maps
     "export": 0.066,
     "evaluate": 0.066,  # ring renders dominate an evaluation
 }
