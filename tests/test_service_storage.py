@@ -90,6 +90,20 @@ def test_both_backends_agree_on_tmp_keys_and_empty_ranges(storage):
     assert storage.delete_prefix("jobs/t/") == 2 and storage.list() == []
 
 
+def test_both_backends_list_by_plain_prefix(storage):
+    """A prefix is a plain string prefix on either backend (a folder name may be cut short); the local one walks
+    only the prefix's folder, and a prefix whose folder does not exist lists nothing."""
+    for key in ("jobs/a/x.bin", "jobs/ab/y.bin", "jobs/a.txt", "jobsx/z.bin", "scenes/s/data.zip"):
+        storage.put_bytes(key, b"1")
+    assert storage.list("jobs/a") == ["jobs/a.txt", "jobs/a/x.bin", "jobs/ab/y.bin"]
+    assert storage.list("jobs/a/") == ["jobs/a/x.bin"]
+    assert storage.list("jobs/a/x") == ["jobs/a/x.bin"]
+    assert storage.list("jobs") == ["jobs/a.txt", "jobs/a/x.bin", "jobs/ab/y.bin", "jobsx/z.bin"]
+    assert storage.list("jobs/missing/") == [] and storage.list("nowhere/at/all") == []
+    assert storage.delete_prefix("jobs/a") == 3
+    assert storage.list() == ["jobsx/z.bin", "scenes/s/data.zip"]
+
+
 def test_s3_objects_a_delete_kept_are_an_error(caplog):
     """S3's DeleteObjects answers 200 and names the objects it could not delete: that is a failure, as a local
     delete that fails raises."""

@@ -215,23 +215,26 @@ class LocalStorage(Storage):
 
         return chunks()
 
+    def _files(self, prefix: str) -> list[tuple[str, bool]]:
+        """(name under the root, whether it is a writer's temporary file) of each file whose name starts with
+        ``prefix``; only the prefix's own folder is walked (a job's listing does not read every other job's)."""
+        folder = prefix.rpartition("/")[0]
+        base = self.path(folder) if folder else self.root
+        if not base.is_dir():
+            return []
+        files = [(path.relative_to(self.root).as_posix(), bool(_WRITING.match(path.name)))
+                 for path in base.rglob("*") if path.is_file()]
+        return [(name, writing) for name, writing in files if name.startswith(prefix)]
+
     def list(self, prefix="") -> list[str]:
-        base = self.root
-        keys = []
-        for path in base.rglob("*"):
-            if path.is_file() and not _WRITING.match(path.name):
-                key = path.relative_to(base).as_posix()
-                if key.startswith(prefix):
-                    keys.append(key)
-        return sorted(keys)
+        return sorted(name for name, writing in self._files(prefix) if not writing)
 
     def delete_prefix(self, prefix: str) -> int:
         """Also removes the temporary files of writers killed mid-write under ``prefix`` (never listed)."""
         count = super().delete_prefix(prefix)
-        for leftover in list(self.root.rglob("*.tmp")):
-            key = leftover.relative_to(self.root).as_posix()
-            if leftover.is_file() and _WRITING.match(leftover.name) and key.startswith(prefix):
-                self.delete(key)
+        for name, writing in self._files(prefix):
+            if writing:
+                self.delete(name)
         return count
 
     def delete(self, key) -> None:
