@@ -111,7 +111,7 @@ def list_jobs(
     session: SessionDep,
     key: CurrentKey,
     state: JobState | None = Query(None),
-    scene_id: str | None = Query(None),
+    scene_id: str | None = Query(None, pattern=r"^[^\x00]*$"),  # (documents the NUL refusal of http_semantics)
     limit: int = Query(20, ge=1, le=200),
     offset: int = Query(0, ge=0, le=MAX_OFFSET),
 ) -> Page[JobOut]:
