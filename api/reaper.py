@@ -1,12 +1,15 @@
-"""The reaper: fail jobs that nothing will ever finish, so no job stays "running" or "queued" for ever.
+"""The reaper: send again, or fail, jobs that nothing would ever finish, so no job stays "running" or "queued"
+for ever and no accepted job is lost to a dead worker.
 
 A job is orphaned when
 
 * it is ``running``, its record has not changed for ``VOXE_JOB_STALE_TIMEOUT_S`` (a running
-  stage writes progress twice a second) and its worker has not written a heartbeat for as long
-  (the worker is gone: killed, its machine lost). A worker that comes back under the same name
-  heartbeats again and re-queues its jobs itself (SQL broker); Redis redelivers after its
-  visibility timeout -- either way the job is not orphaned while that can still happen in time;
+  stage writes progress twice a second), no run holds its lease (a live stage renews it) and its
+  worker has not written a heartbeat for as long (the worker is gone: killed, its machine lost).
+  Its remaining stages are sent again (``requeued`` on its timeline; they resume from their
+  checkpoints), up to ``VOXE_JOB_MAX_REQUEUES`` times, then it fails with the reason. The
+  message Redis would redeliver hours later finds the job held, done or ended, and is dropped
+  or skipped (``worker.runtime.begin_stage``);
 * or it is ``queued`` with no task id for as long on a scene that is not processing: the API (or the
   ingest that readied its scene) stopped between recording the job and handing its chain to the
   broker, so no message exists (a job on a processing scene waits for the scene's ingest to send
@@ -35,7 +38,7 @@ from sqlalchemy import or_, select, update
 from voxe_service.db import session_scope
 from voxe_service.jobs import finish_jobs, record_event
 from voxe_service.models import EVALUATE, FAILED, PROCESSING, QUEUED, RUNNING, Job, Scene, WorkerHeartbeat, utcnow
-from voxe_service.queue import QueueUnavailable, dispatch_job, get_queue
+from voxe_service.queue import QueueUnavailable, dispatch_job, get_queue, requeue_interrupted
 from voxe_service.scenes import fail_scene
 from voxe_service.settings import Settings
 from voxe_service.storage import get_storage, job_key, scene_key
@@ -56,21 +59,27 @@ def _stale_window(settings: Settings, now: datetime | None):
 
 
 def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[str]:
-    """Mark orphaned jobs failed with the reason; returns their ids."""
+    """Send orphaned jobs again, or fail them with the reason; returns the ids of those failed."""
+    now = now or utcnow()
     timeout, cutoff, alive = _stale_window(settings, now)
     reaped = []
     with session_scope() as session:
-        running = session.execute(
-            select(Job.id, Job.stage, Job.worker_hostname, Job.updated_at).where(
+        running = session.scalars(
+            select(Job).where(
                 Job.state == RUNNING, Job.updated_at < cutoff,
                 or_(Job.worker_hostname.is_(None), Job.worker_hostname.not_in(alive)),
+                or_(Job.run_lease_until.is_(None), Job.run_lease_until < now),
             )
         ).all()
         for job in running:
-            error = (f"worker {job.worker_hostname or '(unknown)'} stopped while the job was in {job.stage}: "
-                     f"no heartbeat and no progress for {timeout:.0f} s, and the task was not redelivered "
-                     f"(VOXE_JOB_STALE_TIMEOUT_S)")
-            if _fail(session, job.id, job.updated_at, RUNNING, error):
+            reason = (f"worker {job.worker_hostname or '(unknown)'} stopped while the job was in {job.stage}: "
+                      f"no heartbeat and no progress for {timeout:.0f} s (VOXE_JOB_STALE_TIMEOUT_S)")
+            try:
+                outcome = requeue_interrupted(session, get_queue(), job, settings, reason=reason,
+                                              where=[Job.updated_at == job.updated_at])
+            except QueueUnavailable:  # the broker refused: dispatch_job failed the job with the reason
+                outcome = FAILED
+            if outcome == FAILED:
                 reaped.append(job.id)
         waiting_for_ingest = select(Scene.id).where(Scene.state == PROCESSING)
         never_sent = session.execute(

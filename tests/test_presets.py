@@ -229,7 +229,7 @@ def test_a_worker_going_down_mid_fit_hands_the_reconstruction_back_rather_than_f
     back to pending with no owner, so the jobs waiting on it, or this one redelivered, fit it; a real error fails it."""
     from voxe_service.db import session_scope
     from voxe_service.models import Reconstruction
-    from worker import tasks
+    from worker import runtime, tasks
 
     client, scene_id = service
 
@@ -250,6 +250,8 @@ def test_a_worker_going_down_mid_fit_hands_the_reconstruction_back_rather_than_f
     with pytest.raises(going_down):
         tasks.reconstruct_task.apply(args=(job_id,))
     assert rec_of(job_id) == ("pending", None, None)
+    held = runtime.load_job(job_id)  # the run gave its hold back: the redelivered message takes the job at once
+    assert (held.state, held.stage, held.run_token, held.run_lease_until) == ("running", "reconstruct", None, None)
 
     def fit_failing(*args, **kwargs):
         raise RuntimeError("the fit diverged")

@@ -181,6 +181,46 @@ def test_exactly_one_of_many_racing_workers_claims_a_reconstruction(db):
                                 .values(lease_until=utcnow() - timedelta(seconds=1)))
 
 
+def test_exactly_one_of_many_racing_messages_runs_a_stage(db, monkeypatch):
+    """A stage's message delivered to many workers at once: one run takes the job; each other one, seeing the
+    holder renew its lease, is dropped (StageHeld), and only one ``stage_started`` is on the timeline."""
+    from sqlalchemy import select
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, JobEvent
+    from worker import runtime
+
+    monkeypatch.setattr(db, "stage_lease_s", 0.4)
+    scene = add_scene()
+    for round_ in range(3):
+        with session_scope() as session:
+            job = Job(scene_id=scene, owner_key_id="local", prompt="a mic", mode="global", params={},
+                      sds_model="tiny", attention_model="tiny", device="cpu", completed_stages=["reconstruct"])
+            session.add(job)
+            session.flush()
+            job_id = job.id
+        dropped = threading.Semaphore(0)
+
+        def run(i):
+            try:
+                held = runtime.begin_stage(job_id, "edit", f"host-{i}", "cpu", db)
+            except runtime.StageHeld:
+                dropped.release()
+                return "dropped"
+            with runtime.stage_lease(job_id, held.run_token, db):  # renewing until every other run gave up
+                for _ in range(RACERS - 1):
+                    assert dropped.acquire(timeout=30)
+            return held.run_token
+
+        outcomes = race(run)
+        tokens = [o for o in outcomes if o != "dropped"]
+        assert len(tokens) == 1 and isinstance(tokens[0], str), (round_, outcomes)
+        with session_scope() as session:
+            assert session.get(Job, job_id).run_token == tokens[0]
+            started = session.scalars(select(JobEvent.kind).where(JobEvent.job_id == job_id)).all()
+        assert started == ["stage_started"], (round_, started)
+
+
 # ------------------------------------------------------------------------------------------ the quota lock
 def test_concurrent_submissions_never_exceed_the_keys_quota(db):
     """Twice as many submissions as the key may have active jobs, all at once: exactly the quota is accepted."""

@@ -89,18 +89,28 @@ def job_row(job_id: str):
 
 
 # ---------------------------------------------------------------------------------------------- the reaper
-def test_reaper_fails_only_jobs_nothing_will_finish(db):
-    from api.reaper import reap_orphaned_jobs
+def test_reaper_sends_again_or_fails_only_jobs_nothing_will_finish(db):
+    """A running job whose worker is gone is sent again (queued, its run's hold released), up to
+    VOXE_JOB_MAX_REQUEUES times, then failed; an accepted job never sent is sent; only what nothing can carry
+    fails. The ids returned are the failed ones."""
+    from sqlalchemy import update
 
-    timeout = db.job_stale_timeout_s
+    from api.reaper import reap_orphaned_jobs
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, utcnow
+
+    timeout, limit = db.job_stale_timeout_s, db.job_max_requeues
     scene = add_scene()
     add_heartbeat("alive@host", age_s=1)
     add_heartbeat("dead@host", age_s=2 * timeout)
-    orphans = {
-        "dead worker": add_job(scene, "running", 2 * timeout, "dead@host", "edit"),
+    lapsed = utcnow() - timedelta(seconds=timeout)
+    requeued = {
+        "dead worker": add_job(scene, "running", 2 * timeout, "dead@host", "edit", run_token="t1",
+                               run_lease_until=lapsed, completed_stages=["reconstruct"]),
         "no heartbeat ever": add_job(scene, "running", 2 * timeout, "gone@host", "refine"),
         "no worker recorded": add_job(scene, "running", 2 * timeout, None, "reconstruct"),
     }
+    orphans = {"sent again too often": add_job(scene, "running", 2 * timeout, "dead@host", "edit", requeues=limit)}
     never_sent = add_job(scene, "queued", 2 * timeout, task_id=None)  # accepted, never sent: sent now, not failed
     # A sweep's evaluation goes with its edit's chain when that is sent; one whose edit is done has no chain left.
     sweep_edit = add_job(scene, "queued", 2 * timeout, task_id=None, batch_id="b1")
@@ -114,18 +124,31 @@ def test_reaper_fails_only_jobs_nothing_will_finish(db):
         "waiting for its scene's ingest": add_job(processing, "queued", 2 * timeout, task_id=None),
         "worker alive (re-queued, waiting its turn)": add_job(scene, "running", 2 * timeout, "alive@host", "edit"),
         "recent progress": add_job(scene, "running", timeout / 2, "dead@host", "edit"),
+        "a run holds it (its lease renewed)": add_job(scene, "running", 2 * timeout, "dead@host", "edit",
+                                                      run_token="t2", run_lease_until=utcnow() + timedelta(60)),
         "queued in the broker": add_job(scene, "queued", 2 * timeout),
         "queued just now, not yet sent": add_job(scene, "queued", timeout / 2, task_id=None),
         "succeeded": add_job(scene, "succeeded", 2 * timeout, "dead@host", "export"),
         "canceled": add_job(scene, "canceled", 2 * timeout, "dead@host", "edit"),
     }
     assert sorted(reap_orphaned_jobs(db)) == sorted(orphans.values())
-    dead = job_row(orphans["dead worker"])
-    assert dead.state == "failed" and dead.finished_at is not None
-    assert dead.error == (f"worker dead@host stopped while the job was in edit: no heartbeat and no progress for "
-                          f"{timeout:.0f} s, and the task was not redelivered (VOXE_JOB_STALE_TIMEOUT_S)")
-    assert job_row(orphans["no worker recorded"]).error.startswith("worker (unknown) stopped while the job was in "
-                                                                   "reconstruct")
+    for what, job_id in requeued.items():
+        job = job_row(job_id)
+        assert (job.state, job.requeues, job.run_token, job.run_lease_until, job.error) == (
+            "queued", 1, None, None, None), what
+        assert job.task_id not in (None, "task"), what  # its remaining stages are in the broker again
+        assert [(e["kind"], e["stage"]) for e in events_of(job_id)] == [("requeued", job.stage)], what
+    dead = job_row(requeued["dead worker"])
+    reason = (f"worker dead@host stopped while the job was in edit: no heartbeat and no progress for "
+              f"{timeout:.0f} s (VOXE_JOB_STALE_TIMEOUT_S)")
+    assert events_of(dead.id)[0]["detail"] == reason and dead.message == f"re-queued: {reason}"
+    assert dead.completed_stages == ["reconstruct"]
+    assert job_row(requeued["no worker recorded"]).message.startswith(
+        "re-queued: worker (unknown) stopped while the job was in reconstruct")
+    too_often = job_row(orphans["sent again too often"])
+    assert too_often.state == "failed" and too_often.finished_at is not None
+    assert too_often.error == (f"{reason}; it was sent again {limit} time(s) already, the limit "
+                               f"(VOXE_JOB_MAX_REQUEUES={limit})")
     sent = job_row(never_sent)
     assert sent.state == "queued" and sent.task_id not in (None, "task") and sent.error is None
     assert job_row(carried).state == "queued" and job_row(carried).task_id == job_row(sweep_edit).task_id is not None
@@ -136,9 +159,16 @@ def test_reaper_fails_only_jobs_nothing_will_finish(db):
     for what, job_id in kept.items():
         before = job_row(job_id)
         assert before.error is None and before.state in ("running", "queued", "succeeded", "canceled"), what
+        assert before.requeues == 0 and events_of(job_id) == [], what
     assert {job_row(j).state for j in kept.values()} == {"running", "queued", "succeeded", "canceled"}
-    assert reap_orphaned_jobs(db) == []  # nothing left to do: a second pass changes nothing
-    assert [e["kind"] for e in events_of(orphans["dead worker"])] == ["failed"]  # on the job's timeline too
+    # A second pass changes nothing: the jobs sent again wait in the broker for a worker, like any sent job, for
+    # however long that takes.
+    with session_scope() as session:
+        session.execute(update(Job).where(Job.id.in_(list(requeued.values())))
+                        .values(updated_at=utcnow() - timedelta(seconds=2 * timeout)))
+    assert reap_orphaned_jobs(db) == []
+    assert {job_row(j).requeues for j in requeued.values()} == {1}
+    assert [e["kind"] for e in events_of(orphans["sent again too often"])] == ["failed"]  # on the job's timeline
 
 
 def test_a_cancel_that_lands_between_stages_ends_the_job_when_the_next_stage_begins(db):
@@ -153,9 +183,92 @@ def test_a_cancel_that_lands_between_stages_ends_the_job_when_the_next_stage_beg
         job = session.get(Job, job_id)
         job.completed_stages, job.cancel_requested = ["reconstruct"], True
     with pytest.raises(JobSkipped, match="canceled"):
-        begin_stage(job_id, "edit", "w@host", "cpu")
+        begin_stage(job_id, "edit", "w@host", "cpu", db)
     ended = job_row(job_id)
     assert ended.state == "canceled" and ended.message == "canceled before edit" and ended.finished_at is not None
+
+
+def test_one_run_holds_a_job_a_duplicate_message_is_dropped_and_a_dead_run_is_taken_over(db, monkeypatch):
+    """A chain message sent twice (a worker died after its stage sent the next one, before its ack) must not run
+    a stage on two workers: while the run holding the job renews its lease, the duplicate is dropped (StageHeld,
+    after seeing one renewal); once the holder stops renewing (its process died), the next run takes the job over
+    when the lease runs out, and the stalled run's later outcome changes nothing and its cancel check stops it."""
+    import time
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+    from worker import runtime
+
+    monkeypatch.setattr(db, "stage_lease_s", 0.4)
+    job_id = add_job(add_scene(), "queued", 0, completed_stages=["reconstruct"])
+    first = runtime.begin_stage(job_id, "edit", "a@host", "cpu", db)
+    stalled = runtime.StageCallbacks(first, "edit", db)
+    assert (first.state, first.stage, first.worker_hostname) == ("running", "edit", "a@host") and first.run_token
+    with runtime.stage_lease(job_id, first.run_token, db):
+        started = time.monotonic()
+        with pytest.raises(runtime.StageHeld, match="this edit message is a duplicate"):
+            runtime.begin_stage(job_id, "edit", "b@host", "cpu", db)
+        assert time.monotonic() - started < 0.4  # one renewal seen (every 0.1 s), not the lease waited out
+        held = job_row(job_id)
+        assert (held.run_token, held.worker_hostname) == (first.run_token, "a@host")
+    started = time.monotonic()  # the holder stopped renewing: taken over once its lease ran out
+    second = runtime.begin_stage(job_id, "edit", "b@host", "cpu", db)
+    assert second.run_token not in (None, first.run_token) and second.worker_hostname == "b@host"
+    assert time.monotonic() - started > 0.1
+    # The stalled run, back: its ending, its completion and its progress loop all see the job is not its own.
+    assert not runtime.fail_job(job_id, "edit: the stalled run failed", run_token=first.run_token)
+    assert not runtime.complete_stage(job_id, "edit", first.run_token)
+    stalled.settings = db.model_copy(update={"cancel_check_interval_s": 0.0})
+    assert stalled.should_cancel()
+    assert not runtime.StageCallbacks(second, "edit", stalled.settings).should_cancel()
+    assert job_row(job_id).state == "running" and job_row(job_id).completed_stages == ["reconstruct"]
+    assert runtime.complete_stage(job_id, "edit", second.run_token)  # released between stages
+    done = job_row(job_id)
+    assert (done.run_token, done.completed_stages) == (None, ["reconstruct", "edit"])
+    with pytest.raises(runtime.JobSkipped, match="edit already done"):  # a redelivered edit: its chain goes on
+        runtime.begin_stage(job_id, "edit", "c@host", "cpu", db)
+    assert job_row(job_id).run_token is None  # the skip gave its claim back
+    with session_scope() as session:
+        assert session.get(Job, job_id).stage == "edit"
+
+
+def test_the_worker_acknowledges_a_duplicate_stage_message_without_continuing_its_chain(db, monkeypatch):
+    """Through the Celery task: a duplicate raises ``Ignore`` (acknowledged, no result, the chain's next message
+    not sent; the holder's own chain carries the job on), and the job is left as its holder has it."""
+    from worker import runtime, tasks
+
+    monkeypatch.setattr(db, "stage_lease_s", 0.4)
+    job_id = add_job(add_scene(), "queued", 0, completed_stages=["reconstruct"])
+    holder = runtime.begin_stage(job_id, "edit", "a@host", "cpu", db)
+    with runtime.stage_lease(job_id, holder.run_token, db):
+        result = tasks.edit_task.apply(args=(job_id,))
+    assert result.state == "IGNORED"
+    after = job_row(job_id)
+    assert (after.state, after.stage, after.run_token, after.worker_hostname, after.error) == (
+        "running", "edit", holder.run_token, "a@host", None)
+
+
+def test_a_restarted_worker_sends_its_jobs_again_releasing_its_dead_runs_holds_up_to_the_limit(db):
+    """SQL broker: a worker back under its name re-queues the jobs its previous process was running, though that
+    process's lease has not run out (it is known dead), so the new message takes each job at once; a job sent
+    again VOXE_JOB_MAX_REQUEUES times already fails instead of looping."""
+    from voxe_service.models import utcnow
+    from worker import runtime, tasks
+
+    scene, lease = add_scene(), utcnow() + timedelta(seconds=60)
+    interrupted = add_job(scene, "running", 1, "w@host", "edit", run_token="dead", run_lease_until=lease)
+    looping = add_job(scene, "running", 1, "w@host", "edit", requeues=db.job_max_requeues)
+    elsewhere = add_job(scene, "running", 1, "v@host", "edit", run_token="live", run_lease_until=lease)
+    assert sorted(tasks.recover_interrupted_jobs("w@host")) == sorted([interrupted, looping])
+    job = job_row(interrupted)
+    assert (job.state, job.run_token, job.requeues, job.message) == (
+        "queued", None, 1, "re-queued: worker w@host restarted while the job was in edit")
+    assert job.task_id not in (None, "task") and [e["kind"] for e in events_of(interrupted)] == ["requeued"]
+    assert runtime.begin_stage(interrupted, "edit", "w@host", "cpu", db).state == "running"  # at once
+    assert job_row(looping).state == "failed" and job_row(looping).error.endswith(
+        f"it was sent again {db.job_max_requeues} time(s) already, the limit "
+        f"(VOXE_JOB_MAX_REQUEUES={db.job_max_requeues})")
+    assert job_row(elsewhere).run_token == "live" and job_row(elsewhere).requeues == 0
 
 
 def test_a_fits_lease_is_kept_without_progress_and_its_loss_is_seen(db, monkeypatch):
@@ -183,7 +296,7 @@ def test_a_fits_lease_is_kept_without_progress_and_its_loss_is_seen(db, monkeypa
 
     assert runtime.try_claim_reconstruction(rec_id, first, "w@host", db, allow_failed=False)
     claimed = lease_until()
-    with runtime.LeaseKeeper(rec_id, first, db) as lease:
+    with runtime.fit_lease(rec_id, first, db) as lease:
         time.sleep(1.0)  # no progress reported: only the keeper's thread renews
         assert lease_until() > claimed + timedelta(seconds=0.3) and not lease.lost
         with session_scope() as session:  # a stall outlived the lease, and another job claimed the fit (as
@@ -223,7 +336,7 @@ def events_of(job_id: str) -> list[dict]:
     from voxe_service.models import JobEvent
 
     with session_scope() as session:
-        return [{"kind": e.kind, "detail": e.detail} for e in
+        return [{"kind": e.kind, "stage": e.stage, "detail": e.detail} for e in
                 session.scalars(select(JobEvent).where(JobEvent.job_id == job_id).order_by(JobEvent.id))]
 
 
@@ -265,7 +378,8 @@ def test_reaper_fails_scenes_nothing_will_ingest_and_the_jobs_waiting_on_them(db
 
 
 def test_api_startup_reaps_and_deletes_the_orphans_checkpoints(db):
-    """The reaper runs in the API process: a restarted API fails what a dead worker left running."""
+    """The reaper runs in the API process: a restarted API sends again what a dead worker left running, keeping
+    its checkpoints to resume from, and fails a job sent again too often, deleting its checkpoints."""
     import time
 
     from fastapi.testclient import TestClient
@@ -274,9 +388,12 @@ def test_api_startup_reaps_and_deletes_the_orphans_checkpoints(db):
     from voxe_service.storage import get_storage
 
     scene = add_scene()
-    orphan = add_job(scene, "running", 2 * db.job_stale_timeout_s, "dead@host", "edit")
+    stale = 2 * db.job_stale_timeout_s
+    resumed = add_job(scene, "running", stale, "dead@host", "edit")
+    orphan = add_job(scene, "running", stale, "dead@host", "edit", requeues=db.job_max_requeues)
     storage = get_storage(db)
-    storage.put_bytes(f"jobs/{orphan}/checkpoints/edit.safetensors", b"state")
+    for job_id in (resumed, orphan):
+        storage.put_bytes(f"jobs/{job_id}/checkpoints/edit.safetensors", b"state")
     with TestClient(create_app()) as client:
         deadline = time.monotonic() + 60  # a poll, not a bound: the reaper thread may wait for a busy CPU
         while client.get(f"/v1/jobs/{orphan}").json()["state"] != "failed" and time.monotonic() < deadline:
@@ -287,6 +404,9 @@ def test_api_startup_reaps_and_deletes_the_orphans_checkpoints(db):
         while storage.list(f"jobs/{orphan}/") and time.monotonic() < deadline:
             time.sleep(0.05)
         assert storage.list(f"jobs/{orphan}/") == []
+        job = client.get(f"/v1/jobs/{resumed}").json()
+        assert job["state"] == "queued" and job["message"].startswith("re-queued: worker dead@host stopped"), job
+        assert storage.list(f"jobs/{resumed}/") == [f"jobs/{resumed}/checkpoints/edit.safetensors"]
 
 
 # ---------------------------------------------------------------------------------------------- atomic artifacts
@@ -461,10 +581,11 @@ class Client:
 
 
 @pytest.mark.slow
-def test_api_restart_loses_nothing_and_the_reaper_fails_a_job_whose_worker_died(tmp_path, scene_zip):
+def test_api_restart_loses_nothing_and_the_reaper_sends_again_a_job_whose_worker_died(tmp_path, scene_zip):
     """SIGKILL the API while jobs run and start it again: every job finishes. Then SIGKILL the worker for
-    good: the restarted API's reaper fails its job with the reason, after VOXE_JOB_STALE_TIMEOUT_S."""
-    from service_helpers import service
+    good: after VOXE_JOB_STALE_TIMEOUT_S the restarted API's reaper queues its job again, and a worker under
+    another name, started later, resumes it from its checkpoint to the end."""
+    from service_helpers import service, verify_artifacts
 
     with service(tmp_path, VOXE_JOB_STALE_TIMEOUT_S="6", VOXE_REAPER_INTERVAL_S="1", VOXE_WORKER_HEARTBEAT_S="1",
                  VOXE_CHECKPOINT_EVERY="10") as svc:
@@ -482,24 +603,29 @@ def test_api_restart_loses_nothing_and_the_reaper_fails_a_job_whose_worker_died(
         listing = client.http.get("/v1/jobs", params={"scene_id": scene["id"]}).json()
         assert sorted(j["id"] for j in listing["items"]) == sorted([running["id"], queued["id"]])
 
-        orphan = client.create_job(scene, params={**PARAMS, "iterations": 100_000})
-        wait_for_event(client.http, svc, orphan["id"], entered("edit"), what="the edit stage")
-        svc.kill_worker()  # never restarted: nothing will redeliver it
-        failed = client.wait(orphan["id"], timeout=60)
-        assert failed["state"] == "failed" and failed["stage"] == "edit" and failed["finished_at"], failed
-        assert failed["error"].startswith(f"worker voxe-test-{svc.port}@"), failed["error"]
-        assert failed["error"].endswith("stopped while the job was in edit: no heartbeat and no progress for 6 s, "
-                                        "and the task was not redelivered (VOXE_JOB_STALE_TIMEOUT_S)")
-        assert job_events(client.http, orphan["id"])[-1]["kind"] == "failed"
-        assert not (tmp_path / "storage" / "jobs" / orphan["id"] / "checkpoints").exists()
+        orphan = client.create_job(scene, params={**PARAMS, "iterations": EDIT_ITERATIONS})
+        wait_for_event(client.http, svc, orphan["id"], checkpoint_at_least("edit", 10), what="an edit checkpoint")
+        svc.kill_worker()  # never restarted under its name: nothing would redeliver it
+        at_kill = job_events(client.http, orphan["id"])
+        requeued = client.wait(orphan["id"], until=lambda j: j["state"] == "queued", timeout=60)
+        assert requeued["stage"] == "edit" and requeued["message"].startswith("re-queued: worker voxe-test-"), requeued
+        assert requeued["message"].endswith("stopped while the job was in edit: no heartbeat and no progress for "
+                                            "6 s (VOXE_JOB_STALE_TIMEOUT_S)"), requeued
+        svc.start_worker(suffix="-b")
+        final = client.wait(orphan["id"])
+        assert final["state"] == "succeeded", f"{final}\n{client.diagnostics()}"
+        events = job_events(client.http, orphan["id"])
+        assert [e["stage"] for e in events if e["kind"] == "requeued"] == ["edit"], events
+        check_resumed_from_the_last_checkpoint(at_kill, events, EDIT_ITERATIONS, 10)
+        verify_artifacts(client.http, final, ARTIFACTS, tmp_path)
 
 
 @pytest.mark.slow
 def test_redis_restart_keeps_queued_jobs_and_a_killed_worker_task_is_redelivered(tmp_path, scene_zip):
     """A worker SIGKILLed in the middle of an edit, jobs queued behind it, then Redis (append-only persistence)
     restarted: the API reconnects by itself, and a fresh worker gets the killed task redelivered (its message
-    was unacknowledged for longer than the visibility timeout), resumes the edit from its last checkpoint,
-    then runs every queued job."""
+    was unacknowledged for longer than the visibility timeout), takes the job over once the killed run's hold on
+    it has lapsed (VOXE_STAGE_LEASE_S), resumes the edit from its last checkpoint, then runs every queued job."""
     import shutil
     import time
     from datetime import datetime
@@ -511,7 +637,7 @@ def test_redis_restart_keeps_queued_jobs_and_a_killed_worker_task_is_redelivered
     visibility = 5
     with redis_server(tmp_path / "redis") as redis, \
             service(tmp_path, redis.url, VOXE_BROKER_VISIBILITY_TIMEOUT_S=str(visibility),
-                    VOXE_CHECKPOINT_EVERY="10") as svc:
+                    VOXE_CHECKPOINT_EVERY="10", VOXE_STAGE_LEASE_S="4") as svc:
         client = Client(svc)
         scene = client.upload(scene_zip)
         long_job = client.create_job(scene, params={**PARAMS, "iterations": EDIT_ITERATIONS})

@@ -172,6 +172,11 @@ class Job(Base):
     preview_artifact: Mapped[str | None] = mapped_column(String(255), nullable=True)
     worker_hostname: Mapped[str | None] = mapped_column(String(255), nullable=True)
     task_id: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    # The one run of a stage that holds the job (worker.runtime.begin_stage): its token, renewed while it runs;
+    # NULL between stages. A duplicate message waits for the lease to run out or be renewed (then it is dropped).
+    run_token: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    run_lease_until: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    requeues: Mapped[int] = mapped_column(Integer, default=0)  # sent again after its worker stopped mid-stage
     # Evaluation jobs (mode "evaluate"): the edit jobs scored, the metrics; sweeps: the batch a job belongs to.
     source_job_ids: Mapped[list | None] = mapped_column(JSON, nullable=True)
     result: Mapped[dict | None] = mapped_column(JSON, nullable=True)
@@ -197,8 +202,8 @@ class JobEvent(Base):
 
     Kinds: ``stage_started`` / ``stage_completed`` (``stage``, the worker), ``checkpoint`` (a resumable
     checkpoint of ``stage`` at ``iteration`` is in the storage: the event is written after the upload),
-    ``resumed`` (a redelivered stage went on from the checkpoint at ``iteration``), ``requeued`` (a
-    restarted worker sent the remaining stages again), ``artifact`` / ``preview`` (``detail``: the name of an
+    ``resumed`` (a redelivered stage went on from the checkpoint at ``iteration``), ``requeued`` (the
+    remaining stages were sent again: by a restarted worker, or by the reaper after the worker died), ``artifact`` / ``preview`` (``detail``: the name of an
     artifact just published, or of a new preview image), and the terminal ``succeeded`` / ``failed`` /
     ``canceled`` (``detail``: the error or message). Unlike the throttled progress columns of the job,
     every event is kept.

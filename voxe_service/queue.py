@@ -23,8 +23,8 @@ from typing import TYPE_CHECKING, TypedDict
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
-from voxe_service.jobs import finish_jobs
-from voxe_service.models import EVALUATE, FAILED, QUEUED, Job
+from voxe_service.jobs import finish_jobs, record_event
+from voxe_service.models import EVALUATE, FAILED, QUEUED, RUNNING, Job, utcnow
 from voxe_service.settings import Settings, get_settings
 
 if TYPE_CHECKING:
@@ -169,8 +169,10 @@ def evaluations_waiting_on(session: Session, job: Job) -> list[str]:
     return [e.id for e in waiting if job.id in (e.source_job_ids or [])]
 
 
-def dispatch_job(session: Session, queue: TaskQueue, job: Job, done: Iterable[str] = ()) -> None:
-    """Send the job's remaining stages (and the evaluations waiting on it), recording the task id on each.
+def dispatch_job(session: Session, queue: TaskQueue, job: Job, done: Iterable[str] = (),
+                 message: str | None = None) -> None:
+    """Send the job's remaining stages (and the evaluations waiting on it), recording the task id on each, and
+    ``message`` on the job.
 
     When the broker refuses, the jobs are failed with the reason and :class:`QueueUnavailable` is raised.
     """
@@ -184,4 +186,32 @@ def dispatch_job(session: Session, queue: TaskQueue, job: Job, done: Iterable[st
         session.commit()
         raise QueueUnavailable(reason) from None
     session.execute(update(Job).where(Job.id.in_(ids)).values(task_id=task_id, message=None))
+    if message is not None:
+        session.execute(update(Job).where(Job.id == job.id).values(message=message))
     session.commit()
+
+
+def requeue_interrupted(session: Session, queue: TaskQueue, job: Job, settings: Settings, *, reason: str,
+                        where: Iterable = ()) -> str | None:
+    """Send a running job's remaining stages again after the run holding it stopped (its worker died): the job
+    is queued again, waiting for a worker like any sent job (the reaper leaves those alone), the run's hold is
+    released, so the new message takes the job at once, and ``requeued`` goes on its timeline.
+
+    A job sent again ``job_max_requeues`` times already fails instead (a job that kills its workers must not
+    loop). ``where``: what the caller saw of the row. Returns "requeued", "failed", or None when the row changed
+    since it was read (nothing done). A broker that refuses fails the job and raises (:func:`dispatch_job`).
+    """
+    if job.requeues >= settings.job_max_requeues:
+        failed = finish_jobs(session, [job.id], FAILED, where=[Job.state == RUNNING, *where],
+                             error=f"{reason}; it was sent again {job.requeues} time(s) already, the limit "
+                                   f"(VOXE_JOB_MAX_REQUEUES={settings.job_max_requeues})")
+        session.commit()
+        return FAILED if failed else None
+    released = session.execute(update(Job).where(Job.id == job.id, Job.state == RUNNING, *where).values(
+        state=QUEUED, run_token=None, run_lease_until=None, requeues=Job.requeues + 1, updated_at=utcnow()))
+    if released.rowcount != 1:
+        return None
+    record_event(session, job.id, "requeued", stage=job.stage, worker=job.worker_hostname, detail=reason)
+    session.commit()
+    dispatch_job(session, queue, job, done=job.completed_stages or [], message=f"re-queued: {reason}")
+    return "requeued"

@@ -70,6 +70,9 @@ class Settings(BaseSettings):
     checkpoint_every: int = Field(200, ge=1)  # iterations between resumable checkpoints
     preview_interval_s: float = Field(30.0, gt=0)
     reconstruction_lease_s: float = Field(120.0, gt=0)  # a running reconstruction not heard from this long is taken over
+    # A stage's run holds its job under a lease renewed every quarter of it: a message for a job another run
+    # holds (a duplicate) waits for a renewal, then is dropped; a run that stopped renewing is taken over.
+    stage_lease_s: float = Field(60.0, gt=0)
     task_soft_time_limit_s: int = 3 * 3600
     task_time_limit_s: int = int(3.5 * 3600)
     broker_visibility_timeout_s: int = 4 * 3600
@@ -77,9 +80,12 @@ class Settings(BaseSettings):
     worker_heartbeat_s: float = Field(5.0, gt=0)
     readiness_timeout_s: float = Field(1.0, gt=0)
     # A running job whose worker sent no heartbeat and the job no progress for this long was
-    # not redelivered: the API's reaper marks it failed (api/reaper.py). Also fails queued jobs
-    # the API never handed to the broker.
+    # not redelivered: the API's reaper sends its remaining stages again (api/reaper.py). Also
+    # sends queued jobs the API never handed to the broker.
     job_stale_timeout_s: float = Field(900.0, gt=0)
+    # A job whose worker stopped mid-stage is sent again (by the reaper, or by its worker restarting) at most
+    # this many times; then it fails, so a job that kills its workers cannot loop for ever.
+    job_max_requeues: int = Field(3, ge=0)
     reaper_interval_s: float = Field(60.0, gt=0)
 
     # --- webhooks (voxe_service.webhooks; sent from the API process, api/webhooks.py)

@@ -111,7 +111,7 @@ def run_evaluation(job: Job, settings: Settings, device: str, storage) -> None:
         edits.append(EditSample(source.id, source.prompt, grid, mask))
     input_images = load_images(sources[0], rec.params, settings, storage).images if params["fid_input"] else None
     config = EvaluateConfig(views=params["views"], elevation=params["elevation"], size=params["size"])
-    callbacks = StageCallbacks(job.id, "evaluate", settings)
+    callbacks = StageCallbacks(job, "evaluate", settings)
     result = evaluate(initial, edits, params["object"], clip, fid, input_images, config, callbacks.callbacks,
                       device=device)
 

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
 
-from sqlalchemy import func, select, update
+from sqlalchemy import func, or_, select, update
 
 from voxe_core.progress import Callbacks, Progress
 from voxe_service import datasets
@@ -92,54 +92,100 @@ def record_peak_memory(job_id: str, stage: str, peak_gb: float, kind: str | None
                                             "peak_memory_kind": kind})
 
 
-def begin_stage(job_id: str, stage: str, hostname: str | None, device: str) -> Job:
-    """Mark the job running in ``stage``; raise JobSkipped when it is terminal or the stage is done already."""
-    now = utcnow()
-    with session_scope() as session:
-        job = session.get(Job, job_id)
-        if job is None or job.state in TERMINAL_STATES:
-            raise JobSkipped(f"job {job_id} is {job.state if job else 'gone'}")
-        if job.cancel_requested:
-            finish_jobs(session, [job_id], CANCELED, message=f"canceled before {stage}")
-            session.commit()  # before raising: session_scope rolls back on the way out of an exception
-            raise JobSkipped(f"job {job_id} canceled")
-        if stage in (job.completed_stages or []):
-            raise JobSkipped(f"job {job_id}: {stage} already done (redelivered task)")
-        values = dict(state=RUNNING, stage=stage, iteration=0, total=0, eta_seconds=None, losses={},
-                      message=None, stage_started_at=now, worker_hostname=hostname, device=device, updated_at=now)
-        if job.started_at is None:
-            values["started_at"] = now
-        result = session.execute(
-            update(Job).where(Job.id == job_id, Job.state.in_((QUEUED, RUNNING))).values(**values)
-        )
-        if result.rowcount != 1:
-            raise JobSkipped(f"job {job_id} changed state")
-        record_event(session, job_id, "stage_started", stage=stage, worker=hostname)
-        session.refresh(job)
-        return job
+class StageHeld(JobSkipped):
+    """Another run holds the job and renews its lease (this message is a duplicate): it is dropped, and its chain
+    goes no further (the holder's own chain carries the job on)."""
 
 
-def complete_stage(job_id: str, stage: str, final: bool = False) -> None:
+def begin_stage(job_id: str, stage: str, hostname: str | None, device: str, settings: Settings) -> Job:
+    """Take the job for one run of ``stage`` and mark it running; the returned job's ``run_token`` is the run's.
+
+    The run holds the job under a lease (``run_lease_until``, renewed by :func:`stage_lease`) until the stage
+    completes. Raises :class:`JobSkipped` when the job is terminal, canceled or has done ``stage`` already (a
+    redelivered message: its chain goes on), and :class:`StageHeld` when another run holds the job and renews
+    its lease. A holder that stopped renewing (its process died) is taken over once its lease has run out.
+    """
+    while True:
+        now, token = utcnow(), uuid.uuid4().hex
+        with session_scope() as session:
+            claimed = session.execute(
+                update(Job).where(Job.id == job_id, Job.state.in_((QUEUED, RUNNING)),
+                                  or_(Job.run_token.is_(None), Job.run_lease_until < now))
+                .values(run_token=token, run_lease_until=now + timedelta(seconds=settings.stage_lease_s))
+            ).rowcount == 1
+            job = session.scalars(select(Job).where(Job.id == job_id)
+                                  .execution_options(populate_existing=True)).first()
+            if job is None or job.state in TERMINAL_STATES:
+                raise JobSkipped(f"job {job_id} is {job.state if job else 'gone'}")
+            if claimed:
+                if job.cancel_requested:
+                    finish_jobs(session, [job_id], CANCELED, message=f"canceled before {stage}")
+                    session.commit()  # before raising: session_scope rolls back on the way out of an exception
+                    raise JobSkipped(f"job {job_id} canceled")
+                if stage in (job.completed_stages or []):  # (the rollback gives the hold back)
+                    raise JobSkipped(f"job {job_id}: {stage} already done (redelivered task)")
+                values = dict(state=RUNNING, stage=stage, iteration=0, total=0, eta_seconds=None, losses={},
+                              message=None, stage_started_at=now, worker_hostname=hostname, device=device,
+                              updated_at=now)
+                if job.started_at is None:
+                    values["started_at"] = now
+                session.execute(update(Job).where(Job.id == job_id).values(**values))
+                record_event(session, job_id, "stage_started", stage=stage, worker=hostname)
+                session.refresh(job)
+                return job
+            held = (job.run_token, job.run_lease_until)
+        _wait_for_release(job_id, stage, held, settings)
+
+
+def _wait_for_release(job_id: str, stage: str, held: tuple, settings: Settings) -> None:
+    """Return once the hold seen (token, lease end) was released or ran out; raise StageHeld once it was renewed
+    or passed to another run: a live run holds the job."""
+    while True:
+        time.sleep(settings.stage_lease_s / 8)
+        with session_scope() as session:
+            row = session.execute(select(Job.run_token, Job.run_lease_until, Job.state)
+                                  .where(Job.id == job_id)).first()
+        if row is None or row.state in TERMINAL_STATES or row.run_token is None or row.run_lease_until < utcnow():
+            return
+        if (row.run_token, row.run_lease_until) != held:
+            raise StageHeld(f"job {job_id}: another run holds it (this {stage} message is a duplicate)")
+
+
+def complete_stage(job_id: str, stage: str, run_token: str, final: bool = False) -> bool:
+    """Record ``stage`` done and release the job (or end it, ``final``); False when the run no longer held it."""
     with session_scope() as session:
         job = session.get(Job, job_id)
         if job is None:
-            return
+            return False
         done = list(job.completed_stages or [])
         if stage not in done:
             done.append(stage)
-        values = dict(completed_stages=done, eta_seconds=0.0, updated_at=utcnow())
+        values = dict(completed_stages=done, eta_seconds=0.0, updated_at=utcnow(), run_token=None,
+                      run_lease_until=None)
         if final:
             values.update(state=SUCCEEDED, finished_at=utcnow(), message=None)
-        result = session.execute(update(Job).where(Job.id == job_id, Job.state == RUNNING).values(**values))
+        result = session.execute(update(Job).where(Job.id == job_id, Job.state == RUNNING,
+                                                   Job.run_token == run_token).values(**values))
         if result.rowcount == 1:
             record_event(session, job_id, "stage_completed", stage=stage, worker=job.worker_hostname)
             if final:
                 record_event(session, job_id, SUCCEEDED, stage=stage)
+        return result.rowcount == 1
 
 
-def finish_job(job_id: str, state: str, message: str | None = None, error: str | None = None) -> None:
+def release_stage(job_id: str, run_token: str) -> None:
+    """Give the hold back without finishing the stage (the worker is going down: its redelivery takes over)."""
     with session_scope() as session:
-        finish_jobs(session, [job_id], state, message=message, error=error)
+        session.execute(update(Job).where(Job.id == job_id, Job.run_token == run_token)
+                        .values(run_token=None, run_lease_until=None))
+
+
+def finish_job(job_id: str, state: str, message: str | None = None, error: str | None = None,
+               run_token: str | None = None) -> bool:
+    """End the job in ``state``; with ``run_token``, only while that run holds it. Whether it ended now."""
+    with session_scope() as session:
+        return bool(finish_jobs(session, [job_id], state, message=message, error=error,
+                                where=[Job.run_token == run_token] if run_token else []))
 
 
 def record_job_event(job_id: str, kind: str, **fields) -> None:
@@ -148,9 +194,9 @@ def record_job_event(job_id: str, kind: str, **fields) -> None:
         record_event(session, job_id, kind, **fields)
 
 
-def fail_job(job_id: str, error: str) -> None:
+def fail_job(job_id: str, error: str, run_token: str | None = None) -> bool:
     log.error("job %s failed: %s", job_id, error)
-    finish_job(job_id, FAILED, error=error)
+    return finish_job(job_id, FAILED, error=error, run_token=run_token)
 
 
 # --------------------------------------------------------------------------- callbacks
@@ -164,9 +210,10 @@ class StageCallbacks:
     a checkpoint; a ``checkpoint`` event at the iteration it was taken follows it.
     """
 
-    def __init__(self, job_id: str, stage: str, settings: Settings, extra_progress=None, on_checkpoint=None,
+    def __init__(self, job: Job, stage: str, settings: Settings, extra_progress=None, on_checkpoint=None,
                  note: str | None = None):
-        self.job_id, self.stage, self.settings, self.note = job_id, stage, settings, note
+        self.job_id, self.stage, self.settings, self.note = job.id, stage, settings, note
+        self.run_token = job.run_token  # the run holding the job: a run that lost it stops as if canceled
         self.extra_progress = extra_progress
         self._last_write = 0.0
         self._last_check = 0.0
@@ -221,8 +268,10 @@ class StageCallbacks:
             return False
         self._last_check = now
         with session_scope() as session:
-            row = session.execute(select(Job.cancel_requested, Job.state).where(Job.id == self.job_id)).first()
-        self._canceled = row is None or bool(row.cancel_requested) or row.state in TERMINAL_STATES
+            row = session.execute(select(Job.cancel_requested, Job.state, Job.run_token)
+                                  .where(Job.id == self.job_id)).first()
+        self._canceled = (row is None or bool(row.cancel_requested) or row.state in TERMINAL_STATES
+                          or (self.run_token is not None and row.run_token != self.run_token))
         if self._canceled and self._last_report is not None and self._last_report is not self._written:
             # Record where the stage stopped (the throttle may have held the last report back).
             report = self._last_report
@@ -386,22 +435,23 @@ def set_reconstruction(rec_id: str, job_id: str, **values) -> bool:
 
 
 class LeaseLost(RuntimeError):
-    """The claim on a fit lapsed and another job took it over: this one stops and waits for that one."""
+    """A lease lapsed and another took it over (a fit: this job stops and waits for the job now fitting it)."""
 
 
 class LeaseKeeper:
-    """Holds a claimed fit's lease while it runs: a thread renews it every quarter lease (loading the images,
+    """Holds a lease while a block runs: a thread calls ``renew()`` every quarter lease (loading images,
     voxelizing or storing a checkpoint report no progress), and :meth:`check` raises :class:`LeaseLost` once a
-    renewal found another job holding it, so two jobs never both write the fit's results.
+    renewal found the lease taken by another, so two runs never both write one result.
 
-    Use as ``with LeaseKeeper(rec_id, job_id, settings) as lease: ...``.
+    ``renew(**values) -> bool`` extends the lease (recording ``values``) and says whether it was still held.
+    Use as ``with fit_lease(rec_id, job_id, settings) as lease: ...`` (or :func:`stage_lease`).
     """
 
-    def __init__(self, rec_id: str, job_id: str, settings: Settings):
-        self.rec_id, self.job_id, self.settings = rec_id, job_id, settings
+    def __init__(self, renew, lease_s: float, lost_message: str, name: str):
+        self._renew, self.lease_s, self.lost_message = renew, lease_s, lost_message
         self.lost = False
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name=f"voxe-lease-{rec_id}", daemon=True)
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
 
     def __enter__(self) -> LeaseKeeper:
         self._thread.start()
@@ -412,22 +462,43 @@ class LeaseKeeper:
         self._thread.join()
 
     def renew(self, **values) -> bool:
-        """Renew now (recording ``values``, e.g. the fit's iteration); whether the job still holds the fit."""
-        held = renew_lease(self.rec_id, self.job_id, self.settings, **values)
+        """Renew now (recording ``values``, e.g. the fit's iteration); whether the lease is still held."""
+        held = self._renew(**values)
         self.lost = self.lost or not held
         return held
 
     def check(self) -> None:
         if self.lost:
-            raise LeaseLost(f"reconstruction {self.rec_id}: its lease lapsed and another job took the fit over")
+            raise LeaseLost(self.lost_message)
 
     def _run(self) -> None:
-        while not self._stop.wait(self.settings.reconstruction_lease_s / 4):
+        while not self._stop.wait(self.lease_s / 4):
             try:
                 if not self.renew():
                     return
             except Exception:  # noqa: BLE001 - a database hiccup: the next renewal tries again
-                log.warning("reconstruction %s: could not renew its lease", self.rec_id, exc_info=True)
+                log.warning("%s: could not renew the lease", self._thread.name, exc_info=True)
+
+
+def fit_lease(rec_id: str, job_id: str, settings: Settings) -> LeaseKeeper:
+    """The lease of a fit the job claimed (:func:`try_claim_reconstruction`)."""
+    return LeaseKeeper(lambda **values: renew_lease(rec_id, job_id, settings, **values),
+                       settings.reconstruction_lease_s,
+                       f"reconstruction {rec_id}: its lease lapsed and another job took the fit over",
+                       f"voxe-lease-{rec_id}")
+
+
+def stage_lease(job_id: str, run_token: str, settings: Settings) -> LeaseKeeper:
+    """The lease of the run that holds the job (:func:`begin_stage`), kept while its stage runs."""
+    def renew() -> bool:
+        with session_scope() as session:
+            return session.execute(
+                update(Job).where(Job.id == job_id, Job.run_token == run_token)
+                .values(run_lease_until=utcnow() + timedelta(seconds=settings.stage_lease_s))
+            ).rowcount == 1
+
+    return LeaseKeeper(renew, settings.stage_lease_s, f"job {job_id}: its run's lease lapsed and another run "
+                       "took the job over", f"voxe-stage-{job_id}")
 
 
 def load_reconstruction(rec_id: str) -> Reconstruction | None:

@@ -6,8 +6,9 @@ from the storage, calls the ``voxe_core`` stage with callbacks that write
 progress into the job record (throttled) and poll the job's cancel flag, uploads
 what the stage produced, and records it. A stage already recorded as done (a
 redelivered message) or a job already finished is skipped, so the chain is
-safe to redeliver; long stages checkpoint every ``VOXE_CHECKPOINT_EVERY``
-iterations into the storage and resume from there.
+safe to redeliver; a message for a job another live run holds (a duplicate) is
+dropped (``runtime.begin_stage``); long stages checkpoint every
+``VOXE_CHECKPOINT_EVERY`` iterations into the storage and resume from there.
 
 The reconstruction is shared: every job on the same scene with the same
 reconstruction parameters points at one ``reconstructions`` row. The first
@@ -27,17 +28,18 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from celery import signals
-from celery.exceptions import SoftTimeLimitExceeded
+from celery.exceptions import Ignore, SoftTimeLimitExceeded
 from sqlalchemy import select
 
 from voxe_core.presets import edit_config, export_config, fit_setup, reconstruct_config, refine_config
 from voxe_core.progress import Callbacks, Progress, StageCancelled
 from voxe_service.models import (
-    CANCELED, PROCESSING, R_FAILED, R_PENDING, R_SUCCEEDED, RUNNING, Job, Scene, WorkerHeartbeat, utcnow,
+    CANCELED, PROCESSING, R_FAILED, R_PENDING, R_SUCCEEDED, RUNNING, TERMINAL_STATES, Job, Scene, WorkerHeartbeat,
+    utcnow,
 )
 from voxe_service.model_inventory import ROLES, check_models, job_models, missing_message, model_present
 from voxe_service.queue import (
-    INGEST_TASK, STAGE_TASKS, TaskResult, dispatch_job, get_queue, is_sql_broker, job_stages, reset_queue,
+    INGEST_TASK, STAGE_TASKS, TaskResult, get_queue, is_sql_broker, job_stages, requeue_interrupted, reset_queue,
 )
 from voxe_service.settings import TINY_MODEL, get_settings, model_label
 from voxe_service.storage import StoredObject, get_storage, job_key, reconstruction_storage_key
@@ -46,7 +48,7 @@ from worker.celery_app import app
 from worker.evaluation import EvaluationFailed, run_evaluation
 from worker.ingest import ingest_scene, load_stored_mesh
 from worker.inputs import fetch_grid, job_scene, load_images
-from worker.runtime import JobSkipped, StageCallbacks
+from worker.runtime import JobSkipped, StageCallbacks, StageHeld
 
 if TYPE_CHECKING:
     import torch
@@ -68,33 +70,60 @@ def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> Task
     settings = get_settings()
     device = settings.resolved_device
     try:
-        job = runtime.begin_stage(job_id, stage, task.request.hostname or socket.gethostname(), device)
+        job = runtime.begin_stage(job_id, stage, task.request.hostname or socket.gethostname(), device, settings)
+    except StageHeld as held:  # a duplicate message: acknowledged, its chain not continued
+        log.info("%s: dropped: %s", stage, held)
+        raise Ignore() from None
     except JobSkipped as skipped:
         log.info("%s: skipped: %s", stage, skipped)
         return {"job_id": job_id, "stage": stage, "skipped": str(skipped)}
     log.info("job %s: %s started on %s", job_id, stage, device)
+    token = job.run_token
     try:
-        if stage == job_stages(job.mode)[0]:
-            _check_job_models(job, settings)
-        body(job, settings, device, get_storage(settings))
+        with runtime.stage_lease(job_id, token, settings):
+            if stage == job_stages(job.mode)[0]:
+                _check_job_models(job, settings)
+            body(job, settings, device, get_storage(settings))
     except StageCancelled:
-        runtime.finish_job(job_id, CANCELED, message=f"canceled during {stage}")
-        _cleanup(job_id, settings)
-        return {"job_id": job_id, "stage": stage, "state": CANCELED}
+        ended = runtime.finish_job(job_id, CANCELED, message=f"canceled during {stage}", run_token=token)
+        return _ended(job_id, stage, CANCELED, ended, settings)
     except SoftTimeLimitExceeded:
-        runtime.fail_job(job_id, f"{stage}: time limit of {settings.task_soft_time_limit_s} s exceeded")
-        _cleanup(job_id, settings)
-        return {"job_id": job_id, "stage": stage, "state": "failed"}
+        ended = runtime.fail_job(job_id, f"{stage}: time limit of {settings.task_soft_time_limit_s} s exceeded",
+                                 run_token=token)
+        return _ended(job_id, stage, "failed", ended, settings)
     except Exception as exc:  # noqa: BLE001 - every failure ends the job with its message
         log.exception("job %s: %s failed", job_id, stage)
-        runtime.fail_job(job_id, _error_message(stage, exc, job))
-        _cleanup(job_id, settings)
-        return {"job_id": job_id, "stage": stage, "state": "failed"}
-    runtime.complete_stage(job_id, stage, final=final)
+        ended = runtime.fail_job(job_id, _error_message(stage, exc, job), run_token=token)
+        return _ended(job_id, stage, "failed", ended, settings)
+    except BaseException:  # the worker going down: its redelivered message takes the job at once
+        runtime.release_stage(job_id, token)
+        raise
+    if not runtime.complete_stage(job_id, stage, token, final=final):
+        _stop_if_taken_over(job_id, stage)
+        return {"job_id": job_id, "stage": stage, "skipped": f"job {job_id} ended during {stage}"}
     if final:
         _cleanup(job_id, settings)
     log.info("job %s: %s done", job_id, stage)
     return {"job_id": job_id, "stage": stage, "state": "done"}
+
+
+def _ended(job_id: str, stage: str, state: str, ended: bool, settings) -> TaskResult:
+    """After the stage ended the job in ``state`` (``ended``: this run's update took effect), or found it ended
+    meanwhile, its scratch and checkpoints go."""
+    if not ended:
+        _stop_if_taken_over(job_id, stage)
+    _cleanup(job_id, settings)
+    return {"job_id": job_id, "stage": stage, "state": state}
+
+
+def _stop_if_taken_over(job_id: str, stage: str) -> None:
+    """A run that stalled past its lease, while another run took the unfinished job over, drops its outcome and
+    stops its chain (``Ignore``), leaving the job, its scratch and checkpoints to that run."""
+    job = runtime.load_job(job_id)
+    if job is not None and job.state not in TERMINAL_STATES:
+        log.warning("job %s: another run took the job over while this %s stalled; its outcome is dropped",
+                    job_id, stage)
+        raise Ignore()
 
 
 class ModelMissing(RuntimeError):
@@ -148,7 +177,7 @@ def _reconstruct(job: Job, settings, device: str, storage) -> None:
     rec_id = job.reconstruction_id
     if rec_id is None:
         raise RuntimeError("job has no reconstruction record")
-    callbacks = StageCallbacks(job.id, "reconstruct", settings)
+    callbacks = StageCallbacks(job, "reconstruct", settings)
     first = True
     ran_here = False
     while True:
@@ -240,7 +269,7 @@ def _fit(job: Job, rec, settings, storage, device: str) -> None:
     checkpoint = scratch / "reconstruction_checkpoint.safetensors"
     checkpoint_key = reconstruction_storage_key(rec.id, "checkpoint.safetensors")
 
-    with runtime.LeaseKeeper(rec.id, job.id, settings) as lease:
+    with runtime.fit_lease(rec.id, job.id, settings) as lease:
         def on_checkpoint(path: str) -> None:
             lease.check()
             storage.put_file(checkpoint_key, path)
@@ -250,7 +279,7 @@ def _fit(job: Job, rec, settings, storage, device: str) -> None:
             lease.renew(iteration=report.iteration, total=report.total)
             lease.check()
 
-        callbacks = StageCallbacks(job.id, "reconstruct", settings, on_progress, on_checkpoint)
+        callbacks = StageCallbacks(job, "reconstruct", settings, on_progress, on_checkpoint)
         try:
             if rec.params.get("route") == "voxelize":  # one step: reported once, at completion
                 grid, total = _voxelize(job, rec, settings, storage), 1
@@ -347,7 +376,7 @@ def _edit(job: Job, settings, device: str, storage) -> None:
             last_preview[0] = now
             _preview(job.id, None, settings, storage, device, image=image)
 
-    callbacks = StageCallbacks(job.id, "edit", settings, note=note,
+    callbacks = StageCallbacks(job, "edit", settings, note=note,
                                on_checkpoint=lambda path: storage.put_file(checkpoint_key, path))
     grid = edit(initial, job.prompt, guidance, config, callbacks.callbacks, checkpoint, resume,
                 input_views=input_views, on_preview=on_preview, device=device)
@@ -369,7 +398,7 @@ def _refine(job: Job, settings, device: str, storage) -> None:
     initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key)
     edited = fetch_grid(job.id, "edited_grid.safetensors", settings, storage)
     config = refine_config(job.params, job.attention_model)
-    callbacks = StageCallbacks(job.id, "refine", settings)
+    callbacks = StageCallbacks(job, "refine", settings)
     result = refine(initial, edited, job.prompt, job.edit_words, guidance, config, callbacks.callbacks, device=device)
 
     scratch = runtime.scratch_dir(job.id, settings)
@@ -401,7 +430,7 @@ def _export(job: Job, settings, device: str, storage) -> None:
     scratch = runtime.scratch_dir(job.id, settings)
     views, frames = options.views, options.turntable_frames
     total = views + frames + (1 if options.mesh else 0)
-    callbacks = StageCallbacks(job.id, "export", settings)
+    callbacks = StageCallbacks(job, "export", settings)
 
     def offset(base: int) -> Callbacks:
         return Callbacks(
@@ -512,15 +541,14 @@ def recover_interrupted_jobs(hostname: str) -> list[str]:
     The stages are idempotent (done stages are skipped, long ones resume from their
     checkpoints); an ingest starts over.
     """
-    queue = get_queue()
+    queue, settings = get_queue(), get_settings()
     with runtime.session_scope() as session:
         jobs = list(session.scalars(select(Job).where(Job.state == RUNNING, Job.worker_hostname == hostname)))
-        for job in jobs:
-            dispatch_job(session, queue, job, done=job.completed_stages or [])
-            message = f"re-queued after the worker restarted (was in {job.stage})"
-            runtime.update_job(job.id, message=message)
-            runtime.record_job_event(job.id, "requeued", stage=job.stage, worker=hostname, detail=message)
-            log.warning("job %s was interrupted in %s; re-queued its remaining stages", job.id, job.stage)
+        for job in jobs:  # (this worker's earlier process is gone: the hold of its run, if any, is released)
+            if requeue_interrupted(session, queue, job, settings,
+                                   reason=f"worker {hostname} restarted while the job was in {job.stage}",
+                                   where=[Job.worker_hostname == hostname]):
+                log.warning("job %s was interrupted in %s; re-queued its remaining stages", job.id, job.stage)
         scenes = list(session.scalars(select(Scene.id).where(Scene.state == PROCESSING,
                                                              Scene.worker_hostname == hostname)))
     for scene_id in scenes:

@@ -228,7 +228,7 @@ def request_cancel(*, session: Session, job_ids: list[str]) -> None:
     """Flag the unfinished ``job_ids`` canceled: queued ones at once, running ones when their task next checks."""
     session.execute(update(Job).where(Job.id.in_(job_ids), Job.state.not_in(TERMINAL_STATES))
                     .values(cancel_requested=True, updated_at=utcnow()))
-    finish_jobs(session, job_ids, CANCELED, message="canceled before it started", where=[Job.state == QUEUED])
+    finish_jobs(session, job_ids, CANCELED, message="canceled while queued", where=[Job.state == QUEUED])
     session.commit()
 
 
