@@ -105,6 +105,8 @@ def test_a_database_of_the_previous_head_upgrades_in_place(database_url):
         assert str(row.updated_at) == str(row.created_at)
         conn.execute(text("INSERT INTO job_events (job_id, kind, at) VALUES ('j1', 'succeeded', "
                           "'2026-01-01 00:00:00+00')"))
+        job = conn.execute(text("SELECT run_token, run_lease_until, requeues FROM jobs")).one()
+        assert tuple(job) == (None, None, 0)  # 0007: held by no run, never sent again
     command.check(config)  # the upgraded schema is exactly the models'
     command.downgrade(config, "0003_evaluation")
     with engine.begin() as conn:
