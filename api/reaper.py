@@ -4,12 +4,15 @@ for ever and no accepted job is lost to a dead worker.
 A job is orphaned when
 
 * it is ``running``, its record has not changed for ``VOXE_JOB_STALE_TIMEOUT_S`` (a running
-  stage writes progress twice a second), no run holds its lease (a live stage renews it) and its
-  worker has not written a heartbeat for as long (the worker is gone: killed, its machine lost).
-  Its remaining stages are sent again (``requeued`` on its timeline; they resume from their
-  checkpoints), up to ``VOXE_JOB_MAX_REQUEUES`` times, then it fails with the reason. The
-  message Redis would redeliver hours later finds the job held, done or ended, and is dropped
-  or skipped (``worker.runtime.begin_stage``);
+  stage writes progress twice a second), no run holds its lease (a live stage renews it), and
+  either its worker has not written a heartbeat for as long (the worker is gone: killed, its
+  machine lost) or the run holding it stopped renewing as long ago (it ended without recording
+  how, e.g. the database was unreachable at that moment). Its remaining stages are sent again
+  (``requeued`` on its timeline; they resume from their checkpoints); a job whose stage was
+  interrupted this way ``VOXE_JOB_MAX_REQUEUES`` times fails with the reason instead. A message
+  the broker still delivers later (Redis redelivers hours later) finds the job done or ended
+  (skipped), held by a live run (dropped), or waiting, and then runs it, the other copy being
+  the one dropped (``worker.runtime.begin_stage``);
 * or it is ``queued`` with no task id for as long on a scene that is not processing: the API (or the
   ingest that readied its scene) stopped between recording the job and handing its chain to the
   broker, so no message exists (a job on a processing scene waits for the scene's ingest to send
@@ -64,19 +67,25 @@ def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[
     timeout, cutoff, alive = _stale_window(settings, now)
     reaped = []
     with session_scope() as session:
+        lapsed = or_(Job.run_lease_until.is_(None), Job.run_lease_until < now)  # no live run renews a hold
         running = session.scalars(
             select(Job).where(
-                Job.state == RUNNING, Job.updated_at < cutoff,
-                or_(Job.worker_hostname.is_(None), Job.worker_hostname.not_in(alive)),
-                or_(Job.run_lease_until.is_(None), Job.run_lease_until < now),
+                Job.state == RUNNING, Job.updated_at < cutoff, lapsed,
+                or_(Job.worker_hostname.is_(None), Job.worker_hostname.not_in(alive),
+                    Job.run_lease_until < cutoff),  # (a run that ended without a word on a live worker)
             )
         ).all()
+        alive_now = set(session.scalars(alive)) if running else set()
         for job in running:
-            reason = (f"worker {job.worker_hostname or '(unknown)'} stopped while the job was in {job.stage}: "
-                      f"no heartbeat and no progress for {timeout:.0f} s (VOXE_JOB_STALE_TIMEOUT_S)")
+            if job.worker_hostname in alive_now:
+                reason = (f"the run of {job.stage} on worker {job.worker_hostname} stopped renewing its hold "
+                          f"{timeout:.0f} s ago and made no progress (VOXE_JOB_STALE_TIMEOUT_S)")
+            else:
+                reason = (f"worker {job.worker_hostname or '(unknown)'} stopped while the job was in {job.stage}: "
+                          f"no heartbeat and no progress for {timeout:.0f} s (VOXE_JOB_STALE_TIMEOUT_S)")
             try:
                 outcome = requeue_interrupted(session, get_queue(), job, settings, reason=reason,
-                                              where=[Job.updated_at == job.updated_at])
+                                              where=[Job.updated_at == job.updated_at, lapsed])
             except QueueUnavailable:  # the broker refused: dispatch_job failed the job with the reason
                 outcome = FAILED
             if outcome == FAILED:

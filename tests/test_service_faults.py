@@ -104,13 +104,23 @@ def test_reaper_sends_again_or_fails_only_jobs_nothing_will_finish(db):
     add_heartbeat("alive@host", age_s=1)
     add_heartbeat("dead@host", age_s=2 * timeout)
     lapsed = utcnow() - timedelta(seconds=timeout)
-    requeued = {
+    long_lapsed = utcnow() - timedelta(seconds=2 * timeout)
+    requeued = {  # (a run held the first three: their stage was interrupted, which counts)
         "dead worker": add_job(scene, "running", 2 * timeout, "dead@host", "edit", run_token="t1",
                                run_lease_until=lapsed, completed_stages=["reconstruct"]),
-        "no heartbeat ever": add_job(scene, "running", 2 * timeout, "gone@host", "refine"),
+        "no heartbeat ever": add_job(scene, "running", 2 * timeout, "gone@host", "refine", run_token="t3",
+                                     run_lease_until=lapsed),
+        "a live worker's run that stopped renewing long ago": add_job(
+            scene, "running", 2 * timeout, "alive@host", "edit", run_token="t4", run_lease_until=long_lapsed),
+        "between stages, its worker gone": add_job(scene, "running", 2 * timeout, "dead@host", "edit",
+                                                   completed_stages=["reconstruct", "edit"], requeues=limit),
         "no worker recorded": add_job(scene, "running", 2 * timeout, None, "reconstruct"),
     }
-    orphans = {"sent again too often": add_job(scene, "running", 2 * timeout, "dead@host", "edit", requeues=limit)}
+    counted = {"dead worker", "no heartbeat ever", "a live worker's run that stopped renewing long ago"}
+    orphans = {"sent again too often": add_job(scene, "running", 2 * timeout, "dead@host", "edit", requeues=limit,
+                                               run_token="t5", run_lease_until=lapsed, batch_id="b3")}
+    rides_along = add_job(scene, "queued", 2 * timeout, mode="evaluate", batch_id="b3",  # in that edit's chain
+                          source_job_ids=[orphans["sent again too often"]])
     never_sent = add_job(scene, "queued", 2 * timeout, task_id=None)  # accepted, never sent: sent now, not failed
     # A sweep's evaluation goes with its edit's chain when that is sent; one whose edit is done has no chain left.
     sweep_edit = add_job(scene, "queued", 2 * timeout, task_id=None, batch_id="b1")
@@ -126,6 +136,9 @@ def test_reaper_sends_again_or_fails_only_jobs_nothing_will_finish(db):
         "recent progress": add_job(scene, "running", timeout / 2, "dead@host", "edit"),
         "a run holds it (its lease renewed)": add_job(scene, "running", 2 * timeout, "dead@host", "edit",
                                                       run_token="t2", run_lease_until=utcnow() + timedelta(60)),
+        "a live worker's run, its hold lapsed lately": add_job(scene, "running", 2 * timeout, "alive@host", "edit",
+                                                               run_token="t6",
+                                                               run_lease_until=utcnow() - timedelta(seconds=60)),
         "queued in the broker": add_job(scene, "queued", 2 * timeout),
         "queued just now, not yet sent": add_job(scene, "queued", timeout / 2, task_id=None),
         "succeeded": add_job(scene, "succeeded", 2 * timeout, "dead@host", "export"),
@@ -134,8 +147,9 @@ def test_reaper_sends_again_or_fails_only_jobs_nothing_will_finish(db):
     assert sorted(reap_orphaned_jobs(db)) == sorted(orphans.values())
     for what, job_id in requeued.items():
         job = job_row(job_id)
+        before = limit if what == "between stages, its worker gone" else 0
         assert (job.state, job.requeues, job.run_token, job.run_lease_until, job.error) == (
-            "queued", 1, None, None, None), what
+            "queued", before + (what in counted), None, None, None), what
         assert job.task_id not in (None, "task"), what  # its remaining stages are in the broker again
         assert [(e["kind"], e["stage"]) for e in events_of(job_id)] == [("requeued", job.stage)], what
     dead = job_row(requeued["dead worker"])
@@ -145,10 +159,15 @@ def test_reaper_sends_again_or_fails_only_jobs_nothing_will_finish(db):
     assert dead.completed_stages == ["reconstruct"]
     assert job_row(requeued["no worker recorded"]).message.startswith(
         "re-queued: worker (unknown) stopped while the job was in reconstruct")
+    assert job_row(requeued["a live worker's run that stopped renewing long ago"]).message == (
+        f"re-queued: the run of edit on worker alive@host stopped renewing its hold {timeout:.0f} s ago and made "
+        f"no progress (VOXE_JOB_STALE_TIMEOUT_S)")
     too_often = job_row(orphans["sent again too often"])
     assert too_often.state == "failed" and too_often.finished_at is not None
     assert too_often.error == (f"{reason}; it was sent again {limit} time(s) already, the limit "
                                f"(VOXE_JOB_MAX_REQUEUES={limit})")
+    evaluation = job_row(rides_along)  # sent alone, to record why its edit failed
+    assert evaluation.state == "queued" and evaluation.task_id not in (None, "task")
     sent = job_row(never_sent)
     assert sent.state == "queued" and sent.task_id not in (None, "task") and sent.error is None
     assert job_row(carried).state == "queued" and job_row(carried).task_id == job_row(sweep_edit).task_id is not None
@@ -167,7 +186,7 @@ def test_reaper_sends_again_or_fails_only_jobs_nothing_will_finish(db):
         session.execute(update(Job).where(Job.id.in_(list(requeued.values())))
                         .values(updated_at=utcnow() - timedelta(seconds=2 * timeout)))
     assert reap_orphaned_jobs(db) == []
-    assert {job_row(j).requeues for j in requeued.values()} == {1}
+    assert [job_row(j).state for j in requeued.values()] == ["queued"] * len(requeued)
     assert [e["kind"] for e in events_of(orphans["sent again too often"])] == ["failed"]  # on the job's timeline
 
 
@@ -199,7 +218,7 @@ def test_one_run_holds_a_job_a_duplicate_message_is_dropped_and_a_dead_run_is_ta
     from voxe_service.models import Job
     from worker import runtime
 
-    monkeypatch.setattr(db, "stage_lease_s", 0.4)
+    monkeypatch.setattr(db, "stage_lease_s", 2.0)  # renewed every 0.5 s: a busy CPU does not let it lapse
     job_id = add_job(add_scene(), "queued", 0, completed_stages=["reconstruct"])
     first = runtime.begin_stage(job_id, "edit", "a@host", "cpu", db)
     stalled = runtime.StageCallbacks(first, "edit", db)
@@ -208,13 +227,13 @@ def test_one_run_holds_a_job_a_duplicate_message_is_dropped_and_a_dead_run_is_ta
         started = time.monotonic()
         with pytest.raises(runtime.StageHeld, match="this edit message is a duplicate"):
             runtime.begin_stage(job_id, "edit", "b@host", "cpu", db)
-        assert time.monotonic() - started < 0.4  # one renewal seen (every 0.1 s), not the lease waited out
+        assert time.monotonic() - started < 2.0  # one renewal seen (every 0.5 s), not the lease waited out
         held = job_row(job_id)
         assert (held.run_token, held.worker_hostname) == (first.run_token, "a@host")
     started = time.monotonic()  # the holder stopped renewing: taken over once its lease ran out
     second = runtime.begin_stage(job_id, "edit", "b@host", "cpu", db)
     assert second.run_token not in (None, first.run_token) and second.worker_hostname == "b@host"
-    assert time.monotonic() - started > 0.1
+    assert time.monotonic() - started > 0.5
     # The stalled run, back: its ending, its completion and its progress loop all see the job is not its own.
     assert not runtime.fail_job(job_id, "edit: the stalled run failed", run_token=first.run_token)
     assert not runtime.complete_stage(job_id, "edit", first.run_token)
@@ -232,12 +251,53 @@ def test_one_run_holds_a_job_a_duplicate_message_is_dropped_and_a_dead_run_is_ta
         assert session.get(Job, job_id).stage == "edit"
 
 
+def test_a_run_that_lost_its_job_publishes_records_and_fits_nothing(db, tmp_path, monkeypatch):
+    """A stalled run whose job another run took over (its lease lapsed) comes back: its artifacts and results are
+    refused (RunSuperseded; nothing uploaded, listed or merged), and the job's fit, taken by the new run of the
+    same job, is no longer its to renew or to change."""
+    from voxe_service.db import session_scope
+    from voxe_service.models import Reconstruction
+    from voxe_service.storage import get_storage
+    from worker import runtime
+
+    monkeypatch.setattr(db, "stage_lease_s", 0.2)
+    scene = add_scene()
+    job_id = add_job(scene, "queued", 0, completed_stages=["reconstruct"])
+    with session_scope() as session:
+        rec = Reconstruction(scene_id=scene, params_key="k", params={})
+        session.add(rec)
+        session.flush()
+        rec_id = rec.id
+    stalled = runtime.begin_stage(job_id, "edit", "a@host", "cpu", db)
+    assert runtime.try_claim_reconstruction(rec_id, job_id, "a@host", db, True, run_token=stalled.run_token)
+    taken = runtime.begin_stage(job_id, "edit", "b@host", "cpu", db)  # once the stalled run's lease lapsed
+    assert runtime.try_claim_reconstruction(rec_id, job_id, "b@host", db, True, run_token=taken.run_token)
+    grid = tmp_path / "edited_grid.safetensors"
+    grid.write_bytes(b"grid")
+    storage = get_storage(db)
+    with runtime.holding_job(job_id, stalled.run_token, db):
+        with pytest.raises(runtime.RunSuperseded, match="another run took the job over"):
+            runtime.publish_artifact(job_id, "edited_grid.safetensors", grid, "grid", storage)
+        with pytest.raises(runtime.RunSuperseded):
+            runtime.merge_job_result(job_id, {"orbit_centre": [0.0, 0.0, 0.0]})
+    assert storage.list(f"jobs/{job_id}/") == [] and runtime.recorded_key(job_id, "edited_grid.safetensors") is None
+    assert job_row(job_id).result is None
+    assert not runtime.renew_lease(rec_id, job_id, db, stalled.run_token)
+    assert not runtime.set_reconstruction(rec_id, job_id, stalled.run_token, state="failed")
+    with runtime.holding_job(job_id, taken.run_token, db):  # the run holding the job writes as ever
+        runtime.publish_artifact(job_id, "edited_grid.safetensors", grid, "grid", storage)
+        runtime.merge_job_result(job_id, {"orbit_centre": [0.0, 0.0, 0.0]})
+    assert storage.list(f"jobs/{job_id}/") == [f"jobs/{job_id}/edited_grid.safetensors"]
+    assert runtime.renew_lease(rec_id, job_id, db, taken.run_token)
+    assert runtime.load_reconstruction(rec_id).owner_run_token == taken.run_token
+
+
 def test_the_worker_acknowledges_a_duplicate_stage_message_without_continuing_its_chain(db, monkeypatch):
     """Through the Celery task: a duplicate raises ``Ignore`` (acknowledged, no result, the chain's next message
     not sent; the holder's own chain carries the job on), and the job is left as its holder has it."""
     from worker import runtime, tasks
 
-    monkeypatch.setattr(db, "stage_lease_s", 0.4)
+    monkeypatch.setattr(db, "stage_lease_s", 2.0)
     job_id = add_job(add_scene(), "queued", 0, completed_stages=["reconstruct"])
     holder = runtime.begin_stage(job_id, "edit", "a@host", "cpu", db)
     with runtime.stage_lease(job_id, holder.run_token, db):
@@ -257,7 +317,8 @@ def test_a_restarted_worker_sends_its_jobs_again_releasing_its_dead_runs_holds_u
 
     scene, lease = add_scene(), utcnow() + timedelta(seconds=60)
     interrupted = add_job(scene, "running", 1, "w@host", "edit", run_token="dead", run_lease_until=lease)
-    looping = add_job(scene, "running", 1, "w@host", "edit", requeues=db.job_max_requeues)
+    looping = add_job(scene, "running", 1, "w@host", "edit", requeues=db.job_max_requeues, run_token="dead too",
+                      run_lease_until=lease)
     elsewhere = add_job(scene, "running", 1, "v@host", "edit", run_token="live", run_lease_until=lease)
     assert sorted(tasks.recover_interrupted_jobs("w@host")) == sorted([interrupted, looping])
     job = job_row(interrupted)
@@ -385,12 +446,14 @@ def test_api_startup_reaps_and_deletes_the_orphans_checkpoints(db):
     from fastapi.testclient import TestClient
 
     from api.main import create_app
+    from voxe_service.models import utcnow
     from voxe_service.storage import get_storage
 
     scene = add_scene()
     stale = 2 * db.job_stale_timeout_s
     resumed = add_job(scene, "running", stale, "dead@host", "edit")
-    orphan = add_job(scene, "running", stale, "dead@host", "edit", requeues=db.job_max_requeues)
+    orphan = add_job(scene, "running", stale, "dead@host", "edit", requeues=db.job_max_requeues, run_token="t",
+                     run_lease_until=utcnow() - timedelta(seconds=stale))
     storage = get_storage(db)
     for job_id in (resumed, orphan):
         storage.put_bytes(f"jobs/{job_id}/checkpoints/edit.safetensors", b"state")

@@ -100,6 +100,7 @@ def test_both_backends_list_by_plain_prefix(storage):
     assert storage.list("jobs/a/x") == ["jobs/a/x.bin"]
     assert storage.list("jobs") == ["jobs/a.txt", "jobs/a/x.bin", "jobs/ab/y.bin", "jobsx/z.bin"]
     assert storage.list("jobs/missing/") == [] and storage.list("nowhere/at/all") == []
+    assert storage.list("jobs//a") == storage.list("./") == storage.list("a b/") == []
     assert storage.delete_prefix("jobs/a") == 3
     assert storage.list() == ["jobsx/z.bin", "scenes/s/data.zip"]
 

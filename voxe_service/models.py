@@ -124,6 +124,7 @@ class Reconstruction(Base):
     state: Mapped[str] = mapped_column(String(16), default=R_PENDING)
     run_count: Mapped[int] = mapped_column(Integer, default=0)  # how many times a fit was started
     owner_job_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    owner_run_token: Mapped[str | None] = mapped_column(String(32), nullable=True)  # which run of that job
     lease_until: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
     iteration: Mapped[int] = mapped_column(Integer, default=0)
     total: Mapped[int] = mapped_column(Integer, default=0)

@@ -193,22 +193,29 @@ def dispatch_job(session: Session, queue: TaskQueue, job: Job, done: Iterable[st
 
 def requeue_interrupted(session: Session, queue: TaskQueue, job: Job, settings: Settings, *, reason: str,
                         where: Iterable = ()) -> str | None:
-    """Send a running job's remaining stages again after the run holding it stopped (its worker died): the job
-    is queued again, waiting for a worker like any sent job (the reaper leaves those alone), the run's hold is
-    released, so the new message takes the job at once, and ``requeued`` goes on its timeline.
+    """Send a running job's remaining stages again after its worker stopped: the job is queued again, waiting
+    for a worker like any sent job (the reaper leaves those alone), the hold of an interrupted run is released,
+    so the new message takes the job at once, and ``requeued`` goes on its timeline.
 
-    A job sent again ``job_max_requeues`` times already fails instead (a job that kills its workers must not
-    loop). ``where``: what the caller saw of the row. Returns "requeued", "failed", or None when the row changed
-    since it was read (nothing done). A broker that refuses fails the job and raises (:func:`dispatch_job`).
+    A job whose stage was interrupted (a run held it) ``job_max_requeues`` times already fails instead: a job
+    that kills its workers must not loop; the evaluations that ride in its chain are sent alone, to record why.
+    A job between stages (its next message waited, or was lost with the worker) is sent without counting.
+    ``where``: what the caller saw of the row. Returns "requeued", "failed", or None when the row changed since
+    it was read (nothing done). A broker that refuses fails the job and raises (:func:`dispatch_job`).
     """
-    if job.requeues >= settings.job_max_requeues:
+    interrupted = job.run_token is not None
+    if interrupted and job.requeues >= settings.job_max_requeues:
         failed = finish_jobs(session, [job.id], FAILED, where=[Job.state == RUNNING, *where],
                              error=f"{reason}; it was sent again {job.requeues} time(s) already, the limit "
                                    f"(VOXE_JOB_MAX_REQUEUES={settings.job_max_requeues})")
         session.commit()
+        if failed and evaluations_waiting_on(session, job):
+            dispatch_job(session, queue, job, done=job_stages(job.mode))  # (no stage left: the evaluations alone)
         return FAILED if failed else None
+    # task_id NULL until the new chain is handed over: a sender that dies in between leaves a job the reaper sends
     released = session.execute(update(Job).where(Job.id == job.id, Job.state == RUNNING, *where).values(
-        state=QUEUED, run_token=None, run_lease_until=None, requeues=Job.requeues + 1, updated_at=utcnow()))
+        state=QUEUED, task_id=None, run_token=None, run_lease_until=None, message=f"re-queued: {reason}",
+        requeues=Job.requeues + (1 if interrupted else 0), updated_at=utcnow()))
     if released.rowcount != 1:
         return None
     record_event(session, job.id, "requeued", stage=job.stage, worker=job.worker_hostname, detail=reason)

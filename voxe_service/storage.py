@@ -219,7 +219,10 @@ class LocalStorage(Storage):
         """(name under the root, whether it is a writer's temporary file) of each file whose name starts with
         ``prefix``; only the prefix's own folder is walked (a job's listing does not read every other job's)."""
         folder = prefix.rpartition("/")[0]
-        base = self.path(folder) if folder else self.root
+        try:
+            base = self.path(folder) if folder else self.root
+        except StorageError:  # no key lies under a folder no key can name ("a//", "./")
+            return []
         if not base.is_dir():
             return []
         files = [(path.relative_to(self.root).as_posix(), bool(_WRITING.match(path.name)))

@@ -15,6 +15,9 @@ import tempfile
 import threading
 import time
 import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
@@ -67,6 +70,39 @@ def update_job(job_id: str, **values) -> None:
         session.execute(update(Job).where(Job.id == job_id).values(updated_at=utcnow(), **values))
 
 
+class RunSuperseded(JobSkipped):
+    """This run stalled past its lease and another run took its job over: the job's results are the other
+    run's to write, so this run's are refused."""
+
+
+_HOLDING: ContextVar[tuple[str, str] | None] = ContextVar("voxe_holding", default=None)
+"""(job id, run token) of the stage this thread runs (:func:`holding_job`)."""
+
+
+@contextmanager
+def holding_job(job_id: str, run_token: str, settings: Settings) -> Iterator[None]:
+    """While a stage runs: its hold on the job renewed (:func:`stage_lease`), and the job's artifacts and results
+    written only while the hold is still this run's (:class:`RunSuperseded` otherwise)."""
+    mark = _HOLDING.set((job_id, run_token))
+    try:
+        with stage_lease(job_id, run_token, settings):
+            yield
+    finally:
+        _HOLDING.reset(mark)
+
+
+def _refuse_if_superseded(job_id: str, run_token: str | None) -> None:
+    """Raise RunSuperseded when this thread runs a stage of ``job_id`` and the job's token (as read) is not its."""
+    held = _HOLDING.get()
+    if held is not None and held[0] == job_id and run_token != held[1]:
+        raise RunSuperseded(f"job {job_id}: another run took the job over; this run's results are refused")
+
+
+def _current_token(session, job_id: str, lock: bool = False) -> str | None:
+    query = select(Job.run_token).where(Job.id == job_id)
+    return session.scalar(query.with_for_update() if lock else query)
+
+
 def _change_result(job_id: str, change) -> None:
     """``Job.result`` replaced by ``change(result)`` under a row lock, so stages writing at once lose nothing.
 
@@ -76,6 +112,7 @@ def _change_result(job_id: str, change) -> None:
     with session_scope() as session:
         job = session.get(Job, job_id, with_for_update={"of": Job})
         if job is not None:
+            _refuse_if_superseded(job_id, job.run_token)
             job.result = change(dict(job.result or {}))
             job.updated_at = utcnow()
 
@@ -317,8 +354,11 @@ def publish_artifact(job_id: str, name: str, path: str | os.PathLike, kind: str,
     object is deleted after): the listed size and checksum always describe the bytes of its key.
     """
     storage = storage or get_storage()
+    with session_scope() as session:  # a run that lost its job uploads nothing ...
+        _refuse_if_superseded(job_id, _current_token(session, job_id))
     previous = recorded_key(job_id, name)
-    if key is None:
+    uploaded = key is None
+    if uploaded:
         fixed = job_key(job_id, name)
         key = fixed if previous != fixed else job_key(job_id, f"v-{uuid.uuid4().hex[:12]}/{name}")
         stored = storage.put_file(key, path, content_type(name))
@@ -326,6 +366,12 @@ def publish_artifact(job_id: str, name: str, path: str | os.PathLike, kind: str,
         size, sha = file_sha256(path)
         stored = StoredObject(key, size, sha)
     with session_scope() as session:
+        try:  # ... and records nothing (checked again under the row's lock)
+            _refuse_if_superseded(job_id, _current_token(session, job_id, lock=True))
+        except RunSuperseded:
+            if uploaded and stored.key != job_key(job_id, name):
+                storage.delete(stored.key)
+            raise
         artifact = session.execute(
             select(Artifact).where(Artifact.job_id == job_id, Artifact.name == name)
         ).scalar_one_or_none()
@@ -390,8 +436,9 @@ class Claim:
 
 
 def try_claim_reconstruction(rec_id: str, job_id: str, hostname: str | None, settings: Settings,
-                             allow_failed: bool) -> bool:
-    """Atomically take the fit: pending (or failed, or a lapsed lease, or our own) -> running, owned by us."""
+                             allow_failed: bool, run_token: str | None = None) -> bool:
+    """Atomically take the fit: pending (or failed, or a lapsed lease, or our own job's) -> running, owned by the
+    job's run ``run_token`` (a later run of the same job takes the fit from an earlier one that lost the job)."""
     now = utcnow()
     states = [R_PENDING] + (["failed"] if allow_failed else [])
     with session_scope() as session:
@@ -404,8 +451,8 @@ def try_claim_reconstruction(rec_id: str, job_id: str, hostname: str | None, set
                    & ((Reconstruction.lease_until < now) | (Reconstruction.owner_job_id == job_id))),
             )
             .values(
-                state=R_RUNNING, owner_job_id=job_id, worker_hostname=hostname, error=None,
-                lease_until=now + timedelta(seconds=settings.reconstruction_lease_s),
+                state=R_RUNNING, owner_job_id=job_id, owner_run_token=run_token, worker_hostname=hostname,
+                error=None, lease_until=now + timedelta(seconds=settings.reconstruction_lease_s),
                 run_count=Reconstruction.run_count + 1,
                 started_at=func.coalesce(Reconstruction.started_at, now),
             )
@@ -413,25 +460,27 @@ def try_claim_reconstruction(rec_id: str, job_id: str, hostname: str | None, set
         return result.rowcount == 1
 
 
-def renew_lease(rec_id: str, job_id: str, settings: Settings, **values) -> bool:
+def _owned(rec_id: str, job_id: str, run_token: str | None) -> list:
+    """The conditions that ``job_id`` (its run ``run_token``, when given) owns the fit."""
+    owner = [Reconstruction.id == rec_id, Reconstruction.owner_job_id == job_id]
+    return owner + ([Reconstruction.owner_run_token == run_token] if run_token is not None else [])
+
+
+def renew_lease(rec_id: str, job_id: str, settings: Settings, run_token: str | None = None, **values) -> bool:
     """Extend the job's running claim on the fit (recording ``values``); False when it no longer holds it."""
     with session_scope() as session:
         return session.execute(
             update(Reconstruction)
-            .where(Reconstruction.id == rec_id, Reconstruction.owner_job_id == job_id,
-                   Reconstruction.state == R_RUNNING)
+            .where(*_owned(rec_id, job_id, run_token), Reconstruction.state == R_RUNNING)
             .values(lease_until=utcnow() + timedelta(seconds=settings.reconstruction_lease_s), **values)
         ).rowcount == 1
 
 
-def set_reconstruction(rec_id: str, job_id: str, **values) -> bool:
-    """Change the reconstruction if ``job_id`` owns it; whether it did."""
+def set_reconstruction(rec_id: str, job_id: str, run_token: str | None = None, **values) -> bool:
+    """Change the reconstruction if ``job_id`` (its run ``run_token``, when given) owns it; whether it did."""
     with session_scope() as session:
-        return session.execute(
-            update(Reconstruction)
-            .where(Reconstruction.id == rec_id, Reconstruction.owner_job_id == job_id)
-            .values(**values)
-        ).rowcount == 1
+        return session.execute(update(Reconstruction).where(*_owned(rec_id, job_id, run_token)).values(**values)
+                               ).rowcount == 1
 
 
 class LeaseLost(RuntimeError):
@@ -480,9 +529,9 @@ class LeaseKeeper:
                 log.warning("%s: could not renew the lease", self._thread.name, exc_info=True)
 
 
-def fit_lease(rec_id: str, job_id: str, settings: Settings) -> LeaseKeeper:
-    """The lease of a fit the job claimed (:func:`try_claim_reconstruction`)."""
-    return LeaseKeeper(lambda **values: renew_lease(rec_id, job_id, settings, **values),
+def fit_lease(rec_id: str, job_id: str, settings: Settings, run_token: str | None = None) -> LeaseKeeper:
+    """The lease of a fit the job's run claimed (:func:`try_claim_reconstruction`)."""
+    return LeaseKeeper(lambda **values: renew_lease(rec_id, job_id, settings, run_token, **values),
                        settings.reconstruction_lease_s,
                        f"reconstruction {rec_id}: its lease lapsed and another job took the fit over",
                        f"voxe-lease-{rec_id}")

@@ -34,8 +34,8 @@ from sqlalchemy import select
 from voxe_core.presets import edit_config, export_config, fit_setup, reconstruct_config, refine_config
 from voxe_core.progress import Callbacks, Progress, StageCancelled
 from voxe_service.models import (
-    CANCELED, PROCESSING, R_FAILED, R_PENDING, R_SUCCEEDED, RUNNING, TERMINAL_STATES, Job, Scene, WorkerHeartbeat,
-    utcnow,
+    CANCELED, FAILED, PROCESSING, R_FAILED, R_PENDING, R_SUCCEEDED, RUNNING, TERMINAL_STATES, Job, Scene,
+    WorkerHeartbeat, utcnow,
 )
 from voxe_service.model_inventory import ROLES, check_models, job_models, missing_message, model_present
 from voxe_service.queue import (
@@ -80,10 +80,14 @@ def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> Task
     log.info("job %s: %s started on %s", job_id, stage, device)
     token = job.run_token
     try:
-        with runtime.stage_lease(job_id, token, settings):
+        with runtime.holding_job(job_id, token, settings):
             if stage == job_stages(job.mode)[0]:
                 _check_job_models(job, settings)
             body(job, settings, device, get_storage(settings))
+    except runtime.RunSuperseded as superseded:
+        log.warning("job %s: %s: %s", job_id, stage, superseded)
+        _stop_if_taken_over(job_id, stage)
+        return {"job_id": job_id, "stage": stage, "skipped": str(superseded)}
     except StageCancelled:
         ended = runtime.finish_job(job_id, CANCELED, message=f"canceled during {stage}", run_token=token)
         return _ended(job_id, stage, CANCELED, ended, settings)
@@ -186,7 +190,8 @@ def _reconstruct(job: Job, settings, device: str, storage) -> None:
             raise RuntimeError(f"reconstruction {rec_id} was deleted")
         if rec.state == R_SUCCEEDED:
             break
-        if runtime.try_claim_reconstruction(rec_id, job.id, job.worker_hostname, settings, allow_failed=first):
+        if runtime.try_claim_reconstruction(rec_id, job.id, job.worker_hostname, settings, allow_failed=first,
+                                            run_token=job.run_token):
             try:
                 _fit(job, runtime.load_reconstruction(rec_id), settings, storage, device)
                 ran_here = True
@@ -269,11 +274,11 @@ def _fit(job: Job, rec, settings, storage, device: str) -> None:
     checkpoint = scratch / "reconstruction_checkpoint.safetensors"
     checkpoint_key = reconstruction_storage_key(rec.id, "checkpoint.safetensors")
 
-    with runtime.fit_lease(rec.id, job.id, settings) as lease:
+    with runtime.fit_lease(rec.id, job.id, settings, job.run_token) as lease:
         def on_checkpoint(path: str) -> None:
             lease.check()
             storage.put_file(checkpoint_key, path)
-            runtime.set_reconstruction(rec.id, job.id, checkpoint_key=checkpoint_key)
+            runtime.set_reconstruction(rec.id, job.id, job.run_token, checkpoint_key=checkpoint_key)
 
         def on_progress(report: Progress) -> None:
             lease.renew(iteration=report.iteration, total=report.total)
@@ -288,20 +293,22 @@ def _fit(job: Job, rec, settings, storage, device: str) -> None:
                 grid, total = _fit_grid(job, rec, settings, storage, callbacks, checkpoint, checkpoint_key, device)
             lease.check()
         except BaseException as exc:  # (each change below applies only while this job still owns the fit)
-            if isinstance(exc, Exception) and not isinstance(exc, (StageCancelled, runtime.LeaseLost)):
-                runtime.set_reconstruction(rec.id, job.id, state=R_FAILED, lease_until=None, finished_at=utcnow(),
-                                           error=f"{type(exc).__name__}: {exc}")
-            else:  # canceled, or the worker going down (SystemExit, KeyboardInterrupt): not the fit's failure, so
-                # a waiting job, or this one redelivered, takes over from the checkpoint
-                runtime.set_reconstruction(rec.id, job.id, state=R_PENDING, owner_job_id=None, lease_until=None)
+            if isinstance(exc, Exception) and not isinstance(exc, (StageCancelled, runtime.LeaseLost,
+                                                                   runtime.RunSuperseded)):
+                runtime.set_reconstruction(rec.id, job.id, job.run_token, state=R_FAILED, lease_until=None,
+                                           finished_at=utcnow(), error=f"{type(exc).__name__}: {exc}")
+            else:  # canceled, superseded, or the worker going down (SystemExit, KeyboardInterrupt): not the fit's
+                # failure, so a waiting job, or this one redelivered, takes over from the checkpoint
+                runtime.set_reconstruction(rec.id, job.id, job.run_token, state=R_PENDING, owner_job_id=None,
+                                           owner_run_token=None, lease_until=None)
             raise
         path = scratch / "initial_grid.safetensors"
         grid.save(path)
-        # Under this job's own name: a job that lost the fit meanwhile never overwrites the recorded grid.
-        stored: StoredObject = storage.put_file(reconstruction_storage_key(rec.id, f"grid-{job.id}.safetensors"),
-                                                path)
+        # Under this run's own name: a run that lost the fit meanwhile never overwrites the recorded grid.
+        stored: StoredObject = storage.put_file(
+            reconstruction_storage_key(rec.id, f"grid-{job.run_token or job.id}.safetensors"), path)
         done = runtime.set_reconstruction(
-            rec.id, job.id, state=R_SUCCEEDED, grid_key=stored.key, grid_size=stored.size,
+            rec.id, job.id, job.run_token, state=R_SUCCEEDED, grid_key=stored.key, grid_size=stored.size,
             grid_sha256=stored.sha256, iteration=total, total=total, lease_until=None, finished_at=utcnow(),
         )
     if not done:
@@ -318,7 +325,7 @@ def _fit_grid(job: Job, rec, settings, storage, callbacks: StageCallbacks, check
 
     scene = load_images(job, rec.params, settings, storage)
     _, config, cameras, initial = fit_setup(rec.params, scene.alphas, scene.cameras, settings.checkpoint_every)
-    runtime.renew_lease(rec.id, job.id, settings, total=config.total_iterations)
+    runtime.renew_lease(rec.id, job.id, settings, job.run_token, total=config.total_iterations)
     resume = None
     if storage.exists(checkpoint_key):
         resume = storage.get_file(checkpoint_key, checkpoint)
@@ -545,10 +552,13 @@ def recover_interrupted_jobs(hostname: str) -> list[str]:
     with runtime.session_scope() as session:
         jobs = list(session.scalars(select(Job).where(Job.state == RUNNING, Job.worker_hostname == hostname)))
         for job in jobs:  # (this worker's earlier process is gone: the hold of its run, if any, is released)
-            if requeue_interrupted(session, queue, job, settings,
-                                   reason=f"worker {hostname} restarted while the job was in {job.stage}",
-                                   where=[Job.worker_hostname == hostname]):
-                log.warning("job %s was interrupted in %s; re-queued its remaining stages", job.id, job.stage)
+            outcome = requeue_interrupted(session, queue, job, settings,
+                                          reason=f"worker {hostname} restarted while the job was in {job.stage}",
+                                          where=[Job.worker_hostname == hostname])
+            if outcome == FAILED:
+                get_storage(settings).discard_prefixes(job_key(job.id, "checkpoints/"))
+            if outcome is not None:
+                log.warning("job %s was interrupted in %s: %s", job.id, job.stage, outcome)
         scenes = list(session.scalars(select(Scene.id).where(Scene.state == PROCESSING,
                                                              Scene.worker_hostname == hostname)))
     for scene_id in scenes:

@@ -1,4 +1,5 @@
-"""Jobs record the run of a stage that holds them (token and lease) and how often they were re-queued
+"""Jobs record the run of a stage that holds them (token and lease) and how often they were re-queued; a
+reconstruction records which run of its owner job fits it
 
 Rows written before the columns existed: no run holds them (NULL), re-queued 0 times.
 
@@ -19,6 +20,8 @@ depends_on = None
 
 
 def upgrade() -> None:
+    with op.batch_alter_table('reconstructions', schema=None) as batch_op:
+        batch_op.add_column(sa.Column('owner_run_token', sa.String(length=32), nullable=True))
     with op.batch_alter_table('jobs', schema=None) as batch_op:
         batch_op.add_column(sa.Column('run_token', sa.String(length=32), nullable=True))
         batch_op.add_column(sa.Column('run_lease_until', sa.DateTime(timezone=True), nullable=True))
@@ -32,3 +35,5 @@ def downgrade() -> None:
         batch_op.drop_column('requeues')
         batch_op.drop_column('run_lease_until')
         batch_op.drop_column('run_token')
+    with op.batch_alter_table('reconstructions', schema=None) as batch_op:
+        batch_op.drop_column('owner_run_token')
