@@ -603,14 +603,17 @@ class WebhookReceiver:
 
     def __init__(self, fail_first: bool = False, delay: float = 0.0):
         self.requests: list[dict] = []
-        receiver = self
+        receiver, lock = self, threading.Lock()
 
         class Handler(BaseHTTPRequestHandler):
             def do_POST(self):
                 body = self.rfile.read(int(self.headers["content-length"]))
-                receiver.requests.append({"headers": {k.lower(): v for k, v in self.headers.items()}, "body": body})
+                with lock:  # requests arrive concurrently: exactly the first one recorded is the one failed
+                    receiver.requests.append({"headers": {k.lower(): v for k, v in self.headers.items()},
+                                              "body": body})
+                    failed = fail_first and len(receiver.requests) == 1
                 time.sleep(delay)
-                self.send_response(500 if fail_first and len(receiver.requests) == 1 else 200)
+                self.send_response(500 if failed else 200)
                 self.send_header("content-length", "0")
                 self.end_headers()
 
