@@ -223,6 +223,44 @@ def test_exactly_one_of_many_racing_messages_runs_a_stage(db, monkeypatch):
         assert started == ["stage_started"], (round_, started)
 
 
+def test_a_stage_begins_while_job_creation_holds_its_keys_row(db):
+    """PostgreSQL: job creation holds the API key's row (the quota lock) while it writes jobs, one of which a
+    worker may already be starting. begin_stage takes the job in one UPDATE that changes no foreign key, so it
+    needs nothing of the key's row; a claim followed by a second UPDATE of the same row re-checked the foreign
+    keys, waited for the key's row, and deadlocked with a creation waiting for the job's row (seen in CI)."""
+    from sqlalchemy import create_engine, text
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+    from worker import runtime
+
+    if not db.database_url.startswith("postgresql"):
+        pytest.skip("SQLite has no row locks: one writer at a time")
+    scene = add_scene()
+    with session_scope() as session:
+        job = Job(scene_id=scene, owner_key_id="local", prompt="a mic", mode="global", params={}, sds_model="tiny",
+                  attention_model="tiny", device="cpu")
+        session.add(job)
+        session.flush()
+        job_id = job.id
+    engine = create_engine(db.database_url)
+    try:
+        with engine.connect() as creation:
+            creation.execute(text("SELECT id FROM api_keys WHERE id = 'local' FOR UPDATE")).all()  # held
+            began: list = []
+            worker = threading.Thread(
+                target=lambda: began.append(runtime.begin_stage(job_id, "reconstruct", "w@host", "cpu", db)))
+            worker.start()
+            worker.join(20)
+            waited = worker.is_alive()
+            creation.rollback()  # (lets a waiting begin_stage finish)
+            worker.join(60)
+            assert not waited, "begin_stage waited for the API key's row"
+            assert began[0].state == "running" and began[0].run_token
+    finally:
+        engine.dispose()
+
+
 # ------------------------------------------------------------------------------------------ the quota lock
 def test_concurrent_submissions_never_exceed_the_keys_quota(db):
     """Twice as many submissions as the key may have active jobs, all at once: exactly the quota is accepted."""

@@ -185,9 +185,10 @@ def dispatch_job(session: Session, queue: TaskQueue, job: Job, done: Iterable[st
         finish_jobs(session, ids, FAILED, error=reason)
         session.commit()
         raise QueueUnavailable(reason) from None
-    session.execute(update(Job).where(Job.id.in_(ids)).values(task_id=task_id, message=None))
-    if message is not None:
-        session.execute(update(Job).where(Job.id == job.id).values(message=message))
+    # One UPDATE per row: PostgreSQL re-checks the foreign keys of a row updated twice in one transaction.
+    session.execute(update(Job).where(Job.id == job.id).values(task_id=task_id, message=message))
+    if ids[1:]:
+        session.execute(update(Job).where(Job.id.in_(ids[1:])).values(task_id=task_id, message=None))
     session.commit()
 
 

@@ -141,37 +141,40 @@ def begin_stage(job_id: str, stage: str, hostname: str | None, device: str, sett
     completes. Raises :class:`JobSkipped` when the job is terminal, canceled or has done ``stage`` already (a
     redelivered message: its chain goes on), and :class:`StageHeld` when another run holds the job and renews
     its lease. A holder that stopped renewing (its process died) is taken over once its lease has run out.
+
+    The job is read, then taken by one UPDATE conditional on the row being as read (``updated_at``: a stage
+    completing meanwhile changes it, and the read is retried). One statement, not a claim followed by an update:
+    PostgreSQL re-checks the foreign keys of a row updated twice in one transaction, locking the API key's row,
+    which job creation holds while it waits for this job's row (a deadlock).
     """
     while True:
-        now, token = utcnow(), uuid.uuid4().hex
+        job = load_job(job_id)
+        if job is None or job.state in TERMINAL_STATES:
+            raise JobSkipped(f"job {job_id} is {job.state if job else 'gone'}")
+        now = utcnow()
+        if job.run_token is not None and job.run_lease_until >= now:
+            _wait_for_release(job_id, stage, (job.run_token, job.run_lease_until), settings)
+            continue
         with session_scope() as session:
-            claimed = session.execute(
-                update(Job).where(Job.id == job_id, Job.state.in_((QUEUED, RUNNING)),
-                                  or_(Job.run_token.is_(None), Job.run_lease_until < now))
-                .values(run_token=token, run_lease_until=now + timedelta(seconds=settings.stage_lease_s))
-            ).rowcount == 1
-            job = session.scalars(select(Job).where(Job.id == job_id)
-                                  .execution_options(populate_existing=True)).first()
-            if job is None or job.state in TERMINAL_STATES:
-                raise JobSkipped(f"job {job_id} is {job.state if job else 'gone'}")
-            if claimed:
-                if job.cancel_requested:
-                    finish_jobs(session, [job_id], CANCELED, message=f"canceled before {stage}")
-                    session.commit()  # before raising: session_scope rolls back on the way out of an exception
-                    raise JobSkipped(f"job {job_id} canceled")
-                if stage in (job.completed_stages or []):  # (the rollback gives the hold back)
-                    raise JobSkipped(f"job {job_id}: {stage} already done (redelivered task)")
-                values = dict(state=RUNNING, stage=stage, iteration=0, total=0, eta_seconds=None, losses={},
-                              message=None, stage_started_at=now, worker_hostname=hostname, device=device,
-                              updated_at=now)
-                if job.started_at is None:
-                    values["started_at"] = now
-                session.execute(update(Job).where(Job.id == job_id).values(**values))
+            if job.cancel_requested:
+                finish_jobs(session, [job_id], CANCELED, message=f"canceled before {stage}")
+                session.commit()  # before raising: session_scope rolls back on the way out of an exception
+                raise JobSkipped(f"job {job_id} canceled")
+            if stage in (job.completed_stages or []):
+                raise JobSkipped(f"job {job_id}: {stage} already done (redelivered task)")
+            values = dict(state=RUNNING, stage=stage, iteration=0, total=0, eta_seconds=None, losses={},
+                          message=None, stage_started_at=now, worker_hostname=hostname, device=device,
+                          updated_at=now, run_token=uuid.uuid4().hex,
+                          run_lease_until=now + timedelta(seconds=settings.stage_lease_s))
+            if job.started_at is None:
+                values["started_at"] = now
+            taken = session.execute(update(Job).where(
+                Job.id == job_id, Job.state.in_((QUEUED, RUNNING)), Job.updated_at == job.updated_at,
+                or_(Job.run_token.is_(None), Job.run_lease_until < now)).values(**values)).rowcount == 1
+            if taken:
                 record_event(session, job_id, "stage_started", stage=stage, worker=hostname)
-                session.refresh(job)
-                return job
-            held = (job.run_token, job.run_lease_until)
-        _wait_for_release(job_id, stage, held, settings)
+        if taken:
+            return load_job(job_id)
 
 
 def _wait_for_release(job_id: str, stage: str, held: tuple, settings: Settings) -> None:
