@@ -91,16 +91,16 @@ def holding_job(job_id: str, run_token: str, settings: Settings) -> Iterator[Non
         _HOLDING.reset(mark)
 
 
-def _refuse_if_superseded(job_id: str, run_token: str | None) -> None:
-    """Raise RunSuperseded when this thread runs a stage of ``job_id`` and the job's token (as read) is not its."""
+def _refuse_if_superseded(job_id: str, read_token) -> None:
+    """Raise RunSuperseded when this thread runs a stage of ``job_id`` and ``read_token()``, the job's token now,
+    is not its own; outside a stage of that job nothing is read."""
     held = _HOLDING.get()
-    if held is not None and held[0] == job_id and run_token != held[1]:
+    if held is not None and held[0] == job_id and read_token() != held[1]:
         raise RunSuperseded(f"job {job_id}: another run took the job over; this run's results are refused")
 
 
-def _current_token(session, job_id: str, lock: bool = False) -> str | None:
-    query = select(Job.run_token).where(Job.id == job_id)
-    return session.scalar(query.with_for_update() if lock else query)
+def _token_query(job_id: str):
+    return select(Job.run_token).where(Job.id == job_id)
 
 
 def _change_result(job_id: str, change) -> None:
@@ -112,7 +112,7 @@ def _change_result(job_id: str, change) -> None:
     with session_scope() as session:
         job = session.get(Job, job_id, with_for_update={"of": Job})
         if job is not None:
-            _refuse_if_superseded(job_id, job.run_token)
+            _refuse_if_superseded(job_id, lambda: job.run_token)  # (read under the lock just taken)
             job.result = change(dict(job.result or {}))
             job.updated_at = utcnow()
 
@@ -358,7 +358,7 @@ def publish_artifact(job_id: str, name: str, path: str | os.PathLike, kind: str,
     """
     storage = storage or get_storage()
     with session_scope() as session:  # a run that lost its job uploads nothing ...
-        _refuse_if_superseded(job_id, _current_token(session, job_id))
+        _refuse_if_superseded(job_id, lambda: session.scalar(_token_query(job_id)))
     previous = recorded_key(job_id, name)
     uploaded = key is None
     if uploaded:
@@ -370,7 +370,7 @@ def publish_artifact(job_id: str, name: str, path: str | os.PathLike, kind: str,
         stored = StoredObject(key, size, sha)
     with session_scope() as session:
         try:  # ... and records nothing (checked again under the row's lock)
-            _refuse_if_superseded(job_id, _current_token(session, job_id, lock=True))
+            _refuse_if_superseded(job_id, lambda: session.scalar(_token_query(job_id).with_for_update()))
         except RunSuperseded:
             if uploaded and stored.key != job_key(job_id, name):
                 storage.delete(stored.key)
