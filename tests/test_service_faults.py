@@ -646,12 +646,13 @@ class Client:
 @pytest.mark.slow
 def test_api_restart_loses_nothing_and_the_reaper_sends_again_a_job_whose_worker_died(tmp_path, scene_zip):
     """SIGKILL the API while jobs run and start it again: every job finishes. Then SIGKILL the worker for
-    good: after VOXE_JOB_STALE_TIMEOUT_S the restarted API's reaper queues its job again, and a worker under
-    another name, started later, resumes it from its checkpoint to the end."""
+    good: after VOXE_JOB_STALE_TIMEOUT_S, once the dead run's hold has lapsed (VOXE_STAGE_LEASE_S), the restarted
+    API's reaper queues its job again, and a worker under another name, started later, resumes it from its
+    checkpoint to the end."""
     from service_helpers import service, verify_artifacts
 
     with service(tmp_path, VOXE_JOB_STALE_TIMEOUT_S="6", VOXE_REAPER_INTERVAL_S="1", VOXE_WORKER_HEARTBEAT_S="1",
-                 VOXE_CHECKPOINT_EVERY="10") as svc:
+                 VOXE_CHECKPOINT_EVERY="10", VOXE_STAGE_LEASE_S="8") as svc:  # (the default 60 s outlasts the wait)
         client = Client(svc)
         scene = client.upload(scene_zip)
         running = client.create_job(scene, params={**PARAMS, "iterations": 20})
