@@ -71,15 +71,15 @@ class ReconstructionParams(Strict):
     )
     iterations: Annotated[list[StageIterations], Field(min_length=1, max_length=8)] | StageIterations | None = Field(
         None, description="iterations of the final stage, or one value per stage of the preset (fast: 3, paper: 4, scene: 2; "
-        "another count is a 422; under backbone auto, a count that fits neither preset is a 422 and one that "
-        "fits only the other backbone's fails the job as its reconstruction starts, naming the count it takes); "
-        "the preset's otherwise"
+        "another count is a 422, under backbone auto counted for the scene's backbone; a job created while its "
+        "scene is processing fails, naming the count, when the processing decides a backbone that does not take "
+        "it); the preset's otherwise"
     )
     rays_per_step: int | None = Field(None, ge=1, le=1 << 20)
     seed: int = Field(presets.SEED, ge=0, le=MAX_SEED)
     backbone: Literal["auto", "relu_field", "scene"] = Field(
         "auto", description="relu_field: objects on a transparent background; scene: captured photos with a "
-        "background (DVGO-style, SPEC §5); auto: from the images' alpha"
+        "background (DVGO-style, SPEC §5); auto: the scene's backbone (decided from its images' alpha)"
     )
     route: Literal["auto", "fit", "voxelize"] = Field(
         "auto", description="fit: optimise G_i on the images; voxelize: write an uploaded mesh straight into G_i "
@@ -340,6 +340,10 @@ class SceneOut(BaseModel):
     width: int
     height: int
     splits: list[str]
+    backbone: Literal["relu_field", "scene"] | None = Field(
+        description="what reconstruction backbone auto means for this scene, decided by its processing from all its "
+        "training images (relu_field: an object on a transparent background; scene: opaque photos); null while "
+        "processing, and for scenes processed before it was recorded")
     size_bytes: int = Field(description="bytes stored (0 once failed: a failed upload is not kept)")
     sha256: str
     created_at: datetime

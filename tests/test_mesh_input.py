@@ -220,7 +220,9 @@ def _ingest_mesh_upload(tmp_path, files, mesh_shading=None):
     finally:
         shutil.rmtree(staging)
     render_mesh(root)
-    return staged, stored, root, decode(root, 8)
+    decoded = decode(root, 8)
+    assert decoded.backbone == "relu_field"  # rendered views: the object on a transparent background
+    return staged, stored, root, decoded.count
 
 
 def test_a_mesh_upload_is_stored_as_its_rendered_views(tmp_path, monkeypatch):

@@ -303,6 +303,13 @@ def test_fit_setup_resolves_the_backbone_from_alpha_and_frames_a_scene_fit():
     assert objects.cameras is cameras
     forced = fit_setup(reconstruction_params({"reconstruction": {"backbone": "relu_field"}}), None, cameras)
     assert forced.backbone == "relu_field" and forced.initial is None
+    # A scene whose kind was decided beforehand (the service's ingest, from all its images): "auto" is that kind
+    # whatever the loaded subset's alpha says, and a named backbone still wins.
+    recorded = fit_setup(reconstruction_params({}), alphas, cameras, scene_backbone="scene")
+    assert recorded.backbone == "scene" and isinstance(recorded.initial, SceneGrid)
+    named = fit_setup(reconstruction_params({"reconstruction": {"backbone": "relu_field"}}), None, cameras,
+                      scene_backbone="scene")
+    assert named.backbone == "relu_field"
 
 
 def test_dataset_cameras_move_into_a_scene_grids_frame_only():
@@ -334,7 +341,7 @@ def test_scene_fits_get_the_scene_preset_by_default_and_their_key_follows_it(mon
     a change to that preset changes the cache key of every fit that can become a scene fit."""
     from voxe_core.cli import build_parser
     from voxe_core.cli.reconstruct import job_params
-    from voxe_core.presets import reconstruct_config, reconstruction_key, reconstruction_params
+    from voxe_core.presets import check_fit, reconstruct_config, reconstruction_key, reconstruction_params
 
     cli = job_params(build_parser().parse_args(["reconstruct", "fox", "--out", "g.safetensors"]))
     for params in (reconstruction_params(cli), reconstruction_params({})):
@@ -355,6 +362,15 @@ def test_scene_fits_get_the_scene_preset_by_default_and_their_key_follows_it(mon
     reconstruction_key(reconstruction_params({"reconstruction": {"iterations": [1, 2, 3]}}))
     with pytest.raises(ValueError, match="one per stage"):
         reconstruction_key(reconstruction_params({"reconstruction": {"iterations": [1, 2, 3], "backbone": "scene"}}))
+    # Once the scene's backbone is known, "auto" is checked as that backbone and the refusal says why.
+    three = reconstruction_params({"reconstruction": {"iterations": [1, 2, 3]}})
+    check_fit(three, None)
+    check_fit(three, "relu_field")
+    with pytest.raises(ValueError, match=r"\(2 stages\), got 3: backbone 'auto' is 'scene' for this scene \(its "
+                                         r"images are opaque photos\)$"):
+        check_fit(three, "scene")
+    with pytest.raises(ValueError, match=r"\(2 stages\), got 3$"):  # (named: nothing to explain)
+        check_fit(reconstruction_params({"reconstruction": {"iterations": [1, 2, 3], "backbone": "scene"}}), "relu_field")
 
 
 def test_early_stop_in_the_contracted_shell_changes_the_render_by_less_than_its_threshold():

@@ -132,7 +132,7 @@ def test_a_scene_is_processing_until_its_ingest_and_jobs_on_it_wait_without_a_me
 
     assert ingest(scene["id"]) == {"scene_id": scene["id"], "state": "ready"}
     ready = client.get(f"/v1/scenes/{scene['id']}").json()
-    assert ready == {**scene, "state": "ready"}
+    assert ready == {**scene, "state": "ready", "backbone": "relu_field"}
     sent = client.get(f"/v1/jobs/{job['id']}").json()
     assert sent["state"] == "queued" and sent["message"] is None
     with session_scope() as session:
@@ -803,6 +803,55 @@ def test_reconstruction_iterations_that_fit_no_stage_count_are_a_422(client, dat
     assert response.status_code == 422, response.json()
     assert "one value or one per stage (3 stages), got 4" in response.json()["detail"]
     assert client.get(f"/v1/scenes/{scene['id']}/reconstructions").json() == []  # nothing half made
+
+
+def _opaque_copy(dataset: Path, dest: Path) -> Path:
+    """``dataset`` with its images flattened onto white, saved without alpha: photos, as a capture's are."""
+    from PIL import Image
+
+    shutil.copytree(dataset, dest)
+    for path in dest.rglob("*.png"):
+        with Image.open(path) as image:
+            flat = Image.new("RGB", image.size, "white")
+            flat.paste(image, mask=image.getchannel("A"))
+        flat.save(path)
+    return dest
+
+
+def test_a_scenes_backbone_is_decided_at_processing_and_jobs_are_checked_against_it(client, dataset, root):
+    """Three reconstruction iterations fit the object preset (3 stages), not the photos' (2): on a ready scene of
+    photos they are a 422 saying what "auto" became; on one still processing, the job fails when its ingest
+    decides, and a job whose parameters fit is sent."""
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+
+    three = {"reconstruction": {"iterations": [2, 2, 3]}}
+    objects = make_scene(client, dataset, root)
+    assert objects["backbone"] == "relu_field"
+    accepted = client.post("/v1/jobs", json={"scene_id": objects["id"], **JOB, "params": three})
+    assert accepted.status_code == 201, accepted.text
+
+    photos_zip = zip_folder(_opaque_copy(dataset, root / "photos"), root / "photos.zip", prefix="photos")
+    processing = upload_zip(client, photos_zip).json()
+    assert processing["backbone"] is None
+    misfit = client.post("/v1/jobs", json={"scene_id": processing["id"], **JOB, "params": three}).json()
+    fitting = client.post("/v1/jobs", json={"scene_id": processing["id"], **JOB,
+                                            "params": {"reconstruction": {"iterations": [2, 3]}}}).json()
+    assert ingest(processing["id"])["state"] == "ready"
+    assert client.get(f"/v1/scenes/{processing['id']}").json()["backbone"] == "scene"
+    why = ("iterations takes one value or one per stage (2 stages), got 3: backbone 'auto' is 'scene' for this "
+           "scene (its images are opaque photos)")
+    failed = client.get(f"/v1/jobs/{misfit['id']}").json()
+    assert (failed["state"], failed["error"]) == ("failed", f"params.reconstruction: {why}")
+    assert client.get(f"/v1/jobs/{fitting['id']}").json()["state"] == "queued"
+    with session_scope() as session:
+        assert session.get(Job, misfit["id"]).task_id is None  # never sent
+        assert session.get(Job, fitting["id"]).task_id is not None
+
+    refused = client.post("/v1/jobs", json={"scene_id": processing["id"], **JOB, "params": three})
+    assert refused.status_code == 422 and refused.json()["detail"] == f"params.reconstruction: {why}"
+    named = {"reconstruction": {**three["reconstruction"], "backbone": "relu_field"}}
+    assert client.post("/v1/jobs", json={"scene_id": processing["id"], **JOB, "params": named}).status_code == 201
 
 
 def test_migrations_match_the_models(database_url):

@@ -195,13 +195,45 @@ class FitSetup(NamedTuple):
     """The grid to start from (a scene grid carrying that frame), or None for a fresh ReLU field."""
 
 
+BACKBONE_REASONS = {"relu_field": "its images show an object on a transparent background",
+                    "scene": "its images are opaque photos"}
+"""Why "auto" became each backbone kind (``voxe_core.backbones.detect_backbone``), said in refusals."""
+
+
+def fit_backbone(rec_params: dict, scene_backbone: str | None = None) -> str:
+    """The backbone a fit of ``rec_params`` asks for, "auto" read as ``scene_backbone`` when the scene's kind is
+    known beforehand (the service decides it once per scene, at ingest, from all its training images).
+
+    Examples:
+        >>> fit_backbone({}, "scene"), fit_backbone({"backbone": "relu_field"}, "scene"), fit_backbone({})
+        ('scene', 'relu_field', 'auto')
+    """
+    asked = rec_params.get("backbone", "auto")
+    return scene_backbone if asked == "auto" and scene_backbone else asked
+
+
+def check_fit(rec_params: dict, scene_backbone: str | None) -> None:
+    """ValueError, naming what "auto" became and why, for parameters that resolve to no recipe on a scene of kind
+    ``scene_backbone`` (None: not known yet, so only what fits no backbone is refused, by ``reconstruction_key``)."""
+    backbone = fit_backbone(rec_params, scene_backbone)
+    if backbone == "auto":
+        return
+    try:
+        reconstruct_config(rec_params, backbone=backbone)
+    except ValueError as exc:
+        if rec_params.get("backbone", "auto") != "auto":
+            raise
+        raise ValueError(f"{exc}: backbone 'auto' is {backbone!r} for this scene "
+                         f"({BACKBONE_REASONS[backbone]})") from None
+
+
 def fit_setup(rec_params: dict, alphas: "torch.Tensor | None", cameras: "Cameras",
-              checkpoint_every: int = 0) -> FitSetup:
-    """The backbone ``rec_params`` asks for (resolved for images with ``alphas``), its config and starting point:
-    what the CLI and the worker both run before ``reconstruct``."""
+              checkpoint_every: int = 0, scene_backbone: str | None = None) -> FitSetup:
+    """The backbone ``rec_params`` asks for (resolved as ``scene_backbone`` when given, else for images with
+    ``alphas``), its config and starting point: what the CLI and the worker both run before ``reconstruct``."""
     from voxe_core.backbones import prepare_backbone, resolve_backbone
 
-    backbone = resolve_backbone(rec_params.get("backbone", "auto"), alphas)
+    backbone = resolve_backbone(fit_backbone(rec_params, scene_backbone), alphas)
     config = reconstruct_config(rec_params, checkpoint_every, backbone)  # the backbone's default preset
     _, fit_cameras, initial = prepare_backbone(backbone, alphas, cameras, config.resolutions[0])
     return FitSetup(backbone, config, fit_cameras, initial)

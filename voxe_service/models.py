@@ -96,6 +96,9 @@ class Scene(Base):
     storage_key: Mapped[str] = mapped_column(String(512))  # the validated dataset, one zip archive
     size_bytes: Mapped[int] = mapped_column(Integer)
     sha256: Mapped[str] = mapped_column(String(64))
+    # What reconstruction backbone "auto" means for this scene ("relu_field" | "scene"), decided by its ingest from
+    # all its training images; None while processing (and for scenes ingested before it was recorded).
+    backbone: Mapped[str | None] = mapped_column(String(16), nullable=True)
     state: Mapped[str] = mapped_column(String(16), default=PROCESSING, index=True)
     error: Mapped[str | None] = mapped_column(Text, nullable=True)  # why a failed scene failed
     task_id: Mapped[str | None] = mapped_column(String(64), nullable=True)

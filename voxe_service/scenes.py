@@ -13,8 +13,10 @@ from __future__ import annotations
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
+from voxe_core.presets import check_fit
 from voxe_service.jobs import finish_jobs
 from voxe_service.models import EVALUATE, FAILED, PROCESSING, QUEUED, READY, Job, Scene, utcnow
+from voxe_service.queue import evaluations_waiting_on
 
 
 def lock_scene(session: Session, scene_id: str) -> Scene | None:
@@ -36,7 +38,9 @@ def waiting_jobs(session: Session, scene_id: str, include_evaluations: bool = Fa
 
 
 def mark_ready(session: Session, scene_id: str, **values) -> list[Job] | None:
-    """processing -> ready with ``values`` (sizes, the final archive); the jobs to dispatch now.
+    """processing -> ready with ``values`` (sizes, the final archive, the backbone "auto" means); the jobs to
+    dispatch now. A waiting job whose reconstruction parameters that backbone cannot take (what a 422 refuses on
+    a ready scene) fails naming why, and so do the evaluations of its sweep that wait on it.
 
     None when the scene is no longer processing (deleted, or failed by the reaper meanwhile).
     """
@@ -45,7 +49,18 @@ def mark_ready(session: Session, scene_id: str, **values) -> list[Job] | None:
                               .values(state=READY, error=None, updated_at=now, **values))
     if changed.rowcount != 1:
         return None
-    return waiting_jobs(session, scene_id)
+    dispatch = []
+    for job in waiting_jobs(session, scene_id):
+        try:
+            check_fit(job.reconstruction.params, values.get("backbone"))
+        except ValueError as exc:
+            error = f"params.reconstruction: {exc}"
+            finish_jobs(session, [job.id], FAILED, error=error)
+            finish_jobs(session, evaluations_waiting_on(session, job), FAILED,
+                        error=f"evaluate: source job {job.id} failed: {error}")
+        else:
+            dispatch.append(job)
+    return dispatch
 
 
 def fail_scene(session: Session, scene_id: str, reason: str, where=()) -> bool:

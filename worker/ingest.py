@@ -4,8 +4,10 @@ The API stored what passed its cheap checks and left the scene ``processing``
 (``api/uploads.py``). Here the stored archive is unpacked, a mesh upload is rendered into
 ``MESH_VIEWS`` upper-hemisphere views (``voxe_core.mesh_input.write_mesh_dataset``) and
 packed with the mesh as the scene's dataset archive, and the dataset is loaded in full
-with ``voxe_core.data.load_scene`` at ``VOXE_VALIDATION_DOWNSAMPLE``. Then the scene is
-``ready`` and the jobs waiting on it are dispatched, or ``failed`` with the message of the
+with ``voxe_core.data.load_scene`` at ``VOXE_VALIDATION_DOWNSAMPLE``, which also decides what
+reconstruction backbone "auto" means for the scene (recorded: jobs are checked against it). Then
+the scene is ``ready`` and the jobs waiting on it are dispatched (those whose reconstruction
+parameters its backbone cannot take fail, naming why), or ``failed`` with the message of the
 error (file and frame, as the API's 422s) and the jobs waiting on it fail naming it.
 """
 
@@ -18,9 +20,11 @@ import re
 import shutil
 import tempfile
 from pathlib import Path
+from typing import NamedTuple
 
 from sqlalchemy import update
 
+from voxe_core.backbones import detect_backbone
 from voxe_core.data import DatasetError, load_scene
 from voxe_core.mesh_input import (MESH_INPUT_SUFFIXES, TEXTURE_SUFFIXES, MeshError, load_mesh, shade_mesh,
                                   write_mesh_dataset)
@@ -77,8 +81,15 @@ def _relative_message(exc: Exception, root: Path) -> str:
     return message
 
 
-def decode(root: Path, downsample: int) -> int:
-    """Load the dataset folder's training split in full (every image decoded); its number of images."""
+class Decoded(NamedTuple):
+    count: int
+    """The training split's number of images."""
+    backbone: str
+    """What reconstruction backbone "auto" means for the scene (``detect_backbone`` over every training image)."""
+
+
+def decode(root: Path, downsample: int) -> Decoded:
+    """Load the dataset folder's training split in full (every image decoded)."""
     try:
         try:
             scene = load_scene(root, "train", downsample=downsample, confine_paths=True)
@@ -88,7 +99,7 @@ def decode(root: Path, downsample: int) -> int:
             scene = load_scene(root, "train", downsample=1, confine_paths=True)
     except DatasetError as exc:
         raise IngestError(f"invalid dataset: {_relative_message(exc, root)}") from None
-    return len(scene)
+    return Decoded(len(scene), detect_backbone(scene.alphas))
 
 
 def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: str | None) -> TaskResult:
@@ -109,13 +120,13 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
         root = datasets.unpack(storage.get_file(upload_key, scratch / "archive.zip"), scratch / "data")
         if mesh_upload:
             render_mesh(root)
-        count = decode(root, settings.validation_downsample)
+        count, values["backbone"] = decode(root, settings.validation_downsample)
         if mesh_upload:  # the rendered dataset (and the mesh beside it) becomes the scene's archive
             archive = scratch / datasets.DATASET_ARCHIVE
             datasets.package(root, archive)
             stored = storage.put_file(scene_key(scene_id, datasets.DATASET_ARCHIVE), archive, "application/zip")
             size = datasets.MESH_VIEW_SIZE
-            values = dict(storage_key=stored.key, size_bytes=stored.size, sha256=stored.sha256, image_count=count,
+            values.update(storage_key=stored.key, size_bytes=stored.size, sha256=stored.sha256, image_count=count,
                           width=size, height=size, splits=["train", "test"])
     except Exception as exc:  # noqa: BLE001 - every failure becomes the scene's reason
         reason = str(exc) if isinstance(exc, IngestError) else f"ingest: {type(exc).__name__}: {exc}"

@@ -324,7 +324,8 @@ def _fit_grid(job: Job, rec, settings, storage, callbacks: StageCallbacks, check
     from voxe_core.tensorio import FormatError
 
     scene = load_images(job, rec.params, settings, storage)
-    _, config, cameras, initial = fit_setup(rec.params, scene.alphas, scene.cameras, settings.checkpoint_every)
+    _, config, cameras, initial = fit_setup(rec.params, scene.alphas, scene.cameras, settings.checkpoint_every,
+                                            scene_backbone=job_scene(job).backbone)  # what the API checked
     runtime.renew_lease(rec.id, job.id, settings, job.run_token, total=config.total_iterations)
     resume = None
     if storage.exists(checkpoint_key):

@@ -20,7 +20,7 @@ from sqlalchemy.orm import Session
 from api.auth import Idempotency, check_active_jobs, lock_key
 from api.schemas import JobCreate
 from api.services.scenes import get_scene, refuse_unless_usable
-from voxe_core.presets import reconstruction_key, reconstruction_params
+from voxe_core.presets import check_fit, reconstruction_key, reconstruction_params
 from voxe_service.datasets import MESH_FORMAT
 from voxe_service import webhooks
 from voxe_service.db import get_sessionmaker
@@ -71,6 +71,7 @@ def reconstruction_for(*, session: Session, scene: Scene, params: dict) -> Recon
     rec_params = reconstruction_params(params, mesh_scene=scene.format == MESH_FORMAT)
     try:
         params_key = reconstruction_key(rec_params)
+        check_fit(rec_params, scene.backbone)  # (a processing scene's jobs are checked when its ingest ends)
     except ValueError as exc:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"params.reconstruction: {exc}") from exc
     query = select(Reconstruction).where(Reconstruction.scene_id == scene.id, Reconstruction.params_key == params_key)
