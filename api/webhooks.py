@@ -15,13 +15,14 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 from datetime import timedelta
 
-import httpx
 from sqlalchemy import select, update
 
 from voxe_service.db import session_scope
 from voxe_service.models import ApiKey, Job, WebhookDelivery, utcnow
 from voxe_service.settings import Settings
-from voxe_service.webhooks import DELIVERED, GAVE_UP, PENDING, TargetRefused, attempt, backoff_s, claim_due
+from voxe_service.webhooks import (
+    DELIVERED, GAVE_UP, PENDING, TargetRefused, attempt, backoff_s, claim_due, webhook_client,
+)
 
 log = logging.getLogger("voxe.webhooks")
 
@@ -32,7 +33,7 @@ class WebhookSender:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._pool = ThreadPoolExecutor(settings.webhook_concurrency, thread_name_prefix="voxe-webhook")
-        self._client = httpx.Client(timeout=settings.webhook_timeout_s, follow_redirects=False)
+        self._client = webhook_client(settings.webhook_timeout_s, settings.webhook_networks)
         self._in_flight = threading.Semaphore(settings.webhook_concurrency)
 
     def start(self) -> "WebhookSender":
@@ -77,7 +78,7 @@ class WebhookSender:
                 secret = session.scalar(select(ApiKey.webhook_secret).join(Job, Job.owner_key_id == ApiKey.id)
                                         .where(Job.id == delivery.job_id))
             try:
-                status, error = attempt(delivery, secret, self._client, self.settings.webhook_networks)
+                status, error = attempt(delivery, secret, self._client)
                 refused = False
             except TargetRefused as exc:
                 status, error, refused = None, str(exc), True

@@ -595,13 +595,13 @@ def verify_artifacts(client: httpx.Client, job: dict, expected: set[str], downlo
 
 
 class WebhookReceiver:
-    """A webhook receiver on loopback that records every request (headers lower-cased, body bytes).
+    """A webhook receiver on a loopback ``host`` that records every request (headers lower-cased, body bytes).
 
     ``fail_first``: the first request is answered 500 (to see the retry); ``delay``: seconds before
     each answer (longer than the sender's timeout makes a slow receiver).
     """
 
-    def __init__(self, fail_first: bool = False, delay: float = 0.0):
+    def __init__(self, fail_first: bool = False, delay: float = 0.0, host: str = "127.0.0.1", port: int = 0):
         self.requests: list[dict] = []
         receiver, lock = self, threading.Lock()
 
@@ -620,8 +620,8 @@ class WebhookReceiver:
             def log_message(self, *args):
                 pass
 
-        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.url = f"http://127.0.0.1:{self.server.server_address[1]}/hook"
+        self.server = ThreadingHTTPServer((host, port), Handler)
+        self.url = f"http://{host}:{self.server.server_address[1]}/hook"
         threading.Thread(target=self.server.serve_forever, daemon=True).start()
 
     def close(self) -> None:

@@ -88,3 +88,82 @@ def test_webhook_events_need_a_url_and_name_known_kinds(client):
     for address, rule in (("100.64.1.2", "non-public"), ("[2002:a01:203::1]", "private (as 10.1.2.3)")):
         response = test_client.post("/v1/jobs", json={**body, "webhook_url": f"http://{address}/h"})
         assert response.status_code == 422 and f"a {rule} address" in response.json()["detail"], address
+
+
+def test_a_webhook_connects_only_to_the_address_its_name_was_checked_as(monkeypatch):
+    """DNS rebinding: a name first resolves to an allowed address, then to a refused one. Each attempt resolves
+    once and connects to the address it checked: the delivery reaches the allowed receiver (its Host header still
+    the name); once the name resolves to the refused address only, the attempt is refused and nothing is sent."""
+    import ipaddress
+
+    from voxe_service.models import WebhookDelivery
+    from voxe_service.webhooks import TargetRefused, attempt, check_target, webhook_client
+
+    allowed = WebhookReceiver()  # 127.0.0.1, the network allowed here
+    port = int(allowed.url.rsplit(":", 1)[1].split("/")[0])
+    refused = WebhookReceiver(host="127.0.0.2", port=port)  # loopback too, outside the allowed network
+    answers = ["127.0.0.1", "127.0.0.1"]  # the check at creation, the first attempt; then the refused address
+    real_getaddrinfo = socket.getaddrinfo
+
+    def rebinding(host, *args, **kwargs):
+        if host != "hooks.test":
+            return real_getaddrinfo(host, *args, **kwargs)
+        address = answers.pop(0) if answers else "127.0.0.2"
+        return [(socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP, "", (address, port))]
+
+    monkeypatch.setattr(socket, "getaddrinfo", rebinding)
+    networks = [ipaddress.ip_network("127.0.0.1/32")]
+    url = f"http://hooks.test:{port}/hook"
+    delivery = WebhookDelivery(id="msg_1", url=url, payload='{"kind": "succeeded"}')
+    try:
+        check_target(url, networks)
+        with webhook_client(5.0, networks) as client:
+            assert attempt(delivery, "whsec_" + "A" * 32, client) == (200, None)
+            assert answers == []  # the name was resolved once for the attempt, not again for the connection
+            with webhook_client(5.0, networks) as fresh:  # (a new connection: the pooled one was checked)
+                with pytest.raises(TargetRefused, match="resolves to 127.0.0.2, a loopback address"):
+                    attempt(delivery, "whsec_" + "A" * 32, fresh)
+        assert [r["headers"]["host"] for r in allowed.requests] == [f"hooks.test:{port}"]
+        assert refused.requests == []
+    finally:
+        allowed.close()
+        refused.close()
+
+
+def test_a_webhook_over_tls_names_the_host_not_the_checked_address(monkeypatch):
+    """The connection goes to the checked address, but TLS names the URL's host (SNI; the certificate is
+    verified against it): a server that records the name its client hello asks for sees the host."""
+    import ipaddress
+    import ssl
+    import threading
+
+    from voxe_service.models import WebhookDelivery
+    from voxe_service.webhooks import attempt, webhook_client
+
+    server = socket.create_server(("127.0.0.1", 0))
+    port = server.getsockname()[1]
+    asked: list[str | None] = []
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    context.sni_callback = lambda _sock, name, _ctx: asked.append(name)
+
+    def handshake_once():
+        conn, _ = server.accept()
+        try:
+            context.wrap_socket(conn, server_side=True)
+        except (ssl.SSLError, OSError):
+            pass  # no certificate: the handshake fails after the client hello was read
+        finally:
+            conn.close()
+
+    threading.Thread(target=handshake_once, daemon=True).start()
+    real_getaddrinfo = socket.getaddrinfo
+    monkeypatch.setattr(socket, "getaddrinfo", lambda host, *a, **k: real_getaddrinfo(
+        "127.0.0.1" if host == "hooks.test" else host, *a, **k))
+    delivery = WebhookDelivery(id="msg_1", url=f"https://hooks.test:{port}/hook", payload="{}")
+    try:
+        with webhook_client(5.0, [ipaddress.ip_network("127.0.0.1/32")]) as client:
+            status, error = attempt(delivery, "whsec_" + "A" * 32, client)
+        assert status is None and error.startswith("ConnectError"), error
+        assert asked == ["hooks.test"]
+    finally:
+        server.close()

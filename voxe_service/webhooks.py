@@ -23,6 +23,7 @@ import time
 from datetime import datetime, timedelta
 from urllib.parse import urlsplit
 
+import httpcore
 import httpx
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
@@ -60,7 +61,8 @@ def check_target(url: str, allow_networks: list[ipaddress._BaseNetwork]) -> None
     """Refuse (:class:`TargetRefused`) a URL that is not http(s) or whose host resolves to a loopback, private,
     link-local, multicast, reserved or unspecified address outside ``allow_networks``.
 
-    Checked when the job is created and again before every attempt (a name may re-resolve elsewhere).
+    Checked when the job is created; every attempt's connection checks the address it connects to again
+    (:func:`webhook_client`).
     """
     try:
         parts = urlsplit(url)
@@ -71,17 +73,64 @@ def check_target(url: str, allow_networks: list[ipaddress._BaseNetwork]) -> None
         raise TargetRefused(f"webhook_url {url!r} must be an http:// or https:// URL with a host")
     try:
         port = parts.port or (443 if parts.scheme == "https" else 80)
+    except ValueError as exc:
+        raise TargetRefused(f"webhook_url host {host!r} does not resolve: {exc}") from None
+    allowed_addresses(host, port, allow_networks)
+
+
+def allowed_addresses(host: str, port: int, allow_networks: list[ipaddress._BaseNetwork]) -> list[str]:
+    """Every address ``host`` resolves to, once: :class:`TargetRefused` naming the first that a webhook may not go
+    to (``refused_rule``) unless ``allow_networks`` holds it."""
+    try:
         infos = socket.getaddrinfo(host, port, proto=socket.IPPROTO_TCP)
     except (OSError, ValueError) as exc:
         raise TargetRefused(f"webhook_url host {host!r} does not resolve: {exc}") from None
+    addresses = []
     for info in infos:
         address = ipaddress.ip_address(info[4][0].split("%")[0])
-        if any(address in network for network in allow_networks):
-            continue
-        if (rule := refused_rule(address)) is not None:
+        if not any(address in network for network in allow_networks) and (rule := refused_rule(address)):
             raise TargetRefused(
                 f"webhook_url host {host!r} resolves to {address}, a {rule} address: webhooks go to "
                 "public addresses only (an operator can allow networks with VOXE_WEBHOOK_ALLOW_NETWORKS)")
+        addresses.append(info[4][0])
+    return list(dict.fromkeys(addresses))
+
+
+class _CheckedBackend(httpcore.NetworkBackend):
+    """Opens a connection only to an address it has just checked: the name is resolved once, for the check and the
+    connection both, so a resolver that answers differently in between (DNS rebinding) cannot route a webhook to
+    a refused address. TLS still names the host (SNI, certificate) and the request keeps its Host header."""
+
+    def __init__(self, allow_networks: list[ipaddress._BaseNetwork]):
+        self._allow_networks = allow_networks
+        self._backend = httpcore.SyncBackend()
+
+    def connect_tcp(self, host: str, port: int, timeout: float | None = None, local_address: str | None = None,
+                    socket_options=None) -> httpcore.NetworkStream:
+        failure: Exception | None = None
+        for address in allowed_addresses(host, port, self._allow_networks):
+            try:
+                return self._backend.connect_tcp(address, port, timeout, local_address, socket_options)
+            except (httpcore.ConnectError, httpcore.ConnectTimeout) as exc:  # the next address of the name
+                failure = exc
+        raise failure or httpcore.ConnectError(f"{host!r} resolves to no address")
+
+    def connect_unix_socket(self, path: str, timeout: float | None = None, socket_options=None):
+        raise TargetRefused("webhooks go over TCP only")
+
+    def sleep(self, seconds: float) -> None:
+        self._backend.sleep(seconds)
+
+
+def webhook_client(timeout_s: float, allow_networks: list[ipaddress._BaseNetwork]) -> httpx.Client:
+    """The sender's HTTP client: it connects only to addresses :func:`allowed_addresses` passes (a refused one
+    raises :class:`TargetRefused` from the request), directly (proxy variables are ignored: a proxy would resolve
+    the name itself), and never follows a redirect (its target would go unchecked)."""
+    transport = httpx.HTTPTransport(trust_env=False)
+    # httpx takes no network backend; its transport sends through this pool (checked by test_service_webhooks).
+    transport._pool = httpcore.ConnectionPool(ssl_context=httpx.create_ssl_context(trust_env=False),
+                                              network_backend=_CheckedBackend(allow_networks))
+    return httpx.Client(transport=transport, timeout=timeout_s, follow_redirects=False, trust_env=False)
 
 
 _NAT64 = ipaddress.ip_network("64:ff9b::/96")
@@ -171,13 +220,10 @@ def backoff_s(attempts: int, base_s: float, max_s: float) -> float:
     return float(min(max_s, base_s * 2 ** (attempts - 1)))
 
 
-def attempt(delivery: WebhookDelivery, secret: str, client: httpx.Client,
-            allow_networks: list[ipaddress._BaseNetwork]) -> tuple[int | None, str | None]:
-    """POST the delivery once: (the HTTP status or None, an error message or None for a 2xx).
-
-    Raises :class:`TargetRefused` when the URL now resolves to a refused address (not worth a retry).
+def attempt(delivery: WebhookDelivery, secret: str, client: httpx.Client) -> tuple[int | None, str | None]:
+    """POST the delivery once with a :func:`webhook_client`: (the HTTP status or None, an error message or None
+    for a 2xx). Raises :class:`TargetRefused` when the URL now resolves to a refused address (not worth a retry).
     """
-    check_target(delivery.url, allow_networks)
     body = delivery.payload.encode()
     timestamp = int(time.time())
     headers = {"content-type": "application/json", "webhook-id": delivery.id,
