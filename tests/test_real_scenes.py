@@ -310,6 +310,8 @@ def test_fit_setup_resolves_the_backbone_from_alpha_and_frames_a_scene_fit():
     named = fit_setup(reconstruction_params({"reconstruction": {"backbone": "relu_field"}}), None, cameras,
                       scene_backbone="scene")
     assert named.backbone == "relu_field"
+    with pytest.raises(ValueError, match=r"got 3: backbone 'auto' is 'scene' for this scene \(its images are opaque"):
+        fit_setup(reconstruction_params({"reconstruction": {"iterations": [1, 2, 3]}}), None, cameras)
 
 
 def test_dataset_cameras_move_into_a_scene_grids_frame_only():

@@ -234,6 +234,7 @@ def fit_setup(rec_params: dict, alphas: "torch.Tensor | None", cameras: "Cameras
     from voxe_core.backbones import prepare_backbone, resolve_backbone
 
     backbone = resolve_backbone(fit_backbone(rec_params, scene_backbone), alphas)
+    check_fit(rec_params, backbone)  # a refusal says what "auto" became
     config = reconstruct_config(rec_params, checkpoint_every, backbone)  # the backbone's default preset
     _, fit_cameras, initial = prepare_backbone(backbone, alphas, cameras, config.resolutions[0])
     return FitSetup(backbone, config, fit_cameras, initial)
