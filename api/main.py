@@ -12,7 +12,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 from api import http_semantics
-from voxe_service.db import run_migrations
+from voxe_service.db import run_migrations, sync_clock
 from voxe_service.settings import Settings, get_settings, model_label
 
 log = logging.getLogger("voxe.api")
@@ -83,6 +83,7 @@ def create_app(settings: Settings | None = None, migrate: bool = True) -> FastAP
         (log.info if settings.auth_enabled else log.warning)("Vox-E API: %s", auth_line)
         if migrate:
             run_migrations(settings.database_url)
+        sync_clock()  # times this process writes read on the database's clock (again at each reaper pass)
         from voxe_service.storage import get_storage
 
         get_storage(settings)  # fail at startup, not on the first request, when storage is misconfigured

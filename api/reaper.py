@@ -38,7 +38,7 @@ from datetime import datetime, timedelta
 
 from sqlalchemy import or_, select, update
 
-from voxe_service.db import session_scope
+from voxe_service.db import session_scope, sync_clock
 from voxe_service.jobs import finish_jobs, record_event
 from voxe_service.models import EVALUATE, FAILED, PROCESSING, QUEUED, RUNNING, Job, Scene, WorkerHeartbeat, utcnow
 from voxe_service.queue import QueueUnavailable, dispatch_job, get_queue, requeue_interrupted
@@ -169,6 +169,7 @@ class Reaper:
 
     def _run(self) -> None:
         while not self._stop.is_set():
+            sync_clock()  # the cut-offs below are read on the database's clock, as the workers write theirs
             try:
                 scenes = reap_orphaned_scenes(self.settings)  # first: their waiting jobs fail with them
                 prefixes = [scene_key(s) for s in scenes]

@@ -190,6 +190,49 @@ def test_reaper_sends_again_or_fails_only_jobs_nothing_will_finish(db):
     assert [e["kind"] for e in events_of(orphans["sent again too often"])] == ["failed"]  # on the job's timeline
 
 
+def test_machines_whose_clocks_disagree_read_leases_and_heartbeats_on_the_database_clock(db, monkeypatch):
+    """A worker whose clock runs 100 s behind takes a job and beats; an API whose clock runs 100 s ahead reaps.
+    Each process measures its offset to the database server's clock (sync_clock), so the API sees the worker
+    alive, the job's progress recent and its hold live: nothing is re-queued. (Read on their own clocks, the
+    hold would have lapsed 40 s before and the heartbeat be 200 s old: the job would be sent again.) SQLite
+    lives on one machine: its offset is zero."""
+    from sqlalchemy import text
+
+    from api.reaper import reap_orphaned_jobs
+    from voxe_service import models
+    from voxe_service.db import get_engine, sync_clock
+    from worker.runtime import begin_stage
+
+    skew = {"s": 0.0}
+    real_now = models.system_now
+    monkeypatch.setattr(models, "system_now", lambda: real_now() + timedelta(seconds=skew["s"]))
+    if get_engine().dialect.name == "sqlite":
+        skew["s"] = -100.0
+        assert sync_clock() == timedelta(0)
+        assert abs((models.utcnow() - real_now()).total_seconds() + 100) < 1  # one machine, one clock
+        return
+
+    def database_clock():
+        with get_engine().connect() as connection:
+            return connection.execute(text("SELECT clock_timestamp()")).scalar_one()
+
+    monkeypatch.setattr(db, "job_stale_timeout_s", 30.0)
+    job_id = add_job(add_scene(), "queued", 0)
+    skew["s"] = -100.0  # the worker's machine
+    begin_stage(job_id, "edit", "w@host", "cpu", db)  # measures its offset first
+    assert abs((models.utcnow() - database_clock()).total_seconds()) < 1
+    add_heartbeat("w@host", age_s=0)
+    skew["s"] = 100.0  # the API's machine: a reaper pass measures first
+    offset = sync_clock()
+    assert abs(offset.total_seconds() + 100) < 1 and abs((models.utcnow() - database_clock()).total_seconds()) < 1
+    held = job_row(job_id)
+    assert held.run_lease_until > models.utcnow() + timedelta(seconds=db.stage_lease_s - 5)
+    assert reap_orphaned_jobs(db) == []
+    after = job_row(job_id)
+    assert (after.state, after.run_token, after.requeues) == ("running", held.run_token, 0)
+    assert [e["kind"] for e in events_of(job_id)] == ["stage_started"]  # no "requeued"
+
+
 def test_a_cancel_that_lands_between_stages_ends_the_job_when_the_next_stage_begins(db):
     """The cancel is seen as the next stage begins: that stage is skipped and the job ends canceled (the cancel
     was once rolled back with the skip, leaving the job running for ever)."""

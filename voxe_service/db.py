@@ -2,16 +2,23 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator
 from contextlib import contextmanager
+from datetime import timedelta
 from functools import lru_cache
 from pathlib import Path
 
-from sqlalchemy import Engine, create_engine, event
+from sqlalchemy import Engine, create_engine, event, text
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session, sessionmaker
 
+from voxe_service import models
 from voxe_service.settings import get_settings
+
+log = logging.getLogger("voxe.db")
+
+CLOCK_WARN_S = 1.0  # a measured offset beyond this is logged: the machine's clock is off (NTP)
 
 MIGRATIONS = Path(__file__).resolve().parent / "migrations"
 
@@ -69,6 +76,34 @@ def session_scope() -> Iterator[Session]:
             raise
 
 
+def sync_clock(engine: Engine | None = None) -> timedelta | None:
+    """Measure this process's clock against the database server's and set ``utcnow``'s offset to it; the offset,
+    or None when it could not be measured (logged; the last one stays).
+
+    PostgreSQL: ``clock_timestamp()`` against the midpoint of the round trip (off by at most half of it). SQLite
+    lives on this machine, whose processes share its clock: offset zero. Processes call it as they start and
+    then at their heartbeats, reaper passes and stage starts, so machines whose clocks drift apart still agree.
+    """
+    engine = engine or get_engine()
+    if engine.dialect.name != "postgresql":
+        offset = timedelta(0)
+    else:
+        try:
+            with engine.connect() as connection:
+                before = models.system_now()
+                server = connection.execute(text("SELECT clock_timestamp()")).scalar_one()
+                after = models.system_now()
+        except Exception:  # noqa: BLE001 - the database unreachable: the last offset stays until the next try
+            log.warning("could not read the database's clock", exc_info=True)
+            return None
+        offset = server - (before + (after - before) / 2)
+        if abs(offset.total_seconds()) > CLOCK_WARN_S:
+            log.warning("this machine's clock is %.1f s off the database server's: the service uses the "
+                        "database's (keep the machines NTP-synchronised)", -offset.total_seconds())
+    models.set_clock_offset(offset)
+    return offset
+
+
 def alembic_config(database_url: str):
     """Alembic's configuration for the service's migrations on ``database_url`` (no alembic.ini needed)."""
     from alembic.config import Config
@@ -94,3 +129,4 @@ def reset_caches() -> None:
     get_engine.cache_clear()
     get_sessionmaker.cache_clear()
     get_settings.cache_clear()
+    models.set_clock_offset(timedelta(0))

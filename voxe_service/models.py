@@ -4,14 +4,30 @@ job artifacts, idempotency records and worker heartbeats."""
 from __future__ import annotations
 
 import uuid
-from datetime import datetime, timezone
+from datetime import datetime, timedelta, timezone
 
 from sqlalchemy import JSON, BigInteger, Boolean, DateTime, Float, ForeignKey, Integer, String, Text, TypeDecorator, UniqueConstraint
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 
 
-def utcnow() -> datetime:
+def system_now() -> datetime:
+    """This machine's UTC clock."""
     return datetime.now(timezone.utc)
+
+
+_clock_offset = timedelta(0)
+
+
+def utcnow() -> datetime:
+    """The service's clock: this machine's plus its offset to the database server's (measured by
+    ``voxe_service.db.sync_clock``), so the times different machines write (leases, heartbeats, progress) and
+    compare (the reaper, a run taking a job over) are read on one clock. No offset until measured."""
+    return system_now() + _clock_offset
+
+
+def set_clock_offset(offset: timedelta) -> None:
+    global _clock_offset
+    _clock_offset = offset
 
 
 def new_id() -> str:

@@ -26,7 +26,7 @@ from sqlalchemy import func, or_, select, update
 
 from voxe_core.progress import Callbacks, Progress
 from voxe_service import datasets
-from voxe_service.db import session_scope
+from voxe_service.db import session_scope, sync_clock
 from voxe_service.jobs import finish_jobs, record_event
 from voxe_service.models import (
     CANCELED, FAILED, QUEUED, R_PENDING, R_RUNNING, RUNNING, SUCCEEDED, TERMINAL_STATES,
@@ -145,8 +145,10 @@ def begin_stage(job_id: str, stage: str, hostname: str | None, device: str, sett
     The job is read, then taken by one UPDATE conditional on the row being as read (``updated_at``: a stage
     completing meanwhile changes it, and the read is retried). One statement, not a claim followed by an update:
     PostgreSQL re-checks the foreign keys of a row updated twice in one transaction, locking the API key's row,
-    which job creation holds while it waits for this job's row (a deadlock).
+    which job creation holds while it waits for this job's row (a deadlock). Leases are read and written on the
+    database's clock (``sync_clock``), so machines whose clocks disagree agree on who holds the job.
     """
+    sync_clock()
     while True:
         job = load_job(job_id)
         if job is None or job.state in TERMINAL_STATES:

@@ -33,6 +33,7 @@ from sqlalchemy import select
 
 from voxe_core.presets import edit_config, export_config, fit_setup, reconstruct_config, refine_config
 from voxe_core.progress import Callbacks, Progress, StageCancelled
+from voxe_service.db import sync_clock
 from voxe_service.models import (
     CANCELED, FAILED, PROCESSING, R_FAILED, R_PENDING, R_SUCCEEDED, RUNNING, TERMINAL_STATES, Job, Scene,
     WorkerHeartbeat, utcnow,
@@ -520,6 +521,7 @@ def _beat(hostname: str, queues: str, device: str, models: dict) -> None:
     settings = get_settings()
     next_sweep = time.monotonic()  # at start, then every SCRATCH_SWEEP_S
     while not _heartbeat_stop.is_set():
+        sync_clock()  # (a pool process measures its own: _fresh_engine, begin_stage)
         try:
             with runtime.session_scope() as session:
                 row = session.get(WorkerHeartbeat, hostname)
@@ -615,3 +617,4 @@ def _fresh_engine(**_kwargs) -> None:
     get_engine.cache_clear()
     get_sessionmaker.cache_clear()
     reset_queue()
+    sync_clock()
