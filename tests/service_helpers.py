@@ -11,6 +11,7 @@ import os
 import shutil
 import signal
 import socket
+import ssl
 import subprocess
 import sys
 import tempfile
@@ -598,12 +599,15 @@ class WebhookReceiver:
     """A webhook receiver on a loopback ``host`` that records every request (headers lower-cased, body bytes).
 
     ``fail_first``: the first request is answered 500 (to see the retry); ``delay``: seconds before
-    each answer (longer than the sender's timeout makes a slow receiver).
+    each answer (longer than the sender's timeout makes a slow receiver); ``together``: no request is
+    answered before that many are in flight (a 500 after 10 s waiting for them); ``tls``: (certificate
+    file, key file) to serve HTTPS with.
     """
 
-    def __init__(self, fail_first: bool = False, delay: float = 0.0, host: str = "127.0.0.1", port: int = 0):
+    def __init__(self, fail_first: bool = False, delay: float = 0.0, host: str = "127.0.0.1", port: int = 0,
+                 together: int = 1, tls: tuple[str, str] | None = None):
         self.requests: list[dict] = []
-        receiver, lock = self, threading.Lock()
+        receiver, lock, gathered = self, threading.Lock(), threading.Barrier(together, timeout=10)
 
         class Handler(BaseHTTPRequestHandler):
             def do_POST(self):
@@ -612,6 +616,10 @@ class WebhookReceiver:
                     receiver.requests.append({"headers": {k.lower(): v for k, v in self.headers.items()},
                                               "body": body})
                     failed = fail_first and len(receiver.requests) == 1
+                try:
+                    gathered.wait()
+                except threading.BrokenBarrierError:
+                    failed = True
                 time.sleep(delay)
                 self.send_response(500 if failed else 200)
                 self.send_header("content-length", "0")
@@ -621,7 +629,12 @@ class WebhookReceiver:
                 pass
 
         self.server = ThreadingHTTPServer((host, port), Handler)
-        self.url = f"http://{host}:{self.server.server_address[1]}/hook"
+        if tls is not None:
+            context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+            context.load_cert_chain(*tls)
+            self.server.socket = context.wrap_socket(self.server.socket, server_side=True)
+        scheme = "https" if tls else "http"
+        self.url = f"{scheme}://{host}:{self.server.server_address[1]}/hook"
         threading.Thread(target=self.server.serve_forever, daemon=True).start()
 
     def close(self) -> None:

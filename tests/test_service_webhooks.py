@@ -167,3 +167,59 @@ def test_a_webhook_over_tls_names_the_host_not_the_checked_address(monkeypatch):
         assert asked == ["hooks.test"]
     finally:
         server.close()
+
+
+def test_a_webhook_client_holds_more_connections_than_httpcores_default(monkeypatch):
+    """The sender's client keeps httpx's connection limits (100), not httpcore's bare default (10): twelve
+    attempts in flight at once (VOXE_WEBHOOK_CONCURRENCY=12) all reach a receiver that answers none of them
+    before all twelve have arrived."""
+    import ipaddress
+    from concurrent.futures import ThreadPoolExecutor
+
+    from voxe_service.models import WebhookDelivery
+    from voxe_service.webhooks import attempt, webhook_client
+
+    receiver = WebhookReceiver(together=12)
+    delivery = WebhookDelivery(id="msg_1", url=receiver.url, payload="{}")
+    try:
+        with webhook_client(8.0, [ipaddress.ip_network("127.0.0.1/32")]) as client:
+            with ThreadPoolExecutor(12) as pool:
+                outcomes = list(pool.map(lambda _: attempt(delivery, "whsec_" + "A" * 32, client), range(12)))
+        assert outcomes == [(200, None)] * 12
+    finally:
+        receiver.close()
+
+
+def test_a_webhook_over_tls_is_verified_against_the_host_with_the_operators_cas(tmp_path, monkeypatch):
+    """A receiver with a certificate for its host name (the connection goes to the checked address): refused
+    while no trusted CA signed it, delivered once SSL_CERT_FILE names it (an operator's private CA), so the
+    certificate is verified against the URL's host, not the address."""
+    import ipaddress
+    import subprocess
+
+    from voxe_service.models import WebhookDelivery
+    from voxe_service.webhooks import attempt, webhook_client
+
+    cert, key = tmp_path / "hooks.pem", tmp_path / "hooks.key"
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1", "-subj", "/CN=hooks.test",
+                    "-addext", "subjectAltName=DNS:hooks.test", "-keyout", str(key), "-out", str(cert)],
+                   check=True, capture_output=True)
+    receiver = WebhookReceiver(tls=(str(cert), str(key)))
+    port = int(receiver.url.rsplit(":", 1)[1].split("/")[0])
+    real_getaddrinfo = socket.getaddrinfo
+    monkeypatch.setattr(socket, "getaddrinfo", lambda host, *a, **k: real_getaddrinfo(
+        "127.0.0.1" if host == "hooks.test" else host, *a, **k))
+    delivery = WebhookDelivery(id="msg_1", url=f"https://hooks.test:{port}/hook", payload="{}")
+    networks = [ipaddress.ip_network("127.0.0.1/32")]
+    try:
+        monkeypatch.delenv("SSL_CERT_FILE", raising=False)
+        monkeypatch.delenv("SSL_CERT_DIR", raising=False)
+        with webhook_client(5.0, networks) as client:
+            status, error = attempt(delivery, "whsec_" + "A" * 32, client)
+        assert status is None and "CERTIFICATE_VERIFY_FAILED" in error, error
+        monkeypatch.setenv("SSL_CERT_FILE", str(cert))
+        with webhook_client(5.0, networks) as client:
+            assert attempt(delivery, "whsec_" + "A" * 32, client) == (200, None)
+        assert [r["headers"]["host"] for r in receiver.requests] == [f"hooks.test:{port}"]
+    finally:
+        receiver.close()

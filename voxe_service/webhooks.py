@@ -115,9 +115,6 @@ class _CheckedBackend(httpcore.NetworkBackend):
                 failure = exc
         raise failure or httpcore.ConnectError(f"{host!r} resolves to no address")
 
-    def connect_unix_socket(self, path: str, timeout: float | None = None, socket_options=None):
-        raise TargetRefused("webhooks go over TCP only")
-
     def sleep(self, seconds: float) -> None:
         self._backend.sleep(seconds)
 
@@ -126,10 +123,10 @@ def webhook_client(timeout_s: float, allow_networks: list[ipaddress._BaseNetwork
     """The sender's HTTP client: it connects only to addresses :func:`allowed_addresses` passes (a refused one
     raises :class:`TargetRefused` from the request), directly (proxy variables are ignored: a proxy would resolve
     the name itself), and never follows a redirect (its target would go unchecked)."""
-    transport = httpx.HTTPTransport(trust_env=False)
-    # httpx takes no network backend; its transport sends through this pool (checked by test_service_webhooks).
-    transport._pool = httpcore.ConnectionPool(ssl_context=httpx.create_ssl_context(trust_env=False),
-                                              network_backend=_CheckedBackend(allow_networks))
+    transport = httpx.HTTPTransport()  # (SSL_CERT_FILE / SSL_CERT_DIR still name the CAs to trust)
+    # httpx takes no network backend: its pool, with httpx's limits and TLS context, connects through the checked
+    # one (test_service_webhooks fails if httpx stops sending through it).
+    transport._pool._network_backend = _CheckedBackend(allow_networks)
     return httpx.Client(transport=transport, timeout=timeout_s, follow_redirects=False, trust_env=False)
 
 
