@@ -853,6 +853,43 @@ def test_a_scenes_backbone_is_decided_at_processing_and_jobs_are_checked_against
     named = {"reconstruction": {**three["reconstruction"], "backbone": "relu_field"}}
     assert client.post("/v1/jobs", json={"scene_id": processing["id"], **JOB, "params": named}).status_code == 201
 
+    # A sweep over both scenes is refused for the second before any reconstruction of the first is made.
+    before = client.get(f"/v1/scenes/{objects['id']}/reconstructions").json()
+    sweep = client.post("/v1/sweeps", json={"scenes": [{"scene_id": objects["id"], "object": "mic"},
+                                                       {"scene_id": processing["id"], "object": "mic"}],
+                                            "params": {"reconstruction": {"iterations": [3, 2, 3]}}})
+    assert sweep.status_code == 422 and sweep.json()["detail"] == f"params.reconstruction: {why}"
+    assert client.get(f"/v1/scenes/{objects['id']}/reconstructions").json() == before
+
+
+def test_a_job_whose_scenes_ingest_decides_meanwhile_is_checked_under_the_scenes_lock(client, dataset, root,
+                                                                                       monkeypatch):
+    """The ingest ends between the submission's first look (processing: nothing to check yet) and the job's
+    insertion, so its decision never sees the job: the job is checked under the scene's lock, a 422 naming what
+    "auto" became, and nothing of it is kept."""
+    from sqlalchemy import func, select, update
+
+    import api.services.jobs as jobs_service
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, Scene
+
+    photos_zip = zip_folder(_opaque_copy(dataset, root / "photos"), root / "photos.zip", prefix="photos")
+    processing = upload_zip(client, photos_zip).json()
+    real_lock_scene = jobs_service.lock_scene
+
+    def ingest_ends_first(session, scene_id):
+        session.execute(update(Scene).where(Scene.id == scene_id).values(state="ready", backbone="scene"))
+        return real_lock_scene(session, scene_id)
+
+    monkeypatch.setattr(jobs_service, "lock_scene", ingest_ends_first)
+    raced = client.post("/v1/jobs", json={"scene_id": processing["id"], **JOB,
+                                          "params": {"reconstruction": {"iterations": [2, 2, 3]}}})
+    assert raced.status_code == 422, raced.text
+    assert raced.json()["detail"].endswith("got 3: backbone 'auto' is 'scene' for this scene (its images are "
+                                           "opaque photos)")
+    with session_scope() as session:
+        assert session.scalar(select(func.count()).select_from(Job).where(Job.scene_id == processing["id"])) == 0
+
 
 def test_migrations_match_the_models(database_url):
     from alembic import command

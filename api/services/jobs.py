@@ -59,7 +59,17 @@ def usable_scene(*, session: Session, key: ApiKey, scene_id: str, params: dict) 
     scene = get_scene(session=session, key=key, scene_id=scene_id)
     refuse_unless_usable(scene)
     check_route(scene, params)
+    refuse_unfit(scene, reconstruction_params(params, mesh_scene=scene.format == MESH_FORMAT))
     return scene
+
+
+def refuse_unfit(scene: Scene, rec_params: dict) -> None:
+    """422 when the backbone the scene's ingest chose cannot take these reconstruction parameters, naming what
+    ``auto`` became and why (a processing scene's jobs are checked once its ingest decides)."""
+    try:
+        check_fit(rec_params, scene.backbone)
+    except ValueError as exc:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"params.reconstruction: {exc}") from exc
 
 
 def reconstruction_for(*, session: Session, scene: Scene, params: dict) -> Reconstruction:
@@ -71,7 +81,6 @@ def reconstruction_for(*, session: Session, scene: Scene, params: dict) -> Recon
     rec_params = reconstruction_params(params, mesh_scene=scene.format == MESH_FORMAT)
     try:
         params_key = reconstruction_key(rec_params)
-        check_fit(rec_params, scene.backbone)  # (a processing scene's jobs are checked when its ingest ends)
     except ValueError as exc:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"params.reconstruction: {exc}") from exc
     query = select(Reconstruction).where(Reconstruction.scene_id == scene.id, Reconstruction.params_key == params_key)
@@ -127,7 +136,8 @@ def add_jobs(*, session: Session, key: ApiKey, settings: Settings, jobs: list[Jo
 
     The scenes' states are read after the jobs' rows are written, under a lock on each scene's
     row, so an ingest finishing meanwhile either sees these jobs or is seen as done: jobs on a
-    ready scene are returned to be sent, jobs on a processing one are left for its ingest, and a
+    ready scene are returned to be sent (422 for one its backbone cannot take: its ingest may have
+    decided since the submission looked), jobs on a processing one are left for its ingest, and a
     scene that failed meanwhile refuses them all (409).
     """
     refuse_without_models(session=session, settings=settings, jobs=jobs)
@@ -151,6 +161,9 @@ def add_jobs(*, session: Session, key: ApiKey, settings: Settings, jobs: list[Jo
                 raise _scene_deleted(jobs)
             refuse_unless_usable(scene)
             states[scene_id] = scene.state
+            for job in jobs:  # (its ingest may have decided since usable_scene read it processing)
+                if job.scene_id == scene_id and job.mode != EVALUATE:
+                    refuse_unfit(scene, job.reconstruction.params)
         for job in jobs:
             if states[job.scene_id] == PROCESSING:
                 job.message = f"waiting for the scene {job.scene_id} to be processed (its upload is being decoded)"
