@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Prepares what bench/gpu_device.sh needs on the lent GPU machine (issue 17), which reaches no package index and
 # sees the repository but not ../shared: the wheels its image lacks (CPython 3.12, manylinux x86-64; versions as
-# in this .venv, imageio-ffmpeg at 0.5.1 whose wheel is 27 MB rather than 68) and mic's train and test views.
+# in this .venv, imageio-ffmpeg at 0.5.1 whose wheel is 27 MB rather than 68) and mic's train and test views (the listed ones).
 # Everything lands in .gpu_carry/ (gitignored), which must stay under the device's 64 MiB with the repository.
 #
 #   bash bench/gpu_carry.sh        # here, once (needs PyPI)
@@ -26,8 +26,12 @@ for tag in manylinux2010 manylinux2014 manylinux_2_17 manylinux_2_24 manylinux_2
 .venv/bin/python -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
     "${tags[@]}" -d "$CARRY/whl" "${pinned[@]}"
 mic="$DATA/nerf_synthetic_mic"
-cp "$mic"/transforms_train.json "$mic"/transforms_test.json "$CARRY/shared/data/nerf_synthetic_mic/"
-cp -r "$mic/train" "$mic/test" "$CARRY/shared/data/nerf_synthetic_mic/"
+for split in train test; do  # the views each split's transforms list, not the depth and normal maps beside them
+    cp "$mic/transforms_$split.json" "$CARRY/shared/data/nerf_synthetic_mic/"
+    mkdir -p "$CARRY/shared/data/nerf_synthetic_mic/$split"
+    .venv/bin/python -c "import json, sys; print('\n'.join(f['file_path'] + '.png' for f in json.load(open(sys.argv[1]))['frames']))" \
+        "$mic/transforms_$split.json" | while read -r view; do cp "$mic/$view" "$CARRY/shared/data/nerf_synthetic_mic/$view"; done
+done
 tree_mib=$(git ls-files -z | du -cb --files0-from=- | tail -1 | cut -f1)
 carry_mib=$(du -sb "$CARRY" | cut -f1)
 total=$(( (tree_mib + carry_mib) / 1048576 ))
