@@ -219,3 +219,29 @@ def test_grids_made_from_a_grid_on_a_device_stay_on_it(make):
         assert type(made) is type(grid) and made.resolution == resolution
         assert {t.device.type for t in (made.bbox_min, made.bbox_max, made.features)} == {"meta"}
         assert made.min_voxel_edge == grid.like(torch.zeros(*resolution, 4)).min_voxel_edge
+
+
+@pytest.mark.parametrize("renderer", ["render_image", "render_feature_views"])
+def test_whole_image_renderers_make_their_rays_on_the_grids_device(renderer, monkeypatch, make_sphere_grid):
+    """Stages build poses on the host (refine's attention views, turntables): the renderer takes them to the grid."""
+    import voxe_core.refine.renders
+    import voxe_core.render
+
+    seen = {}
+
+    def render_rays(grid, origins, directions, *args, **kwargs):
+        seen["origins"], seen["directions"] = origins.device, directions.device
+        raise Reached
+
+    monkeypatch.setattr(VoxelGrid, "occupancy", lambda grid, *args: None)
+    monkeypatch.setattr(voxe_core.render, "render_rays", render_rays)
+    monkeypatch.setattr(voxe_core.refine.renders, "render_rays", render_rays)
+    grid = make_sphere_grid(8).to("meta")
+    cameras = _views()[1]
+    calls = {"render_image": lambda: voxe_core.render.render_image(grid, cameras, 0),
+             "render_feature_views": lambda: voxe_core.refine.renders.render_feature_views(
+                 grid, cameras, torch.zeros(8, 8, 8, 1))}
+    with pytest.raises(Reached):
+        calls[renderer]()
+    assert seen == {"origins": torch.device("meta"), "directions": torch.device("meta")}
+    assert cameras.c2w.device.type == "cpu"  # the caller's cameras stay where they were

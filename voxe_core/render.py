@@ -13,6 +13,7 @@ occupied space a ray actually sees.
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field
 from typing import Callable, Iterable
 
@@ -87,7 +88,7 @@ def render_rays(
         >>> out.rgb.tolist(), out.opacity.tolist()
         ([[1.0, 1.0, 1.0]], [0.0])
     """
-    with torch.autocast(origins.device.type, enabled=False):
+    with _without_autocast(origins.device):
         origins, directions = origins.float(), directions.float()
         device, n_rays = origins.device, origins.shape[0]
         if config.skip_empty and occupancy is None:
@@ -137,6 +138,13 @@ def composite(groups: Iterable[RaySamples], values: Field, n_rays: int, backgrou
     return RenderOutput(rgb, opacity, expected_depth, evaluated, candidates)
 
 
+def _without_autocast(device: torch.device):
+    """Autocast switched off on ``device``'s type (nothing to switch off where torch has no autocast, e.g. meta)."""
+    if not torch.amp.is_autocast_available(device.type):
+        return contextlib.nullcontext()
+    return torch.autocast(device.type, enabled=False)
+
+
 @torch.no_grad()
 def render_image(
     grid: VoxelGrid,
@@ -145,10 +153,14 @@ def render_image(
     config: RenderConfig = RenderConfig(),
     occupancy: Occupancy | None = None,
 ) -> RenderOutput:
-    """Whole image (H, W, 3) from camera ``index``, rendered in ray chunks to bound memory (float32, as render_rays)."""
+    """Whole image (H, W, 3) from camera ``index``, rendered in ray chunks to bound memory (float32, as render_rays).
+
+    The rays are made on the grid's device, wherever ``cameras`` are (stages build their poses on the host).
+    """
     if config.skip_empty and occupancy is None:
         occupancy = grid.occupancy(config.sigma_threshold)
-    with torch.autocast(cameras.c2w.device.type, enabled=False):
+    cameras = cameras.to(grid.bbox_min.device)
+    with _without_autocast(cameras.c2w.device):
         origins, directions = camera_rays(cameras, index)
     parts = [
         render_rays(grid, origins[s : s + config.chunk_rays], directions[s : s + config.chunk_rays], config, occupancy)

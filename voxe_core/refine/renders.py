@@ -23,7 +23,7 @@ def render_feature_views(
     """Render raw per-vertex ``features`` (X, Y, Z, C) over ``grid``'s density: (N, H, W, C)."""
     occupancy = grid.occupancy(config.sigma_threshold) if config.skip_empty else None
     cfg = RenderConfig(**{**config.__dict__, "background": tuple(float(b) for b in background)})
-    features = features.to(grid.bbox_min.device).float()
+    features, cameras = features.to(grid.bbox_min.device).float(), cameras.to(grid.bbox_min.device)
     frames = torch.empty(len(cameras), cameras.height, cameras.width, features.shape[-1])
     for i in range(len(cameras)):
         origins, directions = camera_rays(cameras, i)
