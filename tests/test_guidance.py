@@ -450,3 +450,20 @@ def test_loading_a_local_model_says_nothing_about_downloads(tiny_path):
     heard = []
     StableDiffusionGuidance.from_pretrained(str(tiny_path), device="cpu", on_message=heard.append)
     assert heard == []
+
+
+def test_cuda_graphs_are_refused_off_cuda_and_leave_gradient_free_encodes_eager(guidance, tiny_path):
+    """CUDA graphs (voxe_core.guidance.cuda_graphs) are a CUDA-only option, refused at once elsewhere; the encoder's
+    graph records only an encode with gradient, so the attention pass's encode is the eager one (bench/gpu.py
+    measures the graphs themselves on the lent GPU)."""
+    from voxe_core.guidance.cuda_graphs import GraphedEncoder
+
+    with pytest.raises(ValueError, match="cuda_graphs needs a CUDA device; this guidance is on cpu"):
+        StableDiffusionGuidance.from_pretrained(str(tiny_path), device="cpu", local_files_only=True, cuda_graphs=True)
+    encoder = GraphedEncoder(guidance.vae)
+    x = torch.rand(1, 3, guidance.resolution, guidance.resolution) * 2 - 1
+    with torch.no_grad():
+        torch.testing.assert_close(encoder(x), guidance.vae.encode(x).latent_dist.parameters)
+    assert encoder.captured_shapes == []
+    with pytest.raises(ValueError, match="CUDA graphs need a CUDA device, got a tensor on cpu"):
+        encoder(x.requires_grad_(True))

@@ -22,7 +22,8 @@ stabilityai/stable-diffusion-2-1 at 768²) converted to ε first,
 built (:data:`PREDICTION_TYPES`).
 
 On CUDA the UNet and VAE run in float16 (``from_pretrained``'s default),
-``channels_last``, with PyTorch SDPA attention. Timing synchronisation
+``channels_last``, with PyTorch SDPA attention, and the SDS step's UNet forward
+and VAE encoder replay from CUDA graphs (:mod:`voxe_core.guidance.cuda_graphs`). Timing synchronisation
 (``sync_timing``) is off unless asked for: without it the ``*_ms`` diagnostics
 measure host-side dispatch only.
 
@@ -48,6 +49,7 @@ import torch.nn.functional as F
 
 from voxe_core.constants import DEFAULT_ATTENTION_TIMESTEP, DEFAULT_GUIDANCE_SCALE, SDS_MODEL_ID
 from voxe_core.guidance.attention import AttentionStore, capturing
+from voxe_core.guidance.cuda_graphs import GraphedEncoder, GraphedUNet
 from voxe_core.guidance.loading import load_stable_diffusion
 
 
@@ -109,10 +111,13 @@ class StableDiffusionGuidance:
         dtype: torch.dtype = torch.float32,
         resolution: int | None = None,
         sync_timing: bool = False,
+        cuda_graphs: bool = False,
     ):
         from diffusers.models.attention_processor import AttnProcessor2_0
 
         self.prediction_type = prediction_type(scheduler)  # refuse an unusable model before moving weights
+        if cuda_graphs and torch.device(device).type != "cuda":
+            raise ValueError(f"cuda_graphs needs a CUDA device; this guidance is on {torch.device(device)}")
 
         self.model_id = model_id
         self.device = torch.device(device)
@@ -148,6 +153,10 @@ class StableDiffusionGuidance:
         # true device times (a few syncs per step, the benchmarks ask for it);
         # off, the timings only measure host-side dispatch.
         self.sync_timing = bool(sync_timing)
+        # The SDS step's UNet forward and VAE encoder replayed from CUDA graphs (voxe_core.guidance.cuda_graphs).
+        self.cuda_graphs = bool(cuda_graphs)
+        self._graphed_unet = GraphedUNet(self.unet) if cuda_graphs else None
+        self._graphed_encoder = GraphedEncoder(self.vae) if cuda_graphs else None
 
     # ------------------------------------------------------------------ loading
 
@@ -162,6 +171,7 @@ class StableDiffusionGuidance:
         revision: str | None = None,
         resolution: int | None = None,
         sync_timing: bool = False,
+        cuda_graphs: bool | None = None,
         on_message: Callable[[str], None] | None = None,
     ) -> "StableDiffusionGuidance":
         """Load UNet, VAE, CLIP text encoder, tokenizer and noise schedule of ``model``.
@@ -176,16 +186,21 @@ class StableDiffusionGuidance:
         ``on_message`` hears "downloading <model> (N GB)" before a first-use download.
         ``resolution`` overrides the image size derived from the configs
         (``unet.sample_size · 2^(len(vae.block_out_channels) − 1)``, 512 for SD).
+        ``cuda_graphs`` replays the SDS step's UNet and VAE encoder from CUDA graphs (default: on CUDA;
+        :mod:`voxe_core.guidance.cuda_graphs` has the measurement).
         """
         device = torch.device(device) if device is not None else torch.device("cuda" if torch.cuda.is_available() else "cpu")
         if dtype is None:
             dtype = torch.float16 if device.type == "cuda" else torch.float32
+        if cuda_graphs is None:
+            cuda_graphs = device.type == "cuda"
         model_str = os.fspath(model)
         unet, vae, text_encoder, tokenizer, scheduler = load_stable_diffusion(
             model_str, dtype, local_files_only, revision, on_message)
         return cls(
             unet, vae, text_encoder, tokenizer, scheduler,
             model_id=model_str, device=device, dtype=dtype, resolution=resolution, sync_timing=sync_timing,
+            cuda_graphs=cuda_graphs,
         )
 
     # ------------------------------------------------------------------ text
@@ -265,7 +280,11 @@ class StableDiffusionGuidance:
         ``sample=True`` draws from the posterior (authors' choice, used by
         :meth:`sds_loss`); ``False`` uses its mean.
         """
-        posterior = self.vae.encode(self.preprocess(images)).latent_dist
+        from diffusers.models.autoencoders.vae import DiagonalGaussianDistribution
+
+        x = self.preprocess(images)
+        moments = self._graphed_encoder(x) if self._graphs_usable() else self.vae.encode(x).latent_dist.parameters
+        posterior = DiagonalGaussianDistribution(moments)
         latents = posterior.sample(generator=generator) if sample else posterior.mean
         return (latents - self.latent_shift) * self.latent_scale
 
@@ -294,6 +313,13 @@ class StableDiffusionGuidance:
         if bool(((t < 0) | (t >= self.num_train_timesteps)).any()):
             raise ValueError(f"timesteps must lie in [0, {self.num_train_timesteps - 1}], got {t.tolist()}")
         return t.to(self.device, non_blocking=True)
+
+    def _graphs_usable(self) -> bool:
+        """Graphs replay outside autocast only (an edit's ``autocast_dtype`` runs the eager networks)."""
+        return self.cuda_graphs and not torch.is_autocast_enabled(self.device.type)
+
+    def _eager_unet(self, sample: torch.Tensor, timestep: torch.Tensor, text: torch.Tensor) -> torch.Tensor:
+        return self.unet(sample, timestep, encoder_hidden_states=text).sample
 
     @torch.no_grad()
     def sds_grad_on_latents(
@@ -325,7 +351,8 @@ class StableDiffusionGuidance:
         _sync(self)
         t0 = time.perf_counter()
         model_in = torch.cat([noisy, noisy]).to(self.dtype)
-        out = self.unet(model_in, torch.cat([t, t]), encoder_hidden_states=torch.cat([uncond, text])).sample
+        unet = self._graphed_unet if self._graphs_usable() else self._eager_unet
+        out = unet(model_in, torch.cat([t, t]), torch.cat([uncond, text]))
         _sync(self)
         unet_ms = (time.perf_counter() - t0) * 1e3
 
