@@ -8,7 +8,7 @@ architectures by ``bench/edit_step.py``'s builder, fp16, 512² guidance. Timings
     python bench/gpu.py            # CUDA, full size: at most ~8 min on one H200
     bash bench/gpu_carry.sh        # here: the wheels and mic views the lent GPU machine lacks, in .gpu_carry/
     bash bench/gpu_device.sh       # there (device tool: carry [".gpu_carry"]): installs them, runs this script
-    python bench/gpu.py --smoke    # CPU, tiny sizes: every section end to end in about a minute
+    python bench/gpu.py --smoke    # CPU, tiny sizes: every section but g end to end in about a minute
                                    # (tests/test_bench_gpu.py); its figures mean nothing
 
 Sections (each one's failure is recorded in its run, the others still run; the JSON is rewritten after each):
@@ -20,12 +20,18 @@ a. ``edit_step``: one SDS editing step split into render / VAE / UNet / backward
 b. ``edit_loop``: >= 500 iterations of the default edit at 160³: ms per step, the projected 8,000-iteration
    minutes;
 c. ``reconstruction``: mic with the ``fast`` and ``paper`` presets on the device: seconds, test PSNR / SSIM
-   (scored as bench/reconstruction.py scores them);
+   (scored as bench/reconstruction.py scores them, at its 200 px; the 2026-12-04 record trained at 266 px);
 d. ``refinement``: the attention pass over the views, the attention-grid fit and the graph cut at 160³;
 e. every run carries ``peak_memory_gb`` (the stage's ``torch.cuda.max_memory_allocated``, GiB);
 f. ``job``: one local-edit job (reconstruct -> edit -> refine -> export) through the worker's task bodies on an
    embedded service, the SDS model the full-size random one; iterations reduced (``job_iterations``) to fit
-   the 8 minutes: its seconds are projected to 8,000 iterations from (b)'s ms per step.
+   the 8 minutes: its seconds are projected to 8,000 iterations from (b)'s ms per step;
+g. ``cuda_graphs`` (CUDA only): the SDS step's UNet and VAE encoder replayed from CUDA graphs against the eager
+   default, in one section: agreement on the same inputs, step and per-part times, the capture's warm-up, a
+   ``loop_iterations`` loop, and the eager UNet at batch 2 against 8 (launch-bound or not).
+
+``--skip a,b,c --keep bench/results/gpu.json`` re-runs the other sections in a later call on the device and keeps
+the earlier call's runs of the skipped ones (each run names its ``section``; kept ones say so).
 
 Writes bench/results/gpu.json (``{"runs": [...]}``; each run has ``name``, ``kind``, ``device``, ``dtype``,
 ``model``, ``peak_memory_gb`` and, per kind, ``ms_step`` / ``edit_8000_minutes``, ``seconds`` / ``psnr`` /
@@ -71,7 +77,8 @@ class Profile:
     loop_iterations: int
     job_iterations: int
     reconstruction: dict  # preset name -> job parameters' "reconstruction" (None: the preset as it is)
-    downsample: int
+    downsample: int  # the job's images (3: the paper's 266 px)
+    reconstruction_downsample: int  # (c)'s, as bench/reconstruction.py (4: 200 px), so PSNRs compare
     max_images: int | None
     refine: dict
     export: dict
@@ -79,14 +86,14 @@ class Profile:
     @classmethod
     def full(cls) -> "Profile":
         return cls("cuda", torch.float16, 512, 266, 160, 5, 20, 500, 500,
-                   {"fast": {"preset": "fast"}, "paper": {"preset": "paper"}}, 3, None, {},
+                   {"fast": {"preset": "fast"}, "paper": {"preset": "paper"}}, 3, 4, None, {},
                    {"views": 4, "turntable_frames": 30, "gif": False})
 
     @classmethod
     def smoke(cls) -> "Profile":
         tiny_fit = {"resolution": 24, "iterations": 20, "rays_per_step": 1024}  # enough for an occupied G_i
         return cls("cpu", torch.float32, 64, 24, 24, 1, 2, 3, 2,
-                   {"fast": {"preset": "fast", **tiny_fit}, "paper": {"preset": "paper", **tiny_fit}}, 16, 8,
+                   {"fast": {"preset": "fast", **tiny_fit}, "paper": {"preset": "paper", **tiny_fit}}, 16, 16, 8,
                    {"views": 4, "iterations": 20, "render_size": 64, "rays_per_step": 2048},
                    {"views": 1, "view_size": 32, "turntable_frames": 4, "turntable_size": 32, "gif": False,
                     "mesh_resolution": 32})
@@ -102,11 +109,11 @@ def _peak(reports) -> float | None:
     return max(values) if values else None
 
 
-def _guidance(path: Path, profile: Profile, dtype: torch.dtype):
+def _guidance(path: Path, profile: Profile, dtype: torch.dtype, cuda_graphs: bool | None = None):
     from voxe_core.guidance.sds import StableDiffusionGuidance
 
     return StableDiffusionGuidance.from_pretrained(str(path), device=profile.device, dtype=dtype, local_files_only=True,
-                                                   resolution=profile.guidance_resolution)
+                                                   resolution=profile.guidance_resolution, cuda_graphs=cuda_graphs)
 
 
 @contextlib.contextmanager
@@ -165,7 +172,7 @@ def edit_step_runs(sd2: Path, profile: Profile) -> list[dict]:
         dtype = profile.dtype if variant["half"] else torch.float32
         if dtype not in loaded:
             loaded.clear()  # one model in memory at a time
-            loaded[dtype] = _guidance(sd2, profile, dtype)
+            loaded[dtype] = _guidance(sd2, profile, dtype, cuda_graphs=False)  # (g) measures the graphs
         guidance = loaded[dtype]
         if profile.device == "cuda":
             _channels_last(guidance, variant["channels_last"])
@@ -209,8 +216,8 @@ def reconstruction_runs(profile: Profile, data: Path) -> list[dict]:
     from voxe_core.reconstruct import reconstruct
     from voxe_core.render import RenderConfig, render_image
 
-    train = load_scene(data, "train", profile.downsample, profile.max_images)
-    test = load_scene(data, "test", profile.downsample, profile.max_images)
+    train = load_scene(data, "train", profile.reconstruction_downsample, profile.max_images)
+    test = load_scene(data, "test", profile.reconstruction_downsample, profile.max_images)
     rows = []
     for preset, params in profile.reconstruction.items():
         config = reconstruct_config(reconstruction_params({"reconstruction": params}), 0)
@@ -259,11 +266,11 @@ def refinement_run(sd14: Path, profile: Profile) -> dict:
                     Callbacks(on_progress=on_progress), device=profile.device)
     _synchronize(profile.device)
     seconds = time.perf_counter() - start
-    maps_end, grids_end = marks.get("attention_maps", start), marks.get("attention_grids", start)
+    maps_end = marks.get("attention_maps", start)
     return {"name": f"refinement at {profile.grid_resolution}³", "kind": "refinement", "device": profile.device,
             "dtype": str(profile.dtype).replace("torch.", ""), "model": "sd1.4-shaped (random weights)",
             "seconds": seconds, "seconds_attention_maps": maps_end - start,
-            "seconds_attention_grids": grids_end - maps_end, "seconds_graph_cut": start + seconds - grids_end,
+            "seconds_grids_and_cut": start + seconds - maps_end,  # the lift or fit, then the cut
             "edit_voxels": int(result.mask.sum()), "peak_memory_gb": _peak(reports)}
 
 
@@ -315,6 +322,96 @@ def job_run(sd2: Path, sd14: Path, profile: Profile, data: Path, root: Path, loo
             "peak_memory_gb": max(memory.values()) if memory else None, "peak_memory_gb_per_stage": memory}
 
 
+# ---------------------------------------------------------------- (g)
+def _relative_difference(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float((a.float() - b.float()).abs().max() / b.float().abs().max().clamp_min(1e-12))
+
+
+def _graph_agreement(eager, graphed, profile: Profile) -> dict:
+    """Largest differences (relative to the eager value's largest) between the graphed and the eager guidance on the
+    same inputs: SDS gradients on two different latents (the second a replay reading new inputs), the encoder's
+    posterior mean and the gradient it sends back to the images."""
+    generator = torch.Generator(profile.device).manual_seed(0)
+    size = profile.guidance_resolution // eager.vae_scale_factor
+    text = eager.encode_prompts([PROMPT])
+    sds = []
+    for t in (500, 200):
+        latents, noise = (torch.randn(1, eager.unet.config.in_channels, size, size, device=profile.device,
+                                      generator=generator) for _ in range(2))
+        grads = [g.sds_grad_on_latents(latents, text, [t], noise=noise)[0] for g in (graphed, eager)]
+        sds.append(_relative_difference(*grads))
+    images = torch.rand(1, 3, profile.render_size, profile.render_size, device=profile.device, generator=generator)
+    weights = torch.randn(1, eager.unet.config.in_channels, size, size, device=profile.device, generator=generator)
+    encoded = []
+    for guidance in (graphed, eager):
+        x = images.clone().requires_grad_(True)
+        latents = guidance.encode_images(x, sample=False)
+        (latents.float() * weights).sum().backward()
+        encoded.append((latents.detach(), x.grad))
+    return {"sds_grad_relative_difference": max(sds),
+            "encoder_latents_relative_difference": _relative_difference(encoded[0][0], encoded[1][0]),
+            "encoder_image_grad_relative_difference": _relative_difference(encoded[0][1], encoded[1][1])}
+
+
+@torch.no_grad()
+def _unet_ms(guidance, profile: Profile, batch: int, repeats: int = 10) -> float:
+    size = profile.guidance_resolution // guidance.vae_scale_factor
+    sample = torch.randn(batch, guidance.unet.config.in_channels, size, size, device=profile.device,
+                         dtype=guidance.dtype)
+    t = torch.full((batch,), 500, device=profile.device)
+    text = guidance.encode_prompts([PROMPT]).to(profile.device, guidance.dtype).expand(batch, -1, -1)
+    for _ in range(2):
+        guidance.unet(sample, t, encoder_hidden_states=text)
+    _synchronize(profile.device)
+    start = time.perf_counter()
+    for _ in range(repeats):
+        guidance.unet(sample, t, encoder_hidden_states=text)
+    _synchronize(profile.device)
+    return (time.perf_counter() - start) * 1e3 / repeats
+
+
+def cuda_graph_runs(sd2: Path, profile: Profile, baseline_ms: float | None) -> list[dict]:
+    """CUDA graphs (voxe_core.guidance.cuda_graphs) against the eager default in one section: their agreement on
+    the same inputs, the step (the capture inside its warm-up, timed apart), per-part device times, a
+    ``loop_iterations`` loop, and the eager UNet forward at batch 2 and 8 (a time that barely grows with the
+    batch is the host launching kernels, which graphs remove)."""
+    eager = _guidance(sd2, profile, profile.dtype, cuda_graphs=False)
+    graphed = _guidance(sd2, profile, profile.dtype, cuda_graphs=True)
+    agreement = _graph_agreement(eager, graphed, profile)
+    rows, eager_ms = [], None
+    for name, guidance in (("eager (cuda_graphs=False)", eager), ("+ CUDA graphs (UNet, VAE encoder)", graphed)):
+        start = time.perf_counter()
+        _edit_run(guidance, profile, profile.warm, sync=False)  # the graphs' capture happens here
+        warm_seconds = time.perf_counter() - start
+        parts, _ = _edit_run(guidance, profile, profile.timed, sync=True)
+        timed, wall = _edit_run(guidance, profile, profile.timed, sync=False)
+        ms_step = wall * 1e3 / profile.timed
+        eager_ms = eager_ms or ms_step
+        row = {"name": f"edit_step {name}", "kind": "edit_step", "device": profile.device,
+               "dtype": str(profile.dtype).replace("torch.", ""), "model": "sd2-base-shaped (random weights)",
+               "ms_step": ms_step, "edit_8000_minutes": ms_step * 8000 / 60000, "peak_memory_gb": _peak(parts + timed),
+               "cuda_graphs": guidance.cuda_graphs, "warm_seconds": warm_seconds, "warm_iterations": profile.warm,
+               "speedup_over_eager": eager_ms / ms_step, "speedup_over_baseline": (baseline_ms or eager_ms) / ms_step}
+        for part in ("render", "vae", "unet", "backward", "optimizer"):
+            row[f"ms_{part}"] = sum(r.info[f"ms_{part}"] for r in parts) / len(parts)
+        rows.append(row)
+    rows[-1].update(agreement)
+    reports, wall = _edit_run(graphed, profile, profile.loop_iterations, sync=False)
+    ms_step = wall * 1e3 / profile.loop_iterations
+    rows.append({"name": f"edit_loop {profile.loop_iterations} iterations at {profile.grid_resolution}³, CUDA graphs",
+                 "kind": "edit", "device": profile.device, "dtype": str(profile.dtype).replace("torch.", ""),
+                 "model": "sd2-base-shaped (random weights)", "cuda_graphs": True,
+                 "iterations": profile.loop_iterations, "seconds": wall,
+                 "iterations_per_second": profile.loop_iterations / wall, "ms_step": ms_step,
+                 "edit_8000_minutes": ms_step * 8000 / 60000, "peak_memory_gb": _peak(reports)})
+    batch2, batch8 = _unet_ms(eager, profile, 2), _unet_ms(eager, profile, 8)
+    rows.append({"name": "eager UNet forward, batch 2 against 8", "kind": "diagnostic", "device": profile.device,
+                 "dtype": str(profile.dtype).replace("torch.", ""), "model": "sd2-base-shaped (random weights)",
+                 "peak_memory_gb": None, "ms_unet_batch_2": batch2, "ms_unet_batch_8": batch8,
+                 "batch_8_over_batch_2": batch8 / batch2})
+    return rows
+
+
 # ---------------------------------------------------------------- output
 def plot(runs: list[dict], path: Path) -> None:
     import matplotlib
@@ -347,12 +444,23 @@ def plot(runs: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+SECTION_OF_KIND = {"edit_step": "a", "edit": "b", "reconstruction": "c", "refinement": "d", "job": "f"}
+
+
+def _section_of(run: dict) -> str:
+    """The section that made ``run`` (records written before runs named it: by kind)."""
+    return run.get("section") or SECTION_OF_KIND.get(run["kind"], "?")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--smoke", action="store_true", help="CPU, tiny sizes: check the script end to end")
     parser.add_argument("--data", type=Path, default=MIC, help="the nerf_synthetic mic folder")
     parser.add_argument("--out", type=Path, default=None, help="JSON to write (default bench/results/gpu[_smoke].json)")
-    parser.add_argument("--skip", default="", help="comma-separated sections to leave out (a,b,c,d,f)")
+    parser.add_argument("--skip", default="", help="comma-separated sections to leave out (a,b,c,d,f,g)")
+    parser.add_argument("--keep", type=Path, default=None,
+                        help="an earlier call's JSON whose runs of the skipped sections are kept (a later call on the "
+                             "device re-running the others)")
     args = parser.parse_args(argv)
     profile = Profile.smoke() if args.smoke else Profile.full()
     if args.smoke:  # toy-sized ops: OpenMP hand-offs between threads would cost more than they give
@@ -364,9 +472,14 @@ def main(argv=None) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     skip = set(filter(None, args.skip.split(",")))
     runs: list[dict] = []
+    if args.keep is not None:
+        kept = json.loads(args.keep.read_text())
+        runs = [{**r, "section": _section_of(r), "kept_from_earlier_call": True} for r in kept["runs"]
+                if _section_of(r) in skip]
     started = time.perf_counter()
     header = {"device": torch.cuda.get_device_name() if profile.device == "cuda" else f"{os.cpu_count()} CPU cores",
-              "torch": torch.__version__, "smoke": args.smoke,
+              "torch": torch.__version__, "smoke": args.smoke, "skipped": sorted(skip),
+              "kept_from": str(args.keep) if args.keep else None,
               "note": "random-weight models: costs only; peak_memory_gb is max_memory_allocated (GiB) on CUDA, "
                       "process RSS peak on CPU"}
 
@@ -379,10 +492,10 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         try:
             produced = body()
-            runs.extend(produced if isinstance(produced, list) else [produced])
+            runs.extend({**r, "section": name} for r in (produced if isinstance(produced, list) else [produced]))
         except Exception as exc:  # noqa: BLE001 - one section's failure must not lose the others
             traceback.print_exc()
-            runs.append({"name": f"section {name} failed", "kind": kind, "device": profile.device,
+            runs.append({"name": f"section {name} failed", "kind": kind, "section": name, "device": profile.device,
                          "error": f"{type(exc).__name__}: {exc}"})
         print(f"section {name} ({kind}): {time.perf_counter() - t0:.1f} s", file=sys.stderr)
         save()
@@ -410,6 +523,9 @@ def main(argv=None) -> int:
         if args.data.is_dir():
             section("f", "job", lambda: job_run(sd2, sd14, profile, args.data, tmp / "service",
                                                 loop["ms_step"] if loop else None))
+        if profile.device == "cuda":  # CUDA graphs exist only there
+            baseline = next((r["ms_step"] for r in runs if r.get("section") == "a" and "ms_step" in r), None)
+            section("g", "cuda_graphs", lambda: cuda_graph_runs(sd2, profile, baseline))
     save()
     plot(runs, out.with_suffix(".png"))
     for run in runs:

@@ -12,7 +12,7 @@ CARRY=.gpu_carry
 DATA=${VOXE_DATA_ROOT:-../shared/data}
 PACKAGES="diffusers fastapi starlette pydantic pydantic_core pydantic-settings python-dotenv annotated-types
   typing-inspection python-multipart SQLAlchemy alembic Mako celery kombu billiard vine amqp tzlocal
-  click-didyoumean click-plugins click-repl prompt_toolkit wcwidth PyMaxflow trimesh sniffio"
+  click-didyoumean click-plugins click-repl prompt_toolkit wcwidth PyMaxflow trimesh sniffio opentelemetry-api"
 pinned=()
 for name in $PACKAGES; do
     version=$(.venv/bin/python -c "import importlib.metadata as m, sys; print(m.version(sys.argv[1]))" "$name")

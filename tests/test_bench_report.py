@@ -69,3 +69,37 @@ def test_a_long_results_file_shows_its_summary_and_its_first_rows(tmp_path):
     text = "\n".join(report.other_results_section(tmp_path, tmp_path / "REPORT.md"))
     assert "| all | 0.245 |" in text and f"(the first {report.MAX_ROWS} of {len(runs)} rows" in text
     assert f"| c{report.MAX_ROWS - 1} |" in text and f"| c{report.MAX_ROWS} |" not in text
+
+
+def test_gpu_section_reads_issue_17s_targets_and_ratios_from_gpu_json(tmp_path):
+    gpu = {"device": "NVIDIA H200", "torch": "2.x", "calls": {"1": "a, b"}, "runs": [
+        {"name": "fp32", "kind": "edit_step", "section": "a", "device": "cuda", "dtype": "float32", "half": False,
+         "ms_step": 120.0, "peak_memory_gb": 8.0},
+        {"name": "fp16", "kind": "edit_step", "section": "a", "device": "cuda", "dtype": "float16", "half": True,
+         "ms_step": 100.0, "peak_memory_gb": 4.0},
+        {"name": "eager", "kind": "edit_step", "section": "g", "device": "cuda", "dtype": "float16",
+         "cuda_graphs": False, "ms_step": 90.0, "ms_unet": 40.0},
+        {"name": "graphs", "kind": "edit_step", "section": "g", "device": "cuda", "dtype": "float16",
+         "cuda_graphs": True, "ms_step": 60.0, "ms_unet": 10.0, "sds_grad_relative_difference": 0.0,
+         "encoder_image_grad_relative_difference": 0.002},
+        {"name": "loop", "kind": "edit", "section": "b", "device": "cuda", "edit_8000_minutes": 3.5,
+         "peak_memory_gb": 30.0},
+        {"name": "job", "kind": "job", "section": "f", "device": "cuda", "seconds_projected_8000_iterations": 420.0},
+        {"name": "fast", "kind": "reconstruction", "section": "c", "device": "cuda", "preset": "fast", "seconds": 12.0,
+         "psnr": 30.0, "image_size": 200},
+        {"name": "broken", "kind": "refinement", "section": "d", "device": "cuda", "error": "RuntimeError: x"},
+    ]}
+    cpu = [{"label": "preset-fast", "psnr": 29.5, "image_size": 200}]
+    lines, bullets = report.gpu_section(gpu, cpu, tmp_path, tmp_path / "REPORT.md")
+    text = "\n".join(lines)
+    assert "| 8,000-iteration edit | ≤ 4 min | 3.5 min | met |" in text
+    assert "| whole local-edit job (8,000 it) | ≤ 6 min | 7.0 min | **not met** |" in text
+    assert "| refinement at 160³ | ≤ 1 min | – | not measured |" in text  # a failed run is no measurement
+    assert "| peak GPU memory of the default edit | ≤ 24 GB | 30.00 GiB | **not met** |" in text
+    assert "| `fast` PSNR against the CPU's | ≥ 29.50 dB (CPU `preset-fast`) | 30.00 dB | met |" in text
+    assert any("fp16 vs fp32" in b and "(1.20×)" in b for b in bullets)
+    assert any("CUDA graphs" in b and "(1.50×)" in b and "10.0 against 40.0 ms" in b for b in bullets)
+    cpu[0]["image_size"] = 266
+    text = "\n".join(report.gpu_section(gpu, cpu, tmp_path, tmp_path / "REPORT.md")[0])
+    assert "not comparable: 200 px on the GPU, 266 px on the CPU" in text
+    assert "**No results:**" in report.gpu_section({}, cpu, tmp_path, tmp_path / "REPORT.md")[0][0]
