@@ -271,3 +271,22 @@ def test_export_mesh_errors_exit_2(sphere_file, tmp_path, capsys):
     assert main(["export-mesh", str(sphere_file), "--out", str(tmp_path / "m.stl")]) == 2
     assert "'.stl'" in capsys.readouterr().err
     assert not (tmp_path / "m.ply").exists()
+
+
+@pytest.mark.parametrize("flag, expected", [([], None), (["--no-cuda-graphs"], False)])
+def test_edit_asks_for_cuda_graphs_unless_told_not_to(flag, expected, sphere_grid, tmp_path, monkeypatch):
+    """``voxe edit`` leaves the graphs to ``from_pretrained``'s default (on CUDA) or turns them off."""
+    from voxe_core.guidance.loading import ModelNotAvailableError
+    from voxe_core.guidance.sds import StableDiffusionGuidance
+
+    asked = {}
+
+    def from_pretrained(model, **kwargs):
+        asked.update(kwargs)
+        raise ModelNotAvailableError(f"{model} is a stand-in")
+
+    monkeypatch.setattr(StableDiffusionGuidance, "from_pretrained", from_pretrained)
+    sphere_grid.save(tmp_path / "g.safetensors")
+    code = main(["edit", str(tmp_path / "g.safetensors"), "--prompt", "a dog", "--out", str(tmp_path / "out"),
+                 "--model", "stand-in", "--device", "cpu", *flag])
+    assert code == 2 and asked["cuda_graphs"] is expected

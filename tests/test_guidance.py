@@ -460,10 +460,43 @@ def test_cuda_graphs_are_refused_off_cuda_and_leave_gradient_free_encodes_eager(
 
     with pytest.raises(ValueError, match="cuda_graphs needs a CUDA device; this guidance is on cpu"):
         StableDiffusionGuidance.from_pretrained(str(tiny_path), device="cpu", local_files_only=True, cuda_graphs=True)
-    encoder = GraphedEncoder(guidance.vae)
+    encoder = GraphedEncoder(lambda x: guidance.vae.encode(x).latent_dist.parameters)
     x = torch.rand(1, 3, guidance.resolution, guidance.resolution) * 2 - 1
     with torch.no_grad():
         torch.testing.assert_close(encoder(x), guidance.vae.encode(x).latent_dist.parameters)
-    assert encoder.captured_shapes == []
     with pytest.raises(ValueError, match="CUDA graphs need a CUDA device, got a tensor on cpu"):
         encoder(x.requires_grad_(True))
+
+
+def test_a_capture_the_libraries_refuse_turns_the_graphs_off_with_a_warning(guidance, tiny_path):
+    fresh = StableDiffusionGuidance.from_pretrained(str(tiny_path), device="cpu", local_files_only=True)
+    calls = []
+
+    def refused(*args):
+        calls.append(args)
+        raise RuntimeError("operation not permitted when stream is capturing")
+
+    fresh.cuda_graphs, fresh._graphed_unet = True, refused  # as a CUDA guidance whose capture fails
+    generator = torch.Generator().manual_seed(0)
+    latents, noise = torch.randn(1, 4, 8, 8, generator=generator), torch.randn(1, 4, 8, 8, generator=generator)
+    text = guidance.encode_prompts(["a dog"])
+    with pytest.warns(RuntimeWarning, match="CUDA graphs turned off for .*: operation not permitted when stream"):
+        grad, _ = fresh.sds_grad_on_latents(latents, text, [500], noise=noise)
+    assert len(calls) == 1 and fresh.cuda_graphs is False
+    expected, _ = guidance.sds_grad_on_latents(latents, text, [500], noise=noise)
+    torch.testing.assert_close(grad, expected)  # the eager network answered
+    fresh.sds_grad_on_latents(latents, text, [500], noise=noise)
+    assert len(calls) == 1  # and answers from then on
+
+
+@pytest.mark.parametrize("setting, expected", [("true", None), ("false", False)])
+def test_the_workers_cuda_graphs_setting_reaches_the_guidance(setting, expected, monkeypatch, tmp_path):
+    from voxe_service.settings import Settings
+    from worker import runtime
+
+    asked = {}
+    monkeypatch.setattr(StableDiffusionGuidance, "from_pretrained", lambda path, **kwargs: asked.update(kwargs))
+    monkeypatch.setattr(runtime, "_GUIDANCE_CACHE", {})
+    monkeypatch.setenv("VOXE_CUDA_GRAPHS", setting)
+    runtime.get_guidance(str(tmp_path), "cpu", Settings())
+    assert asked["cuda_graphs"] is expected

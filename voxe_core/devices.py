@@ -23,6 +23,7 @@ Examples:
 
 from __future__ import annotations
 
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
 import torch
@@ -145,9 +146,25 @@ class PeakMemory:
         return self._max_bytes
 
     def info(self) -> dict[str, object]:
-        """``{"peak_memory_gb": GiB or None, "peak_memory_kind": ...}``, for a Progress report's info."""
+        """``{"peak_memory_gb": GiB or None, "peak_memory_kind": ...}``, for a Progress report's info; on CUDA also
+        ``peak_memory_reserved_gb``, the caching allocator's peak, which counts what ``max_memory_allocated`` leaves
+        out: CUDA graphs' private pools (a replay allocates nothing) and the allocator's cache."""
         peak = self.peak_bytes()
-        return {"peak_memory_gb": None if peak is None else round(peak / GIB, 4), "peak_memory_kind": self.kind}
+        info = {"peak_memory_gb": None if peak is None else round(peak / GIB, 4), "peak_memory_kind": self.kind}
+        if self.device.type == "cuda":
+            info["peak_memory_reserved_gb"] = round(torch.cuda.max_memory_reserved(self.device) / GIB, 4)
+        return info
 
 
 __all__ = ["DeviceUnavailableError", "PeakMemory", "default_device", "resolve_device"]
+
+
+@contextmanager
+def full_precision(*tensors: torch.Tensor):
+    """Autocast disabled on every device type the tensors live on (nothing to disable where torch has none, e.g. meta):
+    the renderer's transmittance products and the losses' correlations want float32."""
+    with ExitStack() as stack:
+        for device_type in sorted({t.device.type for t in tensors}):
+            if torch.amp.is_autocast_available(device_type):
+                stack.enter_context(torch.autocast(device_type=device_type, enabled=False))
+        yield

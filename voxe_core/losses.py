@@ -19,25 +19,16 @@ upcast); gradients flow back in the inputs' dtype.
 
 from __future__ import annotations
 
-from contextlib import ExitStack, contextmanager
 from typing import Literal, get_args
 
 import torch
+
+from voxe_core.devices import full_precision
 
 Regulariser = Literal["reg3d", "reg3d_plus", "volumetric_l1", "volumetric_l2", "image_l1", "image_l2"]
 REGULARISERS: tuple[str, ...] = get_args(Regulariser)
 VOLUMETRIC_REGULARISERS: tuple[str, ...] = ("reg3d", "reg3d_plus", "volumetric_l1", "volumetric_l2")
 IMAGE_REGULARISERS: tuple[str, ...] = ("image_l1", "image_l2")
-
-
-@contextmanager
-def _full_precision(*tensors: torch.Tensor):
-    """Disable autocast on every device type the tensors live on."""
-    with ExitStack() as stack:
-        for device_type in sorted({t.device.type for t in tensors}):
-            if torch.amp.is_autocast_available(device_type):
-                stack.enter_context(torch.autocast(device_type=device_type, enabled=False))
-        yield
 
 
 def _standardise(x: torch.Tensor, eps: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -79,7 +70,7 @@ def correlation_loss(initial_density: torch.Tensor, edited_density: torch.Tensor
         raise ValueError(
             f"density shapes differ: initial {tuple(initial_density.shape)} vs edited {tuple(edited_density.shape)}"
         )
-    with _full_precision(initial_density, edited_density):
+    with full_precision(initial_density, edited_density):
         a, _ = _standardise(initial_density, eps)
         b, _ = _standardise(edited_density, eps)
         corr = (a * b).sum()
@@ -101,13 +92,13 @@ def correlation_loss_plus_rgb(initial_features: torch.Tensor, edited_features: t
 
 def volumetric_l1(initial: torch.Tensor, edited: torch.Tensor) -> torch.Tensor:
     """Mean absolute difference of raw values (float32)."""
-    with _full_precision(initial, edited):
+    with full_precision(initial, edited):
         return (edited.float() - initial.float()).abs().mean()
 
 
 def volumetric_l2(initial: torch.Tensor, edited: torch.Tensor) -> torch.Tensor:
     """Mean squared difference of raw values (float32)."""
-    with _full_precision(initial, edited):
+    with full_precision(initial, edited):
         return (edited.float() - initial.float()).square().mean()
 
 
@@ -115,7 +106,7 @@ def image_l1(render: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Mean absolute pixel difference between a render and its input view (float32)."""
     if render.shape != target.shape:
         raise ValueError(f"render {tuple(render.shape)} and target {tuple(target.shape)} differ in shape")
-    with _full_precision(render, target):
+    with full_precision(render, target):
         return (render.float() - target.float()).abs().mean()
 
 
@@ -123,7 +114,7 @@ def image_l2(render: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Mean squared pixel difference between a render and its input view (float32)."""
     if render.shape != target.shape:
         raise ValueError(f"render {tuple(render.shape)} and target {tuple(target.shape)} differ in shape")
-    with _full_precision(render, target):
+    with full_precision(render, target):
         return (render.float() - target.float()).square().mean()
 
 

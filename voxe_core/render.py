@@ -13,13 +13,13 @@ occupied space a ray actually sees.
 
 from __future__ import annotations
 
-import contextlib
 from dataclasses import dataclass, field
 from typing import Callable, Iterable
 
 import torch
 
 from voxe_core.cameras import Cameras, camera_rays
+from voxe_core.devices import full_precision
 from voxe_core.grid import Occupancy, VoxelGrid
 from voxe_core.volrend import RaySamples, optical_depth, transmittance
 
@@ -88,7 +88,7 @@ def render_rays(
         >>> out.rgb.tolist(), out.opacity.tolist()
         ([[1.0, 1.0, 1.0]], [0.0])
     """
-    with _without_autocast(origins.device):
+    with full_precision(origins):
         origins, directions = origins.float(), directions.float()
         device, n_rays = origins.device, origins.shape[0]
         if config.skip_empty and occupancy is None:
@@ -138,13 +138,6 @@ def composite(groups: Iterable[RaySamples], values: Field, n_rays: int, backgrou
     return RenderOutput(rgb, opacity, expected_depth, evaluated, candidates)
 
 
-def _without_autocast(device: torch.device):
-    """Autocast switched off on ``device``'s type (nothing to switch off where torch has no autocast, e.g. meta)."""
-    if not torch.amp.is_autocast_available(device.type):
-        return contextlib.nullcontext()
-    return torch.autocast(device.type, enabled=False)
-
-
 @torch.no_grad()
 def render_image(
     grid: VoxelGrid,
@@ -160,7 +153,7 @@ def render_image(
     if config.skip_empty and occupancy is None:
         occupancy = grid.occupancy(config.sigma_threshold)
     cameras = cameras.to(grid.bbox_min.device)
-    with _without_autocast(cameras.c2w.device):
+    with full_precision(cameras.c2w):
         origins, directions = camera_rays(cameras, index)
     parts = [
         render_rays(grid, origins[s : s + config.chunk_rays], directions[s : s + config.chunk_rays], config, occupancy)

@@ -48,6 +48,7 @@ class Settings(BaseSettings):
     clip_model: str = CLIP_MODEL_ID
     fid_model: str = ""
     device: str = "auto"  # auto | cpu | cuda | cuda:N
+    cuda_graphs: bool = True  # the SDS step's UNet and VAE encoder replayed from CUDA graphs on CUDA
 
     # --- uploads
     max_upload_bytes: int = Field(2 * 1024**3, gt=0)

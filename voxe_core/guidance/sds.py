@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import os
 import time
+import warnings
 from typing import Callable, Sequence
 
 import torch
@@ -85,6 +86,11 @@ def epsilon_from_output(output: torch.Tensor, noisy: torch.Tensor, alpha_bar: to
     raise ValueError(f"unknown prediction_type {kind!r}; expected one of {PREDICTION_TYPES}")
 
 
+def _check_graph_device(cuda_graphs: bool, device) -> None:
+    if cuda_graphs and torch.device(device).type != "cuda":
+        raise ValueError(f"cuda_graphs needs a CUDA device; this guidance is on {torch.device(device)}")
+
+
 def _sync(guidance: "StableDiffusionGuidance") -> None:
     if guidance.sync_timing and guidance.device.type == "cuda":
         torch.cuda.synchronize(guidance.device)
@@ -116,8 +122,7 @@ class StableDiffusionGuidance:
         from diffusers.models.attention_processor import AttnProcessor2_0
 
         self.prediction_type = prediction_type(scheduler)  # refuse an unusable model before moving weights
-        if cuda_graphs and torch.device(device).type != "cuda":
-            raise ValueError(f"cuda_graphs needs a CUDA device; this guidance is on {torch.device(device)}")
+        _check_graph_device(cuda_graphs, device)
 
         self.model_id = model_id
         self.device = torch.device(device)
@@ -155,8 +160,8 @@ class StableDiffusionGuidance:
         self.sync_timing = bool(sync_timing)
         # The SDS step's UNet forward and VAE encoder replayed from CUDA graphs (voxe_core.guidance.cuda_graphs).
         self.cuda_graphs = bool(cuda_graphs)
-        self._graphed_unet = GraphedUNet(self.unet) if cuda_graphs else None
-        self._graphed_encoder = GraphedEncoder(self.vae) if cuda_graphs else None
+        self._graphed_unet = GraphedUNet(self._eager_unet) if cuda_graphs else None
+        self._graphed_encoder = GraphedEncoder(self._encode_moments) if cuda_graphs else None
 
     # ------------------------------------------------------------------ loading
 
@@ -194,6 +199,7 @@ class StableDiffusionGuidance:
             dtype = torch.float16 if device.type == "cuda" else torch.float32
         if cuda_graphs is None:
             cuda_graphs = device.type == "cuda"
+        _check_graph_device(cuda_graphs, device)  # before the weights load
         model_str = os.fspath(model)
         unet, vae, text_encoder, tokenizer, scheduler = load_stable_diffusion(
             model_str, dtype, local_files_only, revision, on_message)
@@ -283,7 +289,7 @@ class StableDiffusionGuidance:
         from diffusers.models.autoencoders.vae import DiagonalGaussianDistribution
 
         x = self.preprocess(images)
-        moments = self._graphed_encoder(x) if self._graphs_usable() else self.vae.encode(x).latent_dist.parameters
+        moments = self._graphed_or_eager(self._graphed_encoder, self._encode_moments, x)
         posterior = DiagonalGaussianDistribution(moments)
         latents = posterior.sample(generator=generator) if sample else posterior.mean
         return (latents - self.latent_shift) * self.latent_scale
@@ -314,12 +320,26 @@ class StableDiffusionGuidance:
             raise ValueError(f"timesteps must lie in [0, {self.num_train_timesteps - 1}], got {t.tolist()}")
         return t.to(self.device, non_blocking=True)
 
-    def _graphs_usable(self) -> bool:
-        """Graphs replay outside autocast only (an edit's ``autocast_dtype`` runs the eager networks)."""
-        return self.cuda_graphs and not torch.is_autocast_enabled(self.device.type)
+    def _graphed_or_eager(self, graphed, eager, *args: torch.Tensor) -> torch.Tensor:
+        """``graphed(*args)`` where the graphs can run (CUDA graphs on, no autocast: an edit's ``autocast_dtype``
+        runs the eager networks), else ``eager(*args)``. A capture the installed libraries refuse turns the graphs
+        off for this guidance with a warning rather than failing every edit."""
+        if self.cuda_graphs and not torch.is_autocast_enabled(self.device.type):
+            try:
+                return graphed(*args)
+            except torch.cuda.OutOfMemoryError:
+                raise  # the eager networks would not fit either
+            except RuntimeError as error:
+                warnings.warn(f"CUDA graphs turned off for {self.model_id or 'this guidance'}: {error}", RuntimeWarning,
+                              stacklevel=3)
+                self.cuda_graphs, self._graphed_unet, self._graphed_encoder = False, None, None
+        return eager(*args)
 
     def _eager_unet(self, sample: torch.Tensor, timestep: torch.Tensor, text: torch.Tensor) -> torch.Tensor:
         return self.unet(sample, timestep, encoder_hidden_states=text).sample
+
+    def _encode_moments(self, x: torch.Tensor) -> torch.Tensor:
+        return self.vae.encode(x).latent_dist.parameters
 
     @torch.no_grad()
     def sds_grad_on_latents(
@@ -351,8 +371,8 @@ class StableDiffusionGuidance:
         _sync(self)
         t0 = time.perf_counter()
         model_in = torch.cat([noisy, noisy]).to(self.dtype)
-        unet = self._graphed_unet if self._graphs_usable() else self._eager_unet
-        out = unet(model_in, torch.cat([t, t]), torch.cat([uncond, text]))
+        out = self._graphed_or_eager(self._graphed_unet, self._eager_unet, model_in, torch.cat([t, t]),
+                                     torch.cat([uncond, text]))
         _sync(self)
         unet_ms = (time.perf_counter() - t0) * 1e3
 
