@@ -104,9 +104,14 @@ def _synchronize(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def _peak(reports) -> float | None:
-    values = [r.info["peak_memory_gb"] for r in reports if r.info.get("peak_memory_gb") is not None]
+def _peak(reports, key: str = "peak_memory_gb") -> float | None:
+    values = [r.info[key] for r in reports if r.info.get(key) is not None]
     return max(values) if values else None
+
+
+def _peaks(reports) -> dict:
+    """Peak memory allocated and reserved (the latter counts CUDA graphs' pools, which replays leave out of the former)."""
+    return {"peak_memory_gb": _peak(reports), "peak_memory_reserved_gb": _peak(reports, "peak_memory_reserved_gb")}
 
 
 def _guidance(path: Path, profile: Profile, dtype: torch.dtype, cuda_graphs: bool | None = None):
@@ -182,7 +187,7 @@ def edit_step_runs(sd2: Path, profile: Profile) -> list[dict]:
         ms_step = wall * 1e3 / profile.timed
         row = {"name": f"edit_step {name}", "kind": "edit_step", "device": profile.device,
                "dtype": str(dtype).replace("torch.", ""), "model": "sd2-base-shaped (random weights)",
-               "ms_step": ms_step, "edit_8000_minutes": ms_step * 8000 / 60000, "peak_memory_gb": _peak(timed),
+               "ms_step": ms_step, "edit_8000_minutes": ms_step * 8000 / 60000, **_peaks(timed),
                **variant}
         if variant["sync"]:  # per-part device times
             for part in ("render", "vae", "unet", "backward", "optimizer"):
@@ -203,7 +208,7 @@ def edit_loop_run(sd2: Path, profile: Profile) -> dict:
             "device": profile.device, "dtype": str(profile.dtype).replace("torch.", ""),
             "model": "sd2-base-shaped (random weights)", "iterations": profile.loop_iterations, "seconds": wall,
             "iterations_per_second": profile.loop_iterations / wall, "ms_step": ms_step,
-            "edit_8000_minutes": ms_step * 8000 / 60000, "peak_memory_gb": _peak(reports),
+            "edit_8000_minutes": ms_step * 8000 / 60000, **_peaks(reports),
             "render_size": profile.render_size, "guidance_resolution": profile.guidance_resolution}
 
 
@@ -235,7 +240,7 @@ def reconstruction_runs(profile: Profile, data: Path) -> list[dict]:
                      "dtype": "float32", "model": f"ReLU-field grid {config.resolutions[-1]}³", "preset": preset,
                      "seconds": seconds, "iterations": config.total_iterations,
                      "psnr": float(psnr(images, test.images).mean()), "ssim": float(ssim(images, test.images).mean()),
-                     "peak_memory_gb": _peak(reports), "image_size": train.cameras.width})
+                     **_peaks(reports), "image_size": train.cameras.width})
     return rows
 
 
@@ -271,7 +276,7 @@ def refinement_run(sd14: Path, profile: Profile) -> dict:
             "dtype": str(profile.dtype).replace("torch.", ""), "model": "sd1.4-shaped (random weights)",
             "seconds": seconds, "seconds_attention_maps": maps_end - start,
             "seconds_grids_and_cut": start + seconds - maps_end,  # the lift or fit, then the cut
-            "edit_voxels": int(result.mask.sum()), "peak_memory_gb": _peak(reports)}
+            "edit_voxels": int(result.mask.sum()), **_peaks(reports)}
 
 
 # ---------------------------------------------------------------- (f)
@@ -389,7 +394,7 @@ def cuda_graph_runs(sd2: Path, profile: Profile, baseline_ms: float | None) -> l
         eager_ms = eager_ms or ms_step
         row = {"name": f"edit_step {name}", "kind": "edit_step", "device": profile.device,
                "dtype": str(profile.dtype).replace("torch.", ""), "model": "sd2-base-shaped (random weights)",
-               "ms_step": ms_step, "edit_8000_minutes": ms_step * 8000 / 60000, "peak_memory_gb": _peak(parts + timed),
+               "ms_step": ms_step, "edit_8000_minutes": ms_step * 8000 / 60000, **_peaks(parts + timed),
                "cuda_graphs": guidance.cuda_graphs, "warm_seconds": warm_seconds, "warm_iterations": profile.warm,
                "speedup_over_eager": eager_ms / ms_step, "speedup_over_baseline": (baseline_ms or eager_ms) / ms_step}
         for part in ("render", "vae", "unet", "backward", "optimizer"):
@@ -403,7 +408,7 @@ def cuda_graph_runs(sd2: Path, profile: Profile, baseline_ms: float | None) -> l
                  "model": "sd2-base-shaped (random weights)", "cuda_graphs": True,
                  "iterations": profile.loop_iterations, "seconds": wall,
                  "iterations_per_second": profile.loop_iterations / wall, "ms_step": ms_step,
-                 "edit_8000_minutes": ms_step * 8000 / 60000, "peak_memory_gb": _peak(reports)})
+                 "edit_8000_minutes": ms_step * 8000 / 60000, **_peaks(reports)})
     batch2, batch8 = _unet_ms(eager, profile, 2), _unet_ms(eager, profile, 8)
     rows.append({"name": "eager UNet forward, batch 2 against 8", "kind": "diagnostic", "device": profile.device,
                  "dtype": str(profile.dtype).replace("torch.", ""), "model": "sd2-base-shaped (random weights)",

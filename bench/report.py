@@ -499,24 +499,35 @@ def edit_step_section(data, gpu, results: Path, report: Path) -> tuple[list[str]
 
 
 GPU_TARGETS = (  # issue 17's, on one H200 with full-size random-weight models
-    ("8,000-iteration edit", "≤ 4 min", lambda runs: _best(runs, "edit", "edit_8000_minutes"), lambda v: v <= 4, "{:.1f} min"),
-    ("refinement at 160³", "≤ 1 min", lambda runs: _best(runs, "refinement", "seconds"), lambda v: v <= 60, "{:.1f} s"),
+    ("8,000-iteration edit (the default)", "≤ 4 min", lambda runs: _default_edit(runs, "edit_8000_minutes"),
+     lambda v: v <= 4, "{:.1f} min"),
+    ("refinement at 160³", "≤ 1 min", lambda runs: _pick(runs, "refinement", "seconds"), lambda v: v <= 60, "{:.1f} s"),
     ("whole local-edit job (8,000 it)", "≤ 6 min",
-     lambda runs: _minutes(_best(runs, "job", "seconds_projected_8000_iterations")), lambda v: v <= 6, "{:.1f} min"),
+     lambda runs: _minutes(_pick(runs, "job", "seconds_projected_8000_iterations")), lambda v: v <= 6, "{:.1f} min"),
     ("`fast` reconstruction of mic", "≤ 20 s", lambda runs: _preset(runs, "fast", "seconds"), lambda v: v <= 20, "{:.1f} s"),
     ("`paper` reconstruction of mic", "≤ 2 min", lambda runs: _preset(runs, "paper", "seconds"), lambda v: v <= 120,
      "{:.1f} s"),
     ("`paper` reconstruction PSNR", "≥ 30.6 dB", lambda runs: _preset(runs, "paper", "psnr"), lambda v: v >= 30.6,
      "{:.2f} dB"),
-    ("peak GPU memory of the default edit", "≤ 24 GB",  # section b: the edit loop alone in its process
-     lambda runs: _best([r for r in runs if r.get("section") == "b"], "edit", "peak_memory_gb", max),
+    # Section b's eager loop (the edit alone in its process): a graph's replay allocates nothing, so with CUDA graphs
+    # max_memory_allocated leaves their pools out and would flatter the figure.
+    ("peak GPU memory of the default edit (eager)", "≤ 24 GB",
+     lambda runs: _pick([r for r in runs if r.get("section") == "b" and not r.get("cuda_graphs")], "edit",
+                        "peak_memory_gb", max),
      lambda v: v <= 24 / 1.073741824, "{:.2f} GiB"),
 )
 
 
-def _best(runs: list[dict], kind: str, key: str, pick=min):
+def _pick(runs: list[dict], kind: str, key: str, pick=min):
+    """``pick`` (the best: min; the worst: max) of ``key`` over ``runs`` of ``kind``; None when none has it."""
     values = [r[key] for r in runs if r.get("kind") == kind and r.get(key) is not None]
     return pick(values) if values else None
+
+
+def _default_edit(runs: list[dict], key: str):
+    """``key`` of section b's loop (the default edit) from the latest device call that ran it."""
+    loops = [r for r in runs if r.get("section") == "b" and r.get("kind") == "edit" and r.get(key) is not None]
+    return max(loops, key=lambda r: r.get("call", 0))[key] if loops else None
 
 
 def _minutes(seconds):
