@@ -26,6 +26,8 @@ e. every run carries ``peak_memory_gb`` (the stage's ``torch.cuda.max_memory_all
 f. ``job``: one local-edit job (reconstruct -> edit -> refine -> export) through the worker's task bodies on an
    embedded service, the SDS model the full-size random one; iterations reduced (``job_iterations``) to fit
    the 8 minutes: its seconds are projected to 8,000 iterations from (b)'s ms per step;
+h. ``render_passes``: bench/render_passes.py's measurement on the device (the edit's render and backward at each
+   ``RenderConfig.samples_per_pass``: operations, time, memory, output differences);
 g. ``cuda_graphs`` (CUDA only): the SDS step's UNet and VAE encoder replayed from CUDA graphs against the eager
    default, in one section: agreement on the same inputs, step and per-part times, the capture's warm-up, a
    ``loop_iterations`` loop, and the eager UNet at batch 2 against 8 (launch-bound or not).
@@ -327,6 +329,21 @@ def job_run(sd2: Path, sd14: Path, profile: Profile, data: Path, root: Path, loo
             "peak_memory_gb": max(memory.values()) if memory else None, "peak_memory_gb_per_stage": memory}
 
 
+# ---------------------------------------------------------------- (h)
+def render_pass_runs(profile: Profile) -> list[dict]:
+    """bench/render_passes.py on the device: the edit's render and its backward at each ``samples_per_pass`` (fewer,
+    larger passes dispatch fewer operations: what a launch-bound GPU pays), on an object and on fog."""
+    import render_passes
+    from edit_step import sphere_grid
+
+    rays = render_passes.edit_rays(profile.render_size)
+    repeats = max(1, profile.timed // 4)
+    rows = render_passes.measure("sphere", sphere_grid(profile.grid_resolution), rays, repeats, profile.device) + \
+        render_passes.measure("fog", render_passes.fog_grid(profile.grid_resolution // 2), rays, repeats, profile.device)
+    return [{"name": f"render {r['scene']}, samples_per_pass {r['samples_per_pass']}", "kind": "render_passes",
+             "dtype": "float32", "model": "ReLU-field grid", **r} for r in rows]
+
+
 # ---------------------------------------------------------------- (g)
 def _relative_difference(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a.float() - b.float()).abs().max() / b.float().abs().max().clamp_min(1e-12))
@@ -462,7 +479,7 @@ def main(argv=None) -> int:
     parser.add_argument("--smoke", action="store_true", help="CPU, tiny sizes: check the script end to end")
     parser.add_argument("--data", type=Path, default=MIC, help="the nerf_synthetic mic folder")
     parser.add_argument("--out", type=Path, default=None, help="JSON to write (default bench/results/gpu[_smoke].json)")
-    parser.add_argument("--skip", default="", help="comma-separated sections to leave out (a,b,c,d,f,g)")
+    parser.add_argument("--skip", default="", help="comma-separated sections to leave out (a,b,c,d,f,h,g)")
     parser.add_argument("--keep", type=Path, default=None,
                         help="an earlier call's JSON whose runs of the skipped sections are kept (a later call on the "
                              "device re-running the others)")
@@ -528,6 +545,7 @@ def main(argv=None) -> int:
         if args.data.is_dir():
             section("f", "job", lambda: job_run(sd2, sd14, profile, args.data, tmp / "service",
                                                 loop["ms_step"] if loop else None))
+        section("h", "render_passes", lambda: render_pass_runs(profile))
         if profile.device == "cuda":  # CUDA graphs exist only there
             baseline = next((r["ms_step"] for r in runs if r.get("section") == "a" and "ms_step" in r), None)
             section("g", "cuda_graphs", lambda: cuda_graph_runs(sd2, profile, baseline))

@@ -592,6 +592,7 @@ def gpu_section(gpu, reconstruction, results: Path, report: Path) -> tuple[list[
                        "the gradient it sends to the renders by "
                        f"{graphed.get('encoder_image_grad_relative_difference', float('nan')):.1g} (relative to their "
                        "largest entries).")
+    bullets += render_pass_tradeoffs([r for r in runs if r.get("kind") == "render_passes"])
     launch = next((r for r in runs if r.get("ms_unet_batch_2") and r.get("ms_unet_batch_8")), None)
     if launch:
         bullets.append(f"**Where the GPU step's time goes**: the eager fp16 UNet forward takes "
@@ -600,6 +601,22 @@ def gpu_section(gpu, reconstruction, results: Path, report: Path) -> tuple[list[
                        "host launching kernels, not the GPU's arithmetic, sets the pace; the renderer and the backward "
                        "(Python-driven, data-dependent shapes) are the larger share left after the graphs.")
     return lines, bullets
+
+
+def render_pass_tradeoffs(runs: list[dict]) -> list[str]:
+    """One bullet per scene and device of bench/render_passes.py's rows: each pass size against the default's."""
+    bullets = []
+    for scene, device in dict.fromkeys((r["scene"], r.get("device", "cpu")) for r in runs):
+        mine = sorted((r for r in runs if r["scene"] == scene and r.get("device", "cpu") == device),
+                      key=lambda r: r["samples_per_pass"])
+        figures = "; ".join(
+            f"2^{r['samples_per_pass'].bit_length() - 1}: {r['operations_ratio_to_reference']:.2f}× the operations, "
+            f"{r['ms_ratio_to_reference']:.2f}× the time, {fmt(r.get('peak_memory_gb'), 2)} GiB" for r in mine[1:])
+        bullets.append(f"**Samples per render pass** ({scene}, {device}; against the default 2^"
+                       f"{mine[0]['samples_per_pass'].bit_length() - 1}: {mine[0]['operations']} operations, "
+                       f"{mine[0]['ms']:.0f} ms, {fmt(mine[0].get('peak_memory_gb'), 2)} GiB): {figures}; the render "
+                       f"moves by at most {max(r['max_rgb_difference'] for r in mine):.1g}.")
+    return bullets
 
 
 def figure_link_png(path: Path, report: Path, alt: str) -> list[str]:
@@ -740,7 +757,7 @@ def build_report(results: Path, report: Path, notes: dict[str, str], mode: str) 
     out += ["## The GPU path on the lent device machine (issue 17)", ""]
     gpu_lines, gpu_bullets = gpu_section(gpu or {}, load_json(results / "reconstruction.json"), results, report)
     out += gpu_lines + [""]
-    tradeoffs += gpu_bullets
+    tradeoffs += gpu_bullets + render_pass_tradeoffs(as_runs(load_json(results / "render_passes.json")))
     out += other_results_section(results, report)
     out += ["## Trade-offs a user chooses between", ""]
     out += [f"- {b}" for b in tradeoffs] or ["- No benchmark results to draw them from."]

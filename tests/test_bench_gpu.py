@@ -30,7 +30,7 @@ def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
     assert not [r for r in runs if "error" in r]
     kinds = [r["kind"] for r in runs]
     assert kinds == ["edit_step"] * len(bench.STEP_VARIANTS) + ["edit", "reconstruction", "reconstruction",
-                                                                  "refinement", "job"]
+                                                                  "refinement", "job"] + ["render_passes"] * 8
     for run in runs:
         assert {"name", "device", "dtype", "model", "peak_memory_gb"} <= set(run)
         assert run["device"] == "cpu" and run["peak_memory_gb"] > 0
@@ -41,7 +41,13 @@ def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
     for run in runs:
         if run["kind"] == "reconstruction":
             assert run["seconds"] > 0 and 5 < run["psnr"] < 60 and 0 < run["ssim"] <= 1
-    job = runs[-1]
+    passes = [r for r in runs if r["kind"] == "render_passes"]
+    for scene in ("sphere", "fog"):  # grouping never moves the render; larger passes never dispatch more
+        mine = [r for r in passes if r["scene"] == scene]
+        assert [r["samples_per_pass"] for r in mine] == sorted(r["samples_per_pass"] for r in mine)
+        assert all(r["max_rgb_difference"] == 0 and r["max_gradient_difference"] < 1e-5 for r in mine)
+        assert [r["operations"] for r in mine] == sorted((r["operations"] for r in mine), reverse=True)
+    job = next(r for r in runs if r["kind"] == "job")
     assert job["state"] == "succeeded"
     assert set(job["peak_memory_gb_per_stage"]) == {"reconstruct", "edit", "refine", "export"}
     assert (tmp_path / "gpu.png").stat().st_size > 1000

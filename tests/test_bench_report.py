@@ -107,3 +107,15 @@ def test_gpu_section_reads_issue_17s_targets_and_ratios_from_gpu_json(tmp_path):
     text = "\n".join(report.gpu_section(gpu, cpu, tmp_path, tmp_path / "REPORT.md")[0])
     assert "not comparable: 200 px on the GPU, 266 px on the CPU" in text
     assert "**No results:**" in report.gpu_section({}, cpu, tmp_path, tmp_path / "REPORT.md")[0][0]
+
+
+def test_render_pass_tradeoffs_compare_each_pass_size_with_the_default():
+    rows = [{"scene": "sphere", "device": "cpu", "samples_per_pass": 1 << 20, "operations": 1200, "ms": 600.0,
+             "peak_memory_gb": 0.7, "operations_ratio_to_reference": 1.0, "ms_ratio_to_reference": 1.0,
+             "max_rgb_difference": 0.0},
+            {"scene": "sphere", "device": "cpu", "samples_per_pass": 1 << 22, "operations": 600, "ms": 720.0,
+             "peak_memory_gb": 1.1, "operations_ratio_to_reference": 0.5, "ms_ratio_to_reference": 1.2,
+             "max_rgb_difference": 0.0}]
+    (bullet,) = report.render_pass_tradeoffs(rows)
+    assert "(sphere, cpu; against the default 2^20: 1200 operations, 600 ms, 0.70 GiB)" in bullet
+    assert "2^22: 0.50× the operations, 1.20× the time, 1.10 GiB" in bullet and "at most 0" in bullet
