@@ -112,7 +112,7 @@ def _peak(reports, key: str = "peak_memory_gb") -> float | None:
 
 
 def _peaks(reports) -> dict:
-    """Peak memory allocated and reserved (the latter counts CUDA graphs' pools, which replays leave out of the former)."""
+    """Peak memory allocated and reserved (the latter counts the CUDA graphs' pools, which replays leave out)."""
     return {"peak_memory_gb": _peak(reports), "peak_memory_reserved_gb": _peak(reports, "peak_memory_reserved_gb")}
 
 

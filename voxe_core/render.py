@@ -34,8 +34,9 @@ class RenderConfig:
     skip_empty: bool = True
     sigma_threshold: float = 1e-3  # cells whose density stays below this are skipped
     early_stop: float = 1e-4  # transmittance below which a ray's samples are not evaluated
-    # Lattice samples held at once (rays are grouped to fit). Larger passes dispatch fewer operations (2^22: 0.50x on
-    # the edit's render) but run 1.17x slower on CPU with +0.45 GiB (bench/render_passes.py; bench/gpu.py measures the GPU).
+    # Lattice samples held at once (rays are grouped to fit). Larger passes dispatch fewer operations (2^22: 0.50x
+    # on the edit's render) but run 1.17x slower on CPU with +0.45 GiB (bench/render_passes.py; bench/gpu.py's
+    # section h measures the GPU).
     samples_per_pass: int = 1 << 20
     chunk_rays: int = 32768  # rays per chunk in whole-image renders
 
