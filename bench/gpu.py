@@ -435,6 +435,23 @@ def cuda_graph_runs(sd2: Path, profile: Profile, baseline_ms: float | None) -> l
 
 
 # ---------------------------------------------------------------- output
+def _plot_label(run: dict) -> str:
+    """A run's name with what tells equal names apart: its device call and whether the CUDA graphs ran."""
+    label = run["name"].removeprefix("edit_step ")
+    if run.get("cuda_graphs") and "CUDA graphs" not in label:
+        label += ", CUDA graphs"
+    return label + (f" [call {run['call']}]" if run.get("call") else "")
+
+
+def _memory_text(run: dict) -> str:
+    """Reserved peak where recorded; the allocated one unless graphs ran (replays allocate nothing)."""
+    if run.get("peak_memory_reserved_gb") is not None:
+        return f", {run['peak_memory_reserved_gb']:.1f} GiB reserved"
+    if run.get("peak_memory_gb") is not None and not run.get("cuda_graphs"):
+        return f", {run['peak_memory_gb']:.1f} GiB"
+    return ""
+
+
 def plot(runs: list[dict], path: Path) -> None:
     import matplotlib
 
@@ -442,25 +459,27 @@ def plot(runs: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     steps = [r for r in runs if r.get("kind") == "edit_step" and "ms_step" in r]
-    timed = [r for r in runs if r.get("kind") != "edit_step" and r.get("seconds") is not None]
-    fig, (left, right) = plt.subplots(1, 2, figsize=(13, 1.5 + 0.5 * max(len(steps), len(timed), 1)))
-    for i, r in enumerate(steps):
+    timed = [r for r in runs if r.get("kind") not in ("edit_step", "render_passes") and r.get("seconds") is not None]
+    fig, (left, right) = plt.subplots(1, 2, figsize=(14, 1.5 + 0.45 * max(len(steps), len(timed), 1)))
+    for i, r in enumerate(steps):  # bars from zero on a linear axis: their lengths compare
         left.barh(i, r["ms_step"], color="#4c72b0")
-        left.text(r["ms_step"], i, f" {r['ms_step']:.0f} ms  ×{r['speedup_over_baseline']:.2f}", va="center", fontsize=8)
-    left.set_yticks(range(len(steps)), [r["name"].removeprefix("edit_step ") for r in steps], fontsize=8)
+        left.text(r["ms_step"], i, f" {r['ms_step']:.0f} ms  ×{r['speedup_over_baseline']:.2f}", va="center",
+                  fontsize=8)
+    left.set_yticks(range(len(steps)), [_plot_label(r) for r in steps], fontsize=8)
     left.invert_yaxis()
-    left.set_xscale("log")
-    left.set_xlabel("ms per editing step (log)")
-    left.set_title("edit step: each speed-up added in turn")
-    for i, r in enumerate(timed):
-        right.barh(i, r["seconds"], color="#55a868")
-        memory = f", {r['peak_memory_gb']:.1f} GiB" if r.get("peak_memory_gb") is not None else ""
-        right.text(r["seconds"], i, f" {r['seconds']:.1f} s{memory}", va="center", fontsize=8)
-    right.set_yticks(range(len(timed)), [r["name"] for r in timed], fontsize=8)
+    left.set_xlim(0, 1.3 * max((r["ms_step"] for r in steps), default=1))
+    left.set_xlabel("ms per editing step")
+    left.set_title("edit step: each speed-up against the fp32 baseline")
+    right.scatter([r["seconds"] for r in timed], range(len(timed)), color="#dd8452", marker="^", zorder=3)
+    for i, r in enumerate(timed):  # points on a log axis: stages span seconds to minutes
+        right.annotate(f"  {r['seconds']:.1f} s{_memory_text(r)}", (r["seconds"], i), va="center", fontsize=8)
+    right.set_yticks(range(len(timed)), [_plot_label(r) for r in timed], fontsize=8)
     right.invert_yaxis()
     right.set_xscale("log")
-    right.set_xlabel("seconds (log)")
-    right.set_title(f"stages on {runs[0]['device'] if runs else '?'} — random-weight models: cost only")
+    right.margins(x=0.6)
+    right.grid(True, which="both", axis="x", color="0.92")
+    right.set_xlabel("seconds (log scale)")
+    right.set_title(f"stages on {runs[0]['device'] if runs else '?'} (random weights: costs only)")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
