@@ -22,7 +22,6 @@ section h runs :func:`measure` on the GPU.
 from __future__ import annotations
 
 import argparse
-import collections
 import json
 import os
 import statistics
