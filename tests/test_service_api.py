@@ -844,6 +844,10 @@ def test_a_scenes_backbone_is_decided_at_processing_and_jobs_are_checked_against
     failed = client.get(f"/v1/jobs/{misfit['id']}").json()
     assert (failed["state"], failed["error"]) == ("failed", f"params.reconstruction: {why}")
     assert client.get(f"/v1/jobs/{fitting['id']}").json()["state"] == "queued"
+    listed = {r["id"]: r for r in client.get(f"/v1/scenes/{processing['id']}/reconstructions").json()}
+    never_fitted = listed[failed["reconstruction"]["id"]]  # says why, rather than waiting as if a job would fit it
+    assert (never_fitted["state"], never_fitted["error"]) == ("failed", f"params.reconstruction: {why}")
+    assert listed[client.get(f"/v1/jobs/{fitting['id']}").json()["reconstruction"]["id"]]["state"] == "pending"
     with session_scope() as session:
         assert session.get(Job, misfit["id"]).task_id is None  # never sent
         assert session.get(Job, fitting["id"]).task_id is not None

@@ -15,7 +15,9 @@ from sqlalchemy.orm import Session
 
 from voxe_core.presets import check_fit
 from voxe_service.jobs import finish_jobs
-from voxe_service.models import EVALUATE, FAILED, PROCESSING, QUEUED, READY, Job, Scene, utcnow
+from voxe_service.models import (
+    EVALUATE, FAILED, PROCESSING, QUEUED, R_FAILED, R_PENDING, READY, Job, Reconstruction, Scene, utcnow,
+)
 from voxe_service.queue import evaluations_waiting_on
 
 
@@ -40,7 +42,8 @@ def waiting_jobs(session: Session, scene_id: str, include_evaluations: bool = Fa
 def mark_ready(session: Session, scene_id: str, **values) -> list[Job] | None:
     """processing -> ready with ``values`` (sizes, the final archive, the backbone "auto" means); the jobs to
     dispatch now. A waiting job whose reconstruction parameters that backbone cannot take (what a 422 refuses on
-    a ready scene) fails naming why, and so do the evaluations of its sweep that wait on it.
+    a ready scene) fails naming why, and so do the evaluations of its sweep that wait on it and its reconstruction
+    (still pending: no job can ever fit it on this scene, and its listing says why).
 
     None when the scene is no longer processing (deleted, or failed by the reaper meanwhile).
     """
@@ -58,6 +61,9 @@ def mark_ready(session: Session, scene_id: str, **values) -> list[Job] | None:
             finish_jobs(session, [job.id], FAILED, error=error)
             finish_jobs(session, evaluations_waiting_on(session, job), FAILED,
                         error=f"evaluate: source job {job.id} failed: {error}")
+            session.execute(update(Reconstruction).where(Reconstruction.id == job.reconstruction_id,
+                                                         Reconstruction.state == R_PENDING)
+                            .values(state=R_FAILED, error=error, finished_at=now))
         else:
             dispatch.append(job)
     return dispatch
