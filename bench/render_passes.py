@@ -37,7 +37,7 @@ sys.path[:0] = [str(HERE.parent), str(HERE)]
 from edit_step import sphere_grid  # noqa: E402
 
 from voxe_core.cameras import Cameras, camera_rays, random_hemisphere_poses  # noqa: E402
-from voxe_core.devices import PeakMemory  # noqa: E402
+from voxe_core.devices import PeakMemory, synchronize  # noqa: E402
 from voxe_core.edit import EditConfig  # noqa: E402
 from voxe_core.grid import VoxelGrid  # noqa: E402
 from voxe_core.render import RenderConfig, render_rays  # noqa: E402
@@ -78,11 +78,6 @@ def render_once(grid: VoxelGrid, rays, config: RenderConfig, seed: int = 0):
     return out.rgb.detach(), grid.flat_features.grad.clone(), out.samples
 
 
-def _synchronize(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
 def measure(name: str, grid: VoxelGrid, rays, repeats: int, device: str = "cpu", passes=PASSES) -> list[dict]:
     """One row per ``passes`` entry: operations, samples, peak memory, output differences against the first entry
     and the median time of ``repeats`` interleaved renders (each row's ``*_ratio_to_reference`` against the first)."""
@@ -108,10 +103,10 @@ def measure(name: str, grid: VoxelGrid, rays, repeats: int, device: str = "cpu",
                      "ms": []}
     for _ in range(repeats):  # interleaved, so the shared machine's drift lands on every size alike
         for spp, config in configs.items():
-            _synchronize(device)
+            synchronize(device)
             start = time.perf_counter()
             render_once(grid, rays, config)
-            _synchronize(device)
+            synchronize(device)
             rows[spp]["ms"].append((time.perf_counter() - start) * 1e3)
     for row in rows.values():
         row["ms"] = statistics.median(row["ms"])

@@ -476,7 +476,8 @@ def test_a_capture_the_libraries_refuse_turns_the_graphs_off_with_a_warning(guid
         calls.append(args)
         raise RuntimeError("operation not permitted when stream is capturing")
 
-    fresh.cuda_graphs, fresh._graphed_unet = True, refused  # as a CUDA guidance whose capture fails
+    fresh._graphed_unet = refused  # as a CUDA guidance whose capture fails
+    assert fresh.cuda_graphs
     generator = torch.Generator().manual_seed(0)
     latents, noise = torch.randn(1, 4, 8, 8, generator=generator), torch.randn(1, 4, 8, 8, generator=generator)
     text = guidance.encode_prompts(["a dog"])

@@ -60,7 +60,7 @@ from voxe_core.constants import (
     NERF_SYNTHETIC_RADIUS,
     RENDER_SIZE,
 )
-from voxe_core.devices import PeakMemory, resolve_device, same_device
+from voxe_core.devices import PeakMemory, resolve_device, same_device, synchronize
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance import Guidance
 from voxe_core.guidance.prompts import (
@@ -191,8 +191,8 @@ def initial_fingerprint(grid: VoxelGrid) -> str:
 
 
 def _sync(device: torch.device, enabled: bool) -> None:
-    if enabled and device.type == "cuda":
-        torch.cuda.synchronize(device)
+    if enabled:
+        synchronize(device)
 
 
 def _autocast(device: torch.device, name: str | None):

@@ -49,6 +49,7 @@ import torch
 import torch.nn.functional as F
 
 from voxe_core.constants import DEFAULT_ATTENTION_TIMESTEP, DEFAULT_GUIDANCE_SCALE, SDS_MODEL_ID
+from voxe_core.devices import synchronize
 from voxe_core.guidance.attention import AttentionStore, capturing
 from voxe_core.guidance.cuda_graphs import GraphedEncoder, GraphedUNet
 from voxe_core.guidance.loading import load_stable_diffusion
@@ -92,8 +93,8 @@ def _check_graph_device(cuda_graphs: bool, device) -> None:
 
 
 def _sync(guidance: "StableDiffusionGuidance") -> None:
-    if guidance.sync_timing and guidance.device.type == "cuda":
-        torch.cuda.synchronize(guidance.device)
+    if guidance.sync_timing:
+        synchronize(guidance.device)
 
 
 class StableDiffusionGuidance:
@@ -159,7 +160,6 @@ class StableDiffusionGuidance:
         # off, the timings only measure host-side dispatch.
         self.sync_timing = bool(sync_timing)
         # The SDS step's UNet forward and VAE encoder replayed from CUDA graphs (voxe_core.guidance.cuda_graphs).
-        self.cuda_graphs = bool(cuda_graphs)
         self._graphed_unet = GraphedUNet(self._eager_unet) if cuda_graphs else None
         self._graphed_encoder = GraphedEncoder(self._encode_moments) if cuda_graphs else None
 
@@ -320,6 +320,11 @@ class StableDiffusionGuidance:
             raise ValueError(f"timesteps must lie in [0, {self.num_train_timesteps - 1}], got {t.tolist()}")
         return t.to(self.device, non_blocking=True)
 
+    @property
+    def cuda_graphs(self) -> bool:
+        """Whether the SDS step's networks replay from CUDA graphs (off for good once a capture was refused)."""
+        return self._graphed_unet is not None
+
     def _graphed_or_eager(self, graphed, eager, *args: torch.Tensor) -> torch.Tensor:
         """``graphed(*args)`` where the graphs can run (CUDA graphs on, no autocast: an edit's ``autocast_dtype``
         runs the eager networks), else ``eager(*args)``. A capture the installed libraries refuse turns the graphs
@@ -332,7 +337,7 @@ class StableDiffusionGuidance:
             except RuntimeError as error:
                 warnings.warn(f"CUDA graphs turned off for {self.model_id or 'this guidance'}: {error}", RuntimeWarning,
                               stacklevel=3)
-                self.cuda_graphs, self._graphed_unet, self._graphed_encoder = False, None, None
+                self._graphed_unet, self._graphed_encoder = None, None
         return eager(*args)
 
     def _eager_unet(self, sample: torch.Tensor, timestep: torch.Tensor, text: torch.Tensor) -> torch.Tensor:
