@@ -62,6 +62,8 @@ RESULTS = HERE / "results"
 sys.path[:0] = [str(REPO), str(HERE), str(REPO / "tests")]
 from needs import MIC  # noqa: E402 - ../shared/data, or $VOXE_DATA_ROOT (bench/gpu_device.sh on the GPU machine)
 
+from voxe_core.devices import synchronize  # noqa: E402
+
 PROMPT, EDIT_WORDS = "a dog wearing big sunglasses", ["sunglasses"]
 
 
@@ -101,11 +103,6 @@ class Profile:
                     "mesh_resolution": 32})
 
 
-def _synchronize(device: str) -> None:
-    if torch.device(device).type == "cuda":
-        torch.cuda.synchronize()
-
-
 def _peak(reports, key: str = "peak_memory_gb") -> float | None:
     values = [r.info[key] for r in reports if r.info.get(key) is not None]
     return max(values) if values else None
@@ -114,6 +111,36 @@ def _peak(reports, key: str = "peak_memory_gb") -> float | None:
 def _peaks(reports) -> dict:
     """Peak memory allocated and reserved (the latter counts the CUDA graphs' pools, which replays leave out)."""
     return {"peak_memory_gb": _peak(reports), "peak_memory_reserved_gb": _peak(reports, "peak_memory_reserved_gb")}
+
+
+def _dtype_name(dtype: torch.dtype) -> str:
+    return str(dtype).replace("torch.", "")
+
+
+SDS_MODEL = "sd2-base-shaped (random weights)"
+EDIT_PARTS = ("render", "vae", "unet", "backward", "optimizer")
+
+
+def _step_row(name: str, profile: Profile, dtype: torch.dtype, ms_step: float, reports, parts=None, **extra) -> dict:
+    """An ``edit_step`` run: ms per step, its 8,000-iteration minutes, peak memory of ``reports`` and, from
+    ``parts`` (reports of a run with timing synchronisation), each part's mean device time."""
+    row = {"name": f"edit_step {name}", "kind": "edit_step", "device": profile.device, "dtype": _dtype_name(dtype),
+           "model": SDS_MODEL, "ms_step": ms_step, "edit_8000_minutes": ms_step * 8000 / 60000,
+           **_peaks(reports + (parts or [])), **extra}
+    for part in EDIT_PARTS if parts else ():
+        row[f"ms_{part}"] = sum(r.info[f"ms_{part}"] for r in parts) / len(parts)
+    return row
+
+
+def _loop_row(guidance, profile: Profile, name: str, **extra) -> dict:
+    """An ``edit`` run: ``loop_iterations`` default iterations after warm-up, timed as one."""
+    _edit_run(guidance, profile, profile.warm, sync=False)
+    reports, wall = _edit_run(guidance, profile, profile.loop_iterations, sync=False)
+    ms_step = wall * 1e3 / profile.loop_iterations
+    return {"name": name, "kind": "edit", "device": profile.device, "dtype": _dtype_name(profile.dtype),
+            "model": SDS_MODEL, "iterations": profile.loop_iterations, "seconds": wall,
+            "iterations_per_second": profile.loop_iterations / wall, "ms_step": ms_step,
+            "edit_8000_minutes": ms_step * 8000 / 60000, **_peaks(reports), **extra}
 
 
 def _guidance(path: Path, profile: Profile, dtype: torch.dtype, cuda_graphs: bool | None = None):
@@ -155,10 +182,10 @@ def _edit_run(guidance, profile: Profile, iterations: int, sync: bool):
     guidance.sync_timing = sync
     config = EditConfig(iterations=iterations, render_size=profile.render_size, sync_timing=sync)
     grid = sphere_grid(profile.grid_resolution)
-    _synchronize(profile.device)
+    synchronize(profile.device)
     start = time.perf_counter()
     edit(grid, PROMPT, guidance, config, Callbacks(on_progress=reports.append), device=profile.device)
-    _synchronize(profile.device)
+    synchronize(profile.device)
     return reports, time.perf_counter() - start
 
 
@@ -187,13 +214,8 @@ def edit_step_runs(sd2: Path, profile: Profile) -> list[dict]:
             _edit_run(guidance, profile, profile.warm, variant["sync"])  # kernels picked, caches filled
             timed, wall = _edit_run(guidance, profile, profile.timed, variant["sync"])
         ms_step = wall * 1e3 / profile.timed
-        row = {"name": f"edit_step {name}", "kind": "edit_step", "device": profile.device,
-               "dtype": str(dtype).replace("torch.", ""), "model": "sd2-base-shaped (random weights)",
-               "ms_step": ms_step, "edit_8000_minutes": ms_step * 8000 / 60000, **_peaks(timed),
-               **variant}
-        if variant["sync"]:  # per-part device times
-            for part in ("render", "vae", "unet", "backward", "optimizer"):
-                row[f"ms_{part}"] = sum(r.info[f"ms_{part}"] for r in timed) / len(timed)
+        # per-part device times where the variant synchronises
+        row = _step_row(name, profile, dtype, ms_step, timed, timed if variant["sync"] else None, **variant)
         baseline = baseline or ms_step
         row["speedup_over_baseline"] = baseline / ms_step
         rows.append(row)
@@ -201,17 +223,10 @@ def edit_step_runs(sd2: Path, profile: Profile) -> list[dict]:
 
 
 def edit_loop_run(sd2: Path, profile: Profile) -> dict:
-    guidance = _guidance(sd2, profile, profile.dtype)
-    _channels_last(guidance, profile.device == "cuda")
-    _edit_run(guidance, profile, profile.warm, sync=False)
-    reports, wall = _edit_run(guidance, profile, profile.loop_iterations, sync=False)
-    ms_step = wall * 1e3 / profile.loop_iterations
-    return {"name": f"edit_loop {profile.loop_iterations} iterations at {profile.grid_resolution}³", "kind": "edit",
-            "device": profile.device, "dtype": str(profile.dtype).replace("torch.", ""),
-            "model": "sd2-base-shaped (random weights)", "iterations": profile.loop_iterations, "seconds": wall,
-            "iterations_per_second": profile.loop_iterations / wall, "ms_step": ms_step,
-            "edit_8000_minutes": ms_step * 8000 / 60000, **_peaks(reports),
-            "render_size": profile.render_size, "guidance_resolution": profile.guidance_resolution}
+    """The default edit (the guidance as ``from_pretrained`` makes it: channels_last and CUDA graphs on CUDA)."""
+    return _loop_row(_guidance(sd2, profile, profile.dtype), profile,
+                     f"edit_loop {profile.loop_iterations} iterations at {profile.grid_resolution}³",
+                     render_size=profile.render_size, guidance_resolution=profile.guidance_resolution)
 
 
 # ---------------------------------------------------------------- (c)
@@ -229,11 +244,11 @@ def reconstruction_runs(profile: Profile, data: Path) -> list[dict]:
     for preset, params in profile.reconstruction.items():
         config = reconstruct_config(reconstruction_params({"reconstruction": params}), 0)
         reports = []
-        _synchronize(profile.device)
+        synchronize(profile.device)
         start = time.perf_counter()
         grid = reconstruct(train.images, train.cameras, config, Callbacks(on_progress=reports.append),
                            device=profile.device)
-        _synchronize(profile.device)
+        synchronize(profile.device)
         seconds = time.perf_counter() - start
         render = RenderConfig(step_ratio=config.render.step_ratio)
         cameras = test.cameras.to(profile.device)
@@ -267,15 +282,15 @@ def refinement_run(sd14: Path, profile: Profile) -> dict:
         reports.append(report)
         marks[report.stage] = time.perf_counter()
 
-    _synchronize(profile.device)
+    synchronize(profile.device)
     start = time.perf_counter()
     result = refine(initial, edited, PROMPT, EDIT_WORDS, guidance, RefineConfig(**profile.refine),
                     Callbacks(on_progress=on_progress), device=profile.device)
-    _synchronize(profile.device)
+    synchronize(profile.device)
     seconds = time.perf_counter() - start
     maps_end = marks.get("attention_maps", start)
     return {"name": f"refinement at {profile.grid_resolution}³", "kind": "refinement", "device": profile.device,
-            "dtype": str(profile.dtype).replace("torch.", ""), "model": "sd1.4-shaped (random weights)",
+            "dtype": _dtype_name(profile.dtype), "model": "sd1.4-shaped (random weights)",
             "seconds": seconds, "seconds_attention_maps": maps_end - start,
             "seconds_grids_and_cut": start + seconds - maps_end,  # the lift or fit, then the cut
             "edit_voxels": int(result.mask.sum()), **_peaks(reports)}
@@ -322,7 +337,7 @@ def job_run(sd2: Path, sd14: Path, profile: Profile, data: Path, root: Path, loo
         projected = total + (8000 - profile.job_iterations) * loop_ms_step / 1e3
     memory = (done.get("result") or {}).get("peak_memory_gb", {})
     return {"name": "local-edit job through the worker", "kind": "job", "device": profile.device,
-            "dtype": str(profile.dtype).replace("torch.", ""),
+            "dtype": _dtype_name(profile.dtype),
             "model": "sd2-base-shaped SDS + sd1.4-shaped attention (random weights)", "seconds": total,
             "seconds_per_stage": seconds, "edit_iterations": profile.job_iterations,
             "seconds_projected_8000_iterations": projected, "state": done["state"],
@@ -384,11 +399,11 @@ def _unet_ms(guidance, profile: Profile, batch: int, repeats: int = 10) -> float
     text = guidance.encode_prompts([PROMPT]).to(profile.device, guidance.dtype).expand(batch, -1, -1)
     for _ in range(2):
         guidance.unet(sample, t, encoder_hidden_states=text)
-    _synchronize(profile.device)
+    synchronize(profile.device)
     start = time.perf_counter()
     for _ in range(repeats):
         guidance.unet(sample, t, encoder_hidden_states=text)
-    _synchronize(profile.device)
+    synchronize(profile.device)
     return (time.perf_counter() - start) * 1e3 / repeats
 
 
@@ -409,26 +424,17 @@ def cuda_graph_runs(sd2: Path, profile: Profile, baseline_ms: float | None) -> l
         timed, wall = _edit_run(guidance, profile, profile.timed, sync=False)
         ms_step = wall * 1e3 / profile.timed
         eager_ms = eager_ms or ms_step
-        row = {"name": f"edit_step {name}", "kind": "edit_step", "device": profile.device,
-               "dtype": str(profile.dtype).replace("torch.", ""), "model": "sd2-base-shaped (random weights)",
-               "ms_step": ms_step, "edit_8000_minutes": ms_step * 8000 / 60000, **_peaks(parts + timed),
-               "cuda_graphs": guidance.cuda_graphs, "warm_seconds": warm_seconds, "warm_iterations": profile.warm,
-               "speedup_over_eager": eager_ms / ms_step, "speedup_over_baseline": (baseline_ms or eager_ms) / ms_step}
-        for part in ("render", "vae", "unet", "backward", "optimizer"):
-            row[f"ms_{part}"] = sum(r.info[f"ms_{part}"] for r in parts) / len(parts)
-        rows.append(row)
+        rows.append(_step_row(name, profile, profile.dtype, ms_step, timed, parts, cuda_graphs=guidance.cuda_graphs,
+                              warm_seconds=warm_seconds, warm_iterations=profile.warm,
+                              speedup_over_eager=eager_ms / ms_step,
+                              speedup_over_baseline=(baseline_ms or eager_ms) / ms_step))
     rows[-1].update(agreement)
-    reports, wall = _edit_run(graphed, profile, profile.loop_iterations, sync=False)
-    ms_step = wall * 1e3 / profile.loop_iterations
-    rows.append({"name": f"edit_loop {profile.loop_iterations} iterations at {profile.grid_resolution}³, CUDA graphs",
-                 "kind": "edit", "device": profile.device, "dtype": str(profile.dtype).replace("torch.", ""),
-                 "model": "sd2-base-shaped (random weights)", "cuda_graphs": True,
-                 "iterations": profile.loop_iterations, "seconds": wall,
-                 "iterations_per_second": profile.loop_iterations / wall, "ms_step": ms_step,
-                 "edit_8000_minutes": ms_step * 8000 / 60000, **_peaks(reports)})
+    rows.append(_loop_row(graphed, profile,
+                          f"edit_loop {profile.loop_iterations} iterations at {profile.grid_resolution}³, CUDA graphs",
+                          cuda_graphs=True))
     batch2, batch8 = _unet_ms(eager, profile, 2), _unet_ms(eager, profile, 8)
     rows.append({"name": "eager UNet forward, batch 2 against 8", "kind": "diagnostic", "device": profile.device,
-                 "dtype": str(profile.dtype).replace("torch.", ""), "model": "sd2-base-shaped (random weights)",
+                 "dtype": _dtype_name(profile.dtype), "model": SDS_MODEL,
                  "peak_memory_gb": None, "ms_unet_batch_2": batch2, "ms_unet_batch_8": batch8,
                  "batch_8_over_batch_2": batch8 / batch2})
     return rows

@@ -534,8 +534,12 @@ def _minutes(seconds):
     return None if seconds is None else seconds / 60
 
 
+def _preset_run(runs: list[dict], preset: str) -> dict | None:
+    return next((r for r in runs if r.get("kind") == "reconstruction" and r.get("preset") == preset), None)
+
+
 def _preset(runs: list[dict], preset: str, key: str):
-    return next((r.get(key) for r in runs if r.get("kind") == "reconstruction" and r.get("preset") == preset), None)
+    return (_preset_run(runs, preset) or {}).get(key)
 
 
 def gpu_section(gpu, reconstruction, results: Path, report: Path) -> tuple[list[str], list[str]]:
@@ -558,7 +562,7 @@ def gpu_section(gpu, reconstruction, results: Path, report: Path) -> tuple[list[
                      fmt(r.get("ms_step"), 1), fmt(r.get("edit_8000_minutes"), 1), fmt(r.get("seconds"), 1),
                      fmt(r.get("psnr"), 2), fmt(r.get("ssim"), 4), fmt(r.get("peak_memory_gb"), 2)] for r in runs])
     cpu_fast = next((r for r in as_runs(reconstruction) if r.get("label") == "preset-fast"), None)
-    gpu_fast = next((r for r in runs if r.get("kind") == "reconstruction" and r.get("preset") == "fast"), None)
+    gpu_fast = _preset_run(runs, "fast")
     target_rows = []
     for name, target, measure, met, form in GPU_TARGETS:
         value = measure(runs)
