@@ -64,9 +64,11 @@ FAMILIES = {
 }
 
 
-def build_sd2_base_shaped(path: Path, tokenizer_from: Path, dtype: str = "float16", family: str = "sd2-base") -> Path:
+def build_sd2_base_shaped(path: Path, tokenizer_from: Path, dtype: str = "float16", family: str = "sd2-base",
+                          device: str = "cpu") -> Path:
     """Random-weight UNet / VAE / CLIP text encoder with Stable Diffusion 2 base's (or ``family``'s) shapes,
-    diffusers layout."""
+    diffusers layout. ``device`` draws the random weights there ("cuda": seconds instead of the CPU's minute for
+    1.3 G parameters); they are saved from the host."""
     import diffusers
     from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
     from transformers import CLIPTextConfig, CLIPTextModel, CLIPTokenizer
@@ -78,48 +80,54 @@ def build_sd2_base_shaped(path: Path, tokenizer_from: Path, dtype: str = "float1
     torch.manual_seed(0)
     shapes = FAMILIES[family]
 
-    unet = UNet2DConditionModel(
-        sample_size=64,
-        in_channels=4,
-        out_channels=4,
-        down_block_types=("CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "DownBlock2D"),
-        up_block_types=("UpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D"),
-        block_out_channels=(320, 640, 1280, 1280),
-        layers_per_block=2,
-        cross_attention_dim=shapes["cross_attention_dim"],
-        attention_head_dim=shapes["attention_head_dim"],
-        use_linear_projection=shapes["use_linear_projection"],
-        norm_num_groups=32,
-        flip_sin_to_cos=True,
-        freq_shift=0,
-    )
-    unet.to(save_dtype).save_pretrained(str(path / "unet"))
+    def save(module: torch.nn.Module, folder: str) -> None:
+        module.to(save_dtype).cpu().save_pretrained(str(path / folder))
+
+    with torch.device(device):
+        unet = UNet2DConditionModel(
+            sample_size=64,
+            in_channels=4,
+            out_channels=4,
+            down_block_types=("CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "DownBlock2D"),
+            up_block_types=("UpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D"),
+            block_out_channels=(320, 640, 1280, 1280),
+            layers_per_block=2,
+            cross_attention_dim=shapes["cross_attention_dim"],
+            attention_head_dim=shapes["attention_head_dim"],
+            use_linear_projection=shapes["use_linear_projection"],
+            norm_num_groups=32,
+            flip_sin_to_cos=True,
+            freq_shift=0,
+        )
+    save(unet, "unet")
     del unet
 
-    vae = AutoencoderKL(
-        in_channels=3,
-        out_channels=3,
-        down_block_types=("DownEncoderBlock2D",) * 4,
-        up_block_types=("UpDecoderBlock2D",) * 4,
-        block_out_channels=(128, 256, 512, 512),
-        layers_per_block=2,
-        latent_channels=4,
-        norm_num_groups=32,
-        sample_size=512,
-        scaling_factor=0.18215,
-    )
-    vae.to(save_dtype).save_pretrained(str(path / "vae"))
+    with torch.device(device):
+        vae = AutoencoderKL(
+            in_channels=3,
+            out_channels=3,
+            down_block_types=("DownEncoderBlock2D",) * 4,
+            up_block_types=("UpDecoderBlock2D",) * 4,
+            block_out_channels=(128, 256, 512, 512),
+            layers_per_block=2,
+            latent_channels=4,
+            norm_num_groups=32,
+            sample_size=512,
+            scaling_factor=0.18215,
+        )
+    save(vae, "vae")
     del vae
 
-    text = CLIPTextModel(CLIPTextConfig(
-        vocab_size=49408,
-        max_position_embeddings=77,
-        **shapes["text"],
-        bos_token_id=tokenizer.bos_token_id,
-        eos_token_id=tokenizer.eos_token_id,
-        pad_token_id=tokenizer.eos_token_id,
-    ))
-    text.to(save_dtype).save_pretrained(str(path / "text_encoder"))
+    with torch.device(device):
+        text = CLIPTextModel(CLIPTextConfig(
+            vocab_size=49408,
+            max_position_embeddings=77,
+            **shapes["text"],
+            bos_token_id=tokenizer.bos_token_id,
+            eos_token_id=tokenizer.eos_token_id,
+            pad_token_id=tokenizer.eos_token_id,
+        ))
+    save(text, "text_encoder")
     del text
 
     DDIMScheduler(
@@ -263,10 +271,11 @@ def main() -> None:
     parser.add_argument("--build-full", type=Path, default=None, help=argparse.SUPPRESS)  # subprocess entry
     parser.add_argument("--tokenizer-from", type=Path, default=None, help=argparse.SUPPRESS)
     parser.add_argument("--family", choices=FAMILIES, default="sd2-base", help=argparse.SUPPRESS)
+    parser.add_argument("--build-device", default="cpu", help=argparse.SUPPRESS)
     args = parser.parse_args()
 
     if args.build_full is not None:
-        build_sd2_base_shaped(args.build_full, args.tokenizer_from, family=args.family)
+        build_sd2_base_shaped(args.build_full, args.tokenizer_from, family=args.family, device=args.build_device)
         return
 
     from voxe_core.tiny_sd import build_tiny_stable_diffusion

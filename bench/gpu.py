@@ -118,7 +118,7 @@ def _dtype_name(dtype: torch.dtype) -> str:
 
 
 SDS_MODEL = "sd2-base-shaped (random weights)"
-EDIT_PARTS = ("render", "vae", "unet", "backward", "optimizer")
+EDIT_PARTS = ("render", "vae", "unet", "backward", "backward_guidance", "backward_render", "optimizer")
 
 
 def _step_row(name: str, profile: Profile, dtype: torch.dtype, ms_step: float, reports, parts=None, **extra) -> dict:
@@ -128,7 +128,8 @@ def _step_row(name: str, profile: Profile, dtype: torch.dtype, ms_step: float, r
            "model": SDS_MODEL, "ms_step": ms_step, "edit_8000_minutes": ms_step * 8000 / 60000,
            **_peaks(reports + (parts or [])), **extra}
     for part in EDIT_PARTS if parts else ():
-        row[f"ms_{part}"] = sum(r.info[f"ms_{part}"] for r in parts) / len(parts)
+        if all(f"ms_{part}" in r.info for r in parts):
+            row[f"ms_{part}"] = sum(r.info[f"ms_{part}"] for r in parts) / len(parts)
     return row
 
 
@@ -171,8 +172,9 @@ def _channels_last(guidance, enabled: bool) -> None:
     guidance.vae.to(memory_format=layout)
 
 
-def _edit_run(guidance, profile: Profile, iterations: int, sync: bool):
-    """(reports, wall seconds) of ``iterations`` default edit iterations on the 160³ sphere (one sync at the end)."""
+def _edit_run(guidance, profile: Profile, iterations: int, sync: bool, samples_per_pass: int | None = None):
+    """(reports, wall seconds) of ``iterations`` default edit iterations on the 160³ sphere (one sync at the end);
+    ``samples_per_pass`` replaces the renderer's (None: the device's default)."""
     from edit_step import sphere_grid
 
     from voxe_core.edit import EditConfig, edit
@@ -181,6 +183,7 @@ def _edit_run(guidance, profile: Profile, iterations: int, sync: bool):
     reports = []
     guidance.sync_timing = sync
     config = EditConfig(iterations=iterations, render_size=profile.render_size, sync_timing=sync)
+    config.render.samples_per_pass = samples_per_pass
     grid = sphere_grid(profile.grid_resolution)
     synchronize(profile.device)
     start = time.perf_counter()
@@ -224,9 +227,10 @@ def edit_step_runs(sd2: Path, profile: Profile) -> list[dict]:
 
 def edit_loop_run(sd2: Path, profile: Profile) -> dict:
     """The default edit (the guidance as ``from_pretrained`` makes it: channels_last and CUDA graphs on CUDA)."""
-    return _loop_row(_guidance(sd2, profile, profile.dtype), profile,
-                     f"edit_loop {profile.loop_iterations} iterations at {profile.grid_resolution}³",
-                     render_size=profile.render_size, guidance_resolution=profile.guidance_resolution)
+    guidance = _guidance(sd2, profile, profile.dtype)
+    return _loop_row(guidance, profile, f"edit_loop {profile.loop_iterations} iterations at {profile.grid_resolution}³",
+                     render_size=profile.render_size, guidance_resolution=profile.guidance_resolution,
+                     cuda_graphs=guidance.cuda_graphs)
 
 
 # ---------------------------------------------------------------- (c)
@@ -440,6 +444,61 @@ def cuda_graph_runs(sd2: Path, profile: Profile, baseline_ms: float | None) -> l
     return rows
 
 
+# ---------------------------------------------------------------- (i)
+def step_pass_runs(sd2: Path, profile: Profile) -> list[dict]:
+    """The default step (CUDA graphs where they run) with the renderer's passes at the device's default against
+    2^20 (the CPU's) and 2^23, interleaved, each timed with per-part device times (the backward split where the
+    gradient reaches the renders) and without synchronisation."""
+    from voxe_core.render import RenderConfig
+
+    guidance = _guidance(sd2, profile, profile.dtype)
+    default = RenderConfig().pass_samples(torch.device(profile.device))
+    sizes = list(dict.fromkeys((1 << 20, default, 1 << 23)))
+    for size in sizes:
+        _edit_run(guidance, profile, profile.warm, sync=False, samples_per_pass=size)
+    timings = {size: [] for size in sizes}
+    parts = {size: [] for size in sizes}
+    for _ in range(2):  # interleaved halves: the machine's drift lands on every size alike
+        for size in sizes:
+            parts[size] += _edit_run(guidance, profile, profile.timed // 2, sync=True, samples_per_pass=size)[0]
+            reports, wall = _edit_run(guidance, profile, profile.timed // 2, sync=False, samples_per_pass=size)
+            timings[size].append((reports, wall))
+    rows = []
+    for size in sizes:
+        reports = [r for run, _ in timings[size] for r in run]
+        ms_step = sum(wall for _, wall in timings[size]) * 1e3 / len(reports)
+        rows.append(_step_row(f"samples_per_pass 2^{size.bit_length() - 1}" + (" (default)" if size == default else ""),
+                              profile, profile.dtype, ms_step, reports, parts[size], samples_per_pass=size,
+                              cuda_graphs=guidance.cuda_graphs))
+    for row in rows:
+        row["speedup_over_2_20"] = rows[0]["ms_step"] / row["ms_step"]
+    return rows
+
+
+# ---------------------------------------------------------------- (j)
+def compiled_encoder_runs(sd2: Path, profile: Profile) -> list[dict]:
+    """``torch.compile`` (inductor, default mode) on the VAE encoder of an eager guidance against the default
+    (CUDA-graphed) guidance: agreement with the eager encoder, the compile inside the warm-up (timed), the step with
+    per-part device times and without synchronisation."""
+    eager = _guidance(sd2, profile, profile.dtype, cuda_graphs=False)
+    compiled = _guidance(sd2, profile, profile.dtype, cuda_graphs=False)
+    compiled.vae.encoder = torch.compile(compiled.vae.encoder)
+    default = _guidance(sd2, profile, profile.dtype)
+    rows = []
+    for name, guidance in (("default (CUDA graphs)", default), ("eager + torch.compile(VAE encoder)", compiled)):
+        start = time.perf_counter()
+        _edit_run(guidance, profile, profile.warm, sync=False)  # the compile happens here
+        warm_seconds = time.perf_counter() - start
+        parts, _ = _edit_run(guidance, profile, profile.timed, sync=True)
+        timed, wall = _edit_run(guidance, profile, profile.timed, sync=False)
+        rows.append(_step_row(name, profile, profile.dtype, wall * 1e3 / profile.timed, timed, parts,
+                              cuda_graphs=guidance.cuda_graphs, compiled_encoder=guidance is compiled,
+                              warm_seconds=warm_seconds, warm_iterations=profile.warm))
+    rows[-1]["speedup_over_default"] = rows[0]["ms_step"] / rows[-1]["ms_step"]
+    rows[-1].update(_graph_agreement(eager, compiled, profile))
+    return rows
+
+
 # ---------------------------------------------------------------- output
 def _plot_label(run: dict) -> str:
     """A run's name with what tells equal names apart: its device call and whether the CUDA graphs ran."""
@@ -469,13 +528,13 @@ def plot(runs: list[dict], path: Path) -> None:
     fig, (left, right) = plt.subplots(1, 2, figsize=(14, 1.5 + 0.45 * max(len(steps), len(timed), 1)))
     for i, r in enumerate(steps):  # bars from zero on a linear axis: their lengths compare
         left.barh(i, r["ms_step"], color="#4c72b0")
-        left.text(r["ms_step"], i, f" {r['ms_step']:.0f} ms  ×{r['speedup_over_baseline']:.2f}", va="center",
-                  fontsize=8)
+        ratio = f"  ×{r['speedup_over_baseline']:.2f}" if "speedup_over_baseline" in r else ""
+        left.text(r["ms_step"], i, f" {r['ms_step']:.0f} ms{ratio}", va="center", fontsize=8)
     left.set_yticks(range(len(steps)), [_plot_label(r) for r in steps], fontsize=8)
     left.invert_yaxis()
     left.set_xlim(0, 1.3 * max((r["ms_step"] for r in steps), default=1))
     left.set_xlabel("ms per editing step")
-    left.set_title("edit step: each speed-up against the fp32 baseline")
+    left.set_title("edit step (×: against the fp32 baseline)")
     right.scatter([r["seconds"] for r in timed], range(len(timed)), color="#dd8452", marker="^", zorder=3)
     for i, r in enumerate(timed):  # points on a log axis: stages span seconds to minutes
         right.annotate(f"  {r['seconds']:.1f} s{_memory_text(r)}", (r["seconds"], i), va="center", fontsize=8)
@@ -504,7 +563,10 @@ def main(argv=None) -> int:
     parser.add_argument("--smoke", action="store_true", help="CPU, tiny sizes: check the script end to end")
     parser.add_argument("--data", type=Path, default=MIC, help="the nerf_synthetic mic folder")
     parser.add_argument("--out", type=Path, default=None, help="JSON to write (default bench/results/gpu[_smoke].json)")
-    parser.add_argument("--skip", default="", help="comma-separated sections to leave out (a,b,c,d,f,h,g)")
+    parser.add_argument("--skip", default="", help="comma-separated sections to leave out (a,b,c,d,f,h,g,i,j)")
+    parser.add_argument("--call", type=int, default=None,
+                        help="number of this call on the device: tags its runs (an earlier call's keep theirs)")
+    parser.add_argument("--call-note", default=None, help="what this call ran, recorded under the header's calls")
     parser.add_argument("--keep", type=Path, default=None,
                         help="an earlier call's JSON whose runs of the skipped sections are kept (a later call on the "
                              "device re-running the others)")
@@ -519,14 +581,19 @@ def main(argv=None) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     skip = set(filter(None, args.skip.split(",")))
     runs: list[dict] = []
+    calls = {}
     if args.keep is not None:
         kept = json.loads(args.keep.read_text())
         runs = [{**r, "section": _section_of(r), "kept_from_earlier_call": True} for r in kept["runs"]
                 if _section_of(r) in skip]
+        calls = kept.get("calls", {})
+    if args.call is not None:
+        calls[str(args.call)] = args.call_note or f"sections run: all but {','.join(sorted(skip)) or 'none'}"
+    tag = {"call": args.call} if args.call is not None else {}
     started = time.perf_counter()
     header = {"device": torch.cuda.get_device_name() if profile.device == "cuda" else f"{os.cpu_count()} CPU cores",
               "torch": torch.__version__, "smoke": args.smoke, "skipped": sorted(skip),
-              "kept_from": str(args.keep) if args.keep else None,
+              "kept_from": str(args.keep) if args.keep else None, "calls": calls,
               "note": "random-weight models: costs only; peak_memory_gb is max_memory_allocated (GiB) on CUDA, "
                       "process RSS peak on CPU"}
 
@@ -539,11 +606,11 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         try:
             produced = body()
-            runs.extend({**r, "section": name} for r in (produced if isinstance(produced, list) else [produced]))
+            runs.extend({**r, "section": name, **tag} for r in (produced if isinstance(produced, list) else [produced]))
         except Exception as exc:  # noqa: BLE001 - one section's failure must not lose the others
             traceback.print_exc()
             runs.append({"name": f"section {name} failed", "kind": kind, "section": name, "device": profile.device,
-                         "error": f"{type(exc).__name__}: {exc}"})
+                         "error": f"{type(exc).__name__}: {exc}", **tag})
         print(f"section {name} ({kind}): {time.perf_counter() - t0:.1f} s", file=sys.stderr)
         save()
 
@@ -556,9 +623,12 @@ def main(argv=None) -> int:
             sd2 = sd14 = tiny
         else:  # built in subprocesses so their memory is returned before the models load
             sd2, sd14 = tmp / "sd2", tmp / "sd14"
+            build_start = time.perf_counter()
             for path, family in ((sd2, "sd2-base"), (sd14, "sd1.4")):
                 subprocess.run([sys.executable, str(HERE / "edit_step.py"), "--build-full", str(path),
-                                "--tokenizer-from", str(tiny / "tokenizer"), "--family", family], check=True)
+                                "--tokenizer-from", str(tiny / "tokenizer"), "--family", family,
+                                "--build-device", profile.device], check=True)
+            header["model_build_seconds"] = time.perf_counter() - build_start
         section("a", "edit_step", lambda: edit_step_runs(sd2, profile))
         section("b", "edit", lambda: edit_loop_run(sd2, profile))
         if args.data.is_dir():
@@ -574,6 +644,9 @@ def main(argv=None) -> int:
         if profile.device == "cuda":  # CUDA graphs exist only there
             baseline = next((r["ms_step"] for r in runs if r.get("section") == "a" and "ms_step" in r), None)
             section("g", "cuda_graphs", lambda: cuda_graph_runs(sd2, profile, baseline))
+        section("i", "edit_step", lambda: step_pass_runs(sd2, profile))
+        if profile.device == "cuda":  # last: a compile's warm-up is the longest and least predictable
+            section("j", "edit_step", lambda: compiled_encoder_runs(sd2, profile))
     save()
     plot(runs, out.with_suffix(".png"))
     for run in runs:

@@ -42,7 +42,7 @@ from voxe_core.edit import EditConfig  # noqa: E402
 from voxe_core.grid import VoxelGrid  # noqa: E402
 from voxe_core.render import RenderConfig, render_rays  # noqa: E402
 
-PASSES = (1 << 20, 1 << 21, 1 << 22, 1 << 23)  # the first: RenderConfig's default, what the others compare with
+PASSES = (1 << 20, 1 << 21, 1 << 22, 1 << 23)  # the first: the CPU's default (RenderConfig.pass_samples), the reference
 
 
 class CountOps(TorchDispatchMode):

@@ -509,11 +509,9 @@ GPU_TARGETS = (  # issue 17's, on one H200 with full-size random-weight models
      "{:.1f} s"),
     ("`paper` reconstruction PSNR", "≥ 30.6 dB", lambda runs: _preset(runs, "paper", "psnr"), lambda v: v >= 30.6,
      "{:.2f} dB"),
-    # Section b's eager loop (the edit alone in its process): a graph's replay allocates nothing, so with CUDA graphs
-    # max_memory_allocated leaves their pools out and would flatter the figure.
-    ("peak GPU memory of the default edit (eager)", "≤ 24 GB",
-     lambda runs: _pick([r for r in runs if r.get("section") == "b" and not r.get("cuda_graphs")], "edit",
-                        "peak_memory_gb", max),
+    # Section b's loop (the edit alone in its process). A graph's replay allocates nothing, so where CUDA graphs ran
+    # max_memory_allocated leaves their pools out and would flatter the figure: the reserved peak counts them.
+    ("peak GPU memory of the default edit", "≤ 24 GB", lambda runs: _default_edit_memory(runs),
      lambda v: v <= 24 / 1.073741824, "{:.2f} GiB"),
 )
 
@@ -528,6 +526,12 @@ def _default_edit(runs: list[dict], key: str):
     """``key`` of section b's loop (the default edit) from the latest device call that ran it."""
     loops = [r for r in runs if r.get("section") == "b" and r.get("kind") == "edit" and r.get(key) is not None]
     return max(loops, key=lambda r: r.get("call", 0))[key] if loops else None
+
+
+def _default_edit_memory(runs: list[dict]):
+    """The default edit's peak: reserved where its CUDA graphs ran (their pools), else allocated."""
+    graphed = _default_edit(runs, "cuda_graphs")
+    return _default_edit(runs, "peak_memory_reserved_gb" if graphed else "peak_memory_gb")
 
 
 def _minutes(seconds):
@@ -586,8 +590,9 @@ def gpu_section(gpu, reconstruction, results: Path, report: Path) -> tuple[list[
                        f"{fp16['peak_memory_gb']:.2f} against {fp32['peak_memory_gb']:.2f} GiB at its peak. Accuracy, "
                        "measured on CPU by `tests/test_hard_cases.py` on the tiny random model: under bf16 autocast "
                        "the SDS latent gradient moves by 8–9 % relative L2 at guidance scale 100 (3 % at 7.5).")
-    eager = next((r for r in steps.values() if r.get("cuda_graphs") is False), None)
-    graphed = next((r for r in steps.values() if r.get("cuda_graphs") is True), None)
+    graph_steps = [r for r in steps.values() if r.get("section") == "g"]
+    eager = next((r for r in graph_steps if r.get("cuda_graphs") is False), None)
+    graphed = next((r for r in graph_steps if r.get("cuda_graphs") is True), None)
     if eager and graphed:
         bullets.append(f"**CUDA graphs** (GPU, same run): the step takes {graphed['ms_step']:.1f} ms against "
                        f"{eager['ms_step']:.1f} eager ({eager['ms_step'] / graphed['ms_step']:.2f}×); the UNet part "
@@ -616,7 +621,7 @@ def render_pass_tradeoffs(runs: list[dict]) -> list[str]:
         figures = "; ".join(
             f"2^{r['samples_per_pass'].bit_length() - 1}: {r['operations_ratio_to_reference']:.2f}× the operations, "
             f"{r['ms_ratio_to_reference']:.2f}× the time, {fmt(r.get('peak_memory_gb'), 2)} GiB" for r in mine[1:])
-        bullets.append(f"**Samples per render pass** ({scene}, {device}; against the default 2^"
+        bullets.append(f"**Samples per render pass** ({scene}, {device}; against the CPU's default 2^"
                        f"{mine[0]['samples_per_pass'].bit_length() - 1}: {mine[0]['operations']} operations, "
                        f"{mine[0]['ms']:.0f} ms, {fmt(mine[0].get('peak_memory_gb'), 2)} GiB): {figures}; the render "
                        f"moves by at most {max(r['max_rgb_difference'] for r in mine):.1g}.")

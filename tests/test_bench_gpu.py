@@ -24,13 +24,15 @@ def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "bench_gpu", bench)  # dataclasses look their module up there
     spec.loader.exec_module(bench)
     out = tmp_path / "gpu.json"
-    assert bench.main(["--smoke", "--out", str(out)]) == 0
+    assert bench.main(["--smoke", "--out", str(out), "--call", "7", "--call-note", "the smoke run"]) == 0
     record = json.loads(out.read_text())
     runs = record["runs"]
     assert not [r for r in runs if "error" in r]
     kinds = [r["kind"] for r in runs]
     assert kinds == ["edit_step"] * len(bench.STEP_VARIANTS) + ["edit", "reconstruction", "reconstruction",
-                                                                  "refinement", "job"] + ["render_passes"] * 8
+                                                                  "refinement", "job"] + ["render_passes"] * 8 \
+        + ["edit_step"] * 2  # i: the CPU's default pass size against 2^23
+    assert record["calls"] == {"7": "the smoke run"} and {r["call"] for r in runs} == {7}
     for run in runs:
         assert {"name", "device", "dtype", "model", "peak_memory_gb"} <= set(run)
         assert run["device"] == "cpu" and run["peak_memory_gb"] > 0
@@ -47,6 +49,12 @@ def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
         assert [r["samples_per_pass"] for r in mine] == sorted(r["samples_per_pass"] for r in mine)
         assert all(r["max_rgb_difference"] == 0 and r["max_gradient_difference"] < 1e-5 for r in mine)
         assert [r["operations"] for r in mine] == sorted((r["operations"] for r in mine), reverse=True)
+    default_passes, large_passes = (r for r in runs if r["section"] == "i")
+    assert (default_passes["samples_per_pass"], large_passes["samples_per_pass"]) == (1 << 20, 1 << 23)
+    assert default_passes["speedup_over_2_20"] == 1.0
+    for run in (default_passes, large_passes):  # the backward split where the gradient reaches the renders
+        assert run["ms_backward_guidance"] > 0 and run["ms_backward_render"] > 0
+        assert run["ms_backward_guidance"] + run["ms_backward_render"] == pytest.approx(run["ms_backward"])
     job = next(r for r in runs if r["kind"] == "job")
     assert job["state"] == "succeeded"
     assert set(job["peak_memory_gb_per_stage"]) == {"reconstruct", "edit", "refine", "export"}

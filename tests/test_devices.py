@@ -245,3 +245,24 @@ def test_whole_image_renderers_make_their_rays_on_the_grids_device(renderer, mon
         calls[renderer]()
     assert seen == {"origins": torch.device("meta"), "directions": torch.device("meta")}
     assert cameras.c2w.device.type == "cpu"  # the caller's cameras stay where they were
+
+
+def test_the_renderers_pass_size_is_the_devices_unless_set(monkeypatch, make_sphere_grid):
+    """Passes of 2^20 samples on the CPU (larger ran slower there), 2^22 elsewhere (a launch-bound GPU pays per
+    pass); a size given in the config wins on any device."""
+    from voxe_core.render import RenderConfig, render_rays
+
+    seen = []
+
+    def ray_samples(grid, origins, directions, offsets, step_ratio, occupancy, samples_per_pass, early_stop):
+        seen.append((origins.device.type, samples_per_pass))
+        raise Reached
+
+    monkeypatch.setattr(VoxelGrid, "ray_samples", ray_samples)
+    grid = make_sphere_grid(8)
+    rays = (torch.zeros(4, 3), torch.tensor([[0.0, 0.0, 1.0]]).expand(4, 3))
+    for device, config in (("cpu", RenderConfig()), ("meta", RenderConfig(skip_empty=False)),
+                           ("meta", RenderConfig(skip_empty=False, samples_per_pass=1 << 16))):
+        with pytest.raises(Reached):
+            render_rays(grid.to(device), *(r.to(device) for r in rays), config)
+    assert seen == [("cpu", 1 << 20), ("meta", 1 << 22), ("meta", 1 << 16)]

@@ -9,6 +9,7 @@ implements the :class:`Guidance` protocol records what the loop sends it
 from __future__ import annotations
 
 import shutil
+import time
 
 import pytest
 import torch
@@ -224,6 +225,34 @@ def test_bf16_autocast_on_cpu_runs(small_sphere, tiny_guidance):
 
 def test_fake_guidance_satisfies_the_protocol():
     assert isinstance(FakeGuidance(), Guidance)
+
+
+class SlowBackward(torch.autograd.Function):
+    """Identity whose backward takes 50 ms: a stand-in for the VAE encoder's backward."""
+
+    @staticmethod
+    def forward(ctx, images):
+        return images.clone()
+
+    @staticmethod
+    def backward(ctx, grad):
+        time.sleep(0.05)
+        return grad
+
+
+class SlowEncoderGuidance(FakeGuidance):
+    def sds_loss(self, images, text_embeddings, timesteps, guidance_scale=100.0, generator=None):
+        return SlowBackward.apply(images).mean(), {}
+
+
+def test_the_backward_time_is_split_where_the_gradient_reaches_the_renders(small_sphere):
+    reports = []
+    edit(small_sphere, "a dog", SlowEncoderGuidance(), EditConfig(iterations=2, render_size=16, sync_timing=True),
+         _collect(reports))
+    for report in reports:
+        info = report.info
+        assert info["ms_backward_guidance"] >= 50 > info["ms_backward_render"] > 0
+        assert info["ms_backward_guidance"] + info["ms_backward_render"] == pytest.approx(info["ms_backward"])
 
 
 def test_cancellation_stops_within_one_iteration(small_sphere):

@@ -195,6 +195,12 @@ def _sync(device: torch.device, enabled: bool) -> None:
         synchronize(device)
 
 
+def _mark(marks: list[float], device: torch.device, sync: bool) -> None:
+    """Append the time now (after the device's queued work when ``sync``): a timer a backward hook can call."""
+    _sync(device, sync)
+    marks.append(time.perf_counter())
+
+
 def _autocast(device: torch.device, name: str | None):
     if name is None:
         return contextlib.nullcontext()
@@ -272,8 +278,10 @@ def edit(
     ``reg`` (unweighted regulariser) and ``total`` (sds + weight·reg); info
     ``t``, ``t_min``, ``t_max``, ``lr``, ``view``, ``elevation``, ``azimuth``,
     ``sds_grad_norm`` and per-part milliseconds ``ms_render``, ``ms_vae``
-    (VAE encoder forward), ``ms_unet`` (UNet incl. CFG), ``ms_backward``,
-    ``ms_optimizer``, ``ms_step``. Cancellation is checked before each
+    (VAE encoder forward), ``ms_unet`` (UNet incl. CFG), ``ms_backward``
+    (split at the moment the gradient reaches the renders: ``ms_backward_guidance``,
+    the VAE encoder's and the resize's backward, then ``ms_backward_render``, the
+    renders' and the regulariser's), ``ms_optimizer``, ``ms_step``. Cancellation is checked before each
     iteration (``StageCancelled``; a checkpoint is written first when
     ``checkpoint_path`` is set). Info also carries ``peak_memory_gb`` /
     ``peak_memory_kind`` (:class:`voxe_core.devices.PeakMemory`).
@@ -399,6 +407,8 @@ def edit(
             images = torch.stack(renders)
             _sync(device, sync)
             t_render = time.perf_counter()
+            reached_renders = []  # when the backward's gradient reaches the renders
+            images.register_hook(lambda grad: _mark(reached_renders, device, sync))
 
             # ---- SDS (optionally under autocast)
             with _autocast(device, config.autocast_dtype):
@@ -453,6 +463,8 @@ def edit(
                     "ms_sds": (t_sds - t_render) * 1e3,
                     "ms_regulariser": (t_reg - t_sds) * 1e3,
                     "ms_backward": (t_backward - t_reg) * 1e3,
+                    "ms_backward_guidance": (reached_renders[0] - t_reg) * 1e3,
+                    "ms_backward_render": (t_backward - reached_renders[0]) * 1e3,
                     "ms_optimizer": (t_end - t_backward) * 1e3,
                     "ms_step": (t_end - t_start) * 1e3,
                     **memory.info(),

@@ -34,11 +34,20 @@ class RenderConfig:
     skip_empty: bool = True
     sigma_threshold: float = 1e-3  # cells whose density stays below this are skipped
     early_stop: float = 1e-4  # transmittance below which a ray's samples are not evaluated
-    # Lattice samples held at once (rays are grouped to fit). Larger passes dispatch fewer operations (2^22: 0.50x
-    # on the edit's render) but run 1.17x slower on CPU with +0.45 GiB (bench/render_passes.py; bench/gpu.py's
-    # section h measures the GPU).
-    samples_per_pass: int = 1 << 20
+    # Lattice samples held at once (rays are grouped to fit); None: the device's default (pass_samples).
+    samples_per_pass: int | None = None
     chunk_rays: int = 32768  # rays per chunk in whole-image renders
+
+    def pass_samples(self, device: torch.device) -> int:
+        """``samples_per_pass``, or ``device``'s default: 2^20 on the CPU, 2^22 on an accelerator.
+
+        Larger passes dispatch fewer operations (2^22: 0.50x on the edit's render, one pass instead of five), which
+        is what a launch-bound GPU pays for (bench/gpu.py, section h), but ran 1.17x slower on this CPU with
+        +0.45 GiB (bench/render_passes.py). The render is the same at any size.
+        """
+        if self.samples_per_pass is not None:
+            return self.samples_per_pass
+        return 1 << 20 if torch.device(device).type == "cpu" else 1 << 22
 
 
 @dataclass
@@ -101,7 +110,7 @@ def render_rays(
         else:
             offsets = torch.full((n_rays,), 0.5, device=device)
         samples = grid.ray_samples(origins, directions, offsets, config.step_ratio,
-                                   occupancy if config.skip_empty else None, config.samples_per_pass, config.early_stop)
+                                   occupancy if config.skip_empty else None, config.pass_samples(device), config.early_stop)
         channels = 3 if color_features is None else color_features.shape[-1]
         background = torch.as_tensor(config.background, dtype=torch.float32, device=device).expand(channels)
         return composite(samples, grid_field(grid, color_features, sparse_grad), n_rays, background)

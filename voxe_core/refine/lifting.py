@@ -88,7 +88,7 @@ def backproject(
         o, d, t = origins[start:start + chunk], directions[start:start + chunk], targets[start:start + chunk]
         offsets = torch.full((o.shape[0],), 0.5, device=o.device)
         for group in grid.ray_samples(o, d, offsets, config.render.step_ratio, occupancy,
-                                      config.render.samples_per_pass, config.render.early_stop):
+                                      config.render.pass_samples(o.device), config.render.early_stop):
             if group.ray.numel() == 0:
                 continue
             sigma = grid.activate_density(grid.interpolate(group.points)[:, 0])
