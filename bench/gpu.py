@@ -8,7 +8,7 @@ architectures by ``bench/edit_step.py``'s builder, fp16, 512² guidance. Timings
     python bench/gpu.py            # CUDA, full size: at most ~8 min on one H200
     bash bench/gpu_carry.sh        # here: the wheels and mic views the lent GPU machine lacks, in .gpu_carry/
     bash bench/gpu_device.sh       # there (device tool: carry [".gpu_carry"]): installs them, runs this script
-    python bench/gpu.py --smoke    # CPU, tiny sizes: every section but g end to end in about a minute
+    python bench/gpu.py --smoke    # CPU, tiny sizes: every section but g and j end to end in about a minute
                                    # (tests/test_bench_gpu.py); its figures mean nothing
 
 Sections (each one's failure is recorded in its run, the others still run; the JSON is rewritten after each):
@@ -30,7 +30,14 @@ h. ``render_passes``: bench/render_passes.py's measurement on the device (the ed
    ``RenderConfig.samples_per_pass``: operations, time, memory, output differences);
 g. ``cuda_graphs`` (CUDA only): the SDS step's UNet and VAE encoder replayed from CUDA graphs against the eager
    default, in one section: agreement on the same inputs, step and per-part times, the capture's warm-up, a
-   ``loop_iterations`` loop, and the eager UNet at batch 2 against 8 (launch-bound or not).
+   ``loop_iterations`` loop, and the eager UNet at batch 2 against 8 (launch-bound or not);
+i. ``edit_step`` with the renderer's passes at the device's default size against 2^20 and 2^23, interleaved, with
+   per-part device times (the backward split where the gradient reaches the renders);
+j. ``edit_step`` (CUDA only) with the VAE encoder compiled (``torch.compile``) or not, graphed or not: warm-up
+   (the compile), per-part times, agreement with the eager guidance.
+
+Sections run in the order a, b, c, d, h, g, i, j, f: the whole job last, the longest and, with a compile in its
+worker, the least predictable (each section's runs are saved as it ends).
 
 ``--skip a,b,c --keep bench/results/gpu.json`` re-runs the other sections in a later call on the device and keeps
 the earlier call's runs of the skipped ones (each run names its ``section``; kept ones say so).
@@ -134,21 +141,27 @@ def _step_row(name: str, profile: Profile, dtype: torch.dtype, ms_step: float, r
 
 
 def _loop_row(guidance, profile: Profile, name: str, **extra) -> dict:
-    """An ``edit`` run: ``loop_iterations`` default iterations after warm-up, timed as one."""
+    """An ``edit`` run: ``loop_iterations`` default iterations after warm-up (timed apart: compile and captures), timed
+    as one."""
+    start = time.perf_counter()
     _edit_run(guidance, profile, profile.warm, sync=False)
+    warm_seconds = time.perf_counter() - start
     reports, wall = _edit_run(guidance, profile, profile.loop_iterations, sync=False)
     ms_step = wall * 1e3 / profile.loop_iterations
     return {"name": name, "kind": "edit", "device": profile.device, "dtype": _dtype_name(profile.dtype),
             "model": SDS_MODEL, "iterations": profile.loop_iterations, "seconds": wall,
             "iterations_per_second": profile.loop_iterations / wall, "ms_step": ms_step,
-            "edit_8000_minutes": ms_step * 8000 / 60000, **_peaks(reports), **extra}
+            "edit_8000_minutes": ms_step * 8000 / 60000, "warm_seconds": warm_seconds, "warm_iterations": profile.warm,
+            **_peaks(reports), **extra}
 
 
-def _guidance(path: Path, profile: Profile, dtype: torch.dtype, cuda_graphs: bool | None = None):
+def _guidance(path: Path, profile: Profile, dtype: torch.dtype, cuda_graphs: bool | None = None,
+              compile_encoder: bool | None = None):
     from voxe_core.guidance.sds import StableDiffusionGuidance
 
     return StableDiffusionGuidance.from_pretrained(str(path), device=profile.device, dtype=dtype, local_files_only=True,
-                                                   resolution=profile.guidance_resolution, cuda_graphs=cuda_graphs)
+                                                   resolution=profile.guidance_resolution, cuda_graphs=cuda_graphs,
+                                                   compile_encoder=compile_encoder)
 
 
 @contextlib.contextmanager
@@ -209,7 +222,7 @@ def edit_step_runs(sd2: Path, profile: Profile) -> list[dict]:
         dtype = profile.dtype if variant["half"] else torch.float32
         if dtype not in loaded:
             loaded.clear()  # one model in memory at a time
-            loaded[dtype] = _guidance(sd2, profile, dtype, cuda_graphs=False)  # (g) measures the graphs
+            loaded[dtype] = _guidance(sd2, profile, dtype, cuda_graphs=False, compile_encoder=False)  # (g), (j): the rest
         guidance = loaded[dtype]
         if profile.device == "cuda":
             _channels_last(guidance, variant["channels_last"])
@@ -230,7 +243,7 @@ def edit_loop_run(sd2: Path, profile: Profile) -> dict:
     guidance = _guidance(sd2, profile, profile.dtype)
     return _loop_row(guidance, profile, f"edit_loop {profile.loop_iterations} iterations at {profile.grid_resolution}³",
                      render_size=profile.render_size, guidance_resolution=profile.guidance_resolution,
-                     cuda_graphs=guidance.cuda_graphs)
+                     cuda_graphs=guidance.cuda_graphs, compile_encoder=guidance.compile_encoder)
 
 
 # ---------------------------------------------------------------- (c)
@@ -416,8 +429,8 @@ def cuda_graph_runs(sd2: Path, profile: Profile, baseline_ms: float | None) -> l
     the same inputs, the step (the capture inside its warm-up, timed apart), per-part device times, a
     ``loop_iterations`` loop, and the eager UNet forward at batch 2 and 8 (a time that barely grows with the
     batch is the host launching kernels, which graphs remove)."""
-    eager = _guidance(sd2, profile, profile.dtype, cuda_graphs=False)
-    graphed = _guidance(sd2, profile, profile.dtype, cuda_graphs=True)
+    eager = _guidance(sd2, profile, profile.dtype, cuda_graphs=False, compile_encoder=False)
+    graphed = _guidance(sd2, profile, profile.dtype, cuda_graphs=True, compile_encoder=False)  # (j) compiles
     agreement = _graph_agreement(eager, graphed, profile)
     rows, eager_ms = [], None
     for name, guidance in (("eager (cuda_graphs=False)", eager), ("+ CUDA graphs (UNet, VAE encoder)", graphed)):
@@ -476,26 +489,47 @@ def step_pass_runs(sd2: Path, profile: Profile) -> list[dict]:
 
 
 # ---------------------------------------------------------------- (j)
+ENCODER_VARIANTS = (  # (name, from_pretrained's compile_encoder, graph the compiled encoder too)
+    ("CUDA graphs, eager encoder graphed (call 4's default)", False, False),
+    ("CUDA graphs on the UNet, compiled encoder (the default)", None, False),
+    ("CUDA graphs on the UNet, compiled encoder graphed", None, True),
+)
+
+
 def compiled_encoder_runs(sd2: Path, profile: Profile) -> list[dict]:
-    """``torch.compile`` (inductor, default mode) on the VAE encoder of an eager guidance against the default
-    (CUDA-graphed) guidance: agreement with the eager encoder, the compile inside the warm-up (timed), the step with
-    per-part device times and without synchronisation."""
-    eager = _guidance(sd2, profile, profile.dtype, cuda_graphs=False)
-    compiled = _guidance(sd2, profile, profile.dtype, cuda_graphs=False)
-    compiled.vae.encoder = torch.compile(compiled.vae.encoder)
-    default = _guidance(sd2, profile, profile.dtype)
+    """The VAE encoder compiled (``torch.compile``, voxe_core.guidance.compiled) against the graphed eager one, in
+    one section: each variant's warm-up (its compile inside, on inductor's caches as the earlier sections left them),
+    the step with per-part device times and without synchronisation, and the agreement of the compiled variants with
+    the fully eager guidance on the same inputs. A variant's failure is recorded in its row."""
+    eager = _guidance(sd2, profile, profile.dtype, cuda_graphs=False, compile_encoder=False)
     rows = []
-    for name, guidance in (("default (CUDA graphs)", default), ("eager + torch.compile(VAE encoder)", compiled)):
-        start = time.perf_counter()
-        _edit_run(guidance, profile, profile.warm, sync=False)  # the compile happens here
-        warm_seconds = time.perf_counter() - start
-        parts, _ = _edit_run(guidance, profile, profile.timed, sync=True)
-        timed, wall = _edit_run(guidance, profile, profile.timed, sync=False)
-        rows.append(_step_row(name, profile, profile.dtype, wall * 1e3 / profile.timed, timed, parts,
-                              cuda_graphs=guidance.cuda_graphs, compiled_encoder=guidance is compiled,
-                              warm_seconds=warm_seconds, warm_iterations=profile.warm))
-    rows[-1]["speedup_over_default"] = rows[0]["ms_step"] / rows[-1]["ms_step"]
-    rows[-1].update(_graph_agreement(eager, compiled, profile))
+    from voxe_core.guidance.cuda_graphs import GraphedEncoder
+
+    for name, compile_encoder, graph_compiled in ENCODER_VARIANTS:
+        try:
+            guidance = _guidance(sd2, profile, profile.dtype, compile_encoder=compile_encoder)
+            if graph_compiled:
+                guidance._graphed_encoder = GraphedEncoder(guidance._encoder)
+            start = time.perf_counter()
+            _edit_run(guidance, profile, profile.warm, sync=False)  # the compile and the captures happen here
+            warm_seconds = time.perf_counter() - start
+            parts, _ = _edit_run(guidance, profile, profile.timed, sync=True)
+            timed, wall = _edit_run(guidance, profile, profile.timed, sync=False)
+            row = _step_row(name, profile, profile.dtype, wall * 1e3 / profile.timed, timed, parts,
+                            cuda_graphs=guidance.cuda_graphs, compile_encoder=guidance.compile_encoder,
+                            graphed_encoder=guidance._graphed_encoder is not None, warm_seconds=warm_seconds,
+                            warm_iterations=profile.warm)
+            if guidance.compile_encoder:
+                row.update(_graph_agreement(eager, guidance, profile))
+        except Exception as exc:  # noqa: BLE001 - the other variants still run
+            traceback.print_exc()
+            row = {"name": f"edit_step {name}", "kind": "edit_step", "device": profile.device,
+                   "error": f"{type(exc).__name__}: {exc}"}
+        rows.append(row)
+    reference = rows[0].get("ms_step")
+    for row in rows[1:]:
+        if reference and "ms_step" in row:
+            row["speedup_over_eager_encoder"] = reference / row["ms_step"]
     return rows
 
 
@@ -636,10 +670,6 @@ def main(argv=None) -> int:
         else:
             runs.append({"name": "reconstruction skipped", "kind": "reconstruction", "error": f"no data at {args.data}"})
         section("d", "refinement", lambda: refinement_run(sd14, profile))
-        loop = next((r for r in runs if r.get("kind") == "edit" and "ms_step" in r), None)
-        if args.data.is_dir():
-            section("f", "job", lambda: job_run(sd2, sd14, profile, args.data, tmp / "service",
-                                                loop["ms_step"] if loop else None))
         section("h", "render_passes", lambda: render_pass_runs(profile))
         if profile.device == "cuda":  # CUDA graphs exist only there
             baseline = next((r["ms_step"] for r in runs if r.get("section") == "a" and "ms_step" in r), None)
@@ -647,6 +677,10 @@ def main(argv=None) -> int:
         section("i", "edit_step", lambda: step_pass_runs(sd2, profile))
         if profile.device == "cuda":  # last: a compile's warm-up is the longest and least predictable
             section("j", "edit_step", lambda: compiled_encoder_runs(sd2, profile))
+        loop = next((r for r in runs if r.get("kind") == "edit" and "ms_step" in r), None)
+        if args.data.is_dir():
+            section("f", "job", lambda: job_run(sd2, sd14, profile, args.data, tmp / "service",
+                                                loop["ms_step"] if loop else None))
     save()
     plot(runs, out.with_suffix(".png"))
     for run in runs:

@@ -30,8 +30,8 @@ def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
     assert not [r for r in runs if "error" in r]
     kinds = [r["kind"] for r in runs]
     assert kinds == ["edit_step"] * len(bench.STEP_VARIANTS) + ["edit", "reconstruction", "reconstruction",
-                                                                  "refinement", "job"] + ["render_passes"] * 8 \
-        + ["edit_step"] * 2  # i: the CPU's default pass size against 2^23
+                                                                  "refinement"] + ["render_passes"] * 8 \
+        + ["edit_step"] * 2 + ["job"]  # i: the CPU's default pass size against 2^23; the whole job last
     assert record["calls"] == {"7": "the smoke run"} and {r["call"] for r in runs} == {7}
     for run in runs:
         assert {"name", "device", "dtype", "model", "peak_memory_gb"} <= set(run)

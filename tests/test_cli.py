@@ -273,9 +273,12 @@ def test_export_mesh_errors_exit_2(sphere_file, tmp_path, capsys):
     assert not (tmp_path / "m.ply").exists()
 
 
-@pytest.mark.parametrize("flag, expected", [([], None), (["--no-cuda-graphs"], False)])
-def test_edit_asks_for_cuda_graphs_unless_told_not_to(flag, expected, sphere_grid, tmp_path, monkeypatch):
-    """``voxe edit`` leaves the graphs to ``from_pretrained``'s default (on CUDA) or turns them off."""
+@pytest.mark.parametrize("flag, expected", [([], {"cuda_graphs": None, "compile_encoder": None}),
+                                            (["--no-cuda-graphs"], {"cuda_graphs": False, "compile_encoder": None}),
+                                            (["--no-compile-encoder"], {"cuda_graphs": None, "compile_encoder": False})])
+def test_edit_asks_for_cuda_graphs_and_a_compiled_encoder_unless_told_not_to(flag, expected, sphere_grid, tmp_path,
+                                                                            monkeypatch):
+    """``voxe edit`` leaves the graphs and the compile to ``from_pretrained``'s defaults (on CUDA) or turns them off."""
     from voxe_core.guidance.loading import ModelNotAvailableError
     from voxe_core.guidance.sds import StableDiffusionGuidance
 
@@ -289,4 +292,4 @@ def test_edit_asks_for_cuda_graphs_unless_told_not_to(flag, expected, sphere_gri
     sphere_grid.save(tmp_path / "g.safetensors")
     code = main(["edit", str(tmp_path / "g.safetensors"), "--prompt", "a dog", "--out", str(tmp_path / "out"),
                  "--model", "stand-in", "--device", "cpu", *flag])
-    assert code == 2 and asked["cuda_graphs"] is expected
+    assert code == 2 and {key: asked[key] for key in expected} == expected

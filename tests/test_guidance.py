@@ -490,14 +490,70 @@ def test_a_capture_the_libraries_refuse_turns_the_graphs_off_with_a_warning(guid
     assert len(calls) == 1  # and answers from then on
 
 
+def test_the_compiled_encoder_matches_the_eager_one_and_compiles_only_the_sds_steps_encode(guidance, tiny_path):
+    """A real ``torch.compile`` trace (the eager backend: dynamo without inductor's code generation, which this CPU
+    has no time for) of the tiny model's encoder gives the eager latents and the eager gradient; encodes without
+    gradient or under autocast never reach the compiled encoder (bench/gpu.py, section j, measures inductor's)."""
+    from voxe_core.guidance.compiled import CompiledEncoder
+
+    traced = []
+
+    def compile(moments):
+        compiled = torch.compile(moments, backend="eager", dynamic=False)
+        return lambda x: traced.append(tuple(x.shape)) or compiled(x)
+
+    fresh = StableDiffusionGuidance.from_pretrained(str(tiny_path), device="cpu", local_files_only=True)
+    assert fresh.compile_encoder is False  # off the GPU by default
+    fresh._encoder = CompiledEncoder(fresh._encode_moments, compile=compile)
+    assert fresh.compile_encoder
+    images = torch.rand(1, 3, 24, 24, generator=torch.Generator().manual_seed(0))
+    results = []
+    for encoder_of in (fresh, guidance):
+        x = images.clone().requires_grad_(True)
+        latents = encoder_of.encode_images(x, sample=False)
+        (latents * torch.randn(latents.shape, generator=torch.Generator().manual_seed(1))).sum().backward()
+        results.append((latents.detach(), x.grad))
+    size = guidance.resolution
+    assert traced == [(1, 3, size, size)]
+    torch.testing.assert_close(results[0][0], results[1][0])
+    torch.testing.assert_close(results[0][1], results[1][1])
+    with torch.no_grad():
+        fresh.encode_images(images)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        fresh.encode_images(images.clone().requires_grad_(True))
+    assert traced == [(1, 3, size, size)]
+
+
+def test_a_compile_the_libraries_refuse_turns_it_off_with_a_warning(guidance, tiny_path):
+    from voxe_core.guidance.compiled import CompiledEncoder
+
+    calls = []
+
+    def refused(x):
+        calls.append(x)
+        raise RuntimeError("backend='inductor' raised: no working C compiler")
+
+    fresh = StableDiffusionGuidance.from_pretrained(str(tiny_path), device="cpu", local_files_only=True)
+    fresh._encoder = CompiledEncoder(fresh._encode_moments, compile=lambda moments: refused)
+    images = torch.rand(1, 3, 24, 24, generator=torch.Generator().manual_seed(0))
+    with pytest.warns(RuntimeWarning, match="torch.compile turned off for the VAE encoder: .*no working C compiler"):
+        latents = fresh.encode_images(images.clone().requires_grad_(True), sample=False)
+    assert len(calls) == 1 and fresh.compile_encoder is False
+    torch.testing.assert_close(latents, guidance.encode_images(images, sample=False))  # the eager encoder answered
+    fresh.encode_images(images.clone().requires_grad_(True), sample=False)
+    assert len(calls) == 1  # and answers from then on
+
+
+@pytest.mark.parametrize("variable", ["VOXE_CUDA_GRAPHS", "VOXE_COMPILE_ENCODER"])
 @pytest.mark.parametrize("setting, expected", [("true", None), ("false", False)])
-def test_the_workers_cuda_graphs_setting_reaches_the_guidance(setting, expected, monkeypatch, tmp_path):
+def test_the_workers_speed_up_settings_reach_the_guidance(variable, setting, expected, monkeypatch, tmp_path):
     from voxe_service.settings import Settings
     from worker import runtime
 
     asked = {}
     monkeypatch.setattr(StableDiffusionGuidance, "from_pretrained", lambda path, **kwargs: asked.update(kwargs))
     monkeypatch.setattr(runtime, "_GUIDANCE_CACHE", {})
-    monkeypatch.setenv("VOXE_CUDA_GRAPHS", setting)
+    monkeypatch.setenv(variable, setting)
     runtime.get_guidance(str(tmp_path), "cpu", Settings())
-    assert asked["cuda_graphs"] is expected
+    keyword = variable.removeprefix("VOXE_").lower()
+    assert asked[keyword] is expected and asked[{"cuda_graphs": "compile_encoder"}.get(keyword, "cuda_graphs")] is None

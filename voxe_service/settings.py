@@ -49,6 +49,7 @@ class Settings(BaseSettings):
     fid_model: str = ""
     device: str = "auto"  # auto | cpu | cuda | cuda:N
     cuda_graphs: bool = True  # the SDS step's UNet and VAE encoder replayed from CUDA graphs on CUDA
+    compile_encoder: bool = True  # the SDS step's VAE encoder compiled with torch.compile on CUDA
 
     # --- uploads
     max_upload_bytes: int = Field(2 * 1024**3, gt=0)

@@ -159,16 +159,17 @@ def check_device(args: argparse.Namespace):
     return device
 
 
-def load_guidance(args: argparse.Namespace, model: str, cuda_graphs: bool | None = None):
-    """The Stable Diffusion guidance ``model`` on ``args.device`` (``cuda_graphs``: see ``from_pretrained``); None,
-    said on stderr, when its weights are missing."""
+def load_guidance(args: argparse.Namespace, model: str, cuda_graphs: bool | None = None,
+                  compile_encoder: bool | None = None):
+    """The Stable Diffusion guidance ``model`` on ``args.device`` (``cuda_graphs``, ``compile_encoder``: see
+    ``from_pretrained``); None, said on stderr, when its weights are missing."""
     from voxe_core.guidance.loading import ModelNotAvailableError
     from voxe_core.guidance.sds import StableDiffusionGuidance
 
     try:
         return StableDiffusionGuidance.from_pretrained(
             model, device=args.device, local_files_only=True if args.offline else None,
-            cuda_graphs=cuda_graphs,
+            cuda_graphs=cuda_graphs, compile_encoder=compile_encoder,
         )
     except ModelNotAvailableError as exc:
         print(f"voxe {args.command}: model not available: {exc}", file=sys.stderr)

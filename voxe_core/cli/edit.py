@@ -30,6 +30,8 @@ def add_parsers(commands, common) -> None:
     add_model_arguments(ed, "--model", "diffusers-layout Stable Diffusion", paper.SDS_MODEL_ID)
     ed.add_argument("--no-cuda-graphs", dest="cuda_graphs", action="store_false",
                     help="run the SDS step's UNet and VAE eagerly on CUDA (default: replayed from CUDA graphs)")
+    ed.add_argument("--no-compile-encoder", dest="compile_encoder", action="store_false",
+                    help="leave the SDS step's VAE encoder uncompiled on CUDA (default: torch.compile, ~40 s once)")
     ed.add_argument("--iterations", type=int, default=None,
                     help=f"default {paper.EDIT_ITERATIONS}; {_SCENE.iterations} for a scene-backbone grid (SPEC §5)")
     ed.add_argument("--render-size", type=positive_int, default=paper.RENDER_SIZE, help="training render size in pixels")
@@ -89,7 +91,8 @@ def cmd_edit(args) -> int:
         scene = load_views(args)
         views = (scene.images, grid.dataset_cameras(scene.cameras))
     model = args.model or paper.SDS_MODEL_ID
-    guidance = load_guidance(args, model, cuda_graphs=None if args.cuda_graphs else False)
+    guidance = load_guidance(args, model, cuda_graphs=None if args.cuda_graphs else False,
+                             compile_encoder=None if args.compile_encoder else False)
     if guidance is None:
         return EXIT_USAGE
     args.out.mkdir(parents=True, exist_ok=True)

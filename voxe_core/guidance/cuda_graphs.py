@@ -11,7 +11,8 @@ model afterwards and the graphs must be dropped (build a new guidance).
 
 * :class:`GraphedUNet`: the UNet's forward without gradient (the SDS UNet pass never needs one);
 * :class:`GraphedEncoder`: the VAE encoder's posterior moments, forward and backward
-  (``torch.cuda.make_graphed_callables``), since the SDS gradient flows through it into the renders.
+  (``torch.cuda.make_graphed_callables``), since the SDS gradient flows through it into the renders; used where the
+  encoder is not compiled (:mod:`voxe_core.guidance.compiled`, the default on CUDA, fuses its launches instead).
 
 Both need a CUDA device and run outside autocast (graphs cannot replay autocast's cast cache).
 

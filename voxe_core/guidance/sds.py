@@ -22,8 +22,9 @@ stabilityai/stable-diffusion-2-1 at 768²) converted to ε first,
 built (:data:`PREDICTION_TYPES`).
 
 On CUDA the UNet and VAE run in float16 (``from_pretrained``'s default),
-``channels_last``, with PyTorch SDPA attention, and the SDS step's UNet forward
-and VAE encoder replay from CUDA graphs (:mod:`voxe_core.guidance.cuda_graphs`). Timing synchronisation
+``channels_last``, with PyTorch SDPA attention; the SDS step's UNet forward
+replays from a CUDA graph (:mod:`voxe_core.guidance.cuda_graphs`) and its VAE
+encoder runs compiled (:mod:`voxe_core.guidance.compiled`). Timing synchronisation
 (``sync_timing``) is off unless asked for: without it the ``*_ms`` diagnostics
 measure host-side dispatch only.
 
@@ -51,6 +52,7 @@ import torch.nn.functional as F
 from voxe_core.constants import DEFAULT_ATTENTION_TIMESTEP, DEFAULT_GUIDANCE_SCALE, SDS_MODEL_ID
 from voxe_core.devices import synchronize
 from voxe_core.guidance.attention import AttentionStore, capturing
+from voxe_core.guidance.compiled import CompiledEncoder
 from voxe_core.guidance.cuda_graphs import GraphedEncoder, GraphedUNet
 from voxe_core.guidance.loading import load_stable_diffusion
 
@@ -119,6 +121,7 @@ class StableDiffusionGuidance:
         resolution: int | None = None,
         sync_timing: bool = False,
         cuda_graphs: bool = False,
+        compile_encoder: bool = False,
     ):
         from diffusers.models.attention_processor import AttnProcessor2_0
 
@@ -159,9 +162,11 @@ class StableDiffusionGuidance:
         # true device times (a few syncs per step, the benchmarks ask for it);
         # off, the timings only measure host-side dispatch.
         self.sync_timing = bool(sync_timing)
-        # The SDS step's UNet forward and VAE encoder replayed from CUDA graphs (voxe_core.guidance.cuda_graphs).
+        # The SDS step's UNet forward replayed from a CUDA graph (voxe_core.guidance.cuda_graphs); its VAE encoder
+        # compiled (voxe_core.guidance.compiled: inductor fuses what a graph would launch at once), else graphed too.
+        self._encoder = CompiledEncoder(self._encode_moments) if compile_encoder else self._encode_moments
         self._graphed_unet = GraphedUNet(self._eager_unet) if cuda_graphs else None
-        self._graphed_encoder = GraphedEncoder(self._encode_moments) if cuda_graphs else None
+        self._graphed_encoder = GraphedEncoder(self._encoder) if cuda_graphs and not compile_encoder else None
 
     # ------------------------------------------------------------------ loading
 
@@ -177,6 +182,7 @@ class StableDiffusionGuidance:
         resolution: int | None = None,
         sync_timing: bool = False,
         cuda_graphs: bool | None = None,
+        compile_encoder: bool | None = None,
         on_message: Callable[[str], None] | None = None,
     ) -> "StableDiffusionGuidance":
         """Load UNet, VAE, CLIP text encoder, tokenizer and noise schedule of ``model``.
@@ -191,14 +197,17 @@ class StableDiffusionGuidance:
         ``on_message`` hears "downloading <model> (N GB)" before a first-use download.
         ``resolution`` overrides the image size derived from the configs
         (``unet.sample_size · 2^(len(vae.block_out_channels) − 1)``, 512 for SD).
-        ``cuda_graphs`` replays the SDS step's UNet and VAE encoder from CUDA graphs (default: on CUDA;
-        :mod:`voxe_core.guidance.cuda_graphs` has the measurement).
+        ``cuda_graphs`` replays the SDS step's UNet (and VAE encoder, unless compiled) from CUDA graphs (default:
+        on CUDA; :mod:`voxe_core.guidance.cuda_graphs` has the measurement). ``compile_encoder`` compiles the SDS
+        step's VAE encoder with ``torch.compile`` (default: on CUDA; :mod:`voxe_core.guidance.compiled`).
         """
         device = torch.device(device) if device is not None else torch.device("cuda" if torch.cuda.is_available() else "cpu")
         if dtype is None:
             dtype = torch.float16 if device.type == "cuda" else torch.float32
         if cuda_graphs is None:
             cuda_graphs = device.type == "cuda"
+        if compile_encoder is None:
+            compile_encoder = device.type == "cuda"
         _check_graph_device(cuda_graphs, device)  # before the weights load
         model_str = os.fspath(model)
         unet, vae, text_encoder, tokenizer, scheduler = load_stable_diffusion(
@@ -206,7 +215,7 @@ class StableDiffusionGuidance:
         return cls(
             unet, vae, text_encoder, tokenizer, scheduler,
             model_id=model_str, device=device, dtype=dtype, resolution=resolution, sync_timing=sync_timing,
-            cuda_graphs=cuda_graphs,
+            cuda_graphs=cuda_graphs, compile_encoder=compile_encoder,
         )
 
     # ------------------------------------------------------------------ text
@@ -289,7 +298,7 @@ class StableDiffusionGuidance:
         from diffusers.models.autoencoders.vae import DiagonalGaussianDistribution
 
         x = self.preprocess(images)
-        moments = self._graphed_or_eager(self._graphed_encoder, self._encode_moments, x)
+        moments = self._graphed_or_eager(self._graphed_encoder, self._encoder, x)
         posterior = DiagonalGaussianDistribution(moments)
         latents = posterior.sample(generator=generator) if sample else posterior.mean
         return (latents - self.latent_shift) * self.latent_scale
@@ -325,11 +334,16 @@ class StableDiffusionGuidance:
         """Whether the SDS step's networks replay from CUDA graphs (off for good once a capture was refused)."""
         return self._graphed_unet is not None
 
+    @property
+    def compile_encoder(self) -> bool:
+        """Whether the SDS step's VAE encoder runs compiled (off for good once a compile was refused)."""
+        return isinstance(self._encoder, CompiledEncoder) and self._encoder.compiled is not None
+
     def _graphed_or_eager(self, graphed, eager, *args: torch.Tensor) -> torch.Tensor:
         """``graphed(*args)`` where the graphs can run (CUDA graphs on, no autocast: an edit's ``autocast_dtype``
         runs the eager networks), else ``eager(*args)``. A capture the installed libraries refuse turns the graphs
         off for this guidance with a warning rather than failing every edit."""
-        if self.cuda_graphs and not torch.is_autocast_enabled(self.device.type):
+        if graphed is not None and not torch.is_autocast_enabled(self.device.type):
             try:
                 return graphed(*args)
             except torch.cuda.OutOfMemoryError:
