@@ -602,14 +602,52 @@ def gpu_section(gpu, reconstruction, results: Path, report: Path) -> tuple[list[
                        f"{graphed.get('encoder_image_grad_relative_difference', float('nan')):.1g} (relative to their "
                        "largest entries).")
     bullets += render_pass_tradeoffs([r for r in runs if r.get("kind") == "render_passes"])
+    bullets += step_speedups(runs)
     launch = next((r for r in runs if r.get("ms_unet_batch_2") and r.get("ms_unet_batch_8")), None)
     if launch:
-        bullets.append(f"**Where the GPU step's time goes**: the eager fp16 UNet forward takes "
+        bullets.append(f"**The eager UNet is launch-bound**: the eager fp16 UNet forward takes "
                        f"{launch['ms_unet_batch_2']:.1f} ms at batch 2 and {launch['ms_unet_batch_8']:.1f} ms at "
                        f"batch 8 ({launch['batch_8_over_batch_2']:.2f}×): four times the work in the same time, so the "
                        "host launching kernels, not the GPU's arithmetic, sets the pace; the renderer and the backward "
                        "(Python-driven, data-dependent shapes) are the larger share left after the graphs.")
     return lines, bullets
+
+
+def step_speedups(runs: list[dict]) -> list[str]:
+    """Bullets for the GPU step's later speed-ups: render passes sized for the device (section i), the compiled VAE
+    encoder (section j, with the default loop's warm-up from section b) and where the default step's time goes."""
+    bullets = []
+    passes = [r for r in runs if r.get("section") == "i" and r.get("samples_per_pass")]
+    default = next((r for r in passes if "(default)" in r["name"]), None)
+    if passes and default:
+        base = passes[0]
+        moved = max((r["max_rgb_difference"] for r in runs if r.get("kind") == "render_passes"
+                     and device_kind(r) == "cuda"), default=None)
+        same = "" if moved is None else f" (section h: no pixel moves by more than {moved:.1g}, float32 rounding)"
+        bullets.append(f"**Render passes sized for the device** (GPU, same run): the step takes {default['ms_step']:.1f} ms "
+                       f"with passes of 2^{default['samples_per_pass'].bit_length() - 1} samples against "
+                       f"{base['ms_step']:.1f} ms with the CPU's 2^20 ({default['speedup_over_2_20']:.2f}×), the "
+                       f"render {default['ms_render']:.1f} against {base['ms_render']:.1f} ms; the same render{same}.")
+    encoders = [r for r in runs if r.get("section") == "j" and "ms_step" in r]
+    eager = next((r for r in encoders if r.get("compile_encoder") is False), None)
+    compiled = next((r for r in encoders if r.get("compile_encoder") and not r.get("graphed_encoder")), None)
+    loop = next((r for r in runs if r.get("section") == "b" and r.get("compile_encoder")), None)
+    if eager and compiled:
+        warm = f"; its compile took {loop['warm_seconds']:.0f} s of the loop's warm-up, once per guidance" if loop else ""
+        bullets.append(f"**Compiled VAE encoder** (GPU, same run): the step takes {compiled['ms_step']:.1f} ms against "
+                       f"{eager['ms_step']:.1f} with the graphed eager encoder "
+                       f"({eager['ms_step'] / compiled['ms_step']:.2f}×): the encoder's forward "
+                       f"{compiled['ms_vae']:.1f} against {eager['ms_vae']:.1f} ms, its backward "
+                       f"{compiled['ms_backward_guidance']:.1f} against {eager['ms_backward_guidance']:.1f} ms{warm}. "
+                       f"The encoder's latents move by {compiled['encoder_latents_relative_difference']:.1g} and the "
+                       f"gradient it sends to the renders by {compiled['encoder_image_grad_relative_difference']:.1g} "
+                       "(relative to their largest entries; fp16 kernels fused differently).")
+        parts = ", ".join(f"{label} {compiled[key]:.1f}" for label, key in (
+            ("render", "ms_render"), ("VAE encoder", "ms_vae"), ("UNet", "ms_unet"),
+            ("encoder backward", "ms_backward_guidance"), ("render backward", "ms_backward_render"),
+            ("Adam", "ms_optimizer")))
+        bullets.append(f"**Where the default step's time goes** (GPU, device times, ms): {parts}.")
+    return bullets
 
 
 def render_pass_tradeoffs(runs: list[dict]) -> list[str]:

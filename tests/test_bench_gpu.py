@@ -23,16 +23,21 @@ def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
     bench = importlib.util.module_from_spec(spec)
     monkeypatch.setitem(sys.modules, "bench_gpu", bench)  # dataclasses look their module up there
     spec.loader.exec_module(bench)
-    out = tmp_path / "gpu.json"
-    assert bench.main(["--smoke", "--out", str(out), "--call", "7", "--call-note", "the smoke run"]) == 0
+    out, earlier = tmp_path / "gpu.json", tmp_path / "earlier.json"
+    earlier_loop = {"name": "edit_loop, CUDA graphs", "kind": "edit", "section": "g", "call": 6, "device": "cuda",
+                    "ms_step": 1000.0}  # an earlier call's loop beside another model: no projection reads it
+    earlier.write_text(json.dumps({"calls": {"6": "g"}, "runs": [earlier_loop]}))
+    assert bench.main(["--smoke", "--out", str(out), "--call", "7", "--call-note", "the smoke run", "--skip", "g",
+                       "--keep", str(earlier)]) == 0
     record = json.loads(out.read_text())
-    runs = record["runs"]
+    assert record["runs"][0] == {**earlier_loop, "kept_from_earlier_call": True}
+    runs = record["runs"][1:]
     assert not [r for r in runs if "error" in r]
     kinds = [r["kind"] for r in runs]
     assert kinds == ["edit_step"] * len(bench.STEP_VARIANTS) + ["edit", "reconstruction", "reconstruction",
                                                                   "refinement"] + ["render_passes"] * 8 \
         + ["edit_step"] * 2 + ["job"]  # i: the CPU's default pass size against 2^23; the whole job last
-    assert record["calls"] == {"7": "the smoke run"} and {r["call"] for r in runs} == {7}
+    assert record["calls"] == {"6": "g", "7": "the smoke run"} and {r["call"] for r in runs} == {7}
     for run in runs:
         assert {"name", "device", "dtype", "model", "peak_memory_gb"} <= set(run)
         assert run["device"] == "cpu" and run["peak_memory_gb"] > 0
@@ -57,5 +62,8 @@ def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
         assert run["ms_backward_guidance"] + run["ms_backward_render"] == pytest.approx(run["ms_backward"])
     job = next(r for r in runs if r["kind"] == "job")
     assert job["state"] == "succeeded"
+    loop = next(r for r in runs if r["section"] == "b")  # projected with the default loop's step
+    assert job["seconds_projected_8000_iterations"] == pytest.approx(
+        job["seconds"] + (8000 - job["edit_iterations"]) * loop["ms_step"] / 1e3)
     assert set(job["peak_memory_gb_per_stage"]) == {"reconstruct", "edit", "refine", "export"}
     assert (tmp_path / "gpu.png").stat().st_size > 1000

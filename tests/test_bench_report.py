@@ -122,3 +122,28 @@ def test_render_pass_tradeoffs_compare_each_pass_size_with_the_cpus_default():
     (bullet,) = report.render_pass_tradeoffs(rows)
     assert "(sphere, cpu; against the CPU's default 2^20: 1200 operations, 600 ms, 0.70 GiB)" in bullet
     assert "2^22: 0.50× the operations, 1.20× the time, 1.10 GiB" in bullet and "at most 0" in bullet
+
+
+def test_step_speedups_compare_pass_sizes_and_encoders_within_their_sections():
+    runs = [
+        {"name": "edit_step samples_per_pass 2^20", "section": "i", "samples_per_pass": 1 << 20, "ms_step": 90.0,
+         "ms_render": 30.0, "speedup_over_2_20": 1.0},
+        {"name": "edit_step samples_per_pass 2^22 (default)", "section": "i", "samples_per_pass": 1 << 22,
+         "ms_step": 75.0, "ms_render": 20.0, "speedup_over_2_20": 1.2},
+        {"kind": "render_passes", "device": "cuda", "max_rgb_difference": 2e-7},
+        {"name": "loop", "section": "b", "kind": "edit", "compile_encoder": True, "warm_seconds": 39.0},
+        {"name": "eager encoder", "section": "j", "compile_encoder": False, "graphed_encoder": True, "ms_step": 72.0,
+         "ms_vae": 14.0, "ms_backward_guidance": 19.0},
+        {"name": "compiled", "section": "j", "compile_encoder": True, "graphed_encoder": False, "ms_step": 60.0,
+         "ms_vae": 6.0, "ms_backward_guidance": 16.0, "ms_render": 22.0, "ms_unet": 10.0, "ms_backward_render": 4.0,
+         "ms_optimizer": 0.5, "encoder_latents_relative_difference": 0.003,
+         "encoder_image_grad_relative_difference": 0.005},
+    ]
+    passes, compiled, parts = report.step_speedups(runs)
+    assert "75.0 ms with passes of 2^22 samples against 90.0 ms with the CPU's 2^20 (1.20×)" in passes
+    assert "no pixel moves by more than 2e-07" in passes
+    assert "60.0 ms against 72.0 with the graphed eager encoder (1.20×)" in compiled
+    assert "forward 6.0 against 14.0 ms, its backward 16.0 against 19.0 ms; its compile took 39 s" in compiled
+    assert parts.endswith("render 22.0, VAE encoder 6.0, UNet 10.0, encoder backward 16.0, render backward 4.0, "
+                          "Adam 0.5.")
+    assert report.step_speedups([]) == []

@@ -43,7 +43,8 @@ class RenderConfig:
 
         Larger passes dispatch fewer operations (2^22: 0.50x on the edit's render, one pass instead of five), which
         is what a launch-bound GPU pays for (bench/gpu.py, section h), but ran 1.17x slower on this CPU with
-        +0.45 GiB (bench/render_passes.py). The render is the same at any size.
+        +0.45 GiB (bench/render_passes.py). The render is the same at any size (on a GPU to float32 rounding: its
+        atomic adds run in another order).
         """
         if self.samples_per_pass is not None:
             return self.samples_per_pass
