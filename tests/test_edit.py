@@ -255,6 +255,19 @@ def test_the_backward_time_is_split_where_the_gradient_reaches_the_renders(small
         assert info["ms_backward_guidance"] + info["ms_backward_render"] == pytest.approx(info["ms_backward"])
 
 
+def test_renders_of_empty_space_edit_with_no_backward_time_on_the_guidance():
+    """Rays that meet no occupied cell render the background: no gradient reaches the renders, only the regulariser's
+    reaches the grid, and the guidance's share of the backward is nothing."""
+    reports = []
+    empty = VoxelGrid(8, init_density=-1.0)
+    edited = edit(empty, "a dog", SlowEncoderGuidance(), EditConfig(iterations=1, render_size=16, sync_timing=True),
+                  _collect(reports))
+    (info,) = [r.info for r in reports]
+    assert info["samples_per_ray"] == 0 and info["ms_backward_guidance"] == 0
+    assert info["ms_backward_render"] == pytest.approx(info["ms_backward"])
+    assert torch.isfinite(edited.features).all()
+
+
 def test_cancellation_stops_within_one_iteration(small_sphere):
     reports = []
     callbacks = Callbacks(on_progress=reports.append, should_cancel=lambda: len(reports) >= 1)

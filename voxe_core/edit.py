@@ -407,8 +407,9 @@ def edit(
             images = torch.stack(renders)
             _sync(device, sync)
             t_render = time.perf_counter()
-            reached_renders = []  # when the backward's gradient reaches the renders
-            images.register_hook(lambda grad: _mark(reached_renders, device, sync))
+            reached_renders = []  # when the backward's gradient reaches the renders (renders of empty space have none)
+            if images.requires_grad:
+                images.register_hook(lambda grad: _mark(reached_renders, device, sync))
 
             # ---- SDS (optionally under autocast)
             with _autocast(device, config.autocast_dtype):
@@ -439,6 +440,7 @@ def edit(
             total.backward()
             _sync(device, sync)
             t_backward = time.perf_counter()
+            t_guidance = reached_renders[0] if reached_renders else t_reg  # no gradient into the renders: none spent
             optimizer.step()
             _sync(device, sync)
             t_end = time.perf_counter()
@@ -463,8 +465,8 @@ def edit(
                     "ms_sds": (t_sds - t_render) * 1e3,
                     "ms_regulariser": (t_reg - t_sds) * 1e3,
                     "ms_backward": (t_backward - t_reg) * 1e3,
-                    "ms_backward_guidance": (reached_renders[0] - t_reg) * 1e3,
-                    "ms_backward_render": (t_backward - reached_renders[0]) * 1e3,
+                    "ms_backward_guidance": (t_guidance - t_reg) * 1e3,
+                    "ms_backward_render": (t_backward - t_guidance) * 1e3,
                     "ms_optimizer": (t_end - t_backward) * 1e3,
                     "ms_step": (t_end - t_start) * 1e3,
                     **memory.info(),
