@@ -677,7 +677,8 @@ def main(argv=None) -> int:
         section("i", "edit_step", lambda: step_pass_runs(sd2, profile))
         if profile.device == "cuda":  # last: a compile's warm-up is the longest and least predictable
             section("j", "edit_step", lambda: compiled_encoder_runs(sd2, profile))
-        loop = next((r for r in runs if r.get("section") == "b" and "ms_step" in r), None)  # the default loop
+        loops = [r for r in runs if r.get("section") == "b" and "ms_step" in r]  # the default loop, latest call's
+        loop = max(loops, key=lambda r: r.get("call") or 0) if loops else None
         if args.data.is_dir():
             section("f", "job", lambda: job_run(sd2, sd14, profile, args.data, tmp / "service",
                                                 loop["ms_step"] if loop else None))

@@ -54,6 +54,9 @@ FULL_RUNS = [
     ("skip-128", 128, (300, 500, 800), True, LAST_ITERATE),
     # ReconstructConfig.fast() as it is: what `voxe reconstruct` and jobs fit an object with by default.
     ("preset-fast", 128, (300, 500, 1200), True, {"resolutions": (40, 80, 128)}),
+    # ... with other seeds (rays, jitter): the spread a device's other random numbers land within.
+    ("preset-fast-seed1", 128, (300, 500, 1200), True, {"resolutions": (40, 80, 128), "seed": 1}),
+    ("preset-fast-seed2", 128, (300, 500, 1200), True, {"resolutions": (40, 80, 128), "seed": 2}),
 ]
 # One knob at a time against the last-iterate recipe at 160³ with 1,500 final-stage iterations (--ablations).
 ABLATION_BASE = (160, (300, 500, 1500), True)

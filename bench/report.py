@@ -565,7 +565,9 @@ def gpu_section(gpu, reconstruction, results: Path, report: Path) -> tuple[list[
                    [[r.get("section"), r.get("call"), r.get("name"), r.get("dtype"), r.get("cuda_graphs", "–"),
                      fmt(r.get("ms_step"), 1), fmt(r.get("edit_8000_minutes"), 1), fmt(r.get("seconds"), 1),
                      fmt(r.get("psnr"), 2), fmt(r.get("ssim"), 4), fmt(r.get("peak_memory_gb"), 2)] for r in runs])
-    cpu_fast = next((r for r in as_runs(reconstruction) if r.get("label") == "preset-fast"), None)
+    # The CPU's `fast` preset over its seeds: another device draws other random numbers, so its PSNR is compared
+    # with their mean, their range beside it.
+    cpu_fast = [r for r in as_runs(reconstruction) if r.get("label", "").startswith("preset-fast") and "psnr" in r]
     gpu_fast = _preset_run(runs, "fast")
     target_rows = []
     for name, target, measure, met, form in GPU_TARGETS:
@@ -573,11 +575,15 @@ def gpu_section(gpu, reconstruction, results: Path, report: Path) -> tuple[list[
         target_rows.append([name, target, "–" if value is None else form.format(value),
                             "not measured" if value is None else ("met" if met(value) else "**not met**")])
     if cpu_fast and gpu_fast:
-        same_size = cpu_fast.get("image_size") == gpu_fast.get("image_size")
-        verdict = ("met" if gpu_fast["psnr"] >= cpu_fast["psnr"] else "**not met**") if same_size else \
-            f"not comparable: {gpu_fast.get('image_size')} px on the GPU, {cpu_fast.get('image_size')} px on the CPU"
-        target_rows.append(["`fast` PSNR against the CPU's", f"≥ {cpu_fast['psnr']:.2f} dB (CPU `preset-fast`)",
-                            f"{gpu_fast['psnr']:.2f} dB", verdict])
+        psnrs = [r["psnr"] for r in cpu_fast]
+        mean = sum(psnrs) / len(psnrs)
+        same_size = {r.get("image_size") for r in cpu_fast} == {gpu_fast.get("image_size")}
+        verdict = ("met" if gpu_fast["psnr"] >= mean else "**not met**") if same_size else \
+            f"not comparable: {gpu_fast.get('image_size')} px on the GPU, {cpu_fast[0].get('image_size')} px on the CPU"
+        spread = f"; seeds {min(psnrs):.2f}–{max(psnrs):.2f}" if len(psnrs) > 1 else ""
+        target_rows.append(["`fast` PSNR against the CPU's",
+                            f"≥ {mean:.2f} dB (CPU `preset-fast`, mean of {len(psnrs)} seed{'s' * (len(psnrs) > 1)}"
+                            f"{spread})", f"{gpu_fast['psnr']:.2f} dB", verdict])
     lines += ["", "Issue 17's targets:", ""] + table(["target", "asked", "measured", "verdict"], target_rows)
     lines += figure_link_png(results / "gpu.png", report, "GPU stages")
     bullets = []
@@ -631,20 +637,22 @@ def step_speedups(runs: list[dict]) -> list[str]:
     encoders = [r for r in runs if r.get("section") == "j" and "ms_step" in r]
     eager = next((r for r in encoders if r.get("compile_encoder") is False), None)
     compiled = next((r for r in encoders if r.get("compile_encoder") and not r.get("graphed_encoder")), None)
-    loop = next((r for r in runs if r.get("section") == "b" and r.get("compile_encoder")), None)
+    loops = [r for r in runs if r.get("section") == "b" and r.get("compile_encoder")]
+    loop = max(loops, key=lambda r: r.get("call", 0)) if loops else None  # the latest call's
     if eager and compiled:
         warm = f"; its compile took {loop['warm_seconds']:.0f} s of the loop's warm-up, once per guidance" if loop else ""
         bullets.append(f"**Compiled VAE encoder** (GPU, same run): the step takes {compiled['ms_step']:.1f} ms against "
                        f"{eager['ms_step']:.1f} with the graphed eager encoder "
                        f"({eager['ms_step'] / compiled['ms_step']:.2f}×): the encoder's forward "
-                       f"{compiled['ms_vae']:.1f} against {eager['ms_vae']:.1f} ms, its backward "
-                       f"{compiled['ms_backward_guidance']:.1f} against {eager['ms_backward_guidance']:.1f} ms{warm}. "
+                       f"{compiled['ms_vae']:.1f} against {eager['ms_vae']:.1f} ms, the backward up to the renders "
+                       f"(the encoder's and the regulariser's) {compiled['ms_backward_guidance']:.1f} against "
+                       f"{eager['ms_backward_guidance']:.1f} ms{warm}. "
                        f"The encoder's latents move by {compiled['encoder_latents_relative_difference']:.1g} and the "
                        f"gradient it sends to the renders by {compiled['encoder_image_grad_relative_difference']:.1g} "
                        "(relative to their largest entries; fp16 kernels fused differently).")
         parts = ", ".join(f"{label} {compiled[key]:.1f}" for label, key in (
             ("render", "ms_render"), ("VAE encoder", "ms_vae"), ("UNet", "ms_unet"),
-            ("encoder backward", "ms_backward_guidance"), ("render backward", "ms_backward_render"),
+            ("encoder + regulariser backward", "ms_backward_guidance"), ("render backward", "ms_backward_render"),
             ("Adam", "ms_optimizer")))
         bullets.append(f"**Where the default step's time goes** (GPU, device times, ms): {parts}.")
     return bullets

@@ -246,6 +246,8 @@ class SlowEncoderGuidance(FakeGuidance):
 
 
 def test_the_backward_time_is_split_where_the_gradient_reaches_the_renders(small_sphere):
+    """A slow encoder backward lands on the guidance's side (so would the regulariser's, built after the SDS loss:
+    autograd runs it first); the rest is the renders'."""
     reports = []
     edit(small_sphere, "a dog", SlowEncoderGuidance(), EditConfig(iterations=2, render_size=16, sync_timing=True),
          _collect(reports))

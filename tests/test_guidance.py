@@ -491,9 +491,10 @@ def test_a_capture_the_libraries_refuse_turns_the_graphs_off_with_a_warning(guid
 
 
 def test_the_compiled_encoder_matches_the_eager_one_and_compiles_only_the_sds_steps_encode(guidance, tiny_path):
-    """A real ``torch.compile`` trace (the eager backend: dynamo without inductor's code generation, which this CPU
-    has no time for) of the tiny model's encoder gives the eager latents and the eager gradient; encodes without
-    gradient or under autocast never reach the compiled encoder (bench/gpu.py, section j, measures inductor's)."""
+    """A real ``torch.compile`` trace (dynamo's eager backend: inductor's code generation takes this CPU ~30 s) of the
+    tiny model's encoder gives the eager latents and the eager gradient, its first call probing the forward and
+    backward on a copy; encodes without gradient or under autocast never reach the compiled encoder (bench/gpu.py,
+    section j, measures inductor's)."""
     from voxe_core.guidance.compiled import CompiledEncoder
 
     traced = []
@@ -514,14 +515,38 @@ def test_the_compiled_encoder_matches_the_eager_one_and_compiles_only_the_sds_st
         (latents * torch.randn(latents.shape, generator=torch.Generator().manual_seed(1))).sum().backward()
         results.append((latents.detach(), x.grad))
     size = guidance.resolution
-    assert traced == [(1, 3, size, size)]
+    assert traced == [(1, 3, size, size)] * 2  # the probe's, then the encode's
     torch.testing.assert_close(results[0][0], results[1][0])
     torch.testing.assert_close(results[0][1], results[1][1])
     with torch.no_grad():
         fresh.encode_images(images)
     with torch.autocast("cpu", dtype=torch.bfloat16):
         fresh.encode_images(images.clone().requires_grad_(True))
-    assert traced == [(1, 3, size, size)]
+    assert traced == [(1, 3, size, size)] * 2
+
+
+def test_a_backward_compile_the_libraries_refuse_falls_back_before_the_edits_backward():
+    """AOTAutograd compiles the backward lazily, at the first backward: the probe makes it fail inside the encoder's
+    fallback rather than in the edit's ``loss.backward()`` (a small convolution stands in for the encoder)."""
+    from functorch.compile import make_boxed_func
+    from torch._dynamo.backends.common import aot_autograd
+
+    from voxe_core.guidance.compiled import CompiledEncoder
+
+    def refuse(graph, inputs):
+        raise RuntimeError("no backward for you")
+
+    backend = aot_autograd(fw_compiler=lambda graph, inputs: make_boxed_func(graph.forward), bw_compiler=refuse)
+    conv = torch.nn.Conv2d(3, 8, 3, padding=1).requires_grad_(False)
+    moments = lambda x: conv(x).tanh()  # noqa: E731
+    encoder = CompiledEncoder(moments, compile=lambda f: torch.compile(f, backend=backend, dynamic=False))
+    images = torch.rand(1, 3, 16, 16, generator=torch.Generator().manual_seed(0))
+    x, expected = (images.clone().requires_grad_(True) for _ in range(2))
+    with pytest.warns(RuntimeWarning, match="torch.compile turned off for the VAE encoder: .*no backward for you"):
+        encoder(x).sum().backward()  # the eager graph's backward: nothing left to compile
+    moments(expected).sum().backward()
+    assert encoder.compiled is None
+    torch.testing.assert_close(x.grad, expected.grad)
 
 
 def test_a_compile_the_libraries_refuse_turns_it_off_with_a_warning(guidance, tiny_path):

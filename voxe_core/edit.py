@@ -280,8 +280,9 @@ def edit(
     ``sds_grad_norm`` and per-part milliseconds ``ms_render``, ``ms_vae``
     (VAE encoder forward), ``ms_unet`` (UNet incl. CFG), ``ms_backward``
     (split at the moment the gradient reaches the renders: ``ms_backward_guidance``,
-    the VAE encoder's and the resize's backward, then ``ms_backward_render``, the
-    renders' and the regulariser's), ``ms_optimizer``, ``ms_step``. Cancellation is checked before each
+    the VAE encoder's and the resize's backward and, as autograd runs the graph
+    built last first, the regulariser's; then ``ms_backward_render``, the renders'),
+    ``ms_optimizer``, ``ms_step``. Cancellation is checked before each
     iteration (``StageCancelled``; a checkpoint is written first when
     ``checkpoint_path`` is set). Info also carries ``peak_memory_gb`` /
     ``peak_memory_kind`` (:class:`voxe_core.devices.PeakMemory`).

@@ -48,7 +48,7 @@ class Settings(BaseSettings):
     clip_model: str = CLIP_MODEL_ID
     fid_model: str = ""
     device: str = "auto"  # auto | cpu | cuda | cuda:N
-    cuda_graphs: bool = True  # the SDS step's UNet and VAE encoder replayed from CUDA graphs on CUDA
+    cuda_graphs: bool = True  # the SDS step's UNet (and its VAE encoder, when not compiled) from CUDA graphs on CUDA
     compile_encoder: bool = True  # the SDS step's VAE encoder compiled with torch.compile on CUDA
 
     # --- uploads

@@ -29,9 +29,11 @@ def add_parsers(commands, common) -> None:
     add_grid_output_arguments(ed)
     add_model_arguments(ed, "--model", "diffusers-layout Stable Diffusion", paper.SDS_MODEL_ID)
     ed.add_argument("--no-cuda-graphs", dest="cuda_graphs", action="store_false",
-                    help="run the SDS step's UNet and VAE eagerly on CUDA (default: replayed from CUDA graphs)")
+                    help="run the SDS step's UNet (and the VAE encoder, when not compiled) eagerly on CUDA (default: "
+                         "replayed from CUDA graphs)")
     ed.add_argument("--no-compile-encoder", dest="compile_encoder", action="store_false",
-                    help="leave the SDS step's VAE encoder uncompiled on CUDA (default: torch.compile, ~40 s once)")
+                    help="leave the SDS step's VAE encoder uncompiled (and graphed) on CUDA (default: torch.compile, "
+                         "which the first iteration waits for)")
     ed.add_argument("--iterations", type=int, default=None,
                     help=f"default {paper.EDIT_ITERATIONS}; {_SCENE.iterations} for a scene-backbone grid (SPEC §5)")
     ed.add_argument("--render-size", type=positive_int, default=paper.RENDER_SIZE, help="training render size in pixels")
