@@ -37,7 +37,9 @@ j. ``edit_step`` (CUDA only) with the VAE encoder compiled (``torch.compile``) o
    (the compile), per-part times, agreement with the eager guidance.
 
 Sections run in the order a, b, c, d, h, g, i, j, f: the whole job last, the longest and, with a compile in its
-worker, the least predictable (each section's runs are saved as it ends).
+worker, the least predictable (each section's runs are saved as it ends). A SIGTERM (bench/gpu_device.sh's
+``timeout``, ``GPU_BENCH_SECONDS``) ends the section in flight with a row saying so and what it had measured (the
+job's stages so far), and the later sections do not start.
 
 ``--skip a,b,c --keep bench/results/gpu.json`` re-runs the other sections in a later call on the device and keeps
 the earlier call's runs of the skipped ones (each run names its ``section``; kept ones say so).
@@ -53,6 +55,7 @@ import argparse
 import contextlib
 import json
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -243,7 +246,8 @@ def edit_loop_run(sd2: Path, profile: Profile) -> dict:
     guidance = _guidance(sd2, profile, profile.dtype)
     return _loop_row(guidance, profile, f"edit_loop {profile.loop_iterations} iterations at {profile.grid_resolution}³",
                      render_size=profile.render_size, guidance_resolution=profile.guidance_resolution,
-                     cuda_graphs=guidance.cuda_graphs, compile_encoder=guidance.compile_encoder)
+                     cuda_graphs=guidance.cuda_graphs, compile_encoder=guidance.compile_encoder,
+                     encoder_compile_seconds=guidance.encoder_compile_seconds)
 
 
 # ---------------------------------------------------------------- (c)
@@ -314,7 +318,9 @@ def refinement_run(sd14: Path, profile: Profile) -> dict:
 
 
 # ---------------------------------------------------------------- (f)
-def job_run(sd2: Path, sd14: Path, profile: Profile, data: Path, root: Path, loop_ms_step: float | None) -> dict:
+def job_run(sd2: Path, sd14: Path, profile: Profile, data: Path, root: Path, loop_ms_step: float | None,
+            progress: dict | None = None) -> dict:
+    """The job's run; ``progress["seconds_per_stage"]`` holds the stages done so far (what a cut-off call keeps)."""
     from fastapi.testclient import TestClient
     from service_helpers import ingest, reset_service_caches, service_env, small_mic, zip_folder
 
@@ -336,6 +342,8 @@ def job_run(sd2: Path, sd14: Path, profile: Profile, data: Path, root: Path, loo
             job = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": PROMPT, "mode": "local",
                                                 "edit_words": EDIT_WORDS, "params": params}).json()
             seconds = {}
+            if progress is not None:
+                progress["seconds_per_stage"] = seconds
             for stage, task in (("reconstruct", tasks.reconstruct_task), ("edit", tasks.edit_task),
                                 ("refine", tasks.refine_task), ("export", tasks.export_task)):
                 start = time.perf_counter()
@@ -358,7 +366,8 @@ def job_run(sd2: Path, sd14: Path, profile: Profile, data: Path, root: Path, loo
             "model": "sd2-base-shaped SDS + sd1.4-shaped attention (random weights)", "seconds": total,
             "seconds_per_stage": seconds, "edit_iterations": profile.job_iterations,
             "seconds_projected_8000_iterations": projected, "state": done["state"],
-            "peak_memory_gb": max(memory.values()) if memory else None, "peak_memory_gb_per_stage": memory}
+            "peak_memory_gb": max(memory.values()) if memory else None, "peak_memory_gb_per_stage": memory,
+            "encoder_compile_seconds": (done.get("result") or {}).get("encoder_compile_seconds")}
 
 
 # ---------------------------------------------------------------- (h)
@@ -518,7 +527,7 @@ def compiled_encoder_runs(sd2: Path, profile: Profile) -> list[dict]:
             row = _step_row(name, profile, profile.dtype, wall * 1e3 / profile.timed, timed, parts,
                             cuda_graphs=guidance.cuda_graphs, compile_encoder=guidance.compile_encoder,
                             graphed_encoder=guidance._graphed_encoder is not None, warm_seconds=warm_seconds,
-                            warm_iterations=profile.warm)
+                            warm_iterations=profile.warm, encoder_compile_seconds=guidance.encoder_compile_seconds)
             if guidance.compile_encoder:
                 row.update(_graph_agreement(eager, guidance, profile))
         except Exception as exc:  # noqa: BLE001 - the other variants still run
@@ -558,7 +567,8 @@ def plot(runs: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     steps = [r for r in runs if r.get("kind") == "edit_step" and "ms_step" in r]
-    timed = [r for r in runs if r.get("kind") not in ("edit_step", "render_passes") and r.get("seconds") is not None]
+    timed = [r for r in runs if r.get("kind") not in ("edit_step", "render_passes") and r.get("seconds") is not None
+             and "error" not in r]
     fig, (left, right) = plt.subplots(1, 2, figsize=(14, 1.5 + 0.45 * max(len(steps), len(timed), 1)))
     for i, r in enumerate(steps):  # bars from zero on a linear axis: their lengths compare
         left.barh(i, r["ms_step"], color="#4c72b0")
@@ -574,7 +584,8 @@ def plot(runs: list[dict], path: Path) -> None:
         right.annotate(f"  {r['seconds']:.1f} s{_memory_text(r)}", (r["seconds"], i), va="center", fontsize=8)
     right.set_yticks(range(len(timed)), [_plot_label(r) for r in timed], fontsize=8)
     right.invert_yaxis()
-    right.set_xscale("log")
+    if timed:  # a log axis needs a point
+        right.set_xscale("log")
     right.margins(x=0.6)
     right.grid(True, which="both", axis="x", color="0.92")
     right.set_xlabel("seconds (log scale)")
@@ -582,6 +593,10 @@ def plot(runs: list[dict], path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+class CallTimeLimit(Exception):
+    """SIGTERM from the call's time limit: the section in flight records what it has, the later ones do not run."""
 
 
 SECTION_OF_KIND = {"edit_step": "a", "edit": "b", "reconstruction": "c", "refinement": "d", "job": "f"}
@@ -634,8 +649,16 @@ def main(argv=None) -> int:
     def save() -> None:
         out.write_text(json.dumps({**header, "wall_seconds": time.perf_counter() - started, "runs": runs}, indent=2))
 
-    def section(name: str, kind: str, body) -> None:
-        if name in skip:
+    terminated = []  # the call's time limit (`timeout` in bench/gpu_device.sh) sent SIGTERM
+
+    def on_sigterm(signum, frame):
+        terminated.append(time.perf_counter())
+        raise CallTimeLimit("terminated by the call's time limit (SIGTERM)")
+
+    def section(name: str, kind: str, body, progress: dict | None = None) -> None:
+        """Runs ``body`` and records its runs, or its failure with what ``progress`` holds by then; after a
+        SIGTERM the section in flight records that and the later ones do not start."""
+        if name in skip or terminated:
             return
         t0 = time.perf_counter()
         try:
@@ -643,45 +666,53 @@ def main(argv=None) -> int:
             runs.extend({**r, "section": name, **tag} for r in (produced if isinstance(produced, list) else [produced]))
         except Exception as exc:  # noqa: BLE001 - one section's failure must not lose the others
             traceback.print_exc()
+            error = "CallTimeLimit: terminated by the call's time limit (SIGTERM)" if terminated else \
+                f"{type(exc).__name__}: {exc}"
             runs.append({"name": f"section {name} failed", "kind": kind, "section": name, "device": profile.device,
-                         "error": f"{type(exc).__name__}: {exc}", **tag})
+                         "error": error, "seconds": time.perf_counter() - t0, **(progress or {}), **tag})
         print(f"section {name} ({kind}): {time.perf_counter() - t0:.1f} s", file=sys.stderr)
         save()
 
-    with tempfile.TemporaryDirectory(prefix="voxe_gpu_bench_") as tmp:
-        tmp = Path(tmp)
-        from voxe_core.tiny_sd import build_tiny_stable_diffusion
+    previous_handler = signal.signal(signal.SIGTERM, on_sigterm)
+    try:
+        with tempfile.TemporaryDirectory(prefix="voxe_gpu_bench_") as tmp:
+            tmp = Path(tmp)
+            from voxe_core.tiny_sd import build_tiny_stable_diffusion
 
-        tiny = build_tiny_stable_diffusion(tmp / "tiny", seed=0)
-        if args.smoke:
-            sd2 = sd14 = tiny
-        else:  # built in subprocesses so their memory is returned before the models load
-            sd2, sd14 = tmp / "sd2", tmp / "sd14"
-            build_start = time.perf_counter()
-            for path, family in ((sd2, "sd2-base"), (sd14, "sd1.4")):
-                subprocess.run([sys.executable, str(HERE / "edit_step.py"), "--build-full", str(path),
-                                "--tokenizer-from", str(tiny / "tokenizer"), "--family", family,
-                                "--build-device", profile.device], check=True)
-            header["model_build_seconds"] = time.perf_counter() - build_start
-        section("a", "edit_step", lambda: edit_step_runs(sd2, profile))
-        section("b", "edit", lambda: edit_loop_run(sd2, profile))
-        if args.data.is_dir():
-            section("c", "reconstruction", lambda: reconstruction_runs(profile, args.data))
-        else:
-            runs.append({"name": "reconstruction skipped", "kind": "reconstruction", "error": f"no data at {args.data}"})
-        section("d", "refinement", lambda: refinement_run(sd14, profile))
-        section("h", "render_passes", lambda: render_pass_runs(profile))
-        if profile.device == "cuda":  # CUDA graphs exist only there
-            baseline = next((r["ms_step"] for r in runs if r.get("section") == "a" and "ms_step" in r), None)
-            section("g", "cuda_graphs", lambda: cuda_graph_runs(sd2, profile, baseline))
-        section("i", "edit_step", lambda: step_pass_runs(sd2, profile))
-        if profile.device == "cuda":  # last: a compile's warm-up is the longest and least predictable
-            section("j", "edit_step", lambda: compiled_encoder_runs(sd2, profile))
-        loops = [r for r in runs if r.get("section") == "b" and "ms_step" in r]  # the default loop, latest call's
-        loop = max(loops, key=lambda r: r.get("call") or 0) if loops else None
-        if args.data.is_dir():
-            section("f", "job", lambda: job_run(sd2, sd14, profile, args.data, tmp / "service",
-                                                loop["ms_step"] if loop else None))
+            tiny = build_tiny_stable_diffusion(tmp / "tiny", seed=0)
+            if args.smoke:
+                sd2 = sd14 = tiny
+            else:  # built in subprocesses so their memory is returned before the models load
+                sd2, sd14 = tmp / "sd2", tmp / "sd14"
+                build_start = time.perf_counter()
+                for path, family in ((sd2, "sd2-base"), (sd14, "sd1.4")):
+                    subprocess.run([sys.executable, str(HERE / "edit_step.py"), "--build-full", str(path),
+                                    "--tokenizer-from", str(tiny / "tokenizer"), "--family", family,
+                                    "--build-device", profile.device], check=True)
+                header["model_build_seconds"] = time.perf_counter() - build_start
+            section("a", "edit_step", lambda: edit_step_runs(sd2, profile))
+            section("b", "edit", lambda: edit_loop_run(sd2, profile))
+            if args.data.is_dir():
+                section("c", "reconstruction", lambda: reconstruction_runs(profile, args.data))
+            else:
+                runs.append({"name": "reconstruction skipped", "kind": "reconstruction",
+                             "error": f"no data at {args.data}"})
+            section("d", "refinement", lambda: refinement_run(sd14, profile))
+            section("h", "render_passes", lambda: render_pass_runs(profile))
+            if profile.device == "cuda":  # CUDA graphs exist only there
+                baseline = next((r["ms_step"] for r in runs if r.get("section") == "a" and "ms_step" in r), None)
+                section("g", "cuda_graphs", lambda: cuda_graph_runs(sd2, profile, baseline))
+            section("i", "edit_step", lambda: step_pass_runs(sd2, profile))
+            if profile.device == "cuda":  # last: a compile's warm-up is the longest and least predictable
+                section("j", "edit_step", lambda: compiled_encoder_runs(sd2, profile))
+            loops = [r for r in runs if r.get("section") == "b" and "ms_step" in r]  # the default loop, latest call's
+            loop = max(loops, key=lambda r: r.get("call") or 0) if loops else None
+            if args.data.is_dir():
+                job_progress = {}
+                section("f", "job", lambda: job_run(sd2, sd14, profile, args.data, tmp / "service",
+                                                    loop["ms_step"] if loop else None, job_progress), job_progress)
+    finally:
+        signal.signal(signal.SIGTERM, previous_handler)
     save()
     plot(runs, out.with_suffix(".png"))
     for run in runs:

@@ -5,7 +5,10 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
+import signal
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -67,3 +70,44 @@ def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
         job["seconds"] + (8000 - job["edit_iterations"]) * loop["ms_step"] / 1e3)
     assert set(job["peak_memory_gb_per_stage"]) == {"reconstruct", "edit", "refine", "export"}
     assert (tmp_path / "gpu.png").stat().st_size > 1000
+
+
+def _load_bench(monkeypatch):
+    spec = importlib.util.spec_from_file_location("bench_gpu", BENCH)
+    bench = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "bench_gpu", bench)
+    spec.loader.exec_module(bench)
+    return bench
+
+
+def test_a_call_cut_off_by_its_time_limit_keeps_what_it_measured(tmp_path, monkeypatch):
+    """SIGTERM (bench/gpu_device.sh's `timeout`) in the middle of the job: its row says so and keeps the stages done
+    by then; a cut in an earlier section leaves the later ones unstarted; the handler is put back afterwards."""
+    if not MIC.is_dir():
+        pytest.skip(f"shared data missing: {MIC}")
+    bench = _load_bench(monkeypatch)
+
+    def cut_off_job(*args):
+        args[-1]["seconds_per_stage"] = {"reconstruct": 26.1}  # what the job had done
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(30)  # the handler raises here
+        raise AssertionError("not reached")
+
+    monkeypatch.setattr(bench, "job_run", cut_off_job)
+    before = signal.getsignal(signal.SIGTERM)
+    out = tmp_path / "job.json"
+    assert bench.main(["--smoke", "--out", str(out), "--skip", "a,b,c,d,h,i"]) == 1
+    (run,) = json.loads(out.read_text())["runs"]
+    assert run["section"] == "f" and run["error"] == "CallTimeLimit: terminated by the call's time limit (SIGTERM)"
+    assert run["seconds_per_stage"] == {"reconstruct": 26.1} and run["seconds"] < 30
+    assert signal.getsignal(signal.SIGTERM) is before
+
+    def cut_off_render_passes(*args):
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(30)
+
+    monkeypatch.setattr(bench, "render_pass_runs", cut_off_render_passes)
+    monkeypatch.setattr(bench, "job_run", lambda *args: pytest.fail("a section after the cut started"))
+    out = tmp_path / "render.json"
+    assert bench.main(["--smoke", "--out", str(out), "--skip", "a,b,c,d"]) == 1
+    assert [r["section"] for r in json.loads(out.read_text())["runs"]] == ["h"]

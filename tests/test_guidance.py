@@ -506,7 +506,7 @@ def test_the_compiled_encoder_matches_the_eager_one_and_compiles_only_the_sds_st
     fresh = StableDiffusionGuidance.from_pretrained(str(tiny_path), device="cpu", local_files_only=True)
     assert fresh.compile_encoder is False  # off the GPU by default
     fresh._encoder = CompiledEncoder(fresh._encode_moments, compile=compile)
-    assert fresh.compile_encoder
+    assert fresh.compile_encoder and fresh.encoder_compile_seconds is None
     images = torch.rand(1, 3, 24, 24, generator=torch.Generator().manual_seed(0))
     results = []
     for encoder_of in (fresh, guidance):
@@ -516,6 +516,7 @@ def test_the_compiled_encoder_matches_the_eager_one_and_compiles_only_the_sds_st
         results.append((latents.detach(), x.grad))
     size = guidance.resolution
     assert traced == [(1, 3, size, size)] * 2  # the probe's, then the encode's
+    assert fresh.encoder_compile_seconds > 0 and guidance.encoder_compile_seconds is None
     torch.testing.assert_close(results[0][0], results[1][0])
     torch.testing.assert_close(results[0][1], results[1][1])
     with torch.no_grad():

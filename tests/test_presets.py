@@ -222,6 +222,32 @@ def test_a_damaged_edit_checkpoint_is_dropped_and_the_edit_starts_over(service, 
     assert not any(e["kind"] == "resumed" and e.get("stage") == "edit" for e in events), events
 
 
+def test_the_job_whose_edit_waited_for_the_encoders_compile_says_how_long(service, monkeypatch):
+    """A worker compiles its guidance's VAE encoder once, in the first edit it runs: that job's result carries the
+    wait (``encoder_compile_seconds``), a later job on the same guidance none."""
+    import voxe_core.edit
+    from worker import runtime, tasks
+
+    class Guidance:  # what the worker reads of a StableDiffusionGuidance here
+        encoder_compile_seconds = None
+
+    guidance = Guidance()
+
+    def compiling_edit(initial, prompt, guidance, *args, **kwargs):
+        guidance.encoder_compile_seconds = guidance.encoder_compile_seconds or 38.9
+        return initial.clone_grid()
+
+    monkeypatch.setattr(runtime, "get_guidance", lambda *args: guidance)
+    monkeypatch.setattr(voxe_core.edit, "edit", compiling_edit)
+    client, scene_id = service
+    results = []
+    for _ in range(2):
+        job = _reconstructed_job(client, scene_id, "relu_field")
+        assert tasks.edit_task.apply(args=(job["id"],)).get()["state"] == "done"
+        results.append(client.get(f"/v1/jobs/{job['id']}").json()["result"])
+    assert results[0]["encoder_compile_seconds"] == 38.9 and "encoder_compile_seconds" not in results[1]
+
+
 @pytest.mark.parametrize("going_down", [SystemExit, KeyboardInterrupt])
 def test_a_worker_going_down_mid_fit_hands_the_reconstruction_back_rather_than_failing_it(service, monkeypatch,
                                                                                            going_down):

@@ -387,8 +387,13 @@ def _edit(job: Job, settings, device: str, storage) -> None:
 
     callbacks = StageCallbacks(job, "edit", settings, note=note,
                                on_checkpoint=lambda path: storage.put_file(checkpoint_key, path))
+    compiled_before = getattr(guidance, "encoder_compile_seconds", None)
     grid = edit(initial, job.prompt, guidance, config, callbacks.callbacks, checkpoint, resume,
                 input_views=input_views, on_preview=on_preview, device=device)
+    compiled = getattr(guidance, "encoder_compile_seconds", None)
+    if compiled is not None and compiled != compiled_before:  # this job's first iteration waited for the compile
+        log.info("job %s: the VAE encoder compiled in %.1f s", job.id, compiled)
+        runtime.merge_job_result(job.id, {"encoder_compile_seconds": compiled})
     path = scratch / "edited_grid.safetensors"
     grid.save(path)
     runtime.publish_artifact(job.id, "edited_grid.safetensors", path, "grid", storage)

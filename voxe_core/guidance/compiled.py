@@ -23,6 +23,7 @@ Examples:
 
 from __future__ import annotations
 
+import time
 import warnings
 from typing import Callable
 
@@ -49,6 +50,7 @@ class CompiledEncoder:
         self.moments = moments
         self.compiled: Moments | None = compile(moments)
         self._compiled_for: tuple | None = None  # the input whose forward and backward have compiled
+        self.compile_seconds: float | None = None  # the latest compile's host time (the first call's wait)
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         sds_step = x.requires_grad and torch.is_grad_enabled() and not torch.is_autocast_enabled(x.device.type)
@@ -57,9 +59,10 @@ class CompiledEncoder:
         try:
             key = (tuple(x.shape), x.dtype, x.device)
             if key != self._compiled_for:  # both compiles here, inside the fallback (the backward's is lazy)
+                start = time.perf_counter()
                 probe = self.compiled(x.detach().clone().requires_grad_(True))
                 probe.backward(torch.ones_like(probe))  # a dense gradient, laid out as the SDS step's
-                self._compiled_for = key
+                self._compiled_for, self.compile_seconds = key, time.perf_counter() - start
             return self.compiled(x)
         except torch.cuda.OutOfMemoryError:
             raise  # the eager encoder would not fit either

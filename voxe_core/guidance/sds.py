@@ -339,6 +339,11 @@ class StableDiffusionGuidance:
         """Whether the SDS step's VAE encoder runs compiled (off for good once a compile was refused)."""
         return isinstance(self._encoder, CompiledEncoder) and self._encoder.compiled is not None
 
+    @property
+    def encoder_compile_seconds(self) -> float | None:
+        """How long the first SDS step waited for its encoder's compile (None: not compiled, or not yet)."""
+        return self._encoder.compile_seconds if isinstance(self._encoder, CompiledEncoder) else None
+
     def _graphed_or_eager(self, graphed, eager, *args: torch.Tensor) -> torch.Tensor:
         """``graphed(*args)`` where the graphs can run (CUDA graphs on, no autocast: an edit's ``autocast_dtype``
         runs the eager networks), else ``eager(*args)``. A capture the installed libraries refuse turns the graphs
