@@ -646,8 +646,10 @@ def main(argv=None) -> int:
               "note": "random-weight models: costs only; peak_memory_gb is max_memory_allocated (GiB) on CUDA, "
                       "process RSS peak on CPU"}
 
-    def save() -> None:
-        out.write_text(json.dumps({**header, "wall_seconds": time.perf_counter() - started, "runs": runs}, indent=2))
+    def save() -> None:  # whole or not at all: a SIGTERM may land in the middle
+        partial = out.with_suffix(".json.partial")
+        partial.write_text(json.dumps({**header, "wall_seconds": time.perf_counter() - started, "runs": runs}, indent=2))
+        partial.replace(out)
 
     terminated = []  # the call's time limit (`timeout` in bench/gpu_device.sh) sent SIGTERM
 
