@@ -19,13 +19,19 @@ pytestmark = pytest.mark.slow
 BENCH = Path(__file__).resolve().parents[1] / "bench" / "gpu.py"
 
 
+def _load_bench(monkeypatch):
+    """bench/gpu.py as a module (registered in sys.modules: its dataclasses look their module up there)."""
+    spec = importlib.util.spec_from_file_location("bench_gpu", BENCH)
+    bench = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "bench_gpu", bench)
+    spec.loader.exec_module(bench)
+    return bench
+
+
 def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
     if not MIC.is_dir():
         pytest.skip(f"shared data missing: {MIC}")
-    spec = importlib.util.spec_from_file_location("bench_gpu", BENCH)
-    bench = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, "bench_gpu", bench)  # dataclasses look their module up there
-    spec.loader.exec_module(bench)
+    bench = _load_bench(monkeypatch)
     out, earlier = tmp_path / "gpu.json", tmp_path / "earlier.json"
     earlier_loop = {"name": "edit_loop, CUDA graphs", "kind": "edit", "section": "g", "call": 6, "device": "cuda",
                     "ms_step": 1000.0}  # an earlier call's loop beside another model: no projection reads it
@@ -70,14 +76,6 @@ def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
         job["seconds"] + (8000 - job["edit_iterations"]) * loop["ms_step"] / 1e3)
     assert set(job["peak_memory_gb_per_stage"]) == {"reconstruct", "edit", "refine", "export"}
     assert (tmp_path / "gpu.png").stat().st_size > 1000
-
-
-def _load_bench(monkeypatch):
-    spec = importlib.util.spec_from_file_location("bench_gpu", BENCH)
-    bench = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, "bench_gpu", bench)
-    spec.loader.exec_module(bench)
-    return bench
 
 
 def test_a_call_cut_off_by_its_time_limit_keeps_what_it_measured(tmp_path, monkeypatch):
