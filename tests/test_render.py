@@ -201,6 +201,22 @@ def test_camera_inside_the_box_and_non_finite_rays():
     assert out.opacity[2].item() == pytest.approx(1 - math.exp(-sigma * 3.0), abs=1e-5)  # on the surface
 
 
+def test_one_slab_test_of_two_boxes_is_two_slab_tests():
+    """The sampler intersects the grid's box and the occupied cells' box in one call: the same bits as two calls,
+    degenerate rays included (axis-parallel, inside, non-finite, zero direction, missing)."""
+    g = torch.Generator().manual_seed(0)
+    o = torch.cat([torch.randn(64, 3, generator=g) * 3, torch.tensor(
+        [[0.0, 0, 0], [float("nan"), 0, 0], [0.0, 0, -3], [0.0, 0, -3], [5.0, 5, 5]])])
+    d = torch.cat([torch.nn.functional.normalize(torch.randn(64, 3, generator=g), dim=-1), torch.tensor(
+        [[1.0, 0, 0], [1.0, 0, 0], [0.0, 0, 1], [0.0, 0, 0], [1.0, 0, 0]])])
+    boxes = torch.tensor([[-1.5, -1.5, -1.5], [-0.4, -0.2, -0.7]]), torch.tensor([[1.5, 1.5, 1.5], [0.3, 0.9, 0.1]])
+    near, far = ray_box_intersection(o, d, *boxes)
+    for b in range(2):
+        one_near, one_far = ray_box_intersection(o, d, boxes[0][b], boxes[1][b])
+        assert torch.equal(near[b], one_near) and torch.equal(far[b], one_far)
+    assert (far[:, 64:] <= near[:, 64:])[:, [1, 3, 4]].all()  # non-finite, no direction, missing: no segment
+
+
 def test_saturated_density_has_finite_values_and_gradients():
     grid = uniform_grid(1e6)
     o, d = torch.tensor([[-3.0, 0.0, 0.0]]), torch.tensor([[1.0, 0.0, 0.0]])

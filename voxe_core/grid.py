@@ -63,7 +63,7 @@ def ray_box_intersection(
     """Slab test of rays (N, 3) against a box (3,): (t_near, t_far), each (N,), t_near clamped at 0 for cameras inside.
 
     Misses, non-finite rays and zero-length directions get t_far <= t_near. Axis-parallel rays use a
-    signed tiny reciprocal instead of dividing by zero.
+    signed tiny reciprocal instead of dividing by zero. Boxes (B, 3) give (B, N) each, the rays' own work done once.
 
     Examples:
         >>> near, far = ray_box_intersection(torch.tensor([[0.0, 0, -3]]), torch.tensor([[0.0, 0, 1]]),
@@ -74,7 +74,7 @@ def ray_box_intersection(
     tiny = torch.full_like(directions, 1e-12)
     safe = torch.where(directions.abs() < 1e-12, torch.where(directions < 0, -tiny, tiny), directions)
     inv = 1.0 / safe
-    t0, t1 = (box_min - origins) * inv, (box_max - origins) * inv
+    t0, t1 = (box_min[..., None, :] - origins) * inv, (box_max[..., None, :] - origins) * inv
     t_near = torch.minimum(t0, t1).amax(-1).clamp_min(0.0)
     t_far = torch.maximum(t0, t1).amin(-1)
     finite = torch.isfinite(origins).all(-1) & torch.isfinite(directions).all(-1) & torch.isfinite(t_far)
@@ -82,6 +82,20 @@ def ray_box_intersection(
     t_far = torch.where(finite & torch.isfinite(t_near), t_far, torch.zeros_like(t_far))
     t_near = torch.where(finite & torch.isfinite(t_near), t_near, torch.zeros_like(t_near))
     return t_near, t_far
+
+
+@dataclass(frozen=True)
+class _Lattice:
+    """A grid's lattice constants on one device (what every interpolation would otherwise rebuild): the box's
+    extent (3,), ``resolution − 1`` (3,) as floats and ``resolution − 2`` (3,) as the largest cell index, the flat
+    strides (3,), the 8 corners' flat offsets (8,) and the voxel size (3,)."""
+
+    extent: torch.Tensor
+    upper: torch.Tensor
+    last_cell: torch.Tensor
+    strides: torch.Tensor
+    corner_offsets: torch.Tensor
+    voxel_size: torch.Tensor
 
 
 @dataclass
@@ -177,6 +191,7 @@ class VoxelGrid(torch.nn.Module):
         # cost a round trip each.
         self.min_voxel_edge = float(((host_max - host_min) / (torch.tensor(res) - 1)).min())
         self.box_diagonal = math.dist(host_min.tolist(), host_max.tolist())
+        self._lattices: dict[torch.device, _Lattice] = {}
         # Stored flat so a gather can return sparse gradients (see ``interpolate``).
         self.flat_features = torch.nn.Parameter(features.float().reshape(-1, 4).contiguous())
 
@@ -192,8 +207,20 @@ class VoxelGrid(torch.nn.Module):
 
     @property
     def voxel_size(self) -> torch.Tensor:
-        res = torch.tensor(self.resolution, dtype=torch.float32, device=self.bbox_min.device)
-        return (self.bbox_max - self.bbox_min) / (res - 1)
+        return self._lattice(self.bbox_min.device).voxel_size.clone()  # the caller's own: the cached one stays
+
+    def _lattice(self, device: torch.device) -> _Lattice:
+        """The lattice constants on ``device``, built once from the host box and resolution (neither ever changes):
+        an interpolation on a GPU then launches no copies and no arithmetic on constants."""
+        device = torch.device(device)
+        if device not in self._lattices:
+            host_min, host_max = self._host_box
+            res = torch.tensor(self._resolution)
+            strides = torch.tensor([self._resolution[1] * self._resolution[2], self._resolution[2], 1])
+            self._lattices[device] = _Lattice(
+                *(t.to(device) for t in (host_max - host_min, (res - 1).float(), res - 2, strides,
+                                         (_CORNERS * strides).sum(-1), (host_max - host_min) / (res - 1).float())))
+        return self._lattices[device]
 
     def like(self, features: torch.Tensor) -> "VoxelGrid":
         """A grid with this one's box and activation, holding ``features``."""
@@ -240,14 +267,13 @@ class VoxelGrid(torch.nn.Module):
 
         What :meth:`interpolate` gathers with, and what a back-projection scatters with.
         """
-        res = torch.tensor(self.resolution, device=points.device)
-        u = (points - self.bbox_min) / (self.bbox_max - self.bbox_min) * (res - 1).to(points.dtype)
-        u = torch.minimum(u.clamp_min(0), (res - 1).to(points.dtype))
-        base = torch.minimum(u.floor().long(), res - 2)
+        lattice = self._lattice(points.device)
+        upper = lattice.upper.to(points.dtype)
+        u = (points - self.bbox_min) / lattice.extent * upper
+        u = torch.minimum(u.clamp_min(0), upper)
+        base = torch.minimum(u.floor().long(), lattice.last_cell)
         frac = (u - base.to(u.dtype)).to(dtype)
-        strides = torch.tensor([res[1] * res[2], res[2], 1], device=points.device)
-        corner_offsets = (_CORNERS.to(points.device) * strides).sum(-1)  # (8,)
-        flat_index = (base * strides).sum(-1, keepdim=True) + corner_offsets  # (N, 8)
+        flat_index = (base * lattice.strides).sum(-1, keepdim=True) + lattice.corner_offsets  # (N, 8)
         fx, fy, fz = frac.unbind(-1)
         wx = torch.stack([1 - fx, fx], -1)
         wy = torch.stack([1 - fy, fy], -1)
@@ -256,9 +282,9 @@ class VoxelGrid(torch.nn.Module):
 
     def cell_index(self, points: torch.Tensor) -> torch.Tensor:
         """Integer (…, 3) index of the cell holding each world point, clamped into the grid."""
-        res = torch.tensor(self.resolution, device=points.device)
-        cell = ((points - self.bbox_min) / self.voxel_size.to(points.device)).floor().long()
-        return torch.minimum(cell.clamp_min(0), res - 2)
+        lattice = self._lattice(points.device)
+        cell = ((points - self.bbox_min) / lattice.voxel_size).floor().long()
+        return torch.minimum(cell.clamp_min(0), lattice.last_cell)
 
     def query(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Activated (density (N,), colour (N, 3)) at world points; density is 0 outside the box."""
@@ -298,15 +324,17 @@ class VoxelGrid(torch.nn.Module):
             (torch.Size([4, 3]), 3.0)
         """
         step = step_ratio * self.min_voxel_edge
-        t_near, t_far = ray_box_intersection(origins, directions, self.bbox_min, self.bbox_max)
+        if occupancy is None:
+            t_near, t_far = ray_box_intersection(origins, directions, self.bbox_min, self.bbox_max)
+        else:  # the grid's box and the occupied cells' tight one in one slab test
+            device = origins.device
+            (t_near, tight_near), (t_far, tight_far) = ray_box_intersection(
+                origins, directions, torch.stack([self.bbox_min, occupancy.bbox_min.to(device)]),
+                torch.stack([self.bbox_max, occupancy.bbox_max.to(device)]))
         n_total = torch.ceil((t_far - t_near) / step).clamp_min(0).long()
         first = torch.zeros_like(n_total)
         last = n_total
         if occupancy is not None:
-            device = origins.device
-            tight_near, tight_far = ray_box_intersection(
-                origins, directions, occupancy.bbox_min.to(device), occupancy.bbox_max.to(device)
-            )
             hit = tight_far > tight_near
             first = torch.where(hit, ((tight_near - t_near) / step).floor().long().clamp_min(0), first)
             last = torch.where(hit, torch.minimum(((tight_far - t_near) / step).ceil().long(), n_total), first)
