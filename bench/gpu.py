@@ -143,6 +143,17 @@ def _step_row(name: str, profile: Profile, dtype: torch.dtype, ms_step: float, r
     return row
 
 
+def _measured_step(guidance, profile: Profile) -> tuple[float, list, list, float]:
+    """(ms per step, its reports, the reports of a run with timing synchronisation, warm-up seconds) of the default
+    edit after ``profile.warm`` iterations (captures and compiles happen there, timed apart)."""
+    start = time.perf_counter()
+    _edit_run(guidance, profile, profile.warm, sync=False)
+    warm_seconds = time.perf_counter() - start
+    parts, _ = _edit_run(guidance, profile, profile.timed, sync=True)
+    timed, wall = _edit_run(guidance, profile, profile.timed, sync=False)
+    return wall * 1e3 / profile.timed, timed, parts, warm_seconds
+
+
 def _loop_row(guidance, profile: Profile, name: str, **extra) -> dict:
     """An ``edit`` run: ``loop_iterations`` default iterations after warm-up (timed apart: compile and captures), timed
     as one."""
@@ -443,12 +454,7 @@ def cuda_graph_runs(sd2: Path, profile: Profile, baseline_ms: float | None) -> l
     agreement = _graph_agreement(eager, graphed, profile)
     rows, eager_ms = [], None
     for name, guidance in (("eager (cuda_graphs=False)", eager), ("+ CUDA graphs (UNet, VAE encoder)", graphed)):
-        start = time.perf_counter()
-        _edit_run(guidance, profile, profile.warm, sync=False)  # the graphs' capture happens here
-        warm_seconds = time.perf_counter() - start
-        parts, _ = _edit_run(guidance, profile, profile.timed, sync=True)
-        timed, wall = _edit_run(guidance, profile, profile.timed, sync=False)
-        ms_step = wall * 1e3 / profile.timed
+        ms_step, timed, parts, warm_seconds = _measured_step(guidance, profile)  # the graphs' capture in the warm-up
         eager_ms = eager_ms or ms_step
         rows.append(_step_row(name, profile, profile.dtype, ms_step, timed, parts, cuda_graphs=guidance.cuda_graphs,
                               warm_seconds=warm_seconds, warm_iterations=profile.warm,
@@ -510,21 +516,17 @@ def compiled_encoder_runs(sd2: Path, profile: Profile) -> list[dict]:
     one section: each variant's warm-up (its compile inside, on inductor's caches as the earlier sections left them),
     the step with per-part device times and without synchronisation, and the agreement of the compiled variants with
     the fully eager guidance on the same inputs. A variant's failure is recorded in its row."""
-    eager = _guidance(sd2, profile, profile.dtype, cuda_graphs=False, compile_encoder=False)
-    rows = []
     from voxe_core.guidance.cuda_graphs import GraphedEncoder
 
+    eager = _guidance(sd2, profile, profile.dtype, cuda_graphs=False, compile_encoder=False)
+    rows = []
     for name, compile_encoder, graph_compiled in ENCODER_VARIANTS:
         try:
             guidance = _guidance(sd2, profile, profile.dtype, compile_encoder=compile_encoder)
             if graph_compiled:
                 guidance._graphed_encoder = GraphedEncoder(guidance._encoder)
-            start = time.perf_counter()
-            _edit_run(guidance, profile, profile.warm, sync=False)  # the compile and the captures happen here
-            warm_seconds = time.perf_counter() - start
-            parts, _ = _edit_run(guidance, profile, profile.timed, sync=True)
-            timed, wall = _edit_run(guidance, profile, profile.timed, sync=False)
-            row = _step_row(name, profile, profile.dtype, wall * 1e3 / profile.timed, timed, parts,
+            ms_step, timed, parts, warm_seconds = _measured_step(guidance, profile)  # the compile in the warm-up
+            row = _step_row(name, profile, profile.dtype, ms_step, timed, parts,
                             cuda_graphs=guidance.cuda_graphs, compile_encoder=guidance.compile_encoder,
                             graphed_encoder=guidance._graphed_encoder is not None, warm_seconds=warm_seconds,
                             warm_iterations=profile.warm, encoder_compile_seconds=guidance.encoder_compile_seconds)
@@ -651,11 +653,11 @@ def main(argv=None) -> int:
         partial.write_text(json.dumps({**header, "wall_seconds": time.perf_counter() - started, "runs": runs}, indent=2))
         partial.replace(out)
 
-    terminated = []  # the call's time limit (`timeout` in bench/gpu_device.sh) sent SIGTERM
+    terminated: list[CallTimeLimit] = []  # the call's time limit (`timeout` in bench/gpu_device.sh) sent SIGTERM
 
     def on_sigterm(signum, frame):
-        terminated.append(time.perf_counter())
-        raise CallTimeLimit("terminated by the call's time limit (SIGTERM)")
+        terminated.append(CallTimeLimit("terminated by the call's time limit (SIGTERM)"))
+        raise terminated[0]
 
     def section(name: str, kind: str, body, progress: dict | None = None) -> None:
         """Runs ``body`` and records its runs, or its failure with what ``progress`` holds by then; after a
@@ -668,8 +670,8 @@ def main(argv=None) -> int:
             runs.extend({**r, "section": name, **tag} for r in (produced if isinstance(produced, list) else [produced]))
         except Exception as exc:  # noqa: BLE001 - one section's failure must not lose the others
             traceback.print_exc()
-            error = "CallTimeLimit: terminated by the call's time limit (SIGTERM)" if terminated else \
-                f"{type(exc).__name__}: {exc}"
+            exc = terminated[0] if terminated else exc  # what the worker's task made of it said otherwise
+            error = f"{type(exc).__name__}: {exc}"
             runs.append({"name": f"section {name} failed", "kind": kind, "section": name, "device": profile.device,
                          "error": error, "seconds": time.perf_counter() - t0, **(progress or {}), **tag})
         print(f"section {name} ({kind}): {time.perf_counter() - t0:.1f} s", file=sys.stderr)
@@ -705,7 +707,7 @@ def main(argv=None) -> int:
                 baseline = next((r["ms_step"] for r in runs if r.get("section") == "a" and "ms_step" in r), None)
                 section("g", "cuda_graphs", lambda: cuda_graph_runs(sd2, profile, baseline))
             section("i", "edit_step", lambda: step_pass_runs(sd2, profile))
-            if profile.device == "cuda":  # last: a compile's warm-up is the longest and least predictable
+            if profile.device == "cuda":  # after the other step sections: a compile's warm-up is the least predictable
                 section("j", "edit_step", lambda: compiled_encoder_runs(sd2, profile))
             loops = [r for r in runs if r.get("section") == "b" and "ms_step" in r]  # the default loop, latest call's
             loop = max(loops, key=lambda r: r.get("call") or 0) if loops else None

@@ -637,10 +637,10 @@ def step_speedups(runs: list[dict]) -> list[str]:
     encoders = [r for r in runs if r.get("section") == "j" and "ms_step" in r]
     eager = next((r for r in encoders if r.get("compile_encoder") is False), None)
     compiled = next((r for r in encoders if r.get("compile_encoder") and not r.get("graphed_encoder")), None)
-    loops = [r for r in runs if r.get("section") == "b" and r.get("compile_encoder")]
-    loop = max(loops, key=lambda r: r.get("call", 0)) if loops else None  # the latest call's
+    compile_seconds = _default_edit(runs, "warm_seconds") if _default_edit(runs, "compile_encoder") else None
     if eager and compiled:
-        warm = f"; its compile took {loop['warm_seconds']:.0f} s of the loop's warm-up, once per guidance" if loop else ""
+        warm = "" if compile_seconds is None else \
+            f"; its compile took {compile_seconds:.0f} s of the loop's warm-up, once per guidance"
         bullets.append(f"**Compiled VAE encoder** (GPU, same run): the step takes {compiled['ms_step']:.1f} ms against "
                        f"{eager['ms_step']:.1f} with the graphed eager encoder "
                        f"({eager['ms_step'] / compiled['ms_step']:.2f}×): the encoder's forward "
@@ -659,7 +659,7 @@ def step_speedups(runs: list[dict]) -> list[str]:
 
 
 def render_pass_tradeoffs(runs: list[dict]) -> list[str]:
-    """One bullet per scene and device of bench/render_passes.py's rows: each pass size against the default's."""
+    """One bullet per scene and device of bench/render_passes.py's rows: each pass size against the CPU's default."""
     bullets = []
     for scene, device in dict.fromkeys((r["scene"], r.get("device", "cpu")) for r in runs):
         mine = sorted((r for r in runs if r["scene"] == scene and r.get("device", "cpu") == device),

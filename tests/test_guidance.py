@@ -570,9 +570,12 @@ def test_a_compile_the_libraries_refuse_turns_it_off_with_a_warning(guidance, ti
     assert len(calls) == 1  # and answers from then on
 
 
-@pytest.mark.parametrize("variable", ["VOXE_CUDA_GRAPHS", "VOXE_COMPILE_ENCODER"])
+@pytest.mark.parametrize("variable, keyword, other", [("VOXE_CUDA_GRAPHS", "cuda_graphs", "compile_encoder"),
+                                                       ("VOXE_COMPILE_ENCODER", "compile_encoder", "cuda_graphs")])
 @pytest.mark.parametrize("setting, expected", [("true", None), ("false", False)])
-def test_the_workers_speed_up_settings_reach_the_guidance(variable, setting, expected, monkeypatch, tmp_path):
+def test_the_workers_speed_up_settings_reach_the_guidance(variable, keyword, other, setting, expected, monkeypatch,
+                                                          tmp_path):
+    """Each setting reaches its own keyword (true: from_pretrained's default, on CUDA), the other left at its default."""
     from voxe_service.settings import Settings
     from worker import runtime
 
@@ -581,5 +584,4 @@ def test_the_workers_speed_up_settings_reach_the_guidance(variable, setting, exp
     monkeypatch.setattr(runtime, "_GUIDANCE_CACHE", {})
     monkeypatch.setenv(variable, setting)
     runtime.get_guidance(str(tmp_path), "cpu", Settings())
-    keyword = variable.removeprefix("VOXE_").lower()
-    assert asked[keyword] is expected and asked[{"cuda_graphs": "compile_encoder"}.get(keyword, "cuda_graphs")] is None
+    assert asked[keyword] is expected and asked[other] is None

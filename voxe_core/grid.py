@@ -187,11 +187,11 @@ class VoxelGrid(torch.nn.Module):
         elif tuple(features.shape) != (*res, 4):
             raise ValueError(f"features of shape {tuple(features.shape)} do not fit resolution {res}")
         self._resolution = res
+        self._lattices: dict[torch.device, _Lattice] = {}
         # Host copies of the box's scalars: the sampler reads them every call, from the device they would
         # cost a round trip each.
-        self.min_voxel_edge = float(((host_max - host_min) / (torch.tensor(res) - 1)).min())
+        self.min_voxel_edge = float(self._lattice(torch.device("cpu")).voxel_size.min())
         self.box_diagonal = math.dist(host_min.tolist(), host_max.tolist())
-        self._lattices: dict[torch.device, _Lattice] = {}
         # Stored flat so a gather can return sparse gradients (see ``interpolate``).
         self.flat_features = torch.nn.Parameter(features.float().reshape(-1, 4).contiguous())
 
@@ -467,7 +467,7 @@ class VoxelGrid(torch.nn.Module):
             along = cells.any(dim=[a for a in range(3) if a != axis]).to(torch.uint8)  # argmax: first maximum
             lo.append(along.argmax())
             hi.append(along.numel() - along.flip(0).argmax())
-        vox = self.voxel_size.to(cells.device)
+        vox = self._lattice(cells.device).voxel_size
         occupied = cells.any()
         box_min = torch.where(occupied, self.bbox_min + torch.stack(lo) * vox, self.bbox_min)
         box_max = torch.where(occupied, self.bbox_min + torch.stack(hi) * vox, self.bbox_min)
