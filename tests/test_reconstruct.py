@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 
+from dataclasses import replace
+
 import pytest
 import torch
 
@@ -11,7 +13,7 @@ from voxe_core.data import load_scene
 from voxe_core.grid import VoxelGrid
 from voxe_core.metrics import psnr
 from voxe_core.progress import Callbacks, StageCancelled
-from voxe_core.reconstruct import ReconstructConfig, RowSparseAdam, reconstruct
+from voxe_core.reconstruct import ReconstructConfig, RowSparseAdam, ray_batch, reconstruct
 from voxe_core.render import RenderConfig, render_image
 
 from needs import MIC, needs_data
@@ -55,15 +57,16 @@ def test_fit_is_deterministic_under_a_seed_and_reduces_error():
 
 
 @pytest.mark.parametrize(
-    "stop_after,average_from,occupancy_every",
-    [(10, 1.0, 16), (15, 1.0, 16), (22, 1.0, 16),  # mid-stage, stage boundary, second stage
-     (22, 0.4, 16), (27, 0.4, 16),  # inside the averaged tail of the final stage
-     (8, 1.0, 4), (23, 1.0, 4)],  # on an occupancy refresh, in either stage
+    "stop_after,average_from,occupancy_every,images_per_step",
+    [(10, 1.0, 16, 0), (15, 1.0, 16, 0), (22, 1.0, 16, 0),  # mid-stage, stage boundary, second stage
+     (22, 0.4, 16, 0), (27, 0.4, 16, 0),  # inside the averaged tail of the final stage
+     (8, 1.0, 4, 0), (23, 1.0, 4, 0),  # on an occupancy refresh, in either stage
+     (22, 1.0, 16, 2)],  # rays from two of the six images a step
 )
-def test_resume_from_checkpoint_is_bit_exact(tmp_path, stop_after, average_from, occupancy_every):
+def test_resume_from_checkpoint_is_bit_exact(tmp_path, stop_after, average_from, occupancy_every, images_per_step):
     images, cams = synthetic_views()
     config = tiny_config(checkpoint_every=1, average_from=average_from, average_every=2,
-                         occupancy_every=occupancy_every)
+                         occupancy_every=occupancy_every, images_per_step=images_per_step)
     uninterrupted = reconstruct(images, cams, config)
 
     checkpoint = tmp_path / "ckpt.safetensors"
@@ -117,6 +120,32 @@ def test_total_variation_smooths_the_fit_and_bad_weights_are_refused():
     assert (rendered - images).abs().mean() < 0.35 * (images - 1.0).abs().mean()  # still a fit
     with pytest.raises(ValueError, match="tv_density and tv_color must be >= 0"):
         tiny_config(tv_color=-1.0)
+
+
+def test_each_steps_rays_come_from_images_per_step_distinct_images():
+    cpu, seeded = torch.device("cpu"), lambda: torch.Generator().manual_seed(0)
+    config = ReconstructConfig(rays_per_step=4000, images_per_step=3)
+    batch = ray_batch(config, 10, 50, seeded(), cpu)  # 10 images of 50 pixels
+    assert batch.shape == (4000,) and 0 <= int(batch.min()) and int(batch.max()) < 500
+    assert (batch // 50).unique().numel() == 3 and (batch % 50).unique().numel() == 50
+    generator = seeded()
+    chosen = torch.cat([(ray_batch(config, 10, 50, generator, cpu) // 50).unique() for _ in range(300)])
+    assert chosen.numel() == 900 and torch.bincount(chosen, minlength=10).min() > 60  # each image ~90 of 300 steps
+    # 0, or at least as many as there are: every image, the stream of one plain draw (what fits were before)
+    for every in (0, 10, 12):
+        assert torch.equal(ray_batch(replace(config, images_per_step=every), 10, 50, seeded(), cpu),
+                           torch.randint(0, 500, (4000,), generator=seeded()))
+    with pytest.raises(ValueError, match="images_per_step must be >= 0"):
+        ReconstructConfig(images_per_step=-1)
+
+
+def test_a_fit_from_two_images_a_step_reduces_error():
+    images, cams = synthetic_views()
+    two = reconstruct(images, cams, tiny_config(iterations=(40, 40), images_per_step=2))
+    rendered = torch.stack([render_image(two, cams, i).rgb for i in range(len(cams))])
+    assert (rendered - images).abs().mean() < 0.35 * (images - 1.0).abs().mean()
+    every = reconstruct(images, cams, tiny_config(iterations=(40, 40), images_per_step=0))
+    assert not torch.equal(two.features, every.features)
 
 
 def test_mismatched_images_and_cameras_are_rejected():

@@ -1,9 +1,9 @@
 """Stage 1: fit a voxel grid G_i to posed images (coarse-to-fine, L1, Adam).
 
 Defaults are the authors' recipe (SPEC §1): 20³ → 40³ → 80³ → 160³ with
-trilinear upsampling between stages, 500 iterations each, 32,768 rays per step,
-images downsampled 8/4/2/1, Adam lr 0.03 decayed ×0.9 per stage and ×0.1 at
-iteration 400 of each stage. ``ReconstructConfig.fast()`` is the budget this
+trilinear upsampling between stages, 500 iterations each, 32,768 rays per step
+drawn from 8 random images (their data loader's batches), images downsampled
+8/4/2/1, Adam lr 0.03 decayed ×0.9 per stage and ×0.1 at iteration 400 of each stage. ``ReconstructConfig.fast()`` is the budget this
 project measured on a 2-core CPU (bench/reconstruction.py's preset-fast: mic 30.74 dB / SSIM 0.975 in 64 s, 125 CPU s).
 """
 
@@ -34,6 +34,9 @@ class ReconstructConfig:
     iterations: tuple[int, ...] = (500, 500, 500, 500)  # per stage
     image_downsample: tuple[int, ...] = (8, 4, 2, 1)  # per stage, relative to the given images
     rays_per_step: int = 32768
+    # Each step's rays come from this many images drawn at random, as the authors' loader's batches of 8 images;
+    # 0: from all images. On mic it is worth 0.9 dB to the recipe at 32,768 rays (bench/reconstruction.py).
+    images_per_step: int = 8
     lr: float = 0.03
     lr_stage_decay: float = 0.9
     lr_drop_iteration: int = 400  # within each stage
@@ -68,6 +71,8 @@ class ReconstructConfig:
             raise ValueError("resolutions, iterations and image_downsample need one entry per stage")
         if self.rays_per_step < 1 or any(i < 0 for i in self.iterations):
             raise ValueError("rays_per_step must be >= 1 and iterations >= 0")
+        if self.images_per_step < 0:
+            raise ValueError(f"images_per_step must be >= 0 (0: all images), got {self.images_per_step}")
         if not 0.0 <= self.average_from <= 1.0 or self.average_every < 1:
             raise ValueError("average_from must lie in [0, 1] and average_every be >= 1")
         if min(self.tv_density, self.tv_color) < 0 or self.tv_voxels < 1:
@@ -88,6 +93,7 @@ class ReconstructConfig:
             iterations=(300, 500, 1200),
             image_downsample=(4, 2, 1),
             rays_per_step=4096,
+            images_per_step=0,
             lr_drop_iteration=1_000_000,
         )
         base.update(overrides)
@@ -111,6 +117,7 @@ class ReconstructConfig:
             iterations=(300, 900),
             image_downsample=(2, 1),
             rays_per_step=2048,
+            images_per_step=0,
             lr_drop_iteration=1_000_000,
             average_from=0.5,
             tv_density=1e-2,
@@ -126,7 +133,8 @@ class ReconstructConfig:
 
 
 def _stage_data(images: torch.Tensor, cameras: Cameras, downsample: int):
-    """All rays and target colours of the images resampled for one stage.
+    """All rays and target colours of the images resampled for one stage, per image: origins, directions and
+    colours, each (N, H·W, 3).
 
     Coarse stages average blocks of the loaded images (already antialiased by the loader's
     filter); the final stage (downsample 1) trains on the loaded images themselves.
@@ -141,7 +149,26 @@ def _stage_data(images: torch.Tensor, cameras: Cameras, downsample: int):
     v, u = torch.meshgrid(torch.arange(height, device=device) + 0.5, torch.arange(width, device=device) + 0.5,
                           indexing="ij")
     origins, directions = pixel_rays(cams, cam_index, u.reshape(-1).repeat(n), v.reshape(-1).repeat(n))
-    return origins, directions, images.reshape(-1, 3).contiguous()
+    return origins.view(n, -1, 3), directions.view(n, -1, 3), images.reshape(n, -1, 3).contiguous()
+
+
+def ray_batch(config: ReconstructConfig, images: int, pixels: int, generator: torch.Generator,
+              device: torch.device) -> torch.Tensor:
+    """(rays_per_step,) indices into a stage's images·pixels rays, drawn with replacement from every image or,
+    with ``config.images_per_step``, from that many distinct images drawn at random.
+
+    Examples:
+        >>> config = ReconstructConfig(rays_per_step=6, images_per_step=1)
+        >>> batch = ray_batch(config, 4, 100, torch.Generator().manual_seed(0), torch.device("cpu"))
+        >>> len(set((batch // 100).tolist()))  # all six from one image
+        1
+    """
+    if not config.images_per_step or config.images_per_step >= images:
+        return torch.randint(0, images * pixels, (config.rays_per_step,), generator=generator, device=device)
+    chosen = torch.randperm(images, generator=generator, device=device)[: config.images_per_step]
+    picks = torch.randint(0, config.images_per_step * pixels, (config.rays_per_step,), generator=generator,
+                          device=device)
+    return chosen[picks // pixels] * pixels + picks % pixels
 
 
 def _sampling_generator(device: torch.device, seed: int) -> torch.Generator:
@@ -264,14 +291,15 @@ def train_step(
     generator: torch.Generator,
     clear_rows: torch.Tensor | None = None,
 ):
-    """One iteration: ``config.rays_per_step`` rays drawn from ``rays`` (origins (R, 3), directions (R, 3),
-    target colours (R, 3)), rendered with jitter, L1 loss, one optimizer step. Returns (loss, render output).
+    """One iteration: ``config.rays_per_step`` rays drawn from ``rays`` (origins, directions and target colours,
+    each (N, P, 3): N images of P pixels; :func:`ray_batch`), rendered with jitter, L1 loss, one optimizer step.
+    Returns (loss, render output).
     ``clear_rows`` (K,): feature rows whose density is then projected back to none (:func:`camera_clear_rows`).
 
     The whole of an iteration's cost, so bench/real_scenes.py times exactly this for both backbones.
     """
-    origins, directions, targets = rays
-    batch = torch.randint(0, targets.shape[0], (config.rays_per_step,), generator=generator, device=targets.device)
+    origins, directions, targets = (r.reshape(-1, 3) for r in rays)
+    batch = ray_batch(config, rays[2].shape[0], rays[2].shape[1], generator, targets.device)
     out = render_rays(grid, origins[batch], directions[batch], config.render, occupancy, generator, sparse_grad=True)
     loss = (out.rgb - targets[batch]).abs().mean()
     if config.tv_density or config.tv_color:
@@ -383,7 +411,7 @@ def reconstruct(
         average = _IterateAverage(config, stage)
         if resumed is not None and stage == start_stage:
             average.load(resumed)
-        origins, directions, targets = _stage_data(images, cameras, config.image_downsample[stage])
+        rays = _stage_data(images, cameras, config.image_downsample[stage])
         clear_rows = camera_clear_rows(grid, cameras, config.camera_clearance)
         for iteration in range(first, config.iterations[stage]):
             callbacks.check_cancel("reconstruct")
@@ -392,8 +420,7 @@ def reconstruct(
                 occupancy = grid.occupancy(config.render.sigma_threshold)
             for group in optimizer.param_groups:
                 group["lr"] = _learning_rate(config, stage, iteration)
-            loss, out = train_step(grid, optimizer, (origins, directions, targets), config, occupancy, generator,
-                                   clear_rows)
+            loss, out = train_step(grid, optimizer, rays, config, occupancy, generator, clear_rows)
             done += 1
             average.after_step(grid, iteration)
             callbacks.progress(Progress(
