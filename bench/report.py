@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
+import itertools
 import json
 import re
 import shutil
@@ -139,11 +140,13 @@ def relative(path: Path, report: Path) -> str:
         return str(path)
 
 
-def figure_link(fig, path: Path, report: Path, alt: str) -> list[str]:
-    """Save ``fig`` to ``path`` and return the Markdown lines that show it in ``report``."""
+def figure_link(fig, path: Path, report: Path, alt: str,
+                layout: tuple[float, float, float, float] = (0, 0, 1, 1)) -> list[str]:
+    """Save ``fig`` to ``path`` and return the Markdown lines that show it in ``report``; ``layout``: the part of
+    the figure its axes are fitted in (what :func:`speed_error_axes` returns)."""
     import matplotlib.pyplot as plt
 
-    fig.tight_layout()
+    fig.tight_layout(rect=layout)
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return ["", f"![{alt}]({relative(path, report)})"]
@@ -182,35 +185,36 @@ def pareto_front(points: list[tuple[float, float]]) -> list[int]:
 def place_labels(anchors: list[tuple[float, float]], widths: list[float], height: float) -> list[float]:
     """A y per label (display units) so that no two label boxes overlap.
 
-    Label ``i`` spans ``[x_i, x_i + widths[i]]`` horizontally and ``height`` vertically; it starts level
-    with its point and moves up past every already placed label it would overlap, lowest points first, so
-    labels stay as close to their points as the crowd allows.
+    Label ``i`` spans ``[x_i, x_i + widths[i]]`` horizontally and ``height`` vertically; lowest points first,
+    each takes the free slot nearest its point, one label height at a time, above before below, so a crowd
+    spreads both ways around its points instead of climbing off the axes.
 
     Examples:
-        >>> place_labels([(0, 0), (0, 0), (100, 0)], [50, 50, 50], 10)
-        [0, 10, 0]
+        >>> place_labels([(0, 0), (0, 0), (0, 0), (100, 0)], [50, 50, 50, 50], 10)
+        [0, 10, -10, 0]
     """
     placed: list[tuple[float, float, float]] = []  # (x0, x1, y)
     ys = [0.0] * len(anchors)
     for i in sorted(range(len(anchors)), key=lambda i: anchors[i][1]):
-        x0, y = anchors[i]
+        x0, y0 = anchors[i]
         x1 = x0 + widths[i]
-        moved = True
-        while moved:
-            moved = False
-            for a0, a1, ay in placed:
-                if a0 < x1 and x0 < a1 and abs(y - ay) < height * (1 - 1e-9):  # rounding: never loop
-                    y, moved = ay + height, True
+        for k in itertools.count():  # offsets 0, +1, -1, +2, -2, ... heights
+            y = y0 + height * ((k + 1) // 2) * (1 if k % 2 else -1)
+            # rounding: a label exactly one height away does not overlap
+            if not any(a0 < x1 and x0 < a1 and abs(y - ay) < height * (1 - 1e-9) for a0, a1, ay in placed):
+                break
         placed.append((x0, x1, y))
         ys[i] = y
     return ys
 
 
 def speed_error_axes(ax, runs: list[dict], *, x: str, y: str, label, xlabel: str, ylabel: str, title: str,
-                     hollow=lambda run: False) -> None:
+                     hollow=lambda run: False, labels_beside: int = 10) -> tuple[float, float, float, float]:
     """Scatter ``runs`` as ``y`` against ``x`` (log axis), marker and colour by device, the Pareto front
     (lower ``x``, higher ``y``) joined, each point labelled by ``label(run)`` without overlaps; draw anything
-    else (anchors) on ``ax`` before, since the labels are placed last."""
+    else (anchors) on ``ax`` before, since the labels are placed last. More than ``labels_beside`` points: each
+    is numbered (left to right) and the labels are listed beside the axes, as a crowd of long labels would
+    stack far from its points. Returns the part of the figure the axes were fitted in (for :func:`figure_link`)."""
     points = [r for r in runs if r.get(x) is not None and r.get(y) is not None]
     ax.set_xscale("log")
     for kind, (marker, colour, name) in DEVICE_STYLE.items():
@@ -228,18 +232,34 @@ def speed_error_axes(ax, runs: list[dict], *, x: str, y: str, label, xlabel: str
     ax.set_ylabel(ylabel)
     ax.set_title(title)
     ax.legend(fontsize=7, loc="lower right")
-    annotate_without_overlap(ax, [(r[x], r[y], label(r)) for r in points])
+    if len(points) <= labels_beside:
+        annotate_without_overlap(ax, [(r[x], r[y], label(r)) for r in points])
+        return (0, 0, 1, 1)
+    points.sort(key=lambda r: (r[x], r[y]))
+    width, height = ax.figure.get_size_inches()
+    ax.figure.set_size_inches(width + 3.5, height)  # room for the list
+    # A figure text (the layout leaves it out of the axes' room) against the right edge; its room is measured at
+    # the screen's dpi with a tenth to spare, as text widths do not scale exactly with the saved file's dpi.
+    fig = ax.figure
+    listed = fig.text(0.995, 0.93, "\n".join(f"{n:>2}  {label(r)}" for n, r in enumerate(points, 1)), va="top",
+                      ha="right", multialignment="left", fontsize=6.5, family="monospace")
+    fig.canvas.draw()
+    room = 1 - (1.1 * listed.get_window_extent().width + 24) / fig.bbox.width
+    annotate_without_overlap(ax, [(r[x], r[y], str(n)) for n, r in enumerate(points, 1)], layout=(0, 0, room, 1))
+    return (0, 0, room, 1)
 
 
-def annotate_without_overlap(ax, labelled: list[tuple[float, float, str]], fontsize: int = 7) -> None:
-    """Write each label just right of its point, moved up as :func:`place_labels` says, with a leader line.
+def annotate_without_overlap(ax, labelled: list[tuple[float, float, str]], fontsize: int = 7,
+                             layout: tuple[float, float, float, float] = (0, 0, 1, 1)) -> None:
+    """Write each label just right of its point, moved as :func:`place_labels` says, with a leader line;
+    ``layout``: the figure's part (left, bottom, right, top) the tight layout fits the axes in.
 
     Placed twice: the labels change the tight layout, which moves the points on screen."""
     fig = ax.figure
     notes = [ax.annotate(text, (px, py), xytext=(px, py), fontsize=fontsize, va="center",
                          arrowprops={"arrowstyle": "-", "color": "0.6", "linewidth": 0.5}) for px, py, text in labelled]
     for _ in range(2):
-        fig.tight_layout()
+        fig.tight_layout(rect=layout)
         fig.canvas.draw()
         to_display, to_data = ax.transData.transform, ax.transData.inverted().transform
         points = [tuple(to_display((px, py))) for px, py, _ in labelled]
@@ -282,20 +302,50 @@ def reconstruction_section(data, gpu, results: Path, report: Path) -> tuple[list
     plot = results / "report_reconstruction.png"
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(8.5, 5.2))
-    plotted = runs + gpu_runs
+    plotted = seed_means(runs) + gpu_runs
+    ranges = [r for r in plotted if "psnr_range" in r]
+    if ranges:
+        ax.vlines([r["seconds"] for r in ranges], *zip(*(r["psnr_range"] for r in ranges)), color="C0", linewidth=1,
+                  zorder=2)
     ax.scatter(*AUTHORS_MIC, marker="*", s=160, color="black", zorder=4,
                label=f"authors' code, mic: {AUTHORS_MIC[1]} dB after {AUTHORS_MIC[0]:,.0f} s (CPU)")
-    speed_error_axes(ax, plotted, x="seconds", y="psnr", hollow=lambda r: r.get("skipping") is False,
-                     label=_reconstruction_label, xlabel="training wall time (s, log scale)",
-                     ylabel="mean test PSNR (dB)",
-                     title="Reconstruction of mic: PSNR against training time (hollow: no empty-space skipping)")
-    lines += figure_link(fig, plot, report, "PSNR vs seconds")
+    layout = speed_error_axes(ax, plotted, x="seconds", y="psnr", hollow=lambda r: r.get("skipping") is False,
+                              label=_reconstruction_label, xlabel="training wall time (s, log scale)",
+                              ylabel="mean test PSNR (dB)",
+                              title="Reconstruction of mic: PSNR against training time (hollow: no empty-space skipping)")
+    lines += figure_link(fig, plot, report, "PSNR vs seconds", layout)
     return lines, reconstruction_tradeoffs(runs)
+
+
+def seed_means(runs: list[dict]) -> list[dict]:
+    """``runs`` with each recipe run over seeds (``X``, ``X-seed1``, ...) as one run at its mean seconds and PSNR
+    (each seed's seconds its own run's, so the mean is only a place on the time axis),
+    ``psnr_range`` (lowest, highest) beside: one labelled point per recipe, its spread drawn as a bar.
+
+    Examples:
+        >>> [(r["label"], r["psnr"], r.get("psnr_range")) for r in seed_means(
+        ...     [{"label": "a", "psnr": 30.0, "seconds": 2.0}, {"label": "a-seed1", "psnr": 31.0, "seconds": 4.0},
+        ...      {"label": "b", "psnr": 29.0, "seconds": 1.0}])]
+        [('a (2 seeds)', 30.5, (30.0, 31.0)), ('b', 29.0, None)]
+    """
+    families: dict[str, list[dict]] = {}
+    for r in runs:
+        families.setdefault(re.sub(r"-seed\d+$", "", r.get("label", "")), []).append(r)
+    merged = []
+    for name, rows in families.items():
+        if len(rows) == 1:
+            merged.append(rows[0])
+            continue
+        psnrs = [r["psnr"] for r in rows]
+        merged.append({**rows[0], "label": f"{name} ({len(rows)} seeds)", "psnr": sum(psnrs) / len(rows),
+                       "seconds": sum(r["seconds"] for r in rows) / len(rows), "psnr_range": (min(psnrs), max(psnrs))})
+    return merged
 
 
 def _reconstruction_label(run: dict) -> str:
     size = f"{run['resolution']}³, " if run.get("resolution") else ""
-    return f"{run.get('label') or run.get('preset') or run.get('name')} ({size}{run.get('iterations')} it)"
+    where = ", GPU" if device_kind(run) == "cuda" else ""
+    return f"{run.get('label') or run.get('preset') or run.get('name')} ({size}{run.get('iterations')} it{where})"
 
 
 def _other_ground_truth(run: dict) -> str:
@@ -303,6 +353,33 @@ def _other_ground_truth(run: dict) -> str:
     if run.get(f"psnr_{other}_gt") is None:
         return "–"
     return f"{other}: {run[f'psnr_{other}_gt']} / {fmt(run.get(f'ssim_{other}_gt'), 4)}"
+
+
+def images_per_step_tradeoffs(runs: list[dict]) -> list[str]:
+    """One bullet pairing each recipe drawn from every image with its twin drawn from 8 (``X`` / ``X-8-images``,
+    ``X-all-images`` / ``X``), each side the mean over its seeds (``-seedN``)."""
+    families: dict[str, list[dict]] = {}
+    for r in runs:
+        families.setdefault(re.sub(r"-seed\d+$", "", r.get("label", "")), []).append(r)
+    pairs = [(name, f"{name}-8-images", name) for name in families if f"{name}-8-images" in families]
+    pairs += [(f"{name}-all-images", name, name) for name in families if f"{name}-all-images" in families]
+    if not pairs:
+        return []
+
+    def mean(rows: list[dict], key: str) -> float:
+        return sum(r[key] for r in rows) / len(rows)
+
+    parts = []
+    for every, eight, name in sorted(pairs, key=lambda p: p[2]):
+        a, b = families[every], families[eight]
+        seeds = f"{len(a)} seed{'s' * (len(a) > 1)}" + ("" if len(a) == len(b) else f" / {len(b)}")
+        # Seconds compare only within one run of the bench (one commit); rows measured apart say so.
+        same_run = len({r.get("commit") for r in a + b}) == 1
+        seconds = f"{mean(a, 'seconds'):.0f} vs {mean(b, 'seconds'):.0f} s" if same_run else "timed in different runs"
+        parts.append(f"{name} {mean(a, 'psnr'):.2f} → {mean(b, 'psnr'):.2f} dB ({mean(b, 'psnr') - mean(a, 'psnr'):+.2f}; "
+                     f"{seeds}; {seconds})")
+    return ["**Rays from every image vs from 8 random images a step** (the same recipe, means over seeds): "
+            + "; ".join(parts) + "."]
 
 
 def reconstruction_tradeoffs(runs: list[dict]) -> list[str]:
@@ -322,8 +399,10 @@ def reconstruction_tradeoffs(runs: list[dict]) -> list[str]:
         bullets.append("**Grid resolution** (reconstruction, skipping on, best run per size): " + "; ".join(parts) + ".")
     budget = [(res, rs) for res, rs in by_res.items() if len({r.get("iterations") for r in rs}) > 1]
     for res, rs in budget:
-        steps = ", ".join(f"{r.get('iterations')} it → {r.get('psnr')} dB in {r.get('seconds')} s" for r in rs)
-        bullets.append(f"**Iteration budget** (reconstruction at {res}³): {steps}.")
+        steps = ", ".join(f"{r.get('label')} {r.get('iterations')} it → {r.get('psnr')} dB in {r.get('seconds')} s"
+                          for r in rs if not re.search(r"-seed\d+$", r.get("label", "")))
+        bullets.append(f"**Iteration budget** (reconstruction at {res}³, seed 0): {steps}.")
+    bullets += images_per_step_tradeoffs(runs)
     for r in runs:
         if not r.get("skipping"):
             continue
@@ -403,10 +482,10 @@ def segmentation_section(data, results: Path, report: Path) -> tuple[list[str], 
                           "iou": sum(r.get("iou") or 0.0 for r in sel) / len(sel)})
     right.scatter([r.get("seconds") for r in runs], [r.get("iou") for r in runs], color="0.8", s=8,
                   label="every run", zorder=1)
-    speed_error_axes(right, means, x="seconds", y="iou", label=lambda r: r["label"],
-                     xlabel="seconds per run (log scale)", ylabel="3D IoU",
-                     title="IoU vs seconds (mean over noise levels and draws)")
-    lines += figure_link(fig, plot, report, "IoU vs noise and seconds")
+    layout = speed_error_axes(right, means, x="seconds", y="iou", label=lambda r: r["label"],
+                              xlabel="seconds per run (log scale)", ylabel="3D IoU",
+                              title="IoU vs seconds (mean over noise levels and draws)")
+    lines += figure_link(fig, plot, report, "IoU vs noise and seconds", layout)
     bullets = []
     gc = [s for s in summary if s["method"] == "graph_cut" and s["scene"] == "distinct"]
     th = {s["noise"]: s for s in summary if s["method"] == "threshold_3d"}
@@ -567,7 +646,8 @@ def gpu_section(gpu, reconstruction, results: Path, report: Path) -> tuple[list[
                      fmt(r.get("psnr"), 2), fmt(r.get("ssim"), 4), fmt(r.get("peak_memory_gb"), 2)] for r in runs])
     # The CPU's `fast` preset over its seeds: another device draws other random numbers, so its PSNR is compared
     # with their mean, their range beside it.
-    cpu_fast = [r for r in as_runs(reconstruction) if r.get("label", "").startswith("preset-fast") and "psnr" in r]
+    cpu_fast = [r for r in as_runs(reconstruction)
+                if re.fullmatch(r"preset-fast(-seed\d+)?", r.get("label", "")) and "psnr" in r]
     gpu_fast = _preset_run(runs, "fast")
     target_rows = []
     for name, target, measure, met, form in GPU_TARGETS:

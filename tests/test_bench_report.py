@@ -25,7 +25,9 @@ def test_labels_never_overlap_and_separate_ones_stay_level():
     assert ys[3] == 0  # far to the right: nothing to avoid
     crowded = sorted(ys[:3])
     assert all(b - a >= 8 * (1 - 1e-9) for a, b in zip(crowded, crowded[1:]))
-    assert all(y >= anchor[1] for y, anchor in zip(ys, anchors))  # labels only move up
+    assert all(abs(y - anchor[1]) <= 2 * 8 for y, anchor in zip(ys, anchors))  # within two heights of its point
+    # a crowd on one point spreads above and below it, nearest slots first (not all of it upwards)
+    assert sorted(report.place_labels([(0, 0)] * 5, [100] * 5, 8)) == [-16, -8, 0, 8, 16]
 
 
 def test_report_plots_cpu_and_gpu_runs_and_handles_a_missing_gpu_json(tmp_path):
@@ -96,7 +98,8 @@ def test_gpu_section_reads_issue_17s_targets_and_ratios_from_gpu_json(tmp_path):
         {"name": "broken", "kind": "refinement", "section": "d", "device": "cuda", "error": "RuntimeError: x"},
     ]}
     cpu = [{"label": "preset-fast", "psnr": 29.5, "image_size": 200},
-           {"label": "preset-fast-seed1", "psnr": 30.5, "image_size": 200}, {"label": "fast-64", "psnr": 40.0}]
+           {"label": "preset-fast-seed1", "psnr": 30.5, "image_size": 200}, {"label": "fast-64", "psnr": 40.0},
+           {"label": "preset-fast-8-images", "psnr": 35.0, "image_size": 200}]  # a variant, not the preset
     lines, bullets = report.gpu_section(gpu, cpu, tmp_path, tmp_path / "REPORT.md")
     text = "\n".join(lines)
     assert "| 8,000-iteration edit (the default) | ≤ 4 min | 3.5 min | met |" in text  # b's latest call
@@ -150,3 +153,36 @@ def test_step_speedups_compare_pass_sizes_and_encoders_within_their_sections():
     assert parts.endswith("render 22.0, VAE encoder 6.0, UNet 10.0, encoder + regulariser backward 16.0, render "
                           "backward 4.0, Adam 0.5.")
     assert report.step_speedups([]) == []
+
+
+def test_images_per_step_pairs_each_recipe_with_its_twin_over_seeds():
+    def row(label, psnr, seconds=10.0, commit="a"):
+        return {"label": label, "psnr": psnr, "seconds": seconds, "commit": commit}
+
+    runs = [row("recipe", 29.0), row("recipe-seed1", 30.0), row("recipe-8-images", 31.0),
+            row("recipe-8-images-seed1", 31.5, 20.0), row("paper", 32.0, commit="b"), row("paper-all-images", 30.5),
+            row("unpaired", 40.0)]
+    (bullet,) = report.images_per_step_tradeoffs(runs)
+    assert "recipe 29.50 → 31.25 dB (+1.75; 2 seeds; 10 vs 15 s)" in bullet
+    assert "paper 30.50 → 32.00 dB (+1.50; 1 seed; timed in different runs)" in bullet  # commits differ
+    assert "unpaired" not in bullet and "recipe-8-images" not in bullet
+    assert report.images_per_step_tradeoffs([row("recipe", 29.0)]) == []
+
+
+def test_a_crowd_of_points_is_numbered_and_listed_beside_the_axes():
+    plt = report._pyplot()
+    runs = [{"label": f"run-{i}", "seconds": 10.0 + i, "psnr": 30.0} for i in range(12)]
+    fig, ax = plt.subplots(figsize=(6, 4))
+    layout = report.speed_error_axes(ax, runs, x="seconds", y="psnr", label=lambda r: r["label"], xlabel="s",
+                                     ylabel="dB", title="t")
+    assert [t.get_text() for t in ax.texts] == [str(n) for n in range(1, 13)]
+    listed = fig.texts[-1]
+    assert listed.get_text().splitlines()[::11] == [" 1  run-0", "12  run-11"]
+    fig.canvas.draw()
+    assert layout[2] < 1 and listed.get_window_extent().x0 > ax.get_window_extent().x1  # right of the axes
+    plt.close(fig)
+    fig, ax = plt.subplots(figsize=(6, 4))
+    assert report.speed_error_axes(ax, runs[:10], x="seconds", y="psnr", label=lambda r: r["label"], xlabel="s",
+                                   ylabel="dB", title="t") == (0, 0, 1, 1)
+    assert [t.get_text() for t in ax.texts] == [f"run-{i}" for i in range(10)] and not fig.texts  # named in place
+    plt.close(fig)
