@@ -288,6 +288,7 @@ def reconstruction_runs(profile: Profile, data: Path) -> list[dict]:
         rows.append({"name": f"reconstruction mic {preset}", "kind": "reconstruction", "device": profile.device,
                      "dtype": "float32", "model": f"ReLU-field grid {config.resolutions[-1]}³", "preset": preset,
                      "seconds": seconds, "iterations": config.total_iterations,
+                     "rays_per_step": config.rays_per_step, "images_per_step": config.images_per_step,
                      "psnr": float(psnr(images, test.images).mean()), "ssim": float(ssim(images, test.images).mean()),
                      **_peaks(reports), "image_size": train.cameras.width})
     return rows

@@ -141,6 +141,7 @@ def run_single(
         # The machine is shared: CPU seconds and the load average say how much of the wall time was ours.
         "cpu_seconds": round(cpu_seconds, 2), "load_average_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],
         "rays_per_step": config.rays_per_step, "image_size": train.cameras.width, "resample": resample,
+        "images_per_step": config.images_per_step,
         "lr": config.lr, "lr_drop_iteration": config.lr_drop_iteration, "average_from": config.average_from,
         "color_lr_scale": config.color_lr_scale,
         "occupied_fraction": round(grid.occupancy(config.render.sigma_threshold).fraction, 5),
@@ -201,25 +202,25 @@ def _sample_counter(samples: list, final_iterations: int):
 
 
 def plot(runs: list[dict], path: Path) -> None:
+    """PSNR against training seconds: report.py's speed-against-error axes (a recipe over seeds as one point)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from report import seed_means, speed_error_axes
+
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
-    for run in runs:
-        marker = "o" if run["skipping"] else "s"
-        ax.scatter(run["seconds"], run["psnr"], marker=marker, color="C0" if run["skipping"] else "C3")
-        ax.annotate(f'{run["label"]}', (run["seconds"], run["psnr"]), fontsize=7, xytext=(4, 2),
-                    textcoords="offset points")
     ax.axhline(30.6, color="grey", lw=0.8, ls="--", label="target 30.6 dB")
     ax.axvline(300, color="grey", lw=0.8, ls=":", label="5 min")
-    ax.set_xlabel("training wall time (s, 2-core CPU)")
-    ax.set_ylabel("mean test PSNR (dB)")
-    ax.set_title("mic @200 px: PSNR vs training time (o skip, s dense)")
-    ax.legend(fontsize=7)
-    fig.tight_layout()
+    points = seed_means(runs)
+    layout = speed_error_axes(ax, points, x="seconds", y="psnr", hollow=lambda r: not r["skipping"],
+                              label=lambda r: r["label"] + (f" ({r['seeds']} seeds)" if r.get("seeds") else ""),
+                              xlabel="training wall time (s, 2-core CPU, log scale)", ylabel="mean test PSNR (dB)",
+                              title="mic @200 px: PSNR vs training time (hollow: dense)")
+    fig.tight_layout(rect=layout)
     fig.savefig(path, dpi=120)
+    plt.close(fig)
 
 
 def main() -> None:
@@ -248,10 +249,12 @@ def main() -> None:
     suffix = "" if args.resample == "bilinear" else f"-{args.resample}"
     labels = [r[0] + suffix for r in runs]
     results = [r for r in kept if r["label"] not in labels]
+    # Rows of one invocation share its id: their seconds compare (report.py times pairs only within one).
+    bench_run = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
     for label, (_, final, iterations, skipping, overrides) in zip(labels, runs):
         spec = json.dumps([label, final, list(iterations), skipping, overrides, downsample, args.resample])
         out = subprocess.run([sys.executable, __file__, "--single", spec], capture_output=True, text=True, check=True)
-        result = json.loads(out.stdout.strip().splitlines()[-1])
+        result = {**json.loads(out.stdout.strip().splitlines()[-1]), "bench_run": bench_run}
         results.append(result)
         print(f'{label:15s} res {final:3d} it {sum(iterations):5d} skip {str(skipping):5s} '
               f'{result["seconds"]:7.1f} s  PSNR {result["psnr"]:.2f}  SSIM {result["ssim"]:.4f}  '

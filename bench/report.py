@@ -212,11 +212,21 @@ def speed_error_axes(ax, runs: list[dict], *, x: str, y: str, label, xlabel: str
                      hollow=lambda run: False, labels_beside: int = 10) -> tuple[float, float, float, float]:
     """Scatter ``runs`` as ``y`` against ``x`` (log axis), marker and colour by device, the Pareto front
     (lower ``x``, higher ``y``) joined, each point labelled by ``label(run)`` without overlaps; draw anything
-    else (anchors) on ``ax`` before, since the labels are placed last. More than ``labels_beside`` points: each
+    else (anchors) on ``ax`` before, since the labels are placed last. A run with ``{y}_range`` (lowest, highest)
+    gets a bar over it (:func:`seed_means`). More than ``labels_beside`` points: each
     is numbered (left to right) and the labels are listed beside the axes, as a crowd of long labels would
     stack far from its points. Returns the part of the figure the axes were fitted in (for :func:`figure_link`)."""
+    from matplotlib.ticker import FuncFormatter
+
     points = [r for r in runs if r.get(x) is not None and r.get(y) is not None]
     ax.set_xscale("log")
+    # Plain numbers at 1, 2 and 5 of each decade (the default minor labels of a short log axis run into each other).
+    ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    ax.xaxis.set_minor_formatter(FuncFormatter(lambda v, _: f"{v:g}" if f"{v:.0e}"[0] in "25" else ""))
+    ranges = [r for r in points if r.get(f"{y}_range")]  # a run over seeds: its lowest to highest (``seed_means``)
+    if ranges:
+        ax.vlines([r[x] for r in ranges], *zip(*(r[f"{y}_range"] for r in ranges)), color=DEVICE_STYLE["cpu"][1],
+                  linewidth=1, zorder=2)
     for kind, (marker, colour, name) in DEVICE_STYLE.items():
         mine = [r for r in points if device_kind(r) == kind]
         if mine:
@@ -303,10 +313,6 @@ def reconstruction_section(data, gpu, results: Path, report: Path) -> tuple[list
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(8.5, 5.2))
     plotted = seed_means(runs) + gpu_runs
-    ranges = [r for r in plotted if "psnr_range" in r]
-    if ranges:
-        ax.vlines([r["seconds"] for r in ranges], *zip(*(r["psnr_range"] for r in ranges)), color="C0", linewidth=1,
-                  zorder=2)
     ax.scatter(*AUTHORS_MIC, marker="*", s=160, color="black", zorder=4,
                label=f"authors' code, mic: {AUTHORS_MIC[1]} dB after {AUTHORS_MIC[0]:,.0f} s (CPU)")
     layout = speed_error_axes(ax, plotted, x="seconds", y="psnr", hollow=lambda r: r.get("skipping") is False,
@@ -317,35 +323,48 @@ def reconstruction_section(data, gpu, results: Path, report: Path) -> tuple[list
     return lines, reconstruction_tradeoffs(runs)
 
 
+SEED_SUFFIX = re.compile(r"-seed\d+(?=(-box)?$)")
+"""A seed copy's part of a run label (``X-seed1``, ``X-seed1-box``): the recipe is the label without it."""
+
+
+def seed_families(runs: list[dict]) -> dict[str, list[dict]]:
+    """The labelled runs by recipe: each label without its seed part (``SEED_SUFFIX``), in first-seen order."""
+    families: dict[str, list[dict]] = {}
+    for r in runs:
+        if r.get("label"):
+            families.setdefault(SEED_SUFFIX.sub("", r["label"]), []).append(r)
+    return families
+
+
 def seed_means(runs: list[dict]) -> list[dict]:
-    """``runs`` with each recipe run over seeds (``X``, ``X-seed1``, ...) as one run at its mean seconds and PSNR
-    (each seed's seconds its own run's, so the mean is only a place on the time axis),
-    ``psnr_range`` (lowest, highest) beside: one labelled point per recipe, its spread drawn as a bar.
+    """``runs`` with each recipe run over seeds (``X``, ``X-seed1``, ...) as one run labelled ``X`` at its mean
+    seconds and PSNR (each seed's seconds its own run's, so the mean is only a place on the time axis), with
+    ``seeds`` (how many) and ``psnr_range`` (lowest, highest): one point per recipe, its spread drawn as a bar.
+    Runs without a label, PSNR or seconds pass unchanged.
 
     Examples:
         >>> [(r["label"], r["psnr"], r.get("psnr_range")) for r in seed_means(
         ...     [{"label": "a", "psnr": 30.0, "seconds": 2.0}, {"label": "a-seed1", "psnr": 31.0, "seconds": 4.0},
         ...      {"label": "b", "psnr": 29.0, "seconds": 1.0}])]
-        [('a (2 seeds)', 30.5, (30.0, 31.0)), ('b', 29.0, None)]
+        [('a', 30.5, (30.0, 31.0)), ('b', 29.0, None)]
     """
-    families: dict[str, list[dict]] = {}
-    for r in runs:
-        families.setdefault(re.sub(r"-seed\d+$", "", r.get("label", "")), []).append(r)
-    merged = []
-    for name, rows in families.items():
+    scored = [r for r in runs if r.get("psnr") is not None and r.get("seconds") is not None]
+    merged = [r for r in runs if r not in scored or not r.get("label")]
+    for name, rows in seed_families(scored).items():
         if len(rows) == 1:
             merged.append(rows[0])
             continue
         psnrs = [r["psnr"] for r in rows]
-        merged.append({**rows[0], "label": f"{name} ({len(rows)} seeds)", "psnr": sum(psnrs) / len(rows),
+        merged.append({**rows[0], "label": name, "seeds": len(rows), "psnr": sum(psnrs) / len(rows),
                        "seconds": sum(r["seconds"] for r in rows) / len(rows), "psnr_range": (min(psnrs), max(psnrs))})
     return merged
 
 
 def _reconstruction_label(run: dict) -> str:
     size = f"{run['resolution']}³, " if run.get("resolution") else ""
+    seeds = f", {run['seeds']} seeds" if run.get("seeds") else ""
     where = ", GPU" if device_kind(run) == "cuda" else ""
-    return f"{run.get('label') or run.get('preset') or run.get('name')} ({size}{run.get('iterations')} it{where})"
+    return f"{run.get('label') or run.get('preset') or run.get('name')} ({size}{run.get('iterations')} it{seeds}{where})"
 
 
 def _other_ground_truth(run: dict) -> str:
@@ -357,10 +376,9 @@ def _other_ground_truth(run: dict) -> str:
 
 def images_per_step_tradeoffs(runs: list[dict]) -> list[str]:
     """One bullet pairing each recipe drawn from every image with its twin drawn from 8 (``X`` / ``X-8-images``,
-    ``X-all-images`` / ``X``), each side the mean over its seeds (``-seedN``)."""
-    families: dict[str, list[dict]] = {}
-    for r in runs:
-        families.setdefault(re.sub(r"-seed\d+$", "", r.get("label", "")), []).append(r)
+    ``X-all-images`` / ``X``), each side the mean over its seeds; seconds only where every row of a pair came from
+    one invocation of the bench (its ``bench_run``), as the shared machine's load changes between invocations."""
+    families = seed_families(runs)
     pairs = [(name, f"{name}-8-images", name) for name in families if f"{name}-8-images" in families]
     pairs += [(f"{name}-all-images", name, name) for name in families if f"{name}-all-images" in families]
     if not pairs:
@@ -373,9 +391,9 @@ def images_per_step_tradeoffs(runs: list[dict]) -> list[str]:
     for every, eight, name in sorted(pairs, key=lambda p: p[2]):
         a, b = families[every], families[eight]
         seeds = f"{len(a)} seed{'s' * (len(a) > 1)}" + ("" if len(a) == len(b) else f" / {len(b)}")
-        # Seconds compare only within one run of the bench (one commit); rows measured apart say so.
-        same_run = len({r.get("commit") for r in a + b}) == 1
-        seconds = f"{mean(a, 'seconds'):.0f} vs {mean(b, 'seconds'):.0f} s" if same_run else "timed in different runs"
+        invocations = {r.get("bench_run") for r in a + b}
+        seconds = (f"{mean(a, 'seconds'):.0f} vs {mean(b, 'seconds'):.0f} s"
+                   if len(invocations) == 1 and None not in invocations else "timed in different runs")
         parts.append(f"{name} {mean(a, 'psnr'):.2f} → {mean(b, 'psnr'):.2f} dB ({mean(b, 'psnr') - mean(a, 'psnr'):+.2f}; "
                      f"{seeds}; {seconds})")
     return ["**Rays from every image vs from 8 random images a step** (the same recipe, means over seeds): "
@@ -397,11 +415,16 @@ def reconstruction_tradeoffs(runs: list[dict]) -> list[str]:
                  f" ({ratio(max(rs, key=lambda r: r.get('psnr') or 0).get('seconds'), base.get('seconds'))} the fastest run)"
                  for res, rs in by_res.items()]
         bullets.append("**Grid resolution** (reconstruction, skipping on, best run per size): " + "; ".join(parts) + ".")
-    budget = [(res, rs) for res, rs in by_res.items() if len({r.get("iterations") for r in rs}) > 1]
-    for res, rs in budget:
-        steps = ", ".join(f"{r.get('label')} {r.get('iterations')} it → {r.get('psnr')} dB in {r.get('seconds')} s"
-                          for r in rs if not re.search(r"-seed\d+$", r.get("label", "")))
-        bullets.append(f"**Iteration budget** (reconstruction at {res}³, seed 0): {steps}.")
+    by_size: dict = {}  # one grid and one batch: what the iteration budget alone moves
+    for r in skipping:
+        if not SEED_SUFFIX.search(r.get("label", "")):
+            by_size.setdefault((r.get("resolution"), r.get("rays_per_step")), []).append(r)
+    for (res, rays), rs in by_size.items():
+        if len({r.get("iterations") for r in rs}) > 1:
+            steps = ", ".join(f"{r.get('label')} {r.get('iterations')} it → {r.get('psnr')} dB in {r.get('seconds')} s"
+                              for r in rs)
+            batch = f", {rays:,} rays a step" if rays else ""
+            bullets.append(f"**Iteration budget** (reconstruction at {res}³{batch}, seed 0): {steps}.")
     bullets += images_per_step_tradeoffs(runs)
     for r in runs:
         if not r.get("skipping"):
@@ -625,6 +648,20 @@ def _preset(runs: list[dict], preset: str, key: str):
     return (_preset_run(runs, preset) or {}).get(key)
 
 
+def _stale_paper_note(gpu_paper: dict | None, cpu_runs: list[dict]) -> list[str]:
+    """A line under the targets when the GPU's `paper` run predates ``images_per_step`` (its row does not record
+    it): that run drew each step's rays from every image, as the CPU's ``preset-paper-all-images`` does."""
+    if gpu_paper is None or "images_per_step" in gpu_paper:
+        return []
+    cpu = {r.get("label"): r.get("psnr") for r in cpu_runs}
+    now, before = cpu.get("preset-paper"), cpu.get("preset-paper-all-images")
+    measured = f" On the CPU the preset as it is gets {now:.2f} dB against {before:.2f} dB from every image." \
+        if now is not None and before is not None else ""
+    return ["", f"The GPU's `paper` run ({gpu_paper['psnr']:.2f} dB) drew each step's rays from every image: it "
+                "predates the preset's 8 images a step (`ReconstructConfig.images_per_step`) and is rerun at the next "
+                f"device call.{measured}"]
+
+
 def gpu_section(gpu, reconstruction, results: Path, report: Path) -> tuple[list[str], list[str]]:
     """(section lines, trade-off bullets) from gpu.json (bench/gpu.py on the lent GPU machine): its runs, issue 17's
     targets against them, and the speed-ups' ratios."""
@@ -647,7 +684,7 @@ def gpu_section(gpu, reconstruction, results: Path, report: Path) -> tuple[list[
     # The CPU's `fast` preset over its seeds: another device draws other random numbers, so its PSNR is compared
     # with their mean, their range beside it.
     cpu_fast = [r for r in as_runs(reconstruction)
-                if re.fullmatch(r"preset-fast(-seed\d+)?", r.get("label", "")) and "psnr" in r]
+                if SEED_SUFFIX.sub("", r.get("label", "")) == "preset-fast" and "psnr" in r]
     gpu_fast = _preset_run(runs, "fast")
     target_rows = []
     for name, target, measure, met, form in GPU_TARGETS:
@@ -665,6 +702,7 @@ def gpu_section(gpu, reconstruction, results: Path, report: Path) -> tuple[list[
                             f"≥ {mean:.2f} dB (CPU `preset-fast`, mean of {len(psnrs)} seed{'s' * (len(psnrs) > 1)}"
                             f"{spread})", f"{gpu_fast['psnr']:.2f} dB", verdict])
     lines += ["", "Issue 17's targets:", ""] + table(["target", "asked", "measured", "verdict"], target_rows)
+    lines += _stale_paper_note(_preset_run(runs, "paper"), as_runs(reconstruction))
     lines += figure_link_png(results / "gpu.png", report, "GPU stages")
     bullets = []
     steps = {r["name"]: r for r in runs if r.get("kind") == "edit_step"}

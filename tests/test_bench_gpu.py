@@ -57,6 +57,7 @@ def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
     for run in runs:
         if run["kind"] == "reconstruction":
             assert run["seconds"] > 0 and 5 < run["psnr"] < 60 and 0 < run["ssim"] <= 1
+            assert run["images_per_step"] == {"fast": 0, "paper": 8}[run["preset"]]  # what the row was fitted with
     passes = [r for r in runs if r["kind"] == "render_passes"]
     for scene in ("sphere", "fog"):  # grouping never moves the render; larger passes never dispatch more
         mine = [r for r in passes if r["scene"] == scene]

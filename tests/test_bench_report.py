@@ -156,17 +156,29 @@ def test_step_speedups_compare_pass_sizes_and_encoders_within_their_sections():
 
 
 def test_images_per_step_pairs_each_recipe_with_its_twin_over_seeds():
-    def row(label, psnr, seconds=10.0, commit="a"):
-        return {"label": label, "psnr": psnr, "seconds": seconds, "commit": commit}
+    def row(label, psnr, seconds=10.0, bench_run="a"):
+        return {"label": label, "psnr": psnr, "seconds": seconds, "bench_run": bench_run}
 
     runs = [row("recipe", 29.0), row("recipe-seed1", 30.0), row("recipe-8-images", 31.0),
-            row("recipe-8-images-seed1", 31.5, 20.0), row("paper", 32.0, commit="b"), row("paper-all-images", 30.5),
-            row("unpaired", 40.0)]
+            row("recipe-8-images-seed1", 31.5, 20.0), row("paper", 32.0, bench_run="b"), row("paper-all-images", 30.5),
+            row("unpaired", 40.0), {"psnr": 1.0}]
     (bullet,) = report.images_per_step_tradeoffs(runs)
     assert "recipe 29.50 → 31.25 dB (+1.75; 2 seeds; 10 vs 15 s)" in bullet
-    assert "paper 30.50 → 32.00 dB (+1.50; 1 seed; timed in different runs)" in bullet  # commits differ
+    assert "paper 30.50 → 32.00 dB (+1.50; 1 seed; timed in different runs)" in bullet  # two invocations
     assert "unpaired" not in bullet and "recipe-8-images" not in bullet
     assert report.images_per_step_tradeoffs([row("recipe", 29.0)]) == []
+
+
+def test_seed_means_merge_each_recipes_seeds_into_one_point_with_its_range():
+    runs = [{"label": "a", "psnr": 30.0, "seconds": 2.0, "resolution": 64}, {"label": "a-seed2", "psnr": 31.0, "seconds": 4.0},
+            {"label": "a-seed1-box", "psnr": 20.0, "seconds": 1.0}, {"label": "gpu", "psnr": 29.0, "seconds": 1.0},
+            {"label": "unscored", "seconds": 1.0}, {"psnr": 28.0, "seconds": 1.0}]
+    merged = {r.get("label"): r for r in report.seed_means(runs)}
+    assert set(merged) == {"a", "a-seed1-box", "gpu", "unscored", None}  # the box copy is another recipe (a-box)
+    assert (merged["a"]["psnr"], merged["a"]["seconds"], merged["a"]["psnr_range"], merged["a"]["seeds"]) == \
+        (30.5, 3.0, (30.0, 31.0), 2)
+    assert report._reconstruction_label(merged["a"]) == "a (64³, None it, 2 seeds)"
+    assert "psnr_range" not in merged["gpu"]
 
 
 def test_a_crowd_of_points_is_numbered_and_listed_beside_the_axes():
@@ -186,3 +198,12 @@ def test_a_crowd_of_points_is_numbered_and_listed_beside_the_axes():
                                    ylabel="dB", title="t") == (0, 0, 1, 1)
     assert [t.get_text() for t in ax.texts] == [f"run-{i}" for i in range(10)] and not fig.texts  # named in place
     plt.close(fig)
+
+
+def test_a_gpu_paper_run_from_before_images_per_step_is_marked_stale():
+    cpu = [{"label": "preset-paper", "psnr": 31.0}, {"label": "preset-paper-all-images", "psnr": 30.0}]
+    (blank, note) = report._stale_paper_note({"preset": "paper", "psnr": 29.5}, cpu)
+    assert blank == "" and "(29.50 dB) drew each step's rays from every image" in note
+    assert "31.00 dB against 30.00 dB from every image" in note
+    assert report._stale_paper_note({"preset": "paper", "psnr": 31.0, "images_per_step": 8}, cpu) == []
+    assert report._stale_paper_note(None, cpu) == []
