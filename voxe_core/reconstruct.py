@@ -38,7 +38,8 @@ class ReconstructConfig:
     rays_per_step: int = 32768
     # Each step's rays come from this many images drawn at random, as the authors' loader's batches of 8 images;
     # 0: from all images. The recipe on mic at 200 px (bench/reconstruction.py): 30.21 -> 31.09 dB at 32,768 rays,
-    # 29.53-29.91 -> 30.41-30.46 dB at 4,096 over three seeds. fast() stays at 0: 8 moved it within its seeds' spread.
+    # 29.53-29.91 -> 30.41-30.46 dB at 4,096 over three seeds. fast() and scene() stay at 0: 8 moved fast() within
+    # its seeds' spread and cost fox 0.7 dB of validation PSNR (bench/real_scenes_priors.py).
     images_per_step: int = 8
     lr: float = 0.03
     lr_stage_decay: float = 0.9
