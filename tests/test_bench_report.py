@@ -207,3 +207,10 @@ def test_a_gpu_paper_run_from_before_images_per_step_is_marked_stale():
     assert "31.00 dB against 30.00 dB from every image" in note
     assert report._stale_paper_note({"preset": "paper", "psnr": 31.0, "images_per_step": 8}, cpu) == []
     assert report._stale_paper_note(None, cpu) == []
+
+
+def test_report_docstring_examples_hold():
+    import doctest
+
+    result = doctest.testmod(report, optionflags=doctest.ELLIPSIS)
+    assert result.attempted >= 3 and result.failed == 0  # place_labels, pareto_front, seed_means, ...
