@@ -8,6 +8,7 @@ service with the random-weight SMOKE-TEST model: they prove which configs the wo
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -32,6 +33,9 @@ from voxe_core.presets import (
     refine_config,
 )
 from voxe_core.schedule import AUTHORS_FLOOR, PAPER_FLOOR, TimestepSchedule
+
+# What the worker reads of its guidance around an edit that a test records instead of running: no compile.
+NO_MODEL = SimpleNamespace(encoder_compile_seconds=None)
 
 EDIT = ["edit", "g.safetensors", "--prompt", "a dog", "--out", "o"]
 REFINE = ["refine", "e.safetensors", "--initial", "g.safetensors", "--prompt", "a dog in a hat", "--edit-words", "hat",
@@ -185,7 +189,7 @@ def test_the_worker_edits_a_scene_grid_with_the_real_scene_schedule(service, mon
         seen["kind"], seen["config"] = initial.kind, config
         return initial.clone_grid()
 
-    monkeypatch.setattr(runtime, "get_guidance", lambda *args: None)  # the recorded edit needs no model
+    monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)  # the recorded edit needs no model
     monkeypatch.setattr(voxe_core.edit, "edit", recorded_edit)
     assert tasks.edit_task.apply(args=(job["id"],)).get()["state"] == "done"
     config = seen["config"]
@@ -213,7 +217,7 @@ def test_a_damaged_edit_checkpoint_is_dropped_and_the_edit_starts_over(service, 
         seen["resume_from"] = resume_from
         return initial.clone_grid()
 
-    monkeypatch.setattr(runtime, "get_guidance", lambda *args: None)
+    monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
     monkeypatch.setattr(voxe_core.edit, "edit", recorded_edit)
     assert tasks.edit_task.apply(args=(job["id"],)).get()["state"] == "done"
     assert seen == {"resume_from": None}
@@ -325,7 +329,7 @@ def test_the_worker_runs_every_stage_on_its_device_and_stores_their_peak_memory(
         seen.setdefault("render", set()).add(device)
         return real_render_views(grid, cameras, *args, device=device, **kwargs)
 
-    monkeypatch.setattr(runtime, "get_guidance", lambda *args: None)
+    monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
     monkeypatch.setattr(voxe_core.edit, "edit", recorded_edit)
     monkeypatch.setattr(voxe_core.export, "render_views", recorded_render_views)
     assert tasks.edit_task.apply(args=(job["id"],)).get()["state"] == "done"
@@ -352,7 +356,7 @@ def test_the_export_reads_the_orbit_centre_its_reconstruction_recorded_and_fetch
     initial = load_grid(runtime.scratch_dir(job["id"], tasks.get_settings()) / "initial_grid.safetensors")
     recorded = client.get(f"/v1/jobs/{job['id']}").json()["result"]["orbit_centre"]
     assert recorded == [float(c) for c in initial.orbit_centre()] and any(c != 0.0 for c in recorded)
-    monkeypatch.setattr(runtime, "get_guidance", lambda *args: None)
+    monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
     monkeypatch.setattr(voxe_core.edit, "edit", lambda initial, *args, **kwargs: initial.clone_grid())
     assert tasks.edit_task.apply(args=(job["id"],)).get()["state"] == "done"
     fetched, centres = [], []

@@ -177,4 +177,3 @@ def synchronize(device: torch.device | str) -> None:
 
 __all__ = ["DeviceUnavailableError", "PeakMemory", "default_device", "full_precision", "resolve_device",
            "synchronize"]
-

@@ -387,10 +387,10 @@ def _edit(job: Job, settings, device: str, storage) -> None:
 
     callbacks = StageCallbacks(job, "edit", settings, note=note,
                                on_checkpoint=lambda path: storage.put_file(checkpoint_key, path))
-    compiled_before = getattr(guidance, "encoder_compile_seconds", None)
+    compiled_before = guidance.encoder_compile_seconds
     grid = edit(initial, job.prompt, guidance, config, callbacks.callbacks, checkpoint, resume,
                 input_views=input_views, on_preview=on_preview, device=device)
-    compiled = getattr(guidance, "encoder_compile_seconds", None)
+    compiled = guidance.encoder_compile_seconds
     if compiled is not None and compiled != compiled_before:  # this job's first iteration waited for the compile
         log.info("job %s: the VAE encoder compiled in %.1f s", job.id, compiled)
         runtime.merge_job_result(job.id, {"encoder_compile_seconds": compiled})
