@@ -143,12 +143,17 @@ def _step_row(name: str, profile: Profile, dtype: torch.dtype, ms_step: float, r
     return row
 
 
+def _warm_up(guidance, profile: Profile) -> float:
+    """Seconds of ``profile.warm`` default iterations: where kernels are picked, graphs captured and compiles run."""
+    start = time.perf_counter()
+    _edit_run(guidance, profile, profile.warm, sync=False)
+    return time.perf_counter() - start
+
+
 def _measured_step(guidance, profile: Profile) -> tuple[float, list, list, float]:
     """(ms per step, its reports, the reports of a run with timing synchronisation, warm-up seconds) of the default
     edit after ``profile.warm`` iterations (captures and compiles happen there, timed apart)."""
-    start = time.perf_counter()
-    _edit_run(guidance, profile, profile.warm, sync=False)
-    warm_seconds = time.perf_counter() - start
+    warm_seconds = _warm_up(guidance, profile)
     parts, _ = _edit_run(guidance, profile, profile.timed, sync=True)
     timed, wall = _edit_run(guidance, profile, profile.timed, sync=False)
     return wall * 1e3 / profile.timed, timed, parts, warm_seconds
@@ -157,9 +162,7 @@ def _measured_step(guidance, profile: Profile) -> tuple[float, list, list, float
 def _loop_row(guidance, profile: Profile, name: str, **extra) -> dict:
     """An ``edit`` run: ``loop_iterations`` default iterations after warm-up (timed apart: compile and captures), timed
     as one."""
-    start = time.perf_counter()
-    _edit_run(guidance, profile, profile.warm, sync=False)
-    warm_seconds = time.perf_counter() - start
+    warm_seconds = _warm_up(guidance, profile)
     reports, wall = _edit_run(guidance, profile, profile.loop_iterations, sync=False)
     ms_step = wall * 1e3 / profile.loop_iterations
     return {"name": name, "kind": "edit", "device": profile.device, "dtype": _dtype_name(profile.dtype),
