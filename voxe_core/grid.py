@@ -50,13 +50,6 @@ def default_density_scale(bbox_min, bbox_max) -> float:
     return 100.0 * math.sqrt(3.0) / diagonal
 
 
-def gather_3d(mask: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-    """``mask[index[..., 0], index[..., 1], index[..., 2]]`` through one flat gather (cheaper than three)."""
-    _, ny, nz = mask.shape
-    flat = (index[..., 0] * ny + index[..., 1]) * nz + index[..., 2]
-    return mask.reshape(-1).index_select(0, flat.reshape(-1)).reshape(flat.shape)
-
-
 def ray_box_intersection(
     origins: torch.Tensor, directions: torch.Tensor, box_min: torch.Tensor, box_max: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -71,17 +64,18 @@ def ray_box_intersection(
         >>> near.tolist(), far.tolist()
         ([2.0], [4.0])
     """
-    tiny = torch.full_like(directions, 1e-12)
-    safe = torch.where(directions.abs() < 1e-12, torch.where(directions < 0, -tiny, tiny), directions)
-    inv = 1.0 / safe
+    magnitude = directions.abs()
+    safe = torch.where(magnitude < 1e-12, torch.where(directions < 0, -1e-12, 1e-12), directions)
+    inv = safe.reciprocal()
     t0, t1 = (box_min[..., None, :] - origins) * inv, (box_max[..., None, :] - origins) * inv
-    t_near = torch.minimum(t0, t1).amax(-1).clamp_min(0.0)
+    t_near = torch.minimum(t0, t1).amax(-1).clamp_min(0.0)  # in [0, inf] or NaN
     t_far = torch.maximum(t0, t1).amin(-1)
-    finite = torch.isfinite(origins).all(-1) & torch.isfinite(directions).all(-1) & torch.isfinite(t_far)
-    finite &= directions.abs().amax(-1) >= 1e-12  # no direction: not a ray (it would span ~1e12 units from inside)
-    t_far = torch.where(finite & torch.isfinite(t_near), t_far, torch.zeros_like(t_far))
-    t_near = torch.where(finite & torch.isfinite(t_near), t_near, torch.zeros_like(t_near))
-    return t_near, t_far
+    # Finite ends imply a finite origin (an infinite or NaN coordinate makes one end infinite or NaN), not a finite
+    # direction: an infinite component only zeroes its slab's reciprocal. No direction is no ray either (it would
+    # span ~1e12 units from inside). NaN fails every comparison.
+    longest = magnitude.amax(-1)
+    ray = (t_near < math.inf) & (t_far.abs() < math.inf) & (longest >= 1e-12) & (longest < math.inf)
+    return torch.where(ray, t_near, 0.0), torch.where(ray, t_far, 0.0)
 
 
 @dataclass(frozen=True)
@@ -134,7 +128,7 @@ class Occupancy:
 
     def occupied(self, cell: torch.Tensor) -> torch.Tensor:
         """Whether each cell index (…, 3), as from ``VoxelGrid.cell_index``, is occupied."""
-        return gather_3d(self.cells.to(cell.device), cell)
+        return self.cells.to(cell.device)[cell.unbind(-1)]  # one gather (a flat index took 4 more operations)
 
     @property
     def fraction(self) -> float:
@@ -271,14 +265,11 @@ class VoxelGrid(torch.nn.Module):
         upper = lattice.upper.to(points.dtype)
         u = (points - self.bbox_min) / lattice.extent * upper
         u = torch.minimum(u.clamp_min(0), upper)
-        base = torch.minimum(u.floor().long(), lattice.last_cell)
+        base = torch.minimum(u.long(), lattice.last_cell)  # u >= 0: truncation is the floor
         frac = (u - base.to(u.dtype)).to(dtype)
         flat_index = (base * lattice.strides).sum(-1, keepdim=True) + lattice.corner_offsets  # (N, 8)
-        fx, fy, fz = frac.unbind(-1)
-        wx = torch.stack([1 - fx, fx], -1)
-        wy = torch.stack([1 - fy, fy], -1)
-        wz = torch.stack([1 - fz, fz], -1)
-        return flat_index, (wx[:, :, None, None] * wy[:, None, :, None] * wz[:, None, None, :]).reshape(-1, 8)
+        w = torch.stack([1 - frac, frac], -1)  # (N, axis, low/high corner)
+        return flat_index, (w[:, 0, :, None, None] * w[:, 1, None, :, None] * w[:, 2, None, None, :]).reshape(-1, 8)
 
     def cell_index(self, points: torch.Tensor) -> torch.Tensor:
         """Integer (…, 3) index of the cell holding each world point, clamped into the grid."""
@@ -341,17 +332,22 @@ class VoxelGrid(torch.nn.Module):
         segments, n_segments = _ray_segments(self, occupancy, origins, directions, t_near, step, first, last)
         start = t_near + offsets * step  # first lattice sample of each ray
         length = t_far - t_near
+        if not n_segments.numel():
+            return
         # Consecutive groups of rays whose lattice samples fit in one pass (bounds memory on dense renders).
         per_ray = n_segments * SEGMENT
         group = torch.div(per_ray.cumsum(0) - per_ray, samples_per_pass, rounding_mode="floor")
-        ends = torch.unique_consecutive(group, return_counts=True)[1].cumsum(0)
-        # Segment width, group ends and each group's candidate count reach the host in one read.
-        candidates = (last - first).clamp_min(0).cumsum(0).index_select(0, ends - 1)
-        width = n_segments.amax().reshape(1) if n_segments.numel() else n_segments.new_zeros(1)
-        host = torch.cat([width, ends, candidates.diff(prepend=candidates.new_zeros(1))]).tolist()
-        segments = segments[:, : host[0]]
-        groups = len(ends)
-        ends, group_candidates = host[1 : 1 + groups], host[1 + groups :]
+        candidates = (last - first).clamp_min(0).cumsum(0)
+        # Segment width, whether one pass holds every ray (the groups never decrease) and the candidate count
+        # reach the host in one read; only several passes need a second, for their ends and counts.
+        width, last_group, total = torch.cat([n_segments.amax().reshape(1), group[-1:], candidates[-1:]]).tolist()
+        segments = segments[:, :width]
+        ends, group_candidates = [n_segments.numel()], [total]
+        if last_group:
+            ends = torch.unique_consecutive(group, return_counts=True)[1].cumsum(0)
+            counts = candidates.index_select(0, ends - 1)
+            host = torch.cat([ends, counts.diff(prepend=counts.new_zeros(1))]).tolist()
+            ends, group_candidates = host[: len(ends)], host[len(ends) :]
         for lo, hi, n_candidates in zip([0] + ends[:-1], ends, group_candidates):
             ray, k, t, points = _packed_samples(
                 self, occupancy, origins, directions, start, step, first, last, segments[lo:hi], n_segments[lo:hi], lo
@@ -534,7 +530,7 @@ def _ray_segments(grid, occupancy, origins, directions, t_near, step, first, las
     keep = torch.arange(max_segments, device=origins.device)[None, :] < n_segments[:, None]
     mid = t_near[:, None] + (segments * SEGMENT + SEGMENT / 2) * step
     block = grid.cell_index(origins[:, None, :] + mid[..., None] * directions[:, None, :]) // size
-    keep &= gather_3d(occupancy.dilated_blocks(size), block)
+    keep &= occupancy.dilated_blocks(size)[block.unbind(-1)]
     # Stable sort puts each ray's kept segments first, still in marching order.
     order = torch.sort((~keep).to(torch.uint8), dim=1, stable=True).indices
     return segments.gather(1, order), keep.sum(1)  # the caller trims to the widest kept count
@@ -548,8 +544,9 @@ def _packed_samples(grid, occupancy, origins, directions, start, step, first, la
     gathered once per segment, not once per sample.
     """
     kept = torch.arange(segments.shape[1], device=segments.device)[None, :] < n_segments[:, None]
-    seg_ray = kept.nonzero()[:, 0] + ray_offset
-    k = segments[kept][:, None] * SEGMENT + torch.arange(SEGMENT, device=segments.device)  # (G, SEGMENT)
+    row, column = kept.nonzero().unbind(1)  # a mask index would find the same entries again, with a host read
+    seg_ray = row + ray_offset
+    k = segments[row, column][:, None] * SEGMENT + torch.arange(SEGMENT, device=segments.device)  # (G, SEGMENT)
     inside = (k >= first.index_select(0, seg_ray)[:, None]) & (k < last.index_select(0, seg_ray)[:, None])
     t = start.index_select(0, seg_ray)[:, None] + k * step
     points = origins.index_select(0, seg_ray)[:, None, :] + t[..., None] * directions.index_select(0, seg_ray)[:, None, :]

@@ -61,5 +61,6 @@ def transmittance(optical: torch.Tensor, ray: torch.Tensor) -> torch.Tensor:
     before = wide.cumsum(0) - wide
     starts = torch.ones_like(ray, dtype=torch.bool)
     starts[1:] = ray[1:] != ray[:-1]
-    before = before - before[starts][starts.cumsum(0) - 1]
-    return torch.exp(-before).to(optical.dtype)
+    position = torch.arange(ray.numel(), device=ray.device)
+    first = torch.where(starts, position, 0).cummax(0).values  # each sample's ray's first sample (no host read)
+    return torch.exp(before.index_select(0, first) - before).to(optical.dtype)
