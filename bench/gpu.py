@@ -34,9 +34,12 @@ g. ``cuda_graphs`` (CUDA only): the SDS step's UNet and VAE encoder replayed fro
 i. ``edit_step`` with the renderer's passes at the device's default size against 2^20 and 2^23, interleaved, with
    per-part device times (the backward split where the gradient reaches the renders);
 j. ``edit_step`` (CUDA only) with the VAE encoder compiled (``torch.compile``) or not, graphed or not: warm-up
-   (the compile), per-part times, agreement with the eager guidance.
+   (the compile), per-part times, agreement with the eager guidance;
+k. ``step_profile``: ``torch.profiler`` over ``timed`` default steps: the device's busy time against the wall
+   time (below 1: the host's launching and reading back sets the pace, not the arithmetic), kernel launches and
+   host synchronisations per step, and the kernels and host operations that take the most time.
 
-Sections run in the order a, b, c, d, h, g, i, j, f: the whole job last, the longest and, with a compile in its
+Sections run in the order a, b, c, d, h, g, i, k, j, f: the whole job last, the longest and, with a compile in its
 worker, the least predictable (each section's runs are saved as it ends). A SIGTERM (bench/gpu_device.sh's
 ``timeout``, ``GPU_BENCH_SECONDS``) ends the section in flight with a row saying so and what it had measured (the
 job's stages so far), and the later sections do not start.
@@ -507,6 +510,49 @@ def step_pass_runs(sd2: Path, profile: Profile) -> list[dict]:
     return rows
 
 
+# ---------------------------------------------------------------- (k)
+KERNEL_LAUNCHES = ("cudaLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernel", "cuLaunchKernelEx", "cudaGraphLaunch")
+HOST_SYNCHRONISATIONS = ("cudaStreamSynchronize", "cudaDeviceSynchronize", "cudaEventSynchronize")
+
+
+def _per_step(events, steps: int, time_key: str, top: int = 12) -> list[dict]:
+    """The ``top`` events by ``time_key`` (µs in all steps): name, ms and calls per step."""
+    ranked = sorted(events, key=lambda e: getattr(e, time_key), reverse=True)[:top]
+    return [{"name": e.key[:120], "ms_per_step": getattr(e, time_key) / 1e3 / steps, "calls_per_step": e.count / steps}
+            for e in ranked]
+
+
+def step_profile_run(sd2: Path, profile: Profile) -> dict:
+    """Where the default step's time goes: ``torch.profiler`` over ``profile.timed`` steps after warm-up. The
+    profiler's own overhead lengthens the host's share, so ``profiled_ms_step`` is not the step's speed (sections b,
+    i). ``aten_calls_per_step`` counts nested calls too (``aten::linear`` and the ``aten::addmm`` inside it)."""
+    from torch.autograd import DeviceType
+    from torch.profiler import ProfilerActivity
+    from torch.profiler import profile as profiled
+
+    guidance = _guidance(sd2, profile, profile.dtype)
+    _warm_up(guidance, profile)
+    cuda = profile.device == "cuda"
+    with profiled(activities=[ProfilerActivity.CPU] + [ProfilerActivity.CUDA] * cuda) as recorded:
+        reports, wall = _edit_run(guidance, profile, profile.timed, sync=False)
+    events = recorded.key_averages()
+    steps = profile.timed
+    kernels = [e for e in events if e.device_type != DeviceType.CPU]
+    host_ops = [e for e in events if e.device_type == DeviceType.CPU and e.key.startswith("aten::")]
+    busy_ms = sum(e.self_device_time_total for e in kernels) / 1e3 / steps if cuda else None
+    ms_step = wall * 1e3 / steps
+    return {"name": "edit_step profiled (torch.profiler, the default step)", "kind": "step_profile",
+            "device": profile.device, "dtype": _dtype_name(profile.dtype), "model": SDS_MODEL,
+            "profiled_ms_step": ms_step, "device_busy_ms_per_step": busy_ms,
+            "device_busy_fraction": None if busy_ms is None else busy_ms / ms_step,
+            "kernel_launches_per_step": sum(e.count for e in events if e.key in KERNEL_LAUNCHES) / steps,
+            "host_synchronisations_per_step": sum(e.count for e in events if e.key in HOST_SYNCHRONISATIONS) / steps,
+            "aten_calls_per_step": sum(e.count for e in host_ops) / steps,
+            "top_kernels": _per_step(kernels, steps, "self_device_time_total"),
+            "top_host_operations": _per_step(host_ops, steps, "self_cpu_time_total"),
+            "cuda_graphs": guidance.cuda_graphs, **_peaks(reports)}
+
+
 # ---------------------------------------------------------------- (j)
 ENCODER_VARIANTS = (  # (name, from_pretrained's compile_encoder, graph the compiled encoder too)
     ("CUDA graphs, eager encoder graphed (call 4's default)", False, False),
@@ -618,7 +664,7 @@ def main(argv=None) -> int:
     parser.add_argument("--smoke", action="store_true", help="CPU, tiny sizes: check the script end to end")
     parser.add_argument("--data", type=Path, default=MIC, help="the nerf_synthetic mic folder")
     parser.add_argument("--out", type=Path, default=None, help="JSON to write (default bench/results/gpu[_smoke].json)")
-    parser.add_argument("--skip", default="", help="comma-separated sections to leave out (a,b,c,d,f,h,g,i,j)")
+    parser.add_argument("--skip", default="", help="comma-separated sections to leave out (a,b,c,d,f,h,g,i,k,j)")
     parser.add_argument("--call", type=int, default=None,
                         help="number of this call on the device: tags its runs (an earlier call's keep theirs)")
     parser.add_argument("--call-note", default=None, help="what this call ran, recorded under the header's calls")
@@ -711,6 +757,7 @@ def main(argv=None) -> int:
                 baseline = next((r["ms_step"] for r in runs if r.get("section") == "a" and "ms_step" in r), None)
                 section("g", "cuda_graphs", lambda: cuda_graph_runs(sd2, profile, baseline))
             section("i", "edit_step", lambda: step_pass_runs(sd2, profile))
+            section("k", "step_profile", lambda: step_profile_run(sd2, profile))
             if profile.device == "cuda":  # after the other step sections: a compile's warm-up is the least predictable
                 section("j", "edit_step", lambda: compiled_encoder_runs(sd2, profile))
             loops = [r for r in runs if r.get("section") == "b" and "ms_step" in r]  # the default loop, latest call's

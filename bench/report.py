@@ -727,6 +727,7 @@ def gpu_section(gpu, reconstruction, results: Path, report: Path) -> tuple[list[
                        "largest entries).")
     bullets += render_pass_tradeoffs([r for r in runs if r.get("kind") == "render_passes"])
     bullets += step_speedups(runs)
+    bullets += step_profile(runs)
     launch = next((r for r in runs if r.get("ms_unet_batch_2") and r.get("ms_unet_batch_8")), None)
     if launch:
         bullets.append(f"**The eager UNet is launch-bound**: the eager fp16 UNet forward takes "
@@ -774,6 +775,24 @@ def step_speedups(runs: list[dict]) -> list[str]:
             ("Adam", "ms_optimizer")))
         bullets.append(f"**Where the default step's time goes** (GPU, device times, ms): {parts}.")
     return bullets
+
+
+def step_profile(runs: list[dict]) -> list[str]:
+    """A bullet from section k's profile of the default step (the latest call's): how much of the step the device
+    spends computing, what a step launches and waits for, and its longest kernels and host operations."""
+    profiles = [r for r in runs if r.get("kind") == "step_profile" and r.get("device_busy_ms_per_step") is not None]
+    if not profiles:
+        return []
+    run = max(profiles, key=lambda r: r.get("call") or 0)
+
+    def top(key: str) -> str:
+        return "; ".join(f"{e['name']} {e['ms_per_step']:.2f} ms ({e['calls_per_step']:.0f}×)" for e in run[key][:5])
+
+    return [f"**Where the step's time goes, profiled** (GPU, torch.profiler, which lengthens the host's share): the "
+            f"device computes {run['device_busy_ms_per_step']:.1f} ms of a {run['profiled_ms_step']:.1f} ms step "
+            f"({run['device_busy_fraction']:.0%}); a step launches {run['kernel_launches_per_step']:.0f} kernels and "
+            f"waits for the device {run['host_synchronisations_per_step']:.0f} times. Longest kernels: "
+            f"{top('top_kernels')}. Largest host self times: {top('top_host_operations')}."]
 
 
 def render_pass_tradeoffs(runs: list[dict]) -> list[str]:

@@ -45,7 +45,7 @@ def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
     kinds = [r["kind"] for r in runs]
     assert kinds == ["edit_step"] * len(bench.STEP_VARIANTS) + ["edit", "reconstruction", "reconstruction",
                                                                   "refinement"] + ["render_passes"] * 8 \
-        + ["edit_step"] * 2 + ["job"]  # i: the CPU's default pass size against 2^23; the whole job last
+        + ["edit_step"] * 2 + ["step_profile", "job"]  # i: the CPU's default pass size against 2^23; the job last
     assert record["calls"] == {"6": "g", "7": "the smoke run"} and {r["call"] for r in runs} == {7}
     for run in runs:
         assert {"name", "device", "dtype", "model", "peak_memory_gb"} <= set(run)
@@ -70,6 +70,12 @@ def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
     for run in (default_passes, large_passes):  # the backward split where the gradient reaches the renders
         assert run["ms_backward_guidance"] > 0 and run["ms_backward_render"] > 0
         assert run["ms_backward_guidance"] + run["ms_backward_render"] == pytest.approx(run["ms_backward"])
+    profiled = next(r for r in runs if r["kind"] == "step_profile")  # on the CPU: host operations only
+    assert profiled["profiled_ms_step"] > 0 and profiled["device_busy_ms_per_step"] is None
+    assert profiled["kernel_launches_per_step"] == 0 and profiled["aten_calls_per_step"] > 100
+    host = profiled["top_host_operations"]
+    assert host and all(e["name"].startswith("aten::") and e["calls_per_step"] > 0 for e in host)
+    assert [e["ms_per_step"] for e in host] == sorted((e["ms_per_step"] for e in host), reverse=True)
     job = next(r for r in runs if r["kind"] == "job")
     assert job["state"] == "succeeded"
     loop = next(r for r in runs if r["section"] == "b")  # projected with the default loop's step
@@ -95,7 +101,7 @@ def test_a_call_cut_off_by_its_time_limit_keeps_what_it_measured(tmp_path, monke
     monkeypatch.setattr(bench, "job_run", cut_off_job)
     before = signal.getsignal(signal.SIGTERM)
     out = tmp_path / "job.json"
-    assert bench.main(["--smoke", "--out", str(out), "--skip", "a,b,c,d,h,i"]) == 1
+    assert bench.main(["--smoke", "--out", str(out), "--skip", "a,b,c,d,h,i,k"]) == 1
     (run,) = json.loads(out.read_text())["runs"]
     assert run["section"] == "f" and run["error"] == "CallTimeLimit: terminated by the call's time limit (SIGTERM)"
     assert run["seconds_per_stage"] == {"reconstruct": 26.1} and run["seconds"] < 30

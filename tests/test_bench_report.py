@@ -155,6 +155,24 @@ def test_step_speedups_compare_pass_sizes_and_encoders_within_their_sections():
     assert report.step_speedups([]) == []
 
 
+def test_step_profile_reads_the_latest_calls_device_share_and_top_entries():
+    def profile(call, busy):
+        return {"kind": "step_profile", "call": call, "profiled_ms_step": 80.0, "device_busy_ms_per_step": busy,
+                "device_busy_fraction": busy / 80.0, "kernel_launches_per_step": 1234.0,
+                "host_synchronisations_per_step": 9.0,
+                "top_kernels": [{"name": f"kernel{i}", "ms_per_step": 1.0 / (i + 1), "calls_per_step": 2.0}
+                                for i in range(8)],
+                "top_host_operations": [{"name": "aten::index_select", "ms_per_step": 3.0, "calls_per_step": 40.0}]}
+
+    (bullet,) = report.step_profile([profile(8, 36.0), profile(7, 50.0),
+                                     {"kind": "step_profile", "device_busy_ms_per_step": None, "call": 9}])
+    assert "the device computes 36.0 ms of a 80.0 ms step (45%)" in bullet
+    assert "launches 1234 kernels and waits for the device 9 times" in bullet
+    assert "kernel0 1.00 ms (2×); kernel1 0.50 ms" in bullet and "kernel5" not in bullet  # the five longest
+    assert "aten::index_select 3.00 ms (40×)" in bullet
+    assert report.step_profile([]) == []
+
+
 def test_images_per_step_pairs_each_recipe_with_its_twin_over_seeds():
     def row(label, psnr, seconds=10.0, bench_run="a"):
         return {"label": label, "psnr": psnr, "seconds": seconds, "bench_run": bench_run}
