@@ -11,6 +11,7 @@ from voxe_core.losses import (
     sampled_total_variation,
     volumetric_l1,
     volumetric_l2,
+    volumetric_regulariser,
 )
 
 from references import dense_total_variation
@@ -162,6 +163,24 @@ def test_regulariser_kinds():
         regulariser_loss("tv", init, init)
     with pytest.raises(ValueError):
         regulariser_loss("reg3d", init[..., :3], init[..., :3])
+
+
+def test_a_bound_regulariser_standardises_the_initial_grid_once():
+    """What an edit evaluates every iteration: the initial grid's standardised channels are computed at binding, so a
+    later change to that tensor no longer reaches the loss; the values are the per-channel correlation losses."""
+    g = torch.Generator().manual_seed(0)
+    init = torch.randn(5, 5, 5, 4, generator=g)
+    edited = init + 0.3 * torch.randn(5, 5, 5, 4, generator=g)
+    expected = {"reg3d": correlation_loss(init[..., 0], edited[..., 0]),
+                "reg3d_plus": correlation_loss(init[..., 0], edited[..., 0]) + torch.stack(
+                    [correlation_loss(init[..., c], edited[..., c]) for c in (1, 2, 3)]).mean()}
+    for kind, value in expected.items():
+        moving = init.clone()
+        loss = volumetric_regulariser(kind, moving)
+        moving.fill_(float("nan"))
+        assert torch.equal(loss(edited), value)
+    with pytest.raises(ValueError, match="feature shapes differ"):
+        volumetric_regulariser("reg3d", init)(edited[:4])
 
 
 def test_gradient_flows_into_feature_parameter():

@@ -76,7 +76,7 @@ from voxe_core.losses import (
     Regulariser,
     image_l1,
     image_l2,
-    regulariser_loss,
+    volumetric_regulariser,
 )
 from voxe_core.progress import Callbacks, Progress, StageCancelled
 from voxe_core.render import RenderConfig, render_image, render_rays
@@ -309,7 +309,8 @@ def edit(
                          "load the guidance on the same device")
     memory = PeakMemory(device).start()
     sync = config.sync_timing
-    initial = initial_grid.features.detach().to(device).clone()
+    volumetric_reg = None if image_reg else volumetric_regulariser(  # G_i's share computed once
+        config.regulariser, initial_grid.features.detach().to(device).clone())
     grid = initial_grid.clone_grid().to(device)
     param = grid.flat_features
     optimizer = _make_adam(param, config)
@@ -432,7 +433,7 @@ def edit(
                 compare = image_l1 if config.regulariser == "image_l1" else image_l2
                 reg = compare(out.rgb, targets[pick])
             else:
-                reg = regulariser_loss(config.regulariser, initial, grid.features)
+                reg = volumetric_reg(grid.features)
             total = sds.float() + config.regulariser_weight * reg
 
             optimizer.zero_grad(set_to_none=True)
