@@ -31,8 +31,9 @@ h. ``render_passes``: bench/render_passes.py's measurement on the device (the ed
 g. ``cuda_graphs`` (CUDA only): the SDS step's UNet and VAE encoder replayed from CUDA graphs against the eager
    default, in one section: agreement on the same inputs, step and per-part times, the capture's warm-up, a
    ``loop_iterations`` loop, and the eager UNet at batch 2 against 8 (launch-bound or not);
-i. ``edit_step`` with the renderer's passes at the device's default size against 2^20 and 2^23, interleaved, with
-   per-part device times (the backward split where the gradient reaches the renders);
+i. ``edit_step`` with the renderer's passes at the device's default size against 2^20 and 2^23, and at the default
+   without early stopping (``early_stop=0``: no density probe), interleaved, with per-part device times (the
+   backward split where the gradient reaches the renders);
 j. ``edit_step`` (CUDA only) with the VAE encoder compiled (``torch.compile``) or not, graphed or not: warm-up
    (the compile), per-part times, agreement with the eager guidance;
 k. ``step_profile``: ``torch.profiler`` over ``timed`` default steps: the device's busy time against the wall
@@ -205,9 +206,10 @@ def _channels_last(guidance, enabled: bool) -> None:
     guidance.vae.to(memory_format=layout)
 
 
-def _edit_run(guidance, profile: Profile, iterations: int, sync: bool, samples_per_pass: int | None = None):
+def _edit_run(guidance, profile: Profile, iterations: int, sync: bool, samples_per_pass: int | None = None,
+              early_stop: float | None = None):
     """(reports, wall seconds) of ``iterations`` default edit iterations on the 160³ sphere (one sync at the end);
-    ``samples_per_pass`` replaces the renderer's (None: the device's default)."""
+    ``samples_per_pass`` and ``early_stop`` replace the renderer's (None: the device's default, the default)."""
     from edit_step import sphere_grid
 
     from voxe_core.edit import EditConfig, edit
@@ -217,6 +219,8 @@ def _edit_run(guidance, profile: Profile, iterations: int, sync: bool, samples_p
     guidance.sync_timing = sync
     config = EditConfig(iterations=iterations, render_size=profile.render_size, sync_timing=sync)
     config.render.samples_per_pass = samples_per_pass
+    if early_stop is not None:
+        config.render.early_stop = early_stop
     grid = sphere_grid(profile.grid_resolution)
     synchronize(profile.device)
     start = time.perf_counter()
@@ -482,29 +486,37 @@ def cuda_graph_runs(sd2: Path, profile: Profile, baseline_ms: float | None) -> l
 # ---------------------------------------------------------------- (i)
 def step_pass_runs(sd2: Path, profile: Profile) -> list[dict]:
     """The default step (CUDA graphs where they run) with the renderer's passes at the device's default against
-    2^20 (the CPU's) and 2^23, interleaved, each timed with per-part device times (the backward split where the
-    gradient reaches the renders) and without synchronisation."""
+    2^20 (the CPU's) and 2^23, and at the default without early stopping (no density probe before the render: fewer
+    operations and host reads, more samples with gradient), interleaved, each timed with per-part device times (the
+    backward split where the gradient reaches the renders) and without synchronisation."""
     from voxe_core.render import RenderConfig
 
     guidance = _guidance(sd2, profile, profile.dtype)
     default = RenderConfig().pass_samples(torch.device(profile.device))
-    sizes = list(dict.fromkeys((1 << 20, default, 1 << 23)))
-    for size in sizes:
-        _edit_run(guidance, profile, profile.warm, sync=False, samples_per_pass=size)
-    timings = {size: [] for size in sizes}
-    parts = {size: [] for size in sizes}
-    for _ in range(2):  # interleaved halves: the machine's drift lands on every size alike
-        for size in sizes:
-            parts[size] += _edit_run(guidance, profile, profile.timed // 2, sync=True, samples_per_pass=size)[0]
-            reports, wall = _edit_run(guidance, profile, profile.timed // 2, sync=False, samples_per_pass=size)
-            timings[size].append((reports, wall))
+    variants = [(size, None) for size in dict.fromkeys((1 << 20, default, 1 << 23))] + [(default, 0.0)]
+    for size, early_stop in variants:
+        _edit_run(guidance, profile, profile.warm, sync=False, samples_per_pass=size, early_stop=early_stop)
+    timings = {variant: [] for variant in variants}
+    parts = {variant: [] for variant in variants}
+    for _ in range(2):  # interleaved halves: the machine's drift lands on every variant alike
+        for variant in variants:
+            size, early_stop = variant
+            parts[variant] += _edit_run(guidance, profile, profile.timed // 2, sync=True, samples_per_pass=size,
+                                        early_stop=early_stop)[0]
+            reports, wall = _edit_run(guidance, profile, profile.timed // 2, sync=False, samples_per_pass=size,
+                                      early_stop=early_stop)
+            timings[variant].append((reports, wall))
     rows = []
-    for size in sizes:
-        reports = [r for run, _ in timings[size] for r in run]
-        ms_step = sum(wall for _, wall in timings[size]) * 1e3 / len(reports)
-        rows.append(_step_row(f"samples_per_pass 2^{size.bit_length() - 1}" + (" (default)" if size == default else ""),
-                              profile, profile.dtype, ms_step, reports, parts[size], samples_per_pass=size,
-                              cuda_graphs=guidance.cuda_graphs))
+    for size, early_stop in variants:
+        reports = [r for run, _ in timings[size, early_stop] for r in run]
+        ms_step = sum(wall for _, wall in timings[size, early_stop]) * 1e3 / len(reports)
+        name = f"samples_per_pass 2^{size.bit_length() - 1}" + (" (default)" if size == default else "")
+        if early_stop is not None:
+            name = f"samples_per_pass 2^{size.bit_length() - 1}, early_stop {early_stop:g}"
+        rows.append(_step_row(name, profile, profile.dtype, ms_step, reports, parts[size, early_stop],
+                              samples_per_pass=size, cuda_graphs=guidance.cuda_graphs,
+                              early_stop=RenderConfig().early_stop if early_stop is None else early_stop,
+                              samples_per_ray=sum(r.info["samples_per_ray"] for r in reports) / len(reports)))
     for row in rows:
         row["speedup_over_2_20"] = rows[0]["ms_step"] / row["ms_step"]
     return rows

@@ -753,6 +753,15 @@ def step_speedups(runs: list[dict]) -> list[str]:
                        f"with passes of 2^{default['samples_per_pass'].bit_length() - 1} samples against "
                        f"{base['ms_step']:.1f} ms with the CPU's 2^20 ({default['speedup_over_2_20']:.2f}×), the "
                        f"render {default['ms_render']:.1f} against {base['ms_render']:.1f} ms; the same render{same}.")
+    no_stop = next((r for r in passes if r.get("early_stop") == 0), None)
+    if no_stop and default:
+        bullets.append(f"**Early stopping on the GPU** (same run): the step takes {no_stop['ms_step']:.1f} ms without "
+                       f"it against {default['ms_step']:.1f} ms with it ({default['ms_step'] / no_stop['ms_step']:.2f}×), "
+                       f"the render {no_stop['ms_render']:.1f} against {default['ms_render']:.1f} ms and its backward "
+                       f"{no_stop['ms_backward_render']:.1f} against {default['ms_backward_render']:.1f} ms; "
+                       f"{no_stop['samples_per_ray']:.0f} against {default['samples_per_ray']:.0f} grid evaluations a "
+                       "ray (with it, the density probe's included); without it no pixel moves by more than the "
+                       "1e-4 threshold (tests/test_render.py).")
     encoders = [r for r in runs if r.get("section") == "j" and "ms_step" in r]
     eager = next((r for r in encoders if r.get("compile_encoder") is False), None)
     compiled = next((r for r in encoders if r.get("compile_encoder") and not r.get("graphed_encoder")), None)

@@ -45,7 +45,7 @@ def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
     kinds = [r["kind"] for r in runs]
     assert kinds == ["edit_step"] * len(bench.STEP_VARIANTS) + ["edit", "reconstruction", "reconstruction",
                                                                   "refinement"] + ["render_passes"] * 8 \
-        + ["edit_step"] * 2 + ["step_profile", "job"]  # i: the CPU's default pass size against 2^23; the job last
+        + ["edit_step"] * 3 + ["step_profile", "job"]  # i: the CPU's default pass size, 2^23, no early stop
     assert record["calls"] == {"6": "g", "7": "the smoke run"} and {r["call"] for r in runs} == {7}
     for run in runs:
         assert {"name", "device", "dtype", "model", "peak_memory_gb"} <= set(run)
@@ -64,10 +64,12 @@ def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
         assert [r["samples_per_pass"] for r in mine] == sorted(r["samples_per_pass"] for r in mine)
         assert all(r["max_rgb_difference"] == 0 and r["max_gradient_difference"] < 1e-5 for r in mine)
         assert [r["operations"] for r in mine] == sorted((r["operations"] for r in mine), reverse=True)
-    default_passes, large_passes = (r for r in runs if r["section"] == "i")
+    default_passes, large_passes, no_early_stop = (r for r in runs if r["section"] == "i")
     assert (default_passes["samples_per_pass"], large_passes["samples_per_pass"]) == (1 << 20, 1 << 23)
+    assert (default_passes["early_stop"], no_early_stop["early_stop"], no_early_stop["samples_per_pass"]) == (
+        1e-4, 0.0, 1 << 20)
     assert default_passes["speedup_over_2_20"] == 1.0
-    for run in (default_passes, large_passes):  # the backward split where the gradient reaches the renders
+    for run in (default_passes, large_passes, no_early_stop):  # the backward split where the gradient reaches the renders
         assert run["ms_backward_guidance"] > 0 and run["ms_backward_render"] > 0
         assert run["ms_backward_guidance"] + run["ms_backward_render"] == pytest.approx(run["ms_backward"])
     profiled = next(r for r in runs if r["kind"] == "step_profile")  # on the CPU: host operations only

@@ -134,7 +134,11 @@ def test_step_speedups_compare_pass_sizes_and_encoders_within_their_sections():
         {"name": "edit_step samples_per_pass 2^20", "section": "i", "samples_per_pass": 1 << 20, "ms_step": 90.0,
          "ms_render": 30.0, "speedup_over_2_20": 1.0},
         {"name": "edit_step samples_per_pass 2^22 (default)", "section": "i", "samples_per_pass": 1 << 22,
-         "ms_step": 75.0, "ms_render": 20.0, "speedup_over_2_20": 1.2},
+         "ms_step": 75.0, "ms_render": 20.0, "speedup_over_2_20": 1.2, "early_stop": 1e-4, "ms_backward_render": 4.0,
+         "samples_per_ray": 30.0},
+        {"name": "edit_step samples_per_pass 2^22, early_stop 0", "section": "i", "samples_per_pass": 1 << 22,
+         "ms_step": 60.0, "ms_render": 12.0, "speedup_over_2_20": 1.5, "early_stop": 0.0, "ms_backward_render": 5.0,
+         "samples_per_ray": 24.0},
         {"kind": "render_passes", "device": "cuda", "max_rgb_difference": 2e-7},
         {"name": "loop", "section": "b", "kind": "edit", "compile_encoder": True, "warm_seconds": 39.0},
         {"name": "eager encoder", "section": "j", "compile_encoder": False, "graphed_encoder": True, "ms_step": 72.0,
@@ -144,7 +148,9 @@ def test_step_speedups_compare_pass_sizes_and_encoders_within_their_sections():
          "ms_optimizer": 0.5, "encoder_latents_relative_difference": 0.003,
          "encoder_image_grad_relative_difference": 0.005},
     ]
-    passes, compiled, parts = report.step_speedups(runs)
+    passes, early_stop, compiled, parts = report.step_speedups(runs)
+    assert ("60.0 ms without it against 75.0 ms with it (1.25×), the render 12.0 against 20.0 ms and its backward "
+            "5.0 against 4.0 ms; 24 against 30 grid evaluations") in early_stop
     assert "75.0 ms with passes of 2^22 samples against 90.0 ms with the CPU's 2^20 (1.20×)" in passes
     assert "no pixel moves by more than 2e-07" in passes
     assert "60.0 ms against 72.0 with the graphed eager encoder (1.20×)" in compiled
