@@ -1,3 +1,5 @@
+import weakref
+
 import pytest
 import torch
 
@@ -167,18 +169,27 @@ def test_regulariser_kinds():
 
 def test_a_bound_regulariser_standardises_the_initial_grid_once():
     """What an edit evaluates every iteration: the initial grid's standardised channels are computed at binding, so a
-    later change to that tensor no longer reaches the loss; the values are the per-channel correlation losses."""
+    later change to that tensor no longer reaches the loss, which keeps none of it but what it reads; the values are
+    the per-channel correlation losses; G_i is fixed: no gradient reaches it, and each iteration backpropagates."""
     g = torch.Generator().manual_seed(0)
     init = torch.randn(5, 5, 5, 4, generator=g)
     edited = init + 0.3 * torch.randn(5, 5, 5, 4, generator=g)
     expected = {"reg3d": correlation_loss(init[..., 0], edited[..., 0]),
                 "reg3d_plus": correlation_loss(init[..., 0], edited[..., 0]) + torch.stack(
-                    [correlation_loss(init[..., c], edited[..., c]) for c in (1, 2, 3)]).mean()}
+                    [correlation_loss(init[..., c], edited[..., c]) for c in (1, 2, 3)]).mean(),
+                "volumetric_l1": volumetric_l1(init[..., 0], edited[..., 0])}
     for kind, value in expected.items():
-        moving = init.clone()
+        moving = init.clone().requires_grad_(True)
         loss = volumetric_regulariser(kind, moving)
-        moving.fill_(float("nan"))
+        with torch.no_grad():
+            moving.fill_(float("nan"))
         assert torch.equal(loss(edited), value)
+        released = weakref.ref(moving)
+        del moving
+        assert released() is None  # the loss holds its own copy of what it reads, not G_i's tensor
+        param = edited.clone().requires_grad_(True)
+        for _ in range(2):  # an edit's iterations: a graph of G_i's would refuse the second backward
+            loss(param).backward()
     with pytest.raises(ValueError, match="feature shapes differ"):
         volumetric_regulariser("reg3d", init)(edited[:4])
 

@@ -217,6 +217,15 @@ def test_one_slab_test_of_two_boxes_is_two_slab_tests():
     assert (far[:, 64:] <= near[:, 64:])[:, [1, 3, 4]].all()  # non-finite, no direction, missing: no segment
 
 
+def test_the_slab_test_computes_in_the_rays_dtype():
+    box = -torch.ones(3, dtype=torch.float64), torch.ones(3, dtype=torch.float64)
+    o, d = torch.tensor([[0.9, 0.0, 0.0]], dtype=torch.float64), torch.tensor([[0.0, 0.0, 1e-12]], dtype=torch.float64)
+    near, far = ray_box_intersection(o, d, *box)
+    assert far.dtype == torch.float64 and far.item() == (1.0 - 0.9) / 1e-12  # x's stand-in reciprocal, float64's 1e-12
+    near, far = ray_box_intersection(o.half(), d.half(), *(b.half() for b in box))
+    assert far.dtype == near.dtype == torch.float16 and far.item() == near.item() == 0.0  # 1e-12 is no direction in fp16
+
+
 def test_saturated_density_has_finite_values_and_gradients():
     grid = uniform_grid(1e6)
     o, d = torch.tensor([[-3.0, 0.0, 0.0]]), torch.tensor([[1.0, 0.0, 0.0]])

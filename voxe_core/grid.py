@@ -65,7 +65,8 @@ def ray_box_intersection(
         ([2.0], [4.0])
     """
     magnitude = directions.abs()
-    safe = torch.where(magnitude < 1e-12, torch.where(directions < 0, -1e-12, 1e-12), directions)
+    tiny = torch.full_like(directions, 1e-12)  # in the rays' dtype (two Python scalars would give the default's)
+    safe = torch.where(magnitude < 1e-12, torch.where(directions < 0, -tiny, tiny), directions)
     inv = safe.reciprocal()
     t0, t1 = (box_min[..., None, :] - origins) * inv, (box_max[..., None, :] - origins) * inv
     t_near = torch.minimum(t0, t1).amax(-1).clamp_min(0.0)  # in [0, inf] or NaN

@@ -118,11 +118,11 @@ def image_l2(render: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         return (render.float() - target.float()).square().mean()
 
 
-def _check_features(initial: torch.Tensor, edited: torch.Tensor) -> None:
-    if initial.shape != edited.shape:
-        raise ValueError(f"feature shapes differ: initial {tuple(initial.shape)} vs edited {tuple(edited.shape)}")
-    if initial.shape[-1] != 4:
-        raise ValueError(f"expected features (..., 4) (density + RGB), got {tuple(initial.shape)}")
+def _check_features(initial: torch.Size, edited: torch.Size) -> None:
+    if initial != edited:
+        raise ValueError(f"feature shapes differ: initial {tuple(initial)} vs edited {tuple(edited)}")
+    if initial[-1] != 4:
+        raise ValueError(f"expected features (..., 4) (density + RGB), got {tuple(initial)}")
 
 
 def regulariser_loss(kind: Regulariser, initial_features: torch.Tensor, edited_features: torch.Tensor) -> torch.Tensor:
@@ -142,7 +142,9 @@ def volumetric_regulariser(
 
     An edit evaluates its regulariser every iteration against a G_i that never
     changes; the correlation losses would otherwise standardise G_i's channels
-    each time (27 operations and passes over the grid per channel).
+    each time (27 operations and passes over the grid per channel). G_i is
+    fixed (no gradient reaches it), and only what the loss reads of it is
+    kept: its standardised channels, or its density.
 
     Examples:
         >>> initial = torch.rand(4, 4, 4, 4)
@@ -154,17 +156,20 @@ def volumetric_regulariser(
         raise ValueError(f"unknown regulariser {kind!r}; expected one of {REGULARISERS}")
     if kind in IMAGE_REGULARISERS:
         raise ValueError(f"{kind!r} is an image-space regulariser: compare renders with image_l1/image_l2")
-    _check_features(initial_features, initial_features)
+    shape = initial_features.shape
+    _check_features(shape, shape)
+    initial_features = initial_features.detach()
     channels = {"reg3d": (0,), "reg3d_plus": (0, 1, 2, 3)}.get(kind, ())
     with full_precision(initial_features):
         standardised = [_standardise(initial_features[..., c], eps)[0] for c in channels]
+    initial_density = None if channels else initial_features[..., 0].clone()
 
     def loss(edited_features: torch.Tensor) -> torch.Tensor:
-        _check_features(initial_features, edited_features)
+        _check_features(shape, edited_features.shape)
         if kind == "volumetric_l1":
-            return volumetric_l1(initial_features[..., 0], edited_features[..., 0])
+            return volumetric_l1(initial_density, edited_features[..., 0])
         if kind == "volumetric_l2":
-            return volumetric_l2(initial_features[..., 0], edited_features[..., 0])
+            return volumetric_l2(initial_density, edited_features[..., 0])
         density, *colour = (_correlation_loss_with(a, edited_features[..., c], eps) for c, a in zip(channels, standardised))
         return density + torch.stack(colour).mean() if colour else density
 
