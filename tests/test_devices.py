@@ -192,6 +192,23 @@ def test_the_renderers_hot_loop_reads_the_host_only_where_shapes_depend_on_data(
     assert out.samples > 0 and out.opacity.max() > 0.5  # the sphere was rendered
 
 
+def test_the_sds_step_leaves_its_diagnostics_on_the_device(tmp_path, monkeypatch):
+    """No read inside the SDS step: one would hold the host until the UNet had run, with the backward not yet queued.
+    Its device-side diagnostics come back as 0-dim tensors; the edit reads them with its losses, once a step."""
+    from voxe_core.guidance.sds import StableDiffusionGuidance
+    from voxe_core.tiny_sd import build_tiny_stable_diffusion
+
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    guidance = StableDiffusionGuidance.from_pretrained(str(build_tiny_stable_diffusion(tmp_path / "tiny", seed=0)))
+    image = torch.rand(1, 3, 32, 32, generator=torch.Generator().manual_seed(0)).requires_grad_(True)
+    text = guidance.encode_prompts(["a render of a dog"])
+    with HostReads() as reads:
+        loss, diagnostics = guidance.sds_loss(image, text, torch.tensor([500]), generator=torch.Generator().manual_seed(1))
+        loss.backward()
+    assert reads.calls == {"__bool__": 1}  # the time steps' range check, on the tensor the edit drew on the host
+    assert all(diagnostics[k].ndim == 0 for k in ("grad_norm", "t_mean", "w_mean"))
+
+
 def test_sync_free_occupancy_box_matches_the_occupied_cells(make_sphere_grid):
     grid = make_sphere_grid(20, radius=0.5, center=(0.3, -0.2, 0.1))
     occupancy = grid.occupancy()

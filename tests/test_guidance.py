@@ -123,10 +123,12 @@ def test_sds_gradient_reaches_the_image(guidance, t):
     assert image.grad is not None and image.grad.shape == image.shape
     assert torch.isfinite(image.grad).all()
     assert image.grad.abs().sum() > 0
-    for key in ("vae_encode_ms", "unet_ms", "sds_ms", "grad_norm", "w_mean", "t_mean"):
+    for key in ("vae_encode_ms", "unet_ms", "sds_ms"):  # host timings
         assert isinstance(diag[key], float)
-    assert diag["t_mean"] == t
-    assert diag["w_mean"] == pytest.approx(1 - float(guidance.alphas_cumprod[t]), rel=1e-6)
+    for key in ("grad_norm", "w_mean", "t_mean"):  # left on the device, unread: the caller reads them when it reports
+        assert isinstance(diag[key], torch.Tensor) and diag[key].ndim == 0 and diag[key].device == guidance.device
+    assert float(diag["t_mean"]) == t
+    assert float(diag["w_mean"]) == pytest.approx(1 - float(guidance.alphas_cumprod[t]), rel=1e-6)
 
 
 def test_sds_loss_is_reproducible_with_a_generator(guidance):

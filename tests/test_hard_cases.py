@@ -417,7 +417,7 @@ def _sds_at(t: int):
         betas = torch.linspace(0.00085**0.5, 0.012**0.5, 1000, dtype=torch.float64) ** 2
         w = 1 - float(torch.cumprod(1 - betas, 0)[t])  # w(0) is beta_0 = 0.00085
         return [("latent gradient = w(t)(eps_hat - eps)", latents.grad, expected, 1e-5 + 1e-4 * float(expected.abs().max())),
-                ("w(t)", torch.tensor(diag["w_mean"]), torch.tensor(w), 1e-6)]
+                ("w(t)", diag["w_mean"], torch.tensor(w), 1e-6)]
 
     return run
 

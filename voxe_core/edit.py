@@ -448,7 +448,10 @@ def edit(
             t_end = time.perf_counter()
             done = iteration + 1
 
-            sds_value, reg_value, total_value = torch.stack([sds.detach().float(), reg.detach(), total.detach()]).tolist()
+            # The step's one read: its losses and the guidance's device-side diagnostics together.
+            grad_norm = torch.as_tensor(diagnostics.get("grad_norm", math.nan), dtype=torch.float32, device=device)
+            sds_value, reg_value, total_value, grad_norm_value = torch.stack(
+                [sds.detach().float(), reg.detach(), total.detach(), grad_norm.reshape(())]).tolist()
             t_lo, t_hi = config.schedule.bounds(iteration, T)
             callbacks.progress(Progress(
                 "edit", done, config.iterations,
@@ -459,7 +462,7 @@ def edit(
                     "view": views_words if config.batch_size > 1 else views_words[0],
                     "elevation": elevation.tolist() if config.batch_size > 1 else float(elevation[0]),
                     "azimuth": azimuth.tolist() if config.batch_size > 1 else float(azimuth[0]),
-                    "sds_grad_norm": float(diagnostics.get("grad_norm", math.nan)),
+                    "sds_grad_norm": grad_norm_value,
                     "samples_per_ray": samples / (config.batch_size * size * size),
                     "ms_render": (t_render - t_start) * 1e3,
                     "ms_vae": float(diagnostics.get("vae_encode_ms", math.nan)),

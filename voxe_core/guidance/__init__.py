@@ -25,6 +25,11 @@ if TYPE_CHECKING:
     import torch
 
 
+Diagnostics = dict[str, "float | torch.Tensor"]
+"""An SDS step's diagnostics by name: host timings as floats, values computed on the device as 0-dim tensors there,
+which the caller reads when it reports (one read for all of them, after the step's work is queued)."""
+
+
 @runtime_checkable
 class Guidance(Protocol):
     """What the editing and refinement stages need from a text-to-image diffusion model."""
@@ -50,7 +55,7 @@ class Guidance(Protocol):
         timesteps: torch.Tensor,
         guidance_scale: float = DEFAULT_GUIDANCE_SCALE,
         generator: torch.Generator | None = None,
-    ) -> tuple[torch.Tensor, dict[str, float]]:
+    ) -> tuple[torch.Tensor, Diagnostics]:
         """Scalar surrogate loss whose latent gradient is ``w(t)(ε̂ − ε)``, plus diagnostics."""
         ...
 

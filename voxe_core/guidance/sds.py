@@ -51,6 +51,7 @@ import torch.nn.functional as F
 
 from voxe_core.constants import DEFAULT_ATTENTION_TIMESTEP, DEFAULT_GUIDANCE_SCALE, SDS_MODEL_ID
 from voxe_core.devices import synchronize
+from voxe_core.guidance import Diagnostics
 from voxe_core.guidance.attention import AttentionStore, capturing
 from voxe_core.guidance.compiled import CompiledEncoder
 from voxe_core.guidance.cuda_graphs import GraphedEncoder, GraphedUNet
@@ -374,13 +375,13 @@ class StableDiffusionGuidance:
         guidance_scale: float = DEFAULT_GUIDANCE_SCALE,
         generator: torch.Generator | None = None,
         noise: torch.Tensor | None = None,
-    ) -> tuple[torch.Tensor, dict[str, float]]:
+    ) -> tuple[torch.Tensor, Diagnostics]:
         """The SDS gradient ``w(t)·(ε̂ − ε)`` on (scaled) latents, float32, non-finite → 0.
 
         ``noise`` (float32, latent-shaped) overrides the draw from ``generator``.
         ε̂ is the guided UNet output read as :attr:`prediction_type` says.
-        Diagnostics: ``unet_ms`` (UNet forward incl. CFG), ``t_mean``,
-        ``w_mean``, ``grad_norm``.
+        Diagnostics: ``unet_ms`` (UNet forward incl. CFG, float), ``t_mean``,
+        ``w_mean``, ``grad_norm`` (0-dim tensors on the device, not read here).
         """
         z = latents.detach().to(device=self.device, dtype=torch.float32)
         batch = z.shape[0]
@@ -405,9 +406,9 @@ class StableDiffusionGuidance:
         eps_hat = epsilon_from_output(out_u + float(guidance_scale) * (out_c - out_u), noisy, a, self.prediction_type)
         w = 1.0 - a
         grad = torch.nan_to_num(w * (eps_hat - eps), nan=0.0, posinf=0.0, neginf=0.0)
-        # one device->host copy for all scalar diagnostics
-        t_mean, w_mean, grad_norm = torch.stack([t.float().mean(), w.mean(), grad.norm()]).tolist()
-        diagnostics = {"unet_ms": unet_ms, "t_mean": t_mean, "w_mean": w_mean, "grad_norm": grad_norm}
+        # Left on the device for the caller to read when it reports: a read here would hold the host until the UNet
+        # has run, with the backward not yet queued.
+        diagnostics = {"unet_ms": unet_ms, "t_mean": t.float().mean(), "w_mean": w.mean(), "grad_norm": grad.norm()}
         return grad, diagnostics
 
     def sds_loss_on_latents(
@@ -418,7 +419,7 @@ class StableDiffusionGuidance:
         guidance_scale: float = DEFAULT_GUIDANCE_SCALE,
         generator: torch.Generator | None = None,
         noise: torch.Tensor | None = None,
-    ) -> tuple[torch.Tensor, dict[str, float]]:
+    ) -> tuple[torch.Tensor, Diagnostics]:
         """Surrogate ``(grad.detach() * latents).sum()``: d loss / d latents = :meth:`sds_grad_on_latents`."""
         grad, diagnostics = self.sds_grad_on_latents(latents, text_embeddings, timesteps, guidance_scale, generator, noise)
         loss = (grad.detach() * latents.float()).sum()
@@ -431,14 +432,15 @@ class StableDiffusionGuidance:
         timesteps: torch.Tensor,
         guidance_scale: float = DEFAULT_GUIDANCE_SCALE,
         generator: torch.Generator | None = None,
-    ) -> tuple[torch.Tensor, dict[str, float]]:
+    ) -> tuple[torch.Tensor, Diagnostics]:
         """SDS for renders ``images`` ``(B,3,H,W)`` in [0,1] (see the module docstring).
 
         Returns the surrogate loss (backward it; its value is meaningless) and
-        diagnostics as floats: ``vae_encode_ms`` (forward only; the VAE backward
-        runs later inside ``loss.backward()``), ``unet_ms``, ``sds_ms`` (total),
-        ``t_mean``, ``w_mean``, ``grad_norm``. ``generator`` drives both the VAE
-        posterior sample and the noise.
+        diagnostics: ``vae_encode_ms`` (forward only; the VAE backward runs
+        later inside ``loss.backward()``), ``unet_ms``, ``sds_ms`` (total) as
+        floats, ``t_mean``, ``w_mean``, ``grad_norm`` as 0-dim device tensors
+        (:data:`~voxe_core.guidance.Diagnostics`). ``generator`` drives both the
+        VAE posterior sample and the noise.
         """
         _sync(self)
         t0 = time.perf_counter()
