@@ -544,7 +544,7 @@ def _per_step(events, steps: int, time_key: str, top: int = 12) -> list[dict]:
 
 def step_profile_run(sd2: Path, profile: Profile) -> dict:
     """Where the default step's time goes: ``torch.profiler`` over ``profile.timed`` steps after warm-up, from the
-    end of the run's first iteration on (its setup and first prompt encodings left out). The profiler's own overhead
+    end of the run's second iteration on (its setup, first prompt encodings and the tracer's start left out). The profiler's own overhead
     lengthens the host's share, so ``profiled_ms_step`` is not the step's speed (sections b, i).
     ``aten_calls_per_step`` counts nested calls too (``aten::linear`` and the ``aten::addmm`` inside it); kernels
     are summed over streams, annotation ranges (an optimizer step, a compiled graph's call) left out."""
@@ -556,16 +556,16 @@ def step_profile_run(sd2: Path, profile: Profile) -> dict:
     _warm_up(guidance, profile)
     cuda = profile.device == "cuda"
     steps = profile.timed
-    ends = []  # when each iteration reported: the profiled steps lie between the first and the last
+    ends = []  # when each iteration reported: the profiled steps are the last ``steps``
 
     with profiled(activities=[ProfilerActivity.CPU] + [ProfilerActivity.CUDA] * cuda,
-                  schedule=schedule(wait=1, warmup=0, active=steps)) as recorded:
-        reports, _ = _edit_run(guidance, profile, steps + 1, sync=False,
+                  schedule=schedule(wait=1, warmup=1, active=steps)) as recorded:  # warmup: the tracer's own start
+        reports, _ = _edit_run(guidance, profile, steps + 2, sync=False,
                                after_iteration=lambda: (ends.append(time.perf_counter()), recorded.step()))
     events = [e for e in recorded.key_averages() if not getattr(e, "is_user_annotation", False)]
     kernels = [e for e in events if e.device_type != DeviceType.CPU]
     host_ops = [e for e in events if e.device_type == DeviceType.CPU and e.key.startswith("aten::")]
-    ms_step = (ends[-1] - ends[0]) * 1e3 / steps
+    ms_step = (ends[-1] - ends[-1 - steps]) * 1e3 / steps
     busy_ms = sum(e.self_device_time_total for e in kernels) / 1e3 / steps if cuda else None
     return {"name": "edit_step profiled (torch.profiler, the default step)", "kind": "step_profile",
             "device": profile.device, "dtype": _dtype_name(profile.dtype), "model": SDS_MODEL,
