@@ -518,9 +518,8 @@ def step_pass_runs(sd2: Path, profile: Profile) -> list[dict]:
     for size, early_stop in variants:
         reports = [r for run, _ in timings[size, early_stop] for r in run]
         ms_step = sum(wall for _, wall in timings[size, early_stop]) * 1e3 / len(reports)
-        name = f"samples_per_pass 2^{size.bit_length() - 1}" + (" (default)" if size == default else "")
-        if early_stop is not None:
-            name = f"samples_per_pass 2^{size.bit_length() - 1}, early_stop {early_stop:g}"
+        name = f"samples_per_pass 2^{size.bit_length() - 1}"
+        name += f", early_stop {early_stop:g}" if early_stop is not None else " (default)" if size == default else ""
         rows.append(_step_row(name, profile, profile.dtype, ms_step, reports, parts[size, early_stop],
                               samples_per_pass=size, cuda_graphs=guidance.cuda_graphs,
                               early_stop=RenderConfig().early_stop if early_stop is None else early_stop,
@@ -544,8 +543,8 @@ def _per_step(events, steps: int, time_key: str, top: int = 12) -> list[dict]:
 
 def step_profile_run(sd2: Path, profile: Profile) -> dict:
     """Where the default step's time goes: ``torch.profiler`` over ``profile.timed`` steps after warm-up, from the
-    end of the run's second iteration on (its setup, first prompt encodings and the tracer's start left out). The profiler's own overhead
-    lengthens the host's share, so ``profiled_ms_step`` is not the step's speed (sections b, i).
+    end of the run's second iteration on (its setup, first prompt encodings and the tracer's start left out). The
+    profiler's own overhead lengthens the host's share, so ``profiled_ms_step`` is not the step's speed (b, i).
     ``aten_calls_per_step`` counts nested calls too (``aten::linear`` and the ``aten::addmm`` inside it); kernels
     are summed over streams, annotation ranges (an optimizer step, a compiled graph's call) left out."""
     from torch.autograd import DeviceType
