@@ -110,12 +110,12 @@ def test_overall_progress_runs_from_0_to_1_and_never_goes_back():
                              started_at=utcnow(), finished_at=utcnow())).overall_progress)
     assert seen[0] == 0.0 and seen[-1] == 1.0 and all(0 <= p <= 1 for p in seen)
     assert seen == sorted(seen), seen
-    # 100 edit iterations (5.1 s each) and 82 attention passes (32 views + 50 steps, 4.1 s each) cost far more than
-    # 200 reconstruction iterations (41 ms each) or 109 export renders (66 ms each).
+    # 100 edit iterations (1.7 s each) and 82 attention passes (32 views + 50 steps, 1.35 s each) cost far more than
+    # 200 reconstruction iterations (14 ms each) or 109 export renders (93 ms each).
     after_reconstruct, after_edit, after_refine = seen[4], seen[8], seen[12]
     costs = dict(stage_costs(mode="local", params=_job().params, reconstruction_units=200))
     assert after_edit == pytest.approx((costs["reconstruct"] + costs["edit"]) / sum(costs.values()))
-    assert after_reconstruct < 0.01 and 0.55 < after_edit < 0.65 and after_refine > 0.99, seen
+    assert after_reconstruct < 0.01 and 0.55 < after_edit < 0.65 and after_refine > 0.95, seen
 
 
 def test_a_reused_reconstruction_weighs_nothing():

@@ -1,18 +1,19 @@
 """A job's progress across all its stages, and the time it has left, from measured stage costs.
 
 Each stage's cost is its units of work (iterations, rendered views) times seconds per unit measured
-by the benchmarks in ``bench/results`` (2 CPU cores, torch 2.13 CPU):
+by the benchmarks in ``bench/results`` (2 CPU cores, torch 2.13 CPU), all four records in one sitting (at 2e73a74):
+only their ratios matter, so figures from different sittings would misweigh the stages:
 
-* reconstruct: 63.62 s / 2,000 iterations (``reconstruction.json``, preset-fast on mic: ``ReconstructConfig.fast()``,
+* reconstruct: 27.42 s / 2,000 iterations (``reconstruction.json``, preset-fast on mic: ``ReconstructConfig.fast()``,
   the default fit);
-* edit: 5.099 s per iteration (``edit_step.json``, the SD2-base-shaped UNet at 64 px: the real model's
+* edit: 1.676 s per iteration (``edit_step.json``, the SD2-base-shaped UNet at 64 px: the real model's
   cost, not the smoke-test one's);
-* refine: 4.06 s per attention pass (``edit_step.json``'s SD2-base-shaped run at 64 px: render + VAE + UNet
+* refine: 1.35 s per attention pass (``edit_step.json``'s SD2-base-shaped run at 64 px: render + VAE + UNet
   forward, no backward; the SD-1.4-shaped attention UNet is of its size): one per view, and one more per fitting
   step from the back-projection start (each draws a fresh view, ``RefineConfig.fit_views``); the paper's fit from a
-  constant (``lift_start`` constant) reuses the views' maps: 0.070 s per step (``segmentation.json``, runs[0]:
-  27.9 s / 400 fixed-view steps at 96 px, 4,096 rays per step). The back-projection and the cut are small beside them;
-* export: 0.066 s per rendered view (``reconstruction.json``, ``render_seconds_per_view`` at 200 px).
+  constant (``lift_start`` constant) reuses the views' maps: 0.037 s per step (``segmentation.json``, runs[0]:
+  14.8 s / 400 fixed-view steps at 96 px, 4,096 rays per step). The back-projection and the cut are small beside them;
+* export: 0.093 s per rendered view (``reconstruction.json``, ``render_seconds_per_view`` at 200 px).
 
 An edit is weighed by its job's ``iterations`` until G_i's kind is known, then by the count its schedule runs (a
 capture's scene grid runs 5,000 where the parameters say the objects' 8,000): the reconstruct stage records it in
@@ -26,9 +27,9 @@ Examples:
     >>> weights = stage_costs(mode="global", params={"iterations": 100, "export": {"views": 0,
     ...                       "turntable_frames": 10, "mesh": False}}, reconstruction_units=1800)
     >>> [(stage, round(seconds, 2)) for stage, seconds in weights]
-    [('reconstruct', 57.26), ('edit', 509.9), ('export', 0.66)]
+    [('reconstruct', 24.68), ('edit', 167.6), ('export', 0.93)]
     >>> dict(stage_costs(mode="local", params={}, reconstruction_units=1))["refine"]  # 32 views, 0 fitting steps
-    129.92
+    43.136
 """
 
 from __future__ import annotations
@@ -37,12 +38,12 @@ from voxe_core import constants as paper
 from voxe_core.presets import ExportConfig
 
 SECONDS_PER_UNIT = {
-    "reconstruct": 63.62 / 2000,
-    "edit": 5.099,
-    "refine": (465.4 + 442.0 + 3152.6) / 1000,  # an attention pass
-    "refine_fixed_step": 27.885 / 400,  # a fitting step on the views' maps
-    "export": 0.066,
-    "evaluate": 0.066,  # ring renders dominate an evaluation
+    "reconstruct": 27.42 / 2000,
+    "edit": 1.676,
+    "refine": (170.8 + 141.0 + 1036.2) / 1000,  # an attention pass
+    "refine_fixed_step": 14.803 / 400,  # a fitting step on the views' maps
+    "export": 0.093,
+    "evaluate": 0.093,  # ring renders dominate an evaluation
 }
 FAST_RECONSTRUCTION_ITERATIONS = 300 + 500 + 1200  # ReconstructConfig.fast(): what a queued job expects
 
