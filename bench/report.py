@@ -726,6 +726,7 @@ def gpu_section(gpu, reconstruction, results: Path, report: Path) -> tuple[list[
                        f"{graphed.get('encoder_image_grad_relative_difference', float('nan')):.1g} (relative to their "
                        "largest entries).")
     bullets += render_pass_tradeoffs([r for r in runs if r.get("kind") == "render_passes"])
+    bullets += gather_backward_tradeoffs([r for r in runs if r.get("kind") == "gather_backward"])
     bullets += step_speedups(runs)
     bullets += step_profile(runs)
     launch = next((r for r in runs if r.get("ms_unet_batch_2") and r.get("ms_unet_batch_8")), None)
@@ -817,6 +818,24 @@ def render_pass_tradeoffs(runs: list[dict]) -> list[str]:
                        f"{mine[0]['samples_per_pass'].bit_length() - 1}: {mine[0]['operations']} operations, "
                        f"{mine[0]['ms']:.0f} ms, {fmt(mine[0].get('peak_memory_gb'), 2)} GiB): {figures}; the render "
                        f"moves by at most {max(r['max_rgb_difference'] for r in mine):.1g}.")
+    return bullets
+
+
+def gather_backward_tradeoffs(runs: list[dict]) -> list[str]:
+    """One bullet per scene and device of bench/interpolation_backward.py's rows: the default gather against
+    ``F.embedding``'s backward."""
+    bullets = []
+    for scene, device in dict.fromkeys((r["scene"], r.get("device", "cpu")) for r in runs):
+        mine = {r["gather"]: r for r in runs if r["scene"] == scene and r.get("device", "cpu") == device}
+        new, old = mine.get("index_add"), mine.get("embedding")
+        if new and old:
+            bullets.append(
+                f"**The interpolation's backward** ({scene}, {device}, {new['samples']:,} grid evaluations): one "
+                f"`index_add_` takes {new['backward_ms']:.1f} ms against {old['backward_ms']:.1f} ms for "
+                f"`F.embedding`'s sorting backward ({new['backward_ratio_to_embedding']:.2f}×; render and backward "
+                f"{new['ms_ratio_to_embedding']:.2f}×), keeping {new['saved_for_backward_mb']:.0f} MB for the backward "
+                f"against {old['saved_for_backward_mb']:.0f}; the gradient moves by at most "
+                f"{new['max_gradient_difference']:.1g} of its largest entry.")
     return bullets
 
 
@@ -959,6 +978,7 @@ def build_report(results: Path, report: Path, notes: dict[str, str], mode: str) 
     gpu_lines, gpu_bullets = gpu_section(gpu or {}, load_json(results / "reconstruction.json"), results, report)
     out += gpu_lines + [""]
     tradeoffs += gpu_bullets + render_pass_tradeoffs(as_runs(load_json(results / "render_passes.json")))
+    tradeoffs += gather_backward_tradeoffs(as_runs(load_json(results / "interpolation_backward.json")))
     out += other_results_section(results, report)
     out += ["## Trade-offs a user chooses between", ""]
     out += [f"- {b}" for b in tradeoffs] or ["- No benchmark results to draw them from."]

@@ -129,6 +129,19 @@ def test_render_pass_tradeoffs_compare_each_pass_size_with_the_cpus_default():
     assert "2^22: 0.50× the operations, 1.20× the time, 1.10 GiB" in bullet and "at most 0" in bullet
 
 
+def test_gather_backward_bullets_pair_the_two_gathers_per_scene_and_device():
+    row = {"scene": "sphere", "samples": 1_900_000, "saved_for_backward_mb": 28.0, "max_gradient_difference": 0.0}
+    rows = [{**row, "device": "cpu", "gather": "index_add", "backward_ms": 80.0, "backward_ratio_to_embedding": 0.6,
+             "ms_ratio_to_embedding": 0.9},
+            {**row, "device": "cpu", "gather": "embedding", "backward_ms": 133.3, "backward_ratio_to_embedding": 1.0,
+             "ms_ratio_to_embedding": 1.0},
+            {**row, "device": "cuda", "gather": "index_add", "backward_ms": 1.0, "backward_ratio_to_embedding": 0.5,
+             "ms_ratio_to_embedding": 0.8, "max_gradient_difference": 3e-7}]  # no embedding row on cuda: no bullet
+    (bullet,) = report.gather_backward_tradeoffs(rows)
+    assert "(sphere, cpu, 1,900,000 grid evaluations)" in bullet and "80.0 ms against 133.3 ms" in bullet
+    assert "(0.60×; render and backward 0.90×)" in bullet and "28 MB for the backward against 28" in bullet
+
+
 def test_step_speedups_compare_pass_sizes_and_encoders_within_their_sections():
     runs = [
         {"name": "edit_step samples_per_pass 2^20", "section": "i", "samples_per_pass": 1 << 20, "ms_step": 90.0,

@@ -6,10 +6,11 @@ import math
 
 import pytest
 import torch
+import torch.nn.functional as F
 
 from voxe_core.backbones import load_grid
 from voxe_core.cameras import Cameras, camera_rays, look_at
-from voxe_core.grid import Occupancy, VoxelGrid, ray_box_intersection
+from voxe_core.grid import Occupancy, VoxelGrid, _WeightedGather, ray_box_intersection
 from voxe_core.render import RenderConfig, render_image, render_rays
 from voxe_core.tensorio import FormatError, save_tensors
 
@@ -188,6 +189,68 @@ def test_gradient_matches_finite_differences():
             flat[index] = saved
         numeric = (plus - minus) / (2 * eps)
         assert numeric == pytest.approx(analytic.view(-1)[index].item(), rel=2e-2, abs=1e-4)
+
+
+def _embedding_interpolation(grid: VoxelGrid, points: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+    """The interpolation through F.embedding's own backward (a sort of every corner index), as the renderer had it."""
+    index, weights = grid.trilinear_corners(points, features.dtype)
+    return torch.einsum("nk,nkc->nc", weights, F.embedding(index, features.reshape(-1, features.shape[-1])))
+
+
+def test_the_interpolation_backward_adds_into_the_grid_with_embeddings_bits():
+    """One index_add instead of F.embedding's dense backward: the same values and gradients, bit for bit on the CPU
+    (both add in index order), with corners shared by many points and points clamped onto the box; the grid's own
+    features and attention-grid features alike. Under bf16 autocast the values keep their bits and the gradients
+    come nearer the fp32 ones (the old backward rounded each product to bf16; the gather keeps them in fp32)."""
+    g = torch.Generator().manual_seed(3)
+    grid = VoxelGrid(6)
+    with torch.no_grad():
+        grid.features.copy_(torch.randn(6, 6, 6, 4, generator=g))
+    points = torch.cat([torch.rand(4000, 3, generator=g) * 3.6 - 1.8, torch.full((50, 3), 0.1)])
+    upstream = torch.randn(points.shape[0], 4, generator=g)
+    attention = torch.randn(6, 6, 6, 1, generator=g)
+    results = {}
+    for autocast in (False, True):
+        for name, interpolate in (("gather", grid.interpolate), ("embedding", lambda p, f=grid.flat_features:
+                                                                  _embedding_interpolation(grid, p, f))):
+            grid.flat_features.grad = None
+            table = attention.clone().requires_grad_(True)
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
+                own, scalar = interpolate(points), interpolate(points, table)
+            (own.float() * upstream).sum().backward()
+            scalar.float().pow(2).sum().backward()
+            results[name, autocast] = own, scalar, grid.flat_features.grad, table.grad
+    for new, old in zip(results["gather", False], results["embedding", False]):
+        assert new.dtype == old.dtype and torch.equal(new, old)
+    for new, old in zip(results["gather", True][:2], results["embedding", True][:2]):
+        assert new.dtype == old.dtype == torch.bfloat16 and torch.equal(new, old)
+    for new, old, exact in zip(results["gather", True][2:], results["embedding", True][2:], results["gather", False][2:]):
+        assert (new - exact).abs().max() < (old - exact).abs().max()
+
+
+def test_the_weighted_gather_backward_scatters_once_and_has_exact_derivatives():
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class Ops(TorchDispatchMode):
+        def __init__(self):
+            super().__init__()
+            self.names = []
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            self.names.append(func.__name__)
+            return func(*args, **(kwargs or {}))
+
+    grid = VoxelGrid(5)
+    out = grid.interpolate(torch.rand(300, 3) - 0.5)
+    with Ops() as ops:
+        out.sum().backward()
+    assert "embedding_dense_backward.default" not in ops.names and ops.names.count("index_add_.default") == 1
+    g = torch.Generator().manual_seed(0)
+    table = torch.randn(7, 3, dtype=torch.float64, generator=g, requires_grad=True)
+    index = torch.randint(0, 7, (5, 8), generator=g)
+    weights = torch.rand(5, 8, dtype=torch.float64, generator=g, requires_grad=True)
+    assert torch.autograd.gradcheck(_WeightedGather.apply, (table, index, weights))
+    assert torch.autograd.gradgradcheck(_WeightedGather.apply, (table, index, weights))
 
 
 def test_camera_inside_the_box_and_non_finite_rays():
