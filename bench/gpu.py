@@ -28,8 +28,8 @@ f. ``job``: one local-edit job (reconstruct -> edit -> refine -> export) through
    the 8 minutes: its seconds are projected to 8,000 iterations from (b)'s ms per step;
 h. ``render_passes``: bench/render_passes.py's measurement on the device (the edit's render and backward at each
    ``RenderConfig.samples_per_pass``: operations, time, memory, output differences), then
-   bench/interpolation_backward.py's (``gather_backward`` rows: the interpolation's backward by ``index_add_``, the
-   default, against ``F.embedding``'s sort; on a GPU the atomic adds may cost more than the sort saves);
+   bench/interpolation.py's (``interpolation`` rows: the default interpolation against ``F.embedding``'s sorting
+   backward, whose place ``index_add_``'s atomic adds took, and against a multiply-and-sum forward);
 g. ``cuda_graphs`` (CUDA only): the SDS step's UNet and VAE encoder replayed from CUDA graphs against the eager
    default, in one section: agreement on the same inputs, step and per-part times, the capture's warm-up, a
    ``loop_iterations`` loop, and the eager UNet at batch 2 against 8 (launch-bound or not);
@@ -406,9 +406,9 @@ def job_run(sd2: Path, sd14: Path, profile: Profile, data: Path, root: Path, loo
 def render_pass_runs(profile: Profile) -> list[dict]:
     """bench/render_passes.py on the device: the edit's render and its backward at each ``samples_per_pass`` (fewer,
     larger passes dispatch fewer operations: what a launch-bound GPU pays), on an object and on fog; then
-    bench/interpolation_backward.py on the same scenes (the interpolation's backward by ``index_add_``, whose atomic
-    adds a GPU may serialise, against ``F.embedding``'s sort)."""
-    import interpolation_backward
+    bench/interpolation.py's variants on the same scenes (is a GPU's batched GEMM on millions of 1 × 8 matrices, or
+    are its atomic adds into the grid, slower than what they replaced?)."""
+    import interpolation
     import render_passes
     from edit_step import sphere_grid
 
@@ -416,13 +416,12 @@ def render_pass_runs(profile: Profile) -> list[dict]:
     repeats = max(1, profile.timed // 4)
     scenes = {"sphere": sphere_grid(profile.grid_resolution), "fog": render_passes.fog_grid(profile.grid_resolution // 2)}
     passes = [r for scene, grid in scenes.items() for r in render_passes.measure(scene, grid, rays, repeats, profile.device)]
-    gathers = [r for scene, grid in scenes.items()
-               for r in interpolation_backward.measure(scene, grid, rays, repeats, profile.device)]
+    variants = [r for scene, grid in scenes.items()
+                for r in interpolation.measure(scene, grid, rays, repeats, profile.device)]
     return [{"name": f"render {r['scene']}, samples_per_pass {r['samples_per_pass']}", "kind": "render_passes",
              "dtype": "float32", "model": "ReLU-field grid", **r} for r in passes] + \
-        [{"name": f"interpolation backward {r['scene']}, {r['gather']}", "kind": "gather_backward",
-          "dtype": "float32", "model": "ReLU-field grid", **r}
-         for r in gathers]
+        [{"name": f"interpolation {r['scene']}, {r['variant']}", "kind": "interpolation", "dtype": "float32",
+          "model": "ReLU-field grid", **r} for r in variants]
 
 
 # ---------------------------------------------------------------- (g)

@@ -726,7 +726,7 @@ def gpu_section(gpu, reconstruction, results: Path, report: Path) -> tuple[list[
                        f"{graphed.get('encoder_image_grad_relative_difference', float('nan')):.1g} (relative to their "
                        "largest entries).")
     bullets += render_pass_tradeoffs([r for r in runs if r.get("kind") == "render_passes"])
-    bullets += gather_backward_tradeoffs([r for r in runs if r.get("kind") == "gather_backward"])
+    bullets += interpolation_tradeoffs([r for r in runs if r.get("kind") == "interpolation"])
     bullets += step_speedups(runs)
     bullets += step_profile(runs)
     launch = next((r for r in runs if r.get("ms_unet_batch_2") and r.get("ms_unet_batch_8")), None)
@@ -821,21 +821,22 @@ def render_pass_tradeoffs(runs: list[dict]) -> list[str]:
     return bullets
 
 
-def gather_backward_tradeoffs(runs: list[dict]) -> list[str]:
-    """One bullet per scene and device of bench/interpolation_backward.py's rows: the default gather against
-    ``F.embedding``'s backward."""
+def interpolation_tradeoffs(runs: list[dict]) -> list[str]:
+    """One bullet per scene and device of bench/interpolation.py's rows: each variant against the default."""
     bullets = []
     for scene, device in dict.fromkeys((r["scene"], r.get("device", "cpu")) for r in runs):
-        mine = {r["gather"]: r for r in runs if r["scene"] == scene and r.get("device", "cpu") == device}
-        new, old = mine.get("index_add"), mine.get("embedding")
-        if new and old:
-            bullets.append(
-                f"**The interpolation's backward** ({scene}, {device}, {new['samples']:,} grid evaluations): one "
-                f"`index_add_` takes {new['backward_ms']:.1f} ms against {old['backward_ms']:.1f} ms for "
-                f"`F.embedding`'s sorting backward ({new['backward_ratio_to_embedding']:.2f}×; render and backward "
-                f"{new['ms_ratio_to_embedding']:.2f}×), keeping {new['saved_for_backward_mb']:.0f} MB for the backward "
-                f"against {old['saved_for_backward_mb']:.0f}; the gradient moves by at most "
-                f"{new['max_gradient_difference']:.1g} of its largest entry.")
+        mine = [r for r in runs if r["scene"] == scene and r.get("device", "cpu") == device]
+        default = next((r for r in mine if r["variant"] == "default"), None)
+        if default is None:
+            continue
+        figures = "; ".join(
+            f"{r['variant']}: forward {r['forward_ratio_to_default']:.2f}×, backward "
+            f"{r['backward_ratio_to_default']:.2f}×, both {r['ms_ratio_to_default']:.2f}× the default's time, "
+            f"{r['saved_for_backward_mb']:.0f} MB kept for the backward, gradient within "
+            f"{r['max_gradient_difference']:.1g} of the default's" for r in mine if r is not default)
+        bullets.append(f"**The interpolation in the edit's render** ({scene}, {device}, {default['samples']:,} grid "
+                       f"evaluations; the default: forward {default['forward_ms']:.1f} ms, backward "
+                       f"{default['backward_ms']:.1f} ms, {default['saved_for_backward_mb']:.0f} MB kept): {figures}.")
     return bullets
 
 
@@ -978,7 +979,7 @@ def build_report(results: Path, report: Path, notes: dict[str, str], mode: str) 
     gpu_lines, gpu_bullets = gpu_section(gpu or {}, load_json(results / "reconstruction.json"), results, report)
     out += gpu_lines + [""]
     tradeoffs += gpu_bullets + render_pass_tradeoffs(as_runs(load_json(results / "render_passes.json")))
-    tradeoffs += gather_backward_tradeoffs(as_runs(load_json(results / "interpolation_backward.json")))
+    tradeoffs += interpolation_tradeoffs(as_runs(load_json(results / "interpolation.json")))
     out += other_results_section(results, report)
     out += ["## Trade-offs a user chooses between", ""]
     out += [f"- {b}" for b in tradeoffs] or ["- No benchmark results to draw them from."]

@@ -45,7 +45,7 @@ def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
     kinds = [r["kind"] for r in runs]
     assert kinds == ["edit_step"] * len(bench.STEP_VARIANTS) + ["edit", "reconstruction", "reconstruction",
                                                                   "refinement"] + ["render_passes"] * 8 \
-        + ["gather_backward"] * 4 + ["edit_step"] * 3 + ["step_profile", "job"]  # i: the CPU's default pass size, 2^23, no early stop
+        + ["interpolation"] * 6 + ["edit_step"] * 3 + ["step_profile", "job"]  # i: the CPU's default pass size, 2^23, no early stop
     assert record["calls"] == {"6": "g", "7": "the smoke run"} and {r["call"] for r in runs} == {7}
     for run in runs:
         assert {"name", "device", "dtype", "model", "peak_memory_gb"} <= set(run)
@@ -64,11 +64,12 @@ def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
         assert [r["samples_per_pass"] for r in mine] == sorted(r["samples_per_pass"] for r in mine)
         assert all(r["max_rgb_difference"] == 0 and r["max_gradient_difference"] < 1e-5 for r in mine)
         assert [r["operations"] for r in mine] == sorted((r["operations"] for r in mine), reverse=True)
-    gathers = [r for r in runs if r["kind"] == "gather_backward"]  # on the CPU both gathers add in index order
-    assert [(r["scene"], r["gather"]) for r in gathers] == [
-        (scene, gather) for scene in ("sphere", "fog") for gather in ("index_add", "embedding")]
-    assert all(r["max_rgb_difference"] == 0 and r["max_gradient_difference"] == 0 and r["backward_ms"] > 0
-               for r in gathers)
+    variants = [r for r in runs if r["kind"] == "interpolation"]  # on the CPU every variant adds in index order
+    assert [(r["scene"], r["variant"]) for r in variants] == [
+        (scene, variant) for scene in ("sphere", "fog") for variant in ("default", "embedding backward",
+                                                                        "mul-sum forward")]
+    assert all(r["max_gradient_difference"] == 0 and r["backward_ms"] > 0 for r in variants)
+    assert all(r["max_rgb_difference"] == 0 for r in variants if r["variant"] != "mul-sum forward")
     default_passes, large_passes, no_early_stop = (r for r in runs if r["section"] == "i")
     assert (default_passes["samples_per_pass"], large_passes["samples_per_pass"]) == (1 << 20, 1 << 23)
     assert (default_passes["early_stop"], no_early_stop["early_stop"], no_early_stop["samples_per_pass"]) == (

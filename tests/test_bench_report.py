@@ -129,17 +129,17 @@ def test_render_pass_tradeoffs_compare_each_pass_size_with_the_cpus_default():
     assert "2^22: 0.50× the operations, 1.20× the time, 1.10 GiB" in bullet and "at most 0" in bullet
 
 
-def test_gather_backward_bullets_pair_the_two_gathers_per_scene_and_device():
-    row = {"scene": "sphere", "samples": 1_900_000, "saved_for_backward_mb": 28.0, "max_gradient_difference": 0.0}
-    rows = [{**row, "device": "cpu", "gather": "index_add", "backward_ms": 80.0, "backward_ratio_to_embedding": 0.6,
-             "ms_ratio_to_embedding": 0.9},
-            {**row, "device": "cpu", "gather": "embedding", "backward_ms": 133.3, "backward_ratio_to_embedding": 1.0,
-             "ms_ratio_to_embedding": 1.0},
-            {**row, "device": "cuda", "gather": "index_add", "backward_ms": 1.0, "backward_ratio_to_embedding": 0.5,
-             "ms_ratio_to_embedding": 0.8, "max_gradient_difference": 3e-7}]  # no embedding row on cuda: no bullet
-    (bullet,) = report.gather_backward_tradeoffs(rows)
-    assert "(sphere, cpu, 1,900,000 grid evaluations)" in bullet and "80.0 ms against 133.3 ms" in bullet
-    assert "(0.60×; render and backward 0.90×)" in bullet and "28 MB for the backward against 28" in bullet
+def test_interpolation_bullets_set_each_variant_against_the_default_per_scene_and_device():
+    row = {"scene": "sphere", "samples": 1_900_000, "saved_for_backward_mb": 28.0, "max_gradient_difference": 0.0,
+           "forward_ms": 400.0, "backward_ms": 80.0}
+    ratios = {"forward_ratio_to_default": 1.0, "backward_ratio_to_default": 1.0, "ms_ratio_to_default": 1.0}
+    rows = [{**row, **ratios, "device": "cpu", "variant": "default"},
+            {**row, "device": "cpu", "variant": "embedding backward", "forward_ratio_to_default": 1.01,
+             "backward_ratio_to_default": 1.66, "ms_ratio_to_default": 1.12},
+            {**row, **ratios, "device": "cuda", "variant": "mul-sum forward"}]  # no default on cuda: no bullet
+    (bullet,) = report.interpolation_tradeoffs(rows)
+    assert "(sphere, cpu, 1,900,000 grid evaluations; the default: forward 400.0 ms, backward 80.0 ms" in bullet
+    assert "embedding backward: forward 1.01×, backward 1.66×, both 1.12× the default's time" in bullet
 
 
 def test_step_speedups_compare_pass_sizes_and_encoders_within_their_sections():
