@@ -28,8 +28,8 @@ f. ``job``: one local-edit job (reconstruct -> edit -> refine -> export) through
    the 8 minutes: its seconds are projected to 8,000 iterations from (b)'s ms per step;
 h. ``render_passes``: bench/render_passes.py's measurement on the device (the edit's render and backward at each
    ``RenderConfig.samples_per_pass``: operations, time, memory, output differences), then
-   bench/interpolation.py's (``interpolation`` rows: the default interpolation against ``F.embedding``'s sorting
-   backward, whose place ``index_add_``'s atomic adds took, and against a multiply-and-sum forward);
+   bench/interpolation.py's (``interpolation`` rows: the default interpolation against ``F.embedding``'s own
+   backward (a sort on CUDA), whose place ``index_add_``'s atomic adds took, and against a multiply-and-sum forward);
 g. ``cuda_graphs`` (CUDA only): the SDS step's UNet and VAE encoder replayed from CUDA graphs against the eager
    default, in one section: agreement on the same inputs, step and per-part times, the capture's warm-up, a
    ``loop_iterations`` loop, and the eager UNet at batch 2 against 8 (launch-bound or not);

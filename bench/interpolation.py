@@ -2,8 +2,8 @@
 (``voxe_core.grid``'s weighted gather: ``F.embedding``, an einsum, and a backward that adds into the grid with one
 ``index_add_``) against
 
-* ``embedding backward``: ``F.embedding``'s own dense backward, which sorts the N·8 corner indices before it sums
-  (what the default replaced);
+* ``embedding backward``: ``F.embedding``'s own dense backward (what the default replaced: on the CPU one small
+  add per index, each thread scanning every index for its rows; on CUDA a sort of the indices, then sums);
 * ``mul-sum forward``: the eight corners weighed by a broadcast multiply and a sum instead of the einsum's batched
   (1 × 8) @ (8 × 4) matrix products (slower on this CPU; a GPU's batched GEMM on 2M tiny matrices may not be),
 
@@ -11,7 +11,8 @@ on bench/render_passes.py's two scenes (the edit's 266² rays; an opaque sphere 
 and backward at the device's default pass size:
 
 * time of the forward and of the backward (medians of interleaved repeats), and their ratios to the default;
-* what autograd keeps for the backward (bytes of the saved tensors, the same on any device);
+* what autograd keeps for the backward (bytes of the saved tensors, the same on any device), and the peak memory
+  (a GPU's per variant; on the CPU the process's resident peak so far, which only grows from row to row);
 * the render and gradient against the default's: on the CPU every variant adds in index order (0 difference); on
   a GPU ``index_add_``'s atomic adds run in another order (float32 rounding).
 
@@ -39,13 +40,12 @@ import torch.nn.functional as F
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE.parent), str(HERE)]
 from edit_step import sphere_grid  # noqa: E402
-from render_passes import edit_rays, fog_grid  # noqa: E402
+from render_passes import backward, edit_rays, fog_grid, render  # noqa: E402
 
 from voxe_core import grid as grid_module  # noqa: E402
 from voxe_core.devices import PeakMemory, synchronize  # noqa: E402
 from voxe_core.edit import EditConfig  # noqa: E402
 from voxe_core.grid import VoxelGrid  # noqa: E402
-from voxe_core.render import render_rays  # noqa: E402
 
 def _mul_sum(weights: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
     """The corners weighed by a broadcast multiply and a sum, instead of batched matrix products."""
@@ -53,7 +53,7 @@ def _mul_sum(weights: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
 
 
 def _embedding_gather(table: torch.Tensor, index: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-    """The interpolation as it was: the gathered values through ``F.embedding`` (its backward sorts), then an einsum."""
+    """The interpolation as it was: the gathered values through ``F.embedding`` (and its own backward), then an einsum."""
     return torch.einsum("nk,nkc->nc", weights, F.embedding(index, table))
 
 
@@ -86,20 +86,6 @@ def _saved_bytes(run) -> tuple[object, int]:
     return result, sum(storages.values())
 
 
-def _render(grid: VoxelGrid, rays, seed: int = 0):
-    origins, directions = rays
-    config = EditConfig().render
-    generator = torch.Generator(origins.device).manual_seed(seed)
-    return render_rays(grid, origins, directions, config, grid.occupancy(config.sigma_threshold), generator)
-
-
-def _backward(grid: VoxelGrid, rgb: torch.Tensor) -> torch.Tensor:
-    grid.flat_features.grad = None
-    weights = torch.linspace(0.5, 1.5, rgb.shape[0], device=rgb.device)
-    (rgb * weights[:, None]).sum().backward()
-    return grid.flat_features.grad
-
-
 def measure(name: str, grid: VoxelGrid, rays, repeats: int, device: str = "cpu") -> list[dict]:
     """One row per entry of :data:`VARIANTS`: forward and backward ms (medians of ``repeats`` interleaved), bytes
     saved for the backward, peak memory, and the render's and gradient's differences from the default's."""
@@ -107,12 +93,13 @@ def measure(name: str, grid: VoxelGrid, rays, repeats: int, device: str = "cpu")
     grid = grid.to(device)
     rays = tuple(r.to(device) for r in rays)
     grid.flat_features.requires_grad_(True)
+    config = EditConfig().render
     rows, outputs = {}, {}
     for label in VARIANTS:  # memory and output: one untimed render each
         memory = PeakMemory(device).start()
         with variant(label):
-            out, saved = _saved_bytes(lambda: _render(grid, rays))
-            outputs[label] = out.rgb.detach(), _backward(grid, out.rgb).clone()
+            out, saved = _saved_bytes(lambda: render(grid, rays, config))
+            outputs[label] = out.rgb.detach(), backward(grid, out.rgb).clone()
         peak = memory.info()
         rows[label] = {"scene": name, "variant": label, "samples": out.samples, "device": str(device),
                        "saved_for_backward_mb": saved / 2**20, "peak_memory_gb": peak["peak_memory_gb"],
@@ -126,10 +113,10 @@ def measure(name: str, grid: VoxelGrid, rays, repeats: int, device: str = "cpu")
             with variant(label):
                 synchronize(device)
                 start = time.perf_counter()
-                out = _render(grid, rays)
+                out = render(grid, rays, config)
                 synchronize(device)
                 middle = time.perf_counter()
-                _backward(grid, out.rgb)
+                backward(grid, out.rgb)
                 synchronize(device)
             rows[label]["forward_ms"].append((middle - start) * 1e3)
             rows[label]["backward_ms"].append((time.perf_counter() - middle) * 1e3)

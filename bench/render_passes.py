@@ -66,16 +66,25 @@ def fog_grid(resolution: int) -> VoxelGrid:
     return grid
 
 
+def render(grid: VoxelGrid, rays, config: RenderConfig, seed: int = 0):
+    """One jittered render of ``rays`` (origins, directions), with its graph."""
+    origins, directions = rays
+    generator = torch.Generator(origins.device).manual_seed(seed)
+    return render_rays(grid, origins, directions, config, grid.occupancy(config.sigma_threshold), generator)
+
+
+def backward(grid: VoxelGrid, rgb: torch.Tensor) -> torch.Tensor:
+    """The grid's feature gradient of a fixed weighting of the render ``rgb`` (N, 3)."""
+    grid.flat_features.grad = None
+    weights = torch.linspace(0.5, 1.5, rgb.shape[0], device=rgb.device)
+    (rgb * weights[:, None]).sum().backward()
+    return grid.flat_features.grad
+
+
 def render_once(grid: VoxelGrid, rays, config: RenderConfig, seed: int = 0):
     """(rgb (N, 3), the grid's feature gradient, samples) of one jittered render and its backward."""
-    grid.flat_features.grad = None
-    origins, directions = rays
-    occupancy = grid.occupancy(config.sigma_threshold)
-    generator = torch.Generator(origins.device).manual_seed(seed)
-    out = render_rays(grid, origins, directions, config, occupancy, generator)
-    weights = torch.linspace(0.5, 1.5, out.rgb.shape[0], device=origins.device)
-    (out.rgb * weights[:, None]).sum().backward()
-    return out.rgb.detach(), grid.flat_features.grad.clone(), out.samples
+    out = render(grid, rays, config, seed)
+    return out.rgb.detach(), backward(grid, out.rgb).clone(), out.samples
 
 
 def measure(name: str, grid: VoxelGrid, rays, repeats: int, device: str = "cpu", passes=PASSES) -> list[dict]:

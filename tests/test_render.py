@@ -192,7 +192,7 @@ def test_gradient_matches_finite_differences():
 
 
 def _embedding_interpolation(grid: VoxelGrid, points: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
-    """The interpolation through F.embedding's own backward (a sort of every corner index), as the renderer had it."""
+    """The interpolation through F.embedding's own backward (one add per corner index), as the renderer had it."""
     index, weights = grid.trilinear_corners(points, features.dtype)
     return torch.einsum("nk,nkc->nc", weights, F.embedding(index, features.reshape(-1, features.shape[-1])))
 
@@ -251,6 +251,16 @@ def test_the_weighted_gather_backward_scatters_once_and_has_exact_derivatives():
     weights = torch.rand(5, 8, dtype=torch.float64, generator=g, requires_grad=True)
     assert torch.autograd.gradcheck(_WeightedGather.apply, (table, index, weights))
     assert torch.autograd.gradgradcheck(_WeightedGather.apply, (table, index, weights))
+    with torch.no_grad():  # points that carry gradient get the embedding path's, through the trilinear weights
+        grid.features.copy_(torch.randn(5, 5, 5, 4, generator=g))
+    points = torch.rand(300, 3, generator=g) - 0.5
+    upstream = torch.randn(300, 4, generator=g)
+    gradients = []
+    for interpolate in (grid.interpolate, lambda p: _embedding_interpolation(grid, p, grid.flat_features)):
+        moving = points.clone().requires_grad_(True)
+        (interpolate(moving) * upstream).sum().backward()
+        gradients.append(moving.grad)
+    assert gradients[0].abs().max() > 0 and torch.allclose(*gradients, rtol=1e-5, atol=1e-6)
 
 
 def test_camera_inside_the_box_and_non_finite_rays():

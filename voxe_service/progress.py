@@ -1,8 +1,8 @@
 """A job's progress across all its stages, and the time it has left, from measured stage costs.
 
 Each stage's cost is its units of work (iterations, rendered views) times seconds per unit measured
-by the benchmarks in ``bench/results`` (2 CPU cores, torch 2.13 CPU), all four records in one sitting (at 2e73a74):
-only their ratios matter, so figures from different sittings would misweigh the stages:
+by the benchmarks in ``bench/results`` (2 CPU cores, torch 2.13 CPU), the three records below re-run in one sitting (at
+2e73a74): only their ratios matter, so figures from different sittings would misweigh the stages:
 
 * reconstruct: 27.42 s / 2,000 iterations (``reconstruction.json``, preset-fast on mic: ``ReconstructConfig.fast()``,
   the default fit);
