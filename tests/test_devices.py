@@ -155,10 +155,12 @@ def test_stages_report_peak_memory_in_progress(make_sphere_grid):
 # ----------------------------------------------------------------- host round trips of the hot loop
 HOST_READS = {"item", "tolist", "__bool__", "__int__", "__float__", "nonzero", "unique_consecutive", "cpu", "numpy",
               "mask index"}
+ONE_BLOCK_SCANS = {"cummax", "cummin"}  # along a 1-D tensor CUDA runs them in one thread block (ScanUtils.cuh)
 
 
 class HostReads(torch.overrides.TorchFunctionMode):
-    """Counts the tensor operations that make a CUDA stream wait for the host (by name)."""
+    """Counts the tensor operations that make a CUDA stream wait for the host, and the scans that CUDA runs serially
+    over a packed sample list (by name)."""
 
     def __init__(self):
         super().__init__()
@@ -169,7 +171,7 @@ class HostReads(torch.overrides.TorchFunctionMode):
         if name == "__getitem__" and any(isinstance(i, torch.Tensor) and i.dtype == torch.bool
                                          for i in (args[1] if isinstance(args[1], tuple) else (args[1],))):
             name = "mask index"  # its result's size is the mask's count
-        if name in HOST_READS:
+        if name in HOST_READS | ONE_BLOCK_SCANS:
             self.calls[name] = self.calls.get(name, 0) + 1
         return func(*args, **(kwargs or {}))
 
@@ -177,7 +179,7 @@ class HostReads(torch.overrides.TorchFunctionMode):
 def test_the_renderers_hot_loop_reads_the_host_only_where_shapes_depend_on_data(make_sphere_grid):
     """One edit-loop render in one pass: occupancy with no read at all; the sampler's data-dependent sizes in 5
     reads (the segment layout's scalars, the pass layout's, two packings, early stop), not one per scalar; no mask
-    indexing (the transmittance finds each ray's first sample without one)."""
+    indexing and no serial scan (the transmittance finds each ray's first sample by binary search)."""
     from voxe_core.cameras import camera_rays
     from voxe_core.render import RenderConfig, render_rays
 

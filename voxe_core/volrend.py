@@ -56,11 +56,12 @@ def transmittance(optical: torch.Tensor, ray: torch.Tensor) -> torch.Tensor:
 
     One float64 prefix sum over all rays, minus each ray's value at its first
     sample: in float32 a ray behind rays of large optical depth would lose its own.
+    ``ray`` (S,) is non-decreasing (packed ray by ray), so each sample's ray starts
+    at the leftmost position of its value: a binary search per sample, with no host
+    read and in parallel on a GPU (a running maximum, ``cummax``, would scan a 1-D
+    tensor in one CUDA thread block).
     """
     wide = optical.double()
     before = wide.cumsum(0) - wide
-    starts = torch.ones_like(ray, dtype=torch.bool)
-    starts[1:] = ray[1:] != ray[:-1]
-    position = torch.arange(ray.numel(), device=ray.device)
-    first = torch.where(starts, position, 0).cummax(0).values  # each sample's ray's first sample (no host read)
+    first = torch.searchsorted(ray, ray)
     return torch.exp(before.index_select(0, first) - before).to(optical.dtype)
