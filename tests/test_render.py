@@ -135,6 +135,21 @@ def test_segment_skipping_keeps_every_sample_near_isolated_voxels(step_ratio):
     assert torch.allclose(sparse.opacity, dense.opacity, atol=2e-5)
 
 
+def test_packed_transmittance_is_each_rays_own_with_gaps_and_single_samples():
+    """Rays with no samples between others, one-sample rays and long ones: each sample sees only its own ray's
+    optical depth in front of it (the first sample of every ray sees none)."""
+    from voxe_core.volrend import transmittance
+
+    g = torch.Generator().manual_seed(4)
+    counts = torch.tensor([3, 0, 1, 0, 0, 7, 1, 1, 12, 0, 2])
+    ray = torch.repeat_interleave(torch.arange(len(counts)), counts)
+    optical = torch.rand(ray.numel(), generator=g) * 2
+    expected = torch.cat([torch.exp(-(torch.cumsum(o.double(), 0) - o.double())).float()
+                          for o in optical.split(counts[counts > 0].tolist())])
+    assert torch.allclose(transmittance(optical, ray), expected, rtol=1e-6, atol=0)
+    assert transmittance(optical[:0], ray[:0]).shape == (0,)
+
+
 def test_a_ray_packed_behind_saturated_rays_keeps_its_own_transmittance():
     # Rays share one prefix sum of optical depth; ray 1's ~1e6 must not swallow ray 2's ~1e-3 per sample.
     grid = uniform_grid(1e-4, resolution=32)

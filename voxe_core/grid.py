@@ -89,7 +89,8 @@ class _WeightedGather(torch.autograd.Function):
             rows = (weights[..., None] * grad[:, None, :]).to(ctx.table_dtype).reshape(-1, ctx.table_shape[-1])
             grad_table = grad.new_zeros(ctx.table_shape, dtype=ctx.table_dtype).index_add_(0, index.reshape(-1), rows)
         if ctx.needs_input_grad[2]:
-            grad_weights = torch.einsum("nc,nkc->nk", grad.to(weights.dtype), F.embedding(index, table).to(weights.dtype))
+            values = F.embedding(index, table).to(weights.dtype)
+            grad_weights = torch.einsum("nc,nkc->nk", grad.to(weights.dtype), values)
         return grad_table, None, grad_weights
 
 

@@ -25,7 +25,8 @@ MAX_SAMPLE_OPTICAL_DEPTH = 1e4
 class RaySamples:
     """The samples of a group of rays, packed ray by ray in marching order: what a grid's sampler yields.
 
-    ``ray`` (S,) indexes the rays given to the sampler; ``t`` (S,) is each sample's distance along
+    ``ray`` (S,) indexes the rays given to the sampler, non-decreasing (the rays in their given order:
+    :func:`transmittance` relies on it); ``t`` (S,) is each sample's distance along
     its ray, ``delta`` (S,) the path length it stands for, ``points`` (S, 3) where the field is
     evaluated, in the grid's lattice coordinates (what ``VoxelGrid.interpolate`` takes).
     ``candidates`` counts the samples the group's rays had before the occupancy test, ``probed``
