@@ -25,8 +25,6 @@ the GPU.
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import statistics
 import sys
 import time
@@ -39,8 +37,7 @@ import torch.nn.functional as F
 
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE.parent), str(HERE)]
-from edit_step import sphere_grid  # noqa: E402
-from render_passes import backward, edit_rays, fog_grid, render  # noqa: E402
+from render_passes import backward, record_scenes, render  # noqa: E402
 
 from voxe_core import grid as grid_module  # noqa: E402
 from voxe_core.devices import PeakMemory, synchronize  # noqa: E402
@@ -163,22 +160,14 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--out", type=Path, default=HERE / "results" / "interpolation.json")
     args = parser.parse_args(argv)
-    size = EditConfig().render_size
-    rays = edit_rays(size)
-    rows = measure("sphere", sphere_grid(160), rays, args.repeats) + measure("fog", fog_grid(96), rays, args.repeats)
-    record = {"description": "the interpolation in the edit's render, variants against the default; see "
-                             "bench/interpolation.py", "machine": f"{os.cpu_count()} CPU cores, torch "
-              f"{torch.__version__}", "rays": size * size, "grids": {"sphere": 160, "fog": 96}, "runs": rows}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(record, indent=1))
-    plot(rows, args.out.with_suffix(".png"))
+    rows = record_scenes(measure, args.repeats, "the interpolation in the edit's render, variants against the default; "
+                         "see bench/interpolation.py", args.out, plot)
     for r in rows:
         print(f"{r['scene']:6s} {r['variant']:18s} {r['samples']:>9d} evaluations  forward {r['forward_ms']:7.1f} ms "
               f"(x{r['forward_ratio_to_default']:.2f})  backward {r['backward_ms']:7.1f} ms "
               f"(x{r['backward_ratio_to_default']:.2f})  total x{r['ms_ratio_to_default']:.2f}  saved "
               f"{r['saved_for_backward_mb']:.0f} MB  rgb diff {r['max_rgb_difference']:.1e}  grad diff "
               f"{r['max_gradient_difference']:.1e}")
-    print(f"wrote {args.out} and {args.out.with_suffix('.png')}")
     return 0
 
 

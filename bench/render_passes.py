@@ -160,26 +160,33 @@ def plot(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+def record_scenes(measure, repeats: int, description: str, out: Path, plot) -> list[dict]:
+    """``measure(scene, grid, rays, repeats)`` on the edit's rays through both scenes (sphere 160³, fog 96³): its rows,
+    saved to ``out`` (JSON) with ``plot``'s figure beside it."""
+    size = EditConfig().render_size
+    rays = edit_rays(size)
+    rows = measure("sphere", sphere_grid(160), rays, repeats) + measure("fog", fog_grid(96), rays, repeats)
+    record = {"description": description, "machine": f"{os.cpu_count()} CPU cores, torch {torch.__version__}",
+              "rays": size * size, "grids": {"sphere": 160, "fog": 96}, "runs": rows}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(record, indent=1))
+    plot(rows, out.with_suffix(".png"))
+    print(f"wrote {out} and {out.with_suffix('.png')}")
+    return rows
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--out", type=Path, default=HERE / "results" / "render_passes.json")
     args = parser.parse_args(argv)
     torch.manual_seed(0)
-    size = EditConfig().render_size
-    rays = edit_rays(size)
-    rows = measure("sphere", sphere_grid(160), rays, args.repeats) + measure("fog", fog_grid(96), rays, args.repeats)
-    record = {"description": "RenderConfig.samples_per_pass against operations, time, memory and output; see "
-                             "bench/render_passes.py", "machine": f"{os.cpu_count()} CPU cores, torch {torch.__version__}",
-              "rays": size * size, "grids": {"sphere": 160, "fog": 96}, "runs": rows}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(record, indent=1))
-    plot(rows, args.out.with_suffix(".png"))
+    rows = record_scenes(measure, args.repeats, "RenderConfig.samples_per_pass against operations, time, memory and "
+                         "output; see bench/render_passes.py", args.out, plot)
     for r in rows:
         print(f"{r['scene']:6s} {r['samples_per_pass']:>9d}  ops {r['operations']:5d} (x{r['operations_ratio_to_reference']:.2f})"
               f"  {r['ms']:8.1f} ms (x{r['ms_ratio_to_reference']:.2f})  peak {r['peak_memory_gb']:.2f} GiB"
               f"  rgb diff {r['max_rgb_difference']:.1e}  grad diff {r['max_gradient_difference']:.1e}")
-    print(f"wrote {args.out} and {args.out.with_suffix('.png')}")
     return 0
 
 
