@@ -1,10 +1,10 @@
 """The trilinear interpolation inside the edit's render, in variants timed as ratios in one run: the default
-(``voxe_core.grid``'s weighted gather: ``F.embedding``, an einsum, and a backward that adds into the grid with one
-``index_add_``) against
+(``voxe_core.grid``'s weighted gather: ``F.embedding``, batched matrix products, and a backward that adds into the
+grid with one ``index_add_``) against
 
 * ``embedding backward``: ``F.embedding``'s own dense backward (what the default replaced: on the CPU one small
   add per index, each thread scanning every index for its rows; on CUDA a sort of the indices, then sums);
-* ``mul-sum forward``: the eight corners weighed by a broadcast multiply and a sum instead of the einsum's batched
+* ``mul-sum forward``: the eight corners weighed by a broadcast multiply and a sum instead of the batched
   (1 × 8) @ (8 × 4) matrix products (slower on this CPU; a GPU's batched GEMM on 2M tiny matrices may not be),
 
 on bench/render_passes.py's two scenes (the edit's 266² rays; an opaque sphere at 160³, fog at 96³), each render
@@ -28,7 +28,7 @@ import argparse
 import statistics
 import sys
 import time
-from contextlib import contextmanager
+from contextlib import nullcontext
 from pathlib import Path
 from unittest import mock
 
@@ -44,14 +44,15 @@ from voxe_core.devices import PeakMemory, synchronize  # noqa: E402
 from voxe_core.edit import EditConfig  # noqa: E402
 from voxe_core.grid import VoxelGrid  # noqa: E402
 
+
 def _mul_sum(weights: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
     """The corners weighed by a broadcast multiply and a sum, instead of batched matrix products."""
     return (weights[..., None] * values).sum(1)
 
 
 def _embedding_gather(table: torch.Tensor, index: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-    """The interpolation as it was: the gathered values through ``F.embedding`` (and its own backward), then an einsum."""
-    return torch.einsum("nk,nkc->nc", weights, F.embedding(index, table))
+    """The gather as it was: the values through ``F.embedding`` and its own backward, weighed as the default weighs."""
+    return grid_module._weigh_corners(weights, F.embedding(index, table))
 
 
 # variant -> (what it replaces, with what); the default replaces nothing
@@ -59,14 +60,9 @@ VARIANTS = {"default": None, "embedding backward": (grid_module._WeightedGather,
             "mul-sum forward": (grid_module, "_weigh_corners", _mul_sum)}
 
 
-@contextmanager
 def variant(name: str):
-    """The renderer's interpolation as the variant ``name`` computes it."""
-    if VARIANTS[name] is None:
-        yield
-        return
-    with mock.patch.object(*VARIANTS[name]):
-        yield
+    """The renderer's interpolation as the variant ``name`` computes it (a context manager)."""
+    return mock.patch.object(*VARIANTS[name]) if VARIANTS[name] else nullcontext()
 
 
 def _saved_bytes(run) -> tuple[object, int]:

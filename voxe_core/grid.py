@@ -52,8 +52,8 @@ def default_density_scale(bbox_min, bbox_max) -> float:
 
 def _weigh_corners(weights: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
     """``Σ_k weights[n, k] · values[n, k]``: (N, K) and (N, K, C) -> (N, C), as N (1 × K) @ (K × C) matrix products
-    (on this CPU a broadcast multiply and sum instead made the edit render's forward 1.20x slower on an object and
-    1.34x on fog; bench/interpolation.py times both, on a device too). ``bmm`` itself: the einsum it was computes
+    (on this CPU a broadcast multiply and sum instead made the edit render's forward 1.42x slower on an object and
+    1.44x on fog; bench/interpolation.py times both, on a device too). ``bmm`` itself: the einsum it was computes
     the same bits through 8 more view operations, 8 more in its backward."""
     return torch.bmm(weights.unsqueeze(1), values).squeeze(1)
 
@@ -61,10 +61,10 @@ def _weigh_corners(weights: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
 class _WeightedGather(torch.autograd.Function):
     """``Σ_k weights[n, k] · table[index[n, k]]``: (M, C) table, (N, K) index and weights -> (N, C).
 
-    The forward is ``F.embedding`` and an einsum, as before. The backward adds into the table with one
+    The forward is ``F.embedding`` and :func:`_weigh_corners`, as before. The backward adds into the table with one
     ``index_add_`` where ``F.embedding``'s dense backward makes one small add per index on the CPU (each thread
     scanning all N·K of them for its rows) and sorts them on CUDA: on this CPU the edit render's backward takes
-    0.63x the time on an object and 0.51x on fog, for the same bits (bench/interpolation.py). On CUDA the atomic
+    0.56x the time on an object and 0.43x on fog, for the same bits (bench/interpolation.py). On CUDA the atomic
     adds run in any order, so the gradient varies at float32 rounding from run to run (as the compositing's
     ``index_add`` already did) unless ``torch.use_deterministic_algorithms`` is on. The weights get their gradient
     too (first and second order, in their own dtype), though the renderer's carry none.

@@ -6,7 +6,7 @@ drawn from 8 random images (their data loader's batches), images downsampled
 8/4/2/1, Adam lr 0.03 decayed ×0.9 per stage and ×0.1 at iteration 400 of each
 stage. ``ReconstructConfig.fast()`` is the budget this project measured on a
 2-core CPU (bench/reconstruction.py's preset-fast: mic 30.74 dB / SSIM 0.975
-in 64 s, 125 CPU s).
+in 27 s, 54 CPU s).
 """
 
 from __future__ import annotations
