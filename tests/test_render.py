@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 import torch.nn.functional as F
+from torch.utils._python_dispatch import TorchDispatchMode
 
 from voxe_core.backbones import load_grid
 from voxe_core.cameras import Cameras, camera_rays, look_at
@@ -243,18 +244,50 @@ def test_the_interpolation_backward_adds_into_the_grid_with_embeddings_bits():
         assert (new - exact).abs().max() < (old - exact).abs().max()
 
 
+class Ops(TorchDispatchMode):
+    """The aten operations dispatched inside it, by name (what a launch-bound device pays for, one by one)."""
+
+    def __init__(self):
+        super().__init__()
+        self.names = []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.names.append(func.__name__)
+        return func(*args, **(kwargs or {}))
+
+
+def test_trilinear_weights_are_the_axis_weights_product_in_few_dispatches():
+    """Each corner weighs (1 − f or f) per axis, multiplied x·y·z: bit for bit in every dtype, for points inside, on
+    the box's faces and clamped from outside; they sum to one, reproduce an affine field, and their derivative in the
+    points is the product rule's. 15 dispatches build a float32 interpolation's corners (26 through a stack and
+    broadcast views of it)."""
+    g = torch.Generator().manual_seed(5)
+    grid = VoxelGrid(7)
+    points = torch.cat([torch.rand(3000, 3, generator=g) * 3.4 - 1.7, torch.tensor([[1.5] * 3, [-1.5] * 3])])
+    for dtype in (torch.float32, torch.float16, torch.bfloat16, torch.float64):
+        index, weights = grid.trilinear_corners(points, dtype)
+        lattice = grid._lattice(points.device)
+        u = torch.minimum(((points - grid.bbox_min) / lattice.extent * lattice.upper).clamp_min(0), lattice.upper)
+        frac = (u - torch.minimum(u.long(), lattice.last_cell)).to(dtype)
+        axis = [(1 - frac[:, i], frac[:, i]) for i in range(3)]
+        expected = torch.stack([axis[0][a] * axis[1][b] * axis[2][c] for a in (0, 1) for b in (0, 1) for c in (0, 1)], 1)
+        assert weights.dtype == dtype and torch.equal(weights, expected)
+        assert (weights >= 0).all() and torch.allclose(weights.double().sum(1), torch.ones(len(points), dtype=torch.float64),
+                                                       atol=2e-2 if dtype.itemsize == 2 else 1e-6)
+    affine = torch.tensor([0.3, -1.2, 2.0])
+    with torch.no_grad():
+        x, y, z = torch.meshgrid(*(torch.linspace(-1.5, 1.5, 7),) * 3, indexing="ij")
+        grid.features[..., 0] = 0.3 * x - 1.2 * y + 2.0 * z + 0.5
+    inside = points.clamp(-1.5, 1.5)
+    assert torch.allclose(grid.interpolate(inside)[:, 0], inside @ affine + 0.5, atol=1e-5)
+    moving = (torch.rand(20, 3, generator=g, dtype=torch.float64) * 2.8 - 1.4).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda p: grid.trilinear_corners(p, torch.float64)[1], (moving,))
+    with Ops() as ops:
+        grid.trilinear_corners(points)
+    assert len(ops.names) == 15
+
+
 def test_the_weighted_gather_backward_scatters_once_and_has_exact_derivatives():
-    from torch.utils._python_dispatch import TorchDispatchMode
-
-    class Ops(TorchDispatchMode):
-        def __init__(self):
-            super().__init__()
-            self.names = []
-
-        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-            self.names.append(func.__name__)
-            return func(*args, **(kwargs or {}))
-
     grid = VoxelGrid(5)
     out = grid.interpolate(torch.rand(300, 3) - 0.5)
     with Ops() as ops:

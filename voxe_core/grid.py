@@ -128,7 +128,8 @@ def ray_box_intersection(
 class _Lattice:
     """A grid's lattice constants on one device (what every interpolation would otherwise rebuild): the box's
     extent (3,), ``resolution − 1`` (3,) as floats and ``resolution − 2`` (3,) as the largest cell index, the flat
-    strides (3,), the 8 corners' flat offsets (8,) and the voxel size (3,)."""
+    strides (3,), the 8 corners' flat offsets (8,), the voxel size (3,), and per corner and axis (8, 3) the sign and
+    constant that make its linear weight from the fractional coordinate f: 1 − f at a low corner, f at a high one."""
 
     extent: torch.Tensor
     upper: torch.Tensor
@@ -136,6 +137,8 @@ class _Lattice:
     strides: torch.Tensor
     corner_offsets: torch.Tensor
     voxel_size: torch.Tensor
+    corner_signs: torch.Tensor
+    corner_lows: torch.Tensor
 
 
 @dataclass
@@ -259,7 +262,8 @@ class VoxelGrid(torch.nn.Module):
             strides = torch.tensor([self._resolution[1] * self._resolution[2], self._resolution[2], 1])
             self._lattices[device] = _Lattice(
                 *(t.to(device) for t in (host_max - host_min, (res - 1).float(), res - 2, strides,
-                                         (_CORNERS * strides).sum(-1), (host_max - host_min) / (res - 1).float())))
+                                         (_CORNERS * strides).sum(-1), (host_max - host_min) / (res - 1).float(),
+                                         2.0 * _CORNERS - 1, 1.0 - _CORNERS)))
         return self._lattices[device]
 
     def like(self, features: torch.Tensor) -> "VoxelGrid":
@@ -315,8 +319,10 @@ class VoxelGrid(torch.nn.Module):
         base = torch.minimum(u.long(), lattice.last_cell)  # u >= 0: truncation is the floor
         frac = (u - base.to(u.dtype)).to(dtype)
         flat_index = (base * lattice.strides).sum(-1, keepdim=True) + lattice.corner_offsets  # (N, 8)
-        w = torch.stack([1 - frac, frac], -1)  # (N, axis, low/high corner)
-        return flat_index, (w[:, 0, :, None, None] * w[:, 1, None, :, None] * w[:, 2, None, None, :]).reshape(-1, 8)
+        # Per corner the product of its three axis weights, 1 − f exactly as a subtraction would round it (f·−1 is
+        # exact): three dispatches where broadcasting views of a stacked (N, 3, 2) took fifteen.
+        axis_weights = torch.addcmul(lattice.corner_lows.to(dtype), frac.unsqueeze(1), lattice.corner_signs.to(dtype))
+        return flat_index, axis_weights.prod(-1)  # (N, 8)
 
     def cell_index(self, points: torch.Tensor) -> torch.Tensor:
         """Integer (…, 3) index of the cell holding each world point, clamped into the grid."""
