@@ -20,7 +20,8 @@ a. ``edit_step``: one SDS editing step split into render / VAE / UNet / backward
 b. ``edit_loop``: >= 500 iterations of the default edit at 160³: ms per step, the projected 8,000-iteration
    minutes;
 c. ``reconstruction``: mic with the ``fast`` and ``paper`` presets on the device: seconds, test PSNR / SSIM
-   (scored as bench/reconstruction.py scores them, at its 200 px; the 2026-12-04 record trained at 266 px);
+   (scored as bench/reconstruction.py scores them, at its 200 px; the 2026-12-04 record trained at 266 px), and
+   ``fast`` again with the early-stop density pass object fits dropped (row ``variant``, ``seconds_over_default``);
 d. ``refinement``: the attention pass over the views, the attention-grid fit and the graph cut at 160³;
 e. every run carries ``peak_memory_gb`` (the stage's ``torch.cuda.max_memory_allocated``, GiB);
 f. ``job``: one local-edit job (reconstruct -> edit -> refine -> export) through the worker's task bodies on an
@@ -59,6 +60,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import os
 import signal
@@ -283,6 +285,8 @@ def edit_loop_run(sd2: Path, profile: Profile) -> dict:
 
 # ---------------------------------------------------------------- (c)
 def reconstruction_runs(profile: Profile, data: Path) -> list[dict]:
+    """Each preset's fit, then ``fast`` again with the early-stop density pass object fits no longer make
+    (``ReconstructConfig.render``): what the pass costs on the device, as a ratio in this run."""
     from voxe_core.data import load_scene
     from voxe_core.metrics import psnr, ssim
     from voxe_core.presets import reconstruct_config, reconstruction_params
@@ -292,9 +296,8 @@ def reconstruction_runs(profile: Profile, data: Path) -> list[dict]:
 
     train = load_scene(data, "train", profile.reconstruction_downsample, profile.max_images)
     test = load_scene(data, "test", profile.reconstruction_downsample, profile.max_images)
-    rows = []
-    for preset, params in profile.reconstruction.items():
-        config = reconstruct_config(reconstruction_params({"reconstruction": params}), 0)
+
+    def fit(name: str, preset: str, config) -> dict:
         reports = []
         synchronize(profile.device)
         start = time.perf_counter()
@@ -305,12 +308,23 @@ def reconstruction_runs(profile: Profile, data: Path) -> list[dict]:
         render = RenderConfig(step_ratio=config.render.step_ratio)
         cameras = test.cameras.to(profile.device)
         images = torch.stack([render_image(grid, cameras, i, render).rgb.cpu() for i in range(len(cameras))])
-        rows.append({"name": f"reconstruction mic {preset}", "kind": "reconstruction", "device": profile.device,
-                     "dtype": "float32", "model": f"ReLU-field grid {config.resolutions[-1]}³", "preset": preset,
-                     "seconds": seconds, "iterations": config.total_iterations,
-                     "rays_per_step": config.rays_per_step, "images_per_step": config.images_per_step,
-                     "psnr": float(psnr(images, test.images).mean()), "ssim": float(ssim(images, test.images).mean()),
-                     **_peaks(reports), "image_size": train.cameras.width})
+        return {"name": name, "kind": "reconstruction", "device": profile.device, "dtype": "float32",
+                "model": f"ReLU-field grid {config.resolutions[-1]}³", "preset": preset, "seconds": seconds,
+                "iterations": config.total_iterations, "rays_per_step": config.rays_per_step,
+                "images_per_step": config.images_per_step, "early_stop": config.render.early_stop,
+                "psnr": float(psnr(images, test.images).mean()), "ssim": float(ssim(images, test.images).mean()),
+                **_peaks(reports), "image_size": train.cameras.width}
+
+    rows = []
+    for preset, params in profile.reconstruction.items():
+        config = reconstruct_config(reconstruction_params({"reconstruction": params}), 0)
+        rows.append(fit(f"reconstruction mic {preset}", preset, config))
+        if preset == "fast":
+            probing = dataclasses.replace(config, render=dataclasses.replace(config.render,
+                                                                             early_stop=RenderConfig.early_stop))
+            variant = fit(f"reconstruction mic {preset}, early-stop pass", preset, probing)
+            rows.append({**variant, "variant": "early-stop pass",
+                         "seconds_over_default": variant["seconds"] / rows[-1]["seconds"]})
     return rows
 
 

@@ -374,13 +374,12 @@ def _other_ground_truth(run: dict) -> str:
     return f"{other}: {run[f'psnr_{other}_gt']} / {fmt(run.get(f'ssim_{other}_gt'), 4)}"
 
 
-def images_per_step_tradeoffs(runs: list[dict]) -> list[str]:
-    """One bullet pairing each recipe drawn from every image with its twin drawn from 8 (``X`` / ``X-8-images``,
-    ``X-all-images`` / ``X``), each side the mean over its seeds; seconds only where every row of a pair came from
-    one invocation of the bench (its ``bench_run``), as the shared machine's load changes between invocations."""
+def twin_means(runs: list[dict], pairs_of, title: str) -> list[str]:
+    """One bullet setting each recipe beside its twin, each side the mean over its seeds: ``pairs_of(families)``
+    gives (before label, after label, name); seconds only where every row of a pair came from one invocation of the
+    bench (its ``bench_run``), as the shared machine's load changes between invocations."""
     families = seed_families(runs)
-    pairs = [(name, f"{name}-8-images", name) for name in families if f"{name}-8-images" in families]
-    pairs += [(f"{name}-all-images", name, name) for name in families if f"{name}-all-images" in families]
+    pairs = pairs_of(families)
     if not pairs:
         return []
 
@@ -388,16 +387,33 @@ def images_per_step_tradeoffs(runs: list[dict]) -> list[str]:
         return sum(r[key] for r in rows) / len(rows)
 
     parts = []
-    for every, eight, name in sorted(pairs, key=lambda p: p[2]):
-        a, b = families[every], families[eight]
+    for before, after, name in sorted(pairs, key=lambda p: p[2]):
+        a, b = families[before], families[after]
         seeds = f"{len(a)} seed{'s' * (len(a) > 1)}" + ("" if len(a) == len(b) else f" / {len(b)}")
         invocations = {r.get("bench_run") for r in a + b}
         seconds = (f"{mean(a, 'seconds'):.0f} vs {mean(b, 'seconds'):.0f} s"
                    if len(invocations) == 1 and None not in invocations else "timed in different runs")
         parts.append(f"{name} {mean(a, 'psnr'):.2f} → {mean(b, 'psnr'):.2f} dB ({mean(b, 'psnr') - mean(a, 'psnr'):+.2f}; "
                      f"{seeds}; {seconds})")
-    return ["**Rays from every image vs from 8 random images a step** (the same recipe, means over seeds): "
-            + "; ".join(parts) + "."]
+    return [f"**{title}** (the same recipe, means over seeds): " + "; ".join(parts) + "."]
+
+
+def images_per_step_tradeoffs(runs: list[dict]) -> list[str]:
+    """Each recipe drawn from every image beside its twin drawn from 8 (``X`` / ``X-8-images``, ``X-all-images`` /
+    ``X``)."""
+    def pairs_of(families):
+        return ([(name, f"{name}-8-images", name) for name in families if f"{name}-8-images" in families]
+                + [(f"{name}-all-images", name, name) for name in families if f"{name}-all-images" in families])
+
+    return twin_means(runs, pairs_of, "Rays from every image vs from 8 random images a step")
+
+
+def early_stop_tradeoffs(runs: list[dict]) -> list[str]:
+    """Each recipe trained with the early-stop density pass beside its twin without it (``X-early-stop`` / ``X``)."""
+    def pairs_of(families):
+        return [(f"{name}-early-stop", name, name) for name in families if f"{name}-early-stop" in families]
+
+    return twin_means(runs, pairs_of, "The early-stop density pass while training an object, on vs off")
 
 
 def reconstruction_tradeoffs(runs: list[dict]) -> list[str]:
@@ -425,7 +441,7 @@ def reconstruction_tradeoffs(runs: list[dict]) -> list[str]:
                               for r in rs)
             batch = f", {rays:,} rays a step" if rays else ""
             bullets.append(f"**Iteration budget** (reconstruction at {res}³{batch}, seed 0): {steps}.")
-    bullets += images_per_step_tradeoffs(runs)
+    bullets += images_per_step_tradeoffs(runs) + early_stop_tradeoffs(runs)
     for r in runs:
         if not r.get("skipping"):
             continue
@@ -641,7 +657,9 @@ def _minutes(seconds):
 
 
 def _preset_run(runs: list[dict], preset: str) -> dict | None:
-    return next((r for r in runs if r.get("kind") == "reconstruction" and r.get("preset") == preset), None)
+    """The preset's own run (not a variant of it timed beside it)."""
+    return next((r for r in runs if r.get("kind") == "reconstruction" and r.get("preset") == preset
+                 and "variant" not in r), None)
 
 
 def _preset(runs: list[dict], preset: str, key: str):
@@ -727,6 +745,7 @@ def gpu_section(gpu, reconstruction, results: Path, report: Path) -> tuple[list[
                        "largest entries).")
     bullets += render_pass_tradeoffs([r for r in runs if r.get("kind") == "render_passes"])
     bullets += interpolation_tradeoffs([r for r in runs if r.get("kind") == "interpolation"])
+    bullets += reconstruction_variants(runs)
     bullets += step_speedups(runs)
     bullets += step_profile(runs)
     launch = next((r for r in runs if r.get("ms_unet_batch_2") and r.get("ms_unet_batch_8")), None)
@@ -818,6 +837,20 @@ def render_pass_tradeoffs(runs: list[dict]) -> list[str]:
                        f"{mine[0]['samples_per_pass'].bit_length() - 1}: {mine[0]['operations']} operations, "
                        f"{mine[0]['ms']:.0f} ms, {fmt(mine[0].get('peak_memory_gb'), 2)} GiB): {figures}; the render "
                        f"moves by at most {max(r['max_rgb_difference'] for r in mine):.1g}.")
+    return bullets
+
+
+def reconstruction_variants(runs: list[dict]) -> list[str]:
+    """One bullet per reconstruction variant timed beside its preset's own run (bench/gpu.py section c)."""
+    bullets = []
+    for variant in (r for r in runs if r.get("kind") == "reconstruction" and "variant" in r):
+        preset = _preset_run(runs, variant["preset"])
+        if preset is None or preset.get("call") != variant.get("call"):
+            continue
+        bullets.append(f"**{variant['variant'].capitalize()} in `{variant['preset']}`** ({variant['device']}, same "
+                       f"run): {variant['seconds']:.1f} s with it against {preset['seconds']:.1f} s as the preset is "
+                       f"({variant['seconds_over_default']:.2f}×), test PSNR {variant['psnr']:.2f} against "
+                       f"{preset['psnr']:.2f} dB.")
     return bullets
 
 

@@ -43,8 +43,7 @@ def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
     runs = record["runs"][1:]
     assert not [r for r in runs if "error" in r]
     kinds = [r["kind"] for r in runs]
-    assert kinds == ["edit_step"] * len(bench.STEP_VARIANTS) + ["edit", "reconstruction", "reconstruction",
-                                                                  "refinement"] + ["render_passes"] * 8 \
+    assert kinds == ["edit_step"] * len(bench.STEP_VARIANTS) + ["edit"] + ["reconstruction"] * 3 + ["refinement"] + ["render_passes"] * 8 \
         + ["interpolation"] * 6 + ["edit_step"] * 3 + ["step_profile", "job"]  # i: the CPU's default pass size, 2^23, no early stop
     assert record["calls"] == {"6": "g", "7": "the smoke run"} and {r["call"] for r in runs} == {7}
     for run in runs:
@@ -58,6 +57,10 @@ def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
         if run["kind"] == "reconstruction":
             assert run["seconds"] > 0 and 5 < run["psnr"] < 60 and 0 < run["ssim"] <= 1
             assert run["images_per_step"] == {"fast": 0, "paper": 8}[run["preset"]]  # what the row was fitted with
+    fast, probing, paper = (r for r in runs if r["kind"] == "reconstruction")  # fast again with the early-stop pass
+    assert (fast["preset"], probing["preset"], paper["preset"]) == ("fast", "fast", "paper")
+    assert (fast["early_stop"], probing["early_stop"], probing["variant"]) == (0.0, 1e-4, "early-stop pass")
+    assert probing["seconds_over_default"] == pytest.approx(probing["seconds"] / fast["seconds"])
     passes = [r for r in runs if r["kind"] == "render_passes"]
     for scene in ("sphere", "fog"):  # grouping never moves the render; larger passes never dispatch more
         mine = [r for r in passes if r["scene"] == scene]

@@ -204,6 +204,23 @@ def test_images_per_step_pairs_each_recipe_with_its_twin_over_seeds():
     assert "paper 30.50 → 32.00 dB (+1.50; 1 seed; timed in different runs)" in bullet  # two invocations
     assert "unpaired" not in bullet and "recipe-8-images" not in bullet
     assert report.images_per_step_tradeoffs([row("recipe", 29.0)]) == []
+    (bullet,) = report.early_stop_tradeoffs(runs + [row("recipe-early-stop", 29.0, 12.0),
+                                                    row("recipe-early-stop-seed1", 29.2, 12.0)])
+    assert "early-stop density pass" in bullet and "recipe 29.10 → 29.50 dB (+0.40; 2 seeds; 12 vs 10 s)" in bullet
+    assert report.early_stop_tradeoffs(runs) == []
+
+
+def test_a_reconstruction_variant_is_set_against_its_presets_run_of_the_same_call():
+    def fit(seconds, psnr, call=7, **extra):
+        return {"kind": "reconstruction", "preset": "fast", "device": "cuda", "seconds": seconds, "psnr": psnr,
+                "call": call, **extra}
+
+    variant = fit(21.0, 30.61, variant="early-stop pass", seconds_over_default=21.0 / 18.0)
+    (bullet,) = report.reconstruction_variants([fit(18.0, 30.6), variant])
+    assert bullet == ("**Early-stop pass in `fast`** (cuda, same run): 21.0 s with it against 18.0 s as the preset is "
+                      "(1.17×), test PSNR 30.61 against 30.60 dB.")
+    assert report.reconstruction_variants([fit(18.0, 30.6, call=4), variant]) == []  # another call's run
+    assert report._preset_run([variant, fit(18.0, 30.6)], "fast")["seconds"] == 18.0  # the preset's own run
 
 
 def test_seed_means_merge_each_recipes_seeds_into_one_point_with_its_range():
