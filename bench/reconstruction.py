@@ -37,10 +37,11 @@ HERE = Path(__file__).resolve().parent
 DATA = HERE.parent.parent / "shared" / "data" / "nerf_synthetic_mic"
 RESULTS = HERE / "results"
 
-# The previous fast recipe: the last iterate, lr ×0.1 for the last 20 % of the final stage, one lr for all features.
-LAST_ITERATE = {"average_from": 1.0, "lr_drop_fraction": 0.8, "color_lr_scale": 1.0}
+# The previous fast recipe: the last iterate, lr ×0.1 for the last 20 % of the final stage, one lr for all features,
+# each step's rays from every image (as these rows were measured; fast() draws from 8 since 2026-12-05).
+LAST_ITERATE = {"average_from": 1.0, "lr_drop_fraction": 0.8, "color_lr_scale": 1.0, "images_per_step": 0}
 # The recipe for the target: the mean of the final stage's second half, colour at half the lr, lr never dropped.
-AVERAGED = {"average_from": 0.5, "color_lr_scale": 0.5}
+AVERAGED = {"average_from": 0.5, "color_lr_scale": 0.5, "images_per_step": 0}
 # SPEC §1's recipe (20→40→80→160 × 500, lr ×0.9 per stage, ×0.1 at 400), each step's rays drawn from every image
 # (ours before) or from 8 drawn at random (the authors' loader, ``ReconstructConfig.images_per_step``'s default).
 AUTHORS_RECIPE = {**LAST_ITERATE, "images_per_step": 0}
@@ -75,12 +76,13 @@ FULL_RUNS = [
     ("preset-paper-all-images", 160, (500, 500, 500, 500), True, {**PRESET_PAPER, "images_per_step": 0, **SKIP_ONLY}),
     ("dense-128", 128, (300, 500, 800), False, LAST_ITERATE),
     ("skip-128", 128, (300, 500, 800), True, LAST_ITERATE),
-    *with_seeds("preset-fast", 128, (300, 500, 1200), True, PRESET_FAST, seeds=tuple(range(6))),
-    # ... with the early-stop density pass it ran before (the render default's threshold): measured, dropped.
-    *with_seeds("preset-fast-early-stop", 128, (300, 500, 1200), True, {**PRESET_FAST, "early_stop": 1e-4, **SKIP_ONLY},
+    *with_seeds("preset-fast", 128, (300, 500, 1200), True, {**PRESET_FAST, **SKIP_ONLY}, seeds=tuple(range(6))),
+    # ... drawing each step's rays from every image (the preset before 2026-12-05: see bench/README.md) ...
+    *with_seeds("preset-fast-all-images", 128, (300, 500, 1200), True, {**PRESET_FAST, "images_per_step": 0},
                 seeds=tuple(range(6))),
-    # ... from 8 images a step, as `paper`: measured, not adopted (within the seeds' spread, see bench/README.md).
-    *with_seeds("preset-fast-8-images", 128, (300, 500, 1200), True, {**PRESET_FAST, "images_per_step": 8, **SKIP_ONLY}),
+    # ... and so with the early-stop density pass it ran before 90eb259 (the render default's threshold).
+    *with_seeds("preset-fast-all-images-early-stop", 128, (300, 500, 1200), True,
+                {**PRESET_FAST, "images_per_step": 0, "early_stop": 1e-4, **SKIP_ONLY}, seeds=tuple(range(6))),
 ]
 # One knob at a time against the last-iterate recipe at 160³ with 1,500 final-stage iterations (--ablations).
 ABLATION_BASE = (160, (300, 500, 1500), True)

@@ -254,13 +254,18 @@ def test_a_crowd_of_points_is_numbered_and_listed_beside_the_axes():
     plt.close(fig)
 
 
-def test_a_gpu_paper_run_from_before_images_per_step_is_marked_stale():
-    cpu = [{"label": "preset-paper", "psnr": 31.0}, {"label": "preset-paper-all-images", "psnr": 30.0}]
-    (blank, note) = report._stale_paper_note({"preset": "paper", "psnr": 29.5}, cpu)
-    assert blank == "" and "(29.50 dB) drew each step's rays from every image" in note
-    assert "31.00 dB against 30.00 dB from every image" in note
-    assert report._stale_paper_note({"preset": "paper", "psnr": 31.0, "images_per_step": 8}, cpu) == []
-    assert report._stale_paper_note(None, cpu) == []
+def test_gpu_fits_from_before_their_presets_recipes_are_marked_stale():
+    cpu = [{"label": "preset-paper", "psnr": 31.0}, {"label": "preset-paper-all-images", "psnr": 30.0},
+           {"label": "preset-fast", "psnr": 30.6}, {"label": "preset-fast-seed1", "psnr": 30.8},
+           {"label": "preset-fast-all-images-early-stop", "psnr": 30.5}]
+    fast, paper = ({"kind": "reconstruction", "preset": name, "psnr": 29.5} for name in ("fast", "paper"))
+    blank, fast_note, blank2, paper_note = report._stale_gpu_fits([fast, {**paper, "images_per_step": 8}], cpu)
+    assert blank == blank2 == "" and "`fast` run (29.50 dB) drew each step's rays from every image" in fast_note
+    assert "30.70 dB against 30.50 dB from every image with the pass (means over 2 / 1 seeds)" in fast_note
+    assert "drew each step's rays from 8 images and trained with the early-stop density pass" in paper_note
+    assert "31.00 dB against 30.00 dB from every image (means over 1 / 1 seeds)" in paper_note
+    recent = [{**run, "images_per_step": 8, "early_stop": 0.0} for run in (fast, paper)]
+    assert report._stale_gpu_fits(recent, cpu) == [] and report._stale_gpu_fits([], cpu) == []
 
 
 def test_report_docstring_examples_hold():

@@ -137,9 +137,9 @@ def test_each_steps_rays_come_from_images_per_step_distinct_images():
                            torch.randint(0, 500, (4000,), generator=seeded()))
     with pytest.raises(ValueError, match="images_per_step must be >= 0"):
         ReconstructConfig(images_per_step=-1)
-    # the paper recipe draws from 8 images as the authors' loader; the CPU budgets from every image (their records)
+    # the paper recipe and fast() draw from 8 images as the authors' loader; a capture's scene() from every image
     assert (ReconstructConfig().images_per_step, ReconstructConfig.fast().images_per_step,
-            ReconstructConfig.scene().images_per_step) == (8, 0, 0)
+            ReconstructConfig.scene().images_per_step) == (8, 8, 0)
 
 
 def test_a_fit_from_two_images_a_step_reduces_error():

@@ -5,8 +5,8 @@ trilinear upsampling between stages, 500 iterations each, 32,768 rays per step
 drawn from 8 random images (their data loader's batches), images downsampled
 8/4/2/1, Adam lr 0.03 decayed ×0.9 per stage and ×0.1 at iteration 400 of each
 stage. ``ReconstructConfig.fast()`` is the budget this project measured on a
-2-core CPU (bench/reconstruction.py's preset-fast: mic 30.74 dB / SSIM 0.975
-in 27 s, 54 CPU s).
+2-core CPU (bench/reconstruction.py's preset-fast: mic 30.73 dB / SSIM 0.975
+in 28 s, 53 CPU s, its six seeds 30.59–30.72 dB).
 """
 
 from __future__ import annotations
@@ -37,9 +37,9 @@ class ReconstructConfig:
     image_downsample: tuple[int, ...] = (8, 4, 2, 1)  # per stage, relative to the given images
     rays_per_step: int = 32768
     # Each step's rays come from this many images drawn at random, as the authors' loader's batches of 8 images;
-    # 0: from all images. The recipe on mic at 200 px (bench/reconstruction.py): 30.21 -> 31.09 dB at 32,768 rays,
-    # 29.53-29.91 -> 30.41-30.46 dB at 4,096 over three seeds. fast() and scene() stay at 0: 8 moved fast() within
-    # its seeds' spread and cost fox 0.7 dB of validation PSNR (bench/real_scenes_priors.py).
+    # 0: from all images. The recipe on mic at 200 px (bench/reconstruction.py): 30.18 -> 31.07 dB at 32,768 rays,
+    # 29.53-29.91 -> 30.41-30.46 dB at 4,096 over three seeds; fast() over six seeds 30.46 -> 30.68 dB, its seeds'
+    # spread 0.68 -> 0.13 dB. scene() stays at 0: 8 cost fox 0.7 dB of validation PSNR (bench/real_scenes_priors.py).
     images_per_step: int = 8
     lr: float = 0.03
     lr_stage_decay: float = 0.9
@@ -51,8 +51,8 @@ class ReconstructConfig:
     bbox_min: tuple[float, float, float] = (-1.5, -1.5, -1.5)
     bbox_max: tuple[float, float, float] = (1.5, 1.5, 1.5)
     # No early-stop density pass: an object fit's rays end a few samples past the surface, so the pass kept 92 % of
-    # mic's samples at 128³ and cost more than it saved (bench/reconstruction.py: preset-fast against
-    # preset-fast-early-stop). scene() keeps it: fox's rays go on through the room, and it dropped half of them.
+    # mic's samples at 128³ and cost more than it saved (bench/reconstruction.py: preset-fast-all-images against
+    # its -early-stop twin). scene() keeps it: fox's rays go on through the room, and it dropped half of them.
     render: RenderConfig = field(default_factory=lambda: RenderConfig(step_ratio=0.8, early_stop=0.0))
     occupancy_every: int = 16  # iterations between occupancy refreshes
     # Polyak averaging: from this fraction of the final stage on, the result is the mean of the
@@ -89,7 +89,7 @@ class ReconstructConfig:
 
     @classmethod
     def fast(cls, **overrides) -> "ReconstructConfig":
-        """The CPU budget of the service: three stages, 4,096 rays per step, the lr never dropped.
+        """The CPU budget of the service: three stages, 4,096 rays per step from 8 images, the lr never dropped.
 
         bench/reconstruction.py's fast-160 adds ``average_from=0.5, color_lr_scale=0.5`` at
         40→80→160 (see bench/README.md); they stay off here because short fits (a few hundred
@@ -100,7 +100,6 @@ class ReconstructConfig:
             iterations=(300, 500, 1200),
             image_downsample=(4, 2, 1),
             rays_per_step=4096,
-            images_per_step=0,
             lr_drop_iteration=1_000_000,
         )
         base.update(overrides)

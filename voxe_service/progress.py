@@ -2,17 +2,18 @@
 
 Each stage's cost is its units of work (iterations, rendered views) times seconds per unit measured
 by the benchmarks in ``bench/results`` (2 CPU cores, torch 2.13 CPU), the three records below re-run in one sitting (at
-2e73a74): only their ratios matter, so figures from different sittings would misweigh the stages:
+a8fc17f, the fit minutes after the others): only their ratios matter, so figures from different sittings would
+misweigh the stages:
 
-* reconstruct: 27.42 s / 2,000 iterations (``reconstruction.json``, preset-fast on mic: ``ReconstructConfig.fast()``,
+* reconstruct: 27.47 s / 2,000 iterations (``reconstruction.json``, preset-fast on mic: ``ReconstructConfig.fast()``,
   the default fit);
-* edit: 1.676 s per iteration (``edit_step.json``, the SD2-base-shaped UNet at 64 px: the real model's
+* edit: 1.888 s per iteration (``edit_step.json``, the SD2-base-shaped UNet at 64 px: the real model's
   cost, not the smoke-test one's);
-* refine: 1.35 s per attention pass (``edit_step.json``'s SD2-base-shaped run at 64 px: render + VAE + UNet
+* refine: 1.54 s per attention pass (``edit_step.json``'s SD2-base-shaped run at 64 px: render + VAE + UNet
   forward, no backward; the SD-1.4-shaped attention UNet is of its size): one per view, and one more per fitting
   step from the back-projection start (each draws a fresh view, ``RefineConfig.fit_views``); the paper's fit from a
-  constant (``lift_start`` constant) reuses the views' maps: 0.037 s per step (``segmentation.json``, runs[0]:
-  14.8 s / 400 fixed-view steps at 96 px, 4,096 rays per step). The back-projection and the cut are small beside them;
+  constant (``lift_start`` constant) reuses the views' maps: 0.030 s per step (``segmentation.json``, runs[0]:
+  12.2 s / 400 fixed-view steps at 96 px, 4,096 rays per step). The back-projection and the cut are small beside them;
 * export: 0.093 s per rendered view (``reconstruction.json``, ``render_seconds_per_view`` at 200 px).
 
 An edit is weighed by its job's ``iterations`` until G_i's kind is known, then by the count its schedule runs (a
@@ -27,9 +28,9 @@ Examples:
     >>> weights = stage_costs(mode="global", params={"iterations": 100, "export": {"views": 0,
     ...                       "turntable_frames": 10, "mesh": False}}, reconstruction_units=1800)
     >>> [(stage, round(seconds, 2)) for stage, seconds in weights]
-    [('reconstruct', 24.68), ('edit', 167.6), ('export', 0.93)]
+    [('reconstruct', 24.72), ('edit', 188.75), ('export', 0.93)]
     >>> dict(stage_costs(mode="local", params={}, reconstruction_units=1))["refine"]  # 32 views, 0 fitting steps
-    43.136
+    49.2672
 """
 
 from __future__ import annotations
@@ -38,10 +39,10 @@ from voxe_core import constants as paper
 from voxe_core.presets import ExportConfig
 
 SECONDS_PER_UNIT = {
-    "reconstruct": 27.42 / 2000,
-    "edit": 1.676,
-    "refine": (170.8 + 141.0 + 1036.2) / 1000,  # an attention pass
-    "refine_fixed_step": 14.803 / 400,  # a fitting step on the views' maps
+    "reconstruct": 27.47 / 2000,
+    "edit": 1.8875,
+    "refine": (170.4 + 138.8 + 1230.4) / 1000,  # an attention pass
+    "refine_fixed_step": 12.198 / 400,  # a fitting step on the views' maps
     "export": 0.093,
     "evaluate": 0.093,  # ring renders dominate an evaluation
 }
