@@ -53,6 +53,7 @@ def scene_grids(args) -> dict:
         config = ReconstructConfig.fast(resolutions=(args.resolution // 3, args.resolution // 3 * 2, args.resolution),
                                         iterations=iterations)
         backbone, cameras, initial = prepare_backbone("auto", scene.alphas, scene.cameras, config.resolutions[0])
+        config = config.for_backbone(backbone)
         t0 = time.perf_counter()
         grids[name] = reconstruct(scene.images, cameras, config, initial_grid=initial)
         print(f"{name}: {backbone} grid fitted in {time.perf_counter() - t0:.0f} s", flush=True)

@@ -79,6 +79,7 @@ def fit(images: torch.Tensor, cameras: Cameras, resolution: int, path: Path, ini
         return load_grid(path)
     config = ReconstructConfig.fast(resolutions=(resolution // 2, resolution), iterations=FIT_ITERATIONS,
                                     image_downsample=(2, 1), rays_per_step=2048)
+    config = config.for_backbone("relu_field" if initial is None else "scene")  # a capture starts from a SceneGrid
     t0 = time.perf_counter()
     grid = reconstruct(images, cameras, config, initial_grid=initial)
     print(f"fitted {path.name} in {time.perf_counter() - t0:.0f} s", flush=True)

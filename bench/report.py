@@ -683,11 +683,14 @@ def _stale_gpu_fits(gpu_runs: list[dict], cpu_runs: list[dict]) -> list[str]:
         if run is None or "early_stop" in run:
             continue
         drew = f"{run['images_per_step']} images" if run.get("images_per_step") else "every image"
+        # The CPU's twin is the recipe the run had only where it drew from every image.
+        names = (now, before) if not run.get("images_per_step") else (now,)
         measured = ""
-        if families.get(now) and families.get(before):
-            means = [sum(r["psnr"] for r in families[name]) / len(families[name]) for name in (now, before)]
-            measured = (f" On the CPU the preset as it is gets {means[0]:.2f} dB against {means[1]:.2f} dB {how} "
-                        f"(means over {len(families[now])} / {len(families[before])} seeds).")
+        if all(families.get(name) for name in names):
+            means = [sum(r["psnr"] for r in families[name]) / len(families[name]) for name in names]
+            seeds = " / ".join(str(len(families[name])) for name in names)
+            against = f" against {means[1]:.2f} dB {how}" if len(means) > 1 else ""
+            measured = f" On the CPU the preset as it is gets {means[0]:.2f} dB{against} (means over {seeds} seeds)."
         lines.append(f"The GPU's `{preset}` run ({run['psnr']:.2f} dB) drew each step's rays from {drew} and trained "
                      "with the early-stop density pass: it predates the preset's recipe (`ReconstructConfig`: 8 images "
                      f"a step, no pass while training an object) and is rerun at the next device call.{measured}")

@@ -263,7 +263,9 @@ def test_gpu_fits_from_before_their_presets_recipes_are_marked_stale():
     assert blank == blank2 == "" and "`fast` run (29.50 dB) drew each step's rays from every image" in fast_note
     assert "30.70 dB against 30.50 dB from every image with the pass (means over 2 / 1 seeds)" in fast_note
     assert "drew each step's rays from 8 images and trained with the early-stop density pass" in paper_note
-    assert "31.00 dB against 30.00 dB from every image (means over 1 / 1 seeds)" in paper_note
+    assert "gets 31.00 dB (means over 1 seeds)." in paper_note and "against" not in paper_note  # not its recipe
+    (_, every_image) = report._stale_gpu_fits([paper], cpu)
+    assert "31.00 dB against 30.00 dB from every image (means over 1 / 1 seeds)" in every_image
     recent = [{**run, "images_per_step": 8, "early_stop": 0.0} for run in (fast, paper)]
     assert report._stale_gpu_fits(recent, cpu) == [] and report._stale_gpu_fits([], cpu) == []
 

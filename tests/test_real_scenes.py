@@ -350,7 +350,9 @@ def test_scene_fits_get_the_scene_preset_by_default_and_their_key_follows_it(mon
         assert reconstruct_config(params, backbone="scene") == ReconstructConfig.scene()
         assert reconstruct_config(params, backbone="relu_field") == ReconstructConfig.fast()
     named = reconstruction_params({"reconstruction": {"preset": "fast"}})
-    assert reconstruct_config(named, backbone="scene") == ReconstructConfig.fast()
+    # ... a named preset is that budget, drawn and rendered as a capture needs (the early-stop pass, every image)
+    assert reconstruct_config(named, backbone="scene") == ReconstructConfig.fast().for_backbone("scene")
+    assert ReconstructConfig.fast().for_backbone("scene") != ReconstructConfig.fast()
     keys = {name: reconstruction_key(reconstruction_params({"reconstruction": {"backbone": name}}))
             for name in ("auto", "scene", "relu_field")}
     named_key = reconstruction_key(named)

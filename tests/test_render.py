@@ -257,10 +257,10 @@ class Ops(TorchDispatchMode):
 
 
 def test_trilinear_weights_are_the_axis_weights_product_in_few_dispatches():
-    """Each corner weighs (1 − f or f) per axis, multiplied x·y·z: bit for bit in every dtype, for points inside, on
-    the box's faces and clamped from outside; they sum to one, reproduce an affine field, and their derivative in the
-    points is the product rule's. 15 dispatches build a float32 interpolation's corners (26 through a stack and
-    broadcast views of it)."""
+    """Each corner weighs (1 − f or f) per axis, multiplied x·y·z: on the CPU bit for bit in every dtype, for points
+    inside, on the box's faces and clamped from outside; they sum to one, reproduce an affine field, and their
+    derivative in the points is the product rule's. 15 dispatches build a float32 interpolation's corners (26 through
+    a stack and broadcast views of it)."""
     g = torch.Generator().manual_seed(5)
     grid = VoxelGrid(7)
     points = torch.cat([torch.rand(3000, 3, generator=g) * 3.4 - 1.7, torch.tensor([[1.5] * 3, [-1.5] * 3])])

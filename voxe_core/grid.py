@@ -320,7 +320,9 @@ class VoxelGrid(torch.nn.Module):
         frac = (u - base.to(u.dtype)).to(dtype)
         flat_index = (base * lattice.strides).sum(-1, keepdim=True) + lattice.corner_offsets  # (N, 8)
         # Per corner the product of its three axis weights, 1 − f exactly as a subtraction would round it (f·−1 is
-        # exact): three dispatches where broadcasting views of a stacked (N, 3, 2) took fifteen.
+        # exact): three dispatches where broadcasting views of a stacked (N, 3, 2) took fifteen, for an (N, 8, 3)
+        # transient. The same bits on the CPU; CUDA's product may pair the factors in another order (and accumulates
+        # half precision in float32), which moves a weight by float rounding at most.
         axis_weights = torch.addcmul(lattice.corner_lows.to(dtype), frac.unsqueeze(1), lattice.corner_signs.to(dtype))
         return flat_index, axis_weights.prod(-1)  # (N, 8)
 

@@ -180,7 +180,7 @@ def reconstruct_config(rec_params: dict, checkpoint_every: int = 0, backbone: st
         overrides["iterations"] = tuple([*config.iterations[:-1], *iterations] if len(iterations) == 1 else iterations)
     if rec_params.get("rays_per_step") is not None:
         overrides["rays_per_step"] = int(rec_params["rays_per_step"])
-    return dataclasses.replace(config, **overrides)
+    return dataclasses.replace(config, **overrides).for_backbone(backbone)
 
 
 class FitSetup(NamedTuple):

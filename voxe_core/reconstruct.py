@@ -5,13 +5,13 @@ trilinear upsampling between stages, 500 iterations each, 32,768 rays per step
 drawn from 8 random images (their data loader's batches), images downsampled
 8/4/2/1, Adam lr 0.03 decayed ×0.9 per stage and ×0.1 at iteration 400 of each
 stage. ``ReconstructConfig.fast()`` is the budget this project measured on a
-2-core CPU (bench/reconstruction.py's preset-fast: mic 30.73 dB / SSIM 0.975
-in 28 s, 53 CPU s, its six seeds 30.59–30.72 dB).
+2-core CPU (bench/reconstruction.py's preset-fast: mic 30.59 dB / SSIM 0.974
+in 27 s, 54 CPU s, its six seeds 30.59–30.72 dB).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -39,7 +39,7 @@ class ReconstructConfig:
     # Each step's rays come from this many images drawn at random, as the authors' loader's batches of 8 images;
     # 0: from all images. The recipe on mic at 200 px (bench/reconstruction.py): 30.18 -> 31.07 dB at 32,768 rays,
     # 29.53-29.91 -> 30.41-30.46 dB at 4,096 over three seeds; fast() over six seeds 30.46 -> 30.68 dB, its seeds'
-    # spread 0.68 -> 0.13 dB. scene() stays at 0: 8 cost fox 0.7 dB of validation PSNR (bench/real_scenes_priors.py).
+    # spread 0.69 -> 0.13 dB. scene() stays at 0: 8 cost fox 0.7 dB of validation PSNR (bench/real_scenes_priors.py).
     images_per_step: int = 8
     lr: float = 0.03
     lr_stage_decay: float = 0.9
@@ -133,6 +133,23 @@ class ReconstructConfig:
         )
         base.update(overrides)
         return cls(**base)
+
+    def for_backbone(self, backbone: str) -> "ReconstructConfig":
+        """This recipe drawn and rendered as a fit of a ``backbone`` grid needs: a capture's ("scene") rays go on
+        through the room, so it keeps ``scene()``'s early-stop pass (half of fox's samples dropped) and every-image
+        draw (8 images cost fox 0.7 dB) whichever budget it runs; an object's recipe is left as it is.
+
+        Examples:
+            >>> fast = ReconstructConfig.fast()
+            >>> capture = fast.for_backbone("scene")
+            >>> (fast.images_per_step, fast.render.early_stop), (capture.images_per_step, capture.render.early_stop)
+            ((8, 0.0), (0, 0.0001))
+        """
+        if backbone != "scene":
+            return self
+        capture = ReconstructConfig.scene()
+        return replace(self, images_per_step=capture.images_per_step,
+                       render=replace(self.render, early_stop=capture.render.early_stop))
 
     @property
     def total_iterations(self) -> int:
