@@ -196,8 +196,7 @@ def bench_config(args, checkpoint_every: int = 0):
 
     return ReconstructConfig.fast(resolutions=(args.resolution // 2, args.resolution), iterations=tuple(args.iterations),
                                   image_downsample=(2, 1), rays_per_step=args.rays, seed=args.seed,
-                                  checkpoint_every=checkpoint_every, images_per_step=0,
-                                  render=ReconstructConfig.scene().render)
+                                  checkpoint_every=checkpoint_every).for_backbone("scene")
 
 
 def step_cost(args) -> dict:

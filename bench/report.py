@@ -841,12 +841,18 @@ def step_profile(runs: list[dict]) -> list[str]:
             f"{top('top_kernels')}. Largest host self times: {top('top_host_operations')}."]
 
 
+def by_scene_and_device(runs: list[dict]):
+    """(scene, device, its rows) for each scene and device of a render bench's rows, in first-seen order (rows without
+    a device were measured on the CPU)."""
+    for scene, device in dict.fromkeys((r["scene"], r.get("device", "cpu")) for r in runs):
+        yield scene, device, [r for r in runs if r["scene"] == scene and r.get("device", "cpu") == device]
+
+
 def render_pass_tradeoffs(runs: list[dict]) -> list[str]:
     """One bullet per scene and device of bench/render_passes.py's rows: each pass size against the CPU's default."""
     bullets = []
-    for scene, device in dict.fromkeys((r["scene"], r.get("device", "cpu")) for r in runs):
-        mine = sorted((r for r in runs if r["scene"] == scene and r.get("device", "cpu") == device),
-                      key=lambda r: r["samples_per_pass"])
+    for scene, device, mine in by_scene_and_device(runs):
+        mine = sorted(mine, key=lambda r: r["samples_per_pass"])
         figures = "; ".join(
             f"2^{r['samples_per_pass'].bit_length() - 1}: {r['operations_ratio_to_reference']:.2f}× the operations, "
             f"{r['ms_ratio_to_reference']:.2f}× the time, {fmt(r.get('peak_memory_gb'), 2)} GiB" for r in mine[1:])
@@ -874,8 +880,7 @@ def reconstruction_variants(runs: list[dict]) -> list[str]:
 def interpolation_tradeoffs(runs: list[dict]) -> list[str]:
     """One bullet per scene and device of bench/interpolation.py's rows: each variant against the default."""
     bullets = []
-    for scene, device in dict.fromkeys((r["scene"], r.get("device", "cpu")) for r in runs):
-        mine = [r for r in runs if r["scene"] == scene and r.get("device", "cpu") == device]
+    for scene, device, mine in by_scene_and_device(runs):
         default = next((r for r in mine if r["variant"] == "default"), None)
         if default is None:
             continue
