@@ -324,7 +324,8 @@ def test_camera_inside_the_box_and_non_finite_rays():
 
 def test_one_slab_test_of_two_boxes_is_two_slab_tests():
     """The sampler intersects the grid's box and the occupied cells' box in one call: the same bits as two calls,
-    degenerate rays included (axis-parallel, inside, non-finite, zero direction, missing)."""
+    degenerate rays included (axis-parallel, inside, non-finite, zero direction, missing), in 26 dispatches however
+    many boxes (32 before both slabs' ends went through one product and one ``aminmax``)."""
     g = torch.Generator().manual_seed(0)
     o = torch.cat([torch.randn(64, 3, generator=g) * 3, torch.tensor(
         [[0.0, 0, 0], [float("nan"), 0, 0], [0.0, 0, -3], [0.0, 0, -3], [5.0, 5, 5]])])
@@ -336,6 +337,12 @@ def test_one_slab_test_of_two_boxes_is_two_slab_tests():
         one_near, one_far = ray_box_intersection(o, d, boxes[0][b], boxes[1][b])
         assert torch.equal(near[b], one_near) and torch.equal(far[b], one_far)
     assert (far[:, 64:] <= near[:, 64:])[:, [1, 3, 4]].all()  # non-finite, no direction, missing: no segment
+    signed_zero = torch.where(d == 0, -0.0, d)  # a zero component's sign says nothing about the ray
+    assert all(torch.equal(a, b) for a, b in zip(ray_box_intersection(o, signed_zero, *boxes), (near, far)))
+    for box in (boxes, (boxes[0][0], boxes[1][0])):
+        with Ops() as ops:
+            ray_box_intersection(o, d, *box)
+        assert len(ops.names) == 26
 
 
 def test_the_slab_test_computes_in_the_rays_dtype():

@@ -110,12 +110,12 @@ def ray_box_intersection(
         ([2.0], [4.0])
     """
     magnitude = directions.abs()
-    tiny = torch.full_like(directions, 1e-12)  # in the rays' dtype (two Python scalars would give the default's)
-    safe = torch.where(magnitude < 1e-12, torch.where(directions < 0, -tiny, tiny), directions)
-    inv = safe.reciprocal()
-    t0, t1 = (box_min[..., None, :] - origins) * inv, (box_max[..., None, :] - origins) * inv
-    t_near = torch.minimum(t0, t1).amax(-1).clamp_min(0.0)  # in [0, inf] or NaN
-    t_far = torch.maximum(t0, t1).amin(-1)
+    # |d| at least 1e-12 in the rays' dtype, with d's sign (+0.0 for -0.0): 5 dispatches where two nested wheres took 8.
+    inv = torch.copysign(magnitude.clamp_min(1e-12), directions + 0.0).reciprocal()
+    # Both slabs' ends in one product, (..., 2, N, 3), and their order in one reduction.
+    entry, exit_ = torch.aminmax((torch.stack([box_min, box_max], -2).unsqueeze(-2) - origins) * inv, dim=-3)
+    t_near = entry.amax(-1).clamp_min(0.0)  # in [0, inf] or NaN
+    t_far = exit_.amin(-1)
     # Finite ends imply a finite origin (an infinite or NaN coordinate makes one end infinite or NaN), not a finite
     # direction: an infinite component only zeroes its slab's reciprocal. No direction is no ray either (it would
     # span ~1e12 units from inside). NaN fails every comparison.
