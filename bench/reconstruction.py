@@ -37,9 +37,10 @@ HERE = Path(__file__).resolve().parent
 DATA = HERE.parent.parent / "shared" / "data" / "nerf_synthetic_mic"
 RESULTS = HERE / "results"
 
-# As the rows below were measured: each step's rays from every image and the early-stop density pass while training
-# (fast() draws from 8 since 2026-12-05 and object fits go without the pass since 90eb259).
-MEASURED_AS = {"images_per_step": 0, "early_stop": 1e-4}
+# As the rows below were measured: 4,096 rays a step at lr 0.03, each step's rays from every image and the early-stop
+# density pass while training (fast() takes 8,192 at lr 0.04 and draws from 8 since 2026-12-05, and object fits go
+# without the pass since 90eb259).
+MEASURED_AS = {"rays_per_step": 4096, "lr": 0.03, "images_per_step": 0, "early_stop": 1e-4}
 # The previous fast recipe: the last iterate, lr ×0.1 for the last 20 % of the final stage, one lr for all features.
 LAST_ITERATE = {"average_from": 1.0, "lr_drop_fraction": 0.8, "color_lr_scale": 1.0, **MEASURED_AS}
 # The recipe for the target: the mean of the final stage's second half, colour at half the lr, lr never dropped.
@@ -50,8 +51,12 @@ AUTHORS_RECIPE = LAST_ITERATE
 AUTHORS_RECIPE_8_IMAGES = {**LAST_ITERATE, "images_per_step": 8}
 # ReconstructConfig() unchanged (the `paper` preset): the recipe at 32,768 rays from 8 images a step, no early-stop pass.
 PRESET_PAPER = {**AUTHORS_RECIPE_8_IMAGES, "rays_per_step": 32768, "early_stop": 0.0}
-# ReconstructConfig.fast() as it is: what `voxe reconstruct` and jobs fit an object with by default.
+# ReconstructConfig.fast() as it is: what `voxe reconstruct` and jobs fit an object with by default ...
 PRESET_FAST = {"resolutions": (40, 80, 128)}
+PRESET_FAST_ITERATIONS = (150, 250, 600)
+# ... and as it was before 2026-12-05's second change: twice the steps of half the rays, at lr 0.03.
+PRESET_FAST_4096_RAYS = {**PRESET_FAST, "rays_per_step": 4096, "lr": 0.03}
+PRESET_FAST_4096_RAYS_ITERATIONS = (300, 500, 1200)
 # Rows added to compare recipes score the renders that skip empty space only (the dense render compares nothing new).
 SKIP_ONLY = {"dense_render": False}
 
@@ -78,13 +83,16 @@ FULL_RUNS = [
     ("preset-paper-all-images", 160, (500, 500, 500, 500), True, {**PRESET_PAPER, "images_per_step": 0, **SKIP_ONLY}),
     ("dense-128", 128, (300, 500, 800), False, LAST_ITERATE),
     ("skip-128", 128, (300, 500, 800), True, LAST_ITERATE),
-    *with_seeds("preset-fast", 128, (300, 500, 1200), True, {**PRESET_FAST, **SKIP_ONLY}, seeds=tuple(range(6))),
-    # ... drawing each step's rays from every image (the preset before 2026-12-05: see bench/README.md) ...
-    *with_seeds("preset-fast-all-images", 128, (300, 500, 1200), True, {**PRESET_FAST, "images_per_step": 0},
-                seeds=tuple(range(6))),
+    *with_seeds("preset-fast", 128, PRESET_FAST_ITERATIONS, True, {**PRESET_FAST, **SKIP_ONLY}, seeds=tuple(range(6))),
+    # The preset before it took 8,192 rays a step ...
+    *with_seeds("preset-fast-4096-rays", 128, PRESET_FAST_4096_RAYS_ITERATIONS, True,
+                {**PRESET_FAST_4096_RAYS, **SKIP_ONLY}, seeds=tuple(range(6))),
+    # ... drawing each step's rays from every image (before it drew from 8: see bench/README.md) ...
+    *with_seeds("preset-fast-4096-rays-all-images", 128, PRESET_FAST_4096_RAYS_ITERATIONS, True,
+                {**PRESET_FAST_4096_RAYS, "images_per_step": 0}, seeds=tuple(range(6))),
     # ... and so with the early-stop density pass it ran before 90eb259 (the render default's threshold).
-    *with_seeds("preset-fast-all-images-early-stop", 128, (300, 500, 1200), True,
-                {**PRESET_FAST, "images_per_step": 0, "early_stop": 1e-4, **SKIP_ONLY}, seeds=tuple(range(6))),
+    *with_seeds("preset-fast-4096-rays-all-images-early-stop", 128, PRESET_FAST_4096_RAYS_ITERATIONS, True,
+                {**PRESET_FAST_4096_RAYS, "images_per_step": 0, "early_stop": 1e-4, **SKIP_ONLY}, seeds=tuple(range(6))),
 ]
 # One knob at a time against the last-iterate recipe at 160³ with 1,500 final-stage iterations (--ablations).
 ABLATION_BASE = (160, (300, 500, 1500), True)

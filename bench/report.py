@@ -398,22 +398,25 @@ def twin_means(runs: list[dict], pairs_of, title: str) -> list[str]:
     return [f"**{title}** (the same recipe, means over seeds): " + "; ".join(parts) + "."]
 
 
-def images_per_step_tradeoffs(runs: list[dict]) -> list[str]:
-    """Each recipe drawn from every image beside its twin drawn from 8 (``X`` / ``X-8-images``, ``X-all-images`` /
-    ``X``)."""
-    def pairs_of(families):
-        return ([(name, f"{name}-8-images", name) for name in families if f"{name}-8-images" in families]
-                + [(f"{name}-all-images", name, name) for name in families if f"{name}-all-images" in families])
+# Recipes that differ in one knob, as label suffixes of one recipe ``X`` (before, after), and what the bullet compares.
+RECIPE_TWINS = (
+    ("Rays from every image vs from 8 random images a step", (("", "-8-images"), ("-all-images", ""))),
+    ("The early-stop density pass while training an object, on vs off", (("-early-stop", ""),)),
+    ("2,000 steps of 4,096 rays at lr 0.03 vs 1,000 of 8,192 at lr 0.04 (the same samples in half the steps)",
+     (("-4096-rays", ""),)),
+)
 
-    return twin_means(runs, pairs_of, "Rays from every image vs from 8 random images a step")
 
+def recipe_twin_tradeoffs(runs: list[dict]) -> list[str]:
+    """One bullet per knob of ``RECIPE_TWINS``: each recipe whose twin was measured too (means over seeds)."""
+    bullets = []
+    for title, suffixes in RECIPE_TWINS:
+        def pairs_of(families, suffixes=suffixes):
+            return [(name + before, name + after, name) for before, after in suffixes for name in families
+                    if name + before in families and name + after in families]
 
-def early_stop_tradeoffs(runs: list[dict]) -> list[str]:
-    """Each recipe trained with the early-stop density pass beside its twin without it (``X-early-stop`` / ``X``)."""
-    def pairs_of(families):
-        return [(f"{name}-early-stop", name, name) for name in families if f"{name}-early-stop" in families]
-
-    return twin_means(runs, pairs_of, "The early-stop density pass while training an object, on vs off")
+        bullets += twin_means(runs, pairs_of, title)
+    return bullets
 
 
 def reconstruction_tradeoffs(runs: list[dict]) -> list[str]:
@@ -441,7 +444,7 @@ def reconstruction_tradeoffs(runs: list[dict]) -> list[str]:
                               for r in rs)
             batch = f", {rays:,} rays a step" if rays else ""
             bullets.append(f"**Iteration budget** (reconstruction at {res}³{batch}, seed 0): {steps}.")
-    bullets += images_per_step_tradeoffs(runs) + early_stop_tradeoffs(runs)
+    bullets += recipe_twin_tradeoffs(runs)
     for r in runs:
         if not r.get("skipping"):
             continue
@@ -666,34 +669,48 @@ def _preset(runs: list[dict], preset: str, key: str):
     return (_preset_run(runs, preset) or {}).get(key)
 
 
-# Per preset: the CPU rows of the recipe as it is, and of the recipe a GPU fit recorded before 2026-12-05 ran
-# (rays from every image, the early-stop density pass while training), with how that recipe differs.
-STALE_FIT_TWINS = {"fast": ("preset-fast", "preset-fast-all-images-early-stop", "from every image with the pass"),
-                   "paper": ("preset-paper", "preset-paper-all-images", "from every image")}
+RECIPE_KEYS = ("rays_per_step", "iterations", "images_per_step", "early_stop")
+"""What a fit's row records of its recipe (bench/reconstruction.py's rows, bench/gpu.py's section c)."""
+# What bench/gpu.py's preset fits ran before their rows recorded it: 2,000 steps from every image with the early-stop
+# density pass while training (the rows record their iterations).
+UNRECORDED_RECIPES = {"fast": {"rays_per_step": 4096, "images_per_step": 0, "early_stop": 1e-4},
+                      "paper": {"rays_per_step": 32768, "images_per_step": 0, "early_stop": 1e-4}}
+# Per preset: the CPU's rows of the preset as it is, and of the recipe the GPU's fits ran before they recorded it
+# (or the nearest the CPU has measured: the paper's from every image is measured without the pass).
+STALE_FIT_TWINS = {"fast": ("preset-fast", "preset-fast-4096-rays-all-images-early-stop"),
+                   "paper": ("preset-paper", "preset-paper-all-images")}
+
+
+def _recipe(run: dict, preset: str) -> dict:
+    return {key: run.get(key, UNRECORDED_RECIPES[preset].get(key)) for key in RECIPE_KEYS}
+
+
+def describe_recipe(recipe: dict) -> str:
+    """A fit's recipe in words, e.g. "1,000 steps of 8,192 rays from 8 images, no early-stop pass"."""
+    drawn = f"from {recipe['images_per_step']} images" if recipe["images_per_step"] else "from every image"
+    probed = "with the early-stop pass" if recipe["early_stop"] else "no early-stop pass"
+    return f"{recipe['iterations']:,} steps of {recipe['rays_per_step']:,} rays {drawn}, {probed}"
 
 
 def _stale_gpu_fits(gpu_runs: list[dict], cpu_runs: list[dict]) -> list[str]:
-    """A line under the targets for each GPU preset fit that predates its preset's recipe (its row records no
-    ``early_stop``): it drew each step's rays from every image unless it records ``images_per_step``, and trained
-    with the early-stop density pass; the CPU's rows of both recipes (means over seeds) say what its rerun moves."""
+    """A line under the targets for each GPU preset fit whose recipe is not its preset's as the CPU's rows of it ran
+    (a row from before fits recorded theirs ran ``UNRECORDED_RECIPES``'), with the CPU's figures of both recipes
+    (means over seeds): what its rerun moves."""
     families = seed_families(cpu_runs)
     lines = []
-    for preset, (now, before, how) in STALE_FIT_TWINS.items():
+    for preset, (now, before) in STALE_FIT_TWINS.items():
         run = _preset_run(gpu_runs, preset)
-        if run is None or "early_stop" in run:
+        if run is None or not families.get(now):
             continue
-        drew = f"{run['images_per_step']} images" if run.get("images_per_step") else "every image"
-        # The CPU's twin is the recipe the run had only where it drew from every image.
-        names = (now, before) if not run.get("images_per_step") else (now,)
-        measured = ""
-        if all(families.get(name) for name in names):
-            means = [sum(r["psnr"] for r in families[name]) / len(families[name]) for name in names]
-            seeds = " / ".join(str(len(families[name])) for name in names)
-            against = f" against {means[1]:.2f} dB {how}" if len(means) > 1 else ""
-            measured = f" On the CPU the preset as it is gets {means[0]:.2f} dB{against} (means over {seeds} seeds)."
-        lines.append(f"The GPU's `{preset}` run ({run['psnr']:.2f} dB) drew each step's rays from {drew} and trained "
-                     "with the early-stop density pass: it predates the preset's recipe (`ReconstructConfig`: 8 images "
-                     f"a step, no pass while training an object) and is rerun at the next device call.{measured}")
+        ran, current = _recipe(run, preset), _recipe(families[now][0], preset)
+        if ran == current:
+            continue
+        named = [(now, current)] + ([(before, _recipe(families[before][0], preset))] if families.get(before) else [])
+        measured = "; ".join(f"{sum(r['psnr'] for r in families[name]) / len(families[name]):.2f} dB with "
+                             f"{describe_recipe(recipe)} (`{name}`, {len(families[name])} "
+                             f"seed{'s' * (len(families[name]) > 1)})" for name, recipe in named)
+        lines.append(f"The GPU's `{preset}` run ({run['psnr']:.2f} dB) ran {describe_recipe(ran)}: the preset is now "
+                     f"{describe_recipe(current)}, so it is rerun at the next device call. On the CPU: {measured}.")
     return [line for text in lines for line in ("", text)]
 
 

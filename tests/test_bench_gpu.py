@@ -43,7 +43,7 @@ def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
     runs = record["runs"][1:]
     assert not [r for r in runs if "error" in r]
     kinds = [r["kind"] for r in runs]
-    assert kinds == ["edit_step"] * len(bench.STEP_VARIANTS) + ["edit"] + ["reconstruction"] * 3 + ["refinement"] + ["render_passes"] * 8 \
+    assert kinds == ["edit_step"] * len(bench.STEP_VARIANTS) + ["edit"] + ["reconstruction"] * 4 + ["refinement"] + ["render_passes"] * 8 \
         + ["interpolation"] * 6 + ["edit_step"] * 3 + ["step_profile", "job"]  # i: the CPU's default pass size, 2^23, no early stop
     assert record["calls"] == {"6": "g", "7": "the smoke run"} and {r["call"] for r in runs} == {7}
     for run in runs:
@@ -57,10 +57,13 @@ def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
         if run["kind"] == "reconstruction":
             assert run["seconds"] > 0 and 5 < run["psnr"] < 60 and 0 < run["ssim"] <= 1
             assert run["images_per_step"] == 8  # what the row was fitted with: both presets draw from 8 images
-    fast, probing, paper = (r for r in runs if r["kind"] == "reconstruction")  # fast again with the early-stop pass
-    assert (fast["preset"], probing["preset"], paper["preset"]) == ("fast", "fast", "paper")
+    fast, probing, smaller, paper = (r for r in runs if r["kind"] == "reconstruction")  # fast, then its variants
+    assert (fast["preset"], probing["preset"], smaller["preset"], paper["preset"]) == ("fast", "fast", "fast", "paper")
     assert (fast["early_stop"], probing["early_stop"], probing["variant"]) == (0.0, 1e-4, "early-stop pass")
     assert probing["seconds_over_default"] == pytest.approx(probing["seconds"] / fast["seconds"])
+    assert smaller["variant"] == "twice the steps of half the rays" and smaller["early_stop"] == 0.0
+    assert (smaller["rays_per_step"] * 2, smaller["iterations"]) == (fast["rays_per_step"], 2 * fast["iterations"])
+    assert smaller["seconds_over_default"] == pytest.approx(smaller["seconds"] / fast["seconds"])
     passes = [r for r in runs if r["kind"] == "render_passes"]
     for scene in ("sphere", "fog"):  # grouping never moves the render; larger passes never dispatch more
         mine = [r for r in passes if r["scene"] == scene]

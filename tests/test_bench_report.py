@@ -192,22 +192,25 @@ def test_step_profile_reads_the_latest_calls_device_share_and_top_entries():
     assert report.step_profile([]) == []
 
 
-def test_images_per_step_pairs_each_recipe_with_its_twin_over_seeds():
+def test_recipe_twins_pair_each_recipe_with_its_twin_over_seeds():
     def row(label, psnr, seconds=10.0, bench_run="a"):
         return {"label": label, "psnr": psnr, "seconds": seconds, "bench_run": bench_run}
 
     runs = [row("recipe", 29.0), row("recipe-seed1", 30.0), row("recipe-8-images", 31.0),
             row("recipe-8-images-seed1", 31.5, 20.0), row("paper", 32.0, bench_run="b"), row("paper-all-images", 30.5),
             row("unpaired", 40.0), {"psnr": 1.0}]
-    (bullet,) = report.images_per_step_tradeoffs(runs)
+    (bullet,) = report.recipe_twin_tradeoffs(runs)
+    assert bullet.startswith("**Rays from every image vs from 8 random images a step**")
     assert "recipe 29.50 → 31.25 dB (+1.75; 2 seeds; 10 vs 15 s)" in bullet
     assert "paper 30.50 → 32.00 dB (+1.50; 1 seed; timed in different runs)" in bullet  # two invocations
     assert "unpaired" not in bullet and "recipe-8-images" not in bullet
-    assert report.images_per_step_tradeoffs([row("recipe", 29.0)]) == []
-    (bullet,) = report.early_stop_tradeoffs(runs + [row("recipe-early-stop", 29.0, 12.0),
-                                                    row("recipe-early-stop-seed1", 29.2, 12.0)])
-    assert "early-stop density pass" in bullet and "recipe 29.10 → 29.50 dB (+0.40; 2 seeds; 12 vs 10 s)" in bullet
-    assert report.early_stop_tradeoffs(runs) == []
+    assert report.recipe_twin_tradeoffs([row("recipe", 29.0)]) == []
+    images, early_stop, rays = report.recipe_twin_tradeoffs(
+        runs + [row("recipe-early-stop", 29.0, 12.0), row("recipe-early-stop-seed1", 29.2, 12.0),
+                row("recipe-4096-rays", 29.4, 20.0)])
+    assert images == bullet
+    assert "early-stop density pass" in early_stop and "recipe 29.10 → 29.50 dB (+0.40; 2 seeds; 12 vs 10 s)" in early_stop
+    assert "half the steps" in rays and "recipe 29.40 → 29.50 dB (+0.10; 1 seed / 2; 20 vs 10 s)" in rays
 
 
 def test_a_reconstruction_variant_is_set_against_its_presets_run_of_the_same_call():
@@ -255,19 +258,28 @@ def test_a_crowd_of_points_is_numbered_and_listed_beside_the_axes():
 
 
 def test_gpu_fits_from_before_their_presets_recipes_are_marked_stale():
-    cpu = [{"label": "preset-paper", "psnr": 31.0}, {"label": "preset-paper-all-images", "psnr": 30.0},
-           {"label": "preset-fast", "psnr": 30.6}, {"label": "preset-fast-seed1", "psnr": 30.8},
-           {"label": "preset-fast-all-images-early-stop", "psnr": 30.5}]
-    fast, paper = ({"kind": "reconstruction", "preset": name, "psnr": 29.5} for name in ("fast", "paper"))
+    fast_now = {"rays_per_step": 8192, "iterations": 1000, "images_per_step": 8, "early_stop": 0.0}
+    paper_now = {"rays_per_step": 32768, "iterations": 2000, "images_per_step": 8, "early_stop": 0.0}
+    cpu = [{"label": "preset-paper", "psnr": 31.0, **paper_now},
+           {"label": "preset-paper-all-images", "psnr": 30.0, **paper_now, "images_per_step": 0},
+           {"label": "preset-fast", "psnr": 30.6, **fast_now}, {"label": "preset-fast-seed1", "psnr": 30.8, **fast_now},
+           {"label": "preset-fast-4096-rays-all-images-early-stop", "psnr": 30.5, "rays_per_step": 4096,
+            "iterations": 2000, "images_per_step": 0, "early_stop": 1e-4}]
+    # Rows from before the fits recorded their recipes: only the iterations.
+    fast, paper = ({"kind": "reconstruction", "preset": name, "psnr": 29.5, "iterations": 2000} for name in ("fast", "paper"))
     blank, fast_note, blank2, paper_note = report._stale_gpu_fits([fast, {**paper, "images_per_step": 8}], cpu)
-    assert blank == blank2 == "" and "`fast` run (29.50 dB) drew each step's rays from every image" in fast_note
-    assert "30.70 dB against 30.50 dB from every image with the pass (means over 2 / 1 seeds)" in fast_note
-    assert "drew each step's rays from 8 images and trained with the early-stop density pass" in paper_note
-    assert "gets 31.00 dB (means over 1 seeds)." in paper_note and "against" not in paper_note  # not its recipe
-    (_, every_image) = report._stale_gpu_fits([paper], cpu)
-    assert "31.00 dB against 30.00 dB from every image (means over 1 / 1 seeds)" in every_image
-    recent = [{**run, "images_per_step": 8, "early_stop": 0.0} for run in (fast, paper)]
+    assert blank == blank2 == ""
+    assert fast_note.startswith("The GPU's `fast` run (29.50 dB) ran 2,000 steps of 4,096 rays from every image, with "
+                                "the early-stop pass: the preset is now 1,000 steps of 8,192 rays from 8 images, no "
+                                "early-stop pass, so it is rerun")
+    assert fast_note.endswith("On the CPU: 30.70 dB with 1,000 steps of 8,192 rays from 8 images, no early-stop pass "
+                              "(`preset-fast`, 2 seeds); 30.50 dB with 2,000 steps of 4,096 rays from every image, with "
+                              "the early-stop pass (`preset-fast-4096-rays-all-images-early-stop`, 1 seed).")
+    assert "ran 2,000 steps of 32,768 rays from 8 images, with the early-stop pass" in paper_note
+    assert "30.00 dB with 2,000 steps of 32,768 rays from every image, no early-stop pass" in paper_note
+    recent = [{**fast, **fast_now}, {**paper, **paper_now}]
     assert report._stale_gpu_fits(recent, cpu) == [] and report._stale_gpu_fits([], cpu) == []
+    assert report._stale_gpu_fits([fast], cpu[:2]) == []  # no CPU rows of the fast preset to judge it by
 
 
 def test_report_docstring_examples_hold():

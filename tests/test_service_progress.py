@@ -19,11 +19,18 @@ RESULTS = Path(__file__).resolve().parents[1] / "bench" / "results"
 
 def test_stage_weights_are_the_benchmarks_figures():
     rows = {r["label"]: r for r in json.loads((RESULTS / "reconstruction.json").read_text())}
-    default_fit, fast_64 = rows["preset-fast"], rows["fast-64"]
+    fast_64 = rows["fast-64"]
+
+    def cpu_seconds(family: str) -> float:  # the mean over its seeds
+        seeds = [r["cpu_seconds"] for label, r in rows.items() if label == family or label.startswith(f"{family}-seed")]
+        return sum(seeds) / len(seeds)
     segmentation = json.loads((RESULTS / "segmentation.json").read_text())
     edit = next(r for r in json.loads((RESULTS / "edit_step.json").read_text()) if r["model"] == "sd2-base-shaped"
                 and r["render_size"] == 64)
-    assert SECONDS_PER_UNIT["reconstruct"] == pytest.approx(default_fit["seconds"] / default_fit["iterations"])
+    # The sitting's fit (27.47 s at a8fc17f: the preset's 2,000 steps of 4,096 rays, re-run since as
+    # preset-fast-4096-rays) times what its 1,000 steps of 8,192 cost over those, the two measured side by side.
+    per_step = 27.47 * cpu_seconds("preset-fast") / cpu_seconds("preset-fast-4096-rays") / rows["preset-fast"]["iterations"]
+    assert SECONDS_PER_UNIT["reconstruct"] == pytest.approx(per_step, rel=1e-3)
     assert SECONDS_PER_UNIT["edit"] == pytest.approx(edit["ms_total"] / 1000, abs=1e-3)
     attention_pass_ms = edit["ms_render"] + edit["ms_vae"] + edit["ms_unet"]  # forward only: no SDS backward
     assert SECONDS_PER_UNIT["refine"] == pytest.approx(attention_pass_ms / 1000, abs=1e-3)
@@ -111,11 +118,11 @@ def test_overall_progress_runs_from_0_to_1_and_never_goes_back():
     assert seen[0] == 0.0 and seen[-1] == 1.0 and all(0 <= p <= 1 for p in seen)
     assert seen == sorted(seen), seen
     # 100 edit iterations (1.7 s each) and 82 attention passes (32 views + 50 steps, 1.35 s each) cost far more than
-    # 200 reconstruction iterations (14 ms each) or 109 export renders (93 ms each).
+    # 200 reconstruction iterations (28 ms each) or 109 export renders (93 ms each).
     after_reconstruct, after_edit, after_refine = seen[4], seen[8], seen[12]
     costs = dict(stage_costs(mode="local", params=_job().params, reconstruction_units=200))
     assert after_edit == pytest.approx((costs["reconstruct"] + costs["edit"]) / sum(costs.values()))
-    assert after_reconstruct < 0.01 and 0.55 < after_edit < 0.65 and after_refine > 0.95, seen
+    assert after_reconstruct < 0.02 and 0.55 < after_edit < 0.65 and after_refine > 0.95, seen
 
 
 def test_a_reused_reconstruction_weighs_nothing():

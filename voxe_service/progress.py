@@ -5,8 +5,9 @@ by the benchmarks in ``bench/results`` (2 CPU cores, torch 2.13 CPU), the three 
 a8fc17f, the fit minutes after the others): only their ratios matter, so figures from different sittings would
 misweigh the stages:
 
-* reconstruct: 27.47 s / 2,000 iterations (``reconstruction.json``, preset-fast on mic: ``ReconstructConfig.fast()``,
-  the default fit);
+* reconstruct: 27.54 s / 1,000 iterations (``reconstruction.json``, the default fit ``ReconstructConfig.fast()`` on
+  mic: the sitting's 27.47 s for the preset's 2,000 steps of 4,096 rays, now ``preset-fast-4096-rays``, times the CPU
+  seconds of its 1,000 steps of 8,192 over those, 48.92 / 48.80 on the means of six seeds a side in one run);
 * edit: 1.888 s per iteration (``edit_step.json``, the SD2-base-shaped UNet at 64 px: the real model's
   cost, not the smoke-test one's);
 * refine: 1.54 s per attention pass (``edit_step.json``'s SD2-base-shaped run at 64 px: render + VAE + UNet
@@ -26,9 +27,9 @@ by how fast this machine ran the current stage against the benchmark's figure fo
 
 Examples:
     >>> weights = stage_costs(mode="global", params={"iterations": 100, "export": {"views": 0,
-    ...                       "turntable_frames": 10, "mesh": False}}, reconstruction_units=1800)
+    ...                       "turntable_frames": 10, "mesh": False}}, reconstruction_units=900)
     >>> [(stage, round(seconds, 2)) for stage, seconds in weights]
-    [('reconstruct', 24.72), ('edit', 188.75), ('export', 0.93)]
+    [('reconstruct', 24.78), ('edit', 188.75), ('export', 0.93)]
     >>> dict(stage_costs(mode="local", params={}, reconstruction_units=1))["refine"]  # 32 views, 0 fitting steps
     49.2672
 """
@@ -39,14 +40,14 @@ from voxe_core import constants as paper
 from voxe_core.presets import ExportConfig
 
 SECONDS_PER_UNIT = {
-    "reconstruct": 27.47 / 2000,
+    "reconstruct": 27.47 * 48.92 / 48.80 / 1000,
     "edit": 1.8875,
     "refine": (170.4 + 138.8 + 1230.4) / 1000,  # an attention pass
     "refine_fixed_step": 12.198 / 400,  # a fitting step on the views' maps
     "export": 0.093,
     "evaluate": 0.093,  # ring renders dominate an evaluation
 }
-FAST_RECONSTRUCTION_ITERATIONS = 300 + 500 + 1200  # ReconstructConfig.fast(): what a queued job expects
+FAST_RECONSTRUCTION_ITERATIONS = 150 + 250 + 600  # ReconstructConfig.fast(): what a queued job expects
 
 
 def stage_costs(*, mode: str, params: dict, reconstruction_units: int | None,
