@@ -312,7 +312,7 @@ def reconstruction_runs(profile: Profile, data: Path) -> list[dict]:
         images = torch.stack([render_image(grid, cameras, i, render).rgb.cpu() for i in range(len(cameras))])
         return {"name": name, "kind": "reconstruction", "device": profile.device, "dtype": "float32",
                 "model": f"ReLU-field grid {config.resolutions[-1]}³", "preset": preset, "seconds": seconds,
-                "iterations": config.total_iterations, "rays_per_step": config.rays_per_step,
+                "iterations": config.total_iterations, "rays_per_step": config.rays_per_step, "lr": config.lr,
                 "images_per_step": config.images_per_step, "early_stop": config.render.early_stop,
                 "psnr": float(psnr(images, test.images).mean()), "ssim": float(ssim(images, test.images).mean()),
                 **_peaks(reports), "image_size": train.cameras.width}
@@ -326,9 +326,9 @@ def reconstruction_runs(profile: Profile, data: Path) -> list[dict]:
     # What `fast` is timed against on the device: the density pass object fits dropped, and the preset before it took
     # half the steps of twice the rays (the same samples; the same PSNR and time on the CPU, bench/reconstruction.py).
     fast_variants = {
-        "early-stop pass": lambda c: dataclasses.replace(
+        "the early-stop pass": lambda c: dataclasses.replace(
             c, render=dataclasses.replace(c.render, early_stop=RenderConfig.early_stop)),
-        "twice the steps of half the rays": lambda c: dataclasses.replace(
+        "twice the steps of half the rays at lr 0.03": lambda c: dataclasses.replace(
             c, rays_per_step=c.rays_per_step // 2, lr=0.03, iterations=tuple(2 * n for n in c.iterations)),
     }
     rows = []

@@ -104,9 +104,9 @@ ABLATION_RUNS = [
         ("average-half", {"average_from": 0.5, "lr_drop_fraction": 100.0}), ("softplus", {"activation": "softplus"}),
     ]
 ]
-QUICK_RUNS = [
-    ("quick-64", 64, (200, 600), True, {}),
-    ("quick-dense-64", 64, (200, 600), False, {}),
+QUICK_RUNS = [  # at fast()'s rays and lr before 2026-12-05's second change, as results/quick/ was measured
+    ("quick-64", 64, (200, 600), True, {"rays_per_step": 4096, "lr": 0.03}),
+    ("quick-dense-64", 64, (200, 600), False, {"rays_per_step": 4096, "lr": 0.03}),
 ]
 
 

@@ -669,43 +669,45 @@ def _preset(runs: list[dict], preset: str, key: str):
     return (_preset_run(runs, preset) or {}).get(key)
 
 
-RECIPE_KEYS = ("rays_per_step", "iterations", "images_per_step", "early_stop")
+RECIPE_KEYS = ("rays_per_step", "lr", "iterations", "images_per_step", "early_stop")
 """What a fit's row records of its recipe (bench/reconstruction.py's rows, bench/gpu.py's section c)."""
-# What bench/gpu.py's preset fits ran before their rows recorded it: 2,000 steps from every image with the early-stop
-# density pass while training (the rows record their iterations).
-UNRECORDED_RECIPES = {"fast": {"rays_per_step": 4096, "images_per_step": 0, "early_stop": 1e-4},
-                      "paper": {"rays_per_step": 32768, "images_per_step": 0, "early_stop": 1e-4}}
-# Per preset: the CPU's rows of the preset as it is, and of the recipe the GPU's fits ran before they recorded it
-# (or the nearest the CPU has measured: the paper's from every image is measured without the pass).
+# What bench/gpu.py's preset fits ran before their rows recorded it: 2,000 steps at lr 0.03 from every image with the
+# early-stop density pass while training.
+UNRECORDED_RECIPES = {preset: {"rays_per_step": rays, "lr": 0.03, "iterations": 2000, "images_per_step": 0,
+                               "early_stop": 1e-4} for preset, rays in (("fast", 4096), ("paper", 32768))}
+# Per preset: the CPU's rows of the preset as it is, and the nearest they have to what the GPU's fits ran before they
+# recorded it (the paper's from every image is measured without the pass).
 STALE_FIT_TWINS = {"fast": ("preset-fast", "preset-fast-4096-rays-all-images-early-stop"),
                    "paper": ("preset-paper", "preset-paper-all-images")}
 
 
-def _recipe(run: dict, preset: str) -> dict:
-    return {key: run.get(key, UNRECORDED_RECIPES[preset].get(key)) for key in RECIPE_KEYS}
+def _recipe(run: dict, unrecorded: dict | None = None) -> dict:
+    return {key: run.get(key, (unrecorded or {}).get(key)) for key in RECIPE_KEYS}
 
 
 def describe_recipe(recipe: dict) -> str:
-    """A fit's recipe in words, e.g. "1,000 steps of 8,192 rays from 8 images, no early-stop pass"."""
+    """A fit's recipe in words, e.g. "1,000 steps of 8,192 rays at lr 0.04 from 8 images, no early-stop pass"."""
     drawn = f"from {recipe['images_per_step']} images" if recipe["images_per_step"] else "from every image"
     probed = "with the early-stop pass" if recipe["early_stop"] else "no early-stop pass"
-    return f"{recipe['iterations']:,} steps of {recipe['rays_per_step']:,} rays {drawn}, {probed}"
+    return f"{recipe['iterations']:,} steps of {recipe['rays_per_step']:,} rays at lr {recipe['lr']} {drawn}, {probed}"
 
 
 def _stale_gpu_fits(gpu_runs: list[dict], cpu_runs: list[dict]) -> list[str]:
     """A line under the targets for each GPU preset fit whose recipe is not its preset's as the CPU's rows of it ran
     (a row from before fits recorded theirs ran ``UNRECORDED_RECIPES``'), with the CPU's figures of both recipes
-    (means over seeds): what its rerun moves."""
+    (means over seeds): what its rerun moves. The CPU's rows of the recipe the GPU ran are the family that ran it, or
+    else ``STALE_FIT_TWINS``' nearest."""
     families = seed_families(cpu_runs)
     lines = []
-    for preset, (now, before) in STALE_FIT_TWINS.items():
+    for preset, (now, nearest) in STALE_FIT_TWINS.items():
         run = _preset_run(gpu_runs, preset)
         if run is None or not families.get(now):
             continue
-        ran, current = _recipe(run, preset), _recipe(families[now][0], preset)
-        if ran == current:
+        ran, current = _recipe(run, UNRECORDED_RECIPES[preset]), _recipe(families[now][0])
+        if ran == current or None in current.values():  # the same, or CPU rows that do not say what they ran
             continue
-        named = [(now, current)] + ([(before, _recipe(families[before][0], preset))] if families.get(before) else [])
+        before = next((name for name, rows in families.items() if _recipe(rows[0]) == ran), nearest)
+        named = [(name, _recipe(families[name][0])) for name in (now, before) if families.get(name)]
         measured = "; ".join(f"{sum(r['psnr'] for r in families[name]) / len(families[name]):.2f} dB with "
                              f"{describe_recipe(recipe)} (`{name}`, {len(families[name])} "
                              f"seed{'s' * (len(families[name]) > 1)})" for name, recipe in named)
@@ -887,8 +889,8 @@ def reconstruction_variants(runs: list[dict]) -> list[str]:
         preset = _preset_run(runs, variant["preset"])
         if preset is None or preset.get("call") != variant.get("call"):
             continue
-        bullets.append(f"**{variant['variant'].capitalize()} in `{variant['preset']}`** ({variant['device']}, same "
-                       f"run): {variant['seconds']:.1f} s with it against {preset['seconds']:.1f} s as the preset is "
+        bullets.append(f"**`{variant['preset']}` with {variant['variant']}** ({variant['device']}, same run): "
+                       f"{variant['seconds']:.1f} s against {preset['seconds']:.1f} s as the preset is "
                        f"({variant['seconds_over_default']:.2f}×), test PSNR {variant['psnr']:.2f} against "
                        f"{preset['psnr']:.2f} dB.")
     return bullets

@@ -59,10 +59,11 @@ def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
             assert run["images_per_step"] == 8  # what the row was fitted with: both presets draw from 8 images
     fast, probing, smaller, paper = (r for r in runs if r["kind"] == "reconstruction")  # fast, then its variants
     assert (fast["preset"], probing["preset"], smaller["preset"], paper["preset"]) == ("fast", "fast", "fast", "paper")
-    assert (fast["early_stop"], probing["early_stop"], probing["variant"]) == (0.0, 1e-4, "early-stop pass")
+    assert (fast["early_stop"], probing["early_stop"], probing["variant"]) == (0.0, 1e-4, "the early-stop pass")
     assert probing["seconds_over_default"] == pytest.approx(probing["seconds"] / fast["seconds"])
-    assert smaller["variant"] == "twice the steps of half the rays" and smaller["early_stop"] == 0.0
-    assert (smaller["rays_per_step"] * 2, smaller["iterations"]) == (fast["rays_per_step"], 2 * fast["iterations"])
+    assert smaller["variant"] == "twice the steps of half the rays at lr 0.03" and smaller["early_stop"] == 0.0
+    assert (smaller["rays_per_step"] * 2, smaller["iterations"], smaller["lr"]) == \
+        (fast["rays_per_step"], 2 * fast["iterations"], 0.03)
     assert smaller["seconds_over_default"] == pytest.approx(smaller["seconds"] / fast["seconds"])
     passes = [r for r in runs if r["kind"] == "render_passes"]
     for scene in ("sphere", "fog"):  # grouping never moves the render; larger passes never dispatch more

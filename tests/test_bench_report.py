@@ -218,9 +218,9 @@ def test_a_reconstruction_variant_is_set_against_its_presets_run_of_the_same_cal
         return {"kind": "reconstruction", "preset": "fast", "device": "cuda", "seconds": seconds, "psnr": psnr,
                 "call": call, **extra}
 
-    variant = fit(21.0, 30.61, variant="early-stop pass", seconds_over_default=21.0 / 18.0)
+    variant = fit(21.0, 30.61, variant="the early-stop pass", seconds_over_default=21.0 / 18.0)
     (bullet,) = report.reconstruction_variants([fit(18.0, 30.6), variant])
-    assert bullet == ("**Early-stop pass in `fast`** (cuda, same run): 21.0 s with it against 18.0 s as the preset is "
+    assert bullet == ("**`fast` with the early-stop pass** (cuda, same run): 21.0 s against 18.0 s as the preset is "
                       "(1.17×), test PSNR 30.61 against 30.60 dB.")
     assert report.reconstruction_variants([fit(18.0, 30.6, call=4), variant]) == []  # another call's run
     assert report._preset_run([variant, fit(18.0, 30.6)], "fast")["seconds"] == 18.0  # the preset's own run
@@ -258,25 +258,34 @@ def test_a_crowd_of_points_is_numbered_and_listed_beside_the_axes():
 
 
 def test_gpu_fits_from_before_their_presets_recipes_are_marked_stale():
-    fast_now = {"rays_per_step": 8192, "iterations": 1000, "images_per_step": 8, "early_stop": 0.0}
-    paper_now = {"rays_per_step": 32768, "iterations": 2000, "images_per_step": 8, "early_stop": 0.0}
+    fast_now = {"rays_per_step": 8192, "lr": 0.04, "iterations": 1000, "images_per_step": 8, "early_stop": 0.0}
+    fast_before = {"rays_per_step": 4096, "lr": 0.03, "iterations": 2000, "images_per_step": 8, "early_stop": 0.0}
+    paper_now = {"rays_per_step": 32768, "lr": 0.03, "iterations": 2000, "images_per_step": 8, "early_stop": 0.0}
     cpu = [{"label": "preset-paper", "psnr": 31.0, **paper_now},
            {"label": "preset-paper-all-images", "psnr": 30.0, **paper_now, "images_per_step": 0},
            {"label": "preset-fast", "psnr": 30.6, **fast_now}, {"label": "preset-fast-seed1", "psnr": 30.8, **fast_now},
-           {"label": "preset-fast-4096-rays-all-images-early-stop", "psnr": 30.5, "rays_per_step": 4096,
-            "iterations": 2000, "images_per_step": 0, "early_stop": 1e-4}]
-    # Rows from before the fits recorded their recipes: only the iterations.
-    fast, paper = ({"kind": "reconstruction", "preset": name, "psnr": 29.5, "iterations": 2000} for name in ("fast", "paper"))
-    blank, fast_note, blank2, paper_note = report._stale_gpu_fits([fast, {**paper, "images_per_step": 8}], cpu)
+           {"label": "preset-fast-4096-rays", "psnr": 30.65, **fast_before},
+           {"label": "preset-fast-4096-rays-all-images-early-stop", "psnr": 30.5, **fast_before, "images_per_step": 0,
+            "early_stop": 1e-4}]
+    # Rows from before the fits recorded their recipes (the paper's without even its iterations).
+    fast = {"kind": "reconstruction", "preset": "fast", "psnr": 29.5, "iterations": 2000}
+    paper = {"kind": "reconstruction", "preset": "paper", "psnr": 29.5, "images_per_step": 8}
+    blank, fast_note, blank2, paper_note = report._stale_gpu_fits([fast, paper], cpu)
     assert blank == blank2 == ""
-    assert fast_note.startswith("The GPU's `fast` run (29.50 dB) ran 2,000 steps of 4,096 rays from every image, with "
-                                "the early-stop pass: the preset is now 1,000 steps of 8,192 rays from 8 images, no "
-                                "early-stop pass, so it is rerun")
-    assert fast_note.endswith("On the CPU: 30.70 dB with 1,000 steps of 8,192 rays from 8 images, no early-stop pass "
-                              "(`preset-fast`, 2 seeds); 30.50 dB with 2,000 steps of 4,096 rays from every image, with "
-                              "the early-stop pass (`preset-fast-4096-rays-all-images-early-stop`, 1 seed).")
-    assert "ran 2,000 steps of 32,768 rays from 8 images, with the early-stop pass" in paper_note
-    assert "30.00 dB with 2,000 steps of 32,768 rays from every image, no early-stop pass" in paper_note
+    assert fast_note.startswith("The GPU's `fast` run (29.50 dB) ran 2,000 steps of 4,096 rays at lr 0.03 from every "
+                                "image, with the early-stop pass: the preset is now 1,000 steps of 8,192 rays at lr "
+                                "0.04 from 8 images, no early-stop pass, so it is rerun")
+    assert fast_note.endswith("On the CPU: 30.70 dB with 1,000 steps of 8,192 rays at lr 0.04 from 8 images, no "
+                              "early-stop pass (`preset-fast`, 2 seeds); 30.50 dB with 2,000 steps of 4,096 rays at lr "
+                              "0.03 from every image, with the early-stop pass "
+                              "(`preset-fast-4096-rays-all-images-early-stop`, 1 seed).")
+    assert "ran 2,000 steps of 32,768 rays at lr 0.03 from 8 images, with the early-stop pass" in paper_note
+    # No CPU rows ran that: the nearest named, from every image without the pass.
+    assert "30.00 dB with 2,000 steps of 32,768 rays at lr 0.03 from every image, no early-stop pass" in paper_note
+    # A fit that ran a recipe the CPU has rows of is set beside those rows.
+    (_, recorded) = report._stale_gpu_fits([{**fast, **fast_before}], cpu)
+    assert recorded.endswith("30.65 dB with 2,000 steps of 4,096 rays at lr 0.03 from 8 images, no early-stop pass "
+                             "(`preset-fast-4096-rays`, 1 seed).")
     recent = [{**fast, **fast_now}, {**paper, **paper_now}]
     assert report._stale_gpu_fits(recent, cpu) == [] and report._stale_gpu_fits([], cpu) == []
     assert report._stale_gpu_fits([fast], cpu[:2]) == []  # no CPU rows of the fast preset to judge it by

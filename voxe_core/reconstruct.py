@@ -5,8 +5,8 @@ trilinear upsampling between stages, 500 iterations each, 32,768 rays per step
 drawn from 8 random images (their data loader's batches), images downsampled
 8/4/2/1, Adam lr 0.03 decayed ×0.9 per stage and ×0.1 at iteration 400 of each
 stage. ``ReconstructConfig.fast()`` is the budget this project measured on a
-2-core CPU (bench/reconstruction.py's preset-fast: mic 30.59 dB / SSIM 0.974
-in 27 s, 54 CPU s, its six seeds 30.59–30.72 dB).
+2-core CPU (bench/reconstruction.py's preset-fast: mic 30.70 dB / SSIM 0.975
+in 25 s, 47 CPU s, its six seeds 30.63–30.70 dB).
 """
 
 from __future__ import annotations
@@ -52,8 +52,8 @@ class ReconstructConfig:
     bbox_min: tuple[float, float, float] = (-1.5, -1.5, -1.5)
     bbox_max: tuple[float, float, float] = (1.5, 1.5, 1.5)
     # No early-stop density pass: an object fit's rays end a few samples past the surface, so the pass kept 92 % of
-    # mic's samples at 128³ and cost more than it saved (bench/reconstruction.py: preset-fast-all-images against
-    # its -early-stop twin). scene() keeps it: fox's rays go on through the room, and it dropped half of them.
+    # mic's samples at 128³ and cost more than it saved (bench/reconstruction.py: preset-fast-4096-rays-all-images
+    # against its -early-stop twin). scene() keeps it: fox's rays go on through the room, and it dropped half of them.
     render: RenderConfig = field(default_factory=lambda: RenderConfig(step_ratio=0.8, early_stop=0.0))
     occupancy_every: int = 16  # iterations between occupancy refreshes
     # Polyak averaging: from this fraction of the final stage on, the result is the mean of the
