@@ -350,9 +350,14 @@ def test_scene_fits_get_the_scene_preset_by_default_and_their_key_follows_it(mon
         assert reconstruct_config(params, backbone="scene") == ReconstructConfig.scene()
         assert reconstruct_config(params, backbone="relu_field") == ReconstructConfig.fast()
     named = reconstruction_params({"reconstruction": {"preset": "fast"}})
-    # ... a named preset is that budget, drawn and rendered as a capture needs (the early-stop pass, every image)
-    assert reconstruct_config(named, backbone="scene") == ReconstructConfig.fast().for_backbone("scene")
-    assert ReconstructConfig.fast().for_backbone("scene") != ReconstructConfig.fast()
+    # ... a named preset is that budget, drawn, rendered and stepped as a capture needs (the early-stop pass, every
+    # image, scene()'s lr), its steps and rays its own
+    capture, fast, scene = ReconstructConfig.fast().for_backbone("scene"), ReconstructConfig.fast(), ReconstructConfig.scene()
+    assert reconstruct_config(named, backbone="scene") == capture != fast
+    assert (capture.images_per_step, capture.lr, capture.render.early_stop) == \
+        (scene.images_per_step, scene.lr, scene.render.early_stop) != (fast.images_per_step, fast.lr, fast.render.early_stop)
+    assert (capture.iterations, capture.rays_per_step, capture.resolutions) == (fast.iterations, fast.rays_per_step,
+                                                                                fast.resolutions)
     keys = {name: reconstruction_key(reconstruction_params({"reconstruction": {"backbone": name}}))
             for name in ("auto", "scene", "relu_field")}
     named_key = reconstruction_key(named)
