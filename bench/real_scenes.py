@@ -191,12 +191,12 @@ def run_single(backbone: str, args) -> dict:
 def bench_config(args, checkpoint_every: int = 0):
     """The comparison's recipe: two stages (half, then full ``--resolution``), ``--iterations``, ``--rays``, each
     step's rays from every image and rendered as a capture's fit renders (``scene()``'s early stop, which object
-    fits go without) for both backbones, at lr 0.03 (``fast()``'s before it took 8,192 rays at 0.04): the recipe the
+    fits go without) at ``scene()``'s lr for both backbones (``ReconstructConfig.for_backbone``): the recipe the
     records were measured with."""
     from voxe_core.reconstruct import ReconstructConfig
 
     return ReconstructConfig.fast(resolutions=(args.resolution // 2, args.resolution), iterations=tuple(args.iterations),
-                                  image_downsample=(2, 1), rays_per_step=args.rays, lr=0.03, seed=args.seed,
+                                  image_downsample=(2, 1), rays_per_step=args.rays, seed=args.seed,
                                   checkpoint_every=checkpoint_every).for_backbone("scene")
 
 

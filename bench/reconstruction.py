@@ -32,15 +32,17 @@ from pathlib import Path
 import torch
 
 from voxe_core.data import RESAMPLE_FILTERS
+from voxe_core.reconstruct import ReconstructConfig
 
 HERE = Path(__file__).resolve().parent
 DATA = HERE.parent.parent / "shared" / "data" / "nerf_synthetic_mic"
 RESULTS = HERE / "results"
 
-# As the rows below were measured: 4,096 rays a step at lr 0.03, each step's rays from every image and the early-stop
-# density pass while training (fast() takes 8,192 at lr 0.04 and draws from 8 since 2026-12-05, and object fits go
-# without the pass since 90eb259).
-MEASURED_AS = {"rays_per_step": 4096, "lr": 0.03, "images_per_step": 0, "early_stop": 1e-4}
+# fast()'s step before 2026-12-05's second change (it takes 8,192 rays at lr 0.04 since).
+FAST_4096_RAYS_STEP = {"rays_per_step": 4096, "lr": 0.03}
+# As the rows below were measured: that step, each step's rays from every image and the early-stop density pass while
+# training (fast() draws from 8 since 2026-12-05, and object fits go without the pass since 90eb259).
+MEASURED_AS = {**FAST_4096_RAYS_STEP, "images_per_step": 0, "early_stop": 1e-4}
 # The previous fast recipe: the last iterate, lr ×0.1 for the last 20 % of the final stage, one lr for all features.
 LAST_ITERATE = {"average_from": 1.0, "lr_drop_fraction": 0.8, "color_lr_scale": 1.0, **MEASURED_AS}
 # The recipe for the target: the mean of the final stage's second half, colour at half the lr, lr never dropped.
@@ -52,10 +54,10 @@ AUTHORS_RECIPE_8_IMAGES = {**LAST_ITERATE, "images_per_step": 8}
 # ReconstructConfig() unchanged (the `paper` preset): the recipe at 32,768 rays from 8 images a step, no early-stop pass.
 PRESET_PAPER = {**AUTHORS_RECIPE_8_IMAGES, "rays_per_step": 32768, "early_stop": 0.0}
 # ReconstructConfig.fast() as it is: what `voxe reconstruct` and jobs fit an object with by default ...
-PRESET_FAST = {"resolutions": (40, 80, 128)}
-PRESET_FAST_ITERATIONS = (150, 250, 600)
+PRESET_FAST = {"resolutions": ReconstructConfig.fast().resolutions}
+PRESET_FAST_ITERATIONS = ReconstructConfig.fast().iterations
 # ... and as it was before 2026-12-05's second change: twice the steps of half the rays, at lr 0.03.
-PRESET_FAST_4096_RAYS = {**PRESET_FAST, "rays_per_step": 4096, "lr": 0.03}
+PRESET_FAST_4096_RAYS = {**PRESET_FAST, **FAST_4096_RAYS_STEP}
 PRESET_FAST_4096_RAYS_ITERATIONS = (300, 500, 1200)
 # Rows added to compare recipes score the renders that skip empty space only (the dense render compares nothing new).
 SKIP_ONLY = {"dense_render": False}
@@ -104,9 +106,9 @@ ABLATION_RUNS = [
         ("average-half", {"average_from": 0.5, "lr_drop_fraction": 100.0}), ("softplus", {"activation": "softplus"}),
     ]
 ]
-QUICK_RUNS = [  # at fast()'s rays and lr before 2026-12-05's second change, as results/quick/ was measured
-    ("quick-64", 64, (200, 600), True, {"rays_per_step": 4096, "lr": 0.03}),
-    ("quick-dense-64", 64, (200, 600), False, {"rays_per_step": 4096, "lr": 0.03}),
+QUICK_RUNS = [  # at fast()'s step before 2026-12-05's second change, as results/quick/ was measured
+    ("quick-64", 64, (200, 600), True, FAST_4096_RAYS_STEP),
+    ("quick-dense-64", 64, (200, 600), False, FAST_4096_RAYS_STEP),
 ]
 
 

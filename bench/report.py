@@ -707,7 +707,7 @@ def _stale_gpu_fits(gpu_runs: list[dict], cpu_runs: list[dict]) -> list[str]:
         if ran == current or None in current.values():  # the same, or CPU rows that do not say what they ran
             continue
         before = next((name for name, rows in families.items() if _recipe(rows[0]) == ran), nearest)
-        named = [(name, _recipe(families[name][0])) for name in (now, before) if families.get(name)]
+        named = [(now, current)] + ([(before, _recipe(families[before][0]))] if families.get(before) else [])
         measured = "; ".join(f"{sum(r['psnr'] for r in families[name]) / len(families[name]):.2f} dB with "
                              f"{describe_recipe(recipe)} (`{name}`, {len(families[name])} "
                              f"seed{'s' * (len(families[name]) > 1)})" for name, recipe in named)
