@@ -399,7 +399,7 @@ class JobOut(BaseModel):
     elapsed_seconds: float | None
     eta_seconds: float | None = Field(description="estimated seconds left in the current stage")
     overall_progress: float = Field(ge=0, le=1, description="fraction of the whole job done: its stages weighed "
-                                    "by their measured costs (voxe_service/progress.py)")
+                                    "by their measured costs on the job's device (voxe_service/progress.py)")
     overall_eta_seconds: float | None = Field(description="estimated seconds left for the whole job (running jobs)")
     losses: dict
     message: str | None
@@ -414,7 +414,8 @@ class JobOut(BaseModel):
     result: dict | None = Field(None, description=(
         "peak_memory_gb: each stage's peak memory in GiB (peak_memory_kind: cuda_allocated on a GPU worker, "
         "process_rss on a CPU one); edit_schedule: the edit the worker runs, recorded when the reconstruction ends (backbone of G_i, iterations, i_start, "
-        "every, floor: SPEC §5's 5000 / 3000 / 400 for a capture's scene grid); orbit_centre: the point the "
+        "every, floor: SPEC §5's 5000 / 3000 / 400 for a capture's scene grid); fit: what the job's own fit runs, "
+        "recorded as it starts (backbone, steps, rays_per_step: what overall_progress weighs it by); orbit_centre: the point the "
         "renders and the turntable look at, in G_i's frame (the origin for objects, the fitted object's matter "
         "centre for captures); evaluation jobs: the metrics too (also the evaluation.json artifact)"))
     batch_id: str | None = Field(None, description="the sweep this job belongs to")

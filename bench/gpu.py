@@ -426,7 +426,8 @@ def job_run(sd2: Path, sd14: Path, profile: Profile, data: Path, root: Path, loo
             "seconds_per_stage": seconds, "edit_iterations": profile.job_iterations,
             "seconds_projected_8000_iterations": projected, "state": done["state"],
             "peak_memory_gb": max(memory.values()) if memory else None, "peak_memory_gb_per_stage": memory,
-            "encoder_compile_seconds": (done.get("result") or {}).get("encoder_compile_seconds")}
+            "encoder_compile_seconds": (done.get("result") or {}).get("encoder_compile_seconds"),
+            "fit": (done.get("result") or {}).get("fit")}  # the fit's steps: voxe_service.progress's CUDA table
 
 
 # ---------------------------------------------------------------- (h)

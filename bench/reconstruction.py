@@ -148,12 +148,12 @@ def run_single(
         config.render.early_stop = early_stop
     samples = []
     load_before = os.getloadavg()[0]
-    cpu_start = _cpu_seconds()
+    cpu_start = process_cpu_seconds()
     start = time.perf_counter()
     grid = reconstruct(train.images, train.cameras, config,
                        callbacks=_sample_counter(samples, config.iterations[-1]))
     seconds = time.perf_counter() - start
-    cpu_seconds = _cpu_seconds() - cpu_start
+    cpu_seconds = process_cpu_seconds() - cpu_start
 
     result = {
         "scene": "nerf_synthetic_mic", "label": label, "resolution": final, "iterations": sum(iterations),
@@ -191,13 +191,13 @@ def run_single(
             result["dense_render_render_seconds_per_view"] / result["render_seconds_per_view"], 2
         )
     result["machine"] = f"{os.cpu_count()} CPU cores, torch {torch.__version__}"
-    result["commit"] = _commit()
+    result["commit"] = commit_measured()
     result["measured_on"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     result["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
     return result
 
 
-def _commit() -> str:
+def commit_measured() -> str:
     """The code measured: HEAD, marked ``+dirty`` when voxe_core has uncommitted changes."""
     def git(*args):
         return subprocess.run(["git", *args], cwd=HERE.parent, capture_output=True, text=True).stdout.strip()
@@ -206,7 +206,7 @@ def _commit() -> str:
     return head + ("+dirty" if git("status", "--porcelain", "voxe_core") else "")
 
 
-def _cpu_seconds() -> float:
+def process_cpu_seconds() -> float:
     usage = resource.getrusage(resource.RUSAGE_SELF)
     return usage.ru_utime + usage.ru_stime
 

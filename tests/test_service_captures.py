@@ -88,7 +88,7 @@ def test_a_capture_is_ingested_as_the_photos_it_holds(capture):
 def test_a_local_edit_of_a_capture_runs_every_stage_on_the_scene_backbone(capture):
     from voxe_core.data import load_scene
     from voxe_core.export import render_views, turntable_cameras
-    from voxe_core.presets import edit_config
+    from voxe_core.presets import edit_config, reconstruct_config, reconstruction_params
     from voxe_core.refine.cut import node_mask
     from voxe_core.refine.pipeline import merge
     from voxe_core.scene_grid import SceneGrid, scene_frame
@@ -107,6 +107,10 @@ def test_a_local_edit_of_a_capture_runs_every_stage_on_the_scene_backbone(captur
     assert isinstance(initial, SceneGrid) and initial.resolution == (17,) * 3
     cameras = load_scene(folder, "train", DOWNSAMPLE).cameras
     assert torch.allclose(initial.frame, scene_frame(cameras), atol=1e-5)
+    # The fit's recipe, recorded by the worker for progress to weigh it by (voxe_service.progress.FitWork).
+    fitted = reconstruct_config(reconstruction_params(job["params"]), backbone="scene")
+    assert job["result"]["fit"] == {"backbone": "scene", "steps": fitted.total_iterations,
+                                    "rays_per_step": fitted.rays_per_step}
 
     # Edit: SPEC §5's annealing for a scene G_i, run for the count the job asked; the defaults are §5's 5,000.
     assert job["result"]["edit_schedule"] == {"backbone": "scene", "iterations": SHORT_EDIT, "i_start": 3000,

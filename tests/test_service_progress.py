@@ -12,12 +12,12 @@ import pytest
 
 from api.schemas import JobParams
 from voxe_service.models import Job, Reconstruction, utcnow
-from voxe_service.progress import SECONDS_PER_UNIT, overall, stage_costs
+from voxe_service.progress import DEVICE_COSTS, NO_FIT, FitWork, device_costs, fit_work, overall, stage_costs
 
 RESULTS = Path(__file__).resolve().parents[1] / "bench" / "results"
 
 
-def test_stage_weights_are_the_benchmarks_figures():
+def test_the_cpu_weights_are_the_benchmarks_figures():
     rows = {r["label"]: r for r in json.loads((RESULTS / "reconstruction.json").read_text())}
     fast_64 = rows["fast-64"]
 
@@ -27,40 +27,83 @@ def test_stage_weights_are_the_benchmarks_figures():
     segmentation = json.loads((RESULTS / "segmentation.json").read_text())
     edit = next(r for r in json.loads((RESULTS / "edit_step.json").read_text()) if r["model"] == "sd2-base-shaped"
                 and r["render_size"] == 64)
+    cpu = DEVICE_COSTS["cpu"]
     # The sitting's fit (27.47 s at a8fc17f: the preset's 2,000 steps of 4,096 rays, re-run since as
     # preset-fast-4096-rays) times what its 1,000 steps of 8,192 cost over those, the two measured side by side.
     per_step = 27.47 * cpu_seconds("preset-fast") / cpu_seconds("preset-fast-4096-rays") / rows["preset-fast"]["iterations"]
-    assert SECONDS_PER_UNIT["reconstruct"] == pytest.approx(per_step, rel=1e-3)
-    assert SECONDS_PER_UNIT["edit"] == pytest.approx(edit["ms_total"] / 1000, abs=1e-3)
+    assert cpu.fit_step == pytest.approx(per_step, rel=1e-3) and cpu.fit_rays == rows["preset-fast"]["rays_per_step"]
+    assert cpu.edit == pytest.approx(edit["ms_total"] / 1000, abs=1e-3)
     attention_pass_ms = edit["ms_render"] + edit["ms_vae"] + edit["ms_unet"]  # forward only: no SDS backward
-    assert SECONDS_PER_UNIT["refine"] == pytest.approx(attention_pass_ms / 1000, abs=1e-3)
-    assert SECONDS_PER_UNIT["refine_fixed_step"] == pytest.approx(
-        segmentation["runs"][0]["seconds"] / segmentation["settings"]["iterations"])
-    assert SECONDS_PER_UNIT["export"] == pytest.approx(fast_64["render_seconds_per_view"])
+    assert cpu.refine == pytest.approx(attention_pass_ms / 1000, abs=1e-3)
+    fixed_step = segmentation["runs"][0]["seconds"] / segmentation["settings"]["iterations"]
+    assert cpu.refine_fixed_step == pytest.approx(fixed_step)
+    assert cpu.export == cpu.evaluate == pytest.approx(fast_64["render_seconds_per_view"])
+    # A capture's step against an object's, per ray, fitted in one run as jobs fit them (bench/fit_costs.py).
+    fits = json.loads((RESULTS / "fit_costs.json").read_text())["runs"]
+    per_ray = {}
+    for run in fits:
+        per_ray.setdefault(run["backbone"], []).append(run["seconds_per_step"] / run["rays_per_step"])
+    object_ray = [r["seconds_per_step"] / r["rays_per_step"] for r in fits if r["preset"] == "fast"]
+    assert cpu.fit_backbone == {"scene": pytest.approx(per_ray["scene"][0] / (sum(object_ray) / len(object_ray)),
+                                                       rel=1e-3)}
+
+
+def test_the_cuda_weights_are_one_job_through_the_worker_on_the_h200():
+    runs = json.loads((RESULTS / "gpu.json").read_text())["runs"]
+    job = next(r for r in runs if r["kind"] == "job" and r["device"] == "cuda")
+    fit_steps = next(r for r in runs if r["kind"] == "reconstruction" and r["preset"] == "fast")["iterations"]
+    assert fit_steps == 2000  # fast's steps when the job ran (call 5; section c's fast row, call 4, ran them too)
+    export = {"views": 4, "turntable_frames": 30, "gif": False}  # bench/gpu.py's Profile.full(), the mesh by default
+    seconds = dict(stage_costs(mode="local", params={"iterations": job["edit_iterations"], "export": export},
+                               fit=FitWork(fit_steps, 4096, "relu_field"), device="cuda"))
+    assert seconds == pytest.approx(job["seconds_per_stage"], rel=1e-3)
+    cuda = DEVICE_COSTS["cuda"]
+    assert cuda.fit_rays is None and cuda.refine_fixed_step == cuda.fit_step  # a step costs its dispatches there
+    assert device_costs("cuda:1") is cuda and device_costs("cpu") is device_costs("mps") is DEVICE_COSTS["cpu"]
+
+
+def test_a_fit_is_weighed_by_its_steps_rays_and_backbone():
+    cpu = DEVICE_COSTS["cpu"]
+    fast = fit_work({})
+    assert fast == FitWork(1000, 8192, "relu_field")
+    assert fit_work({"preset": "paper"}) == FitWork(2000, 32768, "relu_field")
+    assert fit_work({"iterations": [100, 200]}) == FitWork(300, 2048, "scene")  # only a capture's preset has 2 stages
+    assert fit_work({"backbone": "scene", "rays_per_step": 512}) == FitWork(1200, 512, "scene")
+    assert fit_work({"backbone": "relu_field", "iterations": [1, 2]}) == fast  # resolves to nothing: the default
+    assert fit_work({"route": "voxelize"}).steps == 1
+    recorded = {"backbone": "scene", "steps": 1200, "rays_per_step": 2048}
+    assert fit_work({}, recorded, steps=600) == FitWork(600, 2048, "scene")  # the worker's record, its reported steps
+    # A CPU step costs its rays, a capture's more; a GPU step costs the same whatever its rays.
+    object_step = cpu.fit_seconds(FitWork(1, 8192, "relu_field"))
+    assert cpu.fit_seconds(FitWork(10, 32768, "relu_field")) == pytest.approx(40 * object_step)
+    assert cpu.fit_seconds(FitWork(1, 8192, "scene")) == pytest.approx(cpu.fit_backbone["scene"] * object_step)
+    cuda = DEVICE_COSTS["cuda"]
+    assert cuda.fit_seconds(FitWork(10, 32768, "scene")) == pytest.approx(10 * cuda.fit_step)
+    assert cpu.fit_seconds(NO_FIT) == cuda.fit_seconds(NO_FIT) == 0
 
 
 def test_stages_follow_the_mode_and_the_params():
-    assert [s for s, _ in stage_costs(mode="local", params={}, reconstruction_units=None)] == [
+    assert [s for s, _ in stage_costs(mode="local", params={}, fit=fit_work({}))] == [
         "reconstruct", "edit", "refine", "export"]
-    assert [s for s, _ in stage_costs(mode="global", params={}, reconstruction_units=None)] == [
+    assert [s for s, _ in stage_costs(mode="global", params={}, fit=fit_work({}))] == [
         "reconstruct", "edit", "export"]
-    short, long = (dict(stage_costs(mode="global", params={"iterations": n}, reconstruction_units=100))["edit"]
+    short, long = (dict(stage_costs(mode="global", params={"iterations": n}, fit=fit_work({}, steps=100)))["edit"]
                    for n in (10, 1000))
     assert long == pytest.approx(100 * short)
 
 
 def test_the_refinement_weighs_an_attention_pass_per_view_and_per_fitting_step():
-    per_pass = SECONDS_PER_UNIT["refine"]
-    assert dict(stage_costs(mode="local", params={}, reconstruction_units=1))["refine"] == pytest.approx(32 * per_pass)
+    per_pass = DEVICE_COSTS["cpu"].refine
+    assert dict(stage_costs(mode="local", params={}, fit=NO_FIT))["refine"] == pytest.approx(32 * per_pass)
     fitted = {"refine": {"views": 8, "iterations": 100}}
-    assert dict(stage_costs(mode="local", params=fitted, reconstruction_units=1))["refine"] == pytest.approx(108 * per_pass)
+    assert dict(stage_costs(mode="local", params=fitted, fit=NO_FIT))["refine"] == pytest.approx(108 * per_pass)
     stored = JobParams().model_dump()  # what a job holds: every default written out
-    assert dict(stage_costs(mode="local", params=stored, reconstruction_units=1))["refine"] == pytest.approx(
+    assert dict(stage_costs(mode="local", params=stored, fit=NO_FIT))["refine"] == pytest.approx(
         (stored["refine"]["views"] + stored["refine"]["iterations"]) * per_pass)
     # The paper's fit from a constant reuses its views' maps: 32 passes, then 1,500 cheap steps, not 1,532 passes.
     paper = {"refine": {"lift_start": "constant", "iterations": 1500}}
-    assert dict(stage_costs(mode="local", params=paper, reconstruction_units=1))["refine"] == pytest.approx(
-        32 * per_pass + 1500 * SECONDS_PER_UNIT["refine_fixed_step"])
+    assert dict(stage_costs(mode="local", params=paper, fit=NO_FIT))["refine"] == pytest.approx(
+        32 * per_pass + 1500 * DEVICE_COSTS["cpu"].refine_fixed_step)
 
 
 def test_an_edit_is_weighed_by_what_its_schedule_runs_once_known():
@@ -68,11 +111,12 @@ def test_an_edit_is_weighed_by_what_its_schedule_runs_once_known():
     from api.routes.jobs import job_out
 
     params = JobParams().model_dump()
-    before = dict(stage_costs(mode="global", params=params, reconstruction_units=1))["edit"]
-    known = dict(stage_costs(mode="global", params=params, reconstruction_units=1, edit_iterations=5000))["edit"]
-    assert before == pytest.approx(8000 * SECONDS_PER_UNIT["edit"]) and known == pytest.approx(5000 * SECONDS_PER_UNIT["edit"])
-    none_asked = dict(stage_costs(mode="global", params={**params, "iterations": 0}, reconstruction_units=1))["edit"]
-    assert none_asked == pytest.approx(SECONDS_PER_UNIT["edit"])  # 0 iterations weigh one, not the default 8,000
+    before = dict(stage_costs(mode="global", params=params, fit=NO_FIT))["edit"]
+    known = dict(stage_costs(mode="global", params=params, fit=NO_FIT, edit_iterations=5000))["edit"]
+    edit = DEVICE_COSTS["cpu"].edit
+    assert before == pytest.approx(8000 * edit) and known == pytest.approx(5000 * edit)
+    none_asked = dict(stage_costs(mode="global", params={**params, "iterations": 0}, fit=NO_FIT))["edit"]
+    assert none_asked == pytest.approx(edit)  # 0 iterations weigh one, not the default 8,000
     # Through the job resource: a job asking for 10 iterations whose schedule runs 1,000, halfway through its edit.
     params = {**params, "iterations": 10}
     rec = Reconstruction(id="r", scene_id="s", params_key="k", params={}, state="succeeded", owner_job_id="j", total=1)
@@ -80,7 +124,8 @@ def test_an_edit_is_weighed_by_what_its_schedule_runs_once_known():
                    total=1000, completed_stages=["reconstruct"], started_at=utcnow(), stage_started_at=utcnow())
 
     def halfway(edit_iterations):
-        costs = dict(stage_costs(mode="global", params=params, reconstruction_units=1, edit_iterations=edit_iterations))
+        costs = dict(stage_costs(mode="global", params=params, fit=fit_work({}, steps=1),
+                                 edit_iterations=edit_iterations))
         return (costs["reconstruct"] + costs["edit"] / 2) / sum(costs.values())
 
     assert job_out(_job(**running)).overall_progress == pytest.approx(halfway(None))  # weighed as 10 iterations
@@ -120,7 +165,7 @@ def test_overall_progress_runs_from_0_to_1_and_never_goes_back():
     # 100 edit iterations (1.7 s each) and 82 attention passes (32 views + 50 steps, 1.35 s each) cost far more than
     # 200 reconstruction iterations (28 ms each) or 109 export renders (93 ms each).
     after_reconstruct, after_edit, after_refine = seen[4], seen[8], seen[12]
-    costs = dict(stage_costs(mode="local", params=_job().params, reconstruction_units=200))
+    costs = dict(stage_costs(mode="local", params=_job().params, fit=fit_work({}, steps=200)))
     assert after_edit == pytest.approx((costs["reconstruct"] + costs["edit"]) / sum(costs.values()))
     assert after_reconstruct < 0.02 and 0.55 < after_edit < 0.65 and after_refine > 0.95, seen
 
@@ -132,7 +177,8 @@ def test_a_reused_reconstruction_weighs_nothing():
                                        owner_job_id="other", total=100_000)
     job = _job(reconstruction=fitted_by_another, state="running", stage="edit", iteration=50, total=100,
                completed_stages=["reconstruct"], started_at=utcnow(), stage_started_at=utcnow())
-    costs = dict(stage_costs(mode="local", params=job.params, reconstruction_units=1))
+    costs = dict(stage_costs(mode="local", params=job.params, fit=NO_FIT))
+    assert costs["reconstruct"] == 0
     expected = (costs["reconstruct"] + costs["edit"] / 2) / sum(costs.values())
     assert job_out(job).overall_progress == pytest.approx(expected)
 
@@ -153,7 +199,7 @@ def test_a_job_that_waited_for_another_jobs_fit_keeps_its_progress_when_the_fit_
                       completed_stages=["reconstruct"], started_at=began, stage_started_at=utcnow())
     before, after = job_out(waiting).overall_progress, job_out(edit_began).overall_progress
     assert 0 < before <= after, (before, after)
-    costs = dict(stage_costs(mode="local", params=waiting.params, reconstruction_units=2000))
+    costs = dict(stage_costs(mode="local", params=waiting.params, fit=fit_work({}, steps=2000)))
     assert after == pytest.approx(costs["reconstruct"] / sum(costs.values()))
 
 
@@ -168,3 +214,47 @@ def test_eta_scales_later_stages_by_the_current_stages_speed():
     assert overall(**args, stage_elapsed_s=1.0)[0] == overall(**args, stage_elapsed_s=99.0)[0]  # speed: ETA only
     assert overall(costs=costs, completed=[], stage=None, stage_fraction=0.0, stage_eta_s=None, stage_elapsed_s=None,
                    finished=True) == (1.0, 0.0)
+
+
+def test_a_fit_running_slower_than_the_table_does_not_stretch_the_later_stages():
+    """A fit step costs what its scene keeps (a capture's ray 17.9x an object's): a slow fit says nothing of the
+    edit."""
+    costs = [("reconstruct", 10.0), ("edit", 80.0), ("export", 10.0)]
+    fitting = dict(costs=costs, completed=[], stage="reconstruct", stage_fraction=0.5, stage_eta_s=50.0,
+                   finished=False)
+    assert overall(**fitting, stage_elapsed_s=50.0) == (0.05, 50.0 + 90.0)  # ten times the table's time: no matter
+    assert overall(**{**fitting, "stage": "edit", "completed": ["reconstruct"]}, stage_elapsed_s=400.0) == (
+        0.5, 50.0 + 100.0)  # an edit ten times slower than the table: so is the export
+
+
+def test_a_gpu_job_is_weighed_and_timed_by_the_gpu_table():
+    """A worker on CUDA runs the edit ~34x faster than the CPU table says, the fit about as fast: a job it holds
+    must not show the CPU's hours left while it fits, nor weigh its fit as nothing."""
+    from api.routes.jobs import job_out
+
+    params = JobParams().model_dump()
+    rec = Reconstruction(id="r", scene_id="s", params_key="k", params={}, state="running", owner_job_id="j",
+                         iteration=500, total=1000)
+    began = utcnow() - timedelta(seconds=7)
+    fitting = dict(reconstruction=rec, params=params, state="running", stage="reconstruct", iteration=500,
+                   total=1000, eta_seconds=7.0, started_at=began, stage_started_at=began)
+    on_gpu, on_cpu = job_out(_job(**fitting, device="cuda:0")), job_out(_job(**fitting, device="cpu"))
+    gpu = dict(stage_costs(mode="local", params=params, fit=fit_work({}, steps=1000), device="cuda"))
+    assert on_gpu.overall_eta_seconds == pytest.approx(7.0 + gpu["edit"] + gpu["refine"] + gpu["export"])
+    assert on_gpu.overall_eta_seconds < 10 * 60 < 4 * 3600 < on_cpu.overall_eta_seconds  # 8,000 edit iterations
+    assert on_gpu.overall_progress == pytest.approx(gpu["reconstruct"] / 2 / sum(gpu.values()))
+    assert on_gpu.overall_progress > 10 * on_cpu.overall_progress
+
+
+def test_a_capture_fit_recorded_by_the_worker_weighs_more_than_an_object_fit():
+    from api.routes.jobs import job_out
+
+    rec = Reconstruction(id="r", scene_id="s", params_key="k", params={}, state="running", owner_job_id="j",
+                         iteration=600, total=1200)
+    fitting = dict(reconstruction=rec, state="running", stage="reconstruct", iteration=600, total=1200,
+                   started_at=utcnow(), stage_started_at=utcnow())
+    recorded = {"fit": {"backbone": "scene", "steps": 1200, "rays_per_step": 2048}}
+    capture, unrecorded = job_out(_job(**fitting, result=recorded)), job_out(_job(**fitting))
+    costs = dict(stage_costs(mode="local", params=_job().params, fit=FitWork(1200, 2048, "scene")))
+    assert capture.overall_progress == pytest.approx(costs["reconstruct"] / 2 / sum(costs.values()))
+    assert capture.overall_progress > 2 * unrecorded.overall_progress  # read from params: fast's rays on an object

@@ -1,76 +1,187 @@
 """A job's progress across all its stages, and the time it has left, from measured stage costs.
 
-Each stage's cost is its units of work (iterations, rendered views) times seconds per unit measured
-by the benchmarks in ``bench/results`` (2 CPU cores, torch 2.13 CPU), the three records below re-run in one sitting (at
-a8fc17f, the fit minutes after the others): only their ratios matter, so figures from different sittings would
-misweigh the stages:
+Each stage's cost is its units of work (fit steps, iterations, rendered views) times seconds per unit on the kind
+of device the job runs on (``Job.device``: the worker's), each table measured in one sitting, since only the
+ratios between stages matter:
 
-* reconstruct: 27.54 s / 1,000 iterations (``reconstruction.json``, the default fit ``ReconstructConfig.fast()`` on
-  mic: the sitting's 27.47 s for the preset's 2,000 steps of 4,096 rays, now ``preset-fast-4096-rays``, times the CPU
-  seconds of its 1,000 steps of 8,192 over those, 48.92 / 48.80 on the means of six seeds a side in one run);
-* edit: 1.888 s per iteration (``edit_step.json``, the SD2-base-shaped UNet at 64 px: the real model's
-  cost, not the smoke-test one's);
-* refine: 1.54 s per attention pass (``edit_step.json``'s SD2-base-shaped run at 64 px: render + VAE + UNet
-  forward, no backward; the SD-1.4-shaped attention UNet is of its size): one per view, and one more per fitting
-  step from the back-projection start (each draws a fresh view, ``RefineConfig.fit_views``); the paper's fit from a
-  constant (``lift_start`` constant) reuses the views' maps: 0.030 s per step (``segmentation.json``, runs[0]:
-  12.2 s / 400 fixed-view steps at 96 px, 4,096 rays per step). The back-projection and the cut are small beside them;
-* export: 0.093 s per rendered view (``reconstruction.json``, ``render_seconds_per_view`` at 200 px).
+* ``cpu`` (2 CPU cores, torch 2.13 CPU; ``bench/results``), the records re-run at a8fc17f (the fit minutes after
+  the others):
 
-An edit is weighed by its job's ``iterations`` until G_i's kind is known, then by the count its schedule runs (a
-capture's scene grid runs 5,000 where the parameters say the objects' 8,000): the reconstruct stage records it in
-``Job.result["edit_schedule"]`` as it ends.
+  * reconstruct: 27.54 s / 1,000 steps of 8,192 rays (``reconstruction.json``, the default fit
+    ``ReconstructConfig.fast()`` on mic: the sitting's 27.47 s for the preset's 2,000 steps of 4,096 rays, now
+    ``preset-fast-4096-rays``, times the CPU seconds of its 1,000 steps of 8,192 over those, 48.92 / 48.80 on the
+    means of six seeds a side in one run). A CPU step costs its rays (``fit_costs.json``: ``paper``'s steps of
+    4× the rays cost 3.79× ``fast``'s in one run), a capture's 17.9× an object's per ray (``scene()`` on fox
+    against ``fast()`` on mic in that run: its rays cross the scene's background too);
+  * edit: 1.888 s per iteration (``edit_step.json``, the SD2-base-shaped UNet at 64 px: the real model's
+    cost, not the smoke-test one's);
+  * refine: 1.54 s per attention pass (``edit_step.json``'s SD2-base-shaped run at 64 px: render + VAE + UNet
+    forward, no backward; the SD-1.4-shaped attention UNet is of its size): one per view, and one more per
+    fitting step from the back-projection start (each draws a fresh view, ``RefineConfig.fit_views``); the
+    paper's fit from a constant (``lift_start`` constant) reuses the views' maps: 0.030 s per step
+    (``segmentation.json``, runs[0]: 12.2 s / 400 fixed-view steps at 96 px, 4,096 rays per step). The
+    back-projection and the cut are small beside them;
+  * export: 0.093 s per rendered view (``reconstruction.json``, ``render_seconds_per_view`` at 200 px).
 
-The fraction weighs completed stages fully and the current one by its own progress. The time left
-is the current stage's own estimate (from its iteration rate) plus the later stages' costs, scaled
-by how fast this machine ran the current stage against the benchmark's figure for it.
+* ``cuda`` (one H200, full-size random-weight models): one local-edit job through the worker
+  (``gpu.json``, section f of call 5): reconstruct 26.1 s for 2,000 steps (``fast`` then: 4,096 rays), edit
+  27.5 s for 500 iterations, refine 6.3 s for 32 attention passes, export 1.7 s for 35 views (4 renders, 30
+  turntable frames, the mesh). A GPU step costs its dispatches, not its rays (call 4: ``fast``'s 2,000 steps of
+  4,096 rays in 22.9 s, ``paper``'s 2,000 of 32,768 in 22.2 s). Unmeasured there: a capture's fit step (taken
+  as an object's) and the fixed-view refinement step (taken as a fit step: rays rendered, a loss, Adam).
+
+A device this module does not know (``mps``) is weighed as a CPU.
+
+A fit is weighed by what it runs (``FitWork``): the recipe the worker records in ``Job.result["fit"]`` as the
+fit starts, else the one the reconstruction's parameters resolve to (a backbone "auto" not yet decided: an
+object's). An edit is weighed by its job's ``iterations`` until G_i's kind is known, then by the count its
+schedule runs (a capture's scene grid runs 5,000 where the parameters say the objects' 8,000): the reconstruct
+stage records it in ``Job.result["edit_schedule"]`` as it ends.
+
+The fraction weighs completed stages fully and the current one by its own progress. The time left is the
+current stage's own estimate (from its iteration rate) plus the later stages' costs, scaled by how fast this
+machine ran the current stage against the table's figure for it; not while fitting, whose cost per step
+depends on the scene (how many samples its rays keep: a capture's ray costs 17.9× an object's), which the
+later stages' costs do not.
 
 Examples:
-    >>> weights = stage_costs(mode="global", params={"iterations": 100, "export": {"views": 0,
-    ...                       "turntable_frames": 10, "mesh": False}}, reconstruction_units=900)
-    >>> [(stage, round(seconds, 2)) for stage, seconds in weights]
+    >>> work = FitWork(steps=900, rays_per_step=8192, backbone="relu_field")
+    >>> costs = stage_costs(mode="global", params={"iterations": 100, "export": {"views": 0,
+    ...                     "turntable_frames": 10, "mesh": False}}, fit=work)
+    >>> [(stage, round(seconds, 2)) for stage, seconds in costs]
     [('reconstruct', 24.78), ('edit', 188.75), ('export', 0.93)]
-    >>> dict(stage_costs(mode="local", params={}, reconstruction_units=1))["refine"]  # 32 views, 0 fitting steps
+    >>> [(stage, round(seconds, 2)) for stage, seconds in stage_costs(mode="global", params={"iterations": 100,
+    ...  "export": {"views": 0, "turntable_frames": 10, "mesh": False}}, fit=work, device="cuda:0")]
+    [('reconstruct', 11.76), ('edit', 5.5), ('export', 0.48)]
+    >>> dict(stage_costs(mode="local", params={}, fit=NO_FIT))["refine"]  # 32 views, 0 fitting steps
     49.2672
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
 from voxe_core import constants as paper
-from voxe_core.presets import ExportConfig
+from voxe_core.presets import BACKBONE_KINDS, ExportConfig, fit_backbone, reconstruct_config
 
-SECONDS_PER_UNIT = {
-    "reconstruct": 27.47 * 48.92 / 48.80 / 1000,
-    "edit": 1.8875,
-    "refine": (170.4 + 138.8 + 1230.4) / 1000,  # an attention pass
-    "refine_fixed_step": 12.198 / 400,  # a fitting step on the views' maps
-    "export": 0.093,
-    "evaluate": 0.093,  # ring renders dominate an evaluation
+
+class FitWork(NamedTuple):
+    """What a job's fit runs: its steps, the rays each draws and the backbone it fits (a capture's rays cost more)."""
+
+    steps: int
+    rays_per_step: int
+    backbone: str
+
+
+NO_FIT = FitWork(0, 0, "relu_field")
+"""A job that reused a finished fit: nothing to fit or wait for."""
+
+
+@dataclass(frozen=True)
+class DeviceCosts:
+    """Seconds per unit of work of each stage on one kind of device, measured in one sitting."""
+
+    fit_step: float
+    """A step of ``ReconstructConfig.fast()``'s fit of an object."""
+    fit_rays: int | None
+    """The rays that step drew, when a step costs its rays (a CPU); None: a step costs its dispatches (a GPU)."""
+    edit: float
+    refine: float
+    """An attention pass."""
+    refine_fixed_step: float
+    """A fitting step on the views' maps."""
+    export: float
+    """A rendered view (or the mesh)."""
+    evaluate: float
+    """A rendered view: ring renders dominate an evaluation."""
+    fit_backbone: dict[str, float] = field(default_factory=dict)
+    """A step's cost over an object's of as many rays, per backbone (others: 1)."""
+
+    def fit_seconds(self, fit: FitWork) -> float:
+        step = self.fit_step * self.fit_backbone.get(fit.backbone, 1.0)
+        if self.fit_rays is not None:
+            step *= fit.rays_per_step / self.fit_rays
+        return fit.steps * step
+
+
+CPU_FIT_STEP = 27.47 * 48.92 / 48.80 / 1000
+# fit_costs.json: scene() on fox (133.48 s for 1,200 steps of 2,048 rays) against fast() on mic (23.33 and 26.28 s
+# for 1,000 of 8,192, before and after it), per ray of a step, in one run.
+SCENE_OVER_OBJECT_RAY = (133.48 / 1200 / 2048) / ((23.33 + 26.28) / 2 / 1000 / 8192)
+CUDA_FIT_STEP = 26.137 / 2000
+DEVICE_COSTS = {
+    "cpu": DeviceCosts(
+        fit_step=CPU_FIT_STEP, fit_rays=8192, edit=1.8875,
+        refine=(170.4 + 138.8 + 1230.4) / 1000, refine_fixed_step=12.198 / 400, export=0.093, evaluate=0.093,
+        fit_backbone={"scene": SCENE_OVER_OBJECT_RAY},
+    ),
+    "cuda": DeviceCosts(
+        fit_step=CUDA_FIT_STEP, fit_rays=None, edit=27.496 / 500, refine=6.320 / 32,
+        refine_fixed_step=CUDA_FIT_STEP, export=1.678 / 35, evaluate=1.678 / 35,
+    ),
 }
-FAST_RECONSTRUCTION_ITERATIONS = 150 + 250 + 600  # ReconstructConfig.fast(): what a queued job expects
 
 
-def stage_costs(*, mode: str, params: dict, reconstruction_units: int | None,
+def device_costs(device: str) -> DeviceCosts:
+    """The table for a device string as a worker records it ("cpu", "cuda", "cuda:1"; unknown kinds: the CPU's)."""
+    return DEVICE_COSTS.get(device.split(":")[0], DEVICE_COSTS["cpu"])
+
+
+def fit_work(rec_params: dict, recorded: dict | None = None, steps: int | None = None) -> FitWork:
+    """What the fit of ``rec_params`` runs: as the worker ``recorded`` it (``Job.result["fit"]``), else as the
+    parameters resolve (a backbone "auto": an object's recipe), with ``steps`` once the fit has reported them.
+
+    Examples:
+        >>> fit_work({"preset": "paper"})
+        FitWork(steps=2000, rays_per_step=32768, backbone='relu_field')
+        >>> fit_work({"iterations": [100, 200]}, steps=40)  # only a capture's preset has two stages
+        FitWork(steps=40, rays_per_step=2048, backbone='scene')
+    """
+    if recorded:
+        work = FitWork(recorded["steps"], recorded["rays_per_step"], recorded["backbone"])
+    elif rec_params.get("route") == "voxelize":  # one step, reported at completion (seconds on the CPU)
+        work = FitWork(1, DEVICE_COSTS["cpu"].fit_rays, "relu_field")
+    else:
+        work = _resolved_fit(rec_params)
+    return work if steps is None else work._replace(steps=steps)
+
+
+def _resolved_fit(rec_params: dict) -> FitWork:
+    """The recipe ``rec_params`` resolve to for the first backbone that takes them ("auto": an object's, unless only a
+    capture's does); parameters that resolve to none (stored before a preset changed) weigh as the default fit."""
+    asked = fit_backbone(rec_params)
+    for backbone in BACKBONE_KINDS if asked == "auto" else (asked,):
+        try:
+            config = reconstruct_config(rec_params, backbone=backbone)
+        except ValueError:
+            continue
+        return FitWork(config.total_iterations, config.rays_per_step, backbone)
+    return _resolved_fit({})
+
+
+def stage_costs(*, mode: str, params: dict, fit: FitWork, device: str = "cpu",
                 edit_iterations: int | None = None) -> list[tuple[str, float]]:
-    """(stage, expected seconds) for each stage of a job, in order; ``edit_iterations``: what the edit's schedule
-    runs, once it is known (None: the parameters' count)."""
+    """(stage, expected seconds on ``device``) for each stage of a job, in order; ``edit_iterations``: what the
+    edit's schedule runs, once it is known (None: the parameters' count)."""
+    costs = device_costs(device)
     if mode == "evaluate":
         views = (params.get("evaluation") or params).get("views", 100)
-        return [("evaluate", views * SECONDS_PER_UNIT["evaluate"])]
+        return [("evaluate", views * costs.evaluate)]
     export = params.get("export") or {}
     views = export.get("views", ExportConfig.views) + export.get("turntable_frames", ExportConfig.turntable_frames)
     edit = next((n for n in (edit_iterations, params.get("iterations")) if n is not None), paper.EDIT_ITERATIONS)
     seconds = {
-        "reconstruct": max(1, reconstruction_units or FAST_RECONSTRUCTION_ITERATIONS) * SECONDS_PER_UNIT["reconstruct"],
-        "edit": max(1, edit) * SECONDS_PER_UNIT["edit"],
-        "refine": refine_seconds(params.get("refine") or {}),
-        "export": max(1, views + (1 if export.get("mesh", ExportConfig.mesh) else 0)) * SECONDS_PER_UNIT["export"],
+        "reconstruct": costs.fit_seconds(fit),
+        "edit": max(1, edit) * costs.edit,
+        "refine": refine_seconds(params.get("refine") or {}, costs),
+        "export": max(1, views + (1 if export.get("mesh", ExportConfig.mesh) else 0)) * costs.export,
     }
     stages = ["reconstruct", "edit"] + (["refine"] if mode == "local" else []) + ["export"]
     return [(stage, seconds[stage]) for stage in stages]
 
 
-def refine_seconds(refine: dict) -> float:
+def refine_seconds(refine: dict, costs: DeviceCosts = DEVICE_COSTS["cpu"]) -> float:
     """The refinement's cost from the job parameters' ``refine``: an attention pass per view, and per fitting step
     one more pass from the back-projection start (fresh views) or a fixed-view step from the paper's constant
     start (``voxe_core.presets.refine_config`` pairs the two so)."""
@@ -78,8 +189,8 @@ def refine_seconds(refine: dict) -> float:
     steps = refine.get("iterations")
     steps = paper.SERVICE_REFINE_ITERATIONS if steps is None else steps
     if refine.get("lift_start") == "constant":
-        return views * SECONDS_PER_UNIT["refine"] + steps * SECONDS_PER_UNIT["refine_fixed_step"]
-    return (views + steps) * SECONDS_PER_UNIT["refine"]
+        return views * costs.refine + steps * costs.refine_fixed_step
+    return (views + steps) * costs.refine
 
 
 def overall(*, costs: list[tuple[str, float]], completed: list[str], stage: str | None, stage_fraction: float,
@@ -101,7 +212,7 @@ def overall(*, costs: list[tuple[str, float]], completed: list[str], stage: str 
     if stage is None or stage_eta_s is None:
         return fraction, None
     later = [seconds for name, seconds in costs if name not in completed and name != stage]
-    speed = 1.0  # this machine's seconds per benchmark second, from the current stage
-    if stage_elapsed_s and stage_fraction > 0 and current > 0:
+    speed = 1.0  # this machine's seconds per benchmark second, from the current stage (not a fit: its scene sets it)
+    if stage != "reconstruct" and stage_elapsed_s and stage_fraction > 0 and current > 0:
         speed = stage_elapsed_s / (current * stage_fraction)
     return fraction, stage_eta_s + speed * sum(later)

@@ -325,8 +325,11 @@ def _fit_grid(job: Job, rec, settings, storage, callbacks: StageCallbacks, check
     from voxe_core.tensorio import FormatError
 
     scene = load_images(job, rec.params, settings, storage)
-    _, config, cameras, initial = fit_setup(rec.params, scene.alphas, scene.cameras, settings.checkpoint_every,
-                                            scene_backbone=job_scene(job).backbone)  # what the API checked
+    backbone, config, cameras, initial = fit_setup(rec.params, scene.alphas, scene.cameras, settings.checkpoint_every,
+                                                   scene_backbone=job_scene(job).backbone)  # what the API checked
+    # What progress weighs the fit by (voxe_service.progress.FitWork): a capture's steps cost more than an object's.
+    runtime.merge_job_result(job.id, {"fit": {"backbone": backbone, "steps": config.total_iterations,
+                                              "rays_per_step": config.rays_per_step}})
     runtime.renew_lease(rec.id, job.id, settings, job.run_token, total=config.total_iterations)
     resume = None
     if storage.exists(checkpoint_key):

@@ -16,8 +16,9 @@ from api.schemas import (
     JobCreate, JobEventOut, JobOut, JobReconstruction, JobState, Models, Page, WebhookDeliveryOut,
 )
 from api.services import jobs
+from voxe_core.presets import reconstruction_params
 from voxe_service.models import EVALUATE, R_SUCCEEDED, RUNNING, SUCCEEDED, Job, JobEvent, utcnow
-from voxe_service.progress import overall, stage_costs
+from voxe_service.progress import NO_FIT, fit_work, overall, stage_costs
 from voxe_service.settings import model_label
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
@@ -54,13 +55,15 @@ def job_out(job: Job) -> JobOut:
 
 def _overall(job: Job, now) -> tuple[float, float | None]:
     """(overall progress, seconds left for the job): voxe_service.progress over the job's stage costs."""
-    rec = job.reconstruction
-    if rec is not None and rec.state == R_SUCCEEDED and rec.owner_job_id != job.id and not _waited_for(job, rec):
-        units = 1  # reused a finished fit: nothing to fit or wait for
+    rec, result = job.reconstruction, job.result or {}
+    reused = rec is not None and rec.state == R_SUCCEEDED and rec.owner_job_id != job.id and not _waited_for(job, rec)
+    if reused or job.mode == EVALUATE:
+        fit = NO_FIT  # a finished fit reused: nothing to fit or wait for (an evaluation fits nothing)
     else:
-        units = (rec.total if rec is not None else 0) or (job.total if job.stage == "reconstruct" else None)
-    edit_iterations = ((job.result or {}).get("edit_schedule") or {}).get("iterations")
-    costs = stage_costs(mode=job.mode, params=job.params, reconstruction_units=units, edit_iterations=edit_iterations)
+        steps = (rec.total if rec is not None else 0) or (job.total if job.stage == "reconstruct" else None)
+        fit = fit_work(rec.params if rec is not None else reconstruction_params(job.params), result.get("fit"), steps)
+    edit_iterations = (result.get("edit_schedule") or {}).get("iterations")
+    costs = stage_costs(mode=job.mode, params=job.params, fit=fit, device=job.device, edit_iterations=edit_iterations)
     fraction = job.iteration / job.total if job.total else 0.0
     running = job.state == RUNNING
     return overall(costs=costs, completed=job.completed_stages or [], stage=job.stage if running else None,
