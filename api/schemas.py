@@ -413,7 +413,7 @@ class JobOut(BaseModel):
     source_job_ids: list[str] | None = Field(None, description="evaluation jobs: the edit jobs scored")
     result: dict | None = Field(None, description=(
         "peak_memory_gb: each stage's peak memory in GiB (peak_memory_kind: cuda_allocated on a GPU worker, "
-        "process_rss on a CPU one); edit_schedule: the edit the worker runs, recorded when the reconstruction ends (backbone of G_i, iterations, i_start, "
+        "process_rss on a CPU one); edit_schedule: the edit the worker runs, recorded when the job's fit starts or its reconstruct stage ends (backbone of G_i, iterations, i_start, "
         "every, floor: SPEC §5's 5000 / 3000 / 400 for a capture's scene grid); fit: what the job's own fit runs, "
         "recorded as it starts (backbone, steps, rays_per_step: what overall_progress weighs it by); orbit_centre: the point the "
         "renders and the turntable look at, in G_i's frame (the origin for objects, the fitted object's matter "

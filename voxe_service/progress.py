@@ -36,7 +36,8 @@ A fit is weighed by what it runs (``FitWork``): the recipe the worker records in
 fit starts, else the one the reconstruction's parameters resolve to (a backbone "auto" not yet decided: an
 object's). An edit is weighed by its job's ``iterations`` until G_i's kind is known, then by the count its
 schedule runs (a capture's scene grid runs 5,000 where the parameters say the objects' 8,000): the reconstruct
-stage records it in ``Job.result["edit_schedule"]`` as it ends.
+stage records it in ``Job.result["edit_schedule"]`` as its fit starts (a fit reused or waited for: as the stage
+ends).
 
 The fraction weighs completed stages fully and the current one by its own progress. The time left is the
 current stage's own estimate (from its iteration rate) plus the later stages' costs, scaled by how fast this

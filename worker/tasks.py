@@ -225,8 +225,9 @@ def _reconstruct(job: Job, settings, device: str, storage) -> None:
 
 def _record_edit_schedule(job: Job, kind: str, settings) -> "EditConfig":
     """The edit's config for a G_i of ``kind``, its schedule kept in the job's result from the moment the kind is
-    known (the end of reconstruct), so that progress weighs the edit by the count it will run (a capture's scene
-    grid: SPEC §5's 5,000 where the parameters say 8,000) before it starts."""
+    known (the fit's start, or the end of reconstruct for a fit reused or waited for), so that progress weighs the
+    edit by the count it will run (a capture's scene grid: SPEC §5's 5,000 where the parameters say 8,000) before
+    it starts."""
     config = edit_config(job.params, kind, settings.checkpoint_every)
     runtime.merge_job_result(job.id, {"edit_schedule": {
         "backbone": kind, "iterations": config.iterations, "i_start": config.schedule.i_start,
@@ -327,9 +328,11 @@ def _fit_grid(job: Job, rec, settings, storage, callbacks: StageCallbacks, check
     scene = load_images(job, rec.params, settings, storage)
     backbone, config, cameras, initial = fit_setup(rec.params, scene.alphas, scene.cameras, settings.checkpoint_every,
                                                    scene_backbone=job_scene(job).backbone)  # what the API checked
-    # What progress weighs the fit by (voxe_service.progress.FitWork): a capture's steps cost more than an object's.
+    # What progress weighs the fit by (voxe_service.progress.FitWork): a capture's steps cost more than an object's,
+    # and its edit runs SPEC §5's count, both known from here on.
     runtime.merge_job_result(job.id, {"fit": {"backbone": backbone, "steps": config.total_iterations,
                                               "rays_per_step": config.rays_per_step}})
+    _record_edit_schedule(job, backbone, settings)
     runtime.renew_lease(rec.id, job.id, settings, job.run_token, total=config.total_iterations)
     resume = None
     if storage.exists(checkpoint_key):
