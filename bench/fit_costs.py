@@ -8,7 +8,7 @@ default parameters, backbone and recipe resolved by ``fit_setup``) on the kind o
 last and the reference is their mean, so the ratios hold over the machine's load during the run. Beside each
 time, the held-out PSNR the fit bought.
 
-    python bench/fit_costs.py    # ~15 min on 2 cores
+    python bench/fit_costs.py    # ~8 min on 2 cores
 
 Writes bench/results/fit_costs.json and fit_costs.png.
 """

@@ -615,6 +615,7 @@ def test_a_job_waits_for_the_fit_another_job_runs(client, dataset, root):
     from sqlalchemy import update
 
     from voxe_core.grid import VoxelGrid
+    from voxe_core.presets import reconstruct_config, reconstruction_params
     from voxe_core.progress import StageCancelled
     from voxe_service.db import session_scope
     from voxe_service.models import Job
@@ -645,6 +646,11 @@ def test_a_job_waits_for_the_fit_another_job_runs(client, dataset, root):
     assert thread.is_alive()  # waiting: the fit it waits for is a's, and a never ran it
     waiting = client.get(f"/v1/jobs/{b['id']}").json()
     assert waiting["message"].startswith(f"waiting for the scene's reconstruction {rec_id} (fitted by job {a['id']})")
+    # Weighed as the fit it waits for (voxe_service.progress.FitWork), with the edit that fit leads to.
+    fitted = reconstruct_config(reconstruction_params(waiting["params"]), backbone="relu_field")
+    assert waiting["result"]["fit"] == {"backbone": "relu_field", "steps": fitted.total_iterations,
+                                        "rays_per_step": fitted.rays_per_step}
+    assert waiting["result"]["edit_schedule"]["iterations"] == 8000
 
     grid = VoxelGrid(8)
     with torch.no_grad():

@@ -70,6 +70,7 @@ def test_a_fit_is_weighed_by_its_steps_rays_and_backbone():
     assert fit_work({"iterations": [100, 200]}) == FitWork(300, 2048, "scene")  # only a capture's preset has 2 stages
     assert fit_work({"backbone": "scene", "rays_per_step": 512}) == FitWork(1200, 512, "scene")
     assert fit_work({"backbone": "relu_field", "iterations": [1, 2]}) == fast  # resolves to nothing: the default
+    assert fit_work({"iterations": 1.5}) == fit_work({}, {"backbone": "scene"}) == fast  # odd records weigh as it
     assert fit_work({"route": "voxelize"}).steps == 1
     recorded = {"backbone": "scene", "steps": 1200, "rays_per_step": 2048}
     assert fit_work({}, recorded, steps=600) == FitWork(600, 2048, "scene")  # the worker's record, its reported steps

@@ -1,8 +1,8 @@
 """A job's progress across all its stages, and the time it has left, from measured stage costs.
 
 Each stage's cost is its units of work (fit steps, iterations, rendered views) times seconds per unit on the kind
-of device the job runs on (``Job.device``: the worker's), each table measured in one sitting, since only the
-ratios between stages matter:
+of device the job runs on (``Job.device``: the worker's). Only the ratios between stages matter, so each table's
+stage figures come from one sitting (the CPU's capture factor is a ratio within its own run):
 
 * ``cpu`` (2 CPU cores, torch 2.13 CPU; ``bench/results``), the records re-run at a8fc17f (the fit minutes after
   the others):
@@ -28,13 +28,16 @@ ratios between stages matter:
   27.5 s for 500 iterations, refine 6.3 s for 32 attention passes, export 1.7 s for 35 views (4 renders, 30
   turntable frames, the mesh). A GPU step costs its dispatches, not its rays (call 4: ``fast``'s 2,000 steps of
   4,096 rays in 22.9 s, ``paper``'s 2,000 of 32,768 in 22.2 s). Unmeasured there: a capture's fit step (taken
-  as an object's) and the fixed-view refinement step (taken as a fit step: rays rendered, a loss, Adam).
+  as an object's), the fixed-view refinement step (taken as a fit step: rays rendered, a loss, Adam) and an
+  evaluation (taken as the export's renders; its CLIP and FID scorers are not counted).
 
-A device this module does not know (``mps``) is weighed as a CPU.
+A device this module does not know (``mps``) is weighed as a CPU. A job's stages are all weighed by the device of
+the one running: one whose stages move between kinds of device (a mixed pool) is weighed anew, and its fraction
+can step back when it moves (a fit done on a GPU weighs far less against a CPU's edit).
 
 A fit is weighed by what it runs (``FitWork``): the recipe the worker records in ``Job.result["fit"]`` as the
-fit starts, else the one the reconstruction's parameters resolve to (a backbone "auto" not yet decided: an
-object's). An edit is weighed by its job's ``iterations`` until G_i's kind is known, then by the count its
+fit starts (or as the job starts waiting for another job's fit), else the one the reconstruction's parameters
+resolve to (a backbone "auto" before a worker has recorded it: an object's). An edit is weighed by its job's ``iterations`` until G_i's kind is known, then by the count its
 schedule runs (a capture's scene grid runs 5,000 where the parameters say the objects' 8,000): the reconstruct
 stage records it in ``Job.result["edit_schedule"]`` as its fit starts (a fit reused or waited for: as the stage
 ends).
@@ -139,9 +142,9 @@ def fit_work(rec_params: dict, recorded: dict | None = None, steps: int | None =
         >>> fit_work({"iterations": [100, 200]}, steps=40)  # only a capture's preset has two stages
         FitWork(steps=40, rays_per_step=2048, backbone='scene')
     """
-    if recorded:
+    if recorded and {"steps", "rays_per_step", "backbone"} <= recorded.keys():
         work = FitWork(recorded["steps"], recorded["rays_per_step"], recorded["backbone"])
-    elif rec_params.get("route") == "voxelize":  # one step, reported at completion (seconds on the CPU)
+    elif rec_params.get("route") == "voxelize":  # one step reported at completion, weighed as one fit step
         work = FitWork(1, DEVICE_COSTS["cpu"].fit_rays, "relu_field")
     else:
         work = _resolved_fit(rec_params)
@@ -155,7 +158,7 @@ def _resolved_fit(rec_params: dict) -> FitWork:
     for backbone in BACKBONE_KINDS if asked == "auto" else (asked,):
         try:
             config = reconstruct_config(rec_params, backbone=backbone)
-        except ValueError:
+        except (ValueError, TypeError):
             continue
         return FitWork(config.total_iterations, config.rays_per_step, backbone)
     return _resolved_fit({})
@@ -182,7 +185,7 @@ def stage_costs(*, mode: str, params: dict, fit: FitWork, device: str = "cpu",
     return [(stage, seconds[stage]) for stage in stages]
 
 
-def refine_seconds(refine: dict, costs: DeviceCosts = DEVICE_COSTS["cpu"]) -> float:
+def refine_seconds(refine: dict, costs: DeviceCosts) -> float:
     """The refinement's cost from the job parameters' ``refine``: an attention pass per view, and per fitting step
     one more pass from the back-projection start (fresh views) or a fixed-view step from the paper's constant
     start (``voxe_core.presets.refine_config`` pairs the two so)."""

@@ -31,7 +31,7 @@ from celery import signals
 from celery.exceptions import Ignore, SoftTimeLimitExceeded
 from sqlalchemy import select
 
-from voxe_core.presets import edit_config, export_config, fit_setup, reconstruct_config, refine_config
+from voxe_core.presets import edit_config, export_config, fit_backbone, fit_setup, reconstruct_config, refine_config
 from voxe_core.progress import Callbacks, Progress, StageCancelled
 from voxe_service.db import sync_clock
 from voxe_service.models import (
@@ -184,7 +184,7 @@ def _reconstruct(job: Job, settings, device: str, storage) -> None:
         raise RuntimeError("job has no reconstruction record")
     callbacks = StageCallbacks(job, "reconstruct", settings)
     first = True
-    ran_here = False
+    ran_here = waiting = False
     while True:
         rec = runtime.load_reconstruction(rec_id)
         if rec is None:
@@ -205,6 +205,11 @@ def _reconstruct(job: Job, settings, device: str, storage) -> None:
             if rec.state == R_FAILED:
                 raise ReconstructionFailed(f"reconstruct: the scene's reconstruction failed: {rec.error}")
         first = False
+        if not waiting and rec.params.get("route") != "voxelize":  # the fit it waits for, weighed as the owner's
+            backbone = fit_backbone(rec.params, job_scene(job).backbone)
+            if backbone != "auto":
+                _record_fit(job, backbone, reconstruct_config(rec.params, backbone=backbone), settings)
+        waiting = True
         owner = f" (fitted by job {rec.owner_job_id})" if rec.owner_job_id else ""
         runtime.update_job(job.id, iteration=rec.iteration, total=rec.total,
                            message=f"waiting for the scene's reconstruction {rec.id}{owner}")
@@ -223,9 +228,18 @@ def _reconstruct(job: Job, settings, device: str, storage) -> None:
     _preview(job.id, initial, settings, storage, device, centre=_record_orbit_centre(job.id, initial))
 
 
+def _record_fit(job: Job, backbone: str, config, settings) -> None:
+    """The fit the job runs or waits for and the edit it leads to, kept in the job's result for progress to weigh
+    them by (``voxe_service.progress.FitWork``): a capture's fit steps cost more than an object's, and its edit
+    runs SPEC §5's count."""
+    runtime.merge_job_result(job.id, {"fit": {"backbone": backbone, "steps": config.total_iterations,
+                                              "rays_per_step": config.rays_per_step}})
+    _record_edit_schedule(job, backbone, settings)
+
+
 def _record_edit_schedule(job: Job, kind: str, settings) -> "EditConfig":
     """The edit's config for a G_i of ``kind``, its schedule kept in the job's result from the moment the kind is
-    known (the fit's start, or the end of reconstruct for a fit reused or waited for), so that progress weighs the
+    known (the fit's start, or the end of reconstruct for a finished fit reused), so that progress weighs the
     edit by the count it will run (a capture's scene grid: SPEC §5's 5,000 where the parameters say 8,000) before
     it starts."""
     config = edit_config(job.params, kind, settings.checkpoint_every)
@@ -328,11 +342,7 @@ def _fit_grid(job: Job, rec, settings, storage, callbacks: StageCallbacks, check
     scene = load_images(job, rec.params, settings, storage)
     backbone, config, cameras, initial = fit_setup(rec.params, scene.alphas, scene.cameras, settings.checkpoint_every,
                                                    scene_backbone=job_scene(job).backbone)  # what the API checked
-    # What progress weighs the fit by (voxe_service.progress.FitWork): a capture's steps cost more than an object's,
-    # and its edit runs SPEC §5's count, both known from here on.
-    runtime.merge_job_result(job.id, {"fit": {"backbone": backbone, "steps": config.total_iterations,
-                                              "rays_per_step": config.rays_per_step}})
-    _record_edit_schedule(job, backbone, settings)
+    _record_fit(job, backbone, config, settings)
     runtime.renew_lease(rec.id, job.id, settings, job.run_token, total=config.total_iterations)
     resume = None
     if storage.exists(checkpoint_key):

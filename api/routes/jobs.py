@@ -60,7 +60,7 @@ def _overall(job: Job, now) -> tuple[float, float | None]:
     if reused or job.mode == EVALUATE:
         fit = NO_FIT  # a finished fit reused: nothing to fit or wait for (an evaluation fits nothing)
     else:
-        steps = (rec.total if rec is not None else 0) or (job.total if job.stage == "reconstruct" else None)
+        steps = (rec.total if rec is not None else 0) or (job.total if job.stage == "reconstruct" else 0) or None
         fit = fit_work(rec.params if rec is not None else reconstruction_params(job.params), result.get("fit"), steps)
     edit_iterations = (result.get("edit_schedule") or {}).get("iterations")
     costs = stage_costs(mode=job.mode, params=job.params, fit=fit, device=job.device, edit_iterations=edit_iterations)
