@@ -350,12 +350,14 @@ def test_scene_fits_get_the_scene_preset_by_default_and_their_key_follows_it(mon
         assert reconstruct_config(params, backbone="scene") == ReconstructConfig.scene()
         assert reconstruct_config(params, backbone="relu_field") == ReconstructConfig.fast()
     named = reconstruction_params({"reconstruction": {"preset": "fast"}})
-    # ... a named preset is that budget, drawn, rendered and stepped as a capture needs (the early-stop pass, every
-    # image, scene()'s lr), its steps and rays its own
+    # ... a named preset is that budget, drawn, rendered, stepped and regularised as a capture needs (the early-stop
+    # pass, every image, scene()'s lr and priors), its steps and rays its own
     capture, fast, scene = ReconstructConfig.fast().for_backbone("scene"), ReconstructConfig.fast(), ReconstructConfig.scene()
     assert reconstruct_config(named, backbone="scene") == capture != fast
-    assert (capture.images_per_step, capture.lr, capture.render.early_stop) == \
-        (scene.images_per_step, scene.lr, scene.render.early_stop) != (fast.images_per_step, fast.lr, fast.render.early_stop)
+    as_capture = lambda c: (c.images_per_step, c.lr, c.render.early_stop, c.tv_density, c.tv_color,  # noqa: E731
+                            c.camera_clearance)
+    assert as_capture(capture) == as_capture(scene) != as_capture(fast)
+    assert fast.tv_density == fast.tv_color == fast.camera_clearance == 0  # an object's fit has none of them
     assert (capture.iterations, capture.rays_per_step, capture.resolutions) == (fast.iterations, fast.rays_per_step,
                                                                                 fast.resolutions)
     keys = {name: reconstruction_key(reconstruction_params({"reconstruction": {"backbone": name}}))
