@@ -37,10 +37,10 @@ can step back when it moves (a fit done on a GPU weighs far less against a CPU's
 
 A fit is weighed by what it runs (``FitWork``): the recipe the worker records in ``Job.result["fit"]`` as the
 fit starts (or as the job starts waiting for another job's fit), else the one the reconstruction's parameters
-resolve to (a backbone "auto" before a worker has recorded it: an object's). An edit is weighed by its job's ``iterations`` until G_i's kind is known, then by the count its
-schedule runs (a capture's scene grid runs 5,000 where the parameters say the objects' 8,000): the reconstruct
-stage records it in ``Job.result["edit_schedule"]`` as its fit starts (a fit reused or waited for: as the stage
-ends).
+resolve to (a backbone "auto" before a worker has recorded it: an object's). An edit is weighed by its job's
+``iterations`` until G_i's kind is known, then by the count its schedule runs (a capture's scene grid runs 5,000
+where the parameters say the objects' 8,000): the reconstruct stage records it in ``Job.result["edit_schedule"]``
+with the fit (a finished fit reused: as the stage ends).
 
 The fraction weighs completed stages fully and the current one by its own progress. The time left is the
 current stage's own estimate (from its iteration rate) plus the later stages' costs, scaled by how fast this
