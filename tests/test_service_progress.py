@@ -51,8 +51,10 @@ def test_the_cpu_weights_are_the_benchmarks_figures():
 def test_the_cuda_weights_are_one_job_through_the_worker_on_the_h200():
     runs = json.loads((RESULTS / "gpu.json").read_text())["runs"]
     job = next(r for r in runs if r["kind"] == "job" and r["device"] == "cuda")
-    fit_steps = next(r for r in runs if r["kind"] == "reconstruction" and r["preset"] == "fast")["iterations"]
-    assert fit_steps == 2000  # fast's steps when the job ran (call 5; section c's fast row, call 4, ran them too)
+    # The job's fit as it recorded it (bench/gpu.py records it since 2026-12-05); call 5's ran fast's steps of then,
+    # as section c's fast row (call 4) did.
+    fit_steps = (job.get("fit") or {}).get("steps") or next(
+        r for r in runs if r["kind"] == "reconstruction" and r["preset"] == "fast")["iterations"]
     export = {"views": 4, "turntable_frames": 30, "gif": False}  # bench/gpu.py's Profile.full(), the mesh by default
     seconds = dict(stage_costs(mode="local", params={"iterations": job["edit_iterations"], "export": export},
                                fit=FitWork(fit_steps, 4096, "relu_field"), device="cuda"))
