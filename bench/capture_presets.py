@@ -82,6 +82,7 @@ def plot(runs: list[dict], path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     fig, ax = plt.subplots(figsize=(6.0, 3.8))
     for seed in sorted({r["seed"] for r in runs}):
@@ -92,6 +93,12 @@ def plot(runs: list[dict], path: Path) -> None:
         ax.scatter([r["seconds"] for r in chosen], [r["psnr_held_out"] for r in chosen], marker=marker, zorder=2,
                    label=f"{variant} (seeds {', '.join(str(r['seed']) for r in chosen)})")
     ax.set_xscale("log")
+    ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%d"))
+    ax.xaxis.set_minor_formatter(matplotlib.ticker.FormatStrFormatter("%d"))
+    for run in runs:
+        ax.annotate(f"seed {run['seed']}", (run["seconds"], run["psnr_held_out"]), textcoords="offset points",
+                    xytext=(6, -3), fontsize=7)
+    ax.margins(x=0.12)
     ax.set_xlabel("training seconds (one thread per fit, log scale)")
     ax.set_ylabel("held-out PSNR (dB)")
     presets = ", ".join(sorted({r["preset"] for r in runs}))

@@ -146,15 +146,14 @@ class ReconstructConfig:
         """This recipe drawn, rendered and regularised as a fit of a ``backbone`` grid needs: a capture's ("scene")
         rays go on through the room, so it keeps ``scene()``'s early-stop pass (half of fox's samples dropped),
         every-image draw (8 images cost fox 0.7 dB), lr and priors whichever budget it runs; an object's recipe is
-        left as it is. Fitting fox with ``fast()`` as a capture (16× downsampled, seeds 0 / 1, scratch runs, held-out
-        PSNR):
+        left as it is. Fitting fox with ``fast()`` as a capture (16× downsampled, seeds 0 / 1, held-out PSNR):
 
         * the lr: ``fast()``'s 0.04 was tuned on an object (mic); 19.60 / 20.68 dB at 0.04 against 22.00 / 21.49
-          at 0.03 (the 4,096-ray recipe it replaced: 21.92 / 20.18);
+          at 0.03 (the 4,096-ray recipe it replaced: 21.92 / 20.18; scratch runs);
         * the priors (total variation over occupied space, free space around the cameras): 26.49 / 26.19 dB with
-          them against 22.01 / 21.50 without, in 1.14× the time (1,022 / 1,016 against 893 / 901 s, one thread
-          each); the training views 29.3 / 29.0 against 29.9 / 30.4 dB: without them the fit paints the room
-          seen past a camera into clouds in front of the others, as ``scene()``'s docstring tells.
+          them against 22.01 / 21.50 without, in 1.08× / 1.13× the time (bench/capture_presets.py, each seed's
+          pair side by side); the training views 29.3 / 29.0 against 29.9 / 30.4 dB: without them the fit paints
+          the room seen past a camera into clouds in front of the others, as ``scene()``'s docstring tells.
 
         Examples:
             >>> fast = ReconstructConfig.fast()
