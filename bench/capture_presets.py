@@ -28,7 +28,6 @@ import torch
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 DATA = HERE.parent.parent / "shared" / "data" / "fox"
-RESULTS = HERE / "results"
 VARIANTS = ("priors", "none")
 DOWNSAMPLE, HOLDOUT_EVERY = 16, 8
 
@@ -110,6 +109,8 @@ def plot(runs: list[dict], path: Path) -> None:
 
 
 def main() -> None:
+    from report import write_results
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="fast", choices=("fast", "paper"))
     parser.add_argument("--seeds", type=int, nargs="+", default=(0, 1))
@@ -128,11 +129,7 @@ def main() -> None:
                 raise SystemExit(f"a fit failed (exit {proc.returncode})")
             runs.append(json.loads(out.strip().splitlines()[-1]))
             print(json.dumps(runs[-1]), flush=True)
-    result = {"runs": runs, "summary": summary(runs)}
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "capture_presets.json").write_text(json.dumps(result, indent=1) + "\n")
-    plot(runs, RESULTS / "capture_presets.png")
-    print(json.dumps(result["summary"], indent=1))
+    write_results("capture_presets", runs, summary(runs), plot)
 
 
 if __name__ == "__main__":

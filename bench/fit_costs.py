@@ -26,7 +26,6 @@ import torch
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 DATA = HERE.parent.parent / "shared" / "data"
-RESULTS = HERE / "results"
 MIC = "nerf_synthetic_mic"
 CASES = [("fast", MIC), ("paper", MIC), ("scene", "fox"), ("fast", MIC)]
 HOLDOUT_EVERY = {"fox": 8}  # a capture has no test split: every 8th photo is held out (SPEC §5)
@@ -113,16 +112,14 @@ def plot(runs: list[dict], path: Path) -> None:
 
 
 def main() -> None:
+    from report import write_results
+
     torch.set_num_threads(os.cpu_count() or 1)
     runs = []
     for preset, scene_name in CASES:
         runs.append(fit(preset, scene_name))
         print(json.dumps(runs[-1]), flush=True)
-    result = {"runs": runs, "summary": summary(runs)}
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "fit_costs.json").write_text(json.dumps(result, indent=1) + "\n")
-    plot(runs, RESULTS / "fit_costs.png")
-    print(json.dumps(result["summary"], indent=1))
+    write_results("fit_costs", runs, summary(runs), plot)
 
 
 if __name__ == "__main__":

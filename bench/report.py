@@ -88,6 +88,15 @@ def run_stage(stage: Stage, quick: bool, results: Path, timeout_s: float | None)
     return None
 
 
+def write_results(stem: str, runs: list[dict], summary: dict, plot) -> None:
+    """A benchmark's ``{"runs", "summary"}`` as results/<stem>.json, ``plot(runs, path)`` as its PNG, the summary
+    printed: what a script measuring runs into one summary writes."""
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / f"{stem}.json").write_text(json.dumps({"runs": runs, "summary": summary}, indent=1) + "\n")
+    plot(runs, RESULTS / f"{stem}.png")
+    print(json.dumps(summary, indent=1))
+
+
 def load_json(path: Path):
     try:
         return json.loads(path.read_text())
