@@ -296,3 +296,17 @@ def test_report_docstring_examples_hold():
 
     result = doctest.testmod(report, optionflags=doctest.ELLIPSIS)
     assert result.attempted >= 3 and result.failed == 0  # place_labels, pareto_front, seed_means, ...
+
+
+def test_write_results_writes_runs_and_summary_and_their_plot(tmp_path, monkeypatch, capsys):
+    """bench/fit_costs.py's and bench/capture_presets.py's records, written again from their own runs: the same JSON."""
+    import capture_presets
+    import fit_costs
+
+    monkeypatch.setattr(report, "RESULTS", tmp_path)
+    for module, stem in ((fit_costs, "fit_costs"), (capture_presets, "capture_presets")):
+        record = json.loads((report.HERE / "results" / f"{stem}.json").read_text())
+        report.write_results(stem, record["runs"], module.summary(record["runs"]), module.plot)
+        assert json.loads((tmp_path / f"{stem}.json").read_text()) == record
+        assert (tmp_path / f"{stem}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        assert json.loads(capsys.readouterr().out) == record["summary"]
