@@ -34,7 +34,7 @@ DOWNSAMPLE, HOLDOUT_EVERY = 16, 8
 
 def fit(preset: str, seed: int, variant: str) -> dict:
     """One fit of ``preset`` on fox as a job resolves it, without the priors for ``variant`` "none"."""
-    from reconstruction import commit_measured
+    from reconstruction import WITHOUT_CAPTURE_PRIORS, commit_measured
 
     from voxe_core.data import load_scene
     from voxe_core.metrics import psnr
@@ -48,7 +48,7 @@ def fit(preset: str, seed: int, variant: str) -> dict:
     test = load_scene(DATA, "test", downsample=DOWNSAMPLE, holdout_every=HOLDOUT_EVERY)
     backbone, config, cameras, initial = fit_setup(rec_params, train.alphas, train.cameras)
     if variant == "none":
-        config = replace(config, tv_density=0.0, tv_color=0.0, camera_clearance=0.0)
+        config = replace(config, **WITHOUT_CAPTURE_PRIORS)
     start = time.perf_counter()
     grid = reconstruct(train.images, cameras, config, initial_grid=initial)
     seconds = time.perf_counter() - start

@@ -40,6 +40,8 @@ BRICK = 8
 
 def scene_grids(args) -> dict:
     """name -> 128³ grid: two reconstructions and two voxelised meshes."""
+    from reconstruction import WITHOUT_CAPTURE_PRIORS
+
     from voxe_core.backbones import prepare_backbone
     from voxe_core.data import load_scene
     from voxe_core.mesh_input import VoxelizeConfig, load_mesh, voxelize
@@ -56,8 +58,7 @@ def scene_grids(args) -> dict:
                                         iterations=iterations, rays_per_step=4096, lr=0.03)
         backbone, cameras, initial = prepare_backbone("auto", scene.alphas, scene.cameras, config.resolutions[0])
         # ... and without the priors a capture's fit has kept since 2026-12-05 (the fox record's grid had none).
-        config = dataclasses.replace(config.for_backbone(backbone), tv_density=0.0, tv_color=0.0,
-                                     camera_clearance=0.0)
+        config = dataclasses.replace(config.for_backbone(backbone), **WITHOUT_CAPTURE_PRIORS)
         t0 = time.perf_counter()
         grids[name] = reconstruct(scene.images, cameras, config, initial_grid=initial)
         print(f"{name}: {backbone} grid fitted in {time.perf_counter() - t0:.0f} s", flush=True)

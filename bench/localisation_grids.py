@@ -72,6 +72,8 @@ HAT_HALF = (4, 4, 3)  # half-extent of the hat box in vertices (x, y, z)
 
 def fit(images: torch.Tensor, cameras: Cameras, resolution: int, path: Path, initial: VoxelGrid | None = None) -> VoxelGrid:
     """A ``ReconstructConfig.fast`` fit at resolution/2 → resolution, cached as a grid file at ``path``."""
+    from reconstruction import WITHOUT_CAPTURE_PRIORS
+
     from voxe_core.backbones import load_grid
     from voxe_core.reconstruct import ReconstructConfig, reconstruct
 
@@ -82,7 +84,7 @@ def fit(images: torch.Tensor, cameras: Cameras, resolution: int, path: Path, ini
                                     image_downsample=(2, 1), rays_per_step=2048, lr=0.03)
     config = config.for_backbone("relu_field" if initial is None else "scene")  # a capture starts from a SceneGrid
     # Without the priors a capture's fit has kept since 2026-12-05: the cached fox grid was fitted without them.
-    config = dataclasses.replace(config, tv_density=0.0, tv_color=0.0, camera_clearance=0.0)
+    config = dataclasses.replace(config, **WITHOUT_CAPTURE_PRIORS)
     t0 = time.perf_counter()
     grid = reconstruct(images, cameras, config, initial_grid=initial)
     print(f"fitted {path.name} in {time.perf_counter() - t0:.0f} s", flush=True)

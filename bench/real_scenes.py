@@ -193,12 +193,14 @@ def bench_config(args, checkpoint_every: int = 0):
     step's rays from every image and rendered as a capture's fit renders (``scene()``'s early stop, which object
     fits go without) at ``scene()``'s lr for both backbones (``ReconstructConfig.for_backbone``), without the
     priors a capture's named preset has kept since 2026-12-05: the recipe the records were measured with."""
+    from reconstruction import WITHOUT_CAPTURE_PRIORS
+
     from voxe_core.reconstruct import ReconstructConfig
 
     config = ReconstructConfig.fast(resolutions=(args.resolution // 2, args.resolution),
                                     iterations=tuple(args.iterations), image_downsample=(2, 1), rays_per_step=args.rays,
                                     seed=args.seed, checkpoint_every=checkpoint_every).for_backbone("scene")
-    return replace(config, tv_density=0.0, tv_color=0.0, camera_clearance=0.0)
+    return replace(config, **WITHOUT_CAPTURE_PRIORS)
 
 
 def step_cost(args) -> dict:

@@ -229,12 +229,12 @@ def _reconstruct(job: Job, settings, device: str, storage) -> None:
 
 
 def _record_fit(job: Job, backbone: str, config, settings) -> None:
-    """The fit the job runs or waits for and the edit it leads to, kept in the job's result for progress to weigh
-    them by (``voxe_service.progress.FitWork``): a capture's fit steps cost more than an object's, and its edit
-    runs SPEC §5's count."""
+    """The fit the job runs or waits for and the edit it leads to, kept in the job's result (one write) for progress
+    to weigh them by (``voxe_service.progress.FitWork``): a capture's fit steps cost more than an object's, and its
+    edit runs SPEC §5's count."""
     runtime.merge_job_result(job.id, {"fit": {"backbone": backbone, "steps": config.total_iterations,
-                                              "rays_per_step": config.rays_per_step}})
-    _record_edit_schedule(job, backbone, settings)
+                                              "rays_per_step": config.rays_per_step},
+                                      "edit_schedule": _edit_schedule(job, backbone, settings)[1]})
 
 
 def _record_edit_schedule(job: Job, kind: str, settings) -> "EditConfig":
@@ -242,11 +242,16 @@ def _record_edit_schedule(job: Job, kind: str, settings) -> "EditConfig":
     known (the fit's start, or the end of reconstruct for a finished fit reused), so that progress weighs the
     edit by the count it will run (a capture's scene grid: SPEC §5's 5,000 where the parameters say 8,000) before
     it starts."""
-    config = edit_config(job.params, kind, settings.checkpoint_every)
-    runtime.merge_job_result(job.id, {"edit_schedule": {
-        "backbone": kind, "iterations": config.iterations, "i_start": config.schedule.i_start,
-        "every": config.schedule.every, "floor": config.schedule.floor}})
+    config, schedule = _edit_schedule(job, kind, settings)
+    runtime.merge_job_result(job.id, {"edit_schedule": schedule})
     return config
+
+
+def _edit_schedule(job: Job, kind: str, settings) -> tuple["EditConfig", dict]:
+    """The edit's config for a G_i of ``kind`` and its schedule as the job's result keeps it."""
+    config = edit_config(job.params, kind, settings.checkpoint_every)
+    return config, {"backbone": kind, "iterations": config.iterations, "i_start": config.schedule.i_start,
+                    "every": config.schedule.every, "floor": config.schedule.floor}
 
 
 def _record_orbit_centre(job_id: str, initial) -> "torch.Tensor":
