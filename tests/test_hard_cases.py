@@ -37,7 +37,7 @@ from voxe_core.guidance.sds import StableDiffusionGuidance
 from voxe_core.losses import correlation_loss, correlation_loss_plus_rgb
 from voxe_core.reconstruct import ReconstructConfig, reconstruct
 from voxe_core.refine.config import RefineConfig, SegmentationError
-from voxe_core.refine.cut import graph_cut, graph_cut_detailed, probabilities
+from voxe_core.refine.cut import graph_cut, graph_cut_detailed, node_mask, probabilities
 from voxe_core.refine.lifting import fit_attention_grids
 from voxe_core.refine.maps import postprocess_maps
 from voxe_core.render import RenderConfig, render_image, render_rays
@@ -531,6 +531,45 @@ def _(fx):
     edit, obj = fit_attention_grids(grid, cams, maps, maps, config)
     assert torch.equal(edit, obj)  # the same targets fit bit-identical fields
     graph_cut(grid, edit, obj, config)
+
+
+def _split_sphere(nan_at: str | None) -> tuple[VoxelGrid, torch.Tensor, torch.Tensor]:
+    """A sphere whose +x half prefers the edit, with one NaN put into ``nan_at`` ("colour", "edit_field" or None)
+    at an occupied vertex of that half."""
+    grid = make_sphere_grid(12, radius=0.8)
+    edit = (SPLIT_X > 0).float() * 4 - 2
+    if nan_at == "colour":
+        with torch.no_grad():
+            grid.features[9, 6, 6, 1] = float("nan")
+    elif nan_at == "edit_field":
+        edit[9, 6, 6] = float("nan")
+    return grid, edit, -edit
+
+
+SPLIT_X = torch.linspace(-1.5, 1.5, 12)[:, None, None].expand(12, 12, 12)
+
+
+@case("segmentation/one-nan-colour-is-named-not-cut-everywhere", "error",
+      (SegmentationError, r"grid colour is not finite \(NaN or infinite\) at 1 of the \d+ occupied voxels"))
+def _(fx):
+    graph_cut(*_split_sphere("colour"))  # the NaN had made every seed's capacity NaN: all voxels "edit"
+
+
+@case("segmentation/one-nan-attention-value-is-named", "error",
+      (SegmentationError, r"edit_field is not finite \(NaN or infinite\) at 1 of the \d+ occupied voxels"))
+def _(fx):
+    grid, edit, obj = _split_sphere("edit_field")
+    graph_cut(grid, edit, obj, RefineConfig(unseeded_unary="log_probability"))
+
+
+@case("segmentation/the-same-sphere-without-nan-cuts-at-the-split", "exact")
+def _(fx):
+    grid, edit, obj = _split_sphere(None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # fewer seeds qualify than asked: expected on 12^3
+        mask = graph_cut(grid, edit, obj)
+    nodes = node_mask(grid, rule=RefineConfig.node_rule)
+    return [("edit voxels are the +x half of the nodes", mask, nodes & (SPLIT_X > 0), 0)]
 
 
 # --------------------------------------------------------------------------- data

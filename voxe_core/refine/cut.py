@@ -207,9 +207,9 @@ def graph_cut_detailed(
     ``object_seed_fallback`` highest P_obj whatever their preference ("random"); or the ``object_seeds``
     highest P_obj among P_obj > ½ ("top"). A node in both sets stays an edit seed. When fewer seeds
     than asked qualify, the available ones are used and ``stats.notes`` (and a warning) says so.
-    Raises :class:`SegmentationError` when no node is occupied or when no node
-    qualifies as a seed of either label (the grids carry no preference
-    anywhere, e.g. all-equal probabilities).
+    Raises :class:`SegmentationError` when no node is occupied, when a field or the grid's colour is not finite
+    at a node, or when no node qualifies as a seed of either label (the grids carry no preference anywhere,
+    e.g. all-equal probabilities).
     """
     import maxflow
 
@@ -228,6 +228,15 @@ def graph_cut_detailed(
     nodes_np = nodes.numpy()
     log_e = log_e.numpy()[nodes_np]
     log_o = log_o.numpy()[nodes_np]
+    colors = torch.sigmoid(grid.features[..., 1:4].detach().float()).cpu().numpy()
+    # One non-finite capacity would make the seeds' "infinite" capacity NaN and every node an edit.
+    for name, values in (("edit_field", log_e), ("object_field", log_o), ("grid colour", colors[nodes_np])):
+        bad = int((~np.isfinite(values)).reshape(n, -1).any(1).sum())
+        if bad:
+            raise SegmentationError(
+                f"{name} is not finite (NaN or infinite) at {bad} of the {n} occupied voxels, so the cut is "
+                "undefined there (a diverged edit or attention-grid fit?)"
+            )
     p_e, p_o = np.exp(log_e), np.exp(log_o)
 
     notes: list[str] = []
@@ -255,7 +264,6 @@ def graph_cut_detailed(
     # pairwise terms along all three axes between occupied neighbours
     ids = np.full(shape, -1, dtype=np.int64)
     ids[nodes_np] = np.arange(n)
-    colors = torch.sigmoid(grid.features[..., 1:4].detach().float()).cpu().numpy()
     heads, tails, weights = [], [], []
     for axis in range(3):
         lo = [slice(None)] * 3
