@@ -275,6 +275,20 @@ def _(fx):
     return [("on the grid's device", torch.tensor(grid.voxel_size.device == grid.bbox_min.device), torch.tensor(True), 0.0)]
 
 
+@case("render/one-nan-density-shows-on-every-path", "exact")
+def _(fx):
+    # regression: the occupancy test (NaN > threshold is False) skipped the NaN's cells and early stopping
+    # (NaN > early_stop is False) dropped the samples from it on, so two of the three paths hid it
+    grid = uniform_grid(0.02)
+    with torch.no_grad():
+        grid.features[2, 3, 3, 0] = float("nan")
+    o, d = rays([-3.0, -1.5 + 9 / 7 + 0.05, -1.5 + 9 / 7 + 0.05], [1.0, 0.0, 0.0])  # through the NaN's cells
+    paths = {"skipping and early stop": RenderConfig(), "early stop": RenderConfig(skip_empty=False),
+             "neither": RenderConfig(skip_empty=False, early_stop=0.0)}
+    return [(f"{what}: opacity is NaN", torch.isnan(render_rays(grid, o, d, config).opacity), torch.tensor([True]), 0)
+            for what, config in paths.items()]
+
+
 def _autocast_render(device: str, dtype: torch.dtype):
     def run(fx):
         grid = random_grid().to(device)

@@ -416,7 +416,8 @@ class VoxelGrid(torch.nn.Module):
     def _stop_early(self, samples: RaySamples, early_stop: float) -> RaySamples:
         """``samples`` up to where each ray's transmittance falls below ``early_stop`` (densities without gradient)."""
         density = self.activate_density(self.interpolate(samples.points)[:, 0])
-        reached = transmittance(optical_depth(density, samples.delta), samples.ray) > early_stop
+        # "not at most": a NaN keeps its sample and those behind it, so the render shows it rather than ending there.
+        reached = ~(transmittance(optical_depth(density, samples.delta), samples.ray) <= early_stop)
         kept = samples.select(reached.nonzero().squeeze(1))
         kept.probed = samples.ray.numel()
         return kept
@@ -499,13 +500,14 @@ class VoxelGrid(torch.nn.Module):
 
         Trilinear interpolation is bounded by the corner maximum and both
         activations are monotone, so the test is conservative: with ReLU and
-        threshold 0 skipping is exact.
+        threshold 0 skipping is exact. A cell with a NaN corner is occupied (rendered, so the NaN shows).
         """
         raw = self.features[..., 0]
         corner_max = torch.maximum(raw[:-1], raw[1:])
         corner_max = torch.maximum(corner_max[:, :-1], corner_max[:, 1:])
         corner_max = torch.maximum(corner_max[:, :, :-1], corner_max[:, :, 1:])
-        return self.occupancy_from_cells(self.activate_density(corner_max) > density)
+        # "not at most": a NaN density counts as occupied, so every render path shows it (``> density`` hid it).
+        return self.occupancy_from_cells(~(self.activate_density(corner_max) <= density))
 
     def occupancy_from_cells(self, cells: torch.Tensor) -> Occupancy:
         """Occupancy for a given cell mask (e.g. one restored from a checkpoint), with its tight box.
