@@ -275,6 +275,21 @@ def _(fx):
     return [("on the grid's device", torch.tensor(grid.voxel_size.device == grid.bbox_min.device), torch.tensor(True), 0.0)]
 
 
+@case("render/direction-length-does-not-change-the-render", "exact")
+def _(fx):
+    # regression: path lengths were measured in units of the direction's length (twice it: 0.39 opacity instead
+    # of 0.63), and a 1e-8 direction laid 10^8 samples on its ray (2 GB)
+    grid = uniform_grid(0.01)
+    sigma = float(grid.activate_density(torch.tensor(0.01)))
+    o = torch.tensor([[-3.0, 0.1, 0.2]])
+    renders = {length: render_rays(grid, o, torch.tensor([[length, 0.0, 0.0]]), RenderConfig(background=(0.0, 0.0, 0.0)))
+               for length in (1.0, 2.0, 0.5, 1e-8)}
+    return [check for length, out in renders.items() for check in (
+        (f"|d| = {length:g}: opacity 1 - exp(-sigma * 3)", out.opacity, torch.tensor([1 - math.exp(-3 * sigma)]), 1e-6),
+        (f"|d| = {length:g}: depth", out.depth, renders[1.0].depth, 1e-6),
+        (f"|d| = {length:g}: samples as the unit ray's", torch.tensor(out.samples), torch.tensor(renders[1.0].samples), 0))]
+
+
 @case("render/one-nan-density-shows-on-every-path", "exact")
 def _(fx):
     # regression: the occupancy test (NaN > threshold is False) skipped the NaN's cells and early stopping

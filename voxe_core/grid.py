@@ -95,6 +95,21 @@ class _WeightedGather(torch.autograd.Function):
         return grad_table, None, grad_weights
 
 
+def unit_directions(directions: torch.Tensor) -> torch.Tensor:
+    """Ray directions (N, 3) scaled to unit length, so path lengths and depths are world distances.
+
+    Directions within 1e-6 of unit length (camera rays) are kept bit for bit; zero and NaN ones stay as given
+    (no ray). A direction's length had scaled every optical depth by it (twice the length: half the opacity),
+    and one of 1e-8 laid 10^8 samples on its ray.
+
+    Examples:
+        >>> unit_directions(torch.tensor([[2.0, 0, 0], [0, 0, 0], [0, 0.6, 0.8]])).tolist()
+        [[1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.6000000238418579, 0.800000011920929]]
+    """
+    length = directions.norm(dim=-1, keepdim=True)
+    return torch.where((length - 1.0).abs() > 1e-6, directions / length.clamp_min(1e-30), directions)
+
+
 def ray_box_intersection(
     origins: torch.Tensor, directions: torch.Tensor, box_min: torch.Tensor, box_max: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:

@@ -20,7 +20,7 @@ import torch
 
 from voxe_core.cameras import Cameras, camera_rays
 from voxe_core.devices import full_precision
-from voxe_core.grid import Occupancy, VoxelGrid
+from voxe_core.grid import Occupancy, VoxelGrid, unit_directions
 from voxe_core.volrend import RaySamples, optical_depth, transmittance
 
 Field = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
@@ -82,7 +82,8 @@ def render_rays(
     color_features: torch.Tensor | None = None,
     sparse_grad: bool = False,
 ) -> RenderOutput:
-    """Render unit-direction rays (N, 3) through ``grid``: rgb (N, C), opacity (N,), depth (N,).
+    """Render rays (N, 3) through ``grid``: rgb (N, C), opacity (N,), depth (N,) (directions of any length: the
+    depth is a world distance, ``unit_directions``).
 
     The grid places the samples (``grid.ray_samples``, stopping early where its
     sampler can), :func:`composite` adds them up. ``generator`` turns on stratified jitter (one uniform offset per
@@ -102,7 +103,7 @@ def render_rays(
         ([[1.0, 1.0, 1.0]], [0.0])
     """
     with full_precision(origins):
-        origins, directions = origins.float(), directions.float()
+        origins, directions = origins.float(), unit_directions(directions.float())
         device, n_rays = origins.device, origins.shape[0]
         if config.skip_empty and occupancy is None:
             occupancy = grid.occupancy(config.sigma_threshold)

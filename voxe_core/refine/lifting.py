@@ -20,7 +20,7 @@ from typing import Callable
 import torch
 
 from voxe_core.cameras import Cameras, camera_rays
-from voxe_core.grid import Occupancy, VoxelGrid, ray_box_intersection
+from voxe_core.grid import Occupancy, VoxelGrid, ray_box_intersection, unit_directions
 from voxe_core.progress import Callbacks, Progress
 from voxe_core.refine.config import RefineConfig, SegmentationError
 from voxe_core.render import render_rays
@@ -85,7 +85,7 @@ def backproject(
     weight = torch.zeros(n_vertices, device=targets.device)
     chunk = config.render.chunk_rays
     for start in range(0, origins.shape[0], chunk):
-        o, d, t = origins[start:start + chunk], directions[start:start + chunk], targets[start:start + chunk]
+        o, d, t = origins[start:start + chunk], unit_directions(directions[start:start + chunk]), targets[start:start + chunk]
         offsets = torch.full((o.shape[0],), 0.5, device=o.device)
         for group in grid.ray_samples(o, d, offsets, config.render.step_ratio, occupancy,
                                       config.render.pass_samples(o.device), config.render.early_stop):
