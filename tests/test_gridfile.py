@@ -84,6 +84,28 @@ def test_relu_grid_round_trips_exactly_and_renders_identically(tmp_path, make_sp
     assert (meta["layout"], meta["margin"]) == ("sparse", 2)
 
 
+def test_extreme_and_nan_values_in_empty_space_leave_the_fill_finite(tmp_path):
+    # regression: the fill was a float32 mean: two colours of 3e38 overflowed it to inf (and a dense render of the
+    # loaded grid to NaN), one NaN spread to all 12,824 vertices left out, densities of -1e38 summed to -inf
+    grid = VoxelGrid(24, init_density=-1e38)
+    with torch.no_grad():
+        grid.features[10:14, 10:14, 10:14, 0] = 1.0
+        grid.features[0, 0, 0:2, 1] = 3e38
+        grid.features[0, 5, 0, 2] = float("nan")
+    grid.save(tmp_path / "grid.safetensors")
+    tensors, meta = load_tensors(tmp_path / "grid.safetensors", kind="voxel_grid", max_version=2)
+    assert meta["layout"] == "sparse"
+    dropped = ~stored_vertices(grid.occupancy_above(0.0).cells, 2)
+    expected = grid.features.detach()[dropped].double()
+    assert torch.isfinite(tensors["fill"]).all()
+    assert float(tensors["fill"][0]) == pytest.approx(-1e38, rel=1e-6)  # the empty density stays as empty
+    assert float(tensors["fill"][1]) == pytest.approx(float(expected[:, 1].sum()) / dropped.sum().item(), rel=1e-6)
+    loaded = load_grid(tmp_path / "grid.safetensors")
+    assert torch.isfinite(loaded.features[dropped]).all()
+    clean = VoxelGrid(24, features=grid.features.detach().nan_to_num(0.0))  # the NaN lies in empty space
+    assert torch.equal(renders(loaded, skip_empty=False), renders(clean, skip_empty=False))
+
+
 def test_softplus_and_scene_grids_keep_their_occupancy_and_renders(tmp_path, make_sphere_grid):
     sphere = noisy_sphere(make_sphere_grid, resolution=33)
     softplus = VoxelGrid(33, activation="softplus", features=sphere.features.detach() * 10)

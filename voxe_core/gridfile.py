@@ -67,14 +67,18 @@ def sparse_tensors(features: torch.Tensor, cells: torch.Tensor, margin: int = DE
 
     Returns (tensors, header fields: layout, margin, resolution). ``fill`` is the mean of the vertices left
     out: each of those has a density no cell above the occupancy threshold
-    needs, and a mean of values below a threshold stays below it.
+    needs, and a mean of values below a threshold stays below it. It is taken in float64 over the values that
+    are not NaN, infinities counted as float32's extremes: in float32 two colours of 3e38 had overflowed it to
+    inf, and one NaN had spread to every vertex left out.
     """
     if margin < 0:
         raise ValueError(f"margin must be >= 0 cells, got {margin}")
     features = features.detach().cpu().float()
     mask = stored_vertices(cells.cpu(), margin)
-    dropped = features[~mask]
-    fill = dropped.mean(0) if dropped.shape[0] else features.new_zeros(features.shape[-1])
+    extreme = torch.finfo(torch.float32).max
+    dropped = features[~mask].double().clamp(-extreme, extreme)  # NaN stays NaN
+    counted = ~dropped.isnan()
+    fill = (dropped.nan_to_num(0.0).sum(0) / counted.sum(0).clamp_min(1)).float()
     bits = torch.from_numpy(np.packbits(mask.numpy().reshape(-1)))
     layout = {"layout": "sparse", "margin": int(margin), "resolution": list(features.shape[:3])}
     return {"stored_bits": bits, "values": features[mask], "fill": fill}, layout
