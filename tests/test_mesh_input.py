@@ -106,6 +106,11 @@ def test_loading_normalises_and_refuses_bad_files(tmp_path):
     (tmp_path / "point.obj").write_text("v 1 1 1\nv 1 1 1\nv 1 1 1\nf 1 2 3\n")
     with pytest.raises(MeshError, match="point.obj: all vertices coincide"):
         load_mesh(tmp_path / "point.obj")
+    (tmp_path / "line.obj").write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nv 3 0 0\nf 1 2 3\nf 2 3 4\n")
+    with pytest.raises(MeshError, match=r"line.obj: every triangle has zero area \(its vertices lie on a line\)"):
+        load_mesh(tmp_path / "line.obj")  # had voxelised to an empty grid, mesh-to-grid exiting 0
+    (tmp_path / "fin.obj").write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nv 0 1 0\nf 1 2 3\nf 1 2 4\n")
+    assert load_mesh(tmp_path / "fin.obj").faces.shape == (2, 3)  # one real triangle is a surface
     ply = _write_ply(tmp_path / "square.ply", _square(0.0, 1.0, RED))
     with pytest.raises(MeshError, match="square.ply: a texture was given but the mesh has no texture coordinates"):
         load_mesh(ply, SPOT / "spot_texture.png")

@@ -143,6 +143,10 @@ def load_mesh(
     up = UP_AXES[up_axis]
     order = [(up + 1) % 3, (up + 2) % 3, up]  # a cyclic permutation: a rotation, handedness kept
     vertices = (vertices - (lo + hi) / 2)[:, order] * (extent / half)
+    corners = vertices[faces]
+    area = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=-1).sum() / 2
+    if not area > 1e-12 * extent**2:  # voxelised, it would be an empty grid
+        raise MeshError(f"{path.name}: every triangle has zero area (its vertices lie on a line); the mesh has no surface")
 
     mesh = SurfaceMesh(vertices, faces)
     visual = loaded.visual
