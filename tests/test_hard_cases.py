@@ -601,6 +601,24 @@ def _(fx):
     return [("edit voxels are the +x half of the nodes", mask, nodes & (SPLIT_X > 0), 0)]
 
 
+@case("cameras/look-at-along-every-up-axis-is-a-rotation", "exact")
+def _(fx):
+    # regression: the on-axis fallback took +x as the right vector even when looking along x (determinant 0)
+    checks = []
+    for axis in torch.eye(3):
+        for sign in (1.0, -1.0):
+            rotation = look_at(3.0 * sign * axis[None], up=tuple(axis.tolist()))[0, :3, :3]
+            checks.append((f"up {axis.tolist()}, eye {sign:+g}: R^T R = I", rotation.T @ rotation, torch.eye(3), 1e-6))
+            checks.append((f"up {axis.tolist()}, eye {sign:+g}: det 1", rotation.det(), torch.tensor(1.0), 1e-6))
+    return checks
+
+
+@case("cameras/look-at-from-the-target-is-a-clear-error", "error",
+      (ValueError, r"a camera at its target \(or not finite\) has no view direction"))
+def _(fx):
+    look_at(torch.tensor([[0.5, 0.5, 0.5]]), torch.tensor([0.5, 0.5, 0.5]))  # had returned a NaN pose
+
+
 # --------------------------------------------------------------------------- data
 
 

@@ -206,16 +206,30 @@ def undistort_points(
 
 
 def look_at(eye: torch.Tensor, target: torch.Tensor | None = None, up=(0.0, 0.0, 1.0)) -> torch.Tensor:
-    """Camera-to-world matrices (N, 4, 4) placing cameras at ``eye`` looking at ``target``."""
+    """Camera-to-world matrices (N, 4, 4) placing cameras at ``eye`` looking at ``target``.
+
+    A camera on the ``up`` axis through its target has no defined azimuth: its right vector is +x (+y when it
+    looks along x). Raises ``ValueError`` for a camera at its target or a non-finite one: no view direction.
+
+    Examples:
+        >>> look_at(torch.tensor([[3.0, 0, 0]]), up=(1.0, 0, 0))[0, :3, :3].det().item()  # on the up axis: a rotation
+        1.0
+    """
     eye = torch.as_tensor(eye, dtype=torch.float32).reshape(-1, 3)
     target = torch.zeros_like(eye) if target is None else torch.as_tensor(target, dtype=torch.float32).expand_as(eye)
     up_vec = torch.as_tensor(up, dtype=torch.float32).expand_as(eye)
     back = eye - target
-    back = back / back.norm(dim=-1, keepdim=True)
+    distance = back.norm(dim=-1, keepdim=True)
+    if not bool(((distance > 0) & torch.isfinite(distance)).all()):
+        raise ValueError(f"a camera at its target (or not finite) has no view direction: eye {eye.tolist()}, "
+                         f"target {target.tolist()}")
+    back = back / distance
     right = torch.cross(up_vec, back, dim=-1)
-    # A camera on the up axis has no defined azimuth: pick +x as its right vector.
     degenerate = right.norm(dim=-1) < 1e-6
-    right[degenerate] = torch.tensor([1.0, 0.0, 0.0])
+    for axis in torch.eye(3)[:2]:  # +x off the view direction, or +y where that leaves nothing
+        off_axis = axis - (back * axis).sum(-1, keepdim=True) * back
+        right = torch.where((degenerate & (off_axis.norm(dim=-1) >= 1e-3))[:, None], off_axis, right)
+        degenerate = right.norm(dim=-1) < 1e-6
     right = right / right.norm(dim=-1, keepdim=True)
     cam_up = torch.cross(back, right, dim=-1)
     c2w = torch.eye(4).repeat(eye.shape[0], 1, 1)
