@@ -31,6 +31,7 @@ from PIL import Image
 
 from voxe_core.cameras import Cameras, camera_rays, look_at, random_hemisphere_poses
 from voxe_core.data import DatasetError, load_scene
+from voxe_core.export import extract_mesh
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance.attention import AttentionStore, CrossAttentionCapture
 from voxe_core.guidance.sds import StableDiffusionGuidance
@@ -599,6 +600,25 @@ def _(fx):
         mask = graph_cut(grid, edit, obj)
     nodes = node_mask(grid, rule=RefineConfig.node_rule)
     return [("edit voxels are the +x half of the nodes", mask, nodes & (SPLIT_X > 0), 0)]
+
+
+case("grid/infinite-box-is-a-clear-error", "error", (ValueError, r"the box must be finite: min \[-inf"))(
+    lambda fx: VoxelGrid(4, (-math.inf,) * 3, (1.0,) * 3))  # had been accepted: density scale 0, every render empty
+case("grid/nan-box-is-a-clear-error", "error", (ValueError, r"the box must be finite: .*max \[nan"))(
+    lambda fx: VoxelGrid(4, (-1.0,) * 3, (math.nan,) * 3))  # had read "empty box"
+case("reconstruct/no-images-is-a-clear-error", "error",
+     (ValueError, "no training images: a reconstruction needs at least one posed view"))(
+    lambda fx: reconstruct(torch.zeros(0, 4, 4, 3), hemisphere_cameras(1, 4)[:0], ReconstructConfig.fast()))
+
+
+@case("export/nan-density-is-named-not-a-missing-surface", "error",
+      (ValueError, r"grid density is NaN at 1 vertices, so its surface is undefined there"))
+def _(fx):
+    grid = uniform_grid(-1.0, resolution=8)
+    with torch.no_grad():
+        grid.features[2:6, 2:6, 2:6, 0] = 5.0
+        grid.features[3, 3, 3, 0] = float("nan")  # had raised "grid has no surface"
+    extract_mesh(grid)
 
 
 @case("cameras/look-at-along-every-up-axis-is-a-rotation", "exact")

@@ -205,6 +205,10 @@ def extract_mesh(grid: VoxelGrid, level: float | None = None, resolution: int | 
     level = default_mesh_level(grid) if level is None else float(level)
     if not math.isfinite(level) or level <= 0:
         raise ValueError(f"mesh level must be a positive density, got {level}")
+    unknown = int(grid.features[..., 0].detach().isnan().sum())
+    if unknown:
+        raise ValueError(f"grid density is NaN at {unknown} vertices, so its surface is undefined there "
+                         "(a diverged fit or edit?)")
     occupancy = grid.occupancy_above(level)
     if occupancy.empty:
         peak = float(grid.activate_density(grid.features[..., 0].detach()).max())

@@ -233,6 +233,8 @@ class VoxelGrid(torch.nn.Module):
         device = features.device if features is not None else getattr(bbox_min, "device", torch.device("cpu"))
         host_min = torch.as_tensor(bbox_min, dtype=torch.float32).cpu()
         host_max = torch.as_tensor(bbox_max, dtype=torch.float32).cpu()
+        if not bool((torch.isfinite(host_min) & torch.isfinite(host_max)).all()):
+            raise ValueError(f"the box must be finite: min {host_min.tolist()} max {host_max.tolist()}")
         if not bool((host_max > host_min).all()):
             raise ValueError(f"empty box: min {host_min.tolist()} max {host_max.tolist()}")
         self._host_box = (host_min, host_max)

@@ -413,6 +413,8 @@ def reconstruct(
     returned grid lives on ``device``. Progress info carries the stage's peak memory
     (:class:`voxe_core.devices.PeakMemory`).
     """
+    if images.shape[0] == 0:
+        raise ValueError("no training images: a reconstruction needs at least one posed view")
     if images.shape[0] != len(cameras) or images.shape[1:3] != (cameras.height, cameras.width):
         raise ValueError(
             f"{images.shape[0]} images of {tuple(images.shape[1:3])} do not match "
