@@ -297,3 +297,13 @@ def test_the_idempotency_key_header_is_documented_with_the_length_the_server_enf
     body = {"scene_id": "x", "prompt": "a mic"}
     assert client.post("/v1/jobs", json=body, headers={"Idempotency-Key": "k" * longest}).status_code == 404
     assert client.post("/v1/jobs", json=body, headers={"Idempotency-Key": "k" * (longest + 1)}).status_code == 422
+
+
+def test_idempotent_operations_document_the_409_of_a_deleted_original(spec):
+    """A retry whose first request's resource was deleted answers 409 (test_service_access); clients generated from
+    the document must know that answer."""
+    idempotent = {(path, method) for path, operations in spec["paths"].items() for method, operation in operations.items()
+                  if any(p["name"] == "Idempotency-Key" for p in operation.get("parameters", []))}
+    assert {("/v1/scenes", "post"), ("/v1/jobs", "post")} <= idempotent
+    for path, method in idempotent:
+        assert "deleted" in spec["paths"][path][method]["responses"]["409"]["description"], (path, method)

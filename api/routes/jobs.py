@@ -90,8 +90,10 @@ def _models(job: Job) -> Models:
              responses={200: {"description": "a retry with the same Idempotency-Key: the job it created"},
                         401: {"description": "missing or invalid API key"},
                         404: {"description": "no such scene (or another key's)"},
-                        409: {"description": "the scene failed processing (the reason is named), or every worker "
-                                             "reporting lacks a model the job loads (named, with how to provide it)"},
+                        409: {"description": "the scene failed processing (the reason is named), every worker "
+                                             "reporting lacks a model the job loads (named, with how to provide it), "
+                                             "or a retry whose Idempotency-Key created a job that has since been "
+                                             "deleted"},
                         422: {"description": "invalid job (the field is named), an Idempotency-Key reused "
                                              "with a different body, or a webhook_url the service will not call "
                                              "(the rule is named)"},

@@ -27,6 +27,7 @@ def scene_out(scene) -> SceneOut:
     response_model=SceneOut,
     responses={200: {"description": "a retry with the same Idempotency-Key: the scene it created"},
                401: {"description": "missing or invalid API key"},
+               409: {"description": "a retry whose Idempotency-Key created a scene that has since been deleted"},
                413: {"description": "upload over the size limit"},
                422: {"description": "not a valid dataset (the message names the file and frame), or an "
                                     "Idempotency-Key reused with a different upload"},
