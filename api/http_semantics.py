@@ -9,7 +9,8 @@
   with the same ``Allow``. Without a key too: it says nothing ``/openapi.json`` does not.
 
 Examples:
-    >>> allowed_methods(create_app(), "/v1/jobs")  # doctest: +SKIP
+    >>> from api.main import create_app
+    >>> allowed_methods(create_app(), "/v1/jobs")
     ['GET', 'OPTIONS', 'POST']
 """
 

@@ -1,6 +1,6 @@
 """The ``Examples:`` blocks of the docstrings run and print what they say (doctest).
 
-Every module of the library, the client and the service core that has examples is found, so a new
+Every module of the library, the client, the service core, the API and the worker that has examples is found, so a new
 example cannot go untested.
 """
 
@@ -12,7 +12,7 @@ import pkgutil
 
 import pytest
 
-PACKAGES = ("voxe_core", "voxe_client", "voxe_service")
+PACKAGES = ("voxe_core", "voxe_client", "voxe_service", "api", "worker")
 
 
 def modules_with_examples() -> list[str]:
@@ -32,7 +32,8 @@ MODULES = modules_with_examples()
 
 
 def test_the_documented_modules_are_found():
-    assert {"voxe_core.render", "voxe_core.refine.cut", "voxe_client.client", "voxe_service.webhooks"} <= set(MODULES)
+    assert {"voxe_core.render", "voxe_core.refine.cut", "voxe_client.client", "voxe_service.webhooks",
+            "api.http_semantics"} <= set(MODULES)
 
 
 @pytest.mark.parametrize("name", MODULES)
