@@ -155,10 +155,17 @@ def _event_id(value: str | None) -> int:
     text = (value or "").strip()
     if not text:
         return 0
-    if not (text.isascii() and text.isdigit()):  # "²".isdigit(), but int("²") fails
+    # Bounded before int(): a larger id would make the event hub's one query for every open stream fail in the
+    # database (SQLite's integers are 64-bit), and thousands of digits make int() itself raise.
+    digits = text.lstrip("0") or "0"
+    if not (text.isascii() and text.isdigit()) or len(digits) > 19 or int(digits) > MAX_EVENT_ID:  # "²".isdigit()
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
-                            f"Last-Event-ID must be the id of an event (a non-negative integer), not {value!r}")
-    return int(text)
+                            f"Last-Event-ID must be the id of an event (an integer from 0 to {MAX_EVENT_ID}), "
+                            f"not {value[:40]!r}")
+    return int(digits)
+
+
+MAX_EVENT_ID = 2**63 - 1
 
 
 def progress_view(job: Job) -> dict:
