@@ -40,7 +40,7 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import BinaryIO
 
-from PIL import Image, UnidentifiedImageError
+from PIL import Image
 
 from voxe_core.data import DatasetError, colmap_transforms, detect_format, is_dataset_folder, load_scene
 from voxe_core.mesh_input import MESH_INPUT_SUFFIXES, TEXTURE_SUFFIXES
@@ -260,7 +260,7 @@ def check_image_pixels(folder: Path, max_pixels: int) -> None:
                     width, height = image.size
         except Image.DecompressionBombError:
             width = height = None
-        except (UnidentifiedImageError, OSError, SyntaxError, ValueError):
+        except Exception:  # Pillow's plugins raise many kinds on odd headers (NotImplementedError for DDS's)
             continue  # not an image (the json, a readme); the loader reports referenced images it cannot read
         if width is None or width * height > max_pixels:
             size = f"{width}x{height} ({width * height} pixels)" if width is not None else "huge"
@@ -326,7 +326,7 @@ def _check_frame_images(root: Path, json_name: str, frames: list[dict], staging:
                 warnings.simplefilter("ignore", Image.DecompressionBombWarning)
                 with Image.open(path) as image:
                     size = image.size
-        except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+        except Exception as exc:  # as above: any kind Pillow raises means it cannot read the file
             raise _invalid(f"{where}: cannot read image {path.name} (not an image or damaged): {exc}", staging) from None
         if first is None:
             first = (size, file_path)
