@@ -267,8 +267,9 @@ ObjectName = Annotated[str, Field(min_length=1, max_length=100, json_schema_extr
 
 
 class EvaluationCreate(Strict):
-    job_ids: list[str] = Field(min_length=1, max_length=60, json_schema_extra={"uniqueItems": True},
-                               description="succeeded edit jobs of one scene and reconstruction")
+    job_ids: list[Annotated[str, Field(min_length=1, max_length=64)]] = Field(
+        min_length=1, max_length=60, json_schema_extra={"uniqueItems": True},
+        description="succeeded edit jobs of one scene and reconstruction")
     object: ObjectName = Field(description='what the object is: the source text is "a render of a <object>"')
     params: EvaluationParams = Field(default_factory=EvaluationParams)
 

@@ -308,6 +308,11 @@ def test_a_lone_surrogate_is_422_not_500(client):
     assert response.status_code == 422, response.text
     (error,) = response.json()["detail"]
     assert error["loc"] == ["body", "params", "downsample"] and error["input"] == "\\ud800"
+    # in a list of ids too (job_ids' items were unconstrained strings, passed on to the database: a 500)
+    body = '{"job_ids": ["\\ud800"], "object": "microphone"}'
+    response = client.post("/v1/evaluations", content=body, headers={"content-type": "application/json"})
+    assert response.status_code == 422, response.text
+    assert [e["loc"] for e in response.json()["detail"]] == [["body", "job_ids", 0]]
 
 
 def test_query_parameters_out_of_range_are_422(client):
