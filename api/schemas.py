@@ -134,6 +134,12 @@ class ExportParams(Strict):
     mesh: bool = presets.ExportConfig.mesh
     mesh_resolution: int | None = Field(presets.ExportConfig.mesh_resolution, ge=2, le=1024)
 
+    @model_validator(mode="after")
+    def _gif_holds_the_frame_rate(self):
+        if self.gif:
+            presets.check_gif_fps(self.fps)
+        return self
+
 
 class JobParams(Strict):
     # input images

@@ -22,6 +22,7 @@ from voxe_core.export import (
     write_video,
 )
 from voxe_core.grid import VoxelGrid
+from voxe_core.presets import GIF_MIN_FPS
 from voxe_core.progress import Callbacks, StageCancelled
 from voxe_core.render import RenderConfig, render_image
 from voxe_core.scene_grid import SceneGrid
@@ -134,6 +135,10 @@ def test_video_rejects_unknown_suffix_and_bad_frames(tmp_path):
     with pytest.raises(ValueError, match="N, H, W, 3"):
         write_video(tmp_path / "v.mp4", torch.zeros(0, 4, 4, 3))
     assert not (tmp_path / "v.avi").exists()
+    with pytest.raises(ValueError, match=r"fps 0.0015 is too slow for a GIF: .* at least 0.001526"):
+        write_video(tmp_path / "slow.gif", gradient_frames(2, 4, 4), fps=0.0015)  # had overflowed inside Pillow
+    write_video(tmp_path / "slowest.gif", gradient_frames(2, 4, 4), fps=GIF_MIN_FPS)  # a 655.35 s frame
+    assert not (tmp_path / "slow.gif").exists()
 
 
 # ---------------------------------------------------------------------- meshes

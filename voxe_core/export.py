@@ -20,6 +20,7 @@ from voxe_core.cameras import Cameras, ring_poses
 from voxe_core.constants import NERF_SYNTHETIC_FOV_X, NERF_SYNTHETIC_RADIUS
 from voxe_core.devices import PeakMemory, resolve_device
 from voxe_core.grid import VoxelGrid
+from voxe_core.presets import check_gif_fps
 from voxe_core.progress import Callbacks, Progress
 from voxe_core.render import RenderConfig, render_image
 
@@ -139,7 +140,7 @@ def write_video(path: str | os.PathLike, frames, fps: float = 30) -> Path:
     else:
         import imageio.v3 as iio
 
-        # Pillow stores GIF delays in whole centiseconds.
+        check_gif_fps(fps)  # Pillow stores GIF delays in whole centiseconds, 16 bits of them
         iio.imwrite(path, array, plugin="pillow", extension=".gif", duration=1000.0 / fps, loop=0)
     return path
 

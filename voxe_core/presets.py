@@ -73,6 +73,17 @@ EDIT_SCHEDULES: dict[str, EditSchedule] = {"scene": EditSchedule(iterations=5000
 """Backbone kind -> its edit schedule where it is not SPEC §2's (8,000 iterations, 4,000 / 600): SPEC §5's for scenes."""
 
 
+GIF_MIN_FPS = 100 / 65535
+"""The slowest GIF: a frame's delay is a 16-bit count of centiseconds, at most 655.35 s."""
+
+
+def check_gif_fps(fps: float) -> None:
+    """ValueError for a frame rate a GIF cannot hold (Pillow overflowed writing it, after the whole job had run)."""
+    if not fps >= GIF_MIN_FPS:
+        raise ValueError(f"fps {fps:g} is too slow for a GIF: a frame's delay is at most 655.35 s, "
+                         f"so fps must be at least {GIF_MIN_FPS:.6f}")
+
+
 @dataclass(frozen=True)
 class ExportConfig:
     """What the export stage writes (the job parameters' ``export``): ring PNGs, a turntable video, a mesh."""
