@@ -19,7 +19,7 @@ from typing import Annotated
 import anyio
 from fastapi import Header, HTTPException, Request, Response, status
 from fastapi.responses import JSONResponse
-from sqlalchemy import func, select
+from sqlalchemy import delete, func, select
 from sqlalchemy.orm import Session
 
 from voxe_service.db import get_sessionmaker
@@ -168,6 +168,12 @@ class Idempotency:
         session.add(IdempotencyRecord(owner_key_id=owner.id, endpoint=self.endpoint, idempotency_key=self.key,
                                       request_sha256=self.request_sha256, resource_id=resource_id,
                                       created_at=utcnow()))
+
+    def forget(self, session: Session, owner: ApiKey) -> None:
+        """Delete the record (its request was withdrawn: a retry with this Idempotency-Key runs it anew)."""
+        session.execute(delete(IdempotencyRecord).where(
+            IdempotencyRecord.owner_key_id == owner.id, IdempotencyRecord.endpoint == self.endpoint,
+            IdempotencyRecord.idempotency_key == self.key))
 
     def replayed(self, session: Session, owner: ApiKey, model: type):
         """For a retry: the ``model`` row the first request created (409 if it has been deleted since); None

@@ -742,6 +742,42 @@ def test_a_mesh_scene_archive_keeps_the_uploaded_mesh(client, root, monkeypatch)
     assert {"transforms_train.json", "train/r_003.png", "mesh/mesh.obj", "mesh/texture.png"} <= names
 
 
+def test_a_broker_refusing_a_submission_keeps_nothing_and_a_retry_with_the_key_runs_it(client, dataset, root,
+                                                                                        monkeypatch):
+    """A 503 answers a request that was never accepted: before, the failed scene or job stayed listed, and a
+    retry with the same Idempotency-Key replayed it as a 200 instead of submitting again."""
+    from voxe_service.queue import TaskQueue
+
+    scene = make_scene(client, dataset, root)
+    archive = zip_folder(dataset, root / "again.zip", prefix="mic_small")
+    body = {"scene_id": scene["id"], **JOB, "params": {"reconstruction": {"resolution": 64}}}
+
+    def refuse(self, *args):
+        raise ConnectionError("broker down")
+
+    with monkeypatch.context() as broker_down:
+        broker_down.setattr(TaskQueue, "send", refuse)
+        with open(archive, "rb") as handle:
+            upload = client.post("/v1/scenes", files={"archive": ("s.zip", handle, "application/zip")},
+                                 headers={"Idempotency-Key": "u1"})
+        job = client.post("/v1/jobs", json=body, headers={"Idempotency-Key": "j1"})
+    assert upload.status_code == job.status_code == 503, (upload.text, job.text)
+    assert "could not queue the ingest: ConnectionError: broker down" in upload.json()["detail"]
+    assert "could not queue the job: ConnectionError: broker down" in job.json()["detail"]
+    assert client.get("/v1/scenes").json()["total"] == 1 and client.get("/v1/jobs").json()["total"] == 0
+    assert stored_files(root) == [f"scenes/{scene['id']}/dataset.zip"] and staged(root) == []
+    assert client.get(f"/v1/scenes/{scene['id']}/reconstructions").json() == []  # the refused job's is unlisted
+
+    with open(archive, "rb") as handle:  # the broker is back: the same keys submit anew
+        upload = client.post("/v1/scenes", files={"archive": ("s.zip", handle, "application/zip")},
+                             headers={"Idempotency-Key": "u1"})
+    job = client.post("/v1/jobs", json=body, headers={"Idempotency-Key": "j1"})
+    assert upload.status_code == job.status_code == 201, (upload.text, job.text)
+    assert upload.json()["state"] == "processing" and job.json()["state"] == "queued"
+    (rec,) = client.get(f"/v1/scenes/{scene['id']}/reconstructions").json()
+    assert rec["id"] == job.json()["reconstruction"]["id"]  # the row the refused job made, used now
+
+
 def test_route_voxelize_on_an_image_scene_is_a_422_naming_the_field(client, dataset, root):
     scene = make_scene(client, dataset, root)
     body = {"scene_id": scene["id"], **JOB, "params": {"reconstruction": {"route": "voxelize"}}}

@@ -13,7 +13,7 @@ import logging
 from collections.abc import Iterable
 
 from fastapi import HTTPException, status
-from sqlalchemy import func, select, update
+from sqlalchemy import delete, func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -209,7 +209,14 @@ def create_job(*, session: Session, settings: Settings, queue: TaskQueue, key: A
         if idem is not None and (replayed := idem.replayed(session, key, Job)) is not None:
             return replayed, True  # a concurrent retry created it first
         raise
-    send(session=session, queue=queue, jobs=to_send)
+    try:
+        send(session=session, queue=queue, jobs=to_send)
+    except HTTPException:  # 503: the broker refused it, so the job was never accepted
+        session.execute(delete(Job).where(Job.id == job.id))  # nothing listed; a retry with the key runs anew
+        if idem is not None:
+            idem.forget(session, key)
+        session.commit()
+        raise
     session.refresh(job)
     return job, False
 

@@ -18,7 +18,7 @@ from api.auth import Idempotency, check_upload_bytes, lock_key
 from api.uploads import UploadError, stage_upload
 from voxe_service.models import FAILED, QUEUED, RUNNING, ApiKey, Job, Reconstruction, Scene, new_id, utcnow
 from voxe_service.queue import TaskQueue
-from voxe_service.scenes import fail_scene, lock_scene
+from voxe_service.scenes import lock_scene
 from voxe_service.settings import Settings
 from voxe_service.storage import Storage, job_key, reconstruction_storage_key, scene_key
 
@@ -102,21 +102,24 @@ def create_scene(*, session: Session, settings: Settings, storage: Storage, queu
         raise
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-    _queue_ingest(session, storage, queue, scene)
+    _queue_ingest(session, storage, queue, scene, key, idem)
     return scene, False
 
 
-def _queue_ingest(session: Session, storage: Storage, queue: TaskQueue, scene: Scene) -> None:
-    """Hand the ingest to the broker; when it is down the scene fails with the reason (its bytes deleted), 503."""
+def _queue_ingest(session: Session, storage: Storage, queue: TaskQueue, scene: Scene, key: ApiKey,
+                  idem: Idempotency | None) -> None:
+    """Hand the ingest to the broker. When it is down (503) the upload was never accepted: its scene, bytes and
+    Idempotency-Key go, so nothing is listed and a retry with the key uploads it anew."""
     try:
         task_id = queue.send_ingest(scene.id)
     except Exception as exc:  # noqa: BLE001 - broker down: nothing will ingest it
         log.exception("could not queue the ingest of scene %s", scene.id)
         reason = f"could not queue the ingest: {type(exc).__name__}: {exc}"
-        fail_scene(session, scene.id, reason)
+        session.delete(scene)
+        if idem is not None:
+            idem.forget(session, key)
         session.commit()
         storage.discard_prefixes(scene_key(scene.id))
-        session.refresh(scene)
         raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, reason) from None
     scene.task_id = task_id
     session.commit()
@@ -132,8 +135,12 @@ def list_scenes(*, session: Session, key: ApiKey, limit: int, offset: int) -> tu
 
 
 def list_reconstructions(*, session: Session, key: ApiKey, scene_id: str) -> list[Reconstruction]:
+    """The scene's reconstructions some job uses. A refused submission (quota, models, a broker down) may leave
+    the row it made for its parameters (made in its own transaction, race-free): it waits unlisted until a job
+    with those parameters uses it."""
     get_scene(session=session, key=key, scene_id=scene_id)
-    return list(session.scalars(select(Reconstruction).where(Reconstruction.scene_id == scene_id)
+    used = select(Job.id).where(Job.reconstruction_id == Reconstruction.id).exists()
+    return list(session.scalars(select(Reconstruction).where(Reconstruction.scene_id == scene_id, used)
                                 .order_by(Reconstruction.created_at)))
 
 
