@@ -16,6 +16,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validat
 
 from voxe_core import constants as paper
 from voxe_core import presets
+from voxe_core.guidance.prompts import check_prompt_length
 from voxe_service.webhooks import DEFAULT_WEBHOOK_EVENTS, WEBHOOK_EVENTS
 
 T = TypeVar("T")
@@ -229,7 +230,9 @@ class JobCreate(Strict):
     @field_validator("prompt")
     @classmethod
     def _prompt(cls, value: str) -> str:
-        return clean_text(value, "the prompt")
+        value = clean_text(value, "the prompt")
+        check_prompt_length(value)  # a longer prompt was cut off at the text encoder (its edit words with it)
+        return value
 
     @model_validator(mode="after")
     def _edit_words(self):

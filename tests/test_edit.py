@@ -278,6 +278,19 @@ def test_cancellation_stops_within_one_iteration(small_sphere):
     assert len(reports) == 1
 
 
+def test_a_prompt_too_long_with_a_view_word_fails_before_the_first_step(small_sphere, tiny_guidance):
+    """Each view's prompt is encoded before the loop: one the text encoder cannot read whole fails the edit at
+    once, not at the first step that draws that view."""
+    words = ["zebra"]
+    while len(tiny_guidance.tokenizer(build_prompt(" ".join(words + ["zebra"]), None)).input_ids) <= 77:
+        words.append("zebra")
+    prompt = " ".join(words)  # fits without a view word, not with one
+    reports = []
+    with pytest.raises(ValueError, match=r" view' is 7\d tokens; the text encoder .* reads 77"):
+        edit(small_sphere, prompt, tiny_guidance, EditConfig(iterations=3, render_size=16), _collect(reports))
+    assert not [r for r in reports if r.stage == "edit"]
+
+
 def test_errors_empty_prompt_and_image_regulariser_without_views(small_sphere):
     with pytest.raises(ValueError, match="empty"):
         edit(small_sphere, "  ", FakeGuidance(), EditConfig(iterations=1, render_size=16))

@@ -16,7 +16,7 @@ from voxe_core.constants import ATTENTION_MODEL_ID, SDS_MODEL_ID
 from voxe_core.guidance import Guidance
 from voxe_core.guidance.attention import AttentionStore, CrossAttentionCapture
 from voxe_core.guidance.loading import ModelNotAvailableError
-from voxe_core.guidance.prompts import edit_prompt, view_word
+from voxe_core.guidance.prompts import TEXT_ENCODER_TOKENS, edit_prompt, tokens_at_least, view_word
 from voxe_core.guidance.sds import StableDiffusionGuidance
 from voxe_core.tiny_sd import build_tiny_stable_diffusion
 
@@ -266,6 +266,28 @@ def test_token_spans_phrase_repeats_and_subwords(guidance):
     assert guidance.content_token_indices(prompt) == [1, 2, 3, 4, 5, 6]
     with pytest.raises(ValueError, match="sunglasses"):
         guidance.token_spans(prompt, ["sunglasses"])
+
+
+def test_a_prompt_longer_than_the_text_encoder_reads_is_refused_not_cut_off(guidance):
+    """It was cut at 77 tokens: the edit guided by the front of it, and an edit word beyond the cut not found
+    until the refinement looked for it."""
+    long = "a dog wearing " + " ".join(["zebra"] * 20)  # "zebra" is byte-level sub-tokens in the tiny vocabulary
+    n = len(guidance.tokenizer(long).input_ids)
+    assert n > guidance.max_length == TEXT_ENCODER_TOKENS
+    assert tokens_at_least(long) <= guidance.max_length  # the API's lower bound lets it through; this does not
+    for refused in (lambda: guidance.encode_prompts([long]), lambda: guidance.token_spans(long, ["dog"])):
+        with pytest.raises(ValueError, match=rf"the prompt .* is {n} tokens; the text encoder of .* reads 77, its "
+                                             "start and end tokens included: shorten it"):
+            refused()
+    fits = "a dog wearing " + " ".join(["hat"] * (guidance.max_length - 5))  # 77 with its start and end
+    assert len(guidance.tokenizer(fits).input_ids) == guidance.max_length
+    assert guidance.encode_prompts([fits]).shape[1] == guidance.max_length
+
+
+@pytest.mark.parametrize("text", ["a dog wearing a party hat", "a zebra's 3D-printed hat!!", "a_b, c.d 42 overhead view",
+                                  "a render of a microphone wearing big sunglasses, overhead view"])
+def test_the_apis_token_count_is_a_lower_bound_of_the_clip_tokenizers(guidance, text):
+    assert tokens_at_least(text) <= len(guidance.tokenizer(text).input_ids)
 
 
 # ----------------------------------------------------------------- missing weights

@@ -262,6 +262,10 @@ BAD_FIELDS = [
     ({"scene_id": "\x00" * 32}, ["body", "scene_id"], "contains a NUL character"),
     ({"webhook_url": "http://example.com/\x00"}, ["body", "webhook_url"], "contains a NUL character"),
     ({"edit_words": ["hat"]}, ["body"], "edit word 'hat' does not occur in the prompt"),
+    # had been accepted and cut off at the text encoder: the local edit failed at its refinement, not finding
+    # its edit word, after the whole edit
+    ({"prompt": "a mic " + "very " * 80 + "wearing big sunglasses"}, ["body", "prompt"],
+     "the prompt is at least 93 tokens as the model sees it"),
     ({"edit_words": [""]}, ["body", "edit_words", 0], "at least 1 character"),
     ({"edit_words": ["sunglasses"] * 17}, ["body", "edit_words"], "at most 16 items"),
     ({"params": {"seed": 2**40}}, ["body", "params", "seed"], "less than or equal to 4294967295"),

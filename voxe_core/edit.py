@@ -359,6 +359,9 @@ def edit(
             embeddings[view] = guidance.encode_prompts([build_prompt(prompt, view, config.prompt_prefix)])
         return embeddings[view]
 
+    for view in VIEW_WORDS if config.view_words else (None,):  # each prompt the loop will use, before its first
+        embedding(view)  # step: the guidance refuses one longer than its text encoder reads
+
     size = config.render_size
     centre = initial_grid.orbit_centre()  # G_i's, so a resumed run draws the same poses
     preview_cameras = Cameras.from_fov(

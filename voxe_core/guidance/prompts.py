@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 RENDER_PREFIX = "a render of"
 VIEW_WORDS = ("front", "side", "back", "overhead")
 AUTHORS_FRONT_AZIMUTH_DEG = 270.0
@@ -51,3 +53,35 @@ def edit_prompt(user_text: str, view_word: str | None = None) -> str:
             raise ValueError(f"unknown view word {view_word!r}; expected one of {VIEW_WORDS}")
         text = f"{text}, {view_word} view"
     return text
+
+
+TEXT_ENCODER_TOKENS = 77
+"""What Stable Diffusion's CLIP text encoder reads (1.x and 2.x alike), its start and end tokens included."""
+
+# CLIP's pre-tokenizer: a contraction, a run of letters, one digit, or a run of other marks; BPE then makes each
+# piece one token or more.
+_CLIP_PIECES = re.compile(r"'s|'t|'re|'ve|'m|'ll|'d|[^\W\d_]+|\d|(?:[^\s\w]|_)+", re.IGNORECASE)
+
+
+def tokens_at_least(text: str) -> int:
+    """A lower bound of the CLIP tokens of ``text`` with the start and end tokens: its pre-token pieces, plus two."""
+    return len(_CLIP_PIECES.findall(text)) + 2
+
+
+def check_prompt_length(user_text: str) -> None:
+    """ValueError when "a render of <text>, overhead view" (the longest prompt an edit gives the diffusion model)
+    surely holds more tokens than its text encoder reads (:func:`tokens_at_least`): the guidance's own tokenizer
+    may still refuse a prompt this passes, where BPE splits a word.
+
+    Examples:
+        >>> check_prompt_length("a microphone wearing big sunglasses")
+        >>> check_prompt_length("a mic " + "very " * 70 + "shiny")
+        Traceback (most recent call last):
+        ...
+        ValueError: the prompt is at least 81 tokens as the model sees it ("a render of a mic very very ve..., overhead view"); its text encoder reads 77, its start and end tokens included: shorten it
+    """
+    longest = edit_prompt(user_text, "overhead")
+    if (tokens := tokens_at_least(longest)) > TEXT_ENCODER_TOKENS:
+        shown = longest if len(longest) <= 60 else f"{longest[:30]}...{longest[-15:]}"
+        raise ValueError(f'the prompt is at least {tokens} tokens as the model sees it ("{shown}"); its text '
+                         f"encoder reads {TEXT_ENCODER_TOKENS}, its start and end tokens included: shorten it")
