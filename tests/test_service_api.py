@@ -455,6 +455,11 @@ def test_artifact_download_ranges_and_names(client, dataset, root):
     assert client.get(f"/v1/jobs/{job_id}%00/artifacts").status_code == 404
     nul_query = client.get("/v1/jobs?scene_id=%00")
     assert nul_query.status_code == 422 and "NUL" in nul_query.json()["detail"]
+    (stored,) = [f for f in stored_files(root) if f.endswith("render_000.png")]
+    (root / "storage" / stored).unlink()  # lost from the storage (a bucket's lifecycle rule, an operator)
+    gone = client.get(url)
+    assert gone.status_code == 404 and gone.json()["detail"] == "artifact 'render_000.png' is missing from storage"
+    assert client.head(url).status_code == 404  # as the GET (it had answered 200 and a length)
 
 
 @BOTH_DATABASES

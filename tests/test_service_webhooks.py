@@ -88,6 +88,8 @@ def test_webhook_events_need_a_url_and_name_known_kinds(client):
     for address, rule in (("100.64.1.2", "non-public"), ("[2002:a01:203::1]", "private (as 10.1.2.3)")):
         response = test_client.post("/v1/jobs", json={**body, "webhook_url": f"http://{address}/h"})
         assert response.status_code == 422 and f"a {rule} address" in response.json()["detail"], address
+    response = test_client.post("/v1/jobs", json={**body, "webhook_url": "http://1.1.1.1:0/h"})  # had been 201
+    assert response.status_code == 422 and "names port 0, where nothing can listen" in response.json()["detail"]
 
 
 def test_a_webhook_connects_only_to_the_address_its_name_was_checked_as(monkeypatch):

@@ -98,10 +98,13 @@ def get_artifact(job_id: str, name: str, request: Request, session: SessionDep, 
         code = status.HTTP_206_PARTIAL_CONTENT
         headers["Content-Range"] = f"bytes {start}-{end}/{size}"
     headers["Content-Length"] = str(max(0, end - start + 1))
-    if request.method == "HEAD":
+    missing = HTTPException(status.HTTP_404_NOT_FOUND, f"artifact {name!r} is missing from storage")
+    if request.method == "HEAD":  # answers as the GET would (it had said 200 for a file the GET could not serve)
+        if not storage.exists(artifact.key):
+            raise missing
         return Response(status_code=code, headers=headers, media_type=artifact.content_type)
     try:
         body = storage.open_range(artifact.key, start, end) if size else iter(())
     except ObjectNotFound:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, f"artifact {name!r} is missing from storage") from None
+        raise missing from None
     return StreamingResponse(body, status_code=code, headers=headers, media_type=artifact.content_type)
