@@ -8,6 +8,7 @@ implements the :class:`Guidance` protocol records what the loop sends it
 
 from __future__ import annotations
 
+import math
 import shutil
 import time
 
@@ -18,7 +19,7 @@ import voxe_core.edit as edit_module
 from voxe_core.backbones import load_grid
 from voxe_core.cameras import Cameras, spherical_poses
 from voxe_core.cli import main
-from voxe_core.edit import EditConfig, build_prompt, edit, learning_rate, load_edit_checkpoint
+from voxe_core.edit import EditConfig, EditDiverged, build_prompt, edit, learning_rate, load_edit_checkpoint
 from voxe_core.export import render_views
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance import Guidance
@@ -187,6 +188,25 @@ def test_resume_reproduces_the_uninterrupted_run_bit_for_bit(small_sphere, tiny_
     # a different seed is a different run (the test above is not vacuous)
     other = edit(small_sphere, "a wooden dog", tiny_guidance, EditConfig(iterations=5, render_size=SIZE, seed=4))
     assert not torch.equal(other.features, reference.features)
+
+
+class DivergingGuidance(FakeGuidance):
+    """Its third SDS loss is NaN, as a half-precision UNet's overflow makes it."""
+
+    def sds_loss(self, images, text_embeddings, timesteps, guidance_scale=100.0, generator=None):
+        loss, diagnostics = super().sds_loss(images, text_embeddings, timesteps, guidance_scale, generator)
+        return (loss * math.nan if len(self.calls) == 3 else loss), diagnostics
+
+
+def test_a_diverged_step_stops_the_edit_before_its_progress_or_checkpoint(small_sphere, tmp_path):
+    """It had gone on: every later step NaN, 8,000 of them, then a NaN grid exported."""
+    checkpoint, reports = tmp_path / "c.safetensors", []
+    with pytest.raises(EditDiverged, match=r"the edit diverged at iteration 3: its loss is nan \(SDS nan, "):
+        edit(small_sphere, "a wooden dog", DivergingGuidance(), EditConfig(iterations=6, render_size=SIZE,
+             checkpoint_every=1), _collect(reports), checkpoint_path=checkpoint)
+    assert [r.iteration for r in reports if r.stage == "edit"] == [1, 2]
+    tensors, meta = load_edit_checkpoint(checkpoint)
+    assert meta["iteration"] == 2 and torch.isfinite(tensors["features"]).all()  # a resume starts from before
 
 
 def test_a_zero_iteration_edit_writes_a_checkpoint_with_zero_moments(small_sphere, tmp_path):

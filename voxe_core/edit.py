@@ -88,6 +88,10 @@ EDIT_CHECKPOINT_VERSION = 1
 AUTOCAST_DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
 
 
+class EditDiverged(RuntimeError):
+    """An edit step's loss was NaN or infinite: G_e took a step it cannot recover from."""
+
+
 @dataclass
 class EditConfig:
     """Editing hyper-parameters; the defaults are the paper's (SPEC §2)."""
@@ -290,7 +294,9 @@ def edit(
     Everything runs on ``device`` (None: ``guidance.device`` when the guidance
     has one, else the initial grid's); G_i, G_e and the input views move there
     once, and the returned grid lives there. A ``device`` other than the
-    guidance's is refused at once (every step would copy renders across).
+    guidance's is refused at once (every step would copy renders across). A step whose loss is not finite raises
+    :class:`EditDiverged` before its progress is reported or a checkpoint written (its NaN or infinite gradient
+    has reached G_e, which no later step recovers).
     """
     if not str(prompt).strip():
         raise ValueError("the edit prompt is empty")
@@ -455,6 +461,11 @@ def edit(
             grad_norm = torch.as_tensor(diagnostics.get("grad_norm", math.nan), dtype=torch.float32, device=device)
             sds_value, reg_value, total_value, grad_norm_value = torch.stack(
                 [sds.detach().float(), reg.detach(), total.detach(), grad_norm.reshape(())]).tolist()
+            if not math.isfinite(total_value):
+                raise EditDiverged(
+                    f"the edit diverged at iteration {done}: its loss is {total_value} (SDS {sds_value}, "
+                    f"regulariser {reg_value}); the steps before were finite (half precision overflowing? try "
+                    "autocast off, or a lower lr)")
             t_lo, t_hi = config.schedule.bounds(iteration, T)
             callbacks.progress(Progress(
                 "edit", done, config.iterations,
@@ -502,6 +513,7 @@ __all__ = [
     "EDIT_CHECKPOINT_KIND",
     "EDIT_CHECKPOINT_VERSION",
     "EditConfig",
+    "EditDiverged",
     "build_prompt",
     "edit",
     "initial_fingerprint",
