@@ -1,7 +1,8 @@
 """HTTP answers the routes themselves never give, made true to the OpenAPI document.
 
 * A body that is not JSON at all is a 400 ``malformed JSON body`` (FastAPI would say 422, the status
-  the document keeps for bodies that parse but break the schema).
+  the document keeps for bodies that parse but break the schema), and one sent as another media type than
+  JSON a 415 naming it (FastAPI reads it as a string and said 422 "Input should be a valid dictionary").
 * A path holding a NUL character is a 404 (no resource is named so) and such a query string a 422: neither
   reaches the database, whose PostgreSQL text cannot hold one.
 * A method a path does not serve is a 405 whose ``Allow`` lists every method of every route on that
@@ -54,9 +55,15 @@ async def method_not_allowed(request: Request, exc: StarletteHTTPException) -> R
                         status_code=405, headers={"Allow": allow})
 
 
-def malformed_body(exc: RequestValidationError) -> JSONResponse | None:
-    """The 400 for a body that did not parse as JSON, else None (a schema error: the 422 stays)."""
+def malformed_body(request: Request, exc: RequestValidationError) -> JSONResponse | None:
+    """The 400 for a body that did not parse as JSON, the 415 for one not sent as JSON, else None (a schema
+    error: the 422 stays)."""
+    media_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    json_sent = media_type == "application/json" or media_type.endswith("+json")
     for error in exc.errors():
+        if not json_sent and error.get("loc") == ("body",) and error.get("type") == "model_attributes_type":
+            return JSONResponse({"detail": f"the body must be sent as JSON (Content-Type: application/json), not as "
+                                           f"{media_type or 'no media type'}"}, status_code=415)
         if error.get("type") == "json_invalid":
             reason = (error.get("ctx") or {}).get("error", "JSON decode error")
             position = error.get("loc", [None, None])[-1]
@@ -98,7 +105,7 @@ def install(app: FastAPI) -> None:
 
 
 def document(schema: dict) -> dict:
-    """Add to each operation what middleware and handlers answer: 400 (a JSON body), 413 (any body), 401 and
+    """Add to each operation what middleware and handlers answer: 400 and 415 (a JSON body), 413 (any body), 401 and
     the key schemes (/v1), and an OPTIONS operation per path (204 + Allow; other methods 405 + Allow)."""
     components = schema.setdefault("components", {})
     components.setdefault("securitySchemes", {}).update(SECURITY_SCHEMES)
@@ -110,6 +117,8 @@ def document(schema: dict) -> dict:
             responses = operation["responses"]
             if "application/json" in operation.get("requestBody", {}).get("content", {}):
                 responses.setdefault("400", {"description": "malformed JSON body (it does not parse as JSON)",
+                                             "content": _PROBLEM})
+                responses.setdefault("415", {"description": "the body was not sent as JSON (Content-Type)",
                                              "content": _PROBLEM})
             if method in ("post", "put", "patch"):
                 responses.setdefault("413", {"description": "request body over the upload limit "

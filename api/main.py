@@ -153,9 +153,10 @@ def _json_safe(value):
     return value
 
 
-async def validation_error(_request, exc: RequestValidationError) -> JSONResponse:
-    """FastAPI's 422 (400 for a body that is not JSON), but never a 500 for the offending input it echoes."""
-    if (malformed := http_semantics.malformed_body(exc)) is not None:
+async def validation_error(request, exc: RequestValidationError) -> JSONResponse:
+    """FastAPI's 422 (400 for a body that is not JSON, 415 for one not sent as JSON), but never a 500 for the
+    offending input it echoes."""
+    if (malformed := http_semantics.malformed_body(request, exc)) is not None:
         return malformed
     return JSONResponse(status_code=422, content={"detail": _json_safe(jsonable_encoder(exc.errors()))})
 

@@ -254,6 +254,14 @@ def test_malformed_json_is_a_documented_400(client, spec):
         assert response.status_code == 400 and response.json()["detail"].startswith("malformed JSON body"), path
         assert "400" in spec["paths"][path]["post"]["responses"]
     assert client.post("/v1/jobs", json={"prompt": 1}).status_code == 422  # JSON, but not the schema's: 422
+    body = b'{"scene_id": "x", "prompt": "a mic"}'  # JSON sent as text had been a 422 echoing the body as a string
+    for headers, named in (({"content-type": "text/plain"}, "text/plain"), ({}, "no media type")):
+        response = client.post("/v1/jobs", content=body, headers=headers)
+        assert response.status_code == 415 and response.json()["detail"] == (
+            f"the body must be sent as JSON (Content-Type: application/json), not as {named}")
+        assert "415" in spec["paths"]["/v1/jobs"]["post"]["responses"]
+    assert client.post("/v1/jobs", content=body, headers={"content-type": "application/merge-patch+json"}
+                       ).status_code == 404  # JSON under a +json type: read (no such scene)
 
 
 def test_options_and_405_answer_each_paths_documented_methods(client, spec):
