@@ -229,6 +229,9 @@ def test_duplicate_and_unwritable_multipart_files(client, dataset, root):  # noq
     assert twice.status_code == 422 and "file './train/r_0.png' uploaded twice" in twice.json()["detail"]
     long_name = client.post("/v1/scenes", files=files + [("files", ("x" * 300 + ".png", b"a"))])
     assert long_name.status_code == 422 and "cannot store file" in long_name.json()["detail"]
+    archive = _zip(_dataset_entries(dataset))
+    two = client.post("/v1/scenes", files=[("archive", ("a.zip", archive)), ("archive", ("b.zip", archive))])
+    assert two.status_code == 422 and two.json()["detail"].startswith("send one archive")  # the last had won
     assert client.get("/v1/scenes").json()["total"] == 0 and stored_files(root) == [] and staged(root) == []
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from fastapi import APIRouter, File, Form, Query, Response, UploadFile, status
+from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Request, Response, UploadFile, status
 
 from api.auth import mark_replayed
 from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep, StorageDep
@@ -21,6 +21,14 @@ def scene_out(scene) -> SceneOut:
     return SceneOut.model_validate(scene, from_attributes=True)
 
 
+async def one_archive(request: Request) -> None:
+    """422 for an upload of several ``archive`` parts (the form parsed for the route, read again from its cache):
+    the last had silently won."""
+    if len((await request.form()).getlist("archive")) > 1:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                            "send one archive: the upload has several 'archive' parts (use 'files' for many files)")
+
+
 @router.post(
     "",
     status_code=status.HTTP_201_CREATED,
@@ -34,6 +42,7 @@ def scene_out(scene) -> SceneOut:
                429: {"description": "the key's upload quota is used up (Retry-After)"},
                503: {"description": "the ingest could not be queued (broker unreachable)"}},
     summary="Upload a posed image set or a mesh (optionally with an Idempotency-Key header)",
+    dependencies=[Depends(one_archive)],
 )
 def create_scene(
     response: Response,
