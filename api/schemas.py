@@ -230,12 +230,11 @@ class JobCreate(Strict):
     @field_validator("prompt")
     @classmethod
     def _prompt(cls, value: str) -> str:
-        value = clean_text(value, "the prompt")
-        check_prompt_length(value)  # a longer prompt was cut off at the text encoder (its edit words with it)
-        return value
+        return clean_text(value, "the prompt")
 
     @model_validator(mode="after")
     def _edit_words(self):
+        check_prompt_length(self.prompt, self.params.view_words)  # a longer one was cut off at the text encoder
         if self.mode == "local":
             if not self.edit_words:
                 raise ValueError("edit_words is required for a local edit: the word(s) of the prompt naming the edit")

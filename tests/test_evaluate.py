@@ -447,6 +447,11 @@ def test_sweep_submits_the_paper_protocol_as_one_batch_with_one_table(service, s
     with session_scope() as session:  # all or nothing: no job of the refused sweep was kept
         assert session.scalar(select(func.count()).select_from(Job)) == 0
         session.execute(update(ApiKey).where(ApiKey.id == LOCAL_KEY_ID).values(max_active_jobs=None))
+    long_object = {**body, "scenes": [{"scene_id": scene_id, "object": "a-" * 49 + "ab"}]}  # 100 characters
+    refused = client.post("/v1/sweeps", json=long_object)  # its protocol prompts overrun the text encoder: had been 500
+    assert refused.status_code == 422 and refused.json()["detail"].startswith("scenes[0].object: the prompt is at least")
+    with session_scope() as session:
+        assert session.scalar(select(func.count()).select_from(Job)) == 0
     assert {"/v1/evaluations", "/v1/sweeps", "/v1/sweeps/{sweep_id}"} <= set(client.get("/openapi.json").json()["paths"])
     created = client.post("/v1/sweeps", json=body)
     assert created.status_code == 201, created.text

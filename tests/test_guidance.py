@@ -285,7 +285,8 @@ def test_a_prompt_longer_than_the_text_encoder_reads_is_refused_not_cut_off(guid
 
 
 @pytest.mark.parametrize("text", ["a dog wearing a party hat", "a zebra's 3D-printed hat!!", "a_b, c.d 42 overhead view",
-                                  "a render of a microphone wearing big sunglasses, overhead view"])
+                                  "a render of a microphone wearing big sunglasses, overhead view",
+                                  "a cafe\u0301 hat"])  # a decomposed accent: one piece once NFC, as CLIP reads it
 def test_the_apis_token_count_is_a_lower_bound_of_the_clip_tokenizers(guidance, text):
     assert tokens_at_least(text) <= len(guidance.tokenizer(text).input_ids)
 

@@ -267,8 +267,11 @@ BAD_FIELDS = [
     ({"edit_words": ["hat"]}, ["body"], "edit word 'hat' does not occur in the prompt"),
     # had been accepted and cut off at the text encoder: the local edit failed at its refinement, not finding
     # its edit word, after the whole edit
-    ({"prompt": "a mic " + "very " * 80 + "wearing big sunglasses"}, ["body", "prompt"],
+    ({"prompt": "a mic " + "very " * 80 + "wearing big sunglasses"}, ["body"],
      "the prompt is at least 93 tokens as the model sees it"),
+    # ... counted as the edit will give it: 78 with ", overhead view", 75 without, accepted with view_words off
+    ({"prompt": "a mic " + "very " * 67 + "shiny", "mode": "global", "edit_words": []}, ["body"],
+     "the prompt is at least 78 tokens"),
     ({"edit_words": [""]}, ["body", "edit_words", 0], "at least 1 character"),
     ({"edit_words": ["sunglasses"] * 17}, ["body", "edit_words"], "at most 16 items"),
     ({"params": {"seed": 2**40}}, ["body", "params", "seed"], "less than or equal to 4294967295"),
@@ -299,6 +302,8 @@ def test_bad_job_fields_are_422_naming_the_field(client):
         assert response.status_code == 422, (change, response.text)
         errors = response.json()["detail"]
         assert any(e["loc"] == location and message in e["msg"] for e in errors), (change, errors)
+    no_views = {"scene_id": NO_SCENE, "prompt": "a mic " + "very " * 67 + "shiny", "params": {"view_words": False}}
+    assert client.post("/v1/jobs", json=no_views).status_code == 404  # 75 tokens without a view word: read whole
 
 
 def test_non_finite_numbers_are_422_not_500(client):

@@ -16,6 +16,7 @@ from api.services.jobs import (
     add_jobs, fail_unsent, get_job, new_edit_job, reconstruction_for, request_cancel, send, usable_scene,
 )
 from voxe_core.evaluate import paper_protocol
+from voxe_core.guidance.prompts import check_prompt_length
 from voxe_service.models import (
     CANCELED, EVALUATE, FAILED, QUEUED, RUNNING, SUCCEEDED, TERMINAL_STATES, ApiKey, Job, new_id,
 )
@@ -63,13 +64,19 @@ def create_sweep(*, session: Session, settings: Settings, queue: TaskQueue, key:
     """Record every scene × protocol prompt edit with its evaluation, all or none; send them; the sweep's id."""
     params = body.params.model_dump(mode="json")
     scenes = [usable_scene(session=session, key=key, scene_id=s.scene_id, params=params) for s in body.scenes]
+    for index, entry in enumerate(body.scenes):  # as JobCreate will check each edit, before any row is made
+        for edit in paper_protocol(entry.object):
+            try:
+                check_prompt_length(edit.prompt, body.params.view_words)
+            except ValueError as exc:  # a long object name (it had been a 500 from JobCreate below)
+                raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"scenes[{index}].object: {exc}") from None
     batch_id = new_id()  # every scene checked above, before any reconstruction row is made
     jobs: list[Job] = []
     for scene, entry in zip(scenes, body.scenes):
         rec = reconstruction_for(session=session, scene=scene, params=params)
         for edit in paper_protocol(entry.object):
             # Through JobCreate, so each edit is exactly what POST /v1/jobs would accept (a valid object
-            # name always gives valid protocol prompts: short, and "wearing" / "a" besides the edit words).
+            # name whose prompts fit, checked above, gives valid ones: "wearing" / "a" besides the edit words).
             request = JobCreate(scene_id=scene.id, prompt=edit.prompt, mode=edit.mode,
                                 edit_words=list(edit.edit_words), params=body.params)
             job = new_edit_job(request, key, settings, rec, batch_id)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import unicodedata
 
 RENDER_PREFIX = "a render of"
 VIEW_WORDS = ("front", "side", "back", "overhead")
@@ -64,14 +65,16 @@ _CLIP_PIECES = re.compile(r"'s|'t|'re|'ve|'m|'ll|'d|[^\W\d_]+|\d|(?:[^\s\w]|_)+"
 
 
 def tokens_at_least(text: str) -> int:
-    """A lower bound of the CLIP tokens of ``text`` with the start and end tokens: its pre-token pieces, plus two."""
-    return len(_CLIP_PIECES.findall(text)) + 2
+    """A lower bound of the CLIP tokens of ``text`` with the start and end tokens: its pre-token pieces, plus two
+    (counted in NFC, as the tokenizer reads it: a decomposed accent is no piece of its own there)."""
+    return len(_CLIP_PIECES.findall(unicodedata.normalize("NFC", text))) + 2
 
 
-def check_prompt_length(user_text: str) -> None:
-    """ValueError when "a render of <text>, overhead view" (the longest prompt an edit gives the diffusion model)
-    surely holds more tokens than its text encoder reads (:func:`tokens_at_least`): the guidance's own tokenizer
-    may still refuse a prompt this passes, where BPE splits a word.
+def check_prompt_length(user_text: str, view_words: bool = True) -> None:
+    """ValueError when "a render of <text>, overhead view" (the longest prompt an edit gives the diffusion model;
+    without ``view_words``, no view) surely holds more tokens than its text encoder reads
+    (:func:`tokens_at_least`): the guidance's own tokenizer may still refuse a prompt this passes, where BPE
+    splits a word.
 
     Examples:
         >>> check_prompt_length("a microphone wearing big sunglasses")
@@ -80,7 +83,7 @@ def check_prompt_length(user_text: str) -> None:
         ...
         ValueError: the prompt is at least 81 tokens as the model sees it ("a render of a mic very very ve..., overhead view"); its text encoder reads 77, its start and end tokens included: shorten it
     """
-    longest = edit_prompt(user_text, "overhead")
+    longest = edit_prompt(user_text, "overhead" if view_words else None)
     if (tokens := tokens_at_least(longest)) > TEXT_ENCODER_TOKENS:
         shown = longest if len(longest) <= 60 else f"{longest[:30]}...{longest[-15:]}"
         raise ValueError(f'the prompt is at least {tokens} tokens as the model sees it ("{shown}"); its text '
