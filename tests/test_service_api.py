@@ -76,6 +76,17 @@ def staged(root: Path) -> list[str]:
 JOB = {"prompt": "a mic wearing big sunglasses", "mode": "local", "edit_words": ["sunglasses"]}
 
 
+def reconstruction_rows(scene_id: str) -> list[str]:
+    """The scene's reconstruction rows in the database, used or not (the API lists only those jobs use)."""
+    from sqlalchemy import select
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Reconstruction
+
+    with session_scope() as session:
+        return sorted(session.scalars(select(Reconstruction.id).where(Reconstruction.scene_id == scene_id)))
+
+
 # ------------------------------------------------------------------------------------------ scenes
 def test_openapi_documents_the_v1_surface(client):
     spec = client.get("/openapi.json").json()
@@ -771,7 +782,8 @@ def test_a_broker_refusing_a_submission_keeps_nothing_and_a_retry_with_the_key_r
     assert "could not queue the job: ConnectionError: broker down" in job.json()["detail"]
     assert client.get("/v1/scenes").json()["total"] == 1 and client.get("/v1/jobs").json()["total"] == 0
     assert stored_files(root) == [f"scenes/{scene['id']}/dataset.zip"] and staged(root) == []
-    assert client.get(f"/v1/scenes/{scene['id']}/reconstructions").json() == []  # the refused job's is unlisted
+    assert len(reconstruction_rows(scene["id"])) == 1  # the refused job made its row (in its own transaction) ...
+    assert client.get(f"/v1/scenes/{scene['id']}/reconstructions").json() == []  # ... which no job uses: unlisted
 
     with open(archive, "rb") as handle:  # the broker is back: the same keys submit anew
         upload = client.post("/v1/scenes", files={"archive": ("s.zip", handle, "application/zip")},
@@ -781,6 +793,32 @@ def test_a_broker_refusing_a_submission_keeps_nothing_and_a_retry_with_the_key_r
     assert upload.json()["state"] == "processing" and job.json()["state"] == "queued"
     (rec,) = client.get(f"/v1/scenes/{scene['id']}/reconstructions").json()
     assert rec["id"] == job.json()["reconstruction"]["id"]  # the row the refused job made, used now
+
+
+def test_a_job_accepted_while_the_broker_refused_the_ingest_keeps_the_scene_failed(client, dataset, root,
+                                                                                   monkeypatch):
+    """The scene is listed while the broker takes its time to refuse its ingest: a job accepted on it meanwhile is
+    not deleted with it (the 503 path deletes a scene only with no job); both fail naming the reason."""
+    from voxe_service.db import session_scope
+    from voxe_service.models import LOCAL_KEY_ID, Job, Scene
+    from voxe_service.queue import TaskQueue
+
+    def accept_a_job_then_refuse(self, scene_id):
+        with session_scope() as session:  # what a concurrent POST /v1/jobs commits on the processing scene
+            session.add(Job(id="j" * 32, scene_id=scene_id, owner_key_id=LOCAL_KEY_ID, prompt="a mic", mode="global",
+                            params={}, sds_model="tiny", attention_model="tiny", device="cpu", state="queued"))
+        raise ConnectionError("broker down")
+
+    monkeypatch.setattr(TaskQueue, "send_ingest", accept_a_job_then_refuse)
+    response = upload_zip(client, zip_folder(dataset, root / "s.zip", prefix="mic_small"))
+    assert response.status_code == 503
+    (scene,) = client.get("/v1/scenes").json()["items"]
+    assert scene["state"] == "failed" and scene["error"].startswith("could not queue the ingest: ConnectionError")
+    job = client.get(f"/v1/jobs/{'j' * 32}").json()
+    assert job["state"] == "failed" and job["error"] == f"the scene's upload failed processing: {scene['error']}"
+    assert stored_files(root) == [] and staged(root) == []  # its bytes go either way
+    with session_scope() as session:
+        assert session.get(Scene, scene["id"]).size_bytes == 0
 
 
 def test_route_voxelize_on_an_image_scene_is_a_422_naming_the_field(client, dataset, root):
@@ -793,7 +831,7 @@ def test_route_voxelize_on_an_image_scene_is_a_422_naming_the_field(client, data
     sweep = client.post("/v1/sweeps", json={"scenes": [{"scene_id": scene["id"], "object": "mic"}],
                                             "params": {"reconstruction": {"route": "voxelize"}}})
     assert sweep.status_code == 422 and "reconstruction.route 'voxelize'" in sweep.json()["detail"]
-    assert client.get(f"/v1/scenes/{scene['id']}/reconstructions").json() == []  # nothing half made
+    assert reconstruction_rows(scene["id"]) == []  # nothing half made (the listing would hide an unused row)
     both = {"scene_id": scene["id"], **JOB, "params": {"reconstruction": {"route": "voxelize", "backbone": "scene"}}}
     errors = client.post("/v1/jobs", json=both).json()["detail"]
     assert any(e["loc"] == ["body", "params", "reconstruction"] and "backbone 'scene'" in e["msg"] for e in errors)
@@ -849,7 +887,7 @@ def test_reconstruction_iterations_that_fit_no_stage_count_are_a_422(client, dat
     response = client.post("/v1/jobs", json=body)
     assert response.status_code == 422, response.json()
     assert "one value or one per stage (3 stages), got 4" in response.json()["detail"]
-    assert client.get(f"/v1/scenes/{scene['id']}/reconstructions").json() == []  # nothing half made
+    assert reconstruction_rows(scene["id"]) == []  # nothing half made (the listing would hide an unused row)
 
 
 def _opaque_copy(dataset: Path, dest: Path) -> Path:
@@ -905,12 +943,12 @@ def test_a_scenes_backbone_is_decided_at_processing_and_jobs_are_checked_against
     assert client.post("/v1/jobs", json={"scene_id": processing["id"], **JOB, "params": named}).status_code == 201
 
     # A sweep over both scenes is refused for the second before any reconstruction of the first is made.
-    before = client.get(f"/v1/scenes/{objects['id']}/reconstructions").json()
+    before = reconstruction_rows(objects["id"])
     sweep = client.post("/v1/sweeps", json={"scenes": [{"scene_id": objects["id"], "object": "mic"},
                                                        {"scene_id": processing["id"], "object": "mic"}],
                                             "params": {"reconstruction": {"iterations": [3, 2, 3]}}})
     assert sweep.status_code == 422 and sweep.json()["detail"] == f"params.reconstruction: {why}"
-    assert client.get(f"/v1/scenes/{objects['id']}/reconstructions").json() == before
+    assert reconstruction_rows(objects["id"]) == before
 
 
 def test_a_job_whose_scenes_ingest_decides_meanwhile_is_checked_under_the_scenes_lock(client, dataset, root,

@@ -170,11 +170,12 @@ def evaluations_waiting_on(session: Session, job: Job) -> list[str]:
 
 
 def dispatch_job(session: Session, queue: TaskQueue, job: Job, done: Iterable[str] = (),
-                 message: str | None = None) -> None:
+                 message: str | None = None, fail_refused: bool = True) -> None:
     """Send the job's remaining stages (and the evaluations waiting on it), recording the task id on each, and
     ``message`` on the job.
 
-    When the broker refuses, the jobs are failed with the reason and :class:`QueueUnavailable` is raised.
+    When the broker refuses, :class:`QueueUnavailable` is raised, the jobs failed with the reason first unless
+    ``fail_refused`` is off (a caller withdrawing a job it has just created: no failed event, no webhook).
     """
     ids = [job.id, *evaluations_waiting_on(session, job)]
     try:
@@ -182,8 +183,9 @@ def dispatch_job(session: Session, queue: TaskQueue, job: Job, done: Iterable[st
     except Exception as exc:  # noqa: BLE001 - broker down: the jobs cannot run
         log.exception("could not queue job(s) %s", ids)
         reason = f"could not queue the job: {type(exc).__name__}: {exc}"
-        finish_jobs(session, ids, FAILED, error=reason)
-        session.commit()
+        if fail_refused:
+            finish_jobs(session, ids, FAILED, error=reason)
+            session.commit()
         raise QueueUnavailable(reason) from None
     # One UPDATE per row: PostgreSQL re-checks the foreign keys of a row updated twice in one transaction.
     session.execute(update(Job).where(Job.id == job.id).values(task_id=task_id, message=message))

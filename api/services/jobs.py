@@ -180,11 +180,12 @@ def _scene_deleted(jobs: list[Job]) -> HTTPException:
     return HTTPException(status.HTTP_404_NOT_FOUND, f"scene {scenes} was deleted while the job was created")
 
 
-def send(*, session: Session, queue: TaskQueue, jobs: Iterable[Job]) -> None:
-    """Hand each job's chain (with the evaluations following it) to the broker; 503 when it is down."""
+def send(*, session: Session, queue: TaskQueue, jobs: Iterable[Job], fail_refused: bool = True) -> None:
+    """Hand each job's chain (with the evaluations following it) to the broker; 503 when it is down (the jobs
+    failed with the reason, unless ``fail_refused`` is off: ``dispatch_job``)."""
     for job in jobs:
         try:
-            dispatch_job(session, queue, job)
+            dispatch_job(session, queue, job, fail_refused=fail_refused)
         except QueueUnavailable as exc:
             raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(exc)) from None
 
@@ -210,8 +211,8 @@ def create_job(*, session: Session, settings: Settings, queue: TaskQueue, key: A
             return replayed, True  # a concurrent retry created it first
         raise
     try:
-        send(session=session, queue=queue, jobs=to_send)
-    except HTTPException:  # 503: the broker refused it, so the job was never accepted
+        send(session=session, queue=queue, jobs=to_send, fail_refused=False)
+    except HTTPException:  # 503: the broker refused it, so the job was never accepted (no failed event or webhook)
         session.execute(delete(Job).where(Job.id == job.id))  # nothing listed; a retry with the key runs anew
         if idem is not None:
             idem.forget(session, key)

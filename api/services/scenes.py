@@ -18,7 +18,7 @@ from api.auth import Idempotency, check_upload_bytes, lock_key
 from api.uploads import UploadError, stage_upload
 from voxe_service.models import FAILED, QUEUED, RUNNING, ApiKey, Job, Reconstruction, Scene, new_id, utcnow
 from voxe_service.queue import TaskQueue
-from voxe_service.scenes import lock_scene
+from voxe_service.scenes import fail_scene, lock_scene
 from voxe_service.settings import Settings
 from voxe_service.storage import Storage, job_key, reconstruction_storage_key, scene_key
 
@@ -109,15 +109,22 @@ def create_scene(*, session: Session, settings: Settings, storage: Storage, queu
 def _queue_ingest(session: Session, storage: Storage, queue: TaskQueue, scene: Scene, key: ApiKey,
                   idem: Idempotency | None) -> None:
     """Hand the ingest to the broker. When it is down (503) the upload was never accepted: its scene, bytes and
-    Idempotency-Key go, so nothing is listed and a retry with the key uploads it anew."""
+    Idempotency-Key go, so nothing is listed and a retry with the key uploads it anew. But the scene was listed
+    while the broker took its time to refuse: a job accepted on it meanwhile keeps it, failed with the reason (as
+    its ingest would have), and the job fails naming it."""
     try:
         task_id = queue.send_ingest(scene.id)
     except Exception as exc:  # noqa: BLE001 - broker down: nothing will ingest it
         log.exception("could not queue the ingest of scene %s", scene.id)
         reason = f"could not queue the ingest: {type(exc).__name__}: {exc}"
-        session.delete(scene)
-        if idem is not None:
-            idem.forget(session, key)
+        lock_scene(session, scene.id)  # before counting, as delete_scene does: a job is counted here or refused there
+        session.execute(update(Scene).where(Scene.id == scene.id).values(updated_at=utcnow()))  # SQLite's write lock
+        if session.scalar(select(func.count()).select_from(Job).where(Job.scene_id == scene.id)):
+            fail_scene(session, scene.id, reason)
+        else:
+            session.delete(scene)
+            if idem is not None:
+                idem.forget(session, key)
         session.commit()
         storage.discard_prefixes(scene_key(scene.id))
         raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, reason) from None
