@@ -88,7 +88,7 @@ EDIT_CHECKPOINT_VERSION = 1
 AUTOCAST_DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
 
 
-class EditDiverged(RuntimeError):
+class EditDiverged(ArithmeticError):
     """An edit step's loss was NaN or infinite: G_e took a step it cannot recover from."""
 
 

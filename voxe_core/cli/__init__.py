@@ -50,7 +50,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     try:
         return args.run(args)
-    except (DatasetError, FormatError, ValueError, OSError) as exc:
+    except (DatasetError, FormatError, ValueError, ArithmeticError, OSError) as exc:  # Arithmetic: EditDiverged
         kind = "dataset error" if isinstance(exc, DatasetError) else "error"
         print(f"voxe {args.command}: {kind}: {exc}", file=sys.stderr)
         return EXIT_USAGE
