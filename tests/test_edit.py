@@ -307,8 +307,8 @@ def test_a_prompt_too_long_with_a_view_word_fails_before_the_first_step(small_sp
     prompt = " ".join(words)  # fits without a view word, not with one
     reports, previews = [], []
     with pytest.raises(ValueError, match=r" view' is 7\d tokens; the text encoder .* reads 77"):
-        edit(small_sphere, prompt, tiny_guidance, EditConfig(iterations=3, render_size=16), _collect(reports),
-             on_preview=lambda done, image: previews.append(done))
+        edit(small_sphere, prompt, tiny_guidance, EditConfig(iterations=3, render_size=16, preview_every=1),
+             _collect(reports), on_preview=lambda done, image: previews.append(done))
     assert not [r for r in reports if r.stage == "edit"] and previews == []  # not even iteration 0's preview
 
 
