@@ -260,6 +260,8 @@ def check_image_pixels(folder: Path, max_pixels: int) -> None:
                     width, height = image.size
         except Image.DecompressionBombError:
             width = height = None
+        except MemoryError:
+            raise
         except Exception:  # Pillow's plugins raise many kinds on odd headers (NotImplementedError for DDS's)
             continue  # not an image (the json, a readme); the loader reports referenced images it cannot read
         if width is None or width * height > max_pixels:
@@ -326,6 +328,8 @@ def _check_frame_images(root: Path, json_name: str, frames: list[dict], staging:
                 warnings.simplefilter("ignore", Image.DecompressionBombWarning)
                 with Image.open(path) as image:
                     size = image.size
+        except MemoryError:
+            raise
         except Exception as exc:  # as above: any kind Pillow raises means it cannot read the file
             raise _invalid(f"{where}: cannot read image {path.name} (not an image or damaged): {exc}", staging) from None
         if first is None:

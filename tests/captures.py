@@ -1,11 +1,18 @@
-"""Small captures made in code for the tests: image folders and COLMAP models written with pycolmap."""
+"""Small captures made in code for the tests: image folders and COLMAP models written with pycolmap, and a file
+Pillow cannot read."""
 
 from __future__ import annotations
 
+import struct
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
+
+
+DDS_OF_UNKNOWN_PIXEL_FORMAT = (b"DDS " + struct.pack("<7I", 124, 0x1007, 16, 16, 0, 0, 0) + bytes(44)
+                               + struct.pack("<8I", 32, *[0] * 7) + bytes(20))
+"""A DDS header Pillow opens and then refuses with NotImplementedError (not among its usual OSError / ValueError)."""
 
 
 def write_colmap_model(model_dir: Path, cameras: list[tuple[str, int, int, list[float]]],

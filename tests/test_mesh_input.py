@@ -9,6 +9,7 @@ import torch
 import trimesh
 from PIL import Image
 
+from captures import DDS_OF_UNKNOWN_PIXEL_FORMAT
 from conftest import DATA_ROOT
 from voxe_core.cameras import Cameras, look_at
 from voxe_core.export import extract_mesh
@@ -107,16 +108,24 @@ def test_loading_normalises_and_refuses_bad_files(tmp_path):
     with pytest.raises(MeshError, match="point.obj: all vertices coincide"):
         load_mesh(tmp_path / "point.obj")
     (tmp_path / "line.obj").write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nv 3 0 0\nf 1 2 3\nf 2 3 4\n")
-    with pytest.raises(MeshError, match=r"line.obj: every triangle has zero area \(its vertices lie on a line\)"):
+    with pytest.raises(MeshError, match=r"line.obj: every triangle has zero area \(repeated or collinear vertices\)"):
         load_mesh(tmp_path / "line.obj")  # had voxelised to an empty grid, mesh-to-grid exiting 0
     (tmp_path / "fin.obj").write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nv 0 1 0\nf 1 2 3\nf 1 2 4\n")
     assert load_mesh(tmp_path / "fin.obj").faces.shape == (2, 3)  # one real triangle is a surface
+    (tmp_path / "far.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                                      "property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
+                                      "end_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n")
+    with pytest.raises(MeshError, match=r"far.ply: a face names vertex 8 of 3"):
+        load_mesh(tmp_path / "far.ply")  # had raised a bare IndexError
     ply = _write_ply(tmp_path / "square.ply", _square(0.0, 1.0, RED))
     with pytest.raises(MeshError, match="square.ply: a texture was given but the mesh has no texture coordinates"):
         load_mesh(ply, SPOT / "spot_texture.png")
     (tmp_path / "bad.png").write_bytes(b"not a png")
     with pytest.raises(MeshError, match="bad.png: cannot read the texture image"):
         load_mesh(SPOT / "spot_triangulated.obj", tmp_path / "bad.png")
+    (tmp_path / "odd.png").write_bytes(DDS_OF_UNKNOWN_PIXEL_FORMAT)  # Pillow raises NotImplementedError for it
+    with pytest.raises(MeshError, match="odd.png: cannot read the texture image: Unknown pixel format"):
+        load_mesh(SPOT / "spot_triangulated.obj", tmp_path / "odd.png")
 
 
 # ------------------------------------------------------------------ voxelisation

@@ -19,6 +19,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
+from captures import DDS_OF_UNKNOWN_PIXEL_FORMAT as DDS
 from test_service_api import (  # noqa: F401 - client, dataset and root are fixtures
     JOB, _dataset_entries, _reset, client, dataset, make_scene, root, staged, stored_files,
 )
@@ -74,8 +75,6 @@ def _scaled_pose(meta):
                                              meta["frames"][1]["transform_matrix"][:3]] + [[0, 0, 0, 1]]
 
 
-_DDS = b"DDS " + struct.pack("<7I", 124, 0x1007, 16, 16, 0, 0, 0) + bytes(44) + struct.pack("<8I", 32, *[0] * 7) + bytes(20)
-
 HOSTILE_UPLOADS = {
     # name: (build(dataset) -> zip bytes, expected status, words in the message)
     "zip slip ..": (lambda d: _zip({**_dataset_entries(d), "../../evil.sh": b"x"}), 422, "'..' path components"),
@@ -92,7 +91,7 @@ HOSTILE_UPLOADS = {
     "not an image": (lambda d: _zip({**_dataset_entries(d), "train/r_8.png": b"GIF89a but not really"}), 422,
                      "frame 2 ('./train/r_8'): cannot read image r_8.png (not an image or damaged)"),
     # Pillow raises NotImplementedError for it, which the image checks did not catch: a 500
-    "image of an unknown DDS pixel format": (lambda d: _zip({**_dataset_entries(d), "train/r_8.png": _DDS}), 422,
+    "image of an unknown DDS pixel format": (lambda d: _zip({**_dataset_entries(d), "train/r_8.png": DDS}), 422,
                                              "frame 2 ('./train/r_8'): cannot read image r_8.png (not an image"),
     "decompression bomb": (lambda d: _zip({**_dataset_entries(d), "train/r_8.png": _png((8000, 8000), "1")}), 413,
                            "'train/r_8.png' is 8000x8000 (64000000 pixels), over the limit of 50000000 pixels"),
@@ -145,7 +144,7 @@ def test_hostile_uploads_are_4xx_naming_the_problem_and_leave_nothing(client, da
 def test_a_file_no_frame_uses_is_skipped_whatever_pillow_raises_on_it(client, dataset, root):  # noqa: F811
     """The pixel-cap check opens every file; one Pillow cannot read (NotImplementedError here) is not an image."""
     response = client.post("/v1/scenes", files={"archive": ("ok.zip", _zip({**_dataset_entries(dataset),
-                                                                           "notes.txt": _DDS}), "application/zip")})
+                                                                           "notes.txt": DDS}), "application/zip")})
     assert response.status_code == 201, response.text
 
 

@@ -442,6 +442,8 @@ def _read_image(root: Path, file_path: str, where: _Where, frame: int) -> tuple[
             return arr, path
     except Image.DecompressionBombError as e:
         raise where(f"image {path.name} refused as a decompression bomb: {e}", frame, path) from e
+    except MemoryError:
+        raise
     except Exception as e:  # Pillow's plugins raise many kinds on damaged headers (NotImplementedError for DDS's)
         raise where(f"cannot read image {path.name} (not an image or damaged): {e}", frame, path) from e
 

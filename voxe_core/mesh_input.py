@@ -143,10 +143,12 @@ def load_mesh(
     up = UP_AXES[up_axis]
     order = [(up + 1) % 3, (up + 2) % 3, up]  # a cyclic permutation: a rotation, handedness kept
     vertices = (vertices - (lo + hi) / 2)[:, order] * (extent / half)
-    corners = vertices[faces]
-    area = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=-1).sum() / 2
-    if not area > 1e-12 * extent**2:  # voxelised, it would be an empty grid
-        raise MeshError(f"{path.name}: every triangle has zero area (its vertices lie on a line); the mesh has no surface")
+    if faces.min() < 0 or faces.max() >= len(vertices):  # a PLY loads so (an OBJ's reader refuses it)
+        raise MeshError(f"{path.name}: a face names vertex {int(faces.max()) + 1} of {len(vertices)} "
+                        f"(or a negative index)")
+    if not _has_area(vertices, faces, 1e-12 * extent**2):  # voxelised, it would be an empty grid
+        raise MeshError(f"{path.name}: every triangle has zero area (repeated or collinear vertices); "
+                        "the mesh has no surface")
 
     mesh = SurfaceMesh(vertices, faces)
     visual = loaded.visual
@@ -157,7 +159,9 @@ def load_mesh(
         try:
             with Image.open(texture) as image:
                 mesh.texture = np.asarray(image.convert("RGB"), dtype=np.float32) / 255.0
-        except (OSError, SyntaxError, ValueError) as e:
+        except MemoryError:
+            raise
+        except Exception as e:  # Pillow's plugins raise many kinds on damaged headers (NotImplementedError for DDS's)
             raise MeshError(f"{Path(texture).name}: cannot read the texture image: {e}") from e
         mesh.uv = np.asarray(uv, dtype=np.float64)
     elif getattr(visual, "kind", None) == "vertex":
@@ -169,6 +173,17 @@ def load_mesh(
 
 
 # -------------------------------------------------------------- shading
+def _has_area(vertices: np.ndarray, faces: np.ndarray, tolerance: float, chunk: int = 1 << 16) -> bool:
+    """Whether some triangle's area exceeds ``tolerance``, read a chunk of faces at a time (a real mesh answers
+    from its first chunk, without a float64 copy of every corner)."""
+    for start in range(0, len(faces), chunk):
+        corners = vertices[faces[start:start + chunk]]
+        doubled = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=-1)
+        if doubled.max() > 2 * tolerance:
+            return True
+    return False
+
+
 def shade_mesh(mesh: SurfaceMesh, mode: str = "auto", seed: int = 0) -> SurfaceMesh:
     """The mesh with the fixed shading baked in (see the module docstring), or as it is.
 
