@@ -67,18 +67,20 @@ def sparse_tensors(features: torch.Tensor, cells: torch.Tensor, margin: int = DE
 
     Returns (tensors, header fields: layout, margin, resolution). ``fill`` is the mean of the vertices left
     out: each of those has a density no cell above the occupancy threshold
-    needs, and a mean of values below a threshold stays below it. It is taken in float64 over the values that
-    are not NaN, infinities counted as float32's extremes: in float32 two colours of 3e38 had overflowed it to
-    inf, and one NaN had spread to every vertex left out.
+    needs, and a mean of values below a threshold stays below it. Where float32's mean is not finite (two colours
+    of 3e38 overflow it, one NaN spreads to every vertex left out) it is taken again in float64 over the values
+    that are not NaN, infinities counted as float32's extremes.
     """
     if margin < 0:
         raise ValueError(f"margin must be >= 0 cells, got {margin}")
     features = features.detach().cpu().float()
     mask = stored_vertices(cells.cpu(), margin)
-    extreme = torch.finfo(torch.float32).max
-    dropped = features[~mask].double().clamp(-extreme, extreme)  # NaN stays NaN
-    counted = ~dropped.isnan()
-    fill = (dropped.nan_to_num(0.0).sum(0) / counted.sum(0).clamp_min(1)).float()
+    dropped = features[~mask]
+    fill = dropped.mean(0) if dropped.shape[0] else features.new_zeros(features.shape[-1])
+    if not bool(torch.isfinite(fill).all()):  # overflowed, or a NaN among them: the careful mean, only then
+        extreme = torch.finfo(torch.float32).max
+        dropped.clamp_(-extreme, extreme)  # a copy (mask indexing), clamped in place; NaN stays NaN
+        fill = (torch.nansum(dropped, 0, dtype=torch.float64) / (~dropped.isnan()).sum(0).clamp_min(1)).float()
     bits = torch.from_numpy(np.packbits(mask.numpy().reshape(-1)))
     layout = {"layout": "sparse", "margin": int(margin), "resolution": list(features.shape[:3])}
     return {"stored_bits": bits, "values": features[mask], "fill": fill}, layout
