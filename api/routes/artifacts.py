@@ -100,7 +100,7 @@ def get_artifact(job_id: str, name: str, request: Request, session: SessionDep, 
     headers["Content-Length"] = str(max(0, end - start + 1))
     missing = HTTPException(status.HTTP_404_NOT_FOUND, f"artifact {name!r} is missing from storage")
     if request.method == "HEAD":  # answers as the GET would (it had said 200 for a file the GET could not serve)
-        if not storage.exists(artifact.key):
+        if size and not storage.exists(artifact.key):  # the GET of an empty file reads nothing
             raise missing
         return Response(status_code=code, headers=headers, media_type=artifact.content_type)
     try:
