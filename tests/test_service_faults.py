@@ -323,7 +323,12 @@ def test_a_run_that_lost_its_job_publishes_records_and_fits_nothing(db, tmp_path
             runtime.publish_artifact(job_id, "edited_grid.safetensors", grid, "grid", storage)
         with pytest.raises(runtime.RunSuperseded):
             runtime.merge_job_result(job_id, {"orbit_centre": [0.0, 0.0, 0.0]})
+        stalled_callbacks = runtime.StageCallbacks(stalled, "edit", db, on_checkpoint=lambda path: storage.put_file(
+            f"jobs/{job_id}/checkpoints/edit.safetensors", path))
+        with pytest.raises(runtime.RunSuperseded):  # its older checkpoint had replaced the new owner's
+            stalled_callbacks.on_checkpoint(str(grid))
     assert storage.list(f"jobs/{job_id}/") == [] and runtime.recorded_key(job_id, "edited_grid.safetensors") is None
+    assert "checkpoint" not in [e["kind"] for e in events_of(job_id)]
     assert job_row(job_id).result is None
     assert not runtime.renew_lease(rec_id, job_id, db, stalled.run_token)
     assert not runtime.set_reconstruction(rec_id, job_id, stalled.run_token, state="failed")
@@ -534,6 +539,36 @@ def stored_bytes(storage, job_id: str, name: str) -> bytes:
     from worker.runtime import artifact_key
 
     return b"".join(storage.open_range(artifact_key(job_id, name)))
+
+
+def test_an_artifact_whose_record_fails_leaves_no_bytes_behind(db, tmp_path, monkeypatch):
+    """The bytes are uploaded, then the transaction recording them fails (a database error): the upload goes too,
+    so an artifact is listed and stored, or neither (it had stayed in storage, unlisted, for good)."""
+    from sqlalchemy.exc import OperationalError
+
+    from voxe_service.storage import get_storage
+    from worker import runtime
+
+    storage = get_storage(db)
+    job_id = add_job(add_scene(), "running", 0, "w@host", "edit")
+    grid = tmp_path / "edited_grid.safetensors"
+    grid.write_bytes(b"grid" * 100)
+
+    def locked(*_args, **_kwargs):
+        raise OperationalError("INSERT INTO job_events", {}, Exception("database is locked"))
+
+    monkeypatch.setattr(runtime, "record_event", locked)
+    with pytest.raises(OperationalError):
+        runtime.publish_artifact(job_id, "edited_grid.safetensors", grid, "grid", storage)
+    assert listed(job_id) == [] and storage.list(f"jobs/{job_id}/") == []
+    monkeypatch.undo()
+    runtime.publish_artifact(job_id, "edited_grid.safetensors", grid, "grid", storage)
+    with monkeypatch.context() as failing:  # a replacement whose record fails: the first version stays, alone
+        failing.setattr(runtime, "record_event", locked)
+        with pytest.raises(OperationalError):
+            runtime.publish_artifact(job_id, "edited_grid.safetensors", grid, "grid", storage)
+    assert storage.list(f"jobs/{job_id}/") == [f"jobs/{job_id}/edited_grid.safetensors"]
+    assert [name for name, *_ in listed(job_id)] == ["edited_grid.safetensors"]
 
 
 def test_an_upload_failing_mid_write_is_never_listed_and_leaves_no_file(db, tmp_path, monkeypatch):

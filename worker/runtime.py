@@ -270,7 +270,10 @@ class StageCallbacks:
                                    on_checkpoint=self.on_checkpoint if on_checkpoint else None)
 
     def on_checkpoint(self, path: str) -> None:
-        """Store the checkpoint, then record where it was taken (stages report progress just before)."""
+        """Store the checkpoint, then record where it was taken (stages report progress just before). A run that
+        lost its job stores nothing (:class:`RunSuperseded`): its older state would replace the new owner's."""
+        with session_scope() as session:
+            _refuse_if_superseded(self.job_id, lambda: session.scalar(_token_query(self.job_id)))
         self._store_checkpoint(path)
         iteration = self._last_report.iteration if self._last_report is not None else 0
         record_job_event(self.job_id, "checkpoint", stage=self.stage, iteration=int(iteration))
@@ -370,23 +373,30 @@ def publish_artifact(job_id: str, name: str, path: str | os.PathLike, kind: str,
     else:  # already in storage under another key (e.g. the shared reconstruction)
         size, sha = file_sha256(path)
         stored = StoredObject(key, size, sha)
-    with session_scope() as session:
-        try:  # ... and records nothing (checked again under the row's lock)
-            _refuse_if_superseded(job_id, lambda: session.scalar(_token_query(job_id).with_for_update()))
-        except RunSuperseded:
-            if uploaded and stored.key != job_key(job_id, name):
-                storage.delete(stored.key)
-            raise
-        artifact = session.execute(
-            select(Artifact).where(Artifact.job_id == job_id, Artifact.name == name)
-        ).scalar_one_or_none()
-        if artifact is None:
-            artifact = Artifact(job_id=job_id, name=name)
-            session.add(artifact)
-        artifact.key, artifact.size, artifact.sha256 = stored.key, stored.size, stored.sha256
-        artifact.content_type, artifact.kind, artifact.created_at = content_type(name), kind, utcnow()
-        # On the timeline in the same transaction: an event stream announces each artifact once it can be read.
-        record_event(session, job_id, "preview" if kind == "preview" else "artifact", detail=name)
+    try:
+        with session_scope() as session:
+            try:  # ... and records nothing (checked again under the row's lock)
+                _refuse_if_superseded(job_id, lambda: session.scalar(_token_query(job_id).with_for_update()))
+            except RunSuperseded:
+                if uploaded and stored.key != job_key(job_id, name):  # the fixed key may be the new owner's
+                    storage.delete(stored.key)
+                raise
+            artifact = session.execute(
+                select(Artifact).where(Artifact.job_id == job_id, Artifact.name == name)
+            ).scalar_one_or_none()
+            if artifact is None:
+                artifact = Artifact(job_id=job_id, name=name)
+                session.add(artifact)
+            artifact.key, artifact.size, artifact.sha256 = stored.key, stored.size, stored.sha256
+            artifact.content_type, artifact.kind, artifact.created_at = content_type(name), kind, utcnow()
+            # On the timeline in the same transaction: an event stream announces each artifact once it can be read.
+            record_event(session, job_id, "preview" if kind == "preview" else "artifact", detail=name)
+    except RunSuperseded:
+        raise
+    except BaseException:  # the record was rolled back (this run held the job under the row's lock): so are the bytes
+        if uploaded:  # a fresh key (a replacement never overwrites the recorded one)
+            storage.delete(stored.key)
+        raise
     if previous and previous != stored.key and previous.startswith(job_key(job_id, "")):
         storage.delete(previous)  # never the shared reconstruction's grid: that lives outside jobs/<id>/
     return artifact
