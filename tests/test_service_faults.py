@@ -541,6 +541,36 @@ def stored_bytes(storage, job_id: str, name: str) -> bytes:
     return b"".join(storage.open_range(artifact_key(job_id, name)))
 
 
+def test_a_stage_whose_start_meets_a_database_error_tries_again_then_goes_back_to_the_queue(db, monkeypatch):
+    """begin_stage raising (a locked or dropped database) had failed the task, and the broker acknowledged it: the
+    accepted job stayed queued (or running between stages) for good, which no reaper pass changed."""
+    from sqlalchemy.exc import OperationalError
+
+    from worker import runtime, tasks
+
+    monkeypatch.setattr(tasks, "STAGE_START_RETRY_S", (0.0, 0.0))
+    job_id = add_job(add_scene(), "queued", 0)
+    real, failures = runtime.begin_stage, []
+
+    def flaky(*args, **kwargs):
+        if len(failures) < 2:
+            failures.append(1)
+            raise OperationalError("UPDATE jobs", {}, Exception("database is locked"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(runtime, "begin_stage", flaky)
+    task = type("Task", (), {"request": type("Request", (), {"hostname": "w@host"})()})()
+    assert tasks._begin_stage(task, job_id, "reconstruct", "cpu", db).state == "running"  # the third try takes it
+
+    monkeypatch.setattr(runtime, "begin_stage", lambda *a, **k: (_ for _ in ()).throw(
+        OperationalError("UPDATE jobs", {}, Exception("database is locked"))))
+    other = add_job(add_scene(), "queued", 0)
+    result = tasks.reconstruct_task.apply(args=(other,))
+    assert result.state == "REJECTED" and result.result.requeue  # back to the broker, not acknowledged as failed
+    assert "reconstruct of job" in str(result.result) and "database is locked" in str(result.result)
+    assert job_row(other).state == "queued"  # untouched: the redelivered message takes it
+
+
 def test_an_artifact_whose_record_fails_leaves_no_bytes_behind(db, tmp_path, monkeypatch):
     """The bytes are uploaded, then the transaction recording them fails (a database error): the upload goes too,
     so an artifact is listed and stored, or neither (it had stayed in storage, unlisted, for good)."""

@@ -28,8 +28,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from celery import signals
-from celery.exceptions import Ignore, SoftTimeLimitExceeded
+from celery.exceptions import Ignore, Reject, SoftTimeLimitExceeded
 from sqlalchemy import select
+from sqlalchemy.exc import SQLAlchemyError
 
 from voxe_core.presets import edit_config, export_config, fit_backbone, fit_setup, reconstruct_config, refine_config
 from voxe_core.progress import Callbacks, Progress, StageCancelled
@@ -67,11 +68,30 @@ class ReconstructionFailed(RuntimeError):
 
 
 # --------------------------------------------------------------------------- the common frame
+STAGE_START_RETRY_S = (0.5, 1.0, 2.0, 4.0)
+"""Pauses between tries to take a job when the database fails (a lock, a dropped connection), before the message
+goes back to the broker."""
+
+
+def _begin_stage(task, job_id: str, stage: str, device: str, settings):
+    """``runtime.begin_stage``, tried again on a database error; still failing, the message is rejected back to the
+    queue (``Reject``): acknowledged with a failure it was gone, and the job, accepted, never ran or ended."""
+    for pause in (*STAGE_START_RETRY_S, None):
+        try:
+            return runtime.begin_stage(job_id, stage, task.request.hostname or socket.gethostname(), device, settings)
+        except SQLAlchemyError as exc:
+            if pause is None:
+                log.error("job %s: %s could not start (%s); the message goes back to the queue", job_id, stage, exc)
+                raise Reject(f"{stage} of job {job_id} could not start: {exc}", requeue=True) from exc
+            log.warning("job %s: %s could not start (%s); trying again in %.1f s", job_id, stage, exc, pause)
+            time.sleep(pause)
+
+
 def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> TaskResult:
     settings = get_settings()
     device = settings.resolved_device
     try:
-        job = runtime.begin_stage(job_id, stage, task.request.hostname or socket.gethostname(), device, settings)
+        job = _begin_stage(task, job_id, stage, device, settings)
     except StageHeld as held:  # a duplicate message: acknowledged, its chain not continued
         log.info("%s: dropped: %s", stage, held)
         raise Ignore() from None
