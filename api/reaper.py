@@ -40,7 +40,8 @@ from sqlalchemy import or_, select, update
 
 from voxe_service.db import session_scope, sync_clock
 from voxe_service.jobs import finish_jobs, record_event
-from voxe_service.models import EVALUATE, FAILED, PROCESSING, QUEUED, RUNNING, Job, Scene, WorkerHeartbeat, utcnow
+from voxe_service.models import (CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, RUNNING, Job, Scene, WorkerHeartbeat,
+                                 utcnow)
 from voxe_service.queue import QueueUnavailable, dispatch_job, get_queue, requeue_interrupted
 from voxe_service.scenes import fail_scene
 from voxe_service.settings import Settings
@@ -62,7 +63,8 @@ def _stale_window(settings: Settings, now: datetime | None):
 
 
 def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[str]:
-    """Send orphaned jobs again, or fail them with the reason; returns the ids of those failed."""
+    """Send orphaned jobs again, or fail them with the reason (cancel those their users asked to cancel); returns
+    the ids of those ended."""
     now = now or utcnow()
     timeout, cutoff, alive = _stale_window(settings, now)
     reaped = []
@@ -88,7 +90,7 @@ def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[
                                               where=[Job.updated_at == job.updated_at, lapsed])
             except QueueUnavailable:  # the broker refused: dispatch_job failed the job with the reason
                 outcome = FAILED
-            if outcome == FAILED:
+            if outcome in (FAILED, CANCELED):
                 reaped.append(job.id)
         waiting_for_ingest = select(Scene.id).where(Scene.state == PROCESSING)
         never_sent = session.execute(
@@ -106,7 +108,7 @@ def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[
             if _fail(session, job.id, job.updated_at, QUEUED, error, Job.task_id.is_(None)):
                 reaped.append(job.id)
     for job_id in reaped:
-        log.warning("reaper: job %s failed as orphaned", job_id)
+        log.warning("reaper: job %s ended as orphaned (failed, or canceled as asked)", job_id)
     return reaped
 
 

@@ -92,7 +92,7 @@ def job_row(job_id: str):
 def test_reaper_sends_again_or_fails_only_jobs_nothing_will_finish(db):
     """A running job whose worker is gone is sent again (queued, its run's hold released), up to
     VOXE_JOB_MAX_REQUEUES times, then failed; an accepted job never sent is sent; only what nothing can carry
-    fails. The ids returned are the failed ones."""
+    fails, and one its user asked to cancel ends canceled. The ids returned are the ended ones."""
     from sqlalchemy import update
 
     from api.reaper import reap_orphaned_jobs
@@ -119,6 +119,13 @@ def test_reaper_sends_again_or_fails_only_jobs_nothing_will_finish(db):
     counted = {"dead worker", "no heartbeat ever", "a live worker's run that stopped renewing long ago"}
     orphans = {"sent again too often": add_job(scene, "running", 2 * timeout, "dead@host", "edit", requeues=limit,
                                                run_token="t5", run_lease_until=lapsed, batch_id="b3")}
+    asked_to_cancel = {  # had been sent again (to end "canceled before" its next stage) or failed at the limit
+        "below the limit": add_job(scene, "running", 2 * timeout, "dead@host", "edit", run_token="t7",
+                                   run_lease_until=lapsed, cancel_requested=True),
+        "at the limit": add_job(scene, "running", 2 * timeout, "dead@host", "edit", run_token="t8",
+                                run_lease_until=lapsed, cancel_requested=True, requeues=limit),
+    }
+    orphans.update(asked_to_cancel)
     rides_along = add_job(scene, "queued", 2 * timeout, mode="evaluate", batch_id="b3",  # in that edit's chain
                           source_job_ids=[orphans["sent again too often"]])
     never_sent = add_job(scene, "queued", 2 * timeout, task_id=None)  # accepted, never sent: sent now, not failed
@@ -162,6 +169,10 @@ def test_reaper_sends_again_or_fails_only_jobs_nothing_will_finish(db):
     assert job_row(requeued["a live worker's run that stopped renewing long ago"]).message == (
         f"re-queued: the run of edit on worker alive@host stopped renewing its hold {timeout:.0f} s ago and made "
         f"no progress (VOXE_JOB_STALE_TIMEOUT_S)")
+    for what, job_id in asked_to_cancel.items():
+        job = job_row(job_id)
+        assert (job.state, job.message, job.error) == ("canceled", f"canceled: {reason}", None), what
+        assert job.task_id == "task" and job.finished_at is not None, what  # ended, nothing sent
     too_often = job_row(orphans["sent again too often"])
     assert too_often.state == "failed" and too_often.finished_at is not None
     assert too_often.error == (f"{reason}; it was sent again {limit} time(s) already, the limit "

@@ -24,7 +24,7 @@ from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from voxe_service.jobs import finish_jobs, record_event
-from voxe_service.models import EVALUATE, FAILED, QUEUED, RUNNING, Job, utcnow
+from voxe_service.models import CANCELED, EVALUATE, FAILED, QUEUED, RUNNING, Job, utcnow
 from voxe_service.settings import Settings, get_settings
 
 if TYPE_CHECKING:
@@ -203,9 +203,17 @@ def requeue_interrupted(session: Session, queue: TaskQueue, job: Job, settings: 
     A job whose stage was interrupted (a run held it) ``job_max_requeues`` times already fails instead: a job
     that kills its workers must not loop; the evaluations that ride in its chain are sent alone, to record why.
     A job between stages (its next message waited, or was lost with the worker) is sent without counting.
-    ``where``: what the caller saw of the row. Returns "requeued", "failed", or None when the row changed since
-    it was read (nothing done). A broker that refuses fails the job and raises (:func:`dispatch_job`).
+    A job its user asked to cancel ends canceled instead (it had been sent again, or failed at the limit).
+    ``where``: what the caller saw of the row. Returns "requeued", "failed", "canceled", or None when the row
+    changed since it was read (nothing done). A broker that refuses fails the job and raises (:func:`dispatch_job`).
     """
+    if job.cancel_requested:
+        canceled = finish_jobs(session, [job.id], CANCELED, where=[Job.state == RUNNING, *where],
+                               message=f"canceled: {reason}")
+        session.commit()
+        if canceled and evaluations_waiting_on(session, job):
+            dispatch_job(session, queue, job, done=job_stages(job.mode))  # (no stage left: the evaluations alone)
+        return CANCELED if canceled else None
     interrupted = job.run_token is not None
     if interrupted and job.requeues >= settings.job_max_requeues:
         failed = finish_jobs(session, [job.id], FAILED, where=[Job.state == RUNNING, *where],

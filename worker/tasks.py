@@ -604,7 +604,7 @@ def recover_interrupted_jobs(hostname: str) -> list[str]:
             outcome = requeue_interrupted(session, queue, job, settings,
                                           reason=f"worker {hostname} restarted while the job was in {job.stage}",
                                           where=[Job.worker_hostname == hostname])
-            if outcome == FAILED:
+            if outcome in (FAILED, CANCELED):
                 get_storage(settings).discard_prefixes(job_key(job.id, "checkpoints/"))
             if outcome is not None:
                 log.warning("job %s was interrupted in %s: %s", job.id, job.stage, outcome)
