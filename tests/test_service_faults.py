@@ -552,6 +552,21 @@ def stored_bytes(storage, job_id: str, name: str) -> bytes:
     return b"".join(storage.open_range(artifact_key(job_id, name)))
 
 
+def test_a_run_taking_over_a_stage_keeps_where_it_got_to_until_it_reports(db):
+    """The job's progress had dropped to 0 of 0 while the new run loaded its model, then jumped back on its first
+    report from the checkpoint; a run of the next stage starts from 0 as ever."""
+    from voxe_service.models import utcnow
+    from worker import runtime
+
+    lapsed = utcnow() - timedelta(seconds=1)
+    job_id = add_job(add_scene(), "running", 60, "dead@host", "edit", run_token="dead", run_lease_until=lapsed,
+                     iteration=4, total=6, completed_stages=["reconstruct"])
+    taken = runtime.begin_stage(job_id, "edit", "b@host", "cpu", db)
+    assert (taken.iteration, taken.total, taken.worker_hostname) == (4, 6, "b@host") and taken.run_token != "dead"
+    runtime.complete_stage(job_id, "edit", taken.run_token)
+    assert (runtime.begin_stage(job_id, "export", "b@host", "cpu", db).iteration, job_row(job_id).total) == (0, 0)
+
+
 def test_a_stage_whose_start_meets_a_database_error_tries_again_then_goes_back_to_the_queue(db, monkeypatch):
     """begin_stage raising (a locked or dropped database) had failed the task, and the broker acknowledged it: the
     accepted job stayed queued (or running between stages) for good, which no reaper pass changed."""

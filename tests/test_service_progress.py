@@ -173,6 +173,22 @@ def test_overall_progress_runs_from_0_to_1_and_never_goes_back():
     assert after_reconstruct < 0.02 and 0.55 < after_edit < 0.65 and after_refine > 0.95, seen
 
 
+def test_a_job_that_ended_or_went_back_to_the_queue_keeps_the_fraction_it_reached():
+    """A failed, canceled or re-queued job had dropped its current stage's share (a job canceled half way through
+    its edit fell from about 0.5 to the reconstruction's share)."""
+    from api.routes.jobs import job_out
+
+    rec = Reconstruction(id="r", scene_id="s", params_key="k", params={}, state="succeeded", owner_job_id="j", total=200)
+    half = dict(reconstruction=rec, stage="edit", iteration=50, total=100, completed_stages=["reconstruct"],
+                started_at=utcnow(), stage_started_at=utcnow())
+    running = job_out(_job(state="running", eta_seconds=30.0, **half))
+    for state in ("failed", "canceled", "queued"):
+        ended = job_out(_job(state=state, finished_at=utcnow() if state != "queued" else None, **half))
+        assert ended.overall_progress == pytest.approx(running.overall_progress), state
+        assert ended.overall_eta_seconds is None, state
+    assert running.overall_eta_seconds is not None and 0.3 < running.overall_progress < 0.6
+
+
 def test_a_reused_reconstruction_weighs_nothing():
     from api.routes.jobs import job_out
 

@@ -164,10 +164,11 @@ def begin_stage(job_id: str, stage: str, hostname: str | None, device: str, sett
                 raise JobSkipped(f"job {job_id} canceled")
             if stage in (job.completed_stages or []):
                 raise JobSkipped(f"job {job_id}: {stage} already done (redelivered task)")
-            values = dict(state=RUNNING, stage=stage, iteration=0, total=0, eta_seconds=None, losses={},
-                          message=None, stage_started_at=now, worker_hostname=hostname, device=device,
-                          updated_at=now, run_token=uuid.uuid4().hex,
+            values = dict(state=RUNNING, stage=stage, eta_seconds=None, message=None, stage_started_at=now,
+                          worker_hostname=hostname, device=device, updated_at=now, run_token=uuid.uuid4().hex,
                           run_lease_until=now + timedelta(seconds=settings.stage_lease_s))
+            if job.stage != stage:  # a run taking over the same stage keeps where it got to until it reports
+                values.update(iteration=0, total=0, losses={})  # (it resumes from a checkpoint, often near there)
             if job.started_at is None:
                 values["started_at"] = now
             taken = session.execute(update(Job).where(

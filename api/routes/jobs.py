@@ -66,7 +66,9 @@ def _overall(job: Job, now) -> tuple[float, float | None]:
     costs = stage_costs(mode=job.mode, params=job.params, fit=fit, device=job.device, edit_iterations=edit_iterations)
     fraction = job.iteration / job.total if job.total else 0.0
     running = job.state == RUNNING
-    return overall(costs=costs, completed=job.completed_stages or [], stage=job.stage if running else None,
+    # The stage's share counts in any state (a failed, canceled or re-queued job keeps the fraction it reached);
+    # only a running one has a time left.
+    return overall(costs=costs, completed=job.completed_stages or [], stage=job.stage,
                    stage_fraction=fraction, stage_eta_s=job.eta_seconds if running else None,
                    stage_elapsed_s=(now - job.stage_started_at).total_seconds() if job.stage_started_at else None,
                    finished=job.state == SUCCEEDED)
