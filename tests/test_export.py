@@ -139,6 +139,31 @@ def test_video_rejects_unknown_suffix_and_bad_frames(tmp_path):
         write_video(tmp_path / "slow.gif", gradient_frames(2, 4, 4), fps=0.0015)  # had overflowed inside Pillow
     write_video(tmp_path / "slowest.gif", gradient_frames(2, 4, 4), fps=GIF_MIN_FPS)  # a 655.35 s frame
     assert not (tmp_path / "slow.gif").exists()
+    with pytest.raises(ValueError, match="fps must be a positive finite number, got nan"):
+        write_video(tmp_path / "v.mp4", gradient_frames(2, 4, 4), fps=float("nan"))
+
+
+def test_a_video_is_whole_or_absent(tmp_path, monkeypatch):
+    """It is written under a temporary name and renamed when whole: an interrupted encode had left a playable
+    video of the frames so far, and an encoder that failed (ffmpeg logs and exits) a 'wrote' with no file."""
+    import voxe_core.export as export
+
+    frames = gradient_frames(6, 16, 16)
+
+    def interrupted(array):
+        yield from array[:3]
+        raise KeyboardInterrupt  # what Ctrl-C raises in the encoding loop
+
+    with monkeypatch.context() as patched:
+        patched.setattr(export, "_pad_even", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            write_video(tmp_path / "t.mp4", frames, fps=10)
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "taken.mp4").mkdir()  # the destination is a folder: the encode succeeds, the rename cannot
+    with pytest.raises(IsADirectoryError):
+        write_video(tmp_path / "taken.mp4", frames, fps=10)
+    assert [p.name for p in tmp_path.iterdir()] == ["taken.mp4"]
+    assert write_video(tmp_path / "t.mp4", frames, fps=10).stat().st_size > 0
 
 
 # ---------------------------------------------------------------------- meshes

@@ -105,6 +105,19 @@ def _pad_even(frames: np.ndarray) -> np.ndarray:
     return frames
 
 
+def check_video_output(path: str | os.PathLike, fps: float) -> Path:
+    """``path`` as a Path, or ValueError for a suffix or frame rate no video takes (checked before any rendering)."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in VIDEO_SUFFIXES:
+        raise ValueError(f"unsupported video suffix {path.suffix!r} for {path}; use one of {', '.join(VIDEO_SUFFIXES)}")
+    if not (fps > 0 and math.isfinite(fps)):
+        raise ValueError(f"fps must be a positive finite number, got {fps}")
+    if suffix == ".gif":
+        check_gif_fps(fps)  # Pillow stores GIF delays in whole centiseconds, 16 bits of them
+    return path
+
+
 def write_video(path: str | os.PathLike, frames, fps: float = 30) -> Path:
     """Write frames (N, H, W, 3) in [0, 1] to ``path``; the suffix picks the format.
 
@@ -113,35 +126,40 @@ def write_video(path: str | os.PathLike, frames, fps: float = 30) -> Path:
     ``.gif``: palette GIF through Pillow, looping forever, 1/fps seconds per frame
     (Pillow folds consecutive identical frames into one longer frame, so a
     static scene can decode to fewer frames; the total duration is kept).
+    The video is written beside ``path`` under a temporary name and renamed when whole: an interrupted or failed
+    write leaves nothing (OSError when the encoder wrote no file, as ffmpeg may fail with only a log line).
     """
-    path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix not in VIDEO_SUFFIXES:
-        raise ValueError(f"unsupported video suffix {path.suffix!r} for {path}; use one of {', '.join(VIDEO_SUFFIXES)}")
-    if fps <= 0:
-        raise ValueError(f"fps must be positive, got {fps}")
+    path = check_video_output(path, fps)
     if isinstance(frames, (list, tuple)):
         frames = torch.stack([torch.as_tensor(f) for f in frames]) if frames else torch.empty(0)
     array = to_uint8(frames)
     if array.ndim != 4 or array.shape[0] == 0 or array.shape[-1] != 3:
         raise ValueError(f"write_video expects frames shaped (N, H, W, 3) with N >= 1, got {tuple(array.shape)}")
     path.parent.mkdir(parents=True, exist_ok=True)
-    import imageio.v2 as imageio
+    partial = path.with_name(f".{path.stem}.partial{path.suffix}")  # the suffix kept: it picks the format
+    try:
+        if path.suffix.lower() == ".mp4":
+            import imageio.v2 as imageio
 
-    if suffix == ".mp4":
-        array = _pad_even(array)
-        with imageio.get_writer(
-            path, format="FFMPEG", mode="I", fps=fps, codec="libx264", pixelformat="yuv420p",
-            quality=None, output_params=["-crf", "18", "-preset", "medium", "-movflags", "+faststart"],
-            macro_block_size=1, ffmpeg_log_level="error",
-        ) as writer:
-            for frame in array:
-                writer.append_data(frame)
-    else:
-        import imageio.v3 as iio
+            writer = imageio.get_writer(
+                partial, format="FFMPEG", mode="I", fps=fps, codec="libx264", pixelformat="yuv420p",
+                quality=None, output_params=["-crf", "18", "-preset", "medium", "-movflags", "+faststart"],
+                macro_block_size=1, ffmpeg_log_level="error",
+            )
+            try:
+                for frame in _pad_even(array):
+                    writer.append_data(frame)
+            finally:  # on an exception too: imageio's context closes only on success (else its __del__, later,
+                writer.close()  # had finished the file after it was removed)
+        else:
+            import imageio.v3 as iio
 
-        check_gif_fps(fps)  # Pillow stores GIF delays in whole centiseconds, 16 bits of them
-        iio.imwrite(path, array, plugin="pillow", extension=".gif", duration=1000.0 / fps, loop=0)
+            iio.imwrite(partial, array, plugin="pillow", extension=".gif", duration=1000.0 / fps, loop=0)
+        if not partial.is_file() or partial.stat().st_size == 0:
+            raise OSError(f"the video encoder wrote nothing for {path}")
+        os.replace(partial, path)
+    finally:
+        partial.unlink(missing_ok=True)
     return path
 
 

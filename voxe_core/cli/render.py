@@ -106,10 +106,9 @@ def _report_metrics(frames, scene, names, out_dir: Path) -> None:
 
 def cmd_turntable(args) -> int:
     from voxe_core.backbones import load_grid
-    from voxe_core.export import VIDEO_SUFFIXES, render_views, turntable_cameras, write_video
+    from voxe_core.export import check_video_output, render_views, turntable_cameras, write_video
 
-    if args.out.suffix.lower() not in VIDEO_SUFFIXES:  # fail before rendering, not after
-        raise ValueError(f"unsupported video suffix {args.out.suffix!r}; use one of {', '.join(VIDEO_SUFFIXES)}")
+    check_video_output(args.out, args.fps)  # fail before rendering, not after
     device = check_device(args)
     grid = load_grid(args.grid)
     cameras = turntable_cameras(args.frames, args.elevation, args.size, centre=orbit_centre(args, grid))
