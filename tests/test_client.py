@@ -106,3 +106,33 @@ def test_download_checks_size_and_sha256_and_leaves_nothing_on_a_mismatch(tmp_pa
         with pytest.raises(ServiceError, match="no artifact 'nope.bin'"):
             client.download("j1", "nope.bin", tmp_path / "nope.bin")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["good.bin"]  # no partial file, no bad one
+
+
+def test_ids_are_one_path_segment_and_names_stay_inside_the_download_folder(tmp_path):
+    """A job id holding "/" had addressed another resource ("../scenes" printed the scene listing), and a listed
+    artifact named "../escape.bin" was written outside the download folder."""
+    seen = []
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        seen.append(request.url.raw_path.decode())
+        if request.url.path.endswith("/artifacts"):
+            return httpx.Response(200, json=[{"name": "../escape.bin", "size": 1, "sha256": "0" * 64}])
+        if "redirect" in request.url.raw_path.decode():
+            return httpx.Response(200, text="<html>moved</html>", headers={"content-type": "text/html"})
+        return httpx.Response(200, json={"id": "x"})
+
+    with Client("http://svc.test", transport=httpx.MockTransport(answer)) as client:
+        client.get_job("../scenes")
+        client.get_sweep("a?b#c")
+        for name in ("../escape.bin", "sub/x.bin", "..", ""):
+            with pytest.raises(ServiceError, match="is not a plain file name; nothing written"):
+                client.download("j1", name, tmp_path / "inner" / "x.bin")
+        with pytest.raises(ServiceError, match=r"answered 200 with text/html, not the API's JSON"):
+            client.get_job("redirect")  # had surfaced as json's "Expecting value"
+        client.get_job("line\nbreak")  # quoted, as any id: it had been a bare InvalidURL
+        with pytest.raises(ServiceError, match="cannot reach the service"):
+            client.request("GET", "/v1/jobs/line\nbreak")  # a path httpx refuses is the client's error too
+    assert seen[:2] == ["/v1/jobs/..%2Fscenes", "/v1/sweeps/a%3Fb%23c"] and "/v1/jobs/line%0Abreak" in seen
+    assert list(tmp_path.iterdir()) == []  # nothing written anywhere
+    with pytest.raises(ValueError, match=r"'http://\[::1' is not a service URL"):
+        Client("http://[::1")

@@ -9,6 +9,7 @@ import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 import httpx
 
@@ -16,6 +17,12 @@ DEFAULT_URL = "http://127.0.0.1:8000"
 DEFAULT_TIMEOUT_S = 60.0
 TERMINAL_STATES = ("succeeded", "failed", "canceled")
 
+
+
+def _segment(value: str) -> str:
+    """``value`` as one path segment: an id holding "/", "?" or "#" had addressed another resource (the status of
+    job "../scenes" printed the scene listing)."""
+    return quote(value, safe="")
 
 class ServiceError(Exception):
     """The service answered with an error status (its detail is the message), or could not be reached.
@@ -52,7 +59,10 @@ class Client:
         headers = {"accept": "application/json"}
         if api_key:
             headers["authorization"] = f"Bearer {api_key}"
-        self._http = httpx.Client(base_url=self.base_url, headers=headers, timeout=timeout, transport=transport)
+        try:
+            self._http = httpx.Client(base_url=self.base_url, headers=headers, timeout=timeout, transport=transport)
+        except httpx.InvalidURL as exc:  # (httpx's own type: a traceback in the CLI, which reports ValueErrors)
+            raise ValueError(f"{base_url!r} is not a service URL: {exc}") from None
 
     def __enter__(self) -> "Client":
         return self
@@ -68,10 +78,15 @@ class Client:
         ServiceError for an error status."""
         try:
             response = self._http.request(method, path, json=body, **kwargs)
-        except httpx.TransportError as exc:
+        except (httpx.TransportError, httpx.InvalidURL) as exc:
             raise ServiceError(f"cannot reach the service at {self.base_url}: {exc}") from None
         _raise_for_error(response, method, path)
-        return response.json()
+        try:
+            return response.json()
+        except ValueError:  # (a redirect page, a proxy's HTML): it had surfaced as "Expecting value"
+            raise ServiceError(f"{method} {path}: {self.base_url} answered {response.status_code} with "
+                               f"{response.headers.get('content-type') or 'no content type'}, not the API's JSON "
+                               "(is it the Vox-E service?)") from None
 
     # ------------------------------------------------------------------ scenes and jobs
     def upload_scene(self, path: str | os.PathLike, name: str | None = None) -> dict:
@@ -86,10 +101,10 @@ class Client:
         return self.request("POST", "/v1/jobs", {"scene_id": scene_id, "prompt": prompt, **fields})
 
     def get_job(self, job_id: str) -> dict:
-        return self.request("GET", f"/v1/jobs/{job_id}")
+        return self.request("GET", f"/v1/jobs/{_segment(job_id)}")
 
     def cancel_job(self, job_id: str) -> dict:
-        return self.request("POST", f"/v1/jobs/{job_id}/cancel")
+        return self.request("POST", f"/v1/jobs/{_segment(job_id)}/cancel")
 
     def events(self, job_id: str, last_event_id: int | None = None, reconnects: int = 5) -> Iterator[dict]:
         """The job's live events (``{"event", "id", "data"}``) until it ends, over Server-Sent Events.
@@ -102,7 +117,7 @@ class Client:
             headers = {"accept": "text/event-stream"}
             if last_event_id is not None:
                 headers["last-event-id"] = str(last_event_id)
-            path = f"/v1/jobs/{job_id}/events"
+            path = f"/v1/jobs/{_segment(job_id)}/events"
             try:
                 with self._http.stream("GET", path, headers=headers, timeout=httpx.Timeout(30.0, read=None)) as response:
                     if response.is_error:
@@ -129,13 +144,15 @@ class Client:
         return self.get_job(job_id)
 
     def artifacts(self, job_id: str) -> list[dict]:
-        return self.request("GET", f"/v1/jobs/{job_id}/artifacts")
+        return self.request("GET", f"/v1/jobs/{_segment(job_id)}/artifacts")
 
     def download(self, job_id: str, name: str, dest: str | os.PathLike) -> Path:
         """Stream the artifact to ``dest`` and check its size and SHA-256 against the job's listing.
 
         A mismatch is a ServiceError and leaves no file; the bytes land under ``dest`` only once checked.
         """
+        if name in ("", ".", "..") or any(c in name for c in "/\\\0"):  # it names a file inside dest's folder only
+            raise ServiceError(f"artifact name {name!r} of job {job_id} is not a plain file name; nothing written")
         listed = {a["name"]: a for a in self.artifacts(job_id)}
         if name not in listed:
             raise ServiceError(f"job {job_id} has no artifact {name!r}", 404)
@@ -143,7 +160,7 @@ class Client:
         dest.parent.mkdir(parents=True, exist_ok=True)
         partial = dest.with_name(f".{dest.name}.partial")
         digest, size = hashlib.sha256(), 0
-        path = f"/v1/jobs/{job_id}/artifacts/{name}"
+        path = f"/v1/jobs/{_segment(job_id)}/artifacts/{_segment(name)}"
         try:
             with self._http.stream("GET", path) as response, open(partial, "wb") as out:
                 if response.is_error:
@@ -157,7 +174,7 @@ class Client:
                 raise ServiceError(f"{name} of job {job_id}: downloaded {size} bytes with sha256 {digest.hexdigest()}, "
                                    f"the service lists {expected['size']} bytes with sha256 {expected['sha256']}")
             os.replace(partial, dest)
-        except httpx.TransportError as exc:
+        except (httpx.TransportError, httpx.InvalidURL) as exc:
             raise ServiceError(f"cannot download {name} of job {job_id}: {exc}") from None
         finally:
             partial.unlink(missing_ok=True)
@@ -175,7 +192,7 @@ class Client:
 
     def get_sweep(self, sweep_id: str) -> dict:
         """``GET /v1/sweeps/{id}``: the jobs' states and the summary table."""
-        return self.request("GET", f"/v1/sweeps/{sweep_id}")
+        return self.request("GET", f"/v1/sweeps/{_segment(sweep_id)}")
 
 
 def _raise_for_error(response: httpx.Response, method: str, path: str) -> None:
