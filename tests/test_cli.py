@@ -145,6 +145,22 @@ def test_bad_option_values_exit_2(tmp_path, capsys):
     assert exc.value.code == 2
 
 
+def test_an_output_that_cannot_be_written_is_refused_before_the_fit_and_a_failed_save_leaves_nothing(
+        sphere_file, tmp_path, capsys):
+    """reconstruct had fitted first and then failed on its --out (or at its first checkpoint, whose folder it never
+    made); a save that failed left its .tmp file, and safetensors' error came out as a traceback."""
+    (tmp_path / "taken.safetensors").mkdir()
+    args = ["reconstruct", str(tmp_path / "no_such_scene"), "--out"]
+    assert main([*args, str(tmp_path / "taken.safetensors")]) == 2  # checked before the data is read
+    assert f"cannot write {tmp_path / 'taken.safetensors'}: it is a folder" in capsys.readouterr().err
+    assert main([*args, str(tmp_path / "g.safetensors"), "--checkpoint", str(tmp_path / "ck" / "c.safetensors")]) == 2
+    assert (tmp_path / "ck").is_dir()  # made for it: the data folder is what is refused now
+    assert main(["convert-grid", str(sphere_file), "--out", str(tmp_path / "taken.safetensors")]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "taken.safetensors" in err
+    assert not [p.name for p in tmp_path.rglob("*.tmp")] and (tmp_path / "taken.safetensors").is_dir()  # no .tmp left
+
+
 def test_cli_as_a_real_process_has_no_traceback(tmp_path):
     result = subprocess.run(
         [sys.executable, "-m", "voxe_core.cli", "export-mesh", str(tmp_path / "missing.safetensors"),

@@ -7,9 +7,11 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
 import signal
 import sys
 import threading
+from pathlib import Path
 from typing import Iterator
 
 from voxe_core.presets import DOWNSAMPLE, RESAMPLE
@@ -116,6 +118,14 @@ def non_negative_int(text: str) -> int:
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be at least 0, got {value}")
     return value
+
+
+def writable_file(path: Path) -> Path:
+    """``path`` with its folder made, or OSError now when it cannot be written (before a long stage, not after)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.is_dir() or not os.access(path.parent, os.W_OK):
+        raise OSError(f"cannot write {path}: " + ("it is a folder" if path.is_dir() else "its folder is not writable"))
+    return path
 
 
 def add_grid_output_arguments(parser: argparse.ArgumentParser) -> None:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, add_device_argument, add_grid_output_arguments, add_view_arguments, check_device, int_list,
-    load_views, one_or_list, positive_int, run_stage, view_params,
+    load_views, one_or_list, positive_int, run_stage, view_params, writable_file,
 )
 from voxe_core.presets import (
     RECONSTRUCTION_PRESET,
@@ -67,6 +67,9 @@ def cmd_reconstruct(args) -> int:
     from voxe_core.reconstruct import reconstruct
 
     device = check_device(args)
+    for path in (args.out, args.checkpoint):  # before the fit: its --checkpoint folder had not been made at all
+        if path is not None:
+            writable_file(path)
     params = reconstruction_params(job_params(args))
     reconstruction_key(params)  # iterations that fit no backbone's preset are refused before any data is read
     scene = load_views(args)
@@ -87,7 +90,6 @@ def cmd_reconstruct(args) -> int:
         hint = f"; resume with --resume {args.checkpoint}" if args.checkpoint and args.checkpoint.is_file() else ""
         print(f"voxe: reconstruction cancelled, nothing written to {args.out}{hint}", file=sys.stderr)
         return EXIT_INTERRUPTED
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     grid.save(args.out, dense=args.dense)
     occupancy = grid.occupancy()
     res = "x".join(str(r) for r in grid.resolution)
