@@ -31,6 +31,7 @@ from PIL import Image
 
 from voxe_core.cameras import Cameras, camera_rays, look_at, random_hemisphere_poses
 from voxe_core.data import DatasetError, load_scene
+from voxe_core.edit import EditConfig
 from voxe_core.export import extract_mesh
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance.attention import AttentionStore, CrossAttentionCapture
@@ -619,6 +620,12 @@ def _(fx):
         grid.features[2:6, 2:6, 2:6, 0] = 5.0
         grid.features[3, 3, 3, 0] = float("nan")  # had raised "grid has no surface"
     extract_mesh(grid)
+
+
+case("config/nan-cut-sigma-is-refused", "error", (ValueError, r"sigma must be positive; .* got nan, 5.0, 0.5"))(
+    lambda fx: RefineConfig(sigma=math.nan))  # had been accepted: the cut's flow NaN, 111 of 658 voxels "edit"
+case("config/nan-guidance-scale-is-refused", "error", (ValueError, "guidance_scale must be positive and finite, got nan"))(
+    lambda fx: EditConfig(guidance_scale=math.nan))  # had zeroed the SDS gradient: an edit of the regulariser alone
 
 
 @case("cameras/look-at-along-every-up-axis-is-a-rotation", "exact")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -140,8 +142,10 @@ class RefineConfig:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
         if self.iterations < 0 or self.edit_seeds < 0 or self.object_seeds < 0 or self.object_seed_fallback < 0:
             raise ValueError("iterations and seed counts must be non-negative")
-        if self.sigma <= 0 or self.smoothness < 0 or self.smoothing_sigma < 0:
-            raise ValueError("sigma must be positive; smoothness and smoothing_sigma non-negative")
+        # As "not in range": NaN fails every comparison, so "x <= 0" let it through (a NaN sigma made the flow NaN).
+        if not (0 < self.sigma < math.inf and 0 <= self.smoothness < math.inf and 0 <= self.smoothing_sigma < math.inf):
+            raise ValueError(f"sigma must be positive; smoothness and smoothing_sigma non-negative (all finite), got "
+                             f"{self.sigma}, {self.smoothness}, {self.smoothing_sigma}")
         if self.fit_pixels == "rendered_positive" and self.iterations and self.lift_start == "constant" \
                 and self.init_value <= 0:
             raise ValueError("fit_pixels='rendered_positive' fits nothing from a constant start <= 0 (nothing renders "
