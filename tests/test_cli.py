@@ -121,6 +121,9 @@ def test_stage_commands_refuse_a_missing_device_before_reading_anything(command,
     assert main([*command, "--device", "cuda"]) == 2
     err = capsys.readouterr().err
     assert "'cuda' asked for" in err and "no usable CUDA device" in err and "no_such" not in err
+    assert main([*command, "--device", "meta"]) == 2  # a kind torch names and no stage runs on: had been a traceback
+    err = capsys.readouterr().err
+    assert "device 'meta' is not supported here: use 'cpu' or a CUDA device" in err and "no_such" not in err
 
 
 def test_bad_data_dir_exits_2_with_a_message(tmp_path, capsys):
@@ -143,6 +146,10 @@ def test_bad_option_values_exit_2(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:  # argparse's own usage errors are exit 2 as well
         main([*args, "--preset", "slow"])
     assert exc.value.code == 2
+    for poll in ("nan", "-1", "inf"):  # refused before the sweep is created on the service (then run twice)
+        with pytest.raises(SystemExit) as exc:
+            main(["sweep", "--scene", "s1=mic", "--wait", "--poll", poll, "--api", "http://127.0.0.1:9"])
+        assert exc.value.code == 2 and "must be a positive number of seconds" in capsys.readouterr().err
 
 
 def test_an_output_that_cannot_be_written_is_refused_before_the_fit_and_a_failed_save_leaves_nothing(

@@ -113,6 +113,13 @@ def positive_int(text: str) -> int:
     return value
 
 
+def positive_seconds(text: str) -> float:
+    value = float(text)
+    if not 0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a positive number of seconds, got {text!r}")
+    return value
+
+
 def non_negative_int(text: str) -> int:
     value = int(text)
     if value < 0:
@@ -165,7 +172,9 @@ def check_device(args: argparse.Namespace):
     from voxe_core.devices import resolve_device
 
     device = resolve_device(args.device)
-    args.device = str(device)
+    if device.type not in ("cpu", "cuda"):  # meta, xpu, ...: torch names them, the stages do not run there (the
+        raise ValueError(f"device {str(device)!r} is not supported here: use 'cpu' or a CUDA device")  # library's
+    args.device = str(device)  # tests use "meta" to see where tensors land); they had been a traceback
     return device
 
 

@@ -11,7 +11,7 @@ import json
 import sys
 from pathlib import Path
 
-from voxe_core.cli.common import EXIT_INTERRUPTED, EXIT_USAGE, Interrupt
+from voxe_core.cli.common import EXIT_INTERRUPTED, EXIT_USAGE, Interrupt, positive_seconds
 
 
 def _scene_object(text: str) -> dict:
@@ -70,7 +70,8 @@ def add_parsers(commands, common) -> None:
     sw.add_argument("--evaluation", type=_json_object, default=None, metavar="JSON",
                     help='evaluation params, e.g. \'{"views": 100, "size": 266}\'')
     sw.add_argument("--wait", action="store_true", help="poll until every job of the sweep is finished")
-    sw.add_argument("--poll", type=float, default=10.0, help="seconds between polls with --wait")
+    sw.add_argument("--poll", type=positive_seconds, default=10.0,  # checked before the sweep is created
+                    help="seconds between polls with --wait")
     sw.add_argument("--out", type=Path, default=None, metavar="FILE", help="also write the final summary JSON here")
     sw.set_defaults(run=cmd_sweep)
 
