@@ -160,6 +160,24 @@ def test_damaged_or_unknown_sparse_files_are_named(tmp_path, make_sphere_grid):
         sparse_tensors(grid.features, grid.occupancy().cells, -1)
 
 
+
+@pytest.mark.parametrize("header, message", [
+    ("[1, 2]", "damaged 'voxe' header"),  # a list: had been an AttributeError
+    ('{"kind": "voxel_grid", "format_version": 2, "meta": null}', r"damaged 'voxe' header \(its meta is a NoneType\)"),
+    ('{"kind": "voxel_grid", "format_version": "two"}', "damaged 'voxe' header"),
+    ("{not json", "damaged 'voxe' header"),  # json's message alone had not named the file
+    ('{"kind": "voxel_grid", "format_version": 2, "meta": {}}', "damaged grid: no 'features' in the file"),
+])
+def test_a_damaged_header_is_a_format_error_naming_the_file(tmp_path, header, message):
+    from safetensors.torch import save_file
+
+    path = tmp_path / "damaged.safetensors"
+    save_file({"other": torch.zeros(1)}, str(path), metadata={"voxe": header})
+    with pytest.raises(FormatError, match=message) as error:
+        load_grid(path)
+    assert str(error.value).startswith(str(path))
+
+
 def test_dense_tensors_keeps_the_stored_dtype_and_other_tensors():
     features = torch.randn(5, 5, 5, 4)
     cells = torch.zeros(4, 4, 4, dtype=torch.bool)

@@ -51,7 +51,10 @@ def grid_from_state(tensors: dict[str, torch.Tensor], meta: dict) -> VoxelGrid:
         tensors = dense_tensors(tensors, meta)
     except (KeyError, ValueError) as exc:
         raise FormatError(f"damaged sparse grid: {exc}") from None
-    return cls.from_state(tensors, meta)
+    try:
+        return cls.from_state(tensors, meta)
+    except KeyError as exc:  # a header without its tensors (or fields): a bare KeyError had reached the CLI
+        raise FormatError(f"damaged grid: no {exc} in the file") from None
 
 
 def load_grid(path) -> VoxelGrid:
@@ -59,7 +62,11 @@ def load_grid(path) -> VoxelGrid:
 
     Raises ``FormatError`` (naming the file) for a missing, unreadable or newer-format file.
     """
-    return grid_from_state(*load_tensors(path, kind=GRID_KIND, max_version=GRID_FORMAT_VERSION))
+    tensors, meta = load_tensors(path, kind=GRID_KIND, max_version=GRID_FORMAT_VERSION)
+    try:
+        return grid_from_state(tensors, meta)
+    except FormatError as exc:
+        raise FormatError(f"{path}: {exc}") from None
 
 
 def detect_backbone(alphas: torch.Tensor | None) -> str:

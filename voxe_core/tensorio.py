@@ -54,12 +54,18 @@ def load_tensors(path: str | os.PathLike, kind: str, max_version: int) -> tuple[
         raise FormatError(f"{path}: not a readable safetensors file ({exc})") from exc
     if raw_header is None:
         raise FormatError(f"{path}: missing the '{HEADER_KEY}' header; not a Vox-E file")
-    header = json.loads(raw_header)
+    try:  # a damaged header is the file's error, named (it had been an AttributeError or json's bare message)
+        header = json.loads(raw_header)
+        version = int(header.get("format_version", -1))
+        meta = header.get("meta", {})
+        if not isinstance(meta, dict):
+            raise TypeError(f"its meta is a {type(meta).__name__}")
+    except (ValueError, TypeError, AttributeError) as exc:
+        raise FormatError(f"{path}: damaged '{HEADER_KEY}' header ({exc})") from None
     if header.get("kind") != kind:
         raise FormatError(f"{path}: holds a '{header.get('kind')}', expected a '{kind}'")
-    version = int(header.get("format_version", -1))
     if version > max_version:
         raise FormatError(
             f"{path}: format version {version} is newer than this voxe_core supports ({max_version}); upgrade voxe_core"
         )
-    return tensors, header.get("meta", {})
+    return tensors, meta
