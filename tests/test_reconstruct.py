@@ -82,6 +82,24 @@ def test_resume_from_checkpoint_is_bit_exact(tmp_path, stop_after, average_from,
     assert torch.equal(resumed.features, uninterrupted.features)
 
 
+def test_resume_refuses_a_recipe_the_checkpoint_is_not_part_of(tmp_path):
+    """The checkpoint's grid went on under another recipe (voxe reconstruct --resume with another --resolution had
+    written the checkpoint's 16³ grid, announcing 24³)."""
+    images, cams = synthetic_views()
+    config = tiny_config(checkpoint_every=1)
+    checkpoint = tmp_path / "ckpt.safetensors"
+    saved = []
+    with pytest.raises(StageCancelled):
+        reconstruct(images, cams, config, Callbacks(should_cancel=lambda: len(saved) >= 22, on_checkpoint=saved.append),
+                    checkpoint_path=checkpoint)  # 22 of 15 + 15 steps: in the second stage
+    final = config.resolutions[-1]
+    for other in (tiny_config(resolutions=(config.resolutions[0], final + 4)),  # another final resolution
+                  tiny_config(resolutions=(12,), iterations=(15,), image_downsample=(1,)),  # fewer stages
+                  tiny_config(iterations=(15, 5))):  # a stage shorter than where the checkpoint stands
+        with pytest.raises(ValueError, match="which this recipe .* does not reach: resume with the recipe that wrote it"):
+            reconstruct(images, cams, other, resume_from=checkpoint)
+
+
 def test_averaging_returns_the_mean_of_the_final_iterates():
     images, cams = synthetic_views()
     grid = VoxelGrid(24)

@@ -433,6 +433,14 @@ def reconstruct(
         grid = grid_from_state(tensors, meta)
         generator.set_state(tensors["rng_state"])
         start_stage, start_iteration = meta["stage"], meta["iteration"]
+        stages = len(config.resolutions)
+        if not (start_stage < stages and grid.resolution == (config.resolutions[start_stage],) * 3
+                and start_iteration <= config.iterations[start_stage]):  # it had gone on with the checkpoint's grid
+            raise ValueError(
+                f"{resume_from}: the checkpoint is at iteration {start_iteration} of stage {start_stage} with a "
+                f"{'x'.join(map(str, grid.resolution))} grid, which this recipe ({stages} stages, resolutions "
+                f"{list(config.resolutions)}, iterations {list(config.iterations)}) does not reach: resume with the "
+                "recipe that wrote it")
         resumed = {name: value.to(device) for name, value in tensors.items() if name != "rng_state"}
     grid = grid.to(device)
 
