@@ -282,6 +282,14 @@ def test_export_mesh_ply_glb_and_obj(sphere_grid, sphere_file, tmp_path, capsys)
     assert (tmp_path / "m.mtl").is_file()
 
 
+def test_a_size_past_the_machines_memory_exits_2_naming_it(sphere_file, tmp_path, capsys):
+    """It had been torch's RuntimeError traceback (exit 1)."""
+    assert main(["export-mesh", str(sphere_file), "--out", str(tmp_path / "m.ply"), "--resolution", "100000"]) == 2
+    err = capsys.readouterr().err
+    assert "voxe export-mesh: error: out of memory (" in err and "ask for less" in err and "Traceback" not in err
+    assert not (tmp_path / "m.ply").exists()
+
+
 def test_export_mesh_errors_exit_2(sphere_file, tmp_path, capsys):
     empty = tmp_path / "empty.safetensors"
     VoxelGrid(8, init_density=-1.0).save(empty)

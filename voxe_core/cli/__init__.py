@@ -54,6 +54,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         kind = "dataset error" if isinstance(exc, DatasetError) else "error"
         print(f"voxe {args.command}: {kind}: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except (MemoryError, RuntimeError) as exc:  # torch's allocators raise RuntimeErrors ("can't allocate memory")
+        if not isinstance(exc, MemoryError) and "allocate" not in str(exc):
+            raise  # any other RuntimeError is a bug to see whole
+        print(f"voxe {args.command}: error: out of memory ({str(exc).splitlines()[0]}): ask for less (a smaller "
+              "--resolution, --size, --rays or --ring)", file=sys.stderr)
+        return EXIT_USAGE
     except KeyboardInterrupt:
         print("\nvoxe: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
