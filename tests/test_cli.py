@@ -289,6 +289,16 @@ def test_a_size_past_the_machines_memory_exits_2_naming_it(sphere_file, tmp_path
     assert "voxe export-mesh: error: out of memory (" in err and "ask for less" in err and "Traceback" not in err
     assert not (tmp_path / "m.ply").exists()
 
+    def bare_memory_error(args):
+        raise MemoryError()  # Python's own allocation failures carry no message
+
+    import voxe_core.cli.mesh as mesh_commands
+
+    with pytest.MonkeyPatch.context() as patched:
+        patched.setattr(mesh_commands, "cmd_export_mesh", bare_memory_error)
+        assert main(["export-mesh", str(sphere_file), "--out", str(tmp_path / "m.ply")]) == 2
+    assert "error: out of memory (MemoryError)" in capsys.readouterr().err
+
 
 def test_export_mesh_errors_exit_2(sphere_file, tmp_path, capsys):
     empty = tmp_path / "empty.safetensors"

@@ -130,6 +130,9 @@ def test_ids_are_one_path_segment_and_names_stay_inside_the_download_folder(tmp_
         with pytest.raises(ServiceError, match=r"answered 200 with text/html, not the API's JSON"):
             client.get_job("redirect")  # had surfaced as json's "Expecting value"
         client.get_job("line\nbreak")  # quoted, as any id: it had been a bare InvalidURL
+        for dots in (".", ".."):  # a URL drops them: "." had listed every job
+            with pytest.raises(ServiceError, match=f"'{dots}' is not an id"):
+                client.get_job(dots)
         with pytest.raises(ServiceError, match="cannot reach the service"):
             client.request("GET", "/v1/jobs/line\nbreak")  # a path httpx refuses is the client's error too
     assert seen[:2] == ["/v1/jobs/..%2Fscenes", "/v1/sweeps/a%3Fb%23c"] and "/v1/jobs/line%0Abreak" in seen

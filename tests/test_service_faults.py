@@ -123,8 +123,10 @@ def test_reaper_sends_again_or_fails_only_jobs_nothing_will_finish(db):
         "below the limit": add_job(scene, "running", 2 * timeout, "dead@host", "edit", run_token="t7",
                                    run_lease_until=lapsed, cancel_requested=True),
         "at the limit": add_job(scene, "running", 2 * timeout, "dead@host", "edit", run_token="t8",
-                                run_lease_until=lapsed, cancel_requested=True, requeues=limit),
+                                run_lease_until=lapsed, cancel_requested=True, requeues=limit, batch_id="b4"),
     }
+    cancel_rides_along = add_job(scene, "queued", 2 * timeout, mode="evaluate", batch_id="b4",  # sent alone after
+                                 source_job_ids=[asked_to_cancel["at the limit"]])  # the canceled edit
     orphans.update(asked_to_cancel)
     rides_along = add_job(scene, "queued", 2 * timeout, mode="evaluate", batch_id="b3",  # in that edit's chain
                           source_job_ids=[orphans["sent again too often"]])
@@ -172,7 +174,9 @@ def test_reaper_sends_again_or_fails_only_jobs_nothing_will_finish(db):
     for what, job_id in asked_to_cancel.items():
         job = job_row(job_id)
         assert (job.state, job.message, job.error) == ("canceled", f"canceled: {reason}", None), what
-        assert job.task_id == "task" and job.finished_at is not None, what  # ended, nothing sent
+        assert job.finished_at is not None, what
+    assert job_row(asked_to_cancel["below the limit"]).task_id == "task"  # ended, nothing sent
+    assert job_row(cancel_rides_along).task_id not in (None, "task")  # its evaluation sent alone, the message kept
     too_often = job_row(orphans["sent again too often"])
     assert too_often.state == "failed" and too_often.finished_at is not None
     assert too_often.error == (f"{reason}; it was sent again {limit} time(s) already, the limit "
@@ -625,6 +629,18 @@ def test_an_artifact_whose_record_fails_leaves_no_bytes_behind(db, tmp_path, mon
             runtime.publish_artifact(job_id, "edited_grid.safetensors", grid, "grid", storage)
     assert storage.list(f"jobs/{job_id}/") == [f"jobs/{job_id}/edited_grid.safetensors"]
     assert [name for name, *_ in listed(job_id)] == ["edited_grid.safetensors"]
+    with monkeypatch.context() as failing:  # ... and when the database cannot say what is recorded, nothing goes
+        failing.setattr(runtime, "record_event", locked)
+        calls = []
+
+        def answers_once(*args):  # the read before the upload answers (nothing recorded), the one after fails
+            calls.append(args)
+            return None if len(calls) == 1 else locked()
+
+        failing.setattr(runtime, "recorded_key", answers_once)
+        with pytest.raises(OperationalError):
+            runtime.publish_artifact(job_id, "render.png", grid, "render", storage)
+    assert f"jobs/{job_id}/render.png" in storage.list(f"jobs/{job_id}/")  # kept: a row might point at it
 
 
 def test_an_upload_failing_mid_write_is_never_listed_and_leaves_no_file(db, tmp_path, monkeypatch):

@@ -24,7 +24,7 @@ from voxe_core.grid import Activation, VoxelGrid
 from voxe_core.losses import sampled_total_variation
 from voxe_core.progress import Callbacks, Progress
 from voxe_core.render import RenderConfig, render_rays
-from voxe_core.tensorio import load_tensors, save_tensors
+from voxe_core.tensorio import FormatError, load_tensors, save_tensors
 
 CHECKPOINT_FORMAT_VERSION = 1
 CHECKPOINT_KIND = "reconstruction_checkpoint"
@@ -436,7 +436,7 @@ def reconstruct(
         stages = len(config.resolutions)
         if not (start_stage < stages and grid.resolution == (config.resolutions[start_stage],) * 3
                 and start_iteration <= config.iterations[start_stage]):  # it had gone on with the checkpoint's grid
-            raise ValueError(
+            raise FormatError(  # (as a damaged checkpoint: the worker starts the fit over, the CLI exits 2)
                 f"{resume_from}: the checkpoint is at iteration {start_iteration} of stage {start_stage} with a "
                 f"{'x'.join(map(str, grid.resolution))} grid, which this recipe ({stages} stages, resolutions "
                 f"{list(config.resolutions)}, iterations {list(config.iterations)}) does not reach: resume with the "

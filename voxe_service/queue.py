@@ -211,8 +211,8 @@ def requeue_interrupted(session: Session, queue: TaskQueue, job: Job, settings: 
         canceled = finish_jobs(session, [job.id], CANCELED, where=[Job.state == RUNNING, *where],
                                message=f"canceled: {reason}")
         session.commit()
-        if canceled and evaluations_waiting_on(session, job):
-            dispatch_job(session, queue, job, done=job_stages(job.mode))  # (no stage left: the evaluations alone)
+        if canceled and evaluations_waiting_on(session, job):  # (no stage left: the evaluations alone; the job's
+            dispatch_job(session, queue, job, done=job_stages(job.mode), message=f"canceled: {reason}")  # message kept)
         return CANCELED if canceled else None
     interrupted = job.run_token is not None
     if interrupted and job.requeues >= settings.job_max_requeues:

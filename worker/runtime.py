@@ -394,13 +394,22 @@ def publish_artifact(job_id: str, name: str, path: str | os.PathLike, kind: str,
             record_event(session, job_id, "preview" if kind == "preview" else "artifact", detail=name)
     except RunSuperseded:
         raise
-    except BaseException:  # the record was rolled back (this run held the job under the row's lock): so are the bytes
-        if uploaded:  # a fresh key (a replacement never overwrites the recorded one)
+    except BaseException:  # the record was not written: neither are the bytes kept, unless a row does record them
+        if uploaded and not _may_be_recorded(job_id, name, stored.key):  # (a commit may fail on its way back)
             storage.delete(stored.key)
         raise
     if previous and previous != stored.key and previous.startswith(job_key(job_id, "")):
         storage.delete(previous)  # never the shared reconstruction's grid: that lives outside jobs/<id>/
     return artifact
+
+
+def _may_be_recorded(job_id: str, name: str, key: str) -> bool:
+    """Whether an artifact row of the job may point at ``key``: it does, or the database cannot say (then the
+    bytes are kept: a listed artifact whose file is gone would be worse than an unlisted file)."""
+    try:
+        return recorded_key(job_id, name) == key
+    except Exception:  # noqa: BLE001 - the database failing is why this is asked
+        return True
 
 
 def recorded_key(job_id: str, name: str) -> str | None:

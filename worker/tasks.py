@@ -380,7 +380,7 @@ def _fit_grid(job: Job, rec, settings, storage, callbacks: StageCallbacks, check
     except FormatError:
         if resume is None:
             raise
-        log.warning("reconstruction %s: unreadable checkpoint, starting over", rec.id)
+        log.warning("reconstruction %s: unreadable checkpoint (or another recipe's), starting over", rec.id)
         grid = reconstruct(scene.images, cameras, config, callbacks.callbacks, checkpoint, None, initial, device)
     return grid, config.total_iterations
 

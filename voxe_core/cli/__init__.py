@@ -55,10 +55,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"voxe {args.command}: {kind}: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except (MemoryError, RuntimeError) as exc:  # torch's allocators raise RuntimeErrors ("can't allocate memory")
-        if not isinstance(exc, MemoryError) and "allocate" not in str(exc):
+        if not isinstance(exc, MemoryError) and not any(
+                words in str(exc) for words in ("can't allocate memory", "Tried to allocate", "out of memory")):
             raise  # any other RuntimeError is a bug to see whole
-        print(f"voxe {args.command}: error: out of memory ({str(exc).splitlines()[0]}): ask for less (a smaller "
-              "--resolution, --size, --rays or --ring)", file=sys.stderr)
+        first_line = (str(exc).splitlines() or [type(exc).__name__])[0]  # Python's own MemoryError has no message
+        print(f"voxe {args.command}: error: out of memory ({first_line}): ask for less (a smaller --resolution, "
+              "--size, --rays or --ring)", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print("\nvoxe: interrupted", file=sys.stderr)
