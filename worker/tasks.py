@@ -412,7 +412,9 @@ def _edit(job: Job, settings, device: str, storage) -> None:
             note = f"resumed from the checkpoint at iteration {at}"
             log.info("job %s: edit %s", job.id, note)
             runtime.record_job_event(job.id, "resumed", stage="edit", iteration=at, worker=job.worker_hostname)
-        runtime.update_job(job.id, message=note)
+        # Where the run goes on from, at once: the row kept what the interrupted run last wrote (begin_stage), which
+        # may lie before the checkpoint (progress is written every few seconds, checkpoints every N iterations).
+        runtime.update_job(job.id, message=note, **({"iteration": at} if resume is not None else {}))
     input_views = None
     if config.regulariser.startswith("image_"):
         scene = load_images(job, rec.params, settings, storage)
