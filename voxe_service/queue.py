@@ -207,22 +207,21 @@ def requeue_interrupted(session: Session, queue: TaskQueue, job: Job, settings: 
     ``where``: what the caller saw of the row. Returns "requeued", "failed", "canceled", or None when the row
     changed since it was read (nothing done). A broker that refuses fails the job and raises (:func:`dispatch_job`).
     """
-    if job.cancel_requested:
-        canceled = finish_jobs(session, [job.id], CANCELED, where=[Job.state == RUNNING, *where],
-                               message=f"canceled: {reason}")
+    def end(state: str, **fields) -> str | None:
+        """End the job in ``state``; the evaluations riding in its chain are sent alone (no stage left), to record
+        why (the job's message kept)."""
+        ended = finish_jobs(session, [job.id], state, where=[Job.state == RUNNING, *where], **fields)
         session.commit()
-        if canceled and evaluations_waiting_on(session, job):  # (no stage left: the evaluations alone; the job's
-            dispatch_job(session, queue, job, done=job_stages(job.mode), message=f"canceled: {reason}")  # message kept)
-        return CANCELED if canceled else None
+        if ended and evaluations_waiting_on(session, job):
+            dispatch_job(session, queue, job, done=job_stages(job.mode), message=fields.get("message"))
+        return state if ended else None
+
+    if job.cancel_requested:
+        return end(CANCELED, message=f"canceled: {reason}")
     interrupted = job.run_token is not None
     if interrupted and job.requeues >= settings.job_max_requeues:
-        failed = finish_jobs(session, [job.id], FAILED, where=[Job.state == RUNNING, *where],
-                             error=f"{reason}; it was sent again {job.requeues} time(s) already, the limit "
-                                   f"(VOXE_JOB_MAX_REQUEUES={settings.job_max_requeues})")
-        session.commit()
-        if failed and evaluations_waiting_on(session, job):
-            dispatch_job(session, queue, job, done=job_stages(job.mode))  # (no stage left: the evaluations alone)
-        return FAILED if failed else None
+        return end(FAILED, error=f"{reason}; it was sent again {job.requeues} time(s) already, the limit "
+                                 f"(VOXE_JOB_MAX_REQUEUES={settings.job_max_requeues})")
     # task_id NULL until the new chain is handed over: a sender that dies in between leaves a job the reaper sends
     released = session.execute(update(Job).where(Job.id == job.id, Job.state == RUNNING, *where).values(
         state=QUEUED, task_id=None, run_token=None, run_lease_until=None, message=f"re-queued: {reason}",
