@@ -9,7 +9,8 @@ stage figures come from one sitting (the CPU's capture factor is a ratio within 
 
   * reconstruct: 27.54 s / 1,000 steps of 8,192 rays (``reconstruction.json``, the default fit
     ``ReconstructConfig.fast()`` on mic: the sitting's 27.47 s for the preset's 2,000 steps of 4,096 rays, now
-    ``preset-fast-4096-rays`` (seed 0 as 469c52a recorded it; the file now holds its rerun at 04459e1), times the CPU seconds of its 1,000 steps of 8,192 over those, 48.92 / 48.80 on the
+    ``preset-fast-4096-rays`` (seed 0 as 469c52a recorded it; the file now holds its rerun at 04459e1), times
+    the CPU seconds of its 1,000 steps of 8,192 over those, 48.92 / 48.80 on the
     means of six seeds a side in one run). A CPU step costs its rays (``fit_costs.json``: ``paper``'s steps of
     4× the rays cost 3.79× ``fast``'s in one run), a capture's 17.9× an object's per ray (``scene()`` on fox
     against ``fast()`` on mic in that run: its rays cross the scene's background too);

@@ -224,17 +224,13 @@ class StableDiffusionGuidance:
     def _tokenize(self, prompts: list[str]) -> torch.Tensor:
         """Token ids (N, max_length), padded; ValueError for a prompt longer than the text encoder reads (it was cut
         off there, and an edit word beyond the cut found nowhere, only when the refinement looked for it)."""
-        for prompt in prompts:
-            if (n := len(self.tokenizer(prompt).input_ids)) > self.max_length:
-                raise ValueError(f"the prompt {prompt!r} is {n} tokens; the text encoder of {self.model_id or 'this model'} reads "
-                                 f"{self.max_length}, its start and end tokens included: shorten it")
-        return self.tokenizer(
-            list(prompts),
-            padding="max_length",
-            max_length=self.max_length,
-            truncation=True,
-            return_tensors="pt",
-        ).input_ids
+        ids = self.tokenizer(list(prompts), padding="max_length", max_length=self.max_length).input_ids  # uncut
+        for prompt, tokens in zip(prompts, ids):
+            if len(tokens) > self.max_length:
+                raise ValueError(f"the prompt {prompt!r} is {len(tokens)} tokens; the text encoder of "
+                                 f"{self.model_id or 'this model'} reads {self.max_length}, its start and end tokens "
+                                 "included: shorten it")
+        return torch.tensor(ids)
 
     @torch.no_grad()
     def encode_prompts(self, prompts: list[str]) -> torch.Tensor:

@@ -85,7 +85,8 @@ def backproject(
     weight = torch.zeros(n_vertices, device=targets.device)
     chunk = config.render.chunk_rays
     for start in range(0, origins.shape[0], chunk):
-        o, d, t = origins[start:start + chunk], unit_directions(directions[start:start + chunk]), targets[start:start + chunk]
+        o, t = origins[start:start + chunk], targets[start:start + chunk]
+        d = unit_directions(directions[start:start + chunk])
         offsets = torch.full((o.shape[0],), 0.5, device=o.device)
         for group in grid.ray_samples(o, d, offsets, config.render.step_ratio, occupancy,
                                       config.render.pass_samples(o.device), config.render.early_stop):
