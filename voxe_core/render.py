@@ -41,9 +41,9 @@ class RenderConfig:
     def pass_samples(self, device: torch.device) -> int:
         """``samples_per_pass``, or ``device``'s default: 2^20 on the CPU, 2^22 on an accelerator.
 
-        Larger passes dispatch fewer operations (2^22: 0.49x on the edit's render, one pass instead of five), which
+        Larger passes dispatch fewer operations (2^22: 0.50x on the edit's render, one pass instead of five), which
         is what a launch-bound GPU pays for (on the H200: 0.73x the render's time, the edit step 1.13x faster;
-        bench/gpu.py, sections h and i), but ran 1.09x slower on this CPU with +0.46 GiB (bench/render_passes.py).
+        bench/gpu.py, sections h and i), but ran 1.11x slower on this CPU with +0.47 GiB (bench/render_passes.py).
         The render is the same at any size (on a GPU to float32 rounding: its atomic adds run in another order).
         """
         if self.samples_per_pass is not None:
