@@ -28,7 +28,6 @@ Stage = Literal["reconstruct", "edit", "refine", "export", "evaluate"]
 WebhookEvent = Literal[WEBHOOK_EVENTS]
 
 
-MAX_SEED = 2**32 - 1  # numpy's seed range
 StageIterations = Annotated[int, Field(ge=0, le=1_000_000)]
 # What clean_text accepts, for the document: a word character somewhere, no control character but whitespace.
 _ALLOWED = r"[^\x00-\x08\x0e-\x1b\x7f-\x84\x86-\x9f]"
@@ -77,7 +76,7 @@ class ReconstructionParams(Strict):
         "it); the preset's otherwise"
     )
     rays_per_step: int | None = Field(None, ge=1, le=1 << 20)
-    seed: int = Field(presets.SEED, ge=0, le=MAX_SEED)
+    seed: int = Field(presets.SEED, ge=0, le=presets.MAX_SEED)
     backbone: Literal["auto", "relu_field", "scene"] = Field(
         "auto", description="relu_field: objects on a transparent background; scene: captured photos with a "
         "background (DVGO-style, SPEC §5); auto: the scene's backbone (decided from its images' alpha)"
@@ -169,7 +168,7 @@ class JobParams(Strict):
     view_words: bool = Field(True, description="append ', front view' etc. to the prompt from the pose (the authors' code)")
     batch_size: int = Field(1, ge=1, le=16)
     autocast: Literal["bf16", "fp16"] | None = None
-    seed: int = Field(presets.SEED, ge=0, le=MAX_SEED)
+    seed: int = Field(presets.SEED, ge=0, le=presets.MAX_SEED)
     preview_every: int = Field(presets.PREVIEW_EVERY, ge=0, le=200_000,
                                description="iterations between preview renders (0: none)")
     reconstruction: ReconstructionParams = Field(default_factory=ReconstructionParams)

@@ -150,6 +150,13 @@ def test_bad_option_values_exit_2(tmp_path, capsys):
         with pytest.raises(SystemExit) as exc:
             main(["sweep", "--scene", "s1=mic", "--wait", "--poll", poll, "--api", "http://127.0.0.1:9"])
         assert exc.value.code == 2 and "must be a positive number of seconds" in capsys.readouterr().err
+    for command in (args, ["edit", "g", "--prompt", "p", "--out", "o"], ["mesh-to-grid", "m.obj", "--out", "o"],
+                    ["refine", "e", "--initial", "g", "--prompt", "p", "--edit-words", "p", "--out", "o"], ["build-tiny-model", "o"]):
+        for seed in ("-1", str(2**32)):  # the service's range; torch took -1 and failed on 2**64 after the data
+            with pytest.raises(SystemExit) as exc:
+                main([*command, "--seed", seed])
+            assert exc.value.code == 2 and f"--seed: must be between 0 and 4294967295, got {seed}" in \
+                capsys.readouterr().err
 
 
 def test_an_output_that_cannot_be_written_is_refused_before_the_fit_and_a_failed_save_leaves_nothing(

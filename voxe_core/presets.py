@@ -58,6 +58,8 @@ TIMESTEP_SCHEDULES = ("paper", "authors")
 PREVIEW_EVERY = 100
 """Edit iterations between preview renders (0: none)."""
 SEED = 0
+MAX_SEED = 2**32 - 1
+"""The largest seed a job or the CLI takes (numpy's seed range)."""
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,7 @@ import threading
 from pathlib import Path
 from typing import Iterator
 
-from voxe_core.presets import DOWNSAMPLE, RESAMPLE
+from voxe_core.presets import DOWNSAMPLE, MAX_SEED, RESAMPLE
 
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
@@ -124,6 +124,14 @@ def non_negative_int(text: str) -> int:
     value = int(text)
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be at least 0, got {value}")
+    return value
+
+
+def seed(text: str) -> int:
+    """A ``--seed``: the service's range, refused here rather than by torch after the data is loaded."""
+    value = int(text)
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"must be between 0 and {MAX_SEED}, got {value}")
     return value
 
 

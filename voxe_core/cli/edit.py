@@ -13,7 +13,7 @@ from pathlib import Path
 from voxe_core import constants as paper
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, add_view_arguments, check_device, load_guidance, load_views,
-    positive_int, run_stage,
+    positive_int, run_stage, seed,
 )
 from voxe_core.presets import EDIT_SCHEDULES, PREVIEW_EVERY, SEED, TIMESTEP_SCHEDULES, edit_config
 
@@ -48,7 +48,7 @@ def add_parsers(commands, common) -> None:
     ed.add_argument("--batch-size", type=positive_int, default=1, help="poses (renders) per iteration")
     ed.add_argument("--no-view-words", action="store_true", help="do not append ', front view' etc. to the prompt")
     ed.add_argument("--autocast", choices=("bf16", "fp16"), default=None, help="run the guidance under autocast")
-    ed.add_argument("--seed", type=int, default=SEED)
+    ed.add_argument("--seed", type=seed, default=SEED)
     ed.add_argument("--checkpoint-every", type=int, default=250, help="iterations between checkpoints (0: only at the end)")
     ed.add_argument("--resume", type=Path, default=None, metavar="PATH", help="continue from this edit checkpoint")
     ed.add_argument("--preview-every", type=int, default=PREVIEW_EVERY, help="iterations between preview PNGs (0: none)")
@@ -61,7 +61,7 @@ def add_parsers(commands, common) -> None:
         help="write a tiny random-weight Stable Diffusion (SMOKE-TEST model: plumbing only, never quality)",
     )
     tiny.add_argument("out", type=Path, metavar="DIR")
-    tiny.add_argument("--seed", type=int, default=0)
+    tiny.add_argument("--seed", type=seed, default=0)
     tiny.set_defaults(run=cmd_build_tiny_model)
 
 

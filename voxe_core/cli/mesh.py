@@ -7,6 +7,7 @@ from pathlib import Path
 
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, add_device_argument, add_grid_output_arguments, check_device, int_list, positive_int, run_stage,
+    seed,
 )
 from voxe_core.cli.reconstruct import recipe_params
 from voxe_core.presets import RECONSTRUCTION_PRESET, RECONSTRUCTION_PRESETS, SEED, ExportConfig, reconstruct_config
@@ -43,7 +44,7 @@ def add_parsers(commands, common) -> None:
                     help="grid resolution (voxelize: default 160; render: as voxe reconstruct)")
     mg.add_argument("--iterations", type=int_list, default=None, metavar="N[,N...]", help="render route: as voxe reconstruct")
     mg.add_argument("--rays", type=positive_int, default=None, help="render route: rays per step")
-    mg.add_argument("--seed", type=int, default=SEED)
+    mg.add_argument("--seed", type=seed, default=SEED)
     add_device_argument(mg)  # the render route's reconstruction (the voxeliser is CPU code)
     mg.set_defaults(run=cmd_mesh_to_grid)
 

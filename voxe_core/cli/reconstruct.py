@@ -8,7 +8,7 @@ from pathlib import Path
 
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, add_device_argument, add_grid_output_arguments, add_view_arguments, check_device, int_list,
-    load_views, one_or_list, positive_int, run_stage, view_params, writable_file,
+    load_views, one_or_list, positive_int, run_stage, seed, view_params, writable_file,
 )
 from voxe_core.presets import (
     RECONSTRUCTION_PRESET,
@@ -49,7 +49,7 @@ def add_recipe_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--iterations", type=int_list, default=None, metavar="N[,N...]",
                         help="iterations of the final stage, or one per stage")
     parser.add_argument("--rays", type=positive_int, default=None, help="rays per step")
-    parser.add_argument("--seed", type=int, default=SEED)
+    parser.add_argument("--seed", type=seed, default=SEED)
 
 
 def recipe_params(args: argparse.Namespace) -> dict:

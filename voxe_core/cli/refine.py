@@ -15,6 +15,7 @@ from pathlib import Path
 from voxe_core import constants as paper
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, check_device, load_guidance, positive_int, run_stage,
+    seed,
 )
 from voxe_core.presets import SEED, refine_config
 
@@ -56,7 +57,7 @@ def add_parsers(commands, common) -> None:
     ref.add_argument("--sigma", type=float, default=paper.CUT_SIGMA, help="colour scale of the graph cut's pairwise weights")
     ref.add_argument("--smoothness", type=float, default=paper.CUT_SMOOTHNESS, help="graph-cut smoothness weight λ")
     ref.add_argument("--preview-views", type=int, default=4, help="ring views rendered as PNGs (0: none)")
-    ref.add_argument("--seed", type=int, default=SEED)
+    ref.add_argument("--seed", type=seed, default=SEED)
     ref.set_defaults(run=cmd_refine)
 
 
