@@ -53,7 +53,10 @@ def test_an_unreachable_service_is_a_service_error_naming_it():
     with Client("http://127.0.0.1:9", transport=httpx.MockTransport(refuse)) as client:
         with pytest.raises(ServiceError, match="cannot reach the service at http://127.0.0.1:9: connection refused") as error:
             client.get_sweep("x")
-    assert error.value.status is None
+        assert error.value.status is None
+        with pytest.raises(ServiceError, match=r"^event stream of job j1 at http://127.0.0.1:9 lost after 2 attempts: "
+                                               "connection refused$"):  # it had not named the service
+            list(client.events("j1", reconnects=1))
 
 
 class _Dropping(httpx.SyncByteStream):

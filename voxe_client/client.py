@@ -134,7 +134,8 @@ class Client:
             except httpx.TransportError as exc:
                 failures += 1
                 if failures > reconnects:
-                    raise ServiceError(f"event stream of job {job_id} lost: {exc}") from None
+                    raise ServiceError(f"event stream of job {job_id} at {self.base_url} lost after {failures} "
+                                       f"attempt{'s' if failures > 1 else ''}: {exc}") from None
                 time.sleep(min(5.0, 0.5 * 2 ** (failures - 1)))
 
     def wait(self, job_id: str, on_progress: Callable[[dict], None] | None = None) -> dict:
