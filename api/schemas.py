@@ -16,7 +16,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validat
 
 from voxe_core import constants as paper
 from voxe_core import presets
-from voxe_core.guidance.prompts import check_prompt_length
+from voxe_core.guidance.prompts import TEXT_ENCODER_TOKENS, check_prompt_length
 from voxe_service.webhooks import DEFAULT_WEBHOOK_EVENTS, WEBHOOK_EVENTS
 
 T = TypeVar("T")
@@ -129,16 +129,11 @@ class ExportParams(Strict):
     turntable_frames: int = Field(presets.ExportConfig.turntable_frames, ge=1, le=1000)
     turntable_size: int = Field(presets.ExportConfig.turntable_size, ge=8, le=2048)
     elevation: float = Field(presets.ExportConfig.elevation, ge=-89, le=89)
-    fps: float = Field(presets.ExportConfig.fps, gt=0, le=120)
+    fps: float = Field(presets.ExportConfig.fps, ge=presets.VIDEO_MIN_FPS, le=120,
+                       description="turntable frames per second; a GIF frame lasts at most 655.35 s")
     gif: bool = presets.ExportConfig.gif
     mesh: bool = presets.ExportConfig.mesh
     mesh_resolution: int | None = Field(presets.ExportConfig.mesh_resolution, ge=2, le=1024)
-
-    @model_validator(mode="after")
-    def _gif_holds_the_frame_rate(self):
-        if self.gif:
-            presets.check_gif_fps(self.fps)
-        return self
 
 
 class JobParams(Strict):
@@ -200,7 +195,9 @@ EditWord = Annotated[str, Field(min_length=1, max_length=100, json_schema_extra=
 class JobCreate(Strict):
     scene_id: str = Field(min_length=1, max_length=64)
     prompt: str = Field(min_length=1, max_length=500, json_schema_extra={"pattern": TEXT_PATTERN},
-                        description='e.g. "a microphone wearing big sunglasses"' + _TEXT_RULE)
+                        description='e.g. "a microphone wearing big sunglasses"' + _TEXT_RULE
+                        + f"; at most {TEXT_ENCODER_TOKENS} text-encoder tokens as the model sees it (with the "
+                          "view_words suffix, start and end tokens included)")
     mode: Literal["global", "local"] = Field("global", description="local: refined to the edit_words' region")
     edit_words: list[EditWord] = Field(
         default_factory=list, max_length=16,

@@ -22,7 +22,7 @@ from voxe_core.export import (
     write_video,
 )
 from voxe_core.grid import VoxelGrid
-from voxe_core.presets import GIF_MIN_FPS
+from voxe_core.presets import VIDEO_MIN_FPS
 from voxe_core.progress import Callbacks, StageCancelled
 from voxe_core.render import RenderConfig, render_image
 from voxe_core.scene_grid import SceneGrid
@@ -135,12 +135,13 @@ def test_video_rejects_unknown_suffix_and_bad_frames(tmp_path):
     with pytest.raises(ValueError, match="N, H, W, 3"):
         write_video(tmp_path / "v.mp4", torch.zeros(0, 4, 4, 3))
     assert not (tmp_path / "v.avi").exists()
-    with pytest.raises(ValueError, match=r"fps 0.0015 is too slow for a GIF: .* at least 0.001526"):
-        write_video(tmp_path / "slow.gif", gradient_frames(2, 4, 4), fps=0.0015)  # had overflowed inside Pillow
-    write_video(tmp_path / "slowest.gif", gradient_frames(2, 4, 4), fps=GIF_MIN_FPS)  # a 655.35 s frame
-    assert not (tmp_path / "slow.gif").exists()
-    with pytest.raises(ValueError, match="fps must be a positive finite number, got nan"):
-        write_video(tmp_path / "v.mp4", gradient_frames(2, 4, 4), fps=float("nan"))
+    # Pillow had overflowed its 16-bit GIF delay, and ffmpeg had failed after the encode with no file
+    for name, fps in (("slow.gif", 0.0015), ("slow.mp4", 1e-9), ("nan.mp4", float("nan")), ("inf.gif", float("inf"))):
+        with pytest.raises(ValueError, match=rf"fps must be a finite number of at least 0.001526 .* got {fps:g}$"):
+            write_video(tmp_path / name, gradient_frames(2, 4, 4), fps=fps)
+    for name in ("slowest.gif", "slowest.mp4"):  # a 655.35 s frame, the floor of both formats
+        write_video(tmp_path / name, gradient_frames(2, 4, 4), fps=VIDEO_MIN_FPS)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["slowest.gif", "slowest.mp4"]
 
 
 def test_a_video_is_whole_or_absent(tmp_path, monkeypatch):

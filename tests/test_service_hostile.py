@@ -280,9 +280,10 @@ BAD_FIELDS = [
     ({"params": {"refine": {"sigma": -1}}}, ["body", "params", "refine", "sigma"], "greater than 0"),
     ({"params": {"reconstruction": {"iterations": [1] * 9}}},
      ["body", "params", "reconstruction", "iterations", "list[constrained-int]"], "at most 8 items"),
-    ({"params": {"export": {"fps": 0}}}, ["body", "params", "export", "fps"], "greater than 0"),
-    # had been accepted, and the job failed at its export (Pillow's 16-bit GIF delay overflowed)
-    ({"params": {"export": {"fps": 0.001}}}, ["body", "params", "export"], "fps 0.001 is too slow for a GIF"),
+    ({"params": {"export": {"fps": 0}}}, ["body", "params", "export", "fps"], "greater than or equal to 0.0015"),
+    # had been accepted, and the job failed at its export (Pillow's 16-bit GIF delay overflowed; ffmpeg wrote nothing)
+    ({"params": {"export": {"fps": 0.001, "gif": False}}}, ["body", "params", "export", "fps"],
+     "greater than or equal to 0.0015"),
     ({"params": {"downsample": "three"}}, ["body", "params", "downsample"], "valid integer"),
     ({"colour": "red"}, ["body", "colour"], "Extra inputs are not permitted"),
 ]

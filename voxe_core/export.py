@@ -20,7 +20,7 @@ from voxe_core.cameras import Cameras, ring_poses
 from voxe_core.constants import NERF_SYNTHETIC_FOV_X, NERF_SYNTHETIC_RADIUS
 from voxe_core.devices import PeakMemory, resolve_device
 from voxe_core.grid import VoxelGrid
-from voxe_core.presets import check_gif_fps
+from voxe_core.presets import check_video_fps
 from voxe_core.progress import Callbacks, Progress
 from voxe_core.render import RenderConfig, render_image
 
@@ -111,10 +111,7 @@ def check_video_output(path: str | os.PathLike, fps: float) -> Path:
     suffix = path.suffix.lower()
     if suffix not in VIDEO_SUFFIXES:
         raise ValueError(f"unsupported video suffix {path.suffix!r} for {path}; use one of {', '.join(VIDEO_SUFFIXES)}")
-    if not (fps > 0 and math.isfinite(fps)):
-        raise ValueError(f"fps must be a positive finite number, got {fps}")
-    if suffix == ".gif":
-        check_gif_fps(fps)  # Pillow stores GIF delays in whole centiseconds, 16 bits of them
+    check_video_fps(fps)
     return path
 
 

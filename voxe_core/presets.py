@@ -25,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, NamedTuple
 
@@ -75,15 +76,16 @@ EDIT_SCHEDULES: dict[str, EditSchedule] = {"scene": EditSchedule(iterations=5000
 """Backbone kind -> its edit schedule where it is not SPEC §2's (8,000 iterations, 4,000 / 600): SPEC §5's for scenes."""
 
 
-GIF_MIN_FPS = 100 / 65535
-"""The slowest GIF: a frame's delay is a 16-bit count of centiseconds, at most 655.35 s."""
+VIDEO_MIN_FPS = 100 / 65535
+"""The slowest turntable video: a GIF frame's delay is a 16-bit count of centiseconds, at most 655.35 s (the MP4
+encoder fails further down, near 1e-6 fps); one floor for both formats, so the job parameters can state it."""
 
 
-def check_gif_fps(fps: float) -> None:
-    """ValueError for a frame rate a GIF cannot hold (Pillow overflowed writing it, after the whole job had run)."""
-    if not fps >= GIF_MIN_FPS:
-        raise ValueError(f"fps {fps:g} is too slow for a GIF: a frame's delay is at most 655.35 s, "
-                         f"so fps must be at least {GIF_MIN_FPS:.6f}")
+def check_video_fps(fps: float) -> None:
+    """ValueError for a frame rate no video holds (Pillow overflowed and ffmpeg wrote nothing, after the whole job)."""
+    if not (fps >= VIDEO_MIN_FPS and math.isfinite(fps)):
+        raise ValueError(f"fps must be a finite number of at least {VIDEO_MIN_FPS:.6f} (a frame's delay is at most "
+                         f"655.35 s in a GIF), got {fps:g}")
 
 
 @dataclass(frozen=True)
