@@ -80,34 +80,43 @@ def test_a_model_is_refused_only_when_every_worker_reporting_on_it_lacks_it():
     assert "inception-2015-12-05.pt in the workers' VOXE_MODEL_DIR" in fid and "VOXE_FID_MODEL" in fid
 
 
-def start_worker_heartbeat() -> dict:
-    """The worker's start-up hook as Celery calls it (no sender): its heartbeat row, once written and once its
-    first scratch sweep removed the leftover folder of a job that no longer exists."""
+def heartbeat_row(until=lambda beat: True) -> dict:
+    """The worker's heartbeat row once written and ``until(row)`` holds (within 5 s)."""
     from voxe_service.db import session_scope
     from voxe_service.models import WorkerHeartbeat
+
+    for _ in range(100):
+        with session_scope() as session:
+            row = session.scalars(select(WorkerHeartbeat)).first()
+            beat = row and {"hostname": row.hostname, "models": row.models}
+        if beat and until(beat):
+            return beat
+        time.sleep(0.05)
+    raise AssertionError(f"no heartbeat written, or none such: {beat}")
+
+
+@pytest.fixture
+def worker_heartbeat(monkeypatch):
+    """The worker's start-up hook as Celery calls it (no sender), beating every 0.1 s until the test ends; its
+    first heartbeat row, once its first scratch sweep removed the leftover folder of a job that no longer exists."""
     from voxe_service.settings import get_settings
     from worker import runtime, tasks
 
+    monkeypatch.setattr(get_settings(), "worker_heartbeat_s", 0.1)
     leftover = runtime.scratch_dir("f" * 32, get_settings())  # of no job: the first sweep removes it
     tasks._start_heartbeat(sender=None)
     try:
-        for _ in range(100):
-            with session_scope() as session:
-                row = session.scalars(select(WorkerHeartbeat)).first()
-            if row is not None and not leftover.exists():
-                return {"hostname": row.hostname, "models": row.models}
-            time.sleep(0.05)
-        raise AssertionError("no heartbeat written, or the scratch sweep did not run")
+        yield heartbeat_row(until=lambda beat: not leftover.exists())
     finally:
         tasks._heartbeat_stop.set()
 
 
 def test_the_heartbeat_records_the_models_and_readyz_and_submission_use_them(root, client, dataset, hub_cache,
-                                                                             monkeypatch):
+                                                                             worker_heartbeat, monkeypatch):
     from voxe_service.settings import get_settings
 
     monkeypatch.setattr(get_settings(), "sds_model", ABSENT)  # the worker's and the API's setting alike
-    beat = start_worker_heartbeat()
+    beat = heartbeat_row(until=lambda beat: beat["models"]["sds"]["model"] == ABSENT)
     assert beat["models"]["sds"] == {"model": ABSENT, "present": False}
     assert beat["models"]["attention"] == {"model": "tiny", "present": True}
     ready = client.get("/readyz").json()
@@ -123,7 +132,10 @@ def test_the_heartbeat_records_the_models_and_readyz_and_submission_use_them(roo
         assert part in refused.json()["detail"], refused.json()["detail"]
     assert client.get("/v1/jobs").json()["total"] == 0  # nothing recorded
 
-    monkeypatch.setattr(get_settings(), "sds_model", "tiny")  # jobs now ask for a model the worker has
+    # Downloaded while the worker runs: its next beat offers the model, with no restart (it had been checked
+    # only when the worker started, so every job was refused until then).
+    hub_cache(ABSENT, "model_index.json")
+    assert heartbeat_row(until=lambda beat: beat["models"]["sds"]["present"])["hostname"] == beat["hostname"]
     accepted = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold"})
     assert accepted.status_code == 201, accepted.text
 

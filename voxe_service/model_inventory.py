@@ -1,8 +1,8 @@
 """Which models the workers have, known before a job needs them.
 
-A worker checks at its start, offline and without loading weights, which of
-its configured models are on its machine (:func:`check_models`), and its
-heartbeat records the answer. The API reads those records: ``/readyz``
+A worker checks at its start and at every heartbeat, offline and without
+loading weights, which of its configured models are on its machine
+(:func:`check_models`), and its heartbeat records the answer. The API reads those records: ``/readyz``
 reports them, and a job whose model no worker has is refused at submission
 (:func:`unavailable_models`); a job sent anyway (no worker had reported yet)
 fails at the start of its chain, not after its reconstruction, with the same

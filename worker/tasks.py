@@ -571,6 +571,13 @@ def _beat(hostname: str, queues: str, device: str, models: dict) -> None:
     while not _heartbeat_stop.is_set():
         sync_clock()  # (a pool process measures its own: _fresh_engine, begin_stage)
         try:
+            # Looked at again every beat (a few file lookups): weights downloaded into a running worker's cache
+            # are offered without a restart, and weights removed stop being offered.
+            models, earlier = check_models(settings), models
+            for role, m in models.items():
+                if m["present"] != earlier[role]["present"]:
+                    log.warning("worker %s: the %s model %s is %s", hostname, role,
+                                model_label(m["model"]) or "(default)", "now present" if m["present"] else "gone")
             with runtime.session_scope() as session:
                 row = session.get(WorkerHeartbeat, hostname)
                 if row is None:
