@@ -80,6 +80,11 @@ def broker_transport_options(settings: Settings) -> dict:
     if is_sql_broker(settings.broker_url):
         return {"polling_interval": settings.broker_polling_interval}  # SQLite: WAL and timeouts in voxe_service.broker
     # Redis / SQS: a message not acked within this many seconds is redelivered.
+    if settings.broker_visibility_timeout_s <= settings.task_time_limit_s:
+        log.warning("VOXE_BROKER_VISIBILITY_TIMEOUT_S (%d s) is not above VOXE_TASK_TIME_LIMIT_S (%d s): the "
+                    "broker sends a stage that runs longer to a second worker, which waits for the first run's next "
+                    "renewal of its hold on the job, then drops it",
+                    settings.broker_visibility_timeout_s, settings.task_time_limit_s)
     return {"visibility_timeout": settings.broker_visibility_timeout_s}
 
 

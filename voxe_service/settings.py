@@ -13,7 +13,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from voxe_core.constants import ATTENTION_MODEL_ID, CLIP_MODEL_ID, SDS_MODEL_ID
@@ -47,7 +47,7 @@ class Settings(BaseSettings):
     # file for FID (path, `tiny`, or empty: <model_dir>/inception-2015-12-05.pt).
     clip_model: str = CLIP_MODEL_ID
     fid_model: str = ""
-    device: str = "auto"  # auto | cpu | cuda | cuda:N
+    device: str = Field("auto", pattern=r"^(auto|cpu|cuda(:\d+)?)$")  # refused at start, not inside every job
     cuda_graphs: bool = True  # the SDS step's UNet (and its VAE encoder, when not compiled) from CUDA graphs on CUDA
     compile_encoder: bool = True  # the SDS step's VAE encoder compiled with torch.compile on CUDA
 
@@ -75,10 +75,11 @@ class Settings(BaseSettings):
     # A stage's run holds its job under a lease renewed every quarter of it: a message for a job another run
     # holds (a duplicate) waits for a renewal, then is dropped; a run that stopped renewing is taken over.
     stage_lease_s: float = Field(60.0, gt=0)
-    task_soft_time_limit_s: int = 3 * 3600
-    task_time_limit_s: int = int(3.5 * 3600)
-    broker_visibility_timeout_s: int = 4 * 3600
-    worker_max_tasks_per_child: int = 20
+    # soft < hard (checked below); the broker's visibility timeout above the hard limit (voxe_service.queue warns).
+    task_soft_time_limit_s: int = Field(3 * 3600, gt=0)
+    task_time_limit_s: int = Field(int(3.5 * 3600), gt=0)
+    broker_visibility_timeout_s: int = Field(4 * 3600, gt=0)
+    worker_max_tasks_per_child: int = Field(20, ge=1)
     worker_heartbeat_s: float = Field(5.0, gt=0)
     readiness_timeout_s: float = Field(1.0, gt=0)
     # A running job whose worker sent no heartbeat and the job no progress for this long was
@@ -110,6 +111,14 @@ class Settings(BaseSettings):
         for network in filter(None, (n.strip() for n in value.split(","))):
             ipaddress.ip_network(network, strict=False)  # a typo fails at startup, not on the first webhook
         return value
+
+    @model_validator(mode="after")
+    def _soft_limit_first(self):
+        if not self.task_soft_time_limit_s < self.task_time_limit_s:
+            raise ValueError(f"VOXE_TASK_SOFT_TIME_LIMIT_S ({self.task_soft_time_limit_s} s) must be below "
+                             f"VOXE_TASK_TIME_LIMIT_S ({self.task_time_limit_s} s): the soft limit lets a stage "
+                             "stop cleanly before the hard limit kills it")
+        return self
 
     @property
     def auth_enabled(self) -> bool:
@@ -144,6 +153,15 @@ def model_label(model: str) -> str:
     return TINY_MODEL_LABEL if model == TINY_MODEL else model
 
 
+class SettingsError(ValueError):
+    """Environment variables the service cannot start with, each named as it is set."""
+
+
 @lru_cache
 def get_settings() -> Settings:
-    return Settings()
+    try:
+        return Settings()
+    except ValidationError as exc:  # pydantic names the field (storage_backend); say the variable
+        problems = [(f"VOXE_{'_'.join(map(str, e['loc'])).upper()}={e['input']!r}: " if e["loc"] else "")
+                    + e["msg"].removeprefix("Value error, ") for e in exc.errors()]
+        raise SettingsError("bad service settings: " + "; ".join(problems)) from None

@@ -1,0 +1,68 @@
+"""Service settings as the deployment sets them: bad values refused at start naming the variable, and the
+docker files setting only variables the service reads."""
+
+from __future__ import annotations
+
+import logging
+import re
+from pathlib import Path
+
+import pytest
+
+from voxe_service.queue import broker_transport_options
+from voxe_service.settings import Settings, SettingsError, get_settings
+
+ROOT = Path(__file__).resolve().parents[1]
+DEPLOYMENT_FILES = ("docker-compose.yml", "docker/env.example", "docker/api.Dockerfile", "docker/worker.Dockerfile")
+
+
+@pytest.fixture
+def fresh_settings(monkeypatch):
+    get_settings.cache_clear()
+    yield monkeypatch
+    get_settings.cache_clear()
+
+
+@pytest.mark.parametrize("variable, value, message", [
+    ("VOXE_DEVICE", "gpu", "VOXE_DEVICE='gpu': String should match pattern"),  # torch.device failed in every job
+    ("VOXE_STORAGE_BACKEND", "s4", "VOXE_STORAGE_BACKEND='s4': Input should be 'local' or 's3'"),
+    ("VOXE_MAX_UPLOAD_BYTES", "lots", "VOXE_MAX_UPLOAD_BYTES='lots': Input should be a valid integer"),
+    ("VOXE_WORKER_MAX_TASKS_PER_CHILD", "0", "VOXE_WORKER_MAX_TASKS_PER_CHILD='0': Input should be greater than"),
+    ("VOXE_TASK_SOFT_TIME_LIMIT_S", "30000", "VOXE_TASK_SOFT_TIME_LIMIT_S (30000 s) must be below "
+                                             "VOXE_TASK_TIME_LIMIT_S (12600 s)"),
+])
+def test_a_bad_setting_is_refused_at_start_naming_its_variable(fresh_settings, variable, value, message):
+    """pydantic had named the field (storage_backend), not the variable a deployment sets."""
+    fresh_settings.setenv(variable, value)
+    with pytest.raises(SettingsError, match=r"^bad service settings: ") as error:
+        get_settings()
+    assert message in str(error.value), str(error.value)
+
+
+def test_devices_a_worker_can_use_are_accepted():
+    for device in ("auto", "cpu", "cuda", "cuda:3"):
+        assert Settings(device=device).device == device
+
+
+def test_a_visibility_timeout_within_the_hard_limit_is_a_warning_naming_both(caplog):
+    redis = "redis://127.0.0.1:6379/0"
+    with caplog.at_level(logging.WARNING, logger="voxe.queue"):
+        assert broker_transport_options(Settings(broker_url=redis)) == {"visibility_timeout": 4 * 3600}
+        assert not caplog.records  # the defaults nest: 3 h soft, 3.5 h hard, 4 h visibility
+        broker_transport_options(Settings(broker_url=redis, broker_visibility_timeout_s=3600))
+    (record,) = caplog.records
+    assert "VOXE_BROKER_VISIBILITY_TIMEOUT_S (3600 s) is not above VOXE_TASK_TIME_LIMIT_S (12600 s)" in record.message
+
+
+def test_the_deployment_sets_only_variables_the_service_reads():
+    fields = {f"VOXE_{name.upper()}" for name in Settings.model_fields}
+    for name in DEPLOYMENT_FILES:
+        used = set(re.findall(r"\bVOXE_[A-Z0-9_]+", (ROOT / name).read_text()))
+        assert used and used <= fields, f"{name}: {sorted(used - fields)} are not settings"
+
+
+def test_the_worker_image_hands_a_running_stage_back_when_stopped():
+    """docker stop / Kubernetes send SIGTERM: Celery's warm shutdown waited hours for the stage and was then
+    killed with its message unacknowledged (the job left to the reaper); the cold shutdown requeues it at once.
+    tests/test_service_faults.py stops a worker so on a real Redis."""
+    assert re.search(r"^\s*REMAP_SIGTERM=SIGQUIT\b", (ROOT / "docker/worker.Dockerfile").read_text(), re.M)
