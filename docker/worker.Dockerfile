@@ -10,10 +10,15 @@ ARG TORCH_INDEX="https://download.pytorch.org/whl/cu126"
 ENV DEBIAN_FRONTEND=noninteractive PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1 PYTHONPATH=/app PATH=/opt/venv/bin:$PATH \
     HF_HOME=/models/hf VOXE_MODEL_DIR=/models/voxe VOXE_DEVICE=cuda \
-    PYTORCH_NVML_BASED_CUDA_CHECK=1
+    PYTORCH_NVML_BASED_CUDA_CHECK=1 \
+    REMAP_SIGTERM=SIGQUIT
+# REMAP_SIGTERM: `docker stop` and Kubernetes send SIGTERM, whose warm shutdown waits for the running stage
+# (hours) and is then killed with its message unacknowledged; Celery's cold shutdown hands the message
+# back to the broker at once and the next worker resumes the stage from its last checkpoint.
 
+# A C compiler and Python's headers: torch.compile (the SDS step's VAE encoder) builds Triton's helpers at run time.
 RUN apt-get update \
-    && apt-get install -y --no-install-recommends python3 python3-venv ca-certificates \
+    && apt-get install -y --no-install-recommends python3 python3-venv python3-dev build-essential ca-certificates \
     && rm -rf /var/lib/apt/lists/* \
     && python3 -m venv /opt/venv
 

@@ -335,8 +335,8 @@ def _has_user(name: str) -> bool:
 class Service:
     """The API (uvicorn) and Celery workers as real subprocesses."""
 
-    def __init__(self, root: Path, env: dict[str, str], worker_env: dict[str, str] | None):
-        self.root, self.env, self.worker_env = root, env, worker_env or {}
+    def __init__(self, root: Path, env: dict[str, str], worker_env: dict[str, str] | None, pool: str = "solo"):
+        self.root, self.env, self.worker_env, self.pool = root, env, worker_env or {}, pool
         self.port = free_port()
         self.base = f"http://127.0.0.1:{self.port}"
         self.api = None
@@ -372,7 +372,7 @@ class Service:
         process = Process(
             f"worker{suffix}-{self.generation}",
             [sys.executable, "-m", "celery", "-A", "worker.celery_app", "worker", "-Q", "gpu,celery",
-             "--concurrency", "1", "--pool", "solo", "--without-gossip", "--without-mingle", "--without-heartbeat",
+             "--concurrency", "1", "--pool", self.pool, "--without-gossip", "--without-mingle", "--without-heartbeat",
              "-n", self.worker_name(suffix), "-l", "info"],
             {**self.env, **self.worker_env, **(env or {})}, self.root,
         )
@@ -394,6 +394,20 @@ class Service:
         """SIGKILL, as a crashed machine or an OOM kill would."""
         _kill(self.worker)
         self.worker = None
+
+    def stop_worker(self, timeout: float = 60) -> float:
+        """SIGTERM, as ``docker stop`` or a Kubernetes eviction sends it; the seconds the worker took to exit
+        (AssertionError if it was still running after ``timeout``)."""
+        started = time.monotonic()
+        self.worker.proc.send_signal(signal.SIGTERM)
+        try:
+            self.worker.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            raise AssertionError(f"the worker still ran {timeout} s after SIGTERM\n{self.diagnostics()}") from None
+        finally:
+            self.worker.stop()
+        self.worker = None
+        return time.monotonic() - started
 
     def restart_api(self) -> None:
         """SIGKILL the API and start it again on the same port, database and storage."""
@@ -507,17 +521,18 @@ def _kill(process: Process) -> None:
 
 @contextlib.contextmanager
 def service(root: Path, broker_url: str | None = None, worker_env: dict[str, str] | None = None,
-            database_url: str | None = None, **extra: str):
+            database_url: str | None = None, pool: str = "solo", **extra: str):
     """Run the API and one worker with a private database, broker and storage under ``root``.
 
-    ``worker_env`` overrides variables for the worker only (e.g. its own VOXE_WORK_DIR).
+    ``worker_env`` overrides variables for the worker only (e.g. its own VOXE_WORK_DIR); ``pool`` is the
+    workers' Celery pool (``prefork``, as the worker image and ``.ci/serve`` run, costs a process per worker).
     """
     root.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, **service_env(root, broker_url, database_url, **extra)}
     env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
     env.setdefault("HF_HUB_OFFLINE", "1")
     env.setdefault("OMP_NUM_THREADS", "2")
-    handle = Service(root, env, worker_env)
+    handle = Service(root, env, worker_env, pool)
     try:
         handle.start_api()
         handle.start_worker()

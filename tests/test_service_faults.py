@@ -882,6 +882,39 @@ def test_redis_restart_keeps_queued_jobs_and_a_killed_worker_task_is_redelivered
             assert ARTIFACTS <= {a["name"] for a in client.http.get(f"/v1/jobs/{job['id']}/artifacts").json()}
 
 
+@pytest.mark.slow
+def test_a_worker_stopped_as_its_image_runs_hands_its_stage_back_and_another_resumes_it(tmp_path, scene_zip):
+    """SIGTERM (docker stop) to a worker mid-edit, with the worker image's REMAP_SIGTERM: its cold shutdown puts
+    the message back in Redis at once, though the visibility timeout is the default hours, and a second worker
+    takes the job over once the stopped run's hold lapses (VOXE_STAGE_LEASE_S), resuming from its checkpoint.
+    Celery's default warm shutdown would have run the stage to its end, and a kill after the grace period
+    had left the message unacknowledged for the reaper."""
+    import re
+    import shutil
+
+    from service_helpers import FINISHED, REPO, redis_server, service, verify_artifacts
+
+    if shutil.which("redis-server") is None:
+        missing("redis-server is not installed (.ci/test installs it)")
+    image = dict(re.findall(r"\b(REMAP_SIGTERM)=(\w+)", (REPO / "docker/worker.Dockerfile").read_text()))
+    assert image == {"REMAP_SIGTERM": "SIGQUIT"}, image
+    with redis_server(tmp_path / "redis") as redis, \
+            service(tmp_path, redis.url, image, pool="prefork", VOXE_CHECKPOINT_EVERY="10",
+                    VOXE_STAGE_LEASE_S="4") as svc:
+        client = Client(svc)
+        scene = client.upload(scene_zip)
+        job = client.create_job(scene, params={**PARAMS, "iterations": EDIT_ITERATIONS})
+        wait_for_event(client.http, svc, job["id"], checkpoint_at_least("edit", 10), what="an edit checkpoint")
+        assert svc.stop_worker() < 30  # it did not wait for the stage
+        at_stop = job_events(client.http, job["id"])
+        assert at_stop[-1]["kind"] not in FINISHED, at_stop
+        svc.start_worker(suffix="-b", wait_ready=False)  # under another name: Redis alone gives it the stage
+        final = client.wait(job["id"])
+        assert final["state"] == "succeeded", f"{final}\n{client.diagnostics()}"
+        check_resumed_from_the_last_checkpoint(at_stop, job_events(client.http, job["id"]), EDIT_ITERATIONS, 10)
+        verify_artifacts(client.http, final, ARTIFACTS, tmp_path)
+
+
 # ---------------------------------------------------------------------------------------------- the status hot path
 def test_a_job_and_its_reconstruction_load_in_one_query(db):
     """The status poll (bench/service_load.py) reads the job with its reconstruction in a single SELECT."""
