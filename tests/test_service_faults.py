@@ -248,6 +248,45 @@ def test_machines_whose_clocks_disagree_read_leases_and_heartbeats_on_the_databa
     assert [e["kind"] for e in events_of(job_id)] == ["stage_started"]  # no "requeued"
 
 
+def test_a_redis_that_accepts_and_never_answers_refuses_a_submission_within_its_timeouts(tmp_path, monkeypatch):
+    """A hung or partitioned Redis (the TCP connection made, no reply ever): a send had blocked for ever, so a
+    POST held its request, and every /readyz left a thread behind. Now each try times out after
+    VOXE_BROKER_SOCKET_TIMEOUT_S, and after Celery's publish retries the send fails as a broker that refuses."""
+    import socket
+    import threading
+    import time
+
+    from voxe_service.queue import get_queue
+
+    server = socket.create_server(("127.0.0.1", 0))
+    accepted = []
+    threading.Thread(target=lambda: [accepted.append(server.accept()[0]) for _ in range(100)], daemon=True).start()
+    for key, value in service_env(tmp_path, f"redis://127.0.0.1:{server.getsockname()[1]}/0",
+                                  VOXE_BROKER_SOCKET_TIMEOUT_S="0.5").items():
+        monkeypatch.setenv(key, value)
+    reset_service_caches()
+    queue, started, outcome = get_queue(), time.monotonic(), []
+
+    def send():
+        try:
+            outcome.append(queue.send(queue.stage_chain("job-1", "global")))
+        except Exception as exc:  # noqa: BLE001 - what the API turns into its 503
+            outcome.append(exc)
+
+    sender = threading.Thread(target=send, daemon=True)
+    sender.start()
+    sender.join(30)
+    try:
+        assert not sender.is_alive(), "the send still waited on the silent server after 30 s"
+        assert "Timeout reading from 127.0.0.1" in str(outcome[0]) and accepted, outcome
+        assert time.monotonic() - started < 15  # four tries of 0.5 s
+    finally:
+        reset_service_caches()
+        server.close()
+        for connection in accepted:
+            connection.close()
+
+
 def test_a_cancel_that_lands_between_stages_ends_the_job_when_the_next_stage_begins(db):
     """The cancel is seen as the next stage begins: that stage is skipped and the job ends canceled (the cancel
     was once rolled back with the skip, leaving the job running for ever)."""

@@ -47,7 +47,8 @@ def test_devices_a_worker_can_use_are_accepted():
 def test_a_visibility_timeout_within_the_hard_limit_is_a_warning_naming_both(caplog):
     redis = "redis://127.0.0.1:6379/0"
     with caplog.at_level(logging.WARNING, logger="voxe.queue"):
-        assert broker_transport_options(Settings(broker_url=redis)) == {"visibility_timeout": 4 * 3600}
+        assert broker_transport_options(Settings(broker_url=redis)) == {
+            "visibility_timeout": 4 * 3600, "socket_timeout": 5.0, "socket_connect_timeout": 5.0}
         assert not caplog.records  # the defaults nest: 3 h soft, 3.5 h hard, 4 h visibility
         broker_transport_options(Settings(broker_url=redis, broker_visibility_timeout_s=3600))
     (record,) = caplog.records

@@ -85,7 +85,9 @@ def broker_transport_options(settings: Settings) -> dict:
                     "broker sends a stage that runs longer to a second worker, which waits for the first run's next "
                     "renewal of its hold on the job, then drops it",
                     settings.broker_visibility_timeout_s, settings.task_time_limit_s)
-    return {"visibility_timeout": settings.broker_visibility_timeout_s}
+    return {"visibility_timeout": settings.broker_visibility_timeout_s,
+            "socket_timeout": settings.broker_socket_timeout_s,
+            "socket_connect_timeout": settings.broker_socket_timeout_s}
 
 
 def create_celery_app(settings: Settings | None = None, include: Sequence[str] = ()) -> Celery:

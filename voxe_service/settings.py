@@ -29,6 +29,9 @@ class Settings(BaseSettings):
     database_url: str = "sqlite:///./var/voxe.db"
     broker_url: str = "sqla+sqlite:///./var/broker.db"
     broker_polling_interval: float = Field(0.5, gt=0, description="seconds between polls of a polling broker (SQL)")
+    # Redis: how long a connect or a command may wait for the server. A server that accepts and never answers
+    # (hung, partitioned) had blocked a submission for ever, and left a thread behind per /readyz.
+    broker_socket_timeout_s: float = Field(5.0, gt=0)
 
     # --- storage
     storage_backend: Literal["local", "s3"] = "local"
