@@ -115,11 +115,29 @@ def alembic_config(database_url: str):
 
 
 def run_migrations(database_url: str) -> None:
-    """``alembic upgrade head`` on ``database_url``; existing databases upgrade in place."""
+    """``alembic upgrade head`` on ``database_url``; existing databases upgrade in place.
+
+    Processes starting together (API replicas) upgrade one after another: PostgreSQL under an advisory lock
+    (``migrations/env.py``), a SQLite file under a lock file beside it (SQLite runs DDL outside transactions).
+    """
     from alembic import command
 
     ensure_sqlite_dir(database_url)
-    command.upgrade(alembic_config(database_url), "head")
+    with _sqlite_file_lock(database_url):
+        command.upgrade(alembic_config(database_url), "head")
+
+
+@contextmanager
+def _sqlite_file_lock(database_url: str) -> Iterator[None]:
+    parsed = make_url(database_url)
+    if parsed.get_backend_name() != "sqlite" or not parsed.database or parsed.database == ":memory:":
+        yield
+        return
+    import fcntl
+
+    with open(f"{Path(parsed.database).expanduser()}.migrate.lock", "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes, or its process dies
+        yield
 
 
 def reset_caches() -> None:

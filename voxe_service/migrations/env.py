@@ -5,7 +5,7 @@ from __future__ import annotations
 from logging.config import fileConfig
 
 from alembic import context
-from sqlalchemy import engine_from_config, pool
+from sqlalchemy import engine_from_config, pool, text
 
 from voxe_service.models import Base
 
@@ -19,6 +19,9 @@ if not config.get_main_option("sqlalchemy.url"):
     config.set_main_option("sqlalchemy.url", get_settings().database_url.replace("%", "%%"))
 
 target_metadata = Base.metadata
+# PostgreSQL advisory lock taken for the upgrade's transaction: API replicas starting at once on a fresh database
+# migrate one after another (each had created the same tables, and all but one failed on a duplicate key).
+MIGRATION_LOCK = 0x766F7865  # "voxe"
 
 
 def run_migrations_offline() -> None:
@@ -36,6 +39,8 @@ def run_migrations_online() -> None:
         context.configure(connection=connection, target_metadata=target_metadata,
                           render_as_batch=connection.dialect.name == "sqlite")
         with context.begin_transaction():
+            if connection.dialect.name == "postgresql":  # held to the commit; the next one then finds head
+                connection.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": MIGRATION_LOCK})
             context.run_migrations()
 
 
