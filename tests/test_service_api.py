@@ -989,3 +989,36 @@ def test_migrations_match_the_models(database_url):
     run_migrations(url)
     config = alembic_config(url)
     command.check(config)  # raises when the models have changes no migration covers
+
+
+@pytest.mark.parametrize("root", ["sqlite", "postgres"], indirect=True)
+def test_an_upload_holds_no_database_connection_while_it_is_unpacked_and_stored(client, dataset, root,
+                                                                                 monkeypatch):
+    """Unpacking and storing an upload takes as long as its bytes (minutes for GBs into S3): the request had held
+    its pooled connection all along (on PostgreSQL a transaction open), so 15 concurrent uploads used up the
+    pool and every other request waited 30 s and failed. The pool is sampled a few times at each step (a
+    background poll may hold a connection for an instant, never for all of them)."""
+    import time
+
+    from api.services import scenes
+    from voxe_service.db import get_engine
+    from voxe_service.storage import get_storage
+
+    least_held = {}
+
+    def sampled(name, step):
+        def wrapper(*args, **kwargs):
+            samples = []
+            for _ in range(5):
+                samples.append(get_engine().pool.checkedout())
+                time.sleep(0.01)
+            least_held[name] = min(samples)
+            return step(*args, **kwargs)
+        return wrapper
+
+    storage_class = type(get_storage())
+    monkeypatch.setattr(scenes, "stage_upload", sampled("unpacking", scenes.stage_upload))
+    monkeypatch.setattr(storage_class, "put_file", sampled("storing", storage_class.put_file))
+    response = upload_zip(client, zip_folder(dataset, root / "held.zip", prefix="mic_small"))
+    assert response.status_code == 201, response.text
+    assert least_held == {"unpacking": 0, "storing": 0}

@@ -67,6 +67,7 @@ def create_scene(*, session: Session, settings: Settings, storage: Storage, queu
     if idem is not None and (replayed := idem.replayed(session, key, Scene)) is not None:
         return replayed, True
     check_upload_bytes(session, key, settings, 0)  # already over: answer before unpacking anything
+    session.commit()  # its connection back to the pool while the upload is unpacked and stored (minutes for GBs)
     try:
         staged, staging = stage_upload(
             Path(settings.work_dir) / "uploads", upload.archive, upload.files, settings.max_extracted_bytes,
