@@ -287,6 +287,78 @@ def test_a_redis_that_accepts_and_never_answers_refuses_a_submission_within_its_
             connection.close()
 
 
+def test_an_artifact_a_stalled_run_records_as_its_job_is_taken_over_lands_before_the_takeover(db, tmp_path,
+                                                                                              monkeypatch):
+    """A stalled run (its lease lapsing, no renewals) records an artifact just as another run takes its job over:
+    the takeover waits for the record, so the artifact is on the timeline before the new run's start. On SQLite
+    the superseded check's FOR UPDATE had locked nothing: the takeover committed between the check and the
+    record, and the stalled run's artifact was recorded after it."""
+    import threading
+    import time
+
+    from voxe_service.storage import get_storage
+    from worker import runtime
+
+    monkeypatch.setattr(db, "stage_lease_s", 0.2)
+    job_id = add_job(add_scene(), "queued", 0, completed_stages=["reconstruct"])
+    stalled = runtime.begin_stage(job_id, "edit", "a@host", "cpu", db)
+    grid = tmp_path / "edited_grid.safetensors"
+    grid.write_bytes(b"grid")
+    checked, check, calls = threading.Event(), runtime._refuse_if_superseded, []
+
+    def slow_check(*args):
+        check(*args)
+        calls.append(threading.current_thread())
+        if calls.count(publisher) == 2:  # its check as it records (the first is before the upload)
+            checked.set()
+            time.sleep(0.5)
+
+    def publish():
+        runtime._HOLDING.set((job_id, stalled.run_token))  # the stalled run's stage, renewing nothing
+        runtime.publish_artifact(job_id, "edited_grid.safetensors", grid, "grid", get_storage(db))
+
+    monkeypatch.setattr(runtime, "_refuse_if_superseded", slow_check)
+    publisher = threading.Thread(target=publish)
+    publisher.start()
+    assert checked.wait(30)
+    runtime.begin_stage(job_id, "edit", "b@host", "cpu", db)  # the stalled run's lease has lapsed
+    publisher.join(30)
+    kinds = [e["kind"] for e in events_of(job_id)]
+    starts = [i for i, kind in enumerate(kinds) if kind == "stage_started"]  # the stalled run's, the new run's
+    assert len(starts) == 2 and starts[0] < kinds.index("artifact") < starts[1], kinds
+
+
+def test_stages_writing_a_jobs_result_at_once_lose_nothing(db, monkeypatch):
+    """Four writers merge their own key into ``Job.result`` at once, each pausing between its read and its write
+    as a busy machine may: every key is kept. On SQLite, which has no row locks, the read-modify-write had lost
+    three of the four (PostgreSQL's FOR UPDATE held)."""
+    import threading
+    import time
+
+    from worker import runtime
+
+    job_id = add_job(add_scene(), "running", 0)
+    check = runtime._refuse_if_superseded
+
+    def slow_check(*args):
+        check(*args)
+        time.sleep(0.3)
+
+    monkeypatch.setattr(runtime, "_refuse_if_superseded", slow_check)
+    barrier = threading.Barrier(4)
+
+    def merge(i: int) -> None:
+        barrier.wait()
+        runtime.merge_job_result(job_id, {f"k{i}": i})
+
+    writers = [threading.Thread(target=merge, args=(i,)) for i in range(4)]
+    for writer in writers:
+        writer.start()
+    for writer in writers:
+        writer.join(60)
+    assert runtime.load_job(job_id).result == {"k0": 0, "k1": 1, "k2": 2, "k3": 3}
+
+
 def test_a_cancel_that_lands_between_stages_ends_the_job_when_the_next_stage_begins(db):
     """The cancel is seen as the next stage begins: that stage is skipped and the job ends canceled (the cancel
     was once rolled back with the skip, leaving the job running for ever)."""

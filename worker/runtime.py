@@ -23,6 +23,7 @@ from datetime import timedelta
 from pathlib import Path
 
 from sqlalchemy import func, or_, select, update
+from sqlalchemy.orm import Session
 
 from voxe_core.progress import Callbacks, Progress
 from voxe_service import datasets
@@ -103,18 +104,22 @@ def _token_query(job_id: str):
     return select(Job.run_token).where(Job.id == job_id)
 
 
-def _change_result(job_id: str, change) -> None:
-    """``Job.result`` replaced by ``change(result)`` under a row lock, so stages writing at once lose nothing.
+def _lock_job(session: Session, job_id: str) -> bool:
+    """Lock the job for the rest of the transaction by writing to it first; whether it exists.
 
-    ``of=Job`` locks the job's row alone: PostgreSQL refuses FOR UPDATE across the outer join that loads the
-    job's reconstruction with it.
+    The UPDATE locks the row on PostgreSQL and takes the database's write lock on SQLite, which has no row
+    locks: a ``FOR UPDATE`` there locks nothing, and had let concurrent writers overwrite each other.
     """
+    return bool(session.execute(update(Job).where(Job.id == job_id).values(updated_at=utcnow())).rowcount)
+
+
+def _change_result(job_id: str, change) -> None:
+    """``Job.result`` replaced by ``change(result)`` under the job's lock, so stages writing at once lose nothing."""
     with session_scope() as session:
-        job = session.get(Job, job_id, with_for_update={"of": Job})
-        if job is not None:
+        if _lock_job(session, job_id):
+            job = session.get(Job, job_id, populate_existing=True)
             _refuse_if_superseded(job_id, lambda: job.run_token)  # (read under the lock just taken)
             job.result = change(dict(job.result or {}))
-            job.updated_at = utcnow()
 
 
 def merge_job_result(job_id: str, values: dict) -> None:
@@ -376,8 +381,9 @@ def publish_artifact(job_id: str, name: str, path: str | os.PathLike, kind: str,
         stored = StoredObject(key, size, sha)
     try:
         with session_scope() as session:
-            try:  # ... and records nothing (checked again under the row's lock)
-                _refuse_if_superseded(job_id, lambda: session.scalar(_token_query(job_id).with_for_update()))
+            _lock_job(session, job_id)
+            try:  # ... and records nothing (checked again under the job's lock)
+                _refuse_if_superseded(job_id, lambda: session.scalar(_token_query(job_id)))
             except RunSuperseded:
                 if uploaded and stored.key != job_key(job_id, name):  # the fixed key may be the new owner's
                     storage.delete(stored.key)
