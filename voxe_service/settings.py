@@ -9,6 +9,7 @@ S3-compatible storage (MinIO) through the same variables.
 from __future__ import annotations
 
 import ipaddress
+import re
 from functools import lru_cache
 from pathlib import Path
 from typing import Literal
@@ -108,12 +109,48 @@ class Settings(BaseSettings):
     def _empty_is_none(cls, value):
         return None if value == "" else value
 
+    @field_validator("database_url")
+    @classmethod
+    def _database_url(cls, value: str) -> str:
+        from sqlalchemy.engine import make_url
+
+        try:
+            make_url(value).get_dialect()  # the dialect's module only: nothing connects
+        except Exception as exc:  # noqa: BLE001 - unparsable, or a dialect SQLAlchemy does not know
+            raise ValueError(f"not a SQLAlchemy database URL ({exc}); e.g. sqlite:///./var/voxe.db or "
+                             "postgresql+psycopg://user:password@host/db") from None
+        return value
+
+    @field_validator("broker_url")
+    @classmethod
+    def _broker_url(cls, value: str) -> str:
+        from kombu.transport import TRANSPORT_ALIASES
+
+        scheme = value.split("://", 1)[0] if "://" in value else ""
+        if scheme.split("+", 1)[0] not in TRANSPORT_ALIASES:
+            raise ValueError("not a broker URL; e.g. redis://host:6379/0 or sqla+sqlite:///./var/broker.db")
+        return value
+
+    @field_validator("s3_endpoint_url")
+    @classmethod
+    def _endpoint(cls, value: str | None) -> str | None:
+        if value is not None and not value.startswith(("http://", "https://")):
+            raise ValueError("an S3 endpoint is an http:// or https:// URL, e.g. http://minio:9000")
+        return value
+
     @field_validator("webhook_allow_networks")
     @classmethod
     def _networks(cls, value: str) -> str:
         for network in filter(None, (n.strip() for n in value.split(","))):
             ipaddress.ip_network(network, strict=False)  # a typo fails at startup, not on the first webhook
         return value
+
+    @model_validator(mode="after")
+    def _s3_bucket_named(self):
+        if self.storage_backend == "s3" and not re.fullmatch(r"[a-z0-9][a-z0-9.-]{1,61}[a-z0-9]", self.s3_bucket):
+            raise ValueError(f"VOXE_S3_BUCKET={self.s3_bucket!r} is not an S3 bucket name (3-63 lowercase letters, "
+                             "digits, dots and hyphens)")
+        return self
 
     @model_validator(mode="after")
     def _soft_limit_first(self):
