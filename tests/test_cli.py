@@ -341,3 +341,28 @@ def test_edit_asks_for_cuda_graphs_and_a_compiled_encoder_unless_told_not_to(fla
     code = main(["edit", str(tmp_path / "g.safetensors"), "--prompt", "a dog", "--out", str(tmp_path / "out"),
                  "--model", "stand-in", "--device", "cpu", *flag])
     assert code == 2 and {key: asked[key] for key in expected} == expected
+
+
+# ---------------------------------------------------------------- evaluate
+def test_evaluate_into_an_earlier_output_leaves_no_stale_ring_renders(sphere_file, tmp_path):
+    from voxe_core.tiny_eval import build_tiny_clip
+
+    clip = build_tiny_clip(tmp_path / "clip")  # SMOKE-TEST MODEL: plumbing only
+    out = tmp_path / "eval"
+
+    def evaluate(views: int, edits: int) -> None:
+        command = ["evaluate", str(sphere_file), "--object", "ball", "--out", str(out), "--clip-model", str(clip),
+                   "--views", str(views), "--size", "16", "-q"]
+        assert main(command + ["--edit", str(sphere_file), "a claymation ball"] * edits) == 0
+
+    evaluate(views=3, edits=2)
+    ring = out / "ring"
+    (ring / "initial" / "notes.txt").write_text("mine")
+    (ring / "mine").mkdir()
+    (ring / "mine" / "000.png").write_bytes(b"mine")
+    evaluate(views=2, edits=1)
+    assert sorted(p.name for p in ring.iterdir()) == ["edit00", "initial", "mine"]  # edit01 of the first run gone
+    assert sorted(p.name for p in (ring / "initial").iterdir()) == ["000.png", "001.png", "notes.txt"]
+    assert sorted(p.name for p in (ring / "edit00").iterdir()) == ["000.png", "001.png"]
+    assert (ring / "mine" / "000.png").read_bytes() == b"mine"  # not a name this command writes
+    assert json.loads((out / "evaluation.json").read_text())["ring"]["views"] == 2

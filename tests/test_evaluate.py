@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -17,13 +18,14 @@ from voxe_core.cameras import ring_poses
 from voxe_core.constants import NERF_SYNTHETIC_RADIUS
 from voxe_core.evaluate import (
     INCEPTION_FILE, INCEPTION_URL, ClipScorer, EditSample, EvaluateConfig, InceptionFeatures, clip_direction,
-    clip_similarity, evaluate, feature_statistics, fid_from_features, format_table, frechet_distance, mask_footprint,
-    paper_protocol, preservation, render_ring,
+    clip_similarity, evaluate, evaluation_steps, feature_statistics, fid_from_features, format_table,
+    frechet_distance, mask_footprint, paper_protocol, preservation, render_ring,
 )
 from voxe_core.guidance.loading import ModelNotAvailableError
 from voxe_core.metrics import psnr, ssim
-from voxe_core.progress import Callbacks
+from voxe_core.progress import Callbacks, StageCancelled
 from voxe_core.refine.pipeline import merge
+from voxe_core.scene_grid import SceneGrid
 
 
 @pytest.fixture(scope="module")
@@ -143,6 +145,13 @@ def test_clip_similarity_is_the_mean_cosine():
     assert clip_similarity(images, text) == pytest.approx(0.5, abs=1e-6)
 
 
+def test_clip_metrics_of_half_precision_zero_directions_are_zero_not_nan():
+    e = torch.eye(4, dtype=torch.float16)
+    recon = torch.stack([e[0], e[2]])
+    assert clip_direction(recon, recon, e[1], e[0]) == 0.0  # no image change (1e-12 underflows in fp16)
+    assert clip_similarity(recon, torch.zeros(4, dtype=torch.float16)) == 0.0
+
+
 # ------------------------------------------------------------------------------------------ tiny models
 def test_tiny_clip_loads_through_the_real_loader(tiny_clip_path):
     clip = ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")
@@ -160,6 +169,24 @@ def test_missing_clip_weights_name_the_model(tmp_path):
         ClipScorer.from_pretrained("voxe-test/no-such-clip", device="cpu", local_files_only=True)
     with pytest.raises(ModelNotAvailableError, match="does not exist"):
         ClipScorer.from_pretrained(str(tmp_path / "absent"), device="cpu")
+
+
+def test_a_clip_folder_without_its_tokenizer_vocabulary_is_refused_naming_it(tiny_clip_path, tmp_path):
+    folder = tmp_path / "no_vocab"
+    shutil.copytree(tiny_clip_path, folder)
+    (folder / "vocab.json").unlink()
+    (folder / "merges.txt").unlink()  # transformers 5 then builds a tokenizer of the 2 special tokens
+    with pytest.raises(ModelNotAvailableError, match="'.*no_vocab' are not available.*tokenizer has 2 tokens"):
+        ClipScorer.from_pretrained(str(folder), device="cpu")
+
+
+@pytest.mark.parametrize("damaged, content", [("model.safetensors", b"trunc"), ("tokenizer_config.json", b"{bad")])
+def test_damaged_clip_files_are_refused_naming_the_model(tiny_clip_path, tmp_path, damaged, content):
+    folder = tmp_path / "damaged"
+    shutil.copytree(tiny_clip_path, folder)
+    (folder / damaged).write_bytes(content)  # SafetensorError, JSONDecodeError underneath
+    with pytest.raises(ModelNotAvailableError, match="CLIP weights '.*damaged' are not available"):
+        ClipScorer.from_pretrained(str(folder), device="cpu")
 
 
 def test_inception_loader_tiny_file_and_missing_file(tiny_inception_path, tmp_path):
@@ -230,6 +257,31 @@ def test_preservation_outside_the_mask_footprint_is_exact_for_a_merged_grid(sphe
     assert hidden["kept_fraction"] == 0.0 and hidden["psnr"] is None and hidden["ssim"] is None
 
 
+def test_the_footprint_on_a_scene_grid_follows_its_contracted_sampling():
+    # A red sphere in the scene backbone's foreground; the merged edit turns its +x side blue and adds a shell there.
+    initial = SceneGrid(17, foreground_extent=1.5, near_samples=16, far_samples=16, far_ratio=50.0)
+    points = initial.vertex_positions().reshape(*initial.resolution, 3)
+    radius = torch.nan_to_num(points.norm(dim=-1), nan=math.inf)  # the outer faces lie at infinity
+    mask = (points[..., 0] > 0.4) & (radius < 1.2)
+    with torch.no_grad():
+        initial.features[..., 0] = (40.0 * (0.8 - radius)).clamp_min(-100.0)
+        initial.features[..., 1:] = torch.tensor([4.0, -4.0, -4.0])
+        edited = initial.clone_grid()
+        edited.features[..., 1:] = torch.tensor([-4.0, -4.0, 4.0])
+        edited.features[..., 0][mask & (radius > 0.85)] = 30.0
+    refined = merge(initial, edited, mask)
+    config = EvaluateConfig(views=4, elevation=20.0, size=24)
+    centre = initial.orbit_centre()
+    recon = render_ring(initial, config.views, config.elevation, config.size, centre=centre)
+    images = render_ring(refined, config.views, config.elevation, config.size, centre=centre)
+    footprint = mask_footprint(initial, mask, config.views, config.elevation, config.size, centre)
+    changed = (images != recon).any(-1)
+    assert bool(changed.any()) and not bool((changed & ~footprint).any())  # every changed pixel is in the footprint
+    kept = preservation(images, recon, EditSample("hat", "x", refined, mask), initial, config, centre)
+    assert kept["psnr"] == 100.0 and kept["ssim"] == 1.0
+    assert kept["kept_fraction"] == pytest.approx(1.0 - float(footprint.float().mean())) and kept["kept_fraction"] > 0.3
+
+
 # ------------------------------------------------------------------------------------------ end to end
 def test_evaluate_scores_edits_and_an_unchanged_grid_scores_as_identical(sphere_grid, tiny_clip_path, tiny_inception_path):
     clip = ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")
@@ -249,10 +301,52 @@ def test_evaluate_scores_edits_and_an_unchanged_grid_scores_as_identical(sphere_
     expected_sim = clip_similarity(clip.image_embeddings(result.initial_frames),
                                    clip.text_embeddings(["a render of a claymation ball"])[0])
     assert same["clip_sim"] == pytest.approx(expected_sim, abs=1e-5)
-    assert [r.iteration for r in reports][-1] == 12 and {r.total for r in reports} == {12}
+    # Steps: 3 ring renders and 3 CLIP passes of 4 views, 4 footprint views, FID on the 12 renders and 5 inputs.
+    assert evaluation_steps(edits, EvaluateConfig(views=4), fid, inputs) == 45
+    assert reports[-1].iteration == 45 and {r.total for r in reports} == {45}
+    assert {r.info["stage"] for r in reports} == {"ring renders", "CLIP", "FID", "mask footprints"}
     table = format_table(result.rows, extra_columns=("name",))
     assert "| hat | a ball wearing a party hat | local |" in table and "**mean (2)**" in table
     assert json.loads(json.dumps(result.summary()))["means"]["local"]["count"] == 1
+
+
+def _after_the_last_ring_render(reports) -> bool:
+    return sum(r.info["stage"] == "ring renders" for r in reports) == 3 * 4
+
+
+@pytest.mark.parametrize("when", [_after_the_last_ring_render, *(
+    lambda reports, stage=stage: reports[-1].info["stage"] == stage for stage in ("mask footprints", "CLIP", "FID"))],
+    ids=["after the last ring render", "in the footprint pass", "in a CLIP pass", "in a FID pass"])
+def test_a_cancellation_stops_the_evaluation_before_its_next_step(sphere_grid, tiny_clip_path, tiny_inception_path,
+                                                                  when):
+    clip = ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")
+    fid = InceptionFeatures.load(tiny_inception_path, device="cpu", batch_size=2)
+    edited, mask = _local_edit(sphere_grid)
+    edits = [EditSample("global", "a claymation ball", edited),
+             EditSample("local", "a ball wearing a party hat", merge(sphere_grid, edited, mask), mask)]
+    reports, requested_at = [], []
+
+    def on_progress(report):
+        reports.append(report)
+        if not requested_at and when(reports):
+            requested_at.append(len(reports))
+
+    with pytest.raises(StageCancelled):
+        evaluate(sphere_grid, edits, "ball", clip, fid, None, EvaluateConfig(views=4, elevation=20.0, size=16),
+                 Callbacks(on_progress=on_progress, should_cancel=lambda: bool(requested_at)))
+    assert requested_at and len(reports) == requested_at[0]  # not one step more
+
+
+def test_a_diverged_grid_is_refused_naming_it_rather_than_scored(sphere_grid, tiny_clip_path):
+    clip = ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")
+    diverged = sphere_grid.clone_grid()
+    with torch.no_grad():
+        diverged.features[..., 1:] = math.nan  # the colours: every view of the sphere shows NaN
+    config = EvaluateConfig(views=3, elevation=20.0, size=16)
+    with pytest.raises(ValueError, match="edit 'nan': 3 of 3 ring views have NaN or infinite pixels"):
+        evaluate(sphere_grid, [EditSample("nan", "a claymation ball", diverged)], "ball", clip, None, None, config)
+    with pytest.raises(ValueError, match="the initial grid: 3 of 3 ring views have NaN"):
+        evaluate(diverged, [EditSample("same", "a claymation ball", sphere_grid)], "ball", clip, None, None, config)
 
 
 def test_paper_protocol_is_six_prompts_with_local_edit_words_in_them():

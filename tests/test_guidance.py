@@ -325,6 +325,14 @@ def test_incomplete_local_folders_are_reported(tiny_path, tmp_path):
         StableDiffusionGuidance.from_pretrained(str(no_tok), local_files_only=True)
 
 
+def test_damaged_weights_are_reported_naming_the_model(tiny_path, tmp_path):
+    damaged = tmp_path / "damaged_text_encoder"
+    shutil.copytree(tiny_path, damaged)
+    (damaged / "text_encoder" / "model.safetensors").write_bytes(b"trunc")  # a SafetensorError underneath
+    with pytest.raises(ModelNotAvailableError, match="'.*damaged_text_encoder' are not available.*SafetensorError"):
+        StableDiffusionGuidance.from_pretrained(str(damaged), local_files_only=True)
+
+
 def test_default_model_ids():
     assert SDS_MODEL_ID == "stabilityai/stable-diffusion-2-base"
     assert ATTENTION_MODEL_ID == "CompVis/stable-diffusion-v1-4"

@@ -67,6 +67,19 @@ def test_the_worker_inventory_counts_tiny_models_and_finds_the_missing(root, hub
     assert check_models(settings)["fid"]["present"]
 
 
+def test_an_fid_model_folder_is_present_when_it_holds_the_file_the_loader_reads(tmp_path):
+    from voxe_service.model_inventory import INCEPTION_FILE, model_present
+    from voxe_service.settings import Settings
+
+    settings = Settings(model_dir=str(tmp_path / "models"))
+    folder = tmp_path / "inception"
+    folder.mkdir()
+    assert not model_present(ROLES["fid"], str(folder), settings)
+    (folder / INCEPTION_FILE).write_bytes(b"x")
+    assert model_present(ROLES["fid"], str(folder), settings)  # InceptionFeatures.load reads folder/INCEPTION_FILE
+    assert model_present(ROLES["fid"], str(folder / INCEPTION_FILE), settings)
+
+
 def test_a_model_is_refused_only_when_every_worker_reporting_on_it_lacks_it():
     has = {"sds": {"model": "a/b", "present": True}}
     lacks = {"sds": {"model": "a/b", "present": False}}

@@ -33,7 +33,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol, Sequence
+from typing import Callable, Protocol, Sequence
 
 import numpy as np
 import torch
@@ -105,27 +105,32 @@ def save_png_set(folder, frames: torch.Tensor) -> list[Path]:
 
 @torch.no_grad()
 def mask_footprint(grid: VoxelGrid, mask: torch.Tensor, views: int, elevation_deg: float, size: int,
-                   centre: torch.Tensor | None = None) -> torch.Tensor:
+                   centre: torch.Tensor | None = None, callbacks: Callbacks = Callbacks()) -> torch.Tensor:
     """(N, H, W) bool: pixels of the ring views whose ray samples a cell with a masked corner vertex.
 
-    Rendered through the same renderer and sample lattice as the views (same
-    box, resolution and step) over an opaque stand-in grid that is dense
-    exactly in those cells, so "no hit" means no sample of that ray saw them.
+    ``mask`` (X, Y, Z) bool over ``grid``'s vertices. Rendered through the same
+    renderer and ray sampling as the views, over an opaque stand-in of the
+    grid's own backbone (``grid.like``: its box, contraction and samples) that
+    is dense exactly in those cells, so "no hit" means no sample of that ray saw
+    them. ``callbacks`` gets a ``Progress("mask footprint", i, N)`` after each
+    view and may cancel between views.
     """
     if tuple(mask.shape) != tuple(grid.resolution):
         raise ValueError(f"mask of shape {tuple(mask.shape)} does not fit the grid {grid.resolution}")
     features = torch.zeros(*grid.resolution, 4, device=grid.bbox_min.device)
     # Raw 1e3 at masked vertices: any sample with a positive trilinear weight on one is near-opaque.
     features[..., 0] = mask.to(features.device, torch.float32) * 1e3
-    stand_in = VoxelGrid(grid.resolution, grid.bbox_min, grid.bbox_max, "relu", grid.density_scale, features=features)
+    stand_in = grid.like(features)
+    stand_in.activation = "relu"  # raw 0 is no density only under ReLU (softplus would haze every cell)
     cameras = turntable_cameras(views, elevation_deg, size, centre=centre).to(grid.bbox_min.device)
     config = RenderConfig(sigma_threshold=0.0)  # every cell touching a masked vertex is 'occupied'
     occupancy = stand_in.occupancy(config.sigma_threshold)
     hits = torch.zeros(views, size, size, dtype=torch.bool)
-    if occupancy.empty:
-        return hits
     for i in range(views):
-        hits[i] = render_image(stand_in, cameras, i, config, occupancy).opacity.cpu() > 0
+        callbacks.check_cancel("mask footprint")
+        if not occupancy.empty:
+            hits[i] = render_image(stand_in, cameras, i, config, occupancy).opacity.cpu() > 0
+        callbacks.progress(Progress("mask footprint", i + 1, views))
     return hits
 
 
@@ -170,12 +175,15 @@ def fid_from_features(features_a, features_b) -> float:
 
 
 # --------------------------------------------------------------------------- FID features
+AfterBatch = Callable[[int], None]  # called with a batch's image count once it is done: progress, a cancel point
+
+
 class FeatureExtractor(Protocol):
-    """Maps images (N, H, W, 3) in [0, 1] to feature vectors (N, D)."""
+    """Maps images (N, H, W, 3) in [0, 1] to feature vectors (N, D), calling ``after_batch`` after each batch."""
 
     name: str
 
-    def features(self, images: torch.Tensor) -> torch.Tensor:
+    def features(self, images: torch.Tensor, after_batch: AfterBatch | None = None) -> torch.Tensor:
         ...
 
 
@@ -208,12 +216,14 @@ class InceptionFeatures:
         return cls(module, str(path), device, batch_size)
 
     @torch.no_grad()
-    def features(self, images: torch.Tensor) -> torch.Tensor:
+    def features(self, images: torch.Tensor, after_batch: AfterBatch | None = None) -> torch.Tensor:
         parts = []
         for start in range(0, len(images), self.batch_size):
             batch = images[start : start + self.batch_size].to(self.device, torch.float32)
             pixels = (batch.clamp(0, 1) * 255).round().to(torch.uint8).permute(0, 3, 1, 2).contiguous()
             parts.append(self.module(pixels, return_features=True).reshape(len(batch), -1).double().cpu())
+            if after_batch is not None:
+                after_batch(len(batch))
         return torch.cat(parts)
 
 
@@ -251,17 +261,19 @@ class ClipScorer:
         if looks_local and not Path(model_id).expanduser().is_dir():
             raise ModelNotAvailableError(f"CLIP model folder '{model_id}' does not exist")
         try:
-            model = CLIPModel.from_pretrained(model_id, **kwargs).to(device)
+            model = CLIPModel.from_pretrained(model_id, **kwargs)
             tokenizer = CLIPTokenizer.from_pretrained(model_id, **kwargs)
             image_processor = _clip_image_processor_class().from_pretrained(model_id, **kwargs)
         except loading_errors() as exc:
-            raise ModelNotAvailableError(
-                f"CLIP weights '{model_id}' are not available: download them once with `hf download {model_id}` "
-                f"on a machine with internet and point HF_HOME at that cache, or pass a local folder holding a "
-                f"CLIPModel with its tokenizer and image processor. Underlying error: {type(exc).__name__}: "
-                f"{' '.join(str(exc).split())[:300]}"
-            ) from exc
-        return cls(model, tokenizer, image_processor, model_id, device)
+            raise ModelNotAvailableError(_clip_not_available(model_id, f"{type(exc).__name__}: {exc}")) from exc
+        # transformers >= 5 builds a tokenizer of only the special tokens when vocab.json / merges.txt are
+        # missing: every prompt would then encode alike and every CLIP_dir would be 0.
+        text_vocabulary = model.config.text_config.vocab_size
+        if not len(tokenizer.all_special_tokens) < len(tokenizer) <= text_vocabulary:
+            raise ModelNotAvailableError(_clip_not_available(
+                model_id, f"its tokenizer has {len(tokenizer)} tokens for a text model of {text_vocabulary}: "
+                          "vocab.json / merges.txt are missing or belong to another model"))
+        return cls(model.to(device), tokenizer, image_processor, model_id, device)
 
     def _preprocess(self, images: torch.Tensor) -> torch.Tensor:
         """(N, H, W, 3) floats in [0, 1] -> the processor's normalised (N, 3, S, S) pixel values."""
@@ -269,11 +281,14 @@ class ClipScorer:
         return torch.as_tensor(np.asarray(self.image_processor(images=pixels, return_tensors="np")["pixel_values"]))
 
     @torch.no_grad()
-    def image_embeddings(self, images: torch.Tensor) -> torch.Tensor:
+    def image_embeddings(self, images: torch.Tensor, after_batch: AfterBatch | None = None) -> torch.Tensor:
+        """(N, D) unit embeddings of images (N, H, W, 3) in [0, 1]; ``after_batch`` is called after each batch."""
         parts = []
         for start in range(0, len(images), self.batch_size):
             pixels = self._preprocess(images[start : start + self.batch_size]).to(self.device)
             parts.append(_unit(_tensor_of(self.model.get_image_features(pixel_values=pixels)).float().cpu()))
+            if after_batch is not None:
+                after_batch(len(pixels))
         return torch.cat(parts)
 
     @torch.no_grad()
@@ -282,13 +297,24 @@ class ClipScorer:
         return _unit(_tensor_of(self.model.get_text_features(**tokens)).float().cpu())
 
 
+def _clip_not_available(model_id: str, cause: str) -> str:
+    """The error text for CLIP weights that cannot be loaded: which model, how to provide it, what failed."""
+    return (f"CLIP weights '{model_id}' are not available: download them once with `hf download {model_id}` on a "
+            f"machine with internet and point HF_HOME at that cache, or pass a local folder holding a CLIPModel with "
+            f"its tokenizer and image processor. Underlying error: {' '.join(cause.split())[:300]}")
+
+
 def _tensor_of(output) -> torch.Tensor:
     """get_*_features returns a tensor in most transformers versions and an output object in some."""
     return output if isinstance(output, torch.Tensor) else output.pooler_output
 
 
 def _unit(x: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
-    """Rows scaled to unit length; a zero row stays zero (its cosine with anything is 0, not NaN)."""
+    """Rows scaled to unit length, in at least float32; a zero row stays zero (its cosine with anything is 0, not NaN).
+
+    Half precision is widened first: ``eps`` underflows to 0 there, and a zero row would become 0 / 0.
+    """
+    x = x.to(torch.promote_types(x.dtype, torch.float32))
     return x / x.norm(dim=-1, keepdim=True).clamp_min(eps)
 
 
@@ -350,6 +376,21 @@ class Evaluation:
 METRICS = ("clip_sim", "clip_dir", "fid_rec", "fid_input", "psnr", "ssim")
 
 
+def evaluation_steps(edits: Sequence[EditSample], config: EvaluateConfig, fid: FeatureExtractor | None = None,
+                     input_images: torch.Tensor | None = None) -> int:
+    """The progress total of :func:`evaluate`: one step per view of each pass over the ring.
+
+    The ring renders of G_i and of every edit, the mask footprint of every
+    masked edit, CLIP on every ring render, and with ``fid`` the Inception
+    features of every ring render and input image.
+    """
+    ring_views = (1 + len(edits)) * config.views
+    footprint_views = sum(sample.mask is not None for sample in edits) * config.views
+    input_views = len(input_images) if input_images is not None else 0
+    fid_images = ring_views + input_views if fid is not None else 0
+    return ring_views + footprint_views + ring_views + fid_images
+
+
 def evaluate(
     initial: VoxelGrid,
     edits: Sequence[EditSample],
@@ -365,8 +406,11 @@ def evaluate(
 
     The ring renders (and the masks' footprints) run on ``device`` (None: where
     ``initial`` is); each grid moves there once. The scorers run where they were
-    loaded. Progress: one step per rendered view ("evaluate", i,
-    (1 + len(edits))·views), info carrying the peak memory of the renders so far.
+    loaded. A ring render with a NaN or infinite pixel (a diverged grid) is a
+    ValueError naming the grid. Progress: ("evaluate", i, :func:`evaluation_steps`),
+    one step per view rendered, footprinted or scored, info carrying the pass
+    ("stage") and the peak memory so far; cancellation is checked between views
+    and between scoring batches.
     """
     if not edits:
         raise ValueError("nothing to evaluate: no edits given")
@@ -374,22 +418,42 @@ def evaluate(
     memory = PeakMemory(device).start()
     initial = initial.to(device)
     source = source_text(object_name)
-    total = (1 + len(edits)) * config.views
-    done = [0]
-
-    def stage_callbacks() -> Callbacks:
-        memory.peak_bytes()  # read before the ring's renders reset the counter
-        base = done[0]
-        done[0] += config.views
-        return Callbacks(on_progress=lambda r: callbacks.progress(
-            Progress("evaluate", base + r.iteration, total, info=memory.info())), should_cancel=callbacks.should_cancel)
-
     centre = initial.orbit_centre()
-    recon = render_ring(initial, config.views, config.elevation, config.size, stage_callbacks(), device, centre)
-    recon_clip = clip.image_embeddings(recon)
+    total = evaluation_steps(edits, config, fid, input_images)
+    done = 0
+
+    def step(views: int, stage: str) -> None:
+        nonlocal done
+        done += views
+        callbacks.progress(Progress("evaluate", done, total, info={"stage": stage, **memory.info()}))
+
+    def per_view(stage: str) -> Callbacks:
+        """Callbacks of a pass reporting each view as it is done (ring renders, mask footprints)."""
+        memory.peak_bytes()  # read before a ring's renders reset the counter
+        return Callbacks(on_progress=lambda report: step(1, stage), should_cancel=callbacks.should_cancel)
+
+    def per_batch(stage: str) -> AfterBatch:
+        """The hook of a scoring pass about to start: a cancellation is honoured now and after each batch,
+        whose images are steps."""
+        callbacks.check_cancel("evaluate")
+
+        def batch_done(images: int) -> None:
+            step(images, stage)
+            callbacks.check_cancel("evaluate")
+        return batch_done
+
+    def ring(grid: VoxelGrid, label: str) -> torch.Tensor:
+        frames = render_ring(grid, config.views, config.elevation, config.size, per_view("ring renders"), device,
+                             centre)
+        return _finite_frames(frames, label)
+
+    recon = ring(initial, "the initial grid")
+    recon_clip = clip.image_embeddings(recon, per_batch("CLIP"))
     texts = clip.text_embeddings([source] + [edit_prompt(e.prompt) for e in edits])
-    recon_features = fid.features(recon) if fid is not None else None
-    input_features = fid.features(input_images) if fid is not None and input_images is not None else None
+    recon_features = fid.features(recon, per_batch("FID")) if fid is not None else None
+    input_features = None
+    if fid is not None and input_images is not None:
+        input_features = fid.features(input_images, per_batch("FID"))
     if input_features is not None and len(input_features) < 2:
         raise ValueError("FID_input needs at least 2 input images")
     rows, frames = [], {}
@@ -397,34 +461,49 @@ def evaluate(
         if sample.mask is not None and sample.grid.resolution != initial.resolution:
             raise ValueError(f"edit {sample.name!r}: a masked edit must share the initial grid's resolution "
                              f"{initial.resolution}, got {sample.grid.resolution}")
-        images = render_ring(sample.grid, config.views, config.elevation, config.size, stage_callbacks(), device, centre)
-        embeddings = clip.image_embeddings(images)
+        images = ring(sample.grid, f"edit {sample.name!r}")
+        embeddings = clip.image_embeddings(images, per_batch("CLIP"))
         row = {"name": sample.name, "prompt": sample.prompt, "mode": "local" if sample.mask is not None else "global",
                "clip_sim": clip_similarity(embeddings, texts[k + 1]),
                "clip_dir": clip_direction(embeddings, recon_clip, texts[k + 1], texts[0])}
         if recon_features is not None:
-            features = fid.features(images)
+            features = fid.features(images, per_batch("FID"))
             row["fid_rec"] = fid_from_features(features, recon_features)
             row["fid_input"] = fid_from_features(features, input_features) if input_features is not None else None
-        row.update(preservation(images, recon, sample, initial, config, centre))
+        row.update(preservation(images, recon, sample, initial, config, centre, per_view("mask footprints")))
         rows.append(row)
         frames[sample.name] = images
     return Evaluation(rows, recon, frames)
 
 
+def _finite_frames(frames: torch.Tensor, label: str) -> torch.Tensor:
+    """``frames`` (V, H, W, 3) if every pixel is finite, else a ValueError naming the grid (``label``).
+
+    A diverged grid renders NaN, which the scores would read as a masked-out view (PSNR / SSIM),
+    black (CLIP) or nothing (FID): it would pass for a perfect edit.
+    """
+    broken = (~torch.isfinite(frames)).flatten(1).any(1)
+    if bool(broken.any()):
+        raise ValueError(f"{label}: {int(broken.sum())} of {len(frames)} ring views have NaN or infinite pixels "
+                         "(the grid has diverged); it cannot be scored")
+    return frames
+
+
 def preservation(images: torch.Tensor, recon: torch.Tensor, sample: EditSample, initial: VoxelGrid,
-                 config: EvaluateConfig, centre: torch.Tensor | None = None) -> dict:
+                 config: EvaluateConfig, centre: torch.Tensor | None = None,
+                 callbacks: Callbacks = Callbacks()) -> dict:
     """PSNR / SSIM of an edit's ring renders against G_i's, outside the mask's footprint (whole image if no mask).
 
     ``images``, ``recon``: (V, H, W, 3) renders of the ring looking at ``centre`` (3,), G_i's ``orbit_centre()``
     (None: computed here; an evaluation of several edits passes the one it rendered them with).
+    ``callbacks`` goes to :func:`mask_footprint` (progress per view, cancellation).
     """
     if sample.mask is None:
         keep = torch.ones(images.shape[:3], dtype=torch.bool)
         region = "whole image"
     else:
         keep = ~mask_footprint(initial, sample.mask, config.views, config.elevation, config.size,
-                               initial.orbit_centre() if centre is None else centre)
+                               initial.orbit_centre() if centre is None else centre, callbacks)
         region = "outside mask"
     psnr_values = psnr(images, recon, keep=keep)
     ssim_values = ssim(images, recon, keep=keep)
@@ -480,7 +559,7 @@ def format_table(rows: Sequence[dict], extra_columns: Sequence[str] = ()) -> str
 __all__ = [
     "INCEPTION_URL", "PAPER_PROMPTS", "PAPER_RING_VIEWS", "METRICS",
     "ClipScorer", "EditSample", "EvaluateConfig", "Evaluation", "FeatureExtractor", "InceptionFeatures",
-    "ProtocolEdit", "clip_direction", "clip_similarity", "evaluate", "feature_statistics", "fid_from_features",
-    "format_table", "frechet_distance", "mask_footprint", "mean_by_mode", "paper_protocol", "preservation",
-    "render_ring", "save_png_set", "source_text",
+    "ProtocolEdit", "clip_direction", "clip_similarity", "evaluate", "evaluation_steps", "feature_statistics",
+    "fid_from_features", "format_table", "frechet_distance", "mask_footprint", "mean_by_mode", "paper_protocol",
+    "preservation", "render_ring", "save_png_set", "source_text",
 ]

@@ -52,7 +52,9 @@ def model_present(role: ModelRole, model: str, settings: Settings) -> bool:
     if model == TINY_MODEL:
         return True
     if role.marker is None:  # FID: a TorchScript file, by default in the model dir
-        return Path(model or Path(settings.model_dir) / INCEPTION_FILE).is_file()
+        path = Path(model or settings.model_dir).expanduser()
+        # A folder stands for the file in it, as InceptionFeatures.load reads it.
+        return (path / INCEPTION_FILE if path.is_dir() else path).is_file()
     from voxe_core.guidance.loading import model_file_present
 
     return model_file_present(model, role.marker)

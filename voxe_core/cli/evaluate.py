@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -24,7 +25,8 @@ def add_parsers(commands, common) -> None:
                          "its mask.safetensors (repeat --edit for several edits)")
     ev.add_argument("--object", required=True, help='what the object is, for the source text "a render of a <object>"')
     ev.add_argument("--out", type=Path, required=True, metavar="DIR",
-                    help="writes evaluation.json, evaluation.md and the ring renders ring/<name>/NNN.png")
+                    help="writes evaluation.json, evaluation.md and the ring renders ring/<name>/NNN.png "
+                         "(replacing those of an earlier run there)")
     add_model_arguments(ev, "--clip-model", "transformers CLIPModel", CLIP_MODEL_ID)
     ev.add_argument("--inception", type=Path, default=None, metavar="PATH",
                     help=f"TorchScript Inception file ({INCEPTION_FILE}) or its folder; without it no FID")
@@ -39,7 +41,8 @@ def add_parsers(commands, common) -> None:
 def cmd_evaluate(args) -> int:
     from voxe_core.backbones import load_grid
     from voxe_core.evaluate import (
-        ClipScorer, EditSample, EvaluateConfig, InceptionFeatures, evaluate, format_table, save_png_set,
+        ClipScorer, EditSample, EvaluateConfig, InceptionFeatures, evaluate, evaluation_steps, format_table,
+        save_png_set,
     )
     from voxe_core.guidance.loading import ModelNotAvailableError
     from voxe_core.refine.storage import load_mask
@@ -66,12 +69,13 @@ def cmd_evaluate(args) -> int:
         return EXIT_USAGE
     result = run_stage(
         lambda cb: evaluate(initial, edits, args.object, clip, fid, input_images, config, cb, device=device),
-        "evaluate", "view", (1 + len(edits)) * config.views, args.quiet,
+        "evaluate", "view", evaluation_steps(edits, config, fid, input_images), args.quiet,
     )
     if result is None:
         print("voxe: evaluation cancelled, nothing written", file=sys.stderr)
         return EXIT_INTERRUPTED
     out = args.out
+    clear_ring_renders(out / "ring")
     save_png_set(out / "ring" / "initial", result.initial_frames)
     for name, frames in result.edit_frames.items():
         save_png_set(out / "ring" / name, frames)
@@ -85,3 +89,25 @@ def cmd_evaluate(args) -> int:
     (out / "evaluation.md").write_text(table)
     print(table, end="")
     return 0
+
+
+RING_SET_NAME = re.compile(r"initial|edit\d{2,}")  # the ring/<name>/ folders this command writes
+
+
+def clear_ring_renders(ring: Path) -> None:
+    """Delete the ring renders an earlier ``voxe evaluate`` wrote under ``ring`` (ring/initial/, ring/editNN/ NNN.png).
+
+    A re-run into the same --out with fewer views or edits would otherwise leave frames its
+    evaluation.json does not describe. Only files of the names this command writes go; a folder is
+    removed once nothing else is left in it.
+    """
+    if not ring.is_dir():
+        return
+    for folder in ring.iterdir():
+        if not (folder.is_dir() and RING_SET_NAME.fullmatch(folder.name)):
+            continue
+        for frame in folder.glob("*.png"):
+            if frame.stem.isdigit():
+                frame.unlink()
+        if not any(folder.iterdir()):
+            folder.rmdir()

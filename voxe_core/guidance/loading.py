@@ -64,8 +64,20 @@ def model_file_present(model: str, filename: str) -> bool:
 
 
 def loading_errors() -> tuple[type[BaseException], ...]:
-    """The exceptions by which the hub libraries say weights are missing (caught and turned into ours)."""
-    errors: list[type[BaseException]] = [OSError]
+    """The exceptions by which loading says weights are missing or damaged (caught and turned into ours).
+
+    Missing: the hub's errors and OSError. Damaged: safetensors' SafetensorError (a truncated or
+    corrupt weights file), and the ValueError / RuntimeError ``from_pretrained`` raises for an
+    unreadable JSON file, torch archive or weights of another shape. Catch them around loading
+    alone: a device move's out-of-memory is a RuntimeError too.
+    """
+    errors: list[type[BaseException]] = [OSError, ValueError, RuntimeError]
+    try:
+        from safetensors import SafetensorError
+
+        errors.append(SafetensorError)
+    except ImportError:  # pragma: no cover - safetensors ships with transformers and diffusers
+        pass
     try:
         from huggingface_hub.errors import HFValidationError, HfHubHTTPError
 
