@@ -42,7 +42,7 @@ from voxe_core.constants import CLIP_MODEL_ID, INCEPTION_FILE
 from voxe_core.devices import PeakMemory, resolve_device
 from voxe_core.export import render_views, save_png, to_uint8, turntable_cameras
 from voxe_core.grid import VoxelGrid
-from voxe_core.guidance.loading import ModelNotAvailableError, loading_errors, offline_env
+from voxe_core.guidance.loading import ModelNotAvailableError, loading_errors, offline_env, tokenizer_fits
 from voxe_core.guidance.prompts import edit_prompt
 from voxe_core.metrics import SSIM_WINDOW, psnr, ssim
 from voxe_core.progress import Callbacks, Progress
@@ -266,10 +266,8 @@ class ClipScorer:
             image_processor = _clip_image_processor_class().from_pretrained(model_id, **kwargs)
         except loading_errors() as exc:
             raise ModelNotAvailableError(_clip_not_available(model_id, f"{type(exc).__name__}: {exc}")) from exc
-        # transformers >= 5 builds a tokenizer of only the special tokens when vocab.json / merges.txt are
-        # missing: every prompt would then encode alike and every CLIP_dir would be 0.
         text_vocabulary = model.config.text_config.vocab_size
-        if not len(tokenizer.all_special_tokens) < len(tokenizer) <= text_vocabulary:
+        if not tokenizer_fits(tokenizer, text_vocabulary):  # or every prompt encodes alike: every CLIP_dir 0
             raise ModelNotAvailableError(_clip_not_available(
                 model_id, f"its tokenizer has {len(tokenizer)} tokens for a text model of {text_vocabulary}: "
                           "vocab.json / merges.txt are missing or belong to another model"))

@@ -155,9 +155,7 @@ def load_stable_diffusion(model: str, dtype, local_files_only: bool | None = Non
         scheduler = DDIMScheduler.from_pretrained(model, subfolder="scheduler", **kwargs)
     except loading_errors() as exc:
         raise ModelNotAvailableError(not_available_message(model, exc)) from exc
-    # transformers >= 5 returns an empty tokenizer instead of failing when
-    # the tokenizer files are missing: check it is the real one.
-    if len(tokenizer) <= 3 or len(tokenizer) > text_encoder.config.vocab_size + 16:
+    if not tokenizer_fits(tokenizer, text_encoder.config.vocab_size):
         raise ModelNotAvailableError(
             not_available_message(
                 model,
@@ -166,3 +164,12 @@ def load_stable_diffusion(model: str, dtype, local_files_only: bool | None = Non
             )
         )
     return unet, vae, text_encoder, tokenizer, scheduler
+
+
+def tokenizer_fits(tokenizer, vocab_size: int) -> bool:
+    """Whether a loaded CLIP tokenizer is its text model's (``vocab_size`` tokens, a few added ones allowed).
+
+    transformers >= 5 builds a tokenizer of only the special tokens, instead of failing, when
+    vocab.json / merges.txt are missing: every prompt would then encode alike.
+    """
+    return len(tokenizer.all_special_tokens) < len(tokenizer) <= vocab_size + 16
