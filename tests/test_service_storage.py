@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import builtins
+import errno
 import hashlib
+import os
+import tempfile
+from pathlib import Path
 
 import pytest
 
@@ -188,3 +193,164 @@ def test_api_stores_uploads_in_s3(tmp_path, monkeypatch, aws_env, s3_endpoint):
         assert not (tmp_path / "storage").exists()
     finally:
         reset_service_caches()
+
+
+def test_s3_creates_a_missing_bucket_outside_us_east_1(aws_env, s3_endpoint):
+    """Outside us-east-1, S3 creates a bucket only when the request names the region."""
+    store = S3Storage("voxe-test-eu-west-1", endpoint_url=s3_endpoint, region="eu-west-1")
+    assert store.client.get_bucket_location(Bucket="voxe-test-eu-west-1")["LocationConstraint"] == "eu-west-1"
+    store.put_bytes("jobs/a/x.bin", b"x")
+    assert b"".join(store.open_range("jobs/a/x.bin")) == b"x"
+
+
+def test_s3_bucket_that_cannot_be_created_or_reached_is_a_storage_error(aws_env, s3_endpoint):
+    """At startup, a bucket that cannot be created or an endpoint that does not answer is a StorageError that names
+    the setting to look at, not a raw botocore error."""
+    with pytest.raises(StorageError, match=r"could not create bucket 'ab' in region us-east-1 \(VOXE_S3_BUCKET, "
+                                           r"VOXE_S3_REGION\): .*InvalidBucketName"):
+        S3Storage("ab", endpoint_url=s3_endpoint, region="us-east-1")  # too short a name
+    unreachable = f"http://127.0.0.1:{free_port()}"
+    with pytest.raises(StorageError, match=rf"could not use S3 at {unreachable} \(VOXE_S3_ENDPOINT_URL.*"
+                                           r"Could not connect"):
+        S3Storage("voxe-test-unreachable", endpoint_url=unreachable, region="us-east-1")
+
+
+def test_local_listing_survives_a_folder_deleted_mid_walk(tmp_path, monkeypatch):
+    """delete() drops the folders it empties: one dropped by another request while a listing or a prefix cleanup
+    walks its parent has nothing left to list, and everything else is still listed and deleted."""
+    store = LocalStorage(tmp_path / "store")
+    doomed = store.path("jobs/a/doomed")
+    real_scandir = os.scandir
+
+    def scandir_after_a_concurrent_delete(path):
+        if Path(path) == doomed and store.exists("jobs/a/doomed/f.bin"):  # seen by its parent's scan, then deleted
+            store.delete("jobs/a/doomed/f.bin")
+        return real_scandir(path)
+
+    for key in ("jobs/a/doomed/f.bin", "jobs/a/kept/g.bin", "jobs/a/h.bin"):
+        store.put_bytes(key, b"x")
+    monkeypatch.setattr(os, "scandir", scandir_after_a_concurrent_delete)
+    assert store.list("jobs/") == ["jobs/a/h.bin", "jobs/a/kept/g.bin"] and not doomed.exists()
+
+    store.put_bytes("jobs/a/doomed/f.bin", b"x")
+    store.discard_prefixes("jobs/a/")  # an overlapping cleanup: it had left everything behind
+    assert store.list() == [] and not doomed.exists()
+
+
+@pytest.mark.parametrize("step, deleted_first", [
+    ("mkdir", False),  # the folder goes after put_file made it, before its temporary file is created
+    ("is_dir", True),  # inside mkdir(exist_ok=True): after it found the folder there, before it checked it is one
+])
+def test_local_put_survives_its_folder_deleted_midway(tmp_path, monkeypatch, step, deleted_first):
+    """Another request deleting the last object of a folder drops the folder: when that falls in the middle of
+    put_file making the folder and its temporary file, the put makes the folder again."""
+    store = LocalStorage(tmp_path / "store")
+    store.put_bytes("jobs/j/old.bin", b"old")
+    real_step = getattr(Path, step)
+
+    def concurrent_delete():
+        if store.exists("jobs/j/old.bin"):
+            store.delete("jobs/j/old.bin")
+
+    def step_with_a_concurrent_delete(self, *args, **kwargs):
+        if deleted_first:
+            concurrent_delete()
+        result = real_step(self, *args, **kwargs)
+        if not deleted_first:
+            concurrent_delete()
+        return result
+
+    monkeypatch.setattr(Path, step, step_with_a_concurrent_delete)
+    assert store.put_bytes("jobs/j/new.bin", b"new").size == 3
+    assert store.list() == ["jobs/j/new.bin"] and b"".join(store.open_range("jobs/j/new.bin")) == b"new"
+
+
+def test_local_reads_racing_a_delete_say_object_not_found(tmp_path, monkeypatch):
+    """A delete that comes just before the object's file is opened is a missing object, and leaves no partial
+    download behind."""
+    store = LocalStorage(tmp_path / "store")
+    object_path = str(store.path("jobs/a/x.bin"))
+    real_open = builtins.open
+
+    def open_after_a_concurrent_delete(file, *args, **kwargs):
+        if str(file) == object_path:
+            store.delete("jobs/a/x.bin")
+        return real_open(file, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "open", open_after_a_concurrent_delete)
+    for read in (lambda: store.get_file("jobs/a/x.bin", tmp_path / "download" / "x.bin"),
+                 lambda: store.open_range("jobs/a/x.bin")):
+        store.put_bytes("jobs/a/x.bin", b"x")
+        with pytest.raises(ObjectNotFound):
+            read()
+    assert list((tmp_path / "download").glob("*")) == []
+
+
+@pytest.fixture
+def full_disk(tmp_path, monkeypatch):
+    """A temporary-files folder (returned) on a disk where every write of a temporary file fails."""
+    folder = tmp_path / "tmpdir"
+    folder.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(folder))
+    real_named_temporary_file = tempfile.NamedTemporaryFile
+
+    def named_temporary_file_on_a_full_disk(*args, **kwargs):
+        handle = real_named_temporary_file(*args, **kwargs)
+
+        def write(data):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+        handle.write = write
+        return handle
+
+    monkeypatch.setattr(tempfile, "NamedTemporaryFile", named_temporary_file_on_a_full_disk)
+    return folder
+
+
+def test_put_bytes_that_fails_to_write_leaves_no_temporary_file(tmp_path, full_disk):
+    """check_writable puts bytes on every readiness probe: on a full disk each one had left a file behind."""
+    store = LocalStorage(tmp_path / "store")
+    for _ in range(3):
+        with pytest.raises(OSError, match="No space left on device"):
+            store.put_bytes("jobs/a/x.bin", b"x")
+    assert list(full_disk.iterdir()) == [] and store.list() == []
+
+
+def test_local_check_writable_on_a_full_disk_is_a_storage_error(tmp_path, full_disk):
+    """check_writable raises StorageError when storage cannot be written, as its docstring says."""
+    with pytest.raises(StorageError, match="No space left on device"):
+        LocalStorage(tmp_path / "store").check_writable()
+
+
+def test_s3_unreachable_endpoint_is_a_storage_error(aws_env):
+    """An S3 endpoint that does not answer is a StorageError (check_writable's promise), not botocore's error."""
+    unreachable = S3Storage("voxe", endpoint_url=f"http://127.0.0.1:{free_port()}", region="us-east-1",
+                            create_bucket=False)
+    with pytest.raises(StorageError, match="Could not connect"):
+        unreachable.size("jobs/a/x.bin")
+    with pytest.raises(StorageError, match="Could not connect"):
+        unreachable.check_writable()
+
+
+def test_s3_missing_bucket_is_a_storage_error_not_a_missing_key(aws_env, s3_endpoint, tmp_path):
+    """A HEAD answers a missing bucket with the bare 404 of a missing key: a bucket gone is still a StorageError,
+    never ObjectNotFound (exists() saying False would have a worker start over without its checkpoint)."""
+    store = S3Storage("voxe-test-gone", endpoint_url=s3_endpoint, region="us-east-1", prefix="svc")
+    store.client.delete_bucket(Bucket="voxe-test-gone")
+    said_missing = r"bucket 'voxe-test-gone' does not exist \(VOXE_S3_BUCKET\)"
+    upload_said_missing = r"voxe-test-gone.*NoSuchBucket"  # boto3's upload error, which names the bucket
+    calls = {
+        "size": (lambda: store.size("jobs/a/x.bin"), said_missing),
+        "exists": (lambda: store.exists("jobs/a/x.bin"), said_missing),
+        "get_file": (lambda: store.get_file("jobs/a/x.bin", tmp_path / "x.bin"), said_missing),
+        "open_range": (lambda: store.open_range("jobs/a/x.bin"), said_missing),
+        "list": (lambda: store.list("jobs/"), said_missing),
+        "delete_prefix": (lambda: store.delete_prefix("jobs/"), said_missing),
+        "put_bytes": (lambda: store.put_bytes("jobs/a/x.bin", b"x"), upload_said_missing),
+        "check_writable": (store.check_writable, upload_said_missing),
+    }
+    for name, (call, message) in calls.items():
+        with pytest.raises(StorageError, match=message) as raised:
+            call()
+        assert not isinstance(raised.value, ObjectNotFound), name
+    assert list(tmp_path.iterdir()) == []  # no partial download

@@ -20,8 +20,10 @@ import tempfile
 import uuid
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 log = logging.getLogger("voxe.storage")
 CHUNK = 1 << 20
@@ -80,9 +82,10 @@ class Storage(ABC):
     def put_file(self, key: str, path: str | os.PathLike, content_type: str | None = None) -> StoredObject: ...
 
     def put_bytes(self, key: str, data: bytes, content_type: str | None = None) -> StoredObject:
-        with tempfile.NamedTemporaryFile(delete=False) as handle:
-            handle.write(data)
-        try:
+        handle = tempfile.NamedTemporaryFile(delete=False)
+        try:  # also when the write fails (a full disk): check_writable runs this on every readiness probe
+            with handle:
+                handle.write(data)
             return self.put_file(key, handle.name, content_type)
         finally:
             os.unlink(handle.name)
@@ -135,6 +138,8 @@ class Storage(ABC):
             self.put_bytes(key, b"ok")
             if b"".join(self.open_range(key)) != b"ok":
                 raise StorageError("probe object read back wrong")
+        except OSError as exc:  # a local disk (or an upload's temporary file) that cannot be written or read
+            raise StorageError(f"storage probe failed: {exc}") from exc
         finally:
             try:
                 self.delete(key)
@@ -157,11 +162,10 @@ class LocalStorage(Storage):
 
     def put_file(self, key, path, content_type=None) -> StoredObject:
         target = self.path(key)
-        target.parent.mkdir(parents=True, exist_ok=True)
         tmp = target.with_name(f".{target.name}.{uuid.uuid4().hex}.tmp")
         digest, size = hashlib.sha256(), 0
         try:
-            with open(path, "rb") as src, open(tmp, "wb") as dst:
+            with open(path, "rb") as src, _create_in_folder(tmp) as dst:
                 while chunk := src.read(CHUNK):
                     digest.update(chunk)
                     size += len(chunk)
@@ -174,32 +178,34 @@ class LocalStorage(Storage):
             raise
         return StoredObject(key, size, digest.hexdigest())
 
-    def get_file(self, key, dest) -> Path:
-        source = self.path(key)
-        if not source.is_file():
-            raise ObjectNotFound(key)
-        dest = Path(dest)
-        dest.parent.mkdir(parents=True, exist_ok=True)
-        tmp = dest.with_name(f".{dest.name}.{uuid.uuid4().hex}.tmp")
+    def _open(self, key: str) -> BinaryIO:
+        """The object's file, open for reading: opened at once, not after a check that it exists, which a
+        concurrent delete() could make stale."""
         try:
-            shutil.copyfile(source, tmp)
-            os.replace(tmp, dest)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
+            return open(self.path(key), "rb")
+        except (FileNotFoundError, IsADirectoryError, NotADirectoryError) as exc:
+            raise ObjectNotFound(key) from exc
+
+    def get_file(self, key, dest) -> Path:
+        with self._open(key) as source:
+            dest = Path(dest)
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            tmp = dest.with_name(f".{dest.name}.{uuid.uuid4().hex}.tmp")
+            try:
+                with open(tmp, "wb") as copy:
+                    shutil.copyfileobj(source, copy, CHUNK)
+                os.replace(tmp, dest)
+            except BaseException:
+                tmp.unlink(missing_ok=True)
+                raise
         return dest
 
     def size(self, key) -> int:
-        source = self.path(key)
-        if not source.is_file():
-            raise ObjectNotFound(key)
-        return source.stat().st_size
+        with self._open(key) as source:
+            return os.fstat(source.fileno()).st_size
 
     def open_range(self, key, start=0, end=None) -> Iterator[bytes]:
-        source = self.path(key)
-        if not source.is_file():
-            raise ObjectNotFound(key)
-        handle = open(source, "rb")
+        handle = self._open(key)
 
         def chunks() -> Iterator[bytes]:
             with handle:
@@ -225,8 +231,8 @@ class LocalStorage(Storage):
             return []
         if not base.is_dir():
             return []
-        files = [(path.relative_to(self.root).as_posix(), bool(_WRITING.match(path.name)))
-                 for path in base.rglob("*") if path.is_file()]
+        files = [((Path(folder) / name).relative_to(self.root).as_posix(), bool(_WRITING.match(name)))
+                 for folder, _, names in os.walk(base, onerror=_unless_vanished) for name in names]
         return [(name, writing) for name, writing in files if name.startswith(prefix)]
 
     def list(self, prefix="") -> list[str]:
@@ -259,6 +265,30 @@ _WRITING = re.compile(r"^\..+\.[0-9a-f]{32}\.tmp$")
 """The name of a file being written (``put_file``'s ``.<name>.<uuid hex>.tmp``): never a key, whereas any other
 name ending in ``.tmp`` is one, as on S3."""
 
+_CREATE_ATTEMPTS = 3
+
+
+def _create_in_folder(path: Path) -> BinaryIO:
+    """``path`` opened for writing, its folders made first. A concurrent delete() removes the folders it empties,
+    which can be these: before the open (FileNotFoundError), or inside mkdir, after it found one there and before
+    it checked that one is a folder (FileExistsError). Then all is done again."""
+    attempts_left = _CREATE_ATTEMPTS
+    while True:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            return open(path, "wb")
+        except (FileNotFoundError, FileExistsError):
+            attempts_left -= 1
+            if not attempts_left:
+                raise
+
+
+def _unless_vanished(error: OSError) -> None:
+    """os.walk's error handler: a folder a concurrent delete() removed while the walk went on holds no files; any
+    other error is raised."""
+    if not isinstance(error, FileNotFoundError):
+        raise error
+
 
 class S3Storage(Storage):
     """Objects in an S3-compatible bucket (AWS S3, MinIO, ...) through boto3.
@@ -283,107 +313,129 @@ class S3Storage(Storage):
             self._ensure_bucket()
 
     def _ensure_bucket(self) -> None:
-        from botocore.exceptions import ClientError
+        """Creates the bucket when it is missing; a failure is a StorageError naming the setting to look at."""
+        from botocore.exceptions import BotoCoreError, ClientError
+
+        region = self.client.meta.region_name
+        try:
+            try:
+                self.client.head_bucket(Bucket=self.bucket)
+                return
+            except ClientError as exc:
+                if _error_code(exc) not in _NO_SUCH_BUCKET:
+                    raise StorageError(f"bucket {self.bucket!r} is not accessible (VOXE_S3_BUCKET and the S3 "
+                                       f"credentials): {exc}") from exc
+            # Outside us-east-1, S3 refuses to create a bucket whose request does not name its region.
+            location = {} if region in (None, "us-east-1") else {
+                "CreateBucketConfiguration": {"LocationConstraint": region}}
+            try:
+                self.client.create_bucket(Bucket=self.bucket, **location)
+            except ClientError as exc:
+                if _error_code(exc) not in ("BucketAlreadyOwnedByYou", "BucketAlreadyExists"):  # another was first
+                    raise StorageError(f"could not create bucket {self.bucket!r} in region {region} "
+                                       f"(VOXE_S3_BUCKET, VOXE_S3_REGION): {exc}") from exc
+        except BotoCoreError as exc:  # no answer: a wrong or unreachable endpoint, missing credentials, ...
+            raise StorageError(f"could not use S3 at {self.client.meta.endpoint_url} (VOXE_S3_ENDPOINT_URL, "
+                               f"VOXE_S3_REGION): {exc}") from exc
+
+    @contextmanager
+    def _as_storage_errors(self, key: str | None = None) -> Iterator[None]:
+        """Raises what boto3 raises as this module's errors: ObjectNotFound when ``key`` is missing, StorageError
+        for anything else (a missing bucket, a refused request, an unreachable endpoint)."""
+        from boto3.exceptions import Boto3Error
+        from botocore.exceptions import BotoCoreError, ClientError
 
         try:
-            self.client.head_bucket(Bucket=self.bucket)
+            yield
         except ClientError as exc:
-            code = exc.response.get("Error", {}).get("Code")
-            if code not in ("404", "NoSuchBucket", "NotFound"):
-                raise StorageError(f"bucket {self.bucket!r} not accessible: {exc}") from exc
-            try:
-                self.client.create_bucket(Bucket=self.bucket)
-            except ClientError as create_exc:
-                if create_exc.response.get("Error", {}).get("Code") not in (
-                    "BucketAlreadyOwnedByYou", "BucketAlreadyExists"
-                ):
-                    raise
+            code = _error_code(exc)
+            if key is not None and code in _HEAD_NOT_FOUND:
+                # A HEAD answers a missing bucket with this same bare 404: ask the bucket.
+                with self._as_storage_errors():
+                    self.client.head_bucket(Bucket=self.bucket)
+                raise ObjectNotFound(key) from exc
+            if key is not None and code == "NoSuchKey":
+                raise ObjectNotFound(key) from exc
+            if code in _NO_SUCH_BUCKET:  # (a bare 404 with no key at stake is the bucket's)
+                raise StorageError(f"bucket {self.bucket!r} does not exist (VOXE_S3_BUCKET)") from exc
+            raise StorageError(f"S3 bucket {self.bucket!r}: {exc}") from exc
+        except (BotoCoreError, Boto3Error) as exc:
+            raise StorageError(f"S3 bucket {self.bucket!r}: {exc}") from exc
 
     def _full(self, key: str) -> str:
         return self.prefix + check_key(key)
-
-    def _not_found(self, exc) -> bool:
-        return exc.response.get("Error", {}).get("Code") in ("404", "NoSuchKey", "NotFound")
 
     def put_file(self, key, path, content_type=None) -> StoredObject:
         size, sha = file_sha256(path)
         extra = {"Metadata": {"sha256": sha}}
         if content_type:
             extra["ContentType"] = content_type
-        self.client.upload_file(str(path), self.bucket, self._full(key), ExtraArgs=extra)
+        with self._as_storage_errors():
+            self.client.upload_file(str(path), self.bucket, self._full(key), ExtraArgs=extra)
         return StoredObject(key, size, sha)
 
     def get_file(self, key, dest) -> Path:
-        from botocore.exceptions import ClientError
-
         dest = Path(dest)
         dest.parent.mkdir(parents=True, exist_ok=True)
         tmp = dest.with_name(f".{dest.name}.{uuid.uuid4().hex}.tmp")
         try:
-            self.client.download_file(self.bucket, self._full(key), str(tmp))
+            with self._as_storage_errors(key):
+                self.client.download_file(self.bucket, self._full(key), str(tmp))
             os.replace(tmp, dest)
-        except ClientError as exc:
-            tmp.unlink(missing_ok=True)
-            if self._not_found(exc):
-                raise ObjectNotFound(key) from exc
-            raise
         except BaseException:
             tmp.unlink(missing_ok=True)
             raise
         return dest
 
     def size(self, key) -> int:
-        from botocore.exceptions import ClientError
-
-        try:
+        with self._as_storage_errors(key):
             return int(self.client.head_object(Bucket=self.bucket, Key=self._full(key))["ContentLength"])
-        except ClientError as exc:
-            if self._not_found(exc):
-                raise ObjectNotFound(key) from exc
-            raise
 
     def open_range(self, key, start=0, end=None) -> Iterator[bytes]:
         from botocore.exceptions import ClientError
 
+        if end is not None and end < start:  # S3 would ignore such a range and send everything
+            self.size(key)  # (ObjectNotFound still applies)
+            return iter(())
         kwargs = {}
         if start or end is not None:
             kwargs["Range"] = f"bytes={start}-{'' if end is None else end}"
-        try:
-            if end is not None and end < start:  # S3 would ignore such a range and send everything
-                self.size(key)  # (ObjectNotFound still applies)
-                return iter(())
-            body = self.client.get_object(Bucket=self.bucket, Key=self._full(key), **kwargs)["Body"]
-        except ClientError as exc:
-            if self._not_found(exc):
-                raise ObjectNotFound(key) from exc
-            if exc.response.get("Error", {}).get("Code") == "InvalidRange":  # starts past the end: no bytes
-                return iter(())
-            raise
+        with self._as_storage_errors(key):
+            try:
+                body = self.client.get_object(Bucket=self.bucket, Key=self._full(key), **kwargs)["Body"]
+            except ClientError as exc:
+                if _error_code(exc) != "InvalidRange":
+                    raise
+                return iter(())  # the range starts past the end: no bytes
 
         def chunks() -> Iterator[bytes]:
-            try:
-                yield from body.iter_chunks(CHUNK)
-            finally:
-                body.close()
+            with self._as_storage_errors():
+                try:
+                    yield from body.iter_chunks(CHUNK)
+                finally:
+                    body.close()
 
         return chunks()
 
     def list(self, prefix="") -> list[str]:
         keys = []
         paginator = self.client.get_paginator("list_objects_v2")
-        for page in paginator.paginate(Bucket=self.bucket, Prefix=self.prefix + prefix):
-            keys += [obj["Key"][len(self.prefix):] for obj in page.get("Contents", [])]
+        with self._as_storage_errors():
+            for page in paginator.paginate(Bucket=self.bucket, Prefix=self.prefix + prefix):
+                keys += [obj["Key"][len(self.prefix):] for obj in page.get("Contents", [])]
         return sorted(keys)
 
     def delete(self, key) -> None:
-        self.client.delete_object(Bucket=self.bucket, Key=self._full(key))
+        with self._as_storage_errors():
+            self.client.delete_object(Bucket=self.bucket, Key=self._full(key))
 
     def delete_prefix(self, prefix: str) -> int:
         keys = self.list(prefix)
         for start in range(0, len(keys), 1000):
             batch = [{"Key": self.prefix + k} for k in keys[start:start + 1000]]
-            errors = self.client.delete_objects(Bucket=self.bucket, Delete={"Objects": batch, "Quiet": True}).get(
-                "Errors", [])
+            with self._as_storage_errors():
+                answer = self.client.delete_objects(Bucket=self.bucket, Delete={"Objects": batch, "Quiet": True})
+            errors = answer.get("Errors", [])
             if errors:  # S3 answers 200 and lists the objects it kept: left behind, as a local failure raises
                 shown = ", ".join(f"{e.get('Key')} ({e.get('Code')})" for e in errors[:3])
                 raise StorageError(f"could not delete {len(errors)} object(s) under {prefix!r}: {shown}")
@@ -391,6 +443,15 @@ class S3Storage(Storage):
 
     def describe(self) -> str:
         return f"s3:{self.bucket}/{self.prefix}"
+
+
+_HEAD_NOT_FOUND = ("404", "NotFound")
+"""The codes of a 404 with no body (a HEAD's): a missing key or a missing bucket."""
+_NO_SUCH_BUCKET = ("NoSuchBucket", *_HEAD_NOT_FOUND)
+
+
+def _error_code(exc) -> str | None:
+    return exc.response.get("Error", {}).get("Code")
 
 
 _instances: dict[tuple, Storage] = {}
