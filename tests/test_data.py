@@ -185,8 +185,23 @@ def test_camera_angle_y_and_per_frame_overrides(tmp_path):
     (root / "transforms.json").write_text(json.dumps(meta))
     scene = load_scene(root)
     assert torch.allclose(scene.cameras.fx, torch.tensor([4.0, 7.0]))  # 0.5*8/tan(pi/4) = 4
-    assert torch.allclose(scene.cameras.fy, torch.tensor([3.0, 7.0]))  # 0.5*6/tan(pi/4) = 3; fl_x wins
+    assert torch.allclose(scene.cameras.fy, torch.tensor([3.0, 3.0]))  # 0.5*6/tan(pi/4) = 3: camera_angle_y, not fl_x
     assert scene.cameras.distortion is None
+
+
+def test_a_frames_own_focal_comes_before_the_top_levels(tmp_path):
+    """instant-ngp's precedence: per axis, a frame's fl_* or camera_angle_* before the top level's; fy is fx only
+    where neither fl_y nor camera_angle_y is given."""
+    root = make_ngp(tmp_path / "a", n=3, size=(8, 6), camera_angle_y=math.pi / 2)  # fl_x 10, fy 0.5*6/tan(pi/4) = 3
+    meta = json.loads((root / "transforms.json").read_text())
+    meta["frames"][1]["camera_angle_x"] = math.pi / 2  # fx 0.5*8/tan(pi/4) = 4, over the top level's fl_x
+    meta["frames"][2]["fl_y"] = 5.0
+    (root / "transforms.json").write_text(json.dumps(meta))
+    cameras = load_scene(root).cameras
+    assert torch.allclose(cameras.fx, torch.tensor([10.0, 4.0, 10.0]))
+    assert torch.allclose(cameras.fy, torch.tensor([3.0, 3.0, 5.0]))
+    cameras = load_scene(make_ngp(tmp_path / "b", n=1)).cameras
+    assert torch.equal(cameras.fy, cameras.fx)
 
 
 def test_holdout_split_semantics(tmp_path):
@@ -265,6 +280,30 @@ def test_nan_in_pose(tmp_path):
     with pytest.raises(DatasetError, match="NaN or Inf") as err:
         load_scene(root)
     assert_names(err, "transforms_train.json", 1)
+
+
+def test_numbers_beyond_float_range_name_frame_and_field(tmp_path):
+    """A 400-digit integer fits no float (json reads it; numpy raises OverflowError); 1e39 fits float64 but would
+    be inf in the float32 cameras, as would the focal of a camera_angle_x of 1e-300 radians."""
+    root = make_ngp(tmp_path / "s", n=2)
+    meta = json.loads((root / "transforms.json").read_text())
+    for value, message in ((10**400, "transform_matrix holds an integer too large for a float"),
+                           (1e39, r"transform_matrix contains NaN or Inf, or a value beyond float32's range")):
+        meta["frames"][1]["transform_matrix"][0][3] = value
+        (root / "transforms.json").write_text(json.dumps(meta))
+        with pytest.raises(DatasetError, match=message) as err:
+            load_scene(root)
+        assert_names(err, "transforms.json", 1)
+    for case, (top, frame, message) in enumerate((
+        ({"fl_x": 1e39}, None, r"'fl_x' = 1e\+39 is beyond float32's range"),
+        ({"k1": -1e39}, None, r"'k1' = -1e\+39 is beyond float32's range"),
+        ({"fl_x": None, "camera_angle_x": 1e-300}, 0,  # null: no fl_x
+         r"focal length fx = 8e\+300 pixels is beyond float32's range"),
+    )):
+        with pytest.raises(DatasetError, match=message) as err:
+            load_scene(make_ngp(tmp_path / f"case{case}", n=1, **top))
+        assert_names(err, "transforms.json", frame)
+        assert err.value.frame == frame
 
 
 def test_pose_not_four_by_four_or_bad_last_row(tmp_path):
@@ -378,11 +417,12 @@ def test_frame_missing_keys(tmp_path):
 def test_duplicate_file_path(tmp_path):
     root = make_synthetic(tmp_path / "s")
     meta = json.loads((root / "transforms_train.json").read_text())
-    meta["frames"][2]["file_path"] = "train/r_0"  # same image as './train/r_0'
-    (root / "transforms_train.json").write_text(json.dumps(meta))
-    with pytest.raises(DatasetError, match="duplicate file_path.*frame 0") as err:
-        load_scene(root)
-    assert_names(err, "transforms_train.json", 2)
+    for same_image in ("train/r_0", "./train/r_0.png"):  # './train/r_0' reads train/r_0.png: the .png is implied
+        meta["frames"][2]["file_path"] = same_image
+        (root / "transforms_train.json").write_text(json.dumps(meta))
+        with pytest.raises(DatasetError, match="duplicate file_path.*frame 0") as err:
+            load_scene(root)
+        assert_names(err, "transforms_train.json", 2)
 
 
 def test_confined_paths_stay_inside_the_dataset(tmp_path):

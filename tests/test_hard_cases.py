@@ -683,6 +683,9 @@ case("data/sheared-rotation", "error", (DatasetError, r"frame 0 .*not orthonorma
 case("data/field-of-view-near-pi-is-near-singular", "error",
      (DatasetError, r"frame 0 .*focal length fx = 1e-09 pixels is non-finite or near-singular"))(
     _load(_pose(np.eye(3)), camera_angle_x=math.pi - 1e-9))
+case("data/field-of-view-of-the-smallest-float", "error",
+     (DatasetError, r"frame 0 .*focal length fx = inf pixels is non-finite or near-singular"))(
+    _load(_pose(np.eye(3)), camera_angle_x=5e-324))
 case("data/principal-point-nan", "error", (DatasetError, r"transforms_train.json: 'cx' is not finite \(nan\)"))(
     _load(_pose(np.eye(3)), cx=float("nan")))
 

@@ -17,16 +17,39 @@ import pytest
 import torch
 from PIL import Image
 
+from voxe_core.backbones import prepare_backbone
 from voxe_core.cameras import Cameras, camera_rays, distort_points, look_at, pixel_rays, undistort_points
 from voxe_core.colmap import ColmapError, read_model
 from voxe_core.data import DatasetError, detect_format, is_dataset_folder, load_scene
+from voxe_core.scene_grid import scene_frame
 
 import needs
 from captures import pose_at, square_capture, write_colmap_model
-from needs import FOX
+from needs import FOX, MIC
 
 OPENCV = torch.tensor([0.0578, -0.0805, 0.01, -0.002, -0.00098, 0.00016], dtype=torch.float64)
 FISHEYE = torch.tensor([0.05, -0.01, 0.002, -0.0005, 0.0, 0.0], dtype=torch.float64)
+
+
+# pixels of a 16 x 12 image, corners included: (u, v), (5,) each
+PIXELS = (torch.tensor([0.0, 16.0, 0.5, 12.25, 8.0]), torch.tensor([0.0, 12.0, 9.5, 2.0, 6.0]))
+
+
+def off_axis_degrees(cameras: Cameras, index: int, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """(R,) angles between camera ``index``'s rays through pixels (u, v) and its optical axis."""
+    _, directions = pixel_rays(cameras, torch.full(u.shape, index), u, v)
+    cosine = (directions.double() @ -cameras.c2w[index, :3, 2].double()).clamp(-1.0, 1.0)
+    return torch.rad2deg(torch.acos(cosine))
+
+
+def opencv_fisheye_degrees(u: torch.Tensor, v: torch.Tensor, f: float, cx: float, cy: float, k) -> torch.Tensor:
+    """The same angles as cv2.fisheye's undistortPoints gives them (OPENCV_FISHEYE, coefficients k1..k4)."""
+    import cv2
+
+    camera_matrix = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+    pixels = torch.stack([u, v], -1).double().numpy()[None]
+    x, y = cv2.fisheye.undistortPoints(pixels, camera_matrix, np.array(k, dtype=np.float64))[0].T
+    return torch.rad2deg(torch.atan(torch.from_numpy(np.hypot(x, y))))
 
 
 def grid_points(extent: float, n: int = 41, dtype=torch.float64) -> tuple[torch.Tensor, torch.Tensor]:
@@ -157,12 +180,46 @@ def test_instant_ngp_coefficients_without_a_camera_model_are_opencv(tmp_path):
     assert torch.allclose(scene.cameras.distortion[2], torch.tensor([0.1, 0, 0, 0, 0, 0.001]))
 
 
+@pytest.mark.parametrize("per_frame", [False, True])
+def test_instant_ngp_is_fisheye_is_the_opencv_fisheye(tmp_path, per_frame):
+    """instant-ngp's colmap2nerf.py writes a fisheye camera as "is_fisheye": true with k1..k4 (top level or per
+    frame): the rays are cv2.fisheye's, not OPENCV's radial model of the same coefficients."""
+    lens = {"is_fisheye": True, "k1": 0.05, "k2": -0.01, "k3": 0.0, "k4": 0.0, "p1": 0.0, "p2": 0.0}
+    root = write_capture(tmp_path / "ngp", frame_extra={i: lens for i in range(3)}) if per_frame else \
+        write_capture(tmp_path / "ngp", **lens)
+    cameras = load_scene(root).cameras
+    expected = opencv_fisheye_degrees(*PIXELS, 14.0, 8.0, 6.0, [0.05, -0.01, 0.0, 0.0])
+    assert cameras.distortion_model == "fisheye"
+    assert torch.allclose(off_axis_degrees(cameras, 1, *PIXELS), expected, atol=1e-3)
+
+
+@pytest.mark.parametrize("model, params", [("SIMPLE_RADIAL_FISHEYE", [14.0, 8.0, 6.0, 0.0]),
+                                           ("OPENCV_FISHEYE", [14.0, 14.0, 8.0, 6.0, 0.0, 0.0, 0.0, 0.0])])
+def test_a_fisheye_without_coefficients_is_equidistant_not_a_pinhole(tmp_path, model, params):
+    """θ = r: a corner pixel of this 16 x 12 image is 40.9° off axis, where a pinhole's atan(r) is 35.5°."""
+    import pycolmap
+
+    root = square_capture(tmp_path)
+    write_colmap_model(root / "sparse" / "0", [(model, 16, 12, params)],
+                       [(f"{i}.png", 0, pose_at(i)) for i in range(3)])
+    camera = pycolmap.Reconstruction(str(root / "sparse" / "0")).cameras[1]
+    x, y = camera.cam_from_img(torch.stack(PIXELS, -1).double().numpy()).T
+    expected = torch.rad2deg(torch.atan(torch.from_numpy(np.hypot(x, y))))
+    assert torch.allclose(off_axis_degrees(load_scene(root).cameras, 2, *PIXELS), expected, atol=1e-3)
+    nerfstudio = load_scene(write_capture(tmp_path / "ns", camera_model="OPENCV_FISHEYE")).cameras
+    assert torch.allclose(off_axis_degrees(nerfstudio, 0, *PIXELS), expected, atol=1e-3)
+
+
 @pytest.mark.parametrize("top, frame_extra, frame, message", [
     ({"camera_model": "EQUIRECTANGULAR"}, None, None, "camera_model 'EQUIRECTANGULAR' is not supported"),
     ({}, {2: {"camera_model": "FISHEYE"}}, 2, "camera_model 'FISHEYE' is not supported"),
     ({}, {1: {"camera_model": ["OPENCV"]}}, 1, r"camera_model \['OPENCV'\] is not supported"),
     ({"camera_model": "OPENCV"}, {1: {"camera_model": "OPENCV_FISHEYE"}}, 1,
      "camera_model OPENCV_FISHEYE differs from frame 0's OPENCV; the fisheye and the OPENCV model cannot be mixed"),
+    ({"camera_model": "OPENCV_FISHEYE"}, {2: {"camera_model": "PINHOLE"}}, 2,
+     "camera_model PINHOLE differs from frame 0's OPENCV_FISHEYE; the fisheye and the PINHOLE model cannot be mixed"),
+    ({"is_fisheye": 1}, None, None, "'is_fisheye' must be true or false, got 1"),
+    ({}, {1: {"camera_model": "OPENCV", "is_fisheye": True}}, 1, "'is_fisheye' is true but camera_model is OPENCV"),
     ({"camera_model": "PINHOLE", "k1": 0.2}, None, 0, "camera_model PINHOLE has no such distortion term, but k1 = 0.2"),
     ({"camera_model": "OPENCV_FISHEYE", "p1": 0.01}, None, 0, "OPENCV_FISHEYE has no such distortion term, but p1"),
     ({"camera_model": "OPENCV", "k2": "0.1"}, None, None, "'k2' must be a number"),
@@ -243,6 +300,22 @@ def test_colmap_errors_name_file_frame_and_problem(tmp_path):
                                            "FULL_OPENCV, which is not supported"):
         load_scene(root)
 
+    root = square_capture(tmp_path / "mixed")
+    write_colmap_model(root / "sparse" / "0", [("PINHOLE", 16, 12, [12.0, 12.0, 8.0, 6.0]),
+                                               ("OPENCV_FISHEYE", 16, 12, [12.0, 12.0, 8.0, 6.0, 0.01, 0.0, 0.0, 0.0])],
+                       [("0.png", 0, pose_at(0)), ("1.png", 1, pose_at(1))])
+    with pytest.raises(DatasetError, match=r"^sparse/0/images.bin frame 1 \('images/1.png'\): camera_model "
+                                           "OPENCV_FISHEYE differs from frame 0's PINHOLE; the fisheye and the "
+                                           "PINHOLE model cannot be mixed in one capture"):
+        load_scene(root)
+
+    root = square_capture(tmp_path / "float32")
+    write_colmap_model(root / "sparse" / "0", [("SIMPLE_PINHOLE", 16, 12, [1e39, 8.0, 6.0])],
+                       [("0.png", 0, pose_at(0))])
+    with pytest.raises(DatasetError, match=r"^sparse/0/images.bin frame 0 \('images/0.png'\): 'fl_x' = 1e\+39 is "
+                                           "beyond float32's range"):
+        load_scene(root)
+
     root = square_capture(tmp_path / "missing")
     write_colmap_model(root / "sparse" / "0", [("PINHOLE", 16, 12, [12.0, 12.0, 8.0, 6.0])],
                        [("0.png", 0, pose_at(0)), ("7.png", 0, pose_at(1))])
@@ -266,6 +339,52 @@ def test_colmap_errors_name_file_frame_and_problem(tmp_path):
     (model / "cameras.bin").unlink()
     with pytest.raises(DatasetError, match=r"no dataset found"):
         load_scene(root)
+
+
+def test_poses_in_opencv_axes_are_refused_by_the_scene_frame(tmp_path):
+    """A transforms.json of OpenCV-axis matrices loads (they are rigid) but every camera faces away from the centre
+    its axes meet: the scene frame names the likely mix-up rather than framing what lies behind the cameras."""
+    angles = torch.arange(8) * (2 * math.pi / 8)
+    ring = look_at(torch.stack([4.0 * angles.cos(), 4.0 * angles.sin(), torch.ones(8)], -1)).double().numpy()
+    root = square_capture(tmp_path, n=8)
+
+    def cameras_of(camera_axes: np.ndarray) -> Cameras:
+        frames = [{"file_path": f"images/{i}.png", "transform_matrix": (c2w @ camera_axes).tolist()}
+                  for i, c2w in enumerate(ring)]
+        (root / "transforms.json").write_text(json.dumps({"fl_x": 14.0, "frames": frames}))
+        return load_scene(root).cameras
+
+    assert torch.allclose(scene_frame(cameras_of(np.eye(4)))[:3, 3], torch.zeros(3), atol=1e-4)  # about the origin
+    opencv_axes = cameras_of(np.diag([1.0, -1.0, -1.0, 1.0]))
+    with pytest.raises(ValueError, match=r"lies behind 8 of 8 cameras: their poses likely hold OpenCV camera axes"):
+        scene_frame(opencv_axes)
+
+
+def test_relu_field_refuses_a_box_its_cameras_do_not_aim_at():
+    """An object on a transparent background gets the ReLU field and its fixed box about the origin; a COLMAP or
+    instant-ngp world frame can hold the object anywhere (here at (20, 10, 5)), where that box sees nothing."""
+    angles = torch.arange(8) * (2 * math.pi / 8)
+    around = torch.stack([30.0 * angles.cos(), 30.0 * angles.sin(), torch.full((8,), 8.0)], -1)
+    alphas = torch.zeros(8, 4, 4)
+    alphas[:, 1:3, 1:3] = 1.0  # an object on a transparent background: 'auto' is relu_field
+    target = torch.tensor([20.0, 10.0, 5.0])
+    elsewhere = Cameras.from_fov(look_at(around + target, target), 0.7, 4, 4)
+    with pytest.raises(ValueError, match=r"the optical axes of only 0 of 8 cameras pass through the relu_field "
+                                         r"backbone's box .*; use the scene backbone"):
+        prepare_backbone("auto", alphas, elsewhere, 16)
+    centred = Cameras.from_fov(look_at(around), 0.7, 4, 4)
+    name, fit_cameras, initial = prepare_backbone("auto", alphas, centred, 16)
+    assert name == "relu_field" and fit_cameras is centred and initial is None
+
+
+@needs.needs_data(MIC)
+@pytest.mark.parametrize("split", ["train", "val", "test"])
+def test_nerf_synthetic_cameras_aim_at_the_relu_field_box(split):
+    meta = json.loads((MIC / f"transforms_{split}.json").read_text())
+    c2w = torch.tensor([frame["transform_matrix"] for frame in meta["frames"]])
+    cameras = Cameras.from_fov(c2w, meta["camera_angle_x"], 800, 800)
+    name, fit_cameras, _ = prepare_backbone("relu_field", None, cameras, 16)
+    assert name == "relu_field" and fit_cameras is cameras
 
 
 def test_transforms_json_wins_over_a_colmap_model_beside_it(tmp_path):
@@ -323,6 +442,14 @@ def test_colmap_text_errors_name_the_line(tmp_path):
     (model / "cameras.txt").write_text(cameras_txt)
     lines = images_txt.splitlines()
     first = next(i for i, line in enumerate(lines) if not line.startswith("#"))
+    image_a, rest = lines[:first + 1], lines[first + 2:]
+    assert lines[first + 1] == "" and len(rest) == 2  # a.png's line, its points (none), b.png's line, its points
+    # Without points lines, b.png's line would be read as a.png's points and b.png lost.
+    for bad, message in ((image_a + rest[:1], "got 10 fields"),
+                         (image_a + ["3.5 2.5 x"] + rest, "POINT3D_ID 'x' is not a integer")):
+        (model / "images.txt").write_text("\n".join(bad) + "\n")
+        with pytest.raises(ColmapError, match=rf"^images.txt: line {first + 2}: .*{message}"):
+            read_model(model)
     fields = lines[first].split()
     lines[first] = " ".join(fields[:1] + ["2", "0", "0", "0"] + fields[5:])
     (model / "images.txt").write_text("\n".join(lines) + "\n")

@@ -21,7 +21,7 @@ from __future__ import annotations
 import torch
 
 from voxe_core.cameras import Cameras
-from voxe_core.grid import GRID_KIND, VoxelGrid
+from voxe_core.grid import DEFAULT_BOX, GRID_KIND, VoxelGrid, ray_box_intersection
 from voxe_core.gridfile import GRID_FORMAT_VERSION, dense_tensors
 from voxe_core.scene_grid import SceneGrid, apply_frame, scene_frame
 from voxe_core.tensorio import FormatError, load_tensors
@@ -30,6 +30,7 @@ BACKBONES: dict[str, type[VoxelGrid]] = {cls.kind: cls for cls in (VoxelGrid, Sc
 BACKBONE_CHOICES = ("auto", *BACKBONES)  # what a user may ask for ("auto": from the images' alpha)
 OPAQUE_ALPHA = 0.5  # a pixel with alpha below this is transparent background
 TRANSPARENT_FRACTION = 0.01  # images with at least this share of transparent pixels are objects on a background
+AIMED_AT_BOX_FRACTION = 0.5  # a ReLU-field fit needs at least this share of the optical axes through its box
 
 
 def find_backbone(name: str) -> type[VoxelGrid]:
@@ -94,10 +95,30 @@ def prepare_backbone(backbone: str, alphas: torch.Tensor | None, cameras: Camera
     """Resolve ``backbone`` ('auto' | 'relu_field' | 'scene') for a loaded scene.
 
     Returns (name, cameras to fit with, initial grid for ``reconstruct`` or None):
-    a scene grid is fitted in the canonical frame of ``scene_frame``, which it records.
+    a scene grid is fitted in the canonical frame of ``scene_frame``, which it records; a ReLU field in the
+    capture's own frame, which must hold the object in its box (``_check_cameras_see_box``).
     """
     name = resolve_backbone(backbone, alphas)
     if name != SceneGrid.kind:
+        _check_cameras_see_box(cameras)
         return name, cameras, None
     frame = scene_frame(cameras)
     return name, apply_frame(cameras, frame), SceneGrid(resolution, frame=frame)
+
+
+def _check_cameras_see_box(cameras: Cameras) -> None:
+    """ValueError unless the optical axes of at least ``AIMED_AT_BOX_FRACTION`` of ``cameras`` pass through the
+    ReLU field's box (``DEFAULT_BOX``, in world units).
+
+    NeRF-synthetic captures aim every camera at the origin; a COLMAP or instant-ngp model's world frame is
+    wherever its reconstruction put it, and a ReLU field there would fit empty space.
+    """
+    box_min, box_max = (torch.tensor(corner).to(cameras.c2w) for corner in DEFAULT_BOX)
+    near, far = ray_box_intersection(cameras.c2w[:, :3, 3], -cameras.c2w[:, :3, 2], box_min, box_max)
+    aimed = int((far > near).sum())
+    if aimed < AIMED_AT_BOX_FRACTION * len(cameras):
+        raise ValueError(
+            f"the optical axes of only {aimed} of {len(cameras)} cameras pass through the relu_field backbone's box "
+            f"{list(DEFAULT_BOX[0])} to {list(DEFAULT_BOX[1])}: the capture's frame does not hold the object in "
+            "that box; use the scene backbone (backbone 'scene'), which frames the capture by its cameras"
+        )

@@ -208,13 +208,26 @@ def _read_images_txt(path: Path) -> list[ColmapImage]:
     lines, images = _text_lines(path), []
     while lines and not lines[-1][1]:
         lines.pop()
-    for (line, fields), _points in zip(lines[::2], lines[1::2] + [(0, [])]):
+    for (line, fields), (points_line, points) in zip(lines[::2], lines[1::2] + [(0, [])]):
         if len(fields) < 10:
             raise ColmapError(f"line {line}: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, "
                               f"got {len(fields)} fields", path)
+        _check_points_line(points_line, points, line, path)
         image_id = _parse(int, fields[0], "image id", line, path)
         pose = tuple(_parse(float, f, "pose value", line, path) for f in fields[1:8])
         camera_id = _parse(int, fields[8], "camera id", line, path)
         name = " ".join(fields[9:])
         images.append(ColmapImage(name, camera_id, _pose(pose, f"line {line}: image {image_id} ({name!r})", path)))
     return images
+
+
+def _check_points_line(line: int, fields: list[str], image_line: int, path: Path) -> None:
+    """The POINTS2D[] line after an image's line: (X, Y, POINT3D_ID) triples, or none. Not kept, but checked: in a
+    file without these lines, each image's line would be taken for the previous image's points."""
+    if len(fields) % 3:
+        raise ColmapError(f"line {line}: expected the POINTS2D[] of the image on line {image_line} as X Y POINT3D_ID "
+                          f"triples (or an empty line), got {len(fields)} fields", path)
+    for x, y, point3d_id in zip(fields[::3], fields[1::3], fields[2::3]):
+        _parse(float, x, "POINTS2D X", line, path)
+        _parse(float, y, "POINTS2D Y", line, path)
+        _parse(int, point3d_id, "POINT3D_ID", line, path)

@@ -7,7 +7,9 @@ back float32 in [0, 1], composited on white (SPEC §0), on the CPU.
 Lens distortion is read into ``Cameras.distortion`` and applied by the rays
 (``voxe_core.cameras``): nerfstudio's ``camera_model`` PINHOLE, OPENCV or
 OPENCV_FISHEYE with ``k1..k4, p1, p2`` (top level or per frame); instant-ngp's
-``k1, k2, p1, p2`` without a ``camera_model`` are OPENCV. A COLMAP model
+``"is_fisheye": true`` is OPENCV_FISHEYE and its ``k1, k2, p1, p2`` without either are
+OPENCV. The declared model decides the lens: a fisheye without coefficients is still the
+equidistant projection, not a pinhole. A COLMAP model
 (``sparse/0/cameras.bin|txt`` and ``images.bin|txt``, images under ``images/``)
 is read by ``voxe_core.colmap`` and turned into the same frames (its poses from OpenCV's
 camera axes into the OpenGL ones, the world frame kept).
@@ -31,6 +33,7 @@ from .cameras import DISTORTION_KEYS, Cameras, distort_points, undistort_points
 from .colmap import ColmapError, read_model
 
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y")
+_FOCAL_KEYS = (("fl_x", "camera_angle_x"), ("fl_y", "camera_angle_y"))  # each axis's focal, either key
 # nerfstudio's camera_model -> Cameras.distortion_model (None: a pinhole)
 CAMERA_MODELS = {"PINHOLE": None, "OPENCV": "opencv", "OPENCV_FISHEYE": "fisheye"}
 # COLMAP camera models: (their parameter names in order, the nerfstudio camera_model they are)
@@ -49,6 +52,7 @@ COLMAP_IMAGE_DIR = "images"
 _OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])  # camera axes: y down, z forward -> y up, z backward
 _ROUND_TRIP_PIXELS = 1e-3  # undistort-then-distort must land this close on every sampled pixel
 _MIN_FOCAL = 1e-3  # pixels; below this the projection is numerically singular
+_FLOAT32_MAX = float(np.finfo(np.float32).max)  # Cameras hold float32: a larger magnitude would become inf
 _SIXTEEN_BIT_MODES = ("I;16", "I;16L", "I;16B", "I;16N", "I")
 RESAMPLE_FILTERS = ("bilinear", "box")
 
@@ -187,22 +191,24 @@ def load_scene(
             raise where("'file_path' contains a NUL character", i)
         if confine_paths and not _inside(root, frame["file_path"]):
             raise where("'file_path' leads outside the dataset folder (absolute or through '..')", i)
-        merged = {**top, **_check_intrinsics(frame, where, i)}
+        merged = _merge_intrinsics(top, _check_intrinsics(frame, where, i))
         if "fl_x" not in merged and "camera_angle_x" not in merged:
             raise where("missing intrinsics: need 'camera_angle_x' or 'fl_x' (top level or per frame)", i)
         model = _camera_model(frame, where, i) or top_model or ("OPENCV" if _distorts(merged) else "PINHOLE")
         _check_distortion(model, merged, where, i)
-        lens = next((j for j, m in enumerate(models) if m != "PINHOLE"), None)  # pinholes join either lens model
-        if model != "PINHOLE" and lens is not None and model != models[lens]:
-            raise where(f"camera_model {model} differs from frame {lens}'s {models[lens]}; the fisheye and the "
-                        "OPENCV model cannot be mixed in one capture", i)
+        # Cameras hold one lens model: a pinhole is an OPENCV lens without terms, but no fisheye lens is a pinhole.
+        clash = next((j for j, m in enumerate(models) if m != model and "OPENCV_FISHEYE" in (m, model)), None)
+        if clash is not None:
+            other = models[clash] if model == "OPENCV_FISHEYE" else model
+            raise where(f"camera_model {model} differs from frame {clash}'s {models[clash]}; the fisheye and the "
+                        f"{other} model cannot be mixed in one capture", i)
         per_frame.append(merged)
         paths.append(frame["file_path"])
         models.append(model)
     poses = _check_poses(frames, where)
-    seen: dict[str, int] = {}
+    seen: dict[Path, int] = {}
     for i, p in enumerate(paths):
-        key = os.path.normpath(p)
+        key = (_find_image(root, p) or root / p).resolve()  # 'images/0' reads 'images/0.png' when only that exists
         if key in seen:
             raise where(f"duplicate file_path (same image as frame {seen[key]})", i)
         seen[key] = i
@@ -238,7 +244,8 @@ def load_scene(
     c2w = torch.from_numpy(poses[keep]).float()
     cams = Cameras(c2w, *(torch.from_numpy(intr[:, k]).float() for k in range(4)), W, H)
     distortion_model = CAMERA_MODELS[next((m for m in models if m != "PINHOLE"), "PINHOLE")]
-    if distortion_model is not None and any(_distorts(per_frame[i]) for i in keep):
+    # An OPENCV lens without terms is a pinhole; a fisheye one still images the angle (r = θ).
+    if distortion_model == "fisheye" or (distortion_model == "opencv" and any(_distorts(per_frame[i]) for i in keep)):
         cams.distortion = torch.tensor([[per_frame[i].get(k, 0.0) for k in DISTORTION_KEYS] for i in keep])
         cams.distortion_model = distortion_model
         _check_invertible(cams, keep, where)
@@ -252,10 +259,25 @@ def load_scene(
 
 
 def _camera_model(source: dict, where: _Where, frame: int | None) -> str | None:
+    """The model ``source`` (top level or one frame) declares: its ``camera_model``, or OPENCV_FISHEYE for
+    instant-ngp's ``"is_fisheye": true``; None when it declares none."""
     model = source.get("camera_model")
     if model is not None and (not isinstance(model, str) or model not in CAMERA_MODELS):
         raise where(f"camera_model {model!r} is not supported (use one of {', '.join(CAMERA_MODELS)})", frame)
-    return model
+    fisheye = source.get("is_fisheye", False)
+    if not isinstance(fisheye, bool):
+        raise where(f"'is_fisheye' must be true or false, got {fisheye!r}", frame)
+    if fisheye and model not in (None, "OPENCV_FISHEYE"):
+        raise where(f"'is_fisheye' is true but camera_model is {model}", frame)
+    return "OPENCV_FISHEYE" if fisheye else model
+
+
+def _merge_intrinsics(top: dict, own: dict) -> dict:
+    """A frame's intrinsics (``own``) over the top level's, key by key, except that a frame giving an axis's
+    focal (``fl_*`` or ``camera_angle_*``) hides both of the top level's keys for that axis: as in instant-ngp,
+    a frame's ``camera_angle_x`` overrides a top-level ``fl_x``."""
+    hidden = {k for keys in _FOCAL_KEYS if any(k in own for k in keys) for k in keys}
+    return {**{k: v for k, v in top.items() if k not in hidden}, **own}
 
 
 def _distorts(intrinsics: dict) -> bool:
@@ -358,6 +380,8 @@ def _number(value, key: str, where: _Where, frame: int | None) -> float:
         raise where(f"'{key}' is out of range ({str(value)[:20]}..., {len(str(value))} digits)", frame) from None
     if not math.isfinite(number):
         raise where(f"'{key}' is not finite ({value})", frame)
+    if abs(number) > _FLOAT32_MAX:
+        raise where(f"'{key}' = {number:g} is beyond float32's range (magnitude up to {_FLOAT32_MAX:.3g})", frame)
     return number
 
 
@@ -384,15 +408,18 @@ def _check_poses(frames: list, where: _Where) -> np.ndarray:
     for i, frame in enumerate(frames):
         try:
             m = np.asarray(frame["transform_matrix"], dtype=np.float64)
+        except OverflowError:  # an integer beyond float range
+            raise where("transform_matrix holds an integer too large for a float", i) from None
         except (TypeError, ValueError):
             raise where("transform_matrix is not a numeric 4x4 matrix", i) from None
         if m.shape != (4, 4):
             raise where(f"transform_matrix has shape {m.shape}, expected (4, 4)", i)
         mats.append(m)
     poses = np.stack(mats)
-    bad = ~np.isfinite(poses).all(axis=(1, 2))
+    bad = ~(np.abs(poses) <= _FLOAT32_MAX).all(axis=(1, 2))  # NaN compares false
     if bad.any():
-        raise where("transform_matrix contains NaN or Inf", int(bad.argmax()))
+        raise where(f"transform_matrix contains NaN or Inf, or a value beyond float32's range (magnitude up to "
+                    f"{_FLOAT32_MAX:.3g})", int(bad.argmax()))
     row_dev = np.abs(poses[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1)
     if (row_dev > 1e-4).any():
         i = int((row_dev > 1e-4).argmax())
@@ -425,11 +452,27 @@ def _split_indices(fmt: str, split: str, n: int, holdout_every: int | None, wher
     return keep
 
 
+def _image_candidates(root: Path, file_path: str) -> list[Path]:
+    """Where a frame's image may be: its ``file_path``, or that with ``.png`` implied (NeRF-synthetic's)."""
+    return [root / file_path, root / (file_path + ".png")]
+
+
+def _find_image(root: Path, file_path: str) -> Path | None:
+    """The file a frame's ``file_path`` reads (None: neither candidate is there)."""
+    for path in _image_candidates(root, file_path):
+        try:
+            if path.is_file():
+                return path
+        except OSError:  # e.g. a name longer than the file system allows: no such image
+            continue
+    return None
+
+
 def _read_image(root: Path, file_path: str, where: _Where, frame: int) -> tuple[np.ndarray, Path]:
     """(H, W, 3 or 4) float32 in [0, 1]; 8- and 16-bit, grey, palette and RGB(A) alike."""
-    candidates = [root / file_path, root / (file_path + ".png")]
-    path = next((p for p in candidates if p.is_file()), None)
+    path = _find_image(root, file_path)
     if path is None:
+        candidates = _image_candidates(root, file_path)
         raise where("image not found (tried " + ", ".join(str(p) for p in candidates) + ")", frame, candidates[0])
     try:
         with Image.open(path) as im:
@@ -473,22 +516,32 @@ def _composite_downsampled(arr: np.ndarray, factor: int, resample: str) -> tuple
     return np.ascontiguousarray(rgb), np.ascontiguousarray(alpha)
 
 
+def _focal_from_angle(pixels: int, angle: float) -> float:
+    """The focal length in pixels of a field of view of ``angle`` radians across ``pixels``: inf for an angle
+    whose tangent vanishes (5e-324 had been a ZeroDivisionError), which the caller refuses as non-finite."""
+    half_width = math.tan(0.5 * angle)
+    return 0.5 * pixels / half_width if half_width > 0 else math.inf
+
+
 def _resolve_intrinsics(v: dict, W: int, H: int, where: _Where, frame: int) -> tuple[float, float, float, float]:
-    """fx, fy, cx, cy in pixels of the full-size image; fl_* wins over camera_angle_*."""
+    """fx, fy, cx, cy in pixels of the full-size image from ``_merge_intrinsics``'s ``v``: fl_* wins over
+    camera_angle_*, and fy is fx only where neither ``fl_y`` nor ``camera_angle_y`` is given."""
     for key, actual in (("w", W), ("h", H)):
         if key in v and round(v[key]) != actual:
             raise where(f"image is {W}x{H} but the intrinsics say {key}={v[key]:g}", frame)
     if "fl_x" in v:
         fx = v["fl_x"]
     else:
-        fx = 0.5 * W / math.tan(0.5 * v["camera_angle_x"])
+        fx = _focal_from_angle(W, v["camera_angle_x"])
     if "fl_y" in v:
         fy = v["fl_y"]
-    elif "camera_angle_y" in v and "fl_x" not in v:
-        fy = 0.5 * H / math.tan(0.5 * v["camera_angle_y"])
+    elif "camera_angle_y" in v:
+        fy = _focal_from_angle(H, v["camera_angle_y"])
     else:
         fy = fx
     for name, f in (("fx", fx), ("fy", fy)):
         if not math.isfinite(f) or f < _MIN_FOCAL:
             raise where(f"focal length {name} = {f:.3g} pixels is non-finite or near-singular", frame)
+        if f > _FLOAT32_MAX:  # e.g. a camera_angle_x of 1e-300 radians
+            raise where(f"focal length {name} = {f:.3g} pixels is beyond float32's range", frame)
     return fx, fy, v.get("cx", W / 2), v.get("cy", H / 2)

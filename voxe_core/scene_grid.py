@@ -253,7 +253,8 @@ def scene_frame(cameras: Cameras, radius: float = NERF_SYNTHETIC_RADIUS) -> torc
     the cameras look at. Up: the cameras' mean +y axis (phones are held
     upright) turned onto +z. Scale: the mean camera distance becomes ``radius``.
     Raises ``ValueError`` when the axes are (nearly) parallel (a forward-facing
-    capture has no centre to orbit) or the cameras sit on the centre.
+    capture has no centre to orbit), the centre lies behind most cameras (poses
+    in OpenCV's camera axes, which look down +z) or the cameras sit on the centre.
     """
     c2w = cameras.c2w.double()
     position, forward = c2w[:, :3, 3], -c2w[:, :3, 2]
@@ -269,6 +270,14 @@ def scene_frame(cameras: Cameras, radius: float = NERF_SYNTHETIC_RADIUS) -> torc
     distance = (position - centre).norm(dim=-1).mean()
     if not float(distance) > 1e-9:
         raise ValueError("the cameras sit on the point they look at; cannot scale the scene")
+    depth = ((centre - position) * forward).sum(-1)  # the centre's, along each optical axis
+    behind = int((depth <= 0).sum())
+    if behind > len(cameras) / 2:
+        raise ValueError(
+            f"the point the cameras' optical axes meet lies behind {behind} of {len(cameras)} cameras: their poses "
+            "likely hold OpenCV camera axes (x right, y down, looking down +z) where OpenGL's (y up, looking down -z) "
+            "are expected; multiply each camera-to-world matrix by diag(1, -1, -1, 1)"
+        )
     up = c2w[:, :3, 1].mean(0)
     up = up / up.norm().clamp_min(1e-12)
     rotation = _rotation_onto_z(up)
