@@ -64,6 +64,27 @@ class UploadLimit:
         await send({"type": "http.response.body", "body": body})
 
 
+class SecurityHeaders:
+    """No answer is sniffed as another type than it declares, nor framed by another site (ASGI middleware). The
+    UI's pages add their Content-Security-Policy themselves (api/ui.py)."""
+
+    HEADERS = [(b"x-content-type-options", b"nosniff"), (b"x-frame-options", b"DENY")]
+
+    def __init__(self, app):
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+
+        async def send_with_headers(message):
+            if message["type"] == "http.response.start":
+                message = {**message, "headers": [*message.get("headers", []), *self.HEADERS]}
+            await send(message)
+
+        await self.app(scope, receive, send_with_headers)
+
+
 class _TooLarge(HTTPException):
     """A body found too large while streaming. An HTTPException, so that FastAPI, reading the body for a route,
     answers it as the 413 it is (any other exception there becomes its 400 "error parsing the body")."""
@@ -136,6 +157,7 @@ def create_app(settings: Settings | None = None, migrate: bool = True) -> FastAP
     app.add_middleware(UploadLimit, max_bytes=settings.max_upload_bytes)
     app.add_exception_handler(RequestValidationError, validation_error)
     http_semantics.install(app)
+    app.add_middleware(SecurityHeaders)  # outermost: the 401, 404 and 413 of the middleware above get them too
     return app
 
 

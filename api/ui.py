@@ -3,36 +3,77 @@
 Nothing is fetched from the internet at run time (an offline GPU cluster gets the same pages): the UI is
 plain HTML + one JS module + CSS in ``api/static/``, and its third-party code is vendored there from pinned
 npm packages with their licences (``api/static/vendor/<package>-<version>/``).
+
+Both pages carry a Content-Security-Policy that allows their own origin only (and neither may be framed): the
+UI has no inline script and shows its media from ``blob:`` URLs; the few inline elements the vendored code
+needs, Swagger UI's start-up script and model-viewer's stylesheet, are allowed by their hashes.
 """
 
 from __future__ import annotations
 
+import base64
+import hashlib
+import re
 from pathlib import Path
 
 from fastapi import APIRouter, FastAPI
 from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import FileResponse, HTMLResponse
 from fastapi.staticfiles import StaticFiles
+from starlette.responses import Response
+from starlette.types import Scope
 
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 SWAGGER_UI = "/static/vendor/swagger-ui-dist-5.17.14"
+MODEL_VIEWER = STATIC_DIR / "vendor/model-viewer-3.5.0/model-viewer.min.js"
+# The app's own files revalidated on every load (an upgrade's app.js runs at once); the vendored ones sit in a
+# folder named by their version, so a URL never changes its content.
+REVALIDATE, IMMUTABLE = "no-cache", "public, max-age=31536000, immutable"
 
 router = APIRouter(include_in_schema=False)
 
 
-@router.get("/")
+def inline_sources(text: str, tag: str) -> str:
+    """CSP sources that allow exactly the inline ``<tag>`` elements (without attributes) in ``text``: their
+    contents' sha256 hashes."""
+    contents = re.findall(rf"<{tag}>(.*?)</{tag}>", text, flags=re.DOTALL)
+    return " ".join(f"'sha256-{base64.b64encode(hashlib.sha256(c.encode()).digest()).decode()}'" for c in contents)
+
+
+# blob: for the media app.js fetches with the key (model-viewer fetches its GLB's URL too, and makes data: and
+# blob: textures); the <style> element in model-viewer's shadow DOM template by its hash.
+UI_POLICY = (f"default-src 'self'; style-src 'self' {inline_sources(MODEL_VIEWER.read_text(), 'style')}; "
+             "img-src 'self' blob: data:; media-src 'self' blob:; connect-src 'self' blob:; object-src 'none'; "
+             "base-uri 'none'; frame-ancestors 'none'")
+
+
+@router.api_route("/", methods=["GET", "HEAD"])
 def index() -> FileResponse:
-    return FileResponse(STATIC_DIR / "index.html", headers={"Cache-Control": "no-cache"})
+    return FileResponse(STATIC_DIR / "index.html",
+                        headers={"Cache-Control": REVALIDATE, "Content-Security-Policy": UI_POLICY})
+
+
+class UiStaticFiles(StaticFiles):
+    """``/static`` with the Cache-Control above (a missing file raises its 404 in ``super()``)."""
+
+    async def get_response(self, path: str, scope: Scope) -> Response:
+        response = await super().get_response(path, scope)
+        response.headers["Cache-Control"] = IMMUTABLE if path.startswith("vendor/") else REVALIDATE
+        return response
 
 
 def mount(app: FastAPI) -> None:
     """Serve the UI, its static files and the vendored Swagger UI on ``app`` (built with ``docs_url=None``)."""
     app.include_router(router)
-    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+    app.mount("/static", UiStaticFiles(directory=STATIC_DIR), name="static")
+    docs = get_swagger_ui_html(openapi_url=app.openapi_url, title=f"{app.title} API",
+                               swagger_js_url=f"{SWAGGER_UI}/swagger-ui-bundle.js",
+                               swagger_css_url=f"{SWAGGER_UI}/swagger-ui.css",
+                               swagger_favicon_url=f"{SWAGGER_UI}/favicon-32x32.png",
+                               swagger_ui_parameters={"validatorUrl": None})  # its badge is an image from swagger.io
+    docs_policy = (f"default-src 'self'; script-src 'self' {inline_sources(docs.body.decode(), 'script')}; "
+                   "img-src 'self' data:; object-src 'none'; base-uri 'none'; frame-ancestors 'none'")
 
-    @app.get("/docs", include_in_schema=False)
+    @app.api_route("/docs", methods=["GET", "HEAD"], include_in_schema=False)
     def swagger_ui() -> HTMLResponse:
-        return get_swagger_ui_html(openapi_url=app.openapi_url, title=f"{app.title} API",
-                                   swagger_js_url=f"{SWAGGER_UI}/swagger-ui-bundle.js",
-                                   swagger_css_url=f"{SWAGGER_UI}/swagger-ui.css",
-                                   swagger_favicon_url=f"{SWAGGER_UI}/favicon-32x32.png")
+        return HTMLResponse(docs.body, headers={"Content-Security-Policy": docs_policy})

@@ -10,6 +10,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 from urllib.parse import urlparse
 
@@ -29,6 +30,35 @@ PARAMS = {  # tests/test_service_e2e.py's tiny local-edit parameters (8 frames: 
     "refine": {"iterations": 20, "views": 4, "render_size": 64, "rays_per_step": 2048},
     "export": {"views": 1, "view_size": 48, "turntable_frames": 4, "turntable_size": 48, "gif": False},
 }
+# Run in every page before its own scripts: collects the page's CSP violations (window.cspViolations) and its
+# fetch() requests (window.requests), and answers a request whose URL holds a key of sessionStorage "test.faults"
+# as a slow or failing server would: after `delay` ms, and/or with the given status, type and body (`once`: only
+# the first such request).
+PAGE_HOOKS = """
+window.cspViolations = [];
+document.addEventListener("securitypolicyviolation",
+                          (e) => cspViolations.push(`${e.violatedDirective} ${e.blockedURI}`));
+window.requests = [];
+const realFetch = window.fetch;
+window.fetch = async (resource, options = {}) => {
+  const url = resource instanceof Request ? resource.url : String(resource);
+  requests.push({ url, method: options.method || "GET", headers: options.headers || {} });
+  const faults = JSON.parse(sessionStorage.getItem("test.faults") || "{}");
+  const [part, fault] = Object.entries(faults).find(([key]) => url.includes(key)) || [];
+  if (fault?.once) { delete faults[part]; sessionStorage.setItem("test.faults", JSON.stringify(faults)); }
+  if (fault?.delay) {
+    await new Promise((resolve, reject) => {
+      setTimeout(resolve, fault.delay);
+      options.signal?.addEventListener("abort", () => reject(options.signal.reason));
+    });
+  }
+  if (fault?.status) {
+    return new Response(fault.body, { status: fault.status, statusText: fault.statusText,
+                                      headers: { "Content-Type": fault.type } });
+  }
+  return realFetch(resource, options);
+};
+"""
 
 
 @pytest.fixture(scope="module")
@@ -61,6 +91,7 @@ def browser():
         options.add_argument(flag)
     driver = webdriver.Chrome(options=options, service=DriverService(CHROMEDRIVER))
     driver.set_script_timeout(30)
+    driver.execute_cdp_cmd("Page.addScriptToEvaluateOnNewDocument", {"source": PAGE_HOOKS})
     try:
         yield driver
     finally:
@@ -77,6 +108,26 @@ def text(driver, selector: str) -> str:
     return driver.find_element("css selector", selector).text
 
 
+def faults(driver, spec: dict) -> None:
+    """From now on, answer the page's requests as ``spec`` says (PAGE_HOOKS); ``{}``: as the server does."""
+    driver.execute_script("sessionStorage.setItem('test.faults', JSON.stringify(arguments[0]))", spec)
+
+
+def requested(driver, part: str, method: str = "GET") -> list[dict]:
+    """The page's fetch() requests (since it loaded, or ``window.requests = []``) whose URL holds ``part``."""
+    return [r for r in driver.execute_script("return window.requests")
+            if part in r["url"] and r["method"] == method]
+
+
+def go(driver, hash_: str) -> None:
+    driver.execute_script("location.hash = arguments[0]", hash_)
+
+
+def shown_media(driver) -> list[str]:
+    return driver.execute_script("return ['#job-preview', '#job-mask', '#job-video', '#job-model']"
+                                 ".filter((s) => !document.querySelector(s).hidden)")
+
+
 def set_key(driver, svc, token: str) -> None:
     driver.get(f"{svc.base}/")
     field = driver.find_element("id", "api-key")
@@ -87,6 +138,9 @@ def set_key(driver, svc, token: str) -> None:
 
 
 def test_upload_edit_and_watch_a_local_edit_to_its_video_and_3d_view(live, browser):
+    from selenium.webdriver import ActionChains
+    from selenium.webdriver.support.select import Select
+
     svc, token, archive = live
     driver = browser
     wait = lambda predicate, what, timeout=240: wait_until(predicate, timeout, what=what,  # noqa: E731
@@ -104,14 +158,22 @@ def test_upload_edit_and_watch_a_local_edit_to_its_video_and_3d_view(live, brows
     driver.find_element("css selector", "#upload-form button").click()
     wait(lambda: "422" in text(driver, '[data-error-for="upload"]'), "the upload's 422", 30)
 
-    # The real scene, with upload progress, until its ingest is done and it is offered for editing.
+    # The real scene, with upload progress, until its ingest is done and it is offered for editing. Two clicks
+    # upload it once; a proxy's 502 page on the first look at the new scene is shown, and the look retried.
     driver.get(f"{svc.base}/")
+    faults(driver, {"/v1/scenes/": {"once": True, "status": 502, "statusText": "Bad Gateway", "type": "text/html",
+                                    "body": "<html><body><h1>502 Bad Gateway</h1></body></html>"}})
     driver.find_element("id", "upload-archive").send_keys(str(archive))
-    driver.find_element("css selector", "#upload-form button").click()
-    wait(lambda: "ready" in text(driver, "#upload-status"), "the scene to be ready")
+    for _ in range(2):  # each click where the button is now (the progress bar, once shown, moves it down)
+        driver.find_element("css selector", "#upload-form button").click()
+    wait(lambda: "502: Bad Gateway; retrying" in text(driver, '[data-error-for="upload"]'), "the failed look", 30)
+    wait(lambda: "ready" in text(driver, "#upload-status"), "the scene to be ready", 60)
+    assert not text(driver, '[data-error-for="upload"]')
     assert driver.execute_script("return document.querySelector('#upload-progress').value") == 1
-    scene_id = driver.execute_script("return document.querySelector('#job-scene').value")
-    assert scene_id
+    scene_id = wait(lambda: driver.execute_script("return document.querySelector('#job-scene').value"),
+                    "the scene offered for editing", 20)
+    with httpx.Client(base_url=svc.base, headers={"Authorization": f"Bearer {token}"}) as client:
+        assert [s["id"] for s in client.get("/v1/scenes").json()["items"]] == [scene_id]
 
     # The API's validation shown beside the field it names: an empty prompt, an iterations count below 0.
     driver.find_element("id", "job-iterations").send_keys("-3")
@@ -128,9 +190,12 @@ def test_upload_edit_and_watch_a_local_edit_to_its_video_and_3d_view(live, brows
     driver.find_element("id", "job-iterations").clear()
     driver.find_element("css selector", "#job-form details summary").click()
     driver.find_element("id", "job-params").send_keys(json.dumps(PARAMS))
-    driver.find_element("css selector", "#job-form button").click()
+    driver.execute_script("window.requests = []")
+    ActionChains(driver).double_click(driver.find_element("css selector", "#job-form button")).perform()
     wait(lambda: "#/jobs/" in driver.current_url, "the job page", 20)
     job_id = driver.current_url.rsplit("/", 1)[1]
+    posts = requested(driver, "/v1/jobs", "POST")  # one job for a double click, sent with an Idempotency-Key
+    assert len(posts) == 1 and posts[0]["headers"].get("Idempotency-Key"), posts
     assert driver.find_element("id", "job").is_displayed() and not driver.find_element("id", "home").is_displayed()
 
     # Progress advances on the page without a reload: the event stream drives it.
@@ -164,17 +229,141 @@ def test_upload_edit_and_watch_a_local_edit_to_its_video_and_3d_view(live, brows
         assert client.get(f"/v1/jobs/{job_id}").json()["scene_id"] == scene_id
     assert {"turntable.mp4", "mesh.glb", "mask_overlay.png", "edited_grid.safetensors"} <= listed
     screenshot(driver, "job_media")
+    assert driver.execute_script("return window.cspViolations") == []  # the page's policy lets it all work
+    leave_and_revisit_job_pages(driver, svc, token, scene_id, job_id, wait)
 
     # The job list shows it, and filtering by another state hides it.
     driver.get(f"{svc.base}/#/")
     wait(lambda: driver.find_elements("css selector", f'tr[data-job="{job_id}"]'), "the job in the list", 20)
     assert "100 %" in text(driver, f'tr[data-job="{job_id}"]')
-    from selenium.webdriver.support.select import Select
-
     Select(driver.find_element("id", "filter-state")).select_by_visible_text("failed")
     wait(lambda: not driver.find_elements("css selector", f'tr[data-job="{job_id}"]'), "the filter", 20)
     screenshot(driver, "home")
     assert same_origin_only(driver, svc)
+
+
+def leave_and_revisit_job_pages(driver, svc, token: str, scene_id: str, done_id: str, wait) -> None:
+    """Jobs that fail to load, media that fail, and switching pages before one has loaded, on the succeeded job
+    ``done_id`` and a second one made here (long, and canceled from its page)."""
+    with httpx.Client(base_url=svc.base, headers={"Authorization": f"Bearer {token}"}) as client:
+        other_id = client.post("/v1/jobs", json={"scene_id": scene_id, "prompt": "a mic made of silver",
+                                                  "params": {**PARAMS, "iterations": 1000}}).json()["id"]
+        job = lambda job_id: client.get(f"/v1/jobs/{job_id}").json()  # noqa: E731
+
+        # A job id that names no job (and needs encoding) after a running job: its 404 on an empty page, Cancel
+        # disabled, so that it cannot cancel the job shown before; that job's own Cancel cancels it.
+        go(driver, f"#/jobs/{other_id}")
+        wait(lambda: driver.find_element("id", "job-cancel").is_enabled(), "Cancel for the other job", 20)
+        go(driver, "#/jobs/no such?job")
+        wait(lambda: "404" in text(driver, '[data-error-for="stream"]'), "the unknown job's 404", 20)
+        assert requested(driver, "/v1/jobs/no%20such%3Fjob")
+        assert not (text(driver, "#job-title") or text(driver, "#job-meta") or text(driver, "#job-state"))
+        assert not driver.find_element("id", "job-cancel").is_enabled()
+        driver.find_element("id", "job-cancel").click()
+        time.sleep(0.5)
+        assert not job(other_id)["cancel_requested"]
+        go(driver, f"#/jobs/{other_id}")
+        wait(lambda: driver.find_element("id", "job-cancel").is_enabled(), "Cancel for the other job", 20)
+        driver.find_element("id", "job-cancel").click()
+        wait(lambda: job(other_id)["cancel_requested"], "the other job's cancel", 20)
+        assert not job(done_id)["cancel_requested"]
+
+    # Back on the succeeded job: its video, mask and 3D view again.
+    go(driver, f"#/jobs/{done_id}")
+    wait(lambda: set(shown_media(driver)) == {"#job-preview", "#job-mask", "#job-video", "#job-model"},
+         "the media again", 30)
+
+    # Leaving a job page that is still loading (its artifact list slow): nothing of it reaches the next page
+    # (its artifacts, media and event stream).
+    faults(driver, {f"/v1/jobs/{done_id}/artifacts": {"delay": 1500}})
+    go(driver, f"#/jobs/{other_id}")
+    wait(lambda: other_id in text(driver, "#job-meta"), "the other job's page", 20)
+    driver.execute_script("window.requests = []")
+    go(driver, f"#/jobs/{done_id}")
+    time.sleep(0.3)
+    go(driver, f"#/jobs/{other_id}")
+    time.sleep(2)
+    assert other_id in text(driver, "#job-meta")
+    assert "turntable.mp4" not in text(driver, "#job-artifacts") and set(shown_media(driver)) <= {"#job-preview"}
+    assert not requested(driver, f"/v1/jobs/{done_id}/events")
+
+    # A file of the job gone from storage: its preview's 404 is shown beside the media, and the event stream goes
+    # on to the job's end; a download that fails says so.
+    faults(driver, {"/artifacts/preview.png": {"status": 404, "type": "application/json",
+                                                "body": json.dumps({"detail": "artifact missing from storage"})},
+                    "/artifacts/edited_grid.safetensors": {"status": 404, "type": "application/json",
+                                                           "body": json.dumps({"detail": "artifact gone"})}})
+    go(driver, f"#/jobs/{done_id}")
+    wait(lambda: driver.execute_script("return document.querySelector('#job-events li:last-child')?.dataset.event")
+         == "succeeded", "the stream to the job's end", 20)
+    assert "404: artifact missing from storage" in text(driver, '[data-error-for="media"]')
+    assert not text(driver, '[data-error-for="stream"]')
+    driver.find_element("css selector", 'a[data-artifact="edited_grid.safetensors"]').click()
+    wait(lambda: "404: artifact gone" in text(driver, '[data-error-for="artifacts"]'), "the download's 404", 20)
+
+    # Going on before a page has loaded: the job page left loading opens no event stream, and the home page left
+    # loading (its scene list slow) does not poll the job list on the job page shown next. There, the stream's
+    # 401 (the key revoked meanwhile) ends it, saying so.
+    faults(driver, {f"/v1/jobs/{other_id}/artifacts": {"delay": 1500}, "/v1/scenes?": {"delay": 1500},
+                    "/events": {"status": 401, "type": "application/json",
+                                "body": json.dumps({"detail": "API key revoked"})}})
+    driver.execute_script("window.requests = []")
+    go(driver, f"#/jobs/{other_id}")
+    time.sleep(0.3)
+    go(driver, "#/")
+    time.sleep(0.3)
+    go(driver, f"#/jobs/{done_id}")
+    time.sleep(5)
+    assert not requested(driver, f"/v1/jobs/{other_id}/events") and not requested(driver, "/v1/jobs?")
+    assert len(requested(driver, f"/v1/jobs/{done_id}/events")) == 1
+    assert "401: API key revoked; not reconnecting" in text(driver, '[data-error-for="stream"]')
+    faults(driver, {})
+
+
+def test_errors_of_any_shape_are_shown_and_unreadable_input_is_not_sent(live, browser):
+    svc, token, _archive = live
+    driver = browser
+    error = lambda name: text(driver, f'[data-error-for="{name}"]')  # noqa: E731
+    # A key that an HTTP header cannot carry is refused where it is entered (every request would throw on it).
+    driver.get(f"{svc.base}/")
+    driver.find_element("id", "api-key").send_keys("voxe_abc…")
+    driver.find_element("css selector", "#key-form button").click()
+    assert "not used" in text(driver, "#key-state")
+    assert driver.execute_script("return sessionStorage.getItem('voxe.apiKey')") in (None, token)
+    set_key(driver, svc, token)
+
+    # Error answers that are no JSON (a plain-text 500, a proxy's HTML 502): their status line.
+    for status, reason, kind, body in ((500, "Internal Server Error", "text/plain", "Internal Server Error"),
+                                       (502, "Bad Gateway", "text/html", "<html><h1>502 Bad Gateway</h1></html>")):
+        faults(driver, {"/v1/jobs?": {"status": status, "statusText": reason, "type": kind, "body": body}})
+        driver.refresh()
+        wait_until(lambda: error("list"), 10, what="the job list's error")
+        assert error("list") == f"{status}: {reason}"
+    faults(driver, {})
+    driver.refresh()
+
+    # What the form cannot read is refused before anything is sent: a number typed wrong, parameters that are no
+    # JSON object.
+    driver.find_element("id", "job-prompt").send_keys("a mic made of gold")
+    driver.find_element("id", "job-iterations").send_keys("2e")
+    driver.execute_script("window.requests = []")
+    driver.find_element("css selector", "#job-form button").click()
+    wait_until(lambda: error("params.iterations"), 10, what="the refused iterations")
+    assert error("params.iterations") == "not a number"
+    driver.find_element("id", "job-iterations").clear()
+    driver.find_element("id", "job-iterations").send_keys("10")
+    driver.find_element("css selector", "#job-form details summary").click()
+    driver.find_element("id", "job-params").send_keys("5")
+    driver.find_element("css selector", "#job-form button").click()
+    wait_until(lambda: "not a JSON object" in error("params"), 10, what="the refused parameters")
+    assert not requested(driver, "/v1/jobs", "POST")
+
+    # The API's 422 on keys typed into the parameters, one with a quote: both shown beside the parameters.
+    driver.find_element("id", "job-params").clear()
+    driver.find_element("id", "job-params").send_keys('{"bad\\"key": 1, "downsampel": 4}')
+    driver.find_element("css selector", "#job-form button").click()
+    wait_until(lambda: "downsampel" in error("params"), 10, what="the 422 beside the parameters")
+    assert 'params.bad"key' in error("params")
 
 
 def test_docs_render_from_the_vendored_swagger_ui(live, browser):
@@ -184,6 +373,7 @@ def test_docs_render_from_the_vendored_swagger_ui(live, browser):
     screenshot(browser, "docs")
     assert "/v1/jobs" in browser.page_source
     assert same_origin_only(browser, svc)
+    assert browser.execute_script("return window.cspViolations") == []
     assert httpx.get(f"{svc.base}/redoc").status_code == 404  # ReDoc would come from a CDN: not served
 
 

@@ -17,13 +17,27 @@ function authHeaders(extra = {}) {
 }
 
 /** A JSON request; throws an ApiError carrying the response's `detail` on a non-2xx answer. */
-async function api(path, { method = "GET", body } = {}) {
-  const headers = authHeaders(body === undefined ? {} : { "Content-Type": "application/json" });
-  const response = await fetch(path, { method, headers, body: body === undefined ? undefined : JSON.stringify(body) });
+async function api(path, { method = "GET", body, headers = {}, signal } = {}) {
+  const sent = authHeaders(body === undefined ? headers : { ...headers, "Content-Type": "application/json" });
+  const response = await fetch(path, { method, signal, headers: sent,
+                                       body: body === undefined ? undefined : JSON.stringify(body) });
+  if (!response.ok) throw await responseError(response);
   const text = await response.text();
-  const data = text ? JSON.parse(text) : null;
-  if (!response.ok) throw new ApiError(response.status, data?.detail ?? text);
-  return data;
+  return text ? JSON.parse(text) : null;
+}
+
+/** The error of a non-2xx answer: FastAPI's `detail` from a JSON body, else the status text (a plain-text 500 or
+ * a proxy's HTML 502 page says nothing more useful, and is no JSON to parse). */
+function apiError(status, statusText, contentType, text) {
+  let detail = null;
+  if (/^application\/([\w.-]+\+)?json\b/i.test(contentType || "")) {
+    try { detail = JSON.parse(text).detail; } catch { /* a broken JSON body: the status text below */ }
+  }
+  return new ApiError(status, detail ?? (statusText || "error"));
+}
+
+async function responseError(response) {
+  return apiError(response.status, response.statusText, response.headers.get("Content-Type"), await response.text());
 }
 
 class ApiError extends Error {
@@ -35,38 +49,69 @@ class ApiError extends Error {
 }
 
 /** A same-origin URL for a protected file: a blob: URL fetched with the key. */
-async function blobUrl(path) {
-  const response = await fetch(path, { headers: authHeaders(), cache: "no-store" });
-  if (!response.ok) throw new ApiError(response.status, await response.text());
+async function blobUrl(path, signal) {
+  const response = await fetch(path, { headers: authHeaders(), cache: "no-store", signal });
+  if (!response.ok) throw await responseError(response);
   return URL.createObjectURL(await response.blob());
 }
+
+/** Resolves after `ms`, or as soon as `signal` is aborted (the page changed). */
+function sleep(ms, signal) {
+  return new Promise((resolve) => {
+    const done = () => { clearTimeout(timer); signal.removeEventListener("abort", done); resolve(); };
+    const timer = setTimeout(done, ms);
+    signal.addEventListener("abort", done);
+  });
+}
+
+/** A random Idempotency-Key (crypto.randomUUID() exists only on HTTPS and localhost; this works on plain HTTP). */
+function randomKey() {
+  return Array.from(crypto.getRandomValues(new Uint8Array(16)), (b) => b.toString(16).padStart(2, "0")).join("");
+}
+
+/** The Idempotency-Key of a form's submission. A resubmission of the unchanged form sends the same one, so a
+ * double submit or a retry after a lost answer gets what the first request created instead of a second one; an
+ * edit of the form, or a submission that succeeded, starts a new one. */
+function submissionKey(form) {
+  let key = null;
+  form.addEventListener("input", () => { key = null; });
+  return { current: () => (key ??= randomKey()), succeeded: () => { key = null; } };
+}
+
+const jobPath = (jobId) => `/v1/jobs/${encodeURIComponent(jobId)}`;
 
 // ------------------------------------------------------------------ errors next to their fields
 function clearErrors(form) {
   form.querySelectorAll(".error").forEach((el) => { el.textContent = ""; });
 }
 
+/** The element that shows the errors of field `name` (any text: a 422 may name a key typed by the user). */
+const errorSlot = (name) => document.querySelector(`[data-error-for="${CSS.escape(name)}"]`);
+
 function showError(name, message) {
-  const el = document.querySelector(`[data-error-for="${name}"]`);
-  if (el) el.textContent = message;
-  return Boolean(el);
+  errorSlot(name).textContent = message;
 }
 
-/** FastAPI's 422 list ({loc, msg}) shown beside each named field; anything else beside ``fallback``. */
+function errorText(error) {
+  return error instanceof ApiError ? `${error.status}: ${error.message}` : String(error);
+}
+
+/** FastAPI's 422 list ({loc, msg}) shown beside each named field, all of a field's together; anything else
+ * beside ``fallback``. */
 function showApiError(error, fallback) {
   if (!(error instanceof ApiError) || !Array.isArray(error.detail)) {
-    showError(fallback, error instanceof ApiError ? `${error.status}: ${error.message}` : String(error));
+    showError(fallback, errorText(error));
     return;
   }
-  const unplaced = [];
+  const messages = new Map();  // field -> its messages
   for (const item of error.detail) {
     const loc = (item.loc || []).filter((part) => part !== "body");
     const text = `${item.msg}${loc.length ? ` (${loc.join(".")})` : ""}`;
-    let placed = false;
-    for (let n = loc.length; n > 0 && !placed; n--) placed = showError(loc.slice(0, n).join("."), text);
-    if (!placed) unplaced.push(text);
+    const prefixes = loc.map((_, i) => loc.slice(0, loc.length - i).join("."));  // the longest first
+    const field = prefixes.find((name) => errorSlot(name)) ?? fallback;
+    messages.set(field, [...(messages.get(field) || []), text]);
   }
-  if (unplaced.length) showError(fallback, unplaced.join("; "));
+  for (const [field, texts] of messages) showError(field, texts.join("; "));
 }
 
 // ------------------------------------------------------------------ API key
@@ -78,6 +123,10 @@ function initKey() {
   $("#key-form").addEventListener("submit", (event) => {
     event.preventDefault();
     const value = input.value.trim();
+    if (/[^\x21-\x7e]/.test(value)) {  // an HTTP header cannot carry it (fetch and XMLHttpRequest would throw)
+      $("#key-state").textContent = "not used: a key holds only ASCII letters, digits and punctuation";
+      return;
+    }
     if (value) sessionStorage.setItem(KEY_STORE, value); else sessionStorage.removeItem(KEY_STORE);
     describe();
     route();
@@ -87,6 +136,8 @@ function initKey() {
 // ------------------------------------------------------------------ upload (XMLHttpRequest: upload progress)
 function initUpload() {
   const form = $("#upload-form");
+  const button = form.querySelector('button[type="submit"]');
+  const idempotency = submissionKey(form);
   form.addEventListener("submit", (event) => {
     event.preventDefault();
     clearErrors(form);
@@ -99,130 +150,193 @@ function initUpload() {
     if (!archive && !files.length) { showError("upload", "choose a zip, or the dataset's files"); return; }
     const bar = $("#upload-progress");
     const status = $("#upload-status");
+    const { signal } = page;  // the scene is watched on this page only
     bar.hidden = false;
     bar.value = 0;
+    button.disabled = true;  // until the upload is answered: a second click would upload it twice
     const xhr = new XMLHttpRequest();
     xhr.open("POST", "/v1/scenes");
-    for (const [name, value] of Object.entries(authHeaders())) xhr.setRequestHeader(name, value);
+    for (const [name, value] of Object.entries(authHeaders({ "Idempotency-Key": idempotency.current() }))) {
+      xhr.setRequestHeader(name, value);
+    }
     xhr.upload.onprogress = (e) => {
       if (e.lengthComputable) { bar.value = e.loaded / e.total; status.textContent = `${Math.round(100 * bar.value)} % sent`; }
     };
+    xhr.onloadend = () => { button.disabled = false; };
     xhr.onerror = () => showError("upload", "the upload failed (network error)");
     xhr.onload = async () => {
-      let body = null;
-      try { body = JSON.parse(xhr.responseText); } catch { /* not JSON: shown as text below */ }
       if (xhr.status >= 400) {
-        showApiError(new ApiError(xhr.status, body?.detail ?? xhr.responseText), "upload");
+        const error = apiError(xhr.status, xhr.statusText, xhr.getResponseHeader("Content-Type"), xhr.responseText);
+        showApiError(error, "upload");
         status.textContent = "";
         return;
       }
+      idempotency.succeeded();
+      const body = JSON.parse(xhr.responseText);
       bar.value = 1;
       status.textContent = `stored as ${body.id}; ${body.state}…`;
-      await waitForScene(body.id, status);
+      await waitForScene(body.id, status, signal);
     };
     xhr.send(data);
   });
 }
 
-/** Poll a new scene until its ingest is done; a failed ingest's reason goes beside the upload field. */
-async function waitForScene(sceneId, status) {
-  for (;;) {
-    const scene = await api(`/v1/scenes/${sceneId}`);
-    if (scene.state !== "processing") {
-      status.textContent = `scene ${scene.name} (${scene.id}): ${scene.state}`;
-      if (scene.state === "failed") showError("upload", scene.error || "the scene could not be decoded");
-      await loadScenes(scene.state === "ready" ? scene.id : undefined);
-      return;
+/** Poll a new scene until its ingest is done; a failed ingest's reason goes beside the upload field. A failed
+ * poll is shown there too and retried, less often each time, until the page changes. */
+async function waitForScene(sceneId, status, signal) {
+  for (let failures = 0; !signal.aborted;) {
+    try {
+      const scene = await api(`/v1/scenes/${encodeURIComponent(sceneId)}`, { signal });
+      showError("upload", "");
+      failures = 0;
+      if (scene.state !== "processing") {
+        status.textContent = `scene ${scene.name} (${scene.id}): ${scene.state}`;
+        if (scene.state === "failed") showError("upload", scene.error || "the scene could not be decoded");
+        await loadScenes(signal, scene.state === "ready" ? scene.id : undefined);
+        return;
+      }
+    } catch (error) {
+      if (signal.aborted) return;
+      failures += 1;
+      showError("upload", `checking scene ${sceneId}: ${errorText(error)}; retrying`);
     }
-    await new Promise((resolve) => setTimeout(resolve, 1000));
+    await sleep(Math.min(1000 * 2 ** failures, 30_000), signal);
   }
 }
 
-async function loadScenes(selected) {
-  const page = await api("/v1/scenes?limit=200");
-  const ready = page.items.filter((s) => s.state === "ready");
-  const option = (s) => `<option value="${s.id}">${escapeHtml(s.name)} (${s.id})</option>`;
+async function loadScenes(signal, selected) {
+  const scenes = await api("/v1/scenes?limit=200", { signal });
+  const ready = scenes.items.filter((s) => s.state === "ready");
+  const option = (s) => `<option value="${escapeHtml(s.id)}">${escapeHtml(s.name)} (${escapeHtml(s.id)})</option>`;
   const jobScene = $("#job-scene");
   const keep = selected || jobScene.value;
   jobScene.innerHTML = ready.map(option).join("");
   if (keep) jobScene.value = keep;
   const filter = $("#filter-scene");
   const filterValue = filter.value;
-  filter.innerHTML = `<option value="">all</option>${page.items.map(option).join("")}`;
+  filter.innerHTML = `<option value="">all</option>${scenes.items.map(option).join("")}`;
   filter.value = filterValue;
 }
 
 // ------------------------------------------------------------------ submit an edit
 function initJobForm() {
   const form = $("#job-form");
+  const button = form.querySelector('button[type="submit"]');
+  const idempotency = submissionKey(form);
   form.addEventListener("submit", async (event) => {
     event.preventDefault();
     clearErrors(form);
-    let params = {};
-    const extra = $("#job-params").value.trim();
-    if (extra) {
-      try { params = JSON.parse(extra); } catch (e) { showError("params", `not JSON: ${e.message}`); return; }
-    }
-    for (const [field, id] of [["iterations", "#job-iterations"], ["render_size", "#job-render-size"]]) {
-      if ($(id).value !== "") params[field] = Number($(id).value);
-    }
-    const words = $("#job-edit-words").value.split(",").map((w) => w.trim()).filter(Boolean);
-    const body = { scene_id: $("#job-scene").value, prompt: $("#job-prompt").value,
-                   mode: form.querySelector('input[name="mode"]:checked').value, edit_words: words, params };
+    const body = jobRequest(form);
+    if (!body) return;
+    button.disabled = true;  // until answered: a double click would create the job twice
     try {
-      const job = await api("/v1/jobs", { method: "POST", body });
-      location.hash = `#/jobs/${job.id}`;
+      const headers = { "Idempotency-Key": idempotency.current() };
+      const job = await api("/v1/jobs", { method: "POST", body, headers });
+      idempotency.succeeded();
+      location.hash = `#/jobs/${encodeURIComponent(job.id)}`;
     } catch (error) {
       showApiError(error, "job");
+    } finally {
+      button.disabled = false;
     }
   });
 }
 
-// ------------------------------------------------------------------ job list
-function initJobList() {
-  $("#filter-scene").addEventListener("change", loadJobs);
-  $("#filter-state").addEventListener("change", loadJobs);
+/** The POST /v1/jobs body from the form; null (the reasons shown beside the fields) when a field cannot be read. */
+function jobRequest(form) {
+  let params = {};
+  const extra = $("#job-params").value.trim();
+  if (extra) {
+    try { params = JSON.parse(extra); } catch (e) { showError("params", `not JSON: ${e.message}`); return null; }
+    if (typeof params !== "object" || params === null || Array.isArray(params)) {
+      showError("params", 'not a JSON object: write {"name": value, …}');
+      return null;
+    }
+  }
+  let readable = true;
+  for (const [field, id] of [["iterations", "#job-iterations"], ["render_size", "#job-render-size"]]) {
+    const input = $(id);
+    if (input.validity.badInput) {  // its value reads "" as if left empty: the paper's value would run instead
+      showError(`params.${field}`, "not a number");
+      readable = false;
+    } else if (input.value !== "") {
+      params[field] = Number(input.value);
+    }
+  }
+  if (!readable) return null;
+  const words = $("#job-edit-words").value.split(",").map((w) => w.trim()).filter(Boolean);
+  return { scene_id: $("#job-scene").value, prompt: $("#job-prompt").value,
+           mode: form.querySelector('input[name="mode"]:checked').value, edit_words: words, params };
 }
 
-async function loadJobs() {
+// ------------------------------------------------------------------ job list
+function initJobList() {
+  $("#filter-scene").addEventListener("change", () => loadJobs(page.signal));
+  $("#filter-state").addEventListener("change", () => loadJobs(page.signal));
+}
+
+async function loadJobs(signal) {
   const query = new URLSearchParams({ limit: "50" });
   if ($("#filter-scene").value) query.set("scene_id", $("#filter-scene").value);
   if ($("#filter-state").value) query.set("state", $("#filter-state").value);
-  showError("list", "");
   try {
-    const page = await api(`/v1/jobs?${query}`);
-    $("#job-list tbody").innerHTML = page.items.map((job) => `
-      <tr data-job="${job.id}">
-        <td><a href="#/jobs/${job.id}">${job.id}</a></td><td>${escapeHtml(job.prompt)}</td><td>${job.mode}</td>
+    const jobs = await api(`/v1/jobs?${query}`, { signal });
+    showError("list", "");
+    $("#job-list tbody").innerHTML = jobs.items.map((job) => `
+      <tr data-job="${escapeHtml(job.id)}">
+        <td><a href="#/jobs/${escapeHtml(encodeURIComponent(job.id))}">${escapeHtml(job.id)}</a></td>
+        <td>${escapeHtml(job.prompt)}</td><td>${job.mode}</td>
         <td class="state-${job.state}">${job.state}</td>
         <td><progress max="1" value="${job.overall_progress}"></progress> ${Math.round(100 * job.overall_progress)} %</td>
         <td title="${job.created_at}">${age(job.created_at)}</td>
       </tr>`).join("");
   } catch (error) {
-    showApiError(error, "list");
+    if (!signal.aborted) showApiError(error, "list");
   }
 }
 
 // ------------------------------------------------------------------ job page
-let currentStream = null;  // AbortController of the open event stream
+const JOB_MEDIA = ["#job-preview", "#job-mask", "#job-video", "#job-model"];
 
-async function showJob(jobId) {
-  const job = await api(`/v1/jobs/${jobId}`);
+/** Empty the job page before a job loads into it: nothing of the job shown before stays, its Cancel least of all. */
+function clearJobView() {
+  for (const id of ["#job-title", "#job-meta", "#job-state", "#job-stage", "#job-stage-text", "#job-overall-text",
+                    "#job-eta", "#job-losses", "#job-message", "#job-artifacts", "#job-events"]) $(id).textContent = "";
+  $("#job-stage-progress").value = 0;
+  $("#job-overall-progress").value = 0;
+  $("#job-cancel").disabled = true;
+  $("#job-cancel").onclick = null;
+  for (const name of ["cancel", "stream", "media", "artifacts"]) showError(name, "");
+  for (const id of JOB_MEDIA) hideMedia($(id));
+}
+
+async function showJob(jobId, signal) {
+  const job = await api(jobPath(jobId), { signal });
   $("#job-title").textContent = `“${job.prompt}”`;
   $("#job-meta").textContent = `job ${job.id} · ${job.mode}${job.edit_words.length ? ` (${job.edit_words.join(", ")})` : ""}`
     + ` · scene ${job.scene_id} · model ${job.models.sds ?? "?"} · ${job.device}`;
-  $("#job-events").innerHTML = "";
-  $("#job-artifacts").innerHTML = "";
-  for (const id of ["#job-preview", "#job-mask", "#job-video", "#job-model"]) $(id).hidden = true;
-  renderProgress(job);
   $("#job-cancel").onclick = async () => {
     showError("cancel", "");
-    try { renderProgress(await api(`/v1/jobs/${jobId}/cancel`, { method: "POST" })); }
-    catch (error) { showApiError(error, "cancel"); }
+    try { renderProgress(await api(`${jobPath(jobId)}/cancel`, { method: "POST", signal })); }
+    catch (error) { if (!signal.aborted) showApiError(error, "cancel"); }
   };
-  if (job.preview_url) await refreshPreview(job.preview_url);
-  await refreshArtifacts(jobId);
-  followEvents(jobId);
+  renderProgress(job);
+  await refreshMedia(async () => {
+    if (job.preview_url) await refreshPreview(job.preview_url, signal);
+    await refreshArtifacts(jobId, signal);
+  }, signal);
+  followEvents(jobId, signal);
+}
+
+/** Run a refresh of the media or artifacts; its failure (a file gone, say) is shown beside the media, leaving the
+ * rest of the page and the event stream going. */
+async function refreshMedia(refresh, signal) {
+  try {
+    await refresh();
+  } catch (error) {
+    if (signal.aborted) throw error;
+    showApiError(error, "media");
+  }
 }
 
 function renderProgress(p) {
@@ -241,17 +355,31 @@ function renderProgress(p) {
   $("#job-cancel").disabled = TERMINAL.has(p.state);
 }
 
-async function refreshPreview(url) {
-  const img = $("#job-preview");
-  const old = img.src;
-  img.src = await blobUrl(url);
-  img.hidden = false;
-  if (old.startsWith("blob:")) URL.revokeObjectURL(old);
+/** Show a file in an <img>, <video> or <model-viewer> (through the attribute, which all three read). */
+function setMedia(el, url) {
+  const old = el.getAttribute("src");
+  el.setAttribute("src", url);
+  el.hidden = false;
+  if (old?.startsWith("blob:")) URL.revokeObjectURL(old);
+}
+
+/** Hide a media element and free its file, forgetting which one it was (so that showMedia shows it again). */
+function hideMedia(el) {
+  const old = el.getAttribute("src");
+  el.removeAttribute("src");
+  if (el instanceof HTMLMediaElement) el.load();  // a hidden <video> would go on playing its old file
+  if (old?.startsWith("blob:")) URL.revokeObjectURL(old);
+  delete el.dataset.sha;
+  el.hidden = true;
+}
+
+async function refreshPreview(url, signal) {
+  setMedia($("#job-preview"), await blobUrl(url, signal));
 }
 
 /** Every artifact as a download (fetched with the key, saved from a blob: URL); the media shown inline. */
-async function refreshArtifacts(jobId) {
-  const artifacts = await api(`/v1/jobs/${jobId}/artifacts`);
+async function refreshArtifacts(jobId, signal) {
+  const artifacts = await api(`${jobPath(jobId)}/artifacts`, { signal });
   const list = $("#job-artifacts");
   list.innerHTML = "";
   for (const artifact of artifacts) {
@@ -262,69 +390,84 @@ async function refreshArtifacts(jobId) {
     link.dataset.artifact = artifact.name;
     link.onclick = async (event) => {
       event.preventDefault();
-      const save = document.createElement("a");
-      save.href = await blobUrl(artifact.url);
-      save.download = artifact.name;
-      save.click();
-      setTimeout(() => URL.revokeObjectURL(save.href), 60_000);
+      showError("artifacts", "");
+      try {
+        const save = document.createElement("a");
+        save.href = await blobUrl(artifact.url, signal);
+        save.download = artifact.name;
+        save.click();
+        setTimeout(() => URL.revokeObjectURL(save.href), 60_000);
+      } catch (error) {
+        if (!signal.aborted) showError("artifacts", `${artifact.name}: ${errorText(error)}`);
+      }
     };
     item.append(link, ` ${bytes(artifact.size)} · ${artifact.kind} · sha256 ${artifact.sha256.slice(0, 12)}…`);
     list.append(item);
   }
   const byName = Object.fromEntries(artifacts.map((a) => [a.name, a]));
-  await showMedia(byName["turntable.mp4"], "#job-video");
-  await showMedia(byName["mesh.glb"], "#job-model");
-  await showMedia(byName["mask_overlay.png"], "#job-mask");
+  await showMedia(byName["turntable.mp4"], "#job-video", signal);
+  await showMedia(byName["mesh.glb"], "#job-model", signal);
+  await showMedia(byName["mask_overlay.png"], "#job-mask", signal);
 }
 
-async function showMedia(artifact, selector) {
+async function showMedia(artifact, selector, signal) {
   const el = $(selector);
   if (!artifact || el.dataset.sha === artifact.sha256) return;
-  el.src = await blobUrl(artifact.url);
+  setMedia(el, await blobUrl(artifact.url, signal));
   el.dataset.sha = artifact.sha256;
-  el.hidden = false;
 }
 
-/** Read the job's Server-Sent Events with fetch() (the key in a header), reconnecting with Last-Event-ID. */
-async function followEvents(jobId) {
-  currentStream?.abort();
-  const controller = new AbortController();
-  currentStream = controller;
+/** Answers to the stream request that no reconnection changes: the key, or the job, is not (or no longer) valid. */
+const FINAL_STREAM_STATUS = new Set([401, 403, 404]);
+
+/** Read the job's Server-Sent Events with fetch() (the key in a header), reconnecting with Last-Event-ID until the
+ * job ends or the page changes. */
+async function followEvents(jobId, signal) {
   let lastId = null;
   let retryMs = 2000;
-  while (!controller.signal.aborted) {
+  while (!signal.aborted) {
     let finished = false;
     try {
       const headers = authHeaders({ Accept: "text/event-stream", ...(lastId ? { "Last-Event-ID": lastId } : {}) });
-      const response = await fetch(`/v1/jobs/${jobId}/events`, { headers, signal: controller.signal, cache: "no-store" });
-      if (!response.ok) throw new ApiError(response.status, await response.text());
+      const response = await fetch(`${jobPath(jobId)}/events`, { headers, signal, cache: "no-store" });
+      if (!response.ok) {
+        const error = await responseError(response);
+        if (FINAL_STREAM_STATUS.has(response.status)) {
+          showError("stream", `event stream: ${errorText(error)}; not reconnecting (reload the page to try again)`);
+          return;
+        }
+        throw error;
+      }
       showError("stream", "");
       for await (const event of parseSse(response.body)) {
         if (event.retry) retryMs = event.retry;
         if (event.id) lastId = event.id;
         if (!event.event) continue;
-        await handleEvent(jobId, event.event, event.data);
+        await handleEvent(jobId, event.event, event.data, signal);
         if (TERMINAL.has(event.event)) finished = true;
       }
-      if (finished) break;  // the server ends the stream after the terminal event
+      if (finished) return;  // the server ends the stream after the terminal event
     } catch (error) {
-      if (controller.signal.aborted) return;
-      showError("stream", `event stream: ${error.message}; reconnecting`);
-      if (error instanceof ApiError && error.status < 500) return;
+      if (signal.aborted) return;
+      showError("stream", `event stream: ${errorText(error)}; reconnecting`);
     }
-    await new Promise((resolve) => setTimeout(resolve, retryMs));
+    await sleep(retryMs, signal);
   }
 }
 
-async function handleEvent(jobId, kind, data) {
+async function handleEvent(jobId, kind, data, signal) {
   if (kind === "progress") { renderProgress(data); return; }
   const item = document.createElement("li");
   item.textContent = `${kind}${data.stage ? ` · ${data.stage}` : ""}${data.detail ? ` · ${data.detail}` : ""}`;
   item.dataset.event = kind;
   $("#job-events").append(item);
-  if (kind === "preview") await refreshPreview(`/v1/jobs/${jobId}/artifacts/${data.detail || "preview.png"}`);
-  if (kind === "artifact" || TERMINAL.has(kind)) await refreshArtifacts(jobId);
-  if (TERMINAL.has(kind)) renderProgress(await api(`/v1/jobs/${jobId}`));
+  await refreshMedia(async () => {
+    if (kind === "preview") {
+      await refreshPreview(`${jobPath(jobId)}/artifacts/${encodeURIComponent(data.detail || "preview.png")}`, signal);
+    }
+    if (kind === "artifact" || TERMINAL.has(kind)) await refreshArtifacts(jobId, signal);
+  }, signal);
+  if (TERMINAL.has(kind)) renderProgress(await api(jobPath(jobId), { signal }));
 }
 
 /** Server-Sent Events from a byte stream: {id, event, data (JSON-decoded), retry} per blank-line-ended block. */
@@ -380,21 +523,26 @@ function bytes(n) {
 }
 
 // ------------------------------------------------------------------ routing (#/ and #/jobs/<id>)
-let listTimer = null;
+let page = new AbortController();  // the shown page's: a route change aborts its requests, event stream and polling
 
 async function route() {
+  page.abort();
+  page = new AbortController();
+  const { signal } = page;
+  clearJobView();
   const match = location.hash.match(/^#\/jobs\/([^/]+)$/);
   $("#home").hidden = Boolean(match);
   $("#job").hidden = !match;
-  clearInterval(listTimer);
   if (match) {
-    try { await showJob(match[1]); } catch (error) { showApiError(error, "stream"); }
+    try { await showJob(decodeURIComponent(match[1]), signal); }
+    catch (error) { if (!signal.aborted) showApiError(error, "stream"); }
     return;
   }
-  currentStream?.abort();
-  try { await loadScenes(); } catch (error) { showApiError(error, "list"); }
-  await loadJobs();
-  listTimer = setInterval(loadJobs, 3000);
+  try { await loadScenes(signal); } catch (error) { if (!signal.aborted) showApiError(error, "list"); }
+  while (!signal.aborted) {
+    await loadJobs(signal);
+    await sleep(3000, signal);
+  }
 }
 
 initKey();

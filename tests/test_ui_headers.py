@@ -1,0 +1,47 @@
+"""The UI's HTTP headers (in-process, no browser): its caching, its Content-Security-Policy and the security
+headers on every answer. tests/test_ui.py checks in Chromium that the pages work under that policy."""
+
+from __future__ import annotations
+
+import pytest
+from fastapi.testclient import TestClient
+
+from service_helpers import reset_service_caches, service_env
+
+SECURITY = {"x-content-type-options": "nosniff", "x-frame-options": "DENY"}
+
+
+@pytest.fixture
+def client(tmp_path, monkeypatch):
+    for key, value in service_env(tmp_path).items():
+        monkeypatch.setenv(key, value)
+    reset_service_caches()
+    from api.main import create_app
+
+    with TestClient(create_app()) as test_client:
+        yield test_client
+    reset_service_caches()
+
+
+def test_pages_forbid_framing_and_foreign_code_and_answer_head(client):
+    for path in ("/", "/docs"):
+        for method in ("GET", "HEAD"):
+            response = client.request(method, path)
+            assert response.status_code == 200, (method, path)
+            policy = response.headers["content-security-policy"]
+            assert "default-src 'self'" in policy and "frame-ancestors 'none'" in policy
+            assert SECURITY.items() <= response.headers.items()
+    assert "'unsafe-inline'" not in client.get("/").headers["content-security-policy"]
+    assert "script-src 'self' 'sha256-" in client.get("/docs").headers["content-security-policy"]
+
+
+def test_api_answers_carry_the_security_headers_too(client):
+    for response in (client.get("/v1/jobs"), client.get("/v1/jobs/nope"), client.get("/healthz")):
+        assert SECURITY.items() <= response.headers.items(), response.request.url
+
+
+def test_the_app_s_own_files_are_revalidated_and_vendored_ones_cached(client):
+    for name in ("app.js", "app.css"):
+        assert client.get(f"/static/{name}").headers["cache-control"] == "no-cache"
+    vendored = client.get("/static/vendor/model-viewer-3.5.0/model-viewer.min.js")
+    assert "max-age=31536000" in vendored.headers["cache-control"]
