@@ -328,6 +328,35 @@ def test_an_artifact_a_stalled_run_records_as_its_job_is_taken_over_lands_before
     assert len(starts) == 2 and starts[0] < kinds.index("artifact") < starts[1], kinds
 
 
+@pytest.mark.parametrize("database_url", ["postgres"], indirect=True)
+def test_a_result_written_while_a_submission_holds_its_key_neither_waits_nor_deadlocks(db):
+    """Job submission locks its key's row, then the scene's. A result merge that updated the job's row twice
+    (a lock by writing, then the result) had its foreign keys checked again on PostgreSQL: it waited for the
+    key's row, and the submission's scene lock then deadlocked with it."""
+    import threading
+
+    from sqlalchemy import create_engine, text
+
+    from voxe_service.models import LOCAL_KEY_ID
+    from worker import runtime
+
+    scene, engine = add_scene(), create_engine(db.database_url)
+    job_id, merged = add_job(scene, "running", 0), threading.Event()
+    try:
+        with engine.connect() as submission:
+            submission.execute(text("SELECT id FROM api_keys WHERE id = :key FOR UPDATE"), {"key": LOCAL_KEY_ID})
+            writer = threading.Thread(target=lambda: (runtime.merge_job_result(job_id, {"k": 1}), merged.set()))
+            writer.start()
+            assert merged.wait(10), "the merge waited for the submission's lock on its key"
+            submission.execute(text("SET lock_timeout = '5s'"))
+            submission.execute(text("SELECT id FROM scenes WHERE id = :scene FOR UPDATE"), {"scene": scene})
+            submission.rollback()
+            writer.join(10)
+    finally:
+        engine.dispose()
+    assert job_row(job_id).result == {"k": 1}
+
+
 def test_stages_writing_a_jobs_result_at_once_lose_nothing(db, monkeypatch):
     """Four writers merge their own key into ``Job.result`` at once, each pausing between its read and its write
     as a busy machine may: every key is kept. On SQLite, which has no row locks, the read-modify-write had lost

@@ -105,21 +105,26 @@ def _token_query(job_id: str):
 
 
 def _lock_job(session: Session, job_id: str) -> bool:
-    """Lock the job for the rest of the transaction by writing to it first; whether it exists.
+    """Lock the job's row for the rest of the transaction; whether it exists.
 
-    The UPDATE locks the row on PostgreSQL and takes the database's write lock on SQLite, which has no row
-    locks: a ``FOR UPDATE`` there locks nothing, and had let concurrent writers overwrite each other.
+    PostgreSQL: ``FOR UPDATE``. SQLite has no row locks (its ``FOR UPDATE`` locks nothing, and had let
+    concurrent writers overwrite each other): a first write takes the database's write lock instead. Not on
+    PostgreSQL: a row updated twice in one transaction has its foreign keys checked again, which waits for
+    the key's and the scene's rows, and job submission holds those while it locks the job's scene (a deadlock).
     """
-    return bool(session.execute(update(Job).where(Job.id == job_id).values(updated_at=utcnow())).rowcount)
+    if session.get_bind().dialect.name == "sqlite":
+        return bool(session.execute(update(Job).where(Job.id == job_id).values(updated_at=utcnow())).rowcount)
+    return session.execute(select(Job.id).where(Job.id == job_id).with_for_update()).first() is not None
 
 
 def _change_result(job_id: str, change) -> None:
     """``Job.result`` replaced by ``change(result)`` under the job's lock, so stages writing at once lose nothing."""
     with session_scope() as session:
         if _lock_job(session, job_id):
-            job = session.get(Job, job_id, populate_existing=True)
+            job = session.get(Job, job_id)
             _refuse_if_superseded(job_id, lambda: job.run_token)  # (read under the lock just taken)
             job.result = change(dict(job.result or {}))
+            job.updated_at = utcnow()
 
 
 def merge_job_result(job_id: str, values: dict) -> None:
