@@ -147,9 +147,11 @@ class Settings(BaseSettings):
 
     @model_validator(mode="after")
     def _s3_bucket_named(self):
-        if self.storage_backend == "s3" and not re.fullmatch(r"[a-z0-9][a-z0-9.-]{1,61}[a-z0-9]", self.s3_bucket):
-            raise ValueError(f"VOXE_S3_BUCKET={self.s3_bucket!r} is not an S3 bucket name (3-63 lowercase letters, "
-                             "digits, dots and hyphens)")
+        # botocore's own rule: path-style stores (MinIO, Ceph, GCS interop, old us-east-1 buckets) take more than
+        # AWS's 3-63 lowercase letters, digits, dots and hyphens.
+        if self.storage_backend == "s3" and not re.fullmatch(r"[a-zA-Z0-9.\-_]{1,255}", self.s3_bucket):
+            raise ValueError(f"VOXE_S3_BUCKET={self.s3_bucket!r} is not an S3 bucket name (1-255 letters, digits, "
+                             "dots, hyphens and underscores)")
         return self
 
     @model_validator(mode="after")
@@ -202,6 +204,11 @@ def get_settings() -> Settings:
     try:
         return Settings()
     except ValidationError as exc:  # pydantic names the field (storage_backend); say the variable
-        problems = [(f"VOXE_{'_'.join(map(str, e['loc'])).upper()}={e['input']!r}: " if e["loc"] else "")
+        problems = [(f"VOXE_{'_'.join(map(str, e['loc'])).upper()}={_shown(e['input'])!r}: " if e["loc"] else "")
                     + e["msg"].removeprefix("Value error, ") for e in exc.errors()]
         raise SettingsError("bad service settings: " + "; ".join(problems)) from None
+
+
+def _shown(value):
+    """A setting's value as an error may print it: a URL's password hidden (the database URL carries one)."""
+    return re.sub(r"(://[^/:@]*:)[^/@]*@", r"\1***@", value) if isinstance(value, str) else value
