@@ -101,7 +101,7 @@ def heartbeat_row(until=lambda beat: True) -> dict:
     for _ in range(100):
         with session_scope() as session:
             row = session.scalars(select(WorkerHeartbeat)).first()
-            beat = row and {"hostname": row.hostname, "models": row.models}
+            beat = row and {"hostname": row.hostname, "models": row.models, "last_seen": row.last_seen}
         if beat and until(beat):
             return beat
         time.sleep(0.05)
@@ -151,6 +151,18 @@ def test_the_heartbeat_records_the_models_and_readyz_and_submission_use_them(roo
     assert heartbeat_row(until=lambda beat: beat["models"]["sds"]["present"])["hostname"] == beat["hostname"]
     accepted = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold"})
     assert accepted.status_code == 201, accepted.text
+
+
+def test_a_model_check_that_fails_keeps_the_last_answer_and_the_heartbeat(root, client, worker_heartbeat, monkeypatch):
+    """An unreadable models volume raises in the check: the worker must not look dead for it."""
+    from worker import tasks
+
+    def unreadable(settings):
+        raise PermissionError("models volume unreadable")
+
+    monkeypatch.setattr(tasks, "check_models", unreadable)
+    later = heartbeat_row(until=lambda beat: beat["last_seen"] > worker_heartbeat["last_seen"])
+    assert later["models"] == worker_heartbeat["models"]
 
 
 def test_a_job_sent_before_any_worker_reported_fails_at_the_start_of_its_chain(root, client, dataset, hub_cache,

@@ -578,6 +578,9 @@ def _beat(hostname: str, queues: str, device: str, models: dict) -> None:
                 if m["present"] != earlier[role]["present"]:
                     log.warning("worker %s: the %s model %s is %s", hostname, role,
                                 model_label(m["model"]) or "(default)", "now present" if m["present"] else "gone")
+        except Exception:  # noqa: BLE001 - an unreadable model folder: the last answer stands, the beat goes on
+            log.warning("worker %s: could not check its models", hostname, exc_info=True)
+        try:
             with runtime.session_scope() as session:
                 row = session.get(WorkerHeartbeat, hostname)
                 if row is None:
