@@ -130,12 +130,18 @@ def test_api_replicas_starting_at_once_migrate_a_fresh_database_one_after_anothe
     from service_helpers import REPO
     from voxe_service.db import alembic_config
 
-    code = f"from voxe_service.db import run_migrations; run_migrations({database_url!r})"
+    migrate = f"from voxe_service.db import run_migrations; run_migrations({database_url!r})"
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    replicas = [subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE,
+    replicas = [subprocess.Popen([sys.executable, "-c", migrate], env=env, stdout=subprocess.PIPE,
                                  stderr=subprocess.STDOUT, text=True) for _ in range(4)]
-    outcomes = [(replica.wait(120), replica.stdout.read()) for replica in replicas]
-    assert all(code == 0 for code, _ in outcomes), [out[-600:] for code, out in outcomes if code]
+    try:
+        outcomes = [(replica.wait(120), replica.stdout.read()) for replica in replicas]
+    finally:
+        for replica in replicas:
+            replica.kill()  # (those still running after the wait)
+            replica.wait()
+            replica.stdout.close()
+    assert all(status == 0 for status, _ in outcomes), [out[-600:] for status, out in outcomes if status]
     command.check(alembic_config(database_url))
 
 

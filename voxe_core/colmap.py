@@ -177,7 +177,7 @@ def _parse(kind, field: str, what: str, line: int, path: Path):
     try:
         return kind(field)
     except ValueError:
-        raise ColmapError(f"line {line}: {what} {field!r} is not a {'number' if kind is float else 'integer'}",
+        raise ColmapError(f"line {line}: {what} {field!r} is not {'a number' if kind is float else 'an integer'}",
                           path) from None
 
 

@@ -274,9 +274,10 @@ def scene_frame(cameras: Cameras, radius: float = NERF_SYNTHETIC_RADIUS) -> torc
     behind = int((depth <= 0).sum())
     if behind > len(cameras) / 2:
         raise ValueError(
-            f"the point the cameras' optical axes meet lies behind {behind} of {len(cameras)} cameras: their poses "
-            "likely hold OpenCV camera axes (x right, y down, looking down +z) where OpenGL's (y up, looking down -z) "
-            "are expected; multiply each camera-to-world matrix by diag(1, -1, -1, 1)"
+            f"the point the cameras' optical axes meet lies behind {behind} of {len(cameras)} cameras: either the "
+            "capture looks outward or its views fan out (there is no object to orbit), or the poses hold OpenCV "
+            "camera axes (x right, y down, looking down +z) where OpenGL's (y up, looking down -z) are expected; "
+            "only in that case multiply each camera-to-world matrix by diag(1, -1, -1, 1)"
         )
     up = c2w[:, :3, 1].mean(0)
     up = up / up.norm().clamp_min(1e-12)

@@ -54,7 +54,7 @@ def _check_workers(celery, settings: Settings) -> dict:
 def _model_report(settings: Settings) -> dict:
     """Per role, the model jobs will ask for (this API's settings) and the live workers that have it / lack it.
 
-    From the workers' heartbeats (each checked its models offline at its start);
+    From the workers' heartbeats (each checks its models offline at its start and at every heartbeat);
     a worker configured with another model for a role is in neither list.
     """
     with session_scope() as session:
