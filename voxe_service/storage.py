@@ -231,8 +231,8 @@ class LocalStorage(Storage):
             return []
         if not base.is_dir():
             return []
-        files = [((Path(folder) / name).relative_to(self.root).as_posix(), bool(_WRITING.match(name)))
-                 for folder, _, names in os.walk(base, onerror=_unless_vanished) for name in names]
+        files = [((Path(walked) / name).relative_to(self.root).as_posix(), bool(_WRITING.match(name)))
+                 for walked, _, names in os.walk(base, onerror=_unless_vanished) for name in names]
         return [(name, writing) for name, writing in files if name.startswith(prefix)]
 
     def list(self, prefix="") -> list[str]:
