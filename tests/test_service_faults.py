@@ -1032,12 +1032,14 @@ def test_redis_restart_keeps_queued_jobs_and_a_killed_worker_task_is_redelivered
 
 
 @pytest.mark.slow
-def test_a_worker_stopped_as_its_image_runs_hands_its_stage_back_and_another_resumes_it(tmp_path, scene_zip):
+@pytest.mark.parametrize("pool", ["prefork", "solo"])  # the image's and .ci/serve's; the tests' own
+def test_a_worker_stopped_as_its_image_runs_hands_its_stage_back_and_another_resumes_it(tmp_path, scene_zip, pool):
     """SIGTERM (docker stop) to a worker mid-edit, with the worker image's REMAP_SIGTERM: its cold shutdown puts
     the message back in Redis at once, though the visibility timeout is the default hours, and a second worker
     takes the job over once the stopped run's hold lapses (VOXE_STAGE_LEASE_S), resuming from its checkpoint.
     Celery's default warm shutdown would have run the stage to its end, and a kill after the grace period
-    had left the message unacknowledged for the reaper."""
+    had left the message unacknowledged for the reaper. The solo pool cancels the task by raising in it, which had
+    failed the job."""
     import re
     import shutil
 
@@ -1048,7 +1050,7 @@ def test_a_worker_stopped_as_its_image_runs_hands_its_stage_back_and_another_res
     image = dict(re.findall(r"\b(REMAP_SIGTERM)=(\w+)", (REPO / "docker/worker.Dockerfile").read_text()))
     assert image == {"REMAP_SIGTERM": "SIGQUIT"}, image
     with redis_server(tmp_path / "redis") as redis, \
-            service(tmp_path, redis.url, image, pool="prefork", VOXE_CHECKPOINT_EVERY="10",
+            service(tmp_path, redis.url, image, pool=pool, VOXE_CHECKPOINT_EVERY="10",
                     VOXE_STAGE_LEASE_S="4") as svc:
         client = Client(svc)
         scene = client.upload(scene_zip)
