@@ -155,6 +155,35 @@ def test_a_scene_is_processing_until_its_ingest_and_jobs_on_it_wait_without_a_me
         assert session.get(Job, later["id"]).task_id is not None
 
 
+def test_an_ingest_stopped_by_a_cold_shutdown_goes_back_to_the_queue_keeping_the_upload(client, dataset, root,
+                                                                                         monkeypatch):
+    """A solo-pool worker's cold shutdown cancels its task by raising in it: that had failed the scene and deleted
+    its upload. Now the message is rejected back to the queue, and the next ingest decodes the scene."""
+    from celery.exceptions import Reject
+    from celery.worker import state
+
+    from voxe_service.settings import get_settings
+    from voxe_service.storage import get_storage
+    from worker import ingest as ingest_module
+
+    scene = upload_zip(client, zip_folder(dataset, root / "ok.zip", prefix="mic_small")).json()
+    decode = ingest_module.decode
+
+    def cancelled_by_the_shutdown(*args):
+        monkeypatch.setattr(state, "should_terminate", 0)  # set by Celery's cold shutdown (its exit code)
+        raise NotImplementedError("<class 'celery.concurrency.solo.TaskPool'> does not implement kill_job")
+
+    monkeypatch.setattr(ingest_module, "decode", cancelled_by_the_shutdown)
+    with pytest.raises(Reject) as rejected:  # (called as the task does: Celery's apply would swallow the Reject)
+        ingest_module.ingest_scene(scene["id"], get_settings(), get_storage(get_settings()), "w@host")
+    assert rejected.value.requeue
+    assert client.get(f"/v1/scenes/{scene['id']}").json()["state"] == "processing"
+    assert stored_files(root) == [f"scenes/{scene['id']}/dataset.zip"]
+    monkeypatch.setattr(state, "should_terminate", None)  # the next worker
+    monkeypatch.setattr(ingest_module, "decode", decode)
+    assert ingest(scene["id"]) == {"scene_id": scene["id"], "state": "ready"}
+
+
 def test_a_processing_scene_can_be_deleted_and_its_ingest_keeps_nothing(client, dataset, root):
     scene = upload_zip(client, zip_folder(dataset, root / "ok.zip", prefix="mic_small")).json()
     assert stored_files(root) == [f"scenes/{scene['id']}/dataset.zip"]

@@ -22,6 +22,7 @@ import tempfile
 from pathlib import Path
 from typing import NamedTuple
 
+from celery.exceptions import Reject
 from sqlalchemy import update
 
 from voxe_core.backbones import detect_backbone
@@ -35,6 +36,7 @@ from voxe_service.queue import QueueUnavailable, TaskResult, dispatch_job, get_q
 from voxe_service.scenes import fail_scene, mark_ready
 from voxe_service.settings import Settings
 from voxe_service.storage import Storage, scene_key
+from worker.runtime import worker_in_cold_shutdown
 
 log = logging.getLogger("voxe.worker")
 
@@ -128,7 +130,9 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
             size = datasets.MESH_VIEW_SIZE
             values.update(storage_key=stored.key, size_bytes=stored.size, sha256=stored.sha256, image_count=count,
                           width=size, height=size, splits=["train", "test"])
-    except Exception as exc:  # noqa: BLE001 - every failure becomes the scene's reason
+    except Exception as exc:  # noqa: BLE001 - every failure becomes the scene's reason ...
+        if worker_in_cold_shutdown():  # ... but a cold shutdown's (it had failed the scene and deleted its upload)
+            raise Reject(f"the ingest of scene {scene_id} stopped by the worker's shutdown", requeue=True) from exc
         reason = str(exc) if isinstance(exc, IngestError) else f"ingest: {type(exc).__name__}: {exc}"
         if not isinstance(exc, IngestError):
             log.exception("scene %s: ingest failed", scene_id)

@@ -226,6 +226,16 @@ def complete_stage(job_id: str, stage: str, run_token: str, final: bool = False)
         return result.rowcount == 1
 
 
+def worker_in_cold_shutdown() -> bool:
+    """Whether this worker is in a cold shutdown (SIGQUIT, or the image's remapped SIGTERM). Celery then cancels
+    the running task; in the solo pool, whose tasks run in the worker's own thread, by raising in it
+    (NotImplementedError: the pool cannot kill a job). That is no failure of the job or the upload: the task's
+    message goes back to the queue."""
+    from celery.worker import state
+
+    return state.should_terminate is not None and state.should_terminate is not False  # (an exit code: 0 counts)
+
+
 def release_stage(job_id: str, run_token: str) -> None:
     """Give the hold back without finishing the stage (the worker is going down: its redelivery takes over)."""
     with session_scope() as session:

@@ -117,7 +117,7 @@ def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> Task
                                  run_token=token)
         return _ended(job_id, stage, "failed", ended, settings)
     except Exception as exc:  # noqa: BLE001 - every failure ends the job with its message ...
-        if _cold_shutdown():  # ... but the one a cold shutdown raises in the task (the solo pool's)
+        if runtime.worker_in_cold_shutdown():  # ... but the one a cold shutdown raises in the task (the solo pool's)
             runtime.release_stage(job_id, token)
             log.warning("job %s: %s stopped by the worker's shutdown; its message goes back to the queue",
                         job_id, stage)
@@ -135,15 +135,6 @@ def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> Task
         _cleanup(job_id, settings)
     log.info("job %s: %s done", job_id, stage)
     return {"job_id": job_id, "stage": stage, "state": "done"}
-
-
-def _cold_shutdown() -> bool:
-    """Whether this worker is in a cold shutdown (SIGQUIT, or the image's remapped SIGTERM). Celery then cancels
-    the running task; in the solo pool, whose tasks run in the worker's own thread, by raising in it
-    (NotImplementedError: the pool cannot kill a job), which had failed the job instead of requeueing it."""
-    from celery.worker import state
-
-    return state.should_terminate not in (None, False)  # (its exit code, 0 included)
 
 
 def _ended(job_id: str, stage: str, state: str, ended: bool, settings) -> TaskResult:
