@@ -9,7 +9,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI, HTTPException
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, PlainTextResponse
 
 from api import http_semantics
 from voxe_service.db import run_migrations, sync_clock
@@ -65,8 +65,9 @@ class UploadLimit:
 
 
 class SecurityHeaders:
-    """No answer is sniffed as another type than it declares, nor framed by another site (ASGI middleware). The
-    UI's pages add their Content-Security-Policy themselves (api/ui.py)."""
+    """No answer is sniffed as another type than it declares, nor framed by another site (ASGI middleware; the
+    500 of an unhandled error, answered outside every middleware, by :func:`internal_error`). The UI's pages add
+    their Content-Security-Policy themselves (api/ui.py)."""
 
     HEADERS = [(b"x-content-type-options", b"nosniff"), (b"x-frame-options", b"DENY")]
 
@@ -158,7 +159,15 @@ def create_app(settings: Settings | None = None, migrate: bool = True) -> FastAP
     app.add_exception_handler(RequestValidationError, validation_error)
     http_semantics.install(app)
     app.add_middleware(SecurityHeaders)  # outermost: the 401, 404 and 413 of the middleware above get them too
+    app.add_exception_handler(Exception, internal_error)
     return app
+
+
+def internal_error(_request, _exc) -> PlainTextResponse:
+    """Starlette's plain 500 for an unhandled error (still logged by the server), with the security headers: it
+    is answered outside every middleware."""
+    return PlainTextResponse("Internal Server Error", 500,
+                             headers={name.decode(): value.decode() for name, value in SecurityHeaders.HEADERS})
 
 
 def _json_safe(value):

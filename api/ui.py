@@ -72,7 +72,8 @@ def mount(app: FastAPI) -> None:
                                swagger_favicon_url=f"{SWAGGER_UI}/favicon-32x32.png",
                                swagger_ui_parameters={"validatorUrl": None})  # its badge is an image from swagger.io
     docs_policy = (f"default-src 'self'; script-src 'self' {inline_sources(docs.body.decode(), 'script')}; "
-                   "img-src 'self' data:; object-src 'none'; base-uri 'none'; frame-ancestors 'none'")
+                   # blob: the images "Try it out" shows (an artifact's PNG)
+                   "img-src 'self' data: blob:; object-src 'none'; base-uri 'none'; frame-ancestors 'none'")
 
     @app.api_route("/docs", methods=["GET", "HEAD"], include_in_schema=False)
     def swagger_ui() -> HTMLResponse:

@@ -32,8 +32,9 @@ PARAMS = {  # tests/test_service_e2e.py's tiny local-edit parameters (8 frames: 
 }
 # Run in every page before its own scripts: collects the page's CSP violations (window.cspViolations) and its
 # fetch() requests (window.requests), and answers a request whose URL holds a key of sessionStorage "test.faults"
-# as a slow or failing server would: after `delay` ms, and/or with the given status, type and body (`once`: only
-# the first such request).
+# (a key ending in "$": whose path is the key) as a slow or failing server would: after `delay` ms, and/or with
+# the given status, type and body (`method`: requests of that method only; `skip`: the first so many such
+# requests go through; `once`: only the first such request after them).
 PAGE_HOOKS = """
 window.cspViolations = [];
 document.addEventListener("securitypolicyviolation",
@@ -43,8 +44,16 @@ const realFetch = window.fetch;
 window.fetch = async (resource, options = {}) => {
   const url = resource instanceof Request ? resource.url : String(resource);
   requests.push({ url, method: options.method || "GET", headers: options.headers || {} });
+  const method = options.method || "GET";
   const faults = JSON.parse(sessionStorage.getItem("test.faults") || "{}");
-  const [part, fault] = Object.entries(faults).find(([key]) => url.includes(key)) || [];
+  const matches = ([key, fault]) => (!fault.method || fault.method === method)
+    && (key.endsWith("$") ? new URL(url, location.href).pathname === key.slice(0, -1) : url.includes(key));
+  const [part, fault] = Object.entries(faults).find(matches) || [];
+  if (fault?.skip) {
+    faults[part] = { ...fault, skip: fault.skip - 1 };
+    sessionStorage.setItem("test.faults", JSON.stringify(faults));
+    return realFetch(resource, options);
+  }
   if (fault?.once) { delete faults[part]; sessionStorage.setItem("test.faults", JSON.stringify(faults)); }
   if (fault?.delay) {
     await new Promise((resolve, reject) => {
@@ -301,6 +310,18 @@ def leave_and_revisit_job_pages(driver, svc, token: str, scene_id: str, done_id:
     driver.find_element("css selector", 'a[data-artifact="edited_grid.safetensors"]').click()
     wait(lambda: "404: artifact gone" in text(driver, '[data-error-for="artifacts"]'), "the download's 404", 20)
 
+    # The job read again at its terminal event failing once: the stream reconnects once, its terminal progress
+    # snapshot ends it (it had reconnected every 2 s for as long as the page stayed open).
+    faults(driver, {f"/v1/jobs/{done_id}$": {"skip": 1, "once": True, "status": 502, "statusText": "Bad Gateway",
+                                              "type": "text/plain", "body": "Bad Gateway"}})
+    go(driver, "#/")
+    driver.execute_script("window.requests = []")
+    go(driver, f"#/jobs/{done_id}")
+    wait(lambda: len(requested(driver, f"/v1/jobs/{done_id}/events")) == 2, "the one reconnect", 20)
+    time.sleep(5)  # two and a half retry intervals
+    assert len(requested(driver, f"/v1/jobs/{done_id}/events")) == 2
+    assert text(driver, "#job-state") == "succeeded"
+
     # Going on before a page has loaded: the job page left loading opens no event stream, and the home page left
     # loading (its scene list slow) does not poll the job list on the job page shown next. There, the stream's
     # 401 (the key revoked meanwhile) ends it, saying so.
@@ -357,6 +378,23 @@ def test_errors_of_any_shape_are_shown_and_unreadable_input_is_not_sent(live, br
     driver.find_element("css selector", "#job-form button").click()
     wait_until(lambda: "not a JSON object" in error("params"), 10, what="the refused parameters")
     assert not requested(driver, "/v1/jobs", "POST")
+
+    # A submission whose answer is lost (a proxy's 504), sent again unchanged, keeps its Idempotency-Key; a body
+    # changed by code (no input event, as the scene list's refresh changes the scene) gets a new one: the API
+    # refuses a key reused with another body.
+    driver.find_element("id", "job-params").clear()
+    faults(driver, {"/v1/jobs$": {"method": "POST", "status": 504, "statusText": "Gateway Timeout",
+                                  "type": "text/plain", "body": "Gateway Timeout"}})
+    for _ in range(2):
+        driver.find_element("css selector", "#job-form button").click()
+        wait_until(lambda: "504" in error("job"), 10, what="the lost answer")
+        driver.execute_script("document.querySelector('[data-error-for=job]').textContent = ''")
+    driver.execute_script("document.querySelector('#job-prompt').value = 'a mic made of silver'")
+    driver.find_element("css selector", "#job-form button").click()
+    wait_until(lambda: "504" in error("job"), 10, what="the third lost answer")
+    keys = [r["headers"]["Idempotency-Key"] for r in requested(driver, "/v1/jobs", "POST")]
+    assert len(keys) == 3 and keys[0] == keys[1] != keys[2], keys
+    faults(driver, {})
 
     # The API's 422 on keys typed into the parameters, one with a quote: both shown beside the parameters.
     driver.find_element("id", "job-params").clear()

@@ -32,12 +32,35 @@ def test_pages_forbid_framing_and_foreign_code_and_answer_head(client):
             assert "default-src 'self'" in policy and "frame-ancestors 'none'" in policy
             assert SECURITY.items() <= response.headers.items()
     assert "'unsafe-inline'" not in client.get("/").headers["content-security-policy"]
-    assert "script-src 'self' 'sha256-" in client.get("/docs").headers["content-security-policy"]
+    docs_policy = client.get("/docs").headers["content-security-policy"]
+    assert "script-src 'self' 'sha256-" in docs_policy
+    assert "img-src 'self' data: blob:" in docs_policy  # Swagger UI shows an image answer from a blob: URL
 
 
 def test_api_answers_carry_the_security_headers_too(client):
     for response in (client.get("/v1/jobs"), client.get("/v1/jobs/nope"), client.get("/healthz")):
         assert SECURITY.items() <= response.headers.items(), response.request.url
+
+
+def test_an_unhandled_errors_500_carries_them_too(tmp_path, monkeypatch):
+    """Starlette answers it outside every middleware: it had had neither header."""
+    for key, value in service_env(tmp_path).items():
+        monkeypatch.setenv(key, value)
+    reset_service_caches()
+    from api.main import create_app
+
+    app = create_app()
+
+    @app.get("/broken")
+    def broken():
+        raise RuntimeError("a bug")
+
+    with TestClient(app, raise_server_exceptions=False) as client:
+        response = client.get("/broken")
+    reset_service_caches()
+    assert response.status_code == 500 and response.text == "Internal Server Error"
+    assert SECURITY.items() <= response.headers.items()
+
 
 
 def test_the_app_s_own_files_are_revalidated_and_vendored_ones_cached(client):

@@ -69,13 +69,20 @@ function randomKey() {
   return Array.from(crypto.getRandomValues(new Uint8Array(16)), (b) => b.toString(16).padStart(2, "0")).join("");
 }
 
-/** The Idempotency-Key of a form's submission. A resubmission of the unchanged form sends the same one, so a
- * double submit or a retry after a lost answer gets what the first request created instead of a second one; an
- * edit of the form, or a submission that succeeded, starts a new one. */
-function submissionKey(form) {
+/** The Idempotency-Key of a form's submissions. The same request again (a double submit, a retry after a lost
+ * answer) sends the same key, so it gets what the first one created instead of a second one; any other request
+ * (``what``: its fingerprint; a field changed, by the user or by code such as the scene list's refresh), or one
+ * after a success, gets a new key: the API refuses a key reused with another body. */
+function submissionKey() {
   let key = null;
-  form.addEventListener("input", () => { key = null; });
-  return { current: () => (key ??= randomKey()), succeeded: () => { key = null; } };
+  let sent = null;
+  return {
+    for: (what) => {
+      if (what !== sent) { key = randomKey(); sent = what; }
+      return key;
+    },
+    succeeded: () => { sent = null; },
+  };
 }
 
 const jobPath = (jobId) => `/v1/jobs/${encodeURIComponent(jobId)}`;
@@ -137,7 +144,7 @@ function initKey() {
 function initUpload() {
   const form = $("#upload-form");
   const button = form.querySelector('button[type="submit"]');
-  const idempotency = submissionKey(form);
+  const idempotency = submissionKey();
   form.addEventListener("submit", (event) => {
     event.preventDefault();
     clearErrors(form);
@@ -156,7 +163,9 @@ function initUpload() {
     button.disabled = true;  // until the upload is answered: a second click would upload it twice
     const xhr = new XMLHttpRequest();
     xhr.open("POST", "/v1/scenes");
-    for (const [name, value] of Object.entries(authHeaders({ "Idempotency-Key": idempotency.current() }))) {
+    const upload = JSON.stringify([archive, ...files].filter(Boolean)
+      .map((f) => [f.webkitRelativePath || f.name, f.size, f.lastModified]).concat([$("#upload-name").value.trim()]));
+    for (const [name, value] of Object.entries(authHeaders({ "Idempotency-Key": idempotency.for(upload) }))) {
       xhr.setRequestHeader(name, value);
     }
     xhr.upload.onprogress = (e) => {
@@ -222,7 +231,7 @@ async function loadScenes(signal, selected) {
 function initJobForm() {
   const form = $("#job-form");
   const button = form.querySelector('button[type="submit"]');
-  const idempotency = submissionKey(form);
+  const idempotency = submissionKey();
   form.addEventListener("submit", async (event) => {
     event.preventDefault();
     clearErrors(form);
@@ -230,7 +239,7 @@ function initJobForm() {
     if (!body) return;
     button.disabled = true;  // until answered: a double click would create the job twice
     try {
-      const headers = { "Idempotency-Key": idempotency.current() };
+      const headers = { "Idempotency-Key": idempotency.for(JSON.stringify(body)) };
       const job = await api("/v1/jobs", { method: "POST", body, headers });
       idempotency.succeeded();
       location.hash = `#/jobs/${encodeURIComponent(job.id)}`;
@@ -444,7 +453,8 @@ async function followEvents(jobId, signal) {
         if (event.id) lastId = event.id;
         if (!event.event) continue;
         await handleEvent(jobId, event.event, event.data, signal);
-        if (TERMINAL.has(event.event)) finished = true;
+        // A reconnect after the terminal event gets only a progress snapshot in the terminal state (and the end).
+        if (TERMINAL.has(event.event) || TERMINAL.has(event.data?.state)) finished = true;
       }
       if (finished) return;  // the server ends the stream after the terminal event
     } catch (error) {
