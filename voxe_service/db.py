@@ -9,7 +9,7 @@ from datetime import timedelta
 from functools import lru_cache
 from pathlib import Path
 
-from sqlalchemy import Engine, create_engine, event, text
+from sqlalchemy import Engine, create_engine, event, select, text, update
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -74,6 +74,23 @@ def session_scope() -> Iterator[Session]:
         except BaseException:
             session.rollback()
             raise
+
+
+def locked(session: Session, model, row_id: str):
+    """The row ``row_id`` of ``model`` (a model with ``id`` and ``updated_at``; None: no such row), locked until
+    the transaction ends, on either database.
+
+    PostgreSQL: ``SELECT ... FOR UPDATE``. SQLite has no row locks (its ``FOR UPDATE`` locks nothing: concurrent
+    writers had overwritten each other's results): a write of the row's own ``updated_at`` first takes the
+    database's write lock. Not so on PostgreSQL: a row updated twice in one transaction has its foreign keys
+    checked again, which waits for the rows they name, and job submission holds its key's row while it locks
+    the scene (a deadlock).
+    """
+    query = select(model).where(model.id == row_id).execution_options(populate_existing=True)
+    if session.get_bind().dialect.name == "sqlite":
+        session.execute(update(model).where(model.id == row_id).values(updated_at=model.updated_at))
+        return session.scalars(query).first()
+    return session.scalars(query.with_for_update(of=model)).first()
 
 
 def sync_clock(engine: Engine | None = None) -> timedelta | None:

@@ -14,6 +14,7 @@ from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from voxe_core.presets import check_fit
+from voxe_service.db import locked
 from voxe_service.jobs import finish_jobs
 from voxe_service.models import (
     EVALUATE, FAILED, PROCESSING, QUEUED, R_FAILED, R_PENDING, READY, Job, Reconstruction, Scene, utcnow,
@@ -22,13 +23,9 @@ from voxe_service.queue import evaluations_waiting_on
 
 
 def lock_scene(session: Session, scene_id: str) -> Scene | None:
-    """The scene's current row, locked until the transaction ends (PostgreSQL: FOR UPDATE).
-
-    SQLite has no row locks: call it after the transaction's first write, which holds the
-    database's write lock, so no other writer can change the state before the commit.
-    """
-    return session.scalars(select(Scene).where(Scene.id == scene_id).with_for_update()
-                           .execution_options(populate_existing=True)).first()
+    """The scene's current row, locked until the transaction ends (:func:`voxe_service.db.locked`), so no other
+    writer can change its state before the commit."""
+    return locked(session, Scene, scene_id)
 
 
 def waiting_jobs(session: Session, scene_id: str, include_evaluations: bool = False) -> list[Job]:

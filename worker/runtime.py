@@ -23,11 +23,10 @@ from datetime import timedelta
 from pathlib import Path
 
 from sqlalchemy import func, or_, select, update
-from sqlalchemy.orm import Session
 
 from voxe_core.progress import Callbacks, Progress
 from voxe_service import datasets
-from voxe_service.db import session_scope, sync_clock
+from voxe_service.db import locked, session_scope, sync_clock
 from voxe_service.jobs import finish_jobs, record_event
 from voxe_service.models import (
     CANCELED, FAILED, QUEUED, R_PENDING, R_RUNNING, RUNNING, SUCCEEDED, TERMINAL_STATES,
@@ -104,24 +103,10 @@ def _token_query(job_id: str):
     return select(Job.run_token).where(Job.id == job_id)
 
 
-def _lock_job(session: Session, job_id: str) -> bool:
-    """Lock the job's row for the rest of the transaction; whether it exists.
-
-    PostgreSQL: ``FOR UPDATE``. SQLite has no row locks (its ``FOR UPDATE`` locks nothing, and had let
-    concurrent writers overwrite each other): a first write takes the database's write lock instead. Not on
-    PostgreSQL: a row updated twice in one transaction has its foreign keys checked again, which waits for
-    the key's and the scene's rows, and job submission holds those while it locks the job's scene (a deadlock).
-    """
-    if session.get_bind().dialect.name == "sqlite":
-        return bool(session.execute(update(Job).where(Job.id == job_id).values(updated_at=utcnow())).rowcount)
-    return session.execute(select(Job.id).where(Job.id == job_id).with_for_update()).first() is not None
-
-
 def _change_result(job_id: str, change) -> None:
     """``Job.result`` replaced by ``change(result)`` under the job's lock, so stages writing at once lose nothing."""
     with session_scope() as session:
-        if _lock_job(session, job_id):
-            job = session.get(Job, job_id)
+        if (job := locked(session, Job, job_id)) is not None:
             _refuse_if_superseded(job_id, lambda: job.run_token)  # (read under the lock just taken)
             job.result = change(dict(job.result or {}))
             job.updated_at = utcnow()
@@ -396,9 +381,9 @@ def publish_artifact(job_id: str, name: str, path: str | os.PathLike, kind: str,
         stored = StoredObject(key, size, sha)
     try:
         with session_scope() as session:
-            _lock_job(session, job_id)
+            job = locked(session, Job, job_id)
             try:  # ... and records nothing (checked again under the job's lock)
-                _refuse_if_superseded(job_id, lambda: session.scalar(_token_query(job_id)))
+                _refuse_if_superseded(job_id, lambda: job.run_token if job is not None else None)
             except RunSuperseded:
                 if uploaded and stored.key != job_key(job_id, name):  # the fixed key may be the new owner's
                     storage.delete(stored.key)

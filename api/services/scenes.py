@@ -10,13 +10,13 @@ from pathlib import Path
 from typing import BinaryIO
 
 from fastapi import HTTPException, status
-from sqlalchemy import func, select, update
+from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from api.auth import Idempotency, check_upload_bytes, lock_key
 from api.uploads import UploadError, stage_upload
-from voxe_service.models import FAILED, QUEUED, RUNNING, ApiKey, Job, Reconstruction, Scene, new_id, utcnow
+from voxe_service.models import FAILED, QUEUED, RUNNING, ApiKey, Job, Reconstruction, Scene, new_id
 from voxe_service.queue import TaskQueue
 from voxe_service.scenes import fail_scene, lock_scene
 from voxe_service.settings import Settings
@@ -119,7 +119,6 @@ def _queue_ingest(session: Session, storage: Storage, queue: TaskQueue, scene: S
         log.exception("could not queue the ingest of scene %s", scene.id)
         reason = f"could not queue the ingest: {type(exc).__name__}: {exc}"
         lock_scene(session, scene.id)  # before counting, as delete_scene does: a job is counted here or refused there
-        session.execute(update(Scene).where(Scene.id == scene.id).values(updated_at=utcnow()))  # SQLite's write lock
         if session.scalar(select(func.count()).select_from(Job).where(Job.scene_id == scene.id)):
             fail_scene(session, scene.id, reason)
         else:
@@ -160,8 +159,7 @@ def delete_scene(*, session: Session, storage: Storage, key: ApiKey, scene_id: s
     scene = get_scene(session=session, key=key, scene_id=scene_id)
     # Locked before counting, as creating a job locks it after writing its row (add_jobs): a job created meanwhile
     # is either counted here (409) or refused there (404), never accepted and then deleted with the scene.
-    lock_scene(session, scene_id)  # PostgreSQL's row lock, taken first (an UPDATE first could deadlock with add_jobs)
-    session.execute(update(Scene).where(Scene.id == scene_id).values(updated_at=utcnow()))  # SQLite's write lock
+    lock_scene(session, scene_id)
     active = session.scalar(select(func.count()).select_from(Job)
                             .where(Job.scene_id == scene_id, Job.state.in_((QUEUED, RUNNING))))
     if active:
