@@ -5,6 +5,11 @@ imports torch or diffusers to learn a model id or a default; the library's stage
 (``EditConfig``, ``RefineConfig``) take their defaults from here too, so each value is written once.
 """
 
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
 SDS_MODEL_ID = "stabilityai/stable-diffusion-2-base"
 """The model the authors' code uses for SDS (the paper cites SD 2.1)."""
 
@@ -16,6 +21,13 @@ CLIP_MODEL_ID = "openai/clip-vit-base-patch32"
 
 INCEPTION_FILE = "inception-2015-12-05.pt"
 """The TorchScript Inception network of FID (StyleGAN2-ADA's metrics)."""
+
+
+def inception_path(path: str | os.PathLike) -> Path:
+    """The Inception file ``path`` names: the path itself, or ``INCEPTION_FILE`` in it when it is a folder (the
+    loader and the workers' model check read it alike)."""
+    path = Path(path).expanduser()
+    return path / INCEPTION_FILE if path.is_dir() else path
 
 NERF_SYNTHETIC_RADIUS = 4.0311
 """Distance of the NeRF-synthetic cameras from the origin."""

@@ -38,7 +38,7 @@ from typing import Callable, Protocol, Sequence
 import numpy as np
 import torch
 
-from voxe_core.constants import CLIP_MODEL_ID, INCEPTION_FILE
+from voxe_core.constants import CLIP_MODEL_ID, INCEPTION_FILE, inception_path
 from voxe_core.devices import PeakMemory, resolve_device
 from voxe_core.export import render_views, save_png, to_uint8, turntable_cameras
 from voxe_core.grid import VoxelGrid
@@ -200,9 +200,7 @@ class InceptionFeatures:
 
     @classmethod
     def load(cls, path, device=None, batch_size: int = 25) -> "InceptionFeatures":
-        path = Path(path).expanduser()
-        if path.is_dir():
-            path = path / INCEPTION_FILE
+        path = inception_path(path)
         if not path.is_file():
             raise ModelNotAvailableError(
                 f"FID Inception weights not found at {path}: download {INCEPTION_URL} once on a machine with "

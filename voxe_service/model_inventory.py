@@ -18,12 +18,11 @@ Examples:
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
+from voxe_core.constants import INCEPTION_FILE, inception_path
 from voxe_service.models import EVALUATE
 from voxe_service.settings import TINY_MODEL, Settings, model_label
 
-INCEPTION_FILE = "inception-2015-12-05.pt"  # voxe_core.evaluate.INCEPTION_FILE, without importing torch
 
 
 @dataclass(frozen=True)
@@ -52,9 +51,7 @@ def model_present(role: ModelRole, model: str, settings: Settings) -> bool:
     if model == TINY_MODEL:
         return True
     if role.marker is None:  # FID: a TorchScript file, by default in the model dir
-        path = Path(model or settings.model_dir).expanduser()
-        # A folder stands for the file in it, as InceptionFeatures.load reads it.
-        return (path / INCEPTION_FILE if path.is_dir() else path).is_file()
+        return inception_path(model or settings.model_dir).is_file()
     from voxe_core.guidance.loading import model_file_present
 
     return model_file_present(model, role.marker)
