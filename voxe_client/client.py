@@ -18,13 +18,13 @@ DEFAULT_TIMEOUT_S = 60.0
 TERMINAL_STATES = ("succeeded", "failed", "canceled")
 
 
-
 def _segment(value: str) -> str:
     """``value`` as one path segment: an id holding "/", "?" or "#" had addressed another resource (the status of
     job "../scenes" printed the scene listing). "." and ".." name no resource (a URL drops them as dot segments)."""
     if value in (".", ".."):
         raise ServiceError(f"{value!r} is not an id")
     return quote(value, safe="")
+
 
 class ServiceError(Exception):
     """The service answered with an error status (its detail is the message), or could not be reached.
