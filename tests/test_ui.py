@@ -113,7 +113,16 @@ def screenshot(driver, name: str) -> None:
     driver.save_screenshot(str(ARTIFACTS / f"ui_{name}.png"))
 
 
-def text(driver, selector: str) -> str:
+def text(driver, selector: str, tries: int = 3) -> str:
+    """The element's visible text, found again when the page replaced it between the find and the read (the job
+    list's poll re-renders its rows)."""
+    from selenium.common.exceptions import StaleElementReferenceException
+
+    for _ in range(tries - 1):
+        try:
+            return driver.find_element("css selector", selector).text
+        except StaleElementReferenceException:
+            continue
     return driver.find_element("css selector", selector).text
 
 
