@@ -22,6 +22,7 @@ from fastapi.responses import JSONResponse
 from sqlalchemy import delete, func, select
 from sqlalchemy.orm import Session
 
+from api.http_semantics import DATABASE_UNAVAILABLE, database_unavailable
 from voxe_service.db import get_sessionmaker
 from voxe_service.models import QUEUED, RUNNING, ApiKey, IdempotencyRecord, Job, Scene, utcnow
 from voxe_service.settings import Settings, get_settings, is_loopback
@@ -95,7 +96,10 @@ class RequireKey:
                 or not get_settings().auth_enabled):  # OPTIONS: the Allow header only (api/http_semantics.py)
             return await self.app(scope, receive, send)
         token = presented_token(Request(scope))
-        key_id = await anyio.to_thread.run_sync(_live_key_id, token) if token else None
+        try:
+            key_id = await anyio.to_thread.run_sync(_live_key_id, token) if token else None
+        except DATABASE_UNAVAILABLE as exc:  # outside the app's handlers: answered here, as a route's would be
+            return await database_unavailable(None, exc)(scope, receive, send)
         if key_id is None:
             response = JSONResponse({"detail": unauthorized(token)}, status.HTTP_401_UNAUTHORIZED, headers=CHALLENGE)
             return await response(scope, receive, send)

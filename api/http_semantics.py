@@ -8,6 +8,8 @@
 * A method a path does not serve is a 405 whose ``Allow`` lists every method of every route on that
   path (Starlette names only the first route it tried), and ``OPTIONS`` on any path answers 204
   with the same ``Allow``. Without a key too: it says nothing ``/openapi.json`` does not.
+* A database this process cannot use now (every pooled connection busy past ``VOXE_DATABASE_POOL_TIMEOUT_S``, the
+  server unreachable, SQLite locked) is a 503 with ``Retry-After``, not a bare 500: the request may be sent again.
 
 Examples:
     >>> from api.main import create_app
@@ -17,12 +19,16 @@ Examples:
 
 from __future__ import annotations
 
+import logging
+
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
+from sqlalchemy.exc import OperationalError, TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
+log = logging.getLogger("voxe.api")
 _PROBLEM = {"application/json": {"schema": {"$ref": "#/components/schemas/Problem"}}}
 _ALLOW = {"Allow": {"description": "the methods this path serves", "schema": {"type": "string"}}}
 SECURITY_SCHEMES = {
@@ -32,6 +38,9 @@ SECURITY_SCHEMES = {
 
 
 _METHODS = ("DELETE", "GET", "HEAD", "PATCH", "POST", "PUT")
+DATABASE_UNAVAILABLE = (PoolTimeout, OperationalError)
+DATABASE_RETRY_AFTER_S = 5
+_DATABASE_503 = "the database is busy or unreachable (Retry-After says when to try again)"
 
 
 def allowed_methods(app: FastAPI, path: str) -> list[str]:
@@ -72,6 +81,16 @@ def malformed_body(request: Request, exc: RequestValidationError) -> JSONRespons
     return None
 
 
+def database_unavailable(_request: Request | None, exc: Exception) -> JSONResponse:
+    """The 503 for a database error of ``DATABASE_UNAVAILABLE``; its text (host names, SQL) stays in the log."""
+    busy = isinstance(exc, PoolTimeout)
+    log.warning("answered 503: %s", exc)
+    reason = ("every database connection of this API process is in use (VOXE_DATABASE_POOL_SIZE + "
+              "VOXE_DATABASE_MAX_OVERFLOW)" if busy else "the database cannot be reached or is locked")
+    return JSONResponse({"detail": f"{reason}; try again in {DATABASE_RETRY_AFTER_S} s"}, status_code=503,
+                        headers={"Retry-After": str(DATABASE_RETRY_AFTER_S)})
+
+
 class RefuseNul:
     """The NUL answers above, before any route (ASGI middleware)."""
 
@@ -94,6 +113,8 @@ def install(app: FastAPI) -> None:
     """Answer NUL paths, 405 and OPTIONS as above, and document them with the statuses no route declares itself."""
     app.add_middleware(RefuseNul)
     app.add_exception_handler(405, method_not_allowed)
+    for error in DATABASE_UNAVAILABLE:
+        app.add_exception_handler(error, database_unavailable)
     generate = app.openapi
 
     def openapi() -> dict:
@@ -127,6 +148,10 @@ def document(schema: dict) -> dict:
                 responses.setdefault("401", {"description": "authentication on (VOXE_AUTH) and no live API key "
                                                             "sent", "content": _PROBLEM})
                 operation["security"] = [{"bearer": []}, {"apiKey": []}, {}]
+                unavailable = responses.setdefault("503", {"description": _DATABASE_503, "content": _PROBLEM})
+                if unavailable["description"] != _DATABASE_503:
+                    unavailable["description"] += f"; or {_DATABASE_503}"
+                    unavailable.setdefault("content", _PROBLEM)
         methods = ", ".join(m.upper() for m in sorted({*item, "options"}))
         item["options"] = {
             "summary": "The methods this path serves", "operationId": "options" + path.replace("/", "_").replace(

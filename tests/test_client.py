@@ -90,6 +90,46 @@ def test_events_resume_after_a_dropped_stream_with_last_event_id():
                                                        ("succeeded", "2"), ("progress", None)]
 
 
+def test_reads_answered_503_with_retry_after_are_sent_again_and_writes_are_not(monkeypatch):
+    """A GET (and the event stream) answered 503 + Retry-After waits that long and asks again, at most ``retries``
+    times; a POST, which the service may have acted on, and a 503 without Retry-After are errors at once."""
+    import voxe_client.client as client_module
+
+    waits, sent = [], []
+    monkeypatch.setattr(client_module.time, "sleep", waits.append)
+    busy = {"GET /v1/jobs/j1": 2, "GET /v1/jobs/j1/events": 1, "GET /v1/jobs/j2": 99, "POST /v1/jobs/j1/cancel": 1}
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        call = f"{request.method} {request.url.path}"
+        sent.append(call)
+        if busy.get(call, 0) > 0:
+            busy[call] -= 1
+            return httpx.Response(503, headers={"retry-after": "120" if call.endswith("events") else "2"},
+                                  json={"detail": "the database is busy"})
+        if call == "GET /v1/jobs/j3":
+            return httpx.Response(503, json={"detail": "down"})
+        if call.endswith("events"):
+            return httpx.Response(200, headers={"content-type": "text/event-stream"},
+                                  content=b'id: 1\nevent: succeeded\ndata: {"stage": "export"}\n\n')
+        return httpx.Response(200, json={"id": "j1", "state": "running"})
+
+    with Client(transport=httpx.MockTransport(answer), retries=3) as client:
+        assert client.get_job("j1")["state"] == "running"
+        assert sent == ["GET /v1/jobs/j1"] * 3 and waits == [2.0, 2.0]
+        assert [e["event"] for e in client.events("j1")] == ["succeeded"]
+        assert waits[-1] == client_module.MAX_RETRY_WAIT_S  # 120 s asked, capped
+        sent.clear()
+        with pytest.raises(ServiceError) as refused:
+            client.cancel_job("j1")
+        assert refused.value.status == 503 and sent == ["POST /v1/jobs/j1/cancel"]
+        with pytest.raises(ServiceError) as exhausted:
+            client.get_job("j2")
+        assert exhausted.value.status == 503 and sent.count("GET /v1/jobs/j2") == 4
+        with pytest.raises(ServiceError, match="HTTP 503: down"):
+            client.get_job("j3")
+        assert sent.count("GET /v1/jobs/j3") == 1
+
+
 def test_download_checks_size_and_sha256_and_leaves_nothing_on_a_mismatch(tmp_path):
     import hashlib
 

@@ -195,6 +195,35 @@ def test_resources_made_before_keys_belong_to_the_local_key(database_url):
     engine.dispose()
 
 
+@BOTH_DATABASES
+@pytest.mark.parametrize("auth", ["off", "on"])
+def test_a_database_out_of_connections_is_a_503_with_retry_after_on_the_key_check_and_in_routes(root, monkeypatch,
+                                                                                                 auth):  # noqa: F811
+    """A request finding every pooled connection busy is refused 503 + Retry-After naming the pool settings (not a
+    bare 500), whether the key check (auth on, a middleware) or the route (auth off) meets it; served again once a
+    connection is returned."""
+    for key, value in {"VOXE_AUTH": auth, "VOXE_DATABASE_POOL_SIZE": "1", "VOXE_DATABASE_MAX_OVERFLOW": "0",
+                       "VOXE_DATABASE_POOL_TIMEOUT_S": "0.2"}.items():
+        monkeypatch.setenv(key, value)
+    _reset()
+    from api.main import create_app
+    from voxe_service.db import get_engine
+
+    with TestClient(create_app(), raise_server_exceptions=False) as client:
+        headers = bearer(_create_key("busy")[1]) if auth == "on" else {}
+        held = get_engine().connect()
+        try:
+            response = client.get("/v1/jobs", headers=headers)
+        finally:
+            held.close()
+        assert response.status_code == 503, response.text
+        assert response.headers["retry-after"] == "5"
+        assert "VOXE_DATABASE_POOL_SIZE" in response.json()["detail"]
+        assert response.headers["x-content-type-options"] == "nosniff"
+        assert client.get("/v1/jobs", headers=headers).status_code == 200
+        assert "503" in client.get("/openapi.json").json()["paths"]["/v1/jobs"]["get"]["responses"]
+
+
 # ------------------------------------------------------------------------------------------ quotas
 @BOTH_DATABASES
 def test_concurrent_job_quota_is_429_with_retry_after(auth_client, mic_zip):

@@ -363,3 +363,39 @@ def test_jobs_racing_a_scenes_ingest_are_each_sent_exactly_once(db):
         with session_scope() as session:
             unsent = session.scalars(select(Job.id).where(Job.scene_id == scene, Job.task_id.is_(None))).all()
         assert unsent == [], round_
+
+
+# ------------------------------------------------------------------------------------------ the connection pool
+def test_a_process_holds_at_most_its_configured_connections_then_waits_its_timeout(tmp_path, monkeypatch,
+                                                                                     database_url):
+    """VOXE_DATABASE_POOL_SIZE + VOXE_DATABASE_MAX_OVERFLOW bound one process's connections (the deployment's sum
+    must fit the server's max_connections); one more waits VOXE_DATABASE_POOL_TIMEOUT_S, then fails, and gets a
+    connection once one is returned."""
+    import time
+
+    from sqlalchemy import text
+    from sqlalchemy.exc import TimeoutError as PoolTimeout
+
+    for key, value in {**service_env(tmp_path, database_url=database_url), "VOXE_DATABASE_POOL_SIZE": "2",
+                       "VOXE_DATABASE_MAX_OVERFLOW": "1", "VOXE_DATABASE_POOL_TIMEOUT_S": "0.5"}.items():
+        monkeypatch.setenv(key, value)
+    reset_service_caches()
+    from voxe_service.db import get_engine
+
+    engine = get_engine()
+    try:
+        held = [engine.connect() for _ in range(3)]
+        for connection in held:
+            assert connection.execute(text("select 1")).scalar() == 1
+        started = time.monotonic()
+        with pytest.raises(PoolTimeout):
+            engine.connect()
+        assert 0.5 <= time.monotonic() - started < 5
+        held.pop().close()
+        with engine.connect() as connection:
+            assert connection.execute(text("select 2")).scalar() == 2
+        for connection in held:
+            connection.close()
+    finally:
+        engine.dispose()
+        reset_service_caches()

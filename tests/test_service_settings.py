@@ -28,6 +28,7 @@ def fresh_settings(monkeypatch):
     ("VOXE_STORAGE_BACKEND", "s4", "VOXE_STORAGE_BACKEND='s4': Input should be 'local' or 's3'"),
     ("VOXE_MAX_UPLOAD_BYTES", "lots", "VOXE_MAX_UPLOAD_BYTES='lots': Input should be a valid integer"),
     ("VOXE_WORKER_MAX_TASKS_PER_CHILD", "0", "VOXE_WORKER_MAX_TASKS_PER_CHILD='0': Input should be greater than"),
+    ("VOXE_DATABASE_MAX_OVERFLOW", "-1", "VOXE_DATABASE_MAX_OVERFLOW='-1': Input should be greater than or equal to 0"),
     # had failed only when first used, deep in SQLAlchemy, kombu or botocore
     ("VOXE_DATABASE_URL", "postgres://u:S3cret@db/voxe",  # the password not printed
      "VOXE_DATABASE_URL='postgres://u:***@db/voxe': not a SQLAlchemy database URL (Can't load plugin: "

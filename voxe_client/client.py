@@ -15,6 +15,8 @@ import httpx
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 DEFAULT_TIMEOUT_S = 60.0
+DEFAULT_RETRIES = 3
+MAX_RETRY_WAIT_S = 30.0
 TERMINAL_STATES = ("succeeded", "failed", "canceled")
 
 
@@ -42,7 +44,9 @@ class Client:
     """The job service at ``base_url``; ``api_key`` goes as ``Authorization: Bearer`` (none on a loopback service).
 
     Use it as a context manager (or call :meth:`close`) to release its connections. ``transport``
-    replaces httpx's network transport (tests pass ``httpx.MockTransport``).
+    replaces httpx's network transport (tests pass ``httpx.MockTransport``). A read (GET) answered 503 with
+    ``Retry-After`` (the service's database or broker briefly unavailable) is sent again after that wait, at most
+    ``retries`` times; writes are not, as the service may have acted on them.
 
     Examples:
         >>> def answer(request):
@@ -56,8 +60,9 @@ class Client:
     """
 
     def __init__(self, base_url: str = DEFAULT_URL, api_key: str | None = None, timeout: float = DEFAULT_TIMEOUT_S,
-                 transport: httpx.BaseTransport | None = None):
+                 transport: httpx.BaseTransport | None = None, retries: int = DEFAULT_RETRIES):
         self.base_url = base_url.rstrip("/")
+        self.retries = retries
         headers = {"accept": "application/json"}
         if api_key:
             headers["authorization"] = f"Bearer {api_key}"
@@ -78,10 +83,15 @@ class Client:
     def request(self, method: str, path: str, body: dict | None = None, **kwargs) -> Any:
         """The decoded JSON answer of ``method path`` (``body`` sent as JSON, ``kwargs`` to httpx);
         ServiceError for an error status."""
-        try:
-            response = self._http.request(method, path, json=body, **kwargs)
-        except (httpx.TransportError, httpx.InvalidURL) as exc:
-            raise ServiceError(f"cannot reach the service at {self.base_url}: {exc}") from None
+        for attempt in range(self.retries + 1):
+            try:
+                response = self._http.request(method, path, json=body, **kwargs)
+            except (httpx.TransportError, httpx.InvalidURL) as exc:
+                raise ServiceError(f"cannot reach the service at {self.base_url}: {exc}") from None
+            wait = _retry_after(response)
+            if method != "GET" or wait is None or attempt == self.retries:
+                break
+            time.sleep(wait)
         _raise_for_error(response, method, path)
         try:
             return response.json()
@@ -124,6 +134,11 @@ class Client:
                 with self._http.stream("GET", path, headers=headers, timeout=httpx.Timeout(30.0, read=None)) as response:
                     if response.is_error:
                         response.read()
+                        wait = _retry_after(response)
+                        if wait is not None and failures < reconnects:
+                            failures += 1
+                            time.sleep(wait)
+                            continue
                         _raise_for_error(response, "GET", path)
                     for event in parse_sse(response.iter_lines()):
                         failures = 0
@@ -196,6 +211,16 @@ class Client:
     def get_sweep(self, sweep_id: str) -> dict:
         """``GET /v1/sweeps/{id}``: the jobs' states and the summary table."""
         return self.request("GET", f"/v1/sweeps/{_segment(sweep_id)}")
+
+
+def _retry_after(response: httpx.Response) -> float | None:
+    """Seconds to wait before sending again a request answered 503 with ``Retry-After: <seconds>`` (at most
+    ``MAX_RETRY_WAIT_S``); None for any other answer."""
+    try:
+        seconds = float(response.headers["retry-after"]) if response.status_code == 503 else None
+    except (KeyError, ValueError):
+        return None
+    return None if seconds is None or not seconds >= 0 else min(seconds, MAX_RETRY_WAIT_S)
 
 
 def _raise_for_error(response: httpx.Response, method: str, path: str) -> None:

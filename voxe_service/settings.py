@@ -28,6 +28,12 @@ class Settings(BaseSettings):
 
     # --- metadata and queue
     database_url: str = "sqlite:///./var/voxe.db"
+    # Connections each process (an API process, a worker) may hold: the pool, plus overflow opened under load and
+    # closed when returned. A deployment's processes together must stay under the server's max_connections
+    # (PostgreSQL: 100 by default); a request finding all of them busy waits database_pool_timeout_s, then fails.
+    database_pool_size: int = Field(5, ge=1)
+    database_max_overflow: int = Field(10, ge=0)
+    database_pool_timeout_s: float = Field(30.0, gt=0)
     broker_url: str = "sqla+sqlite:///./var/broker.db"
     broker_polling_interval: float = Field(0.5, gt=0, description="seconds between polls of a polling broker (SQL)")
     # Redis: how long a connect or a command may wait for the server. A server that accepts and never answers
