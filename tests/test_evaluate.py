@@ -180,13 +180,26 @@ def test_a_clip_folder_without_its_tokenizer_vocabulary_is_refused_naming_it(tin
         ClipScorer.from_pretrained(str(folder), device="cpu")
 
 
-@pytest.mark.parametrize("damaged, content", [("model.safetensors", b"trunc"), ("tokenizer_config.json", b"{bad")])
+@pytest.mark.parametrize("damaged, content", [("model.safetensors", b"trunc"), ("tokenizer_config.json", b"{bad"),
+                                               ("vocab.json", b"{bad"), ("merges.txt", b"garbage")])
 def test_damaged_clip_files_are_refused_naming_the_model(tiny_clip_path, tmp_path, damaged, content):
     folder = tmp_path / "damaged"
     shutil.copytree(tiny_clip_path, folder)
-    (folder / damaged).write_bytes(content)  # SafetensorError, JSONDecodeError underneath
+    (folder / damaged).write_bytes(content)  # SafetensorError, JSONDecodeError, tokenizers' bare Exception underneath
     with pytest.raises(ModelNotAvailableError, match="CLIP weights '.*damaged' are not available"):
         ClipScorer.from_pretrained(str(folder), device="cpu")
+
+
+def test_a_machine_out_of_memory_while_loading_clip_is_not_reported_as_a_missing_model(tiny_clip_path, monkeypatch):
+    from transformers import CLIPModel
+
+    def short_of_memory(*_args, **_kwargs):
+        raise RuntimeError("DefaultCPUAllocator: can't allocate memory: you tried to allocate 605552640 bytes")
+
+    monkeypatch.setattr(CLIPModel, "from_pretrained", short_of_memory)
+    with pytest.raises(RuntimeError, match="DefaultCPUAllocator") as raised:
+        ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")
+    assert not isinstance(raised.value, ModelNotAvailableError)
 
 
 def test_inception_loader_tiny_file_and_missing_file(tiny_inception_path, tmp_path):

@@ -333,6 +333,33 @@ def test_damaged_weights_are_reported_naming_the_model(tiny_path, tmp_path):
         StableDiffusionGuidance.from_pretrained(str(damaged), local_files_only=True)
 
 
+@pytest.mark.parametrize("damaged, content", [("vocab.json", b"{bad"), ("merges.txt", b"garbage"),
+                                               ("vocab.json", b'{"a": 0}')])
+def test_unreadable_tokenizer_files_are_reported_naming_the_model(tiny_path, tmp_path, damaged, content):
+    """The tokenizers library raises a bare Exception ("Error while initializing BPE") for these: it had surfaced as
+    the job's failure, not as a damaged model."""
+    folder = tmp_path / "damaged_tokenizer"
+    shutil.copytree(tiny_path, folder)
+    (folder / "tokenizer" / damaged).write_bytes(content)
+    with pytest.raises(ModelNotAvailableError, match="'.*damaged_tokenizer' are not available.*tokenizer files unreadable"):
+        StableDiffusionGuidance.from_pretrained(str(folder), local_files_only=True)
+
+
+@pytest.mark.parametrize("error", ["DefaultCPUAllocator: can't allocate memory: you tried to allocate 3463 bytes",
+                                   "CUDA out of memory"])
+def test_a_machine_out_of_memory_while_loading_is_not_reported_as_a_missing_model(tiny_path, monkeypatch, error):
+    import torch
+    from diffusers import UNet2DConditionModel
+
+    def short_of_memory(*_args, **_kwargs):
+        raise (torch.OutOfMemoryError if error.startswith("CUDA") else RuntimeError)(error)
+
+    monkeypatch.setattr(UNet2DConditionModel, "from_pretrained", short_of_memory)
+    with pytest.raises(RuntimeError, match=error) as raised:
+        StableDiffusionGuidance.from_pretrained(str(tiny_path), local_files_only=True)
+    assert not isinstance(raised.value, ModelNotAvailableError)
+
+
 def test_default_model_ids():
     assert SDS_MODEL_ID == "stabilityai/stable-diffusion-2-base"
     assert ATTENTION_MODEL_ID == "CompVis/stable-diffusion-v1-4"

@@ -42,7 +42,9 @@ from voxe_core.constants import CLIP_MODEL_ID, INCEPTION_FILE, inception_path
 from voxe_core.devices import PeakMemory, resolve_device
 from voxe_core.export import render_views, save_png, to_uint8, turntable_cameras
 from voxe_core.grid import VoxelGrid
-from voxe_core.guidance.loading import ModelNotAvailableError, loading_errors, offline_env, tokenizer_fits
+from voxe_core.guidance.loading import (
+    ModelNotAvailableError, is_out_of_memory, load_clip_tokenizer, loading_errors, offline_env, tokenizer_fits,
+)
 from voxe_core.guidance.prompts import edit_prompt
 from voxe_core.metrics import SSIM_WINDOW, psnr, ssim
 from voxe_core.progress import Callbacks, Progress
@@ -251,7 +253,7 @@ class ClipScorer:
     @classmethod
     def from_pretrained(cls, model_id: str = CLIP_MODEL_ID, device=None, local_files_only: bool | None = None):
         """Load a hub id (from the local cache when offline) or a folder; ModelNotAvailableError names the model."""
-        from transformers import CLIPModel, CLIPTokenizer
+        from transformers import CLIPModel
 
         device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
         kwargs = {"local_files_only": offline_env() if local_files_only is None else bool(local_files_only)}
@@ -260,9 +262,11 @@ class ClipScorer:
             raise ModelNotAvailableError(f"CLIP model folder '{model_id}' does not exist")
         try:
             model = CLIPModel.from_pretrained(model_id, **kwargs)
-            tokenizer = CLIPTokenizer.from_pretrained(model_id, **kwargs)
+            tokenizer = load_clip_tokenizer(model_id, **kwargs)
             image_processor = _clip_image_processor_class().from_pretrained(model_id, **kwargs)
         except loading_errors() as exc:
+            if is_out_of_memory(exc):
+                raise
             raise ModelNotAvailableError(_clip_not_available(model_id, f"{type(exc).__name__}: {exc}")) from exc
         text_vocabulary = model.config.text_config.vocab_size
         if not tokenizer_fits(tokenizer, text_vocabulary):  # or every prompt encodes alike: every CLIP_dir 0

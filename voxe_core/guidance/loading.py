@@ -93,6 +93,27 @@ def loading_errors() -> tuple[type[BaseException], ...]:
     return tuple(errors)
 
 
+def is_out_of_memory(exc: BaseException) -> bool:
+    """A failed allocation (CUDA's OutOfMemoryError, the CPU allocator's RuntimeError): the machine is short of
+    memory, which ``loading_errors`` would otherwise report as a missing model."""
+    import torch
+
+    return isinstance(exc, (MemoryError, torch.OutOfMemoryError)) or "DefaultCPUAllocator" in str(exc)
+
+
+def load_clip_tokenizer(model: str, **kwargs):
+    """``CLIPTokenizer.from_pretrained(model, **kwargs)``; the bare Exception the tokenizers library raises for an
+    unreadable vocab.json or merges.txt ("Error while initializing BPE") becomes an OSError, a damaged model."""
+    from transformers import CLIPTokenizer
+
+    try:
+        return CLIPTokenizer.from_pretrained(model, **kwargs)
+    except loading_errors():
+        raise
+    except Exception as exc:  # noqa: BLE001 - tokenizers' Rust errors have no type of their own
+        raise OSError(f"tokenizer files unreadable: {exc}") from exc
+
+
 def hub_download_bytes(model: str) -> int | None:
     """Bytes of the files of hub model ``model``, or None when the hub cannot say (offline, unknown id)."""
     from huggingface_hub import HfApi
@@ -133,7 +154,7 @@ def load_stable_diffusion(model: str, dtype, local_files_only: bool | None = Non
     :class:`ModelNotAvailableError` naming the model when anything is missing.
     """
     from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
-    from transformers import CLIPTextModel, CLIPTokenizer
+    from transformers import CLIPTextModel
 
     if local_files_only is None:
         local_files_only = offline_env()
@@ -151,9 +172,11 @@ def load_stable_diffusion(model: str, dtype, local_files_only: bool | None = Non
         unet = UNet2DConditionModel.from_pretrained(model, subfolder="unet", torch_dtype=dtype, **kwargs)
         vae = AutoencoderKL.from_pretrained(model, subfolder="vae", torch_dtype=dtype, **kwargs)
         text_encoder = CLIPTextModel.from_pretrained(model, subfolder="text_encoder", dtype=dtype, **kwargs)
-        tokenizer = CLIPTokenizer.from_pretrained(model, subfolder="tokenizer", **kwargs)
+        tokenizer = load_clip_tokenizer(model, subfolder="tokenizer", **kwargs)
         scheduler = DDIMScheduler.from_pretrained(model, subfolder="scheduler", **kwargs)
     except loading_errors() as exc:
+        if is_out_of_memory(exc):
+            raise
         raise ModelNotAvailableError(not_available_message(model, exc)) from exc
     if not tokenizer_fits(tokenizer, text_encoder.config.vocab_size):
         raise ModelNotAvailableError(
