@@ -197,8 +197,7 @@ def test_resources_made_before_keys_belong_to_the_local_key(database_url):
 
 @BOTH_DATABASES
 @pytest.mark.parametrize("auth", ["off", "on"])
-def test_a_database_out_of_connections_is_a_503_with_retry_after_on_the_key_check_and_in_routes(root, monkeypatch,
-                                                                                                 auth):  # noqa: F811
+def test_a_database_out_of_connections_is_a_503_with_retry_after(root, monkeypatch, auth):  # noqa: F811
     """A request finding every pooled connection busy is refused 503 + Retry-After naming the pool settings (not a
     bare 500), whether the key check (auth on, a middleware) or the route (auth off) meets it; served again once a
     connection is returned."""

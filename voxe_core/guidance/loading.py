@@ -69,7 +69,7 @@ def loading_errors() -> tuple[type[BaseException], ...]:
     Missing: the hub's errors and OSError. Damaged: safetensors' SafetensorError (a truncated or
     corrupt weights file), and the ValueError / RuntimeError ``from_pretrained`` raises for an
     unreadable JSON file, torch archive or weights of another shape. Catch them around loading
-    alone: a device move's out-of-memory is a RuntimeError too.
+    alone, and let :func:`is_out_of_memory` ones through: an allocation failure is a RuntimeError too.
     """
     errors: list[type[BaseException]] = [OSError, ValueError, RuntimeError]
     try:
