@@ -669,7 +669,8 @@ def test_cli_refine_smoke(tmp_path, tiny_model, make_sphere_grid):
     pngs = {p.name for p in (out / "renders").glob("*.png")}
     assert {"mask_00.png", "attention_edit_00.png", "attention_object_00.png", "refined_00.png", "map2d_edit_00.png"} <= pngs
     _, _, where = load_probabilities(out / "probabilities.safetensors")
-    assert torch.equal(where, node_mask(edited))
+    assert torch.equal(where, node_mask(edited, rule=RefineConfig().node_rule))  # the cut's nodes: the default rule's
+    assert not (mask & ~where).any()  # every masked voxel has its probabilities
 
     assert main(argv(model=str(tmp_path / "no_such_model"))) == 2  # ModelNotAvailableError -> exit 2
     assert main(argv(words=" , ")) == 2

@@ -450,7 +450,6 @@ def _edit(job: Job, settings, device: str, storage) -> None:
 # --------------------------------------------------------------------------- refine
 def _refine(job: Job, settings, device: str, storage) -> None:
     from voxe_core.export import save_png, turntable_cameras
-    from voxe_core.refine.cut import node_mask
     from voxe_core.refine.pipeline import refine
     from voxe_core.refine.renders import render_mask_overlay
     from voxe_core.refine.storage import save_mask, save_probabilities
@@ -471,8 +470,7 @@ def _refine(job: Job, settings, device: str, storage) -> None:
     save_mask(mask, result.mask, {"prompt": job.prompt, "edit_words": list(job.edit_words)})
     runtime.publish_artifact(job.id, "mask.safetensors", mask, "mask", storage)
     probabilities = scratch / "attention_probabilities.safetensors"
-    save_probabilities(probabilities, result.edit_probability, result.object_probability,
-                       node_mask(edited, config.node_alpha, config.node_rule))
+    save_probabilities(probabilities, result.edit_probability, result.object_probability, result.nodes)
     runtime.publish_artifact(job.id, "attention_probabilities.safetensors", probabilities, "probabilities", storage)
     size = export_config(job.params).view_size
     cameras = turntable_cameras(1, 20.0, size, centre=initial.orbit_centre())  # G_i's, as every stage

@@ -76,7 +76,6 @@ def cmd_refine(args) -> int:
 
     from voxe_core.backbones import load_grid
     from voxe_core.export import save_png, turntable_cameras
-    from voxe_core.refine.cut import node_mask
     from voxe_core.refine.pipeline import check_compatible, refine
     from voxe_core.refine.renders import render_attention, render_mask_overlay
     from voxe_core.refine.storage import save_mask, save_probabilities
@@ -110,8 +109,8 @@ def cmd_refine(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     result.refined_grid.save(out / "refined.safetensors", dense=args.dense)
     save_mask(out / "mask.safetensors", result.mask, meta={"prompt": result.info["prompt"], "edit_words": words})
-    nodes = node_mask(edited, config.node_alpha)
-    save_probabilities(out / "probabilities.safetensors", result.edit_probability, result.object_probability, nodes)
+    save_probabilities(out / "probabilities.safetensors", result.edit_probability, result.object_probability,
+                       result.nodes)
     renders = out / "renders"
     if args.preview_views:
         cameras = turntable_cameras(args.preview_views, 30.0, config.render_size, centre=initial.orbit_centre())

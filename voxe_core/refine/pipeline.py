@@ -13,7 +13,7 @@ from voxe_core.grid import VoxelGrid
 from voxe_core.guidance.prompts import edit_prompt
 from voxe_core.progress import Callbacks, Progress, in_phases
 from voxe_core.refine.config import RefineConfig
-from voxe_core.refine.cut import GraphCutStats, graph_cut_detailed, probabilities
+from voxe_core.refine.cut import GraphCutStats, graph_cut_detailed, node_mask, probabilities
 from voxe_core.refine.lifting import fit_attention_grids
 from voxe_core.refine.maps import attention_cameras, attention_maps_2d, token_groups
 
@@ -22,6 +22,7 @@ from voxe_core.refine.maps import attention_cameras, attention_maps_2d, token_gr
 class RefineResult:
     refined_grid: VoxelGrid
     mask: torch.Tensor  # (X, Y, Z) bool, True = take G_e
+    nodes: torch.Tensor  # (X, Y, Z) bool: the cut's graph nodes, where the probabilities below mean something
     edit_probability: torch.Tensor  # (X, Y, Z) float32
     object_probability: torch.Tensor  # (X, Y, Z) float32
     edit_field: torch.Tensor  # (X, Y, Z, 1) fitted raw values
@@ -116,7 +117,8 @@ def refine(
     refined = merge(initial_grid, edited_grid, mask)
     callbacks.progress(Progress("graph_cut", 1, 1, info={"stage": "graph cut", "nodes": stats.nodes,
                                                         "edit_voxels": stats.edit_voxels, **memory.info()}))
+    nodes = node_mask(edited_grid, config.node_alpha, config.node_rule).cpu()
     return RefineResult(
-        refined, mask, p_e, p_o, edit_field, object_field, cameras, edit_maps, object_maps, stats,
+        refined, mask, nodes, p_e, p_o, edit_field, object_field, cameras, edit_maps, object_maps, stats,
         info={"prompt": text, "edit_words": list(edit_words) if not isinstance(edit_words, str) else [edit_words]},
     )
