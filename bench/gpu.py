@@ -372,6 +372,7 @@ def refinement_run(sd14: Path, profile: Profile) -> dict:
     return {"name": f"refinement at {profile.grid_resolution}³", "kind": "refinement", "device": profile.device,
             "dtype": _dtype_name(profile.dtype), "model": "sd1.4-shaped (random weights)",
             "seconds": seconds, "seconds_attention_maps": maps_end - start,
+            "seconds_backprojection": marks.get("backprojection", maps_end) - maps_end,
             "seconds_grids_and_cut": start + seconds - maps_end,  # the lift or fit, then the cut
             "edit_voxels": int(result.mask.sum()), **_peaks(reports)}
 

@@ -65,6 +65,10 @@ def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
     assert (smaller["rays_per_step"] * 2, smaller["iterations"], smaller["lr"]) == \
         (fast["rays_per_step"], 2 * fast["iterations"], 0.03)
     assert smaller["seconds_over_default"] == pytest.approx(smaller["seconds"] / fast["seconds"])
+    refinement = next(r for r in runs if r["kind"] == "refinement")  # the split: maps, then the lift and the cut
+    assert refinement["seconds_attention_maps"] + refinement["seconds_grids_and_cut"] == \
+        pytest.approx(refinement["seconds"])
+    assert 0 < refinement["seconds_backprojection"] <= refinement["seconds_grids_and_cut"]
     passes = [r for r in runs if r["kind"] == "render_passes"]
     for scene in ("sphere", "fog"):  # grouping never moves the render; larger passes never dispatch more
         mine = [r for r in passes if r["scene"] == scene]

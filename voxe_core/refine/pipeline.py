@@ -105,8 +105,8 @@ def refine(
     cameras = attention_cameras(config, centre=centre)
     fresh_view = fresh_attention_views(guidance, edited_grid, text, edit_words, config, centre) \
         if config.fit_views == "fresh" else None
-    callbacks = in_phases(callbacks, {"attention_maps": len(cameras), "attention_grids": config.iterations,
-                                      "graph_cut": 1})  # one scale: the stage's progress only rises
+    callbacks = in_phases(callbacks, {"attention_maps": len(cameras), "backprojection": 1,
+                                      "attention_grids": config.iterations, "graph_cut": 1})  # one scale: only rises
     edit_maps, object_maps = attention_maps_2d(guidance, edited_grid, cameras, text, edit_words, config, callbacks,
                                                centre=centre)
     edit_field, object_field = fit_attention_grids(edited_grid, cameras, edit_maps, object_maps, config, callbacks,
