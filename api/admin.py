@@ -44,8 +44,9 @@ def main(argv: list[str] | None = None) -> int:
     run_migrations(get_settings().database_url)
     with session_scope() as session:
         if args.command == "create-key":
-            if not args.name.strip() or len(args.name) > 255:
-                parser.error("--name must be 1-255 characters")
+            if not args.name.strip() or len(args.name) > 255 or not args.name.isprintable():
+                parser.error("--name must be 1-255 printable characters (a tab or newline would forge list-keys' "
+                             "rows)")
             key, token = create_key(session, args.name.strip(), args.max_active_jobs, args.max_upload_bytes)
             print(f"created key {key.id} ({key.name}); its token, shown only this once:", file=sys.stderr)
             print(token)

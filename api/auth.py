@@ -22,7 +22,7 @@ from fastapi.responses import JSONResponse
 from sqlalchemy import delete, func, select
 from sqlalchemy.orm import Session
 
-from api.http_semantics import DATABASE_UNAVAILABLE, database_unavailable
+from api.http_semantics import DATABASE_UNAVAILABLE, database_unavailable, route_path
 from voxe_service.db import get_sessionmaker
 from voxe_service.models import QUEUED, RUNNING, ApiKey, IdempotencyRecord, Job, Scene, utcnow
 from voxe_service.settings import Settings, get_settings, is_loopback
@@ -61,12 +61,10 @@ def authenticate(session: Session, token: str) -> ApiKey | None:
 
 
 def presented_token(request: Request) -> str | None:
-    """``Authorization: Bearer <token>`` or ``X-API-Key: <token>``."""
-    header = request.headers.get("authorization")
-    if header:
-        scheme, _, value = header.partition(" ")
-        return value.strip() if scheme.lower() == "bearer" else None
-    return request.headers.get("x-api-key")
+    """``Authorization: Bearer <token>``, else ``X-API-Key: <token>`` (the header for clients whose
+    ``Authorization`` carries another scheme: a proxy's Basic credentials)."""
+    scheme, _, value = request.headers.get("authorization", "").partition(" ")
+    return value.strip() if scheme.lower() == "bearer" else request.headers.get("x-api-key")
 
 
 CHALLENGE = {"WWW-Authenticate": "Bearer"}
@@ -92,7 +90,7 @@ class RequireKey:
         self.app = app
 
     async def __call__(self, scope, receive, send):
-        if (scope["type"] != "http" or not scope["path"].startswith("/v1") or scope["method"] == "OPTIONS"
+        if (scope["type"] != "http" or not route_path(scope).startswith("/v1") or scope["method"] == "OPTIONS"
                 or not get_settings().auth_enabled):  # OPTIONS: the Allow header only (api/http_semantics.py)
             return await self.app(scope, receive, send)
         token = presented_token(Request(scope))

@@ -55,9 +55,21 @@ def allowed_methods(app: FastAPI, path: str) -> list[str]:
     return sorted({"OPTIONS", *filter(served, _METHODS)})
 
 
+def route_path(scope) -> str:
+    """The path the app's routes match: ``scope["path"]`` without the ``root_path`` a proxy mounts the service
+    under (``uvicorn --root-path /api``: "/api/v1/jobs" is routed as "/v1/jobs").
+
+    Examples:
+        >>> route_path({"path": "/api/v1/jobs", "root_path": "/api"}), route_path({"path": "/v1/jobs"})
+        ('/v1/jobs', '/v1/jobs')
+    """
+    path, root = scope["path"], scope.get("root_path", "")
+    return path[len(root):] if root and path.startswith(root + "/") else path
+
+
 async def method_not_allowed(request: Request, exc: StarletteHTTPException) -> Response:
     """405 with the path's whole ``Allow``; OPTIONS answered 204 with it."""
-    allow = ", ".join(allowed_methods(request.app, request.url.path))
+    allow = ", ".join(allowed_methods(request.app, route_path(request.scope)))
     if request.method == "OPTIONS":
         return Response(status_code=204, headers={"Allow": allow})
     return JSONResponse({"detail": f"method {request.method} is not allowed on {request.url.path}; allowed: {allow}"},

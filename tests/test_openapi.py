@@ -276,6 +276,20 @@ def test_options_and_405_answer_each_paths_documented_methods(client, spec):
         assert "405" in item["options"]["responses"]
 
 
+def test_behind_a_proxy_prefix_the_405_still_names_the_paths_methods(client):
+    """``uvicorn --root-path /api``: the request path carries the prefix ("/api/v1/jobs"), the routes do not."""
+    import anyio
+    import httpx
+
+    async def delete_jobs():
+        transport = httpx.ASGITransport(client.app, root_path="/api")
+        async with httpx.AsyncClient(transport=transport, base_url="http://proxy") as proxied:
+            return await proxied.delete("/api/v1/jobs")
+
+    refused = anyio.run(delete_jobs)
+    assert refused.status_code == 405 and refused.headers["allow"] == "GET, OPTIONS, POST"
+
+
 def test_every_v1_operation_documents_auth_and_body_statuses(spec):
     for path, item in spec["paths"].items():
         for method, operation in item.items():

@@ -71,6 +71,9 @@ def test_requests_need_a_valid_live_key(auth_client, mic_zip):
     key_id, token = _create_key("alice")
     assert auth_client.get("/v1/scenes", headers=bearer(token)).status_code == 200
     assert auth_client.get("/v1/scenes", headers={"X-API-Key": token}).status_code == 200
+    # behind a proxy that uses Authorization for its own (Basic) credentials, X-API-Key carries the key
+    assert auth_client.get("/v1/scenes", headers={"Authorization": "Basic dXNlcjpwYXNz",
+                                                  "X-API-Key": token}).status_code == 200
     # A token for the right id with a wrong secret, and the local key (no token at all), never authenticate.
     assert auth_client.get("/v1/scenes", headers=bearer(token[:-4] + "AAAA")).status_code == 401
     assert auth_client.get("/v1/scenes", headers=bearer("voxe_local_" + "x" * 43)).status_code == 401
@@ -144,6 +147,9 @@ def test_admin_cli_creates_lists_and_revokes_keys(auth_client, capsys):
     assert "no API key 'nosuchkey'" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         admin.main(["create-key", "--name", "x", "--max-active-jobs", "0"])
+    with pytest.raises(SystemExit):  # a name with a tab and a newline had printed a forged row in list-keys
+        admin.main(["create-key", "--name", "x\nfake1234abcd\tadmin\tactive"])
+    assert "printable characters" in capsys.readouterr().err
 
 
 # ------------------------------------------------------------------------------------------ the auth switch
@@ -365,14 +371,16 @@ def test_an_anonymous_upload_is_refused_before_its_body_is_read(auth_client):
     async def send(message):
         sent.append(message)
 
-    async def run(headers):
-        scope = {"type": "http", "method": "POST", "path": "/v1/scenes", "headers": headers, "query_string": b""}
+    async def run(headers, root_path):
+        scope = {"type": "http", "method": "POST", "path": f"{root_path}/v1/scenes", "root_path": root_path,
+                 "headers": headers, "query_string": b""}
         await RequireKey(untouchable)(scope, untouchable, send)
 
-    for headers in ([], [(b"authorization", b"Bearer voxe_0123456789ab_" + b"x" * 43)]):
-        sent.clear()
-        anyio.run(run, [(b"content-length", b"2000000000"), *headers])
-        assert sent[0]["status"] == 401 and b"API key" in sent[1]["body"]
+    for root_path in ("", "/api"):  # "/api": mounted behind a proxy (uvicorn --root-path /api)
+        for headers in ([], [(b"authorization", b"Bearer voxe_0123456789ab_" + b"x" * 43)]):
+            sent.clear()
+            anyio.run(run, [(b"content-length", b"2000000000"), *headers], root_path)
+            assert sent[0]["status"] == 401 and b"API key" in sent[1]["body"]
 
     _, token = _create_key("uploader")
     passed = []
