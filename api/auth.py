@@ -129,8 +129,15 @@ def lock_key(session: Session, key: ApiKey) -> None:
 
 
 def check_active_jobs(session: Session, key: ApiKey, settings: Settings, adding: int = 1) -> None:
-    """With the ``adding`` new jobs' rows flushed: 429 when the key now has more queued + running jobs than allowed."""
+    """With the ``adding`` new jobs' rows flushed: 429 when the key now has more queued + running jobs than allowed,
+    or 422 when ``adding`` alone is more (no retry could ever be accepted)."""
     limit = key.max_active_jobs or settings.max_active_jobs_per_key
+    if adding > limit:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                            f"this request creates {adding} jobs but key {key.name!r} may have at most {limit} queued "
+                            "or running (VOXE_MAX_ACTIVE_JOBS_PER_KEY or the key's own), so it can never be accepted: "
+                            "ask for fewer (a sweep over fewer scenes), or use a key created with a higher "
+                            "--max-active-jobs")
     active = session.scalar(select(func.count()).select_from(Job)
                             .where(Job.owner_key_id == key.id, Job.state.in_((QUEUED, RUNNING)))) or 0
     if active > limit:
@@ -142,18 +149,24 @@ def check_active_jobs(session: Session, key: ApiKey, settings: Settings, adding:
 
 def check_upload_bytes(session: Session, key: ApiKey, settings: Settings, adding: int,
                        including_new: bool = False) -> None:
-    """429 when the key's stored scenes plus ``adding`` bytes exceed its upload quota.
+    """429 when the key's stored scenes plus ``adding`` bytes exceed its upload quota; 413 when ``adding`` alone
+    does (deleting scenes could never make room). ``adding`` 0: the check before an upload's size is known.
 
     ``including_new``: the new scene's row (of ``adding`` bytes) is already flushed into the sum.
     """
     limit = key.max_upload_bytes or settings.max_upload_bytes_per_key
+    if adding > limit:
+        raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE,
+                            f"this upload stores {adding} bytes, more than the whole upload quota of key {key.name!r} "
+                            f"({limit} bytes: VOXE_MAX_UPLOAD_BYTES_PER_KEY or the key's own)")
     total = session.scalar(select(func.coalesce(func.sum(Scene.size_bytes), 0))
                            .where(Scene.owner_key_id == key.id)) or 0
     stored = total - adding if including_new else total
     if stored + adding > limit:
+        this = f"this upload adds {adding}" if adding else "before this upload is read"
         raise QuotaExceeded(f"quota of upload bytes exceeded: key {key.name!r} stores {stored} bytes of scenes, "
-                            f"this upload adds {adding}, the limit is {limit} (VOXE_MAX_UPLOAD_BYTES_PER_KEY or "
-                            "the key's own); delete scenes to free space", settings)
+                            f"{this}, the limit is {limit} (VOXE_MAX_UPLOAD_BYTES_PER_KEY or the key's own); delete "
+                            "scenes to free space", settings)
 
 
 # ------------------------------------------------------------------ Idempotency-Key

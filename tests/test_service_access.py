@@ -267,6 +267,18 @@ def test_upload_quota_is_429_and_leaves_nothing(auth_client, mic_zip, root):  # 
     assert stored_files(root) == before and staged(root) == []
     assert auth_client.delete(f"/v1/scenes/{first.json()['id']}", headers=bearer(token)).status_code == 204
     assert _upload(auth_client, mic_zip, bearer(token)).status_code == 201  # space freed
+    from voxe_service.db import session_scope
+    from voxe_service.models import ApiKey
+
+    with session_scope() as session:  # a key already over its quota is refused before the upload is read
+        session.get(ApiKey, token.split("_")[1]).max_upload_bytes = size // 2
+    early = _upload(auth_client, mic_zip, bearer(token))
+    assert early.status_code == 429 and "before this upload is read" in early.json()["detail"]
+    _, tiny = _create_key("tiny", max_upload_bytes=size // 2)  # the upload alone is over: deleting frees nothing
+    alone = _upload(auth_client, mic_zip, bearer(tiny))
+    assert alone.status_code == 413 and f"more than the whole upload quota of key 'tiny' ({size // 2} bytes" in \
+        alone.json()["detail"]
+    assert auth_client.get("/v1/scenes", headers=bearer(tiny)).json()["total"] == 0 and staged(root) == []
 
 
 # ------------------------------------------------------------------------------------------ Idempotency-Key
