@@ -118,6 +118,30 @@ def test_a_database_of_the_previous_head_upgrades_in_place(database_url):
     assert "state" not in {c["name"] for c in tables.get_columns("scenes")}
 
 
+def test_byte_sizes_past_2_gib_are_stored(db):
+    """A 2 GiB upload is allowed (VOXE_MAX_UPLOAD_BYTES) and a key may store 50 GiB: PostgreSQL's 32-bit integer
+    had refused such a scene and artifact ("integer out of range")."""
+    from voxe_service.db import session_scope
+    from voxe_service.models import LOCAL_KEY_ID, Artifact, Job, Reconstruction, Scene
+
+    big = 5 * 1024**3 + 1
+    scene_id = add_scene()
+    with session_scope() as session:
+        session.get(Scene, scene_id).size_bytes = big
+        job = Job(scene_id=scene_id, owner_key_id=LOCAL_KEY_ID, prompt="a mic", mode="global", edit_words=[],
+                  params={}, sds_model="tiny", attention_model="tiny", device="cpu")
+        session.add(job)
+        session.flush()
+        session.add(Artifact(job_id=job.id, name="big.bin", key="k", size=big, content_type="x", sha256="0" * 64,
+                             kind="grid"))
+        session.add(Reconstruction(scene_id=scene_id, params_key="p", params={}, grid_size=big))
+        job_id = job.id
+    with session_scope() as session:
+        assert session.get(Scene, scene_id).size_bytes == big
+        assert session.get(Job, job_id).artifacts[0].size == big
+        assert session.query(Reconstruction).one().grid_size == big
+
+
 def test_api_replicas_starting_at_once_migrate_a_fresh_database_one_after_another(database_url):
     """Four processes upgrade one fresh database at once, as API replicas starting together do: all succeed and
     the schema is the models' (on PostgreSQL all but one had failed on a duplicate key, in 3 of 5 trials)."""

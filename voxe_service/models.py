@@ -30,6 +30,10 @@ def set_clock_offset(offset: timedelta) -> None:
     _clock_offset = offset
 
 
+BYTE_COUNT = BigInteger().with_variant(Integer(), "sqlite")
+"""Sizes in bytes: 2 GiB uploads are allowed, past a 32-bit integer (SQLite's INTEGER is 64-bit already)."""
+
+
 def new_id() -> str:
     return uuid.uuid4().hex
 
@@ -110,7 +114,7 @@ class Scene(Base):
     height: Mapped[int] = mapped_column(Integer)
     splits: Mapped[list] = mapped_column(JSON, default=list)
     storage_key: Mapped[str] = mapped_column(String(512))  # the validated dataset, one zip archive
-    size_bytes: Mapped[int] = mapped_column(Integer)
+    size_bytes: Mapped[int] = mapped_column(BYTE_COUNT)
     sha256: Mapped[str] = mapped_column(String(64))
     # What reconstruction backbone "auto" means for this scene ("relu_field" | "scene"), decided by its ingest from
     # all its training images; None while processing (and for scenes ingested before it was recorded).
@@ -148,7 +152,7 @@ class Reconstruction(Base):
     iteration: Mapped[int] = mapped_column(Integer, default=0)
     total: Mapped[int] = mapped_column(Integer, default=0)
     grid_key: Mapped[str | None] = mapped_column(String(512), nullable=True)
-    grid_size: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    grid_size: Mapped[int | None] = mapped_column(BYTE_COUNT, nullable=True)
     grid_sha256: Mapped[str | None] = mapped_column(String(64), nullable=True)
     checkpoint_key: Mapped[str | None] = mapped_column(String(512), nullable=True)
     error: Mapped[str | None] = mapped_column(Text, nullable=True)
@@ -276,7 +280,7 @@ class Artifact(Base):
     job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), index=True)
     name: Mapped[str] = mapped_column(String(255))
     key: Mapped[str] = mapped_column(String(512))
-    size: Mapped[int] = mapped_column(Integer)
+    size: Mapped[int] = mapped_column(BYTE_COUNT)
     content_type: Mapped[str] = mapped_column(String(128))
     sha256: Mapped[str] = mapped_column(String(64))
     kind: Mapped[str] = mapped_column(String(32))
