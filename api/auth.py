@@ -24,7 +24,8 @@ from sqlalchemy.orm import Session
 
 from api.http_semantics import DATABASE_UNAVAILABLE, database_unavailable, route_path
 from voxe_service.db import get_sessionmaker
-from voxe_service.models import QUEUED, RUNNING, ApiKey, IdempotencyRecord, Job, Scene, utcnow
+from voxe_service.quotas import stored_bytes, upload_limit
+from voxe_service.models import QUEUED, RUNNING, ApiKey, IdempotencyRecord, Job, utcnow
 from voxe_service.settings import Settings, get_settings, is_loopback
 
 TOKEN_PREFIX = "voxe_"
@@ -123,11 +124,6 @@ class QuotaExceeded(HTTPException):
                          headers={"Retry-After": str(settings.quota_retry_after_s)})
 
 
-def lock_key(session: Session, key: ApiKey) -> None:
-    """Serialise a key's quota checks until the transaction ends (row lock; SQLite serialises writers anyway)."""
-    session.execute(select(ApiKey.id).where(ApiKey.id == key.id).with_for_update())
-
-
 def check_active_jobs(session: Session, key: ApiKey, settings: Settings, adding: int = 1) -> None:
     """With the ``adding`` new jobs' rows flushed: 429 when the key now has more queued + running jobs than allowed,
     or 422 when ``adding`` alone is more (no retry could ever be accepted)."""
@@ -154,13 +150,12 @@ def check_upload_bytes(session: Session, key: ApiKey, settings: Settings, adding
 
     ``including_new``: the new scene's row (of ``adding`` bytes) is already flushed into the sum.
     """
-    limit = key.max_upload_bytes or settings.max_upload_bytes_per_key
+    limit = upload_limit(key, settings)
     if adding > limit:
         raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE,
                             f"this upload stores {adding} bytes, more than the whole upload quota of key {key.name!r} "
                             f"({limit} bytes: VOXE_MAX_UPLOAD_BYTES_PER_KEY or the key's own)")
-    total = session.scalar(select(func.coalesce(func.sum(Scene.size_bytes), 0))
-                           .where(Scene.owner_key_id == key.id)) or 0
+    total = stored_bytes(session, key.id)
     stored = total - adding if including_new else total
     if stored + adding > limit:
         this = f"this upload adds {adding}" if adding else "before this upload is read"

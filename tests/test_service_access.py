@@ -281,6 +281,43 @@ def test_upload_quota_is_429_and_leaves_nothing(auth_client, mic_zip, root):  # 
     assert auth_client.get("/v1/scenes", headers=bearer(tiny)).json()["total"] == 0 and staged(root) == []
 
 
+@BOTH_DATABASES
+def test_a_mesh_whose_rendered_views_go_over_the_upload_quota_fails_at_its_ingest(auth_client, root,  # noqa: F811
+                                                                                    monkeypatch):
+    """A mesh upload is a few hundred bytes; its ingest stores its rendered views instead (MBs at the default 100
+    views of 256 px). Three 449-byte meshes had each passed a 100 kB quota and stored 6.3 MB."""
+    import trimesh
+
+    from service_helpers import ingest
+    from voxe_service import datasets
+
+    monkeypatch.setattr(datasets, "MESH_VIEWS", 4)
+    monkeypatch.setattr(datasets, "MESH_VIEW_SIZE", 32)
+    cube = trimesh.creation.box().export(file_type="ply")
+
+    def upload_mesh(token):
+        response = auth_client.post("/v1/scenes", files={"files": ("cube.ply", cube)}, headers=bearer(token))
+        assert response.status_code == 201, response.text
+        return response.json()
+
+    _, probe = _create_key("probe")
+    rendered = ingest(upload_mesh(probe)["id"])["state"] == "ready" and \
+        auth_client.get("/v1/scenes", headers=bearer(probe)).json()["items"][0]["size_bytes"]
+    assert rendered > 10 * len(cube)
+    _, token = _create_key("small", max_upload_bytes=rendered + rendered // 2)  # room for one rendered mesh
+    first, second = upload_mesh(token), upload_mesh(token)  # each small as uploaded: both accepted
+    waiting = auth_client.post("/v1/jobs", json={"scene_id": second["id"], **JOB}, headers=bearer(token)).json()
+    assert ingest(first["id"])["state"] == "ready"
+    assert ingest(second["id"])["state"] == "failed"
+    failed = auth_client.get(f"/v1/scenes/{second['id']}", headers=bearer(token)).json()
+    assert failed["state"] == "failed" and failed["size_bytes"] == 0
+    assert f"the mesh's rendered views take {rendered} bytes and key 'small' stores {rendered} bytes" in \
+        failed["error"]
+    assert not [f for f in stored_files(root) if f.startswith(f"scenes/{second['id']}")]
+    job = auth_client.get(f"/v1/jobs/{waiting['id']}", headers=bearer(token)).json()
+    assert job["state"] == "failed" and "quota of upload bytes exceeded" in job["error"]
+
+
 # ------------------------------------------------------------------------------------------ Idempotency-Key
 def test_job_creation_is_idempotent(auth_client, mic_zip):
     _, alice = _create_key("alice")

@@ -33,6 +33,7 @@ from voxe_service import datasets
 from voxe_service.db import session_scope
 from voxe_service.models import PROCESSING, Scene, utcnow
 from voxe_service.queue import QueueUnavailable, TaskResult, dispatch_job, get_queue
+from voxe_service.quotas import ingest_over_quota
 from voxe_service.scenes import fail_scene, mark_ready
 from voxe_service.settings import Settings
 from voxe_service.storage import Storage, scene_key
@@ -140,7 +141,7 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
         return {"scene_id": scene_id, "state": "failed"}
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
-    return _ready(scene_id, values, storage, upload_key if mesh_upload else None)
+    return _ready(scene_id, values, storage, settings, upload_key if mesh_upload else None)
 
 
 def _fail(scene_id: str, reason: str, storage: Storage) -> None:
@@ -151,20 +152,29 @@ def _fail(scene_id: str, reason: str, storage: Storage) -> None:
         log.warning("scene %s failed: %s", scene_id, reason)
 
 
-def _ready(scene_id: str, values: dict, storage: Storage, replaced_key: str | None) -> TaskResult:
+def _ready(scene_id: str, values: dict, storage: Storage, settings: Settings,
+           replaced_key: str | None) -> TaskResult:
+    """processing -> ready and its waiting jobs sent; a mesh whose rendered views put its key over the upload quota
+    (checked with the key locked, in the transaction that would store the new size) fails instead."""
     with session_scope() as session:
-        waiting = mark_ready(session, scene_id, **values)
-        if waiting is None:  # deleted (or failed by the reaper) while it was decoded: keep nothing of it
+        over = "size_bytes" in values and ingest_over_quota(session, scene_id, values["size_bytes"], settings)
+        waiting = None if over else mark_ready(session, scene_id, **values)
+        if waiting is None:
             session.rollback()
-            storage.discard_prefixes(scene_key(scene_id))
-            return {"scene_id": scene_id, "skipped": f"scene {scene_id} was deleted or failed meanwhile"}
-        session.commit()
-        queue = get_queue()  # the waiting jobs first: should this worker stop before, the reaper sends them
-        for job in waiting:
-            try:
-                dispatch_job(session, queue, job)
-            except QueueUnavailable:  # recorded on the job; the rest may still go out
-                log.warning("scene %s: could not dispatch job %s", scene_id, job.id)
+        else:
+            session.commit()
+            queue = get_queue()  # the waiting jobs first: should this worker stop before, the reaper sends them
+            for job in waiting:
+                try:
+                    dispatch_job(session, queue, job)
+                except QueueUnavailable:  # recorded on the job; the rest may still go out
+                    log.warning("scene %s: could not dispatch job %s", scene_id, job.id)
+    if over:
+        _fail(scene_id, over, storage)
+        return {"scene_id": scene_id, "state": "failed"}
+    if waiting is None:  # deleted (or failed by the reaper) while it was decoded: keep nothing of it
+        storage.discard_prefixes(scene_key(scene_id))
+        return {"scene_id": scene_id, "skipped": f"scene {scene_id} was deleted or failed meanwhile"}
     if replaced_key:
         try:
             storage.delete(replaced_key)

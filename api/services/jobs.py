@@ -17,7 +17,7 @@ from sqlalchemy import delete, func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from api.auth import Idempotency, check_active_jobs, lock_key
+from api.auth import Idempotency, check_active_jobs
 from api.schemas import JobCreate
 from api.services.scenes import get_scene, refuse_unless_usable
 from voxe_core.presets import check_fit, reconstruction_key, reconstruction_params
@@ -31,6 +31,7 @@ from voxe_service.models import (
     WebhookDelivery, new_id, utcnow,
 )
 from voxe_service.queue import QueueUnavailable, TaskQueue, dispatch_job
+from voxe_service.quotas import lock_key
 from voxe_service.scenes import lock_scene
 from voxe_service.settings import Settings
 
@@ -142,7 +143,7 @@ def add_jobs(*, session: Session, key: ApiKey, settings: Settings, jobs: list[Jo
     """
     refuse_without_models(session=session, settings=settings, jobs=jobs)
     try:
-        lock_key(session, key)
+        lock_key(session, key.id)
         session.add_all(jobs)
         if idempotency is not None:
             idempotency.record(session, key, jobs[0].id)
