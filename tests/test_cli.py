@@ -172,7 +172,7 @@ def test_an_output_that_cannot_be_written_is_refused_before_the_fit_and_a_failed
     assert main(["convert-grid", str(sphere_file), "--out", str(tmp_path / "taken.safetensors")]) == 2
     err = capsys.readouterr().err
     assert "Traceback" not in err and "taken.safetensors" in err
-    assert not [p.name for p in tmp_path.rglob("*.tmp")] and (tmp_path / "taken.safetensors").is_dir()  # no .tmp left
+    assert not [p.name for p in tmp_path.rglob(".*.partial*")] and (tmp_path / "taken.safetensors").is_dir()
 
 
 def test_cli_as_a_real_process_has_no_traceback(tmp_path):

@@ -274,6 +274,28 @@ def test_obj_round_trip_keeps_vertices_faces_and_colours(sphere_grid, tmp_path):
     assert (back.visual.vertex_colors[:, 0] > 240).all() and (back.visual.vertex_colors[:, 1:3] < 15).all()
 
 
+@pytest.mark.parametrize("suffix", [".ply", ".glb", ".obj"])
+def test_a_mesh_save_that_fails_keeps_the_earlier_file_and_leaves_no_partial_one(sphere_grid, tmp_path, suffix):
+    """A full disk (a file-size limit stands in for it): the save had streamed into the final name, leaving a
+    torn mesh there in place of the earlier one."""
+    import resource
+
+    mesh = extract_mesh(sphere_grid)
+    path = tmp_path / f"m{suffix}"
+    earlier = {path: b"the earlier mesh", path.with_suffix(".mtl"): b"the earlier material"}
+    for file, content in earlier.items():
+        file.write_bytes(content)
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, hard))  # (Python ignores SIGXFSZ: writes fail EFBIG)
+    try:
+        with pytest.raises(OSError):
+            save_mesh(mesh, path)
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+    assert {f: f.read_bytes() for f in earlier} == earlier
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(f.name for f in earlier)
+
+
 def test_save_mesh_rejects_unknown_suffix(sphere_grid, tmp_path):
     with pytest.raises(ValueError, match=r"'\.stl'"):
         save_mesh(extract_mesh(sphere_grid), tmp_path / "m.stl")

@@ -19,6 +19,7 @@ import torch
 from voxe_core.cameras import Cameras, ring_poses
 from voxe_core.constants import NERF_SYNTHETIC_FOV_X, NERF_SYNTHETIC_RADIUS
 from voxe_core.devices import PeakMemory, resolve_device
+from voxe_core.files import replacing
 from voxe_core.grid import VoxelGrid
 from voxe_core.presets import check_video_fps
 from voxe_core.progress import Callbacks, Progress
@@ -133,8 +134,7 @@ def write_video(path: str | os.PathLike, frames, fps: float = 30) -> Path:
     if array.ndim != 4 or array.shape[0] == 0 or array.shape[-1] != 3:
         raise ValueError(f"write_video expects frames shaped (N, H, W, 3) with N >= 1, got {tuple(array.shape)}")
     path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(f".{path.stem}.partial{path.suffix}")  # the suffix kept: it picks the format
-    try:
+    with replacing(path) as partial:
         if path.suffix.lower() == ".mp4":
             import imageio.v2 as imageio
 
@@ -154,9 +154,6 @@ def write_video(path: str | os.PathLike, frames, fps: float = 30) -> Path:
             iio.imwrite(partial, array, plugin="pillow", extension=".gif", duration=1000.0 / fps, loop=0)
         if not partial.is_file() or partial.stat().st_size == 0:
             raise OSError(f"the video encoder wrote nothing for {path}")
-        os.replace(partial, path)
-    finally:
-        partial.unlink(missing_ok=True)
     return path
 
 
@@ -282,11 +279,9 @@ def save_mesh(mesh, path: str | os.PathLike) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     if suffix == ".obj":
         return save_obj(mesh, path)
-    if suffix == ".ply":
-        data = mesh.export(file_type="ply", encoding="binary")
-    else:
-        data = mesh.export(file_type="glb")
-    path.write_bytes(data)
+    data = mesh.export(file_type="ply", encoding="binary") if suffix == ".ply" else mesh.export(file_type="glb")
+    with replacing(path) as partial:
+        partial.write_bytes(data)
     return path
 
 
@@ -312,8 +307,9 @@ def save_obj(mesh, path: str | os.PathLike) -> Path:
     rgb = np.asarray(mesh.visual.vertex_colors, dtype=np.float64)[:, :3] / 255.0
     mtl = path.with_suffix(".mtl")
     kd = rgb.mean(0) if len(rgb) else np.full(3, 0.8)
-    mtl.write_text(f"newmtl voxe\nKd {kd[0]:.6f} {kd[1]:.6f} {kd[2]:.6f}\nKa 0 0 0\nKs 0 0 0\nd 1\nillum 1\n")
-    with open(path, "w") as out:
+    with replacing(mtl) as mtl_partial, replacing(path) as partial, open(partial, "w") as out:  # both or neither
+        mtl_partial.write_text(f"newmtl voxe\nKd {kd[0]:.6f} {kd[1]:.6f} {kd[2]:.6f}\nKa 0 0 0\nKs 0 0 0\nd 1\n"
+                               "illum 1\n")
         out.write(f"# Vox-E mesh: {len(vertices)} vertices, {len(faces)} faces\nmtllib {mtl.name}\nusemtl voxe\n")
         np.savetxt(out, np.hstack([vertices, rgb]), fmt="v %.6f %.6f %.6f %.6f %.6f %.6f")
         np.savetxt(out, faces, fmt="f %d %d %d")

@@ -14,6 +14,8 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
+from voxe_core.files import replacing
+
 HEADER_KEY = "voxe"
 
 
@@ -22,21 +24,16 @@ class FormatError(ValueError):
 
 
 def save_tensors(path: str | os.PathLike, tensors: dict[str, torch.Tensor], kind: str, version: int, meta: dict) -> None:
-    """Write atomically (temporary name, then rename; the temporary file removed if that fails or is interrupted)
-    so a crash never leaves a torn file. OSError naming the path when it cannot be written (safetensors' own
+    """Write atomically (:func:`voxe_core.files.replacing`) so a crash never leaves a torn file. OSError naming the path when it cannot be written (safetensors' own
     error type had reached the CLI as a traceback)."""
     path = Path(path)
     header = json.dumps({"kind": kind, "format_version": version, "meta": meta}, sort_keys=True)
-    tmp = path.with_name(path.name + ".tmp")
-    try:
+    with replacing(path) as partial:
         try:
-            save_file({k: v.detach().contiguous().cpu() for k, v in tensors.items()}, str(tmp),
+            save_file({k: v.detach().contiguous().cpu() for k, v in tensors.items()}, str(partial),
                       metadata={HEADER_KEY: header})
         except SafetensorError as exc:
             raise OSError(f"cannot write {path}: {exc}") from exc
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def load_tensors(path: str | os.PathLike, kind: str, max_version: int) -> tuple[dict[str, torch.Tensor], dict]:
