@@ -117,6 +117,21 @@ def test_mp4_is_playable_with_even_size_and_right_colours(tmp_path):
     assert abs(first[31, 33, 2] - 255) < 20
 
 
+@pytest.mark.parametrize("fps, shown", [(30.0, 30), (60.0, 15), (120.0, 10), (7.0, 30)])
+def test_gif_delays_follow_the_true_timeline_and_none_is_too_short_to_play(tmp_path, fps, shown):
+    """GIF delays are whole centiseconds: 1000/fps had been cut (30 fps played 10 % fast), and 60 fps and above
+    wrote delays of 1 or 0 cs, which browsers play at about 10 fps."""
+    frames = gradient_frames(30, 8, 8)
+    write_video(tmp_path / "v.gif", frames, fps=fps)
+    with Image.open(tmp_path / "v.gif") as gif:
+        delays = []
+        for index in range(gif.n_frames):
+            gif.seek(index)
+            delays.append(gif.info["duration"])
+    assert len(delays) == shown and min(delays) >= 20
+    assert sum(delays) == pytest.approx(30 / fps * 1000, abs=10)
+
+
 def test_gif_frames_loop_and_duration(tmp_path):
     write_video(tmp_path / "v.gif", gradient_frames(5, 12, 10), fps=10)
     with Image.open(tmp_path / "v.gif") as gif:

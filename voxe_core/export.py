@@ -106,6 +106,29 @@ def _pad_even(frames: np.ndarray) -> np.ndarray:
     return frames
 
 
+GIF_MIN_DELAY_CS = 2
+"""GIF delays are whole centiseconds, and browsers play 0 or 1 as 10 (about 10 fps): 2 is the shortest kept."""
+
+
+def gif_timeline(n_frames: int, fps: float) -> tuple[list[int], list[int]]:
+    """(the frames a GIF shows, each one's delay in ms): the delays are whole centiseconds whose running sum
+    follows the true timeline (30 fps: 30, 30, 40 ms, ...), and above 50 fps every k-th frame is kept so no delay
+    is under ``GIF_MIN_DELAY_CS``. The total is n_frames / fps to the centisecond (a clip shorter than 2 cs per
+    shown frame lasts that).
+
+    Examples:
+        >>> gif_timeline(4, 30.0)
+        ([0, 1, 2, 3], [30, 40, 30, 30])
+        >>> gif_timeline(6, 120.0)  # every 3rd frame: 40 fps
+        ([0, 3], [20, 30])
+    """
+    step = max(1, math.ceil(fps * GIF_MIN_DELAY_CS / 100 - 1e-9))
+    shown = list(range(0, n_frames, step))
+    ends = [round(min(i + step, n_frames) * 100 / fps) for i in shown]  # each shown frame lasts to the next one
+    starts = [round(i * 100 / fps) for i in shown]
+    return shown, [10 * max(GIF_MIN_DELAY_CS, end - start) for start, end in zip(starts, ends)]
+
+
 def check_video_output(path: str | os.PathLike, fps: float) -> Path:
     """``path`` as a Path, or ValueError for a suffix or frame rate no video takes (checked before any rendering)."""
     path = Path(path)
@@ -121,9 +144,9 @@ def write_video(path: str | os.PathLike, frames, fps: float = 30) -> Path:
 
     ``.mp4``: H.264 (libx264, CRF 18, yuv420p, +faststart) through imageio-ffmpeg;
     odd sizes are padded by one replicated row / column, never rescaled.
-    ``.gif``: palette GIF through Pillow, looping forever, 1/fps seconds per frame
-    (Pillow folds consecutive identical frames into one longer frame, so a
-    static scene can decode to fewer frames; the total duration is kept).
+    ``.gif``: palette GIF through Pillow, looping forever, on :func:`gif_timeline`'s whole-centisecond delays
+    (above 50 fps some frames are left out). Pillow folds consecutive identical frames into one longer frame,
+    so a static scene can decode to fewer frames; the total duration is kept.
     The video is written beside ``path`` under a temporary name and renamed when whole: an interrupted or failed
     write leaves nothing (OSError when the encoder wrote no file, as ffmpeg may fail with only a log line).
     """
@@ -151,7 +174,8 @@ def write_video(path: str | os.PathLike, frames, fps: float = 30) -> Path:
         else:
             import imageio.v3 as iio
 
-            iio.imwrite(partial, array, plugin="pillow", extension=".gif", duration=1000.0 / fps, loop=0)
+            shown, delays = gif_timeline(len(array), fps)
+            iio.imwrite(partial, array[shown], plugin="pillow", extension=".gif", duration=delays, loop=0)
         if not partial.is_file() or partial.stat().st_size == 0:
             raise OSError(f"the video encoder wrote nothing for {path}")
     return path
