@@ -161,12 +161,43 @@ def test_damaged_or_unknown_sparse_files_are_named(tmp_path, make_sphere_grid):
 
 
 
+@pytest.mark.parametrize("damage, message", [
+    (lambda t, m: ({**t, "values": t["values"][:, :3].contiguous()}, m), r"values \(\d+, 3\) and fill \(4,\)"),
+    (lambda t, m: ({**t, "fill": t["fill"][:3].contiguous()}, m), r"values \(\d+, 4\) and fill \(3,\)"),
+    (lambda t, m: (t, {**m, "resolution": [-16, -16, 16]}), "is not 3 positive vertex counts"),
+    (lambda t, m: ({**t, "bbox_min": t["bbox_min"][:2].contiguous()}, m), r"bbox_min of shape \(2,\), not \(3,\)"),
+    (lambda t, m: ({**t, "stored_bits": t["stored_bits"].int()}, m), "stored_bits is torch.int32"),
+    (lambda t, m: (t, {**m, "density_scale": float("nan")}), "density_scale nan is not a positive number"),
+    (lambda t, m: (t, {**m, "density_scale": "33"}), "density_scale '33' is not a positive number"),
+    (lambda t, m: (t, {**m, "activation": "tanh"}), "damaged grid: unknown density activation 'tanh'"),
+    (lambda t, m: ({**t, "features": t["features"][..., :3].contiguous()}, {**m, "layout": "dense"}),
+     r"features of shape \(16, 16, 16, 3\)"),
+])
+def test_a_grid_file_with_tensors_or_fields_of_the_wrong_shape_or_value_is_a_format_error(
+        tmp_path, make_sphere_grid, damage, message):
+    """Each had been a RuntimeError or TypeError traceback (voxe convert-grid, a worker's load), or had loaded:
+    a NaN density scale makes every density NaN."""
+    grid = make_sphere_grid(16)
+    sparse, layout = sparse_tensors(grid.features, grid.occupancy().cells, 1)
+    tensors = {**grid.state_tensors(), **sparse}
+    tensors["features"] = grid.features.detach().clone()
+    tensors, meta = damage(tensors, {**grid.header(), **layout})
+    if meta.get("layout") == "sparse":
+        tensors.pop("features")
+    path = tmp_path / "damaged.safetensors"
+    save_tensors(path, tensors, kind="voxel_grid", version=2, meta=meta)
+    with pytest.raises(FormatError, match=message) as error:
+        load_grid(path)
+    assert str(error.value).startswith(str(path))
+
+
 @pytest.mark.parametrize("header, message", [
     ("[1, 2]", "damaged 'voxe' header"),  # a list: had been an AttributeError
     ('{"kind": "voxel_grid", "format_version": 2, "meta": null}', r"damaged 'voxe' header \(its meta is a NoneType\)"),
     ('{"kind": "voxel_grid", "format_version": "two"}', "damaged 'voxe' header"),
     ("{not json", "damaged 'voxe' header"),  # json's message alone had not named the file
     ('{"kind": "voxel_grid", "format_version": 2, "meta": {}}', "damaged grid: no 'features' in the file"),
+    ('{"kind": "voxel_grid", "format_version": 0, "meta": {}}', "format version 0 is none a voxe_core wrote"),
 ])
 def test_a_damaged_header_is_a_format_error_naming_the_file(tmp_path, header, message):
     from safetensors.torch import save_file

@@ -291,10 +291,10 @@ def test_fit_reports_progress_and_cancels(make_sphere_grid):
     cams = cameras_around(2, 8)
     maps = torch.zeros(2, 8, 8)
     seen = []
-    cb = Callbacks(on_progress=lambda p: seen.append(p.iteration), should_cancel=lambda: len(seen) >= 3)
+    cb = Callbacks(on_progress=lambda p: seen.append((p.stage, p.iteration)), should_cancel=lambda: len(seen) >= 3)
     with pytest.raises(StageCancelled):
         fit_attention_grids(grid, cams, maps, maps, RefineConfig(iterations=10, rays_per_step=64, fit_views="fixed"), cb)
-    assert seen == [1, 2, 3]
+    assert seen == [("backprojection", 1), ("attention_grids", 1), ("attention_grids", 2)]
     with pytest.raises(ValueError, match="do not match"):
         fit_attention_grids(grid, cams, torch.zeros(3, 8, 8), torch.zeros(3, 8, 8), RefineConfig(iterations=1, fit_views="fixed"))
 
@@ -631,11 +631,11 @@ def test_refine_end_to_end_with_tiny_model(tiny_guidance, make_sphere_grid):
     reports = []
     result = refine(initial, edited, "a dog wearing sunglasses", ["sunglasses"], tiny_guidance, config,
                     Callbacks(on_progress=lambda p: reports.append((p.stage, p.iteration, p.total))))
-    assert {stage for stage, _, _ in reports} == {"attention_maps", "attention_grids", "graph_cut"}
-    # The sub-steps count on one scale (2 views + 40 fit steps + the cut): the stage's progress only rises.
-    assert {total for _, _, total in reports} == {2 + 40 + 1}
+    assert {stage for stage, _, _ in reports} == {"attention_maps", "backprojection", "attention_grids", "graph_cut"}
+    # The sub-steps count on one scale (2 views + the back-projection + 40 fit steps + the cut): only rising.
+    assert {total for _, _, total in reports} == {2 + 1 + 40 + 1}
     done = [iteration for _, iteration, _ in reports]
-    assert done == sorted(done) and done[-1] == 43 and reports[1][:2] == ("attention_maps", 2)
+    assert done == sorted(done) and done[-1] == 44 and reports[1][:2] == ("attention_maps", 2)
     assert result.info["prompt"] == "a render of a dog wearing sunglasses"
     nodes = node_mask(edited, rule=config.node_rule)  # the mask never leaves the graph's nodes
     assert result.mask.shape == nodes.shape and not (result.mask & ~nodes).any()

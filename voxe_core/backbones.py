@@ -18,6 +18,8 @@ Examples:
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from voxe_core.cameras import Cameras
@@ -52,10 +54,22 @@ def grid_from_state(tensors: dict[str, torch.Tensor], meta: dict) -> VoxelGrid:
         tensors = dense_tensors(tensors, meta)
     except (KeyError, ValueError) as exc:
         raise FormatError(f"damaged sparse grid: {exc}") from None
+    features = tensors.get("features")
+    if features is not None and (features.dim() != 4 or features.shape[-1] != 4):
+        raise FormatError(f"damaged grid: features of shape {tuple(features.shape)}, not (X, Y, Z, 4)")
+    for name in ("bbox_min", "bbox_max"):
+        if name in tensors and tuple(tensors[name].shape) != (3,):
+            raise FormatError(f"damaged grid: {name} of shape {tuple(tensors[name].shape)}, not (3,)")
+    scale = meta.get("density_scale")
+    if scale is not None and not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
+        raise FormatError(f"damaged grid: density_scale {scale!r} is not a positive number (every density would "
+                          "be wrong)")
     try:
         return cls.from_state(tensors, meta)
     except KeyError as exc:  # a header without its tensors (or fields): a bare KeyError had reached the CLI
         raise FormatError(f"damaged grid: no {exc} in the file") from None
+    except (TypeError, ValueError, RuntimeError) as exc:  # a header field of the wrong type or value
+        raise FormatError(f"damaged grid: {exc}") from None
 
 
 def load_grid(path) -> VoxelGrid:

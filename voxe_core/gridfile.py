@@ -99,13 +99,19 @@ def dense_tensors(tensors: dict[str, torch.Tensor], meta: dict) -> dict[str, tor
     if layout != "sparse":
         raise ValueError(f"unknown grid layout {layout!r}; this voxe_core reads {' and '.join(LAYOUTS)}")
     resolution = tuple(int(n) for n in meta["resolution"])
+    if len(resolution) != 3 or min(resolution) < 1:
+        raise ValueError(f"resolution {list(meta['resolution'])} is not 3 positive vertex counts")
     count = int(np.prod(resolution))
-    bits = tensors["stored_bits"].numpy()
+    bits, values, fill = tensors["stored_bits"], tensors["values"], tensors["fill"]
+    if bits.dtype != torch.uint8 or bits.dim() != 1:
+        raise ValueError(f"stored_bits is {bits.dtype} of shape {tuple(bits.shape)}, not a uint8 vector")
+    if fill.dim() != 1 or values.dim() != 2 or values.shape[1] != fill.shape[0]:
+        raise ValueError(f"values {tuple(values.shape)} and fill {tuple(fill.shape)} are not (N, C) and (C,)")
+    bits = bits.numpy()
     if bits.size * 8 < count:
         raise ValueError(f"stored_bits holds {bits.size * 8} bits for a {'x'.join(map(str, resolution))} grid")
     # Flat indices and one index_copy_: ~4x faster than a boolean-mask assignment at 128³.
     stored = torch.from_numpy(np.flatnonzero(np.unpackbits(bits, count=count)))
-    values, fill = tensors["values"], tensors["fill"]
     if stored.numel() != values.shape[0]:
         raise ValueError(f"the mask marks {stored.numel()} vertices but {values.shape[0]} values are stored")
     features = fill.to(values.dtype).repeat(count, 1).index_copy_(0, stored, values).view(*resolution, -1)

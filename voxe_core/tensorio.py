@@ -61,6 +61,9 @@ def load_tensors(path: str | os.PathLike, kind: str, max_version: int) -> tuple[
         raise FormatError(f"{path}: damaged '{HEADER_KEY}' header ({exc})") from None
     if header.get("kind") != kind:
         raise FormatError(f"{path}: holds a '{header.get('kind')}', expected a '{kind}'")
+    if version < 1:
+        raise FormatError(f"{path}: format version {header.get('format_version')!r} is none a voxe_core wrote "
+                          "(they start at 1): a damaged header")
     if version > max_version:
         raise FormatError(
             f"{path}: format version {version} is newer than this voxe_core supports ({max_version}); upgrade voxe_core"
