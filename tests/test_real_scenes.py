@@ -165,10 +165,10 @@ def test_backbone_detection_from_alpha():
 def test_real_scene_edit_preset_is_the_specs():
     config = edit_config({"seed": 3}, backbone="scene")
     assert (config.iterations, config.schedule.i_start, config.schedule.every, config.seed) == (5000, 3000, 400, 3)
-    # the project's schedule decays first at i_start, then every f_a
-    assert config.schedule.max_fraction(2999) == pytest.approx(0.98)
-    assert config.schedule.max_fraction(3399) == pytest.approx(0.98 * 0.75)
-    assert config.schedule.max_fraction(3400) == pytest.approx(0.98 * 0.75**2)
+    # decays at the multiples of f_a from i_start on (1-based steps 3200, 3600, ...)
+    assert config.schedule.max_fraction(3198) == pytest.approx(0.98)
+    assert config.schedule.max_fraction(3199) == pytest.approx(0.98 * 0.75)
+    assert config.schedule.max_fraction(3599) == pytest.approx(0.98 * 0.75**2)
 
 
 # ----------------------------------------------------------------- fitting and editing

@@ -6,15 +6,15 @@ from voxe_core.schedule import AUTHORS_FLOOR, PAPER_FLOOR, TimestepSchedule
 
 @pytest.mark.parametrize(
     "iteration, k",
-    [
+    [  # the appendix's k_i = k_(i-1)·0.75 when i >= 4000 and i % 600 == 0, on the authors' 1-based step count
         (0, 0.98),
-        (3999, 0.98),
-        (4000, 0.98 * 0.75),  # first decay at i_start
-        (4599, 0.98 * 0.75),
-        (4600, 0.98 * 0.75**2),
-        (5200, 0.98 * 0.75**3),
-        (5799, 0.98 * 0.75**3),  # 0.413 > 0.35
-        (5800, 0.35),  # 0.98 * 0.75**4 = 0.310 -> floor
+        (4198, 0.98),  # step 4199
+        (4199, 0.98 * 0.75),  # step 4200: the first multiple of 600 from i_start (4000 is not one)
+        (4798, 0.98 * 0.75),
+        (4799, 0.98 * 0.75**2),
+        (5399, 0.98 * 0.75**3),
+        (5998, 0.98 * 0.75**3),  # 0.413 > 0.35
+        (5999, 0.35),  # 0.98 * 0.75**4 = 0.310 -> floor
         (20000, 0.35),
     ],
 )
@@ -22,12 +22,23 @@ def test_paper_schedule(iteration, k):
     assert TimestepSchedule().max_fraction(iteration) == pytest.approx(k, abs=1e-12)
 
 
+def test_paper_rule_literally():
+    """k_i by the appendix's recursion, step by step (1-based), for both presets' (i_start, f_a): the closed form
+    agrees at every iteration, an i_start that is a multiple of f_a included."""
+    for i_start, every in ((4000, 600), (3000, 400), (3600, 600), (0, 600), (1, 600)):
+        schedule, k = TimestepSchedule(i_start=i_start, every=every), 0.98
+        for step in range(1, 9001):
+            if step >= i_start and step % every == 0:
+                k *= 0.75
+            assert schedule.max_fraction(step - 1) == pytest.approx(max(k, 0.35), abs=1e-12), (i_start, step)
+
+
 def test_authors_floor():
     s = TimestepSchedule.authors()
     assert AUTHORS_FLOOR == 0.22 and s.floor == 0.22 and PAPER_FLOOR == 0.35
-    assert s.max_fraction(5800) == pytest.approx(0.98 * 0.75**4)  # 0.310, above 0.22
-    assert s.max_fraction(6400) == pytest.approx(0.98 * 0.75**5)  # 0.233
-    assert s.max_fraction(7000) == pytest.approx(0.22)  # 0.174 -> floor
+    assert s.max_fraction(5999) == pytest.approx(0.98 * 0.75**4)  # 0.310, above 0.22
+    assert s.max_fraction(6599) == pytest.approx(0.98 * 0.75**5)  # 0.233
+    assert s.max_fraction(7199) == pytest.approx(0.22)  # 0.174 -> floor
     assert s.max_fraction(20000) == pytest.approx(0.22)
     assert TimestepSchedule(floor=AUTHORS_FLOOR).max_fraction(20000) == pytest.approx(0.22)
 
@@ -38,7 +49,7 @@ def test_schedule_is_monotone_non_increasing():
     assert all(b <= a for a, b in zip(values, values[1:]))
 
 
-@pytest.mark.parametrize("iteration, lo, hi", [(0, 20, 980), (4000, 20, 735), (4600, 20, 551), (20000, 20, 350)])
+@pytest.mark.parametrize("iteration, lo, hi", [(0, 20, 980), (4199, 20, 735), (4799, 20, 551), (20000, 20, 350)])
 def test_samples_within_range(iteration, lo, hi):
     s = TimestepSchedule()
     assert s.bounds(iteration) == (lo, hi)

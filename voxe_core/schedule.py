@@ -5,9 +5,13 @@ iteration ``i_start = 4000``; then ``k ← k·0.75`` every ``f_a = 600``
 iterations, floored at 0.35 (paper) or 0.22 (authors' code,
 :data:`AUTHORS_FLOOR`).
 
-Decision: the first decay happens *at* ``i_start`` (iteration counted from 0),
-so k(3999) = 0.98, k(4000) = 0.735, k(4599) = 0.735, k(4600) = 0.55125, ...
-In general, for ``i >= i_start``: ``k = max(floor, k0 · factor^(1 + (i − i_start) // every))``.
+The appendix's rule, k_i = k_{i-1}·γ when i ≥ i_start and i % f_a = 0, on the authors' step
+count (1-based: ``sd.py``'s ``train_step`` decays when ``step >= start and step % freq == 0``). With
+i_start = 4000 (not a multiple of 600) the first decay is at step 4200, the 0-based iteration 4199:
+k(4198) = 0.98, k(4199) = 0.735, k(4798) = 0.735, k(4799) = 0.55125, ... In general, with
+step = iteration + 1 ≥ i_start, ``k = max(floor, k0 · factor^(step // every − (i_start − 1) // every))``
+(the multiples of ``every`` in [i_start, step]). An earlier version decayed at i_start itself, 200
+iterations early.
 """
 
 from __future__ import annotations
@@ -50,12 +54,19 @@ class TimestepSchedule:
         return cls(**{"floor": AUTHORS_FLOOR, **overrides})
 
     def max_fraction(self, iteration: int) -> float:
-        """Upper bound ``k`` (fraction of T) at ``iteration`` (0-based)."""
+        """Upper bound ``k`` (fraction of T) at ``iteration`` (0-based; the module docstring has the rule).
+
+        Examples:
+            >>> schedule = TimestepSchedule()
+            >>> [schedule.max_fraction(i) for i in (4198, 4199, 4798, 4799)]
+            [0.98, 0.735, 0.735, 0.55125]
+        """
         if iteration < 0:
             raise ValueError(f"iteration must be >= 0, got {iteration}")
-        if iteration < self.i_start:
+        step = int(iteration) + 1  # the authors' count
+        if step < self.i_start:
             return float(self.k0)
-        decays = 1 + (int(iteration) - self.i_start) // self.every
+        decays = step // self.every - (max(self.i_start, 1) - 1) // self.every  # multiples in [i_start, step]
         return float(max(self.floor, self.k0 * self.factor**decays))
 
     def bounds(self, iteration: int, num_train_timesteps: int = 1000) -> tuple[int, int]:
