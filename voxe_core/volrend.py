@@ -60,9 +60,13 @@ def transmittance(optical: torch.Tensor, ray: torch.Tensor) -> torch.Tensor:
     ``ray`` (S,) is non-decreasing (packed ray by ray), so each sample's ray starts
     at the leftmost position of its value: a binary search per sample, with no host
     read and in parallel on a GPU (a running maximum, ``cummax``, would scan a 1-D
-    tensor in one CUDA thread block).
+    tensor in one CUDA thread block). A NaN depth stays on its own ray: it is summed as 0 and the samples
+    behind it on its ray are NaN (a NaN in the shared sum had turned every later ray of the pass NaN).
     """
-    wide = optical.double()
+    nan = optical.isnan()
+    wide = optical.double().masked_fill(nan, 0.0)
     before = wide.cumsum(0) - wide
     first = torch.searchsorted(ray, ray)
-    return torch.exp(before.index_select(0, first) - before).to(optical.dtype)
+    t = torch.exp(before.index_select(0, first) - before)
+    nans_before = nan.cumsum(0) - nan.long()
+    return t.masked_fill(nans_before > nans_before.index_select(0, first), float("nan")).to(optical.dtype)
