@@ -323,8 +323,8 @@ def test_camera_inside_the_box_and_non_finite_rays():
 
 
 def test_a_nan_density_stays_on_the_rays_that_meet_it():
-    """Transmittance is one prefix sum over every ray of a pass: one NaN had turned every later ray NaN (144 NaN
-    pixels of a 64 x 64 render below had been 1,451), in the forward and the backward pass."""
+    """Transmittance is one prefix sum over every ray of a pass: one NaN had turned every later ray NaN (the render
+    below had 1,451 NaN pixels where 80 rays meet the vertex's cells), in the forward and the backward pass."""
     from voxe_core.volrend import transmittance
 
     ray = torch.tensor([0, 0, 1, 1, 1, 2, 2])
