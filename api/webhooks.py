@@ -1,11 +1,11 @@
 """The webhook sender: a background thread of the API process that POSTs due deliveries from the outbox.
 
-Attempts run on a small thread pool with a timeout each (``VOXE_WEBHOOK_TIMEOUT_S``), so a slow or
-dead receiver holds one pool thread for at most that long and never a request or a worker. A
-failed attempt (an error, a timeout, a non-2xx) is retried after ``VOXE_WEBHOOK_BACKOFF_S``
-doubling per attempt, until ``VOXE_WEBHOOK_RETRY_FOR_S`` after the event; then the delivery is
-``failed`` with the last error. Claims are conditional updates, so several API processes may send
-side by side without sending one attempt twice.
+Attempts run on a small thread pool, each ending by its deadline (``VOXE_WEBHOOK_TIMEOUT_S``: connect,
+send and the whole answer), so a slow or dead receiver holds one pool thread for at most that long and
+never a request or a worker. A failed attempt (an error, a timeout, a non-2xx) is retried after
+``VOXE_WEBHOOK_BACKOFF_S`` doubling per attempt, until ``VOXE_WEBHOOK_RETRY_FOR_S`` after the event;
+then the delivery is ``failed`` with the last error. Claims are conditional updates, so several API
+processes may send side by side without sending one attempt twice.
 """
 
 from __future__ import annotations
@@ -25,6 +25,10 @@ from voxe_service.webhooks import (
 )
 
 log = logging.getLogger("voxe.webhooks")
+
+# A claim outlasts its attempt's deadline by this much (resolving the name and recording the outcome), so no other
+# sender takes a delivery whose attempt is still running.
+CLAIM_MARGIN_S = 30.0
 
 
 class WebhookSender:
@@ -64,7 +68,7 @@ class WebhookSender:
         if not free:
             return 0
         with session_scope() as session:
-            ids = claim_due(session, utcnow(), self.settings.webhook_timeout_s + 30, free)
+            ids = claim_due(session, utcnow(), self.settings.webhook_timeout_s + CLAIM_MARGIN_S, free)
         for _ in range(free - len(ids)):
             self._in_flight.release()
         for delivery_id in ids:

@@ -616,12 +616,15 @@ class WebhookReceiver:
     ``fail_first``: the first request is answered 500 (to see the retry); ``delay``: seconds before
     each answer (longer than the sender's timeout makes a slow receiver); ``together``: no request is
     answered before that many are in flight (a 500 after 10 s waiting for them); ``tls``: (certificate
-    file, key file) to serve HTTPS with.
+    file, key file) to serve HTTPS with; ``answer_bytes``: the length of each answer's body, sent as fast as
+    the client reads it, or one byte every ``drip_s`` seconds. ``sent``: the body bytes each answer got
+    out before it ended or its client hung up.
     """
 
     def __init__(self, fail_first: bool = False, delay: float = 0.0, host: str = "127.0.0.1", port: int = 0,
-                 together: int = 1, tls: tuple[str, str] | None = None):
+                 together: int = 1, tls: tuple[str, str] | None = None, answer_bytes: int = 0, drip_s: float = 0.0):
         self.requests: list[dict] = []
+        self.sent: list[int] = []
         receiver, lock, gathered = self, threading.Lock(), threading.Barrier(together, timeout=10)
 
         class Handler(BaseHTTPRequestHandler):
@@ -637,8 +640,18 @@ class WebhookReceiver:
                     failed = True
                 time.sleep(delay)
                 self.send_response(500 if failed else 200)
-                self.send_header("content-length", "0")
+                self.send_header("content-length", str(answer_bytes))
                 self.end_headers()
+                sent = 0
+                try:
+                    while sent < answer_bytes:
+                        time.sleep(drip_s)
+                        chunk = 1 if drip_s else min(answer_bytes - sent, 2**20)
+                        self.wfile.write(b"x" * chunk)
+                        sent += chunk
+                except OSError:  # the client hung up
+                    pass
+                receiver.sent.append(sent)
 
             def log_message(self, *args):
                 pass

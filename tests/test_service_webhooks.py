@@ -14,17 +14,19 @@ import pytest
 from fastapi.testclient import TestClient
 
 from needs import MIC, require_data
-from service_helpers import WebhookReceiver, reset_service_caches, service_env, small_mic
+from service_helpers import WebhookReceiver, reset_service_caches, service_env, small_mic, wait_until
 from test_service_api import make_scene
 
 
 @pytest.fixture
-def client(tmp_path, monkeypatch):
+def client(request, tmp_path, monkeypatch):
+    """(a TestClient of the API, a ready scene); indirect parameters: more VOXE_* variables."""
     require_data(MIC)
     # The retry window counts from the event: 5 s hold several 0.5 s attempts even when a loaded machine (load 11 on
     # 2 cores) delays the first one by seconds; 1.5 s once left room for one attempt only.
     env = service_env(tmp_path, VOXE_WEBHOOK_ALLOW_NETWORKS="127.0.0.0/8", VOXE_WEBHOOK_BACKOFF_S="0.1",
-                      VOXE_WEBHOOK_RETRY_FOR_S="5", VOXE_WEBHOOK_TIMEOUT_S="0.5", VOXE_WEBHOOK_POLL_INTERVAL_S="0.1")
+                      VOXE_WEBHOOK_RETRY_FOR_S="5", VOXE_WEBHOOK_TIMEOUT_S="0.5", VOXE_WEBHOOK_POLL_INTERVAL_S="0.1",
+                      **getattr(request, "param", {}))
     for key, value in env.items():
         monkeypatch.setenv(key, value)
     reset_service_caches()
@@ -71,6 +73,67 @@ def test_a_failing_receiver_blocks_nothing_and_is_given_up_on_in_bounded_time(cl
     if slow:
         assert len(slow.requests) == delivery["attempts"]
         slow.close()
+
+
+def test_an_attempt_ends_by_its_deadline_however_slowly_the_receiver_answers():
+    """VOXE_WEBHOOK_TIMEOUT_S bounds the attempt, not each read: a receiver sending its answer a byte every 0.1 s
+    (5 s in all) had held the attempt until it was done, and answered 200."""
+    import ipaddress
+
+    from voxe_service.models import WebhookDelivery
+    from voxe_service.webhooks import attempt, webhook_client
+
+    dripping = WebhookReceiver(answer_bytes=50, drip_s=0.1)
+    try:
+        with webhook_client(1.0, [ipaddress.ip_network("127.0.0.1/32")]) as client:
+            started = time.monotonic()
+            status, error = attempt(WebhookDelivery(id="msg_1", url=dripping.url, payload="{}"), "whsec_" + "A" * 32,
+                                    client)
+        assert time.monotonic() - started < 1.5
+        assert status is None and error.startswith("ReadTimeout"), error
+        assert len(dripping.requests) == 1
+    finally:
+        dripping.close()
+
+
+def test_an_attempt_reads_at_most_a_little_of_the_answer():
+    """A 256 MiB answer: the attempt reads its first ANSWER_READ_BYTES and hangs up, so the receiver gets out
+    no more than the sockets' buffers hold (it had been read whole, into memory)."""
+    import ipaddress
+
+    from voxe_service.models import WebhookDelivery
+    from voxe_service.webhooks import attempt, webhook_client
+
+    flooding = WebhookReceiver(answer_bytes=256 * 2**20)
+    try:
+        with webhook_client(10.0, [ipaddress.ip_network("127.0.0.1/32")]) as client:
+            assert attempt(WebhookDelivery(id="msg_1", url=flooding.url, payload="{}"), "whsec_" + "A" * 32,
+                           client) == (200, None)
+        [sent] = wait_until(lambda: flooding.sent, 10, interval=0.05, what="the receiver to see the hang-up")
+        assert sent < 32 * 2**20, sent
+    finally:
+        flooding.close()
+
+
+@pytest.mark.parametrize("client", [{"VOXE_WEBHOOK_CONCURRENCY": "1"}], indirect=True)
+def test_a_dripping_receiver_holds_the_only_sender_slot_no_longer_than_the_timeout(client):
+    """One attempt at a time, the first to a receiver that drips its answer for a minute: it ends at the 0.5 s
+    deadline, and another job's delivery goes out behind it (it had waited the whole minute)."""
+    test_client, scene = client
+    dripping, healthy = WebhookReceiver(answer_bytes=600, drip_s=0.1), WebhookReceiver()
+    body = {"scene_id": scene["id"], "prompt": "a mic made of gold"}
+    try:
+        first = test_client.post("/v1/jobs", json={**body, "webhook_url": dripping.url}).json()
+        second = test_client.post("/v1/jobs", json={**body, "webhook_url": healthy.url}).json()
+        for job in (first, second):
+            test_client.post(f"/v1/jobs/{job['id']}/cancel")
+        [delivered] = deliveries_settled(test_client, second["id"], timeout=10)
+        assert delivered["state"] == "delivered" and len(healthy.requests) == 1
+        [held] = test_client.get(f"/v1/jobs/{first['id']}/webhooks").json()
+        assert held["attempts"] >= 1 and "ReadTimeout" in held["last_error"], held
+    finally:
+        dripping.close()
+        healthy.close()
 
 
 def test_webhook_events_need_a_url_and_name_known_kinds(client):

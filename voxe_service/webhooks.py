@@ -3,7 +3,8 @@
 A job created with a ``webhook_url`` gets one :class:`~voxe_service.models.WebhookDelivery` row per
 event of a kind it asked for, written in the event's own transaction (:func:`enqueue`), so a
 crash between the two loses nothing. The API's sender thread (:mod:`api.webhooks`) claims due
-rows and calls :func:`attempt`; neither a worker nor a request ever waits on a receiver.
+rows and calls :func:`attempt`; neither a worker nor a request ever waits on a receiver, and an attempt ends by
+its deadline (connect, send and the whole answer) however slowly a receiver answers.
 
 Signatures follow Standard Webhooks (standardwebhooks.com): headers ``webhook-id`` (stable across
 retries), ``webhook-timestamp`` (Unix seconds of the attempt) and ``webhook-signature``
@@ -13,6 +14,7 @@ retries), ``webhook-timestamp`` (Unix seconds of the attempt) and ``webhook-sign
 from __future__ import annotations
 
 import base64
+import contextvars
 import hashlib
 import hmac
 import ipaddress
@@ -34,6 +36,12 @@ WEBHOOK_EVENTS = ("stage_started", "stage_completed", "artifact", "preview", "su
 DEFAULT_WEBHOOK_EVENTS = ("succeeded", "failed", "canceled")
 PENDING, DELIVERED, GAVE_UP = "pending", "delivered", "failed"
 SECRET_PREFIX = "whsec_"
+ANSWER_READ_BYTES = 64 * 1024  # of a receiver's answer, read and dropped: a usual one ends within (its connection is
+# reused), a flood is cut off (the rest is never read into memory)
+
+# When the request a webhook client sends in this thread must have ended (set as the request starts).
+_request_deadline: contextvars.ContextVar[float | None] = contextvars.ContextVar("webhook_request_deadline",
+                                                                                 default=None)
 
 
 class TargetRefused(ValueError):
@@ -99,10 +107,49 @@ def allowed_addresses(host: str, port: int, allow_networks: list[ipaddress._Base
     return list(dict.fromkeys(addresses))
 
 
+def _time_left(timeout: float | None, timed_out: type[httpcore.TimeoutException]) -> float | None:
+    """``timeout`` (one socket operation's) cut to what is left of the current request's deadline; ``timed_out``
+    raised once none is."""
+    deadline = _request_deadline.get()
+    if deadline is None:
+        return timeout
+    left = deadline - time.monotonic()
+    if left <= 0:
+        raise timed_out("the attempt's deadline (VOXE_WEBHOOK_TIMEOUT_S) passed before the exchange ended")
+    return left if timeout is None else min(timeout, left)
+
+
+class _DeadlineStream(httpcore.NetworkStream):
+    """A connection whose every read, write and TLS handshake ends by the current request's deadline: httpx's
+    timeouts bound each socket operation only, so a receiver sending its answer a byte at a time had held an
+    attempt (and a sender thread) for as long as it liked."""
+
+    def __init__(self, stream: httpcore.NetworkStream):
+        self._stream = stream
+
+    def read(self, max_bytes: int, timeout: float | None = None) -> bytes:
+        return self._stream.read(max_bytes, _time_left(timeout, httpcore.ReadTimeout))
+
+    def write(self, buffer: bytes, timeout: float | None = None) -> None:
+        self._stream.write(buffer, _time_left(timeout, httpcore.WriteTimeout))
+
+    def close(self) -> None:
+        self._stream.close()
+
+    def start_tls(self, ssl_context, server_hostname: str | None = None,
+                  timeout: float | None = None) -> httpcore.NetworkStream:
+        return _DeadlineStream(self._stream.start_tls(ssl_context, server_hostname,
+                                                      _time_left(timeout, httpcore.ConnectTimeout)))
+
+    def get_extra_info(self, info: str):
+        return self._stream.get_extra_info(info)
+
+
 class _CheckedBackend(httpcore.NetworkBackend):
     """Opens a connection only to an address it has just checked: the name is resolved once, for the check and the
     connection both, so a resolver that answers differently in between (DNS rebinding) cannot route a webhook to
-    a refused address. TLS still names the host (SNI, certificate) and the request keeps its Host header."""
+    a refused address. TLS still names the host (SNI, certificate) and the request keeps its Host header.
+    Connections end by the request's deadline (:class:`_DeadlineStream`)."""
 
     def __init__(self, allow_networks: list[ipaddress._BaseNetwork]):
         self._allow_networks = allow_networks
@@ -113,7 +160,8 @@ class _CheckedBackend(httpcore.NetworkBackend):
         failure: Exception | None = None
         for address in allowed_addresses(host, port, self._allow_networks):
             try:
-                return self._backend.connect_tcp(address, port, timeout, local_address, socket_options)
+                return _DeadlineStream(self._backend.connect_tcp(
+                    address, port, _time_left(timeout, httpcore.ConnectTimeout), local_address, socket_options))
             except (httpcore.ConnectError, httpcore.ConnectTimeout) as exc:  # the next address of the name
                 failure = exc
         raise failure or httpcore.ConnectError(f"{host!r} resolves to no address")
@@ -125,12 +173,18 @@ class _CheckedBackend(httpcore.NetworkBackend):
 def webhook_client(timeout_s: float, allow_networks: list[ipaddress._BaseNetwork]) -> httpx.Client:
     """The sender's HTTP client: it connects only to addresses :func:`allowed_addresses` passes (a refused one
     raises :class:`TargetRefused` from the request), directly (proxy variables are ignored: a proxy would resolve
-    the name itself), and never follows a redirect (its target would go unchecked)."""
+    the name itself), and never follows a redirect (its target would go unchecked). ``timeout_s`` bounds each
+    request in all: connecting, sending and the whole answer."""
     transport = httpx.HTTPTransport()  # (SSL_CERT_FILE / SSL_CERT_DIR still name the CAs to trust)
     # httpx takes no network backend: its pool, with httpx's limits and TLS context, connects through the checked
     # one (test_service_webhooks fails if httpx stops sending through it).
     transport._pool._network_backend = _CheckedBackend(allow_networks)
-    return httpx.Client(transport=transport, timeout=timeout_s, follow_redirects=False, trust_env=False)
+
+    def start_deadline(_request: httpx.Request) -> None:
+        _request_deadline.set(time.monotonic() + timeout_s)
+
+    return httpx.Client(transport=transport, timeout=timeout_s, follow_redirects=False, trust_env=False,
+                        event_hooks={"request": [start_deadline]})
 
 
 _NAT64 = ipaddress.ip_network("64:ff9b::/96")
@@ -223,13 +277,21 @@ def backoff_s(attempts: int, base_s: float, max_s: float) -> float:
 def attempt(delivery: WebhookDelivery, secret: str, client: httpx.Client) -> tuple[int | None, str | None]:
     """POST the delivery once with a :func:`webhook_client`: (the HTTP status or None, an error message or None
     for a 2xx). Raises :class:`TargetRefused` when the URL now resolves to a refused address (not worth a retry).
+
+    The attempt ends by the client's deadline (a timeout error, retried); of the answer, at most
+    ``ANSWER_READ_BYTES`` are read.
     """
     body = delivery.payload.encode()
     timestamp = int(time.time())
     headers = {"content-type": "application/json", "webhook-id": delivery.id,
                "webhook-timestamp": str(timestamp), "webhook-signature": sign(secret, delivery.id, timestamp, body)}
     try:
-        response = client.post(delivery.url, content=body, headers=headers)
+        with client.stream("POST", delivery.url, content=body, headers=headers) as response:
+            read = 0
+            for chunk in response.iter_raw():
+                read += len(chunk)
+                if read >= ANSWER_READ_BYTES:
+                    break
     except httpx.HTTPError as exc:
         return None, f"{type(exc).__name__}: {exc}"
     if 200 <= response.status_code < 300:
