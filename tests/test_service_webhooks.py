@@ -136,6 +136,36 @@ def test_a_dripping_receiver_holds_the_only_sender_slot_no_longer_than_the_timeo
         healthy.close()
 
 
+def test_a_name_that_fails_to_resolve_for_a_moment_is_retried(client, monkeypatch):
+    """A resolver failing at an attempt ("[Errno -3] Temporary failure in name resolution") is a connection error,
+    retried: it had been taken for a refused target and the delivery failed at once, though the receiver was
+    reachable a moment later."""
+    test_client, scene = client
+    receiver = WebhookReceiver()
+    port = int(receiver.url.rsplit(":", 1)[1].split("/")[0])
+    answers = ["127.0.0.1", socket.gaierror(socket.EAI_AGAIN, "Temporary failure in name resolution")]
+    real_getaddrinfo = socket.getaddrinfo
+
+    def resolver(host, *args, **kwargs):  # the check at creation, a failed lookup at the first attempt, then fine
+        if host != "hooks.test":
+            return real_getaddrinfo(host, *args, **kwargs)
+        answer = answers.pop(0) if answers else "127.0.0.1"
+        if isinstance(answer, Exception):
+            raise answer
+        return [(socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP, "", (answer, port))]
+
+    monkeypatch.setattr(socket, "getaddrinfo", resolver)
+    try:
+        job = test_client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold",
+                                                 "webhook_url": f"http://hooks.test:{port}/hook"}).json()
+        test_client.post(f"/v1/jobs/{job['id']}/cancel")
+        [delivery] = deliveries_settled(test_client, job["id"])
+        assert delivery["state"] == "delivered" and delivery["attempts"] == 2, delivery
+        assert answers == [] and len(receiver.requests) == 1
+    finally:
+        receiver.close()
+
+
 def test_webhook_events_need_a_url_and_name_known_kinds(client):
     test_client, scene = client
     body = {"scene_id": scene["id"], "prompt": "a mic made of gold"}

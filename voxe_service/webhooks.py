@@ -86,15 +86,20 @@ def check_target(url: str, allow_networks: list[ipaddress._BaseNetwork]) -> None
     if port == 0:  # had been taken for the scheme's default and accepted, though nothing can be sent to it
         raise TargetRefused(f"webhook_url {url!r} names port 0, where nothing can listen")
     port = port or (443 if parts.scheme == "https" else 80)
-    allowed_addresses(host, port, allow_networks)
+    try:
+        allowed_addresses(host, port, allow_networks)
+    except OSError as exc:
+        raise TargetRefused(f"webhook_url host {host!r} does not resolve: {exc}") from None
 
 
 def allowed_addresses(host: str, port: int, allow_networks: list[ipaddress._BaseNetwork]) -> list[str]:
     """Every address ``host`` resolves to, once: :class:`TargetRefused` naming the first that a webhook may not go
-    to (``refused_rule``) unless ``allow_networks`` holds it."""
+    to (``refused_rule``) unless ``allow_networks`` holds it, or a name that cannot be looked up at all (e.g. a
+    label over 63 characters). A resolver that fails (``socket.gaierror``, an OSError: no such name, or none
+    reachable for now) refuses nothing: the name may resolve at the next attempt."""
     try:
         infos = socket.getaddrinfo(host, port, proto=socket.IPPROTO_TCP)
-    except (OSError, ValueError) as exc:
+    except ValueError as exc:
         raise TargetRefused(f"webhook_url host {host!r} does not resolve: {exc}") from None
     addresses = []
     for info in infos:
@@ -158,7 +163,11 @@ class _CheckedBackend(httpcore.NetworkBackend):
     def connect_tcp(self, host: str, port: int, timeout: float | None = None, local_address: str | None = None,
                     socket_options=None) -> httpcore.NetworkStream:
         failure: Exception | None = None
-        for address in allowed_addresses(host, port, self._allow_networks):
+        try:
+            addresses = allowed_addresses(host, port, self._allow_networks)
+        except OSError as exc:  # e.g. "[Errno -3] Temporary failure in name resolution": retried, like any connect error
+            raise httpcore.ConnectError(f"webhook_url host {host!r} does not resolve: {exc}") from None
+        for address in addresses:
             try:
                 return _DeadlineStream(self._backend.connect_tcp(
                     address, port, _time_left(timeout, httpcore.ConnectTimeout), local_address, socket_options))
