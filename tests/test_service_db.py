@@ -390,6 +390,30 @@ def test_jobs_racing_a_scenes_ingest_are_each_sent_exactly_once(db):
 
 
 # ------------------------------------------------------------------------------------------ the connection pool
+def test_racing_first_reads_of_a_keys_webhook_secret_all_get_the_stored_one(db):
+    """Requests that have each read the key without a webhook secret make it at once (GET /v1/webhooks/secret, a
+    job with a webhook): one makes it, every one returns it (each had written its own, last writer winning)."""
+    from voxe_service.db import get_sessionmaker
+    from voxe_service.models import LOCAL_KEY_ID, ApiKey
+    from voxe_service.webhooks import key_secret
+
+    all_read = threading.Barrier(RACERS)
+
+    def first_read(_):
+        with get_sessionmaker()() as session:
+            key = session.get(ApiKey, LOCAL_KEY_ID)
+            assert key.webhook_secret is None
+            all_read.wait()
+            secret = key_secret(session, key)
+            session.commit()
+            return secret
+
+    secrets = race(first_read)
+    with get_sessionmaker()() as session:
+        stored = session.get(ApiKey, LOCAL_KEY_ID).webhook_secret
+    assert secrets == [stored] * RACERS, secrets
+
+
 def test_a_process_holds_at_most_its_configured_connections_then_waits_its_timeout(tmp_path, monkeypatch,
                                                                                      database_url):
     """VOXE_DATABASE_POOL_SIZE + VOXE_DATABASE_MAX_OVERFLOW bound one process's connections (the deployment's sum

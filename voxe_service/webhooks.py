@@ -225,9 +225,15 @@ def refused_rule(address: ipaddress.IPv4Address | ipaddress.IPv6Address) -> str 
 
 
 def key_secret(session: Session, key: ApiKey) -> str:
-    """The key's webhook secret, made (and committed with the caller's transaction) on first use."""
+    """The key's webhook secret, made (and committed with the caller's transaction) on first use.
+
+    Made by a write conditional on the key having none, then read back: of callers racing to make it, one writes
+    it and all return that one (each had written its own, and most handed out a secret no longer the key's).
+    """
     if key.webhook_secret is None:
-        key.webhook_secret = new_secret()
+        session.execute(update(ApiKey).where(ApiKey.id == key.id, ApiKey.webhook_secret.is_(None))
+                        .values(webhook_secret=new_secret()).execution_options(synchronize_session=False))
+        session.refresh(key, ["webhook_secret"])
     return key.webhook_secret
 
 
