@@ -38,6 +38,9 @@ log = logging.getLogger("voxe.api")
 SSE_MEDIA_TYPE = "text/event-stream"
 KEEPALIVE_S = 15.0  # a comment line this often keeps proxies from closing a quiet stream
 RETRY_MS = 2000  # what EventSource waits before reconnecting
+# Jobs whose new events one query reads: SQLite parses its OR of one term per job that many levels deep, and refuses
+# a query over 1,000 ("Expression tree is too large"; every stream of the process had stopped at 998 jobs).
+EVENT_QUERY_JOBS = 400
 
 
 @dataclass
@@ -148,10 +151,11 @@ class EventHub:
                 if changed else {}
             reading = [i for i in updated if i in jobs or (newest.get(i) or 0) > after[i]]
             events: dict[str, list[dict]] = {}
-            if reading:
+            for start in range(0, len(reading), EVENT_QUERY_JOBS):
                 rows = session.scalars(
                     select(JobEvent)
-                    .where(or_(*(and_(JobEvent.job_id == i, JobEvent.id > after[i]) for i in reading)))
+                    .where(or_(*(and_(JobEvent.job_id == i, JobEvent.id > after[i])
+                                 for i in reading[start:start + EVENT_QUERY_JOBS])))
                     .order_by(JobEvent.id)
                 )
                 for e in rows:

@@ -1,23 +1,32 @@
 """Live job events over real HTTP: a uvicorn API and a Celery worker (subprocesses) run short jobs with the
 random-weight SMOKE-TEST model (VOXE_SDS_MODEL=tiny); a real httpx client reads their Server-Sent Events, and
-a real local HTTP receiver takes their webhooks.
+a real local HTTP receiver takes their webhooks. The event hub's own tests read its streams in this process,
+on jobs of an in-process API (no worker).
 
 Plumbing only, never edit quality.
 """
 
 from __future__ import annotations
 
+import asyncio
 import base64
 import hashlib
 import hmac
 import json
 import time
+from contextlib import aclosing
 
 import httpx
 import pytest
 
+from fastapi.testclient import TestClient
+
 from needs import MIC, require_data
-from service_helpers import WebhookReceiver, job_events, poll_job, service, small_mic, wait_for_scene, zip_folder
+from service_helpers import (
+    WebhookReceiver, job_events, poll_job, reset_service_caches, service, service_env, small_mic, wait_for_scene,
+    zip_folder,
+)
+from test_service_api import make_scene
 from voxe_client import Client
 from voxe_client.client import parse_sse
 
@@ -225,3 +234,67 @@ def test_the_cli_submits_waits_downloads_and_reports_errors(live, tmp_path, caps
     assert main(["status", job["id"], *api]) == 0 and json.loads(capsys.readouterr().out)["id"] == job["id"]
     assert main(["cancel", job["id"], *api]) == 2  # a succeeded job cannot be canceled: the service's 409
     assert "HTTP 409" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------------------ the hub in-process
+@pytest.fixture
+def in_process(tmp_path, monkeypatch):
+    """An in-process API (TestClient, no worker) polling every 0.2 s, and the small mic's data."""
+    require_data(MIC)
+    for key, value in service_env(tmp_path, VOXE_PROGRESS_INTERVAL_S="0.2").items():
+        monkeypatch.setenv(key, value)
+    reset_service_caches()
+    from api.main import create_app
+
+    with TestClient(create_app()) as client:
+        yield client, small_mic(tmp_path / "mic_small")
+    reset_service_caches()
+
+
+def follow(job_ids: list[str], timeout: float, on_progress=None) -> list[list[dict]]:
+    """Each job's stream from a fresh event hub until it ends: its events (``event`` and ``data``), at most
+    ``timeout`` seconds in all. ``on_progress(job_id, data)`` may end a stream early by returning True."""
+    from api.events import EventHub
+    from api.routes.jobs import progress_view
+
+    async def read(hub, job_id):
+        events = []
+        async with aclosing(hub.stream(job_id)) as stream:
+            async for chunk in stream:
+                for event in parse_sse(chunk.splitlines()):
+                    events.append({"event": event["event"], "data": event["data"]})
+                    if event["event"] == "progress" and on_progress and await on_progress(job_id, event["data"]):
+                        return events
+        return events
+
+    async def main():
+        hub = EventHub(0.2, progress_view)
+        try:
+            return await asyncio.wait_for(asyncio.gather(*(read(hub, j) for j in job_ids)), timeout)
+        finally:
+            await hub.close()
+
+    return asyncio.run(main())
+
+
+def test_a_thousand_streams_get_their_events_from_one_poll(in_process, tmp_path):
+    """Streams on 1,000 jobs (a key following its finished jobs): each gets its terminal event and ends. The
+    hub's events query had one OR term per job, which SQLite refuses from 998 jobs: every poll failed, and every
+    stream of the process stopped."""
+    from sqlalchemy import insert, select
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, JobEvent
+
+    client, data = in_process
+    scene = make_scene(client, data, tmp_path)
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold"}).json()
+    client.post(f"/v1/jobs/{job['id']}/cancel")
+    ids = [f"copy{i:04d}" for i in range(1000)]
+    with session_scope() as session:  # copies of the canceled job, each with its canceled event
+        row = dict(session.execute(select(Job.__table__).where(Job.id == job["id"])).mappings().one())
+        event = dict(session.execute(select(JobEvent.__table__).where(JobEvent.job_id == job["id"])).mappings().one())
+        session.execute(insert(Job.__table__), [{**row, "id": i} for i in ids])
+        session.execute(insert(JobEvent.__table__), [{**event, "id": None, "job_id": i} for i in ids])
+    streams = follow(ids, timeout=30)
+    assert all([e["event"] for e in events] == ["canceled", "progress"] for events in streams), streams[:3]
