@@ -298,3 +298,25 @@ def test_a_thousand_streams_get_their_events_from_one_poll(in_process, tmp_path)
         session.execute(insert(JobEvent.__table__), [{**event, "id": None, "job_id": i} for i in ids])
     streams = follow(ids, timeout=30)
     assert all([e["event"] for e in events] == ["canceled", "progress"] for events in streams), streams[:3]
+
+
+def test_a_stream_shows_the_message_of_a_job_its_scenes_ingest_sent(in_process, tmp_path):
+    """A job waiting for its scene: once the ingest sends it, its stream's progress drops "waiting for the scene
+    ..." as the job resource does (the message changed without updated_at, so the hub kept the old one)."""
+    from service_helpers import ingest
+    from test_service_api import upload_zip
+
+    client, data = in_process
+    scene = upload_zip(client, zip_folder(data, tmp_path / "mic.zip", prefix="mic_small")).json()
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold"}).json()
+    assert job["message"].startswith("waiting for the scene")
+
+    async def on_progress(_job_id, progress):
+        if progress["message"] == job["message"]:  # the first snapshot: the ingest sends the job now
+            await asyncio.to_thread(ingest, scene["id"])
+            return False
+        return True
+
+    [events] = follow([job["id"]], timeout=15, on_progress=on_progress)
+    sent = client.get(f"/v1/jobs/{job['id']}").json()
+    assert [e["data"]["message"] for e in events] == [job["message"], sent["message"]], events

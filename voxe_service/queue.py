@@ -194,10 +194,12 @@ def dispatch_job(session: Session, queue: TaskQueue, job: Job, done: Iterable[st
             finish_jobs(session, ids, FAILED, error=reason)
             session.commit()
         raise QueueUnavailable(reason) from None
-    # One UPDATE per row: PostgreSQL re-checks the foreign keys of a row updated twice in one transaction.
-    session.execute(update(Job).where(Job.id == job.id).values(task_id=task_id, message=message))
+    # One UPDATE per row: PostgreSQL re-checks the foreign keys of a row updated twice in one transaction. The
+    # message changes: updated_at tells the event streams to read it (they had kept "waiting for the scene ...").
+    now = utcnow()
+    session.execute(update(Job).where(Job.id == job.id).values(task_id=task_id, message=message, updated_at=now))
     if ids[1:]:
-        session.execute(update(Job).where(Job.id.in_(ids[1:])).values(task_id=task_id, message=None))
+        session.execute(update(Job).where(Job.id.in_(ids[1:])).values(task_id=task_id, message=None, updated_at=now))
     session.commit()
 
 
