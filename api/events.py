@@ -14,7 +14,8 @@ What a stream sends (``event:`` names):
   its ``id:`` -- a client reconnecting with ``Last-Event-ID`` gets every event after it, none twice;
 * ``progress`` (no id: it is a snapshot, sent again on reconnect) when the job's state, stage,
   iteration or losses changed since the last one, at most once per interval;
-* and the stream ends after the job's terminal event.
+* and the stream ends after the job's terminal event, or when the server stops (:meth:`EventHub.end_streams`;
+  the client resumes with ``Last-Event-ID``).
 """
 
 from __future__ import annotations
@@ -72,9 +73,11 @@ class EventHub:
         self._watches: list[_Watch] = []
         self._stamps: dict[str, tuple] = {}  # job id -> (updated_at, newest event id) at its last full read
         self._task: asyncio.Task | None = None
+        self._ending = False
 
     async def stream(self, job_id: str, after_id: int = 0) -> AsyncIterator[str]:
-        """The job's events after ``after_id`` as SSE text, ending after its terminal event."""
+        """The job's events after ``after_id`` as SSE text, ending after its terminal event (or at
+        :meth:`end_streams`)."""
         watch = _Watch(job_id, after_id)
         self._watches.append(watch)
         if self._task is None or self._task.done():
@@ -88,6 +91,8 @@ class EventHub:
                 except TimeoutError:
                     yield ": keepalive\n\n"
                     continue
+                if self._ending:
+                    return
                 watch.wake.clear()
                 events, watch.events = watch.events, []
                 for event in events:
@@ -162,6 +167,13 @@ class EventHub:
                     events.setdefault(e.job_id, []).append(
                         JobEventOut.model_validate(e, from_attributes=True).model_dump(mode="json"))
         return stamps, jobs, events
+
+    def end_streams(self) -> None:
+        """End every stream, and any opened from now on, at its next wake: the server is stopping, and waits for
+        open responses to end first (a stream ends only with its job). Clients resume with ``Last-Event-ID``."""
+        self._ending = True
+        for watch in self._watches:
+            watch.wake.set()
 
     async def close(self) -> None:
         if self._task is not None and not self._task.done():

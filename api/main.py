@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import math
-from contextlib import asynccontextmanager
+import signal
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import asynccontextmanager, contextmanager
 
 from fastapi import FastAPI, HTTPException
 from fastapi.encoders import jsonable_encoder
@@ -86,6 +90,36 @@ class SecurityHeaders:
         await self.app(scope, receive, send_with_headers)
 
 
+@contextmanager
+def on_exit_signal(callback: Callable[[], None]) -> Iterator[None]:
+    """Run ``callback`` in the event loop as soon as SIGINT or SIGTERM asks the server to stop, then the server's
+    own handler of it; the server's handlers again on leaving.
+
+    uvicorn waits for every open response to end before the lifespan's shutdown, and an event stream ends only
+    with its job: one open stream had kept a stopped API (its webhook sender and reaper too) running for good.
+    Only where the server handles signals in this, the main, thread (not a TestClient's app, nor a server's in
+    another thread).
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    loop = asyncio.get_running_loop()
+    handlers = {sig: handler for sig in (signal.SIGINT, signal.SIGTERM) if callable(handler := signal.getsignal(sig))}
+
+    def chained(sig: int, frame) -> None:
+        loop.call_soon_threadsafe(callback)
+        handlers[sig](sig, frame)
+
+    for sig in handlers:
+        signal.signal(sig, chained)
+    try:
+        yield
+    finally:
+        for sig, handler in handlers.items():
+            if signal.getsignal(sig) is chained:
+                signal.signal(sig, handler)
+
+
 class _TooLarge(HTTPException):
     """A body found too large while streaming. An HTTPException, so that FastAPI, reading the body for a route,
     answers it as the 413 it is (any other exception there becomes its 400 "error parsing the body")."""
@@ -118,7 +152,8 @@ def create_app(settings: Settings | None = None, migrate: bool = True) -> FastAP
         reaper = Reaper(settings).start()  # fails orphaned jobs (a dead worker, never queued)
         sender = WebhookSender(settings).start()  # POSTs job events to their webhooks, off the request path
         try:
-            yield
+            with on_exit_signal(app.state.event_hub.end_streams):
+                yield
         finally:
             sender.stop()
             reaper.stop()

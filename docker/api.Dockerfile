@@ -29,4 +29,6 @@ HEALTHCHECK --interval=15s --timeout=5s --start-period=30s --retries=5 \
 # The app runs `alembic upgrade head` (voxe_service/migrations) at startup. It listens on every interface, so authentication is on
 # (VOXE_AUTH=auto): create keys with `docker compose exec api python -m api.admin create-key --name <who>`.
 ENV VOXE_HOST=0.0.0.0
-CMD ["uvicorn", "api.main:app", "--host", "0.0.0.0", "--port", "8000", "--proxy-headers"]
+# On SIGTERM the API ends its event streams at once (clients resume with Last-Event-ID); any other response still
+# open after 5 s is cut, so the shutdown (webhook sender, reaper) runs within docker stop's 10 s.
+CMD ["uvicorn", "api.main:app", "--host", "0.0.0.0", "--port", "8000", "--proxy-headers", "--timeout-graceful-shutdown", "5"]

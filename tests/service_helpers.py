@@ -521,8 +521,8 @@ def _kill(process: Process) -> None:
 
 @contextlib.contextmanager
 def service(root: Path, broker_url: str | None = None, worker_env: dict[str, str] | None = None,
-            database_url: str | None = None, pool: str = "solo", **extra: str):
-    """Run the API and one worker with a private database, broker and storage under ``root``.
+            database_url: str | None = None, pool: str = "solo", worker: bool = True, **extra: str):
+    """Run the API and one worker (none unless ``worker``) with a private database, broker and storage under ``root``.
 
     ``worker_env`` overrides variables for the worker only (e.g. its own VOXE_WORK_DIR); ``pool`` is the
     workers' Celery pool (``prefork``, as the worker image and ``.ci/serve`` run, costs a process per worker).
@@ -535,7 +535,8 @@ def service(root: Path, broker_url: str | None = None, worker_env: dict[str, str
     handle = Service(root, env, worker_env, pool)
     try:
         handle.start_api()
-        handle.start_worker()
+        if worker:
+            handle.start_worker()
         yield handle
     finally:
         handle.stop()

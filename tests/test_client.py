@@ -90,6 +90,31 @@ def test_events_resume_after_a_dropped_stream_with_last_event_id():
                                                        ("succeeded", "2"), ("progress", None)]
 
 
+def test_events_resume_a_stream_the_server_ended_before_the_job_ended(monkeypatch):
+    """A stopping API ends its open streams cleanly: the client asks again with Last-Event-ID until the job's
+    terminal event (it had taken any end of a stream for the job's, and wait() returned a running job)."""
+    import voxe_client.client as client_module
+
+    monkeypatch.setattr(client_module.time, "sleep", lambda _s: None)
+    sent = []
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        sent.append(request.headers.get("last-event-id"))
+        headers = {"content-type": "text/event-stream"}
+        if len(sent) == 1:  # the API stops
+            return httpx.Response(200, headers=headers,
+                                  content=b'id: 1\nevent: stage_started\ndata: {"stage": "edit"}\n\n')
+        if len(sent) == 2:  # it is not back yet
+            raise httpx.ConnectError("connection refused")
+        return httpx.Response(200, headers=headers, content=b'id: 2\nevent: canceled\ndata: {"stage": "edit"}\n\n'
+                                                            b'event: progress\ndata: {"state": "canceled"}\n\n')
+
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        events = list(client.events("j1"))
+    assert sent == [None, "1", "1"]
+    assert [e["event"] for e in events] == ["stage_started", "canceled", "progress"]
+
+
 def test_reads_answered_503_with_retry_after_are_sent_again_and_writes_are_not(monkeypatch):
     """A GET (and the event stream) answered 503 + Retry-After waits that long and asks again, at most ``retries``
     times; a POST, which the service may have acted on, and a 503 without Retry-After are errors at once."""

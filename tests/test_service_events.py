@@ -13,6 +13,7 @@ import base64
 import hashlib
 import hmac
 import json
+import signal
 import time
 from contextlib import aclosing
 
@@ -234,6 +235,23 @@ def test_the_cli_submits_waits_downloads_and_reports_errors(live, tmp_path, caps
     assert main(["status", job["id"], *api]) == 0 and json.loads(capsys.readouterr().out)["id"] == job["id"]
     assert main(["cancel", job["id"], *api]) == 2  # a succeeded job cannot be canceled: the service's 409
     assert "HTTP 409" in capsys.readouterr().err
+
+
+def test_an_open_event_stream_lets_the_api_stop(tmp_path):
+    """SIGTERM with a stream open on a job that waits (no worker): the stream ends (its client resumes with
+    Last-Event-ID) and the API exits, after its lifespan's shutdown (webhook sender, reaper). uvicorn waits for
+    open responses before that shutdown, and a stream ends only with its job: the API had run on for good."""
+    require_data(MIC)
+    with service(tmp_path / "svc", worker=False) as svc, httpx.Client(base_url=svc.base, timeout=30) as client:
+        with open(zip_folder(small_mic(tmp_path / "mic_small"), tmp_path / "mic.zip", prefix="mic_small"), "rb") as h:
+            scene = client.post("/v1/scenes", files={"archive": ("mic.zip", h, "application/zip")}).json()
+        job = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold"}).json()
+        with client.stream("GET", f"/v1/jobs/{job['id']}/events", headers={"Accept": "text/event-stream"}) as stream:
+            events = parse_sse(stream.iter_lines())
+            assert next(events)["data"]["state"] == "queued"  # the first progress snapshot
+            svc.api.proc.send_signal(signal.SIGTERM)
+            svc.api.proc.wait(15)
+            assert list(events) == []  # the stream had ended cleanly
 
 
 # ------------------------------------------------------------------------------------------ the hub in-process

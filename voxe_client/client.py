@@ -121,8 +121,9 @@ class Client:
     def events(self, job_id: str, last_event_id: int | None = None, reconnects: int = 5) -> Iterator[dict]:
         """The job's live events (``{"event", "id", "data"}``) until it ends, over Server-Sent Events.
 
-        A dropped connection is resumed with ``Last-Event-ID`` (at most ``reconnects`` times in a row),
-        so no timeline event is missed or repeated; ``progress`` snapshots carry no id.
+        A dropped connection, or a stream the server ended before the job's end (it was stopping), is resumed
+        with ``Last-Event-ID`` (at most ``reconnects`` times in a row), so no timeline event is missed or
+        repeated; ``progress`` snapshots carry no id.
         """
         failures = 0
         while True:
@@ -140,18 +141,23 @@ class Client:
                             time.sleep(wait)
                             continue
                         _raise_for_error(response, "GET", path)
+                    ended = False
                     for event in parse_sse(response.iter_lines()):
                         failures = 0
                         if event["id"] is not None:
                             last_event_id = int(event["id"])
+                        ended = ended or _ends_job(event)
                         yield event
-                return  # the server ended the stream: the job ended
+                if ended:
+                    return
+                lost = "the server ended the stream before the job ended"
             except httpx.TransportError as exc:
-                failures += 1
-                if failures > reconnects:
-                    raise ServiceError(f"event stream of job {job_id} at {self.base_url} lost after {failures} "
-                                       f"attempt{'s' if failures > 1 else ''}: {exc}") from None
-                time.sleep(min(5.0, 0.5 * 2 ** (failures - 1)))
+                lost = str(exc)
+            failures += 1
+            if failures > reconnects:
+                raise ServiceError(f"event stream of job {job_id} at {self.base_url} lost after {failures} "
+                                   f"attempt{'s' if failures > 1 else ''}: {lost}")
+            time.sleep(min(5.0, 0.5 * 2 ** (failures - 1)))
 
     def wait(self, job_id: str, on_progress: Callable[[dict], None] | None = None) -> dict:
         """Follow the job's events until it ends, calling ``on_progress(snapshot)`` on each progress event;
@@ -230,6 +236,13 @@ def _raise_for_error(response: httpx.Response, method: str, path: str) -> None:
         except (ValueError, AttributeError):
             detail = response.reason_phrase
         raise ServiceError(f"{method} {path}: HTTP {response.status_code}: {detail}", response.status_code, detail)
+
+
+def _ends_job(event: dict) -> bool:
+    """Whether the service ends a job's stream after ``event``: the job's terminal event or a snapshot of a finished
+    job (a stream resumed after the terminal event), or the job's deletion (``error``)."""
+    return (event["event"] in (*TERMINAL_STATES, "error")
+            or event["event"] == "progress" and event["data"].get("state") in TERMINAL_STATES)
 
 
 def parse_sse(lines) -> Iterator[dict]:
