@@ -191,6 +191,23 @@ def pareto_front(points: list[tuple[float, float]]) -> list[int]:
     return front
 
 
+def pareto_fronts(runs: list[dict], x: str, y: str) -> dict[str, list[dict]]:
+    """Per device kind (:func:`device_kind`), its runs no other run of that device beats (lower ``x``, higher
+    ``y``), in order of increasing ``x``: a CPU's seconds and a GPU's do not compare, so each device has its own
+    front. A run marked ``stale`` (its recipe has changed since it ran) is on none.
+
+    Examples:
+        >>> cpu, gpu = {"s": 10, "db": 30}, {"s": 2, "db": 31, "device": "cuda"}
+        >>> pareto_fronts([cpu, gpu, {**gpu, "s": 1, "stale": True}], "s", "db") == {"cpu": [cpu], "cuda": [gpu]}
+        True
+    """
+    fronts = {}
+    for kind in DEVICE_STYLE:
+        mine = [r for r in runs if device_kind(r) == kind and not r.get("stale")]
+        fronts[kind] = [mine[i] for i in pareto_front([(r[x], r[y]) for r in mine])]
+    return fronts
+
+
 def place_labels(anchors: list[tuple[float, float]], widths: list[float], height: float) -> list[float]:
     """A y per label (display units) so that no two label boxes overlap.
 
@@ -219,12 +236,14 @@ def place_labels(anchors: list[tuple[float, float]], widths: list[float], height
 
 def speed_error_axes(ax, runs: list[dict], *, x: str, y: str, label, xlabel: str, ylabel: str, title: str,
                      hollow=lambda run: False, labels_beside: int = 10) -> tuple[float, float, float, float]:
-    """Scatter ``runs`` as ``y`` against ``x`` (log axis), marker and colour by device, the Pareto front
-    (lower ``x``, higher ``y``) joined, each point labelled by ``label(run)`` without overlaps; draw anything
-    else (anchors) on ``ax`` before, since the labels are placed last. A run with ``{y}_range`` (lowest, highest)
-    gets a bar over it (:func:`seed_means`). More than ``labels_beside`` points: each
-    is numbered (left to right) and the labels are listed beside the axes, as a crowd of long labels would
-    stack far from its points. Returns the part of the figure the axes were fitted in (for :func:`figure_link`)."""
+    """Scatter ``runs`` as ``y`` against ``x`` (log axis), marker and colour by device, each device's Pareto front
+    (lower ``x``, higher ``y``; :func:`pareto_fronts`) joined, each point labelled by ``label(run)`` without
+    overlaps; draw anything else (anchors) on ``ax`` before, since the labels are placed last. A run with
+    ``{y}_range`` (lowest, highest) gets a bar over it (:func:`seed_means`); a run marked ``stale`` is drawn faded.
+    More than ``labels_beside`` points: each is numbered (left to right) and the labels are listed beside the axes,
+    as a crowd of long labels would stack far from its points. Returns the part of the figure the axes were fitted
+    in (for :func:`figure_link`)."""
+    from matplotlib.colors import to_rgba
     from matplotlib.ticker import FuncFormatter
 
     points = [r for r in runs if r.get(x) is not None and r.get(y) is not None]
@@ -237,14 +256,19 @@ def speed_error_axes(ax, runs: list[dict], *, x: str, y: str, label, xlabel: str
         ax.vlines([r[x] for r in ranges], *zip(*(r[f"{y}_range"] for r in ranges)), color=DEVICE_STYLE["cpu"][1],
                   linewidth=1, zorder=2)
     for kind, (marker, colour, name) in DEVICE_STYLE.items():
-        mine = [r for r in points if device_kind(r) == kind]
-        if mine:
-            ax.scatter([r[x] for r in mine], [r[y] for r in mine], marker=marker, s=36, label=name, zorder=3,
-                       edgecolors=colour, facecolors=[("none" if hollow(r) else colour) for r in mine])
-    front = [points[i] for i in pareto_front([(r[x], r[y]) for r in points])]
-    if len(front) > 1:
-        ax.step([r[x] for r in front], [r[y] for r in front], where="post", color="0.45", linestyle="--",
-                linewidth=1, label="Pareto front (no run both faster and better)", zorder=2)
+        for stale in (False, True):
+            mine = [r for r in points if device_kind(r) == kind and bool(r.get("stale")) == stale]
+            shade = to_rgba(colour, 0.4 if stale else 1)  # an alpha= argument would fill the hollow markers
+            if mine:
+                ax.scatter([r[x] for r in mine], [r[y] for r in mine], marker=marker, s=36, zorder=3, edgecolors=shade,
+                           facecolors=[("none" if hollow(r) else shade) for r in mine],
+                           label=f"{name}, stale: its recipe has changed since (rerun due)" if stale else name)
+    for kind, front in pareto_fronts(points, x, y).items():
+        if len(front) > 1:
+            name = DEVICE_STYLE[kind][2]
+            ax.step([r[x] for r in front], [r[y] for r in front], where="post", color=DEVICE_STYLE[kind][1],
+                    linestyle="--", linewidth=1, zorder=2,
+                    label=f"Pareto front, {name}s (no other {name} both faster and better)")
     ax.grid(True, which="both", color="0.92", linewidth=0.6)
     ax.margins(x=0.12, y=0.18)
     ax.set_xlabel(xlabel)
@@ -321,7 +345,8 @@ def reconstruction_section(data, gpu, results: Path, report: Path) -> tuple[list
     plot = results / "report_reconstruction.png"
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(8.5, 5.2))
-    plotted = seed_means(runs) + gpu_runs
+    stale = [run for _, run, _, _ in stale_gpu_runs(gpu_runs, runs)]
+    plotted = seed_means(runs) + [{**r, "stale": True} if any(r is s for s in stale) else r for r in gpu_runs]
     ax.scatter(*AUTHORS_MIC, marker="*", s=160, color="black", zorder=4,
                label=f"authors' code, mic: {AUTHORS_MIC[1]} dB after {AUTHORS_MIC[0]:,.0f} s (CPU)")
     layout = speed_error_axes(ax, plotted, x="seconds", y="psnr", hollow=lambda r: r.get("skipping") is False,
@@ -372,7 +397,7 @@ def seed_means(runs: list[dict]) -> list[dict]:
 def _reconstruction_label(run: dict) -> str:
     size = f"{run['resolution']}³, " if run.get("resolution") else ""
     seeds = f", {run['seeds']} seeds" if run.get("seeds") else ""
-    where = ", GPU" if device_kind(run) == "cuda" else ""
+    where = (", GPU" if device_kind(run) == "cuda" else "") + (", stale recipe" if run.get("stale") else "")
     return f"{run.get('label') or run.get('preset') or run.get('name')} ({size}{run.get('iterations')} it{seeds}{where})"
 
 
@@ -701,20 +726,29 @@ def describe_recipe(recipe: dict) -> str:
     return f"{recipe['iterations']:,} steps of {recipe['rays_per_step']:,} rays at lr {recipe['lr']} {drawn}, {probed}"
 
 
-def _stale_gpu_fits(gpu_runs: list[dict], cpu_runs: list[dict]) -> list[str]:
-    """A line under the targets for each GPU preset fit whose recipe is not its preset's as the CPU's rows of it ran
-    (a row from before fits recorded theirs ran ``UNRECORDED_RECIPES``'), with the CPU's figures of both recipes
-    (means over seeds): what its rerun moves. The CPU's rows of the recipe the GPU ran are the family that ran it, or
-    else ``STALE_FIT_TWINS``' nearest."""
+def stale_gpu_runs(gpu_runs: list[dict], cpu_runs: list[dict]) -> list[tuple[str, dict, dict, dict]]:
+    """(preset, its GPU run, the recipe that ran, the preset's recipe now) for each GPU preset fit whose recipe is not
+    its preset's as the CPU's rows of it ran (a row from before fits recorded theirs ran ``UNRECORDED_RECIPES``')."""
     families = seed_families(cpu_runs)
-    lines = []
-    for preset, (now, nearest) in STALE_FIT_TWINS.items():
+    stale = []
+    for preset, (now, _) in STALE_FIT_TWINS.items():
         run = _preset_run(gpu_runs, preset)
         if run is None or not families.get(now):
             continue
         ran, current = _recipe(run, UNRECORDED_RECIPES[preset]), _recipe(families[now][0])
-        if ran == current or None in current.values():  # the same, or CPU rows that do not say what they ran
-            continue
+        if ran != current and None not in current.values():  # not the same, and CPU rows that say what they ran
+            stale.append((preset, run, ran, current))
+    return stale
+
+
+def _stale_gpu_fits(gpu_runs: list[dict], cpu_runs: list[dict]) -> list[str]:
+    """A line under the targets for each stale GPU preset fit (:func:`stale_gpu_runs`), with the CPU's figures of both
+    recipes (means over seeds): what its rerun moves. The CPU's rows of the recipe the GPU ran are the family that ran
+    it, or else ``STALE_FIT_TWINS``' nearest."""
+    families = seed_families(cpu_runs)
+    lines = []
+    for preset, run, ran, current in stale_gpu_runs(gpu_runs, cpu_runs):
+        now, nearest = STALE_FIT_TWINS[preset]
         before = next((name for name, rows in families.items() if _recipe(rows[0]) == ran), nearest)
         named = [(now, current)] + ([(before, _recipe(families[before][0]))] if families.get(before) else [])
         measured = "; ".join(f"{sum(r['psnr'] for r in families[name]) / len(families[name]):.2f} dB with "

@@ -310,3 +310,20 @@ def test_write_results_writes_runs_and_summary_and_their_plot(tmp_path, monkeypa
         assert json.loads((tmp_path / f"{stem}.json").read_text()) == record
         assert (tmp_path / f"{stem}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert json.loads(capsys.readouterr().out) == record["summary"]
+
+
+def test_each_device_has_its_own_pareto_front_and_a_stale_gpu_fit_is_on_none():
+    cpu = [{"label": f"cpu{i}", "seconds": s, "psnr": p} for i, (s, p) in enumerate([(10, 30.0), (20, 31.0), (30, 30.5)])]
+    gpu = [{"label": f"gpu{i}", "device": "cuda", "seconds": s, "psnr": p}
+           for i, (s, p) in enumerate([(5, 29.0), (8, 31.5)])]
+    stale = {"label": "stale", "device": "cuda:0", "seconds": 1, "psnr": 32.0, "stale": True}
+    fronts = report.pareto_fronts(cpu + gpu + [stale], "seconds", "psnr")
+    # GPU runs faster and better than every CPU run take none of the CPU's front, nor a stale one the GPU's
+    assert [r["label"] for r in fronts["cpu"]] == ["cpu0", "cpu1"]
+    assert [r["label"] for r in fronts["cuda"]] == ["gpu0", "gpu1"]
+    # the reconstruction plot marks a GPU preset fit whose preset's recipe has changed since
+    fast_now = {"rays_per_step": 8192, "lr": 0.04, "iterations": 1000, "images_per_step": 8, "early_stop": 0.0}
+    old_fit = {"kind": "reconstruction", "preset": "fast", "device": "cuda", "psnr": 30.0, "iterations": 2000}
+    ((preset, run, _, _),) = report.stale_gpu_runs([old_fit], [{"label": "preset-fast", "psnr": 30.6, **fast_now}])
+    assert preset == "fast" and run is old_fit
+    assert report._reconstruction_label({**old_fit, "stale": True}).endswith("(2000 it, GPU, stale recipe)")
