@@ -501,11 +501,20 @@ def _unet_ms(guidance, profile: Profile, batch: int, repeats: int = 10) -> float
     return (time.perf_counter() - start) * 1e3 / repeats
 
 
+def _same_call_baseline(runs: list[dict]) -> float | None:
+    """Section a's fp32 baseline (ms per step) where this call measured it; None where it did not, or where its row
+    was kept from an earlier call: a ratio to that would compare two device calls (another process, another state
+    of the machine), not two variants in one run."""
+    return next((r["ms_step"] for r in runs if r.get("section") == "a" and "ms_step" in r
+                 and not r.get("kept_from_earlier_call")), None)
+
+
 def cuda_graph_runs(sd2: Path, profile: Profile, baseline_ms: float | None) -> list[dict]:
     """CUDA graphs (voxe_core.guidance.cuda_graphs) against the eager default in one section: their agreement on
     the same inputs, the step (the capture inside its warm-up, timed apart), per-part device times, a
     ``loop_iterations`` loop, and the eager UNet forward at batch 2 and 8 (a time that barely grows with the
-    batch is the host launching kernels, which graphs remove)."""
+    batch is the host launching kernels, which graphs remove). ``baseline_ms``: :func:`_same_call_baseline`; the
+    steps' ``speedup_over_baseline`` only where it is not None."""
     eager = _guidance(sd2, profile, profile.dtype, cuda_graphs=False, compile_encoder=False)
     graphed = _guidance(sd2, profile, profile.dtype, cuda_graphs=True, compile_encoder=False)  # (j) compiles
     agreement = _graph_agreement(eager, graphed, profile)
@@ -513,10 +522,10 @@ def cuda_graph_runs(sd2: Path, profile: Profile, baseline_ms: float | None) -> l
     for name, guidance in (("eager (cuda_graphs=False)", eager), ("+ CUDA graphs (UNet, VAE encoder)", graphed)):
         ms_step, timed, parts, warm_seconds = _measured_step(guidance, profile)  # the graphs' capture in the warm-up
         eager_ms = eager_ms or ms_step
+        over_baseline = {"speedup_over_baseline": baseline_ms / ms_step} if baseline_ms else {}
         rows.append(_step_row(name, profile, profile.dtype, ms_step, timed, parts, cuda_graphs=guidance.cuda_graphs,
                               warm_seconds=warm_seconds, warm_iterations=profile.warm,
-                              speedup_over_eager=eager_ms / ms_step,
-                              speedup_over_baseline=(baseline_ms or eager_ms) / ms_step))
+                              speedup_over_eager=eager_ms / ms_step, **over_baseline))
     rows[-1].update(agreement)
     rows.append(_loop_row(graphed, profile,
                           f"edit_loop {profile.loop_iterations} iterations at {profile.grid_resolution}³, CUDA graphs",
@@ -817,8 +826,7 @@ def main(argv=None) -> int:
             section("d", "refinement", lambda: refinement_run(sd14, profile))
             section("h", "render_passes", lambda: render_pass_runs(profile))
             if profile.device == "cuda":  # CUDA graphs exist only there
-                baseline = next((r["ms_step"] for r in runs if r.get("section") == "a" and "ms_step" in r), None)
-                section("g", "cuda_graphs", lambda: cuda_graph_runs(sd2, profile, baseline))
+                section("g", "cuda_graphs", lambda: cuda_graph_runs(sd2, profile, _same_call_baseline(runs)))
             section("i", "edit_step", lambda: step_pass_runs(sd2, profile))
             section("k", "step_profile", lambda: step_profile_run(sd2, profile))
             if profile.device == "cuda":  # after the other step sections: a compile's warm-up is the least predictable

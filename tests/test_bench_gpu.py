@@ -135,3 +135,15 @@ def test_a_call_cut_off_by_its_time_limit_keeps_what_it_measured(tmp_path, monke
     out = tmp_path / "render.json"
     assert bench.main(["--smoke", "--out", str(out), "--skip", "a,b,c,d"]) == 1
     assert [r["section"] for r in json.loads(out.read_text())["runs"]] == ["h"]
+
+
+def test_section_g_sets_its_steps_against_section_as_baseline_only_from_the_same_call(monkeypatch):
+    bench = _load_bench(monkeypatch)
+    baseline = {"name": "edit_step baseline", "section": "a", "ms_step": 120.0}
+    later = {"name": "edit_step + fp16", "section": "a", "ms_step": 100.0}
+    assert bench._same_call_baseline([baseline, later]) == 120.0
+    # kept from an earlier call (--keep): another process, another state of the machine, no ratio
+    assert bench._same_call_baseline([{**baseline, "kept_from_earlier_call": True}]) is None
+    assert bench._same_call_baseline([{"section": "a", "error": "x"}]) is None
+    kept = json.loads((BENCH.parent / "results" / "gpu.json").read_text())["runs"]
+    assert all("speedup_over_baseline" not in r for r in kept if r.get("section") == "g")  # call 2 against call 1
