@@ -24,7 +24,9 @@ c. ``reconstruction``: mic with the ``fast`` and ``paper`` presets on the device
    ``fast`` again with the early-stop density pass object fits dropped, and with twice the steps of half the rays at
    lr 0.03 (the preset before 2026-12-05's second change; rows ``variant``, ``seconds_over_default``);
 d. ``refinement``: the attention pass over the views, the attention-grid fit and the graph cut at 160³;
-e. every run carries ``peak_memory_gb`` (the stage's ``torch.cuda.max_memory_allocated``, GiB);
+e. every run carries ``peak_memory_gb`` (the stage's ``torch.cuda.max_memory_allocated``, GiB); sections g and j
+   load one guidance at a time, so a variant's peak is its own model's (``memory_left_before_load_gb``: what was
+   still allocated when it loaded, 0 where nothing of an earlier model survived);
 f. ``job``: one local-edit job (reconstruct -> edit -> refine -> export) through the worker's task bodies on an
    embedded service, the SDS model the full-size random one; iterations reduced (``job_iterations``) to fit
    the 8 minutes: its seconds are projected to 8,000 iterations from (b)'s ms per step;
@@ -62,6 +64,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import gc
 import json
 import os
 import signal
@@ -180,6 +183,64 @@ def _loop_row(guidance, profile: Profile, name: str, **extra) -> dict:
             "iterations_per_second": profile.loop_iterations / wall, "ms_step": ms_step,
             "edit_8000_minutes": ms_step * 8000 / 60000, "warm_seconds": warm_seconds, "warm_iterations": profile.warm,
             **_peaks(reports), **extra}
+
+
+def _relative_difference(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float((a.float() - b.float()).abs().max() / b.float().abs().max().clamp_min(1e-12))
+
+
+def _agreement_outputs(guidance, profile: Profile) -> dict[str, torch.Tensor]:
+    """What two guidances of one model are compared on (:func:`_agreement`), on inputs drawn from seed 0 (the same for
+    every guidance): SDS gradients on two different latents (on a graphed guidance the second a replay reading new
+    inputs), the encoder's posterior mean and the gradient it sends back to the images. Copies: a graph's replay
+    overwrites its outputs."""
+    generator = torch.Generator(profile.device).manual_seed(0)
+    size = profile.guidance_resolution // guidance.vae_scale_factor
+    channels = guidance.unet.config.in_channels
+    text = guidance.encode_prompts([PROMPT])
+    outputs = {}
+    for t in (500, 200):
+        latents, noise = (torch.randn(1, channels, size, size, device=profile.device, generator=generator)
+                          for _ in range(2))
+        outputs[f"sds_grad_t{t}"] = guidance.sds_grad_on_latents(latents, text, [t], noise=noise)[0].detach().clone()
+    images = torch.rand(1, 3, profile.render_size, profile.render_size, device=profile.device, generator=generator)
+    weights = torch.randn(1, channels, size, size, device=profile.device, generator=generator)
+    images.requires_grad_(True)
+    latents = guidance.encode_images(images, sample=False)
+    (latents.float() * weights).sum().backward()
+    outputs["encoder_latents"], outputs["encoder_image_grad"] = latents.detach().clone(), images.grad
+    return outputs
+
+
+def _agreement(outputs: dict[str, torch.Tensor], reference: dict[str, torch.Tensor]) -> dict:
+    """Largest differences, relative to the reference's largest entry, between a guidance's
+    :func:`_agreement_outputs` and its reference's (the eager guidance's; section a: the fp32 baseline's)."""
+    def differs(key: str) -> float:
+        return _relative_difference(outputs[key], reference[key])
+
+    return {"sds_grad_relative_difference": max(differs(k) for k in reference if k.startswith("sds_grad")),
+            "encoder_latents_relative_difference": differs("encoder_latents"),
+            "encoder_image_grad_relative_difference": differs("encoder_image_grad")}
+
+
+def _free_device_memory(profile: Profile) -> float | None:
+    """Hand the dropped models' memory back and start the peak afresh, before the next model loads; the GiB still
+    allocated then (None on the CPU), which the next variant's row records: above zero, something of an earlier model
+    is still alive and counts in its peak."""
+    gc.collect()
+    if profile.device != "cuda":
+        return None
+    torch.cuda.empty_cache()
+    torch.cuda.reset_peak_memory_stats()
+    return torch.cuda.memory_allocated() / 2**30
+
+
+def _variant_row(name: str, guidance, profile: Profile, **extra) -> dict:
+    """An ``edit_step`` run of ``guidance``'s default step (:func:`_measured_step`: the warm-up, where graphs are
+    captured and compiles run, timed apart)."""
+    ms_step, timed, parts, warm_seconds = _measured_step(guidance, profile)
+    return _step_row(name, profile, profile.dtype, ms_step, timed, parts, cuda_graphs=guidance.cuda_graphs,
+                     warm_seconds=warm_seconds, warm_iterations=profile.warm, **extra)
 
 
 def _guidance(path: Path, profile: Profile, dtype: torch.dtype, cuda_graphs: bool | None = None,
@@ -454,36 +515,6 @@ def render_pass_runs(profile: Profile) -> list[dict]:
 
 
 # ---------------------------------------------------------------- (g)
-def _relative_difference(a: torch.Tensor, b: torch.Tensor) -> float:
-    return float((a.float() - b.float()).abs().max() / b.float().abs().max().clamp_min(1e-12))
-
-
-def _graph_agreement(eager, graphed, profile: Profile) -> dict:
-    """Largest differences (relative to the eager value's largest) between the graphed and the eager guidance on the
-    same inputs: SDS gradients on two different latents (the second a replay reading new inputs), the encoder's
-    posterior mean and the gradient it sends back to the images."""
-    generator = torch.Generator(profile.device).manual_seed(0)
-    size = profile.guidance_resolution // eager.vae_scale_factor
-    text = eager.encode_prompts([PROMPT])
-    sds = []
-    for t in (500, 200):
-        latents, noise = (torch.randn(1, eager.unet.config.in_channels, size, size, device=profile.device,
-                                      generator=generator) for _ in range(2))
-        grads = [g.sds_grad_on_latents(latents, text, [t], noise=noise)[0] for g in (graphed, eager)]
-        sds.append(_relative_difference(*grads))
-    images = torch.rand(1, 3, profile.render_size, profile.render_size, device=profile.device, generator=generator)
-    weights = torch.randn(1, eager.unet.config.in_channels, size, size, device=profile.device, generator=generator)
-    encoded = []
-    for guidance in (graphed, eager):
-        x = images.clone().requires_grad_(True)
-        latents = guidance.encode_images(x, sample=False)
-        (latents.float() * weights).sum().backward()
-        encoded.append((latents.detach(), x.grad))
-    return {"sds_grad_relative_difference": max(sds),
-            "encoder_latents_relative_difference": _relative_difference(encoded[0][0], encoded[1][0]),
-            "encoder_image_grad_relative_difference": _relative_difference(encoded[0][1], encoded[1][1])}
-
-
 @torch.no_grad()
 def _unet_ms(guidance, profile: Profile, batch: int, repeats: int = 10) -> float:
     size = profile.guidance_resolution // guidance.vae_scale_factor
@@ -513,29 +544,31 @@ def cuda_graph_runs(sd2: Path, profile: Profile, baseline_ms: float | None) -> l
     """CUDA graphs (voxe_core.guidance.cuda_graphs) against the eager default in one section: their agreement on
     the same inputs, the step (the capture inside its warm-up, timed apart), per-part device times, a
     ``loop_iterations`` loop, and the eager UNet forward at batch 2 and 8 (a time that barely grows with the
-    batch is the host launching kernels, which graphs remove). ``baseline_ms``: :func:`_same_call_baseline`; the
-    steps' ``speedup_over_baseline`` only where it is not None."""
+    batch is the host launching kernels, which graphs remove). Each guidance is measured alone in memory, the eager
+    one's agreement outputs kept for the graphed one. ``baseline_ms``: :func:`_same_call_baseline`; the steps'
+    ``speedup_over_baseline`` only where it is not None."""
+    left = _free_device_memory(profile)
     eager = _guidance(sd2, profile, profile.dtype, cuda_graphs=False, compile_encoder=False)
-    graphed = _guidance(sd2, profile, profile.dtype, cuda_graphs=True, compile_encoder=False)  # (j) compiles
-    agreement = _graph_agreement(eager, graphed, profile)
-    rows, eager_ms = [], None
-    for name, guidance in (("eager (cuda_graphs=False)", eager), ("+ CUDA graphs (UNet, VAE encoder)", graphed)):
-        ms_step, timed, parts, warm_seconds = _measured_step(guidance, profile)  # the graphs' capture in the warm-up
-        eager_ms = eager_ms or ms_step
-        over_baseline = {"speedup_over_baseline": baseline_ms / ms_step} if baseline_ms else {}
-        rows.append(_step_row(name, profile, profile.dtype, ms_step, timed, parts, cuda_graphs=guidance.cuda_graphs,
-                              warm_seconds=warm_seconds, warm_iterations=profile.warm,
-                              speedup_over_eager=eager_ms / ms_step, **over_baseline))
-    rows[-1].update(agreement)
-    rows.append(_loop_row(graphed, profile,
-                          f"edit_loop {profile.loop_iterations} iterations at {profile.grid_resolution}³, CUDA graphs",
-                          cuda_graphs=True))
+    eager_row = _variant_row("eager (cuda_graphs=False)", eager, profile, memory_left_before_load_gb=left)
+    reference = _agreement_outputs(eager, profile)
     batch2, batch8 = _unet_ms(eager, profile, 2), _unet_ms(eager, profile, 8)
-    rows.append({"name": "eager UNet forward, batch 2 against 8", "kind": "diagnostic", "device": profile.device,
-                 "dtype": _dtype_name(profile.dtype), "model": SDS_MODEL,
-                 "peak_memory_gb": None, "ms_unet_batch_2": batch2, "ms_unet_batch_8": batch8,
-                 "batch_8_over_batch_2": batch8 / batch2})
-    return rows
+    del eager  # one guidance loaded at a time: each step's peak is its own model's
+    left = _free_device_memory(profile)
+    graphed = _guidance(sd2, profile, profile.dtype, cuda_graphs=True, compile_encoder=False)  # (j) compiles
+    graphed_row = _variant_row("+ CUDA graphs (UNet, VAE encoder)", graphed, profile,  # the capture in the warm-up
+                               memory_left_before_load_gb=left)
+    graphed_row.update(_agreement(_agreement_outputs(graphed, profile), reference))
+    for row in (eager_row, graphed_row):
+        row["speedup_over_eager"] = eager_row["ms_step"] / row["ms_step"]
+        if baseline_ms:
+            row["speedup_over_baseline"] = baseline_ms / row["ms_step"]
+    loop = _loop_row(graphed, profile,
+                     f"edit_loop {profile.loop_iterations} iterations at {profile.grid_resolution}³, CUDA graphs",
+                     cuda_graphs=True, memory_left_before_load_gb=left)
+    return [eager_row, graphed_row, loop,
+            {"name": "eager UNet forward, batch 2 against 8", "kind": "diagnostic", "device": profile.device,
+             "dtype": _dtype_name(profile.dtype), "model": SDS_MODEL, "peak_memory_gb": None,
+             "ms_unet_batch_2": batch2, "ms_unet_batch_8": batch8, "batch_8_over_batch_2": batch8 / batch2}]
 
 
 # ---------------------------------------------------------------- (i)
@@ -637,33 +670,40 @@ def compiled_encoder_runs(sd2: Path, profile: Profile) -> list[dict]:
     """The VAE encoder compiled (``torch.compile``, voxe_core.guidance.compiled) against the graphed eager one, in
     one section: each variant's warm-up (its compile inside, on inductor's caches as the earlier sections left them),
     the step with per-part device times and without synchronisation, and the agreement of the compiled variants with
-    the fully eager guidance on the same inputs. A variant's failure is recorded in its row."""
-    from voxe_core.guidance.cuda_graphs import GraphedEncoder
-
-    eager = _guidance(sd2, profile, profile.dtype, cuda_graphs=False, compile_encoder=False)
+    the fully eager guidance on the same inputs (its outputs kept, the guidance dropped before the variants load). A
+    variant's failure is recorded in its row."""
+    reference = _agreement_outputs(_guidance(sd2, profile, profile.dtype, cuda_graphs=False, compile_encoder=False),
+                                   profile)
     rows = []
     for name, compile_encoder, graph_compiled in ENCODER_VARIANTS:
         try:
-            guidance = _guidance(sd2, profile, profile.dtype, compile_encoder=compile_encoder)
-            if graph_compiled:
-                guidance._graphed_encoder = GraphedEncoder(guidance._encoder)
-            ms_step, timed, parts, warm_seconds = _measured_step(guidance, profile)  # the compile in the warm-up
-            row = _step_row(name, profile, profile.dtype, ms_step, timed, parts,
-                            cuda_graphs=guidance.cuda_graphs, compile_encoder=guidance.compile_encoder,
-                            graphed_encoder=guidance._graphed_encoder is not None, warm_seconds=warm_seconds,
-                            warm_iterations=profile.warm, encoder_compile_seconds=guidance.encoder_compile_seconds)
-            if guidance.compile_encoder:
-                row.update(_graph_agreement(eager, guidance, profile))
+            rows.append(_encoder_variant_row(sd2, profile, name, compile_encoder, graph_compiled, reference))
         except Exception as exc:  # noqa: BLE001 - the other variants still run
             traceback.print_exc()
-            row = {"name": f"edit_step {name}", "kind": "edit_step", "device": profile.device,
-                   "error": f"{type(exc).__name__}: {exc}"}
-        rows.append(row)
-    reference = rows[0].get("ms_step")
+            rows.append({"name": f"edit_step {name}", "kind": "edit_step", "device": profile.device,
+                         "error": f"{type(exc).__name__}: {exc}"})
+    eager_encoder = rows[0].get("ms_step")
     for row in rows[1:]:
-        if reference and "ms_step" in row:
-            row["speedup_over_eager_encoder"] = reference / row["ms_step"]
+        if eager_encoder and "ms_step" in row:
+            row["speedup_over_eager_encoder"] = eager_encoder / row["ms_step"]
     return rows
+
+
+def _encoder_variant_row(sd2: Path, profile: Profile, name: str, compile_encoder: bool | None, graph_compiled: bool,
+                         reference: dict) -> dict:
+    """One variant of section j, its guidance the only one loaded (and dropped on return): its peak is its own."""
+    from voxe_core.guidance.cuda_graphs import GraphedEncoder
+
+    left = _free_device_memory(profile)
+    guidance = _guidance(sd2, profile, profile.dtype, compile_encoder=compile_encoder)
+    if graph_compiled:
+        guidance._graphed_encoder = GraphedEncoder(guidance._encoder)
+    row = _variant_row(name, guidance, profile, compile_encoder=guidance.compile_encoder,  # the compile in the warm-up
+                       graphed_encoder=guidance._graphed_encoder is not None, memory_left_before_load_gb=left)
+    row["encoder_compile_seconds"] = guidance.encoder_compile_seconds
+    if guidance.compile_encoder:
+        row.update(_agreement(_agreement_outputs(guidance, profile), reference))
+    return row
 
 
 # ---------------------------------------------------------------- output

@@ -773,11 +773,15 @@ def gpu_section(gpu, reconstruction, results: Path, report: Path) -> tuple[list[
     if calls:
         lines += ["Device calls (one session's 15 minutes of device time, so sections are split over calls and each "
                   "run names its call):", ""] + [f"- call {k}: {v}" for k, v in calls.items()] + [""]
+    notes = list(dict.fromkeys(r["note"] for r in runs if r.get("note")))  # a run's caveat, numbered under the table
     lines += table(["section", "call", "run", "dtype", "CUDA graphs", "ms/step", "8000 it (min)", "seconds", "PSNR dB",
                     "SSIM", "peak GiB"],
-                   [[r.get("section"), r.get("call"), r.get("name"), r.get("dtype"), r.get("cuda_graphs", "–"),
-                     fmt(r.get("ms_step"), 1), fmt(r.get("edit_8000_minutes"), 1), fmt(r.get("seconds"), 1),
-                     fmt(r.get("psnr"), 2), fmt(r.get("ssim"), 4), fmt(r.get("peak_memory_gb"), 2)] for r in runs])
+                   [[r.get("section"), r.get("call"), r.get("name") + (f" [{notes.index(r['note']) + 1}]" if
+                                                                        r.get("note") else ""),
+                     r.get("dtype"), r.get("cuda_graphs", "–"), fmt(r.get("ms_step"), 1),
+                     fmt(r.get("edit_8000_minutes"), 1), fmt(r.get("seconds"), 1), fmt(r.get("psnr"), 2),
+                     fmt(r.get("ssim"), 4), fmt(r.get("peak_memory_gb"), 2)] for r in runs])
+    lines += [""] + [f"- [{n}] {note}." for n, note in enumerate(notes, 1)] if notes else []
     # The CPU's `fast` preset over its seeds: another device draws other random numbers, so its PSNR is compared
     # with their mean, their range beside it.
     cpu_fast = [r for r in as_runs(reconstruction)

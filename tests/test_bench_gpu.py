@@ -3,15 +3,18 @@ random-weight SMOKE-TEST model; the figures mean nothing, the test checks the re
 
 from __future__ import annotations
 
+import gc
 import importlib.util
 import json
 import os
 import signal
 import sys
 import time
+import weakref
 from pathlib import Path
 
 import pytest
+import torch
 
 from needs import MIC
 
@@ -147,3 +150,41 @@ def test_section_g_sets_its_steps_against_section_as_baseline_only_from_the_same
     assert bench._same_call_baseline([{"section": "a", "error": "x"}]) is None
     kept = json.loads((BENCH.parent / "results" / "gpu.json").read_text())["runs"]
     assert all("speedup_over_baseline" not in r for r in kept if r.get("section") == "g")  # call 2 against call 1
+
+
+def test_sections_g_and_j_measure_each_variant_with_only_its_own_model_loaded(tmp_path, monkeypatch):
+    """Each step's peak memory is its own model's: no other guidance is alive while a variant runs (on the CPU, with
+    the graphs and the compile off: what is measured here is which models are loaded, not their speed)."""
+    from voxe_core.tiny_sd import build_tiny_stable_diffusion
+
+    bench = _load_bench(monkeypatch)
+    profile = bench.Profile.smoke()
+    tiny = build_tiny_stable_diffusion(tmp_path / "tiny", seed=0)
+    loaded, alive_while_measured = [], []
+    real_guidance, real_edit_run = bench._guidance, bench._edit_run
+
+    def cpu_guidance(path, profile, dtype, cuda_graphs=None, compile_encoder=None):
+        guidance = real_guidance(path, profile, dtype, cuda_graphs=False, compile_encoder=False)
+        loaded.append(weakref.ref(guidance))
+        return guidance
+
+    def counting_edit_run(*args, **kwargs):
+        gc.collect()
+        alive_while_measured.append(sum(ref() is not None for ref in loaded))
+        return real_edit_run(*args, **kwargs)
+
+    monkeypatch.setattr(bench, "_guidance", cpu_guidance)
+    monkeypatch.setattr(bench, "_edit_run", counting_edit_run)
+    monkeypatch.setattr(bench, "ENCODER_VARIANTS", bench.ENCODER_VARIANTS[:2])  # the third graphs, CUDA only
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # toy-sized ops, as the smoke run
+    try:
+        eager, graphed, loop, diagnostic = bench.cuda_graph_runs(tiny, profile, None)
+        encoders = bench.compiled_encoder_runs(tiny, profile)
+    finally:
+        torch.set_num_threads(threads)
+    assert len(loaded) == 5 and alive_while_measured and set(alive_while_measured) == {1}
+    assert not [r for r in encoders if "error" in r]
+    assert graphed["sds_grad_relative_difference"] == 0 and graphed["encoder_image_grad_relative_difference"] == 0
+    assert eager["speedup_over_eager"] == 1 and "speedup_over_baseline" not in eager  # no baseline of this call
+    assert loop["kind"] == "edit" and diagnostic["batch_8_over_batch_2"] > 0

@@ -80,7 +80,7 @@ def test_gpu_section_reads_issue_17s_targets_and_ratios_from_gpu_json(tmp_path):
         {"name": "fp16", "kind": "edit_step", "section": "a", "device": "cuda", "dtype": "float16", "half": True,
          "ms_step": 100.0, "peak_memory_gb": 4.0},
         {"name": "eager", "kind": "edit_step", "section": "g", "device": "cuda", "dtype": "float16",
-         "cuda_graphs": False, "ms_step": 90.0, "ms_unet": 40.0},
+         "cuda_graphs": False, "ms_step": 90.0, "ms_unet": 40.0, "note": "a peak with a second model loaded"},
         {"name": "graphs", "kind": "edit_step", "section": "g", "device": "cuda", "dtype": "float16",
          "cuda_graphs": True, "ms_step": 60.0, "ms_unet": 10.0, "sds_grad_relative_difference": 0.0,
          "encoder_image_grad_relative_difference": 0.002},
@@ -103,6 +103,7 @@ def test_gpu_section_reads_issue_17s_targets_and_ratios_from_gpu_json(tmp_path):
     lines, bullets = report.gpu_section(gpu, cpu, tmp_path, tmp_path / "REPORT.md")
     text = "\n".join(lines)
     assert "| 8,000-iteration edit (the default) | ≤ 4 min | 3.5 min | met |" in text  # b's latest call
+    assert "| g | – | eager [1] |" in text and "\n- [1] a peak with a second model loaded.\n" in text  # its note
     assert "| whole local-edit job (8,000 it) | ≤ 6 min | 7.0 min | **not met** |" in text
     assert "| refinement at 160³ | ≤ 1 min | – | not measured |" in text  # a failed run is no measurement
     # the latest default loop ran CUDA graphs: their pools count (reserved), not the allocated 2.0 GiB
