@@ -16,7 +16,9 @@ Sections (each one's failure is recorded in its run, the others still run; the J
 a. ``edit_step``: one SDS editing step split into render / VAE / UNet / backward / optimiser (timing
    synchronisation on, so the parts are device times), for the baseline (fp32, contiguous memory, for-each
    Adam) and each speed-up added in turn (fp16, channels_last, fused Adam, timing synchronisation off); the
-   step's wall time (one synchronisation per run, not per part) and its ratio to the baseline;
+   step's wall time (one synchronisation per run, not per part) and its ratio to the baseline; what fp16 costs in
+   accuracy: each variant's SDS gradient, encoder latents and image gradient against the baseline's on the same
+   inputs (``sds_grad_relative_difference`` ..., as sections g and j compare with the eager guidance);
 b. ``edit_loop``: >= 500 iterations of the default edit at 160³: ms per step, the projected 8,000-iteration
    minutes;
 c. ``reconstruction``: mic with the ``fast`` and ``paper`` presets on the device: seconds, test PSNR / SSIM
@@ -314,12 +316,15 @@ STEP_VARIANTS = (  # each adds one change to the one before
 
 
 def edit_step_runs(sd2: Path, profile: Profile) -> list[dict]:
-    rows, baseline = [], None
+    """Each variant's step as a ratio to the baseline's, and what its dtype costs in accuracy: its
+    :func:`_agreement` with the fp32 baseline's outputs, in this run."""
+    rows, baseline, reference = [], None, None
     loaded = {}
     for name, variant in STEP_VARIANTS:
         dtype = profile.dtype if variant["half"] else torch.float32
         if dtype not in loaded:
             loaded.clear()  # one model in memory at a time
+            _free_device_memory(profile)
             loaded[dtype] = _guidance(sd2, profile, dtype, cuda_graphs=False, compile_encoder=False)  # (g), (j): the rest
         guidance = loaded[dtype]
         if profile.device == "cuda":
@@ -332,6 +337,9 @@ def edit_step_runs(sd2: Path, profile: Profile) -> list[dict]:
         row = _step_row(name, profile, dtype, ms_step, timed, timed if variant["sync"] else None, **variant)
         baseline = baseline or ms_step
         row["speedup_over_baseline"] = baseline / ms_step
+        outputs = _agreement_outputs(guidance, profile)
+        reference = reference or outputs
+        row.update(_agreement(outputs, reference))
         rows.append(row)
     return rows
 

@@ -55,6 +55,8 @@ def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
     for run in runs[: len(bench.STEP_VARIANTS) + 1]:
         assert run["ms_step"] > 0 and run["edit_8000_minutes"] == pytest.approx(run["ms_step"] * 8000 / 60000)
     assert runs[0]["speedup_over_baseline"] == 1.0
+    for run in runs[: len(bench.STEP_VARIANTS)]:  # each variant's accuracy against the baseline, same run (here fp32)
+        assert run["sds_grad_relative_difference"] == 0 and run["encoder_image_grad_relative_difference"] == 0
     assert all(r["ms_render"] > 0 and r["ms_unet"] > 0 for r in runs[:4])  # synchronised variants split the step
     for run in runs:
         if run["kind"] == "reconstruction":

@@ -110,7 +110,12 @@ def test_gpu_section_reads_issue_17s_targets_and_ratios_from_gpu_json(tmp_path):
     assert "| peak GPU memory of the default edit | ≤ 24 GB | 26.00 GiB | **not met** |" in text
     assert ("| `fast` PSNR against the CPU's | ≥ 30.00 dB (CPU `preset-fast`, mean of 2 seeds; seeds 29.50–30.50) "
             "| 30.00 dB | met |") in text
-    assert any("fp16 vs fp32" in b and "(1.20×)" in b for b in bullets)
+    (fp16,) = [b for b in bullets if "fp16 vs fp32" in b]
+    assert "(1.20×)" in fp16 and "pending the next device run" in fp16  # no same-run accuracy in these rows
+    gpu["runs"][1].update(sds_grad_relative_difference=0.0123, encoder_image_grad_relative_difference=0.004)
+    (fp16,) = [b for b in report.gpu_section(gpu, cpu, tmp_path, tmp_path / "REPORT.md")[1] if "fp16 vs fp32" in b]
+    assert "the fp16 SDS gradient differs from the fp32 one by 0.012 of its largest entry" in fp16
+    assert "pending" not in fp16 and "test_hard_cases" not in fp16
     assert any("CUDA graphs" in b and "(1.50×)" in b and "10.0 against 40.0 ms" in b for b in bullets)
     cpu[0]["image_size"] = cpu[1]["image_size"] = 266
     text = "\n".join(report.gpu_section(gpu, cpu, tmp_path, tmp_path / "REPORT.md")[0])
