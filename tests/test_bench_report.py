@@ -333,3 +333,24 @@ def test_each_device_has_its_own_pareto_front_and_a_stale_gpu_fit_is_on_none():
     ((preset, run, _, _),) = report.stale_gpu_runs([old_fit], [{"label": "preset-fast", "psnr": 30.6, **fast_now}])
     assert preset == "fast" and run is old_fit
     assert report._reconstruction_label({**old_fit, "stale": True}).endswith("(2000 it, GPU, stale recipe)")
+
+
+def _readme_rows(heading: str) -> list[list[str]]:
+    """The cells (bold marks dropped) of the first table under ``heading`` in bench/README.md, header row left out."""
+    text = (report.HERE / "README.md").read_text().split(f"\n{heading}\n", 1)[1]
+    rows = []
+    for line in text.split("\n| ", 1)[1].split("\n\n", 1)[0].splitlines()[2:]:
+        rows.append([cell.strip().strip("*").strip() for cell in line.strip().strip("|").split("|")])
+    return rows
+
+
+def test_bench_readmes_tables_hold_the_json_rounded_as_report_rounds_it():
+    priors = json.loads((report.RESULTS / "real_scenes_priors.json").read_text())
+    rows = _readme_rows("## Real scenes: priors for a capture's few views (`real_scenes_priors.py`, "
+                        "results/real_scenes_priors.json)")
+    assert len(rows) == len(priors)
+    for variant, *_, validation, held_out, fitting in rows:
+        run = priors[variant.split()[0]]
+        assert [validation, held_out, fitting] == [report.fmt(float(run["validation"]["psnr"])),
+                                                   report.fmt(float(run["held_out"]["psnr"])),
+                                                   report.fmt(float(run["fitting_views_psnr"]))], variant
