@@ -327,17 +327,20 @@ def reconstruction_section(data, gpu, results: Path, report: Path) -> tuple[list
         "wall time was its own); test PSNR/SSIM are over the held-out views. "
         "`samples/ray` counts grid evaluations per test ray with skipping on (`dense`: the same trained grid "
         "rendered without skipping). `filter`: the images' antialiasing filter for training and ground truth; "
-        "`other GT`: the same renders scored against the other filter's ground truth.", "",
+        "`other GT`: the same renders scored against the other filter's ground truth. `early stop`: whether the "
+        "training renders ran the early-stop density pass (object fits did by default until 90eb259: the rows "
+        "measured at earlier commits ran it, and `bench/reconstruction.py` reruns their labels with it); `commit`: "
+        "the code measured. Rows measured at different commits compare as different runs.", "",
     ]
     lines += table(
-        ["run", "scene", "grid", "iterations", "skipping", "filter", "train s", "CPU s", "PSNR dB", "SSIM",
-         "other GT PSNR / SSIM", "samples/ray (dense)", "render s/view (dense)", "peak RSS MB"],
+        ["run", "scene", "grid", "iterations", "skipping", "filter", "early stop", "train s", "CPU s", "PSNR dB",
+         "SSIM", "other GT PSNR / SSIM", "samples/ray (dense)", "render s/view (dense)", "peak RSS MB", "commit"],
         [[r.get("label", "–"), r.get("scene"), r.get("resolution"), r.get("iterations"), r.get("skipping"),
-          r.get("resample", "box"), r.get("seconds"), r.get("cpu_seconds", "–"), r.get("psnr"), fmt(r.get("ssim"), 4),
-          _other_ground_truth(r),
+          r.get("resample", "box"), None if r.get("early_stop") is None else bool(r["early_stop"]), r.get("seconds"),
+          r.get("cpu_seconds", "–"), r.get("psnr"), fmt(r.get("ssim"), 4), _other_ground_truth(r),
           f"{fmt(r.get('samples_per_ray'), 1)} ({fmt(r.get('dense_render_samples_per_ray'), 1)})",
           f"{fmt(r.get('render_seconds_per_view'), 3)} ({fmt(r.get('dense_render_render_seconds_per_view'), 3)})",
-          fmt(r.get("peak_rss_mb"), 0)] for r in runs],
+          fmt(r.get("peak_rss_mb"), 0), r.get("commit", "–")] for r in runs],
     )
     machines = sorted({r["machine"] for r in runs if r.get("machine")})
     if machines:

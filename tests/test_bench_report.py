@@ -354,3 +354,20 @@ def test_bench_readmes_tables_hold_the_json_rounded_as_report_rounds_it():
         assert [validation, held_out, fitting] == [report.fmt(float(run["validation"]["psnr"])),
                                                    report.fmt(float(run["held_out"]["psnr"])),
                                                    report.fmt(float(run["fitting_views_psnr"]))], variant
+
+
+def test_every_reconstruction_row_records_the_recipe_its_label_reruns_with():
+    """`bench/reconstruction.py --only LABEL` reruns what the row measured: its early-stop pass (rows from before
+    90eb259 ran it, then every object fit's default), its draw, its step."""
+    import reconstruction
+
+    from voxe_core.reconstruct import ReconstructConfig
+
+    fast = ReconstructConfig.fast()
+    defaults = {"early_stop": fast.render.early_stop, "images_per_step": fast.images_per_step,
+                "rays_per_step": fast.rays_per_step, "lr": fast.lr}
+    recipes = {label: overrides for label, *_, overrides in reconstruction.FULL_RUNS + reconstruction.ABLATION_RUNS}
+    for row in json.loads((report.RESULTS / "reconstruction.json").read_text()):
+        overrides = recipes[row["label"].removesuffix("-box")]  # a box row: its label's run with --resample box
+        assert {key: row.get(key) for key in defaults} == {key: overrides.get(key, value)
+                                                           for key, value in defaults.items()}, row["label"]
