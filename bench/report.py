@@ -411,10 +411,22 @@ def _other_ground_truth(run: dict) -> str:
     return f"{other}: {run[f'psnr_{other}_gt']} / {fmt(run.get(f'ssim_{other}_gt'), 4)}"
 
 
+def one_invocation(rows: list[dict]) -> bool:
+    """Whether every row came from one invocation of the bench (its ``bench_run``): the shared machine's load and the
+    code change between invocations, so only such rows compare as ratios of one run."""
+    invocations = {r.get("bench_run") for r in rows}
+    return len(invocations) == 1 and None not in invocations
+
+
+def commits(rows: list[dict]) -> str:
+    """The commits ``rows`` were measured at."""
+    return " / ".join(sorted({r["commit"] for r in rows if r.get("commit")})) or "unrecorded commits"
+
+
 def twin_means(runs: list[dict], pairs_of, title: str) -> list[str]:
     """One bullet setting each recipe beside its twin, each side the mean over its seeds: ``pairs_of(families)``
     gives (before label, after label, name); seconds only where every row of a pair came from one invocation of the
-    bench (its ``bench_run``), as the shared machine's load changes between invocations."""
+    bench (:func:`one_invocation`), else the commits each side was measured at."""
     families = seed_families(runs)
     pairs = pairs_of(families)
     if not pairs:
@@ -427,9 +439,9 @@ def twin_means(runs: list[dict], pairs_of, title: str) -> list[str]:
     for before, after, name in sorted(pairs, key=lambda p: p[2]):
         a, b = families[before], families[after]
         seeds = f"{len(a)} seed{'s' * (len(a) > 1)}" + ("" if len(a) == len(b) else f" / {len(b)}")
-        invocations = {r.get("bench_run") for r in a + b}
-        seconds = (f"{mean(a, 'seconds'):.0f} vs {mean(b, 'seconds'):.0f} s"
-                   if len(invocations) == 1 and None not in invocations else "timed in different runs")
+        at = f"both at {commits(a)}" if commits(a) == commits(b) else f"at {commits(a)} and {commits(b)}"
+        seconds = (f"{mean(a, 'seconds'):.0f} vs {mean(b, 'seconds'):.0f} s" if one_invocation(a + b) else
+                   f"measured in different runs, {at}: seconds not compared")
         parts.append(f"{name} {mean(a, 'psnr'):.2f} → {mean(b, 'psnr'):.2f} dB ({mean(b, 'psnr') - mean(a, 'psnr'):+.2f}; "
                      f"{seeds}; {seconds})")
     return [f"**{title}** (the same recipe, means over seeds): " + "; ".join(parts) + "."]
@@ -466,21 +478,26 @@ def reconstruction_tradeoffs(runs: list[dict]) -> list[str]:
         by_res.setdefault(r.get("resolution"), []).append(r)
     if len(by_res) > 1:
         base = min(skipping, key=lambda r: r.get("seconds") or 0)
-        parts = [f"{res}³: {max(rs, key=lambda r: r.get('psnr') or 0).get('psnr')} dB in "
-                 f"{max(rs, key=lambda r: r.get('psnr') or 0).get('seconds')} s"
-                 f" ({ratio(max(rs, key=lambda r: r.get('psnr') or 0).get('seconds'), base.get('seconds'))} the fastest run)"
-                 for res, rs in by_res.items()]
-        bullets.append("**Grid resolution** (reconstruction, skipping on, best run per size): " + "; ".join(parts) + ".")
+        best = [max(rs, key=lambda r: r.get("psnr") or 0) for rs in by_res.values()]
+        apart = not one_invocation(best + [base])  # then no ratios: the commit each was measured at
+        parts = [f"{r.get('resolution')}³: {r.get('psnr')} dB in {r.get('seconds')} s "
+                 + (f"(at {commits([r])})" if apart else f"({ratio(r.get('seconds'), base.get('seconds'))} the fastest run)")
+                 for r in best]
+        across = "; measured in different runs, each at its commit" if apart else ""
+        bullets.append(f"**Grid resolution** (reconstruction, skipping on, best run per size{across}): "
+                       + "; ".join(parts) + ".")
     by_size: dict = {}  # one grid and one batch: what the iteration budget alone moves
     for r in skipping:
         if not SEED_SUFFIX.search(r.get("label", "")):
             by_size.setdefault((r.get("resolution"), r.get("rays_per_step")), []).append(r)
     for (res, rays), rs in by_size.items():
         if len({r.get("iterations") for r in rs}) > 1:
+            apart = not one_invocation(rs)
             steps = ", ".join(f"{r.get('label')} {r.get('iterations')} it → {r.get('psnr')} dB in {r.get('seconds')} s"
-                              for r in rs)
+                              + (f" (at {commits([r])})" if apart else "") for r in rs)
             batch = f", {rays:,} rays a step" if rays else ""
-            bullets.append(f"**Iteration budget** (reconstruction at {res}³{batch}, seed 0): {steps}.")
+            across = "; measured in different runs, each at its commit: not ratios of one run" if apart else ""
+            bullets.append(f"**Iteration budget** (reconstruction at {res}³{batch}, seed 0{across}): {steps}.")
     bullets += recipe_twin_tradeoffs(runs)
     for r in runs:
         if not r.get("skipping"):
@@ -746,13 +763,14 @@ def stale_gpu_runs(gpu_runs: list[dict], cpu_runs: list[dict]) -> list[tuple[str
 
 def _stale_gpu_fits(gpu_runs: list[dict], cpu_runs: list[dict]) -> list[str]:
     """A line under the targets for each stale GPU preset fit (:func:`stale_gpu_runs`), with the CPU's figures of both
-    recipes (means over seeds): what its rerun moves. The CPU's rows of the recipe the GPU ran are the family that ran
-    it, or else ``STALE_FIT_TWINS``' nearest."""
+    recipes (means over seeds): what its rerun moves. The CPU's rows of the recipe the GPU ran are the preset's variant
+    that ran it, or else ``STALE_FIT_TWINS``' nearest."""
     families = seed_families(cpu_runs)
     lines = []
     for preset, run, ran, current in stale_gpu_runs(gpu_runs, cpu_runs):
         now, nearest = STALE_FIT_TWINS[preset]
-        before = next((name for name, rows in families.items() if _recipe(rows[0]) == ran), nearest)
+        before = next((name for name, rows in families.items() if name.startswith(now) and _recipe(rows[0]) == ran),
+                      nearest)  # among the preset's own variants: another recipe may share these five knobs
         named = [(now, current)] + ([(before, _recipe(families[before][0]))] if families.get(before) else [])
         measured = "; ".join(f"{sum(r['psnr'] for r in families[name]) / len(families[name]):.2f} dB with "
                              f"{describe_recipe(recipe)} (`{name}`, {len(families[name])} "

@@ -208,7 +208,8 @@ def test_recipe_twins_pair_each_recipe_with_its_twin_over_seeds():
     (bullet,) = report.recipe_twin_tradeoffs(runs)
     assert bullet.startswith("**Rays from every image vs from 8 random images a step**")
     assert "recipe 29.50 → 31.25 dB (+1.75; 2 seeds; 10 vs 15 s)" in bullet
-    assert "paper 30.50 → 32.00 dB (+1.50; 1 seed; timed in different runs)" in bullet  # two invocations
+    assert ("paper 30.50 → 32.00 dB (+1.50; 1 seed; measured in different runs, both at unrecorded commits: seconds "
+            "not compared)") in bullet  # two invocations
     assert "unpaired" not in bullet and "recipe-8-images" not in bullet
     assert report.recipe_twin_tradeoffs([row("recipe", 29.0)]) == []
     images, early_stop, rays = report.recipe_twin_tradeoffs(
@@ -273,6 +274,8 @@ def test_gpu_fits_from_before_their_presets_recipes_are_marked_stale():
            {"label": "preset-fast-4096-rays", "psnr": 30.65, **fast_before},
            {"label": "preset-fast-4096-rays-all-images-early-stop", "psnr": 30.5, **fast_before, "images_per_step": 0,
             "early_stop": 1e-4}]
+    # another recipe sharing these five knobs (the authors' at 160³): not the preset's variant
+    cpu.insert(0, {"label": "authors-recipe", "psnr": 29.0, **fast_before, "images_per_step": 0, "early_stop": 1e-4})
     # Rows from before the fits recorded their recipes (the paper's without even its iterations).
     fast = {"kind": "reconstruction", "preset": "fast", "psnr": 29.5, "iterations": 2000}
     paper = {"kind": "reconstruction", "preset": "paper", "psnr": 29.5, "images_per_step": 8}
@@ -371,3 +374,22 @@ def test_every_reconstruction_row_records_the_recipe_its_label_reruns_with():
         overrides = recipes[row["label"].removesuffix("-box")]  # a box row: its label's run with --resample box
         assert {key: row.get(key) for key in defaults} == {key: overrides.get(key, value)
                                                            for key, value in defaults.items()}, row["label"]
+
+
+def test_iteration_budget_bullets_name_each_runs_commit_where_the_rows_come_from_different_runs():
+    def row(label, iterations, commit, bench_run):
+        return {"label": label, "resolution": 128, "rays_per_step": 4096, "skipping": True, "iterations": iterations,
+                "psnr": 30.0, "seconds": 20.0, "commit": commit, "bench_run": bench_run}
+
+    one_run = [row("short", 1000, "abc1234", "r1"), row("long", 2000, "abc1234", "r1")]
+    (bullet,) = [b for b in report.reconstruction_tradeoffs(one_run) if "Iteration budget" in b]
+    assert "different runs" not in bullet and "(at " not in bullet
+    (bullet,) = [b for b in report.reconstruction_tradeoffs(one_run[:1] + [row("long", 2000, "def5678", "r2")])
+                 if "Iteration budget" in b]
+    assert bullet.startswith("**Iteration budget** (reconstruction at 128³, 4,096 rays a step, seed 0; measured in "
+                             "different runs, each at its commit: not ratios of one run)")
+    assert "short 1000 it → 30.0 dB in 20.0 s (at abc1234), long 2000 it → 30.0 dB in 20.0 s (at def5678)" in bullet
+    pair = [{**r, "label": label} for r, label in zip(one_run[:1] + [row("x", 2000, "def5678", "r2")],
+                                                       ("recipe-4096-rays", "recipe"))]
+    (twins,) = report.recipe_twin_tradeoffs(pair)
+    assert "measured in different runs, at abc1234 and def5678: seconds not compared" in twins
