@@ -17,12 +17,13 @@ The grid is an analytic sphere at the paper's 160³ (so dense Adam and
 L_reg3D cost what they cost at paper scale).
 
     python bench/edit_step.py            # CPU: tiny @64², full-size @64² and @128² (~5-10 min on 2 cores)
-    python bench/edit_step.py --quick    # CPU: tiny only
+    python bench/edit_step.py --quick    # CPU: tiny only, into bench/results/quick/
     python bench/edit_step.py --gpu      # CUDA fp16: full-size @512² guidance with 266² renders, tiny @64²
 
 Writes bench/results/edit_step.json (a list of runs) and edit_step.png
-(per-run stacked bars) — ``--gpu`` writes edit_step_gpu.json / .png instead,
-so the CPU record is kept. Prints a table.
+(per-run stacked bars), or ``--out`` and the PNG beside it. ``--gpu`` writes
+edit_step_gpu.json / .png and ``--quick`` bench/results/quick/ instead, so the
+full-size CPU record is kept. Prints a table.
 """
 
 from __future__ import annotations
@@ -262,17 +263,25 @@ def plot(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-def main() -> None:
+def default_out(quick: bool, gpu: bool) -> Path:
+    """The JSON a run writes unless told (its PNG beside it): a quick run's under results/quick/ (as
+    ``bench/report.py --quick``'s), a GPU run's apart from the CPU's, so neither replaces the full-size CPU record."""
+    return (RESULTS / "quick" if quick else RESULTS) / f"edit_step{'_gpu' if gpu else ''}.json"
+
+
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--gpu", action="store_true", help="CUDA fp16, 512² guidance, 266² renders")
-    parser.add_argument("--quick", action="store_true", help="tiny model only")
+    parser.add_argument("--quick", action="store_true", help="tiny model only (default --out: bench/results/quick/)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="JSON to write, the PNG beside it (default: bench/results/edit_step[_gpu].json)")
     parser.add_argument("--threads", type=int, default=1,
                         help="torch CPU threads (default 1: on a shared 2-core box OpenMP hand-offs cost more than they give)")
     parser.add_argument("--build-full", type=Path, default=None, help=argparse.SUPPRESS)  # subprocess entry
     parser.add_argument("--tokenizer-from", type=Path, default=None, help=argparse.SUPPRESS)
     parser.add_argument("--family", choices=FAMILIES, default="sd2-base", help=argparse.SUPPRESS)
     parser.add_argument("--build-device", default="cpu", help=argparse.SUPPRESS)
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
 
     if args.build_full is not None:
         build_sd2_base_shaped(args.build_full, args.tokenizer_from, family=args.family, device=args.build_device)
@@ -284,7 +293,8 @@ def main() -> None:
     device = "cuda" if args.gpu else "cpu"
     if args.gpu and not torch.cuda.is_available():
         sys.exit("--gpu needs a CUDA device")
-    RESULTS.mkdir(parents=True, exist_ok=True)
+    out = args.out or default_out(args.quick, args.gpu)
+    out.parent.mkdir(parents=True, exist_ok=True)
     rows = []
     with tempfile.TemporaryDirectory(prefix="voxe_edit_bench_") as tmp:
         tmp = Path(tmp)
@@ -311,12 +321,11 @@ def main() -> None:
                                          "; real weights would guide poorly this far below their 512² training size"),
                     ))
                     print_table(rows[-1:])
-    suffix = "_gpu" if args.gpu else ""
-    (RESULTS / f"edit_step{suffix}.json").write_text(json.dumps(rows, indent=2) + "\n")
-    plot(rows, RESULTS / f"edit_step{suffix}.png")
+    out.write_text(json.dumps(rows, indent=2) + "\n")
+    plot(rows, out.with_suffix(".png"))
     print()
     print_table(rows)
-    print(f"\nwrote {RESULTS / f'edit_step{suffix}.json'} and .png")
+    print(f"\nwrote {out} and {out.with_suffix('.png')}")
 
 
 if __name__ == "__main__":

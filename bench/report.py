@@ -23,7 +23,6 @@ import datetime as dt
 import itertools
 import json
 import re
-import shutil
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -41,17 +40,16 @@ class Stage:
     title: str
     script: str
     quick_args: tuple[str, ...]
-    result: str  # JSON file name the script writes
-    takes_out: bool  # the script accepts --out; otherwise it always writes into bench/results/
+    result: str  # JSON file name the script writes (each script takes --out)
 
 
 STAGES = (
-    Stage("reconstruction", "Reconstruction (SPEC §1)", "reconstruction.py", ("--quick",), "reconstruction.json", True),
+    Stage("reconstruction", "Reconstruction (SPEC §1)", "reconstruction.py", ("--quick",), "reconstruction.json"),
     Stage("segmentation", "Spatial refinement: lifting + graph cut (SPEC §3)", "segmentation.py", ("--quick",),
-          "segmentation.json", True),
-    Stage("edit_step", "Editing step: SDS + L_reg3D (SPEC §2)", "edit_step.py", ("--quick",), "edit_step.json", False),
+          "segmentation.json"),
+    Stage("edit_step", "Editing step: SDS + L_reg3D (SPEC §2)", "edit_step.py", ("--quick",), "edit_step.json"),
     Stage("service_load", "Job service under load", "service_load.py",
-          ("--pollers", "10", "--jobs", "100", "--seconds", "5"), "service_load.json", True),
+          ("--pollers", "10", "--jobs", "100", "--seconds", "5"), "service_load.json"),
 )
 
 
@@ -63,25 +61,12 @@ def run_stage(stage: Stage, quick: bool, results: Path, timeout_s: float | None)
     script = HERE / stage.script
     if not script.is_file():
         return f"`bench/{stage.script}` does not exist (yet), so this stage was not measured."
-    args = [sys.executable, str(script), *(stage.quick_args if quick else ())]
-    target = results / stage.result
-    moved = results != RESULTS and not stage.takes_out
-    if stage.takes_out:
-        args += ["--out", str(target)]
-    # A script that can only write bench/results/ gets its full-size record put back afterwards.
-    kept = [RESULTS / stage.result, (RESULTS / stage.result).with_suffix(".png")] if moved else []
-    backups = {p: p.read_bytes() for p in kept if p.is_file()}
+    args = [sys.executable, str(script), *(stage.quick_args if quick else ()), "--out", str(results / stage.result)]
     print(f"[report] {' '.join(args[1:])}", flush=True)
     try:
         done = subprocess.run(args, cwd=HERE.parent, capture_output=True, text=True, timeout=timeout_s)
     except subprocess.TimeoutExpired:
         return f"`bench/{stage.script}` ran past {timeout_s:.0f} s and was stopped; no fresh results."
-    finally:
-        for path in kept:
-            if path.is_file() and moved:
-                shutil.move(str(path), str(results / path.name))
-            if path in backups:
-                path.write_bytes(backups[path])
     if done.returncode != 0:
         tail = " ".join((done.stderr or done.stdout).strip().splitlines()[-3:])[-400:]
         return f"`bench/{stage.script}` failed (exit {done.returncode}): {tail}"

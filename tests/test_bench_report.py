@@ -393,3 +393,20 @@ def test_iteration_budget_bullets_name_each_runs_commit_where_the_rows_come_from
                                                        ("recipe-4096-rays", "recipe"))]
     (twins,) = report.recipe_twin_tradeoffs(pair)
     assert "measured in different runs, at abc1234 and def5678: seconds not compared" in twins
+
+
+def test_a_quick_edit_step_run_keeps_the_full_size_record(tmp_path, monkeypatch):
+    """`bench/edit_step.py --quick` writes under results/quick/ (as `report.py --quick`), or to --out."""
+    import edit_step
+
+    row = {"model": "tiny", "device": "cpu", "dtype": "float32", "resolution": 64, "render_size": 64,
+           "edit_8000_minutes": 1.0, **{f"ms_{part}": 1.0 for part in edit_step.PARTS}, "ms_total": 6.0}
+    monkeypatch.setattr(edit_step, "RESULTS", tmp_path)
+    monkeypatch.setattr(edit_step, "time_run", lambda *args: row)
+    monkeypatch.setattr(edit_step.torch, "set_num_threads", lambda n: None)
+    edit_step.main(["--quick"])
+    assert json.loads((tmp_path / "quick" / "edit_step.json").read_text()) == [row]
+    assert (tmp_path / "quick" / "edit_step.png").is_file() and not (tmp_path / "edit_step.json").exists()
+    edit_step.main(["--quick", "--out", str(tmp_path / "elsewhere.json")])
+    assert (tmp_path / "elsewhere.png").is_file()
+    assert edit_step.default_out(False, True) == tmp_path / "edit_step_gpu.json"
