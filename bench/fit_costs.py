@@ -15,6 +15,7 @@ Writes bench/results/fit_costs.json and fit_costs.png.
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import sys
@@ -111,9 +112,10 @@ def plot(runs: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     from report import write_results
 
+    argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter).parse_args(argv)
     torch.set_num_threads(os.cpu_count() or 1)
     runs = []
     for preset, scene_name in CASES:

@@ -410,3 +410,15 @@ def test_a_quick_edit_step_run_keeps_the_full_size_record(tmp_path, monkeypatch)
     edit_step.main(["--quick", "--out", str(tmp_path / "elsewhere.json")])
     assert (tmp_path / "elsewhere.png").is_file()
     assert edit_step.default_out(False, True) == tmp_path / "edit_step_gpu.json"
+
+
+def test_fit_costs_answers_help_and_refuses_unknown_arguments_without_fitting(monkeypatch, capsys):
+    import fit_costs
+
+    monkeypatch.setattr(fit_costs, "fit", lambda *args: pytest.fail("a fit started"))
+    with pytest.raises(SystemExit) as done:
+        fit_costs.main(["--help"])
+    assert done.value.code == 0 and "bench/fit_costs.py" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as done:
+        fit_costs.main(["--preset", "paper"])
+    assert done.value.code == 2
