@@ -22,6 +22,7 @@ import argparse
 import datetime as dt
 import itertools
 import json
+import math
 import re
 import subprocess
 import sys
@@ -107,6 +108,19 @@ def fmt(value, digits: int = 2) -> str:
     if isinstance(value, float):
         return f"{value:.{digits}f}"
     return str(value)
+
+
+def significant(value: float, digits: int = 3) -> str:
+    """``value`` to ``digits`` significant digits in plain notation: a column of times from hundredths of a second to
+    tens (a fixed number of decimals showed 0.047 s as 0.0).
+
+    Examples:
+        >>> significant(0.0468), significant(12.677), significant(0.0)
+        ('0.0468', '12.7', '0')
+    """
+    if not value:
+        return "0"
+    return f"{value:.{max(0, digits - 1 - math.floor(math.log10(abs(value))))}f}"
 
 
 def table(header: list[str], rows: list[list]) -> list[str]:
@@ -535,7 +549,7 @@ def segmentation_section(data, results: Path, report: Path) -> tuple[list[str], 
         cells = {s["noise"]: s for s in summary if (s["method"], s["scene"]) == (method, scene)}
         rows.append([method, scene] + [f"{cells[n]['iou_mean']:.3f} ({cells[n]['iou_min']:.3f})" if n in cells else "–"
                                        for n in noises]
-                    + [fmt(sum(seconds.get((method, scene), [0])) / max(1, len(seconds.get((method, scene), []))), 1)])
+                    + [significant(sum(seconds.get((method, scene), [0])) / max(1, len(seconds.get((method, scene), []))))])
     lines += table(["method", "scene"] + [f"IoU @ noise {n}" for n in noises] + ["s / run"], rows)
     graphs = [g for g in [data.get("graph_160"), *(data.get("graph_160_stress") or [])] if isinstance(g, dict)]
     if graphs:
@@ -613,17 +627,20 @@ def edit_step_section(data, gpu, results: Path, report: Path) -> tuple[list[str]
     plt = _pyplot()
     fig, (parts, total) = plt.subplots(1, 2, figsize=(12, 1.8 + 0.55 * len(rows)), sharey=True,
                                        gridspec_kw={"width_ratios": [1.2, 1]})
-    for i, r in enumerate(rows):
-        left = 0.0
-        for j, part in enumerate(EDIT_PARTS):
-            value = max(0.0, r.get(f"ms_{part}") or 0.0) / 1000
-            parts.barh(i, value, left=left, color=f"C{j}", label=part if i == 0 else None)
-            left += value
+    for j, part in enumerate(EDIT_PARTS):  # points on a log axis: parts span a millisecond to seconds
+        timed = [(i, r[f"ms_{part}"] / 1000) for i, r in enumerate(rows) if (r.get(f"ms_{part}") or 0) > 0]
+        parts.scatter([t for _, t in timed], [i for i, _ in timed], color=f"C{j}", s=18, label=part, zorder=3)
+    steps = [(i, (r.get("ms_total") or r.get("ms_step")) / 1000) for i, r in enumerate(rows)
+             if r.get("ms_total") or r.get("ms_step")]
+    parts.scatter([t for _, t in steps], [i for i, _ in steps], color="black", marker="|", s=120,
+                  label="whole step", zorder=4)
+    parts.set_xscale("log")
+    parts.grid(True, which="both", axis="x", color="0.92", linewidth=0.6)
     parts.set_yticks(range(len(rows)), [_edit_label(r) for r in rows], fontsize=8)
     parts.invert_yaxis()
-    parts.set_xlabel("seconds per SDS iteration, by part (where timed per part)")
-    parts.set_title("Editing step: where an iteration goes")
-    parts.legend(fontsize=7, loc="lower right")
+    parts.set_xlabel("seconds per SDS iteration (log scale)")
+    parts.set_title("Editing step: each part (where timed) and the whole")
+    parts.legend(fontsize=7, loc="upper left")
     for kind, (marker, colour, name) in DEVICE_STYLE.items():
         mine = [(i, r) for i, r in enumerate(rows) if device_kind(r) == kind and _edit_minutes(r)]
         if mine:
@@ -637,7 +654,7 @@ def edit_step_section(data, gpu, results: Path, report: Path) -> tuple[list[str]
     total.margins(x=0.25)
     total.grid(True, which="both", axis="x", color="0.92", linewidth=0.6)
     total.set_xlabel("projected 8,000-iteration edit (minutes, log scale)")
-    total.set_title("Whole edit at this speed (random weights: cost only)")
+    total.set_title("Whole edit at this speed\n(random weights: cost only)")
     total.legend(fontsize=7, loc="lower right")
     lines += figure_link(fig, plot, report, "seconds per SDS iteration by part")
     bullets = []
@@ -1005,10 +1022,16 @@ def service_load_section(data, results: Path, report: Path) -> tuple[list[str], 
             ax.bar([i + 0.27 * (j - 1) for i in range(len(phases))], [data[p].get(q) or 0 for p in phases],
                    width=0.27, label=q.replace("_ms", ""))
         for i, p in enumerate(phases):
-            ax.annotate(f"{data[p].get('errors')} errors", (i, 0), fontsize=7, xytext=(0, -22),
-                        textcoords="offset points", ha="center")
+            ax.annotate(f"{data[p].get('errors')} errors", (i, 0), xycoords=("data", "axes fraction"), fontsize=7,
+                        xytext=(0, -22), textcoords="offset points", ha="center")
+        target = (data.get("targets") or {}).get("status_p99_ms")
+        if target:
+            ax.axhline(target, color="black", linestyle="--", linewidth=1, label=f"target: status p99 ≤ {target:g} ms")
+        ax.set_yscale("log")  # latencies span milliseconds to a second
+        ax.set_axisbelow(True)
+        ax.grid(True, which="both", axis="y", color="0.92", linewidth=0.6)
         ax.set_xticks(range(len(phases)), phases, fontsize=8)
-        ax.set_ylabel("latency (ms)")
+        ax.set_ylabel("latency (ms, log scale)")
         ax.set_title("Service: request latency by phase")
         ax.legend(fontsize=7)
         lines += figure_link(fig, plot, report, "latency by phase")

@@ -190,3 +190,23 @@ def test_sections_g_and_j_measure_each_variant_with_only_its_own_model_loaded(tm
     assert graphed["sds_grad_relative_difference"] == 0 and graphed["encoder_image_grad_relative_difference"] == 0
     assert eager["speedup_over_eager"] == 1 and "speedup_over_baseline" not in eager  # no baseline of this call
     assert loop["kind"] == "edit" and diagnostic["batch_8_over_batch_2"] > 0
+
+
+def test_gpu_plot_puts_time_on_log_axes_and_labels_same_call_ratios(tmp_path, monkeypatch):
+    import matplotlib.pyplot as plt
+
+    bench = _load_bench(monkeypatch)
+    closed = []
+    monkeypatch.setattr(plt, "close", closed.append)
+    runs = [{"name": "edit_step eager", "kind": "edit_step", "device": "cuda", "ms_step": 98.0, "speedup_over_eager": 1.0},
+            {"name": "edit_step graphs", "kind": "edit_step", "device": "cuda", "ms_step": 84.0,
+             "speedup_over_eager": 98 / 84},
+            {"name": "job", "kind": "job", "device": "cuda", "seconds": 61.6}]
+    bench.plot(runs, tmp_path / "gpu.png")
+    (fig,) = closed
+    left, right = fig.axes
+    assert left.get_xscale() == right.get_xscale() == "log"
+    assert [t.get_text() for t in left.texts] == ["  98 ms  ×1.00 vs eager", "  84 ms  ×1.17 vs eager"]
+    assert "\n" in right.get_title()
+    monkeypatch.undo()
+    plt.close(fig)

@@ -422,3 +422,25 @@ def test_fit_costs_answers_help_and_refuses_unknown_arguments_without_fitting(mo
     with pytest.raises(SystemExit) as done:
         fit_costs.main(["--preset", "paper"])
     assert done.value.code == 2
+
+
+def test_time_axes_are_logarithmic_and_small_seconds_keep_their_digits(tmp_path, monkeypatch):
+    figures = []
+    monkeypatch.setattr(report, "figure_link", lambda fig, *args, **kwargs: figures.append(fig) or [])
+    edit = [{"model": "tiny", "device": "cpu", "dtype": "float32", "resolution": 64, "ms_render": 10.0,
+             "ms_unet": 2.0, "ms_total": 30.0}]
+    report.edit_step_section(edit, [], tmp_path, tmp_path / "REPORT.md")
+    parts, total = figures[-1].axes
+    assert parts.get_xscale() == total.get_xscale() == "log"
+    assert "\n" in total.get_title()  # wrapped: the panel's title ran off the figure
+    phase = {"requests": 10, "p50_ms": 5.0, "p90_ms": 9.0, "p99_ms": 300.0, "errors": 0}
+    report.service_load_section({"status": phase, "targets": {"status_p99_ms": 25.0}}, tmp_path, tmp_path / "R.md")
+    assert figures[-1].axes[0].get_yscale() == "log"
+    summary = [{"method": m, "scene": "any", "noise": 0.2, "iou_mean": 0.8, "iou_min": 0.7}
+               for m in ("vote_2d", "threshold_3d")]
+    runs = [{"method": "vote_2d", "scene": "any", "seconds": 0.0468, "iou": 0.8},
+            {"method": "threshold_3d", "scene": "any", "seconds": 12.677, "iou": 0.8}]
+    lines, _ = report.segmentation_section({"summary": summary, "runs": runs}, tmp_path, tmp_path / "R.md")
+    assert "| vote_2d | any | 0.800 (0.700) | 0.0468 |" in lines and "| threshold_3d | any | 0.800 (0.700) | 12.7 |" in lines
+    for fig in figures:
+        report._pyplot().close(fig)
