@@ -1013,7 +1013,8 @@ def service_load_section(data, results: Path, report: Path) -> tuple[list[str], 
                      data[p].get("errors")] for p in phases])
     lines += ["", f"Jobs accepted {data.get('jobs_accepted')}, listed {data.get('jobs_listed')}, queued in the broker "
                   f"{data.get('jobs_queued_in_broker')}, lost {data.get('lost_jobs')}; targets "
-                  f"({', '.join(f'{k} {v}' for k, v in (data.get('targets') or {}).items())}) met: {data.get('targets_met')}."]
+                  f"({', '.join(f'{k} {v}' for k, v in (data.get('targets') or {}).items())}) met: "
+                  f"{data.get('targets_note') or data.get('targets_met')}."]
     if phases:
         plot = results / "report_service_load.png"
         plt = _pyplot()

@@ -20,7 +20,9 @@ clients in this process:
 No worker runs: the jobs stay queued, which is the state a submission must leave them in, and the
 API is the only thing measured. Every loop is bounded by a count and a deadline; the API is stopped
 at the end. Writes bench/results/service_load.json and service_load.png (latency CDFs) and prints
-a summary.
+a summary. The targets (status p99 <= 25 ms, no errors, every stream open, no job lost) are recorded as
+checked at the run's own load, and met or not only at theirs (50 pollers, 1,000 submissions, 50 streams):
+a smaller run's ``targets_met`` is null, ``targets_note`` saying why.
 
     python bench/service_load.py                       # N=50 pollers, M=1000 submissions (~1-2 min)
     python bench/service_load.py --pollers 10 --jobs 100 --seconds 5   # quick
@@ -61,6 +63,8 @@ sys.path.insert(0, str(REPO / "tests"))
 from service_helpers import MIC, Process, free_port, service_env, small_mic, wait_until, zip_folder  # noqa: E402
 
 TARGET_P99_MS = 25.0
+# The load the targets are set at: a smaller run checks the same conditions, but meeting them there meets no target.
+TARGET_LOAD = {"pollers": 50, "jobs": 1000, "streams": 50}
 PROMPT = "a wood carving of a mic"
 
 
@@ -421,13 +425,28 @@ def measure(tree: Path, args) -> tuple[dict, dict, str]:
     if status["p99_ms"] and result["status_without_streams"]["p99_ms"]:
         result["status_p99_with_over_without_streams"] = round(
             status["p99_ms"] / result["status_without_streams"]["p99_ms"], 3)
-    result["targets_met"] = bool(
-        status["p99_ms"] is not None and status["p99_ms"] <= TARGET_P99_MS and status["errors"] == 0
-        and result["streams"]["open_during_status"] == args.streams and result["streams"]["errors"] == 0
-        and result["status_during_submit"]["errors"] == 0 and result["submit"]["errors"] == 0
-        and result["submit"]["accepted"] >= min(args.jobs, 1000) and result["lost_jobs"] == 0
-    )
+    result.update(judge_targets(result, args))
     return result, latencies, log_tail
+
+
+def judge_targets(result: dict, args) -> dict:
+    """``targets``: what this run checked, at its own load (its pollers, submissions and streams);
+    ``targets_met``: whether it met them, or None where the run was smaller than ``TARGET_LOAD`` (a quick run),
+    ``targets_note`` saying so."""
+    load = {"pollers": args.pollers, "jobs": args.jobs, "streams": args.streams}
+    status = result["status"]
+    checked = (status["p99_ms"] is not None and status["p99_ms"] <= TARGET_P99_MS and status["errors"] == 0
+               and result["streams"]["open_during_status"] == args.streams and result["streams"]["errors"] == 0
+               and result["status_during_submit"]["errors"] == 0 and result["submit"]["errors"] == 0
+               and result["submit"]["accepted"] >= args.jobs and result["lost_jobs"] == 0)
+    short = {key: f"{load[key]} of {target}" for key, target in TARGET_LOAD.items() if load[key] < target}
+    judged = {"targets": {"status_p99_ms": TARGET_P99_MS, "status_errors": 0, "pollers": args.pollers,
+                          "submissions": args.jobs, "lost_jobs": 0, "event_streams": args.streams},
+              "targets_met": None if short else checked}
+    if short:
+        judged["targets_note"] = ("not at target size (" + ", ".join(f"{k} {v}" for k, v in short.items())
+                                  + f"); at this load the checks {'passed' if checked else 'failed'}")
+    return judged
 
 
 def report(label: str, result: dict) -> None:
@@ -440,7 +459,7 @@ def report(label: str, result: dict) -> None:
           f"in the broker {result['jobs_queued_in_broker']}, lost {result['lost_jobs']}; "
           f"event streams open {result['streams']['open_during_status']}/{result['streams']['requested']} "
           f"({result['streams']['errors']} errors); "
-          f"targets met: {result['targets_met']}")
+          f"targets met: {result.get('targets_note') or result['targets_met']}")
 
 
 def main() -> None:
@@ -477,8 +496,6 @@ def main() -> None:
         "benchmark": "service_load",
         "what": "status polling and job submission against the real API (uvicorn), embedded default, loopback, "
                 "with open event streams (SSE) beside the pollers; no worker (jobs stay queued)",
-        "targets": {"status_p99_ms": TARGET_P99_MS, "status_errors": 0, "submissions": 1000, "lost_jobs": 0,
-                    "event_streams": args.streams},
         **current,
     }
     if "baseline" in runs:

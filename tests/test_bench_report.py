@@ -444,3 +444,21 @@ def test_time_axes_are_logarithmic_and_small_seconds_keep_their_digits(tmp_path,
     assert "| vote_2d | any | 0.800 (0.700) | 0.0468 |" in lines and "| threshold_3d | any | 0.800 (0.700) | 12.7 |" in lines
     for fig in figures:
         report._pyplot().close(fig)
+
+
+def test_service_load_meets_its_targets_only_at_their_load():
+    from argparse import Namespace
+
+    import service_load
+
+    phase = {"p99_ms": 10.0, "errors": 0}
+    result = {"status": phase, "status_during_submit": phase, "submit": {**phase, "accepted": 100}, "lost_jobs": 0,
+              "streams": {"open_during_status": 50, "errors": 0}}
+    quick = service_load.judge_targets(result, Namespace(pollers=10, jobs=100, streams=50))
+    assert quick["targets_met"] is None and quick["targets"]["submissions"] == 100 and quick["targets"]["pollers"] == 10
+    assert quick["targets_note"] == "not at target size (pollers 10 of 50, jobs 100 of 1000); at this load the checks passed"
+    full = {**result, "submit": {**phase, "accepted": 1000}}
+    assert service_load.judge_targets(full, Namespace(pollers=50, jobs=1000, streams=50))["targets_met"] is True
+    lost = {**full, "lost_jobs": 1}
+    judged = service_load.judge_targets(lost, Namespace(pollers=50, jobs=1000, streams=50))
+    assert judged["targets_met"] is False and "targets_note" not in judged
