@@ -348,6 +348,13 @@ def _readme_rows(heading: str) -> list[list[str]]:
 
 
 def test_bench_readmes_tables_hold_the_json_rounded_as_report_rounds_it():
+    reconstruction = {r["label"]: r for r in json.loads((report.RESULTS / "reconstruction.json").read_text())}
+    for label, *cells in _readme_rows("## Reconstruction: latest table"):
+        run = reconstruction[label]
+        assert [cells[5], cells[6], cells[10], cells[11]] == [report.fmt(float(run["psnr"])),
+                                                              report.fmt(float(run["ssim"]), 4),
+                                                              report.fmt(float(run["peak_rss_mb"]), 0),
+                                                              run["commit"]], label
     priors = json.loads((report.RESULTS / "real_scenes_priors.json").read_text())
     rows = _readme_rows("## Real scenes: priors for a capture's few views (`real_scenes_priors.py`, "
                         "results/real_scenes_priors.json)")
