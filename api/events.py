@@ -15,7 +15,8 @@ What a stream sends (``event:`` names):
 * ``progress`` (no id: it is a snapshot, sent again on reconnect) when the job's state, stage,
   iteration or losses changed since the last one, at most once per interval;
 * and the stream ends after the job's terminal event, or when the server stops (:meth:`EventHub.end_streams`;
-  the client resumes with ``Last-Event-ID``).
+  the client resumes with ``Last-Event-ID``), or with an ``error`` event once the key that opened it is revoked
+  (a revoked token stops working at once, open streams included).
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from sqlalchemy import and_, func, or_, select
 
 from api.schemas import JobEventOut
 from voxe_service.db import get_sessionmaker
-from voxe_service.models import TERMINAL_STATES, Job, JobEvent
+from voxe_service.models import TERMINAL_STATES, ApiKey, Job, JobEvent
 
 log = logging.getLogger("voxe.api")
 
@@ -50,10 +51,12 @@ class _Watch:
 
     job_id: str
     after_id: int
+    key_id: str
     wake: asyncio.Event = field(default_factory=asyncio.Event)
     events: list[dict] = field(default_factory=list)
     job: dict | None = None
     polled: bool = False
+    revoked: bool = False
 
 
 def sse(data: dict, event: str, event_id: int | None = None) -> str:
@@ -75,10 +78,10 @@ class EventHub:
         self._task: asyncio.Task | None = None
         self._ending = False
 
-    async def stream(self, job_id: str, after_id: int = 0) -> AsyncIterator[str]:
-        """The job's events after ``after_id`` as SSE text, ending after its terminal event (or at
-        :meth:`end_streams`)."""
-        watch = _Watch(job_id, after_id)
+    async def stream(self, job_id: str, key_id: str, after_id: int = 0) -> AsyncIterator[str]:
+        """The job's events after ``after_id`` as SSE text, for key ``key_id``, ending after its terminal event (or
+        at :meth:`end_streams`, or once the key is revoked)."""
+        watch = _Watch(job_id, after_id, key_id)
         self._watches.append(watch)
         if self._task is None or self._task.done():
             self._task = asyncio.get_running_loop().create_task(self._run())
@@ -97,6 +100,9 @@ class EventHub:
                 events, watch.events = watch.events, []
                 for event in events:
                     yield sse(event, event["kind"], event["id"])
+                if watch.revoked:
+                    yield sse({"detail": "the API key of this stream was revoked"}, "error")
+                    return
                 if watch.job is None:
                     yield sse({"detail": f"job {job_id!r} was deleted"}, "error")
                     return
@@ -111,18 +117,23 @@ class EventHub:
     async def _run(self) -> None:
         while self._watches:
             watches, after, fresh = list(self._watches), {}, set()
+            keys = {watch.key_id for watch in watches}
             for watch in watches:
                 after[watch.job_id] = min(after.get(watch.job_id, math.inf), watch.after_id)
                 if not watch.polled:
                     fresh.add(watch.job_id)
             try:
-                stamps, jobs, events = await anyio.to_thread.run_sync(self._poll, after, fresh)
+                stamps, jobs, events, revoked = await anyio.to_thread.run_sync(self._poll, after, fresh, keys)
             except Exception:  # noqa: BLE001 - a database hiccup: streams wait for the next poll
                 log.warning("event streams: poll failed", exc_info=True)
             else:
                 self._stamps = {job_id: stamp for job_id, stamp in {**self._stamps, **stamps}.items()
                                 if job_id in after}
                 for watch in watches:  # one opened during this poll waits for the next
+                    if watch.key_id in revoked:
+                        watch.revoked = True
+                        watch.wake.set()
+                        continue
                     new = [e for e in events.get(watch.job_id, ()) if e["id"] > watch.after_id]
                     if new:
                         watch.events.extend(new)
@@ -137,9 +148,9 @@ class EventHub:
                     watch.wake.set()
             await asyncio.sleep(self.interval_s)
 
-    def _poll(self, after: dict[str, int], fresh: set[str]):
+    def _poll(self, after: dict[str, int], fresh: set[str], keys: set[str]):
         """(every watched job's change stamp, the views of the jobs that changed, the events past ``after`` of
-        the jobs that have new ones), in one short session.
+        the jobs that have new ones, the revoked ones of the streams' ``keys``), in one short session.
 
         A poll where nothing happened costs two index lookups per job and builds nothing: what changed is
         read from ``updated_at`` and the newest event id. Events are read after the job rows, so a job seen
@@ -147,6 +158,7 @@ class EventHub:
         """
         ids = list(after)
         with get_sessionmaker()() as session:
+            revoked = set(session.scalars(select(ApiKey.id).where(ApiKey.id.in_(keys), ApiKey.revoked_at.is_not(None))))
             updated = dict(session.execute(select(Job.id, Job.updated_at).where(Job.id.in_(ids))).all())
             newest = dict(session.execute(select(JobEvent.job_id, func.max(JobEvent.id))
                                           .where(JobEvent.job_id.in_(ids)).group_by(JobEvent.job_id)).all())
@@ -166,7 +178,7 @@ class EventHub:
                 for e in rows:
                     events.setdefault(e.job_id, []).append(
                         JobEventOut.model_validate(e, from_attributes=True).model_dump(mode="json"))
-        return stamps, jobs, events
+        return stamps, jobs, events, revoked
 
     def end_streams(self) -> None:
         """End every stream, and any opened from now on, at its next wake: the server is stopping, and waits for

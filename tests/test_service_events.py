@@ -269,15 +269,16 @@ def in_process(tmp_path, monkeypatch):
     reset_service_caches()
 
 
-def follow(job_ids: list[str], timeout: float, on_progress=None) -> list[list[dict]]:
-    """Each job's stream from a fresh event hub until it ends: its events (``event`` and ``data``), at most
-    ``timeout`` seconds in all. ``on_progress(job_id, data)`` may end a stream early by returning True."""
+def follow(job_ids: list[str], timeout: float, on_progress=None, key_id: str = "local") -> list[list[dict]]:
+    """Each job's stream (opened by ``key_id``) from a fresh event hub until it ends: its events (``event`` and
+    ``data``), at most ``timeout`` seconds in all. ``on_progress(job_id, data)`` may end a stream early by
+    returning True."""
     from api.events import EventHub
     from api.routes.jobs import progress_view
 
     async def read(hub, job_id):
         events = []
-        async with aclosing(hub.stream(job_id)) as stream:
+        async with aclosing(hub.stream(job_id, key_id)) as stream:
             async for chunk in stream:
                 for event in parse_sse(chunk.splitlines()):
                     events.append({"event": event["event"], "data": event["data"]})
@@ -338,3 +339,30 @@ def test_a_stream_shows_the_message_of_a_job_its_scenes_ingest_sent(in_process, 
     [events] = follow([job["id"]], timeout=15, on_progress=on_progress)
     sent = client.get(f"/v1/jobs/{job['id']}").json()
     assert [e["data"]["message"] for e in events] == [job["message"], sent["message"]], events
+
+
+def test_a_stream_ends_once_the_key_that_opened_it_is_revoked(in_process, tmp_path):
+    """A revoked token stops working at once (README, ``revoke-key``): a stream opened before had gone on
+    delivering the job's events for as long as the job ran."""
+    from api.auth import create_key
+    from voxe_service.db import session_scope
+    from voxe_service.models import ApiKey, utcnow
+
+    client, data = in_process
+    scene = make_scene(client, data, tmp_path)
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold"}).json()
+    with session_scope() as session:
+        key, _ = create_key(session, "streamer")
+        key_id = key.id
+
+    async def on_progress(_job_id, _progress):  # the first snapshot: revoke the key, then read on
+        def revoke():
+            with session_scope() as session:
+                session.get(ApiKey, key_id).revoked_at = utcnow()
+        await asyncio.to_thread(revoke)
+        return False
+
+    [events] = follow([job["id"]], timeout=15, on_progress=on_progress, key_id=key_id)
+    assert [e["event"] for e in events] == ["progress", "error"], events
+    assert events[-1]["data"] == {"detail": "the API key of this stream was revoked"}
+    assert client.get(f"/v1/jobs/{job['id']}").json()["state"] == "queued"  # the job itself goes on

@@ -147,7 +147,7 @@ def list_events(job_id: str, request: Request, session: SessionDep, key: Current
     if SSE_MEDIA_TYPE in request.headers.get("accept", ""):
         after = _event_id(last_event_id)
         session.close()  # the stream reads through the hub's short sessions: hold no connection meanwhile
-        return StreamingResponse(request.app.state.event_hub.stream(job_id, after), media_type=SSE_MEDIA_TYPE,
+        return StreamingResponse(request.app.state.event_hub.stream(job_id, key.id, after), media_type=SSE_MEDIA_TYPE,
                                  headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
     rows = session.scalars(select(JobEvent).where(JobEvent.job_id == job_id).order_by(JobEvent.id))
     return [JobEventOut.model_validate(e, from_attributes=True) for e in rows]
