@@ -422,9 +422,13 @@ class StableDiffusionGuidance:
         generator: torch.Generator | None = None,
         noise: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, Diagnostics]:
-        """Surrogate ``(grad.detach() * latents).sum()``: d loss / d latents = :meth:`sds_grad_on_latents`."""
+        """Surrogate ``(grad.detach() * latents).sum() / B``: d loss / d latents = :meth:`sds_grad_on_latents` / B.
+
+        The mean over the batch's B views (as the authors' ``SpecifyGradient`` takes it), so the regulariser's
+        weight (200) balances the same SDS whatever ``batch_size``: a sum had made it 200 / B.
+        """
         grad, diagnostics = self.sds_grad_on_latents(latents, text_embeddings, timesteps, guidance_scale, generator, noise)
-        loss = (grad.detach() * latents.float()).sum()
+        loss = (grad.detach() * latents.float()).sum() / latents.shape[0]
         return loss, diagnostics
 
     def sds_loss(
