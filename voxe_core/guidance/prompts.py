@@ -13,7 +13,8 @@ code calls a camera "front" when its right vector points along +x, i.e. a camera
 
 
 def view_word(elevation_deg: float, azimuth_deg: float) -> str:
-    """The view word for a camera pose, as the authors append to the prompt.
+    """The view word for a camera pose, appended to the prompt as the authors do. SPEC gives no angles and the
+    authors' versions differ (overhead above 55° or 60°, back beyond 120° of yaw); these are ours:
 
     ``overhead`` when the elevation above the horizon is more than 60°; else by
     azimuth (degrees, any range, 0 = the object's front in the caller's pose
