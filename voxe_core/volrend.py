@@ -64,9 +64,13 @@ def transmittance(optical: torch.Tensor, ray: torch.Tensor) -> torch.Tensor:
     behind it on its ray are NaN (a NaN in the shared sum had turned every later ray of the pass NaN).
     """
     nan = optical.isnan()
-    wide = optical.double().masked_fill(nan, 0.0)
+    if optical.device.type == "cpu" and not bool(nan.any()):  # a host read costs nothing here (on CUDA a sync)
+        nan = None  # and the bookkeeping below 2.5x the function's time
+    wide = optical.double() if nan is None else optical.double().masked_fill(nan, 0.0)
     before = wide.cumsum(0) - wide
     first = torch.searchsorted(ray, ray)
     t = torch.exp(before.index_select(0, first) - before)
-    nans_before = nan.cumsum(0) - nan.long()
-    return t.masked_fill(nans_before > nans_before.index_select(0, first), float("nan")).to(optical.dtype)
+    if nan is not None:
+        nans_before = nan.cumsum(0) - nan.long()
+        t = t.masked_fill(nans_before > nans_before.index_select(0, first), float("nan"))
+    return t.to(optical.dtype)
