@@ -8,6 +8,7 @@ implements the :class:`Guidance` protocol records what the loop sends it
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import shutil
 import time
@@ -25,6 +26,7 @@ from voxe_core.grid import VoxelGrid
 from voxe_core.guidance import Guidance
 from voxe_core.guidance.sds import StableDiffusionGuidance
 from voxe_core.progress import Callbacks, StageCancelled
+from voxe_core.schedule import TimestepSchedule
 
 SIZE = 32  # render size of every test run
 
@@ -229,6 +231,13 @@ def test_resume_refuses_another_prompt_or_grid(small_sphere, make_sphere_grid, t
         edit(small_sphere, "a cat", tiny_guidance, config, resume_from=checkpoint)
     with pytest.raises(ValueError, match="initial grid"):
         edit(make_sphere_grid(20, radius=0.6), "a dog", tiny_guidance, config, resume_from=checkpoint)
+    # another recipe (had resumed silently, mixing two runs); a longer run on the same recipe is a resume
+    other = dataclasses.replace(config, guidance_scale=50.0, schedule=TimestepSchedule(i_start=10))
+    with pytest.raises(ValueError, match=r"another recipe: guidance_scale 100\.0 \(now 50\.0\), schedule \{"):
+        edit(small_sphere, "a dog", tiny_guidance, other, resume_from=checkpoint)
+    longer = dataclasses.replace(config, iterations=2,  # and another device's pass size
+                                 render=dataclasses.replace(config.render, samples_per_pass=1 << 16))
+    edit(small_sphere, "a dog", tiny_guidance, longer, resume_from=checkpoint)
 
 
 def test_bf16_autocast_on_cpu_runs(small_sphere, tiny_guidance):

@@ -40,10 +40,11 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import json
 import math
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, is_dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -92,6 +93,12 @@ class EditDiverged(ArithmeticError):
     """An edit step's loss was NaN or infinite: G_e took a step it cannot recover from."""
 
 
+RECIPE_FIELDS = ("lr", "betas", "lr_decay", "lr_decay_start", "lr_decay_every", "lr_decay_factor", "render_size",
+                 "guidance_scale", "regulariser", "regulariser_weight", "image_regulariser_rays", "schedule",
+                 "view_words", "prompt_prefix", "front_azimuth_deg", "batch_size", "seed", "radius", "fov_x",
+                 "min_zenith_deg", "max_zenith_deg")
+
+
 @dataclass
 class EditConfig:
     """Editing hyper-parameters; the defaults are the paper's (SPEC §2)."""
@@ -129,6 +136,14 @@ class EditConfig:
     # Synchronise CUDA around the timed parts so the ms_* diagnostics are true device times;
     # off by default (each sync stalls the GPU queue), bench/ turns it on.
     sync_timing: bool = False
+
+    def recipe(self) -> dict:
+        """The fields a resumed run must share with its checkpoint's (JSON values): those that shape every step's
+        arithmetic. Left out: the length (a resume may run on), the render's pass sizes and the autocast (the
+        device's: a job may resume on another worker), previews, checkpoints and timing."""
+        fields = {name: getattr(self, name) for name in RECIPE_FIELDS}
+        fields["render"] = {k: v for k, v in asdict(self.render).items() if k not in ("samples_per_pass", "chunk_rays")}
+        return json.loads(json.dumps({k: asdict(v) if is_dataclass(v) else v for k, v in fields.items()}))
 
     def __post_init__(self):
         if self.iterations < 0:
@@ -329,7 +344,8 @@ def edit(
     generators = {"host": host_gen, "device": device_gen}
     fingerprint = initial_fingerprint(initial_grid) if (checkpoint_path or resume_from) else None
     run_meta = {"prompt": str(prompt), "seed": config.seed, "initial_sha256": fingerprint,
-                "regulariser": config.regulariser, "model": str(getattr(guidance, "model_id", ""))}
+                "regulariser": config.regulariser, "model": str(getattr(guidance, "model_id", "")),
+                "recipe": config.recipe()}
 
     start = 0
     if resume_from is not None:
@@ -343,6 +359,11 @@ def edit(
             raise ValueError(f"{resume_from}: checkpoint was made for the prompt {meta.get('prompt')!r}, not {prompt!r}")
         if meta.get("initial_sha256") != fingerprint:
             raise ValueError(f"{resume_from}: checkpoint was made from a different initial grid")
+        made_with, now = meta.get("recipe", run_meta["recipe"]), run_meta["recipe"]  # (older checkpoints: none)
+        if changed := [f"{name} {made_with.get(name)!r} (now {now[name]!r})" for name in now
+                       if made_with.get(name) != now[name]]:
+            raise ValueError(f"{resume_from}: checkpoint was made with another recipe: {', '.join(changed)}; resume "
+                             "with its settings, or start afresh")
         with torch.no_grad():
             param.copy_(tensors["features"].reshape(-1, 4).to(device))
         if int(tensors["adam_step"].item()) > 0:
