@@ -412,6 +412,16 @@ def test_cli_builds_the_tiny_model_and_edits_with_it(tmp_path, make_sphere_grid,
     assert torch.equal(load_grid(out / "edited.safetensors").features,
                        load_grid(straight / "edited.safetensors").features)
 
+    # cancelled before its first step no checkpoint is written: the hint had named a file that did not exist
+    from voxe_core.cli.common import Interrupt
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(Interrupt, "__call__", lambda self: True)  # Ctrl-C before the first step
+        capsys.readouterr()
+        assert main(["edit", str(grid_file), "--out", str(tmp_path / "stopped"), "--iterations", "3", *common]) == 130
+    said = capsys.readouterr().err
+    assert "voxe: edit cancelled before its first step" in said and "--resume" not in said
+
 
 def test_cli_missing_model_exits_2_naming_it(tmp_path, sphere_grid, capsys, monkeypatch):
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")  # no network retries in tests

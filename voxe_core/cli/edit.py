@@ -115,7 +115,8 @@ def cmd_edit(args) -> int:
         "edit", "it", config.iterations, args.quiet,
     )
     if edited is None:
-        print(f"voxe: edit cancelled; resume with --resume {checkpoint}", file=sys.stderr)
+        hint = f"; resume with --resume {checkpoint}" if checkpoint.is_file() else " before its first step"
+        print(f"voxe: edit cancelled{hint}", file=sys.stderr)
         return EXIT_INTERRUPTED
     edited.save(args.out / "edited.safetensors", dense=args.dense)
     print(f"wrote {args.out / 'edited.safetensors'} and {checkpoint}")
