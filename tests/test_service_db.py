@@ -447,3 +447,43 @@ def test_a_process_holds_at_most_its_configured_connections_then_waits_its_timeo
     finally:
         engine.dispose()
         reset_service_caches()
+
+
+# ------------------------------------------------------------------------------------------ the event timeline
+def test_an_event_recorded_while_another_writer_holds_its_job_commits_after_it(db):
+    """Event streams read each job's events past the last id they sent. PostgreSQL numbers an event as it is
+    written, so a checkpoint event (no job write before it) recorded while the reaper's transaction had numbered
+    its own 'requeued' and not yet committed became visible first, with the higher id: a stream that read it
+    then never sent the reaper's. Every event writer now holds the job's row until it commits."""
+    from sqlalchemy import select, update
+
+    from voxe_service.db import get_sessionmaker, session_scope
+    from voxe_service.jobs import record_event
+    from voxe_service.models import LOCAL_KEY_ID, Job, JobEvent, utcnow
+    from worker import runtime
+
+    scene_id = add_scene()
+    with session_scope() as session:
+        job = Job(scene_id=scene_id, owner_key_id=LOCAL_KEY_ID, prompt="a mic", mode="global", edit_words=[],
+                  params={}, sds_model="tiny", attention_model="tiny", device="cpu")
+        session.add(job)
+        session.flush()
+        job_id = job.id
+    reaper = get_sessionmaker()()
+    try:  # the reaper's way: the job written, then its event numbered, the commit still to come
+        reaper.execute(update(Job).where(Job.id == job_id).values(updated_at=utcnow()))
+        record_event(reaper, job_id, "requeued")
+        checkpoint = threading.Thread(target=runtime.record_job_event, args=(job_id, "checkpoint"),
+                                      kwargs={"iteration": 200})
+        checkpoint.start()
+        checkpoint.join(1.0)
+        with session_scope() as reader:  # what a stream's poll sees meanwhile: nothing past the reaper's number
+            visible = reader.scalars(select(JobEvent.kind).where(JobEvent.job_id == job_id)).all()
+        assert checkpoint.is_alive() and visible == [], visible
+        reaper.commit()
+    finally:
+        reaper.close()
+    checkpoint.join(30)
+    with session_scope() as session:
+        kinds = session.scalars(select(JobEvent.kind).where(JobEvent.job_id == job_id).order_by(JobEvent.id)).all()
+    assert kinds == ["requeued", "checkpoint"]
