@@ -222,9 +222,28 @@ def test_the_worker_edits_a_scene_grid_with_the_real_scene_schedule(service, mon
                                  backbone, CHECKPOINT_EVERY)
 
 
-def test_a_damaged_edit_checkpoint_is_dropped_and_the_edit_starts_over(service, monkeypatch):
-    """A redelivered edit whose stored checkpoint cannot be read runs from the start instead of failing every
-    redelivery: the damaged object is deleted and the job says why."""
+def _checkpoint_of_another_recipe(path) -> bytes:
+    """A readable edit checkpoint made with guidance scale 7.5 (a worker of another version's default, say)."""
+    import torch
+
+    from voxe_core.edit import EditConfig, save_edit_checkpoint
+    from voxe_core.grid import VoxelGrid
+
+    grid = VoxelGrid(4)
+    save_edit_checkpoint(path, grid, torch.optim.Adam([grid.flat_features]), {}, 2,
+                         {"recipe": {**EditConfig().recipe(), "guidance_scale": 7.5}})
+    return path.read_bytes()
+
+
+@pytest.mark.parametrize("stored, why", [
+    (lambda tmp: b"not a safetensors file", "was unreadable"),
+    (lambda tmp: _checkpoint_of_another_recipe(tmp / "other.safetensors"), "was made with another recipe"),
+])
+def test_a_damaged_or_foreign_edit_checkpoint_is_dropped_and_the_edit_starts_over(service, monkeypatch, tmp_path,
+                                                                                    stored, why):
+    """A redelivered edit whose stored checkpoint cannot be read, or was made with another recipe (a worker of
+    another version, mid rolling upgrade: edit() refuses to resume it), runs from the start instead of failing every
+    redelivery: the object is deleted and the job says why."""
     import voxe_core.edit
     from voxe_service.storage import get_storage, job_key
     from worker import runtime, tasks
@@ -232,7 +251,7 @@ def test_a_damaged_edit_checkpoint_is_dropped_and_the_edit_starts_over(service, 
     client, scene_id = service
     job = _reconstructed_job(client, scene_id, "relu_field")
     key = job_key(job["id"], "checkpoints/edit.safetensors")
-    get_storage().put_bytes(key, b"not a safetensors file")
+    get_storage().put_bytes(key, stored(tmp_path))
     seen = {}
 
     def recorded_edit(initial, prompt, guidance, config, callbacks, checkpoint_path, resume_from, **kwargs):
@@ -246,6 +265,7 @@ def test_a_damaged_edit_checkpoint_is_dropped_and_the_edit_starts_over(service, 
     assert not get_storage().exists(key)
     events = client.get(f"/v1/jobs/{job['id']}/events").json()
     assert not any(e["kind"] == "resumed" and e.get("stage") == "edit" for e in events), events
+    assert client.get(f"/v1/jobs/{job['id']}").json()["message"].startswith(f"the stored edit checkpoint {why}")
 
 
 def test_the_job_whose_edit_waited_for_the_encoders_compile_says_how_long(service, monkeypatch):

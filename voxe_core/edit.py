@@ -258,6 +258,13 @@ def save_edit_checkpoint(
                  meta={**grid.header(), **meta, "iteration": int(iteration)})
 
 
+def recipe_changes(meta: dict, config: EditConfig) -> list[str]:
+    """What of ``config``'s :meth:`EditConfig.recipe` differs from the one an edit checkpoint's ``meta`` was made
+    with ("name old (now new)"); none for a checkpoint older than recipes."""
+    made_with, now = meta.get("recipe", config.recipe()), config.recipe()
+    return [f"{name} {made_with.get(name)!r} (now {now[name]!r})" for name in now if made_with.get(name) != now[name]]
+
+
 def load_edit_checkpoint(path) -> tuple[dict[str, torch.Tensor], dict]:
     return load_tensors(path, kind=EDIT_CHECKPOINT_KIND, max_version=EDIT_CHECKPOINT_VERSION)
 
@@ -359,9 +366,7 @@ def edit(
             raise ValueError(f"{resume_from}: checkpoint was made for the prompt {meta.get('prompt')!r}, not {prompt!r}")
         if meta.get("initial_sha256") != fingerprint:
             raise ValueError(f"{resume_from}: checkpoint was made from a different initial grid")
-        made_with, now = meta.get("recipe", run_meta["recipe"]), run_meta["recipe"]  # (older checkpoints: none)
-        if changed := [f"{name} {made_with.get(name)!r} (now {now[name]!r})" for name in now
-                       if made_with.get(name) != now[name]]:
+        if changed := recipe_changes(meta, config):
             raise ValueError(f"{resume_from}: checkpoint was made with another recipe: {', '.join(changed)}; resume "
                              "with its settings, or start afresh")
         with torch.no_grad():

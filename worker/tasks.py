@@ -403,16 +403,22 @@ def _edit(job: Job, settings, device: str, storage) -> None:
     checkpoint_key = job_key(job.id, "checkpoints/edit.safetensors")
     resume, note = None, None
     if storage.exists(checkpoint_key):  # a redelivered / re-queued task: go on from the last checkpoint
-        from voxe_core.edit import load_edit_checkpoint
+        from voxe_core.edit import load_edit_checkpoint, recipe_changes
         from voxe_core.tensorio import FormatError
 
         resume = storage.get_file(checkpoint_key, checkpoint)
         try:
-            at = int(load_edit_checkpoint(resume)[1]["iteration"])
+            meta = load_edit_checkpoint(resume)[1]
+            at = int(meta["iteration"])
+            changed = recipe_changes(meta, config)
         except FormatError as exc:  # a damaged checkpoint would fail every redelivery: start over instead
-            log.warning("job %s: unreadable edit checkpoint, starting over: %s", job.id, exc)
+            changed, why = None, f"was unreadable ({exc})"
+        else:
+            why = f"was made with another recipe ({', '.join(changed)}: a worker of another version)"
+        if changed is None or changed:
+            log.warning("job %s: the stored edit checkpoint %s; starting over", job.id, why)
             storage.delete(checkpoint_key)
-            resume, note = None, "the stored edit checkpoint was unreadable: started over"
+            resume, note = None, f"the stored edit checkpoint {why}: started over"
         else:
             note = f"resumed from the checkpoint at iteration {at}"
             log.info("job %s: edit %s", job.id, note)
