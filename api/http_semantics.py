@@ -93,12 +93,29 @@ def malformed_body(request: Request, exc: RequestValidationError) -> JSONRespons
     return None
 
 
+_SQLITE_UNAVAILABLE = ("database is locked", "database table is locked", "unable to open database", "disk i/o error")
+
+
+def unavailability(exc: Exception) -> str | None:
+    """Why a ``DATABASE_UNAVAILABLE`` error means the database cannot serve now, or None when it is a fault of the
+    service (SQLite raises its OperationalError for a missing table or bad SQL too: that stays a 500)."""
+    if isinstance(exc, PoolTimeout):
+        return ("every database connection of this API process is in use (VOXE_DATABASE_POOL_SIZE + "
+                "VOXE_DATABASE_MAX_OVERFLOW)")
+    cause = getattr(exc, "orig", None)
+    is_sqlite = type(cause).__module__.startswith("sqlite3")
+    if exc.connection_invalidated or not is_sqlite or str(cause).lower().startswith(_SQLITE_UNAVAILABLE):
+        return "the database cannot be reached or is locked"
+    return None
+
+
 def database_unavailable(_request: Request | None, exc: Exception) -> JSONResponse:
-    """The 503 for a database error of ``DATABASE_UNAVAILABLE``; its text (host names, SQL) stays in the log."""
-    busy = isinstance(exc, PoolTimeout)
-    log.warning("answered 503: %s", exc)
-    reason = ("every database connection of this API process is in use (VOXE_DATABASE_POOL_SIZE + "
-              "VOXE_DATABASE_MAX_OVERFLOW)" if busy else "the database cannot be reached or is locked")
+    """The 503 for a database that cannot serve now (:func:`unavailability`); its text (host names, SQL) stays in
+    the log. Any other database error is raised again, for the 500 and its traceback."""
+    reason = unavailability(exc)
+    if reason is None:
+        raise exc
+    log.warning("answered 503: %s", exc, exc_info=exc)
     return JSONResponse({"detail": f"{reason}; try again in {DATABASE_RETRY_AFTER_S} s"}, status_code=503,
                         headers={"Retry-After": str(DATABASE_RETRY_AFTER_S)})
 

@@ -229,6 +229,29 @@ def test_a_database_out_of_connections_is_a_503_with_retry_after(root, monkeypat
         assert "503" in client.get("/openapi.json").json()["paths"]["/v1/jobs"]["get"]["responses"]
 
 
+def test_only_a_database_that_cannot_serve_now_is_a_503_a_service_fault_stays_a_500(root, monkeypatch):  # noqa: F811
+    """SQLite raises OperationalError for a missing table or bad SQL as for a locked file: the first are the
+    service's faults (a 500 with its traceback), not an outage to retry."""
+    import sqlite3
+
+    import psycopg
+    from sqlalchemy.exc import OperationalError
+
+    from api.http_semantics import unavailability
+    from api.main import create_app
+
+    def error(cause):
+        return OperationalError("SELECT 1", {}, cause)
+
+    assert unavailability(error(sqlite3.OperationalError("database is locked"))).endswith("or is locked")
+    assert unavailability(error(psycopg.OperationalError("connection failed: Connection refused"))) is not None
+    assert unavailability(error(sqlite3.OperationalError("no such table: api_keys"))) is None
+    assert unavailability(error(sqlite3.OperationalError('near "SELCT": syntax error'))) is None
+    with TestClient(create_app(migrate=False), raise_server_exceptions=False) as client:  # a database never migrated
+        response = client.get("/v1/jobs")
+    assert response.status_code == 500 and "retry-after" not in response.headers
+
+
 # ------------------------------------------------------------------------------------------ quotas
 @BOTH_DATABASES
 def test_concurrent_job_quota_is_429_with_retry_after(auth_client, mic_zip):
