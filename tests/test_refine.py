@@ -627,15 +627,19 @@ def test_refine_end_to_end_with_tiny_model(tiny_guidance, make_sphere_grid):
     edited = initial.clone_grid()
     with torch.no_grad():
         edited.features[..., 1:] = torch.randn(12, 12, 12, 3, generator=torch.Generator().manual_seed(0))
-    config = RefineConfig(views=2, render_size=24, iterations=40, rays_per_step=256, edit_seeds=5, object_seeds=5)
+    config = RefineConfig(views=2, render_size=24, iterations=40, rays_per_step=256, edit_seeds=5, object_seeds=5,
+                          render=dataclasses.replace(RefineConfig().render, chunk_rays=50))
     reports = []
     result = refine(initial, edited, "a dog wearing sunglasses", ["sunglasses"], tiny_guidance, config,
                     Callbacks(on_progress=lambda p: reports.append((p.stage, p.iteration, p.total))))
     assert {stage for stage, _, _ in reports} == {"attention_maps", "backprojection", "attention_grids", "graph_cut"}
-    # The sub-steps count on one scale (2 views + the back-projection + 40 fit steps + the cut): only rising.
-    assert {total for _, _, total in reports} == {2 + 1 + 40 + 1}
+    # The sub-steps count on one scale (2 views + the back-projection's 6 chunks of 50 of its 2 x 12² rays + 40 fit
+    # steps + the cut): only rising, the back-projection's share as a view's per chunk (1 unit had frozen the stage).
+    assert {total for _, _, total in reports} == {2 + 6 + 40 + 1}
     done = [iteration for _, iteration, _ in reports]
-    assert done == sorted(done) and done[-1] == 44 and reports[1][:2] == ("attention_maps", 2)
+    assert done == sorted(done) and done[-1] == 49 and reports[1][:2] == ("attention_maps", 2)
+    lifting = [iteration for stage, iteration, _ in reports if stage == "backprojection"]
+    assert len(set(lifting)) == len(lifting) > 1 and lifting[-1] == 2 + 6
     assert result.info["prompt"] == "a render of a dog wearing sunglasses"
     nodes = node_mask(edited, rule=config.node_rule)  # the mask never leaves the graph's nodes
     assert result.mask.shape == nodes.shape and not (result.mask & ~nodes).any()
