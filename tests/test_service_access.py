@@ -341,6 +341,41 @@ def test_a_mesh_whose_rendered_views_go_over_the_upload_quota_fails_at_its_inges
     assert job["state"] == "failed" and "quota of upload bytes exceeded" in job["error"]
 
 
+def test_a_mesh_ingest_over_quota_keeps_nothing_whatever_became_of_its_scene(root, auth_client):  # noqa: F811
+    """The quota check of a mesh's ingest meets a scene failed (by the reaper) or deleted meanwhile: its rendered
+    views had stayed in storage, and a deleted scene's check looked a key up by a NULL id."""
+    import warnings
+
+    from voxe_service import datasets
+    from voxe_service.db import session_scope
+    from voxe_service.models import FAILED, PROCESSING, Scene
+    from voxe_service.settings import get_settings
+    from voxe_service.storage import get_storage, scene_key
+    from worker.ingest import _ready
+
+    key_id, _ = _create_key("full", max_upload_bytes=100)
+    settings, storage = get_settings(), get_storage()
+
+    def scene(state: str) -> str:
+        with session_scope() as session:
+            row = Scene(owner_key_id=key_id, name="m", format="mesh", image_count=1, width=1, height=1,
+                        storage_key="k", size_bytes=10, sha256="0" * 64, state=state)
+            session.add(row)
+            session.flush()
+            storage.put_bytes(scene_key(row.id, datasets.DATASET_ARCHIVE), b"rendered views" * 100)
+            return row.id
+
+    for state in (PROCESSING, FAILED):
+        scene_id = scene(state)
+        assert _ready(scene_id, {"size_bytes": 1400, "storage_key": "x"}, storage, settings, None).keys() >= \
+            {"scene_id"}
+        assert storage.list(scene_key(scene_id)) == [], state
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # SQLAlchemy's "fully NULL primary key identity" warning
+        gone = _ready("0" * 32, {"size_bytes": 1400, "storage_key": "x"}, storage, settings, None)
+    assert "deleted or failed meanwhile" in gone["skipped"]
+
+
 # ------------------------------------------------------------------------------------------ Idempotency-Key
 def test_job_creation_is_idempotent(auth_client, mic_zip):
     _, alice = _create_key("alice")

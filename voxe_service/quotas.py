@@ -6,7 +6,7 @@ from __future__ import annotations
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from voxe_service.models import ApiKey, Scene
+from voxe_service.models import PROCESSING, ApiKey, Scene
 from voxe_service.settings import Settings
 
 
@@ -30,8 +30,9 @@ def stored_bytes(session: Session, key_id: str, excluding: str | None = None) ->
 def ingest_over_quota(session: Session, scene_id: str, size: int, settings: Settings) -> str | None:
     """Why scene ``scene_id`` growing to ``size`` bytes at its ingest is over its key's upload quota (the key
     locked until the transaction ends, so racing ingests see each other's sizes); None when it fits."""
-    key = session.get(ApiKey, session.scalar(select(Scene.owner_key_id).where(Scene.id == scene_id)))
-    if key is None:
+    scene = session.get(Scene, scene_id)
+    key = session.get(ApiKey, scene.owner_key_id) if scene is not None and scene.state == PROCESSING else None
+    if key is None:  # deleted, or failed meanwhile: not made ready, whatever its size
         return None
     lock_key(session, key.id)
     others, limit = stored_bytes(session, key.id, excluding=scene_id), upload_limit(key, settings)

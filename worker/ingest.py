@@ -171,6 +171,7 @@ def _ready(scene_id: str, values: dict, storage: Storage, settings: Settings,
                     log.warning("scene %s: could not dispatch job %s", scene_id, job.id)
     if over:
         _fail(scene_id, over, storage)
+        storage.discard_prefixes(scene_key(scene_id))  # its views, also when it ended otherwise meanwhile
         return {"scene_id": scene_id, "state": "failed"}
     if waiting is None:  # deleted (or failed by the reaper) while it was decoded: keep nothing of it
         storage.discard_prefixes(scene_key(scene_id))
