@@ -98,7 +98,7 @@ def is_out_of_memory(exc: BaseException) -> bool:
     memory, which ``loading_errors`` would otherwise report as a missing model."""
     import torch
 
-    return isinstance(exc, (MemoryError, torch.OutOfMemoryError)) or "DefaultCPUAllocator" in str(exc)
+    return isinstance(exc, (MemoryError, torch.cuda.OutOfMemoryError)) or "DefaultCPUAllocator" in str(exc)
 
 
 def load_clip_tokenizer(model: str, **kwargs):

@@ -29,10 +29,10 @@ encoder runs compiled (:mod:`voxe_core.guidance.compiled`). Timing synchronisati
 measure host-side dispatch only.
 
 The gradient is injected with the standard surrogate
-``loss = (grad.detach() * latents).sum()``: its derivative with respect to the
-latents is exactly ``grad`` (summed, not averaged, over the batch), so
-``loss.backward()`` sends ``grad`` through the VAE encoder into whatever made
-the images. The *value* of this loss means nothing; log the diagnostics
+``loss = (grad.detach() * latents).sum() / B``: its derivative with respect to the
+latents is exactly ``grad / B`` (the mean over the batch's B views, as the authors'
+``SpecifyGradient``), so ``loss.backward()`` sends it through the VAE encoder into
+whatever made the images. The *value* of this loss means nothing; log the diagnostics
 instead.
 
 Cross-attention maps (SPEC §3) come from one more UNet pass with a capturing
