@@ -180,6 +180,7 @@ def test_the_renderers_hot_loop_reads_the_host_only_where_shapes_depend_on_data(
     """One edit-loop render in one pass: occupancy with no read at all; the sampler's data-dependent sizes in 5
     reads (the segment layout's scalars, the pass layout's, two packings, early stop), not one per scalar; no mask
     indexing and no serial scan (the transmittance finds each ray's first sample by binary search)."""
+    from voxe_core import volrend
     from voxe_core.cameras import camera_rays
     from voxe_core.render import RenderConfig, render_rays
 
@@ -188,11 +189,17 @@ def test_the_renderers_hot_loop_reads_the_host_only_where_shapes_depend_on_data(
     origins, directions = camera_rays(_views(1, 32)[1], 0)
     with HostReads() as occupancy_reads:
         occupancy = grid.occupancy(config.sigma_threshold)
-    with HostReads() as render_reads:
+    with HostReads() as cpu_reads:
         out = render_rays(grid, origins, directions, config, occupancy, torch.Generator().manual_seed(0))
+    with pytest.MonkeyPatch.context() as patch:  # as on CUDA, where a read is a sync
+        patch.setattr(volrend, "host_reads_are_free", lambda device: False)
+        with HostReads() as render_reads:
+            cuda_like = render_rays(grid, origins, directions, config, occupancy, torch.Generator().manual_seed(0))
     assert occupancy_reads.calls == {}
     assert render_reads.calls == {"tolist": 2, "nonzero": 3}
-    assert out.samples > 0 and out.opacity.max() > 0.5  # the sphere was rendered
+    # on the CPU alone, one more per transmittance (early stop's and the compositor's): is any depth NaN?
+    assert cpu_reads.calls == {"tolist": 2, "nonzero": 3, "__bool__": 2}
+    assert torch.equal(cuda_like.rgb, out.rgb) and out.samples > 0 and out.opacity.max() > 0.5  # the sphere
 
 
 def test_the_sds_step_leaves_its_diagnostics_on_the_device(tmp_path, monkeypatch):

@@ -52,6 +52,12 @@ def optical_depth(sigma: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
     return (sigma * delta).clamp(max=MAX_SAMPLE_OPTICAL_DEPTH)
 
 
+def host_reads_are_free(device: torch.device) -> bool:
+    """Whether reading a value back costs nothing on ``device`` (the CPU: it computed it); on CUDA a read waits for
+    the queue to drain, which the hot loop avoids."""
+    return device.type == "cpu"
+
+
 def transmittance(optical: torch.Tensor, ray: torch.Tensor) -> torch.Tensor:
     """Transmittance in front of each packed sample (S,): exp of minus the optical depth before it on its ray.
 
@@ -64,8 +70,8 @@ def transmittance(optical: torch.Tensor, ray: torch.Tensor) -> torch.Tensor:
     behind it on its ray are NaN (a NaN in the shared sum had turned every later ray of the pass NaN).
     """
     nan = optical.isnan()
-    if optical.device.type == "cpu" and not bool(nan.any()):  # a host read costs nothing here (on CUDA a sync)
-        nan = None  # and the bookkeeping below 2.5x the function's time
+    if host_reads_are_free(optical.device) and not bool(nan.any()):  # skips the bookkeeping below: 2.5x the time
+        nan = None
     wide = optical.double() if nan is None else optical.double().masked_fill(nan, 0.0)
     before = wide.cumsum(0) - wide
     first = torch.searchsorted(ray, ray)
