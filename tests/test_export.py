@@ -117,11 +117,13 @@ def test_mp4_is_playable_with_even_size_and_right_colours(tmp_path):
     assert abs(first[31, 33, 2] - 255) < 20
 
 
-@pytest.mark.parametrize("fps, shown", [(30.0, 30), (60.0, 15), (120.0, 10), (7.0, 30)])
-def test_gif_delays_follow_the_true_timeline_and_none_is_too_short_to_play(tmp_path, fps, shown):
+@pytest.mark.parametrize("n, fps, shown", [(30, 30.0, 30), (30, 60.0, 15), (30, 120.0, 10), (30, 7.0, 30),
+                                           (1, 30.0, 1), (2, 120.0, 1)])
+def test_gif_delays_follow_the_true_timeline_and_none_is_too_short_to_play(tmp_path, n, fps, shown):
     """GIF delays are whole centiseconds: 1000/fps had been cut (30 fps played 10 % fast), and 60 fps and above
-    wrote delays of 1 or 0 cs, which browsers play at about 10 fps."""
-    frames = gradient_frames(30, 8, 8)
+    wrote delays of 1 or 0 cs, which browsers play at about 10 fps. One frame kept (a 1-frame turntable, or 2 at
+    120 fps) had crashed in Pillow, which takes a list of delays only for several frames."""
+    frames = gradient_frames(n, 8, 8)
     write_video(tmp_path / "v.gif", frames, fps=fps)
     with Image.open(tmp_path / "v.gif") as gif:
         delays = []
@@ -129,7 +131,7 @@ def test_gif_delays_follow_the_true_timeline_and_none_is_too_short_to_play(tmp_p
             gif.seek(index)
             delays.append(gif.info["duration"])
     assert len(delays) == shown and min(delays) >= 20
-    assert sum(delays) == pytest.approx(30 / fps * 1000, abs=10)
+    assert sum(delays) == pytest.approx(max(n / fps * 1000, 20), abs=10)
 
 
 def test_gif_frames_loop_and_duration(tmp_path):

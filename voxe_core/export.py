@@ -175,7 +175,8 @@ def write_video(path: str | os.PathLike, frames, fps: float = 30) -> Path:
             import imageio.v3 as iio
 
             shown, delays = gif_timeline(len(array), fps)
-            iio.imwrite(partial, array[shown], plugin="pillow", extension=".gif", duration=delays, loop=0)
+            duration = delays if len(shown) > 1 else delays[0]  # Pillow takes a list only for several frames
+            iio.imwrite(partial, array[shown], plugin="pillow", extension=".gif", duration=duration, loop=0)
         if not partial.is_file() or partial.stat().st_size == 0:
             raise OSError(f"the video encoder wrote nothing for {path}")
     return path
