@@ -138,6 +138,35 @@ def test_bad_data_dir_exits_2_with_a_message(tmp_path, capsys):
     assert "transforms_train.json" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("end, code", [("succeeded", 0), ("failed", 1), ("canceled", 1)])
+def test_a_waited_sweep_exits_1_unless_it_succeeded(monkeypatch, capsys, tmp_path, end, code):
+    """As voxe wait does for a job: a failed sweep had exited 0, saying nothing of its failed jobs."""
+    import voxe_core.cli.service as service
+
+    states = iter(["running", end])
+
+    class Sweeps:
+        base_url = "http://service"
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return None
+
+        def create_sweep(self, scenes, params=None, evaluation=None):
+            return {"id": "s1", "entries": [{}] * 6, "state": "queued", "counts": {"queued": 12}, "table": "T\n"}
+
+        def get_sweep(self, sweep_id):
+            counts = {"succeeded": 12} if end == "succeeded" else {end: 6, "succeeded": 6}
+            return {"id": sweep_id, "entries": [], "state": next(states), "counts": counts, "table": "T\n"}
+
+    monkeypatch.setattr(service, "_client", lambda args: Sweeps())
+    assert main(["sweep", "--scene", "s1=mic", "--wait", "--poll", "0.01", "--out", str(tmp_path / "s.json")]) == code
+    err = capsys.readouterr().err
+    assert (f"ended {end}: jobs {{'{end}': 6, 'succeeded': 6}}" in err) == (code == 1)
+
+
 def test_bad_option_values_exit_2(tmp_path, capsys):
     args = ["reconstruct", str(tmp_path), "--out", str(tmp_path / "g.safetensors")]
     # a named preset fixes the stage count before any data is read (auto's depends on the backbone)

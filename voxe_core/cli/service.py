@@ -186,4 +186,7 @@ def cmd_sweep(args) -> int:
     if interrupt.requested:
         print(f"voxe sweep: stopped waiting; the sweep {sweep['id']} goes on in the service", file=sys.stderr)
         return EXIT_INTERRUPTED
+    if args.wait and sweep["state"] != "succeeded":  # as voxe wait: a script must see what did not succeed
+        print(f"voxe sweep: the sweep {sweep['id']} ended {sweep['state']}: jobs {sweep['counts']}", file=sys.stderr)
+        return 1
     return 0
