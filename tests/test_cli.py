@@ -167,6 +167,28 @@ def test_a_waited_sweep_exits_1_unless_it_succeeded(monkeypatch, capsys, tmp_pat
     assert (f"ended {end}: jobs {{'{end}': 6, 'succeeded': 6}}" in err) == (code == 1)
 
 
+def test_an_output_that_cannot_be_written_is_refused_before_the_inputs_are_read(tmp_path, capsys):
+    """render, refine, evaluate, mesh-to-grid and export-mesh had run their whole stage, then failed on --out (a
+    file where a folder goes, a folder where a file goes): each input here is missing, so a check made after
+    reading them would name the input, not the output."""
+    a_file, a_folder = tmp_path / "afile", tmp_path / "afolder.ply"
+    a_file.write_text("x")
+    a_folder.mkdir()
+    missing = str(tmp_path / "missing.safetensors")
+    for command, out, said in (
+        (["render", missing, "--ring", "2"], a_file, f"cannot write into {a_file}: it is a file, not a folder"),
+        (["refine", missing, "--initial", missing, "--prompt", "a dog", "--edit-words", "dog"], a_file,
+         f"cannot write into {a_file}: it is a file, not a folder"),
+        (["evaluate", missing, "--object", "mic", "--edit", missing, "a mic"], a_file,
+         f"cannot write into {a_file}: it is a file, not a folder"),
+        (["mesh-to-grid", str(tmp_path / "missing.obj")], tmp_path / "afolder.ply", f"cannot write {a_folder}: it is a folder"),
+        (["export-mesh", missing], a_folder, f"cannot write {a_folder}: it is a folder"),
+    ):
+        assert main([*command, "--out", str(out), "--device", "cpu"]) == 2, command
+        err = capsys.readouterr().err
+        assert said in err and "missing" not in err.replace(said, ""), (command, err)
+
+
 def test_bad_option_values_exit_2(tmp_path, capsys):
     args = ["reconstruct", str(tmp_path), "--out", str(tmp_path / "g.safetensors")]
     # a named preset fixes the stage count before any data is read (auto's depends on the backbone)

@@ -143,6 +143,16 @@ def writable_file(path: Path) -> Path:
     return path
 
 
+def writable_folder(path: Path) -> Path:
+    """``path`` made as a folder, or OSError now when it cannot be one (before a long stage, not after)."""
+    if path.exists() and not path.is_dir():
+        raise OSError(f"cannot write into {path}: it is a file, not a folder")
+    path.mkdir(parents=True, exist_ok=True)
+    if not os.access(path, os.W_OK):
+        raise OSError(f"cannot write into {path}: the folder is not writable")
+    return path
+
+
 def add_grid_output_arguments(parser: argparse.ArgumentParser) -> None:
     """How a command writes its grid files: sparse (occupied cells + margin, ``voxe_core.gridfile``) or dense."""
     parser.add_argument("--dense", action="store_true",

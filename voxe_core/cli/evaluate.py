@@ -9,7 +9,7 @@ from pathlib import Path
 
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_model_arguments, add_view_arguments, check_device, load_views, positive_int,
-    run_stage,
+    run_stage, writable_folder,
 )
 from voxe_core.constants import CLIP_MODEL_ID, INCEPTION_FILE
 
@@ -52,6 +52,7 @@ def cmd_evaluate(args) -> int:
         if len(values) not in (2, 3):
             raise ValueError(f"--edit takes EDITED_GRID PROMPT [MASK], got {len(values)} values: {values}")
     device = check_device(args)
+    writable_folder(args.out)
     initial = load_grid(args.initial)
     edits = []
     for k, (grid_path, prompt, *mask_path) in enumerate(args.edit):

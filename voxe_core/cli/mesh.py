@@ -7,7 +7,7 @@ from pathlib import Path
 
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, add_device_argument, add_grid_output_arguments, check_device, int_list, positive_int, run_stage,
-    seed,
+    seed, writable_file,
 )
 from voxe_core.cli.reconstruct import recipe_params
 from voxe_core.presets import RECONSTRUCTION_PRESET, RECONSTRUCTION_PRESETS, SEED, ExportConfig, reconstruct_config
@@ -56,6 +56,7 @@ def cmd_export_mesh(args) -> int:
     if args.out.suffix.lower() not in MESH_SUFFIXES:
         raise ValueError(f"unsupported mesh suffix {args.out.suffix!r}; use one of {', '.join(MESH_SUFFIXES)}")
     device = check_device(args)
+    writable_file(args.out)
     grid = load_grid(args.grid).to(device)  # the density lattice is sampled there; marching cubes runs on the CPU
     mesh = extract_mesh(grid, level=args.level, resolution=args.resolution)
     save_mesh(mesh, args.out)
@@ -69,6 +70,7 @@ def cmd_mesh_to_grid(args) -> int:
     from voxe_core.reconstruct import reconstruct
 
     device = check_device(args)
+    writable_file(args.out)
     mesh = shade_mesh(load_mesh(args.mesh, args.texture, args.up), args.shading)
     if args.route == "voxelize":
         if args.resolution is not None and len(args.resolution) != 1:
@@ -84,7 +86,6 @@ def cmd_mesh_to_grid(args) -> int:
         if grid is None:
             print(f"voxe: reconstruction cancelled, nothing written to {args.out}", file=sys.stderr)
             return EXIT_INTERRUPTED
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     grid.save(args.out, dense=args.dense)
     print(f"wrote {args.out}: {'x'.join(map(str, grid.resolution))} grid from {args.mesh.name} ({args.route})")
     return 0

@@ -15,7 +15,7 @@ from pathlib import Path
 from voxe_core import constants as paper
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, check_device, load_guidance, positive_int, run_stage,
-    seed,
+    seed, writable_folder,
 )
 from voxe_core.presets import SEED, refine_config
 
@@ -86,6 +86,7 @@ def cmd_refine(args) -> int:
     if not words:
         raise ValueError("--edit-words names no word")
     check_device(args)
+    writable_folder(args.out)
     model = args.model or paper.ATTENTION_MODEL_ID
     config = refine_config(job_params(args), model)
     initial, edited = load_grid(args.initial), load_grid(args.edited)
@@ -106,7 +107,6 @@ def cmd_refine(args) -> int:
         print("voxe: refinement cancelled, nothing written", file=sys.stderr)
         return EXIT_INTERRUPTED
     out = args.out
-    out.mkdir(parents=True, exist_ok=True)
     result.refined_grid.save(out / "refined.safetensors", dense=args.dense)
     save_mask(out / "mask.safetensors", result.mask, meta={"prompt": result.info["prompt"], "edit_words": words})
     save_probabilities(out / "probabilities.safetensors", result.edit_probability, result.object_probability,

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, add_device_argument, add_view_arguments, check_device, load_views, positive_int, run_stage,
+    writable_folder,
 )
 from voxe_core.presets import ExportConfig
 
@@ -61,6 +62,7 @@ def cmd_render(args) -> int:
     from voxe_core.export import render_views, save_png, turntable_cameras
 
     device = check_device(args)
+    writable_folder(args.out)
     grid = load_grid(args.grid)
     scene = None
     if args.data is not None:
