@@ -186,6 +186,14 @@ def test_cli_mesh_to_grid_writes_a_grid_or_names_the_problem(tmp_path, capsys):
     args = ["mesh-to-grid", str(SPOT / "spot_triangulated.obj"), "--texture", str(SPOT / "spot_texture.png"), "-q"]
     assert main([*args, "--resolution", "24", "--out", str(out)]) == 0
     assert load_grid(out).resolution == (24, 24, 24)
+    # by default the grid a mesh scene's job voxelizes: the preset's final resolution and box (it had been 160³)
+    from voxe_core.presets import reconstruct_config, reconstruction_params
+
+    service = reconstruct_config(reconstruction_params({}, mesh_scene=True))
+    assert main([*args, "--out", str(out)]) == 0
+    grid = load_grid(out)
+    assert grid.resolution == (service.resolutions[-1],) * 3 and service.resolutions[-1] != 160
+    assert torch.equal(grid.bbox_min, torch.as_tensor(service.bbox_min, dtype=torch.float32))
     ply = _write_ply(tmp_path / "square.ply", _square(0.0, 1.0, RED))
     bad = tmp_path / "bad.safetensors"
     assert main(["mesh-to-grid", ply, "--texture", str(SPOT / "spot_texture.png"), "--out", str(bad)]) == 2

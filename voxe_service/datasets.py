@@ -11,6 +11,8 @@ from __future__ import annotations
 import zipfile
 from pathlib import Path, PurePosixPath
 
+from voxe_core.presets import MESH_VIEW_SIZE, MESH_VIEWS  # noqa: F401 - what an ingest renders a mesh into
+
 IGNORED = ("__MACOSX", ".DS_Store", "Thumbs.db")
 STORED_SUFFIXES = {".png", ".jpg", ".jpeg", ".webp", ".exr", ".zip", ".gz"}  # already compressed
 DATASET_ARCHIVE = "dataset.zip"
@@ -19,7 +21,6 @@ MESH_FORMAT = "mesh"  # a scene's format when it was uploaded as a mesh (its arc
 MESH_FOLDER = "mesh"  # the uploaded mesh as ``mesh.obj`` / ``mesh.ply`` with an OBJ's texture as ``texture.<ext>``
 MESH_NAMES = "names.json"  # in MESH_FOLDER: {kept name: the name it was uploaded under}
 MESH_OPTIONS = "options.json"  # in MESH_FOLDER: {"shading": "auto" | "baked" | "none"}, as uploaded
-MESH_VIEWS, MESH_VIEW_SIZE = 100, 256  # renders of an uploaded mesh (the paper: 100 upper-hemisphere views)
 
 
 def ignored(path: PurePosixPath) -> bool:

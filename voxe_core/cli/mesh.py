@@ -10,7 +10,10 @@ from voxe_core.cli.common import (
     seed, writable_file,
 )
 from voxe_core.cli.reconstruct import recipe_params
-from voxe_core.presets import RECONSTRUCTION_PRESET, RECONSTRUCTION_PRESETS, SEED, ExportConfig, reconstruct_config
+from voxe_core.presets import (
+    DOWNSAMPLE, MESH_VIEW_SIZE, MESH_VIEWS, RECONSTRUCTION_PRESET, RECONSTRUCTION_PRESETS, SEED, ExportConfig,
+    reconstruct_config,
+)
 
 
 def add_parsers(commands, common) -> None:
@@ -36,12 +39,15 @@ def add_parsers(commands, common) -> None:
                     help="voxelize: write the mesh into the grid; render: reconstruct from rendered views")
     mg.add_argument("--out", type=Path, required=True, help="grid file to write (.safetensors)")
     add_grid_output_arguments(mg)
-    mg.add_argument("--views", type=positive_int, default=100, help="render route: upper-hemisphere views")
-    mg.add_argument("--size", type=positive_int, default=200, help="render route: view size in pixels")
+    mg.add_argument("--views", type=positive_int, default=MESH_VIEWS, help="render route: upper-hemisphere views")
+    mg.add_argument("--size", type=positive_int, default=MESH_VIEW_SIZE // DOWNSAMPLE,
+                    help=f"render route: view size in pixels (default {MESH_VIEW_SIZE // DOWNSAMPLE}: what the "
+                         f"service's fit sees, its {MESH_VIEW_SIZE} px views loaded at 1/{DOWNSAMPLE})")
     mg.add_argument("--preset", choices=RECONSTRUCTION_PRESETS, default=RECONSTRUCTION_PRESET,
                     help="render route: reconstruction preset")
     mg.add_argument("--resolution", type=int_list, default=None, metavar="N[,N...]",
-                    help="grid resolution (voxelize: default 160; render: as voxe reconstruct)")
+                    help="grid resolution (voxelize: default the preset's final one, as the service's; render: as "
+                         "voxe reconstruct)")
     mg.add_argument("--iterations", type=int_list, default=None, metavar="N[,N...]", help="render route: as voxe reconstruct")
     mg.add_argument("--rays", type=positive_int, default=None, help="render route: rays per step")
     mg.add_argument("--seed", type=seed, default=SEED)
@@ -72,11 +78,13 @@ def cmd_mesh_to_grid(args) -> int:
     device = check_device(args)
     writable_file(args.out)
     mesh = shade_mesh(load_mesh(args.mesh, args.texture, args.up), args.shading)
-    if args.route == "voxelize":
+    if args.route == "voxelize":  # as the service's mesh scenes: the preset's final resolution and box
         if args.resolution is not None and len(args.resolution) != 1:
             raise ValueError(f"--resolution takes one value for the voxelize route, got {len(args.resolution)}")
-        resolution = 160 if args.resolution is None else args.resolution[0]
-        grid = voxelize(mesh, VoxelizeConfig(resolution=resolution, seed=args.seed))
+        fit = reconstruct_config({**recipe_params(args), "resolution": None})
+        resolution = fit.resolutions[-1] if args.resolution is None else args.resolution[0]
+        grid = voxelize(mesh, VoxelizeConfig(resolution=resolution, bbox_min=fit.bbox_min, bbox_max=fit.bbox_max,
+                                             seed=args.seed))
     else:
         config = reconstruct_config(recipe_params(args))
         cameras = hemisphere_cameras(args.views, args.size, args.seed)
