@@ -603,6 +603,35 @@ def test_sweep_submits_the_paper_protocol_as_one_batch_with_one_table(service, s
     assert twice.status_code == 422 and "lists a scene twice" in twice.text
 
 
+def test_a_sweep_summarises_while_an_evaluation_runs_and_after_one_failed(service, sphere_grid, monkeypatch):
+    """An evaluation's result holds its progress (peak memory) long before its rows, and keeps only that when it
+    fails: the summary takes rows from succeeded evaluations only (it had answered 500, KeyError 'rows')."""
+    import voxe_core.evaluate
+    from voxe_core.progress import Progress
+    from worker import tasks
+
+    client, scene_id, root = service
+    params = {"iterations": 2, "reconstruction": {"resolution": 8, "iterations": 1}}
+    sweep = client.post("/v1/sweeps", json={"scenes": [{"scene_id": scene_id, "object": "mic"}], "params": params,
+                                            "evaluation": RING}).json()
+    entry = sweep["entries"][4]
+    _as_if_edited(entry["edit_job_id"], sphere_grid, sphere_grid, None, root)
+    seen = {}
+
+    def evaluate(initial, edits, obj, clip, fid, images, config, callbacks, device=None):
+        callbacks.progress(Progress("evaluate", 1, 10, info={"peak_memory_gb": 0.5, "peak_memory_kind": "process_rss"}))
+        seen["running"] = client.get(f"/v1/sweeps/{sweep['id']}")
+        raise ValueError("a ring render has a NaN pixel")
+
+    monkeypatch.setattr(voxe_core.evaluate, "evaluate", evaluate)
+    assert tasks.evaluate_task.apply(args=(entry["evaluation_job_id"],)).get()["state"] == "failed"
+    assert "peak_memory_gb" in client.get(f"/v1/jobs/{entry['evaluation_job_id']}").json()["result"]
+    running = seen["running"]
+    assert running.status_code == 200 and running.json()["rows"] == [] and running.json()["counts"]["running"] == 1
+    failed = client.get(f"/v1/sweeps/{sweep['id']}")
+    assert failed.status_code == 200 and failed.json()["rows"] == [] and failed.json()["counts"]["failed"] == 1
+
+
 def test_cli_sweep_submits_to_the_service_and_prints_the_table(service, tmp_path, capsys):
     import threading
 

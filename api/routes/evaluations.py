@@ -17,7 +17,7 @@ from api.routes.jobs import job_out
 from api.schemas import EvaluationCreate, JobOut, SweepCreate, SweepEntry, SweepOut
 from api.services import evaluations
 from voxe_core.evaluate import format_table, mean_by_mode
-from voxe_service.models import EVALUATE, ApiKey
+from voxe_service.models import EVALUATE, SUCCEEDED, ApiKey
 
 router = APIRouter(tags=["evaluation"])
 
@@ -75,7 +75,7 @@ def sweep_out(session: Session, sweep_id: str, key: ApiKey) -> SweepOut:
             edit_job_id=edit.id, edit_state=edit.state, evaluation_job_id=evaluation.id,
             evaluation_state=evaluation.state,
         ))
-        if evaluation.result:
+        if evaluation.state == SUCCEEDED:  # a running or failed one's result holds its progress, no rows
             rows.extend(evaluation.result["rows"])
     return SweepOut(
         id=sweep_id, state=evaluations.sweep_state([j.state for j in jobs]),
