@@ -294,11 +294,14 @@ def test_the_job_whose_edit_waited_for_the_encoders_compile_says_how_long(servic
     assert results[0]["encoder_compile_seconds"] == 38.9 and "encoder_compile_seconds" not in results[1]
 
 
-@pytest.mark.parametrize("going_down", [SystemExit, KeyboardInterrupt])
+@pytest.mark.parametrize("going_down", [SystemExit, KeyboardInterrupt, "cold shutdown"])
 def test_a_worker_going_down_mid_fit_hands_the_reconstruction_back_rather_than_failing_it(service, monkeypatch,
                                                                                            going_down):
-    """A warm shutdown's SystemExit (or ^C) inside the fit is not the fit's failure: the shared reconstruction goes
-    back to pending with no owner, so the jobs waiting on it, or this one redelivered, fit it; a real error fails it."""
+    """A warm shutdown's SystemExit (or ^C, or the NotImplementedError a cold shutdown raises in a solo pool's task)
+    inside the fit is not the fit's failure: the shared reconstruction goes back to pending with no owner, so the
+    jobs waiting on it, or this one redelivered, fit it; a real error fails it."""
+    from celery.worker import state
+
     from voxe_service.db import session_scope
     from voxe_service.models import Reconstruction
     from worker import runtime, tasks
@@ -315,12 +318,19 @@ def test_a_worker_going_down_mid_fit_hands_the_reconstruction_back_rather_than_f
         return client.post("/v1/jobs", json={"scene_id": scene_id, "prompt": "a mic", "params": body}).json()["id"]
 
     def fit_going_down(*args, **kwargs):
+        if going_down == "cold shutdown":
+            monkeypatch.setattr(state, "should_terminate", 0)  # set by Celery's cold shutdown (its exit code)
+            raise NotImplementedError("<class 'celery.concurrency.solo.TaskPool'> does not implement kill_job")
         raise going_down()
 
     monkeypatch.setattr(tasks, "_fit_grid", fit_going_down)
     job_id = submit()
-    with pytest.raises(going_down):
-        tasks.reconstruct_task.apply(args=(job_id,))
+    if going_down == "cold shutdown":  # the message is rejected back to the queue (apply records the Reject)
+        assert tasks.reconstruct_task.apply(args=(job_id,)).state == "REJECTED"
+        monkeypatch.setattr(state, "should_terminate", None)  # the next worker
+    else:
+        with pytest.raises(going_down):
+            tasks.reconstruct_task.apply(args=(job_id,))
     assert rec_of(job_id) == ("pending", None, None)
     held = runtime.load_job(job_id)  # the run gave its hold back: the redelivered message takes the job at once
     assert (held.state, held.stage, held.run_token, held.run_lease_until) == ("running", "reconstruct", None, None)

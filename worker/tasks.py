@@ -339,12 +339,14 @@ def _fit(job: Job, rec, settings, storage, device: str) -> None:
                 grid, total = _fit_grid(job, rec, settings, storage, callbacks, checkpoint, checkpoint_key, device)
             lease.check()
         except BaseException as exc:  # (each change below applies only while this job still owns the fit)
-            if isinstance(exc, Exception) and not isinstance(exc, (StageCancelled, runtime.LeaseLost,
-                                                                   runtime.RunSuperseded)):
+            if (isinstance(exc, Exception) and not isinstance(exc, (StageCancelled, runtime.LeaseLost,
+                                                                    runtime.RunSuperseded))
+                    and not runtime.worker_in_cold_shutdown()):
                 runtime.set_reconstruction(rec.id, job.id, job.run_token, state=R_FAILED, lease_until=None,
                                            finished_at=utcnow(), error=f"{type(exc).__name__}: {exc}")
-            else:  # canceled, superseded, or the worker going down (SystemExit, KeyboardInterrupt): not the fit's
-                # failure, so a waiting job, or this one redelivered, takes over from the checkpoint
+            else:  # canceled, superseded, or the worker going down (SystemExit, KeyboardInterrupt, or what a cold
+                # shutdown raises in a solo pool's task): not the fit's failure, so a waiting job, or this one
+                # redelivered, takes over from the checkpoint
                 runtime.set_reconstruction(rec.id, job.id, job.run_token, state=R_PENDING, owner_job_id=None,
                                            owner_run_token=None, lease_until=None)
             raise
