@@ -268,6 +268,46 @@ def test_a_damaged_or_foreign_edit_checkpoint_is_dropped_and_the_edit_starts_ove
     assert client.get(f"/v1/jobs/{job['id']}").json()["message"].startswith(f"the stored edit checkpoint {why}")
 
 
+@pytest.mark.parametrize("canceled", ["between stages", "while re-queued"])
+def test_a_job_canceled_before_its_next_stage_keeps_no_checkpoint_and_no_scratch(service, monkeypatch, canceled):
+    """The edit's stored checkpoint (its grid and Adam state) outlives the edit for a redelivery. A job canceled
+    before its next stage ran (flagged between stages, or ended by the API while re-queued after an interrupted
+    edit) had kept it until its scene was deleted: the message that finds the job ended now discards it and this
+    worker's scratch, and the job's artifacts stay (a redelivered message of a live job discards nothing)."""
+    from pathlib import Path
+
+    from sqlalchemy import update
+
+    import voxe_core.edit
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+    from voxe_service.storage import get_storage, job_key
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job_id = _reconstructed_job(client, scene_id, "relu_field")["id"]
+    storage, checkpoints = get_storage(), job_key(job_id, "checkpoints/")
+    if canceled == "between stages":
+        monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
+        monkeypatch.setattr(voxe_core.edit, "edit", lambda initial, *args, **kwargs: initial.clone_grid())
+        assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "done"
+        storage.put_bytes(f"{checkpoints}edit.safetensors", b"the edit's last checkpoint")
+        assert "already done" in tasks.edit_task.apply(args=(job_id,)).get()["skipped"]  # redelivered: kept
+        assert storage.list(checkpoints) == [f"{checkpoints}edit.safetensors"]
+        next_stage = tasks.export_task
+    else:
+        storage.put_bytes(f"{checkpoints}edit.safetensors", b"the interrupted edit's checkpoint")
+        with session_scope() as session:  # as requeue_interrupted leaves it, its edit message sent again
+            session.execute(update(Job).where(Job.id == job_id).values(state="queued", run_token=None))
+        next_stage = tasks.edit_task
+    assert client.post(f"/v1/jobs/{job_id}/cancel").status_code == 200
+    assert "skipped" in next_stage.apply(args=(job_id,)).get()
+    assert client.get(f"/v1/jobs/{job_id}").json()["state"] == "canceled"
+    assert storage.list(checkpoints) == []
+    assert not (Path(tasks.get_settings().work_dir) / "jobs" / job_id).exists()
+    assert client.get(f"/v1/jobs/{job_id}/artifacts/initial_grid.safetensors").status_code == 200
+
+
 def test_the_job_whose_edit_waited_for_the_encoders_compile_says_how_long(service, monkeypatch):
     """A worker compiles its guidance's VAE encoder once, in the first edit it runs: that job's result carries the
     wait (``encoder_compile_seconds``), a later job on the same guidance none."""
