@@ -465,7 +465,8 @@ def _as_if_edited(job_id: str, initial, edited, mask=None, scratch=None) -> None
         runtime.publish_artifact(job_id, "mask.safetensors", scratch / f"{job_id}_mask.safetensors", "mask", storage)
     with session_scope() as session:
         session.execute(update(Reconstruction).where(Reconstruction.id == job.reconstruction_id)
-                        .values(state="succeeded", grid_key=stored.key))
+                        .values(state="succeeded", grid_key=stored.key, grid_size=stored.size,
+                                grid_sha256=stored.sha256))
         session.execute(update(Job).where(Job.id == job_id).values(state="succeeded"))
 
 

@@ -469,6 +469,98 @@ def test_the_export_reads_the_orbit_centre_its_reconstruction_recorded_and_fetch
     assert centres and all(torch.equal(c, initial.orbit_centre()) for c in centres)
 
 
+def test_the_export_renders_the_published_edit_not_a_superseded_runs_grid_left_in_its_scratch(service, monkeypatch,
+                                                                                              tmp_path):
+    """An edit run that stalled while another run took its job over has its grid refused, but the file stays in its
+    worker's scratch: the job's export, landing on that worker, renders the grid the job published."""
+    import hashlib
+    from datetime import timedelta
+
+    from sqlalchemy import update
+
+    import voxe_core.edit
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, utcnow
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job_id = _reconstructed_job(client, scene_id, "relu_field", export={
+        "views": 1, "view_size": 16, "turntable_frames": 2, "turntable_size": 16, "gif": False, "mesh": False})["id"]
+    settings = tasks.get_settings()
+    here = settings.work_dir
+    monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
+
+    def stalled_edit(initial, *args, **kwargs):  # run 1, here: another run takes the job over meanwhile
+        with session_scope() as session:
+            session.execute(update(Job).where(Job.id == job_id).values(
+                run_token="run 2", run_lease_until=utcnow() + timedelta(seconds=600)))
+        grid = initial.clone_grid()
+        with torch.no_grad():
+            grid.features[..., 0] = -10.0
+        return grid
+
+    monkeypatch.setattr(voxe_core.edit, "edit", stalled_edit)
+    assert tasks.edit_task.apply(args=(job_id,)).state == "IGNORED"  # its grid refused, its file left in scratch
+    with session_scope() as session:  # run 2, on another worker, publishes its own grid
+        session.execute(update(Job).where(Job.id == job_id).values(run_token=None, run_lease_until=None))
+    monkeypatch.setattr(settings, "work_dir", str(tmp_path / "another_worker"))
+    monkeypatch.setattr(voxe_core.edit, "edit", lambda initial, *args, **kwargs: initial.clone_grid())
+    assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "done"
+    monkeypatch.setattr(settings, "work_dir", here)  # the export lands here
+    rendered, real_fetch_grid = {}, tasks.fetch_grid
+
+    def recorded_fetch_grid(job, name, *args, **kwargs):
+        grid = real_fetch_grid(job, name, *args, **kwargs)
+        rendered[name] = hashlib.sha256((runtime.scratch_dir(job, settings) / name).read_bytes()).hexdigest()
+        return grid
+
+    monkeypatch.setattr(tasks, "fetch_grid", recorded_fetch_grid)
+    assert tasks.export_task.apply(args=(job_id,)).get()["state"] == "done"
+    listed = {a["name"]: a["sha256"] for a in client.get(f"/v1/jobs/{job_id}/artifacts").json()}
+    assert rendered == {"edited_grid.safetensors": listed["edited_grid.safetensors"]}
+
+
+def test_a_job_that_lost_the_fit_goes_on_with_the_recorded_grid_not_its_own(service, monkeypatch, tmp_path):
+    """A run whose fit was taken over before it stored its grid (its grid refused) waits for the new owner's, and
+    takes that: not the grid it left in its scratch, which its artifact had listed under the winner's key."""
+    import threading
+
+    from sqlalchemy import update
+
+    from conftest import make_sphere_grid
+    from voxe_service.db import session_scope
+    from voxe_service.models import Reconstruction, utcnow
+    from voxe_service.storage import file_sha256, get_storage
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    body = {**TINY_FIT, "reconstruction": {**TINY_FIT["reconstruction"], "seed": 12}}
+    a, b = (client.post("/v1/jobs", json={"scene_id": scene_id, "prompt": "a mic", "params": body}).json()["id"]
+            for _ in range(2))
+    rec_id = runtime.load_job(a).reconstruction_id
+
+    def b_stores_its_fit():
+        make_sphere_grid(radius=0.8).save(tmp_path / "b.safetensors")
+        stored = get_storage().put_file(f"reconstructions/{rec_id}/grid-b.safetensors", tmp_path / "b.safetensors")
+        runtime.set_reconstruction(rec_id, b, state="succeeded", grid_key=stored.key, grid_size=stored.size,
+                                   grid_sha256=stored.sha256, iteration=1, total=1, lease_until=None,
+                                   finished_at=utcnow())
+
+    def fit_stalled(*args, **kwargs):  # A stalled past its lease: B claimed the fit meanwhile, and stores it later
+        with session_scope() as session:
+            session.execute(update(Reconstruction).where(Reconstruction.id == rec_id).values(
+                owner_job_id=b, owner_run_token="b's run"))
+        threading.Timer(1.0, b_stores_its_fit).start()
+        return make_sphere_grid(radius=0.3), 1
+
+    monkeypatch.setattr(tasks, "_fit_grid", fit_stalled)
+    assert tasks.reconstruct_task.apply(args=(a,)).get()["state"] == "done"
+    rec = runtime.load_reconstruction(rec_id)
+    listed = {x["name"]: x for x in client.get(f"/v1/jobs/{a}/artifacts").json()}["initial_grid.safetensors"]
+    scratch = runtime.scratch_dir(a, tasks.get_settings()) / "initial_grid.safetensors"
+    assert listed["sha256"] == rec.grid_sha256 == file_sha256(scratch)[1]
+
+
 def test_the_papers_constant_start_fits_every_pixel_the_default_start_the_codes_positive_ones():
     paper_fit = refine_config({"refine": {"lift_start": "constant", "iterations": 1500}}, ATTENTION_MODEL_ID)
     assert (paper_fit.fit_views, paper_fit.fit_pixels, paper_fit.iterations) == ("fixed", "all", 1500)

@@ -602,6 +602,29 @@ def test_a_workers_scratch_of_ended_or_deleted_jobs_is_swept_and_a_live_jobs_kep
     assert sweep_scratch(db) == []
 
 
+def test_a_scratch_copy_is_reused_only_while_it_holds_the_recorded_bytes(tmp_path):
+    """A worker's scratch may hold a grid nobody published (a run that lost its job or the fit wrote it there):
+    fetch reuses a file only when its size and SHA-256 are the record's, downloads otherwise, and refuses a
+    download that is not the recorded object, naming its key."""
+    from voxe_service.storage import LocalStorage, StorageError
+    from worker.runtime import fetch
+
+    storage = LocalStorage(tmp_path / "store")
+    recorded = storage.put_bytes("jobs/j/edited_grid.safetensors", b"the published grid")
+    dest = tmp_path / "scratch" / "edited_grid.safetensors"
+    dest.parent.mkdir()
+    for unpublished in (b"a superseded run's grid", b"the published grix"):  # another size, then the same size
+        dest.write_bytes(unpublished)
+        assert fetch(storage, recorded, dest).read_bytes() == b"the published grid"
+    storage.delete(recorded.key)
+    assert fetch(storage, recorded, dest).read_bytes() == b"the published grid"  # the copy holds it: reused
+    storage.put_bytes(recorded.key, b"other bytes under the key")
+    dest.unlink()
+    with pytest.raises(StorageError, match="jobs/j/edited_grid.safetensors: the stored bytes are not the ones"):
+        fetch(storage, recorded, dest)
+    assert not dest.exists()
+
+
 def events_of(job_id: str) -> list[dict]:
     from sqlalchemy import select
 
@@ -700,9 +723,9 @@ def listed(job_id: str) -> list[tuple[str, int, str]]:
 
 
 def stored_bytes(storage, job_id: str, name: str) -> bytes:
-    from worker.runtime import artifact_key
+    from worker.runtime import recorded_artifact
 
-    return b"".join(storage.open_range(artifact_key(job_id, name)))
+    return b"".join(storage.open_range(recorded_artifact(job_id, name).key))
 
 
 def test_a_run_taking_over_a_stage_keeps_where_it_got_to_until_it_reports(db):

@@ -98,14 +98,14 @@ def run_evaluation(job: Job, settings: Settings, device: str, storage) -> None:
     rec = runtime.load_reconstruction(sources[0].reconstruction_id)
     if rec is None or rec.grid_key is None:
         raise EvaluationFailed("evaluate: the source jobs' reconstruction is gone")
-    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key)
+    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, runtime.reconstruction_grid(rec))
     edits = []
     for source in sources:
         name = "refined_grid.safetensors" if source.mode == "local" else "edited_grid.safetensors"
-        grid = fetch_grid(job.id, f"{source.id}_{name}", settings, storage, runtime.artifact_key(source.id, name))
+        grid = fetch_grid(job.id, f"{source.id}_{name}", settings, storage, runtime.recorded_artifact(source.id, name))
         mask = None
         if source.mode == "local":
-            mask_path = runtime.fetch(storage, runtime.artifact_key(source.id, "mask.safetensors"),
+            mask_path = runtime.fetch(storage, runtime.recorded_artifact(source.id, "mask.safetensors"),
                                       runtime.scratch_dir(job.id, settings) / f"{source.id}_mask.safetensors")
             mask = load_mask(mask_path)
         edits.append(EditSample(source.id, source.prompt, grid, mask))

@@ -1,8 +1,10 @@
-"""What a stage reads: the job's scene and its images, and grids from the storage (cached in the job's scratch)."""
+"""What a stage reads: the job's scene and its images, and grids from the storage (cached in the job's scratch,
+reused while they are the recorded bytes)."""
 
 from __future__ import annotations
 
 from voxe_service.models import READY, Job, Scene
+from voxe_service.storage import StoredObject
 from worker import runtime
 
 
@@ -27,10 +29,10 @@ def load_images(job: Job, rec_params: dict, settings, storage):
     return load_scene(root, rec_params["split"], rec_params["downsample"], rec_params["max_images"], resample=resample)
 
 
-def fetch_grid(job_id: str, name: str, settings, storage, key: str | None = None):
-    """A grid by storage key (default: the job's artifact ``name``), downloaded once into the job's scratch."""
+def fetch_grid(job_id: str, name: str, settings, storage, stored: StoredObject | None = None):
+    """A recorded grid (default: the job's artifact ``name``), downloaded once into the job's scratch."""
     from voxe_core.backbones import load_grid as load_grid_file
 
-    key = key or runtime.artifact_key(job_id, name)
-    path = runtime.fetch(storage, key, runtime.scratch_dir(job_id, settings) / name)
+    stored = stored or runtime.recorded_artifact(job_id, name)
+    path = runtime.fetch(storage, stored, runtime.scratch_dir(job_id, settings) / name)
     return load_grid_file(path)

@@ -33,7 +33,7 @@ from voxe_service.models import (
     Artifact, Job, Reconstruction, Scene, utcnow,
 )
 from voxe_service.settings import TINY_MODEL, Settings
-from voxe_service.storage import Storage, StoredObject, file_sha256, get_storage, job_key
+from voxe_service.storage import Storage, StorageError, StoredObject, file_sha256, get_storage, job_key
 
 log = logging.getLogger("voxe.worker")
 
@@ -428,17 +428,37 @@ def recorded_key(job_id: str, name: str) -> str | None:
         return session.scalar(select(Artifact.key).where(Artifact.job_id == job_id, Artifact.name == name))
 
 
-def artifact_key(job_id: str, name: str) -> str:
-    key = recorded_key(job_id, name)
-    if key is None:
+def recorded_artifact(job_id: str, name: str) -> StoredObject:
+    """The job's artifact ``name`` as recorded: its key, size and SHA-256 (what a :func:`fetch` of it must get)."""
+    with session_scope() as session:
+        row = session.execute(select(Artifact.key, Artifact.size, Artifact.sha256)
+                              .where(Artifact.job_id == job_id, Artifact.name == name)).first()
+    if row is None:
         raise RuntimeError(f"job {job_id} has no artifact {name!r}")
-    return key
+    return StoredObject(row.key, row.size, row.sha256)
 
 
-def fetch(storage: Storage, key: str, dest: Path) -> Path:
-    if not dest.is_file():
-        storage.get_file(key, dest)
+def reconstruction_grid(rec: Reconstruction) -> StoredObject:
+    """The grid G_i a succeeded reconstruction recorded."""
+    return StoredObject(rec.grid_key, rec.grid_size, rec.grid_sha256)
+
+
+def fetch(storage: Storage, stored: StoredObject, dest: Path) -> Path:
+    """``stored`` at ``dest``. A file already there is reused only when it holds the recorded bytes: a run that
+    lost its job or the fit leaves its own, unpublished, grid in the job's scratch. A download that does not match
+    the record is an error naming the key."""
+    if dest.is_file() and _holds(dest, stored):
+        return dest
+    storage.get_file(stored.key, dest)
+    if not _holds(dest, stored):
+        dest.unlink(missing_ok=True)
+        raise StorageError(f"{stored.key}: the stored bytes are not the ones recorded ({stored.size} bytes, "
+                           f"SHA-256 {stored.sha256})")
     return dest
+
+
+def _holds(path: Path, stored: StoredObject) -> bool:
+    return path.stat().st_size == stored.size and file_sha256(path) == (stored.size, stored.sha256)
 
 
 def scene_dataset_dir(scene: Scene, settings: Settings, storage: Storage) -> Path:

@@ -256,7 +256,7 @@ def _reconstruct(job: Job, settings, device: str, storage) -> None:
                        message="reused the scene's reconstruction" if reused else None)
     runtime.publish_artifact(job.id, "initial_grid.safetensors", _grid_file(job.id, rec, settings, storage),
                              "grid", storage, key=rec.grid_key)
-    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key)
+    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, runtime.reconstruction_grid(rec))
     _record_edit_schedule(job, initial.kind, settings)
     _preview(job.id, initial, settings, storage, device, centre=_record_orbit_centre(job.id, initial))
 
@@ -305,11 +305,13 @@ def _orbit_centre(job: Job, settings, storage) -> "torch.Tensor":
     if stored is not None:
         return torch.tensor(stored, dtype=torch.float32)
     rec = runtime.load_reconstruction(job.reconstruction_id)
-    return _record_orbit_centre(job.id, fetch_grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key))
+    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, runtime.reconstruction_grid(rec))
+    return _record_orbit_centre(job.id, initial)
 
 
 def _grid_file(job_id: str, rec, settings, storage) -> Path:
-    return runtime.fetch(storage, rec.grid_key, runtime.scratch_dir(job_id, settings) / "initial_grid.safetensors")
+    return runtime.fetch(storage, runtime.reconstruction_grid(rec),
+                         runtime.scratch_dir(job_id, settings) / "initial_grid.safetensors")
 
 
 def _voxelize(job: Job, rec, settings, storage):
@@ -406,7 +408,7 @@ def _edit(job: Job, settings, device: str, storage) -> None:
 
     guidance = runtime.get_guidance(job.sds_model, device, settings, job.id)  # first: a missing model fails fast
     rec = runtime.load_reconstruction(job.reconstruction_id)
-    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key)
+    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, runtime.reconstruction_grid(rec))
     config = _record_edit_schedule(job, initial.kind, settings)  # SPEC §5's schedule for a scene G_i
     scratch = runtime.scratch_dir(job.id, settings)
     checkpoint = scratch / "edit_checkpoint.safetensors"
@@ -472,7 +474,7 @@ def _refine(job: Job, settings, device: str, storage) -> None:
 
     guidance = runtime.get_guidance(job.attention_model, device, settings, job.id)
     rec = runtime.load_reconstruction(job.reconstruction_id)
-    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, rec.grid_key)
+    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, runtime.reconstruction_grid(rec))
     edited = fetch_grid(job.id, "edited_grid.safetensors", settings, storage)
     config = refine_config(job.params, job.attention_model)
     callbacks = StageCallbacks(job, "refine", settings)
