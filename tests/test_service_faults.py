@@ -602,6 +602,26 @@ def test_a_workers_scratch_of_ended_or_deleted_jobs_is_swept_and_a_live_jobs_kep
     assert sweep_scratch(db) == []
 
 
+def test_a_workers_unpacked_datasets_of_deleted_scenes_are_swept_and_a_ready_scenes_kept(db):
+    """Every worker that ran a job on a scene keeps its unpacked dataset (``runtime.scene_dataset_dir``); the sweep
+    removes those of scenes deleted (or not ready) since, with the debris of their unpacks, never a ready scene's
+    dataset or the unpack a job of it may be running."""
+    from pathlib import Path
+
+    from worker.runtime import sweep_scene_datasets
+
+    ready, failed = add_scene(), add_scene("failed")
+    root = Path(db.work_dir) / "scenes"
+    kept = [f"{ready}-{'0' * 12}", f".{ready}-k3j2x9"]  # its dataset, and an unpack under way
+    gone = [f"{'1' * 32}-{'0' * 12}", f".{'1' * 32}-p0q7zz", f"{failed}-{'0' * 12}"]
+    for name in kept + gone:
+        (root / name).mkdir(parents=True)
+        (root / name / "transforms_train.json").write_text("{}")
+    assert sorted(sweep_scene_datasets(db)) == sorted(gone)
+    assert sorted(p.name for p in root.iterdir()) == sorted(kept)
+    assert sweep_scene_datasets(db) == []
+
+
 def test_a_scratch_copy_is_reused_only_while_it_holds_the_recorded_bytes(tmp_path):
     """A worker's scratch may hold a grid nobody published (a run that lost its job or the fit wrote it there):
     fetch reuses a file only when its size and SHA-256 are the record's, downloads otherwise, and refuses a

@@ -29,7 +29,7 @@ from voxe_service import datasets
 from voxe_service.db import locked, session_scope, sync_clock
 from voxe_service.jobs import finish_jobs, record_event
 from voxe_service.models import (
-    CANCELED, FAILED, QUEUED, R_PENDING, R_RUNNING, RUNNING, SUCCEEDED, TERMINAL_STATES,
+    CANCELED, FAILED, QUEUED, R_PENDING, R_RUNNING, READY, RUNNING, SUCCEEDED, TERMINAL_STATES,
     Artifact, Job, Reconstruction, Scene, utcnow,
 )
 from voxe_service.settings import TINY_MODEL, Settings
@@ -360,6 +360,24 @@ def sweep_scratch(settings: Settings) -> list[str]:
     swept = [job_id for job_id in ids if job_id not in live]
     for job_id in swept:
         cleanup_scratch(job_id, settings)
+    return swept
+
+
+def sweep_scene_datasets(settings: Settings) -> list[str]:
+    """Delete this machine's unpacked datasets (and half-unpacked debris) of scenes that are gone or not ready; the
+    folder names swept. A job unpacks only a ready scene, which cannot be deleted while the job runs, so a folder
+    being unpacked is never one of these (the folders are listed before the scenes are read, as jobs' scratch)."""
+    root = Path(settings.work_dir) / "scenes"
+    names = [p.name for p in root.iterdir() if p.is_dir()] if root.is_dir() else []
+    if not names:
+        return []
+    scene_of = {name: name.lstrip(".").partition("-")[0] for name in names}  # <id>-<sha>, or .<id>-<tmp> unpacking
+    with session_scope() as session:
+        ready = set(session.scalars(select(Scene.id).where(Scene.id.in_(set(scene_of.values())),
+                                                           Scene.state == READY)))
+    swept = [name for name in names if scene_of[name] not in ready]
+    for name in swept:
+        shutil.rmtree(root / name, ignore_errors=True)
     return swept
 
 

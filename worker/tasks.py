@@ -583,7 +583,8 @@ def ingest_task(self, scene_id: str) -> TaskResult:
 _heartbeat_stop = threading.Event()
 
 
-SCRATCH_SWEEP_S = 600.0  # how often the heartbeat thread also sweeps ended jobs' scratch (runtime.sweep_scratch)
+SCRATCH_SWEEP_S = 600.0
+"""How often the heartbeat thread also sweeps ended jobs' scratch and gone scenes' datasets (runtime.sweep_*)."""
 
 
 def _beat(hostname: str, queues: str, device: str, models: dict) -> None:
@@ -613,11 +614,13 @@ def _beat(hostname: str, queues: str, device: str, models: dict) -> None:
             log.warning("worker heartbeat failed", exc_info=True)
         if time.monotonic() >= next_sweep:
             next_sweep = time.monotonic() + SCRATCH_SWEEP_S
-            try:
-                if swept := runtime.sweep_scratch(settings):
-                    log.info("removed the scratch of %d ended job(s)", len(swept))
-            except Exception:  # noqa: BLE001 - retried on the next sweep
-                log.warning("scratch sweep failed", exc_info=True)
+            for sweep, done in ((runtime.sweep_scratch, "removed the scratch of %d ended job(s)"),
+                                (runtime.sweep_scene_datasets, "removed the datasets of %d deleted scene(s)")):
+                try:
+                    if swept := sweep(settings):
+                        log.info(done, len(swept))
+                except Exception:  # noqa: BLE001 - retried on the next sweep
+                    log.warning("%s failed", sweep.__name__, exc_info=True)
         _heartbeat_stop.wait(settings.worker_heartbeat_s)
 
 
