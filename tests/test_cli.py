@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import imageio.v2 as imageio
@@ -187,6 +188,30 @@ def test_an_output_that_cannot_be_written_is_refused_before_the_inputs_are_read(
         assert main([*command, "--out", str(out), "--device", "cpu"]) == 2, command
         err = capsys.readouterr().err
         assert said in err and "missing" not in err.replace(said, ""), (command, err)
+
+
+def test_progress_off_a_terminal_is_a_line_now_and_then_not_ten_redraws_a_second(capsys, monkeypatch):
+    """A 13 s reconstruct into a log had written 125 carriage-returned redraws (3.8 MB an hour); voxe wait's bar
+    redrew unchanged snapshots too."""
+    from voxe_core.cli.common import progress_callbacks
+    from voxe_core.cli.service import _progress_bar
+    from voxe_core.progress import Progress
+
+    with progress_callbacks("fit", total=400) as callbacks:  # capsys: stderr is no terminal
+        for i in range(1, 401):
+            callbacks.progress(Progress("fit", i, 400))
+            time.sleep(0.001)
+    assert capsys.readouterr().err.count("\r") <= 3  # opened, closed: no redraw in between
+
+    draw = _progress_bar(quiet=False)
+    for done in (0.1, 0.1, 0.2, 0.3):
+        draw({"state": "running", "stage": "edit", "overall_progress": done})
+    assert capsys.readouterr().err.splitlines() == ["[###                           ]  10.0% running edit"]
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)  # a terminal: each change redrawn in place
+    draw = _progress_bar(quiet=False)
+    for done in (0.1, 0.1, 0.2):
+        draw({"state": "running", "stage": "edit", "overall_progress": done})
+    assert capsys.readouterr().err.count("\r") == 2
 
 
 def test_bad_option_values_exit_2(tmp_path, capsys):

@@ -47,6 +47,12 @@ class Interrupt:
             signal.signal(signal.SIGINT, previous)
 
 
+PROGRESS_INTERVAL_S = 0.1  # tqdm's own, on a terminal
+LOG_PROGRESS_INTERVAL_S = 30.0
+"""Off a terminal (a log file, CI) a bar is redrawn at most this often: 10 redraws a second had written 3.8 MB an hour
+of carriage-returned lines."""
+
+
 @contextlib.contextmanager
 def progress_callbacks(
     desc: str, unit: str = "it", should_cancel=None, quiet: bool = False, total: int | None = None
@@ -56,7 +62,8 @@ def progress_callbacks(
 
     from voxe_core.progress import Callbacks, Progress
 
-    bar = tqdm(desc=desc, unit=unit, total=total, disable=quiet, dynamic_ncols=True, file=sys.stderr)
+    bar = tqdm(desc=desc, unit=unit, total=total, disable=quiet, dynamic_ncols=True, file=sys.stderr,
+               mininterval=PROGRESS_INTERVAL_S if sys.stderr.isatty() else LOG_PROGRESS_INTERVAL_S)
 
     def on_progress(report: Progress) -> None:
         if bar.total != report.total:

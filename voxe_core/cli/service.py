@@ -8,10 +8,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
+import time
 from pathlib import Path
 
-from voxe_core.cli.common import EXIT_INTERRUPTED, EXIT_USAGE, Interrupt, positive_seconds
+from voxe_core.cli.common import EXIT_INTERRUPTED, EXIT_USAGE, LOG_PROGRESS_INTERVAL_S, Interrupt, positive_seconds
 
 
 def _scene_object(text: str) -> dict:
@@ -85,15 +87,21 @@ def _client(args):
 
 
 def _progress_bar(quiet: bool):
-    """An ``on_progress`` callback drawing the job's overall progress on stderr."""
+    """An ``on_progress`` callback drawing the job's overall progress on stderr: redrawn in place on a terminal,
+    elsewhere (a log) a line at most every ``LOG_PROGRESS_INTERVAL_S`` and only when it changed."""
+    terminal, last = sys.stderr.isatty(), {"line": None, "at": -math.inf}
+
     def draw(snapshot: dict) -> None:
-        if quiet:
-            return
         done = snapshot.get("overall_progress") or 0.0
         eta = snapshot.get("overall_eta_seconds")
         bar = "#" * round(30 * done)
-        print(f"\r[{bar:<30}] {100 * done:5.1f}% {snapshot['state']} {snapshot.get('stage') or ''}"
-              f"{f' ~{eta:.0f} s left' if eta is not None else ''}   ", end="", file=sys.stderr, flush=True)
+        line = (f"[{bar:<30}] {100 * done:5.1f}% {snapshot['state']} {snapshot.get('stage') or ''}"
+                f"{f' ~{eta:.0f} s left' if eta is not None else ''}")
+        now = time.monotonic()
+        if quiet or line == last["line"] or (not terminal and now - last["at"] < LOG_PROGRESS_INTERVAL_S):
+            return
+        last.update(line=line, at=now)
+        print(f"\r{line}   " if terminal else line, end="" if terminal else "\n", file=sys.stderr, flush=True)
     return draw
 
 
@@ -160,8 +168,6 @@ def cmd_download(args) -> int:
 
 
 def cmd_sweep(args) -> int:
-    import time
-
     from voxe_client import ServiceError
 
     with _client(args) as client:
