@@ -35,7 +35,8 @@ def add_parsers(commands, common) -> None:
                     help="leave the SDS step's VAE encoder uncompiled (and graphed) on CUDA (default: torch.compile, "
                          "which the first iteration waits for)")
     ed.add_argument("--iterations", type=int, default=None,
-                    help=f"default {paper.EDIT_ITERATIONS}; {_SCENE.iterations} for a scene-backbone grid (SPEC §5)")
+                    help=f"default {paper.EDIT_ITERATIONS}; on a scene-backbone grid {paper.EDIT_ITERATIONS} means SPEC "
+                         f"§5's {_SCENE.iterations}, as in the service's jobs (any other count runs as given)")
     ed.add_argument("--render-size", type=positive_int, default=paper.RENDER_SIZE, help="training render size in pixels")
     ed.add_argument("--lr", type=float, default=paper.EDIT_LR, help="Adam's learning rate")
     ed.add_argument("--regulariser", default=paper.DEFAULT_REGULARISER,
