@@ -235,6 +235,8 @@ def test_resume_refuses_another_prompt_or_grid(small_sphere, make_sphere_grid, t
     other = dataclasses.replace(config, guidance_scale=50.0, schedule=TimestepSchedule(i_start=10))
     with pytest.raises(ValueError, match=r"another recipe: guidance_scale 100\.0 \(now 50\.0\), schedule \{"):
         edit(small_sphere, "a dog", tiny_guidance, other, resume_from=checkpoint)
+    with pytest.raises(ValueError, match="checkpoint is at iteration 1, past the 0 iterations asked for"):
+        edit(small_sphere, "a dog", tiny_guidance, dataclasses.replace(config, iterations=0), resume_from=checkpoint)
     longer = dataclasses.replace(config, iterations=2,  # and another device's pass size
                                  render=dataclasses.replace(config.render, samples_per_pass=1 << 16))
     edit(small_sphere, "a dog", tiny_guidance, longer, resume_from=checkpoint)

@@ -378,9 +378,12 @@ def edit(
                               "exp_avg": tensors["adam_exp_avg"], "exp_avg_sq": tensors["adam_exp_avg_sq"]}},
                 "param_groups": groups,
             })
+        start = int(meta["iteration"])
+        if start > config.iterations:  # it would have returned the checkpoint's later grid as the one asked for
+            raise ValueError(f"{resume_from}: checkpoint is at iteration {start}, past the {config.iterations} "
+                             f"iterations asked for; ask for at least {start}")
         for name, gen in generators.items():
             gen.set_state(tensors[f"rng_{name}"])
-        start = int(meta["iteration"])
 
     def checkpoint(done: int) -> None:
         save_edit_checkpoint(checkpoint_path, grid, optimizer, generators, done, run_meta)
