@@ -444,7 +444,8 @@ def _split_indices(fmt: str, split: str, n: int, holdout_every: int | None, wher
     if split not in ("train", "test"):
         raise where(f"no split {split!r} in a single transforms.json (use 'train', 'test' or 'all')")
     if holdout_every is None:
-        raise where("no test split: a single transforms.json has no hold-out unless holdout_every is given")
+        raise where("no test split: a single transforms.json (a capture) holds one set of frames; use the split "
+                    "'train' or 'all' (voxe: --split train), or load_scene(..., holdout_every=N) to hold every N-th out")
     held = split == "test"
     keep = [i for i in range(n) if (i % holdout_every == 0) == held]
     if not keep:
