@@ -149,6 +149,9 @@ class RefineConfig:
                 and self.init_value <= 0:
             raise ValueError("fit_pixels='rendered_positive' fits nothing from a constant start <= 0 (nothing renders "
                              "positive, so no pixel is ever counted): use lift_start='backprojection' or fit_pixels='all'")
+        if not (0 < self.lr < math.inf and 0 <= self.tv_weight < math.inf and math.isfinite(self.init_value)):
+            raise ValueError(f"the fit's lr must be positive, tv_weight non-negative and init_value a number (all "
+                             f"finite), got {self.lr}, {self.tv_weight}, {self.init_value}")
         if not 0.0 <= self.object_seed_margin < 1.0:
             raise ValueError(f"object_seed_margin must lie in [0, 1), got {self.object_seed_margin}")
         if not 0.0 < self.node_alpha < 1.0:
