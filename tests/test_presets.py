@@ -58,6 +58,7 @@ REFINE_CASES = [
       "--edit-seeds", "9", "--object-seeds", "8", "--sigma", "0.3", "--smoothness", "2", "--seed", "4"],
      {"seed": 4, "refine": {"iterations": 40, "lr": 0.1, "tv_weight": 0.5, "render_size": 96, "views": 6,
                             "rays_per_step": 512, "edit_seeds": 9, "object_seeds": 8, "sigma": 0.3, "smoothness": 2}}),
+    (["--no-view-words"], {"view_words": False}),  # the attention prompt as the edit's (refine had no such option)
 ]
 RECONSTRUCT_CASES = [
     ([], {}),

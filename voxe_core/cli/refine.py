@@ -56,6 +56,9 @@ def add_parsers(commands, common) -> None:
                           f"P_object > P_edit; the paper's text: the top {paper.OBJECT_SEEDS} by P_object)")
     ref.add_argument("--sigma", type=float, default=paper.CUT_SIGMA, help="colour scale of the graph cut's pairwise weights")
     ref.add_argument("--smoothness", type=float, default=paper.CUT_SMOOTHNESS, help="graph-cut smoothness weight λ")
+    ref.add_argument("--no-view-words", action="store_true",
+                     help="the edit ran with voxe edit --no-view-words: its attention prompt has none either (as "
+                          "the service's view_words does for both stages)")
     ref.add_argument("--preview-views", type=int, default=4, help="ring views rendered as PNGs (0: none)")
     ref.add_argument("--seed", type=seed, default=SEED)
     ref.set_defaults(run=cmd_refine)
@@ -63,7 +66,7 @@ def add_parsers(commands, common) -> None:
 
 def job_params(args: argparse.Namespace) -> dict:
     """What ``voxe refine``'s options say, as the service's job parameters."""
-    return {"seed": args.seed, "refine": {
+    return {"seed": args.seed, "view_words": not args.no_view_words, "refine": {
         "iterations": args.iterations, "lift_start": args.lift_start, "smoothing_sigma": args.smoothing_sigma,
         "lr": args.lr, "tv_weight": args.tv_weight, "render_size": args.render_size,
         "views": args.views, "rays_per_step": args.rays, "edit_seeds": args.edit_seeds,
