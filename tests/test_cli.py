@@ -214,6 +214,18 @@ def test_progress_off_a_terminal_is_a_line_now_and_then_not_ten_redraws_a_second
     assert capsys.readouterr().err.count("\r") == 2
 
 
+def test_options_a_command_would_ignore_are_refused(tmp_path, capsys):
+    """render --data had taken --size / --elevation / --centre-of and rendered the dataset's cameras anyway;
+    convert-grid --dense had taken --margin and written every vertex."""
+    grid = str(tmp_path / "g.safetensors")
+    assert main(["render", grid, "--data", str(tmp_path), "--size", "64", "--elevation", "10",
+                 "--out", str(tmp_path / "r")]) == 2
+    assert "--size, --elevation set the --ring views; --data renders the dataset's own cameras" in \
+        capsys.readouterr().err
+    assert main(["convert-grid", grid, "--dense", "--margin", "3", "--out", str(tmp_path / "d.safetensors")]) == 2
+    assert "--margin sets the sparse layout's kept cells; --dense writes every vertex" in capsys.readouterr().err
+
+
 def test_bad_option_values_exit_2(tmp_path, capsys):
     args = ["reconstruct", str(tmp_path), "--out", str(tmp_path / "g.safetensors")]
     # a named preset fixes the stage count before any data is read (auto's depends on the backbone)

@@ -23,6 +23,8 @@ def cmd_convert_grid(args) -> int:
     from voxe_core.gridfile import DEFAULT_MARGIN
     from voxe_core.tensorio import load_tensors
 
+    if args.dense and args.margin is not None:
+        raise ValueError("--margin sets the sparse layout's kept cells; --dense writes every vertex")
     grid = load_grid(args.grid)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     grid.save(args.out, dense=args.dense, margin=DEFAULT_MARGIN if args.margin is None else args.margin)

@@ -25,8 +25,10 @@ def add_parsers(commands, common) -> None:
     source.add_argument("--data", type=Path, metavar="DATA_DIR", help="render this dataset split's cameras")
     source.add_argument("--ring", type=positive_int, metavar="N", help="render N views on a 360° ring instead")
     add_view_arguments(ren, "test")
-    ren.add_argument("--size", type=positive_int, default=ExportConfig.view_size, help="ring view size in pixels")
-    ren.add_argument("--elevation", type=float, default=ExportConfig.elevation, help="ring elevation in degrees")
+    ren.add_argument("--size", type=positive_int, default=None,
+                     help=f"ring view size in pixels (default {ExportConfig.view_size})")
+    ren.add_argument("--elevation", type=float, default=None,
+                     help=f"ring elevation in degrees (default {ExportConfig.elevation:g})")
     add_centre_argument(ren)
     ren.add_argument("--out", type=Path, required=True, metavar="DIR")
     add_device_argument(ren)
@@ -62,6 +64,10 @@ def cmd_render(args) -> int:
     from voxe_core.export import render_views, save_png, turntable_cameras
 
     device = check_device(args)
+    ring_only = [flag for flag, value in (("--size", args.size), ("--elevation", args.elevation),
+                                          ("--centre-of", args.centre_of)) if value is not None]
+    if args.data is not None and ring_only:  # (they had been accepted and ignored)
+        raise ValueError(f"{', '.join(ring_only)} set the --ring views; --data renders the dataset's own cameras")
     writable_folder(args.out)
     grid = load_grid(args.grid)
     scene = None
@@ -70,7 +76,9 @@ def cmd_render(args) -> int:
         cameras = grid.dataset_cameras(scene.cameras)
         names = [f"{i:03d}_{Path(name).stem}.png" for i, name in enumerate(scene.names)]
     else:
-        cameras = turntable_cameras(args.ring, args.elevation, args.size, centre=orbit_centre(args, grid))
+        elevation = ExportConfig.elevation if args.elevation is None else args.elevation
+        size = ExportConfig.view_size if args.size is None else args.size
+        cameras = turntable_cameras(args.ring, elevation, size, centre=orbit_centre(args, grid))
         names = [f"{i:03d}.png" for i in range(args.ring)]
     frames = run_stage(lambda cb: render_views(grid, cameras, callbacks=cb, device=device), "render", "view",
                        len(cameras), args.quiet)
