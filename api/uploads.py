@@ -7,8 +7,9 @@ loading and rendering a mesh) can find is the worker's ingest (``worker/ingest.p
 scene is ``processing`` until it is ``ready``, or ``failed`` with the reason.
 
 Hostile archives: entries with ``..``, absolute or drive paths, symbolic links or
-encryption, more than ``max_upload_files`` files, more than ``max_extracted_bytes``
-of content, or an entry inflating more than ``max_compression_ratio`` times the
+encryption, a central directory of more records (or bytes) than ``max_upload_files`` files
+explain (counted before ``zipfile`` builds an object per record), more than
+``max_upload_files`` files, more than ``max_extracted_bytes`` of content, or an entry inflating more than ``max_compression_ratio`` times the
 compressed bytes it was read from are refused. Sizes and ratios are counted while
 extracting, from the bytes actually read and written, never from the archive's
 directory. Images are checked against ``max_image_pixels`` from their headers
@@ -33,6 +34,7 @@ import os
 import re
 import shutil
 import stat
+import struct
 import tempfile
 import warnings
 import zipfile
@@ -52,6 +54,13 @@ _RATIO_FLOOR = 4 << 20  # below this many bytes out of an entry, any ratio is fi
 # Small reads: zipfile reads ahead as many compressed bytes as were asked for, and with a lying directory
 # (an entry claiming more compressed bytes than its stream has) that read-ahead would pad the ratio's divisor.
 _CHUNK = 64 << 10
+# A zip's directory may list this many records per file VOXE_MAX_UPLOAD_FILES allows: the file, its folder's entry
+# and macOS's __MACOSX/._ copies of both; each record taking at most this many bytes (46 fixed, then its name and
+# extra fields: a few hundred in any real archive).
+_ENTRIES_PER_FILE = 4
+_DIRECTORY_BYTES_PER_ENTRY = 1024
+_CENTRAL_RECORD = struct.Struct("<4s24x3H12x")  # signature, then the name, extra and comment lengths (46 bytes)
+_ZIP64_END_RECORDS = 56 + 20  # zip64's end record and its locator, between the directory and the end record
 
 
 class UploadError(ValueError):
@@ -99,6 +108,44 @@ class _Budget:
         self.files += 1
         if self.files > self.max_files:
             raise UploadError(f"too many files: more than {self.max_files} (VOXE_MAX_UPLOAD_FILES)", 413)
+
+    def check_directory(self, source: BinaryIO) -> None:
+        """413 for a zip whose central directory holds more records (or bytes) than ``max_files`` files explain.
+
+        ``zipfile.ZipFile`` reads the whole directory and builds an object per record before any file can be
+        counted (a 47 MB directory of a million empty entries took 314 MiB): the records are counted here first,
+        one at a time, where zipfile's own reading of the end records (zip64's too) says they are, and whatever
+        its count claims. A damaged directory is left to zipfile to report.
+        """
+        most = _ENTRIES_PER_FILE * self.max_files
+        try:
+            end = zipfile._EndRecData(source)
+        except OSError:
+            return
+        if not end:
+            return
+        size = end[zipfile._ECD_SIZE]
+        if size > most * _DIRECTORY_BYTES_PER_ENTRY:
+            raise UploadError(f"the archive's directory takes {size} bytes, more than the {most} entries "
+                              f"VOXE_MAX_UPLOAD_FILES={self.max_files} allows can need", 413)
+        start = end[zipfile._ECD_LOCATION] - size
+        if end[zipfile._ECD_SIGNATURE] == zipfile.stringEndArchive64:
+            start -= _ZIP64_END_RECORDS
+        position = entries = 0
+        while position < size and start >= 0:
+            source.seek(start + position)
+            record = source.read(_CENTRAL_RECORD.size)
+            if len(record) < _CENTRAL_RECORD.size:
+                return
+            signature, name, extra, comment = _CENTRAL_RECORD.unpack(record)
+            if signature != zipfile.stringCentralDir:
+                return
+            position += _CENTRAL_RECORD.size + name + extra + comment
+            entries += 1
+            if entries > most:
+                raise UploadError(f"too many files: the archive's directory lists more than {most} entries "
+                                  f"({_ENTRIES_PER_FILE} per file of VOXE_MAX_UPLOAD_FILES={self.max_files}: files, "
+                                  "folders and macOS's __MACOSX copies)", 413)
 
     def add_bytes(self, n: int) -> None:
         self.bytes += n
@@ -150,6 +197,7 @@ def _copy(src: BinaryIO, dest: Path, budget: _Budget, consumed=None, name: str =
 
 def extract_zip(source: BinaryIO, dest: Path, budget: _Budget) -> None:
     """Check every entry's name and type first, then stream the entries out under the budget."""
+    budget.check_directory(source)
     reader = _CountingReader(source)
     try:
         archive = zipfile.ZipFile(reader)

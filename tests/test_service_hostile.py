@@ -222,6 +222,51 @@ def test_file_count_and_content_caps_count_while_extracting(root, monkeypatch): 
         assert stored_files(root) == [] and staged(root) == []
 
 
+def _directory_only(records: int, declared: int, zip64: bool, comment: bytes = b"") -> bytes:
+    """A zip that is only a central directory of ``records`` one-byte-named entries whose end record (zip64's when
+    ``zip64``) declares ``declared`` of them: zipfile reads records until the directory's size is used up."""
+    record = struct.pack("<4s4B4HL2L5H2L", b"PK\x01\x02", 20, 3, 20, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0, len(comment), 0, 0,
+                         0, 0) + b"a" + comment
+    directory = record * records
+    if not zip64:
+        return directory + struct.pack("<4s4H2LH", b"PK\x05\x06", 0, 0, declared, declared, len(directory), 0, 0)
+    end64 = struct.pack("<4sQ2H2L4Q", b"PK\x06\x06", 44, 45, 45, 0, 0, declared, declared, len(directory), 0)
+    locator = struct.pack("<4sLQL", b"PK\x06\x07", 0, len(directory), 1)
+    return directory + end64 + locator + struct.pack("<4s4H2LH", b"PK\x05\x06", 0, 0, 0xFFFF, 0xFFFF, 0xFFFFFFFF,
+                                                        0xFFFFFFFF, 0)
+
+
+@pytest.mark.parametrize("zip64", [False, True])
+def test_a_directory_over_the_file_cap_is_413_before_zipfile_reads_it(tmp_path, monkeypatch, zip64):
+    """zipfile.ZipFile builds an object per directory record before any file is counted (a 47 MB upload of a
+    million empty entries took 314 MiB, a 2 GiB one would take ~14 GiB): the records are counted first, one at a
+    time, whatever the end record's count says, and a directory of more bytes than the cap explains is refused."""
+    import tracemalloc
+
+    from api.uploads import UploadError, _Budget, extract_zip
+
+    cases = {  # (archive, VOXE_MAX_UPLOAD_FILES, message)
+        "honest count": (_directory_only(20_000, 20_000, zip64), 500, "lists more than 2000 entries"),
+        "lying count": (_directory_only(20_000, 1, zip64), 500, "lists more than 2000 entries"),
+        "long records": (_directory_only(1, 1, zip64, comment=bytes(30_000)), 5, "directory takes 30047 bytes"),
+    }
+
+    def unread(*args, **kwargs):
+        raise AssertionError("zipfile read the directory")
+
+    monkeypatch.setattr(zipfile, "ZipFile", unread)
+    for case, (archive, max_files, message) in cases.items():
+        tracemalloc.start()
+        try:
+            with pytest.raises(UploadError, match=message) as refused:
+                extract_zip(io.BytesIO(archive), tmp_path, _Budget(1 << 30, max_files, 200.0))
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert refused.value.status == 413 and f"VOXE_MAX_UPLOAD_FILES={max_files}" in str(refused.value), case
+        assert peak < 64 << 10, (case, peak)  # a 940 kB directory is never held
+
+
 def test_duplicate_and_unwritable_multipart_files(client, dataset, root):  # noqa: F811
     files = [("files", (name, data)) for name, data in _dataset_entries(dataset).items()]
     twice = client.post("/v1/scenes", files=files + [("files", ("./train/r_0.png", b"again"))])
