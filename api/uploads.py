@@ -9,8 +9,9 @@ scene is ``processing`` until it is ``ready``, or ``failed`` with the reason.
 Hostile archives: entries with ``..``, absolute or drive paths, symbolic links or
 encryption, a central directory of more records (or bytes) than ``max_upload_files`` files
 explain (counted before ``zipfile`` builds an object per record), more than
-``max_upload_files`` files, more than ``max_extracted_bytes`` of content, or an entry inflating more than ``max_compression_ratio`` times the
-compressed bytes it was read from are refused. Sizes and ratios are counted while
+``max_upload_files`` files, more than ``max_extracted_bytes`` of content, or an entry, or
+the entries so far together, inflating more than ``max_compression_ratio`` times the
+compressed bytes read for them are refused. Sizes and ratios are counted while
 extracting, from the bytes actually read and written, never from the archive's
 directory. Images are checked against ``max_image_pixels`` from their headers
 before any is decoded (decompression bombs).
@@ -50,7 +51,7 @@ from voxe_service import datasets
 from voxe_service.datasets import (DATASET_ARCHIVE, MESH_FOLDER, MESH_FORMAT, MESH_NAMES, MESH_OPTIONS, UPLOAD_ARCHIVE,
                                    ignored, package)
 
-_RATIO_FLOOR = 4 << 20  # below this many bytes out of an entry, any ratio is fine (small text compresses well)
+_RATIO_FLOOR = 4 << 20  # below this many bytes out of an entry (or the archive), any ratio is fine (text compresses well)
 # Small reads: zipfile reads ahead as many compressed bytes as were asked for, and with a lying directory
 # (an entry claiming more compressed bytes than its stream has) that read-ahead would pad the ratio's divisor.
 _CHUNK = 64 << 10
@@ -103,6 +104,7 @@ class _Budget:
     def __init__(self, max_bytes: int, max_files: int, max_ratio: float):
         self.max_bytes, self.max_files, self.max_ratio = max_bytes, max_files, max_ratio
         self.bytes = self.files = 0
+        self.compressed = 0  # compressed bytes the entries extracted so far were read from
 
     def add_file(self) -> None:
         self.files += 1
@@ -154,10 +156,16 @@ class _Budget:
                               "(VOXE_MAX_EXTRACTED_BYTES)", 413)
 
     def check_ratio(self, name: str, written: int, compressed: int) -> None:
+        """The entry's ratio (``written`` from ``compressed``), and the archive's over every entry so far: many
+        entries each under the floor had written 256 MiB from a 267 kB upload."""
         if written > _RATIO_FLOOR and written > self.max_ratio * max(compressed, 1):
             raise UploadError(f"refused entry {name!r}: it inflates more than {self.max_ratio:g} times the "
                               f"{compressed} compressed bytes read so far (a zip bomb?; "
                               "VOXE_MAX_COMPRESSION_RATIO)", 413)
+        read = self.compressed + compressed
+        if self.bytes > _RATIO_FLOOR and self.bytes > self.max_ratio * max(read, 1):
+            raise UploadError(f"refused archive: its entries inflate more than {self.max_ratio:g} times the {read} "
+                              "compressed bytes read so far (a zip bomb?; VOXE_MAX_COMPRESSION_RATIO)", 413)
 
 
 class _CountingReader:
@@ -220,9 +228,10 @@ def extract_zip(source: BinaryIO, dest: Path, budget: _Budget) -> None:
             entries.append((info, path))
         for info, path in entries:
             try:
+                start = reader.consumed
                 with archive.open(info) as member:
-                    start = reader.consumed
                     _copy(member, dest / path, budget, lambda: reader.consumed - start, info.filename)
+                budget.compressed += reader.consumed - start
             except UploadError:
                 raise
             except FileExistsError:

@@ -204,6 +204,18 @@ def test_a_directory_that_lies_about_compressed_sizes_is_still_a_bomb(client, ro
     assert stored_files(root) == [] and staged(root) == []
 
 
+def test_entries_each_under_the_ratio_floor_are_still_a_bomb_together(tmp_path):
+    """The ratio was checked per entry past 4 MiB only: entries of just under 4 MiB of zeros each had written
+    256 MiB from a 267 kB upload. The archive's bytes written are checked against its compressed bytes read too."""
+    from api.uploads import UploadError, _Budget, extract_zip
+
+    archive = _zip({f"f{i}.bin": bytes(3 << 20) for i in range(4)}, zipfile.ZIP_DEFLATED)
+    with pytest.raises(UploadError, match="refused archive: its entries inflate more than 200 times the") as refused:
+        extract_zip(io.BytesIO(archive), tmp_path, _Budget(1 << 30, 100, 200.0))
+    assert refused.value.status == 413 and "VOXE_MAX_COMPRESSION_RATIO" in str(refused.value)
+    assert sum(p.stat().st_size for p in tmp_path.rglob("*")) <= (4 << 20) + (64 << 10)  # stopped past the floor
+
+
 def test_file_count_and_content_caps_count_while_extracting(root, monkeypatch):  # noqa: F811
     from api.main import create_app
 
