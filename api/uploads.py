@@ -203,6 +203,18 @@ def _copy(src: BinaryIO, dest: Path, budget: _Budget, consumed=None, name: str =
             out.write(chunk)
 
 
+def _entry_name(info: zipfile.ZipInfo) -> str:
+    """The entry's name. Info-ZIP's ``zip`` (Linux, macOS) stores UTF-8 names without the zip UTF-8 flag (0x800),
+    which zipfile then decodes as cp437 ("café_0.png" as "cafÃ©_0.png": its frame "not found"); such a name whose
+    bytes are valid UTF-8 is read as UTF-8."""
+    if info.flag_bits & 0x800:
+        return info.filename
+    try:
+        return info.filename.encode("cp437").decode("utf-8")
+    except UnicodeError:  # really cp437, or a name zipfile took from a Unicode path field
+        return info.filename
+
+
 def extract_zip(source: BinaryIO, dest: Path, budget: _Budget) -> None:
     """Check every entry's name and type first, then stream the entries out under the budget."""
     budget.check_directory(source)
@@ -214,6 +226,7 @@ def extract_zip(source: BinaryIO, dest: Path, budget: _Budget) -> None:
     with archive:
         entries, seen = [], {}
         for info in archive.infolist():
+            info.filename = _entry_name(info)  # (zipfile checks the local header against ``orig_filename``)
             path = safe_relative(info.filename)
             if stat.S_ISLNK(info.external_attr >> 16):
                 raise UploadError(f"refused entry {info.filename!r}: symbolic links are not allowed")

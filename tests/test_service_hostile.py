@@ -279,6 +279,27 @@ def test_a_directory_over_the_file_cap_is_413_before_zipfile_reads_it(tmp_path, 
         assert peak < 64 << 10, (case, peak)  # a 940 kB directory is never held
 
 
+def test_utf8_names_info_zip_stores_without_the_utf8_flag_are_read_as_utf8(client, dataset, root):  # noqa: F811
+    """Info-ZIP's ``zip -r`` (Linux) stores UTF-8 names without the zip UTF-8 flag: zipfile read "café_0.png" as
+    cp437 and the frame naming it was "not found" (422)."""
+    name = "train/café_0.png"
+    meta = _meta(dataset)
+    meta["frames"][0]["file_path"] = "./train/café_0"
+    entries = _dataset_entries(dataset, drop="train/r_0.png", json_text=json.dumps(meta))
+    archive = bytearray(_zip({**entries, name: (dataset / "train" / "r_0.png").read_bytes()}))
+    at = -1
+    while (at := archive.find(name.encode(), at + 1)) >= 0:  # the flag cleared where Info-ZIP leaves it unset
+        flags = at - 30 + 6 if archive[at - 30:at - 26] == b"PK\x03\x04" else at - 46 + 8  # local header, directory
+        assert struct.unpack_from("<H", archive, flags)[0] & 0x800
+        struct.pack_into("<H", archive, flags, struct.unpack_from("<H", archive, flags)[0] & ~0x800)
+    with zipfile.ZipFile(io.BytesIO(archive)) as zf:
+        assert "train/caf├⌐_0.png" in zf.namelist()  # as zipfile reads it
+    response = client.post("/v1/scenes", files={"archive": ("infozip.zip", bytes(archive), "application/zip")})
+    assert response.status_code == 201, response.text
+    with zipfile.ZipFile(root / "storage" / "scenes" / response.json()["id"] / "dataset.zip") as stored:
+        assert name in stored.namelist()
+
+
 def test_duplicate_and_unwritable_multipart_files(client, dataset, root):  # noqa: F811
     files = [("files", (name, data)) for name, data in _dataset_entries(dataset).items()]
     twice = client.post("/v1/scenes", files=files + [("files", ("./train/r_0.png", b"again"))])
