@@ -51,7 +51,7 @@ from voxe_service import datasets
 from voxe_service.datasets import (DATASET_ARCHIVE, MESH_FOLDER, MESH_FORMAT, MESH_NAMES, MESH_OPTIONS, UPLOAD_ARCHIVE,
                                    ignored, package)
 
-_RATIO_FLOOR = 4 << 20  # below this many bytes out of an entry (or the archive), any ratio is fine (text compresses well)
+_RATIO_FLOOR = 4 << 20  # below this many bytes out of an entry (or the archive), any ratio is fine (text compresses)
 # Small reads: zipfile reads ahead as many compressed bytes as were asked for, and with a lying directory
 # (an entry claiming more compressed bytes than its stream has) that read-ahead would pad the ratio's divisor.
 _CHUNK = 64 << 10
@@ -100,6 +100,10 @@ def safe_relative(name: str) -> PurePosixPath:
     return PurePosixPath(*parts)
 
 
+def too_many_files(max_files: int) -> str:
+    return f"too many files: more than {max_files} (VOXE_MAX_UPLOAD_FILES)"
+
+
 class _Budget:
     def __init__(self, max_bytes: int, max_files: int, max_ratio: float):
         self.max_bytes, self.max_files, self.max_ratio = max_bytes, max_files, max_ratio
@@ -109,7 +113,7 @@ class _Budget:
     def add_file(self) -> None:
         self.files += 1
         if self.files > self.max_files:
-            raise UploadError(f"too many files: more than {self.max_files} (VOXE_MAX_UPLOAD_FILES)", 413)
+            raise UploadError(too_many_files(self.max_files), 413)
 
     def check_directory(self, source: BinaryIO) -> None:
         """413 for a zip whose central directory holds more records (or bytes) than ``max_files`` files explain.

@@ -234,6 +234,23 @@ def test_file_count_and_content_caps_count_while_extracting(root, monkeypatch): 
         assert stored_files(root) == [] and staged(root) == []
 
 
+def test_files_past_starlettes_thousand_count_against_the_setting(client, root, monkeypatch):  # noqa: F811
+    """Starlette parses at most 1000 files of a form unless told otherwise: 1001 ``files`` had been a 400 "Too many
+    files" with VOXE_MAX_UPLOAD_FILES at 20000. Now the form allows the setting's count, and more is its 413."""
+    from api.main import create_app
+
+    files = [("files", (f"images/{i:04d}.png", b"x")) for i in range(1001)] + [("files", ("transforms.json", b"{}"))]
+    checked = client.post("/v1/scenes", files=files)
+    assert checked.status_code == 422 and checked.json()["detail"].startswith("invalid dataset"), checked.text
+    monkeypatch.setenv("VOXE_MAX_UPLOAD_FILES", "1001")
+    _reset()
+    with TestClient(create_app()) as limited:
+        refused = limited.post("/v1/scenes", files=files)
+    assert refused.status_code == 413
+    assert refused.json()["detail"] == "too many files: more than 1001 (VOXE_MAX_UPLOAD_FILES)"
+    assert stored_files(root) == [] and staged(root) == []
+
+
 def _directory_only(records: int, declared: int, zip64: bool, comment: bytes = b"") -> bytes:
     """A zip that is only a central directory of ``records`` one-byte-named entries whose end record (zip64's when
     ``zip64``) declares ``declared`` of them: zipfile reads records until the directory's size is used up."""

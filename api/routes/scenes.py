@@ -4,14 +4,42 @@ from __future__ import annotations
 
 from typing import Literal
 
-from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Request, Response, UploadFile, status
+from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Request, Response, UploadFile, params, status
+from fastapi.routing import APIRoute
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from api.auth import mark_replayed
 from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep, StorageDep
 from api.schemas import Page, ReconstructionOut, SceneOut
 from api.services import scenes
+from api.uploads import too_many_files
+from voxe_service.settings import get_settings
 
-router = APIRouter(prefix="/v1/scenes", tags=["scenes"])
+
+class UploadFilesRoute(APIRoute):
+    """A form route whose multipart body is parsed allowing ``VOXE_MAX_UPLOAD_FILES`` files, before FastAPI parses it
+    (then reusing this parse): Starlette's default of 1000 had answered an upload of 1001 ``files`` 400 "Too many
+    files". More than the setting is the upload's own 413."""
+
+    def get_route_handler(self):
+        handler = super().get_route_handler()
+        if not (self.body_field and isinstance(self.body_field.field_info, params.Form)):
+            return handler
+
+        async def parse_then_handle(request: Request) -> Response:
+            max_files = get_settings().max_upload_files
+            try:
+                await request.form(max_files=max_files)
+            except StarletteHTTPException as exc:  # Starlette's 400 for a form it refuses
+                if exc.status_code == 400 and str(exc.detail).startswith("Too many files"):
+                    raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE, too_many_files(max_files)) from None
+                raise
+            return await handler(request)
+
+        return parse_then_handle
+
+
+router = APIRouter(prefix="/v1/scenes", tags=["scenes"], route_class=UploadFilesRoute)
 
 _ERRORS = {404: {"description": "no such scene (or another key's)"}}
 MAX_OFFSET = 1_000_000_000
@@ -36,7 +64,8 @@ async def one_archive(request: Request) -> None:
     responses={200: {"description": "a retry with the same Idempotency-Key: the scene it created"},
                401: {"description": "missing or invalid API key"},
                409: {"description": "a retry whose Idempotency-Key created a scene that has since been deleted"},
-               413: {"description": "upload over the size limit"},
+               413: {"description": "upload over a limit: its size, its count of files, a zip's compression ratio or "
+                                    "an image's pixels (the message names the setting)"},
                422: {"description": "not a valid dataset (the message names the file and frame), or an "
                                     "Idempotency-Key reused with a different upload"},
                429: {"description": "the key's upload quota is used up (Retry-After)"},
