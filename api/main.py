@@ -143,6 +143,11 @@ def create_app(settings: Settings | None = None, migrate: bool = True) -> FastAP
         from voxe_service.storage import get_storage
 
         get_storage(settings)  # fail at startup, not on the first request, when storage is misconfigured
+        from api.uploads import sweep_staging
+
+        if swept := sweep_staging(settings.work_dir):
+            log.info("removed %d upload staging folder(s) that stopped API processes left in %s", swept,
+                     settings.work_dir)
         log.info("Vox-E API ready: SDS model %s, attention model %s", model_label(settings.sds_model),
                  model_label(settings.attention_model))
         from api.reaper import Reaper

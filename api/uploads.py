@@ -2,7 +2,8 @@
 
 Everything answered here is answered at once (4xx) and leaves nothing behind: the caller
 stores the packed archive and inserts the scene row only after :func:`stage_upload`
-returns, and the staging folder is always removed. What only decoding every image (or
+returns, and the staging folder is always removed (:func:`staging_folder`; one an API process
+killed mid-upload left, by :func:`sweep_staging` as an API process starts). What only decoding every image (or
 loading and rendering a mesh) can find is the worker's ingest (``worker/ingest.py``): the
 scene is ``processing`` until it is ``ready``, or ``failed`` with the reason.
 
@@ -30,6 +31,7 @@ kept for route (b), and the scene's format is ``mesh``.
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import re
@@ -39,6 +41,8 @@ import struct
 import tempfile
 import warnings
 import zipfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import BinaryIO
@@ -60,6 +64,7 @@ _CHUNK = 64 << 10
 # extra fields: a few hundred in any real archive).
 _ENTRIES_PER_FILE = 4
 _DIRECTORY_BYTES_PER_ENTRY = 1024
+_UPLOADS, _STAGING_PREFIX, _OWNER = "uploads", "upload-", ".owner"  # work_dir/uploads/upload-*/.owner
 _CENTRAL_RECORD = struct.Struct("<4s24x3H12x")  # signature, then the name, extra and comment lengths (46 bytes)
 _ZIP64_END_RECORDS = 56 + 20  # zip64's end record and its locator, between the directory and the end record
 
@@ -415,8 +420,47 @@ def _check_frame_images(root: Path, json_name: str, frames: list[dict], staging:
     return first[0]
 
 
+@contextmanager
+def staging_folder(work_dir: Path) -> Iterator[Path]:
+    """A new folder for one upload under ``work_dir/uploads``, removed on leaving. Its ``.owner`` file is locked
+    meanwhile (flock, which the kernel releases when the process dies): :func:`sweep_staging` leaves it alone."""
+    uploads = Path(work_dir) / _UPLOADS
+    uploads.mkdir(parents=True, exist_ok=True)
+    while True:
+        staging = Path(tempfile.mkdtemp(dir=uploads, prefix=_STAGING_PREFIX))
+        try:
+            owner = open(staging / _OWNER, "ab")
+        except FileNotFoundError:  # swept before it was locked: another
+            continue
+        fcntl.flock(owner, fcntl.LOCK_EX)
+        if staging.is_dir():  # (else swept before it was locked)
+            break
+        owner.close()
+    try:
+        with owner:
+            yield staging
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def sweep_staging(work_dir: Path) -> int:
+    """Remove the staging folders under ``work_dir/uploads`` whose lock no process holds: those of an API process
+    killed mid-upload, kept for ever otherwise; the count removed. Safe beside the API processes sharing
+    ``work_dir``: their uploads' folders are locked (one swept before its process locked it is replaced)."""
+    removed = 0
+    for staging in (Path(work_dir) / _UPLOADS).glob(_STAGING_PREFIX + "*"):
+        try:
+            with open(staging / _OWNER, "ab") as owner:  # (made for a folder whose process died before making it)
+                fcntl.flock(owner, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                shutil.rmtree(staging, ignore_errors=True)
+        except (BlockingIOError, FileNotFoundError, NotADirectoryError):  # in use, removed meanwhile, not a folder
+            continue
+        removed += 1
+    return removed
+
+
 def stage_upload(
-    work_dir: Path,
+    staging: Path,
     archive: BinaryIO | None,
     files: list[tuple[str, BinaryIO]],
     max_bytes: int,
@@ -425,40 +469,31 @@ def stage_upload(
     max_ratio: float,
     max_image_pixels: int,
     mesh_shading: str | None = None,
-) -> tuple[StagedUpload, Path]:
-    """Unpack, check and pack an upload; returns (result, staging folder to remove after storing).
+) -> StagedUpload:
+    """Unpack, check and pack an upload in ``staging`` (a :func:`staging_folder`, holding the packed archive).
 
     ``mesh_shading`` (a mesh upload's ``voxe_core.mesh_input.shade_mesh`` mode; default "auto") is
     refused for a dataset of images."""
     if (archive is None) == (not files):
         raise UploadError("send either one zip 'archive' or the dataset's 'files' (with the transforms json)")
-    work_dir.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(dir=work_dir, prefix="upload-"))
-    try:
-        budget = _Budget(max_bytes, max_files, max_ratio)
-        unpacked = staging / "data"
-        unpacked.mkdir()
-        if archive is not None:
-            extract_zip(archive, unpacked, budget)
-        else:
-            save_files(files, unpacked, budget)
-        check_image_pixels(unpacked, max_image_pixels)
-        root = dataset_root(unpacked)
-        packed = staging / "packed.zip"
-        mesh = pack_mesh_upload(root, staging / "mesh_upload", mesh_shading or "auto")
-        if mesh is not None:  # rendered by the ingest into MESH_VIEWS views of MESH_VIEW_SIZE px (train and test)
-            package(mesh, packed)
-            size = datasets.MESH_VIEW_SIZE
-            result = StagedUpload(MESH_FORMAT, datasets.MESH_VIEWS, size, size, ["train", "test"], packed,
-                                  UPLOAD_ARCHIVE)
-        else:
-            if mesh_shading is not None:
-                raise UploadError("mesh_shading applies to mesh uploads only (.obj or .ply); this upload is a "
-                                  "dataset of images")
-            fmt, count, width, height, splits = check_dataset(root, unpacked, validation_downsample)
-            package(root, packed)
-            result = StagedUpload(fmt, count, width, height, splits, packed, DATASET_ARCHIVE)
-        return result, staging
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
+    budget = _Budget(max_bytes, max_files, max_ratio)
+    unpacked = staging / "data"
+    unpacked.mkdir()
+    if archive is not None:
+        extract_zip(archive, unpacked, budget)
+    else:
+        save_files(files, unpacked, budget)
+    check_image_pixels(unpacked, max_image_pixels)
+    root = dataset_root(unpacked)
+    packed = staging / "packed.zip"
+    mesh = pack_mesh_upload(root, staging / "mesh_upload", mesh_shading or "auto")
+    if mesh is not None:  # rendered by the ingest into MESH_VIEWS views of MESH_VIEW_SIZE px (train and test)
+        package(mesh, packed)
+        size = datasets.MESH_VIEW_SIZE
+        return StagedUpload(MESH_FORMAT, datasets.MESH_VIEWS, size, size, ["train", "test"], packed, UPLOAD_ARCHIVE)
+    if mesh_shading is not None:
+        raise UploadError("mesh_shading applies to mesh uploads only (.obj or .ply); this upload is a dataset of "
+                          "images")
+    fmt, count, width, height, splits = check_dataset(root, unpacked, validation_downsample)
+    package(root, packed)
+    return StagedUpload(fmt, count, width, height, splits, packed, DATASET_ARCHIVE)

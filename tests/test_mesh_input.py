@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from contextlib import ExitStack, contextmanager
+
 
 import numpy as np
 import pytest
@@ -213,15 +215,13 @@ def test_mesh_dataset_loads_back_as_the_rasterised_views(tmp_path, green_sphere)
 
 
 # ------------------------------------------------------------------ service upload
+@contextmanager
 def _stage(tmp_path, files, mesh_shading=None):
-    from api.uploads import stage_upload
+    from api.uploads import stage_upload, staging_folder
 
-    opened = [(name, open(path, "rb")) for name, path in files]
-    try:
-        return stage_upload(tmp_path / "work", None, opened, 1 << 30, 100, 8, 1000.0, 1 << 26, mesh_shading)
-    finally:
-        for _, f in opened:
-            f.close()
+    with staging_folder(tmp_path / "work") as staging, ExitStack() as opened:
+        yield stage_upload(staging, None, [(name, opened.enter_context(open(path, "rb"))) for name, path in files],
+                           1 << 30, 100, 8, 1000.0, 1 << 26, mesh_shading)
 
 
 def _ingest_mesh_upload(tmp_path, files, mesh_shading=None):
@@ -231,16 +231,10 @@ def _ingest_mesh_upload(tmp_path, files, mesh_shading=None):
 
     from worker.ingest import decode, render_mesh
 
-    import shutil
-
-    staged, staging = _stage(tmp_path, files, mesh_shading)
     root = tmp_path / "ingested"
-    try:
-        with zipfile.ZipFile(staged.archive) as archive:
-            archive.extractall(root)
-            stored = archive.namelist()
-    finally:
-        shutil.rmtree(staging)
+    with _stage(tmp_path, files, mesh_shading) as staged, zipfile.ZipFile(staged.archive) as archive:
+        archive.extractall(root)
+        stored = archive.namelist()
     render_mesh(root)
     decoded = decode(root, 8)
     assert decoded.backbone == "relu_field"  # rendered views: the object on a transparent background
@@ -274,13 +268,15 @@ def test_a_bad_mesh_upload_names_the_problem_and_leaves_nothing(tmp_path):
     (tmp_path / "nan.obj").write_text("v nan 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
     with pytest.raises(IngestError, match="invalid mesh: nan.obj: vertex coordinates contain NaN or Inf"):
         _ingest_mesh_upload(tmp_path, [("nan.obj", tmp_path / "nan.obj")])
-    with pytest.raises(UploadError, match="several images .'a.png', 'b.png'.; send one texture") as info:
-        _stage(tmp_path, [("m.obj", SPOT / "spot_triangulated.obj"), ("a.png", SPOT / "spot_texture.png"),
-                          ("b.png", SPOT / "spot_texture.png")])
+    with pytest.raises(UploadError, match="several images .'a.png', 'b.png'.; send one texture") as info, \
+            _stage(tmp_path, [("m.obj", SPOT / "spot_triangulated.obj"), ("a.png", SPOT / "spot_texture.png"),
+                              ("b.png", SPOT / "spot_texture.png")]):
+        pass
     assert info.value.status == 422
-    with pytest.raises(UploadError, match="several meshes .'a.obj', 'b.ply'.; send one"):
-        _stage(tmp_path, [("a.obj", SPOT / "spot_triangulated.obj"), ("b.ply", SPOT / "spot_triangulated.obj")])
-    assert list((tmp_path / "work").iterdir()) == []
+    with pytest.raises(UploadError, match="several meshes .'a.obj', 'b.ply'.; send one"), \
+            _stage(tmp_path, [("a.obj", SPOT / "spot_triangulated.obj"), ("b.ply", SPOT / "spot_triangulated.obj")]):
+        pass
+    assert list((tmp_path / "work" / "uploads").iterdir()) == []
 
 
 # ------------------------------------------------------------------ baked shading (meshes without colour)
@@ -368,6 +364,7 @@ def test_mesh_shading_is_stored_with_the_upload_and_honoured_by_the_ingest(tmp_p
     Image.new("RGB", (8, 6)).save(tmp_path / "images" / "0.png")
     (tmp_path / "transforms.json").write_text(json.dumps(
         {"fl_x": 8.0, "frames": [{"file_path": "images/0.png", "transform_matrix": np.eye(4).tolist()}]}))
-    with pytest.raises(UploadError, match="mesh_shading applies to mesh uploads only"):
-        _stage(tmp_path, [("transforms.json", tmp_path / "transforms.json"), ("images/0.png", tmp_path / "images/0.png")],
-               "baked")
+    with pytest.raises(UploadError, match="mesh_shading applies to mesh uploads only"), \
+            _stage(tmp_path, [("transforms.json", tmp_path / "transforms.json"),
+                              ("images/0.png", tmp_path / "images/0.png")], "baked"):
+        pass

@@ -184,6 +184,49 @@ def test_an_ingest_stopped_by_a_cold_shutdown_goes_back_to_the_queue_keeping_the
     assert ingest(scene["id"]) == {"scene_id": scene["id"], "state": "ready"}
 
 
+def test_a_starting_api_process_removes_the_staging_folders_no_live_process_holds(root, monkeypatch):
+    """An API process killed mid-upload (OOM, SIGKILL, a deploy) left its staging folder in work/uploads for good. A
+    starting one removes those whose lock (flock on .owner) no process holds; an upload in progress in another
+    process sharing the work folder keeps its folder, and one whose folder was swept before it locked it makes
+    another."""
+    import tempfile
+
+    from api import uploads
+    from api.main import create_app
+
+    work = root / "work"
+    with uploads.staging_folder(work) as live:
+        killed = work / "uploads" / "upload-killed"  # its process's lock went with the process
+        (killed / "data").mkdir(parents=True)
+        (killed / ".owner").touch()
+        (killed / "data" / "big.bin").write_bytes(b"x" * 1000)
+        (work / "uploads" / "upload-unlocked").mkdir()  # its process died before it made its lock file
+        with TestClient(create_app()):
+            assert staged(root) == [live.name]
+    # Another process sweeping a folder between its making and its locking: the upload makes another.
+    make, open_file, made, opened = tempfile.mkdtemp, open, [], []
+
+    def made_then_swept(**kwargs):
+        made.append(Path(make(**kwargs)))
+        if len(made) == 1:
+            assert uploads.sweep_staging(work) == 1
+        return str(made[-1])
+
+    def opened_then_swept(path, *args):
+        opened.append(handle := open_file(path, *args))
+        if len(opened) == 1:  # (the sweep's own open is the second)
+            assert uploads.sweep_staging(work) == 1
+        return handle
+
+    for name, swept in (("tempfile.mkdtemp", made_then_swept), ("open", opened_then_swept)):
+        with monkeypatch.context() as patch:
+            patch.setattr(uploads if name == "open" else tempfile, name.split(".")[-1], swept, raising=False)
+            with uploads.staging_folder(work) as replaced:
+                assert staged(root) == [replaced.name]
+        assert staged(root) == []
+    assert len(made) == 2 and len(opened) == 3
+
+
 def test_a_processing_scene_can_be_deleted_and_its_ingest_keeps_nothing(client, dataset, root):
     scene = upload_zip(client, zip_folder(dataset, root / "ok.zip", prefix="mic_small")).json()
     assert stored_files(root) == [f"scenes/{scene['id']}/dataset.zip"]

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
@@ -15,7 +14,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from api.auth import Idempotency, check_upload_bytes
-from api.uploads import UploadError, stage_upload
+from api.uploads import UploadError, stage_upload, staging_folder
 from voxe_service.models import FAILED, QUEUED, RUNNING, ApiKey, Job, Reconstruction, Scene, new_id
 from voxe_service.queue import TaskQueue
 from voxe_service.quotas import lock_key
@@ -69,41 +68,40 @@ def create_scene(*, session: Session, settings: Settings, storage: Storage, queu
         return replayed, True
     check_upload_bytes(session, key, settings, 0)  # already over: answer before unpacking anything
     session.commit()  # its connection back to the pool while the upload is unpacked and stored (minutes for GBs)
-    try:
-        staged, staging = stage_upload(
-            Path(settings.work_dir) / "uploads", upload.archive, upload.files, settings.max_extracted_bytes,
-            settings.max_upload_files, settings.validation_downsample, settings.max_compression_ratio,
-            settings.max_image_pixels, upload.mesh_shading,
-        )
-    except UploadError as exc:
-        raise HTTPException(exc.status, str(exc)) from None
-    scene_id = new_id()
-    storage_key = scene_key(scene_id, staged.archive_name)
-    try:
-        stored = storage.put_file(storage_key, staged.archive, "application/zip")
-        stem = Path(upload.archive_name or "").stem if upload.archive is not None else ""
-        default_name = "".join(c for c in stem if c.isprintable())[:255]  # a filename's control characters dropped
-        scene = Scene(
-            id=scene_id, owner_key_id=key.id, name=upload.name or default_name or f"scene-{scene_id[:8]}",
-            format=staged.format, image_count=staged.image_count, width=staged.width, height=staged.height,
-            splits=staged.splits, storage_key=storage_key, size_bytes=stored.size, sha256=stored.sha256,
-        )
-        lock_key(session, key.id)
-        session.add(scene)
-        if idem is not None:
-            idem.record(session, key, scene_id)
-        session.flush()
-        check_upload_bytes(session, key, settings, stored.size, including_new=True)
-        session.commit()
-    except BaseException as exc:
-        session.rollback()
-        storage.delete(storage_key)
-        if idem is not None and isinstance(exc, IntegrityError):  # a concurrent retry created it first
-            if (replayed := idem.replayed(session, key, Scene)) is not None:
-                return replayed, True
-        raise
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
+    with staging_folder(settings.work_dir) as staging:
+        try:
+            staged = stage_upload(
+                staging, upload.archive, upload.files, settings.max_extracted_bytes, settings.max_upload_files,
+                settings.validation_downsample, settings.max_compression_ratio, settings.max_image_pixels,
+                upload.mesh_shading,
+            )
+        except UploadError as exc:
+            raise HTTPException(exc.status, str(exc)) from None
+        scene_id = new_id()
+        storage_key = scene_key(scene_id, staged.archive_name)
+        try:
+            stored = storage.put_file(storage_key, staged.archive, "application/zip")
+            stem = Path(upload.archive_name or "").stem if upload.archive is not None else ""
+            default_name = "".join(c for c in stem if c.isprintable())[:255]  # a filename's control characters dropped
+            scene = Scene(
+                id=scene_id, owner_key_id=key.id, name=upload.name or default_name or f"scene-{scene_id[:8]}",
+                format=staged.format, image_count=staged.image_count, width=staged.width, height=staged.height,
+                splits=staged.splits, storage_key=storage_key, size_bytes=stored.size, sha256=stored.sha256,
+            )
+            lock_key(session, key.id)
+            session.add(scene)
+            if idem is not None:
+                idem.record(session, key, scene_id)
+            session.flush()
+            check_upload_bytes(session, key, settings, stored.size, including_new=True)
+            session.commit()
+        except BaseException as exc:
+            session.rollback()
+            storage.delete(storage_key)
+            if idem is not None and isinstance(exc, IntegrityError):  # a concurrent retry created it first
+                if (replayed := idem.replayed(session, key, Scene)) is not None:
+                    return replayed, True
+            raise
     _queue_ingest(session, storage, queue, scene, key, idem)
     return scene, False
 
