@@ -545,6 +545,82 @@ def test_artifact_download_ranges_and_names(client, dataset, root):
     assert client.head(url).status_code == 404  # as the GET (it had answered 200 and a length)
 
 
+def _replace_artifact(job_id: str, data: bytes) -> None:
+    """Replace the job's render_000.png as the worker's publish_artifact does (a republished preview): the bytes under
+    a new key, the row switched to it, the old object deleted."""
+    import uuid
+
+    from sqlalchemy import select
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Artifact
+    from voxe_service.storage import get_storage
+
+    stored = get_storage().put_bytes(f"jobs/{job_id}/v-{uuid.uuid4().hex[:12]}/render_000.png", data)
+    with session_scope() as session:
+        artifact = session.scalars(select(Artifact).where(Artifact.job_id == job_id)).one()
+        old, (artifact.key, artifact.size, artifact.sha256) = artifact.key, (stored.key, stored.size, stored.sha256)
+    get_storage().delete(old)
+
+
+def test_a_download_racing_its_artifacts_replacement_serves_the_new_bytes(client, dataset, root, monkeypatch):
+    """An artifact replaced between the route's read of its row and its open of the object (the old one deleted)
+    had answered 404 "missing from storage" though the next GET was 200: the row is read again once."""
+    import hashlib
+
+    from voxe_service.storage import LocalStorage
+
+    job_id, _ = _job_with_artifact(client, dataset, root, b"A" * 5000)
+    url = f"/v1/jobs/{job_id}/artifacts/render_000.png"
+    open_object, replacing = LocalStorage._open, []
+
+    def replaced_first(self, key):
+        if replacing:
+            _replace_artifact(job_id, replacing.pop())
+        return open_object(self, key)
+
+    monkeypatch.setattr(LocalStorage, "_open", replaced_first)
+    for request, data in ((client.head, b"B" * 6000), (client.get, b"C" * 7000)):
+        replacing.append(data)
+        response = request(url)
+        assert response.status_code == 200 and not replacing
+        assert response.headers["x-checksum-sha256"] == hashlib.sha256(data).hexdigest()
+        assert response.headers["content-length"] == str(len(data)) and response.content in (b"", data)
+
+
+@BOTH_DATABASES
+def test_a_download_holds_no_database_connection_while_it_streams(client, dataset, root, monkeypatch):
+    """A download had held its request's pooled connection (on PostgreSQL, a transaction open) until its client read
+    the last byte: two slow ones with a pool of 2 made every other request wait and fail 503. The pool is sampled
+    a few times as the body streams (a background poll may hold a connection for an instant, never for all)."""
+    import time
+
+    from voxe_service.db import get_engine
+    from voxe_service.storage import get_storage
+
+    data = bytes(range(256)) * 40
+    job_id, _ = _job_with_artifact(client, dataset, root, data)
+    storage_class = type(get_storage())
+    open_range, least_held = storage_class.open_range, []
+
+    def sampled(self, key, start=0, end=None):
+        chunks = open_range(self, key, start, end)
+
+        def streamed():
+            samples = []
+            for _ in range(5):
+                samples.append(get_engine().pool.checkedout())
+                time.sleep(0.01)
+            least_held.append(min(samples))
+            yield from chunks
+        return streamed()
+
+    monkeypatch.setattr(storage_class, "open_range", sampled)
+    response = client.get(f"/v1/jobs/{job_id}/artifacts/render_000.png")
+    assert response.status_code == 200 and response.content == data
+    assert least_held == [0]
+
+
 @BOTH_DATABASES
 def test_delete_scene(client, dataset, root):
     job_id, scene_id = _job_with_artifact(client, dataset, root, b"png")

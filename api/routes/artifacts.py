@@ -12,7 +12,7 @@ from api.deps import CurrentKey, SessionDep, StorageDep
 from api.schemas import ArtifactOut
 from api.services.jobs import get_job
 from voxe_service.models import Artifact
-from voxe_service.storage import ObjectNotFound
+from voxe_service.storage import ObjectNotFound, Storage
 
 router = APIRouter(prefix="/v1/jobs/{job_id}/artifacts", tags=["artifacts"])
 
@@ -78,11 +78,28 @@ def list_artifacts(job_id: str, session: SessionDep, key: CurrentKey) -> list[Ar
 )
 def get_artifact(job_id: str, name: str, request: Request, session: SessionDep, storage: StorageDep,
                  key: CurrentKey) -> Response:
-    get_job(session=session, key=key, job_id=job_id)
-    # Only names recorded for this job are served: no path is ever built from the request.
-    artifact = session.scalars(select(Artifact).where(Artifact.job_id == job_id, Artifact.name == name)).first()
-    if artifact is None:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id!r} has no artifact {name!r}")
+    # The session is closed before the body streams: a download had held its pooled connection (on PostgreSQL, a
+    # transaction open) until its client read the last byte, and two slow ones made every other request wait.
+    try:
+        get_job(session=session, key=key, job_id=job_id)
+        for attempt in range(2):
+            # Only names recorded for this job are served: no path is ever built from the request.
+            artifact = session.scalars(select(Artifact).where(Artifact.job_id == job_id, Artifact.name == name)).first()
+            if artifact is None:
+                raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id!r} has no artifact {name!r}")
+            try:
+                return _answer(request.method, storage, artifact, request.headers.get("range"))
+            except ObjectNotFound:
+                if attempt:
+                    raise HTTPException(status.HTTP_404_NOT_FOUND,
+                                        f"artifact {name!r} is missing from storage") from None
+                session.rollback()  # read the row anew: a replaced artifact (a republished preview) has a new key
+    finally:
+        session.close()
+
+
+def _answer(method: str, storage: Storage, artifact: Artifact, range_: str | None) -> Response:
+    """The artifact's answer to a GET or HEAD with this Range header; ObjectNotFound when its object is not stored."""
     size = artifact.size
     headers = {
         "Accept-Ranges": "bytes",
@@ -90,7 +107,7 @@ def get_artifact(job_id: str, name: str, request: Request, session: SessionDep, 
         "Content-Disposition": f'inline; filename="{artifact.name}"',
         "X-Checksum-SHA256": artifact.sha256,
     }
-    byte_range = parse_range(request.headers.get("range"), size)
+    byte_range = parse_range(range_, size)
     if byte_range is None:
         start, end, code = 0, size - 1, status.HTTP_200_OK
     else:
@@ -98,13 +115,9 @@ def get_artifact(job_id: str, name: str, request: Request, session: SessionDep, 
         code = status.HTTP_206_PARTIAL_CONTENT
         headers["Content-Range"] = f"bytes {start}-{end}/{size}"
     headers["Content-Length"] = str(max(0, end - start + 1))
-    missing = HTTPException(status.HTTP_404_NOT_FOUND, f"artifact {name!r} is missing from storage")
-    if request.method == "HEAD":  # answers as the GET would (it had said 200 for a file the GET could not serve)
-        if size and not storage.exists(artifact.key):  # the GET of an empty file reads nothing
-            raise missing
+    if method == "HEAD":  # answers as the GET would (it had said 200 for a file the GET could not serve)
+        if size:  # the GET of an empty file reads nothing
+            storage.size(artifact.key)
         return Response(status_code=code, headers=headers, media_type=artifact.content_type)
-    try:
-        body = storage.open_range(artifact.key, start, end) if size else iter(())
-    except ObjectNotFound:
-        raise missing from None
+    body = storage.open_range(artifact.key, start, end) if size else iter(())
     return StreamingResponse(body, status_code=code, headers=headers, media_type=artifact.content_type)
