@@ -563,6 +563,36 @@ def _replace_artifact(job_id: str, data: bytes) -> None:
     get_storage().delete(old)
 
 
+def test_conditional_downloads_follow_if_range_and_if_none_match(client, dataset, root):
+    """If-Range was ignored: a download resumed after its artifact was replaced (a republished preview) spliced the
+    old bytes' head to the new bytes' tail. Now an If-Range other than the current ETag (a weak one, a date: no
+    Last-Modified is sent) gets the whole file with 200 (RFC 9110 §13.1.5), and an If-None-Match naming the
+    current ETag a 304 (§13.1.2)."""
+    old, new = b"A" * 5000, b"B" * 6000
+    job_id, _ = _job_with_artifact(client, dataset, root, old)
+    url = f"/v1/jobs/{job_id}/artifacts/render_000.png"
+    first = client.get(url, headers={"Range": "bytes=0-2499"})
+    etag = first.headers["etag"]
+    resumed = client.get(url, headers={"Range": "bytes=2500-", "If-Range": etag})
+    assert resumed.status_code == 206 and first.content + resumed.content == old
+    _replace_artifact(job_id, new)
+    current = client.head(url).headers["etag"]
+    for validator in (etag, f"W/{current}", "Sat, 01 Jan 2000 00:00:00 GMT"):
+        whole = client.get(url, headers={"Range": "bytes=2500-", "If-Range": validator})
+        assert whole.status_code == 200 and whole.content == new and "content-range" not in whole.headers, validator
+        assert whole.headers["etag"] == current
+    assert client.get(url, headers={"Range": "bytes=2500-", "If-Range": current}).content == new[2500:]
+    for request in (client.get, client.head):
+        for held in (current, f'"other", W/{current}', "*"):
+            unchanged = request(url, headers={"If-None-Match": held})
+            assert unchanged.status_code == 304 and unchanged.content == b"" and unchanged.headers["etag"] == current
+        assert request(url, headers={"If-None-Match": etag}).status_code == 200  # an older version: the file
+    documented = client.get("/openapi.json").json()["paths"]["/v1/jobs/{job_id}/artifacts/{name}"]
+    for method in ("get", "head"):
+        assert {"200", "206", "304", "404", "416"} <= set(documented[method]["responses"]), method
+        assert {"Range", "if-range", "if-none-match"} <= {p["name"] for p in documented[method]["parameters"]}
+
+
 def test_a_download_racing_its_artifacts_replacement_serves_the_new_bytes(client, dataset, root, monkeypatch):
     """An artifact replaced between the route's read of its row and its open of the object (the old one deleted)
     had answered 404 "missing from storage" though the next GET was 200: the row is read again once."""

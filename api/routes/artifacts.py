@@ -1,10 +1,11 @@
-"""/v1/jobs/{id}/artifacts: list a job's files and download them (HTTP Range supported)."""
+"""/v1/jobs/{id}/artifacts: list a job's files and download them (HTTP Range, If-Range and If-None-Match)."""
 
 from __future__ import annotations
 
 import re
+from typing import Annotated
 
-from fastapi import APIRouter, HTTPException, Request, Response, status
+from fastapi import APIRouter, Header, HTTPException, Request, Response, status
 from fastapi.responses import StreamingResponse
 from sqlalchemy import select
 
@@ -69,15 +70,25 @@ def list_artifacts(job_id: str, session: SessionDep, key: CurrentKey) -> list[Ar
     return [artifact_out(job_id, a) for a in rows]
 
 
-@router.head("/{name}", summary="An artifact's headers (size, checksum) without its bytes")
-@router.get(
-    "/{name}", response_class=StreamingResponse,
-    responses={200: {"description": "the whole file"}, 206: {"description": "the requested byte range"},
-               404: {"description": "no such job or artifact"}, 416: {"description": "range not satisfiable"}},
-    summary="Download an artifact (supports Range: bytes=...)",
-)
-def get_artifact(job_id: str, name: str, request: Request, session: SessionDep, storage: StorageDep,
-                 key: CurrentKey) -> Response:
+_DOWNLOAD = {
+    200: {"description": "the whole file: without Range, or with an If-Range that is not the current ETag (a "
+                         "resumed download of a replaced artifact starts over; RFC 9110 §13.1.5)"},
+    206: {"description": "the requested byte range (Range: bytes=..., If-Range, when sent, the current ETag)"},
+    304: {"description": "not modified: If-None-Match names the current ETag (or is *); no body"},
+    404: {"description": "no such job or artifact"}, 416: {"description": "range not satisfiable"},
+}
+
+
+@router.head("/{name}", responses=_DOWNLOAD, summary="An artifact's headers (size, checksum) without its bytes")
+@router.get("/{name}", response_class=StreamingResponse, responses=_DOWNLOAD,
+            summary="Download an artifact (supports Range: bytes=..., If-Range and If-None-Match)")
+def get_artifact(
+    job_id: str, name: str, request: Request, session: SessionDep, storage: StorageDep, key: CurrentKey,
+    range_: Annotated[str | None, Header(alias="Range", description="bytes=first-last, first- or -suffix")] = None,
+    if_range: Annotated[str | None, Header(description="the ETag the Range's earlier bytes came from: another "
+                                                       "(or a date) gets the whole file")] = None,
+    if_none_match: Annotated[str | None, Header(description="ETags held (or *): the current one gets 304")] = None,
+) -> Response:
     # The session is closed before the body streams: a download had held its pooled connection (on PostgreSQL, a
     # transaction open) until its client read the last byte, and two slow ones made every other request wait.
     try:
@@ -88,7 +99,7 @@ def get_artifact(job_id: str, name: str, request: Request, session: SessionDep, 
             if artifact is None:
                 raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id!r} has no artifact {name!r}")
             try:
-                return _answer(request.method, storage, artifact, request.headers.get("range"))
+                return _answer(request.method, storage, artifact, range_, if_range, if_none_match)
             except ObjectNotFound:
                 if attempt:
                     raise HTTPException(status.HTTP_404_NOT_FOUND,
@@ -98,12 +109,18 @@ def get_artifact(job_id: str, name: str, request: Request, session: SessionDep, 
         session.close()
 
 
-def _answer(method: str, storage: Storage, artifact: Artifact, range_: str | None) -> Response:
-    """The artifact's answer to a GET or HEAD with this Range header; ObjectNotFound when its object is not stored."""
+def _answer(method: str, storage: Storage, artifact: Artifact, range_: str | None, if_range: str | None,
+            if_none_match: str | None) -> Response:
+    """The artifact's answer to a GET or HEAD with these headers; ObjectNotFound when its object is not stored."""
+    etag = f'"{artifact.sha256}"'
+    if if_none_match is not None and {"*", etag} & {tag.strip().removeprefix("W/") for tag in if_none_match.split(",")}:
+        return Response(status_code=status.HTTP_304_NOT_MODIFIED, headers={"ETag": etag})  # (weak comparison)
+    if if_range is not None and if_range.strip() != etag:  # strong comparison; a date never matches (no Last-Modified)
+        range_ = None
     size = artifact.size
     headers = {
         "Accept-Ranges": "bytes",
-        "ETag": f'"{artifact.sha256}"',
+        "ETag": etag,
         "Content-Disposition": f'inline; filename="{artifact.name}"',
         "X-Checksum-SHA256": artifact.sha256,
     }
