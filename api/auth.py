@@ -22,7 +22,7 @@ from fastapi.responses import JSONResponse
 from sqlalchemy import delete, func, select
 from sqlalchemy.orm import Session
 
-from api.http_semantics import DATABASE_UNAVAILABLE, database_unavailable, route_path
+from api.http_semantics import DATABASE_UNAVAILABLE, route_path, unavailable
 from voxe_service.db import get_sessionmaker
 from voxe_service.quotas import stored_bytes, upload_limit
 from voxe_service.models import QUEUED, RUNNING, ApiKey, IdempotencyRecord, Job, utcnow
@@ -98,7 +98,7 @@ class RequireKey:
         try:
             key_id = await anyio.to_thread.run_sync(_live_key_id, token) if token else None
         except DATABASE_UNAVAILABLE as exc:  # outside the app's handlers: answered here, as a route's would be
-            return await database_unavailable(None, exc)(scope, receive, send)
+            return await unavailable(None, exc)(scope, receive, send)
         if key_id is None:
             response = JSONResponse({"detail": unauthorized(token)}, status.HTTP_401_UNAUTHORIZED, headers=CHALLENGE)
             return await response(scope, receive, send)

@@ -9,7 +9,9 @@
   path (Starlette names only the first route it tried), and ``OPTIONS`` on any path answers 204
   with the same ``Allow``. Without a key too: it says nothing ``/openapi.json`` does not.
 * A database this process cannot use now (every pooled connection busy past ``VOXE_DATABASE_POOL_TIMEOUT_S``, the
-  server unreachable, SQLite locked) is a 503 with ``Retry-After``, not a bare 500: the request may be sent again.
+  server unreachable, SQLite locked), or a storage (``voxe_service.storage.StorageError``: S3 unreachable or refusing;
+  a missing object is the routes' own 404), is a 503 with ``Retry-After``, not a bare 500: the request may be sent
+  again.
 
 Examples:
     >>> from api.main import create_app
@@ -28,6 +30,8 @@ from sqlalchemy.exc import OperationalError, TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
+from voxe_service.storage import ObjectNotFound, StorageError
+
 log = logging.getLogger("voxe.api")
 _PROBLEM = {"application/json": {"schema": {"$ref": "#/components/schemas/Problem"}}}
 _ALLOW = {"Allow": {"description": "the methods this path serves", "schema": {"type": "string"}}}
@@ -39,8 +43,9 @@ SECURITY_SCHEMES = {
 
 _METHODS = ("DELETE", "GET", "HEAD", "PATCH", "POST", "PUT")
 DATABASE_UNAVAILABLE = (PoolTimeout, OperationalError)
-DATABASE_RETRY_AFTER_S = 5
-_DATABASE_503 = "the database is busy or unreachable (Retry-After says when to try again)"
+UNAVAILABLE = (*DATABASE_UNAVAILABLE, StorageError)
+RETRY_AFTER_S = 5
+_UNAVAILABLE_503 = "the database or the storage is busy or unreachable (Retry-After says when to try again)"
 
 
 def allowed_methods(app: FastAPI, path: str) -> list[str]:
@@ -97,8 +102,11 @@ _SQLITE_UNAVAILABLE = ("database is locked", "database table is locked", "unable
 
 
 def unavailability(exc: Exception) -> str | None:
-    """Why a ``DATABASE_UNAVAILABLE`` error means the database cannot serve now, or None when it is a fault of the
-    service (SQLite raises its OperationalError for a missing table or bad SQL too: that stays a 500)."""
+    """Why an ``UNAVAILABLE`` error means the database or the storage cannot serve now, or None when it does not: a
+    fault of the service (SQLite raises its OperationalError for a missing table or bad SQL too: that stays a 500),
+    or a missing object, which a route answers itself (else a 500: it would be missing on a retry too)."""
+    if isinstance(exc, StorageError):
+        return None if isinstance(exc, ObjectNotFound) else "the storage cannot be reached or refused the request"
     if isinstance(exc, PoolTimeout):
         return ("every database connection of this API process is in use (VOXE_DATABASE_POOL_SIZE + "
                 "VOXE_DATABASE_MAX_OVERFLOW)")
@@ -109,15 +117,15 @@ def unavailability(exc: Exception) -> str | None:
     return None
 
 
-def database_unavailable(_request: Request | None, exc: Exception) -> JSONResponse:
-    """The 503 for a database that cannot serve now (:func:`unavailability`); its text (host names, SQL) stays in
-    the log. Any other database error is raised again, for the 500 and its traceback."""
+def unavailable(_request: Request | None, exc: Exception) -> JSONResponse:
+    """The 503 for a database or storage that cannot serve now (:func:`unavailability`); its text (host names, SQL,
+    buckets) stays in the log. Any other such error is raised again, for the 500 and its traceback."""
     reason = unavailability(exc)
     if reason is None:
         raise exc
     log.warning("answered 503: %s", exc, exc_info=exc)
-    return JSONResponse({"detail": f"{reason}; try again in {DATABASE_RETRY_AFTER_S} s"}, status_code=503,
-                        headers={"Retry-After": str(DATABASE_RETRY_AFTER_S)})
+    return JSONResponse({"detail": f"{reason}; try again in {RETRY_AFTER_S} s"}, status_code=503,
+                        headers={"Retry-After": str(RETRY_AFTER_S)})
 
 
 class RefuseNul:
@@ -142,8 +150,8 @@ def install(app: FastAPI) -> None:
     """Answer NUL paths, 405 and OPTIONS as above, and document them with the statuses no route declares itself."""
     app.add_middleware(RefuseNul)
     app.add_exception_handler(405, method_not_allowed)
-    for error in DATABASE_UNAVAILABLE:
-        app.add_exception_handler(error, database_unavailable)
+    for error in UNAVAILABLE:
+        app.add_exception_handler(error, unavailable)
     generate = app.openapi
 
     def openapi() -> dict:
@@ -177,9 +185,9 @@ def document(schema: dict) -> dict:
                 responses.setdefault("401", {"description": "authentication on (VOXE_AUTH) and no live API key "
                                                             "sent", "content": _PROBLEM})
                 operation["security"] = [{"bearer": []}, {"apiKey": []}, {}]
-                unavailable = responses.setdefault("503", {"description": _DATABASE_503, "content": _PROBLEM})
-                if unavailable["description"] != _DATABASE_503:
-                    unavailable["description"] += f"; or {_DATABASE_503}"
+                unavailable = responses.setdefault("503", {"description": _UNAVAILABLE_503, "content": _PROBLEM})
+                if unavailable["description"] != _UNAVAILABLE_503:
+                    unavailable["description"] += f"; or {_UNAVAILABLE_503}"
                     unavailable.setdefault("content", _PROBLEM)
         methods = ", ".join(m.upper() for m in sorted({*item, "options"}))
         item["options"] = {

@@ -618,6 +618,32 @@ def test_a_download_racing_its_artifacts_replacement_serves_the_new_bytes(client
         assert response.headers["content-length"] == str(len(data)) and response.content in (b"", data)
 
 
+def test_a_storage_that_cannot_be_reached_is_a_503_with_retry_after(client, dataset, root):
+    """A storage outage (S3 refusing connections) answered a bare 500 where a database outage answers 503 with
+    Retry-After: the request may be sent again. A missing object is no outage (the routes' 404)."""
+    import boto3
+    from botocore.config import Config
+
+    from api.deps import storage_dep
+    from api.http_semantics import unavailability
+    from service_helpers import free_port
+    from voxe_service.storage import ObjectNotFound, S3Storage
+
+    job_id, _ = _job_with_artifact(client, dataset, root, b"x" * 100)
+    refusing = boto3.client("s3", endpoint_url=f"http://127.0.0.1:{free_port()}", region_name="us-east-1",
+                            aws_access_key_id="testing", aws_secret_access_key="testing",
+                            config=Config(retries={"max_attempts": 1}))
+    client.app.dependency_overrides[storage_dep] = lambda: S3Storage("voxe", client=refusing, create_bucket=False)
+    url = f"/v1/jobs/{job_id}/artifacts/render_000.png"
+    upload = zip_folder(dataset, root / "unstored.zip", prefix="mic_small")
+    for response in (client.get(url), client.head(url), upload_zip(client, upload)):
+        assert response.status_code == 503 and response.headers["retry-after"] == "5", response.request.method
+    assert client.get(url).json()["detail"] == "the storage cannot be reached or refused the request; try again in 5 s"
+    assert unavailability(ObjectNotFound("jobs/x/y.png")) is None
+    documented = client.get("/openapi.json").json()["paths"]["/v1/jobs/{job_id}/artifacts/{name}"]["get"]["responses"]
+    assert "the database or the storage is busy or unreachable" in documented["503"]["description"]
+
+
 @BOTH_DATABASES
 def test_a_download_holds_no_database_connection_while_it_streams(client, dataset, root, monkeypatch):
     """A download had held its request's pooled connection (on PostgreSQL, a transaction open) until its client read
