@@ -155,6 +155,30 @@ def test_reads_answered_503_with_retry_after_are_sent_again_and_writes_are_not(m
         assert sent.count("GET /v1/jobs/j3") == 1
 
 
+def test_a_download_answered_503_with_retry_after_is_sent_again(tmp_path, monkeypatch):
+    """The class promises it for every GET, but download() streamed its GET outside the retry rule: a busy service
+    (a 503 + Retry-After) failed the download at once."""
+    import hashlib
+
+    import voxe_client.client as client_module
+
+    waits, sent, data = [], [], b"artifact bytes" * 100
+    monkeypatch.setattr(client_module.time, "sleep", waits.append)
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        if request.url.path.endswith("/artifacts"):
+            return httpx.Response(200, json=[{"name": "a.bin", "size": len(data),
+                                              "sha256": hashlib.sha256(data).hexdigest()}])
+        sent.append(request.url.path)
+        if len(sent) < 3:
+            return httpx.Response(503, headers={"retry-after": "1"}, json={"detail": "the database is busy"})
+        return httpx.Response(200, content=data)
+
+    with Client(transport=httpx.MockTransport(answer), retries=3) as client:
+        assert client.download("j1", "a.bin", tmp_path / "a.bin").read_bytes() == data
+    assert sent == ["/v1/jobs/j1/artifacts/a.bin"] * 3 and waits == [1.0, 1.0]
+
+
 def test_download_checks_size_and_sha256_and_leaves_nothing_on_a_mismatch(tmp_path):
     import hashlib
 

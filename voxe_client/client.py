@@ -7,6 +7,7 @@ import json
 import os
 import time
 from collections.abc import Callable, Iterator
+from contextlib import closing
 from pathlib import Path
 from typing import Any
 from urllib.parse import quote
@@ -83,15 +84,10 @@ class Client:
     def request(self, method: str, path: str, body: dict | None = None, **kwargs) -> Any:
         """The decoded JSON answer of ``method path`` (``body`` sent as JSON, ``kwargs`` to httpx);
         ServiceError for an error status."""
-        for attempt in range(self.retries + 1):
-            try:
-                response = self._http.request(method, path, json=body, **kwargs)
-            except (httpx.TransportError, httpx.InvalidURL) as exc:
-                raise ServiceError(f"cannot reach the service at {self.base_url}: {exc}") from None
-            wait = _retry_after(response)
-            if method != "GET" or wait is None or attempt == self.retries:
-                break
-            time.sleep(wait)
+        try:
+            response = self._send(method, path, json=body, **kwargs)
+        except (httpx.TransportError, httpx.InvalidURL) as exc:
+            raise ServiceError(f"cannot reach the service at {self.base_url}: {exc}") from None
         _raise_for_error(response, method, path)
         try:
             return response.json()
@@ -99,6 +95,18 @@ class Client:
             raise ServiceError(f"{method} {path}: {self.base_url} answered {response.status_code} with "
                                f"{response.headers.get('content-type') or 'no content type'}, not the API's JSON "
                                "(is it the Vox-E service?)") from None
+
+    def _send(self, method: str, path: str, stream: bool = False, **kwargs) -> httpx.Response:
+        """The answer to ``method path`` (``kwargs`` to httpx's request), a GET answered 503 with ``Retry-After``
+        sent again after that wait, at most ``retries`` times; with ``stream`` its body is left unread (close it)."""
+        for attempt in range(self.retries + 1):
+            response = self._http.send(self._http.build_request(method, path, **kwargs), stream=stream)
+            wait = _retry_after(response)
+            if method != "GET" or wait is None or attempt == self.retries:
+                break
+            response.close()
+            time.sleep(wait)
+        return response
 
     # ------------------------------------------------------------------ scenes and jobs
     def upload_scene(self, path: str | os.PathLike, name: str | None = None) -> dict:
@@ -186,7 +194,7 @@ class Client:
         digest, size = hashlib.sha256(), 0
         path = f"/v1/jobs/{_segment(job_id)}/artifacts/{_segment(name)}"
         try:
-            with self._http.stream("GET", path) as response, open(partial, "wb") as out:
+            with closing(self._send("GET", path, stream=True)) as response, open(partial, "wb") as out:
                 if response.is_error:
                     response.read()
                     _raise_for_error(response, "GET", path)
