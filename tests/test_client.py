@@ -179,6 +179,27 @@ def test_a_download_answered_503_with_retry_after_is_sent_again(tmp_path, monkey
     assert sent == ["/v1/jobs/j1/artifacts/a.bin"] * 3 and waits == [1.0, 1.0]
 
 
+def test_upload_scene_sends_the_display_name_as_the_name_field_and_keeps_the_file_name(tmp_path):
+    """``name`` had been sent as the uploaded file's name: a mesh named "My spot" lost its .obj (422 "no dataset
+    found"), and a zip's display name lost the text after its last dot (the service took the file name's stem)."""
+    bodies = []
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        bodies.append(request.read())
+        return httpx.Response(201, json={"id": "s1"})
+
+    (tmp_path / "spot.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    (tmp_path / "scene.zip").write_bytes(b"PK\x05\x06" + bytes(18))
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        client.upload_scene(tmp_path / "spot.obj", name="My spot")
+        client.upload_scene(tmp_path / "scene.zip", name="take 2.final")
+        client.upload_scene(tmp_path / "scene.zip")
+    field = b'Content-Disposition: form-data; name="name"\r\n\r\n'
+    assert b'name="files"; filename="spot.obj"' in bodies[0] and field + b"My spot\r\n" in bodies[0]
+    assert b'name="archive"; filename="scene.zip"' in bodies[1] and field + b"take 2.final\r\n" in bodies[1]
+    assert b'filename="scene.zip"' in bodies[2] and field not in bodies[2]
+
+
 def test_download_checks_size_and_sha256_and_leaves_nothing_on_a_mismatch(tmp_path):
     import hashlib
 

@@ -110,11 +110,13 @@ class Client:
 
     # ------------------------------------------------------------------ scenes and jobs
     def upload_scene(self, path: str | os.PathLike, name: str | None = None) -> dict:
-        """``POST /v1/scenes``: a dataset zip, or one mesh file (.obj / .ply); the scene, ``processing``."""
+        """``POST /v1/scenes``: a dataset zip, or one mesh file (.obj / .ply), sent under its own file name (the
+        service reads a mesh's kind from it), with ``name`` the scene's display name; the scene, ``processing``."""
         path = Path(path)
         field = "archive" if path.suffix.lower() == ".zip" else "files"
         with open(path, "rb") as handle:
-            return self.request("POST", "/v1/scenes", files={field: (name or path.name, handle)})
+            return self.request("POST", "/v1/scenes", files={field: (path.name, handle)},
+                                data={"name": name} if name else None)
 
     def create_job(self, scene_id: str, prompt: str, **fields) -> dict:
         """``POST /v1/jobs``: ``fields`` are the body's other members (mode, edit_words, params, webhook_url, ...)."""
