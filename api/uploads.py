@@ -2,10 +2,10 @@
 
 Everything answered here is answered at once (4xx) and leaves nothing behind: the caller
 stores the packed archive and inserts the scene row only after :func:`stage_upload`
-returns, and the staging folder is always removed (:func:`staging_folder`; one an API process
-killed mid-upload left, by :func:`sweep_staging` as an API process starts). What only decoding every image (or
-loading and rendering a mesh) can find is the worker's ingest (``worker/ingest.py``): the
-scene is ``processing`` until it is ``ready``, or ``failed`` with the reason.
+returns, and the staging folder is always removed (:func:`staging_folder`; one that an API
+process killed mid-upload left, by :func:`sweep_staging` as an API process starts). What
+only decoding every image (or loading and rendering a mesh) can find is the worker's ingest
+(``worker/ingest.py``): the scene is ``processing`` until it is ``ready``, or ``failed`` with the reason.
 
 Hostile archives: entries with ``..``, absolute or drive paths, symbolic links or
 encryption, a central directory of more records (or bytes) than ``max_upload_files`` files
@@ -137,8 +137,8 @@ class _Budget:
             return
         size = end[zipfile._ECD_SIZE]
         if size > most * _DIRECTORY_BYTES_PER_ENTRY:
-            raise UploadError(f"the archive's directory takes {size} bytes, more than the {most} entries "
-                              f"VOXE_MAX_UPLOAD_FILES={self.max_files} allows can need", 413)
+            raise UploadError(f"the archive's directory takes {size} bytes, more than {_DIRECTORY_BYTES_PER_ENTRY} "
+                              f"for each of the {most} entries VOXE_MAX_UPLOAD_FILES={self.max_files} allows", 413)
         start = end[zipfile._ECD_LOCATION] - size
         if end[zipfile._ECD_SIGNATURE] == zipfile.stringEndArchive64:
             start -= _ZIP64_END_RECORDS
@@ -214,7 +214,7 @@ def _copy(src: BinaryIO, dest: Path, budget: _Budget, consumed=None, name: str =
 
 def _entry_name(info: zipfile.ZipInfo) -> str:
     """The entry's name. Info-ZIP's ``zip`` (Linux, macOS) stores UTF-8 names without the zip UTF-8 flag (0x800),
-    which zipfile then decodes as cp437 ("café_0.png" as "cafÃ©_0.png": its frame "not found"); such a name whose
+    which zipfile then decodes as cp437 ("café_0.png" as "caf├⌐_0.png": its frame "not found"); such a name whose
     bytes are valid UTF-8 is read as UTF-8."""
     if info.flag_bits & 0x800:
         return info.filename
