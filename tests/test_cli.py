@@ -206,7 +206,9 @@ def test_progress_off_a_terminal_is_a_line_now_and_then_not_ten_redraws_a_second
     draw = _progress_bar(quiet=False)
     for done in (0.1, 0.1, 0.2, 0.3):
         draw({"state": "running", "stage": "edit", "overall_progress": done})
-    assert capsys.readouterr().err.splitlines() == ["[###                           ]  10.0% running edit"]
+    draw({"state": "succeeded", "stage": "export", "overall_progress": 1.0})  # the end, however soon
+    assert capsys.readouterr().err.splitlines() == ["[###                           ]  10.0% running edit",
+                                                    "[##############################] 100.0% succeeded export"]
     monkeypatch.setattr(sys.stderr, "isatty", lambda: True)  # a terminal: each change redrawn in place
     draw = _progress_bar(quiet=False)
     for done in (0.1, 0.1, 0.2):

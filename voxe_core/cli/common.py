@@ -62,8 +62,10 @@ def progress_callbacks(
 
     from voxe_core.progress import Callbacks, Progress
 
+    terminal = sys.stderr.isatty()  # (off one, tqdm's monitor would still force a redraw every 10 s: maxinterval)
     bar = tqdm(desc=desc, unit=unit, total=total, disable=quiet, dynamic_ncols=True, file=sys.stderr,
-               mininterval=PROGRESS_INTERVAL_S if sys.stderr.isatty() else LOG_PROGRESS_INTERVAL_S)
+               mininterval=PROGRESS_INTERVAL_S if terminal else LOG_PROGRESS_INTERVAL_S,
+               **({} if terminal else {"maxinterval": LOG_PROGRESS_INTERVAL_S}))
 
     def on_progress(report: Progress) -> None:
         if bar.total != report.total:

@@ -81,7 +81,7 @@ def cmd_mesh_to_grid(args) -> int:
     if args.route == "voxelize":  # as the service's mesh scenes: the preset's final resolution and box
         if args.resolution is not None and len(args.resolution) != 1:
             raise ValueError(f"--resolution takes one value for the voxelize route, got {len(args.resolution)}")
-        fit = reconstruct_config({**recipe_params(args), "resolution": None})
+        fit = reconstruct_config({**recipe_params(args), "resolution": None, "iterations": None})  # (render's)
         resolution = fit.resolutions[-1] if args.resolution is None else args.resolution[0]
         grid = voxelize(mesh, VoxelizeConfig(resolution=resolution, bbox_min=fit.bbox_min, bbox_max=fit.bbox_max,
                                              seed=args.seed))

@@ -88,7 +88,9 @@ def _client(args):
 
 def _progress_bar(quiet: bool):
     """An ``on_progress`` callback drawing the job's overall progress on stderr: redrawn in place on a terminal,
-    elsewhere (a log) a line at most every ``LOG_PROGRESS_INTERVAL_S`` and only when it changed."""
+    elsewhere (a log) a line at most every ``LOG_PROGRESS_INTERVAL_S`` and only when it changed, and the job's end."""
+    from voxe_client.client import TERMINAL_STATES
+
     terminal, last = sys.stderr.isatty(), {"line": None, "at": -math.inf}
 
     def draw(snapshot: dict) -> None:
@@ -97,8 +99,8 @@ def _progress_bar(quiet: bool):
         bar = "#" * round(30 * done)
         line = (f"[{bar:<30}] {100 * done:5.1f}% {snapshot['state']} {snapshot.get('stage') or ''}"
                 f"{f' ~{eta:.0f} s left' if eta is not None else ''}")
-        now = time.monotonic()
-        if quiet or line == last["line"] or (not terminal and now - last["at"] < LOG_PROGRESS_INTERVAL_S):
+        now, final = time.monotonic(), snapshot["state"] in TERMINAL_STATES
+        if quiet or line == last["line"] or (not terminal and not final and now - last["at"] < LOG_PROGRESS_INTERVAL_S):
             return
         last.update(line=line, at=now)
         print(f"\r{line}   " if terminal else line, end="" if terminal else "\n", file=sys.stderr, flush=True)
