@@ -63,10 +63,14 @@ _CHUNK = 64 << 10
 # and macOS's __MACOSX/._ copies of both; each record taking at most this many bytes (46 fixed, then its name and
 # extra fields: a few hundred in any real archive).
 _ENTRIES_PER_FILE = 4
+_ENTRIES_SLACK = 8  # the top folder (and its __MACOSX twin) of a Finder zip of exactly the allowed files: 4N + 2
 _DIRECTORY_BYTES_PER_ENTRY = 1024
 _UPLOADS, _STAGING_PREFIX, _OWNER = "uploads", "upload-", ".owner"  # work_dir/uploads/upload-*/.owner
 _CENTRAL_RECORD = struct.Struct("<4s24x3H12x")  # signature, then the name, extra and comment lengths (46 bytes)
-_ZIP64_END_RECORDS = 56 + 20  # zip64's end record and its locator, between the directory and the end record
+_END_RECORD = struct.Struct("<4s8xL6x")  # signature, then the directory's size (22 bytes, then a comment)
+_ZIP64_LOCATOR_SIGNATURE = b"PK\x06\x07"  # 20 bytes, right before the end record
+_ZIP64_END_RECORD = struct.Struct("<4s36xQ8x")  # signature, then the directory's size (56 bytes, before the locator)
+_MAX_ZIP_COMMENT = 0xFFFF
 
 
 class UploadError(ValueError):
@@ -75,6 +79,33 @@ class UploadError(ValueError):
     def __init__(self, message: str, status: int = 422):
         super().__init__(message)
         self.status = status
+
+
+def _directory_extent(source: BinaryIO) -> tuple[int, int]:
+    """(where a zip's central directory starts, its size in bytes): it ends where the end records begin (zip64's
+    end record when its locator precedes the end record), so data before the archive (a self-extractor) does not
+    matter. The end record is found as zipfile finds it: the file's last 22 bytes, else the last signature within
+    a comment's reach. UploadError (422) when there is none."""
+    length = source.seek(0, os.SEEK_END)
+    tail_size = min(length, _END_RECORD.size)
+    source.seek(length - tail_size)
+    tail = source.read(tail_size)
+    plain = len(tail) == _END_RECORD.size and tail[:4] == zipfile.stringEndArchive and tail[-2:] == b"\0\0"
+    if not plain:  # a comment follows the end record: its signature within the comment's longest reach
+        tail_size = min(length, _END_RECORD.size + _MAX_ZIP_COMMENT)
+        source.seek(length - tail_size)
+        tail = source.read(tail_size)
+    at = 0 if plain else tail.rfind(zipfile.stringEndArchive)
+    if at < 0 or len(tail) - at < _END_RECORD.size:
+        raise UploadError("archive is not a readable zip file: no end of central directory record")
+    end, size = length - tail_size + at, _END_RECORD.unpack_from(tail, at)[1]
+    zip64_at = end - 20 - _ZIP64_END_RECORD.size
+    if zip64_at >= 0:
+        source.seek(zip64_at)
+        records = source.read(_ZIP64_END_RECORD.size + 4)
+        if records[-4:] == _ZIP64_LOCATOR_SIGNATURE and records[:4] == zipfile.stringEndArchive64:
+            end, size = zip64_at, _ZIP64_END_RECORD.unpack(records[:_ZIP64_END_RECORD.size])[1]
+    return end - size, size
 
 
 @dataclass
@@ -125,32 +156,24 @@ class _Budget:
 
         ``zipfile.ZipFile`` reads the whole directory and builds an object per record before any file can be
         counted (a 47 MB directory of a million empty entries took 314 MiB): the records are counted here first,
-        one at a time, where zipfile's own reading of the end records (zip64's too) says they are, and whatever
-        its count claims. A damaged directory is left to zipfile to report.
+        one at a time, where the end records (zip64's too) say they are, and whatever their count claims. The
+        end records are read here, as zipfile finds them, rather than through zipfile's private reader, whose
+        results changed meaning between Python releases (gh-139700). A directory that is not where they say is
+        the 422 zipfile would give.
         """
-        most = _ENTRIES_PER_FILE * self.max_files
-        try:
-            end = zipfile._EndRecData(source)
-        except OSError:
-            return
-        if not end:
-            return
-        size = end[zipfile._ECD_SIZE]
+        most = _ENTRIES_PER_FILE * self.max_files + _ENTRIES_SLACK
+        start, size = _directory_extent(source)
         if size > most * _DIRECTORY_BYTES_PER_ENTRY:
             raise UploadError(f"the archive's directory takes {size} bytes, more than {_DIRECTORY_BYTES_PER_ENTRY} "
-                              f"for each of the {most} entries VOXE_MAX_UPLOAD_FILES={self.max_files} allows", 413)
-        start = end[zipfile._ECD_LOCATION] - size
-        if end[zipfile._ECD_SIGNATURE] == zipfile.stringEndArchive64:
-            start -= _ZIP64_END_RECORDS
+                              f"per entry for the {most} entries VOXE_MAX_UPLOAD_FILES={self.max_files} allows", 413)
         position = entries = 0
-        while position < size and start >= 0:
+        while position < size:
             source.seek(start + position)
             record = source.read(_CENTRAL_RECORD.size)
-            if len(record) < _CENTRAL_RECORD.size:
-                return
-            signature, name, extra, comment = _CENTRAL_RECORD.unpack(record)
-            if signature != zipfile.stringCentralDir:
-                return
+            if len(record) < _CENTRAL_RECORD.size or record[:4] != zipfile.stringCentralDir:
+                raise UploadError("archive is not a readable zip file: its central directory is not where its end "
+                                  "record says")
+            _, name, extra, comment = _CENTRAL_RECORD.unpack(record)
             position += _CENTRAL_RECORD.size + name + extra + comment
             entries += 1
             if entries > most:

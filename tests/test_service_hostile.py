@@ -275,8 +275,8 @@ def test_a_directory_over_the_file_cap_is_413_before_zipfile_reads_it(tmp_path, 
     from api.uploads import UploadError, _Budget, extract_zip
 
     cases = {  # (archive, VOXE_MAX_UPLOAD_FILES, message)
-        "honest count": (_directory_only(20_000, 20_000, zip64), 500, "lists more than 2000 entries"),
-        "lying count": (_directory_only(20_000, 1, zip64), 500, "lists more than 2000 entries"),
+        "honest count": (_directory_only(20_000, 20_000, zip64), 500, "lists more than 2008 entries"),
+        "lying count": (_directory_only(20_000, 1, zip64), 500, "lists more than 2008 entries"),
         "long records": (_directory_only(1, 1, zip64, comment=bytes(30_000)), 5, "directory takes 30047 bytes"),
     }
 
@@ -294,6 +294,31 @@ def test_a_directory_over_the_file_cap_is_413_before_zipfile_reads_it(tmp_path, 
             tracemalloc.stop()
         assert refused.value.status == 413 and f"VOXE_MAX_UPLOAD_FILES={max_files}" in str(refused.value), case
         assert peak < 64 << 10, (case, peak)  # a 940 kB directory is never held
+
+
+@pytest.mark.parametrize("zip64", [False, True])
+def test_the_directory_count_finds_the_directory_as_zipfile_does(zip64):
+    """The end records are read here, not through zipfile's private reader, whose zip64 location changed meaning
+    in a Python release (gh-139700: the count then found no directory and let zipfile read it whole): data before
+    the archive (a self-extractor) and an archive comment are found past; a Finder zip of exactly the allowed
+    files passes (4N + 2 records); a directory not where its end record says is zipfile's 422."""
+    from api.uploads import UploadError, _Budget
+
+    archive = _directory_only(4 * 5 + 2, 4 * 5 + 2, zip64)
+    _Budget(1 << 30, 5, 200.0).check_directory(io.BytesIO(b"MZ" * 5000 + archive))
+    commented = archive[:-2] + struct.pack("<H", 9) + b"a comment"
+    _Budget(1 << 30, 5, 200.0).check_directory(io.BytesIO(commented))
+    real = io.BytesIO()
+    with zipfile.ZipFile(real, "w") as made:
+        for i in range(3):
+            made.writestr(f"train/{i}.png", b"x")
+        made.comment = b"an archive comment"
+    _Budget(1 << 30, 5, 200.0).check_directory(io.BytesIO(b"#!/bin/sh\n" * 100 + real.getvalue()))
+    end = archive.rfind(b"PK\x06\x06" if zip64 else b"PK\x05\x06")
+    misplaced = archive[:end] + bytes(10) + archive[end:]  # the records 10 bytes before where the end says
+    with pytest.raises(UploadError, match="its central directory is not where its end record says") as refused:
+        _Budget(1 << 30, 5, 200.0).check_directory(io.BytesIO(misplaced))
+    assert refused.value.status == 422
 
 
 def test_utf8_names_info_zip_stores_without_the_utf8_flag_are_read_as_utf8(client, dataset, root):  # noqa: F811
