@@ -30,7 +30,7 @@ from sqlalchemy.exc import OperationalError, TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
-from voxe_service.storage import ObjectNotFound, StorageError
+from voxe_service.storage import StorageError, StorageUnavailable
 
 log = logging.getLogger("voxe.api")
 _PROBLEM = {"application/json": {"schema": {"$ref": "#/components/schemas/Problem"}}}
@@ -103,10 +103,10 @@ _SQLITE_UNAVAILABLE = ("database is locked", "database table is locked", "unable
 
 def unavailability(exc: Exception) -> str | None:
     """Why an ``UNAVAILABLE`` error means the database or the storage cannot serve now, or None when it does not: a
-    fault of the service (SQLite raises its OperationalError for a missing table or bad SQL too: that stays a 500),
-    or a missing object, which a route answers itself (else a 500: it would be missing on a retry too)."""
+    fault of the service or its settings (SQLite raises its OperationalError for a missing table or bad SQL too; a
+    missing bucket, access denied, a bad key, a missing object: a retry would meet them again), which stays a 500."""
     if isinstance(exc, StorageError):
-        return None if isinstance(exc, ObjectNotFound) else "the storage cannot be reached or refused the request"
+        return "the storage cannot be reached or is busy" if isinstance(exc, StorageUnavailable) else None
     if isinstance(exc, PoolTimeout):
         return ("every database connection of this API process is in use (VOXE_DATABASE_POOL_SIZE + "
                 "VOXE_DATABASE_MAX_OVERFLOW)")

@@ -627,7 +627,7 @@ def test_a_storage_that_cannot_be_reached_is_a_503_with_retry_after(client, data
     from api.deps import storage_dep
     from api.http_semantics import unavailability
     from service_helpers import free_port
-    from voxe_service.storage import ObjectNotFound, S3Storage
+    from voxe_service.storage import ObjectNotFound, S3Storage, StorageError
 
     job_id, _ = _job_with_artifact(client, dataset, root, b"x" * 100)
     refusing = boto3.client("s3", endpoint_url=f"http://127.0.0.1:{free_port()}", region_name="us-east-1",
@@ -638,8 +638,18 @@ def test_a_storage_that_cannot_be_reached_is_a_503_with_retry_after(client, data
     upload = zip_folder(dataset, root / "unstored.zip", prefix="mic_small")
     for response in (client.get(url), client.head(url), upload_zip(client, upload)):
         assert response.status_code == 503 and response.headers["retry-after"] == "5", response.request.method
-    assert client.get(url).json()["detail"] == "the storage cannot be reached or refused the request; try again in 5 s"
+    assert client.get(url).json()["detail"] == "the storage cannot be reached or is busy; try again in 5 s"
+    # faults a retry would meet again stay 500s: a missing object, a bad key, a missing bucket, access denied
     assert unavailability(ObjectNotFound("jobs/x/y.png")) is None
+    assert unavailability(StorageError("invalid storage key 'jobs/j/../x.png'")) is None
+    from botocore.exceptions import ClientError
+
+    for code, status, outage in (("SlowDown", 503, True), ("InternalError", 500, True), ("AccessDenied", 403, False)):
+        error = ClientError({"Error": {"Code": code}, "ResponseMetadata": {"HTTPStatusCode": status}}, "GetObject")
+        with pytest.raises(StorageError) as raised, S3Storage("voxe", client=refusing, create_bucket=False) \
+                ._as_storage_errors():
+            raise error
+        assert (unavailability(raised.value) is not None) == outage, code
     documented = client.get("/openapi.json").json()["paths"]["/v1/jobs/{job_id}/artifacts/{name}"]["get"]["responses"]
     assert "the database or the storage is busy or unreachable" in documented["503"]["description"]
 

@@ -38,6 +38,11 @@ class ObjectNotFound(StorageError, KeyError):
     pass
 
 
+class StorageUnavailable(StorageError):
+    """The store could not serve now (unreachable, timed out, throttled, a 5xx): a retry may succeed. Other
+    StorageErrors (a missing bucket, access denied, a bad key) are faults a retry would meet again."""
+
+
 @dataclass(frozen=True)
 class StoredObject:
     key: str
@@ -343,7 +348,7 @@ class S3Storage(Storage):
         """Raises what boto3 raises as this module's errors: ObjectNotFound when ``key`` is missing, StorageError
         for anything else (a missing bucket, a refused request, an unreachable endpoint)."""
         from boto3.exceptions import Boto3Error
-        from botocore.exceptions import BotoCoreError, ClientError
+        from botocore.exceptions import BotoCoreError, ClientError, ConnectionError, HTTPClientError
 
         try:
             yield
@@ -358,7 +363,11 @@ class S3Storage(Storage):
                 raise ObjectNotFound(key) from exc
             if code in _NO_SUCH_BUCKET:  # (a bare 404 with no key at stake is the bucket's)
                 raise StorageError(f"bucket {self.bucket!r} does not exist (VOXE_S3_BUCKET)") from exc
-            raise StorageError(f"S3 bucket {self.bucket!r}: {exc}") from exc
+            status = exc.response.get("ResponseMetadata", {}).get("HTTPStatusCode") or 0
+            transient = code in _TRANSIENT or status >= 500
+            raise (StorageUnavailable if transient else StorageError)(f"S3 bucket {self.bucket!r}: {exc}") from exc
+        except (ConnectionError, HTTPClientError) as exc:  # unreachable, refused, timed out: botocore's own
+            raise StorageUnavailable(f"S3 bucket {self.bucket!r}: {exc}") from exc
         except (BotoCoreError, Boto3Error) as exc:
             raise StorageError(f"S3 bucket {self.bucket!r}: {exc}") from exc
 
@@ -448,6 +457,7 @@ class S3Storage(Storage):
 _HEAD_NOT_FOUND = ("404", "NotFound")
 """The codes of a 404 with no body (a HEAD's): a missing key or a missing bucket."""
 _NO_SUCH_BUCKET = ("NoSuchBucket", *_HEAD_NOT_FOUND)
+_TRANSIENT = ("SlowDown", "Throttling", "ThrottlingException", "RequestTimeout", "ServiceUnavailable", "InternalError")
 
 
 def _error_code(exc) -> str | None:
