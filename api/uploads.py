@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import fcntl
 import json
+import logging
 import os
 import re
 import shutil
@@ -55,6 +56,7 @@ from voxe_service import datasets
 from voxe_service.datasets import (DATASET_ARCHIVE, MESH_FOLDER, MESH_FORMAT, MESH_NAMES, MESH_OPTIONS, UPLOAD_ARCHIVE,
                                    ignored, package)
 
+log = logging.getLogger("voxe.api")
 _RATIO_FLOOR = 4 << 20  # below this many bytes out of an entry (or the archive), any ratio is fine (text compresses)
 # Small reads: zipfile reads ahead as many compressed bytes as were asked for, and with a lying directory
 # (an entry claiming more compressed bytes than its stream has) that read-ahead would pad the ratio's divisor.
@@ -455,7 +457,10 @@ def staging_folder(work_dir: Path) -> Iterator[Path]:
             owner = open(staging / _OWNER, "ab")
         except FileNotFoundError:  # swept before it was locked: another
             continue
-        fcntl.flock(owner, fcntl.LOCK_EX)
+        try:
+            fcntl.flock(owner, fcntl.LOCK_EX)
+        except OSError:  # a filesystem without locks (some NFS / CIFS mounts): the sweep cannot lock it either
+            log.warning("upload staging in %s cannot be locked; a killed process's folders stay there", uploads)
         if staging.is_dir():  # (else swept before it was locked)
             break
         owner.close()
@@ -476,7 +481,7 @@ def sweep_staging(work_dir: Path) -> int:
             with open(staging / _OWNER, "ab") as owner:  # (made for a folder whose process died before making it)
                 fcntl.flock(owner, fcntl.LOCK_EX | fcntl.LOCK_NB)
                 shutil.rmtree(staging, ignore_errors=True)
-        except (BlockingIOError, FileNotFoundError, NotADirectoryError):  # in use, removed meanwhile, not a folder
+        except OSError:  # in use, removed meanwhile, not a folder, or a filesystem without locks: left alone
             continue
         removed += 1
     return removed

@@ -225,6 +225,17 @@ def test_a_starting_api_process_removes_the_staging_folders_no_live_process_hold
                 assert staged(root) == [replaced.name]
         assert staged(root) == []
     assert len(made) == 2 and len(opened) == 3
+    # A filesystem without locks (some NFS / CIFS mounts, ENOLCK): uploads go on, and the sweep removes nothing
+    import errno
+    import fcntl
+
+    def no_locks(*_args):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(fcntl, "flock", no_locks)
+    with uploads.staging_folder(work) as unlocked:
+        assert uploads.sweep_staging(work) == 0 and staged(root) == [unlocked.name]
+    assert staged(root) == []
 
 
 def test_a_processing_scene_can_be_deleted_and_its_ingest_keeps_nothing(client, dataset, root):
