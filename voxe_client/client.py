@@ -142,14 +142,10 @@ class Client:
                 headers["last-event-id"] = str(last_event_id)
             path = f"/v1/jobs/{_segment(job_id)}/events"
             try:
-                with self._http.stream("GET", path, headers=headers, timeout=httpx.Timeout(30.0, read=None)) as response:
+                with closing(self._send("GET", path, stream=True, headers=headers,
+                                        timeout=httpx.Timeout(30.0, read=None))) as response:
                     if response.is_error:
                         response.read()
-                        wait = _retry_after(response)
-                        if wait is not None and failures < reconnects:
-                            failures += 1
-                            time.sleep(wait)
-                            continue
                         _raise_for_error(response, "GET", path)
                     ended = False
                     for event in parse_sse(response.iter_lines()):
