@@ -9,9 +9,8 @@
   path (Starlette names only the first route it tried), and ``OPTIONS`` on any path answers 204
   with the same ``Allow``. Without a key too: it says nothing ``/openapi.json`` does not.
 * A database this process cannot use now (every pooled connection busy past ``VOXE_DATABASE_POOL_TIMEOUT_S``, the
-  server unreachable, SQLite locked), or a storage (``voxe_service.storage.StorageError``: S3 unreachable or refusing;
-  a missing object is the routes' own 404), is a 503 with ``Retry-After``, not a bare 500: the request may be sent
-  again.
+  server unreachable, SQLite locked), or a storage (``voxe_service.storage.StorageUnavailable``: S3 unreachable, timed
+  out, throttled), is a 503 with ``Retry-After``, not a bare 500: the request may be sent again.
 
 Examples:
     >>> from api.main import create_app
@@ -185,10 +184,10 @@ def document(schema: dict) -> dict:
                 responses.setdefault("401", {"description": "authentication on (VOXE_AUTH) and no live API key "
                                                             "sent", "content": _PROBLEM})
                 operation["security"] = [{"bearer": []}, {"apiKey": []}, {}]
-                unavailable = responses.setdefault("503", {"description": _UNAVAILABLE_503, "content": _PROBLEM})
-                if unavailable["description"] != _UNAVAILABLE_503:
-                    unavailable["description"] += f"; or {_UNAVAILABLE_503}"
-                    unavailable.setdefault("content", _PROBLEM)
+                busy = responses.setdefault("503", {"description": _UNAVAILABLE_503, "content": _PROBLEM})
+                if busy["description"] != _UNAVAILABLE_503:
+                    busy["description"] += f"; or {_UNAVAILABLE_503}"
+                    busy.setdefault("content", _PROBLEM)
         methods = ", ".join(m.upper() for m in sorted({*item, "options"}))
         item["options"] = {
             "summary": "The methods this path serves", "operationId": "options" + path.replace("/", "_").replace(
