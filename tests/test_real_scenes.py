@@ -101,6 +101,26 @@ def test_gradients_reach_the_background_shell():
     assert touched[-1].any() and touched[4].any()  # the contracted boundary x = 2 and the centre
 
 
+def test_rays_with_a_non_finite_or_zero_part_are_no_rays():
+    """As in the ReLU field: such a ray samples nothing and shows the background. Regression: non-finite components
+    were zeroed, so a zero or NaN direction laid all its bins on the camera's point (opaque in this haze) and a
+    NaN or infinite origin component moved the ray onto the axis plane through the haze (opacity 0.71)."""
+    grid = SceneGrid(17, init_density=-1.0)
+    with torch.no_grad():  # a haze around the origin only
+        grid.features[..., 0][(grid.vertex_positions().norm(dim=-1) < 0.6).reshape(grid.resolution)] = 0.05
+    nan = float("nan")
+    origins = torch.tensor([[0.0, 3.0, 0.0], [0.1, 0.1, 0.0], [0.1, 0.1, 0.0], [0.1, 0.1, 0.0], [nan, 3.0, 0.0],
+                            [0.0, 3.0, math.inf]])
+    directions = torch.tensor([[0.0, -1.0, 0.0], [0.0, 0.0, 0.0], [nan, 0.0, 0.0], [nan, nan, nan], [0.0, -1.0, 0.0],
+                               [0.0, -1.0, 0.0]])
+    config = RenderConfig(background=(0.2, 0.4, 0.6))
+    out = render_rays(grid, origins, directions, config)
+    alone = render_rays(grid, origins[:1], directions[:1], config)
+    assert out.opacity[0] > 0.5 and torch.equal(out.rgb[:1], alone.rgb) and out.samples == alone.samples
+    assert torch.equal(out.opacity[1:], torch.zeros(5)) and torch.equal(out.depth[1:], torch.zeros(5))
+    assert torch.equal(out.rgb[1:], torch.tensor([[0.2, 0.4, 0.6]]).expand(5, 3))
+
+
 # ----------------------------------------------------------------- interface
 def test_grid_interface_round_trips_and_keeps_the_backbone(tmp_path):
     frame = torch.diag(torch.tensor([2.0, 2.0, 2.0, 1.0]))

@@ -197,13 +197,19 @@ class SceneGrid(VoxelGrid):
         the samples behind the point where a ray's transmittance falls below min(``early_stop``,
         ``EARLY_STOP_CAP``): together they weigh less than that in the render. On fox most rays
         end on the room's walls well before the last far bin (bench/real_scenes.py --step-cost).
+        A non-finite origin or direction, or a zero direction, is no ray (no samples: the background), as in
+        the ReLU field's slab test (``ray_box_intersection``).
         """
         early_stop = min(early_stop, EARLY_STOP_CAP)
-        origins = torch.where(torch.isfinite(origins), origins, torch.zeros_like(origins))
-        directions = torch.where(torch.isfinite(directions), directions, torch.zeros_like(directions))
+        ray = (torch.isfinite(origins).all(-1) & torch.isfinite(directions).all(-1)
+               & (directions.abs().amax(-1) >= 1e-12))
+        # Zeroed, a ray that is none gets finite bins, and none of them is kept.
+        origins = torch.where(ray[:, None], origins, 0.0)
+        directions = torch.where(ray[:, None], directions, 0.0)
         for s in range(0, origins.shape[0], _RAYS_PER_PASS):
             o, d = origins[s : s + _RAYS_PER_PASS], directions[s : s + _RAYS_PER_PASS]
             edges, valid = self.ray_bins(o, d, step_ratio)
+            valid = valid & ray[s : s + _RAYS_PER_PASS, None]
             delta = edges[:, 1:] - edges[:, :-1]
             t = edges[:, :-1] + offsets[s : s + _RAYS_PER_PASS, None] * delta
             points = self.lattice_points(o[:, None, :] + t[..., None] * d[:, None, :])
