@@ -287,6 +287,35 @@ def test_trilinear_weights_are_the_axis_weights_product_in_few_dispatches():
     assert len(ops.names) == 15
 
 
+def test_a_nan_coordinate_on_any_axis_interpolates_to_nan_inside_the_grid():
+    """Regression: a NaN truncated to INT64_MIN as the cell's index. Odd strides (35, 7, 1) kept it out of range on
+    every axis: an IndexError on the CPU, a device-side assert on CUDA (even strides wrapped it onto row 0). The
+    finite points beside it keep their values (bit for bit) and gradients (the NaN point's corners get 0 · NaN)."""
+    g = torch.Generator().manual_seed(2)
+    grid = VoxelGrid((6, 5, 7), features=torch.randn(6, 5, 7, 4, generator=g))
+    finite = torch.rand(5, 3, generator=g) * 3 - 1.5
+    upstream = torch.randn(5, 4, generator=g)
+    alone = finite.clone().requires_grad_(True)
+    (grid.interpolate(alone) * upstream).sum().backward()
+    expected_points, expected_features = alone.grad, grid.flat_features.grad
+    for axis in range(3):
+        nan_point = torch.zeros(1, 3)
+        nan_point[0, axis] = float("nan")
+        index, weights = grid.trilinear_corners(nan_point)
+        assert 0 <= int(index.min()) and int(index.max()) < grid.flat_features.shape[0] and weights.isnan().all()
+        for sparse_grad in (False, True):
+            grid.flat_features.grad = None
+            moving = torch.cat([finite, nan_point]).requires_grad_(True)
+            values = grid.interpolate(moving, sparse_grad=sparse_grad)
+            assert values[-1].isnan().all() and torch.equal(values[:-1], grid.interpolate(finite))
+            (values[:-1] * upstream).sum().backward()
+            assert torch.allclose(moving.grad[:-1], expected_points, rtol=1e-6, atol=0)
+            others = torch.ones(len(expected_features), dtype=torch.bool).index_fill_(0, index[0], False)
+            assert torch.allclose(grid.flat_features.grad.to_dense()[others], expected_features[others], rtol=1e-6)
+        density, colour = grid.query(nan_point)
+        assert density.isnan().all() and colour.isnan().all()
+
+
 def test_the_weighted_gather_backward_scatters_once_and_has_exact_derivatives():
     grid = VoxelGrid(5)
     out = grid.interpolate(torch.rand(300, 3) - 0.5)

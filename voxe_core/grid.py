@@ -143,13 +143,15 @@ def ray_box_intersection(
 @dataclass(frozen=True)
 class _Lattice:
     """A grid's lattice constants on one device (what every interpolation would otherwise rebuild): the box's
-    extent (3,), ``resolution − 1`` (3,) as floats and ``resolution − 2`` (3,) as the largest cell index, the flat
-    strides (3,), the 8 corners' flat offsets (8,), the voxel size (3,), and per corner and axis (8, 3) the sign and
-    constant that make its linear weight from the fractional coordinate f: 1 − f at a low corner, f at a high one."""
+    extent (3,), ``resolution − 1`` (3,) as floats and ``resolution − 2`` (3,) as the largest cell index (and as
+    floats), the flat strides (3,), the 8 corners' flat offsets (8,), the voxel size (3,), and per corner and axis
+    (8, 3) the sign and constant that make its linear weight from the fractional coordinate f: 1 − f at a low corner,
+    f at a high one."""
 
     extent: torch.Tensor
     upper: torch.Tensor
     last_cell: torch.Tensor
+    last_cell_float: torch.Tensor
     strides: torch.Tensor
     corner_offsets: torch.Tensor
     voxel_size: torch.Tensor
@@ -279,7 +281,7 @@ class VoxelGrid(torch.nn.Module):
             res = torch.tensor(self._resolution)
             strides = torch.tensor([self._resolution[1] * self._resolution[2], self._resolution[2], 1])
             self._lattices[device] = _Lattice(
-                *(t.to(device) for t in (host_max - host_min, (res - 1).float(), res - 2, strides,
+                *(t.to(device) for t in (host_max - host_min, (res - 1).float(), res - 2, (res - 2).float(), strides,
                                          (_CORNERS * strides).sum(-1), (host_max - host_min) / (res - 1).float(),
                                          2.0 * _CORNERS - 1, 1.0 - _CORNERS)))
         return self._lattices[device]
@@ -314,9 +316,10 @@ class VoxelGrid(torch.nn.Module):
 
         ``features`` (X, Y, Z, C) defaults to this grid's; attention grids pass
         their own scalar features over the same lattice. Points outside the box
-        are clamped onto it (the renderer only samples inside). ``sparse_grad``
-        makes the gradient of this grid's features a sparse tensor holding only
-        the vertices touched, so a step costs what the batch saw, not the grid.
+        are clamped onto it (the renderer only samples inside); a point with a
+        NaN coordinate interpolates to NaN. ``sparse_grad`` makes the gradient
+        of this grid's features a sparse tensor holding only the vertices
+        touched, so a step costs what the batch saw, not the grid.
         """
         feats = self.features if features is None else features
         flat_index, weights = self.trilinear_corners(points, feats.dtype)
@@ -328,13 +331,16 @@ class VoxelGrid(torch.nn.Module):
     def trilinear_corners(self, points: torch.Tensor, dtype: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
         """(flat vertex index (N, 8), trilinear weight (N, 8)) of world points (N, 3), clamped into the box.
 
-        What :meth:`interpolate` gathers with, and what a back-projection scatters with.
+        What :meth:`interpolate` gathers with, and what a back-projection scatters with. A NaN coordinate makes
+        the point's weights NaN, its corners those of the last cell along that axis (every index in the grid).
         """
         lattice = self._lattice(points.device)
         upper = lattice.upper.to(points.dtype)
         u = (points - self.bbox_min) / lattice.extent * upper
-        u = torch.minimum(u.clamp_min(0), upper)
-        base = torch.minimum(u.long(), lattice.last_cell)  # u >= 0: truncation is the floor
+        u = torch.minimum(u.clamp_min(0), upper)  # a NaN stays NaN: its weights below are NaN
+        # u >= 0: truncation is the floor. fmin caps a NaN's cell at the last one, in the grid: truncated, a NaN had
+        # been INT64_MIN, an index out of range (an IndexError, a device-side assert on CUDA, or a wrapped row).
+        base = torch.fmin(u, lattice.last_cell_float.to(u.dtype)).long()
         frac = (u - base.to(u.dtype)).to(dtype)
         flat_index = (base * lattice.strides).sum(-1, keepdim=True) + lattice.corner_offsets  # (N, 8)
         # Per corner the product of its three axis weights, 1 − f exactly as a subtraction would round it (f·−1 is
