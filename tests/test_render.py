@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import re
 
 import pytest
 import torch
@@ -12,7 +14,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from voxe_core.backbones import load_grid
 from voxe_core.cameras import Cameras, camera_rays, look_at
 from voxe_core.grid import Occupancy, VoxelGrid, _WeightedGather, ray_box_intersection
-from voxe_core.render import RenderConfig, render_image, render_rays
+from voxe_core.render import MIN_STEP_RATIO, RenderConfig, render_image, render_rays
 from voxe_core.tensorio import FormatError, save_tensors
 
 
@@ -338,6 +340,29 @@ def test_the_weighted_gather_backward_scatters_once_and_has_exact_derivatives():
         (interpolate(moving) * upstream).sum().backward()
         gradients.append(moving.grad)
     assert gradients[0].abs().max() > 0 and torch.allclose(*gradients, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("name, value", [
+    ("step_ratio", 0.0), ("step_ratio", -0.5), ("step_ratio", math.nan), ("step_ratio", math.inf),
+    ("step_ratio", 1e-9), ("samples_per_pass", 0), ("chunk_rays", 0), ("chunk_rays", 2.5), ("early_stop", 1.0),
+    ("early_stop", -1e-4), ("early_stop", math.nan), ("sigma_threshold", -1e-3), ("sigma_threshold", math.nan),
+    ("background", (1.0, math.nan, 1.0)),
+])
+def test_render_settings_that_render_blank_fail_deep_or_exhaust_memory_are_refused_by_name(name, value):
+    """Regression: a step of 0, -0.5 or NaN rendered blank, samples_per_pass 0 raised ZeroDivisionError from the sampler
+    and a step of 1e-9 took all the memory; nothing checked the settings."""
+    with pytest.raises(ValueError, match=rf"^RenderConfig\.{name} must be .*, got {re.escape(repr(value))}$"):
+        RenderConfig(**{name: value})
+    with pytest.raises(ValueError, match=rf"RenderConfig\.{name}"):
+        dataclasses.replace(RenderConfig(), **{name: value})
+
+
+def test_the_render_settings_at_their_limits_render_the_slab():
+    edge = RenderConfig(step_ratio=MIN_STEP_RATIO, samples_per_pass=1, chunk_rays=1, early_stop=0.0,
+                        sigma_threshold=0.0)
+    grid = uniform_grid(0.02)
+    out = render_rays(grid, torch.tensor([[-3.0, 0.1, 0.2]]), torch.tensor([[1.0, 0.0, 0.0]]), edge)
+    assert out.opacity.item() == pytest.approx(1 - math.exp(-0.02 * grid.density_scale * 3.0), abs=1e-5)
 
 
 def test_camera_inside_the_box_and_non_finite_rays():

@@ -13,6 +13,8 @@ occupied space a ray actually sees.
 
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass, field
 from typing import Callable, Iterable
 
@@ -26,6 +28,11 @@ from voxe_core.volrend import RaySamples, optical_depth, transmittance
 Field = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
 """Sample points (S, 3) -> (density (S,), values (S, C)): what :func:`composite` integrates."""
 
+MIN_STEP_RATIO = 0.05
+"""The finest sample spacing, 1/20 of a voxel: ~5,500 lattice samples per ray along a 160³ grid's diagonal (the
+default 0.5: 551), ~17,700 at 512³. The sampler lays out every ray's segments at once, so its memory grows as
+1 / ``step_ratio``: 1e-9 asked for ~10^11 samples per ray and took all the memory before placing one."""
+
 
 @dataclass
 class RenderConfig:
@@ -37,6 +44,27 @@ class RenderConfig:
     # Lattice samples held at once (rays are grouped to fit); None: the device's default (pass_samples).
     samples_per_pass: int | None = None
     chunk_rays: int = 32768  # rays per chunk in whole-image renders
+
+    def __post_init__(self) -> None:
+        """ValueError naming a setting that would render blank (a step of 0 or NaN placed no sample), divide by
+        zero deep in the sampler (``samples_per_pass`` 0) or take all the memory (a vanishing step)."""
+        def count(value) -> bool:
+            return isinstance(value, numbers.Integral) and value >= 1
+
+        rules = [
+            ("step_ratio", math.isfinite(self.step_ratio) and self.step_ratio >= MIN_STEP_RATIO,
+             f"a finite number of voxels >= {MIN_STEP_RATIO} (MIN_STEP_RATIO)"),
+            ("samples_per_pass", self.samples_per_pass is None or count(self.samples_per_pass),
+             "an integer >= 1, or None for the device's default"),
+            ("chunk_rays", count(self.chunk_rays), "an integer >= 1"),
+            ("early_stop", 0.0 <= self.early_stop < 1.0, "a transmittance in [0, 1)"),
+            ("sigma_threshold", math.isfinite(self.sigma_threshold) and self.sigma_threshold >= 0.0,
+             "a finite density >= 0"),
+            ("background", all(math.isfinite(b) for b in self.background), "finite"),
+        ]
+        for name, ok, rule in rules:
+            if not ok:
+                raise ValueError(f"RenderConfig.{name} must be {rule}, got {getattr(self, name)!r}")
 
     def pass_samples(self, device: torch.device) -> int:
         """``samples_per_pass``, or ``device``'s default: 2^20 on the CPU, 2^22 on an accelerator.
