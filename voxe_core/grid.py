@@ -552,7 +552,9 @@ class VoxelGrid(torch.nn.Module):
 
     # ------------------------------------------------------------- storage
     def state_tensors(self) -> dict[str, torch.Tensor]:
-        return {"features": self.features.detach(), "bbox_min": self.bbox_min, "bbox_max": self.bbox_max}
+        """The tensors a file holds, float32 as the format says whatever the grid's dtype (a ``.half()`` grid's too)."""
+        return {"features": self.features.detach().float(), "bbox_min": self.bbox_min.float(),
+                "bbox_max": self.bbox_max.float()}
 
     def header(self) -> dict:
         return {"backbone": self.kind, "activation": self.activation, "density_scale": self.density_scale,
