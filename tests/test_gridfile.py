@@ -264,6 +264,16 @@ def test_cli_converts_between_layouts(tmp_path, make_sphere_grid, capsys):
     assert "no such file" in capsys.readouterr().err
 
 
+def test_cli_converting_a_grid_in_place_reports_the_size_it_had(tmp_path, make_sphere_grid, capsys):
+    """Regression: the input's size was read after the output had replaced it, so an in-place conversion said 1.00x."""
+    path = tmp_path / "grid.safetensors"
+    noisy_sphere(make_sphere_grid, resolution=20).save(path, dense=True)
+    before = path.stat().st_size
+    assert main(["convert-grid", str(path), "--out", str(path)]) == 0
+    after = path.stat().st_size
+    assert after < before / 3 and f"({after / before:.2f}x of grid.safetensors)" in capsys.readouterr().out
+
+
 def test_commands_write_sparse_grids_unless_asked_for_dense(tmp_path, data_root):
     spot = data_root / "meshes" / "spot"
     written = {}

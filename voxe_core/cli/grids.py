@@ -26,10 +26,11 @@ def cmd_convert_grid(args) -> int:
     if args.dense and args.margin is not None:
         raise ValueError("--margin sets the sparse layout's kept cells; --dense writes every vertex")
     grid = load_grid(args.grid)
+    before = args.grid.stat().st_size  # before the save: --out may be GRID itself
     args.out.parent.mkdir(parents=True, exist_ok=True)
     grid.save(args.out, dense=args.dense, margin=DEFAULT_MARGIN if args.margin is None else args.margin)
     _, meta = load_tensors(args.out, kind="voxel_grid", max_version=2)
-    before, after = args.grid.stat().st_size, args.out.stat().st_size
+    after = args.out.stat().st_size
     print(f"wrote {args.out}: {meta['layout']} {'x'.join(map(str, grid.resolution))} grid, "
           f"{after / 1e6:.2f} MB ({after / before:.2f}x of {args.grid.name})")
     return 0
