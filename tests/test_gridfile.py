@@ -122,6 +122,28 @@ def test_softplus_and_scene_grids_keep_their_occupancy_and_renders(tmp_path, mak
     assert torch.equal(loaded.frame, frame) and loaded.far_ratio == 50.0 and loaded.foreground_extent == 1.2
 
 
+def test_a_softplus_file_renders_identically_where_empty_space_is_skipped_at_the_default_threshold(tmp_path):
+    """What the README says of softplus files: a cell left out holds density below the default sigma_threshold
+    (positive: softplus), replaced by ``fill``'s. Here it lies just below: renders skipping at that threshold or
+    above are identical, a render without skipping differs faintly."""
+    gen = torch.Generator().manual_seed(0)
+    features = torch.randn(17, 17, 17, 4, generator=gen)
+    positions = VoxelGrid(17).vertex_positions().reshape(17, 17, 17, 3)
+    empty = -0.21 - 0.05 * torch.rand(17, 17, 17, generator=gen)  # softplus(33.3 * -0.21) = 9.1e-4
+    features[..., 0] = torch.where((positions - torch.tensor([0.3, -0.2, 0.1])).norm(dim=-1) < 0.6, 0.5, empty)
+    grid = VoxelGrid(17, activation="softplus", features=features)
+    grid.save(tmp_path / "softplus.safetensors")
+    loaded = load_grid(tmp_path / "softplus.safetensors")
+    cameras = turntable_cameras(2, size=16)
+
+    def difference(config: RenderConfig) -> float:
+        return max(float((render_image(loaded, cameras, i, config).rgb - render_image(grid, cameras, i, config).rgb)
+                         .abs().max()) for i in range(len(cameras)))
+
+    assert difference(RenderConfig()) == 0.0 and difference(RenderConfig(sigma_threshold=1e-2)) == 0.0
+    assert 0.0 < difference(RenderConfig(skip_empty=False)) < 1e-3
+
+
 def test_a_grid_occupied_everywhere_is_written_dense_and_an_empty_one_as_a_mask(tmp_path):
     full, empty = tmp_path / "full.safetensors", tmp_path / "empty.safetensors"
     VoxelGrid(10).save(full)  # init density 0.01 > 0 everywhere: sparse would be larger

@@ -565,8 +565,9 @@ class VoxelGrid(torch.nn.Module):
 
         The sparse layout keeps the cells that can hold density (with ReLU: raw
         density above 0 at a corner, so a loaded grid renders identically with or
-        without empty-space skipping; with softplus: ``occupancy()``'s cells)
-        plus ``margin`` cells around them.
+        without empty-space skipping; with softplus: ``occupancy()``'s cells, so
+        identically where skipping is at the default threshold or above) plus
+        ``margin`` cells around them.
         """
         tensors, meta = self.state_tensors(), {**self.header(), "layout": "dense"}
         if not dense:

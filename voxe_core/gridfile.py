@@ -5,7 +5,11 @@ A grid is 0.7–5 % occupied, yet its dense file is 16 bytes per vertex everywhe
 cell and of the cells within ``margin`` of one, bit-packed as a mask in C order,
 and one ``fill`` value for all the others (their mean). Cells the renderer
 renders read only stored vertices, so a loaded grid has the same occupancy
-and renders identically; every stored vertex round-trips bit for bit.
+and renders identically; every stored vertex round-trips bit for bit. A
+softplus grid's occupied cells are those above the default ``sigma_threshold``
+(its density is positive everywhere), so this holds where empty space is
+skipped at that threshold or above; a render without skipping sees the faint
+density of the cells left out replaced by ``fill``'s.
 
 Format (format version 2 of ``voxel_grid`` files; version 1 files, dense, still load):
 
@@ -14,8 +18,8 @@ Format (format version 2 of ``voxel_grid`` files; version 1 files, dense, still 
   ``numpy.packbits`` writes it (C order, big-endian bits); ``values`` (N, 4) float32,
   the stored vertices in C order; ``fill`` (4,) float32, every other vertex;
 
-both with ``bbox_min``/``bbox_max`` (3,) and, in the JSON header, ``resolution``,
-``layout`` and ``margin``. Channel 0 is raw density, 1:4 raw colour.
+both with ``bbox_min``/``bbox_max`` (3,) float32 and, in the JSON header, ``resolution``
+and ``layout`` (sparse files also ``margin``). Channel 0 is raw density, 1:4 raw colour.
 
 Examples:
     >>> cells = torch.zeros(7, 7, 7, dtype=torch.bool); cells[3, 3, 3] = True
