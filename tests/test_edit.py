@@ -211,6 +211,37 @@ def test_a_diverged_step_stops_the_edit_before_its_progress_or_checkpoint(small_
     assert meta["iteration"] == 2 and torch.isfinite(tensors["features"]).all()  # a resume starts from before
 
 
+def _overflowing_unet(guidance, monkeypatch, channels):
+    """The tiny guidance's UNet output infinite in ``channels`` of its latent's 4, as a float16 UNet overflowing."""
+    eager = guidance._eager_unet
+
+    def overflowing(sample, timestep, text):
+        out = eager(sample, timestep, text).clone()
+        out[:, channels] = torch.inf
+        return out
+
+    monkeypatch.setattr(guidance, "_eager_unet", overflowing)
+
+
+def test_a_guidance_overflowing_everywhere_stops_the_edit_naming_fp16(small_sphere, tiny_guidance, monkeypatch):
+    """Its gradient, zeroed entry by entry, had left a finite loss, so the edit ran on and "succeeded" unchanged."""
+    _overflowing_unet(tiny_guidance, monkeypatch, slice(None))
+    reports, steps = [], edit_module.MAX_NONFINITE_GUIDANCE_STEPS
+    with pytest.raises(EditDiverged, match=rf"at iteration {steps}: the guidance's SDS gradient was infinite or NaN in "
+                                           rf"every entry for the last {steps} iterations .*float16 \(fp16\) UNet "
+                                           "overflowing; run the guidance in float32 or bfloat16"):
+        edit(small_sphere, "a dog", tiny_guidance, EditConfig(iterations=steps + 5, render_size=16), _collect(reports))
+    assert [r.info["sds_nonfinite_fraction"] for r in reports] == [1.0] * (steps - 1)
+    assert all(math.isfinite(r.losses["total"]) for r in reports)
+
+
+def test_a_guidance_overflowing_in_part_is_reported_and_edits_on(small_sphere, tiny_guidance, monkeypatch):
+    _overflowing_unet(tiny_guidance, monkeypatch, 0)
+    reports, steps = [], edit_module.MAX_NONFINITE_GUIDANCE_STEPS + 1
+    edit(small_sphere, "a dog", tiny_guidance, EditConfig(iterations=steps, render_size=16), _collect(reports))
+    assert [r.info["sds_nonfinite_fraction"] for r in reports] == [0.25] * steps
+
+
 def test_a_zero_iteration_edit_writes_a_checkpoint_with_zero_moments(small_sphere, tmp_path):
     """No step taken: Adam holds no moments yet, and the checkpoint still writes (two zero tensors, not one
     shared: safetensors refuses shared memory) beside the unchanged grid."""

@@ -175,6 +175,27 @@ def test_sds_gradient_is_weighted_cfg_residual(guidance):
     torch.testing.assert_close(direct, expected, rtol=1e-4, atol=1e-5)
 
 
+def test_sds_reports_the_share_of_non_finite_gradient_entries_it_zeroed(guidance, monkeypatch):
+    """A float16 UNet overflowing in one of the 4 latent channels: that quarter of the gradient is zeroed, and said
+    so (it had been zeroed silently, an everywhere-overflowing UNet making SDS a no-op with a finite loss)."""
+    eager = guidance._eager_unet
+
+    def overflowing(sample, timestep, text):
+        out = eager(sample, timestep, text).clone()
+        out[:, 0] = torch.inf
+        return out
+
+    monkeypatch.setattr(guidance, "_eager_unet", overflowing)
+    g = torch.Generator().manual_seed(3)
+    latents, noise = torch.randn(2, 4, 16, 16, generator=g), torch.randn(2, 4, 16, 16, generator=g)
+    grad, diag = guidance.sds_grad_on_latents(latents, guidance.encode_prompts(["a dog"]), [300, 600], noise=noise)
+    assert float(diag["nonfinite_fraction"]) == 0.25
+    assert not grad[:, 0].any() and grad[:, 1:].abs().min() > 0 and torch.isfinite(grad).all()
+    monkeypatch.undo()
+    _, healthy = guidance.sds_grad_on_latents(latents, guidance.encode_prompts(["a dog"]), [300, 600], noise=noise)
+    assert float(healthy["nonfinite_fraction"]) == 0
+
+
 def test_sds_rejects_out_of_range_timesteps(guidance):
     emb = guidance.encode_prompts(["a dog"])
     with pytest.raises(ValueError):

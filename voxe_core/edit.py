@@ -90,7 +90,14 @@ AUTOCAST_DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
 
 
 class EditDiverged(ArithmeticError):
-    """An edit step's loss was NaN or infinite: G_e took a step it cannot recover from."""
+    """An edit step's loss was NaN or infinite (G_e took a step it cannot recover from), or the guidance's SDS
+    gradient was wholly non-finite for :data:`MAX_NONFINITE_GUIDANCE_STEPS` steps in a row (G_e no longer edits)."""
+
+
+# The guidance zeroes a non-finite SDS gradient, so a UNet whose float16 output overflows on every step leaves a finite
+# loss and an edit that changes nothing. One such step can be a rare overflow at a large t; this many in a row is a
+# model that cannot run in this precision, and a job would otherwise "succeed" with the object unchanged.
+MAX_NONFINITE_GUIDANCE_STEPS = 10
 
 
 RECIPE_FIELDS = ("lr", "betas", "lr_decay", "lr_decay_start", "lr_decay_every", "lr_decay_factor", "render_size",
@@ -310,7 +317,8 @@ def edit(
     (split at the moment the gradient reaches the renders: ``ms_backward_guidance``,
     the VAE encoder's and the resize's backward and, as autograd runs the graph
     built last first, the regulariser's; then ``ms_backward_render``, the renders'),
-    ``ms_optimizer``, ``ms_step``. Cancellation is checked before each
+    ``ms_optimizer``, ``ms_step``, and ``sds_nonfinite_fraction`` (the share of the
+    SDS gradient's entries the guidance found infinite or NaN and zeroed). Cancellation is checked before each
     iteration (``StageCancelled``; a checkpoint is written first when
     ``checkpoint_path`` is set). Info also carries ``peak_memory_gb`` /
     ``peak_memory_kind`` (:class:`voxe_core.devices.PeakMemory`).
@@ -320,7 +328,9 @@ def edit(
     once, and the returned grid lives there. A ``device`` other than the
     guidance's is refused at once (every step would copy renders across). A step whose loss is not finite raises
     :class:`EditDiverged` before its progress is reported or a checkpoint written (its NaN or infinite gradient
-    has reached G_e, which no later step recovers).
+    has reached G_e, which no later step recovers); so does a guidance whose SDS gradient was wholly non-finite
+    (``nonfinite_fraction`` 1) for :data:`MAX_NONFINITE_GUIDANCE_STEPS` steps in a row, the last one's progress not
+    reported (a float16 UNet overflowing: G_e would take no more SDS steps).
     """
     if not str(prompt).strip():
         raise ValueError("the edit prompt is empty")
@@ -417,6 +427,7 @@ def edit(
     if start == 0:
         preview(0)
     done = start
+    nonfinite_steps = 0  # consecutive steps whose SDS gradient was wholly non-finite
     try:
         for iteration in range(start, config.iterations):
             callbacks.check_cancel("edit")
@@ -490,13 +501,21 @@ def edit(
 
             # The step's one read: its losses and the guidance's device-side diagnostics together.
             grad_norm = torch.as_tensor(diagnostics.get("grad_norm", math.nan), dtype=torch.float32, device=device)
-            sds_value, reg_value, total_value, grad_norm_value = torch.stack(
-                [sds.detach().float(), reg.detach(), total.detach(), grad_norm.reshape(())]).tolist()
+            nonfinite = torch.as_tensor(diagnostics.get("nonfinite_fraction", 0.0), dtype=torch.float32, device=device)
+            sds_value, reg_value, total_value, grad_norm_value, nonfinite_value = torch.stack(
+                [sds.detach().float(), reg.detach(), total.detach(), grad_norm.reshape(()), nonfinite.reshape(())]
+            ).tolist()
             if not math.isfinite(total_value):
                 raise EditDiverged(
                     f"the edit diverged at iteration {done}: its loss is {total_value} (SDS {sds_value}, "
                     f"regulariser {reg_value}); the steps before were finite (half precision overflowing? try "
                     "autocast off, or a lower lr)")
+            nonfinite_steps = nonfinite_steps + 1 if nonfinite_value >= 1.0 else 0
+            if nonfinite_steps >= MAX_NONFINITE_GUIDANCE_STEPS:
+                raise EditDiverged(
+                    f"the edit diverged at iteration {done}: the guidance's SDS gradient was infinite or NaN in every "
+                    f"entry for the last {nonfinite_steps} iterations (zeroed, so the edit stood still): a float16 "
+                    "(fp16) UNet overflowing; run the guidance in float32 or bfloat16")
             t_lo, t_hi = config.schedule.bounds(iteration, T)
             callbacks.progress(Progress(
                 "edit", done, config.iterations,
@@ -508,6 +527,7 @@ def edit(
                     "elevation": elevation.tolist() if config.batch_size > 1 else float(elevation[0]),
                     "azimuth": azimuth.tolist() if config.batch_size > 1 else float(azimuth[0]),
                     "sds_grad_norm": grad_norm_value,
+                    "sds_nonfinite_fraction": nonfinite_value,
                     "samples_per_ray": samples / (config.batch_size * size * size),
                     "ms_render": (t_render - t_start) * 1e3,
                     "ms_vae": float(diagnostics.get("vae_encode_ms", math.nan)),
@@ -545,6 +565,7 @@ __all__ = [
     "EDIT_CHECKPOINT_VERSION",
     "EditConfig",
     "EditDiverged",
+    "MAX_NONFINITE_GUIDANCE_STEPS",
     "build_prompt",
     "edit",
     "initial_fingerprint",

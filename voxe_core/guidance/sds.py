@@ -12,7 +12,8 @@ SDS (SPEC §2). For renders ``x`` in [0, 1]:
    ``torch.no_grad()`` (its backward pass is never needed);
 5. classifier-free guidance ``ε̂ = ε_u + s·(ε_c − ε_u)``;
 6. ``grad = w(t)·(ε̂ − ε)`` with ``w(t) = 1 − ᾱ_t``, computed in float32,
-   non-finite entries set to 0.
+   non-finite entries set to 0 (their share is the ``nonfinite_fraction``
+   diagnostic: a float16 UNet that overflows everywhere leaves no gradient at all).
 
 The UNet's output is read as its scheduler's ``prediction_type`` says: ε
 (``"epsilon"``, SD 1.x and SD 2 base) as it is, v (``"v_prediction"``, e.g.
@@ -383,7 +384,8 @@ class StableDiffusionGuidance:
         ``noise`` (float32, latent-shaped) overrides the draw from ``generator``.
         ε̂ is the guided UNet output read as :attr:`prediction_type` says.
         Diagnostics: ``unet_ms`` (UNet forward incl. CFG, float), ``t_mean``,
-        ``w_mean``, ``grad_norm`` (0-dim tensors on the device, not read here).
+        ``w_mean``, ``grad_norm``, ``nonfinite_fraction`` (the share of the gradient's entries that were infinite or
+        NaN and set to 0) (0-dim tensors on the device, not read here).
         """
         z = latents.detach().to(device=self.device, dtype=torch.float32)
         batch = z.shape[0]
@@ -407,10 +409,13 @@ class StableDiffusionGuidance:
         # CFG is linear, so guiding the raw outputs then converting equals converting each first.
         eps_hat = epsilon_from_output(out_u + float(guidance_scale) * (out_c - out_u), noisy, a, self.prediction_type)
         w = 1.0 - a
-        grad = torch.nan_to_num(w * (eps_hat - eps), nan=0.0, posinf=0.0, neginf=0.0)
+        grad = w * (eps_hat - eps)
+        finite = torch.isfinite(grad)
+        grad = torch.where(finite, grad, 0.0)
         # Left on the device for the caller to read when it reports: a read here would hold the host until the UNet
         # has run, with the backward not yet queued.
-        diagnostics = {"unet_ms": unet_ms, "t_mean": t.float().mean(), "w_mean": w.mean(), "grad_norm": grad.norm()}
+        diagnostics = {"unet_ms": unet_ms, "t_mean": t.float().mean(), "w_mean": w.mean(), "grad_norm": grad.norm(),
+                       "nonfinite_fraction": 1.0 - finite.float().mean()}
         return grad, diagnostics
 
     def sds_loss_on_latents(
@@ -444,7 +449,7 @@ class StableDiffusionGuidance:
         Returns the surrogate loss (backward it; its value is meaningless) and
         diagnostics: ``vae_encode_ms`` (forward only; the VAE backward runs
         later inside ``loss.backward()``), ``unet_ms``, ``sds_ms`` (total) as
-        floats, ``t_mean``, ``w_mean``, ``grad_norm`` as 0-dim device tensors
+        floats, ``t_mean``, ``w_mean``, ``grad_norm``, ``nonfinite_fraction`` as 0-dim device tensors
         (:data:`~voxe_core.guidance.Diagnostics`). ``generator`` drives both the
         VAE posterior sample and the noise.
         """
