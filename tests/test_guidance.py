@@ -433,8 +433,9 @@ def test_half_precision_model_returns_float32_gradients(tiny_path):
 
 
 # ----------------------------------------------------------------- prediction types
-def _v_prediction_guidance(tiny_path) -> StableDiffusionGuidance:
-    """The tiny model turned v-predicting: its UNet's ε output ε_θ is rewritten as v = √ᾱ·ε_θ − √(1−ᾱ)·x̂_0.
+def _reparameterised_guidance(tiny_path, kind: str) -> StableDiffusionGuidance:
+    """The tiny model turned ``kind``-predicting: its UNet's ε output ε_θ is rewritten as v = √ᾱ·ε_θ − √(1−ᾱ)·x̂_0
+    (``"v_prediction"``) or as x̂_0 = (z_t − √(1−ᾱ)·ε_θ) / √ᾱ (``"sample"``).
 
     ε recovered from it must be ε_θ exactly, so its SDS gradient must be the ε model's.
     """
@@ -443,24 +444,28 @@ def _v_prediction_guidance(tiny_path) -> StableDiffusionGuidance:
     from voxe_core.guidance.loading import load_stable_diffusion
 
     unet, vae, text_encoder, tokenizer, scheduler = load_stable_diffusion(str(tiny_path), torch.float32, True)
-    v_scheduler = DDIMScheduler.from_config(scheduler.config, prediction_type="v_prediction")
-    alphas = v_scheduler.alphas_cumprod.float()
+    kind_scheduler = DDIMScheduler.from_config(scheduler.config, prediction_type=kind)
+    alphas = kind_scheduler.alphas_cumprod.float()
 
-    def as_v(module, args, kwargs, output):
+    def as_kind(module, args, kwargs, output):
         noisy, t = args[0], args[1]
         # In float64: x̂_0 divides by √ᾱ (0.07 at t = 900), which would amplify float32 rounding past the tolerance.
         a = alphas[t.long()].double().reshape(-1, 1, 1, 1)
         eps = output.sample.double()
         x0 = (noisy.double() - (1 - a).sqrt() * eps) / a.sqrt()
-        return type(output)(sample=(a.sqrt() * eps - (1 - a).sqrt() * x0).to(output.sample.dtype))
+        rewritten = a.sqrt() * eps - (1 - a).sqrt() * x0 if kind == "v_prediction" else x0
+        return type(output)(sample=rewritten.to(output.sample.dtype))
 
-    unet.register_forward_hook(as_v, with_kwargs=True)
-    return StableDiffusionGuidance(unet, vae, text_encoder, tokenizer, v_scheduler, model_id="tiny-v")
+    unet.register_forward_hook(as_kind, with_kwargs=True)
+    return StableDiffusionGuidance(unet, vae, text_encoder, tokenizer, kind_scheduler, model_id=f"tiny-{kind}")
 
 
-def test_v_prediction_output_is_converted_to_epsilon_for_sds(guidance, tiny_path):
-    v_guidance = _v_prediction_guidance(tiny_path)
-    assert (guidance.prediction_type, v_guidance.prediction_type) == ("epsilon", "v_prediction")
+@pytest.mark.parametrize("kind", ["v_prediction", "sample"])
+def test_v_and_sample_outputs_are_converted_to_epsilon_for_sds(guidance, tiny_path, kind):
+    from voxe_core.guidance.sds import epsilon_from_output
+
+    kind_guidance = _reparameterised_guidance(tiny_path, kind)
+    assert (guidance.prediction_type, kind_guidance.prediction_type) == ("epsilon", kind)
     g = torch.Generator().manual_seed(5)
     latents = torch.randn(2, 4, 16, 16, generator=g)
     noise = torch.randn(2, 4, 16, 16, generator=g)
@@ -469,21 +474,24 @@ def test_v_prediction_output_is_converted_to_epsilon_for_sds(guidance, tiny_path
     scale = 7.5
     expected, (noisy, eps_c) = _expected_sds_grad(guidance, latents, noise, t, cond, scale)  # the ε model's: exact
     with torch.no_grad():
-        raw_v = v_guidance.unet(noisy, t, encoder_hidden_states=cond).sample
-    assert (raw_v - eps_c).abs().max() > 0.1  # read as ε, the v output would give another gradient
+        raw = kind_guidance.unet(noisy, t, encoder_hidden_states=cond).sample
+    assert (raw - eps_c).abs().max() > 0.1  # read as ε, the raw output would give another gradient
 
-    # ε̂ = √ᾱ·v + √(1−ᾱ)·z_t cancels terms of size |v|·√ᾱ: at t = 900 (v ≈ −z_t/√ᾱ, 14× ε) float32 rounding of v,
-    # scaled by the guidance, is what the comparison can resolve; a wrong conversion is off by > 0.1.
-    atol = 8 * scale * torch.finfo(torch.float32).eps * float(raw_v.abs().max())
-    grad, _ = v_guidance.sds_grad_on_latents(latents, cond, t, guidance_scale=scale, noise=noise)
+    # The conversion cancels terms of the raw output's size times its factor in ε̂ (√ᾱ for v, √ᾱ / √(1−ᾱ) for x̂_0):
+    # float32 rounding of the raw output, so scaled and by the guidance, is what the comparison can resolve; a wrong
+    # conversion is off by > 0.1. (With z_t = 0 the conversion is that factor times the raw output.)
+    a = guidance.alphas_cumprod[t].reshape(-1, 1, 1, 1)
+    scaled = epsilon_from_output(raw, torch.zeros_like(raw), a, kind)
+    atol = 8 * scale * torch.finfo(torch.float32).eps * float(scaled.abs().max())
+    grad, _ = kind_guidance.sds_grad_on_latents(latents, cond, t, guidance_scale=scale, noise=noise)
     torch.testing.assert_close(grad, expected, rtol=1e-4, atol=atol)
     x = latents.clone().requires_grad_(True)
-    loss, _ = v_guidance.sds_loss_on_latents(x, cond, t, guidance_scale=scale, noise=noise)
+    loss, _ = kind_guidance.sds_loss_on_latents(x, cond, t, guidance_scale=scale, noise=noise)
     loss.backward()
     torch.testing.assert_close(x.grad, expected / len(x), rtol=1e-4, atol=atol)  # the surrogate: the batch's mean
 
 
-def test_epsilon_from_output_inverts_the_v_parameterisation():
+def test_epsilon_from_output_inverts_the_v_and_sample_parameterisations():
     from voxe_core.guidance.sds import epsilon_from_output
 
     g = torch.Generator().manual_seed(0)
@@ -492,18 +500,20 @@ def test_epsilon_from_output_inverts_the_v_parameterisation():
     noisy = a.sqrt() * z + (1 - a).sqrt() * eps
     v = a.sqrt() * eps - (1 - a).sqrt() * z
     torch.testing.assert_close(epsilon_from_output(v, noisy, a, "v_prediction"), eps)
+    torch.testing.assert_close(epsilon_from_output(z, noisy, a, "sample"), eps, rtol=1e-4, atol=1e-4)
     assert epsilon_from_output(eps, noisy, a, "epsilon") is eps
 
 
-def test_unknown_prediction_type_is_refused_by_name(tiny_path):
+def test_unknown_prediction_type_is_refused_naming_the_model(tiny_path):
     from diffusers import DDIMScheduler
 
     from voxe_core.guidance.loading import load_stable_diffusion
 
     unet, vae, text_encoder, tokenizer, scheduler = load_stable_diffusion(str(tiny_path), torch.float32, True)
-    sample = DDIMScheduler.from_config(scheduler.config, prediction_type="sample")
-    with pytest.raises(ValueError, match=r"predicts 'sample'.*'epsilon' or 'v_prediction'"):
-        StableDiffusionGuidance(unet, vae, text_encoder, tokenizer, sample)
+    flow = DDIMScheduler.from_config(scheduler.config, prediction_type="flow_prediction")
+    with pytest.raises(ValueError, match=r"the scheduler of org/flow-model predicts 'flow_prediction'; SDS here "
+                                         r"supports prediction_type 'epsilon', 'v_prediction', 'sample'"):
+        StableDiffusionGuidance(unet, vae, text_encoder, tokenizer, flow, model_id="org/flow-model")
 
 
 # ----------------------------------------------------------------- first-use downloads

@@ -19,8 +19,9 @@ The UNet's output is read as its scheduler's ``prediction_type`` says: ε
 (``"epsilon"``, SD 1.x and SD 2 base) as it is, v (``"v_prediction"``, e.g.
 stabilityai/stable-diffusion-2-1 at 768²) converted to ε first,
 ``ε̂ = √ᾱ_t·v + √(1 − ᾱ_t)·z_t`` (from ``v = √ᾱ·ε − √(1 − ᾱ)·z`` and
-``z_t = √ᾱ·z + √(1 − ᾱ)·ε``); any other type is refused when the guidance is
-built (:data:`PREDICTION_TYPES`).
+``z_t = √ᾱ·z + √(1 − ᾱ)·ε``), and x̂₀ (``"sample"``) likewise,
+``ε̂ = (z_t − √ᾱ_t·x̂₀) / √(1 − ᾱ_t)``; any other type is refused, naming the
+model, when the guidance is built (:data:`PREDICTION_TYPES`).
 
 On CUDA the UNet and VAE run in float16 (``from_pretrained``'s default),
 ``channels_last``, with PyTorch SDPA attention; the SDS step's UNet forward
@@ -59,17 +60,18 @@ from voxe_core.guidance.cuda_graphs import GraphedEncoder, GraphedUNet
 from voxe_core.guidance.loading import load_stable_diffusion
 
 
-PREDICTION_TYPES = ("epsilon", "v_prediction")
+PREDICTION_TYPES = ("epsilon", "v_prediction", "sample")
 _EMBEDDING_CACHE_SIZE = 256  # prompts whose text embeddings a guidance keeps
 
 
-def prediction_type(scheduler) -> str:
-    """The scheduler's ``prediction_type`` (``"epsilon"`` when it names none); ValueError for one SDS cannot use."""
+def prediction_type(scheduler, model_id: str = "") -> str:
+    """The scheduler's ``prediction_type`` (``"epsilon"`` when it names none); ValueError naming ``model_id`` for one
+    SDS cannot use."""
     kind = getattr(getattr(scheduler, "config", None), "prediction_type", None) or "epsilon"
     if kind not in PREDICTION_TYPES:
         raise ValueError(
-            f"the model's scheduler predicts {kind!r}; SDS here supports prediction_type "
-            f"{' or '.join(map(repr, PREDICTION_TYPES))} (convert the checkpoint or pick another model)"
+            f"the scheduler of {model_id or 'the model'} predicts {kind!r}; SDS here supports prediction_type "
+            f"{', '.join(map(repr, PREDICTION_TYPES))} (convert the checkpoint or pick another model)"
         )
     return kind
 
@@ -83,11 +85,15 @@ def epsilon_from_output(output: torch.Tensor, noisy: torch.Tensor, alpha_bar: to
         >>> v = a.sqrt() * eps - (1 - a).sqrt() * z
         >>> epsilon_from_output(v, noisy, a, "v_prediction").tolist()
         [2.0]
+        >>> epsilon_from_output(z, noisy, a, "sample").tolist()
+        [2.0]
     """
     if kind == "epsilon":
         return output
     if kind == "v_prediction":
         return alpha_bar.sqrt() * output + (1.0 - alpha_bar).sqrt() * noisy
+    if kind == "sample":
+        return (noisy - alpha_bar.sqrt() * output) / (1.0 - alpha_bar).sqrt()
     raise ValueError(f"unknown prediction_type {kind!r}; expected one of {PREDICTION_TYPES}")
 
 
@@ -127,7 +133,7 @@ class StableDiffusionGuidance:
     ):
         from diffusers.models.attention_processor import AttnProcessor2_0
 
-        self.prediction_type = prediction_type(scheduler)  # refuse an unusable model before moving weights
+        self.prediction_type = prediction_type(scheduler, model_id)  # refuse an unusable model before moving weights
         _check_graph_device(cuda_graphs, device)
 
         self.model_id = model_id
