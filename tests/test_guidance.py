@@ -290,6 +290,23 @@ def test_token_spans_phrase_repeats_and_subwords(guidance):
         guidance.token_spans(prompt, ["sunglasses"])
 
 
+def test_token_spans_match_whole_words_of_the_text_before_its_view_word(guidance):
+    """Sub-words had matched ("shade" inside "lampshade", "hat" inside "partyhat"), and so had the appended view word
+    ("back" in ", back view"): the edit map then took in the object or the view word's attention."""
+    tokens = guidance.tokenizer.tokenize("a lampshade with a red shade")
+    assert tokens[5:9] == tokens[-4:]  # both shades are the same sub-tokens: only the word start tells them apart
+    assert guidance.token_spans("a lampshade with a red shade", ["shade"]) == list(range(len(tokens) - 3, len(tokens) + 1))
+    with pytest.raises(ValueError, match="'hat' does not occur in the prompt 'a partyhat'"):
+        guidance.token_spans("a partyhat", ["hat"])
+    prompt = edit_prompt("a dog with a saddle on its back", "back")
+    assert guidance.tokenizer.tokenize(prompt).count("back</w>") == 2
+    back = guidance.tokenizer.tokenize(prompt).index("back</w>") + 1
+    assert guidance.token_spans(prompt, ["back"]) == [back]
+    with pytest.raises(ValueError, match="'view' does not occur"):
+        guidance.token_spans(prompt, ["view"])
+    assert guidance.token_spans("a dog, back view", ["dog"]) == [2]
+
+
 def test_a_prompt_longer_than_the_text_encoder_reads_is_refused_not_cut_off(guidance):
     """It was cut at 77 tokens: the edit guided by the front of it, and an edit word beyond the cut not found
     until the refinement looked for it."""

@@ -71,5 +71,5 @@ class Guidance(Protocol):
         ...
 
     def token_spans(self, prompt: str, words: Sequence[str]) -> list[int]:
-        """Token positions (in the padded prompt) of every occurrence of each word."""
+        """Token positions (in the padded prompt) of every whole-word occurrence of each word before the view word."""
         ...

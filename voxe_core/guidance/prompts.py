@@ -57,6 +57,19 @@ def edit_prompt(user_text: str, view_word: str | None = None) -> str:
     return text
 
 
+def without_view_word(prompt: str) -> str:
+    """``prompt`` without the ", <view> view" that :func:`edit_prompt` appends (as it is when it has none).
+
+    Examples:
+        >>> without_view_word("a render of a dog with a saddle on its back, back view")
+        'a render of a dog with a saddle on its back'
+    """
+    for word in VIEW_WORDS:
+        if prompt.endswith(suffix := f", {word} view"):
+            return prompt[: -len(suffix)]
+    return prompt
+
+
 TEXT_ENCODER_TOKENS = 77
 """What Stable Diffusion's CLIP text encoder reads (1.x and 2.x alike), its start and end tokens included."""
 

@@ -58,6 +58,7 @@ from voxe_core.guidance.attention import AttentionStore, capturing
 from voxe_core.guidance.compiled import CompiledEncoder
 from voxe_core.guidance.cuda_graphs import GraphedEncoder, GraphedUNet
 from voxe_core.guidance.loading import load_stable_diffusion
+from voxe_core.guidance.prompts import without_view_word
 
 
 PREDICTION_TYPES = ("epsilon", "v_prediction", "sample")
@@ -265,18 +266,25 @@ class StableDiffusionGuidance:
         Positions index the token axis of :meth:`cross_attention_maps` (0 is the
         start token). A multi-token word (or phrase such as ``"party hat"``)
         contributes all its sub-token positions; a word occurring several times
-        contributes every occurrence. Sorted, without duplicates. Raises
-        ``ValueError`` when a word does not occur in the prompt.
+        contributes every occurrence. Only whole words count (an occurrence starts
+        a word: "shade" is not found in "lampshade"), and only in the prompt's own
+        text, before its view word (``"back"`` is not found in ", back view").
+        Sorted, without duplicates. Raises ``ValueError`` when a word does not
+        occur in the prompt.
         """
         if isinstance(words, str):
             words = [words]
         ids = self._tokenize([prompt])[0].tolist()
+        # CLIP's BPE ends each word's last token with "</w>": a word starts after one, or after the start token.
+        tokens = self.tokenizer.convert_ids_to_tokens(ids)
+        starts = {1} | {i + 1 for i, token in enumerate(tokens) if token.endswith("</w>")}
+        text_end = 1 + len(self.tokenizer(without_view_word(prompt), add_special_tokens=False).input_ids)
         positions: set[int] = set()
         for word in words:
             sub = self.tokenizer(word, add_special_tokens=False).input_ids
             if not sub:
                 raise ValueError(f"{word!r} has no tokens")
-            found = [i for i in range(len(ids) - len(sub) + 1) if ids[i : i + len(sub)] == sub]
+            found = [i for i in starts if i + len(sub) <= text_end and ids[i : i + len(sub)] == sub]
             if not found:
                 raise ValueError(f"{word!r} does not occur in the prompt {prompt!r} (tokens {self.tokenizer.tokenize(prompt)})")
             for i in found:
