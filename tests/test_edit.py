@@ -86,6 +86,9 @@ class FakeGuidance:
     def token_spans(self, prompt, words):
         raise NotImplementedError
 
+    def content_token_indices(self, prompt):
+        raise NotImplementedError
+
 
 def _collect(reports):
     return Callbacks(on_progress=reports.append)

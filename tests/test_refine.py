@@ -20,6 +20,8 @@ from voxe_core.backbones import load_grid
 from voxe_core.cameras import Cameras, random_hemisphere_poses, spherical_poses
 from voxe_core.cli import main
 from voxe_core.grid import VoxelGrid
+from voxe_core.edit import EditConfig, edit
+from voxe_core.guidance import Guidance
 from voxe_core.guidance.sds import StableDiffusionGuidance
 from voxe_core.progress import Callbacks, StageCancelled
 from voxe_core.refine.config import (
@@ -620,6 +622,32 @@ def test_refine_with_the_authors_fresh_fit_runs_one_diffusion_pass_per_step(tiny
 
 
 # ----------------------------------------------------------------- end to end
+
+
+class ProtocolOnly:
+    """A guidance seen through the :class:`Guidance` protocol only: any other attribute is an AttributeError."""
+
+    MEMBERS = set(Guidance.__annotations__) | {name for name in vars(Guidance) if not name.startswith("_")}
+
+    def __init__(self, guidance):
+        self._guidance = guidance
+
+    def __getattr__(self, name):
+        if name not in self.MEMBERS:
+            raise AttributeError(f"{name!r} is not a member of the Guidance protocol")
+        return getattr(self._guidance, name)
+
+
+def test_a_guidance_with_only_the_protocols_members_edits_and_refines(tiny_guidance, make_sphere_grid):
+    """The refinement had also called content_token_indices, which the protocol did not name: a model implementing
+    exactly the protocol passed isinstance and then failed the refinement."""
+    guidance = ProtocolOnly(tiny_guidance)
+    assert isinstance(guidance, Guidance)
+    initial = make_sphere_grid(10)
+    edited = edit(initial, "a dog wearing sunglasses", guidance, EditConfig(iterations=1, render_size=16))
+    config = RefineConfig(views=1, render_size=16, iterations=2, edit_seeds=5, object_seeds=5)
+    result = refine(initial, edited, "a dog wearing sunglasses", ["sunglasses"], guidance, config)
+    assert result.mask.shape == (10, 10, 10)
 
 
 def test_refine_end_to_end_with_tiny_model(tiny_guidance, make_sphere_grid):

@@ -32,7 +32,11 @@ which the caller reads when it reports (one read for all of them, after the step
 
 @runtime_checkable
 class Guidance(Protocol):
-    """What the editing and refinement stages need from a text-to-image diffusion model."""
+    """What the editing and refinement stages need from a text-to-image diffusion model.
+
+    Every member is one the stages call. They also read ``device`` (where to run; default: the grids') and
+    ``model_id`` (recorded in the edit's checkpoint) when a guidance has them.
+    """
 
     resolution: int
     """Square image size (pixels) the model works at; renders are resized to it."""
@@ -56,7 +60,8 @@ class Guidance(Protocol):
         guidance_scale: float = DEFAULT_GUIDANCE_SCALE,
         generator: torch.Generator | None = None,
     ) -> tuple[torch.Tensor, Diagnostics]:
-        """Scalar surrogate loss whose latent gradient is ``w(t)(ε̂ − ε)``, plus diagnostics."""
+        """Scalar surrogate loss whose latent gradient is ``w(t)(ε̂ − ε) / B`` (the mean over the batch's B renders),
+        plus diagnostics."""
         ...
 
     def cross_attention_maps(
@@ -72,4 +77,8 @@ class Guidance(Protocol):
 
     def token_spans(self, prompt: str, words: Sequence[str]) -> list[int]:
         """Token positions (in the padded prompt) of every whole-word occurrence of each word before the view word."""
+        ...
+
+    def content_token_indices(self, prompt: str) -> list[int]:
+        """Token positions of the prompt's own tokens (no start, end or padding tokens)."""
         ...
