@@ -156,6 +156,32 @@ def test_attention_maps_2d_are_normalised_per_view(tiny_guidance, make_sphere_gr
         torch.testing.assert_close(maps.amax(dim=(1, 2)), torch.ones(2))
 
 
+def test_the_default_attention_layers_follow_the_models_latent_size(tiny_guidance, tiny_model, make_sphere_grid,
+                                                                    tmp_path):
+    """A fixed 16 had found no layer on a model whose latents are not SD-1.4's (a 768-px SD 2.x: 96/48/24/12): every
+    local job failed at its refinement, after its edit. The tiny model at sample size 24 stands in (layers 24, 12)."""
+    import shutil
+
+    from voxe_core.presets import refine_config
+
+    other = shutil.copytree(tiny_model, tmp_path / "model_24")
+    unet_config = other / "unet" / "config.json"
+    unet_config.write_text(json.dumps({**json.loads(unet_config.read_text()), "sample_size": 24}))
+    guidance = StableDiffusionGuidance.from_pretrained(str(other), device="cpu", local_files_only=True)
+    config = refine_config({}, str(other))  # what the worker builds for every local job
+    assert config.resolution_filter == RefineConfig().resolution_filter == "auto"
+    image = torch.rand(1, 3, 64, 64, generator=torch.Generator().manual_seed(0))
+    assert guidance.cross_attention_maps(image, "a dog", resolution_filter=config.resolution_filter).shape == (77, 24, 24)
+    assert guidance.cross_attention_maps(image, "a dog", resolution_filter=12).shape == (77, 12, 12)  # as asked
+    edit, _ = attention_maps_2d(guidance, make_sphere_grid(8), cameras_around(1, 16), "a render of a dog wearing a hat",
+                                ["hat"], dataclasses.replace(config, render_size=16))
+    assert edit.shape == (1, 16, 16) and torch.isfinite(edit).all()
+    # the tiny model's default layers are as they were: its 16x16 latents' 16x16 layers
+    assert tiny_guidance.cross_attention_maps(image, "a dog").shape == (77, 16, 16)
+    with pytest.raises(ValueError, match="resolution_filter must be 'auto', None or a positive number"):
+        RefineConfig(resolution_filter="16")
+
+
 def test_the_authors_code_maps_but_normalised_and_its_fit_are_the_default_and_the_text_is_one_replace_away():
     config = RefineConfig()
     assert {k: getattr(config, k) for k in SERVICE_MAPS} == SERVICE_MAPS

@@ -17,7 +17,7 @@ This module imports neither torch nor diffusers (only the annotations name torch
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Protocol, Sequence, runtime_checkable
+from typing import TYPE_CHECKING, Literal, Protocol, Sequence, runtime_checkable
 
 from voxe_core.constants import DEFAULT_ATTENTION_TIMESTEP, DEFAULT_GUIDANCE_SCALE
 
@@ -69,10 +69,11 @@ class Guidance(Protocol):
         image: torch.Tensor,
         prompt: str,
         timestep: int = DEFAULT_ATTENTION_TIMESTEP,
-        resolution_filter: int | None = 16,
+        resolution_filter: int | Literal["auto"] | None = "auto",
         generator: torch.Generator | None = None,
     ) -> torch.Tensor:
-        """Per-token cross-attention probabilities ``(tokens, h, w)``, summing to 1 per pixel."""
+        """Per-token cross-attention probabilities ``(tokens, h, w)``, summing to 1 per pixel, from the layers whose
+        query maps are ``resolution_filter`` square (``"auto"``: the model's choice, SPEC's 16 on SD-1.4; None: all)."""
         ...
 
     def token_spans(self, prompt: str, words: Sequence[str]) -> list[int]:

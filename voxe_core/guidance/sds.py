@@ -43,10 +43,11 @@ processor (:mod:`voxe_core.guidance.attention`).
 
 from __future__ import annotations
 
+import math
 import os
 import time
 import warnings
-from typing import Callable, Sequence
+from typing import Callable, Literal, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -96,6 +97,23 @@ def epsilon_from_output(output: torch.Tensor, noisy: torch.Tensor, alpha_bar: to
     if kind == "sample":
         return (noisy - alpha_bar.sqrt() * output) / (1.0 - alpha_bar).sqrt()
     raise ValueError(f"unknown prediction_type {kind!r}; expected one of {PREDICTION_TYPES}")
+
+
+def attention_resolution(down_block_types: Sequence[str], latent_side: int) -> int:
+    """The query-map side of the cross-attention layers the refinement reads by default (``resolution_filter="auto"``):
+    those of the UNet's coarsest down block with cross-attention, which halves the latent side for each down block
+    with cross-attention before it. A quarter of the latent side on SD 1.x / 2.x (three such blocks): SPEC's 16×16 for
+    SD-1.4's 64×64 latents, 24×24 for a 768-px SD 2.x's 96×96, whose layers have no 16×16 level.
+
+    Examples:
+        >>> sd = ["CrossAttnDownBlock2D"] * 3 + ["DownBlock2D"]
+        >>> attention_resolution(sd, 64), attention_resolution(sd, 96)
+        (16, 24)
+        >>> attention_resolution(["CrossAttnDownBlock2D", "DownBlock2D"], 16)  # the tiny smoke-test model
+        16
+    """
+    halvings = sum("CrossAttn" in kind for kind in down_block_types) - 1
+    return math.ceil(latent_side / 2 ** max(halvings, 0))
 
 
 def _check_graph_device(cuda_graphs: bool, device) -> None:
@@ -485,7 +503,7 @@ class StableDiffusionGuidance:
         image: torch.Tensor,
         prompt: str,
         timestep: int = DEFAULT_ATTENTION_TIMESTEP,
-        resolution_filter: int | None = 16,
+        resolution_filter: int | Literal["auto"] | None = "auto",
         generator: torch.Generator | None = None,
     ) -> torch.Tensor:
         """Cross-attention probabilities per token, ``(max_length, h, w)`` float32 on the model device.
@@ -495,7 +513,8 @@ class StableDiffusionGuidance:
         to ``timestep`` with noise from ``generator``. The probabilities
         ``softmax(QKᵀ/√d)`` are averaged over heads and over the cross-attention
         layers whose query map is ``resolution_filter`` × ``resolution_filter``
-        (all cross-attention layers when ``None``; maps of coarser layers are
+        (``"auto"``: :func:`attention_resolution`, 16 on SD-1.4;
+        all cross-attention layers when ``None``; maps of coarser layers are
         then bilinearly upsampled to the finest, which keeps each pixel's sum
         at 1). Every pixel's probabilities sum to 1 over the token axis. No
         smoothing or upsampling to the render size is applied here.
@@ -511,6 +530,8 @@ class StableDiffusionGuidance:
         noisy = a.sqrt() * latents + (1.0 - a).sqrt() * eps
         text = self._expand_text(self.encode_prompts([prompt]), 1)
 
+        if resolution_filter == "auto":
+            resolution_filter = attention_resolution(self.unet.config.down_block_types, latents.shape[-1])
         store = AttentionStore(tuple(latents.shape[-2:]), resolution_filter)
         with capturing(self.unet, store):
             self.unet(noisy.to(self.dtype), t, encoder_hidden_states=text)

@@ -48,8 +48,11 @@ class RefineConfig:
 
     # 2D cross-attention maps
     timestep: int = DEFAULT_ATTENTION_TIMESTEP  # t = 200 of 1000
-    resolution_filter: int | None = 16  # keep only the 16x16-query cross-attention layers
-    smoothing_sigma: float = SERVICE_SMOOTHING_SIGMA  # std in pixels of the 16x16 map; 0 = none (ours before issue 18: 1.0)
+    # keep only the cross-attention layers whose query maps are this side; "auto": the model's (guidance.sds's
+    # attention_resolution: a quarter of the latent side on SD 1.x / 2.x, SPEC's 16x16 on SD-1.4, where a fixed 16 finds
+    # no layer on a 768-px SD 2.x); None: every layer
+    resolution_filter: int | Literal["auto"] | None = "auto"
+    smoothing_sigma: float = SERVICE_SMOOTHING_SIGMA  # std in attention-map pixels; 0 = none (ours before issue 18: 1.0)
     # "3x3": a 3x3 kernel (the code's); "3sigma": radius ceil(3 sigma), the whole Gaussian (ours before issue 18)
     smoothing_kernel: Literal["3x3", "3sigma"] = "3x3"
     smooth_upsampled: bool = True  # smooth again after the bilinear upsampling, same kernel (the code)
@@ -75,7 +78,7 @@ class RefineConfig:
     init_value: float = 0.0  # start of lift_start="constant"; see the voxe_core.refine docstring; the authors use -20
     lift_start: Literal["backprojection", "constant"] = "backprojection"  # ours; "constant": the paper's fit
     backprojection_prior: float = 0.1  # pseudo-weight of "no attention" (0) in the back-projection's average
-    backprojection_stride: int = 2  # every n-th pixel row and column per view (maps are a 16x16 lattice upsampled)
+    backprojection_stride: int = 2  # every n-th pixel row and column per view (maps are a coarse lattice upsampled)
     rays_per_step: int = REFINE_RAYS_PER_STEP
     # "fresh": every step a new random pose and diffusion pass, all its pixels (the code; one UNet pass per step;
     # better on bench/localisation_maps_fit.py); "fixed": rays_per_step pixels of the `views` maps (ours before)
@@ -134,6 +137,10 @@ class RefineConfig:
                               ("fit_pixels", ("all", "rendered_positive"))):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}")
+        if not (self.resolution_filter in ("auto", None)
+                or (isinstance(self.resolution_filter, int) and self.resolution_filter >= 1)):
+            raise ValueError(f"resolution_filter must be 'auto', None or a positive number of query-map pixels, got "
+                             f"{self.resolution_filter!r}")
         if self.edit_token_reduce not in ("mean", "max"):
             raise ValueError(f"edit_token_reduce must be 'mean' or 'max', got {self.edit_token_reduce!r}")
         for name in ("render_size", "views", "rays_per_step", "backprojection_stride"):
