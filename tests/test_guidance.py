@@ -365,6 +365,18 @@ def test_incomplete_local_folders_are_reported(tiny_path, tmp_path):
         StableDiffusionGuidance.from_pretrained(str(no_tok), local_files_only=True)
 
 
+def test_a_home_relative_folder_is_a_folder_not_a_hub_id(tiny_path, tmp_path, monkeypatch):
+    """VOXE_SDS_MODEL=~/models/sd had been read as a hub id: reported missing, with `hf download ~/models/sd`."""
+    from voxe_core.guidance.loading import load_stable_diffusion, model_file_present
+
+    monkeypatch.setenv("HOME", str(tmp_path))
+    shutil.copytree(tiny_path, tmp_path / "models" / "sd")
+    assert model_file_present("~/models/sd", "model_index.json")
+    assert load_stable_diffusion("~/models/sd", torch.float32, local_files_only=True)[0] is not None
+    with pytest.raises(ModelNotAvailableError, match=f"no folder {tmp_path / 'models' / 'gone'}"):
+        load_stable_diffusion("~/models/gone", torch.float32, local_files_only=True)
+
+
 def test_damaged_weights_are_reported_naming_the_model(tiny_path, tmp_path):
     damaged = tmp_path / "damaged_text_encoder"
     shutil.copytree(tiny_path, damaged)

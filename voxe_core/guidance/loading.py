@@ -36,9 +36,10 @@ def not_available_message(model: str, cause: BaseException | None) -> str:
     return msg
 
 
-def looks_local(model: str) -> bool:
-    """Whether ``model`` names a folder (absolute, relative, or existing) rather than a hub id."""
-    return os.path.isabs(model) or model.startswith(".") or os.path.exists(model)
+def local_path(model: str) -> str | None:
+    """The folder ``model`` names ("~" expanded: absolute, relative, or existing), or None for a hub id."""
+    path = os.path.expanduser(model)
+    return path if os.path.isabs(path) or model.startswith(".") or os.path.exists(path) else None
 
 
 def model_file_present(model: str, filename: str) -> bool:
@@ -52,8 +53,9 @@ def model_file_present(model: str, filename: str) -> bool:
         >>> model_file_present("no-such-owner/no-such-model", "model_index.json")
         False
     """
-    if looks_local(model):
-        return os.path.isfile(os.path.join(model, filename))
+    folder = local_path(model)
+    if folder is not None:
+        return os.path.isfile(os.path.join(folder, filename))
     from huggingface_hub import try_to_load_from_cache
     from huggingface_hub.errors import HFValidationError
 
@@ -138,7 +140,7 @@ def download_notice(model: str, local_files_only: bool,
         >>> download_notice("owner/model", local_files_only=True) is None
         True
     """
-    if local_files_only or looks_local(model) or model_file_present(model, "model_index.json"):
+    if local_files_only or local_path(model) is not None or model_file_present(model, "model_index.json"):
         return None
     size = size_of(model)
     return f"downloading {model} ({size / 1e9:.1f} GB)" if size else f"downloading {model} (size unknown)"
@@ -149,7 +151,7 @@ def load_stable_diffusion(model: str, dtype, local_files_only: bool | None = Non
     """(unet, vae, text_encoder, tokenizer, scheduler) of the diffusers-layout ``model`` in ``dtype``.
 
     ``model`` is a hub id (from the Hugging Face cache, see ``HF_HOME``) or a local
-    folder; ``local_files_only`` defaults to :func:`offline_env`. ``on_message`` hears
+    folder ("~" expanded); ``local_files_only`` defaults to :func:`offline_env`. ``on_message`` hears
     :func:`download_notice` before a first-use download, so the wait is not silent. Raises
     :class:`ModelNotAvailableError` naming the model when anything is missing.
     """
@@ -162,18 +164,20 @@ def load_stable_diffusion(model: str, dtype, local_files_only: bool | None = Non
     if revision is not None:
         kwargs["revision"] = revision
 
-    if looks_local(model) and not os.path.isdir(model):
-        raise ModelNotAvailableError(not_available_message(model, FileNotFoundError(f"no folder {model}")))
+    folder = local_path(model)
+    if folder is not None and not os.path.isdir(folder):
+        raise ModelNotAvailableError(not_available_message(model, FileNotFoundError(f"no folder {folder}")))
+    source = model if folder is None else folder
     notice = download_notice(model, bool(local_files_only)) if on_message is not None else None
     if notice is not None:
         on_message(notice)
 
     try:
-        unet = UNet2DConditionModel.from_pretrained(model, subfolder="unet", torch_dtype=dtype, **kwargs)
-        vae = AutoencoderKL.from_pretrained(model, subfolder="vae", torch_dtype=dtype, **kwargs)
-        text_encoder = CLIPTextModel.from_pretrained(model, subfolder="text_encoder", dtype=dtype, **kwargs)
-        tokenizer = load_clip_tokenizer(model, subfolder="tokenizer", **kwargs)
-        scheduler = DDIMScheduler.from_pretrained(model, subfolder="scheduler", **kwargs)
+        unet = UNet2DConditionModel.from_pretrained(source, subfolder="unet", torch_dtype=dtype, **kwargs)
+        vae = AutoencoderKL.from_pretrained(source, subfolder="vae", torch_dtype=dtype, **kwargs)
+        text_encoder = CLIPTextModel.from_pretrained(source, subfolder="text_encoder", dtype=dtype, **kwargs)
+        tokenizer = load_clip_tokenizer(source, subfolder="tokenizer", **kwargs)
+        scheduler = DDIMScheduler.from_pretrained(source, subfolder="scheduler", **kwargs)
     except loading_errors() as exc:
         if is_out_of_memory(exc):
             raise
