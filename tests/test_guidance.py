@@ -559,13 +559,14 @@ def test_a_download_is_announced_with_its_size_and_nothing_local_is(tiny_path, t
     assert download_notice("owner/other", False, sizes.get) == "downloading owner/other (size unknown)"
     assert download_notice("owner/sd", True, sizes.get) is None  # offline: nothing will be fetched
     assert download_notice(str(tiny_path), False, sizes.get) is None  # a local folder is never downloaded
-    # A cached hub id is read from the cache: no notice.
+    # A cached hub id is read from the cache: no notice; a download cut short goes on, announced.
     snapshot = tmp_path / "empty-cache" / "models--owner--sd" / "snapshots" / "abc123"
-    snapshot.mkdir(parents=True)
-    (snapshot / "model_index.json").write_text("{}")
-    (tmp_path / "empty-cache" / "models--owner--sd" / "refs").mkdir()
+    (tmp_path / "empty-cache" / "models--owner--sd" / "refs").mkdir(parents=True)
     (tmp_path / "empty-cache" / "models--owner--sd" / "refs" / "main").write_text("abc123")
+    shutil.copytree(tiny_path, snapshot)
     assert download_notice("owner/sd", False, sizes.get) is None
+    (snapshot / "unet" / "diffusion_pytorch_model.safetensors").unlink()
+    assert download_notice("owner/sd", False, sizes.get) == "downloading owner/sd (5.2 GB)"
 
 
 def test_loading_a_local_model_says_nothing_about_downloads(tiny_path):

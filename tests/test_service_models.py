@@ -9,15 +9,18 @@ import pytest
 from sqlalchemy import select
 
 from test_service_api import client, dataset, make_scene, root  # noqa: F401 - the service fixtures
-from voxe_core.guidance.loading import model_file_present
+from voxe_core.guidance.loading import DIFFUSERS_FILES, diffusers_model_present, model_file_present
 from voxe_service.model_inventory import ROLES, check_models, unavailable_models
 
 ABSENT = "nobody-here/absent-diffusion-model"
+WHOLE_SD = (*DIFFUSERS_FILES, "unet/diffusion_pytorch_model.safetensors", "vae/diffusion_pytorch_model.safetensors",
+            "text_encoder/model.safetensors")
+"""The files of a whole diffusers-layout Stable Diffusion (SD 2's names) that the presence check looks for."""
 
 
 @pytest.fixture
 def hub_cache(tmp_path, monkeypatch):
-    """An empty Hugging Face hub cache; ``cache(repo, *files)`` puts a snapshot of ``repo`` holding ``files`` in it."""
+    """An empty Hugging Face hub cache; ``cache(repo, *files)`` puts ``files`` in a snapshot of ``repo`` in it."""
     import huggingface_hub.constants
 
     folder = tmp_path / "hub"
@@ -27,11 +30,12 @@ def hub_cache(tmp_path, monkeypatch):
 
     def cache(repo: str, *files: str) -> None:
         repo_dir = folder / f"models--{repo.replace('/', '--')}"
-        (repo_dir / "refs").mkdir(parents=True)
+        (repo_dir / "refs").mkdir(parents=True, exist_ok=True)
         (repo_dir / "refs" / "main").write_text("0" * 40)
         snapshot = repo_dir / "snapshots" / ("0" * 40)
-        snapshot.mkdir(parents=True)
+        snapshot.mkdir(parents=True, exist_ok=True)
         for name in files:
+            (snapshot / name).parent.mkdir(parents=True, exist_ok=True)
             (snapshot / name).write_text("{}")
 
     return cache
@@ -49,6 +53,33 @@ def test_presence_is_one_small_file_in_a_folder_or_the_hub_cache(tmp_path, hub_c
     assert model_file_present("owner/cached-model", "model_index.json")
     assert not model_file_present("owner/cached-model", "config.json")
     assert not model_file_present("not a valid id!", "model_index.json")
+
+
+def test_a_diffusion_model_is_present_only_whole_in_a_folder_or_the_hub_cache(tmp_path, hub_cache):
+    """model_index.json alone had counted: a download cut short (the UNet's weights never arrived) or a folder
+    without vae/ was offered by the workers, and its jobs failed at the edit, after their reconstruction."""
+    def folder(name: str, files) -> str:
+        for file in files:
+            (tmp_path / name / file).parent.mkdir(parents=True, exist_ok=True)
+            (tmp_path / name / file).write_text("{}")
+        return str(tmp_path / name)
+
+    assert diffusers_model_present(folder("whole", WHOLE_SD))
+    hub_cache("owner/whole", *WHOLE_SD)
+    assert diffusers_model_present("owner/whole")
+    bin_weights = [name.replace(".safetensors", ".bin") for name in WHOLE_SD]  # the older weights format
+    assert diffusers_model_present(folder("bin", bin_weights))
+    for i, lacking in enumerate(WHOLE_SD):
+        files = [name for name in WHOLE_SD if name != lacking]
+        assert not diffusers_model_present(folder(f"lacks-{i}", files)), lacking
+        hub_cache(f"owner/lacks-{i}", *files)
+        assert not diffusers_model_present(f"owner/lacks-{i}"), lacking
+    # In the cache a snapshot's file is a link to its blob: one whose blob is gone is not there either.
+    hub_cache("owner/dangling", *WHOLE_SD)
+    weights = tmp_path / "hub" / "models--owner--dangling" / "snapshots" / ("0" * 40) / WHOLE_SD[-1]
+    weights.unlink()
+    weights.symlink_to(tmp_path / "hub" / "models--owner--dangling" / "blobs" / "gone")
+    assert not diffusers_model_present("owner/dangling")
 
 
 def test_the_worker_inventory_counts_tiny_models_and_finds_the_missing(root, hub_cache, monkeypatch):
@@ -147,7 +178,9 @@ def test_the_heartbeat_records_the_models_and_readyz_and_submission_use_them(roo
 
     # Downloaded while the worker runs: its next beat offers the model, with no restart (it had been checked
     # only when the worker started, so every job was refused until then).
-    hub_cache(ABSENT, "model_index.json")
+    hub_cache(ABSENT, "model_index.json")  # a download under way: not offered yet
+    assert not check_models(get_settings())["sds"]["present"]
+    hub_cache(ABSENT, *WHOLE_SD)
     assert heartbeat_row(until=lambda beat: beat["models"]["sds"]["present"])["hostname"] == beat["hostname"]
     accepted = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold"})
     assert accepted.status_code == 201, accepted.text

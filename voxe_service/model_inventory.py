@@ -20,6 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from voxe_core.constants import INCEPTION_FILE, inception_path
+from voxe_core.guidance.loading import DIFFUSERS_LAYOUT, diffusers_model_present, model_file_present
 from voxe_service.models import EVALUATE
 from voxe_service.settings import TINY_MODEL, Settings, model_label
 
@@ -27,11 +28,13 @@ from voxe_service.settings import TINY_MODEL, Settings, model_label
 
 @dataclass(frozen=True)
 class ModelRole:
-    """A model a stage loads: the setting that names it and the one small file that proves it is there."""
+    """A model a stage loads: the setting that names it and what a copy of it holds."""
 
     name: str
     setting: str  # attribute of Settings
-    marker: str | None  # file inside the model folder / hub repo; None: the model is one file
+    # DIFFUSERS_LAYOUT: a Stable Diffusion, every component checked; else the one small file inside the model
+    # folder / hub repo that proves it is there; None: the model is one file
+    marker: str | None
 
     @property
     def variable(self) -> str:
@@ -39,8 +42,8 @@ class ModelRole:
 
 
 ROLES = {role.name: role for role in (
-    ModelRole("sds", "sds_model", "model_index.json"),
-    ModelRole("attention", "attention_model", "model_index.json"),
+    ModelRole("sds", "sds_model", DIFFUSERS_LAYOUT),
+    ModelRole("attention", "attention_model", DIFFUSERS_LAYOUT),
     ModelRole("clip", "clip_model", "config.json"),
     ModelRole("fid", "fid_model", None),
 )}
@@ -52,9 +55,7 @@ def model_present(role: ModelRole, model: str, settings: Settings) -> bool:
         return True
     if role.marker is None:  # FID: a TorchScript file, by default in the model dir
         return inception_path(model or settings.model_dir).is_file()
-    from voxe_core.guidance.loading import model_file_present
-
-    return model_file_present(model, role.marker)
+    return diffusers_model_present(model) if role.marker == DIFFUSERS_LAYOUT else model_file_present(model, role.marker)
 
 
 def check_models(settings: Settings) -> dict[str, dict]:

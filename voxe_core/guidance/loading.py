@@ -10,6 +10,11 @@ import os
 from typing import Callable
 
 DIFFUSERS_LAYOUT = "model_index.json, unet/, vae/, text_encoder/, tokenizer/, scheduler/"
+DIFFUSERS_FILES = ("model_index.json", "unet/config.json", "vae/config.json", "text_encoder/config.json",
+                   "tokenizer/vocab.json", "tokenizer/merges.txt", "scheduler/scheduler_config.json")
+"""The small files loading reads of every diffusers-layout Stable Diffusion: each component's config, the vocabulary."""
+WEIGHTED_COMPONENTS = ("unet", "vae", "text_encoder")
+"""The components with weights (``*.safetensors`` or ``*.bin`` inside their folder)."""
 
 
 class ModelNotAvailableError(RuntimeError):
@@ -42,27 +47,55 @@ def local_path(model: str) -> str | None:
     return path if os.path.isabs(path) or model.startswith(".") or os.path.exists(path) else None
 
 
-def model_file_present(model: str, filename: str) -> bool:
-    """Whether ``filename`` of ``model`` (a folder, or a hub id in the Hugging Face cache) is on this machine.
+def model_file(model: str, filename: str) -> str | None:
+    """Where ``filename`` of ``model`` (a folder, or a hub id in the Hugging Face cache) is on this machine, or None.
 
-    Offline and cheap: it looks for one small file (``model_index.json``,
-    ``config.json``) and reads no weights, so a worker can say at its start
-    which models it has without loading them.
+    Offline and cheap: it looks the file up and reads nothing, so a worker can say
+    at its start which models it has without loading them.
 
     Examples:
-        >>> model_file_present("no-such-owner/no-such-model", "model_index.json")
-        False
+        >>> model_file("no-such-owner/no-such-model", "model_index.json") is None
+        True
     """
     folder = local_path(model)
     if folder is not None:
-        return os.path.isfile(os.path.join(folder, filename))
+        path = os.path.join(folder, filename)
+        return path if os.path.isfile(path) else None
     from huggingface_hub import try_to_load_from_cache
     from huggingface_hub.errors import HFValidationError
 
     try:
-        return isinstance(try_to_load_from_cache(model, filename), str)
+        path = try_to_load_from_cache(model, filename)
     except HFValidationError:  # not a valid hub id either
+        return None
+    return path if isinstance(path, str) else None
+
+
+def model_file_present(model: str, filename: str) -> bool:
+    """Whether ``filename`` of ``model`` is on this machine (:func:`model_file`): one small file, e.g. ``config.json``."""
+    return model_file(model, filename) is not None
+
+
+def diffusers_model_present(model: str) -> bool:
+    """Whether the diffusers-layout ``model`` (a folder, or a hub id in the Hugging Face cache) is whole on this machine.
+
+    Offline and cheap, no weights read: every file of :data:`DIFFUSERS_FILES` and a
+    weights file of each of :data:`WEIGHTED_COMPONENTS`. ``model_index.json`` alone is
+    not enough: a download cut short leaves it in the cache's snapshot without the
+    weights that had not arrived, and the model would fail only when a job loads it.
+    """
+    index = model_file(model, "model_index.json")
+    if index is None:
         return False
+    folder = os.path.dirname(index)  # the local folder, or the cached snapshot of the hub's revision
+
+    def has_weights(component: str) -> bool:
+        path = os.path.join(folder, component)
+        return os.path.isdir(path) and any(name.endswith((".safetensors", ".bin")) and
+                                           os.path.isfile(os.path.join(path, name)) for name in os.listdir(path))
+
+    return (all(os.path.isfile(os.path.join(folder, name)) for name in DIFFUSERS_FILES)
+            and all(has_weights(component) for component in WEIGHTED_COMPONENTS))
 
 
 def loading_errors() -> tuple[type[BaseException], ...]:
@@ -131,7 +164,8 @@ def download_notice(model: str, local_files_only: bool,
                     size_of: Callable[[str], int | None] = hub_download_bytes) -> str | None:
     """What a user should see before ``model`` is fetched from the hub; None when nothing will be downloaded.
 
-    A download happens only for a hub id that is not in the local cache while downloads are allowed.
+    A download happens only for a hub id that is not whole in the local cache (:func:`diffusers_model_present`)
+    while downloads are allowed.
     ``size_of`` asks the hub for the model's bytes (a parameter so it can be given another source).
 
     Examples:
@@ -140,7 +174,7 @@ def download_notice(model: str, local_files_only: bool,
         >>> download_notice("owner/model", local_files_only=True) is None
         True
     """
-    if local_files_only or local_path(model) is not None or model_file_present(model, "model_index.json"):
+    if local_files_only or local_path(model) is not None or diffusers_model_present(model):
         return None
     size = size_of(model)
     return f"downloading {model} ({size / 1e9:.1f} GB)" if size else f"downloading {model} (size unknown)"
