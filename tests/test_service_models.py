@@ -118,10 +118,40 @@ def test_a_model_is_refused_only_when_every_worker_reporting_on_it_lacks_it():
     assert unavailable_models({"sds": "a/b"}, {"w1": has, "w2": lacks}) == []
     assert unavailable_models({"sds": "a/b"}, {"w1": other, "w2": None}) == []  # nobody checked a/b
     (message,) = unavailable_models({"sds": "a/b"}, {"w2": lacks, "w3": other})
-    for part in ("sds model 'a/b'", "(w2)", "VOXE_SDS_MODEL", "HF_HOME", "hf download a/b", "VOXE_SDS_MODEL=tiny"):
+    for part in ("sds model 'a/b'", "(w2)", "HF_HOME", "hf download a/b", API_SETTING.format("VOXE_SDS_MODEL"),
+                 "the API's VOXE_SDS_MODEL may name another", "VOXE_SDS_MODEL=tiny"):
         assert part in message, message
     (fid,) = unavailable_models({"fid": ""}, {"w": {"fid": {"model": "", "present": False}}})
-    assert "inception-2015-12-05.pt in the workers' VOXE_MODEL_DIR" in fid and "VOXE_FID_MODEL" in fid
+    assert "inception-2015-12-05.pt in the workers' VOXE_MODEL_DIR" in fid
+    assert API_SETTING.format("VOXE_FID_MODEL") in fid
+
+
+API_SETTING = "A job loads the model the API's {0} named when the job was submitted (a worker's own {0} only chooses"
+"""Where the messages about a missing model say a job's model comes from: a job carries the API's setting at its
+submission; the worker's own setting had been named as the one to change, which changed only its heartbeat."""
+
+
+@pytest.mark.parametrize("stage, variable", [("edit", "VOXE_SDS_MODEL"), ("refine", "VOXE_ATTENTION_MODEL")])
+def test_a_model_that_fails_to_load_is_blamed_on_the_apis_setting_at_submission(stage, variable):
+    from types import SimpleNamespace
+
+    from voxe_core.guidance.loading import ModelNotAvailableError
+    from worker.tasks import _error_message
+
+    text = _error_message(stage, ModelNotAvailableError("weights 'a/b' are not available"), SimpleNamespace())
+    assert text.startswith(f"{stage}: weights 'a/b' are not available. {API_SETTING.format(variable)}"), text
+    assert "The worker reads the model" not in text
+
+
+def test_an_evaluation_model_that_fails_to_load_is_blamed_on_the_apis_setting(root, monkeypatch):
+    from voxe_service.settings import get_settings
+    from worker import evaluation
+
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    with pytest.raises(evaluation.EvaluationFailed) as failed:
+        evaluation._scorer("clip", "voxe-test/no-such-clip", "cpu", get_settings())
+    assert API_SETTING.format("VOXE_CLIP_MODEL") in str(failed.value)
+    assert "The worker reads this model" not in str(failed.value)
 
 
 def heartbeat_row(until=lambda beat: True) -> dict:
@@ -166,13 +196,15 @@ def test_the_heartbeat_records_the_models_and_readyz_and_submission_use_them(roo
     ready = client.get("/readyz").json()
     assert ready["checks"]["worker"]["workers"] == [beat["hostname"]]
     assert ready["model_availability"]["sds"] == {"model": ABSENT, "setting": "VOXE_SDS_MODEL", "workers_with": [],
-                                                  "workers_without": [beat["hostname"]]}
+                                                  "workers_without": [beat["hostname"]], "reported": True,
+                                                  "workers_reporting_other": []}
     assert ready["model_availability"]["attention"]["workers_with"] == [beat["hostname"]]
 
     scene = make_scene(client, dataset, root)
     refused = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold"})
     assert refused.status_code == 409
-    for part in (f"sds model '{ABSENT}'", beat["hostname"], "VOXE_SDS_MODEL", "HF_HOME", f"hf download {ABSENT}"):
+    for part in (f"sds model '{ABSENT}'", beat["hostname"], API_SETTING.format("VOXE_SDS_MODEL"), "HF_HOME",
+                 f"hf download {ABSENT}"):
         assert part in refused.json()["detail"], refused.json()["detail"]
     assert client.get("/v1/jobs").json()["total"] == 0  # nothing recorded
 
@@ -184,6 +216,26 @@ def test_the_heartbeat_records_the_models_and_readyz_and_submission_use_them(roo
     assert heartbeat_row(until=lambda beat: beat["models"]["sds"]["present"])["hostname"] == beat["hostname"]
     accepted = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold"})
     assert accepted.status_code == 201, accepted.text
+
+
+def test_readyz_says_when_no_live_worker_reports_the_model_jobs_will_ask_for(root, client, monkeypatch):
+    """Workers report on the models of their own settings; jobs load the API's. A worker set to others said nothing
+    of the API's model, and /readyz showed that only as empty lists, as if no worker were up."""
+    from voxe_service.db import session_scope
+    from voxe_service.models import WorkerHeartbeat
+    from voxe_service.settings import get_settings
+
+    monkeypatch.setattr(get_settings(), "sds_model", ABSENT)  # the API's; the worker below is set to `tiny`
+    tiny = {"model": "tiny", "present": True}
+    with session_scope() as session:
+        session.add(WorkerHeartbeat(hostname="w-tiny", pid=1, queues="gpu", device="cpu",
+                                    models={"sds": tiny, "attention": tiny}))
+    availability = client.get("/readyz").json()["model_availability"]
+    assert availability["sds"] == {"model": ABSENT, "setting": "VOXE_SDS_MODEL", "workers_with": [],
+                                   "workers_without": [], "reported": False, "workers_reporting_other": ["w-tiny"]}
+    assert availability["attention"]["reported"] and availability["attention"]["workers_with"] == ["w-tiny"]
+    assert availability["attention"]["workers_reporting_other"] == []
+    assert not availability["clip"]["reported"] and availability["clip"]["workers_reporting_other"] == []
 
 
 def test_a_model_check_that_fails_keeps_the_last_answer_and_the_heartbeat(root, client, worker_heartbeat, monkeypatch):
@@ -214,7 +266,7 @@ def test_a_job_sent_before_any_worker_reported_fails_at_the_start_of_its_chain(r
     failed = client.get(f"/v1/jobs/{job.json()['id']}").json()
     assert failed["state"] == "failed"
     assert failed["error"].startswith(f"reconstruct: not started: the attention model '{ABSENT}' is not on this worker")
-    assert "VOXE_ATTENTION_MODEL" in failed["error"] and "HF_HOME" in failed["error"]
+    assert API_SETTING.format("VOXE_ATTENTION_MODEL") in failed["error"] and "HF_HOME" in failed["error"]
     with session_scope() as session:  # the reconstruction never ran
         rec = session.scalars(select(Reconstruction).where(Reconstruction.scene_id == scene["id"])).one()
         assert rec.grid_key is None and rec.iteration == 0 and rec.owner_job_id is None

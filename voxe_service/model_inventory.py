@@ -78,17 +78,27 @@ def job_models(mode: str, sds_model: str, attention_model: str, params: dict) ->
     return models
 
 
-def how_to_provide(role_name: str, model: str) -> str:
-    """What a user does about a missing model: the setting, the Hugging Face cache, the smoke-test model."""
+def submission_note(role_name: str) -> str:
+    """Where a job's model comes from, so a fix lands where it counts: the API's setting when the job was submitted
+    (a worker's own setting only chooses which model its heartbeat reports on)."""
     role = ROLES[role_name]
-    if role.marker is None:
-        where = (f"put the TorchScript Inception file at {model!r}" if model else
-                 f"put {INCEPTION_FILE} in the workers' VOXE_MODEL_DIR")
-        fix = f"{where}, or set {role.variable} to its path"
+    other = ("the path of a TorchScript Inception file on the workers" if role.marker is None else
+             f"a local folder on the workers holding {role.marker}")
+    return (f"A job loads the model the API's {role.variable} named when the job was submitted (a worker's own "
+            f"{role.variable} only chooses the model its heartbeat reports on): for new jobs the API's "
+            f"{role.variable} may name another, e.g. {other}, or {role.variable}={TINY_MODEL}, the random-weight "
+            "smoke-test model, which proves the plumbing only")
+
+
+def how_to_provide(role_name: str, model: str) -> str:
+    """What an operator does about a missing model: put it on the workers, or name another in the API's setting."""
+    if ROLES[role_name].marker is None:
+        provide = (f"put the TorchScript Inception file at {model!r} on the workers" if model else
+                   f"put {INCEPTION_FILE} in the workers' VOXE_MODEL_DIR")
     else:
-        fix = (f"download it into the workers' Hugging Face cache (HF_HOME) with `hf download {model}` on a machine "
-               f"with internet, or set {role.variable} to a local folder holding {role.marker}")
-    return f"{fix}; {role.variable}={TINY_MODEL} runs the random-weight smoke-test model, which proves the plumbing only"
+        provide = (f"download it into the workers' Hugging Face cache (HF_HOME) with `hf download {model}` on a "
+                   "machine with internet")
+    return f"{provide}. {submission_note(role_name)}"
 
 
 def missing_message(role_name: str, model: str, where: str) -> str:

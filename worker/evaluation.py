@@ -15,6 +15,7 @@ import json
 import logging
 from pathlib import Path
 
+from voxe_service.model_inventory import submission_note
 from voxe_service.models import SUCCEEDED, Job
 from voxe_service.settings import TINY_MODEL, Settings
 from worker import runtime
@@ -60,11 +61,7 @@ def _scorer(kind: str, model: str, device: str, settings: Settings):
             else:
                 _SCORERS[key] = InceptionFeatures.load(fid_model_path(model, settings), device=device)
         except ModelNotAvailableError as exc:
-            variable = "VOXE_CLIP_MODEL" if kind == "clip" else "VOXE_FID_MODEL"
-            raise EvaluationFailed(
-                f"evaluate: {exc}. The worker reads this model from {variable}; {variable}={TINY_MODEL} runs the "
-                "random-weight smoke-test model, which proves the plumbing only."
-            ) from exc
+            raise EvaluationFailed(f"evaluate: {exc}. {submission_note(kind)}.") from exc
     return _SCORERS[key]
 
 

@@ -39,11 +39,12 @@ from voxe_service.models import (
     CANCELED, FAILED, PROCESSING, R_FAILED, R_PENDING, R_SUCCEEDED, RUNNING, TERMINAL_STATES, Job, Scene,
     WorkerHeartbeat, utcnow,
 )
-from voxe_service.model_inventory import ROLES, check_models, job_models, missing_message, model_present
+from voxe_service.model_inventory import (ROLES, check_models, job_models, missing_message, model_present,
+                                          submission_note)
 from voxe_service.queue import (
     INGEST_TASK, STAGE_TASKS, TaskResult, get_queue, is_sql_broker, job_stages, requeue_interrupted, reset_queue,
 )
-from voxe_service.settings import TINY_MODEL, get_settings, model_label
+from voxe_service.settings import get_settings, model_label
 from voxe_service.storage import StoredObject, get_storage, job_key, reconstruction_storage_key
 from worker import runtime
 from worker.celery_app import app
@@ -180,12 +181,10 @@ def _check_job_models(job: Job, settings) -> None:
 def _error_message(stage: str, exc: Exception, job: Job) -> str:
     from voxe_core.guidance.loading import ModelNotAvailableError
 
-    if isinstance(exc, ModelNotAvailableError):
+    if isinstance(exc, ModelNotAvailableError):  # from the edit's SDS model or the refinement's attention model
         text = str(exc).rstrip()
-        return (f"{stage}: {text}{'' if text.endswith('.') else '.'} The worker reads the model from "
-                f"VOXE_SDS_MODEL / VOXE_ATTENTION_MODEL (a hub id in the HF_HOME cache, or a local folder); "
-                f"VOXE_SDS_MODEL={TINY_MODEL} VOXE_ATTENTION_MODEL={TINY_MODEL} runs the random-weight "
-                f"smoke-test model, which proves the plumbing only.")
+        role = "attention" if stage == "refine" else "sds"
+        return f"{stage}: {text}{'' if text.endswith('.') else '.'} {submission_note(role)}."
     if isinstance(exc, ModelMissing):
         return f"{stage}: not started: {exc}"
     if isinstance(exc, (ReconstructionFailed, EvaluationFailed)):

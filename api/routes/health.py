@@ -54,8 +54,10 @@ def _check_workers(celery, settings: Settings) -> dict:
 def _model_report(settings: Settings) -> dict:
     """Per role, the model jobs will ask for (this API's settings) and the live workers that have it / lack it.
 
-    From the workers' heartbeats (each checks its models offline at its start and at every heartbeat);
-    a worker configured with another model for a role is in neither list.
+    From the workers' heartbeats (each checks the models of its own settings offline at its start and at every
+    heartbeat); a worker configured with another model for a role is in neither list but in ``workers_reporting_other``.
+    ``reported`` is false when no live worker reports on the model: nothing then says whether jobs will find it, and
+    each learns only when its chain starts.
     """
     with session_scope() as session:
         inventories = live_worker_models(session, settings)
@@ -66,7 +68,10 @@ def _model_report(settings: Settings) -> dict:
                  if inv and inv.get(role.name, {}).get("model") == model}
         report[role.name] = {"model": model_label(model), "setting": role.variable,
                              "workers_with": sorted(h for h, ok in found.items() if ok),
-                             "workers_without": sorted(h for h, ok in found.items() if not ok)}
+                             "workers_without": sorted(h for h, ok in found.items() if not ok),
+                             "reported": bool(found),
+                             "workers_reporting_other": sorted(h for h, inv in inventories.items()
+                                                               if inv and role.name in inv and h not in found)}
     return report
 
 
