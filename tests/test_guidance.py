@@ -693,6 +693,33 @@ def test_a_compile_the_libraries_refuse_turns_it_off_with_a_warning(guidance, ti
     assert len(calls) == 1  # and answers from then on
 
 
+def test_the_worker_keeps_its_cache_size_of_guidances_and_frees_the_least_recently_used(tiny_path, tmp_path,
+                                                                                          monkeypatch):
+    """The worker had kept every guidance it loaded: after a local job SD-2 and SD-1.4 both stayed resident."""
+    import weakref
+    from collections import OrderedDict
+
+    from voxe_service.settings import Settings
+    from worker import runtime
+
+    monkeypatch.setattr(runtime, "_GUIDANCE_CACHE", OrderedDict())
+    sds, attention, third = str(tiny_path), str(tmp_path / "attention"), str(tmp_path / "third")
+    shutil.copytree(tiny_path, attention)
+    shutil.copytree(tiny_path, third)
+    one = Settings()  # VOXE_GUIDANCE_CACHE_SIZE's default: 1
+    edit = weakref.ref(runtime.get_guidance(sds, "cpu", one))
+    runtime.get_guidance(attention, "cpu", one)
+    assert edit() is None  # freed, not only forgotten
+    assert list(runtime._GUIDANCE_CACHE) == [(attention, "cpu")]
+
+    two = Settings(guidance_cache_size=2)
+    kept = runtime.get_guidance(attention, "cpu", two)
+    runtime.get_guidance(sds, "cpu", two)
+    assert runtime.get_guidance(attention, "cpu", two) is kept  # used last: sds is the least recent now
+    runtime.get_guidance(third, "cpu", two)
+    assert list(runtime._GUIDANCE_CACHE) == [(attention, "cpu"), (third, "cpu")]
+
+
 @pytest.mark.parametrize("variable, keyword, other", [("VOXE_CUDA_GRAPHS", "cuda_graphs", "compile_encoder"),
                                                        ("VOXE_COMPILE_ENCODER", "compile_encoder", "cuda_graphs")])
 @pytest.mark.parametrize("setting, expected", [("true", None), ("false", False)])

@@ -60,6 +60,8 @@ class Settings(BaseSettings):
     device: str = Field("auto", pattern=r"^(auto|cpu|cuda(:\d+)?)$")  # refused at start, not inside every job
     cuda_graphs: bool = True  # the SDS step's UNet (and its VAE encoder, when not compiled) from CUDA graphs on CUDA
     compile_encoder: bool = True  # the SDS step's VAE encoder compiled with torch.compile on CUDA
+    # Diffusion models (SDS, attention) a worker process keeps loaded; loading one more frees the least recently used.
+    guidance_cache_size: int = Field(1, ge=1)
 
     # --- uploads
     max_upload_bytes: int = Field(2 * 1024**3, gt=0)

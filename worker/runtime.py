@@ -15,6 +15,7 @@ import tempfile
 import threading
 import time
 import uuid
+from collections import OrderedDict
 from collections.abc import Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
@@ -629,7 +630,7 @@ def load_reconstruction(rec_id: str) -> Reconstruction | None:
 
 
 # --------------------------------------------------------------------------- models
-_GUIDANCE_CACHE: dict[tuple[str, str], object] = {}
+_GUIDANCE_CACHE: OrderedDict[tuple[str, str], object] = OrderedDict()  # least recently used first
 
 
 def resolve_model(model: str, settings: Settings) -> str:
@@ -667,16 +668,36 @@ def build_once(settings: Settings, name: str, marker: str, build) -> Path:
 def get_guidance(model: str, device: str, settings: Settings, job_id: str | None = None):
     """One StableDiffusionGuidance per (model, device) per worker process, loaded on first use.
 
-    A first-use download shows on ``job_id``'s message ("downloading <model> (N GB)").
+    At most ``settings.guidance_cache_size`` stay loaded: before one more loads, the least
+    recently used is freed (a local job's SDS and attention models had both stayed resident,
+    ~2.1 GB more in fp16). A first-use download shows on ``job_id``'s message ("downloading
+    <model> (N GB)").
     """
     from voxe_core.guidance.sds import StableDiffusionGuidance
 
     key = (model, device)
-    if key not in _GUIDANCE_CACHE:
-        path = resolve_model(model, settings)
-        log.info("loading guidance model %s on %s", path, device)
-        on_message = (lambda text: update_job(job_id, message=text)) if job_id is not None else None
-        _GUIDANCE_CACHE[key] = StableDiffusionGuidance.from_pretrained(
-            path, device=device, on_message=on_message, cuda_graphs=None if settings.cuda_graphs else False,
-            compile_encoder=None if settings.compile_encoder else False)
+    if key in _GUIDANCE_CACHE:
+        _GUIDANCE_CACHE.move_to_end(key)
+        return _GUIDANCE_CACHE[key]
+    while len(_GUIDANCE_CACHE) >= settings.guidance_cache_size:
+        _free_least_recent_guidance()
+    path = resolve_model(model, settings)
+    log.info("loading guidance model %s on %s", path, device)
+    on_message = (lambda text: update_job(job_id, message=text)) if job_id is not None else None
+    _GUIDANCE_CACHE[key] = StableDiffusionGuidance.from_pretrained(
+        path, device=device, on_message=on_message, cuda_graphs=None if settings.cuda_graphs else False,
+        compile_encoder=None if settings.compile_encoder else False)
     return _GUIDANCE_CACHE[key]
+
+
+def _free_least_recent_guidance() -> None:
+    """Drop the least recently used guidance and give its memory back (on CUDA, the allocator's cache too)."""
+    import gc
+
+    import torch
+
+    model, device = _GUIDANCE_CACHE.popitem(last=False)[0]  # the guidance itself kept by no name here
+    log.info("freeing guidance model %s on %s", model, device)
+    gc.collect()  # the modules' reference cycles, before the allocator can give their blocks back
+    if torch.cuda.is_initialized():
+        torch.cuda.empty_cache()

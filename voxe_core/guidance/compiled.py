@@ -5,7 +5,8 @@ After the CUDA graphs (:mod:`voxe_core.guidance.cuda_graphs`) the VAE encoder wa
 the lent H200: 13.8 ms forward and 19.0 ms backward at 512² in fp16 (bench/results/gpu.json, section i), its
 GroupNorm, SiLU and convolutions each a separate pass over 512²×128 activations. Inductor fuses them: there the
 forward took 6.1 ms and the step 1.13× less time (section j). The compile took 39 s once per guidance in the bench's
-process (a worker keeps its guidance), against ~65 s saved over 8,000 iterations.
+process (a worker keeps its guidance loaded until it needs the room: VOXE_GUIDANCE_CACHE_SIZE), against ~65 s saved
+over 8,000 iterations.
 
 Only what the SDS step runs is compiled: an encode with gradient, outside autocast. Gradient-free encodes (the
 attention maps of a refinement) and autocast run the eager encoder, so they never wait for a compile of their own.
