@@ -84,6 +84,22 @@ def test_obj_texture_is_mapped_upright_with_v_up(tmp_path):
     assert np.allclose(mid, [[0.5, 0.5, 0.0], [1.0, 0.0, 0.0]])
 
 
+def test_a_given_texture_is_sampled_at_the_files_own_uvs_whatever_its_materials(tmp_path):
+    """Two materials (one textured, one a flat Kd) and a group without vt: trimesh's join packs the materials into
+    an atlas and rewrites every UV for it; the texture given is sampled at the file's UVs, (0, 0) where it has none."""
+    texel = np.array([[[255, 0, 0], [0, 255, 0]], [[0, 0, 255], [255, 255, 255]]], dtype=np.uint8)  # row 0 on top
+    Image.fromarray(texel).save(tmp_path / "tex.png")
+    (tmp_path / "mix.mtl").write_text("newmtl skin\nKd 1 1 1\nmap_Kd tex.png\nnewmtl paint\nKd 1 1 0\n")
+    (tmp_path / "mix.obj").write_text(
+        "mtllib mix.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nv 1 0 1\nv 0 1 1\nv 0 0 2\nv 1 0 2\nv 0 1 2\n"
+        "vt 0.25 0.75\nvt 0.75 0.75\n"
+        "usemtl skin\nf 1/1 2/1 3/1\nf 4/2 5/2 6/2\nusemtl paint\nf 7 8 9\n")  # at heights 0, 1, 2: red, green, none
+    mesh = load_mesh(tmp_path / "mix.obj", tmp_path / "tex.png", up_axis="z")
+    centres = mesh.vertices[mesh.faces].mean(1)
+    albedo = mesh.albedo(np.arange(len(mesh.faces)), np.full((len(mesh.faces), 3), 1 / 3))[np.argsort(centres[:, 2])]
+    assert np.allclose(albedo, [[1, 0, 0], [0, 1, 0], sample_texture(texel / 255.0, np.zeros((1, 2)))[0]])
+
+
 def test_hemisphere_cameras_and_a_view_that_sees_nothing(tmp_path):
     cameras = hemisphere_cameras(100, 16, seed=1)
     assert len(cameras) == 100 and bool((cameras.c2w[:, 2, 3] >= -1e-6).all())

@@ -111,6 +111,10 @@ def load_mesh(
 ) -> SurfaceMesh:
     """Read an OBJ (with ``texture``: its image, UVs from the file) or a PLY (vertex colours), normalised.
 
+    A ``texture`` given colours every part at the file's own UVs ((0, 0) on parts
+    without vt) whatever the file's materials; without one, an OBJ's .mtl
+    colours it as trimesh reads it (its images and Kd packed into one atlas).
+
     ``up_axis``: the file's up axis ('y' for OBJ/glTF exports, 'z' for CAD and
     most scanners), turned onto +z. Raises ``MeshError`` naming the file for
     unreadable, empty, degenerate or non-finite meshes and for a texture
@@ -126,12 +130,16 @@ def load_mesh(
         raise MeshError(f"up_axis must be one of {', '.join(UP_AXES)}, got {up_axis!r}")
     if not extent > 0:
         raise MeshError(f"extent must be positive, got {extent}")
-    try:
-        loaded = trimesh.load(path, force="mesh", process=False)
+    try:  # with a texture, its parts as they are: the file's materials are not what colours it
+        loaded = trimesh.load(path, force="mesh" if texture is None else "scene", process=False,
+                              skip_materials=texture is not None)
     except Exception as e:  # trimesh raises many types for damaged files
         raise MeshError(f"{path.name}: cannot read as a mesh: {e}") from e
-    vertices = np.asarray(getattr(loaded, "vertices", np.empty((0, 3))), dtype=np.float64)
-    faces = np.asarray(getattr(loaded, "faces", np.empty((0, 3))), dtype=np.int64)
+    if texture is None:
+        vertices = np.asarray(getattr(loaded, "vertices", np.empty((0, 3))), dtype=np.float64)
+        faces = np.asarray(getattr(loaded, "faces", np.empty((0, 3))), dtype=np.int64)
+    else:
+        vertices, faces, uv = _joined_parts(loaded.dump())
     if len(faces) == 0 or len(vertices) < 3:
         raise MeshError(f"{path.name}: no triangles in the file")
     if not np.isfinite(vertices).all():
@@ -151,10 +159,8 @@ def load_mesh(
                         "the mesh has no surface")
 
     mesh = SurfaceMesh(vertices, faces)
-    visual = loaded.visual
-    uv = getattr(visual, "uv", None)
     if texture is not None:
-        if uv is None or len(uv) != len(vertices):
+        if uv is None:
             raise MeshError(f"{path.name}: a texture was given but the mesh has no texture coordinates (vt)")
         try:
             with Image.open(texture) as image:
@@ -163,13 +169,36 @@ def load_mesh(
             raise
         except Exception as e:  # Pillow's plugins raise many kinds on damaged headers (NotImplementedError for DDS's)
             raise MeshError(f"{Path(texture).name}: cannot read the texture image: {e}") from e
-        mesh.uv = np.asarray(uv, dtype=np.float64)
-    elif getattr(visual, "kind", None) == "vertex":
+        mesh.uv = uv
+        return mesh
+    visual = loaded.visual
+    if getattr(visual, "kind", None) == "vertex":
         mesh.vertex_colors = np.asarray(visual.vertex_colors, dtype=np.float32)[:, :3] / 255.0
     elif getattr(visual, "kind", None) == "texture" and getattr(getattr(visual, "material", None), "image", None):
-        mesh.uv = np.asarray(uv, dtype=np.float64)  # an OBJ whose .mtl named its image
+        mesh.uv = np.asarray(visual.uv, dtype=np.float64)  # an OBJ whose .mtl named its image (packed by trimesh)
         mesh.texture = np.asarray(visual.material.image.convert("RGB"), dtype=np.float32) / 255.0
     return mesh
+
+
+def _joined_parts(parts: list) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(vertices, faces, UVs) of a file's parts (one per material or per vt-less group) joined into one mesh.
+
+    trimesh's own join packs the parts' materials into one atlas and rewrites every UV
+    for it, so a texture given beside the file would be sampled at the wrong place. A
+    part without UVs gets (0, 0); UVs are None when no part has any.
+    """
+    parts = [part for part in parts if len(getattr(part, "faces", ())) > 0]  # not an OBJ's lines or points
+    if not parts:
+        return np.empty((0, 3)), np.empty((0, 3), dtype=np.int64), None
+    sizes = [len(part.vertices) for part in parts]
+    offsets = np.cumsum([0, *sizes[:-1]])
+    uvs = [getattr(part.visual, "uv", None) for part in parts]
+    uvs = [uv if uv is not None and len(uv) == size else None for uv, size in zip(uvs, sizes)]
+    uv = None if all(u is None for u in uvs) else np.concatenate(
+        [np.zeros((size, 2)) if u is None else np.asarray(u, dtype=np.float64) for u, size in zip(uvs, sizes)])
+    return (np.concatenate([np.asarray(part.vertices, dtype=np.float64) for part in parts]),
+            np.concatenate([np.asarray(part.faces, dtype=np.int64) + offset for part, offset in zip(parts, offsets)]),
+            uv)
 
 
 # -------------------------------------------------------------- shading
