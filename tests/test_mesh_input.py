@@ -169,6 +169,17 @@ def test_voxelised_sphere_has_its_surface_at_the_radius_and_renders_like_the_mes
         assert iou > 0.95 and psnr(out.rgb, truth) > 25.0
 
 
+@pytest.mark.parametrize("flipped", [slice(None), slice(None, None, 2)], ids=["every face", "half the faces"])
+def test_the_winding_does_not_move_the_voxelised_surface(green_sphere, flipped):
+    """The tangent planes' sign comes from the filled volume, not the winding (which had made the ball 2 voxels fatter)."""
+    faces = green_sphere.faces.copy()
+    faces[flipped] = faces[flipped, ::-1]
+    config = VoxelizeConfig(resolution=49)  # voxel 1/16
+    wound = SurfaceMesh(green_sphere.vertices, faces, vertex_colors=green_sphere.vertex_colors)
+    as_wound, outward = (voxelize(mesh, config).features[..., 0] > 0 for mesh in (wound, green_sphere))
+    assert int((as_wound ^ outward).sum()) < 1e-3 * int(outward.sum())  # a few: the surface samples differ
+
+
 def test_mesh_grid_mesh_round_trip_chamfer_is_below_half_a_voxel():
     mesh = load_mesh(SPOT / "spot_triangulated.obj", SPOT / "spot_texture.png")
     grid = voxelize(mesh, VoxelizeConfig(resolution=97))

@@ -231,18 +231,9 @@ def shade_mesh(mesh: SurfaceMesh, mode: str = "auto", seed: int = 0) -> SurfaceM
     if mode == "none" or (mode == "auto" and mesh.has_colour):
         return mesh
     occupancy, lo, voxel = _filled_occupancy(mesh)
-    normals = _vertex_normals(mesh)
-
-    def occupied(points: np.ndarray) -> np.ndarray:
-        index = np.floor((points - lo) / voxel).astype(np.int64)
-        inside_box = ((index >= 0) & (index < occupancy.shape[0])).all(-1)
-        clipped = np.clip(index, 0, occupancy.shape[0] - 1)
-        return inside_box & occupancy[clipped[..., 0], clipped[..., 1], clipped[..., 2]]
-
-    # Normals that point into the filled volume are flipped (inconsistent winding).
+    occupied = _occupancy_lookup(occupancy, lo, voxel)
     step = 2.0 * voxel
-    inward = occupied(mesh.vertices + step * normals) & ~occupied(mesh.vertices - step * normals)
-    normals[inward] *= -1
+    normals = _outward(mesh.vertices, _vertex_normals(mesh), occupied, step)
     visibility = np.empty(len(mesh.vertices))
     directions = _cosine_directions(SHADING_AO_RAYS, seed)  # (K, 3) about +z
     distances = np.arange(0.0, SHADING_AO_REACH + 1e-9, voxel)
@@ -274,6 +265,25 @@ def _filled_occupancy(mesh: SurfaceMesh) -> tuple[np.ndarray, np.ndarray, float]
     shell = np.zeros((SHADING_AO_RESOLUTION,) * 3, dtype=bool)
     shell[index[:, 0], index[:, 1], index[:, 2]] = True
     return ndimage.binary_fill_holes(shell), corner, voxel
+
+
+def _occupancy_lookup(occupancy: np.ndarray, corner: np.ndarray, voxel: float | np.ndarray):
+    """Whether points (..., 3) fall in an occupied cell of ``occupancy`` (cells of side ``voxel`` from ``corner``)."""
+
+    def occupied(points: np.ndarray) -> np.ndarray:
+        index = np.floor((points - corner) / voxel).astype(np.int64)
+        inside_box = ((index >= 0) & (index < occupancy.shape)).all(-1)
+        clipped = np.clip(index, 0, np.asarray(occupancy.shape) - 1)
+        return inside_box & occupancy[clipped[..., 0], clipped[..., 1], clipped[..., 2]]
+
+    return occupied
+
+
+def _outward(points: np.ndarray, normals: np.ndarray, occupied, step: float) -> np.ndarray:
+    """``normals`` at surface ``points``, those pointing into the filled volume flipped: a winding that is
+    inconsistent or turned inside out must not decide what is inside."""
+    inward = occupied(points + step * normals) & ~occupied(points - step * normals)
+    return np.where(inward[:, None], -normals, normals)
 
 
 def _vertex_normals(mesh: SurfaceMesh) -> np.ndarray:
@@ -441,7 +451,9 @@ def voxelize(mesh: SurfaceMesh, config: VoxelizeConfig = VoxelizeConfig()) -> Vo
     distance is to the tangent plane of the nearest of dense surface samples
     (exact on flat patches); beyond it only inside/outside matters, taken
     from a hole fill (scipy) of the voxels the surface passes through, so
-    meshes need to be closed up to a voxel. Colour: the albedo of the
+    meshes need to be closed up to a voxel. That filled volume also turns
+    each face's normal outwards, so the winding (inverted, or mixed) does
+    not matter. Colour: the albedo of the
     nearest surface sample as a logit (beyond the band, that of the nearest
     band vertex, so carving an edit into the interior shows the surface colour).
     """
@@ -457,7 +469,6 @@ def voxelize(mesh: SurfaceMesh, config: VoxelizeConfig = VoxelizeConfig()) -> Vo
     samples, face_index = trimesh.sample.sample_surface(tm, count, seed=config.seed)
     barycentric = trimesh.triangles.points_to_barycentric(tm.triangles[face_index], samples)
     albedo = mesh.albedo(face_index, np.clip(barycentric, 0.0, 1.0))
-    normals = tm.face_normals[face_index]
 
     axes = [np.linspace(lo, hi, n) for lo, hi, n in zip(config.bbox_min, config.bbox_max, grid.resolution)]
     points = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
@@ -468,7 +479,12 @@ def voxelize(mesh: SurfaceMesh, config: VoxelizeConfig = VoxelizeConfig()) -> Vo
     if not band.any():
         raise MeshError(f"the mesh lies outside the grid box {config.bbox_min}..{config.bbox_max}")
     shell = (distance <= voxel * np.sqrt(3) / 2).reshape(grid.resolution)  # vertices the surface passes near
-    inside = ndimage.binary_fill_holes(shell).reshape(-1)
+    filled = ndimage.binary_fill_holes(shell)
+    inside = filled.reshape(-1)
+    # The faces' normals point out of the filled volume whatever their winding (a vertex's cell is centred on it).
+    spacing = grid.voxel_size.double().numpy()
+    occupied = _occupancy_lookup(filled, np.asarray(config.bbox_min) - spacing / 2, spacing)
+    normals = _outward(tm.triangles_center, tm.face_normals, occupied, 2.0 * voxel)[face_index]
     plane = np.zeros(len(points))
     plane[band] = np.einsum("nc,nc->n", points[band] - samples[nearest[band]], normals[nearest[band]])
     raw_density = np.where(band, np.clip(-plane / voxel * r1, -3 * r1, 3 * r1), np.where(inside, 3 * r1, -3 * r1))
