@@ -17,8 +17,8 @@ from voxe_core.cameras import Cameras, look_at
 from voxe_core.export import extract_mesh
 from voxe_core.metrics import psnr
 from voxe_core.mesh_input import (
-    SHADING_AMBIENT, SHADING_LIGHT, MeshError, SurfaceMesh, VoxelizeConfig, chamfer_distance, hemisphere_cameras,
-    load_mesh, rasterize, render_mesh_views, sample_texture, shade_mesh, voxelize,
+    SHADING_AMBIENT, SHADING_LIGHT, VIEW_RADIUS, MeshError, SurfaceMesh, VoxelizeConfig, chamfer_distance,
+    hemisphere_cameras, load_mesh, rasterize, render_mesh_views, sample_texture, shade_mesh, voxelize,
 )
 from voxe_core.reconstruct import ReconstructConfig, reconstruct
 from voxe_core.render import render_image
@@ -50,8 +50,9 @@ def test_square_covers_its_projected_area_in_its_vertex_colour(tmp_path):
     mesh = load_mesh(_write_ply(tmp_path / "square.ply", _square(0.0, 1.0, RED), degenerate), up_axis="z")
     cameras = _camera_on_minus_y()
     rgb, alpha = rasterize(mesh, cameras, 0, supersample=4)
-    side = 2 * float(cameras.fx[0]) * 1.0 / 4.0  # pixels spanned by the 2-unit square at distance 4
-    assert float(alpha.sum()) == pytest.approx(side**2, rel=0.01)
+    half = VIEW_RADIUS / np.sqrt(2)  # loaded with its corners at VIEW_RADIUS
+    side = 2 * float(cameras.fx[0]) * half / 4.0  # pixels spanned by the square at distance 4
+    assert float(alpha.sum()) == pytest.approx(side**2, abs=side / 2)  # each edge within half a subsample (1/8 px)
     assert torch.isfinite(rgb).all()
     assert torch.equal(rgb[32, 32], torch.tensor([1.0, 0.0, 0.0])) and torch.equal(rgb[0, 0], torch.ones(3))
 
@@ -62,9 +63,10 @@ def test_the_nearer_surface_wins_whatever_the_face_order(tmp_path, near_first):
     mesh = load_mesh(_write_ply(tmp_path / "two.ply", *((near, far) if near_first else (far, near))), up_axis="z")
     cameras = _camera_on_minus_y()
     rgb, _ = rasterize(mesh, cameras, 0)
-    # far square's half-width 1 at distance 4.5 -> 19.8 px; the near one's 0.5 at 3.5 -> 12.7 px
+    # loaded at 0.86 (far corners at VIEW_RADIUS): the far square's half-width 0.86 at distance 4.43 -> 17.3 px;
+    # the near one's 0.43 at 3.57 -> 10.8 px
     assert torch.allclose(rgb[32, 32], torch.tensor([1.0, 0.0, 0.0]))
-    assert torch.allclose(rgb[32, 32 + 17], torch.tensor([0.0, 0.0, 1.0]))
+    assert torch.allclose(rgb[32, 32 + 14], torch.tensor([0.0, 0.0, 1.0]))
 
 
 def test_obj_texture_is_mapped_upright_with_v_up(tmp_path):
@@ -109,10 +111,23 @@ def test_hemisphere_cameras_and_a_view_that_sees_nothing(tmp_path):
     assert torch.equal(rgb, torch.ones(8, 8, 3)) and not alpha.any()
 
 
+def test_a_box_is_shrunk_into_every_view_and_spot_and_the_horse_are_not(tmp_path):
+    """A cube's corners reach sqrt(3) at half-extent 1, outside the views; it is scaled to VIEW_RADIUS instead."""
+    trimesh.creation.box((2, 2, 2)).export(tmp_path / "cube.ply")
+    cube = load_mesh(tmp_path / "cube.ply", up_axis="z")
+    assert np.linalg.norm(cube.vertices, axis=1).max() == pytest.approx(VIEW_RADIUS)
+    cameras = hemisphere_cameras(12, 32, seed=0)
+    for i in range(len(cameras)):
+        _, alpha = rasterize(cube, cameras, i, supersample=1)
+        assert float(torch.cat([alpha[0], alpha[-1], alpha[:, 0], alpha[:, -1]]).max()) == 0.0, i
+    for mesh in (load_mesh(SPOT / "spot_triangulated.obj"), load_mesh(HORSE)):  # inside it at half-extent 1
+        assert np.abs(mesh.vertices).max() == pytest.approx(1.0)
+
+
 # ------------------------------------------------------------------ loading errors
 def test_loading_normalises_and_refuses_bad_files(tmp_path):
-    mesh = load_mesh(SPOT / "spot_triangulated.obj", SPOT / "spot_texture.png", extent=1.2)
-    assert np.allclose(np.abs(mesh.vertices).max(0).max(), 1.2) and mesh.texture is not None
+    mesh = load_mesh(SPOT / "spot_triangulated.obj", SPOT / "spot_texture.png", extent=0.8)
+    assert np.allclose(np.abs(mesh.vertices).max(0).max(), 0.8) and mesh.texture is not None
     assert np.allclose(mesh.vertices.min(0) + mesh.vertices.max(0), 0.0)
     with pytest.raises(MeshError, match=r"cube.stl: unsupported mesh type '.stl'"):
         load_mesh(tmp_path / "cube.stl")

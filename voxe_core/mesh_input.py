@@ -15,7 +15,7 @@ always, "none" never): per vertex, ambient occlusion times (``SHADING_AMBIENT`` 
 in front and to the left in the canonical frame, z up). Occlusion is the fraction
 of ``SHADING_AO_RAYS`` cosine-weighted rays from the vertex that leave the mesh's
 filled occupancy (``SHADING_AO_RESOLUTION``³ over its box) within ``SHADING_AO_REACH``
-(in canonical units, the mesh's half-extent being 1) without entering it.
+(in canonical units, the mesh's largest half-extent being at most 1) without entering it.
 * (b) ``voxelize``: write the mesh straight into the grid's vertices. Density
   is a ramp in the signed distance to the surface (zero level on the surface,
   opaque a voxel inside), so trilinear interpolation puts the rendered
@@ -24,13 +24,16 @@ filled occupancy (``SHADING_AO_RESOLUTION``³ over its box) within ``SHADING_AO_
 
 ``load_mesh`` normalises every mesh the same way: the up axis onto +z, the
 bounding box centred on the origin, the largest half-extent scaled to
-``extent`` (1.0 sits well inside the 3-unit box and the NeRF-synthetic camera's
-view). ``chamfer_distance`` closes the loop with ``export.extract_mesh``.
+``extent`` (1.0 sits well inside the 3-unit box), or less where a point of the
+mesh would then lie farther than ``VIEW_RADIUS`` from the centre, outside some
+NeRF-synthetic camera's view (a box's corners, at √3). ``chamfer_distance``
+closes the loop with ``export.extract_mesh``.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,7 +43,7 @@ import torch
 import torch.nn.functional as F
 
 from voxe_core.cameras import Cameras, random_hemisphere_poses
-from voxe_core.constants import NERF_SYNTHETIC_FOV_X
+from voxe_core.constants import NERF_SYNTHETIC_FOV_X, NERF_SYNTHETIC_RADIUS
 from voxe_core.grid import DEFAULT_BOX, VoxelGrid
 
 MESH_INPUT_SUFFIXES = (".obj", ".ply")
@@ -53,6 +56,9 @@ SHADING_AO_RAYS = 32
 SHADING_AO_RESOLUTION = 64
 SHADING_AO_REACH = 0.5
 UP_AXES = {"x": 0, "y": 1, "z": 2}
+# A camera at NERF_SYNTHETIC_RADIUS looking at the origin sees a ball about it of radius R·sin(fov / 2) = 1.365
+# touch its image's border; 5 % less keeps the silhouette a few pixels inside every view (spot and horse reach 1.27).
+VIEW_RADIUS = 0.95 * NERF_SYNTHETIC_RADIUS * math.sin(NERF_SYNTHETIC_FOV_X / 2)
 _COLOR_EPS = 1e-3  # colours are clamped into (eps, 1 - eps) before the logit
 _MAX_PAIRS = 1 << 22  # (face, pixel) candidates rasterised together
 
@@ -116,7 +122,9 @@ def load_mesh(
     colours it as trimesh reads it (its images and Kd packed into one atlas).
 
     ``up_axis``: the file's up axis ('y' for OBJ/glTF exports, 'z' for CAD and
-    most scanners), turned onto +z. Raises ``MeshError`` naming the file for
+    most scanners), turned onto +z. The box is centred on the origin and its
+    largest half-extent made ``extent``, or less where the mesh would reach past
+    ``VIEW_RADIUS``. Raises ``MeshError`` naming the file for
     unreadable, empty, degenerate or non-finite meshes and for a texture
     without UVs.
     """
@@ -150,7 +158,8 @@ def load_mesh(
         raise MeshError(f"{path.name}: all vertices coincide; the mesh has no extent")
     up = UP_AXES[up_axis]
     order = [(up + 1) % 3, (up + 2) % 3, up]  # a cyclic permutation: a rotation, handedness kept
-    vertices = (vertices - (lo + hi) / 2)[:, order] * (extent / half)
+    vertices = (vertices - (lo + hi) / 2)[:, order]
+    vertices *= min(extent / half, VIEW_RADIUS / float(np.linalg.norm(vertices, axis=1).max()))
     if faces.min() < 0 or faces.max() >= len(vertices):  # a PLY loads so (an OBJ's reader refuses it)
         raise MeshError(f"{path.name}: a face names vertex {int(faces.max()) + 1} of {len(vertices)} "
                         f"(or a negative index)")
