@@ -195,6 +195,15 @@ def test_the_winding_does_not_move_the_voxelised_surface(green_sphere, flipped):
     assert int((as_wound ^ outward).sum()) < 1e-3 * int(outward.sum())  # a few: the surface samples differ
 
 
+def test_voxelising_a_slab_of_vertices_at_a_time_changes_nothing(green_sphere, monkeypatch):
+    """voxelize reads the grid's vertices in slabs of x rows (memory); the slabs' bounds must not show."""
+    from voxe_core import mesh_input
+
+    whole = voxelize(green_sphere, VoxelizeConfig(resolution=33)).features  # one slab
+    monkeypatch.setattr(mesh_input, "_SLAB_VERTICES", 5 * 33 * 33)  # 7 slabs, the last of 3 rows
+    assert torch.equal(voxelize(green_sphere, VoxelizeConfig(resolution=33)).features, whole)
+
+
 def test_mesh_grid_mesh_round_trip_chamfer_is_below_half_a_voxel():
     mesh = load_mesh(SPOT / "spot_triangulated.obj", SPOT / "spot_texture.png")
     grid = voxelize(mesh, VoxelizeConfig(resolution=97))
