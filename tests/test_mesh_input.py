@@ -124,6 +124,18 @@ def test_a_box_is_shrunk_into_every_view_and_spot_and_the_horse_are_not(tmp_path
         assert np.abs(mesh.vertices).max() == pytest.approx(1.0)
 
 
+def test_vertices_no_face_uses_are_dropped_before_the_box_is_taken(tmp_path):
+    """A stray vertex 40 radii away had set the box: the ball shrank to a speck (8 occupied vertices at 64³)."""
+    ball = trimesh.creation.icosphere(subdivisions=2)
+    colours = np.vstack([np.tile(RED, (len(ball.vertices), 1)), [BLUE]])
+    trimesh.Trimesh(np.vstack([ball.vertices, [[40.0, 0.0, 0.0]]]), ball.faces, vertex_colors=colours,
+                    process=False).export(tmp_path / "stray.ply")
+    mesh = load_mesh(tmp_path / "stray.ply", up_axis="z")
+    assert mesh.vertices.shape == ball.vertices.shape and np.allclose(mesh.vertices, ball.vertices)
+    assert np.array_equal(mesh.faces, ball.faces)
+    assert np.array_equal(mesh.vertex_colors, np.tile([[1.0, 0.0, 0.0]], (len(ball.vertices), 1)))
+
+
 # ------------------------------------------------------------------ loading errors
 def test_loading_normalises_and_refuses_bad_files(tmp_path):
     mesh = load_mesh(SPOT / "spot_triangulated.obj", SPOT / "spot_texture.png", extent=0.8)

@@ -151,23 +151,9 @@ def load_mesh(
         vertices, faces, uv = _joined_parts(loaded.dump())
     if len(faces) == 0 or len(vertices) < 3:
         raise MeshError(f"{path.name}: no triangles in the file")
-    if not np.isfinite(vertices).all():
-        raise MeshError(f"{path.name}: vertex coordinates contain NaN or Inf")
-    lo, hi = vertices.min(0), vertices.max(0)
-    half = float((hi - lo).max()) / 2
-    if not half > 0:
-        raise MeshError(f"{path.name}: all vertices coincide; the mesh has no extent")
-    up = UP_AXES[up_axis]
-    order = [(up + 1) % 3, (up + 2) % 3, up]  # a cyclic permutation: a rotation, handedness kept
-    vertices = (vertices - (lo + hi) / 2)[:, order]
-    vertices *= min(extent / half, VIEW_RADIUS / float(np.linalg.norm(vertices, axis=1).max()))
     if faces.min() < 0 or faces.max() >= len(vertices):  # a PLY loads so (an OBJ's reader refuses it)
         raise MeshError(f"{path.name}: a face names vertex {int(faces.max()) + 1} of {len(vertices)} "
                         f"(or a negative index)")
-    if not _has_area(vertices, faces, 1e-12 * extent**2):  # voxelised, it would be an empty grid
-        raise MeshError(f"{path.name}: every triangle has zero area (repeated or collinear vertices); "
-                        "the mesh has no surface")
-
     mesh = SurfaceMesh(vertices, faces)
     if texture is not None:
         if uv is None:
@@ -180,14 +166,37 @@ def load_mesh(
         except Exception as e:  # Pillow's plugins raise many kinds on damaged headers (NotImplementedError for DDS's)
             raise MeshError(f"{Path(texture).name}: cannot read the texture image: {e}") from e
         mesh.uv = uv
-        return mesh
-    visual = loaded.visual
-    if getattr(visual, "kind", None) == "vertex":
-        mesh.vertex_colors = np.asarray(visual.vertex_colors, dtype=np.float32)[:, :3] / 255.0
-    elif getattr(visual, "kind", None) == "texture" and getattr(getattr(visual, "material", None), "image", None):
-        mesh.uv = np.asarray(visual.uv, dtype=np.float64)  # an OBJ whose .mtl named its image (packed by trimesh)
-        mesh.texture = np.asarray(visual.material.image.convert("RGB"), dtype=np.float32) / 255.0
+    elif getattr(loaded.visual, "kind", None) == "vertex":
+        mesh.vertex_colors = np.asarray(loaded.visual.vertex_colors, dtype=np.float32)[:, :3] / 255.0
+    elif getattr(loaded.visual, "kind", None) == "texture" and getattr(loaded.visual.material, "image", None):
+        mesh.uv = np.asarray(loaded.visual.uv, dtype=np.float64)  # an OBJ whose .mtl named its image (trimesh's atlas)
+        mesh.texture = np.asarray(loaded.visual.material.image.convert("RGB"), dtype=np.float32) / 255.0
+    mesh = _used_vertices_only(mesh)
+
+    if not np.isfinite(mesh.vertices).all():
+        raise MeshError(f"{path.name}: vertex coordinates contain NaN or Inf")
+    lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
+    half = float((hi - lo).max()) / 2
+    if not half > 0:
+        raise MeshError(f"{path.name}: all vertices coincide; the mesh has no extent")
+    up = UP_AXES[up_axis]
+    order = [(up + 1) % 3, (up + 2) % 3, up]  # a cyclic permutation: a rotation, handedness kept
+    mesh.vertices = (mesh.vertices - (lo + hi) / 2)[:, order]
+    mesh.vertices *= min(extent / half, VIEW_RADIUS / float(np.linalg.norm(mesh.vertices, axis=1).max()))
+    if not _has_area(mesh.vertices, mesh.faces, 1e-12 * extent**2):  # voxelised, it would be an empty grid
+        raise MeshError(f"{path.name}: every triangle has zero area (repeated or collinear vertices); "
+                        "the mesh has no surface")
     return mesh
+
+
+def _used_vertices_only(mesh: SurfaceMesh) -> SurfaceMesh:
+    """The mesh without the vertices no face uses: a file's strays must not set its box (or its occlusion grid's)."""
+    used = np.unique(mesh.faces)
+    if len(used) == len(mesh.vertices):
+        return mesh
+    kept = lambda per_vertex: None if per_vertex is None else per_vertex[used]  # noqa: E731
+    return SurfaceMesh(mesh.vertices[used], np.searchsorted(used, mesh.faces), kept(mesh.uv), mesh.texture,
+                       kept(mesh.vertex_colors))
 
 
 def _joined_parts(parts: list) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
