@@ -124,6 +124,16 @@ def test_a_box_is_shrunk_into_every_view_and_spot_and_the_horse_are_not(tmp_path
         assert np.abs(mesh.vertices).max() == pytest.approx(1.0)
 
 
+def test_a_ply_coloured_per_face_keeps_each_faces_colour(tmp_path):
+    """Face colours become per-corner vertex colours (they had been dropped: the box shaded grey)."""
+    box = trimesh.creation.box()
+    box.visual.face_colors = np.where(np.arange(12)[:, None] % 2, RED, BLUE)
+    box.export(tmp_path / "faces.ply")
+    mesh = load_mesh(tmp_path / "faces.ply", up_axis="z")
+    albedo = mesh.albedo(np.arange(12), np.full((12, 3), 1 / 3))
+    assert mesh.has_colour and np.array_equal(albedo, np.where(np.arange(12)[:, None] % 2, [1, 0, 0], [0, 0, 1]))
+
+
 def test_vertices_no_face_uses_are_dropped_before_the_box_is_taken(tmp_path):
     """A stray vertex 40 radii away had set the box: the ball shrank to a speck (8 occupied vertices at 64³)."""
     ball = trimesh.creation.icosphere(subdivisions=2)

@@ -1,4 +1,4 @@
-"""Meshes as input: an OBJ with a texture image or a PLY with vertex colours instead of posed photos.
+"""Meshes as input: an OBJ with a texture image or a PLY with vertex or face colours instead of posed photos.
 
 Two routes into G_i:
 
@@ -116,7 +116,7 @@ def sample_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
 def load_mesh(
     path: str | os.PathLike, texture: str | os.PathLike | None = None, up_axis: str = "y", extent: float = 1.0
 ) -> SurfaceMesh:
-    """Read an OBJ (with ``texture``: its image, UVs from the file) or a PLY (vertex colours), normalised.
+    """Read an OBJ (with ``texture``: its image, UVs from the file) or a PLY (vertex or face colours), normalised.
 
     A ``texture`` given colours every part at the file's own UVs ((0, 0) on parts
     without vt) whatever the file's materials; without one, an OBJ's .mtl
@@ -168,6 +168,10 @@ def load_mesh(
         mesh.uv = uv
     elif getattr(loaded.visual, "kind", None) == "vertex":
         mesh.vertex_colors = np.asarray(loaded.visual.vertex_colors, dtype=np.float32)[:, :3] / 255.0
+    elif getattr(loaded.visual, "kind", None) == "face":  # a PLY's: each face gets three vertices of its colour
+        colours = np.asarray(loaded.visual.face_colors, dtype=np.float32)[:, :3] / 255.0
+        mesh = SurfaceMesh(vertices[faces].reshape(-1, 3), np.arange(3 * len(faces)).reshape(-1, 3),
+                           vertex_colors=np.repeat(colours, 3, axis=0))
     elif getattr(loaded.visual, "kind", None) == "texture" and getattr(loaded.visual.material, "image", None):
         mesh.uv = np.asarray(loaded.visual.uv, dtype=np.float64)  # an OBJ whose .mtl named its image (trimesh's atlas)
         mesh.texture = np.asarray(loaded.visual.material.image.convert("RGB"), dtype=np.float32) / 255.0

@@ -29,7 +29,7 @@ def add_parsers(commands, common) -> None:
     mesh.set_defaults(run=cmd_export_mesh)
 
     mg = commands.add_parser("mesh-to-grid", parents=[common],
-                             help="an initial grid from an OBJ (+ texture) or PLY (vertex colours) mesh")
+                             help="an initial grid from an OBJ (+ texture) or PLY (vertex or face colours) mesh")
     mg.add_argument("mesh", type=Path, metavar="MESH", help=".obj or .ply")
     mg.add_argument("--texture", type=Path, default=None, help="the OBJ's texture image")
     mg.add_argument("--up", choices=("x", "y", "z"), default="y", help="the mesh file's up axis (OBJ: y)")
