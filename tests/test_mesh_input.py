@@ -81,9 +81,9 @@ def test_obj_texture_is_mapped_upright_with_v_up(tmp_path):
     assert torch.allclose(rgb[20, 20], torch.tensor([1.0, 0.0, 0.0]))  # top left
     assert torch.allclose(rgb[20, 44], torch.tensor([0.0, 1.0, 0.0]))  # top right
     assert torch.allclose(rgb[44, 20], torch.tensor([0.0, 0.0, 1.0]))  # bottom left
-    # bilinear between texel centres, wrapping in u and v
-    mid = sample_texture(texel / 255.0, np.array([[0.5, 0.75], [1.25, 0.75]]))
-    assert np.allclose(mid, [[0.5, 0.5, 0.0], [1.0, 0.0, 0.0]])
+    # bilinear between texel centres, wrapping in u and v outside [0, 1]: 1 is the right border (it had wrapped to 0)
+    mid = sample_texture(texel / 255.0, np.array([[0.5, 0.75], [1.25, 0.75], [1.0, 0.75], [0.0, 1.0], [-0.75, 0.75]]))
+    assert np.allclose(mid, [[0.5, 0.5, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
 
 
 def test_a_given_texture_is_sampled_at_the_files_own_uvs_whatever_its_materials(tmp_path):

@@ -104,9 +104,9 @@ class SurfaceMesh:
 
 
 def sample_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear texture lookup (N, 3) at UVs (N, 2); UVs wrap (repeat), v = 0 is the bottom row."""
+    """Bilinear texture lookup (N, 3) at UVs (N, 2); UVs outside [0, 1] wrap (repeat), v = 0 is the bottom row."""
     image = torch.from_numpy(np.ascontiguousarray(texture, dtype=np.float32)).permute(2, 0, 1)[None]
-    wrapped = np.mod(uv, 1.0)
+    wrapped = np.where((uv >= 0) & (uv <= 1), uv, np.mod(uv, 1.0))  # 1 is the right / top border, not 0
     grid = torch.from_numpy(np.stack([2 * wrapped[:, 0] - 1, 1 - 2 * wrapped[:, 1]], -1)).float()
     out = F.grid_sample(image, grid[None, :, None, :], mode="bilinear", padding_mode="border", align_corners=False)
     return out[0, :, :, 0].T.numpy()
