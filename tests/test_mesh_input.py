@@ -102,6 +102,18 @@ def test_a_given_texture_is_sampled_at_the_files_own_uvs_whatever_its_materials(
     assert np.allclose(albedo, [[1, 0, 0], [0, 1, 0], sample_texture(texel / 255.0, np.zeros((1, 2)))[0]])
 
 
+@pytest.mark.parametrize("mode, name", [("I;16", "grey.png"), ("F", "grey.tif")])
+def test_a_16_bit_or_float_greyscale_texture_keeps_its_values(tmp_path, mode, name):
+    """convert("RGB") clips 16-bit and float greyscale to white: mid grey had loaded as 1.0."""
+    grey = np.array([[0.0, 0.25], [0.5, 1.0]])
+    image = Image.fromarray((grey * 65535).astype(np.uint16) if mode == "I;16" else grey.astype(np.float32))
+    image.save(tmp_path / name)
+    assert Image.open(tmp_path / name).mode == mode
+    (tmp_path / "quad.obj").write_text("v -1 -1 0\nv 1 -1 0\nv 1 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nf 1/1 2/2 3/3\n")
+    texture = load_mesh(tmp_path / "quad.obj", tmp_path / name).texture
+    assert np.allclose(texture, np.repeat(grey[..., None], 3, -1), atol=1 / 65535)
+
+
 def test_hemisphere_cameras_and_a_view_that_sees_nothing(tmp_path):
     cameras = hemisphere_cameras(100, 16, seed=1)
     assert len(cameras) == 100 and bool((cameras.c2w[:, 2, 3] >= -1e-6).all())

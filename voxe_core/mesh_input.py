@@ -160,7 +160,7 @@ def load_mesh(
             raise MeshError(f"{path.name}: a texture was given but the mesh has no texture coordinates (vt)")
         try:
             with Image.open(texture) as image:
-                mesh.texture = np.asarray(image.convert("RGB"), dtype=np.float32) / 255.0
+                mesh.texture = _texture_rgb(image)
         except MemoryError:
             raise
         except Exception as e:  # Pillow's plugins raise many kinds on damaged headers (NotImplementedError for DDS's)
@@ -174,7 +174,7 @@ def load_mesh(
                            vertex_colors=np.repeat(colours, 3, axis=0))
     elif getattr(loaded.visual, "kind", None) == "texture" and getattr(loaded.visual.material, "image", None):
         mesh.uv = np.asarray(loaded.visual.uv, dtype=np.float64)  # an OBJ whose .mtl named its image (trimesh's atlas)
-        mesh.texture = np.asarray(loaded.visual.material.image.convert("RGB"), dtype=np.float32) / 255.0
+        mesh.texture = _texture_rgb(loaded.visual.material.image)
     mesh = _used_vertices_only(mesh)
 
     if not np.isfinite(mesh.vertices).all():
@@ -191,6 +191,18 @@ def load_mesh(
         raise MeshError(f"{path.name}: every triangle has zero area (repeated or collinear vertices); "
                         "the mesh has no surface")
     return mesh
+
+
+def _texture_rgb(image) -> np.ndarray:
+    """A Pillow image as (H, W, 3) float32 in [0, 1]; 16-bit greyscale (modes I;16, I) is scaled by 65535 and float
+    greyscale (F) taken as it is, where convert("RGB") would clip either to white."""
+    if image.mode.startswith("I"):
+        grey = np.asarray(image, dtype=np.float32) / 65535.0
+    elif image.mode == "F":
+        grey = np.asarray(image, dtype=np.float32)
+    else:
+        return np.asarray(image.convert("RGB"), dtype=np.float32) / 255.0
+    return np.repeat(np.clip(grey, 0.0, 1.0)[..., None], 3, axis=-1)
 
 
 def _used_vertices_only(mesh: SurfaceMesh) -> SurfaceMesh:
