@@ -353,6 +353,12 @@ def test_a_bad_mesh_upload_names_the_problem_and_leaves_nothing(tmp_path):
     (tmp_path / "nan.obj").write_text("v nan 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
     with pytest.raises(IngestError, match="invalid mesh: nan.obj: vertex coordinates contain NaN or Inf"):
         _ingest_mesh_upload(tmp_path, [("nan.obj", tmp_path / "nan.obj")])
+    (tmp_path / "cow.png").write_bytes(b"not a png")
+    with pytest.raises(IngestError) as info:  # Pillow's message names the file by its path on the worker
+        _ingest_mesh_upload(tmp_path / "bad_texture", [("cow.obj", SPOT / "spot_triangulated.obj"),
+                                                       ("cow.png", tmp_path / "cow.png")])
+    assert str(info.value) == ("invalid mesh: cow.png: cannot read the texture image: cannot identify image file "
+                               "'cow.png'")
     with pytest.raises(UploadError, match="several images .'a.png', 'b.png'.; send one texture") as info, \
             _stage(tmp_path, [("m.obj", SPOT / "spot_triangulated.obj"), ("a.png", SPOT / "spot_texture.png"),
                               ("b.png", SPOT / "spot_texture.png")]):

@@ -62,10 +62,11 @@ def load_stored_mesh(dataset: Path):
 
 def render_mesh(root: Path) -> None:
     """Render the mesh kept in ``root/mesh/`` into a NeRF-synthetic dataset in ``root`` (mesh input route (a))."""
+    kept = root / datasets.MESH_FOLDER
     try:
         mesh = load_stored_mesh(root)
-    except MeshError as exc:
-        raise IngestError(f"invalid mesh: {_as_uploaded(str(exc), root / datasets.MESH_FOLDER)}") from None
+    except MeshError as exc:  # named as uploaded, without the worker's scratch path (Pillow's messages carry it)
+        raise IngestError(f"invalid mesh: {_as_uploaded(_relative_message(exc, kept), kept)}") from None
     write_mesh_dataset(mesh, root, datasets.MESH_VIEWS, datasets.MESH_VIEW_SIZE)
 
 
