@@ -424,7 +424,9 @@ def _cross2(u: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def hemisphere_cameras(n: int = 100, size: int = 200, seed: int = 0) -> Cameras:
-    """``n`` NeRF-synthetic cameras uniform over the upper hemisphere (zenith 0°–90°), looking at the origin."""
+    """``n`` NeRF-synthetic cameras on the upper hemisphere looking at the origin, the zenith angle uniform in
+    0°–90° and the azimuth in 0°–360°: denser towards the pole than uniform over the hemisphere's area (kept so,
+    as every mesh dataset and benchmark was rendered)."""
     generator = torch.Generator().manual_seed(seed)
     c2w, _, _ = random_hemisphere_poses(n, generator, min_zenith_deg=0.0, max_zenith_deg=90.0)
     return Cameras.from_fov(c2w, NERF_SYNTHETIC_FOV_X, size, size)
