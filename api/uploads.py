@@ -318,11 +318,13 @@ def dataset_root(folder: Path) -> Path:
 
 
 def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto") -> Path | None:
-    """The upload's mesh (and texture) copied to ``dest/mesh/`` with its ``shading`` option for the ingest, or
-    None when it is not a mesh.
+    """The upload's mesh (and texture, and material library) copied to ``dest/mesh/`` with its ``shading`` option
+    for the ingest, or None when it is not a mesh.
 
-    The file rules are checked here: one mesh, and for an OBJ at most one texture image.
-    A dataset folder is no mesh even with a mesh in it (COLMAP's fused.ply, say).
+    The file rules are checked here: one mesh, and for an OBJ at most one texture image and one .mtl.
+    The .mtl keeps its file name, which the OBJ's ``mtllib`` names: trimesh looks it up (or its base
+    name) inside the mesh's folder only. A dataset folder is no mesh even with a mesh in it (COLMAP's
+    fused.ply, say).
     """
     if is_dataset_folder(root):
         return None
@@ -333,19 +335,26 @@ def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto") -> Path | No
     names = lambda paths: ", ".join(repr(p.relative_to(root).as_posix()) for p in paths)  # noqa: E731
     if len(meshes) > 1:
         raise UploadError(f"the upload holds several meshes ({names(meshes)}); send one")
-    texture = None
+    texture = library = None
     if meshes[0].suffix.lower() == ".obj":
         images = [p for p in files if p.suffix.lower() in TEXTURE_SUFFIXES]
         if len(images) > 1:
             raise UploadError(f"the OBJ comes with several images ({names(images)}); send one texture")
-        texture = images[0] if images else None
+        libraries = [p for p in files if p.suffix.lower() == ".mtl"]  # its Kd colours, where no texture is sent
+        if len(libraries) > 1:
+            raise UploadError(f"the OBJ comes with several material libraries ({names(libraries)}); send one .mtl")
+        texture, library = (images or [None])[0], (libraries or [None])[0]
+    kept_as = {meshes[0]: f"mesh{meshes[0].suffix.lower()}"}
+    if texture is not None:
+        kept_as[texture] = f"texture{texture.suffix.lower()}"
+    if library is not None:
+        kept_as[library] = library.name  # as the OBJ's mtllib names it
     kept = dest / MESH_FOLDER
     kept.mkdir(parents=True)
     names = {}
-    for source, stem in ((meshes[0], "mesh"), (texture, "texture")):
-        if source is not None:
-            shutil.copyfile(source, kept / f"{stem}{source.suffix.lower()}")
-            names[f"{stem}{source.suffix.lower()}"] = source.relative_to(root).as_posix()
+    for source, stored in kept_as.items():
+        shutil.copyfile(source, kept / stored)
+        names[stored] = source.relative_to(root).as_posix()
     (kept / MESH_NAMES).write_text(json.dumps(names))  # the ingest's messages name the files as uploaded
     (kept / MESH_OPTIONS).write_text(json.dumps({"shading": shading}))
     return dest

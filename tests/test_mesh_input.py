@@ -345,6 +345,28 @@ def test_a_mesh_upload_is_stored_as_its_rendered_views(tmp_path, monkeypatch):
     assert {"transforms_train.json", "train/r_003.png", "mesh/mesh.obj", "mesh/texture.png"} <= set(names)
 
 
+def test_an_obj_coloured_by_its_mtl_keeps_its_colours_in_the_service(tmp_path, monkeypatch):
+    """The .mtl is kept beside the mesh under the name mtllib gives it (it had been dropped: the OBJ rendered grey)."""
+    from voxe_core.data import load_scene
+    from voxe_service import datasets
+
+    monkeypatch.setattr(datasets, "MESH_VIEWS", 2)
+    monkeypatch.setattr(datasets, "MESH_VIEW_SIZE", 32)
+    (tmp_path / "kd.mtl").write_text("newmtl red\nKd 1 0 0\nnewmtl blue\nKd 0 0 1\n")
+    (tmp_path / "kd.obj").write_text("mtllib kd.mtl\nv -1 0 -1\nv 1 0 -1\nv 1 0 1\nv -1 0 1\n"
+                                     "usemtl red\nf 1 2 3\nusemtl blue\nf 1 3 4\n")
+    _, stored, root, _ = _ingest_mesh_upload(tmp_path, [("cube/kd.obj", tmp_path / "kd.obj"),
+                                                        ("cube/kd.mtl", tmp_path / "kd.mtl")])
+    assert "mesh/kd.mtl" in stored
+    scene = load_scene(root, "train")
+    surface = scene.images[scene.alphas > 0.999]
+    assert float(surface[:, 0].max()) > 0.99 and float(surface[:, 2].max()) > 0.99 and float(surface[:, 1].max()) < 0.01
+    # trimesh looks for a library (or an image it names) inside the mesh's folder only
+    (tmp_path / "inner").mkdir()
+    (tmp_path / "inner" / "up.obj").write_text("mtllib ../kd.mtl\nv -1 0 -1\nv 1 0 -1\nv 1 0 1\nusemtl red\nf 1 2 3\n")
+    assert not load_mesh(tmp_path / "inner" / "up.obj").has_colour
+
+
 def test_a_bad_mesh_upload_names_the_problem_and_leaves_nothing(tmp_path):
     """File rules are a 422 at once; a mesh that does not load fails the scene's ingest, naming the problem."""
     from api.uploads import UploadError
@@ -364,6 +386,10 @@ def test_a_bad_mesh_upload_names_the_problem_and_leaves_nothing(tmp_path):
                               ("b.png", SPOT / "spot_texture.png")]):
         pass
     assert info.value.status == 422
+    with pytest.raises(UploadError, match="several material libraries .'a.mtl', 'b.mtl'.; send one .mtl"), \
+            _stage(tmp_path, [("m.obj", SPOT / "spot_triangulated.obj"), ("a.mtl", tmp_path / "nan.obj"),
+                              ("b.mtl", tmp_path / "nan.obj")]):
+        pass
     with pytest.raises(UploadError, match="several meshes .'a.obj', 'b.ply'.; send one"), \
             _stage(tmp_path, [("a.obj", SPOT / "spot_triangulated.obj"), ("b.ply", SPOT / "spot_triangulated.obj")]):
         pass
