@@ -317,9 +317,9 @@ def dataset_root(folder: Path) -> Path:
     return root
 
 
-def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto") -> Path | None:
-    """The upload's mesh (and texture, and material library) copied to ``dest/mesh/`` with its ``shading`` option
-    for the ingest, or None when it is not a mesh.
+def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str = "y") -> Path | None:
+    """The upload's mesh (and texture, and material library) copied to ``dest/mesh/`` with its ``shading`` and
+    ``up_axis`` options for the ingest, or None when it is not a mesh.
 
     The file rules are checked here: one mesh, and for an OBJ at most one texture image and one .mtl.
     The .mtl keeps its file name, which the OBJ's ``mtllib`` names: trimesh looks it up (or its base
@@ -356,7 +356,7 @@ def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto") -> Path | No
         shutil.copyfile(source, kept / stored)
         names[stored] = source.relative_to(root).as_posix()
     (kept / MESH_NAMES).write_text(json.dumps(names))  # the ingest's messages name the files as uploaded
-    (kept / MESH_OPTIONS).write_text(json.dumps({"shading": shading}))
+    (kept / MESH_OPTIONS).write_text(json.dumps({"shading": shading, "up_axis": up_axis}))
     return dest
 
 
@@ -506,11 +506,13 @@ def stage_upload(
     max_ratio: float,
     max_image_pixels: int,
     mesh_shading: str | None = None,
+    mesh_up_axis: str | None = None,
 ) -> StagedUpload:
     """Unpack, check and pack an upload in ``staging`` (a :func:`staging_folder`, holding the packed archive).
 
-    ``mesh_shading`` (a mesh upload's ``voxe_core.mesh_input.shade_mesh`` mode; default "auto") is
-    refused for a dataset of images."""
+    ``mesh_shading`` (a mesh upload's ``voxe_core.mesh_input.shade_mesh`` mode; default "auto") and
+    ``mesh_up_axis`` (its file's up axis, as ``load_mesh`` takes it; default "y") are refused for a
+    dataset of images."""
     if (archive is None) == (not files):
         raise UploadError("send either one zip 'archive' or the dataset's 'files' (with the transforms json)")
     budget = _Budget(max_bytes, max_files, max_ratio)
@@ -523,14 +525,15 @@ def stage_upload(
     check_image_pixels(unpacked, max_image_pixels)
     root = dataset_root(unpacked)
     packed = staging / "packed.zip"
-    mesh = pack_mesh_upload(root, staging / "mesh_upload", mesh_shading or "auto")
+    mesh = pack_mesh_upload(root, staging / "mesh_upload", mesh_shading or "auto", mesh_up_axis or "y")
     if mesh is not None:  # rendered by the ingest into MESH_VIEWS views of MESH_VIEW_SIZE px (train and test)
         package(mesh, packed)
         size = datasets.MESH_VIEW_SIZE
         return StagedUpload(MESH_FORMAT, datasets.MESH_VIEWS, size, size, ["train", "test"], packed, UPLOAD_ARCHIVE)
-    if mesh_shading is not None:
-        raise UploadError("mesh_shading applies to mesh uploads only (.obj or .ply); this upload is a dataset of "
-                          "images")
+    for option, value in (("mesh_shading", mesh_shading), ("mesh_up_axis", mesh_up_axis)):
+        if value is not None:
+            raise UploadError(f"{option} applies to mesh uploads only (.obj or .ply); this upload is a dataset of "
+                              "images")
     fmt, count, width, height, splits = check_dataset(root, unpacked, validation_downsample)
     package(root, packed)
     return StagedUpload(fmt, count, width, height, splits, packed, DATASET_ARCHIVE)

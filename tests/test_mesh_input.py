@@ -301,12 +301,12 @@ def test_mesh_dataset_loads_back_as_the_rasterised_views(tmp_path, green_sphere)
 
 # ------------------------------------------------------------------ service upload
 @contextmanager
-def _stage(tmp_path, files, mesh_shading=None):
+def _stage(tmp_path, files, mesh_shading=None, mesh_up_axis=None):
     from api.uploads import stage_upload, staging_folder
 
     with staging_folder(tmp_path / "work") as staging, ExitStack() as opened:
         yield stage_upload(staging, None, [(name, opened.enter_context(open(path, "rb"))) for name, path in files],
-                           1 << 30, 100, 8, 1000.0, 1 << 26, mesh_shading)
+                           1 << 30, 100, 8, 1000.0, 1 << 26, mesh_shading, mesh_up_axis)
 
 
 def _ingest_mesh_upload(tmp_path, files, mesh_shading=None):
@@ -473,7 +473,7 @@ def test_mesh_shading_is_stored_with_the_upload_and_honoured_by_the_ingest(tmp_p
         work = tmp_path / str(mode)
         _, stored, root, _ = _ingest_mesh_upload(work, [("horse.obj", HORSE)], mode)
         assert "mesh/options.json" in stored
-        assert json.loads((root / "mesh" / "options.json").read_text()) == {"shading": mode or "auto"}
+        assert json.loads((root / "mesh" / "options.json").read_text()) == {"shading": mode or "auto", "up_axis": "y"}
         scene = load_scene(root, "train")
         spread[mode] = float(scene.images[scene.alphas > 0.999].std())
     assert spread["none"] < 1e-3 < 0.03 < spread[None], spread
@@ -484,4 +484,25 @@ def test_mesh_shading_is_stored_with_the_upload_and_honoured_by_the_ingest(tmp_p
     with pytest.raises(UploadError, match="mesh_shading applies to mesh uploads only"), \
             _stage(tmp_path, [("transforms.json", tmp_path / "transforms.json"),
                               ("images/0.png", tmp_path / "images/0.png")], "baked"):
+        pass
+
+
+def test_mesh_up_axis_is_stored_with_the_upload_and_honoured_by_the_ingest(tmp_path):
+    """Every upload had loaded y-up; a z-up file (CAD, scanners) now says so."""
+    import json
+    import zipfile
+
+    from api.uploads import UploadError
+    from worker.ingest import load_stored_mesh
+
+    spot = [("spot.obj", SPOT / "spot_triangulated.obj"), ("spot.png", SPOT / "spot_texture.png")]
+    with _stage(tmp_path, spot, mesh_up_axis="z") as staged, zipfile.ZipFile(staged.archive) as archive:
+        archive.extractall(tmp_path / "stored")
+    options = json.loads((tmp_path / "stored" / "mesh" / "options.json").read_text())
+    assert options == {"shading": "auto", "up_axis": "z"}
+    z_up = load_mesh(SPOT / "spot_triangulated.obj", SPOT / "spot_texture.png", up_axis="z")
+    assert np.array_equal(load_stored_mesh(tmp_path / "stored").vertices, z_up.vertices)
+    (tmp_path / "transforms.json").write_text(json.dumps({"fl_x": 8.0, "frames": []}))
+    with pytest.raises(UploadError, match="mesh_up_axis applies to mesh uploads only"), \
+            _stage(tmp_path, [("transforms.json", tmp_path / "transforms.json")], mesh_up_axis="z"):
         pass

@@ -47,17 +47,18 @@ class IngestError(ValueError):
 
 
 def load_stored_mesh(dataset: Path):
-    """The mesh a mesh scene's archive keeps under ``mesh/`` (as the API packed it), as ``load_mesh`` reads it,
-    shaded as its upload asked (``mesh/options.json``; "auto" for archives packed before it existed): the render
-    route (this ingest) and the voxelize route (``worker.tasks``) both read the mesh through here."""
+    """The mesh a mesh scene's archive keeps under ``mesh/`` (as the API packed it), as ``load_mesh`` reads it with
+    the up axis and shading its upload asked (``mesh/options.json``; "y" and "auto" for archives packed before them):
+    the render route (this ingest) and the voxelize route (``worker.tasks``) both read the mesh through here."""
     kept = dataset / datasets.MESH_FOLDER
     meshes = [p for p in sorted(kept.glob("mesh.*")) if p.suffix in MESH_INPUT_SUFFIXES]
     if len(meshes) != 1:
         raise MeshError(f"the scene's archive holds no {datasets.MESH_FOLDER}/mesh.obj or .ply (not uploaded as a mesh?)")
     textures = [p for p in sorted(kept.glob("texture.*")) if p.suffix in TEXTURE_SUFFIXES]
     options = kept / datasets.MESH_OPTIONS
-    shading = json.loads(options.read_text()).get("shading", "auto") if options.is_file() else "auto"
-    return shade_mesh(load_mesh(meshes[0], textures[0] if textures else None), shading)
+    options = json.loads(options.read_text()) if options.is_file() else {}
+    mesh = load_mesh(meshes[0], textures[0] if textures else None, options.get("up_axis", "y"))
+    return shade_mesh(mesh, options.get("shading", "auto"))
 
 
 def render_mesh(root: Path) -> None:

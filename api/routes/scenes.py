@@ -96,13 +96,16 @@ def create_scene(
         None, description="a mesh upload's colour: baked bakes a fixed key light and ambient occlusion into it, none "
                           "keeps the bare albedo, auto (the default) bakes it only for a mesh without texture or "
                           "vertex colours (else it would be one flat grey); refused for image datasets"),
+    mesh_up_axis: Literal["x", "y", "z"] | None = Form(
+        None, description="a mesh upload's up axis, turned onto +z: y (the default) for OBJ and glTF exports, z for "
+                          "CAD and most scanners; refused for image datasets"),
 ) -> SceneOut:
     """201 with the new scene, ``processing`` until a worker has decoded it (then ``ready``, or ``failed`` with
     the reason); 200 with the original one for a retry carrying the same Idempotency-Key."""
     upload = scenes.Upload(archive=archive.file if archive is not None else None,
                            archive_name=archive.filename if archive is not None else None,
                            files=[(f.filename or "", f.file) for f in files or []], name=name,
-                           mesh_shading=mesh_shading)
+                           mesh_shading=mesh_shading, mesh_up_axis=mesh_up_axis)
     scene, replayed = scenes.create_scene(session=session, settings=settings, storage=storage, queue=queue, key=key,
                                           upload=upload, idempotency_key=idempotency_key)
     if replayed:

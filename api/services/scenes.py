@@ -35,10 +35,11 @@ class Upload:
     files: list[tuple[str, BinaryIO]]
     name: str | None
     mesh_shading: str | None = None
+    mesh_up_axis: str | None = None
 
     def digest(self) -> str:
         """sha256 of what the upload asks for (field names, file names and bytes), not of its multipart framing."""
-        digest = hashlib.sha256(repr((self.name, self.mesh_shading)).encode())
+        digest = hashlib.sha256(repr((self.name, self.mesh_shading, self.mesh_up_axis)).encode())
         parts = [("archive", self.archive)] if self.archive is not None else [(f"files:{n}", h) for n, h in self.files]
         for label, handle in parts:
             digest.update(b"\0" + label.encode() + b"\0")
@@ -73,7 +74,7 @@ def create_scene(*, session: Session, settings: Settings, storage: Storage, queu
             staged = stage_upload(
                 staging, upload.archive, upload.files, settings.max_extracted_bytes, settings.max_upload_files,
                 settings.validation_downsample, settings.max_compression_ratio, settings.max_image_pixels,
-                upload.mesh_shading,
+                upload.mesh_shading, upload.mesh_up_axis,
             )
         except UploadError as exc:
             raise HTTPException(exc.status, str(exc)) from None
