@@ -224,15 +224,37 @@ def test_a_job_that_waited_for_another_jobs_fit_keeps_its_progress_when_the_fit_
 
 def test_eta_scales_later_stages_by_the_current_stages_speed():
     costs = [("reconstruct", 10.0), ("edit", 80.0), ("export", 10.0)]
-    args = dict(costs=costs, completed=["reconstruct"], stage="edit", stage_fraction=0.25, stage_eta_s=60.0,
-                finished=False)
-    assert overall(**args, stage_elapsed_s=20.0) == (0.3, 60.0 + 10.0)  # at the benchmark's speed
-    assert overall(**args, stage_elapsed_s=40.0) == (0.3, 60.0 + 20.0)  # twice as slow
-    assert overall(**{**args, "stage_eta_s": None}, stage_elapsed_s=20.0) == (0.3, None)
-    assert overall(**{**args, "stage_fraction": 0.0}, stage_elapsed_s=0.0)[1] == 60.0 + 10.0
-    assert overall(**args, stage_elapsed_s=1.0)[0] == overall(**args, stage_elapsed_s=99.0)[0]  # speed: ETA only
-    assert overall(costs=costs, completed=[], stage=None, stage_fraction=0.0, stage_eta_s=None, stage_elapsed_s=None,
+    args = dict(costs=costs, completed=["reconstruct"], stage="edit", stage_fraction=0.25, finished=False)
+    assert overall(**args, stage_eta_s=60.0) == (0.3, 60.0 + 10.0)  # at the benchmark's speed: 60 s of its 60 left
+    assert overall(**args, stage_eta_s=120.0) == (0.3, 120.0 + 20.0)  # twice as slow
+    assert overall(**args, stage_eta_s=None) == (0.3, None)
+    assert overall(**{**args, "stage_fraction": 0.0}, stage_eta_s=80.0)[1] == 80.0 + 10.0
+    assert overall(**args, stage_eta_s=1.0)[0] == overall(**args, stage_eta_s=99.0)[0]  # speed: ETA only
+    # The stage's last report (nothing of it left to time): the later stages at the table's speed.
+    assert overall(**{**args, "stage_fraction": 1.0}, stage_eta_s=0.0) == (0.9, 10.0)
+    assert overall(costs=costs, completed=[], stage=None, stage_fraction=0.0, stage_eta_s=None,
                    finished=True) == (1.0, 0.0)
+
+
+def test_the_eta_at_a_stages_start_counts_neither_the_models_load_nor_a_resumed_runs_earlier_iterations():
+    """The speed is the stage's own rate (the worker measures it from its first report), not the time since the
+    stage began: a GPU edit's model load and 39 s encoder compile, timed against its first 10 of 8,000 iterations,
+    had put ~1,500 s on the ~450 s left; and a run resuming at iteration 4,000 had timed 4,000 iterations by its
+    5 s, leaving nothing for the later stages."""
+    from api.routes.jobs import job_out
+
+    rec = Reconstruction(id="r", scene_id="s", params_key="k", params={}, state="succeeded", owner_job_id="j",
+                         total=2000)
+    params = {"iterations": 8000}
+    costs = dict(stage_costs(mode="local", params=params, fit=fit_work({}, steps=2000), device="cuda"))
+    per_iteration = costs["edit"] / 8000  # this machine runs at the table's speed
+    later = costs["refine"] + costs["export"]
+    for iteration, began_s in ((10, 50.5), (4000, 5.0)):
+        eta = (8000 - iteration) * per_iteration
+        job = _job(reconstruction=rec, params=params, device="cuda", state="running", stage="edit",
+                   iteration=iteration, total=8000, eta_seconds=eta, completed_stages=["reconstruct"],
+                   started_at=utcnow() - timedelta(minutes=5), stage_started_at=utcnow() - timedelta(seconds=began_s))
+        assert job_out(job).overall_eta_seconds == pytest.approx(eta + later), iteration
 
 
 def test_a_fit_running_slower_than_the_table_does_not_stretch_the_later_stages():
@@ -241,9 +263,9 @@ def test_a_fit_running_slower_than_the_table_does_not_stretch_the_later_stages()
     costs = [("reconstruct", 10.0), ("edit", 80.0), ("export", 10.0)]
     fitting = dict(costs=costs, completed=[], stage="reconstruct", stage_fraction=0.5, stage_eta_s=50.0,
                    finished=False)
-    assert overall(**fitting, stage_elapsed_s=50.0) == (0.05, 50.0 + 90.0)  # ten times the table's time: no matter
-    assert overall(**{**fitting, "stage": "edit", "completed": ["reconstruct"]}, stage_elapsed_s=400.0) == (
-        0.5, 50.0 + 100.0)  # an edit ten times slower than the table: so is the export
+    assert overall(**fitting) == (0.05, 50.0 + 90.0)  # ten times the table's time: no matter
+    assert overall(**{**fitting, "stage": "edit", "completed": ["reconstruct"], "stage_eta_s": 400.0}) == (
+        0.5, 400.0 + 100.0)  # an edit ten times slower than the table: so is the export
 
 
 def test_a_gpu_job_is_weighed_and_timed_by_the_gpu_table():

@@ -45,9 +45,11 @@ with the fit (a finished fit reused: as the stage ends).
 
 The fraction weighs completed stages fully and the current one by its own progress. The time left is the
 current stage's own estimate (from its iteration rate) plus the later stages' costs, scaled by how fast this
-machine ran the current stage against the table's figure for it; not while fitting, whose cost per step
-depends on the scene (how many samples its rays keep: a capture's ray costs 17.9× an object's), which the
-later stages' costs do not.
+machine runs the current stage against the table's figure for it: the stage's estimate over the table's seconds
+for what is left of it. The worker measures that rate from the stage's first progress report, so the time a
+stage spends before its first unit of work (loading a model, compiling the encoder, the iterations a resumed
+run starts past) does not inflate it. Not while fitting, whose cost per step depends on the scene (how many
+samples its rays keep: a capture's ray costs 17.9× an object's), which the later stages' costs do not.
 
 Examples:
     >>> work = FitWork(steps=900, rays_per_step=8192, backbone="relu_field")
@@ -199,13 +201,13 @@ def refine_seconds(refine: dict, costs: DeviceCosts) -> float:
 
 
 def overall(*, costs: list[tuple[str, float]], completed: list[str], stage: str | None, stage_fraction: float,
-            stage_eta_s: float | None, stage_elapsed_s: float | None, finished: bool) -> tuple[float, float | None]:
+            stage_eta_s: float | None, finished: bool) -> tuple[float, float | None]:
     """(overall progress in [0, 1], seconds left for the whole job or None when unknown).
 
     Examples:
         >>> costs = [("reconstruct", 10.0), ("edit", 80.0), ("export", 10.0)]
         >>> overall(costs=costs, completed=["reconstruct"], stage="edit", stage_fraction=0.5, stage_eta_s=20.0,
-        ...         stage_elapsed_s=20.0, finished=False)  # edit ran at half the benchmark's time per unit
+        ...         finished=False)  # edit runs at half the benchmark's time per unit: 20 s left of its 40
         (0.5, 25.0)
     """
     if finished:
@@ -218,6 +220,7 @@ def overall(*, costs: list[tuple[str, float]], completed: list[str], stage: str 
         return fraction, None
     later = [seconds for name, seconds in costs if name not in completed and name != stage]
     speed = 1.0  # this machine's seconds per benchmark second, from the current stage (not a fit: its scene sets it)
-    if stage != "reconstruct" and stage_elapsed_s and stage_fraction > 0 and current > 0:
-        speed = stage_elapsed_s / (current * stage_fraction)
+    left = current * (1.0 - stage_fraction)  # the table's seconds for the rest of the stage (none: no rate to scale)
+    if stage != "reconstruct" and left > 0:
+        speed = stage_eta_s / left
     return fraction, stage_eta_s + speed * sum(later)

@@ -39,7 +39,7 @@ def job_out(job: Job) -> JobOut:
         progress=(job.iteration / job.total) if job.total else (1.0 if job.state == "succeeded" else 0.0),
         completed_stages=job.completed_stages or [], elapsed_seconds=elapsed,
         eta_seconds=job.eta_seconds if job.state == RUNNING else None, losses=job.losses or {},
-        **dict(zip(("overall_progress", "overall_eta_seconds"), _overall(job, now))),
+        **dict(zip(("overall_progress", "overall_eta_seconds"), _overall(job))),
         message=job.message, error=job.error, cancel_requested=job.cancel_requested,
         reconstruction=JobReconstruction(
             id=rec.id if rec else None, state=rec.state if rec else None,
@@ -53,7 +53,7 @@ def job_out(job: Job) -> JobOut:
     )
 
 
-def _overall(job: Job, now) -> tuple[float, float | None]:
+def _overall(job: Job) -> tuple[float, float | None]:
     """(overall progress, seconds left for the job): voxe_service.progress over the job's stage costs."""
     rec, result = job.reconstruction, job.result or {}
     reused = rec is not None and rec.state == R_SUCCEEDED and rec.owner_job_id != job.id and not _waited_for(job, rec)
@@ -70,7 +70,6 @@ def _overall(job: Job, now) -> tuple[float, float | None]:
     # only a running one has a time left.
     return overall(costs=costs, completed=job.completed_stages or [], stage=job.stage,
                    stage_fraction=fraction, stage_eta_s=job.eta_seconds if running else None,
-                   stage_elapsed_s=(now - job.stage_started_at).total_seconds() if job.stage_started_at else None,
                    finished=job.state == SUCCEEDED)
 
 
