@@ -173,6 +173,36 @@ def test_overall_progress_runs_from_0_to_1_and_never_goes_back():
     assert after_reconstruct < 0.02 and 0.55 < after_edit < 0.65 and after_refine > 0.95, seen
 
 
+def test_the_workers_refine_records_a_stage_fraction_that_only_rises(monkeypatch, tiny_sd_path, make_sphere_grid,
+                                                                     single_thread):
+    """The worker hands voxe_core's refine() its StageCallbacks, and refine() counts its sub-steps (attention maps,
+    back-projection, the grids' fit, the cut) on one scale (voxe_core.progress.in_phases): the fraction the job
+    records only rises (each sub-step's own i/N had sent it back at every new sub-step)."""
+    import dataclasses
+
+    from voxe_core.guidance.sds import StableDiffusionGuidance
+    from voxe_core.presets import refine_config
+    from voxe_core.refine.pipeline import refine
+    from voxe_service.settings import Settings
+    from worker import runtime
+
+    written = []
+    monkeypatch.setattr(runtime, "update_job", lambda job_id, **values: written.append(
+        (values["message"], values["iteration"] / values["total"])))
+    monkeypatch.setattr(runtime, "record_peak_memory", lambda *args: None)
+    callbacks = runtime.StageCallbacks(_job(state="running", stage="refine"), "refine",
+                                       Settings(progress_interval_s=1e-9))  # every report written
+    config = dataclasses.replace(refine_config({}, "tiny"), views=3, render_size=24, iterations=4)  # the service's, small
+    grid = make_sphere_grid(12)
+    refine(grid, grid.clone_grid(), "a dog wearing sunglasses", ["sunglasses"],
+           StableDiffusionGuidance.from_pretrained(str(tiny_sd_path), device="cpu"), config,
+           dataclasses.replace(callbacks.callbacks, should_cancel=None))  # (no job row to read a cancel from)
+    assert [message for message, _ in written] == (["refine: attention_maps"] * 3 + ["refine: backprojection"]
+                                                   + ["refine: attention_grids"] * 4 + ["refine: graph_cut"])
+    fractions = [fraction for _, fraction in written]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0, fractions
+
+
 def test_a_job_that_ended_or_went_back_to_the_queue_keeps_the_fraction_it_reached():
     """A failed, canceled or re-queued job had dropped its current stage's share (a job canceled half way through
     its edit fell from about 0.5 to the reconstruction's share)."""
