@@ -1150,3 +1150,45 @@ def test_the_sql_broker_keeps_sqlite_in_wal_mode(tmp_path):
             assert queue.get(timeout=2).payload == {"n": 1}
     with sqlite3.connect(tmp_path / "broker.db") as connection:
         assert connection.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+
+
+def test_the_sql_broker_keeps_no_delivered_message_and_delivers_an_unacknowledged_one_again(tmp_path):
+    """kombu's SQL transport kept every delivered message (invisible) for ever: the table grew with every stage and
+    each poll scanned past them all. A delivered message's row goes; one not acknowledged when its channel closes is
+    put back and delivered again; the invisible rows an earlier version left go when a process opens the broker."""
+    import sqlite3
+    import subprocess
+    import sys
+
+    from kombu import Connection
+
+    from voxe_service.broker import register
+
+    register()
+    url, path = f"sqla+sqlite:///{tmp_path / 'broker.db'}", tmp_path / "broker.db"
+
+    def rows() -> list:
+        with sqlite3.connect(path) as connection:
+            return connection.execute("SELECT visible, payload FROM kombu_message").fetchall()
+
+    def consume(ack: bool) -> dict:
+        with Connection(url, transport_options={"polling_interval": 0.05}) as conn, conn.SimpleQueue("q") as queue:
+            message = queue.get(timeout=2)
+            assert rows() == []  # delivered: not kept
+            if ack:
+                message.ack()
+            return message.payload
+
+    with Connection(url) as conn, conn.SimpleQueue("q") as queue:
+        queue.put({"n": 1})
+    assert consume(ack=False) == {"n": 1}
+    assert [visible for visible, _ in rows()] == [1]  # put back as its channel closed
+    assert consume(ack=True) == {"n": 1} and rows() == []
+    with sqlite3.connect(path) as connection:  # rows an earlier version left delivered, beside one waiting
+        queue_id = connection.execute("SELECT id FROM kombu_queue WHERE name = 'q'").fetchone()[0]
+        connection.executemany("INSERT INTO kombu_message (visible, timestamp, payload, version, queue_id) "
+                               "VALUES (?, datetime('now'), '{}', 1, ?)", [(0, queue_id)] * 3 + [(1, queue_id)])
+    opens = f"from kombu import Connection; Connection({url!r}).default_channel.session"  # a process starting
+    subprocess.run([sys.executable, "-c", f"from voxe_service.broker import register; register(); {opens}"],
+                   check=True, env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    assert rows() == [(1, "{}")]
