@@ -103,6 +103,7 @@ def test_a_database_of_the_previous_head_upgrades_in_place(database_url):
         row = conn.execute(text("SELECT state, error, task_id, updated_at, created_at, size_bytes FROM scenes")).one()
         assert (row.state, row.error, row.task_id, row.size_bytes) == ("ready", None, None, 10)
         assert conn.execute(text("SELECT backbone FROM scenes")).scalar_one() is None  # 0008: auto from the images
+        assert conn.execute(text("SELECT ingest_attempts FROM scenes")).scalar_one() == 0  # 0010: never interrupted
         assert str(row.updated_at) == str(row.created_at)
         conn.execute(text("INSERT INTO job_events (job_id, kind, at) VALUES ('j1', 'succeeded', "
                           "'2026-01-01 00:00:00+00')"))

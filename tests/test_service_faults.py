@@ -622,6 +622,53 @@ def test_a_workers_unpacked_datasets_of_deleted_scenes_are_swept_and_a_ready_sce
     assert sweep_scene_datasets(db) == []
 
 
+def test_an_upload_whose_ingest_kills_its_worker_fails_its_scene_at_the_requeue_limit(db, tmp_path, monkeypatch):
+    """Each run of an ingest that dies with its process (the OOM killer on a large upload) is sent again (Celery's
+    reject on a lost worker, a restarted worker's recovery) and took the scene anew, for ever. The runs are
+    counted: the delivery after VOXE_JOB_MAX_REQUEUES re-sends fails the scene naming why, and the jobs waiting
+    on it, and frees its upload."""
+    import zipfile
+
+    from voxe_service import datasets
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
+    from voxe_service.storage import get_storage, scene_key
+    from worker import ingest
+
+    class Killed(BaseException):
+        """The run's process killed mid-decode: nothing of the ingest's own handling runs."""
+
+    decoded = []
+
+    def killed(root, downsample):
+        decoded.append(root)
+        raise Killed()
+
+    monkeypatch.setattr(ingest, "decode", killed)
+    storage = get_storage(db)
+    with zipfile.ZipFile(tmp_path / "upload.zip", "w") as zf:
+        zf.writestr("transforms_train.json", "{}")
+    scene = add_scene("processing")
+    stored = storage.put_file(scene_key(scene, datasets.DATASET_ARCHIVE), tmp_path / "upload.zip")
+    with session_scope() as session:
+        session.get(Scene, scene).storage_key = stored.key
+    waiting = add_job(scene, "queued", 0, task_id=None)
+    for _ in range(db.job_max_requeues + 1):  # the first run and its re-sends: each decodes
+        with pytest.raises(Killed):
+            ingest.ingest_scene(scene, db, storage, "w@host")
+    assert len(decoded) == db.job_max_requeues + 1
+    assert ingest.ingest_scene(scene, db, storage, "w@host") == {"scene_id": scene, "state": "failed"}
+    assert len(decoded) == db.job_max_requeues + 1  # not decoded again
+    with session_scope() as session:
+        row = session.get(Scene, scene)
+        reason = (f"ingest: interrupted {db.job_max_requeues + 1} times, its worker process dying each time (killed: "
+                  f"out of memory?); it was sent again {db.job_max_requeues} time(s) already, the limit "
+                  f"(VOXE_JOB_MAX_REQUEUES={db.job_max_requeues})")
+        assert (row.state, row.error, row.size_bytes) == ("failed", reason, 0)
+    assert job_row(waiting).error == f"the scene's upload failed processing: {reason}"
+    assert not storage.exists(stored.key)
+
+
 def test_a_scratch_copy_is_reused_only_while_it_holds_the_recorded_bytes(tmp_path):
     """A worker's scratch may hold a grid nobody published (a run that lost its job or the fit wrote it there):
     fetch reuses a file only when its size and SHA-256 are the record's, downloads otherwise, and refuses a

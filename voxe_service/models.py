@@ -100,7 +100,8 @@ class Scene(Base):
     """An uploaded dataset. ``storage_key`` is its archive: the dataset a job reads once ``state`` is ready.
 
     ``task_id`` records that the ingest was handed to the broker; ``worker_hostname`` the worker
-    running it (the reaper fails a scene whose ingest nothing will finish, as it does for jobs).
+    running it (the reaper fails a scene whose ingest nothing will finish, as it does for jobs); ``ingest_attempts``
+    how many runs took it (an upload that kills its workers fails once too many were interrupted).
     """
 
     __tablename__ = "scenes"
@@ -123,6 +124,9 @@ class Scene(Base):
     error: Mapped[str | None] = mapped_column(Text, nullable=True)  # why a failed scene failed
     task_id: Mapped[str | None] = mapped_column(String(64), nullable=True)
     worker_hostname: Mapped[str | None] = mapped_column(String(255), nullable=True)
+    # Runs of the ingest that took the scene: while it is processing, every earlier one was interrupted (its worker
+    # process killed), and past VOXE_JOB_MAX_REQUEUES of them the next fails the scene instead of looping.
+    ingest_attempts: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     updated_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
 

@@ -108,14 +108,25 @@ def decode(root: Path, downsample: int) -> Decoded:
 
 
 def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: str | None) -> TaskResult:
-    """Take the scene's ingest (processing only), decode it, then mark it ready or failed."""
+    """Take the scene's ingest (processing only), decode it, then mark it ready or failed.
+
+    Every run that takes the scene counts (``Scene.ingest_attempts``); one finding more than ``job_max_requeues``
+    runs before it interrupted (their worker processes killed, e.g. out of memory on this upload) fails the scene
+    instead: an upload that kills its workers must not loop, as a job must not (``requeue_interrupted``).
+    """
     with session_scope() as session:
         scene = session.get(Scene, scene_id)
         if scene is None or scene.state != PROCESSING:
             return {"scene_id": scene_id, "skipped": f"scene {scene_id} is {scene.state if scene else 'gone'}"}
+        upload_key, interrupted = scene.storage_key, scene.ingest_attempts
         session.execute(update(Scene).where(Scene.id == scene_id, Scene.state == PROCESSING)
-                        .values(worker_hostname=hostname, updated_at=utcnow()))
-        upload_key = scene.storage_key
+                        .values(worker_hostname=hostname, ingest_attempts=Scene.ingest_attempts + 1,
+                                updated_at=utcnow()))
+    if interrupted > settings.job_max_requeues:
+        _fail(scene_id, f"ingest: interrupted {interrupted} times, its worker process dying each time (killed: out of "
+                        f"memory?); it was sent again {interrupted - 1} time(s) already, the limit "
+                        f"(VOXE_JOB_MAX_REQUEUES={settings.job_max_requeues})", storage)
+        return {"scene_id": scene_id, "state": "failed"}
     mesh_upload = upload_key == scene_key(scene_id, datasets.UPLOAD_ARCHIVE)
     work = Path(settings.work_dir) / "ingest"
     work.mkdir(parents=True, exist_ok=True)
