@@ -604,22 +604,45 @@ def test_a_workers_scratch_of_ended_or_deleted_jobs_is_swept_and_a_live_jobs_kep
 
 def test_a_workers_unpacked_datasets_of_deleted_scenes_are_swept_and_a_ready_scenes_kept(db):
     """Every worker that ran a job on a scene keeps its unpacked dataset (``runtime.scene_dataset_dir``); the sweep
-    removes those of scenes deleted (or not ready) since, with the debris of their unpacks, never a ready scene's
-    dataset or the unpack a job of it may be running."""
+    removes those of scenes deleted (or not ready) since, with the debris of their unpacks, and the debris a job's
+    run killed mid-unpack left of a ready scene none of whose jobs runs, never a ready scene's dataset or the unpack
+    a running job of it may be making."""
     from pathlib import Path
 
     from worker.runtime import sweep_scene_datasets
 
-    ready, failed = add_scene(), add_scene("failed")
+    ready, idle, failed = add_scene(), add_scene(), add_scene("failed")
+    add_job(ready, "running", 0, "w@host", "reconstruct")
+    add_job(idle, "succeeded", 0, "w@host", "export")
     root = Path(db.work_dir) / "scenes"
-    kept = [f"{ready}-{'0' * 12}", f".{ready}-k3j2x9"]  # its dataset, and an unpack under way
-    gone = [f"{'1' * 32}-{'0' * 12}", f".{'1' * 32}-p0q7zz", f"{failed}-{'0' * 12}"]
+    kept = [f"{ready}-{'0' * 12}", f".{ready}-k3j2x9", f"{idle}-{'0' * 12}"]  # an unpack under way beside its dataset
+    gone = [f"{'1' * 32}-{'0' * 12}", f".{'1' * 32}-p0q7zz", f"{failed}-{'0' * 12}", f".{idle}-a1b2c3"]
     for name in kept + gone:
         (root / name).mkdir(parents=True)
         (root / name / "transforms_train.json").write_text("{}")
     assert sorted(sweep_scene_datasets(db)) == sorted(gone)
     assert sorted(p.name for p in root.iterdir()) == sorted(kept)
     assert sweep_scene_datasets(db) == []
+
+
+def test_the_uploads_killed_ingests_left_are_swept_once_their_scenes_are_no_longer_processing(db):
+    """An ingest unpacks its upload under ``work/ingest/<scene id>-*`` and removes it as it ends; a run whose
+    process was killed left it (up to VOXE_MAX_EXTRACTED_BYTES each). The sweep removes those of scenes ready,
+    failed or deleted since, never a processing scene's (a run of it may be decoding there)."""
+    from pathlib import Path
+
+    from worker.runtime import sweep_ingest_scratch
+
+    processing, ready, failed = add_scene("processing"), add_scene(), add_scene("failed")
+    root = Path(db.work_dir) / "ingest"
+    kept = [f"{processing}-a1b2c3", f"{processing}-d4e5f6"]  # a run decoding, and one killed before it
+    gone = [f"{ready}-a1b2c3", f"{failed}-a1b2c3", f"{'1' * 32}-a1b2c3"]
+    for name in kept + gone:
+        (root / name / "data").mkdir(parents=True)
+        (root / name / "archive.zip").write_bytes(b"PK")
+    assert sorted(sweep_ingest_scratch(db)) == sorted(gone)
+    assert sorted(p.name for p in root.iterdir()) == sorted(kept)
+    assert sweep_ingest_scratch(db) == []
 
 
 def test_an_upload_whose_ingest_kills_its_worker_fails_its_scene_at_the_requeue_limit(db, tmp_path, monkeypatch):

@@ -30,7 +30,7 @@ from voxe_service import datasets
 from voxe_service.db import locked, session_scope, sync_clock
 from voxe_service.jobs import finish_jobs, record_event
 from voxe_service.models import (
-    CANCELED, FAILED, QUEUED, R_PENDING, R_RUNNING, READY, RUNNING, SUCCEEDED, TERMINAL_STATES,
+    CANCELED, FAILED, PROCESSING, QUEUED, R_PENDING, R_RUNNING, READY, RUNNING, SUCCEEDED, TERMINAL_STATES,
     Artifact, Job, Reconstruction, Scene, utcnow,
 )
 from voxe_service.settings import TINY_MODEL, Settings
@@ -346,40 +346,59 @@ def cleanup_scratch(job_id: str, settings: Settings) -> None:
     shutil.rmtree(Path(settings.work_dir) / "jobs" / job_id, ignore_errors=True)
 
 
+def _sweep(root: Path, owner, kept) -> list[str]:
+    """Delete the folders under ``root`` whose owner (``owner(name)``) is not among ``kept(owners)``; the names swept.
+    The folders are listed before ``kept`` reads the database, so each is judged by a state its maker had written
+    before making it (a job running, a scene processing), or by a later one."""
+    names = [p.name for p in root.iterdir() if p.is_dir()] if root.is_dir() else []
+    if not names:
+        return []
+    owner_of = {name: owner(name) for name in names}
+    keep = kept(set(owner_of.values()))
+    swept = [name for name in names if owner_of[name] not in keep]
+    for name in swept:
+        shutil.rmtree(root / name, ignore_errors=True)
+    return swept
+
+
 def sweep_scratch(settings: Settings) -> list[str]:
     """Delete the scratch folders of jobs that have ended or are gone; the ids swept.
 
     The worker that runs a job's last stage cleans its scratch; in a scale-out the workers that ran
     its earlier stages would otherwise keep their copies of its grids and checkpoints for ever.
     """
-    root = Path(settings.work_dir) / "jobs"
-    ids = [p.name for p in root.iterdir() if p.is_dir()] if root.is_dir() else []
-    if not ids:
-        return []
-    with session_scope() as session:
-        live = set(session.scalars(select(Job.id).where(Job.id.in_(ids), Job.state.not_in(TERMINAL_STATES))))
-    swept = [job_id for job_id in ids if job_id not in live]
-    for job_id in swept:
-        cleanup_scratch(job_id, settings)
-    return swept
+    def live(ids: set[str]) -> set[str]:
+        with session_scope() as session:
+            return set(session.scalars(select(Job.id).where(Job.id.in_(ids), Job.state.not_in(TERMINAL_STATES))))
+
+    return _sweep(Path(settings.work_dir) / "jobs", lambda name: name, live)
 
 
 def sweep_scene_datasets(settings: Settings) -> list[str]:
-    """Delete this machine's unpacked datasets (and half-unpacked debris) of scenes that are gone or not ready; the
-    folder names swept. A job unpacks only a ready scene, which cannot be deleted while the job runs, so a folder
-    being unpacked is never one of these (the folders are listed before the scenes are read, as jobs' scratch)."""
-    root = Path(settings.work_dir) / "scenes"
-    names = [p.name for p in root.iterdir() if p.is_dir()] if root.is_dir() else []
-    if not names:
-        return []
-    scene_of = {name: name.lstrip(".").partition("-")[0] for name in names}  # <id>-<sha>, or .<id>-<tmp> unpacking
-    with session_scope() as session:
-        ready = set(session.scalars(select(Scene.id).where(Scene.id.in_(set(scene_of.values())),
-                                                           Scene.state == READY)))
-    swept = [name for name in names if scene_of[name] not in ready]
-    for name in swept:
-        shutil.rmtree(root / name, ignore_errors=True)
-    return swept
+    """Delete this machine's unpacked datasets (``<scene id>-<sha>``) of scenes that are gone or not ready, and the
+    half-unpacked debris (``.<scene id>-*``) of unpacks no running job of a ready scene may be making (a job's
+    run killed mid-unpack left it); the folder names swept. A job unpacks its scene while it runs, and a ready
+    scene cannot be deleted while it does."""
+    def kept(owners: set[str]) -> set[str]:
+        with session_scope() as session:
+            ready = set(session.scalars(select(Scene.id).where(Scene.id.in_({o.lstrip(".") for o in owners}),
+                                                               Scene.state == READY)))
+            unpacking = set(session.scalars(select(Job.scene_id).where(Job.scene_id.in_(ready), Job.state == RUNNING)))
+        return ready | {f".{scene_id}" for scene_id in unpacking}
+
+    return _sweep(Path(settings.work_dir) / "scenes", lambda name: name.partition("-")[0], kept)
+
+
+def sweep_ingest_scratch(settings: Settings) -> list[str]:
+    """Delete this machine's unpacked uploads (``ingest/<scene id>-*``) of scenes no longer processing; the folder
+    names swept. An ingest removes its own as it ends; one whose process was killed left it (up to
+    ``VOXE_MAX_EXTRACTED_BYTES``), kept with its scene's other runs' until the scene is ready, failed (an
+    ingest interrupted too often fails it) or deleted."""
+    def processing(ids: set[str]) -> set[str]:
+        with session_scope() as session:
+            return set(session.scalars(select(Scene.id).where(Scene.id.in_(ids), Scene.state == PROCESSING)))
+
+    return _sweep(Path(settings.work_dir) / "ingest", lambda name: name.partition("-")[0], processing)
 
 
 def publish_artifact(job_id: str, name: str, path: str | os.PathLike, kind: str, storage: Storage | None = None,

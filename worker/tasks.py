@@ -583,7 +583,8 @@ _heartbeat_stop = threading.Event()
 
 
 SCRATCH_SWEEP_S = 600.0
-"""How often the heartbeat thread also sweeps ended jobs' scratch and gone scenes' datasets (runtime.sweep_*)."""
+"""How often the heartbeat thread also sweeps ended jobs' scratch, gone scenes' datasets, killed unpacks and ended
+ingests' uploads (runtime.sweep_*)."""
 
 
 def _beat(hostname: str, queues: str, device: str, models: dict) -> None:
@@ -614,7 +615,9 @@ def _beat(hostname: str, queues: str, device: str, models: dict) -> None:
         if time.monotonic() >= next_sweep:
             next_sweep = time.monotonic() + SCRATCH_SWEEP_S
             for sweep, done in ((runtime.sweep_scratch, "removed the scratch of %d ended job(s)"),
-                                (runtime.sweep_scene_datasets, "removed the datasets of %d deleted scene(s)")):
+                                (runtime.sweep_scene_datasets, "removed %d dataset(s) of deleted scenes or killed "
+                                                               "unpacks"),
+                                (runtime.sweep_ingest_scratch, "removed %d upload(s) left by killed ingests")):
                 try:
                     if swept := sweep(settings):
                         log.info(done, len(swept))
