@@ -706,13 +706,14 @@ def test_the_worker_keeps_its_cache_size_of_guidances_and_frees_the_least_recent
     sds, attention, third = str(tiny_path), str(tmp_path / "attention"), str(tmp_path / "third")
     shutil.copytree(tiny_path, attention)
     shutil.copytree(tiny_path, third)
-    one = Settings()  # VOXE_GUIDANCE_CACHE_SIZE's default: 1
+    assert Settings().guidance_cache_size == 2  # the default: a local job's SDS and attention models
+    one = Settings(guidance_cache_size=1)
     edit = weakref.ref(runtime.get_guidance(sds, "cpu", one))
     runtime.get_guidance(attention, "cpu", one)
     assert edit() is None  # freed, not only forgotten
     assert list(runtime._GUIDANCE_CACHE) == [(attention, "cpu")]
 
-    two = Settings(guidance_cache_size=2)
+    two = Settings()
     kept = runtime.get_guidance(attention, "cpu", two)
     runtime.get_guidance(sds, "cpu", two)
     assert runtime.get_guidance(attention, "cpu", two) is kept  # used last: sds is the least recent now
