@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-
+import math
 from dataclasses import replace
 
 import pytest
@@ -113,6 +113,20 @@ def test_averaging_returns_the_mean_of_the_final_iterates():
     result = reconstruct(images, cams, config, Callbacks(on_progress=snapshot), initial_grid=grid)
     assert len(snapshots) == 5 and not torch.equal(snapshots[0], snapshots[-1])
     assert torch.allclose(result.flat_features, torch.stack(snapshots).mean(0), atol=1e-6)
+
+
+@pytest.mark.parametrize("field,value,message", [
+    ("image_downsample", (2, 0), r"image_downsample must be >= 1 per stage .*got \[2, 0\]"),  # had divided by 0
+    ("image_downsample", (2, -1), r"image_downsample must be >= 1 per stage .*got \[2, -1\]"),  # had fitted 1x1
+    ("occupancy_every", 0, "occupancy_every must be >= 1 and checkpoint_every >= 0 .*got 0 and 0"),
+    ("checkpoint_every", -1, "occupancy_every must be >= 1 and checkpoint_every >= 0 .*got 16 and -1"),
+    ("lr", math.nan, "lr must be positive and finite, got nan"),
+    ("lr", 0.0, "lr must be positive and finite, got 0.0"),
+    ("resolutions", (12, 1), r"grid resolutions must be at least 2, got \[12, 1\]"),
+])
+def test_a_config_no_fit_can_run_is_refused_when_it_is_made(field, value, message):
+    with pytest.raises(ValueError, match=message):
+        tiny_config(**{field: value})
 
 
 def test_progress_reports_every_iteration_and_cancellation_stops_early():

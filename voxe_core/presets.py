@@ -190,8 +190,6 @@ def reconstruct_config(rec_params: dict, checkpoint_every: int = 0, backbone: st
         if len(resolution) == 1:
             final = resolution[0]
             resolution = [max(2, round(final * r / config.resolutions[-1])) for r in config.resolutions[:-1]] + [final]
-        if min(resolution) < 2:
-            raise ValueError(f"grid resolutions must be at least 2, got {resolution}")
         overrides["resolutions"] = tuple(resolution)
     iterations = _per_stage(rec_params.get("iterations"), len(config.resolutions), "iterations")
     if iterations is not None:

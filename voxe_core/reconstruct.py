@@ -11,6 +11,7 @@ in 25 s, 47 CPU s, its six seeds 30.63–30.70 dB).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -79,6 +80,16 @@ class ReconstructConfig:
             raise ValueError("resolutions, iterations and image_downsample need one entry per stage")
         if self.rays_per_step < 1 or any(i < 0 for i in self.iterations):
             raise ValueError("rays_per_step must be >= 1 and iterations >= 0")
+        if min(self.resolutions) < 2:  # as a grid's own refusal, but before any stage has run
+            raise ValueError(f"grid resolutions must be at least 2, got {list(self.resolutions)}")
+        if min(self.image_downsample) < 1:  # 0 had divided by zero after the earlier stages' work, -1 fitted 1x1 px
+            raise ValueError(f"image_downsample must be >= 1 per stage (1: the images as given), "
+                             f"got {list(self.image_downsample)}")
+        if not 0 < self.lr < math.inf:  # as "not in range": NaN fails every comparison
+            raise ValueError(f"lr must be positive and finite, got {self.lr}")
+        if self.occupancy_every < 1 or self.checkpoint_every < 0:
+            raise ValueError(f"occupancy_every must be >= 1 and checkpoint_every >= 0 (0: none), got "
+                             f"{self.occupancy_every} and {self.checkpoint_every}")
         if self.images_per_step < 0:
             raise ValueError(f"images_per_step must be >= 0 (0: all images), got {self.images_per_step}")
         if not 0.0 <= self.average_from <= 1.0 or self.average_every < 1:
