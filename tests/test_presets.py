@@ -100,6 +100,21 @@ def test_the_cli_and_the_service_fit_the_same_reconstruction(options, params):
     assert reconstruct_config(cli, 10) == reconstruct_config(service, 10)
 
 
+@pytest.mark.parametrize("params,message", [
+    ({"resolution": "96"}, "resolution takes whole numbers, got '96'"),  # had been the stages (9, 6)
+    ({"iterations": "50"}, "iterations takes whole numbers, got '50'"),  # had been (5, 0)
+    ({"resolution": 96.0}, "resolution takes whole numbers, got 96.0"),  # had been a TypeError
+    ({"resolution": True}, "resolution takes whole numbers, got True"),
+    ({"iterations": [5, 2.5]}, "iterations takes whole numbers, got 2.5"),
+    ({"rays_per_step": 2.9}, "rays_per_step takes whole numbers, got 2.9"),  # had been 2
+])
+def test_a_reconstruction_value_that_is_no_whole_number_is_refused_by_name(params, message):
+    with pytest.raises(ValueError, match=message):
+        reconstruct_config(params, backbone="scene")
+    given = {"resolution": (48, 96), "iterations": [3, 4], "rays_per_step": 64}  # ints, in a list or a tuple
+    assert reconstruct_config(given, backbone="scene").resolutions == (48, 96)
+
+
 def test_default_downsampling_is_the_papers_everywhere():
     parser = build_parser()
     for command in (["reconstruct", "d", "--out", "g"], ["render", "g", "--data", "d", "--out", "o"], EDIT,

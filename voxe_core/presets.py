@@ -26,6 +26,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import numbers
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, NamedTuple
 
@@ -195,7 +196,7 @@ def reconstruct_config(rec_params: dict, checkpoint_every: int = 0, backbone: st
     if iterations is not None:
         overrides["iterations"] = tuple([*config.iterations[:-1], *iterations] if len(iterations) == 1 else iterations)
     if rec_params.get("rays_per_step") is not None:
-        overrides["rays_per_step"] = int(rec_params["rays_per_step"])
+        overrides["rays_per_step"] = _whole(rec_params["rays_per_step"], "rays_per_step")
     return dataclasses.replace(config, **overrides).for_backbone(backbone)
 
 
@@ -256,11 +257,19 @@ def fit_setup(rec_params: dict, alphas: "torch.Tensor | None", cameras: "Cameras
     return FitSetup(backbone, config, fit_cameras, initial)
 
 
+def _whole(value, what: str) -> int:
+    """``value`` when it is a whole number; ValueError naming ``what`` for anything else (a bool, a float, a string:
+    int() had read 2.9 as 2, and iterating "96" as the stages (9, 6))."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise ValueError(f"{what} takes whole numbers, got {value!r}")
+    return int(value)
+
+
 def _per_stage(value, n_stages: int, what: str) -> list[int] | None:
-    """``value`` (None, one int or a list) as a list of one value or one per stage."""
+    """``value`` (None, one int, or a list or tuple of ints) as a list of one value or one per stage."""
     if value is None:
         return None
-    values = [int(value)] if isinstance(value, int) else [int(v) for v in value]
+    values = [_whole(v, what) for v in (value if isinstance(value, (list, tuple)) else [value])]
     if len(values) not in (1, n_stages):
         raise ValueError(f"{what} takes one value or one per stage ({n_stages} stages), got {len(values)}")
     return values
