@@ -189,6 +189,20 @@ def test_mismatched_images_and_cameras_are_rejected():
         reconstruct(images[:3], cams, tiny_config())
 
 
+@pytest.mark.parametrize("what,message", [
+    ("rgba", r"must be \(N, H, W, 3\) floating-point RGB in \[0, 1\] on white, got \(6, 16, 16, 4\)"),  # a reshape's
+    ("grey", r"must be \(N, H, W, 3\) floating-point RGB .* got \(6, 16, 16, 1\)"),  # error, an IndexError
+    ("uint8", r"must be \(N, H, W, 3\) floating-point RGB .* got \(6, 16, 16, 3\) torch.uint8"),  # all white
+    ("0..255", r"must hold values in \[0, 1\] \(8-bit values divided by 255\), got values from 12 to 255"),
+])
+def test_images_other_than_rgb_in_0_to_1_are_refused_before_any_work(what, message):
+    images, cams = synthetic_views()
+    given = {"rgba": torch.cat([images, torch.ones_like(images[..., :1])], -1), "grey": images[..., :1],
+             "uint8": (images * 255).round().to(torch.uint8), "0..255": (images * 255).round()}[what]
+    with pytest.raises(ValueError, match=message):
+        reconstruct(given, cams, tiny_config(), Callbacks(on_progress=pytest.fail))
+
+
 def test_row_sparse_adam_matches_dense_adam_when_every_row_is_touched():
     torch.manual_seed(0)
     a = torch.nn.Parameter(torch.randn(10, 4))

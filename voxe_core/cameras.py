@@ -93,6 +93,22 @@ class Cameras:
         return replace(self, distortion=None)
 
 
+def check_views(images: torch.Tensor, cameras: Cameras, what: str = "images") -> None:
+    """ValueError unless ``images`` are (N, H, W, 3) floating-point RGB in [0, 1], one per camera at its size: an
+    RGBA or grey image had failed deep in a reshape, and 8-bit values (0..255) fitted every pixel to white."""
+    if images.ndim != 4 or images.shape[-1] != 3 or not images.is_floating_point():
+        raise ValueError(f"{what} must be (N, H, W, 3) floating-point RGB in [0, 1] on white, got "
+                         f"{tuple(images.shape)} {images.dtype}")
+    if images.shape[0] != len(cameras) or tuple(images.shape[1:3]) != (cameras.height, cameras.width):
+        raise ValueError(f"{images.shape[0]} {what} of {tuple(images.shape[1:3])} do not match "
+                         f"{len(cameras)} cameras of {(cameras.height, cameras.width)}")
+    if images.numel():
+        low, high = images.aminmax()
+        if not (low >= 0 and high <= 1):  # as "not in range": NaN fails every comparison
+            raise ValueError(f"{what} must hold values in [0, 1] (8-bit values divided by 255), got values from "
+                             f"{float(low):g} to {float(high):g}")
+
+
 def camera_rays(cameras: Cameras, index: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Origins and unit directions, (H*W, 3) each, row-major over the image."""
     device = cameras.c2w.device

@@ -50,7 +50,7 @@ from typing import Callable
 
 import torch
 
-from voxe_core.cameras import Cameras, camera_rays, pixel_rays, random_hemisphere_poses, spherical_poses
+from voxe_core.cameras import Cameras, camera_rays, check_views, pixel_rays, random_hemisphere_poses, spherical_poses
 from voxe_core.constants import (
     DEFAULT_GUIDANCE_SCALE,
     DEFAULT_REGULARISER,
@@ -278,15 +278,9 @@ def load_edit_checkpoint(path) -> tuple[dict[str, torch.Tensor], dict]:
 
 def _check_views(input_views, device):
     images, cameras = input_views
-    images = torch.as_tensor(images, dtype=torch.float32)
-    if images.ndim != 4 or images.shape[-1] != 3:
-        raise ValueError(f"input view images must be (N, H, W, 3) RGB on white, got {tuple(images.shape)}")
-    if images.shape[0] != len(cameras) or tuple(images.shape[1:3]) != (cameras.height, cameras.width):
-        raise ValueError(
-            f"{images.shape[0]} input images of {tuple(images.shape[1:3])} do not match "
-            f"{len(cameras)} cameras of {(cameras.height, cameras.width)}"
-        )
-    return images.reshape(-1, 3).to(device), cameras.to(device), images.shape[1], images.shape[2]
+    images = torch.as_tensor(images)
+    check_views(images, cameras, "input view images")
+    return images.reshape(-1, 3).to(device, torch.float32), cameras.to(device), images.shape[1], images.shape[2]
 
 
 def edit(
@@ -303,7 +297,7 @@ def edit(
 ) -> VoxelGrid:
     """Optimise G_e (a copy of ``initial_grid``) towards ``prompt`` under ``guidance``; returns G_e.
 
-    ``input_views`` ``(images (N, H, W, 3) on white, cameras)`` are needed by the
+    ``input_views`` ``(images (N, H, W, 3) RGB in [0, 1] on white, cameras)`` are needed by the
     image-space regularisers only. ``on_preview(iteration, image (H, W, 3) CPU)``
     receives a render from a fixed front pose at iteration 0 (fresh runs),
     every ``preview_every`` iterations and at the end; previews draw no random

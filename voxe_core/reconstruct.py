@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 
 from voxe_core.backbones import grid_from_state
-from voxe_core.cameras import Cameras, pixel_rays
+from voxe_core.cameras import Cameras, check_views, pixel_rays
 from voxe_core.devices import PeakMemory, resolve_device
 from voxe_core.grid import Activation, VoxelGrid
 from voxe_core.losses import sampled_total_variation
@@ -414,7 +414,8 @@ def reconstruct(
     initial_grid: VoxelGrid | None = None,
     device: torch.device | str = "cpu",
 ) -> VoxelGrid:
-    """Fit G_i to ``images`` (N, H, W, 3) on white seen from ``cameras``; deterministic under ``config.seed``.
+    """Fit G_i to ``images`` (N, H, W, 3), floating-point RGB in [0, 1] on white, seen from ``cameras``; deterministic
+    under ``config.seed``.
 
     ``initial_grid`` (e.g. a ``SceneGrid`` at ``config.resolutions[0]``) replaces the fresh
     ReLU-field grid; its type, box and activation win over ``config.bbox_*`` and ``activation``.
@@ -426,11 +427,7 @@ def reconstruct(
     """
     if images.shape[0] == 0:
         raise ValueError("no training images: a reconstruction needs at least one posed view")
-    if images.shape[0] != len(cameras) or images.shape[1:3] != (cameras.height, cameras.width):
-        raise ValueError(
-            f"{images.shape[0]} images of {tuple(images.shape[1:3])} do not match "
-            f"{len(cameras)} cameras of {(cameras.height, cameras.width)}"
-        )
+    check_views(images, cameras)
     device = resolve_device(device)
     memory = PeakMemory(device).start()
     images, cameras = images.to(device, torch.float32), cameras.to(device)
