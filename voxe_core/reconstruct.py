@@ -414,16 +414,19 @@ def reconstruct(
     initial_grid: VoxelGrid | None = None,
     device: torch.device | str = "cpu",
 ) -> VoxelGrid:
-    """Fit G_i to ``images`` (N, H, W, 3), floating-point RGB in [0, 1] on white, seen from ``cameras``; deterministic
-    under ``config.seed``.
+    """Fit G_i to ``images`` (N, H, W, 3), floating-point RGB in [0, 1] on white, seen from ``cameras``.
 
     ``initial_grid`` (e.g. a ``SceneGrid`` at ``config.resolutions[0]``) replaces the fresh
     ReLU-field grid; its type, box and activation win over ``config.bbox_*`` and ``activation``.
     Everything runs on ``device``: images, cameras and the grid move there once, the rays of
-    each stage are built there, and the sampling generator lives there (so a run is
-    deterministic per device; CPU and CUDA runs of one seed draw different rays). The
-    returned grid lives on ``device``. Progress info carries the stage's peak memory
-    (:class:`voxe_core.devices.PeakMemory`).
+    each stage are built there, and the sampling generator lives there (so CPU and CUDA runs
+    of one seed draw different rays). The returned grid lives on ``device``. Progress info
+    carries the stage's peak memory (:class:`voxe_core.devices.PeakMemory`).
+
+    Determinism: a run is reproducible under ``config.seed`` on the CPU; on CUDA only as far as
+    the kernels are deterministic: the compositing's and the gradients' scatter-adds
+    (``index_add``) add atomically in any order, so runs differ at float32 rounding unless
+    ``torch.use_deterministic_algorithms`` is on.
     """
     if images.shape[0] == 0:
         raise ValueError("no training images: a reconstruction needs at least one posed view")
