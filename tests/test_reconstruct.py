@@ -13,7 +13,7 @@ from voxe_core.data import load_scene
 from voxe_core.grid import VoxelGrid
 from voxe_core.metrics import psnr
 from voxe_core.progress import Callbacks, StageCancelled
-from voxe_core.reconstruct import ReconstructConfig, RowSparseAdam, ray_batch, reconstruct
+from voxe_core.reconstruct import ReconstructConfig, RowSparseAdam, load_checkpoint, ray_batch, reconstruct
 from voxe_core.render import RenderConfig, render_image
 
 from needs import MIC, needs_data
@@ -80,6 +80,23 @@ def test_resume_from_checkpoint_is_bit_exact(tmp_path, stop_after, average_from,
                     checkpoint_path=checkpoint)
     resumed = reconstruct(images, cams, config, resume_from=checkpoint)
     assert torch.equal(resumed.features, uninterrupted.features)
+
+
+@pytest.mark.parametrize("stop_after,stage,iteration", [(7, 0, 7), (8, 1, 0), (14, 1, 6)])
+def test_a_cancelled_fit_checkpoints_where_it_stopped_and_resumes_from_there(tmp_path, stop_after, stage, iteration):
+    """As edit's: the steps since the last periodic checkpoint (every 5 here) are not redone by a resume."""
+    images, cams = synthetic_views()
+    config = tiny_config(iterations=(8, 8), checkpoint_every=5, average_from=0.5, average_every=2)
+    uninterrupted = reconstruct(images, cams, config)
+    checkpoint, seen, saved = tmp_path / "ckpt.safetensors", [], []
+    with pytest.raises(StageCancelled):
+        reconstruct(images, cams, config, Callbacks(on_progress=seen.append, should_cancel=lambda: len(seen) >= stop_after,
+                                                    on_checkpoint=saved.append), checkpoint_path=checkpoint)
+    meta = load_checkpoint(checkpoint)[1]
+    assert (meta["stage"], meta["iteration"]) == (stage, iteration) and len(saved) == stop_after // 5 + 1
+    resumed_at = []
+    resumed = reconstruct(images, cams, config, Callbacks(on_progress=resumed_at.append), resume_from=checkpoint)
+    assert resumed_at[0].iteration == stop_after + 1 and torch.equal(resumed.features, uninterrupted.features)
 
 
 def test_resume_refuses_a_recipe_the_checkpoint_is_not_part_of(tmp_path):

@@ -23,7 +23,7 @@ from voxe_core.cameras import Cameras, check_views, pixel_rays
 from voxe_core.devices import PeakMemory, resolve_device
 from voxe_core.grid import Activation, VoxelGrid
 from voxe_core.losses import sampled_total_variation
-from voxe_core.progress import Callbacks, Progress
+from voxe_core.progress import Callbacks, Progress, StageCancelled
 from voxe_core.render import RenderConfig, render_rays
 from voxe_core.tensorio import FormatError, load_tensors, save_tensors
 
@@ -421,7 +421,9 @@ def reconstruct(
     Everything runs on ``device``: images, cameras and the grid move there once, the rays of
     each stage are built there, and the sampling generator lives there (so CPU and CUDA runs
     of one seed draw different rays). The returned grid lives on ``device``. Progress info
-    carries the stage's peak memory (:class:`voxe_core.devices.PeakMemory`).
+    carries the stage's peak memory (:class:`voxe_core.devices.PeakMemory`). Cancellation is
+    checked before each iteration (``StageCancelled``); with ``checkpoint_path`` set, a cancelled
+    run writes a checkpoint before it stops (through ``callbacks``, as the periodic ones).
 
     Determinism: a run is reproducible under ``config.seed`` on the CPU; on CUDA only as far as
     the kernels are deterministic: the compositing's and the gradients' scatter-adds
@@ -455,8 +457,12 @@ def reconstruct(
         resumed = {name: value.to(device) for name, value in tensors.items() if name != "rng_state"}
     grid = grid.to(device)
 
+    def checkpoint(stage: int, iteration: int) -> None:
+        save_checkpoint(checkpoint_path, grid, optimizer, generator, occupancy.cells, stage, iteration, average)
+        callbacks.checkpoint_written(str(checkpoint_path))
+
     total = config.total_iterations
-    done = sum(config.iterations[:start_stage]) + start_iteration
+    done = last_checkpoint = sum(config.iterations[:start_stage]) + start_iteration
     for stage in range(start_stage, len(config.resolutions)):
         if stage > start_stage or resumed is None:
             if grid.resolution != (config.resolutions[stage],) * 3:
@@ -479,7 +485,12 @@ def reconstruct(
         rays = _stage_data(images, cameras, config.image_downsample[stage])
         clear_rows = camera_clear_rows(grid, cameras, config.camera_clearance)
         for iteration in range(first, config.iterations[stage]):
-            callbacks.check_cancel("reconstruct")
+            try:
+                callbacks.check_cancel("reconstruct")
+            except StageCancelled:  # the steps since the last checkpoint are kept for a resume
+                if checkpoint_path is not None and done != last_checkpoint:
+                    checkpoint(stage, iteration)
+                raise
             # Not at 0 (built just above); a run resumed on a refresh iteration refreshes as the uninterrupted one did.
             if iteration % config.occupancy_every == 0 and iteration > 0:
                 occupancy = grid.occupancy(config.render.sigma_threshold)
@@ -494,9 +505,7 @@ def reconstruct(
                  "samples_per_ray": out.samples / config.rays_per_step, **memory.info()},
             ))
             if checkpoint_path is not None and config.checkpoint_every and done % config.checkpoint_every == 0:
-                save_checkpoint(
-                    checkpoint_path, grid, optimizer, generator, occupancy.cells, stage, iteration + 1, average
-                )
-                callbacks.checkpoint_written(str(checkpoint_path))
+                checkpoint(stage, iteration + 1)
+                last_checkpoint = done
         average.finish(grid)
     return grid
