@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import math
 from dataclasses import replace
 
@@ -97,6 +98,34 @@ def test_a_cancelled_fit_checkpoints_where_it_stopped_and_resumes_from_there(tmp
     resumed_at = []
     resumed = reconstruct(images, cams, config, Callbacks(on_progress=resumed_at.append), resume_from=checkpoint)
     assert resumed_at[0].iteration == stop_after + 1 and torch.equal(resumed.features, uninterrupted.features)
+
+
+def _grid_sized_storages(grid_bytes: int) -> int:
+    """How many distinct tensor storages of at least ``grid_bytes`` are alive."""
+    gc.collect()
+    tensors = [t for t in gc.get_objects() if issubclass(type(t), torch.Tensor) and t.layout == torch.strided]
+    return len({t.untyped_storage().data_ptr() for t in tensors if t.untyped_storage().nbytes() >= grid_bytes})
+
+
+def test_a_resumed_fit_holds_no_copy_of_its_checkpoints_tensors(tmp_path):
+    """Features, Adam's two moments and the iterate average: four grid-sized tensors at the end of a fit, resumed or
+    not (the checkpoint's own had stayed alive beside the copies made of them: seven)."""
+    images, cams = synthetic_views()
+    config = tiny_config(resolutions=(16,), iterations=(8,), image_downsample=(1,), checkpoint_every=1,
+                         average_from=0.5, average_every=1)
+    grid_bytes, counts = 16**3 * 4 * 4, []
+
+    def count_at_the_end(progress):
+        if progress.iteration == progress.total:
+            counts.append(_grid_sized_storages(grid_bytes))
+
+    checkpoint, saved = tmp_path / "ckpt.safetensors", []
+    with pytest.raises(StageCancelled):
+        reconstruct(images, cams, config, Callbacks(should_cancel=lambda: len(saved) >= 6, on_checkpoint=saved.append),
+                    checkpoint_path=checkpoint)
+    reconstruct(images, cams, config, Callbacks(on_progress=count_at_the_end))
+    reconstruct(images, cams, config, Callbacks(on_progress=count_at_the_end), resume_from=checkpoint)
+    assert counts == [4, 4]
 
 
 def test_resume_refuses_a_recipe_the_checkpoint_is_not_part_of(tmp_path):

@@ -21,7 +21,7 @@ import torch.nn.functional as F
 from voxe_core.backbones import grid_from_state
 from voxe_core.cameras import Cameras, check_views, pixel_rays
 from voxe_core.devices import PeakMemory, resolve_device
-from voxe_core.grid import Activation, VoxelGrid
+from voxe_core.grid import Activation, Occupancy, VoxelGrid
 from voxe_core.losses import sampled_total_variation
 from voxe_core.progress import Callbacks, Progress, StageCancelled
 from voxe_core.render import RenderConfig, render_rays
@@ -29,6 +29,8 @@ from voxe_core.tensorio import FormatError, load_tensors, save_tensors
 
 CHECKPOINT_FORMAT_VERSION = 1
 CHECKPOINT_KIND = "reconstruction_checkpoint"
+STAGE_STATE = ("adam_exp_avg", "adam_exp_avg_sq", "adam_step", "occupancy", "average_total", "average_count")
+"""A checkpoint's tensors beside its grid and generator state: what its stage takes over on a resume."""
 
 
 @dataclass
@@ -333,8 +335,9 @@ class _IterateAverage:
         return {"average_total": self.total, "average_count": torch.tensor([self.count])}
 
     def load(self, tensors: dict[str, torch.Tensor]) -> None:
+        """Go on from a checkpoint's running sum, taken over (not copied: it is the average's own from here on)."""
         if "average_total" in tensors:
-            self.total, self.count = tensors["average_total"].clone(), int(tensors["average_count"])
+            self.total, self.count = tensors["average_total"], int(tensors["average_count"])
 
 
 def train_step(
@@ -404,6 +407,38 @@ def load_checkpoint(path) -> tuple[dict[str, torch.Tensor], dict]:
     return load_tensors(path, kind=CHECKPOINT_KIND, max_version=CHECKPOINT_FORMAT_VERSION)
 
 
+def _resume(path, config: ReconstructConfig, device: torch.device):
+    """What a fit resumed from the checkpoint at ``path`` starts from: its grid, sampling generator, stage and
+    iteration, and the optimizer, occupancy and average tensors its stage takes over (:func:`_take_over`), on
+    ``device``. Nothing else of the file outlives the call."""
+    tensors, meta = load_checkpoint(path)
+    grid = grid_from_state(tensors, meta)
+    generator = _sampling_generator(device, config.seed)
+    generator.set_state(tensors["rng_state"])
+    stage, iteration = meta["stage"], meta["iteration"]
+    stages = len(config.resolutions)
+    if not (stage < stages and grid.resolution == (config.resolutions[stage],) * 3
+            and iteration <= config.iterations[stage]):  # it had gone on with the checkpoint's grid
+        raise FormatError(  # (as a damaged checkpoint: the worker starts the fit over, the CLI exits 2)
+            f"{path}: the checkpoint is at iteration {iteration} of stage {stage} with a "
+            f"{'x'.join(map(str, grid.resolution))} grid, which this recipe ({stages} stages, resolutions "
+            f"{list(config.resolutions)}, iterations {list(config.iterations)}) does not reach: resume with the "
+            "recipe that wrote it")
+    state = {name: tensors[name].to(device) for name in STAGE_STATE if name in tensors}
+    return grid.to(device), generator, stage, iteration, state
+
+
+def _take_over(state: dict[str, torch.Tensor], grid: VoxelGrid, optimizer: RowSparseAdam, average: _IterateAverage,
+               iteration: int) -> Occupancy:
+    """A resumed stage's Adam moments and iterate average from its checkpoint's tensors, handed over rather than
+    copied (a copy beside them had held twice the grid's memory until the fit returned); returns its occupancy."""
+    if iteration > 0:
+        optimizer.state[grid.flat_features].update(
+            step=int(state["adam_step"]), exp_avg=state["adam_exp_avg"], exp_avg_sq=state["adam_exp_avg_sq"])
+    average.load(state)
+    return grid.occupancy_from_cells(state["occupancy"].bool())
+
+
 def reconstruct(
     images: torch.Tensor,
     cameras: Cameras,
@@ -436,26 +471,14 @@ def reconstruct(
     device = resolve_device(device)
     memory = PeakMemory(device).start()
     images, cameras = images.to(device, torch.float32), cameras.to(device)
-    generator = _sampling_generator(device, config.seed)
-    grid = initial_grid if initial_grid is not None else VoxelGrid(
-        config.resolutions[0], config.bbox_min, config.bbox_max, config.activation, init_density=config.init_density
-    )
-    start_stage, start_iteration, resumed = 0, 0, None
-    if resume_from is not None:
-        tensors, meta = load_checkpoint(resume_from)
-        grid = grid_from_state(tensors, meta)
-        generator.set_state(tensors["rng_state"])
-        start_stage, start_iteration = meta["stage"], meta["iteration"]
-        stages = len(config.resolutions)
-        if not (start_stage < stages and grid.resolution == (config.resolutions[start_stage],) * 3
-                and start_iteration <= config.iterations[start_stage]):  # it had gone on with the checkpoint's grid
-            raise FormatError(  # (as a damaged checkpoint: the worker starts the fit over, the CLI exits 2)
-                f"{resume_from}: the checkpoint is at iteration {start_iteration} of stage {start_stage} with a "
-                f"{'x'.join(map(str, grid.resolution))} grid, which this recipe ({stages} stages, resolutions "
-                f"{list(config.resolutions)}, iterations {list(config.iterations)}) does not reach: resume with the "
-                "recipe that wrote it")
-        resumed = {name: value.to(device) for name, value in tensors.items() if name != "rng_state"}
-    grid = grid.to(device)
+    if resume_from is None:
+        start_stage, start_iteration, resumed = 0, 0, None
+        generator = _sampling_generator(device, config.seed)
+        grid = (initial_grid if initial_grid is not None else VoxelGrid(
+            config.resolutions[0], config.bbox_min, config.bbox_max, config.activation, init_density=config.init_density
+        )).to(device)
+    else:
+        grid, generator, start_stage, start_iteration, resumed = _resume(resume_from, config, device)
 
     def checkpoint(stage: int, iteration: int) -> None:
         save_checkpoint(checkpoint_path, grid, optimizer, generator, occupancy.cells, stage, iteration, average)
@@ -464,24 +487,15 @@ def reconstruct(
     total = config.total_iterations
     done = last_checkpoint = sum(config.iterations[:start_stage]) + start_iteration
     for stage in range(start_stage, len(config.resolutions)):
-        if stage > start_stage or resumed is None:
-            if grid.resolution != (config.resolutions[stage],) * 3:
-                grid = grid.upsampled(config.resolutions[stage])
+        if grid.resolution != (config.resolutions[stage],) * 3:  # (a resumed grid is at its stage's: _resume)
+            grid = grid.upsampled(config.resolutions[stage])
         optimizer = make_optimizer(grid, config, _learning_rate(config, stage, 0))
-        occupancy = grid.occupancy(config.render.sigma_threshold)
-        first = 0
-        if resumed is not None and stage == start_stage:
-            first = start_iteration
-            if first > 0:
-                optimizer.state[grid.flat_features].update(
-                    step=int(resumed["adam_step"]),
-                    exp_avg=resumed["adam_exp_avg"].clone(),
-                    exp_avg_sq=resumed["adam_exp_avg_sq"].clone(),
-                )
-            occupancy = grid.occupancy_from_cells(resumed["occupancy"].bool())
         average = _IterateAverage(config, stage)
-        if resumed is not None and stage == start_stage:
-            average.load(resumed)
+        if resumed is None:
+            first, occupancy = 0, grid.occupancy(config.render.sigma_threshold)
+        else:  # the resumed stage: its state handed over, then no reference to the checkpoint's tensors is kept
+            first, occupancy = start_iteration, _take_over(resumed, grid, optimizer, average, start_iteration)
+            resumed = None
         rays = _stage_data(images, cameras, config.image_downsample[stage])
         clear_rows = camera_clear_rows(grid, cameras, config.camera_clearance)
         for iteration in range(first, config.iterations[stage]):
