@@ -14,8 +14,11 @@ from voxe_core.data import load_scene
 from voxe_core.grid import VoxelGrid
 from voxe_core.metrics import psnr
 from voxe_core.progress import Callbacks, StageCancelled
-from voxe_core.reconstruct import ReconstructConfig, RowSparseAdam, load_checkpoint, ray_batch, reconstruct
+from voxe_core.reconstruct import (
+    CHECKPOINT_FORMAT_VERSION, CHECKPOINT_KIND, ReconstructConfig, RowSparseAdam, load_checkpoint, ray_batch, reconstruct,
+)
 from voxe_core.render import RenderConfig, render_image
+from voxe_core.tensorio import FormatError, save_tensors
 
 from needs import MIC, needs_data
 from references import dense_total_variation
@@ -126,6 +129,57 @@ def test_a_resumed_fit_holds_no_copy_of_its_checkpoints_tensors(tmp_path):
     reconstruct(images, cams, config, Callbacks(on_progress=count_at_the_end))
     reconstruct(images, cams, config, Callbacks(on_progress=count_at_the_end), resume_from=checkpoint)
     assert counts == [4, 4]
+
+
+@pytest.fixture(scope="module")
+def stopped_fit(tmp_path_factory):
+    """A checkpoint of a small fit cancelled in the averaged tail of its final stage: (config, its tensors and meta)."""
+    images, cams = synthetic_views()
+    config = tiny_config(iterations=(4, 6), checkpoint_every=1, average_from=0.5, average_every=1)
+    checkpoint, saved = tmp_path_factory.mktemp("fit") / "ckpt.safetensors", []
+    with pytest.raises(StageCancelled):
+        reconstruct(images, cams, config, Callbacks(should_cancel=lambda: len(saved) >= 8, on_checkpoint=saved.append),
+                    checkpoint_path=checkpoint)
+    return config, *load_checkpoint(checkpoint)
+
+
+def _rewritten(path, tensors, meta):
+    save_tensors(path, tensors, kind=CHECKPOINT_KIND, version=CHECKPOINT_FORMAT_VERSION, meta=meta)
+    return path
+
+
+def test_a_checkpoint_written_on_another_device_type_resumes_from_a_reseeded_generator(tmp_path, stopped_fit):
+    """A CUDA generator's state (16 bytes: seed and Philox offset) cannot set a CPU one's (5,056 bytes): the resume
+    had raised a RuntimeError, which failed the worker's fit for good. It goes on, reproducibly."""
+    config, tensors, meta = stopped_fit
+    assert meta["device"] == "cpu" and tensors["rng_state"].numel() == 5056
+    cuda_state = torch.tensor([3, 0, 0, 0, 0, 0, 0, 0, 64, 1, 0, 0, 0, 0, 0, 0], dtype=torch.uint8)
+    written_on_cuda = _rewritten(tmp_path / "cuda.safetensors", {**tensors, "rng_state": cuda_state},
+                                 {**meta, "device": "cuda"})
+    images, cams = synthetic_views()
+    first, second = (reconstruct(images, cams, config, resume_from=written_on_cuda) for _ in range(2))
+    assert torch.equal(first.features, second.features) and torch.isfinite(first.features).all()
+
+
+@pytest.mark.parametrize("damage,message", [
+    (lambda t, m: ({**t, "rng_state": t["rng_state"][:16]}, m), "damaged checkpoint: RuntimeError: .*state"),
+    (lambda t, m: ({k: v for k, v in t.items() if k != "rng_state"}, m), "damaged checkpoint: KeyError: 'rng_state'"),
+    (lambda t, m: (t, {k: v for k, v in m.items() if k != "stage"}), "damaged checkpoint: KeyError: 'stage'"),
+    (lambda t, m: ({k: v for k, v in t.items() if k != "adam_exp_avg"}, m),
+     r"its adam_exp_avg holds nothing, not shape \(13824, 4\)"),
+    (lambda t, m: ({**t, "adam_exp_avg_sq": t["adam_exp_avg_sq"][:-1]}, m),
+     r"its adam_exp_avg_sq holds shape \(13823, 4\), not shape \(13824, 4\)"),
+    (lambda t, m: ({**t, "occupancy": t["occupancy"][1:]}, m), r"its occupancy holds shape \(22, 23, 23\)"),
+    (lambda t, m: ({k: v for k, v in t.items() if k != "average_count"}, m), "its average_count holds nothing"),
+])
+def test_a_checkpoint_that_cannot_be_applied_is_a_format_error(tmp_path, stopped_fit, damage, message):
+    """FormatError, which the worker answers by starting the fit over (a KeyError, or a RuntimeError from a
+    generator state or deep inside the first step, had failed it for good)."""
+    config, tensors, meta = stopped_fit
+    damaged = _rewritten(tmp_path / "damaged.safetensors", *damage(dict(tensors), dict(meta)))
+    images, cams = synthetic_views()
+    with pytest.raises(FormatError, match=message):
+        reconstruct(images, cams, config, Callbacks(on_progress=pytest.fail), resume_from=damaged)
 
 
 def test_resume_refuses_a_recipe_the_checkpoint_is_not_part_of(tmp_path):

@@ -29,8 +29,6 @@ from voxe_core.tensorio import FormatError, load_tensors, save_tensors
 
 CHECKPOINT_FORMAT_VERSION = 1
 CHECKPOINT_KIND = "reconstruction_checkpoint"
-STAGE_STATE = ("adam_exp_avg", "adam_exp_avg_sq", "adam_step", "occupancy", "average_total", "average_count")
-"""A checkpoint's tensors beside its grid and generator state: what its stage takes over on a resume."""
 
 
 @dataclass
@@ -398,7 +396,7 @@ def save_checkpoint(
         "rng_state": generator.get_state(),
         "occupancy": occupancy_cells.to(torch.uint8),
     }
-    meta = {**grid.header(), "stage": stage, "iteration": iteration}
+    meta = {**grid.header(), "stage": stage, "iteration": iteration, "device": generator.device.type}
     save_tensors(path, tensors, kind=CHECKPOINT_KIND, version=CHECKPOINT_FORMAT_VERSION, meta=meta)
 
 
@@ -407,15 +405,36 @@ def load_checkpoint(path) -> tuple[dict[str, torch.Tensor], dict]:
     return load_tensors(path, kind=CHECKPOINT_KIND, max_version=CHECKPOINT_FORMAT_VERSION)
 
 
+def _reseeded_generator(device: torch.device, seed: int, stage: int, iteration: int) -> torch.Generator:
+    """The sampling generator of a fit resumed on another device type than its checkpoint's, whose generator state
+    means nothing here (a CPU one is 5,056 bytes of Mersenne Twister, a CUDA one a 16-byte Philox seed and offset):
+    seeded from the seed and where the fit stands, so that resume is reproducible, if not the uninterrupted run."""
+    return _sampling_generator(device, hash((seed, stage, iteration)) % 2**63)
+
+
 def _resume(path, config: ReconstructConfig, device: torch.device):
     """What a fit resumed from the checkpoint at ``path`` starts from: its grid, sampling generator, stage and
     iteration, and the optimizer, occupancy and average tensors its stage takes over (:func:`_take_over`), on
-    ``device``. Nothing else of the file outlives the call."""
+    ``device``. Nothing else of the file outlives the call. FormatError for a checkpoint that cannot be applied
+    (the worker then starts the fit over, the CLI exits 2)."""
     tensors, meta = load_checkpoint(path)
     grid = grid_from_state(tensors, meta)
-    generator = _sampling_generator(device, config.seed)
-    generator.set_state(tensors["rng_state"])
-    stage, iteration = meta["stage"], meta["iteration"]
+    try:
+        stage, iteration = int(meta["stage"]), int(meta["iteration"])
+        if meta.get("device", device.type) == device.type:  # (a checkpoint older than the field: taken as this one's)
+            generator = _sampling_generator(device, config.seed)
+            generator.set_state(tensors["rng_state"])
+        else:
+            generator = _reseeded_generator(device, config.seed, stage, iteration)
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:  # RuntimeError: a generator state of another size
+        raise FormatError(f"{path}: damaged checkpoint: {type(exc).__name__}: {exc}") from None
+    flat, cells = tuple(grid.flat_features.shape), tuple(r - 1 for r in grid.resolution)
+    shapes = {"adam_exp_avg": flat, "adam_exp_avg_sq": flat, "adam_step": (1,), "occupancy": cells,
+              **({"average_total": flat, "average_count": (1,)} if "average_total" in tensors else {})}
+    for name, shape in shapes.items():  # checked here: a wrong one had failed deep inside the first step
+        if name not in tensors or tuple(tensors[name].shape) != shape:
+            found = f"shape {tuple(tensors[name].shape)}" if name in tensors else "nothing"
+            raise FormatError(f"{path}: damaged checkpoint: its {name} holds {found}, not shape {shape}")
     stages = len(config.resolutions)
     if not (stage < stages and grid.resolution == (config.resolutions[stage],) * 3
             and iteration <= config.iterations[stage]):  # it had gone on with the checkpoint's grid
@@ -424,7 +443,7 @@ def _resume(path, config: ReconstructConfig, device: torch.device):
             f"{'x'.join(map(str, grid.resolution))} grid, which this recipe ({stages} stages, resolutions "
             f"{list(config.resolutions)}, iterations {list(config.iterations)}) does not reach: resume with the "
             "recipe that wrote it")
-    state = {name: tensors[name].to(device) for name in STAGE_STATE if name in tensors}
+    state = {name: tensors[name].to(device) for name in shapes}
     return grid.to(device), generator, stage, iteration, state
 
 
@@ -456,7 +475,11 @@ def reconstruct(
     Everything runs on ``device``: images, cameras and the grid move there once, the rays of
     each stage are built there, and the sampling generator lives there (so CPU and CUDA runs
     of one seed draw different rays). The returned grid lives on ``device``. Progress info
-    carries the stage's peak memory (:class:`voxe_core.devices.PeakMemory`). Cancellation is
+    carries the stage's peak memory (:class:`voxe_core.devices.PeakMemory`). ``resume_from``
+    resumes on any device: a checkpoint written on another device type (CPU, CUDA) holds a
+    generator state this one cannot take, so the run goes on drawing from a generator seeded
+    from ``config.seed`` and where the checkpoint stands, reproducibly but not as the
+    uninterrupted run would have (runs on two device types never draw alike). Cancellation is
     checked before each iteration (``StageCancelled``); with ``checkpoint_path`` set, a cancelled
     run writes a checkpoint before it stops (through ``callbacks``, as the periodic ones).
 
