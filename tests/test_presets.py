@@ -284,6 +284,48 @@ def test_a_damaged_or_foreign_edit_checkpoint_is_dropped_and_the_edit_starts_ove
     assert client.get(f"/v1/jobs/{job['id']}").json()["message"].startswith(f"the stored edit checkpoint {why}")
 
 
+def _fit_checkpoint_of_another_recipe(path) -> bytes:
+    """A checkpoint TINY_FIT's fit could go on from, but made with lr 0.5 (a worker of another version's preset)."""
+    from voxe_core.grid import VoxelGrid
+    from voxe_core.reconstruct import make_optimizer, save_checkpoint
+
+    config = reconstruct_config(reconstruction_params(service_json(TINY_FIT)))
+    grid = VoxelGrid(config.resolutions[0])
+    save_checkpoint(path, grid, make_optimizer(grid, config, config.lr), torch.Generator(), grid.occupancy().cells, 0,
+                    1, recipe={**config.recipe(), "lr": 0.5})
+    return path.read_bytes()
+
+
+@pytest.mark.parametrize("stored, why", [
+    (lambda tmp: b"not a safetensors file", "was unreadable"),
+    (lambda tmp: _fit_checkpoint_of_another_recipe(tmp / "other.safetensors"), "was made with another recipe"),
+])
+def test_a_damaged_or_foreign_fit_checkpoint_is_dropped_and_the_fit_starts_over(service, monkeypatch, tmp_path,
+                                                                                stored, why, caplog):
+    """As an edit's: a stored reconstruction checkpoint made with another recipe (reconstruct() refuses to resume it,
+    a ValueError that had failed the shared fit for good) or unreadable is deleted and the fit runs from the start."""
+    import voxe_core.reconstruct
+    from voxe_service.storage import get_storage, reconstruction_storage_key
+    from worker import tasks
+
+    client, scene_id = service
+    job = client.post("/v1/jobs", json={"scene_id": scene_id, "prompt": "a mic", "params": TINY_FIT}).json()
+    key = reconstruction_storage_key(job["reconstruction"]["id"], "checkpoint.safetensors")
+    get_storage().put_bytes(key, stored(tmp_path))
+    resumed_from, fit = [], voxe_core.reconstruct.reconstruct
+
+    def recorded_fit(images, cameras, config, callbacks, checkpoint_path, resume_from, *args):
+        resumed_from.append(resume_from)
+        return fit(images, cameras, config, callbacks, checkpoint_path, resume_from, *args)
+
+    monkeypatch.setattr(voxe_core.reconstruct, "reconstruct", recorded_fit)
+    assert tasks.reconstruct_task.apply(args=(job["id"],)).get()["state"] == "done"
+    assert resumed_from == [None]
+    assert f"the stored checkpoint {why}" in caplog.text
+    events = client.get(f"/v1/jobs/{job['id']}/events").json()
+    assert not any(e["kind"] == "resumed" and e.get("stage") == "reconstruct" for e in events), events
+
+
 @pytest.mark.parametrize("canceled", ["between stages", "while re-queued"])
 def test_a_job_canceled_before_its_next_stage_keeps_no_checkpoint_and_no_scratch(service, monkeypatch, canceled):
     """The edit's stored checkpoint (its grid and Adam state) outlives the edit for a redelivery. A job canceled

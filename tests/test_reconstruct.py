@@ -182,6 +182,23 @@ def test_a_checkpoint_that_cannot_be_applied_is_a_format_error(tmp_path, stopped
         reconstruct(images, cams, config, Callbacks(on_progress=pytest.fail), resume_from=damaged)
 
 
+def test_resume_refuses_a_checkpoint_of_another_recipe_naming_each_change(tmp_path, stopped_fit):
+    """A resume under another seed, lr, averaging... had gone on silently (averaging off, the checkpoint's running
+    average was still returned). How often checkpoints are written is no part of it; a checkpoint older than recipes
+    resumes, as an edit's."""
+    config, tensors, meta = stopped_fit
+    images, cams = synthetic_views()
+    checkpoint = _rewritten(tmp_path / "ckpt.safetensors", tensors, meta)
+    for changed, message in [(dict(seed=99, lr=0.3), r"lr 0.03 \(now 0.3\), seed 3 \(now 99\)"),
+                             (dict(average_from=1.0), r"average_from 0.5 \(now 1.0\)"),
+                             (dict(tv_density=0.1), r"tv_density 0.0 \(now 0.1\)")]:
+        with pytest.raises(ValueError, match=f"checkpoint was made with another recipe: {message}; resume with its"):
+            reconstruct(images, cams, replace(config, **changed), resume_from=checkpoint)
+    resumed = reconstruct(images, cams, replace(config, checkpoint_every=5), resume_from=checkpoint)
+    older = _rewritten(tmp_path / "older.safetensors", tensors, {k: v for k, v in meta.items() if k != "recipe"})
+    assert torch.equal(reconstruct(images, cams, config, resume_from=older).features, resumed.features)
+
+
 def test_resume_refuses_a_recipe_the_checkpoint_is_not_part_of(tmp_path):
     """The checkpoint's grid went on under another recipe (voxe reconstruct --resume with another --resolution had
     written the checkpoint's 16³ grid, announcing 24³)."""

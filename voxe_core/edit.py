@@ -82,7 +82,7 @@ from voxe_core.losses import (
 from voxe_core.progress import Callbacks, Progress, StageCancelled
 from voxe_core.render import RenderConfig, render_image, render_rays
 from voxe_core.schedule import TimestepSchedule
-from voxe_core.tensorio import load_tensors, save_tensors
+from voxe_core.tensorio import load_tensors, recipe_changes, save_tensors
 
 EDIT_CHECKPOINT_KIND = "edit_checkpoint"
 EDIT_CHECKPOINT_VERSION = 1
@@ -263,13 +263,6 @@ def save_edit_checkpoint(
     }
     save_tensors(path, tensors, kind=EDIT_CHECKPOINT_KIND, version=EDIT_CHECKPOINT_VERSION,
                  meta={**grid.header(), **meta, "iteration": int(iteration)})
-
-
-def recipe_changes(meta: dict, config: EditConfig) -> list[str]:
-    """What of ``config``'s :meth:`EditConfig.recipe` differs from the one an edit checkpoint's ``meta`` was made
-    with ("name old (now new)"); none for a checkpoint older than recipes."""
-    made_with, now = meta.get("recipe", config.recipe()), config.recipe()
-    return [f"{name} {made_with.get(name)!r} (now {now[name]!r})" for name in now if made_with.get(name) != now[name]]
 
 
 def load_edit_checkpoint(path) -> tuple[dict[str, torch.Tensor], dict]:

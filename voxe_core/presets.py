@@ -151,14 +151,10 @@ def reconstruction_key(rec_params: dict) -> str:
     backbone = rec_params.get("backbone", "auto")
     recipes, errors = {}, []
     for kind in BACKBONE_KINDS if backbone == "auto" else (backbone,):
-        try:
-            recipe = dataclasses.asdict(reconstruct_config(rec_params, checkpoint_every=0, backbone=kind))
+        try:  # what is fitted: not how often progress is saved nor how much memory a pass may hold
+            recipes[kind] = reconstruct_config(rec_params, backbone=kind).recipe()
         except ValueError as exc:
             errors.append(exc)
-            continue
-        # How often progress is saved and how much memory a pass may hold: not what is fitted.
-        del recipe["checkpoint_every"], recipe["render"]["samples_per_pass"], recipe["render"]["chunk_rays"]
-        recipes[kind] = recipe
     if not recipes:
         raise errors[0]
     payload = {"params": rec_params, "recipe": recipes}

@@ -11,8 +11,9 @@ in 25 s, 47 CPU s, its six seeds 30.63–30.70 dB).
 
 from __future__ import annotations
 
+import json
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -25,7 +26,7 @@ from voxe_core.grid import Activation, Occupancy, VoxelGrid
 from voxe_core.losses import sampled_total_variation
 from voxe_core.progress import Callbacks, Progress, StageCancelled
 from voxe_core.render import RenderConfig, render_rays
-from voxe_core.tensorio import FormatError, load_tensors, save_tensors
+from voxe_core.tensorio import FormatError, load_tensors, recipe_changes, save_tensors
 
 CHECKPOINT_FORMAT_VERSION = 1
 CHECKPOINT_KIND = "reconstruction_checkpoint"
@@ -185,6 +186,14 @@ class ReconstructConfig:
     @property
     def total_iterations(self) -> int:
         return sum(self.iterations)
+
+    def recipe(self) -> dict:
+        """The fields a resumed fit must share with its checkpoint's, and a stored fit with its cache key
+        (``presets.reconstruction_key``), as JSON values: every one but how often checkpoints are written and how
+        much a render pass holds (the device's: a fit may resume on another worker)."""
+        fields = asdict(self)
+        del fields["checkpoint_every"], fields["render"]["samples_per_pass"], fields["render"]["chunk_rays"]
+        return json.loads(json.dumps(fields))
 
 
 def _stage_data(images: torch.Tensor, cameras: Cameras, downsample: int):
@@ -384,8 +393,11 @@ def camera_clear_rows(grid: VoxelGrid, cameras: Cameras, clearance: float) -> to
 
 
 def save_checkpoint(
-    path, grid, optimizer, generator, occupancy_cells, stage: int, iteration: int, average: _IterateAverage | None = None
+    path, grid, optimizer, generator, occupancy_cells, stage: int, iteration: int, average: _IterateAverage | None = None,
+    recipe: dict | None = None,
 ) -> None:
+    """Everything a fit goes on from (grid, Adam's state, generator, occupancy, the iterate average), where it stands
+    and the :meth:`ReconstructConfig.recipe` it was made with (tensorio, no pickle)."""
     state = optimizer.state[grid.flat_features]
     tensors = {
         **(average.state_tensors() if average is not None else {}),
@@ -396,7 +408,8 @@ def save_checkpoint(
         "rng_state": generator.get_state(),
         "occupancy": occupancy_cells.to(torch.uint8),
     }
-    meta = {**grid.header(), "stage": stage, "iteration": iteration, "device": generator.device.type}
+    meta = {**grid.header(), "stage": stage, "iteration": iteration, "device": generator.device.type,
+            **({} if recipe is None else {"recipe": recipe})}
     save_tensors(path, tensors, kind=CHECKPOINT_KIND, version=CHECKPOINT_FORMAT_VERSION, meta=meta)
 
 
@@ -443,6 +456,10 @@ def _resume(path, config: ReconstructConfig, device: torch.device):
             f"{'x'.join(map(str, grid.resolution))} grid, which this recipe ({stages} stages, resolutions "
             f"{list(config.resolutions)}, iterations {list(config.iterations)}) does not reach: resume with the "
             "recipe that wrote it")
+    # Another seed, lr, averaging, TV... had gone on silently; a checkpoint older than recipes resumes, as edit's.
+    if changed := recipe_changes(meta, config):
+        raise ValueError(f"{path}: checkpoint was made with another recipe: {', '.join(changed)}; resume with its "
+                         "settings, or start afresh")
     state = {name: tensors[name].to(device) for name in shapes}
     return grid.to(device), generator, stage, iteration, state
 
@@ -504,7 +521,8 @@ def reconstruct(
         grid, generator, start_stage, start_iteration, resumed = _resume(resume_from, config, device)
 
     def checkpoint(stage: int, iteration: int) -> None:
-        save_checkpoint(checkpoint_path, grid, optimizer, generator, occupancy.cells, stage, iteration, average)
+        save_checkpoint(checkpoint_path, grid, optimizer, generator, occupancy.cells, stage, iteration, average,
+                        config.recipe())
         callbacks.checkpoint_written(str(checkpoint_path))
 
     total = config.total_iterations

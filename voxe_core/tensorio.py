@@ -23,6 +23,13 @@ class FormatError(ValueError):
     """A tensor file that is not ours, is damaged, or is from a newer format version."""
 
 
+def recipe_changes(meta: dict, config) -> list[str]:
+    """What of ``config.recipe()`` (the fields a resumed run must share with its checkpoint's) differs from the
+    recipe a checkpoint's ``meta`` was made with ("name old (now new)"); none for a checkpoint older than recipes."""
+    made_with, now = meta.get("recipe", config.recipe()), config.recipe()
+    return [f"{name} {made_with.get(name)!r} (now {now[name]!r})" for name in now if made_with.get(name) != now[name]]
+
+
 def save_tensors(path: str | os.PathLike, tensors: dict[str, torch.Tensor], kind: str, version: int, meta: dict) -> None:
     """Write atomically (:func:`voxe_core.files.replacing`) so a crash never leaves a torn file. OSError naming the path when it cannot be written (safetensors' own
     error type had reached the CLI as a traceback)."""

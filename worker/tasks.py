@@ -209,6 +209,27 @@ def _preview(job_id: str, grid, settings, storage, device: str, image=None, cent
     runtime.update_job(job_id, preview_artifact=PREVIEW)
 
 
+def _stored_checkpoint(storage, key: str, path: Path, load, config) -> tuple[Path | None, dict | None, str | None]:
+    """The checkpoint stored at ``key``, fetched to ``path``, and its header; or (None, None, why), the object
+    deleted, for one the stage cannot go on from: unreadable, or made with another recipe than ``config``'s (a
+    worker of another version, mid rolling upgrade: the stage refuses it). Either would fail every redelivery, so
+    the stage starts over instead."""
+    from voxe_core.tensorio import FormatError, recipe_changes
+
+    resume = storage.get_file(key, path)
+    try:
+        meta = load(resume)[1]
+        changed = recipe_changes(meta, config)
+    except FormatError as exc:
+        why = f"was unreadable ({exc})"
+    else:
+        if not changed:
+            return resume, meta, None
+        why = f"was made with another recipe ({', '.join(changed)}: a worker of another version)"
+    storage.delete(key)
+    return None, None, why
+
+
 # --------------------------------------------------------------------------- reconstruct
 def _reconstruct(job: Job, settings, device: str, storage) -> None:
     rec_id = job.reconstruction_id
@@ -377,7 +398,7 @@ def _fit(job: Job, rec, settings, storage, device: str) -> None:
 def _fit_grid(job: Job, rec, settings, storage, callbacks: StageCallbacks, checkpoint: Path, checkpoint_key: str,
               device: str):
     """Route (a) and image scenes: G_i fitted to the scene's images on ``device``; returns (grid, total iterations)."""
-    from voxe_core.reconstruct import reconstruct
+    from voxe_core.reconstruct import load_checkpoint, reconstruct
     from voxe_core.tensorio import FormatError
 
     scene = load_images(job, rec.params, settings, storage)
@@ -387,16 +408,19 @@ def _fit_grid(job: Job, rec, settings, storage, callbacks: StageCallbacks, check
     runtime.renew_lease(rec.id, job.id, settings, job.run_token, total=config.total_iterations)
     resume = None
     if storage.exists(checkpoint_key):
-        resume = storage.get_file(checkpoint_key, checkpoint)
-        log.info("reconstruction %s: resuming from its checkpoint", rec.id)
-        runtime.record_job_event(job.id, "resumed", stage="reconstruct",
-                                 detail=f"reconstruction {rec.id} from its stored checkpoint")
+        resume, _, why = _stored_checkpoint(storage, checkpoint_key, checkpoint, load_checkpoint, config)
+        if resume is None:
+            log.warning("reconstruction %s: the stored checkpoint %s; starting over", rec.id, why)
+        else:
+            log.info("reconstruction %s: resuming from its checkpoint", rec.id)
+            runtime.record_job_event(job.id, "resumed", stage="reconstruct",
+                                     detail=f"reconstruction {rec.id} from its stored checkpoint")
     try:
         grid = reconstruct(scene.images, cameras, config, callbacks.callbacks, checkpoint, resume, initial, device)
     except FormatError:
         if resume is None:
             raise
-        log.warning("reconstruction %s: unreadable checkpoint (or another recipe's), starting over", rec.id)
+        log.warning("reconstruction %s: a checkpoint it cannot go on from, starting over", rec.id)
         grid = reconstruct(scene.images, cameras, config, callbacks.callbacks, checkpoint, None, initial, device)
     return grid, config.total_iterations
 
@@ -414,23 +438,14 @@ def _edit(job: Job, settings, device: str, storage) -> None:
     checkpoint_key = job_key(job.id, "checkpoints/edit.safetensors")
     resume, note = None, None
     if storage.exists(checkpoint_key):  # a redelivered / re-queued task: go on from the last checkpoint
-        from voxe_core.edit import load_edit_checkpoint, recipe_changes
-        from voxe_core.tensorio import FormatError
+        from voxe_core.edit import load_edit_checkpoint
 
-        resume = storage.get_file(checkpoint_key, checkpoint)
-        try:
-            meta = load_edit_checkpoint(resume)[1]
-            at = int(meta["iteration"])
-            changed = recipe_changes(meta, config)
-        except FormatError as exc:  # a damaged checkpoint would fail every redelivery: start over instead
-            changed, why = None, f"was unreadable ({exc})"
-        else:
-            why = f"was made with another recipe ({', '.join(changed)}: a worker of another version)"
-        if changed is None or changed:
+        resume, meta, why = _stored_checkpoint(storage, checkpoint_key, checkpoint, load_edit_checkpoint, config)
+        if resume is None:
             log.warning("job %s: the stored edit checkpoint %s; starting over", job.id, why)
-            storage.delete(checkpoint_key)
-            resume, note = None, f"the stored edit checkpoint {why}: started over"
+            note = f"the stored edit checkpoint {why}: started over"
         else:
+            at = int(meta["iteration"])
             note = f"resumed from the checkpoint at iteration {at}"
             log.info("job %s: edit %s", job.id, note)
             runtime.record_job_event(job.id, "resumed", stage="edit", iteration=at, worker=job.worker_hostname)
