@@ -197,6 +197,11 @@ def test_resume_refuses_a_checkpoint_of_another_recipe_naming_each_change(tmp_pa
     resumed = reconstruct(images, cams, replace(config, checkpoint_every=5), resume_from=checkpoint)
     older = _rewritten(tmp_path / "older.safetensors", tensors, {k: v for k, v in meta.items() if k != "recipe"})
     assert torch.equal(reconstruct(images, cams, config, resume_from=older).features, resumed.features)
+    # Averaging leaves the iterates alone: an older checkpoint resumed with it off ends as a fit without it, the
+    # checkpoint's running average dropped (it had been returned).
+    plain = replace(config, average_from=1.0)
+    assert torch.equal(reconstruct(images, cams, plain, resume_from=older).features,
+                       reconstruct(images, cams, plain).features)
 
 
 def test_resume_refuses_a_recipe_the_checkpoint_is_not_part_of(tmp_path):

@@ -342,8 +342,9 @@ class _IterateAverage:
         return {"average_total": self.total, "average_count": torch.tensor([self.count])}
 
     def load(self, tensors: dict[str, torch.Tensor]) -> None:
-        """Go on from a checkpoint's running sum, taken over (not copied: it is the average's own from here on)."""
-        if "average_total" in tensors:
+        """Go on from a checkpoint's running sum, taken over (not copied: it is the average's own from here on); none
+        when this stage averages nothing (a checkpoint older than recipes, resumed with averaging off)."""
+        if self.active and "average_total" in tensors:
             self.total, self.count = tensors["average_total"], int(tensors["average_count"])
 
 
