@@ -458,6 +458,41 @@ def test_one_run_holds_a_job_a_duplicate_message_is_dropped_and_a_dead_run_is_ta
         assert session.get(Job, job_id).stage == "edit"
 
 
+def test_a_stage_that_kills_its_worker_each_time_fails_at_the_requeue_limit_leaving_no_checkpoint(db):
+    """A stage whose worker process dies (the OOM killer, a segfault) comes back as a redelivered message that
+    takes the lapsed hold over: each takeover counts as a re-queue, so after VOXE_JOB_MAX_REQUEUES the next one
+    fails the job with the reason instead of running the stage again, and its checkpoints go (they had looped
+    for ever, the takeover refreshing the job so the reaper never saw it)."""
+    from sqlalchemy import update
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, utcnow
+    from voxe_service.storage import get_storage, job_key
+    from worker import runtime, tasks
+
+    limit = db.job_max_requeues
+    job_id = add_job(add_scene(), "queued", 0, completed_stages=["reconstruct"])
+    holder = "first@host"
+    for requeues in range(limit + 1):
+        run = runtime.begin_stage(job_id, "edit", holder, "cpu", db)
+        assert (run.state, run.requeues, run.worker_hostname) == ("running", requeues, holder)
+        with session_scope() as session:  # the run's process is killed: its hold lapses
+            session.execute(update(Job).where(Job.id == job_id)
+                            .values(run_lease_until=utcnow() - timedelta(seconds=1)))
+        holder = f"w{requeues}@host"
+    checkpoint = job_key(job_id, "checkpoints/edit.safetensors")
+    get_storage(db).put_bytes(checkpoint, b"edit at 6000")
+    result = tasks.edit_task.apply(args=(job_id,)).get()
+    assert result["skipped"].startswith(f"job {job_id} failed")
+    job = job_row(job_id)
+    assert (job.state, job.requeues) == ("failed", limit) and job.finished_at is not None
+    assert job.error == (f"the run of edit on worker w{limit - 1}@host stopped renewing its hold on the job (its "
+                         f"process died: killed, out of memory or crashed); it was sent again {limit} time(s) "
+                         f"already, the limit (VOXE_JOB_MAX_REQUEUES={limit})")
+    assert [e["kind"] for e in events_of(job_id)] == ["stage_started"] * (limit + 1) + ["failed"]
+    assert not get_storage(db).exists(checkpoint)
+
+
 def test_a_run_that_lost_its_job_publishes_records_and_fits_nothing(db, tmp_path, monkeypatch):
     """A stalled run whose job another run took over (its lease lapsed) comes back: its artifacts and results are
     refused (RunSuperseded; nothing uploaded, listed or merged), and the job's fit, taken by the new run of the

@@ -203,6 +203,15 @@ def dispatch_job(session: Session, queue: TaskQueue, job: Job, done: Iterable[st
     session.commit()
 
 
+def requeue_limit_error(job: Job, settings: Settings, reason: str) -> str | None:
+    """Why a job whose stage was interrupted again (``reason``) fails, once its stage was interrupted
+    ``job_max_requeues`` times already (a job that kills its workers must not loop); None below the limit."""
+    if job.requeues < settings.job_max_requeues:
+        return None
+    return (f"{reason}; it was sent again {job.requeues} time(s) already, the limit "
+            f"(VOXE_JOB_MAX_REQUEUES={settings.job_max_requeues})")
+
+
 def requeue_interrupted(session: Session, queue: TaskQueue, job: Job, settings: Settings, *, reason: str,
                         where: Iterable = ()) -> str | None:
     """Send a running job's remaining stages again after its worker stopped: the job is queued again, waiting
@@ -228,9 +237,8 @@ def requeue_interrupted(session: Session, queue: TaskQueue, job: Job, settings: 
     if job.cancel_requested:
         return end(CANCELED, message=f"canceled: {reason}")
     interrupted = job.run_token is not None
-    if interrupted and job.requeues >= settings.job_max_requeues:
-        return end(FAILED, error=f"{reason}; it was sent again {job.requeues} time(s) already, the limit "
-                                 f"(VOXE_JOB_MAX_REQUEUES={settings.job_max_requeues})")
+    if interrupted and (error := requeue_limit_error(job, settings, reason)):
+        return end(FAILED, error=error)
     # task_id NULL until the new chain is handed over: a sender that dies in between leaves a job the reaper sends
     released = session.execute(update(Job).where(Job.id == job.id, Job.state == RUNNING, *where).values(
         state=QUEUED, task_id=None, run_token=None, run_lease_until=None, message=f"re-queued: {reason}",

@@ -33,6 +33,7 @@ from voxe_service.models import (
     CANCELED, FAILED, PROCESSING, QUEUED, R_PENDING, R_RUNNING, READY, RUNNING, SUCCEEDED, TERMINAL_STATES,
     Artifact, Job, Reconstruction, Scene, utcnow,
 )
+from voxe_service.queue import requeue_limit_error
 from voxe_service.settings import TINY_MODEL, Settings
 from voxe_service.storage import Storage, StorageError, StoredObject, file_sha256, get_storage, job_key
 
@@ -136,7 +137,10 @@ def begin_stage(job_id: str, stage: str, hostname: str | None, device: str, sett
     The run holds the job under a lease (``run_lease_until``, renewed by :func:`stage_lease`) until the stage
     completes. Raises :class:`JobSkipped` when the job is terminal, canceled or has done ``stage`` already (a
     redelivered message: its chain goes on), and :class:`StageHeld` when another run holds the job and renews
-    its lease. A holder that stopped renewing (its process died) is taken over once its lease has run out.
+    its lease. A holder that stopped renewing (its process died) is taken over once its lease has run out, which
+    counts in ``requeues`` as a re-queue does: a job whose stage was interrupted ``job_max_requeues`` times
+    already fails instead (:class:`JobSkipped`), so a job that kills its workers (a redelivered message each
+    time) cannot loop.
 
     The job is read, then taken by one UPDATE conditional on the row being as read (``updated_at``: a stage
     completing meanwhile changes it, and the read is retried). One statement, not a claim followed by an update:
@@ -160,6 +164,15 @@ def begin_stage(job_id: str, stage: str, hostname: str | None, device: str, sett
                 raise JobSkipped(f"job {job_id} canceled")
             if stage in (job.completed_stages or []):
                 raise JobSkipped(f"job {job_id}: {stage} already done (redelivered task)")
+            interrupted = job.run_token is not None  # a lapsed hold: its run's process died, which counts
+            reason = (f"the run of {job.stage} on worker {job.worker_hostname} stopped renewing its hold on the "
+                      "job (its process died: killed, out of memory or crashed)")
+            if interrupted and (error := requeue_limit_error(job, settings, reason)):
+                if not finish_jobs(session, [job_id], FAILED, error=error, where=[Job.updated_at == job.updated_at]):
+                    continue  # the row changed since it was read: read it again
+                session.commit()
+                log.error("job %s failed: %s", job_id, error)
+                raise JobSkipped(f"job {job_id} failed: {error}")
             values = dict(state=RUNNING, stage=stage, eta_seconds=None, message=None, stage_started_at=now,
                           worker_hostname=hostname, device=device, updated_at=now, run_token=uuid.uuid4().hex,
                           run_lease_until=now + timedelta(seconds=settings.stage_lease_s))
@@ -167,6 +180,8 @@ def begin_stage(job_id: str, stage: str, hostname: str | None, device: str, sett
                 values.update(iteration=0, total=0, losses={})  # (it resumes from a checkpoint, often near there)
             if job.started_at is None:
                 values["started_at"] = now
+            if interrupted:
+                values["requeues"] = Job.requeues + 1
             taken = session.execute(update(Job).where(
                 Job.id == job_id, Job.state.in_((QUEUED, RUNNING)), Job.updated_at == job.updated_at,
                 or_(Job.run_token.is_(None), Job.run_lease_until < now)).values(**values)).rowcount == 1
