@@ -91,7 +91,8 @@ def job_row(job_id: str):
 # ---------------------------------------------------------------------------------------------- the reaper
 def test_reaper_sends_again_or_fails_only_jobs_nothing_will_finish(db):
     """A running job whose worker is gone is sent again (queued, its run's hold released), up to
-    VOXE_JOB_MAX_REQUEUES times, then failed; an accepted job never sent is sent; only what nothing can carry
+    VOXE_JOB_MAX_REQUEUES times, then failed; so is one between stages whose next message never came, whatever
+    its worker's state, without counting; an accepted job never sent is sent; only what nothing can carry
     fails, and one its user asked to cancel ends canceled. The ids returned are the ended ones."""
     from sqlalchemy import update
 
@@ -115,6 +116,8 @@ def test_reaper_sends_again_or_fails_only_jobs_nothing_will_finish(db):
         "between stages, its worker gone": add_job(scene, "running", 2 * timeout, "dead@host", "edit",
                                                    completed_stages=["reconstruct", "edit"], requeues=limit),
         "no worker recorded": add_job(scene, "running", 2 * timeout, None, "reconstruct"),
+        "between stages on a live worker (its next message lost)": add_job(
+            scene, "running", 2 * timeout, "alive@host", "edit", completed_stages=["reconstruct", "edit"]),
     }
     counted = {"dead worker", "no heartbeat ever", "a live worker's run that stopped renewing long ago"}
     orphans = {"sent again too often": add_job(scene, "running", 2 * timeout, "dead@host", "edit", requeues=limit,
@@ -141,7 +144,8 @@ def test_reaper_sends_again_or_fails_only_jobs_nothing_will_finish(db):
     processing = add_scene("processing", age_s=1)
     kept = {
         "waiting for its scene's ingest": add_job(processing, "queued", 2 * timeout, task_id=None),
-        "worker alive (re-queued, waiting its turn)": add_job(scene, "running", 2 * timeout, "alive@host", "edit"),
+        "between stages on a live worker, lately": add_job(scene, "running", timeout / 2, "alive@host", "edit",
+                                                           completed_stages=["reconstruct", "edit"]),
         "recent progress": add_job(scene, "running", timeout / 2, "dead@host", "edit"),
         "a run holds it (its lease renewed)": add_job(scene, "running", 2 * timeout, "dead@host", "edit",
                                                       run_token="t2", run_lease_until=utcnow() + timedelta(60)),
@@ -168,6 +172,9 @@ def test_reaper_sends_again_or_fails_only_jobs_nothing_will_finish(db):
     assert dead.completed_stages == ["reconstruct"]
     assert job_row(requeued["no worker recorded"]).message.startswith(
         "re-queued: worker (unknown) stopped while the job was in reconstruct")
+    assert job_row(requeued["between stages on a live worker (its next message lost)"]).message == (
+        f"re-queued: no stage started for {timeout:.0f} s after edit on worker alive@host: the message of the next "
+        f"one was lost (the broker refused it) or still waits (VOXE_JOB_STALE_TIMEOUT_S)")
     assert job_row(requeued["a live worker's run that stopped renewing long ago"]).message == (
         f"re-queued: the run of edit on worker alive@host stopped renewing its hold {timeout:.0f} s ago and made "
         f"no progress (VOXE_JOB_STALE_TIMEOUT_S)")
@@ -203,6 +210,29 @@ def test_reaper_sends_again_or_fails_only_jobs_nothing_will_finish(db):
     assert reap_orphaned_jobs(db) == []
     assert [job_row(j).state for j in requeued.values()] == ["queued"] * len(requeued)
     assert [e["kind"] for e in events_of(orphans["sent again too often"])] == ["failed"]  # on the job's timeline
+
+
+def test_a_cancel_between_stages_ends_the_job_at_the_next_reaper_pass(db):
+    """A cancel request flags a running job (only queued ones end at once); one between stages, whose next message
+    was lost or waits, has no run to see the flag: the reaper's next pass ends it canceled, not waiting
+    VOXE_JOB_STALE_TIMEOUT_S (the request refreshed it); one a run holds is left to stop at its next check."""
+    from api.reaper import reap_orphaned_jobs
+    from api.services.jobs import request_cancel
+    from voxe_service.db import session_scope
+    from voxe_service.models import utcnow
+
+    scene = add_scene()
+    add_heartbeat("alive@host", age_s=1)
+    between = add_job(scene, "running", 0, "alive@host", "edit", completed_stages=["reconstruct", "edit"])
+    held = add_job(scene, "running", 0, "alive@host", "edit", run_token="t",
+                   run_lease_until=utcnow() + timedelta(seconds=60))
+    with session_scope() as session:
+        request_cancel(session=session, job_ids=[between, held])
+    assert reap_orphaned_jobs(db) == [between]
+    ended = job_row(between)
+    assert (ended.state, ended.message, ended.error) == ("canceled", "canceled: asked between stages, after edit", None)
+    assert ended.finished_at is not None and [e["kind"] for e in events_of(between)] == ["canceled"]
+    assert (job_row(held).state, job_row(held).cancel_requested) == ("running", True)
 
 
 def test_machines_whose_clocks_disagree_read_leases_and_heartbeats_on_the_database_clock(db, monkeypatch):
