@@ -21,7 +21,11 @@ A job is orphaned when
   ingest that readied its scene) stopped between recording the job and handing its chain to the
   broker, so no message exists (a job on a processing scene waits for the scene's ingest to send
   it). Such a job is not failed but sent now (``requeued`` on its timeline): it was accepted, and
-  nothing else will send it. A sweep's evaluation, which only its edit's chain sends, fails.
+  nothing else will send it. A sweep's evaluation, which only its edit's chain sends, fails (unless that
+  edit is itself still to be sent).
+
+A broker that refuses a message fails nothing here: the job stays (or becomes) ``queued`` with no task
+id, its checkpoints kept, and a pass after the broker is back sends it, as above.
 
 A scene is orphaned, and fails with the reason (the jobs waiting on it with it), when it is
 ``processing`` and unchanged for as long, and either its ingest was never handed to the
@@ -101,13 +105,13 @@ def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[
             try:
                 outcome = requeue_interrupted(session, get_queue(), job, settings, reason=reason,
                                               where=[Job.updated_at == job.updated_at, lapsed])
-            except QueueUnavailable:  # the broker refused: dispatch_job failed the job with the reason
-                outcome = FAILED
+            except QueueUnavailable:  # the broker refused: queued with no task id, a later pass sends it
+                outcome = None  # (and its checkpoints are kept)
             if outcome in (FAILED, CANCELED):
                 reaped.append(job.id)
         waiting_for_ingest = select(Scene.id).where(Scene.state == PROCESSING)
         never_sent = session.execute(
-            select(Job.id, Job.mode, Job.batch_id, Job.updated_at).where(
+            select(Job.id, Job.mode, Job.batch_id, Job.source_job_ids, Job.updated_at).where(
                 Job.state == QUEUED, Job.task_id.is_(None), Job.updated_at < cutoff,
                 Job.scene_id.not_in(waiting_for_ingest))
         ).all()
@@ -115,7 +119,11 @@ def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[
         for job in never_sent:
             if job not in evaluations:  # (an edit sent now takes its sweep's evaluations along)
                 _send_now(session, job.id, job.updated_at, timeout)
-        for job in evaluations:  # those still unsent: their edit's chain will never carry them
+        unsent = set(session.scalars(select(Job.id).where(Job.state == QUEUED, Job.task_id.is_(None),
+                                                          Job.mode != EVALUATE))) if evaluations else set()
+        for job in evaluations:  # those still unsent: their edit's chain will never carry them ...
+            if unsent & set(job.source_job_ids or []):
+                continue  # ... unless an edit they score is still to be sent (the broker refused it)
             error = (f"the sweep's evaluation was never handed to the broker with its edit; failed after "
                      f"{timeout:.0f} s (VOXE_JOB_STALE_TIMEOUT_S): create it again")
             if _fail(session, job.id, job.updated_at, QUEUED, error, Job.task_id.is_(None)):
@@ -127,9 +135,9 @@ def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[
 
 def _send_now(session, job_id: str, seen_updated_at: datetime, timeout: float) -> None:
     """Hand an accepted job nothing sent to the broker, once: claimed by a conditional update (several API
-    processes may reap side by side), then sent; a broker that refuses fails it with the reason (dispatch_job)."""
+    processes may reap side by side), then sent; a broker that refuses leaves it unsent for a later pass."""
     detail = (f"sent by the reaper: recorded but not handed to the broker for {timeout:.0f} s (the API or the "
-              "scene's ingest stopped in between)")
+              "scene's ingest stopped in between, or the broker refused it)")
     claimed = session.execute(update(Job).where(Job.id == job_id, Job.state == QUEUED, Job.task_id.is_(None),
                                                 Job.updated_at == seen_updated_at).values(updated_at=utcnow()))
     if claimed.rowcount != 1:
@@ -137,7 +145,7 @@ def _send_now(session, job_id: str, seen_updated_at: datetime, timeout: float) -
     record_event(session, job_id, "requeued", detail=detail)
     session.commit()
     try:
-        dispatch_job(session, get_queue(), session.get(Job, job_id))
+        dispatch_job(session, get_queue(), session.get(Job, job_id), fail_refused=False)
     except QueueUnavailable:
         return
     log.warning("reaper: job %s %s", job_id, detail)

@@ -212,6 +212,51 @@ def test_reaper_sends_again_or_fails_only_jobs_nothing_will_finish(db):
     assert [e["kind"] for e in events_of(orphans["sent again too often"])] == ["failed"]  # on the job's timeline
 
 
+def test_a_reaper_pass_meeting_a_broker_outage_fails_nothing_and_a_later_pass_sends_the_jobs(db, monkeypatch):
+    """The broker refuses every message (a Redis restarting) during a pass: a dead worker's job, an accepted job
+    never sent and a sweep's edit never sent had been failed for good, their checkpoints deleted. Now they wait,
+    queued with no task id (the evaluation that rides with the edit kept too), nothing is returned to be cleaned
+    up, and the first pass after the broker is back sends them, the evaluation with its edit."""
+    from kombu.exceptions import OperationalError
+    from sqlalchemy import update
+
+    from api.reaper import reap_orphaned_jobs
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, utcnow
+    from voxe_service.queue import TaskQueue
+
+    timeout = db.job_stale_timeout_s
+    scene = add_scene()
+    add_heartbeat("dead@host", age_s=2 * timeout)
+    interrupted = add_job(scene, "running", 2 * timeout, "dead@host", "edit", run_token="t",
+                          run_lease_until=utcnow() - timedelta(seconds=timeout), completed_stages=["reconstruct"])
+    never_sent = add_job(scene, "queued", 2 * timeout, task_id=None)
+    sweep_edit = add_job(scene, "queued", 2 * timeout, task_id=None, batch_id="b1")
+    evaluation = add_job(scene, "queued", 2 * timeout, task_id=None, mode="evaluate", batch_id="b1",
+                         source_job_ids=[sweep_edit])
+    jobs = [interrupted, never_sent, sweep_edit, evaluation]
+
+    def refused(self, signature):
+        raise OperationalError("Error 111 connecting to 127.0.0.1:6379. Connection refused.")
+
+    with monkeypatch.context() as broker_down:
+        broker_down.setattr(TaskQueue, "send", refused)
+        assert reap_orphaned_jobs(db) == []  # nothing ended: no checkpoints for the API's reaper to delete
+    for job_id in jobs:
+        job = job_row(job_id)
+        assert (job.state, job.task_id, job.error, job.finished_at) == ("queued", None, None, None), job_id
+    assert job_row(interrupted).requeues == 1 and job_row(interrupted).run_token is None
+    with session_scope() as session:  # the broker is back, as long after
+        session.execute(update(Job).where(Job.id.in_(jobs))
+                        .values(updated_at=utcnow() - timedelta(seconds=2 * timeout)))
+    assert reap_orphaned_jobs(db) == []
+    for job_id in jobs:
+        job = job_row(job_id)
+        assert job.state == "queued" and job.task_id is not None and job.error is None, job_id
+    assert job_row(evaluation).task_id == job_row(sweep_edit).task_id
+    assert job_row(interrupted).requeues == 1  # sent now without counting the interruption twice
+
+
 def test_a_cancel_between_stages_ends_the_job_at_the_next_reaper_pass(db):
     """A cancel request flags a running job (only queued ones end at once); one between stages, whose next message
     was lost or waits, has no run to see the flag: the reaper's next pass ends it canceled, not waiting

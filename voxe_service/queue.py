@@ -63,7 +63,8 @@ class TaskResult(TypedDict, total=False):
 
 
 class QueueUnavailable(RuntimeError):
-    """The broker refused a message; the jobs (or the scene) it was for have been failed with the reason."""
+    """The broker refused a message; the jobs (or the scene) it was for have been failed with the reason, unless
+    the sender keeps them to send again (:func:`dispatch_job`'s ``fail_refused``)."""
 
 
 def job_stages(mode: str) -> list[str]:
@@ -182,7 +183,8 @@ def dispatch_job(session: Session, queue: TaskQueue, job: Job, done: Iterable[st
     ``message`` on the job.
 
     When the broker refuses, :class:`QueueUnavailable` is raised, the jobs failed with the reason first unless
-    ``fail_refused`` is off (a caller withdrawing a job it has just created: no failed event, no webhook).
+    ``fail_refused`` is off (a caller withdrawing a job it has just created: no failed event, no webhook; or
+    one leaving an accepted job queued with no task id, for the reaper to send once the broker is back).
     """
     ids = [job.id, *evaluations_waiting_on(session, job)]
     try:
@@ -223,7 +225,10 @@ def requeue_interrupted(session: Session, queue: TaskQueue, job: Job, settings: 
     A job between stages (its next message waited, or was lost with the worker) is sent without counting.
     A job its user asked to cancel ends canceled instead (it had been sent again, or failed at the limit).
     ``where``: what the caller saw of the row. Returns "requeued", "failed", "canceled", or None when the row
-    changed since it was read (nothing done). A broker that refuses fails the job and raises (:func:`dispatch_job`).
+    changed since it was read (nothing done). A broker that refuses the job's chain raises :class:`QueueUnavailable`
+    and leaves the job queued with no task id, which the reaper sends later, as it does a job the API recorded
+    and never sent (a broker outage must not fail accepted jobs, nor lose their checkpoints); the evaluations
+    sent alone after an ending fail with the reason (they have no chain to wait in), the ending standing.
     """
     def end(state: str, **fields) -> str | None:
         """End the job in ``state``; the evaluations riding in its chain are sent alone (no stage left), to record
@@ -231,7 +236,10 @@ def requeue_interrupted(session: Session, queue: TaskQueue, job: Job, settings: 
         ended = finish_jobs(session, [job.id], state, where=[Job.state == RUNNING, *where], **fields)
         session.commit()
         if ended and evaluations_waiting_on(session, job):
-            dispatch_job(session, queue, job, done=job_stages(job.mode), message=fields.get("message"))
+            try:
+                dispatch_job(session, queue, job, done=job_stages(job.mode), message=fields.get("message"))
+            except QueueUnavailable:  # they failed with the reason; the job's ending stands
+                pass
         return state if ended else None
 
     if job.cancel_requested:
@@ -247,5 +255,6 @@ def requeue_interrupted(session: Session, queue: TaskQueue, job: Job, settings: 
         return None
     record_event(session, job.id, "requeued", stage=job.stage, worker=job.worker_hostname, detail=reason)
     session.commit()
-    dispatch_job(session, queue, job, done=job.completed_stages or [], message=f"re-queued: {reason}")
+    dispatch_job(session, queue, job, done=job.completed_stages or [], message=f"re-queued: {reason}",
+                 fail_refused=False)
     return "requeued"
