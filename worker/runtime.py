@@ -164,11 +164,13 @@ def begin_stage(job_id: str, stage: str, hostname: str | None, device: str, sett
                 raise JobSkipped(f"job {job_id} canceled")
             if stage in (job.completed_stages or []):
                 raise JobSkipped(f"job {job_id}: {stage} already done (redelivered task)")
+            as_read = [Job.updated_at == job.updated_at,  # and no hold renewed since (that changes only the lease)
+                       or_(Job.run_token.is_(None), Job.run_lease_until < now)]
             interrupted = job.run_token is not None  # a lapsed hold: its run's process died, which counts
             reason = (f"the run of {job.stage} on worker {job.worker_hostname} stopped renewing its hold on the "
                       "job (its process died: killed, out of memory or crashed)")
             if interrupted and (error := requeue_limit_error(job, settings, reason)):
-                if not finish_jobs(session, [job_id], FAILED, error=error, where=[Job.updated_at == job.updated_at]):
+                if not finish_jobs(session, [job_id], FAILED, error=error, where=as_read):
                     continue  # the row changed since it was read: read it again
                 session.commit()
                 log.error("job %s failed: %s", job_id, error)
@@ -183,8 +185,7 @@ def begin_stage(job_id: str, stage: str, hostname: str | None, device: str, sett
             if interrupted:
                 values["requeues"] = Job.requeues + 1
             taken = session.execute(update(Job).where(
-                Job.id == job_id, Job.state.in_((QUEUED, RUNNING)), Job.updated_at == job.updated_at,
-                or_(Job.run_token.is_(None), Job.run_lease_until < now)).values(**values)).rowcount == 1
+                Job.id == job_id, Job.state.in_((QUEUED, RUNNING)), *as_read).values(**values)).rowcount == 1
             if taken:
                 record_event(session, job_id, "stage_started", stage=stage, worker=hostname)
         if taken:
