@@ -7,14 +7,15 @@ A job is orphaned when
   stage writes progress twice a second), no run holds its lease (a live stage renews it), and
   either its worker has not written a heartbeat for as long (the worker is gone: killed, its
   machine lost), or the run holding it stopped renewing as long ago (it ended without recording
-  how, e.g. the database was unreachable at that moment), or no run holds it at all: it is between
-  stages, and the next stage's message was lost (the broker refused it when the last stage ended)
-  or has waited in the broker as long, whatever its worker's state. Its remaining stages are sent
-  again (``requeued`` on its timeline; they resume from their checkpoints); a job whose stage was
-  interrupted (a run held it) ``VOXE_JOB_MAX_REQUEUES`` times fails with the reason instead; one
-  between stages is sent without counting, or ends canceled at once (not waiting for as long) when its
-  user asked to cancel it: no run would see the flag. A message the broker still delivers later (the next
-  stage's that had waited, or Redis redelivering hours later) finds the job done or ended
+  how, e.g. the database was unreachable at that moment). Its remaining stages are sent again
+  (``requeued`` on its timeline; they resume from their checkpoints); a job whose stage was
+  interrupted (a run held it) ``VOXE_JOB_MAX_REQUEUES`` times fails with the reason instead, one
+  between stages (its worker gone) is sent without counting. A job between stages on a live worker is
+  left alone however long its next message waits (behind other jobs' on a busy queue: sending it again
+  would double its remaining stages); the worker whose broker refused that message says so
+  (``worker.tasks``: the job is queued with no task id, below). One between stages whose user asked to
+  cancel it ends canceled at once (not waiting for as long): no run would see the flag. A message the
+  broker still delivers later (Redis redelivering hours later) finds the job done or ended
   (skipped), held by a live run (dropped), or waiting, and then runs it, the other copy being
   the one dropped (``worker.runtime.begin_stage``);
 * or it is ``queued`` with no task id for as long on a scene that is not processing: the API (or the
@@ -78,12 +79,12 @@ def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[
     reaped = []
     with session_scope() as session:
         lapsed = or_(Job.run_lease_until.is_(None), Job.run_lease_until < now)  # no live run renews a hold
-        between_stages = Job.run_token.is_(None)  # no run holds it: its next message waits, or was never sent
+        between_stages = Job.run_token.is_(None)  # no run holds it: its next message waits
         running = session.scalars(
             select(Job).where(
                 Job.state == RUNNING, lapsed,
                 or_(and_(Job.updated_at < cutoff,
-                         or_(Job.worker_hostname.is_(None), Job.worker_hostname.not_in(alive), between_stages,
+                         or_(Job.worker_hostname.is_(None), Job.worker_hostname.not_in(alive),
                              Job.run_lease_until < cutoff)),  # (a run that ended without a word on a live worker)
                     and_(between_stages, Job.cancel_requested)),  # no run will see the cancel: ended now
             )
@@ -95,10 +96,6 @@ def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[
             elif job.worker_hostname not in alive_now:
                 reason = (f"worker {job.worker_hostname or '(unknown)'} stopped while the job was in {job.stage}: "
                           f"no heartbeat and no progress for {timeout:.0f} s (VOXE_JOB_STALE_TIMEOUT_S)")
-            elif job.run_token is None:
-                reason = (f"no stage started for {timeout:.0f} s after {job.stage} on worker {job.worker_hostname}: "
-                          f"the message of the next one was lost (the broker refused it) or still waits "
-                          f"(VOXE_JOB_STALE_TIMEOUT_S)")
             else:
                 reason = (f"the run of {job.stage} on worker {job.worker_hostname} stopped renewing its hold "
                           f"{timeout:.0f} s ago and made no progress (VOXE_JOB_STALE_TIMEOUT_S)")

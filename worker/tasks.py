@@ -42,7 +42,8 @@ from voxe_service.models import (
 from voxe_service.model_inventory import (ROLES, check_models, job_models, missing_message, model_present,
                                           submission_note)
 from voxe_service.queue import (
-    INGEST_TASK, STAGE_TASKS, TaskResult, get_queue, is_sql_broker, job_stages, requeue_interrupted, reset_queue,
+    INGEST_TASK, STAGE_TASKS, QueueUnavailable, TaskResult, get_queue, is_sql_broker, job_stages, requeue_interrupted,
+    reset_queue,
 )
 from voxe_service.settings import get_settings, model_label
 from voxe_service.storage import StoredObject, get_storage, job_key, reconstruction_storage_key
@@ -667,6 +668,27 @@ def recover_interrupted_jobs(hostname: str) -> list[str]:
         queue.send_ingest(scene_id)
         log.warning("the ingest of scene %s was interrupted; re-queued it", scene_id)
     return [job.id for job in jobs] + scenes
+
+
+@signals.task_failure.connect
+def _next_stage_unsent(sender=None, args=None, exception=None, **_kwargs) -> None:
+    """A stage task that fails after its stage finished failed to hand its chain's next message to the broker
+    (Celery's send after the task returns; every failure inside a stage ends the job in ``_run_stage``). The job,
+    between stages and held by no run, is sent again at once, or left queued with no task id for the reaper to send
+    when the broker is back: nothing else would (the reaper cannot tell a lost message from one waiting its turn)."""
+    stage = next((name for name, spec in STAGE_TASKS.items() if spec.name == getattr(sender, "name", None)), None)
+    if stage is None or not args:
+        return
+    reason = f"the message of the stage after {stage} could not be sent: {type(exception).__name__}: {exception}"
+    with runtime.session_scope() as session:
+        job = session.get(Job, args[0])
+        if job is None or job.state != RUNNING or job.run_token is not None or stage not in (job.completed_stages or []):
+            return
+        try:
+            requeue_interrupted(session, get_queue(), job, get_settings(), reason=reason,
+                                where=[Job.updated_at == job.updated_at, Job.run_token.is_(None)])
+        except QueueUnavailable:  # the broker still refuses: queued with no task id, the reaper sends it
+            log.warning("job %s: %s; the reaper sends it once the broker takes it", job.id, reason)
 
 
 @signals.worker_ready.connect
