@@ -155,6 +155,30 @@ def test_a_scene_is_processing_until_its_ingest_and_jobs_on_it_wait_without_a_me
         assert session.get(Job, later["id"]).task_id is not None
 
 
+def test_jobs_waiting_on_an_ingest_whose_broker_refuses_them_stay_queued_for_the_reaper(client, dataset, root,
+                                                                                        monkeypatch):
+    """The ingest sends the jobs that waited for their scene; a broker refusing then (a Redis restarting) had failed
+    them for good. They stay queued with no task id, which the reaper sends once the broker is back."""
+    from kombu.exceptions import OperationalError
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+    from voxe_service.queue import TaskQueue
+
+    scene = upload_zip(client, zip_folder(dataset, root / "ok.zip", prefix="mic_small")).json()
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}).json()
+
+    def refused(self, signature):
+        raise OperationalError("Error 111 connecting to 127.0.0.1:6379. Connection refused.")
+
+    monkeypatch.setattr(TaskQueue, "send", refused)
+    assert ingest(scene["id"]) == {"scene_id": scene["id"], "state": "ready"}
+    waiting = client.get(f"/v1/jobs/{job['id']}").json()
+    assert (waiting["state"], waiting["error"]) == ("queued", None)
+    with session_scope() as session:
+        assert session.get(Job, job["id"]).task_id is None
+
+
 def test_an_ingest_stopped_by_a_cold_shutdown_goes_back_to_the_queue_keeping_the_upload(client, dataset, root,
                                                                                          monkeypatch):
     """A solo-pool worker's cold shutdown cancels its task by raising in it: that had failed the scene and deleted
@@ -162,6 +186,8 @@ def test_an_ingest_stopped_by_a_cold_shutdown_goes_back_to_the_queue_keeping_the
     from celery.exceptions import Reject
     from celery.worker import state
 
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
     from voxe_service.settings import get_settings
     from voxe_service.storage import get_storage
     from worker import ingest as ingest_module
@@ -179,6 +205,8 @@ def test_an_ingest_stopped_by_a_cold_shutdown_goes_back_to_the_queue_keeping_the
     assert rejected.value.requeue
     assert client.get(f"/v1/scenes/{scene['id']}").json()["state"] == "processing"
     assert stored_files(root) == [f"scenes/{scene['id']}/dataset.zip"]
+    with session_scope() as session:  # not a run the upload killed: it does not count towards the limit
+        assert session.get(Scene, scene["id"]).ingest_attempts == 0
     monkeypatch.setattr(state, "should_terminate", None)  # the next worker
     monkeypatch.setattr(ingest_module, "decode", decode)
     assert ingest(scene["id"]) == {"scene_id": scene["id"], "state": "ready"}

@@ -24,6 +24,7 @@ from typing import NamedTuple
 
 from celery.exceptions import Reject
 from sqlalchemy import update
+from sqlalchemy.exc import SQLAlchemyError
 
 from voxe_core.backbones import detect_backbone
 from voxe_core.data import DatasetError, load_scene
@@ -146,6 +147,7 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
                           width=size, height=size, splits=["train", "test"])
     except Exception as exc:  # noqa: BLE001 - every failure becomes the scene's reason ...
         if worker_in_cold_shutdown():  # ... but a cold shutdown's (it had failed the scene and deleted its upload)
+            _uncount_run(scene_id)
             raise Reject(f"the ingest of scene {scene_id} stopped by the worker's shutdown", requeue=True) from exc
         reason = str(exc) if isinstance(exc, IngestError) else f"ingest: {type(exc).__name__}: {exc}"
         if not isinstance(exc, IngestError):
@@ -155,6 +157,18 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     return _ready(scene_id, values, storage, settings, upload_key if mesh_upload else None)
+
+
+def _uncount_run(scene_id: str) -> None:
+    """A run a worker's shutdown stopped is not one the upload killed: it does not count towards the limit (four
+    deploys had failed a scene as "killed: out of memory?")."""
+    try:
+        with session_scope() as session:
+            session.execute(update(Scene).where(Scene.id == scene_id, Scene.state == PROCESSING,
+                                                Scene.ingest_attempts > 0)
+                            .values(ingest_attempts=Scene.ingest_attempts - 1))
+    except SQLAlchemyError:  # the message goes back all the same; the run stays counted
+        log.warning("scene %s: could not uncount the ingest run the shutdown stopped", scene_id, exc_info=True)
 
 
 def _fail(scene_id: str, reason: str, storage: Storage) -> None:
@@ -179,8 +193,8 @@ def _ready(scene_id: str, values: dict, storage: Storage, settings: Settings,
             queue = get_queue()  # the waiting jobs first: should this worker stop before, the reaper sends them
             for job in waiting:
                 try:
-                    dispatch_job(session, queue, job)
-                except QueueUnavailable:  # recorded on the job; the rest may still go out
+                    dispatch_job(session, queue, job, fail_refused=False)
+                except QueueUnavailable:  # left queued with no task id: the reaper sends it once the broker is back
                     log.warning("scene %s: could not dispatch job %s", scene_id, job.id)
     if over:
         _fail(scene_id, over, storage)
