@@ -424,6 +424,19 @@ def test_concurrent_retries_create_one_job(auth_client, mic_zip):
     assert auth_client.get("/v1/jobs", headers=bearer(token)).json()["total"] == 1
 
 
+def test_an_uploads_idempotency_digest_counts_a_field_added_later_only_when_it_is_sent():
+    """A retry with the same Idempotency-Key across the upgrade that added ``mesh_up_axis`` must match its first
+    request: the digest of an upload without it is the one the earlier version stored."""
+    import io
+
+    from api.services.scenes import Upload
+
+    data = b"PK\x05\x06" + bytes(18)
+    earlier = hashlib.sha256(repr(("cow", "auto")).encode() + b"\0archive\0" + data).hexdigest()
+    assert Upload(io.BytesIO(data), "a.zip", [], "cow", "auto").digest() == earlier
+    assert Upload(io.BytesIO(data), "a.zip", [], "cow", "auto", mesh_up_axis="z").digest() != earlier
+
+
 def test_scene_creation_is_idempotent(local_client, mic_zip, dataset, root, tmp_path):  # noqa: F811
     headers = {"Idempotency-Key": "upload-1"}
     created = _upload(local_client, mic_zip, headers)

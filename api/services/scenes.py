@@ -38,8 +38,10 @@ class Upload:
     mesh_up_axis: str | None = None
 
     def digest(self) -> str:
-        """sha256 of what the upload asks for (field names, file names and bytes), not of its multipart framing."""
-        digest = hashlib.sha256(repr((self.name, self.mesh_shading, self.mesh_up_axis)).encode())
+        """sha256 of what the upload asks for (field names, file names and bytes), not of its multipart framing; a
+        field added later counts only when sent, so a retry across an upgrade still matches its first request."""
+        fields = (self.name, self.mesh_shading) + ((self.mesh_up_axis,) if self.mesh_up_axis is not None else ())
+        digest = hashlib.sha256(repr(fields).encode())
         parts = [("archive", self.archive)] if self.archive is not None else [(f"files:{n}", h) for n, h in self.files]
         for label, handle in parts:
             digest.update(b"\0" + label.encode() + b"\0")
