@@ -51,7 +51,7 @@ from typing import BinaryIO
 from PIL import Image
 
 from voxe_core.data import DatasetError, colmap_transforms, detect_format, is_dataset_folder, load_scene
-from voxe_core.mesh_input import MESH_INPUT_SUFFIXES, TEXTURE_SUFFIXES
+from voxe_core.mesh_input import MESH_FRAMES, MESH_INPUT_SUFFIXES, TEXTURE_SUFFIXES
 from voxe_service import datasets
 from voxe_service.datasets import (DATASET_ARCHIVE, MESH_FOLDER, MESH_FORMAT, MESH_NAMES, MESH_OPTIONS, UPLOAD_ARCHIVE,
                                    ignored, package)
@@ -356,7 +356,7 @@ def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str
         shutil.copyfile(source, kept / stored)
         names[stored] = source.relative_to(root).as_posix()
     (kept / MESH_NAMES).write_text(json.dumps(names))  # the ingest's messages name the files as uploaded
-    (kept / MESH_OPTIONS).write_text(json.dumps({"shading": shading, "up_axis": up_axis}))
+    (kept / MESH_OPTIONS).write_text(json.dumps({"shading": shading, "up_axis": up_axis, "frame": MESH_FRAMES[-1]}))
     return dest
 
 

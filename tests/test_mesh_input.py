@@ -158,6 +158,31 @@ def test_vertices_no_face_uses_are_dropped_before_the_box_is_taken(tmp_path):
     assert np.array_equal(mesh.vertex_colors, np.tile([[1.0, 0.0, 0.0]], (len(ball.vertices), 1)))
 
 
+def test_a_mesh_scene_stored_before_frames_keeps_the_frame_its_views_were_rendered_in(tmp_path):
+    """Its ingest rendered its views with every vertex setting the box and no shrink into the views; its voxelize
+    route reads the stored mesh again, which had now been placed otherwise (a cube at 0.75 of its views' size, a
+    mesh with a stray vertex 20 times larger). Archives without a frame in options.json keep frame 1."""
+    import json
+
+    from worker.ingest import load_stored_mesh
+
+    ball = trimesh.creation.icosphere(subdivisions=1)
+    trimesh.Trimesh(np.vstack([ball.vertices, [[40.0, 0.0, 0.0]]]), ball.faces, process=False).export(
+        tmp_path / "stray.ply")
+    trimesh.creation.box((2, 2, 2)).export(tmp_path / "cube.ply")
+    for name, earlier in (("stray", 1 / 20.5), ("cube", 1.0)):  # the largest half-extent of every vertex's box: 1
+        stored = tmp_path / name / "mesh"
+        stored.mkdir(parents=True)
+        (stored / "mesh.ply").write_bytes((tmp_path / f"{name}.ply").read_bytes())
+        (stored / "options.json").write_text(json.dumps({"shading": "none", "up_axis": "z"}))
+        half_extent = lambda mesh: np.ptp(mesh.vertices, axis=0).max() / 2  # noqa: E731
+        assert half_extent(load_stored_mesh(tmp_path / name)) == pytest.approx(earlier), name
+        (stored / "options.json").write_text(json.dumps({"shading": "none", "up_axis": "z", "frame": 2}))
+        assert half_extent(load_stored_mesh(tmp_path / name)) != pytest.approx(earlier), name
+    with pytest.raises(MeshError, match="frame must be one of"):
+        load_mesh(tmp_path / "cube.ply", frame=3)
+
+
 # ------------------------------------------------------------------ loading errors
 def test_loading_normalises_and_refuses_bad_files(tmp_path):
     mesh = load_mesh(SPOT / "spot_triangulated.obj", SPOT / "spot_texture.png", extent=0.8)
@@ -473,7 +498,8 @@ def test_mesh_shading_is_stored_with_the_upload_and_honoured_by_the_ingest(tmp_p
         work = tmp_path / str(mode)
         _, stored, root, _ = _ingest_mesh_upload(work, [("horse.obj", HORSE)], mode)
         assert "mesh/options.json" in stored
-        assert json.loads((root / "mesh" / "options.json").read_text()) == {"shading": mode or "auto", "up_axis": "y"}
+        assert json.loads((root / "mesh" / "options.json").read_text()) == {"shading": mode or "auto", "up_axis": "y",
+                                                                              "frame": 2}
         scene = load_scene(root, "train")
         spread[mode] = float(scene.images[scene.alphas > 0.999].std())
     assert spread["none"] < 1e-3 < 0.03 < spread[None], spread
@@ -499,7 +525,7 @@ def test_mesh_up_axis_is_stored_with_the_upload_and_honoured_by_the_ingest(tmp_p
     with _stage(tmp_path, spot, mesh_up_axis="z") as staged, zipfile.ZipFile(staged.archive) as archive:
         archive.extractall(tmp_path / "stored")
     options = json.loads((tmp_path / "stored" / "mesh" / "options.json").read_text())
-    assert options == {"shading": "auto", "up_axis": "z"}
+    assert options == {"shading": "auto", "up_axis": "z", "frame": 2}
     z_up = load_mesh(SPOT / "spot_triangulated.obj", SPOT / "spot_texture.png", up_axis="z")
     assert np.array_equal(load_stored_mesh(tmp_path / "stored").vertices, z_up.vertices)
     (tmp_path / "transforms.json").write_text(json.dumps({"fl_x": 8.0, "frames": []}))

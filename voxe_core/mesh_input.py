@@ -113,8 +113,15 @@ def sample_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 
 # ------------------------------------------------------------------ loading
+MESH_FRAMES = (1, 2)
+"""How ``load_mesh`` places a mesh: 2, the box of the vertices faces use, shrunk into ``VIEW_RADIUS``; 1, the box of
+every vertex in the file, its largest half-extent ``extent`` (how meshes were placed before 2: a scene stored then
+keeps the frame its views were rendered in)."""
+
+
 def load_mesh(
-    path: str | os.PathLike, texture: str | os.PathLike | None = None, up_axis: str = "y", extent: float = 1.0
+    path: str | os.PathLike, texture: str | os.PathLike | None = None, up_axis: str = "y", extent: float = 1.0,
+    frame: int = 2,
 ) -> SurfaceMesh:
     """Read an OBJ (with ``texture``: its image, UVs from the file) or a PLY (vertex or face colours), normalised.
 
@@ -125,7 +132,7 @@ def load_mesh(
     ``up_axis``: the file's up axis ('y' for OBJ/glTF exports, 'z' for CAD and
     most scanners), turned onto +z. The box is centred on the origin and its
     largest half-extent made ``extent``, or less where the mesh would reach past
-    ``VIEW_RADIUS``. Raises ``MeshError`` naming the file for
+    ``VIEW_RADIUS`` (``frame`` 1: see ``MESH_FRAMES``). Raises ``MeshError`` naming the file for
     unreadable, empty, degenerate or non-finite meshes and for a texture
     without UVs.
     """
@@ -139,6 +146,8 @@ def load_mesh(
         raise MeshError(f"up_axis must be one of {', '.join(UP_AXES)}, got {up_axis!r}")
     if not extent > 0:
         raise MeshError(f"extent must be positive, got {extent}")
+    if frame not in MESH_FRAMES:
+        raise MeshError(f"frame must be one of {MESH_FRAMES}, got {frame!r}")
     try:  # with a texture, its parts as they are: the file's materials are not what colours it
         loaded = trimesh.load(path, force="mesh" if texture is None else "scene", process=False,
                               skip_materials=texture is not None)
@@ -175,18 +184,24 @@ def load_mesh(
     elif getattr(loaded.visual, "kind", None) == "texture" and getattr(loaded.visual.material, "image", None):
         mesh.uv = np.asarray(loaded.visual.uv, dtype=np.float64)  # an OBJ whose .mtl named its image (trimesh's atlas)
         mesh.texture = _texture_rgb(loaded.visual.material.image)
+    boxed = mesh.vertices
     mesh = _used_vertices_only(mesh)
+    if frame == 2:
+        boxed = mesh.vertices
 
-    if not np.isfinite(mesh.vertices).all():
+    if not np.isfinite(boxed).all():
         raise MeshError(f"{path.name}: vertex coordinates contain NaN or Inf")
-    lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
+    lo, hi = boxed.min(0), boxed.max(0)
     half = float((hi - lo).max()) / 2
     if not half > 0:
         raise MeshError(f"{path.name}: all vertices coincide; the mesh has no extent")
     up = UP_AXES[up_axis]
     order = [(up + 1) % 3, (up + 2) % 3, up]  # a cyclic permutation: a rotation, handedness kept
     mesh.vertices = (mesh.vertices - (lo + hi) / 2)[:, order]
-    mesh.vertices *= min(extent / half, VIEW_RADIUS / float(np.linalg.norm(mesh.vertices, axis=1).max()))
+    scale = extent / half
+    if frame == 2:
+        scale = min(scale, VIEW_RADIUS / float(np.linalg.norm(mesh.vertices, axis=1).max()))
+    mesh.vertices *= scale
     if not _has_area(mesh.vertices, mesh.faces, 1e-12 * extent**2):  # voxelised, it would be an empty grid
         raise MeshError(f"{path.name}: every triangle has zero area (repeated or collinear vertices); "
                         "the mesh has no surface")

@@ -20,7 +20,8 @@ UPLOAD_ARCHIVE = "upload.zip"  # a mesh upload before its ingest rendered it
 MESH_FORMAT = "mesh"  # a scene's format when it was uploaded as a mesh (its archive: the renders + MESH_FOLDER)
 MESH_FOLDER = "mesh"  # the uploaded mesh as ``mesh.obj`` / ``mesh.ply``, an OBJ's texture and .mtl beside it
 MESH_NAMES = "names.json"  # in MESH_FOLDER: {kept name: the name it was uploaded under}
-MESH_OPTIONS = "options.json"  # in MESH_FOLDER: {"shading": "auto" | "baked" | "none", "up_axis": "x" | "y" | "z"}
+# in MESH_FOLDER: {"shading": "auto" | "baked" | "none", "up_axis": "x" | "y" | "z", "frame": voxe_core.mesh_input.MESH_FRAMES}
+MESH_OPTIONS = "options.json"
 
 
 def ignored(path: PurePosixPath) -> bool:

@@ -49,8 +49,9 @@ class IngestError(ValueError):
 
 def load_stored_mesh(dataset: Path):
     """The mesh a mesh scene's archive keeps under ``mesh/`` (as the API packed it), as ``load_mesh`` reads it with
-    the up axis and shading its upload asked (``mesh/options.json``; "y" and "auto" for archives packed before them):
-    the render route (this ingest) and the voxelize route (``worker.tasks``) both read the mesh through here."""
+    the up axis, shading and frame its upload asked (``mesh/options.json``; "y", "auto" and frame 1 for archives
+    packed before them, whose views were rendered so): the render route (this ingest) and the voxelize route
+    (``worker.tasks``) both read the mesh through here, so a scene's grid stays in its views' frame."""
     kept = dataset / datasets.MESH_FOLDER
     meshes = [p for p in sorted(kept.glob("mesh.*")) if p.suffix in MESH_INPUT_SUFFIXES]
     if len(meshes) != 1:
@@ -58,7 +59,8 @@ def load_stored_mesh(dataset: Path):
     textures = [p for p in sorted(kept.glob("texture.*")) if p.suffix in TEXTURE_SUFFIXES]
     options = kept / datasets.MESH_OPTIONS
     options = json.loads(options.read_text()) if options.is_file() else {}
-    mesh = load_mesh(meshes[0], textures[0] if textures else None, options.get("up_axis", "y"))
+    mesh = load_mesh(meshes[0], textures[0] if textures else None, options.get("up_axis", "y"),
+                     frame=options.get("frame", 1))
     return shade_mesh(mesh, options.get("shading", "auto"))
 
 
