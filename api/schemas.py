@@ -429,6 +429,7 @@ class JobOut(BaseModel):
     webhooks_url: str = Field(description="the job's webhook deliveries and their attempts")
     created_at: datetime
     started_at: datetime | None
+    stage_started_at: datetime | None = Field(None, description="when its current (or last) stage's run began")
     finished_at: datetime | None
     updated_at: datetime
 

@@ -132,6 +132,7 @@ def test_an_edit_is_weighed_by_what_its_schedule_runs_once_known():
         return (costs["reconstruct"] + costs["edit"] / 2) / sum(costs.values())
 
     assert job_out(_job(**running)).overall_progress == pytest.approx(halfway(None))  # weighed as 10 iterations
+    assert job_out(_job(**running)).stage_started_at == running["stage_started_at"]  # shown, no longer weighed
     scheduled = job_out(_job(**running, result={"edit_schedule": {"iterations": 1000}})).overall_progress
     assert scheduled == pytest.approx(halfway(1000)) and scheduled > halfway(None) + 0.05
 

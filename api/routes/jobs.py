@@ -49,7 +49,8 @@ def job_out(job: Job) -> JobOut:
         artifacts_url=f"{base}/artifacts", events_url=f"{base}/events", worker_hostname=job.worker_hostname,
         source_job_ids=job.source_job_ids, result=job.result, batch_id=job.batch_id,
         webhook_url=job.webhook_url, webhook_events=job.webhook_events, webhooks_url=f"{base}/webhooks",
-        created_at=job.created_at, started_at=job.started_at, finished_at=job.finished_at, updated_at=job.updated_at,
+        created_at=job.created_at, started_at=job.started_at, stage_started_at=job.stage_started_at,
+        finished_at=job.finished_at, updated_at=job.updated_at,
     )
 
 
