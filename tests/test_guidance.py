@@ -727,12 +727,14 @@ def test_the_worker_keeps_its_cache_size_of_guidances_and_frees_the_least_recent
 def test_the_workers_speed_up_settings_reach_the_guidance(variable, keyword, other, setting, expected, monkeypatch,
                                                           tmp_path):
     """Each setting reaches its own keyword (true: from_pretrained's default, on CUDA), the other left at its default."""
+    from collections import OrderedDict
+
     from voxe_service.settings import Settings
     from worker import runtime
 
     asked = {}
     monkeypatch.setattr(StableDiffusionGuidance, "from_pretrained", lambda path, **kwargs: asked.update(kwargs))
-    monkeypatch.setattr(runtime, "_GUIDANCE_CACHE", {})
+    monkeypatch.setattr(runtime, "_GUIDANCE_CACHE", OrderedDict())
     monkeypatch.setenv(variable, setting)
     runtime.get_guidance(str(tmp_path), "cpu", Settings())
     assert asked[keyword] is expected and asked[other] is None

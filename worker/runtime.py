@@ -703,10 +703,10 @@ def build_once(settings: Settings, name: str, marker: str, build) -> Path:
 def get_guidance(model: str, device: str, settings: Settings, job_id: str | None = None):
     """One StableDiffusionGuidance per (model, device) per worker process, loaded on first use.
 
-    At most ``settings.guidance_cache_size`` stay loaded: before one more loads, the least
-    recently used is freed (a local job's SDS and attention models had both stayed resident,
-    ~2.1 GB more in fp16). A first-use download shows on ``job_id``'s message ("downloading
-    <model> (N GB)").
+    At most ``settings.guidance_cache_size`` stay loaded (2: a local job's SDS and attention models):
+    before one more loads, the least recently used is freed, so a worker serving other models
+    does not keep every one it ever loaded. A first-use download shows on ``job_id``'s message
+    ("downloading <model> (N GB)").
     """
     from voxe_core.guidance.sds import StableDiffusionGuidance
 
