@@ -489,6 +489,44 @@ def test_jobs_share_a_reconstruction_per_parameter_set_and_cancel_when_queued(cl
     assert listing["total"] == 3 and {j["id"] for j in listing["items"]} == {second["id"], other["id"], boxed["id"]}
 
 
+def test_a_job_downsampling_past_its_scenes_images_is_refused_before_it_is_queued(client, dataset, root):
+    """A scene of small images is ready (its ingest decodes them at full size); a job asking a downsample larger than
+    them had been accepted and failed in the worker's fit. The scene's size is known from its upload's checks."""
+    from sqlalchemy import update
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
+
+    scene = make_scene(client, dataset, root)
+    with session_scope() as session:  # as an upload of 16x24 images records them
+        session.execute(update(Scene).where(Scene.id == scene["id"]).values(width=16, height=24))
+    refused = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB, "params": {"downsample": 32}})
+    assert refused.status_code == 422 and refused.json()["detail"] == (
+        f"params.downsample 32 is larger than scene {scene['id']!r}'s images (16x24): at most 16")
+    assert client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB, "params": {"downsample": 16}}).status_code == 201
+
+
+def test_canceling_a_job_that_ends_as_the_request_comes_is_a_conflict(client, dataset, root, monkeypatch):
+    """The job was running when read and succeeded before the cancel's update: that had answered 200 with the
+    succeeded job, where a finished job's cancel is a 409."""
+    from sqlalchemy import update
+
+    from api.services import jobs as job_service
+    from voxe_service.models import Job
+
+    scene = make_scene(client, dataset, root)
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}).json()
+    request_cancel = job_service.request_cancel
+
+    def finished_first(*, session, job_ids):
+        session.execute(update(Job).where(Job.id.in_(job_ids)).values(state="succeeded"))
+        request_cancel(session=session, job_ids=job_ids)
+
+    monkeypatch.setattr(job_service, "request_cancel", finished_first)
+    answer = client.post(f"/v1/jobs/{job['id']}/cancel")
+    assert answer.status_code == 409 and answer.json()["detail"] == f"job {job['id']!r} already succeeded"
+
+
 @BOTH_DATABASES
 def test_reconstruction_creation_is_race_free(client, dataset, root):
     from api.services.jobs import reconstruction_for

@@ -60,8 +60,19 @@ def usable_scene(*, session: Session, key: ApiKey, scene_id: str, params: dict) 
     scene = get_scene(session=session, key=key, scene_id=scene_id)
     refuse_unless_usable(scene)
     check_route(scene, params)
-    refuse_unfit(scene, reconstruction_params(params, mesh_scene=scene.format == MESH_FORMAT))
+    rec_params = reconstruction_params(params, mesh_scene=scene.format == MESH_FORMAT)
+    refuse_unfit(scene, rec_params)
+    refuse_downsample_past_images(scene, rec_params["downsample"])
     return scene
+
+
+def refuse_downsample_past_images(scene: Scene, downsample: int) -> None:
+    """422 for a ``downsample`` larger than the scene's images (known from its upload's checks, even while it is
+    processing): the fit would fail in the worker, after the job was accepted."""
+    if downsample > min(scene.width, scene.height):
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                            f"params.downsample {downsample} is larger than scene {scene.id!r}'s images "
+                            f"({scene.width}x{scene.height}): at most {min(scene.width, scene.height)}")
 
 
 def refuse_unfit(scene: Scene, rec_params: dict) -> None:
@@ -240,10 +251,10 @@ def list_jobs(*, session: Session, key: ApiKey, state: str | None, scene_id: str
 def cancel_job(*, session: Session, key: ApiKey, job_id: str) -> Job:
     """Cancel the key's job (409 once it succeeded or failed); canceling a canceled job changes nothing."""
     job = get_job(session=session, key=key, job_id=job_id)
-    if job.state in TERMINAL_STATES and job.state != CANCELED:
-        raise HTTPException(status.HTTP_409_CONFLICT, f"job {job_id!r} already {job.state}")
-    request_cancel(session=session, job_ids=[job_id])
+    request_cancel(session=session, job_ids=[job_id])  # flags only an unfinished job
     session.refresh(job)
+    if job.state in TERMINAL_STATES and job.state != CANCELED:  # (also one that ended as the request came)
+        raise HTTPException(status.HTTP_409_CONFLICT, f"job {job_id!r} already {job.state}")
     return job
 
 
