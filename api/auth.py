@@ -172,6 +172,8 @@ class Idempotency:
     key: str
     request_sha256: str
     endpoint: str
+    earlier_sha256: str | None = None
+    """The digest an earlier version recorded for the same request, still matched: a retry across an upgrade."""
 
     def record(self, session: Session, owner: ApiKey, resource_id: str) -> None:
         """Add the record to the session that creates the resource (one transaction; a racing twin fails it)."""
@@ -204,7 +206,8 @@ class Idempotency:
             IdempotencyRecord.idempotency_key == self.key)).first()
         if row is None:
             return None
-        if not hmac.compare_digest(row.request_sha256, self.request_sha256):
+        if not any(hmac.compare_digest(row.request_sha256, digest)
+                   for digest in (self.request_sha256, self.earlier_sha256) if digest is not None):
             raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
                                 f"Idempotency-Key {self.key!r} was already used with a different request body "
                                 f"(it created {self.endpoint} {row.resource_id!r}); use a new key for a new request")

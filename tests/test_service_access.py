@@ -403,6 +403,41 @@ def test_job_creation_is_idempotent(auth_client, mic_zip):
         assert response.status_code == 422 and "Idempotency-Key header must be 1-255 characters" in response.text
 
 
+def test_a_job_retried_across_an_upgrade_that_changed_a_default_replays(auth_client, mic_zip, monkeypatch):
+    """The digest had been of the body with every default filled in: a release changing a default (or adding a
+    field) turned a client's unchanged retry into "a different request body". It is of what the client sent; a
+    record holding the whole body's digest (recorded before this change) still matches."""
+    from sqlalchemy import update
+
+    import api.schemas as schemas
+    from voxe_service.db import session_scope
+    from voxe_service.models import IdempotencyRecord
+
+    _, alice = _create_key("alice")
+    scene = _upload(auth_client, mic_zip, bearer(alice)).json()
+    body = {"scene_id": scene["id"], "prompt": "a mic wearing big sunglasses", "mode": "local",
+            "edit_words": ["sunglasses"]}
+    headers = {**bearer(alice), "Idempotency-Key": "retry-2"}
+    created = auth_client.post("/v1/jobs", json=body, headers=headers).json()
+    whole = hashlib.sha256(schemas.JobCreate.model_validate(body).model_dump_json().encode()).hexdigest()
+    field = schemas.RefineParams.model_fields["iterations"]
+    try:  # the release after: the refinement's default iterations change, nothing the client sent does
+        monkeypatch.setattr(field, "default", field.default + 100)
+        for model in (schemas.RefineParams, schemas.JobParams, schemas.JobCreate):
+            model.model_rebuild(force=True)
+        retried = auth_client.post("/v1/jobs", json=body, headers=headers)
+    finally:
+        monkeypatch.undo()
+        for model in (schemas.RefineParams, schemas.JobParams, schemas.JobCreate):
+            model.model_rebuild(force=True)
+    assert retried.status_code == 200 and retried.json()["id"] == created["id"]
+    with session_scope() as session:  # as the version before this change recorded it
+        session.execute(update(IdempotencyRecord).where(IdempotencyRecord.idempotency_key == "retry-2")
+                        .values(request_sha256=whole))
+    again = auth_client.post("/v1/jobs", json=body, headers=headers)
+    assert again.status_code == 200 and again.json()["id"] == created["id"]
+
+
 @BOTH_DATABASES
 def test_concurrent_retries_create_one_job(auth_client, mic_zip):
     _, token = _create_key("racer")

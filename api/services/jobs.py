@@ -207,7 +207,10 @@ def create_job(*, session: Session, settings: Settings, queue: TaskQueue, key: A
     """Record and queue an edit job; (the job, whether this was a replay of an earlier request)."""
     idem = None
     if idempotency_key:
-        idem = Idempotency(idempotency_key, hashlib.sha256(body.model_dump_json().encode()).hexdigest(), "jobs")
+        # What the client sent, not the defaults filled in: a release adding a field or changing a default must
+        # not turn a retry into "another request" (the whole body's digest, recorded before, still matches).
+        idem = Idempotency(idempotency_key, _sha256(body.model_dump_json(exclude_unset=True)), "jobs",
+                           earlier_sha256=_sha256(body.model_dump_json()))
         if (replayed := idem.replayed(session, key, Job)) is not None:
             return replayed, True
     params = body.params.model_dump(mode="json")
@@ -232,6 +235,10 @@ def create_job(*, session: Session, settings: Settings, queue: TaskQueue, key: A
         raise
     session.refresh(job)
     return job, False
+
+
+def _sha256(text: str) -> str:
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
 def list_jobs(*, session: Session, key: ApiKey, state: str | None, scene_id: str | None, limit: int,
