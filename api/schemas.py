@@ -197,7 +197,8 @@ class JobCreate(Strict):
     prompt: str = Field(min_length=1, max_length=500, json_schema_extra={"pattern": TEXT_PATTERN},
                         description='e.g. "a microphone wearing big sunglasses"' + _TEXT_RULE
                         + f"; at most {TEXT_ENCODER_TOKENS} text-encoder tokens as the model sees it (with the "
-                          "view_words suffix, start and end tokens included)")
+                          "view_words suffix, start and end tokens included): a prompt surely longer is a 422, "
+                          "one the model's tokenizer splits further fails the job before its fit")
     mode: Literal["global", "local"] = Field("global", description="local: refined to the edit_words' region")
     edit_words: list[EditWord] = Field(
         default_factory=list, max_length=16,

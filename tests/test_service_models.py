@@ -272,6 +272,28 @@ def test_a_job_sent_before_any_worker_reported_fails_at_the_start_of_its_chain(r
         assert rec.grid_key is None and rec.iteration == 0 and rec.owner_job_id is None
 
 
+def test_a_prompt_longer_than_its_models_tokenizer_reads_fails_at_the_start_of_its_chain(root, client, dataset):
+    """The API's prompt check is a lower bound (a piece a token); BPE splits words the vocabulary lacks (the
+    smoke-test model's tokenizer spells them letter by letter). Such a job had run its whole fit, then failed at
+    the edit; the worker counts with the model's own tokenizer before the fit."""
+    from voxe_service.db import session_scope
+    from voxe_service.models import Reconstruction
+    from worker import tasks
+
+    scene = make_scene(client, dataset, root)
+    prompt = "a mic wearing " + "zyxwv " * 14 + "sunglasses"  # 26 tokens at least, 82 as the tokenizer reads it
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": prompt})
+    assert job.status_code == 201, job.text
+    assert tasks.reconstruct_task.apply(args=(job.json()["id"],)).get()["state"] == "failed"
+    error = client.get(f"/v1/jobs/{job.json()['id']}").json()["error"]
+    assert error.startswith("reconstruct: not started: the prompt 'a render of a mic wearing zyxwv") and error.endswith(
+        "tokens as the model's tokenizer reads it; its text encoder reads 77, its start and end tokens included: "
+        "shorten it")
+    with session_scope() as session:  # the reconstruction never ran
+        rec = session.scalars(select(Reconstruction).where(Reconstruction.scene_id == scene["id"])).one()
+        assert rec.grid_key is None and rec.iteration == 0
+
+
 def test_migration_0006_adds_the_models_column_and_removes_it(tmp_path):
     from alembic import command
     from sqlalchemy import inspect, text

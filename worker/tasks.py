@@ -107,7 +107,7 @@ def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> Task
     try:
         with runtime.holding_job(job_id, token, settings):
             if stage == job_stages(job.mode)[0]:
-                _check_job_models(job, settings)
+                _check_job_can_start(job, settings)
             body(job, settings, device, get_storage(settings))
     except runtime.RunSuperseded as superseded:
         log.warning("job %s: %s: %s", job_id, stage, superseded)
@@ -166,17 +166,34 @@ def _stop_if_taken_over(job_id: str, stage: str) -> None:
         raise Ignore()
 
 
-class ModelMissing(RuntimeError):
-    """A model the job needs is not on this worker (found at the start of its chain); the message says how to add it."""
+class CannotStart(RuntimeError):
+    """The job cannot run (found at the start of its chain, before its fit): a model it needs is not on this worker
+    (the message says how to add it), or its prompt is longer than its model reads."""
 
 
-def _check_job_models(job: Job, settings) -> None:
-    """Fail before the chain's first stage runs when a model the job will load is not here (no weights read)."""
+def _check_job_can_start(job: Job, settings) -> None:
+    """Fail before the chain's first stage runs when a model the job will load is not here (no weights read), or
+    when its SDS model's tokenizer reads its prompt as longer than the text encoder does (the API's check is a
+    lower bound: BPE splits some words into several tokens)."""
+    from voxe_core.guidance.loading import load_clip_tokenizer, loading_errors
+    from voxe_core.guidance.prompts import check_prompt_tokens
+
     needed = job_models(job.mode, job.sds_model, job.attention_model, job.params or {})
     missing = [missing_message(role, model, "this worker")
                for role, model in needed.items() if not model_present(ROLES[role], model, settings)]
     if missing:
-        raise ModelMissing("; ".join(missing))
+        raise CannotStart("; ".join(missing))
+    if "sds" not in needed:
+        return
+    try:
+        tokenizer = load_clip_tokenizer(runtime.resolve_model(job.sds_model, settings), subfolder="tokenizer",
+                                        local_files_only=True)
+    except loading_errors():  # the edit's loading says what is wrong with the model
+        return
+    try:
+        check_prompt_tokens(job.prompt, tokenizer, (job.params or {}).get("view_words", True))
+    except ValueError as exc:
+        raise CannotStart(str(exc)) from None
 
 
 def _error_message(stage: str, exc: Exception, job: Job) -> str:
@@ -186,7 +203,7 @@ def _error_message(stage: str, exc: Exception, job: Job) -> str:
         text = str(exc).rstrip()
         role = "attention" if stage == "refine" else "sds"
         return f"{stage}: {text}{'' if text.endswith('.') else '.'} {submission_note(role)}."
-    if isinstance(exc, ModelMissing):
+    if isinstance(exc, CannotStart):
         return f"{stage}: not started: {exc}"
     if isinstance(exc, (ReconstructionFailed, EvaluationFailed)):
         return str(exc)

@@ -84,6 +84,19 @@ def tokens_at_least(text: str) -> int:
     return len(_CLIP_PIECES.findall(unicodedata.normalize("NFC", text))) + 2
 
 
+def check_prompt_tokens(user_text: str, tokenizer, view_words: bool = True) -> None:
+    """ValueError when a prompt an edit gives the diffusion model ("a render of <text>", with each view word unless
+    ``view_words`` is off) is more tokens under the model's ``tokenizer`` (CLIPTokenizer; start and end tokens
+    included) than its text encoder reads: the exact count :func:`check_prompt_length` bounds from below, for a
+    caller holding the tokenizer (a worker, before a job's fit: the guidance would refuse it only at the edit)."""
+    limit = int(tokenizer.model_max_length)
+    for view in VIEW_WORDS if view_words else (None,):
+        prompt = edit_prompt(user_text, view)
+        if (tokens := len(tokenizer(prompt).input_ids)) > limit:
+            raise ValueError(f"the prompt {prompt!r} is {tokens} tokens as the model's tokenizer reads it; its text "
+                             f"encoder reads {limit}, its start and end tokens included: shorten it")
+
+
 def check_prompt_length(user_text: str, view_words: bool = True) -> None:
     """ValueError when "a render of <text>, overhead view" (the longest prompt an edit gives the diffusion model;
     without ``view_words``, no view) surely holds more tokens than its text encoder reads
