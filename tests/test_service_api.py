@@ -381,20 +381,13 @@ def test_colmap_and_nerfstudio_uploads(client, root):
 
 def test_mesh_shading_is_checked_at_upload(client, dataset, root):
     body = zip_folder(dataset, root / "mic.zip").read_bytes()
-    response = client.post("/v1/scenes", files={"archive": ("mic.zip", body, "application/zip")},
-                           data={"mesh_shading": "flat"})
-    assert response.status_code == 422 and response.json()["detail"][0]["loc"] == ["body", "mesh_shading"]
-    response = client.post("/v1/scenes", files={"archive": ("mic.zip", body, "application/zip")},
-                           data={"mesh_shading": "baked"})
-    assert response.status_code == 422
-    assert "mesh_shading applies to mesh uploads only" in response.json()["detail"]
-    response = client.post("/v1/scenes", files={"archive": ("mic.zip", body, "application/zip")},
-                           data={"mesh_up_axis": "w"})
-    assert response.status_code == 422 and response.json()["detail"][0]["loc"] == ["body", "mesh_up_axis"]
-    response = client.post("/v1/scenes", files={"archive": ("mic.zip", body, "application/zip")},
-                           data={"mesh_up_axis": "z"})
-    assert response.status_code == 422
-    assert "mesh_up_axis applies to mesh uploads only" in response.json()["detail"]
+    for field, unknown, valid in (("mesh_shading", "flat", "baked"), ("mesh_up_axis", "w", "z")):
+        response = client.post("/v1/scenes", files={"archive": ("mic.zip", body, "application/zip")},
+                               data={field: unknown})
+        assert response.status_code == 422 and response.json()["detail"][0]["loc"] == ["body", field]
+        response = client.post("/v1/scenes", files={"archive": ("mic.zip", body, "application/zip")},
+                               data={field: valid})
+        assert response.status_code == 422 and f"{field} applies to mesh uploads only" in response.json()["detail"]
     assert client.get("/v1/scenes").json()["total"] == 0 and staged(root) == []
 
 
