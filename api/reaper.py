@@ -10,11 +10,12 @@ A job is orphaned when
   how, e.g. the database was unreachable at that moment). Its remaining stages are sent again
   (``requeued`` on its timeline; they resume from their checkpoints); a job whose stage was
   interrupted (a run held it) ``VOXE_JOB_MAX_REQUEUES`` times fails with the reason instead, one
-  between stages (its worker gone) is sent without counting. A job between stages on a live worker is
-  left alone however long its next message waits (behind other jobs' on a busy queue: sending it again
-  would double its remaining stages); the worker whose broker refused that message says so
-  (``worker.tasks``: the job is queued with no task id, below). One between stages whose user asked to
-  cancel it ends canceled at once (not waiting for as long): no run would see the flag. A message the
+  between stages (its worker gone) is sent without counting. A job between stages on a live worker waits
+  while its next message may be waiting its turn behind other jobs' (sending it again doubles its remaining
+  stages): the worker whose broker refused that message says so at once (``worker.tasks``: the job is queued
+  with no task id, below), and one whose next stage has not started for ``VOXE_JOB_LOST_MESSAGE_TIMEOUT_S`` is
+  sent again (a broker that lost what it had accepted; a copy that still comes is skipped or dropped). One
+  between stages whose user asked to cancel it ends canceled at once: no run would see the flag. A message the
   broker still delivers later (Redis redelivering hours later) finds the job done or ended
   (skipped), held by a live run (dropped), or waiting, and then runs it, the other copy being
   the one dropped (``worker.runtime.begin_stage``);
@@ -76,6 +77,8 @@ def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[
     the ids of those ended."""
     now = now or utcnow()
     timeout, cutoff, alive = _stale_window(settings, now)
+    lost_after = settings.job_lost_message_timeout_s
+    lost_cutoff = now - timedelta(seconds=lost_after)
     reaped = []
     with session_scope() as session:
         lapsed = or_(Job.run_lease_until.is_(None), Job.run_lease_until < now)  # no live run renews a hold
@@ -86,6 +89,7 @@ def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[
                 or_(and_(Job.updated_at < cutoff,
                          or_(Job.worker_hostname.is_(None), Job.worker_hostname.not_in(alive),
                              Job.run_lease_until < cutoff)),  # (a run that ended without a word on a live worker)
+                    and_(between_stages, Job.updated_at < lost_cutoff),  # its next message lost unseen
                     and_(between_stages, Job.cancel_requested)),  # no run will see the cancel: ended now
             )
         ).all()
@@ -96,6 +100,9 @@ def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[
             elif job.worker_hostname not in alive_now:
                 reason = (f"worker {job.worker_hostname or '(unknown)'} stopped while the job was in {job.stage}: "
                           f"no heartbeat and no progress for {timeout:.0f} s (VOXE_JOB_STALE_TIMEOUT_S)")
+            elif job.run_token is None:
+                reason = (f"no stage started for {lost_after:.0f} s after {job.stage}: its next message is taken as "
+                          f"lost (VOXE_JOB_LOST_MESSAGE_TIMEOUT_S)")
             else:
                 reason = (f"the run of {job.stage} on worker {job.worker_hostname} stopped renewing its hold "
                           f"{timeout:.0f} s ago and made no progress (VOXE_JOB_STALE_TIMEOUT_S)")

@@ -92,7 +92,8 @@ def job_row(job_id: str):
 def test_reaper_sends_again_or_fails_only_jobs_nothing_will_finish(db):
     """A running job whose worker is gone is sent again (queued, its run's hold released), up to
     VOXE_JOB_MAX_REQUEUES times, then failed; so is one between stages whose worker is gone, without counting (one
-    on a live worker waits: its next message may be behind others'); an accepted job never sent is sent; only what
+    on a live worker waits, its next message maybe behind others', for VOXE_JOB_LOST_MESSAGE_TIMEOUT_S); an
+    accepted job never sent is sent; only what
     nothing can carry fails, and one its user asked to cancel ends canceled. The ids returned are the ended ones."""
     from sqlalchemy import update
 
@@ -116,6 +117,9 @@ def test_reaper_sends_again_or_fails_only_jobs_nothing_will_finish(db):
         "between stages, its worker gone": add_job(scene, "running", 2 * timeout, "dead@host", "edit",
                                                    completed_stages=["reconstruct", "edit"], requeues=limit),
         "no worker recorded": add_job(scene, "running", 2 * timeout, None, "reconstruct"),
+        "between stages on a live worker, its next message lost unseen": add_job(
+            scene, "running", 2 * db.job_lost_message_timeout_s, "alive@host", "edit",
+            completed_stages=["reconstruct", "edit"]),
     }
     counted = {"dead worker", "no heartbeat ever", "a live worker's run that stopped renewing long ago"}
     orphans = {"sent again too often": add_job(scene, "running", 2 * timeout, "dead@host", "edit", requeues=limit,
@@ -172,6 +176,9 @@ def test_reaper_sends_again_or_fails_only_jobs_nothing_will_finish(db):
     assert dead.completed_stages == ["reconstruct"]
     assert job_row(requeued["no worker recorded"]).message.startswith(
         "re-queued: worker (unknown) stopped while the job was in reconstruct")
+    assert job_row(requeued["between stages on a live worker, its next message lost unseen"]).message == (
+        f"re-queued: no stage started for {db.job_lost_message_timeout_s:.0f} s after edit: its next message is "
+        f"taken as lost (VOXE_JOB_LOST_MESSAGE_TIMEOUT_S)")
     assert job_row(requeued["a live worker's run that stopped renewing long ago"]).message == (
         f"re-queued: the run of edit on worker alive@host stopped renewing its hold {timeout:.0f} s ago and made "
         f"no progress (VOXE_JOB_STALE_TIMEOUT_S)")

@@ -100,6 +100,10 @@ class Settings(BaseSettings):
     # not redelivered: the API's reaper sends its remaining stages again (api/reaper.py). Also
     # sends queued jobs the API never handed to the broker.
     job_stale_timeout_s: float = Field(900.0, gt=0)
+    # A job between stages on a live worker whose next stage has not started for this long: its message is taken
+    # as lost without the worker seeing it (a broker that lost what it had accepted) and sent again. Long, as it
+    # may wait its turn behind other jobs' on a busy queue; a copy that still comes is dropped or skipped.
+    job_lost_message_timeout_s: float = Field(6 * 3600.0, gt=0)
     # A job whose worker stopped mid-stage is sent again (by the reaper, or by its worker restarting) at most
     # this many times; then it fails, so a job that kills its workers cannot loop for ever.
     job_max_requeues: int = Field(3, ge=0)

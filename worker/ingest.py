@@ -163,7 +163,8 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
 
 def _uncount_run(scene_id: str) -> None:
     """A run a worker's shutdown stopped is not one the upload killed: it does not count towards the limit (four
-    deploys had failed a scene as "killed: out of memory?")."""
+    deploys had failed a scene as "killed: out of memory?"). Only where the shutdown raises in the task (the solo
+    pool's); a prefork pool's children are ended from outside, and their runs still count."""
     try:
         with session_scope() as session:
             session.execute(update(Scene).where(Scene.id == scene_id, Scene.state == PROCESSING,
