@@ -265,7 +265,8 @@ def test_a_stage_whose_next_message_the_broker_refuses_leaves_its_job_for_the_re
     """Celery sends a chain's next message after the task returns; refused, the task fails with the job running
     between stages, held by no run, which the reaper leaves alone on a live worker (it may be waiting its turn).
     The worker says so: the job is queued with no task id (sent at once if the broker takes it), and the reaper's
-    pass once the broker is back sends it, its done stages kept, no re-queue counted. Other failures touch nothing."""
+    pass once the broker is back sends it, its done stages kept, no re-queue counted. A job that had ended carried
+    only its sweep's evaluation in the lost message: it is sent alone. A task that fails otherwise touches nothing."""
     from celery import Celery
     from kombu.exceptions import OperationalError
     from sqlalchemy import update
@@ -280,29 +281,50 @@ def test_a_stage_whose_next_message_the_broker_refuses_leaves_its_job_for_the_re
     scene = add_scene()
     # The redelivered edit message of a job whose edit is done: skipped, and its chain goes on to refine.
     job_id = add_job(scene, "running", 0, "alive@host", "edit", mode="local", completed_stages=["reconstruct", "edit"])
-    untouched = add_job(scene, "running", 0, "alive@host", "edit", run_token="t",  # a run holds it
-                        run_lease_until=utcnow() + timedelta(seconds=60), completed_stages=["reconstruct", "edit"])
+    ended = add_job(scene, "succeeded", 0, "alive@host", "export", batch_id="b", task_id="chain",
+                    completed_stages=["reconstruct", "edit", "export"])
+    evaluation = add_job(scene, "queued", 0, mode="evaluate", batch_id="b", task_id="chain", source_job_ids=[ended])
+    refusals = []
 
     def refused(*args, **kwargs):
+        refusals.append(args)
         raise OperationalError("Error 111 connecting to 127.0.0.1:6379. Connection refused.")
 
     with monkeypatch.context() as broker_down:
         broker_down.setattr(Celery, "send_task", refused)
         result = tasks.edit_task.apply(args=(job_id,), link=tasks.refine_task.si(job_id), throw=False)
         assert result.state == "FAILURE" and isinstance(result.result, OperationalError)
-        tasks.edit_task.apply(args=(untouched,), link=tasks.refine_task.si(untouched), throw=False)
     job = job_row(job_id)
     assert (job.state, job.task_id, job.run_token, job.requeues, job.error) == ("queued", None, None, 0, None)
     assert job.message.startswith("re-queued: the message of the stage after edit could not be sent: "
                                   "OperationalError: Error 111")
     assert [e["kind"] for e in events_of(job_id)] == ["requeued"]
-    assert (job_row(untouched).state, job_row(untouched).run_token) == ("running", "t")
     with session_scope() as session:  # the broker is back, a stale window later
         session.execute(update(Job).where(Job.id == job_id).values(updated_at=utcnow() - timedelta(seconds=2 * timeout)))
     assert reap_orphaned_jobs(db) == []
     sent = job_row(job_id)
     assert (sent.state, sent.completed_stages, sent.requeues) == ("queued", ["reconstruct", "edit"], 0)
     assert sent.task_id is not None
+
+    send_task, sends = Celery.send_task, []
+
+    def refused_once(self, *args, **kwargs):  # the ended job's evaluation, riding after its export: refused once
+        sends.append(args)
+        if len(sends) == 1:
+            raise OperationalError("Error 111 connecting to 127.0.0.1:6379. Connection refused.")
+        return send_task(self, *args, **kwargs)
+
+    with monkeypatch.context() as broker_blip:
+        broker_blip.setattr(Celery, "send_task", refused_once)
+        assert tasks.export_task.apply(args=(ended,), link=tasks.evaluate_task.si(evaluation), throw=False).failed()
+    assert job_row(evaluation).task_id not in (None, "chain") and job_row(evaluation).state == "queued"
+    assert (job_row(ended).state, job_row(ended).error) == ("succeeded", None)  # sent alone, the job's end standing
+    # A stage's task failing otherwise (its job held by a run, or its stage not done) leaves the job as it is.
+    held = add_job(scene, "running", 0, "alive@host", "edit", run_token="t", completed_stages=["reconstruct", "edit"])
+    undone = add_job(scene, "running", 0, "alive@host", "edit", completed_stages=["reconstruct"])
+    for other in (held, undone):
+        tasks._next_stage_unsent(sender=tasks.edit_task, args=(other,), exception=RuntimeError("boom"))
+        assert (job_row(other).state, events_of(other)) == ("running", []), other
 
 
 def test_a_cancel_between_stages_ends_the_job_at_the_next_reaper_pass(db):

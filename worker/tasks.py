@@ -42,8 +42,8 @@ from voxe_service.models import (
 from voxe_service.model_inventory import (ROLES, check_models, job_models, missing_message, model_present,
                                           submission_note)
 from voxe_service.queue import (
-    INGEST_TASK, STAGE_TASKS, QueueUnavailable, TaskResult, get_queue, is_sql_broker, job_stages, requeue_interrupted,
-    reset_queue,
+    INGEST_TASK, STAGE_TASKS, QueueUnavailable, TaskResult, dispatch_job, evaluations_waiting_on, get_queue,
+    is_sql_broker, job_stages, requeue_interrupted, reset_queue,
 )
 from voxe_service.settings import get_settings, model_label
 from voxe_service.storage import StoredObject, get_storage, job_key, reconstruction_storage_key
@@ -692,13 +692,21 @@ def _next_stage_unsent(sender=None, args=None, exception=None, **_kwargs) -> Non
     """A stage task that fails after its stage finished failed to hand its chain's next message to the broker
     (Celery's send after the task returns; every failure inside a stage ends the job in ``_run_stage``). The job,
     between stages and held by no run, is sent again at once, or left queued with no task id for the reaper to send
-    when the broker is back: nothing else would (the reaper cannot tell a lost message from one waiting its turn)."""
+    when the broker is back: nothing else would (the reaper cannot tell a lost message from one waiting its turn).
+    A job that has ended (its last stage done, or failed) had only its sweep's evaluations in that message: they are
+    sent alone, or fail with the reason."""
     stage = next((name for name, spec in STAGE_TASKS.items() if spec.name == getattr(sender, "name", None)), None)
     if stage is None or not args:
         return
     reason = f"the message of the stage after {stage} could not be sent: {type(exception).__name__}: {exception}"
     with runtime.session_scope() as session:
         job = session.get(Job, args[0])
+        if job is not None and job.state in TERMINAL_STATES and evaluations_waiting_on(session, job):
+            try:  # the job ended (its last stage, or a failure): its sweep's evaluations rode in the lost message
+                dispatch_job(session, get_queue(), job, done=job_stages(job.mode), message=job.message)
+            except QueueUnavailable:  # failed with the reason: they have no chain left to wait in
+                log.warning("job %s: %s; its evaluations failed with the reason", job.id, reason)
+            return
         if job is None or job.state != RUNNING or job.run_token is not None or stage not in (job.completed_stages or []):
             return
         try:
