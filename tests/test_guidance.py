@@ -365,6 +365,25 @@ def test_incomplete_local_folders_are_reported(tiny_path, tmp_path):
         StableDiffusionGuidance.from_pretrained(str(no_tok), local_files_only=True)
 
 
+def test_a_prompt_is_counted_against_what_the_text_encoder_reads_whatever_its_tokenizer_says(guidance):
+    """A tokenizer config without model_max_length says 1e30: the worker's check before a fit had then passed an
+    82-token prompt the guidance refuses at 77, after the fit. Both read the encoder's positions."""
+    from voxe_core.guidance.prompts import check_prompt_tokens, tokens_read
+
+    tokenizer, positions = guidance.tokenizer, guidance.text_encoder.config.max_position_embeddings
+    assert tokens_read(tokenizer, positions) == guidance.max_length == 77
+    long = "a mic wearing " + "zyxwv " * 14 + "sunglasses"
+    original = tokenizer.model_max_length
+    try:
+        tokenizer.model_max_length = int(1e30)
+        assert tokens_read(tokenizer, positions) == 77
+        with pytest.raises(ValueError, match="is 82 tokens as the model's tokenizer reads it; its text encoder reads 77"):
+            check_prompt_tokens(long, tokenizer, tokens_read(tokenizer, positions))
+    finally:
+        tokenizer.model_max_length = original
+    check_prompt_tokens("a mic wearing big sunglasses", tokenizer, tokens_read(tokenizer, positions))
+
+
 def test_a_home_relative_folder_is_a_folder_not_a_hub_id(tiny_path, tmp_path, monkeypatch):
     """VOXE_SDS_MODEL=~/models/sd had been read as a hub id: reported missing, with `hf download ~/models/sd`."""
     from voxe_core.guidance.loading import load_stable_diffusion, model_file_present

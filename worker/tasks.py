@@ -176,7 +176,7 @@ def _check_job_can_start(job: Job, settings) -> None:
     when its SDS model's tokenizer reads its prompt as longer than the text encoder does (the API's check is a
     lower bound: BPE splits some words into several tokens)."""
     from voxe_core.guidance.loading import load_clip_tokenizer, loading_errors
-    from voxe_core.guidance.prompts import check_prompt_tokens
+    from voxe_core.guidance.prompts import check_prompt_tokens, tokens_read
 
     needed = job_models(job.mode, job.sds_model, job.attention_model, job.params or {})
     missing = [missing_message(role, model, "this worker")
@@ -185,13 +185,18 @@ def _check_job_can_start(job: Job, settings) -> None:
         raise CannotStart("; ".join(missing))
     if "sds" not in needed:
         return
+    from transformers import CLIPTextConfig
+
+    model = runtime.resolve_model(job.sds_model, settings)
     try:
-        tokenizer = load_clip_tokenizer(runtime.resolve_model(job.sds_model, settings), subfolder="tokenizer",
-                                        local_files_only=True)
+        tokenizer = load_clip_tokenizer(model, subfolder="tokenizer", local_files_only=True)
+        positions = CLIPTextConfig.from_pretrained(model, subfolder="text_encoder",
+                                                   local_files_only=True).max_position_embeddings
     except loading_errors():  # the edit's loading says what is wrong with the model
         return
     try:
-        check_prompt_tokens(job.prompt, tokenizer, (job.params or {}).get("view_words", True))
+        check_prompt_tokens(job.prompt, tokenizer, tokens_read(tokenizer, positions),
+                            (job.params or {}).get("view_words", True))
     except ValueError as exc:
         raise CannotStart(str(exc)) from None
 

@@ -84,12 +84,18 @@ def tokens_at_least(text: str) -> int:
     return len(_CLIP_PIECES.findall(unicodedata.normalize("NFC", text))) + 2
 
 
-def check_prompt_tokens(user_text: str, tokenizer, view_words: bool = True) -> None:
+def tokens_read(tokenizer, max_position_embeddings: int) -> int:
+    """The tokens a model's text encoder reads: its positions, or fewer where its tokenizer cuts there (a tokenizer
+    config without ``model_max_length`` says 1e30)."""
+    return int(min(tokenizer.model_max_length, max_position_embeddings))
+
+
+def check_prompt_tokens(user_text: str, tokenizer, limit: int, view_words: bool = True) -> None:
     """ValueError when a prompt an edit gives the diffusion model ("a render of <text>", with each view word unless
     ``view_words`` is off) is more tokens under the model's ``tokenizer`` (CLIPTokenizer; start and end tokens
-    included) than its text encoder reads: the exact count :func:`check_prompt_length` bounds from below, for a
-    caller holding the tokenizer (a worker, before a job's fit: the guidance would refuse it only at the edit)."""
-    limit = int(tokenizer.model_max_length)
+    included) than its text encoder reads (``limit``: :func:`tokens_read`): the exact count
+    :func:`check_prompt_length` bounds from below, for a caller holding the tokenizer (a worker, before a job's
+    fit: the guidance would refuse it only at the edit)."""
     for view in VIEW_WORDS if view_words else (None,):
         prompt = edit_prompt(user_text, view)
         if (tokens := len(tokenizer(prompt).input_ids)) > limit:

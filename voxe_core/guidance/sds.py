@@ -59,7 +59,7 @@ from voxe_core.guidance.attention import AttentionStore, capturing
 from voxe_core.guidance.compiled import CompiledEncoder
 from voxe_core.guidance.cuda_graphs import GraphedEncoder, GraphedUNet
 from voxe_core.guidance.loading import load_stable_diffusion
-from voxe_core.guidance.prompts import without_view_word
+from voxe_core.guidance.prompts import tokens_read, without_view_word
 
 
 PREDICTION_TYPES = ("epsilon", "v_prediction", "sample")
@@ -183,7 +183,7 @@ class StableDiffusionGuidance:
         self.latent_shift = float(shift) if shift is not None else 0.0
         self.num_train_timesteps = int(scheduler.config.num_train_timesteps)
         self.alphas_cumprod = scheduler.alphas_cumprod.to(device=self.device, dtype=torch.float32)
-        self.max_length = int(min(tokenizer.model_max_length, text_encoder.config.max_position_embeddings))
+        self.max_length = tokens_read(tokenizer, text_encoder.config.max_position_embeddings)
         self._embedding_cache: dict[str, torch.Tensor] = {}
         # Synchronise CUDA around the timed parts so the *_ms diagnostics are
         # true device times (a few syncs per step, the benchmarks ask for it);
