@@ -114,6 +114,37 @@ def test_undistorting_nothing_and_the_centre():
     assert float(ux) == 0.0 and float(uy) == 0.0
 
 
+def test_undistorting_keeps_to_the_branch_that_holds_the_axis():
+    """r (1 + k1 r² + k2 r⁴) stops increasing where 1 + 3 k1 r² + 5 k2 r⁴ = 0: an image point beyond that fold's
+    image has no ray on the axis's branch (NaN), though a root past the fold maps back to it too."""
+    k1, k2 = -0.2251, 0.0224
+    k = torch.tensor([k1, k2, 0.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    fold = math.sqrt((-3 * k1 - math.sqrt(9 * k1 * k1 - 20 * k2)) / (10 * k2))  # r ≈ 1.617
+    edge = fold * (1 + k1 * fold**2 + k2 * fold**4)  # its image, ≈ 0.913
+    xd = torch.tensor([0.0, 0.5, 0.99, 1.01], dtype=torch.float64) * edge
+    x, y = undistort_points(xd, torch.zeros_like(xd), k)
+    assert torch.isfinite(x[:3]).all() and (x[:3] < fold).all()
+    assert torch.allclose(distort_points(x[:3], y[:3], k)[0], xd[:3], atol=1e-12)
+    assert torch.isnan(x[3]) and torch.isnan(y[3])
+
+
+def test_no_undistorted_point_sits_where_the_tangential_terms_fold_the_image():
+    """Inside the radial fold, p1 turns the map's Jacobian negative near (1.15, -0.7): a root there is no ray."""
+    k = torch.tensor([0.5, -0.2, 0.0, 0.0, 0.1, 0.0], dtype=torch.float64)
+    xd, yd = grid_points(1.5, 61)
+    x, y = undistort_points(xd, yd, k)
+    found = torch.isfinite(x)
+    assert found.sum() > 2800 and torch.isnan(y[~found]).all()
+    x, y, h = x[found], y[found], 1e-6
+
+    def derivatives(dx, dy):  # of (xd, yd) along (dx, dy), by central differences
+        return [(plus - minus) / (2 * h) for plus, minus in zip(distort_points(x + dx, y + dy, k),
+                                                                 distort_points(x - dx, y - dy, k))]
+
+    (a, c), (b, d) = derivatives(h, 0.0), derivatives(0.0, h)
+    assert (a * d - b * c > 0).all()
+
+
 def test_rays_go_through_the_undistorted_point_and_project_back_to_their_pixel():
     c2w = look_at(torch.tensor([[0.0, -4.0, 1.0]]))
     cams = Cameras(c2w, torch.tensor([50.0]), torch.tensor([52.0]), torch.tensor([31.0]), torch.tensor([25.0]),
@@ -224,7 +255,7 @@ def test_a_fisheye_without_coefficients_is_equidistant_not_a_pinhole(tmp_path, m
     ({"camera_model": "OPENCV_FISHEYE", "p1": 0.01}, None, 0, "OPENCV_FISHEYE has no such distortion term, but p1"),
     ({"camera_model": "OPENCV", "k2": "0.1"}, None, None, "'k2' must be a number"),
     ({"camera_model": "OPENCV"}, {1: {"k1": float("nan")}}, 1, "'k1' is not finite"),
-    ({"camera_model": "OPENCV", "k1": -3.0}, None, 0, "cannot be inverted at pixel"),
+    ({"camera_model": "OPENCV", "k1": -3.0}, None, 0, r"distortion \(k1 = -3\) folds the image over at pixel \(0, 0\)"),
 ])
 def test_bad_lens_names_file_frame_and_problem(tmp_path, top, frame_extra, frame, message):
     root = write_capture(tmp_path / "bad", frame_extra=frame_extra, **top)
@@ -233,6 +264,23 @@ def test_bad_lens_names_file_frame_and_problem(tmp_path, top, frame_extra, frame
     prefix = "transforms.json" + (f" frame {frame} ('images/{frame:03d}.png')" if frame is not None else ":")
     assert str(err.value).startswith(prefix), str(err.value)
     assert err.value.frame == frame
+
+
+def test_a_lens_that_folds_inside_its_image_is_refused_and_one_that_nearly_does_loads(tmp_path):
+    """k1 = -0.2251, k2 = 0.0224 at f = 101.75 fold 93 px from the centre of 160 x 120 (its corner: 100 px), where the
+    corner rays had jumped 10° in 2 px; k1 = -0.3379, k2 = 0.0515 at f = 55.2 never folds (9 k1² < 20 k2) and had been
+    refused when Newton did not converge in time."""
+    capture = dict(size=(160, 120), camera_model="OPENCV", cx=80.0, cy=60.0, w=160, h=120)
+    folded = write_capture(tmp_path / "folded", fl_x=101.75, fl_y=101.75, k1=-0.2251, k2=0.0224, **capture)
+    with pytest.raises(DatasetError, match=r"k2 = 0.0224\) folds the image over at pixel \(0, 0\)"):
+        load_scene(folded)
+    near = load_scene(write_capture(tmp_path / "near", fl_x=55.2, fl_y=55.2, k1=-0.3379, k2=0.0515, **capture)).cameras
+    corners = torch.tensor([0.0, 160.0]), torch.tensor([0.0, 120.0])
+    _, directions = pixel_rays(near, torch.zeros(2, dtype=torch.long), *corners)
+    local = directions.double() @ near.c2w[0, :3, :3].double()  # world -> camera (OpenGL axes)
+    xd, yd = distort_points(local[:, 0] / -local[:, 2], local[:, 1] / local[:, 2], near.distortion[0].double())
+    assert torch.allclose(xd * 55.2 + 80, corners[0].double(), atol=1e-3)
+    assert torch.allclose(yd * 55.2 + 60, corners[1].double(), atol=1e-3)
 
 
 @needs.needs_data(FOX)

@@ -20,8 +20,10 @@ from voxe_core.constants import NERF_SYNTHETIC_RADIUS
 
 DISTORTION_MODELS = ("opencv", "fisheye")
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")  # the columns of ``Cameras.distortion``
-_NEWTON_STEPS = 20
+_NEWTON_STEPS = 50
+_NEWTON_HALVINGS = 30  # of a step that would leave the lens's fold or not reduce the residual
 _NEWTON_TOLERANCE = 1e-12  # in normalised image coordinates (about 1e-9 pixels)
+_NEWTON_CONVERGED = 1e-9  # a point left farther than this from its image has no ray (NaN)
 
 
 @dataclass
@@ -131,7 +133,7 @@ def pixel_rays(
     cx, cy = cameras.cx[camera_index], cameras.cy[camera_index]
     x, y = (u - cx) / fx, (v - cy) / fy
     if cameras.distortion is not None:
-        x, y = undistort_points(x, y, cameras.distortion[camera_index], cameras.distortion_model)
+        x, y = undistort_points(x, y, cameras.distortion, cameras.distortion_model, camera_index)
     local = torch.stack([x, -y, -torch.ones_like(u)], dim=-1)
     c2w = cameras.c2w[camera_index]
     directions = torch.einsum("nij,nj->ni", c2w[:, :3, :3], local)
@@ -171,14 +173,16 @@ def distort_points(
 
 
 def undistort_points(
-    xd: torch.Tensor, yd: torch.Tensor, coefficients: torch.Tensor, model: str = "opencv"
+    xd: torch.Tensor, yd: torch.Tensor, coefficients: torch.Tensor, model: str = "opencv",
+    lens: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The normalised points that ``distort_points`` takes to (xd, yd): Newton's method in float64.
 
-    ``xd``, ``yd``: (R,); ``coefficients``: (R, 6) or (6,). Returns the inputs' dtype. OpenCV's
-    model is inverted in 2-D with its exact Jacobian, the fisheye in 1-D on the angle θ (as
-    OpenCV does); both start at the distorted point, within the basin for real lenses. A
-    point no ray images (θ ≥ 90°) comes back NaN.
+    ``xd``, ``yd``: (R,); ``coefficients``: (R, 6) or (6,), or (C, 6) with ``lens`` (R,) naming each point's row
+    (a capture's few lenses are then analysed once, not once per point). Returns the inputs' dtype. The fisheye
+    is inverted on its angle θ (as OpenCV does). Only the branch that holds the optical axis counts: a point
+    past the lens's fold (where the radial map stops increasing), where the map's Jacobian is not positive, where
+    Newton did not converge, or that no ray images (a fisheye's θ ≥ 90°) comes back NaN.
 
     Examples:
         >>> import torch
@@ -187,38 +191,101 @@ def undistort_points(
         >>> round(float(x), 6), round(float(y), 6)
         (0.3, -0.2)
     """
-    k1, k2, k3, k4, p1, p2 = coefficients.double().expand(xd.shape + (6,)).unbind(-1)
-    target_x, target_y = xd.double(), yd.double()
+    table = coefficients.double().reshape(-1, 6)
     if model == "fisheye":
-        theta_d = torch.hypot(target_x, target_y)
-        theta = theta_d.clone()
-        for _ in range(_NEWTON_STEPS):
-            t2 = theta * theta
-            residual = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))) - theta_d
-            if residual.numel() == 0 or float(residual.abs().max()) < _NEWTON_TOLERANCE:
-                break
-            slope = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
-            theta = theta - residual / slope
-        scale = torch.where(theta_d > 1e-12, torch.tan(theta) / theta_d.clamp_min(1e-12), torch.ones_like(theta))
-        scale = torch.where((theta >= 0) & (theta < 0.5 * math.pi), scale, torch.full_like(scale, math.nan))
-        return (target_x * scale).to(xd.dtype), (target_y * scale).to(yd.dtype)
-    x, y = target_x.clone(), target_y.clone()
-    for _ in range(_NEWTON_STEPS):
-        fx, fy = distort_points(x, y, coefficients.double(), model)
-        rx, ry = fx - target_x, fy - target_y
-        if rx.numel() == 0 or max(float(rx.abs().max()), float(ry.abs().max())) < _NEWTON_TOLERANCE:
-            break
-        r2 = x * x + y * y
-        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * (k3 + r2 * k4)))
-        slope = k1 + r2 * (2 * k2 + r2 * (3 * k3 + r2 * 4 * k4))  # d radial / d r²
-        a = radial + 2 * x * x * slope + 2 * p1 * y + 6 * p2 * x  # J = [[a, b], [c, d]]
-        b = 2 * x * y * slope + 2 * p1 * x + 2 * p2 * y
-        c = 2 * x * y * slope + 2 * p1 * x + 2 * p2 * y
-        d = radial + 2 * y * y * slope + 6 * p1 * y + 2 * p2 * x
-        det = a * d - b * c
-        det = torch.where(det.abs() > 1e-12, det, torch.full_like(det, 1e-12))
-        x, y = x - (d * rx - b * ry) / det, y - (a * ry - c * rx) / det
+        # θ_d = θ (1 + k1 θ² + ... + k4 θ⁸) is OPENCV's radial map of the angle: invert it on the vector θ (x, y) / r.
+        radial = torch.cat([table[:, :4], torch.zeros_like(table[:, 4:])], 1)  # p1, p2: unused by the fisheye
+        ax, ay = _invert_radial_tangential(xd, yd, radial, lens)
+        theta = torch.hypot(ax, ay)
+        scale = torch.where(theta > 1e-12, torch.tan(theta) / theta.clamp_min(1e-12), torch.ones_like(theta))
+        scale = scale.masked_fill(theta >= 0.5 * math.pi, math.nan)
+        return (ax * scale).to(xd.dtype), (ay * scale).to(yd.dtype)
+    x, y = _invert_radial_tangential(xd, yd, table, lens)
     return x.to(xd.dtype), y.to(yd.dtype)
+
+
+def _invert_radial_tangential(
+    xd: torch.Tensor, yd: torch.Tensor, table: torch.Tensor, lens: torch.Tensor | None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """OPENCV's model inverted inside its fold, float64 (``undistort_points``' contract, NaN included).
+
+    Newton with its exact Jacobian from the distorted point (from half the fold's radius where that point lies past
+    it), each step halved while it would leave the fold or not reduce the residual, so the iterates stay on the
+    branch that holds the optical axis: past the fold a second root also maps back to the pixel, and its rays jump.
+    Each step works only on the points not yet converged, nor stuck.
+    """
+    lens = torch.arange(len(table), device=xd.device).expand(xd.shape) if lens is None else lens
+    fold, coefficients = _radial_folds(table)[lens], table[lens]
+    target = torch.stack([xd.double(), yd.double()], -1)
+    r2 = target.square().sum(-1)
+    point = target * torch.where(r2 < fold, torch.ones_like(r2), 0.5 * (fold / r2).sqrt())[:, None]
+    error = _residual(point, target, coefficients)
+    stuck = torch.zeros_like(r2, dtype=torch.bool)
+    for _ in range(_NEWTON_STEPS):
+        active = ((error.norm(dim=-1) >= _NEWTON_TOLERANCE) & ~stuck).nonzero()[:, 0]
+        if len(active) == 0:
+            break
+        point[active], error[active], stuck[active] = _newton_step(
+            point[active], error[active], target[active], coefficients[active], fold[active])
+    a, b, d = _jacobian(point, coefficients)
+    lost = (error.norm(dim=-1) > _NEWTON_CONVERGED) | (a * d - b * b <= 0)
+    return point.masked_fill(lost[:, None], math.nan).unbind(-1)
+
+
+def _newton_step(point, error, target, coefficients, fold):
+    """One Newton step of (R, 2) points, each halved while it would leave the fold or not reduce the residual:
+    the new points, their residuals, and whether a point was refused every halving (it stays, and would again)."""
+    a, b, d = _jacobian(point, coefficients)
+    det = a * d - b * b
+    det = torch.where(det.abs() > 1e-12, det, torch.full_like(det, 1e-12))
+    rx, ry = error.unbind(-1)
+    step = torch.stack([d * rx - b * ry, a * ry - b * rx], -1) / det[:, None]
+    norm = error.norm(dim=-1)
+    length = torch.ones_like(norm)
+    for _ in range(_NEWTON_HALVINGS):
+        new_point = point - length[:, None] * step
+        new_error = _residual(new_point, target, coefficients)
+        refused = (new_point.square().sum(-1) >= fold) | (new_error.norm(dim=-1) > norm)
+        if not bool(refused.any()):
+            break
+        length = torch.where(refused, 0.5 * length, length)
+    keep = refused[:, None]
+    return torch.where(keep, point, new_point), torch.where(keep, error, new_error), refused
+
+
+def _residual(point: torch.Tensor, target: torch.Tensor, coefficients: torch.Tensor) -> torch.Tensor:
+    return torch.stack(distort_points(*point.unbind(-1), coefficients), -1) - target
+
+
+def _jacobian(point: torch.Tensor, coefficients: torch.Tensor):
+    """OPENCV's distortion Jacobian at (R, 2) points: (a, b, d) of the symmetric [[a, b], [b, d]]."""
+    x, y = point.unbind(-1)
+    k1, k2, k3, k4, p1, p2 = coefficients.unbind(-1)
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * (k3 + r2 * k4)))
+    slope = k1 + r2 * (2 * k2 + r2 * (3 * k3 + r2 * 4 * k4))  # d radial / d r²
+    return (radial + 2 * x * x * slope + 2 * p1 * y + 6 * p2 * x,
+            2 * x * y * slope + 2 * p1 * x + 2 * p2 * y,
+            radial + 2 * y * y * slope + 6 * p1 * y + 2 * p2 * x)
+
+
+def _radial_folds(table: torch.Tensor) -> torch.Tensor:
+    """(C,) for each row of ``table`` (C, 6), the r² where the radial map r (1 + k1 r² + ... + k4 r⁸) first stops
+    increasing (inf: it never does). Inside it each image point has one ray; past it the image folds over.
+
+    The map's slope is p(s) = 1 + 3 k1 s + 5 k2 s² + 7 k3 s³ + 9 k4 s⁴ (s = r²); its roots are 1 / the roots of the
+    monic s⁴ p(1/s), whose companion matrix needs no leading coefficient to be non-zero.
+    """
+    finite = torch.isfinite(table).all(-1)
+    k1, k2, k3, k4 = table.detach().cpu().where(finite.cpu()[:, None], 0).unbind(-1)[:4]
+    companion = torch.zeros(len(table), 4, 4, dtype=torch.float64)
+    companion[:, 1:, :3] = torch.eye(3, dtype=torch.float64)
+    companion[:, :, 3] = -torch.stack([9 * k4, 7 * k3, 5 * k2, 3 * k1], -1)
+    roots = torch.linalg.eigvals(companion)
+    # A double root (p touching zero: a fold) can come back as a pair with a tiny imaginary part.
+    real = (roots.imag.abs() <= 1e-6 * roots.abs()) & (roots.real > 0)
+    largest = torch.where(real, roots.real, torch.zeros_like(roots.real)).amax(-1)
+    return (1 / largest).to(table.device).where(finite, math.nan)
 
 
 def look_at(eye: torch.Tensor, target: torch.Tensor | None = None, up=(0.0, 0.0, 1.0)) -> torch.Tensor:

@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
-from .cameras import DISTORTION_KEYS, Cameras, distort_points, undistort_points
+from .cameras import DISTORTION_KEYS, Cameras, undistort_points
 from .colmap import ColmapError, read_model
 
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y")
@@ -50,7 +50,6 @@ _COLMAP_MODELS = {
 COLMAP_MODEL_DIR = Path("sparse") / "0"
 COLMAP_IMAGE_DIR = "images"
 _OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])  # camera axes: y down, z forward -> y up, z backward
-_ROUND_TRIP_PIXELS = 1e-3  # undistort-then-distort must land this close on every sampled pixel
 _MIN_FOCAL = 1e-3  # pixels; below this the projection is numerically singular
 _FLOAT32_MAX = float(np.finfo(np.float32).max)  # Cameras hold float32: a larger magnitude would become inf
 _SIXTEEN_BIT_MODES = ("I;16", "I;16L", "I;16B", "I;16N", "I")
@@ -293,7 +292,8 @@ def _check_distortion(model: str, intrinsics: dict, where: _Where, frame: int) -
 
 
 def _check_invertible(cams: Cameras, keep: list[int], where: _Where) -> None:
-    """Every camera's distortion must be invertible over its image (else rays would go astray silently)."""
+    """Every camera's lens must give each sampled pixel one ray. Where the distortion folds the image over, a
+    second ray also maps back to the pixel and the rays jump across the fold (``undistort_points``: NaN)."""
     v, u = torch.meshgrid(torch.linspace(0, cams.height, 17, dtype=torch.float64),
                           torch.linspace(0, cams.width, 17, dtype=torch.float64), indexing="ij")
     u, v = u.reshape(-1), v.reshape(-1)
@@ -305,16 +305,13 @@ def _check_invertible(cams: Cameras, keep: list[int], where: _Where) -> None:
         if lens in checked:  # most captures share one lens
             continue
         checked.add(lens)
-        xd, yd = (u - cx) / fx, (v - cy) / fy
-        x, y = undistort_points(xd, yd, k, cams.distortion_model)
-        rx, ry = distort_points(x, y, k, cams.distortion_model)
-        error = torch.maximum((rx - xd).abs() * fx, (ry - yd).abs() * fy)
-        error = torch.where(torch.isfinite(error), error, torch.full_like(error, math.inf))
-        worst = int(error.argmax())
-        if not float(error[worst]) <= _ROUND_TRIP_PIXELS:
+        x, _ = undistort_points((u - cx) / fx, (v - cy) / fy, k, cams.distortion_model)
+        folded = torch.isnan(x)
+        if folded.any():
+            first = int(folded.int().argmax())
             coefficients = ", ".join(f"{n} = {float(c):g}" for n, c in zip(DISTORTION_KEYS, k) if c != 0)
-            raise where(f"lens distortion ({coefficients}) cannot be inverted at pixel ({float(u[worst]):.0f}, "
-                        f"{float(v[worst]):.0f}) of the image: the coefficients fold the image over", frame)
+            raise where(f"lens distortion ({coefficients}) folds the image over at pixel ({float(u[first]):.0f}, "
+                        f"{float(v[first]):.0f}): its rays there would jump across the fold", frame)
 
 
 def colmap_transforms(root: Path) -> tuple[Path, dict]:
