@@ -241,6 +241,20 @@ def test_a_fisheye_without_coefficients_is_equidistant_not_a_pinhole(tmp_path, m
     assert torch.allclose(off_axis_degrees(nerfstudio, 0, *PIXELS), expected, atol=1e-3)
 
 
+def test_a_fisheye_sees_past_90_degrees_but_no_ray_is_past_180(tmp_path):
+    """An ideal equidistant fisheye (θ = r / f) at f = 60 over 160 x 120 sees 191° across its diagonal: its corner's
+    ray is 100 / 60 rad (95.5°) off axis, on no point of the image plane (it had been refused as a fold). At f = 30
+    the corner would be 191° off axis, where no ray is."""
+    capture = dict(size=(160, 120), camera_model="OPENCV_FISHEYE", cx=80.0, cy=60.0, w=160, h=120)
+    wide = load_scene(write_capture(tmp_path / "wide", fl_x=60.0, fl_y=60.0, **capture)).cameras
+    u, v = torch.tensor([0.0, 160.0, 80.0, 0.0, 80.0]), torch.tensor([0.0, 120.0, 0.0, 60.0, 60.0])
+    expected = torch.hypot(u - 80, v - 60).double() / 60
+    assert torch.allclose(torch.deg2rad(off_axis_degrees(wide, 0, u, v)), expected, atol=1e-5)
+    with pytest.raises(DatasetError, match=r"fisheye lens images pixel \(0, 0\) 191° off its axis \(a field of "
+                                           r"view of 382°\), but no ray is more than 180° off it"):
+        load_scene(write_capture(tmp_path / "wider", fl_x=30.0, fl_y=30.0, **capture))
+
+
 @pytest.mark.parametrize("top, frame_extra, frame, message", [
     ({"camera_model": "EQUIRECTANGULAR"}, None, None, "camera_model 'EQUIRECTANGULAR' is not supported"),
     ({}, {2: {"camera_model": "FISHEYE"}}, 2, "camera_model 'FISHEYE' is not supported"),

@@ -4,8 +4,9 @@ Camera-to-world matrices look down -z with +y up; pixel centres sit at i + 0.5.
 Ray directions are unit length so ray parameters are world distances.
 Lens distortion (OpenCV's radial-tangential model or its fisheye model, as COLMAP and
 nerfstudio record them) is applied by casting each ray through the undistorted point
-of its pixel: the distortion is inverted by Newton's method in float64 per ray, so the
-images are used as captured (no resampling blur, no lost border).
+of its pixel (a fisheye's at its angle off the axis, so up to 180°): the distortion is
+inverted by Newton's method in float64 per ray, so the images are used as captured (no
+resampling blur, no lost border).
 """
 
 from __future__ import annotations
@@ -127,14 +128,23 @@ def pixel_rays(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Rays through image coordinates (u right, v down, in pixels) of the given cameras.
 
-    With lens distortion, each ray goes through the point whose distorted image is (u, v).
+    With lens distortion, each ray goes through the point whose distorted image is (u, v); a fisheye's leaves at
+    its angle θ, as (sin θ x / r, sin θ y / r, cos θ), so past 90° too, where no point of the image plane lies on
+    it (θ ≥ 180°: NaN).
     """
     fx, fy = cameras.fx[camera_index], cameras.fy[camera_index]
     cx, cy = cameras.cx[camera_index], cameras.cy[camera_index]
     x, y = (u - cx) / fx, (v - cy) / fy
-    if cameras.distortion is not None:
+    z = torch.ones_like(x)
+    if cameras.distortion is not None and cameras.distortion_model == "fisheye":
+        theta = fisheye_angles(x, y, cameras.distortion, camera_index)
+        theta = theta.masked_fill(theta >= math.pi, math.nan)
+        theta_d = torch.hypot(x, y)
+        scale = torch.where(theta_d > 0, theta.sin() / theta_d, torch.ones_like(theta))
+        x, y, z = x * scale, y * scale, theta.cos()
+    elif cameras.distortion is not None:
         x, y = undistort_points(x, y, cameras.distortion, cameras.distortion_model, camera_index)
-    local = torch.stack([x, -y, -torch.ones_like(u)], dim=-1)
+    local = torch.stack([x, -y, -z], dim=-1)
     c2w = cameras.c2w[camera_index]
     directions = torch.einsum("nij,nj->ni", c2w[:, :3, :3], local)
     directions = directions / directions.norm(dim=-1, keepdim=True)
@@ -180,9 +190,9 @@ def undistort_points(
 
     ``xd``, ``yd``: (R,); ``coefficients``: (R, 6) or (6,), or (C, 6) with ``lens`` (R,) naming each point's row
     (a capture's few lenses are then analysed once, not once per point). Returns the inputs' dtype. The fisheye
-    is inverted on its angle θ (as OpenCV does). Only the branch that holds the optical axis counts: a point
+    is inverted on its angle θ (``fisheye_angles``). Only the branch that holds the optical axis counts: a point
     past the lens's fold (where the radial map stops increasing), where the map's Jacobian is not positive, where
-    Newton did not converge, or that no ray images (a fisheye's θ ≥ 90°) comes back NaN.
+    Newton did not converge, or whose ray no point of the image plane lies on (a fisheye's θ ≥ 90°) comes back NaN.
 
     Examples:
         >>> import torch
@@ -191,17 +201,34 @@ def undistort_points(
         >>> round(float(x), 6), round(float(y), 6)
         (0.3, -0.2)
     """
-    table = coefficients.double().reshape(-1, 6)
+    target_x, target_y = xd.double(), yd.double()
     if model == "fisheye":
-        # θ_d = θ (1 + k1 θ² + ... + k4 θ⁸) is OPENCV's radial map of the angle: invert it on the vector θ (x, y) / r.
-        radial = torch.cat([table[:, :4], torch.zeros_like(table[:, 4:])], 1)  # p1, p2: unused by the fisheye
-        ax, ay = _invert_radial_tangential(xd, yd, radial, lens)
-        theta = torch.hypot(ax, ay)
-        scale = torch.where(theta > 1e-12, torch.tan(theta) / theta.clamp_min(1e-12), torch.ones_like(theta))
+        theta = fisheye_angles(target_x, target_y, coefficients, lens)
+        theta_d = torch.hypot(target_x, target_y)
+        scale = torch.where(theta_d > 1e-12, torch.tan(theta) / theta_d.clamp_min(1e-12), torch.ones_like(theta))
         scale = scale.masked_fill(theta >= 0.5 * math.pi, math.nan)
-        return (ax * scale).to(xd.dtype), (ay * scale).to(yd.dtype)
-    x, y = _invert_radial_tangential(xd, yd, table, lens)
+        return (target_x * scale).to(xd.dtype), (target_y * scale).to(yd.dtype)
+    x, y = _invert_radial_tangential(target_x, target_y, coefficients.double().reshape(-1, 6), lens)
     return x.to(xd.dtype), y.to(yd.dtype)
+
+
+def fisheye_angles(
+    xd: torch.Tensor, yd: torch.Tensor, coefficients: torch.Tensor, lens: torch.Tensor | None = None
+) -> torch.Tensor:
+    """(R,) the angle θ off the optical axis of the ray a fisheye images at each normalised point (xd, yd): its
+    θ_d = θ (1 + k1 θ² + ... + k4 θ⁸) inverted, in the inputs' dtype (``coefficients``, ``lens``: as
+    ``undistort_points`` takes them). NaN past the lens's fold or unconverged; θ ≥ π is no ray, for callers to
+    refuse.
+
+    Examples:
+        >>> import torch
+        >>> round(float(fisheye_angles(torch.tensor([2.0]), torch.tensor([0.0]), torch.zeros(6))), 6)  # equidistant
+        2.0
+    """
+    table = coefficients.double().reshape(-1, 6)
+    # θ_d(θ) is OPENCV's radial map of the angle: invert it on the vector θ (x, y) / r.
+    radial = torch.cat([table[:, :4], torch.zeros_like(table[:, 4:])], 1)  # p1, p2: unused by the fisheye
+    return torch.hypot(*_invert_radial_tangential(xd.double(), yd.double(), radial, lens)).to(xd.dtype)
 
 
 def _invert_radial_tangential(

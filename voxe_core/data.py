@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
-from .cameras import DISTORTION_KEYS, Cameras, undistort_points
+from .cameras import DISTORTION_KEYS, Cameras, fisheye_angles, undistort_points
 from .colmap import ColmapError, read_model
 
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y")
@@ -293,7 +293,8 @@ def _check_distortion(model: str, intrinsics: dict, where: _Where, frame: int) -
 
 def _check_invertible(cams: Cameras, keep: list[int], where: _Where) -> None:
     """Every camera's lens must give each sampled pixel one ray. Where the distortion folds the image over, a
-    second ray also maps back to the pixel and the rays jump across the fold (``undistort_points``: NaN)."""
+    second ray also maps back to the pixel and the rays jump across the fold (``undistort_points``: NaN); a
+    fisheye's ray may be up to 180° off its axis, not more."""
     v, u = torch.meshgrid(torch.linspace(0, cams.height, 17, dtype=torch.float64),
                           torch.linspace(0, cams.width, 17, dtype=torch.float64), indexing="ij")
     u, v = u.reshape(-1), v.reshape(-1)
@@ -305,8 +306,18 @@ def _check_invertible(cams: Cameras, keep: list[int], where: _Where) -> None:
         if lens in checked:  # most captures share one lens
             continue
         checked.add(lens)
-        x, _ = undistort_points((u - cx) / fx, (v - cy) / fy, k, cams.distortion_model)
-        folded = torch.isnan(x)
+        xd, yd = (u - cx) / fx, (v - cy) / fy
+        if cams.distortion_model == "fisheye":
+            theta = fisheye_angles(xd, yd, k)
+            if (theta >= math.pi).any():
+                widest = int(theta.nan_to_num(0).argmax())
+                degrees = math.degrees(float(theta[widest]))
+                raise where(f"the fisheye lens images pixel ({float(u[widest]):.0f}, {float(v[widest]):.0f}) "
+                            f"{degrees:.0f}° off its axis (a field of view of {2 * degrees:.0f}°), but no ray is "
+                            f"more than 180° off it: check the focal length", frame)
+            folded = torch.isnan(theta)
+        else:
+            folded = torch.isnan(undistort_points(xd, yd, k, cams.distortion_model)[0])
         if folded.any():
             first = int(folded.int().argmax())
             coefficients = ", ".join(f"{n} = {float(c):g}" for n, c in zip(DISTORTION_KEYS, k) if c != 0)
