@@ -365,6 +365,15 @@ def test_the_render_settings_at_their_limits_render_the_slab():
     assert out.opacity.item() == pytest.approx(1 - math.exp(-0.02 * grid.density_scale * 3.0), abs=1e-5)
 
 
+def test_an_int_index_keeps_one_camera_counting_from_the_end_when_negative():
+    cams = Cameras.from_fov(look_at(torch.tensor([[3.0, 0, 0], [0, 3.0, 0], [0, 0, 3.0]])), 0.7, 8, 8)
+    for index, position in ((0, 0), (2, 2), (-1, 2), (-3, 0)):
+        assert len(cams[index]) == 1 and torch.equal(cams[index].c2w, cams.c2w[position:position + 1])
+    for index in (3, -4):
+        with pytest.raises(IndexError):
+            cams[index]
+
+
 def test_camera_inside_the_box_and_non_finite_rays():
     grid = uniform_grid(0.02)
     sigma = 0.02 * grid.density_scale

@@ -57,8 +57,10 @@ class Cameras:
         return self.c2w.shape[0]
 
     def __getitem__(self, index) -> "Cameras":
+        """The cameras at ``index`` (any tensor index); an int keeps one, counting from the end when negative."""
         if isinstance(index, int):
-            index = slice(index, index + 1)
+            position = range(len(self))[index]  # IndexError out of range, as a list's
+            index = slice(position, position + 1)
         return replace(
             self, c2w=self.c2w[index], fx=self.fx[index], fy=self.fy[index], cx=self.cx[index], cy=self.cy[index],
             distortion=None if self.distortion is None else self.distortion[index],
