@@ -374,6 +374,23 @@ def test_an_int_index_keeps_one_camera_counting_from_the_end_when_negative():
             cams[index]
 
 
+@pytest.mark.parametrize("fov_x", [0.0, math.pi, 4.0, -0.5, math.nan, math.inf])
+def test_a_field_of_view_outside_zero_to_pi_is_refused_wherever_it_is_given(fov_x):
+    """0 had been a ZeroDivisionError and 4.0 a negative focal (a mirrored camera); the stages' configs and the
+    turntable take the same angle."""
+    from voxe_core.edit import EditConfig
+    from voxe_core.export import turntable_cameras
+    from voxe_core.refine.config import RefineConfig
+
+    message = re.escape(f"fov_x must be in (0, pi) radians, got {fov_x}")
+    for make in (lambda: Cameras.from_fov(look_at(torch.tensor([[0.0, -4.0, 0.0]])), fov_x, 4, 4),
+                 lambda: EditConfig(fov_x=fov_x), lambda: RefineConfig(fov_x=fov_x),
+                 lambda: turntable_cameras(1, fov_x=fov_x)):
+        with pytest.raises(ValueError, match=message):
+            make()
+    assert float(Cameras.from_fov(torch.eye(4), math.pi - 1e-3, 4, 4).fx[0]) > 0  # just inside: a positive focal
+
+
 def test_camera_inside_the_box_and_non_finite_rays():
     grid = uniform_grid(0.02)
     sigma = 0.02 * grid.density_scale

@@ -69,6 +69,7 @@ class Cameras:
     @staticmethod
     def from_fov(c2w: torch.Tensor, fov_x: float, width: int, height: int) -> "Cameras":
         """NeRF-synthetic intrinsics: focal = 0.5 W / tan(0.5 fov_x), centred principal point."""
+        check_fov_x(fov_x)
         c2w = torch.as_tensor(c2w, dtype=torch.float32)
         if c2w.dim() == 2:
             c2w = c2w[None]
@@ -96,6 +97,13 @@ class Cameras:
     def undistorted(self) -> "Cameras":
         """The same cameras as pinholes (distortion ignored)."""
         return replace(self, distortion=None)
+
+
+def check_fov_x(fov_x: float) -> None:
+    """ValueError unless ``fov_x`` is a horizontal field of view in (0, π) radians: at 0 the focal is infinite, at π
+    zero, and past π negative (a mirrored camera)."""
+    if not 0 < fov_x < math.pi:  # as "not in range": NaN fails every comparison
+        raise ValueError(f"fov_x must be in (0, pi) radians, got {fov_x}")
 
 
 def check_views(images: torch.Tensor, cameras: Cameras, what: str = "images") -> None:

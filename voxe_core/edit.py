@@ -50,7 +50,15 @@ from typing import Callable
 
 import torch
 
-from voxe_core.cameras import Cameras, camera_rays, check_views, pixel_rays, random_hemisphere_poses, spherical_poses
+from voxe_core.cameras import (
+    Cameras,
+    camera_rays,
+    check_fov_x,
+    check_views,
+    pixel_rays,
+    random_hemisphere_poses,
+    spherical_poses,
+)
 from voxe_core.constants import (
     DEFAULT_GUIDANCE_SCALE,
     DEFAULT_REGULARISER,
@@ -175,6 +183,7 @@ class EditConfig:
             raise ValueError("preview_every and checkpoint_every must be >= 0 (0 turns them off)")
         if not 0.0 <= self.min_zenith_deg <= self.max_zenith_deg <= 180.0:
             raise ValueError(f"need 0 <= min_zenith <= max_zenith <= 180, got {self.min_zenith_deg}, {self.max_zenith_deg}")
+        check_fov_x(self.fov_x)
 
     @classmethod
     def authors(cls, **overrides) -> "EditConfig":

@@ -6,6 +6,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal
 
+from voxe_core.cameras import check_fov_x
 from voxe_core.constants import (
     ATTENTION_MODEL_ID,
     CUT_SIGMA,
@@ -163,6 +164,7 @@ class RefineConfig:
             raise ValueError(f"object_seed_margin must lie in [0, 1), got {self.object_seed_margin}")
         if not 0.0 < self.node_alpha < 1.0:
             raise ValueError(f"node_alpha must lie in (0, 1), got {self.node_alpha}")
+        check_fov_x(self.fov_x)
 
 
 AUTHORS_CODE_CUT = dict(edit_seed_rule="relative", object_seeds=SERVICE_OBJECT_SEEDS, object_seed_rule="random",
