@@ -176,6 +176,32 @@ def test_greyscale_sixteen_bit_png(tmp_path):
     assert torch.all(scene.images[0, 0, 0] == 0.0) and torch.all(scene.images[0, 1:, 1:] == 1.0)
 
 
+@pytest.mark.parametrize("name, image, message", [
+    ("r_0.tiff", Image.fromarray(np.full((4, 4), 0.5, np.float32), "F"),
+     r"image r_0.tiff holds floating-point pixels \(Pillow mode F\), whose scale the file does not record"),
+    ("r_0.tiff", Image.fromarray(np.full((4, 4), 70000, np.int32), "I"),
+     r"image r_0.tiff holds 32-bit values from 70000 to 70000 \(Pillow mode I\); only 8- and 16-bit images"),
+])
+def test_float_and_32_bit_images_are_refused_by_name(tmp_path, name, image, message):
+    """A float TIFF had loaded black and 32-bit values white (clipped): neither says how to scale it to [0, 1]."""
+    root = tmp_path / "s"
+    (root / "train").mkdir(parents=True)
+    image.save(root / "train" / name)
+    make_synthetic(root, frames=[{"file_path": f"./train/{name}", "transform_matrix": IDENTITY}])
+    with pytest.raises(DatasetError, match=message) as err:
+        load_scene(root)
+    assert_names(err, "transforms_train.json", 0)
+    assert err.value.path == root / "train" / name
+
+
+def test_sixteen_bit_values_in_a_32_bit_image_are_read_as_16_bit(tmp_path):
+    root = tmp_path / "s"
+    (root / "train").mkdir(parents=True)
+    Image.fromarray(np.full((4, 4), 16384, np.int32), "I").save(root / "train" / "r_0.tiff")
+    make_synthetic(root, frames=[{"file_path": "./train/r_0.tiff", "transform_matrix": IDENTITY}])
+    assert torch.allclose(load_scene(root).images, torch.full((1, 4, 4, 3), 16384 / 65535))
+
+
 def test_camera_angle_y_and_per_frame_overrides(tmp_path):
     root = make_ngp(tmp_path / "s", n=2, size=(8, 6))
     meta = json.loads((root / "transforms.json").read_text())

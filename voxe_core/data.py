@@ -478,7 +478,13 @@ def _find_image(root: Path, file_path: str) -> Path | None:
 
 
 def _read_image(root: Path, file_path: str, where: _Where, frame: int) -> tuple[np.ndarray, Path]:
-    """(H, W, 3 or 4) float32 in [0, 1]; 8- and 16-bit, grey, palette and RGB(A) alike."""
+    """(H, W, 3 or 4) float32 in [0, 1]; 8- and 16-bit, grey, palette and RGB(A) alike.
+
+    Floating-point pixels (Pillow's mode F, e.g. a float TIFF) are refused: the file does not say their scale
+    (Pillow's own conversions give 0..255, OpenCV's and scikit-image's float images 0..1), and convert("RGB")
+    had clipped them to black. So are 32-bit integers beyond 16 bits (mode I), which the 16-bit scaling had clipped
+    to white.
+    """
     path = _find_image(root, file_path)
     if path is None:
         candidates = _image_candidates(root, file_path)
@@ -486,15 +492,22 @@ def _read_image(root: Path, file_path: str, where: _Where, frame: int) -> tuple[
     try:
         with Image.open(path) as im:
             im.load()
+            if im.mode == "F":
+                raise where(f"image {path.name} holds floating-point pixels (Pillow mode F), whose scale the file "
+                            "does not record: save it with 8 or 16 bits per channel", frame, path)
             if im.mode in _SIXTEEN_BIT_MODES:
-                grey = np.asarray(im, dtype=np.float32) / 65535.0
-                return np.repeat(np.clip(grey, 0.0, 1.0)[..., None], 3, axis=2), path
+                values = np.asarray(im)
+                if values.size and not (values.min() >= 0 and values.max() <= 65535):
+                    raise where(f"image {path.name} holds 32-bit values from {values.min()} to {values.max()} "
+                                f"(Pillow mode {im.mode}); only 8- and 16-bit images (0..65535) are read", frame, path)
+                grey = values.astype(np.float32) / 65535.0
+                return np.repeat(grey[..., None], 3, axis=2), path
             has_alpha = "A" in im.mode or "a" in im.mode or "transparency" in im.info
             arr = np.asarray(im.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
             return arr, path
     except Image.DecompressionBombError as e:
         raise where(f"image {path.name} refused as a decompression bomb: {e}", frame, path) from e
-    except MemoryError:
+    except (MemoryError, DatasetError):
         raise
     except Exception as e:  # Pillow's plugins raise many kinds on damaged headers (NotImplementedError for DDS's)
         raise where(f"cannot read image {path.name} (not an image or damaged): {e}", frame, path) from e
