@@ -157,7 +157,7 @@ class EditConfig:
         arithmetic. Left out: the length (a resume may run on), the render's pass sizes and the autocast (the
         device's: a job may resume on another worker), previews, checkpoints and timing."""
         fields = {name: getattr(self, name) for name in RECIPE_FIELDS}
-        fields["render"] = {k: v for k, v in asdict(self.render).items() if k not in ("samples_per_pass", "chunk_rays")}
+        fields["render"] = self.render.recipe()
         return json.loads(json.dumps({k: asdict(v) if is_dataclass(v) else v for k, v in fields.items()}))
 
     def __post_init__(self):

@@ -191,8 +191,8 @@ class ReconstructConfig:
         """The fields a resumed fit must share with its checkpoint's, and a stored fit with its cache key
         (``presets.reconstruction_key``), as JSON values: every one but how often checkpoints are written and how
         much a render pass holds (the device's: a fit may resume on another worker)."""
-        fields = asdict(self)
-        del fields["checkpoint_every"], fields["render"]["samples_per_pass"], fields["render"]["chunk_rays"]
+        fields = {**asdict(self), "render": self.render.recipe()}
+        del fields["checkpoint_every"]
         return json.loads(json.dumps(fields))
 
 

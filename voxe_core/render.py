@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Callable, Iterable
 
 import torch
@@ -65,6 +65,11 @@ class RenderConfig:
         for name, ok, rule in rules:
             if not ok:
                 raise ValueError(f"RenderConfig.{name} must be {rule}, got {getattr(self, name)!r}")
+
+    def recipe(self) -> dict:
+        """The fields that shape a render (a run's recipe): all but how much a pass or a chunk holds (the device's:
+        the render is the same at any size)."""
+        return {k: v for k, v in asdict(self).items() if k not in ("samples_per_pass", "chunk_rays")}
 
     def pass_samples(self, device: torch.device) -> int:
         """``samples_per_pass``, or ``device``'s default: 2^20 on the CPU, 2^22 on an accelerator.

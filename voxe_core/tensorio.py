@@ -26,7 +26,8 @@ class FormatError(ValueError):
 def recipe_changes(meta: dict, config) -> list[str]:
     """What of ``config.recipe()`` (the fields a resumed run must share with its checkpoint's) differs from the
     recipe a checkpoint's ``meta`` was made with ("name old (now new)"); none for a checkpoint older than recipes."""
-    made_with, now = meta.get("recipe", config.recipe()), config.recipe()
+    now = config.recipe()
+    made_with = meta.get("recipe", now)
     return [f"{name} {made_with.get(name)!r} (now {now[name]!r})" for name in now if made_with.get(name) != now[name]]
 
 
