@@ -183,6 +183,17 @@ def test_a_mesh_scene_stored_before_frames_keeps_the_frame_its_views_were_render
         load_mesh(tmp_path / "cube.ply", frame=3)
 
 
+def test_frame_1_boxes_every_vertex_of_the_file_whatever_its_colours(tmp_path):
+    """A face-coloured PLY is split into per-face vertices as it loads; frame 1 still boxes the file's own vertices,
+    its stray one included (as meshes were placed before frame 2), not the split ones."""
+    ball = trimesh.creation.icosphere(subdivisions=1)
+    stray = trimesh.Trimesh(np.vstack([ball.vertices, [[40.0, 0.0, 0.0]]]), ball.faces, process=False)
+    stray.visual.face_colors = np.tile(RED, (len(ball.faces), 1))
+    stray.export(tmp_path / "faces.ply")
+    mesh = load_mesh(tmp_path / "faces.ply", up_axis="z", frame=1)
+    assert mesh.has_colour and np.ptp(mesh.vertices, axis=0).max() / 2 == pytest.approx(1 / 20.5)
+
+
 # ------------------------------------------------------------------ loading errors
 def test_loading_normalises_and_refuses_bad_files(tmp_path):
     mesh = load_mesh(SPOT / "spot_triangulated.obj", SPOT / "spot_texture.png", extent=0.8)

@@ -184,10 +184,8 @@ def load_mesh(
     elif getattr(loaded.visual, "kind", None) == "texture" and getattr(loaded.visual.material, "image", None):
         mesh.uv = np.asarray(loaded.visual.uv, dtype=np.float64)  # an OBJ whose .mtl named its image (trimesh's atlas)
         mesh.texture = _texture_rgb(loaded.visual.material.image)
-    boxed = mesh.vertices
     mesh = _used_vertices_only(mesh)
-    if frame == 2:
-        boxed = mesh.vertices
+    boxed = mesh.vertices if frame == 2 else vertices  # frame 1: every vertex the file holds
 
     if not np.isfinite(boxed).all():
         raise MeshError(f"{path.name}: vertex coordinates contain NaN or Inf")
