@@ -44,7 +44,7 @@ import json
 import math
 import time
 import warnings
-from dataclasses import asdict, dataclass, field, is_dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -108,10 +108,9 @@ class EditDiverged(ArithmeticError):
 MAX_NONFINITE_GUIDANCE_STEPS = 10
 
 
-RECIPE_FIELDS = ("lr", "betas", "lr_decay", "lr_decay_start", "lr_decay_every", "lr_decay_factor", "render_size",
-                 "guidance_scale", "regulariser", "regulariser_weight", "image_regulariser_rays", "schedule",
-                 "view_words", "prompt_prefix", "front_azimuth_deg", "batch_size", "seed", "radius", "fov_x",
-                 "min_zenith_deg", "max_zenith_deg")
+NOT_RECIPE_FIELDS = ("iterations", "preview_every", "preview_elevation_deg", "checkpoint_every", "autocast_dtype",
+                     "sync_timing")
+"""EditConfig's fields a resumed run may change (:meth:`EditConfig.recipe`); every other field is its recipe."""
 
 
 @dataclass
@@ -156,9 +155,10 @@ class EditConfig:
         """The fields a resumed run must share with its checkpoint's (JSON values): those that shape every step's
         arithmetic. Left out: the length (a resume may run on), the render's pass sizes and the autocast (the
         device's: a job may resume on another worker), previews, checkpoints and timing."""
-        fields = {name: getattr(self, name) for name in RECIPE_FIELDS}
-        fields["render"] = self.render.recipe()
-        return json.loads(json.dumps({k: asdict(v) if is_dataclass(v) else v for k, v in fields.items()}))
+        fields = {**asdict(self), "render": self.render.recipe()}
+        for name in NOT_RECIPE_FIELDS:
+            del fields[name]
+        return json.loads(json.dumps(fields))
 
     def __post_init__(self):
         if self.iterations < 0:
