@@ -42,8 +42,8 @@ from voxe_service.models import (
 from voxe_service.model_inventory import (ROLES, check_models, job_models, missing_message, model_present,
                                           submission_note)
 from voxe_service.queue import (
-    INGEST_TASK, STAGE_TASKS, QueueUnavailable, TaskResult, dispatch_job, evaluations_waiting_on, get_queue,
-    is_sql_broker, job_stages, requeue_interrupted, reset_queue,
+    INGEST_TASK, STAGE_TASKS, QueueUnavailable, TaskResult, get_queue, is_sql_broker, job_stages, requeue_interrupted,
+    reset_queue, send_evaluations_alone,
 )
 from voxe_service.settings import get_settings, model_label
 from voxe_service.storage import StoredObject, get_storage, job_key, reconstruction_storage_key
@@ -297,9 +297,11 @@ def _reconstruct(job: Job, settings, device: str, storage) -> None:
     reused = not ran_here and rec.owner_job_id != job.id
     runtime.update_job(job.id, reconstruction_reused=reused, iteration=rec.total, total=rec.total,
                        message="reused the scene's reconstruction" if reused else None)
-    runtime.publish_artifact(job.id, "initial_grid.safetensors", _grid_file(job.id, rec, settings, storage),
-                             "grid", storage, key=rec.grid_key)
-    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, runtime.reconstruction_grid(rec))
+    from voxe_core.backbones import load_grid
+
+    grid_path = _grid_file(job.id, rec, settings, storage)  # fetched and checked against the record once
+    runtime.publish_artifact(job.id, "initial_grid.safetensors", grid_path, "grid", storage, key=rec.grid_key)
+    initial = load_grid(grid_path)
     _record_edit_schedule(job, initial.kind, settings)
     _preview(job.id, initial, settings, storage, device, centre=_record_orbit_centre(job.id, initial))
 
@@ -706,10 +708,10 @@ def _next_stage_unsent(sender=None, args=None, exception=None, **_kwargs) -> Non
     reason = f"the message of the stage after {stage} could not be sent: {type(exception).__name__}: {exception}"
     with runtime.session_scope() as session:
         job = session.get(Job, args[0])
-        if job is not None and job.state in TERMINAL_STATES and evaluations_waiting_on(session, job):
+        if job is not None and job.state in TERMINAL_STATES:
             try:  # the job ended (its last stage, or a failure): its sweep's evaluations rode in the lost message
-                dispatch_job(session, get_queue(), job, done=job_stages(job.mode), message=job.message)
-            except QueueUnavailable:  # failed with the reason: they have no chain left to wait in
+                send_evaluations_alone(session, get_queue(), job, job.message)
+            except QueueUnavailable:
                 log.warning("job %s: %s; its evaluations failed with the reason", job.id, reason)
             return
         if job is None or job.state != RUNNING or job.run_token is not None or stage not in (job.completed_stages or []):
