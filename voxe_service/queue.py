@@ -205,13 +205,21 @@ def dispatch_job(session: Session, queue: TaskQueue, job: Job, done: Iterable[st
     session.commit()
 
 
-def requeue_limit_error(job: Job, settings: Settings, reason: str) -> str | None:
-    """Why a job whose stage was interrupted again (``reason``) fails, once its stage was interrupted
-    ``job_max_requeues`` times already (a job that kills its workers must not loop); None below the limit."""
-    if job.requeues < settings.job_max_requeues:
+def requeue_limit_error(requeues: int, settings: Settings, reason: str) -> str | None:
+    """Why a job (or a scene's ingest) interrupted again (``reason``) fails, once it was sent again ``requeues`` times
+    already, the ``job_max_requeues`` limit (what kills its workers must not loop); None below the limit."""
+    if requeues < settings.job_max_requeues:
         return None
-    return (f"{reason}; it was sent again {job.requeues} time(s) already, the limit "
+    return (f"{reason}; it was sent again {requeues} time(s) already, the limit "
             f"(VOXE_JOB_MAX_REQUEUES={settings.job_max_requeues})")
+
+
+def send_evaluations_alone(session: Session, queue: TaskQueue, job: Job, message: str | None) -> None:
+    """Send the sweep's evaluations that rode in an ended job's chain alone (no stage of it is left), to record why;
+    the job keeps ``message``. Raises :class:`QueueUnavailable`, the evaluations failed with the reason, when the
+    broker refuses them (they have no chain left to wait in); the job's ending stands."""
+    if evaluations_waiting_on(session, job):
+        dispatch_job(session, queue, job, done=job_stages(job.mode), message=message)
 
 
 def requeue_interrupted(session: Session, queue: TaskQueue, job: Job, settings: Settings, *, reason: str,
@@ -235,9 +243,9 @@ def requeue_interrupted(session: Session, queue: TaskQueue, job: Job, settings: 
         why (the job's message kept)."""
         ended = finish_jobs(session, [job.id], state, where=[Job.state == RUNNING, *where], **fields)
         session.commit()
-        if ended and evaluations_waiting_on(session, job):
+        if ended:
             try:
-                dispatch_job(session, queue, job, done=job_stages(job.mode), message=fields.get("message"))
+                send_evaluations_alone(session, queue, job, fields.get("message"))
             except QueueUnavailable:  # they failed with the reason; the job's ending stands
                 pass
         return state if ended else None
@@ -245,7 +253,7 @@ def requeue_interrupted(session: Session, queue: TaskQueue, job: Job, settings: 
     if job.cancel_requested:
         return end(CANCELED, message=f"canceled: {reason}")
     interrupted = job.run_token is not None
-    if interrupted and (error := requeue_limit_error(job, settings, reason)):
+    if interrupted and (error := requeue_limit_error(job.requeues, settings, reason)):
         return end(FAILED, error=error)
     # task_id NULL until the new chain is handed over: a sender that dies in between leaves a job the reaper sends
     released = session.execute(update(Job).where(Job.id == job.id, Job.state == RUNNING, *where).values(

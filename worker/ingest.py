@@ -33,7 +33,7 @@ from voxe_core.mesh_input import (MESH_INPUT_SUFFIXES, TEXTURE_SUFFIXES, MeshErr
 from voxe_service import datasets
 from voxe_service.db import session_scope
 from voxe_service.models import PROCESSING, Scene, utcnow
-from voxe_service.queue import QueueUnavailable, TaskResult, dispatch_job, get_queue
+from voxe_service.queue import QueueUnavailable, TaskResult, dispatch_job, get_queue, requeue_limit_error
 from voxe_service.quotas import ingest_over_quota
 from voxe_service.scenes import fail_scene, mark_ready
 from voxe_service.settings import Settings
@@ -125,10 +125,10 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
         session.execute(update(Scene).where(Scene.id == scene_id, Scene.state == PROCESSING)
                         .values(worker_hostname=hostname, ingest_attempts=Scene.ingest_attempts + 1,
                                 updated_at=utcnow()))
-    if interrupted > settings.job_max_requeues:
-        _fail(scene_id, f"ingest: interrupted {interrupted} times, its worker process dying each time (killed: out of "
-                        f"memory?); it was sent again {interrupted - 1} time(s) already, the limit "
-                        f"(VOXE_JOB_MAX_REQUEUES={settings.job_max_requeues})", storage)
+    # The runs before this one, less the first: how often the ingest was sent again.
+    if error := requeue_limit_error(interrupted - 1, settings, f"ingest: interrupted {interrupted} times, its worker "
+                                    "process dying each time (killed: out of memory?)"):
+        _fail(scene_id, error, storage)
         return {"scene_id": scene_id, "state": "failed"}
     mesh_upload = upload_key == scene_key(scene_id, datasets.UPLOAD_ARCHIVE)
     work = Path(settings.work_dir) / "ingest"

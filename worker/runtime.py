@@ -169,7 +169,7 @@ def begin_stage(job_id: str, stage: str, hostname: str | None, device: str, sett
             interrupted = job.run_token is not None  # a lapsed hold: its run's process died, which counts
             reason = (f"the run of {job.stage} on worker {job.worker_hostname} stopped renewing its hold on the "
                       "job (its process died: killed, out of memory or crashed)")
-            if interrupted and (error := requeue_limit_error(job, settings, reason)):
+            if interrupted and (error := requeue_limit_error(job.requeues, settings, reason)):
                 if not finish_jobs(session, [job_id], FAILED, error=error, where=as_read):
                     continue  # the row changed since it was read: read it again
                 session.commit()
