@@ -44,11 +44,16 @@ i. ``edit_step`` with the renderer's passes at the device's default size against
    backward split where the gradient reaches the renders);
 j. ``edit_step`` (CUDA only) with the VAE encoder compiled (``torch.compile``) or not, graphed or not: warm-up
    (the compile), per-part times, agreement with the eager guidance;
+l. ``fused_render``: the fused ray marcher (``RenderConfig.fused``: one Triton kernel marches and composites each
+   ray, another adds its gradient; voxe_core.fused_render) against the packed renderer: the edit's render and
+   backward on section h's scenes (operations, time, memory, the render's and gradient's differences), the default
+   step against the fused one interleaved with per-part times, and a ``loop_iterations`` loop with the fused
+   marcher (its 8,000-iteration minutes; the smoke run's kernels run in Triton's interpreter);
 k. ``step_profile``: ``torch.profiler`` over ``timed`` default steps: the device's busy time against the wall
    time (below 1: the host's launching and reading back sets the pace, not the arithmetic), kernel launches and
    host synchronisations per step, and the kernels and host operations that take the most time.
 
-Sections run in the order a, b, c, d, h, g, i, k, j, f: the whole job last, the longest and, with a compile in its
+Sections run in the order a, b, c, d, h, g, i, l, k, j, f: the whole job last, the longest and, with a compile in its
 worker, the least predictable (each section's runs are saved as it ends). A SIGTERM (bench/gpu_device.sh's
 ``timeout``, ``GPU_BENCH_SECONDS``) ends the section in flight with a row saying so and what it had measured (the
 job's stages so far), and the later sections do not start.
@@ -158,10 +163,11 @@ def _step_row(name: str, profile: Profile, dtype: torch.dtype, ms_step: float, r
     return row
 
 
-def _warm_up(guidance, profile: Profile) -> float:
-    """Seconds of ``profile.warm`` default iterations: where kernels are picked, graphs captured and compiles run."""
+def _warm_up(guidance, profile: Profile, **render) -> float:
+    """Seconds of ``profile.warm`` default iterations (``render``: :func:`_edit_run`'s): where kernels are picked,
+    graphs captured and compiles run."""
     start = time.perf_counter()
-    _edit_run(guidance, profile, profile.warm, sync=False)
+    _edit_run(guidance, profile, profile.warm, sync=False, **render)
     return time.perf_counter() - start
 
 
@@ -174,11 +180,11 @@ def _measured_step(guidance, profile: Profile) -> tuple[float, list, list, float
     return wall * 1e3 / profile.timed, timed, parts, warm_seconds
 
 
-def _loop_row(guidance, profile: Profile, name: str, **extra) -> dict:
+def _loop_row(guidance, profile: Profile, name: str, fused: bool = False, **extra) -> dict:
     """An ``edit`` run: ``loop_iterations`` default iterations after warm-up (timed apart: compile and captures), timed
-    as one."""
-    warm_seconds = _warm_up(guidance, profile)
-    reports, wall = _edit_run(guidance, profile, profile.loop_iterations, sync=False)
+    as one; ``fused``: with the fused ray marcher."""
+    warm_seconds = _warm_up(guidance, profile, fused=fused)
+    reports, wall = _edit_run(guidance, profile, profile.loop_iterations, sync=False, fused=fused)
     ms_step = wall * 1e3 / profile.loop_iterations
     return {"name": name, "kind": "edit", "device": profile.device, "dtype": _dtype_name(profile.dtype),
             "model": SDS_MODEL, "iterations": profile.loop_iterations, "seconds": wall,
@@ -275,10 +281,10 @@ def _channels_last(guidance, enabled: bool) -> None:
     guidance.vae.to(memory_format=layout)
 
 
-def _edit_run(guidance, profile: Profile, iterations: int, sync: bool, samples_per_pass: int | None = None,
-              early_stop: float | None = None, after_iteration: Callable[[], None] | None = None):
+def _edit_run(guidance, profile: Profile, iterations: int, sync: bool,
+              after_iteration: Callable[[], None] | None = None, **render):
     """(reports, wall seconds) of ``iterations`` default edit iterations on the 160³ sphere (one sync at the end);
-    ``samples_per_pass`` and ``early_stop`` replace the renderer's (None: the device's default, the default);
+    ``render`` replaces fields of the renderer's config (``samples_per_pass``, ``early_stop``, ``fused``);
     ``after_iteration`` is called as each iteration reports."""
     from edit_step import sphere_grid
 
@@ -288,9 +294,7 @@ def _edit_run(guidance, profile: Profile, iterations: int, sync: bool, samples_p
     reports = []
     guidance.sync_timing = sync
     config = EditConfig(iterations=iterations, render_size=profile.render_size, sync_timing=sync)
-    config.render.samples_per_pass = samples_per_pass
-    if early_stop is not None:
-        config.render.early_stop = early_stop
+    config.render = dataclasses.replace(config.render, **render)
     grid = sphere_grid(profile.grid_resolution)
     synchronize(profile.device)
     start = time.perf_counter()
@@ -583,38 +587,75 @@ def cuda_graph_runs(sd2: Path, profile: Profile, baseline_ms: float | None) -> l
 def step_pass_runs(sd2: Path, profile: Profile) -> list[dict]:
     """The default step (CUDA graphs where they run) with the renderer's passes at the device's default against
     2^20 (the CPU's) and 2^23, and at the default without early stopping (no density probe before the render: fewer
-    operations and host reads, more samples with gradient), interleaved, each timed with per-part device times (the
-    backward split where the gradient reaches the renders) and without synchronisation."""
+    operations and host reads, more samples with gradient), interleaved (:func:`_interleaved_steps`)."""
     from voxe_core.render import RenderConfig
 
     guidance = _guidance(sd2, profile, profile.dtype)
     default = RenderConfig().pass_samples(torch.device(profile.device))
-    variants = [(size, None) for size in dict.fromkeys((1 << 20, default, 1 << 23))] + [(default, 0.0)]
-    for size, early_stop in variants:
-        _edit_run(guidance, profile, profile.warm, sync=False, samples_per_pass=size, early_stop=early_stop)
-    timings = {variant: [] for variant in variants}
-    parts = {variant: [] for variant in variants}
-    for _ in range(2):  # interleaved halves: the machine's drift lands on every variant alike
-        for variant in variants:
-            size, early_stop = variant
-            parts[variant] += _edit_run(guidance, profile, profile.timed // 2, sync=True, samples_per_pass=size,
-                                        early_stop=early_stop)[0]
-            reports, wall = _edit_run(guidance, profile, profile.timed // 2, sync=False, samples_per_pass=size,
-                                      early_stop=early_stop)
-            timings[variant].append((reports, wall))
-    rows = []
-    for size, early_stop in variants:
-        reports = [r for run, _ in timings[size, early_stop] for r in run]
-        ms_step = sum(wall for _, wall in timings[size, early_stop]) * 1e3 / len(reports)
-        name = f"samples_per_pass 2^{size.bit_length() - 1}"
-        name += f", early_stop {early_stop:g}" if early_stop is not None else " (default)" if size == default else ""
-        rows.append(_step_row(name, profile, profile.dtype, ms_step, reports, parts[size, early_stop],
-                              samples_per_pass=size, cuda_graphs=guidance.cuda_graphs,
-                              early_stop=RenderConfig().early_stop if early_stop is None else early_stop,
-                              samples_per_ray=sum(r.info["samples_per_ray"] for r in reports) / len(reports)))
-    for row in rows:
+    variants = {}
+    for size in dict.fromkeys((1 << 20, default, 1 << 23)):
+        name = f"samples_per_pass 2^{size.bit_length() - 1}" + (" (default)" if size == default else "")
+        variants[name] = dict(samples_per_pass=size)
+    variants[f"samples_per_pass 2^{default.bit_length() - 1}, early_stop 0"] = dict(samples_per_pass=default,
+                                                                                    early_stop=0.0)
+    rows = _interleaved_steps(guidance, profile, variants)
+    for row, render in zip(rows, variants.values()):
+        row.update(samples_per_pass=render["samples_per_pass"],
+                   early_stop=render.get("early_stop", RenderConfig().early_stop))
         row["speedup_over_2_20"] = rows[0]["ms_step"] / row["ms_step"]
     return rows
+
+
+def _interleaved_steps(guidance, profile: Profile, variants: dict[str, dict]) -> list[dict]:
+    """One ``edit_step`` row per variant (name -> the renderer's fields it replaces), the variants warmed up and then
+    timed in interleaved halves (the machine's drift lands on each alike), each with per-part device times (the
+    backward split where the gradient reaches the renders) and without synchronisation."""
+    for render in variants.values():
+        _edit_run(guidance, profile, profile.warm, sync=False, **render)
+    timings = {name: [] for name in variants}
+    parts = {name: [] for name in variants}
+    for _ in range(2):
+        for name, render in variants.items():
+            parts[name] += _edit_run(guidance, profile, profile.timed // 2, sync=True, **render)[0]
+            timings[name].append(_edit_run(guidance, profile, profile.timed // 2, sync=False, **render))
+    rows = []
+    for name in variants:
+        reports = [r for run, _ in timings[name] for r in run]
+        ms_step = sum(wall for _, wall in timings[name]) * 1e3 / len(reports)
+        rows.append(_step_row(name, profile, profile.dtype, ms_step, reports, parts[name],
+                              cuda_graphs=guidance.cuda_graphs,
+                              samples_per_ray=sum(r.info["samples_per_ray"] for r in reports) / len(reports)))
+    return rows
+
+
+# ---------------------------------------------------------------- (l)
+def fused_marcher_runs(sd2: Path, profile: Profile) -> list[dict]:
+    """The fused ray marcher (``RenderConfig.fused``, voxe_core.fused_render) against the packed renderer: the edit's
+    render and its backward on bench/render_passes.py's sphere and fog (operations, time, memory, and the render's and
+    gradient's differences from the packed ones), the default step against the fused one (:func:`_interleaved_steps`),
+    and a ``loop_iterations`` loop with the fused marcher, from which its 8,000-iteration minutes are projected."""
+    import render_passes
+    from edit_step import sphere_grid
+
+    from voxe_core.edit import EditConfig
+
+    rays = render_passes.edit_rays(profile.render_size)
+    packed = EditConfig().render
+    configs = {"packed": packed, "fused": dataclasses.replace(packed, fused=True)}
+    scenes = {"sphere": sphere_grid(profile.grid_resolution), "fog": render_passes.fog_grid(profile.grid_resolution // 2)}
+    rows = []
+    for scene, grid in scenes.items():
+        measured = render_passes.measure_configs(grid, rays, max(1, profile.timed // 4), profile.device, configs)
+        rows += [{"name": f"render {scene}, {marcher} marcher", "kind": "fused_render", "dtype": "float32",
+                  "model": "ReLU-field grid", "scene": scene, "marcher": marcher, **row}
+                 for marcher, row in measured.items()]
+    guidance = _guidance(sd2, profile, profile.dtype)
+    steps = _interleaved_steps(guidance, profile, {"packed marcher (the default)": {}, "fused marcher": dict(fused=True)})
+    for row in steps:
+        row["speedup_over_packed"] = steps[0]["ms_step"] / row["ms_step"]
+    loop = _loop_row(guidance, profile, f"edit_loop {profile.loop_iterations} iterations at {profile.grid_resolution}³, "
+                     "fused marcher", cuda_graphs=guidance.cuda_graphs, fused=True)
+    return rows + steps + [loop]
 
 
 # ---------------------------------------------------------------- (k)
@@ -798,7 +839,7 @@ def main(argv=None) -> int:
     parser.add_argument("--smoke", action="store_true", help="CPU, tiny sizes: check the script end to end")
     parser.add_argument("--data", type=Path, default=MIC, help="the nerf_synthetic mic folder")
     parser.add_argument("--out", type=Path, default=None, help="JSON to write (default bench/results/gpu[_smoke].json)")
-    parser.add_argument("--skip", default="", help="comma-separated sections to leave out (a,b,c,d,f,h,g,i,k,j)")
+    parser.add_argument("--skip", default="", help="comma-separated sections to leave out (a,b,c,d,f,h,g,i,l,k,j)")
     parser.add_argument("--call", type=int, default=None,
                         help="number of this call on the device: tags its runs (an earlier call's keep theirs)")
     parser.add_argument("--call-note", default=None, help="what this call ran, recorded under the header's calls")
@@ -809,6 +850,7 @@ def main(argv=None) -> int:
     profile = Profile.smoke() if args.smoke else Profile.full()
     if args.smoke:  # toy-sized ops: OpenMP hand-offs between threads would cost more than they give
         torch.set_num_threads(1)
+        os.environ.setdefault("TRITON_INTERPRET", "1")  # section l's kernels on this CPU (before Triton's import)
     if profile.device == "cuda" and not torch.cuda.is_available():
         print("bench/gpu.py needs a CUDA device (or --smoke)", file=sys.stderr)
         return 2
@@ -890,6 +932,7 @@ def main(argv=None) -> int:
             if profile.device == "cuda":  # CUDA graphs exist only there
                 section("g", "cuda_graphs", lambda: cuda_graph_runs(sd2, profile, _same_call_baseline(runs)))
             section("i", "edit_step", lambda: step_pass_runs(sd2, profile))
+            section("l", "fused_render", lambda: fused_marcher_runs(sd2, profile))
             section("k", "step_profile", lambda: step_profile_run(sd2, profile))
             if profile.device == "cuda":  # after the other step sections: a compile's warm-up is the least predictable
                 section("j", "edit_step", lambda: compiled_encoder_runs(sd2, profile))

@@ -90,38 +90,48 @@ def render_once(grid: VoxelGrid, rays, config: RenderConfig, seed: int = 0):
 def measure(name: str, grid: VoxelGrid, rays, repeats: int, device: str = "cpu", passes=PASSES) -> list[dict]:
     """One row per ``passes`` entry: operations, samples, peak memory, output differences against the first entry
     and the median time of ``repeats`` interleaved renders (each row's ``*_ratio_to_reference`` against the first)."""
-    device = torch.device(device)
     base = EditConfig().render
     configs = {spp: RenderConfig(**{**base.__dict__, "samples_per_pass": spp}) for spp in passes}
+    rows = measure_configs(grid, rays, repeats, device, configs)
+    return [{"scene": name, "samples_per_pass": spp, **row} for spp, row in rows.items()]
+
+
+def measure_configs(grid: VoxelGrid, rays, repeats: int, device: str, configs: dict) -> dict:
+    """Per entry of ``configs`` (key -> RenderConfig): operations, samples, peak memory, output differences against
+    the first entry and the median time of ``repeats`` interleaved renders with their backward (ratios to the
+    first's)."""
+    device = torch.device(device)
     grid = grid.to(device)
     rays = tuple(r.to(device) for r in rays)
     grid.flat_features.requires_grad_(True)
     rows, reference = {}, None
-    for spp, config in configs.items():  # operations, memory and output: one untimed render each
+    for key, config in configs.items():  # operations, memory and output: one untimed render each
         memory = PeakMemory(device).start()
         with CountOps() as ops:
             rgb, grad, samples = render_once(grid, rays, config)
         peak = memory.info()
         reference = reference or (rgb, grad)
-        rows[spp] = {"scene": name, "samples_per_pass": spp, "operations": ops.count, "samples": samples,
+        rows[key] = {"operations": ops.count, "samples": int(samples),
                      "device": str(device), "peak_memory_gb": peak["peak_memory_gb"],
                      "peak_memory_kind": peak["peak_memory_kind"],
                      "max_rgb_difference": float((rgb - reference[0]).abs().max()),
                      # relative to the largest entry: groups add the gradient into the grid in another order
                      "max_gradient_difference": float((grad - reference[1]).abs().max() / reference[1].abs().max()),
                      "ms": []}
-    for _ in range(repeats):  # interleaved, so the shared machine's drift lands on every size alike
-        for spp, config in configs.items():
+    for _ in range(repeats):  # interleaved, so the shared machine's drift lands on every variant alike
+        for key, config in configs.items():
             synchronize(device)
             start = time.perf_counter()
             render_once(grid, rays, config)
             synchronize(device)
-            rows[spp]["ms"].append((time.perf_counter() - start) * 1e3)
+            rows[key]["ms"].append((time.perf_counter() - start) * 1e3)
+    first = next(iter(rows.values()))
+    first_ms = statistics.median(first["ms"])
     for row in rows.values():
         row["ms"] = statistics.median(row["ms"])
-        row["ms_ratio_to_reference"] = row["ms"] / rows[passes[0]]["ms"]
-        row["operations_ratio_to_reference"] = row["operations"] / rows[passes[0]]["operations"]
-    return list(rows.values())
+        row["ms_ratio_to_reference"] = row["ms"] / first_ms
+        row["operations_ratio_to_reference"] = row["operations"] / first["operations"]
+    return rows
 
 
 def edit_rays(size: int):

@@ -3,7 +3,12 @@ the service tests run against (SQLite and a throwaway PostgreSQL)."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
+
+# Triton's interpreter runs the fused marcher's kernels on the CPU (tests/test_fused_render.py). It is chosen when
+# Triton is imported, and diffusers imports it, so it is set here, before any test module imports anything.
+os.environ.setdefault("TRITON_INTERPRET", "1")
 
 import pytest
 import torch

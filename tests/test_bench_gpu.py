@@ -3,6 +3,7 @@ random-weight SMOKE-TEST model; the figures mean nothing, the test checks the re
 
 from __future__ import annotations
 
+import dataclasses
 import gc
 import importlib.util
 import json
@@ -39,7 +40,7 @@ def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
     earlier_loop = {"name": "edit_loop, CUDA graphs", "kind": "edit", "section": "g", "call": 6, "device": "cuda",
                     "ms_step": 1000.0}  # an earlier call's loop beside another model: no projection reads it
     earlier.write_text(json.dumps({"calls": {"6": "g"}, "runs": [earlier_loop]}))
-    assert bench.main(["--smoke", "--out", str(out), "--call", "7", "--call-note", "the smoke run", "--skip", "g",
+    assert bench.main(["--smoke", "--out", str(out), "--call", "7", "--call-note", "the smoke run", "--skip", "g,l",
                        "--keep", str(earlier)]) == 0
     record = json.loads(out.read_text())
     assert record["runs"][0] == {**earlier_loop, "kept_from_earlier_call": True}
@@ -125,7 +126,7 @@ def test_a_call_cut_off_by_its_time_limit_keeps_what_it_measured(tmp_path, monke
     monkeypatch.setattr(bench, "job_run", cut_off_job)
     before = signal.getsignal(signal.SIGTERM)
     out = tmp_path / "job.json"
-    assert bench.main(["--smoke", "--out", str(out), "--skip", "a,b,c,d,h,i,k"]) == 1
+    assert bench.main(["--smoke", "--out", str(out), "--skip", "a,b,c,d,h,i,l,k"]) == 1
     (run,) = json.loads(out.read_text())["runs"]
     assert run["section"] == "f" and run["error"] == "CallTimeLimit: terminated by the call's time limit (SIGTERM)"
     assert run["seconds_per_stage"] == {"reconstruct": 26.1} and run["seconds"] < 30
@@ -140,6 +141,31 @@ def test_a_call_cut_off_by_its_time_limit_keeps_what_it_measured(tmp_path, monke
     out = tmp_path / "render.json"
     assert bench.main(["--smoke", "--out", str(out), "--skip", "a,b,c,d"]) == 1
     assert [r["section"] for r in json.loads(out.read_text())["runs"]] == ["h"]
+
+
+def test_section_l_sets_the_fused_marcher_against_the_packed_renderer(monkeypatch, tiny_sd_path):
+    """Section l on this CPU (the smoke run leaves it out: Triton's interpreter takes ~100 s at its sizes), smaller
+    still: the fused render and gradient agree with the packed ones, evaluate fewer samples, and the steps and the
+    loop are timed (figures that mean nothing here)."""
+    bench = _load_bench(monkeypatch)
+    profile = dataclasses.replace(bench.Profile.smoke(), render_size=8, grid_resolution=12, loop_iterations=1)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        rows = bench.fused_marcher_runs(tiny_sd_path, profile)
+    finally:
+        torch.set_num_threads(threads)
+    renders = [r for r in rows if r["kind"] == "fused_render"]
+    assert [(r["scene"], r["marcher"]) for r in renders] == [
+        (scene, marcher) for scene in ("sphere", "fog") for marcher in ("packed", "fused")]
+    for packed, fused in zip(renders[::2], renders[1::2]):
+        assert fused["max_rgb_difference"] < 1e-5 and fused["max_gradient_difference"] < 1e-4
+        assert 0 < fused["samples"] <= packed["samples"] and fused["ms_ratio_to_reference"] > 0
+    packed_step, fused_step, loop = rows[4:]
+    assert (packed_step["speedup_over_packed"], packed_step["name"]) == (1.0, "edit_step packed marcher (the default)")
+    assert fused_step["speedup_over_packed"] == pytest.approx(packed_step["ms_step"] / fused_step["ms_step"])
+    assert fused_step["ms_render"] > 0 and fused_step["samples_per_ray"] < packed_step["samples_per_ray"]
+    assert loop["kind"] == "edit" and loop["name"].endswith("fused marcher") and loop["edit_8000_minutes"] > 0
 
 
 def test_section_g_sets_its_steps_against_section_as_baseline_only_from_the_same_call(monkeypatch):

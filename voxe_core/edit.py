@@ -498,9 +498,11 @@ def edit(
             # The step's one read: its losses and the guidance's device-side diagnostics together.
             grad_norm = torch.as_tensor(diagnostics.get("grad_norm", math.nan), dtype=torch.float32, device=device)
             nonfinite = torch.as_tensor(diagnostics.get("nonfinite_fraction", 0.0), dtype=torch.float32, device=device)
-            sds_value, reg_value, total_value, grad_norm_value, nonfinite_value = torch.stack(
-                [sds.detach().float(), reg.detach(), total.detach(), grad_norm.reshape(()), nonfinite.reshape(())]
-            ).tolist()
+            # In float64, where the render's sample count (a tensor from the fused marcher) is exact.
+            read = [sds.detach(), reg.detach(), total.detach(), grad_norm.reshape(()), nonfinite.reshape(()),
+                    torch.as_tensor(samples, device=device)]
+            sds_value, reg_value, total_value, grad_norm_value, nonfinite_value, samples = torch.stack(
+                [value.double() for value in read]).tolist()
             if not math.isfinite(total_value):
                 raise EditDiverged(
                     f"the edit diverged at iteration {done}: its loss is {total_value} (SDS {sds_value}, "

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import ClassVar, Iterator, Literal
+from typing import ClassVar, Iterator, Literal, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -206,6 +206,18 @@ class Occupancy:
         return not bool(self.cells.any())
 
 
+class RayLattice(NamedTuple):
+    """Where each of N rays is sampled: sample k at distance ``start + k·step``, standing for the path
+    ``clamp(length − k·step, 0, step)``, for k in [``first``, ``last``) (int64)."""
+
+    step: float  # world units between samples
+    t_near: torch.Tensor  # (N,) where the ray enters the box (0 for a camera inside)
+    start: torch.Tensor  # (N,) sample 0: t_near plus the ray's offset within its first step
+    length: torch.Tensor  # (N,) the path inside the box
+    first: torch.Tensor  # (N,)
+    last: torch.Tensor  # (N,)
+
+
 class VoxelGrid(torch.nn.Module):
     """Dense feature grid ``features[x, y, z, c]``; channel 0 density, 1:4 colour.
 
@@ -213,6 +225,7 @@ class VoxelGrid(torch.nn.Module):
     """
 
     kind: ClassVar[str] = "relu_field"
+    lattice_sampled: ClassVar[bool] = True  # samples on :meth:`ray_lattice` (what the fused marcher walks)
 
     def __init__(
         self,
@@ -363,6 +376,37 @@ class VoxelGrid(torch.nn.Module):
         return self.activate_density(raw[:, 0]) * inside, self.activate_color(raw[:, 1:])
 
     # ------------------------------------------------------------ rays
+    def ray_lattice(
+        self,
+        origins: torch.Tensor,
+        directions: torch.Tensor,
+        offsets: torch.Tensor,
+        step_ratio: float,
+        occupancy: Occupancy | None = None,
+    ) -> RayLattice:
+        """Each ray's lattice (N,): where its samples lie and which of them are candidates (:class:`RayLattice`).
+
+        Sample k of a ray lies at ``start + k·step``, k in [``first``, ``last``): the box's samples, or, with an
+        ``occupancy``, those within its tight box (every one :meth:`ray_samples` may keep, and what the fused
+        marcher walks).
+        """
+        step = step_ratio * self.min_voxel_edge
+        if occupancy is None:
+            t_near, t_far = ray_box_intersection(origins, directions, self.bbox_min, self.bbox_max)
+        else:  # the grid's box and the occupied cells' tight one in one slab test
+            device = origins.device
+            (t_near, tight_near), (t_far, tight_far) = ray_box_intersection(
+                origins, directions, torch.stack([self.bbox_min, occupancy.bbox_min.to(device)]),
+                torch.stack([self.bbox_max, occupancy.bbox_max.to(device)]))
+        n_total = torch.ceil((t_far - t_near) / step).clamp_min(0).long()
+        first = torch.zeros_like(n_total)
+        last = n_total
+        if occupancy is not None:
+            hit = tight_far > tight_near
+            first = torch.where(hit, ((tight_near - t_near) / step).floor().long().clamp_min(0), first)
+            last = torch.where(hit, torch.minimum(((tight_far - t_near) / step).ceil().long(), n_total), first)
+        return RayLattice(step, t_near, t_near + offsets * step, t_far - t_near, first, last)
+
     def ray_samples(
         self,
         origins: torch.Tensor,
@@ -393,24 +437,8 @@ class VoxelGrid(torch.nn.Module):
             >>> group.points.shape, float(group.delta.sum())  # 4 steps of 0.75 through the 3-unit box
             (torch.Size([4, 3]), 3.0)
         """
-        step = step_ratio * self.min_voxel_edge
-        if occupancy is None:
-            t_near, t_far = ray_box_intersection(origins, directions, self.bbox_min, self.bbox_max)
-        else:  # the grid's box and the occupied cells' tight one in one slab test
-            device = origins.device
-            (t_near, tight_near), (t_far, tight_far) = ray_box_intersection(
-                origins, directions, torch.stack([self.bbox_min, occupancy.bbox_min.to(device)]),
-                torch.stack([self.bbox_max, occupancy.bbox_max.to(device)]))
-        n_total = torch.ceil((t_far - t_near) / step).clamp_min(0).long()
-        first = torch.zeros_like(n_total)
-        last = n_total
-        if occupancy is not None:
-            hit = tight_far > tight_near
-            first = torch.where(hit, ((tight_near - t_near) / step).floor().long().clamp_min(0), first)
-            last = torch.where(hit, torch.minimum(((tight_far - t_near) / step).ceil().long(), n_total), first)
+        step, t_near, start, length, first, last = self.ray_lattice(origins, directions, offsets, step_ratio, occupancy)
         segments, n_segments = _ray_segments(self, occupancy, origins, directions, t_near, step, first, last)
-        start = t_near + offsets * step  # first lattice sample of each ray
-        length = t_far - t_near
         if not n_segments.numel():
             return
         # Consecutive groups of rays whose lattice samples fit in one pass (bounds memory on dense renders).

@@ -13,8 +13,10 @@ occupied space a ray actually sees.
 
 from __future__ import annotations
 
+import importlib.util
 import math
 import numbers
+import os
 from dataclasses import asdict, dataclass, field
 from typing import Callable, Iterable
 
@@ -44,6 +46,9 @@ class RenderConfig:
     # Lattice samples held at once (rays are grouped to fit); None: the device's default (pass_samples).
     samples_per_pass: int | None = None
     chunk_rays: int = 32768  # rays per chunk in whole-image renders
+    # March each ray in one Triton kernel where that renders the same (voxe_core.fused_render: a ReLU grid's own
+    # colour on CUDA); elsewhere, or False, the packed path.
+    fused: bool = False
 
     def __post_init__(self) -> None:
         """ValueError naming a setting that would render blank (a step of 0 or NaN placed no sample), divide by
@@ -68,8 +73,8 @@ class RenderConfig:
 
     def recipe(self) -> dict:
         """The fields that shape a render (a run's recipe): all but how much a pass or a chunk holds (the device's:
-        the render is the same at any size)."""
-        return {k: v for k, v in asdict(self).items() if k not in ("samples_per_pass", "chunk_rays")}
+        the render is the same at any size) and which marcher runs it (the same render to float32 rounding)."""
+        return {k: v for k, v in asdict(self).items() if k not in ("samples_per_pass", "chunk_rays", "fused")}
 
     def pass_samples(self, device: torch.device) -> int:
         """``samples_per_pass``, or ``device``'s default: 2^20 on the CPU, 2^22 on an accelerator.
@@ -89,8 +94,10 @@ class RenderOutput:
     rgb: torch.Tensor  # (N, C), or (H, W, C) from render_image, composited on the background
     opacity: torch.Tensor  # (N,)
     depth: torch.Tensor  # (N,) expected depth, 0 where the ray hit nothing
-    samples: int = 0  # grid evaluations
-    candidates: int = 0  # samples generated along the rays before the occupancy test
+    # Grid evaluations, and the samples along the rays before the occupancy test: 0-d tensors from the fused
+    # marcher (read back, they would wait for its kernel), ints otherwise.
+    samples: int | torch.Tensor = 0
+    candidates: int | torch.Tensor = 0
     extras: dict = field(default_factory=dict)
 
 
@@ -103,6 +110,15 @@ def grid_field(grid: VoxelGrid, color_features: torch.Tensor | None = None, spar
         return grid.activate_density(raw[:, 0]), colour
 
     return values
+
+
+def fused_marcher_applies(grid: VoxelGrid, device: torch.device, color_features: torch.Tensor | None,
+                          sparse_grad: bool) -> bool:
+    """Whether ``voxe_core.fused_render`` renders this: a lattice-sampled ReLU grid's own colour with a dense
+    gradient, where Triton runs (CUDA, or any device under its interpreter, ``TRITON_INTERPRET=1``)."""
+    return (grid.lattice_sampled and grid.activation == "relu" and color_features is None and not sparse_grad
+            and (device.type == "cuda" or os.environ.get("TRITON_INTERPRET") == "1")
+            and importlib.util.find_spec("triton") is not None)
 
 
 def render_rays(
@@ -144,10 +160,18 @@ def render_rays(
             offsets = torch.rand(n_rays, generator=generator, device=device)
         else:
             offsets = torch.full((n_rays,), 0.5, device=device)
-        samples = grid.ray_samples(origins, directions, offsets, config.step_ratio,
-                                   occupancy if config.skip_empty else None, config.pass_samples(device), config.early_stop)
+        occupancy = occupancy if config.skip_empty else None
         channels = 3 if color_features is None else color_features.shape[-1]
         background = torch.as_tensor(config.background, dtype=torch.float32, device=device).expand(channels)
+        if config.fused and fused_marcher_applies(grid, device, color_features, sparse_grad):
+            from voxe_core.fused_render import march  # imports Triton
+
+            lattice = grid.ray_lattice(origins, directions, offsets, config.step_ratio, occupancy)
+            colour, opacity, depth, samples = march(grid, origins, directions, lattice, occupancy, config.early_stop)
+            candidates = (lattice.last - lattice.first).clamp_min(0).sum()
+            return _on_background(colour, opacity, depth, background, samples, candidates)
+        samples = grid.ray_samples(origins, directions, offsets, config.step_ratio, occupancy,
+                                   config.pass_samples(device), config.early_stop)
         return composite(samples, grid_field(grid, color_features, sparse_grad), n_rays, background)
 
 
@@ -180,9 +204,16 @@ def composite(groups: Iterable[RaySamples], values: Field, n_rays: int, backgrou
         accumulated = accumulated.index_add(0, group.ray, weights[:, None] * colour.to(weights.dtype))
         opacity = opacity.index_add(0, group.ray, weights)
         depth = depth.index_add(0, group.ray, weights * group.t)
+    return _on_background(accumulated, opacity, depth, background, evaluated, candidates)
+
+
+def _on_background(accumulated: torch.Tensor, opacity: torch.Tensor, depth: torch.Tensor, background: torch.Tensor,
+                   samples, candidates) -> RenderOutput:
+    """The render from its sums over the samples, Σw·colour (N, C), Σw and Σw·t (N,): composited on ``background``
+    (C,), the depth made an expectation (0 where the ray hit nothing)."""
     rgb = accumulated + (1.0 - opacity)[:, None] * background
     expected_depth = torch.where(opacity > 1e-6, depth / opacity.clamp_min(1e-6), torch.zeros_like(depth))
-    return RenderOutput(rgb, opacity, expected_depth, evaluated, candidates)
+    return RenderOutput(rgb, opacity, expected_depth, samples, candidates)
 
 
 @torch.no_grad()
@@ -211,6 +242,6 @@ def render_image(
         torch.cat([p.rgb for p in parts]).reshape(*shape, -1),
         torch.cat([p.opacity for p in parts]).reshape(shape),
         torch.cat([p.depth for p in parts]).reshape(shape),
-        sum(p.samples for p in parts),
-        sum(p.candidates for p in parts),
+        int(sum(p.samples for p in parts)),
+        int(sum(p.candidates for p in parts)),
     )

@@ -73,6 +73,7 @@ class SceneGrid(VoxelGrid):
     """The voxel grid over contracted space; the foreground cube is [-foreground_extent, foreground_extent]³."""
 
     kind = "scene"
+    lattice_sampled = False  # its own contracted bins
 
     def __init__(
         self,

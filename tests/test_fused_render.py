@@ -1,0 +1,171 @@
+"""The fused ray marcher (voxe_core.fused_render) against the packed renderer it stands in for.
+
+Triton's interpreter runs the kernels on this CPU (``TRITON_INTERPRET=1``, which tests/conftest.py sets before
+anything imports Triton). On a GPU the same kernels compile for CUDA; bench/gpu.py's section l measures them there.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+pytest.importorskip("triton", reason="the fused marcher's kernels are Triton's (Linux x86-64 wheels)")
+
+from voxe_core.edit import EditConfig, edit  # noqa: E402
+from voxe_core.grid import VoxelGrid, unit_directions  # noqa: E402
+from voxe_core.guidance.sds import StableDiffusionGuidance  # noqa: E402
+from voxe_core.progress import Callbacks  # noqa: E402
+from voxe_core.render import RenderConfig, fused_marcher_applies, render_rays  # noqa: E402
+from voxe_core.scene_grid import SceneGrid  # noqa: E402
+
+
+def _rays(n: int, seed: int, radius: float = 3.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """``n`` rays from a sphere of ``radius`` towards random points near the centre (directions not unit length)."""
+    generator = torch.Generator().manual_seed(seed)
+    origins = torch.randn(n, 3, generator=generator)
+    origins = origins / origins.norm(dim=-1, keepdim=True) * radius
+    return origins, torch.randn(n, 3, generator=generator) * 0.4 - origins
+
+
+def _field(resolution: int, seed: int, density: float) -> torch.Tensor:
+    """Random raw features: colour logits, densities of scale ``density`` half below zero, a slab of empty cells."""
+    generator = torch.Generator().manual_seed(seed)
+    features = torch.randn(resolution, resolution, resolution, 4, generator=generator)
+    features[..., 0] = (torch.rand(resolution, resolution, resolution, generator=generator) - 0.5) * density
+    features[: resolution // 3, ..., 0] = -1.0
+    return features
+
+
+def _render_both(features, origins, directions, jitter: bool = False, **render):
+    """(packed, fused) renders with gradients of one loss that weighs every output: (RenderOutput, features' grad)."""
+    results = []
+    for fused in (False, True):
+        grid = VoxelGrid(features.shape[0], features=features.clone())
+        generator = torch.Generator().manual_seed(7) if jitter else None
+        out = render_rays(grid, origins, directions, RenderConfig(fused=fused, **render), generator=generator)
+        weights = torch.linspace(-1.0, 1.0, out.rgb.numel()).reshape(out.rgb.shape)
+        ((out.rgb * weights).sum() + 0.1 * out.depth.sum() + 0.3 * out.opacity.sum()).backward()
+        results.append((out, grid.flat_features.grad))
+    return results
+
+
+def _assert_same_render(packed, fused, grad_tolerance: float = 1e-4):
+    (a, grad_a), (b, grad_b) = packed, fused
+    assert isinstance(a.samples, int) and isinstance(b.samples, torch.Tensor)  # the fused path ran
+    torch.testing.assert_close(b.rgb, a.rgb, atol=1e-5, rtol=0)
+    torch.testing.assert_close(b.opacity, a.opacity, atol=1e-5, rtol=0)
+    torch.testing.assert_close(b.depth, a.depth, atol=1e-4, rtol=0)
+    assert float((grad_b - grad_a).norm() / grad_a.norm()) < grad_tolerance
+    assert int(b.candidates) == a.candidates
+
+
+@pytest.mark.parametrize("early_stop", [1e-4, 0.0])
+@pytest.mark.parametrize("skip_empty", [True, False])
+def test_the_fused_render_and_its_gradient_are_the_packed_ones(early_stop, skip_empty):
+    """Faint and dense cells, rays in every direction, stratified jitter: the same pixels, opacities, depths and
+    feature gradient (to float32 rounding: the transmittance here is a float32 running sum, the packed a float64
+    prefix sum)."""
+    packed, fused = _render_both(_field(12, 0, density=0.6), *_rays(40, 1), jitter=True, step_ratio=0.5,
+                                 early_stop=early_stop, skip_empty=skip_empty)
+    _assert_same_render(packed, fused)
+    opacity = packed[0].opacity.detach()
+    assert float(opacity.max()) > 0.99 and float(opacity.min()) < 0.5  # opaque and faint rays
+
+
+def test_early_stopping_evaluates_only_the_samples_in_front_of_the_stop():
+    """Dense matter: rays stop early. The fused march evaluates the kept samples once (the packed path probes every
+    candidate for their densities first, then evaluates the kept ones again)."""
+    features, (origins, directions) = _field(12, 2, density=4.0), _rays(30, 3)
+    packed, fused = _render_both(features, origins, directions, step_ratio=0.5)
+    _assert_same_render(packed, fused)
+    grid = VoxelGrid(12, features=features)
+    groups = list(grid.ray_samples(origins, unit_directions(directions), torch.full((30,), 0.5), 0.5,
+                                   grid.occupancy(), early_stop=RenderConfig.early_stop))
+    kept, probed = sum(g.ray.numel() for g in groups), sum(g.probed for g in groups)
+    assert packed[0].samples == probed + kept and int(fused[0].samples) == kept < probed
+
+
+def test_saturated_densities_clamp_their_optical_depth_in_both():
+    """Densities of 10^4 per unit and more: each sample's optical depth is clamped (``MAX_SAMPLE_OPTICAL_DEPTH``),
+    which stops its gradient; the render is the first sample's colour in both."""
+    features = _field(10, 4, density=0.5)
+    features[..., 0] = features[..., 0].abs() * 1e4 + 1e3
+    _assert_same_render(*_render_both(features, *_rays(20, 5), step_ratio=0.5, early_stop=0.0))
+
+
+def test_rays_from_inside_the_box_and_rays_that_are_none():
+    """Cameras inside the box start at t = 0; a NaN origin and a zero direction render the background."""
+    features = _field(10, 6, density=0.6)
+    origins, directions = _rays(20, 7)
+    _assert_same_render(*_render_both(features, torch.full((20, 3), 0.1), directions, step_ratio=0.5))
+    origins[0, 1] = math.nan
+    directions[1] = 0.0
+    packed, fused = _render_both(features, origins, directions, step_ratio=0.5)
+    _assert_same_render(packed, fused)
+    assert fused[0].rgb[:2].tolist() == [[1.0, 1.0, 1.0]] * 2 and fused[0].opacity[:2].tolist() == [0.0, 0.0]
+
+
+@pytest.mark.parametrize("sigma", [0.5, 1e-4])
+def test_a_constant_density_slab_gives_the_analytic_opacity(sigma):
+    """σ constant in a box of side 3, a ray along an axis through it: opacity 1 − exp(−3σ), depth the mean of the
+    exponential distribution truncated at the box's far side (from the box's entry at t = 2). A faint one too: each
+    sample's alpha of ~1e-5 would lose ~0.3 % as 1 − exp(−τ) in float32 (hence the series)."""
+    grid = VoxelGrid(9, features=torch.zeros(9, 9, 9, 4))
+    grid.flat_features.data[:, 0] = sigma / grid.density_scale
+    out = render_rays(grid, torch.tensor([[0.1, 0.2, -3.5]]), torch.tensor([[0.0, 0.0, 1.0]]),
+                      RenderConfig(step_ratio=0.05, early_stop=0.0, skip_empty=False, fused=True))
+    opacity = 1 - math.exp(-3 * sigma)
+    mean_inside = 1 / sigma - 3 * math.exp(-3 * sigma) / opacity
+    out.opacity, out.depth, out.rgb = out.opacity.detach(), out.depth.detach(), out.rgb.detach()
+    assert float(out.opacity) == pytest.approx(opacity, rel=1e-5)
+    assert float(out.depth) == pytest.approx(2.0 + mean_inside, rel=1e-3)  # the quadrature's midpoints
+    assert out.rgb[0].tolist() == pytest.approx([1 - 0.5 * opacity] * 3, rel=1e-6)
+
+
+def test_a_nan_density_in_front_of_the_stop_shows_in_the_render():
+    """A NaN density a ray meets before its transmittance runs out makes its pixel NaN, as on the packed path."""
+    features = _field(10, 8, density=0.2)
+    features[4:6, 4:6, 4:6, 0] = math.nan
+    origins = torch.tensor([[0.0, 0.0, -3.0], [2.5, 2.5, 2.5]])
+    directions = torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])  # through the centre; past the box
+    grid = VoxelGrid(10, features=features)
+    for fused in (False, True):
+        out = render_rays(grid, origins, directions, RenderConfig(fused=fused))
+        assert out.rgb[0].isnan().all() and out.rgb[1].tolist() == [1.0, 1.0, 1.0]
+
+
+@pytest.mark.parametrize("case", ["scene grid", "softplus", "colour features", "sparse gradient", "no Triton device"])
+def test_renders_the_fused_marcher_does_not_build_take_the_packed_path(case, monkeypatch):
+    """Where the fused marcher would render something else (or cannot run), ``fused=True`` renders as the packed path
+    does: the same output, counted in ints."""
+    grid = SceneGrid(8) if case == "scene grid" else VoxelGrid(8, activation="softplus" if case == "softplus" else "relu")
+    colour = torch.rand(8, 8, 8, 3) if case == "colour features" else None
+    if case == "no Triton device":
+        monkeypatch.delenv("TRITON_INTERPRET")
+    assert not fused_marcher_applies(grid, torch.device("cpu"), colour, case == "sparse gradient")
+    origins, directions = _rays(6, 9)
+    outs = [render_rays(grid, origins, directions, RenderConfig(fused=fused), color_features=colour,
+                        sparse_grad=case == "sparse gradient") for fused in (False, True)]
+    assert isinstance(outs[1].samples, int) and torch.equal(outs[1].rgb, outs[0].rgb)
+
+
+def test_an_edit_through_the_fused_marcher_is_the_packed_edit(make_sphere_grid, tiny_sd_path):
+    """One SDS iteration on the tiny random-weight model (a SMOKE-TEST MODEL): the same loss, and the same edited grid
+    but for the few features whose gradient is rounding-sized (Adam's first step moves any nonzero gradient by ±lr,
+    whatever its size, so a sign flipped by rounding is a move of 2·lr); the render's sample count is reported."""
+    guidance = StableDiffusionGuidance.from_pretrained(str(tiny_sd_path), device="cpu", local_files_only=True)
+    sphere = make_sphere_grid(16)
+    edited, reports = [], []
+    for fused in (False, True):
+        config = EditConfig(iterations=1, render_size=16, seed=3)
+        config.render.fused = fused
+        edited.append(edit(sphere, "a dog", guidance, config, Callbacks(on_progress=reports.append)).features.detach())
+    packed, fused = reports
+    assert fused.losses["sds"] == pytest.approx(packed.losses["sds"], rel=1e-5)
+    moved = (edited[0] - sphere.features).abs() > 1e-4
+    differ = (edited[1] - edited[0]).abs() > 1e-4
+    assert float(differ.float().mean()) < 0.01 < float(moved.float().mean())
+    # The fused marcher evaluates the kept samples once, the packed path probes them all first.
+    assert isinstance(fused.info["samples_per_ray"], float) and 0 < fused.info["samples_per_ray"] < packed.info["samples_per_ray"]
