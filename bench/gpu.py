@@ -775,7 +775,8 @@ def _memory_text(run: dict) -> str:
 
 # A step's ratio to its own section's reference, measured in the same call (the first a row has is shown).
 SAME_CALL_RATIOS = (("speedup_over_baseline", "fp32 baseline"), ("speedup_over_eager", "eager"),
-                    ("speedup_over_eager_encoder", "eager encoder"), ("speedup_over_2_20", "2^20 passes"))
+                    ("speedup_over_eager_encoder", "eager encoder"), ("speedup_over_2_20", "2^20 passes"),
+                    ("speedup_over_packed", "packed marcher"))
 
 
 def _rows_on_log_axis(ax, values: list[float], notes: list[str], labels: list[str], style: dict, xlabel: str,

@@ -858,6 +858,7 @@ def gpu_section(gpu, reconstruction, results: Path, report: Path) -> tuple[list[
                        "largest entries).")
     bullets += render_pass_tradeoffs([r for r in runs if r.get("kind") == "render_passes"])
     bullets += interpolation_tradeoffs([r for r in runs if r.get("kind") == "interpolation"])
+    bullets += fused_marcher_tradeoffs(runs)
     bullets += reconstruction_variants(runs)
     bullets += step_speedups(runs)
     bullets += step_profile(runs)
@@ -956,6 +957,33 @@ def render_pass_tradeoffs(runs: list[dict]) -> list[str]:
                        f"{mine[0]['samples_per_pass'].bit_length() - 1}: {mine[0]['operations']} operations, "
                        f"{mine[0]['ms']:.0f} ms, {fmt(mine[0].get('peak_memory_gb'), 2)} GiB): {figures}; the render "
                        f"moves by at most {max(r['max_rgb_difference'] for r in mine):.1g}.")
+    return bullets
+
+
+def fused_marcher_tradeoffs(runs: list[dict]) -> list[str]:
+    """bench/gpu.py's section l: per scene the fused marcher's render and backward against the packed renderer's,
+    then the step and the loop with it, each beside what it moved in the render and the gradient."""
+    bullets = []
+    renders = [r for r in runs if r.get("kind") == "fused_render"]
+    for scene, device, mine in by_scene_and_device(renders):
+        packed = next((r for r in mine if r["marcher"] == "packed"), None)
+        fused = next((r for r in mine if r["marcher"] == "fused"), None)
+        if packed and fused:
+            bullets.append(
+                f"**Fused ray marcher** ({scene}, {device}; the edit's render and backward): {fused['ms']:.1f} ms "
+                f"against the packed renderer's {packed['ms']:.1f} ({packed['ms'] / fused['ms']:.2f}×), "
+                f"{fused['operations']} operations against {packed['operations']}, {fused['samples']:,} grid "
+                f"evaluations against {packed['samples']:,}; the render moves by {fused['max_rgb_difference']:.1g}, "
+                f"the gradient by {fused['max_gradient_difference']:.1g} of its largest entry.")
+    steps = [r for r in runs if r.get("section") == "l" and r.get("kind") == "edit_step" and "ms_step" in r]
+    loop = next((r for r in runs if r.get("section") == "l" and r.get("kind") == "edit" and "ms_step" in r), None)
+    if len(steps) == 2:
+        packed, fused = steps
+        looped = (f"; {loop['iterations']} iterations with it: {loop['ms_step']:.1f} ms each, "
+                  f"{loop['edit_8000_minutes']:.1f} min projected to 8,000" if loop else "")
+        bullets.append(f"**Fused ray marcher in the edit step** (same run): {fused['ms_step']:.1f} ms against "
+                       f"{packed['ms_step']:.1f} ({fused['speedup_over_packed']:.2f}×), its render "
+                       f"{fmt(fused.get('ms_render'), 1)} against {fmt(packed.get('ms_render'), 1)} ms{looped}.")
     return bullets
 
 

@@ -135,6 +135,26 @@ def test_render_pass_tradeoffs_compare_each_pass_size_with_the_cpus_default():
     assert "2^22: 0.50× the operations, 1.20× the time, 1.10 GiB" in bullet and "at most 0" in bullet
 
 
+def test_fused_marcher_bullets_set_it_against_the_packed_renderer_beside_what_it_moved():
+    render = {"kind": "fused_render", "scene": "sphere", "device": "cuda", "max_gradient_difference": 0.0}
+    runs = [{**render, "marcher": "packed", "ms": 26.0, "operations": 900, "samples": 3_000_000,
+             "max_rgb_difference": 0.0},
+            {**render, "marcher": "fused", "ms": 2.0, "operations": 120, "samples": 1_000_000,
+             "max_rgb_difference": 2e-7, "max_gradient_difference": 3e-6},
+            {"section": "l", "kind": "edit_step", "ms_step": 60.0, "ms_render": 22.0, "speedup_over_packed": 1.0},
+            {"section": "l", "kind": "edit_step", "ms_step": 40.0, "ms_render": 2.0, "speedup_over_packed": 1.5},
+            {"section": "l", "kind": "edit", "iterations": 500, "ms_step": 39.0, "edit_8000_minutes": 5.2}]
+    render_bullet, step_bullet = report.fused_marcher_tradeoffs(runs)
+    assert "(sphere, cuda; the edit's render and backward): 2.0 ms against the packed renderer's 26.0 (13.00×)" in \
+        render_bullet
+    assert "1,000,000 grid evaluations against 3,000,000; the render moves by 2e-07, the gradient by 3e-06" in \
+        render_bullet
+    assert step_bullet == ("**Fused ray marcher in the edit step** (same run): 40.0 ms against 60.0 (1.50×), its "
+                           "render 2.0 against 22.0 ms; 500 iterations with it: 39.0 ms each, 5.2 min projected to "
+                           "8,000.")
+    assert report.fused_marcher_tradeoffs(runs[:1]) == []  # a scene measured with one marcher only: no comparison
+
+
 def test_interpolation_bullets_set_each_variant_against_the_default_per_scene_and_device():
     row = {"scene": "sphere", "samples": 1_900_000, "saved_for_backward_mb": 28.0, "max_gradient_difference": 0.0,
            "forward_ms": 400.0, "backward_ms": 80.0}

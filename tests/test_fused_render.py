@@ -7,6 +7,10 @@ anything imports Triton). On a GPU the same kernels compile for CUDA; bench/gpu.
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -169,3 +173,37 @@ def test_an_edit_through_the_fused_marcher_is_the_packed_edit(make_sphere_grid, 
     assert float(differ.float().mean()) < 0.01 < float(moved.float().mean())
     # The fused marcher evaluates the kept samples once, the packed path probes them all first.
     assert isinstance(fused.info["samples_per_ray"], float) and 0 < fused.info["samples_per_ray"] < packed.info["samples_per_ray"]
+
+
+COMPILE_FOR_CUDA = """
+import triton
+from triton.backends.compiler import GPUTarget
+from triton.compiler import ASTSource
+
+from voxe_core.fused_render import RAYS_PER_PROGRAM, _march
+
+pointers = dict.fromkeys(["origins", "directions", "starts", "lengths", "features", "grad_features", "rgb", "opacity",
+                          "depth", "grad_rgb", "grad_opacity", "grad_depth"], "*fp32")
+pointers.update(firsts="*i32", lasts="*i32", count="*i32", cells="*u8")
+integers = {"n_rays", "stride_x", "stride_y", "cell_stride_x", "cell_stride_y"}
+flags = {"SKIP_EMPTY", "BACKWARD", "BLOCK"}
+signature = {name: pointers.get(name) or ("i32" if name in integers else "constexpr" if name in flags else "fp32")
+             for name in _march.arg_names}
+for backward in (False, True):
+    for skip_empty in (False, True):
+        source = ASTSource(_march, signature, constexprs={"SKIP_EMPTY": skip_empty, "BACKWARD": backward,
+                                                          "BLOCK": RAYS_PER_PROGRAM})
+        kernel = triton.compile(source, target=GPUTarget("cuda", 90, 32), options={"num_warps": 4})
+        print(backward, skip_empty, kernel.asm["ptx"].count("atom.global") + kernel.asm["ptx"].count("red.global"))
+"""
+
+
+def test_the_kernels_compile_for_a_hopper_gpu_without_one():
+    """Triton compiles both kernels, with and without empty-cell skipping, to PTX and a cubin for sm_90 (the H100 and
+    H200) here, with no GPU (a fresh process: this one runs Triton's interpreter). The backward adds into the grid
+    with one atomic per corner and channel (8 × 4), the forward with none."""
+    env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
+    done = subprocess.run([sys.executable, "-c", COMPILE_FOR_CUDA], capture_output=True, text=True, timeout=300,
+                          env={**env, "TRITON_DEFAULT_FP_FUSION": "1", "PYTHONPATH": str(Path(__file__).parents[1])})
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.stdout.split("\n")[:4] == ["False False 0", "False True 0", "True False 32", "True True 32"]

@@ -42,7 +42,7 @@ import triton.language as tl
 from voxe_core.grid import Occupancy, RayLattice, VoxelGrid
 from voxe_core.volrend import MAX_SAMPLE_OPTICAL_DEPTH
 
-RAYS_PER_PROGRAM = 64
+RAYS_PER_PROGRAM = 128  # one ray per thread of a 4-warp program; neighbouring pixels march alike
 
 
 @triton.jit
@@ -231,7 +231,7 @@ class _Launch:
             grads: list[torch.Tensor], backward: bool) -> None:
         _march[(triton.cdiv(self.n_rays, RAYS_PER_PROGRAM),)](
             *self.rays, features, self.cells, grad_features, *outputs, *grads, self.n_rays, *self.constants,
-            SKIP_EMPTY=self.skip_empty, BACKWARD=backward, BLOCK=RAYS_PER_PROGRAM)
+            SKIP_EMPTY=self.skip_empty, BACKWARD=backward, BLOCK=RAYS_PER_PROGRAM, num_warps=4)
 
 
 class _FusedMarch(torch.autograd.Function):
