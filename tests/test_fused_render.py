@@ -140,19 +140,45 @@ def test_a_nan_density_in_front_of_the_stop_shows_in_the_render():
         assert out.rgb[0].isnan().all() and out.rgb[1].tolist() == [1.0, 1.0, 1.0]
 
 
-@pytest.mark.parametrize("case", ["scene grid", "softplus", "colour features", "sparse gradient", "no Triton device"])
+@pytest.mark.parametrize("case", ["scene grid", "softplus", "float16 grid", "colour features", "sparse gradient",
+                                  "rays with gradient", "no Triton device"])
 def test_renders_the_fused_marcher_does_not_build_take_the_packed_path(case, monkeypatch):
     """Where the fused marcher would render something else (or cannot run), ``fused=True`` renders as the packed path
-    does: the same output, counted in ints."""
+    does: the same output (and gradients), counted in ints."""
     grid = SceneGrid(8) if case == "scene grid" else VoxelGrid(8, activation="softplus" if case == "softplus" else "relu")
+    if case == "float16 grid":
+        grid = grid.half()
     colour = torch.rand(8, 8, 8, 3) if case == "colour features" else None
     if case == "no Triton device":
         monkeypatch.delenv("TRITON_INTERPRET")
-    assert not fused_marcher_applies(grid, torch.device("cpu"), colour, case == "sparse gradient")
     origins, directions = _rays(6, 9)
+    origins.requires_grad_(case == "rays with gradient")
+    assert not fused_marcher_applies(grid, origins, directions, colour, case == "sparse gradient")
     outs = [render_rays(grid, origins, directions, RenderConfig(fused=fused), color_features=colour,
                         sparse_grad=case == "sparse gradient") for fused in (False, True)]
     assert isinstance(outs[1].samples, int) and torch.equal(outs[1].rgb, outs[0].rgb)
+
+
+def test_a_box_of_any_shape_and_place_renders_as_on_the_packed_path():
+    """A grid of 10 × 13 × 7 vertices over an off-centre box with unequal voxel edges: the same strides, cells and
+    corner weights as the packed path (a cubic grid in the default box would hide an axis mixed up)."""
+    box = (-0.5, -2.0, 0.25), (2.0, 1.0, 1.0)
+    features = torch.randn(10, 13, 7, 4, generator=torch.Generator().manual_seed(10))
+    # Density in a ball only: most cells empty, so a cell looked up on the wrong axis skips matter or keeps none.
+    centre = torch.tensor([0.9, -0.7, 0.6])
+    vertices = VoxelGrid((10, 13, 7), *box).vertex_positions().reshape(10, 13, 7, 3)
+    features[..., 0] = 0.5 - (vertices - centre).norm(dim=-1)
+    results = []
+    for fused in (False, True):
+        grid = VoxelGrid((10, 13, 7), *box, features=features.clone())
+        origins = centre + torch.randn(30, 3, generator=torch.Generator().manual_seed(11)) * 3
+        directions = centre + torch.randn(30, 3, generator=torch.Generator().manual_seed(12)) * 0.2 - origins
+        out = render_rays(grid, origins, directions, RenderConfig(step_ratio=0.5, fused=fused))
+        (out.rgb * torch.linspace(-1, 1, 90).reshape(30, 3)).sum().backward()
+        results.append((out, grid.flat_features.grad))
+    _assert_same_render(*results)
+    cells = grid.occupancy().cells
+    assert float(cells.float().mean()) < 0.2 and float(results[0][0].opacity.detach().max()) > 0.9
 
 
 def test_an_edit_through_the_fused_marcher_is_the_packed_edit(make_sphere_grid, tiny_sd_path):

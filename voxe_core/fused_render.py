@@ -251,6 +251,7 @@ class _FusedMarch(torch.autograd.Function):
         return tuple(outputs)
 
     @staticmethod
+    @torch.autograd.function.once_differentiable
     def backward(ctx, grad_rgb, grad_opacity, grad_depth, _grad_count):
         features, *sums = ctx.saved_tensors
         grad_features = torch.zeros_like(features)

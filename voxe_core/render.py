@@ -112,12 +112,14 @@ def grid_field(grid: VoxelGrid, color_features: torch.Tensor | None = None, spar
     return values
 
 
-def fused_marcher_applies(grid: VoxelGrid, device: torch.device, color_features: torch.Tensor | None,
-                          sparse_grad: bool) -> bool:
-    """Whether ``voxe_core.fused_render`` renders this: a lattice-sampled ReLU grid's own colour with a dense
-    gradient, where Triton runs (CUDA, or any device under its interpreter, ``TRITON_INTERPRET=1``)."""
-    return (grid.lattice_sampled and grid.activation == "relu" and color_features is None and not sparse_grad
-            and (device.type == "cuda" or os.environ.get("TRITON_INTERPRET") == "1")
+def fused_marcher_applies(grid: VoxelGrid, origins: torch.Tensor, directions: torch.Tensor,
+                          color_features: torch.Tensor | None, sparse_grad: bool) -> bool:
+    """Whether ``voxe_core.fused_render`` renders this: a lattice-sampled float32 ReLU grid's own colour with a dense
+    gradient into the grid only (none into the rays), where Triton runs (CUDA, or any device under its interpreter,
+    ``TRITON_INTERPRET=1``)."""
+    return (grid.lattice_sampled and grid.activation == "relu" and grid.flat_features.dtype == torch.float32
+            and color_features is None and not sparse_grad and not (origins.requires_grad or directions.requires_grad)
+            and (origins.device.type == "cuda" or os.environ.get("TRITON_INTERPRET") == "1")
             and importlib.util.find_spec("triton") is not None)
 
 
@@ -163,7 +165,7 @@ def render_rays(
         occupancy = occupancy if config.skip_empty else None
         channels = 3 if color_features is None else color_features.shape[-1]
         background = torch.as_tensor(config.background, dtype=torch.float32, device=device).expand(channels)
-        if config.fused and fused_marcher_applies(grid, device, color_features, sparse_grad):
+        if config.fused and fused_marcher_applies(grid, origins, directions, color_features, sparse_grad):
             from voxe_core.fused_render import march  # imports Triton
 
             lattice = grid.ray_lattice(origins, directions, offsets, config.step_ratio, occupancy)
