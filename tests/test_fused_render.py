@@ -69,8 +69,7 @@ def _assert_same_render(packed, fused, grad_tolerance: float = 1e-4):
 @pytest.mark.parametrize("skip_empty", [True, False])
 def test_the_fused_render_and_its_gradient_are_the_packed_ones(early_stop, skip_empty):
     """Faint and dense cells, rays in every direction, stratified jitter: the same pixels, opacities, depths and
-    feature gradient (to float32 rounding: the transmittance here is a float32 running sum, the packed a float64
-    prefix sum)."""
+    feature gradient, to float32 rounding."""
     packed, fused = _render_both(_field(12, 0, density=0.6), *_rays(40, 1), jitter=True, step_ratio=0.5,
                                  early_stop=early_stop, skip_empty=skip_empty)
     _assert_same_render(packed, fused)
@@ -111,21 +110,54 @@ def test_rays_from_inside_the_box_and_rays_that_are_none():
     assert fused[0].rgb[:2].tolist() == [[1.0, 1.0, 1.0]] * 2 and fused[0].opacity[:2].tolist() == [0.0, 0.0]
 
 
-@pytest.mark.parametrize("sigma", [0.5, 1e-4])
-def test_a_constant_density_slab_gives_the_analytic_opacity(sigma):
+@pytest.mark.parametrize("sigma", [0.5, 1e-4, 20 / 3])
+def test_a_constant_density_slab_gives_the_analytic_opacity_and_gradient(sigma):
     """σ constant in a box of side 3, a ray along an axis through it: opacity 1 − exp(−3σ), depth the mean of the
-    exponential distribution truncated at the box's far side (from the box's entry at t = 2). A faint one too: each
-    sample's alpha of ~1e-5 would lose ~0.3 % as 1 − exp(−τ) in float32 (hence the series)."""
+    exponential distribution truncated at the box's far side (from the box's entry at t = 2). The opacity's
+    gradient in every sample's optical depth is the transmittance left at the end, T = exp(−3σ), so the raw densities'
+    gradients add up to T · 3 · density_scale; at σ = 20/3 that is 2e-9 of what a float32 running sum of the weights
+    would have subtracted it from. A faint slab too: each sample's alpha of ~1e-5 must not lose digits."""
     grid = VoxelGrid(9, features=torch.zeros(9, 9, 9, 4))
     grid.flat_features.data[:, 0] = sigma / grid.density_scale
     out = render_rays(grid, torch.tensor([[0.1, 0.2, -3.5]]), torch.tensor([[0.0, 0.0, 1.0]]),
                       RenderConfig(step_ratio=0.05, early_stop=0.0, skip_empty=False, fused=True))
+    out.opacity.sum().backward()
     opacity = 1 - math.exp(-3 * sigma)
     mean_inside = 1 / sigma - 3 * math.exp(-3 * sigma) / opacity
-    out.opacity, out.depth, out.rgb = out.opacity.detach(), out.depth.detach(), out.rgb.detach()
-    assert float(out.opacity) == pytest.approx(opacity, rel=1e-5)
-    assert float(out.depth) == pytest.approx(2.0 + mean_inside, rel=1e-3)  # the quadrature's midpoints
+    assert float(out.opacity.detach()) == pytest.approx(opacity, rel=1e-5)
+    assert float(out.depth.detach()) == pytest.approx(2.0 + mean_inside, rel=1e-3)  # the quadrature's midpoints
     assert out.rgb[0].tolist() == pytest.approx([1 - 0.5 * opacity] * 3, rel=1e-6)
+    grad = grid.flat_features.grad
+    assert float(grad[:, 0].sum()) == pytest.approx(math.exp(-3 * sigma) * 3 * grid.density_scale, rel=1e-5)
+    assert bool((grad[:, 0] >= 0).all()) and not grad[:, 1:].any()
+
+
+def test_a_density_of_exactly_zero_passes_no_gradient_through_the_relu():
+    """Raw density 0 over half the grid (``init_density=0``, or densities clamped to ``empty_raw_density``): ReLU's
+    gradient is 0 there, on both paths (a sample there must not send the optical depth's gradient into it)."""
+    features = _field(9, 12, density=0.6)
+    features[:5, ..., 0] = 0.0
+    _assert_same_render(*_render_both(features, *_rays(16, 13), step_ratio=0.5, skip_empty=False))
+
+
+def test_a_nan_colour_where_nothing_is_dense_shows_in_the_render():
+    """A NaN colour at a vertex of no density still makes the pixels through it NaN (0 · NaN), on both paths: the
+    edit's finite-loss check must see it."""
+    features = torch.zeros(10, 10, 10, 4)
+    features[..., 0] = -0.1
+    features[5, 5, 5, 1] = math.nan
+    grid = VoxelGrid(10, features=features)
+    for fused in (False, True):
+        out = render_rays(grid, torch.tensor([[0.0, 0.0, -3.0]]), torch.tensor([[0.0, 0.0, 1.0]]),
+                          RenderConfig(fused=fused, skip_empty=False))
+        assert out.rgb[0, 0].isnan() and out.rgb[0, 1:].tolist() == [1.0, 1.0]
+
+
+def test_an_occupancy_of_another_grid_is_refused():
+    """Cells of another resolution: the packed path's lookup fails; the kernel would read past them."""
+    grid = VoxelGrid(9)
+    with pytest.raises(ValueError, match=r"an occupancy of \(5, 5, 5\) cells does not fit a grid of \(9, 9, 9\)"):
+        render_rays(grid, *_rays(4, 14), RenderConfig(fused=True), occupancy=VoxelGrid(6).occupancy())
 
 
 def test_a_nan_density_in_front_of_the_stop_shows_in_the_render():
@@ -202,6 +234,8 @@ def test_an_edit_through_the_fused_marcher_is_the_packed_edit(make_sphere_grid, 
 
 
 COMPILE_FOR_CUDA = """
+import re
+
 import triton
 from triton.backends.compiler import GPUTarget
 from triton.compiler import ASTSource
@@ -210,7 +244,7 @@ from voxe_core.fused_render import RAYS_PER_PROGRAM, _march
 
 pointers = dict.fromkeys(["origins", "directions", "starts", "lengths", "features", "grad_features", "rgb", "opacity",
                           "depth", "grad_rgb", "grad_opacity", "grad_depth"], "*fp32")
-pointers.update(firsts="*i32", lasts="*i32", count="*i32", cells="*u8")
+pointers.update(firsts="*i32", lasts="*i32", count="*i32", cells="*u8", totals="*fp64")
 integers = {"n_rays", "stride_x", "stride_y", "cell_stride_x", "cell_stride_y"}
 flags = {"SKIP_EMPTY", "BACKWARD", "BLOCK"}
 signature = {name: pointers.get(name) or ("i32" if name in integers else "constexpr" if name in flags else "fp32")
@@ -220,16 +254,20 @@ for backward in (False, True):
         source = ASTSource(_march, signature, constexprs={"SKIP_EMPTY": skip_empty, "BACKWARD": backward,
                                                           "BLOCK": RAYS_PER_PROGRAM})
         kernel = triton.compile(source, target=GPUTarget("cuda", 90, 32), options={"num_warps": 4})
-        print(backward, skip_empty, kernel.asm["ptx"].count("atom.global") + kernel.asm["ptx"].count("red.global"))
+        ptx = kernel.asm["ptx"]
+        atomics = re.findall(r"\\b(?:atom|red)\\.[a-z0-9_.]+", ptx)  # "@%p16 red.global.gpu.relaxed.add.f32 [ ..."
+        print(backward, skip_empty, len(atomics), sorted(set(atomics)))
 """
 
 
 def test_the_kernels_compile_for_a_hopper_gpu_without_one():
     """Triton compiles both kernels, with and without empty-cell skipping, to PTX and a cubin for sm_90 (the H100 and
     H200) here, with no GPU (a fresh process: this one runs Triton's interpreter). The backward adds into the grid
-    with one atomic per corner and channel (8 × 4), the forward with none."""
+    with one relaxed atomic per corner and channel (8 × 4), the forward with none."""
     env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
     done = subprocess.run([sys.executable, "-c", COMPILE_FOR_CUDA], capture_output=True, text=True, timeout=300,
                           env={**env, "TRITON_DEFAULT_FP_FUSION": "1", "PYTHONPATH": str(Path(__file__).parents[1])})
     assert done.returncode == 0, done.stderr[-3000:]
-    assert done.stdout.split("\n")[:4] == ["False False 0", "False True 0", "True False 32", "True True 32"]
+    relaxed = "['red.global.gpu.relaxed.add.f32']"  # no ordering: the adds commute (acq_rel fenced every one)
+    assert done.stdout.split("\n")[:4] == ["False False 0 []", "False True 0 []", f"True False 32 {relaxed}",
+                                           f"True True 32 {relaxed}"]
