@@ -256,7 +256,7 @@ for backward in (False, True):
         kernel = triton.compile(source, target=GPUTarget("cuda", 90, 32), options={"num_warps": 4})
         ptx = kernel.asm["ptx"]
         atomics = re.findall(r"\\b(?:atom|red)\\.[a-z0-9_.]+", ptx)  # "@%p16 red.global.gpu.relaxed.add.f32 [ ..."
-        print(backward, skip_empty, len(atomics), sorted(set(atomics)))
+        print(backward, skip_empty, len(atomics), all(a.endswith(".gpu.relaxed.add.f32") for a in atomics))
 """
 
 
@@ -268,6 +268,6 @@ def test_the_kernels_compile_for_a_hopper_gpu_without_one():
     done = subprocess.run([sys.executable, "-c", COMPILE_FOR_CUDA], capture_output=True, text=True, timeout=300,
                           env={**env, "TRITON_DEFAULT_FP_FUSION": "1", "PYTHONPATH": str(Path(__file__).parents[1])})
     assert done.returncode == 0, done.stderr[-3000:]
-    relaxed = "['red.global.gpu.relaxed.add.f32']"  # no ordering: the adds commute (acq_rel fenced every one)
-    assert done.stdout.split("\n")[:4] == ["False False 0 []", "False True 0 []", f"True False 32 {relaxed}",
-                                           f"True True 32 {relaxed}"]
+    # relaxed (red.global... on Triton 3.9, atom.global... on 3.5): the adds commute; acq_rel had fenced each one
+    assert done.stdout.split("\n")[:4] == ["False False 0 True", "False True 0 True", "True False 32 True",
+                                           "True True 32 True"]
