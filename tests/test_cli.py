@@ -12,6 +12,8 @@ from pathlib import Path
 
 import imageio.v2 as imageio
 import numpy as np
+from types import SimpleNamespace
+
 import pytest
 import torch
 import trimesh
@@ -431,6 +433,25 @@ def test_edit_asks_for_cuda_graphs_and_a_compiled_encoder_unless_told_not_to(fla
     code = main(["edit", str(tmp_path / "g.safetensors"), "--prompt", "a dog", "--out", str(tmp_path / "out"),
                  "--model", "stand-in", "--device", "cpu", *flag])
     assert code == 2 and {key: asked[key] for key in expected} == expected
+
+
+@pytest.mark.parametrize("flag", [[], ["--fused-marcher"]])
+def test_edit_marches_its_renders_fused_only_when_asked(flag, sphere_grid, tmp_path, monkeypatch):
+    import voxe_core.cli.edit as edit_command
+    import voxe_core.edit
+
+    seen = []
+
+    def recorded_edit(grid, prompt, guidance, config, *args, **kwargs):
+        seen.append(config.render.fused)
+        return grid
+
+    monkeypatch.setattr(voxe_core.edit, "edit", recorded_edit)
+    monkeypatch.setattr(edit_command, "load_guidance", lambda *args, **kwargs: SimpleNamespace(device="cpu"))
+    sphere_grid.save(tmp_path / "g.safetensors")
+    assert main(["edit", str(tmp_path / "g.safetensors"), "--prompt", "a dog", "--out", str(tmp_path / "out"),
+                 "--device", "cpu", "-q", *flag]) == 0
+    assert seen == [bool(flag)]
 
 
 # ---------------------------------------------------------------- evaluate

@@ -238,6 +238,33 @@ def test_the_worker_edits_a_scene_grid_with_the_real_scene_schedule(service, mon
                                  backbone, CHECKPOINT_EVERY)
 
 
+@pytest.mark.parametrize("setting", [None, "true"])
+def test_the_workers_edit_marches_fused_as_its_setting_says(service, monkeypatch, setting):
+    """``VOXE_FUSED_MARCHER`` (a worker's, off by default) reaches the edit's render config, and only it: the rest
+    of the config is the job parameters' (the recipe leaves the marcher out, so checkpoints carry over)."""
+    import voxe_core.edit
+    from voxe_service.settings import get_settings
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job = _reconstructed_job(client, scene_id, "relu_field")
+    if setting is not None:
+        monkeypatch.setenv("VOXE_FUSED_MARCHER", setting)
+        get_settings.cache_clear()  # read again, as a worker started with it would
+    seen = []
+
+    def recorded_edit(initial, prompt, guidance, config, *args, **kwargs):
+        seen.append(config)
+        return initial.clone_grid()
+
+    monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
+    monkeypatch.setattr(voxe_core.edit, "edit", recorded_edit)
+    assert tasks.edit_task.apply(args=(job["id"],)).get()["state"] == "done"
+    (config,) = seen
+    expected = edit_config(service_json(TINY_FIT), "relu_field", CHECKPOINT_EVERY)
+    assert config.render.fused is (setting == "true") and config.recipe() == expected.recipe()
+
+
 def _checkpoint_of_another_recipe(path) -> bytes:
     """A readable edit checkpoint made with guidance scale 7.5 (a worker of another version's default, say)."""
     import torch

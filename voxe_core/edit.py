@@ -153,8 +153,8 @@ class EditConfig:
 
     def recipe(self) -> dict:
         """The fields a resumed run must share with its checkpoint's (JSON values): those that shape every step's
-        arithmetic. Left out: the length (a resume may run on), the render's pass sizes and the autocast (the
-        device's: a job may resume on another worker), previews, checkpoints and timing."""
+        arithmetic. Left out: the length (a resume may run on), the render's pass sizes and marcher and the autocast
+        (the device's: a job may resume on another worker), previews, checkpoints and timing."""
         fields = {**asdict(self), "render": self.render.recipe()}
         for name in NOT_RECIPE_FIELDS:
             del fields[name]

@@ -60,6 +60,9 @@ class Settings(BaseSettings):
     device: str = Field("auto", pattern=r"^(auto|cpu|cuda(:\d+)?)$")  # refused at start, not inside every job
     cuda_graphs: bool = True  # the SDS step's UNet (and its VAE encoder, when not compiled) from CUDA graphs on CUDA
     compile_encoder: bool = True  # the SDS step's VAE encoder compiled with torch.compile on CUDA
+    # The edit's renders marched in one Triton kernel on CUDA (voxe_core.fused_render): off until bench/gpu.py's
+    # section l has measured it against the packed renderer.
+    fused_marcher: bool = False
     # Diffusion models (SDS, attention) a worker process keeps loaded; loading one more frees the least recently used.
     # 2: a local job's two, so the next job's edit neither reloads its model nor compiles its encoder again (39 s on
     # the H200) for ~2.1 GB of fp16 weights; 1 on a 12 GB card editing dense scenes (README, "Memory").

@@ -326,8 +326,10 @@ def _record_edit_schedule(job: Job, kind: str, settings) -> "EditConfig":
 
 
 def _edit_schedule(job: Job, kind: str, settings) -> tuple["EditConfig", dict]:
-    """The edit's config for a G_i of ``kind`` and its schedule as the job's result keeps it."""
+    """The edit's config for a G_i of ``kind`` (its renders marched as this worker's ``fused_marcher`` says) and its
+    schedule as the job's result keeps it."""
     config = edit_config(job.params, kind, settings.checkpoint_every)
+    config.render.fused = settings.fused_marcher
     return config, {"backbone": kind, "iterations": config.iterations, "i_start": config.schedule.i_start,
                     "every": config.schedule.every, "floor": config.schedule.floor}
 

@@ -34,6 +34,9 @@ def add_parsers(commands, common) -> None:
     ed.add_argument("--no-compile-encoder", dest="compile_encoder", action="store_false",
                     help="leave the SDS step's VAE encoder uncompiled (and graphed) on CUDA (default: torch.compile, "
                          "which the first iteration waits for)")
+    ed.add_argument("--fused-marcher", action="store_true",
+                    help="march the renders in one Triton kernel on CUDA (voxe_core.fused_render; default: the packed "
+                         "renderer, until it is measured on a GPU)")
     ed.add_argument("--iterations", type=int, default=None,
                     help=f"default {paper.EDIT_ITERATIONS}; on a scene-backbone grid {paper.EDIT_ITERATIONS} means SPEC "
                          f"§5's {_SCENE.iterations}, as in the service's jobs (any other count runs as given)")
@@ -86,6 +89,7 @@ def cmd_edit(args) -> int:
         raise ValueError("the edit prompt is empty")
     grid = load_grid(args.grid)
     config = edit_config(job_params(args), grid.kind, args.checkpoint_every)  # bad options fail before the model loads
+    config.render.fused = args.fused_marcher
     if config.regulariser in IMAGE_REGULARISERS and args.data is None:
         raise ValueError(f"--regulariser {config.regulariser} compares renders with the input views: pass --data DATA_DIR")
     check_device(args)
