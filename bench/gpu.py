@@ -20,7 +20,7 @@ a. ``edit_step``: one SDS editing step split into render / VAE / UNet / backward
    accuracy: each variant's SDS gradient, encoder latents and image gradient against the baseline's on the same
    inputs (``sds_grad_relative_difference`` ..., as sections g and j compare with the eager guidance);
 b. ``edit_loop``: >= 500 iterations of the default edit at 160³: ms per step, the projected 8,000-iteration
-   minutes;
+   minutes (``--fused-marcher``: with the fused ray marcher, as section f's job then);
 c. ``reconstruction``: mic with the ``fast`` and ``paper`` presets on the device: seconds, test PSNR / SSIM
    (scored as bench/reconstruction.py scores them, at its 200 px; the 2026-12-04 record trained at 266 px), and
    ``fast`` again with the early-stop density pass object fits dropped, and with twice the steps of half the rays at
@@ -116,6 +116,7 @@ class Profile:
     max_images: int | None
     refine: dict
     export: dict
+    fused_marcher: bool = False  # sections b and f: the edit's renders through the fused marcher (--fused-marcher)
 
     @classmethod
     def full(cls) -> "Profile":
@@ -190,7 +191,7 @@ def _loop_row(guidance, profile: Profile, name: str, fused: bool = False, **extr
             "model": SDS_MODEL, "iterations": profile.loop_iterations, "seconds": wall,
             "iterations_per_second": profile.loop_iterations / wall, "ms_step": ms_step,
             "edit_8000_minutes": ms_step * 8000 / 60000, "warm_seconds": warm_seconds, "warm_iterations": profile.warm,
-            **_peaks(reports), **extra}
+            "samples_per_ray": sum(r.info["samples_per_ray"] for r in reports) / len(reports), **_peaks(reports), **extra}
 
 
 def _relative_difference(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -351,7 +352,10 @@ def edit_step_runs(sd2: Path, profile: Profile) -> list[dict]:
 def edit_loop_run(sd2: Path, profile: Profile) -> dict:
     """The default edit (the guidance as ``from_pretrained`` makes it: channels_last and CUDA graphs on CUDA)."""
     guidance = _guidance(sd2, profile, profile.dtype)
-    return _loop_row(guidance, profile, f"edit_loop {profile.loop_iterations} iterations at {profile.grid_resolution}³",
+    marcher = ", fused marcher" if profile.fused_marcher else ""
+    return _loop_row(guidance, profile,
+                     f"edit_loop {profile.loop_iterations} iterations at {profile.grid_resolution}³{marcher}",
+                     fused=profile.fused_marcher, fused_marcher=profile.fused_marcher,
                      render_size=profile.render_size, guidance_resolution=profile.guidance_resolution,
                      cuda_graphs=guidance.cuda_graphs, compile_encoder=guidance.compile_encoder,
                      encoder_compile_seconds=guidance.encoder_compile_seconds)
@@ -457,7 +461,8 @@ def job_run(sd2: Path, sd14: Path, profile: Profile, data: Path, root: Path, loo
     from fastapi.testclient import TestClient
     from service_helpers import ingest, reset_service_caches, service_env, small_mic, zip_folder
 
-    env = service_env(root, VOXE_SDS_MODEL=str(sd2), VOXE_ATTENTION_MODEL=str(sd14), VOXE_DEVICE=profile.device)
+    env = service_env(root, VOXE_SDS_MODEL=str(sd2), VOXE_ATTENTION_MODEL=str(sd14), VOXE_DEVICE=profile.device,
+                      VOXE_FUSED_MARCHER=str(profile.fused_marcher).lower())
     saved = {key: os.environ.get(key) for key in env}
     os.environ.update(env)
     reset_service_caches()
@@ -494,7 +499,9 @@ def job_run(sd2: Path, sd14: Path, profile: Profile, data: Path, root: Path, loo
     if loop_ms_step is not None:
         projected = total + (8000 - profile.job_iterations) * loop_ms_step / 1e3
     memory = (done.get("result") or {}).get("peak_memory_gb", {})
-    return {"name": "local-edit job through the worker", "kind": "job", "device": profile.device,
+    marcher = ", fused marcher" if profile.fused_marcher else ""
+    return {"name": f"local-edit job through the worker{marcher}", "kind": "job", "device": profile.device,
+            "fused_marcher": profile.fused_marcher,
             "dtype": _dtype_name(profile.dtype),
             "model": "sd2-base-shaped SDS + sd1.4-shaped attention (random weights)", "seconds": total,
             "seconds_per_stage": seconds, "edit_iterations": profile.job_iterations,
@@ -841,6 +848,9 @@ def main(argv=None) -> int:
     parser.add_argument("--data", type=Path, default=MIC, help="the nerf_synthetic mic folder")
     parser.add_argument("--out", type=Path, default=None, help="JSON to write (default bench/results/gpu[_smoke].json)")
     parser.add_argument("--skip", default="", help="comma-separated sections to leave out (a,b,c,d,f,h,g,i,l,k,j)")
+    parser.add_argument("--fused-marcher", action="store_true",
+                        help="sections b and f with the fused ray marcher (VOXE_FUSED_MARCHER for the job's worker); "
+                             "their rows say so")
     parser.add_argument("--call", type=int, default=None,
                         help="number of this call on the device: tags its runs (an earlier call's keep theirs)")
     parser.add_argument("--call-note", default=None, help="what this call ran, recorded under the header's calls")
@@ -848,7 +858,7 @@ def main(argv=None) -> int:
                         help="an earlier call's JSON whose runs of the skipped sections are kept (a later call on the "
                              "device re-running the others)")
     args = parser.parse_args(argv)
-    profile = Profile.smoke() if args.smoke else Profile.full()
+    profile = dataclasses.replace(Profile.smoke() if args.smoke else Profile.full(), fused_marcher=args.fused_marcher)
     if args.smoke:  # toy-sized ops: OpenMP hand-offs between threads would cost more than they give
         torch.set_num_threads(1)
         os.environ.setdefault("TRITON_INTERPRET", "1")  # section l's kernels on this CPU (before Triton's import)

@@ -168,6 +168,23 @@ def test_section_l_sets_the_fused_marcher_against_the_packed_renderer(monkeypatc
     assert loop["kind"] == "edit" and loop["name"].endswith("fused marcher") and loop["edit_8000_minutes"] > 0
 
 
+def test_the_edit_loop_runs_with_the_fused_marcher_when_asked(monkeypatch, tiny_sd_path):
+    """``--fused-marcher`` (``Profile.fused_marcher``): section b's loop renders through the fused marcher (which
+    evaluates each kept sample once, the packed path probes them all first) and its row says so."""
+    bench = _load_bench(monkeypatch)
+    small = dataclasses.replace(bench.Profile.smoke(), render_size=8, grid_resolution=12, loop_iterations=1)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        packed, fused = (bench.edit_loop_run(tiny_sd_path, dataclasses.replace(small, fused_marcher=flag))
+                         for flag in (False, True))
+    finally:
+        torch.set_num_threads(threads)
+    assert (packed["fused_marcher"], fused["fused_marcher"]) == (False, True)
+    assert fused["name"] == "edit_loop 1 iterations at 12³, fused marcher" and "fused" not in packed["name"]
+    assert 0 < fused["samples_per_ray"] < packed["samples_per_ray"]
+
+
 def test_section_g_sets_its_steps_against_section_as_baseline_only_from_the_same_call(monkeypatch):
     bench = _load_bench(monkeypatch)
     baseline = {"name": "edit_step baseline", "section": "a", "ms_step": 120.0}
