@@ -5,10 +5,11 @@ Models have RANDOM WEIGHTS (nothing can be downloaded on the device machine; the
 depend on its weights): ``sd2-base-shaped`` (SDS) and ``sd1.4-shaped`` (attention) are built from the real
 architectures by ``bench/edit_step.py``'s builder, fp16, 512² guidance. Timings are costs, never quality.
 
-    python bench/gpu.py            # CUDA, full size: at most ~8 min on one H200
+    python bench/gpu.py            # CUDA, full size: ~8 min on one H200 before section l (--skip: in parts)
     bash bench/gpu_carry.sh        # here: the wheels and mic views the lent GPU machine lacks, in .gpu_carry/
     bash bench/gpu_device.sh       # there (device tool: carry [".gpu_carry"]): installs them, runs this script
-    python bench/gpu.py --smoke    # CPU, tiny sizes: every section but g and j end to end in about a minute
+    python bench/gpu.py --smoke    # CPU, tiny sizes: every section but g and j end to end in about two minutes
+                                   # (l's kernels in Triton's interpreter: ~60 s of it)
                                    # (tests/test_bench_gpu.py); its figures mean nothing
 
 Sections (each one's failure is recorded in its run, the others still run; the JSON is rewritten after each):
@@ -20,7 +21,7 @@ a. ``edit_step``: one SDS editing step split into render / VAE / UNet / backward
    accuracy: each variant's SDS gradient, encoder latents and image gradient against the baseline's on the same
    inputs (``sds_grad_relative_difference`` ..., as sections g and j compare with the eager guidance);
 b. ``edit_loop``: >= 500 iterations of the default edit at 160³: ms per step, the projected 8,000-iteration
-   minutes (``--fused-marcher``: with the fused ray marcher, as section f's job then);
+   minutes (``--fused-marcher``: with the fused ray marcher, section l);
 c. ``reconstruction``: mic with the ``fast`` and ``paper`` presets on the device: seconds, test PSNR / SSIM
    (scored as bench/reconstruction.py scores them, at its 200 px; the 2026-12-04 record trained at 266 px), and
    ``fast`` again with the early-stop density pass object fits dropped, and with twice the steps of half the rays at
@@ -46,9 +47,11 @@ j. ``edit_step`` (CUDA only) with the VAE encoder compiled (``torch.compile``) o
    (the compile), per-part times, agreement with the eager guidance;
 l. ``fused_render``: the fused ray marcher (``RenderConfig.fused``: one Triton kernel marches and composites each
    ray, another adds its gradient; voxe_core.fused_render) against the packed renderer: the edit's render and
-   backward on section h's scenes (operations, time, memory, the render's and gradient's differences), the default
-   step against the fused one interleaved with per-part times, and a ``loop_iterations`` loop with the fused
-   marcher (its 8,000-iteration minutes; the smoke run's kernels run in Triton's interpreter);
+   backward on section h's scenes (operations, time, memory, the render's and gradient's differences), and the
+   default step against the fused one interleaved with per-part times (on the CPU its kernels run in Triton's
+   interpreter: ~60 s at the smoke sizes, figures that mean nothing); ``--fused-marcher`` runs sections b and f with
+   it (their rows say ``fused_marcher``, which bench/report.py keeps out of issue 17's targets while the packed
+   renderer is the default);
 k. ``step_profile``: ``torch.profiler`` over ``timed`` default steps: the device's busy time against the wall
    time (below 1: the host's launching and reading back sets the pace, not the arithmetic), kernel launches and
    host synchronisations per step, and the kernels and host operations that take the most time.
@@ -191,7 +194,13 @@ def _loop_row(guidance, profile: Profile, name: str, fused: bool = False, **extr
             "model": SDS_MODEL, "iterations": profile.loop_iterations, "seconds": wall,
             "iterations_per_second": profile.loop_iterations / wall, "ms_step": ms_step,
             "edit_8000_minutes": ms_step * 8000 / 60000, "warm_seconds": warm_seconds, "warm_iterations": profile.warm,
-            "samples_per_ray": sum(r.info["samples_per_ray"] for r in reports) / len(reports), **_peaks(reports), **extra}
+            **_marched(reports), **_peaks(reports), **extra}
+
+
+def _marched(reports) -> dict:
+    """Samples per ray, and whether every render went through the fused marcher (as the edit reports them)."""
+    return {"samples_per_ray": sum(r.info["samples_per_ray"] for r in reports) / len(reports),
+            "fused_marcher": all(r.info["fused_marcher"] for r in reports)}
 
 
 def _relative_difference(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -355,8 +364,7 @@ def edit_loop_run(sd2: Path, profile: Profile) -> dict:
     marcher = ", fused marcher" if profile.fused_marcher else ""
     return _loop_row(guidance, profile,
                      f"edit_loop {profile.loop_iterations} iterations at {profile.grid_resolution}³{marcher}",
-                     fused=profile.fused_marcher, fused_marcher=profile.fused_marcher,
-                     render_size=profile.render_size, guidance_resolution=profile.guidance_resolution,
+                     fused=profile.fused_marcher, render_size=profile.render_size, guidance_resolution=profile.guidance_resolution,
                      cuda_graphs=guidance.cuda_graphs, compile_encoder=guidance.compile_encoder,
                      encoder_compile_seconds=guidance.encoder_compile_seconds)
 
@@ -630,17 +638,16 @@ def _interleaved_steps(guidance, profile: Profile, variants: dict[str, dict]) ->
         reports = [r for run, _ in timings[name] for r in run]
         ms_step = sum(wall for _, wall in timings[name]) * 1e3 / len(reports)
         rows.append(_step_row(name, profile, profile.dtype, ms_step, reports, parts[name],
-                              cuda_graphs=guidance.cuda_graphs,
-                              samples_per_ray=sum(r.info["samples_per_ray"] for r in reports) / len(reports)))
+                              cuda_graphs=guidance.cuda_graphs, **_marched(reports)))
     return rows
 
 
 # ---------------------------------------------------------------- (l)
 def fused_marcher_runs(sd2: Path, profile: Profile) -> list[dict]:
     """The fused ray marcher (``RenderConfig.fused``, voxe_core.fused_render) against the packed renderer: the edit's
-    render and its backward on bench/render_passes.py's sphere and fog (operations, time, memory, and the render's and
-    gradient's differences from the packed ones), the default step against the fused one (:func:`_interleaved_steps`),
-    and a ``loop_iterations`` loop with the fused marcher, from which its 8,000-iteration minutes are projected."""
+    render and its backward on bench/render_passes.py's sphere and fog (operations, time, memory, the render's and
+    gradient's differences from the packed ones, whether the fused path ran), and the default step against the fused
+    one (:func:`_interleaved_steps`). Its loop is section b's with ``--fused-marcher``."""
     import render_passes
     from edit_step import sphere_grid
 
@@ -660,9 +667,7 @@ def fused_marcher_runs(sd2: Path, profile: Profile) -> list[dict]:
     steps = _interleaved_steps(guidance, profile, {"packed marcher (the default)": {}, "fused marcher": dict(fused=True)})
     for row in steps:
         row["speedup_over_packed"] = steps[0]["ms_step"] / row["ms_step"]
-    loop = _loop_row(guidance, profile, f"edit_loop {profile.loop_iterations} iterations at {profile.grid_resolution}³, "
-                     "fused marcher", cuda_graphs=guidance.cuda_graphs, fused=True)
-    return rows + steps + [loop]
+    return rows + steps
 
 
 # ---------------------------------------------------------------- (k)
@@ -861,7 +866,7 @@ def main(argv=None) -> int:
     profile = dataclasses.replace(Profile.smoke() if args.smoke else Profile.full(), fused_marcher=args.fused_marcher)
     if args.smoke:  # toy-sized ops: OpenMP hand-offs between threads would cost more than they give
         torch.set_num_threads(1)
-        os.environ.setdefault("TRITON_INTERPRET", "1")  # section l's kernels on this CPU (before Triton's import)
+        os.environ.setdefault("TRITON_INTERPRET", "1")  # section l's kernels on this CPU (before diffusers imports Triton)
     if profile.device == "cuda" and not torch.cuda.is_available():
         print("bench/gpu.py needs a CUDA device (or --smoke)", file=sys.stderr)
         return 2
@@ -947,7 +952,8 @@ def main(argv=None) -> int:
             section("k", "step_profile", lambda: step_profile_run(sd2, profile))
             if profile.device == "cuda":  # after the other step sections: a compile's warm-up is the least predictable
                 section("j", "edit_step", lambda: compiled_encoder_runs(sd2, profile))
-            loops = [r for r in runs if r.get("section") == "b" and "ms_step" in r]  # the default loop, latest call's
+            loops = [r for r in runs if r.get("section") == "b" and "ms_step" in r  # section b's, the latest call's,
+                     and bool(r.get("fused_marcher")) == profile.fused_marcher]  # rendered as the job renders
             loop = max(loops, key=lambda r: r.get("call") or 0) if loops else None
             if args.data.is_dir():
                 job_progress = {}

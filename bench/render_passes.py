@@ -97,9 +97,9 @@ def measure(name: str, grid: VoxelGrid, rays, repeats: int, device: str = "cpu",
 
 
 def measure_configs(grid: VoxelGrid, rays, repeats: int, device: str, configs: dict) -> dict:
-    """Per entry of ``configs`` (key -> RenderConfig): operations, samples, peak memory, output differences against
-    the first entry and the median time of ``repeats`` interleaved renders with their backward (ratios to the
-    first's)."""
+    """Per entry of ``configs`` (key -> RenderConfig): operations, samples, whether the fused marcher rendered it, peak
+    memory, output differences against the first entry and the median time of ``repeats`` interleaved renders with
+    their backward (ratios to the first's)."""
     device = torch.device(device)
     grid = grid.to(device)
     rays = tuple(r.to(device) for r in rays)
@@ -112,6 +112,7 @@ def measure_configs(grid: VoxelGrid, rays, repeats: int, device: str, configs: d
         peak = memory.info()
         reference = reference or (rgb, grad)
         rows[key] = {"operations": ops.count, "samples": int(samples),
+                     "marched_fused": isinstance(samples, torch.Tensor),  # the fused marcher's count is a tensor
                      "device": str(device), "peak_memory_gb": peak["peak_memory_gb"],
                      "peak_memory_kind": peak["peak_memory_kind"],
                      "max_rgb_difference": float((rgb - reference[0]).abs().max()),

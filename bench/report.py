@@ -694,14 +694,25 @@ GPU_TARGETS = (  # issue 17's, on one H200 with full-size random-weight models
 
 
 def _pick(runs: list[dict], kind: str, key: str, pick=min):
-    """``pick`` (the best: min; the worst: max) of ``key`` over ``runs`` of ``kind``; None when none has it."""
-    values = [r[key] for r in runs if r.get("kind") == kind and r.get(key) is not None]
+    """``pick`` (the best: min; the worst: max) of ``key`` over ``runs`` of ``kind`` rendered as the defaults render
+    (:func:`_default_marcher`); None when none has it."""
+    values = [r[key] for r in runs if r.get("kind") == kind and r.get(key) is not None and _default_marcher(r)]
     return pick(values) if values else None
+
+
+DEFAULT_FUSED_MARCHER = False  # voxe_core's RenderConfig().fused (tests/test_bench_report.py holds them equal)
+
+
+def _default_marcher(run: dict) -> bool:
+    """Whether ``run``'s renders marched as the defaults march them (bench/gpu.py's ``--fused-marcher`` rows say
+    ``fused_marcher``): the targets are the defaults'."""
+    return bool(run.get("fused_marcher", False)) == DEFAULT_FUSED_MARCHER
 
 
 def _default_edit(runs: list[dict], key: str):
     """``key`` of section b's loop (the default edit) from the latest device call that ran it."""
-    loops = [r for r in runs if r.get("section") == "b" and r.get("kind") == "edit" and r.get(key) is not None]
+    loops = [r for r in runs if r.get("section") == "b" and r.get("kind") == "edit" and r.get(key) is not None
+             and _default_marcher(r)]
     return max(loops, key=lambda r: r.get("call", 0))[key] if loops else None
 
 
@@ -976,7 +987,8 @@ def fused_marcher_tradeoffs(runs: list[dict]) -> list[str]:
                 f"evaluations against {packed['samples']:,}; the render moves by {fused['max_rgb_difference']:.1g}, "
                 f"the gradient by {fused['max_gradient_difference']:.1g} of its largest entry.")
     steps = [r for r in runs if r.get("section") == "l" and r.get("kind") == "edit_step" and "ms_step" in r]
-    loop = next((r for r in runs if r.get("section") == "l" and r.get("kind") == "edit" and "ms_step" in r), None)
+    loop = next((r for r in runs if r.get("section") == "b" and r.get("kind") == "edit" and "ms_step" in r
+                 and r.get("fused_marcher")), None)  # --fused-marcher's loop
     if len(steps) == 2:
         packed, fused = steps
         looped = (f"; {loop['iterations']} iterations with it: {loop['ms_step']:.1f} ms each, "

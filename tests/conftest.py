@@ -6,15 +6,17 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-# Triton's interpreter runs the fused marcher's kernels on the CPU (tests/test_fused_render.py). It is chosen when
-# Triton is imported, and diffusers imports it, so it is set here, before any test module imports anything.
-os.environ.setdefault("TRITON_INTERPRET", "1")
-
 import pytest
 import torch
 
-from needs import DATA_ROOT, MIC, require_data  # noqa: F401 - DATA_ROOT and MIC are imported from here by tests
-from voxe_core.grid import VoxelGrid
+# Without a GPU, Triton's interpreter runs the fused marcher's kernels (tests/test_fused_render.py). Triton picks it as
+# each function is decorated, its own library's (tl.zeros ...) when it is imported, and diffusers imports it: so it is
+# set here, before any test module imports anything. Not on a CUDA machine: there inductor's kernels would crawl in it.
+if not torch.cuda.is_available():
+    os.environ.setdefault("TRITON_INTERPRET", "1")
+
+from needs import DATA_ROOT, MIC, require_data  # noqa: E402, F401 - DATA_ROOT and MIC are imported from here by tests
+from voxe_core.grid import VoxelGrid  # noqa: E402
 
 
 def pytest_configure(config):

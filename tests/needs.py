@@ -42,3 +42,14 @@ def needs_data(*paths: Path):
     import pytest
 
     return pytest.mark.needs_data(*paths)
+
+
+def require_triton_interpreter() -> None:
+    """Skip (fail in CI) unless Triton is installed and runs in its interpreter here: tests/conftest.py turns it on
+    where there is no CUDA (the fused marcher's kernels then run on the CPU tensors the tests build)."""
+    import importlib.util
+
+    if importlib.util.find_spec("triton") is None:
+        missing("Triton is not installed (the dev extra installs it on Linux x86-64)")
+    if os.environ.get("TRITON_INTERPRET") != "1":
+        missing("Triton's interpreter is off (tests/conftest.py turns it on only without CUDA)")

@@ -135,6 +135,19 @@ def test_render_pass_tradeoffs_compare_each_pass_size_with_the_cpus_default():
     assert "2^22: 0.50× the operations, 1.20× the time, 1.10 GiB" in bullet and "at most 0" in bullet
 
 
+def test_issue_17s_targets_read_the_default_marchers_rows_only():
+    """A ``--fused-marcher`` call's loop and job are not the defaults' (until the fused marcher is the default)."""
+    from voxe_core.render import RenderConfig
+
+    assert report.DEFAULT_FUSED_MARCHER == RenderConfig().fused
+    packed = {"section": "b", "kind": "edit", "call": 5, "edit_8000_minutes": 8.1}
+    fused = {**packed, "call": 7, "edit_8000_minutes": 3.9, "fused_marcher": True}
+    jobs = [{"kind": "job", "seconds_projected_8000_iterations": 516.0},
+            {"kind": "job", "seconds_projected_8000_iterations": 300.0, "fused_marcher": True}]
+    assert report._default_edit([packed, fused], "edit_8000_minutes") == 8.1
+    assert report._pick(jobs, "job", "seconds_projected_8000_iterations") == 516.0
+
+
 def test_fused_marcher_bullets_set_it_against_the_packed_renderer_beside_what_it_moved():
     render = {"kind": "fused_render", "scene": "sphere", "device": "cuda", "max_gradient_difference": 0.0}
     runs = [{**render, "marcher": "packed", "ms": 26.0, "operations": 900, "samples": 3_000_000,
@@ -143,7 +156,9 @@ def test_fused_marcher_bullets_set_it_against_the_packed_renderer_beside_what_it
              "max_rgb_difference": 2e-7, "max_gradient_difference": 3e-6},
             {"section": "l", "kind": "edit_step", "ms_step": 60.0, "ms_render": 22.0, "speedup_over_packed": 1.0},
             {"section": "l", "kind": "edit_step", "ms_step": 40.0, "ms_render": 2.0, "speedup_over_packed": 1.5},
-            {"section": "l", "kind": "edit", "iterations": 500, "ms_step": 39.0, "edit_8000_minutes": 5.2}]
+            {"section": "b", "kind": "edit", "iterations": 500, "ms_step": 61.0, "edit_8000_minutes": 8.1},
+            {"section": "b", "kind": "edit", "iterations": 500, "ms_step": 39.0, "edit_8000_minutes": 5.2,
+             "fused_marcher": True}]
     render_bullet, step_bullet = report.fused_marcher_tradeoffs(runs)
     assert "(sphere, cuda; the edit's render and backward): 2.0 ms against the packed renderer's 26.0 (13.00×)" in \
         render_bullet

@@ -9,11 +9,10 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import imageio.v2 as imageio
 import numpy as np
-from types import SimpleNamespace
-
 import pytest
 import torch
 import trimesh

@@ -1,7 +1,7 @@
 """The fused ray marcher (voxe_core.fused_render) against the packed renderer it stands in for.
 
-Triton's interpreter runs the kernels on this CPU (``TRITON_INTERPRET=1``, which tests/conftest.py sets before
-anything imports Triton). On a GPU the same kernels compile for CUDA; bench/gpu.py's section l measures them there.
+Triton's interpreter runs the kernels on this CPU (``TRITON_INTERPRET=1``, which tests/conftest.py sets where there is
+no CUDA). On a GPU the same kernels compile for CUDA; bench/gpu.py's section l measures them there.
 """
 
 from __future__ import annotations
@@ -15,14 +15,18 @@ from pathlib import Path
 import pytest
 import torch
 
-pytest.importorskip("triton", reason="the fused marcher's kernels are Triton's (Linux x86-64 wheels)")
+from needs import require_triton_interpreter
+from voxe_core.edit import EditConfig, edit
+from voxe_core.grid import VoxelGrid, unit_directions
+from voxe_core.guidance.sds import StableDiffusionGuidance
+from voxe_core.progress import Callbacks
+from voxe_core.render import RenderConfig, fused_marcher_applies, render_rays
+from voxe_core.scene_grid import SceneGrid
 
-from voxe_core.edit import EditConfig, edit  # noqa: E402
-from voxe_core.grid import VoxelGrid, unit_directions  # noqa: E402
-from voxe_core.guidance.sds import StableDiffusionGuidance  # noqa: E402
-from voxe_core.progress import Callbacks  # noqa: E402
-from voxe_core.render import RenderConfig, fused_marcher_applies, render_rays  # noqa: E402
-from voxe_core.scene_grid import SceneGrid  # noqa: E402
+
+@pytest.fixture(autouse=True)
+def _triton_interpreter():
+    require_triton_interpreter()
 
 
 def _rays(n: int, seed: int, radius: float = 3.0) -> tuple[torch.Tensor, torch.Tensor]:

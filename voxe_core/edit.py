@@ -498,11 +498,13 @@ def edit(
             # The step's one read: its losses and the guidance's device-side diagnostics together.
             grad_norm = torch.as_tensor(diagnostics.get("grad_norm", math.nan), dtype=torch.float32, device=device)
             nonfinite = torch.as_tensor(diagnostics.get("nonfinite_fraction", 0.0), dtype=torch.float32, device=device)
-            # In float64, where the render's sample count (a tensor from the fused marcher) is exact.
-            read = [sds.detach(), reg.detach(), total.detach(), grad_norm.reshape(()), nonfinite.reshape(()),
-                    torch.as_tensor(samples, device=device)]
-            sds_value, reg_value, total_value, grad_norm_value, nonfinite_value, samples = torch.stack(
-                [value.double() for value in read]).tolist()
+            # The fused marcher's sample count (a tensor; the packed path's is an int) is read here too, in float64,
+            # where it is exact.
+            fused = isinstance(samples, torch.Tensor)
+            read = [sds.detach(), reg.detach(), total.detach(), grad_norm.reshape(()), nonfinite.reshape(())]
+            values = torch.stack([value.double() for value in read + [samples] * fused]).tolist()
+            sds_value, reg_value, total_value, grad_norm_value, nonfinite_value = values[:5]
+            samples = values[5] if fused else samples
             if not math.isfinite(total_value):
                 raise EditDiverged(
                     f"the edit diverged at iteration {done}: its loss is {total_value} (SDS {sds_value}, "
@@ -527,6 +529,7 @@ def edit(
                     "sds_grad_norm": grad_norm_value,
                     "sds_nonfinite_fraction": nonfinite_value,
                     "samples_per_ray": samples / (config.batch_size * size * size),
+                    "fused_marcher": fused,  # whether the renders went through voxe_core.fused_render
                     "ms_render": (t_render - t_start) * 1e3,
                     "ms_vae": float(diagnostics.get("vae_encode_ms", math.nan)),
                     "ms_unet": float(diagnostics.get("unet_ms", math.nan)),

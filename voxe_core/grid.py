@@ -12,8 +12,10 @@ renderer's (``voxe_core.render``): :meth:`VoxelGrid.ray_samples` places samples
 evenly (``step_ratio`` voxels apart) along each ray's intersection with the box,
 on one lattice per ray anchored at the box, keeps only those in occupied cells
 when given an occupancy, and yields them packed ray by ray
-(:class:`RaySamples`). Another backbone (``voxe_core.scene_grid.SceneGrid``)
-overrides where the samples go and nothing else.
+(:class:`RaySamples`); :meth:`VoxelGrid.ray_lattice` says where each ray's lattice
+lies, which the fused marcher (``voxe_core.fused_render``) walks itself. Another
+backbone (``voxe_core.scene_grid.SceneGrid``) overrides where the samples go and
+nothing else (its contracted bins are no lattice: ``lattice_sampled`` False).
 """
 
 from __future__ import annotations
@@ -216,6 +218,10 @@ class RayLattice(NamedTuple):
     length: torch.Tensor  # (N,) the path inside the box
     first: torch.Tensor  # (N,)
     last: torch.Tensor  # (N,)
+
+    def candidates(self) -> torch.Tensor:
+        """(N,) samples per ray before the occupancy test (a ray that misses has none)."""
+        return (self.last - self.first).clamp_min(0)
 
 
 class VoxelGrid(torch.nn.Module):
@@ -437,14 +443,15 @@ class VoxelGrid(torch.nn.Module):
             >>> group.points.shape, float(group.delta.sum())  # 4 steps of 0.75 through the 3-unit box
             (torch.Size([4, 3]), 3.0)
         """
-        step, t_near, start, length, first, last = self.ray_lattice(origins, directions, offsets, step_ratio, occupancy)
+        lattice = self.ray_lattice(origins, directions, offsets, step_ratio, occupancy)
+        step, t_near, start, length, first, last = lattice
         segments, n_segments = _ray_segments(self, occupancy, origins, directions, t_near, step, first, last)
         if not n_segments.numel():
             return
         # Consecutive groups of rays whose lattice samples fit in one pass (bounds memory on dense renders).
         per_ray = n_segments * SEGMENT
         group = torch.div(per_ray.cumsum(0) - per_ray, samples_per_pass, rounding_mode="floor")
-        candidates = (last - first).clamp_min(0).cumsum(0)
+        candidates = lattice.candidates().cumsum(0)
         # Segment width, whether one pass holds every ray (the groups never decrease) and the candidate count
         # reach the host in one read; only several passes need a second, for their ends and counts.
         width, last_group, total = torch.cat([n_segments.amax().reshape(1), group[-1:], candidates[-1:]]).tolist()

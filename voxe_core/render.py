@@ -8,7 +8,9 @@ with its contracted bins), and :func:`composite` turns the packed samples and
 a field into pixels. The field is passed as a function of the sample points
 (:data:`Field`), so the same compositor renders a grid's colour or other
 per-vertex features (the 3D attention grids). Cost therefore follows the
-occupied space a ray actually sees.
+occupied space a ray actually sees. Where ``RenderConfig.fused`` asks and it
+applies (:func:`fused_marcher_applies`), ``voxe_core.fused_render`` does both in
+one GPU kernel instead: the same samples and render, nothing laid out between.
 """
 
 from __future__ import annotations
@@ -170,7 +172,7 @@ def render_rays(
 
             lattice = grid.ray_lattice(origins, directions, offsets, config.step_ratio, occupancy)
             colour, opacity, depth, samples = march(grid, origins, directions, lattice, occupancy, config.early_stop)
-            candidates = (lattice.last - lattice.first).clamp_min(0).sum()
+            candidates = lattice.candidates().sum()
             return _on_background(colour, opacity, depth, background, samples, candidates)
         samples = grid.ray_samples(origins, directions, offsets, config.step_ratio, occupancy,
                                    config.pass_samples(device), config.early_stop)
