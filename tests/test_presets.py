@@ -265,6 +265,24 @@ def test_the_workers_edit_marches_fused_as_its_setting_says(service, monkeypatch
     assert config.render.fused is (setting == "true") and config.recipe() == expected.recipe()
 
 
+def test_a_worker_whose_fused_marcher_cannot_run_says_so(service, monkeypatch, caplog):
+    """VOXE_FUSED_MARCHER on a CPU worker (no Triton interpreter): the packed renderer renders, and the log says why."""
+    import voxe_core.edit
+    from voxe_service.settings import get_settings
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job = _reconstructed_job(client, scene_id, "relu_field")
+    monkeypatch.setenv("VOXE_FUSED_MARCHER", "true")
+    monkeypatch.delenv("TRITON_INTERPRET", raising=False)
+    get_settings.cache_clear()
+    monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
+    monkeypatch.setattr(voxe_core.edit, "edit", lambda initial, *args, **kwargs: initial.clone_grid())
+    with caplog.at_level("WARNING", logger="voxe.worker"):
+        assert tasks.edit_task.apply(args=(job["id"],)).get()["state"] == "done"
+    assert f"job {job['id']}: VOXE_FUSED_MARCHER is on, but Triton does not run on cpu here" in caplog.text
+
+
 def _checkpoint_of_another_recipe(path) -> bytes:
     """A readable edit checkpoint made with guidance scale 7.5 (a worker of another version's default, say)."""
     import torch

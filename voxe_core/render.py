@@ -121,7 +121,13 @@ def fused_marcher_applies(grid: VoxelGrid, origins: torch.Tensor, directions: to
     ``TRITON_INTERPRET=1``)."""
     return (grid.lattice_sampled and grid.activation == "relu" and grid.flat_features.dtype == torch.float32
             and color_features is None and not sparse_grad and not (origins.requires_grad or directions.requires_grad)
-            and (origins.device.type == "cuda" or os.environ.get("TRITON_INTERPRET") == "1")
+            and fused_marcher_runs_on(origins.device))
+
+
+def fused_marcher_runs_on(device: torch.device | str) -> bool:
+    """Whether Triton runs the fused marcher on ``device``: installed, and CUDA (or its CPU interpreter,
+    ``TRITON_INTERPRET=1``, on any device)."""
+    return ((torch.device(device).type == "cuda" or os.environ.get("TRITON_INTERPRET") == "1")
             and importlib.util.find_spec("triton") is not None)
 
 

@@ -455,11 +455,15 @@ def _fit_grid(job: Job, rec, settings, storage, callbacks: StageCallbacks, check
 # --------------------------------------------------------------------------- edit
 def _edit(job: Job, settings, device: str, storage) -> None:
     from voxe_core.edit import edit
+    from voxe_core.render import fused_marcher_runs_on
 
     guidance = runtime.get_guidance(job.sds_model, device, settings, job.id)  # first: a missing model fails fast
     rec = runtime.load_reconstruction(job.reconstruction_id)
     initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, runtime.reconstruction_grid(rec))
     config = _record_edit_schedule(job, initial.kind, settings)  # SPEC §5's schedule for a scene G_i
+    if config.render.fused and not fused_marcher_runs_on(device):
+        log.warning("job %s: VOXE_FUSED_MARCHER is on, but Triton does not run on %s here (it needs CUDA and the "
+                    "triton package): the packed renderer renders", job.id, device)
     scratch = runtime.scratch_dir(job.id, settings)
     checkpoint = scratch / "edit_checkpoint.safetensors"
     checkpoint_key = job_key(job.id, "checkpoints/edit.safetensors")
