@@ -143,19 +143,19 @@ def test_a_call_cut_off_by_its_time_limit_keeps_what_it_measured(tmp_path, monke
     assert [r["section"] for r in json.loads(out.read_text())["runs"]] == ["h"]
 
 
-def test_section_l_sets_the_fused_marcher_against_the_packed_renderer(monkeypatch, tiny_sd_path):
+def _interpreted_bench(monkeypatch):
+    """bench/gpu.py and a profile small enough for Triton's interpreter (8² renders, a 12³ grid, one loop iteration)."""
+    require_triton_interpreter()
+    bench = _load_bench(monkeypatch)
+    return bench, dataclasses.replace(bench.Profile.smoke(), render_size=8, grid_resolution=12, loop_iterations=1)
+
+
+def test_section_l_sets_the_fused_marcher_against_the_packed_renderer(monkeypatch, tiny_sd_path, single_thread):
     """Section l on this CPU (the smoke run leaves it out: Triton's interpreter takes ~60 s at its sizes), smaller
     still: the fused render and gradient agree with the packed ones, evaluate fewer samples, and the steps are timed
     (figures that mean nothing here); each row says whether the fused path ran."""
-    require_triton_interpreter()
-    bench = _load_bench(monkeypatch)
-    profile = dataclasses.replace(bench.Profile.smoke(), render_size=8, grid_resolution=12, loop_iterations=1)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        rows = bench.fused_marcher_runs(tiny_sd_path, profile)
-    finally:
-        torch.set_num_threads(threads)
+    bench, profile = _interpreted_bench(monkeypatch)
+    rows = bench.fused_marcher_runs(tiny_sd_path, profile)
     renders = [r for r in rows if r["kind"] == "fused_render"]
     assert [(r["scene"], r["marcher"]) for r in renders] == [
         (scene, marcher) for scene in ("sphere", "fog") for marcher in ("packed", "fused")]
@@ -171,19 +171,12 @@ def test_section_l_sets_the_fused_marcher_against_the_packed_renderer(monkeypatc
     assert fused_step["ms_render"] > 0 and fused_step["samples_per_ray"] < packed_step["samples_per_ray"]
 
 
-def test_the_edit_loop_runs_with_the_fused_marcher_when_asked(monkeypatch, tiny_sd_path):
+def test_the_edit_loop_runs_with_the_fused_marcher_when_asked(monkeypatch, tiny_sd_path, single_thread):
     """``--fused-marcher`` (``Profile.fused_marcher``): section b's loop renders through the fused marcher (which
     evaluates each kept sample once, the packed path probes them all first) and its row says so."""
-    require_triton_interpreter()
-    bench = _load_bench(monkeypatch)
-    small = dataclasses.replace(bench.Profile.smoke(), render_size=8, grid_resolution=12, loop_iterations=1)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        packed, fused = (bench.edit_loop_run(tiny_sd_path, dataclasses.replace(small, fused_marcher=flag))
-                         for flag in (False, True))
-    finally:
-        torch.set_num_threads(threads)
+    bench, small = _interpreted_bench(monkeypatch)
+    packed, fused = (bench.edit_loop_run(tiny_sd_path, dataclasses.replace(small, fused_marcher=flag))
+                     for flag in (False, True))
     assert (packed["fused_marcher"], fused["fused_marcher"]) == (False, True)
     assert fused["name"] == "edit_loop 1 iterations at 12³, fused marcher" and "fused" not in packed["name"]
     assert 0 < fused["samples_per_ray"] < packed["samples_per_ray"]
