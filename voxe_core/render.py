@@ -117,8 +117,7 @@ def grid_field(grid: VoxelGrid, color_features: torch.Tensor | None = None, spar
 def fused_marcher_applies(grid: VoxelGrid, origins: torch.Tensor, directions: torch.Tensor,
                           color_features: torch.Tensor | None, sparse_grad: bool) -> bool:
     """Whether ``voxe_core.fused_render`` renders this: a lattice-sampled float32 ReLU grid's own colour with a dense
-    gradient into the grid only (none into the rays), where Triton runs (CUDA, or any device under its interpreter,
-    ``TRITON_INTERPRET=1``)."""
+    gradient into the grid only (none into the rays), on a device it runs on (:func:`fused_marcher_runs_on`)."""
     return (grid.lattice_sampled and grid.activation == "relu" and grid.flat_features.dtype == torch.float32
             and color_features is None and not sparse_grad and not (origins.requires_grad or directions.requires_grad)
             and fused_marcher_runs_on(origins.device))
