@@ -40,11 +40,10 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import json
 import math
 import time
 import warnings
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -90,7 +89,7 @@ from voxe_core.losses import (
 from voxe_core.progress import Callbacks, Progress, StageCancelled
 from voxe_core.render import RenderConfig, render_image, render_rays
 from voxe_core.schedule import TimestepSchedule
-from voxe_core.tensorio import load_tensors, recipe_changes, save_tensors
+from voxe_core.tensorio import config_recipe, load_tensors, recipe_changes, save_tensors
 
 EDIT_CHECKPOINT_KIND = "edit_checkpoint"
 EDIT_CHECKPOINT_VERSION = 1
@@ -155,10 +154,7 @@ class EditConfig:
         """The fields a resumed run must share with its checkpoint's (JSON values): those that shape every step's
         arithmetic. Left out: the length (a resume may run on), the render's pass sizes and marcher and the autocast
         (the device's: a job may resume on another worker), previews, checkpoints and timing."""
-        fields = {**asdict(self), "render": self.render.recipe()}
-        for name in NOT_RECIPE_FIELDS:
-            del fields[name]
-        return json.loads(json.dumps(fields))
+        return config_recipe(self, NOT_RECIPE_FIELDS)
 
     def __post_init__(self):
         if self.iterations < 0:

@@ -11,9 +11,8 @@ in 25 s, 47 CPU s, its six seeds 30.63–30.70 dB).
 
 from __future__ import annotations
 
-import json
 import math
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -26,7 +25,7 @@ from voxe_core.grid import Activation, Occupancy, VoxelGrid
 from voxe_core.losses import sampled_total_variation
 from voxe_core.progress import Callbacks, Progress, StageCancelled
 from voxe_core.render import RenderConfig, render_rays
-from voxe_core.tensorio import FormatError, load_tensors, recipe_changes, save_tensors
+from voxe_core.tensorio import FormatError, config_recipe, load_tensors, recipe_changes, save_tensors
 
 CHECKPOINT_FORMAT_VERSION = 1
 CHECKPOINT_KIND = "reconstruction_checkpoint"
@@ -191,9 +190,7 @@ class ReconstructConfig:
         """The fields a resumed fit must share with its checkpoint's, and a stored fit with its cache key
         (``presets.reconstruction_key``), as JSON values: every one but how often checkpoints are written and how
         much a render pass holds (the device's: a fit may resume on another worker)."""
-        fields = {**asdict(self), "render": self.render.recipe()}
-        del fields["checkpoint_every"]
-        return json.loads(json.dumps(fields))
+        return config_recipe(self, ("checkpoint_every",))
 
 
 def _stage_data(images: torch.Tensor, cameras: Cameras, downsample: int):

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Iterable
+from dataclasses import asdict
 from pathlib import Path
 
 import torch
@@ -21,6 +23,15 @@ HEADER_KEY = "voxe"
 
 class FormatError(ValueError):
     """A tensor file that is not ours, is damaged, or is from a newer format version."""
+
+
+def config_recipe(config, left_out: Iterable[str]) -> dict:
+    """A stage config's recipe as JSON values: every field but ``left_out``, its ``render`` by the render's own
+    ``recipe()`` (what a checkpoint records, and :func:`recipe_changes` compares)."""
+    fields = {**asdict(config), "render": config.render.recipe()}
+    for name in left_out:
+        del fields[name]
+    return json.loads(json.dumps(fields))
 
 
 def recipe_changes(meta: dict, config) -> list[str]:
