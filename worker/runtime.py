@@ -362,6 +362,11 @@ def cleanup_scratch(job_id: str, settings: Settings) -> None:
     shutil.rmtree(Path(settings.work_dir) / "jobs" / job_id, ignore_errors=True)
 
 
+def _leading_id(name: str) -> str:
+    """The id a scratch folder's name starts with (``<id>-<suffix>``; ``.<id>-...`` keeps its dot)."""
+    return name.partition("-")[0]
+
+
 def _sweep(root: Path, owner, kept) -> list[str]:
     """Delete the folders under ``root`` whose owner (``owner(name)``) is not among ``kept(owners)``; the names swept.
     The folders are listed before ``kept`` reads the database, so each is judged by a state its maker had written
@@ -402,7 +407,7 @@ def sweep_scene_datasets(settings: Settings) -> list[str]:
             unpacking = set(session.scalars(select(Job.scene_id).where(Job.scene_id.in_(ready), Job.state == RUNNING)))
         return ready | {f".{scene_id}" for scene_id in unpacking}
 
-    return _sweep(Path(settings.work_dir) / "scenes", lambda name: name.partition("-")[0], kept)
+    return _sweep(Path(settings.work_dir) / "scenes", _leading_id, kept)
 
 
 def sweep_ingest_scratch(settings: Settings) -> list[str]:
@@ -414,7 +419,7 @@ def sweep_ingest_scratch(settings: Settings) -> list[str]:
         with session_scope() as session:
             return set(session.scalars(select(Scene.id).where(Scene.id.in_(ids), Scene.state == PROCESSING)))
 
-    return _sweep(Path(settings.work_dir) / "ingest", lambda name: name.partition("-")[0], processing)
+    return _sweep(Path(settings.work_dir) / "ingest", _leading_id, processing)
 
 
 def publish_artifact(job_id: str, name: str, path: str | os.PathLike, kind: str, storage: Storage | None = None,
