@@ -8,9 +8,9 @@ architectures by ``bench/edit_step.py``'s builder, fp16, 512² guidance. Timings
     python bench/gpu.py            # CUDA, full size: ~8 min on one H200 before section l (--skip: in parts)
     bash bench/gpu_carry.sh        # here: the wheels and mic views the lent GPU machine lacks, in .gpu_carry/
     bash bench/gpu_device.sh       # there (device tool: carry [".gpu_carry"]): installs them, runs this script
-    python bench/gpu.py --smoke    # CPU, tiny sizes: every section but g and j end to end in about two minutes
-                                   # (l's kernels in Triton's interpreter: ~60 s of it)
-                                   # (tests/test_bench_gpu.py); its figures mean nothing
+    python bench/gpu.py --smoke    # CPU, tiny sizes: every section but g and j end to end in about two minutes,
+                                   # ~60 s of it l's kernels in Triton's interpreter (tests/test_bench_gpu.py runs
+                                   # all but l, and l smaller); its figures mean nothing
 
 Sections (each one's failure is recorded in its run, the others still run; the JSON is rewritten after each):
 
