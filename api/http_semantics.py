@@ -2,7 +2,10 @@
 
 * A body that is not JSON at all is a 400 ``malformed JSON body`` (FastAPI would say 422, the status
   the document keeps for bodies that parse but break the schema), and one sent as another media type than
-  JSON a 415 naming it (FastAPI reads it as a string and said 422 "Input should be a valid dictionary").
+  JSON a 415 naming it (FastAPI reads it as a string and said 422 "Input should be a valid dictionary"). JSON that
+  ``json.loads`` refuses otherwise than as a syntax error (a number past Python's int-string conversion limit, bytes
+  not UTF-8, nesting past the recursion limit) is that 400 too, naming why, not FastAPI's bare "There was an error
+  parsing the body".
 * A path holding a NUL character is a 404 (no resource is named so) and such a query string a 422: neither
   reaches the database, whose PostgreSQL text cannot hold one.
 * A method a path does not serve is a 405 whose ``Allow`` lists every method of every route on that
@@ -21,8 +24,10 @@ Examples:
 from __future__ import annotations
 
 import logging
+import sys
 
 from fastapi import FastAPI, Request
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from sqlalchemy.exc import OperationalError, TimeoutError as PoolTimeout
@@ -80,11 +85,20 @@ async def method_not_allowed(request: Request, exc: StarletteHTTPException) -> R
                         status_code=405, headers={"Allow": allow})
 
 
+def _media_type(request: Request) -> str:
+    return request.headers.get("content-type", "").split(";")[0].strip().lower()
+
+
+def _json_sent(request: Request) -> bool:
+    """Whether FastAPI reads the body as JSON: sent as application/json or another ``+json`` type."""
+    media_type = _media_type(request)
+    return media_type == "application/json" or media_type.endswith("+json")
+
+
 def malformed_body(request: Request, exc: RequestValidationError) -> JSONResponse | None:
     """The 400 for a body that did not parse as JSON, the 415 for one not sent as JSON, else None (a schema
     error: the 422 stays)."""
-    media_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
-    json_sent = media_type == "application/json" or media_type.endswith("+json")
+    media_type, json_sent = _media_type(request), _json_sent(request)
     for error in exc.errors():
         if not json_sent and error.get("loc") == ("body",) and error.get("type") == "model_attributes_type":
             return JSONResponse({"detail": f"the body must be sent as JSON (Content-Type: application/json), not as "
@@ -95,6 +109,22 @@ def malformed_body(request: Request, exc: RequestValidationError) -> JSONRespons
             return JSONResponse({"detail": f"malformed JSON body: {reason} (at character {position})"},
                                 status_code=400)
     return None
+
+
+async def unreadable_body(request: Request, exc: StarletteHTTPException) -> Response:
+    """The 400 ``malformed JSON body`` naming why ``json.loads`` refused the body with an error other than
+    ``JSONDecodeError`` (FastAPI answers those with a bare "There was an error parsing the body"); any other 400
+    unchanged."""
+    cause = exc.__cause__ if _json_sent(request) else None  # a form's parse error is no JSON's
+    if isinstance(cause, UnicodeDecodeError):
+        reason = f"it is not UTF-8 ({cause.reason} at byte {cause.start})"
+    elif isinstance(cause, RecursionError):
+        reason = "its arrays or objects nest too deeply"
+    elif isinstance(cause, ValueError):  # json.loads' only other ValueError: int() past the int-string limit
+        reason = f"a number has more than {sys.get_int_max_str_digits()} digits"
+    else:
+        return await http_exception_handler(request, exc)
+    return JSONResponse({"detail": f"malformed JSON body: {reason}"}, status_code=400)
 
 
 _SQLITE_UNAVAILABLE = ("database is locked", "database table is locked", "unable to open database", "disk i/o error")
@@ -146,9 +176,11 @@ class RefuseNul:
 
 
 def install(app: FastAPI) -> None:
-    """Answer NUL paths, 405 and OPTIONS as above, and document them with the statuses no route declares itself."""
+    """Answer NUL paths, unreadable JSON, 405 and OPTIONS as above, and document them with the statuses no route
+    declares itself."""
     app.add_middleware(RefuseNul)
     app.add_exception_handler(405, method_not_allowed)
+    app.add_exception_handler(400, unreadable_body)
     for error in UNAVAILABLE:
         app.add_exception_handler(error, unavailable)
     generate = app.openapi

@@ -264,6 +264,22 @@ def test_malformed_json_is_a_documented_400(client, spec):
                        ).status_code == 404  # JSON under a +json type: read (no such scene)
 
 
+def test_json_that_python_cannot_read_is_a_400_naming_why(client):
+    """JSON with a number past Python's int-string conversion limit, bytes not UTF-8, or nesting past the recursion
+    limit: ``json.loads`` raises no JSONDecodeError for them, and FastAPI had answered a bare "There was an error
+    parsing the body"."""
+    long_number = b'{"scene_id": "x", "prompt": "a mic", "params": {"seed": ' + b"7" * 5000 + b"}}"
+    for path, body, reason in (
+            ("/v1/jobs", long_number, "a number has more than 4300 digits"),
+            ("/v1/sweeps", long_number, "a number has more than 4300 digits"),
+            ("/v1/jobs", b'{"prompt": "a \xff mic"}', "it is not UTF-8 (invalid start byte at byte 14)"),
+            ("/v1/jobs", b"[" * 100_000, "its arrays or objects nest too deeply")):
+        response = client.post(path, content=body, headers={"content-type": "application/json"})
+        assert (response.status_code, response.json()) == (400, {"detail": f"malformed JSON body: {reason}"}), path
+    assert client.post("/v1/jobs", json={"scene_id": "x", "prompt": "a mic", "params": {"seed": 10**4299}}
+                       ).status_code == 422  # 4300 digits parse: the schema refuses the seed
+
+
 def test_options_and_405_answer_each_paths_documented_methods(client, spec):
     for path, item in spec["paths"].items():
         concrete = path.replace("{", "").replace("}", "")  # any value fills a path parameter
