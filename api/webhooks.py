@@ -1,7 +1,7 @@
 """The webhook sender: a background thread of the API process that POSTs due deliveries from the outbox.
 
-Attempts run on a small thread pool, each ending by its deadline (``VOXE_WEBHOOK_TIMEOUT_S``: connect,
-send and the whole answer), so a slow or dead receiver holds one pool thread for at most that long and
+Attempts run on a small thread pool, each ending by its deadline (``VOXE_WEBHOOK_TIMEOUT_S``: name lookup,
+connect, send and the whole answer), so a slow or dead receiver holds one pool thread for at most that long and
 never a request or a worker. A failed attempt (an error, a timeout, a non-2xx) is retried after
 ``VOXE_WEBHOOK_BACKOFF_S`` doubling per attempt, until ``VOXE_WEBHOOK_RETRY_FOR_S`` after the event;
 then the delivery is ``failed`` with the last error. Claims are conditional updates, so several API
@@ -26,7 +26,7 @@ from voxe_service.webhooks import (
 
 log = logging.getLogger("voxe.webhooks")
 
-# A claim outlasts its attempt's deadline by this much (resolving the name and recording the outcome), so no other
+# A claim outlasts its attempt's deadline by this much (reading the delivery, recording the outcome), so no other
 # sender takes a delivery whose attempt is still running.
 CLAIM_MARGIN_S = 30.0
 

@@ -166,6 +166,39 @@ def test_a_name_that_fails_to_resolve_for_a_moment_is_retried(client, monkeypatc
         receiver.close()
 
 
+def test_an_attempt_ends_by_its_deadline_however_slowly_the_name_resolves(monkeypatch):
+    """A resolver that takes 10 s to answer: the attempt gives up at its 0.5 s deadline with a timeout naming the
+    lookup (the lookup had run outside the deadline, holding the attempt for the whole 10 s), and nothing is sent."""
+    import ipaddress
+    import threading
+
+    from voxe_service.models import WebhookDelivery
+    from voxe_service.webhooks import attempt, webhook_client
+
+    receiver = WebhookReceiver()
+    port = int(receiver.url.rsplit(":", 1)[1].split("/")[0])
+    release = threading.Event()
+
+    def slow_resolver(host, *args, **kwargs):
+        release.wait(10)
+        return [(socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP, "", ("127.0.0.1", port))]
+
+    monkeypatch.setattr(socket, "getaddrinfo", slow_resolver)
+    try:
+        with webhook_client(0.5, [ipaddress.ip_network("127.0.0.1/32")]) as client:
+            started = time.monotonic()
+            status, error = attempt(WebhookDelivery(id="msg_1", url=f"http://hooks.test:{port}/hook", payload="{}"),
+                                    "whsec_" + "A" * 32, client)
+            elapsed = time.monotonic() - started
+        assert elapsed < 1.5, elapsed
+        assert (status, error) == (None, "ConnectTimeout: webhook_url host 'hooks.test' did not resolve within the "
+                                         "attempt's deadline (VOXE_WEBHOOK_TIMEOUT_S)")
+        assert receiver.requests == []
+    finally:
+        release.set()
+        receiver.close()
+
+
 def test_webhook_events_need_a_url_and_name_known_kinds(client):
     test_client, scene = client
     body = {"scene_id": scene["id"], "prompt": "a mic made of gold"}

@@ -114,7 +114,7 @@ class Settings(BaseSettings):
 
     # --- webhooks (voxe_service.webhooks; sent from the API process, api/webhooks.py)
     webhook_allow_networks: str = ""  # comma-separated CIDRs a webhook may target though private (e.g. 10.0.0.0/8)
-    webhook_timeout_s: float = Field(10.0, gt=0)  # an attempt's deadline: connect, send, the whole answer
+    webhook_timeout_s: float = Field(10.0, gt=0)  # an attempt's deadline: name lookup, connect, send, the whole answer
     webhook_backoff_s: float = Field(5.0, gt=0)  # before the first retry; doubling per attempt
     webhook_max_backoff_s: float = Field(3600.0, gt=0)
     webhook_retry_for_s: float = Field(24 * 3600.0, gt=0)  # after this long since the event, a delivery gives up

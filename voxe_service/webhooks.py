@@ -4,7 +4,7 @@ A job created with a ``webhook_url`` gets one :class:`~voxe_service.models.Webho
 event of a kind it asked for, written in the event's own transaction (:func:`enqueue`), so a
 crash between the two loses nothing. The API's sender thread (:mod:`api.webhooks`) claims due
 rows and calls :func:`attempt`; neither a worker nor a request ever waits on a receiver, and an attempt ends by
-its deadline (connect, send and the whole answer) however slowly a receiver answers.
+its deadline (resolving the name, connect, send and the whole answer) however slowly a resolver or receiver answers.
 
 Signatures follow Standard Webhooks (standardwebhooks.com): headers ``webhook-id`` (stable across
 retries), ``webhook-timestamp`` (Unix seconds of the attempt) and ``webhook-signature``
@@ -21,7 +21,9 @@ import ipaddress
 import json
 import secrets
 import socket
+import threading
 import time
+from concurrent.futures import Future, TimeoutError as FutureTimeout
 from datetime import datetime, timedelta
 from urllib.parse import urlsplit
 
@@ -164,7 +166,7 @@ class _CheckedBackend(httpcore.NetworkBackend):
                     socket_options=None) -> httpcore.NetworkStream:
         failure: Exception | None = None
         try:
-            addresses = allowed_addresses(host, port, self._allow_networks)
+            addresses = self._resolve(host, port, _time_left(timeout, httpcore.ConnectTimeout))
         except OSError as exc:  # e.g. "[Errno -3] Temporary failure in name resolution": retried, like any connect error
             raise httpcore.ConnectError(f"webhook_url host {host!r} does not resolve: {exc}") from None
         for address in addresses:
@@ -175,6 +177,25 @@ class _CheckedBackend(httpcore.NetworkBackend):
                 failure = exc
         raise failure or httpcore.ConnectError(f"{host!r} resolves to no address")
 
+    def _resolve(self, host: str, port: int, timeout: float | None) -> list[str]:
+        """:func:`allowed_addresses`, given up after ``timeout`` (``httpcore.ConnectTimeout``): ``getaddrinfo`` takes
+        no timeout, so it runs in a thread of its own, left to end by itself (the resolver's own timeouts) while the
+        attempt ends by its deadline. A slow resolver had held an attempt, and a sender slot, past the deadline."""
+        answer: Future[list[str]] = Future()
+
+        def look_up() -> None:
+            try:
+                answer.set_result(allowed_addresses(host, port, self._allow_networks))
+            except Exception as exc:  # noqa: BLE001 - raised again by the caller's answer.result
+                answer.set_exception(exc)
+
+        threading.Thread(target=look_up, name="voxe-webhook-resolve", daemon=True).start()
+        try:
+            return answer.result(timeout)
+        except FutureTimeout:
+            raise httpcore.ConnectTimeout(f"webhook_url host {host!r} did not resolve within the attempt's deadline "
+                                          "(VOXE_WEBHOOK_TIMEOUT_S)") from None
+
     def sleep(self, seconds: float) -> None:
         self._backend.sleep(seconds)
 
@@ -183,7 +204,7 @@ def webhook_client(timeout_s: float, allow_networks: list[ipaddress._BaseNetwork
     """The sender's HTTP client: it connects only to addresses :func:`allowed_addresses` passes (a refused one
     raises :class:`TargetRefused` from the request), directly (proxy variables are ignored: a proxy would resolve
     the name itself), and never follows a redirect (its target would go unchecked). ``timeout_s`` bounds each
-    request in all: connecting, sending and the whole answer."""
+    request in all: resolving the name, connecting, sending and the whole answer."""
     transport = httpx.HTTPTransport()  # (SSL_CERT_FILE / SSL_CERT_DIR still name the CAs to trust)
     # httpx takes no network backend: its pool, with httpx's limits and TLS context, connects through the checked
     # one (test_service_webhooks fails if httpx stops sending through it).
