@@ -341,9 +341,11 @@ def test_a_mesh_whose_rendered_views_go_over_the_upload_quota_fails_at_its_inges
     assert job["state"] == "failed" and "quota of upload bytes exceeded" in job["error"]
 
 
-def test_a_mesh_ingest_over_quota_keeps_nothing_whatever_became_of_its_scene(root, auth_client):  # noqa: F811
+def test_a_mesh_ingest_over_quota_keeps_nothing_whatever_became_of_its_scene(root, auth_client,  # noqa: F811
+                                                                             monkeypatch):
     """The quota check of a mesh's ingest meets a scene failed (by the reaper) or deleted meanwhile: its rendered
-    views had stayed in storage, and a deleted scene's check looked a key up by a NULL id."""
+    views had stayed in storage, and a deleted scene's check looked a key up by a NULL id. The scene's objects are
+    cleared once (a scene failed over quota had its prefix deleted twice: another listing of an S3 prefix)."""
     import warnings
 
     from voxe_service import datasets
@@ -365,11 +367,19 @@ def test_a_mesh_ingest_over_quota_keeps_nothing_whatever_became_of_its_scene(roo
             storage.put_bytes(scene_key(row.id, datasets.DATASET_ARCHIVE), b"rendered views" * 100)
             return row.id
 
+    cleared, delete_prefix = [], storage.delete_prefix
+
+    def counted_delete_prefix(prefix: str) -> None:
+        cleared.append(prefix)
+        delete_prefix(prefix)
+
+    monkeypatch.setattr(storage, "delete_prefix", counted_delete_prefix)
     for state in (PROCESSING, FAILED):
         scene_id = scene(state)
+        cleared.clear()
         assert _ready(scene_id, {"size_bytes": 1400, "storage_key": "x"}, storage, settings, None).keys() >= \
             {"scene_id"}
-        assert storage.list(scene_key(scene_id)) == [], state
+        assert storage.list(scene_key(scene_id)) == [] and cleared == [scene_key(scene_id)], (state, cleared)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # SQLAlchemy's "fully NULL primary key identity" warning
         gone = _ready("0" * 32, {"size_bytes": 1400, "storage_key": "x"}, storage, settings, None)

@@ -174,12 +174,15 @@ def _uncount_run(scene_id: str) -> None:
         log.warning("scene %s: could not uncount the ingest run the shutdown stopped", scene_id, exc_info=True)
 
 
-def _fail(scene_id: str, reason: str, storage: Storage) -> None:
+def _fail(scene_id: str, reason: str, storage: Storage) -> bool:
+    """Fail the processing scene and discard its stored bytes; False (nothing discarded) when it was no longer
+    processing."""
     with session_scope() as session:
         failed = fail_scene(session, scene_id, reason)
     if failed:  # its bytes are of no use to any job: free the key's upload quota
         storage.discard_prefixes(scene_key(scene_id))
         log.warning("scene %s failed: %s", scene_id, reason)
+    return failed
 
 
 def _ready(scene_id: str, values: dict, storage: Storage, settings: Settings,
@@ -200,8 +203,8 @@ def _ready(scene_id: str, values: dict, storage: Storage, settings: Settings,
                 except QueueUnavailable:  # left queued with no task id: the reaper sends it once the broker is back
                     log.warning("scene %s: could not dispatch job %s", scene_id, job.id)
     if over:
-        _fail(scene_id, over, storage)
-        storage.discard_prefixes(scene_key(scene_id))  # its views, also when it ended otherwise meanwhile
+        if not _fail(scene_id, over, storage):  # ended otherwise meanwhile: its views go all the same
+            storage.discard_prefixes(scene_key(scene_id))
         return {"scene_id": scene_id, "state": "failed"}
     if waiting is None:  # deleted (or failed by the reaper) while it was decoded: keep nothing of it
         storage.discard_prefixes(scene_key(scene_id))
