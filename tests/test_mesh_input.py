@@ -17,8 +17,8 @@ from voxe_core.cameras import Cameras, look_at
 from voxe_core.export import extract_mesh
 from voxe_core.metrics import psnr
 from voxe_core.mesh_input import (
-    SHADING_AMBIENT, SHADING_LIGHT, VIEW_RADIUS, MeshError, SurfaceMesh, VoxelizeConfig, chamfer_distance,
-    hemisphere_cameras, load_mesh, rasterize, render_mesh_views, sample_texture, shade_mesh, voxelize,
+    DEFAULT_ALBEDO, SHADING_AMBIENT, SHADING_LIGHT, VIEW_RADIUS, MeshError, SurfaceMesh, VoxelizeConfig,
+    chamfer_distance, hemisphere_cameras, load_mesh, rasterize, render_mesh_views, sample_texture, shade_mesh, voxelize,
 )
 from voxe_core.reconstruct import ReconstructConfig, reconstruct
 from voxe_core.render import render_image
@@ -100,6 +100,44 @@ def test_a_given_texture_is_sampled_at_the_files_own_uvs_whatever_its_materials(
     centres = mesh.vertices[mesh.faces].mean(1)
     albedo = mesh.albedo(np.arange(len(mesh.faces)), np.full((len(mesh.faces), 3), 1 / 3))[np.argsort(centres[:, 2])]
     assert np.allclose(albedo, [[1, 0, 0], [0, 1, 0], sample_texture(texel / 255.0, np.zeros((1, 2)))[0]])
+
+
+CUBE_OBJ = ("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0 0 1\nv 1 0 1\nv 1 1 1\nv 0 1 1\nusemtl red\n"
+            "f 1 3 2\nf 1 4 3\nf 5 6 7\nf 5 7 8\nf 1 2 6\nf 1 6 5\n"
+            "f 2 3 7\nf 2 7 6\nf 3 4 8\nf 3 8 7\nf 4 1 5\nf 4 5 8\n")
+
+
+def test_an_obj_whose_one_material_writes_a_kd_loads_in_that_colour(tmp_path):
+    """trimesh makes no atlas for a single material without an image: a cube the .mtl paints red had loaded grey.
+    Without a library, or with a material that writes no Kd, the mesh keeps the default albedo (and auto shading)."""
+    (tmp_path / "red.mtl").write_text("newmtl red\nKd 0.8 0.1 0.1\n")
+    (tmp_path / "red.obj").write_text("mtllib red.mtl\n" + CUBE_OBJ)
+    red = load_mesh(tmp_path / "red.obj")
+    assert red.has_colour and np.allclose(red.vertex_colors, [0.8, 0.1, 0.1], atol=1 / 255)
+    faces = np.arange(len(red.faces))
+    assert np.allclose(red.albedo(faces, np.full((len(faces), 3), 1 / 3)), [0.8, 0.1, 0.1], atol=1 / 255)
+    assert shade_mesh(red).shading is None  # coloured: "auto" leaves it as the file paints it
+    (tmp_path / "plain.obj").write_text(CUBE_OBJ)
+    (tmp_path / "shiny.mtl").write_text("newmtl red\nNs 10\n")
+    (tmp_path / "shiny.obj").write_text("mtllib shiny.mtl\n" + CUBE_OBJ)
+    for name in ("plain.obj", "shiny.obj"):
+        grey = load_mesh(tmp_path / name)
+        assert not grey.has_colour, name
+        assert np.allclose(grey.albedo(faces, np.full((len(faces), 3), 1 / 3)), DEFAULT_ALBEDO)
+        assert shade_mesh(grey).shading is not None
+
+
+def test_nan_texture_coordinates_are_refused(tmp_path):
+    """A NaN vt had loaded and sampled the texture at NaN: given beside the file or named by its .mtl."""
+    Image.fromarray(np.full((2, 2, 3), 200, dtype=np.uint8)).save(tmp_path / "tex.png")
+    (tmp_path / "tex.mtl").write_text("newmtl skin\nmap_Kd tex.png\n")
+    quad = "v -1 -1 0\nv 1 -1 0\nv 1 1 0\nvt nan 0\nvt 1 0\nvt 1 1\nusemtl skin\nf 1/1 2/2 3/3\n"
+    (tmp_path / "given.obj").write_text(quad)
+    (tmp_path / "named.obj").write_text("mtllib tex.mtl\n" + quad)
+    with pytest.raises(MeshError, match=r"given.obj: texture coordinates \(vt\) contain NaN or Inf"):
+        load_mesh(tmp_path / "given.obj", tmp_path / "tex.png")
+    with pytest.raises(MeshError, match=r"named.obj: texture coordinates \(vt\) contain NaN or Inf"):
+        load_mesh(tmp_path / "named.obj")
 
 
 @pytest.mark.parametrize("mode, name", [("I;16", "grey.png"), ("F", "grey.tif")])

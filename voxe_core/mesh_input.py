@@ -127,13 +127,14 @@ def load_mesh(
 
     A ``texture`` given colours every part at the file's own UVs ((0, 0) on parts
     without vt) whatever the file's materials; without one, an OBJ's .mtl
-    colours it as trimesh reads it (its images and Kd packed into one atlas).
+    colours it as trimesh reads it (its images and Kd packed into one atlas; a single material's own Kd
+    colours every vertex when it names no image).
 
     ``up_axis``: the file's up axis ('y' for OBJ/glTF exports, 'z' for CAD and
     most scanners), turned onto +z. The box is centred on the origin and its
     largest half-extent made ``extent``, or less where the mesh would reach past
     ``VIEW_RADIUS`` (``frame`` 1: see ``MESH_FRAMES``). Raises ``MeshError`` naming the file for
-    unreadable, empty, degenerate or non-finite meshes and for a texture
+    unreadable, empty, degenerate or non-finite meshes (vertices or UVs) and for a texture
     without UVs.
     """
     import trimesh
@@ -184,11 +185,15 @@ def load_mesh(
     elif getattr(loaded.visual, "kind", None) == "texture" and getattr(loaded.visual.material, "image", None):
         mesh.uv = np.asarray(loaded.visual.uv, dtype=np.float64)  # an OBJ whose .mtl named its image (trimesh's atlas)
         mesh.texture = _texture_rgb(loaded.visual.material.image)
+    elif (diffuse := _written_diffuse(loaded.visual)) is not None:
+        mesh.vertex_colors = np.tile(diffuse, (len(vertices), 1))
     mesh = _used_vertices_only(mesh)
     boxed = mesh.vertices if frame == 2 else vertices  # frame 1: every vertex the file holds
 
     if not np.isfinite(boxed).all():
         raise MeshError(f"{path.name}: vertex coordinates contain NaN or Inf")
+    if mesh.uv is not None and not np.isfinite(mesh.uv).all():  # the texture lookup would sample garbage there
+        raise MeshError(f"{path.name}: texture coordinates (vt) contain NaN or Inf")
     lo, hi = boxed.min(0), boxed.max(0)
     half = float((hi - lo).max()) / 2
     if not half > 0:
@@ -216,6 +221,20 @@ def _texture_rgb(image) -> np.ndarray:
     else:
         return np.asarray(image.convert("RGB"), dtype=np.float32) / 255.0
     return np.repeat(np.clip(grey, 0.0, 1.0)[..., None], 3, axis=-1)
+
+
+def _written_diffuse(visual) -> np.ndarray | None:
+    """The colour (3,) in [0, 1] an OBJ's one material gives by its Kd alone (no image), or None without a Kd.
+
+    Several materials trimesh packs into an atlas, Kd colours included; one without an image it leaves as a
+    material, whose diffuse is trimesh's default grey unless the .mtl wrote a Kd. Only a Kd the file wrote
+    (trimesh's parse_mtl keeps the .mtl's keys in the material's kwargs) colours the mesh: a file without a
+    library, or whose material sets no Kd, keeps ``DEFAULT_ALBEDO`` and the shading "auto" bakes for it.
+    """
+    material = getattr(visual, "material", None)
+    if getattr(visual, "kind", None) != "texture" or "kd" not in getattr(material, "kwargs", {}):
+        return None
+    return np.asarray(material.diffuse, dtype=np.float32)[:3] / 255.0
 
 
 def _used_vertices_only(mesh: SurfaceMesh) -> SurfaceMesh:
