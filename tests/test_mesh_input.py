@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from contextlib import ExitStack, contextmanager
 
 
@@ -14,6 +15,7 @@ from PIL import Image
 from captures import DDS_OF_UNKNOWN_PIXEL_FORMAT
 from conftest import DATA_ROOT
 from voxe_core.cameras import Cameras, look_at
+from voxe_core.data import DatasetError, load_scene
 from voxe_core.export import extract_mesh
 from voxe_core.metrics import psnr
 from voxe_core.mesh_input import (
@@ -140,16 +142,46 @@ def test_nan_texture_coordinates_are_refused(tmp_path):
         load_mesh(tmp_path / "named.obj")
 
 
-@pytest.mark.parametrize("mode, name", [("I;16", "grey.png"), ("F", "grey.tif")])
-def test_a_16_bit_or_float_greyscale_texture_keeps_its_values(tmp_path, mode, name):
-    """convert("RGB") clips 16-bit and float greyscale to white: mid grey had loaded as 1.0."""
+QUAD_WITH_UVS = "v -1 -1 0\nv 1 -1 0\nv 1 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nf 1/1 2/2 3/3\n"
+
+
+def _as_capture(folder, image_name: str):
+    """The folder as a one-frame NeRF-synthetic capture of ``image_name``, loaded (``data.load_scene``)."""
+    frame = {"file_path": f"./{image_name}", "transform_matrix": np.eye(4).tolist()}
+    (folder / "transforms_train.json").write_text(json.dumps({"camera_angle_x": 0.7, "frames": [frame]}))
+    return load_scene(folder, "train")
+
+
+def test_a_16_bit_greyscale_texture_keeps_its_values_as_a_capture_does(tmp_path):
+    """convert("RGB") clips 16-bit greyscale to white: mid grey had loaded as 1.0."""
     grey = np.array([[0.0, 0.25], [0.5, 1.0]])
-    image = Image.fromarray((grey * 65535).astype(np.uint16) if mode == "I;16" else grey.astype(np.float32))
-    image.save(tmp_path / name)
-    assert Image.open(tmp_path / name).mode == mode
-    (tmp_path / "quad.obj").write_text("v -1 -1 0\nv 1 -1 0\nv 1 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nf 1/1 2/2 3/3\n")
-    texture = load_mesh(tmp_path / "quad.obj", tmp_path / name).texture
+    Image.fromarray((grey * 65535).astype(np.uint16)).save(tmp_path / "grey.png")
+    assert Image.open(tmp_path / "grey.png").mode == "I;16"
+    (tmp_path / "quad.obj").write_text(QUAD_WITH_UVS)
+    texture = load_mesh(tmp_path / "quad.obj", tmp_path / "grey.png").texture
     assert np.allclose(texture, np.repeat(grey[..., None], 3, -1), atol=1 / 65535)
+    assert np.array_equal(texture, _as_capture(tmp_path, "grey.png").images[0].numpy())
+
+
+@pytest.mark.parametrize("image, reason", [
+    (Image.fromarray(np.full((2, 2), 0.5, np.float32), "F"),
+     r"holds floating-point pixels \(Pillow mode F\), whose scale the file does not record"),
+    (Image.fromarray(np.full((2, 2), 70000, np.int32), "I"),
+     r"holds 32-bit values from 70000 to 70000 \(Pillow mode I\); only 8- and 16-bit images"),
+])
+def test_textures_refuse_pixels_of_unrecorded_scale_as_captures_do(tmp_path, image, reason):
+    """One rule for both (data.image_pixels): a float texture had been taken as 0..1 and a 32-bit one clipped to
+    white, where the same image as a capture is refused."""
+    image.save(tmp_path / "odd.tif")
+    (tmp_path / "quad.obj").write_text(QUAD_WITH_UVS)
+    (tmp_path / "odd.mtl").write_text("newmtl skin\nmap_Kd odd.tif\n")
+    (tmp_path / "named.obj").write_text("mtllib odd.mtl\nusemtl skin\n" + QUAD_WITH_UVS)
+    with pytest.raises(MeshError, match=rf"^odd.tif: the texture image {reason}"):
+        load_mesh(tmp_path / "quad.obj", tmp_path / "odd.tif")
+    with pytest.raises(MeshError, match=rf"^named.obj \(its .mtl's map_Kd\): the texture image {reason}"):
+        load_mesh(tmp_path / "named.obj")
+    with pytest.raises(DatasetError, match=rf"image odd.tif {reason}"):
+        _as_capture(tmp_path, "odd.tif")
 
 
 def test_hemisphere_cameras_and_a_view_that_sees_nothing(tmp_path):
@@ -363,7 +395,6 @@ def test_cli_mesh_to_grid_writes_a_grid_or_names_the_problem(tmp_path, capsys):
 
 
 def test_mesh_dataset_loads_back_as_the_rasterised_views(tmp_path, green_sphere):
-    from voxe_core.data import load_scene
     from voxe_core.mesh_input import write_mesh_dataset
 
     write_mesh_dataset(green_sphere, tmp_path / "ds", views=3, size=24, test_views=2)
@@ -421,7 +452,6 @@ def test_a_mesh_upload_is_stored_as_its_rendered_views(tmp_path, monkeypatch):
 
 def test_an_obj_coloured_by_its_mtl_keeps_its_colours_in_the_service(tmp_path, monkeypatch):
     """The .mtl is kept beside the mesh under the name mtllib gives it (it had been dropped: the OBJ rendered grey)."""
-    from voxe_core.data import load_scene
     from voxe_service import datasets
 
     monkeypatch.setattr(datasets, "MESH_VIEWS", 2)
@@ -537,7 +567,6 @@ def test_mesh_shading_is_stored_with_the_upload_and_honoured_by_the_ingest(tmp_p
     import json
 
     from api.uploads import UploadError
-    from voxe_core.data import load_scene
     from voxe_service import datasets
 
     monkeypatch.setattr(datasets, "MESH_VIEWS", 2)

@@ -477,14 +477,35 @@ def _find_image(root: Path, file_path: str) -> Path | None:
     return None
 
 
-def _read_image(root: Path, file_path: str, where: _Where, frame: int) -> tuple[np.ndarray, Path]:
-    """(H, W, 3 or 4) float32 in [0, 1]; 8- and 16-bit, grey, palette and RGB(A) alike.
+class PixelScaleError(ValueError):
+    """An image whose pixels' scale to [0, 1] the file does not record; the message says what it holds."""
 
-    Floating-point pixels (Pillow's mode F, e.g. a float TIFF) are refused: the file does not say their scale
-    (Pillow's own conversions give 0..255, OpenCV's and scikit-image's float images 0..1), and convert("RGB")
-    had clipped them to black. So are 32-bit integers beyond 16 bits (mode I), which the 16-bit scaling had clipped
-    to white.
+
+def image_pixels(image: Image.Image, alpha: bool = True) -> np.ndarray:
+    """A Pillow image as (H, W, 3, or 4 where ``alpha`` and it has one) float32 in [0, 1]; 8- and 16-bit, grey,
+    palette and RGB(A) alike. The one rule for capture images and mesh textures (``mesh_input``).
+
+    Floating-point pixels (Pillow's mode F, e.g. a float TIFF) raise ``PixelScaleError``: the file does not say
+    their scale (Pillow's own conversions give 0..255, OpenCV's and scikit-image's float images 0..1), and
+    convert("RGB") had clipped them to black. So do 32-bit integers beyond 16 bits (mode I), which the 16-bit
+    scaling had clipped to white.
     """
+    if image.mode == "F":
+        raise PixelScaleError("holds floating-point pixels (Pillow mode F), whose scale the file does not record: "
+                              "save it with 8 or 16 bits per channel")
+    if image.mode in _SIXTEEN_BIT_MODES:
+        values = np.asarray(image)
+        if values.size and not (values.min() >= 0 and values.max() <= 65535):
+            raise PixelScaleError(f"holds 32-bit values from {values.min()} to {values.max()} (Pillow mode "
+                                  f"{image.mode}); only 8- and 16-bit images (0..65535) are read")
+        return np.repeat((values.astype(np.float32) / 65535.0)[..., None], 3, axis=2)
+    has_alpha = alpha and ("A" in image.mode or "a" in image.mode or "transparency" in image.info)
+    return np.asarray(image.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
+
+
+def _read_image(root: Path, file_path: str, where: _Where, frame: int) -> tuple[np.ndarray, Path]:
+    """(H, W, 3 or 4) float32 in [0, 1] (``image_pixels``), a DatasetError naming the file and frame for an image
+    that is missing, damaged, or of a scale it does not record."""
     path = _find_image(root, file_path)
     if path is None:
         candidates = _image_candidates(root, file_path)
@@ -492,19 +513,9 @@ def _read_image(root: Path, file_path: str, where: _Where, frame: int) -> tuple[
     try:
         with Image.open(path) as im:
             im.load()
-            if im.mode == "F":
-                raise where(f"image {path.name} holds floating-point pixels (Pillow mode F), whose scale the file "
-                            "does not record: save it with 8 or 16 bits per channel", frame, path)
-            if im.mode in _SIXTEEN_BIT_MODES:
-                values = np.asarray(im)
-                if values.size and not (values.min() >= 0 and values.max() <= 65535):
-                    raise where(f"image {path.name} holds 32-bit values from {values.min()} to {values.max()} "
-                                f"(Pillow mode {im.mode}); only 8- and 16-bit images (0..65535) are read", frame, path)
-                grey = values.astype(np.float32) / 65535.0
-                return np.repeat(grey[..., None], 3, axis=2), path
-            has_alpha = "A" in im.mode or "a" in im.mode or "transparency" in im.info
-            arr = np.asarray(im.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
-            return arr, path
+            return image_pixels(im), path
+    except PixelScaleError as e:
+        raise where(f"image {path.name} {e}", frame, path) from None
     except Image.DecompressionBombError as e:
         raise where(f"image {path.name} refused as a decompression bomb: {e}", frame, path) from e
     except (MemoryError, DatasetError):

@@ -44,6 +44,7 @@ import torch.nn.functional as F
 
 from voxe_core.cameras import Cameras, random_hemisphere_poses
 from voxe_core.constants import NERF_SYNTHETIC_FOV_X, NERF_SYNTHETIC_RADIUS
+from voxe_core.data import PixelScaleError, image_pixels
 from voxe_core.grid import DEFAULT_BOX, VoxelGrid
 
 MESH_INPUT_SUFFIXES = (".obj", ".ply")
@@ -170,8 +171,8 @@ def load_mesh(
             raise MeshError(f"{path.name}: a texture was given but the mesh has no texture coordinates (vt)")
         try:
             with Image.open(texture) as image:
-                mesh.texture = _texture_rgb(image)
-        except MemoryError:
+                mesh.texture = _texture_rgb(image, Path(texture).name)
+        except (MemoryError, MeshError):
             raise
         except Exception as e:  # Pillow's plugins raise many kinds on damaged headers (NotImplementedError for DDS's)
             raise MeshError(f"{Path(texture).name}: cannot read the texture image: {e}") from e
@@ -184,7 +185,7 @@ def load_mesh(
                            vertex_colors=np.repeat(colours, 3, axis=0))
     elif getattr(loaded.visual, "kind", None) == "texture" and getattr(loaded.visual.material, "image", None):
         mesh.uv = np.asarray(loaded.visual.uv, dtype=np.float64)  # an OBJ whose .mtl named its image (trimesh's atlas)
-        mesh.texture = _texture_rgb(loaded.visual.material.image)
+        mesh.texture = _texture_rgb(loaded.visual.material.image, f"{path.name} (its .mtl's map_Kd)")
     elif (diffuse := _written_diffuse(loaded.visual)) is not None:
         mesh.vertex_colors = np.tile(diffuse, (len(vertices), 1))
     mesh = _used_vertices_only(mesh)
@@ -211,16 +212,13 @@ def load_mesh(
     return mesh
 
 
-def _texture_rgb(image) -> np.ndarray:
-    """A Pillow image as (H, W, 3) float32 in [0, 1]; 16-bit greyscale (modes I;16, I) is scaled by 65535 and float
-    greyscale (F) taken as it is, where convert("RGB") would clip either to white."""
-    if image.mode.startswith("I"):
-        grey = np.asarray(image, dtype=np.float32) / 65535.0
-    elif image.mode == "F":
-        grey = np.asarray(image, dtype=np.float32)
-    else:
-        return np.asarray(image.convert("RGB"), dtype=np.float32) / 255.0
-    return np.repeat(np.clip(grey, 0.0, 1.0)[..., None], 3, axis=-1)
+def _texture_rgb(image, name: str) -> np.ndarray:
+    """A texture image as (H, W, 3) float32 in [0, 1] by the capture images' rule (``data.image_pixels``: 8 and
+    16 bits scaled, float or 32-bit pixels of unrecorded scale refused), a MeshError naming ``name``."""
+    try:
+        return image_pixels(image, alpha=False)
+    except PixelScaleError as e:
+        raise MeshError(f"{name}: the texture image {e}") from None
 
 
 def _written_diffuse(visual) -> np.ndarray | None:
