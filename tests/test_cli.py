@@ -259,11 +259,30 @@ def test_an_output_that_cannot_be_written_is_refused_before_the_fit_and_a_failed
     assert main([*args, str(tmp_path / "taken.safetensors")]) == 2  # checked before the data is read
     assert f"cannot write {tmp_path / 'taken.safetensors'}: it is a folder" in capsys.readouterr().err
     assert main([*args, str(tmp_path / "g.safetensors"), "--checkpoint", str(tmp_path / "ck" / "c.safetensors")]) == 2
-    assert (tmp_path / "ck").is_dir()  # made for it: the data folder is what is refused now
+    assert "no_such_scene" in capsys.readouterr().err  # the data folder is what is refused now
+    assert not (tmp_path / "ck").exists()  # made for the checkpoint, and removed with the failure
     assert main(["convert-grid", str(sphere_file), "--out", str(tmp_path / "taken.safetensors")]) == 2
     err = capsys.readouterr().err
     assert "Traceback" not in err and "taken.safetensors" in err
     assert not [p.name for p in tmp_path.rglob(".*.partial*")] and (tmp_path / "taken.safetensors").is_dir()
+
+
+def test_a_failed_command_leaves_no_folder_it_made(sphere_file, tmp_path, capsys):
+    """--out (and a grid file's folder) had been made before the inputs were read: a bad input left it behind,
+    empty. A folder that was there before stays, and so does what a command that succeeds made."""
+    missing = str(tmp_path / "missing.safetensors")
+    assert main(["render", missing, "--ring", "2", "--out", str(tmp_path / "new" / "views")]) == 2
+    assert "missing.safetensors: no such file" in capsys.readouterr().err
+    assert main(["mesh-to-grid", str(tmp_path / "bad.obj"), "--out", str(tmp_path / "made" / "g.safetensors")]) == 2
+    assert "bad.obj: cannot read as a mesh" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sphere.safetensors"]
+    (tmp_path / "kept").mkdir()
+    for out in (tmp_path / "kept", tmp_path / "kept" / "views"):
+        assert main(["render", missing, "--ring", "2", "--out", str(out)]) == 2
+    assert (tmp_path / "kept").is_dir() and not any((tmp_path / "kept").iterdir())
+    assert main(["render", str(sphere_file), "--ring", "1", "--size", "8", "--out", str(tmp_path / "ok" / "views"),
+                 "--quiet"]) == 0
+    assert [p.name for p in (tmp_path / "ok" / "views").iterdir()] == ["000.png"]
 
 
 def test_cli_as_a_real_process_has_no_traceback(tmp_path):

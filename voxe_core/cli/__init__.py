@@ -27,7 +27,7 @@ import sys
 from typing import Sequence
 
 from voxe_core.cli import edit, evaluate, grids, mesh, reconstruct, refine, render, service
-from voxe_core.cli.common import EXIT_INTERRUPTED, EXIT_USAGE
+from voxe_core.cli.common import EXIT_INTERRUPTED, EXIT_USAGE, removing_made_folders_unless
 
 COMMAND_GROUPS = (reconstruct, render, mesh, grids, edit, refine, evaluate, service)
 
@@ -43,8 +43,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``voxe``; returns the exit status (0 ok, 2 bad input, 130 interrupted)."""
+    """Entry point of ``voxe``; returns the exit status (0 ok, 2 bad input, 130 interrupted). A command that does
+    not succeed leaves no folder it made and wrote nothing into."""
     args = build_parser().parse_args(argv)
+    status = None
+    with removing_made_folders_unless(lambda: status == 0):
+        status = _run(args)
+    return status
+
+
+def _run(args: argparse.Namespace) -> int:
+    """The command's exit status, its errors said in one line on stderr."""
     from voxe_core.data import DatasetError
     from voxe_core.tensorio import FormatError
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import contextvars
 import os
 import signal
 import sys
@@ -144,9 +145,41 @@ def seed(text: str) -> int:
     return value
 
 
+_MADE_FOLDERS: contextvars.ContextVar[list[Path] | None] = contextvars.ContextVar("made_folders", default=None)
+
+
+@contextlib.contextmanager
+def removing_made_folders_unless(succeeded) -> Iterator[None]:
+    """Folders ``writable_file`` and ``writable_folder`` make in the block are removed again, the deepest first,
+    when ``succeeded()`` is false after it (or it raised) and they are still empty: a command that fails on a bad
+    input must not leave the --out it made behind. One that existed before, or holds anything (an edit's
+    checkpoint to resume from), stays."""
+    made: list[Path] = []
+    token = _MADE_FOLDERS.set(made)
+    ok = False
+    try:
+        yield
+        ok = succeeded()
+    finally:
+        _MADE_FOLDERS.reset(token)
+        if not ok:
+            for folder in sorted(set(made), key=lambda p: len(p.absolute().parts), reverse=True):
+                with contextlib.suppress(OSError):  # not empty (or gone): it stays
+                    folder.rmdir()
+
+
+def _make_folder(path: Path) -> None:
+    """``path`` made with its parents, those made noted for ``removing_made_folders_unless``."""
+    missing = [folder for folder in (path, *path.parents) if not folder.exists()]
+    path.mkdir(parents=True, exist_ok=True)
+    made = _MADE_FOLDERS.get()
+    if made is not None:
+        made.extend(missing)
+
+
 def writable_file(path: Path) -> Path:
     """``path`` with its folder made, or OSError now when it cannot be written (before a long stage, not after)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
+    _make_folder(path.parent)
     if path.is_dir() or not os.access(path.parent, os.W_OK):
         raise OSError(f"cannot write {path}: " + ("it is a folder" if path.is_dir() else "its folder is not writable"))
     return path
@@ -156,7 +189,7 @@ def writable_folder(path: Path) -> Path:
     """``path`` made as a folder, or OSError now when it cannot be one (before a long stage, not after)."""
     if path.exists() and not path.is_dir():
         raise OSError(f"cannot write into {path}: it is a file, not a folder")
-    path.mkdir(parents=True, exist_ok=True)
+    _make_folder(path)
     if not os.access(path, os.W_OK):
         raise OSError(f"cannot write into {path}: the folder is not writable")
     return path

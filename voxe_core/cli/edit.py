@@ -13,7 +13,7 @@ from pathlib import Path
 from voxe_core import constants as paper
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, add_view_arguments, check_device, load_guidance, load_views,
-    positive_int, run_stage, seed,
+    positive_int, run_stage, seed, writable_folder,
 )
 from voxe_core.presets import EDIT_SCHEDULES, PREVIEW_EVERY, SEED, TIMESTEP_SCHEDULES, edit_config
 
@@ -102,7 +102,7 @@ def cmd_edit(args) -> int:
                              compile_encoder=None if args.compile_encoder else False)
     if guidance is None:
         return EXIT_USAGE
-    args.out.mkdir(parents=True, exist_ok=True)
+    writable_folder(args.out)
     checkpoint = args.out / "checkpoint.safetensors"
 
     def on_preview(iteration: int, image) -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from voxe_core.cli.common import non_negative_int
+from voxe_core.cli.common import non_negative_int, writable_file
 
 
 def add_parsers(commands, common) -> None:
@@ -27,7 +27,7 @@ def cmd_convert_grid(args) -> int:
         raise ValueError("--margin sets the sparse layout's kept cells; --dense writes every vertex")
     grid = load_grid(args.grid)
     before = args.grid.stat().st_size  # before the save: --out may be GRID itself
-    args.out.parent.mkdir(parents=True, exist_ok=True)
+    writable_file(args.out)
     grid.save(args.out, dense=args.dense, margin=DEFAULT_MARGIN if args.margin is None else args.margin)
     _, meta = load_tensors(args.out, kind="voxel_grid", max_version=2)
     after = args.out.stat().st_size
