@@ -227,6 +227,16 @@ def test_options_a_command_would_ignore_are_refused(tmp_path, capsys):
         capsys.readouterr().err
     assert main(["convert-grid", grid, "--dense", "--margin", "3", "--out", str(tmp_path / "d.safetensors")]) == 2
     assert "--margin sets the sparse layout's kept cells; --dense writes every vertex" in capsys.readouterr().err
+    # a ring reads no dataset: --split / --downsample / --resample / --max-images had been taken and ignored
+    assert main(["render", grid, "--ring", "4", "--split", "train", "--downsample", "2", "--max-images", "3",
+                 "--out", str(tmp_path / "r")]) == 2
+    assert "--split, --downsample, --max-images set how --data's images are read; --ring reads no dataset" in \
+        capsys.readouterr().err
+    assert main(["evaluate", grid, "--edit", grid, "a hat", "--object", "dog", "--resample", "box",
+                 "--out", str(tmp_path / "e")]) == 2
+    assert "--resample set how --data's images are read (for FID_input); without --data none are" in \
+        capsys.readouterr().err
+    assert not (tmp_path / "r").exists() and not (tmp_path / "e").exists()
 
 
 def test_bad_option_values_exit_2(tmp_path, capsys):

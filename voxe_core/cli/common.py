@@ -203,13 +203,23 @@ def add_grid_output_arguments(parser: argparse.ArgumentParser) -> None:
 
 def add_view_arguments(parser: argparse.ArgumentParser, split: str) -> None:
     """Which dataset images a command reads, and how they are downsampled on load (the job parameters' defaults)."""
-    parser.add_argument("--split", default=split)
-    parser.add_argument("--downsample", type=positive_int, default=DOWNSAMPLE,
-                        help=f"integer image downsampling on load (default {DOWNSAMPLE}: the paper's 800 px at 266)")
-    # voxe_core.data.RESAMPLE_FILTERS, spelt out: importing it here would load torch for --help.
-    parser.add_argument("--resample", choices=("bilinear", "box"), default=RESAMPLE,
-                        help="the downsampling's antialiasing filter (bilinear: as the authors' loader)")
-    parser.add_argument("--max-images", type=positive_int, default=None, help="use only the first N images")
+    options = [
+        parser.add_argument("--split", default=split),
+        parser.add_argument("--downsample", type=positive_int, default=DOWNSAMPLE,
+                            help=f"integer image downsampling on load (default {DOWNSAMPLE}: the paper's 800 px at "
+                                 "266)"),
+        # voxe_core.data.RESAMPLE_FILTERS, spelt out: importing it here would load torch for --help.
+        parser.add_argument("--resample", choices=("bilinear", "box"), default=RESAMPLE,
+                            help="the downsampling's antialiasing filter (bilinear: as the authors' loader)"),
+        parser.add_argument("--max-images", type=positive_int, default=None, help="use only the first N images"),
+    ]
+    parser.set_defaults(view_options={option.option_strings[0]: (option.dest, option.default) for option in options})
+
+
+def view_options_given(args: argparse.Namespace) -> list[str]:
+    """The options of ``add_view_arguments`` that ``args`` sets away from their defaults: a command that reads no
+    dataset refuses them rather than ignore them."""
+    return [flag for flag, (dest, default) in args.view_options.items() if getattr(args, dest) != default]
 
 
 def add_model_arguments(parser: argparse.ArgumentParser, flag: str, what: str, default: str) -> None:

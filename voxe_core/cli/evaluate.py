@@ -9,7 +9,7 @@ from pathlib import Path
 
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_model_arguments, add_view_arguments, check_device, load_views, positive_int,
-    run_stage, writable_folder,
+    run_stage, view_options_given, writable_folder,
 )
 from voxe_core.constants import CLIP_MODEL_ID, INCEPTION_FILE
 
@@ -51,6 +51,9 @@ def cmd_evaluate(args) -> int:
     for values in args.edit:
         if len(values) not in (2, 3):
             raise ValueError(f"--edit takes EDITED_GRID PROMPT [MASK], got {len(values)} values: {values}")
+    if args.data is None and (dataset_only := view_options_given(args)):
+        raise ValueError(f"{', '.join(dataset_only)} set how --data's images are read (for FID_input); "
+                         "without --data none are")
     device = check_device(args)
     writable_folder(args.out)
     initial = load_grid(args.initial)

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, add_device_argument, add_view_arguments, check_device, load_views, positive_int, run_stage,
-    writable_folder,
+    view_options_given, writable_folder,
 )
 from voxe_core.presets import ExportConfig
 
@@ -68,6 +68,9 @@ def cmd_render(args) -> int:
                                           ("--centre-of", args.centre_of)) if value is not None]
     if args.data is not None and ring_only:  # (they had been accepted and ignored)
         raise ValueError(f"{', '.join(ring_only)} set the --ring views; --data renders the dataset's own cameras")
+    if args.ring is not None and (dataset_only := view_options_given(args)):  # (as were these)
+        raise ValueError(f"{', '.join(dataset_only)} set how --data's images are read; --ring reads no dataset "
+                         "(--size sets its views' size)")
     writable_folder(args.out)
     grid = load_grid(args.grid)
     scene = None
