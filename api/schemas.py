@@ -260,9 +260,11 @@ class JobCreate(Strict):
 class EvaluationParams(Strict):
     """The ring the edits are scored on, and what they are compared with."""
 
-    views: int = Field(100, ge=2, le=360, description="poses evenly on a 360° ring (the paper: 100)")
-    elevation: float = Field(30.0, gt=-90, lt=90, description="ring elevation above the horizon, degrees")
-    size: int = Field(266, ge=11, le=1024, description="ring render size in pixels")
+    views: int = Field(paper.EVALUATION_RING_VIEWS, ge=2, le=360,
+                       description="poses evenly on a 360° ring (default: the paper's)")
+    elevation: float = Field(paper.EVALUATION_RING_ELEVATION, gt=-90, lt=90,
+                             description="ring elevation above the horizon, degrees")
+    size: int = Field(paper.EVALUATION_RING_SIZE, ge=11, le=1024, description="ring render size in pixels")
     fid_input: bool = Field(True, description="also FID against the scene's input images (FID_input)")
     save_renders: bool = Field(True, description="publish the ring renders as PNG artifacts")
 

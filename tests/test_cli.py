@@ -483,6 +483,20 @@ def test_edit_marches_its_renders_fused_only_when_asked(flag, sphere_grid, tmp_p
 
 
 # ---------------------------------------------------------------- evaluate
+def test_the_evaluation_ring_defaults_are_the_same_for_the_cli_the_library_and_the_service():
+    """Written once (voxe_core.constants), where the CLI, EvaluateConfig and the API's schema had each spelt them."""
+    from api.schemas import EvaluationParams
+    from voxe_core import constants
+    from voxe_core.cli import build_parser
+    from voxe_core.evaluate import EvaluateConfig
+
+    args = build_parser().parse_args(["evaluate", "g", "--edit", "e", "p", "--object", "o", "--out", "d"])
+    ring = (constants.EVALUATION_RING_VIEWS, constants.EVALUATION_RING_ELEVATION, constants.EVALUATION_RING_SIZE)
+    assert ring == (100, 30.0, constants.RENDER_SIZE)  # the paper's ring (SPEC §4)
+    for source in (args, EvaluateConfig(), EvaluationParams()):
+        assert (source.views, source.elevation, source.size) == ring
+
+
 def test_evaluate_into_an_earlier_output_leaves_no_stale_ring_renders(sphere_file, tmp_path):
     from voxe_core.tiny_eval import build_tiny_clip
 

@@ -102,3 +102,13 @@ CUT_SIGMA = 0.1
 
 CUT_SMOOTHNESS = 5.0
 """The graph cut's smoothness weight λ."""
+
+# ------------------------------------------------------------------ evaluation (SPEC §4)
+EVALUATION_RING_VIEWS = 100
+"""Poses evenly on the 360° ring the edits are scored on (the paper's 100)."""
+
+EVALUATION_RING_ELEVATION = 30.0
+"""The evaluation ring's elevation above the horizon, in degrees."""
+
+EVALUATION_RING_SIZE = RENDER_SIZE
+"""Pixels of the evaluation ring's renders: the edit's render size."""

@@ -38,7 +38,10 @@ from typing import Callable, Protocol, Sequence
 import numpy as np
 import torch
 
-from voxe_core.constants import CLIP_MODEL_ID, INCEPTION_FILE, inception_path
+from voxe_core.constants import (
+    CLIP_MODEL_ID, EVALUATION_RING_ELEVATION, EVALUATION_RING_SIZE, EVALUATION_RING_VIEWS, INCEPTION_FILE,
+    inception_path,
+)
 from voxe_core.devices import PeakMemory, resolve_device
 from voxe_core.export import render_views, save_png, to_uint8, turntable_cameras
 from voxe_core.grid import VoxelGrid
@@ -51,7 +54,6 @@ from voxe_core.progress import Callbacks, Progress
 from voxe_core.render import RenderConfig, render_image
 
 INCEPTION_URL = "https://nvlabs-fi-cdn.nvidia.com/stylegan2-ada-pytorch/pretrained/metrics/inception-2015-12-05.pt"
-PAPER_RING_VIEWS = 100
 SOURCE_TEMPLATE = "a render of a {object}"
 
 # SPEC §4: (prompt template, mode, words naming the edit for the refinement).
@@ -340,9 +342,9 @@ def clip_direction(edit_images: torch.Tensor, recon_images: torch.Tensor, edit_t
 # --------------------------------------------------------------------------- the evaluation
 @dataclass
 class EvaluateConfig:
-    views: int = PAPER_RING_VIEWS
-    elevation: float = 30.0  # degrees above the horizon
-    size: int = 266  # ring render size (the paper's edit render size)
+    views: int = EVALUATION_RING_VIEWS
+    elevation: float = EVALUATION_RING_ELEVATION  # degrees above the horizon
+    size: int = EVALUATION_RING_SIZE  # ring render size
 
     def __post_init__(self):
         if self.views < 2:
@@ -557,7 +559,7 @@ def format_table(rows: Sequence[dict], extra_columns: Sequence[str] = ()) -> str
 
 
 __all__ = [
-    "INCEPTION_URL", "PAPER_PROMPTS", "PAPER_RING_VIEWS", "METRICS",
+    "INCEPTION_URL", "PAPER_PROMPTS", "METRICS",
     "ClipScorer", "EditSample", "EvaluateConfig", "Evaluation", "FeatureExtractor", "InceptionFeatures",
     "ProtocolEdit", "clip_direction", "clip_similarity", "evaluate", "evaluation_steps", "feature_statistics",
     "fid_from_features", "format_table", "frechet_distance", "mask_footprint", "mean_by_mode", "paper_protocol",

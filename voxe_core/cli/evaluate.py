@@ -11,7 +11,9 @@ from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_model_arguments, add_view_arguments, check_device, load_views, positive_int,
     run_stage, view_options_given, writable_folder,
 )
-from voxe_core.constants import CLIP_MODEL_ID, INCEPTION_FILE
+from voxe_core.constants import (
+    CLIP_MODEL_ID, EVALUATION_RING_ELEVATION, EVALUATION_RING_SIZE, EVALUATION_RING_VIEWS, INCEPTION_FILE,
+)
 
 
 def add_parsers(commands, common) -> None:
@@ -32,9 +34,12 @@ def add_parsers(commands, common) -> None:
                     help=f"TorchScript Inception file ({INCEPTION_FILE}) or its folder; without it no FID")
     ev.add_argument("--data", type=Path, default=None, metavar="DATA_DIR", help="input views for FID_input")
     add_view_arguments(ev, "train")
-    ev.add_argument("--views", type=positive_int, default=100, help="ring views (the paper: 100)")
-    ev.add_argument("--elevation", type=float, default=30.0, help="ring elevation in degrees")
-    ev.add_argument("--size", type=positive_int, default=266, help="ring render size in pixels")
+    ev.add_argument("--views", type=positive_int, default=EVALUATION_RING_VIEWS,
+                    help=f"ring views (default {EVALUATION_RING_VIEWS}: the paper's)")
+    ev.add_argument("--elevation", type=float, default=EVALUATION_RING_ELEVATION,
+                    help=f"ring elevation in degrees (default {EVALUATION_RING_ELEVATION:g})")
+    ev.add_argument("--size", type=positive_int, default=EVALUATION_RING_SIZE,
+                    help=f"ring render size in pixels (default {EVALUATION_RING_SIZE})")
     ev.set_defaults(run=cmd_evaluate)
 
 
