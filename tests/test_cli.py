@@ -173,9 +173,10 @@ def test_an_output_that_cannot_be_written_is_refused_before_the_inputs_are_read(
     """render, refine, evaluate, mesh-to-grid and export-mesh had run their whole stage, then failed on --out (a
     file where a folder goes, a folder where a file goes): each input here is missing, so a check made after
     reading them would name the input, not the output."""
-    a_file, a_folder = tmp_path / "afile", tmp_path / "afolder.ply"
+    a_file, a_folder, a_grid_folder = tmp_path / "afile", tmp_path / "afolder.ply", tmp_path / "afolder.safetensors"
     a_file.write_text("x")
     a_folder.mkdir()
+    a_grid_folder.mkdir()
     missing = str(tmp_path / "missing.safetensors")
     for command, out, said in (
         (["render", missing, "--ring", "2"], a_file, f"cannot write into {a_file}: it is a file, not a folder"),
@@ -183,7 +184,7 @@ def test_an_output_that_cannot_be_written_is_refused_before_the_inputs_are_read(
          f"cannot write into {a_file}: it is a file, not a folder"),
         (["evaluate", missing, "--object", "mic", "--edit", missing, "a mic"], a_file,
          f"cannot write into {a_file}: it is a file, not a folder"),
-        (["mesh-to-grid", str(tmp_path / "missing.obj")], tmp_path / "afolder.ply", f"cannot write {a_folder}: it is a folder"),
+        (["mesh-to-grid", str(tmp_path / "missing.obj")], a_grid_folder, f"cannot write {a_grid_folder}: it is a folder"),
         (["export-mesh", missing], a_folder, f"cannot write {a_folder}: it is a folder"),
     ):
         assert main([*command, "--out", str(out), "--device", "cpu"]) == 2, command
@@ -251,7 +252,7 @@ def test_bad_option_values_exit_2(tmp_path, capsys):
         with pytest.raises(SystemExit) as exc:
             main(["sweep", "--scene", "s1=mic", "--wait", "--poll", poll, "--api", "http://127.0.0.1:9"])
         assert exc.value.code == 2 and "must be a positive number of seconds" in capsys.readouterr().err
-    for command in (args, ["edit", "g", "--prompt", "p", "--out", "o"], ["mesh-to-grid", "m.obj", "--out", "o"],
+    for command in (args, ["edit", "g", "--prompt", "p", "--out", "o"], ["mesh-to-grid", "m.obj", "--out", "o.safetensors"],
                     ["refine", "e", "--initial", "g", "--prompt", "p", "--edit-words", "p", "--out", "o"], ["build-tiny-model", "o"]):
         for seed in ("-1", str(2**32)):  # the service's range; torch took -1 and failed on 2**64 after the data
             with pytest.raises(SystemExit) as exc:
@@ -293,6 +294,23 @@ def test_a_failed_command_leaves_no_folder_it_made(sphere_file, tmp_path, capsys
     assert main(["render", str(sphere_file), "--ring", "1", "--size", "8", "--out", str(tmp_path / "ok" / "views"),
                  "--quiet"]) == 0
     assert [p.name for p in (tmp_path / "ok" / "views").iterdir()] == ["000.png"]
+
+
+def test_a_grid_or_checkpoint_named_other_than_safetensors_is_refused(sphere_file, tmp_path, capsys):
+    """--out grid.txt had written a grid file under that name; the refusal comes before anything is read."""
+    refusal = "grids and checkpoints are safetensors files; use .safetensors"
+    for command in (["convert-grid", str(sphere_file), "--out", str(tmp_path / "grid.txt")],
+                    ["mesh-to-grid", "m.obj", "--out", str(tmp_path / "grid.txt")],
+                    ["reconstruct", str(tmp_path), "--out", str(tmp_path / "grid.txt")],
+                    ["reconstruct", str(tmp_path), "--out", str(tmp_path / "g.safetensors"),
+                     "--checkpoint", str(tmp_path / "ck.pt")]):
+        with pytest.raises(SystemExit) as exc:
+            main(command)
+        bad = command[-1]
+        assert exc.value.code == 2 and f"unsupported suffix {Path(bad).suffix!r} for {bad}: {refusal}" in \
+            capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sphere.safetensors"]
+    assert main(["convert-grid", str(sphere_file), "--out", str(tmp_path / "GRID.SafeTensors"), "--quiet"]) == 0
 
 
 def test_cli_as_a_real_process_has_no_traceback(tmp_path):

@@ -145,6 +145,19 @@ def seed(text: str) -> int:
     return value
 
 
+TENSOR_FILE_SUFFIX = ".safetensors"
+
+
+def tensor_file(text: str) -> Path:
+    """A grid or checkpoint to write: ``voxe_core.tensorio`` writes safetensors, and a file named otherwise (``--out
+    grid.txt``) had been written all the same."""
+    path = Path(text)
+    if path.suffix.lower() != TENSOR_FILE_SUFFIX:
+        raise argparse.ArgumentTypeError(f"unsupported suffix {path.suffix!r} for {path}: grids and checkpoints are "
+                                         f"safetensors files; use {TENSOR_FILE_SUFFIX}")
+    return path
+
+
 _MADE_FOLDERS: contextvars.ContextVar[list[Path] | None] = contextvars.ContextVar("made_folders", default=None)
 
 

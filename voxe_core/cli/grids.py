@@ -4,14 +4,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from voxe_core.cli.common import non_negative_int, writable_file
+from voxe_core.cli.common import non_negative_int, tensor_file, writable_file
 
 
 def add_parsers(commands, common) -> None:
     convert = commands.add_parser("convert-grid", parents=[common],
                                   help="rewrite a grid file sparse (occupied cells + margin) or --dense")
     convert.add_argument("grid", type=Path, metavar="GRID", help="a grid file of either layout (or format version 1)")
-    convert.add_argument("--out", type=Path, required=True, help="grid file to write (.safetensors)")
+    convert.add_argument("--out", type=tensor_file, required=True, help="grid file to write (.safetensors)")
     convert.add_argument("--dense", action="store_true", help="every vertex, as tools that want an (X, Y, Z, 4) array")
     convert.add_argument("--margin", type=non_negative_int, default=None,
                          help="sparse: cells kept around the occupied ones (default: the library's)")

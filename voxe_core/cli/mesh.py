@@ -7,7 +7,7 @@ from pathlib import Path
 
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, add_device_argument, add_grid_output_arguments, check_device, int_list, positive_int, run_stage,
-    seed, writable_file,
+    seed, tensor_file, writable_file,
 )
 from voxe_core.cli.reconstruct import recipe_params
 from voxe_core.presets import (
@@ -37,7 +37,7 @@ def add_parsers(commands, common) -> None:
                     help="bake a fixed light + ambient occlusion into the colour (auto: for meshes without colour)")
     mg.add_argument("--route", choices=("voxelize", "render"), default="voxelize",
                     help="voxelize: write the mesh into the grid; render: reconstruct from rendered views")
-    mg.add_argument("--out", type=Path, required=True, help="grid file to write (.safetensors)")
+    mg.add_argument("--out", type=tensor_file, required=True, help="grid file to write (.safetensors)")
     add_grid_output_arguments(mg)
     mg.add_argument("--views", type=positive_int, default=MESH_VIEWS, help="render route: upper-hemisphere views")
     mg.add_argument("--size", type=positive_int, default=MESH_VIEW_SIZE // DOWNSAMPLE,

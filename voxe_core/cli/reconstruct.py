@@ -8,7 +8,7 @@ from pathlib import Path
 
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, add_device_argument, add_grid_output_arguments, add_view_arguments, check_device, int_list,
-    load_views, one_or_list, positive_int, run_stage, seed, view_params, writable_file,
+    load_views, one_or_list, positive_int, run_stage, seed, tensor_file, view_params, writable_file,
 )
 from voxe_core.presets import (
     RECONSTRUCTION_PRESET,
@@ -23,11 +23,12 @@ from voxe_core.presets import (
 def add_parsers(commands, common) -> None:
     rec = commands.add_parser("reconstruct", parents=[common], help="fit a voxel grid to posed images (SPEC §1)")
     rec.add_argument("data", type=Path, metavar="DATA_DIR", help="dataset folder: NeRF-synthetic, instant-ngp / nerfstudio transforms.json, or a COLMAP model (sparse/0/ beside images/)")
-    rec.add_argument("--out", type=Path, required=True, help="grid file to write (.safetensors)")
+    rec.add_argument("--out", type=tensor_file, required=True, help="grid file to write (.safetensors)")
     add_grid_output_arguments(rec)
     add_view_arguments(rec, "train")
     add_recipe_arguments(rec)
-    rec.add_argument("--checkpoint", type=Path, default=None, help="write a resumable checkpoint here")
+    rec.add_argument("--checkpoint", type=tensor_file, default=None,
+                     help="write a resumable checkpoint here (.safetensors)")
     rec.add_argument("--checkpoint-every", type=positive_int, default=100, help="iterations between checkpoints")
     rec.add_argument("--resume", type=Path, default=None, help="continue from this checkpoint")
     # voxe_core.backbones.BACKBONE_CHOICES, spelt out: importing it here would load torch for --help.
