@@ -313,6 +313,23 @@ def test_a_grid_or_checkpoint_named_other_than_safetensors_is_refused(sphere_fil
     assert main(["convert-grid", str(sphere_file), "--out", str(tmp_path / "GRID.SafeTensors"), "--quiet"]) == 0
 
 
+@pytest.mark.parametrize("umask", [0o022, 0o007])
+def test_safetensors_outputs_follow_the_umask_as_other_outputs(sphere_file, tmp_path, umask):
+    """safetensors renames its own 0600 temporary file into place: grids and the tiny model's weights had been 0600
+    where the PNGs, JSON and configs beside them follow the umask."""
+    previous = os.umask(umask)
+    try:
+        assert main(["convert-grid", str(sphere_file), "--out", str(tmp_path / "grid.safetensors"), "--quiet"]) == 0
+        assert main(["build-tiny-model", str(tmp_path / "tiny")]) == 0
+    finally:
+        os.umask(previous)
+    weights = [tmp_path / "grid.safetensors", *(tmp_path / "tiny").rglob("*.safetensors")]
+    assert len(weights) == 4
+    assert {str(path): oct(path.stat().st_mode & 0o777) for path in weights} == \
+        {str(path): oct(0o666 & ~umask) for path in weights}
+    assert (tmp_path / "tiny" / "model_index.json").stat().st_mode & 0o777 == 0o666 & ~umask
+
+
 def test_cli_as_a_real_process_has_no_traceback(tmp_path):
     result = subprocess.run(
         [sys.executable, "-m", "voxe_core.cli", "export-mesh", str(tmp_path / "missing.safetensors"),

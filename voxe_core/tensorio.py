@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import stat
 from collections.abc import Iterable
 from dataclasses import asdict
 from pathlib import Path
@@ -48,11 +49,14 @@ def save_tensors(path: str | os.PathLike, tensors: dict[str, torch.Tensor], kind
     path = Path(path)
     header = json.dumps({"kind": kind, "format_version": version, "meta": meta}, sort_keys=True)
     with replacing(path) as partial:
+        partial.touch()  # the mode a new file gets here (the umask's): safetensors renames its own 0600 file into place
+        mode = stat.S_IMODE(partial.stat().st_mode)
         try:
             save_file({k: v.detach().contiguous().cpu() for k, v in tensors.items()}, str(partial),
                       metadata={HEADER_KEY: header})
         except SafetensorError as exc:
             raise OSError(f"cannot write {path}: {exc}") from exc
+        os.chmod(partial, mode)
 
 
 def load_tensors(path: str | os.PathLike, kind: str, max_version: int) -> tuple[dict[str, torch.Tensor], dict]:

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import json
 import re
+import stat
 from pathlib import Path
 
 import torch
@@ -255,4 +256,7 @@ def build_tiny_stable_diffusion(path, seed: int = 0) -> Path:
         "It proves the plumbing only; it never says anything about edit quality.\n" % seed,
         encoding="utf-8",
     )
+    mode = stat.S_IMODE((root / "README.md").stat().st_mode)  # what a new file gets here (the umask's)
+    for weights in root.rglob("*.safetensors"):  # safetensors renames its own 0600 files into place
+        weights.chmod(mode)
     return root
