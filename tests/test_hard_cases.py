@@ -565,13 +565,16 @@ def _(fx):
 
 
 def _split_sphere(nan_at: str | None) -> tuple[VoxelGrid, torch.Tensor, torch.Tensor]:
-    """A sphere whose +x half prefers the edit, with one NaN put into ``nan_at`` ("colour", "edit_field" or None)
-    at an occupied vertex of that half."""
+    """A sphere whose +x half prefers the edit, with one NaN put into ``nan_at`` ("colour", "density", "edit_field"
+    or None) at a node of that half (the density's at one of either node rule's)."""
     grid = make_sphere_grid(12, radius=0.8)
     edit = (SPLIT_X > 0).float() * 4 - 2
     if nan_at == "colour":
         with torch.no_grad():
             grid.features[9, 6, 6, 1] = float("nan")
+    elif nan_at == "density":
+        with torch.no_grad():
+            grid.features[8, 6, 6, 0] = float("nan")
     elif nan_at == "edit_field":
         edit[9, 6, 6] = float("nan")
     return grid, edit, -edit
@@ -584,6 +587,18 @@ SPLIT_X = torch.linspace(-1.5, 1.5, 12)[:, None, None].expand(12, 12, 12)
       (SegmentationError, r"grid colour is not finite \(NaN or infinite\) at 1 of the \d+ occupied voxels"))
 def _(fx):
     graph_cut(*_split_sphere("colour"))  # the NaN had made every seed's capacity NaN: all voxels "edit"
+
+
+@case("segmentation/one-nan-density-is-named-not-dropped-from-the-nodes", "error",
+      (SegmentationError, r"density is NaN at 1 of the 1728 vertices the node test reads, so which voxels are occupied"))
+def _(fx):
+    graph_cut(*_split_sphere("density"))  # had dropped its 3x3x3 block from the nodes and cut the rest
+
+
+@case("segmentation/one-nan-density-is-named-under-the-alpha-node-rule-too", "error",
+      (SegmentationError, r"density is NaN at 1 of the 1728 vertices"))
+def _(fx):
+    graph_cut(*_split_sphere("density"), RefineConfig(node_rule="alpha"))  # had dropped the vertex from the nodes
 
 
 @case("segmentation/one-nan-attention-value-is-named", "error",

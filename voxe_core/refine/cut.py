@@ -77,8 +77,20 @@ def node_mask(grid: VoxelGrid, node_alpha: float = 0.01, rule: str = "alpha") ->
         >>> grid.features.data[4, 4, 4, 0] = 10.0
         >>> int(node_mask(grid).sum()), int(node_mask(grid, rule="maxpool").sum())  # maxpool: its 3×3×3 block
         (1, 27)
+
+    Raises :class:`SegmentationError` when a vertex the test reads has a NaN density: NaN is neither occupied
+    nor empty (it had dropped out of the nodes silently, under "maxpool" with its whole 3×3×3 block).
     """
     raw = grid.features[..., 0].detach()
+    read = grid.object_vertices()
+    if rule == "maxpool":
+        read = F.max_pool3d(read[None, None].float(), 3, stride=1, padding=1)[0, 0] > 0
+    nan = int((torch.isnan(raw) & read).sum())
+    if nan:
+        raise SegmentationError(
+            f"the edited grid's density is NaN at {nan} of the {int(read.sum())} vertices the node test reads, so "
+            "which voxels are occupied (the graph's nodes) is undefined there (a diverged edit or a corrupted grid?)"
+        )
     if rule == "maxpool":
         pooled = F.max_pool3d((raw * grid.density_scale)[None, None], 3, stride=1, padding=1)[0, 0]
         return (pooled > 0) & grid.object_vertices()
@@ -207,9 +219,9 @@ def graph_cut_detailed(
     ``object_seed_fallback`` highest P_obj whatever their preference ("random"); or the ``object_seeds``
     highest P_obj among P_obj > ½ ("top"). A node in both sets stays an edit seed. When fewer seeds
     than asked qualify, the available ones are used and ``stats.notes`` (and a warning) says so.
-    Raises :class:`SegmentationError` when no node is occupied, when a field or the grid's colour is not finite
-    at a node, or when no node qualifies as a seed of either label (the grids carry no preference anywhere,
-    e.g. all-equal probabilities).
+    Raises :class:`SegmentationError` when no node is occupied, when the grid's density is NaN where
+    ``node_mask`` reads it, when a field or the grid's colour is not finite at a node, or when no node qualifies
+    as a seed of either label (the grids carry no preference anywhere, e.g. all-equal probabilities).
     """
     import maxflow
 
