@@ -704,6 +704,18 @@ def test_refine_end_to_end_with_tiny_model(tiny_guidance, make_sphere_grid):
         refine(initial, edited, "a dog", ["zebra"], tiny_guidance, config)
 
 
+def test_a_nan_density_fails_the_refinement_before_any_attention_map(tiny_guidance, make_sphere_grid):
+    initial = make_sphere_grid(12)
+    edited = initial.clone_grid()
+    with torch.no_grad():
+        edited.features[6, 6, 6, 0] = float("nan")
+    reports = []
+    with pytest.raises(SegmentationError, match="density is NaN at 1 of the 1728 vertices"):
+        refine(initial, edited, "a dog wearing sunglasses", ["sunglasses"], tiny_guidance,
+               RefineConfig(views=2, render_size=16, iterations=2), Callbacks(on_progress=reports.append))
+    assert reports == []  # not after the attention passes, minutes into the stage
+
+
 def test_cli_refine_smoke(tmp_path, tiny_model, make_sphere_grid):
     initial = make_sphere_grid(12)
     edited = initial.clone_grid()

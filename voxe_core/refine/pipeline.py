@@ -101,6 +101,7 @@ def refine(
     initial_grid, edited_grid = initial_grid.to(device), edited_grid.to(device)
     text = edit_prompt(prompt)
     token_groups(guidance, text, edit_words)  # fail on a bad word before rendering anything
+    nodes = node_mask(edited_grid, config.node_alpha, config.node_rule).cpu()  # and on a NaN density
     centre = initial_grid.orbit_centre()  # G_i's: the object, wherever it sits
     cameras = attention_cameras(config, centre=centre)
     fresh_view = fresh_attention_views(guidance, edited_grid, text, edit_words, config, centre) \
@@ -118,7 +119,6 @@ def refine(
     refined = merge(initial_grid, edited_grid, mask)
     callbacks.progress(Progress("graph_cut", 1, 1, info={"stage": "graph cut", "nodes": stats.nodes,
                                                         "edit_voxels": stats.edit_voxels, **memory.info()}))
-    nodes = node_mask(edited_grid, config.node_alpha, config.node_rule).cpu()
     return RefineResult(
         refined, mask, nodes, p_e, p_o, edit_field, object_field, cameras, edit_maps, object_maps, stats,
         info={"prompt": text, "edit_words": list(edit_words) if not isinstance(edit_words, str) else [edit_words]},
