@@ -204,6 +204,27 @@ def test_the_workers_refine_records_a_stage_fraction_that_only_rises(monkeypatch
     assert fractions == sorted(fractions) and fractions[-1] == 1.0, fractions
 
 
+def test_the_workers_stage_eta_counts_the_units_done_since_its_first_report(monkeypatch):
+    """The rate is measured from the stage's first report (a model's load before it is no unit of work): the units
+    since then over the time since then. The origin had been put one unit before that report, as if its unit had
+    taken no time: at the second report a stage running 2 s a unit was timed at 1 s."""
+    from types import SimpleNamespace
+
+    from voxe_core.progress import Progress
+    from voxe_service.settings import Settings
+    from worker import runtime
+
+    now = [100.0]
+    written = []
+    monkeypatch.setattr(runtime, "time", SimpleNamespace(monotonic=lambda: now[0]))
+    monkeypatch.setattr(runtime, "update_job", lambda job_id, **values: written.append(values["eta_seconds"]))
+    callbacks = runtime.StageCallbacks(_job(state="running", stage="edit"), "edit", Settings(progress_interval_s=1e-9))
+    for iteration in range(1, 11):
+        now[0] += 2.0
+        callbacks.on_progress(Progress("edit", iteration, 10))
+    assert written == [None] + [2.0 * (10 - iteration) for iteration in range(2, 11)]
+
+
 def test_a_job_that_ended_or_went_back_to_the_queue_keeps_the_fraction_it_reached():
     """A failed, canceled or re-queued job had dropped its current stage's share (a job canceled half way through
     its edit fell from about 0.5 to the reconstruction's share)."""

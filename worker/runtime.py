@@ -308,7 +308,7 @@ class StageCallbacks:
     def on_progress(self, report: Progress) -> None:
         now = time.monotonic()
         if self._rate_origin is None or report.stage != getattr(self, "_sub_stage", None):
-            self._rate_origin, self._sub_stage = (now, report.iteration - 1), report.stage
+            self._rate_origin, self._sub_stage = (now, report.iteration), report.stage
         self._last_report = report
         peak = report.info.get("peak_memory_gb")
         if peak is not None and (self.peak_memory_gb is None or peak > self.peak_memory_gb):
