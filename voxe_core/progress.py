@@ -46,6 +46,9 @@ def in_phases(callbacks: Callbacks, sizes: dict[str, int]) -> Callbacks:
     A stage made of sub-steps (refine: attention maps, then the grids' fit, then the cut) would
     otherwise report each from 0 to its own total, and a job's progress would fall back at every
     new sub-step. A report keeps its sub-step's name as its ``stage``; other names pass unchanged.
+    Its ``info["phase_units_left"]`` holds the units left in its sub-step and each later one: they may
+    cost very different times per unit (an attention pass against a fitting step), which a time-left
+    estimate weighs (the worker's ``StageCallbacks``).
 
     Examples:
         >>> seen = []
@@ -54,8 +57,11 @@ def in_phases(callbacks: Callbacks, sizes: dict[str, int]) -> Callbacks:
         >>> cb.progress(Progress("maps", 4, 4)); cb.progress(Progress("fit", 5, 10)); cb.progress(Progress("cut", 1, 1))
         >>> seen
         [('maps', 4, 15), ('fit', 9, 15), ('cut', 15, 15)]
+        >>> cb = in_phases(Callbacks(on_progress=lambda p: seen.append(p.info)), {"maps": 4, "fit": 10, "cut": 1})
+        >>> cb.progress(Progress("fit", 5, 10, info={"stage": "fit"})); seen[-1]
+        {'stage': 'fit', 'phase_units_left': {'fit': 5, 'cut': 1}}
     """
-    offsets, total = {}, 0
+    offsets, total, order = {}, 0, list(sizes)
     for name, size in sizes.items():
         offsets[name], total = total, total + max(0, int(size))
 
@@ -65,6 +71,8 @@ def in_phases(callbacks: Callbacks, sizes: dict[str, int]) -> Callbacks:
             return
         size = max(0, int(sizes[progress.stage]))
         done = size if progress.total <= 0 else round(size * min(progress.iteration, progress.total) / progress.total)
-        callbacks.progress(replace(progress, iteration=offsets[progress.stage] + done, total=total))
+        later = {name: max(0, int(sizes[name])) for name in order[order.index(progress.stage) + 1:]}
+        info = {**progress.info, "phase_units_left": {progress.stage: size - done, **later}}
+        callbacks.progress(replace(progress, iteration=offsets[progress.stage] + done, total=total, info=info))
 
     return replace(callbacks, on_progress=report if callbacks.on_progress is not None else None)

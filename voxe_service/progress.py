@@ -21,7 +21,10 @@ stage figures come from one sitting (the CPU's capture factor is a ratio within 
     fitting step from the back-projection start (each draws a fresh view, ``RefineConfig.fit_views``); the
     paper's fit from a constant (``lift_start`` constant) reuses the views' maps: 0.030 s per step
     (``segmentation.json``, runs[0]: 12.2 s / 400 fixed-view steps at 96 px, 4,096 rays per step). The
-    back-projection and the cut are small beside them;
+    back-projection and the cut are small beside them, weighed only within the stage (``refine_phase_seconds``):
+    a back-projection chunk of 32,768 rays as 8.83 of those steps (0.4156 s a chunk against 0.04706 s a step, one
+    sitting at 1 thread: ``fit_attention_grids`` on a 64³ sphere, 24 views of 192 px, 4,096 rays a step), the cut
+    0.465 s (``segmentation.json``, ``graph_160``: 207,078 nodes, build and solve);
   * export: 0.093 s per rendered view (``reconstruction.json``, ``render_seconds_per_view`` at 200 px).
 
 * ``cuda`` (one H200, full-size random-weight models): one local-edit job through the worker
@@ -29,7 +32,8 @@ stage figures come from one sitting (the CPU's capture factor is a ratio within 
   27.5 s for 500 iterations, refine 6.3 s for 32 attention passes, export 1.7 s for 35 views (4 renders, 30
   turntable frames, the mesh). A GPU step costs its dispatches, not its rays (call 4: ``fast``'s 2,000 steps of
   4,096 rays in 22.9 s, ``paper``'s 2,000 of 32,768 in 22.2 s). Unmeasured there: a capture's fit step (taken
-  as an object's), the fixed-view refinement step (taken as a fit step: rays rendered, a loss, Adam) and an
+  as an object's), the fixed-view refinement step (taken as a fit step: rays rendered, a loss, Adam), a
+  back-projection chunk (taken as a fit step too), the cut (taken as the CPU's: max-flow runs on the host) and an
   evaluation (taken as the export's renders; its CLIP and FID scorers are not counted).
 
 A device this module does not know (``mps``) is weighed as a CPU. A job's stages are all weighed by the device of
@@ -98,6 +102,10 @@ class DeviceCosts:
     """An attention pass."""
     refine_fixed_step: float
     """A fitting step on the views' maps."""
+    backprojection_chunk: float
+    """A chunk of the refinement's back-projection (``RenderConfig.chunk_rays`` rays)."""
+    graph_cut: float
+    """The refinement's graph cut."""
     export: float
     """A rendered view (or the mesh)."""
     evaluate: float
@@ -117,15 +125,19 @@ CPU_FIT_STEP = 27.47 * 48.92 / 48.80 / 1000
 # for 1,000 of 8,192, before and after it), per ray of a step, in one run.
 SCENE_OVER_OBJECT_RAY = (133.48 / 1200 / 2048) / ((23.33 + 26.28) / 2 / 1000 / 8192)
 CUDA_FIT_STEP = 26.137 / 2000
+CPU_REFINE_FIXED_STEP = 12.198 / 400
+CPU_GRAPH_CUT = 0.465
 DEVICE_COSTS = {
     "cpu": DeviceCosts(
         fit_step=CPU_FIT_STEP, fit_rays=8192, edit=1.8875,
-        refine=(170.4 + 138.8 + 1230.4) / 1000, refine_fixed_step=12.198 / 400, export=0.093, evaluate=0.093,
-        fit_backbone={"scene": SCENE_OVER_OBJECT_RAY},
+        refine=(170.4 + 138.8 + 1230.4) / 1000, refine_fixed_step=CPU_REFINE_FIXED_STEP,
+        backprojection_chunk=CPU_REFINE_FIXED_STEP * 0.4156 / 0.04706, graph_cut=CPU_GRAPH_CUT, export=0.093,
+        evaluate=0.093, fit_backbone={"scene": SCENE_OVER_OBJECT_RAY},
     ),
     "cuda": DeviceCosts(
         fit_step=CUDA_FIT_STEP, fit_rays=None, edit=27.496 / 500, refine=6.320 / 32,
-        refine_fixed_step=CUDA_FIT_STEP, export=1.678 / 35, evaluate=1.678 / 35,
+        refine_fixed_step=CUDA_FIT_STEP, backprojection_chunk=CUDA_FIT_STEP, graph_cut=CPU_GRAPH_CUT,
+        export=1.678 / 35, evaluate=1.678 / 35,
     ),
 }
 
@@ -195,9 +207,23 @@ def refine_seconds(refine: dict, costs: DeviceCosts) -> float:
     views = refine.get("views") or paper.REFINE_VIEWS
     steps = refine.get("iterations")
     steps = paper.SERVICE_REFINE_ITERATIONS if steps is None else steps
-    if refine.get("lift_start") == "constant":
-        return views * costs.refine + steps * costs.refine_fixed_step
-    return (views + steps) * costs.refine
+    phases = refine_phase_seconds("fixed" if refine.get("lift_start") == "constant" else "fresh", costs)
+    return views * phases["attention_maps"] + steps * phases["attention_grids"]
+
+
+def refine_phase_seconds(fit_views: str, costs: DeviceCosts) -> dict[str, float]:
+    """Seconds per unit of each of the refinement's sub-steps (``voxe_core.refine.pipeline.refine``'s phases), its
+    fitting steps by ``RefineConfig.fit_views``: a fresh view's step is an attention pass, a fixed one's 1/50 of one
+    on a CPU, so the time left in the stage weighs each sub-step's units left by them.
+
+    Examples:
+        >>> phases = refine_phase_seconds("fixed", DEVICE_COSTS["cpu"])
+        >>> round(phases["attention_maps"] / phases["attention_grids"])
+        50
+    """
+    return {"attention_maps": costs.refine, "backprojection": costs.backprojection_chunk,
+            "attention_grids": costs.refine if fit_views == "fresh" else costs.refine_fixed_step,
+            "graph_cut": costs.graph_cut}
 
 
 def overall(*, costs: list[tuple[str, float]], completed: list[str], stage: str | None, stage_fraction: float,

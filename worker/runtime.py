@@ -277,11 +277,15 @@ class StageCallbacks:
     ``cancel_check_interval_s``. ``extra_progress`` is called on every write
     (the reconstruction owner renews its lease there). ``on_checkpoint(path)`` stores
     a checkpoint; a ``checkpoint`` event at the iteration it was taken follows it.
+    ``phase_seconds``: seconds per unit of each sub-step of a stage counted in phases
+    (``voxe_core.progress.in_phases``; ``voxe_service.progress.refine_phase_seconds``), by which the
+    time left weighs each sub-step's units left against the current one's, whose rate it measures.
     """
 
     def __init__(self, job: Job, stage: str, settings: Settings, extra_progress=None, on_checkpoint=None,
-                 note: str | None = None):
+                 note: str | None = None, phase_seconds: dict[str, float] | None = None):
         self.job_id, self.stage, self.settings, self.note = job.id, stage, settings, note
+        self.phase_seconds = phase_seconds or {}
         self.run_token = job.run_token  # the run holding the job: a run that lost it stops as if canceled
         self.extra_progress = extra_progress
         self._last_write = 0.0
@@ -321,7 +325,7 @@ class StageCallbacks:
         t0, i0 = self._rate_origin
         eta = None
         if report.iteration > i0 and now > t0:
-            eta = (now - t0) / (report.iteration - i0) * max(0, report.total - report.iteration)
+            eta = (now - t0) / (report.iteration - i0) * self._units_left(report)
         losses = {k: round(float(v), 6) for k, v in report.losses.items() if math.isfinite(float(v))}
         message = self.note if report.stage == self.stage else f"{self.stage}: {report.stage}"
         update_job(self.job_id, iteration=int(report.iteration), total=int(report.total), eta_seconds=eta,
@@ -331,6 +335,16 @@ class StageCallbacks:
             self._peak_written = self.peak_memory_gb
         if self.extra_progress is not None:
             self.extra_progress(report)
+
+    def _units_left(self, report: Progress) -> float:
+        """The units left, in the current sub-step's units: a later sub-step's each weigh its cost per unit over
+        the current one's (the paper's refinement: an attention pass costs 50 of its fitting steps on a CPU, and
+        counting the steps at the passes' rate had put the time left 50x too high)."""
+        left = report.info.get("phase_units_left")
+        current = self.phase_seconds.get(report.stage)
+        if not left or not current:
+            return max(0, report.total - report.iteration)
+        return sum(units * self.phase_seconds.get(phase, current) / current for phase, units in left.items())
 
     def should_cancel(self) -> bool:
         if self._canceled:

@@ -41,6 +41,7 @@ from voxe_service.models import (
 )
 from voxe_service.model_inventory import (ROLES, check_models, job_models, missing_message, model_present,
                                           submission_note)
+from voxe_service.progress import device_costs, refine_phase_seconds
 from voxe_service.queue import (
     INGEST_TASK, STAGE_TASKS, QueueUnavailable, TaskResult, get_queue, is_sql_broker, job_stages, requeue_interrupted,
     reset_queue, send_evaluations_alone,
@@ -522,7 +523,8 @@ def _refine(job: Job, settings, device: str, storage) -> None:
     initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, runtime.reconstruction_grid(rec))
     edited = fetch_grid(job.id, "edited_grid.safetensors", settings, storage)
     config = refine_config(job.params, job.attention_model)
-    callbacks = StageCallbacks(job, "refine", settings)
+    callbacks = StageCallbacks(job, "refine", settings,
+                               phase_seconds=refine_phase_seconds(config.fit_views, device_costs(device)))
     result = refine(initial, edited, job.prompt, job.edit_words, guidance, config, callbacks.callbacks, device=device)
 
     scratch = runtime.scratch_dir(job.id, settings)
