@@ -8,6 +8,7 @@ service with the random-weight SMOKE-TEST model: they prove which configs the wo
 from __future__ import annotations
 
 import dataclasses
+import re
 from types import SimpleNamespace
 
 import pytest
@@ -327,6 +328,46 @@ def test_a_damaged_or_foreign_edit_checkpoint_is_dropped_and_the_edit_starts_ove
     events = client.get(f"/v1/jobs/{job['id']}/events").json()
     assert not any(e["kind"] == "resumed" and e.get("stage") == "edit" for e in events), events
     assert client.get(f"/v1/jobs/{job['id']}").json()["message"].startswith(f"the stored edit checkpoint {why}")
+
+
+def _edit_checkpoint(path, **recipe) -> bytes:
+    """A readable edit checkpoint of EditConfig()'s recipe, with ``recipe``'s fields changed."""
+    from voxe_core.edit import EditConfig, save_edit_checkpoint
+    from voxe_core.grid import VoxelGrid
+
+    grid = VoxelGrid(4)
+    save_edit_checkpoint(path, grid, torch.optim.Adam([grid.flat_features]), {}, 2,
+                         {"recipe": {**EditConfig().recipe(), **recipe}})
+    return path.read_bytes()
+
+
+@pytest.mark.parametrize("damage, why", [
+    (lambda data: data, None),
+    (lambda data: data[:-1], "was unreadable (.*incomplete metadata, file not fully covered)"),
+    (lambda data: data[: len(data) // 2], "was unreadable (.*incomplete metadata, file not fully covered)"),
+    (lambda data: data + b"\0", "was unreadable (.*incomplete metadata, file not fully covered)"),
+    (lambda data: data[:8] + b"x" + data[9:], "was unreadable (.*header)"),
+])
+def test_a_stored_checkpoint_is_checked_by_its_header_alone(tmp_path, monkeypatch, damage, why):
+    """The worker checks a stored checkpoint before a stage resumes from it (which reads its tensors): the header
+    alone names a truncated, padded or damaged file as unreadable, as the whole read it had made did, and accepts a
+    good one, without reading the tensors twice."""
+    import voxe_core.tensorio
+    from voxe_core.edit import EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION, EditConfig
+    from voxe_service.storage import LocalStorage
+    from worker.tasks import _stored_checkpoint
+
+    storage = LocalStorage(tmp_path / "store")
+    storage.put_bytes("jobs/j/checkpoints/edit.safetensors", damage(_edit_checkpoint(tmp_path / "made.safetensors")))
+    monkeypatch.setattr(voxe_core.tensorio, "load_file", lambda *args: pytest.fail("read the checkpoint's tensors"))
+    resume, meta, said = _stored_checkpoint(storage, "jobs/j/checkpoints/edit.safetensors", tmp_path / "got.safetensors",
+                                            EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION, EditConfig())
+    if why is None:
+        assert resume == tmp_path / "got.safetensors" and meta["iteration"] == 2 and said is None
+        assert storage.exists("jobs/j/checkpoints/edit.safetensors")
+    else:
+        assert resume is None and meta is None and re.match(why, said), said
+        assert not storage.exists("jobs/j/checkpoints/edit.safetensors")
 
 
 def _fit_checkpoint_of_another_recipe(path) -> bytes:

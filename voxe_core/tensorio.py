@@ -61,6 +61,18 @@ def save_tensors(path: str | os.PathLike, tensors: dict[str, torch.Tensor], kind
 
 def load_tensors(path: str | os.PathLike, kind: str, max_version: int) -> tuple[dict[str, torch.Tensor], dict]:
     """Read a file written by :func:`save_tensors`; returns (tensors, meta)."""
+    meta = load_header(path, kind, max_version)
+    try:
+        tensors = load_file(str(path))
+    except (SafetensorError, OSError, ValueError) as exc:
+        raise FormatError(f"{path}: not a readable safetensors file ({exc})") from exc
+    return tensors, meta
+
+
+def load_header(path: str | os.PathLike, kind: str, max_version: int) -> dict:
+    """The meta of a file written by :func:`save_tensors`, read from its header alone, no tensor: safetensors checks
+    there that the tensors' declared offsets cover the file exactly, so a truncated or padded file fails here as in
+    :func:`load_tensors`."""
     path = Path(path)
     if not path.is_file():
         raise FormatError(f"{path}: no such file")
@@ -69,7 +81,6 @@ def load_tensors(path: str | os.PathLike, kind: str, max_version: int) -> tuple[
 
         with safe_open(str(path), framework="pt") as handle:
             raw_header = (handle.metadata() or {}).get(HEADER_KEY)
-        tensors = load_file(str(path))
     except (SafetensorError, OSError, ValueError) as exc:
         raise FormatError(f"{path}: not a readable safetensors file ({exc})") from exc
     if raw_header is None:
@@ -91,4 +102,4 @@ def load_tensors(path: str | os.PathLike, kind: str, max_version: int) -> tuple[
         raise FormatError(
             f"{path}: format version {version} is newer than this voxe_core supports ({max_version}); upgrade voxe_core"
         )
-    return tensors, meta
+    return meta

@@ -233,16 +233,18 @@ def _preview(job_id: str, grid, settings, storage, device: str, image=None, cent
     runtime.update_job(job_id, preview_artifact=PREVIEW)
 
 
-def _stored_checkpoint(storage, key: str, path: Path, load, config) -> tuple[Path | None, dict | None, str | None]:
-    """The checkpoint stored at ``key``, fetched to ``path``, and its header; or (None, None, why), the object
-    deleted, for one the stage cannot go on from: unreadable, or made with another recipe than ``config``'s (a
-    worker of another version, mid rolling upgrade: the stage refuses it). Either would fail every redelivery, so
-    the stage starts over instead."""
-    from voxe_core.tensorio import FormatError, recipe_changes
+def _stored_checkpoint(storage, key: str, path: Path, kind: str, max_version: int,
+                       config) -> tuple[Path | None, dict | None, str | None]:
+    """The checkpoint of ``kind`` stored at ``key``, fetched to ``path``, and its header; or (None, None, why), the
+    object deleted, for one the stage cannot go on from: unreadable, or made with another recipe than ``config``'s
+    (a worker of another version, mid rolling upgrade: the stage refuses it). Either would fail every redelivery, so
+    the stage starts over instead. Only the header is read (the stage reads the tensors as it resumes): it names
+    a truncated or padded file as unreadable as a whole read does."""
+    from voxe_core.tensorio import FormatError, load_header, recipe_changes
 
     resume = storage.get_file(key, path)
     try:
-        meta = load(resume)[1]
+        meta = load_header(resume, kind, max_version)
         changed = recipe_changes(meta, config)
     except FormatError as exc:
         why = f"was unreadable ({exc})"
@@ -426,7 +428,7 @@ def _fit(job: Job, rec, settings, storage, device: str) -> None:
 def _fit_grid(job: Job, rec, settings, storage, callbacks: StageCallbacks, checkpoint: Path, checkpoint_key: str,
               device: str):
     """Route (a) and image scenes: G_i fitted to the scene's images on ``device``; returns (grid, total iterations)."""
-    from voxe_core.reconstruct import load_checkpoint, reconstruct
+    from voxe_core.reconstruct import CHECKPOINT_FORMAT_VERSION, CHECKPOINT_KIND, reconstruct
     from voxe_core.tensorio import FormatError
 
     scene = load_images(job, rec.params, settings, storage)
@@ -436,7 +438,8 @@ def _fit_grid(job: Job, rec, settings, storage, callbacks: StageCallbacks, check
     runtime.renew_lease(rec.id, job.id, settings, job.run_token, total=config.total_iterations)
     resume = None
     if storage.exists(checkpoint_key):
-        resume, _, why = _stored_checkpoint(storage, checkpoint_key, checkpoint, load_checkpoint, config)
+        resume, _, why = _stored_checkpoint(storage, checkpoint_key, checkpoint, CHECKPOINT_KIND,
+                                            CHECKPOINT_FORMAT_VERSION, config)
         if resume is None:
             log.warning("reconstruction %s: the stored checkpoint %s; starting over", rec.id, why)
         else:
@@ -470,9 +473,10 @@ def _edit(job: Job, settings, device: str, storage) -> None:
     checkpoint_key = job_key(job.id, "checkpoints/edit.safetensors")
     resume, note = None, None
     if storage.exists(checkpoint_key):  # a redelivered / re-queued task: go on from the last checkpoint
-        from voxe_core.edit import load_edit_checkpoint
+        from voxe_core.edit import EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION
 
-        resume, meta, why = _stored_checkpoint(storage, checkpoint_key, checkpoint, load_edit_checkpoint, config)
+        resume, meta, why = _stored_checkpoint(storage, checkpoint_key, checkpoint, EDIT_CHECKPOINT_KIND,
+                                               EDIT_CHECKPOINT_VERSION, config)
         if resume is None:
             log.warning("job %s: the stored edit checkpoint %s; starting over", job.id, why)
             note = f"the stored edit checkpoint {why}: started over"
