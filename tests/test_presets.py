@@ -284,17 +284,20 @@ def test_a_worker_whose_fused_marcher_cannot_run_says_so(service, monkeypatch, c
     assert f"job {job['id']}: VOXE_FUSED_MARCHER is on, but Triton does not run on cpu here" in caplog.text
 
 
-def _checkpoint_of_another_recipe(path) -> bytes:
-    """A readable edit checkpoint made with guidance scale 7.5 (a worker of another version's default, say)."""
-    import torch
-
+def _edit_checkpoint(path, **recipe) -> bytes:
+    """A readable edit checkpoint of EditConfig()'s recipe, with ``recipe``'s fields changed."""
     from voxe_core.edit import EditConfig, save_edit_checkpoint
     from voxe_core.grid import VoxelGrid
 
     grid = VoxelGrid(4)
     save_edit_checkpoint(path, grid, torch.optim.Adam([grid.flat_features]), {}, 2,
-                         {"recipe": {**EditConfig().recipe(), "guidance_scale": 7.5}})
+                         {"recipe": {**EditConfig().recipe(), **recipe}})
     return path.read_bytes()
+
+
+def _checkpoint_of_another_recipe(path) -> bytes:
+    """A readable edit checkpoint made with guidance scale 7.5 (a worker of another version's default, say)."""
+    return _edit_checkpoint(path, guidance_scale=7.5)
 
 
 @pytest.mark.parametrize("stored, why", [
@@ -330,17 +333,6 @@ def test_a_damaged_or_foreign_edit_checkpoint_is_dropped_and_the_edit_starts_ove
     assert client.get(f"/v1/jobs/{job['id']}").json()["message"].startswith(f"the stored edit checkpoint {why}")
 
 
-def _edit_checkpoint(path, **recipe) -> bytes:
-    """A readable edit checkpoint of EditConfig()'s recipe, with ``recipe``'s fields changed."""
-    from voxe_core.edit import EditConfig, save_edit_checkpoint
-    from voxe_core.grid import VoxelGrid
-
-    grid = VoxelGrid(4)
-    save_edit_checkpoint(path, grid, torch.optim.Adam([grid.flat_features]), {}, 2,
-                         {"recipe": {**EditConfig().recipe(), **recipe}})
-    return path.read_bytes()
-
-
 @pytest.mark.parametrize("damage, why", [
     (lambda data: data, None),
     (lambda data: data[:-1], "was unreadable (.*incomplete metadata, file not fully covered)"),
@@ -357,17 +349,17 @@ def test_a_stored_checkpoint_is_checked_by_its_header_alone(tmp_path, monkeypatc
     from voxe_service.storage import LocalStorage
     from worker.tasks import _stored_checkpoint
 
-    storage = LocalStorage(tmp_path / "store")
-    storage.put_bytes("jobs/j/checkpoints/edit.safetensors", damage(_edit_checkpoint(tmp_path / "made.safetensors")))
+    storage, key = LocalStorage(tmp_path / "store"), "jobs/j/checkpoints/edit.safetensors"
+    storage.put_bytes(key, damage(_edit_checkpoint(tmp_path / "made.safetensors")))
     monkeypatch.setattr(voxe_core.tensorio, "load_file", lambda *args: pytest.fail("read the checkpoint's tensors"))
-    resume, meta, said = _stored_checkpoint(storage, "jobs/j/checkpoints/edit.safetensors", tmp_path / "got.safetensors",
-                                            EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION, EditConfig())
+    resume, meta, said = _stored_checkpoint(storage, key, tmp_path / "got.safetensors", EDIT_CHECKPOINT_KIND,
+                                            EDIT_CHECKPOINT_VERSION, EditConfig())
     if why is None:
         assert resume == tmp_path / "got.safetensors" and meta["iteration"] == 2 and said is None
-        assert storage.exists("jobs/j/checkpoints/edit.safetensors")
+        assert storage.exists(key)
     else:
         assert resume is None and meta is None and re.match(why, said), said
-        assert not storage.exists("jobs/j/checkpoints/edit.safetensors")
+        assert not storage.exists(key)
 
 
 def _fit_checkpoint_of_another_recipe(path) -> bytes:
