@@ -118,7 +118,7 @@ def test_a_reconstruction_value_that_is_no_whole_number_is_refused_by_name(param
 
 def test_default_downsampling_is_the_papers_everywhere():
     parser = build_parser()
-    for command in (["reconstruct", "d", "--out", "g"], ["render", "g", "--data", "d", "--out", "o"], EDIT,
+    for command in (["reconstruct", "d", "--out", "g.safetensors"], ["render", "g", "--data", "d", "--out", "o"], EDIT,
                     ["evaluate", "g", "--edit", "e", "p", "--object", "mic", "--out", "o"]):
         assert parser.parse_args(command).downsample == 3 == service_json({})["downsample"], command
 
