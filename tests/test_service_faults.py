@@ -1043,6 +1043,39 @@ def test_a_stage_whose_start_meets_a_database_error_tries_again_then_goes_back_t
     assert job_row(other).state == "queued"  # untouched: the redelivered message takes it
 
 
+def test_a_stage_the_database_refuses_to_start_each_time_fails_its_job_at_the_requeue_limit(db, monkeypatch):
+    """A start refused each time for this job (a value too long for its column) while the database answers had
+    gone back to the queue for ever: each return counts as a re-queue, and the delivery after
+    VOXE_JOB_MAX_REQUEUES fails the job naming why. A database that is down counts nothing."""
+    from sqlalchemy.exc import DataError, OperationalError
+
+    from worker import runtime, tasks
+
+    monkeypatch.setattr(tasks, "STAGE_START_RETRY_S", ())
+    refused = DataError("UPDATE jobs", {}, Exception("value too long for type character varying(255)"))
+    monkeypatch.setattr(runtime, "begin_stage", lambda *a, **k: (_ for _ in ()).throw(refused))
+    limit = db.job_max_requeues
+    job_id = add_job(add_scene(), "queued", 0)
+    with monkeypatch.context() as outage:  # the count's own write refused too: back to the queue, not counted
+        outage.setattr(runtime, "session_scope", lambda: (_ for _ in ()).throw(
+            OperationalError("SELECT jobs", {}, Exception("connection refused"))))
+        result = tasks.reconstruct_task.apply(args=(job_id,))
+    assert result.state == "REJECTED" and result.result.requeue and job_row(job_id).requeues == 0
+    for requeues in range(1, limit + 1):
+        result = tasks.reconstruct_task.apply(args=(job_id,))
+        assert result.state == "REJECTED" and result.result.requeue
+        assert (job_row(job_id).state, job_row(job_id).requeues) == ("queued", requeues)
+    result = tasks.reconstruct_task.apply(args=(job_id,)).get()
+    assert result["skipped"].startswith(f"job {job_id} failed")
+    reason = "reconstruct could not start: DataError: value too long for type character varying(255)"
+    job = job_row(job_id)
+    assert (job.state, job.requeues) == ("failed", limit) and job.finished_at is not None
+    assert job.error == (f"{reason}; it was sent again {limit} time(s) already, the limit "
+                         f"(VOXE_JOB_MAX_REQUEUES={limit})")
+    assert [(e["kind"], e["detail"]) for e in events_of(job_id)] == [("requeued", reason)] * limit + [
+        ("failed", job.error)]
+
+
 def test_an_artifact_whose_record_fails_leaves_no_bytes_behind(db, tmp_path, monkeypatch):
     """The bytes are uploaded, then the transaction recording them fails (a database error): the upload goes too,
     so an artifact is listed and stored, or neither (it had stayed in storage, unlisted, for good)."""

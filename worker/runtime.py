@@ -192,6 +192,29 @@ def begin_stage(job_id: str, stage: str, hostname: str | None, device: str, sett
             return load_job(job_id)
 
 
+def count_unstarted(job_id: str, stage: str, reason: str, settings: Settings) -> str | None:
+    """Count a run of ``stage`` that could not start (``reason``: the database refused it again and again) as a
+    re-queue, its message going back to the queue, with a ``requeued`` event; at ``job_max_requeues`` fail the job
+    instead and return why: a job whose start fails each time (one of its rows, not the database) must not bounce
+    between the broker and the workers for ever. A job that ended, or that a live run holds (the message is a
+    duplicate), is left as it is. During an outage this write fails too, raising: nothing counts, and the message
+    goes back, as an accepted job must not fail for an outage."""
+    now = utcnow()
+    free = [Job.id == job_id, Job.state.in_((QUEUED, RUNNING)),
+            or_(Job.run_token.is_(None), Job.run_lease_until < now)]
+    with session_scope() as session:
+        requeues = session.scalar(select(Job.requeues).where(*free))
+        if requeues is None:
+            return None
+        as_read = [*free, Job.requeues == requeues]
+        if error := requeue_limit_error(requeues, settings, reason):
+            return error if finish_jobs(session, [job_id], FAILED, error=error, where=as_read) else None
+        if session.execute(update(Job).where(*as_read).values(requeues=Job.requeues + 1,
+                                                               updated_at=now)).rowcount == 1:
+            record_event(session, job_id, "requeued", stage=stage, detail=reason)
+    return None
+
+
 def _wait_for_release(job_id: str, stage: str, held: tuple, settings: Settings) -> None:
     """Return once the hold seen (token, lease end) was released or ran out; raise StageHeld once it was renewed
     or passed to another run: a live run holds the job."""

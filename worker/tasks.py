@@ -78,12 +78,22 @@ goes back to the broker."""
 
 def _begin_stage(task, job_id: str, stage: str, device: str, settings):
     """``runtime.begin_stage``, tried again on a database error; still failing, the message is rejected back to the
-    queue (``Reject``): acknowledged with a failure it was gone, and the job, accepted, never ran or ended."""
+    queue (``Reject``): acknowledged with a failure it was gone, and the job, accepted, never ran or ended. Each
+    such return counts as a re-queue, up to the limit, where the job fails naming why (``runtime.count_unstarted``)."""
     for pause in (*STAGE_START_RETRY_S, None):
         try:
             return runtime.begin_stage(job_id, stage, task.request.hostname or socket.gethostname(), device, settings)
         except SQLAlchemyError as exc:
             if pause is None:
+                # the driver's words (database is locked, value too long), not the statement and its parameters
+                reason = f"{stage} could not start: {type(exc).__name__}: {getattr(exc, 'orig', None) or exc}"
+                try:
+                    error = runtime.count_unstarted(job_id, stage, reason, settings)
+                except SQLAlchemyError:  # the database is down: nothing counted
+                    error = None
+                if error:
+                    log.error("job %s failed: %s", job_id, error)
+                    raise JobSkipped(f"job {job_id} failed: {error}") from exc
                 log.error("job %s: %s could not start (%s); the message goes back to the queue", job_id, stage, exc)
                 raise Reject(f"{stage} of job {job_id} could not start: {exc}", requeue=True) from exc
             log.warning("job %s: %s could not start (%s); trying again in %.1f s", job_id, stage, exc, pause)
