@@ -47,7 +47,8 @@ resolve to (a backbone "auto" before a worker has recorded it: an object's). An 
 where the parameters say the objects' 8,000): the reconstruct stage records it in ``Job.result["edit_schedule"]``
 with the fit (a finished fit reused: as the stage ends).
 
-The fraction weighs completed stages fully and the current one by its own progress. The time left is the
+The fraction weighs completed stages fully and the current one by the share of its time done (``stage_fraction``:
+its units', but the refinement's sub-steps each weighed by their cost a unit). The time left is the
 current stage's own estimate (from its iteration rate) plus the later stages' costs, scaled by how fast this
 machine runs the current stage against the table's figure for it: the stage's estimate over the table's seconds
 for what is left of it. The worker measures that rate from the stage's first progress report, so the time a
@@ -204,11 +205,17 @@ def refine_seconds(refine: dict, costs: DeviceCosts) -> float:
     """The refinement's cost from the job parameters' ``refine``: an attention pass per view, and per fitting step
     one more pass from the back-projection start (fresh views) or a fixed-view step from the paper's constant
     start (``voxe_core.presets.refine_config`` pairs the two so)."""
+    views, steps, fit_views = _refine_work(refine)
+    phases = refine_phase_seconds(fit_views, costs)
+    return views * phases["attention_maps"] + steps * phases["attention_grids"]
+
+
+def _refine_work(refine: dict) -> tuple[int, int, str]:
+    """(views, fitting steps, ``RefineConfig.fit_views``) of the job parameters' ``refine``."""
     views = refine.get("views") or paper.REFINE_VIEWS
     steps = refine.get("iterations")
     steps = paper.SERVICE_REFINE_ITERATIONS if steps is None else steps
-    phases = refine_phase_seconds("fixed" if refine.get("lift_start") == "constant" else "fresh", costs)
-    return views * phases["attention_maps"] + steps * phases["attention_grids"]
+    return views, steps, "fixed" if refine.get("lift_start") == "constant" else "fresh"
 
 
 def refine_phase_seconds(fit_views: str, costs: DeviceCosts) -> dict[str, float]:
@@ -224,6 +231,40 @@ def refine_phase_seconds(fit_views: str, costs: DeviceCosts) -> dict[str, float]
     return {"attention_maps": costs.refine, "backprojection": costs.backprojection_chunk,
             "attention_grids": costs.refine if fit_views == "fresh" else costs.refine_fixed_step,
             "graph_cut": costs.graph_cut}
+
+
+def stage_fraction(*, stage: str | None, params: dict, device: str, iteration: int, total: int) -> float:
+    """The share of the current stage's time done at ``iteration`` of its ``total`` units: the units' share, but for
+    the refinement, whose sub-steps count on one scale (``voxe_core.progress.in_phases``: attention passes,
+    back-projection chunks, fitting steps, the cut) at very different costs a unit (``refine_phase_seconds``: a
+    pass is 50 of the paper's fixed-view steps on a CPU), each weighed by its cost: counted in units, the paper's
+    fit was 2% done when its passes, half its time, were. A scale other than its parameters give (a worker of
+    another version) counts units.
+
+    Examples:
+        >>> paper_fit = {"refine": {"lift_start": "constant", "iterations": 1500}}  # 32 passes, 18 chunks, the cut
+        >>> round(stage_fraction(stage="refine", params=paper_fit, device="cpu", iteration=32, total=1551), 2)
+        0.49
+        >>> stage_fraction(stage="edit", params=paper_fit, device="cpu", iteration=32, total=1551) == 32 / 1551
+        True
+    """
+    if total <= 0:
+        return 0.0
+    units = min(iteration, total) / total
+    if stage != "refine":
+        return units
+    views, steps, fit_views = _refine_work(params.get("refine") or {})
+    sizes = {"attention_maps": views, "backprojection": total - views - steps - 1, "attention_grids": steps,
+             "graph_cut": 1}  # the back-projection's chunks: what the scale holds beside the rest
+    if sizes["backprojection"] < 1:
+        return units
+    done = whole = 0.0
+    left = min(iteration, total)
+    for phase, seconds in refine_phase_seconds(fit_views, device_costs(device)).items():
+        done += min(sizes[phase], max(0, left)) * seconds
+        whole += sizes[phase] * seconds
+        left -= sizes[phase]
+    return done / whole
 
 
 def overall(*, costs: list[tuple[str, float]], completed: list[str], stage: str | None, stage_fraction: float,

@@ -18,7 +18,7 @@ from api.schemas import (
 from api.services import jobs
 from voxe_core.presets import reconstruction_params
 from voxe_service.models import EVALUATE, R_SUCCEEDED, RUNNING, SUCCEEDED, Job, JobEvent, utcnow
-from voxe_service.progress import NO_FIT, fit_work, overall, stage_costs
+from voxe_service.progress import NO_FIT, fit_work, overall, stage_costs, stage_fraction
 from voxe_service.settings import model_label
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
@@ -65,7 +65,8 @@ def _overall(job: Job) -> tuple[float, float | None]:
         fit = fit_work(rec.params if rec is not None else reconstruction_params(job.params), result.get("fit"), steps)
     edit_iterations = (result.get("edit_schedule") or {}).get("iterations")
     costs = stage_costs(mode=job.mode, params=job.params, fit=fit, device=job.device, edit_iterations=edit_iterations)
-    fraction = job.iteration / job.total if job.total else 0.0
+    fraction = stage_fraction(stage=job.stage, params=job.params, device=job.device, iteration=job.iteration,
+                              total=job.total)
     running = job.state == RUNNING
     # The stage's share counts in any state (a failed, canceled or re-queued job keeps the fraction it reached);
     # only a running one has a time left.
