@@ -199,6 +199,36 @@ def test_an_attempt_ends_by_its_deadline_however_slowly_the_name_resolves(monkey
         receiver.close()
 
 
+def test_a_job_whose_webhook_name_resolves_too_slowly_is_refused_within_the_webhook_timeout(client, monkeypatch):
+    """A resolver that takes 10 s to answer: the job's creation, which checks its webhook's host, is refused at the
+    0.5 s VOXE_WEBHOOK_TIMEOUT_S with a 422 naming the lookup and the setting (the check's lookup had held the
+    request for the whole 10 s), and no job is recorded."""
+    import threading
+
+    test_client, scene = client
+    release = threading.Event()
+    real_getaddrinfo = socket.getaddrinfo
+
+    def slow_resolver(host, *args, **kwargs):
+        if host != "hooks.test":
+            return real_getaddrinfo(host, *args, **kwargs)
+        release.wait(10)
+        return [(socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP, "", ("127.0.0.1", 9))]
+
+    monkeypatch.setattr(socket, "getaddrinfo", slow_resolver)
+    try:
+        started = time.monotonic()
+        response = test_client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold",
+                                                      "webhook_url": "http://hooks.test:9/hook"})
+        elapsed = time.monotonic() - started
+    finally:
+        release.set()
+    assert elapsed < 3.0, elapsed
+    assert response.status_code == 422 and response.json()["detail"] == (
+        "webhook_url host 'hooks.test' did not resolve within 0.5 s (VOXE_WEBHOOK_TIMEOUT_S, a delivery's deadline)")
+    assert test_client.get("/v1/jobs").json()["items"] == []
+
+
 def test_webhook_events_need_a_url_and_name_known_kinds(client):
     test_client, scene = client
     body = {"scene_id": scene["id"], "prompt": "a mic made of gold"}
@@ -244,7 +274,7 @@ def test_a_webhook_connects_only_to_the_address_its_name_was_checked_as(monkeypa
     url = f"http://hooks.test:{port}/hook"
     delivery = WebhookDelivery(id="msg_1", url=url, payload='{"kind": "succeeded"}')
     try:
-        check_target(url, networks)
+        check_target(url, networks, 5.0)
         with webhook_client(5.0, networks) as client:
             assert attempt(delivery, "whsec_" + "A" * 32, client) == (200, None)
             assert answers == []  # the name was resolved once for the attempt, not again for the connection

@@ -67,12 +67,13 @@ def sign(secret: str, message_id: str, timestamp: int, body: bytes) -> str:
     return "v1," + base64.b64encode(hmac.new(key, signed, hashlib.sha256).digest()).decode()
 
 
-def check_target(url: str, allow_networks: list[ipaddress._BaseNetwork]) -> None:
-    """Refuse (:class:`TargetRefused`) a URL that is not http(s) or whose host resolves to a loopback, private,
-    link-local, multicast, reserved or unspecified address outside ``allow_networks``.
+def check_target(url: str, allow_networks: list[ipaddress._BaseNetwork], timeout_s: float) -> None:
+    """Refuse (:class:`TargetRefused`) a URL that is not http(s), whose host does not resolve within ``timeout_s``
+    (an attempt's deadline: a name that answers no sooner would time every delivery out), or whose host resolves
+    to a loopback, private, link-local, multicast, reserved or unspecified address outside ``allow_networks``.
 
-    Checked when the job is created; every attempt's connection checks the address it connects to again
-    (:func:`webhook_client`).
+    Checked when the job is created, inside its request: a slow resolver had held the request for as long as it
+    took. Every attempt's connection checks the address it connects to again (:func:`webhook_client`).
     """
     try:
         parts = urlsplit(url)
@@ -89,7 +90,10 @@ def check_target(url: str, allow_networks: list[ipaddress._BaseNetwork]) -> None
         raise TargetRefused(f"webhook_url {url!r} names port 0, where nothing can listen")
     port = port or (443 if parts.scheme == "https" else 80)
     try:
-        allowed_addresses(host, port, allow_networks)
+        allowed_addresses_within(host, port, allow_networks, timeout_s)
+    except LookupTimedOut:
+        raise TargetRefused(f"webhook_url host {host!r} did not resolve within {timeout_s:g} s "
+                            "(VOXE_WEBHOOK_TIMEOUT_S, a delivery's deadline)") from None
     except OSError as exc:
         raise TargetRefused(f"webhook_url host {host!r} does not resolve: {exc}") from None
 
@@ -112,6 +116,30 @@ def allowed_addresses(host: str, port: int, allow_networks: list[ipaddress._Base
                 "public addresses only (an operator can allow networks with VOXE_WEBHOOK_ALLOW_NETWORKS)")
         addresses.append(info[4][0])
     return list(dict.fromkeys(addresses))
+
+
+class LookupTimedOut(Exception):
+    """A webhook host's name lookup that had not answered by its deadline (:func:`allowed_addresses_within`)."""
+
+
+def allowed_addresses_within(host: str, port: int, allow_networks: list[ipaddress._BaseNetwork],
+                             timeout: float | None) -> list[str]:
+    """:func:`allowed_addresses`, given up after ``timeout`` seconds (:class:`LookupTimedOut`): ``getaddrinfo`` takes
+    no timeout, so it runs in a thread of its own, left to end by itself (the resolver's own timeouts) while the
+    caller goes on."""
+    answer: Future[list[str]] = Future()
+
+    def look_up() -> None:
+        try:
+            answer.set_result(allowed_addresses(host, port, allow_networks))
+        except Exception as exc:  # noqa: BLE001 - raised again by the caller's answer.result
+            answer.set_exception(exc)
+
+    threading.Thread(target=look_up, name="voxe-webhook-resolve", daemon=True).start()
+    try:
+        return answer.result(timeout)
+    except FutureTimeout:
+        raise LookupTimedOut(host) from None
 
 
 def _time_left(timeout: float | None, timed_out: type[httpcore.TimeoutException]) -> float | None:
@@ -178,21 +206,11 @@ class _CheckedBackend(httpcore.NetworkBackend):
         raise failure or httpcore.ConnectError(f"{host!r} resolves to no address")
 
     def _resolve(self, host: str, port: int, timeout: float | None) -> list[str]:
-        """:func:`allowed_addresses`, given up after ``timeout`` (``httpcore.ConnectTimeout``): ``getaddrinfo`` takes
-        no timeout, so it runs in a thread of its own, left to end by itself (the resolver's own timeouts) while the
-        attempt ends by its deadline. A slow resolver had held an attempt, and a sender slot, past the deadline."""
-        answer: Future[list[str]] = Future()
-
-        def look_up() -> None:
-            try:
-                answer.set_result(allowed_addresses(host, port, self._allow_networks))
-            except Exception as exc:  # noqa: BLE001 - raised again by the caller's answer.result
-                answer.set_exception(exc)
-
-        threading.Thread(target=look_up, name="voxe-webhook-resolve", daemon=True).start()
+        """:func:`allowed_addresses_within` ``timeout`` (``httpcore.ConnectTimeout``), the attempt ending by its
+        deadline. A slow resolver had held an attempt, and a sender slot, past the deadline."""
         try:
-            return answer.result(timeout)
-        except FutureTimeout:
+            return allowed_addresses_within(host, port, self._allow_networks, timeout)
+        except LookupTimedOut:
             raise httpcore.ConnectTimeout(f"webhook_url host {host!r} did not resolve within the attempt's deadline "
                                           "(VOXE_WEBHOOK_TIMEOUT_S)") from None
 

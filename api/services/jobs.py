@@ -126,7 +126,7 @@ def check_webhook(*, settings: Settings, body: JobCreate) -> None:
     if body.webhook_url is None:
         return
     try:
-        webhooks.check_target(body.webhook_url, settings.webhook_networks)
+        webhooks.check_target(body.webhook_url, settings.webhook_networks, settings.webhook_timeout_s)
     except webhooks.TargetRefused as exc:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc)) from None
 
