@@ -1061,6 +1061,11 @@ def test_a_stage_the_database_refuses_to_start_each_time_fails_its_job_at_the_re
             OperationalError("SELECT jobs", {}, Exception("connection refused"))))
         result = tasks.reconstruct_task.apply(args=(job_id,))
     assert result.state == "REJECTED" and result.result.requeue and job_row(job_id).requeues == 0
+    with monkeypatch.context() as locked:  # the start refused as the database was locked: an outage, not counted
+        locked.setattr(runtime, "begin_stage", lambda *a, **k: (_ for _ in ()).throw(
+            OperationalError("UPDATE jobs", {}, Exception("database is locked"))))
+        result = tasks.reconstruct_task.apply(args=(job_id,))
+    assert result.state == "REJECTED" and result.result.requeue and job_row(job_id).requeues == 0
     for requeues in range(1, limit + 1):
         result = tasks.reconstruct_task.apply(args=(job_id,))
         assert result.state == "REJECTED" and result.result.requeue

@@ -19,6 +19,7 @@ take it over when the fitter's lease lapses (a dead worker) or it was released
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import socket
@@ -30,7 +31,7 @@ from typing import TYPE_CHECKING
 from celery import signals
 from celery.exceptions import Ignore, Reject, SoftTimeLimitExceeded
 from sqlalchemy import select
-from sqlalchemy.exc import SQLAlchemyError
+from sqlalchemy.exc import OperationalError, SQLAlchemyError, TimeoutError as PoolTimeout
 
 from voxe_core.presets import edit_config, export_config, fit_backbone, fit_setup, reconstruct_config, refine_config
 from voxe_core.progress import Callbacks, Progress, StageCancelled
@@ -78,8 +79,9 @@ goes back to the broker."""
 
 def _begin_stage(task, job_id: str, stage: str, device: str, settings):
     """``runtime.begin_stage``, tried again on a database error; still failing, the message is rejected back to the
-    queue (``Reject``): acknowledged with a failure it was gone, and the job, accepted, never ran or ended. Each
-    such return counts as a re-queue, up to the limit, where the job fails naming why (``runtime.count_unstarted``)."""
+    queue (``Reject``): acknowledged with a failure it was gone, and the job, accepted, never ran or ended. Such a
+    return counts as a re-queue, up to the limit, where the job fails naming why (``runtime.count_unstarted``),
+    unless the database was down or locked (an outage must not fail accepted jobs)."""
     for pause in (*STAGE_START_RETRY_S, None):
         try:
             return runtime.begin_stage(job_id, stage, task.request.hostname or socket.gethostname(), device, settings)
@@ -87,10 +89,10 @@ def _begin_stage(task, job_id: str, stage: str, device: str, settings):
             if pause is None:
                 # the driver's words (database is locked, value too long), not the statement and its parameters
                 reason = f"{stage} could not start: {type(exc).__name__}: {getattr(exc, 'orig', None) or exc}"
-                try:
-                    error = runtime.count_unstarted(job_id, stage, reason, settings)
-                except SQLAlchemyError:  # the database is down: nothing counted
-                    error = None
+                error = None
+                if not isinstance(exc, (OperationalError, PoolTimeout)):  # down or locked: an outage counts nothing
+                    with contextlib.suppress(SQLAlchemyError):  # the database went down meanwhile: nothing counted
+                        error = runtime.count_unstarted(job_id, stage, reason, settings)
                 if error:
                     log.error("job %s failed: %s", job_id, error)
                     raise JobSkipped(f"job {job_id} failed: {error}") from exc
