@@ -62,6 +62,28 @@ def reset_service_caches() -> None:
     storage._instances.clear()
 
 
+@contextlib.contextmanager
+def api_in_thread():
+    """The API app (``create_app``, with this process's VOXE_* settings) served over HTTP by uvicorn in a thread:
+    its base URL, for code that talks HTTP (``voxe_client``) while the test runs tasks in-process (:func:`ingest`)."""
+    import uvicorn
+
+    from api.main import create_app
+
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(create_app(), host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    try:
+        while not server.started:
+            assert thread.is_alive(), "the API did not start"
+            thread.join(0.05)
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        server.should_exit = True
+        thread.join(10)
+
+
 def ingest(scene_id: str) -> dict:
     """Run the scene's ingest here, as a worker would (in-process tests have no worker)."""
     from worker import tasks

@@ -1,4 +1,5 @@
-"""voxe_client: what it sends and how it reports the service's errors (httpx's MockTransport, no server).
+"""voxe_client: what it sends and how it reports the service's errors (httpx's MockTransport, no server), and
+the files an OBJ upload sends, against the API app served in-process.
 
 The calls against a real service are in tests/test_evaluate.py (``voxe sweep`` end to end).
 """
@@ -252,3 +253,115 @@ def test_ids_are_one_path_segment_and_names_stay_inside_the_download_folder(tmp_
     assert list(tmp_path.iterdir()) == []  # nothing written anywhere
     with pytest.raises(ValueError, match=r"'http://\[::1' is not a service URL"):
         Client("http://[::1")
+
+
+# ------------------------------------------------------------------ OBJ uploads, against the API app
+@pytest.fixture
+def api(tmp_path, monkeypatch):
+    """The API app served in-process (embedded broker and SQLite under ``tmp_path``, no worker: ingests run via
+    ``service_helpers.ingest``), meshes rendered into 2 views of 32 px: (its URL, its storage folder)."""
+    from service_helpers import api_in_thread, reset_service_caches, service_env
+    from voxe_service import datasets
+
+    for key, value in service_env(tmp_path).items():
+        monkeypatch.setenv(key, value)
+    monkeypatch.setattr(datasets, "MESH_VIEWS", 2)
+    monkeypatch.setattr(datasets, "MESH_VIEW_SIZE", 32)
+    reset_service_caches()
+    with api_in_thread() as url:
+        yield url, tmp_path / "storage"
+    reset_service_caches()
+
+
+PLANE_OBJ = ("v -1 0 -1\nv 1 0 -1\nv 1 0 1\nv -1 0 1\nvt 0.5 0.5\nusemtl skin\n"  # seen from above, one texel
+             "f 1/1 2/1 3/1\nf 1/1 3/1 4/1\n")
+GREEN = (0, 255, 0)
+
+
+def _ingested(scene_id: str, storage) -> tuple[dict, object]:
+    """The scene's ingest run here: its stored archive's mesh/ files ({name: bytes}) and its views' surface
+    colours (N, 3)."""
+    import zipfile
+
+    from service_helpers import ingest
+    from voxe_core.data import load_scene
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
+
+    assert ingest(scene_id)["state"] == "ready"
+    with session_scope() as session:
+        key = session.get(Scene, scene_id).storage_key
+    with zipfile.ZipFile(storage / key) as archive:
+        archive.extractall(storage.parent / "ingested")
+        kept = {n.removeprefix("mesh/"): archive.read(n) for n in archive.namelist() if n.startswith("mesh/")}
+    views = load_scene(storage.parent / "ingested", "train")
+    return kept, views.images[views.alphas > 0.999].numpy()
+
+
+def test_an_obj_is_uploaded_with_the_mtl_and_texture_it_names_and_arrives_in_colour(api, tmp_path):
+    """The .obj had been sent alone: a textured or Kd-coloured OBJ arrived grey. Its .mtl paints it red (Kd) but
+    names a green texture (map_Kd), which the service's ingest applies."""
+    from PIL import Image
+
+    url, storage = api
+    (tmp_path / "assets").mkdir()
+    (tmp_path / "assets" / "plane.obj").write_text("mtllib materials/plane.mtl\n" + PLANE_OBJ)  # found by base name
+    (tmp_path / "assets" / "plane.mtl").write_text("newmtl skin\nKd 1 0 0\nmap_Kd C:\\export\\grass.png\n")
+    Image.new("RGB", (2, 2), GREEN).save(tmp_path / "assets" / "grass.png")
+    with Client(url) as client:
+        scene = client.upload_scene(tmp_path / "assets" / "plane.obj", name="plane")
+    kept, surface = _ingested(scene["id"], storage)
+    assert json.loads(kept["names.json"]) == {"mesh.obj": "plane.obj", "plane.mtl": "plane.mtl",
+                                              "texture.png": "grass.png"}
+    assert kept["mesh.obj"] == (tmp_path / "assets" / "plane.obj").read_bytes()
+    assert kept["texture.png"] == (tmp_path / "assets" / "grass.png").read_bytes()
+    assert len(surface) > 0 and abs(surface - [0, 1, 0]).max() < 0.01
+
+
+def test_submit_texture_colours_an_obj_without_a_library(api, tmp_path, capsys):
+    """``voxe submit --upload X.obj --texture IMAGE``: the image colours the OBJ at its UVs, as mesh-to-grid's."""
+    from PIL import Image
+
+    from voxe_core.cli import main
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+
+    url, storage = api
+    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+    Image.new("RGB", (2, 2), GREEN).save(tmp_path / "green.png")
+    assert main(["submit", "a plane of grass", "--upload", str(tmp_path / "plane.obj"), "--texture",
+                 str(tmp_path / "green.png"), "--api", url]) == 0
+    job_id = capsys.readouterr().out.strip()
+    with session_scope() as session:
+        scene_id = session.get(Job, job_id).scene_id
+    kept, surface = _ingested(scene_id, storage)
+    assert json.loads(kept["names.json"]) == {"mesh.obj": "plane.obj", "texture.png": "green.png"}
+    assert len(surface) > 0 and abs(surface - [0, 1, 0]).max() < 0.01
+    assert main(["submit", "x", "--scene", scene_id, "--texture", str(tmp_path / "green.png"), "--api", url]) == 2
+    assert "--texture goes with --upload (an OBJ)" in capsys.readouterr().err
+
+
+def test_an_obj_naming_missing_or_too_many_files_is_refused_before_anything_is_sent(api, tmp_path, capsys):
+    from PIL import Image
+
+    from voxe_core.cli import main
+
+    url, storage = api
+    obj = tmp_path / "plane.obj"
+    submit = ["submit", "a plane", "--upload", str(obj), "--api", url]
+    obj.write_text("mtllib plane.mtl\n" + PLANE_OBJ)
+    assert main(submit) == 2
+    assert (f"voxe submit: error: plane.obj names the material library 'plane.mtl' (mtllib), not found in {tmp_path}"
+            in capsys.readouterr().err)
+    (tmp_path / "plane.mtl").write_text("newmtl a\nmap_Kd a.png\nnewmtl b\nmap_kd b b.png\nnewmtl c\nmap_Kd a.png\n")
+    assert main(submit) == 2
+    assert ("plane.mtl names the textures 'a.png', 'b b.png' (map_Kd), not found in "
+            f"{tmp_path}; put them beside the OBJ") in capsys.readouterr().err
+    for name in ("a.png", "b b.png"):
+        Image.new("RGB", (2, 2), GREEN).save(tmp_path / name)
+    with Client(url) as client, pytest.raises(ValueError, match=r"^plane.mtl names 2 textures \('a.png', 'b b.png'\); "
+                                                               "the service takes one texture per OBJ"):
+        client.upload_scene(obj)
+    with Client(url) as client, pytest.raises(ValueError, match="a texture goes with an OBJ upload; x.ply is not"):
+        client.upload_scene(tmp_path / "x.ply", texture=tmp_path / "a.png")
+    assert not storage.exists() or not any(p.is_file() for p in storage.rglob("*"))

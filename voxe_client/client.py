@@ -7,8 +7,8 @@ import json
 import os
 import time
 from collections.abc import Callable, Iterator
-from contextlib import closing
-from pathlib import Path
+from contextlib import ExitStack, closing
+from pathlib import Path, PureWindowsPath
 from typing import Any
 from urllib.parse import quote
 
@@ -109,14 +109,22 @@ class Client:
         return response
 
     # ------------------------------------------------------------------ scenes and jobs
-    def upload_scene(self, path: str | os.PathLike, name: str | None = None) -> dict:
+    def upload_scene(self, path: str | os.PathLike, name: str | None = None,
+                     texture: str | os.PathLike | None = None) -> dict:
         """``POST /v1/scenes``: a dataset zip, or one mesh file (.obj / .ply), sent under its own file name (the
-        service reads a mesh's kind from it), with ``name`` the scene's display name; the scene, ``processing``."""
+        service reads a mesh's kind from it), with ``name`` the scene's display name; the scene, ``processing``.
+
+        An OBJ goes with the files that colour it (:func:`obj_upload_files`): its .mtl and the texture that names,
+        or ``texture``, an image that colours it at its UVs instead (as ``voxe mesh-to-grid --texture``)."""
         path = Path(path)
+        obj = path.suffix.lower() == ".obj"
+        if texture is not None and not obj:
+            raise ValueError(f"a texture goes with an OBJ upload; {path.name} is not an .obj")
+        paths = obj_upload_files(path, texture) if obj else [path]
         field = "archive" if path.suffix.lower() == ".zip" else "files"
-        with open(path, "rb") as handle:
-            return self.request("POST", "/v1/scenes", files={field: (path.name, handle)},
-                                data={"name": name} if name else None)
+        with ExitStack() as stack:
+            files = [(field, (each.name, stack.enter_context(open(each, "rb")))) for each in paths]
+            return self.request("POST", "/v1/scenes", files=files, data={"name": name} if name else None)
 
     def create_job(self, scene_id: str, prompt: str, **fields) -> dict:
         """``POST /v1/jobs``: ``fields`` are the body's other members (mode, edit_words, params, webhook_url, ...)."""
@@ -223,6 +231,56 @@ class Client:
     def get_sweep(self, sweep_id: str) -> dict:
         """``GET /v1/sweeps/{id}``: the jobs' states and the summary table."""
         return self.request("GET", f"/v1/sweeps/{_segment(sweep_id)}")
+
+
+def obj_upload_files(obj: Path, texture: str | os.PathLike | None = None) -> list[Path]:
+    """The files an OBJ upload sends: the OBJ, then ``texture``, or else the material library its first ``mtllib``
+    line names and the texture image that library's ``map_Kd`` lines name (its Kd colours alone when none).
+
+    Names are read as trimesh (the service's reader) reads them, the rest of the line, and looked up as it does,
+    in the OBJ's folder as written, else by their base name; each is sent under its base name, where the service
+    looks. A missing file is a FileNotFoundError naming every one missing, more textures than the one the service
+    takes a ValueError naming them: sent without them, the mesh had arrived grey."""
+    if texture is not None:
+        return [obj, Path(texture)]
+    library_name = next(_keyed_values(obj, "mtllib"), None)
+    if library_name is None:
+        return [obj]
+    library = _beside(obj.parent, library_name)
+    if library is None:
+        raise FileNotFoundError(f"{obj.name} names the material library {library_name!r} (mtllib), not found in "
+                                f"{obj.parent}; put it beside the OBJ")
+    named = list(dict.fromkeys(_keyed_values(library, "map_kd")))
+    images = {name: _beside(obj.parent, name) for name in named}
+    missing = [name for name, found in images.items() if found is None]
+    if missing:
+        raise FileNotFoundError(f"{library.name} names the texture{'s' if len(missing) > 1 else ''} "
+                                f"{', '.join(map(repr, missing))} (map_Kd), not found in {obj.parent}; put "
+                                f"{'them' if len(missing) > 1 else 'it'} beside the OBJ")
+    textures = sorted(set(images.values()))
+    if len(textures) > 1:
+        raise ValueError(f"{library.name} names {len(textures)} textures ({', '.join(map(repr, named))}); the "
+                         "service takes one texture per OBJ: bake them into one image")
+    return [obj, library, *textures]
+
+
+def _beside(folder: Path, name: str) -> Path | None:
+    """The file ``name`` (as an OBJ or .mtl writes it) in ``folder``, as written or by its base name; None if
+    neither is a file."""
+    for candidate in (folder / name, folder / PureWindowsPath(name).name):  # (a Windows path's base name too)
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def _keyed_values(path: Path, key: str) -> Iterator[str]:
+    """The values of the lines of ``path`` (an OBJ or .mtl) keyed ``key`` (any case), each the rest of its line,
+    read lazily: an OBJ may be large, and only its first ``mtllib`` counts."""
+    with open(path, "rb") as handle:
+        for line in handle:
+            words = line.decode("utf-8", errors="replace").split(maxsplit=1)
+            if len(words) == 2 and words[0].lower() == key:
+                yield words[1].strip()
 
 
 def _retry_after(response: httpx.Response) -> float | None:

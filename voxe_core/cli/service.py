@@ -43,7 +43,11 @@ def add_parsers(commands, common) -> None:
     sub.add_argument("prompt")
     where = sub.add_mutually_exclusive_group(required=True)
     where.add_argument("--scene", metavar="SCENE_ID", help="an uploaded scene")
-    where.add_argument("--upload", type=Path, metavar="PATH", help="upload this dataset zip or mesh first")
+    where.add_argument("--upload", type=Path, metavar="PATH",
+                       help="upload this dataset zip or mesh first (an OBJ with the .mtl and texture it names)")
+    sub.add_argument("--texture", type=Path, default=None, metavar="IMAGE",
+                     help="with --upload OBJ: the image that colours it at its UVs, instead of its .mtl (as "
+                          "mesh-to-grid --texture)")
     sub.add_argument("--mode", choices=("global", "local"), default="global")
     sub.add_argument("--edit-word", action="append", default=[], metavar="WORD", help="local edits (repeat)")
     sub.add_argument("--params", type=_json_object, default=None, metavar="JSON", help="job params")
@@ -118,11 +122,13 @@ def _follow(client, job_id: str, quiet: bool) -> int:
 def cmd_submit(args) -> int:
     from voxe_client import ServiceError
 
+    if args.texture is not None and args.upload is None:
+        raise ValueError("--texture goes with --upload (an OBJ); an uploaded scene keeps its colours")
     with _client(args) as client:
         try:
             scene_id = args.scene
             if args.upload is not None:
-                scene_id = client.upload_scene(args.upload)["id"]
+                scene_id = client.upload_scene(args.upload, texture=args.texture)["id"]
                 print(f"uploaded {args.upload}: scene {scene_id}", file=sys.stderr)
             fields = {"mode": args.mode, "edit_words": args.edit_word}
             fields.update({k: v for k, v in (("params", args.params), ("webhook_url", args.webhook_url)) if v})
