@@ -340,6 +340,39 @@ def test_cli_as_a_real_process_has_no_traceback(tmp_path):
     assert "missing.safetensors: no such file" in result.stderr and "Traceback" not in result.stderr
 
 
+def test_quiet_silences_the_model_libraries_bars_for_the_command_only(tiny_sd_path, make_sphere_grid, tmp_path,
+                                                                      capsys):
+    """--quiet had silenced voxe's own bars only: loading a model drew transformers' "Loading weights" and (a
+    sharded UNet) diffusers' "Loading checkpoint shards" all the same. A quiet command leaves them as they were.
+    Here the libraries are imported before the command; a real process imports them during it."""
+    import shutil
+
+    from diffusers import UNet2DConditionModel
+
+    model = shutil.copytree(tiny_sd_path, tmp_path / "sharded")
+    unet = UNet2DConditionModel.from_pretrained(model / "unet")
+    shutil.rmtree(model / "unet")
+    unet.save_pretrained(model / "unet", max_shard_size="100KB")
+    make_sphere_grid(16).save(tmp_path / "g.safetensors")
+    edit = ["edit", str(tmp_path / "g.safetensors"), "--prompt", "a dog", "--model", str(model), "--offline",
+            "--iterations", "1", "--render-size", "16", "--device", "cpu", "--out", str(tmp_path / "out")]
+    bars = ("Loading weights", "Loading checkpoint shards")
+
+    def said(*flags: str) -> str:
+        capsys.readouterr()
+        assert main([*edit, *flags]) == 0
+        return capsys.readouterr().err
+
+    assert all(bar in said() for bar in bars)
+    quiet = said("--quiet")
+    assert not [bar for bar in bars if bar in quiet] and "it/s" not in quiet
+    assert all(bar in said() for bar in bars)  # the next command without --quiet draws them again
+    result = subprocess.run([sys.executable, "-m", "voxe_core.cli", *edit, "--quiet"], cwd=REPO, capture_output=True,
+                            text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert not [bar for bar in bars if bar in result.stderr] and "it/s" not in result.stderr
+
+
 # --------------------------------------------------------------------- render
 @needs_mic
 @pytest.mark.parametrize("resample", [None, "box"])

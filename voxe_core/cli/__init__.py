@@ -27,7 +27,7 @@ import sys
 from typing import Sequence
 
 from voxe_core.cli import edit, evaluate, grids, mesh, reconstruct, refine, render, service
-from voxe_core.cli.common import EXIT_INTERRUPTED, EXIT_USAGE, removing_made_folders_unless
+from voxe_core.cli.common import EXIT_INTERRUPTED, EXIT_USAGE, library_progress_bars_off, removing_made_folders_unless
 
 COMMAND_GROUPS = (reconstruct, render, mesh, grids, edit, refine, evaluate, service)
 
@@ -35,7 +35,8 @@ COMMAND_GROUPS = (reconstruct, render, mesh, grids, edit, refine, evaluate, serv
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="voxe", description="Vox-E voxel grids: reconstruct, render, export.")
     common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
+    common.add_argument("--quiet", "-q", action="store_true",
+                        help="no progress bars (nor those of the model libraries: hub downloads, weight loading)")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for group in COMMAND_GROUPS:
         group.add_parsers(commands, common)
@@ -47,7 +48,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     not succeed leaves no folder it made and wrote nothing into."""
     args = build_parser().parse_args(argv)
     status = None
-    with removing_made_folders_unless(lambda: status == 0):
+    with removing_made_folders_unless(lambda: status == 0), library_progress_bars_off(args.quiet):
         status = _run(args)
     return status
 

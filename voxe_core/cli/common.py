@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import contextvars
+import importlib
 import os
 import signal
 import sys
@@ -83,6 +84,52 @@ def progress_callbacks(
         yield Callbacks(on_progress=on_progress, should_cancel=should_cancel)
     finally:
         bar.close()
+
+
+LIBRARY_BAR_SWITCHES = ("transformers.utils.logging", "diffusers.utils.logging")
+"""Modules whose ``is_progress_bar_enabled`` / ``enable_progress_bar`` / ``disable_progress_bar`` switch the bars
+their library draws on its own (transformers' "Loading weights", diffusers' "Loading checkpoint shards")."""
+_LIBRARY_BARS_OFF: contextvars.ContextVar[bool] = contextvars.ContextVar("library_bars_off", default=False)
+
+
+@contextlib.contextmanager
+def library_progress_bars_off(quiet: bool) -> Iterator[None]:
+    """With ``quiet`` (``--quiet``), no progress bar of Hugging Face's libraries in the block, then all as before.
+
+    huggingface_hub's switch (its downloads) is read by transformers as it is imported, so transformers is quiet
+    whenever the block imports it; a :data:`LIBRARY_BAR_SWITCHES` module already imported is switched off here, and
+    diffusers, which reads no switch as it is imported, by :func:`quiet_library` where it is imported (importing it
+    takes seconds: ``voxe status`` must not). After the block, a library it imported is as the hub's switch says.
+    """
+    if not quiet:
+        yield
+        return
+    from huggingface_hub.utils import are_progress_bars_disabled, disable_progress_bars, enable_progress_bars
+
+    hub_was_on = not are_progress_bars_disabled()
+    disable_progress_bars()
+    was_on = {name: sys.modules[name].is_progress_bar_enabled() for name in LIBRARY_BAR_SWITCHES
+              if name in sys.modules}
+    for name in was_on:
+        sys.modules[name].disable_progress_bar()
+    token = _LIBRARY_BARS_OFF.set(True)
+    try:
+        yield
+    finally:
+        _LIBRARY_BARS_OFF.reset(token)
+        if hub_was_on:
+            enable_progress_bars()
+        for name in LIBRARY_BAR_SWITCHES:
+            if name in sys.modules:
+                switch = sys.modules[name]
+                switch.enable_progress_bar() if was_on.get(name, hub_was_on) else switch.disable_progress_bar()
+
+
+def quiet_library(name: str) -> None:
+    """Inside :func:`library_progress_bars_off` (a ``--quiet`` command), the :data:`LIBRARY_BAR_SWITCHES` module
+    ``name`` imported and switched off too, before the command loads a model through it; elsewhere nothing."""
+    if _LIBRARY_BARS_OFF.get():
+        importlib.import_module(name).disable_progress_bar()
 
 
 def run_stage(fn, desc: str, unit: str, total: int | None, quiet: bool = False):
@@ -268,6 +315,7 @@ def load_guidance(args: argparse.Namespace, model: str, cuda_graphs: bool | None
     from voxe_core.guidance.loading import ModelNotAvailableError
     from voxe_core.guidance.sds import StableDiffusionGuidance
 
+    quiet_library("diffusers.utils.logging")
     try:
         return StableDiffusionGuidance.from_pretrained(
             model, device=args.device, local_files_only=True if args.offline else None,
