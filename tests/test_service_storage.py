@@ -95,6 +95,17 @@ def test_both_backends_agree_on_tmp_keys_and_empty_ranges(storage):
     assert storage.delete_prefix("jobs/t/") == 2 and storage.list() == []
 
 
+@pytest.mark.parametrize("end", [None, 5, 20])
+def test_a_negative_range_start_is_refused_on_either_backend(storage, end):
+    """The local seek had failed with a bare "[Errno 22] Invalid argument" once read, and S3 had ignored the
+    malformed Range and sent the whole object."""
+    storage.put_bytes("jobs/n/data.bin", b"0123456789")
+    with pytest.raises(ValueError, match=r"^open_range: start must be at least 0, got -3 \(for the last N bytes, "
+                                         r"start at size - N\)$"):
+        storage.open_range("jobs/n/data.bin", -3, end)
+    assert b"".join(storage.open_range("jobs/n/data.bin", 7)) == b"789"
+
+
 def test_both_backends_list_by_plain_prefix(storage):
     """A prefix is a plain string prefix on either backend (a folder name may be cut short); the local one walks
     only the prefix's folder, and a prefix whose folder does not exist lists nothing."""

@@ -71,6 +71,15 @@ def check_key(key: str) -> str:
     return key
 
 
+def check_range_start(start: int) -> None:
+    """ValueError for an ``open_range`` start before the first byte: a suffix range (the last N bytes) is the
+    caller's to resolve against the size, as the API does. The local file's seek had failed with a bare EINVAL
+    once read, and S3 ignored the malformed Range and sent the whole object."""
+    if start < 0:
+        raise ValueError(f"open_range: start must be at least 0, got {start} (for the last N bytes, start at "
+                         "size - N)")
+
+
 def file_sha256(path: str | os.PathLike) -> tuple[int, str]:
     digest, size = hashlib.sha256(), 0
     with open(path, "rb") as handle:
@@ -105,7 +114,7 @@ class Storage(ABC):
     @abstractmethod
     def open_range(self, key: str, start: int = 0, end: int | None = None) -> Iterator[bytes]:
         """Bytes ``start`` .. ``end`` (inclusive; None: to the end) as a stream of chunks; none when ``start`` lies
-        past the end or ``end`` before ``start``."""
+        past the end or ``end`` before ``start``. ValueError for a negative ``start`` (:func:`check_range_start`)."""
 
     @abstractmethod
     def list(self, prefix: str = "") -> list[str]: ...
@@ -210,6 +219,7 @@ class LocalStorage(Storage):
             return os.fstat(source.fileno()).st_size
 
     def open_range(self, key, start=0, end=None) -> Iterator[bytes]:
+        check_range_start(start)
         handle = self._open(key)
 
         def chunks() -> Iterator[bytes]:
@@ -403,6 +413,7 @@ class S3Storage(Storage):
     def open_range(self, key, start=0, end=None) -> Iterator[bytes]:
         from botocore.exceptions import ClientError
 
+        check_range_start(start)
         if end is not None and end < start:  # S3 would ignore such a range and send everything
             self.size(key)  # (ObjectNotFound still applies)
             return iter(())
