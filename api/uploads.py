@@ -338,6 +338,11 @@ def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str
     texture = library = None
     if meshes[0].suffix.lower() == ".obj":
         images = [p for p in files if p.suffix.lower() in TEXTURE_SUFFIXES]
+        pictures = {suffix for suffix, kind in Image.registered_extensions().items() if kind in Image.OPEN}
+        unread = [p for p in files if p.suffix.lower() in pictures and p not in images]
+        if unread:  # a texture the loader does not read had been dropped, the mesh arriving grey
+            raise UploadError(f"the OBJ comes with an image of a kind not read as a texture ({names(unread)}); send "
+                              f"its texture as {', '.join(TEXTURE_SUFFIXES)}")
         if len(images) > 1:
             raise UploadError(f"the OBJ comes with several images ({names(images)}); send one texture")
         libraries = [p for p in files if p.suffix.lower() == ".mtl"]  # its Kd colours, where no texture is sent

@@ -490,6 +490,10 @@ def test_a_bad_mesh_upload_names_the_problem_and_leaves_nothing(tmp_path):
                               ("b.png", SPOT / "spot_texture.png")]):
         pass
     assert info.value.status == 422
+    with pytest.raises(UploadError, match=r"an image of a kind not read as a texture \('cow.tga'\); send its "
+                                          r"texture as .png, .jpg, .jpeg"), \
+            _stage(tmp_path, [("m.obj", SPOT / "spot_triangulated.obj"), ("cow.tga", SPOT / "spot_texture.png")]):
+        pass
     with pytest.raises(UploadError, match="several material libraries .'a.mtl', 'b.mtl'.; send one .mtl"), \
             _stage(tmp_path, [("m.obj", SPOT / "spot_triangulated.obj"), ("a.mtl", tmp_path / "nan.obj"),
                               ("b.mtl", tmp_path / "nan.obj")]):
