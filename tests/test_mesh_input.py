@@ -111,14 +111,19 @@ CUBE_OBJ = ("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0 0 1\nv 1 0 1\nv 1 1 1\nv 0 
 
 def test_an_obj_whose_one_material_writes_a_kd_loads_in_that_colour(tmp_path):
     """trimesh makes no atlas for a single material without an image: a cube the .mtl paints red had loaded grey.
-    Without a library, or with a material that writes no Kd, the mesh keeps the default albedo (and auto shading)."""
+    Without a library, or with a material that writes no Kd, the mesh keeps the default albedo. One colour is no
+    shape cue: "auto" shading bakes light and occlusion into either."""
     (tmp_path / "red.mtl").write_text("newmtl red\nKd 0.8 0.1 0.1\n")
     (tmp_path / "red.obj").write_text("mtllib red.mtl\n" + CUBE_OBJ)
     red = load_mesh(tmp_path / "red.obj")
-    assert red.has_colour and np.allclose(red.vertex_colors, [0.8, 0.1, 0.1], atol=1 / 255)
+    assert not red.has_colour and np.allclose(red.colour, [0.8, 0.1, 0.1], atol=1 / 255)
     faces = np.arange(len(red.faces))
-    assert np.allclose(red.albedo(faces, np.full((len(faces), 3), 1 / 3)), [0.8, 0.1, 0.1], atol=1 / 255)
-    assert shade_mesh(red).shading is None  # coloured: "auto" leaves it as the file paints it
+    centres = np.full((len(faces), 3), 1 / 3)
+    assert np.allclose(red.albedo(faces, centres), [0.8, 0.1, 0.1], atol=1 / 255)
+    shaded = shade_mesh(red)
+    assert shaded.shading is not None and np.allclose(shaded.colour, red.colour)
+    lit = shaded.albedo(faces, centres)  # the red, darkened by the bake where the light does not fall
+    assert np.allclose(lit / lit[:, :1], [1.0, 0.1 / 0.8, 0.1 / 0.8], atol=0.02) and lit[:, 0].min() < 0.8
     (tmp_path / "plain.obj").write_text(CUBE_OBJ)
     (tmp_path / "shiny.mtl").write_text("newmtl red\nNs 10\n")
     (tmp_path / "shiny.obj").write_text("mtllib shiny.mtl\n" + CUBE_OBJ)

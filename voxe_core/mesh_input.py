@@ -35,7 +35,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -78,6 +78,9 @@ class SurfaceMesh:
     uv: np.ndarray | None = None  # (V, 2), with texture
     texture: np.ndarray | None = None  # (H, W, 3) float32 in [0, 1], row 0 at the top (v = 1)
     vertex_colors: np.ndarray | None = None  # (V, 3) float32 in [0, 1]
+    # (3,) float32 in [0, 1]: the one colour of a mesh with neither (a single material's Kd), else DEFAULT_ALBEDO.
+    # One colour gives no shape cue, so it counts as no colour: shading "auto" bakes for it.
+    colour: np.ndarray | None = None
     shading: np.ndarray | None = None  # (V,) float32 in [0, 1], multiplies the albedo (``shade_mesh``)
 
     @property
@@ -98,7 +101,8 @@ class SurfaceMesh:
         elif self.vertex_colors is not None:
             colour = np.einsum("nk,nkc->nc", barycentric, self.vertex_colors[corners]).astype(np.float32)
         else:
-            colour = np.broadcast_to(np.asarray(DEFAULT_ALBEDO, dtype=np.float32), (len(face_index), 3)).copy()
+            one = DEFAULT_ALBEDO if self.colour is None else self.colour
+            colour = np.broadcast_to(np.asarray(one, dtype=np.float32), (len(face_index), 3)).copy()
         if self.shading is not None:
             colour = colour * np.einsum("nk,nk->n", barycentric, self.shading[corners]).astype(np.float32)[:, None]
         return colour
@@ -129,7 +133,7 @@ def load_mesh(
     A ``texture`` given colours every part at the file's own UVs ((0, 0) on parts
     without vt) whatever the file's materials; without one, an OBJ's .mtl
     colours it as trimesh reads it (its images and Kd packed into one atlas; a single material's own Kd
-    colours every vertex when it names no image).
+    is the mesh's one ``colour`` when it names no image).
 
     ``up_axis``: the file's up axis ('y' for OBJ/glTF exports, 'z' for CAD and
     most scanners), turned onto +z. The box is centred on the origin and its
@@ -186,8 +190,8 @@ def load_mesh(
     elif getattr(loaded.visual, "kind", None) == "texture" and getattr(loaded.visual.material, "image", None):
         mesh.uv = np.asarray(loaded.visual.uv, dtype=np.float64)  # an OBJ whose .mtl named its image (trimesh's atlas)
         mesh.texture = _texture_rgb(loaded.visual.material.image, f"{path.name} (its .mtl's map_Kd)")
-    elif (diffuse := _written_diffuse(loaded.visual)) is not None:
-        mesh.vertex_colors = np.tile(diffuse, (len(vertices), 1))
+    else:
+        mesh.colour = _written_diffuse(loaded.visual)
     mesh = _used_vertices_only(mesh)
     boxed = mesh.vertices if frame == 2 else vertices  # frame 1: every vertex the file holds
 
@@ -227,7 +231,8 @@ def _written_diffuse(visual) -> np.ndarray | None:
     Several materials trimesh packs into an atlas, Kd colours included; one without an image it leaves as a
     material, whose diffuse is trimesh's default grey unless the .mtl wrote a Kd. Only a Kd the file wrote
     (trimesh's parse_mtl keeps the .mtl's keys in the material's kwargs) colours the mesh: a file without a
-    library, or whose material sets no Kd, keeps ``DEFAULT_ALBEDO`` and the shading "auto" bakes for it.
+    library, or whose material sets no Kd, keeps ``DEFAULT_ALBEDO``. Either way shading "auto" bakes light and
+    occlusion in: one colour is no shape cue (Blender's default material writes Kd 0.8 0.8 0.8).
     """
     material = getattr(visual, "material", None)
     if getattr(visual, "kind", None) != "texture" or "kd" not in getattr(material, "kwargs", {}):
@@ -241,8 +246,8 @@ def _used_vertices_only(mesh: SurfaceMesh) -> SurfaceMesh:
     if len(used) == len(mesh.vertices):
         return mesh
     kept = lambda per_vertex: None if per_vertex is None else per_vertex[used]  # noqa: E731
-    return SurfaceMesh(mesh.vertices[used], np.searchsorted(used, mesh.faces), kept(mesh.uv), mesh.texture,
-                       kept(mesh.vertex_colors))
+    return replace(mesh, vertices=mesh.vertices[used], faces=np.searchsorted(used, mesh.faces), uv=kept(mesh.uv),
+                   vertex_colors=kept(mesh.vertex_colors), shading=kept(mesh.shading))
 
 
 def _joined_parts(parts: list) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -310,8 +315,7 @@ def shade_mesh(mesh: SurfaceMesh, mode: str = "auto", seed: int = 0) -> SurfaceM
         visibility[start:start + 4096] = 1.0 - occupied(points).any(-1).mean(-1)
     light = np.asarray(SHADING_LIGHT) / np.linalg.norm(SHADING_LIGHT)
     direct = SHADING_AMBIENT + (1 - SHADING_AMBIENT) * np.clip(normals @ light, 0.0, None)
-    return SurfaceMesh(mesh.vertices, mesh.faces, mesh.uv, mesh.texture, mesh.vertex_colors,
-                       (visibility * direct).astype(np.float32))
+    return replace(mesh, shading=(visibility * direct).astype(np.float32))
 
 
 def _filled_occupancy(mesh: SurfaceMesh) -> tuple[np.ndarray, np.ndarray, float]:
