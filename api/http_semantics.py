@@ -30,10 +30,10 @@ from fastapi import FastAPI, Request
 from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
-from sqlalchemy.exc import OperationalError, TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
+from voxe_service.db import DATABASE_UNAVAILABLE, database_outage
 from voxe_service.storage import StorageError, StorageUnavailable
 
 log = logging.getLogger("voxe.api")
@@ -46,7 +46,6 @@ SECURITY_SCHEMES = {
 
 
 _METHODS = ("DELETE", "GET", "HEAD", "PATCH", "POST", "PUT")
-DATABASE_UNAVAILABLE = (PoolTimeout, OperationalError)
 UNAVAILABLE = (*DATABASE_UNAVAILABLE, StorageError)
 RETRY_AFTER_S = 5
 _UNAVAILABLE_503 = "the database or the storage is busy or unreachable (Retry-After says when to try again)"
@@ -127,23 +126,13 @@ async def unreadable_body(request: Request, exc: StarletteHTTPException) -> Resp
     return JSONResponse({"detail": f"malformed JSON body: {reason}"}, status_code=400)
 
 
-_SQLITE_UNAVAILABLE = ("database is locked", "database table is locked", "unable to open database", "disk i/o error")
-
-
 def unavailability(exc: Exception) -> str | None:
     """Why an ``UNAVAILABLE`` error means the database or the storage cannot serve now, or None when it does not: a
-    fault of the service or its settings (SQLite raises its OperationalError for a missing table or bad SQL too; a
-    missing bucket, access denied, a bad key, a missing object: a retry would meet them again), which stays a 500."""
+    fault of the service or its settings (``voxe_service.db.database_outage``; a missing bucket, access denied, a bad
+    key, a missing object: a retry would meet them again), which stays a 500."""
     if isinstance(exc, StorageError):
         return "the storage cannot be reached or is busy" if isinstance(exc, StorageUnavailable) else None
-    if isinstance(exc, PoolTimeout):
-        return ("every database connection of this API process is in use (VOXE_DATABASE_POOL_SIZE + "
-                "VOXE_DATABASE_MAX_OVERFLOW)")
-    cause = getattr(exc, "orig", None)
-    is_sqlite = type(cause).__module__.startswith("sqlite3")
-    if exc.connection_invalidated or not is_sqlite or str(cause).lower().startswith(_SQLITE_UNAVAILABLE):
-        return "the database cannot be reached or is locked"
-    return None
+    return database_outage(exc)
 
 
 def unavailable(_request: Request | None, exc: Exception) -> JSONResponse:

@@ -1046,7 +1046,11 @@ def test_a_stage_whose_start_meets_a_database_error_tries_again_then_goes_back_t
 def test_a_stage_the_database_refuses_to_start_each_time_fails_its_job_at_the_requeue_limit(db, monkeypatch):
     """A start refused each time for this job (a value too long for its column) while the database answers had
     gone back to the queue for ever: each return counts as a re-queue, and the delivery after
-    VOXE_JOB_MAX_REQUEUES fails the job naming why. A database that is down counts nothing."""
+    VOXE_JOB_MAX_REQUEUES fails the job naming why. A database that is down or locked counts nothing; SQLite's
+    OperationalError for a fault of the schema (a worker newer than its migrations) counts, as PostgreSQL's
+    ProgrammingError would."""
+    import sqlite3
+
     from sqlalchemy.exc import DataError, OperationalError
 
     from worker import runtime, tasks
@@ -1063,10 +1067,15 @@ def test_a_stage_the_database_refuses_to_start_each_time_fails_its_job_at_the_re
     assert result.state == "REJECTED" and result.result.requeue and job_row(job_id).requeues == 0
     with monkeypatch.context() as locked:  # the start refused as the database was locked: an outage, not counted
         locked.setattr(runtime, "begin_stage", lambda *a, **k: (_ for _ in ()).throw(
-            OperationalError("UPDATE jobs", {}, Exception("database is locked"))))
+            OperationalError("UPDATE jobs", {}, sqlite3.OperationalError("database is locked"))))
         result = tasks.reconstruct_task.apply(args=(job_id,))
     assert result.state == "REJECTED" and result.result.requeue and job_row(job_id).requeues == 0
-    for requeues in range(1, limit + 1):
+    with monkeypatch.context() as schema:  # SQLite's OperationalError for a fault, not an outage: counted
+        schema.setattr(runtime, "begin_stage", lambda *a, **k: (_ for _ in ()).throw(
+            OperationalError("UPDATE jobs", {}, sqlite3.OperationalError("no such column: jobs.new_column"))))
+        result = tasks.reconstruct_task.apply(args=(job_id,))
+    assert result.state == "REJECTED" and job_row(job_id).requeues == 1
+    for requeues in range(2, limit + 1):
         result = tasks.reconstruct_task.apply(args=(job_id,))
         assert result.state == "REJECTED" and result.result.requeue
         assert (job_row(job_id).state, job_row(job_id).requeues) == ("queued", requeues)
@@ -1077,8 +1086,9 @@ def test_a_stage_the_database_refuses_to_start_each_time_fails_its_job_at_the_re
     assert (job.state, job.requeues) == ("failed", limit) and job.finished_at is not None
     assert job.error == (f"{reason}; it was sent again {limit} time(s) already, the limit "
                          f"(VOXE_JOB_MAX_REQUEUES={limit})")
-    assert [(e["kind"], e["detail"]) for e in events_of(job_id)] == [("requeued", reason)] * limit + [
-        ("failed", job.error)]
+    schema_fault = "reconstruct could not start: OperationalError: no such column: jobs.new_column"
+    assert [(e["kind"], e["detail"]) for e in events_of(job_id)] == [("requeued", schema_fault)] + [
+        ("requeued", reason)] * (limit - 1) + [("failed", job.error)]
 
 
 def test_an_artifact_whose_record_fails_leaves_no_bytes_behind(db, tmp_path, monkeypatch):

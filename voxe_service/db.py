@@ -11,6 +11,7 @@ from pathlib import Path
 
 from sqlalchemy import Engine, create_engine, event, select, text, update
 from sqlalchemy.engine import make_url
+from sqlalchemy.exc import OperationalError, TimeoutError as PoolTimeout
 from sqlalchemy.orm import Session, sessionmaker
 
 from voxe_service import models
@@ -21,6 +22,28 @@ log = logging.getLogger("voxe.db")
 CLOCK_WARN_S = 1.0  # a measured offset beyond this is logged: the machine's clock is off (NTP)
 
 MIGRATIONS = Path(__file__).resolve().parent / "migrations"
+
+
+DATABASE_UNAVAILABLE = (PoolTimeout, OperationalError)
+"""The errors a database that cannot serve now raises, among others (:func:`database_outage` tells them apart)."""
+_SQLITE_UNAVAILABLE = ("database is locked", "database table is locked", "unable to open database", "disk i/o error")
+
+
+def database_outage(exc: Exception) -> str | None:
+    """Why ``exc`` means the database cannot serve now (down, unreachable, locked, its pool in use), or None when
+    it does not: a fault of the service, its schema or its settings (SQLite raises its OperationalError for a
+    missing table or bad SQL too), which a retry would meet again. The API answers an outage 503, a worker sends
+    a stage it could not start back to the queue without counting it."""
+    if isinstance(exc, PoolTimeout):
+        return ("every database connection of this process is in use (VOXE_DATABASE_POOL_SIZE + "
+                "VOXE_DATABASE_MAX_OVERFLOW)")
+    if not isinstance(exc, OperationalError):
+        return None
+    cause = getattr(exc, "orig", None)
+    is_sqlite = type(cause).__module__.startswith("sqlite3")
+    if exc.connection_invalidated or not is_sqlite or str(cause).lower().startswith(_SQLITE_UNAVAILABLE):
+        return "the database cannot be reached or is locked"
+    return None
 
 
 def ensure_sqlite_dir(url: str) -> None:

@@ -31,11 +31,11 @@ from typing import TYPE_CHECKING
 from celery import signals
 from celery.exceptions import Ignore, Reject, SoftTimeLimitExceeded
 from sqlalchemy import select
-from sqlalchemy.exc import OperationalError, SQLAlchemyError, TimeoutError as PoolTimeout
+from sqlalchemy.exc import SQLAlchemyError
 
 from voxe_core.presets import edit_config, export_config, fit_backbone, fit_setup, reconstruct_config, refine_config
 from voxe_core.progress import Callbacks, Progress, StageCancelled
-from voxe_service.db import sync_clock
+from voxe_service.db import database_outage, sync_clock
 from voxe_service.models import (
     CANCELED, FAILED, PROCESSING, R_FAILED, R_PENDING, R_SUCCEEDED, RUNNING, TERMINAL_STATES, Job, Scene,
     WorkerHeartbeat, utcnow,
@@ -90,7 +90,7 @@ def _begin_stage(task, job_id: str, stage: str, device: str, settings):
                 # the driver's words (database is locked, value too long), not the statement and its parameters
                 reason = f"{stage} could not start: {type(exc).__name__}: {getattr(exc, 'orig', None) or exc}"
                 error = None
-                if not isinstance(exc, (OperationalError, PoolTimeout)):  # down or locked: an outage counts nothing
+                if database_outage(exc) is None:  # down or locked: an outage counts nothing
                     with contextlib.suppress(SQLAlchemyError):  # the database went down meanwhile: nothing counted
                         error = runtime.count_unstarted(job_id, stage, reason, settings)
                 if error:
