@@ -166,6 +166,37 @@ def test_a_name_that_fails_to_resolve_for_a_moment_is_retried(client, monkeypatc
         receiver.close()
 
 
+def test_stuck_name_lookups_hold_at_most_lookup_threads_threads(monkeypatch):
+    """A resolver that never answers: each lookup times out, and the threads left waiting on it stay at
+    LOOKUP_THREADS (one had been left per job created or attempt made, without bound); once it answers, they end."""
+    import threading
+
+    from voxe_service.webhooks import LOOKUP_THREADS, LookupTimedOut, allowed_addresses_within
+
+    release = threading.Event()
+
+    def stuck_resolver(host, *args, **kwargs):
+        release.wait(10)
+        return [(socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP, "", ("93.184.216.34", 443))]
+
+    def lookups() -> int:
+        return sum(thread.name == "voxe-webhook-resolve" for thread in threading.enumerate())
+
+    monkeypatch.setattr(socket, "getaddrinfo", stuck_resolver)
+    try:
+        for _ in range(LOOKUP_THREADS + 10):
+            with pytest.raises(LookupTimedOut):
+                allowed_addresses_within("hooks.test", 443, [], 0.01)
+        assert lookups() == LOOKUP_THREADS
+    finally:
+        release.set()
+    deadline = time.monotonic() + 5
+    while lookups() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert lookups() == 0
+    assert allowed_addresses_within("hooks.test", 443, [], 1.0) == ["93.184.216.34"]  # every slot free again
+
+
 def test_an_attempt_ends_by_its_deadline_however_slowly_the_name_resolves(monkeypatch):
     """A resolver that takes 10 s to answer: the attempt gives up at its 0.5 s deadline with a timeout naming the
     lookup (the lookup had run outside the deadline, holding the attempt for the whole 10 s), and nothing is sent."""

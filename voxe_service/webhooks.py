@@ -122,11 +122,20 @@ class LookupTimedOut(Exception):
     """A webhook host's name lookup that had not answered by its deadline (:func:`allowed_addresses_within`)."""
 
 
+LOOKUP_THREADS = 16
+"""Name lookups running at once, at most: one that outlives its caller's deadline keeps its thread, and its slot,
+until the resolver gives up, so a stuck resolver cannot pile up a thread per job created or attempt made."""
+_lookup_slots = threading.BoundedSemaphore(LOOKUP_THREADS)
+
+
 def allowed_addresses_within(host: str, port: int, allow_networks: list[ipaddress._BaseNetwork],
                              timeout: float | None) -> list[str]:
     """:func:`allowed_addresses`, given up after ``timeout`` seconds (:class:`LookupTimedOut`): ``getaddrinfo`` takes
     no timeout, so it runs in a thread of its own, left to end by itself (the resolver's own timeouts) while the
-    caller goes on."""
+    caller goes on; with every one of the :data:`LOOKUP_THREADS` slots held that long, it times out unstarted."""
+    deadline = None if timeout is None else time.monotonic() + timeout
+    if not _lookup_slots.acquire(timeout=timeout):
+        raise LookupTimedOut(host)
     answer: Future[list[str]] = Future()
 
     def look_up() -> None:
@@ -134,10 +143,12 @@ def allowed_addresses_within(host: str, port: int, allow_networks: list[ipaddres
             answer.set_result(allowed_addresses(host, port, allow_networks))
         except Exception as exc:  # noqa: BLE001 - raised again by the caller's answer.result
             answer.set_exception(exc)
+        finally:
+            _lookup_slots.release()
 
     threading.Thread(target=look_up, name="voxe-webhook-resolve", daemon=True).start()
     try:
-        return answer.result(timeout)
+        return answer.result(None if deadline is None else max(0.0, deadline - time.monotonic()))
     except FutureTimeout:
         raise LookupTimedOut(host) from None
 
