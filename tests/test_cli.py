@@ -317,6 +317,9 @@ def test_a_grid_or_checkpoint_named_other_than_safetensors_is_refused(sphere_fil
 def test_safetensors_outputs_follow_the_umask_as_other_outputs(sphere_file, tmp_path, umask):
     """safetensors renames its own 0600 temporary file into place: grids and the tiny model's weights had been 0600
     where the PNGs, JSON and configs beside them follow the umask."""
+    stale = tmp_path / ".grid.partial.safetensors"  # a killed run's partial, 0600 as safetensors made it
+    stale.write_bytes(b"torn")
+    stale.chmod(0o600)
     previous = os.umask(umask)
     try:
         assert main(["convert-grid", str(sphere_file), "--out", str(tmp_path / "grid.safetensors"), "--quiet"]) == 0
