@@ -317,6 +317,13 @@ def dataset_root(folder: Path) -> Path:
     return root
 
 
+OTHER_TEXTURE_SUFFIXES = (".bmp", ".dds", ".exr", ".gif", ".hdr", ".jp2", ".ktx", ".ktx2", ".psd", ".tga", ".tif", ".tiff",
+                          ".webp")
+"""Texture image kinds 3D tools write that the mesh loader does not read (it reads ``TEXTURE_SUFFIXES``): beside an
+OBJ, one is a 422, where it had been dropped and the mesh arrived without its colours. Other files beside a mesh
+(a licence, a scan's data) are no texture and stay ignored."""
+
+
 def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str = "y") -> Path | None:
     """The upload's mesh (and texture, and material library) copied to ``dest/mesh/`` with its ``shading`` and
     ``up_axis`` options for the ingest, or None when it is not a mesh.
@@ -338,8 +345,7 @@ def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str
     texture = library = None
     if meshes[0].suffix.lower() == ".obj":
         images = [p for p in files if p.suffix.lower() in TEXTURE_SUFFIXES]
-        pictures = {suffix for suffix, kind in Image.registered_extensions().items() if kind in Image.OPEN}
-        unread = [p for p in files if p.suffix.lower() in pictures and p not in images]
+        unread = [p for p in files if p.suffix.lower() in OTHER_TEXTURE_SUFFIXES]
         if unread:  # a texture the loader does not read had been dropped, the mesh arriving grey
             raise UploadError(f"the OBJ comes with an image of a kind not read as a texture ({names(unread)}); send "
                               f"its texture as {', '.join(TEXTURE_SUFFIXES)}")

@@ -499,6 +499,9 @@ def test_a_bad_mesh_upload_names_the_problem_and_leaves_nothing(tmp_path):
                                           r"texture as .png, .jpg, .jpeg"), \
             _stage(tmp_path, [("m.obj", SPOT / "spot_triangulated.obj"), ("cow.tga", SPOT / "spot_texture.png")]):
         pass
+    with _stage(tmp_path, [("m.obj", SPOT / "spot_triangulated.obj"), ("licence.pdf", SPOT / "spot_texture.png"),
+                           ("scan.h5", SPOT / "spot_texture.png")]):  # no texture kind: ignored, as before
+        pass
     with pytest.raises(UploadError, match="several material libraries .'a.mtl', 'b.mtl'.; send one .mtl"), \
             _stage(tmp_path, [("m.obj", SPOT / "spot_triangulated.obj"), ("a.mtl", tmp_path / "nan.obj"),
                               ("b.mtl", tmp_path / "nan.obj")]):
