@@ -341,27 +341,43 @@ def test_submit_texture_colours_an_obj_without_a_library(api, tmp_path, capsys):
     assert "--texture goes with --upload (an OBJ)" in capsys.readouterr().err
 
 
-def test_an_obj_naming_missing_or_too_many_files_is_refused_before_anything_is_sent(api, tmp_path, capsys):
+def test_an_obj_naming_missing_files_goes_without_them_and_one_naming_too_many_textures_is_refused(api, tmp_path,
+                                                                                                  capsys):
+    """Files an OBJ names but that are not beside it are said (the OBJ goes without them, as before they were looked
+    for); more textures than the service takes are refused before anything is sent."""
     from PIL import Image
 
+    from voxe_client.client import MissingCompanionWarning, obj_upload_files
     from voxe_core.cli import main
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
 
     url, storage = api
     obj = tmp_path / "plane.obj"
-    submit = ["submit", "a plane", "--upload", str(obj), "--api", url]
     obj.write_text("mtllib plane.mtl\n" + PLANE_OBJ)
-    assert main(submit) == 2
-    assert (f"voxe submit: error: plane.obj names the material library 'plane.mtl' (mtllib), not found in {tmp_path}"
-            in capsys.readouterr().err)
-    (tmp_path / "plane.mtl").write_text("newmtl a\nmap_Kd a.png\nnewmtl b\nmap_kd b b.png\nnewmtl c\nmap_Kd a.png\n")
-    assert main(submit) == 2
-    assert ("plane.mtl names the textures 'a.png', 'b b.png' (map_Kd), not found in "
-            f"{tmp_path}; put them beside the OBJ") in capsys.readouterr().err
-    for name in ("a.png", "b b.png"):
-        Image.new("RGB", (2, 2), GREEN).save(tmp_path / name)
+    with pytest.warns(MissingCompanionWarning, match=f"^plane.obj names the material library 'plane.mtl' \\(mtllib\\), "
+                                                     f"not found in {tmp_path}: the OBJ goes without it, uncoloured"):
+        assert obj_upload_files(obj) == [obj]
+    (tmp_path / "plane.mtl").write_text("newmtl a\nmap_Kd a.png\nnewmtl b\nmap_kd b b.png\nnewmtl c\nmap_Kd -s 2 2 1 a.png\n")
+    Image.new("RGB", (2, 2), GREEN).save(tmp_path / "a.png")
+    with pytest.warns(MissingCompanionWarning) as said:
+        assert obj_upload_files(obj) == [obj, tmp_path / "plane.mtl", tmp_path / "a.png"]
+    assert str(said[0].message) == (
+        f"plane.mtl names textures not found in {tmp_path} (map_Kd): 'b b.png', '-s 2 2 1 a.png'; the OBJ goes without, "
+        "coloured by the library's Kd alone (put them beside the OBJ; map_Kd options such as -s are not read: write "
+        "the file name alone)")
+    Image.new("RGB", (2, 2), GREEN).save(tmp_path / "b b.png")
     with Client(url) as client, pytest.raises(ValueError, match=r"^plane.mtl names 2 textures \('a.png', 'b b.png'\); "
                                                                "the service takes one texture per OBJ"):
         client.upload_scene(obj)
     with Client(url) as client, pytest.raises(ValueError, match="a texture goes with an OBJ upload; x.ply is not"):
         client.upload_scene(tmp_path / "x.ply", texture=tmp_path / "a.png")
     assert not storage.exists() or not any(p.is_file() for p in storage.rglob("*"))
+    (tmp_path / "plane.mtl").unlink()
+    assert main(["submit", "a plane", "--upload", str(obj), "--api", url]) == 0
+    out, err = capsys.readouterr()
+    assert "voxe submit: warning: plane.obj names the material library 'plane.mtl' (mtllib), not found in" in err
+    with session_scope() as session:
+        scene_id = session.get(Job, out.strip()).scene_id
+    kept, _ = _ingested(scene_id, storage)
+    assert json.loads(kept["names.json"]) == {"mesh.obj": "plane.obj"}

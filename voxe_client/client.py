@@ -6,6 +6,7 @@ import hashlib
 import json
 import os
 import time
+import warnings
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, closing
 from pathlib import Path, PureWindowsPath
@@ -233,14 +234,19 @@ class Client:
         return self.request("GET", f"/v1/sweeps/{_segment(sweep_id)}")
 
 
+class MissingCompanionWarning(UserWarning):
+    """A file an OBJ names (its .mtl, a texture) that is not beside it: the upload goes without it."""
+
+
 def obj_upload_files(obj: Path, texture: str | os.PathLike | None = None) -> list[Path]:
     """The files an OBJ upload sends: the OBJ, then ``texture``, or else the material library its first ``mtllib``
     line names and the texture image that library's ``map_Kd`` lines name (its Kd colours alone when none).
 
     Names are read as trimesh (the service's reader) reads them, the rest of the line, and looked up as it does,
     in the OBJ's folder as written, else by their base name; each is sent under its base name, where the service
-    looks. A missing file is a FileNotFoundError naming every one missing, more textures than the one the service
-    takes a ValueError naming them: sent without them, the mesh had arrived grey."""
+    looks. A file not found is a :class:`MissingCompanionWarning` naming it, and the OBJ goes without it (as it went
+    before it was looked for: uncoloured, or coloured by the library's Kd alone); more textures than the one the
+    service takes, a ValueError naming them."""
     if texture is not None:
         return [obj, Path(texture)]
     library_name = next(_keyed_values(obj, "mtllib"), None)
@@ -248,18 +254,23 @@ def obj_upload_files(obj: Path, texture: str | os.PathLike | None = None) -> lis
         return [obj]
     library = _beside(obj.parent, library_name)
     if library is None:
-        raise FileNotFoundError(f"{obj.name} names the material library {library_name!r} (mtllib), not found in "
-                                f"{obj.parent}; put it beside the OBJ")
+        warnings.warn(f"{obj.name} names the material library {library_name!r} (mtllib), not found in {obj.parent}: "
+                      "the OBJ goes without it, uncoloured (put it beside the OBJ)", MissingCompanionWarning,
+                      stacklevel=3)
+        return [obj]
     named = list(dict.fromkeys(_keyed_values(library, "map_kd")))
     images = {name: _beside(obj.parent, name) for name in named}
     missing = [name for name, found in images.items() if found is None]
     if missing:
-        raise FileNotFoundError(f"{library.name} names the texture{'s' if len(missing) > 1 else ''} "
-                                f"{', '.join(map(repr, missing))} (map_Kd), not found in {obj.parent}; put "
-                                f"{'them' if len(missing) > 1 else 'it'} beside the OBJ")
+        options = "; map_Kd options such as -s are not read: write the file name alone" if any(
+            name.startswith("-") for name in missing) else ""
+        warnings.warn(f"{library.name} names textures not found in {obj.parent} (map_Kd): "
+                      f"{', '.join(map(repr, missing))}; the OBJ goes without, coloured by the library's Kd alone (put "
+                      f"them beside the OBJ{options})", MissingCompanionWarning, stacklevel=3)
+    images = {name: found for name, found in images.items() if found is not None}
     textures = sorted(set(images.values()))
     if len(textures) > 1:
-        raise ValueError(f"{library.name} names {len(textures)} textures ({', '.join(map(repr, named))}); the "
+        raise ValueError(f"{library.name} names {len(textures)} textures ({', '.join(map(repr, images))}); the "
                          "service takes one texture per OBJ: bake them into one image")
     return [obj, library, *textures]
 

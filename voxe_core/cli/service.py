@@ -11,6 +11,7 @@ import json
 import math
 import sys
 import time
+import warnings
 from pathlib import Path
 
 from voxe_core.cli.common import EXIT_INTERRUPTED, EXIT_USAGE, LOG_PROGRESS_INTERVAL_S, Interrupt, positive_seconds
@@ -121,6 +122,7 @@ def _follow(client, job_id: str, quiet: bool) -> int:
 
 def cmd_submit(args) -> int:
     from voxe_client import ServiceError
+    from voxe_client.client import MissingCompanionWarning
 
     if args.texture is not None and args.upload is None:
         raise ValueError("--texture goes with --upload (an OBJ); an uploaded scene keeps its colours")
@@ -128,7 +130,11 @@ def cmd_submit(args) -> int:
         try:
             scene_id = args.scene
             if args.upload is not None:
-                scene_id = client.upload_scene(args.upload, texture=args.texture)["id"]
+                with warnings.catch_warnings(record=True) as left_out:  # an OBJ's .mtl or texture not found
+                    warnings.simplefilter("always", MissingCompanionWarning)
+                    scene_id = client.upload_scene(args.upload, texture=args.texture)["id"]
+                for warning in left_out:
+                    print(f"voxe submit: warning: {warning.message}", file=sys.stderr)
                 print(f"uploaded {args.upload}: scene {scene_id}", file=sys.stderr)
             fields = {"mode": args.mode, "edit_words": args.edit_word}
             fields.update({k: v for k, v in (("params", args.params), ("webhook_url", args.webhook_url)) if v})
