@@ -362,7 +362,7 @@ class StageCallbacks:
     def _units_left(self, report: Progress) -> float:
         """The units left, in the current sub-step's units: a later sub-step's each weigh its cost per unit over
         the current one's (the paper's refinement: an attention pass costs 50 of its fitting steps on a CPU, and
-        counting the steps at the passes' rate had put the time left 50x too high)."""
+        counting the steps at the passes' rate had put the time left some 30x too high)."""
         left = report.info.get("phase_units_left")
         current = self.phase_seconds.get(report.stage)
         if not left or not current:
