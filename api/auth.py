@@ -19,13 +19,13 @@ from typing import Annotated
 import anyio
 from fastapi import Header, HTTPException, Request, Response, status
 from fastapi.responses import JSONResponse
-from sqlalchemy import delete, func, select
+from sqlalchemy import and_, delete, func, select, update
 from sqlalchemy.orm import Session
 
 from api.http_semantics import DATABASE_UNAVAILABLE, route_path, unavailable
 from voxe_service.db import get_sessionmaker
 from voxe_service.quotas import stored_bytes, upload_limit
-from voxe_service.models import QUEUED, RUNNING, ApiKey, IdempotencyRecord, Job, utcnow
+from voxe_service.models import PROCESSING, QUEUED, RUNNING, ApiKey, IdempotencyRecord, Job, utcnow
 from voxe_service.settings import Settings, get_settings, is_loopback
 
 TOKEN_PREFIX = "voxe_"
@@ -176,34 +176,45 @@ class Idempotency:
     """The digest an earlier version recorded for the same request, still matched: a retry across an upgrade."""
 
     def record(self, session: Session, owner: ApiKey, resource_id: str) -> None:
-        """Add the record to the session that creates the resource (one transaction; a racing twin fails it)."""
+        """Add the record, pending until :meth:`answered`, to the session that creates the resource (one
+        transaction; a racing twin fails it)."""
         session.add(IdempotencyRecord(owner_key_id=owner.id, endpoint=self.endpoint, idempotency_key=self.key,
-                                      request_sha256=self.request_sha256, resource_id=resource_id,
+                                      request_sha256=self.request_sha256, resource_id=resource_id, pending=True,
                                       created_at=utcnow()))
+
+    def answered(self, session: Session, owner: ApiKey) -> None:
+        """The request keeps what it created (the broker took it, or it waits for its scene): retries replay it."""
+        session.execute(update(IdempotencyRecord).where(self._this_record(owner)).values(pending=False))
 
     def forget(self, session: Session, owner: ApiKey) -> None:
         """Delete the record (its request was withdrawn: a retry with this Idempotency-Key runs it anew)."""
-        session.execute(delete(IdempotencyRecord).where(
-            IdempotencyRecord.owner_key_id == owner.id, IdempotencyRecord.endpoint == self.endpoint,
-            IdempotencyRecord.idempotency_key == self.key))
+        session.execute(delete(IdempotencyRecord).where(self._this_record(owner)))
 
     def replayed(self, session: Session, owner: ApiKey, model: type):
         """For a retry: the ``model`` row the first request created (409 if it has been deleted since); None
-        when this Idempotency-Key is new."""
-        resource_id = self.original(session, owner)
-        if resource_id is None:
+        when this Idempotency-Key is new.
+
+        Also 409 while that request has not answered and its job or scene is not yet with the broker: a refusal
+        would withdraw it (a replay had answered 200 with a job deleted a moment later). A request that died there
+        leaves its record pending: its job is replayed once the reaper has sent it, its scene once failed.
+        """
+        row = self.original(session, owner)
+        if row is None:
             return None
-        resource = session.get(model, resource_id)
+        resource = session.get(model, row.resource_id)
         if resource is None:
-            raise HTTPException(status.HTTP_409_CONFLICT, f"the {self.endpoint[:-1]} {resource_id!r} that "
+            raise HTTPException(status.HTTP_409_CONFLICT, f"the {self.endpoint[:-1]} {row.resource_id!r} that "
                                 f"Idempotency-Key {self.key!r} created has been deleted; use a new key")
+        if row.pending and resource.task_id is None and resource.state in (QUEUED, PROCESSING):  # (job, scene)
+            raise HTTPException(status.HTTP_409_CONFLICT,
+                                f"the first request with Idempotency-Key {self.key!r} has not answered yet (the "
+                                f"broker may still refuse its {self.endpoint[:-1]} {row.resource_id!r}); retry in a "
+                                "moment", headers={"Retry-After": "1"})
         return resource
 
-    def original(self, session: Session, owner: ApiKey) -> str | None:
-        """The id the first request with this key created, None if none did; 422 if it asked for something else."""
-        row = session.scalars(select(IdempotencyRecord).where(
-            IdempotencyRecord.owner_key_id == owner.id, IdempotencyRecord.endpoint == self.endpoint,
-            IdempotencyRecord.idempotency_key == self.key)).first()
+    def original(self, session: Session, owner: ApiKey) -> IdempotencyRecord | None:
+        """The record of the first request with this key, None if none; 422 if it asked for something else."""
+        row = session.scalars(select(IdempotencyRecord).where(self._this_record(owner))).first()
         if row is None:
             return None
         if not any(hmac.compare_digest(row.request_sha256, digest)
@@ -211,7 +222,12 @@ class Idempotency:
             raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
                                 f"Idempotency-Key {self.key!r} was already used with a different request body "
                                 f"(it created {self.endpoint} {row.resource_id!r}); use a new key for a new request")
-        return row.resource_id
+        return row
+
+    def _this_record(self, owner: ApiKey):
+        """The condition selecting this Idempotency-Key's record."""
+        return and_(IdempotencyRecord.owner_key_id == owner.id, IdempotencyRecord.endpoint == self.endpoint,
+                    IdempotencyRecord.idempotency_key == self.key)
 
 
 def mark_replayed(response: Response) -> None:

@@ -1086,6 +1086,75 @@ def test_a_broker_refusing_a_submission_keeps_nothing_and_a_retry_with_the_key_r
     assert rec["id"] == job.json()["reconstruction"]["id"]  # the row the refused job made, used now
 
 
+@BOTH_DATABASES
+def test_a_retry_while_the_broker_refuses_the_first_request_is_a_409_not_what_it_withdraws(client, dataset, root,
+                                                                                          monkeypatch):
+    """A retry with the same Idempotency-Key arriving while the first request waited on a broker that then refused
+    had been answered 200 with the scene or job that request was withdrawing: deleted a moment later."""
+    from voxe_service.queue import TaskQueue
+
+    scene = make_scene(client, dataset, root)
+    archive = zip_folder(dataset, root / "again.zip", prefix="mic_small")
+
+    def upload():
+        with open(archive, "rb") as handle:
+            return client.post("/v1/scenes", files={"archive": ("s.zip", handle, "application/zip")},
+                               headers={"Idempotency-Key": "u1"})
+
+    def create_job():
+        return client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}, headers={"Idempotency-Key": "j1"})
+
+    retried = {}
+
+    def refuse_after_a_retry(retry):
+        """A broker that refuses, slowly: the same request is sent again (once) while the first waits on it."""
+        def refuse(self, *args):
+            if retry not in retried:
+                retried[retry] = retry()
+            raise ConnectionError("broker down")
+        return refuse
+
+    with monkeypatch.context() as broker_down:
+        broker_down.setattr(TaskQueue, "send_ingest", refuse_after_a_retry(upload))
+        broker_down.setattr(TaskQueue, "send", refuse_after_a_retry(create_job))
+        assert upload().status_code == create_job().status_code == 503
+    for retry, key, what in ((retried[upload], "u1", "scene"), (retried[create_job], "j1", "job")):
+        assert retry.status_code == 409, retry.text
+        assert retry.json()["detail"].startswith(f"the first request with Idempotency-Key {key!r} has not answered "
+                                                 f"yet (the broker may still refuse its {what} ")
+        assert retry.json()["detail"].endswith("); retry in a moment")
+        assert retry.headers["retry-after"] == "1"
+    assert client.get("/v1/scenes").json()["total"] == 1 and client.get("/v1/jobs").json()["total"] == 0
+    assert stored_files(root) == [f"scenes/{scene['id']}/dataset.zip"] and staged(root) == []
+    assert upload().status_code == create_job().status_code == 201  # the broker is back: the keys submit anew
+
+
+def test_a_retry_after_its_first_request_died_unanswered_replays_the_job_once_the_reaper_sent_it(client, dataset,
+                                                                                                root):
+    """A request that died between recording its job and the broker's answer leaves its Idempotency-Key pending:
+    retries are 409 while the job waits unsent, and replay it once the reaper has sent it."""
+    from datetime import timedelta
+
+    from sqlalchemy import update
+
+    from api.reaper import reap_orphaned_jobs
+    from voxe_service.db import session_scope
+    from voxe_service.models import IdempotencyRecord, Job, utcnow
+    from voxe_service.settings import get_settings
+
+    scene = make_scene(client, dataset, root)
+    body, headers = {"scene_id": scene["id"], **JOB}, {"Idempotency-Key": "j1"}
+    created = client.post("/v1/jobs", json=body, headers=headers).json()
+    with session_scope() as session:  # as that request left it
+        session.execute(update(IdempotencyRecord).values(pending=True))
+        session.execute(update(Job).values(task_id=None))
+    assert client.post("/v1/jobs", json=body, headers=headers).status_code == 409
+    settings = get_settings()
+    reap_orphaned_jobs(settings, now=utcnow() + timedelta(seconds=2 * settings.job_stale_timeout_s))
+    replayed = client.post("/v1/jobs", json=body, headers=headers)
+    assert replayed.status_code == 200 and replayed.json()["id"] == created["id"]
+
+
 def test_a_job_accepted_while_the_broker_refused_the_ingest_keeps_the_scene_failed(client, dataset, root,
                                                                                    monkeypatch):
     """The scene is listed while the broker takes its time to refuse its ingest: a job accepted on it meanwhile is

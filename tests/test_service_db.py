@@ -97,7 +97,9 @@ def test_a_database_of_the_previous_head_upgrades_in_place(database_url):
         "INSERT INTO jobs (id, scene_id, owner_key_id, prompt, mode, edit_words, params, sds_model, attention_model, "
         "device, state, iteration, total, losses, cancel_requested, completed_stages, created_at, updated_at) VALUES "
         "('j1', 's1', 'local', 'a mic', 'global', '[]', '{}', 'tiny', 'tiny', 'cpu', 'succeeded', 0, 0, '{}', false, "
-        "'[]', '2026-01-01 00:00:00+00', '2026-01-01 00:00:00+00')")
+        "'[]', '2026-01-01 00:00:00+00', '2026-01-01 00:00:00+00')",
+        "INSERT INTO idempotency_records (owner_key_id, endpoint, idempotency_key, request_sha256, resource_id, "
+        "created_at) VALUES ('local', 'jobs', 'k1', 'x', 'j1', '2026-01-01 00:00:00+00')")
     command.upgrade(config, "head")
     with engine.begin() as conn:
         row = conn.execute(text("SELECT state, error, task_id, updated_at, created_at, size_bytes FROM scenes")).one()
@@ -109,6 +111,7 @@ def test_a_database_of_the_previous_head_upgrades_in_place(database_url):
                           "'2026-01-01 00:00:00+00')"))
         job = conn.execute(text("SELECT run_token, run_lease_until, requeues FROM jobs")).one()
         assert tuple(job) == (None, None, 0)  # 0007: held by no run, never sent again
+        assert not conn.execute(text("SELECT pending FROM idempotency_records")).scalar_one()  # 0011: answered
     command.check(config)  # the upgraded schema is exactly the models'
     command.downgrade(config, "0003_evaluation")
     with engine.begin() as conn:

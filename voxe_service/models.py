@@ -6,7 +6,10 @@ from __future__ import annotations
 import uuid
 from datetime import datetime, timedelta, timezone
 
-from sqlalchemy import JSON, BigInteger, Boolean, DateTime, Float, ForeignKey, Integer, String, Text, TypeDecorator, UniqueConstraint
+from sqlalchemy import (
+    JSON, BigInteger, Boolean, DateTime, Float, ForeignKey, Integer, String, Text, TypeDecorator, UniqueConstraint,
+    false,
+)
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 
 
@@ -297,7 +300,8 @@ class IdempotencyRecord(Base):
     """The resource a request with an ``Idempotency-Key`` created, so a retry returns it instead of a twin.
 
     Unique per (key owner, endpoint, Idempotency-Key); ``request_sha256`` tells a retry from a
-    different request reusing the same Idempotency-Key.
+    different request reusing the same Idempotency-Key. ``pending`` until that request has answered: the broker
+    may still refuse what it created, and the 503 then withdraws it with this record (``api.auth.Idempotency``).
     """
 
     __tablename__ = "idempotency_records"
@@ -309,6 +313,7 @@ class IdempotencyRecord(Base):
     idempotency_key: Mapped[str] = mapped_column(String(255))
     request_sha256: Mapped[str] = mapped_column(String(64))
     resource_id: Mapped[str] = mapped_column(String(32))
+    pending: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
 
 

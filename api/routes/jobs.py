@@ -95,8 +95,9 @@ def _models(job: Job) -> Models:
                         404: {"description": "no such scene (or another key's)"},
                         409: {"description": "the scene failed processing (the reason is named), every worker "
                                              "reporting lacks a model the job loads (named, with how to provide it), "
-                                             "or a retry whose Idempotency-Key created a job that has since been "
-                                             "deleted"},
+                                             "a retry whose Idempotency-Key created a job that has since been "
+                                             "deleted, or one sent while that first request has not answered yet "
+                                             "(Retry-After)"},
                         422: {"description": "invalid job (the field is named), an Idempotency-Key reused "
                                              "with a different body, or a webhook_url the service will not call "
                                              "(the rule is named)"},

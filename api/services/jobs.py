@@ -233,6 +233,9 @@ def create_job(*, session: Session, settings: Settings, queue: TaskQueue, key: A
             idem.forget(session, key)
         session.commit()
         raise
+    if idem is not None:  # only now may a retry replay it (Idempotency.replayed)
+        idem.answered(session, key)
+        session.commit()
     session.refresh(job)
     return job, False
 

@@ -131,6 +131,8 @@ def _queue_ingest(session: Session, storage: Storage, queue: TaskQueue, scene: S
         storage.discard_prefixes(scene_key(scene.id))
         raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, reason) from None
     scene.task_id = task_id
+    if idem is not None:  # only now may a retry replay it (Idempotency.replayed)
+        idem.answered(session, key)
     session.commit()
 
 
