@@ -6,7 +6,7 @@ declares it: on SQLite, taking it off would rebuild the table (see 0009_byte_siz
 
 Revision ID: 0011_idempotency_pending
 Revises: 0010_ingest_attempts
-Create Date: 2026-12-06 20:00:00
+Create Date: 2026-12-05 19:50:00
 """
 
 from __future__ import annotations
