@@ -1,0 +1,44 @@
+"""``.ci/setup``, which the README's two commands run first: a second run for the same project skips the install."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_setup_installs_once_for_the_same_project_and_torch(tmp_path):
+    """``bash .ci/serve`` ran the whole install (pip, torch, the project) at every start, needing a package index
+    each time; now only when this script, pyproject.toml or the torch wheel asked for changed since the last one."""
+    (tmp_path / ".ci").mkdir()
+    shutil.copy(REPO / ".ci" / "setup", tmp_path / ".ci" / "setup")
+    shutil.copy(REPO / "pyproject.toml", tmp_path / "pyproject.toml")
+    python = tmp_path / ".venv" / "bin" / "python"  # records what it is asked to run
+    python.parent.mkdir(parents=True)
+    python.write_text('#!/usr/bin/env bash\necho "$*" >> "$(dirname "$0")/../calls"\n')
+    python.chmod(0o755)
+    calls = tmp_path / ".venv" / "calls"
+
+    def setup(**env) -> list[str]:
+        calls.unlink(missing_ok=True)
+        result = subprocess.run(["bash", ".ci/setup"], cwd=tmp_path, capture_output=True, text=True, timeout=60,
+                                env={**os.environ, "TORCH_SPEC": "torch==2.13.0", **env})
+        assert result.returncode == 0, result.stderr
+        return calls.read_text().splitlines() if calls.exists() else []
+
+    installs = ["-m pip install -q --upgrade pip", "-m pip install -q torch==2.13.0", "-m pip install -q -e .[dev]"]
+    assert setup() == installs
+    assert setup() == []  # the same project and torch: nothing to install
+    assert setup(TORCH_SPEC="torch") == [*installs[:1], "-m pip install -q torch", installs[2]]
+    with open(tmp_path / "pyproject.toml", "a") as project:
+        project.write("\n# a dependency changed\n")
+    assert setup(TORCH_SPEC="torch") == [*installs[:1], "-m pip install -q torch", installs[2]]
+    python.write_text('#!/usr/bin/env bash\necho "$*" >> "$(dirname "$0")/../calls"\nexit 1\n')  # an install fails
+    with open(tmp_path / "pyproject.toml", "a") as project:
+        project.write("# again\n")
+    failed = subprocess.run(["bash", ".ci/setup"], cwd=tmp_path, capture_output=True, text=True, timeout=60,
+                            env={**os.environ, "TORCH_SPEC": "torch"})
+    assert failed.returncode != 0 and not (tmp_path / ".venv" / ".voxe-setup").exists()  # tried again next time
