@@ -339,6 +339,10 @@ def test_submit_texture_colours_an_obj_without_a_library(api, tmp_path, capsys):
     assert len(surface) > 0 and abs(surface - [0, 1, 0]).max() < 0.01
     assert main(["submit", "x", "--scene", scene_id, "--texture", str(tmp_path / "green.png"), "--api", url]) == 2
     assert "--texture goes with --upload (an OBJ)" in capsys.readouterr().err
+    (tmp_path / "notes.txt").write_text("not a texture")  # the service keeps only a texture it reads: said first
+    assert main(["submit", "x", "--upload", str(tmp_path / "plane.obj"), "--texture", str(tmp_path / "notes.txt"),
+                 "--api", url]) == 2
+    assert "--texture notes.txt: send the texture as one of .png, .jpg, .jpeg" in capsys.readouterr().err
 
 
 def test_an_obj_naming_missing_files_goes_without_them_and_one_naming_too_many_textures_is_refused(api, tmp_path,

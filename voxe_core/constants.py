@@ -112,3 +112,7 @@ EVALUATION_RING_ELEVATION = 30.0
 
 EVALUATION_RING_SIZE = RENDER_SIZE
 """Pixels of the evaluation ring's renders: the edit's render size."""
+
+# ------------------------------------------------------------------ meshes as input
+TEXTURE_SUFFIXES = (".png", ".jpg", ".jpeg")
+"""Texture images the mesh loader reads (``voxe_core.mesh_input``), here so ``voxe submit`` checks one without torch."""

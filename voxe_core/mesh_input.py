@@ -43,12 +43,11 @@ import torch
 import torch.nn.functional as F
 
 from voxe_core.cameras import Cameras, random_hemisphere_poses
-from voxe_core.constants import NERF_SYNTHETIC_FOV_X, NERF_SYNTHETIC_RADIUS
+from voxe_core.constants import NERF_SYNTHETIC_FOV_X, NERF_SYNTHETIC_RADIUS, TEXTURE_SUFFIXES
 from voxe_core.data import PixelScaleError, image_pixels
 from voxe_core.grid import DEFAULT_BOX, VoxelGrid
 
 MESH_INPUT_SUFFIXES = (".obj", ".ply")
-TEXTURE_SUFFIXES = (".png", ".jpg", ".jpeg")
 DEFAULT_ALBEDO = (0.7, 0.7, 0.7)  # meshes without texture or vertex colours
 MESH_SHADING = ("auto", "baked", "none")
 SHADING_LIGHT = (-1.0, -1.0, 2.0)  # towards the key light, canonical frame (normalised where used)

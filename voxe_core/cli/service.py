@@ -15,6 +15,7 @@ import warnings
 from pathlib import Path
 
 from voxe_core.cli.common import EXIT_INTERRUPTED, EXIT_USAGE, LOG_PROGRESS_INTERVAL_S, Interrupt, positive_seconds
+from voxe_core.constants import TEXTURE_SUFFIXES
 
 
 def _scene_object(text: str) -> dict:
@@ -126,6 +127,8 @@ def cmd_submit(args) -> int:
 
     if args.texture is not None and args.upload is None:
         raise ValueError("--texture goes with --upload (an OBJ); an uploaded scene keeps its colours")
+    if args.texture is not None and args.texture.suffix.lower() not in TEXTURE_SUFFIXES:  # the service would drop it
+        raise ValueError(f"--texture {args.texture.name}: send the texture as one of {', '.join(TEXTURE_SUFFIXES)}")
     with _client(args) as client:
         try:
             scene_id = args.scene
