@@ -983,6 +983,123 @@ def test_a_job_waits_for_the_fit_another_job_runs(client, dataset, root):
         tasks._reconstruct(runtime.load_job(d["id"]), settings, "cpu", get_storage())
 
 
+TINY_FIT = {"downsample": 16, "reconstruction": {"resolution": 12, "iterations": [2, 2, 2], "rays_per_step": 64}}
+
+
+def _two_tiny_fits(client, dataset, root) -> tuple[str, str, str]:
+    """Two jobs sharing one tiny reconstruction (fast to fit for real): their ids and the reconstruction's."""
+    scene = make_scene(client, dataset, root)
+    a, b = (client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic", "params": TINY_FIT}).json()
+            for _ in range(2))
+    assert a["reconstruction"]["id"] == b["reconstruction"]["id"]
+    return a["id"], b["id"], a["reconstruction"]["id"]
+
+
+@pytest.mark.parametrize("failing_renewal", [1, 2])  # the fit's total recorded, then its first progress
+def test_a_fit_goes_on_through_a_lease_renewal_the_database_refuses_once(client, dataset, root, monkeypatch,
+                                                                          failing_renewal):
+    """One renewal of the fit's lease meeting a database error (locked, a dropped connection) while the lease still
+    runs is skipped, the next one renews: it had failed the shared fit, and with it every job waiting on it."""
+    from sqlalchemy.exc import OperationalError
+
+    from worker import runtime, tasks
+
+    a, b, rec_id = _two_tiny_fits(client, dataset, root)
+    real, renewals = runtime.renew_lease, []
+
+    def flaky_renewal(*args, **kwargs):
+        renewals.append(kwargs)
+        if len(renewals) == failing_renewal:
+            raise OperationalError("UPDATE reconstructions", {}, Exception("database is locked"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(runtime, "renew_lease", flaky_renewal)
+    assert tasks.reconstruct_task.apply(args=(a,)).get()["state"] == "done"
+    assert len(renewals) > failing_renewal  # renewed again after the refused one
+    rec = runtime.load_reconstruction(rec_id)
+    assert (rec.state, rec.owner_job_id, rec.error, rec.run_count) == ("succeeded", a, None, 1)
+    assert tasks.reconstruct_task.apply(args=(b,)).get()["state"] == "done"
+    assert client.get(f"/v1/jobs/{b}").json()["reconstruction"]["reused"] is True
+
+
+def test_an_owner_that_cannot_renew_its_fits_lease_before_it_runs_out_hands_the_fit_back(client, dataset, root,
+                                                                                          monkeypatch):
+    """The database refuses every renewal of the owner's first claim: past the lease another job may have taken the
+    fit over, so the owner stops (LeaseLost) and hands it back rather than failing it, then claims it again (no job
+    took it meanwhile) and fits it once its renewals go through."""
+    import time
+
+    import voxe_core.reconstruct
+    from sqlalchemy.exc import OperationalError
+
+    from voxe_service.settings import get_settings
+    from worker import runtime, tasks
+
+    a, b, rec_id = _two_tiny_fits(client, dataset, root)
+    monkeypatch.setattr(get_settings(), "reconstruction_lease_s", 1.0)
+    real_claim, real_renewal, real_fit = (runtime.try_claim_reconstruction, runtime.renew_lease,
+                                          voxe_core.reconstruct.reconstruct)
+    claims = []
+
+    def claim(rec_id, *args, **kwargs):
+        rec = runtime.load_reconstruction(rec_id)
+        claims.append((rec.state, rec.owner_job_id, rec.error))
+        return real_claim(rec_id, *args, **kwargs)
+
+    def renewal(*args, **kwargs):
+        if len(claims) == 1:  # an outage for as long as the first claim runs
+            raise OperationalError("UPDATE reconstructions", {}, Exception("connection refused"))
+        return real_renewal(*args, **kwargs)
+
+    def slow_fit(*args, **kwargs):
+        if len(claims) == 1:
+            time.sleep(1.5)  # past the lease: its progress finds the lease run out
+        return real_fit(*args, **kwargs)
+
+    monkeypatch.setattr(runtime, "try_claim_reconstruction", claim)
+    monkeypatch.setattr(runtime, "renew_lease", renewal)
+    monkeypatch.setattr(voxe_core.reconstruct, "reconstruct", slow_fit)
+    assert tasks.reconstruct_task.apply(args=(a,)).get()["state"] == "done"
+    assert claims == [("pending", None, None), ("pending", None, None)]  # handed back, not failed
+    rec = runtime.load_reconstruction(rec_id)
+    assert (rec.state, rec.owner_job_id, rec.run_count) == ("succeeded", a, 2)
+    assert tasks.reconstruct_task.apply(args=(b,)).get()["state"] == "done"
+
+
+@pytest.mark.parametrize("stop", ["time limit", "database outage"])
+def test_an_owner_stopped_by_its_time_limit_or_a_database_outage_hands_the_fit_to_the_waiting_jobs(
+        client, dataset, root, monkeypatch, stop):
+    """The owner's soft time limit is its job's (that job fails, naming it) and a database outage is no fault of the
+    fit's: either hands the shared fit back, and a job waiting on it fits it, where both had failed the fit and
+    every job waiting on it."""
+    from celery.exceptions import SoftTimeLimitExceeded
+    from sqlalchemy.exc import OperationalError
+
+    from voxe_service.settings import get_settings
+    from worker import runtime, tasks
+
+    a, b, rec_id = _two_tiny_fits(client, dataset, root)
+    real_fit = tasks._fit_grid
+
+    def stopped_fit(*args, **kwargs):
+        if stop == "time limit":
+            raise SoftTimeLimitExceeded()
+        raise OperationalError("UPDATE jobs", {}, Exception("server closed the connection unexpectedly"))
+
+    monkeypatch.setattr(tasks, "_fit_grid", stopped_fit)
+    assert tasks.reconstruct_task.apply(args=(a,)).get()["state"] == "failed"
+    owner = client.get(f"/v1/jobs/{a}").json()
+    expected = (f"reconstruct: time limit of {get_settings().task_soft_time_limit_s} s exceeded"
+                if stop == "time limit" else "reconstruct: OperationalError")
+    assert owner["state"] == "failed" and owner["error"].startswith(expected)
+    rec = runtime.load_reconstruction(rec_id)
+    assert (rec.state, rec.owner_job_id, rec.owner_run_token, rec.error) == ("pending", None, None, None)
+    monkeypatch.setattr(tasks, "_fit_grid", real_fit)
+    assert tasks.reconstruct_task.apply(args=(b,)).get()["state"] == "done"
+    rec = runtime.load_reconstruction(rec_id)
+    assert (rec.state, rec.owner_job_id, rec.run_count) == ("succeeded", b, 2)
+
+
 # ------------------------------------------------------------------------------------------ mesh scenes
 def _mesh_scene(client, monkeypatch) -> dict:
     """Spot uploaded as OBJ + texture, rendered by its ingest into 4 views of 32 px (fast)."""

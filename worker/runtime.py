@@ -27,7 +27,7 @@ from sqlalchemy import func, or_, select, update
 
 from voxe_core.progress import Callbacks, Progress
 from voxe_service import datasets
-from voxe_service.db import locked, session_scope, sync_clock
+from voxe_service.db import DATABASE_UNAVAILABLE, database_outage, locked, session_scope, sync_clock
 from voxe_service.jobs import finish_jobs, record_event
 from voxe_service.models import (
     CANCELED, FAILED, PROCESSING, QUEUED, R_PENDING, R_RUNNING, READY, RUNNING, SUCCEEDED, TERMINAL_STATES,
@@ -635,21 +635,25 @@ def set_reconstruction(rec_id: str, job_id: str, run_token: str | None = None, *
 
 
 class LeaseLost(RuntimeError):
-    """A lease lapsed and another took it over (a fit: this job stops and waits for the job now fitting it)."""
+    """A lease lapsed and another took it over, or may have (a fit: this job stops and waits for the job now fitting
+    it, or takes the fit it handed back again)."""
 
 
 class LeaseKeeper:
     """Holds a lease while a block runs: a thread calls ``renew()`` every quarter lease (loading images,
     voxelizing or storing a checkpoint report no progress), and :meth:`check` raises :class:`LeaseLost` once a
-    renewal found the lease taken by another, so two runs never both write one result.
+    renewal found the lease taken by another, or the lease last renewed ran out (the database out of reach
+    meanwhile: another may have taken it), so two runs never both write one result.
 
     ``renew(**values) -> bool`` extends the lease (recording ``values``) and says whether it was still held.
-    Use as ``with fit_lease(rec_id, job_id, settings) as lease: ...`` (or :func:`stage_lease`).
+    Use as ``with fit_lease(rec_id, job_id, settings) as lease: ...`` (or :func:`stage_lease`), right after the
+    lease was taken. ``subject`` and ``taken_over`` name the holder and what a loss means in LeaseLost's message.
     """
 
-    def __init__(self, renew, lease_s: float, lost_message: str, name: str):
-        self._renew, self.lease_s, self.lost_message = renew, lease_s, lost_message
+    def __init__(self, renew, lease_s: float, subject: str, taken_over: str, name: str):
+        self._renew, self.lease_s, self.subject, self.taken_over = renew, lease_s, subject, taken_over
         self.lost = False
+        self._runs_until = time.monotonic() + lease_s  # (taken just before: it runs out by then at the latest)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
 
@@ -662,29 +666,42 @@ class LeaseKeeper:
         self._thread.join()
 
     def renew(self, **values) -> bool:
-        """Renew now (recording ``values``, e.g. the fit's iteration); whether the lease is still held."""
-        held = self._renew(**values)
+        """Renew now (recording ``values``, e.g. the fit's iteration); whether the lease is still held (not known
+        lost). A database outage (locked, a dropped connection) skips the renewal: the next one tries again."""
+        asked = time.monotonic()
+        try:
+            held = self._renew(**values)
+        except DATABASE_UNAVAILABLE as exc:
+            if database_outage(exc) is None:  # a fault (SQLite's OperationalError for a missing column), no outage
+                raise
+            log.warning("%s: could not renew the lease (%.0f s of it left)", self._thread.name,
+                        self._runs_until - time.monotonic(), exc_info=True)
+            return not self.lost
+        if held:
+            self._runs_until = asked + self.lease_s  # (the database counts from its own moment, after this one)
         self.lost = self.lost or not held
         return held
 
     def check(self) -> None:
         if self.lost:
-            raise LeaseLost(self.lost_message)
+            raise LeaseLost(f"{self.subject}: its lease lapsed and {self.taken_over}")
+        if time.monotonic() >= self._runs_until:
+            raise LeaseLost(f"{self.subject}: its lease ran out unrenewed (the database out of reach), and "
+                            "another may have taken it over")
 
     def _run(self) -> None:
         while not self._stop.wait(self.lease_s / 4):
             try:
                 if not self.renew():
                     return
-            except Exception:  # noqa: BLE001 - a database hiccup: the next renewal tries again
+            except Exception:  # noqa: BLE001 - a database error other than an outage: the next renewal tries again
                 log.warning("%s: could not renew the lease", self._thread.name, exc_info=True)
 
 
 def fit_lease(rec_id: str, job_id: str, settings: Settings, run_token: str | None = None) -> LeaseKeeper:
     """The lease of a fit the job's run claimed (:func:`try_claim_reconstruction`)."""
     return LeaseKeeper(lambda **values: renew_lease(rec_id, job_id, settings, run_token, **values),
-                       settings.reconstruction_lease_s,
-                       f"reconstruction {rec_id}: its lease lapsed and another job took the fit over",
+                       settings.reconstruction_lease_s, f"reconstruction {rec_id}", "another job took the fit over",
                        f"voxe-lease-{rec_id}")
 
 
@@ -697,8 +714,8 @@ def stage_lease(job_id: str, run_token: str, settings: Settings) -> LeaseKeeper:
                 .values(run_lease_until=utcnow() + timedelta(seconds=settings.stage_lease_s))
             ).rowcount == 1
 
-    return LeaseKeeper(renew, settings.stage_lease_s, f"job {job_id}: its run's lease lapsed and another run "
-                       "took the job over", f"voxe-stage-{job_id}")
+    return LeaseKeeper(renew, settings.stage_lease_s, f"job {job_id}'s run", "another run took the job over",
+                       f"voxe-stage-{job_id}")
 
 
 def load_reconstruction(rec_id: str) -> Reconstruction | None:

@@ -14,7 +14,7 @@ The reconstruction is shared: every job on the same scene with the same
 reconstruction parameters points at one ``reconstructions`` row. The first
 task to claim it (a conditional UPDATE) fits it; the others wait for it, and
 take it over when the fitter's lease lapses (a dead worker) or it was released
-(the fitting job was canceled).
+(the fitting job was canceled, ran out of time, or lost the database).
 """
 
 from __future__ import annotations
@@ -386,6 +386,12 @@ def _voxelize(job: Job, rec, settings, storage):
                                          bbox_max=config.bbox_max, seed=rec.params["seed"]))
 
 
+NOT_THE_FITS_FAILURE = (StageCancelled, runtime.LeaseLost, runtime.RunSuperseded, SoftTimeLimitExceeded)
+"""What stops an owner's fit without failing it (and every job waiting on it): its job canceled, its lease or job
+taken over, its task's time limit (a job's, which fails the owner's job alone); so does a database outage
+(``voxe_service.db.database_outage``)."""
+
+
 def _fit(job: Job, rec, settings, storage, device: str) -> None:
     """Make G_i for ``rec`` (claimed by this job): voxelize its mesh, or fit, resuming from a stored checkpoint."""
     scratch = runtime.scratch_dir(job.id, settings)
@@ -408,17 +414,17 @@ def _fit(job: Job, rec, settings, storage, device: str) -> None:
                 grid, total = _voxelize(job, rec, settings, storage), 1
                 callbacks.on_progress(Progress("reconstruct", total, total))
             else:
-                grid, total = _fit_grid(job, rec, settings, storage, callbacks, checkpoint, checkpoint_key, device)
+                grid, total = _fit_grid(job, rec, settings, storage, lease, callbacks, checkpoint, checkpoint_key,
+                                        device)
             lease.check()
         except BaseException as exc:  # (each change below applies only while this job still owns the fit)
-            if (isinstance(exc, Exception) and not isinstance(exc, (StageCancelled, runtime.LeaseLost,
-                                                                    runtime.RunSuperseded))
-                    and not runtime.worker_in_cold_shutdown()):
+            if (isinstance(exc, Exception) and not isinstance(exc, NOT_THE_FITS_FAILURE)
+                    and database_outage(exc) is None and not runtime.worker_in_cold_shutdown()):
                 runtime.set_reconstruction(rec.id, job.id, job.run_token, state=R_FAILED, lease_until=None,
                                            finished_at=utcnow(), error=f"{type(exc).__name__}: {exc}")
-            else:  # canceled, superseded, or the worker going down (SystemExit, KeyboardInterrupt, or what a cold
-                # shutdown raises in a solo pool's task): not the fit's failure, so a waiting job, or this one
-                # redelivered, takes over from the checkpoint
+            else:  # stopped for the owner's sake (NOT_THE_FITS_FAILURE), or the worker going down (SystemExit,
+                # KeyboardInterrupt, or what a cold shutdown raises in a solo pool's task): a waiting job, or this
+                # one redelivered, takes over from the checkpoint
                 runtime.set_reconstruction(rec.id, job.id, job.run_token, state=R_PENDING, owner_job_id=None,
                                            owner_run_token=None, lease_until=None)
             raise
@@ -437,8 +443,8 @@ def _fit(job: Job, rec, settings, storage, device: str) -> None:
     storage.delete(checkpoint_key)
 
 
-def _fit_grid(job: Job, rec, settings, storage, callbacks: StageCallbacks, checkpoint: Path, checkpoint_key: str,
-              device: str):
+def _fit_grid(job: Job, rec, settings, storage, lease: runtime.LeaseKeeper, callbacks: StageCallbacks,
+              checkpoint: Path, checkpoint_key: str, device: str):
     """Route (a) and image scenes: G_i fitted to the scene's images on ``device``; returns (grid, total iterations)."""
     from voxe_core.reconstruct import CHECKPOINT_FORMAT_VERSION, CHECKPOINT_KIND, reconstruct
     from voxe_core.tensorio import FormatError
@@ -447,7 +453,7 @@ def _fit_grid(job: Job, rec, settings, storage, callbacks: StageCallbacks, check
     backbone, config, cameras, initial = fit_setup(rec.params, scene.alphas, scene.cameras, settings.checkpoint_every,
                                                    scene_backbone=job_scene(job).backbone)  # what the API checked
     _record_fit(job, backbone, config, settings)
-    runtime.renew_lease(rec.id, job.id, settings, job.run_token, total=config.total_iterations)
+    lease.renew(total=config.total_iterations)
     resume = None
     if storage.exists(checkpoint_key):
         resume, _, why = _stored_checkpoint(storage, checkpoint_key, checkpoint, CHECKPOINT_KIND,
