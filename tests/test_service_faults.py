@@ -684,6 +684,35 @@ def test_a_run_that_lost_its_job_publishes_records_and_fits_nothing(db, tmp_path
     assert runtime.load_reconstruction(rec_id).owner_run_token == taken.run_token
 
 
+def test_a_stale_run_of_a_job_cannot_take_the_fit_back_from_the_jobs_newer_run(db, monkeypatch):
+    """Two runs of one job: the newer run, which took the job over, takes the fit from the stalled one at once; the
+    stalled run coming back claims nothing, neither the fit the newer run holds (the claim had matched the job,
+    not its run: the two took it from each other in turn) nor the fit handed back."""
+    from voxe_service.db import session_scope
+    from voxe_service.models import Reconstruction
+    from worker import runtime
+
+    monkeypatch.setattr(db, "stage_lease_s", 0.2)
+    scene = add_scene()
+    job_id = add_job(scene, "queued", 0)
+    with session_scope() as session:
+        rec = Reconstruction(scene_id=scene, params_key="k", params={})
+        session.add(rec)
+        session.flush()
+        rec_id = rec.id
+    stalled = runtime.begin_stage(job_id, "reconstruct", "a@host", "cpu", db)
+    assert runtime.try_claim_reconstruction(rec_id, job_id, "a@host", db, True, run_token=stalled.run_token)
+    newer = runtime.begin_stage(job_id, "reconstruct", "b@host", "cpu", db)  # once the stalled run's lease lapsed
+    assert runtime.try_claim_reconstruction(rec_id, job_id, "b@host", db, True, run_token=newer.run_token)
+    assert not runtime.try_claim_reconstruction(rec_id, job_id, "a@host", db, True, run_token=stalled.run_token)
+    rec = runtime.load_reconstruction(rec_id)
+    assert (rec.owner_run_token, rec.worker_hostname, rec.run_count) == (newer.run_token, "b@host", 2)
+    assert runtime.set_reconstruction(rec_id, job_id, newer.run_token, state="pending", owner_job_id=None,
+                                      owner_run_token=None, lease_until=None)  # handed back (canceled)
+    assert not runtime.try_claim_reconstruction(rec_id, job_id, "a@host", db, True, run_token=stalled.run_token)
+    assert runtime.try_claim_reconstruction(rec_id, job_id, "b@host", db, False, run_token=newer.run_token)
+
+
 def test_the_worker_acknowledges_a_duplicate_stage_message_without_continuing_its_chain(db, monkeypatch):
     """Through the Celery task: a duplicate raises ``Ignore`` (acknowledged, no result, the chain's next message
     not sent; the holder's own chain carries the job on), and the job is left as its holder has it."""

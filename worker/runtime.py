@@ -589,9 +589,12 @@ class Claim:
 def try_claim_reconstruction(rec_id: str, job_id: str, hostname: str | None, settings: Settings,
                              allow_failed: bool, run_token: str | None = None) -> bool:
     """Atomically take the fit: pending (or failed, or a lapsed lease, or our own job's) -> running, owned by the
-    job's run ``run_token`` (a later run of the same job takes the fit from an earlier one that lost the job)."""
+    job's run ``run_token``, only while that run holds the job (a later run of the same job takes the fit from an
+    earlier one that lost the job, never the other way round)."""
     now = utcnow()
     states = [R_PENDING] + (["failed"] if allow_failed else [])
+    holds_job = [] if run_token is None else [select(Job.id).where(Job.id == job_id, Job.run_token == run_token)
+                                              .exists()]
     with session_scope() as session:
         result = session.execute(
             update(Reconstruction)
@@ -600,6 +603,7 @@ def try_claim_reconstruction(rec_id: str, job_id: str, hostname: str | None, set
                 (Reconstruction.state.in_(states))
                 | ((Reconstruction.state == R_RUNNING)
                    & ((Reconstruction.lease_until < now) | (Reconstruction.owner_job_id == job_id))),
+                *holds_job,
             )
             .values(
                 state=R_RUNNING, owner_job_id=job_id, owner_run_token=run_token, worker_hostname=hostname,
