@@ -212,6 +212,65 @@ def test_an_ingest_stopped_by_a_cold_shutdown_goes_back_to_the_queue_keeping_the
     assert ingest(scene["id"]) == {"scene_id": scene["id"], "state": "ready"}
 
 
+@pytest.mark.parametrize("locks", [True, False])
+def test_an_ingest_removes_the_folders_its_scenes_killed_runs_left_and_keeps_a_live_runs(client, dataset, root,
+                                                                                        monkeypatch, locks):
+    """An ingest killed mid-run (out of memory on its upload) leaves its unpacked upload (up to
+    VOXE_MAX_EXTRACTED_BYTES), which had stayed until the scene failed: in a crash loop, one per run. The scene's
+    next run on the machine removes those whose lock died with their process as it starts; a live run's folder (its
+    lock held) and other scenes' stay. Where the filesystem has no locks, nothing is removed and the ingest runs."""
+    import errno
+    import fcntl
+    import subprocess
+    import sys
+    from types import SimpleNamespace
+
+    from voxe_service.settings import get_settings
+    from worker import ingest as ingest_module
+
+    scene = upload_zip(client, zip_folder(dataset, root / "ok.zip", prefix="mic_small")).json()
+    work = Path(get_settings().work_dir) / "ingest"
+    holding = ("import fcntl, os, sys, time; fd = os.open(sys.argv[1], os.O_RDONLY); fcntl.flock(fd, fcntl.LOCK_EX); "
+               "print('locked', flush=True); time.sleep(600)")
+
+    def run_in(folder: Path) -> subprocess.Popen:
+        """A process holding ``folder`` as an ingest run does."""
+        folder.mkdir(parents=True)
+        (folder / "archive.zip").write_bytes(b"an unpacked upload")
+        process = subprocess.Popen([sys.executable, "-c", holding, str(folder)], stdout=subprocess.PIPE, text=True)
+        assert process.stdout.readline() == "locked\n"
+        return process
+
+    killed = run_in(work / f"{scene['id']}-killed01")
+    killed.kill()
+    killed.wait()
+    live, other = f"{scene['id']}-live0001", f"{'1' * 32}-other001"
+    (work / other).mkdir()
+    seen, decode = [], ingest_module.decode
+
+    def decode_seeing(*args):
+        seen.extend(p.name for p in work.iterdir() if p.is_dir())
+        return decode(*args)
+
+    def no_locks(*args):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(ingest_module, "decode", decode_seeing)
+    if not locks:
+        monkeypatch.setattr(ingest_module, "fcntl", SimpleNamespace(flock=no_locks, LOCK_EX=fcntl.LOCK_EX,
+                                                                    LOCK_NB=fcntl.LOCK_NB))
+    running = run_in(work / live)
+    try:
+        assert ingest(scene["id"]) == {"scene_id": scene["id"], "state": "ready"}
+    finally:
+        running.kill()
+        running.wait()
+    kept = [live, other] + ([] if locks else [f"{scene['id']}-killed01"])
+    own = set(seen) - set(kept)  # as the run decoded: the killed run's folder gone already
+    assert set(kept) <= set(seen) and len(own) == 1 and own.pop().startswith(f"{scene['id']}-")
+    assert sorted(p.name for p in work.iterdir() if p.is_dir()) == sorted(kept)
+
+
 def test_a_starting_api_process_removes_the_staging_folders_no_live_process_holds(root, monkeypatch):
     """An API process killed mid-upload (OOM, SIGKILL, a deploy) left its staging folder in work/uploads for good. A
     starting one removes those whose lock (flock on .owner) no process holds; an upload in progress in another

@@ -13,6 +13,8 @@ error (file and frame, as the API's 422s) and the jobs waiting on it fail naming
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import logging
 import os
@@ -131,9 +133,7 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
         _fail(scene_id, error, storage)
         return {"scene_id": scene_id, "state": "failed"}
     mesh_upload = upload_key == scene_key(scene_id, datasets.UPLOAD_ARCHIVE)
-    work = Path(settings.work_dir) / "ingest"
-    work.mkdir(parents=True, exist_ok=True)
-    scratch = Path(tempfile.mkdtemp(dir=work, prefix=f"{scene_id}-"))
+    scratch, held = _run_scratch(scene_id, settings)
     values: dict = {}
     try:
         root = datasets.unpack(storage.get_file(upload_key, scratch / "archive.zip"), scratch / "data")
@@ -158,7 +158,52 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
         return {"scene_id": scene_id, "state": "failed"}
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
+        os.close(held)  # (its lock goes with it)
     return _ready(scene_id, values, storage, settings, upload_key if mesh_upload else None)
+
+
+def _run_scratch(scene_id: str, settings: Settings) -> tuple[Path, int]:
+    """This run's scratch folder (``ingest/<scene id>-*``) and a descriptor holding it locked (flock) while the run
+    lives: the lock goes when the run's process dies. First, the folders of the scene's earlier runs on this machine
+    whose locks are gone (their processes killed, e.g. out of memory on this upload) are removed: each holds up to
+    ``VOXE_MAX_EXTRACTED_BYTES``, and a crash loop had kept them all until the scene failed. A live run's folder
+    stays. Folders are made and locked, and judged, under ``ingest/.lock``, so none is judged before it is locked."""
+    work = Path(settings.work_dir) / "ingest"
+    work.mkdir(parents=True, exist_ok=True)
+    with open(work / ".lock", "w") as guard:
+        try:
+            fcntl.flock(guard, fcntl.LOCK_EX)
+        except OSError:  # a filesystem without locks (some NFS / CIFS mounts): no folder can be told dead
+            log.warning("ingest scratch in %s cannot be locked; a killed run's folder stays until its scene is "
+                        "ready or failed", work)
+            dead = []
+        else:
+            dead = [(path, lock) for path in work.glob(f"{scene_id}-*") if (lock := _lock(path)) is not None]
+        scratch = Path(tempfile.mkdtemp(dir=work, prefix=f"{scene_id}-"))
+        held = os.open(scratch, os.O_RDONLY | os.O_DIRECTORY)
+        with contextlib.suppress(OSError):  # (no locks there: nothing judges it)
+            fcntl.flock(held, fcntl.LOCK_EX)
+    for path, lock in dead:
+        shutil.rmtree(path, ignore_errors=True)
+        os.close(lock)
+    if dead:
+        log.info("scene %s: removed %d folder(s) its killed ingests left", scene_id, len(dead))
+    return scratch, held
+
+
+def _lock(folder: Path) -> int | None:
+    """A descriptor of ``folder`` holding its lock, or None when a live run holds it (or it is no folder now, or its
+    filesystem has no locks)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        return None
+    return fd
 
 
 def _uncount_run(scene_id: str) -> None:

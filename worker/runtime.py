@@ -450,8 +450,9 @@ def sweep_scene_datasets(settings: Settings) -> list[str]:
 def sweep_ingest_scratch(settings: Settings) -> list[str]:
     """Delete this machine's unpacked uploads (``ingest/<scene id>-*``) of scenes no longer processing; the folder
     names swept. An ingest removes its own as it ends; one whose process was killed left it (up to
-    ``VOXE_MAX_EXTRACTED_BYTES``), kept with its scene's other runs' until the scene is ready, failed (an
-    ingest interrupted too often fails it) or deleted."""
+    ``VOXE_MAX_EXTRACTED_BYTES``), which the scene's next run on this machine removes as it starts
+    (``worker.ingest``), and this sweep once the scene is ready, failed (an ingest interrupted too often fails it)
+    or deleted."""
     def processing(ids: set[str]) -> set[str]:
         with session_scope() as session:
             return set(session.scalars(select(Scene.id).where(Scene.id.in_(ids), Scene.state == PROCESSING)))
