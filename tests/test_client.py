@@ -42,7 +42,7 @@ def test_error_statuses_name_the_call_the_status_and_the_detail():
         with pytest.raises(ServiceError) as error:
             client.create_sweep([])
         assert error.value.status == 422 and error.value.detail[0]["msg"] == "lists a scene twice"
-        assert str(error.value).startswith("POST /v1/sweeps: HTTP 422: [{")
+        assert str(error.value) == "POST /v1/sweeps: HTTP 422: body.scenes: lists a scene twice"  # not a dict list
         with pytest.raises(ServiceError, match=r"^GET /plain: HTTP 502: Bad Gateway$"):
             client.request("GET", "/plain")
 
@@ -241,6 +241,8 @@ def test_ids_are_one_path_segment_and_names_stay_inside_the_download_folder(tmp_
         for name in ("../escape.bin", "sub/x.bin", "..", ""):
             with pytest.raises(ServiceError, match="is not a plain file name; nothing written"):
                 client.download("j1", name, tmp_path / "inner" / "x.bin")
+        with pytest.raises(ServiceError, match=r"^job j1 has no artifact 'escape.bin'; it has \.\./escape\.bin$"):
+            client.download("j1", "escape.bin", tmp_path / "x.bin")  # the names it has, to pick from
         with pytest.raises(ServiceError, match=r"answered 200 with text/html, not the API's JSON"):
             client.get_job("redirect")  # had surfaced as json's "Expecting value"
         client.get_job("line\nbreak")  # quoted, as any id: it had been a bare InvalidURL

@@ -194,7 +194,8 @@ class Client:
             raise ServiceError(f"artifact name {name!r} of job {job_id} is not a plain file name; nothing written")
         listed = {a["name"]: a for a in self.artifacts(job_id)}
         if name not in listed:
-            raise ServiceError(f"job {job_id} has no artifact {name!r}", 404)
+            raise ServiceError(f"job {job_id} has no artifact {name!r}; it has {', '.join(sorted(listed)) or 'none'}",
+                               404)
         expected, dest = listed[name], Path(dest)
         dest.parent.mkdir(parents=True, exist_ok=True)
         partial = dest.with_name(f".{dest.name}.partial")
@@ -310,7 +311,23 @@ def _raise_for_error(response: httpx.Response, method: str, path: str) -> None:
             detail = response.json().get("detail")
         except (ValueError, AttributeError):
             detail = response.reason_phrase
-        raise ServiceError(f"{method} {path}: HTTP {response.status_code}: {detail}", response.status_code, detail)
+        raise ServiceError(f"{method} {path}: HTTP {response.status_code}: {_readable(detail)}", response.status_code,
+                           detail)
+
+
+def _readable(detail) -> str:
+    """An error's ``detail`` as a person reads it: a validation error's list as ``field: message`` per entry (it
+    had been printed as a Python list of dicts), anything else as it is.
+
+    Examples:
+        >>> _readable([{"loc": ["body", "params", "iterations"], "msg": "Input should be a valid integer"}])
+        'body.params.iterations: Input should be a valid integer'
+        >>> _readable("job 'x' not found")
+        "job 'x' not found"
+    """
+    if isinstance(detail, list) and all(isinstance(error, dict) and "msg" in error for error in detail):
+        return "; ".join(f"{'.'.join(map(str, error.get('loc') or ()))}: {error['msg']}" for error in detail)
+    return str(detail)
 
 
 def _ends_job(event: dict) -> bool:
