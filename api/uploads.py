@@ -408,8 +408,15 @@ def _invalid(message: str, staging: Path) -> UploadError:
 def check_dataset(root: Path, staging: Path, downsample: int) -> tuple[str, int, int, int, list[str]]:
     """(format, images, width, height, splits) of a dataset folder, from its json and its images' headers.
 
-    ``load_scene`` with ``max_images=1`` checks every frame's entry and pose but decodes one image.
+    ``load_scene`` with ``max_images=1`` checks every frame's entry and pose but decodes one image. An upload that
+    is no dataset (nor a mesh, which ``pack_mesh_upload`` took) is a 422 naming what it holds and what is read.
     """
+    if not is_dataset_folder(root):
+        held = sorted(p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file())
+        listing = ", ".join(map(repr, held[:5])) + (f" and {len(held) - 5} more" if len(held) > 5 else "")
+        raise UploadError(f"the upload is neither a dataset nor a mesh (it holds {listing or 'no file'}): send a "
+                          "dataset folder or .zip (transforms_train.json: NeRF-synthetic; transforms.json: instant-ngp "
+                          "/ nerfstudio; a COLMAP model sparse/0/ beside images/), or one mesh (.obj, .ply)")
     try:
         fmt = detect_format(root)
         try:

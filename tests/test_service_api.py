@@ -376,7 +376,9 @@ def _dataset_entries(dataset: Path, drop: str | None = None, json_text: str | No
     ("absolute", "absolute paths are not allowed"),
     ("missing image", "transforms_train.json frame 1 ('./train/r_4'): image not found (tried train/r_4, train/r_4.png)"),
     ("broken json", "transforms_train.json: invalid JSON"),
-    ("no dataset", "no dataset found"),
+    ("no dataset", "the upload is neither a dataset nor a mesh (it holds 'readme.txt'): send a dataset folder or "
+                   ".zip (transforms_train.json: NeRF-synthetic; transforms.json: instant-ngp / nerfstudio; a COLMAP "
+                   "model sparse/0/ beside images/), or one mesh (.obj, .ply)"),
 ])
 def test_bad_upload_is_422_and_leaves_nothing(client, dataset, root, case, expected):
     if case == "not a zip":
