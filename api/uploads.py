@@ -51,7 +51,8 @@ from typing import BinaryIO
 from PIL import Image
 
 from voxe_core.data import DatasetError, colmap_transforms, detect_format, is_dataset_folder, load_scene
-from voxe_core.mesh_input import MESH_FRAMES, MESH_INPUT_SUFFIXES, TEXTURE_SUFFIXES
+from voxe_core.constants import TEXTURE_SUFFIXES
+from voxe_core.mesh_input import MESH_FRAMES, MESH_INPUT_SUFFIXES
 from voxe_service import datasets
 from voxe_service.datasets import (DATASET_ARCHIVE, MESH_FOLDER, MESH_FORMAT, MESH_NAMES, MESH_OPTIONS, UPLOAD_ARCHIVE,
                                    ignored, package)

@@ -43,7 +43,7 @@ import torch
 import torch.nn.functional as F
 
 from voxe_core.cameras import Cameras, random_hemisphere_poses
-from voxe_core.constants import NERF_SYNTHETIC_FOV_X, NERF_SYNTHETIC_RADIUS, TEXTURE_SUFFIXES
+from voxe_core.constants import NERF_SYNTHETIC_FOV_X, NERF_SYNTHETIC_RADIUS
 from voxe_core.data import PixelScaleError, image_pixels
 from voxe_core.grid import DEFAULT_BOX, VoxelGrid
 

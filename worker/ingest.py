@@ -29,9 +29,9 @@ from sqlalchemy import update
 from sqlalchemy.exc import SQLAlchemyError
 
 from voxe_core.backbones import detect_backbone
+from voxe_core.constants import TEXTURE_SUFFIXES
 from voxe_core.data import DatasetError, load_scene
-from voxe_core.mesh_input import (MESH_INPUT_SUFFIXES, TEXTURE_SUFFIXES, MeshError, load_mesh, shade_mesh,
-                                  write_mesh_dataset)
+from voxe_core.mesh_input import MESH_INPUT_SUFFIXES, MeshError, load_mesh, shade_mesh, write_mesh_dataset
 from voxe_service import datasets
 from voxe_service.db import session_scope
 from voxe_service.models import PROCESSING, Scene, utcnow
