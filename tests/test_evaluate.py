@@ -634,23 +634,11 @@ def test_a_sweep_summarises_while_an_evaluation_runs_and_after_one_failed(servic
 
 
 def test_cli_sweep_submits_to_the_service_and_prints_the_table(service, tmp_path, capsys):
-    import threading
-
-    import uvicorn
-
-    from service_helpers import free_port
-    from api.main import create_app
+    from service_helpers import api_in_thread
     from voxe_core.cli import main
 
     client, scene_id, _ = service
-    port = free_port()
-    server = uvicorn.Server(uvicorn.Config(create_app(), host="127.0.0.1", port=port, log_level="warning"))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    try:
-        while not server.started:
-            thread.join(0.05)
-        api = f"http://127.0.0.1:{port}"
+    with api_in_thread() as api:
         out = tmp_path / "sweep.json"
         code = main(["sweep", "--api", api, "--scene", f"{scene_id}=mic", "--evaluation", json.dumps(RING),
                      "--params", '{"iterations": 2}', "--out", str(out)])
@@ -663,9 +651,6 @@ def test_cli_sweep_submits_to_the_service_and_prints_the_table(service, tmp_path
         assert printed.out == sweep["table"] and f"sweep {sweep['id']}: 6 edits of 1 scene(s) queued" in printed.err
         assert main(["sweep", "--api", api, "--scene", "nope=mic"]) == 2
         assert "POST /v1/sweeps: HTTP 404: scene 'nope' not found" in capsys.readouterr().err
-    finally:
-        server.should_exit = True
-        thread.join(10)
     with pytest.raises(SystemExit):
         main(["sweep", "--scene", "no-object-given"])
     assert "expected SCENE_ID=OBJECT" in capsys.readouterr().err

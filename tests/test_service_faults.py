@@ -73,6 +73,18 @@ def add_job(scene_id: str, state: str, age_s: float, worker: str | None = None, 
         return job.id
 
 
+def add_reconstruction(scene_id: str) -> str:
+    """A pending shared fit of the scene, no job holding it."""
+    from voxe_service.db import session_scope
+    from voxe_service.models import Reconstruction
+
+    with session_scope() as session:
+        rec = Reconstruction(scene_id=scene_id, params_key="k", params={})
+        session.add(rec)
+        session.flush()
+        return rec.id
+
+
 def add_heartbeat(hostname: str, age_s: float) -> None:
     from voxe_service.db import session_scope
     from voxe_service.models import WorkerHeartbeat, utcnow
@@ -642,19 +654,13 @@ def test_a_run_that_lost_its_job_publishes_records_and_fits_nothing(db, tmp_path
     """A stalled run whose job another run took over (its lease lapsed) comes back: its artifacts and results are
     refused (RunSuperseded; nothing uploaded, listed or merged), and the job's fit, taken by the new run of the
     same job, is no longer its to renew or to change."""
-    from voxe_service.db import session_scope
-    from voxe_service.models import Reconstruction
     from voxe_service.storage import get_storage
     from worker import runtime
 
     monkeypatch.setattr(db, "stage_lease_s", 0.2)
     scene = add_scene()
     job_id = add_job(scene, "queued", 0, completed_stages=["reconstruct"])
-    with session_scope() as session:
-        rec = Reconstruction(scene_id=scene, params_key="k", params={})
-        session.add(rec)
-        session.flush()
-        rec_id = rec.id
+    rec_id = add_reconstruction(scene)
     stalled = runtime.begin_stage(job_id, "edit", "a@host", "cpu", db)
     assert runtime.try_claim_reconstruction(rec_id, job_id, "a@host", db, True, run_token=stalled.run_token)
     taken = runtime.begin_stage(job_id, "edit", "b@host", "cpu", db)  # once the stalled run's lease lapsed
@@ -688,18 +694,12 @@ def test_a_stale_run_of_a_job_cannot_take_the_fit_back_from_the_jobs_newer_run(d
     """Two runs of one job: the newer run, which took the job over, takes the fit from the stalled one at once; the
     stalled run coming back claims nothing, neither the fit the newer run holds (the claim had matched the job,
     not its run: the two took it from each other in turn) nor the fit handed back."""
-    from voxe_service.db import session_scope
-    from voxe_service.models import Reconstruction
     from worker import runtime
 
     monkeypatch.setattr(db, "stage_lease_s", 0.2)
     scene = add_scene()
     job_id = add_job(scene, "queued", 0)
-    with session_scope() as session:
-        rec = Reconstruction(scene_id=scene, params_key="k", params={})
-        session.add(rec)
-        session.flush()
-        rec_id = rec.id
+    rec_id = add_reconstruction(scene)
     stalled = runtime.begin_stage(job_id, "reconstruct", "a@host", "cpu", db)
     assert runtime.try_claim_reconstruction(rec_id, job_id, "a@host", db, True, run_token=stalled.run_token)
     newer = runtime.begin_stage(job_id, "reconstruct", "b@host", "cpu", db)  # once the stalled run's lease lapsed
@@ -766,11 +766,7 @@ def test_a_fits_lease_is_kept_without_progress_and_its_loss_is_seen(db, monkeypa
     monkeypatch.setattr(db, "reconstruction_lease_s", 0.4)
     scene = add_scene()
     first, second = (add_job(scene, "running", 0, "w@host", "reconstruct") for _ in range(2))
-    with session_scope() as session:
-        rec = Reconstruction(scene_id=scene, params_key="k", params={})
-        session.add(rec)
-        session.flush()
-        rec_id = rec.id
+    rec_id = add_reconstruction(scene)
 
     def lease_until():
         with session_scope() as session:
