@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import time
 import uuid
 from datetime import timedelta
 
@@ -688,6 +689,25 @@ def test_a_run_that_lost_its_job_publishes_records_and_fits_nothing(db, tmp_path
     assert storage.list(f"jobs/{job_id}/") == [f"jobs/{job_id}/edited_grid.safetensors"]
     assert runtime.renew_lease(rec_id, job_id, db, taken.run_token)
     assert runtime.load_reconstruction(rec_id).owner_run_token == taken.run_token
+
+
+def test_a_fit_lease_runs_out_counted_from_its_claim_not_from_its_keeper():
+    """The keeper is made after the claim (the fit's record is read between): counted from the keeper, check() had
+    passed after the database's lease ran out, while an outage kept it from being renewed."""
+    from sqlalchemy.exc import OperationalError
+
+    from worker.runtime import LeaseKeeper, LeaseLost
+
+    def refused(**values):
+        raise OperationalError("UPDATE reconstructions", {}, Exception("connection refused"))
+
+    claimed_at = time.monotonic() - 0.9  # claimed 0.9 s ago, under a lease of 1 s
+    with LeaseKeeper(refused, 1.0, "reconstruction r", "another job took the fit over", "voxe-lease-t",
+                     claimed_at) as lease:
+        lease.check()
+        time.sleep(0.2)
+        with pytest.raises(LeaseLost, match="^reconstruction r: its lease ran out unrenewed"):
+            lease.check()
 
 
 def test_a_stale_run_of_a_job_cannot_take_the_fit_back_from_the_jobs_newer_run(db, monkeypatch):

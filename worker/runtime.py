@@ -651,14 +651,16 @@ class LeaseKeeper:
     meanwhile: another may have taken it), so two runs never both write one result.
 
     ``renew(**values) -> bool`` extends the lease (recording ``values``) and says whether it was still held.
-    Use as ``with fit_lease(rec_id, job_id, settings) as lease: ...`` (or :func:`stage_lease`), right after the
-    lease was taken. ``subject`` and ``taken_over`` name the holder and what a loss means in LeaseLost's message.
+    Use as ``with fit_lease(rec_id, job_id, settings, taken_at=...) as lease: ...`` (or :func:`stage_lease`);
+    ``taken_at``: the ``time.monotonic()`` read before the claim that took the lease (default: now), from which it
+    runs out at the latest. ``subject`` and ``taken_over`` name the holder and what a loss means in LeaseLost's
+    message.
     """
 
-    def __init__(self, renew, lease_s: float, subject: str, taken_over: str, name: str):
+    def __init__(self, renew, lease_s: float, subject: str, taken_over: str, name: str, taken_at: float | None = None):
         self._renew, self.lease_s, self.subject, self.taken_over = renew, lease_s, subject, taken_over
         self.lost = False
-        self._runs_until = time.monotonic() + lease_s  # (taken just before: it runs out by then at the latest)
+        self._runs_until = (time.monotonic() if taken_at is None else taken_at) + lease_s
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
 
@@ -703,11 +705,13 @@ class LeaseKeeper:
                 log.warning("%s: could not renew the lease", self._thread.name, exc_info=True)
 
 
-def fit_lease(rec_id: str, job_id: str, settings: Settings, run_token: str | None = None) -> LeaseKeeper:
-    """The lease of a fit the job's run claimed (:func:`try_claim_reconstruction`)."""
+def fit_lease(rec_id: str, job_id: str, settings: Settings, run_token: str | None = None,
+              taken_at: float | None = None) -> LeaseKeeper:
+    """The lease of a fit the job's run claimed (:func:`try_claim_reconstruction`, ``time.monotonic()`` read
+    before it as ``taken_at``)."""
     return LeaseKeeper(lambda **values: renew_lease(rec_id, job_id, settings, run_token, **values),
                        settings.reconstruction_lease_s, f"reconstruction {rec_id}", "another job took the fit over",
-                       f"voxe-lease-{rec_id}")
+                       f"voxe-lease-{rec_id}", taken_at)
 
 
 def stage_lease(job_id: str, run_token: str, settings: Settings) -> LeaseKeeper:

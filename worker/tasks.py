@@ -282,10 +282,11 @@ def _reconstruct(job: Job, settings, device: str, storage) -> None:
             raise RuntimeError(f"reconstruction {rec_id} was deleted")
         if rec.state == R_SUCCEEDED:
             break
+        claimed_at = time.monotonic()  # the lease runs out lease_s after the claim at the latest
         if runtime.try_claim_reconstruction(rec_id, job.id, job.worker_hostname, settings, allow_failed=first,
                                             run_token=job.run_token):
             try:
-                _fit(job, runtime.load_reconstruction(rec_id), settings, storage, device)
+                _fit(job, runtime.load_reconstruction(rec_id), settings, storage, device, claimed_at)
                 ran_here = True
             except runtime.LeaseLost as exc:  # another job holds the fit now: wait for it, as for any other
                 log.warning("job %s: %s", job.id, exc)
@@ -392,13 +393,14 @@ taken over, its task's time limit (a job's, which fails the owner's job alone); 
 (``voxe_service.db.database_outage``)."""
 
 
-def _fit(job: Job, rec, settings, storage, device: str) -> None:
-    """Make G_i for ``rec`` (claimed by this job): voxelize its mesh, or fit, resuming from a stored checkpoint."""
+def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> None:
+    """Make G_i for ``rec`` (claimed by this job at ``time.monotonic()`` ``claimed_at``): voxelize its mesh, or fit,
+    resuming from a stored checkpoint."""
     scratch = runtime.scratch_dir(job.id, settings)
     checkpoint = scratch / "reconstruction_checkpoint.safetensors"
     checkpoint_key = reconstruction_storage_key(rec.id, "checkpoint.safetensors")
 
-    with runtime.fit_lease(rec.id, job.id, settings, job.run_token) as lease:
+    with runtime.fit_lease(rec.id, job.id, settings, job.run_token, claimed_at) as lease:
         def on_checkpoint(path: str) -> None:
             lease.check()
             storage.put_file(checkpoint_key, path)
