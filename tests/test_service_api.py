@@ -271,6 +271,31 @@ def test_an_ingest_removes_the_folders_its_scenes_killed_runs_left_and_keeps_a_l
     assert sorted(p.name for p in work.iterdir() if p.is_dir()) == sorted(kept)
 
 
+def test_an_ingest_that_cannot_make_its_folder_still_removes_the_killed_runs_and_holds_no_descriptor(tmp_path,
+                                                                                                    monkeypatch):
+    """A disk filled by killed runs' folders: the new run's own folder cannot be made (ENOSPC). The dead folders
+    are removed first, so the disk frees itself, and no descriptor is left holding a lock (it had kept them judged
+    live by every later run until this worker process died)."""
+    import errno
+    import os
+    import tempfile
+    from types import SimpleNamespace
+
+    from worker import ingest as ingest_module
+
+    work = tmp_path / "ingest"
+    (work / "s1-killed01").mkdir(parents=True)
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(tempfile, "mkdtemp", full)
+    descriptors = len(os.listdir("/proc/self/fd"))
+    with pytest.raises(OSError, match="No space left"):
+        ingest_module._run_scratch("s1", SimpleNamespace(work_dir=str(tmp_path)))
+    assert [p.name for p in work.iterdir()] == [".lock"] and len(os.listdir("/proc/self/fd")) == descriptors
+
+
 def test_a_starting_api_process_removes_the_staging_folders_no_live_process_holds(root, monkeypatch):
     """An API process killed mid-upload (OOM, SIGKILL, a deploy) left its staging folder in work/uploads for good. A
     starting one removes those whose lock (flock on .owner) no process holds; an upload in progress in another

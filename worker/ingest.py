@@ -170,24 +170,29 @@ def _run_scratch(scene_id: str, settings: Settings) -> tuple[Path, int]:
     stays. Folders are made and locked, and judged, under ``ingest/.lock``, so none is judged before it is locked."""
     work = Path(settings.work_dir) / "ingest"
     work.mkdir(parents=True, exist_ok=True)
+    removed = 0
     with open(work / ".lock", "w") as guard:
         try:
             fcntl.flock(guard, fcntl.LOCK_EX)
         except OSError:  # a filesystem without locks (some NFS / CIFS mounts): no folder can be told dead
             log.warning("ingest scratch in %s cannot be locked; a killed run's folder stays until its scene is "
                         "ready or failed", work)
-            dead = []
         else:
-            dead = [(path, lock) for path in work.glob(f"{scene_id}-*") if (lock := _lock(path)) is not None]
+            for path in work.glob(f"{scene_id}-*"):  # removed before this run's is made: a full disk frees itself
+                if (lock := _lock(path)) is not None:
+                    shutil.rmtree(path, ignore_errors=True)
+                    os.close(lock)
+                    removed += 1
         scratch = Path(tempfile.mkdtemp(dir=work, prefix=f"{scene_id}-"))
-        held = os.open(scratch, os.O_RDONLY | os.O_DIRECTORY)
+        try:
+            held = os.open(scratch, os.O_RDONLY | os.O_DIRECTORY)
+        except OSError:
+            shutil.rmtree(scratch, ignore_errors=True)
+            raise
         with contextlib.suppress(OSError):  # (no locks there: nothing judges it)
             fcntl.flock(held, fcntl.LOCK_EX)
-    for path, lock in dead:
-        shutil.rmtree(path, ignore_errors=True)
-        os.close(lock)
-    if dead:
-        log.info("scene %s: removed %d folder(s) its killed ingests left", scene_id, len(dead))
+    if removed:
+        log.info("scene %s: removed %d folder(s) its killed ingests left", scene_id, removed)
     return scratch, held
 
 
