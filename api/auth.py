@@ -196,7 +196,8 @@ class Idempotency:
 
         Also 409 while that request has not answered and its job or scene is not yet with the broker: a refusal
         would withdraw it (a replay had answered 200 with a job deleted a moment later). A request that died there
-        leaves its record pending: its job is replayed once the reaper has sent it, its scene once failed.
+        leaves its record pending: its job is replayed once it is sent (by the reaper, or by its scene's ingest),
+        its scene once failed.
         """
         row = self.original(session, owner)
         if row is None:

@@ -344,7 +344,7 @@ def test_submit_texture_colours_an_obj_without_a_library(api, tmp_path, capsys):
     (tmp_path / "notes.txt").write_text("not a texture")  # the service keeps only a texture it reads: said first
     assert main(["submit", "x", "--upload", str(tmp_path / "plane.obj"), "--texture", str(tmp_path / "notes.txt"),
                  "--api", url]) == 2
-    assert "--texture notes.txt: send the texture as one of .png, .jpg, .jpeg" in capsys.readouterr().err
+    assert "texture notes.txt: send it as one of .png, .jpg, .jpeg" in capsys.readouterr().err
 
 
 def test_an_obj_naming_missing_files_goes_without_them_and_one_naming_too_many_textures_is_refused(api, tmp_path,
@@ -365,13 +365,20 @@ def test_an_obj_naming_missing_files_goes_without_them_and_one_naming_too_many_t
                                                      f"not found in {tmp_path}: the OBJ goes without it, uncoloured"):
         assert obj_upload_files(obj) == [obj]
     (tmp_path / "plane.mtl").write_text("newmtl a\nmap_Kd a.png\nnewmtl b\nmap_kd b b.png\nnewmtl c\nmap_Kd -s 2 2 1 a.png\n")
-    Image.new("RGB", (2, 2), GREEN).save(tmp_path / "a.png")
-    with pytest.warns(MissingCompanionWarning) as said:
-        assert obj_upload_files(obj) == [obj, tmp_path / "plane.mtl", tmp_path / "a.png"]
+    with pytest.warns(MissingCompanionWarning) as said:  # none found: the library's Kd colours it
+        assert obj_upload_files(obj) == [obj, tmp_path / "plane.mtl"]
     assert str(said[0].message) == (
-        f"plane.mtl names textures not found in {tmp_path} (map_Kd): 'b b.png', '-s 2 2 1 a.png'; the OBJ goes without, "
-        "coloured by the library's Kd alone (put them beside the OBJ; map_Kd options such as -s are not read: write "
-        "the file name alone)")
+        f"plane.mtl names textures not found in {tmp_path} (map_Kd): 'a.png', 'b b.png', '-s 2 2 1 a.png'; the OBJ "
+        "goes without, coloured by the library's Kd alone (put them beside the OBJ; map_Kd options such as -s are "
+        "not read: write the file name alone)")
+    Image.new("RGB", (2, 2), GREEN).save(tmp_path / "a.png")
+    with pytest.raises(FileNotFoundError) as some:  # some found: that one would colour the others' parts too
+        obj_upload_files(obj)
+    assert str(some.value) == (
+        f"plane.mtl names textures not found in {tmp_path} (map_Kd): 'b b.png', '-s 2 2 1 a.png'; sent without them, "
+        "the texture found would colour every part (put them beside the OBJ; map_Kd options such as -s are not "
+        "read: write the file name alone)")
+    (tmp_path / "plane.mtl").write_text("newmtl a\nmap_Kd a.png\nnewmtl b\nmap_kd b b.png\n")
     Image.new("RGB", (2, 2), GREEN).save(tmp_path / "b b.png")
     with Client(url) as client, pytest.raises(ValueError, match=r"^plane.mtl names 2 textures \('a.png', 'b b.png'\); "
                                                                "the service takes one texture per OBJ"):

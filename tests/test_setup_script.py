@@ -36,6 +36,16 @@ def test_setup_installs_once_for_the_same_project_and_torch(tmp_path):
     with open(tmp_path / "pyproject.toml", "a") as project:
         project.write("\n# a dependency changed\n")
     assert setup(TORCH_SPEC="torch") == [*installs[:1], "-m pip install -q torch", installs[2]]
+    moved = tmp_path.parent / f"{tmp_path.name}-moved"  # the checkout moved: its editable install points elsewhere
+    tmp_path.rename(moved)
+    try:
+        (moved / ".venv" / "calls").unlink()
+        assert subprocess.run(["bash", ".ci/setup"], cwd=moved, capture_output=True, text=True, timeout=60,
+                              env={**os.environ, "TORCH_SPEC": "torch"}).returncode == 0
+        assert (moved / ".venv" / "calls").read_text().splitlines() == [*installs[:1], "-m pip install -q torch",
+                                                                        installs[2]]
+    finally:
+        moved.rename(tmp_path)
     python.write_text('#!/usr/bin/env bash\necho "$*" >> "$(dirname "$0")/../calls"\nexit 1\n')  # an install fails
     with open(tmp_path / "pyproject.toml", "a") as project:
         project.write("# again\n")

@@ -15,6 +15,8 @@ from urllib.parse import quote
 
 import httpx
 
+from voxe_core.constants import TEXTURE_SUFFIXES
+
 DEFAULT_URL = "http://127.0.0.1:8000"
 DEFAULT_TIMEOUT_S = 60.0
 DEFAULT_RETRIES = 3
@@ -245,10 +247,13 @@ def obj_upload_files(obj: Path, texture: str | os.PathLike | None = None) -> lis
 
     Names are read as trimesh (the service's reader) reads them, the rest of the line, and looked up as it does,
     in the OBJ's folder as written, else by their base name; each is sent under its base name, where the service
-    looks. A file not found is a :class:`MissingCompanionWarning` naming it, and the OBJ goes without it (as it went
-    before it was looked for: uncoloured, or coloured by the library's Kd alone); more textures than the one the
-    service takes, a ValueError naming them."""
+    looks. A library not found, or textures none of which is found, are a :class:`MissingCompanionWarning` naming
+    them, and the OBJ goes without them (as it went before they were looked for: uncoloured, or coloured by the
+    library's Kd alone); some textures found and others not, a FileNotFoundError (the one found would colour every
+    part); more textures than the one the service takes, or a ``texture`` it does not read, a ValueError."""
     if texture is not None:
+        if Path(texture).suffix.lower() not in TEXTURE_SUFFIXES:  # the service would keep it as no texture
+            raise ValueError(f"texture {Path(texture).name}: send it as one of {', '.join(TEXTURE_SUFFIXES)}")
         return [obj, Path(texture)]
     library_name = next(_keyed_values(obj, "mtllib"), None)
     if library_name is None:
@@ -265,10 +270,13 @@ def obj_upload_files(obj: Path, texture: str | os.PathLike | None = None) -> lis
     if missing:
         options = "; map_Kd options such as -s are not read: write the file name alone" if any(
             name.startswith("-") for name in missing) else ""
-        warnings.warn(f"{library.name} names textures not found in {obj.parent} (map_Kd): "
-                      f"{', '.join(map(repr, missing))}; the OBJ goes without, coloured by the library's Kd alone (put "
-                      f"them beside the OBJ{options})", MissingCompanionWarning, stacklevel=3)
-    images = {name: found for name, found in images.items() if found is not None}
+        where = f"{library.name} names textures not found in {obj.parent} (map_Kd): {', '.join(map(repr, missing))}"
+        if len(missing) < len(images):
+            raise FileNotFoundError(f"{where}; sent without them, the texture found would colour every part (put "
+                                    f"them beside the OBJ{options})")
+        warnings.warn(f"{where}; the OBJ goes without, coloured by the library's Kd alone (put them beside the "
+                      f"OBJ{options})", MissingCompanionWarning, stacklevel=3)
+        return [obj, library]
     textures = sorted(set(images.values()))
     if len(textures) > 1:
         raise ValueError(f"{library.name} names {len(textures)} textures ({', '.join(map(repr, images))}); the "

@@ -146,7 +146,11 @@ def allowed_addresses_within(host: str, port: int, allow_networks: list[ipaddres
         finally:
             _lookup_slots.release()
 
-    threading.Thread(target=look_up, name="voxe-webhook-resolve", daemon=True).start()
+    try:
+        threading.Thread(target=look_up, name="voxe-webhook-resolve", daemon=True).start()
+    except BaseException:  # (no thread to release its slot)
+        _lookup_slots.release()
+        raise
     try:
         return answer.result(None if deadline is None else max(0.0, deadline - time.monotonic()))
     except FutureTimeout:

@@ -15,7 +15,6 @@ import warnings
 from pathlib import Path
 
 from voxe_core.cli.common import EXIT_INTERRUPTED, EXIT_USAGE, LOG_PROGRESS_INTERVAL_S, Interrupt, positive_seconds
-from voxe_core.constants import TEXTURE_SUFFIXES
 
 
 def _scene_object(text: str) -> dict:
@@ -127,8 +126,6 @@ def cmd_submit(args) -> int:
 
     if args.texture is not None and args.upload is None:
         raise ValueError("--texture goes with --upload (an OBJ); an uploaded scene keeps its colours")
-    if args.texture is not None and args.texture.suffix.lower() not in TEXTURE_SUFFIXES:  # the service would drop it
-        raise ValueError(f"--texture {args.texture.name}: send the texture as one of {', '.join(TEXTURE_SUFFIXES)}")
     with _client(args) as client:
         try:
             scene_id = args.scene
@@ -137,7 +134,10 @@ def cmd_submit(args) -> int:
                     warnings.simplefilter("always", MissingCompanionWarning)
                     scene_id = client.upload_scene(args.upload, texture=args.texture)["id"]
                 for warning in left_out:
-                    print(f"voxe submit: warning: {warning.message}", file=sys.stderr)
+                    if issubclass(warning.category, MissingCompanionWarning):
+                        print(f"voxe submit: warning: {warning.message}", file=sys.stderr)
+                    else:  # as it would have been shown
+                        warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
                 print(f"uploaded {args.upload}: scene {scene_id}", file=sys.stderr)
             fields = {"mode": args.mode, "edit_words": args.edit_word}
             fields.update({k: v for k, v in (("params", args.params), ("webhook_url", args.webhook_url)) if v})
