@@ -200,6 +200,24 @@ def test_stuck_name_lookups_hold_at_most_lookup_threads_threads(monkeypatch):
     assert allowed_addresses_within("hooks.test", 443, [], 1.0) == ["93.184.216.34"]  # every slot free again
 
 
+def test_a_lookup_whose_thread_cannot_start_gives_its_slot_back(monkeypatch):
+    """Threads refused (the process at its limit) LOOKUP_THREADS times had kept every slot: each later lookup timed
+    out unstarted for good."""
+    import threading
+
+    from voxe_service.webhooks import LOOKUP_THREADS, allowed_addresses_within
+
+    def refused(self):
+        raise RuntimeError("can't start new thread")
+
+    with monkeypatch.context() as limit:
+        limit.setattr(threading.Thread, "start", refused)
+        for _ in range(LOOKUP_THREADS + 1):
+            with pytest.raises(RuntimeError, match="can't start new thread"):
+                allowed_addresses_within("93.184.216.34", 443, [], 0.5)
+    assert allowed_addresses_within("93.184.216.34", 443, [], 5.0) == ["93.184.216.34"]
+
+
 def test_an_attempt_ends_by_its_deadline_however_slowly_the_name_resolves(monkeypatch):
     """A resolver that takes 10 s to answer: the attempt gives up at its 0.5 s deadline with a timeout naming the
     lookup (the lookup had run outside the deadline, holding the attempt for the whole 10 s), and nothing is sent."""
