@@ -1152,16 +1152,17 @@ def test_an_owner_that_cannot_renew_its_fits_lease_before_it_runs_out_hands_the_
     assert tasks.reconstruct_task.apply(args=(b,)).get()["state"] == "done"
 
 
-@pytest.mark.parametrize("stop", ["time limit", "database outage"])
+@pytest.mark.parametrize("stop", ["time limit", "database outage", "storage outage"])
 def test_an_owner_stopped_by_its_time_limit_or_a_database_outage_hands_the_fit_to_the_waiting_jobs(
         client, dataset, root, monkeypatch, stop):
-    """The owner's soft time limit is its job's (that job fails, naming it) and a database outage is no fault of the
-    fit's: either hands the shared fit back, and a job waiting on it fits it, where both had failed the fit and
-    every job waiting on it."""
+    """The owner's soft time limit is its job's (that job fails, naming it), and a database or storage outage is no
+    fault of the fit's: each hands the shared fit back, and a job waiting on it fits it, where each had failed the
+    fit and every job waiting on it."""
     from celery.exceptions import SoftTimeLimitExceeded
     from sqlalchemy.exc import OperationalError
 
     from voxe_service.settings import get_settings
+    from voxe_service.storage import StorageUnavailable
     from worker import runtime, tasks
 
     a, b, rec_id = _two_tiny_fits(client, dataset, root)
@@ -1170,13 +1171,16 @@ def test_an_owner_stopped_by_its_time_limit_or_a_database_outage_hands_the_fit_t
     def stopped_fit(*args, **kwargs):
         if stop == "time limit":
             raise SoftTimeLimitExceeded()
+        if stop == "storage outage":  # storing a checkpoint, say
+            raise StorageUnavailable("the storage cannot be reached: connect timeout")
         raise OperationalError("UPDATE jobs", {}, Exception("server closed the connection unexpectedly"))
 
     monkeypatch.setattr(tasks, "_fit_grid", stopped_fit)
     assert tasks.reconstruct_task.apply(args=(a,)).get()["state"] == "failed"
     owner = client.get(f"/v1/jobs/{a}").json()
-    expected = (f"reconstruct: time limit of {get_settings().task_soft_time_limit_s} s exceeded"
-                if stop == "time limit" else "reconstruct: OperationalError")
+    expected = {"time limit": f"reconstruct: time limit of {get_settings().task_soft_time_limit_s} s exceeded",
+                "database outage": "reconstruct: OperationalError",
+                "storage outage": "reconstruct: StorageUnavailable"}[stop]
     assert owner["state"] == "failed" and owner["error"].startswith(expected)
     rec = runtime.load_reconstruction(rec_id)
     assert (rec.state, rec.owner_job_id, rec.owner_run_token, rec.error) == ("pending", None, None, None)

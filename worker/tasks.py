@@ -48,7 +48,7 @@ from voxe_service.queue import (
     reset_queue, send_evaluations_alone,
 )
 from voxe_service.settings import get_settings, model_label
-from voxe_service.storage import StoredObject, get_storage, job_key, reconstruction_storage_key
+from voxe_service.storage import StorageUnavailable, StoredObject, get_storage, job_key, reconstruction_storage_key
 from worker import runtime
 from worker.celery_app import app
 from worker.evaluation import EvaluationFailed, run_evaluation
@@ -387,10 +387,11 @@ def _voxelize(job: Job, rec, settings, storage):
                                          bbox_max=config.bbox_max, seed=rec.params["seed"]))
 
 
-NOT_THE_FITS_FAILURE = (StageCancelled, runtime.LeaseLost, runtime.RunSuperseded, SoftTimeLimitExceeded)
+NOT_THE_FITS_FAILURE = (StageCancelled, runtime.LeaseLost, runtime.RunSuperseded, SoftTimeLimitExceeded,
+                        StorageUnavailable)
 """What stops an owner's fit without failing it (and every job waiting on it): its job canceled, its lease or job
-taken over, its task's time limit (a job's, which fails the owner's job alone); so does a database outage
-(``voxe_service.db.database_outage``)."""
+taken over, its task's time limit (a job's, which fails the owner's job alone), the storage out of reach; so does a
+database outage (``voxe_service.db.database_outage``)."""
 
 
 def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> None:
