@@ -226,6 +226,45 @@ def test_the_workers_stage_eta_counts_the_units_done_since_its_first_report(monk
     assert written == [None] + [2.0 * (10 - iteration) for iteration in range(2, 11)]
 
 
+def test_a_database_outage_skips_a_stages_progress_write_and_cancel_check_and_the_next_ones_try_again(monkeypatch):
+    """A database blip (a dropped connection, SQLite locked) during a long stage had failed its job at the next
+    progress write or cancel check; each is skipped and the next tries again. A fault that is no outage (SQLite's
+    OperationalError for a missing column) still raises."""
+    import sqlite3
+    from types import SimpleNamespace
+
+    from sqlalchemy.exc import OperationalError
+
+    from voxe_core.progress import Progress
+    from voxe_service.settings import Settings
+    from worker import runtime
+
+    outage = OperationalError("UPDATE jobs", {}, sqlite3.OperationalError("database is locked"))
+    fault = OperationalError("UPDATE jobs", {}, sqlite3.OperationalError("no such column: jobs.eta_seconds"))
+    answers = [outage, None, fault]
+    written = []
+
+    def update_job(job_id, **values):
+        if (answer := answers.pop(0)) is not None:
+            raise answer
+        written.append(values["iteration"])
+
+    def session_scope():
+        raise outage
+
+    monkeypatch.setattr(runtime, "update_job", update_job)
+    monkeypatch.setattr(runtime, "session_scope", session_scope)
+    monkeypatch.setattr(runtime, "time", SimpleNamespace(monotonic=iter(range(100, 200)).__next__))
+    callbacks = runtime.StageCallbacks(_job(state="running", stage="edit"), "edit",
+                                       Settings(progress_interval_s=1e-9, cancel_check_interval_s=1e-9))
+    callbacks.on_progress(Progress("edit", 1, 10))  # the database locked: skipped
+    callbacks.on_progress(Progress("edit", 2, 10))  # written
+    assert written == [2]
+    assert callbacks.should_cancel() is False and callbacks.should_cancel() is False  # unread: the stage goes on
+    with pytest.raises(OperationalError, match="no such column"):
+        callbacks.on_progress(Progress("edit", 3, 10))
+
+
 def test_the_workers_refine_eta_weighs_each_sub_steps_units_by_its_cost(monkeypatch):
     """The paper's fit (``lift_start`` constant) on a CPU: 32 attention passes, then 1,500 fitting steps 1/50 of a
     pass each. The worker's time left had counted every unit left at the current sub-step's rate: ~30x the truth

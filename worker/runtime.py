@@ -351,11 +351,12 @@ class StageCallbacks:
             eta = (now - t0) / (report.iteration - i0) * self._units_left(report)
         losses = {k: round(float(v), 6) for k, v in report.losses.items() if math.isfinite(float(v))}
         message = self.note if report.stage == self.stage else f"{self.stage}: {report.stage}"
-        update_job(self.job_id, iteration=int(report.iteration), total=int(report.total), eta_seconds=eta,
-                   losses=losses, message=message)
-        if self.peak_memory_gb is not None and self.peak_memory_gb != self._peak_written:
-            record_peak_memory(self.job_id, self.stage, self.peak_memory_gb, report.info.get("peak_memory_kind"))
-            self._peak_written = self.peak_memory_gb
+        with self._through_outage("write its progress"):
+            update_job(self.job_id, iteration=int(report.iteration), total=int(report.total), eta_seconds=eta,
+                       losses=losses, message=message)
+            if self.peak_memory_gb is not None and self.peak_memory_gb != self._peak_written:
+                record_peak_memory(self.job_id, self.stage, self.peak_memory_gb, report.info.get("peak_memory_kind"))
+                self._peak_written = self.peak_memory_gb
         if self.extra_progress is not None:
             self.extra_progress(report)
 
@@ -369,6 +370,17 @@ class StageCallbacks:
             return max(0, report.total - report.iteration)
         return sum(units * self.phase_seconds.get(phase, current) / current for phase, units in left.items())
 
+    @contextmanager
+    def _through_outage(self, what: str) -> Iterator[None]:
+        """A progress write or cancel check the database cannot serve now (``database_outage``: down, locked) is
+        skipped, and the next one tries again: a blip in a long stage had failed its job."""
+        try:
+            yield
+        except DATABASE_UNAVAILABLE as exc:
+            if database_outage(exc) is None:
+                raise
+            log.warning("job %s: %s could not %s (%s); going on", self.job_id, self.stage, what, database_outage(exc))
+
     def should_cancel(self) -> bool:
         if self._canceled:
             return True
@@ -376,9 +388,13 @@ class StageCallbacks:
         if now - self._last_check < self.settings.cancel_check_interval_s:
             return False
         self._last_check = now
-        with session_scope() as session:
-            row = session.execute(select(Job.cancel_requested, Job.state, Job.run_token)
-                                  .where(Job.id == self.job_id)).first()
+        row = unread = object()
+        with self._through_outage("read whether it was canceled"):
+            with session_scope() as session:
+                row = session.execute(select(Job.cancel_requested, Job.state, Job.run_token)
+                                      .where(Job.id == self.job_id)).first()
+        if row is unread:  # the database out of reach: the stage goes on, and asks again at the next check
+            return False
         self._canceled = (row is None or bool(row.cancel_requested) or row.state in TERMINAL_STATES
                           or (self.run_token is not None and row.run_token != self.run_token))
         if self._canceled and self._last_report is not None and self._last_report is not self._written:
