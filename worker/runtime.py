@@ -292,6 +292,19 @@ def fail_job(job_id: str, error: str, run_token: str | None = None) -> bool:
 
 
 # --------------------------------------------------------------------------- callbacks
+@contextmanager
+def outage_skipped(what: str) -> Iterator[None]:
+    """``what`` the block does (a progress write, a lease renewal), skipped with a warning when the database cannot
+    serve now (``database_outage``: down, locked), for the next one to try again: a blip in a long stage must not
+    fail it. A fault that is no outage (SQLite's OperationalError for a missing column) raises."""
+    try:
+        yield
+    except DATABASE_UNAVAILABLE as exc:
+        if (why := database_outage(exc)) is None:
+            raise
+        log.warning("%s skipped: %s", what, why)
+
+
 class StageCallbacks:
     """``voxe_core.progress.Callbacks`` for one stage of one job.
 
@@ -351,7 +364,7 @@ class StageCallbacks:
             eta = (now - t0) / (report.iteration - i0) * self._units_left(report)
         losses = {k: round(float(v), 6) for k, v in report.losses.items() if math.isfinite(float(v))}
         message = self.note if report.stage == self.stage else f"{self.stage}: {report.stage}"
-        with self._through_outage("write its progress"):
+        with outage_skipped(f"job {self.job_id}: {self.stage}'s progress write"):
             update_job(self.job_id, iteration=int(report.iteration), total=int(report.total), eta_seconds=eta,
                        losses=losses, message=message)
             if self.peak_memory_gb is not None and self.peak_memory_gb != self._peak_written:
@@ -370,17 +383,6 @@ class StageCallbacks:
             return max(0, report.total - report.iteration)
         return sum(units * self.phase_seconds.get(phase, current) / current for phase, units in left.items())
 
-    @contextmanager
-    def _through_outage(self, what: str) -> Iterator[None]:
-        """A progress write or cancel check the database cannot serve now (``database_outage``: down, locked) is
-        skipped, and the next one tries again: a blip in a long stage had failed its job."""
-        try:
-            yield
-        except DATABASE_UNAVAILABLE as exc:
-            if database_outage(exc) is None:
-                raise
-            log.warning("job %s: %s could not %s (%s); going on", self.job_id, self.stage, what, database_outage(exc))
-
     def should_cancel(self) -> bool:
         if self._canceled:
             return True
@@ -389,7 +391,7 @@ class StageCallbacks:
             return False
         self._last_check = now
         row = unread = object()
-        with self._through_outage("read whether it was canceled"):
+        with outage_skipped(f"job {self.job_id}: {self.stage}'s cancel check"):
             with session_scope() as session:
                 row = session.execute(select(Job.cancel_requested, Job.state, Job.run_token)
                                       .where(Job.id == self.job_id)).first()
@@ -692,13 +694,10 @@ class LeaseKeeper:
         """Renew now (recording ``values``, e.g. the fit's iteration); whether the lease is still held (not known
         lost). A database outage (locked, a dropped connection) skips the renewal: the next one tries again."""
         asked = time.monotonic()
-        try:
+        held = None
+        with outage_skipped(f"{self._thread.name}: a renewal ({self._runs_until - asked:.0f} s of the lease left)"):
             held = self._renew(**values)
-        except DATABASE_UNAVAILABLE as exc:
-            if database_outage(exc) is None:  # a fault (SQLite's OperationalError for a missing column), no outage
-                raise
-            log.warning("%s: could not renew the lease (%.0f s of it left)", self._thread.name,
-                        self._runs_until - time.monotonic(), exc_info=True)
+        if held is None:  # skipped
             return not self.lost
         if held:
             self._runs_until = asked + self.lease_s  # (the database counts from its own moment, after this one)

@@ -82,9 +82,9 @@ def node_mask(grid: VoxelGrid, node_alpha: float = 0.01, rule: str = "alpha") ->
     nor empty (it had dropped out of the nodes silently, under "maxpool" with its whole 3×3×3 block).
     """
     raw = grid.features[..., 0].detach()
-    read = grid.object_vertices()
+    vertices = read = grid.object_vertices()
     if rule == "maxpool":
-        read = F.max_pool3d(read[None, None].float(), 3, stride=1, padding=1)[0, 0] > 0
+        read = F.max_pool3d(vertices[None, None].float(), 3, stride=1, padding=1)[0, 0] > 0
     nan = int((torch.isnan(raw) & read).sum())
     if nan:
         raise SegmentationError(
@@ -93,10 +93,10 @@ def node_mask(grid: VoxelGrid, node_alpha: float = 0.01, rule: str = "alpha") ->
         )
     if rule == "maxpool":
         pooled = F.max_pool3d((raw * grid.density_scale)[None, None], 3, stride=1, padding=1)[0, 0]
-        return (pooled > 0) & grid.object_vertices()
+        return (pooled > 0) & vertices
     sigma = grid.activate_density(raw)
     threshold = -math.log1p(-node_alpha) / float(grid.voxel_size.min())
-    return (sigma >= threshold) & grid.object_vertices()
+    return (sigma >= threshold) & vertices
 
 
 def pairwise_weights(diff: np.ndarray, config: RefineConfig) -> np.ndarray:
