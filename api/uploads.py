@@ -31,7 +31,6 @@ kept for route (b), and the scene's format is ``mesh``.
 
 from __future__ import annotations
 
-import fcntl
 import json
 import logging
 import os
@@ -39,11 +38,9 @@ import re
 import shutil
 import stat
 import struct
-import tempfile
 import warnings
 import zipfile
-from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import BinaryIO
@@ -56,6 +53,7 @@ from voxe_core.mesh_input import MESH_FRAMES, MESH_INPUT_SUFFIXES
 from voxe_service import datasets
 from voxe_service.datasets import (DATASET_ARCHIVE, MESH_FOLDER, MESH_FORMAT, MESH_NAMES, MESH_OPTIONS, UPLOAD_ARCHIVE,
                                    ignored, package)
+from voxe_service.scratch import locked_folder, sweep_unlocked
 
 log = logging.getLogger("voxe.api")
 _RATIO_FLOOR = 4 << 20  # below this many bytes out of an entry (or the archive), any ratio is fine (text compresses)
@@ -68,7 +66,7 @@ _CHUNK = 64 << 10
 _ENTRIES_PER_FILE = 4
 _ENTRIES_SLACK = 8  # the top folder (and its __MACOSX twin) of a Finder zip of exactly the allowed files: 4N + 2
 _DIRECTORY_BYTES_PER_ENTRY = 1024
-_UPLOADS, _STAGING_PREFIX, _OWNER = "uploads", "upload-", ".owner"  # work_dir/uploads/upload-*/.owner
+_UPLOADS, _STAGING_PREFIX = "uploads", "upload-"  # work_dir/uploads/upload-*
 _CENTRAL_RECORD = struct.Struct("<4s24x3H12x")  # signature, then the name, extra and comment lengths (46 bytes)
 _END_RECORD = struct.Struct("<4s8xL6x")  # signature, then the directory's size (22 bytes, then a comment)
 _ZIP64_LOCATOR_SIGNATURE = b"PK\x06\x07"  # 20 bytes, right before the end record
@@ -318,8 +316,8 @@ def dataset_root(folder: Path) -> Path:
     return root
 
 
-OTHER_TEXTURE_SUFFIXES = (".bmp", ".dds", ".exr", ".gif", ".hdr", ".jp2", ".ktx", ".ktx2", ".psd", ".tga", ".tif", ".tiff",
-                          ".webp")
+OTHER_TEXTURE_SUFFIXES = (".bmp", ".dds", ".exr", ".gif", ".hdr", ".jp2", ".ktx", ".ktx2", ".psd", ".tga", ".tif",
+                          ".tiff", ".webp")
 """Texture image kinds 3D tools write that the mesh loader does not read (it reads ``TEXTURE_SUFFIXES``): beside an
 OBJ, one is a 422, where it had been dropped and the mesh arrived without its colours. Other files beside a mesh
 (a licence, a scan's data) are no texture and stay ignored."""
@@ -473,46 +471,16 @@ def _check_frame_images(root: Path, json_name: str, frames: list[dict], staging:
     return first[0]
 
 
-@contextmanager
-def staging_folder(work_dir: Path) -> Iterator[Path]:
-    """A new folder for one upload under ``work_dir/uploads``, removed on leaving. Its ``.owner`` file is locked
-    meanwhile (flock, which the kernel releases when the process dies): :func:`sweep_staging` leaves it alone."""
-    uploads = Path(work_dir) / _UPLOADS
-    uploads.mkdir(parents=True, exist_ok=True)
-    while True:
-        staging = Path(tempfile.mkdtemp(dir=uploads, prefix=_STAGING_PREFIX))
-        try:
-            owner = open(staging / _OWNER, "ab")
-        except FileNotFoundError:  # swept before it was locked: another
-            continue
-        try:
-            fcntl.flock(owner, fcntl.LOCK_EX)
-        except OSError:  # a filesystem without locks (some NFS / CIFS mounts): the sweep cannot lock it either
-            log.warning("upload staging in %s cannot be locked; a killed process's folders stay there", uploads)
-        if staging.is_dir():  # (else swept before it was locked)
-            break
-        owner.close()
-    try:
-        with owner:
-            yield staging
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
+def staging_folder(work_dir: Path) -> AbstractContextManager[Path]:
+    """A new folder for one upload under ``work_dir/uploads``, removed on leaving, held while it is used
+    (:func:`voxe_service.scratch.locked_folder`): :func:`sweep_staging` leaves it alone."""
+    return locked_folder(Path(work_dir) / _UPLOADS, _STAGING_PREFIX)
 
 
 def sweep_staging(work_dir: Path) -> int:
-    """Remove the staging folders under ``work_dir/uploads`` whose lock no process holds: those of an API process
-    killed mid-upload, kept for ever otherwise; the count removed. Safe beside the API processes sharing
-    ``work_dir``: their uploads' folders are locked (one swept before its process locked it is replaced)."""
-    removed = 0
-    for staging in (Path(work_dir) / _UPLOADS).glob(_STAGING_PREFIX + "*"):
-        try:
-            with open(staging / _OWNER, "ab") as owner:  # (made for a folder whose process died before making it)
-                fcntl.flock(owner, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                shutil.rmtree(staging, ignore_errors=True)
-        except OSError:  # in use, removed meanwhile, not a folder, or a filesystem without locks: left alone
-            continue
-        removed += 1
-    return removed
+    """Remove the staging folders under ``work_dir/uploads`` no live process holds: those of an API process killed
+    mid-upload, kept for ever otherwise; the count removed. Safe beside the API processes sharing ``work_dir``."""
+    return sweep_unlocked(Path(work_dir) / _UPLOADS, _STAGING_PREFIX + "*")
 
 
 def stage_upload(

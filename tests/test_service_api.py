@@ -225,19 +225,21 @@ def test_an_ingest_removes_the_folders_its_scenes_killed_runs_left_and_keeps_a_l
     import sys
     from types import SimpleNamespace
 
+    from voxe_service import scratch
     from voxe_service.settings import get_settings
     from worker import ingest as ingest_module
 
     scene = upload_zip(client, zip_folder(dataset, root / "ok.zip", prefix="mic_small")).json()
     work = Path(get_settings().work_dir) / "ingest"
-    holding = ("import fcntl, os, sys, time; fd = os.open(sys.argv[1], os.O_RDONLY); fcntl.flock(fd, fcntl.LOCK_EX); "
+    holding = ("import fcntl, sys, time; owner = open(sys.argv[1], 'ab'); fcntl.flock(owner, fcntl.LOCK_EX); "
                "print('locked', flush=True); time.sleep(600)")
 
     def run_in(folder: Path) -> subprocess.Popen:
-        """A process holding ``folder`` as an ingest run does."""
+        """A process holding ``folder`` as an ingest run does (voxe_service.scratch)."""
         folder.mkdir(parents=True)
         (folder / "archive.zip").write_bytes(b"an unpacked upload")
-        process = subprocess.Popen([sys.executable, "-c", holding, str(folder)], stdout=subprocess.PIPE, text=True)
+        process = subprocess.Popen([sys.executable, "-c", holding, str(folder / ".owner")], stdout=subprocess.PIPE,
+                                   text=True)
         assert process.stdout.readline() == "locked\n"
         return process
 
@@ -257,8 +259,8 @@ def test_an_ingest_removes_the_folders_its_scenes_killed_runs_left_and_keeps_a_l
 
     monkeypatch.setattr(ingest_module, "decode", decode_seeing)
     if not locks:
-        monkeypatch.setattr(ingest_module, "fcntl", SimpleNamespace(flock=no_locks, LOCK_EX=fcntl.LOCK_EX,
-                                                                    LOCK_NB=fcntl.LOCK_NB))
+        monkeypatch.setattr(scratch, "fcntl", SimpleNamespace(flock=no_locks, LOCK_EX=fcntl.LOCK_EX,
+                                                              LOCK_NB=fcntl.LOCK_NB))
     running = run_in(work / live)
     try:
         assert ingest(scene["id"]) == {"scene_id": scene["id"], "state": "ready"}
@@ -271,20 +273,20 @@ def test_an_ingest_removes_the_folders_its_scenes_killed_runs_left_and_keeps_a_l
     assert sorted(p.name for p in work.iterdir() if p.is_dir()) == sorted(kept)
 
 
-def test_an_ingest_that_cannot_make_its_folder_still_removes_the_killed_runs_and_holds_no_descriptor(tmp_path,
-                                                                                                    monkeypatch):
+def test_an_ingest_that_cannot_make_its_folder_still_removes_the_killed_runs_and_holds_no_descriptor(
+        client, dataset, root, monkeypatch):
     """A disk filled by killed runs' folders: the new run's own folder cannot be made (ENOSPC). The dead folders
     are removed first, so the disk frees itself, and no descriptor is left holding a lock (it had kept them judged
     live by every later run until this worker process died)."""
     import errno
     import os
     import tempfile
-    from types import SimpleNamespace
 
-    from worker import ingest as ingest_module
+    from voxe_service.settings import get_settings
 
-    work = tmp_path / "ingest"
-    (work / "s1-killed01").mkdir(parents=True)
+    scene = upload_zip(client, zip_folder(dataset, root / "ok.zip", prefix="mic_small")).json()
+    work = Path(get_settings().work_dir) / "ingest"
+    (work / f"{scene['id']}-killed01").mkdir(parents=True)
 
     def full(*args, **kwargs):
         raise OSError(errno.ENOSPC, "No space left on device")
@@ -292,8 +294,8 @@ def test_an_ingest_that_cannot_make_its_folder_still_removes_the_killed_runs_and
     monkeypatch.setattr(tempfile, "mkdtemp", full)
     descriptors = len(os.listdir("/proc/self/fd"))
     with pytest.raises(OSError, match="No space left"):
-        ingest_module._run_scratch("s1", SimpleNamespace(work_dir=str(tmp_path)))
-    assert [p.name for p in work.iterdir()] == [".lock"] and len(os.listdir("/proc/self/fd")) == descriptors
+        ingest(scene["id"])
+    assert list(work.iterdir()) == [] and len(os.listdir("/proc/self/fd")) == descriptors
 
 
 def test_a_starting_api_process_removes_the_staging_folders_no_live_process_holds(root, monkeypatch):
@@ -305,6 +307,7 @@ def test_a_starting_api_process_removes_the_staging_folders_no_live_process_hold
 
     from api import uploads
     from api.main import create_app
+    from voxe_service import scratch
 
     work = root / "work"
     with uploads.staging_folder(work) as live:
@@ -332,7 +335,7 @@ def test_a_starting_api_process_removes_the_staging_folders_no_live_process_hold
 
     for name, swept in (("tempfile.mkdtemp", made_then_swept), ("open", opened_then_swept)):
         with monkeypatch.context() as patch:
-            patch.setattr(uploads if name == "open" else tempfile, name.split(".")[-1], swept, raising=False)
+            patch.setattr(scratch if name == "open" else tempfile, name.split(".")[-1], swept, raising=False)
             with uploads.staging_folder(work) as replaced:
                 assert staged(root) == [replaced.name]
         assert staged(root) == []

@@ -13,14 +13,10 @@ error (file and frame, as the API's 422s) and the jobs waiting on it fail naming
 
 from __future__ import annotations
 
-import contextlib
-import fcntl
 import json
 import logging
 import os
 import re
-import shutil
-import tempfile
 from pathlib import Path
 from typing import NamedTuple
 
@@ -38,6 +34,7 @@ from voxe_service.models import PROCESSING, Scene, utcnow
 from voxe_service.queue import QueueUnavailable, TaskResult, dispatch_job, get_queue, requeue_limit_error
 from voxe_service.quotas import ingest_over_quota
 from voxe_service.scenes import fail_scene, mark_ready
+from voxe_service.scratch import locked_folder, sweep_unlocked
 from voxe_service.settings import Settings
 from voxe_service.storage import Storage, scene_key
 from worker.runtime import worker_in_cold_shutdown
@@ -133,82 +130,35 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
         _fail(scene_id, error, storage)
         return {"scene_id": scene_id, "state": "failed"}
     mesh_upload = upload_key == scene_key(scene_id, datasets.UPLOAD_ARCHIVE)
-    scratch, held = _run_scratch(scene_id, settings)
-    values: dict = {}
-    try:
-        root = datasets.unpack(storage.get_file(upload_key, scratch / "archive.zip"), scratch / "data")
-        if mesh_upload:
-            render_mesh(root)
-        count, values["backbone"] = decode(root, settings.validation_downsample)
-        if mesh_upload:  # the rendered dataset (and the mesh beside it) becomes the scene's archive
-            archive = scratch / datasets.DATASET_ARCHIVE
-            datasets.package(root, archive)
-            stored = storage.put_file(scene_key(scene_id, datasets.DATASET_ARCHIVE), archive, "application/zip")
-            size = datasets.MESH_VIEW_SIZE
-            values.update(storage_key=stored.key, size_bytes=stored.size, sha256=stored.sha256, image_count=count,
-                          width=size, height=size, splits=["train", "test"])
-    except Exception as exc:  # noqa: BLE001 - every failure becomes the scene's reason ...
-        if worker_in_cold_shutdown():  # ... but a cold shutdown's (it had failed the scene and deleted its upload)
-            _uncount_run(scene_id)
-            raise Reject(f"the ingest of scene {scene_id} stopped by the worker's shutdown", requeue=True) from exc
-        reason = str(exc) if isinstance(exc, IngestError) else f"ingest: {type(exc).__name__}: {exc}"
-        if not isinstance(exc, IngestError):
-            log.exception("scene %s: ingest failed", scene_id)
-        _fail(scene_id, reason, storage)
-        return {"scene_id": scene_id, "state": "failed"}
-    finally:
-        shutil.rmtree(scratch, ignore_errors=True)
-        os.close(held)  # (its lock goes with it)
-    return _ready(scene_id, values, storage, settings, upload_key if mesh_upload else None)
-
-
-def _run_scratch(scene_id: str, settings: Settings) -> tuple[Path, int]:
-    """This run's scratch folder (``ingest/<scene id>-*``) and a descriptor holding it locked (flock) while the run
-    lives: the lock goes when the run's process dies. First, the folders of the scene's earlier runs on this machine
-    whose locks are gone (their processes killed, e.g. out of memory on this upload) are removed: each holds up to
-    ``VOXE_MAX_EXTRACTED_BYTES``, and a crash loop had kept them all until the scene failed. A live run's folder
-    stays. Folders are made and locked, and judged, under ``ingest/.lock``, so none is judged before it is locked."""
     work = Path(settings.work_dir) / "ingest"
-    work.mkdir(parents=True, exist_ok=True)
-    removed = 0
-    with open(work / ".lock", "w") as guard:
-        try:
-            fcntl.flock(guard, fcntl.LOCK_EX)
-        except OSError:  # a filesystem without locks (some NFS / CIFS mounts): no folder can be told dead
-            log.warning("ingest scratch in %s cannot be locked; a killed run's folder stays until its scene is "
-                        "ready or failed", work)
-        else:
-            for path in work.glob(f"{scene_id}-*"):  # removed before this run's is made: a full disk frees itself
-                if (lock := _lock(path)) is not None:
-                    shutil.rmtree(path, ignore_errors=True)
-                    os.close(lock)
-                    removed += 1
-        scratch = Path(tempfile.mkdtemp(dir=work, prefix=f"{scene_id}-"))
-        try:
-            held = os.open(scratch, os.O_RDONLY | os.O_DIRECTORY)
-        except OSError:
-            shutil.rmtree(scratch, ignore_errors=True)
-            raise
-        with contextlib.suppress(OSError):  # (no locks there: nothing judges it)
-            fcntl.flock(held, fcntl.LOCK_EX)
-    if removed:
+    # The folders the scene's killed runs on this machine left (each up to VOXE_MAX_EXTRACTED_BYTES; a crash loop had
+    # kept them all until the scene failed), removed before this run's is made: a full disk frees itself.
+    if removed := sweep_unlocked(work, f"{scene_id}-*"):
         log.info("scene %s: removed %d folder(s) its killed ingests left", scene_id, removed)
-    return scratch, held
-
-
-def _lock(folder: Path) -> int | None:
-    """A descriptor of ``folder`` holding its lock, or None when a live run holds it (or it is no folder now, or its
-    filesystem has no locks)."""
-    try:
-        fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
-    except OSError:
-        return None
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        os.close(fd)
-        return None
-    return fd
+    values: dict = {}
+    with locked_folder(work, f"{scene_id}-") as scratch:
+        try:
+            root = datasets.unpack(storage.get_file(upload_key, scratch / "archive.zip"), scratch / "data")
+            if mesh_upload:
+                render_mesh(root)
+            count, values["backbone"] = decode(root, settings.validation_downsample)
+            if mesh_upload:  # the rendered dataset (and the mesh beside it) becomes the scene's archive
+                archive = scratch / datasets.DATASET_ARCHIVE
+                datasets.package(root, archive)
+                stored = storage.put_file(scene_key(scene_id, datasets.DATASET_ARCHIVE), archive, "application/zip")
+                size = datasets.MESH_VIEW_SIZE
+                values.update(storage_key=stored.key, size_bytes=stored.size, sha256=stored.sha256, image_count=count,
+                              width=size, height=size, splits=["train", "test"])
+        except Exception as exc:  # noqa: BLE001 - every failure becomes the scene's reason ...
+            if worker_in_cold_shutdown():  # ... but a cold shutdown's (it had failed the scene and deleted its upload)
+                _uncount_run(scene_id)
+                raise Reject(f"the ingest of scene {scene_id} stopped by the worker's shutdown", requeue=True) from exc
+            reason = str(exc) if isinstance(exc, IngestError) else f"ingest: {type(exc).__name__}: {exc}"
+            if not isinstance(exc, IngestError):
+                log.exception("scene %s: ingest failed", scene_id)
+            _fail(scene_id, reason, storage)
+            return {"scene_id": scene_id, "state": "failed"}
+    return _ready(scene_id, values, storage, settings, upload_key if mesh_upload else None)
 
 
 def _uncount_run(scene_id: str) -> None:
