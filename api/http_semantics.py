@@ -88,16 +88,16 @@ def _media_type(request: Request) -> str:
     return request.headers.get("content-type", "").split(";")[0].strip().lower()
 
 
-def _json_sent(request: Request) -> bool:
-    """Whether FastAPI reads the body as JSON: sent as application/json or another ``+json`` type."""
-    media_type = _media_type(request)
+def _json_sent(media_type: str) -> bool:
+    """Whether FastAPI reads a body of ``media_type`` as JSON: application/json or another ``+json`` type."""
     return media_type == "application/json" or media_type.endswith("+json")
 
 
 def malformed_body(request: Request, exc: RequestValidationError) -> JSONResponse | None:
     """The 400 for a body that did not parse as JSON, the 415 for one not sent as JSON, else None (a schema
     error: the 422 stays)."""
-    media_type, json_sent = _media_type(request), _json_sent(request)
+    media_type = _media_type(request)
+    json_sent = _json_sent(media_type)
     for error in exc.errors():
         if not json_sent and error.get("loc") == ("body",) and error.get("type") == "model_attributes_type":
             return JSONResponse({"detail": f"the body must be sent as JSON (Content-Type: application/json), not as "
@@ -114,7 +114,7 @@ async def unreadable_body(request: Request, exc: StarletteHTTPException) -> Resp
     """The 400 ``malformed JSON body`` naming why ``json.loads`` refused the body with an error other than
     ``JSONDecodeError`` (FastAPI answers those with a bare "There was an error parsing the body"); any other 400
     unchanged."""
-    cause = exc.__cause__ if _json_sent(request) else None  # a form's parse error is no JSON's
+    cause = exc.__cause__ if _json_sent(_media_type(request)) else None  # a form's parse error is no JSON's
     if isinstance(cause, UnicodeDecodeError):
         reason = f"it is not UTF-8 ({cause.reason} at byte {cause.start})"
     elif isinstance(cause, RecursionError):
