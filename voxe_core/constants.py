@@ -115,4 +115,5 @@ EVALUATION_RING_SIZE = RENDER_SIZE
 
 # ------------------------------------------------------------------ meshes as input
 TEXTURE_SUFFIXES = (".png", ".jpg", ".jpeg")
-"""Texture images the mesh loader reads (``voxe_core.mesh_input``), here so ``voxe submit`` checks one without torch."""
+"""Texture images the mesh loader reads (``voxe_core.mesh_input``), here so the client (``voxe_client``) checks one
+without torch."""
