@@ -199,10 +199,10 @@ class Idempotency:
         leaves its record pending: its job is replayed once it is sent (by the reaper, or by its scene's ingest),
         its scene once failed.
         """
-        row = self.original(session, owner)
-        if row is None:
+        found = self.original(session, owner, model)
+        if found is None:
             return None
-        resource = session.get(model, row.resource_id)
+        row, resource = found
         if resource is None:
             raise HTTPException(status.HTTP_409_CONFLICT, f"the {self.endpoint[:-1]} {row.resource_id!r} that "
                                 f"Idempotency-Key {self.key!r} created has been deleted; use a new key")
@@ -213,17 +213,25 @@ class Idempotency:
                                 "moment", headers={"Retry-After": "1"})
         return resource
 
-    def original(self, session: Session, owner: ApiKey) -> IdempotencyRecord | None:
-        """The record of the first request with this key, None if none; 422 if it asked for something else."""
-        row = session.scalars(select(IdempotencyRecord).where(self._this_record(owner))).first()
-        if row is None:
+    def original(self, session: Session, owner: ApiKey, model: type) -> tuple[IdempotencyRecord, object] | None:
+        """The record of the first request with this key and the ``model`` row it created (None once deleted), None
+        if none; 422 if it asked for something else.
+
+        One statement reads both: read apart, a withdrawal (the 503 deleting the row with this record) committed
+        in between made a retry answer "has been deleted; use a new key" for a key free to run anew.
+        """
+        found = session.execute(select(IdempotencyRecord, model)
+                                .outerjoin(model, model.id == IdempotencyRecord.resource_id)
+                                .where(self._this_record(owner))).first()
+        if found is None:
             return None
+        row, resource = found
         if not any(hmac.compare_digest(row.request_sha256, digest)
                    for digest in (self.request_sha256, self.earlier_sha256) if digest is not None):
             raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
                                 f"Idempotency-Key {self.key!r} was already used with a different request body "
                                 f"(it created {self.endpoint} {row.resource_id!r}); use a new key for a new request")
-        return row
+        return row, resource
 
     def _this_record(self, owner: ApiKey):
         """The condition selecting this Idempotency-Key's record."""

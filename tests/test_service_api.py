@@ -1365,6 +1365,59 @@ def test_a_retry_after_its_first_request_died_unanswered_replays_the_job_once_th
     assert replayed.status_code == 200 and replayed.json()["id"] == created["id"]
 
 
+@BOTH_DATABASES
+def test_a_retry_reading_its_key_as_the_first_request_withdraws_it_is_a_409_to_retry_never_a_dead_key(
+        client, dataset, root):
+    """A retry had read its Idempotency-Key's record, then the scene or job it names: the first request's 503
+    withdrawing both (its broker refused) committed between the two reads made it answer "has been deleted; use a
+    new key" for a key free to run anew. Read in one statement, the retry sees both (409, retry in a moment) or
+    neither (it runs anew)."""
+    from sqlalchemy import delete, event, update
+
+    from voxe_service.db import get_engine, session_scope
+    from voxe_service.models import IdempotencyRecord, Job, Scene
+
+    scene = make_scene(client, dataset, root)
+    archive = zip_folder(dataset, root / "again.zip", prefix="mic_small")
+
+    def upload():
+        with open(archive, "rb") as handle:
+            return client.post("/v1/scenes", files={"archive": ("s.zip", handle, "application/zip")},
+                               headers={"Idempotency-Key": "u1"})
+
+    def create_job():
+        return client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}, headers={"Idempotency-Key": "j1"})
+
+    for submit, model, key, what in ((upload, Scene, "u1", "scene"), (create_job, Job, "j1", "job")):
+        first = submit()
+        assert first.status_code == 201, first.text
+        this_record = IdempotencyRecord.idempotency_key == key
+        with session_scope() as session:  # as the first request leaves them while the broker has not answered
+            session.execute(update(IdempotencyRecord).where(this_record).values(pending=True))
+            session.execute(update(model).where(model.id == first.json()["id"]).values(task_id=None))
+        withdrawn = []
+
+        def withdraw_after_the_record_is_read(_conn, _cursor, statement, *_args):
+            """The first request's 503 (its resource and record deleted, one commit), just after the retry's read."""
+            if withdrawn or not statement.lstrip().startswith("SELECT") or "FROM idempotency_records" not in statement:
+                return
+            withdrawn.append(statement)
+            with get_engine().begin() as other:
+                other.execute(delete(model).where(model.id == first.json()["id"]))
+                other.execute(delete(IdempotencyRecord).where(this_record))
+
+        event.listen(get_engine(), "after_cursor_execute", withdraw_after_the_record_is_read)
+        try:
+            retry = submit()
+        finally:
+            event.remove(get_engine(), "after_cursor_execute", withdraw_after_the_record_is_read)
+        assert withdrawn and retry.status_code == 409, retry.text
+        assert retry.json()["detail"].startswith(f"the first request with Idempotency-Key {key!r} has not answered "
+                                                 f"yet (the broker may still refuse its {what} ")
+        again = submit()  # the key was withdrawn: it runs anew
+        assert again.status_code == 201 and again.json()["id"] != first.json()["id"], again.text
+
+
 def test_a_job_accepted_while_the_broker_refused_the_ingest_keeps_the_scene_failed(client, dataset, root,
                                                                                    monkeypatch):
     """The scene is listed while the broker takes its time to refuse its ingest: a job accepted on it meanwhile is
