@@ -34,8 +34,9 @@ IDEMPOTENCY_HEADER = "Idempotency-Key"
 REPLAYED_HEADER = "Idempotent-Replayed"
 
 
-def hash_token(token: str) -> str:
-    return hashlib.sha256(token.encode()).hexdigest()
+def sha256_hex(text: str) -> str:
+    """The hex sha256 of ``text``'s UTF-8: what is stored of a token, and a request's Idempotency-Key digest."""
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
 def create_key(session: Session, name: str, max_active_jobs: int | None = None,
@@ -43,7 +44,7 @@ def create_key(session: Session, name: str, max_active_jobs: int | None = None,
     """A new key row and its token (the only time the token exists outside the client)."""
     key_id = secrets.token_hex(6)
     token = f"{TOKEN_PREFIX}{key_id}_{secrets.token_urlsafe(32)}"
-    key = ApiKey(id=key_id, name=name, token_sha256=hash_token(token), max_active_jobs=max_active_jobs,
+    key = ApiKey(id=key_id, name=name, token_sha256=sha256_hex(token), max_active_jobs=max_active_jobs,
                  max_upload_bytes=max_upload_bytes)
     session.add(key)
     session.commit()
@@ -58,7 +59,7 @@ def authenticate(session: Session, token: str) -> ApiKey | None:
     key = session.get(ApiKey, match.group(1))
     if key is None or key.token_sha256 is None or key.revoked_at is not None:
         return None
-    return key if hmac.compare_digest(key.token_sha256, hash_token(token)) else None
+    return key if hmac.compare_digest(key.token_sha256, sha256_hex(token)) else None
 
 
 def presented_token(request: Request) -> str | None:

@@ -8,7 +8,6 @@ holding a worker). A failed scene refuses new jobs with a 409 naming its reason.
 
 from __future__ import annotations
 
-import hashlib
 import logging
 from collections.abc import Iterable
 
@@ -17,7 +16,7 @@ from sqlalchemy import delete, func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from api.auth import Idempotency, check_active_jobs
+from api.auth import Idempotency, check_active_jobs, sha256_hex
 from api.schemas import JobCreate
 from api.services.scenes import get_scene, refuse_unless_usable
 from voxe_core.presets import check_fit, reconstruction_key, reconstruction_params
@@ -209,8 +208,8 @@ def create_job(*, session: Session, settings: Settings, queue: TaskQueue, key: A
     if idempotency_key:
         # What the client sent, not the defaults filled in: a release adding a field or changing a default must
         # not turn a retry into "another request" (the whole body's digest, recorded before, still matches).
-        idem = Idempotency(idempotency_key, _sha256(body.model_dump_json(exclude_unset=True)), "jobs",
-                           earlier_sha256=_sha256(body.model_dump_json()))
+        idem = Idempotency(idempotency_key, sha256_hex(body.model_dump_json(exclude_unset=True)), "jobs",
+                           earlier_sha256=sha256_hex(body.model_dump_json()))
         if (replayed := idem.replayed(session, key, Job)) is not None:
             return replayed, True
     params = body.params.model_dump(mode="json")
@@ -238,10 +237,6 @@ def create_job(*, session: Session, settings: Settings, queue: TaskQueue, key: A
         session.commit()
     session.refresh(job)
     return job, False
-
-
-def _sha256(text: str) -> str:
-    return hashlib.sha256(text.encode()).hexdigest()
 
 
 def list_jobs(*, session: Session, key: ApiKey, state: str | None, scene_id: str | None, limit: int,
