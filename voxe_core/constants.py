@@ -45,6 +45,9 @@ EDIT_LR = 0.03
 RENDER_SIZE = 266
 """Pixels of the edit's and the refinement's renders: the paper's 800 px inputs downsampled 3×."""
 
+RENDER_CHUNK_RAYS = 32768
+"""Rays per chunk of a whole-image render (and of the refinement's back-projection)."""
+
 DEFAULT_GUIDANCE_SCALE = 100.0
 """Classifier-free guidance scale of SDS."""
 
@@ -80,6 +83,10 @@ REFINE_VIEWS = 32
 
 REFINE_RAYS_PER_STEP = 8192
 """Rays per attention-grid fitting step."""
+
+REFINE_BACKPROJECTION_STRIDE = 2
+"""The back-projection start reads every n-th pixel row and column of each view (maps are a coarse lattice
+upsampled)."""
 
 EDIT_SEEDS = 300
 """Voxels of highest P_edit tied to the graph cut's edit terminal."""

@@ -308,12 +308,13 @@ def refine_config(params: dict, attention_model: str) -> "RefineConfig":
     from voxe_core.refine.config import PAPER_TEXT_FIT, RefineConfig
 
     refine = params.get("refine") or {}
+    views, render_size, iterations = _refine_work(params)
     lift_start = _given(refine, "lift_start", "backprojection")
     # The paper's start at 0 takes the paper's fit (fixed views, every pixel): the code's L1 counts only pixels
     # that render positive, and nothing does from 0.
     paper_fit = lift_start == "constant"
     return RefineConfig(
-        iterations=_given(refine, "iterations", paper.SERVICE_REFINE_ITERATIONS),
+        iterations=iterations,
         lift_start=lift_start,
         fit_views=PAPER_TEXT_FIT["fit_views"] if paper_fit else RefineConfig.fit_views,
         fit_pixels=PAPER_TEXT_FIT["fit_pixels"] if paper_fit else RefineConfig.fit_pixels,
@@ -321,8 +322,8 @@ def refine_config(params: dict, attention_model: str) -> "RefineConfig":
         smoothing_sigma=_given(refine, "smoothing_sigma", paper.SERVICE_SMOOTHING_SIGMA),
         lr=_given(refine, "lr", paper.REFINE_LR),
         tv_weight=_given(refine, "tv_weight", paper.REFINE_TV_WEIGHT),
-        render_size=refine.get("render_size") or _given(params, "render_size", paper.RENDER_SIZE),
-        views=_given(refine, "views", paper.REFINE_VIEWS),
+        render_size=render_size,
+        views=views,
         rays_per_step=_given(refine, "rays_per_step", paper.REFINE_RAYS_PER_STEP),
         edit_seeds=_given(refine, "edit_seeds", paper.EDIT_SEEDS),
         object_seeds=_given(refine, "object_seeds", paper.SERVICE_OBJECT_SEEDS),
@@ -331,6 +332,43 @@ def refine_config(params: dict, attention_model: str) -> "RefineConfig":
         seed=_given(params, "seed", SEED),
         attention_model=attention_model,
     )
+
+
+def _refine_work(params: dict) -> tuple[int, int, int]:
+    """(views, render size, fitting steps) of the job parameters' refinement (its render size defaults to the
+    edit's)."""
+    refine = params.get("refine") or {}
+    return (_given(refine, "views", paper.REFINE_VIEWS),
+            refine.get("render_size") or _given(params, "render_size", paper.RENDER_SIZE),
+            _given(refine, "iterations", paper.SERVICE_REFINE_ITERATIONS))
+
+
+def refine_phase_units(params: dict) -> dict[str, int]:
+    """The units each phase of a local edit's refinement counts on its one progress scale
+    (``voxe_core.refine.pipeline.refine``): a pass per view, the back-projection's chunks, the fitting steps and the
+    cut, as :func:`refine_config` reads the job parameters; torch-free, so the API weighs the stage by them.
+
+    Examples:
+        >>> refine_phase_units({})  # the service's default: 32 views of 266², no fitting steps
+        {'attention_maps': 32, 'backprojection': 18, 'attention_grids': 0, 'graph_cut': 1}
+    """
+    views, render_size, iterations = _refine_work(params)
+    chunks = backprojection_chunks(views, render_size, render_size, paper.REFINE_BACKPROJECTION_STRIDE,
+                                   paper.RENDER_CHUNK_RAYS)
+    return {"attention_maps": views, "backprojection": chunks, "attention_grids": iterations, "graph_cut": 1}
+
+
+def backprojection_chunks(n_views: int, height: int, width: int, stride: int, chunk_rays: int) -> int:
+    """The chunks of ``chunk_rays`` the refinement's back-projection runs at most over ``n_views`` maps of
+    ``height`` x ``width`` read every ``stride``-th pixel row and column (every such pixel's ray meeting the
+    object): its share of the stage's progress scale, as the attention passes count one a view.
+
+    Examples:
+        >>> backprojection_chunks(32, 266, 266, 2, 32768)  # the service's default: 32 x 133² rays
+        18
+    """
+    rays = n_views * math.ceil(height / stride) * math.ceil(width / stride)
+    return max(1, math.ceil(rays / chunk_rays))
 
 
 def export_config(params: dict) -> ExportConfig:

@@ -25,6 +25,7 @@ from typing import Callable, Iterable
 import torch
 
 from voxe_core.cameras import Cameras, camera_rays
+from voxe_core.constants import RENDER_CHUNK_RAYS
 from voxe_core.devices import full_precision
 from voxe_core.grid import Occupancy, VoxelGrid, unit_directions
 from voxe_core.volrend import RaySamples, optical_depth, transmittance
@@ -47,7 +48,7 @@ class RenderConfig:
     early_stop: float = 1e-4  # transmittance below which a ray's samples are not evaluated
     # Lattice samples held at once (rays are grouped to fit); None: the device's default (pass_samples).
     samples_per_pass: int | None = None
-    chunk_rays: int = 32768  # rays per chunk in whole-image renders
+    chunk_rays: int = RENDER_CHUNK_RAYS  # rays per chunk in whole-image renders
     # March each ray in one Triton kernel where that renders the same (voxe_core.fused_render: a ReLU grid's own
     # colour on CUDA); elsewhere, or False, the packed path.
     fused: bool = False

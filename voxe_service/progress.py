@@ -21,7 +21,7 @@ stage figures come from one sitting (the CPU's capture factor is a ratio within 
     fitting step from the back-projection start (each draws a fresh view, ``RefineConfig.fit_views``); the
     paper's fit from a constant (``lift_start`` constant) reuses the views' maps: 0.030 s per step
     (``segmentation.json``, runs[0]: 12.2 s / 400 fixed-view steps at 96 px, 4,096 rays per step). The
-    back-projection and the cut are small beside them, weighed only within the stage (``refine_phase_seconds``):
+    back-projection and the cut are smaller (a tenth of the service's default refinement, 5% of the paper's fit):
     a back-projection chunk of 32,768 rays as 8.83 of those steps (0.4156 s a chunk against 0.04706 s a step, one
     sitting at 1 thread: ``fit_attention_grids`` on a 64³ sphere, 24 views of 192 px, 4,096 rays a step), the cut
     0.465 s (``segmentation.json``, ``graph_160``: 207,078 nodes, build and solve);
@@ -29,8 +29,9 @@ stage figures come from one sitting (the CPU's capture factor is a ratio within 
 
 * ``cuda`` (one H200, full-size random-weight models): one local-edit job through the worker
   (``gpu.json``, section f of call 5): reconstruct 26.1 s for 2,000 steps (``fast`` then: 4,096 rays), edit
-  27.5 s for 500 iterations, refine 6.3 s for 32 attention passes, export 1.7 s for 35 views (4 renders, 30
-  turntable frames, the mesh). A GPU step costs its dispatches, not its rays (call 4: ``fast``'s 2,000 steps of
+  27.5 s for 500 iterations, refine 6.3 s for 32 attention passes, 18 back-projection chunks (32 views of 266²)
+  and the cut (a pass: what is left once those two are weighed as below), export 1.7 s for 35 views (4 renders,
+  30 turntable frames, the mesh). A GPU step costs its dispatches, not its rays (call 4: ``fast``'s 2,000 steps of
   4,096 rays in 22.9 s, ``paper``'s 2,000 of 32,768 in 22.2 s). Unmeasured there: a capture's fit step (taken
   as an object's), the fixed-view refinement step (taken as a fit step: rays rendered, a loss, Adam), a
   back-projection chunk (taken as a fit step too), the cut (taken as the CPU's: max-flow runs on the host) and an
@@ -65,8 +66,8 @@ Examples:
     >>> [(stage, round(seconds, 2)) for stage, seconds in stage_costs(mode="global", params={"iterations": 100,
     ...  "export": {"views": 0, "turntable_frames": 10, "mesh": False}}, fit=work, device="cuda:0")]
     [('reconstruct', 11.76), ('edit', 5.5), ('export', 0.48)]
-    >>> dict(stage_costs(mode="local", params={}, fit=NO_FIT))["refine"]  # 32 views, 0 fitting steps
-    49.2672
+    >>> round(dict(stage_costs(mode="local", params={}, fit=NO_FIT))["refine"], 2)  # 32 passes, 18 chunks, the cut
+    54.58
 """
 
 from __future__ import annotations
@@ -75,7 +76,7 @@ from dataclasses import dataclass, field
 from typing import NamedTuple
 
 from voxe_core import constants as paper
-from voxe_core.presets import BACKBONE_KINDS, ExportConfig, fit_backbone, reconstruct_config
+from voxe_core.presets import BACKBONE_KINDS, ExportConfig, fit_backbone, reconstruct_config, refine_phase_units
 
 
 class FitWork(NamedTuple):
@@ -128,6 +129,8 @@ SCENE_OVER_OBJECT_RAY = (133.48 / 1200 / 2048) / ((23.33 + 26.28) / 2 / 1000 / 8
 CUDA_FIT_STEP = 26.137 / 2000
 CPU_REFINE_FIXED_STEP = 12.198 / 400
 CPU_GRAPH_CUT = 0.465
+# The H200 job's refinement less its 18 back-projection chunks and its cut (weighed as below), over its 32 passes.
+CUDA_REFINE_PASS = (6.320 - 18 * CUDA_FIT_STEP - CPU_GRAPH_CUT) / 32
 DEVICE_COSTS = {
     "cpu": DeviceCosts(
         fit_step=CPU_FIT_STEP, fit_rays=8192, edit=1.8875,
@@ -136,7 +139,7 @@ DEVICE_COSTS = {
         evaluate=0.093, fit_backbone={"scene": SCENE_OVER_OBJECT_RAY},
     ),
     "cuda": DeviceCosts(
-        fit_step=CUDA_FIT_STEP, fit_rays=None, edit=27.496 / 500, refine=6.320 / 32,
+        fit_step=CUDA_FIT_STEP, fit_rays=None, edit=27.496 / 500, refine=CUDA_REFINE_PASS,
         refine_fixed_step=CUDA_FIT_STEP, backprojection_chunk=CUDA_FIT_STEP, graph_cut=CPU_GRAPH_CUT,
         export=1.678 / 35, evaluate=1.678 / 35,
     ),
@@ -194,28 +197,24 @@ def stage_costs(*, mode: str, params: dict, fit: FitWork, device: str = "cpu",
     seconds = {
         "reconstruct": costs.fit_seconds(fit),
         "edit": max(1, edit) * costs.edit,
-        "refine": refine_seconds(params.get("refine") or {}, costs),
+        "refine": refine_seconds(params, costs),
         "export": max(1, views + (1 if export.get("mesh", ExportConfig.mesh) else 0)) * costs.export,
     }
     stages = ["reconstruct", "edit"] + (["refine"] if mode == "local" else []) + ["export"]
     return [(stage, seconds[stage]) for stage in stages]
 
 
-def refine_seconds(refine: dict, costs: DeviceCosts) -> float:
-    """The refinement's cost from the job parameters' ``refine``: an attention pass per view, and per fitting step
-    one more pass from the back-projection start (fresh views) or a fixed-view step from the paper's constant
-    start (``voxe_core.presets.refine_config`` pairs the two so)."""
-    views, steps, fit_views = _refine_work(refine)
-    phases = refine_phase_seconds(fit_views, costs)
-    return views * phases["attention_maps"] + steps * phases["attention_grids"]
+def refine_seconds(params: dict, costs: DeviceCosts) -> float:
+    """The refinement's cost from the job parameters: every phase it reports (``refine_phase_units``: an attention
+    pass per view, the back-projection's chunks, the fitting steps, the cut) times its cost a unit."""
+    phases = refine_phase_seconds(_fit_views(params), costs)
+    return sum(units * phases[phase] for phase, units in refine_phase_units(params).items())
 
 
-def _refine_work(refine: dict) -> tuple[int, int, str]:
-    """(views, fitting steps, ``RefineConfig.fit_views``) of the job parameters' ``refine``."""
-    views = refine.get("views") or paper.REFINE_VIEWS
-    steps = refine.get("iterations")
-    steps = paper.SERVICE_REFINE_ITERATIONS if steps is None else steps
-    return views, steps, "fixed" if refine.get("lift_start") == "constant" else "fresh"
+def _fit_views(params: dict) -> str:
+    """``RefineConfig.fit_views`` of the job parameters: the paper's constant start fits on its views' maps
+    (``voxe_core.presets.refine_config`` pairs the two so), the back-projection start on a fresh view a step."""
+    return "fixed" if (params.get("refine") or {}).get("lift_start") == "constant" else "fresh"
 
 
 def refine_phase_seconds(fit_views: str, costs: DeviceCosts) -> dict[str, float]:
@@ -253,17 +252,16 @@ def stage_fraction(*, stage: str | None, params: dict, device: str, iteration: i
     units = min(iteration, total) / total
     if stage != "refine":
         return units
-    views, steps, fit_views = _refine_work(params.get("refine") or {})
-    sizes = {"attention_maps": views, "backprojection": total - views - steps - 1, "attention_grids": steps,
-             "graph_cut": 1}  # the back-projection's chunks: what the scale holds beside the rest
-    if sizes["backprojection"] < 1:
+    sizes = refine_phase_units(params)
+    if sum(sizes.values()) != total:
         return units
     done = whole = 0.0
     left = min(iteration, total)
-    for phase, seconds in refine_phase_seconds(fit_views, device_costs(device)).items():
-        done += min(sizes[phase], max(0, left)) * seconds
-        whole += sizes[phase] * seconds
-        left -= sizes[phase]
+    phase_seconds = refine_phase_seconds(_fit_views(params), device_costs(device))
+    for phase, size in sizes.items():
+        done += min(size, max(0, left)) * phase_seconds[phase]
+        whole += size * phase_seconds[phase]
+        left -= size
     return done / whole
 
 

@@ -15,6 +15,7 @@ from voxe_core.constants import (
     EDIT_SEEDS,
     NERF_SYNTHETIC_FOV_X,
     OBJECT_SEEDS,
+    REFINE_BACKPROJECTION_STRIDE,
     REFINE_ITERATIONS,
     REFINE_LR,
     REFINE_RAYS_PER_STEP,
@@ -79,7 +80,7 @@ class RefineConfig:
     init_value: float = 0.0  # start of lift_start="constant"; see the voxe_core.refine docstring; the authors use -20
     lift_start: Literal["backprojection", "constant"] = "backprojection"  # ours; "constant": the paper's fit
     backprojection_prior: float = 0.1  # pseudo-weight of "no attention" (0) in the back-projection's average
-    backprojection_stride: int = 2  # every n-th pixel row and column per view (maps are a coarse lattice upsampled)
+    backprojection_stride: int = REFINE_BACKPROJECTION_STRIDE  # every n-th pixel row and column per view
     rays_per_step: int = REFINE_RAYS_PER_STEP
     # "fresh": every step a new random pose and diffusion pass, all its pixels (the code; one UNet pass per step;
     # better on bench/localisation_maps_fit.py); "fixed": rays_per_step pixels of the `views` maps (ours before)

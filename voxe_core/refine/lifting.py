@@ -15,7 +15,6 @@ not empty); the rest keep "no attention" (0) as the start says.
 
 from __future__ import annotations
 
-import math
 from typing import Callable
 
 import torch
@@ -109,19 +108,6 @@ def backproject(
         callbacks.progress(Progress("backprojection", done, chunks, info={"stage": "back-projection"}))
     values = numerator / (weight + config.backprojection_prior).clamp_min(1e-12)[:, None]
     return values.reshape(*grid.resolution, -1), weight.reshape(grid.resolution)
-
-
-def backprojection_chunks(n_views: int, height: int, width: int, config: RefineConfig) -> int:
-    """The chunks :func:`backproject` runs at most over ``n_views`` maps of ``height`` x ``width`` (every strided
-    pixel's ray meeting the object): its share of a progress scale, as the attention passes count one a view.
-
-    Examples:
-        >>> backprojection_chunks(32, 266, 266, RefineConfig())  # the service's default: 32 x 133² rays
-        18
-    """
-    stride = config.backprojection_stride
-    rays = n_views * math.ceil(height / stride) * math.ceil(width / stride)
-    return max(1, math.ceil(rays / config.render.chunk_rays))
 
 
 def strided_pixels(n_views: int, height: int, width: int, stride: int, device=None) -> torch.Tensor:

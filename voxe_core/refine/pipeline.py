@@ -14,7 +14,8 @@ from voxe_core.guidance.prompts import edit_prompt
 from voxe_core.progress import Callbacks, Progress, in_phases
 from voxe_core.refine.config import RefineConfig
 from voxe_core.refine.cut import GraphCutStats, graph_cut_detailed, node_mask, probabilities
-from voxe_core.refine.lifting import backprojection_chunks, fit_attention_grids
+from voxe_core.presets import backprojection_chunks
+from voxe_core.refine.lifting import fit_attention_grids
 from voxe_core.refine.maps import attention_cameras, attention_maps_2d, token_groups
 
 
@@ -106,7 +107,8 @@ def refine(
     cameras = attention_cameras(config, centre=centre)
     fresh_view = fresh_attention_views(guidance, edited_grid, text, edit_words, config, centre) \
         if config.fit_views == "fresh" else None
-    lift = backprojection_chunks(len(cameras), cameras.height, cameras.width, config)
+    lift = backprojection_chunks(len(cameras), cameras.height, cameras.width, config.backprojection_stride,
+                                 config.render.chunk_rays)
     callbacks = in_phases(callbacks, {"attention_maps": len(cameras), "backprojection": lift,
                                       "attention_grids": config.iterations, "graph_cut": 1})  # one scale: only rises
     edit_maps, object_maps = attention_maps_2d(guidance, edited_grid, cameras, text, edit_words, config, callbacks,
