@@ -218,6 +218,46 @@ def test_progress_off_a_terminal_is_a_line_now_and_then_not_ten_redraws_a_second
     assert capsys.readouterr().err.count("\r") == 2
 
 
+def test_wait_in_a_log_says_each_state_stage_and_phase_at_once(monkeypatch, capsys):
+    """``voxe wait`` into a log (CI): a job through its stages in a few seconds had shown only its first and last
+    snapshot (a line at most every 30 s); each change of state, stage or phase is a line of its own at once, and
+    progress within one is still throttled."""
+    import httpx
+
+    import voxe_core.cli.service as service
+    from voxe_client import Client
+
+    snapshots = [
+        {"state": "queued", "stage": None, "overall_progress": 0.0},
+        {"state": "running", "stage": "reconstruct", "overall_progress": 0.1},
+        {"state": "running", "stage": "reconstruct", "overall_progress": 0.2},  # within the stage: throttled
+        {"state": "running", "stage": "edit", "overall_progress": 0.3},
+        {"state": "running", "stage": "refine", "overall_progress": 0.6, "message": "refine: attention_maps"},
+        {"state": "running", "stage": "refine", "overall_progress": 0.7, "message": "refine: attention_maps"},
+        {"state": "running", "stage": "refine", "overall_progress": 0.8, "message": "refine: graph_cut"},
+        {"state": "succeeded", "stage": "export", "overall_progress": 1.0},
+    ]
+    stream = "".join(f"event: progress\ndata: {json.dumps(s)}\n\n" for s in snapshots)
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        if request.url.path == "/v1/jobs/j1/events":
+            return httpx.Response(200, headers={"content-type": "text/event-stream"}, text=stream)
+        return httpx.Response(200, json={"id": "j1", **snapshots[-1]})
+
+    monkeypatch.setattr(service, "_client", lambda args: Client(args.api, transport=httpx.MockTransport(answer)))
+    assert main(["wait", "j1", "--api", "http://svc.test"]) == 0  # capsys: stderr is no terminal
+    out = capsys.readouterr()
+    assert json.loads(out.out)["state"] == "succeeded"
+    assert out.err.rstrip("\n").splitlines() == [  # (then the blank line that ends a terminal's bar)
+        "[                              ]   0.0% queued ",
+        "[###                           ]  10.0% running reconstruct",
+        "[#########                     ]  30.0% running edit",
+        "[##################            ]  60.0% running refine - refine: attention_maps",
+        "[########################      ]  80.0% running refine - refine: graph_cut",
+        "[##############################] 100.0% succeeded export",
+    ]
+
+
 def test_options_a_command_would_ignore_are_refused(tmp_path, capsys):
     """render --data had taken --size / --elevation / --centre-of and rendered the dataset's cameras anyway;
     convert-grid --dense had taken --margin and written every vertex."""

@@ -93,21 +93,23 @@ def _client(args):
 
 def _progress_bar(quiet: bool):
     """An ``on_progress`` callback drawing the job's overall progress on stderr: redrawn in place on a terminal,
-    elsewhere (a log) a line at most every ``LOG_PROGRESS_INTERVAL_S`` and only when it changed, and the job's end."""
-    from voxe_client.client import TERMINAL_STATES
-
-    terminal, last = sys.stderr.isatty(), {"line": None, "at": -math.inf}
+    elsewhere (a log) a line at once whenever the job's state, stage or message (a phase of the stage: ``refine:
+    attention_maps``) changes, and between those a line at most every ``LOG_PROGRESS_INTERVAL_S`` and only when it
+    changed: a short job's log had shown only its first and last snapshot, none of the stages between."""
+    terminal, last = sys.stderr.isatty(), {"line": None, "step": None, "at": -math.inf}
 
     def draw(snapshot: dict) -> None:
         done = snapshot.get("overall_progress") or 0.0
         eta = snapshot.get("overall_eta_seconds")
+        message = snapshot.get("message")
         bar = "#" * round(30 * done)
         line = (f"[{bar:<30}] {100 * done:5.1f}% {snapshot['state']} {snapshot.get('stage') or ''}"
-                f"{f' ~{eta:.0f} s left' if eta is not None else ''}")
-        now, final = time.monotonic(), snapshot["state"] in TERMINAL_STATES
-        if quiet or line == last["line"] or (not terminal and not final and now - last["at"] < LOG_PROGRESS_INTERVAL_S):
+                f"{f' ~{eta:.0f} s left' if eta is not None else ''}{f' - {message}' if message else ''}")
+        now, step = time.monotonic(), (snapshot["state"], snapshot.get("stage"), message)
+        if quiet or line == last["line"] or (not terminal and step == last["step"]
+                                             and now - last["at"] < LOG_PROGRESS_INTERVAL_S):
             return
-        last.update(line=line, at=now)
+        last.update(line=line, step=step, at=now)
         print(f"\r{line}   " if terminal else line, end="" if terminal else "\n", file=sys.stderr, flush=True)
     return draw
 
