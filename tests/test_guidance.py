@@ -594,6 +594,32 @@ def test_loading_a_local_model_says_nothing_about_downloads(tiny_path):
     assert heard == []
 
 
+def test_loading_says_nothing_of_the_accelerate_it_does_without(tiny_path):
+    """Every load of the UNet and the VAE had logged diffusers' "Cannot initialize model with low cpu memory usage
+    because `accelerate` was not found ... Defaulting to `low_cpu_mem_usage=False`" (twice per model a worker loads):
+    the loading asks for what diffusers would fall back to."""
+    import logging
+    import warnings
+
+    from voxe_core.guidance.loading import load_stable_diffusion
+
+    library, records = logging.getLogger("diffusers"), []
+    handler = logging.Handler()
+    handler.emit = records.append
+    level = library.level
+    library.addHandler(handler)
+    library.setLevel(logging.WARNING)
+    try:
+        with warnings.catch_warnings(record=True) as warned:
+            warnings.simplefilter("always")
+            assert load_stable_diffusion(str(tiny_path), torch.float32, True)[0] is not None
+    finally:
+        library.removeHandler(handler)
+        library.setLevel(level)
+    said = [r.getMessage() for r in records] + [str(w.message) for w in warned]
+    assert not [text for text in said if "low_cpu_mem_usage" in text or "accelerate" in text], said
+
+
 def test_cuda_graphs_are_refused_off_cuda_and_leave_gradient_free_encodes_eager(guidance, tiny_path):
     """CUDA graphs (voxe_core.guidance.cuda_graphs) are a CUDA-only option, refused at once elsewhere; the encoder's
     graph records only an encode with gradient, so the attention pass's encode is the eager one (bench/gpu.py

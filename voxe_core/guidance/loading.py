@@ -190,6 +190,7 @@ def load_stable_diffusion(model: str, dtype, local_files_only: bool | None = Non
     :class:`ModelNotAvailableError` naming the model when anything is missing.
     """
     from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
+    from diffusers.utils import is_accelerate_available
     from transformers import CLIPTextModel
 
     if local_files_only is None:
@@ -206,9 +207,12 @@ def load_stable_diffusion(model: str, dtype, local_files_only: bool | None = Non
     if notice is not None:
         on_message(notice)
 
+    # diffusers' default low_cpu_mem_usage=True needs accelerate (no dependency of ours): without it diffusers
+    # falls back to False, warning at every load of the UNet and the VAE; asking for what it would do says nothing.
+    unet_vae = {**kwargs, "low_cpu_mem_usage": is_accelerate_available()}
     try:
-        unet = UNet2DConditionModel.from_pretrained(source, subfolder="unet", torch_dtype=dtype, **kwargs)
-        vae = AutoencoderKL.from_pretrained(source, subfolder="vae", torch_dtype=dtype, **kwargs)
+        unet = UNet2DConditionModel.from_pretrained(source, subfolder="unet", torch_dtype=dtype, **unet_vae)
+        vae = AutoencoderKL.from_pretrained(source, subfolder="vae", torch_dtype=dtype, **unet_vae)
         text_encoder = CLIPTextModel.from_pretrained(source, subfolder="text_encoder", dtype=dtype, **kwargs)
         tokenizer = load_clip_tokenizer(source, subfolder="tokenizer", **kwargs)
         scheduler = DDIMScheduler.from_pretrained(source, subfolder="scheduler", **kwargs)
