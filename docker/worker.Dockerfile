@@ -4,7 +4,8 @@
 # Run one container per GPU (concurrency 1); models come from the Hugging Face cache in HF_HOME.
 FROM nvidia/cuda:12.6.3-cudnn-runtime-ubuntu24.04
 
-ARG TORCH_SPEC="torch"
+# The torch the tests run (.ci/setup, the API image), in its CUDA 12.6 build (2.13 is built for CUDA 12.6 and 13.0).
+ARG TORCH_SPEC="torch==2.13.0"
 ARG TORCH_INDEX="https://download.pytorch.org/whl/cu126"
 
 ENV DEBIAN_FRONTEND=noninteractive PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1 \

@@ -88,3 +88,13 @@ def test_the_worker_image_hands_a_running_stage_back_when_stopped():
     killed with its message unacknowledged (the job left to the reaper); the cold shutdown requeues it at once.
     tests/test_service_faults.py stops a worker so on a real Redis."""
     assert re.search(r"^\s*REMAP_SIGTERM=SIGQUIT\b", (ROOT / "docker/worker.Dockerfile").read_text(), re.M)
+
+
+def test_the_images_install_the_torch_the_tests_run():
+    """The worker image had installed whatever torch its CUDA index served last (TORCH_SPEC "torch"): a rebuild
+    could bring a release nothing here was tested with, and the API and the worker different ones."""
+    tested = re.search(r"^TORCH_SPEC=\$\{TORCH_SPEC:-(torch==[^}]+)\}$", (ROOT / ".ci/setup").read_text(), re.M)
+    assert tested, ".ci/setup pins no torch version"
+    images = ("docker/api.Dockerfile", "docker/worker.Dockerfile")
+    pinned = {name: re.findall(r'^ARG TORCH_SPEC="([^"]*)"$', (ROOT / name).read_text(), re.M) for name in images}
+    assert pinned == {name: [tested.group(1)] for name in images}
