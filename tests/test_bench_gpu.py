@@ -182,6 +182,27 @@ def test_the_edit_loop_runs_with_the_fused_marcher_when_asked(monkeypatch, tiny_
     assert 0 < fused["samples_per_ray"] < packed["samples_per_ray"]
 
 
+def test_section_a_computes_the_agreement_outputs_once_per_state_of_the_guidance(monkeypatch, tiny_sd_path,
+                                                                                 single_thread):
+    """Fused Adam and the timing sync leave the guidance as it was: their variants compare the outputs of the one
+    before (each variant had computed them again). On the CPU every variant runs one fp32 guidance, laid out as
+    loaded: one computation for the five rows, each row still with its agreement."""
+    bench = _load_bench(monkeypatch)
+    profile = dataclasses.replace(bench.Profile.smoke(), render_size=8, grid_resolution=12)
+    computed, real_outputs = [], bench._agreement_outputs
+
+    def counted_outputs(guidance, profile):
+        computed.append(guidance)
+        return real_outputs(guidance, profile)
+
+    monkeypatch.setattr(bench, "_agreement_outputs", counted_outputs)
+    rows = bench.edit_step_runs(tiny_sd_path, profile)
+    assert len(rows) == len(bench.STEP_VARIANTS) and len(computed) == 1
+    for row in rows:
+        assert row["sds_grad_relative_difference"] == row["encoder_latents_relative_difference"] == \
+            row["encoder_image_grad_relative_difference"] == 0
+
+
 def test_section_g_sets_its_steps_against_section_as_baseline_only_from_the_same_call(monkeypatch):
     bench = _load_bench(monkeypatch)
     baseline = {"name": "edit_step baseline", "section": "a", "ms_step": 120.0}
