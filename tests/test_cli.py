@@ -248,8 +248,9 @@ def test_wait_in_a_log_says_each_state_stage_and_phase_at_once(monkeypatch, caps
     assert main(["wait", "j1", "--api", "http://svc.test"]) == 0  # capsys: stderr is no terminal
     out = capsys.readouterr()
     assert json.loads(out.out)["state"] == "succeeded"
-    assert out.err.rstrip("\n").splitlines() == [  # (then the blank line that ends a terminal's bar)
-        "[                              ]   0.0% queued ",
+    assert out.err.endswith("export\n")  # no blank line: that ends a terminal's bar, redrawn in place
+    assert out.err.splitlines() == [
+        "[                              ]   0.0% queued",
         "[###                           ]  10.0% running reconstruct",
         "[#########                     ]  30.0% running edit",
         "[##################            ]  60.0% running refine - refine: attention_maps",

@@ -101,11 +101,12 @@ def _progress_bar(quiet: bool):
     def draw(snapshot: dict) -> None:
         done = snapshot.get("overall_progress") or 0.0
         eta = snapshot.get("overall_eta_seconds")
-        message = snapshot.get("message")
+        stage, message = snapshot.get("stage"), snapshot.get("message")
         bar = "#" * round(30 * done)
-        line = (f"[{bar:<30}] {100 * done:5.1f}% {snapshot['state']} {snapshot.get('stage') or ''}"
-                f"{f' ~{eta:.0f} s left' if eta is not None else ''}{f' - {message}' if message else ''}")
-        now, step = time.monotonic(), (snapshot["state"], snapshot.get("stage"), message)
+        line = " ".join(part for part in (f"[{bar:<30}] {100 * done:5.1f}%", snapshot["state"], stage,
+                                          eta is not None and f"~{eta:.0f} s left", message and f"- {message}")
+                        if part)
+        now, step = time.monotonic(), (snapshot["state"], stage, message)
         if quiet or line == last["line"] or (not terminal and step == last["step"]
                                              and now - last["at"] < LOG_PROGRESS_INTERVAL_S):
             return
@@ -116,7 +117,7 @@ def _progress_bar(quiet: bool):
 
 def _follow(client, job_id: str, quiet: bool) -> int:
     job = client.wait(job_id, on_progress=_progress_bar(quiet))
-    if not quiet:
+    if not quiet and sys.stderr.isatty():  # ends the bar redrawn in place; a log's lines end themselves
         print(file=sys.stderr)
     print(json.dumps(job, indent=2))
     return 0 if job["state"] == "succeeded" else 1
