@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import re
+from datetime import timedelta
 from types import SimpleNamespace
 
 import pytest
@@ -517,6 +518,103 @@ def test_a_worker_going_down_mid_fit_hands_the_reconstruction_back_rather_than_f
     monkeypatch.setattr(tasks, "_fit_grid", fit_failing)
     assert tasks.reconstruct_task.apply(args=(submit(),)).get()["state"] == "failed"
     assert rec_of(job_id)[0] == "failed" and rec_of(job_id)[2] == "RuntimeError: the fit diverged"
+
+
+def _database_error(statement: str, words: str):
+    """What SQLAlchemy raises when SQLite answers ``words``: "database is locked" is an outage (database_outage),
+    "no such table" a fault of the schema."""
+    import sqlite3
+
+    from sqlalchemy.exc import OperationalError
+
+    return OperationalError(statement, {}, sqlite3.OperationalError(words))
+
+
+def _refusing(monkeypatch, name: str, error, when=lambda *args, **kwargs: True) -> list:
+    """``worker.runtime.<name>`` raising ``error`` on each call ``when`` picks; the calls refused."""
+    from worker import runtime
+
+    real, refused = getattr(runtime, name), []
+
+    def refusing(*args, **kwargs):
+        if when(*args, **kwargs):
+            refused.append(args)
+            raise error
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(runtime, name, refusing)
+    return refused
+
+
+EDGES = {  # where in the edit stage the database refuses: its checkpoint's event, its grid's record, its end
+    "checkpoint event": ("record_job_event", "INSERT INTO job_events", lambda job_id, kind, **_: kind == "checkpoint"),
+    "artifact record": ("record_event", "INSERT INTO job_events", lambda _, job_id, kind, **__: kind == "artifact"),
+    "stage's end": ("complete_stage", "UPDATE jobs", lambda *args, **kwargs: True),
+}
+
+
+@pytest.mark.parametrize("release", ["released", "the release refused too"])
+@pytest.mark.parametrize("edge", EDGES)
+def test_a_database_outage_at_a_stages_checkpoint_or_end_sends_it_back_to_the_queue_to_resume(service, monkeypatch,
+                                                                                               edge, release):
+    """A locked or unreachable database as the edit recorded its checkpoint, its grid or its end had failed the job
+    (or, at the end, the task, leaving the job to the reaper): an outage is not the job's fault. The run gives the
+    job back and the message goes back to the queue; its redelivery resumes from the stored checkpoint and
+    completes. When the database refuses the release too, the job stays held until its lease runs out unrenewed,
+    and the redelivery takes it over then (counted as a re-queue, as any lapsed hold is)."""
+    from voxe_service.models import utcnow
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job_id = _reconstructed_job(client, scene_id, "scene", iterations=3, render_size=16, preview_every=0)["id"]
+    name, statement, when = EDGES[edge]
+    with monkeypatch.context() as outage:
+        outage.setattr(tasks, "DATABASE_RETRY_S", (0.0, 0.0))
+        refused = _refusing(outage, name, _database_error(statement, "database is locked"), when)
+        if release != "released":
+            _refusing(outage, "release_stage", _database_error("UPDATE jobs", "database is locked"))
+        result = tasks.edit_task.apply(args=(job_id,))
+    assert result.state == "REJECTED" and result.result.requeue, result.result  # back to the broker
+    assert "database" in str(result.result)
+    assert len(refused) == (3 if edge == "stage's end" else 1)  # the end tried again after each pause
+    job = runtime.load_job(job_id)
+    assert (job.state, job.error, job.completed_stages) == ("running", None, ["reconstruct"])
+    assert (job.run_token is None) == (release == "released")
+    if job.run_token is not None:  # no run renews the hold: its lease runs out
+        runtime.update_job(job_id, run_lease_until=utcnow() - timedelta(seconds=1))
+    assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "done"  # the redelivered message
+    done = client.get(f"/v1/jobs/{job_id}").json()
+    assert (done["state"], done["completed_stages"], done["iteration"]) == ("running", ["reconstruct", "edit"], 3)
+    assert runtime.load_job(job_id).requeues == (0 if release == "released" else 1)
+    events = client.get(f"/v1/jobs/{job_id}/events").json()
+    assert [e["iteration"] for e in events if e["kind"] == "resumed" and e["stage"] == "edit"] == [3]
+    assert client.get(f"/v1/jobs/{job_id}/artifacts/edited_grid.safetensors").status_code == 200
+
+
+@pytest.mark.parametrize("edge", EDGES)
+def test_a_database_fault_that_is_no_outage_at_a_stages_checkpoint_or_end_fails_the_job_naming_it(service,
+                                                                                                   monkeypatch, edge):
+    """SQLite's OperationalError for a fault of the schema (a worker newer than its migrations) is no outage: a
+    redelivery would meet it again, so the job fails with it, at the checkpoint's event, the grid's record or the
+    stage's end; a database that refuses the end once and then answers completes the stage."""
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job_id = _reconstructed_job(client, scene_id, "scene", iterations=3, render_size=16, preview_every=0)["id"]
+    name, statement, when = EDGES[edge]
+    monkeypatch.setattr(tasks, "DATABASE_RETRY_S", (0.0, 0.0))
+    if edge == "stage's end":
+        other = _reconstructed_job(client, scene_id, "scene", iterations=3, render_size=16, preview_every=0)["id"]
+        with monkeypatch.context() as once:
+            refused = _refusing(once, name, _database_error(statement, "database is locked"),
+                                lambda *args, **kwargs: not refused)
+            assert tasks.edit_task.apply(args=(other,)).get()["state"] == "done"
+        assert len(refused) == 1 and runtime.load_job(other).completed_stages == ["reconstruct", "edit"]
+    _refusing(monkeypatch, name, _database_error(statement, "no such table: jobs_v2"), when)
+    assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "failed"
+    job = runtime.load_job(job_id)
+    assert job.state == "failed"
+    assert job.error.startswith("edit: OperationalError: (sqlite3.OperationalError) no such table: jobs_v2"), job.error
 
 
 def test_a_real_scene_edit_runs_through_the_worker_on_the_smoke_test_model(service, tmp_path):

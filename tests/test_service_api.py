@@ -1160,7 +1160,8 @@ def test_an_owner_stopped_by_its_time_limit_or_a_database_outage_hands_the_fit_t
         client, dataset, root, monkeypatch, stop):
     """The owner's soft time limit is its job's (that job fails, naming it), and a database or storage outage is no
     fault of the fit's: each hands the shared fit back, and a job waiting on it fits it, where each had failed the
-    fit and every job waiting on it."""
+    fit and every job waiting on it. A database outage is no fault of the owner's job either: its message goes back
+    to the queue, and its redelivery takes the fit the other job stored."""
     from celery.exceptions import SoftTimeLimitExceeded
     from sqlalchemy.exc import OperationalError
 
@@ -1179,18 +1180,25 @@ def test_an_owner_stopped_by_its_time_limit_or_a_database_outage_hands_the_fit_t
         raise OperationalError("UPDATE jobs", {}, Exception("server closed the connection unexpectedly"))
 
     monkeypatch.setattr(tasks, "_fit_grid", stopped_fit)
-    assert tasks.reconstruct_task.apply(args=(a,)).get()["state"] == "failed"
+    result = tasks.reconstruct_task.apply(args=(a,))
     owner = client.get(f"/v1/jobs/{a}").json()
-    expected = {"time limit": f"reconstruct: time limit of {get_settings().task_soft_time_limit_s} s exceeded",
-                "database outage": "reconstruct: OperationalError",
-                "storage outage": "reconstruct: StorageUnavailable"}[stop]
-    assert owner["state"] == "failed" and owner["error"].startswith(expected)
+    if stop == "database outage":
+        assert result.state == "REJECTED" and result.result.requeue
+        assert (owner["state"], owner["error"]) == ("running", None)
+    else:
+        assert result.get()["state"] == "failed"
+        expected = {"time limit": f"reconstruct: time limit of {get_settings().task_soft_time_limit_s} s exceeded",
+                    "storage outage": "reconstruct: StorageUnavailable"}[stop]
+        assert owner["state"] == "failed" and owner["error"].startswith(expected)
     rec = runtime.load_reconstruction(rec_id)
     assert (rec.state, rec.owner_job_id, rec.owner_run_token, rec.error) == ("pending", None, None, None)
     monkeypatch.setattr(tasks, "_fit_grid", real_fit)
     assert tasks.reconstruct_task.apply(args=(b,)).get()["state"] == "done"
     rec = runtime.load_reconstruction(rec_id)
     assert (rec.state, rec.owner_job_id, rec.run_count) == ("succeeded", b, 2)
+    if stop == "database outage":  # the owner's redelivered message
+        assert tasks.reconstruct_task.apply(args=(a,)).get()["state"] == "done"
+        assert client.get(f"/v1/jobs/{a}").json()["reconstruction"]["reused"] is True
 
 
 # ------------------------------------------------------------------------------------------ mesh scenes

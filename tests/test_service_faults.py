@@ -1065,7 +1065,7 @@ def test_a_stage_whose_start_meets_a_database_error_tries_again_then_goes_back_t
 
     from worker import runtime, tasks
 
-    monkeypatch.setattr(tasks, "STAGE_START_RETRY_S", (0.0, 0.0))
+    monkeypatch.setattr(tasks, "DATABASE_RETRY_S", (0.0, 0.0))
     job_id = add_job(add_scene(), "queued", 0)
     real, failures = runtime.begin_stage, []
 
@@ -1100,7 +1100,7 @@ def test_a_stage_the_database_refuses_to_start_each_time_fails_its_job_at_the_re
 
     from worker import runtime, tasks
 
-    monkeypatch.setattr(tasks, "STAGE_START_RETRY_S", ())
+    monkeypatch.setattr(tasks, "DATABASE_RETRY_S", ())
     refused = DataError("UPDATE jobs", {}, Exception("value too long for type character varying(255)"))
     monkeypatch.setattr(runtime, "begin_stage", lambda *a, **k: (_ for _ in ()).throw(refused))
     limit = db.job_max_requeues

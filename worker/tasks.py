@@ -26,7 +26,7 @@ import socket
 import threading
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NoReturn
 
 from celery import signals
 from celery.exceptions import Ignore, Reject, SoftTimeLimitExceeded
@@ -72,9 +72,21 @@ class ReconstructionFailed(RuntimeError):
 
 
 # --------------------------------------------------------------------------- the common frame
-STAGE_START_RETRY_S = (0.5, 1.0, 2.0, 4.0)
-"""Pauses between tries to take a job when the database fails (a lock, a dropped connection), before the message
-goes back to the broker."""
+DATABASE_RETRY_S = (0.5, 1.0, 2.0, 4.0)
+"""Pauses between tries to take a job, or to record its stage done, when the database fails (a lock, a dropped
+connection), before the message goes back to the broker."""
+
+
+def _retried(call, job_id: str, what: str):
+    """``call()``, tried again after each pause of ``DATABASE_RETRY_S`` while it raises a database error; the last
+    try's error raises."""
+    for pause in DATABASE_RETRY_S:
+        try:
+            return call()
+        except SQLAlchemyError as exc:
+            log.warning("job %s: %s (%s); trying again in %.1f s", job_id, what, exc, pause)
+            time.sleep(pause)
+    return call()
 
 
 def _begin_stage(task, job_id: str, stage: str, device: str, settings):
@@ -82,24 +94,22 @@ def _begin_stage(task, job_id: str, stage: str, device: str, settings):
     queue (``Reject``): acknowledged with a failure it was gone, and the job, accepted, never ran or ended. Such a
     return counts as a re-queue, up to the limit, where the job fails naming why (``runtime.count_unstarted``),
     unless the database was down or locked (an outage must not fail accepted jobs)."""
-    for pause in (*STAGE_START_RETRY_S, None):
-        try:
-            return runtime.begin_stage(job_id, stage, task.request.hostname or socket.gethostname(), device, settings)
-        except SQLAlchemyError as exc:
-            if pause is None:
-                # the driver's words (database is locked, value too long), not the statement and its parameters
-                reason = f"{stage} could not start: {type(exc).__name__}: {getattr(exc, 'orig', None) or exc}"
-                error = None
-                if database_outage(exc) is None:  # down or locked: an outage counts nothing
-                    with contextlib.suppress(SQLAlchemyError):  # the database went down meanwhile: nothing counted
-                        error = runtime.count_unstarted(job_id, stage, reason, settings)
-                if error:
-                    log.error("job %s failed: %s", job_id, error)
-                    raise JobSkipped(f"job {job_id} failed: {error}") from exc
-                log.error("job %s: %s could not start (%s); the message goes back to the queue", job_id, stage, exc)
-                raise Reject(f"{stage} of job {job_id} could not start: {exc}", requeue=True) from exc
-            log.warning("job %s: %s could not start (%s); trying again in %.1f s", job_id, stage, exc, pause)
-            time.sleep(pause)
+    hostname = task.request.hostname or socket.gethostname()
+    try:
+        return _retried(lambda: runtime.begin_stage(job_id, stage, hostname, device, settings), job_id,
+                        f"{stage} could not start")
+    except SQLAlchemyError as exc:
+        # the driver's words (database is locked, value too long), not the statement and its parameters
+        reason = f"{stage} could not start: {type(exc).__name__}: {getattr(exc, 'orig', None) or exc}"
+        error = None
+        if database_outage(exc) is None:  # down or locked: an outage counts nothing
+            with contextlib.suppress(SQLAlchemyError):  # the database went down meanwhile: nothing counted
+                error = runtime.count_unstarted(job_id, stage, reason, settings)
+        if error:
+            log.error("job %s failed: %s", job_id, error)
+            raise JobSkipped(f"job {job_id} failed: {error}") from exc
+        log.error("job %s: %s could not start (%s); the message goes back to the queue", job_id, stage, exc)
+        raise Reject(f"{stage} of job {job_id} could not start: {exc}", requeue=True) from exc
 
 
 def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> TaskResult:
@@ -122,6 +132,8 @@ def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> Task
             if stage == job_stages(job.mode)[0]:
                 _check_job_can_start(job, settings)
             body(job, settings, device, get_storage(settings))
+        completed = _retried(lambda: runtime.complete_stage(job_id, stage, token, final=final), job_id,
+                             f"{stage} could not be recorded done")
     except runtime.RunSuperseded as superseded:
         log.warning("job %s: %s: %s", job_id, stage, superseded)
         _stop_if_taken_over(job_id, stage)
@@ -133,25 +145,34 @@ def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> Task
         ended = runtime.fail_job(job_id, f"{stage}: time limit of {settings.task_soft_time_limit_s} s exceeded",
                                  run_token=token)
         return _ended(job_id, stage, "failed", ended, settings)
-    except Exception as exc:  # noqa: BLE001 - every failure ends the job with its message ...
-        if runtime.worker_in_cold_shutdown():  # ... but the one a cold shutdown raises in the task (the solo pool's)
-            runtime.release_stage(job_id, token)
-            log.warning("job %s: %s stopped by the worker's shutdown; its message goes back to the queue",
-                        job_id, stage)
-            raise Reject(f"{stage} of job {job_id} stopped by the worker's shutdown", requeue=True) from exc
+    except Exception as exc:  # noqa: BLE001 - every failure ends the job with its message, but two: ...
+        if runtime.worker_in_cold_shutdown():  # ... the one a cold shutdown raises in the task (the solo pool's) ...
+            _give_back(job_id, stage, token, "the worker's shutdown", exc)
+        if (why := database_outage(exc)) is not None:  # ... and a database outage, no fault of the job
+            _give_back(job_id, stage, token, f"a database outage ({why})", exc)
         log.exception("job %s: %s failed", job_id, stage)
         ended = runtime.fail_job(job_id, _error_message(stage, exc, job), run_token=token)
         return _ended(job_id, stage, "failed", ended, settings)
     except BaseException:  # the worker going down: its redelivered message takes the job at once
         runtime.release_stage(job_id, token)
         raise
-    if not runtime.complete_stage(job_id, stage, token, final=final):
+    if not completed:
         _stop_if_taken_over(job_id, stage)
         return {"job_id": job_id, "stage": stage, "skipped": f"job {job_id} ended during {stage}"}
     if final:
         _cleanup(job_id, settings)
     log.info("job %s: %s done", job_id, stage)
     return {"job_id": job_id, "stage": stage, "state": "done"}
+
+
+def _give_back(job_id: str, stage: str, run_token: str, cause: str, exc: Exception) -> NoReturn:
+    """Release the run's hold and reject the message back to the queue: its redelivery resumes the stage from its
+    stored checkpoint. A database that refuses the release too leaves the hold to run out unrenewed (the
+    redelivery waits for that, then takes the job over)."""
+    with contextlib.suppress(SQLAlchemyError):
+        runtime.release_stage(job_id, run_token)
+    log.warning("job %s: %s stopped by %s; its message goes back to the queue", job_id, stage, cause)
+    raise Reject(f"{stage} of job {job_id} stopped by {cause}", requeue=True) from exc
 
 
 def _ended(job_id: str, stage: str, state: str, ended: bool, settings) -> TaskResult:
