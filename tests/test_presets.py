@@ -561,7 +561,9 @@ def test_a_database_outage_at_a_stages_checkpoint_or_end_sends_it_back_to_the_qu
     (or, at the end, the task, leaving the job to the reaper): an outage is not the job's fault. The run gives the
     job back and the message goes back to the queue; its redelivery resumes from the stored checkpoint and
     completes. When the database refuses the release too, the job stays held until its lease runs out unrenewed,
-    and the redelivery takes it over then (counted as a re-queue, as any lapsed hold is)."""
+    and the redelivery takes it over then. Either way the return counts as a re-queue (named by a ``requeued``
+    event when the database took the give-back), so an "outage" met every time cannot re-run the stage for ever.
+    """
     from voxe_service.models import utcnow
     from worker import runtime, tasks
 
@@ -572,7 +574,7 @@ def test_a_database_outage_at_a_stages_checkpoint_or_end_sends_it_back_to_the_qu
         outage.setattr(tasks, "DATABASE_RETRY_S", (0.0, 0.0))
         refused = _refusing(outage, name, _database_error(statement, "database is locked"), when)
         if release != "released":
-            _refusing(outage, "release_stage", _database_error("UPDATE jobs", "database is locked"))
+            _refusing(outage, "give_back_stage", _database_error("UPDATE jobs", "database is locked"))
         result = tasks.edit_task.apply(args=(job_id,))
     assert result.state == "REJECTED" and result.result.requeue, result.result  # back to the broker
     assert "database" in str(result.result)
@@ -585,10 +587,67 @@ def test_a_database_outage_at_a_stages_checkpoint_or_end_sends_it_back_to_the_qu
     assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "done"  # the redelivered message
     done = client.get(f"/v1/jobs/{job_id}").json()
     assert (done["state"], done["completed_stages"], done["iteration"]) == ("running", ["reconstruct", "edit"], 3)
-    assert runtime.load_job(job_id).requeues == (0 if release == "released" else 1)
+    assert runtime.load_job(job_id).requeues == 1
     events = client.get(f"/v1/jobs/{job_id}/events").json()
+    requeued = [e["detail"] for e in events if e["kind"] == "requeued"]
+    if release == "released":
+        assert requeued == ["edit stopped by a database outage (the database cannot be reached or is locked): "
+                            "OperationalError: database is locked"], requeued
+    else:
+        assert requeued == []
     assert [e["iteration"] for e in events if e["kind"] == "resumed" and e["stage"] == "edit"] == [3]
     assert client.get(f"/v1/jobs/{job_id}/artifacts/edited_grid.safetensors").status_code == 200
+
+
+def test_an_outage_met_at_every_try_fails_the_job_at_the_requeue_limit_naming_it(service, monkeypatch):
+    """What the database answers as an outage every time (a statement timeout, a full disk) had sent the stage back
+    to the queue for ever, each redelivery running it again from its checkpoint: each give-back counts, and at
+    ``VOXE_JOB_MAX_REQUEUES`` the job fails naming the outage."""
+    from voxe_service.settings import get_settings
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job_id = _reconstructed_job(client, scene_id, "scene", iterations=3, render_size=16, preview_every=0)["id"]
+    limit = get_settings().job_max_requeues
+    monkeypatch.setattr(tasks, "DATABASE_RETRY_S", (0.0,))
+    name, statement, when = EDGES["artifact record"]
+    _refusing(monkeypatch, name, _database_error(statement, "database is locked"), when)
+    outcomes = [tasks.edit_task.apply(args=(job_id,)) for _ in range(limit + 1)]
+    assert [outcome.state for outcome in outcomes] == ["REJECTED"] * limit + ["SUCCESS"]
+    assert outcomes[-1].get()["state"] == "failed"
+    job = runtime.load_job(job_id)
+    assert (job.state, job.requeues) == ("failed", limit)
+    assert job.error == ("edit stopped by a database outage (the database cannot be reached or is locked): "
+                         f"OperationalError: database is locked; it was sent again {limit} time(s) already, the "
+                         f"limit (VOXE_JOB_MAX_REQUEUES={limit})")
+
+
+def test_a_stages_end_committed_with_its_answer_lost_goes_on_with_the_chain(service, monkeypatch):
+    """A dropped connection can lose the answer to a COMMIT that landed: the end's retry found the job released
+    and took it for another run's takeover, stopping the chain (the job left running until the reaper's
+    lost-message pass, hours later). The stage found done and the job free counts as this run's."""
+    from sqlalchemy.exc import OperationalError
+
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job_id = _reconstructed_job(client, scene_id, "scene", iterations=3, render_size=16, preview_every=0)["id"]
+    monkeypatch.setattr(tasks, "DATABASE_RETRY_S", (0.0, 0.0))
+    real, calls = runtime.complete_stage, []
+
+    def committed_then_dropped(*args, **kwargs):
+        calls.append(kwargs.get("again"))
+        done = real(*args, **kwargs)
+        if len(calls) == 1:
+            raise OperationalError("COMMIT", {}, Exception("server closed the connection unexpectedly"))
+        return done
+
+    monkeypatch.setattr(runtime, "complete_stage", committed_then_dropped)
+    assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "done"
+    assert calls == [False, True]
+    job = runtime.load_job(job_id)
+    assert (job.state, job.completed_stages, job.run_token, job.requeues) == (
+        "running", ["reconstruct", "edit"], None, 0)
 
 
 @pytest.mark.parametrize("edge", EDGES)

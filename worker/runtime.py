@@ -168,7 +168,8 @@ def begin_stage(job_id: str, stage: str, hostname: str | None, device: str, sett
                        or_(Job.run_token.is_(None), Job.run_lease_until < now)]
             interrupted = job.run_token is not None  # a lapsed hold: its run's process died, which counts
             reason = (f"the run of {job.stage} on worker {job.worker_hostname} stopped renewing its hold on the "
-                      "job (its process died: killed, out of memory or crashed)")
+                      "job (its process died: killed, out of memory or crashed; or it gave the job back while the "
+                      "database was out of reach)")
             if interrupted and (error := requeue_limit_error(job.requeues, settings, reason)):
                 if not finish_jobs(session, [job_id], FAILED, error=error, where=as_read):
                     continue  # the row changed since it was read: read it again
@@ -229,8 +230,10 @@ def _wait_for_release(job_id: str, stage: str, held: tuple, settings: Settings) 
             raise StageHeld(f"job {job_id}: another run holds it (this {stage} message is a duplicate)")
 
 
-def complete_stage(job_id: str, stage: str, run_token: str, final: bool = False) -> bool:
-    """Record ``stage`` done and release the job (or end it, ``final``); False when the run no longer held it."""
+def complete_stage(job_id: str, stage: str, run_token: str, final: bool = False, again: bool = False) -> bool:
+    """Record ``stage`` done and release the job (or end it, ``final``); False when the run no longer held it.
+    ``again``: a try before raised, and may have committed with its answer lost (a dropped connection): the stage
+    found done and the job released (or succeeded) counts as this run's, not as a run that took the job over."""
     with session_scope() as session:
         job = session.get(Job, job_id)
         if job is None:
@@ -248,7 +251,8 @@ def complete_stage(job_id: str, stage: str, run_token: str, final: bool = False)
             record_event(session, job_id, "stage_completed", stage=stage, worker=job.worker_hostname)
             if final:
                 record_event(session, job_id, SUCCEEDED, stage=stage)
-        return result.rowcount == 1
+            return True
+        return again and stage in done and job.run_token is None and job.state == (SUCCEEDED if final else RUNNING)
 
 
 def worker_in_cold_shutdown() -> bool:
@@ -259,6 +263,24 @@ def worker_in_cold_shutdown() -> bool:
     from celery.worker import state
 
     return state.should_terminate is not None and state.should_terminate is not False  # (an exit code: 0 counts)
+
+
+def give_back_stage(job_id: str, stage: str, run_token: str, reason: str, settings: Settings) -> str | None:
+    """Give the run's hold back after a database outage stopped its stage (its redelivery resumes from the stored
+    checkpoint), counted as a re-queue with a ``requeued`` event naming ``reason``; at ``job_max_requeues`` fail the
+    job instead and return why: what the database answers as an outage every time (a statement timeout, a full
+    disk) must not re-run a stage for ever. A job this run no longer holds is left as it is."""
+    held = [Job.id == job_id, Job.run_token == run_token]
+    with session_scope() as session:
+        requeues = session.scalar(select(Job.requeues).where(*held))
+        if requeues is None:
+            return None
+        if error := requeue_limit_error(requeues, settings, reason):
+            return error if finish_jobs(session, [job_id], FAILED, error=error, where=held) else None
+        session.execute(update(Job).where(*held).values(run_token=None, run_lease_until=None, updated_at=utcnow(),
+                                                        requeues=Job.requeues + 1))
+        record_event(session, job_id, "requeued", stage=stage, detail=reason)
+    return None
 
 
 def release_stage(job_id: str, run_token: str) -> None:

@@ -78,15 +78,16 @@ connection), before the message goes back to the broker."""
 
 
 def _retried(call, job_id: str, what: str):
-    """``call()``, tried again after each pause of ``DATABASE_RETRY_S`` while it raises a database error; the last
-    try's error raises."""
-    for pause in DATABASE_RETRY_S:
+    """``call(again)``, tried again after each pause of ``DATABASE_RETRY_S`` while it raises a database error
+    (``again``: a try before raised, and its commit may have landed with its answer lost); the last try's error
+    raises."""
+    for tries, pause in enumerate(DATABASE_RETRY_S):
         try:
-            return call()
+            return call(tries > 0)
         except SQLAlchemyError as exc:
             log.warning("job %s: %s (%s); trying again in %.1f s", job_id, what, exc, pause)
             time.sleep(pause)
-    return call()
+    return call(True)
 
 
 def _begin_stage(task, job_id: str, stage: str, device: str, settings):
@@ -96,7 +97,7 @@ def _begin_stage(task, job_id: str, stage: str, device: str, settings):
     unless the database was down or locked (an outage must not fail accepted jobs)."""
     hostname = task.request.hostname or socket.gethostname()
     try:
-        return _retried(lambda: runtime.begin_stage(job_id, stage, hostname, device, settings), job_id,
+        return _retried(lambda _again: runtime.begin_stage(job_id, stage, hostname, device, settings), job_id,
                         f"{stage} could not start")
     except SQLAlchemyError as exc:
         # the driver's words (database is locked, value too long), not the statement and its parameters
@@ -132,8 +133,8 @@ def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> Task
             if stage == job_stages(job.mode)[0]:
                 _check_job_can_start(job, settings)
             body(job, settings, device, get_storage(settings))
-        completed = _retried(lambda: runtime.complete_stage(job_id, stage, token, final=final), job_id,
-                             f"{stage} could not be recorded done")
+        completed = _retried(lambda again: runtime.complete_stage(job_id, stage, token, final=final, again=again),
+                             job_id, f"{stage} could not be recorded done")
     except runtime.RunSuperseded as superseded:
         log.warning("job %s: %s: %s", job_id, stage, superseded)
         _stop_if_taken_over(job_id, stage)
@@ -147,9 +148,15 @@ def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> Task
         return _ended(job_id, stage, "failed", ended, settings)
     except Exception as exc:  # noqa: BLE001 - every failure ends the job with its message, but two: ...
         if runtime.worker_in_cold_shutdown():  # ... the one a cold shutdown raises in the task (the solo pool's) ...
-            _give_back(job_id, stage, token, "the worker's shutdown", exc)
-        if (why := database_outage(exc)) is not None:  # ... and a database outage, no fault of the job
-            _give_back(job_id, stage, token, f"a database outage ({why})", exc)
+            with contextlib.suppress(SQLAlchemyError):  # (refused, the hold runs out and the redelivery takes over)
+                runtime.release_stage(job_id, token)
+            _requeue(job_id, stage, "the worker's shutdown", exc)
+        if (why := database_outage(exc)) is not None:  # ... and a database outage, no fault of the job's
+            if error := _give_back(job_id, stage, token, f"{stage} stopped by a database outage ({why}): "
+                                   f"{type(exc).__name__}: {getattr(exc, 'orig', None) or exc}", settings):
+                log.error("job %s failed: %s", job_id, error)
+                return _ended(job_id, stage, "failed", True, settings)
+            _requeue(job_id, stage, f"a database outage ({why})", exc)
         log.exception("job %s: %s failed", job_id, stage)
         ended = runtime.fail_job(job_id, _error_message(stage, exc, job), run_token=token)
         return _ended(job_id, stage, "failed", ended, settings)
@@ -165,12 +172,19 @@ def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> Task
     return {"job_id": job_id, "stage": stage, "state": "done"}
 
 
-def _give_back(job_id: str, stage: str, run_token: str, cause: str, exc: Exception) -> NoReturn:
-    """Release the run's hold and reject the message back to the queue: its redelivery resumes the stage from its
-    stored checkpoint. A database that refuses the release too leaves the hold to run out unrenewed (the
-    redelivery waits for that, then takes the job over)."""
-    with contextlib.suppress(SQLAlchemyError):
-        runtime.release_stage(job_id, run_token)
+def _give_back(job_id: str, stage: str, run_token: str, reason: str, settings) -> str | None:
+    """``runtime.give_back_stage`` (a counted re-queue; at the limit the job fails, and why is returned), tried
+    again while the database refuses; still refused, the hold runs out unrenewed and the redelivery takes the job
+    over then, counting it as it counts any lapsed hold."""
+    try:
+        return _retried(lambda _again: runtime.give_back_stage(job_id, stage, run_token, reason, settings), job_id,
+                        f"{stage} could not give the job back")
+    except SQLAlchemyError:
+        return None
+
+
+def _requeue(job_id: str, stage: str, cause: str, exc: Exception) -> NoReturn:
+    """Reject the message back to the queue: its redelivery resumes the stage from its stored checkpoint."""
     log.warning("job %s: %s stopped by %s; its message goes back to the queue", job_id, stage, cause)
     raise Reject(f"{stage} of job {job_id} stopped by {cause}", requeue=True) from exc
 
