@@ -218,6 +218,25 @@ def test_progress_off_a_terminal_is_a_line_now_and_then_not_ten_redraws_a_second
     assert capsys.readouterr().err.count("\r") == 2
 
 
+def test_the_bar_on_a_terminal_stays_on_one_row_and_leaves_nothing_of_a_longer_line(monkeypatch, capsys):
+    """Redrawn in place (a carriage return), a shorter line had left the end of the one before on screen (a phase
+    long done), and one wider than the terminal wrapped, so the next redraw began on the wrapped row."""
+    import os
+    import shutil
+
+    from voxe_core.cli.service import _progress_bar
+
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
+    monkeypatch.setattr(shutil, "get_terminal_size", lambda *args: os.terminal_size((80, 24)))
+    draw = _progress_bar(quiet=False)
+    draw({"state": "running", "stage": "refine", "overall_progress": 0.5, "message": "refine: attention_grids"})
+    draw({"state": "succeeded", "stage": "export", "overall_progress": 1.0})
+    rows = capsys.readouterr().err.split("\r")[1:]
+    assert [len(row) for row in rows] == [79, 79]  # cut to the width less one (no wrap), the second padded over
+    assert rows[0].startswith("[###############               ]  50.0% running refine - refine: att")
+    assert rows[1].rstrip() == "[##############################] 100.0% succeeded export"
+
+
 def test_wait_in_a_log_says_each_state_stage_and_phase_at_once(monkeypatch, capsys):
     """``voxe wait`` into a log (CI): a job through its stages in a few seconds had shown only its first and last
     snapshot (a line at most every 30 s); each change of state, stage or phase is a line of its own at once, and

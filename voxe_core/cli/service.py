@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import shutil
 import sys
 import time
 import warnings
@@ -96,7 +97,7 @@ def _progress_bar(quiet: bool):
     elsewhere (a log) a line at once whenever the job's state, stage or message (a phase of the stage: ``refine:
     attention_maps``) changes, and between those a line at most every ``LOG_PROGRESS_INTERVAL_S`` and only when it
     changed: a short job's log had shown only its first and last snapshot, none of the stages between."""
-    terminal, last = sys.stderr.isatty(), {"line": None, "step": None, "at": -math.inf}
+    terminal, last = sys.stderr.isatty(), {"line": None, "step": None, "at": -math.inf, "shown": 0}
 
     def draw(snapshot: dict) -> None:
         done = snapshot.get("overall_progress") or 0.0
@@ -110,8 +111,13 @@ def _progress_bar(quiet: bool):
         if quiet or line == last["line"] or (not terminal and step == last["step"]
                                              and now - last["at"] < LOG_PROGRESS_INTERVAL_S):
             return
+        if terminal:  # within one row (a wrapped line is not redrawn in place), over all of the one before
+            shown = line[:shutil.get_terminal_size().columns - 1]
+            print(f"\r{shown.ljust(last['shown'])}", end="", file=sys.stderr, flush=True)
+            last["shown"] = len(shown)
+        else:
+            print(line, file=sys.stderr, flush=True)
         last.update(line=line, step=step, at=now)
-        print(f"\r{line}   " if terminal else line, end="" if terminal else "\n", file=sys.stderr, flush=True)
     return draw
 
 
