@@ -134,6 +134,27 @@ def test_an_obj_whose_one_material_writes_a_kd_loads_in_that_colour(tmp_path):
         assert shade_mesh(grey).shading is not None
 
 
+
+def test_a_one_value_kd_is_a_grey_and_keeps_the_librarys_materials(tmp_path):
+    """``Kd 0.5`` is (0.5, 0.5, 0.5) by the MTL spec: trimesh had dropped every material of the library for it (or
+    for a one-value Ks), the cube loading in the default grey, a map_Kd beside it lost; ``Kd 0`` had loaded in
+    trimesh's grey, not black. A Kd of two values, a word or NaN is refused naming the .mtl's line."""
+    (tmp_path / "cube.obj").write_text("mtllib cube.mtl\n" + CUBE_OBJ)
+    for kd, colour in (("Kd 0.5", 0.5), ("Kd 0", 0.0), ("Kd 0.25\nKs 0.5", 0.25)):
+        (tmp_path / "cube.mtl").write_text(f"newmtl red\n{kd}\n")
+        assert np.allclose(load_mesh(tmp_path / "cube.obj").colour, [colour] * 3, atol=1 / 255), kd
+    Image.fromarray(np.full((2, 2, 3), [0, 0, 255], dtype=np.uint8)).save(tmp_path / "tex.png")
+    (tmp_path / "skin.mtl").write_text("newmtl skin\nKd 1\nKs 0.5\nmap_Kd tex.png\nnewmtl grey\nKd 0.5\n")
+    (tmp_path / "skin.obj").write_text("mtllib skin.mtl\nusemtl skin\n" + QUAD_WITH_UVS)
+    textured = load_mesh(tmp_path / "skin.obj")
+    assert textured.has_colour and np.allclose(textured.albedo(np.array([0]), np.full((1, 3), 1 / 3)), [0, 0, 1])
+    for kd in ("Kd 0.5 0.2", "Kd spectral red.rfl", "Kd nan"):
+        (tmp_path / "cube.mtl").write_text(f"newmtl red\nNs 10\n{kd}\n")
+        with pytest.raises(MeshError, match=rf"^cube.mtl line 3: '{kd}': Kd must be one finite number \(a grey "
+                                            r"level\) or three \(r g b\)$"):
+            load_mesh(tmp_path / "cube.obj")
+
+
 def test_nan_texture_coordinates_are_refused(tmp_path):
     """A NaN vt had loaded and sampled the texture at NaN: given beside the file or named by its .mtl."""
     Image.fromarray(np.full((2, 2, 3), 200, dtype=np.uint8)).save(tmp_path / "tex.png")

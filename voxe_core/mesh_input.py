@@ -35,6 +35,7 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -138,8 +139,8 @@ def load_mesh(
     most scanners), turned onto +z. The box is centred on the origin and its
     largest half-extent made ``extent``, or less where the mesh would reach past
     ``VIEW_RADIUS`` (``frame`` 1: see ``MESH_FRAMES``). Raises ``MeshError`` naming the file for
-    unreadable, empty, degenerate or non-finite meshes (vertices or UVs) and for a texture
-    without UVs.
+    unreadable, empty, degenerate or non-finite meshes (vertices or UVs), for a texture
+    without UVs and for an .mtl's Kd that is neither one number nor three.
     """
     import trimesh
     from PIL import Image
@@ -153,11 +154,14 @@ def load_mesh(
         raise MeshError(f"extent must be positive, got {extent}")
     if frame not in MESH_FRAMES:
         raise MeshError(f"frame must be one of {MESH_FRAMES}, got {frame!r}")
+    library = _MtlBySpec(trimesh.resolvers.FilePathResolver(path))
     try:  # with a texture, its parts as they are: the file's materials are not what colours it
         loaded = trimesh.load(path, force="mesh" if texture is None else "scene", process=False,
-                              skip_materials=texture is not None)
+                              skip_materials=texture is not None, resolver=library)
     except Exception as e:  # trimesh raises many types for damaged files
         raise MeshError(f"{path.name}: cannot read as a mesh: {e}") from e
+    if library.problem:
+        raise MeshError(library.problem)
     if texture is None:
         vertices = np.asarray(getattr(loaded, "vertices", np.empty((0, 3))), dtype=np.float64)
         faces = np.asarray(getattr(loaded, "faces", np.empty((0, 3))), dtype=np.int64)
@@ -237,6 +241,53 @@ def _written_diffuse(visual) -> np.ndarray | None:
     if getattr(visual, "kind", None) != "texture" or "kd" not in getattr(material, "kwargs", {}):
         return None
     return np.asarray(material.diffuse, dtype=np.float32)[:3] / 255.0
+
+
+class _MtlBySpec(Mapping):
+    """trimesh's lookup of an OBJ's files (``files``), the .mtl handed over with its colours as the MTL spec reads them.
+
+    trimesh keeps a one-value colour as a number its material refuses, and then drops every material of the
+    library, a map_Kd image among them: ``Kd 0.5`` (a grey: the spec takes g and b equal to r) had loaded in
+    ``DEFAULT_ALBEDO``, ``Kd 0`` in trimesh's own grey. Here one value is written out three times; Ka and Ks, which
+    an unlit albedo never reads, are left out, so that no malformed one loses the library either. A Kd of another
+    shape (two values, a word such as ``spectral`` or ``xyz``, NaN) would be lost as silently: the first is kept in
+    ``problem`` for ``load_mesh`` to refuse, as trimesh swallows whatever its lookup raises.
+    """
+
+    def __init__(self, files):
+        self.files = files
+        self.problem: str | None = None
+
+    def __getitem__(self, name: str) -> bytes:
+        data = self.files[name]
+        return self._by_spec(data, name) if name.strip().lower().endswith(".mtl") else data
+
+    def __iter__(self):
+        return iter(self.files.keys())
+
+    def __len__(self) -> int:
+        return sum(1 for _ in self.files.keys())
+
+    def _by_spec(self, data: bytes, name: str) -> bytes:
+        """``data`` (an .mtl) with one-value Kds written out, Ka and Ks left out; bytes, as file names are kept."""
+        lines = []
+        for number, line in enumerate(data.splitlines(), 1):
+            key, *values = line.split() or [b""]
+            if key.lower() in (b"ka", b"ks"):
+                continue
+            if key.lower() == b"kd":
+                try:
+                    colour = [float(value) for value in values]
+                except ValueError:
+                    colour = []
+                if len(colour) not in (1, 3) or not np.isfinite(colour).all():
+                    self.problem = self.problem or (
+                        f"{Path(name.strip()).name} line {number}: {line.strip().decode(errors='replace')!r}: "
+                        "Kd must be one finite number (a grey level) or three (r g b)")
+                elif len(colour) == 1:
+                    line = b" ".join([key, *values * 3])
+            lines.append(line)
+        return b"\n".join(lines)
 
 
 def _used_vertices_only(mesh: SurfaceMesh) -> SurfaceMesh:
