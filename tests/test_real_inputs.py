@@ -521,6 +521,38 @@ def test_colmap_text_errors_name_the_line(tmp_path):
         read_model(model)
 
 
+def test_colmap_points2d_lines_as_colmap_writes_them_are_not_parsed_value_by_value(tmp_path, monkeypatch):
+    """The POINTS2D[] check had parsed every X, Y and POINT3D_ID, most of images.txt's read time; a line of plain
+    decimals (COLMAP's) now passes in one match. Any other line is parsed value by value as before: it passes
+    (nan, 1_000, +3) or fails naming its first bad value."""
+    from voxe_core import colmap
+
+    model = small_model(tmp_path, binary=False)
+    lines = (model / "images.txt").read_text().splitlines()
+    first = next(i for i, line in enumerate(lines) if not line.startswith("#"))
+    parse, parsed = colmap._parse, []
+
+    def counted(kind, field: str, what: str, line: int, path: Path):
+        parsed.append(what)
+        return parse(kind, field, what, line, path)
+
+    monkeypatch.setattr(colmap, "_parse", counted)
+    for points, value_by_value in (("1.5 2.25 -1  3 4 7\t1e-05 -2.5E+3 12 ", False), ("", False),
+                                   ("nan 1_000 +3", True)):
+        lines[first + 1] = points
+        (model / "images.txt").write_text("\n".join(lines) + "\n")
+        parsed.clear()
+        assert [image.name for image in read_model(model)[1]] == ["a.png", "b.png"]
+        assert ("POINTS2D X" in parsed) == value_by_value, points
+    for points, message in (("1.5 2.5 -1 3 4", "got 5 fields"),
+                            ("1.5 2.5 -1 3 4 7.0", "POINT3D_ID '7.0' is not an integer"),
+                            ("1.5 2.5 -1 3 4e 7", "POINTS2D Y '4e' is not a number")):
+        lines[first + 1] = points
+        (model / "images.txt").write_text("\n".join(lines) + "\n")
+        with pytest.raises(ColmapError, match=rf"^images.txt: line {first + 2}: .*{message}"):
+            read_model(model)
+
+
 @needs.needs_data(FOX)
 def test_cli_reconstructs_a_colmap_capture(tmp_path, capsys):
     from voxe_core.backbones import load_grid
