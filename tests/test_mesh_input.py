@@ -155,6 +155,62 @@ def test_a_one_value_kd_is_a_grey_and_keeps_the_librarys_materials(tmp_path):
             load_mesh(tmp_path / "cube.obj")
 
 
+CUBE_WITH_UVS = "vt 0.5 0.5\n" + "".join(
+    "f " + " ".join(f"{corner}/1" for corner in line.split()[1:]) + "\n" if line.startswith("f ") else line + "\n"
+    for line in CUBE_OBJ.splitlines())
+
+
+def _texcoord_ply(header_comment: str = "") -> str:
+    """A tetrahedron's PLY with per-face texture coordinates (texcoord), ``header_comment`` in its header."""
+    return ("ply\nformat ascii 1.0\n" + header_comment + "element vertex 4\nproperty float x\nproperty float y\n"
+            "property float z\nelement face 4\nproperty list uchar int vertex_indices\n"
+            "property list uchar float texcoord\nend_header\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n"
+            + "".join(f"3 {face} 6 0.5 0.5 0.5 0.5 0.5 0.5\n" for face in ("0 2 1", "0 1 3", "0 3 2", "1 2 3")))
+
+
+def test_uvs_without_a_material_the_file_gives_load_uncoloured(tmp_path):
+    """Texture coordinates without a material the file gives (no mtllib, its .mtl missing, a usemtl the library
+    does not define; a PLY's texcoord without its TextureFile) had loaded as a 2×2 texture of trimesh's stand-in grey
+    (0.39): "coloured", so "auto" shading left the mesh a flat silhouette. Now it is uncoloured, as without vt, even
+    where the library defines trimesh's name for its stand-in (material_0). Spot's OBJ without its texture is the
+    real case (it has no mtllib)."""
+    (tmp_path / "other.mtl").write_text("newmtl material_0\nKd 1 0 0\n")
+    (tmp_path / "plain.obj").write_text(CUBE_WITH_UVS)
+    (tmp_path / "lost.obj").write_text("mtllib lost.mtl\n" + CUBE_WITH_UVS)
+    (tmp_path / "undefined.obj").write_text("mtllib other.mtl\n" + CUBE_WITH_UVS)  # its usemtl red: not defined
+    (tmp_path / "bare.ply").write_text(_texcoord_ply())
+    (tmp_path / "lost.ply").write_text(_texcoord_ply("comment TextureFile lost.png\n"))
+    meshes = {name: load_mesh(tmp_path / name) for name in ("plain.obj", "lost.obj", "undefined.obj", "bare.ply",
+                                                            "lost.ply")}
+    meshes["spot"] = load_mesh(SPOT / "spot_triangulated.obj")
+    for name, mesh in meshes.items():
+        assert mesh.texture is None and mesh.uv is None and mesh.colour is None and not mesh.has_colour, name
+        faces = np.arange(len(mesh.faces))
+        assert np.allclose(mesh.albedo(faces, np.full((len(faces), 3), 1 / 3)), DEFAULT_ALBEDO), name
+        assert shade_mesh(mesh).shading is not None, name
+
+
+def test_materials_the_file_wrote_keep_their_colours_by_kd_or_by_image(tmp_path):
+    """Two materials by their Kd alone, two by their images (trimesh packs either into one atlas), and a PLY's
+    TextureFile: each part keeps its own colour, a texture that "auto" shading leaves as it is."""
+    two_parts = ("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nv 1 0 1\nv 0 1 1\nvt 0.25 0.25\nvt 0.75 0.75\n"
+                 "usemtl first\nf 1/1 2/1 3/1\nusemtl second\nf 4/2 5/2 6/2\n")  # at heights 0 and 1
+    for colour, name in (((255, 0, 0), "red.png"), ((0, 0, 255), "blue.png"), ((0, 255, 0), "green.png")):
+        Image.fromarray(np.full((4, 4, 3), colour, dtype=np.uint8)).save(tmp_path / name)
+    (tmp_path / "kd.mtl").write_text("newmtl first\nKd 1 0 0\nnewmtl second\nKd 0 0 1\n")
+    (tmp_path / "images.mtl").write_text("newmtl first\nmap_Kd red.png\nnewmtl second\nmap_Kd blue.png\n")
+    for library in ("kd.mtl", "images.mtl"):
+        (tmp_path / "parts.obj").write_text(f"mtllib {library}\n" + two_parts)
+        mesh = load_mesh(tmp_path / "parts.obj", up_axis="z")
+        assert mesh.texture is not None and shade_mesh(mesh) is mesh, library
+        order = np.argsort(mesh.vertices[mesh.faces].mean(1)[:, 2])
+        albedo = mesh.albedo(order, np.full((2, 3), 1 / 3))  # trimesh's atlas blends a Kd's block with its border
+        assert np.allclose(albedo / albedo.max(1, keepdims=True), [[1, 0, 0], [0, 0, 1]]) and albedo.max(1).min() > 0.8
+    (tmp_path / "green.ply").write_text(_texcoord_ply("comment TextureFile green.png\n"))
+    green = load_mesh(tmp_path / "green.ply")
+    assert green.has_colour and np.allclose(green.albedo(np.arange(4), np.full((4, 3), 1 / 3)), [0, 1, 0], atol=0.01)
+
+
 def test_nan_texture_coordinates_are_refused(tmp_path):
     """A NaN vt had loaded and sampled the texture at NaN: given beside the file or named by its .mtl."""
     Image.fromarray(np.full((2, 2, 3), 200, dtype=np.uint8)).save(tmp_path / "tex.png")
@@ -622,6 +678,20 @@ def test_mesh_shading_is_stored_with_the_upload_and_honoured_by_the_ingest(tmp_p
             _stage(tmp_path, [("transforms.json", tmp_path / "transforms.json"),
                               ("images/0.png", tmp_path / "images/0.png")], "baked"):
         pass
+
+
+def test_an_obj_uploaded_without_its_texture_is_shaded_by_the_ingest(tmp_path, monkeypatch):
+    """Spot's OBJ sent alone (its vt and no material) had rendered as one flat grey of trimesh's (0.39): taken for
+    coloured, "auto" did not bake. Now its views are the default albedo, shaded."""
+    from voxe_service import datasets
+
+    monkeypatch.setattr(datasets, "MESH_VIEWS", 2)
+    monkeypatch.setattr(datasets, "MESH_VIEW_SIZE", 32)
+    _, stored, root, _ = _ingest_mesh_upload(tmp_path, [("spot.obj", SPOT / "spot_triangulated.obj")])
+    assert stored == ["mesh/mesh.obj", "mesh/names.json", "mesh/options.json"]
+    scene = load_scene(root, "train")
+    surface = scene.images[scene.alphas > 0.999]
+    assert float(surface.std()) > 0.03 and float(surface.max()) > 0.6, (float(surface.std()), float(surface.max()))
 
 
 def test_mesh_up_axis_is_stored_with_the_upload_and_honoured_by_the_ingest(tmp_path):

@@ -133,7 +133,8 @@ def load_mesh(
     A ``texture`` given colours every part at the file's own UVs ((0, 0) on parts
     without vt) whatever the file's materials; without one, an OBJ's .mtl
     colours it as trimesh reads it (its images and Kd packed into one atlas; a single material's own Kd
-    is the mesh's one ``colour`` when it names no image).
+    is the mesh's one ``colour`` when it names no image); with no image or Kd the file wrote (its .mtl missing, say),
+    the mesh is uncoloured as one without vt is.
 
     ``up_axis``: the file's up axis ('y' for OBJ/glTF exports, 'z' for CAD and
     most scanners), turned onto +z. The box is centred on the origin and its
@@ -156,8 +157,11 @@ def load_mesh(
         raise MeshError(f"frame must be one of {MESH_FRAMES}, got {frame!r}")
     library = _MtlBySpec(trimesh.resolvers.FilePathResolver(path))
     try:  # with a texture, its parts as they are: the file's materials are not what colours it
-        loaded = trimesh.load(path, force="mesh" if texture is None else "scene", process=False,
-                              skip_materials=texture is not None, resolver=library)
+        parts = trimesh.load(path, force="scene", process=False, skip_materials=texture is not None,
+                             resolver=library).dump()
+        if texture is None:  # the parts joined as trimesh joins them (``Scene.to_mesh``), its materials packed
+            loaded = trimesh.util.concatenate(_without_stand_in_textures(
+                [part for part in parts if isinstance(part, trimesh.Trimesh)]))
     except Exception as e:  # trimesh raises many types for damaged files
         raise MeshError(f"{path.name}: cannot read as a mesh: {e}") from e
     if library.problem:
@@ -166,7 +170,7 @@ def load_mesh(
         vertices = np.asarray(getattr(loaded, "vertices", np.empty((0, 3))), dtype=np.float64)
         faces = np.asarray(getattr(loaded, "faces", np.empty((0, 3))), dtype=np.int64)
     else:
-        vertices, faces, uv = _joined_parts(loaded.dump())
+        vertices, faces, uv = _joined_parts(parts)
     if len(faces) == 0 or len(vertices) < 3:
         raise MeshError(f"{path.name}: no triangles in the file")
     if faces.min() < 0 or faces.max() >= len(vertices):  # a PLY loads so (an OBJ's reader refuses it)
@@ -241,6 +245,29 @@ def _written_diffuse(visual) -> np.ndarray | None:
     if getattr(visual, "kind", None) != "texture" or "kd" not in getattr(material, "kwargs", {}):
         return None
     return np.asarray(material.diffuse, dtype=np.float32)[:3] / 255.0
+
+
+def _without_stand_in_textures(parts: list) -> list:
+    """``parts`` (a file's meshes), the textured ones made uncoloured when none has a colour the file wrote.
+
+    A part with texture coordinates but no material the file gives it (an OBJ without ``mtllib``, its .mtl
+    missing, a ``usemtl`` the library does not define; a PLY's texcoord without its TextureFile) gets trimesh's
+    stand-in, a 2×2 image of its grey named as a material of the library may be: joined, the mesh had loaded as
+    textured in that grey, and shading "auto" left it a flat silhouette. It is told apart by what the file wrote:
+    an image read from a file (Pillow sets ``format`` for those only) or a Kd. Where some part has one, trimesh
+    packs every part's material into its atlas as before.
+    """
+    import trimesh
+
+    def written(part) -> bool:
+        material = getattr(part.visual, "material", None)
+        return (getattr(getattr(material, "image", None), "format", None) is not None
+                or "kd" in getattr(material, "kwargs", {}))
+
+    if any(written(part) for part in parts):
+        return parts
+    return [part if part.visual.kind != "texture" else
+            trimesh.Trimesh(part.vertices, part.faces, process=False) for part in parts]
 
 
 class _MtlBySpec(Mapping):
