@@ -1304,13 +1304,8 @@ def test_a_broker_refusing_a_submission_keeps_nothing_and_a_retry_with_the_key_r
     assert rec["id"] == job.json()["reconstruction"]["id"]  # the row the refused job made, used now
 
 
-@BOTH_DATABASES
-def test_a_retry_while_the_broker_refuses_the_first_request_is_a_409_not_what_it_withdraws(client, dataset, root,
-                                                                                          monkeypatch):
-    """A retry with the same Idempotency-Key arriving while the first request waited on a broker that then refused
-    had been answered 200 with the scene or job that request was withdrawing: deleted a moment later."""
-    from voxe_service.queue import TaskQueue
-
+def _keyed_requests(client, dataset, root):
+    """A scene made here, and two requests with an Idempotency-Key: another scene's upload (u1), a job on it (j1)."""
     scene = make_scene(client, dataset, root)
     archive = zip_folder(dataset, root / "again.zip", prefix="mic_small")
 
@@ -1321,6 +1316,18 @@ def test_a_retry_while_the_broker_refuses_the_first_request_is_a_409_not_what_it
 
     def create_job():
         return client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}, headers={"Idempotency-Key": "j1"})
+
+    return scene, upload, create_job
+
+
+@BOTH_DATABASES
+def test_a_retry_while_the_broker_refuses_the_first_request_is_a_409_not_what_it_withdraws(client, dataset, root,
+                                                                                          monkeypatch):
+    """A retry with the same Idempotency-Key arriving while the first request waited on a broker that then refused
+    had been answered 200 with the scene or job that request was withdrawing: deleted a moment later."""
+    from voxe_service.queue import TaskQueue
+
+    scene, upload, create_job = _keyed_requests(client, dataset, root)
 
     retried = {}
 
@@ -1385,16 +1392,7 @@ def test_a_retry_reading_its_key_as_the_first_request_withdraws_it_is_a_409_to_r
     from voxe_service.db import get_engine, session_scope
     from voxe_service.models import IdempotencyRecord, Job, Scene
 
-    scene = make_scene(client, dataset, root)
-    archive = zip_folder(dataset, root / "again.zip", prefix="mic_small")
-
-    def upload():
-        with open(archive, "rb") as handle:
-            return client.post("/v1/scenes", files={"archive": ("s.zip", handle, "application/zip")},
-                               headers={"Idempotency-Key": "u1"})
-
-    def create_job():
-        return client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}, headers={"Idempotency-Key": "j1"})
+    scene, upload, create_job = _keyed_requests(client, dataset, root)
 
     for submit, model, key, what in ((upload, Scene, "u1", "scene"), (create_job, Job, "j1", "job")):
         first = submit()
