@@ -1392,7 +1392,7 @@ def test_a_retry_reading_its_key_as_the_first_request_withdraws_it_is_a_409_to_r
     from voxe_service.db import get_engine, session_scope
     from voxe_service.models import IdempotencyRecord, Job, Scene
 
-    scene, upload, create_job = _keyed_requests(client, dataset, root)
+    _, upload, create_job = _keyed_requests(client, dataset, root)
 
     for submit, model, key, what in ((upload, Scene, "u1", "scene"), (create_job, Job, "j1", "job")):
         first = submit()
