@@ -145,6 +145,22 @@ def test_no_undistorted_point_sits_where_the_tangential_terms_fold_the_image():
     assert (a * d - b * c > 0).all()
 
 
+def test_a_pixel_near_the_fold_has_the_ray_its_branch_holds():
+    """This lens's pixel (152, 5.25) lies inside the fold's image, but its distorted point is nearly at the fold's
+    radius, where Newton started from it found nothing: continuing the solution out from the axis reaches
+    (1.21634, -0.75621), with the Jacobian positive. Every pixel of the image has its ray."""
+    f, cx, cy = 47.7, 55.0, 65.6
+    k = torch.tensor([0.442, -0.052, 0.0, 0.0, 0.0016, -0.0033], dtype=torch.float64)
+    x, y = undistort_points(torch.tensor([(152 - cx) / f], dtype=torch.float64),
+                            torch.tensor([(5.25 - cy) / f], dtype=torch.float64), k)
+    assert abs(float(x) - 1.2163360041473645) < 1e-9 and abs(float(y) + 0.7562074771026241) < 1e-9
+    xd, yd = distort_points(x, y, k)
+    assert abs(float(xd) * f + cx - 152) < 1e-9 and abs(float(yd) * f + cy - 5.25) < 1e-9
+    cams = Cameras(torch.eye(4)[None], torch.tensor([f]), torch.tensor([f]), torch.tensor([cx]), torch.tensor([cy]),
+                   160, 120, distortion=k.float()[None])
+    assert torch.isfinite(camera_rays(cams, 0)[1]).all()
+
+
 def test_rays_go_through_the_undistorted_point_and_project_back_to_their_pixel():
     c2w = look_at(torch.tensor([[0.0, -4.0, 1.0]]))
     cams = Cameras(c2w, torch.tensor([50.0]), torch.tensor([52.0]), torch.tensor([31.0]), torch.tensor([25.0]),

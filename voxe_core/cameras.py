@@ -22,6 +22,7 @@ from voxe_core.constants import NERF_SYNTHETIC_RADIUS
 DISTORTION_MODELS = ("opencv", "fisheye")
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")  # the columns of ``Cameras.distortion``
 _NEWTON_STEPS = 50
+_RADIAL_STEPS = 30  # of Newton's start's one-dimensional solve (only a start: Newton then refines it)
 _NEWTON_HALVINGS = 30  # of a step that would leave the lens's fold or not reduce the residual
 _NEWTON_TOLERANCE = 1e-12  # in normalised image coordinates (about 1e-9 pixels)
 _NEWTON_CONVERGED = 1e-9  # a point left farther than this from its image has no ray (NaN)
@@ -246,18 +247,17 @@ def _invert_radial_tangential(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """OPENCV's model inverted inside its fold, float64 (``undistort_points``' contract, NaN included).
 
-    Newton with its exact Jacobian from the distorted point (from half the fold's radius where that point lies past
-    it), each step halved while it would leave the fold or not reduce the residual, so the iterates stay on the
-    branch that holds the optical axis: past the fold a second root also maps back to the pixel, and its rays jump.
+    Newton with its exact Jacobian from the radial-only inverse (``_radial_start``), each step halved while it would
+    leave the fold or not reduce the residual, so the iterates stay on the branch that holds the optical axis: past
+    the fold a second root also maps back to the pixel, and its rays jump.
     Each step works only on the points not yet converged, nor stuck.
     """
     lens = torch.arange(len(table), device=xd.device).expand(xd.shape) if lens is None else lens
     fold, coefficients = _radial_folds(table)[lens], table[lens]
     target = torch.stack([xd.double(), yd.double()], -1)
-    r2 = target.square().sum(-1)
-    point = target * torch.where(r2 < fold, torch.ones_like(r2), 0.5 * (fold / r2).sqrt())[:, None]
+    point = _radial_start(target, coefficients, fold)
     error = _residual(point, target, coefficients)
-    stuck = torch.zeros_like(r2, dtype=torch.bool)
+    stuck = torch.zeros_like(fold, dtype=torch.bool)
     for _ in range(_NEWTON_STEPS):
         active = ((error.norm(dim=-1) >= _NEWTON_TOLERANCE) & ~stuck).nonzero()[:, 0]
         if len(active) == 0:
@@ -269,25 +269,58 @@ def _invert_radial_tangential(
     return point.masked_fill(lost[:, None], math.nan).unbind(-1)
 
 
+def _radial_start(target: torch.Tensor, coefficients: torch.Tensor, fold: torch.Tensor) -> torch.Tensor:
+    """Newton's start for (R, 2) targets: each on its own ray from the axis, at the radius whose radial-only image
+    has the target's radius, taken on the monotone branch inside the fold (its edge where the target lies past
+    the fold's image). The target itself is no start: near or past the fold its Jacobian is nearly singular and
+    Newton from there finds nothing, or the far branch's root, though the axis's branch has one.
+
+    The radius solves ρ (1 + k1 ρ² + ... + k4 ρ⁸) = |target| by Newton kept inside a bracket that bisection
+    narrows where Newton would leave it (the radial map increases on [0, √fold), so the bracket always holds the
+    root there).
+    """
+    k1, k2, k3, k4 = coefficients[:, :4].unbind(-1)
+    goal = target.norm(dim=-1)
+    low, high = torch.zeros_like(goal), fold.sqrt()  # inf where the lens never folds
+    radius = torch.minimum(goal, 0.5 * high)
+    for _ in range(_RADIAL_STEPS):
+        s = radius * radius
+        excess = radius * (1 + s * (k1 + s * (k2 + s * (k3 + s * k4)))) - goal
+        if not bool((excess.abs() > _NEWTON_TOLERANCE).any()):
+            break
+        slope = 1 + s * (3 * k1 + s * (5 * k2 + s * (7 * k3 + s * 9 * k4)))
+        low, high = torch.where(excess < 0, radius, low), torch.where(excess > 0, radius, high)
+        radius = radius - excess / slope
+        radius = torch.where((radius >= low) & (radius <= high), radius, 0.5 * (low + high))
+    return target * torch.where(goal > 0, radius / goal, torch.zeros_like(goal))[:, None]
+
+
 def _newton_step(point, error, target, coefficients, fold):
     """One Newton step of (R, 2) points, each halved while it would leave the fold or not reduce the residual:
-    the new points, their residuals, and whether a point was refused every halving (it stays, and would again)."""
+    the new points, their residuals, and whether a point was refused every halving (it stays, and would again).
+    Each halving works only on the points still refused (one stubborn point had redone them all)."""
     a, b, d = _jacobian(point, coefficients)
     det = a * d - b * b
     det = torch.where(det.abs() > 1e-12, det, torch.full_like(det, 1e-12))
     rx, ry = error.unbind(-1)
     step = torch.stack([d * rx - b * ry, a * ry - b * rx], -1) / det[:, None]
     norm = error.norm(dim=-1)
-    length = torch.ones_like(norm)
-    for _ in range(_NEWTON_HALVINGS):
-        new_point = point - length[:, None] * step
-        new_error = _residual(new_point, target, coefficients)
-        refused = (new_point.square().sum(-1) >= fold) | (new_error.norm(dim=-1) > norm)
-        if not bool(refused.any()):
+    new_point = point - step
+    new_error = _residual(new_point, target, coefficients)
+    taken = (new_point.square().sum(-1) < fold) & (new_error.norm(dim=-1) <= norm)
+    point, error = torch.where(taken[:, None], new_point, point), torch.where(taken[:, None], new_error, error)
+    pending = (~taken).nonzero()[:, 0]
+    for halving in range(1, _NEWTON_HALVINGS):
+        if len(pending) == 0:
             break
-        length = torch.where(refused, 0.5 * length, length)
-    keep = refused[:, None]
-    return torch.where(keep, point, new_point), torch.where(keep, error, new_error), refused
+        new_point = point[pending] - 0.5**halving * step[pending]
+        new_error = _residual(new_point, target[pending], coefficients[pending])
+        taken = (new_point.square().sum(-1) < fold[pending]) & (new_error.norm(dim=-1) <= norm[pending])
+        point[pending[taken]], error[pending[taken]] = new_point[taken], new_error[taken]
+        pending = pending[~taken]
+    refused = torch.zeros_like(norm, dtype=torch.bool)
+    refused[pending] = True
+    return point, error, refused
 
 
 def _residual(point: torch.Tensor, target: torch.Tensor, coefficients: torch.Tensor) -> torch.Tensor:
