@@ -18,7 +18,8 @@ import torch
 from PIL import Image
 
 from voxe_core.backbones import prepare_backbone
-from voxe_core.cameras import Cameras, camera_rays, distort_points, look_at, pixel_rays, undistort_points
+from voxe_core.cameras import (Cameras, camera_rays, distort_points, fisheye_angles, look_at, pixel_rays,
+                               undistort_points)
 from voxe_core.colmap import ColmapError, read_model
 from voxe_core.data import DatasetError, detect_format, is_dataset_folder, load_scene
 from voxe_core.scene_grid import scene_frame
@@ -61,28 +62,38 @@ def grid_points(extent: float, n: int = 41, dtype=torch.float64) -> tuple[torch.
 # ---------------------------------------------------------------- the distortion models
 
 
-@pytest.mark.parametrize("model, k", [("opencv", OPENCV), ("fisheye", FISHEYE)])
-def test_undistort_inverts_distort_both_ways(model, k):
+def test_undistort_inverts_distort_both_ways():
     x, y = grid_points(0.8)
-    xd, yd = distort_points(x, y, k, model)
-    ux, uy = undistort_points(xd, yd, k, model)
+    xd, yd = distort_points(x, y, OPENCV)
+    ux, uy = undistort_points(xd, yd, OPENCV)
     assert torch.allclose(ux, x, atol=1e-10) and torch.allclose(uy, y, atol=1e-10)
-    rx, ry = distort_points(*undistort_points(x, y, k, model), k, model)
+    rx, ry = distort_points(*undistort_points(x, y, OPENCV), OPENCV)
+    assert torch.allclose(rx, x, atol=1e-10) and torch.allclose(ry, y, atol=1e-10)
+
+
+def test_fisheye_angles_invert_distort_both_ways():
+    """The fisheye images the point (x, y) at its ray's angle θ = atan r; back, the angle found at a point
+    names the image-plane point (tan θ along the point's own direction) that the fisheye images there."""
+    x, y = grid_points(0.8)
+    r = torch.hypot(x, y)
+    theta = fisheye_angles(*distort_points(x, y, FISHEYE, "fisheye"), FISHEYE)
+    assert torch.allclose(theta, torch.atan(r), atol=1e-10)
+    theta = fisheye_angles(x, y, FISHEYE)
+    scale = torch.where(r > 0, torch.tan(theta) / r, torch.ones_like(r))
+    rx, ry = distort_points(x * scale, y * scale, FISHEYE, "fisheye")
     assert torch.allclose(rx, x, atol=1e-10) and torch.allclose(ry, y, atol=1e-10)
 
 
 def test_pinhole_coefficients_are_the_identity():
     x, y = grid_points(1.0)
     zero = torch.zeros(6, dtype=torch.float64)
-    for model in ("opencv",):
-        assert torch.equal(torch.stack(distort_points(x, y, zero, model)), torch.stack([x, y]))
-        assert torch.equal(torch.stack(undistort_points(x, y, zero, model)), torch.stack([x, y]))
-    # An equidistant fisheye without coefficients images the angle: r_d = atan(r), so undistorting is tan.
+    assert torch.equal(torch.stack(distort_points(x, y, zero)), torch.stack([x, y]))
+    assert torch.equal(torch.stack(undistort_points(x, y, zero)), torch.stack([x, y]))
+    # An equidistant fisheye without coefficients images the angle: r_d = atan(r), so its ray's angle is r_d.
     xd, yd = distort_points(x, y, zero, "fisheye")
     assert torch.allclose(torch.hypot(xd, yd), torch.atan(torch.hypot(x, y)), atol=1e-12)
-    ux, _ = undistort_points(torch.tensor([0.5], dtype=torch.float64), torch.zeros(1, dtype=torch.float64), zero,
-                             "fisheye")
-    assert abs(float(ux) - math.tan(0.5)) < 1e-10
+    theta = fisheye_angles(torch.tensor([0.5], dtype=torch.float64), torch.zeros(1, dtype=torch.float64), zero)
+    assert abs(float(theta) - 0.5) < 1e-10
 
 
 def test_radial_only_matches_the_closed_form():
@@ -99,9 +110,9 @@ def test_radial_only_matches_the_closed_form():
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float16, torch.bfloat16])
 def test_low_precision_inputs_come_back_in_their_dtype(dtype):
     x, y = grid_points(0.6, 9, dtype)
-    ux, uy = undistort_points(x, y, OPENCV.to(dtype), "opencv")
+    ux, uy = undistort_points(x, y, OPENCV.to(dtype))
     assert ux.dtype == dtype and torch.isfinite(ux.float()).all() and torch.isfinite(uy.float()).all()
-    exact_x, exact_y = undistort_points(x.double(), y.double(), OPENCV, "opencv")
+    exact_x, exact_y = undistort_points(x.double(), y.double(), OPENCV)
     tolerance = {torch.float32: 1e-6, torch.float16: 2e-3, torch.bfloat16: 1e-2}[dtype]
     assert torch.allclose(ux.double(), exact_x, atol=tolerance) and torch.allclose(uy.double(), exact_y, atol=tolerance)
 
@@ -110,8 +121,8 @@ def test_undistorting_nothing_and_the_centre():
     empty = torch.zeros(0, dtype=torch.float64)
     ux, uy = undistort_points(empty, empty, OPENCV)
     assert ux.shape == (0,) and uy.shape == (0,)
-    ux, uy = undistort_points(torch.zeros(1), torch.zeros(1), FISHEYE.float(), "fisheye")
-    assert float(ux) == 0.0 and float(uy) == 0.0
+    theta = fisheye_angles(torch.zeros(1), torch.zeros(1), FISHEYE.float())
+    assert theta.dtype == torch.float32 and float(theta) == 0.0
 
 
 def test_undistorting_keeps_to_the_branch_that_holds_the_axis():

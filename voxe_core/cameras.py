@@ -154,7 +154,7 @@ def pixel_rays(
         scale = torch.where(theta_d > 0, theta.sin() / theta_d, torch.ones_like(theta))
         x, y, z = x * scale, y * scale, theta.cos()
     elif cameras.distortion is not None:
-        x, y = undistort_points(x, y, cameras.distortion, cameras.distortion_model, camera_index)
+        x, y = undistort_points(x, y, cameras.distortion, camera_index)
     local = torch.stack([x, -y, -z], dim=-1)
     c2w = cameras.c2w[camera_index]
     directions = torch.einsum("nij,nj->ni", c2w[:, :3, :3], local)
@@ -194,16 +194,15 @@ def distort_points(
 
 
 def undistort_points(
-    xd: torch.Tensor, yd: torch.Tensor, coefficients: torch.Tensor, model: str = "opencv",
-    lens: torch.Tensor | None = None,
+    xd: torch.Tensor, yd: torch.Tensor, coefficients: torch.Tensor, lens: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The normalised points that ``distort_points`` takes to (xd, yd): Newton's method in float64.
+    """The normalised points that OPENCV's ``distort_points`` takes to (xd, yd): Newton's method in float64.
 
     ``xd``, ``yd``: (R,); ``coefficients``: (R, 6) or (6,), or (C, 6) with ``lens`` (R,) naming each point's row
-    (a capture's few lenses are then analysed once, not once per point). Returns the inputs' dtype. The fisheye
-    is inverted on its angle θ (``fisheye_angles``). Only the branch that holds the optical axis counts: a point
-    past the lens's fold (where the radial map stops increasing), where the map's Jacobian is not positive, where
-    Newton did not converge, or whose ray no point of the image plane lies on (a fisheye's θ ≥ 90°) comes back NaN.
+    (a capture's few lenses are then analysed once, not once per point). Returns the inputs' dtype. (A fisheye's
+    rays come from their angles, ``fisheye_angles``: they may lie past 90°, where no image-plane point is.) Only
+    the branch that holds the optical axis counts: a point past the lens's fold (where the radial map stops
+    increasing), where the map's Jacobian is not positive, or where Newton did not converge comes back NaN.
 
     Examples:
         >>> import torch
@@ -212,14 +211,7 @@ def undistort_points(
         >>> round(float(x), 6), round(float(y), 6)
         (0.3, -0.2)
     """
-    target_x, target_y = xd.double(), yd.double()
-    if model == "fisheye":
-        theta = fisheye_angles(target_x, target_y, coefficients, lens)
-        theta_d = torch.hypot(target_x, target_y)
-        scale = torch.where(theta_d > 1e-12, torch.tan(theta) / theta_d.clamp_min(1e-12), torch.ones_like(theta))
-        scale = scale.masked_fill(theta >= 0.5 * math.pi, math.nan)
-        return (target_x * scale).to(xd.dtype), (target_y * scale).to(yd.dtype)
-    x, y = _invert_radial_tangential(target_x, target_y, coefficients.double().reshape(-1, 6), lens)
+    x, y = _invert_radial_tangential(xd.double(), yd.double(), coefficients.double().reshape(-1, 6), lens)
     return x.to(xd.dtype), y.to(yd.dtype)
 
 

@@ -317,7 +317,7 @@ def _check_invertible(cams: Cameras, keep: list[int], where: _Where) -> None:
                             f"more than 180° off it: check the focal length", frame)
             folded = torch.isnan(theta)
         else:
-            folded = torch.isnan(undistort_points(xd, yd, k, cams.distortion_model)[0])
+            folded = torch.isnan(undistort_points(xd, yd, k)[0])
         if folded.any():
             first = int(folded.int().argmax())
             coefficients = ", ".join(f"{n} = {float(c):g}" for n, c in zip(DISTORTION_KEYS, k) if c != 0)
