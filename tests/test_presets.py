@@ -632,6 +632,9 @@ def test_a_stages_end_committed_with_its_answer_lost_goes_on_with_the_chain(serv
 
     client, scene_id = service
     job_id = _reconstructed_job(client, scene_id, "scene", iterations=3, render_size=16, preview_every=0)["id"]
+    # released but not done (another run's give-back looks so): no retry takes the stage for recorded
+    assert runtime.complete_stage(job_id, "edit", "a-run", again=True) is False
+    assert runtime.load_job(job_id).completed_stages == ["reconstruct"]
     monkeypatch.setattr(tasks, "DATABASE_RETRY_S", (0.0, 0.0))
     real, calls = runtime.complete_stage, []
 

@@ -645,8 +645,8 @@ def test_a_stage_that_kills_its_worker_each_time_fails_at_the_requeue_limit_leav
     job = job_row(job_id)
     assert (job.state, job.requeues) == ("failed", limit) and job.finished_at is not None
     assert job.error == (f"the run of edit on worker w{limit - 1}@host stopped renewing its hold on the job (its "
-                         f"process died: killed, out of memory or crashed; or it gave the job back while the database was out of "
-                         f"reach); it was sent again {limit} time(s) "
+                         f"process died: killed, out of memory or crashed; or the database refused its give-back in an outage); "
+                         f"it was sent again {limit} time(s) "
                          f"already, the limit (VOXE_JOB_MAX_REQUEUES={limit})")
     assert [e["kind"] for e in events_of(job_id)] == ["stage_started"] * (limit + 1) + ["failed"]
     assert not get_storage(db).exists(checkpoint)

@@ -168,8 +168,8 @@ def begin_stage(job_id: str, stage: str, hostname: str | None, device: str, sett
                        or_(Job.run_token.is_(None), Job.run_lease_until < now)]
             interrupted = job.run_token is not None  # a lapsed hold: its run's process died, which counts
             reason = (f"the run of {job.stage} on worker {job.worker_hostname} stopped renewing its hold on the "
-                      "job (its process died: killed, out of memory or crashed; or it gave the job back while the "
-                      "database was out of reach)")
+                      "job (its process died: killed, out of memory or crashed; or the database refused its give-back "
+                      "in an outage)")
             if interrupted and (error := requeue_limit_error(job.requeues, settings, reason)):
                 if not finish_jobs(session, [job_id], FAILED, error=error, where=as_read):
                     continue  # the row changed since it was read: read it again
@@ -233,7 +233,9 @@ def _wait_for_release(job_id: str, stage: str, held: tuple, settings: Settings) 
 def complete_stage(job_id: str, stage: str, run_token: str, final: bool = False, again: bool = False) -> bool:
     """Record ``stage`` done and release the job (or end it, ``final``); False when the run no longer held it.
     ``again``: a try before raised, and may have committed with its answer lost (a dropped connection): the stage
-    found done and the job released (or succeeded) counts as this run's, not as a run that took the job over."""
+    found recorded done and the job released (or succeeded) counts as this run's. (Another run completing the same
+    stage would look the same, but none can have taken the job over within the retries' seconds: the hold was
+    renewed until the stage's body ended, with most of its lease left.)"""
     with session_scope() as session:
         job = session.get(Job, job_id)
         if job is None:
@@ -252,7 +254,8 @@ def complete_stage(job_id: str, stage: str, run_token: str, final: bool = False,
             if final:
                 record_event(session, job_id, SUCCEEDED, stage=stage)
             return True
-        return again and stage in done and job.run_token is None and job.state == (SUCCEEDED if final else RUNNING)
+        return (again and stage in (job.completed_stages or []) and job.run_token is None
+                and job.state == (SUCCEEDED if final else RUNNING))
 
 
 def worker_in_cold_shutdown() -> bool:
