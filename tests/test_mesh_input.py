@@ -154,6 +154,16 @@ def test_a_one_value_kd_is_a_grey_and_keeps_the_librarys_materials(tmp_path):
                                             r"level\) or three \(r g b\)$"):
             load_mesh(tmp_path / "cube.obj")
 
+    for kd, colour in (("Kd\nKd 1 0 0", [1, 0, 0]), ("Kd 0 1 0 # green", [0, 1, 0]), ("Kd 0.5 # grey", [0.5] * 3)):
+        (tmp_path / "cube.mtl").write_text(f"newmtl red\n{kd}\n")  # a bare Kd skipped, as trimesh skips it; a
+        assert np.allclose(load_mesh(tmp_path / "cube.obj").colour, colour, atol=1 / 255), kd  # comment left out
+
+
+def test_a_mesh_in_a_folder_that_is_not_there_is_a_mesh_error_naming_it(tmp_path):
+    """trimesh's file lookup, made before the read, had raised its own ValueError ("not a directory!")."""
+    with pytest.raises(MeshError, match=r"^cube.obj: cannot read as a mesh: "):
+        load_mesh(tmp_path / "gone" / "cube.obj")
+
 
 CUBE_WITH_UVS = "vt 0.5 0.5\n" + "".join(
     "f " + " ".join(f"{corner}/1" for corner in line.split()[1:]) + "\n" if line.startswith("f ") else line + "\n"
@@ -188,6 +198,23 @@ def test_uvs_without_a_material_the_file_gives_load_uncoloured(tmp_path):
         faces = np.arange(len(mesh.faces))
         assert np.allclose(mesh.albedo(faces, np.full((len(faces), 3), 1 / 3)), DEFAULT_ALBEDO), name
         assert shade_mesh(mesh).shading is not None, name
+
+
+def test_vertex_colours_beside_uvs_without_a_material_are_kept(tmp_path):
+    """A file's vertex colours (an OBJ's ``v x y z r g b``, a PLY's red/green/blue) beside texture coordinates that
+    no material colours are the mesh's colour: they had been lost with trimesh's stand-in texture."""
+    (tmp_path / "coloured.obj").write_text("".join(
+        line + " 1 0 0\n" if line.startswith("v ") else line + "\n" for line in CUBE_WITH_UVS.splitlines()))
+    (tmp_path / "coloured.ply").write_text(
+        _texcoord_ply().replace("property float z\n", "property float z\nproperty uchar red\nproperty uchar green\n"
+                                "property uchar blue\n").replace("0 0 0\n1 0 0\n0 1 0\n0 0 1\n",
+                                                                  "0 0 0 0 255 0\n1 0 0 0 255 0\n0 1 0 0 255 0\n"
+                                                                  "0 0 1 0 255 0\n"))
+    for name, colour in (("coloured.obj", [1, 0, 0]), ("coloured.ply", [0, 1, 0])):
+        mesh = load_mesh(tmp_path / name)
+        assert mesh.has_colour and mesh.texture is None, name
+        faces = np.arange(len(mesh.faces))
+        assert np.allclose(mesh.albedo(faces, np.full((len(faces), 3), 1 / 3)), colour, atol=1 / 255), name
 
 
 def test_materials_the_file_wrote_keep_their_colours_by_kd_or_by_image(tmp_path):

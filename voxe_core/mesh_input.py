@@ -155,8 +155,8 @@ def load_mesh(
         raise MeshError(f"extent must be positive, got {extent}")
     if frame not in MESH_FRAMES:
         raise MeshError(f"frame must be one of {MESH_FRAMES}, got {frame!r}")
-    library = _MtlBySpec(trimesh.resolvers.FilePathResolver(path))
     try:  # with a texture, its parts as they are: the file's materials are not what colours it
+        library = _MtlBySpec(trimesh.resolvers.FilePathResolver(path))
         parts = trimesh.load(path, force="scene", process=False, skip_materials=texture is not None,
                              resolver=library).dump()
         if texture is None:  # the parts joined as trimesh joins them (``Scene.to_mesh``), its materials packed
@@ -266,8 +266,9 @@ def _without_stand_in_textures(parts: list) -> list:
 
     if any(written(part) for part in parts):
         return parts
-    return [part if part.visual.kind != "texture" else
-            trimesh.Trimesh(part.vertices, part.faces, process=False) for part in parts]
+    return [part if part.visual.kind != "texture" else  # (with the colours its vertices were given, if any)
+            trimesh.Trimesh(part.vertices, part.faces, vertex_colors=part.vertex_attributes.get("color"),
+                            process=False) for part in parts]
 
 
 class _MtlBySpec(Mapping):
@@ -296,11 +297,12 @@ class _MtlBySpec(Mapping):
         return sum(1 for _ in self.files.keys())
 
     def _by_spec(self, data: bytes, name: str) -> bytes:
-        """``data`` (an .mtl) with one-value Kds written out, Ka and Ks left out; bytes, as file names are kept."""
+        """``data`` (an .mtl) with one-value Kds written out, bare ones, Ka and Ks left out; bytes, as file names
+        are kept."""
         lines = []
         for number, line in enumerate(data.splitlines(), 1):
-            key, *values = line.split() or [b""]
-            if key.lower() in (b"ka", b"ks"):
+            key, *values = line.split(b"#", 1)[0].split() or [b""]
+            if key.lower() in (b"ka", b"ks") or (key.lower() == b"kd" and not values):  # (trimesh skips a bare Kd)
                 continue
             if key.lower() == b"kd":
                 try:
@@ -311,8 +313,8 @@ class _MtlBySpec(Mapping):
                     self.problem = self.problem or (
                         f"{Path(name.strip()).name} line {number}: {line.strip().decode(errors='replace')!r}: "
                         "Kd must be one finite number (a grey level) or three (r g b)")
-                elif len(colour) == 1:
-                    line = b" ".join([key, *values * 3])
+                else:  # one value written out three times; a trailing comment left out, which trimesh misreads
+                    line = b" ".join([key, *values * (3 // len(values))])
             lines.append(line)
         return b"\n".join(lines)
 
