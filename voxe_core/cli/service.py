@@ -112,8 +112,9 @@ def _progress_bar(quiet: bool):
                                              and now - last["at"] < LOG_PROGRESS_INTERVAL_S):
             return
         if terminal:  # within one row (a wrapped line is not redrawn in place), over all of the one before
-            shown = line[:shutil.get_terminal_size().columns - 1]
-            print(f"\r{shown.ljust(last['shown'])}", end="", file=sys.stderr, flush=True)
+            width = shutil.get_terminal_size().columns - 1  # (read each time: the terminal may have narrowed)
+            shown = line[:width]
+            print(f"\r{shown.ljust(min(last['shown'], width))}", end="", file=sys.stderr, flush=True)
             last["shown"] = len(shown)
         else:
             print(line, file=sys.stderr, flush=True)
