@@ -235,9 +235,10 @@ def test_the_bar_on_a_terminal_stays_on_one_row_and_leaves_nothing_of_a_longer_l
     assert [len(row) for row in rows] == [79, 79]  # cut to the width less one (no wrap), the second padded over
     assert rows[0].startswith("[###############               ]  50.0% running refine - refine: att")
     assert rows[1].rstrip() == "[##############################] 100.0% succeeded export"
-    monkeypatch.setattr(shutil, "get_terminal_size", lambda *args: os.terminal_size((60, 24)))  # narrowed
     draw({"state": "running", "stage": "refine", "overall_progress": 0.5, "message": "refine: attention_grids"})
-    assert [len(row) for row in capsys.readouterr().err.split("\r")[1:]] == [59]
+    monkeypatch.setattr(shutil, "get_terminal_size", lambda *args: os.terminal_size((60, 24)))  # narrowed
+    draw({"state": "running", "stage": "refine", "overall_progress": 0.6, "message": "refine: graph_cut"})
+    assert [len(row) for row in capsys.readouterr().err.split("\r")[1:]] == [79, 59]
 
 
 def test_wait_in_a_log_says_each_state_stage_and_phase_at_once(monkeypatch, capsys):
