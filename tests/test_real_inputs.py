@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import struct
 from pathlib import Path
 
@@ -18,7 +19,7 @@ import torch
 from PIL import Image
 
 from voxe_core.backbones import prepare_backbone
-from voxe_core.cameras import (Cameras, camera_rays, distort_points, fisheye_angles, look_at, pixel_rays,
+from voxe_core.cameras import (Cameras, _jacobian, camera_rays, distort_points, fisheye_angles, look_at, pixel_rays,
                                undistort_points)
 from voxe_core.colmap import ColmapError, read_model
 from voxe_core.data import DatasetError, detect_format, is_dataset_folder, load_scene
@@ -323,6 +324,38 @@ def test_a_lens_that_folds_inside_its_image_is_refused_and_one_that_nearly_does_
     assert torch.allclose(xd * 55.2 + 80, corners[0].double(), atol=1e-3)
     assert torch.allclose(yd * 55.2 + 60, corners[1].double(), atol=1e-3)
 
+
+
+def test_a_lens_whose_tangential_terms_fold_an_island_into_its_image_is_refused(tmp_path):
+    """k1 = -0.1611, k2 = 0.0227, p1 = 0.0321, p2 = -0.0468 at f = 57.5, c = (56.7, 23) give each of the load's
+    17 x 17 samples a ray, but between them the Jacobian turns negative on an island (its radial part never
+    folds), whose caustic lies in the 160 x 120 image: pixels there have several rays. k1 = 0.442, k2 = -0.052,
+    p1 = 0.0016, p2 = -0.0033 at f = 47.7 folds only outside its image, and loads, as does p1 = 0.0032,
+    p2 = -0.0047 alone."""
+    f, cx, cy, k = 57.5, 56.7, 23.0, torch.tensor([-0.1611, 0.0227, 0.0, 0.0, 0.0321, -0.0468], dtype=torch.float64)
+    v, u = torch.meshgrid(torch.linspace(0, 120, 17, dtype=torch.float64),
+                          torch.linspace(0, 160, 17, dtype=torch.float64), indexing="ij")
+    assert torch.isfinite(undistort_points((u.reshape(-1) - cx) / f, (v.reshape(-1) - cy) / f, k)[0]).all()
+    x, y = grid_points(1.8, 361)
+    a, b, d = _jacobian(torch.stack([x, y], -1), k.expand(len(x), 6))
+    xd, yd = distort_points(x, y, k)
+    island = (a * d - b * b < 0) & (xd * f + cx > 0) & (xd * f + cx < 160) & (yd * f + cy > 0)
+    assert island.any()  # imaged in view, where the map folds, though its radial part never does (9 k1² < 20 k2)
+    capture = dict(size=(160, 120), camera_model="OPENCV", w=160, h=120, n=1)
+    folded = write_capture(tmp_path / "folded", fl_x=f, fl_y=f, cx=cx, cy=cy, k1=-0.1611, k2=0.0227, p1=0.0321,
+                           p2=-0.0468, **capture)
+    with pytest.raises(DatasetError, match=r"transforms.json frame 0 \('images/000.png'\): lens distortion \(k1 = "
+                                           r"-0.1611, k2 = 0.0227, p1 = 0.0321, p2 = -0.0468\) folds the image "
+                                           r"over at pixel \((\d+), (\d+)\)") as err:
+        load_scene(folded)
+    pixel = torch.tensor([float(c) for c in re.search(r"pixel \((\d+), (\d+)\)", str(err.value)).groups()])
+    caustic = torch.stack([xd[island] * f + cx, yd[island] * f + cy], -1)
+    assert float((caustic - pixel.double()).norm(dim=-1).min()) < 1.5  # named: a pixel the island is imaged on
+    fine = write_capture(tmp_path / "fine", fl_x=47.7, fl_y=47.7, cx=55.0, cy=65.6, k1=0.442, k2=-0.052, p1=0.0016,
+                         p2=-0.0033, **capture)
+    assert load_scene(fine).cameras.distortion is not None
+    tangential = write_capture(tmp_path / "tangential", fl_x=f, fl_y=f, cx=cx, cy=cy, p1=0.0032, p2=-0.0047, **capture)
+    assert load_scene(tangential).cameras.distortion is not None  # it folds only far out of view
 
 @needs.needs_data(FOX)
 def test_fox_distortion_is_applied():

@@ -26,6 +26,8 @@ _RADIAL_STEPS = 30  # of Newton's start's one-dimensional solve (only a start: N
 _NEWTON_HALVINGS = 30  # of a step that would leave the lens's fold or not reduce the residual
 _NEWTON_TOLERANCE = 1e-12  # in normalised image coordinates (about 1e-9 pixels)
 _NEWTON_CONVERGED = 1e-9  # a point left farther than this from its image has no ray (NaN)
+_FOLD_DIRECTIONS = 64  # first directions of ``fold_in_view``
+_FOLD_LEVELS = 40  # halvings of its sectors that are still undecided
 
 
 @dataclass
@@ -348,6 +350,155 @@ def _radial_folds(table: torch.Tensor) -> torch.Tensor:
     real = (roots.imag.abs() <= 1e-6 * roots.abs()) & (roots.real > 0)
     largest = torch.where(real, roots.real, torch.zeros_like(roots.real)).amax(-1)
     return (1 / largest).to(table.device).where(finite, math.nan)
+
+
+def fold_in_view(fx: float, fy: float, cx: float, cy: float, coefficients: torch.Tensor, width: int,
+                 height: int) -> tuple[float, float] | None:
+    """A pixel of the image [0, width] x [0, height] onto which an OPENCV lens folds the sheet holding its optical
+    axis (None: it folds none), for a load to refuse the lens: the pixels near that caustic have several rays.
+
+    The sheet: along each direction u from the axis, the points r u with r < ρ(u), ρ(u) the smallest positive root
+    of g(r) = det J(r u) (J the map's Jacobian; det J(0) = 1), capped at the radial fold (``_radial_folds``), past
+    which ``undistort_points`` gives no ray. Its fold points are the ρ(u) u short of that cap: there det J = 0
+    first, and an island where det J < 0 inside the radial fold (tangential terms) counts wherever its caustic
+    lies, though every sampled pixel has its ray. Along a direction g is a polynomial of degree 16 in r, so ρ is
+    exact per direction; between directions, |∂g/∂φ| ≤ G(r), a polynomial majorant in r alone
+    (``_fold_majorants``). So over the sector |φ - φ_i| ≤ h/2, det J vanishes only at radii where
+    g_i - (h/2) G ≤ 0 ≤ g_i + (h/2) G, and every fold point lies short of ρ⁺, the first root of g_i + (h/2) G
+    (there g ≤ 0): the roots of both bound intervals [r₀, r₁] that hold them all (a direction grazing an island
+    leaves one short interval about the grazing point, not all of [ρ(φ_i), ρ⁺]). The lens moves points by at most
+    ‖J‖ ≤ K(r) per unit of radius and r K(r) per radian, so an interval's fold points are imaged within
+    K(r₁) ((r₁ - r₀) / 2 + r₁ h / 2) of the image of its middle point. A sector whose disks all miss the image is
+    done; one whose exact fold point lands in the image is refused; the rest are halved, up to
+    ``_FOLD_LEVELS`` times (still undecided then: a caustic touching the image's edge, or a direction tangent to the
+    fold curve; refused). A sheet that the radial fold never caps is searched out to ``_beyond_view``, past which
+    nothing lands in view. Exact up to float64 rounding of the roots.
+    """
+    k = coefficients.double().cpu()
+    low = torch.tensor([-cx / fx, -cy / fy], dtype=torch.float64)
+    high = torch.tensor([(width - cx) / fx, (height - cy) / fy], dtype=torch.float64)
+    cap = math.sqrt(float(_radial_folds(k[None])[0]))
+    if math.isinf(cap):
+        cap = _beyond_view(k, float(torch.maximum(low.abs(), high.abs()).norm()))
+    majorant, norm_bound = _fold_majorants(k)
+    step = 2 * math.pi / _FOLD_DIRECTIONS
+    angles = (torch.arange(_FOLD_DIRECTIONS, dtype=torch.float64) + 0.5) * step
+    for _ in range(_FOLD_LEVELS):
+        u = torch.stack([angles.cos(), angles.sin()], -1)
+        g = _jacobian_determinant_along(u, k)
+        fold = _first_root(g).clamp_max(cap)
+        fold_point = torch.stack(distort_points(fold * u[:, 0], fold * u[:, 1], k), -1)
+        landed = (fold < cap) & ((fold_point >= low) & (fold_point <= high)).all(-1)
+        if landed.any():
+            x, y = fold_point[int(landed.int().argmax())].tolist()
+            return x * fx + cx, y * fy + cy
+        spread = 0.5 * step * majorant
+        below, above = g - spread, g + spread
+        far = _positive_roots(above).amin(-1).clamp_max(cap)
+        ends = torch.cat([torch.zeros_like(far)[:, None], _positive_roots(below), _positive_roots(above),
+                          far[:, None]], -1).minimum(far[:, None]).sort(-1).values
+        start, stop = ends[:, :-1], ends[:, 1:]
+        middle = 0.5 * (start + stop)
+        candidate = (_polyval(below.T[..., None], middle) <= 0) & (_polyval(above.T[..., None], middle) >= 0)
+        candidate &= start < cap
+        centre = torch.stack(distort_points(middle * u[:, :1], middle * u[:, 1:], k), -1)
+        reach = _polyval(norm_bound, stop) * (0.5 * (stop - start) + 0.5 * stop * step)
+        gap = ((low - centre).clamp_min(0) + (centre - high).clamp_min(0)).norm(dim=-1)
+        open_ = candidate & (gap <= reach)
+        if not open_.any():
+            return None
+        sector = open_.any(-1)
+        angles, step = torch.cat([angles[sector] - 0.25 * step, angles[sector] + 0.25 * step]), 0.5 * step
+    x, y = torch.maximum(torch.minimum(centre[open_][0], high), low).tolist()
+    return x * fx + cx, y * fy + cy
+
+
+def _beyond_view(k: torch.Tensor, reach: float) -> float:
+    """A radius past which a lens that never folds radially (r R(r²) increasing) images every point farther than
+    ``reach`` from the axis, so no fold point past it lands in view: the tangential part is r² (p̃ + 2 (u·p̃) u),
+    p̃ = (p2, p1), of length between |p| r² and 3 |p| r², so |D(r u)| ≥ r R(r²) - 3 |p| r² (which grows without
+    bound when any k is non-zero) and ≥ |p| r² - r R(r²) (when none is); past the largest root of the one that
+    grows, it exceeds ``reach``."""
+    k1, k2, k3, k4 = k[:4].tolist()
+    p = float(torch.hypot(k[4], k[5]))
+    if any(k[:4]):
+        bound = [-reach, 1.0, -3 * p, k1, 0.0, k2, 0.0, k3, 0.0, k4]
+    else:
+        bound = [-reach, -1.0, p]
+    while bound[-1] == 0:
+        bound.pop()
+    reversed_bound = torch.tensor(bound[::-1], dtype=torch.float64) / bound[-1]  # its roots: 1 / the bound's
+    return 1 / float(_first_root(reversed_bound[None])[0])
+
+
+def _jacobian_determinant_along(u: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+    """(N, 17) the coefficients (in r, lowest first) of det J(r u) along unit directions ``u`` (N, 2), J as
+    ``_jacobian``'s. Expanding a d - b² there, with s = r², R(s) = 1 + k1 s + ... + k4 s⁴ and e = u·(p2, p1):
+    det J = R (R + 2 s R') + 4 r e (2 R + s R') + r² (16 e² - 4 |p|²), the direction entering through e alone."""
+    radial, slope = _radial_polynomials(k[:4])
+    e = u[:, :1] * k[5] + u[:, 1:] * k[4]
+    along = torch.zeros(len(u), 17, dtype=torch.float64)
+    along += _polymul(radial, radial + 2 * slope)
+    along[:, 1:10] += 4 * e * (2 * radial + slope)
+    along[:, 2:3] += 16 * e * e - 4 * float(k[4] ** 2 + k[5] ** 2)
+    return along
+
+
+def _fold_majorants(k: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Coefficients (in r, non-negative) of G(r) ≥ |∂ det J / ∂φ| and K(r) ≥ ‖J‖ on the circle of radius r.
+
+    G: det J varies with φ through e alone (``_jacobian_determinant_along``), de/dφ = u^⊥·(p2, p1) and |e| are at
+    most |p|, so G = |p| (4 r (2 R̄ + s R̄') + 32 |p| r²), R̄ being R with |k|. K: the symmetric J's norm is at most
+    its largest row sum, with |a|, |d| ≤ R̄ + 2 s R̄' + 6 |p| r and |b| ≤ s R̄' + 2 |p| r (``_jacobian``)."""
+    radial, slope = _radial_polynomials(k[:4].abs())
+    p = float(torch.hypot(k[4], k[5]))
+    majorant = torch.zeros(17, dtype=torch.float64)
+    majorant[1:10] = 4 * p * (2 * radial + slope)
+    majorant[2] += 32 * p * p
+    norm_bound = radial + 3 * slope
+    norm_bound[1] += 8 * p
+    return majorant, norm_bound
+
+
+def _radial_polynomials(k: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The coefficients (in r, lowest first, 9 each) of R(r²) = 1 + k1 r² + ... + k4 r⁸ and of r² R'(r²)."""
+    k1, k2, k3, k4 = k.tolist()
+    return (torch.tensor([1.0, 0, k1, 0, k2, 0, k3, 0, k4], dtype=torch.float64),
+            torch.tensor([0.0, 0, k1, 0, 2 * k2, 0, 3 * k3, 0, 4 * k4], dtype=torch.float64))
+
+
+def _polymul(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+    """The product of two polynomials given by their coefficients, lowest first."""
+    product = torch.zeros(len(p) + len(q) - 1, dtype=torch.float64)
+    for power, coefficient in enumerate(p.tolist()):
+        product[power:power + len(q)] += coefficient * q
+    return product
+
+
+def _polyval(p: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+    """Polynomial ``p`` (coefficients lowest first, along its first dimension) at ``r``, by Horner's rule."""
+    value = torch.zeros_like(r)
+    for coefficient in p.flip(0):
+        value = value * r + coefficient
+    return value
+
+
+def _first_root(g: torch.Tensor) -> torch.Tensor:
+    """(N,) the smallest positive root of each polynomial g (N, n) (lowest coefficient first, g(0) = 1; inf: none)."""
+    return _positive_roots(g).amin(-1)
+
+
+def _positive_roots(g: torch.Tensor) -> torch.Tensor:
+    """(N, n - 1) the positive roots of each polynomial g (N, n) (lowest coefficient first, g(0) = 1), inf in the
+    other places: 1 / those of the monic reversed polynomial, its companion matrix's eigenvalues. A pair with a
+    tiny imaginary part counts (g touching zero)."""
+    n = g.shape[-1] - 1
+    companion = torch.zeros(len(g), n, n, dtype=torch.float64)
+    companion[:, 1:, :-1] = torch.eye(n - 1, dtype=torch.float64)
+    companion[:, :, -1] = -g[:, 1:].flip(-1)
+    roots = torch.linalg.eigvals(companion)
+    real = (roots.imag.abs() <= 1e-6 * roots.abs()) & (roots.real > 0)
+    return 1 / torch.where(real, roots.real, torch.zeros_like(roots.real))
 
 
 def look_at(eye: torch.Tensor, target: torch.Tensor | None = None, up=(0.0, 0.0, 1.0)) -> torch.Tensor:

@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
-from .cameras import DISTORTION_KEYS, Cameras, fisheye_angles, undistort_points
+from .cameras import DISTORTION_KEYS, Cameras, fisheye_angles, fold_in_view, undistort_points
 from .colmap import ColmapError, read_model
 
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y")
@@ -294,7 +294,9 @@ def _check_distortion(model: str, intrinsics: dict, where: _Where, frame: int) -
 def _check_invertible(cams: Cameras, keep: list[int], where: _Where) -> None:
     """Every camera's lens must give each sampled pixel one ray. Where the distortion folds the image over, a
     second ray also maps back to the pixel and the rays jump across the fold (``undistort_points``: NaN); a
-    fisheye's ray may be up to 180° off its axis, not more."""
+    fisheye's ray may be up to 180° off its axis, not more. An OPENCV lens must also fold no part of the sheet
+    holding its axis onto the image (``fold_in_view``): its tangential terms can fold an island between the
+    samples, whose caustic's pixels then have several rays though each sample has one."""
     v, u = torch.meshgrid(torch.linspace(0, cams.height, 17, dtype=torch.float64),
                           torch.linspace(0, cams.width, 17, dtype=torch.float64), indexing="ij")
     u, v = u.reshape(-1), v.reshape(-1)
@@ -318,11 +320,16 @@ def _check_invertible(cams: Cameras, keep: list[int], where: _Where) -> None:
             folded = torch.isnan(theta)
         else:
             folded = torch.isnan(undistort_points(xd, yd, k)[0])
+        pixel = None
         if folded.any():
             first = int(folded.int().argmax())
+            pixel = float(u[first]), float(v[first])
+        elif cams.distortion_model == "opencv":
+            pixel = fold_in_view(fx, fy, cx, cy, k, cams.width, cams.height)
+        if pixel is not None:
             coefficients = ", ".join(f"{n} = {float(c):g}" for n, c in zip(DISTORTION_KEYS, k) if c != 0)
-            raise where(f"lens distortion ({coefficients}) folds the image over at pixel ({float(u[first]):.0f}, "
-                        f"{float(v[first]):.0f}): its rays there would jump across the fold", frame)
+            raise where(f"lens distortion ({coefficients}) folds the image over at pixel ({pixel[0]:.0f}, "
+                        f"{pixel[1]:.0f}): its rays there would jump across the fold", frame)
 
 
 def colmap_transforms(root: Path) -> tuple[Path, dict]:
