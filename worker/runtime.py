@@ -200,19 +200,25 @@ def count_unstarted(job_id: str, stage: str, reason: str, settings: Settings) ->
     between the broker and the workers for ever. A job that ended, or that a live run holds (the message is a
     duplicate), is left as it is. During an outage this write fails too, raising: nothing counts, and the message
     goes back, as an accepted job must not fail for an outage."""
-    now = utcnow()
     free = [Job.id == job_id, Job.state.in_((QUEUED, RUNNING)),
-            or_(Job.run_token.is_(None), Job.run_lease_until < now)]
+            or_(Job.run_token.is_(None), Job.run_lease_until < utcnow())]
     with session_scope() as session:
-        requeues = session.scalar(select(Job.requeues).where(*free))
-        if requeues is None:
-            return None
-        as_read = [*free, Job.requeues == requeues]
-        if error := requeue_limit_error(requeues, settings, reason):
-            return error if finish_jobs(session, [job_id], FAILED, error=error, where=as_read) else None
-        if session.execute(update(Job).where(*as_read).values(requeues=Job.requeues + 1,
-                                                               updated_at=now)).rowcount == 1:
-            record_event(session, job_id, "requeued", stage=stage, detail=reason)
+        return _count_requeue(session, job_id, stage, reason, settings, free)
+
+
+def _count_requeue(session, job_id: str, stage: str, reason: str, settings: Settings, where: list,
+                   **values) -> str | None:
+    """One more re-queue of the job while it matches ``where`` (with ``values`` set, and a ``requeued`` event naming
+    ``reason``), or at ``job_max_requeues`` the job failed and why returned; nothing when it matches no more."""
+    requeues = session.scalar(select(Job.requeues).where(*where))
+    if requeues is None:
+        return None
+    as_read = [*where, Job.requeues == requeues]
+    if error := requeue_limit_error(requeues, settings, reason):
+        return error if finish_jobs(session, [job_id], FAILED, error=error, where=as_read) else None
+    if session.execute(update(Job).where(*as_read).values(requeues=Job.requeues + 1, updated_at=utcnow(),
+                                                          **values)).rowcount == 1:
+        record_event(session, job_id, "requeued", stage=stage, detail=reason)
     return None
 
 
@@ -273,17 +279,9 @@ def give_back_stage(job_id: str, stage: str, run_token: str, reason: str, settin
     checkpoint), counted as a re-queue with a ``requeued`` event naming ``reason``; at ``job_max_requeues`` fail the
     job instead and return why: what the database answers as an outage every time (a statement timeout, a full
     disk) must not re-run a stage for ever. A job this run no longer holds is left as it is."""
-    held = [Job.id == job_id, Job.run_token == run_token]
     with session_scope() as session:
-        requeues = session.scalar(select(Job.requeues).where(*held))
-        if requeues is None:
-            return None
-        if error := requeue_limit_error(requeues, settings, reason):
-            return error if finish_jobs(session, [job_id], FAILED, error=error, where=held) else None
-        session.execute(update(Job).where(*held).values(run_token=None, run_lease_until=None, updated_at=utcnow(),
-                                                        requeues=Job.requeues + 1))
-        record_event(session, job_id, "requeued", stage=stage, detail=reason)
-    return None
+        return _count_requeue(session, job_id, stage, reason, settings,
+                              [Job.id == job_id, Job.run_token == run_token], run_token=None, run_lease_until=None)
 
 
 def release_stage(job_id: str, run_token: str) -> None:
