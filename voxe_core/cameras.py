@@ -394,8 +394,9 @@ def fold_in_view(fx: float, fy: float, cx: float, cy: float, coefficients: torch
             return x * fx + cx, y * fy + cy
         spread = 0.5 * step * majorant
         below, above = g - spread, g + spread
-        far = _positive_roots(above).amin(-1).clamp_max(cap)
-        ends = torch.cat([torch.zeros_like(far)[:, None], _positive_roots(below), _positive_roots(above),
+        above_roots = _positive_roots(above)
+        far = above_roots.amin(-1).clamp_max(cap)
+        ends = torch.cat([torch.zeros_like(far)[:, None], _positive_roots(below), above_roots,
                           far[:, None]], -1).minimum(far[:, None]).sort(-1).values
         start, stop = ends[:, :-1], ends[:, 1:]
         middle = 0.5 * (start + stop)
