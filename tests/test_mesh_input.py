@@ -231,11 +231,36 @@ def test_materials_the_file_wrote_keep_their_colours_by_kd_or_by_image(tmp_path)
         mesh = load_mesh(tmp_path / "parts.obj", up_axis="z")
         assert mesh.texture is not None and shade_mesh(mesh) is mesh, library
         order = np.argsort(mesh.vertices[mesh.faces].mean(1)[:, 2])
-        albedo = mesh.albedo(order, np.full((2, 3), 1 / 3))  # trimesh's atlas blends a Kd's block with its border
-        assert np.allclose(albedo / albedo.max(1, keepdims=True), [[1, 0, 0], [0, 0, 1]]) and albedo.max(1).min() > 0.8
+        assert np.allclose(mesh.albedo(order, np.full((2, 3), 1 / 3)), [[1, 0, 0], [0, 0, 1]], atol=1e-6), library
     (tmp_path / "green.ply").write_text(_texcoord_ply("comment TextureFile green.png\n"))
     green = load_mesh(tmp_path / "green.ply")
     assert green.has_colour and np.allclose(green.albedo(np.arange(4), np.full((4, 3), 1 / 3)), [0, 1, 0], atol=0.01)
+
+
+def test_colour_only_materials_are_their_kd_at_any_uv_and_beside_a_texture_it_is_sampled_as_alone(tmp_path):
+    """trimesh's atlas is read by its own texel convention, its blocks padded in black and at times placed past its
+    edge: a Kd-only face whose vt lay near its 2×2 block's border had loaded 0.81 red, or black beside a map_Kd
+    image, and the image's texels shifted. Each Kd is now its faces' colour wherever their vt lie (none at all
+    included), and an image sampled in the atlas reads what it reads alone."""
+    texel = np.random.default_rng(0).integers(0, 256, (4, 4, 3), dtype=np.uint8)
+    Image.fromarray(texel).save(tmp_path / "tex.png")
+    (tmp_path / "paints.mtl").write_text("newmtl red\nKd 1 0 0\nnewmtl green\nKd 0 1 0\nnewmtl blue\nKd 0 0 1\n"
+                                         "newmtl skin\nmap_Kd tex.png\n")
+    corners = [(0, 0), (1, 1), (0.25, 0.25), (1, 0), (0.05, 0.95), (0.75, 0.5)]
+    head = ("mtllib paints.mtl\n" + "".join(f"v 0 0 {z}\nv 1 0 {z}\nv 0 1 {z}\n" for z in range(4))
+            + "".join(f"vt {u} {v}\n" for u, v in corners))
+    red = "usemtl red\nf 1/1 2/2 3/4\n"  # at height 0
+    (tmp_path / "paints.obj").write_text(head + red + "usemtl green\nf 4/3 5/2 6/1\nusemtl blue\nf 7 8 9\n")  # 1, 2
+    (tmp_path / "mixed.obj").write_text(head + "usemtl skin\nf 10/1 11/5 12/6\n" + red)  # the image's face at 3
+    for name, colours in (("paints.obj", [[1, 0, 0], [0, 1, 0], [0, 0, 1]]), ("mixed.obj", [[1, 0, 0]])):
+        mesh = load_mesh(tmp_path / name, up_axis="z")
+        order = np.argsort(mesh.vertices[mesh.faces].mean(1)[:, 2])
+        for face, colour in zip(order, colours):
+            for corner in np.eye(3):  # at each of its vertices, whose vt reach the block's border
+                assert np.allclose(mesh.albedo(np.array([face]), corner[None]), colour, atol=1e-6), (name, face)
+    skin = np.array([order[-1]] * 3)
+    assert np.allclose(mesh.albedo(skin, np.eye(3)), sample_texture(texel / 255.0, np.array(corners)[[0, 4, 5]]),
+                       atol=1e-6)
 
 
 def test_nan_texture_coordinates_are_refused(tmp_path):

@@ -111,10 +111,15 @@ class SurfaceMesh:
 def sample_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Bilinear texture lookup (N, 3) at UVs (N, 2); UVs outside [0, 1] wrap (repeat), v = 0 is the bottom row."""
     image = torch.from_numpy(np.ascontiguousarray(texture, dtype=np.float32)).permute(2, 0, 1)[None]
-    wrapped = np.where((uv >= 0) & (uv <= 1), uv, np.mod(uv, 1.0))  # 1 is the right / top border, not 0
+    wrapped = _wrapped(uv)
     grid = torch.from_numpy(np.stack([2 * wrapped[:, 0] - 1, 1 - 2 * wrapped[:, 1]], -1)).float()
     out = F.grid_sample(image, grid[None, :, None, :], mode="bilinear", padding_mode="border", align_corners=False)
     return out[0, :, :, 0].T.numpy()
+
+
+def _wrapped(uv: np.ndarray) -> np.ndarray:
+    """UVs outside [0, 1] wrapped into it (repeat); 1 stays the right / top border, not 0."""
+    return np.where((uv >= 0) & (uv <= 1), uv, np.mod(uv, 1.0))
 
 
 # ------------------------------------------------------------------ loading
@@ -160,8 +165,8 @@ def load_mesh(
         parts = trimesh.load(path, force="scene", process=False, skip_materials=texture is not None,
                              resolver=library).dump()
         if texture is None:  # the parts joined as trimesh joins them (``Scene.to_mesh``), its materials packed
-            loaded = trimesh.util.concatenate(_without_stand_in_textures(
-                [part for part in parts if isinstance(part, trimesh.Trimesh)]))
+            meshes = _without_stand_in_textures([part for part in parts if isinstance(part, trimesh.Trimesh)])
+            loaded = trimesh.util.concatenate(meshes)
     except Exception as e:  # trimesh raises many types for damaged files
         raise MeshError(f"{path.name}: cannot read as a mesh: {e}") from e
     if library.problem:
@@ -195,8 +200,7 @@ def load_mesh(
         mesh = SurfaceMesh(vertices[faces].reshape(-1, 3), np.arange(3 * len(faces)).reshape(-1, 3),
                            vertex_colors=np.repeat(colours, 3, axis=0))
     elif getattr(loaded.visual, "kind", None) == "texture" and getattr(loaded.visual.material, "image", None):
-        mesh.uv = np.asarray(loaded.visual.uv, dtype=np.float64)  # an OBJ whose .mtl named its image (trimesh's atlas)
-        mesh.texture = _texture_rgb(loaded.visual.material.image, f"{path.name} (its .mtl's map_Kd)")
+        mesh.texture, mesh.uv = _atlas(meshes, path.name)  # an OBJ whose .mtl named its image, or several materials
     else:
         mesh.colour = _written_diffuse(loaded.visual)
     mesh = _used_vertices_only(mesh)
@@ -269,6 +273,49 @@ def _without_stand_in_textures(parts: list) -> list:
     return [part if part.visual.kind != "texture" else  # (with the colours its vertices were given, if any)
             trimesh.Trimesh(part.vertices, part.faces, vertex_colors=part.vertex_attributes.get("color"),
                             process=False) for part in parts]
+
+
+def _atlas(parts: list, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """The texture (H, W, 3) and UVs (V, 2) colouring ``parts`` (a file's meshes, in ``trimesh.util.concatenate``'s
+    vertex order): one part's own image at its own UVs, or every part's colour side by side in one atlas.
+
+    trimesh's atlas is read by its own texel convention, not ``sample_texture``'s, its blocks padded in black and
+    at times placed past its image's edge: a Kd-only material had loaded 0.81 red at UVs near its 2×2 block's
+    border, or black, and a map_Kd image shifted by up to a texel. Here each part's block is its image (or its
+    one colour, sampled at its centre whatever the part's UVs) padded by a texel of its own edge, so a lookup
+    reads what ``sample_texture`` reads from the image alone. A block's UVs are wrapped a vertex at a time (a
+    face spanning a wrap is not repeated), as trimesh's were.
+    """
+    blocks = [_part_colour(part, name) for part in parts]
+    if len(blocks) == 1:
+        return blocks[0]
+    height = max(image.shape[0] for image, _ in blocks) + 2
+    width = sum(image.shape[1] + 2 for image, _ in blocks)
+    padded, uvs, left = [], [], 0
+    for image, uv in blocks:
+        h, w = image.shape[:2]
+        padded.append(np.pad(image, ((1, height - h - 1), (1, 1), (0, 0)), mode="edge"))
+        uv = _wrapped(uv)
+        uvs.append(np.stack([(left + 1 + uv[:, 0] * w) / width, 1 - (1 + (1 - uv[:, 1]) * h) / height], -1))
+        left += w + 2
+    return np.concatenate(padded, axis=1), np.concatenate(uvs)
+
+
+def _part_colour(part, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """(image (h, w, 3), UVs (V, 2)) colouring one part: its material's image at its UVs ((0.5, 0.5) without vt),
+    a 1×1 image of its material's diffuse, or, for a part without material, its vertex colours as trimesh packs
+    them (a texel per colour)."""
+    import trimesh
+
+    if part.visual.kind == "texture":
+        material = part.visual.material
+        uv = part.visual.uv if part.visual.uv is not None else np.full((len(part.vertices), 2), 0.5)
+    else:
+        material, uv = trimesh.visual.color.color_to_uv(part.visual.vertex_colors)
+    if getattr(material, "image", None) is not None:
+        return _texture_rgb(material.image, f"{name} (its .mtl's map_Kd)"), np.asarray(uv, dtype=np.float64)
+    colour = np.asarray(material.diffuse, dtype=np.float32)[:3] / 255.0
+    return colour.reshape(1, 1, 3), np.full((len(part.vertices), 2), 0.5)
 
 
 class _MtlBySpec(Mapping):
