@@ -264,7 +264,8 @@ def test_colour_only_materials_are_their_kd_at_any_uv_and_beside_a_texture_it_is
 
 
 def test_nan_texture_coordinates_are_refused(tmp_path):
-    """A NaN vt had loaded and sampled the texture at NaN: given beside the file or named by its .mtl."""
+    """A NaN vt had loaded and sampled the texture at NaN: given beside the file or named by its .mtl. An .mtl's
+    image on a mesh without vt is refused by name."""
     Image.fromarray(np.full((2, 2, 3), 200, dtype=np.uint8)).save(tmp_path / "tex.png")
     (tmp_path / "tex.mtl").write_text("newmtl skin\nmap_Kd tex.png\n")
     quad = "v -1 -1 0\nv 1 -1 0\nv 1 1 0\nvt nan 0\nvt 1 0\nvt 1 1\nusemtl skin\nf 1/1 2/2 3/3\n"
@@ -274,6 +275,10 @@ def test_nan_texture_coordinates_are_refused(tmp_path):
         load_mesh(tmp_path / "given.obj", tmp_path / "tex.png")
     with pytest.raises(MeshError, match=r"named.obj: texture coordinates \(vt\) contain NaN or Inf"):
         load_mesh(tmp_path / "named.obj")
+    (tmp_path / "unplaced.obj").write_text("mtllib tex.mtl\nv -1 -1 0\nv 1 -1 0\nv 1 1 0\nusemtl skin\nf 1 2 3\n")
+    with pytest.raises(MeshError, match=r"^unplaced.obj: its .mtl gives an image \(map_Kd\) but the mesh has no "
+                                        r"texture coordinates \(vt\)$"):  # it had been refused as NaN vt
+        load_mesh(tmp_path / "unplaced.obj")
 
 
 QUAD_WITH_UVS = "v -1 -1 0\nv 1 -1 0\nv 1 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nf 1/1 2/2 3/3\n"

@@ -284,8 +284,11 @@ def _atlas(parts: list, name: str) -> tuple[np.ndarray, np.ndarray]:
     border, or black, and a map_Kd image shifted by up to a texel. Here each part's block is its image (or its
     one colour, sampled at its centre whatever the part's UVs) padded by a texel of its own edge, so a lookup
     reads what ``sample_texture`` reads from the image alone. A block's UVs are wrapped a vertex at a time (a
-    face spanning a wrap is not repeated), as trimesh's were.
+    face spanning a wrap is not repeated), as trimesh's were. One part's image with no vt to place it is a
+    MeshError, as a texture given beside such a file is.
     """
+    if len(parts) == 1 and parts[0].visual.uv is None:
+        raise MeshError(f"{name}: its .mtl gives an image (map_Kd) but the mesh has no texture coordinates (vt)")
     blocks = [_part_colour(part, name) for part in parts]
     if len(blocks) == 1:
         return blocks[0]
