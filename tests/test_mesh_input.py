@@ -263,6 +263,23 @@ def test_colour_only_materials_are_their_kd_at_any_uv_and_beside_a_texture_it_is
                        atol=1e-6)
 
 
+def test_parts_without_a_colour_beside_coloured_ones_are_the_default_albedo_or_their_vertex_colours(tmp_path):
+    """Faces before any usemtl, under a usemtl the library does not define (with vt: trimesh's stand-in texture) or
+    under a material with neither Kd nor image, in a file whose other faces a Kd colours, had been trimesh's grey
+    (0.39 or 0.4), not the ``DEFAULT_ALBEDO`` an uncoloured mesh (or a lone such material) loads in; where the
+    file gives their vertices colours (``v x y z r g b``), those, which only the faces before any usemtl had kept."""
+    (tmp_path / "parts.mtl").write_text("newmtl red\nKd 1 0 0\nnewmtl shiny\nNs 10\n")
+    body = ("vt 0 0\nvt 1 0\nvt 0 1\nf 4 5 6\nusemtl red\nf 1/1 2/2 3/3\nusemtl nowhere\nf 7/1 8/2 9/3\n"
+            "usemtl shiny\nf 10 11 12\n")  # red at height 0, the others at 1, 2 and 3
+    for name, rgb, colour in (("plain.obj", "", DEFAULT_ALBEDO), ("blue.obj", " 0 0 1", (0, 0, 1))):
+        (tmp_path / name).write_text("mtllib parts.mtl\n" + "".join(
+            f"v 0 0 {z}{rgb}\nv 1 0 {z}{rgb}\nv 0 1 {z}{rgb}\n" for z in range(4)) + body)
+        mesh = load_mesh(tmp_path / name, up_axis="z")
+        order = np.argsort(mesh.vertices[mesh.faces].mean(1)[:, 2])
+        assert np.allclose(mesh.albedo(order, np.full((4, 3), 1 / 3)), [(1, 0, 0), colour, colour, colour],
+                           atol=1e-6), name
+
+
 def test_nan_texture_coordinates_are_refused(tmp_path):
     """A NaN vt had loaded and sampled the texture at NaN: given beside the file or named by its .mtl. An .mtl's
     image on a mesh without vt is refused by name."""

@@ -137,9 +137,10 @@ def load_mesh(
 
     A ``texture`` given colours every part at the file's own UVs ((0, 0) on parts
     without vt) whatever the file's materials; without one, an OBJ's .mtl
-    colours it as trimesh reads it (its images and Kd packed into one atlas; a single material's own Kd
-    is the mesh's one ``colour`` when it names no image); with no image or Kd the file wrote (its .mtl missing, say),
-    the mesh is uncoloured as one without vt is.
+    colours it as trimesh reads it (its images and Kd packed into one atlas, ``_atlas``, where parts with neither
+    are ``DEFAULT_ALBEDO`` or their vertex colours; a single material's own Kd is the mesh's one ``colour`` when it
+    names no image); with no image or Kd the file wrote (its .mtl missing, say), the mesh is uncoloured as one
+    without vt is.
 
     ``up_axis``: the file's up axis ('y' for OBJ/glTF exports, 'z' for CAD and
     most scanners), turned onto +z. The box is centred on the origin and its
@@ -237,9 +238,9 @@ def _texture_rgb(image, name: str) -> np.ndarray:
 
 
 def _written_diffuse(visual) -> np.ndarray | None:
-    """The colour (3,) in [0, 1] an OBJ's one material gives by its Kd alone (no image), or None without a Kd.
+    """The colour (3,) in [0, 1] an OBJ's material (the file's one, or a part's) gives by its Kd alone, or None.
 
-    Several materials trimesh packs into an atlas, Kd colours included; one without an image it leaves as a
+    Several materials ``_atlas`` packs into one texture, Kd colours included; one without an image trimesh leaves as a
     material, whose diffuse is trimesh's default grey unless the .mtl wrote a Kd. Only a Kd the file wrote
     (trimesh's parse_mtl keeps the .mtl's keys in the material's kwargs) colours the mesh: a file without a
     library, or whose material sets no Kd, keeps ``DEFAULT_ALBEDO``. Either way shading "auto" bakes light and
@@ -252,14 +253,16 @@ def _written_diffuse(visual) -> np.ndarray | None:
 
 
 def _without_stand_in_textures(parts: list) -> list:
-    """``parts`` (a file's meshes), the textured ones made uncoloured when none has a colour the file wrote.
+    """``parts`` (a file's meshes), each textured one with no colour the file wrote made a plain mesh.
 
     A part with texture coordinates but no material the file gives it (an OBJ without ``mtllib``, its .mtl
     missing, a ``usemtl`` the library does not define; a PLY's texcoord without its TextureFile) gets trimesh's
     stand-in, a 2×2 image of its grey named as a material of the library may be: joined, the mesh had loaded as
-    textured in that grey, and shading "auto" left it a flat silhouette. It is told apart by what the file wrote:
-    an image read from a file (Pillow sets ``format`` for those only) or a Kd. Where some part has one, trimesh
-    packs every part's material into its atlas as before.
+    textured in that grey, and shading "auto" left it a flat silhouette; beside coloured parts, that part had been
+    trimesh's grey (0.39) where an uncoloured mesh is ``DEFAULT_ALBEDO``. It is told apart by what the file wrote:
+    an image read from a file (Pillow sets ``format`` for those only) or a Kd. Made plain, it keeps the colours its
+    vertices were given, if any; ``_atlas`` gives it ``DEFAULT_ALBEDO`` otherwise, as a part without vt or
+    material is given.
     """
     import trimesh
 
@@ -268,9 +271,7 @@ def _without_stand_in_textures(parts: list) -> list:
         return (getattr(getattr(material, "image", None), "format", None) is not None
                 or "kd" in getattr(material, "kwargs", {}))
 
-    if any(written(part) for part in parts):
-        return parts
-    return [part if part.visual.kind != "texture" else  # (with the colours its vertices were given, if any)
+    return [part if part.visual.kind != "texture" or written(part) else
             trimesh.Trimesh(part.vertices, part.faces, vertex_colors=part.vertex_attributes.get("color"),
                             process=False) for part in parts]
 
@@ -305,20 +306,21 @@ def _atlas(parts: list, name: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _part_colour(part, name: str) -> tuple[np.ndarray, np.ndarray]:
-    """(image (h, w, 3), UVs (V, 2)) colouring one part: its material's image at its UVs ((0.5, 0.5) without vt),
-    a 1×1 image of its material's diffuse, or, for a part without material, its vertex colours as trimesh packs
-    them (a texel per colour)."""
+    """(image (h, w, 3), UVs (V, 2)) colouring one part: its material's image at its UVs ((0.5, 0.5) without vt)
+    or a 1×1 image of its Kd; for a part without a material the file wrote (``_without_stand_in_textures``), its
+    vertex colours as trimesh packs them (a texel per colour), else ``DEFAULT_ALBEDO``."""
     import trimesh
 
-    if part.visual.kind == "texture":
-        material = part.visual.material
-        uv = part.visual.uv if part.visual.uv is not None else np.full((len(part.vertices), 2), 0.5)
-    else:
+    centre = np.full((len(part.vertices), 2), 0.5)
+    if part.visual.kind == "vertex":
         material, uv = trimesh.visual.color.color_to_uv(part.visual.vertex_colors)
+    elif part.visual.kind == "texture":
+        material, uv = part.visual.material, centre if part.visual.uv is None else part.visual.uv
+    else:
+        return np.asarray(DEFAULT_ALBEDO, dtype=np.float32).reshape(1, 1, 3), centre
     if getattr(material, "image", None) is not None:
         return _texture_rgb(material.image, f"{name} (its .mtl's map_Kd)"), np.asarray(uv, dtype=np.float64)
-    colour = np.asarray(material.diffuse, dtype=np.float32)[:3] / 255.0
-    return colour.reshape(1, 1, 3), np.full((len(part.vertices), 2), 0.5)
+    return _written_diffuse(part.visual).reshape(1, 1, 3), centre
 
 
 class _MtlBySpec(Mapping):
