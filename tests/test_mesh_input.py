@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 from contextlib import ExitStack, contextmanager
 
 
@@ -178,6 +179,7 @@ def _texcoord_ply(header_comment: str = "") -> str:
             + "".join(f"3 {face} 6 0.5 0.5 0.5 0.5 0.5 0.5\n" for face in ("0 2 1", "0 1 3", "0 3 2", "1 2 3")))
 
 
+@pytest.mark.filterwarnings("ignore:lost.ply. the texture its header names:UserWarning")  # (its own test below)
 def test_uvs_without_a_material_the_file_gives_load_uncoloured(tmp_path):
     """Texture coordinates without a material the file gives (no mtllib, its .mtl missing, a usemtl the library
     does not define; a PLY's texcoord without its TextureFile) had loaded as a 2×2 texture of trimesh's stand-in grey
@@ -198,6 +200,20 @@ def test_uvs_without_a_material_the_file_gives_load_uncoloured(tmp_path):
         faces = np.arange(len(mesh.faces))
         assert np.allclose(mesh.albedo(faces, np.full((len(faces), 3), 1 / 3)), DEFAULT_ALBEDO), name
         assert shade_mesh(mesh).shading is not None, name
+
+
+def test_a_ply_whose_texture_file_is_missing_warns_once_naming_it(tmp_path, caplog):
+    """trimesh had logged "unable to load image!" with a FileNotFoundError's traceback, read as a failure in a
+    worker's log (a PLY upload's TextureFile is never stored) though the mesh loads, without its texture."""
+    (tmp_path / "lost.ply").write_text(_texcoord_ply("comment TextureFile lost.png\n"))
+    filters = list(trimesh.util.log.filters)
+    with pytest.warns(UserWarning) as caught:
+        mesh = load_mesh(tmp_path / "lost.ply")
+    assert [str(warning.message) for warning in caught] == [
+        "lost.ply: the texture its header names (TextureFile) cannot be read (FileNotFoundError: lost.png); the mesh "
+        "loads without it"]
+    assert not mesh.has_colour and not [record for record in caplog.records if record.levelno >= logging.WARNING]
+    assert trimesh.util.log.filters == filters
 
 
 def test_vertex_colours_beside_uvs_without_a_material_are_kept(tmp_path):

@@ -33,8 +33,11 @@ closes the loop with ``export.extract_mesh``.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
+import threading
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -163,8 +166,9 @@ def load_mesh(
         raise MeshError(f"frame must be one of {MESH_FRAMES}, got {frame!r}")
     try:  # with a texture, its parts as they are: the file's materials are not what colours it
         library = _MtlBySpec(trimesh.resolvers.FilePathResolver(path))
-        parts = trimesh.load(path, force="scene", process=False, skip_materials=texture is not None,
-                             resolver=library).dump()
+        with _PlyTextureWarning() as unread_texture:
+            parts = trimesh.load(path, force="scene", process=False, skip_materials=texture is not None,
+                                 resolver=library).dump()
         if texture is None:  # the parts joined as trimesh joins them (``Scene.to_mesh``), its materials packed
             meshes = _without_stand_in_textures([part for part in parts if isinstance(part, trimesh.Trimesh)])
             loaded = trimesh.util.concatenate(meshes)
@@ -172,6 +176,10 @@ def load_mesh(
         raise MeshError(f"{path.name}: cannot read as a mesh: {e}") from e
     if library.problem:
         raise MeshError(library.problem)
+    if unread_texture.error is not None:
+        warnings.warn(f"{path.name}: the texture its header names (TextureFile) cannot be read "
+                      f"({type(unread_texture.error).__name__}: {unread_texture.error}); the mesh loads without it",
+                      stacklevel=2)
     if texture is None:
         vertices = np.asarray(getattr(loaded, "vertices", np.empty((0, 3))), dtype=np.float64)
         faces = np.asarray(getattr(loaded, "faces", np.empty((0, 3))), dtype=np.int64)
@@ -321,6 +329,35 @@ def _part_colour(part, name: str) -> tuple[np.ndarray, np.ndarray]:
     if getattr(material, "image", None) is not None:
         return _texture_rgb(material.image, f"{name} (its .mtl's map_Kd)"), np.asarray(uv, dtype=np.float64)
     return _written_diffuse(part.visual).reshape(1, 1, 3), centre
+
+
+class _PlyTextureWarning(logging.Filter):
+    """Within ``with``, holds back the warning trimesh logs for a PLY's TextureFile it cannot read, keeping its
+    error: "unable to load image!" and a traceback (a missing file's FileNotFoundError) read as a failure in a
+    worker's log, where the mesh loads without its texture (a PLY upload's TextureFile is never stored).
+    ``load_mesh`` warns once instead, naming the mesh and the error. Only this thread's records are held."""
+
+    def __init__(self):
+        super().__init__()
+        self.thread = threading.get_ident()
+        self.error: BaseException | None = None
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.thread != self.thread or record.getMessage() != "unable to load image!" or not record.exc_info:
+            return True
+        self.error = record.exc_info[1]
+        return False
+
+    def __enter__(self) -> _PlyTextureWarning:
+        import trimesh
+
+        trimesh.exchange.ply.log.addFilter(self)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        import trimesh
+
+        trimesh.exchange.ply.log.removeFilter(self)
 
 
 class _MtlBySpec(Mapping):
