@@ -187,6 +187,10 @@ def test_damaged_or_unknown_sparse_files_are_named(tmp_path, make_sphere_grid):
     (lambda t, m: ({**t, "values": t["values"][:, :3].contiguous()}, m), r"values \(\d+, 3\) and fill \(4,\)"),
     (lambda t, m: ({**t, "fill": t["fill"][:3].contiguous()}, m), r"values \(\d+, 4\) and fill \(3,\)"),
     (lambda t, m: (t, {**m, "resolution": [-16, -16, 16]}), "is not 3 positive vertex counts"),
+    (lambda t, m: (t, {**m, "resolution": None}), "resolution None is not 3 positive vertex counts"),  # TypeError
+    (lambda t, m: (t, {**m, "resolution": [16, 16, 15.9]}), r"resolution \[16, 16, 15.9\] is not 3"),  # cut to 15
+    # Fewer vertices than the mask holds bits for: had loaded, the mask's first 3,840 bits read as a 16x16x15 grid.
+    (lambda t, m: (t, {**m, "resolution": [16, 16, 15]}), "stored_bits holds 512 bytes, not the 480 of a 16x16x15"),
     (lambda t, m: ({**t, "bbox_min": t["bbox_min"][:2].contiguous()}, m), r"bbox_min of shape \(2,\), not \(3,\)"),
     (lambda t, m: ({**t, "stored_bits": t["stored_bits"].int()}, m), "stored_bits is torch.int32"),
     (lambda t, m: (t, {**m, "density_scale": float("nan")}), "density_scale nan is not a positive number"),

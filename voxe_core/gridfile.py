@@ -34,6 +34,8 @@ Examples:
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 
@@ -102,18 +104,20 @@ def dense_tensors(tensors: dict[str, torch.Tensor], meta: dict) -> dict[str, tor
         return tensors
     if layout != "sparse":
         raise ValueError(f"unknown grid layout {layout!r}; this voxe_core reads {' and '.join(LAYOUTS)}")
-    resolution = tuple(int(n) for n in meta["resolution"])
-    if len(resolution) != 3 or min(resolution) < 1:
-        raise ValueError(f"resolution {list(meta['resolution'])} is not 3 positive vertex counts")
-    count = int(np.prod(resolution))
+    resolution = meta["resolution"]
+    if not (isinstance(resolution, (list, tuple)) and len(resolution) == 3
+            and all(isinstance(n, int) and not isinstance(n, bool) and n >= 1 for n in resolution)):
+        raise ValueError(f"resolution {resolution!r} is not 3 positive vertex counts")
+    count = math.prod(resolution)  # Python's integers: numpy's int64 product would wrap
     bits, values, fill = tensors["stored_bits"], tensors["values"], tensors["fill"]
     if bits.dtype != torch.uint8 or bits.dim() != 1:
         raise ValueError(f"stored_bits is {bits.dtype} of shape {tuple(bits.shape)}, not a uint8 vector")
     if fill.dim() != 1 or values.dim() != 2 or values.shape[1] != fill.shape[0]:
         raise ValueError(f"values {tuple(values.shape)} and fill {tuple(fill.shape)} are not (N, C) and (C,)")
     bits = bits.numpy()
-    if bits.size * 8 < count:
-        raise ValueError(f"stored_bits holds {bits.size * 8} bits for a {'x'.join(map(str, resolution))} grid")
+    if bits.size != -(-count // 8):  # exactly the format's ceil(X·Y·Z / 8): a wrong resolution must not fit
+        raise ValueError(f"stored_bits holds {bits.size} bytes, not the {-(-count // 8)} of a "
+                         f"{'x'.join(map(str, resolution))} grid's mask")
     # Flat indices and one index_copy_: ~4x faster than a boolean-mask assignment at 128³.
     stored = torch.from_numpy(np.flatnonzero(np.unpackbits(bits, count=count)))
     if stored.numel() != values.shape[0]:
