@@ -84,6 +84,26 @@ def test_relu_grid_round_trips_exactly_and_renders_identically(tmp_path, make_sp
     assert (meta["layout"], meta["margin"]) == ("sparse", 2)
 
 
+@pytest.mark.parametrize("activation", ["relu", "softplus"])
+def test_converting_between_layouts_changes_no_value_after_the_first_save(tmp_path, make_sphere_grid, activation):
+    """Regression: the fill was float32's mean, which over N copies of a loaded file's fill is not that fill: each
+    sparse -> dense -> sparse conversion (``voxe convert-grid``) moved the fill, so every vertex left out, a few ulps
+    (a fill of -0.18507251 became -0.18507259)."""
+    grid = noisy_sphere(make_sphere_grid, resolution=48)
+    grid.activation = activation
+    with torch.no_grad():  # empty space below softplus's occupancy threshold too (raw -1 - U(0, 3))
+        grid.features[..., 0][grid.features[..., 0] <= 0] -= 1.0
+    first, dense, again = (tmp_path / f"{name}.safetensors" for name in ("first", "dense", "again"))
+    grid.save(first)
+    load_grid(first).save(dense, dense=True)
+    load_grid(dense).save(again)
+    written, rewritten = (load_tensors(path, kind="voxel_grid", max_version=2)[0] for path in (first, again))
+    assert written.keys() == rewritten.keys() and "fill" in written
+    for name in written:
+        assert torch.equal(written[name], rewritten[name]), name
+    assert torch.equal(load_grid(again).features, load_grid(dense).features)
+
+
 def test_extreme_and_nan_values_in_empty_space_leave_the_fill_finite(tmp_path):
     # regression: the fill was a float32 mean: two colours of 3e38 overflowed it to inf (and a dense render of the
     # loaded grid to NaN), one NaN spread to all 12,824 vertices left out, densities of -1e38 summed to -inf

@@ -73,17 +73,19 @@ def sparse_tensors(features: torch.Tensor, cells: torch.Tensor, margin: int = DE
 
     Returns (tensors, header fields: layout, margin, resolution). ``fill`` is the mean of the vertices left
     out: each of those has a density no cell above the occupancy threshold
-    needs, and a mean of values below a threshold stays below it. Where float32's mean is not finite (two colours
-    of 3e38 overflow it, one NaN spreads to every vertex left out) it is taken again in float64 over the values
-    that are not NaN, infinities counted as float32's extremes.
+    needs, and a mean of values below a threshold stays below it. The mean is summed in float64, where N copies of
+    one float32 sum exactly: a loaded file's left-out vertices all hold its ``fill``, so saving it again writes the
+    same ``fill`` (float32's mean had drifted by a few ulps at each sparse -> dense -> sparse conversion). Where
+    the mean is not finite (an infinity, or one NaN spreading to every vertex left out) it is taken again over the
+    values that are not NaN, infinities counted as float32's extremes.
     """
     if margin < 0:
         raise ValueError(f"margin must be >= 0 cells, got {margin}")
     features = features.detach().cpu().float()
     mask = stored_vertices(cells.cpu(), margin)
     dropped = features[~mask]
-    fill = dropped.mean(0) if dropped.shape[0] else features.new_zeros(features.shape[-1])
-    if not bool(torch.isfinite(fill).all()):  # overflowed, or a NaN among them: the careful mean, only then
+    fill = (dropped.sum(0, dtype=torch.float64) / max(1, dropped.shape[0])).float()
+    if not bool(torch.isfinite(fill).all()):  # an infinity, or a NaN among them: the careful mean, only then
         extreme = torch.finfo(torch.float32).max
         dropped.clamp_(-extreme, extreme)  # a copy (mask indexing), clamped in place; NaN stays NaN
         fill = (torch.nansum(dropped, 0, dtype=torch.float64) / (~dropped.isnan()).sum(0).clamp_min(1)).float()
