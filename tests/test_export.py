@@ -49,6 +49,20 @@ def test_png_round_trip_rounds_and_clamps(tmp_path):
     assert np.array_equal(back, expected)
 
 
+def test_uint8_images_are_written_as_the_pixels_they_are(tmp_path):
+    """Regression: uint8 was read as floats in [0, 1], so every pixel above 1 was written white (an image from
+    imageio or PIL became a white PNG or video, silently). Integers of other types give no scale: refused."""
+    pixels = np.array([[[0, 1, 2], [100, 200, 255]]], dtype=np.uint8)
+    save_png(tmp_path / "pixels.png", pixels)
+    assert np.array_equal(np.asarray(Image.open(tmp_path / "pixels.png")), pixels)
+    frames = np.repeat(np.full((1, 16, 16, 3), (40, 120, 200), dtype=np.uint8), 2, axis=0)
+    write_video(tmp_path / "pixels.gif", frames, fps=10)
+    decoded = np.asarray(Image.open(tmp_path / "pixels.gif").convert("RGB"))
+    assert np.abs(decoded.astype(int) - (40, 120, 200)).max() <= 2
+    with pytest.raises(ValueError, match="floats in \\[0, 1\\] or uint8 pixels, got torch.int64"):
+        save_png(tmp_path / "ints.png", np.full((2, 2, 3), 7))
+
+
 def test_png_rgba_and_bad_shape(tmp_path):
     rgba = torch.rand(5, 6, 4, generator=torch.Generator().manual_seed(0))
     save_png(tmp_path / "rgba.png", rgba)

@@ -32,14 +32,21 @@ _QUERY_CHUNK = 1 << 18  # points per grid query when sampling a mesh or a resamp
 
 # ---------------------------------------------------------------------- images
 def to_uint8(image) -> np.ndarray:
-    """Float image(s) in [0, 1] -> uint8 with rounding; values outside [0, 1] are clamped."""
-    array = torch.as_tensor(image).detach().to("cpu", torch.float32)
-    array = torch.nan_to_num(array, nan=0.0).clamp(0.0, 1.0)
+    """Float image(s) in [0, 1] -> uint8 with rounding; values outside [0, 1] are clamped.
+
+    uint8 images are 8-bit pixels already and are returned as they are (read as floats, any pixel above 1 had
+    become white). Other integer types say neither scale: ValueError."""
+    array = torch.as_tensor(image).detach().cpu()
+    if array.dtype == torch.uint8:
+        return array.numpy()
+    if not (array.dtype.is_floating_point or array.dtype == torch.bool):
+        raise ValueError(f"images are floats in [0, 1] or uint8 pixels, got {array.dtype}")
+    array = torch.nan_to_num(array.float(), nan=0.0).clamp(0.0, 1.0)
     return (array * 255.0).round().to(torch.uint8).numpy()
 
 
 def save_png(path: str | os.PathLike, image) -> None:
-    """Write an (H, W, 3) or (H, W, 4) float image in [0, 1] as an 8-bit PNG (parent folders created)."""
+    """Write an (H, W, 3) or (H, W, 4) image (floats in [0, 1] or uint8) as an 8-bit PNG (parent folders created)."""
     from PIL import Image
 
     array = to_uint8(image)
@@ -140,7 +147,7 @@ def check_video_output(path: str | os.PathLike, fps: float) -> Path:
 
 
 def write_video(path: str | os.PathLike, frames, fps: float = 30) -> Path:
-    """Write frames (N, H, W, 3) in [0, 1] to ``path``; the suffix picks the format.
+    """Write frames (N, H, W, 3), floats in [0, 1] or uint8, to ``path``; the suffix picks the format.
 
     ``.mp4``: H.264 (libx264, CRF 18, yuv420p, +faststart) through imageio-ffmpeg;
     odd sizes are padded by one replicated row / column, never rescaled.
