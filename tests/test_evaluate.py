@@ -362,6 +362,19 @@ def test_a_diverged_grid_is_refused_naming_it_rather_than_scored(sphere_grid, ti
         evaluate(diverged, [EditSample("same", "a claymation ball", sphere_grid)], "ball", clip, None, None, config)
 
 
+def test_edits_of_one_name_are_refused_before_any_render(sphere_grid, tiny_clip_path):
+    """Regression: both were scored, but ``edit_frames`` is keyed by name, so the first edit's renders were
+    silently replaced by the second's (the service refuses an evaluation listing a job twice, too)."""
+    clip = ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")
+    edits = [EditSample("seed", "a claymation ball", sphere_grid), EditSample("seed", "a yarn ball", sphere_grid),
+             EditSample("other", "a wood ball", sphere_grid)]
+    reports = []
+    with pytest.raises(ValueError, match="edit names must differ .*'seed' given more than once"):
+        evaluate(sphere_grid, edits, "ball", clip, None, None, EvaluateConfig(views=2, size=16),
+                 Callbacks(on_progress=reports.append))
+    assert reports == []
+
+
 def test_paper_protocol_is_six_prompts_with_local_edit_words_in_them():
     edits = paper_protocol(" hot  dog ")
     assert [e.prompt for e in edits] == [

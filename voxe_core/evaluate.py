@@ -409,13 +409,17 @@ def evaluate(
     The ring renders (and the masks' footprints) run on ``device`` (None: where
     ``initial`` is); each grid moves there once. The scorers run where they were
     loaded. A ring render with a NaN or infinite pixel (a diverged grid) is a
-    ValueError naming the grid. Progress: ("evaluate", i, :func:`evaluation_steps`),
+    ValueError naming the grid, as are two edits of one name. Progress: ("evaluate", i, :func:`evaluation_steps`),
     one step per view rendered, footprinted or scored, info carrying the pass
     ("stage") and the peak memory so far; cancellation is checked between views
     and between scoring batches.
     """
     if not edits:
         raise ValueError("nothing to evaluate: no edits given")
+    names = [sample.name for sample in edits]
+    if repeated := sorted({name for name in names if names.count(name) > 1}):  # edit_frames is keyed by name
+        raise ValueError(f"edit names must differ (their renders are kept by name): {', '.join(map(repr, repeated))} "
+                         "given more than once")
     device = resolve_device(device if device is not None else initial.bbox_min.device)
     memory = PeakMemory(device).start()
     initial = initial.to(device)
