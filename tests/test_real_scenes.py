@@ -358,6 +358,24 @@ def test_mesh_export_of_a_scene_grid_is_its_foreground_in_the_canonical_frame():
     assert 0.5 < float(np.linalg.norm(mesh.vertices, axis=1).mean()) < 1.0
 
 
+def test_a_scene_grid_two_vertices_wide_has_a_foreground_to_orbit_and_mesh():
+    """Regression: its foreground grid was 1 vertex wide along that axis, refused as a grid, so its orbit centre (every
+    turntable and evaluation ring of it) and its mesh failed with "grid resolution must be >= 2 per axis, got
+    (1, 5, 5)": a resolution the user never gave."""
+    from voxe_core.export import extract_mesh
+
+    grid = SceneGrid((2, 9, 9))
+    with torch.no_grad():
+        grid.features[..., 0] = _raw_for_density(grid, 100.0)  # dense everywhere: the mesh is the foreground cube
+    foreground = grid.foreground_grid()
+    assert foreground.resolution == (2, 5, 5)
+    points = (torch.rand(100, 3, generator=torch.Generator().manual_seed(0)) * 2 - 1) * grid.foreground_extent
+    assert torch.allclose(foreground.interpolate(points), grid.interpolate(grid.lattice_points(points)), atol=1e-5)
+    assert torch.allclose(grid.orbit_centre(), torch.zeros(3), atol=1e-5)
+    bounds = extract_mesh(grid).bounds
+    assert np.allclose(bounds, [[-1.5] * 3, [1.5] * 3], atol=1e-4)
+
+
 def test_scene_fits_get_the_scene_preset_by_default_and_their_key_follows_it(monkeypatch):
     """CLI and service resolve a scene-backbone fit to ReconstructConfig.scene() unless a preset is named;
     a change to that preset changes the cache key of every fit that can become a scene fit."""

@@ -141,10 +141,11 @@ class SceneGrid(VoxelGrid):
 
         The contraction is the identity there, so this is the object without its
         background (``export.extract_mesh`` meshes it). Exact when (resolution − 1)
-        is a multiple of 4 (the cube's faces fall on lattice vertices), resampled otherwise.
+        is a multiple of 4 (the cube's faces fall on lattice vertices), resampled otherwise; at least 2 vertices per
+        axis (a lattice of 2 has its cube between its vertices, and a grid needs 2).
         """
         fg = self.foreground_extent
-        n = [(r - 1) // 2 + 1 for r in self.resolution]
+        n = [max(2, (r - 1) // 2 + 1) for r in self.resolution]
         axes = [torch.linspace(-fg, fg, k) for k in n]
         points = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
         features = self.interpolate(self.lattice_points(points.to(self.bbox_min.device)))
