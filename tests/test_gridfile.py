@@ -237,6 +237,16 @@ def test_a_grid_file_with_tensors_or_fields_of_the_wrong_shape_or_value_is_a_for
     assert str(error.value).startswith(str(path))
 
 
+@pytest.mark.parametrize("backbone", [VoxelGrid, SceneGrid])
+@pytest.mark.parametrize("scale", [0.0, -2.0, float("nan"), float("inf")])
+def test_a_grid_whose_file_could_not_be_read_back_is_refused_when_built(tmp_path, backbone, scale):
+    """Regression: a density scale of -2, NaN or inf was taken (0 became the default), and its grid saved a file that
+    ``load_grid`` then refused as damaged."""
+    with pytest.raises(ValueError, match=f"density_scale must be a positive number, got {scale}"):
+        backbone(8, density_scale=scale)
+    assert backbone(8, density_scale=2.5).density_scale == 2.5
+
+
 @pytest.mark.parametrize("header, message", [
     ("[1, 2]", "damaged 'voxe' header"),  # a list: had been an AttributeError
     ('{"kind": "voxel_grid", "format_version": 2, "meta": null}', r"damaged 'voxe' header \(its meta is a NoneType\)"),

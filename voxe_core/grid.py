@@ -258,11 +258,15 @@ class VoxelGrid(torch.nn.Module):
             raise ValueError(f"the box must be finite: min {host_min.tolist()} max {host_max.tolist()}")
         if not bool((host_max > host_min).all()):
             raise ValueError(f"empty box: min {host_min.tolist()} max {host_max.tolist()}")
+        if density_scale is not None and not (math.isfinite(density_scale) and density_scale > 0):
+            # (saved, its file was refused on load as damaged: every density would be wrong)
+            raise ValueError(f"density_scale must be a positive number, got {density_scale}")
         self._host_box = (host_min, host_max)
         self.register_buffer("bbox_min", host_min.to(device))
         self.register_buffer("bbox_max", host_max.to(device))
         self.activation = activation
-        self.density_scale = float(density_scale or default_density_scale(host_min.tolist(), host_max.tolist()))
+        self.density_scale = float(default_density_scale(host_min.tolist(), host_max.tolist())
+                                   if density_scale is None else density_scale)
         if features is None:
             features = torch.zeros(*res, 4, device=device)
             features[..., 0] = init_density

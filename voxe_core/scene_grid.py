@@ -94,7 +94,7 @@ class SceneGrid(VoxelGrid):
             raise ValueError("near_samples and far_samples must be >= 1 and far_ratio > 1")
         fg = float(foreground_extent)
         # Density per unit of the canonical frame, scaled as the ReLU-field grid over the same foreground box.
-        density_scale = density_scale or default_density_scale((-fg,) * 3, (fg,) * 3)
+        density_scale = default_density_scale((-fg,) * 3, (fg,) * 3) if density_scale is None else density_scale
         super().__init__(resolution, (-CONTRACTED_EXTENT,) * 3, (CONTRACTED_EXTENT,) * 3, activation,
                          density_scale, init_density, features)
         self.foreground_extent = fg
