@@ -63,6 +63,24 @@ def test_uint8_images_are_written_as_the_pixels_they_are(tmp_path):
         save_png(tmp_path / "ints.png", np.full((2, 2, 3), 7))
 
 
+def test_a_png_save_that_fails_keeps_the_earlier_file_and_leaves_no_partial_one(tmp_path):
+    """A full disk (a file-size limit stands in for it): the PNG had been written into its final name, leaving the
+    first 20,000 bytes of it there in place of the earlier view."""
+    import resource
+
+    path = tmp_path / "view.png"
+    path.write_bytes(b"the earlier view")
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, hard))  # (Python ignores SIGXFSZ: writes fail EFBIG)
+    try:
+        with pytest.raises(OSError):
+            save_png(path, torch.rand(200, 200, 3, generator=torch.Generator().manual_seed(0)))
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+    assert path.read_bytes() == b"the earlier view"
+    assert [p.name for p in tmp_path.iterdir()] == ["view.png"]
+
+
 def test_png_rgba_and_bad_shape(tmp_path):
     rgba = torch.rand(5, 6, 4, generator=torch.Generator().manual_seed(0))
     save_png(tmp_path / "rgba.png", rgba)

@@ -46,7 +46,9 @@ def to_uint8(image) -> np.ndarray:
 
 
 def save_png(path: str | os.PathLike, image) -> None:
-    """Write an (H, W, 3) or (H, W, 4) image (floats in [0, 1] or uint8) as an 8-bit PNG (parent folders created)."""
+    """Write an (H, W, 3) or (H, W, 4) image (floats in [0, 1] or uint8) as an 8-bit PNG (parent folders created),
+    whole or not at all (:func:`voxe_core.files.replacing`: a full disk had left a torn PNG in place of the earlier
+    one)."""
     from PIL import Image
 
     array = to_uint8(image)
@@ -54,7 +56,8 @@ def save_png(path: str | os.PathLike, image) -> None:
         raise ValueError(f"save_png expects an (H, W, 3) or (H, W, 4) image, got shape {tuple(array.shape)}")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(array, "RGB" if array.shape[-1] == 3 else "RGBA").save(path, format="PNG")
+    with replacing(path) as partial:
+        Image.fromarray(array, "RGB" if array.shape[-1] == 3 else "RGBA").save(partial, format="PNG")
 
 
 # --------------------------------------------------------------------- renders
