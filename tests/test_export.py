@@ -323,6 +323,21 @@ def test_obj_round_trip_keeps_vertices_faces_and_colours(sphere_grid, tmp_path):
     assert (back.visual.vertex_colors[:, 0] > 240).all() and (back.visual.vertex_colors[:, 1:3] < 15).all()
 
 
+@pytest.mark.parametrize("size", [1e-5, 1e-3, 1e4])
+def test_every_mesh_format_keeps_the_vertices_of_a_tiny_or_huge_box(tmp_path, size):
+    """Regression: OBJ positions had 6 decimals whatever the scale, so in a 1e-5 box every vertex moved by up to 5 %
+    of the box (1.5 voxels here) while PLY and GLB kept float32's precision."""
+    grid = VoxelGrid(32, bbox_min=(0.0, 0.0, 0.0), bbox_max=(size,) * 3)
+    with torch.no_grad():
+        x = torch.linspace(-1, 1, 32) ** 2
+        grid.features[..., 0] = (0.6 - (x[:, None, None] + x[None, :, None] + x[None, None, :]).sqrt()) * 10  # a ball
+    mesh = extract_mesh(grid)
+    for suffix in (".ply", ".glb", ".obj"):
+        back = trimesh.load(save_mesh(mesh, tmp_path / f"m{suffix}"), force="mesh", process=False)
+        assert len(back.vertices) == len(mesh.vertices), suffix
+        assert np.abs(np.asarray(back.vertices) - mesh.vertices).max() <= 1e-6 * size, suffix
+
+
 @pytest.mark.parametrize("suffix", [".ply", ".glb", ".obj"])
 def test_a_mesh_save_that_fails_keeps_the_earlier_file_and_leaves_no_partial_one(sphere_grid, tmp_path, suffix):
     """A full disk (a file-size limit stands in for it): the save had streamed into the final name, leaving a

@@ -332,7 +332,7 @@ def save_obj(mesh, path: str | os.PathLike) -> Path:
         ...                       vertex_colors=[[255, 0, 0, 255]] * 3, process=False)
         >>> path = save_obj(tri, Path(tempfile.mkdtemp()) / "tri.obj")
         >>> path.read_text().splitlines()[2:4]
-        ['usemtl voxe', 'v 0.000000 0.000000 0.000000 1.000000 0.000000 0.000000']
+        ['usemtl voxe', 'v 0 0 0 1.000000 0.000000 0.000000']
         >>> path.with_suffix(".mtl").read_text().splitlines()[1]
         'Kd 1.000000 0.000000 0.000000'
     """
@@ -346,6 +346,8 @@ def save_obj(mesh, path: str | os.PathLike) -> Path:
         mtl_partial.write_text(f"newmtl voxe\nKd {kd[0]:.6f} {kd[1]:.6f} {kd[2]:.6f}\nKa 0 0 0\nKs 0 0 0\nd 1\n"
                                "illum 1\n")
         out.write(f"# Vox-E mesh: {len(vertices)} vertices, {len(faces)} faces\nmtllib {mtl.name}\nusemtl voxe\n")
-        np.savetxt(out, np.hstack([vertices, rgb]), fmt="v %.6f %.6f %.6f %.6f %.6f %.6f")
+        # Positions to 9 significant digits (float32's, as PLY and GLB hold them) at any scale: 6 decimals had
+        # moved a mesh in a 1e-5 box by 5 % of its size. Colours in [0, 1]: 6 decimals are exact for 8 bits.
+        np.savetxt(out, np.hstack([vertices, rgb]), fmt="v %.9g %.9g %.9g %.6f %.6f %.6f")
         np.savetxt(out, faces, fmt="f %d %d %d")
     return path
