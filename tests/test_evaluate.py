@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 
 import numpy as np
@@ -372,6 +373,20 @@ def test_edits_of_one_name_are_refused_before_any_render(sphere_grid, tiny_clip_
     with pytest.raises(ValueError, match="edit names must differ .*'seed' given more than once"):
         evaluate(sphere_grid, edits, "ball", clip, None, None, EvaluateConfig(views=2, size=16),
                  Callbacks(on_progress=reports.append))
+    assert reports == []
+
+
+@pytest.mark.parametrize("shape", [(0, 16, 16, 3), (1, 16, 16, 3), (3, 16, 16), (3, 16, 16, 4)])
+def test_input_images_fid_cannot_read_are_refused_before_any_render(sphere_grid, tiny_clip_path, tiny_inception_path,
+                                                                    shape):
+    """Regression: they were found out after every ring render, none or RGBA by a torch.cat or TorchScript error."""
+    clip = ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")
+    fid = InceptionFeatures.load(tiny_inception_path, device="cpu")
+    reports = []
+    with pytest.raises(ValueError, match=rf"FID_input needs at least 2 input images shaped \(N, H, W, 3\), got "
+                                         rf"{re.escape(str(shape))}"):
+        evaluate(sphere_grid, [EditSample("e", "a yarn ball", sphere_grid)], "ball", clip, fid, torch.rand(shape),
+                 EvaluateConfig(views=2, size=16), Callbacks(on_progress=reports.append))
     assert reports == []
 
 

@@ -420,6 +420,9 @@ def evaluate(
     if repeated := sorted({name for name in names if names.count(name) > 1}):  # edit_frames is keyed by name
         raise ValueError(f"edit names must differ (their renders are kept by name): {', '.join(map(repr, repeated))} "
                          "given more than once")
+    if fid is not None and input_images is not None and (  # before any render: a torch.cat or TorchScript error
+            input_images.dim() != 4 or input_images.shape[-1] != 3 or len(input_images) < 2):  # had come after
+        raise ValueError(f"FID_input needs at least 2 input images shaped (N, H, W, 3), got {tuple(input_images.shape)}")
     device = resolve_device(device if device is not None else initial.bbox_min.device)
     memory = PeakMemory(device).start()
     initial = initial.to(device)
@@ -460,8 +463,6 @@ def evaluate(
     input_features = None
     if fid is not None and input_images is not None:
         input_features = fid.features(input_images, per_batch("FID"))
-    if input_features is not None and len(input_features) < 2:
-        raise ValueError("FID_input needs at least 2 input images")
     rows, frames = [], {}
     for k, sample in enumerate(edits):
         if sample.mask is not None and sample.grid.resolution != initial.resolution:
