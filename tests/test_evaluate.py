@@ -218,6 +218,15 @@ def test_inception_loader_tiny_file_and_missing_file(tiny_inception_path, tmp_pa
         InceptionFeatures.load(tmp_path / "junk.pt")
 
 
+def test_inception_features_of_uint8_images_are_those_of_their_pixels(tiny_inception_path):
+    """Regression: uint8 images were taken as floats in [0, 1], so every pixel above 1 was white: FID_input of 8-bit
+    photos was the FID of blank frames, silently."""
+    features = InceptionFeatures.load(tiny_inception_path, device="cpu", batch_size=2)
+    pixels = torch.randint(0, 256, (3, 30, 30, 3), dtype=torch.uint8, generator=torch.Generator().manual_seed(3))
+    assert torch.equal(features.features(pixels), features.features(pixels / 255.0))
+    assert not torch.equal(features.features(pixels), features.features(torch.ones(3, 30, 30, 3)))
+
+
 # ------------------------------------------------------------------------------------------ masked metrics
 def test_masked_psnr_and_ssim_ignore_excluded_pixels():
     g = torch.Generator().manual_seed(2)

@@ -183,7 +183,8 @@ AfterBatch = Callable[[int], None]  # called with a batch's image count once it 
 
 
 class FeatureExtractor(Protocol):
-    """Maps images (N, H, W, 3) in [0, 1] to feature vectors (N, D), calling ``after_batch`` after each batch."""
+    """Maps images (N, H, W, 3), floats in [0, 1] or uint8, to feature vectors (N, D), calling ``after_batch`` after
+    each batch."""
 
     name: str
 
@@ -221,8 +222,9 @@ class InceptionFeatures:
     def features(self, images: torch.Tensor, after_batch: AfterBatch | None = None) -> torch.Tensor:
         parts = []
         for start in range(0, len(images), self.batch_size):
-            batch = images[start : start + self.batch_size].to(self.device, torch.float32)
-            pixels = (batch.clamp(0, 1) * 255).round().to(torch.uint8).permute(0, 3, 1, 2).contiguous()
+            # 8-bit pixels as saved renders hold them (uint8 images as they are: as floats they had all been white)
+            batch = torch.from_numpy(to_uint8(images[start : start + self.batch_size])).to(self.device)
+            pixels = batch.permute(0, 3, 1, 2).contiguous()
             parts.append(self.module(pixels, return_features=True).reshape(len(batch), -1).double().cpu())
             if after_batch is not None:
                 after_batch(len(batch))
