@@ -411,8 +411,8 @@ def evaluate(
     The ring renders (and the masks' footprints) run on ``device`` (None: where
     ``initial`` is); each grid moves there once. The scorers run where they were
     loaded. A ring render with a NaN or infinite pixel (a diverged grid) is a
-    ValueError naming the grid, as are two edits of one name. Progress: ("evaluate", i, :func:`evaluation_steps`),
-    one step per view rendered, footprinted or scored, info carrying the pass
+    ValueError naming the grid, as are two edits of one name. Progress: ("evaluate", i,
+    :func:`evaluation_steps`), one step per view rendered, footprinted or scored, info carrying the pass
     ("stage") and the peak memory so far; cancellation is checked between views
     and between scoring batches.
     """
@@ -424,7 +424,8 @@ def evaluate(
                          "given more than once")
     if fid is not None and input_images is not None and (  # before any render: a torch.cat or TorchScript error
             input_images.dim() != 4 or input_images.shape[-1] != 3 or len(input_images) < 2):  # had come after
-        raise ValueError(f"FID_input needs at least 2 input images shaped (N, H, W, 3), got {tuple(input_images.shape)}")
+        raise ValueError("FID_input needs at least 2 input images shaped (N, H, W, 3), got "
+                         f"{tuple(input_images.shape)}")
     device = resolve_device(device if device is not None else initial.bbox_min.device)
     memory = PeakMemory(device).start()
     initial = initial.to(device)

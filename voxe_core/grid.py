@@ -259,7 +259,7 @@ class VoxelGrid(torch.nn.Module):
         if not bool((host_max > host_min).all()):
             raise ValueError(f"empty box: min {host_min.tolist()} max {host_max.tolist()}")
         if density_scale is not None and not (math.isfinite(density_scale) and density_scale > 0):
-            # (saved, its file was refused on load as damaged: every density would be wrong)
+            # (its grid had been saved, and load_grid then refused the file as damaged)
             raise ValueError(f"density_scale must be a positive number, got {density_scale}")
         self._host_box = (host_min, host_max)
         self.register_buffer("bbox_min", host_min.to(device))
