@@ -23,9 +23,9 @@ the cameras with only the first image decoded (frames, poses, intrinsics, lens d
 paths inside the upload); then every frame's image must exist and have a readable header
 of the first image's size.
 
-Meshes: an upload with no transforms json but one ``.obj`` (with at most one texture
-image) or ``.ply`` (vertex colours) is packed under ``mesh/`` (``voxe_service.datasets``);
-the ingest loads it and renders it into a NeRF-synthetic dataset (mesh input route (a)),
+Meshes: an upload with no transforms json but one ``.obj`` or ``.ply`` (with at most one texture
+image; beside a PLY, only where its header declares texture coordinates) is packed under ``mesh/``
+(``voxe_service.datasets``); the ingest loads it and renders it into a NeRF-synthetic dataset (mesh input route (a)),
 kept for route (b), and the scene's format is ``mesh``.
 """
 
@@ -319,16 +319,43 @@ def dataset_root(folder: Path) -> Path:
 OTHER_TEXTURE_SUFFIXES = (".bmp", ".dds", ".exr", ".gif", ".hdr", ".jp2", ".ktx", ".ktx2", ".psd", ".tga", ".tif",
                           ".tiff", ".webp")
 """Texture image kinds 3D tools write that the mesh loader does not read (it reads ``TEXTURE_SUFFIXES``): beside an
-OBJ, one is a 422, where it had been dropped and the mesh arrived without its colours. Other files beside a mesh
-(a licence, a scan's data) are no texture and stay ignored."""
+OBJ or a PLY, one is a 422, where it had been dropped and the mesh arrived without its colours. Other files beside a
+mesh (a licence, a scan's data) are no texture and stay ignored."""
+_PLY_TEXTURE_COORDINATES = ({("face", "texcoord")}, {("vertex", "texture_u"), ("vertex", "texture_v")},
+                           {("vertex", "u"), ("vertex", "v")}, {("vertex", "s"), ("vertex", "t")})
+"""The (element, property) sets a PLY's texture coordinates are read from (trimesh's names: per corner, or per
+vertex)."""
+_PLY_HEADER_LINES, _PLY_HEADER_LINE_BYTES = 10_000, 1024  # far past any real header (a few dozen short lines)
+
+
+def _ply_lacks_texture_coordinates(path: Path) -> bool:
+    """Whether the PLY's header (ASCII, before ``end_header``; its body is never read) declares no texture
+    coordinates; False where no header is read (no ``ply`` line first, no ``end_header``): the ingest's load names
+    what is wrong with such a file."""
+    declared = set()
+    element = None
+    with open(path, "rb") as handle:
+        if handle.readline(_PLY_HEADER_LINE_BYTES).strip() != b"ply":
+            return False
+        for _ in range(_PLY_HEADER_LINES):  # a line's bytes bounded: a damaged file may hold no newline
+            words = handle.readline(_PLY_HEADER_LINE_BYTES).decode("ascii", "replace").split()
+            if words[:1] == ["end_header"]:
+                return not any(names <= declared for names in _PLY_TEXTURE_COORDINATES)
+            if words[:1] == ["element"] and len(words) > 1:
+                element = words[1]
+            elif words[:1] == ["property"] and len(words) > 1:
+                declared.add((element, words[-1]))
+    return False
 
 
 def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str = "y") -> Path | None:
     """The upload's mesh (and texture, and material library) copied to ``dest/mesh/`` with its ``shading`` and
     ``up_axis`` options for the ingest, or None when it is not a mesh.
 
-    The file rules are checked here: one mesh, and for an OBJ at most one texture image and one .mtl.
-    The .mtl keeps its file name, which the OBJ's ``mtllib`` names: trimesh looks it up (or its base
+    The file rules are checked here: one mesh, at most one texture image (an OBJ's or a PLY's: the ingest's
+    ``load_mesh`` samples it at the file's texture coordinates, which a PLY with an image must declare) and for an
+    OBJ at most one .mtl. The texture is kept as ``texture.<ext>``, whatever the OBJ's .mtl or the PLY's TextureFile
+    comment call it. The .mtl keeps its file name, which the OBJ's ``mtllib`` names: trimesh looks it up (or its base
     name) inside the mesh's folder only. A dataset folder is no mesh even with a mesh in it (COLMAP's
     fused.ply, say).
     """
@@ -341,20 +368,28 @@ def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str
     names = lambda paths: ", ".join(repr(p.relative_to(root).as_posix()) for p in paths)  # noqa: E731
     if len(meshes) > 1:
         raise UploadError(f"the upload holds several meshes ({names(meshes)}); send one")
-    texture = library = None
-    if meshes[0].suffix.lower() == ".obj":
-        images = [p for p in files if p.suffix.lower() in TEXTURE_SUFFIXES]
-        unread = [p for p in files if p.suffix.lower() in OTHER_TEXTURE_SUFFIXES]
-        if unread:  # a texture the loader does not read had been dropped, the mesh arriving grey
-            raise UploadError(f"the OBJ comes with an image of a kind not read as a texture ({names(unread)}); send "
-                              f"its texture as {', '.join(TEXTURE_SUFFIXES)}")
-        if len(images) > 1:
-            raise UploadError(f"the OBJ comes with several images ({names(images)}); send one texture")
+    mesh, library = meshes[0], None
+    kind = mesh.suffix.lower()[1:].upper()
+    images = [p for p in files if p.suffix.lower() in TEXTURE_SUFFIXES]
+    unread = [p for p in files if p.suffix.lower() in OTHER_TEXTURE_SUFFIXES]
+    if kind == "PLY" and images + unread and _ply_lacks_texture_coordinates(mesh):  # the image had been dropped
+        raise UploadError(f"the PLY comes with {'an image' if len(images + unread) == 1 else 'images'} "
+                          f"({names(images + unread)}) but its header declares no "
+                          "texture coordinates (texcoord per face, or s t / u v / texture_u texture_v per vertex) to "
+                          "map it with; send the image with a PLY that has them, or the PLY alone (its vertex or "
+                          "face colours)")
+    if unread:  # a texture the loader does not read had been dropped, the mesh arriving grey
+        raise UploadError(f"the {kind} comes with an image of a kind not read as a texture ({names(unread)}); send "
+                          f"its texture as {', '.join(TEXTURE_SUFFIXES)}")
+    if len(images) > 1:
+        raise UploadError(f"the {kind} comes with several images ({names(images)}); send one texture")
+    texture = (images or [None])[0]
+    if kind == "OBJ":
         libraries = [p for p in files if p.suffix.lower() == ".mtl"]  # its Kd colours, where no texture is sent
         if len(libraries) > 1:
             raise UploadError(f"the OBJ comes with several material libraries ({names(libraries)}); send one .mtl")
-        texture, library = (images or [None])[0], (libraries or [None])[0]
-    kept_as = {meshes[0]: f"mesh{meshes[0].suffix.lower()}"}
+        library = (libraries or [None])[0]
+    kept_as = {mesh: f"mesh{mesh.suffix.lower()}"}
     if texture is not None:
         kept_as[texture] = f"texture{texture.suffix.lower()}"
     if library is not None:

@@ -1267,6 +1267,106 @@ def test_a_mesh_scene_archive_keeps_the_uploaded_mesh(client, root, monkeypatch)
     assert {"transforms_train.json", "train/r_003.png", "mesh/mesh.obj", "mesh/texture.png"} <= names
 
 
+def _square_ply(texture_coordinates: str | None) -> bytes:
+    """A square of two triangles in the plane y = 0 (the floor, up axis y), its header naming ``old.png``
+    (TextureFile); ``texture_coordinates`` "texcoord" (per corner, ASCII), "s t" (per vertex, binary) or None
+    (green vertex colours instead).
+    The first triangle's UVs lie in the left half of the image, the second's in its right half."""
+    import numpy as np
+    import trimesh
+
+    vertices, faces = [[-1, 0, -1], [1, 0, -1], [1, 0, 1], [-1, 0, 1]], [[0, 1, 2], [0, 2, 3]]
+    if texture_coordinates == "texcoord":
+        header = ("ply\nformat ascii 1.0\ncomment TextureFile old.png\nelement vertex 4\nproperty float x\n"
+                  "property float y\nproperty float z\nelement face 2\nproperty list uchar int vertex_indices\n"
+                  "property list uchar float texcoord\nend_header\n")
+        return (header + "".join(" ".join(map(str, v)) + "\n" for v in vertices)
+                + "3 0 1 2 6 0.25 0.5 0.25 0.5 0.25 0.5\n3 0 2 3 6 0.75 0.5 0.75 0.5 0.75 0.5\n").encode()
+    # per vertex, each triangle its own vertices: the second's at u = 0.75
+    vertices = np.array(vertices, dtype=float)[np.ravel(faces)]
+    mesh = trimesh.Trimesh(vertices, np.arange(6).reshape(2, 3), process=False,
+                           vertex_colors=None if texture_coordinates else np.tile([0, 255, 0, 255], (6, 1)))
+    if texture_coordinates is not None:
+        mesh.vertex_attributes["s"] = np.repeat([0.25, 0.75], 3)
+        mesh.vertex_attributes["t"] = np.full(6, 0.5)
+    body = trimesh.exchange.ply.export_ply(mesh, encoding="binary", include_attributes=True)
+    return body.replace(b"\nelement vertex", b"\ncomment TextureFile old.png\nelement vertex", 1)
+
+
+def _red_and_blue_png() -> bytes:
+    """A 4×4 image, its left half red, its right half blue."""
+    from PIL import Image
+
+    image = Image.new("RGB", (4, 4), (0, 0, 255))
+    image.paste((255, 0, 0), (0, 0, 2, 4))
+    buffer = io.BytesIO()
+    image.save(buffer, "PNG")
+    return buffer.getvalue()
+
+
+@pytest.mark.parametrize("texture_coordinates", ["texcoord", "s t"])
+def test_a_ply_uploaded_with_its_texture_is_rendered_textured(client, root, monkeypatch, texture_coordinates):
+    """The image beside a PLY with texture coordinates is kept as its texture, whatever its header's TextureFile
+    names, and the views are rendered in its colours: it had been dropped, the PLY rendered as an uncoloured mesh
+    (its TextureFile not found, the ingest warning so)."""
+    from voxe_core.data import load_scene
+    from voxe_service import datasets
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
+
+    monkeypatch.setattr(datasets, "MESH_VIEWS", 4)
+    monkeypatch.setattr(datasets, "MESH_VIEW_SIZE", 32)
+    png = _red_and_blue_png()
+    response = client.post("/v1/scenes", files=[("files", ("square.ply", _square_ply(texture_coordinates))),
+                                                ("files", ("square.png", png))])
+    assert response.status_code == 201, response.text
+    assert ingest(response.json()["id"])["state"] == "ready"
+    with session_scope() as session:
+        key = session.get(Scene, response.json()["id"]).storage_key
+    with zipfile.ZipFile(root / "storage" / key) as archive:
+        assert archive.read("mesh/texture.png") == png
+        assert json.loads(archive.read("mesh/names.json"))["texture.png"] == "square.png"
+        archive.extractall(root / "scene")
+    views = load_scene(root / "scene", "train")
+    surface = views.images[views.alphas > 0.999]
+    red = (surface[:, 0] > 0.99) & (surface[:, 2] < 0.01)
+    blue = (surface[:, 2] > 0.99) & (surface[:, 0] < 0.01)
+    assert float(surface[:, 1].max()) < 0.01 and int(red.sum()) > 50 and int(blue.sum()) > 50  # each triangle its half
+
+
+@pytest.mark.parametrize("texture_coordinates, images, expected", [
+    (None, ["scan.png"], "the PLY comes with an image ('scan.png') but its header declares no texture coordinates "
+                         "(texcoord per face, or s t / u v / texture_u texture_v per vertex) to map it with; send the "
+                         "image with a PLY that has them, or the PLY alone (its vertex or face colours)"),
+    (None, ["a.png", "b.tga"], "the PLY comes with images ('a.png', 'b.tga') but its header declares no texture "
+                               "coordinates"),
+    ("texcoord", ["a.png", "b.jpg"], "the PLY comes with several images ('a.png', 'b.jpg'); send one texture"),
+    ("s t", ["a.tga"], "the PLY comes with an image of a kind not read as a texture ('a.tga'); send its texture as "
+                       ".png, .jpg, .jpeg"),
+])
+def test_an_image_a_ply_cannot_take_is_422_and_leaves_nothing(client, root, texture_coordinates, images, expected):
+    """As beside an OBJ: several images, or one of a kind the loader does not read; and an image beside a PLY
+    whose header declares no texture coordinates (it had been dropped without a word)."""
+    response = client.post("/v1/scenes", files=[("files", ("square.ply", _square_ply(texture_coordinates))),
+                           *[("files", (name, _red_and_blue_png())) for name in images]])
+    assert response.status_code == 422, response.text
+    assert response.json()["detail"].startswith(expected)
+    assert client.get("/v1/scenes").json()["total"] == 0
+    assert stored_files(root) == [] and staged(root) == []
+
+
+def test_a_ply_without_an_image_is_stored_alone_as_before(client, root):
+    """Vertex colours, or texture coordinates without their image: the PLY alone, whatever its header's
+    TextureFile names (a file not an image beside it is ignored)."""
+    for texture_coordinates in (None, "texcoord"):
+        response = client.post("/v1/scenes", files=[("files", ("square.ply", _square_ply(texture_coordinates))),
+                                                    ("files", ("licence.txt", b"CC-BY"))])
+        assert response.status_code == 201, response.text
+        key = f"scenes/{response.json()['id']}/upload.zip"
+        with zipfile.ZipFile(root / "storage" / key) as archive:
+            assert archive.namelist() == ["mesh/mesh.ply", "mesh/names.json", "mesh/options.json"]
+
+
 def test_a_broker_refusing_a_submission_keeps_nothing_and_a_retry_with_the_key_runs_it(client, dataset, root,
                                                                                         monkeypatch):
     """A 503 answers a request that was never accepted: before, the failed scene or job stayed listed, and a

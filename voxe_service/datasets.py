@@ -18,7 +18,7 @@ STORED_SUFFIXES = {".png", ".jpg", ".jpeg", ".webp", ".exr", ".zip", ".gz"}  # a
 DATASET_ARCHIVE = "dataset.zip"
 UPLOAD_ARCHIVE = "upload.zip"  # a mesh upload before its ingest rendered it
 MESH_FORMAT = "mesh"  # a scene's format when it was uploaded as a mesh (its archive: the renders + MESH_FOLDER)
-MESH_FOLDER = "mesh"  # the uploaded mesh as ``mesh.obj`` / ``mesh.ply``, an OBJ's texture and .mtl beside it
+MESH_FOLDER = "mesh"  # the uploaded mesh as ``mesh.obj`` / ``mesh.ply``, its texture and an OBJ's .mtl beside it
 MESH_NAMES = "names.json"  # in MESH_FOLDER: {kept name: the name it was uploaded under}
 # in MESH_FOLDER: {"shading": "auto" | "baked" | "none", "up_axis": "x" | "y" | "z", "frame": voxe_core.mesh_input.MESH_FRAMES}
 MESH_OPTIONS = "options.json"
