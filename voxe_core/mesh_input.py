@@ -334,7 +334,7 @@ def _part_colour(part, name: str) -> tuple[np.ndarray, np.ndarray]:
 class _PlyTextureWarning(logging.Filter):
     """Within ``with``, holds back the warning trimesh logs for a PLY's TextureFile it cannot read, keeping its
     error: "unable to load image!" and a traceback (a missing file's FileNotFoundError) read as a failure in a
-    worker's log, where the mesh loads without its texture (a PLY upload's TextureFile is never stored).
+    worker's log, where the mesh loads without its texture (a PLY uploaded without its image, say).
     ``load_mesh`` warns once instead, naming the mesh and the error. Only this thread's records are held."""
 
     def __init__(self):
