@@ -1089,6 +1089,41 @@ def test_a_stage_whose_start_meets_a_database_error_tries_again_then_goes_back_t
     assert job_row(other).state == "queued"  # untouched: the redelivered message takes it
 
 
+def test_a_stages_start_committed_with_its_answer_lost_is_the_runs_at_once(db, monkeypatch):
+    """A dropped connection can lose the answer to the COMMIT that took the job: each try had drawn a new run token,
+    so the retry found the job held by one it never learnt, waited out the whole lease and took the job over from
+    itself, counting a re-queue. The token is drawn once for all tries: the retry finds the job its own."""
+    from sqlalchemy.exc import OperationalError
+
+    from voxe_service.models import utcnow
+    from worker import runtime, tasks
+
+    settings = db.model_copy(update={"stage_lease_s": 4.0})
+    monkeypatch.setattr(tasks, "DATABASE_RETRY_S", (0.0, 0.0))
+    lapsed = add_job(add_scene(), "running", 60, "dead@host", "edit", run_token="dead", requeues=1,
+                     run_lease_until=utcnow() - timedelta(seconds=1), completed_stages=["reconstruct"])
+    real, tokens = runtime.begin_stage, []
+
+    def committed_then_dropped(*args):
+        tokens.append(args[-1])
+        job = real(*args)
+        if len(tokens) == 1:
+            raise OperationalError("COMMIT", {}, Exception("server closed the connection unexpectedly"))
+        return job
+
+    monkeypatch.setattr(runtime, "begin_stage", committed_then_dropped)
+    task = type("Task", (), {"request": type("Request", (), {"hostname": "w@host"})()})()
+    for job_id, stage, requeues in ((add_job(add_scene(), "queued", 0), "reconstruct", 0),  # a fresh start
+                                    (lapsed, "edit", 2)):  # a takeover of a dead run's hold: counted once
+        tokens.clear()
+        started = time.monotonic()
+        job = tasks._begin_stage(task, job_id, stage, "cpu", settings)
+        assert time.monotonic() - started < settings.stage_lease_s / 2  # no lease waited out
+        assert len(tokens) == 2 and tokens[0] == tokens[1] == job.run_token
+        assert (job.state, job.stage, job.worker_hostname, job.requeues) == ("running", stage, "w@host", requeues)
+        assert [e["kind"] for e in events_of(job_id)] == ["stage_started"]
+
+
 def test_a_stage_the_database_refuses_to_start_each_time_fails_its_job_at_the_requeue_limit(db, monkeypatch):
     """A start refused each time for this job (a value too long for its column) while the database answers had
     gone back to the queue for ever: each return counts as a re-queue, and the delivery after

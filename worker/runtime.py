@@ -131,8 +131,13 @@ class StageHeld(JobSkipped):
     goes no further (the holder's own chain carries the job on)."""
 
 
-def begin_stage(job_id: str, stage: str, hostname: str | None, device: str, settings: Settings) -> Job:
-    """Take the job for one run of ``stage`` and mark it running; the returned job's ``run_token`` is the run's.
+def begin_stage(job_id: str, stage: str, hostname: str | None, device: str, settings: Settings,
+                run_token: str | None = None) -> Job:
+    """Take the job for one run of ``stage`` and mark it running; the returned job's ``run_token`` is the run's:
+    ``run_token``, drawn by the caller once for all its tries (a fresh one when not given). A try whose UPDATE
+    committed with its answer lost (a dropped connection) left the job held by that token: the next try finds it so
+    and returns the job as this run's, where it had waited out its own lease and taken the job over from itself,
+    counting a re-queue.
 
     The run holds the job under a lease (``run_lease_until``, renewed by :func:`stage_lease`) until the stage
     completes. Raises :class:`JobSkipped` when the job is terminal, canceled or has done ``stage`` already (a
@@ -148,11 +153,14 @@ def begin_stage(job_id: str, stage: str, hostname: str | None, device: str, sett
     which job creation holds while it waits for this job's row (a deadlock). Leases are read and written on the
     database's clock (``sync_clock``), so machines whose clocks disagree agree on who holds the job.
     """
+    run_token = run_token or uuid.uuid4().hex
     sync_clock()
     while True:
         job = load_job(job_id)
         if job is None or job.state in TERMINAL_STATES:
             raise JobSkipped(f"job {job_id} is {job.state if job else 'gone'}")
+        if job.run_token == run_token:  # taken by an earlier try of this run, its answer lost
+            return job
         now = utcnow()
         if job.run_token is not None and job.run_lease_until >= now:
             _wait_for_release(job_id, stage, (job.run_token, job.run_lease_until), settings)
@@ -177,7 +185,7 @@ def begin_stage(job_id: str, stage: str, hostname: str | None, device: str, sett
                 log.error("job %s failed: %s", job_id, error)
                 raise JobSkipped(f"job {job_id} failed: {error}")
             values = dict(state=RUNNING, stage=stage, eta_seconds=None, message=None, stage_started_at=now,
-                          worker_hostname=hostname, device=device, updated_at=now, run_token=uuid.uuid4().hex,
+                          worker_hostname=hostname, device=device, updated_at=now, run_token=run_token,
                           run_lease_until=now + timedelta(seconds=settings.stage_lease_s))
             if job.stage != stage:  # a run taking over the same stage keeps where it got to until it reports
                 values.update(iteration=0, total=0, losses={})  # (it resumes from a checkpoint, often near there)

@@ -25,6 +25,7 @@ import os
 import socket
 import threading
 import time
+import uuid
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
 
@@ -96,9 +97,10 @@ def _begin_stage(task, job_id: str, stage: str, device: str, settings):
     return counts as a re-queue, up to the limit, where the job fails naming why (``runtime.count_unstarted``),
     unless the database was down or locked (an outage must not fail accepted jobs)."""
     hostname = task.request.hostname or socket.gethostname()
+    run_token = uuid.uuid4().hex  # one for every try: a try that took the job, its answer lost, is found by it
     try:
-        return _retried(lambda _again: runtime.begin_stage(job_id, stage, hostname, device, settings), job_id,
-                        f"{stage} could not start")
+        return _retried(lambda _again: runtime.begin_stage(job_id, stage, hostname, device, settings, run_token),
+                        job_id, f"{stage} could not start")
     except SQLAlchemyError as exc:
         # the driver's words (database is locked, value too long), not the statement and its parameters
         reason = f"{stage} could not start: {type(exc).__name__}: {getattr(exc, 'orig', None) or exc}"
