@@ -600,7 +600,7 @@ def test_one_run_holds_a_job_a_duplicate_message_is_dropped_and_a_dead_run_is_ta
     assert second.run_token not in (None, first.run_token) and second.worker_hostname == "b@host"
     assert time.monotonic() - started > 0.5
     # The stalled run, back: its ending, its completion and its progress loop all see the job is not its own.
-    assert not runtime.fail_job(job_id, "edit: the stalled run failed", run_token=first.run_token)
+    assert not runtime.finish_job(job_id, "failed", error="edit: the stalled run failed", run_token=first.run_token)
     assert not runtime.complete_stage(job_id, "edit", first.run_token)
     stalled.settings = db.model_copy(update={"cancel_check_interval_s": 0.0})
     assert stalled.should_cancel()
@@ -1170,6 +1170,118 @@ def test_a_stage_the_database_refuses_to_start_each_time_fails_its_job_at_the_re
     schema_fault = "reconstruct could not start: OperationalError: no such column: jobs.new_column"
     assert [(e["kind"], e["detail"]) for e in events_of(job_id)] == [("requeued", schema_fault)] + [
         ("requeued", reason)] * (limit - 1) + [("failed", job.error)]
+
+
+def _ending_edit(ending: str, settings):
+    """An edit stage that ends its job by ``ending`` (one of ``ENDINGS``), and the state and the words the job is to
+    end with."""
+    from celery.exceptions import SoftTimeLimitExceeded
+
+    from voxe_core.progress import StageCancelled
+    from worker import runtime
+
+    def edit(job, *_args):
+        if ending == "cancel":
+            runtime.update_job(job.id, cancel_requested=True)  # (the API's cancel of a running job)
+            raise StageCancelled("edit")
+        if ending == "time limit":
+            raise SoftTimeLimitExceeded()
+        raise RuntimeError("the edit diverged")
+
+    return edit, *{"cancel": ("canceled", "canceled during edit"),
+                   "time limit": ("failed", f"edit: time limit of {settings.task_soft_time_limit_s} s exceeded"),
+                   "failure": ("failed", "edit: RuntimeError: the edit diverged")}[ending]
+
+
+def _ending_the_job(monkeypatch, answer_lost: bool, refused: int | None = None) -> list:
+    """``worker.runtime.finish_job`` refused as a locked database would, its first ``refused`` times (None: every
+    time), the first one committed before its answer was lost when ``answer_lost``; the calls made."""
+    import sqlite3
+
+    from sqlalchemy.exc import OperationalError
+
+    from worker import runtime
+
+    real, calls = runtime.finish_job, []
+
+    def finish_job(*args, **kwargs):
+        calls.append(args)
+        if refused is not None and len(calls) > refused:
+            return real(*args, **kwargs)
+        if answer_lost and len(calls) == 1:
+            real(*args, **kwargs)
+        raise OperationalError("UPDATE jobs", {}, sqlite3.OperationalError("database is locked"))
+
+    monkeypatch.setattr(runtime, "finish_job", finish_job)
+    return calls
+
+
+ENDINGS = ["failure", "time limit", "cancel"]
+
+
+@pytest.mark.parametrize("answer_lost", [False, True], ids=["refused", "answer lost"])
+@pytest.mark.parametrize("ending", ENDINGS)
+def test_a_database_outage_as_a_stage_ends_its_job_is_tried_again(db, monkeypatch, ending, answer_lost):
+    """The record of a stage's failure, time limit or cancel had one try: the database locked or out of reach then,
+    the task raised, leaving the job running, held by a run gone, for the reaper. It is tried again as the
+    stage's end is; a first try that landed with its answer lost ends the job as well."""
+    from worker import tasks
+
+    monkeypatch.setattr(tasks, "DATABASE_RETRY_S", (0.0, 0.0, 0.0))
+    body, state, words = _ending_edit(ending, db)
+    monkeypatch.setattr(tasks, "_edit", body)
+    calls = _ending_the_job(monkeypatch, answer_lost, refused=1 if answer_lost else 3)
+    job_id = add_job(add_scene(), "running", 0, stage="reconstruct", completed_stages=["reconstruct"])
+    assert tasks.edit_task.apply(args=(job_id,)).get() == {"job_id": job_id, "stage": "edit", "state": state}
+    assert len(calls) == (2 if answer_lost else 4)
+    job = job_row(job_id)
+    assert (job.state, job.error if state == "failed" else job.message, job.requeues) == (state, words, 0)
+    assert [(e["kind"], e["detail"]) for e in events_of(job_id)] == [("stage_started", None), (state, words)]
+
+
+@pytest.mark.parametrize("answer_lost", [False, True], ids=["refused", "answer lost"])
+@pytest.mark.parametrize("ending", ENDINGS)
+def test_a_stages_end_the_database_refuses_at_every_try_goes_back_to_the_queue_to_end_the_job(db, monkeypatch,
+                                                                                             ending, answer_lost):
+    """Still refused, the message goes back to the queue (not acknowledged as failed with an outage's error) and the
+    job is left as it was, its hold handed back: the redelivery finds a cancel before it starts; a failure it runs
+    the stage again to meet (or not), the hand-back counted as a re-queue naming the error, so a failure whose
+    record is refused every time ends at the re-queue limit. A first try that landed with its answer lost leaves
+    the job ended, nothing counted, and the redelivery skips it."""
+    from worker import tasks
+
+    monkeypatch.setattr(tasks, "DATABASE_RETRY_S", (0.0, 0.0))
+    body, state, words = _ending_edit(ending, db)
+    monkeypatch.setattr(tasks, "_edit", body)
+    job_id = add_job(add_scene(), "running", 0, stage="reconstruct", completed_stages=["reconstruct"])
+    with monkeypatch.context() as outage:
+        calls = _ending_the_job(outage, answer_lost)
+        result = tasks.edit_task.apply(args=(job_id,))
+    assert result.state == "REJECTED" and result.result.requeue, result.result
+    assert result.result.reason == (f"edit of job {job_id} stopped by a database outage (the database cannot be "
+                                      f"reached or is locked) as it recorded the job {state}")
+    assert len(calls) == 3
+    job = job_row(job_id)
+    counted = state == "failed" and not answer_lost
+    if answer_lost:
+        assert (job.state, job.error if state == "failed" else job.message) == (state, words)
+    else:
+        assert (job.state, job.error, job.completed_stages) == ("running", None, ["reconstruct"])
+        assert (job.run_token, job.run_lease_until) == (None, None)  # the redelivery takes it at once
+    assert job.requeues == (1 if counted else 0)
+    requeued = [e["detail"] for e in events_of(job_id) if e["kind"] == "requeued"]
+    assert requeued == ([f"edit failed, and a database outage (the database cannot be reached or is locked) kept "
+                         f"that from being recorded: {words}"] if counted else [])
+
+    redelivered = tasks.edit_task.apply(args=(job_id,)).get()  # the database back; a failure met again
+    job = job_row(job_id)
+    if answer_lost or state == "canceled":
+        assert "skipped" in redelivered
+        expected = words if answer_lost else "canceled before edit"
+        assert (job.state, job.error if state == "failed" else job.message) == (state, expected)
+    else:
+        assert redelivered == {"job_id": job_id, "stage": "edit", "state": "failed"}
+        assert (job.state, job.error, job.requeues) == ("failed", words, 1)
 
 
 def test_an_artifact_whose_record_fails_leaves_no_bytes_behind(db, tmp_path, monkeypatch):

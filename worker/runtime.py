@@ -286,10 +286,12 @@ def give_back_stage(job_id: str, stage: str, run_token: str, reason: str, settin
     """Give the run's hold back after a database outage stopped its stage (its redelivery resumes from the stored
     checkpoint), counted as a re-queue with a ``requeued`` event naming ``reason``; at ``job_max_requeues`` fail the
     job instead and return why: what the database answers as an outage every time (a statement timeout, a full
-    disk) must not re-run a stage for ever. A job this run no longer holds is left as it is."""
+    disk) must not re-run a stage for ever. A job this run no longer holds, or that it ended (a commit whose answer
+    was lost keeps the ended job's token), is left as it is."""
     with session_scope() as session:
         return _count_requeue(session, job_id, stage, reason, settings,
-                              [Job.id == job_id, Job.run_token == run_token], run_token=None, run_lease_until=None)
+                              [Job.id == job_id, Job.state == RUNNING, Job.run_token == run_token], run_token=None,
+                              run_lease_until=None)
 
 
 def release_stage(job_id: str, run_token: str) -> None:
@@ -315,11 +317,6 @@ def record_job_event(job_id: str, kind: str, **fields) -> None:
     with session_scope() as session:
         locked(session, Job, job_id)
         record_event(session, job_id, kind, **fields)
-
-
-def fail_job(job_id: str, error: str, run_token: str | None = None) -> bool:
-    log.error("job %s failed: %s", job_id, error)
-    return finish_job(job_id, FAILED, error=error, run_token=run_token)
 
 
 # --------------------------------------------------------------------------- callbacks

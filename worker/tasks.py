@@ -142,26 +142,19 @@ def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> Task
         _stop_if_taken_over(job_id, stage)
         return {"job_id": job_id, "stage": stage, "skipped": str(superseded)}
     except StageCancelled:
-        ended = runtime.finish_job(job_id, CANCELED, message=f"canceled during {stage}", run_token=token)
-        return _ended(job_id, stage, CANCELED, ended, settings)
+        return _end_job(job_id, stage, token, CANCELED, settings, message=f"canceled during {stage}")
     except SoftTimeLimitExceeded:
-        ended = runtime.fail_job(job_id, f"{stage}: time limit of {settings.task_soft_time_limit_s} s exceeded",
-                                 run_token=token)
-        return _ended(job_id, stage, "failed", ended, settings)
+        return _end_job(job_id, stage, token, FAILED, settings,
+                        error=f"{stage}: time limit of {settings.task_soft_time_limit_s} s exceeded")
     except Exception as exc:  # noqa: BLE001 - every failure ends the job with its message, but two: ...
         if runtime.worker_in_cold_shutdown():  # ... the one a cold shutdown raises in the task (the solo pool's) ...
-            with contextlib.suppress(SQLAlchemyError):  # (refused, the hold runs out and the redelivery takes over)
-                runtime.release_stage(job_id, token)
-            _requeue(job_id, stage, "the worker's shutdown", exc)
+            _release_and_requeue(job_id, stage, token, "the worker's shutdown", exc)
         if (why := database_outage(exc)) is not None:  # ... and a database outage, no fault of the job's
-            if error := _give_back(job_id, stage, token, f"{stage} stopped by a database outage ({why}): "
-                                   f"{type(exc).__name__}: {getattr(exc, 'orig', None) or exc}", settings):
-                log.error("job %s failed: %s", job_id, error)
-                return _ended(job_id, stage, "failed", True, settings)
-            _requeue(job_id, stage, f"a database outage ({why})", exc)
+            return _give_back_and_requeue(job_id, stage, token, f"{stage} stopped by a database outage ({why}): "
+                                          f"{type(exc).__name__}: {getattr(exc, 'orig', None) or exc}",
+                                          f"a database outage ({why})", exc, settings)
         log.exception("job %s: %s failed", job_id, stage)
-        ended = runtime.fail_job(job_id, _error_message(stage, exc, job), run_token=token)
-        return _ended(job_id, stage, "failed", ended, settings)
+        return _end_job(job_id, stage, token, FAILED, settings, error=_error_message(stage, exc, job))
     except BaseException:  # the worker going down: its redelivered message takes the job at once
         runtime.release_stage(job_id, token)
         raise
@@ -172,6 +165,49 @@ def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> Task
         _cleanup(job_id, settings)
     log.info("job %s: %s done", job_id, stage)
     return {"job_id": job_id, "stage": stage, "state": "done"}
+
+
+def _end_job(job_id: str, stage: str, run_token: str, state: str, settings, message: str | None = None,
+             error: str | None = None) -> TaskResult:
+    """End the job in ``state`` (canceled with ``message``, failed with ``error``) while this run holds it, tried
+    again while the database refuses. Still refused in an outage, the message goes back to the queue for its
+    redelivery to end the job: a cancel its start finds (the hold released, nothing counted); a failure by running
+    the stage again from its checkpoint, to meet it again or not (the hold given back as a counted re-queue naming
+    the error, which fails the job at the limit): an accepted job ends with its result or its own error, never with
+    an outage's, and never stays running until the reaper finds it."""
+    if error:
+        log.error("job %s failed: %s", job_id, error)
+    try:
+        ended = _retried(lambda _again: runtime.finish_job(job_id, state, message=message, error=error,
+                                                           run_token=run_token),
+                         job_id, f"{stage} could not record the job {state}")
+    except SQLAlchemyError as exc:
+        if (why := database_outage(exc)) is None:
+            raise
+        cause = f"a database outage ({why}) as it recorded the job {state}"
+        if state == CANCELED:
+            _release_and_requeue(job_id, stage, run_token, cause, exc)
+        return _give_back_and_requeue(job_id, stage, run_token, f"{stage} failed, and a database outage ({why}) "
+                                      f"kept that from being recorded: {error}", cause, exc, settings)
+    return _ended(job_id, stage, state, ended, settings)
+
+
+def _release_and_requeue(job_id: str, stage: str, run_token: str, cause: str, exc: Exception) -> NoReturn:
+    """Release the run's hold, uncounted, so that the redelivery takes the job at once (refused, the hold runs out
+    and the redelivery takes over then), and reject the message back to the queue."""
+    with contextlib.suppress(SQLAlchemyError):
+        runtime.release_stage(job_id, run_token)
+    _requeue(job_id, stage, cause, exc)
+
+
+def _give_back_and_requeue(job_id: str, stage: str, run_token: str, reason: str, cause: str, exc: Exception,
+                           settings) -> TaskResult:
+    """Give the run's hold back as a counted re-queue naming ``reason`` and reject the message back to the queue
+    (``cause``); at the re-queue limit the job fails instead, and the task ends with it."""
+    if error := _give_back(job_id, stage, run_token, reason, settings):
+        log.error("job %s failed: %s", job_id, error)
+        return _ended(job_id, stage, FAILED, True, settings)
+    _requeue(job_id, stage, cause, exc)
 
 
 def _give_back(job_id: str, stage: str, run_token: str, reason: str, settings) -> str | None:
