@@ -169,6 +169,19 @@ def test_a_waited_sweep_exits_1_unless_it_succeeded(monkeypatch, capsys, tmp_pat
     assert (f"ended {end}: jobs {{'{end}': 6, 'succeeded': 6}}" in err) == (code == 1)
 
 
+def test_a_sweep_summary_that_cannot_be_written_is_refused_before_the_sweep_is_created(tmp_path, capsys):
+    """--out had been written only after the sweep was created (and, with --wait, after it ended): a folder there
+    failed the command with its 12 jobs queued, and running it again queued 12 more."""
+    (tmp_path / "taken.json").mkdir()
+    assert main(["sweep", "--scene", "s1=mic", "--out", str(tmp_path / "taken.json"), "--api", "http://127.0.0.1:9"]) == 2
+    err = capsys.readouterr().err
+    assert f"cannot write {tmp_path / 'taken.json'}: it is a folder" in err and "cannot reach" not in err
+    assert main(["sweep", "--scene", "s1=mic", "--out", str(tmp_path / "new" / "s.json"),
+                 "--api", "http://127.0.0.1:9"]) == 2
+    assert "cannot reach the service at http://127.0.0.1:9" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["taken.json"]  # the folder made for --out went again
+
+
 def test_an_output_that_cannot_be_written_is_refused_before_the_inputs_are_read(tmp_path, capsys):
     """render, refine, evaluate, mesh-to-grid and export-mesh had run their whole stage, then failed on --out (a
     file where a folder goes, a folder where a file goes): each input here is missing, so a check made after

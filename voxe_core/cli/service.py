@@ -15,7 +15,9 @@ import time
 import warnings
 from pathlib import Path
 
-from voxe_core.cli.common import EXIT_INTERRUPTED, EXIT_USAGE, LOG_PROGRESS_INTERVAL_S, Interrupt, positive_seconds
+from voxe_core.cli.common import (
+    EXIT_INTERRUPTED, EXIT_USAGE, LOG_PROGRESS_INTERVAL_S, Interrupt, positive_seconds, writable_file,
+)
 
 
 def _scene_object(text: str) -> dict:
@@ -197,6 +199,8 @@ def cmd_download(args) -> int:
 def cmd_sweep(args) -> int:
     from voxe_client import ServiceError
 
+    if args.out is not None:  # before the sweep is created: a bad --out had failed once it was queued (and waited)
+        writable_file(args.out)
     with _client(args) as client:
         try:
             sweep = client.create_sweep(args.scene, params=args.params, evaluation=args.evaluation)
@@ -213,7 +217,6 @@ def cmd_sweep(args) -> int:
             print(f"voxe sweep: error: {exc}", file=sys.stderr)
             return EXIT_USAGE
     if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(sweep, indent=2))
     print(sweep["table"], end="")
     if interrupt.requested:
