@@ -173,13 +173,50 @@ def test_a_sweep_summary_that_cannot_be_written_is_refused_before_the_sweep_is_c
     """--out had been written only after the sweep was created (and, with --wait, after it ended): a folder there
     failed the command with its 12 jobs queued, and running it again queued 12 more."""
     (tmp_path / "taken.json").mkdir()
-    assert main(["sweep", "--scene", "s1=mic", "--out", str(tmp_path / "taken.json"), "--api", "http://127.0.0.1:9"]) == 2
+    assert main(["sweep", "--scene", "s1=mic", "--out", str(tmp_path / "taken.json"),
+                 "--api", "http://127.0.0.1:9"]) == 2
     err = capsys.readouterr().err
     assert f"cannot write {tmp_path / 'taken.json'}: it is a folder" in err and "cannot reach" not in err
     assert main(["sweep", "--scene", "s1=mic", "--out", str(tmp_path / "new" / "s.json"),
                  "--api", "http://127.0.0.1:9"]) == 2
     assert "cannot reach the service at http://127.0.0.1:9" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["taken.json"]  # the folder made for --out went again
+
+
+def test_a_download_refuses_an_unlisted_name_before_any_and_a_failed_one_leaves_no_folder_it_made(
+        monkeypatch, tmp_path, capsys):
+    """--name a --name nope had written a, then failed on nope; a failed download left the --out folder it made,
+    empty; --out naming a file failed on mkdir's "[Errno 17] File exists"."""
+    import hashlib
+
+    import httpx
+
+    import voxe_core.cli.service as service
+    from voxe_client import Client
+
+    body = b"frame"
+    listing = [{"name": name, "size": len(body), "sha256": hashlib.sha256(body).hexdigest()}
+               for name in ("a.png", "gone.png")]
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        if request.url.path == "/v1/jobs/j1/artifacts":
+            return httpx.Response(200, json=listing)
+        if request.url.path == "/v1/jobs/j1/artifacts/a.png":
+            return httpx.Response(200, content=body)
+        return httpx.Response(404, json={"detail": "artifact 'gone.png' is missing from storage"})
+
+    monkeypatch.setattr(service, "_client", lambda args: Client(transport=httpx.MockTransport(answer)))
+    assert main(["download", "j1", "--name", "a.png", "--name", "nope", "--out", str(tmp_path / "new")]) == 2
+    assert "job j1 has no artifact 'nope'; it has a.png, gone.png; nothing downloaded" in capsys.readouterr().err
+    assert main(["download", "j1", "--name", "gone.png", "--out", str(tmp_path / "made" / "out")]) == 2
+    assert "HTTP 404: artifact 'gone.png' is missing from storage" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "afile").write_text("x")
+    assert main(["download", "j1", "--out", str(tmp_path / "afile")]) == 2
+    assert f"cannot write into {tmp_path / 'afile'}: it is a file, not a folder" in capsys.readouterr().err
+    assert main(["download", "j1", "--out", str(tmp_path / "all"), "--quiet"]) == 2  # what downloaded whole stays
+    assert [p.name for p in (tmp_path / "all").iterdir()] == ["a.png"]
+    assert (tmp_path / "all" / "a.png").read_bytes() == body
 
 
 def test_an_output_that_cannot_be_written_is_refused_before_the_inputs_are_read(tmp_path, capsys):

@@ -16,7 +16,7 @@ import warnings
 from pathlib import Path
 
 from voxe_core.cli.common import (
-    EXIT_INTERRUPTED, EXIT_USAGE, LOG_PROGRESS_INTERVAL_S, Interrupt, positive_seconds, writable_file,
+    EXIT_INTERRUPTED, EXIT_USAGE, LOG_PROGRESS_INTERVAL_S, Interrupt, positive_seconds, writable_file, writable_folder,
 )
 
 
@@ -183,10 +183,14 @@ def cmd_job(args) -> int:
 def cmd_download(args) -> int:
     from voxe_client import ServiceError
 
+    writable_folder(args.out)  # (made, it goes again when nothing is downloaded into it)
     with _client(args) as client:
         try:
-            names = args.name or [a["name"] for a in client.artifacts(args.job_id)]
-            for name in names:
+            listed = [a["name"] for a in client.artifacts(args.job_id)]
+            if missing := [name for name in args.name or () if name not in listed]:  # before any is downloaded
+                raise ServiceError(f"job {args.job_id} has no artifact {', '.join(map(repr, missing))}; it has "
+                                   f"{', '.join(sorted(listed)) or 'none'}; nothing downloaded")
+            for name in args.name or listed:
                 path = client.download(args.job_id, name, args.out / name)
                 if not args.quiet:
                     print(f"{path} (sha256 checked)", file=sys.stderr)
