@@ -249,6 +249,9 @@ def test_ids_are_one_path_segment_and_names_stay_inside_the_download_folder(tmp_
         for dots in (".", ".."):  # a URL drops them: "." had listed every job
             with pytest.raises(ServiceError, match=f"'{dots}' is not an id"):
                 client.get_job(dots)
+        for call in (client.get_job, client.cancel_job, client.artifacts):  # "" had asked for /v1/jobs/ or /v1/jobs//
+            with pytest.raises(ServiceError, match="^'' is not an id$"):
+                call("")
         with pytest.raises(ServiceError, match="cannot reach the service"):
             client.request("GET", "/v1/jobs/line\nbreak")  # a path httpx refuses is the client's error too
     assert seen[:2] == ["/v1/jobs/..%2Fscenes", "/v1/sweeps/a%3Fb%23c"] and "/v1/jobs/line%0Abreak" in seen

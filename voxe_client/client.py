@@ -26,8 +26,9 @@ TERMINAL_STATES = ("succeeded", "failed", "canceled")
 
 def _segment(value: str) -> str:
     """``value`` as one path segment: an id holding "/", "?" or "#" had addressed another resource (the status of
-    job "../scenes" printed the scene listing). "." and ".." name no resource (a URL drops them as dot segments)."""
-    if value in (".", ".."):
+    job "../scenes" printed the scene listing). "." and ".." name no resource (a URL drops them as dot segments), nor
+    does "" (``voxe status ""`` had asked for /v1/jobs/ and said the service's redirect was not the API's JSON)."""
+    if value in ("", ".", ".."):
         raise ServiceError(f"{value!r} is not an id")
     return quote(value, safe="")
 
