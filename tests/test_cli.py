@@ -351,7 +351,12 @@ def test_options_a_command_would_ignore_are_refused(tmp_path, capsys):
                  "--out", str(tmp_path / "e")]) == 2
     assert "--resample set how --data's images are read (for FID_input); without --data none are" in \
         capsys.readouterr().err
-    assert not (tmp_path / "r").exists() and not (tmp_path / "e").exists()
+    # the voxelize route renders no views and fits nothing: these had been taken and ignored
+    assert main(["mesh-to-grid", str(tmp_path / "m.obj"), "--views", "7", "--size", "999", "--iterations", "5000",
+                 "--rays", "3", "--out", str(tmp_path / "m" / "g.safetensors")]) == 2
+    assert ("--views, --size, --iterations, --rays set the render route's views and fit; --route voxelize writes the "
+            "mesh into the grid") in capsys.readouterr().err
+    assert not (tmp_path / "r").exists() and not (tmp_path / "e").exists() and not (tmp_path / "m").exists()
 
 
 def test_bad_option_values_exit_2(tmp_path, capsys):

@@ -39,8 +39,9 @@ def add_parsers(commands, common) -> None:
                     help="voxelize: write the mesh into the grid; render: reconstruct from rendered views")
     mg.add_argument("--out", type=tensor_file, required=True, help="grid file to write (.safetensors)")
     add_grid_output_arguments(mg)
-    mg.add_argument("--views", type=positive_int, default=MESH_VIEWS, help="render route: upper-hemisphere views")
-    mg.add_argument("--size", type=positive_int, default=MESH_VIEW_SIZE // DOWNSAMPLE,
+    mg.add_argument("--views", type=positive_int, default=None,
+                    help=f"render route: upper-hemisphere views (default {MESH_VIEWS})")
+    mg.add_argument("--size", type=positive_int, default=None,
                     help=f"render route: view size in pixels (default {MESH_VIEW_SIZE // DOWNSAMPLE}: what the "
                          f"service's fit sees, its {MESH_VIEW_SIZE} px views loaded at 1/{DOWNSAMPLE})")
     mg.add_argument("--preset", choices=RECONSTRUCTION_PRESETS, default=RECONSTRUCTION_PRESET,
@@ -75,6 +76,11 @@ def cmd_mesh_to_grid(args) -> int:
                                       voxelize)
     from voxe_core.reconstruct import reconstruct
 
+    render_only = [flag for flag, value in (("--views", args.views), ("--size", args.size),
+                                            ("--iterations", args.iterations), ("--rays", args.rays)) if value is not None]
+    if args.route == "voxelize" and render_only:  # (they had been taken and ignored)
+        raise ValueError(f"{', '.join(render_only)} set the render route's views and fit; --route voxelize writes "
+                         "the mesh into the grid (--resolution sets its size)")
     device = check_device(args)
     writable_file(args.out)
     mesh = shade_mesh(load_mesh(args.mesh, args.texture, args.up), args.shading)
@@ -87,7 +93,8 @@ def cmd_mesh_to_grid(args) -> int:
                                              seed=args.seed))
     else:
         config = reconstruct_config(recipe_params(args))
-        cameras = hemisphere_cameras(args.views, args.size, args.seed)
+        cameras = hemisphere_cameras(MESH_VIEWS if args.views is None else args.views,
+                                     MESH_VIEW_SIZE // DOWNSAMPLE if args.size is None else args.size, args.seed)
         images, _ = render_mesh_views(mesh, cameras)
         grid = run_stage(lambda callbacks: reconstruct(images, cameras, config, callbacks, device=device),
                          "reconstruct", "it", config.total_iterations, args.quiet)
