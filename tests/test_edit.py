@@ -471,9 +471,18 @@ def test_cli_missing_model_exits_2_naming_it(tmp_path, sphere_grid, capsys, monk
     assert not (tmp_path / "o" / "edited.safetensors").exists()
 
 
-def test_cli_image_regulariser_needs_data(tmp_path, sphere_grid, capsys):
+def test_cli_image_regulariser_needs_data(tmp_path, sphere_grid, capsys, monkeypatch):
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")  # a check that does not refuse reaches the model: no network retries
     grid_file = tmp_path / "g.safetensors"
     sphere_grid.save(grid_file)
     code = main(["edit", str(grid_file), "--prompt", "a dog", "--out", str(tmp_path / "o"),
                  "--regulariser", "image_l2", "--quiet"])
     assert code == 2 and "--data" in capsys.readouterr().err
+    # the other way round, --data and the options reading it had been taken and ignored
+    for flags, said in ((["--data", str(tmp_path)], "--data gives the input views of --regulariser image_l1 / "
+                                                    "image_l2; reg3d reads none"),
+                        (["--downsample", "2", "--split", "test"], "--split, --downsample set how --data's images are "
+                                                                   "read; without --data none are")):
+        assert main(["edit", str(grid_file), "--prompt", "a dog", "--out", str(tmp_path / "o"), *flags]) == 2
+        assert said in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()

@@ -13,7 +13,7 @@ from pathlib import Path
 from voxe_core import constants as paper
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, add_view_arguments, check_device, load_guidance, load_views,
-    positive_int, run_stage, seed, writable_folder,
+    positive_int, run_stage, seed, view_options_given, writable_folder,
 )
 from voxe_core.presets import EDIT_SCHEDULES, PREVIEW_EVERY, SEED, TIMESTEP_SCHEDULES, edit_config
 
@@ -92,9 +92,14 @@ def cmd_edit(args) -> int:
     config.render.fused = args.fused_marcher
     if config.regulariser in IMAGE_REGULARISERS and args.data is None:
         raise ValueError(f"--regulariser {config.regulariser} compares renders with the input views: pass --data DATA_DIR")
+    if args.data is not None and config.regulariser not in IMAGE_REGULARISERS:  # (it had been taken and ignored)
+        raise ValueError(f"--data gives the input views of --regulariser {' / '.join(IMAGE_REGULARISERS)}; "
+                         f"{config.regulariser} reads none")
+    if args.data is None and (dataset_only := view_options_given(args)):  # (as had these)
+        raise ValueError(f"{', '.join(dataset_only)} set how --data's images are read; without --data none are")
     check_device(args)
     views = None
-    if args.data is not None and config.regulariser in IMAGE_REGULARISERS:
+    if args.data is not None:
         scene = load_views(args)
         views = (scene.images, grid.dataset_cameras(scene.cameras))
     model = args.model or paper.SDS_MODEL_ID
