@@ -333,6 +333,12 @@ def test_renders_of_empty_space_edit_with_no_backward_time_on_the_guidance():
     assert info["samples_per_ray"] == 0 and info["ms_backward_guidance"] == 0
     assert info["ms_backward_render"] == pytest.approx(info["ms_backward"])
     assert torch.isfinite(edited.features).all()
+    # an image regulariser's rays meet nothing either: no gradient at all, where the backward had raised a
+    # RuntimeError ("element 0 of tensors does not require grad"), a traceback out of voxe edit and a job's error
+    cameras = Cameras.from_fov(spherical_poses(torch.tensor([30.0]), torch.tensor([0.0])), 0.6911, 8, 8)
+    config = EditConfig(iterations=2, render_size=16, regulariser="image_l2")
+    edited = edit(empty, "a dog", SlowEncoderGuidance(), config, input_views=(torch.ones(1, 8, 8, 3), cameras))
+    assert torch.equal(edited.features, empty.features)
 
 
 def test_cancellation_stops_within_one_iteration(small_sphere):

@@ -482,7 +482,8 @@ def edit(
             optimizer.zero_grad(set_to_none=True)
             _sync(device, sync)
             t_reg = time.perf_counter()
-            total.backward()
+            if total.requires_grad:  # not when nothing was rendered under an image regulariser: no gradient at all
+                total.backward()
             _sync(device, sync)
             t_backward = time.perf_counter()
             t_guidance = reached_renders[0] if reached_renders else t_reg  # no gradient into the renders: none spent
