@@ -32,6 +32,16 @@ def test_it_sends_json_with_the_key_and_returns_the_answer():
     assert (get.method, get.url.path) == ("GET", "/v1/sweeps/s1")
 
 
+def test_an_answer_with_no_content_is_none():
+    """``DELETE /v1/scenes/{id}`` answers 204 with no body: it had been a ServiceError calling the service's answer
+    not the API's JSON, the scene deleted all the same."""
+    def answer(request: httpx.Request) -> httpx.Response:
+        return httpx.Response(204, headers={"content-type": "application/json"})
+
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        assert client.request("DELETE", "/v1/scenes/s1") is None
+
+
 def test_error_statuses_name_the_call_the_status_and_the_detail():
     def answer(request: httpx.Request) -> httpx.Response:
         if request.url.path.endswith("/plain"):

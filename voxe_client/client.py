@@ -86,13 +86,16 @@ class Client:
         self._http.close()
 
     def request(self, method: str, path: str, body: dict | None = None, **kwargs) -> Any:
-        """The decoded JSON answer of ``method path`` (``body`` sent as JSON, ``kwargs`` to httpx);
+        """The decoded JSON answer of ``method path`` (``body`` sent as JSON, ``kwargs`` to httpx), None for a 204
+        No Content (``DELETE /v1/scenes/{id}``'s: it had been refused as not the API's JSON, the scene deleted);
         ServiceError for an error status."""
         try:
             response = self._send(method, path, json=body, **kwargs)
         except (httpx.TransportError, httpx.InvalidURL) as exc:
             raise ServiceError(f"cannot reach the service at {self.base_url}: {exc}") from None
         _raise_for_error(response, method, path)
+        if response.status_code == httpx.codes.NO_CONTENT:
+            return None
         try:
             return response.json()
         except ValueError:  # (a redirect page, a proxy's HTML): it had surfaced as "Expecting value"
