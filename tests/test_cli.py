@@ -356,7 +356,11 @@ def test_options_a_command_would_ignore_are_refused(tmp_path, capsys):
                  "--rays", "3", "--out", str(tmp_path / "m" / "g.safetensors")]) == 2
     assert ("--views, --size, --iterations, --rays set the render route's views and fit; --route voxelize writes the "
             "mesh into the grid") in capsys.readouterr().err
-    assert not (tmp_path / "r").exists() and not (tmp_path / "e").exists() and not (tmp_path / "m").exists()
+    assert main(["reconstruct", str(tmp_path), "--checkpoint-every", "50",
+                 "--out", str(tmp_path / "g" / "g.safetensors")]) == 2
+    assert "--checkpoint-every sets how often --checkpoint is written; without --checkpoint none is" in \
+        capsys.readouterr().err
+    assert not any((tmp_path / name).exists() for name in ("r", "e", "m", "g"))
 
 
 def test_bad_option_values_exit_2(tmp_path, capsys):

@@ -19,6 +19,8 @@ from voxe_core.presets import (
     reconstruction_params,
 )
 
+CHECKPOINT_EVERY = 100
+
 
 def add_parsers(commands, common) -> None:
     rec = commands.add_parser("reconstruct", parents=[common], help="fit a voxel grid to posed images (SPEC §1)")
@@ -29,7 +31,8 @@ def add_parsers(commands, common) -> None:
     add_recipe_arguments(rec)
     rec.add_argument("--checkpoint", type=tensor_file, default=None,
                      help="write a resumable checkpoint here (.safetensors)")
-    rec.add_argument("--checkpoint-every", type=positive_int, default=100, help="iterations between checkpoints")
+    rec.add_argument("--checkpoint-every", type=positive_int, default=None,
+                     help=f"iterations between --checkpoint's writes (default {CHECKPOINT_EVERY})")
     rec.add_argument("--resume", type=Path, default=None, help="continue from this checkpoint")
     # voxe_core.backbones.BACKBONE_CHOICES, spelt out: importing it here would load torch for --help.
     rec.add_argument("--backbone", choices=("auto", "relu_field", "scene"), default="auto",
@@ -67,6 +70,8 @@ def job_params(args: argparse.Namespace) -> dict:
 def cmd_reconstruct(args) -> int:
     from voxe_core.reconstruct import reconstruct
 
+    if args.checkpoint_every is not None and args.checkpoint is None:  # (it had been taken and ignored)
+        raise ValueError("--checkpoint-every sets how often --checkpoint is written; without --checkpoint none is")
     device = check_device(args)
     for path in (args.out, args.checkpoint):  # before the fit: its --checkpoint folder had not been made at all
         if path is not None:
@@ -74,8 +79,8 @@ def cmd_reconstruct(args) -> int:
     params = reconstruction_params(job_params(args))
     reconstruction_key(params)  # iterations that fit no backbone's preset are refused before any data is read
     scene = load_views(args)
-    backbone, config, cameras, initial = fit_setup(params, scene.alphas, scene.cameras,
-                                                   args.checkpoint_every if args.checkpoint else 0)
+    every = CHECKPOINT_EVERY if args.checkpoint_every is None else args.checkpoint_every
+    backbone, config, cameras, initial = fit_setup(params, scene.alphas, scene.cameras, every if args.checkpoint else 0)
     print(
         f"fitting {len(scene)} {scene.split} images of {scene.cameras.width}x{scene.cameras.height} "
         f"from {args.data} ({backbone} backbone) on {device}: resolutions {list(config.resolutions)}, "
