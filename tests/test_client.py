@@ -353,7 +353,7 @@ def test_submit_texture_colours_an_obj_without_a_library(api, tmp_path, capsys):
     assert json.loads(kept["names.json"]) == {"mesh.obj": "plane.obj", "texture.png": "green.png"}
     assert len(surface) > 0 and abs(surface - [0, 1, 0]).max() < 0.01
     assert main(["submit", "x", "--scene", scene_id, "--texture", str(tmp_path / "green.png"), "--api", url]) == 2
-    assert "--texture goes with --upload (an OBJ)" in capsys.readouterr().err
+    assert "--texture goes with --upload (an OBJ or a PLY)" in capsys.readouterr().err
     (tmp_path / "notes.txt").write_text("not a texture")  # the service keeps only a texture it reads: said first
     assert main(["submit", "x", "--upload", str(tmp_path / "plane.obj"), "--texture", str(tmp_path / "notes.txt"),
                  "--api", url]) == 2
@@ -396,8 +396,9 @@ def test_an_obj_naming_missing_files_goes_without_them_and_one_naming_too_many_t
     with Client(url) as client, pytest.raises(ValueError, match=r"^plane.mtl names 2 textures \('a.png', 'b b.png'\); "
                                                                "the service takes one texture per OBJ"):
         client.upload_scene(obj)
-    with Client(url) as client, pytest.raises(ValueError, match="a texture goes with an OBJ upload; x.ply is not"):
-        client.upload_scene(tmp_path / "x.ply", texture=tmp_path / "a.png")
+    with Client(url) as client, pytest.raises(ValueError, match=r"a texture goes with a mesh upload \(.obj or .ply\); "
+                                                               "x.zip is neither"):
+        client.upload_scene(tmp_path / "x.zip", texture=tmp_path / "a.png")
     assert not storage.exists() or not any(p.is_file() for p in storage.rglob("*"))
     (tmp_path / "plane.mtl").unlink()
     assert main(["submit", "a plane", "--upload", str(obj), "--api", url]) == 0
@@ -407,3 +408,47 @@ def test_an_obj_naming_missing_files_goes_without_them_and_one_naming_too_many_t
         scene_id = session.get(Job, out.strip()).scene_id
     kept, _ = _ingested(scene_id, storage)
     assert json.loads(kept["names.json"]) == {"mesh.obj": "plane.obj"}
+
+
+PLANE_PLY = ("ply\nformat ascii 1.0\ncomment TextureFile {texture}\nelement vertex 4\nproperty float x\n"
+             "property float y\nproperty float z\nproperty float s\nproperty float t\nelement face 2\n"
+             "property list uchar int vertex_indices\nend_header\n-1 0 -1 0.5 0.5\n1 0 -1 0.5 0.5\n1 0 1 0.5 0.5\n"
+             "-1 0 1 0.5 0.5\n3 0 1 2\n3 0 2 3\n")
+
+
+def test_a_ply_is_uploaded_with_the_texture_its_header_names_and_arrives_in_colour(api, tmp_path, capsys):
+    """The .ply had been sent alone (and a texture given with it refused): a textured PLY arrived uncoloured. The
+    image its ``comment TextureFile`` names goes with it, or ``--texture``'s instead; one not found is said."""
+    from PIL import Image
+
+    from voxe_client.client import MissingCompanionWarning, ply_upload_files
+    from voxe_core.cli import main
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+
+    url, storage = api
+    ply = tmp_path / "plane.ply"
+    ply.write_text(PLANE_PLY.format(texture="C:\\export\\grass.png"))  # found by its base name
+    with pytest.warns(MissingCompanionWarning) as said:
+        assert ply_upload_files(ply) == [ply]
+    assert str(said[0].message) == (f"plane.ply names the texture 'C:\\\\export\\\\grass.png' (comment TextureFile), not "
+                                    f"found in {tmp_path}: the PLY goes without it (put it beside the PLY)")
+    Image.new("RGB", (2, 2), GREEN).save(tmp_path / "grass.png")
+    assert ply_upload_files(ply) == [ply, tmp_path / "grass.png"]
+    with Client(url) as client:
+        scene = client.upload_scene(ply, name="plane")
+    kept, surface = _ingested(scene["id"], storage)
+    assert json.loads(kept["names.json"]) == {"mesh.ply": "plane.ply", "texture.png": "grass.png"}
+    assert len(surface) > 0 and abs(surface - [0, 1, 0]).max() < 0.01
+    Image.new("RGB", (2, 2), (255, 0, 0)).save(tmp_path / "red.png")  # --texture instead of the one it names
+    assert main(["submit", "a red plane", "--upload", str(ply), "--texture", str(tmp_path / "red.png"),
+                 "--api", url]) == 0
+    with session_scope() as session:
+        scene_id = session.get(Job, capsys.readouterr().out.strip()).scene_id
+    kept, surface = _ingested(scene_id, storage)
+    assert json.loads(kept["names.json"]) == {"mesh.ply": "plane.ply", "texture.png": "red.png"}
+    assert len(surface) > 0 and abs(surface - [1, 0, 0]).max() < 0.01
+    ply.write_text(PLANE_PLY.format(texture="notes.txt"))
+    (tmp_path / "notes.txt").write_text("not a texture")  # refused before anything is sent, as an OBJ's
+    with pytest.raises(ValueError, match="^texture notes.txt: send it as one of .png"):
+        ply_upload_files(ply)

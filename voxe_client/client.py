@@ -121,13 +121,14 @@ class Client:
         """``POST /v1/scenes``: a dataset zip, or one mesh file (.obj / .ply), sent under its own file name (the
         service reads a mesh's kind from it), with ``name`` the scene's display name; the scene, ``processing``.
 
-        An OBJ goes with the files that colour it (:func:`obj_upload_files`): its .mtl and the texture that names,
-        or ``texture``, an image that colours it at its UVs instead (as ``voxe mesh-to-grid --texture``)."""
+        A mesh goes with the files that colour it: an OBJ's .mtl and the texture that names
+        (:func:`obj_upload_files`), a PLY's texture its header names (:func:`ply_upload_files`); or ``texture``, an
+        image that colours it at its UVs instead (as ``voxe mesh-to-grid --texture``)."""
         path = Path(path)
-        obj = path.suffix.lower() == ".obj"
-        if texture is not None and not obj:
-            raise ValueError(f"a texture goes with an OBJ upload; {path.name} is not an .obj")
-        paths = obj_upload_files(path, texture) if obj else [path]
+        kind = path.suffix.lower()
+        if texture is not None and kind not in MESH_UPLOADS:
+            raise ValueError(f"a texture goes with a mesh upload (.obj or .ply); {path.name} is neither")
+        paths = MESH_UPLOADS[kind](path, texture) if kind in MESH_UPLOADS else [path]
         field = "archive" if path.suffix.lower() == ".zip" else "files"
         with ExitStack() as stack:
             files = [(field, (each.name, stack.enter_context(open(each, "rb")))) for each in paths]
@@ -242,7 +243,44 @@ class Client:
 
 
 class MissingCompanionWarning(UserWarning):
-    """A file an OBJ names (its .mtl, a texture) that is not beside it: the upload goes without it."""
+    """A file a mesh names (an OBJ's .mtl, a texture) that is not beside it: the upload goes without it."""
+
+
+def _given_texture(mesh: Path, texture: str | os.PathLike) -> list[Path]:
+    """The mesh and the ``texture`` given for it; a kind of image the service does not read is a ValueError (it
+    would keep it as no texture)."""
+    if Path(texture).suffix.lower() not in TEXTURE_SUFFIXES:
+        raise ValueError(f"texture {Path(texture).name}: send it as one of {', '.join(TEXTURE_SUFFIXES)}")
+    return [mesh, Path(texture)]
+
+
+PLY_HEADER_LINES, PLY_HEADER_LINE_BYTES = 10_000, 1024  # far past any real header (a few dozen short lines)
+
+
+def ply_upload_files(ply: Path, texture: str | os.PathLike | None = None) -> list[Path]:
+    """The files a PLY upload sends: the PLY, then ``texture``, or else the image its header's ``comment
+    TextureFile`` names (read as trimesh reads it: the rest of the line), looked up as an OBJ's are. One not found
+    is a :class:`MissingCompanionWarning` and the PLY goes without it (uncoloured, or by its vertex colours); one of a
+    kind the service does not read, a ValueError. (The service maps the image at the texture coordinates the
+    header declares, and refuses an image beside a PLY that declares none.)"""
+    if texture is not None:
+        return _given_texture(ply, texture)
+    name = None
+    with open(ply, "rb") as handle:
+        for _ in range(PLY_HEADER_LINES):  # the header only (a body may be large, binary, without newlines)
+            text = handle.readline(PLY_HEADER_LINE_BYTES).decode("utf-8", errors="replace").strip()
+            if text.split()[:1] == ["end_header"]:
+                break
+            if "texturefile" in text.lower():
+                name = text[text.lower().index("texturefile") + len("texturefile"):].strip()
+    if not name:
+        return [ply]
+    image = _beside(ply.parent, name)
+    if image is None:
+        warnings.warn(f"{ply.name} names the texture {name!r} (comment TextureFile), not found in {ply.parent}: the "
+                      "PLY goes without it (put it beside the PLY)", MissingCompanionWarning, stacklevel=3)
+        return [ply]
+    return _given_texture(ply, image)
 
 
 def obj_upload_files(obj: Path, texture: str | os.PathLike | None = None) -> list[Path]:
@@ -256,9 +294,7 @@ def obj_upload_files(obj: Path, texture: str | os.PathLike | None = None) -> lis
     library's Kd alone); some textures found and others not, a FileNotFoundError (the one found would colour every
     part); more textures than the one the service takes, or a ``texture`` it does not read, a ValueError."""
     if texture is not None:
-        if Path(texture).suffix.lower() not in TEXTURE_SUFFIXES:  # the service would keep it as no texture
-            raise ValueError(f"texture {Path(texture).name}: send it as one of {', '.join(TEXTURE_SUFFIXES)}")
-        return [obj, Path(texture)]
+        return _given_texture(obj, texture)
     library_name = next(_keyed_values(obj, "mtllib"), None)
     if library_name is None:
         return [obj]
@@ -286,6 +322,10 @@ def obj_upload_files(obj: Path, texture: str | os.PathLike | None = None) -> lis
         raise ValueError(f"{library.name} names {len(textures)} textures ({', '.join(map(repr, images))}); the "
                          "service takes one texture per OBJ: bake them into one image")
     return [obj, library, *textures]
+
+
+MESH_UPLOADS = {".obj": obj_upload_files, ".ply": ply_upload_files}
+"""The files a mesh upload sends, by the mesh's suffix."""
 
 
 def _beside(folder: Path, name: str) -> Path | None:

@@ -48,10 +48,11 @@ def add_parsers(commands, common) -> None:
     where = sub.add_mutually_exclusive_group(required=True)
     where.add_argument("--scene", metavar="SCENE_ID", help="an uploaded scene")
     where.add_argument("--upload", type=Path, metavar="PATH",
-                       help="upload this dataset zip or mesh first (an OBJ with the .mtl and texture it names)")
+                       help="upload this dataset zip or mesh first (an OBJ with the .mtl and texture it names, a "
+                            "PLY with the texture its header names)")
     sub.add_argument("--texture", type=Path, default=None, metavar="IMAGE",
-                     help="with --upload OBJ: the image that colours it at its UVs, instead of its .mtl (as "
-                          "mesh-to-grid --texture)")
+                     help="with --upload OBJ or PLY: the image that colours it at its UVs, instead of the one it "
+                          "names (as mesh-to-grid --texture)")
     sub.add_argument("--mode", choices=("global", "local"), default="global")
     sub.add_argument("--edit-word", action="append", default=[], metavar="WORD", help="local edits (repeat)")
     sub.add_argument("--params", type=_json_object, default=None, metavar="JSON", help="job params")
@@ -137,12 +138,12 @@ def cmd_submit(args) -> int:
     from voxe_client.client import MissingCompanionWarning
 
     if args.texture is not None and args.upload is None:
-        raise ValueError("--texture goes with --upload (an OBJ); an uploaded scene keeps its colours")
+        raise ValueError("--texture goes with --upload (an OBJ or a PLY); an uploaded scene keeps its colours")
     with _client(args) as client:
         try:
             scene_id = args.scene
             if args.upload is not None:
-                with warnings.catch_warnings(record=True) as left_out:  # an OBJ's .mtl or texture not found
+                with warnings.catch_warnings(record=True) as left_out:  # a mesh's .mtl or texture not found
                     warnings.simplefilter("always", MissingCompanionWarning)
                     scene_id = client.upload_scene(args.upload, texture=args.texture)["id"]
                 for warning in left_out:
