@@ -254,7 +254,7 @@ def _given_texture(mesh: Path, texture: str | os.PathLike) -> list[Path]:
     return [mesh, Path(texture)]
 
 
-PLY_HEADER_LINES, PLY_HEADER_LINE_BYTES = 10_000, 1024  # far past any real header (a few dozen short lines)
+_PLY_HEADER_LINES, _PLY_HEADER_LINE_BYTES = 10_000, 1024  # far past any real header (a few dozen short lines)
 
 
 def ply_upload_files(ply: Path, texture: str | os.PathLike | None = None) -> list[Path]:
@@ -267,8 +267,8 @@ def ply_upload_files(ply: Path, texture: str | os.PathLike | None = None) -> lis
         return _given_texture(ply, texture)
     name = None
     with open(ply, "rb") as handle:
-        for _ in range(PLY_HEADER_LINES):  # the header only (a body may be large, binary, without newlines)
-            text = handle.readline(PLY_HEADER_LINE_BYTES).decode("utf-8", errors="replace").strip()
+        for _ in range(_PLY_HEADER_LINES):  # the header only (a body may be large, binary, without newlines)
+            text = handle.readline(_PLY_HEADER_LINE_BYTES).decode("utf-8", errors="replace").strip()
             if text.split()[:1] == ["end_header"]:
                 break
             if "texturefile" in text.lower():
