@@ -1124,6 +1124,41 @@ def test_a_stages_start_committed_with_its_answer_lost_is_the_runs_at_once(db, m
         assert [e["kind"] for e in events_of(job_id)] == ["stage_started"]
 
 
+def test_a_start_whose_answer_was_lost_and_every_retry_refused_leaves_the_job_free(db, monkeypatch):
+    """The first try takes the job, its answer lost, and every retry is refused: the message goes back to the queue
+    (Reject). The hold the lost try left had held the redelivery off for the whole lease, then been counted as a
+    dead run's takeover; it is released (this run's token only), so the redelivery takes the job at once."""
+    from celery.exceptions import Reject
+    from sqlalchemy.exc import OperationalError
+
+    from worker import runtime, tasks
+
+    settings = db.model_copy(update={"stage_lease_s": 4.0})
+    monkeypatch.setattr(tasks, "DATABASE_RETRY_S", (0.0, 0.0))
+    job_id = add_job(add_scene(), "queued", 0)
+    real, tries = runtime.begin_stage, []
+    dropped = OperationalError("COMMIT", {}, Exception("server closed the connection unexpectedly"))
+
+    def committed_then_refused(*args):
+        tries.append(args)
+        if len(tries) == 1:
+            real(*args)
+        raise dropped
+
+    monkeypatch.setattr(runtime, "begin_stage", committed_then_refused)
+    task = type("Task", (), {"request": type("Request", (), {"hostname": "w@host"})()})()
+    with pytest.raises(Reject):
+        tasks._begin_stage(task, job_id, "reconstruct", "cpu", settings)
+    assert len(tries) == 3
+    job = job_row(job_id)
+    assert (job.run_token, job.run_lease_until, job.requeues) == (None, None, 0)
+    monkeypatch.setattr(runtime, "begin_stage", real)
+    started = time.monotonic()
+    job = tasks._begin_stage(task, job_id, "reconstruct", "cpu", settings)  # the redelivery, the database back
+    assert time.monotonic() - started < settings.stage_lease_s / 2  # no lease waited out
+    assert (job.state, job.requeues) == ("running", 0)
+
+
 def test_a_stage_the_database_refuses_to_start_each_time_fails_its_job_at_the_requeue_limit(db, monkeypatch):
     """A start refused each time for this job (a value too long for its column) while the database answers had
     gone back to the queue for ever: each return counts as a re-queue, and the delivery after
@@ -1259,7 +1294,7 @@ def test_a_stages_end_the_database_refuses_at_every_try_goes_back_to_the_queue_t
         result = tasks.edit_task.apply(args=(job_id,))
     assert result.state == "REJECTED" and result.result.requeue, result.result
     assert result.result.reason == (f"edit of job {job_id} stopped by a database outage (the database cannot be "
-                                      f"reached or is locked) as it recorded the job {state}")
+                                      f"reached or is locked) that kept its end from being recorded ({state}: {words})")
     assert len(calls) == 3
     job = job_row(job_id)
     counted = state == "failed" and not answer_lost
@@ -1277,8 +1312,7 @@ def test_a_stages_end_the_database_refuses_at_every_try_goes_back_to_the_queue_t
     job = job_row(job_id)
     if answer_lost or state == "canceled":
         assert "skipped" in redelivered
-        expected = words if answer_lost else "canceled before edit"
-        assert (job.state, job.error if state == "failed" else job.message) == (state, expected)
+        assert (job.state, job.error if state == "failed" else job.message) == (state, words)  # "during": it ran
     else:
         assert redelivered == {"job_id": job_id, "stage": "edit", "state": "failed"}
         assert (job.state, job.error, job.requeues) == ("failed", words, 1)

@@ -166,8 +166,9 @@ def begin_stage(job_id: str, stage: str, hostname: str | None, device: str, sett
             _wait_for_release(job_id, stage, (job.run_token, job.run_lease_until), settings)
             continue
         with session_scope() as session:
-            if job.cancel_requested:
-                finish_jobs(session, [job_id], CANCELED, message=f"canceled before {stage}")
+            if job.cancel_requested:  # "during": a run of the stage started, and left its end unrecorded (an outage)
+                when = "during" if job.stage == stage and stage not in (job.completed_stages or []) else "before"
+                finish_jobs(session, [job_id], CANCELED, message=f"canceled {when} {stage}")
                 session.commit()  # before raising: session_scope rolls back on the way out of an exception
                 raise JobSkipped(f"job {job_id} canceled")
             if stage in (job.completed_stages or []):

@@ -105,6 +105,8 @@ def _begin_stage(task, job_id: str, stage: str, device: str, settings):
         # the driver's words (database is locked, value too long), not the statement and its parameters
         reason = f"{stage} could not start: {type(exc).__name__}: {getattr(exc, 'orig', None) or exc}"
         error = None
+        with contextlib.suppress(SQLAlchemyError):  # a try that took the job, its answer lost: its hold, unrenewed,
+            runtime.release_stage(job_id, run_token)  # had held the redelivery off for the lease (then counted)
         if database_outage(exc) is None:  # down or locked: an outage counts nothing
             with contextlib.suppress(SQLAlchemyError):  # the database went down meanwhile: nothing counted
                 error = runtime.count_unstarted(job_id, stage, reason, settings)
@@ -175,8 +177,6 @@ def _end_job(job_id: str, stage: str, run_token: str, state: str, settings, mess
     the stage again from its checkpoint, to meet it again or not (the hold given back as a counted re-queue naming
     the error, which fails the job at the limit): an accepted job ends with its result or its own error, never with
     an outage's, and never stays running until the reaper finds it."""
-    if error:
-        log.error("job %s failed: %s", job_id, error)
     try:
         ended = _retried(lambda _again: runtime.finish_job(job_id, state, message=message, error=error,
                                                            run_token=run_token),
@@ -184,11 +184,13 @@ def _end_job(job_id: str, stage: str, run_token: str, state: str, settings, mess
     except SQLAlchemyError as exc:
         if (why := database_outage(exc)) is None:
             raise
-        cause = f"a database outage ({why}) as it recorded the job {state}"
+        cause = f"a database outage ({why}) that kept its end from being recorded ({state}: {error or message})"
         if state == CANCELED:
             _release_and_requeue(job_id, stage, run_token, cause, exc)
         return _give_back_and_requeue(job_id, stage, run_token, f"{stage} failed, and a database outage ({why}) "
                                       f"kept that from being recorded: {error}", cause, exc, settings)
+    if error:  # recorded (a re-queued failure is not, yet: it may end otherwise)
+        log.error("job %s failed: %s", job_id, error)
     return _ended(job_id, stage, state, ended, settings)
 
 
@@ -803,7 +805,8 @@ def recover_interrupted_jobs(hostname: str) -> list[str]:
 @signals.task_failure.connect
 def _next_stage_unsent(sender=None, args=None, exception=None, **_kwargs) -> None:
     """A stage task that fails after its stage finished failed to hand its chain's next message to the broker
-    (Celery's send after the task returns; every failure inside a stage ends the job in ``_run_stage``). The job,
+    (Celery's send after the task returns; every failure inside a stage ends the job in ``_run_stage``, or sends
+    its message back to the queue). The job,
     between stages and held by no run, is sent again at once, or left queued with no task id for the reaper to send
     when the broker is back: nothing else would (the reaper cannot tell a lost message from one waiting its turn).
     A job that has ended (its last stage done, or failed) had only its sweep's evaluations in that message: they are
