@@ -1,4 +1,5 @@
-"""Meshes as input: an OBJ with a texture image or a PLY with vertex or face colours instead of posed photos.
+"""Meshes as input: an OBJ or a PLY, coloured by a texture image, materials or vertex colours, instead of posed
+photos.
 
 Two routes into G_i:
 
@@ -136,11 +137,11 @@ def load_mesh(
     path: str | os.PathLike, texture: str | os.PathLike | None = None, up_axis: str = "y", extent: float = 1.0,
     frame: int = 2,
 ) -> SurfaceMesh:
-    """Read an OBJ (with ``texture``: its image, UVs from the file) or a PLY (vertex or face colours), normalised.
+    """Read an OBJ or a PLY (with ``texture``: its image, UVs from the file), normalised.
 
     A ``texture`` given colours every part at the file's own UVs ((0, 0) on parts
-    without vt) whatever the file's materials; without one, an OBJ's .mtl
-    colours it as trimesh reads it (its images and Kd packed into one atlas, ``_atlas``, where parts with neither
+    without vt) whatever the file's materials; without one, an OBJ's .mtl (a PLY's TextureFile, its vertex or face
+    colours) colours it as trimesh reads it (its images and Kd packed into one atlas, ``_atlas``, where parts with neither
     are ``DEFAULT_ALBEDO`` or their vertex colours; a single material's own Kd is the mesh's one ``colour`` when it
     names no image); with no image or Kd the file wrote (its .mtl missing, say), the mesh is uncoloured as one
     without vt is.
@@ -286,49 +287,76 @@ def _without_stand_in_textures(parts: list) -> list:
 
 def _atlas(parts: list, name: str) -> tuple[np.ndarray, np.ndarray]:
     """The texture (H, W, 3) and UVs (V, 2) colouring ``parts`` (a file's meshes, in ``trimesh.util.concatenate``'s
-    vertex order): one part's own image at its own UVs, or every part's colour side by side in one atlas.
+    vertex order): one part's own image at its own UVs, or every distinct colour side by side in one atlas.
 
     trimesh's atlas is read by its own texel convention, not ``sample_texture``'s, its blocks padded in black and
     at times placed past its image's edge: a Kd-only material had loaded 0.81 red at UVs near its 2×2 block's
-    border, or black, and a map_Kd image shifted by up to a texel. Here each part's block is its image (or its
-    one colour, sampled at its centre whatever the part's UVs) padded by a texel of its own edge, so a lookup
-    reads what ``sample_texture`` reads from the image alone. A block's UVs are wrapped a vertex at a time (a
-    face spanning a wrap is not repeated), as trimesh's were. One part's image with no vt to place it is a
-    MeshError, as a texture given beside such a file is.
+    border, or black, and a map_Kd image shifted by up to a texel. Here each block is an image (or a part's one
+    colour, sampled at its centre whatever the part's UVs) padded by a texel of its own edge, so a lookup reads
+    what ``sample_texture`` reads from the image alone. Parts whose images hold the same pixels share one block
+    (exporters give each material its own copy of one image: a block each had grown the atlas by the image at
+    every material). A block's UVs are wrapped a vertex at a time (a face spanning a wrap is not repeated), as
+    trimesh's were.
     """
-    if len(parts) == 1 and parts[0].visual.uv is None:
-        raise MeshError(f"{name}: its .mtl gives an image (map_Kd) but the mesh has no texture coordinates (vt)")
-    blocks = [_part_colour(part, name) for part in parts]
-    if len(blocks) == 1:
-        return blocks[0]
-    height = max(image.shape[0] for image, _ in blocks) + 2
-    width = sum(image.shape[1] + 2 for image, _ in blocks)
-    padded, uvs, left = [], [], 0
-    for image, uv in blocks:
-        h, w = image.shape[:2]
-        padded.append(np.pad(image, ((1, height - h - 1), (1, 1), (0, 0)), mode="edge"))
-        uv = _wrapped(uv)
-        uvs.append(np.stack([(left + 1 + uv[:, 0] * w) / width, 1 - (1 + (1 - uv[:, 1]) * h) / height], -1))
-        left += w + 2
+    blocks: dict = {}  # the pixels' key -> (index, image), in first-use order
+    placed = []
+    for part in parts:
+        source, uv = _part_colour(part, name)
+        key = _pixels_key(source)
+        if key not in blocks:
+            blocks[key] = (len(blocks), source if isinstance(source, np.ndarray) else
+                           _texture_rgb(source, f"{name} ({_image_source(name)})"))
+        placed.append((blocks[key][0], uv))
+    images = [image for _, image in blocks.values()]
+    if len(parts) == 1:
+        return images[0], placed[0][1]
+    height = max(image.shape[0] for image in images) + 2
+    lefts = np.cumsum([0] + [image.shape[1] + 2 for image in images])
+    padded = [np.pad(image, ((1, height - image.shape[0] - 1), (1, 1), (0, 0)), mode="edge") for image in images]
+    uvs = []
+    for index, uv in placed:
+        (h, w), uv = images[index].shape[:2], _wrapped(uv)
+        uvs.append(np.stack([(lefts[index] + 1 + uv[:, 0] * w) / lefts[-1], 1 - (1 + (1 - uv[:, 1]) * h) / height],
+                            -1))
     return np.concatenate(padded, axis=1), np.concatenate(uvs)
 
 
-def _part_colour(part, name: str) -> tuple[np.ndarray, np.ndarray]:
-    """(image (h, w, 3), UVs (V, 2)) colouring one part: its material's image at its UVs ((0.5, 0.5) without vt)
-    or a 1×1 image of its Kd; for a part without a material the file wrote (``_without_stand_in_textures``), its
-    vertex colours as trimesh packs them (a texel per colour), else ``DEFAULT_ALBEDO``."""
+def _image_source(name: str) -> str:
+    """Where a mesh file names its texture image, for messages."""
+    return "its header's TextureFile" if name.lower().endswith(".ply") else "its .mtl's map_Kd"
+
+
+def _pixels_key(source) -> tuple:
+    """A key equal for two colour sources (a PIL image, or an (h, w, 3) array) exactly when their pixels are."""
+    import hashlib
+
+    pixels = source.tobytes()
+    digest = hashlib.blake2b(pixels, digest_size=16).digest() if len(pixels) > 64 else pixels
+    shape = source.shape if isinstance(source, np.ndarray) else (source.mode, source.size)
+    return shape, digest
+
+
+def _part_colour(part, name: str) -> tuple:
+    """(colour source, UVs (V, 2)) for one part: its material's image (a PIL image) at its UVs, or a 1×1 image
+    (array) of its Kd; for a part without a material the file wrote (``_without_stand_in_textures``), its vertex
+    colours as trimesh packs them (a texel per colour: exact at the vertices, a face's inside read between its
+    texels, not blended from its corners), else ``DEFAULT_ALBEDO``. An image with no vt to place it is a
+    MeshError, as a texture given beside such a file is."""
     import trimesh
 
     centre = np.full((len(part.vertices), 2), 0.5)
     if part.visual.kind == "vertex":
         material, uv = trimesh.visual.color.color_to_uv(part.visual.vertex_colors)
     elif part.visual.kind == "texture":
-        material, uv = part.visual.material, centre if part.visual.uv is None else part.visual.uv
+        material, uv = part.visual.material, part.visual.uv
     else:
         return np.asarray(DEFAULT_ALBEDO, dtype=np.float32).reshape(1, 1, 3), centre
-    if getattr(material, "image", None) is not None:
-        return _texture_rgb(material.image, f"{name} (its .mtl's map_Kd)"), np.asarray(uv, dtype=np.float64)
-    return _written_diffuse(part.visual).reshape(1, 1, 3), centre
+    if getattr(material, "image", None) is None:
+        return _written_diffuse(part.visual).reshape(1, 1, 3), centre
+    if uv is None:
+        raise MeshError(f"{name}: {_image_source(name)} names an image but the mesh has no texture coordinates "
+                        f"({'texcoord' if name.lower().endswith('.ply') else 'vt'})")
+    return material.image, np.asarray(uv, dtype=np.float64)
 
 
 class _PlyTextureWarning(logging.Filter):

@@ -29,9 +29,10 @@ def add_parsers(commands, common) -> None:
     mesh.set_defaults(run=cmd_export_mesh)
 
     mg = commands.add_parser("mesh-to-grid", parents=[common],
-                             help="an initial grid from an OBJ (+ texture) or PLY (vertex or face colours) mesh")
+                             help="an initial grid from an OBJ or PLY mesh (+ texture)")
     mg.add_argument("mesh", type=Path, metavar="MESH", help=".obj or .ply")
-    mg.add_argument("--texture", type=Path, default=None, help="the OBJ's texture image")
+    mg.add_argument("--texture", type=Path, default=None,
+                    help="the mesh's texture image, at its UVs (in place of the one it names)")
     mg.add_argument("--up", choices=("x", "y", "z"), default="y", help="the mesh file's up axis (OBJ: y)")
     mg.add_argument("--shading", choices=("auto", "baked", "none"), default="auto",
                     help="bake a fixed light + ambient occlusion into the colour (auto: for meshes without colour)")
