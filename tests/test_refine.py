@@ -704,6 +704,21 @@ def test_refine_end_to_end_with_tiny_model(tiny_guidance, make_sphere_grid):
         refine(initial, edited, "a dog", ["zebra"], tiny_guidance, config)
 
 
+def test_refine_reads_the_edit_words_in_the_users_prompt_not_the_prefix_it_adds(tiny_guidance, make_sphere_grid):
+    initial = make_sphere_grid(12)
+    reports = []
+    config, callbacks = RefineConfig(views=2, render_size=16), Callbacks(on_progress=reports.append)
+    # "a render of" is the stage's, not the user's: it neither holds an edit word nor names the object
+    with pytest.raises(ValueError, match="'render' does not occur in the prompt 'a dog wearing sunglasses'"):
+        refine(initial, initial.clone_grid(), "a dog wearing sunglasses", ["render"], tiny_guidance, config, callbacks)
+    with pytest.raises(ValueError, match="nothing names the object"):
+        refine(initial, initial.clone_grid(), "sunglasses", ["sunglasses"], tiny_guidance, config, callbacks)
+    assert reports == []  # refused before the first attention pass
+    # a user who wrote the prefix keeps its words as theirs
+    result = refine(initial, initial.clone_grid(), "a render of sunglasses", ["sunglasses"], tiny_guidance, config)
+    assert result.info["prompt"] == "a render of sunglasses"
+
+
 def test_a_nan_density_fails_the_refinement_before_any_attention_map(tiny_guidance, make_sphere_grid):
     initial = make_sphere_grid(12)
     edited = initial.clone_grid()

@@ -89,7 +89,7 @@ def refine(
     ``prompt`` is the edit's text; the "a render of" prefix is added when
     missing (as the edit stage prompts the model). ``edit_words`` name the
     edit (words or phrases of the prompt, e.g. ``["sunglasses"]`` or
-    ``["party hat"]``).
+    ``["party hat"]``): ValueError when one is not in ``prompt`` or no other word of it is left to name the object.
 
     The attention renders, the attention-grid fit and the graph cut's inputs run
     on ``device`` (None: the guidance's, else the edited grid's); both grids are
@@ -101,7 +101,9 @@ def refine(
     memory = PeakMemory(device).start()
     initial_grid, edited_grid = initial_grid.to(device), edited_grid.to(device)
     text = edit_prompt(prompt)
-    token_groups(guidance, text, edit_words)  # fail on a bad word before rendering anything
+    # Fail on a bad word before rendering anything, read in the user's own text: in ``text`` the prefix this stage
+    # adds had supplied an edit word ("render") or the words naming the object (a prompt of the edit words alone).
+    token_groups(guidance, prompt, edit_words)
     nodes = node_mask(edited_grid, config.node_alpha, config.node_rule).cpu()  # and on a NaN density
     centre = initial_grid.orbit_centre()  # G_i's: the object, wherever it sits
     cameras = attention_cameras(config, centre=centre)
