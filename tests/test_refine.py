@@ -198,6 +198,22 @@ def test_the_authors_code_maps_but_normalised_and_its_fit_are_the_default_and_th
     RefineConfig(**AUTHORS_CODE_FIT)
 
 
+def test_a_constant_start_without_fitting_steps_is_refused_before_any_work(tmp_path, make_sphere_grid, capsys):
+    # Both grids would stay at init_value: P_e = P_obj = 1/2 at every voxel, no seed, a SegmentationError at the cut,
+    # after every attention pass (a job's: after its whole edit). The service's 0 steps suit only the back-projection.
+    with pytest.raises(ValueError, match="lift_start='constant' with no fitting iterations .* no seeds"):
+        RefineConfig(lift_start="constant", iterations=0, fit_views="fixed", fit_pixels="all")
+    RefineConfig(lift_start="backprojection", iterations=0)
+    grid = make_sphere_grid(8)
+    grid.save(tmp_path / "grid.safetensors")
+    out = tmp_path / "out"
+    assert main(["refine", str(tmp_path / "grid.safetensors"), "--initial", str(tmp_path / "grid.safetensors"),
+                 "--prompt", "a dog wearing a party hat", "--edit-words", "hat", "--out", str(out),
+                 "--model", str(tmp_path / "no_model_needed"), "--offline", "--device", "cpu",
+                 "--lift-start", "constant", "--quiet"]) == 2
+    assert "no seeds" in capsys.readouterr().err and not out.exists()  # refused before the model is looked for
+
+
 def test_max_over_edit_tokens_is_the_max_of_the_per_token_maps():
     maps = torch.rand(77, 6, 6, generator=torch.Generator().manual_seed(1))
     edit, _ = combine_token_maps(maps, [3, 7, 9], [1], reduce=RefineConfig().edit_token_reduce)
