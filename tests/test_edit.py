@@ -195,6 +195,18 @@ def test_resume_reproduces_the_uninterrupted_run_bit_for_bit(small_sphere, tiny_
     assert not torch.equal(other.features, reference.features)
 
 
+def test_an_initial_grid_with_a_nan_or_an_inf_is_refused_before_any_step(small_sphere, tmp_path):
+    """A damaged G_i had made the first step's loss NaN: an EditDiverged blaming half precision or the lr."""
+    for channel, value in ((0, math.nan), (2, math.inf)):
+        grid = small_sphere.clone_grid()
+        with torch.no_grad():
+            grid.features[3, 4, 5, channel] = value
+        guidance, checkpoint = FakeGuidance(), tmp_path / f"c{channel}.safetensors"
+        with pytest.raises(ValueError, match="non-finite .* features at 1 of its 8000 vertices"):
+            edit(grid, "a wooden dog", guidance, EditConfig(iterations=2, render_size=SIZE), checkpoint_path=checkpoint)
+        assert guidance.calls == [] and not checkpoint.exists()
+
+
 class DivergingGuidance(FakeGuidance):
     """Its third SDS loss is NaN, as a half-precision UNet's overflow makes it."""
 

@@ -333,6 +333,11 @@ def edit(
             f"the {config.regulariser!r} regulariser compares renders with the input views: pass "
             "input_views=(images, cameras), or use a volumetric regulariser such as 'reg3d'"
         )
+    # Its NaN had made the first step's loss NaN: an EditDiverged blaming half precision or the lr, after a UNet pass.
+    if nonfinite := int((~initial_grid.features.detach().isfinite()).any(-1).sum()):
+        raise ValueError(f"the initial grid has non-finite (NaN or infinite) features at {nonfinite} of its "
+                         f"{math.prod(initial_grid.resolution)} vertices, which its renders and the regulariser "
+                         "would carry into every step (a damaged grid file?)")
 
     guidance_device = getattr(guidance, "device", None)
     device = resolve_device(device if device is not None else (guidance_device or initial_grid.flat_features.device))
