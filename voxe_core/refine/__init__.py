@@ -51,8 +51,9 @@ Pipeline (``refine``):
    reproduces the authors' start.
 3. Per voxel, P_e, P_obj = softmax(edit value, object value), computed in
    log space (finite for any finite logits, e.g. ±1e4).
-4. :func:`graph_cut` labels the occupied voxels of G_e (vertices whose
-   activated density makes a voxel-length at least ``node_alpha`` opaque) by
+4. :func:`graph_cut` labels the occupied voxels of G_e (by default, as the authors'
+   code: vertices whose 3×3×3 max-pooled ReLU density is > 0; ``node_rule="alpha"``:
+   those whose activated density makes a voxel-length at least ``node_alpha`` opaque) by
    Boykov–Kolmogorov max-flow (PyMaxflow), built vectorised: unary costs
    −log P of the label, seeds tied to their terminal with a capacity larger
    than any finite cut, and 6-neighbour pairwise weights
