@@ -364,6 +364,30 @@ def test_a_processing_scene_can_be_deleted_and_its_ingest_keeps_nothing(client, 
     assert stored_files(root) == [] and client.get(f"/v1/scenes/{scene['id']}").status_code == 404
 
 
+@BOTH_DATABASES
+def test_a_scene_deleted_before_its_upload_answers_is_a_409_and_keeps_nothing(client, dataset, root, monkeypatch):
+    """The scene is listed while the broker takes its ingest, so a DELETE can come first: the upload then says so
+    (it had been a 500 from the task id's write), and neither the scene, its bytes nor a replay of its key stay."""
+    from voxe_service.queue import TaskQueue
+
+    send_ingest, deleted = TaskQueue.send_ingest, []
+
+    def deleted_meanwhile(self, scene_id):
+        deleted.append(client.delete(f"/v1/scenes/{scene_id}").status_code)
+        return send_ingest(self, scene_id)
+
+    monkeypatch.setattr(TaskQueue, "send_ingest", deleted_meanwhile)
+    archive, retry = zip_folder(dataset, root / "ok.zip", prefix="mic_small"), {"Idempotency-Key": "once"}
+    with open(archive, "rb") as handle:
+        response = client.post("/v1/scenes", files={"archive": ("scene.zip", handle, "application/zip")}, headers=retry)
+    assert deleted == [204] and response.status_code == 409, response.text
+    assert "was deleted (DELETE /v1/scenes/" in response.json()["detail"]
+    assert client.get("/v1/scenes").json()["total"] == 0 and stored_files(root) == [] and staged(root) == []
+    with open(archive, "rb") as handle:
+        replay = client.post("/v1/scenes", files={"archive": ("scene.zip", handle, "application/zip")}, headers=retry)
+    assert replay.status_code == 409 and "has been deleted; use a new key" in replay.json()["detail"]
+
+
 def test_the_api_process_imports_no_worker_code():
     """The API sends tasks by name: building the app and a sender imports nothing of worker/."""
     import subprocess

@@ -64,7 +64,8 @@ async def one_archive(request: Request) -> None:
     responses={200: {"description": "a retry with the same Idempotency-Key: the scene it created"},
                401: {"description": "missing or invalid API key"},
                409: {"description": "a retry whose Idempotency-Key created a scene that has since been deleted, or "
-                                    "one sent while that first request has not answered yet (Retry-After)"},
+                                    "one sent while that first request has not answered yet (Retry-After); or the "
+                                    "scene was deleted before its upload answered"},
                413: {"description": "upload over a limit: its size, its count of files, a zip's compression ratio or "
                                     "an image's pixels (the message names the setting)"},
                422: {"description": "not a valid dataset (the message names the file and frame), or an "

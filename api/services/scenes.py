@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import BinaryIO
 
 from fastapi import HTTPException, status
-from sqlalchemy import func, select
+from sqlalchemy import func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -115,22 +115,28 @@ def _queue_ingest(session: Session, storage: Storage, queue: TaskQueue, scene: S
     Idempotency-Key go, so nothing is listed and a retry with the key uploads it anew. But the scene was listed
     while the broker took its time to refuse: a job accepted on it meanwhile keeps it, failed with the reason (as
     its ingest would have), and the job fails naming it."""
+    scene_id = scene.id
     try:
-        task_id = queue.send_ingest(scene.id)
+        task_id = queue.send_ingest(scene_id)
     except Exception as exc:  # noqa: BLE001 - broker down: nothing will ingest it
-        log.exception("could not queue the ingest of scene %s", scene.id)
+        log.exception("could not queue the ingest of scene %s", scene_id)
         reason = f"could not queue the ingest: {type(exc).__name__}: {exc}"
-        lock_scene(session, scene.id)  # before counting, as delete_scene does: a job is counted here or refused there
-        if session.scalar(select(func.count()).select_from(Job).where(Job.scene_id == scene.id)):
-            fail_scene(session, scene.id, reason)
+        lock_scene(session, scene_id)  # before counting, as delete_scene does: a job is counted here or refused there
+        if session.scalar(select(func.count()).select_from(Job).where(Job.scene_id == scene_id)):
+            fail_scene(session, scene_id, reason)
         else:
             session.delete(scene)
             if idem is not None:
                 idem.forget(session, key)
         session.commit()
-        storage.discard_prefixes(scene_key(scene.id))
+        storage.discard_prefixes(scene_key(scene_id))
         raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, reason) from None
-    scene.task_id = task_id
+    # Conditional: the scene was listed while the broker took the ingest, and a DELETE meanwhile had made this
+    # write fail with a 500 (the deletion stands: the ingest finds the scene gone and keeps nothing).
+    if session.execute(update(Scene).where(Scene.id == scene_id).values(task_id=task_id)).rowcount != 1:
+        session.rollback()
+        raise HTTPException(status.HTTP_409_CONFLICT, f"scene {scene_id!r} was deleted (DELETE /v1/scenes/{scene_id}) "
+                                                      "before its upload answered; nothing of it is kept")
     if idem is not None:  # only now may a retry replay it (Idempotency.replayed)
         idem.answered(session, key)
     session.commit()
