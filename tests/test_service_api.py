@@ -388,6 +388,37 @@ def test_a_scene_deleted_before_its_upload_answers_is_a_409_and_keeps_nothing(cl
     assert replay.status_code == 409 and "has been deleted; use a new key" in replay.json()["detail"]
 
 
+def test_a_job_deleted_with_its_scene_before_its_creation_answers_is_a_409(client, dataset, root, monkeypatch):
+    """A job is listed once recorded, so while the broker takes it the job can be canceled and its scene deleted:
+    POST /v1/jobs and POST /v1/evaluations then say so (re-reading the deleted job had been a 500)."""
+    from sqlalchemy import update
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+    from voxe_service.queue import TaskQueue
+
+    send, deleted = TaskQueue.send, []
+
+    def canceled_and_deleted_meanwhile(self, *args, **kwargs):
+        (queued,) = client.get("/v1/jobs", params={"state": "queued"}).json()["items"]
+        assert client.post(f"/v1/jobs/{queued['id']}/cancel").status_code == 200
+        deleted.append(client.delete(f"/v1/scenes/{queued['scene_id']}").status_code)
+        return send(self, *args, **kwargs)
+
+    edited, scene = make_scene(client, dataset, root), make_scene(client, dataset, root)
+    edit = client.post("/v1/jobs", json={"scene_id": edited["id"], **JOB}).json()
+    with session_scope() as session:
+        session.execute(update(Job).where(Job.id == edit["id"]).values(state="succeeded"))
+    monkeypatch.setattr(TaskQueue, "send", canceled_and_deleted_meanwhile)
+    evaluation = client.post("/v1/evaluations", json={"job_ids": [edit["id"]], "object": "mic"})
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}, headers={"Idempotency-Key": "once"})
+    assert deleted == [204, 204]
+    for response in (evaluation, job):
+        assert response.status_code == 409, response.text
+        assert "was canceled and deleted with its scene before its creation answered" in response.json()["detail"]
+    assert client.get("/v1/jobs").json()["total"] == 0 and stored_files(root) == []
+
+
 def test_the_api_process_imports_no_worker_code():
     """The API sends tasks by name: building the app and a sender imports nothing of worker/."""
     import subprocess

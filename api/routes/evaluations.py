@@ -27,7 +27,9 @@ _QUOTA = {429: {"description": "the key's quota of queued + running jobs is used
 
 @router.post("/v1/evaluations", status_code=status.HTTP_201_CREATED, response_model=JobOut,
              responses={404: {"description": "a listed job does not exist (or is another key's)"},
-                        409: {"description": "a listed job has not succeeded, or the workers lack a model it loads"},
+                        409: {"description": "a listed job has not succeeded, the workers lack a model it loads, or "
+                                             "the evaluation was canceled and deleted with its scene before its "
+                                             "creation answered"},
                         422: {"description": "invalid request, an evaluation listed, or jobs of different scenes"},
                         **_QUOTA},
              summary="Evaluate finished edit jobs of one scene (CLIP_sim, CLIP_dir, FID, PSNR/SSIM outside the mask)")

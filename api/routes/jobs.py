@@ -97,7 +97,8 @@ def _models(job: Job) -> Models:
                                              "reporting lacks a model the job loads (named, with how to provide it), "
                                              "a retry whose Idempotency-Key created a job that has since been "
                                              "deleted, or one sent while that first request has not answered yet "
-                                             "(Retry-After)"},
+                                             "(Retry-After); or the job was canceled and deleted with its scene "
+                                             "before its creation answered"},
                         422: {"description": "invalid job (the field is named), an Idempotency-Key reused "
                                              "with a different body, or a webhook_url the service will not call "
                                              "(the rule is named)"},

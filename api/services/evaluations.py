@@ -13,7 +13,7 @@ from sqlalchemy.orm import Session
 
 from api.schemas import EvaluationCreate, EvaluationParams, JobCreate, SweepCreate
 from api.services.jobs import (
-    add_jobs, fail_unsent, get_job, new_edit_job, reconstruction_for, request_cancel, send, usable_scene,
+    add_jobs, created_job, fail_unsent, get_job, new_edit_job, reconstruction_for, request_cancel, send, usable_scene,
 )
 from voxe_core.evaluate import paper_protocol
 from voxe_core.guidance.prompts import check_prompt_length
@@ -55,9 +55,9 @@ def create_evaluation(*, session: Session, settings: Settings, queue: TaskQueue,
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "the jobs edit different reconstructions of the "
                                                                   "scene (reconstruction parameters differ)")
     job = new_evaluation_job(key, settings, sources, body.object, body.params)
+    job_id = job.id
     send(session=session, queue=queue, jobs=add_jobs(session=session, key=key, settings=settings, jobs=[job]))
-    session.refresh(job)
-    return job
+    return created_job(session, job_id)
 
 
 def create_sweep(*, session: Session, settings: Settings, queue: TaskQueue, key: ApiKey, body: SweepCreate) -> str:

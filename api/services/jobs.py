@@ -216,6 +216,7 @@ def create_job(*, session: Session, settings: Settings, queue: TaskQueue, key: A
     scene = usable_scene(session=session, key=key, scene_id=body.scene_id, params=params)
     check_webhook(settings=settings, body=body)
     job = new_edit_job(body, key, settings, reconstruction_for(session=session, scene=scene, params=params))
+    job_id = job.id
     if job.webhook_url:  # after reconstruction_for: its own transaction must not wait on this one's write
         webhooks.key_secret(session, key)  # committed with the job
     try:
@@ -227,7 +228,7 @@ def create_job(*, session: Session, settings: Settings, queue: TaskQueue, key: A
     try:
         send(session=session, queue=queue, jobs=to_send, fail_refused=False)
     except HTTPException:  # 503: the broker refused it, so the job was never accepted (no failed event or webhook)
-        session.execute(delete(Job).where(Job.id == job.id))  # nothing listed; a retry with the key runs anew
+        session.execute(delete(Job).where(Job.id == job_id))  # nothing listed; a retry with the key runs anew
         if idem is not None:
             idem.forget(session, key)
         session.commit()
@@ -235,8 +236,16 @@ def create_job(*, session: Session, settings: Settings, queue: TaskQueue, key: A
     if idem is not None:  # only now may a retry replay it (Idempotency.replayed)
         idem.answered(session, key)
         session.commit()
-    session.refresh(job)
-    return job, False
+    return created_job(session, job_id), False
+
+
+def created_job(session: Session, job_id: str) -> Job:
+    """The job a request created, read anew once sent; 409 when it is gone: listed as soon as it is recorded, it can
+    be canceled and its scene deleted while the broker takes it (reading it again had raised, a 500)."""
+    if (job := session.get(Job, job_id, populate_existing=True)) is None:
+        raise HTTPException(status.HTTP_409_CONFLICT, f"job {job_id!r} was canceled and deleted with its scene "
+                                                      "before its creation answered")
+    return job
 
 
 def list_jobs(*, session: Session, key: ApiKey, state: str | None, scene_id: str | None, limit: int,
