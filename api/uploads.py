@@ -54,6 +54,7 @@ from voxe_service import datasets
 from voxe_service.datasets import (DATASET_ARCHIVE, MESH_FOLDER, MESH_FORMAT, MESH_NAMES, MESH_OPTIONS, UPLOAD_ARCHIVE,
                                    ignored, package)
 from voxe_service.scratch import locked_folder, sweep_unlocked
+from voxe_service.settings import SettingsError
 
 log = logging.getLogger("voxe.api")
 _RATIO_FLOOR = 4 << 20  # below this many bytes out of an entry (or the archive), any ratio is fine (text compresses)
@@ -514,8 +515,18 @@ def staging_folder(work_dir: Path) -> AbstractContextManager[Path]:
 
 def sweep_staging(work_dir: Path) -> int:
     """Remove the staging folders under ``work_dir/uploads`` no live process holds: those of an API process killed
-    mid-upload, kept for ever otherwise; the count removed. Safe beside the API processes sharing ``work_dir``."""
-    return sweep_unlocked(Path(work_dir) / _UPLOADS, _STAGING_PREFIX + "*")
+    mid-upload, kept for ever otherwise; the count removed. Safe beside the API processes sharing ``work_dir``.
+
+    Makes ``work_dir/uploads`` first, so a ``VOXE_WORK_DIR`` that cannot hold it (a file, a read-only folder) stops
+    the API at its start, naming the variable (:class:`SettingsError`): every upload had been a 500.
+    """
+    uploads = Path(work_dir) / _UPLOADS
+    try:
+        uploads.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SettingsError(f"bad service settings: VOXE_WORK_DIR={str(work_dir)!r}: cannot make the upload "
+                            f"staging folder {str(uploads)!r}: {exc.strerror}") from None
+    return sweep_unlocked(uploads, _STAGING_PREFIX + "*")
 
 
 def stage_upload(

@@ -298,6 +298,21 @@ def test_an_ingest_that_cannot_make_its_folder_still_removes_the_killed_runs_and
     assert list(work.iterdir()) == [] and len(os.listdir("/proc/self/fd")) == descriptors
 
 
+def test_a_work_dir_that_cannot_hold_uploads_stops_the_api_at_its_start_naming_the_variable(root, monkeypatch):
+    """VOXE_WORK_DIR naming a file had let the API start and answer every upload 500 (its staging folder unmade)."""
+    from api.main import create_app
+    from voxe_service.settings import SettingsError
+
+    not_a_folder = root / "work-file"
+    not_a_folder.write_text("")
+    monkeypatch.setenv("VOXE_WORK_DIR", str(not_a_folder))
+    _reset()
+    with pytest.raises(SettingsError, match=rf"^bad service settings: VOXE_WORK_DIR='{not_a_folder}': cannot make "
+                                            rf"the upload staging folder '{not_a_folder / 'uploads'}': Not a directory"):
+        with TestClient(create_app()):
+            pass
+
+
 def test_a_starting_api_process_removes_the_staging_folders_no_live_process_holds(root, monkeypatch):
     """An API process killed mid-upload (OOM, SIGKILL, a deploy) left its staging folder in work/uploads for good. A
     starting one removes those whose lock (flock on .owner) no process holds; an upload in progress in another
