@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import ipaddress
 import re
 import secrets
 from dataclasses import dataclass
@@ -84,17 +85,40 @@ def _live_key_id(token: str) -> str | None:
         return key.id if key else None
 
 
+def off_loopback_address(scope) -> str | None:
+    """The local address a request came in on when it is an IP address but not a loopback one; None for a loopback
+    address, a Unix socket or a test client's "testserver"."""
+    host = (scope.get("server") or (None,))[0]
+    try:
+        address = str(ipaddress.ip_address(host))
+    except (TypeError, ValueError):
+        return None
+    return None if is_loopback(address) else address
+
+
 class RequireKey:
     """ASGI middleware: with authentication on, a /v1 request without a live key is answered 401 before its
-    body is read, so an anonymous client cannot make the server receive and spool an upload."""
+    body is read, so an anonymous client cannot make the server receive and spool an upload.
+
+    With authentication off, a /v1 request that came in on an address other than loopback is a 401 too: VOXE_HOST
+    only tells the API where uvicorn listens, and uvicorn run with ``--host 0.0.0.0`` beside the default VOXE_HOST
+    had served the network as the local key, with no key asked."""
 
     def __init__(self, app):
         self.app = app
 
     async def __call__(self, scope, receive, send):
-        if (scope["type"] != "http" or not route_path(scope).startswith("/v1") or scope["method"] == "OPTIONS"
-                or not get_settings().auth_enabled):  # OPTIONS: the Allow header only (api/http_semantics.py)
-            return await self.app(scope, receive, send)
+        if scope["type"] != "http" or not route_path(scope).startswith("/v1") or scope["method"] == "OPTIONS":
+            return await self.app(scope, receive, send)  # OPTIONS: the Allow header only (api/http_semantics.py)
+        settings = get_settings()
+        if not settings.auth_enabled:
+            if (address := off_loopback_address(scope)) is None:
+                return await self.app(scope, receive, send)
+            detail = (f"authentication is off (VOXE_AUTH={settings.auth}, VOXE_HOST={settings.host}), so only "
+                      f"loopback connections are served, and this one came in on {address}: have uvicorn listen on "
+                      f"VOXE_HOST (--host {settings.host}, as bash .ci/serve does), or turn authentication on "
+                      "(VOXE_AUTH=on; keys from 'python -m api.admin create-key')")
+            return await JSONResponse({"detail": detail}, status.HTTP_401_UNAUTHORIZED)(scope, receive, send)
         token = presented_token(Request(scope))
         try:
             key_id = await anyio.to_thread.run_sync(_live_key_id, token) if token else None

@@ -181,6 +181,24 @@ def test_auth_is_off_only_on_loopback(root, monkeypatch, caplog):  # noqa: F811
         assert client.get("/v1/scenes").status_code == 401
 
 
+def test_with_authentication_off_only_loopback_connections_are_served(root):  # noqa: F811
+    """VOXE_HOST only tells the API where uvicorn listens: uvicorn run with --host 0.0.0.0 beside the default
+    VOXE_HOST had served whoever reached the machine's address as the local key, no key asked."""
+    from api.main import create_app
+
+    app = create_app()
+    for server in ("127.0.0.1", "[::1]", "[::ffff:127.0.0.1]", "192.0.2.2", "[2001:db8::2]"):
+        with TestClient(app, base_url=f"http://{server}:8000") as client:  # (the address the request came in on)
+            response = client.get("/v1/scenes")
+            assert client.get("/healthz").status_code == 200 and client.options("/v1/scenes").status_code == 204
+        if server in ("192.0.2.2", "[2001:db8::2]"):
+            assert response.status_code == 401, (server, response.text)
+            assert (f"authentication is off (VOXE_AUTH=auto, VOXE_HOST=127.0.0.1), so only loopback connections are "
+                    f"served, and this one came in on {server.strip('[]')}") in response.json()["detail"]
+        else:
+            assert response.status_code == 200, (server, response.text)
+
+
 def test_resources_made_before_keys_belong_to_the_local_key(database_url):
     from alembic import command
     from sqlalchemy import text

@@ -198,13 +198,16 @@ class Settings(BaseSettings):
 
 
 def is_loopback(host: str) -> bool:
-    """True for localhost and loopback addresses (127.0.0.0/8, ::1); a name other than localhost is not."""
+    """True for localhost and loopback addresses (127.0.0.0/8, ::1, and 127.x mapped into IPv6 as a dual-stack
+    socket reports it); a name other than localhost is not."""
     if host.strip().lower() == "localhost":
         return True
     try:
-        return ipaddress.ip_address(host.strip().strip("[]")).is_loopback
+        address = ipaddress.ip_address(host.strip().strip("[]"))
     except ValueError:
         return False
+    return address.is_loopback or (address.version == 6 and address.ipv4_mapped is not None
+                                   and address.ipv4_mapped.is_loopback)
 
 
 def model_label(model: str) -> str:
