@@ -298,6 +298,11 @@ def test_webhook_events_need_a_url_and_name_known_kinds(client):
         assert response.status_code == 422 and f"a {rule} address" in response.json()["detail"], address
     response = test_client.post("/v1/jobs", json={**body, "webhook_url": "http://1.1.1.1:0/h"})  # had been 201
     assert response.status_code == 422 and "names port 0, where nothing can listen" in response.json()["detail"]
+    for url, problem in (("http://1.1.1.1:65536/h", "Port out of range 0-65535"),  # had blamed the name lookup
+                         ("http://1.1.1.1:https/h", "Port could not be cast to integer value as 'https'")):
+        response = test_client.post("/v1/jobs", json={**body, "webhook_url": url})
+        assert response.status_code == 422 and response.json()["detail"] == (
+            f"webhook_url {url!r} has an invalid port: {problem}")
 
 
 def test_a_webhook_connects_only_to_the_address_its_name_was_checked_as(monkeypatch):

@@ -84,8 +84,8 @@ def check_target(url: str, allow_networks: list[ipaddress._BaseNetwork], timeout
         raise TargetRefused(f"webhook_url {url!r} must be an http:// or https:// URL with a host")
     try:
         port = parts.port
-    except ValueError as exc:
-        raise TargetRefused(f"webhook_url host {host!r} does not resolve: {exc}") from None
+    except ValueError as exc:  # out of range, or not a number (its message had blamed the host's name lookup)
+        raise TargetRefused(f"webhook_url {url!r} has an invalid port: {exc}") from None
     if port == 0:  # had been taken for the scheme's default and accepted, though nothing can be sent to it
         raise TargetRefused(f"webhook_url {url!r} names port 0, where nothing can listen")
     port = port or (443 if parts.scheme == "https" else 80)
