@@ -434,6 +434,25 @@ def test_a_job_deleted_with_its_scene_before_its_creation_answers_is_a_409(clien
     assert client.get("/v1/jobs").json()["total"] == 0 and stored_files(root) == []
 
 
+def test_a_cancel_whose_job_is_deleted_with_its_scene_meanwhile_is_a_404(client, dataset, root, monkeypatch):
+    """Canceling a canceled job again while its scene is deleted: the answer re-read a deleted row, a 500."""
+    from api.services import jobs as job_service
+
+    scene = make_scene(client, dataset, root)
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}).json()
+    assert client.post(f"/v1/jobs/{job['id']}/cancel").json()["state"] == "canceled"
+    request_cancel, deleted = job_service.request_cancel, []
+
+    def deleted_meanwhile(**kwargs):
+        request_cancel(**kwargs)
+        deleted.append(client.delete(f"/v1/scenes/{scene['id']}").status_code)
+
+    monkeypatch.setattr(job_service, "request_cancel", deleted_meanwhile)
+    response = client.post(f"/v1/jobs/{job['id']}/cancel")
+    assert deleted == [204] and response.status_code == 404, response.text
+    assert response.json()["detail"] == f"job {job['id']!r} not found"
+
+
 def test_the_api_process_imports_no_worker_code():
     """The API sends tasks by name: building the app and a sender imports nothing of worker/."""
     import subprocess

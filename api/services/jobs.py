@@ -38,8 +38,9 @@ log = logging.getLogger("voxe.api")
 
 
 def get_job(*, session: Session, key: ApiKey, job_id: str) -> Job:
-    """The key's job; another key's job is as absent as a missing one."""
-    job = session.get(Job, job_id)
+    """The key's job, read anew (its row as it is now: a deleted one is gone); another key's job is as absent as a
+    missing one."""
+    job = session.get(Job, job_id, populate_existing=True)
     if job is None or job.owner_key_id != key.id:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id!r} not found")
     return job
@@ -264,9 +265,9 @@ def list_jobs(*, session: Session, key: ApiKey, state: str | None, scene_id: str
 
 def cancel_job(*, session: Session, key: ApiKey, job_id: str) -> Job:
     """Cancel the key's job (409 once it succeeded or failed); canceling a canceled job changes nothing."""
-    job = get_job(session=session, key=key, job_id=job_id)
+    get_job(session=session, key=key, job_id=job_id)
     request_cancel(session=session, job_ids=[job_id])  # flags only an unfinished job
-    session.refresh(job)
+    job = get_job(session=session, key=key, job_id=job_id)  # (a 404 if deleted with its scene meanwhile)
     if job.state in TERMINAL_STATES and job.state != CANCELED:  # (also one that ended as the request came)
         raise HTTPException(status.HTTP_409_CONFLICT, f"job {job_id!r} already {job.state}")
     return job
