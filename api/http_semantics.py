@@ -31,7 +31,7 @@ from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from starlette.exceptions import HTTPException as StarletteHTTPException
-from starlette.routing import Match
+from starlette.routing import Match, Mount
 
 from voxe_service.db import DATABASE_UNAVAILABLE, database_outage
 from voxe_service.storage import StorageError, StorageUnavailable
@@ -51,27 +51,36 @@ RETRY_AFTER_S = 5
 _UNAVAILABLE_503 = "the database or the storage is busy or unreachable (Retry-After says when to try again)"
 
 
+_MOUNTED_METHODS = ("GET", "HEAD")  # what a mount serves: the only one is the UI's static files (api/ui.py)
+
+
 def allowed_methods(app: FastAPI, path: str) -> list[str]:
     """Sorted methods some route fully matches on ``path`` (OPTIONS always among them).
 
-    Asked of each top-level route per method, so routes inside included routers count too.
+    Asked of each top-level route per method, so routes inside included routers count too. A mount matches any
+    method: it counts for those it serves.
     """
     def served(method: str) -> bool:
         scope = {"type": "http", "path": path, "method": method, "root_path": ""}
-        return any(route.matches(scope)[0] == Match.FULL for route in app.router.routes)
+        return any(route.matches(scope)[0] == Match.FULL
+                   and (not isinstance(route, Mount) or method in _MOUNTED_METHODS) for route in app.router.routes)
 
     return sorted({"OPTIONS", *filter(served, _METHODS)})
 
 
 def route_path(scope) -> str:
     """The path the app's routes match: ``scope["path"]`` without the ``root_path`` a proxy mounts the service
-    under (``uvicorn --root-path /api``: "/api/v1/jobs" is routed as "/v1/jobs").
+    under (``uvicorn --root-path /api``: "/api/v1/jobs" is routed as "/v1/jobs"). Inside a mount (``/static``), whose
+    scope's ``root_path`` takes in the mount's own prefix, the app's (``app_root_path``): the 405 of a static file
+    had named the methods of its path under the mount ("/app.js": none but OPTIONS).
 
     Examples:
         >>> route_path({"path": "/api/v1/jobs", "root_path": "/api"}), route_path({"path": "/v1/jobs"})
         ('/v1/jobs', '/v1/jobs')
+        >>> route_path({"path": "/static/app.js", "root_path": "/static", "app_root_path": ""})
+        '/static/app.js'
     """
-    path, root = scope["path"], scope.get("root_path", "")
+    path, root = scope["path"], scope.get("app_root_path", scope.get("root_path", ""))
     return path[len(root):] if root and path.startswith(root + "/") else path
 
 

@@ -292,6 +292,16 @@ def test_options_and_405_answer_each_paths_documented_methods(client, spec):
         assert "405" in item["options"]["responses"]
 
 
+def test_the_ui_s_static_files_answer_options_and_405_with_the_methods_they_serve(client):
+    """Inside the /static mount the 405 handler had read the path under the mount ("/app.js"): OPTIONS said only
+    OPTIONS was served, and a POST's 405 named OPTIONS as the one method allowed, though GET serves the file."""
+    assert client.get("/static/app.js").status_code == 200
+    assert client.options("/static/app.js").headers["allow"] == "GET, HEAD, OPTIONS"
+    refused = client.post("/static/app.js")
+    assert refused.status_code == 405 and refused.headers["allow"] == "GET, HEAD, OPTIONS"
+    assert refused.json()["detail"] == "method POST is not allowed on /static/app.js; allowed: GET, HEAD, OPTIONS"
+
+
 def test_behind_a_proxy_prefix_the_405_still_names_the_paths_methods(client):
     """``uvicorn --root-path /api``: the request path carries the prefix ("/api/v1/jobs"), the routes do not."""
     import anyio
