@@ -453,6 +453,22 @@ def test_a_cancel_whose_job_is_deleted_with_its_scene_meanwhile_is_a_404(client,
     assert response.json()["detail"] == f"job {job['id']!r} not found"
 
 
+def test_canceling_a_sweeps_edit_that_waits_for_its_scene_fails_its_evaluation_with_it(client, dataset, root):
+    """The evaluation rides in its edit's chain: canceling the edit while its scene was processing had left it
+    queued, never sent (its message still 'waiting for the scene'), holding a quota slot and the scene, until the
+    reaper failed it as never handed to the broker. It fails as the chain's evaluate stage fails it."""
+    scene = upload_zip(client, zip_folder(dataset, root / "ok.zip", prefix="mic_small")).json()
+    sweep = client.post("/v1/sweeps", json={"scenes": [{"scene_id": scene["id"], "object": "microphone"}]}).json()
+    canceled, other = sweep["entries"][:2]
+    assert client.post(f"/v1/jobs/{canceled['edit_job_id']}/cancel").json()["state"] == "canceled"
+    evaluation = client.get(f"/v1/jobs/{canceled['evaluation_job_id']}").json()
+    assert evaluation["state"] == "failed" and evaluation["error"] == (
+        f"evaluate: source job {canceled['edit_job_id']} canceled: canceled while queued")
+    assert client.get(f"/v1/jobs/{other['evaluation_job_id']}").json()["state"] == "queued"
+    assert ingest(scene["id"])["state"] == "ready"
+    assert client.get(f"/v1/sweeps/{sweep['id']}").json()["counts"] == {"canceled": 1, "failed": 1, "queued": 10}
+
+
 def test_the_api_process_imports_no_worker_code():
     """The API sends tasks by name: building the app and a sender imports nothing of worker/."""
     import subprocess

@@ -29,7 +29,7 @@ from voxe_service.models import (
     CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, READY, TERMINAL_STATES, ApiKey, Job, Reconstruction, Scene,
     WebhookDelivery, new_id, utcnow,
 )
-from voxe_service.queue import QueueUnavailable, TaskQueue, dispatch_job
+from voxe_service.queue import QueueUnavailable, TaskQueue, dispatch_job, evaluations_waiting_on
 from voxe_service.quotas import lock_key
 from voxe_service.scenes import lock_scene
 from voxe_service.settings import Settings
@@ -274,10 +274,19 @@ def cancel_job(*, session: Session, key: ApiKey, job_id: str) -> Job:
 
 
 def request_cancel(*, session: Session, job_ids: list[str]) -> None:
-    """Flag the unfinished ``job_ids`` canceled: queued ones at once, running ones when their task next checks."""
+    """Flag the unfinished ``job_ids`` canceled: queued ones at once, running ones when their task next checks.
+
+    A sweep's evaluations waiting on an edit canceled while queued fail with it, as its chain's evaluate stage would
+    fail them: one whose edit waited for its scene's ingest had stayed queued, never sent, holding a quota slot and
+    its scene, until the reaper failed it as never handed to the broker.
+    """
     session.execute(update(Job).where(Job.id.in_(job_ids), Job.state.not_in(TERMINAL_STATES))
                     .values(cancel_requested=True, updated_at=utcnow()))
-    finish_jobs(session, job_ids, CANCELED, message="canceled while queued", where=[Job.state == QUEUED])
+    message = "canceled while queued"
+    canceled = finish_jobs(session, job_ids, CANCELED, message=message, where=[Job.state == QUEUED])
+    for job in session.scalars(select(Job).where(Job.id.in_(canceled))).all():
+        finish_jobs(session, evaluations_waiting_on(session, job), FAILED,
+                    error=f"evaluate: source job {job.id} {CANCELED}: {message}")
     session.commit()
 
 
