@@ -118,7 +118,8 @@ class RequireKey:
                       f"loopback connections are served, and this one came in on {address}: have uvicorn listen on "
                       f"VOXE_HOST (--host {settings.host}, as bash .ci/serve does), or turn authentication on "
                       "(VOXE_AUTH=on; keys from 'python -m api.admin create-key')")
-            return await JSONResponse({"detail": detail}, status.HTTP_401_UNAUTHORIZED)(scope, receive, send)
+            response = JSONResponse({"detail": detail}, status.HTTP_401_UNAUTHORIZED, headers=CHALLENGE)
+            return await response(scope, receive, send)
         token = presented_token(Request(scope))
         try:
             key_id = await anyio.to_thread.run_sync(_live_key_id, token) if token else None

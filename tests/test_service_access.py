@@ -192,7 +192,7 @@ def test_with_authentication_off_only_loopback_connections_are_served(root):  # 
             response = client.get("/v1/scenes")
             assert client.get("/healthz").status_code == 200 and client.options("/v1/scenes").status_code == 204
         if server in ("192.0.2.2", "[2001:db8::2]"):
-            assert response.status_code == 401, (server, response.text)
+            assert response.status_code == 401 and response.headers["www-authenticate"] == "Bearer", server
             assert (f"authentication is off (VOXE_AUTH=auto, VOXE_HOST=127.0.0.1), so only loopback connections are "
                     f"served, and this one came in on {server.strip('[]')}") in response.json()["detail"]
         else:
