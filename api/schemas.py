@@ -99,7 +99,8 @@ class RefineParams(Strict):
     iterations: int = Field(paper.SERVICE_REFINE_ITERATIONS, ge=0, le=100_000,
                             description="fitting steps of the 3D attention grids after their back-projection start (the paper: 1500)")
     lift_start: Literal["backprojection", "constant"] = Field(
-        "backprojection", description="start of the attention grids: the maps' weighted back-projection, or 0 (the paper's)")
+        "backprojection", description="start of the attention grids: the maps' weighted back-projection, or 0 (the paper's; "
+        "it needs iterations > 0)")
     smoothing_sigma: float = Field(paper.SERVICE_SMOOTHING_SIGMA, ge=0, le=16,
                                    description="std in attention cells of the 2D maps' 3x3 Gaussian, applied on the 16x16 map and again "
                                                "after upsampling (the authors' code)")
@@ -119,6 +120,15 @@ class RefineParams(Strict):
                                           "(the authors' code: among P_object > P_edit)")
     sigma: float = Field(paper.CUT_SIGMA, gt=0, le=1e6, description="colour scale of the pairwise weights")
     smoothness: float = Field(paper.CUT_SMOOTHNESS, ge=0, le=1e6, description="graph-cut smoothness weight λ")
+
+    @model_validator(mode="after")
+    def _constant_start_is_fitted(self):
+        # At submission: the worker's RefineConfig refuses it too, but only once the job's edit has run.
+        if self.lift_start == "constant" and self.iterations == 0:
+            raise ValueError("refine.lift_start 'constant' needs iterations > 0 (the paper: "
+                             f"{paper.REFINE_ITERATIONS}): unfitted, both attention grids stay at their start and the "
+                             "graph cut has no seeds")
+        return self
 
 
 class ExportParams(Strict):

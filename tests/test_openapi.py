@@ -22,6 +22,7 @@ BEYOND_SCHEMA = (
     "edit_words is required for a local edit", "does not occur in the prompt", "cover the whole prompt",
     "apply to local edits only", "webhook_events needs a webhook_url", "takes one value or one per stage",
     "cannot give backbone 'scene'", "needs a scene uploaded as a mesh", "tokens as the model sees it",
+    "needs iterations > 0",
 )
 HOOK = "http://127.0.0.1:9/hook"
 LIMITED = settings(max_examples=60, deadline=None, database=None,

@@ -636,6 +636,7 @@ def test_unknown_fields_are_422_naming_the_field(client, dataset, root, body, lo
     ({"mode": "global"}, "edit_words apply to local edits only"),
     ({"edit_words": ["a mic wearing big sunglasses"]}, "cover the whole prompt"),
     ({"prompt": "   "}, "no words"),
+    ({"params": {"refine": {"lift_start": "constant"}}}, "refine.lift_start 'constant' needs iterations > 0"),
 ])
 def test_bad_edit_words_are_422(client, dataset, root, body, message):
     scene = make_scene(client, dataset, root)
