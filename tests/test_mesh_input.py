@@ -272,6 +272,17 @@ def test_materials_sharing_one_image_share_its_block_in_the_atlas(tmp_path):
     albedo = mesh.albedo(order, np.full((18, 3), 1 / 3))
     expected = sample_texture(texel.astype(np.float32) / 255, np.array([[0.3, 0.6]]))
     assert np.allclose(albedo[:16], expected, atol=1e-6) and np.allclose(albedo[16:], [1, 0, 0], atol=1e-6)
+    for colour in ("red", "blue"):  # palette images of the same indices (all 0), different palettes: two blocks
+        indexed = Image.new("P", (4, 4), 0)
+        indexed.putpalette([255, 0, 0] if colour == "red" else [0, 0, 255])
+        indexed.save(tmp_path / f"{colour}8.png")
+    (tmp_path / "swapped.mtl").write_text("newmtl a\nmap_Kd red8.png\nnewmtl b\nmap_Kd blue8.png\n")
+    (tmp_path / "swapped.obj").write_text("mtllib swapped.mtl\n" + "".join(
+        f"v 0 0 {z}\nv 1 0 {z}\nv 0 1 {z}\n" for z in range(2)) + "vt 0.5 0.5\nusemtl a\nf 1/1 2/1 3/1\nusemtl b\n"
+        "f 4/1 5/1 6/1\n")
+    mesh = load_mesh(tmp_path / "swapped.obj", up_axis="z")
+    order = np.argsort(mesh.vertices[mesh.faces].mean(1)[:, 2])
+    assert np.allclose(mesh.albedo(order, np.full((2, 3), 1 / 3)), [[1, 0, 0], [0, 0, 1]], atol=1e-6)
 
 
 def test_colour_only_materials_are_their_kd_at_any_uv_and_beside_a_texture_it_is_sampled_as_alone(tmp_path):
@@ -330,11 +341,11 @@ def test_nan_texture_coordinates_are_refused(tmp_path):
     with pytest.raises(MeshError, match=r"named.obj: texture coordinates \(vt\) contain NaN or Inf"):
         load_mesh(tmp_path / "named.obj")
     (tmp_path / "unplaced.obj").write_text("mtllib tex.mtl\nv -1 -1 0\nv 1 -1 0\nv 1 1 0\nusemtl skin\nf 1 2 3\n")
-    (tmp_path / "beside.obj").write_text("mtllib tex.mtl\nv -1 -1 0\nv 1 -1 0\nv 1 1 0\nf 1 2 3\nusemtl skin\n"
-                                         "f 1 2 3\n")  # beside another part: it had loaded the image's centre
+    (tmp_path / "beside.obj").write_text("mtllib tex.mtl\nv -1 -1 0\nv 1 -1 0\nv 1 1 0\nvt 0 0\nf 1/1 2/1 3/1\n"
+                                         "usemtl skin\nf 1 2 3\n")  # beside a part with vt: it had loaded the image's centre
     for name in ("unplaced.obj", "beside.obj"):
-        with pytest.raises(MeshError, match=rf"^{name}: its .mtl's map_Kd names an image but the mesh has no "
-                                            r"texture coordinates \(vt\)$"):  # it had been refused as NaN vt
+        with pytest.raises(MeshError, match=rf"^{name}: its .mtl's map_Kd names an image but material 'skin' has no "
+                                            r"texture coordinates \(vt\) to place it$"):  # had been refused as NaN vt
             load_mesh(tmp_path / name)
 
 

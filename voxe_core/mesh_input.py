@@ -332,8 +332,10 @@ def _pixels_key(source) -> tuple:
 
     pixels = source.tobytes()
     digest = hashlib.blake2b(pixels, digest_size=16).digest() if len(pixels) > 64 else pixels
-    shape = source.shape if isinstance(source, np.ndarray) else (source.mode, source.size)
-    return shape, digest
+    if isinstance(source, np.ndarray):
+        return source.shape, digest
+    # a palette image's bytes are its indices: two palettes over the same indices had shared one block
+    return source.mode, source.size, bytes(source.getpalette() or ()), repr(source.info.get("transparency")), digest
 
 
 def _part_colour(part, name: str) -> tuple:
@@ -354,8 +356,9 @@ def _part_colour(part, name: str) -> tuple:
     if getattr(material, "image", None) is None:
         return _written_diffuse(part.visual).reshape(1, 1, 3), centre
     if uv is None:
-        raise MeshError(f"{name}: {_image_source(name)} names an image but the mesh has no texture coordinates "
-                        f"({'texcoord' if name.lower().endswith('.ply') else 'vt'})")
+        whose = f"material {material.name!r}" if getattr(material, "name", None) else "the mesh"
+        raise MeshError(f"{name}: {_image_source(name)} names an image but {whose} has no texture coordinates "
+                        f"({'texcoord' if name.lower().endswith('.ply') else 'vt'}) to place it")
     return material.image, np.asarray(uv, dtype=np.float64)
 
 
