@@ -36,14 +36,19 @@ def pose_view_word(elevation_deg: float, azimuth_deg: float, front_azimuth_deg: 
     return view_word(float(elevation_deg), float(azimuth_deg) - float(front_azimuth_deg))
 
 
+def prompt_text(user_text: str) -> str:
+    """The user's prompt as the model reads it, before any prefix: whitespace collapsed, trailing full stops dropped."""
+    return " ".join(str(user_text).split()).rstrip(". ").strip()
+
+
 def edit_prompt(user_text: str, view_word: str | None = None) -> str:
     """``"a render of <text>[, <view> view]"`` (SPEC §2).
 
-    Whitespace is collapsed and trailing full stops dropped. The prefix is not
+    The text is :func:`prompt_text`'s. The prefix is not
     doubled when the user already wrote it (any case). ``view_word`` is one of
     :data:`VIEW_WORDS` or ``None`` for no view suffix.
     """
-    text = " ".join(str(user_text).split()).rstrip(". ").strip()
+    text = prompt_text(user_text)
     if not text:
         raise ValueError("the edit prompt is empty")
     if text.lower() == RENDER_PREFIX:

@@ -10,7 +10,7 @@ import torch
 from voxe_core.cameras import Cameras
 from voxe_core.devices import PeakMemory, resolve_device
 from voxe_core.grid import VoxelGrid
-from voxe_core.guidance.prompts import edit_prompt
+from voxe_core.guidance.prompts import edit_prompt, prompt_text
 from voxe_core.progress import Callbacks, Progress, in_phases
 from voxe_core.refine.config import RefineConfig
 from voxe_core.refine.cut import GraphCutStats, graph_cut_detailed, node_mask, probabilities
@@ -101,9 +101,10 @@ def refine(
     memory = PeakMemory(device).start()
     initial_grid, edited_grid = initial_grid.to(device), edited_grid.to(device)
     text = edit_prompt(prompt)
-    # Fail on a bad word before rendering anything, read in the user's own text: in ``text`` the prefix this stage
-    # adds had supplied an edit word ("render") or the words naming the object (a prompt of the edit words alone).
-    token_groups(guidance, prompt, edit_words)
+    # Fail on a bad word before rendering anything, read in the user's own text as the model reads it: in ``text``
+    # the prefix this stage adds had supplied an edit word ("render") or the words naming the object (a prompt of
+    # the edit words alone; its trailing full stop, which the model never reads, too).
+    token_groups(guidance, prompt_text(prompt), edit_words)
     nodes = node_mask(edited_grid, config.node_alpha, config.node_rule).cpu()  # and on a NaN density
     centre = initial_grid.orbit_centre()  # G_i's: the object, wherever it sits
     cameras = attention_cameras(config, centre=centre)
