@@ -126,6 +126,19 @@ def test_extreme_and_nan_values_in_empty_space_leave_the_fill_finite(tmp_path):
     assert torch.equal(renders(loaded, skip_empty=False), renders(clean, skip_empty=False))
 
 
+def test_the_fill_stays_within_the_values_it_stands_for():
+    """float32's mean of values that are not all one can round past them all (0.3 an ulp lower at one of 48³'s
+    left-out vertices: a fill above every left-out density, which could make empty cells occupied at a threshold
+    between them)."""
+    cells = torch.zeros(47, 47, 47, dtype=torch.bool)
+    cells[24, 24, 24] = True
+    features = torch.full((48, 48, 48, 4), 0.3)
+    lower = torch.nextafter(torch.tensor(0.3), torch.tensor(0.0))
+    features[0, 0, 0] = lower
+    fill = sparse_tensors(features, cells)[0]["fill"]
+    assert bool(((fill >= lower) & (fill <= torch.tensor(0.3))).all()), fill.tolist()
+
+
 def test_softplus_and_scene_grids_keep_their_occupancy_and_renders(tmp_path, make_sphere_grid):
     sphere = noisy_sphere(make_sphere_grid, resolution=33)
     softplus = VoxelGrid(33, activation="softplus", features=sphere.features.detach() * 10)

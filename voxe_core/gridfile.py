@@ -87,6 +87,8 @@ def sparse_tensors(features: torch.Tensor, cells: torch.Tensor, margin: int = DE
     fill = features.new_zeros(features.shape[-1])
     if dropped.shape[0]:  # a channel whose left-out values are all one value: that value, not float32's mean of it
         fill = torch.where((dropped == dropped[0]).all(0), dropped[0], dropped.mean(0))
+        fill = torch.minimum(torch.maximum(fill, dropped.amin(0)), dropped.amax(0))  # float32's rounding can leave
+        # the range (a mean above every density left out, all below the threshold, had made empty cells occupied)
     if not bool(torch.isfinite(fill).all()):  # an infinity, or a NaN among them: the careful mean, only then
         extreme = torch.finfo(torch.float32).max
         dropped.clamp_(-extreme, extreme)  # a copy (mask indexing), clamped in place; NaN stays NaN
