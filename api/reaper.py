@@ -95,8 +95,9 @@ def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[
         ).all()
         alive_now = set(session.scalars(alive)) if running else set()
         for job in running:
-            if job.run_token is None and job.cancel_requested:
-                reason = f"asked between stages, after {job.stage}"
+            if job.run_token is None and job.cancel_requested:  # (a stage not done: its run gave the job back)
+                done = job.stage in (job.completed_stages or [])
+                reason = f"asked between stages, after {job.stage}" if done else f"asked during {job.stage}"
             elif job.worker_hostname not in alive_now:
                 reason = (f"worker {job.worker_hostname or '(unknown)'} stopped while the job was in {job.stage}: "
                           f"no heartbeat and no progress for {timeout:.0f} s (VOXE_JOB_STALE_TIMEOUT_S)")

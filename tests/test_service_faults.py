@@ -354,11 +354,13 @@ def test_a_cancel_between_stages_ends_the_job_at_the_next_reaper_pass(db):
     between = add_job(scene, "running", 0, "alive@host", "edit", completed_stages=["reconstruct", "edit"])
     held = add_job(scene, "running", 0, "alive@host", "edit", run_token="t",
                    run_lease_until=utcnow() + timedelta(seconds=60))
-    with session_scope() as session:
-        request_cancel(session=session, job_ids=[between, held])
-    assert reap_orphaned_jobs(db) == [between]
+    given_back = add_job(scene, "running", 0, "alive@host", "edit", completed_stages=["reconstruct"])  # (an outage
+    with session_scope() as session:  # kept its run from recording the cancel: it released the job, edit not done)
+        request_cancel(session=session, job_ids=[between, held, given_back])
+    assert sorted(reap_orphaned_jobs(db)) == sorted([between, given_back])
     ended = job_row(between)
     assert (ended.state, ended.message, ended.error) == ("canceled", "canceled: asked between stages, after edit", None)
+    assert (job_row(given_back).state, job_row(given_back).message) == ("canceled", "canceled: asked during edit")
     assert ended.finished_at is not None and [e["kind"] for e in events_of(between)] == ["canceled"]
     assert (job_row(held).state, job_row(held).cancel_requested) == ("running", True)
 
@@ -1122,6 +1124,26 @@ def test_a_stages_start_committed_with_its_answer_lost_is_the_runs_at_once(db, m
         assert len(tokens) == 2 and tokens[0] == tokens[1] == job.run_token
         assert (job.state, job.stage, job.worker_hostname, job.requeues) == ("running", stage, "w@host", requeues)
         assert [e["kind"] for e in events_of(job_id)] == ["stage_started"]
+
+
+def test_a_failure_of_a_job_that_ended_meanwhile_is_not_logged_as_its_end(db, caplog):
+    """The run's failure finds the job ended (canceled by the reaper, say): its update takes no effect, and the log
+    had said "job X failed" of a job that was canceled."""
+    import logging
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, utcnow
+    from worker import tasks
+
+    job_id = add_job(add_scene(), "running", 0, stage="edit", run_token="T",
+                     run_lease_until=utcnow() + timedelta(seconds=60))
+    with session_scope() as session:
+        job = session.get(Job, job_id)
+        job.state, job.message = "canceled", "canceled: asked during edit"
+    caplog.set_level(logging.INFO, "voxe.worker")
+    tasks._end_job(job_id, "edit", "T", "failed", db, error="edit: RuntimeError: boom")
+    assert (job_row(job_id).state, job_row(job_id).error) == ("canceled", None)
+    assert not [r for r in caplog.records if "failed" in r.getMessage() and r.levelno >= logging.ERROR]
 
 
 def test_a_start_whose_answer_was_lost_and_every_retry_refused_leaves_the_job_free(db, monkeypatch):

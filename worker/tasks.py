@@ -189,7 +189,7 @@ def _end_job(job_id: str, stage: str, run_token: str, state: str, settings, mess
             _release_and_requeue(job_id, stage, run_token, cause, exc)
         return _give_back_and_requeue(job_id, stage, run_token, f"{stage} failed, and a database outage ({why}) "
                                       f"kept that from being recorded: {error}", cause, exc, settings)
-    if error:  # recorded (a re-queued failure is not, yet: it may end otherwise)
+    if error and ended:  # recorded by this run (a re-queued failure is not, yet: it may end otherwise)
         log.error("job %s failed: %s", job_id, error)
     return _ended(job_id, stage, state, ended, settings)
 
