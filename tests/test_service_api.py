@@ -434,6 +434,25 @@ def test_a_job_deleted_with_its_scene_before_its_creation_answers_is_a_409(clien
     assert client.get("/v1/jobs").json()["total"] == 0 and stored_files(root) == []
 
 
+def test_a_job_canceled_while_its_creation_sends_it_keeps_the_message_of_its_cancel(client, dataset, root, monkeypatch):
+    """The send's record of the task id had overwritten the canceled job's message with none."""
+    from voxe_service.queue import TaskQueue
+
+    send = TaskQueue.send
+
+    def canceled_meanwhile(self, *args, **kwargs):
+        (queued,) = client.get("/v1/jobs", params={"state": "queued"}).json()["items"]
+        assert client.post(f"/v1/jobs/{queued['id']}/cancel").json()["message"] == "canceled while queued"
+        return send(self, *args, **kwargs)
+
+    scene = make_scene(client, dataset, root)
+    monkeypatch.setattr(TaskQueue, "send", canceled_meanwhile)
+    created = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB})
+    assert created.status_code == 201, created.text
+    job = client.get(f"/v1/jobs/{created.json()['id']}").json()
+    assert (job["state"], job["message"]) == ("canceled", "canceled while queued")
+
+
 def test_a_cancel_whose_job_is_deleted_with_its_scene_meanwhile_is_a_404(client, dataset, root, monkeypatch):
     """Canceling a canceled job again while its scene is deleted: the answer re-read a deleted row, a 500."""
     from api.services import jobs as job_service

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 from typing import TYPE_CHECKING, TypedDict
 
-from sqlalchemy import select, update
+from sqlalchemy import case, select, update
 from sqlalchemy.orm import Session
 
 from voxe_service.jobs import finish_jobs, record_event
@@ -198,10 +198,14 @@ def dispatch_job(session: Session, queue: TaskQueue, job: Job, done: Iterable[st
         raise QueueUnavailable(reason) from None
     # One UPDATE per row: PostgreSQL re-checks the foreign keys of a row updated twice in one transaction. The
     # message changes: updated_at tells the event streams to read it (they had kept "waiting for the scene ...").
+    # A job ended while the broker took it (canceled as it was created, a waiting evaluation failed with it) keeps
+    # the message of its end: it had been overwritten.
     now = utcnow()
-    session.execute(update(Job).where(Job.id == job.id).values(task_id=task_id, message=message, updated_at=now))
+    session.execute(update(Job).where(Job.id == job.id).values(
+        task_id=task_id, message=case((Job.state == job.state, message), else_=Job.message), updated_at=now))
     if ids[1:]:
-        session.execute(update(Job).where(Job.id.in_(ids[1:])).values(task_id=task_id, message=None, updated_at=now))
+        session.execute(update(Job).where(Job.id.in_(ids[1:])).values(
+            task_id=task_id, message=case((Job.state == QUEUED, None), else_=Job.message), updated_at=now))
     session.commit()
 
 
