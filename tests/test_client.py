@@ -452,3 +452,17 @@ def test_a_ply_is_uploaded_with_the_texture_its_header_names_and_arrives_in_colo
     (tmp_path / "notes.txt").write_text("not a texture")  # refused before anything is sent, as an OBJ's
     with pytest.raises(ValueError, match="^texture notes.txt: send it as one of .png"):
         ply_upload_files(ply)
+    coloured = tmp_path / "coloured.ply"  # vertex colours, no texture coordinates: the image it names stays (the
+    coloured.write_text(PLANE_PLY.format(texture="grass.png").replace(  # service refuses an image it cannot map)
+        "property float s\nproperty float t", "property uchar red\nproperty uchar green\nproperty uchar blue")
+        .replace(" 0.5 0.5\n", " 0 255 0\n"))
+    with pytest.warns(MissingCompanionWarning) as said:
+        assert ply_upload_files(coloured) == [coloured]
+    assert str(said[0].message) == ("coloured.ply names the texture 'grass.png' (comment TextureFile) but declares no "
+                                    "texture coordinates to map it with: the PLY goes without it (its vertex or face "
+                                    "colours)")
+    with pytest.warns(MissingCompanionWarning), Client(url) as client:
+        scene = client.upload_scene(coloured)
+    kept, surface = _ingested(scene["id"], storage)
+    assert json.loads(kept["names.json"]) == {"mesh.ply": "coloured.ply"}
+    assert len(surface) > 0 and abs(surface - [0, 1, 0]).max() < 0.01

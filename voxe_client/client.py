@@ -255,25 +255,39 @@ def _given_texture(mesh: Path, texture: str | os.PathLike) -> list[Path]:
 
 
 _PLY_HEADER_LINES, _PLY_HEADER_LINE_BYTES = 10_000, 1024  # far past any real header (a few dozen short lines)
+_PLY_TEXTURE_COORDINATES = ({("face", "texcoord")}, {("vertex", "texture_u"), ("vertex", "texture_v")},
+                            {("vertex", "u"), ("vertex", "v")}, {("vertex", "s"), ("vertex", "t")})
+"""The (element, property) sets a PLY's texture coordinates are read from (trimesh's names; the service's rule)."""
 
 
 def ply_upload_files(ply: Path, texture: str | os.PathLike | None = None) -> list[Path]:
     """The files a PLY upload sends: the PLY, then ``texture``, or else the image its header's ``comment
-    TextureFile`` names (read as trimesh reads it: the rest of the line), looked up as an OBJ's are. One not found
-    is a :class:`MissingCompanionWarning` and the PLY goes without it (uncoloured, or by its vertex colours); one of a
-    kind the service does not read, a ValueError. (The service maps the image at the texture coordinates the
-    header declares, and refuses an image beside a PLY that declares none.)"""
+    TextureFile`` names (read as trimesh reads it: the rest of the line), looked up as an OBJ's are, where the
+    header declares texture coordinates to map it with (the service refuses an image beside a PLY without them:
+    one coloured by its vertices goes alone). One not found, or one the PLY cannot map, is a
+    :class:`MissingCompanionWarning` and the PLY goes without it; one of a kind the service does not read, a
+    ValueError."""
     if texture is not None:
         return _given_texture(ply, texture)
-    name = None
+    name, element, declared = None, None, set()
     with open(ply, "rb") as handle:
         for _ in range(_PLY_HEADER_LINES):  # the header only (a body may be large, binary, without newlines)
             text = handle.readline(_PLY_HEADER_LINE_BYTES).decode("utf-8", errors="replace").strip()
-            if text.split()[:1] == ["end_header"]:
+            words = text.split()
+            if words[:1] == ["end_header"]:
                 break
-            if "texturefile" in text.lower():
+            if words[:1] == ["element"] and len(words) > 1:
+                element = words[1]
+            elif words[:1] == ["property"] and len(words) > 1:
+                declared.add((element, words[-1]))
+            elif "texturefile" in text.lower():
                 name = text[text.lower().index("texturefile") + len("texturefile"):].strip()
     if not name:
+        return [ply]
+    if not any(names <= declared for names in _PLY_TEXTURE_COORDINATES):
+        warnings.warn(f"{ply.name} names the texture {name!r} (comment TextureFile) but declares no texture "
+                      "coordinates to map it with: the PLY goes without it (its vertex or face colours)",
+                      MissingCompanionWarning, stacklevel=3)
         return [ply]
     image = _beside(ply.parent, name)
     if image is None:
