@@ -38,6 +38,7 @@ import re
 import shutil
 import stat
 import struct
+import uuid
 import warnings
 import zipfile
 from contextlib import AbstractContextManager
@@ -517,12 +518,16 @@ def sweep_staging(work_dir: Path) -> int:
     """Remove the staging folders under ``work_dir/uploads`` no live process holds: those of an API process killed
     mid-upload, kept for ever otherwise; the count removed. Safe beside the API processes sharing ``work_dir``.
 
-    Makes ``work_dir/uploads`` first, so a ``VOXE_WORK_DIR`` that cannot hold it (a file, a read-only folder) stops
-    the API at its start, naming the variable (:class:`SettingsError`): every upload had been a 500.
+    Makes ``work_dir/uploads`` first and a folder in it, as each upload does, so a ``VOXE_WORK_DIR`` that cannot
+    hold them (a file, a read-only folder, or one whose ``uploads`` is) stops the API at its start, naming the
+    variable (:class:`SettingsError`): every upload had been a 500.
     """
     uploads = Path(work_dir) / _UPLOADS
     try:
         uploads.mkdir(parents=True, exist_ok=True)
+        probe = uploads / f".probe-{uuid.uuid4().hex}"
+        probe.mkdir()
+        probe.rmdir()
     except OSError as exc:
         raise SettingsError(f"bad service settings: VOXE_WORK_DIR={str(work_dir)!r}: cannot make the upload "
                             f"staging folder {str(uploads)!r}: {exc.strerror}") from None

@@ -311,6 +311,24 @@ def test_a_work_dir_that_cannot_hold_uploads_stops_the_api_at_its_start_naming_t
                                             rf"the upload staging folder '{not_a_folder / 'uploads'}': Not a directory"):
         with TestClient(create_app()):
             pass
+    # an uploads folder there already, where no folder can be made (read-only to the API's user: as root, which
+    # reads past permissions, making one is made to refuse as it would)
+    work = root / "work-ro"
+    (work / "uploads").mkdir(parents=True)
+    monkeypatch.setenv("VOXE_WORK_DIR", str(work))
+    mkdir = Path.mkdir
+
+    def read_only_uploads(self, *args, **kwargs):
+        if self.parent == work / "uploads":
+            raise PermissionError(13, "Permission denied")
+        return mkdir(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "mkdir", read_only_uploads)
+    _reset()
+    with pytest.raises(SettingsError, match=rf"^bad service settings: VOXE_WORK_DIR='{work}': cannot make the upload "
+                                            rf"staging folder '{work / 'uploads'}': Permission denied"):
+        with TestClient(create_app()):
+            pass
 
 
 def test_a_starting_api_process_removes_the_staging_folders_no_live_process_holds(root, monkeypatch):
