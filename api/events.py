@@ -15,8 +15,8 @@ What a stream sends (``event:`` names):
 * ``progress`` (no id: it is a snapshot, sent again on reconnect) when the job's state, stage,
   iteration or losses changed since the last one, at most once per interval;
 * and the stream ends after the job's terminal event, or when the server stops (:meth:`EventHub.end_streams`;
-  the client resumes with ``Last-Event-ID``), or with an ``error`` event once the key that opened it is revoked
-  (a revoked token stops working at once, open streams included).
+  the client resumes with ``Last-Event-ID``), or with an ``error`` event once the job is deleted or the key that
+  opened it is revoked (a revoked token stops working at once, open streams included).
 """
 
 from __future__ import annotations
