@@ -103,7 +103,7 @@ class ExportConfig:
     elevation: float = 30.0  # degrees above the horizon, of the ring and the turntable
     fps: float = 30.0
     gif: bool = True  # also a looping GIF of the turntable
-    mesh: bool = True  # marching-cubes mesh as PLY and GLB
+    mesh: bool = True  # marching-cubes mesh as PLY, GLB and OBJ (+ MTL)
     mesh_resolution: int | None = None  # None: the grid's own vertices
 
 
