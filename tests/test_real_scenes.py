@@ -121,6 +121,27 @@ def test_rays_with_a_non_finite_or_zero_part_are_no_rays():
     assert torch.equal(out.rgb[1:], torch.tensor([[0.2, 0.4, 0.6]]).expand(5, 3))
 
 
+def test_rays_beyond_one_pass_render_as_they_do_alone():
+    """A call of more rays than one sampling pass takes (4,096) renders each group as a call of its own. Regression:
+    the sampler's name for which rays are rays was reused for the first pass's sample rows, so a fox view at 1/16
+    (8,040 rays) failed in its second pass (bench/real_scenes.py --step-cost) or kept the wrong samples."""
+    grid = SceneGrid(16)
+    with torch.no_grad():
+        grid.features.copy_(torch.randn(grid.features.shape, generator=torch.Generator().manual_seed(0)))
+    generator = torch.Generator().manual_seed(1)
+    n = 4096 + 3000
+    origins = torch.randn(n, 3, generator=generator) * 0.1 + torch.tensor([0.0, 0.0, 3.0])
+    directions = torch.randn(n, 3, generator=generator) * 0.2 + torch.tensor([0.0, 0.0, -1.0])
+    directions[5000] = 0.0  # no ray, in the second pass
+    config = RenderConfig(skip_empty=False, background=(0.2, 0.4, 0.6))
+    whole = render_rays(grid, origins, directions, config)
+    parts = [render_rays(grid, origins[s : s + 4096], directions[s : s + 4096], config) for s in (0, 4096)]
+    assert torch.equal(whole.rgb, torch.cat([p.rgb for p in parts]))
+    assert torch.equal(whole.opacity, torch.cat([p.opacity for p in parts]))
+    assert whole.samples == sum(p.samples for p in parts)
+    assert torch.equal(whole.rgb[5000], torch.tensor([0.2, 0.4, 0.6])) and whole.opacity[5000] == 0
+
+
 # ----------------------------------------------------------------- interface
 def test_grid_interface_round_trips_and_keeps_the_backbone(tmp_path):
     frame = torch.diag(torch.tensor([2.0, 2.0, 2.0, 1.0]))

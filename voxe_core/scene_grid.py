@@ -203,15 +203,15 @@ class SceneGrid(VoxelGrid):
         the ReLU field's slab test (``ray_box_intersection``).
         """
         early_stop = min(early_stop, EARLY_STOP_CAP)
-        ray = (torch.isfinite(origins).all(-1) & torch.isfinite(directions).all(-1)
-               & (directions.abs().amax(-1) >= 1e-12))
+        is_ray = (torch.isfinite(origins).all(-1) & torch.isfinite(directions).all(-1)
+                  & (directions.abs().amax(-1) >= 1e-12))
         # Zeroed, a ray that is none gets finite bins, and none of them is kept.
-        origins = torch.where(ray[:, None], origins, 0.0)
-        directions = torch.where(ray[:, None], directions, 0.0)
+        origins = torch.where(is_ray[:, None], origins, 0.0)
+        directions = torch.where(is_ray[:, None], directions, 0.0)
         for s in range(0, origins.shape[0], _RAYS_PER_PASS):
             o, d = origins[s : s + _RAYS_PER_PASS], directions[s : s + _RAYS_PER_PASS]
             edges, valid = self.ray_bins(o, d, step_ratio)
-            valid = valid & ray[s : s + _RAYS_PER_PASS, None]
+            valid = valid & is_ray[s : s + _RAYS_PER_PASS, None]
             delta = edges[:, 1:] - edges[:, :-1]
             t = edges[:, :-1] + offsets[s : s + _RAYS_PER_PASS, None] * delta
             points = self.lattice_points(o[:, None, :] + t[..., None] * d[:, None, :])
