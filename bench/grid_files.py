@@ -40,7 +40,7 @@ BRICK = 8
 
 def scene_grids(args) -> dict:
     """name -> 128³ grid: two reconstructions and two voxelised meshes."""
-    from reconstruction import WITHOUT_CAPTURE_PRIORS
+    from reconstruction import WITHOUT_CAPTURE_PRIORS, as_measured
 
     from voxe_core.backbones import prepare_backbone
     from voxe_core.data import load_scene
@@ -53,12 +53,13 @@ def scene_grids(args) -> dict:
         if name not in args.only:
             continue
         scene = load_scene(DATA / folder, "train", downsample=downsample)
-        # fast()'s recipe before it took 8,192 rays a step at lr 0.04: what the records were measured with.
+        # fast()'s recipe before 2026-12-05 (4,096 rays a step at lr 0.03 from every image, the early-stop pass):
+        # what the records were measured with.
         config = ReconstructConfig.fast(resolutions=(args.resolution // 3, args.resolution // 3 * 2, args.resolution),
                                         iterations=iterations, rays_per_step=4096, lr=0.03)
         backbone, cameras, initial = prepare_backbone("auto", scene.alphas, scene.cameras, config.resolutions[0])
         # ... and without the priors a capture's fit has kept since 2026-12-05 (the fox record's grid had none).
-        config = dataclasses.replace(config.for_backbone(backbone), **WITHOUT_CAPTURE_PRIORS)
+        config = dataclasses.replace(as_measured(config.for_backbone(backbone)), **WITHOUT_CAPTURE_PRIORS)
         t0 = time.perf_counter()
         grids[name] = reconstruct(scene.images, cameras, config, initial_grid=initial)
         print(f"{name}: {backbone} grid fitted in {time.perf_counter() - t0:.0f} s", flush=True)

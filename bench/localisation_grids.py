@@ -72,17 +72,17 @@ HAT_HALF = (4, 4, 3)  # half-extent of the hat box in vertices (x, y, z)
 
 def fit(images: torch.Tensor, cameras: Cameras, resolution: int, path: Path, initial: VoxelGrid | None = None) -> VoxelGrid:
     """A ``ReconstructConfig.fast`` fit at resolution/2 → resolution, cached as a grid file at ``path``."""
-    from reconstruction import WITHOUT_CAPTURE_PRIORS
+    from reconstruction import WITHOUT_CAPTURE_PRIORS, as_measured
 
     from voxe_core.backbones import load_grid
     from voxe_core.reconstruct import ReconstructConfig, reconstruct
 
     if path.exists():
         return load_grid(path)
-    # lr 0.03: fast()'s before it took 8,192 rays at 0.04, what the cached grids were fitted with.
+    # lr 0.03, every image's rays, the early-stop pass: fast() before 2026-12-05, as the cached grids were fitted.
     config = ReconstructConfig.fast(resolutions=(resolution // 2, resolution), iterations=FIT_ITERATIONS,
                                     image_downsample=(2, 1), rays_per_step=2048, lr=0.03)
-    config = config.for_backbone("relu_field" if initial is None else "scene")  # a capture starts from a SceneGrid
+    config = as_measured(config.for_backbone("relu_field" if initial is None else "scene"))  # a capture: a SceneGrid
     # Without the priors a capture's fit has kept since 2026-12-05: the cached fox grid was fitted without them.
     config = dataclasses.replace(config, **WITHOUT_CAPTURE_PRIORS)
     t0 = time.perf_counter()

@@ -21,6 +21,7 @@ training seconds).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import resource
@@ -46,6 +47,16 @@ WITHOUT_CAPTURE_PRIORS = {"tv_density": 0.0, "tv_color": 0.0, "camera_clearance"
 # As the rows below were measured: that step, each step's rays from every image and the early-stop density pass while
 # training (fast() draws from 8 since 2026-12-05, and object fits go without the pass since 90eb259).
 MEASURED_AS = {**FAST_4096_RAYS_STEP, "images_per_step": 0, "early_stop": 1e-4}
+
+
+def as_measured(config: ReconstructConfig) -> ReconstructConfig:
+    """``config`` drawing each step's rays from every image, with the early-stop pass while training (``MEASURED_AS``):
+    the benches whose object fits predate 2026-12-05 (grid_files, mesh_input, localisation_grids) rerun their records'
+    recipe, not today's ``fast()`` (a capture's ``for_backbone("scene")`` fit has both anyway)."""
+    return dataclasses.replace(config, images_per_step=MEASURED_AS["images_per_step"],
+                               render=dataclasses.replace(config.render, early_stop=MEASURED_AS["early_stop"]))
+
+
 # The previous fast recipe: the last iterate, lr ×0.1 for the last 20 % of the final stage, one lr for all features.
 LAST_ITERATE = {"average_from": 1.0, "lr_drop_fraction": 0.8, "color_lr_scale": 1.0, **MEASURED_AS}
 # The recipe for the target: the mean of the final stage's second half, colour at half the lr, lr never dropped.

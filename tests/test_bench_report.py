@@ -5,6 +5,8 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
+from needs import DATA_ROOT, MIC, needs_data
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 report = pytest.importorskip("report")
@@ -504,3 +506,38 @@ def test_service_load_meets_its_targets_only_at_their_load():
     lost = {**full, "lost_jobs": 1}
     judged = service_load.judge_targets(lost, Namespace(pollers=50, jobs=1000, streams=50))
     assert judged["targets_met"] is False and "targets_note" not in judged
+
+
+@needs_data(MIC, DATA_ROOT / "meshes" / "horse")
+def test_object_fits_of_records_from_before_2026_12_05_rerun_the_recipe_they_measured(monkeypatch, tmp_path):
+    """grid_files.py, mesh_input.py and localisation_grids.py fit objects with fast() as their records measured it:
+    every image's rays each step and the early-stop pass (fast() has drawn from 8 images and gone without the pass
+    since 2026-12-05; the three had pinned only its earlier step)."""
+    from argparse import Namespace
+
+    import grid_files
+    import localisation_grids
+    import mesh_input
+
+    import voxe_core.reconstruct
+    from voxe_core.cameras import Cameras, ring_poses
+
+    class Fitted(Exception):
+        pass
+
+    configs = []
+
+    def record(images, cameras, config, *args, **kwargs):
+        configs.append(config)
+        raise Fitted
+
+    monkeypatch.setattr(voxe_core.reconstruct, "reconstruct", record)
+    cameras = Cameras.from_fov(ring_poses(2, 30.0), 0.69, 8, 8)
+    with pytest.raises(Fitted):
+        localisation_grids.fit(torch.ones(2, 8, 8, 3), cameras, 8, tmp_path / "grid.safetensors")
+    with pytest.raises(Fitted):
+        mesh_input.run_mesh("horse", Namespace(views=2, size=8, test_views=1, resolution=8, voxelize_resolution=8,
+                                               iterations=(1, 1), rays=64))
+    with pytest.raises(Fitted):
+        grid_files.scene_grids(Namespace(only=["mic"], quick=True, resolution=12))
+    assert [(c.images_per_step, c.render.early_stop, c.lr) for c in configs] == [(0, 1e-4, 0.03)] * 3
