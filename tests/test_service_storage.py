@@ -349,7 +349,6 @@ def test_s3_missing_bucket_is_a_storage_error_not_a_missing_key(aws_env, s3_endp
     store = S3Storage("voxe-test-gone", endpoint_url=s3_endpoint, region="us-east-1", prefix="svc")
     store.client.delete_bucket(Bucket="voxe-test-gone")
     said_missing = r"bucket 'voxe-test-gone' does not exist \(VOXE_S3_BUCKET\)"
-    upload_said_missing = r"voxe-test-gone.*NoSuchBucket"  # boto3's upload error, which names the bucket
     calls = {
         "size": (lambda: store.size("jobs/a/x.bin"), said_missing),
         "exists": (lambda: store.exists("jobs/a/x.bin"), said_missing),
@@ -357,11 +356,66 @@ def test_s3_missing_bucket_is_a_storage_error_not_a_missing_key(aws_env, s3_endp
         "open_range": (lambda: store.open_range("jobs/a/x.bin"), said_missing),
         "list": (lambda: store.list("jobs/"), said_missing),
         "delete_prefix": (lambda: store.delete_prefix("jobs/"), said_missing),
-        "put_bytes": (lambda: store.put_bytes("jobs/a/x.bin", b"x"), upload_said_missing),
-        "check_writable": (store.check_writable, upload_said_missing),
+        "put_bytes": (lambda: store.put_bytes("jobs/a/x.bin", b"x"), said_missing),  # (boto3 wraps an upload's error)
+        "check_writable": (store.check_writable, said_missing),
     }
     for name, (call, message) in calls.items():
         with pytest.raises(StorageError, match=message) as raised:
             call()
         assert not isinstance(raised.value, ObjectNotFound), name
     assert list(tmp_path.iterdir()) == []  # no partial download
+
+
+class _Answer:
+    """A canned HTTP body for botocore (``before-send`` handlers answer in S3's place)."""
+
+    def __init__(self, body: bytes):
+        self.body = body
+
+    def read(self, amt=None):
+        body, self.body = self.body, b""
+        return body
+
+    def stream(self, **_kwargs):
+        yield self.read()
+
+
+@pytest.mark.parametrize("size, refused", [(10, "PutObject"), (9 << 20, "UploadPart")])  # 9 MiB: a multipart upload
+def test_s3_throttled_upload_is_unavailable_and_leaves_nothing(aws_env, s3_endpoint, tmp_path, size, refused):
+    """An upload S3 throttles (503 SlowDown, after botocore's retries) is a StorageUnavailable, as a throttled read
+    is: the API answers 503 with Retry-After, and a fit whose checkpoint it was hands the fit back rather than
+    failing every job waiting on it. boto3 wraps an upload's error in its own S3UploadFailedError, which had been a
+    plain StorageError. Nothing is listed, and a multipart upload is aborted."""
+    from botocore.awsrequest import AWSResponse
+
+    from voxe_service.storage import StorageUnavailable
+
+    store = S3Storage("voxe-test-throttled", endpoint_url=s3_endpoint, region="us-east-1", prefix="svc")
+    throttled = b"<?xml version='1.0'?><Error><Code>SlowDown</Code><Message>Reduce your request rate.</Message></Error>"
+    store.client.meta.events.register(f"before-send.s3.{refused}",
+                                      lambda request, **_: AWSResponse(request.url, 503, {}, _Answer(throttled)))
+    source = tmp_path / "blob.bin"
+    source.write_bytes(b"x" * size)
+    with pytest.raises(StorageUnavailable, match=rf"\(SlowDown\) when calling the {refused} operation"):
+        store.put_file("jobs/a/blob.bin", source)
+    assert store.list() == []
+    assert store.client.list_multipart_uploads(Bucket="voxe-test-throttled").get("Uploads", []) == []
+
+
+def test_s3_download_broken_off_on_every_retry_is_unavailable(aws_env, s3_endpoint, tmp_path):
+    """A download whose body breaks off (a connection reset, a read timeout) through every retry is a
+    StorageUnavailable naming what broke, not boto3's bare "Max Retries Exceeded" as a StorageError; nothing is
+    left at the destination."""
+    from botocore.awsrequest import AWSResponse
+
+    from voxe_service.storage import StorageUnavailable
+
+    store = S3Storage("voxe-test-broken-off", endpoint_url=s3_endpoint, region="us-east-1", prefix="svc")
+    store.put_bytes("jobs/a/x.bin", b"0123456789")
+    store.client.meta.events.register(  # 4 bytes of the 10 announced, then the connection ends
+        "before-send.s3.GetObject",
+        lambda request, **_: AWSResponse(request.url, 200, {"Content-Length": "10"}, _Answer(b"0123")))
+    with pytest.raises(StorageUnavailable, match=r"a download broke off on every retry: IncompleteReadError: 4 read, "
+                                                 r"but total bytes expected is 10"):
+        store.get_file("jobs/a/x.bin", tmp_path / "x.bin")
+    assert list(tmp_path.iterdir()) == []

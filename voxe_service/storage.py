@@ -357,7 +357,7 @@ class S3Storage(Storage):
     def _as_storage_errors(self, key: str | None = None) -> Iterator[None]:
         """Raises what boto3 raises as this module's errors: ObjectNotFound when ``key`` is missing, StorageError
         for anything else (a missing bucket, a refused request, an unreachable endpoint)."""
-        from boto3.exceptions import Boto3Error
+        from boto3.exceptions import Boto3Error, RetriesExceededError
         from botocore.exceptions import BotoCoreError, ClientError, ConnectionError, HTTPClientError
 
         try:
@@ -378,6 +378,9 @@ class S3Storage(Storage):
             raise (StorageUnavailable if transient else StorageError)(f"S3 bucket {self.bucket!r}: {exc}") from exc
         except (ConnectionError, HTTPClientError) as exc:  # unreachable, refused, timed out: botocore's own
             raise StorageUnavailable(f"S3 bucket {self.bucket!r}: {exc}") from exc
+        except RetriesExceededError as exc:  # a download whose body broke off (reset, timed out) on every retry
+            raise StorageUnavailable(f"S3 bucket {self.bucket!r}: a download broke off on every retry: "
+                                     f"{type(exc.last_exception).__name__}: {exc.last_exception}") from exc
         except (BotoCoreError, Boto3Error) as exc:
             raise StorageError(f"S3 bucket {self.bucket!r}: {exc}") from exc
 
@@ -385,12 +388,22 @@ class S3Storage(Storage):
         return self.prefix + check_key(key)
 
     def put_file(self, key, path, content_type=None) -> StoredObject:
+        from boto3.exceptions import S3UploadFailedError
+        from botocore.exceptions import ClientError
+
         size, sha = file_sha256(path)
         extra = {"Metadata": {"sha256": sha}}
         if content_type:
             extra["ContentType"] = content_type
         with self._as_storage_errors():
-            self.client.upload_file(str(path), self.bucket, self._full(key), ExtraArgs=extra)
+            try:
+                self.client.upload_file(str(path), self.bucket, self._full(key), ExtraArgs=extra)
+            except S3UploadFailedError as exc:
+                # boto3 wraps a refused PUT's ClientError in this (keeping it only as the context): raised as itself,
+                # a throttled or failing PUT is a StorageUnavailable and a missing bucket is named, as elsewhere
+                if isinstance(exc.__context__, ClientError):
+                    raise exc.__context__ from None
+                raise
         return StoredObject(key, size, sha)
 
     def get_file(self, key, dest) -> Path:
