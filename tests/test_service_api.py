@@ -212,6 +212,48 @@ def test_an_ingest_stopped_by_a_cold_shutdown_goes_back_to_the_queue_keeping_the
     assert ingest(scene["id"]) == {"scene_id": scene["id"], "state": "ready"}
 
 
+@pytest.mark.parametrize("stopped", ["taking the scene", "recording it ready"])
+def test_an_ingest_stopped_by_a_database_outage_goes_back_to_the_queue_uncounted(client, dataset, root, monkeypatch,
+                                                                                  stopped):
+    """A locked (or unreachable) database had failed the ingest's task, its message acknowledged: with its worker
+    alive the reaper never failed the scene, which stayed processing for good, and the job waiting on it queued.
+    Now the message goes back to the queue, the run uncounted, and the redelivery readies the scene."""
+    import sqlite3
+
+    from sqlalchemy.exc import OperationalError
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
+    from worker import ingest as ingest_module
+    from worker import tasks
+
+    scene = upload_zip(client, zip_folder(dataset, root / "ok.zip", prefix="mic_small")).json()
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}).json()
+    name = {"taking the scene": "session_scope", "recording it ready": "mark_ready"}[stopped]
+    real, calls = getattr(ingest_module, name), []
+
+    def locked_once(*args, **kwargs):
+        calls.append(name)
+        if len(calls) == 1:
+            raise OperationalError("UPDATE scenes", {}, sqlite3.OperationalError("database is locked"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(ingest_module, name, locked_once)
+    monkeypatch.setattr(ingest_module, "OUTAGE_PAUSE_S", 0.0)
+    result = tasks.ingest_task.apply(args=(scene["id"],))
+    assert result.state == "REJECTED" and result.result.requeue
+    assert result.result.reason == (f"the ingest of scene {scene['id']} stopped by a database outage (the database "
+                                    "cannot be reached or is locked)")
+    assert client.get(f"/v1/scenes/{scene['id']}").json()["state"] == "processing"
+    assert stored_files(root) == [f"scenes/{scene['id']}/dataset.zip"]
+    with session_scope() as session:  # not a run the upload killed: it does not count towards the limit
+        assert session.get(Scene, scene["id"]).ingest_attempts == 0
+    assert ingest(scene["id"]) == {"scene_id": scene["id"], "state": "ready"}
+    assert client.get(f"/v1/jobs/{job['id']}").json()["state"] == "queued"
+    with session_scope() as session:
+        assert session.get(Scene, scene["id"]).ingest_attempts == 1
+
+
 @pytest.mark.parametrize("locks", [True, False])
 def test_an_ingest_removes_the_folders_its_scenes_killed_runs_left_and_keeps_a_live_runs(client, dataset, root,
                                                                                         monkeypatch, locks):

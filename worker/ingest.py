@@ -17,6 +17,7 @@ import json
 import logging
 import os
 import re
+import time
 from pathlib import Path
 from typing import NamedTuple
 
@@ -29,7 +30,7 @@ from voxe_core.constants import TEXTURE_SUFFIXES
 from voxe_core.data import DatasetError, load_scene
 from voxe_core.mesh_input import MESH_INPUT_SUFFIXES, MeshError, load_mesh, shade_mesh, write_mesh_dataset
 from voxe_service import datasets
-from voxe_service.db import session_scope
+from voxe_service.db import DATABASE_UNAVAILABLE, database_outage, session_scope
 from voxe_service.models import PROCESSING, Scene, utcnow
 from voxe_service.queue import QueueUnavailable, TaskResult, dispatch_job, get_queue, requeue_limit_error
 from voxe_service.quotas import ingest_over_quota
@@ -109,21 +110,47 @@ def decode(root: Path, downsample: int) -> Decoded:
     return Decoded(len(scene), detect_backbone(scene.alphas))
 
 
+OUTAGE_PAUSE_S = 5.0
+"""How long an ingest a database outage stopped waits before its message goes back to the queue: a database down
+for a while must not have the workers take and drop the message in a tight loop."""
+
+
 def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: str | None) -> TaskResult:
     """Take the scene's ingest (processing only), decode it, then mark it ready or failed.
 
     Every run that takes the scene counts (``Scene.ingest_attempts``); one finding more than ``job_max_requeues``
     runs before it interrupted (their worker processes killed, e.g. out of memory on this upload) fails the scene
     instead: an upload that kills its workers must not loop, as a job must not (``requeue_interrupted``).
+
+    A database outage (down, locked) is no fault of the upload: the message goes back to the queue, uncounted where
+    the database lets that be written, and its redelivery starts over. Acknowledged as a failed task, it had left
+    the scene processing for good (its worker alive, the reaper never failed it) and the jobs waiting on it queued.
     """
-    with session_scope() as session:
-        scene = session.get(Scene, scene_id)
-        if scene is None or scene.state != PROCESSING:
-            return {"scene_id": scene_id, "skipped": f"scene {scene_id} is {scene.state if scene else 'gone'}"}
-        upload_key, interrupted = scene.storage_key, scene.ingest_attempts
-        session.execute(update(Scene).where(Scene.id == scene_id, Scene.state == PROCESSING)
-                        .values(worker_hostname=hostname, ingest_attempts=Scene.ingest_attempts + 1,
-                                updated_at=utcnow()))
+    counted = False
+    try:
+        with session_scope() as session:
+            scene = session.get(Scene, scene_id)
+            if scene is None or scene.state != PROCESSING:
+                return {"scene_id": scene_id, "skipped": f"scene {scene_id} is {scene.state if scene else 'gone'}"}
+            upload_key, interrupted = scene.storage_key, scene.ingest_attempts
+            session.execute(update(Scene).where(Scene.id == scene_id, Scene.state == PROCESSING)
+                            .values(worker_hostname=hostname, ingest_attempts=Scene.ingest_attempts + 1,
+                                    updated_at=utcnow()))
+        counted = True
+        return _ingest(scene_id, upload_key, interrupted, settings, storage)
+    except DATABASE_UNAVAILABLE as exc:
+        if (why := database_outage(exc)) is None:
+            raise
+        log.warning("scene %s: the ingest stopped by a database outage (%s); its message goes back to the queue",
+                    scene_id, why)
+        if counted:
+            _uncount_run(scene_id)
+        time.sleep(OUTAGE_PAUSE_S)
+        raise Reject(f"the ingest of scene {scene_id} stopped by a database outage ({why})", requeue=True) from exc
+
+
+def _ingest(scene_id: str, upload_key: str, interrupted: int, settings: Settings, storage: Storage) -> TaskResult:
+    """The ingest of the scene this run took, stored at ``upload_key``, after ``interrupted`` runs before it."""
     # The runs before this one, less the first: how often the ingest was sent again.
     if error := requeue_limit_error(interrupted - 1, settings, f"ingest: interrupted {interrupted} times, its worker "
                                     "process dying each time (killed: out of memory?)"):
@@ -162,9 +189,9 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
 
 
 def _uncount_run(scene_id: str) -> None:
-    """A run a worker's shutdown stopped is not one the upload killed: it does not count towards the limit (four
-    deploys had failed a scene as "killed: out of memory?"). Only where the shutdown raises in the task (the solo
-    pool's); a prefork pool's children are ended from outside, and their runs still count."""
+    """A run a worker's shutdown or a database outage stopped is not one the upload killed: it does not count towards
+    the limit (four deploys had failed a scene as "killed: out of memory?"). Only where the shutdown raises in the
+    task (the solo pool's); a prefork pool's children are ended from outside, and their runs still count."""
     try:
         with session_scope() as session:
             session.execute(update(Scene).where(Scene.id == scene_id, Scene.state == PROCESSING,
