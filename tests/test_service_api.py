@@ -1269,6 +1269,30 @@ def _two_tiny_fits(client, dataset, root) -> tuple[str, str, str]:
     return a["id"], b["id"], a["reconstruction"]["id"]
 
 
+def test_a_finished_fits_checkpoint_the_storage_cannot_delete_fails_nothing(client, dataset, root, monkeypatch):
+    """G_i stored and recorded, the fit's checkpoint is deleted as cleanup: a delete the storage refused then (S3
+    throttling its DELETE) had failed the owner's job, its fit succeeded."""
+    from voxe_service.storage import StorageUnavailable, get_storage
+    from worker import runtime, tasks
+
+    a, _, rec_id = _two_tiny_fits(client, dataset, root)
+    storage_class, deleted = type(get_storage()), []
+    real_delete = storage_class.delete
+
+    def refused_for_checkpoints(self, key):
+        deleted.append(key)
+        if key.endswith("/checkpoint.safetensors"):
+            raise StorageUnavailable(f"S3 bucket 'voxe': SlowDown when deleting {key}")
+        return real_delete(self, key)
+
+    monkeypatch.setattr(storage_class, "delete", refused_for_checkpoints)
+    assert tasks.reconstruct_task.apply(args=(a,)).get()["state"] == "done"
+    assert f"reconstructions/{rec_id}/checkpoint.safetensors" in deleted
+    assert runtime.load_reconstruction(rec_id).state == "succeeded"
+    job = client.get(f"/v1/jobs/{a}").json()
+    assert (job["state"], job["error"], job["completed_stages"]) == ("running", None, ["reconstruct"])
+
+
 @pytest.mark.parametrize("failing_renewal", [1, 2])  # the fit's total recorded, then its first progress
 def test_a_fit_goes_on_through_a_lease_renewal_the_database_refuses_once(client, dataset, root, monkeypatch,
                                                                           failing_renewal):

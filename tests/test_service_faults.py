@@ -1340,6 +1340,33 @@ def test_a_stages_end_the_database_refuses_at_every_try_goes_back_to_the_queue_t
         assert (job.state, job.error, job.requeues) == ("failed", words, 1)
 
 
+def test_a_replaced_artifacts_old_bytes_the_storage_cannot_delete_fail_nothing(db, tmp_path, monkeypatch, caplog):
+    """The replacement is recorded before the old object is deleted: a delete the storage refuses then (S3 throttling
+    its DELETE) had raised out of publish_artifact and failed the stage (an edit, hours in, republishing its
+    preview). The old bytes stay behind, unlisted, and the new version is the one listed."""
+    import hashlib
+
+    from voxe_service.storage import StorageUnavailable, get_storage
+    from worker import runtime
+
+    storage = get_storage(db)
+    job_id = add_job(add_scene(), "running", 0, "w@host", "edit")
+    preview = tmp_path / "preview.png"
+    preview.write_bytes(b"first")
+    first = runtime.publish_artifact(job_id, "preview.png", preview, "preview", storage).key
+    preview.write_bytes(b"second")
+
+    def throttled(key):
+        raise StorageUnavailable(f"S3 bucket 'voxe': SlowDown when deleting {key}")
+
+    with monkeypatch.context() as refusing:
+        refusing.setattr(type(storage), "delete", lambda self, key: throttled(key))
+        second = runtime.publish_artifact(job_id, "preview.png", preview, "preview", storage).key
+    assert listed(job_id) == [("preview.png", 6, hashlib.sha256(b"second").hexdigest())]
+    assert sorted(storage.list(f"jobs/{job_id}/")) == sorted([first, second])
+    assert f"could not delete the stored object {first}" in caplog.text
+
+
 def test_an_artifact_whose_record_fails_leaves_no_bytes_behind(db, tmp_path, monkeypatch):
     """The bytes are uploaded, then the transaction recording them fails (a database error): the upload goes too,
     so an artifact is listed and stored, or neither (it had stayed in storage, unlisted, for good)."""

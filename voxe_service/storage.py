@@ -138,6 +138,15 @@ class Storage(ABC):
             except Exception:  # noqa: BLE001 - see the docstring
                 log.warning("could not delete the stored objects under %s", prefix, exc_info=True)
 
+    def discard(self, key: str) -> None:
+        """Delete one object as cleanup, as :meth:`discard_prefixes` deletes prefixes: a failure is logged (a replaced
+        artifact's old bytes, a finished fit's checkpoint stay behind) rather than raised over a result already
+        recorded."""
+        try:
+            self.delete(key)
+        except Exception:  # noqa: BLE001 - see the docstring
+            log.warning("could not delete the stored object %s", key, exc_info=True)
+
     def exists(self, key: str) -> bool:
         try:
             self.size(key)

@@ -236,10 +236,7 @@ def _ready(scene_id: str, values: dict, storage: Storage, settings: Settings,
     if waiting is None:  # deleted (or failed by the reaper) while it was decoded: keep nothing of it
         storage.discard_prefixes(scene_key(scene_id))
         return {"scene_id": scene_id, "skipped": f"scene {scene_id} was deleted or failed meanwhile"}
-    if replaced_key:
-        try:
-            storage.delete(replaced_key)
-        except Exception:  # noqa: BLE001 - the mesh upload, now packaged: a leftover object harms no job
-            log.warning("scene %s: could not delete the replaced upload %s", scene_id, replaced_key, exc_info=True)
+    if replaced_key:  # the mesh upload, now packaged
+        storage.discard(replaced_key)
     log.info("scene %s ready; dispatched %d waiting job(s)", scene_id, len(waiting))
     return {"scene_id": scene_id, "state": "ready"}

@@ -553,7 +553,7 @@ def publish_artifact(job_id: str, name: str, path: str | os.PathLike, kind: str,
             storage.delete(stored.key)
         raise
     if previous and previous != stored.key and previous.startswith(job_key(job_id, "")):
-        storage.delete(previous)  # never the shared reconstruction's grid: that lives outside jobs/<id>/
+        storage.discard(previous)  # never the shared reconstruction's grid: that lives outside jobs/<id>/
     return artifact
 
 

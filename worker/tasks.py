@@ -518,7 +518,7 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
     if not done:
         storage.delete(stored.key)
         raise runtime.LeaseLost(f"reconstruction {rec.id}: another job took the fit over before it was stored")
-    storage.delete(checkpoint_key)
+    storage.discard(checkpoint_key)
 
 
 def _fit_grid(job: Job, rec, settings, storage, lease: runtime.LeaseKeeper, callbacks: StageCallbacks,
