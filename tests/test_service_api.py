@@ -254,6 +254,36 @@ def test_an_ingest_stopped_by_a_database_outage_goes_back_to_the_queue_uncounted
         assert session.get(Scene, scene["id"]).ingest_attempts == 1
 
 
+def test_an_ingest_stopped_by_a_storage_outage_goes_back_to_the_queue_keeping_the_upload(client, dataset, root,
+                                                                                          monkeypatch):
+    """The storage unreachable or throttled as the ingest fetches the upload (after botocore's retries) had failed
+    the scene and deleted the upload, a valid one, for good: the message goes back to the queue, uncounted, and the
+    redelivery readies the scene."""
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
+    from voxe_service.storage import StorageUnavailable, get_storage
+    from worker import ingest as ingest_module
+    from worker import tasks
+
+    scene = upload_zip(client, zip_folder(dataset, root / "ok.zip", prefix="mic_small")).json()
+
+    def throttled(self, key, dest):
+        raise StorageUnavailable(f"S3 bucket 'voxe': SlowDown when fetching {key}")
+
+    monkeypatch.setattr(ingest_module, "OUTAGE_PAUSE_S", 0.0)
+    with monkeypatch.context() as outage:
+        outage.setattr(type(get_storage()), "get_file", throttled)
+        result = tasks.ingest_task.apply(args=(scene["id"],))
+    assert result.state == "REJECTED" and result.result.requeue
+    assert result.result.reason == (f"the ingest of scene {scene['id']} stopped by a storage outage (S3 bucket 'voxe': "
+                                    f"SlowDown when fetching scenes/{scene['id']}/dataset.zip)")
+    assert client.get(f"/v1/scenes/{scene['id']}").json()["state"] == "processing"
+    assert stored_files(root) == [f"scenes/{scene['id']}/dataset.zip"]
+    with session_scope() as session:
+        assert session.get(Scene, scene["id"]).ingest_attempts == 0
+    assert ingest(scene["id"]) == {"scene_id": scene["id"], "state": "ready"}
+
+
 @pytest.mark.parametrize("locks", [True, False])
 def test_an_ingest_removes_the_folders_its_scenes_killed_runs_left_and_keeps_a_live_runs(client, dataset, root,
                                                                                         monkeypatch, locks):

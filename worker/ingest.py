@@ -37,7 +37,7 @@ from voxe_service.quotas import ingest_over_quota
 from voxe_service.scenes import fail_scene, mark_ready
 from voxe_service.scratch import locked_folder, sweep_unlocked
 from voxe_service.settings import Settings
-from voxe_service.storage import Storage, scene_key
+from voxe_service.storage import Storage, StorageUnavailable, scene_key
 from worker.runtime import worker_in_cold_shutdown
 
 log = logging.getLogger("voxe.worker")
@@ -111,8 +111,8 @@ def decode(root: Path, downsample: int) -> Decoded:
 
 
 OUTAGE_PAUSE_S = 5.0
-"""How long an ingest a database outage stopped waits before its message goes back to the queue: a database down
-for a while must not have the workers take and drop the message in a tight loop."""
+"""How long an ingest an outage stopped waits before its message goes back to the queue: a database or a
+storage down for a while must not have the workers take and drop the message in a tight loop."""
 
 
 def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: str | None) -> TaskResult:
@@ -122,9 +122,11 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
     runs before it interrupted (their worker processes killed, e.g. out of memory on this upload) fails the scene
     instead: an upload that kills its workers must not loop, as a job must not (``requeue_interrupted``).
 
-    A database outage (down, locked) is no fault of the upload: the message goes back to the queue, uncounted where
-    the database lets that be written, and its redelivery starts over. Acknowledged as a failed task, it had left
-    the scene processing for good (its worker alive, the reaper never failed it) and the jobs waiting on it queued.
+    An outage of the database (down, locked) or of the storage (unreachable, throttled) is no fault of the upload:
+    the message goes back to the queue, uncounted where the database lets that be written, and its redelivery starts
+    over. A database's, acknowledged as a failed task, had left the scene processing for good (its worker alive, the
+    reaper never failed it) and the jobs waiting on it queued; a storage's had failed the scene and deleted its
+    upload.
     """
     counted = False
     try:
@@ -138,15 +140,18 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
                                     updated_at=utcnow()))
         counted = True
         return _ingest(scene_id, upload_key, interrupted, settings, storage)
-    except DATABASE_UNAVAILABLE as exc:
-        if (why := database_outage(exc)) is None:
+    except (*DATABASE_UNAVAILABLE, StorageUnavailable) as exc:
+        if isinstance(exc, StorageUnavailable):
+            cause = f"a storage outage ({exc})"
+        elif (why := database_outage(exc)) is not None:
+            cause = f"a database outage ({why})"
+        else:
             raise
-        log.warning("scene %s: the ingest stopped by a database outage (%s); its message goes back to the queue",
-                    scene_id, why)
+        log.warning("scene %s: the ingest stopped by %s; its message goes back to the queue", scene_id, cause)
         if counted:
             _uncount_run(scene_id)
         time.sleep(OUTAGE_PAUSE_S)
-        raise Reject(f"the ingest of scene {scene_id} stopped by a database outage ({why})", requeue=True) from exc
+        raise Reject(f"the ingest of scene {scene_id} stopped by {cause}", requeue=True) from exc
 
 
 def _ingest(scene_id: str, upload_key: str, interrupted: int, settings: Settings, storage: Storage) -> TaskResult:
@@ -180,6 +185,8 @@ def _ingest(scene_id: str, upload_key: str, interrupted: int, settings: Settings
             if worker_in_cold_shutdown():  # ... but a cold shutdown's (it had failed the scene and deleted its upload)
                 _uncount_run(scene_id)
                 raise Reject(f"the ingest of scene {scene_id} stopped by the worker's shutdown", requeue=True) from exc
+            if isinstance(exc, StorageUnavailable):  # ... and a storage outage's, no fault of the upload either
+                raise
             reason = str(exc) if isinstance(exc, IngestError) else f"ingest: {type(exc).__name__}: {exc}"
             if not isinstance(exc, IngestError):
                 log.exception("scene %s: ingest failed", scene_id)
@@ -189,7 +196,7 @@ def _ingest(scene_id: str, upload_key: str, interrupted: int, settings: Settings
 
 
 def _uncount_run(scene_id: str) -> None:
-    """A run a worker's shutdown or a database outage stopped is not one the upload killed: it does not count towards
+    """A run a worker's shutdown or an outage stopped is not one the upload killed: it does not count towards
     the limit (four deploys had failed a scene as "killed: out of memory?"). Only where the shutdown raises in the
     task (the solo pool's); a prefork pool's children are ended from outside, and their runs still count."""
     try:
