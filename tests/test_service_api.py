@@ -213,11 +213,11 @@ def test_an_ingest_stopped_by_a_cold_shutdown_goes_back_to_the_queue_keeping_the
 
 
 @pytest.mark.parametrize("stopped", ["taking the scene", "recording it ready"])
-def test_an_ingest_stopped_by_a_database_outage_goes_back_to_the_queue_uncounted(client, dataset, root, monkeypatch,
-                                                                                  stopped):
+def test_an_ingest_stopped_by_a_database_outage_goes_back_to_the_queue(client, dataset, root, monkeypatch, stopped):
     """A locked (or unreachable) database had failed the ingest's task, its message acknowledged: with its worker
     alive the reaper never failed the scene, which stayed processing for good, and the job waiting on it queued.
-    Now the message goes back to the queue, the run uncounted, and the redelivery readies the scene."""
+    Now the message goes back to the queue and the redelivery readies the scene; a run that took the scene counts
+    (what answers as an outage every time must not decode the upload for ever)."""
     import sqlite3
 
     from sqlalchemy.exc import OperationalError
@@ -246,19 +246,18 @@ def test_an_ingest_stopped_by_a_database_outage_goes_back_to_the_queue_uncounted
                                     "cannot be reached or is locked)")
     assert client.get(f"/v1/scenes/{scene['id']}").json()["state"] == "processing"
     assert stored_files(root) == [f"scenes/{scene['id']}/dataset.zip"]
-    with session_scope() as session:  # not a run the upload killed: it does not count towards the limit
-        assert session.get(Scene, scene["id"]).ingest_attempts == 0
+    with session_scope() as session:  # a run that could not take the scene counts nothing
+        assert session.get(Scene, scene["id"]).ingest_attempts == (0 if stopped == "taking the scene" else 1)
     assert ingest(scene["id"]) == {"scene_id": scene["id"], "state": "ready"}
     assert client.get(f"/v1/jobs/{job['id']}").json()["state"] == "queued"
-    with session_scope() as session:
-        assert session.get(Scene, scene["id"]).ingest_attempts == 1
 
 
 def test_an_ingest_stopped_by_a_storage_outage_goes_back_to_the_queue_keeping_the_upload(client, dataset, root,
                                                                                           monkeypatch):
     """The storage unreachable or throttled as the ingest fetches the upload (after botocore's retries) had failed
-    the scene and deleted the upload, a valid one, for good: the message goes back to the queue, uncounted, and the
-    redelivery readies the scene."""
+    the scene and deleted the upload, a valid one, for good: the message goes back to the queue and the redelivery
+    readies the scene. Met at every run, it fails the scene at the re-queue limit, naming it, where it had looped
+    for ever (the scene processing, its jobs queued), its pause doubling at each run."""
     from voxe_service.db import session_scope
     from voxe_service.models import Scene
     from voxe_service.storage import StorageUnavailable, get_storage
@@ -280,8 +279,22 @@ def test_an_ingest_stopped_by_a_storage_outage_goes_back_to_the_queue_keeping_th
     assert client.get(f"/v1/scenes/{scene['id']}").json()["state"] == "processing"
     assert stored_files(root) == [f"scenes/{scene['id']}/dataset.zip"]
     with session_scope() as session:
-        assert session.get(Scene, scene["id"]).ingest_attempts == 0
+        assert session.get(Scene, scene["id"]).ingest_attempts == 1
     assert ingest(scene["id"]) == {"scene_id": scene["id"], "state": "ready"}
+
+    again = upload_zip(client, zip_folder(dataset, root / "again.zip", prefix="mic_small")).json()
+    pauses = []
+    monkeypatch.setattr(ingest_module.time, "sleep", pauses.append)
+    monkeypatch.setattr(ingest_module, "OUTAGE_PAUSE_S", 1.0)
+    with monkeypatch.context() as outage:
+        outage.setattr(type(get_storage()), "get_file", throttled)
+        states = [tasks.ingest_task.apply(args=(again["id"],)).state for _ in range(5)]
+    assert states == ["REJECTED"] * 4 + ["SUCCESS"] and pauses == [1.0, 2.0, 4.0, 8.0]
+    failed = client.get(f"/v1/scenes/{again['id']}").json()
+    assert (failed["state"], failed["error"]) == ("failed", "ingest: interrupted 4 times, its worker process dying "
+                                                  "each time (killed: out of memory?) or a database or storage outage "
+                                                  "stopping it; it was sent again 3 time(s) already, the limit "
+                                                  "(VOXE_JOB_MAX_REQUEUES=3)")
 
 
 @pytest.mark.parametrize("locks", [True, False])

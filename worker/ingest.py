@@ -111,8 +111,9 @@ def decode(root: Path, downsample: int) -> Decoded:
 
 
 OUTAGE_PAUSE_S = 5.0
-"""How long an ingest an outage stopped waits before its message goes back to the queue: a database or a
-storage down for a while must not have the workers take and drop the message in a tight loop."""
+"""How long an ingest an outage stopped waits before its message goes back to the queue, doubled for each run
+before it: a database or a storage down for a while must not have the workers take and drop the message in a tight
+loop, nor spend the scene's runs in seconds."""
 
 
 def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: str | None) -> TaskResult:
@@ -123,12 +124,14 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
     instead: an upload that kills its workers must not loop, as a job must not (``requeue_interrupted``).
 
     An outage of the database (down, locked) or of the storage (unreachable, throttled) is no fault of the upload:
-    the message goes back to the queue, uncounted where the database lets that be written, and its redelivery starts
-    over. A database's, acknowledged as a failed task, had left the scene processing for good (its worker alive, the
-    reaper never failed it) and the jobs waiting on it queued; a storage's had failed the scene and deleted its
-    upload.
+    the message goes back to the queue after a pause that doubles with each run (``OUTAGE_PAUSE_S``: 5, 10, 20 s ...),
+    and its redelivery starts over. A database's, acknowledged as a failed task, had left the scene processing for
+    good (its worker alive, the reaper never failed it) and the jobs waiting on it queued; a storage's had failed the
+    scene and deleted its upload. A run that took the scene counts, as a stage's give-back counts: what answers as an
+    outage every time (a full disk, a statement timeout) fails the scene at the limit, naming it, rather than
+    decoding the upload again for ever (review finding); one that could not take it (the database down) does not.
     """
-    counted = False
+    interrupted = None
     try:
         with session_scope() as session:
             scene = session.get(Scene, scene_id)
@@ -138,7 +141,6 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
             session.execute(update(Scene).where(Scene.id == scene_id, Scene.state == PROCESSING)
                             .values(worker_hostname=hostname, ingest_attempts=Scene.ingest_attempts + 1,
                                     updated_at=utcnow()))
-        counted = True
         return _ingest(scene_id, upload_key, interrupted, settings, storage)
     except (*DATABASE_UNAVAILABLE, StorageUnavailable) as exc:
         if isinstance(exc, StorageUnavailable):
@@ -148,9 +150,7 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
         else:
             raise
         log.warning("scene %s: the ingest stopped by %s; its message goes back to the queue", scene_id, cause)
-        if counted:
-            _uncount_run(scene_id)
-        time.sleep(OUTAGE_PAUSE_S)
+        time.sleep(OUTAGE_PAUSE_S * 2 ** min(interrupted or 0, 6))
         raise Reject(f"the ingest of scene {scene_id} stopped by {cause}", requeue=True) from exc
 
 
@@ -158,7 +158,8 @@ def _ingest(scene_id: str, upload_key: str, interrupted: int, settings: Settings
     """The ingest of the scene this run took, stored at ``upload_key``, after ``interrupted`` runs before it."""
     # The runs before this one, less the first: how often the ingest was sent again.
     if error := requeue_limit_error(interrupted - 1, settings, f"ingest: interrupted {interrupted} times, its worker "
-                                    "process dying each time (killed: out of memory?)"):
+                                    "process dying each time (killed: out of memory?) or a database or storage "
+                                    "outage stopping it"):
         _fail(scene_id, error, storage)
         return {"scene_id": scene_id, "state": "failed"}
     mesh_upload = upload_key == scene_key(scene_id, datasets.UPLOAD_ARCHIVE)
@@ -196,7 +197,7 @@ def _ingest(scene_id: str, upload_key: str, interrupted: int, settings: Settings
 
 
 def _uncount_run(scene_id: str) -> None:
-    """A run a worker's shutdown or an outage stopped is not one the upload killed: it does not count towards
+    """A run a worker's shutdown stopped is not one the upload killed: it does not count towards
     the limit (four deploys had failed a scene as "killed: out of memory?"). Only where the shutdown raises in the
     task (the solo pool's); a prefork pool's children are ended from outside, and their runs still count."""
     try:
