@@ -51,6 +51,7 @@ from PIL import Image
 from voxe_core.data import DatasetError, colmap_transforms, detect_format, is_dataset_folder, load_scene
 from voxe_core.constants import TEXTURE_SUFFIXES
 from voxe_core.mesh_input import MESH_FRAMES, MESH_INPUT_SUFFIXES
+from voxe_core.ply_header import read_ply_header
 from voxe_service import datasets
 from voxe_service.datasets import (DATASET_ARCHIVE, MESH_FOLDER, MESH_FORMAT, MESH_NAMES, MESH_OPTIONS, UPLOAD_ARCHIVE,
                                    ignored, package)
@@ -323,31 +324,6 @@ OTHER_TEXTURE_SUFFIXES = (".bmp", ".dds", ".exr", ".gif", ".hdr", ".jp2", ".ktx"
 """Texture image kinds 3D tools write that the mesh loader does not read (it reads ``TEXTURE_SUFFIXES``): beside an
 OBJ or a PLY, one is a 422, where it had been dropped and the mesh arrived without its colours. Other files beside a
 mesh (a licence, a scan's data) are no texture and stay ignored."""
-_PLY_TEXTURE_COORDINATES = ({("face", "texcoord")}, {("vertex", "texture_u"), ("vertex", "texture_v")},
-                           {("vertex", "u"), ("vertex", "v")}, {("vertex", "s"), ("vertex", "t")})
-"""The (element, property) sets a PLY's texture coordinates are read from (trimesh's names: per corner, or per
-vertex)."""
-_PLY_HEADER_LINES, _PLY_HEADER_LINE_BYTES = 10_000, 1024  # far past any real header (a few dozen short lines)
-
-
-def _ply_lacks_texture_coordinates(path: Path) -> bool:
-    """Whether the PLY's header (ASCII, before ``end_header``; its body is never read) declares no texture
-    coordinates; False where no header is read (no ``ply`` line first, no ``end_header``): the ingest's load names
-    what is wrong with such a file."""
-    declared = set()
-    element = None
-    with open(path, "rb") as handle:
-        if handle.readline(_PLY_HEADER_LINE_BYTES).strip() != b"ply":
-            return False
-        for _ in range(_PLY_HEADER_LINES):  # a line's bytes bounded: a damaged file may hold no newline
-            words = handle.readline(_PLY_HEADER_LINE_BYTES).decode("ascii", "replace").split()
-            if words[:1] == ["end_header"]:
-                return not any(names <= declared for names in _PLY_TEXTURE_COORDINATES)
-            if words[:1] == ["element"] and len(words) > 1:
-                element = words[1]
-            elif words[:1] == ["property"] and len(words) > 1:
-                declared.add((element, words[-1]))
-    return False
 
 
 def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str = "y") -> Path | None:
@@ -374,7 +350,8 @@ def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str
     kind = mesh.suffix.lower()[1:].upper()
     images = [p for p in files if p.suffix.lower() in TEXTURE_SUFFIXES]
     unread = [p for p in files if p.suffix.lower() in OTHER_TEXTURE_SUFFIXES]
-    if kind == "PLY" and images + unread and _ply_lacks_texture_coordinates(mesh):  # the image had been dropped
+    header = read_ply_header(mesh) if kind == "PLY" else None  # (an unread header: the ingest's load names it)
+    if header and header.complete and not header.declares_texture_coordinates and images + unread:  # dropped
         raise UploadError(f"the PLY comes with {'an image' if len(images + unread) == 1 else 'images'} "
                           f"({names(images + unread)}) but its header declares no "
                           "texture coordinates (texcoord per face, or s t / u v / texture_u texture_v per vertex) to "

@@ -16,6 +16,7 @@ from urllib.parse import quote
 import httpx
 
 from voxe_core.constants import TEXTURE_SUFFIXES
+from voxe_core.ply_header import read_ply_header
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 DEFAULT_TIMEOUT_S = 60.0
@@ -254,12 +255,6 @@ def _given_texture(mesh: Path, texture: str | os.PathLike) -> list[Path]:
     return [mesh, Path(texture)]
 
 
-_PLY_HEADER_LINES, _PLY_HEADER_LINE_BYTES = 10_000, 1024  # far past any real header (a few dozen short lines)
-_PLY_TEXTURE_COORDINATES = ({("face", "texcoord")}, {("vertex", "texture_u"), ("vertex", "texture_v")},
-                            {("vertex", "u"), ("vertex", "v")}, {("vertex", "s"), ("vertex", "t")})
-"""The (element, property) sets a PLY's texture coordinates are read from (trimesh's names; the service's rule)."""
-
-
 def ply_upload_files(ply: Path, texture: str | os.PathLike | None = None) -> list[Path]:
     """The files a PLY upload sends: the PLY, then ``texture``, or else the image its header's ``comment
     TextureFile`` names (read as trimesh reads it: the rest of the line), looked up as an OBJ's are, where the
@@ -269,22 +264,11 @@ def ply_upload_files(ply: Path, texture: str | os.PathLike | None = None) -> lis
     ValueError."""
     if texture is not None:
         return _given_texture(ply, texture)
-    name, element, declared = None, None, set()
-    with open(ply, "rb") as handle:
-        for _ in range(_PLY_HEADER_LINES):  # the header only (a body may be large, binary, without newlines)
-            text = handle.readline(_PLY_HEADER_LINE_BYTES).decode("utf-8", errors="replace").strip()
-            words = text.split()
-            if words[:1] == ["end_header"]:
-                break
-            if words[:1] == ["element"] and len(words) > 1:
-                element = words[1]
-            elif words[:1] == ["property"] and len(words) > 1:
-                declared.add((element, words[-1]))
-            elif "texturefile" in text.lower():
-                name = text[text.lower().index("texturefile") + len("texturefile"):].strip()
+    header = read_ply_header(ply)
+    name = header.texture_file if header.complete else None  # (an unread header: the service names it)
     if not name:
         return [ply]
-    if not any(names <= declared for names in _PLY_TEXTURE_COORDINATES):
+    if not header.declares_texture_coordinates:
         warnings.warn(f"{ply.name} names the texture {name!r} (comment TextureFile) but declares no texture "
                       "coordinates to map it with: the PLY goes without it (its vertex or face colours)",
                       MissingCompanionWarning, stacklevel=3)
