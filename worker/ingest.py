@@ -129,7 +129,7 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
     good (its worker alive, the reaper never failed it) and the jobs waiting on it queued; a storage's had failed the
     scene and deleted its upload. A run that took the scene counts, as a stage's give-back counts: what answers as an
     outage every time (a full disk, a statement timeout) fails the scene at the limit, naming it, rather than
-    decoding the upload again for ever (review finding); one that could not take it (the database down) does not.
+    decoding the upload again for ever; one that could not take it (the database down) does not.
     """
     interrupted = None
     try:
