@@ -73,11 +73,12 @@ def sparse_tensors(features: torch.Tensor, cells: torch.Tensor, margin: int = DE
 
     Returns (tensors, header fields: layout, margin, resolution). ``fill`` is the mean of the vertices left
     out: each of those has a density no cell above the occupancy threshold
-    needs, and a mean of values below a threshold stays below it. A channel whose left-out vertices all hold one
-    value (a loaded file's ``fill``) keeps it exactly, so saving a loaded grid again writes the same ``fill``
-    (float32's mean of N copies is not the value: it had drifted by a few ulps at each sparse -> dense -> sparse
-    conversion; a float64 sum, exact, took 10x the mean's time). Where the mean is not finite (an infinity, or one NaN spreading to every vertex left out) it is taken again over the
-    values that are not NaN, infinities counted as float32's extremes.
+    needs, and a mean of values below a threshold stays below it: the mean is kept within their range (float32's
+    rounding can leave it). A channel whose left-out vertices all hold one value (a loaded file's ``fill``) keeps
+    it exactly, so saving a loaded grid again writes the same ``fill`` (float32's mean of N copies is not the value:
+    it had drifted by a few ulps at each sparse -> dense -> sparse conversion; a float64 sum, exact, took 10x the
+    mean's time). Where the mean is not finite (an infinity, or one NaN spreading to every vertex left out) it is
+    taken again over the values that are not NaN, infinities counted as float32's extremes.
     """
     if margin < 0:
         raise ValueError(f"margin must be >= 0 cells, got {margin}")
@@ -85,10 +86,9 @@ def sparse_tensors(features: torch.Tensor, cells: torch.Tensor, margin: int = DE
     mask = stored_vertices(cells.cpu(), margin)
     dropped = features[~mask]
     fill = features.new_zeros(features.shape[-1])
-    if dropped.shape[0]:  # a channel whose left-out values are all one value: that value, not float32's mean of it
-        fill = torch.where((dropped == dropped[0]).all(0), dropped[0], dropped.mean(0))
-        fill = torch.minimum(torch.maximum(fill, dropped.amin(0)), dropped.amax(0))  # float32's rounding can leave
-        # the range (a mean above every density left out, all below the threshold, had made empty cells occupied)
+    if dropped.shape[0]:  # one value in a channel (lowest == highest): that value, not float32's mean of it
+        lowest, highest = torch.aminmax(dropped, dim=0)
+        fill = torch.where(lowest == highest, lowest, dropped.mean(0).clamp(lowest, highest))
     if not bool(torch.isfinite(fill).all()):  # an infinity, or a NaN among them: the careful mean, only then
         extreme = torch.finfo(torch.float32).max
         dropped.clamp_(-extreme, extreme)  # a copy (mask indexing), clamped in place; NaN stays NaN
