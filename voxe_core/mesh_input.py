@@ -141,10 +141,10 @@ def load_mesh(
 
     A ``texture`` given colours every part at the file's own UVs ((0, 0) on parts
     without vt) whatever the file's materials; without one, an OBJ's .mtl (a PLY's TextureFile, its vertex or face
-    colours) colours it as trimesh reads it (its images and Kd packed into one atlas, ``_atlas``, where parts with neither
-    are ``DEFAULT_ALBEDO`` or their vertex colours; a single material's own Kd is the mesh's one ``colour`` when it
-    names no image); with no image or Kd the file wrote (its .mtl missing, say), the mesh is uncoloured as one
-    without vt is.
+    colours) colours it as trimesh reads it (its images and Kd packed into one atlas, ``_atlas``, where parts with
+    neither are ``DEFAULT_ALBEDO`` or their vertex colours; a single material's own Kd is the mesh's one ``colour``
+    when it names no image); with no image or Kd the file wrote (its .mtl missing, say), the mesh is uncoloured as
+    one without vt is.
 
     ``up_axis``: the file's up axis ('y' for OBJ/glTF exports, 'z' for CAD and
     most scanners), turned onto +z. The box is centred on the origin and its

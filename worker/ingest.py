@@ -197,9 +197,9 @@ def _ingest(scene_id: str, upload_key: str, interrupted: int, settings: Settings
 
 
 def _uncount_run(scene_id: str) -> None:
-    """A run a worker's shutdown stopped is not one the upload killed: it does not count towards
-    the limit (four deploys had failed a scene as "killed: out of memory?"). Only where the shutdown raises in the
-    task (the solo pool's); a prefork pool's children are ended from outside, and their runs still count."""
+    """A run a worker's shutdown stopped is not one the upload killed: it does not count towards the limit (four
+    deploys had failed a scene as "killed: out of memory?"). Only where the shutdown raises in the task (the solo
+    pool's); a prefork pool's children are ended from outside, and their runs still count."""
     try:
         with session_scope() as session:
             session.execute(update(Scene).where(Scene.id == scene_id, Scene.state == PROCESSING,

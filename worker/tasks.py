@@ -806,9 +806,9 @@ def recover_interrupted_jobs(hostname: str) -> list[str]:
 def _next_stage_unsent(sender=None, args=None, exception=None, **_kwargs) -> None:
     """A stage task that fails after its stage finished failed to hand its chain's next message to the broker
     (Celery's send after the task returns; every failure inside a stage ends the job in ``_run_stage``, or sends
-    its message back to the queue). The job,
-    between stages and held by no run, is sent again at once, or left queued with no task id for the reaper to send
-    when the broker is back: nothing else would (the reaper cannot tell a lost message from one waiting its turn).
+    its message back to the queue). The job, between stages and held by no run, is sent again at once, or left
+    queued with no task id for the reaper to send when the broker is back: nothing else would (the reaper cannot
+    tell a lost message from one waiting its turn).
     A job that has ended (its last stage done, or failed) had only its sweep's evaluations in that message: they are
     sent alone, or fail with the reason."""
     stage = next((name for name, spec in STAGE_TASKS.items() if spec.name == getattr(sender, "name", None)), None)
