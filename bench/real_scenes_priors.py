@@ -144,6 +144,9 @@ def main() -> None:
         if args.parallel:
             processes = [subprocess.Popen(c, stdout=subprocess.PIPE, text=True) for c in commands]
             outputs = [p.communicate()[0] for p in processes]
+            for process in processes:  # as check=True does below: a variant that failed is not read as a result
+                if process.returncode:
+                    raise subprocess.CalledProcessError(process.returncode, process.args)
         else:
             outputs = [subprocess.run(c, check=True, stdout=subprocess.PIPE, text=True).stdout for c in commands]
     path = RESULTS / "real_scenes_priors.json"
