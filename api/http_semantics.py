@@ -8,6 +8,7 @@
   parsing the body".
 * A path holding a NUL character is a 404 (no resource is named so) and such a query string a 422: neither
   reaches the database, whose PostgreSQL text cannot hold one.
+* ``HEAD`` is served wherever ``GET`` is (:class:`HeadAsGet`).
 * A method a path does not serve is a 405 whose ``Allow`` lists every method of every route on that
   path (Starlette names only the first route it tried), and ``OPTIONS`` on any path answers 204
   with the same ``Allow``. Without a key too: it says nothing ``/openapi.json`` does not.
@@ -18,7 +19,7 @@
 Examples:
     >>> from api.main import create_app
     >>> allowed_methods(create_app(), "/v1/jobs")
-    ['GET', 'OPTIONS', 'POST']
+    ['GET', 'HEAD', 'OPTIONS', 'POST']
 """
 
 from __future__ import annotations
@@ -54,18 +55,22 @@ _UNAVAILABLE_503 = "the database or the storage is busy or unreachable (Retry-Af
 _MOUNTED_METHODS = ("GET", "HEAD")  # what a mount serves: the only one is the UI's static files (api/ui.py)
 
 
-def allowed_methods(app: FastAPI, path: str) -> list[str]:
-    """Sorted methods some route fully matches on ``path`` (OPTIONS always among them).
+def routed(app: FastAPI, path: str, method: str) -> bool:
+    """Whether some route fully matches ``method`` on ``path``.
 
-    Asked of each top-level route per method, so routes inside included routers count too. A mount matches any
-    method: it counts for those it serves.
+    Asked of each top-level route, so routes inside included routers count too. A mount matches any method: it
+    counts for those it serves.
     """
-    def served(method: str) -> bool:
-        scope = {"type": "http", "path": path, "method": method, "root_path": ""}
-        return any(route.matches(scope)[0] == Match.FULL
-                   and (not isinstance(route, Mount) or method in _MOUNTED_METHODS) for route in app.router.routes)
+    scope = {"type": "http", "path": path, "method": method, "root_path": ""}
+    return any(route.matches(scope)[0] == Match.FULL
+               and (not isinstance(route, Mount) or method in _MOUNTED_METHODS) for route in app.router.routes)
 
-    return sorted({"OPTIONS", *filter(served, _METHODS)})
+
+def allowed_methods(app: FastAPI, path: str) -> list[str]:
+    """Sorted methods served on ``path``: those some route matches, HEAD wherever GET is (:class:`HeadAsGet`), and
+    OPTIONS always."""
+    methods = {method for method in _METHODS if routed(app, path, method)}
+    return sorted({"OPTIONS", *methods, *(("HEAD",) if "GET" in methods else ())})
 
 
 def route_path(scope) -> str:
@@ -155,6 +160,43 @@ def unavailable(_request: Request | None, exc: Exception) -> JSONResponse:
                         headers={"Retry-After": str(RETRY_AFTER_S)})
 
 
+class _HeadersSent(Exception):
+    """Raised into a streamed answer to a HEAD once its headers are out: its body would be dropped anyway, and an
+    event stream's runs until its job ends."""
+
+
+class HeadAsGet:
+    """HEAD wherever GET is served (RFC 9110 §9.3.2), answered as that GET with its status and headers (a
+    Content-Length too), without the body (ASGI middleware). FastAPI's GET routes answered it 405: ``curl -I`` on
+    a job's URL. A route serving HEAD itself (an artifact's download, which reads no bytes for it) answers it."""
+
+    def __init__(self, app):
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http" or scope["method"] != "HEAD":
+            return await self.app(scope, receive, send)
+        path = route_path(scope)
+        if routed(scope["app"], path, "HEAD") or not routed(scope["app"], path, "GET"):
+            return await self.app(scope, receive, send)
+        body_sent = False
+
+        async def headers_only(message):
+            nonlocal body_sent
+            if message["type"] != "http.response.body":
+                return await send(message)
+            if not body_sent:
+                body_sent = True
+                await send({"type": "http.response.body", "body": b"", "more_body": False})
+            if message.get("more_body"):
+                raise _HeadersSent
+
+        try:
+            await self.app({**scope, "method": "GET"}, receive, headers_only)
+        except _HeadersSent:
+            pass
+
+
 class RefuseNul:
     """The NUL answers above, before any route (ASGI middleware)."""
 
@@ -174,9 +216,10 @@ class RefuseNul:
 
 
 def install(app: FastAPI) -> None:
-    """Answer NUL paths, unreadable JSON, 405 and OPTIONS as above, and document them with the statuses no route
-    declares itself."""
+    """Answer NUL paths, unreadable JSON, HEAD, 405 and OPTIONS as above, and document them with the statuses no
+    route declares itself."""
     app.add_middleware(RefuseNul)
+    app.add_middleware(HeadAsGet)
     app.add_exception_handler(405, method_not_allowed)
     app.add_exception_handler(400, unreadable_body)
     for error in UNAVAILABLE:
@@ -218,7 +261,7 @@ def document(schema: dict) -> dict:
                 if busy["description"] != _UNAVAILABLE_503:
                     busy["description"] += f"; or {_UNAVAILABLE_503}"
                     busy.setdefault("content", _PROBLEM)
-        methods = ", ".join(m.upper() for m in sorted({*item, "options"}))
+        methods = ", ".join(m.upper() for m in sorted({*item, "options", *(("head",) if "get" in item else ())}))
         item["options"] = {
             "summary": "The methods this path serves", "operationId": "options" + path.replace("/", "_").replace(
                 "{", "").replace("}", ""),

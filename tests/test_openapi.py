@@ -284,7 +284,7 @@ def test_json_that_python_cannot_read_is_a_400_naming_why(client):
 def test_options_and_405_answer_each_paths_documented_methods(client, spec):
     for path, item in spec["paths"].items():
         concrete = path.replace("{", "").replace("}", "")  # any value fills a path parameter
-        documented = sorted(m.upper() for m in item)
+        documented = sorted({m.upper() for m in item} | ({"HEAD"} if "get" in item else set()))  # HEAD as GET
         response = client.options(concrete)
         assert response.status_code == 204 and response.headers["allow"] == ", ".join(documented), path
         missing = next(m for m in ("PUT", "PATCH", "DELETE", "POST") if m not in documented)
@@ -314,7 +314,7 @@ def test_behind_a_proxy_prefix_the_405_still_names_the_paths_methods(client):
             return await proxied.delete("/api/v1/jobs")
 
     refused = anyio.run(delete_jobs)
-    assert refused.status_code == 405 and refused.headers["allow"] == "GET, OPTIONS, POST"
+    assert refused.status_code == 405 and refused.headers["allow"] == "GET, HEAD, OPTIONS, POST"
 
 
 def test_every_v1_operation_documents_auth_and_body_statuses(spec):
@@ -333,7 +333,7 @@ def test_with_auth_on_options_needs_no_key_and_the_rest_answer_the_documented_40
     reset_service_caches()
     with TestClient(create_app()) as client:
         spec = client.get("/openapi.json").json()
-        assert client.options("/v1/jobs").headers["allow"] == "GET, OPTIONS, POST"
+        assert client.options("/v1/jobs").headers["allow"] == "GET, HEAD, OPTIONS, POST"
         refused = client.get("/v1/jobs")
         assert refused.status_code == 401 and refused.headers["www-authenticate"] == "Bearer"
         assert "401" in spec["paths"]["/v1/jobs"]["get"]["responses"]

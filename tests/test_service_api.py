@@ -939,6 +939,25 @@ def test_artifact_download_ranges_and_names(client, dataset, root):
     assert client.head(url).status_code == 404  # as the GET (it had answered 200 and a length)
 
 
+def test_head_answers_wherever_get_does_with_its_headers_and_no_body(client, dataset, tmp_path):
+    """``curl -I`` on a job's URL: HEAD had been 405 on every GET route but an artifact's download. An event stream's
+    HEAD ends with its headers, though its job goes on."""
+    scene = make_scene(client, dataset, tmp_path)
+    job = client.post("/v1/jobs", json={**JOB, "scene_id": scene["id"]}).json()
+    for url in ("/healthz", "/v1/jobs", f"/v1/jobs/{job['id']}", f"/v1/jobs/{job['id']}/artifacts",
+                f"/v1/scenes/{scene['id']}", "/v1/jobs/no-such-job"):
+        got, head = client.get(url), client.head(url)
+        assert (head.status_code, head.content) == (got.status_code, b""), url
+        for header in ("content-length", "content-type", "x-content-type-options"):
+            assert head.headers[header] == got.headers[header], (url, header)
+    stream = client.head(f"/v1/jobs/{job['id']}/events", headers={"Accept": "text/event-stream"})
+    assert stream.status_code == 200 and stream.content == b""
+    assert stream.headers["content-type"].startswith("text/event-stream")
+    assert client.options(f"/v1/jobs/{job['id']}").headers["allow"] == "GET, HEAD, OPTIONS"
+    refused = client.head(f"/v1/jobs/{job['id']}/cancel")  # no GET there: no HEAD either
+    assert refused.status_code == 405 and refused.headers["allow"] == "OPTIONS, POST"
+
+
 def _replace_artifact(job_id: str, data: bytes) -> None:
     """Replace the job's render_000.png as the worker's publish_artifact does (a republished preview): the bytes under
     a new key, the row switched to it, the old object deleted."""
