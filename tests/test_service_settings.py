@@ -8,11 +8,13 @@ import re
 from pathlib import Path
 
 import pytest
+from PIL import Image
 
 from voxe_service.queue import broker_transport_options
 from voxe_service.settings import Settings, SettingsError, get_settings
 
 ROOT = Path(__file__).resolve().parents[1]
+PILLOW_MOST = 2 * Image.MAX_IMAGE_PIXELS  # larger: Pillow's DecompressionBombError
 DEPLOYMENT_FILES = ("docker-compose.yml", "docker/env.example", "docker/api.Dockerfile", "docker/worker.Dockerfile")
 
 
@@ -38,6 +40,9 @@ def fresh_settings(monkeypatch):
     ("VOXE_S3_ENDPOINT_URL", "minio:9000", "VOXE_S3_ENDPOINT_URL='minio:9000': an S3 endpoint is an http://"),
     ("VOXE_TASK_SOFT_TIME_LIMIT_S", "30000", "VOXE_TASK_SOFT_TIME_LIMIT_S (30000 s) must be below "
                                              "VOXE_TASK_TIME_LIMIT_S (12600 s)"),
+    # above Pillow's own limit, an image under the setting had been refused as "huge, over the limit"
+    ("VOXE_MAX_IMAGE_PIXELS", "300000000", f"VOXE_MAX_IMAGE_PIXELS='300000000': must be at most {PILLOW_MOST} "
+                                           "pixels, the most Pillow opens"),
 ])
 def test_a_bad_setting_is_refused_at_start_naming_its_variable(fresh_settings, variable, value, message):
     """pydantic had named the field (storage_backend), not the variable a deployment sets."""
@@ -45,6 +50,11 @@ def test_a_bad_setting_is_refused_at_start_naming_its_variable(fresh_settings, v
     with pytest.raises(SettingsError, match=r"^bad service settings: ") as error:
         get_settings()
     assert message in str(error.value) and "S3cret" not in str(error.value), str(error.value)
+
+
+def test_the_image_pixel_limit_may_reach_the_most_pillow_opens(fresh_settings):
+    fresh_settings.setenv("VOXE_MAX_IMAGE_PIXELS", str(PILLOW_MOST))
+    assert get_settings().max_image_pixels == PILLOW_MOST
 
 
 def test_s3_storage_needs_a_bucket_name(fresh_settings):

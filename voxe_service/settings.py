@@ -162,6 +162,18 @@ class Settings(BaseSettings):
             ipaddress.ip_network(network, strict=False)  # a typo fails at startup, not on the first webhook
         return value
 
+    @field_validator("max_image_pixels")
+    @classmethod
+    def _pillow_decodes(cls, value: int) -> int:
+        """At most what Pillow opens (it refuses an image over twice ``Image.MAX_IMAGE_PIXELS`` as a decompression
+        bomb): above, an upload under the setting had been refused as "huge, over the limit", and its ingest failed."""
+        from PIL import Image
+
+        if Image.MAX_IMAGE_PIXELS is not None and value > 2 * Image.MAX_IMAGE_PIXELS:
+            raise ValueError(f"must be at most {2 * Image.MAX_IMAGE_PIXELS} pixels, the most Pillow opens "
+                             "(twice its Image.MAX_IMAGE_PIXELS; a larger image is refused as a decompression bomb)")
+        return value
+
     @model_validator(mode="after")
     def _s3_bucket_named(self):
         # botocore's own rule: path-style stores (MinIO, Ceph, GCS interop, old us-east-1 buckets) take more than
