@@ -275,10 +275,18 @@ def idempotency_key(value: Annotated[str | None, Header(
         alias=IDEMPOTENCY_HEADER, json_schema_extra={"minLength": 1, "maxLength": 255, "pattern": r"\S"},
         description="a retry with the same key and body answers 200 with what the first request created")] = None,
         ) -> str | None:
-    """The request's Idempotency-Key header (422 when blank or longer than 255 characters)."""
+    """The request's Idempotency-Key header (422 when blank, longer than 255 characters, or not UTF-8).
+
+    Counted in characters, as the README and the schema's ``maxLength`` say: the server reads a header's bytes as
+    Latin-1, one character per byte, and had refused a key of 200 "é" as 400 characters long.
+    """
     if value is None:
         return None
-    value = value.strip()
+    try:
+        value = value.encode("latin-1").decode("utf-8").strip()
+    except UnicodeDecodeError:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                            f"{IDEMPOTENCY_HEADER} header must be UTF-8 text") from None
     if not value or len(value) > 255:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
                             f"{IDEMPOTENCY_HEADER} header must be 1-255 characters, got {len(value)}")

@@ -9,6 +9,7 @@ import json
 
 import jsonschema
 import pytest
+from fastapi import HTTPException
 from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -346,6 +347,16 @@ def test_the_idempotency_key_header_is_documented_with_the_length_the_server_enf
     body = {"scene_id": "x", "prompt": "a mic"}
     assert client.post("/v1/jobs", json=body, headers={"Idempotency-Key": "k" * longest}).status_code == 404
     assert client.post("/v1/jobs", json=body, headers={"Idempotency-Key": "k" * (longest + 1)}).status_code == 422
+    # characters, as the schema counts them, not the bytes of their UTF-8 (a 200-character key had been "400")
+    assert client.post("/v1/jobs", json=body, headers={"Idempotency-Key": ("é" * longest).encode()}).status_code == 404
+    too_long = client.post("/v1/jobs", json=body, headers={"Idempotency-Key": ("é" * (longest + 1)).encode()})
+    assert too_long.status_code == 422 and too_long.json()["detail"] == \
+        f"Idempotency-Key header must be 1-{longest} characters, got {longest + 1}"
+    from api.auth import idempotency_key
+
+    with pytest.raises(HTTPException) as not_utf8:  # b"caf\xe9" as Starlette hands it over (TestClient sends UTF-8)
+        idempotency_key(b"caf\xe9".decode("latin-1"))
+    assert (not_utf8.value.status_code, not_utf8.value.detail) == (422, "Idempotency-Key header must be UTF-8 text")
 
 
 def test_idempotent_operations_document_the_409_of_a_deleted_original(spec):
