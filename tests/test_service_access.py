@@ -11,7 +11,7 @@ import anyio
 import pytest
 from fastapi.testclient import TestClient
 
-from service_helpers import zip_folder
+from service_helpers import ingest, zip_folder
 from test_service_api import BOTH_DATABASES, JOB, _reset, dataset, root, staged, stored_files  # noqa: F401 - fixtures
 
 
@@ -429,6 +429,43 @@ def test_job_creation_is_idempotent(auth_client, mic_zip):
     for bad in ("", " ", "k" * 256):
         response = auth_client.post("/v1/jobs", json=body, headers={**bearer(alice), "Idempotency-Key": bad})
         assert response.status_code == 422 and "Idempotency-Key header must be 1-255 characters" in response.text
+
+
+def test_evaluation_creation_is_idempotent_and_a_refused_one_runs_again_on_retry(local_client, mic_zip,
+                                                                                 monkeypatch):
+    """POST /v1/evaluations honours Idempotency-Key as POST /v1/jobs does (the same shared submission): a retry had
+    created a second evaluation of the same jobs."""
+    from sqlalchemy import update
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+    from voxe_service.queue import TaskQueue
+
+    scene = _upload(local_client, mic_zip).json()
+    assert ingest(scene["id"])["state"] == "ready"  # (no worker here): the evaluation is sent at once
+    edit = local_client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}).json()
+    with session_scope() as session:
+        session.execute(update(Job).where(Job.id == edit["id"]).values(state="succeeded"))
+    body, headers = {"job_ids": [edit["id"]], "object": "mic"}, {"Idempotency-Key": "eval-1"}
+
+    def evaluations():
+        return [j["id"] for j in local_client.get("/v1/jobs").json()["items"] if j["mode"] == "evaluate"]
+
+    with monkeypatch.context() as broker_down:  # a 503 keeps nothing: the retry submits it anew
+        broker_down.setattr(TaskQueue, "send", lambda self, *args: (_ for _ in ()).throw(ConnectionError("down")))
+        refused = local_client.post("/v1/evaluations", json=body, headers=headers)
+    assert refused.status_code == 503 and evaluations() == []
+    created = local_client.post("/v1/evaluations", json=body, headers=headers)
+    replayed = local_client.post("/v1/evaluations", json=body, headers=headers)
+    assert created.status_code == 201 and "idempotent-replayed" not in created.headers
+    assert replayed.status_code == 200 and replayed.headers["idempotent-replayed"] == "true"
+    assert replayed.json()["id"] == created.json()["id"] and evaluations() == [created.json()["id"]]
+    conflict = local_client.post("/v1/evaluations", json={**body, "object": "lamp"}, headers=headers)
+    assert conflict.status_code == 422 and conflict.json()["detail"] == (
+        f"Idempotency-Key 'eval-1' was already used with a different request body (it created evaluations "
+        f"{created.json()['id']!r}); use a new key for a new request")
+    # per endpoint: the same key on POST /v1/jobs is another request's
+    assert local_client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}, headers=headers).status_code == 201
 
 
 def test_a_job_retried_across_an_upgrade_that_changed_a_default_replays(auth_client, mic_zip, monkeypatch):

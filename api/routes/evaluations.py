@@ -9,10 +9,11 @@ from __future__ import annotations
 
 from collections import Counter
 
-from fastapi import APIRouter, status
+from fastapi import APIRouter, Response, status
 from sqlalchemy.orm import Session
 
-from api.deps import CurrentKey, QueueDep, SessionDep, SettingsDep
+from api.auth import mark_replayed
+from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep
 from api.routes.jobs import job_out
 from api.schemas import EvaluationCreate, JobOut, SweepCreate, SweepEntry, SweepOut
 from api.services import evaluations
@@ -26,16 +27,26 @@ _QUOTA = {429: {"description": "the key's quota of queued + running jobs is used
 
 
 @router.post("/v1/evaluations", status_code=status.HTTP_201_CREATED, response_model=JobOut,
-             responses={404: {"description": "a listed job does not exist (or is another key's)"},
-                        409: {"description": "a listed job has not succeeded, the workers lack a model it loads, or "
-                                             "the evaluation was canceled and deleted with its scene before its "
-                                             "creation answered"},
-                        422: {"description": "invalid request, an evaluation listed, or jobs of different scenes"},
+             responses={200: {"description": "a retry with the same Idempotency-Key: the evaluation it created"},
+                        404: {"description": "a listed job does not exist (or is another key's)"},
+                        409: {"description": "a listed job has not succeeded, the workers lack a model it loads, a "
+                                             "retry whose Idempotency-Key created an evaluation that has since been "
+                                             "deleted, or one sent while that first request has not answered yet "
+                                             "(Retry-After); or the evaluation was canceled and deleted with its "
+                                             "scene before its creation answered"},
+                        422: {"description": "invalid request, an evaluation listed, jobs of different scenes, or an "
+                                             "Idempotency-Key reused with a different body"},
                         **_QUOTA},
-             summary="Evaluate finished edit jobs of one scene (CLIP_sim, CLIP_dir, FID, PSNR/SSIM outside the mask)")
-def create_evaluation(body: EvaluationCreate, session: SessionDep, settings: SettingsDep, queue: QueueDep,
-                      key: CurrentKey) -> JobOut:
-    return job_out(evaluations.create_evaluation(session=session, settings=settings, queue=queue, key=key, body=body))
+             summary="Evaluate finished edit jobs of one scene (CLIP_sim, CLIP_dir, FID, PSNR/SSIM outside the mask; "
+                     "optionally with an Idempotency-Key header)")
+def create_evaluation(body: EvaluationCreate, response: Response, session: SessionDep, settings: SettingsDep,
+                      queue: QueueDep, key: CurrentKey, idempotency_key: IdempotencyKey) -> JobOut:
+    """201 with the queued evaluation; 200 with the original one for a retry carrying the same Idempotency-Key."""
+    job, replayed = evaluations.create_evaluation(session=session, settings=settings, queue=queue, key=key, body=body,
+                                                  idempotency_key=idempotency_key)
+    if replayed:
+        mark_replayed(response)
+    return job_out(job)
 
 
 @router.post("/v1/sweeps", status_code=status.HTTP_201_CREATED, response_model=SweepOut,

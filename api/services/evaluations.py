@@ -12,8 +12,9 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from api.schemas import EvaluationCreate, EvaluationParams, JobCreate, SweepCreate
+from api.auth import Idempotency, sha256_hex
 from api.services.jobs import (
-    add_jobs, created_job, fail_unsent, get_job, new_edit_job, reconstruction_for, request_cancel, send, usable_scene,
+    add_jobs, fail_unsent, get_job, new_edit_job, reconstruction_for, request_cancel, submit, usable_scene,
 )
 from voxe_core.evaluate import paper_protocol
 from voxe_core.guidance.prompts import check_prompt_length
@@ -39,8 +40,14 @@ def new_evaluation_job(key: ApiKey, settings: Settings, sources: list[Job], obje
 
 
 def create_evaluation(*, session: Session, settings: Settings, queue: TaskQueue, key: ApiKey,
-                      body: EvaluationCreate) -> Job:
-    """Record and queue an evaluation of succeeded edit jobs of one scene and reconstruction."""
+                      body: EvaluationCreate, idempotency_key: str | None) -> tuple[Job, bool]:
+    """Record and queue an evaluation of succeeded edit jobs of one scene and reconstruction; (the job, whether this
+    was a replay of an earlier request with the same Idempotency-Key)."""
+    idem = None
+    if idempotency_key:
+        idem = Idempotency(idempotency_key, sha256_hex(body.model_dump_json(exclude_unset=True)), "evaluations")
+        if (replayed := idem.replayed(session, key, Job)) is not None:
+            return replayed, True
     sources = [get_job(session=session, key=key, job_id=job_id) for job_id in body.job_ids]
     for source in sources:
         if source.mode == EVALUATE:
@@ -55,9 +62,7 @@ def create_evaluation(*, session: Session, settings: Settings, queue: TaskQueue,
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "the jobs edit different reconstructions of the "
                                                                   "scene (reconstruction parameters differ)")
     job = new_evaluation_job(key, settings, sources, body.object, body.params)
-    job_id = job.id
-    send(session=session, queue=queue, jobs=add_jobs(session=session, key=key, settings=settings, jobs=[job]))
-    return created_job(session, job_id)
+    return submit(session=session, settings=settings, queue=queue, key=key, job=job, idem=idem)
 
 
 def create_sweep(*, session: Session, settings: Settings, queue: TaskQueue, key: ApiKey, body: SweepCreate) -> str:

@@ -192,12 +192,12 @@ def _scene_deleted(jobs: list[Job]) -> HTTPException:
     return HTTPException(status.HTTP_404_NOT_FOUND, f"scene {scenes} was deleted while the job was created")
 
 
-def send(*, session: Session, queue: TaskQueue, jobs: Iterable[Job], fail_refused: bool = True) -> None:
-    """Hand each job's chain (with the evaluations following it) to the broker; 503 when it is down (the jobs
-    failed with the reason, unless ``fail_refused`` is off: ``dispatch_job``)."""
+def send(*, session: Session, queue: TaskQueue, jobs: Iterable[Job]) -> None:
+    """Hand each job's chain (with the evaluations following it) to the broker; 503 when it is down (the jobs left
+    as they are, for the caller to withdraw: ``dispatch_job``)."""
     for job in jobs:
         try:
-            dispatch_job(session, queue, job, fail_refused=fail_refused)
+            dispatch_job(session, queue, job, fail_refused=False)
         except QueueUnavailable as exc:
             raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(exc)) from None
 
@@ -217,9 +217,17 @@ def create_job(*, session: Session, settings: Settings, queue: TaskQueue, key: A
     scene = usable_scene(session=session, key=key, scene_id=body.scene_id, params=params)
     check_webhook(settings=settings, body=body)
     job = new_edit_job(body, key, settings, reconstruction_for(session=session, scene=scene, params=params))
-    job_id = job.id
     if job.webhook_url:  # after reconstruction_for: its own transaction must not wait on this one's write
         webhooks.key_secret(session, key)  # committed with the job
+    return submit(session=session, settings=settings, queue=queue, key=key, job=job, idem=idem)
+
+
+def submit(*, session: Session, settings: Settings, queue: TaskQueue, key: ApiKey, job: Job,
+           idem: Idempotency | None) -> tuple[Job, bool]:
+    """Record ``job`` and hand it to the broker; (the job, whether a concurrent retry with the same Idempotency-Key
+    created it first). A broker refusing it (503) withdraws it: nothing is listed, and a retry with the key runs
+    anew."""
+    job_id = job.id
     try:
         to_send = add_jobs(session=session, key=key, settings=settings, jobs=[job], idempotency=idem)
     except IntegrityError:
@@ -227,7 +235,7 @@ def create_job(*, session: Session, settings: Settings, queue: TaskQueue, key: A
             return replayed, True  # a concurrent retry created it first
         raise
     try:
-        send(session=session, queue=queue, jobs=to_send, fail_refused=False)
+        send(session=session, queue=queue, jobs=to_send)
     except HTTPException:  # 503: the broker refused it, so the job was never accepted (no failed event or webhook)
         session.execute(delete(Job).where(Job.id == job_id))  # nothing listed; a retry with the key runs anew
         if idem is not None:
