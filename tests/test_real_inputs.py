@@ -19,8 +19,8 @@ import torch
 from PIL import Image
 
 from voxe_core.backbones import prepare_backbone
-from voxe_core.cameras import (Cameras, _jacobian, camera_rays, distort_points, fisheye_angles, look_at, pixel_rays,
-                               undistort_points)
+from voxe_core.cameras import (DISTORTION_KEYS, Cameras, _jacobian, camera_rays, distort_points, fisheye_angles,
+                               look_at, pixel_rays, undistort_points)
 from voxe_core.colmap import ColmapError, read_model
 from voxe_core.data import DatasetError, detect_format, is_dataset_folder, load_scene
 from voxe_core.scene_grid import scene_frame
@@ -231,6 +231,24 @@ def test_nerfstudio_fisheye_with_per_frame_intrinsics(tmp_path):
 def test_nerfstudio_pinhole_and_zero_distortion_are_pinholes(tmp_path):
     assert load_scene(write_capture(tmp_path / "a", camera_model="PINHOLE")).cameras.distortion is None
     assert load_scene(write_capture(tmp_path / "b", camera_model="OPENCV", k1=0.0, p1=0.0)).cameras.distortion is None
+
+
+@pytest.mark.parametrize("model, lens", [("SIMPLE_PINHOLE", {}), ("SIMPLE_RADIAL", {"k1": 0.05}),
+                                         ("RADIAL", {"k1": 0.05, "k2": -0.01})])
+def test_nerfstudio_reads_the_simpler_colmap_model_names_too(tmp_path, model, lens):
+    """nerfstudio's reader takes camera_model SIMPLE_PINHOLE, SIMPLE_RADIAL and RADIAL as perspective cameras with
+    the k / p keys' distortion, and converters to its format write SIMPLE_PINHOLE: they had been refused. A
+    SIMPLE_PINHOLE frame beside an OPENCV one leaves that one's lens as it is."""
+    cameras = load_scene(write_capture(tmp_path / "ns", camera_model=model, **lens)).cameras
+    if lens:
+        assert cameras.distortion_model == "opencv"
+        assert torch.allclose(cameras.distortion, torch.tensor([lens.get(k, 0.0) for k in DISTORTION_KEYS]))
+    else:
+        assert cameras.distortion is None
+    assert torch.equal(cameras.fx, torch.full((3,), 14.0))
+    mixed = write_capture(tmp_path / "mixed", camera_model=model,
+                          frame_extra={1: {"camera_model": "OPENCV", "k1": 0.1}})
+    assert torch.allclose(load_scene(mixed).cameras.distortion[1], torch.tensor([0.1, 0, 0, 0, 0, 0]))
 
 
 def test_instant_ngp_coefficients_without_a_camera_model_are_opencv(tmp_path):

@@ -6,7 +6,8 @@ back float32 in [0, 1], composited on white (SPEC §0), on the CPU.
 
 Lens distortion is read into ``Cameras.distortion`` and applied by the rays
 (``voxe_core.cameras``): nerfstudio's ``camera_model`` PINHOLE, OPENCV or
-OPENCV_FISHEYE with ``k1..k4, p1, p2`` (top level or per frame); instant-ngp's
+OPENCV_FISHEYE (its reader's SIMPLE_PINHOLE a PINHOLE, SIMPLE_RADIAL and RADIAL OPENCV)
+with ``k1..k4, p1, p2`` (top level or per frame); instant-ngp's
 ``"is_fisheye": true`` is OPENCV_FISHEYE and its ``k1, k2, p1, p2`` without either are
 OPENCV. The declared model decides the lens: a fisheye without coefficients is still the
 equidistant projection, not a pinhole. A COLMAP model
@@ -36,6 +37,9 @@ _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "came
 _FOCAL_KEYS = (("fl_x", "camera_angle_x"), ("fl_y", "camera_angle_y"))  # each axis's focal, either key
 # nerfstudio's camera_model -> Cameras.distortion_model (None: a pinhole)
 CAMERA_MODELS = {"PINHOLE": None, "OPENCV": "opencv", "OPENCV_FISHEYE": "fisheye"}
+# The other camera_model names nerfstudio's reader takes (its CAMERA_MODEL_TO_TYPE: perspective cameras whose lens is
+# the k1..k4, p1, p2 given), as the model each is here; converters to nerfstudio's format write SIMPLE_PINHOLE.
+CAMERA_MODEL_ALIASES = {"SIMPLE_PINHOLE": "PINHOLE", "SIMPLE_RADIAL": "OPENCV", "RADIAL": "OPENCV"}
 # COLMAP camera models: (their parameter names in order, the nerfstudio camera_model they are)
 _COLMAP_MODELS = {
     "SIMPLE_PINHOLE": (("f", "cx", "cy"), "PINHOLE"),
@@ -258,17 +262,18 @@ def load_scene(
 
 
 def _camera_model(source: dict, where: _Where, frame: int | None) -> str | None:
-    """The model ``source`` (top level or one frame) declares: its ``camera_model``, or OPENCV_FISHEYE for
-    instant-ngp's ``"is_fisheye": true``; None when it declares none."""
-    model = source.get("camera_model")
-    if model is not None and (not isinstance(model, str) or model not in CAMERA_MODELS):
-        raise where(f"camera_model {model!r} is not supported (use one of {', '.join(CAMERA_MODELS)})", frame)
+    """The model ``source`` (top level or one frame) declares, one of ``CAMERA_MODELS`` (an alias as the model it
+    is): its ``camera_model``, or OPENCV_FISHEYE for instant-ngp's ``"is_fisheye": true``; None when it declares
+    none."""
+    model, known = source.get("camera_model"), [*CAMERA_MODELS, *CAMERA_MODEL_ALIASES]
+    if model is not None and (not isinstance(model, str) or model not in known):
+        raise where(f"camera_model {model!r} is not supported (use one of {', '.join(known)})", frame)
     fisheye = source.get("is_fisheye", False)
     if not isinstance(fisheye, bool):
         raise where(f"'is_fisheye' must be true or false, got {fisheye!r}", frame)
     if fisheye and model not in (None, "OPENCV_FISHEYE"):
         raise where(f"'is_fisheye' is true but camera_model is {model}", frame)
-    return "OPENCV_FISHEYE" if fisheye else model
+    return "OPENCV_FISHEYE" if fisheye else CAMERA_MODEL_ALIASES.get(model, model)
 
 
 def _merge_intrinsics(top: dict, own: dict) -> dict:
