@@ -176,6 +176,23 @@ def test_greyscale_sixteen_bit_png(tmp_path):
     assert torch.all(scene.images[0, 0, 0] == 0.0) and torch.all(scene.images[0, 1:, 1:] == 1.0)
 
 
+def test_sixteen_bit_greyscale_colour_key_is_transparent(tmp_path):
+    """A 16-bit grey PNG's tRNS names the value that is transparent, as an 8-bit one's does: it had been read as
+    an opaque dark pixel."""
+    root = tmp_path / "s"
+    (root / "train").mkdir(parents=True)
+    grey = np.full((4, 4), 40000, np.uint16)
+    grey[0, :2] = 1234
+    Image.fromarray(grey).save(root / "train" / "r_0.png", transparency=1234)
+    make_synthetic(root, frames=[{"file_path": "./train/r_0", "transform_matrix": IDENTITY}])
+    scene = load_scene(root)
+    expected_alpha = torch.ones(4, 4)
+    expected_alpha[0, :2] = 0.0
+    assert torch.equal(scene.alphas[0], expected_alpha)
+    assert torch.all(scene.images[0, 0, :2] == 1.0)  # on white
+    assert torch.allclose(scene.images[0, 1:], torch.full((3, 4, 3), 40000 / 65535))
+
+
 @pytest.mark.parametrize("name, image, message", [
     ("r_0.tiff", Image.fromarray(np.full((4, 4), 0.5, np.float32), "F"),
      r"image r_0.tiff holds floating-point pixels \(Pillow mode F\), whose scale the file does not record"),

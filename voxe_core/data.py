@@ -500,7 +500,8 @@ def image_pixels(image: Image.Image, alpha: bool = True) -> np.ndarray:
     Floating-point pixels (Pillow's mode F, e.g. a float TIFF) raise ``PixelScaleError``: the file does not say
     their scale (Pillow's own conversions give 0..255, OpenCV's and scikit-image's float images 0..1), and
     convert("RGB") had clipped them to black. So do 32-bit integers beyond 16 bits (mode I), which the 16-bit
-    scaling had clipped to white.
+    scaling had clipped to white. A 16-bit grey PNG's colour key (its tRNS: the one value that is transparent) is
+    its alpha, as Pillow's conversion gives an 8-bit one's.
     """
     if image.mode == "F":
         raise PixelScaleError("holds floating-point pixels (Pillow mode F), whose scale the file does not record: "
@@ -510,7 +511,11 @@ def image_pixels(image: Image.Image, alpha: bool = True) -> np.ndarray:
         if values.size and not (values.min() >= 0 and values.max() <= 65535):
             raise PixelScaleError(f"holds 32-bit values from {values.min()} to {values.max()} (Pillow mode "
                                   f"{image.mode}); only 8- and 16-bit images (0..65535) are read")
-        return np.repeat((values.astype(np.float32) / 65535.0)[..., None], 3, axis=2)
+        grey = np.repeat((values.astype(np.float32) / 65535.0)[..., None], 3, axis=2)
+        key = image.info.get("transparency")
+        if alpha and isinstance(key, int):
+            return np.concatenate([grey, (values != key).astype(np.float32)[..., None]], axis=2)
+        return grey
     has_alpha = alpha and ("A" in image.mode or "a" in image.mode or "transparency" in image.info)
     return np.asarray(image.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
 
