@@ -48,7 +48,8 @@ from typing import BinaryIO
 
 from PIL import Image
 
-from voxe_core.data import DatasetError, colmap_transforms, detect_format, is_dataset_folder, load_scene
+from voxe_core.data import (DatasetError, colmap_transforms, detect_format, image_candidates, is_dataset_folder,
+                            load_scene)
 from voxe_core.constants import TEXTURE_SUFFIXES
 from voxe_core.mesh_input import MESH_FRAMES, MESH_INPUT_SUFFIXES
 from voxe_core.ply_header import read_ply_header
@@ -460,7 +461,7 @@ def _check_frame_images(root: Path, json_name: str, frames: list[dict], staging:
     for i, frame in enumerate(frames):
         file_path = frame["file_path"]
         where = f"{json_name} frame {i} ({file_path!r})"
-        candidates = [root / file_path, root / (file_path + ".png")]
+        candidates = image_candidates(root, file_path)
         try:
             path = next((p for p in candidates if p.is_file()), None)
         except OSError as exc:  # e.g. a name over the file system's length limit

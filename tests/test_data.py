@@ -468,6 +468,25 @@ def test_duplicate_file_path(tmp_path):
         assert_names(err, "transforms_train.json", 2)
 
 
+def test_windows_separators_in_file_path_are_read_as_instant_ngp_reads_them(tmp_path):
+    """instant-ngp reads a transforms.json written on Windows ('images\\0000.png') with '/' separators: its images had
+    not been found. An upload's confinement holds for the path as read ('..\\' is '../')."""
+    root = make_ngp(tmp_path / "w")
+    meta = json.loads((root / "transforms.json").read_text())
+    for frame in meta["frames"]:
+        frame["file_path"] = frame["file_path"].replace("/", "\\")
+    (root / "transforms.json").write_text(json.dumps(meta))
+    scene = load_scene(root, confine_paths=True)
+    assert scene.names == [f"images/{i:04d}.png" for i in range(4)]
+    assert torch.allclose(scene.images[:, 0, 0], torch.tensor([[10.0 * i, 20, 30] for i in range(4)]) / 255)
+    write_png(tmp_path / "outside" / "0000.png", mode="RGB")
+    meta["frames"][1]["file_path"] = "..\\outside\\0000.png"
+    (root / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match="'file_path' leads outside the dataset folder") as err:
+        load_scene(root, confine_paths=True)
+    assert_names(err, "transforms.json", 1)
+
+
 def test_confined_paths_stay_inside_the_dataset(tmp_path):
     """A local dataset may reach a sibling folder; an upload (confine_paths) may not, nor by an absolute path."""
     write_png(tmp_path / "shared" / "r_0.png")

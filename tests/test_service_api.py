@@ -656,6 +656,18 @@ def test_bad_upload_is_422_and_leaves_nothing(client, dataset, root, case, expec
     assert stored_files(root) == [] and staged(root) == []
 
 
+def test_a_transforms_json_written_on_windows_uploads(client, dataset, root):
+    """The upload check reads its file_path's '\\' separators as '/', as the loader does (and instant-ngp)."""
+    meta = json.loads((dataset / "transforms_train.json").read_text())
+    for frame in meta["frames"]:
+        frame["file_path"] = frame["file_path"].replace("/", "\\")
+    body = _zip_bytes(_dataset_entries(dataset, json_text=json.dumps(meta)))
+    response = client.post("/v1/scenes", files={"archive": ("windows.zip", body, "application/zip")})
+    assert response.status_code == 201, response.text
+    assert (response.json()["image_count"], response.json()["width"]) == (3, 800)
+    assert ingest(response.json()["id"])["state"] == "ready"
+
+
 def _colmap_capture(tmp_path: Path, second_model: str = "PINHOLE") -> Path:
     root = square_capture(tmp_path)
     params = [12.0, 12.0, 8.0, 6.0] + [0.0] * (8 if second_model == "FULL_OPENCV" else 0)

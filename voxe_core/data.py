@@ -192,7 +192,8 @@ def load_scene(
             raise where("'file_path' must be a non-empty string", i)
         if "\0" in frame["file_path"]:
             raise where("'file_path' contains a NUL character", i)
-        if confine_paths and not _inside(root, frame["file_path"]):
+        file_path = _posix_file_path(frame["file_path"])
+        if confine_paths and not _inside(root, file_path):
             raise where("'file_path' leads outside the dataset folder (absolute or through '..')", i)
         merged = _merge_intrinsics(top, _check_intrinsics(frame, where, i))
         if "fl_x" not in merged and "camera_angle_x" not in merged:
@@ -206,7 +207,7 @@ def load_scene(
             raise where(f"camera_model {model} differs from frame {clash}'s {models[clash]}; the fisheye and the "
                         f"{other} model cannot be mixed in one capture", i)
         per_frame.append(merged)
-        paths.append(frame["file_path"])
+        paths.append(file_path)
         models.append(model)
     poses = _check_poses(frames, where)
     seen: dict[Path, int] = {}
@@ -473,14 +474,22 @@ def _split_indices(fmt: str, split: str, n: int, holdout_every: int | None, wher
     return keep
 
 
-def _image_candidates(root: Path, file_path: str) -> list[Path]:
-    """Where a frame's image may be: its ``file_path``, or that with ``.png`` implied (NeRF-synthetic's)."""
+def _posix_file_path(file_path: str) -> str:
+    """A frame's ``file_path`` with Windows' separators as '/', as instant-ngp reads a transforms.json written on
+    Windows (so no file name holding a '\\' can be read)."""
+    return file_path.replace("\\", "/")
+
+
+def image_candidates(root: Path, file_path: str) -> list[Path]:
+    """Where a frame's image may be: its ``file_path`` (Windows' separators read as '/'), or that with ``.png``
+    implied (NeRF-synthetic's). The loader's rule, and the upload check's."""
+    file_path = _posix_file_path(file_path)
     return [root / file_path, root / (file_path + ".png")]
 
 
 def _find_image(root: Path, file_path: str) -> Path | None:
     """The file a frame's ``file_path`` reads (None: neither candidate is there)."""
-    for path in _image_candidates(root, file_path):
+    for path in image_candidates(root, file_path):
         try:
             if path.is_file():
                 return path
@@ -525,7 +534,7 @@ def _read_image(root: Path, file_path: str, where: _Where, frame: int) -> tuple[
     that is missing, damaged, or of a scale it does not record."""
     path = _find_image(root, file_path)
     if path is None:
-        candidates = _image_candidates(root, file_path)
+        candidates = image_candidates(root, file_path)
         raise where("image not found (tried " + ", ".join(str(p) for p in candidates) + ")", frame, candidates[0])
     try:
         with Image.open(path) as im:
