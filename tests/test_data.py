@@ -282,6 +282,19 @@ def test_missing_image(tmp_path):
     assert "./train/r_1" in str(err.value)
 
 
+def test_a_file_path_without_its_extension_finds_a_jpeg(tmp_path):
+    """instant-ngp tries .png, .jpg and .jpeg (among others) after a file_path without its extension: only .png had
+    been tried, and a capture's JPEGs were not found."""
+    root = tmp_path / "j"
+    for i, extension in enumerate((".jpg", ".jpeg")):
+        write_png(root / "images" / f"{i}{extension}", mode="RGB", color=(200, 100, 50))  # saved as JPEG
+    frames = [{"file_path": f"images/{i}", "transform_matrix": pose(translation=(i, 0, 4.0))} for i in range(2)]
+    (root / "transforms.json").write_text(json.dumps({"fl_x": 10.0, "frames": frames}))
+    scene = load_scene(root)
+    assert scene.names == ["images/0", "images/1"]
+    assert torch.allclose(scene.images[:, 3, 4], torch.tensor([200.0, 100, 50]) / 255, atol=0.02)
+
+
 def test_unreadable_image(tmp_path):
     root = make_synthetic(tmp_path / "s")
     (root / "train" / "r_2.png").write_bytes(b"this is not a png at all")

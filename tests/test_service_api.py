@@ -629,7 +629,8 @@ def _dataset_entries(dataset: Path, drop: str | None = None, json_text: str | No
     ("not a zip", "not a readable zip"),
     ("traversal", "'..' path components are not allowed"),
     ("absolute", "absolute paths are not allowed"),
-    ("missing image", "transforms_train.json frame 1 ('./train/r_4'): image not found (tried train/r_4, train/r_4.png)"),
+    ("missing image", "transforms_train.json frame 1 ('./train/r_4'): image not found (tried train/r_4, train/r_4.png, "
+                      "train/r_4.jpg, train/r_4.jpeg)"),
     ("broken json", "transforms_train.json: invalid JSON"),
     ("no dataset", "the upload is neither a dataset nor a mesh (it holds 'readme.txt'): send a dataset folder or "
                    ".zip (transforms_train.json: NeRF-synthetic; transforms.json: instant-ngp / nerfstudio; a COLMAP "

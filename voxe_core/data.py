@@ -58,6 +58,7 @@ _MIN_FOCAL = 1e-3  # pixels; below this the projection is numerically singular
 _FLOAT32_MAX = float(np.finfo(np.float32).max)  # Cameras hold float32: a larger magnitude would become inf
 _SIXTEEN_BIT_MODES = ("I;16", "I;16L", "I;16B", "I;16N", "I")
 RESAMPLE_FILTERS = ("bilinear", "box")
+_IMPLIED_EXTENSIONS = (".png", ".jpg", ".jpeg")  # tried in turn after a file_path as written (``image_candidates``)
 
 
 class DatasetError(ValueError):
@@ -481,14 +482,15 @@ def _posix_file_path(file_path: str) -> str:
 
 
 def image_candidates(root: Path, file_path: str) -> list[Path]:
-    """Where a frame's image may be: its ``file_path`` (Windows' separators read as '/'), or that with ``.png``
-    implied (NeRF-synthetic's). The loader's rule, and the upload check's."""
+    """Where a frame's image may be: its ``file_path`` (Windows' separators read as '/'), or that with an extension
+    implied: ``.png`` (NeRF-synthetic's), ``.jpg`` or ``.jpeg`` (instant-ngp tries these too). The loader's rule, and
+    the upload check's."""
     file_path = _posix_file_path(file_path)
-    return [root / file_path, root / (file_path + ".png")]
+    return [root / file_path] + [root / (file_path + extension) for extension in _IMPLIED_EXTENSIONS]
 
 
 def _find_image(root: Path, file_path: str) -> Path | None:
-    """The file a frame's ``file_path`` reads (None: neither candidate is there)."""
+    """The file a frame's ``file_path`` reads (None: no candidate is there)."""
     for path in image_candidates(root, file_path):
         try:
             if path.is_file():
