@@ -316,6 +316,9 @@ def test_a_fisheye_sees_past_90_degrees_but_no_ray_is_past_180(tmp_path):
     ({"camera_model": "OPENCV", "k2": "0.1"}, None, None, "'k2' must be a number"),
     ({"camera_model": "OPENCV"}, {1: {"k1": float("nan")}}, 1, "'k1' is not finite"),
     ({"camera_model": "OPENCV", "k1": -3.0}, None, 0, r"distortion \(k1 = -3\) folds the image over at pixel \(0, 0\)"),
+    ({"latlong": True}, None, None, r"'latlong' declares instant-ngp's equirectangular \(latitude-longitude\) lens, "
+                                   "which is not supported"),
+    ({}, {1: {f"ftheta_p{i}": 0.1 for i in range(5)}}, 1, "'ftheta_p0' declares instant-ngp's f-theta lens"),
 ])
 def test_bad_lens_names_file_frame_and_problem(tmp_path, top, frame_extra, frame, message):
     root = write_capture(tmp_path / "bad", frame_extra=frame_extra, **top)

@@ -40,6 +40,9 @@ CAMERA_MODELS = {"PINHOLE": None, "OPENCV": "opencv", "OPENCV_FISHEYE": "fisheye
 # The other camera_model names nerfstudio's reader takes (its CAMERA_MODEL_TO_TYPE: perspective cameras whose lens is
 # the k1..k4, p1, p2 given), as the model each is here; converters to nerfstudio's format write SIMPLE_PINHOLE.
 CAMERA_MODEL_ALIASES = {"SIMPLE_PINHOLE": "PINHOLE", "SIMPLE_RADIAL": "OPENCV", "RADIAL": "OPENCV"}
+# instant-ngp's lenses besides its OpenCV ones, by the key that declares them: read as a pinhole, their images had
+# been fitted with the wrong rays
+_OTHER_INSTANT_NGP_LENSES = {"latlong": "equirectangular (latitude-longitude) lens", "ftheta_p0": "f-theta lens"}
 # COLMAP camera models: (their parameter names in order, the nerfstudio camera_model they are)
 _COLMAP_MODELS = {
     "SIMPLE_PINHOLE": (("f", "cx", "cy"), "PINHOLE"),
@@ -270,6 +273,10 @@ def _camera_model(source: dict, where: _Where, frame: int | None) -> str | None:
     model, known = source.get("camera_model"), [*CAMERA_MODELS, *CAMERA_MODEL_ALIASES]
     if model is not None and (not isinstance(model, str) or model not in known):
         raise where(f"camera_model {model!r} is not supported (use one of {', '.join(known)})", frame)
+    for key, lens in _OTHER_INSTANT_NGP_LENSES.items():  # its key's presence is the lens, whatever its value
+        if key in source:
+            raise where(f"'{key}' declares instant-ngp's {lens}, which is not supported (a pinhole, OPENCV or "
+                        "OPENCV_FISHEYE lens is)", frame)
     fisheye = source.get("is_fisheye", False)
     if not isinstance(fisheye, bool):
         raise where(f"'is_fisheye' must be true or false, got {fisheye!r}", frame)
