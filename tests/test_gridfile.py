@@ -228,6 +228,7 @@ def test_damaged_or_unknown_sparse_files_are_named(tmp_path, make_sphere_grid):
     (lambda t, m: ({**t, "stored_bits": t["stored_bits"].int()}, m), "stored_bits is torch.int32"),
     (lambda t, m: (t, {**m, "density_scale": float("nan")}), "density_scale nan is not a positive number"),
     (lambda t, m: (t, {**m, "density_scale": "33"}), "density_scale '33' is not a positive number"),
+    (lambda t, m: (t, {**m, "density_scale": True}), "density_scale True is not a positive number"),  # had been 1
     (lambda t, m: (t, {**m, "activation": "tanh"}), "damaged grid: unknown density activation 'tanh'"),
     (lambda t, m: ({**t, "features": t["features"][..., :3].contiguous()}, {**m, "layout": "dense"}),
      r"features of shape \(16, 16, 16, 3\)"),
@@ -267,6 +268,11 @@ def test_a_grid_whose_file_could_not_be_read_back_is_refused_when_built(tmp_path
     ("{not json", "damaged 'voxe' header"),  # json's message alone had not named the file
     ('{"kind": "voxel_grid", "format_version": 2, "meta": {}}', "damaged grid: no 'features' in the file"),
     ('{"kind": "voxel_grid", "format_version": 0, "meta": {}}', "format version 0 is none a voxe_core wrote"),
+    # JSON's true, a string and a fraction had been read as versions 1, 2 and 1 (int() of each)
+    ('{"kind": "voxel_grid", "format_version": true, "meta": {}}',
+     r"damaged 'voxe' header \(its format_version True is not a whole number\)"),
+    ('{"kind": "voxel_grid", "format_version": "2", "meta": {}}', "its format_version '2' is not a whole number"),
+    ('{"kind": "voxel_grid", "format_version": 1.5, "meta": {}}', "its format_version 1.5 is not a whole number"),
 ])
 def test_a_damaged_header_is_a_format_error_naming_the_file(tmp_path, header, message):
     from safetensors.torch import save_file

@@ -61,7 +61,8 @@ def grid_from_state(tensors: dict[str, torch.Tensor], meta: dict) -> VoxelGrid:
         if name in tensors and tuple(tensors[name].shape) != (3,):
             raise FormatError(f"damaged grid: {name} of shape {tuple(tensors[name].shape)}, not (3,)")
     scale = meta.get("density_scale")
-    if scale is not None and not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
+    if scale is not None and not (isinstance(scale, (int, float)) and not isinstance(scale, bool)  # JSON's true: 1
+                                  and math.isfinite(scale) and scale > 0):
         raise FormatError(f"damaged grid: density_scale {scale!r} is not a positive number (every density would "
                           "be wrong)")
     try:

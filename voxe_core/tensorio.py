@@ -88,8 +88,10 @@ def load_header(path: str | os.PathLike, kind: str, max_version: int) -> dict:
         raise FormatError(f"{path}: missing the '{HEADER_KEY}' header; not a Vox-E file")
     try:  # a damaged header is the file's error, named (it had been an AttributeError or json's bare message)
         header = json.loads(raw_header)
-        version = int(header.get("format_version", -1))
+        version = header.get("format_version")
         meta = header.get("meta", {})
+        if isinstance(version, bool) or not isinstance(version, int):  # JSON's true had read as version 1, "2" as 2
+            raise TypeError(f"its format_version {version!r} is not a whole number")
         if not isinstance(meta, dict):
             raise TypeError(f"its meta is a {type(meta).__name__}")
     except (ValueError, TypeError, AttributeError) as exc:
@@ -97,7 +99,7 @@ def load_header(path: str | os.PathLike, kind: str, max_version: int) -> dict:
     if header.get("kind") != kind:
         raise FormatError(f"{path}: holds a '{header.get('kind')}', expected a '{kind}'")
     if version < 1:
-        raise FormatError(f"{path}: format version {header.get('format_version')!r} is none a voxe_core wrote "
+        raise FormatError(f"{path}: format version {version} is none a voxe_core wrote "
                           "(they start at 1): a damaged header")
     if version > max_version:
         raise FormatError(
