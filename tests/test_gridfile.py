@@ -296,6 +296,15 @@ def test_dense_tensors_keeps_the_stored_dtype_and_other_tensors():
     assert torch.equal(restored["features"][kept], features[kept].half())
 
 
+def test_a_save_into_a_missing_folder_names_the_file_asked_for_and_leaves_nothing(tmp_path, make_sphere_grid):
+    """Regression: the error named the hidden temporary file (``.grid.partial.safetensors``) instead."""
+    target = tmp_path / "missing" / "grid.safetensors"
+    with pytest.raises(FileNotFoundError) as error:
+        make_sphere_grid(8).save(target)
+    assert error.value.filename == str(target) and ".partial" not in str(error.value)
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_users_read_downloads_with_numpy_alone(tmp_path, make_sphere_grid):
     grid = noisy_sphere(make_sphere_grid, resolution=20)
     for dense in (False, True):

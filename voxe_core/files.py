@@ -13,7 +13,8 @@ from pathlib import Path
 def replacing(path: str | os.PathLike) -> Iterator[Path]:
     """A temporary path beside ``path`` to write into; when the block ends without an error it replaces ``path``
     in one rename, otherwise it is removed and ``path`` is left as it was. It keeps ``path``'s suffix (writers
-    pick their format by it) and is hidden (``.<stem>.partial<suffix>``) from listings of the folder.
+    pick their format by it) and is hidden (``.<stem>.partial<suffix>``) from listings of the folder. An OSError
+    about that temporary file (a missing folder, no permission) names ``path``, the file the caller asked for.
 
     Examples:
         >>> import tempfile
@@ -36,5 +37,9 @@ def replacing(path: str | os.PathLike) -> Iterator[Path]:
     try:
         yield partial
         os.replace(partial, path)
+    except OSError as exc:
+        if exc.errno is None or exc.filename != str(partial):
+            raise
+        raise OSError(exc.errno, exc.strerror, str(path)) from None
     finally:
         partial.unlink(missing_ok=True)
