@@ -385,6 +385,28 @@ def test_edits_of_one_name_are_refused_before_any_render(sphere_grid, tiny_clip_
     assert reports == []
 
 
+@pytest.mark.parametrize("grid_resolution, mask_shape, message", [
+    (None, (10, 12, 12), r"edit 'masked': its mask of shape \(10, 12, 12\) does not fit the grid's \(12, 12, 12\) "
+                         "vertices"),
+    (10, (10, 10, 10), r"edit 'masked': a masked edit must share the initial grid's resolution \(12, 12, 12\), got "
+                       r"\(10, 10, 10\)"),
+])
+def test_a_masked_edit_that_does_not_fit_the_initial_grid_is_refused_before_any_render(
+        tiny_clip_path, make_sphere_grid, grid_resolution, mask_shape, message):
+    """Regression: found when that edit's turn came, after G_i's and the earlier edits' renders and scores (the
+    mask's shape even after its own edit's)."""
+    clip = ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")
+    initial = make_sphere_grid(12)
+    edited = make_sphere_grid(grid_resolution) if grid_resolution else initial
+    edits = [EditSample("global", "a yarn ball", initial),
+             EditSample("masked", "a wood ball", edited, torch.ones(mask_shape, dtype=torch.bool))]
+    reports = []
+    with pytest.raises(ValueError, match=message):
+        evaluate(initial, edits, "ball", clip, None, None, EvaluateConfig(views=2, size=16),
+                 Callbacks(on_progress=reports.append))
+    assert reports == []
+
+
 @pytest.mark.parametrize("shape", [(0, 16, 16, 3), (1, 16, 16, 3), (3, 16, 16), (3, 16, 16, 4)])
 def test_input_images_fid_cannot_read_are_refused_before_any_render(sphere_grid, tiny_clip_path, tiny_inception_path,
                                                                     shape):

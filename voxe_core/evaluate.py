@@ -411,7 +411,8 @@ def evaluate(
     The ring renders (and the masks' footprints) run on ``device`` (None: where
     ``initial`` is); each grid moves there once. The scorers run where they were
     loaded. A ring render with a NaN or infinite pixel (a diverged grid) is a
-    ValueError naming the grid, as are two edits of one name. Progress: ("evaluate", i,
+    ValueError naming the grid, as are two edits of one name and, before any render, a masked edit whose grid or
+    mask does not fit ``initial``'s vertices. Progress: ("evaluate", i,
     :func:`evaluation_steps`), one step per view rendered, footprinted or scored, info carrying the pass
     ("stage") and the peak memory so far; cancellation is checked between views
     and between scoring batches.
@@ -426,6 +427,13 @@ def evaluate(
             input_images.dim() != 4 or input_images.shape[-1] != 3 or len(input_images) < 2):  # had come after
         raise ValueError("FID_input needs at least 2 input images shaped (N, H, W, 3), got "
                          f"{tuple(input_images.shape)}")
+    for sample in edits:  # before any render: each had been found only when its edit's turn came
+        if sample.mask is not None and sample.grid.resolution != initial.resolution:
+            raise ValueError(f"edit {sample.name!r}: a masked edit must share the initial grid's resolution "
+                             f"{initial.resolution}, got {sample.grid.resolution}")
+        if sample.mask is not None and tuple(sample.mask.shape) != initial.resolution:
+            raise ValueError(f"edit {sample.name!r}: its mask of shape {tuple(sample.mask.shape)} does not fit the "
+                             f"grid's {initial.resolution} vertices")
     device = resolve_device(device if device is not None else initial.bbox_min.device)
     memory = PeakMemory(device).start()
     initial = initial.to(device)
@@ -468,9 +476,6 @@ def evaluate(
         input_features = fid.features(input_images, per_batch("FID"))
     rows, frames = [], {}
     for k, sample in enumerate(edits):
-        if sample.mask is not None and sample.grid.resolution != initial.resolution:
-            raise ValueError(f"edit {sample.name!r}: a masked edit must share the initial grid's resolution "
-                             f"{initial.resolution}, got {sample.grid.resolution}")
         images = ring(sample.grid, f"edit {sample.name!r}")
         embeddings = clip.image_embeddings(images, per_batch("CLIP"))
         row = {"name": sample.name, "prompt": sample.prompt, "mode": "local" if sample.mask is not None else "global",
