@@ -102,6 +102,31 @@ def test_tiny_variance_and_huge_values():
     assert float(correlation_loss(1e30 * g + 1e30, -1e30 * g)) == pytest.approx(2.0, abs=1e-5)
 
 
+@pytest.mark.parametrize("dtype, offset, spread", [
+    *[(torch.float32, *case) for case in [(1e4, 1e-3), (1e4, 1e-2), (-3e5, 1e-2), (1e30, 1e24), (1e-30, 1e-37),
+                                          (7.0, 1e-6)]],
+    *[(torch.bfloat16, *case) for case in [(1.0, 1e-2), (100.0, 0.5), (-1e4, 64.0), (1e30, 1e28)]],  # a few steps
+])
+def test_near_constant_grids_match_a_float64_reference_of_the_same_values(dtype, offset, spread):
+    """Values spread over a few steps of their dtype at their magnitude: float32 at 1e4 ± 1e-3 had been 36 % off (the
+    division by max |x| and the mean's rounding were the size of the deviations), 1e30 ± 1e24 3 %. bf16 inputs are
+    upcast to float32, where their few bf16 steps are many float32 ones."""
+    generator = torch.Generator().manual_seed(0)
+    base = torch.randn(16, 16, 16, generator=generator, dtype=torch.float64)
+    initial = (offset + spread * base).to(dtype)
+    edited = (offset + spread * (0.6 * base + 0.8 * torch.randn(base.shape, generator=generator,
+                                                                dtype=torch.float64))).to(dtype)
+    assert 2 <= len(initial.unique()) <= 100  # near-constant, not constant
+    edited.requires_grad_(True)
+    loss = correlation_loss(initial, edited)
+    loss.backward()
+    edited64 = edited.detach().double().requires_grad_(True)
+    reference = 1 - _pearson64(initial, edited64)
+    reference.backward()
+    assert loss.item() == pytest.approx(reference.item(), rel=1e-5)
+    torch.testing.assert_close(edited.grad.double(), edited64.grad.to(dtype).double(), rtol=1e-2, atol=0.0)
+
+
 def test_autocast_bf16_inputs_compute_in_float32():
     g = _grid()
     edited = (g + 0.3 * _grid(1)).to(torch.bfloat16).requires_grad_(True)
