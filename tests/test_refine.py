@@ -214,6 +214,23 @@ def test_a_constant_start_without_fitting_steps_is_refused_before_any_work(tmp_p
     assert "no seeds" in capsys.readouterr().err and not out.exists()  # refused before the model is looked for
 
 
+@pytest.mark.parametrize("size", [1, 3, 7])
+def test_renders_under_8_px_are_refused_before_any_work(tmp_path, make_sphere_grid, capsys, size):
+    """Regression: accepted, a 1 px render's min-max maps are 0 everywhere and 2–3 px ones missed a test sphere from
+    every pose, found at the cut after every attention pass and fit. 8 px: the edit's and the service's minimum."""
+    with pytest.raises(ValueError, match=f"render_size must be at least 8 px, got {size}"):
+        RefineConfig(render_size=size)
+    assert RefineConfig(render_size=8).render_size == 8
+    grid = make_sphere_grid(8)
+    grid.save(tmp_path / "grid.safetensors")
+    out = tmp_path / "out"
+    assert main(["refine", str(tmp_path / "grid.safetensors"), "--initial", str(tmp_path / "grid.safetensors"),
+                 "--prompt", "a dog wearing a party hat", "--edit-words", "hat", "--out", str(out),
+                 "--model", str(tmp_path / "no_model_needed"), "--offline", "--device", "cpu",
+                 "--render-size", str(size), "--quiet"]) == 2
+    assert f"render_size must be at least 8 px, got {size}" in capsys.readouterr().err and not out.exists()
+
+
 def test_max_over_edit_tokens_is_the_max_of_the_per_token_maps():
     maps = torch.rand(77, 6, 6, generator=torch.Generator().manual_seed(1))
     edit, _ = combine_token_maps(maps, [3, 7, 9], [1], reduce=RefineConfig().edit_token_reduce)

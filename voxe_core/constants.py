@@ -45,6 +45,11 @@ EDIT_LR = 0.03
 RENDER_SIZE = 266
 """Pixels of the edit's and the refinement's renders: the paper's 800 px inputs downsampled 3×."""
 
+MIN_RENDER_SIZE = 8
+"""The fewest pixels a side of the edit's and the refinement's renders may have (the service's bound too). A 1 px
+render's min-max normalised attention maps are 0 everywhere, and the 2–3 px ones of a test sphere missed it from
+every pose: both ran every attention pass and fit before the cut found no seeds."""
+
 RENDER_CHUNK_RAYS = 32768
 """Rays per chunk of a whole-image render (and of the refinement's back-projection)."""
 

@@ -64,6 +64,7 @@ from voxe_core.constants import (
     DEFAULT_REGULARISER_WEIGHT,
     EDIT_ITERATIONS,
     EDIT_LR,
+    MIN_RENDER_SIZE,
     NERF_SYNTHETIC_FOV_X,
     NERF_SYNTHETIC_RADIUS,
     RENDER_SIZE,
@@ -161,8 +162,8 @@ class EditConfig:
             raise ValueError(f"iterations must be >= 0, got {self.iterations}")
         if not self.lr > 0:
             raise ValueError(f"lr must be > 0, got {self.lr}")
-        if self.render_size < 8:
-            raise ValueError(f"render_size must be at least 8 px, got {self.render_size}")
+        if self.render_size < MIN_RENDER_SIZE:
+            raise ValueError(f"render_size must be at least {MIN_RENDER_SIZE} px, got {self.render_size}")
         if self.regulariser not in REGULARISERS:
             raise ValueError(f"unknown regulariser {self.regulariser!r}; expected one of {', '.join(REGULARISERS)}")
         if not 0 <= self.regulariser_weight < math.inf:  # as "not in range": NaN fails every comparison

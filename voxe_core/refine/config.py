@@ -13,6 +13,7 @@ from voxe_core.constants import (
     CUT_SMOOTHNESS,
     DEFAULT_ATTENTION_TIMESTEP,
     EDIT_SEEDS,
+    MIN_RENDER_SIZE,
     NERF_SYNTHETIC_FOV_X,
     OBJECT_SEEDS,
     REFINE_BACKPROJECTION_STRIDE,
@@ -145,7 +146,9 @@ class RefineConfig:
                              f"{self.resolution_filter!r}")
         if self.edit_token_reduce not in ("mean", "max"):
             raise ValueError(f"edit_token_reduce must be 'mean' or 'max', got {self.edit_token_reduce!r}")
-        for name in ("render_size", "views", "rays_per_step", "backprojection_stride"):
+        if self.render_size < MIN_RENDER_SIZE:
+            raise ValueError(f"render_size must be at least {MIN_RENDER_SIZE} px, got {self.render_size}")
+        for name in ("views", "rays_per_step", "backprojection_stride"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
         if self.iterations < 0 or self.edit_seeds < 0 or self.object_seeds < 0 or self.object_seed_fallback < 0:
