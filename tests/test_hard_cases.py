@@ -656,7 +656,7 @@ def _(fx):
 
 
 @case("cameras/look-at-from-the-target-is-a-clear-error", "error",
-      (ValueError, r"a camera at its target \(or not finite\) has no view direction"))
+      (ValueError, r"a camera at its target has no view direction"))
 def _(fx):
     look_at(torch.tensor([[0.5, 0.5, 0.5]]), torch.tensor([0.5, 0.5, 0.5]))  # had returned a NaN pose
 

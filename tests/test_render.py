@@ -12,7 +12,7 @@ import torch.nn.functional as F
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from voxe_core.backbones import load_grid
-from voxe_core.cameras import Cameras, camera_rays, look_at
+from voxe_core.cameras import Cameras, camera_rays, look_at, ring_poses
 from voxe_core.grid import Occupancy, VoxelGrid, _WeightedGather, ray_box_intersection
 from voxe_core.render import MIN_STEP_RATIO, RenderConfig, render_image, render_rays
 from voxe_core.tensorio import FormatError, save_tensors
@@ -389,6 +389,44 @@ def test_a_field_of_view_outside_zero_to_pi_is_refused_wherever_it_is_given(fov_
         with pytest.raises(ValueError, match=message):
             make()
     assert float(Cameras.from_fov(torch.eye(4), math.pi - 1e-3, 4, 4).fx[0]) > 0  # just inside: a positive focal
+
+
+@pytest.mark.parametrize("distance", [1e-40, 1e-30, 1.0, 2e19, 1e30, 1e38])
+@pytest.mark.parametrize("direction", [(1.0, 1.0, 1.0), (0.0, 0.0, 1.0), (0.0, 0.0, -1.0), (1e-7, 0.0, 1.0)])
+def test_look_at_aims_a_rotation_at_its_target_from_any_distance(distance, direction):
+    """Regression: float32's norm overflowed past about 1.8e19 and underflowed below 1e-19, and those cameras were
+    refused as "at their target". Straight above or below the target (up parallel to the view) too."""
+    unit = torch.tensor(direction, dtype=torch.float64)
+    unit = unit / unit.norm()
+    eye = (distance * unit).float()
+    c2w = look_at(eye[None])[0].double()
+    rotation = c2w[:3, :3]
+    torch.testing.assert_close(rotation.T @ rotation, torch.eye(3, dtype=torch.float64), atol=1e-6, rtol=0)
+    assert float(rotation.det()) == pytest.approx(1.0, abs=1e-6)
+    torch.testing.assert_close(-rotation[:, 2], -unit, atol=1e-6, rtol=0)  # it looks at the origin
+    assert torch.equal(c2w[:3, 3], eye.double())
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda: look_at(torch.tensor([[1.0, 2.0, 3.0]]), torch.tensor([1.0, 2.0, 3.0])),
+     r"a camera at its target has no view direction: eye \[1.0, 2.0, 3.0\]"),
+    (lambda: look_at(torch.tensor([[math.nan, 0.0, 4.0]])), r"must be finite, got eye \[\[nan, 0.0, 4.0\]\]"),
+    (lambda: look_at(torch.tensor([[0.0, 0.0, 4.0]]), torch.tensor([math.inf, 0.0, 0.0])),
+     "must be finite, got target"),
+    (lambda: look_at(torch.tensor([[1e39, 0.0, 0.0]], dtype=torch.float64)), "within float32's range"),
+    # a ring of radius 4 around a point 1e7 (1e8) from the origin: float32 had rounded it to other places (to the
+    # centre itself: "at its target")
+    (lambda: ring_poses(4, 30.0, 4.0, centre=torch.tensor([1e7, 0.0, 0.0])),
+     r"a camera at \[10000003.46\d*, 0.0, 2.0\] looking at \[10000000.0, 0.0, 0.0\] from 4 away cannot be placed "
+     r"by a float32 pose \(which rounds its position by up to 0.596\): move the scene's origin near its object"),
+    (lambda: ring_poses(4, 0.0, 4.0, centre=torch.tensor([1e8, 1e8, 0.0])), "cannot be placed by a float32 pose"),
+])
+def test_look_at_refuses_a_camera_it_cannot_aim_or_place_naming_why(make, message):
+    with pytest.raises(ValueError, match=message):
+        make()
+    ring = ring_poses(4, 30.0, 4.0, centre=torch.tensor([1e3, -2e3, 50.0]))  # a capture's frame: placed and aimed
+    aim = torch.tensor([1e3, -2e3, 50.0]) - ring[:, :3, 3]
+    torch.testing.assert_close(-ring[:, :3, 2], aim / aim.norm(dim=-1, keepdim=True), atol=1e-4, rtol=0)
 
 
 def test_camera_inside_the_box_and_non_finite_rays():

@@ -28,6 +28,7 @@ _NEWTON_TOLERANCE = 1e-12  # in normalised image coordinates (about 1e-9 pixels)
 _NEWTON_CONVERGED = 1e-9  # a point left farther than this from its image has no ray (NaN)
 _FOLD_DIRECTIONS = 64  # first directions of ``fold_in_view``
 _FOLD_LEVELS = 40  # halvings of its sectors that are still undecided
+POSE_TOLERANCE = 1e-3  # of a camera's distance to its target: how far float32's rounding may move it (look_at)
 
 
 @dataclass
@@ -503,35 +504,55 @@ def _positive_roots(g: torch.Tensor) -> torch.Tensor:
 
 
 def look_at(eye: torch.Tensor, target: torch.Tensor | None = None, up=(0.0, 0.0, 1.0)) -> torch.Tensor:
-    """Camera-to-world matrices (N, 4, 4) placing cameras at ``eye`` looking at ``target``.
+    """Camera-to-world matrices (N, 4, 4, float32) placing cameras at ``eye`` looking at ``target``.
 
     A camera on the ``up`` axis through its target has no defined azimuth: its right vector is +x (+y when it
-    looks along x). Raises ``ValueError`` for a camera at its target or a non-finite one: no view direction.
+    looks along x). Computed in float64 from the positions as given (float32's norm overflows past about 1.8e19
+    and underflows below 1e-19: such cameras had been called "at their target"). Raises ``ValueError`` for a
+    non-finite eye or target, a camera at its target (no view direction), and a camera a float32 pose cannot
+    place: beyond float32's range, or so far from the origin for its distance to the target that rounding its
+    position moves it by more than ``POSE_TOLERANCE`` of that distance (a ring of radius 4 around a point more
+    than about 6.7e4 from the origin; at 1e7 float32 had moved its cameras by up to an eighth of the radius).
 
     Examples:
         >>> look_at(torch.tensor([[3.0, 0, 0]]), up=(1.0, 0, 0))[0, :3, :3].det().item()  # on the up axis: a rotation
         1.0
     """
-    eye = torch.as_tensor(eye, dtype=torch.float32).reshape(-1, 3)
-    target = torch.zeros_like(eye) if target is None else torch.as_tensor(target, dtype=torch.float32).expand_as(eye)
-    up_vec = torch.as_tensor(up, dtype=torch.float32).expand_as(eye)
+    eye = torch.as_tensor(eye, dtype=torch.float64).reshape(-1, 3)
+    target = torch.zeros_like(eye) if target is None else torch.as_tensor(target, dtype=torch.float64).expand_as(eye)
+    up_vec = torch.as_tensor(up, dtype=torch.float64).expand_as(eye)
+    for name, points in (("eye", eye), ("target", target)):
+        if not bool(torch.isfinite(points).all()):
+            raise ValueError(f"camera positions and targets must be finite, got {name} {points.tolist()}")
     back = eye - target
     distance = back.norm(dim=-1, keepdim=True)
-    if not bool(((distance > 0) & torch.isfinite(distance)).all()):
-        raise ValueError(f"a camera at its target (or not finite) has no view direction: eye {eye.tolist()}, "
-                         f"target {target.tolist()}")
+    at_target = ~(distance[:, 0] > 0)
+    if bool(at_target.any()):
+        i = int(at_target.nonzero()[0])
+        raise ValueError(f"a camera at its target has no view direction: eye {eye[i].tolist()}, target "
+                         f"{target[i].tolist()}")
+    farthest = eye.abs().amax(dim=-1)
+    if bool((farthest > torch.finfo(torch.float32).max).any()):
+        raise ValueError(f"camera positions must lie within float32's range (3.4e38), got eye {eye.tolist()}")
+    rounding = farthest * 2.0 ** -24  # float32's rounding of the position: at most half a step
+    unplaceable = rounding > POSE_TOLERANCE * distance[:, 0]
+    if bool(unplaceable.any()):
+        i = int(unplaceable.nonzero()[0])
+        raise ValueError(f"a camera at {eye[i].tolist()} looking at {target[i].tolist()} from "
+                         f"{float(distance[i]):.3g} away cannot be placed by a float32 pose (which rounds its "
+                         f"position by up to {float(rounding[i]):.3g}): move the scene's origin near its object")
     back = back / distance
     right = torch.cross(up_vec, back, dim=-1)
     degenerate = right.norm(dim=-1) < 1e-6
-    for axis in torch.eye(3)[:2]:  # +x off the view direction, or +y where that leaves nothing
+    for axis in torch.eye(3, dtype=torch.float64)[:2]:  # +x off the view direction, or +y where that leaves nothing
         off_axis = axis - (back * axis).sum(-1, keepdim=True) * back
         right = torch.where((degenerate & (off_axis.norm(dim=-1) >= 1e-3))[:, None], off_axis, right)
         degenerate = right.norm(dim=-1) < 1e-6
     right = right / right.norm(dim=-1, keepdim=True)
     cam_up = torch.cross(back, right, dim=-1)
-    c2w = torch.eye(4).repeat(eye.shape[0], 1, 1)
+    c2w = torch.eye(4, dtype=torch.float64).repeat(eye.shape[0], 1, 1)
     c2w[:, :3, 0], c2w[:, :3, 1], c2w[:, :3, 2], c2w[:, :3, 3] = right, cam_up, back, eye
-    return c2w
+    return c2w.float()
 
 
 def spherical_poses(
@@ -549,8 +570,8 @@ def spherical_poses(
     eye = radius * torch.stack([el.cos() * az.cos(), el.cos() * az.sin(), el.sin()], dim=-1)
     if centre is None:
         return look_at(eye)
-    centre = torch.as_tensor(centre, dtype=torch.float32).reshape(3)
-    return look_at(eye + centre, centre)
+    centre = torch.as_tensor(centre, dtype=torch.float64).reshape(3)
+    return look_at(eye.double() + centre, centre)  # float64: float32's sum had rounded a far centre's ring away
 
 
 def random_hemisphere_poses(
