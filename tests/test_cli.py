@@ -116,6 +116,9 @@ def test_ctrl_c_cancels_cleanly_and_resume_finishes_the_same_fit(fitted, tmp_pat
     ["export-mesh", "no_such_grid.safetensors", "--out", "m.ply"],
     ["mesh-to-grid", "no_such_mesh.obj", "--route", "render", "--out", "g.safetensors"],
     ["evaluate", "no_such_grid.safetensors", "--edit", "e.safetensors", "a dog", "--object", "dog", "--out", "eval"],
+    ["edit", "no_such_grid.safetensors", "--prompt", "a dog", "--out", "edit"],
+    ["refine", "no_such_edit.safetensors", "--initial", "no_such_grid.safetensors", "--prompt", "a dog",
+     "--edit-words", "dog", "--out", "refine"],
 ])
 def test_stage_commands_refuse_a_missing_device_before_reading_anything(command, tmp_path, capsys, monkeypatch):
     """--device cuda on a CPU machine: exit 2 naming the device, not the missing input read after it."""

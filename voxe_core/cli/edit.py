@@ -87,6 +87,7 @@ def cmd_edit(args) -> int:
 
     if not args.prompt.strip():
         raise ValueError("the edit prompt is empty")
+    check_device(args)  # before the grid is read: a device this machine lacks had been said only after it
     grid = load_grid(args.grid)
     config = edit_config(job_params(args), grid.kind, args.checkpoint_every)  # bad options fail before the model loads
     config.render.fused = args.fused_marcher
@@ -97,7 +98,6 @@ def cmd_edit(args) -> int:
                          f"{config.regulariser} reads none")
     if args.data is None and (dataset_only := view_options_given(args)):  # (as had these)
         raise ValueError(f"{', '.join(dataset_only)} set how --data's images are read; without --data none are")
-    check_device(args)
     views = None
     if args.data is not None:
         scene = load_views(args)
