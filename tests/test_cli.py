@@ -186,6 +186,13 @@ def test_a_sweep_summary_that_cannot_be_written_is_refused_before_the_sweep_is_c
     assert sorted(p.name for p in tmp_path.iterdir()) == ["taken.json"]  # the folder made for --out went again
 
 
+def test_a_sweep_polled_without_wait_is_refused_before_the_sweep_is_created(capsys):
+    """--poll without --wait had been taken and ignored: the sweep was created and the command returned at once."""
+    assert main(["sweep", "--scene", "s1=mic", "--poll", "5", "--api", "http://127.0.0.1:9"]) == 2
+    err = capsys.readouterr().err
+    assert "--poll sets the seconds between the polls of --wait: pass --wait too" in err and "cannot reach" not in err
+
+
 def test_a_download_refuses_an_unlisted_name_before_any_and_a_failed_one_leaves_no_folder_it_made(
         monkeypatch, tmp_path, capsys):
     """--name a --name nope had written a, then failed on nope; a failed download left the --out folder it made,

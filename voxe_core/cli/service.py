@@ -81,10 +81,14 @@ def add_parsers(commands, common) -> None:
     sw.add_argument("--evaluation", type=_json_object, default=None, metavar="JSON",
                     help='evaluation params, e.g. \'{"views": 100, "size": 266}\'')
     sw.add_argument("--wait", action="store_true", help="poll until every job of the sweep is finished")
-    sw.add_argument("--poll", type=positive_seconds, default=10.0,  # checked before the sweep is created
-                    help="seconds between polls with --wait")
+    sw.add_argument("--poll", type=positive_seconds, default=None,  # checked before the sweep is created
+                    help=f"with --wait: seconds between polls (default {SWEEP_POLL_S:g})")
     sw.add_argument("--out", type=Path, default=None, metavar="FILE", help="also write the final summary JSON here")
     sw.set_defaults(run=cmd_sweep)
+
+
+SWEEP_POLL_S = 10.0
+"""Seconds between a waited sweep's polls, unless ``--poll`` says."""
 
 
 def _client(args):
@@ -204,6 +208,8 @@ def cmd_download(args) -> int:
 def cmd_sweep(args) -> int:
     from voxe_client import ServiceError
 
+    if args.poll is not None and not args.wait:  # (it had been taken and ignored: the command returned at once)
+        raise ValueError("--poll sets the seconds between the polls of --wait: pass --wait too")
     if args.out is not None:  # before the sweep is created: a bad --out had failed once it was queued (and waited)
         writable_file(args.out)
     with _client(args) as client:
@@ -216,7 +222,7 @@ def cmd_sweep(args) -> int:
                 while args.wait and sweep["state"] in ("queued", "running") and not interrupt.requested:
                     if not args.quiet:
                         print(f"sweep {sweep['id']}: {sweep['state']}, jobs {sweep['counts']}", file=sys.stderr)
-                    time.sleep(args.poll)
+                    time.sleep(args.poll or SWEEP_POLL_S)
                     sweep = client.get_sweep(sweep["id"])
         except ServiceError as exc:
             print(f"voxe sweep: error: {exc}", file=sys.stderr)
