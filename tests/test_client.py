@@ -466,3 +466,52 @@ def test_a_ply_is_uploaded_with_the_texture_its_header_names_and_arrives_in_colo
     kept, surface = _ingested(scene["id"], storage)
     assert json.loads(kept["names.json"]) == {"mesh.ply": "coloured.ply"}
     assert len(surface) > 0 and abs(surface - [0, 1, 0]).max() < 0.01
+
+
+def test_a_submit_refused_deletes_the_scene_it_uploaded_and_no_other(api, tmp_path, capsys):
+    """``voxe submit --upload`` whose job the service refuses (4xx) had left the scene it had just uploaded behind,
+    unnamed in the error; one given with --scene was there before and stays."""
+    from voxe_core.cli import main
+
+    url, _ = api
+    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+    bad = ["--params", '{"iterations": -1}', "--api", url]
+    assert main(["submit", "a plane", "--upload", str(tmp_path / "plane.obj"), *bad]) == 2
+    err = capsys.readouterr().err
+    scene_id = err.split("scene ", 1)[1].split()[0]
+    assert "HTTP 422" in err and f"the scene {scene_id} this command uploaded is deleted" in err
+    with Client(url) as client:
+        assert client.request("GET", "/v1/scenes")["items"] == []
+        kept = client.upload_scene(tmp_path / "plane.obj")["id"]
+        assert main(["submit", "a plane", "--scene", kept, *bad]) == 2
+        assert "HTTP 422" in capsys.readouterr().err
+        assert [scene["id"] for scene in client.request("GET", "/v1/scenes")["items"]] == [kept]
+
+
+@pytest.mark.parametrize("job_status, delete_status, said", [
+    (429, 204, "the scene s1 this command uploaded is deleted"),
+    (429, 409, "the scene s1 this command uploaded stays, its deletion failed (DELETE /v1/scenes/s1: HTTP 409: busy)"),
+    (503, None, "the scene s1 this command uploaded stays (use it with --scene s1)"),  # the job may have been made
+])
+def test_a_submit_not_taken_says_what_became_of_the_scene_it_uploaded(job_status, delete_status, said, tmp_path,
+                                                                       monkeypatch, capsys):
+    """A refused job's scene is deleted, or said to stay when that fails; a job the service may have made (5xx, or
+    no answer) keeps its scene, named for --scene."""
+    import voxe_core.cli.service as service
+    from voxe_core.cli import main
+
+    sent = []
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        sent.append(f"{request.method} {request.url.path}")
+        if request.method == "POST" and request.url.path == "/v1/scenes":
+            return httpx.Response(201, json={"id": "s1", "state": "processing"})
+        if request.method == "POST":
+            return httpx.Response(job_status, json={"detail": "not now"})
+        return httpx.Response(delete_status, json={"detail": "busy"} if delete_status == 409 else None)
+
+    monkeypatch.setattr(service, "_client", lambda args: Client(transport=httpx.MockTransport(answer)))
+    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+    assert main(["submit", "a plane", "--upload", str(tmp_path / "plane.obj")]) == 2
+    assert capsys.readouterr().err.endswith(f"HTTP {job_status}: not now; {said}\n")
+    assert sent == ["POST /v1/scenes", "POST /v1/jobs"] + ["DELETE /v1/scenes/s1"] * (delete_status is not None)

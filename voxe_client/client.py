@@ -135,6 +135,10 @@ class Client:
             files = [(field, (each.name, stack.enter_context(open(each, "rb")))) for each in paths]
             return self.request("POST", "/v1/scenes", files=files, data={"name": name} if name else None)
 
+    def delete_scene(self, scene_id: str) -> None:
+        """``DELETE /v1/scenes/{id}``: the scene with its finished jobs and their results (409 while one runs)."""
+        self.request("DELETE", f"/v1/scenes/{_segment(scene_id)}")
+
     def create_job(self, scene_id: str, prompt: str, **fields) -> dict:
         """``POST /v1/jobs``: ``fields`` are the body's other members (mode, edit_words, params, webhook_url, ...)."""
         return self.request("POST", "/v1/jobs", {"scene_id": scene_id, "prompt": prompt, **fields})

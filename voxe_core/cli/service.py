@@ -49,7 +49,7 @@ def add_parsers(commands, common) -> None:
     where.add_argument("--scene", metavar="SCENE_ID", help="an uploaded scene")
     where.add_argument("--upload", type=Path, metavar="PATH",
                        help="upload this dataset zip or mesh first (an OBJ with the .mtl and texture it names, a "
-                            "PLY with the texture its header names)")
+                            "PLY with the texture its header names; deleted again when the service refuses the job)")
     sub.add_argument("--texture", type=Path, default=None, metavar="IMAGE",
                      help="with --upload OBJ or PLY: the image that colours it at its UVs, instead of the one it "
                           "names (as mesh-to-grid --texture)")
@@ -158,7 +158,12 @@ def cmd_submit(args) -> int:
                 print(f"uploaded {args.upload}: scene {scene_id}", file=sys.stderr)
             fields = {"mode": args.mode, "edit_words": args.edit_word}
             fields.update({k: v for k, v in (("params", args.params), ("webhook_url", args.webhook_url)) if v})
-            job = client.create_job(scene_id, args.prompt, **fields)
+            try:
+                job = client.create_job(scene_id, args.prompt, **fields)
+            except ServiceError as exc:
+                if args.upload is None:
+                    raise
+                raise ServiceError(f"{exc}; {_after_refusal(client, scene_id, exc)}") from None
             print(f"job {job['id']}: {job['state']}", file=sys.stderr)
             if args.wait:
                 return _follow(client, job["id"], args.quiet)
@@ -167,6 +172,21 @@ def cmd_submit(args) -> int:
         except ServiceError as exc:
             print(f"voxe submit: error: {exc}", file=sys.stderr)
             return EXIT_USAGE
+
+
+def _after_refusal(client, scene_id: str, refusal) -> str:
+    """What became of the scene ``voxe submit --upload`` uploaded for a job the service did not take: deleted when
+    the service refused the job (a 4xx: no job was made, and the scene had stayed behind, counting towards the key's
+    upload quota), else kept for ``--scene`` (the service may have made the job before the answer was lost)."""
+    from voxe_client import ServiceError
+
+    if refusal.status is None or not 400 <= refusal.status < 500:
+        return f"the scene {scene_id} this command uploaded stays (use it with --scene {scene_id})"
+    try:
+        client.delete_scene(scene_id)
+    except ServiceError as exc:
+        return f"the scene {scene_id} this command uploaded stays, its deletion failed ({exc})"
+    return f"the scene {scene_id} this command uploaded is deleted"
 
 
 def cmd_job(args) -> int:
