@@ -193,6 +193,39 @@ def test_a_sweep_polled_without_wait_is_refused_before_the_sweep_is_created(caps
     assert "--poll sets the seconds between the polls of --wait: pass --wait too" in err and "cannot reach" not in err
 
 
+def test_wait_rides_out_the_outage_its_reconnect_for_allows_then_says_how_to_follow_again(monkeypatch, capsys):
+    """``voxe wait`` had given up after about 15 s of an unreachable service (an API restart during a long job);
+    --reconnect-for sets how long it keeps reconnecting, and giving up says the job goes on and how to follow it."""
+    import httpx
+
+    import voxe_client.client as client_module
+    import voxe_core.cli.service as service
+    from voxe_client import Client
+
+    clock = [0.0]
+    monkeypatch.setattr(client_module.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(client_module.time, "sleep", lambda seconds: clock.__setitem__(0, clock[0] + seconds))
+    job = {"id": "j1", "state": "succeeded"}
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        if clock[0] < 60:  # the API restarting
+            raise httpx.ConnectError("connection refused")
+        if request.url.path.endswith("/events"):
+            return httpx.Response(200, headers={"content-type": "text/event-stream"},
+                                  content=b'id: 9\nevent: succeeded\ndata: {}\n\n')
+        return httpx.Response(200, json=job)
+
+    monkeypatch.setattr(service, "_client", lambda args: Client(transport=httpx.MockTransport(answer)))
+    assert main(["wait", "j1", "--quiet"]) == 0  # a minute's outage: the default rides it out
+    assert json.loads(capsys.readouterr().out) == job
+    clock[0] = 0.0
+    assert main(["wait", "j1", "--reconnect-for", "30"]) == 2
+    assert capsys.readouterr().err == (
+        "voxe wait: error: event stream of job j1 at http://127.0.0.1:8000 lost: connection refused (10 attempts over "
+        "30 s, reconnecting for up to 30 s); the job goes on in the service: `voxe wait j1` follows it again "
+        "(--reconnect-for SECONDS rides out a longer outage)\n")
+
+
 def test_a_download_refuses_an_unlisted_name_before_any_and_a_failed_one_leaves_no_folder_it_made(
         monkeypatch, tmp_path, capsys):
     """--name a --name nope had written a, then failed on nope; a failed download left the --out folder it made,

@@ -65,9 +65,10 @@ def test_an_unreachable_service_is_a_service_error_naming_it():
         with pytest.raises(ServiceError, match="cannot reach the service at http://127.0.0.1:9: connection refused") as error:
             client.get_sweep("x")
         assert error.value.status is None
-        with pytest.raises(ServiceError, match=r"^event stream of job j1 at http://127.0.0.1:9 lost after 2 attempts: "
-                                               "connection refused$"):  # it had not named the service
-            list(client.events("j1", reconnects=1))
+        with pytest.raises(ServiceError, match=r"^event stream of job j1 at http://127.0.0.1:9 lost: connection "
+                                               r"refused \(1 attempt over 0 s, reconnecting for up to 0 s\); the job "
+                                               "goes on in the service$"):  # it had not named the service
+            list(client.events("j1", reconnect_for=0))
 
 
 class _Dropping(httpx.SyncByteStream):
@@ -124,6 +125,40 @@ def test_events_resume_a_stream_the_server_ended_before_the_job_ended(monkeypatc
         events = list(client.events("j1"))
     assert sent == [None, "1", "1"]
     assert [e["event"] for e in events] == ["stage_started", "canceled", "progress"]
+
+
+def test_events_reconnect_through_an_api_restart_of_minutes_then_give_up_saying_how_long(monkeypatch):
+    """The stream had given up after 5 reconnects, about 15 s: an API restarted during a long job (its proxy
+    answering 502 meanwhile) ended ``voxe wait``. It now reconnects for ``reconnect_for`` seconds from the loss."""
+    import voxe_client.client as client_module
+
+    clock = [0.0]
+    monkeypatch.setattr(client_module.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(client_module.time, "sleep", lambda seconds: clock.__setitem__(0, clock[0] + seconds))
+    back_at, sent = 120.0, []
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        sent.append((clock[0], request.headers.get("last-event-id")))
+        if len(sent) == 1:
+            return httpx.Response(200, headers={"content-type": "text/event-stream"},
+                                  content=b'id: 4\nevent: checkpoint\ndata: {"iteration": 250}\n\n')
+        if clock[0] < back_at / 2:
+            raise httpx.ConnectError("connection refused")
+        if clock[0] < back_at:
+            return httpx.Response(502, text="<html>bad gateway</html>")
+        return httpx.Response(200, headers={"content-type": "text/event-stream"},
+                              content=b'id: 5\nevent: succeeded\ndata: {}\n\n')
+
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        assert [e["id"] for e in client.events("j1")] == ["4", "5"]
+        assert sent[-1][1] == "4" and back_at <= sent[-1][0] <= back_at + 5  # at most 5 s between tries
+        assert max(b[0] - a[0] for a, b in zip(sent, sent[1:])) == 5.0
+        sent.clear()
+        clock[0] = 0.0
+        with pytest.raises(ServiceError, match=r"lost: HTTP 502 Bad Gateway \(\d+ attempts over 60 s, reconnecting "
+                                               r"for up to 60 s\); the job goes on in the service$"):
+            list(client.events("j1", reconnect_for=60))
+    assert sent[-1][0] == 60.0  # a last try at the window's end
 
 
 def test_reads_answered_503_with_retry_after_are_sent_again_and_writes_are_not(monkeypatch):

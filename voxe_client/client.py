@@ -22,6 +22,12 @@ DEFAULT_URL = "http://127.0.0.1:8000"
 DEFAULT_TIMEOUT_S = 60.0
 DEFAULT_RETRIES = 3
 MAX_RETRY_WAIT_S = 30.0
+RECONNECT_FOR_S = 300.0
+"""How long an event stream keeps reconnecting to a service that stopped answering (an API restarted during a long
+job; it had given up after about 15 s) before :meth:`Client.events` gives up."""
+MAX_RECONNECT_PAUSE_S = 5.0
+PROXY_UNAVAILABLE = (502, 503, 504)
+"""What a proxy in front of the API answers while the API restarts: a lost stream, not the service's refusal."""
 TERMINAL_STATES = ("succeeded", "failed", "canceled")
 
 
@@ -149,14 +155,17 @@ class Client:
     def cancel_job(self, job_id: str) -> dict:
         return self.request("POST", f"/v1/jobs/{_segment(job_id)}/cancel")
 
-    def events(self, job_id: str, last_event_id: int | None = None, reconnects: int = 5) -> Iterator[dict]:
+    def events(self, job_id: str, last_event_id: int | None = None,
+               reconnect_for: float | None = None) -> Iterator[dict]:
         """The job's live events (``{"event", "id", "data"}``) until it ends, over Server-Sent Events.
 
-        A dropped connection, or a stream the server ended before the job's end (it was stopping), is resumed
-        with ``Last-Event-ID`` (at most ``reconnects`` times in a row), so no timeline event is missed or
-        repeated; ``progress`` snapshots carry no id.
+        A dropped connection, a stream the server ended before the job's end (it was stopping), or a proxy's
+        502 / 503 / 504 while the API restarts is resumed with ``Last-Event-ID``, so no timeline event is missed or
+        repeated, for up to ``reconnect_for`` seconds from its loss (default :data:`RECONNECT_FOR_S`); ``progress``
+        snapshots carry no id.
         """
-        failures = 0
+        reconnect_for = RECONNECT_FOR_S if reconnect_for is None else reconnect_for
+        lost_since, attempts = None, 0
         while True:
             headers = {"accept": "text/event-stream"}
             if last_event_id is not None:
@@ -167,29 +176,36 @@ class Client:
                                         timeout=httpx.Timeout(30.0, read=None))) as response:
                     if response.is_error:
                         response.read()
-                        _raise_for_error(response, "GET", path)
-                    ended = False
-                    for event in parse_sse(response.iter_lines()):
-                        failures = 0
-                        if event["id"] is not None:
-                            last_event_id = int(event["id"])
-                        ended = ended or _ends_job(event)
-                        yield event
-                if ended:
-                    return
-                lost = "the server ended the stream before the job ended"
+                        if response.status_code not in PROXY_UNAVAILABLE:
+                            _raise_for_error(response, "GET", path)
+                        lost = f"HTTP {response.status_code} {response.reason_phrase}"
+                    else:
+                        ended = False
+                        for event in parse_sse(response.iter_lines()):
+                            lost_since, attempts = None, 0
+                            if event["id"] is not None:
+                                last_event_id = int(event["id"])
+                            ended = ended or _ends_job(event)
+                            yield event
+                        if ended:
+                            return
+                        lost = "the server ended the stream before the job ended"
             except httpx.TransportError as exc:
                 lost = str(exc)
-            failures += 1
-            if failures > reconnects:
-                raise ServiceError(f"event stream of job {job_id} at {self.base_url} lost after {failures} "
-                                   f"attempt{'s' if failures > 1 else ''}: {lost}")
-            time.sleep(min(5.0, 0.5 * 2 ** (failures - 1)))
+            now = time.monotonic()
+            lost_since = now if lost_since is None else lost_since
+            attempts += 1
+            if now - lost_since >= reconnect_for:
+                raise ServiceError(f"event stream of job {job_id} at {self.base_url} lost: {lost} ({attempts} "
+                                   f"attempt{'s' if attempts > 1 else ''} over {now - lost_since:.0f} s, reconnecting "
+                                   f"for up to {reconnect_for:g} s); the job goes on in the service")
+            time.sleep(min(MAX_RECONNECT_PAUSE_S, 0.5 * 2 ** (attempts - 1), reconnect_for - (now - lost_since)))
 
-    def wait(self, job_id: str, on_progress: Callable[[dict], None] | None = None) -> dict:
-        """Follow the job's events until it ends, calling ``on_progress(snapshot)`` on each progress event;
-        the finished job."""
-        for event in self.events(job_id):
+    def wait(self, job_id: str, on_progress: Callable[[dict], None] | None = None,
+             reconnect_for: float | None = None) -> dict:
+        """Follow the job's events until it ends (``reconnect_for``: see :meth:`events`), calling
+        ``on_progress(snapshot)`` on each progress event; the finished job."""
+        for event in self.events(job_id, reconnect_for=reconnect_for):
             if event["event"] == "progress" and on_progress is not None:
                 on_progress(event["data"])
         return self.get_job(job_id)

@@ -58,11 +58,14 @@ def add_parsers(commands, common) -> None:
     sub.add_argument("--params", type=_json_object, default=None, metavar="JSON", help="job params")
     sub.add_argument("--webhook-url", default=None, metavar="URL", help="POST the job's events here, signed")
     sub.add_argument("--wait", action="store_true", help="follow the job's events until it ends")
+    _add_reconnect_argument(sub)
     sub.set_defaults(run=cmd_submit)
     for name, help_text in (("status", "the job's record as JSON"), ("wait", "follow the job's live events until "
                             "it ends (a progress bar on stderr)"), ("cancel", "cancel the job")):
         job = commands.add_parser(name, parents=[common, service], help=help_text)
         job.add_argument("job_id")
+        if name == "wait":
+            _add_reconnect_argument(job)
         job.set_defaults(run=cmd_job)
     dl = commands.add_parser("download", parents=[common, service],
                              help="download the job's artifacts, each size and SHA-256 checked")
@@ -85,6 +88,14 @@ def add_parsers(commands, common) -> None:
                     help=f"with --wait: seconds between polls (default {SWEEP_POLL_S:g})")
     sw.add_argument("--out", type=Path, default=None, metavar="FILE", help="also write the final summary JSON here")
     sw.set_defaults(run=cmd_sweep)
+
+
+def _add_reconnect_argument(parser: argparse.ArgumentParser) -> None:
+    """``--reconnect-for``: how long following a job's events rides out a service that stopped answering."""
+    parser.add_argument("--reconnect-for", type=positive_seconds, default=None, metavar="SECONDS",
+                        help="while following the job, keep reconnecting to a service that stopped answering (an "
+                             "API restart) this long before giving up (default 300; the job goes on in the service "
+                             "either way)")
 
 
 SWEEP_POLL_S = 10.0
@@ -129,9 +140,18 @@ def _progress_bar(quiet: bool):
     return draw
 
 
-def _follow(client, job_id: str, quiet: bool) -> int:
-    job = client.wait(job_id, on_progress=_progress_bar(quiet))
-    if not quiet and sys.stderr.isatty():  # ends the bar redrawn in place; a log's lines end themselves
+def _follow(client, job_id: str, args) -> int:
+    """Follow the job to its end (``args``: --quiet, --reconnect-for); 0 when it succeeded, else 1."""
+    from voxe_client import ServiceError
+
+    try:
+        job = client.wait(job_id, on_progress=_progress_bar(args.quiet), reconnect_for=args.reconnect_for)
+    except ServiceError as exc:
+        if exc.status is not None:
+            raise
+        raise ServiceError(f"{exc}: `voxe wait {job_id}` follows it again (--reconnect-for SECONDS rides out a "
+                           "longer outage)") from None
+    if not args.quiet and sys.stderr.isatty():  # ends the bar redrawn in place; a log's lines end themselves
         print(file=sys.stderr)
     print(json.dumps(job, indent=2))
     return 0 if job["state"] == "succeeded" else 1
@@ -166,7 +186,7 @@ def cmd_submit(args) -> int:
                 raise ServiceError(f"{exc}; {_after_refusal(client, scene_id, exc)}") from None
             print(f"job {job['id']}: {job['state']}", file=sys.stderr)
             if args.wait:
-                return _follow(client, job["id"], args.quiet)
+                return _follow(client, job["id"], args)
             print(job["id"])
             return 0
         except ServiceError as exc:
@@ -196,7 +216,7 @@ def cmd_job(args) -> int:
     with _client(args) as client:
         try:
             if args.command == "wait":
-                return _follow(client, args.job_id, args.quiet)
+                return _follow(client, args.job_id, args)
             job = client.cancel_job(args.job_id) if args.command == "cancel" else client.get_job(args.job_id)
         except ServiceError as exc:
             print(f"voxe {args.command}: error: {exc}", file=sys.stderr)
