@@ -678,6 +678,28 @@ def test_export_mesh_errors_exit_2(sphere_file, tmp_path, capsys):
     assert not (tmp_path / "m.ply").exists()
 
 
+def test_edit_with_missing_weights_names_the_model_and_how_to_provide_it(sphere_grid, tmp_path, capsys, monkeypatch):
+    """A hub id is told how to fill the cache; a folder had been told to download itself from the hub
+    (`huggingface-cli download ./models/sd`)."""
+    monkeypatch.setenv("HF_HOME", str(tmp_path / "hf"))
+    monkeypatch.chdir(tmp_path)
+    sphere_grid.save(tmp_path / "g.safetensors")
+    edit = ["edit", "g.safetensors", "--prompt", "a dog", "--out", "out", "--offline", "--device", "cpu", "--model"]
+    assert main([*edit, "voxe-test/no-such-sd"]) == 2
+    err = capsys.readouterr().err
+    assert ("voxe edit: model not available: Stable Diffusion weights 'voxe-test/no-such-sd' are not available "
+            "offline: download them once with `huggingface-cli download voxe-test/no-such-sd`") in err
+    assert "point HF_HOME at that cache, or pass a local folder in the diffusers layout" in err
+    (tmp_path / "models" / "sd").mkdir(parents=True)
+    for folder in ("./models/gone", "./models/sd"):
+        assert main([*edit, folder]) == 2
+        err = capsys.readouterr().err
+        assert (f"voxe edit: model not available: Stable Diffusion weights '{folder}' are not available: that local "
+                "folder must hold the whole model in the diffusers layout (model_index.json, unet/") in err
+        assert f"download {folder}" not in err
+    assert not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize("flag, expected", [([], {"cuda_graphs": None, "compile_encoder": None}),
                                             (["--no-cuda-graphs"], {"cuda_graphs": False, "compile_encoder": None}),
                                             (["--no-compile-encoder"], {"cuda_graphs": None, "compile_encoder": False})])

@@ -27,12 +27,20 @@ def offline_env() -> bool:
 
 
 def not_available_message(model: str, cause: BaseException | None) -> str:
-    """The error text for missing weights: which model, how to get it, and what failed underneath."""
-    msg = (
-        f"Stable Diffusion weights '{model}' are not available offline: download them once with "
-        f"`huggingface-cli download {model}` (or `hf download {model}`) on a machine with internet and "
-        f"point HF_HOME at that cache, or pass a local folder in the diffusers layout ({DIFFUSERS_LAYOUT})."
-    )
+    """The error text for missing weights: which model, how to get it, and what failed underneath. A folder is
+    told to hold the model (a hub download of "./models/sd" had been its remedy), a hub id how to cache it."""
+    if local_path(model) is not None:
+        msg = (
+            f"Stable Diffusion weights '{model}' are not available: that local folder must hold the whole model in "
+            f"the diffusers layout ({DIFFUSERS_LAYOUT}, each with its config and weights); or name a hub id "
+            f"whose weights are in the Hugging Face cache (HF_HOME)."
+        )
+    else:
+        msg = (
+            f"Stable Diffusion weights '{model}' are not available offline: download them once with "
+            f"`huggingface-cli download {model}` (or `hf download {model}`) on a machine with internet and "
+            f"point HF_HOME at that cache, or pass a local folder in the diffusers layout ({DIFFUSERS_LAYOUT})."
+        )
     if cause is not None:
         detail = " ".join(str(cause).split())
         if len(detail) > 400:
