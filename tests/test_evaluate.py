@@ -177,8 +177,10 @@ def test_a_clip_folder_without_its_tokenizer_vocabulary_is_refused_naming_it(tin
     shutil.copytree(tiny_clip_path, folder)
     (folder / "vocab.json").unlink()
     (folder / "merges.txt").unlink()  # transformers 5 then builds a tokenizer of the 2 special tokens
-    with pytest.raises(ModelNotAvailableError, match="'.*no_vocab' are not available.*tokenizer has 2 tokens"):
+    with pytest.raises(ModelNotAvailableError, match="'.*no_vocab' are not available: that local folder must hold a "
+                                                     "whole CLIPModel.*tokenizer has 2 tokens") as said:
         ClipScorer.from_pretrained(str(folder), device="cpu")
+    assert "hf download" not in str(said.value)  # (it had been told to download its own path from the hub)
 
 
 @pytest.mark.parametrize("damaged, content", [("model.safetensors", b"trunc"), ("tokenizer_config.json", b"{bad"),
