@@ -208,12 +208,14 @@ def test_wait_rides_out_the_outage_its_reconnect_for_allows_then_says_how_to_fol
     job = {"id": "j1", "state": "succeeded"}
 
     def answer(request: httpx.Request) -> httpx.Response:
-        if clock[0] < 60:  # the API restarting
+        stream = {"content-type": "text/event-stream"}
+        if not request.url.path.endswith("/events"):
+            return httpx.Response(200, json=job)
+        if "last-event-id" not in request.headers:  # the API stops, ending the stream
+            return httpx.Response(200, headers=stream, content=b'id: 8\nevent: checkpoint\ndata: {}\n\n')
+        if clock[0] < 60:  # and restarts
             raise httpx.ConnectError("connection refused")
-        if request.url.path.endswith("/events"):
-            return httpx.Response(200, headers={"content-type": "text/event-stream"},
-                                  content=b'id: 9\nevent: succeeded\ndata: {}\n\n')
-        return httpx.Response(200, json=job)
+        return httpx.Response(200, headers=stream, content=b'id: 9\nevent: succeeded\ndata: {}\n\n')
 
     monkeypatch.setattr(service, "_client", lambda args: Client(transport=httpx.MockTransport(answer)))
     assert main(["wait", "j1", "--quiet"]) == 0  # a minute's outage: the default rides it out

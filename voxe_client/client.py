@@ -162,10 +162,10 @@ class Client:
         A dropped connection, a stream the server ended before the job's end (it was stopping), or a proxy's
         502 / 503 / 504 while the API restarts is resumed with ``Last-Event-ID``, so no timeline event is missed or
         repeated, for up to ``reconnect_for`` seconds from its loss (default :data:`RECONNECT_FOR_S`); ``progress``
-        snapshots carry no id.
+        snapshots carry no id. A stream never opened is an error at once: a wrong URL is not waited for.
         """
         reconnect_for = RECONNECT_FOR_S if reconnect_for is None else reconnect_for
-        lost_since, attempts = None, 0
+        opened, lost_since, attempts = False, None, 0
         while True:
             headers = {"accept": "text/event-stream"}
             if last_event_id is not None:
@@ -176,11 +176,11 @@ class Client:
                                         timeout=httpx.Timeout(30.0, read=None))) as response:
                     if response.is_error:
                         response.read()
-                        if response.status_code not in PROXY_UNAVAILABLE:
+                        if not opened or response.status_code not in PROXY_UNAVAILABLE:
                             _raise_for_error(response, "GET", path)
                         lost = f"HTTP {response.status_code} {response.reason_phrase}"
                     else:
-                        ended = False
+                        opened, ended = True, False
                         for event in parse_sse(response.iter_lines()):
                             lost_since, attempts = None, 0
                             if event["id"] is not None:
@@ -191,6 +191,8 @@ class Client:
                             return
                         lost = "the server ended the stream before the job ended"
             except httpx.TransportError as exc:
+                if not opened:
+                    raise ServiceError(f"cannot reach the service at {self.base_url}: {exc}") from None
                 lost = str(exc)
             now = time.monotonic()
             lost_since = now if lost_since is None else lost_since
