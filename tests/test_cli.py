@@ -244,6 +244,8 @@ def test_a_download_refuses_an_unlisted_name_before_any_and_a_failed_one_leaves_
                for name in ("a.png", "gone.png")]
 
     def answer(request: httpx.Request) -> httpx.Response:
+        if request.url.path == "/v1/jobs/j1":
+            return httpx.Response(200, json={"id": "j1", "state": "succeeded"})
         if request.url.path == "/v1/jobs/j1/artifacts":
             return httpx.Response(200, json=listing)
         if request.url.path == "/v1/jobs/j1/artifacts/a.png":
@@ -262,6 +264,38 @@ def test_a_download_refuses_an_unlisted_name_before_any_and_a_failed_one_leaves_
     assert main(["download", "j1", "--out", str(tmp_path / "all"), "--quiet"]) == 2  # what downloaded whole stays
     assert [p.name for p in (tmp_path / "all").iterdir()] == ["a.png"]
     assert (tmp_path / "all" / "a.png").read_bytes() == body
+
+
+@pytest.mark.parametrize("state, artifacts, said", [
+    ("running", ["a.png"], "job j1 is running: these are the artifacts it has so far; `voxe wait j1`, then download "
+                           "again for all of them"),
+    ("queued", [], "job j1 is queued: it has no artifacts yet; `voxe wait j1`, then download again for all of them"),
+    ("failed", [], "job j1 failed with no artifacts: nothing downloaded"),
+    ("succeeded", ["a.png"], None),
+])
+def test_a_download_of_an_unfinished_job_says_it_has_only_what_it_has_so_far(state, artifacts, said, monkeypatch,
+                                                                           tmp_path, capsys):
+    """A download right after ``voxe submit`` had exited 0 with the job's first files (or none), saying nothing."""
+    import hashlib
+
+    import httpx
+
+    import voxe_core.cli.service as service
+    from voxe_client import Client
+
+    listing = [{"name": name, "size": 5, "sha256": hashlib.sha256(b"frame").hexdigest()} for name in artifacts]
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        if request.url.path == "/v1/jobs/j1":
+            return httpx.Response(200, json={"id": "j1", "state": state})
+        if request.url.path == "/v1/jobs/j1/artifacts":
+            return httpx.Response(200, json=listing)
+        return httpx.Response(200, content=b"frame")
+
+    monkeypatch.setattr(service, "_client", lambda args: Client(transport=httpx.MockTransport(answer)))
+    assert main(["download", "j1", "--out", str(tmp_path), "--quiet"]) == 0
+    assert capsys.readouterr().err == (f"voxe download: note: {said}\n" if said else "")
+    assert sorted(p.name for p in tmp_path.iterdir()) == artifacts
 
 
 def test_an_output_that_cannot_be_written_is_refused_before_the_inputs_are_read(tmp_path, capsys):

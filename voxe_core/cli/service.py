@@ -228,9 +228,12 @@ def cmd_job(args) -> int:
 def cmd_download(args) -> int:
     from voxe_client import ServiceError
 
+    from voxe_client.client import TERMINAL_STATES
+
     writable_folder(args.out)  # (made, it goes again when nothing is downloaded into it)
     with _client(args) as client:
         try:
+            state = client.get_job(args.job_id)["state"]  # before the listing: an artifact it adds after is in it
             listed = [a["name"] for a in client.artifacts(args.job_id)]
             if missing := [name for name in args.name or () if name not in listed]:  # before any is downloaded
                 raise ServiceError(f"job {args.job_id} has no artifact {', '.join(map(repr, missing))}; it has "
@@ -242,6 +245,12 @@ def cmd_download(args) -> int:
         except ServiceError as exc:
             print(f"voxe download: error: {exc}", file=sys.stderr)
             return EXIT_USAGE
+    if state not in TERMINAL_STATES:  # (a download right after submit had exited 0 with a job's first few files)
+        print(f"voxe download: note: job {args.job_id} is {state}: "
+              f"{'these are the artifacts it has so far' if listed else 'it has no artifacts yet'}; `voxe wait "
+              f"{args.job_id}`, then download again for all of them", file=sys.stderr)
+    elif not listed:
+        print(f"voxe download: note: job {args.job_id} {state} with no artifacts: nothing downloaded", file=sys.stderr)
     return 0
 
 
