@@ -228,6 +228,22 @@ def test_wait_rides_out_the_outage_its_reconnect_for_allows_then_says_how_to_fol
         "(--reconnect-for SECONDS rides out a longer outage)\n")
 
 
+def test_ctrl_c_while_waiting_stops_following_and_says_the_job_goes_on(monkeypatch, capsys):
+    """Ctrl-C during ``voxe wait`` had said "voxe: interrupted", as if the job had stopped with the command."""
+    import httpx
+
+    import voxe_core.cli.service as service
+    from voxe_client import Client
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(service, "_client", lambda args: Client(transport=httpx.MockTransport(answer)))
+    assert main(["wait", "j1"]) == 130
+    assert capsys.readouterr().err == ("\nvoxe wait: stopped following; the job j1 goes on in the service (`voxe "
+                                       "cancel j1` stops it)\n")
+
+
 def test_a_download_refuses_an_unlisted_name_before_any_and_a_failed_one_leaves_no_folder_it_made(
         monkeypatch, tmp_path, capsys):
     """--name a --name nope had written a, then failed on nope; a failed download left the --out folder it made,

@@ -151,6 +151,10 @@ def _follow(client, job_id: str, args) -> int:
             raise
         raise ServiceError(f"{exc}: `voxe wait {job_id}` follows it again (--reconnect-for SECONDS rides out a "
                            "longer outage)") from None
+    except KeyboardInterrupt:  # ("voxe: interrupted" had read as if the job were stopped too)
+        print(f"\nvoxe {args.command}: stopped following; the job {job_id} goes on in the service (`voxe cancel "
+              f"{job_id}` stops it)", file=sys.stderr)
+        return EXIT_INTERRUPTED
     if not args.quiet and sys.stderr.isatty():  # ends the bar redrawn in place; a log's lines end themselves
         print(file=sys.stderr)
     print(json.dumps(job, indent=2))
