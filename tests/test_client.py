@@ -245,6 +245,18 @@ def test_upload_scene_sends_the_display_name_as_the_name_field_and_keeps_the_fil
     assert b'filename="scene.zip"' in bodies[2] and field not in bodies[2]
 
 
+def test_a_folder_upload_is_refused_saying_to_zip_it(tmp_path):
+    """A dataset folder given to upload_scene (``voxe submit --upload DIR``) had failed as "[Errno 21] Is a
+    directory"; nothing is sent."""
+    def answer(request: httpx.Request) -> httpx.Response:
+        raise AssertionError("nothing is sent")
+
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        with pytest.raises(ValueError, match=f"^{tmp_path} is a folder: upload a dataset as a .zip of it, or one mesh "
+                                             r"file \(.obj, .ply\)$"):
+            client.upload_scene(tmp_path)
+
+
 def test_download_checks_size_and_sha256_and_leaves_nothing_on_a_mismatch(tmp_path):
     import hashlib
 

@@ -133,6 +133,8 @@ class Client:
         image that colours it at its UVs instead (as ``voxe mesh-to-grid --texture``)."""
         path = Path(path)
         kind = path.suffix.lower()
+        if path.is_dir():  # (open() had said only "[Errno 21] Is a directory")
+            raise ValueError(f"{path} is a folder: upload a dataset as a .zip of it, or one mesh file (.obj, .ply)")
         if texture is not None and kind not in MESH_UPLOADS:
             raise ValueError(f"a texture goes with a mesh upload (.obj or .ply); {path.name} is neither")
         paths = MESH_UPLOADS[kind](path, texture) if kind in MESH_UPLOADS else [path]
