@@ -84,7 +84,7 @@ def add_parsers(commands, common) -> None:
     sw.add_argument("--evaluation", type=_json_object, default=None, metavar="JSON",
                     help='evaluation params, e.g. \'{"views": 100, "size": 266}\'')
     sw.add_argument("--wait", action="store_true", help="poll until every job of the sweep is finished")
-    sw.add_argument("--poll", type=positive_seconds, default=None,  # checked before the sweep is created
+    sw.add_argument("--poll", type=positive_seconds, default=None, metavar="SECONDS",  # checked before the sweep
                     help=f"with --wait: seconds between polls (default {SWEEP_POLL_S:g})")
     sw.add_argument("--out", type=Path, default=None, metavar="FILE", help="also write the final summary JSON here")
     sw.set_defaults(run=cmd_sweep)
