@@ -226,6 +226,15 @@ def test_wait_rides_out_the_outage_its_reconnect_for_allows_then_says_how_to_fol
         "voxe wait: error: event stream of job j1 at http://127.0.0.1:8000 lost: connection refused (10 attempts over "
         "30 s, reconnecting for up to 30 s); the job goes on in the service: `voxe wait j1` follows it again "
         "(--reconnect-for SECONDS rides out a longer outage)\n")
+    clock[0] = 0.0
+
+    def refuse(request: httpx.Request) -> httpx.Response:
+        raise httpx.ConnectError("connection refused")
+
+    monkeypatch.setattr(service, "_client", lambda args: Client(transport=httpx.MockTransport(refuse)))
+    assert main(["wait", "j1"]) == 2  # a service never reached (a wrong --api) is not waited for
+    assert capsys.readouterr().err == ("voxe wait: error: cannot reach the service at http://127.0.0.1:8000: "
+                                       "connection refused\n") and clock[0] == 0
 
 
 def test_ctrl_c_while_waiting_stops_following_and_says_the_job_goes_on(monkeypatch, capsys):

@@ -52,6 +52,11 @@ class ServiceError(Exception):
         self.detail = detail
 
 
+class EventStreamLost(ServiceError):
+    """A job's event stream lost for longer than :meth:`Client.events` reconnects: the service stopped answering (the
+    job itself goes on there)."""
+
+
 class Client:
     """The job service at ``base_url``; ``api_key`` goes as ``Authorization: Bearer`` (none on a loopback service).
 
@@ -200,9 +205,9 @@ class Client:
             lost_since = now if lost_since is None else lost_since
             attempts += 1
             if now - lost_since >= reconnect_for:
-                raise ServiceError(f"event stream of job {job_id} at {self.base_url} lost: {lost} ({attempts} "
-                                   f"attempt{'s' if attempts > 1 else ''} over {now - lost_since:.0f} s, reconnecting "
-                                   f"for up to {reconnect_for:g} s); the job goes on in the service")
+                raise EventStreamLost(f"event stream of job {job_id} at {self.base_url} lost: {lost} ({attempts} "
+                                      f"attempt{'s' if attempts > 1 else ''} over {now - lost_since:.0f} s, "
+                                      f"reconnecting for up to {reconnect_for:g} s); the job goes on in the service")
             time.sleep(min(MAX_RECONNECT_PAUSE_S, 0.5 * 2 ** (attempts - 1), reconnect_for - (now - lost_since)))
 
     def wait(self, job_id: str, on_progress: Callable[[dict], None] | None = None,

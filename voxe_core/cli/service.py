@@ -141,14 +141,13 @@ def _progress_bar(quiet: bool):
 
 
 def _follow(client, job_id: str, args) -> int:
-    """Follow the job to its end (``args``: --quiet, --reconnect-for); 0 when it succeeded, else 1."""
-    from voxe_client import ServiceError
+    """Follow the job to its end (``args``: --quiet, --reconnect-for); 0 when it succeeded, 1 when it did not, 130
+    when Ctrl-C stopped the following (not the job)."""
+    from voxe_client.client import EventStreamLost, ServiceError
 
     try:
         job = client.wait(job_id, on_progress=_progress_bar(args.quiet), reconnect_for=args.reconnect_for)
-    except ServiceError as exc:
-        if exc.status is not None:
-            raise
+    except EventStreamLost as exc:
         raise ServiceError(f"{exc}: `voxe wait {job_id}` follows it again (--reconnect-for SECONDS rides out a "
                            "longer outage)") from None
     except KeyboardInterrupt:  # ("voxe: interrupted" had read as if the job were stopped too)
@@ -230,9 +229,7 @@ def cmd_job(args) -> int:
 
 
 def cmd_download(args) -> int:
-    from voxe_client import ServiceError
-
-    from voxe_client.client import TERMINAL_STATES
+    from voxe_client.client import TERMINAL_STATES, ServiceError
 
     writable_folder(args.out)  # (made, it goes again when nothing is downloaded into it)
     with _client(args) as client:
