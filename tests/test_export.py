@@ -296,13 +296,59 @@ def test_glb_round_trip_keeps_geometry_and_colours(sphere_grid, tmp_path):
     mesh = extract_mesh(sphere_grid)
     path = save_mesh(mesh, tmp_path / "m.glb")
     assert path.read_bytes()[:4] == b"glTF"
-    back = trimesh.load(path, force="mesh")
+    back = trimesh.load(path, force="mesh", skip_materials=True)  # (with its material, trimesh drops COLOR_0)
     # glTF readers may weld duplicate vertices; marching cubes emits none, so counts agree.
     assert len(back.faces) == len(mesh.faces)
     assert len(back.vertices) == len(np.unique(mesh.vertices.round(6), axis=0))
     assert np.allclose(back.bounds, mesh.bounds, atol=1e-5)
-    colors = back.visual.vertex_colors
+    colors = back.visual.vertex_colors  # linear light: (250, 5, 5) sRGB is (244, 0, 0)
     assert (colors[:, 0] > 240).all() and (colors[:, 1:3] < 15).all()
+
+
+def glb_document(path) -> tuple[dict, bytes]:
+    """A GLB's JSON chunk and binary chunk, read by the format's layout."""
+    import json
+
+    data = path.read_bytes()
+    assert data[:4] == b"glTF" and int.from_bytes(data[4:8], "little") == 2
+    assert int.from_bytes(data[8:12], "little") == len(data)
+    json_length = int.from_bytes(data[12:16], "little")
+    assert data[16:20] == b"JSON" and data[20 + json_length + 4 : 20 + json_length + 8] == b"BIN\0"
+    return json.loads(data[20 : 20 + json_length]), data[20 + json_length + 8 :]
+
+
+def test_glb_is_y_up_with_linear_colours_on_a_matte_material(tmp_path):
+    """Regression: the GLB was written as trimesh exports it, against three glTF rules the web UI's model-viewer
+    (three.js) follows: +y is up (an upright object lay on its back, its top facing the viewer), COLOR_0 is
+    linear light (the sRGB colours showed washed out: mid grey 128 as 188) and a primitive without a material is
+    fully metallic (the colours showed as dull metal)."""
+    grid = VoxelGrid(32)
+    axes = [torch.linspace(-1.5, 1.5, 32)] * 3
+    x, y, z = torch.meshgrid(*axes, indexing="ij")
+    rod = torch.maximum((x**2 + y**2).sqrt() - 0.4, (z - 0.2).abs() - 1.0)  # upright: 2 tall on +z, 0.2 up
+    with torch.no_grad():
+        grid.features[..., 0] = -5 * rod / float(grid.voxel_size.min())
+        grid.features[..., 1:] = torch.tensor([0.0, 2.0, -2.0])  # sigmoid: sRGB (0.5, 0.881, 0.119)
+    mesh = extract_mesh(grid)
+    path = save_mesh(mesh, tmp_path / "m.glb")
+
+    viewed = trimesh.load(path, force="mesh", skip_materials=True)  # node transforms applied, as viewers do
+    size = viewed.extents
+    assert size[1] == pytest.approx(2.0, abs=0.2) and size[0] < 1 and size[2] < 1  # tall along glTF's up, +y
+    assert viewed.bounds[:, 1].mean() == pytest.approx(0.2, abs=0.05)  # the grid's +z is +y
+    assert np.allclose(viewed.vertices, mesh.vertices[:, [0, 2, 1]] * [1, 1, -1], atol=1e-5)
+
+    document, binary = glb_document(path)
+    primitive = document["meshes"][0]["primitives"][0]
+    material = document["materials"][primitive["material"]]["pbrMetallicRoughness"]
+    assert material["metallicFactor"] == 0 and material.get("baseColorFactor", [1] * 4) == [1] * 4
+    accessor = document["accessors"][primitive["attributes"]["COLOR_0"]]
+    view = document["bufferViews"][accessor["bufferView"]]
+    assert accessor["componentType"] == 5126 and accessor["type"] == "VEC3"  # float32: no 8-bit banding
+    linear = np.frombuffer(binary, np.float32, accessor["count"] * 3, view.get("byteOffset", 0)).reshape(-1, 3)
+    srgb = np.asarray(mesh.visual.vertex_colors[:, :3]) / 255
+    assert np.allclose(linear, np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4), atol=1e-6)
+    assert linear[0] == pytest.approx([0.2158, 0.7529, 0.0130], abs=2e-3)  # sRGB (128, 225, 30)
 
 
 def test_obj_round_trip_keeps_vertices_faces_and_colours(sphere_grid, tmp_path):
@@ -335,7 +381,9 @@ def test_every_mesh_format_keeps_the_vertices_of_a_tiny_or_huge_box(tmp_path, si
     for suffix in (".ply", ".glb", ".obj"):
         back = trimesh.load(save_mesh(mesh, tmp_path / f"m{suffix}"), force="mesh", process=False)
         assert len(back.vertices) == len(mesh.vertices), suffix
-        assert np.abs(np.asarray(back.vertices) - mesh.vertices).max() <= 1e-6 * size, suffix
+        # (a GLB is y up: the grid's (x, y, z) is its (x, z, -y))
+        expected = mesh.vertices[:, [0, 2, 1]] * [1, 1, -1] if suffix == ".glb" else mesh.vertices
+        assert np.abs(np.asarray(back.vertices) - expected).max() <= 1e-6 * size, suffix
 
 
 @pytest.mark.parametrize("suffix", [".ply", ".glb", ".obj"])

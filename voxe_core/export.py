@@ -305,8 +305,8 @@ def extract_mesh(grid: VoxelGrid, level: float | None = None, resolution: int | 
 
 
 def save_mesh(mesh, path: str | os.PathLike) -> Path:
-    """Write ``mesh`` by suffix: ``.ply`` (binary, with vertex colours), ``.glb`` (glTF binary, COLOR_0) or
-    ``.obj`` (Wavefront, with its ``.mtl`` beside it: :func:`save_obj`)."""
+    """Write ``mesh`` by suffix: ``.ply`` (binary, with vertex colours), ``.glb`` (:func:`glb_bytes`) or
+    ``.obj`` (Wavefront, with its ``.mtl`` beside it: :func:`save_obj`). PLY and OBJ keep the grid's frame (z up)."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in MESH_SUFFIXES:
@@ -314,10 +314,66 @@ def save_mesh(mesh, path: str | os.PathLike) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     if suffix == ".obj":
         return save_obj(mesh, path)
-    data = mesh.export(file_type="ply", encoding="binary") if suffix == ".ply" else mesh.export(file_type="glb")
+    data = mesh.export(file_type="ply", encoding="binary") if suffix == ".ply" else glb_bytes(mesh)
     with replacing(path) as partial:
         partial.write_bytes(data)
     return path
+
+
+GLTF_FROM_GRID = (-math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5))
+"""The glb root node's rotation (quaternion x, y, z, w): -90° about x turns the grid's +z up onto glTF's +y up,
+(x, y, z) -> (x, z, -y), as Blender's glTF exporter turns its z-up scenes."""
+
+
+def srgb_to_linear(rgb: np.ndarray) -> np.ndarray:
+    """sRGB-encoded values in [0, 1] -> linear light (the IEC 61966-2-1 curve)."""
+    return np.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4)
+
+
+def glb_bytes(mesh) -> bytes:
+    """``mesh`` as a glTF 2.0 binary that glTF viewers (the web UI's model-viewer, three.js, Blender) show as the
+    renders do. trimesh's own export had broken three of the format's rules: glTF is +y up (the grid is +z up, so
+    an upright object lay on its back), COLOR_0 is linear light (the renders' sRGB colours showed washed out) and
+    a primitive without a material gets the default one, fully metallic (the colours showed as dull metal).
+
+    So: the vertices in the grid's frame under a root node turned by :data:`GLTF_FROM_GRID`, COLOR_0 the vertex
+    colours made linear as float32 (8 bits of linear light would band the dark tones) and a matte, non-metallic
+    white material that shows them as they are.
+    """
+    import json
+
+    positions = np.ascontiguousarray(mesh.vertices, dtype=np.float32)
+    colors = srgb_to_linear(np.asarray(mesh.visual.vertex_colors, dtype=np.float64)[:, :3] / 255.0).astype(np.float32)
+    indices = np.ascontiguousarray(mesh.faces, dtype=np.uint32).reshape(-1)
+    blobs = [indices.tobytes(), positions.tobytes(), colors.tobytes()]  # each a multiple of 4 bytes
+    offsets = np.cumsum([0] + [len(blob) for blob in blobs]).tolist()
+    views = [{"buffer": 0, "byteOffset": offsets[i], "byteLength": len(blob), "target": target}
+             for i, (blob, target) in enumerate(zip(blobs, (34963, 34962, 34962)))]  # element array, array buffers
+    accessors = [
+        {"bufferView": 0, "componentType": 5125, "count": len(indices), "type": "SCALAR"},  # uint32
+        {"bufferView": 1, "componentType": 5126, "count": len(positions), "type": "VEC3",  # float32
+         "min": positions.min(0).tolist(), "max": positions.max(0).tolist()},
+        {"bufferView": 2, "componentType": 5126, "count": len(colors), "type": "VEC3"},
+    ]
+    document = {
+        "asset": {"version": "2.0", "generator": "voxe_core.export"},
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [{"name": "voxe", "mesh": 0, "rotation": list(GLTF_FROM_GRID)}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 1, "COLOR_0": 2}, "indices": 0, "material": 0,
+                                    "mode": 4}]}],
+        "materials": [{"name": "voxe", "pbrMetallicRoughness": {"baseColorFactor": [1.0, 1.0, 1.0, 1.0],
+                                                                "metallicFactor": 0.0, "roughnessFactor": 1.0}}],
+        "accessors": accessors,
+        "bufferViews": views,
+        "buffers": [{"byteLength": offsets[-1]}],
+    }
+    text = json.dumps(document, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 4)  # chunks are 4-byte aligned: JSON padded with spaces
+    binary = b"".join(blobs)
+    chunks = [(text, b"JSON"), (binary, b"BIN\0")]
+    body = b"".join(len(data).to_bytes(4, "little") + kind + data for data, kind in chunks)
+    return b"glTF" + (2).to_bytes(4, "little") + (12 + len(body)).to_bytes(4, "little") + body
 
 
 def save_obj(mesh, path: str | os.PathLike) -> Path:
