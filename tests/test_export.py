@@ -149,6 +149,32 @@ def test_mp4_is_playable_with_even_size_and_right_colours(tmp_path):
     assert abs(first[31, 33, 2] - 255) < 20
 
 
+def test_mp4_states_the_colour_matrix_its_pixels_were_converted_by(tmp_path):
+    """Regression: the stream had no colour tags, so each player picked a matrix; one guessing BT.709 for an untagged
+    stream (as browsers may, for the web UI's video) showed the BT.601 pixels' red (250, 5, 5) as (255, 27, 1) and the
+    green (128, 225, 30) as (124, 202, 23). Here ffmpeg plays that player: the stated matrix, else BT.709."""
+    import re
+    import subprocess
+
+    import imageio_ffmpeg
+
+    frames = torch.zeros(2, 16, 16, 3)
+    frames[:, :, :8] = torch.tensor([250, 5, 5]) / 255
+    frames[:, :, 8:] = torch.tensor([128, 225, 30]) / 255
+    path = write_video(tmp_path / "v.mp4", frames, fps=30)
+    ffmpeg = imageio_ffmpeg.get_ffmpeg_exe()
+    info = subprocess.run([ffmpeg, "-hide_banner", "-i", str(path)], capture_output=True, text=True).stderr
+    stated = re.search(r"yuv420p\((tv|pc), (\w+)", info)
+    matrix = {"smpte170m": "bt601", "bt470bg": "bt601", "bt709": "bt709"}[stated[2]] if stated else "bt709"
+    command = [ffmpeg, "-v", "error", "-i", str(path), "-vf", f"scale=in_color_matrix={matrix},format=rgb24",
+               "-frames:v", "1", "-f", "rawvideo", "-"]
+    pixels = np.frombuffer(subprocess.run(command, capture_output=True, check=True).stdout, np.uint8)
+    pixels = pixels.reshape(16, 16, 3).astype(int)
+    assert np.abs(pixels[8, 3] - [250, 5, 5]).max() <= 4 and np.abs(pixels[8, 12] - [128, 225, 30]).max() <= 4
+    decoded, _ = read_mp4(path)  # imageio (ffmpeg's own default) reads it as before
+    assert np.abs(decoded[0][8, 3].astype(int) - [250, 5, 5]).max() <= 4
+
+
 @pytest.mark.parametrize("n, fps, shown", [(30, 30.0, 30), (30, 60.0, 15), (30, 120.0, 10), (30, 7.0, 30),
                                            (1, 30.0, 1), (2, 120.0, 1)])
 def test_gif_delays_follow_the_true_timeline_and_none_is_too_short_to_play(tmp_path, n, fps, shown):

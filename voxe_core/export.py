@@ -153,7 +153,9 @@ def write_video(path: str | os.PathLike, frames, fps: float = 30) -> Path:
     """Write frames (N, H, W, 3), floats in [0, 1] or uint8, to ``path``; the suffix picks the format.
 
     ``.mp4``: H.264 (libx264, CRF 18, yuv420p, +faststart) through imageio-ffmpeg;
-    odd sizes are padded by one replicated row / column, never rescaled.
+    odd sizes are padded by one replicated row / column, never rescaled. The stream is tagged with the matrix its
+    pixels were converted by (BT.601, limited range): untagged, a player that guesses BT.709 for it
+    had shown the render's red (250, 5, 5) as (255, 27, 1) and its greens 20 levels dimmer.
     ``.gif``: palette GIF through Pillow, looping forever, on :func:`gif_timeline`'s whole-centisecond delays
     (above 50 fps some frames are left out). Pillow folds consecutive identical frames into one longer frame,
     so a static scene can decode to fewer frames; the total duration is kept.
@@ -173,7 +175,8 @@ def write_video(path: str | os.PathLike, frames, fps: float = 30) -> Path:
 
             writer = imageio.get_writer(
                 partial, format="FFMPEG", mode="I", fps=fps, codec="libx264", pixelformat="yuv420p",
-                quality=None, output_params=["-crf", "18", "-preset", "medium", "-movflags", "+faststart"],
+                quality=None, output_params=["-colorspace", "smpte170m", "-color_range", "tv", "-crf", "18", "-preset",
+                                             "medium", "-movflags", "+faststart"],
                 macro_block_size=1, ffmpeg_log_level="error",
             )
             try:
