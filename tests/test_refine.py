@@ -11,6 +11,7 @@ import dataclasses
 import json
 import math
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -605,6 +606,22 @@ def test_merge_selects_voxelwise_and_keeps_unmasked_bits():
         merge(initial, edited, mask[:-1])
     with pytest.raises(ValueError, match="initial grid is"):
         merge(VoxelGrid(8), edited, mask)
+
+
+def test_the_readme_reader_of_a_downloaded_mask_gives_the_mask_in_the_grid_order(tmp_path):
+    """The README's reader of mask.safetensors (safetensors + numpy, no voxe_core), run as written there: the
+    artifact list named the file but nothing said what it holds."""
+    import re
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    reader = re.search(r"As a boolean array indexed like the grid's `features`:\n\n```python\n(.*?)```", readme, re.S)[1]
+    mask = torch.zeros(5, 6, 7, dtype=torch.bool)
+    mask[1, 2, 3] = mask[4, 5, 6] = mask[0, 0, 1] = True  # unequal axes: a transposed or reversed read differs
+    save_mask(tmp_path / "mask.safetensors", mask, {"prompt": "a hat", "edit_words": ["hat"]})
+    namespace = {"path": str(tmp_path / "mask.safetensors")}
+    exec(reader, namespace)  # the README's own code, as a user copies it
+    assert namespace["mask"].shape == (5, 6, 7) and namespace["mask"].dtype == bool
+    assert np.array_equal(namespace["mask"], mask.numpy())
 
 
 def test_sparse_mask_and_probabilities_round_trip(tmp_path):
