@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import os
 from pathlib import Path
@@ -343,8 +344,6 @@ def glb_bytes(mesh) -> bytes:
     colours made linear as float32 (8 bits of linear light would band the dark tones) and a matte, non-metallic
     white material that shows them as they are.
     """
-    import json
-
     positions = np.ascontiguousarray(mesh.vertices, dtype=np.float32)
     colors = srgb_to_linear(np.asarray(mesh.visual.vertex_colors, dtype=np.float64)[:, :3] / 255.0).astype(np.float32)
     indices = np.ascontiguousarray(mesh.faces, dtype=np.uint32).reshape(-1)
