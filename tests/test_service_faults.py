@@ -1340,6 +1340,85 @@ def test_a_stages_end_the_database_refuses_at_every_try_goes_back_to_the_queue_t
         assert (job.state, job.error, job.requeues) == ("failed", words, 1)
 
 
+def _cold_shutdown_in_pauses(monkeypatch) -> None:
+    """Celery's cold shutdown as a solo pool's task meets it, in the pause before its next try of the database: the
+    shutdown's flag set, and the pool's refusal to kill the task raised in it."""
+    import time as clock
+
+    from celery.worker import state
+
+    def shutdown(_seconds):
+        monkeypatch.setattr(state, "should_terminate", 0)  # set by Celery's cold shutdown (its exit code)
+        raise NotImplementedError("<class 'celery.concurrency.solo.TaskPool'> does not implement kill_job")
+
+    monkeypatch.setattr(clock, "sleep", shutdown)
+
+
+@pytest.mark.parametrize("ending", ENDINGS)
+def test_a_cold_shutdown_while_a_stages_end_waits_out_an_outage_releases_the_job_and_requeues(db, monkeypatch,
+                                                                                              ending):
+    """The worker stopped (cold, or a warm shutdown turned cold) while the stage's end was tried again in a database
+    outage: what the shutdown raised in the task went through, the message acknowledged as failed, the job left
+    running, held by a run gone. The hold is released, nothing counted, and the message goes back: its redelivery
+    ends the job as the stage did."""
+    from celery.worker import state
+
+    from worker import tasks
+
+    body, ended, words = _ending_edit(ending, db)
+    monkeypatch.setattr(tasks, "_edit", body)
+    job_id = add_job(add_scene(), "running", 0, stage="reconstruct", completed_stages=["reconstruct"])
+    with monkeypatch.context() as stopping:
+        _ending_the_job(stopping, answer_lost=False)
+        _cold_shutdown_in_pauses(stopping)
+        result = tasks.edit_task.apply(args=(job_id,))
+    assert result.state == "REJECTED" and result.result.requeue, result.result
+    assert result.result.reason == f"edit of job {job_id} stopped by the worker's shutdown"
+    job = job_row(job_id)
+    assert (job.state, job.run_token, job.run_lease_until, job.requeues) == ("running", None, None, 0)
+    assert state.should_terminate is None  # the next worker
+    redelivered = tasks.edit_task.apply(args=(job_id,)).get()
+    assert redelivered.get("state", ended) == ended  # (a cancel: found as the redelivery starts, "skipped")
+    job = job_row(job_id)
+    assert (job.state, job.error if ended == "failed" else job.message) == (ended, words)
+
+
+@pytest.mark.parametrize("where", ["waiting for a hold", "give-back"])
+def test_a_cold_shutdown_while_a_stage_waits_to_start_or_to_give_its_job_back_requeues(db, monkeypatch, where):
+    """A redelivered message waiting for another run's hold to run out, or a run giving its job back after an outage
+    stopped its stage, when the worker stops cold: the message goes back to the queue (it had been acknowledged as
+    failed, and the job never ran again), and this run's hold, if it held one, is released; another run's is not
+    touched."""
+    import sqlite3
+
+    from sqlalchemy import update
+    from sqlalchemy.exc import OperationalError
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, utcnow
+    from worker import runtime, tasks
+
+    job_id = add_job(add_scene(), "running", 0, stage="reconstruct", completed_stages=["reconstruct"])
+    locked = OperationalError("UPDATE jobs", {}, sqlite3.OperationalError("database is locked"))
+    lease_end = utcnow() + timedelta(seconds=db.stage_lease_s)
+    with monkeypatch.context() as stopping:
+        if where == "waiting for a hold":
+            with session_scope() as session:
+                session.execute(update(Job).where(Job.id == job_id).values(run_token="other",
+                                                                           run_lease_until=lease_end))
+        else:
+            stopping.setattr(tasks, "_edit", lambda *args: (_ for _ in ()).throw(locked))
+            stopping.setattr(runtime, "give_back_stage", lambda *args: (_ for _ in ()).throw(locked))
+        _cold_shutdown_in_pauses(stopping)
+        result = tasks.edit_task.apply(args=(job_id,))
+    assert result.state == "REJECTED" and result.result.requeue, result.result
+    assert result.result.reason == f"edit of job {job_id} stopped by the worker's shutdown"
+    job = job_row(job_id)
+    held = ("other", lease_end.replace(tzinfo=None)) if where == "waiting for a hold" else (None, None)
+    assert (job.state, job.run_token, job.run_lease_until and job.run_lease_until.replace(tzinfo=None),
+            job.requeues) == ("running", *held, 0)
+
+
 def test_a_replaced_artifacts_old_bytes_the_storage_cannot_delete_fail_nothing(db, tmp_path, monkeypatch, caplog):
     """The replacement is recorded before the old object is deleted: a delete the storage refuses then (S3 throttling
     its DELETE) had raised out of publish_artifact and failed the stage (an edit, hours in, republishing its

@@ -101,7 +101,12 @@ def _begin_stage(task, job_id: str, stage: str, device: str, settings):
     try:
         return _retried(lambda _again: runtime.begin_stage(job_id, stage, hostname, device, settings, run_token),
                         job_id, f"{stage} could not start")
-    except SQLAlchemyError as exc:
+    except JobSkipped:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a cold shutdown raises in the task wherever it waits
+        _requeue_if_shut_down(job_id, stage, run_token, exc)  # (a try that took the job, its answer lost: released)
+        if not isinstance(exc, SQLAlchemyError):
+            raise
         # the driver's words (database is locked, value too long), not the statement and its parameters
         reason = f"{stage} could not start: {type(exc).__name__}: {getattr(exc, 'orig', None) or exc}"
         error = None
@@ -149,8 +154,7 @@ def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> Task
         return _end_job(job_id, stage, token, FAILED, settings,
                         error=f"{stage}: time limit of {settings.task_soft_time_limit_s} s exceeded")
     except Exception as exc:  # noqa: BLE001 - every failure ends the job with its message, but two: ...
-        if runtime.worker_in_cold_shutdown():  # ... the one a cold shutdown raises in the task (the solo pool's) ...
-            _release_and_requeue(job_id, stage, token, "the worker's shutdown", exc)
+        _requeue_if_shut_down(job_id, stage, token, exc)  # ... the one a cold shutdown raises in the task ...
         if (why := database_outage(exc)) is not None:  # ... and a database outage, no fault of the job's
             return _give_back_and_requeue(job_id, stage, token, f"{stage} stopped by a database outage ({why}): "
                                           f"{type(exc).__name__}: {getattr(exc, 'orig', None) or exc}",
@@ -181,8 +185,9 @@ def _end_job(job_id: str, stage: str, run_token: str, state: str, settings, mess
         ended = _retried(lambda _again: runtime.finish_job(job_id, state, message=message, error=error,
                                                            run_token=run_token),
                          job_id, f"{stage} could not record the job {state}")
-    except SQLAlchemyError as exc:
-        if (why := database_outage(exc)) is None:
+    except Exception as exc:  # noqa: BLE001 - a cold shutdown raises in the task while its tries wait
+        _requeue_if_shut_down(job_id, stage, run_token, exc)
+        if not isinstance(exc, SQLAlchemyError) or (why := database_outage(exc)) is None:
             raise
         cause = f"a database outage ({why}) that kept its end from being recorded ({state}: {error or message})"
         if state == CANCELED:
@@ -192,6 +197,14 @@ def _end_job(job_id: str, stage: str, run_token: str, state: str, settings, mess
     if error and ended:  # recorded by this run (a re-queued failure is not, yet: it may end otherwise)
         log.error("job %s failed: %s", job_id, error)
     return _ended(job_id, stage, state, ended, settings)
+
+
+def _requeue_if_shut_down(job_id: str, stage: str, run_token: str, exc: Exception) -> None:
+    """When ``exc`` is what a cold shutdown raises in a solo pool's task (wherever it is: in the stage, or waiting to
+    try the database again at its start or end), release the run's hold and send the message back to the queue:
+    no failure of the job's. Raised through, it had acknowledged the message as failed, the job left held."""
+    if runtime.worker_in_cold_shutdown():
+        _release_and_requeue(job_id, stage, run_token, "the worker's shutdown", exc)
 
 
 def _release_and_requeue(job_id: str, stage: str, run_token: str, cause: str, exc: Exception) -> NoReturn:
@@ -219,7 +232,10 @@ def _give_back(job_id: str, stage: str, run_token: str, reason: str, settings) -
     try:
         return _retried(lambda _again: runtime.give_back_stage(job_id, stage, run_token, reason, settings), job_id,
                         f"{stage} could not give the job back")
-    except SQLAlchemyError:
+    except Exception as exc:  # noqa: BLE001 - a cold shutdown raises in the task while its tries wait
+        _requeue_if_shut_down(job_id, stage, run_token, exc)
+        if not isinstance(exc, SQLAlchemyError):
+            raise
         return None
 
 
