@@ -297,6 +297,55 @@ def test_an_ingest_stopped_by_a_storage_outage_goes_back_to_the_queue_keeping_th
                                                   "(VOXE_JOB_MAX_REQUEUES=3)")
 
 
+ARCHIVE_DAMAGE = {  # what the storage may do to a stored archive: cut it short, rot a bit, keep a write's tail
+    "truncated": lambda data: data[:len(data) // 2],
+    "a byte flipped": lambda data: bytes(byte ^ 0xFF if i == len(data) // 2 else byte for i, byte in enumerate(data)),
+    "padded": lambda data: data + bytes(100),
+}
+
+
+@pytest.mark.parametrize("damage", ARCHIVE_DAMAGE)
+def test_a_scene_archive_damaged_in_the_storage_fails_naming_the_scene_and_the_checksums(client, dataset, root,
+                                                                                         damage):
+    """The archive's size and SHA-256 recorded when it was stored are checked as a worker fetches it: one damaged in
+    the storage had failed its ingest as "BadZipFile: File is not a zip file" (or a CRC of some image), or been
+    ingested (bytes after its end); a job's unpack, the same. Both fail naming the scene and both checksums, and
+    leave no download or unpacked folder behind."""
+    import hashlib
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
+    from voxe_service.settings import get_settings
+    from voxe_service.storage import StorageError, get_storage
+    from worker import runtime
+
+    def damaged(scene: dict) -> str:
+        """Damage the scene's stored archive; what the error is to say of it."""
+        key = f"scenes/{scene['id']}/dataset.zip"
+        path = get_storage().path(key)
+        data = ARCHIVE_DAMAGE[damage](path.read_bytes())
+        path.write_bytes(data)
+        return (f"{key}: the stored bytes are not the ones recorded ({scene['size_bytes']} bytes, SHA-256 "
+                f"{scene['sha256']}; the storage holds {len(data)} bytes, SHA-256 {hashlib.sha256(data).hexdigest()}"
+                "): truncated or corrupted in the storage")
+
+    uploaded = upload_zip(client, zip_folder(dataset, root / "ok.zip", prefix="mic_small")).json()
+    words = damaged(uploaded)
+    assert ingest(uploaded["id"]) == {"scene_id": uploaded["id"], "state": "failed"}
+    failed = client.get(f"/v1/scenes/{uploaded['id']}").json()
+    assert (failed["state"], failed["error"]) == ("failed", f"ingest: StorageError: scene {uploaded['id']}'s upload "
+                                                            f"{words}")
+
+    ready = make_scene(client, dataset, root)
+    words = damaged(ready)
+    with session_scope() as session:
+        scene = session.get(Scene, ready["id"])
+    with pytest.raises(StorageError) as fetched:
+        runtime.scene_dataset_dir(scene, get_settings(), get_storage())
+    assert str(fetched.value) == f"scene {ready['id']}'s archive {words}"
+    assert list((root / "work" / "scenes").iterdir()) == []
+
+
 @pytest.mark.parametrize("locks", [True, False])
 def test_an_ingest_removes_the_folders_its_scenes_killed_runs_left_and_keeps_a_live_runs(client, dataset, root,
                                                                                         monkeypatch, locks):

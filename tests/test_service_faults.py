@@ -901,8 +901,9 @@ def test_an_upload_whose_ingest_kills_its_worker_fails_its_scene_at_the_requeue_
         zf.writestr("transforms_train.json", "{}")
     scene = add_scene("processing")
     stored = storage.put_file(scene_key(scene, datasets.DATASET_ARCHIVE), tmp_path / "upload.zip")
-    with session_scope() as session:
-        session.get(Scene, scene).storage_key = stored.key
+    with session_scope() as session:  # as the API records an upload: the ingest checks what it fetches by it
+        row = session.get(Scene, scene)
+        row.storage_key, row.size_bytes, row.sha256 = stored.key, stored.size, stored.sha256
     waiting = add_job(scene, "queued", 0, task_id=None)
     for _ in range(db.job_max_requeues + 1):  # the first run and its re-sends: each decodes
         with pytest.raises(Killed):

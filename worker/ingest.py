@@ -37,8 +37,8 @@ from voxe_service.quotas import ingest_over_quota
 from voxe_service.scenes import fail_scene, mark_ready
 from voxe_service.scratch import locked_folder, sweep_unlocked
 from voxe_service.settings import Settings
-from voxe_service.storage import Storage, StorageUnavailable, scene_key
-from worker.runtime import worker_in_cold_shutdown
+from voxe_service.storage import Storage, StorageUnavailable, StoredObject, scene_key
+from worker.runtime import fetch, scene_archive, worker_in_cold_shutdown
 
 log = logging.getLogger("voxe.worker")
 
@@ -137,11 +137,11 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
             scene = session.get(Scene, scene_id)
             if scene is None or scene.state != PROCESSING:
                 return {"scene_id": scene_id, "skipped": f"scene {scene_id} is {scene.state if scene else 'gone'}"}
-            upload_key, interrupted = scene.storage_key, scene.ingest_attempts
+            upload, interrupted = scene_archive(scene), scene.ingest_attempts
             session.execute(update(Scene).where(Scene.id == scene_id, Scene.state == PROCESSING)
                             .values(worker_hostname=hostname, ingest_attempts=Scene.ingest_attempts + 1,
                                     updated_at=utcnow()))
-        return _ingest(scene_id, upload_key, interrupted, settings, storage)
+        return _ingest(scene_id, upload, interrupted, settings, storage)
     except (*DATABASE_UNAVAILABLE, StorageUnavailable) as exc:
         if isinstance(exc, StorageUnavailable):
             cause = f"a storage outage ({exc})"
@@ -154,15 +154,16 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
         raise Reject(f"the ingest of scene {scene_id} stopped by {cause}", requeue=True) from exc
 
 
-def _ingest(scene_id: str, upload_key: str, interrupted: int, settings: Settings, storage: Storage) -> TaskResult:
-    """The ingest of the scene this run took, stored at ``upload_key``, after ``interrupted`` runs before it."""
+def _ingest(scene_id: str, upload: StoredObject, interrupted: int, settings: Settings, storage: Storage) -> TaskResult:
+    """The ingest of the scene this run took, its archive ``upload`` as recorded, after ``interrupted`` runs before
+    it."""
     # The runs before this one, less the first: how often the ingest was sent again.
     if error := requeue_limit_error(interrupted - 1, settings, f"ingest: interrupted {interrupted} times, its worker "
                                     "process dying each time (killed: out of memory?) or a database or storage "
                                     "outage stopping it"):
         _fail(scene_id, error, storage)
         return {"scene_id": scene_id, "state": "failed"}
-    mesh_upload = upload_key == scene_key(scene_id, datasets.UPLOAD_ARCHIVE)
+    mesh_upload = upload.key == scene_key(scene_id, datasets.UPLOAD_ARCHIVE)
     work = Path(settings.work_dir) / "ingest"
     # The folders the scene's killed runs on this machine left (each up to VOXE_MAX_EXTRACTED_BYTES; a crash loop had
     # kept them all until the scene failed), removed before this run's is made: a full disk frees itself.
@@ -171,7 +172,8 @@ def _ingest(scene_id: str, upload_key: str, interrupted: int, settings: Settings
     values: dict = {}
     with locked_folder(work, f"{scene_id}-") as scratch:
         try:
-            root = datasets.unpack(storage.get_file(upload_key, scratch / "archive.zip"), scratch / "data")
+            archive = fetch(storage, upload, scratch / "archive.zip", f"scene {scene_id}'s upload {upload.key}")
+            root = datasets.unpack(archive, scratch / "data")
             if mesh_upload:
                 render_mesh(root)
             count, values["backbone"] = decode(root, settings.validation_downsample)
@@ -193,7 +195,7 @@ def _ingest(scene_id: str, upload_key: str, interrupted: int, settings: Settings
                 log.exception("scene %s: ingest failed", scene_id)
             _fail(scene_id, reason, storage)
             return {"scene_id": scene_id, "state": "failed"}
-    return _ready(scene_id, values, storage, settings, upload_key if mesh_upload else None)
+    return _ready(scene_id, values, storage, settings, upload.key if mesh_upload else None)
 
 
 def _uncount_run(scene_id: str) -> None:

@@ -587,17 +587,25 @@ def reconstruction_grid(rec: Reconstruction) -> StoredObject:
     return StoredObject(rec.grid_key, rec.grid_size, rec.grid_sha256)
 
 
-def fetch(storage: Storage, stored: StoredObject, dest: Path) -> Path:
+def scene_archive(scene: Scene) -> StoredObject:
+    """The scene's archive as recorded when it was stored: its upload, or a mesh scene's rendered dataset."""
+    return StoredObject(scene.storage_key, scene.size_bytes, scene.sha256)
+
+
+def fetch(storage: Storage, stored: StoredObject, dest: Path, what: str | None = None) -> Path:
     """``stored`` at ``dest``. A file already there is reused only when it holds the recorded bytes: a run that
     lost its job or the fit leaves its own, unpublished, grid in the job's scratch. A download that does not match
-    the record is an error naming the key."""
+    the record (the object truncated or corrupted in the storage) is an error naming ``what`` (default: the key)
+    and both sizes and checksums."""
     if dest.is_file() and _holds(dest, stored):
         return dest
     storage.get_file(stored.key, dest)
-    if not _holds(dest, stored):
+    size, sha256 = file_sha256(dest)
+    if (size, sha256) != (stored.size, stored.sha256):
         dest.unlink(missing_ok=True)
-        raise StorageError(f"{stored.key}: the stored bytes are not the ones recorded ({stored.size} bytes, "
-                           f"SHA-256 {stored.sha256})")
+        raise StorageError(f"{what or stored.key}: the stored bytes are not the ones recorded ({stored.size} bytes, "
+                           f"SHA-256 {stored.sha256}; the storage holds {size} bytes, SHA-256 {sha256}): truncated "
+                           "or corrupted in the storage")
     return dest
 
 
@@ -606,14 +614,16 @@ def _holds(path: Path, stored: StoredObject) -> bool:
 
 
 def scene_dataset_dir(scene: Scene, settings: Settings, storage: Storage) -> Path:
-    """The scene's dataset folder on this machine: downloaded and unpacked once, then reused."""
+    """The scene's dataset folder on this machine: downloaded (checked against its recorded size and SHA-256) and
+    unpacked once, then reused."""
     root = Path(settings.work_dir) / "scenes" / f"{scene.id}-{scene.sha256[:12]}"
     if (root / ".complete").is_file():
         return root
     root.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=root.parent, prefix=f".{scene.id}-"))
     try:
-        archive = storage.get_file(scene.storage_key, tmp / datasets.DATASET_ARCHIVE)
+        archive = fetch(storage, scene_archive(scene), tmp / datasets.DATASET_ARCHIVE,
+                        f"scene {scene.id}'s archive {scene.storage_key}")
         datasets.unpack(archive, tmp / "data")
         archive.unlink()
         (tmp / "data" / ".complete").write_text("ok")
