@@ -297,6 +297,36 @@ def test_an_ingest_stopped_by_a_storage_outage_goes_back_to_the_queue_keeping_th
                                                   "(VOXE_JOB_MAX_REQUEUES=3)")
 
 
+def test_a_cold_shutdown_in_an_ingests_outage_pause_sends_its_message_back(client, dataset, root, monkeypatch):
+    """The pause before an ingest stopped by an outage goes back to the queue (up to minutes) is where a worker
+    stopped meanwhile cancels it, raising in the task: that went through, the message acknowledged as failed and the
+    scene left processing. The message goes back as the pause had sent it."""
+    from celery.worker import state
+
+    from voxe_service.storage import StorageUnavailable, get_storage
+    from worker import ingest as ingest_module
+    from worker import tasks
+
+    scene = upload_zip(client, zip_folder(dataset, root / "ok.zip", prefix="mic_small")).json()
+
+    def throttled(self, key, dest):
+        raise StorageUnavailable(f"S3 bucket 'voxe': SlowDown when fetching {key}")
+
+    def cancelled_by_the_shutdown(_seconds):
+        monkeypatch.setattr(state, "should_terminate", 0)  # set by Celery's cold shutdown (its exit code)
+        raise NotImplementedError("<class 'celery.concurrency.solo.TaskPool'> does not implement kill_job")
+
+    with monkeypatch.context() as outage:
+        outage.setattr(type(get_storage()), "get_file", throttled)
+        outage.setattr(ingest_module.time, "sleep", cancelled_by_the_shutdown)
+        result = tasks.ingest_task.apply(args=(scene["id"],))
+    assert result.state == "REJECTED" and result.result.requeue, result.result
+    assert result.result.reason == (f"the ingest of scene {scene['id']} stopped by a storage outage (S3 bucket 'voxe': "
+                                    f"SlowDown when fetching scenes/{scene['id']}/dataset.zip)")
+    monkeypatch.setattr(state, "should_terminate", None)  # the next worker
+    assert ingest(scene["id"]) == {"scene_id": scene["id"], "state": "ready"}
+
+
 ARCHIVE_DAMAGE = {  # what the storage may do to a stored archive: cut it short, rot a bit, keep a write's tail
     "truncated": lambda data: data[:len(data) // 2],
     "a byte flipped": lambda data: bytes(byte ^ 0xFF if i == len(data) // 2 else byte for i, byte in enumerate(data)),

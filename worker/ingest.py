@@ -150,7 +150,11 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
         else:
             raise
         log.warning("scene %s: the ingest stopped by %s; its message goes back to the queue", scene_id, cause)
-        time.sleep(OUTAGE_PAUSE_S * 2 ** min(interrupted or 0, 6))
+        try:
+            time.sleep(OUTAGE_PAUSE_S * 2 ** min(interrupted or 0, 6))
+        except Exception:  # noqa: BLE001 - a cold shutdown raises in the task: it cuts the pause short, no more
+            if not worker_in_cold_shutdown():  # (raised through, the message had been acknowledged as failed)
+                raise
         raise Reject(f"the ingest of scene {scene_id} stopped by {cause}", requeue=True) from exc
 
 
