@@ -20,13 +20,13 @@ from test_service_api import make_scene
 
 @pytest.fixture
 def client(request, tmp_path, monkeypatch):
-    """(a TestClient of the API, a ready scene); indirect parameters: more VOXE_* variables."""
+    """(a TestClient of the API, a ready scene); indirect parameters: VOXE_* variables added or changed."""
     require_data(MIC)
     # The retry window counts from the event: 5 s hold several 0.5 s attempts even when a loaded machine (load 11 on
     # 2 cores) delays the first one by seconds; 1.5 s once left room for one attempt only.
-    env = service_env(tmp_path, VOXE_WEBHOOK_ALLOW_NETWORKS="127.0.0.0/8", VOXE_WEBHOOK_BACKOFF_S="0.1",
-                      VOXE_WEBHOOK_RETRY_FOR_S="5", VOXE_WEBHOOK_TIMEOUT_S="0.5", VOXE_WEBHOOK_POLL_INTERVAL_S="0.1",
-                      **getattr(request, "param", {}))
+    env = service_env(tmp_path, **{
+        "VOXE_WEBHOOK_ALLOW_NETWORKS": "127.0.0.0/8", "VOXE_WEBHOOK_BACKOFF_S": "0.1", "VOXE_WEBHOOK_RETRY_FOR_S": "5",
+        "VOXE_WEBHOOK_TIMEOUT_S": "0.5", "VOXE_WEBHOOK_POLL_INTERVAL_S": "0.1", **getattr(request, "param", {})})
     for key, value in env.items():
         monkeypatch.setenv(key, value)
     reset_service_caches()
@@ -73,6 +73,49 @@ def test_a_failing_receiver_blocks_nothing_and_is_given_up_on_in_bounded_time(cl
     if slow:
         assert len(slow.requests) == delivery["attempts"]
         slow.close()
+
+
+def failed_once_more(test_client, scene, *, attempts: int, event_age_s: float) -> dict:
+    """A job's delivery to a dead receiver, ``attempts`` attempts and ``event_age_s`` after its event, after one
+    more attempt by a sender of the API's settings (the API's own sender idles: VOXE_WEBHOOK_POLL_INTERVAL_S)."""
+    from datetime import timedelta
+
+    from sqlalchemy import update
+
+    from api.webhooks import WebhookSender
+    from voxe_service.db import session_scope
+    from voxe_service.models import WebhookDelivery, utcnow
+    from voxe_service.settings import get_settings
+
+    job = test_client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold",
+                                             "webhook_url": f"http://127.0.0.1:{closed_port()}/hook"}).json()
+    test_client.post(f"/v1/jobs/{job['id']}/cancel")
+    with session_scope() as session:
+        session.execute(update(WebhookDelivery).where(WebhookDelivery.job_id == job["id"]).values(
+            attempts=attempts, created_at=utcnow() - timedelta(seconds=event_age_s)))
+    sender = WebhookSender(get_settings())
+    try:
+        assert sender.send_due() == 1
+    finally:
+        sender._pool.shutdown(wait=True)
+        sender.stop()
+    [delivery] = test_client.get(f"/v1/jobs/{job['id']}/webhooks").json()
+    return delivery
+
+
+SLOW_RETRIES = {"VOXE_WEBHOOK_POLL_INTERVAL_S": "3600", "VOXE_WEBHOOK_BACKOFF_S": "5",
+                "VOXE_WEBHOOK_MAX_BACKOFF_S": "60", "VOXE_WEBHOOK_RETRY_FOR_S": "600"}
+
+
+@pytest.mark.parametrize("client", [SLOW_RETRIES], indirect=True)
+def test_a_delivery_past_a_thousand_attempts_is_still_recorded(client):
+    """Attempt 1,025 (a delivery retried a minute apart for a week gets there in 17 h): its backoff's 2 ** 1024 had
+    overflowed the float, so the failure was never recorded and the delivery, left pending, was tried every lease
+    for good."""
+    test_client, scene = client
+    delivery = failed_once_more(test_client, scene, attempts=1100, event_age_s=10)
+    assert delivery["state"] == "pending" and delivery["attempts"] == 1101, delivery
+    assert "Connect" in (delivery["last_error"] or ""), delivery
 
 
 def test_an_attempt_ends_by_its_deadline_however_slowly_the_receiver_answers():

@@ -336,11 +336,17 @@ def claim_due(session: Session, now: datetime, lease_s: float, limit: int) -> li
 def backoff_s(attempts: int, base_s: float, max_s: float) -> float:
     """Seconds before attempt ``attempts + 1``: ``base_s`` doubling per attempt, at most ``max_s``.
 
+    The doubling stops at a float's largest power of two: from attempt 1,025 on (a delivery retried a minute apart
+    for a week gets there in 17 h) ``2 ** 1024`` had overflowed the float, so no failed attempt was recorded again
+    and the delivery was retried every lease for good, past its retry window.
+
     Examples:
         >>> [backoff_s(n, 5, 60) for n in (1, 2, 3, 4, 5)]
         [5.0, 10.0, 20.0, 40.0, 60.0]
+        >>> backoff_s(2000, 5.0, 60.0)
+        60.0
     """
-    return float(min(max_s, base_s * 2 ** (attempts - 1)))
+    return float(min(max_s, base_s * 2.0 ** min(attempts - 1, 1023)))
 
 
 def attempt(delivery: WebhookDelivery, secret: str, client: httpx.Client) -> tuple[int | None, str | None]:
