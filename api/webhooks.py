@@ -3,8 +3,8 @@
 Attempts run on a small thread pool, each ending by its deadline (``VOXE_WEBHOOK_TIMEOUT_S``: name lookup,
 connect, send and the whole answer), so a slow or dead receiver holds one pool thread for at most that long and
 never a request or a worker. A failed attempt (an error, a timeout, a non-2xx) is retried after
-``VOXE_WEBHOOK_BACKOFF_S`` doubling per attempt, until ``VOXE_WEBHOOK_RETRY_FOR_S`` after the event;
-then the delivery is ``failed`` with the last error. Claims are conditional updates, so several API
+``VOXE_WEBHOOK_BACKOFF_S`` doubling per attempt, until ``VOXE_WEBHOOK_RETRY_FOR_S`` after the event (the last
+try at that time); then the delivery is ``failed`` with the last error. Claims are conditional updates, so several API
 processes may send side by side without sending one attempt twice.
 """
 
@@ -13,7 +13,6 @@ from __future__ import annotations
 import logging
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from datetime import timedelta
 
 from sqlalchemy import select, update
 
@@ -21,7 +20,7 @@ from voxe_service.db import session_scope
 from voxe_service.models import ApiKey, Job, WebhookDelivery, utcnow
 from voxe_service.settings import Settings
 from voxe_service.webhooks import (
-    DELIVERED, GAVE_UP, PENDING, TargetRefused, attempt, backoff_s, claim_due, webhook_client,
+    DELIVERED, GAVE_UP, PENDING, TargetRefused, attempt, claim_due, retry_at, webhook_client,
 )
 
 log = logging.getLogger("voxe.webhooks")
@@ -98,12 +97,13 @@ class WebhookSender:
         if error is None:
             values.update(state=DELIVERED, delivered_at=now, next_attempt_at=None)
         else:
-            retry_at = now + timedelta(seconds=backoff_s(delivery.attempts, self.settings.webhook_backoff_s,
-                                                         self.settings.webhook_max_backoff_s))
-            if refused or retry_at > delivery.created_at + timedelta(seconds=self.settings.webhook_retry_for_s):
+            again = None if refused else retry_at(
+                delivery.created_at, now, delivery.attempts, self.settings.webhook_backoff_s,
+                self.settings.webhook_max_backoff_s, self.settings.webhook_retry_for_s)
+            if again is None:
                 values.update(state=GAVE_UP, next_attempt_at=None)
             else:
-                values.update(next_attempt_at=retry_at)
+                values.update(next_attempt_at=again)
             log.info("webhook delivery %s (job %s) attempt %d: %s", delivery.id, delivery.job_id, delivery.attempts,
                      error)
         with session_scope() as session:

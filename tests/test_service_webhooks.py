@@ -108,6 +108,22 @@ SLOW_RETRIES = {"VOXE_WEBHOOK_POLL_INTERVAL_S": "3600", "VOXE_WEBHOOK_BACKOFF_S"
 
 
 @pytest.mark.parametrize("client", [SLOW_RETRIES], indirect=True)
+def test_a_delivery_failing_for_its_whole_window_is_retried_until_its_end(client):
+    """A failed attempt 30 s before the window ends (600 s after the event, a minute's backoff) is tried again at
+    its end: the retry falling past it had been dropped and the delivery failed there and then, half a minute
+    early (at 23.4 h of the default 24 h). Once the window is over, it fails."""
+    from datetime import datetime
+
+    test_client, scene = client
+    late = failed_once_more(test_client, scene, attempts=8, event_age_s=570)
+    assert late["state"] == "pending" and late["attempts"] == 9 and "Connect" in late["last_error"], late
+    ends = [datetime.fromisoformat(d) for d in (late["next_attempt_at"], late["created_at"])]
+    assert round((ends[0] - ends[1]).total_seconds()) == 600, late
+    over = failed_once_more(test_client, scene, attempts=9, event_age_s=601)
+    assert over["state"] == "failed" and over["attempts"] == 10 and "Connect" in over["last_error"], over
+
+
+@pytest.mark.parametrize("client", [SLOW_RETRIES], indirect=True)
 def test_a_delivery_past_a_thousand_attempts_is_still_recorded(client):
     """Attempt 1,025 (a delivery retried a minute apart for a week gets there in 17 h): its backoff's 2 ** 1024 had
     overflowed the float, so the failure was never recorded and the delivery, left pending, was tried every lease

@@ -349,6 +349,25 @@ def backoff_s(attempts: int, base_s: float, max_s: float) -> float:
     return float(min(max_s, base_s * 2.0 ** min(attempts - 1, 1023)))
 
 
+def retry_at(created_at: datetime, now: datetime, attempts: int, base_s: float, max_s: float,
+             retry_for_s: float) -> datetime | None:
+    """When to try again a delivery whose attempt ``attempts`` failed at ``now``: after :func:`backoff_s`, and the
+    last time ``retry_for_s`` after its event; None once that has passed (the delivery has failed). A retry that
+    fell past it had been dropped, so a delivery gave up as much as a backoff early: by default at 23.4 h of 24.
+
+    Examples:
+        >>> event = datetime(2026, 1, 1)
+        >>> retry_at(event, event + timedelta(hours=23.5), 30, 5, 3600, 86400)  # an hour's backoff, cut to 24 h
+        datetime.datetime(2026, 1, 2, 0, 0)
+        >>> retry_at(event, event + timedelta(hours=24), 31, 5, 3600, 86400) is None
+        True
+    """
+    give_up_at = created_at + timedelta(seconds=retry_for_s)
+    if now >= give_up_at:
+        return None
+    return min(now + timedelta(seconds=backoff_s(attempts, base_s, max_s)), give_up_at)
+
+
 def attempt(delivery: WebhookDelivery, secret: str, client: httpx.Client) -> tuple[int | None, str | None]:
     """POST the delivery once with a :func:`webhook_client`: (the HTTP status or None, an error message or None
     for a 2xx). Raises :class:`TargetRefused` when the URL now resolves to a refused address (not worth a retry).
