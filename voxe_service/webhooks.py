@@ -373,7 +373,9 @@ def attempt(delivery: WebhookDelivery, secret: str, client: httpx.Client) -> tup
     for a 2xx). Raises :class:`TargetRefused` when the URL now resolves to a refused address (not worth a retry).
 
     The attempt ends by the client's deadline (a timeout error, retried); of the answer, at most
-    ``ANSWER_READ_BYTES`` are read.
+    ``ANSWER_READ_BYTES`` are read. Its status decides: a body still coming at the deadline, or cut off, is dropped
+    with the connection (a 2xx whose body dripped past the deadline had been a timeout, so a receiver that took
+    the event was sent it again for the whole retry window, and the delivery ended ``failed``).
     """
     body = delivery.payload.encode()
     timestamp = int(time.time())
@@ -382,10 +384,13 @@ def attempt(delivery: WebhookDelivery, secret: str, client: httpx.Client) -> tup
     try:
         with client.stream("POST", delivery.url, content=body, headers=headers) as response:
             read = 0
-            for chunk in response.iter_raw():
-                read += len(chunk)
-                if read >= ANSWER_READ_BYTES:
-                    break
+            try:
+                for chunk in response.iter_raw():
+                    read += len(chunk)
+                    if read >= ANSWER_READ_BYTES:
+                        break
+            except httpx.HTTPError:  # after the status line: the answer is in
+                pass
     except httpx.HTTPError as exc:
         return None, f"{type(exc).__name__}: {exc}"
     if 200 <= response.status_code < 300:
