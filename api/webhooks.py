@@ -66,10 +66,14 @@ class WebhookSender:
             free += 1
         if not free:
             return 0
-        with session_scope() as session:
-            ids = claim_due(session, utcnow(), self.settings.webhook_timeout_s + CLAIM_MARGIN_S, free)
-        for _ in range(free - len(ids)):
-            self._in_flight.release()
+        ids: list[str] = []
+        try:
+            with session_scope() as session:
+                won = claim_due(session, utcnow(), self.settings.webhook_timeout_s + CLAIM_MARGIN_S, free)
+            ids = won  # (committed)
+        finally:  # the slots left over: all of them when the claim failed (a database hiccup had kept them for good)
+            for _ in range(free - len(ids)):
+                self._in_flight.release()
         for delivery_id in ids:
             self._pool.submit(self._send, delivery_id)
         return len(ids)

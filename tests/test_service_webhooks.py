@@ -75,6 +75,34 @@ def test_a_failing_receiver_blocks_nothing_and_is_given_up_on_in_bounded_time(cl
         slow.close()
 
 
+def test_a_sender_pass_whose_claim_fails_leaves_the_next_ones_their_slots(client, monkeypatch):
+    """A pass whose claim fails (the database busy or gone for a moment) is retried at the next: it had kept every
+    slot it had taken for the attempts, so no delivery was ever sent again until the API restarted."""
+    from sqlalchemy.exc import OperationalError
+
+    import api.webhooks
+
+    test_client, scene = client
+    receiver, failures, real_claim = WebhookReceiver(), [], api.webhooks.claim_due
+
+    def busy_at_first(*args, **kwargs):
+        if len(failures) < 3:
+            failures.append(1)
+            raise OperationalError("UPDATE webhook_deliveries", {}, Exception("database is locked"))
+        return real_claim(*args, **kwargs)
+
+    monkeypatch.setattr(api.webhooks, "claim_due", busy_at_first)
+    try:
+        wait_until(lambda: failures, 10, interval=0.05, what="a failed claim")
+        job = test_client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold",
+                                                 "webhook_url": receiver.url}).json()
+        test_client.post(f"/v1/jobs/{job['id']}/cancel")
+        [delivery] = deliveries_settled(test_client, job["id"], timeout=10)
+        assert delivery["state"] == "delivered" and len(receiver.requests) == 1, delivery
+    finally:
+        receiver.close()
+
+
 def failed_once_more(test_client, scene, *, attempts: int, event_age_s: float) -> dict:
     """A job's delivery to a dead receiver, ``attempts`` attempts and ``event_age_s`` after its event, after one
     more attempt by a sender of the API's settings (the API's own sender idles: VOXE_WEBHOOK_POLL_INTERVAL_S)."""
