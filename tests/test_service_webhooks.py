@@ -289,6 +289,37 @@ def test_stuck_name_lookups_hold_at_most_lookup_threads_threads(monkeypatch):
     assert allowed_addresses_within("hooks.test", 443, [], 1.0) == ["93.184.216.34"]  # every slot free again
 
 
+def test_a_webhook_to_an_address_waits_for_no_lookup_slot(monkeypatch):
+    """Every lookup slot held by names a resolver does not answer: a webhook to an IP address needs no resolver, and
+    is judged at once (it had waited for a slot, and was refused as "did not resolve", its attempts timing out)."""
+    import threading
+
+    from voxe_service.webhooks import LOOKUP_THREADS, LookupTimedOut, allowed_addresses_within, check_target
+
+    release = threading.Event()
+    real_getaddrinfo = socket.getaddrinfo
+
+    def stuck_on_names(host, *args, **kwargs):
+        if host == "hooks.test":
+            release.wait(10)
+        return real_getaddrinfo(host, *args, **kwargs)
+
+    monkeypatch.setattr(socket, "getaddrinfo", stuck_on_names)
+    try:
+        for _ in range(LOOKUP_THREADS):
+            with pytest.raises(LookupTimedOut):
+                allowed_addresses_within("hooks.test", 443, [], 0.01)
+        started = time.monotonic()
+        assert allowed_addresses_within("93.184.216.34", 443, [], 0.5) == ["93.184.216.34"]
+        check_target("http://[2606:2800:220:1:248:1893:25c8:1946]:8080/hook", [], 0.5)
+        assert time.monotonic() - started < 0.4
+    finally:
+        release.set()
+    deadline = time.monotonic() + 5
+    while any(t.name == "voxe-webhook-resolve" for t in threading.enumerate()) and time.monotonic() < deadline:
+        time.sleep(0.01)  # every slot free again for the next test
+
+
 def test_a_lookup_whose_thread_cannot_start_gives_its_slot_back(monkeypatch):
     """Threads refused (the process at its limit) LOOKUP_THREADS times had kept every slot: each later lookup timed
     out unstarted for good."""
@@ -299,12 +330,14 @@ def test_a_lookup_whose_thread_cannot_start_gives_its_slot_back(monkeypatch):
     def refused(self):
         raise RuntimeError("can't start new thread")
 
+    monkeypatch.setattr(socket, "getaddrinfo", lambda *args, **kwargs: [
+        (socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP, "", ("93.184.216.34", 443))])
     with monkeypatch.context() as limit:
         limit.setattr(threading.Thread, "start", refused)
         for _ in range(LOOKUP_THREADS + 1):
             with pytest.raises(RuntimeError, match="can't start new thread"):
-                allowed_addresses_within("93.184.216.34", 443, [], 0.5)
-    assert allowed_addresses_within("93.184.216.34", 443, [], 5.0) == ["93.184.216.34"]
+                allowed_addresses_within("hooks.test", 443, [], 0.5)
+    assert allowed_addresses_within("hooks.test", 443, [], 5.0) == ["93.184.216.34"]
 
 
 def test_an_attempt_ends_by_its_deadline_however_slowly_the_name_resolves(monkeypatch):

@@ -132,7 +132,15 @@ def allowed_addresses_within(host: str, port: int, allow_networks: list[ipaddres
                              timeout: float | None) -> list[str]:
     """:func:`allowed_addresses`, given up after ``timeout`` seconds (:class:`LookupTimedOut`): ``getaddrinfo`` takes
     no timeout, so it runs in a thread of its own, left to end by itself (the resolver's own timeouts) while the
-    caller goes on; with every one of the :data:`LOOKUP_THREADS` slots held that long, it times out unstarted."""
+    caller goes on; with every one of the :data:`LOOKUP_THREADS` slots held that long, it times out unstarted. An IP
+    address is judged at once, with no thread or slot: no resolver is asked (names stuck on one had held every slot,
+    and a webhook to an address was refused as "did not resolve", its attempts timed out)."""
+    try:
+        ipaddress.ip_address(host)
+    except ValueError:
+        pass
+    else:
+        return allowed_addresses(host, port, allow_networks)
     deadline = None if timeout is None else time.monotonic() + timeout
     if not _lookup_slots.acquire(timeout=timeout):
         raise LookupTimedOut(host)
