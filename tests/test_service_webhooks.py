@@ -103,9 +103,10 @@ def test_a_sender_pass_whose_claim_fails_leaves_the_next_ones_their_slots(client
         receiver.close()
 
 
-def failed_once_more(test_client, scene, *, attempts: int, event_age_s: float) -> dict:
-    """A job's delivery to a dead receiver, ``attempts`` attempts and ``event_age_s`` after its event, after one
-    more attempt by a sender of the API's settings (the API's own sender idles: VOXE_WEBHOOK_POLL_INTERVAL_S)."""
+def failed_once_more(test_client, scene, *, attempts: int = 0, event_age_s: float = 0.0, url: str | None = None) -> dict:
+    """A job's delivery to a dead receiver (or stored with ``url``), ``attempts`` attempts and ``event_age_s`` after
+    its event, after one more attempt by a sender of the API's settings (the API's own sender idles:
+    VOXE_WEBHOOK_POLL_INTERVAL_S)."""
     from datetime import timedelta
 
     from sqlalchemy import update
@@ -120,7 +121,8 @@ def failed_once_more(test_client, scene, *, attempts: int, event_age_s: float) -
     test_client.post(f"/v1/jobs/{job['id']}/cancel")
     with session_scope() as session:
         session.execute(update(WebhookDelivery).where(WebhookDelivery.job_id == job["id"]).values(
-            attempts=attempts, created_at=utcnow() - timedelta(seconds=event_age_s)))
+            attempts=attempts, created_at=utcnow() - timedelta(seconds=event_age_s),
+            **({"url": url} if url else {})))
     sender = WebhookSender(get_settings())
     try:
         assert sender.send_due() == 1
@@ -160,6 +162,27 @@ def test_a_delivery_past_a_thousand_attempts_is_still_recorded(client):
     delivery = failed_once_more(test_client, scene, attempts=1100, event_age_s=10)
     assert delivery["state"] == "pending" and delivery["attempts"] == 1101, delivery
     assert "Connect" in (delivery["last_error"] or ""), delivery
+
+
+SNOWMAN = "http://\u2603.net/hook"  # a real name (xn--n3h.net) to the resolver (IDNA 2003), none to httpx (IDNA 2008)
+
+
+@pytest.mark.parametrize("client", [SLOW_RETRIES], indirect=True)
+def test_a_webhook_url_the_sender_cannot_read_is_refused_and_a_stored_one_fails(client, monkeypatch):
+    """A host that resolves but that httpx refuses (a symbol, or a pasted soft hyphen): the job had been created,
+    and each attempt raised outside the sender's errors, so the delivery was tried every lease for good, past its
+    retry window, its error never recorded. Now a 422 naming it; one stored before fails at its next attempt."""
+    test_client, scene = client
+    real_getaddrinfo = socket.getaddrinfo
+    monkeypatch.setattr(socket, "getaddrinfo", lambda host, *args, **kwargs: real_getaddrinfo(
+        "93.184.216.34" if host.startswith(("\u2603", "xn--n3h")) else host, *args, **kwargs))
+    response = test_client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold",
+                                                  "webhook_url": SNOWMAN})
+    assert response.status_code == 422, response.text
+    assert response.json()["detail"] == f"webhook_url {SNOWMAN!r} cannot be sent to: Invalid IDNA hostname: '\u2603.net'"
+    stored = failed_once_more(test_client, scene, url=SNOWMAN)
+    assert stored["state"] == "failed" and stored["attempts"] == 1, stored
+    assert "Invalid IDNA hostname" in (stored["last_error"] or ""), stored
 
 
 @pytest.mark.parametrize("fail", [False, True])

@@ -90,6 +90,10 @@ def check_target(url: str, allow_networks: list[ipaddress._BaseNetwork], timeout
         raise TargetRefused(f"webhook_url {url!r} names port 0, where nothing can listen")
     port = port or (443 if parts.scheme == "https" else 80)
     try:
+        httpx.URL(url)  # as the sender reads it
+    except httpx.InvalidURL as exc:  # e.g. a host IDNA 2008 refuses (a symbol, a soft hyphen) that resolves all the same
+        raise TargetRefused(f"webhook_url {url!r} cannot be sent to: {exc}") from None
+    try:
         allowed_addresses_within(host, port, allow_networks, timeout_s)
     except LookupTimedOut:
         raise TargetRefused(f"webhook_url host {host!r} did not resolve within {timeout_s:g} s "
@@ -378,7 +382,8 @@ def retry_at(created_at: datetime, now: datetime, attempts: int, base_s: float, 
 
 def attempt(delivery: WebhookDelivery, secret: str, client: httpx.Client) -> tuple[int | None, str | None]:
     """POST the delivery once with a :func:`webhook_client`: (the HTTP status or None, an error message or None
-    for a 2xx). Raises :class:`TargetRefused` when the URL now resolves to a refused address (not worth a retry).
+    for a 2xx). Raises :class:`TargetRefused` when the URL now resolves to a refused address, or is one httpx cannot
+    send to (not worth a retry; it had been retried every lease for good, past the retry window, unrecorded).
 
     The attempt ends by the client's deadline (a timeout error, retried); of the answer, at most
     ``ANSWER_READ_BYTES`` are read. Its status decides: a body still coming at the deadline, or cut off, is dropped
@@ -401,6 +406,8 @@ def attempt(delivery: WebhookDelivery, secret: str, client: httpx.Client) -> tup
                 pass
     except httpx.HTTPError as exc:
         return None, f"{type(exc).__name__}: {exc}"
+    except httpx.InvalidURL as exc:  # stored before check_target read URLs as httpx does
+        raise TargetRefused(f"webhook_url {delivery.url!r} cannot be sent to: {exc}") from None
     if 200 <= response.status_code < 300:
         return response.status_code, None
     return response.status_code, f"the receiver answered {response.status_code}"
