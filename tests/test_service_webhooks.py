@@ -103,7 +103,8 @@ def test_a_sender_pass_whose_claim_fails_leaves_the_next_ones_their_slots(client
         receiver.close()
 
 
-def failed_once_more(test_client, scene, *, attempts: int = 0, event_age_s: float = 0.0, url: str | None = None) -> dict:
+def failed_once_more(test_client, scene, *, attempts: int = 0, event_age_s: float = 0.0,
+                     url: str | None = None) -> dict:
     """A job's delivery to a dead receiver (or stored with ``url``), ``attempts`` attempts and ``event_age_s`` after
     its event, after one more attempt by a sender of the API's settings (the API's own sender idles:
     VOXE_WEBHOOK_POLL_INTERVAL_S)."""
@@ -179,7 +180,8 @@ def test_a_webhook_url_the_sender_cannot_read_is_refused_and_a_stored_one_fails(
     response = test_client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold",
                                                   "webhook_url": SNOWMAN})
     assert response.status_code == 422, response.text
-    assert response.json()["detail"] == f"webhook_url {SNOWMAN!r} cannot be sent to: Invalid IDNA hostname: '\u2603.net'"
+    assert response.json()["detail"] == (
+        f"webhook_url {SNOWMAN!r} cannot be sent to: Invalid IDNA hostname: '\u2603.net'")
     stored = failed_once_more(test_client, scene, url=SNOWMAN)
     assert stored["state"] == "failed" and stored["attempts"] == 1, stored
     assert "Invalid IDNA hostname" in (stored["last_error"] or ""), stored

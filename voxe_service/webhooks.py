@@ -91,7 +91,7 @@ def check_target(url: str, allow_networks: list[ipaddress._BaseNetwork], timeout
     port = port or (443 if parts.scheme == "https" else 80)
     try:
         httpx.URL(url)  # as the sender reads it
-    except httpx.InvalidURL as exc:  # e.g. a host IDNA 2008 refuses (a symbol, a soft hyphen) that resolves all the same
+    except httpx.InvalidURL as exc:  # e.g. a host IDNA 2008 refuses (a symbol, a soft hyphen), though it resolves
         raise TargetRefused(f"webhook_url {url!r} cannot be sent to: {exc}") from None
     try:
         allowed_addresses_within(host, port, allow_networks, timeout_s)
