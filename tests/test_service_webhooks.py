@@ -452,6 +452,42 @@ def test_webhook_events_need_a_url_and_name_known_kinds(client):
             f"webhook_url {url!r} has an invalid port: {problem}")
 
 
+def test_a_job_whose_webhook_name_finds_every_lookup_busy_is_told_to_try_again(client, monkeypatch):
+    """Every lookup slot held by other names a resolver does not answer: a job whose webhook host was never looked
+    up is a 503 with Retry-After, not its URL's fault (it had been a 422 saying its host "did not resolve"), and
+    nothing is recorded; once the lookups end, the same request is created."""
+    import threading
+
+    from voxe_service.webhooks import LOOKUP_THREADS, LookupTimedOut, allowed_addresses_within
+
+    test_client, scene = client
+    release = threading.Event()
+    real_getaddrinfo = socket.getaddrinfo
+
+    def stuck_on_one_name(host, *args, **kwargs):
+        if host == "stuck.test":
+            release.wait(10)
+        return real_getaddrinfo("127.0.0.1" if host.endswith(".test") else host, *args, **kwargs)
+
+    monkeypatch.setattr(socket, "getaddrinfo", stuck_on_one_name)
+    body = {"scene_id": scene["id"], "prompt": "a mic made of gold", "webhook_url": "http://hooks.test:9/hook"}
+    try:
+        for _ in range(LOOKUP_THREADS):
+            with pytest.raises(LookupTimedOut):
+                allowed_addresses_within("stuck.test", 443, [], 0.01)
+        busy = test_client.post("/v1/jobs", json=body)
+    finally:
+        release.set()
+    assert busy.status_code == 503 and busy.headers["retry-after"] == "5", busy.text
+    assert busy.json()["detail"] == (
+        "the webhook_url host could not be looked up within 0.5 s: every name lookup (16) waits on a resolver that "
+        "has not answered; try again in 5 s")
+    assert test_client.get("/v1/jobs").json()["items"] == []
+    wait_until(lambda: not any(t.name == "voxe-webhook-resolve" for t in threading.enumerate()), 5, interval=0.01,
+               what="the stuck lookups to end")
+    assert test_client.post("/v1/jobs", json=body).status_code == 201
+
+
 def test_a_webhook_connects_only_to_the_address_its_name_was_checked_as(monkeypatch):
     """DNS rebinding: a name first resolves to an allowed address, then to a refused one. Each attempt resolves
     once and connects to the address it checked: the delivery reaches the allowed receiver (its Host header still

@@ -73,7 +73,8 @@ def check_target(url: str, allow_networks: list[ipaddress._BaseNetwork], timeout
     to a loopback, private, link-local, multicast, reserved or unspecified address outside ``allow_networks``.
 
     Checked when the job is created, inside its request: a slow resolver had held the request for as long as it
-    took. Every attempt's connection checks the address it connects to again (:func:`webhook_client`).
+    took. Every attempt's connection checks the address it connects to again (:func:`webhook_client`). Raises
+    :class:`LookupSlotsBusy` when the host could not even be looked up in that time (the lookups are busy).
     """
     try:
         parts = urlsplit(url)
@@ -95,6 +96,8 @@ def check_target(url: str, allow_networks: list[ipaddress._BaseNetwork], timeout
         raise TargetRefused(f"webhook_url {url!r} cannot be sent to: {exc}") from None
     try:
         allowed_addresses_within(host, port, allow_networks, timeout_s)
+    except LookupSlotsBusy:
+        raise
     except LookupTimedOut:
         raise TargetRefused(f"webhook_url host {host!r} did not resolve within {timeout_s:g} s "
                             "(VOXE_WEBHOOK_TIMEOUT_S, a delivery's deadline)") from None
@@ -126,6 +129,11 @@ class LookupTimedOut(Exception):
     """A webhook host's name lookup that had not answered by its deadline (:func:`allowed_addresses_within`)."""
 
 
+class LookupSlotsBusy(LookupTimedOut):
+    """No lookup slot came free by the deadline: every one is held by a lookup a resolver has not answered (other
+    hosts'), so this host was never looked up. No fault of its URL: a job's creation is told to try again."""
+
+
 LOOKUP_THREADS = 16
 """Name lookups running at once, at most: one that outlives its caller's deadline keeps its thread, and its slot,
 until the resolver gives up, so a stuck resolver cannot pile up a thread per job created or attempt made."""
@@ -147,7 +155,7 @@ def allowed_addresses_within(host: str, port: int, allow_networks: list[ipaddres
         return allowed_addresses(host, port, allow_networks)
     deadline = None if timeout is None else time.monotonic() + timeout
     if not _lookup_slots.acquire(timeout=timeout):
-        raise LookupTimedOut(host)
+        raise LookupSlotsBusy(host)
     answer: Future[list[str]] = Future()
 
     def look_up() -> None:

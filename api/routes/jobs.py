@@ -103,7 +103,9 @@ def _models(job: Job) -> Models:
                                              "with a different body, or a webhook_url the service will not call "
                                              "(the rule is named)"},
                         429: {"description": "the key's quota of queued + running jobs is used up (Retry-After)"},
-                        503: {"description": "the job could not be queued (broker unreachable)"}},
+                        503: {"description": "the job could not be queued (broker unreachable), or its webhook_url "
+                                             "host could not be looked up yet: every name lookup is stuck on a "
+                                             "resolver (Retry-After)"}},
              summary="Create an edit job (queued at once; optionally with an Idempotency-Key header)")
 def create_job(body: JobCreate, response: Response, session: SessionDep, settings: SettingsDep, queue: QueueDep,
                key: CurrentKey, idempotency_key: IdempotencyKey) -> JobOut:

@@ -17,6 +17,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from api.auth import Idempotency, check_active_jobs, sha256_hex
+from api.http_semantics import RETRY_AFTER_S
 from api.schemas import JobCreate
 from api.services.scenes import get_scene, refuse_unless_usable
 from voxe_core.presets import check_fit, reconstruction_key, reconstruction_params
@@ -129,6 +130,12 @@ def check_webhook(*, settings: Settings, body: JobCreate) -> None:
         webhooks.check_target(body.webhook_url, settings.webhook_networks, settings.webhook_timeout_s)
     except webhooks.TargetRefused as exc:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc)) from None
+    except webhooks.LookupSlotsBusy:  # other hosts' lookups stuck on their resolvers: had been a 422 "did not resolve"
+        raise HTTPException(
+            status.HTTP_503_SERVICE_UNAVAILABLE,
+            f"the webhook_url host could not be looked up within {settings.webhook_timeout_s:g} s: every name lookup "
+            f"({webhooks.LOOKUP_THREADS}) waits on a resolver that has not answered; try again in {RETRY_AFTER_S} s",
+            headers={"Retry-After": str(RETRY_AFTER_S)}) from None
 
 
 def refuse_without_models(*, session: Session, settings: Settings, jobs: list[Job]) -> None:
