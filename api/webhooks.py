@@ -70,7 +70,7 @@ class WebhookSender:
         try:
             with session_scope() as session:
                 won = claim_due(session, utcnow(), self.settings.webhook_timeout_s + CLAIM_MARGIN_S, free)
-            ids = won  # (committed)
+            ids = won  # once committed: a claim whose commit failed took nothing
         finally:  # the slots left over: all of them when the claim failed (a database hiccup had kept them for good)
             for _ in range(free - len(ids)):
                 self._in_flight.release()
