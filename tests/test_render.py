@@ -15,6 +15,7 @@ from voxe_core.backbones import load_grid
 from voxe_core.cameras import Cameras, camera_rays, look_at, ring_poses
 from voxe_core.grid import Occupancy, VoxelGrid, _WeightedGather, ray_box_intersection
 from voxe_core.render import MIN_STEP_RATIO, RenderConfig, render_image, render_rays
+from voxe_core.scene_grid import SceneGrid
 from voxe_core.tensorio import FormatError, save_tensors
 
 
@@ -505,6 +506,29 @@ def test_saturated_density_has_finite_values_and_gradients():
     assert out.rgb[0, 0].item() == pytest.approx(0.5, abs=1e-6)
     assert out.depth.item() == pytest.approx(1.5, abs=float(grid.voxel_size[0]))
     assert torch.isfinite(grid.flat_features.grad).all()
+
+
+@pytest.mark.parametrize("backbone", ["relu_field", "scene"])
+def test_a_float64_grid_renders_in_float32_as_its_float32_copy(backbone):
+    """A grid cast to float64 (``grid.double()``, as for a reference) renders in float32, as every grid does, its
+    gradient reaching the float64 features: its float64 samples had met the float32 sums in ``index_add``, which
+    refused them (RuntimeError: self (Float) and source (Double) must have the same scalar type)."""
+    grid = SceneGrid(8, init_density=0.01) if backbone == "scene" else uniform_grid(0.01)
+    wide = grid.clone_grid().double()
+    o, d = torch.tensor([[-3.0, 0.1, 0.2], [0.3, -3.0, 0.1]]), torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    outs = []
+    for g in (grid, wide):
+        out = render_rays(g, o, d, RenderConfig())
+        (out.rgb.sum() + out.opacity.sum() + out.depth.sum()).backward()
+        outs.append(out)
+    assert wide.flat_features.grad.dtype == torch.float64
+    for name in ("rgb", "opacity", "depth"):
+        assert getattr(outs[1], name).dtype == torch.float32
+        torch.testing.assert_close(getattr(outs[1], name), getattr(outs[0], name), rtol=1e-6, atol=1e-6)
+    torch.testing.assert_close(wide.flat_features.grad.float(), grid.flat_features.grad, rtol=1e-5, atol=1e-6)
+    if backbone == "relu_field":  # the 3-unit chord through σ = 0.01 · 33.3 per unit
+        expected = -math.expm1(-0.01 * grid.density_scale * 3.0)
+        assert outs[1].opacity.tolist() == pytest.approx([expected] * 2, abs=1e-6)
 
 
 def test_occupancy_is_exact_for_relu_and_reports_the_tight_box():

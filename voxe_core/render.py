@@ -209,11 +209,13 @@ def composite(groups: Iterable[RaySamples], values: Field, n_rays: int, backgrou
             continue
         evaluated += group.ray.numel()
         sigma, colour = values(group.points)
-        optical = optical_depth(sigma, group.delta)
+        # In float32 whatever the field's dtype: a float64 grid's samples had reached the float32 sums as float64
+        # (index_add refuses mixed dtypes); a half grid's are promoted by delta already.
+        optical = optical_depth(sigma.float(), group.delta.float())
         weights = transmittance(optical, group.ray) * (-torch.expm1(-optical))
-        accumulated = accumulated.index_add(0, group.ray, weights[:, None] * colour.to(weights.dtype))
+        accumulated = accumulated.index_add(0, group.ray, weights[:, None] * colour.float())
         opacity = opacity.index_add(0, group.ray, weights)
-        depth = depth.index_add(0, group.ray, weights * group.t)
+        depth = depth.index_add(0, group.ray, weights * group.t.float())
     return _on_background(accumulated, opacity, depth, background, evaluated, candidates)
 
 
