@@ -156,10 +156,13 @@ def test_views_that_miss_the_object_are_a_segmentation_error_naming_the_cause(fi
         fit_attention_grids(grid, cams, maps, maps.flip(-1), RefineConfig(**fit))
 
 
-@pytest.mark.parametrize("bad", [dict(lift_start="random"), dict(backprojection_prior=-1.0), dict(lr=math.inf),
-                                 dict(lr=math.nan), dict(lr=0.0), dict(tv_weight=math.inf), dict(init_value=math.nan)])
+@pytest.mark.parametrize("bad", [dict(lift_start="random"), dict(backprojection_prior=-1.0),
+                                 dict(backprojection_prior=math.nan), dict(backprojection_prior=math.inf),
+                                 dict(lr=math.inf), dict(lr=math.nan), dict(lr=0.0), dict(tv_weight=math.inf),
+                                 dict(init_value=math.nan)])
 def test_lift_options_are_checked(bad):
     """(voxe refine --lr inf had run the whole stage, then failed in the cut on fields 'not finite'; --lr nan in
-    torch's optimizer after the model loaded.)"""
+    torch's optimizer after the model loaded. A NaN backprojection_prior made every back-projected value NaN, an
+    infinite one every value 0, and the cut failed on fields 'not finite' or with 'no seeds' after every map.)"""
     with pytest.raises(ValueError, match=next(iter(bad))):
         RefineConfig(**bad)

@@ -126,8 +126,8 @@ class RefineConfig:
     def __post_init__(self):
         if self.lift_start not in ("backprojection", "constant"):
             raise ValueError(f"lift_start must be 'backprojection' or 'constant', got {self.lift_start!r}")
-        if self.backprojection_prior < 0:
-            raise ValueError(f"backprojection_prior must be non-negative, got {self.backprojection_prior}")
+        if not 0 <= self.backprojection_prior < math.inf:  # as "not in range": NaN fails every comparison
+            raise ValueError(f"backprojection_prior must be non-negative and finite, got {self.backprojection_prior}")
         if self.edit_seed_rule not in ("top", "relative"):
             raise ValueError(f"edit_seed_rule must be 'top' or 'relative', got {self.edit_seed_rule!r}")
         if not 0.0 < self.edit_seed_ratio <= 1.0:
