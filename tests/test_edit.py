@@ -110,6 +110,16 @@ def test_defaults_are_the_papers():
         EditConfig(autocast_dtype="fp8")
 
 
+@pytest.mark.parametrize("name", ["lr", "radius"])
+@pytest.mark.parametrize("value", [0.0, -4.0311, math.inf, math.nan])
+def test_a_learning_rate_or_radius_outside_zero_to_infinity_is_refused_by_name(name, value):
+    """lr inf had run one step and failed the next with 'its loss is nan ... half precision overflowing?'; a negative
+    radius edited from cameras below the object, named 'front' or 'overhead' by the pose above it (0, inf and NaN
+    failed in the cameras, naming no setting)."""
+    with pytest.raises(ValueError, match=rf"^{name} must be positive and finite, got {value}$"):
+        EditConfig(**{name: value})
+
+
 def test_learning_rate_matches_the_authors_loop():
     config = EditConfig()
     lr, used = config.lr, []

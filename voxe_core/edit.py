@@ -160,8 +160,11 @@ class EditConfig:
     def __post_init__(self):
         if self.iterations < 0:
             raise ValueError(f"iterations must be >= 0, got {self.iterations}")
-        if not self.lr > 0:
-            raise ValueError(f"lr must be > 0, got {self.lr}")
+        # As "not in range": an infinite lr had run a step and diverged on the next (NaN features, blamed on half
+        # precision); a radius <= 0 put every camera below the object, its view words those of the pose above.
+        for name in ("lr", "radius"):
+            if not 0 < getattr(self, name) < math.inf:
+                raise ValueError(f"{name} must be positive and finite, got {getattr(self, name)}")
         if self.render_size < MIN_RENDER_SIZE:
             raise ValueError(f"render_size must be at least {MIN_RENDER_SIZE} px, got {self.render_size}")
         if self.regulariser not in REGULARISERS:
