@@ -78,6 +78,13 @@ def test_uniform_density_renders_the_analytic_colour():
     assert torch.allclose(out.rgb, opacity[:, None] * torch.sigmoid(torch.tensor([2.0, 0.0, -2.0])), atol=1e-5)
 
 
+@pytest.mark.parametrize("far_ratio", [math.inf, math.nan, 1.0])
+def test_a_far_ratio_outside_one_to_infinity_is_refused(far_ratio):
+    """An infinite far_ratio made the last far bin infinitely long: a ray through empty space rendered NaN (0 · inf)."""
+    with pytest.raises(ValueError, match=rf"far_ratio finite and > 1, got 32, 64, {far_ratio}$"):
+        SceneGrid(9, far_ratio=far_ratio)
+
+
 def test_empty_space_skipping_is_exact_and_saturated_density_stays_finite():
     grid = SceneGrid(17)
     generator = torch.Generator().manual_seed(0)

@@ -90,8 +90,10 @@ class SceneGrid(VoxelGrid):
     ):
         if not (math.isfinite(foreground_extent) and foreground_extent > 0):
             raise ValueError(f"foreground_extent must be a positive length, got {foreground_extent}")
-        if near_samples < 1 or far_samples < 1 or not far_ratio > 1:
-            raise ValueError("near_samples and far_samples must be >= 1 and far_ratio > 1")
+        # far_ratio "not in range": an infinite one made the last far bin infinite, and an empty ray's render NaN.
+        if near_samples < 1 or far_samples < 1 or not 1 < far_ratio < math.inf:
+            raise ValueError(f"near_samples and far_samples must be >= 1 and far_ratio finite and > 1, got "
+                             f"{near_samples}, {far_samples}, {far_ratio}")
         fg = float(foreground_extent)
         # Density per unit of the canonical frame, scaled as the ReLU-field grid over the same foreground box.
         density_scale = default_density_scale((-fg,) * 3, (fg,) * 3) if density_scale is None else density_scale
