@@ -640,6 +640,17 @@ def test_sparse_mask_and_probabilities_round_trip(tmp_path):
         load_mask(tmp_path / "p.safetensors")
 
 
+def test_a_grid_beyond_int32_voxel_indices_is_refused_before_its_probabilities_are_written(tmp_path):
+    """As its mask is: 1291³ voxels pass 2^31, and the int32 indices had wrapped (the last voxel, 2,151,685,170,
+    stored as -2,143,282,126), so load_probabilities refused the file it had just written as damaged."""
+    n = 1291
+    where, p = torch.zeros((), dtype=torch.bool).expand(n, n, n), torch.zeros(()).expand(n, n, n)  # nothing allocated
+    for save in (lambda path: save_probabilities(path, p, p, where), lambda path: save_mask(path, where)):
+        with pytest.raises(ValueError, match="grid too large for int32 voxel indices"):
+            save(tmp_path / "big.safetensors")
+        assert not (tmp_path / "big.safetensors").exists()
+
+
 def test_renders_grey_attention_and_red_mask(make_sphere_grid):
     grid = make_sphere_grid(16)
     with torch.no_grad():

@@ -17,14 +17,20 @@ MASK_FORMAT_VERSION = 1
 PROBABILITY_FORMAT_VERSION = 1
 
 
-def save_mask(path, mask: torch.Tensor, meta: dict | None = None) -> None:
-    """Sparse mask file: flat indices (int32, C order) of the set voxels plus the grid shape."""
-    mask = mask.detach().cpu().bool()
+def _set_voxels(mask: torch.Tensor) -> torch.Tensor:
+    """(K,) flat indices (int64, C order) of the set voxels of an (X, Y, Z) mask, whose grid the files' int32
+    indices can address (beyond 2^31 voxels they had wrapped negative, and the file was refused as damaged)."""
     if mask.dim() != 3:
         raise ValueError(f"expected an (X, Y, Z) mask, got shape {tuple(mask.shape)}")
     if mask.numel() >= 2**31:
         raise ValueError("grid too large for int32 voxel indices")
-    indices = mask.reshape(-1).nonzero().squeeze(-1).to(torch.int32)
+    return mask.reshape(-1).nonzero().squeeze(-1)
+
+
+def save_mask(path, mask: torch.Tensor, meta: dict | None = None) -> None:
+    """Sparse mask file: flat indices (int32, C order) of the set voxels plus the grid shape."""
+    mask = mask.detach().cpu().bool()
+    indices = _set_voxels(mask).to(torch.int32)
     save_tensors(path, {"indices": indices, "shape": torch.tensor(mask.shape, dtype=torch.int64)},
                  kind="edit_mask", version=MASK_FORMAT_VERSION, meta={"set_voxels": int(indices.numel()), **(meta or {})})
 
@@ -54,7 +60,7 @@ def load_mask(path) -> torch.Tensor:
 def save_probabilities(path, edit_probability: torch.Tensor, object_probability: torch.Tensor, where: torch.Tensor) -> None:
     """Probability grids stored only at the voxels ``where`` (the graph's nodes): indices + float32 values."""
     where = where.detach().cpu().bool()
-    flat = where.reshape(-1).nonzero().squeeze(-1)
+    flat = _set_voxels(where)
     tensors = {
         "indices": flat.to(torch.int32),
         "shape": torch.tensor(where.shape, dtype=torch.int64),
