@@ -11,7 +11,7 @@ from voxe_core.cameras import Cameras, random_hemisphere_poses
 from voxe_core.grid import VoxelGrid
 from voxe_core.refine.config import RefineConfig
 from voxe_core.refine.lifting import all_camera_rays, backproject, fit_attention_grids
-from voxe_core.render import render_rays
+from voxe_core.render import RenderConfig, render_rays
 
 
 pytestmark = pytest.mark.usefixtures("single_thread")  # tiny tensors: threads cost more than they save
@@ -154,6 +154,14 @@ def test_views_that_miss_the_object_are_a_segmentation_error_naming_the_cause(fi
     maps = torch.rand(1, 4, 4, generator=torch.Generator().manual_seed(0))
     with pytest.raises(SegmentationError, match="none of the 1 views sees the edited object"):
         fit_attention_grids(grid, cams, maps, maps.flip(-1), RefineConfig(**fit))
+
+
+def test_a_render_background_of_other_than_one_value_is_refused_before_any_map():
+    """RefineConfig(render=RenderConfig(step_ratio=0.6)), white by RenderConfig's default, had crashed the fit after
+    every attention map: 'The expanded size of the tensor (2) must match the existing size (3)'."""
+    with pytest.raises(ValueError, match=r"render.background .* one number for both .* got \(1.0, 1.0, 1.0\)"):
+        RefineConfig(render=RenderConfig(step_ratio=0.6))
+    assert RefineConfig(render=RenderConfig(step_ratio=0.6, background=(0.0,))).render.step_ratio == 0.6
 
 
 @pytest.mark.parametrize("bad", [dict(lift_start="random"), dict(backprojection_prior=-1.0),

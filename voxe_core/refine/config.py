@@ -171,6 +171,10 @@ class RefineConfig:
                              f"finite), got {self.lr}, {self.tv_weight}, {self.init_value}")
         if not 0.0 <= self.object_seed_margin < 1.0:
             raise ValueError(f"object_seed_margin must lie in [0, 1), got {self.object_seed_margin}")
+        if len(self.render.background) != 1:  # (a RenderConfig's default white had crashed the fit in an expand)
+            raise ValueError(f"render.background is the attention fields' value where a ray meets nothing, one number "
+                             f"for both (0.0: no attention), got {self.render.background}: pass "
+                             "RenderConfig(..., background=(0.0,))")
         if not 0.0 < self.node_alpha < 1.0:
             raise ValueError(f"node_alpha must lie in (0, 1), got {self.node_alpha}")
         check_fov_x(self.fov_x)
