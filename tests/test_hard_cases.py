@@ -524,7 +524,8 @@ def _(fx):
     sds_error = (sds - sds32).flatten(1).norm(dim=1) / sds32.flatten(1).norm(dim=1)
     return [("float32 and finite out", torch.tensor([t.dtype == torch.float32 and bool(t.isfinite().all())
                                                      for t in (sds, pixels, maps)]), torch.tensor(True), 0),
-            (f"SDS relative L2 error per t within {FP16_MODEL_TOLERANCE}", sds_error, torch.zeros(5), FP16_MODEL_TOLERANCE),
+            (f"SDS relative L2 error per t within {FP16_MODEL_TOLERANCE}", sds_error, torch.zeros(5),
+             FP16_MODEL_TOLERANCE),
             ("image gradient relative L2 error", (pixels - pixels32).norm() / pixels32.norm(), torch.tensor(0.0),
              FP16_MODEL_TOLERANCE),
             ("attention probabilities", maps, maps32, 1e-4)]

@@ -80,7 +80,8 @@ def test_uniform_density_renders_the_analytic_colour():
 
 @pytest.mark.parametrize("far_ratio", [math.inf, math.nan, 1.0])
 def test_a_far_ratio_outside_one_to_infinity_is_refused(far_ratio):
-    """An infinite far_ratio made the last far bin infinitely long: a ray through empty space rendered NaN (0 · inf)."""
+    """An infinite far_ratio made the last far bin infinitely long: a ray through empty space rendered NaN
+    (0 density times an infinite path)."""
     with pytest.raises(ValueError, match=rf"far_ratio finite and > 1, got 32, 64, {far_ratio}$"):
         SceneGrid(9, far_ratio=far_ratio)
 
