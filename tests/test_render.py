@@ -13,7 +13,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 from voxe_core.backbones import load_grid
 from voxe_core.cameras import Cameras, camera_rays, look_at, ring_poses
-from voxe_core.grid import Occupancy, VoxelGrid, _WeightedGather, ray_box_intersection
+from voxe_core.grid import Occupancy, VoxelGrid, _WeightedGather, ray_box_intersection, unit_directions
 from voxe_core.render import MIN_STEP_RATIO, RenderConfig, render_image, render_rays
 from voxe_core.scene_grid import SceneGrid
 from voxe_core.tensorio import FormatError, save_tensors
@@ -56,6 +56,19 @@ def test_uniform_slab_transmittance_is_exp_minus_sigma_length(origin, direction)
         assert out.opacity.item() == pytest.approx(1 - math.exp(-sigma * length), abs=1e-5)
         # Uniform colour logit 0 -> sigmoid 0.5 on a black background.
         assert out.rgb[0, 0].item() == pytest.approx(0.5 * (1 - math.exp(-sigma * length)), abs=1e-5)
+
+
+@pytest.mark.parametrize("length", [1e-40, 1e-38, 1e-23, 1e-21, 1e-8, 2.0, 1e20, 3e38])
+def test_a_direction_of_any_float32_length_renders_as_its_unit_direction(length):
+    """unit_directions scales each direction by its largest component before squaring it: its squares had
+    underflowed or overflowed float32 (1e-23 long came out 1e7 long, 1e20 long as the zero direction, no ray)."""
+    d = torch.tensor([[0.0, 0.6, 0.8]]) * length
+    assert torch.allclose(unit_directions(d), torch.tensor([[0.0, 0.6, 0.8]]), atol=1e-6)
+    grid, o = uniform_grid(0.01), torch.tensor([[0.2, -3.0, -4.0]])
+    out = render_rays(grid, o, d, RenderConfig(background=(0.0, 0.0, 0.0)))
+    reference = render_rays(grid, o, torch.tensor([[0.0, 0.6, 0.8]]), RenderConfig(background=(0.0, 0.0, 0.0)))
+    assert out.opacity.item() == pytest.approx(reference.opacity.item(), rel=1e-5)
+    assert out.opacity.item() > 0.01
 
 
 def test_slab_chord_lengths_are_exact_for_known_geometry():

@@ -102,14 +102,19 @@ def unit_directions(directions: torch.Tensor) -> torch.Tensor:
 
     Directions within 1e-6 of unit length (camera rays) are kept bit for bit; zero and NaN ones stay as given
     (no ray). A direction's length had scaled every optical depth by it (twice the length: half the opacity),
-    and one of 1e-8 laid 10^8 samples on its ray.
+    and one of 1e-8 laid 10^8 samples on its ray. Each is divided by its largest component first, so its squares
+    neither underflow nor overflow float32: a direction 1e-23 long had come out 1e7 long, one 1e-38 long 1e-8
+    (10^8 samples again), and one 1e20 long the zero direction, no ray.
 
     Examples:
         >>> unit_directions(torch.tensor([[2.0, 0, 0], [0, 0, 0], [0, 0.6, 0.8]])).tolist()
         [[1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.6000000238418579, 0.800000011920929]]
     """
-    length = directions.norm(dim=-1, keepdim=True)
-    return torch.where((length - 1.0).abs() > 1e-6, directions / length.clamp_min(1e-30), directions)
+    largest = directions.abs().amax(dim=-1, keepdim=True)
+    scaled = directions / torch.where(largest > 0, largest, torch.ones_like(largest))
+    norm = scaled.norm(dim=-1, keepdim=True)
+    unit = scaled / torch.where(norm > 0, norm, torch.ones_like(norm))
+    return torch.where((norm * largest - 1.0).abs() > 1e-6, unit, directions)
 
 
 def ray_box_intersection(
