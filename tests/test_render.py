@@ -427,7 +427,11 @@ def test_look_at_aims_a_rotation_at_its_target_from_any_distance(distance, direc
     (lambda: look_at(torch.tensor([[math.nan, 0.0, 4.0]])), r"must be finite, got eye \[\[nan, 0.0, 4.0\]\]"),
     (lambda: look_at(torch.tensor([[0.0, 0.0, 4.0]]), torch.tensor([math.inf, 0.0, 0.0])),
      "must be finite, got target"),
-    (lambda: look_at(torch.tensor([[1e39, 0.0, 0.0]], dtype=torch.float64)), "within float32's range"),
+    (lambda: look_at(torch.tensor([[1e39, 0.0, 0.0]], dtype=torch.float64)),
+     r"within float32's range \(3.4e38\), got eye"),
+    # a float64 target that far: its distance had overflowed to inf, and the pose had come out with no view direction
+    (lambda: look_at(torch.zeros(1, 3), torch.tensor([1e160, 0.0, 0.0], dtype=torch.float64)),
+     r"within float32's range \(3.4e38\), got target"),
     # a ring of radius 4 around a point 1e7 (1e8) from the origin: float32 had rounded it to other places (to the
     # centre itself: "at its target")
     (lambda: ring_poses(4, 30.0, 4.0, centre=torch.tensor([1e7, 0.0, 0.0])),

@@ -521,9 +521,12 @@ def look_at(eye: torch.Tensor, target: torch.Tensor | None = None, up=(0.0, 0.0,
     eye = torch.as_tensor(eye, dtype=torch.float64).reshape(-1, 3)
     target = torch.zeros_like(eye) if target is None else torch.as_tensor(target, dtype=torch.float64).expand_as(eye)
     up_vec = torch.as_tensor(up, dtype=torch.float64).expand_as(eye)
-    for name, points in (("eye", eye), ("target", target)):
+    for name, points in (("eye", eye), ("target", target)):  # within float32's range: so is their distance
         if not bool(torch.isfinite(points).all()):
             raise ValueError(f"camera positions and targets must be finite, got {name} {points.tolist()}")
+        if bool((points.abs() > torch.finfo(torch.float32).max).any()):
+            raise ValueError(f"camera positions and targets must lie within float32's range (3.4e38), got {name} "
+                             f"{points.tolist()}")
     back = eye - target
     distance = back.norm(dim=-1, keepdim=True)
     at_target = ~(distance[:, 0] > 0)
@@ -532,8 +535,6 @@ def look_at(eye: torch.Tensor, target: torch.Tensor | None = None, up=(0.0, 0.0,
         raise ValueError(f"a camera at its target has no view direction: eye {eye[i].tolist()}, target "
                          f"{target[i].tolist()}")
     farthest = eye.abs().amax(dim=-1)
-    if bool((farthest > torch.finfo(torch.float32).max).any()):
-        raise ValueError(f"camera positions must lie within float32's range (3.4e38), got eye {eye.tolist()}")
     rounding = farthest * 2.0 ** -24  # float32's rounding of the position: at most half a step
     unplaceable = rounding > POSE_TOLERANCE * distance[:, 0]
     if bool(unplaceable.any()):
