@@ -513,3 +513,15 @@ def test_matter_centre_weighs_by_opacity_and_is_the_box_centre_when_empty():
     haze = -math.expm1(-1e-3)
     expected = torch.tensor([(4.0 + 4.0 * haze), 4.0 * haze, 4.0 * haze]) / (2.0 + haze)
     assert torch.allclose(grid.matter_centre(), expected, atol=1e-6)
+
+
+@pytest.mark.parametrize("vertices", [0, 3])
+def test_a_glb_of_a_mesh_without_faces_is_refused_and_nothing_written(vertices, tmp_path):
+    """glTF allows no empty accessor: the writer had raised numpy's "zero-size array" for an empty mesh and written
+    a file the glTF validator refuses (accessor and buffer view of length 0) for vertices without faces."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(vertices=np.zeros((vertices, 3)), faces=np.zeros((0, 3), dtype=np.int64), process=False)
+    with pytest.raises(ValueError, match=f"a mesh without faces \\({vertices} vertices\\) cannot be written as glTF"):
+        save_mesh(mesh, tmp_path / "empty.glb")
+    assert list(tmp_path.iterdir()) == []

@@ -342,8 +342,10 @@ def glb_bytes(mesh) -> bytes:
 
     So: the vertices in the grid's frame under a root node turned by :data:`GLTF_FROM_GRID`, COLOR_0 the vertex
     colours made linear as float32 (8 bits of linear light would band the dark tones) and a matte, non-metallic
-    white material that shows them as they are.
+    white material that shows them as they are. A mesh without faces is refused (glTF allows no empty accessor).
     """
+    if len(mesh.faces) == 0:
+        raise ValueError(f"a mesh without faces ({len(mesh.vertices)} vertices) cannot be written as glTF")
     positions = np.ascontiguousarray(mesh.vertices, dtype=np.float32)
     colors = srgb_to_linear(np.asarray(mesh.visual.vertex_colors, dtype=np.float64)[:, :3] / 255.0).astype(np.float32)
     indices = np.ascontiguousarray(mesh.faces, dtype=np.uint32).reshape(-1)
