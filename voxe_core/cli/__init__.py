@@ -17,17 +17,21 @@
 
 Options that are job parameters of the service take their defaults from ``voxe_core.presets`` and
 resolve to stage configs there, as the worker's do. Bad input (dataset, grid file, option values)
-prints one line on stderr and exits 2; grids are written sparse unless ``--dense``; Ctrl-C during a long stage cancels it cleanly and exits 130.
+prints one line on stderr and exits 2; grids are written sparse unless ``--dense``; Ctrl-C during a long stage cancels it cleanly and exits 130;
+output whose reader stopped reading (``voxe status J | head``) ends the command quietly with 141, as SIGPIPE ends ``cat``.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from typing import Sequence
 
 from voxe_core.cli import edit, evaluate, grids, mesh, reconstruct, refine, render, service
-from voxe_core.cli.common import EXIT_INTERRUPTED, EXIT_USAGE, library_progress_bars_off, removing_made_folders_unless
+from voxe_core.cli.common import (
+    EXIT_INTERRUPTED, EXIT_OUTPUT_CLOSED, EXIT_USAGE, library_progress_bars_off, removing_made_folders_unless,
+)
 
 COMMAND_GROUPS = (reconstruct, render, mesh, grids, edit, refine, evaluate, service)
 
@@ -44,8 +48,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``voxe``; returns the exit status (0 ok, 2 bad input, 130 interrupted). A command that does
-    not succeed leaves no folder it made and wrote nothing into."""
+    """Entry point of ``voxe``; returns the exit status (0 ok, 2 bad input, 130 interrupted, 141 its output's
+    reader gone). A command that does not succeed leaves no folder it made and wrote nothing into."""
     args = build_parser().parse_args(argv)
     status = None
     with removing_made_folders_unless(lambda: status == 0), library_progress_bars_off(args.quiet):
@@ -59,7 +63,12 @@ def _run(args: argparse.Namespace) -> int:
     from voxe_core.tensorio import FormatError
 
     try:
-        return args.run(args)
+        status = args.run(args)
+        sys.stdout.flush()  # here, not as Python exits: a reader gone is then a BrokenPipeError caught below
+        return status
+    except BrokenPipeError:  # (an OSError: it had printed "error: [Errno 32] Broken pipe" and exited 2)
+        _stdout_to_null()
+        return EXIT_OUTPUT_CLOSED
     except (DatasetError, FormatError, ValueError, ArithmeticError, OSError) as exc:  # Arithmetic: EditDiverged
         kind = "dataset error" if isinstance(exc, DatasetError) else "error"
         print(f"voxe {args.command}: {kind}: {exc}", file=sys.stderr)
@@ -75,3 +84,13 @@ def _run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print("\nvoxe: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+
+
+def _stdout_to_null() -> None:
+    """Points stdout, whose reader has gone, at the null device: Python flushes what is left in its buffer as it
+    exits, and into the closed pipe that had printed "Exception ignored ... BrokenPipeError"."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, ValueError, OSError):  # no file behind it (a test's capture): nothing flushed at exit
+        return
+    os.dup2(os.open(os.devnull, os.O_WRONLY), fd)

@@ -20,6 +20,9 @@ from voxe_core.presets import DOWNSAMPLE, MAX_SEED, RESAMPLE
 
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
+EXIT_OUTPUT_CLOSED = 141
+"""The output's reader stopped reading (``voxe status J | head -c 10``): the status a shell reports for ``cat`` or
+``seq`` ended there by SIGPIPE (128 + 13), said nothing about."""
 
 
 class Interrupt:
