@@ -181,7 +181,7 @@ def test_a_sweep_summary_that_cannot_be_written_is_refused_before_the_sweep_is_c
     err = capsys.readouterr().err
     assert f"cannot write {tmp_path / 'taken.json'}: it is a folder" in err and "cannot reach" not in err
     assert main(["sweep", "--scene", "s1=mic", "--out", str(tmp_path / "new" / "s.json"),
-                 "--api", "http://127.0.0.1:9"]) == 2
+                 "--api", "http://127.0.0.1:9"]) == 3
     assert "cannot reach the service at http://127.0.0.1:9" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["taken.json"]  # the folder made for --out went again
 
@@ -221,7 +221,7 @@ def test_wait_rides_out_the_outage_its_reconnect_for_allows_then_says_how_to_fol
     assert main(["wait", "j1", "--quiet"]) == 0  # a minute's outage: the default rides it out
     assert json.loads(capsys.readouterr().out) == job
     clock[0] = 0.0
-    assert main(["wait", "j1", "--reconnect-for", "30"]) == 2
+    assert main(["wait", "j1", "--reconnect-for", "30"]) == 3
     assert capsys.readouterr().err == (
         "voxe wait: error: event stream of job j1 at http://127.0.0.1:8000 lost: connection refused (10 attempts over "
         "30 s, reconnecting for up to 30 s); the job goes on in the service: `voxe wait j1` follows it again "
@@ -232,7 +232,7 @@ def test_wait_rides_out_the_outage_its_reconnect_for_allows_then_says_how_to_fol
         raise httpx.ConnectError("connection refused")
 
     monkeypatch.setattr(service, "_client", lambda args: Client(transport=httpx.MockTransport(refuse)))
-    assert main(["wait", "j1"]) == 2  # a service never reached (a wrong --api) is not waited for
+    assert main(["wait", "j1"]) == 3  # a service never reached (a wrong --api) is not waited for
     assert capsys.readouterr().err == ("voxe wait: error: cannot reach the service at http://127.0.0.1:8000: "
                                        "connection refused\n") and clock[0] == 0
 
@@ -251,6 +251,33 @@ def test_ctrl_c_while_waiting_stops_following_and_says_the_job_goes_on(monkeypat
     assert main(["wait", "j1"]) == 130
     assert capsys.readouterr().err == ("\nvoxe wait: stopped following; the job j1 goes on in the service (`voxe "
                                        "cancel j1` stops it)\n")
+
+
+def test_a_service_that_failed_or_was_not_reached_exits_3_and_a_refusal_2(monkeypatch, capsys):
+    """Both had exited 2, which says bad input: a script could not tell an outage to try again later from a request
+    the service refused (a job not found, a bad id)."""
+    import httpx
+
+    import voxe_client.client as client_module
+    import voxe_core.cli.service as service
+    from voxe_client import Client
+
+    monkeypatch.setattr(client_module.time, "sleep", lambda _s: None)
+    answers = {"/v1/jobs/broken": (500, {}), "/v1/jobs/busy": (503, {"retry-after": "1"}),
+               "/v1/jobs/gone": (404, {})}
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        if request.url.path == "/v1/jobs/down":
+            raise httpx.ConnectError("connection refused")
+        status, headers = answers[request.url.path.removesuffix("/cancel")]
+        return httpx.Response(status, headers=headers, json={"detail": "no"})
+
+    monkeypatch.setattr(service, "_client", lambda args: Client(transport=httpx.MockTransport(answer)))
+    for job_id, status in (("broken", 3), ("busy", 3), ("down", 3), ("gone", 2), ("..", 2)):
+        assert main(["status", job_id]) == status, job_id
+        assert capsys.readouterr().err.startswith("voxe status: error: "), job_id
+    assert main(["cancel", "broken"]) == 3 and main(["download", "down", "--out", "."]) == 3
+    assert main(["download", "gone", "--out", "."]) == 2
 
 
 def test_a_download_refuses_an_unlisted_name_before_any_and_a_failed_one_leaves_no_folder_it_made(

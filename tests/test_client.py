@@ -534,15 +534,16 @@ def test_a_submit_refused_deletes_the_scene_it_uploaded_and_no_other(api, tmp_pa
         assert [scene["id"] for scene in client.request("GET", "/v1/scenes")["items"]] == [kept]
 
 
-@pytest.mark.parametrize("job_status, delete_status, said", [
-    (429, 204, "the scene s1 this command uploaded is deleted"),
-    (429, 409, "the scene s1 this command uploaded stays, its deletion failed (DELETE /v1/scenes/s1: HTTP 409: busy)"),
-    (503, None, "the scene s1 this command uploaded stays (use it with --scene s1)"),  # the job may have been made
+@pytest.mark.parametrize("job_status, delete_status, said, exit_status", [
+    (429, 204, "the scene s1 this command uploaded is deleted", 2),
+    (429, 409, "the scene s1 this command uploaded stays, its deletion failed (DELETE /v1/scenes/s1: HTTP 409: busy)",
+     2),
+    (503, None, "the scene s1 this command uploaded stays (use it with --scene s1)", 3),  # the job may have been made
 ])
-def test_a_submit_not_taken_says_what_became_of_the_scene_it_uploaded(job_status, delete_status, said, tmp_path,
-                                                                       monkeypatch, capsys):
+def test_a_submit_not_taken_says_what_became_of_the_scene_it_uploaded(job_status, delete_status, said, exit_status,
+                                                                       tmp_path, monkeypatch, capsys):
     """A refused job's scene is deleted, or said to stay when that fails; a job the service may have made (5xx, or
-    no answer) keeps its scene, named for --scene."""
+    no answer) keeps its scene, named for --scene, and exits as a service that failed."""
     import voxe_core.cli.service as service
     from voxe_core.cli import main
 
@@ -558,6 +559,6 @@ def test_a_submit_not_taken_says_what_became_of_the_scene_it_uploaded(job_status
 
     monkeypatch.setattr(service, "_client", lambda args: Client(transport=httpx.MockTransport(answer)))
     (tmp_path / "plane.obj").write_text(PLANE_OBJ)
-    assert main(["submit", "a plane", "--upload", str(tmp_path / "plane.obj")]) == 2
+    assert main(["submit", "a plane", "--upload", str(tmp_path / "plane.obj")]) == exit_status
     assert capsys.readouterr().err.endswith(f"HTTP {job_status}: not now; {said}\n")
     assert sent == ["POST /v1/scenes", "POST /v1/jobs"] + ["DELETE /v1/scenes/s1"] * (delete_status is not None)

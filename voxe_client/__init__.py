@@ -9,7 +9,8 @@
         client.download(job["id"], "turntable.mp4", "out/turntable.mp4")  # size and sha256 checked
         sweep = client.create_sweep([{"scene_id": scene_id, "object": "microphone"}])
 
-Errors the service answers with (4xx / 5xx) and unreachable services are :class:`ServiceError`.
+Errors the service answers with (4xx / 5xx) and unreachable services are :class:`ServiceError` (its
+``service_failed`` tells a 5xx or an unreachable service from a refusal).
 """
 
 from voxe_client.client import Client, ServiceError

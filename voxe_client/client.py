@@ -51,8 +51,18 @@ class ServiceError(Exception):
         self.status = status
         self.detail = detail
 
+    @property
+    def service_failed(self) -> bool:
+        """Whether the service failed (an error status of 500 or more) or was not reached, rather than refused the
+        request (4xx) or answered what the client refuses: a caller may try the one again later, not the other."""
+        return isinstance(self, ServiceUnreachable) or (self.status or 0) >= 500
 
-class EventStreamLost(ServiceError):
+
+class ServiceUnreachable(ServiceError):
+    """The service could not be reached, or stopped answering: no answer to go by."""
+
+
+class EventStreamLost(ServiceUnreachable):
     """A job's event stream lost for longer than :meth:`Client.events` reconnects: the service stopped answering (the
     job itself goes on there)."""
 
@@ -104,7 +114,7 @@ class Client:
         try:
             response = self._send(method, path, json=body, **kwargs)
         except (httpx.TransportError, httpx.InvalidURL) as exc:
-            raise ServiceError(f"cannot reach the service at {self.base_url}: {exc}") from None
+            raise ServiceUnreachable(f"cannot reach the service at {self.base_url}: {exc}") from None
         _raise_for_error(response, method, path)
         if response.status_code == httpx.codes.NO_CONTENT:
             return None
@@ -199,7 +209,7 @@ class Client:
                         lost = "the server ended the stream before the job ended"
             except httpx.TransportError as exc:
                 if not opened:
-                    raise ServiceError(f"cannot reach the service at {self.base_url}: {exc}") from None
+                    raise ServiceUnreachable(f"cannot reach the service at {self.base_url}: {exc}") from None
                 lost = str(exc)
             now = time.monotonic()
             lost_since = now if lost_since is None else lost_since
@@ -252,7 +262,7 @@ class Client:
                                    f"the service lists {expected['size']} bytes with sha256 {expected['sha256']}")
             os.replace(partial, dest)
         except (httpx.TransportError, httpx.InvalidURL) as exc:
-            raise ServiceError(f"cannot download {name} of job {job_id}: {exc}") from None
+            raise ServiceUnreachable(f"cannot download {name} of job {job_id}: {exc}") from None
         finally:
             partial.unlink(missing_ok=True)
         return dest

@@ -17,7 +17,8 @@
 
 Options that are job parameters of the service take their defaults from ``voxe_core.presets`` and
 resolve to stage configs there, as the worker's do. Bad input (dataset, grid file, option values)
-prints one line on stderr and exits 2; grids are written sparse unless ``--dense``; Ctrl-C during a long stage cancels it cleanly and exits 130;
+prints one line on stderr and exits 2 (a job service that failed, 5xx, or was not reached: 3);
+grids are written sparse unless ``--dense``; Ctrl-C during a long stage cancels it cleanly and exits 130;
 output whose reader stopped reading (``voxe status J | head``) ends the command quietly with 141, as SIGPIPE ends ``cat``.
 """
 
@@ -48,8 +49,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``voxe``; returns the exit status (0 ok, 2 bad input, 130 interrupted, 141 its output's
-    reader gone). A command that does not succeed leaves no folder it made and wrote nothing into."""
+    """Entry point of ``voxe``; returns the exit status (0 ok, 2 bad input, 3 the job service failed or was
+    not reached, 130 interrupted, 141 its output's reader gone). A command that does not succeed leaves no folder
+    it made and wrote nothing into."""
     args = build_parser().parse_args(argv)
     status = None
     with removing_made_folders_unless(lambda: status == 0), library_progress_bars_off(args.quiet):

@@ -19,6 +19,9 @@ from typing import Iterator
 from voxe_core.presets import DOWNSAMPLE, MAX_SEED, RESAMPLE
 
 EXIT_USAGE = 2
+EXIT_SERVICE_FAILED = 3
+"""The job service failed (an error status of 500 or more) or was not reached, where ``EXIT_USAGE`` says it refused
+the request (4xx): a script can try the one again later, not the other."""
 EXIT_INTERRUPTED = 130
 EXIT_OUTPUT_CLOSED = 141
 """The output's reader stopped reading (``voxe status J | head -c 10``): the status a shell reports for ``cat`` or

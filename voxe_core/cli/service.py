@@ -1,7 +1,8 @@
 """The commands that talk to the job service over its HTTP API: ``voxe submit | status | wait | download |
 cancel`` for one job, ``voxe sweep`` for the paper's protocol (SPEC §4).
 
-They import ``voxe_client`` (the HTTP client) where they run, so the library itself holds no web code.
+They import ``voxe_client`` (the HTTP client) where they run, so the library itself holds no web code. A request
+the service refuses (4xx) exits 2, as any bad input; a service that failed (5xx) or was not reached exits 3.
 """
 
 from __future__ import annotations
@@ -16,7 +17,8 @@ import warnings
 from pathlib import Path
 
 from voxe_core.cli.common import (
-    EXIT_INTERRUPTED, EXIT_USAGE, LOG_PROGRESS_INTERVAL_S, Interrupt, positive_seconds, writable_file, writable_folder,
+    EXIT_INTERRUPTED, EXIT_SERVICE_FAILED, EXIT_USAGE, LOG_PROGRESS_INTERVAL_S, Interrupt, positive_seconds,
+    writable_file, writable_folder,
 )
 
 
@@ -143,13 +145,13 @@ def _progress_bar(quiet: bool):
 def _follow(client, job_id: str, args) -> int:
     """Follow the job to its end (``args``: --quiet, --reconnect-for); 0 when it succeeded, 1 when it did not, 130
     when Ctrl-C stopped the following (not the job)."""
-    from voxe_client.client import EventStreamLost, ServiceError
+    from voxe_client.client import EventStreamLost
 
     try:
         job = client.wait(job_id, on_progress=_progress_bar(args.quiet), reconnect_for=args.reconnect_for)
     except EventStreamLost as exc:
-        raise ServiceError(f"{exc}: `voxe wait {job_id}` follows it again (--reconnect-for SECONDS rides out a "
-                           "longer outage)") from None
+        raise EventStreamLost(f"{exc}: `voxe wait {job_id}` follows it again (--reconnect-for SECONDS rides out "
+                              "a longer outage)") from None
     except KeyboardInterrupt:  # ("voxe: interrupted" had read as if the job were stopped too)
         print(f"\nvoxe {args.command}: stopped following; the job {job_id} goes on in the service (`voxe cancel "
               f"{job_id}` stops it)", file=sys.stderr)
@@ -186,15 +188,22 @@ def cmd_submit(args) -> int:
             except ServiceError as exc:
                 if args.upload is None:
                     raise
-                raise ServiceError(f"{exc}; {_after_refusal(client, scene_id, exc)}") from None
+                raise type(exc)(f"{exc}; {_after_refusal(client, scene_id, exc)}", exc.status, exc.detail) from None
             print(f"job {job['id']}: {job['state']}", file=sys.stderr)
             if args.wait:
                 return _follow(client, job["id"], args)
             print(job["id"])
             return 0
         except ServiceError as exc:
-            print(f"voxe submit: error: {exc}", file=sys.stderr)
-            return EXIT_USAGE
+            return _service_error("submit", exc)
+
+
+def _service_error(command: str, error) -> int:
+    """Says the service's ``error`` on stderr; the exit status: ``EXIT_SERVICE_FAILED`` where the service failed (5xx)
+    or was not reached, ``EXIT_USAGE`` where it refused the request (4xx) or the command refused its answer (both
+    had exited 2, so a script could not tell an outage to try again from its own bad input)."""
+    print(f"voxe {command}: error: {error}", file=sys.stderr)
+    return EXIT_SERVICE_FAILED if error.service_failed else EXIT_USAGE
 
 
 def _after_refusal(client, scene_id: str, refusal) -> str:
@@ -222,8 +231,7 @@ def cmd_job(args) -> int:
                 return _follow(client, args.job_id, args)
             job = client.cancel_job(args.job_id) if args.command == "cancel" else client.get_job(args.job_id)
         except ServiceError as exc:
-            print(f"voxe {args.command}: error: {exc}", file=sys.stderr)
-            return EXIT_USAGE
+            return _service_error(args.command, exc)
     print(json.dumps(job, indent=2))
     return 0
 
@@ -244,8 +252,7 @@ def cmd_download(args) -> int:
                 if not args.quiet:
                     print(f"{path} (sha256 checked)", file=sys.stderr)
         except ServiceError as exc:
-            print(f"voxe download: error: {exc}", file=sys.stderr)
-            return EXIT_USAGE
+            return _service_error("download", exc)
     if state not in TERMINAL_STATES:  # (a download right after submit had exited 0 with a job's first few files)
         print(f"voxe download: note: job {args.job_id} is {state}: "
               f"{'these are the artifacts it has so far' if listed else 'it has no artifacts yet'}; `voxe wait "
@@ -275,8 +282,7 @@ def cmd_sweep(args) -> int:
                     time.sleep(args.poll or SWEEP_POLL_S)
                     sweep = client.get_sweep(sweep["id"])
         except ServiceError as exc:
-            print(f"voxe sweep: error: {exc}", file=sys.stderr)
-            return EXIT_USAGE
+            return _service_error("sweep", exc)
     if args.out is not None:
         args.out.write_text(json.dumps(sweep, indent=2))
     print(sweep["table"], end="")
