@@ -172,6 +172,27 @@ def test_a_waited_sweep_exits_1_unless_it_succeeded(monkeypatch, capsys, tmp_pat
     assert (f"ended {end}: jobs {{'{end}': 6, 'succeeded': 6}}" in err) == (code == 1)
 
 
+def test_a_sweep_not_waited_for_prints_its_id_and_where_its_table_fills_in(monkeypatch, capsys, tmp_path):
+    """Without --wait it had printed its summary table's header with no row (the sweep had just been queued), its
+    id nowhere on stdout."""
+    import httpx
+
+    import voxe_core.cli.service as service
+    from voxe_client import Client
+    from voxe_core.evaluate import format_table
+
+    created = {"id": "sw1", "state": "queued", "counts": {"queued": 12}, "entries": [{}] * 6, "rows": [],
+               "table": format_table([], extra_columns=("object",))}
+    monkeypatch.setattr(service, "_client", lambda args: Client(
+        "http://svc.test", transport=httpx.MockTransport(lambda request: httpx.Response(201, json=created))))
+    assert main(["sweep", "--scene", "s1=mic", "--out", str(tmp_path / "s.json")]) == 0
+    printed = capsys.readouterr()
+    assert printed.out == "sw1\n"
+    assert printed.err.splitlines()[-1] == ("voxe sweep: not waited for (--wait polls until it ends): GET "
+                                            "/v1/sweeps/sw1 shows its summary table as its evaluations finish")
+    assert json.loads((tmp_path / "s.json").read_text()) == created
+
+
 def test_a_sweep_summary_that_cannot_be_written_is_refused_before_the_sweep_is_created(tmp_path, capsys):
     """--out had been written only after the sweep was created (and, with --wait, after it ended): a folder there
     failed the command with its 12 jobs queued, and running it again queued 12 more."""

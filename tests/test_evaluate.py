@@ -694,7 +694,7 @@ def test_a_sweep_summarises_while_an_evaluation_runs_and_after_one_failed(servic
     assert failed.status_code == 200 and failed.json()["rows"] == [] and failed.json()["counts"]["failed"] == 1
 
 
-def test_cli_sweep_submits_to_the_service_and_prints_the_table(service, tmp_path, capsys):
+def test_cli_sweep_submits_to_the_service_and_prints_the_sweep_id(service, tmp_path, capsys):
     from service_helpers import api_in_thread
     from voxe_core.cli import main
 
@@ -709,7 +709,7 @@ def test_cli_sweep_submits_to_the_service_and_prints_the_table(service, tmp_path
         assert client.get(f"/v1/sweeps/{sweep['id']}").json()["counts"] == {"queued": 12}
         assert client.get(f"/v1/jobs/{sweep['entries'][0]['edit_job_id']}").json()["params"]["iterations"] == 2
         printed = capsys.readouterr()
-        assert printed.out == sweep["table"] and f"sweep {sweep['id']}: 6 edits of 1 scene(s) queued" in printed.err
+        assert printed.out == f"{sweep['id']}\n" and f"sweep {sweep['id']}: 6 edits of 1 scene(s) queued" in printed.err
         assert main(["sweep", "--api", api, "--scene", "nope=mic"]) == 2
         assert "POST /v1/sweeps: HTTP 404: scene 'nope' not found" in capsys.readouterr().err
     with pytest.raises(SystemExit):

@@ -85,7 +85,8 @@ def add_parsers(commands, common) -> None:
     sw.add_argument("--params", type=_json_object, default=None, metavar="JSON", help="edit job params (POST /v1/jobs)")
     sw.add_argument("--evaluation", type=_json_object, default=None, metavar="JSON",
                     help='evaluation params, e.g. \'{"views": 100, "size": 266}\'')
-    sw.add_argument("--wait", action="store_true", help="poll until every job of the sweep is finished")
+    sw.add_argument("--wait", action="store_true", help="poll until every job of the sweep is finished, then print "
+                    "its summary table (without: the sweep's id, at once)")
     sw.add_argument("--poll", type=positive_seconds, default=None, metavar="SECONDS",  # checked before the sweep
                     help=f"with --wait: seconds between polls (default {SWEEP_POLL_S:g})")
     sw.add_argument("--out", type=Path, default=None, metavar="FILE", help="also write the final summary JSON here")
@@ -285,11 +286,16 @@ def cmd_sweep(args) -> int:
             return _service_error("sweep", exc)
     if args.out is not None:
         args.out.write_text(json.dumps(sweep, indent=2))
+    if not args.wait:  # just queued: its table had been printed with no row, the sweep's id nowhere on stdout
+        print(f"voxe sweep: not waited for (--wait polls until it ends): GET /v1/sweeps/{sweep['id']} shows its "
+              "summary table as its evaluations finish", file=sys.stderr)
+        print(sweep["id"])
+        return 0
     print(sweep["table"], end="")
     if interrupt.requested:
         print(f"voxe sweep: stopped waiting; the sweep {sweep['id']} goes on in the service", file=sys.stderr)
         return EXIT_INTERRUPTED
-    if args.wait and sweep["state"] != "succeeded":  # as voxe wait: a script must see what did not succeed
+    if sweep["state"] != "succeeded":  # as voxe wait: a script must see what did not succeed
         print(f"voxe sweep: the sweep {sweep['id']} ended {sweep['state']}: jobs {sweep['counts']}", file=sys.stderr)
         return 1
     return 0
