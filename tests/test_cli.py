@@ -820,7 +820,8 @@ def test_export_mesh_errors_exit_2(sphere_file, tmp_path, capsys):
 
 def test_edit_with_missing_weights_names_the_model_and_how_to_provide_it(sphere_grid, tmp_path, capsys, monkeypatch):
     """A hub id is told how to fill the cache; a folder had been told to download itself from the hub
-    (`huggingface-cli download ./models/sd`)."""
+    (`huggingface-cli download ./models/sd`, and `models/sd/v15`, which no hub id can be), and a hub id that reads
+    like a missing folder ("models/gone" beside a models/) was not told that no such folder is there."""
     monkeypatch.setenv("HF_HOME", str(tmp_path / "hf"))
     monkeypatch.chdir(tmp_path)
     sphere_grid.save(tmp_path / "g.safetensors")
@@ -837,6 +838,13 @@ def test_edit_with_missing_weights_names_the_model_and_how_to_provide_it(sphere_
         assert (f"voxe edit: model not available: Stable Diffusion weights '{folder}' are not available: that local "
                 "folder must hold the whole model in the diffusers layout (model_index.json, unet/") in err
         assert f"download {folder}" not in err
+    assert main([*edit, "models/sd/v15"]) == 2  # no hub id (owner/name): a folder, though not written ./
+    err = capsys.readouterr().err
+    assert ("Stable Diffusion weights 'models/sd/v15' are not available: that local folder must hold the whole model"
+            in err and "no folder models/sd/v15" in err and "download models/sd/v15" not in err)
+    assert main([*edit, "models/gone"]) == 2  # a hub id's form (as diffusers reads it), its owner a folder here
+    assert (f"'models/gone' are not available offline (nor is there a folder models/gone: {tmp_path / 'models'} "
+            "holds no 'gone'): download them once") in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
 
 

@@ -165,11 +165,20 @@ def test_tiny_clip_loads_through_the_real_loader(tiny_clip_path):
     assert texts.shape == (2, 32) and not torch.allclose(texts[0], texts[1])
 
 
-def test_missing_clip_weights_name_the_model(tmp_path):
+def test_missing_clip_weights_name_the_model(tmp_path, monkeypatch):
     with pytest.raises(ModelNotAvailableError, match="'voxe-test/no-such-clip' are not available"):
         ClipScorer.from_pretrained("voxe-test/no-such-clip", device="cpu", local_files_only=True)
     with pytest.raises(ModelNotAvailableError, match="does not exist"):
         ClipScorer.from_pretrained(str(tmp_path / "absent"), device="cpu")
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "models").mkdir()
+    with pytest.raises(ModelNotAvailableError, match="'models/clip/base' are not available: that local folder must "
+                                                     "hold a whole CLIPModel") as said:  # no hub id: a folder
+        ClipScorer.from_pretrained("models/clip/base", device="cpu", local_files_only=True)
+    assert "hf download" not in str(said.value)  # (it had been told to download it, which no hub id can be)
+    with pytest.raises(ModelNotAvailableError, match=r"'models/clip' are not available \(nor is there a folder "
+                                                     r"models/clip: .*models holds no 'clip'\): download them once"):
+        ClipScorer.from_pretrained("models/clip", device="cpu", local_files_only=True)
 
 
 def test_a_clip_folder_without_its_tokenizer_vocabulary_is_refused_naming_it(tiny_clip_path, tmp_path):

@@ -46,8 +46,8 @@ from voxe_core.devices import PeakMemory, resolve_device
 from voxe_core.export import render_views, save_png, to_uint8, turntable_cameras
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance.loading import (
-    ModelNotAvailableError, is_out_of_memory, load_clip_tokenizer, loading_errors, local_path, offline_env,
-    tokenizer_fits,
+    ModelNotAvailableError, is_out_of_memory, load_clip_tokenizer, loading_errors, local_path, no_folder_note,
+    offline_env, tokenizer_fits,
 )
 from voxe_core.guidance.prompts import edit_prompt
 from voxe_core.metrics import SSIM_WINDOW, psnr, ssim
@@ -309,7 +309,8 @@ def _clip_not_available(model_id: str, cause: str) -> str:
               if local_path(model_id) is not None else
               f"download them once with `hf download {model_id}` on a machine with internet and point HF_HOME at "
               "that cache, or pass a local folder holding a CLIPModel with its tokenizer and image processor")
-    return f"CLIP weights '{model_id}' are not available: {remedy}. Underlying error: {' '.join(cause.split())[:300]}"
+    return (f"CLIP weights '{model_id}' are not available{no_folder_note(model_id)}: {remedy}. Underlying error: "
+            f"{' '.join(cause.split())[:300]}")
 
 
 def _tensor_of(output) -> torch.Tensor:

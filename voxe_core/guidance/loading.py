@@ -37,8 +37,8 @@ def not_available_message(model: str, cause: BaseException | None) -> str:
         )
     else:
         msg = (
-            f"Stable Diffusion weights '{model}' are not available offline: download them once with "
-            f"`huggingface-cli download {model}` (or `hf download {model}`) on a machine with internet and "
+            f"Stable Diffusion weights '{model}' are not available offline{no_folder_note(model)}: download them "
+            f"once with `huggingface-cli download {model}` (or `hf download {model}`) on a machine with internet and "
             f"point HF_HOME at that cache, or pass a local folder in the diffusers layout ({DIFFUSERS_LAYOUT})."
         )
     if cause is not None:
@@ -50,9 +50,34 @@ def not_available_message(model: str, cause: BaseException | None) -> str:
 
 
 def local_path(model: str) -> str | None:
-    """The folder ``model`` names ("~" expanded: absolute, relative, or existing), or None for a hub id."""
+    """The folder ``model`` names ("~" expanded: absolute, relative, existing, or no hub id: "models/sd/v1", which
+    diffusers too reads as a folder first and then, as a hub id, fails on), or None for a hub id."""
     path = os.path.expanduser(model)
-    return path if os.path.isabs(path) or model.startswith(".") or os.path.exists(path) else None
+    if os.path.isabs(path) or model.startswith(".") or os.path.exists(path) or not _hub_id_form(model):
+        return path
+    return None
+
+
+def _hub_id_form(model: str) -> bool:
+    """Whether ``model`` is written as a hub id can be: ``name`` or ``owner/name`` (the hub's own rule)."""
+    from huggingface_hub.errors import HFValidationError
+    from huggingface_hub.utils import validate_repo_id
+
+    try:
+        validate_repo_id(model)
+    except HFValidationError:
+        return False
+    return True
+
+
+def no_folder_note(model: str) -> str:
+    """For a hub id ``owner/name`` (:func:`local_path` None) whose owner is a folder here ("models/sd" beside a
+    models/ without sd): that there is no such folder either, the path most likely meant (it had been told only how
+    to fetch it from the hub); "" otherwise."""
+    owner, _, name = model.partition("/")
+    if local_path(model) is not None or not os.path.isdir(owner):
+        return ""
+    return f" (nor is there a folder {model}: {os.path.abspath(owner)} holds no {name!r})"
 
 
 def model_file(model: str, filename: str) -> str | None:
