@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -244,6 +245,8 @@ def test_wait_rides_out_the_outage_its_reconnect_for_allows_then_says_how_to_fol
     clock[0] = 0.0
     assert main(["wait", "j1", "--reconnect-for", "30"]) == 3
     assert capsys.readouterr().err == (
+        "voxe wait: event stream of job j1 lost (the server ended the stream before the job ended); reconnecting for "
+        "up to 30 s (the job goes on in the service)\n"
         "voxe wait: error: event stream of job j1 at http://127.0.0.1:8000 lost: connection refused (10 attempts over "
         "30 s, reconnecting for up to 30 s); the job goes on in the service: `voxe wait j1` follows it again "
         "(--reconnect-for SECONDS rides out a longer outage)\n")
@@ -256,6 +259,50 @@ def test_wait_rides_out_the_outage_its_reconnect_for_allows_then_says_how_to_fol
     assert main(["wait", "j1"]) == 3  # a service never reached (a wrong --api) is not waited for
     assert capsys.readouterr().err == ("voxe wait: error: cannot reach the service at http://127.0.0.1:8000: "
                                        "connection refused\n") and clock[0] == 0
+
+
+def test_wait_says_when_it_reconnects_and_when_the_stream_is_back(monkeypatch, capsys):
+    """While ``voxe wait`` rode out an outage its progress line froze with nothing said, as if the job had hung."""
+    import httpx
+
+    import voxe_client.client as client_module
+    import voxe_core.cli.service as service
+    from voxe_client import Client
+
+    clock = [0.0]
+    monkeypatch.setattr(client_module.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(client_module.time, "sleep", lambda seconds: clock.__setitem__(0, clock[0] + seconds))
+    running = b'event: progress\ndata: {"state": "running", "stage": "edit", "overall_progress": 0.5}\n\n'
+    done = b'event: progress\ndata: {"state": "succeeded", "stage": "export", "overall_progress": 1.0}\n\n'
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        stream = {"content-type": "text/event-stream"}
+        if not request.url.path.endswith("/events"):
+            return httpx.Response(200, json={"id": "j1", "state": "succeeded"})
+        if "last-event-id" not in request.headers:  # the API stops, ending the stream
+            return httpx.Response(200, headers=stream, content=b'id: 8\nevent: checkpoint\ndata: {}\n\n' + running)
+        if clock[0] < 10:  # and restarts
+            raise httpx.ConnectError("connection refused")
+        return httpx.Response(200, headers=stream, content=b'id: 9\nevent: succeeded\ndata: {}\n\n' + done)
+
+    monkeypatch.setattr(service, "_client", lambda args: Client(transport=httpx.MockTransport(answer)))
+    assert main(["wait", "j1"]) == 0  # capsys: stderr is no terminal
+    assert capsys.readouterr().err.splitlines() == [
+        "[###############               ]  50.0% running edit",
+        "voxe wait: event stream of job j1 lost (the server ended the stream before the job ended); reconnecting "
+        "for up to 300 s (the job goes on in the service)",
+        "voxe wait: event stream of job j1 back after 12 s",
+        "[##############################] 100.0% succeeded export",
+    ]
+    clock[0] = 0.0
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)  # a terminal: over the bar's row, the bar drawn below
+    monkeypatch.setattr(shutil, "get_terminal_size", lambda *args: os.terminal_size((100, 24)))
+    assert main(["wait", "j1"]) == 0
+    rows = capsys.readouterr().err.split("\r")
+    assert rows[1].startswith("[###############               ]  50.0% running edit")
+    assert rows[2].startswith("voxe wait: event stream of job j1 lost (") and rows[2].endswith("service)\n")
+    assert rows[3] == "voxe wait: event stream of job j1 back after 12 s".ljust(99) + "\n"
+    assert rows[4].startswith("[##############################] 100.0% succeeded export")
 
 
 def test_ctrl_c_while_waiting_stops_following_and_says_the_job_goes_on(monkeypatch, capsys):

@@ -172,17 +172,19 @@ class Client:
     def cancel_job(self, job_id: str) -> dict:
         return self.request("POST", f"/v1/jobs/{_segment(job_id)}/cancel")
 
-    def events(self, job_id: str, last_event_id: int | None = None,
-               reconnect_for: float | None = None) -> Iterator[dict]:
+    def events(self, job_id: str, last_event_id: int | None = None, reconnect_for: float | None = None,
+               on_reconnect: Callable[[str], None] | None = None) -> Iterator[dict]:
         """The job's live events (``{"event", "id", "data"}``) until it ends, over Server-Sent Events.
 
         A dropped connection, a stream the server ended before the job's end (it was stopping), or a proxy's
         502 / 503 / 504 while the API restarts is resumed with ``Last-Event-ID``, so no timeline event is missed or
         repeated, for up to ``reconnect_for`` seconds from its loss (default :data:`RECONNECT_FOR_S`); ``progress``
-        snapshots carry no id. A stream never opened is an error at once: a wrong URL is not waited for.
+        snapshots carry no id. ``on_reconnect`` hears a line when the stream is lost and one when it is back (the
+        events had stopped with nothing said). A stream never opened is an error at once: a wrong URL is not waited
+        for.
         """
         reconnect_for = RECONNECT_FOR_S if reconnect_for is None else reconnect_for
-        opened, lost_since, attempts = False, None, 0
+        opened, lost_since, attempts, reconnecting = False, None, 0, False
         while True:
             headers = {"accept": "text/event-stream"}
             if last_event_id is not None:
@@ -197,7 +199,10 @@ class Client:
                             _raise_for_error(response, "GET", path)
                         lost = f"HTTP {response.status_code} {response.reason_phrase}"
                     else:
-                        opened, ended = True, False
+                        if reconnecting and on_reconnect is not None:
+                            on_reconnect(f"event stream of job {job_id} back after "
+                                         f"{time.monotonic() - lost_since:.0f} s")
+                        opened, ended, reconnecting = True, False, False
                         for event in parse_sse(response.iter_lines()):
                             lost_since, attempts = None, 0
                             if event["id"] is not None:
@@ -214,6 +219,10 @@ class Client:
             now = time.monotonic()
             lost_since = now if lost_since is None else lost_since
             attempts += 1
+            if not reconnecting and now - lost_since < reconnect_for and on_reconnect is not None:
+                on_reconnect(f"event stream of job {job_id} lost ({lost}); reconnecting for up to "
+                             f"{reconnect_for - (now - lost_since):.0f} s (the job goes on in the service)")
+            reconnecting = True
             if now - lost_since >= reconnect_for:
                 raise EventStreamLost(f"event stream of job {job_id} at {self.base_url} lost: {lost} ({attempts} "
                                       f"attempt{'s' if attempts > 1 else ''} over {now - lost_since:.0f} s, "
@@ -221,10 +230,10 @@ class Client:
             time.sleep(min(MAX_RECONNECT_PAUSE_S, 0.5 * 2 ** (attempts - 1), reconnect_for - (now - lost_since)))
 
     def wait(self, job_id: str, on_progress: Callable[[dict], None] | None = None,
-             reconnect_for: float | None = None) -> dict:
-        """Follow the job's events until it ends (``reconnect_for``: see :meth:`events`), calling
+             reconnect_for: float | None = None, on_reconnect: Callable[[str], None] | None = None) -> dict:
+        """Follow the job's events until it ends (``reconnect_for``, ``on_reconnect``: see :meth:`events`), calling
         ``on_progress(snapshot)`` on each progress event; the finished job."""
-        for event in self.events(job_id, reconnect_for=reconnect_for):
+        for event in self.events(job_id, reconnect_for=reconnect_for, on_reconnect=on_reconnect):
             if event["event"] == "progress" and on_progress is not None:
                 on_progress(event["data"])
         return self.get_job(job_id)

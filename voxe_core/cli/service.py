@@ -148,8 +148,19 @@ def _follow(client, job_id: str, args) -> int:
     when Ctrl-C stopped the following (not the job)."""
     from voxe_client.client import EventStreamLost
 
+    over_the_bar = not args.quiet and sys.stderr.isatty()
+
+    def say_reconnecting(line: str) -> None:
+        """Says the stream lost and back, on a line of its own (even with --quiet: the bar had frozen, nothing
+        said); on a terminal over the bar's row, the bar drawn again below."""
+        text = f"voxe {args.command}: {line}"
+        if over_the_bar:
+            text = "\r" + text.ljust(shutil.get_terminal_size().columns - 1)
+        print(text, file=sys.stderr, flush=True)
+
     try:
-        job = client.wait(job_id, on_progress=_progress_bar(args.quiet), reconnect_for=args.reconnect_for)
+        job = client.wait(job_id, on_progress=_progress_bar(args.quiet), reconnect_for=args.reconnect_for,
+                          on_reconnect=say_reconnecting)
     except EventStreamLost as exc:
         raise EventStreamLost(f"{exc}: `voxe wait {job_id}` follows it again (--reconnect-for SECONDS rides out "
                               "a longer outage)") from None
