@@ -213,6 +213,12 @@ def test_a_sweep_polled_without_wait_is_refused_before_the_sweep_is_created(caps
     assert main(["sweep", "--scene", "s1=mic", "--poll", "5", "--api", "http://127.0.0.1:9"]) == 2
     err = capsys.readouterr().err
     assert "--poll sets the seconds between the polls of --wait: pass --wait too" in err and "cannot reach" not in err
+    # and submit's --reconnect-for, which only --wait uses: refused before anything is uploaded or submitted
+    assert main(["submit", "a mic", "--scene", "s1", "--reconnect-for", "600",
+                 "--api", "http://127.0.0.1:9"]) == 2
+    err = capsys.readouterr().err
+    assert "--reconnect-for sets how long --wait rides out a lost event stream: pass --wait too" in err
+    assert "cannot reach" not in err
 
 
 def test_wait_rides_out_the_outage_its_reconnect_for_allows_then_says_how_to_follow_again(monkeypatch, capsys):

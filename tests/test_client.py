@@ -160,6 +160,49 @@ def test_events_reconnect_through_an_api_restart_of_minutes_then_give_up_saying_
     assert sent[-1][0] == 60.0  # a last try at the window's end
 
 
+def test_a_reconnect_window_of_hours_keeps_its_pauses_and_a_quiet_stream_restarts_it(monkeypatch):
+    """Two flaws of the reconnect window: its pause doubled without bound (2 ** 1024 overflowed the float at the
+    1,025th attempt: any --reconnect-for past ~85 min raised OverflowError mid-outage), and only an event restarted
+    it, so a stream reconnected onto keepalives alone for longer than the window gave up at its next drop, at once."""
+    import voxe_client.client as client_module
+
+    clock = [0.0]
+    monkeypatch.setattr(client_module.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(client_module.time, "sleep", lambda seconds: clock.__setitem__(0, clock[0] + seconds))
+    sent = []
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        sent.append(clock[0])
+        if len(sent) == 1:
+            return httpx.Response(200, headers={"content-type": "text/event-stream"},
+                                  content=b'id: 4\nevent: checkpoint\ndata: {}\n\n')
+        raise httpx.ConnectError("connection refused")
+
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        with pytest.raises(ServiceError, match=r"over 7200 s, reconnecting for up to 7200 s"):
+            list(client.events("j1", reconnect_for=7200))
+    assert len(sent) > 1025 and max(b - a for a, b in zip(sent, sent[1:])) == 5.0
+
+    sent.clear()
+    clock[0] = 0.0
+
+    def quiet(request: httpx.Request) -> httpx.Response:
+        sent.append(clock[0])
+        if len(sent) == 1:
+            return httpx.Response(200, headers={"content-type": "text/event-stream"},
+                                  content=b'id: 4\nevent: checkpoint\ndata: {}\n\n')
+        if len(sent) == 2:  # reconnected: keepalives for 990 s, then dropped
+            clock[0] += 990.0
+            return httpx.Response(200, headers={"content-type": "text/event-stream"}, content=b": keepalive\n\n")
+        if len(sent) == 3:
+            raise httpx.ConnectError("connection refused")
+        return httpx.Response(200, headers={"content-type": "text/event-stream"},
+                              content=b'id: 5\nevent: succeeded\ndata: {}\n\n')
+
+    with Client(transport=httpx.MockTransport(quiet)) as client:
+        assert [e["id"] for e in client.events("j1", reconnect_for=300)] == ["4", "5"]
+
+
 def test_reads_answered_503_with_retry_after_are_sent_again_and_writes_are_not(monkeypatch):
     """A GET (and the event stream) answered 503 + Retry-After waits that long and asks again, at most ``retries``
     times; a POST, which the service may have acted on, and a 503 without Retry-After are errors at once."""

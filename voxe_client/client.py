@@ -185,6 +185,15 @@ class Client:
         """
         reconnect_for = RECONNECT_FOR_S if reconnect_for is None else reconnect_for
         opened, lost_since, attempts, reconnecting = False, None, 0, False
+
+        def alive(lines: Iterator[str]) -> Iterator[str]:
+            """The stream's lines, each (a keepalive too) a sign of life that restarts the reconnect window: reset
+            on events only, a quiet stream's drop had given up at once, its quiet time counted as the outage."""
+            nonlocal lost_since, attempts
+            for line in lines:
+                lost_since, attempts = None, 0
+                yield line
+
         while True:
             headers = {"accept": "text/event-stream"}
             if last_event_id is not None:
@@ -203,8 +212,7 @@ class Client:
                             on_reconnect(f"event stream of job {job_id} back after "
                                          f"{time.monotonic() - lost_since:.0f} s")
                         opened, ended, reconnecting = True, False, False
-                        for event in parse_sse(response.iter_lines()):
-                            lost_since, attempts = None, 0
+                        for event in parse_sse(alive(response.iter_lines())):
                             if event["id"] is not None:
                                 last_event_id = int(event["id"])
                             ended = ended or _ends_job(event)
@@ -227,7 +235,8 @@ class Client:
                 raise EventStreamLost(f"event stream of job {job_id} at {self.base_url} lost: {lost} ({attempts} "
                                       f"attempt{'s' if attempts > 1 else ''} over {now - lost_since:.0f} s, "
                                       f"reconnecting for up to {reconnect_for:g} s); the job goes on in the service")
-            time.sleep(min(MAX_RECONNECT_PAUSE_S, 0.5 * 2 ** (attempts - 1), reconnect_for - (now - lost_since)))
+            time.sleep(min(MAX_RECONNECT_PAUSE_S, 0.5 * 2.0 ** min(attempts - 1, 10),  # (2 ** 1024 overflows a float)
+                           reconnect_for - (now - lost_since)))
 
     def wait(self, job_id: str, on_progress: Callable[[dict], None] | None = None,
              reconnect_for: float | None = None, on_reconnect: Callable[[str], None] | None = None) -> dict:

@@ -180,6 +180,8 @@ def cmd_submit(args) -> int:
 
     if args.texture is not None and args.upload is None:
         raise ValueError("--texture goes with --upload (an OBJ or a PLY); an uploaded scene keeps its colours")
+    if args.reconnect_for is not None and not args.wait:  # (it had been taken and ignored, as sweep's --poll was)
+        raise ValueError("--reconnect-for sets how long --wait rides out a lost event stream: pass --wait too")
     with _client(args) as client:
         try:
             scene_id = args.scene
