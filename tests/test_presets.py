@@ -765,6 +765,41 @@ def test_the_export_reads_the_orbit_centre_its_reconstruction_recorded_and_fetch
     assert centres and all(torch.equal(c, initial.orbit_centre()) for c in centres)
 
 
+def test_an_export_whose_disk_refuses_one_mesh_format_publishes_no_mesh(service, monkeypatch):
+    """The mesh formats (PLY, GLB, OBJ with its MTL) are one set: a full disk writing mesh.glb had failed the job with
+    mesh.ply already listed. Every format is written before any is published, so the failed job lists none."""
+    import errno
+
+    import trimesh
+
+    import voxe_core.edit
+    import voxe_core.export
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job_id = _reconstructed_job(client, scene_id, "relu_field", export={
+        "views": 1, "view_size": 16, "turntable_frames": 2, "turntable_size": 16, "gif": False, "mesh": True})["id"]
+    monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
+    monkeypatch.setattr(voxe_core.edit, "edit", lambda initial, *args, **kwargs: initial.clone_grid())
+    assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "done"
+    surface = trimesh.creation.icosphere(subdivisions=1)  # (the tiny fit's grid may have none at the level)
+    monkeypatch.setattr(voxe_core.export, "extract_mesh", lambda grid, resolution: surface)
+    save_mesh = voxe_core.export.save_mesh
+
+    def full_disk_for_glb(mesh, path):
+        if path.suffix == ".glb":
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        return save_mesh(mesh, path)
+
+    monkeypatch.setattr(voxe_core.export, "save_mesh", full_disk_for_glb)
+    assert tasks.export_task.apply(args=(job_id,)).get()["state"] == "failed"
+    job = client.get(f"/v1/jobs/{job_id}").json()
+    assert job["error"].startswith("export: OSError: [Errno 28] No space left on device")
+    listed = {a["name"] for a in client.get(f"/v1/jobs/{job_id}/artifacts").json()}
+    assert listed == {"initial_grid.safetensors", "edited_grid.safetensors", "preview.png", "render_000.png",
+                      "turntable.mp4"}
+
+
 def test_the_export_renders_the_published_edit_not_a_superseded_runs_grid_left_in_its_scratch(service, monkeypatch,
                                                                                               tmp_path):
     """An edit run that stalled while another run took its job over has its grid refused, but the file stays in its

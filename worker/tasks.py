@@ -700,11 +700,10 @@ def _export(job: Job, settings, device: str, storage) -> None:
             mesh = extract_mesh(grid, resolution=options.mesh_resolution)
         except ValueError as exc:  # no surface at the level: report, keep the other artifacts
             runtime.update_job(job.id, message=f"no mesh exported: {exc}")
-        else:
-            for suffix in ("ply", "glb", "obj"):
-                save_mesh(mesh, scratch / f"mesh.{suffix}")
-                runtime.publish_artifact(job.id, f"mesh.{suffix}", scratch / f"mesh.{suffix}", "mesh", storage)
-            runtime.publish_artifact(job.id, "mesh.mtl", scratch / "mesh.mtl", "mesh", storage)  # mesh.obj's material
+        else:  # every format written before any is published: one the disk or its writer refuses lists none
+            written = [save_mesh(mesh, scratch / f"mesh.{suffix}") for suffix in ("ply", "glb", "obj")]
+            for path in (*written, scratch / "mesh.mtl"):  # (mesh.obj's material)
+                runtime.publish_artifact(job.id, path.name, path, "mesh", storage)
         callbacks.on_progress(Progress("export", total, total))
     _preview(job.id, grid, settings, storage, device,
              image=turntable[0] if options.turntable_size <= 512 else None, centre=centre)
