@@ -352,6 +352,68 @@ def test_concurrent_submissions_never_exceed_the_keys_quota(db):
     assert len(set(queue.sent)) == len(queue.sent)  # no job was sent twice
 
 
+def test_an_upload_landing_while_a_mesh_ingest_checks_its_rendered_size_never_exceeds_the_keys_quota(db, tmp_path,
+                                                                                                      monkeypatch):
+    """A mesh's ingest checks its rendered views' size against the key's upload quota, then stores it; an upload
+    landing between the two was checked against the mesh's old size. On SQLite, whose ``FOR UPDATE`` locks nothing,
+    both were accepted, the key stored past its quota; the key's lock now holds the upload back until the ingest has
+    stored its size, and the upload is refused (429), as on PostgreSQL."""
+    from types import SimpleNamespace
+
+    from sqlalchemy import func, select, update
+
+    from api.services import scenes as scene_service
+    from voxe_service import quotas
+    from voxe_service.db import get_sessionmaker, session_scope
+    from voxe_service.models import LOCAL_KEY_ID, ApiKey, Scene
+    from voxe_service.storage import get_storage
+    from worker import ingest
+
+    with session_scope() as session:
+        session.execute(update(ApiKey).where(ApiKey.id == LOCAL_KEY_ID).values(max_upload_bytes=100))
+        mesh = Scene(name="mesh", format="mesh", image_count=1, width=8, height=8, splits=["train"],
+                     storage_key="scenes/m/upload.obj", size_bytes=10, sha256="0" * 64, state="processing",
+                     task_id="ingest", owner_key_id=LOCAL_KEY_ID)
+        session.add(mesh)
+        session.flush()
+        mesh_id = mesh.id
+    (tmp_path / "upload.zip").write_bytes(b"x" * 50)
+    monkeypatch.setattr(scene_service, "stage_upload", lambda *args: SimpleNamespace(
+        archive=tmp_path / "upload.zip", archive_name="dataset.zip", format="nerf_synthetic", image_count=1, width=8,
+        height=8, splits=["train"]))
+    answers = []
+
+    def upload():
+        with get_sessionmaker()() as session:
+            try:
+                answers.append(scene_service.create_scene(
+                    session=session, settings=db, storage=get_storage(db),
+                    queue=SimpleNamespace(send_ingest=lambda scene_id: "task"), key=session.get(ApiKey, LOCAL_KEY_ID),
+                    upload=scene_service.Upload(archive=None, archive_name=None, files=[], name="upload"),
+                    idempotency_key=None)[0].state)
+            except HTTPException as exc:
+                answers.append(exc.status_code)
+
+    uploading = threading.Thread(target=upload)
+    stored_bytes = quotas.stored_bytes
+
+    def upload_lands_after_the_read(session, key_id, excluding=None):
+        counted = stored_bytes(session, key_id, excluding)
+        if excluding == mesh_id:  # the ingest's read
+            uploading.start()
+            uploading.join(1)  # (held back by the key's lock, it waits for the ingest's commit)
+        return counted
+
+    monkeypatch.setattr(quotas, "stored_bytes", upload_lands_after_the_read)
+    assert ingest._ready(mesh_id, {"size_bytes": 60}, get_storage(db), db, None)["state"] == "ready"
+    uploading.join(60)
+    assert answers == [429]
+    with session_scope() as session:
+        stored = session.execute(select(Scene.name, Scene.state, Scene.size_bytes)).all()
+        assert session.scalar(select(func.sum(Scene.size_bytes))) == 60
+    assert [tuple(row) for row in stored] == [("mesh", "ready", 60)]
+
+
 # ------------------------------------------------------------------------------------------ waiting for a scene
 def test_jobs_racing_a_scenes_ingest_are_each_sent_exactly_once(db):
     """Submissions while the ingest marks the scene ready: whichever side saw it ready sends a job, never both,

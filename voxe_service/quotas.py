@@ -3,7 +3,7 @@ rendered views replace the (small) uploaded file and would otherwise pass the qu
 
 from __future__ import annotations
 
-from sqlalchemy import func, select
+from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session
 
 from voxe_service.models import PROCESSING, ApiKey, Scene
@@ -11,8 +11,13 @@ from voxe_service.settings import Settings
 
 
 def lock_key(session: Session, key_id: str) -> None:
-    """Serialise a key's quota checks until the transaction ends (row lock; SQLite serialises writers anyway)."""
-    session.execute(select(ApiKey.id).where(ApiKey.id == key_id).with_for_update())
+    """Serialise a key's quota checks until the transaction ends: PostgreSQL's row lock. SQLite's ``FOR UPDATE``
+    locks nothing, and a check that reads before it writes (a mesh's ingest) had missed an upload landing between
+    its read and its write: a write of the row (its name, unchanged) takes the database's write lock first."""
+    if session.get_bind().dialect.name == "sqlite":
+        session.execute(update(ApiKey).where(ApiKey.id == key_id).values(name=ApiKey.name))
+    else:
+        session.execute(select(ApiKey.id).where(ApiKey.id == key_id).with_for_update())
 
 
 def upload_limit(key: ApiKey, settings: Settings) -> int:
