@@ -1592,6 +1592,49 @@ def test_a_multipart_s3_upload_failing_half_way_is_never_listed(db, tmp_path, mo
         assert data == big.read_bytes()
 
 
+def test_the_parts_an_s3_writer_killed_mid_upload_left_go_with_its_job(tmp_path, monkeypatch):
+    """SIGKILL a process whose multipart upload has stored a part: S3 keeps the parts (and bills them) under an upload
+    no object listing shows, and deleting the job's prefix had left them for ever. They are aborted with it; another
+    job's are not touched."""
+    import signal
+    import subprocess
+    import sys
+
+    from service_helpers import REPO, moto_s3
+    from voxe_service.storage import S3Storage
+
+    source = tmp_path / "edit.safetensors"
+    source.write_bytes(os.urandom(20 * 1024 * 1024))  # above boto3's 8 MiB multipart threshold
+    writer = ("import sys, time\n"
+              "from voxe_service.storage import S3Storage\n"
+              "storage = S3Storage(sys.argv[1], endpoint_url=sys.argv[2], region='us-east-1')\n"
+              "storage.client.meta.events.register('after-call.s3.UploadPart',\n"
+              "                                    lambda **_: (print('part', flush=True), time.sleep(60)))\n"
+              "storage.put_file('jobs/j/checkpoints/edit.safetensors', sys.argv[3])\n")
+    with moto_s3() as env:
+        for key in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_DEFAULT_REGION"):
+            monkeypatch.setenv(key, env[key])
+        bucket = f"voxe-faults-{uuid.uuid4().hex[:8]}"
+        storage = S3Storage(bucket, endpoint_url=env["VOXE_S3_ENDPOINT_URL"], region="us-east-1")
+        proc = subprocess.Popen([sys.executable, "-c", writer, bucket, env["VOXE_S3_ENDPOINT_URL"], str(source)],
+                                cwd=REPO, stdout=subprocess.PIPE, env={**os.environ, "PYTHONPATH": str(REPO)})
+        try:
+            assert proc.stdout.readline().strip() == b"part"
+        finally:
+            proc.send_signal(signal.SIGKILL)
+            proc.wait(10)
+        other = storage.client.create_multipart_upload(Bucket=bucket, Key="jobs/other/edit.safetensors")
+
+        def uploads() -> list[str]:
+            return [u["Key"] for u in storage.client.list_multipart_uploads(Bucket=bucket).get("Uploads", [])]
+
+        assert storage.list() == [] and uploads() == ["jobs/j/checkpoints/edit.safetensors",
+                                                      "jobs/other/edit.safetensors"]
+        assert storage.delete_prefix("jobs/j/") == 0
+        assert uploads() == ["jobs/other/edit.safetensors"]
+        storage.client.abort_multipart_upload(Bucket=bucket, Key=other["Key"], UploadId=other["UploadId"])
+
+
 # ---------------------------------------------------------------------------------------------- real processes
 RECONSTRUCTION = {"preset": "fast", "resolution": 24, "iterations": [10, 10, 20], "rays_per_step": 1024}
 EXPORT = {"views": 2, "view_size": 48, "turntable_frames": 8, "turntable_size": 48, "gif": False, "mesh": False}

@@ -472,6 +472,7 @@ class S3Storage(Storage):
             self.client.delete_object(Bucket=self.bucket, Key=self._full(key))
 
     def delete_prefix(self, prefix: str) -> int:
+        self._abort_uploads(prefix)  # first: one completing meanwhile is an object, listed next
         keys = self.list(prefix)
         for start in range(0, len(keys), 1000):
             batch = [{"Key": self.prefix + k} for k in keys[start:start + 1000]]
@@ -482,6 +483,22 @@ class S3Storage(Storage):
                 shown = ", ".join(f"{e.get('Key')} ({e.get('Code')})" for e in errors[:3])
                 raise StorageError(f"could not delete {len(errors)} object(s) under {prefix!r}: {shown}")
         return len(keys)
+
+    def _abort_uploads(self, prefix: str) -> None:
+        """Abort the multipart uploads under ``prefix`` that never completed: a writer killed mid-upload (a worker
+        killed for memory) leaves its parts stored, and billed, under no object a listing shows, until aborted."""
+        from botocore.exceptions import ClientError
+
+        paginator = self.client.get_paginator("list_multipart_uploads")
+        with self._as_storage_errors():
+            for page in paginator.paginate(Bucket=self.bucket, Prefix=self.prefix + prefix):
+                for upload in page.get("Uploads", []):
+                    try:
+                        self.client.abort_multipart_upload(Bucket=self.bucket, Key=upload["Key"],
+                                                           UploadId=upload["UploadId"])
+                    except ClientError as exc:
+                        if _error_code(exc) != "NoSuchUpload":  # (completed or aborted since it was listed)
+                            raise
 
     def describe(self) -> str:
         return f"s3:{self.bucket}/{self.prefix}"
