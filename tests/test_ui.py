@@ -413,6 +413,40 @@ def test_errors_of_any_shape_are_shown_and_unreadable_input_is_not_sent(live, br
     assert 'params.bad"key' in error("params")
 
 
+def test_a_long_one_word_prompt_wraps_inside_the_window(live, browser):
+    """A prompt (and the error quoting it) of one 500-character word, in the job list and on its job page: the
+    text wraps, the page stays as wide as the window, and the list's State column stays on screen (the table and
+    the page had grown to over 4,000 px, the job's state scrolled out of sight)."""
+    svc, token, _archive = live
+    driver = browser
+    prompt = ("a mic made of " + "gold" * 130)[:500]
+    job = {"id": "long-prompt", "scene_id": "s", "prompt": prompt, "mode": "global", "edit_words": [],
+           "models": {"sds": "tiny"}, "device": "cpu", "state": "failed", "stage": "reconstruct",
+           "completed_stages": [], "progress": 0, "iteration": 0, "total": 0, "overall_progress": 0,
+           "eta_seconds": None, "overall_eta_seconds": None, "losses": {}, "message": None, "preview_url": None,
+           "error": f"reconstruct: the prompt {prompt!r} is too long", "cancel_requested": False,
+           "created_at": "2026-01-01T00:00:00Z"}
+    answer = lambda body, kind="application/json": {"status": 200, "type": kind, "body": body}  # noqa: E731
+    set_key(driver, svc, token)
+    end = f"id: 1\nevent: failed\ndata: {json.dumps({'detail': job['error']})}\n\n"
+    faults(driver, {"/v1/jobs?": answer(json.dumps({"items": [job]})),
+                    "/v1/jobs/long-prompt$": answer(json.dumps(job)),
+                    "/v1/jobs/long-prompt/artifacts": answer("[]"),
+                    "/v1/jobs/long-prompt/events": answer(end, "text/event-stream")})
+    overflow = "return document.documentElement.scrollWidth - document.documentElement.clientWidth"
+    driver.refresh()
+    wait_until(lambda: driver.find_elements("css selector", 'tr[data-job="long-prompt"]'), 10, what="the job listed")
+    assert driver.execute_script(overflow) == 0
+    assert driver.execute_script("return document.querySelector('tr[data-job=\"long-prompt\"] .state-failed')"
+                                 ".getBoundingClientRect().right <= document.documentElement.clientWidth")
+    go(driver, "#/jobs/long-prompt")
+    wait_until(lambda: driver.find_elements("css selector", '#job-events li[data-event="failed"]'), 10,
+               what="the job page")
+    assert text(driver, "#job-state") == "failed" and "too long" in text(driver, "#job-message")
+    assert driver.execute_script(overflow) == 0
+    faults(driver, {})
+
+
 def test_docs_render_from_the_vendored_swagger_ui(live, browser):
     svc, _token, _archive = live
     browser.get(f"{svc.base}/docs")

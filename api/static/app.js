@@ -294,7 +294,7 @@ async function loadJobs(signal) {
     $("#job-list tbody").innerHTML = jobs.items.map((job) => `
       <tr data-job="${escapeHtml(job.id)}">
         <td><a href="#/jobs/${escapeHtml(encodeURIComponent(job.id))}">${escapeHtml(job.id)}</a></td>
-        <td>${escapeHtml(job.prompt)}</td><td>${job.mode}</td>
+        <td class="prompt">${escapeHtml(job.prompt)}</td><td>${job.mode}</td>
         <td class="state-${job.state}">${job.state}</td>
         <td><progress max="1" value="${job.overall_progress}"></progress> ${Math.round(100 * job.overall_progress)} %</td>
         <td title="${job.created_at}">${age(job.created_at)}</td>
