@@ -369,6 +369,17 @@ def test_errors_of_any_shape_are_shown_and_unreadable_input_is_not_sent(live, br
         driver.refresh()
         wait_until(lambda: error("list"), 10, what="the job list's error")
         assert error("list") == f"{status}: {reason}"
+
+    # The scene list failing as the page loads (the API restarting, a proxy's 502): said beside the Scene field it
+    # leaves empty, and loaded again with the job list (its error had been wiped at once by the job list's answer,
+    # and the field left empty until a reload).
+    faults(driver, {"/v1/scenes?": {"once": True, "status": 503, "statusText": "Service Unavailable",
+                                    "type": "application/json", "body": json.dumps({"detail": "database busy"})}})
+    driver.refresh()
+    wait_until(lambda: error("scene_id"), 10, what="the scene list's error")
+    assert error("scene_id") == "loading the scenes: 503: database busy; retrying"
+    wait_until(lambda: not error("scene_id"), 10, what="the scene list loaded again")
+    assert len(requested(driver, "/v1/scenes?")) == 2
     faults(driver, {})
     driver.refresh()
 

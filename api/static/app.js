@@ -213,6 +213,18 @@ async function waitForScene(sceneId, status, signal) {
   }
 }
 
+/** Load the scene lists; a failure is shown beside the Scene field it leaves empty. Whether they loaded. */
+async function refreshScenes(signal) {
+  try {
+    await loadScenes(signal);
+    showError("scene_id", "");
+    return true;
+  } catch (error) {
+    if (!signal.aborted) showError("scene_id", `loading the scenes: ${errorText(error)}; retrying`);
+    return false;
+  }
+}
+
 async function loadScenes(signal, selected) {
   const scenes = await api("/v1/scenes?limit=200", { signal });
   const ready = scenes.items.filter((s) => s.state === "ready");
@@ -548,10 +560,13 @@ async function route() {
     catch (error) { if (!signal.aborted) showApiError(error, "stream"); }
     return;
   }
-  try { await loadScenes(signal); } catch (error) { if (!signal.aborted) showApiError(error, "list"); }
+  // The scenes are loaded again with the job list until they load (the API restarting, a proxy's 502): a failure
+  // had left the Scene field empty for good, its message at once wiped by the job list's.
+  let scenesLoaded = await refreshScenes(signal);
   while (!signal.aborted) {
     await loadJobs(signal);
     await sleep(3000, signal);
+    if (!scenesLoaded) scenesLoaded = await refreshScenes(signal);
   }
 }
 
