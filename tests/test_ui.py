@@ -177,7 +177,8 @@ def test_upload_edit_and_watch_a_local_edit_to_its_video_and_3d_view(live, brows
     wait(lambda: "422" in text(driver, '[data-error-for="upload"]'), "the upload's 422", 30)
 
     # The real scene, with upload progress, until its ingest is done and it is offered for editing. Two clicks
-    # upload it once; a proxy's 502 page on the first look at the new scene is shown, and the look retried.
+    # upload it once; a proxy's 502 page on the first look at the new scene is shown, and the look retried, also
+    # after a look at a job page meanwhile (the upload had been left "processing…" for good).
     driver.get(f"{svc.base}/")
     faults(driver, {"/v1/scenes/": {"once": True, "status": 502, "statusText": "Bad Gateway", "type": "text/html",
                                     "body": "<html><body><h1>502 Bad Gateway</h1></body></html>"}})
@@ -185,6 +186,8 @@ def test_upload_edit_and_watch_a_local_edit_to_its_video_and_3d_view(live, brows
     for _ in range(2):  # each click where the button is now (the progress bar, once shown, moves it down)
         driver.find_element("css selector", "#upload-form button").click()
     wait(lambda: "502: Bad Gateway; retrying" in text(driver, '[data-error-for="upload"]'), "the failed look", 30)
+    go(driver, "#/jobs/elsewhere")
+    go(driver, "#/")
     wait(lambda: "ready" in text(driver, "#upload-status"), "the scene to be ready", 60)
     assert not text(driver, '[data-error-for="upload"]')
     assert driver.execute_script("return document.querySelector('#upload-progress').value") == 1

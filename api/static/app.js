@@ -157,7 +157,7 @@ function initUpload() {
     if (!archive && !files.length) { showError("upload", "choose a zip, or the dataset's files"); return; }
     const bar = $("#upload-progress");
     const status = $("#upload-status");
-    const { signal } = page;  // the scene is watched on this page only
+    const { signal } = page;  // the scene is watched on this page (and again on a later home page: ingesting)
     bar.hidden = false;
     bar.value = 0;
     button.disabled = true;  // until the upload is answered: a second click would upload it twice
@@ -184,11 +184,16 @@ function initUpload() {
       const body = JSON.parse(xhr.responseText);
       bar.value = 1;
       status.textContent = `stored as ${body.id}; ${body.state}…`;
+      ingesting = body.id;
       await waitForScene(body.id, status, signal);
     };
     xhr.send(data);
   });
 }
+
+/** The uploaded scene whose ingest the upload form reports, until the ingest ends: watched again whenever the home
+ * page shows (a look at a job meanwhile had left it "processing…" for good, and the scene never offered). */
+let ingesting = null;
 
 /** Poll a new scene until its ingest is done; a failed ingest's reason goes beside the upload field. A failed
  * poll is shown there too and retried, less often each time, until the page changes. */
@@ -199,6 +204,7 @@ async function waitForScene(sceneId, status, signal) {
       showError("upload", "");
       failures = 0;
       if (scene.state !== "processing") {
+        if (ingesting === sceneId) ingesting = null;
         status.textContent = `scene ${scene.name} (${scene.id}): ${scene.state}`;
         if (scene.state === "failed") showError("upload", scene.error || "the scene could not be decoded");
         await loadScenes(signal, scene.state === "ready" ? scene.id : undefined);
@@ -563,6 +569,7 @@ async function route() {
   // The scenes are loaded again with the job list until they load (the API restarting, a proxy's 502): a failure
   // had left the Scene field empty for good, its message at once wiped by the job list's.
   let scenesLoaded = await refreshScenes(signal);
+  if (ingesting) waitForScene(ingesting, $("#upload-status"), signal);
   while (!signal.aborted) {
     await loadJobs(signal);
     await sleep(3000, signal);
