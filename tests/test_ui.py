@@ -427,6 +427,25 @@ def test_errors_of_any_shape_are_shown_and_unreadable_input_is_not_sent(live, br
     assert 'params.bad"key' in error("params")
 
 
+def test_a_dataset_folder_uploads_with_its_images_paths(live, browser):
+    """The folder picker sends each file named by its path in the folder (a NeRF-synthetic set's images sit in
+    train/), and the folder's name names the scene: files picked one by one had come without their folders, and the
+    upload's 422 said its images were not found."""
+    svc, token, archive = live
+    driver = browser
+    set_key(driver, svc, token)
+    driver.find_element("id", "upload-folder").send_keys(str(archive.parent / "mic_small"))
+    driver.find_element("css selector", "#upload-form button").click()
+    wait_until(lambda: "ready" in text(driver, "#upload-status"), 60, what="the scene to be ready",
+               processes=svc.processes)
+    assert not text(driver, '[data-error-for="upload"]')
+    scene_id = driver.execute_script("return document.querySelector('#job-scene').value")
+    with httpx.Client(base_url=svc.base, headers={"Authorization": f"Bearer {token}"}) as client:
+        scene = client.get(f"/v1/scenes/{scene_id}").json()
+        assert (scene["name"], scene["format"], scene["image_count"]) == ("mic_small", "nerf_synthetic", 8)
+        assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204  # the other tests expect their own only
+
+
 def test_a_long_one_word_prompt_wraps_inside_the_window(live, browser):
     """A prompt (and the error quoting it) of one 500-character word, in the job list and on its job page: the
     text wraps, the page stays as wide as the window, and the list's State column stays on screen (the table and

@@ -150,11 +150,15 @@ function initUpload() {
     clearErrors(form);
     const data = new FormData();
     const archive = $("#upload-archive").files[0];
-    const files = [...$("#upload-files").files];
+    // A folder's files are named by their paths in it (webkitRelativePath): a dataset's images sit in a subfolder
+    // (train/), which files picked one by one cannot say. Its name is the scene's, as a zip's is.
+    const folder = [...$("#upload-folder").files];
+    const files = [...folder, ...$("#upload-files").files];
+    const name = $("#upload-name").value.trim() || (folder[0]?.webkitRelativePath.split("/")[0] ?? "");
     if (archive) data.append("archive", archive, archive.name);
     for (const file of files) data.append("files", file, file.webkitRelativePath || file.name);
-    if ($("#upload-name").value.trim()) data.append("name", $("#upload-name").value.trim());
-    if (!archive && !files.length) { showError("upload", "choose a zip, or the dataset's files"); return; }
+    if (name) data.append("name", name);
+    if (!archive && !files.length) { showError("upload", "choose a zip, the dataset's folder, or its files"); return; }
     const bar = $("#upload-progress");
     const status = $("#upload-status");
     const { signal } = page;  // the scene is watched on this page (and again on a later home page: ingesting)
@@ -164,7 +168,7 @@ function initUpload() {
     const xhr = new XMLHttpRequest();
     xhr.open("POST", "/v1/scenes");
     const upload = JSON.stringify([archive, ...files].filter(Boolean)
-      .map((f) => [f.webkitRelativePath || f.name, f.size, f.lastModified]).concat([$("#upload-name").value.trim()]));
+      .map((f) => [f.webkitRelativePath || f.name, f.size, f.lastModified]).concat([name]));
     for (const [name, value] of Object.entries(authHeaders({ "Idempotency-Key": idempotency.for(upload) }))) {
       xhr.setRequestHeader(name, value);
     }
