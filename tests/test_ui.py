@@ -354,6 +354,8 @@ def leave_and_revisit_job_pages(driver, svc, token: str, scene_id: str, done_id:
 
 
 def test_errors_of_any_shape_are_shown_and_unreadable_input_is_not_sent(live, browser):
+    from selenium.webdriver.support.select import Select
+
     svc, token, _archive = live
     driver = browser
     error = lambda name: text(driver, f'[data-error-for="{name}"]')  # noqa: E731
@@ -383,6 +385,21 @@ def test_errors_of_any_shape_are_shown_and_unreadable_input_is_not_sent(live, br
     assert error("scene_id") == "loading the scenes: 503: database busy; retrying"
     wait_until(lambda: not error("scene_id"), 10, what="the scene list loaded again")
     assert len(requested(driver, "/v1/scenes?")) == 2
+    # The poll's job list answering late (a busy API) after the user filtered it: the filtered list stays (the late
+    # answer had shown the jobs the filter hides until the next poll).
+    stale = {"id": "stale-job", "prompt": "a mic", "mode": "global", "state": "canceled", "overall_progress": 0,
+             "created_at": "2026-01-01T00:00:00Z"}
+    faults(driver, {"/v1/jobs?limit=50": {"once": True, "delay": 1500, "status": 200, "type": "application/json",
+                                          "body": json.dumps({"items": [stale]})}})
+    driver.refresh()
+    wait_until(lambda: requested(driver, "/v1/jobs?"), 10, interval=0.05, what="the poll's job list")
+    Select(driver.find_element("id", "filter-state")).select_by_visible_text("failed")
+    shown = set()
+    for _ in range(25):  # the late answer lands 1.5 s after it was sent, the next poll 3 s after that
+        shown |= set(driver.execute_script("return [...document.querySelectorAll('#job-list tr[data-job]')]"
+                                           ".map((row) => row.dataset.job)"))
+        time.sleep(0.1)
+    assert "stale-job" not in shown
     faults(driver, {})
     driver.refresh()
 

@@ -306,12 +306,18 @@ function initJobList() {
   $("#filter-state").addEventListener("change", () => loadJobs(page.signal));
 }
 
+/** The newest job list request: an older one answering after it (the poll's, sent before a filter changed) is
+ * dropped, else it had shown the jobs the filter hides until the next poll. */
+let jobListRequest = 0;
+
 async function loadJobs(signal) {
+  const request = ++jobListRequest;
   const query = new URLSearchParams({ limit: "50" });
   if ($("#filter-scene").value) query.set("scene_id", $("#filter-scene").value);
   if ($("#filter-state").value) query.set("state", $("#filter-state").value);
   try {
     const jobs = await api(`/v1/jobs?${query}`, { signal });
+    if (request !== jobListRequest) return;
     showError("list", "");
     $("#job-list tbody").innerHTML = jobs.items.map((job) => `
       <tr data-job="${escapeHtml(job.id)}">
@@ -322,7 +328,7 @@ async function loadJobs(signal) {
         <td title="${job.created_at}">${age(job.created_at)}</td>
       </tr>`).join("");
   } catch (error) {
-    if (!signal.aborted) showApiError(error, "list");
+    if (!signal.aborted && request === jobListRequest) showApiError(error, "list");
   }
 }
 
