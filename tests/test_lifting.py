@@ -159,13 +159,16 @@ def test_views_that_miss_the_object_are_a_segmentation_error_naming_the_cause(fi
 def test_a_render_background_of_other_than_one_value_is_refused_before_any_map():
     """RefineConfig(render=RenderConfig(step_ratio=0.6)), white by RenderConfig's default, had crashed the fit after
     every attention map: 'The expanded size of the tensor (2) must match the existing size (3)'."""
-    with pytest.raises(ValueError, match=r"render.background .* one number for both .* got \(1.0, 1.0, 1.0\)"):
+    with pytest.raises(ValueError, match=r"render.background .* one number for both or one per field .* got "
+                                         r"\(1.0, 1.0, 1.0\)"):
         RefineConfig(render=RenderConfig(step_ratio=0.6))
-    assert RefineConfig(render=RenderConfig(step_ratio=0.6, background=(0.0,))).render.step_ratio == 0.6
+    for background in ((0.0,), (0.0, 0.0)):  # one per field renders as one for both
+        assert RefineConfig(render=RenderConfig(step_ratio=0.6, background=background)).render.step_ratio == 0.6
 
 
 @pytest.mark.parametrize("bad", [dict(lift_start="random"), dict(backprojection_prior=-1.0),
                                  dict(backprojection_prior=math.nan), dict(backprojection_prior=math.inf),
+                                 dict(backprojection_prior=1e39),
                                  dict(lr=math.inf), dict(lr=math.nan), dict(lr=0.0), dict(tv_weight=math.inf),
                                  dict(init_value=math.nan)])
 def test_lift_options_are_checked(bad):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 
 import numpy as np
 import pytest
@@ -78,12 +79,16 @@ def test_uniform_density_renders_the_analytic_colour():
     assert torch.allclose(out.rgb, opacity[:, None] * torch.sigmoid(torch.tensor([2.0, 0.0, -2.0])), atol=1e-5)
 
 
-@pytest.mark.parametrize("far_ratio", [math.inf, math.nan, 1.0])
-def test_a_far_ratio_outside_one_to_infinity_is_refused(far_ratio):
+@pytest.mark.parametrize("far_ratio", [math.inf, math.nan, 1.0, 3e38, 1.1e6])
+def test_a_far_ratio_outside_one_to_its_bound_is_refused(far_ratio):
     """An infinite far_ratio made the last far bin infinitely long: a ray through empty space rendered NaN
-    (0 density times an infinite path)."""
-    with pytest.raises(ValueError, match=rf"far_ratio finite and > 1, got 32, 64, {far_ratio}$"):
+    (0 density times an infinite path); so did 3e38, its float32 product with the exit distance inf."""
+    with pytest.raises(ValueError, match=rf"far_ratio in \(1, 1e\+06\], got 32, 64, {re.escape(str(far_ratio))}$"):
         SceneGrid(9, far_ratio=far_ratio)
+    empty = SceneGrid(9, init_density=-1.0, far_ratio=1e6)  # the bound: every bin finite, the background shown
+    out = render_rays(empty, torch.zeros(1, 3), torch.tensor([[1.0, 0.0, 0.0]]),
+                      RenderConfig(background=(0.2, 0.4, 0.6), skip_empty=False))
+    assert torch.allclose(out.rgb, torch.tensor([[0.2, 0.4, 0.6]])) and out.opacity.item() == 0.0
 
 
 def test_empty_space_skipping_is_exact_and_saturated_density_stays_finite():

@@ -50,6 +50,10 @@ MIN_RENDER_SIZE = 8
 render's min-max normalised attention maps are 0 everywhere, and the 2–3 px ones of a test sphere missed it from
 every pose: both ran every attention pass and fit before the cut found no seeds."""
 
+FLOAT32_MAX = 3.4028234663852886e38
+"""The largest float32: a setting used in float32 past it is inf there (a finite float64 one had passed the
+"finite" checks and overflowed as an inf would)."""
+
 RENDER_CHUNK_RAYS = 32768
 """Rays per chunk of a whole-image render (and of the refinement's back-projection)."""
 

@@ -64,6 +64,7 @@ from voxe_core.constants import (
     DEFAULT_REGULARISER_WEIGHT,
     EDIT_ITERATIONS,
     EDIT_LR,
+    FLOAT32_MAX,
     MIN_RENDER_SIZE,
     NERF_SYNTHETIC_FOV_X,
     NERF_SYNTHETIC_RADIUS,
@@ -162,9 +163,9 @@ class EditConfig:
             raise ValueError(f"iterations must be >= 0, got {self.iterations}")
         # As "not in range": an infinite lr had run a step and diverged on the next (NaN features, blamed on half
         # precision); a radius <= 0 put every camera below the object, its view words those of the pose above.
-        for name in ("lr", "radius"):
-            if not 0 < getattr(self, name) < math.inf:
-                raise ValueError(f"{name} must be positive and finite, got {getattr(self, name)}")
+        for name in ("lr", "radius"):  # (used in float32: 1e39 overflowed as inf had)
+            if not 0 < getattr(self, name) <= FLOAT32_MAX:
+                raise ValueError(f"{name} must be positive and finite in float32, got {getattr(self, name)}")
         if self.render_size < MIN_RENDER_SIZE:
             raise ValueError(f"render_size must be at least {MIN_RENDER_SIZE} px, got {self.render_size}")
         if self.regulariser not in REGULARISERS:

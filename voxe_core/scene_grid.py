@@ -50,6 +50,7 @@ from voxe_core.volrend import RaySamples
 CONTRACTED_EXTENT = 2.0  # the contraction maps all of space into [-2, 2]^3
 _RAYS_PER_PASS = 4096  # rays sampled together, bounding the (rays, bins) tensors of whole-image renders
 _UNBOUNDED = 1e6  # world half-extent standing in for "the occupied cells reach into the background"
+MAX_FAR_RATIO = 1e6  # the far bins reach this times the exit distance at most: past ~1e38 its float32 product overflowed
 EARLY_STOP_CAP = 1e-6
 """The scene sampler stops rays at transmittance min(``early_stop``, this). Behind the cut lies the
 room, not the white background the compositor puts there, so the density gradient of the last kept
@@ -90,10 +91,11 @@ class SceneGrid(VoxelGrid):
     ):
         if not (math.isfinite(foreground_extent) and foreground_extent > 0):
             raise ValueError(f"foreground_extent must be a positive length, got {foreground_extent}")
-        # far_ratio "not in range": an infinite one made the last far bin infinite, and an empty ray's render NaN.
-        if near_samples < 1 or far_samples < 1 or not 1 < far_ratio < math.inf:
-            raise ValueError(f"near_samples and far_samples must be >= 1 and far_ratio finite and > 1, got "
-                             f"{near_samples}, {far_samples}, {far_ratio}")
+        # far_ratio "not in range": an infinite one made the last far bin infinite, and an empty ray's render NaN;
+        # so did a finite one whose float32 product with the exit distance overflowed (3e38, or 1e38 times 4).
+        if near_samples < 1 or far_samples < 1 or not 1 < far_ratio <= MAX_FAR_RATIO:
+            raise ValueError(f"near_samples and far_samples must be >= 1 and far_ratio in (1, {MAX_FAR_RATIO:g}], "
+                             f"got {near_samples}, {far_samples}, {far_ratio}")
         fg = float(foreground_extent)
         # Density per unit of the canonical frame, scaled as the ReLU-field grid over the same foreground box.
         density_scale = default_density_scale((-fg,) * 3, (fg,) * 3) if density_scale is None else density_scale

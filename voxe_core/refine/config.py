@@ -13,6 +13,7 @@ from voxe_core.constants import (
     CUT_SMOOTHNESS,
     DEFAULT_ATTENTION_TIMESTEP,
     EDIT_SEEDS,
+    FLOAT32_MAX,
     MIN_RENDER_SIZE,
     NERF_SYNTHETIC_FOV_X,
     OBJECT_SEEDS,
@@ -126,8 +127,9 @@ class RefineConfig:
     def __post_init__(self):
         if self.lift_start not in ("backprojection", "constant"):
             raise ValueError(f"lift_start must be 'backprojection' or 'constant', got {self.lift_start!r}")
-        if not 0 <= self.backprojection_prior < math.inf:  # as "not in range": NaN fails every comparison
-            raise ValueError(f"backprojection_prior must be non-negative and finite, got {self.backprojection_prior}")
+        if not 0 <= self.backprojection_prior <= FLOAT32_MAX:  # as "not in range": NaN fails every comparison
+            raise ValueError(f"backprojection_prior must be non-negative and finite in float32, got "
+                             f"{self.backprojection_prior}")
         if self.edit_seed_rule not in ("top", "relative"):
             raise ValueError(f"edit_seed_rule must be 'top' or 'relative', got {self.edit_seed_rule!r}")
         if not 0.0 < self.edit_seed_ratio <= 1.0:
@@ -171,9 +173,9 @@ class RefineConfig:
                              f"finite), got {self.lr}, {self.tv_weight}, {self.init_value}")
         if not 0.0 <= self.object_seed_margin < 1.0:
             raise ValueError(f"object_seed_margin must lie in [0, 1), got {self.object_seed_margin}")
-        if len(self.render.background) != 1:  # (a RenderConfig's default white had crashed the fit in an expand)
+        if len(self.render.background) not in (1, 2):  # (a RenderConfig's default white had crashed the fit)
             raise ValueError(f"render.background is the attention fields' value where a ray meets nothing, one number "
-                             f"for both (0.0: no attention), got {self.render.background}: pass "
+                             f"for both or one per field (0.0: no attention), got {self.render.background}: pass "
                              "RenderConfig(..., background=(0.0,))")
         if not 0.0 < self.node_alpha < 1.0:
             raise ValueError(f"node_alpha must lie in (0, 1), got {self.node_alpha}")
