@@ -8,6 +8,7 @@ SMOKE-TEST model (VOXE_SDS_MODEL=tiny): they prove the plumbing, never edit qual
 from __future__ import annotations
 
 import hashlib
+import logging
 import os
 import time
 import uuid
@@ -1592,7 +1593,7 @@ def test_a_multipart_s3_upload_failing_half_way_is_never_listed(db, tmp_path, mo
         assert data == big.read_bytes()
 
 
-def test_the_parts_an_s3_writer_killed_mid_upload_left_go_with_its_job(tmp_path, monkeypatch):
+def test_the_parts_an_s3_writer_killed_mid_upload_left_go_with_its_job(tmp_path, monkeypatch, caplog):
     """SIGKILL a process whose multipart upload has stored a part: S3 keeps the parts (and bills them) under an upload
     no object listing shows, and deleting the job's prefix had left them for ever. They are aborted with it; another
     job's are not touched."""
@@ -1633,6 +1634,20 @@ def test_the_parts_an_s3_writer_killed_mid_upload_left_go_with_its_job(tmp_path,
         assert storage.delete_prefix("jobs/j/") == 0
         assert uploads() == ["jobs/other/edit.safetensors"]
         storage.client.abort_multipart_upload(Bucket=bucket, Key=other["Key"], UploadId=other["UploadId"])
+
+        # A role that may not list unfinished uploads (or a store without the call) still deletes the objects: the
+        # abort had gone first and raised, and every object of the deleted job stayed.
+        from botocore.exceptions import ClientError
+
+        def denied(**_):
+            raise ClientError({"Error": {"Code": "AccessDenied", "Message": "Access Denied"}}, "ListMultipartUploads")
+
+        storage.put_file("jobs/k/edit.safetensors", source)
+        storage.client.meta.events.register("before-call.s3.ListMultipartUploads", denied)
+        with caplog.at_level(logging.WARNING, logger="voxe.storage"):
+            assert storage.delete_prefix("jobs/k/") == 1
+        assert storage.list() == []
+        assert "could not abort the unfinished uploads under 'jobs/k/'" in caplog.text and "AccessDenied" in caplog.text
 
 
 # ---------------------------------------------------------------------------------------------- real processes

@@ -472,7 +472,11 @@ class S3Storage(Storage):
             self.client.delete_object(Bucket=self.bucket, Key=self._full(key))
 
     def delete_prefix(self, prefix: str) -> int:
-        self._abort_uploads(prefix)  # first: one completing meanwhile is an object, listed next
+        try:
+            self._abort_uploads(prefix)  # first: one completing meanwhile is an object, listed next
+        except StorageError as exc:  # a best effort: a role without the multipart permissions must not keep objects
+            log.warning("could not abort the unfinished uploads under %r (%s): their parts stay until a lifecycle "
+                        "rule aborts them", prefix, exc)
         keys = self.list(prefix)
         for start in range(0, len(keys), 1000):
             batch = [{"Key": self.prefix + k} for k in keys[start:start + 1000]]
