@@ -202,6 +202,19 @@ def test_a_reconnect_window_of_hours_keeps_its_pauses_and_a_quiet_stream_restart
     with Client(transport=httpx.MockTransport(quiet)) as client:
         assert [e["id"] for e in client.events("j1", reconnect_for=300)] == ["4", "5"]
 
+    sent.clear()
+    clock[0] = 0.0
+
+    def flapping(request: httpx.Request) -> httpx.Response:  # opens every stream, then drops it at once
+        sent.append(clock[0])
+        if len(sent) > 1000:
+            raise AssertionError("still reconnecting")
+        return httpx.Response(200, headers={"content-type": "text/event-stream"}, content=b"retry: 2000\n\n")
+
+    with Client(transport=httpx.MockTransport(flapping)) as client:
+        with pytest.raises(ServiceError, match=r"over 60 s, reconnecting for up to 60 s"):
+            list(client.events("j1", reconnect_for=60))
+
 
 def test_reads_answered_503_with_retry_after_are_sent_again_and_writes_are_not(monkeypatch):
     """A GET (and the event stream) answered 503 + Retry-After waits that long and asks again, at most ``retries``

@@ -187,11 +187,13 @@ class Client:
         opened, lost_since, attempts, reconnecting = False, None, 0, False
 
         def alive(lines: Iterator[str]) -> Iterator[str]:
-            """The stream's lines, each (a keepalive too) a sign of life that restarts the reconnect window: reset
-            on events only, a quiet stream's drop had given up at once, its quiet time counted as the outage."""
+            """The stream's lines, an event's or a keepalive a sign of life that restarts the reconnect window (reset
+            on events only, a quiet stream's drop had given up at once, its quiet time counted as the outage); not
+            the ``retry:`` every stream opens with, or a server opening and dropping streams is waited on for good."""
             nonlocal lost_since, attempts
             for line in lines:
-                lost_since, attempts = None, 0
+                if line and not line.startswith("retry:"):
+                    lost_since, attempts = None, 0
                 yield line
 
         while True:
