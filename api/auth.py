@@ -260,12 +260,9 @@ class Idempotency:
         return row, resource
 
     def _this_record(self, owner: ApiKey):
-        """The condition selecting this Idempotency-Key's record: as stored, or as versions that read the header
-        as Latin-1 stored a non-ASCII key (its UTF-8 bytes one character each), so a retry across the upgrade
-        replays its request."""
-        stored_as = {self.key, self.key.encode().decode("latin-1")}
+        """The condition selecting this Idempotency-Key's record."""
         return and_(IdempotencyRecord.owner_key_id == owner.id, IdempotencyRecord.endpoint == self.endpoint,
-                    IdempotencyRecord.idempotency_key.in_(stored_as))
+                    IdempotencyRecord.idempotency_key == self.key)
 
 
 def mark_replayed(response: Response) -> None:

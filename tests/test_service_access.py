@@ -431,26 +431,6 @@ def test_job_creation_is_idempotent(auth_client, mic_zip):
         assert response.status_code == 422 and "Idempotency-Key header must be 1-255 characters" in response.text
 
 
-def test_a_non_ascii_idempotency_key_recorded_before_the_utf8_reading_still_replays(auth_client, mic_zip):
-    """Versions that read the header as Latin-1 stored a non-ASCII key as its UTF-8 bytes one character each
-    ("café" as "cafÃ©"): a retry across the upgrade had missed that record and created a second job."""
-    from sqlalchemy import update
-
-    from voxe_service.db import session_scope
-    from voxe_service.models import IdempotencyRecord
-
-    _, alice = _create_key("alice")
-    scene = _upload(auth_client, mic_zip, bearer(alice)).json()
-    body, headers = {"scene_id": scene["id"], **JOB}, {**bearer(alice), "Idempotency-Key": "café-1".encode()}
-    created = auth_client.post("/v1/jobs", json=body, headers=headers)
-    with session_scope() as session:
-        session.execute(update(IdempotencyRecord).values(idempotency_key="café-1".encode().decode("latin-1")))
-    retried = auth_client.post("/v1/jobs", json=body, headers=headers)
-    assert (created.status_code, retried.status_code) == (201, 200)
-    assert retried.json()["id"] == created.json()["id"]
-    assert auth_client.get("/v1/jobs", headers=bearer(alice)).json()["total"] == 1
-
-
 def test_evaluation_creation_is_idempotent_and_a_refused_one_runs_again_on_retry(local_client, mic_zip,
                                                                                  monkeypatch):
     """POST /v1/evaluations honours Idempotency-Key as POST /v1/jobs does (the same shared submission): a retry had
