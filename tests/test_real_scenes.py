@@ -105,6 +105,26 @@ def test_empty_space_skipping_is_exact_and_saturated_density_stays_finite():
     assert torch.allclose(skipped.rgb, dense.rgb, atol=1e-6) and skipped.samples < dense.samples
 
 
+def test_skipping_drops_no_more_in_a_far_cell_than_in_a_foreground_cell():
+    """One skip density for every cell had skipped far bins hundreds of units long: a uniform density of 3.3e-4
+    rendered opacity 0, the analytic 0.84. Each background cell's density is lowered by its world stretch."""
+    grid = SceneGrid(33)
+    sigma = 3.3e-4  # below the foreground's skip density (7.5e-4): its cells are still skipped
+    with torch.no_grad():
+        grid.features[..., 0] = _raw_for_density(grid, sigma)
+    origins, directions = torch.tensor([[-4.0, 0.0, 0.0]]), torch.tensor([[1.0, 0.0, 0.0]])
+    with torch.no_grad():
+        skipped = render_rays(grid, origins, directions, RenderConfig())
+        dense = render_rays(grid, origins, directions, RenderConfig(skip_empty=False))
+    analytic = 1.0 - math.exp(-sigma * 1000.0 * 5.5)  # far_ratio times the exit distance
+    assert math.isclose(float(dense.opacity), analytic, abs_tol=1e-4)
+    assert math.isclose(float(skipped.opacity), analytic, abs_tol=1e-3) and skipped.samples < dense.samples
+    skip_density = grid.skip_density(RenderConfig().sigma_threshold)
+    # The foreground cube's cells (contracted [-1, 1]³) keep 1e-3, scaled from the 3-unit box to the 4-unit lattice.
+    assert torch.allclose(skip_density[8:24, 8:24, 8:24], torch.tensor(7.5e-4))
+    assert (skip_density[-1] == 0).all()  # the outermost shell reaches infinity
+
+
 def test_gradients_reach_the_background_shell():
     grid = SceneGrid(9)
     origins, directions = torch.tensor([[0.0, 0.0, 0.0]]), torch.tensor([[1.0, 0.0, 0.0]])

@@ -556,14 +556,20 @@ class VoxelGrid(torch.nn.Module):
         The threshold is scaled by (default box diagonal / this box's diagonal),
         as ``default_density_scale`` is, so skipping drops the same optical
         depth along a ray at any scene scale (an absolute 1e-3 would skip an
-        opaque object in a box of 1e3 units). The default box uses it as given.
+        opaque object in a box of 1e3 units). The default box uses it as given. A backbone whose
+        cells differ in world size lowers it per cell (``SceneGrid.skip_density``).
         """
-        reference = math.dist(*DEFAULT_BOX)
-        return self.occupancy_above(sigma_threshold * reference / self.box_diagonal)
+        return self.occupancy_above(self.skip_density(sigma_threshold))
+
+    def skip_density(self, sigma_threshold: float) -> float | torch.Tensor:
+        """The absolute density :meth:`occupancy` skips cells below: one for all cells (another backbone may
+        give one per cell, (X-1, Y-1, Z-1))."""
+        return sigma_threshold * math.dist(*DEFAULT_BOX) / self.box_diagonal
 
     @torch.no_grad()
-    def occupancy_above(self, density: float) -> Occupancy:
-        """Cells whose activated density can exceed ``density`` (absolute, 1 / world unit) anywhere inside.
+    def occupancy_above(self, density: float | torch.Tensor) -> Occupancy:
+        """Cells whose activated density can exceed ``density`` (absolute, 1 / world unit; or one per cell,
+        (X-1, Y-1, Z-1)) anywhere inside.
 
         Trilinear interpolation is bounded by the corner maximum and both
         activations are monotone, so the test is conservative: with ReLU and
