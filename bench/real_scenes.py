@@ -165,8 +165,14 @@ def run_single(backbone: str, args) -> dict:
         paused[0] += time.perf_counter() - t0
         paused_cpu[0] += time.process_time() - c0
 
+    last_stage_samples = []  # samples per ray of the final stage's steps (empty-space skipping's cost)
+
+    def on_progress(report) -> None:
+        if report.info["stage"] == len(config.resolutions) - 1:
+            last_stage_samples.append(report.info["samples_per_ray"])
+
     checkpoint = Path(args.scratch) / f"{backbone}.ckpt"
-    grid = reconstruct(train_images, train_cams, config, Callbacks(on_checkpoint=on_checkpoint),
+    grid = reconstruct(train_images, train_cams, config, Callbacks(on_progress, on_checkpoint=on_checkpoint),
                        checkpoint_path=checkpoint, initial_grid=initial)
     train_s = time.perf_counter() - start - paused[0]  # cpu_s is read in the result below, before evaluating
     checkpoint.unlink(missing_ok=True)
@@ -181,6 +187,8 @@ def run_single(backbone: str, args) -> dict:
         "average_from": config.average_from, "early_stop": config.render.early_stop,
         "train_s": train_s, "cpu_s": cpu_s, "load": os.getloadavg(),
         "prepare_s": prepare_s, "render_s_per_view": render_s, **final_scores, "curve": curve,
+        "samples_per_ray": sum(last_stage_samples) / len(last_stage_samples),
+        "occupied_fraction": grid.occupancy(config.render.sigma_threshold).fraction,
         "grid_bytes": grid.flat_features.numel() * 4,
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "image_size": [test_cams.width, test_cams.height], "train_views": len(train), "test_views": len(test),
