@@ -215,6 +215,23 @@ def test_resume_refuses_a_checkpoint_of_another_recipe_naming_each_change(tmp_pa
                        reconstruct(images, cams, plain).features)
 
 
+def test_resume_refuses_a_checkpoint_of_a_fit_to_other_views(tmp_path, stopped_fit):
+    """voxe reconstruct --resume with another dataset, split, --downsample or --max-images had gone on from the
+    checkpoint's grid as if it were this fit's. FormatError: the worker starts over, the CLI exits 2 saying why. A
+    checkpoint older than the fingerprint resumes."""
+    config, tensors, meta = stopped_fit
+    checkpoint = _rewritten(tmp_path / "ckpt.safetensors", tensors, meta)
+    images, cams = synthetic_views()
+    for other_images, other_cams in [(images.flip(0), cams),  # other images seen from the same cameras
+                                     (images, replace(cams, fx=cams.fx * 1.01)),  # the same images, other cameras
+                                     synthetic_views(n=5)]:  # fewer views
+        with pytest.raises(FormatError, match="checkpoint is of a fit to other images or cameras"):
+            reconstruct(other_images, other_cams, config, Callbacks(on_progress=pytest.fail), resume_from=checkpoint)
+    resumed = reconstruct(images, cams, config, resume_from=checkpoint)
+    older = _rewritten(tmp_path / "older.safetensors", tensors, {k: v for k, v in meta.items() if k != "views_sha256"})
+    assert torch.equal(reconstruct(images, cams, config, resume_from=older).features, resumed.features)
+
+
 def test_resume_refuses_a_recipe_the_checkpoint_is_not_part_of(tmp_path):
     """The checkpoint's grid went on under another recipe (voxe reconstruct --resume with another --resolution had
     written the checkpoint's 16³ grid, announcing 24³)."""

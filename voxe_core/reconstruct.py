@@ -11,6 +11,7 @@ in 25 s, 47 CPU s, its six seeds 30.63–30.70 dB).
 
 from __future__ import annotations
 
+import hashlib
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -390,12 +391,23 @@ def camera_clear_rows(grid: VoxelGrid, cameras: Cameras, clearance: float) -> to
     return grid.rows_within(centres, clearance * centres.norm(dim=-1))
 
 
+def views_fingerprint(images: torch.Tensor, cameras: Cameras) -> str:
+    """Short SHA-256 of the images a fit sees and of their cameras: a checkpoint only resumes a fit to the views it
+    was made from."""
+    digest = hashlib.sha256(f"{cameras.width}x{cameras.height} {cameras.distortion_model}".encode())
+    extra = () if cameras.distortion is None else (cameras.distortion,)
+    for tensor in (images, cameras.c2w, cameras.fx, cameras.fy, cameras.cx, cameras.cy, *extra):
+        digest.update(tensor.detach().to("cpu", torch.float32).contiguous().numpy())
+    return digest.hexdigest()[:32]
+
+
 def save_checkpoint(
     path, grid, optimizer, generator, occupancy_cells, stage: int, iteration: int, average: _IterateAverage | None = None,
-    recipe: dict | None = None,
+    recipe: dict | None = None, views_sha256: str | None = None,
 ) -> None:
-    """Everything a fit goes on from (grid, Adam's state, generator, occupancy, the iterate average), where it stands
-    and the :meth:`ReconstructConfig.recipe` it was made with (tensorio, no pickle)."""
+    """Everything a fit goes on from (grid, Adam's state, generator, occupancy, the iterate average), where it stands,
+    the :meth:`ReconstructConfig.recipe` it was made with and the :func:`views_fingerprint` of what it fits
+    (tensorio, no pickle)."""
     state = optimizer.state[grid.flat_features]
     tensors = {
         **(average.state_tensors() if average is not None else {}),
@@ -407,7 +419,8 @@ def save_checkpoint(
         "occupancy": occupancy_cells.to(torch.uint8),
     }
     meta = {**grid.header(), "stage": stage, "iteration": iteration, "device": generator.device.type,
-            **({} if recipe is None else {"recipe": recipe})}
+            **({} if recipe is None else {"recipe": recipe}),
+            **({} if views_sha256 is None else {"views_sha256": views_sha256})}
     save_tensors(path, tensors, kind=CHECKPOINT_KIND, version=CHECKPOINT_FORMAT_VERSION, meta=meta)
 
 
@@ -423,12 +436,17 @@ def _reseeded_generator(device: torch.device, seed: int, stage: int, iteration: 
     return _sampling_generator(device, hash((seed, stage, iteration)) % 2**63)
 
 
-def _resume(path, config: ReconstructConfig, device: torch.device):
+def _resume(path, config: ReconstructConfig, device: torch.device, views_sha256: str):
     """What a fit resumed from the checkpoint at ``path`` starts from: its grid, sampling generator, stage and
     iteration, and the optimizer, occupancy and average tensors its stage takes over (:func:`_take_over`), on
     ``device``. Nothing else of the file outlives the call. FormatError for a checkpoint that cannot be applied
-    (the worker then starts the fit over, the CLI exits 2)."""
+    (the worker then starts the fit over, the CLI exits 2), such as one of a fit to other views than those of
+    ``views_sha256`` (another dataset's, split's or downsampling's had gone on silently; a checkpoint older than
+    the field resumes, as one older than recipes)."""
     tensors, meta = load_checkpoint(path)
+    if meta.get("views_sha256", views_sha256) != views_sha256:
+        raise FormatError(f"{path}: the checkpoint is of a fit to other images or cameras (another dataset, split, "
+                          "downsampling or image count): resume with the views it was made from, or start afresh")
     grid = grid_from_state(tensors, meta)
     try:
         stage, iteration = int(meta["stage"]), int(meta["iteration"])
@@ -508,6 +526,7 @@ def reconstruct(
     check_views(images, cameras)
     device = resolve_device(device)
     memory = PeakMemory(device).start()
+    views_sha256 = views_fingerprint(images, cameras) if (checkpoint_path or resume_from) else None
     images, cameras = images.to(device, torch.float32), cameras.to(device)
     if resume_from is None:
         start_stage, start_iteration, resumed = 0, 0, None
@@ -516,11 +535,11 @@ def reconstruct(
             config.resolutions[0], config.bbox_min, config.bbox_max, config.activation, init_density=config.init_density
         )).to(device)
     else:
-        grid, generator, start_stage, start_iteration, resumed = _resume(resume_from, config, device)
+        grid, generator, start_stage, start_iteration, resumed = _resume(resume_from, config, device, views_sha256)
 
     def checkpoint(stage: int, iteration: int) -> None:
         save_checkpoint(checkpoint_path, grid, optimizer, generator, occupancy.cells, stage, iteration, average,
-                        config.recipe())
+                        config.recipe(), views_sha256)
         callbacks.checkpoint_written(str(checkpoint_path))
 
     total = config.total_iterations
