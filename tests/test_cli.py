@@ -589,6 +589,19 @@ def test_bad_option_values_exit_2(tmp_path, capsys):
                 capsys.readouterr().err
 
 
+@pytest.mark.parametrize("command,flag", [
+    (["edit", "g", "--prompt", "p", "--out", "o"], flag) for flag in ("--iterations", "--checkpoint-every",
+                                                                      "--preview-every")] + [
+    (["refine", "e", "--initial", "g", "--prompt", "p", "--edit-words", "p", "--out", "o"], flag)
+    for flag in ("--iterations", "--edit-seeds", "--object-seeds", "--preview-views")])
+def test_a_negative_count_is_refused_naming_its_option(command, flag, capsys):
+    """They had been refused after the grids were read, as "preview_every and checkpoint_every must be >= 0",
+    "iterations and seed counts must be non-negative" or "--iterations and --preview-views ...": not which one."""
+    with pytest.raises(SystemExit) as exc:
+        main([*command, flag, "-1"])
+    assert exc.value.code == 2 and f"argument {flag}: must be at least 0, got -1" in capsys.readouterr().err
+
+
 def test_an_output_that_cannot_be_written_is_refused_before_the_fit_and_a_failed_save_leaves_nothing(
         sphere_file, tmp_path, capsys):
     """reconstruct had fitted first and then failed on its --out (or at its first checkpoint, whose folder it never

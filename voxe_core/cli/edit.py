@@ -13,7 +13,7 @@ from pathlib import Path
 from voxe_core import constants as paper
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, add_view_arguments, check_device, load_guidance, load_views,
-    positive_int, run_stage, seed, view_options_given, writable_folder,
+    non_negative_int, positive_int, run_stage, seed, view_options_given, writable_folder,
 )
 from voxe_core.presets import EDIT_SCHEDULES, PREVIEW_EVERY, SEED, TIMESTEP_SCHEDULES, edit_config
 
@@ -37,7 +37,7 @@ def add_parsers(commands, common) -> None:
     ed.add_argument("--fused-marcher", action="store_true",
                     help="march the renders in one Triton kernel on CUDA (voxe_core.fused_render; default: the packed "
                          "renderer, until it is measured on a GPU)")
-    ed.add_argument("--iterations", type=int, default=None,
+    ed.add_argument("--iterations", type=non_negative_int, default=None,
                     help=f"default {paper.EDIT_ITERATIONS}; on a scene-backbone grid {paper.EDIT_ITERATIONS} means SPEC "
                          f"§5's {_SCENE.iterations}, as in the service's jobs (any other count runs as given)")
     ed.add_argument("--render-size", type=positive_int, default=paper.RENDER_SIZE, help="training render size in pixels")
@@ -53,9 +53,11 @@ def add_parsers(commands, common) -> None:
     ed.add_argument("--no-view-words", action="store_true", help="do not append ', front view' etc. to the prompt")
     ed.add_argument("--autocast", choices=("bf16", "fp16"), default=None, help="run the guidance under autocast")
     ed.add_argument("--seed", type=seed, default=SEED)
-    ed.add_argument("--checkpoint-every", type=int, default=250, help="iterations between checkpoints (0: only at the end)")
+    ed.add_argument("--checkpoint-every", type=non_negative_int, default=250,
+                    help="iterations between checkpoints (0: only at the end)")
     ed.add_argument("--resume", type=Path, default=None, metavar="PATH", help="continue from this edit checkpoint")
-    ed.add_argument("--preview-every", type=int, default=PREVIEW_EVERY, help="iterations between preview PNGs (0: none)")
+    ed.add_argument("--preview-every", type=non_negative_int, default=PREVIEW_EVERY,
+                    help="iterations between preview PNGs (0: none)")
     ed.add_argument("--data", type=Path, default=None, metavar="DATA_DIR", help="input views for image_l1 / image_l2")
     add_view_arguments(ed, "train")
     ed.set_defaults(run=cmd_edit)

@@ -14,8 +14,8 @@ from pathlib import Path
 
 from voxe_core import constants as paper
 from voxe_core.cli.common import (
-    EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, check_device, load_guidance, positive_int, run_stage,
-    seed, writable_folder,
+    EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, check_device, load_guidance,
+    non_negative_int, positive_int, run_stage, seed, writable_folder,
 )
 from voxe_core.presets import SEED, refine_config
 
@@ -35,7 +35,7 @@ def add_parsers(commands, common) -> None:
     add_grid_output_arguments(ref)
     add_model_arguments(ref, "--model", "diffusers-layout Stable Diffusion for the cross-attention maps",
                         paper.ATTENTION_MODEL_ID)
-    ref.add_argument("--iterations", type=int, default=paper.SERVICE_REFINE_ITERATIONS,
+    ref.add_argument("--iterations", type=non_negative_int, default=paper.SERVICE_REFINE_ITERATIONS,
                      help=f"attention-grid fitting steps after the back-projection start (the paper: {paper.REFINE_ITERATIONS})")
     ref.add_argument("--lift-start", choices=("backprojection", "constant"), default="backprojection",
                      help="start of the attention grids: the maps' weighted back-projection, or 0 everywhere (the paper's fit)")
@@ -46,11 +46,11 @@ def add_parsers(commands, common) -> None:
     ref.add_argument("--render-size", type=positive_int, default=paper.RENDER_SIZE, help="render / attention-map size in pixels")
     ref.add_argument("--views", type=positive_int, default=paper.REFINE_VIEWS, help="random upper-hemisphere views for the 2D maps")
     ref.add_argument("--rays", type=positive_int, default=paper.REFINE_RAYS_PER_STEP, help="rays per attention-grid step")
-    ref.add_argument("--edit-seeds", type=int, default=paper.EDIT_SEEDS,
+    ref.add_argument("--edit-seeds", type=non_negative_int, default=paper.EDIT_SEEDS,
                      help="voxels tied to the 'edit' terminal: every voxel with P_edit >= 0.992 max P_edit, topped "
                           "up to this many by the highest P_edit, then only those more likely edit than object "
                           "(the authors' code)")
-    ref.add_argument("--object-seeds", type=int, default=paper.SERVICE_OBJECT_SEEDS,
+    ref.add_argument("--object-seeds", type=non_negative_int, default=paper.SERVICE_OBJECT_SEEDS,
                      help="up to this many voxels tied to the 'object' terminal, drawn at random (--seed) among "
                           f"P_object > P_edit + {paper.SERVICE_OBJECT_SEED_MARGIN} (the authors' code: among "
                           f"P_object > P_edit; the paper's text: the top {paper.OBJECT_SEEDS} by P_object)")
@@ -59,7 +59,7 @@ def add_parsers(commands, common) -> None:
     ref.add_argument("--no-view-words", action="store_true",
                      help="the edit ran with voxe edit --no-view-words: its attention prompt has none either (as "
                           "the service's view_words does for both stages)")
-    ref.add_argument("--preview-views", type=int, default=4, help="ring views rendered as PNGs (0: none)")
+    ref.add_argument("--preview-views", type=non_negative_int, default=4, help="ring views rendered as PNGs (0: none)")
     ref.add_argument("--seed", type=seed, default=SEED)
     ref.set_defaults(run=cmd_refine)
 
@@ -83,8 +83,6 @@ def cmd_refine(args) -> int:
     from voxe_core.refine.renders import render_attention, render_mask_overlay
     from voxe_core.refine.storage import save_mask, save_probabilities
 
-    if args.iterations < 0 or args.preview_views < 0:
-        raise ValueError("--iterations and --preview-views must be non-negative")
     words = [w.strip() for w in args.edit_words.split(",") if w.strip()]
     if not words:
         raise ValueError("--edit-words names no word")
