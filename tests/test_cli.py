@@ -473,6 +473,29 @@ def test_progress_off_a_terminal_is_a_line_now_and_then_not_ten_redraws_a_second
     assert capsys.readouterr().err.count("\r") == 2
 
 
+@pytest.mark.parametrize("terminal", [False, True])
+def test_a_resumed_stages_bar_rates_only_the_steps_it_saw(terminal, capsys, monkeypatch):
+    """A fit resumed at 300 of 400 had its first report counted as 301 steps done at once: 67 it/s shown for a real
+    30 (and the time left with it) in a log, and on a terminal too until the average forgot the jump."""
+    import re
+
+    from voxe_core.cli.common import progress_callbacks
+    from voxe_core.progress import Progress
+
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: terminal)
+    with progress_callbacks("fit", total=400) as callbacks:
+        for i in range(301, 306):  # 4 steps in 0.2 s after the first report: 20 it/s
+            callbacks.progress(Progress("fit", i, 400))
+            time.sleep(0.05)
+        quiet_counts = progress_callbacks("fit", quiet=True)  # a disabled bar takes reports too
+        with quiet_counts as quiet:
+            quiet.progress(Progress("fit", 301, 400))
+    last = capsys.readouterr().err.split("\r")[-1]
+    assert "305/400" in last
+    rate = float(re.search(r"([0-9.]+)it/s", last).group(1))
+    assert 5 < rate < 30, last
+
+
 def test_the_bar_on_a_terminal_stays_on_one_row_and_leaves_nothing_of_a_longer_line(monkeypatch, capsys):
     """Redrawn in place (a carriage return), a shorter line had left the end of the one before on screen (a phase
     long done), and one wider than the terminal wrapped, so the next redraw began on the wrapped row."""

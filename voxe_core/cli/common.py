@@ -65,7 +65,9 @@ of carriage-returned lines."""
 def progress_callbacks(
     desc: str, unit: str = "it", should_cancel=None, quiet: bool = False, total: int | None = None
 ):
-    """Callbacks whose ``on_progress`` drives one tqdm bar (total and losses taken from each report)."""
+    """Callbacks whose ``on_progress`` drives one tqdm bar (total and losses taken from each report). The bar's
+    rate, and so its time left, counts the steps done since its first report: a resumed stage's first report stands
+    where its checkpoint did, and counted as done in the moment it took had shown several times the real rate."""
     from tqdm import tqdm
 
     from voxe_core.progress import Callbacks, Progress
@@ -75,9 +77,15 @@ def progress_callbacks(
                mininterval=PROGRESS_INTERVAL_S if terminal else LOG_PROGRESS_INTERVAL_S,
                **({} if terminal else {"maxinterval": LOG_PROGRESS_INTERVAL_S}))
 
+    reported = False
+
     def on_progress(report: Progress) -> None:
+        nonlocal reported
         if bar.total != report.total:
             bar.total = report.total
+        if not reported and not bar.disable:  # the first report: where the stage starts from
+            bar.initial = bar.n = bar.last_print_n = report.iteration
+        reported = True
         postfix = {k: f"{v:.4f}" for k, v in report.losses.items()}
         for key in ("stage", "resolution"):
             if key in report.info:
