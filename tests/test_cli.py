@@ -588,6 +588,10 @@ def test_options_a_command_would_ignore_are_refused(tmp_path, capsys):
                  "--out", str(tmp_path / "g" / "g.safetensors")]) == 2
     assert "--checkpoint-every sets how often --checkpoint is written; without --checkpoint none is" in \
         capsys.readouterr().err
+    # the grid written at the end had replaced the checkpoint, which a --resume then refused as a grid
+    assert main(["reconstruct", str(tmp_path), "--checkpoint", str(tmp_path / "g" / "g.safetensors"),
+                 "--out", str(tmp_path / "g" / ".." / "g" / "g.safetensors")]) == 2
+    assert "--checkpoint and --out both name" in capsys.readouterr().err
     assert not any((tmp_path / name).exists() for name in ("r", "e", "m", "g"))
 
 
