@@ -859,6 +859,12 @@ def test_turntable_gif_and_bad_suffix(make_sphere_grid, sphere_file, tmp_path, c
     with Image.open(gif) as im:
         assert im.size == (16, 16) and im.n_frames == 3
         assert im.info["loop"] == 0 and im.info["duration"] == 200
+    assert capsys.readouterr().out == f"wrote {gif}: 3 frames of 16x16\n"
+    assert main(["turntable", str(moving), "--out", str(gif), "--frames", "6", "--size", "16", "--fps", "120",
+                 "--quiet"]) == 0  # every 3rd frame kept (it had said "6 frames")
+    with Image.open(gif) as im:
+        assert im.n_frames == 2
+    assert capsys.readouterr().out == f"wrote {gif}: 6 frames of 16x16 (2 of them shown: a GIF plays at most 50 fps)\n"
     assert main(["turntable", str(sphere_file), "--out", str(tmp_path / "tt.webm"), "--quiet"]) == 2
     assert "'.webm'" in capsys.readouterr().err
 

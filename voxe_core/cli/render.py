@@ -119,7 +119,9 @@ def _report_metrics(frames, scene, names, out_dir: Path) -> None:
 
 def cmd_turntable(args) -> int:
     from voxe_core.backbones import load_grid
-    from voxe_core.export import check_video_output, render_views, turntable_cameras, write_video
+    from voxe_core.export import (
+        GIF_MIN_DELAY_CS, check_video_output, gif_timeline, render_views, turntable_cameras, write_video,
+    )
 
     check_video_output(args.out, args.fps)  # fail before rendering, not after
     device = check_device(args)
@@ -133,5 +135,8 @@ def cmd_turntable(args) -> int:
         print("voxe: turntable cancelled, nothing written", file=sys.stderr)
         return EXIT_INTERRUPTED
     write_video(args.out, frames, fps=args.fps)
-    print(f"wrote {args.out}: {args.frames} frames of {args.size}x{args.size}")
+    shown = len(gif_timeline(args.frames, args.fps)[0]) if args.out.suffix.lower() == ".gif" else args.frames
+    kept = "" if shown == args.frames else (f" ({shown} of them shown: a GIF plays at most "
+                                            f"{100 // GIF_MIN_DELAY_CS} fps)")  # (it had said all were in it)
+    print(f"wrote {args.out}: {args.frames} frames of {args.size}x{args.size}{kept}")
     return 0
