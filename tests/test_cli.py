@@ -560,7 +560,7 @@ def test_wait_in_a_log_says_each_state_stage_and_phase_at_once(monkeypatch, caps
     ]
 
 
-def test_options_a_command_would_ignore_are_refused(tmp_path, capsys):
+def test_options_a_command_would_ignore_are_refused(sphere_file, tmp_path, capsys):
     """render --data had taken --size / --elevation / --centre-of and rendered the dataset's cameras anyway;
     convert-grid --dense had taken --margin and written every vertex."""
     grid = str(tmp_path / "g.safetensors")
@@ -592,6 +592,12 @@ def test_options_a_command_would_ignore_are_refused(tmp_path, capsys):
     assert main(["reconstruct", str(tmp_path), "--checkpoint", str(tmp_path / "g" / "g.safetensors"),
                  "--out", str(tmp_path / "g" / ".." / "g" / "g.safetensors")]) == 2
     assert "--checkpoint and --out both name" in capsys.readouterr().err
+    # a --resume that is no checkpoint had been said only once the dataset was read (here: no dataset at all)
+    for resume, message in ((tmp_path / "missing.safetensors", "no such file"),
+                            (sphere_file, "holds a 'voxel_grid', expected a 'reconstruction_checkpoint'")):
+        assert main(["reconstruct", str(tmp_path), "--resume", str(resume),
+                     "--out", str(tmp_path / "g" / "g.safetensors")]) == 2
+        assert f"{resume}: {message}" in capsys.readouterr().err
     assert not any((tmp_path / name).exists() for name in ("r", "e", "m", "g"))
 
 

@@ -68,7 +68,8 @@ def job_params(args: argparse.Namespace) -> dict:
 
 
 def cmd_reconstruct(args) -> int:
-    from voxe_core.reconstruct import reconstruct
+    from voxe_core.reconstruct import CHECKPOINT_FORMAT_VERSION, CHECKPOINT_KIND, reconstruct
+    from voxe_core.tensorio import load_header
 
     if args.checkpoint_every is not None and args.checkpoint is None:  # (it had been taken and ignored)
         raise ValueError("--checkpoint-every sets how often --checkpoint is written; without --checkpoint none is")
@@ -81,6 +82,8 @@ def cmd_reconstruct(args) -> int:
             writable_file(path)
     params = reconstruction_params(job_params(args))
     reconstruction_key(params)  # iterations that fit no backbone's preset are refused before any data is read
+    if args.resume is not None:  # as is a --resume that is no checkpoint (missing, a grid: said after the data)
+        load_header(args.resume, CHECKPOINT_KIND, CHECKPOINT_FORMAT_VERSION)
     scene = load_views(args)
     every = CHECKPOINT_EVERY if args.checkpoint_every is None else args.checkpoint_every
     backbone, config, cameras, initial = fit_setup(params, scene.alphas, scene.cameras, every if args.checkpoint else 0)
