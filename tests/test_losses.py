@@ -44,16 +44,24 @@ def test_invariant_to_positive_affine_maps_of_edited():
     assert float(correlation_loss(a, b * 0.001 - 7)) == pytest.approx(float(base), abs=1e-5)
 
 
+def _loss_and_float64_reference(initial, edited):
+    """correlation_loss(initial, edited) and 1 - Pearson's r in float64 of the same values, each with its gradient
+    in ``edited``: (loss, reference, gradient, float64 gradient)."""
+    edited = edited.detach().requires_grad_(True)
+    loss = correlation_loss(initial, edited)
+    loss.backward()
+    edited64 = edited.detach().double().requires_grad_(True)
+    reference = 1 - _pearson64(initial, edited64)
+    reference.backward()
+    return loss.item(), reference.item(), edited.grad, edited64.grad
+
+
 def test_matches_float64_pearson_value_and_gradient():
     a = _grid(0)
-    b = (0.5 * a + _grid(1)).requires_grad_(True)
-    loss = correlation_loss(a, b)
-    loss.backward()
-    b64 = b.detach().double().requires_grad_(True)
-    ref = 1 - _pearson64(a, b64)
-    ref.backward()
-    assert loss.item() == pytest.approx(ref.item(), abs=1e-6)
-    torch.testing.assert_close(b.grad.double(), b64.grad, rtol=1e-4, atol=1e-7)
+    b = 0.5 * a + _grid(1)
+    loss, ref, grad, grad64 = _loss_and_float64_reference(a, b)
+    assert loss == pytest.approx(ref, abs=1e-6)
+    torch.testing.assert_close(grad.double(), grad64, rtol=1e-4, atol=1e-7)
 
 
 def test_negated_grid_gives_two():
@@ -117,14 +125,9 @@ def test_near_constant_grids_match_a_float64_reference_of_the_same_values(dtype,
     edited = (offset + spread * (0.6 * base + 0.8 * torch.randn(base.shape, generator=generator,
                                                                 dtype=torch.float64))).to(dtype)
     assert 2 <= len(initial.unique()) <= 100  # near-constant, not constant
-    edited.requires_grad_(True)
-    loss = correlation_loss(initial, edited)
-    loss.backward()
-    edited64 = edited.detach().double().requires_grad_(True)
-    reference = 1 - _pearson64(initial, edited64)
-    reference.backward()
-    assert loss.item() == pytest.approx(reference.item(), rel=1e-5)
-    torch.testing.assert_close(edited.grad.double(), edited64.grad.to(dtype).double(), rtol=1e-2, atol=0.0)
+    loss, reference, grad, grad64 = _loss_and_float64_reference(initial, edited)
+    assert loss == pytest.approx(reference, rel=1e-5)
+    torch.testing.assert_close(grad.double(), grad64.to(dtype).double(), rtol=1e-2, atol=0.0)
 
 
 def test_autocast_bf16_inputs_compute_in_float32():

@@ -199,19 +199,23 @@ def test_the_authors_code_maps_but_normalised_and_its_fit_are_the_default_and_th
     RefineConfig(**AUTHORS_CODE_FIT)
 
 
+def _refine_cli(tmp_path, make_sphere_grid, *options: str) -> int:
+    """``voxe refine`` of an 8³ sphere against itself into ``tmp_path / "out"`` with ``options``, no model at hand:
+    its exit status."""
+    make_sphere_grid(8).save(tmp_path / "grid.safetensors")
+    return main(["refine", str(tmp_path / "grid.safetensors"), "--initial", str(tmp_path / "grid.safetensors"),
+                 "--prompt", "a dog wearing a party hat", "--edit-words", "hat", "--out", str(tmp_path / "out"),
+                 "--model", str(tmp_path / "no_model_needed"), "--offline", "--device", "cpu", *options, "--quiet"])
+
+
 def test_a_constant_start_without_fitting_steps_is_refused_before_any_work(tmp_path, make_sphere_grid, capsys):
     # Both grids would stay at init_value: P_e = P_obj = 1/2 at every voxel, no seed, a SegmentationError at the cut,
     # after every attention pass (a job's: after its whole edit). The service's 0 steps suit only the back-projection.
     with pytest.raises(ValueError, match="lift_start='constant' with no fitting iterations .* no seeds"):
         RefineConfig(lift_start="constant", iterations=0, fit_views="fixed", fit_pixels="all")
     RefineConfig(lift_start="backprojection", iterations=0)
-    grid = make_sphere_grid(8)
-    grid.save(tmp_path / "grid.safetensors")
     out = tmp_path / "out"
-    assert main(["refine", str(tmp_path / "grid.safetensors"), "--initial", str(tmp_path / "grid.safetensors"),
-                 "--prompt", "a dog wearing a party hat", "--edit-words", "hat", "--out", str(out),
-                 "--model", str(tmp_path / "no_model_needed"), "--offline", "--device", "cpu",
-                 "--lift-start", "constant", "--quiet"]) == 2
+    assert _refine_cli(tmp_path, make_sphere_grid, "--lift-start", "constant") == 2
     assert "no seeds" in capsys.readouterr().err and not out.exists()  # refused before the model is looked for
 
 
@@ -222,13 +226,8 @@ def test_renders_under_8_px_are_refused_before_any_work(tmp_path, make_sphere_gr
     with pytest.raises(ValueError, match=f"render_size must be at least 8 px, got {size}"):
         RefineConfig(render_size=size)
     assert RefineConfig(render_size=8).render_size == 8
-    grid = make_sphere_grid(8)
-    grid.save(tmp_path / "grid.safetensors")
     out = tmp_path / "out"
-    assert main(["refine", str(tmp_path / "grid.safetensors"), "--initial", str(tmp_path / "grid.safetensors"),
-                 "--prompt", "a dog wearing a party hat", "--edit-words", "hat", "--out", str(out),
-                 "--model", str(tmp_path / "no_model_needed"), "--offline", "--device", "cpu",
-                 "--render-size", str(size), "--quiet"]) == 2
+    assert _refine_cli(tmp_path, make_sphere_grid, "--render-size", str(size)) == 2
     assert f"render_size must be at least 8 px, got {size}" in capsys.readouterr().err and not out.exists()
 
 
