@@ -11,7 +11,6 @@ in 25 s, 47 CPU s, its six seeds 30.63–30.70 dB).
 
 from __future__ import annotations
 
-import hashlib
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -391,22 +390,34 @@ def camera_clear_rows(grid: VoxelGrid, cameras: Cameras, clearance: float) -> to
     return grid.rows_within(centres, clearance * centres.norm(dim=-1))
 
 
-def views_fingerprint(images: torch.Tensor, cameras: Cameras) -> str:
-    """Short SHA-256 of the images a fit sees and of their cameras: a checkpoint only resumes a fit to the views it
-    was made from."""
-    digest = hashlib.sha256(f"{cameras.width}x{cameras.height} {cameras.distortion_model}".encode())
-    extra = () if cameras.distortion is None else (cameras.distortion,)
-    for tensor in (images, cameras.c2w, cameras.fx, cameras.fy, cameras.cx, cameras.cy, *extra):
-        digest.update(tensor.detach().to("cpu", torch.float32).contiguous().numpy())
-    return digest.hexdigest()[:32]
+def views_summary(images: torch.Tensor, cameras: Cameras) -> torch.Tensor:
+    """What a checkpoint records of the views its fit sees, so that it resumes only a fit to them: per view (a row of
+    the (N, 57) float64 result, (N, 63) with lens terms), its mean colour over a 4 x 4 grid of blocks, the image
+    size and its camera (centre, focal lengths, principal point, lens terms).
+
+    Values compared within a tolerance (:func:`_same_views`), not a hash: a capture's images resampled on another
+    worker differ in their last bits (torch's CPU vector paths), and a hash had refused such a worker its
+    checkpoint. Another dataset, split, downsampling or image count differs far beyond them.
+    """
+    blocks = F.adaptive_avg_pool2d(images.detach().permute(0, 3, 1, 2), 4).flatten(1).to("cpu", torch.float64)
+    size = torch.tensor([[cameras.width, cameras.height]], dtype=torch.float64).expand(len(images), 2)
+    camera = [cameras.c2w[:, :3, 3], cameras.fx[:, None], cameras.fy[:, None], cameras.cx[:, None],
+              cameras.cy[:, None], *(() if cameras.distortion is None else (cameras.distortion,))]
+    return torch.cat([blocks, size, *(part.detach().to("cpu", torch.float64) for part in camera)], dim=1)
+
+
+def _same_views(recorded: torch.Tensor, summary: torch.Tensor) -> bool:
+    """Whether two :func:`views_summary` describe the same views (to 1e-4: far above the last bits of a float32 mean
+    over a block, far below another image's)."""
+    return recorded.shape == summary.shape and torch.allclose(recorded.double(), summary, rtol=1e-4, atol=1e-4)
 
 
 def save_checkpoint(
     path, grid, optimizer, generator, occupancy_cells, stage: int, iteration: int, average: _IterateAverage | None = None,
-    recipe: dict | None = None, views_sha256: str | None = None,
+    recipe: dict | None = None, views: torch.Tensor | None = None,
 ) -> None:
     """Everything a fit goes on from (grid, Adam's state, generator, occupancy, the iterate average), where it stands,
-    the :meth:`ReconstructConfig.recipe` it was made with and the :func:`views_fingerprint` of what it fits
+    the :meth:`ReconstructConfig.recipe` it was made with and the :func:`views_summary` of what it fits
     (tensorio, no pickle)."""
     state = optimizer.state[grid.flat_features]
     tensors = {
@@ -417,10 +428,10 @@ def save_checkpoint(
         "adam_step": torch.tensor([int(state["step"])]),
         "rng_state": generator.get_state(),
         "occupancy": occupancy_cells.to(torch.uint8),
+        **({} if views is None else {"views": views}),
     }
     meta = {**grid.header(), "stage": stage, "iteration": iteration, "device": generator.device.type,
-            **({} if recipe is None else {"recipe": recipe}),
-            **({} if views_sha256 is None else {"views_sha256": views_sha256})}
+            **({} if recipe is None else {"recipe": recipe})}
     save_tensors(path, tensors, kind=CHECKPOINT_KIND, version=CHECKPOINT_FORMAT_VERSION, meta=meta)
 
 
@@ -436,15 +447,15 @@ def _reseeded_generator(device: torch.device, seed: int, stage: int, iteration: 
     return _sampling_generator(device, hash((seed, stage, iteration)) % 2**63)
 
 
-def _resume(path, config: ReconstructConfig, device: torch.device, views_sha256: str):
+def _resume(path, config: ReconstructConfig, device: torch.device, views: torch.Tensor):
     """What a fit resumed from the checkpoint at ``path`` starts from: its grid, sampling generator, stage and
     iteration, and the optimizer, occupancy and average tensors its stage takes over (:func:`_take_over`), on
     ``device``. Nothing else of the file outlives the call. FormatError for a checkpoint that cannot be applied
     (the worker then starts the fit over, the CLI exits 2), such as one of a fit to other views than those of
-    ``views_sha256`` (another dataset's, split's or downsampling's had gone on silently; a checkpoint older than
+    ``views`` (another dataset's, split's or downsampling's had gone on silently; a checkpoint older than
     the field resumes, as one older than recipes)."""
     tensors, meta = load_checkpoint(path)
-    if meta.get("views_sha256", views_sha256) != views_sha256:
+    if "views" in tensors and not _same_views(tensors["views"], views):
         raise FormatError(f"{path}: the checkpoint is of a fit to other images or cameras (another dataset, split, "
                           "downsampling or image count): resume with the views it was made from, or start afresh")
     grid = grid_from_state(tensors, meta)
@@ -526,7 +537,7 @@ def reconstruct(
     check_views(images, cameras)
     device = resolve_device(device)
     memory = PeakMemory(device).start()
-    views_sha256 = views_fingerprint(images, cameras) if (checkpoint_path or resume_from) else None
+    views = views_summary(images, cameras) if (checkpoint_path or resume_from) else None
     images, cameras = images.to(device, torch.float32), cameras.to(device)
     if resume_from is None:
         start_stage, start_iteration, resumed = 0, 0, None
@@ -535,11 +546,11 @@ def reconstruct(
             config.resolutions[0], config.bbox_min, config.bbox_max, config.activation, init_density=config.init_density
         )).to(device)
     else:
-        grid, generator, start_stage, start_iteration, resumed = _resume(resume_from, config, device, views_sha256)
+        grid, generator, start_stage, start_iteration, resumed = _resume(resume_from, config, device, views)
 
     def checkpoint(stage: int, iteration: int) -> None:
         save_checkpoint(checkpoint_path, grid, optimizer, generator, occupancy.cells, stage, iteration, average,
-                        config.recipe(), views_sha256)
+                        config.recipe(), views)
         callbacks.checkpoint_written(str(checkpoint_path))
 
     total = config.total_iterations
