@@ -125,6 +125,30 @@ def test_skipping_drops_no_more_in_a_far_cell_than_in_a_foreground_cell():
     assert (skip_density[-1] == 0).all()  # the outermost shell reaches infinity
 
 
+def test_a_softplus_scene_grid_keeps_its_occupancy_through_a_sparse_file_and_no_empty_shell(tmp_path):
+    """Two flaws of the per-cell skip density: softplus is never 0, so the outermost shell (skipped only at density
+    0) counted as occupied wherever it was empty (an object's file 15x larger, nothing culled); and the sparse
+    file's fill, the mean of densities just under the foreground's threshold, passed the background cells' lower
+    ones, occupying them on loading."""
+    n = 33
+    grid = SceneGrid(n, activation="softplus")
+    axis = torch.linspace(-2, 2, n)
+    r = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).abs().amax(-1)
+    # vertices at 0.9 of the lowered threshold of any cell they are a corner of; the room beyond 1.5; an object
+    below = 0.9 * VoxelGrid.skip_density(grid, 1e-3) * (2 - (r + 4 / (n - 1)).clamp(min=1.0)).clamp(min=0).square()
+    density = torch.where(r >= 1.5, 1.0, below).clamp(min=1e-30)
+    density[(r <= 0.2)] = 5.0
+    with torch.no_grad():
+        grid.features[..., 0] = torch.log(torch.expm1(density)) / grid.density_scale
+    grid.save(tmp_path / "room.safetensors")
+    assert torch.equal(load_grid(tmp_path / "room.safetensors").occupancy(1e-3).cells, grid.occupancy(1e-3).cells)
+
+    with torch.no_grad():  # empty space but the object
+        grid.features[..., 0] = torch.where(r <= 0.2, 5.0, grid.empty_raw_density)
+    occupancy = grid.occupancy(1e-3)
+    assert int(occupancy.cells.sum()) == 4 ** 3 and float(occupancy.bbox_max.abs().max()) < 0.5
+
+
 def test_gradients_reach_the_background_shell():
     grid = SceneGrid(9)
     origins, directions = torch.tensor([[0.0, 0.0, 0.0]]), torch.tensor([[1.0, 0.0, 0.0]])

@@ -130,8 +130,8 @@ class SceneGrid(VoxelGrid):
         foreground cell's world length (the inverse contraction's largest stretch, radial), so its
         density is multiplied by (2 − r)²: no cell is skipped with more optical depth along a ray than a
         foreground cell can hold, and none of the outermost shell (r = 2, reaching infinity) that holds
-        any. One density for all had skipped far bins hundreds of units long: a uniform 3.3e-4 rendered
-        opacity 0 instead of 0.84.
+        any (more than empty space's, under softplus). One density for all had skipped far bins hundreds of
+        units long: a uniform 3.3e-4 rendered opacity 0 instead of 0.84.
         """
         density = super().skip_density(sigma_threshold)
         per_axis = []  # (2 − r)² falls as r grows: at r = the largest |coordinate|, the least of the axes' factors
@@ -139,8 +139,11 @@ class SceneGrid(VoxelGrid):
             vertices = torch.linspace(-CONTRACTED_EXTENT, CONTRACTED_EXTENT, n, device=self.bbox_min.device).abs()
             farthest = torch.maximum(vertices[:-1], vertices[1:])
             per_axis.append(density * (CONTRACTED_EXTENT - farthest).clamp(max=1.0).square())
+        # At least what empty space activates to: softplus is never 0, and its whole outermost shell had counted
+        # as occupied (an object's sparse file 15x larger, nothing culled).
+        none = float(self.activate_density(torch.tensor(self.empty_raw_density)))
         return torch.minimum(torch.minimum(per_axis[0][:, None, None], per_axis[1][None, :, None]),
-                             per_axis[2][None, None, :])
+                             per_axis[2][None, None, :]).clamp_min(none)
 
     def occupancy_from_cells(self, cells: torch.Tensor) -> Occupancy:
         """The cells with their box in the canonical frame (callers cull world rays with it).
