@@ -224,6 +224,7 @@ def test_resume_refuses_a_checkpoint_of_a_fit_to_other_views(tmp_path, stopped_f
     images, cams = synthetic_views()
     for other_images, other_cams in [(images * 0.9, cams),  # other images seen from the same cameras
                                      (images, replace(cams, fx=cams.fx * 1.01)),  # the same images, other cameras
+                                     (images, replace(cams, c2w=cams.c2w * torch.tensor([1.0, -1.0, -1.0, 1.0]))),
                                      synthetic_views(n=5)]:  # fewer views
         with pytest.raises(FormatError, match="checkpoint is of a fit to other images or cameras"):
             reconstruct(other_images, other_cams, config, Callbacks(on_progress=pytest.fail), resume_from=checkpoint)

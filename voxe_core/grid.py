@@ -561,6 +561,16 @@ class VoxelGrid(torch.nn.Module):
         """
         return self.occupancy_above(self.skip_density(sigma_threshold))
 
+    def _unoccupied_raw_density(self) -> float:
+        """The highest raw density the cells :meth:`save` leaves out may all hold and stay so on loading: 0 under
+        ReLU (its cells are those above 0), else the one activating to the lowest skip density of any cell (one
+        for all in a box; a scene grid's background lowers its own)."""
+        if self.activation == "relu":
+            return 0.0
+        lowest = float(torch.as_tensor(self.skip_density(1e-3)).min())
+        return math.log(math.expm1(lowest)) / self.density_scale if lowest > 0 else -math.inf
+
+
     def skip_density(self, sigma_threshold: float) -> float | torch.Tensor:
         """The absolute density :meth:`occupancy` skips cells below: one for all cells (another backbone may
         give one per cell, (X-1, Y-1, Z-1))."""
@@ -622,7 +632,7 @@ class VoxelGrid(torch.nn.Module):
         tensors, meta = self.state_tensors(), {**self.header(), "layout": "dense"}
         if not dense:
             cells = (self.occupancy_above(0.0) if self.activation == "relu" else self.occupancy()).cells
-            packed, layout = sparse_tensors(tensors["features"], cells, margin)
+            packed, layout = sparse_tensors(tensors["features"], cells, margin, self._unoccupied_raw_density())
             if payload_bytes(packed) < payload_bytes({"features": tensors["features"]}):
                 tensors = {**{k: v for k, v in tensors.items() if k != "features"}, **packed}
                 meta = {**meta, **layout}

@@ -3,7 +3,7 @@
 A grid is 0.7–5 % occupied, yet its dense file is 16 bytes per vertex everywhere
 (33.5 MB at 128³). The ``sparse`` layout keeps the vertices of every occupied
 cell and of the cells within ``margin`` of one, bit-packed as a mask in C order,
-and one ``fill`` value for all the others (their mean; their lowest density). Cells the renderer
+and one ``fill`` value for all the others (their mean). Cells the renderer
 renders read only stored vertices, so a loaded grid has the same occupancy
 and renders identically; every stored vertex round-trips bit for bit. A
 softplus grid's occupied cells are those above the default ``sigma_threshold``
@@ -68,14 +68,16 @@ def stored_vertices(cells: torch.Tensor, margin: int) -> torch.Tensor:
     return vertices
 
 
-def sparse_tensors(features: torch.Tensor, cells: torch.Tensor, margin: int = DEFAULT_MARGIN) -> tuple[dict, dict]:
+def sparse_tensors(features: torch.Tensor, cells: torch.Tensor, margin: int = DEFAULT_MARGIN,
+                   unoccupied_density: float = math.inf) -> tuple[dict, dict]:
     """The sparse layout of ``features`` (X, Y, Z, C) keeping the cells ``cells`` (X-1, Y-1, Z-1) plus ``margin``.
 
     Returns (tensors, header fields: layout, margin, resolution). ``fill`` is the mean of the vertices left
-    out, but for the density: their lowest. Each left out has a density no occupied cell needs, and with the lowest
-    no cell's corner maximum can rise, so no cell is occupied on loading under any threshold, one for all or one
-    per cell (a scene grid's background: the mean of densities just under the foreground's threshold had occupied
-    background cells whose own is lower). The mean is kept within their range (float32's rounding can leave it). A channel whose left-out vertices all hold one value (a loaded file's ``fill``) keeps
+    out: each of those has a density no occupied cell needs, and a mean of values below a threshold stays below it.
+    Its density is at most ``unoccupied_density`` (the highest raw density no cell's threshold counts as occupied:
+    ``VoxelGrid.save`` passes it), so no cell is occupied on loading under thresholds that differ per cell (a scene grid's background:
+    the mean of densities just under the foreground's threshold had occupied background cells whose own is lower).
+    The mean is kept within their range (float32's rounding can leave it). A channel whose left-out vertices all hold one value (a loaded file's ``fill``) keeps
     it exactly, so saving a loaded grid again writes the same ``fill`` (float32's mean of N copies is not the value:
     it had drifted by a few ulps at each sparse -> dense -> sparse conversion; a float64 sum, exact, took 10x the
     mean's time). Where the mean is not finite (an infinity, or one NaN spreading to every vertex left out) it is
@@ -90,13 +92,11 @@ def sparse_tensors(features: torch.Tensor, cells: torch.Tensor, margin: int = DE
     if dropped.shape[0]:  # one value in a channel (lowest == highest): that value, not float32's mean of it
         lowest, highest = torch.aminmax(dropped, dim=0)
         fill = torch.where(lowest == highest, lowest, dropped.mean(0).clamp(lowest, highest))
-        fill[0] = lowest[0]
     if not bool(torch.isfinite(fill).all()):  # an infinity, or a NaN among them: the careful mean, only then
         extreme = torch.finfo(torch.float32).max
         dropped.clamp_(-extreme, extreme)  # a copy (mask indexing), clamped in place; NaN stays NaN
         fill = (torch.nansum(dropped, 0, dtype=torch.float64) / (~dropped.isnan()).sum(0).clamp_min(1)).float()
-        density = dropped[:, 0][~dropped[:, 0].isnan()]
-        fill[0] = density.amin() if density.numel() else 0.0
+    fill[0] = fill[0].clamp(max=unoccupied_density)
     bits = torch.from_numpy(np.packbits(mask.numpy().reshape(-1)))
     layout = {"layout": "sparse", "margin": int(margin), "resolution": list(features.shape[:3])}
     return {"stored_bits": bits, "values": features[mask], "fill": fill}, layout

@@ -392,8 +392,8 @@ def camera_clear_rows(grid: VoxelGrid, cameras: Cameras, clearance: float) -> to
 
 def views_summary(images: torch.Tensor, cameras: Cameras) -> torch.Tensor:
     """What a checkpoint records of the views its fit sees, so that it resumes only a fit to them: per view (a row of
-    the (N, 57) float64 result, (N, 63) with lens terms), its mean colour over a 4 x 4 grid of blocks, the image
-    size and its camera (centre, focal lengths, principal point, lens terms).
+    the (N, 66) float64 result, (N, 72) with lens terms), its mean colour over a 4 x 4 grid of blocks, the image
+    size and its camera (pose, focal lengths, principal point, lens terms).
 
     Values compared within a tolerance (:func:`_same_views`), not a hash: a capture's images resampled on another
     worker differ in their last bits (torch's CPU vector paths), and a hash had refused such a worker its
@@ -401,7 +401,7 @@ def views_summary(images: torch.Tensor, cameras: Cameras) -> torch.Tensor:
     """
     blocks = F.adaptive_avg_pool2d(images.detach().permute(0, 3, 1, 2), 4).flatten(1).to("cpu", torch.float64)
     size = torch.tensor([[cameras.width, cameras.height]], dtype=torch.float64).expand(len(images), 2)
-    camera = [cameras.c2w[:, :3, 3], cameras.fx[:, None], cameras.fy[:, None], cameras.cx[:, None],
+    camera = [cameras.c2w[:, :3, :].flatten(1), cameras.fx[:, None], cameras.fy[:, None], cameras.cx[:, None],
               cameras.cy[:, None], *(() if cameras.distortion is None else (cameras.distortion,))]
     return torch.cat([blocks, size, *(part.detach().to("cpu", torch.float64) for part in camera)], dim=1)
 
