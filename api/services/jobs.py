@@ -9,7 +9,6 @@ holding a worker). A failed scene refuses new jobs with a 409 naming its reason.
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable
 
 from fastapi import HTTPException, status
 from sqlalchemy import delete, func, select, update
@@ -199,16 +198,6 @@ def _scene_deleted(jobs: list[Job]) -> HTTPException:
     return HTTPException(status.HTTP_404_NOT_FOUND, f"scene {scenes} was deleted while the job was created")
 
 
-def send(*, session: Session, queue: TaskQueue, jobs: Iterable[Job]) -> None:
-    """Hand each job's chain (with the evaluations following it) to the broker; 503 when it is down (the jobs left
-    as they are, for the caller to withdraw: ``dispatch_job``)."""
-    for job in jobs:
-        try:
-            dispatch_job(session, queue, job, fail_refused=False)
-        except QueueUnavailable as exc:
-            raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(exc)) from None
-
-
 def create_job(*, session: Session, settings: Settings, queue: TaskQueue, key: ApiKey, body: JobCreate,
                idempotency_key: str | None) -> tuple[Job, bool]:
     """Record and queue an edit job; (the job, whether this was a replay of an earlier request)."""
@@ -242,13 +231,14 @@ def submit(*, session: Session, settings: Settings, queue: TaskQueue, key: ApiKe
             return replayed, True  # a concurrent retry created it first
         raise
     try:
-        send(session=session, queue=queue, jobs=to_send)
-    except HTTPException:  # 503: the broker refused it, so the job was never accepted (no failed event or webhook)
+        for queued in to_send:  # its chain, with the evaluations following it (none while it waits for its scene)
+            dispatch_job(session, queue, queued, fail_refused=False)
+    except QueueUnavailable as exc:  # 503: the broker refused it, so the job was never accepted (no failed event)
         session.execute(delete(Job).where(Job.id == job_id))  # nothing listed; a retry with the key runs anew
         if idem is not None:
             idem.forget(session, key)
         session.commit()
-        raise
+        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(exc)) from None
     if idem is not None:  # only now may a retry replay it (Idempotency.replayed)
         idem.answered(session, key)
         session.commit()
