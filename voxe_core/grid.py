@@ -34,6 +34,7 @@ from voxe_core.volrend import RaySamples, optical_depth, transmittance
 
 GRID_KIND = "voxel_grid"  # the tensorio kind of every saved grid, whatever its backbone
 DEFAULT_BOX = ((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5))
+DEFAULT_SIGMA_THRESHOLD = 1e-3  # density skipped as empty, measured in the default box (``VoxelGrid.occupancy``)
 Activation = Literal["relu", "softplus"]
 SEGMENT = 16  # lattice samples per skipping segment (see _ray_segments)
 
@@ -550,7 +551,7 @@ class VoxelGrid(torch.nn.Module):
         return self.like(up[0].permute(1, 2, 3, 0).contiguous())
 
     @torch.no_grad()
-    def occupancy(self, sigma_threshold: float = 1e-3) -> Occupancy:
+    def occupancy(self, sigma_threshold: float = DEFAULT_SIGMA_THRESHOLD) -> Occupancy:
         """Cells worth rendering: density above ``sigma_threshold`` as measured in the default 3-unit box.
 
         The threshold is scaled by (default box diagonal / this box's diagonal),
@@ -560,16 +561,6 @@ class VoxelGrid(torch.nn.Module):
         cells differ in world size lowers it per cell (``SceneGrid.skip_density``).
         """
         return self.occupancy_above(self.skip_density(sigma_threshold))
-
-    def _unoccupied_raw_density(self) -> float:
-        """The highest raw density the cells :meth:`save` leaves out may all hold and stay so on loading: 0 under
-        ReLU (its cells are those above 0), else the one activating to the lowest skip density of any cell (one
-        for all in a box; a scene grid's background lowers its own)."""
-        if self.activation == "relu":
-            return 0.0
-        lowest = float(torch.as_tensor(self.skip_density(1e-3)).min())
-        return math.log(math.expm1(lowest)) / self.density_scale if lowest > 0 else -math.inf
-
 
     def skip_density(self, sigma_threshold: float) -> float | torch.Tensor:
         """The absolute density :meth:`occupancy` skips cells below: one for all cells (another backbone may
@@ -631,8 +622,16 @@ class VoxelGrid(torch.nn.Module):
         """
         tensors, meta = self.state_tensors(), {**self.header(), "layout": "dense"}
         if not dense:
-            cells = (self.occupancy_above(0.0) if self.activation == "relu" else self.occupancy()).cells
-            packed, layout = sparse_tensors(tensors["features"], cells, margin, self._unoccupied_raw_density())
+            # The cells kept, and the highest raw density those left out may all hold and stay so on loading: 0
+            # under ReLU; else the one activating to the lowest skip density of any cell (a scene grid's
+            # background lowers its own).
+            if self.activation == "relu":
+                cells, unoccupied = self.occupancy_above(0.0).cells, 0.0
+            else:
+                skip = self.skip_density(DEFAULT_SIGMA_THRESHOLD)
+                cells, lowest = self.occupancy_above(skip).cells, float(torch.as_tensor(skip).min())
+                unoccupied = math.log(math.expm1(lowest)) / self.density_scale if lowest > 0 else -math.inf
+            packed, layout = sparse_tensors(tensors["features"], cells, margin, unoccupied)
             if payload_bytes(packed) < payload_bytes({"features": tensors["features"]}):
                 tensors = {**{k: v for k, v in tensors.items() if k != "features"}, **packed}
                 meta = {**meta, **layout}

@@ -75,13 +75,14 @@ def sparse_tensors(features: torch.Tensor, cells: torch.Tensor, margin: int = DE
     Returns (tensors, header fields: layout, margin, resolution). ``fill`` is the mean of the vertices left
     out: each of those has a density no occupied cell needs, and a mean of values below a threshold stays below it.
     Its density is at most ``unoccupied_density`` (the highest raw density no cell's threshold counts as occupied:
-    ``VoxelGrid.save`` passes it), so no cell is occupied on loading under thresholds that differ per cell (a scene grid's background:
-    the mean of densities just under the foreground's threshold had occupied background cells whose own is lower).
-    The mean is kept within their range (float32's rounding can leave it). A channel whose left-out vertices all hold one value (a loaded file's ``fill``) keeps
-    it exactly, so saving a loaded grid again writes the same ``fill`` (float32's mean of N copies is not the value:
-    it had drifted by a few ulps at each sparse -> dense -> sparse conversion; a float64 sum, exact, took 10x the
-    mean's time). Where the mean is not finite (an infinity, or one NaN spreading to every vertex left out) it is
-    taken again over the values that are not NaN, infinities counted as float32's extremes.
+    ``VoxelGrid.save`` passes it), so no cell is occupied on loading under thresholds that differ per cell (a scene
+    grid's background: the mean of densities just under the foreground's threshold had occupied background cells
+    whose own is lower). The mean is kept within their range (float32's rounding can leave it). A channel whose
+    left-out vertices all hold one value (a loaded file's ``fill``) keeps it exactly, so saving a loaded grid again
+    writes the same ``fill`` (float32's mean of N copies is not the value: it had drifted by a few ulps at each
+    sparse -> dense -> sparse conversion; a float64 sum, exact, took 10x the mean's time). Where the mean is not
+    finite (an infinity, or one NaN spreading to every vertex left out) it is taken again over the values that are
+    not NaN, infinities counted as float32's extremes.
     """
     if margin < 0:
         raise ValueError(f"margin must be >= 0 cells, got {margin}")

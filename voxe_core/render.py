@@ -27,7 +27,7 @@ import torch
 from voxe_core.cameras import Cameras, camera_rays
 from voxe_core.constants import RENDER_CHUNK_RAYS
 from voxe_core.devices import full_precision
-from voxe_core.grid import Occupancy, VoxelGrid, unit_directions
+from voxe_core.grid import DEFAULT_SIGMA_THRESHOLD, Occupancy, VoxelGrid, unit_directions
 from voxe_core.volrend import RaySamples, optical_depth, transmittance
 
 Field = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
@@ -44,7 +44,7 @@ class RenderConfig:
     step_ratio: float = 0.5  # sample spacing in units of the smallest voxel edge
     background: tuple[float, ...] = (1.0, 1.0, 1.0)
     skip_empty: bool = True
-    sigma_threshold: float = 1e-3  # cells whose density stays below this are skipped
+    sigma_threshold: float = DEFAULT_SIGMA_THRESHOLD  # cells whose density stays below this are skipped
     early_stop: float = 1e-4  # transmittance below which a ray's samples are not evaluated
     # Lattice samples held at once (rays are grouped to fit); None: the device's default (pass_samples).
     samples_per_pass: int | None = None

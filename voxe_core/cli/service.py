@@ -168,7 +168,7 @@ def _follow(client, job_id: str, args) -> int:
         print(f"\nvoxe {args.command}: stopped following; the job {job_id} goes on in the service (`voxe cancel "
               f"{job_id}` stops it)", file=sys.stderr)
         return EXIT_INTERRUPTED
-    if not args.quiet and sys.stderr.isatty():  # ends the bar redrawn in place; a log's lines end themselves
+    if over_the_bar:  # ends the bar redrawn in place; a log's lines end themselves
         print(file=sys.stderr)
     print(json.dumps(job, indent=2))
     return 0 if job["state"] == "succeeded" else 1
