@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 from PIL import Image
+from pydantic import TypeAdapter
 
 from voxe_service.queue import broker_transport_options
 from voxe_service.settings import Settings, SettingsError, get_settings
@@ -91,6 +92,35 @@ def test_the_deployment_sets_only_variables_the_service_reads():
     for name in DEPLOYMENT_FILES:
         used = set(re.findall(r"\bVOXE_[A-Z0-9_]+", (ROOT / name).read_text()))
         assert used and used <= fields, f"{name}: {sorted(used - fields)} are not settings"
+
+
+def test_every_variable_the_service_its_cli_and_scripts_read_is_in_the_readme():
+    """Every setting is a row of the README's settings table (and every row a setting, or .ci/serve's own), and every
+    other VOXE_ variable the packages or the .ci scripts read is named somewhere in it: the CLI's VOXE_API_KEY, the
+    only way besides --api-key to reach a service with authentication on, had been in no README line."""
+    readme = (ROOT / "README.md").read_text()
+    table = readme.split("### Service settings", 1)[1].split("\n\n| variable |", 1)[1].split("\n\n", 1)[0]
+    in_table = {name for row in table.splitlines()[2:]
+                for name in re.findall(r"`(VOXE_[A-Z0-9_]+)`", row.split("|")[1])}
+    scripts = {name for path in (ROOT / ".ci").iterdir()
+               for name in re.findall(r"\$\{?(VOXE_[A-Z0-9_]+)", path.read_text())}
+    settings = {f"VOXE_{name.upper()}" for name in Settings.model_fields}
+    assert settings <= in_table <= settings | scripts, (sorted(settings - in_table),
+                                                         sorted(in_table - settings - scripts))
+    for row in table.splitlines()[2:]:  # defaults written as values (`5` / `10` / `30`) read back as the settings'
+        names, defaults = (cell.strip() for cell in row.split("|")[1:3])
+        if not re.fullmatch(r"`[^`]+`(?:(?: / |, )`[^`]+`)*", defaults):  # 2 GiB, 3 h, (none), – ...
+            continue
+        for name, value in zip(re.findall(r"`([^`]+)`", names), re.findall(r"`([^`]+)`", defaults), strict=True):
+            if name in settings:
+                field = Settings.model_fields[name.removeprefix("VOXE_").lower()]
+                assert TypeAdapter(field.annotation).validate_python(value) == field.default, (name, value)
+    read = set(scripts)
+    for package in ("voxe_core", "voxe_client", "voxe_service", "api", "worker"):
+        for source in (ROOT / package).rglob("*.py"):
+            read |= set(re.findall(r"""(?:environ\.get\(|getenv\(|environ\[)\s*["'](VOXE_[A-Z0-9_]+)""",
+                                   source.read_text()))
+    assert read and {name for name in read if name not in readme} == set()
 
 
 def test_the_worker_image_hands_a_running_stage_back_when_stopped():
