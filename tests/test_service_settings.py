@@ -4,10 +4,15 @@ docker files setting only variables the service reads."""
 from __future__ import annotations
 
 import logging
+import os
 import re
+import shlex
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
+import yaml
 from PIL import Image
 from pydantic import TypeAdapter
 
@@ -121,6 +126,27 @@ def test_every_variable_the_service_its_cli_and_scripts_read_is_in_the_readme():
             read |= set(re.findall(r"""(?:environ\.get\(|getenv\(|environ\[)\s*["'](VOXE_[A-Z0-9_]+)""",
                                    source.read_text()))
     assert read and {name for name in read if name not in readme} == set()
+
+
+def test_the_documented_weight_download_works_once_the_workers_are_offline():
+    """env.example offers HF_HUB_OFFLINE=1 once the weights are fetched, and compose hands it to every worker
+    container, `docker compose run` ones included: the documented `hf download` into the models volume had then
+    failed ("offline mode is enabled") for the next model fetched. Each such command turns it off for its own
+    container."""
+    worker = yaml.safe_load((ROOT / "docker-compose.yml").read_text())["services"]["worker"]["environment"]
+    assert worker["HF_HUB_OFFLINE"] == "${HF_HUB_OFFLINE:-0}"  # from .env
+    assert re.search(r"^HF_HUB_OFFLINE=", (ROOT / "docker/env.example").read_text(), re.M)
+    download = re.compile(r"docker compose run ([^`\n]*?)\bworker hf download ")
+    commands = [(name, match.group(1)) for name in ("README.md", "docker-compose.yml", "docker/env.example")
+                for match in download.finditer((ROOT / name).read_text())]
+    assert len(commands) >= 3
+    for name, options in commands:
+        words = shlex.split(options)
+        overrides = dict(words[i + 1].split("=", 1) for i, word in enumerate(words) if word in ("-e", "--env"))
+        offline = subprocess.run(
+            [sys.executable, "-c", "from huggingface_hub import constants; print(constants.HF_HUB_OFFLINE)"],
+            env={**os.environ, "HF_HUB_OFFLINE": "1", **overrides}, capture_output=True, text=True, check=True)
+        assert offline.stdout.strip() == "False", f"{name}: `docker compose run {options}worker hf download` is offline"
 
 
 def test_the_worker_image_hands_a_running_stage_back_when_stopped():
