@@ -1,5 +1,5 @@
-"""Service settings as the deployment sets them: bad values refused at start naming the variable, and the
-docker files setting only variables the service reads."""
+"""Service settings as the deployment sets them: bad values refused at start naming the variable, the docker files
+setting only variables the service reads, and the README naming every variable read with the settings' defaults."""
 
 from __future__ import annotations
 
