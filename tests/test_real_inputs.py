@@ -602,6 +602,26 @@ def test_colmap_text_errors_name_the_line(tmp_path):
         read_model(model)
 
 
+def test_colmap_text_reads_what_colmap_reads_and_names_a_byte_order_mark(tmp_path):
+    """COLMAP (pycolmap 4.2.1) reads indented comments and runs of spaces or tabs between fields, and refuses a
+    file starting with a byte order mark; an indented comment had been read as a camera or an image."""
+    model = small_model(tmp_path, binary=False)
+    cameras_txt, images_txt = (model / "cameras.txt").read_text(), (model / "images.txt").read_text()
+    lines = images_txt.splitlines()
+    first = next(i for i, line in enumerate(lines) if not line.startswith("#"))
+    spaced = [lines[first].replace(" ", "  "), lines[first + 1], "  # b.png next", "\t# and its points after it",
+              *lines[first + 2:]]
+    (model / "cameras.txt").write_text("  # indented\n" + cameras_txt.replace(" ", " \t "))
+    (model / "images.txt").write_text("\n".join(lines[:first] + spaced) + "\n")
+    cameras, images = read_model(model)
+    assert cameras[1].params == [9.0, 9.5, 8.0, 6.0, 0.01, 0.0, 0.0, 0.0] and [im.name for im in images] == ["a.png",
+                                                                                                              "b.png"]
+    assert np.allclose(images[0].cam_from_world, read_model(small_model(tmp_path / "plain", False))[1][0].cam_from_world)
+    (model / "cameras.txt").write_text("\ufeff" + cameras_txt)
+    with pytest.raises(ColmapError, match=r"^cameras.txt: starts with a UTF-8 byte order mark"):
+        read_model(model)
+
+
 def test_colmap_points2d_lines_as_colmap_writes_them_are_not_parsed_value_by_value(tmp_path, monkeypatch):
     """The POINTS2D[] check had parsed every X, Y and POINT3D_ID, most of images.txt's read time; a line of plain
     decimals (COLMAP's) now passes in one match. Any other line is parsed value by value as before: it passes

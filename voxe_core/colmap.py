@@ -170,12 +170,17 @@ def _check_consumed(reader: _Bytes) -> None:
 
 
 def _text_lines(path: Path) -> list[tuple[int, str]]:
-    """(line number, text) of the non-comment lines; blank lines kept (images.txt's empty point lists)."""
+    """(line number, text) of the non-comment lines; blank lines kept (images.txt's empty point lists). As COLMAP
+    reads them: a comment may be indented, and a byte order mark is refused (COLMAP would read it as the first
+    field)."""
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError as e:
         raise ColmapError(f"not UTF-8 text: {e}", path) from None
-    return [(i, line) for i, line in enumerate(text.splitlines(), start=1) if not line.startswith("#")]
+    if text.startswith("\ufeff"):
+        raise ColmapError("starts with a UTF-8 byte order mark, which COLMAP cannot read either: "
+                          "save the file without one", path)
+    return [(i, line) for i, line in enumerate(text.splitlines(), start=1) if not line.lstrip().startswith("#")]
 
 
 def _parse(kind, field: str, what: str, line: int, path: Path):
