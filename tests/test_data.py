@@ -164,6 +164,23 @@ def test_odd_size_crops_to_multiple_and_scales_intrinsics(tmp_path):
     assert torch.allclose(scene.cameras.cx, torch.full((2,), 2.25))
 
 
+def test_principal_point_outside_the_image_is_warned_and_one_no_image_has_refused(tmp_path):
+    """A crop's principal point lies outside its image: kept as given, with one warning; one further out than the
+    largest image side read (float32 rays of a 16-pixel image 1e8 pixels out coincide) had loaded silently."""
+    with pytest.warns(UserWarning, match=r"^transforms.json frame 0 \('images/0000.png'\): principal point \(-3, 20\) "
+                                         r"lies 14 pixels outside the 8x6 image \(2 of 2 frames' lie outside it\)"):
+        scene = load_scene(make_ngp(tmp_path / "crop", n=2, cx=-3.0, cy=20.0))
+    assert scene.cameras.cx.tolist() == [-3.0, -3.0] and scene.cameras.cy.tolist() == [20.0, 20.0]
+    root = make_ngp(tmp_path / "far", n=2, cx=4.0, cy=3.0)
+    meta = json.loads((root / "transforms.json").read_text())
+    meta["frames"][1]["cy"] = 1e8
+    (root / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match=r"frame 1 .*principal point \(4, 1e\+08\) lies 1e\+08 pixels outside the "
+                                           r"8x6 image, more than the largest image side read \(65536\)") as err:
+        load_scene(root)
+    assert_names(err, "transforms.json", 1)
+
+
 def test_greyscale_sixteen_bit_png(tmp_path):
     root = tmp_path / "s"
     (root / "train").mkdir(parents=True)

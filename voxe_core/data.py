@@ -22,6 +22,7 @@ import json
 import math
 import os
 import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,7 +32,7 @@ import torch.nn.functional as F
 from PIL import Image
 
 from .cameras import DISTORTION_KEYS, Cameras, fisheye_angles, fold_in_view, undistort_points
-from .colmap import ColmapError, read_model
+from .colmap import MAX_IMAGE_SIDE, ColmapError, read_model
 
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y")
 _FOCAL_KEYS = (("fl_x", "camera_angle_x"), ("fl_y", "camera_angle_y"))  # each axis's focal, either key
@@ -249,6 +250,7 @@ def load_scene(
 
     W, H = size
     intr = np.array([_resolve_intrinsics(per_frame[i], W, H, where, i) for i in keep], dtype=np.float64)
+    _check_principal_points(intr[:, 2], intr[:, 3], W, H, keep, where)
     c2w = torch.from_numpy(poses[keep]).float()
     cams = Cameras(c2w, *(torch.from_numpy(intr[:, k]).float() for k in range(4)), W, H)
     distortion_model = CAMERA_MODELS[next((m for m in models if m != "PINHOLE"), "PINHOLE")]
@@ -582,6 +584,24 @@ def _composite_downsampled(arr: np.ndarray, factor: int, resample: str) -> tuple
     alpha = arr[..., 3]
     rgb = np.clip(arr[..., :3] + (1.0 - alpha[..., None]), 0.0, 1.0)
     return np.ascontiguousarray(rgb), np.ascontiguousarray(alpha)
+
+
+def _check_principal_points(cx: np.ndarray, cy: np.ndarray, W: int, H: int, keep: list[int], where: _Where) -> None:
+    """A principal point outside the image is a crop's (or intrinsics in another image's pixels): warned once. One
+    more than ``MAX_IMAGE_SIDE`` pixels outside is no crop's of an image the readers take (and from about 1e7
+    pixels out, neighbouring pixels' float32 rays coincide): refused."""
+    outside = np.maximum.reduce([-cx, cx - W, -cy, cy - H, np.zeros_like(cx)])
+    slots = np.flatnonzero(outside > 0)
+    if not slots.size:
+        return
+    slot = int(slots[np.argmax(outside[slots])])
+    message = (f"principal point ({cx[slot]:g}, {cy[slot]:g}) lies {outside[slot]:g} pixels outside the {W}x{H} "
+               f"image")
+    if outside[slot] > MAX_IMAGE_SIDE:
+        raise where(f"{message}, more than the largest image side read ({MAX_IMAGE_SIDE}): no camera's (check "
+                    f"that cx and cy are in pixels of this image)", keep[slot])
+    warnings.warn(f"{where(message, keep[slot])} ({slots.size} of {len(keep)} frames' lie outside it): a cropped "
+                  f"image's, else check that cx and cy are in pixels of this image", stacklevel=3)
 
 
 def _focal_from_angle(pixels: int, angle: float) -> float:
