@@ -1,9 +1,10 @@
-"""Small captures made in code for the tests: image folders and COLMAP models written with pycolmap, and a file
-Pillow cannot read."""
+"""Small captures made in code for the tests: image folders and COLMAP models written with pycolmap, a 16-bit RGB
+PNG, and a file Pillow cannot read."""
 
 from __future__ import annotations
 
 import struct
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -49,3 +50,16 @@ def pose_at(x: float) -> np.ndarray:
     return c2w
 
 
+
+
+def sixteen_bit_rgb_png(path: Path, samples: np.ndarray, colour_key: tuple[int, int, int]) -> None:
+    """An (H, W, 3) uint16 image as a 16-bit RGB PNG with a tRNS colour key: Pillow writes RGB at 8 bits only."""
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    height, width = samples.shape[:2]
+    rows = b"".join(b"\0" + row.astype(">u2").tobytes() for row in samples)  # filter type 0 (none) per row
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 16, 2, 0, 0, 0))
+                     + chunk(b"tRNS", struct.pack(">3H", *colour_key)) + chunk(b"IDAT", zlib.compress(rows))
+                     + chunk(b"IEND", b""))

@@ -521,7 +521,9 @@ def image_pixels(image: Image.Image, alpha: bool = True) -> np.ndarray:
     their scale (Pillow's own conversions give 0..255, OpenCV's and scikit-image's float images 0..1), and
     convert("RGB") had clipped them to black. So do 32-bit integers beyond 16 bits (mode I), which the 16-bit
     scaling had clipped to white. A 16-bit grey PNG's colour key (its tRNS: the one value that is transparent) is
-    its alpha, as Pillow's conversion gives an 8-bit one's.
+    its alpha, as Pillow's conversion gives an 8-bit one's. So is a 16-bit RGB PNG's, at the 8 bits Pillow reads
+    its colour with (each sample's high byte): Pillow compares those with the 16-bit key, which had missed the key
+    colour and keyed others (key 100 a sample of 25600). Whether it is 16-bit shows only before the image loads.
     """
     if image.mode == "F":
         raise PixelScaleError("holds floating-point pixels (Pillow mode F), whose scale the file does not record: "
@@ -536,6 +538,10 @@ def image_pixels(image: Image.Image, alpha: bool = True) -> np.ndarray:
         if alpha and isinstance(key, int):
             return np.concatenate([grey, (values != key).astype(np.float32)[..., None]], axis=2)
         return grey
+    if alpha and image.tile and image.tile[0][3] == "RGB;16B" and isinstance(image.info.get("transparency"), tuple):
+        rgb = np.asarray(image)
+        keyed = (rgb == np.array(image.info["transparency"]) >> 8).all(axis=-1)
+        return np.concatenate([rgb / np.float32(255.0), (~keyed).astype(np.float32)[..., None]], axis=2)
     has_alpha = alpha and ("A" in image.mode or "a" in image.mode or "transparency" in image.info)
     return np.asarray(image.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
 
@@ -549,7 +555,6 @@ def _read_image(root: Path, file_path: str, where: _Where, frame: int) -> tuple[
         raise where("image not found (tried " + ", ".join(str(p) for p in candidates) + ")", frame, candidates[0])
     try:
         with Image.open(path) as im:
-            im.load()
             return image_pixels(im), path
     except PixelScaleError as e:
         raise where(f"image {path.name} {e}", frame, path) from None
