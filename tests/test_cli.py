@@ -837,6 +837,21 @@ def test_ring_of_a_capture_grid_orbits_its_object_or_the_grid_named_by_centre_of
     assert f"{missing}: no such file" in capsys.readouterr().err and not (tmp_path / "t.gif").exists()
 
 
+def test_render_into_an_earlier_output_leaves_only_this_runs_views(sphere_file, tmp_path):
+    """A re-run into the same --out had left the earlier run's extra views beside its own (and a --data run's views
+    and metrics.json beside a ring's): files of the names this command writes go, others stay."""
+    out = tmp_path / "views"
+    ring = ["render", str(sphere_file), "--size", "16", "--out", str(out), "--quiet", "--ring"]
+    assert main(ring + ["3"]) == 0
+    for name in ("004_r_40.png", "metrics.json"):  # as a --data run writes them
+        (out / name).write_text("earlier")
+    for name in ("notes.txt", "cover.png", "0001.jpg"):
+        (out / name).write_text("mine")
+    assert main(ring + ["2"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["000.png", "0001.jpg", "001.png", "cover.png", "notes.txt"]
+    assert np.asarray(Image.open(out / "001.png")).shape == (16, 16, 3)
+
+
 def test_render_needs_exactly_one_camera_source(sphere_file, tmp_path):
     with pytest.raises(SystemExit) as exc:
         main(["render", str(sphere_file), "--out", str(tmp_path)])

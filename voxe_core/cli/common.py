@@ -10,6 +10,7 @@ import contextlib
 import contextvars
 import importlib
 import os
+import re
 import signal
 import sys
 import threading
@@ -267,6 +268,15 @@ def writable_folder(path: Path) -> Path:
     if not os.access(path, os.W_OK):
         raise OSError(f"cannot write into {path}: the folder is not writable")
     return path
+
+
+def remove_earlier_outputs(folder: Path, names: re.Pattern) -> None:
+    """Delete the files in ``folder`` whose names ``names`` matches in full: those an earlier run of the command
+    wrote, which a re-run into the same --out writing fewer would otherwise leave beside its own. Other files stay."""
+    if folder.is_dir():
+        for path in folder.iterdir():
+            if path.is_file() and names.fullmatch(path.name):
+                path.unlink()
 
 
 def add_grid_output_arguments(parser: argparse.ArgumentParser) -> None:

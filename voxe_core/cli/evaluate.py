@@ -9,7 +9,7 @@ from pathlib import Path
 
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_model_arguments, add_view_arguments, check_device, load_views, positive_int,
-    run_stage, view_options_given, writable_folder,
+    remove_earlier_outputs, run_stage, view_options_given, writable_folder,
 )
 from voxe_core.constants import (
     CLIP_MODEL_ID, EVALUATION_RING_ELEVATION, EVALUATION_RING_SIZE, EVALUATION_RING_VIEWS, INCEPTION_FILE,
@@ -101,6 +101,7 @@ def cmd_evaluate(args) -> int:
 
 
 RING_SET_NAME = re.compile(r"initial|edit\d{2,}")  # the ring/<name>/ folders this command writes
+RING_FRAME_NAME = re.compile(r"\d+\.png")  # and the frames in them
 
 
 def clear_ring_renders(ring: Path) -> None:
@@ -115,8 +116,6 @@ def clear_ring_renders(ring: Path) -> None:
     for folder in ring.iterdir():
         if not (folder.is_dir() and RING_SET_NAME.fullmatch(folder.name)):
             continue
-        for frame in folder.glob("*.png"):
-            if frame.stem.isdigit():
-                frame.unlink()
+        remove_earlier_outputs(folder, RING_FRAME_NAME)
         if not any(folder.iterdir()):
             folder.rmdir()

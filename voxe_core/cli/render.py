@@ -8,14 +8,19 @@ initial grid, as the service's renders do).
 from __future__ import annotations
 
 import json
+import re
 import sys
 from pathlib import Path
 
 from voxe_core.cli.common import (
-    EXIT_INTERRUPTED, add_device_argument, add_view_arguments, check_device, load_views, positive_int, run_stage,
-    view_options_given, writable_folder,
+    EXIT_INTERRUPTED, add_device_argument, add_view_arguments, check_device, load_views, positive_int,
+    remove_earlier_outputs, run_stage, view_options_given, writable_folder,
 )
 from voxe_core.presets import ExportConfig
+
+
+METRICS_FILE = "metrics.json"
+VIEW_NAME = re.compile(rf"\d{{3,}}(_.*)?\.png|{re.escape(METRICS_FILE)}")  # what cmd_render writes into --out
 
 
 def add_parsers(commands, common) -> None:
@@ -88,6 +93,7 @@ def cmd_render(args) -> int:
     if frames is None:
         print("voxe: rendering cancelled", file=sys.stderr)
         return EXIT_INTERRUPTED
+    remove_earlier_outputs(args.out, VIEW_NAME)  # (a re-run writing fewer views had left the earlier run's beside them)
     for frame, name in zip(frames, names):
         save_png(args.out / name, frame)
     print(f"wrote {len(names)} views to {args.out}")
@@ -114,7 +120,7 @@ def _report_metrics(frames, scene, names, out_dir: Path) -> None:
     else:
         line += f" (SSIM needs views of at least {SSIM_WINDOW} px)"
     print(f"{line} over {len(names)} views")
-    (out_dir / "metrics.json").write_text(json.dumps(summary, indent=2))
+    (out_dir / METRICS_FILE).write_text(json.dumps(summary, indent=2))
 
 
 def cmd_turntable(args) -> int:
