@@ -263,6 +263,17 @@ def test_the_3x3_kernel_is_the_authors_sigma_half_gaussian():
     assert gaussian_kernel1d(0.5).numel() == 5  # the whole Gaussian (radius ceil(3σ)) for "3sigma"
 
 
+@pytest.mark.parametrize("sigma", [1e-46, 5e-324])
+def test_a_smoothing_sigma_below_float32s_smallest_blurs_nothing(sigma):
+    """Such a σ had become 0 in float32 and the taps 0 / 0: every map NaN."""
+    for radius in (1, None):
+        assert gaussian_kernel1d(sigma, radius).tolist() == [0.0, 1.0, 0.0]
+    maps = torch.rand(2, 16, 16, generator=torch.Generator().manual_seed(4))
+    config = RefineConfig(smoothing_sigma=sigma, map_scale="raw")
+    torch.testing.assert_close(postprocess_maps(maps, (40, 40), config),
+                               postprocess_maps(maps, (40, 40), dataclasses.replace(config, smoothing_sigma=0.0)))
+
+
 def test_raw_maps_keep_the_relative_scale_of_edit_and_object_minmax_does_not():
     cells = torch.rand(1, 16, 16, generator=torch.Generator().manual_seed(2))
     maps = torch.cat([0.2 * cells, cells])  # the edit token takes a fifth of the object's attention

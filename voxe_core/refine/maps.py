@@ -28,16 +28,18 @@ from voxe_core.render import RenderConfig, render_image
 def gaussian_kernel1d(sigma: float, radius: int | None = None, device=None) -> torch.Tensor:
     """Normalised 1D Gaussian taps, std ``sigma``, ``2·radius + 1`` of them (None: radius ceil(3σ), at least 1).
 
-    The 2D kernel is its outer product with itself: radius 1 at σ = 0.5 is the authors' 3×3 kernel.
+    The 2D kernel is its outer product with itself: radius 1 at σ = 0.5 is the authors' 3×3 kernel. The taps are
+    computed in float64: a σ below float32's smallest (1e-45) had become 0 there, and its taps NaN (0 / 0), where
+    they are the no blur the Gaussian narrows to.
 
     Examples:
         >>> [round(float(w), 4) for w in gaussian_kernel1d(0.5, radius=1)]
         [0.1065, 0.787, 0.1065]
     """
     radius = max(1, int(math.ceil(3.0 * sigma))) if radius is None else int(radius)
-    x = torch.arange(-radius, radius + 1, device=device, dtype=torch.float32)
+    x = torch.arange(-radius, radius + 1, device=device, dtype=torch.float64)
     kernel = torch.exp(-0.5 * (x / sigma) ** 2)
-    return kernel / kernel.sum()
+    return (kernel / kernel.sum()).float()
 
 
 def gaussian_blur2d(maps: torch.Tensor, sigma: float, radius: int | None = None) -> torch.Tensor:
