@@ -251,6 +251,19 @@ def test_a_grid_file_with_tensors_or_fields_of_the_wrong_shape_or_value_is_a_for
     assert str(error.value).startswith(str(path))
 
 
+@pytest.mark.parametrize("far_ratio", [1e7, float("inf")])
+def test_a_scene_grid_beyond_the_far_ratio_bound_says_so_rather_than_damaged(tmp_path, far_ratio):
+    """Older versions saved any far_ratio; such a file had been refused as a "damaged grid"."""
+    grid = SceneGrid(9)
+    grid.far_ratio = far_ratio  # as an older version built it: the constructor now refuses it
+    path = tmp_path / "older.safetensors"
+    grid.save(path)
+    with pytest.raises(FormatError) as error:
+        load_grid(path)
+    assert str(error.value) == (f"{path}: far_ratio {far_ratio:g} is above the largest this version supports (1e+06), "
+                                "as a scene grid an older version saved may be: refit the scene with this one")
+
+
 @pytest.mark.parametrize("backbone", [VoxelGrid, SceneGrid])
 @pytest.mark.parametrize("scale", [0.0, -2.0, float("nan"), float("inf")])
 def test_a_grid_whose_file_could_not_be_read_back_is_refused_when_built(tmp_path, backbone, scale):

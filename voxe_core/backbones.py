@@ -67,6 +67,8 @@ def grid_from_state(tensors: dict[str, torch.Tensor], meta: dict) -> VoxelGrid:
                           "be wrong)")
     try:
         return cls.from_state(tensors, meta)
+    except FormatError:  # what the class names itself
+        raise
     except KeyError as exc:  # a header without its tensors (or fields): a bare KeyError had reached the CLI
         raise FormatError(f"damaged grid: no {exc} in the file") from None
     except (TypeError, ValueError, RuntimeError) as exc:  # a header field of the wrong type or value

@@ -45,6 +45,7 @@ import torch
 from voxe_core.cameras import Cameras
 from voxe_core.constants import NERF_SYNTHETIC_RADIUS
 from voxe_core.grid import Activation, Occupancy, VoxelGrid, default_density_scale, ray_box_intersection
+from voxe_core.tensorio import FormatError
 from voxe_core.volrend import RaySamples
 
 CONTRACTED_EXTENT = 2.0  # the contraction maps all of space into [-2, 2]^3
@@ -118,6 +119,13 @@ class SceneGrid(VoxelGrid):
 
     @classmethod
     def from_state(cls, tensors: dict[str, torch.Tensor], meta: dict) -> "SceneGrid":
+        """The grid a file or checkpoint holds. One saved before far_ratio was bounded may lie past the bound: named
+        so, not refused as damaged."""
+        far_ratio = meta["far_ratio"]
+        if isinstance(far_ratio, (int, float)) and not isinstance(far_ratio, bool) and far_ratio > MAX_FAR_RATIO:
+            raise FormatError(f"far_ratio {far_ratio:g} is above the largest this version supports "
+                              f"({MAX_FAR_RATIO:g}), as a scene grid an older version saved may be: refit the scene "
+                              f"with this one")
         return cls(tuple(tensors["features"].shape[:3]), meta["foreground_extent"], meta["activation"],
                    meta["density_scale"], features=tensors["features"], near_samples=meta["near_samples"],
                    far_samples=meta["far_samples"], far_ratio=meta["far_ratio"], frame=meta["frame"])
