@@ -800,6 +800,70 @@ def test_an_export_whose_disk_refuses_one_mesh_format_publishes_no_mesh(service,
                       "turntable.mp4"}
 
 
+class WorkerKilled(BaseException):
+    """Stands in for the worker process going down mid-task (what _run_stage hands back to the queue)."""
+
+
+@pytest.mark.parametrize("failure", ["storage outage", "worker killed"])
+def test_an_export_whose_upload_fails_mid_mesh_set_lists_no_mesh_and_its_rerun_publishes_every_format(
+        service, monkeypatch, failure):
+    """The storage failing after mesh.ply and mesh.glb were uploaded (S3 throttling mesh.obj) had failed the job
+    with those two listed; a failure at mesh.mtl, mesh.obj without its material. The set is recorded in one
+    transaction once every format is stored: the ended (or stopped) run lists none of it and leaves none of its
+    bytes, and the stage run again (a redelivery) publishes all four."""
+    import hashlib
+
+    import trimesh
+
+    import voxe_core.edit
+    import voxe_core.export
+    from voxe_service.storage import StorageUnavailable, get_storage
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job_id = _reconstructed_job(client, scene_id, "relu_field", export={
+        "views": 1, "view_size": 16, "turntable_frames": 2, "turntable_size": 16, "gif": False, "mesh": True})["id"]
+    monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
+    monkeypatch.setattr(voxe_core.edit, "edit", lambda initial, *args, **kwargs: initial.clone_grid())
+    assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "done"
+    surface = trimesh.creation.icosphere(subdivisions=1)  # (the tiny fit's grid may have none at the level)
+    monkeypatch.setattr(voxe_core.export, "extract_mesh", lambda grid, resolution: surface)
+    storage = get_storage(tasks.get_settings())
+    put_file = type(storage).put_file
+    failing_name = "mesh.obj" if failure == "storage outage" else "mesh.mtl"
+
+    def failing_put(self, key, path, content_type=None):
+        if key.endswith(failing_name):
+            if failure == "worker killed":
+                raise WorkerKilled()
+            raise StorageUnavailable(f"S3 bucket 'voxe': SlowDown when uploading {key}")
+        return put_file(self, key, path, content_type)
+
+    with monkeypatch.context() as failing:
+        failing.setattr(type(storage), "put_file", failing_put)
+        if failure == "worker killed":
+            with pytest.raises(WorkerKilled):
+                tasks.export_task.apply(args=(job_id,))
+        else:
+            assert tasks.export_task.apply(args=(job_id,)).get()["state"] == "failed"
+    job = client.get(f"/v1/jobs/{job_id}").json()
+    if failure == "storage outage":
+        assert job["error"].startswith("export: StorageUnavailable: S3 bucket 'voxe': SlowDown when uploading")
+    listed = {a["name"] for a in client.get(f"/v1/jobs/{job_id}/artifacts").json()}
+    assert listed == {"initial_grid.safetensors", "edited_grid.safetensors", "preview.png", "render_000.png",
+                      "turntable.mp4"}
+    assert [key for key in storage.list(f"jobs/{job_id}/") if "mesh" in key] == []
+    if failure == "storage outage":
+        return
+    assert tasks.export_task.apply(args=(job_id,)).get()["state"] == "done"  # the redelivered message
+    artifacts = {a["name"]: a for a in client.get(f"/v1/jobs/{job_id}/artifacts").json()}
+    assert {"mesh.ply", "mesh.glb", "mesh.obj", "mesh.mtl", "preview.png"} <= set(artifacts)
+    for name in ("mesh.ply", "mesh.glb", "mesh.obj", "mesh.mtl"):
+        download = client.get(f"/v1/jobs/{job_id}/artifacts/{name}")
+        assert download.status_code == 200
+        assert hashlib.sha256(download.content).hexdigest() == artifacts[name]["sha256"]
+
+
 def test_the_export_renders_the_published_edit_not_a_superseded_runs_grid_left_in_its_scratch(service, monkeypatch,
                                                                                               tmp_path):
     """An edit run that stalled while another run took its job over has its grid refused, but the file stays in its

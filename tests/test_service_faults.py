@@ -1490,6 +1490,31 @@ def test_an_artifact_whose_record_fails_leaves_no_bytes_behind(db, tmp_path, mon
     assert f"jobs/{job_id}/render.png" in storage.list(f"jobs/{job_id}/")  # kept: a row might point at it
 
 
+def test_a_set_whose_storage_fails_part_way_reports_that_failure_not_the_cleanups(db, tmp_path, monkeypatch, caplog):
+    """The storage refusing the second file of a set is likely to refuse the delete of the first as well (the same
+    outage): that delete is cleanup, logged, and the error raised is the upload's, which the job's error names."""
+    from voxe_service.storage import StorageUnavailable, get_storage
+    from worker import runtime
+
+    storage = get_storage(db)
+    job_id = add_job(add_scene(), "running", 0, "w@host", "export")
+    ply, glb = tmp_path / "mesh.ply", tmp_path / "mesh.glb"
+    ply.write_bytes(b"ply")
+    glb.write_bytes(b"glb")
+    put_file = type(storage).put_file
+
+    def outage(what: str, key: str):
+        raise StorageUnavailable(f"S3 bucket 'voxe': SlowDown when {what} {key}")
+
+    monkeypatch.setattr(type(storage), "put_file", lambda self, key, path, content_type=None: (
+        outage("uploading", key) if key.endswith(".glb") else put_file(self, key, path, content_type)))
+    monkeypatch.setattr(type(storage), "delete", lambda self, key: outage("deleting", key))
+    with pytest.raises(StorageUnavailable, match="when uploading"):
+        runtime.publish_artifacts(job_id, [("mesh.ply", ply, "mesh"), ("mesh.glb", glb, "mesh")], storage)
+    assert listed(job_id) == []
+    assert f"could not delete the stored object jobs/{job_id}/mesh.ply" in caplog.text
+
+
 def test_an_upload_failing_mid_write_is_never_listed_and_leaves_no_file(db, tmp_path, monkeypatch):
     from voxe_service.storage import get_storage
     from worker.runtime import publish_artifact

@@ -509,51 +509,76 @@ def sweep_ingest_scratch(settings: Settings) -> list[str]:
 
 def publish_artifact(job_id: str, name: str, path: str | os.PathLike, kind: str, storage: Storage | None = None,
                      key: str | None = None) -> Artifact:
-    """Upload ``path`` as the job's artifact ``name``, then record it with the stored bytes' size and SHA-256.
+    """Upload ``path`` as the job's artifact ``name``, then record it with the stored bytes' size and SHA-256
+    (:func:`publish_artifacts`). Given ``key``, the bytes are already stored there (e.g. the shared reconstruction's
+    grid) and are only recorded."""
+    return _publish(job_id, [(name, path, kind, key)], storage)[0]
 
-    The row is written only once the bytes are final, so a failed or killed upload is never listed.
+
+def publish_artifacts(job_id: str, files: list[tuple[str, str | os.PathLike, str]],
+                      storage: Storage | None = None) -> list[Artifact]:
+    """Publish ``files`` ((name, path, kind) each) as one set: every one is uploaded before any is recorded, and all
+    are recorded in one transaction, so a failure part way (the storage refusing the third of a mesh's formats) lists
+    none of them rather than some (mesh.obj without its mesh.mtl)."""
+    return _publish(job_id, [(name, path, kind, None) for name, path, kind in files], storage)
+
+
+def _publish(job_id: str, files: list[tuple[str, str | os.PathLike, str, str | None]],
+             storage: Storage | None) -> list[Artifact]:
+    """Upload (where no key is given) and record (name, path, kind, key) each.
+
+    A row is written only once the bytes are final, so a failed or killed upload is never listed.
     A replaced artifact goes to a fresh key and the row switches to it in one update (the old
     object is deleted after): the listed size and checksum always describe the bytes of its key.
     """
     storage = storage or get_storage()
     with session_scope() as session:  # a run that lost its job uploads nothing ...
         _refuse_if_superseded(job_id, lambda: session.scalar(_token_query(job_id)))
-    previous = recorded_key(job_id, name)
-    uploaded = key is None
-    if uploaded:
-        fixed = job_key(job_id, name)
-        key = fixed if previous != fixed else job_key(job_id, f"v-{uuid.uuid4().hex[:12]}/{name}")
-        stored = storage.put_file(key, path, content_type(name))
-    else:  # already in storage under another key (e.g. the shared reconstruction)
-        size, sha = file_sha256(path)
-        stored = StoredObject(key, size, sha)
+    previous, stored, uploaded = {}, {}, []
     try:
+        for name, path, _kind, key in files:
+            previous[name] = recorded_key(job_id, name)
+            if key is None:
+                fixed = job_key(job_id, name)
+                key = fixed if previous[name] != fixed else job_key(job_id, f"v-{uuid.uuid4().hex[:12]}/{name}")
+                stored[name] = storage.put_file(key, path, content_type(name))
+                uploaded.append(name)
+            else:  # already in storage under another key (e.g. the shared reconstruction)
+                size, sha = file_sha256(path)
+                stored[name] = StoredObject(key, size, sha)
         with session_scope() as session:
             job = locked(session, Job, job_id)
-            try:  # ... and records nothing (checked again under the job's lock)
-                _refuse_if_superseded(job_id, lambda: job.run_token if job is not None else None)
-            except RunSuperseded:
-                if uploaded and stored.key != job_key(job_id, name):  # the fixed key may be the new owner's
-                    storage.delete(stored.key)
-                raise
-            artifact = session.execute(
-                select(Artifact).where(Artifact.job_id == job_id, Artifact.name == name)
-            ).scalar_one_or_none()
-            if artifact is None:
-                artifact = Artifact(job_id=job_id, name=name)
-                session.add(artifact)
-            artifact.key, artifact.size, artifact.sha256 = stored.key, stored.size, stored.sha256
-            artifact.content_type, artifact.kind, artifact.created_at = content_type(name), kind, utcnow()
-            # On the timeline in the same transaction: an event stream announces each artifact once it can be read.
-            record_event(session, job_id, "preview" if kind == "preview" else "artifact", detail=name)
+            # ... and records nothing (checked again under the job's lock)
+            _refuse_if_superseded(job_id, lambda: job.run_token if job is not None else None)
+            artifacts = [_record_artifact(session, job_id, name, kind, stored[name]) for name, _, kind, _ in files]
     except RunSuperseded:
+        for name in uploaded:
+            if stored[name].key != job_key(job_id, name):  # the fixed key may be the new owner's
+                storage.discard(stored[name].key)
         raise
-    except BaseException:  # the record was not written: neither are the bytes kept, unless a row does record them
-        if uploaded and not _may_be_recorded(job_id, name, stored.key):  # (a commit may fail on its way back)
-            storage.delete(stored.key)
+    except BaseException:  # the records were not written: neither are the bytes kept, unless a row does record them
+        for name in uploaded:  # (a commit may fail on its way back)
+            if not _may_be_recorded(job_id, name, stored[name].key):
+                storage.discard(stored[name].key)  # (a storage failing now must not hide the error that stopped us)
         raise
-    if previous and previous != stored.key and previous.startswith(job_key(job_id, "")):
-        storage.discard(previous)  # never the shared reconstruction's grid: that lives outside jobs/<id>/
+    for name, old in previous.items():
+        if old and old != stored[name].key and old.startswith(job_key(job_id, "")):
+            storage.discard(old)  # never the shared reconstruction's grid: that lives outside jobs/<id>/
+    return artifacts
+
+
+def _record_artifact(session, job_id: str, name: str, kind: str, stored: StoredObject) -> Artifact:
+    """The job's artifact row ``name`` (made when missing) pointing at ``stored``, and its event on the timeline."""
+    artifact = session.execute(
+        select(Artifact).where(Artifact.job_id == job_id, Artifact.name == name)
+    ).scalar_one_or_none()
+    if artifact is None:
+        artifact = Artifact(job_id=job_id, name=name)
+        session.add(artifact)
+    artifact.key, artifact.size, artifact.sha256 = stored.key, stored.size, stored.sha256
+    artifact.content_type, artifact.kind, artifact.created_at = content_type(name), kind, utcnow()
+    # On the timeline in the same transaction: an event stream announces each artifact once it can be read.
+    record_event(session, job_id, "preview" if kind == "preview" else "artifact", detail=name)
     return artifact
 
 

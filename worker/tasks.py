@@ -700,10 +700,11 @@ def _export(job: Job, settings, device: str, storage) -> None:
             mesh = extract_mesh(grid, resolution=options.mesh_resolution)
         except ValueError as exc:  # no surface at the level: report, keep the other artifacts
             runtime.update_job(job.id, message=f"no mesh exported: {exc}")
-        else:  # every format written before any is published: one the disk or its writer refuses lists none
+        else:  # every format written before any is published, and published as one set: one the disk, its writer
+            # or the storage refuses lists none
             written = [save_mesh(mesh, scratch / f"mesh.{suffix}") for suffix in ("ply", "glb", "obj")]
-            for path in (*written, scratch / "mesh.mtl"):  # (mesh.obj's material)
-                runtime.publish_artifact(job.id, path.name, path, "mesh", storage)
+            runtime.publish_artifacts(job.id, [(path.name, path, "mesh")  # (mesh.mtl: mesh.obj's material)
+                                               for path in (*written, scratch / "mesh.mtl")], storage)
         callbacks.on_progress(Progress("export", total, total))
     _preview(job.id, grid, settings, storage, device,
              image=turntable[0] if options.turntable_size <= 512 else None, centre=centre)
