@@ -402,6 +402,23 @@ def test_s3_throttled_upload_is_unavailable_and_leaves_nothing(aws_env, s3_endpo
     assert store.client.list_multipart_uploads(Bucket="voxe-test-throttled").get("Uploads", []) == []
 
 
+def test_s3_answering_429_too_many_requests_is_unavailable(aws_env, s3_endpoint):
+    """An S3-compatible store that rate-limits with HTTP 429 under a code of its own (TooManyRequests, not AWS's
+    503 SlowDown) is throttling: a StorageUnavailable (the API's 503 + Retry-After, a fit handed back), where it had
+    been a plain StorageError (a 500, a fit failed with every job waiting on it) though botocore had retried it."""
+    from botocore.awsrequest import AWSResponse
+
+    from voxe_service.storage import StorageUnavailable
+
+    store = S3Storage("voxe-test-429", endpoint_url=s3_endpoint, region="us-east-1", prefix="svc")
+    store.put_bytes("jobs/a/x.bin", b"x")
+    limited = b"<?xml version='1.0'?><Error><Code>TooManyRequests</Code><Message>Slow down.</Message></Error>"
+    store.client.meta.events.register("before-send.s3.HeadObject",
+                                      lambda request, **_: AWSResponse(request.url, 429, {}, _Answer(limited)))
+    with pytest.raises(StorageUnavailable, match=r"\(TooManyRequests\) when calling the HeadObject operation"):
+        store.size("jobs/a/x.bin")
+
+
 def test_s3_download_broken_off_on_every_retry_is_unavailable(aws_env, s3_endpoint, tmp_path):
     """A download whose body breaks off (a connection reset, a read timeout) through every retry is a
     StorageUnavailable naming what broke, not boto3's bare "Max Retries Exceeded" as a StorageError; nothing is

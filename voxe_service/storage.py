@@ -383,7 +383,7 @@ class S3Storage(Storage):
             if code in _NO_SUCH_BUCKET:  # (a bare 404 with no key at stake is the bucket's)
                 raise StorageError(f"bucket {self.bucket!r} does not exist (VOXE_S3_BUCKET)") from exc
             status = exc.response.get("ResponseMetadata", {}).get("HTTPStatusCode") or 0
-            transient = code in _TRANSIENT or status >= 500
+            transient = code in _TRANSIENT or status == 429 or status >= 500  # (429: Too Many Requests, any code)
             raise (StorageUnavailable if transient else StorageError)(f"S3 bucket {self.bucket!r}: {exc}") from exc
         except (ConnectionError, HTTPClientError) as exc:  # unreachable, refused, timed out: botocore's own
             raise StorageUnavailable(f"S3 bucket {self.bucket!r}: {exc}") from exc
