@@ -24,7 +24,8 @@ TINY_MODEL_LABEL = "tiny (smoke test, random weights)"
 
 
 class Settings(BaseSettings):
-    model_config = SettingsConfigDict(env_prefix="VOXE_", extra="ignore")
+    # inf (and nan) refused: VOXE_STAGE_LEASE_S=inf had started, then failed every stage in timedelta()
+    model_config = SettingsConfigDict(env_prefix="VOXE_", extra="ignore", allow_inf_nan=False)
 
     # --- metadata and queue
     database_url: str = "sqlite:///./var/voxe.db"
