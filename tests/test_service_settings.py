@@ -46,6 +46,11 @@ def fresh_settings(monkeypatch):
      "sqlalchemy.dialects:postgres)"),
     ("VOXE_BROKER_URL", "redis//localhost:6379", "VOXE_BROKER_URL='redis//localhost:6379': not a broker URL"),
     ("VOXE_S3_ENDPOINT_URL", "minio:9000", "VOXE_S3_ENDPOINT_URL='minio:9000': an S3 endpoint is an http://"),
+    # accepted, then botocore's bare "Invalid endpoint: http://" (or "not a valid URI") at the storage's first use
+    ("VOXE_S3_ENDPOINT_URL", "http://", "VOXE_S3_ENDPOINT_URL='http://': an S3 endpoint is an http:// or https:// "
+                                        "URL naming a host"),
+    ("VOXE_S3_ENDPOINT_URL", "http://:9000", "VOXE_S3_ENDPOINT_URL='http://:9000': an S3 endpoint is"),
+    ("VOXE_S3_ENDPOINT_URL", "http://minio:90000", "VOXE_S3_ENDPOINT_URL='http://minio:90000': an S3 endpoint is"),
     ("VOXE_TASK_SOFT_TIME_LIMIT_S", "30000", "VOXE_TASK_SOFT_TIME_LIMIT_S (30000 s) must be below "
                                              "VOXE_TASK_TIME_LIMIT_S (12600 s)"),
     # above Pillow's own limit, an image under the setting had been refused as "huge, over the limit"
@@ -76,6 +81,11 @@ def test_s3_storage_needs_a_bucket_name(fresh_settings):
         fresh_settings.setenv("VOXE_S3_BUCKET", bucket)
         get_settings.cache_clear()
         assert get_settings().s3_bucket == bucket
+
+
+def test_s3_endpoints_naming_a_host_are_accepted():
+    for endpoint in ("http://minio:9000", "https://s3.eu-west-1.amazonaws.com", "http://[::1]:9000", "http://10.0.0.5"):
+        assert Settings(s3_endpoint_url=endpoint).s3_endpoint_url == endpoint
 
 
 def test_devices_a_worker_can_use_are_accepted():

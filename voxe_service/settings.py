@@ -13,6 +13,7 @@ import re
 from functools import lru_cache
 from pathlib import Path
 from typing import Literal
+from urllib.parse import urlsplit
 
 from pydantic import Field, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -152,8 +153,9 @@ class Settings(BaseSettings):
     @field_validator("s3_endpoint_url")
     @classmethod
     def _endpoint(cls, value: str | None) -> str | None:
-        if value is not None and not value.startswith(("http://", "https://")):
-            raise ValueError("an S3 endpoint is an http:// or https:// URL, e.g. http://minio:9000")
+        if value is not None and not _http_url_with_host(value):  # (botocore: a bare "Invalid endpoint: http://")
+            raise ValueError("an S3 endpoint is an http:// or https:// URL naming a host (and a port up to 65535, if "
+                             "any), e.g. http://minio:9000")
         return value
 
     @field_validator("webhook_allow_networks")
@@ -208,6 +210,16 @@ class Settings(BaseSettings):
         import torch
 
         return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def _http_url_with_host(url: str) -> bool:
+    """Whether ``url`` is an http(s) URL with a host and, if it has a port, a number from 0 to 65535."""
+    parts = urlsplit(url)
+    try:
+        parts.port  # (raises ValueError for any other port)
+    except ValueError:
+        return False
+    return url.startswith(("http://", "https://")) and bool(parts.hostname)
 
 
 def is_loopback(host: str) -> bool:
