@@ -38,6 +38,9 @@ def fresh_settings(monkeypatch):
     ("VOXE_WORKER_MAX_TASKS_PER_CHILD", "0", "VOXE_WORKER_MAX_TASKS_PER_CHILD='0': Input should be greater than"),
     ("VOXE_DATABASE_MAX_OVERFLOW", "-1", "VOXE_DATABASE_MAX_OVERFLOW='-1': Input should be greater than or equal to 0"),
     ("VOXE_GUIDANCE_CACHE_SIZE", "0", "VOXE_GUIDANCE_CACHE_SIZE='0': Input should be greater than or equal to 1"),
+    # an empty folder had been the working directory (/app in the images: artifacts among the service's files)
+    ("VOXE_STORAGE_DIR", "", "VOXE_STORAGE_DIR='': must name a folder (unset it for the default)"),
+    ("VOXE_WORK_DIR", " ", "VOXE_WORK_DIR=' ': must name a folder"),
     # accepted, then every stage failed at its start: timedelta(seconds=inf) overflows
     ("VOXE_STAGE_LEASE_S", "inf", "VOXE_STAGE_LEASE_S='inf': Input should be a finite number"),
     # had failed only when first used, deep in SQLAlchemy, kombu or botocore

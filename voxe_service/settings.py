@@ -128,6 +128,15 @@ class Settings(BaseSettings):
     def _empty_is_none(cls, value):
         return None if value == "" else value
 
+    @field_validator("storage_dir", "work_dir", "model_dir", mode="before")
+    @classmethod
+    def _folder_named(cls, value):
+        """An empty value (``VOXE_STORAGE_DIR=`` in an env file) had been Path(""), the working directory: the
+        artifacts written among the service's own files (/app in the images)."""
+        if isinstance(value, str) and not value.strip():
+            raise ValueError("must name a folder (unset it for the default)")
+        return value
+
     @field_validator("database_url")
     @classmethod
     def _database_url(cls, value: str) -> str:
