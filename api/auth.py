@@ -200,6 +200,8 @@ class Idempotency:
     endpoint: str
     earlier_sha256: str | None = None
     """The digest an earlier version recorded for the same request, still matched: a retry across an upgrade."""
+    noun: str = ""
+    """What messages call the recorded resource when it is not the endpoint's own (a sweep records one of its jobs)."""
 
     def record(self, session: Session, owner: ApiKey, resource_id: str) -> None:
         """Add the record, pending until :meth:`answered`, to the session that creates the resource (one
@@ -229,14 +231,15 @@ class Idempotency:
         if found is None:
             return None
         row, resource = found
+        created = f"{self.noun or self.endpoint[:-1]} {row.resource_id!r}"
         if resource is None:
-            raise HTTPException(status.HTTP_409_CONFLICT, f"the {self.endpoint[:-1]} {row.resource_id!r} that "
-                                f"Idempotency-Key {self.key!r} created has been deleted; use a new key")
+            raise HTTPException(status.HTTP_409_CONFLICT, f"the {created} that Idempotency-Key {self.key!r} created "
+                                "has been deleted; use a new key")
         if row.pending and resource.task_id is None and resource.state in (QUEUED, PROCESSING):  # (job, scene)
             raise HTTPException(status.HTTP_409_CONFLICT,
                                 f"the first request with Idempotency-Key {self.key!r} has not answered yet (the "
-                                f"broker may still refuse its {self.endpoint[:-1]} {row.resource_id!r}); retry in a "
-                                "moment", headers={"Retry-After": "1"})
+                                f"broker may still refuse its {created}); retry in a moment",
+                                headers={"Retry-After": "1"})
         return resource
 
     def original(self, session: Session, owner: ApiKey, model: type) -> tuple[IdempotencyRecord, object] | None:
@@ -256,7 +259,8 @@ class Idempotency:
                    for digest in (self.request_sha256, self.earlier_sha256) if digest is not None):
             raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
                                 f"Idempotency-Key {self.key!r} was already used with a different request body "
-                                f"(it created {self.endpoint} {row.resource_id!r}); use a new key for a new request")
+                                f"(it created {self.noun or self.endpoint} {row.resource_id!r}); use a new key for a "
+                                "new request")
         return row, resource
 
     def _this_record(self, owner: ApiKey):

@@ -468,6 +468,59 @@ def test_evaluation_creation_is_idempotent_and_a_refused_one_runs_again_on_retry
     assert local_client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}, headers=headers).status_code == 201
 
 
+def test_sweep_creation_is_idempotent(local_client, mic_zip):
+    """POST /v1/sweeps honours Idempotency-Key as POST /v1/jobs and /v1/evaluations do: a client retrying a sweep
+    after a lost response had queued the whole protocol twice."""
+    scene = _upload(local_client, mic_zip).json()
+    assert ingest(scene["id"])["state"] == "ready"
+    body, headers = {"scenes": [{"scene_id": scene["id"], "object": "mic"}]}, {"Idempotency-Key": "sweep-1"}
+    created = local_client.post("/v1/sweeps", json=body, headers=headers)
+    replayed = local_client.post("/v1/sweeps", json=body, headers=headers)
+    assert created.status_code == 201 and "idempotent-replayed" not in created.headers
+    assert replayed.status_code == 200 and replayed.headers["idempotent-replayed"] == "true"
+    assert replayed.json()["id"] == created.json()["id"] and local_client.get("/v1/jobs").json()["total"] == 12
+    conflict = local_client.post("/v1/sweeps", json={**body, "evaluation": {"views": 4}}, headers=headers)
+    assert conflict.status_code == 422 and conflict.json()["detail"].startswith(
+        "Idempotency-Key 'sweep-1' was already used with a different request body (it created sweep holding job ")
+    blank = local_client.post("/v1/sweeps", json=body, headers={"Idempotency-Key": " "})
+    assert blank.status_code == 422 and "Idempotency-Key header must be 1-255 characters" in blank.text
+
+
+def test_a_sweep_the_broker_refuses_part_way_is_withdrawn_whole_and_a_retry_runs_anew(local_client, mic_zip,
+                                                                                     monkeypatch):
+    """A broker refusing a sweep's third edit had left the two sent running and failed the rest: the 503 named
+    neither, and the retry queued those two edits again. A sweep is all or nothing: the 503 withdraws it, what was
+    sent canceled with the rest, and a retry with the same Idempotency-Key runs it anew."""
+    from voxe_service.queue import TaskQueue
+
+    scene = _upload(local_client, mic_zip).json()
+    assert ingest(scene["id"])["state"] == "ready"
+    body, headers = {"scenes": [{"scene_id": scene["id"], "object": "mic"}]}, {"Idempotency-Key": "sweep-2"}
+    sent, send = [], TaskQueue.send
+
+    def refuse_the_third(self, *args):
+        if len(sent) == 2:
+            raise ConnectionError("down")
+        sent.append(send(self, *args))
+        return sent[-1]
+
+    with monkeypatch.context() as broker_dies:
+        broker_dies.setattr(TaskQueue, "send", refuse_the_third)
+        refused = local_client.post("/v1/sweeps", json=body, headers=headers)
+    assert refused.status_code == 503 and len(sent) == 2
+    jobs = local_client.get("/v1/jobs", params={"limit": 200}).json()["items"]
+    assert len(jobs) == 12 and {j["state"] for j in jobs} == {"canceled"}
+    assert refused.json()["detail"] == (
+        "could not queue the job: ConnectionError: down; the sweep is withdrawn: none of its 12 jobs runs (the 4 "
+        f"already sent were canceled; sweep {jobs[0]['batch_id']!r} lists them), so a retry repeats none of them")
+    assert {j["message"] for j in jobs} == {"the sweep was withdrawn: the broker refused part of it"}
+    retried = local_client.post("/v1/sweeps", json=body, headers=headers)
+    assert retried.status_code == 201 and retried.json()["counts"] == {"queued": 12}
+    assert retried.json()["id"] != jobs[0]["batch_id"]
+    again = local_client.post("/v1/sweeps", json=body, headers=headers)
+    assert again.status_code == 200 and again.json()["id"] == retried.json()["id"]
+
+
 def test_a_job_retried_across_an_upgrade_that_changed_a_default_replays(auth_client, mic_zip, monkeypatch):
     """The digest had been of the body with every default filled in: a release changing a default (or adding a
     field) turned a client's unchanged retry into "a different request body". It is of what the client sent; a

@@ -309,7 +309,7 @@ class IdempotencyRecord(Base):
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
     owner_key_id: Mapped[str] = mapped_column(ForeignKey("api_keys.id"))
-    endpoint: Mapped[str] = mapped_column(String(32))  # "scenes", "jobs" or "evaluations"
+    endpoint: Mapped[str] = mapped_column(String(32))  # "scenes", "jobs", "evaluations" or "sweeps"
     idempotency_key: Mapped[str] = mapped_column(String(255))
     request_sha256: Mapped[str] = mapped_column(String(64))
     resource_id: Mapped[str] = mapped_column(String(32))

@@ -50,14 +50,26 @@ def create_evaluation(body: EvaluationCreate, response: Response, session: Sessi
 
 
 @router.post("/v1/sweeps", status_code=status.HTTP_201_CREATED, response_model=SweepOut,
-             responses={404: {"description": "no such scene (or another key's)"},
-                        409: {"description": "a scene failed processing (the reason is named), or the workers lack "
-                                             "a model the jobs load"},
-                        422: {"description": "invalid request (the field is named)"}, **_QUOTA},
-             summary="Submit the paper's protocol: scenes × the six prompts of SPEC §4, each edit then evaluated")
-def create_sweep(body: SweepCreate, session: SessionDep, settings: SettingsDep, queue: QueueDep,
-                 key: CurrentKey) -> SweepOut:
-    sweep_id = evaluations.create_sweep(session=session, settings=settings, queue=queue, key=key, body=body)
+             responses={200: {"description": "a retry with the same Idempotency-Key: the sweep it created"},
+                        404: {"description": "no such scene (or another key's)"},
+                        409: {"description": "a scene failed processing (the reason is named), the workers lack "
+                                             "a model the jobs load, a retry whose Idempotency-Key created a sweep "
+                                             "whose recorded job has since been deleted, or one sent while that first "
+                                             "request has not answered yet (Retry-After)"},
+                        422: {"description": "invalid request (the field is named), or an Idempotency-Key reused "
+                                             "with a different body"},
+                        **_QUOTA,
+                        503: {"description": "the broker refused the sweep, maybe part-way: the whole sweep is "
+                                             "withdrawn (what was sent is canceled), so a retry repeats none of it"}},
+             summary="Submit the paper's protocol: scenes × the six prompts of SPEC §4, each edit then evaluated "
+                     "(optionally with an Idempotency-Key header)")
+def create_sweep(body: SweepCreate, response: Response, session: SessionDep, settings: SettingsDep, queue: QueueDep,
+                 key: CurrentKey, idempotency_key: IdempotencyKey) -> SweepOut:
+    """201 with the queued sweep; 200 with the original one for a retry carrying the same Idempotency-Key."""
+    sweep_id, replayed = evaluations.create_sweep(session=session, settings=settings, queue=queue, key=key, body=body,
+                                                  idempotency_key=idempotency_key)
+    if replayed:
+        mark_replayed(response)
     return sweep_out(session, sweep_id, key)
 
 

@@ -9,12 +9,13 @@ from __future__ import annotations
 
 from fastapi import HTTPException, status
 from sqlalchemy import select
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from api.schemas import EvaluationCreate, EvaluationParams, JobCreate, SweepCreate
 from api.auth import Idempotency, sha256_hex
 from api.services.jobs import (
-    add_jobs, fail_unsent, get_job, new_edit_job, reconstruction_for, request_cancel, submit, usable_scene,
+    add_jobs, get_job, new_edit_job, reconstruction_for, request_cancel, submit, usable_scene,
 )
 from voxe_core.evaluate import paper_protocol
 from voxe_core.guidance.prompts import check_prompt_length
@@ -65,8 +66,20 @@ def create_evaluation(*, session: Session, settings: Settings, queue: TaskQueue,
     return submit(session=session, settings=settings, queue=queue, key=key, job=job, idem=idem)
 
 
-def create_sweep(*, session: Session, settings: Settings, queue: TaskQueue, key: ApiKey, body: SweepCreate) -> str:
-    """Record every scene × protocol prompt edit with its evaluation, all or none; send them; the sweep's id."""
+def create_sweep(*, session: Session, settings: Settings, queue: TaskQueue, key: ApiKey, body: SweepCreate,
+                 idempotency_key: str | None) -> tuple[str, bool]:
+    """Record every scene × protocol prompt edit with its evaluation, all or none, and send them; (the sweep's id,
+    whether this was a replay of an earlier request with the same Idempotency-Key).
+
+    A broker refusing part of it (503) withdraws the whole sweep: what was sent is canceled with the rest (a worker
+    skips a canceled job), so a retry, which the Idempotency-Key lets run anew, repeats none of it.
+    """
+    idem = None
+    if idempotency_key:  # the record names the sweep's last job (add_jobs), whose batch_id is the sweep's id
+        idem = Idempotency(idempotency_key, sha256_hex(body.model_dump_json(exclude_unset=True)), "sweeps",
+                           noun="sweep holding job")
+        if (replayed := idem.replayed(session, key, Job)) is not None:
+            return replayed.batch_id, True
     params = body.params.model_dump(mode="json")
     scenes = [usable_scene(session=session, key=key, scene_id=s.scene_id, params=params) for s in body.scenes]
     for index, entry in enumerate(body.scenes):  # as JobCreate will check each edit, before any row is made
@@ -87,17 +100,30 @@ def create_sweep(*, session: Session, settings: Settings, queue: TaskQueue, key:
             job = new_edit_job(request, key, settings, rec, batch_id)
             jobs += [job, new_evaluation_job(key, settings, [job], entry.object, body.evaluation, batch_id,
                                              index=len(jobs) // 2)]
-    to_send = add_jobs(session=session, key=key, settings=settings, jobs=jobs)
+    try:
+        to_send = add_jobs(session=session, key=key, settings=settings, jobs=jobs, idempotency=idem)
+    except IntegrityError:
+        if idem is not None and (replayed := idem.replayed(session, key, Job)) is not None:
+            return replayed.batch_id, True  # a concurrent retry created it first
+        raise
     for k, job in enumerate(to_send):
         try:
-            dispatch_job(session, queue, job)
-        except QueueUnavailable as exc:  # the broker went away mid-batch: nothing after this edit can run either
-            later_edits = {j.id for j in to_send[k + 1:]}
-            later = [j.id for j in jobs if j.id in later_edits or (j.source_job_ids or [None])[0] in later_edits]
-            fail_unsent(session=session, job_ids=later, reason="could not queue the sweep: the broker became "
-                                                                "unreachable")
-            raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(exc)) from None
-    return batch_id
+            dispatch_job(session, queue, job, fail_refused=False)
+        except QueueUnavailable as exc:
+            sent_edits = {j.id for j in to_send[:k]}
+            sent = sum(j.id in sent_edits or (j.source_job_ids or [None])[0] in sent_edits for j in jobs)
+            if idem is not None:  # in the transaction that cancels the sweep: a retry never replays it canceled
+                idem.forget(session, key)
+            request_cancel(session=session, job_ids=[j.id for j in jobs],
+                           message="the sweep was withdrawn: the broker refused part of it")
+            raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE,
+                                f"{exc}; the sweep is withdrawn: none of its {len(jobs)} jobs runs (the {sent} already "
+                                f"sent were canceled; sweep {batch_id!r} lists them), so a retry repeats none of "
+                                "them") from None
+    if idem is not None:  # only now may a retry replay it (Idempotency.replayed)
+        idem.answered(session, key)
+        session.commit()
+    return batch_id, False
 
 
 def sweep_jobs(*, session: Session, key: ApiKey, sweep_id: str) -> list[Job]:

@@ -150,7 +150,8 @@ def add_jobs(*, session: Session, key: ApiKey, settings: Settings, jobs: list[Jo
              idempotency: Idempotency | None = None) -> list[Job]:
     """Record ``jobs`` within the key's quota of active jobs, all or none; the ones to send now.
 
-    Jobs whose model no worker has are refused first (``refuse_without_models``).
+    Jobs whose model no worker has are refused first (``refuse_without_models``). An ``idempotency`` record names
+    the last job: a batch's is sent last, so a retry replays the batch only once all of it is with the broker.
 
     The scenes' states are read after the jobs' rows are written, under a lock on each scene's
     row, so an ingest finishing meanwhile either sees these jobs or is seen as done: jobs on a
@@ -163,7 +164,7 @@ def add_jobs(*, session: Session, key: ApiKey, settings: Settings, jobs: list[Jo
         lock_key(session, key.id)
         session.add_all(jobs)
         if idempotency is not None:
-            idempotency.record(session, key, jobs[0].id)
+            idempotency.record(session, key, jobs[-1].id)
         try:
             session.flush()
         except IntegrityError:  # a racing Idempotency-Key twin (the caller replays it), or a scene deleted meanwhile
@@ -278,8 +279,9 @@ def cancel_job(*, session: Session, key: ApiKey, job_id: str) -> Job:
     return job
 
 
-def request_cancel(*, session: Session, job_ids: list[str]) -> None:
-    """Flag the unfinished ``job_ids`` canceled: queued ones at once, running ones when their task next checks.
+def request_cancel(*, session: Session, job_ids: list[str], message: str = "canceled while queued") -> None:
+    """Flag the unfinished ``job_ids`` canceled: queued ones at once (with ``message``), running ones when their task
+    next checks.
 
     A sweep's evaluations waiting on an edit canceled while queued fail with it, as its chain's evaluate stage would
     fail them: one whose edit waited for its scene's ingest had stayed queued, never sent, holding a quota slot and
@@ -287,17 +289,10 @@ def request_cancel(*, session: Session, job_ids: list[str]) -> None:
     """
     session.execute(update(Job).where(Job.id.in_(job_ids), Job.state.not_in(TERMINAL_STATES))
                     .values(cancel_requested=True, updated_at=utcnow()))
-    message = "canceled while queued"
     canceled = finish_jobs(session, job_ids, CANCELED, message=message, where=[Job.state == QUEUED])
     for job in session.scalars(select(Job).where(Job.id.in_(canceled))).all():
         finish_jobs(session, evaluations_waiting_on(session, job), FAILED,
                     error=f"evaluate: source job {job.id} {CANCELED}: {message}")
-    session.commit()
-
-
-def fail_unsent(*, session: Session, job_ids: list[str], reason: str) -> None:
-    """Fail jobs that were recorded but will never be sent (the broker went away mid-batch)."""
-    finish_jobs(session, job_ids, FAILED, error=reason)
     session.commit()
 
 
