@@ -486,6 +486,37 @@ def test_cli_evaluate_writes_json_table_and_ring_png_sets(sphere_grid, tiny_clip
     assert "model not available: CLIP weights 'voxe-test/no-such-clip'" in capsys.readouterr().err
 
 
+def test_cli_evaluate_that_cannot_write_its_results_keeps_the_earlier_ones(sphere_grid, tiny_clip_path, tmp_path,
+                                                                          monkeypatch, capsys):
+    """A full disk while evaluation.json / evaluation.md were written had left them torn under their names, the
+    earlier run's destroyed: they are written whole or not at all, both or neither."""
+    import errno
+    from pathlib import Path
+
+    from voxe_core.cli import main
+
+    sphere_grid.save(tmp_path / "initial.safetensors")
+    out = tmp_path / "eval"
+    args = ["evaluate", str(tmp_path / "initial.safetensors"), "--object", "ball", "--out", str(out),
+            "--clip-model", str(tiny_clip_path), "--views", "2", "--size", "16", "-q",
+            "--edit", str(tmp_path / "initial.safetensors"), "a wood carving of a ball"]
+    assert main(args) == 0
+    earlier = {name: (out / name).read_text() for name in ("evaluation.json", "evaluation.md")}
+    write_text = Path.write_text
+
+    def disk_fills(self, text, *rest, **options):  # the table, written second, runs out of space half way
+        if self.suffix == ".md":
+            write_text(self, text[: len(text) // 2], *rest, **options)
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return write_text(self, text, *rest, **options)
+
+    monkeypatch.setattr(Path, "write_text", disk_fills)
+    assert main([*args[:3], "sphere", *args[4:]]) == 2  # another object: another evaluation.json
+    assert "No space left on device" in capsys.readouterr().err
+    assert {name: (out / name).read_text() for name in earlier} == earlier
+    assert sorted(p.name for p in out.iterdir()) == ["evaluation.json", "evaluation.md", "ring"]
+
+
 # ------------------------------------------------------------------------------------------ service
 @pytest.fixture
 def service(tmp_path, monkeypatch):

@@ -49,6 +49,7 @@ def cmd_evaluate(args) -> int:
         ClipScorer, EditSample, EvaluateConfig, InceptionFeatures, evaluate, evaluation_steps, format_table,
         save_png_set,
     )
+    from voxe_core.files import replacing
     from voxe_core.guidance.loading import ModelNotAvailableError
     from voxe_core.refine.storage import load_mask
 
@@ -93,9 +94,11 @@ def cmd_evaluate(args) -> int:
                "ring": {"views": config.views, "elevation": config.elevation, "size": config.size},
                "edits": [{"name": e.name, "grid": str(g[0]), "mask": g[2] if len(g) > 2 else None}
                          for e, g in zip(edits, args.edit)]}
-    (out / "evaluation.json").write_text(json.dumps(summary, indent=2))
     table = format_table(result.rows, extra_columns=("name",))
-    (out / "evaluation.md").write_text(table)
+    # Whole or not at all, both or neither: a full disk had left them torn, the earlier run's destroyed.
+    with replacing(out / "evaluation.json") as summary_partial, replacing(out / "evaluation.md") as table_partial:
+        summary_partial.write_text(json.dumps(summary, indent=2))
+        table_partial.write_text(table)
     print(table, end="")
     return 0
 

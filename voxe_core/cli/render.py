@@ -103,6 +103,7 @@ def cmd_render(args) -> int:
 
 
 def _report_metrics(frames, scene, names, out_dir: Path) -> None:
+    from voxe_core.files import replacing
     from voxe_core.metrics import SSIM_WINDOW, psnr, ssim
 
     per_view_psnr = psnr(frames, scene.images).tolist()
@@ -120,7 +121,8 @@ def _report_metrics(frames, scene, names, out_dir: Path) -> None:
     else:
         line += f" (SSIM needs views of at least {SSIM_WINDOW} px)"
     print(f"{line} over {len(names)} views")
-    (out_dir / METRICS_FILE).write_text(json.dumps(summary, indent=2))
+    with replacing(out_dir / METRICS_FILE) as partial:  # whole or not at all: a full disk had left it torn
+        partial.write_text(json.dumps(summary, indent=2))
 
 
 def cmd_turntable(args) -> int:
