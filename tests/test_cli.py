@@ -827,6 +827,26 @@ def test_render_metrics_that_cannot_be_written_keep_the_earlier_file(tmp_path, m
     assert [p.name for p in tmp_path.iterdir()] == ["metrics.json"]
 
 
+def test_render_metrics_of_a_view_identical_to_its_image_stay_finite(tmp_path, capsys):
+    """A view rendered pixel for pixel as its image (its PSNR infinite) had made the mean PSNR inf, hiding every
+    other view, and metrics.json invalid JSON (``Infinity``): it counts as PSNR_CAP_DB, as in ``voxe evaluate``."""
+    from voxe_core.cli.render import _report_metrics
+    from voxe_core.metrics import PSNR_CAP_DB
+
+    images = torch.rand(2, 12, 12, 3, generator=torch.Generator().manual_seed(0))
+    frames = torch.stack([images[0], 1 - images[1]])
+    _report_metrics(frames, SimpleNamespace(images=images, split="test"), ["a.png", "b.png"], tmp_path)
+    other = float(psnr(frames[1], images[1]))
+
+    def refuse(constant):
+        raise ValueError(f"not JSON: {constant}")
+
+    metrics = json.loads((tmp_path / "metrics.json").read_text(), parse_constant=refuse)
+    assert [view["psnr"] for view in metrics["per_view"]] == [PSNR_CAP_DB, pytest.approx(other)]
+    assert metrics["psnr"] == pytest.approx((PSNR_CAP_DB + other) / 2)
+    assert f"test: PSNR {(PSNR_CAP_DB + other) / 2:.2f} dB" in capsys.readouterr().out
+
+
 def test_render_ring(sphere_file, tmp_path):
     out = tmp_path / "ring"
     assert main(["render", str(sphere_file), "--ring", "3", "--size", "16", "--out", str(out), "--quiet"]) == 0

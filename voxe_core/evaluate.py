@@ -50,7 +50,7 @@ from voxe_core.guidance.loading import (
     offline_env, tokenizer_fits,
 )
 from voxe_core.guidance.prompts import edit_prompt
-from voxe_core.metrics import SSIM_WINDOW, psnr, ssim
+from voxe_core.metrics import PSNR_CAP_DB, SSIM_WINDOW, psnr, ssim
 from voxe_core.progress import Callbacks, Progress
 from voxe_core.render import RenderConfig, render_image
 
@@ -529,9 +529,6 @@ def preservation(images: torch.Tensor, recon: torch.Tensor, sample: EditSample, 
     ssim_values = ssim(images, recon, keep=keep)
     return {"psnr": _finite_mean(psnr_values), "ssim": _finite_mean(ssim_values),
             "region": region, "kept_fraction": float(keep.float().mean())}
-
-
-PSNR_CAP_DB = 100.0  # identical views have infinite PSNR; averaged as this so one of them cannot swamp the mean
 
 
 def _finite_mean(values: torch.Tensor) -> float | None:

@@ -23,6 +23,9 @@ SSIM_SIGMA = 1.5
 SSIM_WINDOW = 11  # 2 * int(3.5 * sigma + 0.5) + 1, scikit-image's truncation
 SSIM_K1 = 0.01
 SSIM_K2 = 0.03
+PSNR_CAP_DB = 100.0
+"""What an average over views counts an infinite PSNR (identical views) as, so one cannot swamp the mean (nor leave
+JSON, which has no infinity)."""
 
 
 def _as_pair(a, b) -> tuple[torch.Tensor, torch.Tensor]:
@@ -113,4 +116,4 @@ def ssim(a, b, data_range: float = 1.0, keep=None):
     return _result(values, not batch)
 
 
-__all__ = ["psnr", "ssim", "gaussian_window"]
+__all__ = ["PSNR_CAP_DB", "psnr", "ssim", "gaussian_window"]

@@ -104,9 +104,9 @@ def cmd_render(args) -> int:
 
 def _report_metrics(frames, scene, names, out_dir: Path) -> None:
     from voxe_core.files import replacing
-    from voxe_core.metrics import SSIM_WINDOW, psnr, ssim
+    from voxe_core.metrics import PSNR_CAP_DB, SSIM_WINDOW, psnr, ssim
 
-    per_view_psnr = psnr(frames, scene.images).tolist()
+    per_view_psnr = psnr(frames, scene.images).clamp(max=PSNR_CAP_DB).tolist()  # a view identical to its image: inf
     height, width = frames.shape[1:3]
     per_view_ssim = ssim(frames, scene.images).tolist() if min(height, width) >= SSIM_WINDOW else None
     mean_psnr = sum(per_view_psnr) / len(per_view_psnr)
