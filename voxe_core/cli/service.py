@@ -278,6 +278,7 @@ def cmd_download(args) -> int:
 
 def cmd_sweep(args) -> int:
     from voxe_client import ServiceError
+    from voxe_core.files import replacing
 
     if args.poll is not None and not args.wait:  # (it had been taken and ignored: the command returned at once)
         raise ValueError("--poll sets the seconds between the polls of --wait: pass --wait too")
@@ -298,7 +299,8 @@ def cmd_sweep(args) -> int:
         except ServiceError as exc:
             return _service_error("sweep", exc)
     if args.out is not None:
-        args.out.write_text(json.dumps(sweep, indent=2))
+        with replacing(args.out) as partial:  # whole or not at all: a full disk had left it torn
+            partial.write_text(json.dumps(sweep, indent=2))
     if not args.wait:  # just queued: its table had been printed with no row, the sweep's id nowhere on stdout
         print(f"voxe sweep: not waited for (--wait polls until it ends): GET /v1/sweeps/{sweep['id']} shows its "
               "summary table as its evaluations finish", file=sys.stderr)
