@@ -322,6 +322,33 @@ def test_upload_quota_is_429_and_leaves_nothing(auth_client, mic_zip, root):  # 
     assert auth_client.get("/v1/scenes", headers=bearer(tiny)).json()["total"] == 0 and staged(root) == []
 
 
+def test_an_upload_over_the_quota_is_refused_before_its_bytes_are_stored(auth_client, mic_zip, monkeypatch):
+    """The packed archive's size is known before it is stored: an upload over the key's whole quota (413), or over
+    what is left of it (429), had been written to storage and then deleted (GBs sent to S3 for nothing). An upload
+    filling the quota exactly is accepted."""
+    from voxe_service.storage import get_storage
+
+    storage, stored = get_storage(), []
+    put_file = storage.put_file
+    monkeypatch.setattr(storage, "put_file", lambda key, *args: stored.append(key) or put_file(key, *args))
+    _, probe = _create_key("probe")
+    size = _upload(auth_client, mic_zip, bearer(probe)).json()["size_bytes"]
+    _, tiny = _create_key("tiny", max_upload_bytes=size - 1)
+    alone = _upload(auth_client, mic_zip, bearer(tiny))
+    assert alone.status_code == 413, alone.text
+    assert f"stores {size} bytes, more than the whole upload quota of key 'tiny' ({size - 1} bytes" in \
+        alone.json()["detail"]
+    _, exact = _create_key("exact", max_upload_bytes=2 * size)
+    assert [_upload(auth_client, mic_zip, bearer(exact)).status_code for _ in range(2)] == [201, 201]
+    full = _upload(auth_client, mic_zip, bearer(exact))
+    assert full.status_code == 429 and f"stores {2 * size} bytes of scenes" in full.json()["detail"]
+    _, small = _create_key("small", max_upload_bytes=size + size // 2)
+    assert _upload(auth_client, mic_zip, bearer(small)).status_code == 201
+    over = _upload(auth_client, mic_zip, bearer(small))
+    assert over.status_code == 429 and f"stores {size} bytes of scenes, this upload adds {size}" in over.json()["detail"]
+    assert len(stored) == 4  # the accepted uploads' only
+
+
 @BOTH_DATABASES
 def test_a_mesh_whose_rendered_views_go_over_the_upload_quota_fails_at_its_ingest(auth_client, root,  # noqa: F811
                                                                                     monkeypatch):

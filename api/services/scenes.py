@@ -80,6 +80,10 @@ def create_scene(*, session: Session, settings: Settings, storage: Storage, queu
             )
         except UploadError as exc:
             raise HTTPException(exc.status, str(exc)) from None
+        # The bytes to store are known now: an upload over the quota is refused before they are stored (they had
+        # been written, GBs to S3, then deleted); the check under the key's lock below still decides a race.
+        check_upload_bytes(session, key, settings, staged.archive.stat().st_size)
+        session.commit()  # the connection back to the pool while the archive is stored
         scene_id = new_id()
         storage_key = scene_key(scene_id, staged.archive_name)
         try:
