@@ -349,6 +349,40 @@ def test_an_upload_over_the_quota_is_refused_before_its_bytes_are_stored(auth_cl
     assert len(stored) == 4  # the accepted uploads' only
 
 
+def test_an_upload_refused_by_a_racing_one_answers_its_quota_even_when_its_bytes_cannot_be_deleted(
+        auth_client, mic_zip, monkeypatch, caplog):
+    """Two uploads racing for a key's last room: the one refused under the key's lock deletes the bytes it stored.
+    A storage failing that deletion had turned the 429 naming the quota into a 503 "try again" (retrying the same
+    upload, refused again); the bytes left behind are counted in no quota, and the failure is logged."""
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
+    from voxe_service.storage import StorageUnavailable, get_storage
+
+    _, probe = _create_key("probe")
+    size = _upload(auth_client, mic_zip, bearer(probe)).json()["size_bytes"]
+    key_id, token = _create_key("small", max_upload_bytes=size + size // 2)
+    storage = get_storage()
+    put_file = storage.put_file
+
+    def racing_put_file(key, *args):
+        with session_scope() as session:  # the racing upload lands while this one's bytes are stored
+            session.add(Scene(owner_key_id=key_id, name="racer", format="nerf_synthetic", image_count=1, width=1,
+                              height=1, storage_key="k", size_bytes=size, sha256="0" * 64))
+        return put_file(key, *args)
+
+    def unreachable(key):
+        raise StorageUnavailable(f"cannot delete {key}: the storage is unreachable")
+
+    monkeypatch.setattr(storage, "put_file", racing_put_file)
+    monkeypatch.setattr(storage, "delete", unreachable)
+    with caplog.at_level(logging.WARNING, logger="voxe"):
+        refused = _upload(auth_client, mic_zip, bearer(token))
+    assert refused.status_code == 429, refused.text
+    assert f"key 'small' stores {size} bytes of scenes, this upload adds {size}" in refused.json()["detail"]
+    assert "could not delete the stored object scenes/" in caplog.text
+    assert [s["name"] for s in auth_client.get("/v1/scenes", headers=bearer(token)).json()["items"]] == ["racer"]
+
+
 @BOTH_DATABASES
 def test_a_mesh_whose_rendered_views_go_over_the_upload_quota_fails_at_its_ingest(auth_client, root,  # noqa: F811
                                                                                     monkeypatch):
