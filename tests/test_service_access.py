@@ -345,7 +345,8 @@ def test_an_upload_over_the_quota_is_refused_before_its_bytes_are_stored(auth_cl
     _, small = _create_key("small", max_upload_bytes=size + size // 2)
     assert _upload(auth_client, mic_zip, bearer(small)).status_code == 201
     over = _upload(auth_client, mic_zip, bearer(small))
-    assert over.status_code == 429 and f"stores {size} bytes of scenes, this upload adds {size}" in over.json()["detail"]
+    assert over.status_code == 429
+    assert f"stores {size} bytes of scenes, this upload adds {size}" in over.json()["detail"]
     assert len(stored) == 4  # the accepted uploads' only
 
 
