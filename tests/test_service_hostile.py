@@ -354,6 +354,32 @@ def test_duplicate_and_unwritable_multipart_files(client, dataset, root):  # noq
     assert client.get("/v1/scenes").json()["total"] == 0 and stored_files(root) == [] and staged(root) == []
 
 
+def test_a_multipart_part_of_the_wrong_kind_is_a_4xx_naming_its_field(client, root):  # noqa: F811
+    """A text field where a file is expected (curl -F 'archive=<scene.zip', requests' ``data=``) had been a 422
+    "Expected UploadFile, received: <class 'str'>" (over Starlette's 1 MB per text field a 400 "Part exceeded
+    maximum size of 1024KB."), and a file where text is expected a 422 dumping the server's upload object (its
+    temporary file's arguments)."""
+    small, large = _zip({"transforms_train.json": b"{}"}), _zip({"big.bin": random.Random(0).randbytes(3 << 19)})
+    for data, files, field in (({"archive": small.decode("latin-1")}, None, "archive"),  # url-encoded
+                               (None, {"archive": (None, small)}, "archive"),  # multipart, no filename
+                               ({"files": "{}"}, {"files": ("images/0.png", b"x")}, "files")):
+        response = client.post("/v1/scenes", data=data, files=files)
+        assert response.status_code == 422, response.text
+        assert response.json()["detail"] == (f"{field!r} must be a file (a part with a filename: curl -F "
+                                             f"'{field}=@<path>'), not a text field")
+    for data, files in (({"archive": large.decode("latin-1")}, None), (None, {"archive": (None, large)})):
+        response = client.post("/v1/scenes", data=data, files=files)
+        assert response.status_code == 413, response.text
+        assert response.json()["detail"].startswith("a text field of the form is too long (")
+        assert response.json()["detail"].endswith("): send 'archive' or 'files' as a file (a part with a filename: "
+                                                  "curl -F 'archive=@<path>')")
+    for field in ("name", "mesh_shading"):
+        response = client.post("/v1/scenes", files={"archive": ("a.zip", small), field: ("auto.txt", b"auto")})
+        assert response.status_code == 422, response.text
+        assert response.json()["detail"] == f"{field!r} must be a text field, not a file ('auto.txt')"
+    assert client.get("/v1/scenes").json()["total"] == 0 and stored_files(root) == [] and staged(root) == []
+
+
 def test_a_failure_after_storing_rolls_everything_back(client, dataset, root, monkeypatch):  # noqa: F811
     """The dataset is in storage when the row fails to insert: the stored object goes too."""
     from api.services import scenes

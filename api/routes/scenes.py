@@ -19,21 +19,44 @@ from voxe_service.settings import get_settings
 class UploadFilesRoute(APIRoute):
     """A form route whose multipart body is parsed allowing ``VOXE_MAX_UPLOAD_FILES`` files, before FastAPI parses it
     (then reusing this parse): Starlette's default of 1000 had answered an upload of 1001 ``files`` 400 "Too many
-    files". More than the setting is the upload's own 413."""
+    files". More than the setting is the upload's own 413.
+
+    A part of the wrong kind is a 4xx naming the field: a text field where a file is expected (``curl -F
+    archive=<scene.zip``) had been a 422 "Expected UploadFile, received: <class 'str'>" (over Starlette's 1 MB per
+    text field, a 400 "Part exceeded maximum size of 1024KB."), and a file where text is expected a 422 dumping the
+    server's upload object."""
 
     def get_route_handler(self):
         handler = super().get_route_handler()
         if not (self.body_field and isinstance(self.body_field.field_info, params.Form)):
             return handler
+        file_fields = [f.alias for f in self.dependant.body_params if isinstance(f.field_info, params.File)]
+
+        def as_file(field: str) -> str:
+            return f"a part with a filename: curl -F '{field}=@<path>'"
 
         async def parse_then_handle(request: Request) -> Response:
             max_files = get_settings().max_upload_files
             try:
-                await request.form(max_files=max_files)
+                form = await request.form(max_files=max_files)
             except StarletteHTTPException as exc:  # Starlette's 400 for a form it refuses
                 if exc.status_code == 400 and str(exc.detail).startswith("Too many files"):
                     raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE, too_many_files(max_files)) from None
+                if exc.status_code == 400 and "exceeded maximum size" in str(exc.detail) and file_fields:  # text's
+                    raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE,
+                                        f"a text field of the form is too long ({exc.detail}): send "
+                                        f"{' or '.join(map(repr, file_fields))} as a file ({as_file(file_fields[0])})"
+                                        ) from None
                 raise
+            for field in self.dependant.body_params:
+                wants_file = isinstance(field.field_info, params.File)
+                for part in form.getlist(field.alias):
+                    if wants_file and isinstance(part, str):
+                        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"{field.alias!r} must be a file "
+                                            f"({as_file(field.alias)}), not a text field")
+                    if not wants_file and not isinstance(part, str):
+                        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                                            f"{field.alias!r} must be a text field, not a file ({part.filename!r})")
             return await handler(request)
 
         return parse_then_handle
