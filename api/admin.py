@@ -20,11 +20,20 @@ from voxe_service.models import LOCAL_KEY_ID, ApiKey, utcnow
 from voxe_service.settings import get_settings
 
 
-def _positive(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
+def _count_up_to(most: int):
+    """An argument type for a count from 1 to ``most``, the largest its database column holds: more had ended the
+    command in a traceback (SQLite's OverflowError, PostgreSQL's "integer out of range")."""
+
+    def count(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be a whole number, got {text!r}") from None
+        if not 1 <= value <= most:
+            raise argparse.ArgumentTypeError(f"must be 1 to {most}, got {value}")
+        return value
+
+    return count
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -32,9 +41,9 @@ def main(argv: list[str] | None = None) -> int:
     commands = parser.add_subparsers(dest="command", required=True)
     create = commands.add_parser("create-key", help="create a key and print its token (shown only once)")
     create.add_argument("--name", required=True, help="who or what the key is for")
-    create.add_argument("--max-active-jobs", type=_positive, help="queued + running jobs (default: "
+    create.add_argument("--max-active-jobs", type=_count_up_to(2**31 - 1), help="queued + running jobs (default: "
                         "VOXE_MAX_ACTIVE_JOBS_PER_KEY)")
-    create.add_argument("--max-upload-bytes", type=_positive, help="bytes of stored scenes (default: "
+    create.add_argument("--max-upload-bytes", type=_count_up_to(2**63 - 1), help="bytes of stored scenes (default: "
                         "VOXE_MAX_UPLOAD_BYTES_PER_KEY)")
     commands.add_parser("list-keys", help="list keys (never their tokens)")
     revoke = commands.add_parser("revoke-key", help="revoke a key: its token stops working at once")

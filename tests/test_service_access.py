@@ -147,6 +147,13 @@ def test_admin_cli_creates_lists_and_revokes_keys(auth_client, capsys):
     assert "no API key 'nosuchkey'" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         admin.main(["create-key", "--name", "x", "--max-active-jobs", "0"])
+    # past what the columns hold (PostgreSQL's 32-bit and 64-bit integers): a traceback had ended the command
+    for option, value, most in (("--max-active-jobs", 2**31, 2**31 - 1), ("--max-upload-bytes", 10**20, 2**63 - 1),
+                                ("--max-upload-bytes", "10GB", None)):
+        with pytest.raises(SystemExit):
+            admin.main(["create-key", "--name", "x", option, str(value)])
+        expected = f"must be 1 to {most}, got {value}" if most else f"must be a whole number, got '{value}'"
+        assert f"argument {option}: {expected}" in capsys.readouterr().err
     with pytest.raises(SystemExit):  # a name with a tab and a newline had printed a forged row in list-keys
         admin.main(["create-key", "--name", "x\nfake1234abcd\tadmin\tactive"])
     assert "printable characters" in capsys.readouterr().err
