@@ -172,7 +172,9 @@ def check_active_jobs(session: Session, key: ApiKey, settings: Settings, adding:
 def check_upload_bytes(session: Session, key: ApiKey, settings: Settings, adding: int,
                        including_new: bool = False) -> None:
     """429 when the key's stored scenes plus ``adding`` bytes exceed its upload quota; 413 when ``adding`` alone
-    does (deleting scenes could never make room). ``adding`` 0: the check before an upload's size is known.
+    does (deleting scenes could never make room). ``adding`` 0: the check before an upload's size is known, which
+    refuses a key whose quota is exactly used up (every upload stores at least a byte; it had been unpacked and
+    checked first).
 
     ``including_new``: the new scene's row (of ``adding`` bytes) is already flushed into the sum.
     """
@@ -183,7 +185,7 @@ def check_upload_bytes(session: Session, key: ApiKey, settings: Settings, adding
                             f"({limit} bytes: VOXE_MAX_UPLOAD_BYTES_PER_KEY or the key's own)")
     total = stored_bytes(session, key.id)
     stored = total - adding if including_new else total
-    if stored + adding > limit:
+    if stored + max(adding, 1) > limit:
         this = f"this upload adds {adding}" if adding else "before this upload is read"
         raise QuotaExceeded(f"quota of upload bytes exceeded: key {key.name!r} stores {stored} bytes of scenes, "
                             f"{this}, the limit is {limit} (VOXE_MAX_UPLOAD_BYTES_PER_KEY or the key's own); delete "

@@ -69,7 +69,7 @@ def create_scene(*, session: Session, settings: Settings, storage: Storage, queu
     idem = Idempotency(idempotency_key, upload.digest(), "scenes") if idempotency_key else None
     if idem is not None and (replayed := idem.replayed(session, key, Scene)) is not None:
         return replayed, True
-    check_upload_bytes(session, key, settings, 0)  # already over: answer before unpacking anything
+    check_upload_bytes(session, key, settings, 0)  # already full: answer before unpacking anything
     session.commit()  # its connection back to the pool while the upload is unpacked and stored (minutes for GBs)
     with staging_folder(settings.work_dir) as staging:
         try:
