@@ -104,7 +104,7 @@ def create_scene(*, session: Session, settings: Settings, storage: Storage, queu
             session.commit()
         except BaseException as exc:
             session.rollback()
-            storage.discard(storage_key)  # a failure logged: the refusal (a 429 naming the quota) stays the answer
+            storage.discard(storage_key)  # logged, not raised over the answer (a 429 naming the quota, say)
             if idem is not None and isinstance(exc, IntegrityError):  # a concurrent retry created it first
                 if (replayed := idem.replayed(session, key, Scene)) is not None:
                     return replayed, True
