@@ -565,6 +565,29 @@ def test_unknown_prediction_type_is_refused_naming_the_model(tiny_path):
         StableDiffusionGuidance(unet, vae, text_encoder, tokenizer, flow, model_id="org/flow-model")
 
 
+@pytest.mark.parametrize("change, refusal", [
+    ({"in_channels": 9}, r"the UNet of org/other-model maps 9 channels to 4, its VAE's latents have 4: not a "
+                         r"text-to-image Stable Diffusion"),
+    ({"addition_embed_type": "text_time", "addition_time_embed_dim": 8, "projection_class_embeddings_input_dim": 56},
+     r"the UNet of org/other-model needs conditioning besides the text \(addition_embed_type='text_time': SD-XL's"),
+    ({"cross_attention_dim": 64}, r"the UNet of org/other-model reads text embeddings 64 wide \(cross_attention_dim "
+                                  r"64\), its text encoder gives 32: the parts are of different models"),
+])
+def test_a_unet_sds_cannot_drive_is_refused_naming_the_model(tiny_path, change, refusal):
+    """An inpainting UNet, an SD-XL one or one of another text width had loaded and failed only at the first SDS
+    step, with a shape error or a TypeError naming no model."""
+    from diffusers import UNet2DConditionModel
+
+    from voxe_core.guidance.loading import load_stable_diffusion
+
+    _, vae, text_encoder, tokenizer, scheduler = load_stable_diffusion(str(tiny_path), torch.float32, True)
+    config = {key: value for key, value in UNet2DConditionModel.load_config(str(tiny_path / "unet")).items()
+              if not key.startswith("_")}
+    unet = UNet2DConditionModel(**{**config, **change})
+    with pytest.raises(ValueError, match=refusal):
+        StableDiffusionGuidance(unet, vae, text_encoder, tokenizer, scheduler, model_id="org/other-model")
+
+
 # ----------------------------------------------------------------- first-use downloads
 def test_a_download_is_announced_with_its_size_and_nothing_local_is(tiny_path, tmp_path, monkeypatch):
     from voxe_core.guidance.loading import download_notice

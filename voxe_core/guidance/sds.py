@@ -21,7 +21,8 @@ stabilityai/stable-diffusion-2-1 at 768²) converted to ε first,
 ``ε̂ = √ᾱ_t·v + √(1 − ᾱ_t)·z_t`` (from ``v = √ᾱ·ε − √(1 − ᾱ)·z`` and
 ``z_t = √ᾱ·z + √(1 − ᾱ)·ε``), and x̂₀ (``"sample"``) likewise,
 ``ε̂ = (z_t − √ᾱ_t·x̂₀) / √(1 − ᾱ_t)``; any other type is refused, naming the
-model, when the guidance is built (:data:`PREDICTION_TYPES`).
+model, when the guidance is built (:data:`PREDICTION_TYPES`), as is a UNet the step above cannot drive
+(:func:`check_text_to_image`: an inpainting or SD-XL UNet, another text encoder's width).
 
 On CUDA the UNet and VAE run in float16 (``from_pretrained``'s default),
 ``channels_last``, with PyTorch SDPA attention; the SDS step's UNet forward
@@ -76,6 +77,32 @@ def prediction_type(scheduler, model_id: str = "") -> str:
             f"{', '.join(map(repr, PREDICTION_TYPES))} (convert the checkpoint or pick another model)"
         )
     return kind
+
+
+def check_text_to_image(unet, vae, text_encoder, model_id: str = "") -> None:
+    """ValueError naming ``model_id`` for parts SDS here cannot drive as it calls them: a UNet whose input or output
+    is not the VAE's latents (an inpainting model's 9 channels), one that needs conditioning besides the text (SD-XL's
+    ``addition_embed_type``, class labels), or one whose cross-attention reads another width than the text encoder
+    gives. Such a model had loaded and failed at the first SDS step with a TypeError or a shape error naming none."""
+    config, name = unet.config, model_id or "the model"
+    latent = vae.config.latent_channels
+    if (config.in_channels, config.out_channels) != (latent, latent):
+        raise ValueError(f"the UNet of {name} maps {config.in_channels} channels to {config.out_channels}, its VAE's "
+                         f"latents have {latent}: not a text-to-image Stable Diffusion (an inpainting or depth model?)")
+    extra = {key: value for key in ("addition_embed_type", "class_embed_type", "num_class_embeds")
+             if (value := getattr(config, key, None)) is not None}
+    if extra:
+        raise ValueError(f"the UNet of {name} needs conditioning besides the text "
+                         f"({', '.join(f'{key}={value!r}' for key, value in extra.items())}: SD-XL's time and size "
+                         "embeddings, an upscaler's class labels), which SDS here does not give; use a Stable "
+                         "Diffusion 1.x / 2.x model")
+    dims = config.cross_attention_dim
+    dims = list(dims) if isinstance(dims, (list, tuple)) else [dims]
+    width = getattr(config, "encoder_hid_dim", None) or dims[0]
+    if set(dims) != {dims[0]} or width != text_encoder.config.hidden_size:
+        raise ValueError(f"the UNet of {name} reads text embeddings {width} wide (cross_attention_dim "
+                         f"{config.cross_attention_dim}), its text encoder gives {text_encoder.config.hidden_size}: "
+                         "the parts are of different models")
 
 
 def epsilon_from_output(output: torch.Tensor, noisy: torch.Tensor, alpha_bar: torch.Tensor, kind: str) -> torch.Tensor:
@@ -153,6 +180,7 @@ class StableDiffusionGuidance:
         from diffusers.models.attention_processor import AttnProcessor2_0
 
         self.prediction_type = prediction_type(scheduler, model_id)  # refuse an unusable model before moving weights
+        check_text_to_image(unet, vae, text_encoder, model_id)
         _check_graph_device(cuda_graphs, device)
 
         self.model_id = model_id
