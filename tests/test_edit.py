@@ -8,6 +8,7 @@ implements the :class:`Guidance` protocol records what the loop sends it
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import re
@@ -278,6 +279,34 @@ def test_a_zero_iteration_edit_writes_a_checkpoint_with_zero_moments(small_spher
     tensors, meta = load_edit_checkpoint(checkpoint)
     assert meta["iteration"] == 0 and int(tensors["adam_step"]) == 0
     assert not tensors["adam_exp_avg"].any() and not tensors["adam_exp_avg_sq"].any()
+
+
+def test_a_run_that_takes_no_step_still_leaves_its_own_checkpoint_where_another_runs_was(small_sphere, tmp_path):
+    """A file at checkpoint_path that is not the one resumed from is another run's: an edit of 0 iterations, one
+    resumed where it had ended, or one cancelled before its first step had left it there (for a later --resume)."""
+    config = EditConfig(iterations=2, render_size=SIZE)
+    ours, other = tmp_path / "ours.safetensors", tmp_path / "other.safetensors"
+    edit(small_sphere, "a dog", FakeGuidance(), config, checkpoint_path=ours)
+
+    def check(meta, prompt, iteration):
+        assert (meta["prompt"], meta["iteration"]) == (prompt, iteration)
+
+    runs = [  # (config, resume_from, cancelled)
+        (dataclasses.replace(config, iterations=0), None, False),
+        (config, ours, False),
+        (dataclasses.replace(config, iterations=5), ours, True),
+    ]
+    for run_config, resume, cancelled in runs:
+        edit(small_sphere, "a cat", FakeGuidance(), dataclasses.replace(config, iterations=3), checkpoint_path=other)
+        callbacks = Callbacks(should_cancel=lambda: cancelled)
+        with pytest.raises(StageCancelled) if cancelled else contextlib.nullcontext():
+            edit(small_sphere, "a dog", FakeGuidance(), run_config, callbacks, checkpoint_path=other, resume_from=resume)
+        check(load_edit_checkpoint(other)[1], "a dog", 0 if resume is None else 2)
+    # resumed in place and ending at once: the file is already where the run stands, and stays as it is
+    written = []
+    edit(small_sphere, "a dog", FakeGuidance(), config, Callbacks(on_checkpoint=written.append),
+         checkpoint_path=ours, resume_from=ours)
+    assert written == []
 
 
 def test_resume_refuses_another_prompt_or_grid(small_sphere, make_sphere_grid, tiny_guidance, tmp_path):

@@ -286,6 +286,17 @@ def _check_views(input_views, device):
     return images.reshape(-1, 3).to(device, torch.float32), cameras.to(device), images.shape[1], images.shape[2]
 
 
+def _checkpoint_holds(checkpoint_path, resume_from, start: int) -> int | None:
+    """The iteration of this run the file at ``checkpoint_path`` stands for, before the run writes it: ``start`` when
+    the run resumed from that file; 0 (nothing to save before a first step) when a fresh run finds no file there;
+    else None, the file being another run's, which a run ending or cancelled before its first write had left there."""
+    if checkpoint_path is None:
+        return None
+    if resume_from is not None:
+        return start if Path(resume_from).resolve() == Path(checkpoint_path).resolve() else None
+    return None if Path(checkpoint_path).exists() else 0
+
+
 def edit(
     initial_grid: VoxelGrid,
     prompt: str,
@@ -425,7 +436,7 @@ def edit(
             on_preview(done, image.detach().to("cpu", torch.float32))
 
     T = int(guidance.num_train_timesteps)
-    last_checkpoint = start
+    last_checkpoint = _checkpoint_holds(checkpoint_path, resume_from, start)
     if start == 0:
         preview(0)
     done = start
