@@ -448,6 +448,21 @@ def test_image_regulariser_against_the_grids_own_renders_is_small(small_sphere):
     assert reports[-1].losses["reg"] > 0.3
 
 
+def test_an_image_regularised_edit_resumes_only_against_the_input_views_it_was_made_with(small_sphere, tmp_path):
+    """Another --data (other images or cameras) had gone on from the checkpoint silently, mixing two runs."""
+    cameras = Cameras.from_fov(spherical_poses(torch.tensor([30.0, 10.0]), torch.tensor([0.0, 120.0])), 0.6911, 24, 24)
+    images = render_views(small_sphere, cameras, EditConfig().render)
+    config = EditConfig(iterations=1, render_size=16, regulariser="image_l1", image_regulariser_rays=512)
+    checkpoint = tmp_path / "c.safetensors"
+    edit(small_sphere, "a dog", FakeGuidance(), config, checkpoint_path=checkpoint, input_views=(images, cameras))
+    longer = dataclasses.replace(config, iterations=2)
+    turned = Cameras.from_fov(spherical_poses(torch.tensor([30.0, 10.0]), torch.tensor([0.0, 150.0])), 0.6911, 24, 24)
+    for views in ((torch.zeros_like(images), cameras), (images, turned), (images[:1], cameras[:1])):
+        with pytest.raises(ValueError, match="checkpoint was made against other input views"):
+            edit(small_sphere, "a dog", FakeGuidance(), longer, resume_from=checkpoint, input_views=views)
+    edit(small_sphere, "a dog", FakeGuidance(), longer, resume_from=checkpoint, input_views=(images, cameras))
+
+
 def test_view_word_follows_the_pose(small_sphere, monkeypatch):
     # (elevation, azimuth) -> expected word; the front is the camera on -y (azimuth 270°, the authors' convention)
     script = [(20.0, 270.0, "front"), (20.0, 0.0, "side"), (20.0, 90.0, "back"), (10.0, 180.0, "side"),

@@ -24,8 +24,8 @@ Determinism and resume. All randomness comes from two seeded generators: a
 CPU one for poses, time steps and image-regulariser rays, and one on the
 compute device for render jitter, the VAE posterior sample and the SDS noise.
 Checkpoints (``kind="edit_checkpoint"``, safetensors + JSON header, no pickle)
-hold G_e's features, Adam's moments and step, both generator states and the
-iteration, so a run interrupted after k iterations and resumed from its
+hold G_e's features, Adam's moments and step, both generator states, the
+iteration and, under an image regulariser, a summary of the input views it compares with, so a run interrupted after k iterations and resumed from its
 checkpoint ends with exactly the grid an uninterrupted run would (on CPU;
 on CUDA only as far as the kernels are deterministic: scatter-adds with atomics
 are not). A cancelled run writes a checkpoint before it stops.
@@ -89,6 +89,7 @@ from voxe_core.losses import (
     volumetric_regulariser,
 )
 from voxe_core.progress import Callbacks, Progress, StageCancelled
+from voxe_core.reconstruct import same_views, views_summary
 from voxe_core.render import RenderConfig, render_image, render_rays
 from voxe_core.schedule import TimestepSchedule
 from voxe_core.tensorio import config_recipe, load_tensors, recipe_changes, save_tensors
@@ -258,9 +259,10 @@ def _make_adam(param: torch.nn.Parameter, config: EditConfig) -> torch.optim.Ada
 
 def save_edit_checkpoint(
     path, grid: VoxelGrid, optimizer: torch.optim.Adam, generators: dict[str, torch.Generator],
-    iteration: int, meta: dict,
+    iteration: int, meta: dict, views: torch.Tensor | None = None,
 ) -> None:
-    """G_e features, Adam moments and step, generator states and the iteration (tensorio, no pickle)."""
+    """G_e features, Adam moments and step, generator states, the iteration and, for an image regulariser, the
+    :func:`~voxe_core.reconstruct.views_summary` of the input views it compares with (tensorio, no pickle)."""
     param = grid.flat_features
     state = optimizer.state.get(param, {})
     step = state.get("step", 0)
@@ -270,6 +272,7 @@ def save_edit_checkpoint(
         "adam_exp_avg_sq": state["exp_avg_sq"] if "exp_avg_sq" in state else torch.zeros_like(param),
         "adam_step": torch.as_tensor(step, dtype=torch.float64).reshape(1).cpu(),
         **{f"rng_{name}": gen.get_state() for name, gen in generators.items()},
+        **({} if views is None else {"views": views}),
     }
     save_tensors(path, tensors, kind=EDIT_CHECKPOINT_KIND, version=EDIT_CHECKPOINT_VERSION,
                  meta={**grid.header(), **meta, "iteration": int(iteration)})
@@ -368,6 +371,8 @@ def edit(
     param = grid.flat_features
     optimizer = _make_adam(param, config)
     views = _check_views(input_views, device) if image_reg else None
+    views_record = (views_summary(torch.as_tensor(input_views[0]), input_views[1])
+                    if image_reg and (checkpoint_path or resume_from) else None)
 
     host_gen = torch.Generator().manual_seed(config.seed)
     device_gen = torch.Generator(device=device).manual_seed(config.seed + 1)
@@ -392,6 +397,10 @@ def edit(
         if changed := recipe_changes(meta, config):
             raise ValueError(f"{resume_from}: checkpoint was made with another recipe: {', '.join(changed)}; resume "
                              "with its settings, or start afresh")
+        if "views" in tensors and not same_views(tensors["views"], views_record):  # (a checkpoint older than it resumes)
+            raise ValueError(f"{resume_from}: checkpoint was made against other input views (images or cameras) for "
+                             f"its {config.regulariser} regulariser; resume with the views it was made from, or start "
+                             "afresh")
         with torch.no_grad():
             param.copy_(tensors["features"].reshape(-1, 4).to(device))
         if int(tensors["adam_step"].item()) > 0:
@@ -409,7 +418,7 @@ def edit(
             gen.set_state(tensors[f"rng_{name}"])
 
     def checkpoint(done: int) -> None:
-        save_edit_checkpoint(checkpoint_path, grid, optimizer, generators, done, run_meta)
+        save_edit_checkpoint(checkpoint_path, grid, optimizer, generators, done, run_meta, views_record)
         callbacks.checkpoint_written(str(checkpoint_path))
 
     embeddings: dict[str | None, torch.Tensor] = {}

@@ -395,7 +395,7 @@ def views_summary(images: torch.Tensor, cameras: Cameras) -> torch.Tensor:
     the (N, 66) float64 result, (N, 72) with lens terms), its mean colour over a 4 x 4 grid of blocks, the image
     size and its camera (pose, focal lengths, principal point, lens terms).
 
-    Values compared within a tolerance (:func:`_same_views`), not a hash: a capture's images resampled on another
+    Values compared within a tolerance (:func:`same_views`), not a hash: a capture's images resampled on another
     worker differ in their last bits (torch's CPU vector paths), and a hash had refused such a worker its
     checkpoint. Another dataset, split, downsampling or image count differs far beyond them.
     """
@@ -406,7 +406,7 @@ def views_summary(images: torch.Tensor, cameras: Cameras) -> torch.Tensor:
     return torch.cat([blocks, size, *(part.detach().to("cpu", torch.float64) for part in camera)], dim=1)
 
 
-def _same_views(recorded: torch.Tensor, summary: torch.Tensor) -> bool:
+def same_views(recorded: torch.Tensor, summary: torch.Tensor) -> bool:
     """Whether two :func:`views_summary` describe the same views (to 1e-4: far above the last bits of a float32 mean
     over a block, far below another image's)."""
     return recorded.shape == summary.shape and torch.allclose(recorded.double(), summary, rtol=1e-4, atol=1e-4)
@@ -455,7 +455,7 @@ def _resume(path, config: ReconstructConfig, device: torch.device, views: torch.
     ``views`` (another dataset's, split's or downsampling's had gone on silently; a checkpoint older than
     the field resumes, as one older than recipes)."""
     tensors, meta = load_checkpoint(path)
-    if "views" in tensors and not _same_views(tensors["views"], views):
+    if "views" in tensors and not same_views(tensors["views"], views):
         raise FormatError(f"{path}: the checkpoint is of a fit to other images or cameras (another dataset, split, "
                           "downsampling or image count): resume with the views it was made from, or start afresh")
     grid = grid_from_state(tensors, meta)
