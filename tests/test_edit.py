@@ -532,6 +532,24 @@ def test_cli_builds_the_tiny_model_and_edits_with_it(tmp_path, make_sphere_grid,
     assert "voxe: edit cancelled before its first step" in said and "--resume" not in said
 
 
+def test_cli_refuses_a_resume_that_is_no_edit_checkpoint_before_loading_the_model(tmp_path, sphere_grid, capsys,
+                                                                                    monkeypatch):
+    """A missing --resume, or a grid given as one, had been said only after the model loaded (or downloaded)."""
+    grid_file = tmp_path / "g.safetensors"
+    sphere_grid.save(grid_file)
+
+    def no_load(*args, **kwargs):
+        raise AssertionError("the model loaded")
+
+    monkeypatch.setattr(StableDiffusionGuidance, "from_pretrained", no_load)
+    for resume, message in ((tmp_path / "missing.safetensors", "no such file"),
+                            (grid_file, "holds a 'voxel_grid', expected a 'edit_checkpoint'")):
+        assert main(["edit", str(grid_file), "--prompt", "a dog", "--out", str(tmp_path / "o"), "--quiet",
+                     "--resume", str(resume)]) == 2
+        assert f"voxe edit: error: {resume}: {message}" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
 def test_cli_missing_model_exits_2_naming_it(tmp_path, sphere_grid, capsys, monkeypatch):
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")  # no network retries in tests
     grid_file = tmp_path / "g.safetensors"

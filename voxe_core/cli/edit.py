@@ -83,9 +83,10 @@ def job_params(args: argparse.Namespace) -> dict:
 
 def cmd_edit(args) -> int:
     from voxe_core.backbones import load_grid
-    from voxe_core.edit import edit
+    from voxe_core.edit import EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION, edit
     from voxe_core.export import save_png
     from voxe_core.losses import IMAGE_REGULARISERS
+    from voxe_core.tensorio import load_header
 
     if not args.prompt.strip():
         raise ValueError("the edit prompt is empty")
@@ -100,6 +101,8 @@ def cmd_edit(args) -> int:
                          f"{config.regulariser} reads none")
     if args.data is None and (dataset_only := view_options_given(args)):  # (as had these)
         raise ValueError(f"{', '.join(dataset_only)} set how --data's images are read; without --data none are")
+    if args.resume is not None:  # one that is no edit checkpoint (missing, a grid) had waited for the model's load
+        load_header(args.resume, EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION)
     views = None
     if args.data is not None:
         scene = load_views(args)
