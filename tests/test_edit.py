@@ -207,6 +207,24 @@ def test_resume_reproduces_the_uninterrupted_run_bit_for_bit(small_sphere, tiny_
     assert not torch.equal(other.features, reference.features)
 
 
+def test_a_checkpoint_from_another_device_type_resumes_from_a_reseeded_device_generator(small_sphere, tmp_path):
+    """A CUDA worker's checkpoint holds a 16-byte Philox state for its device generator, which a CPU generator's
+    set_state refused with a RuntimeError (and the reverse): a job moved to another worker failed for good."""
+    from voxe_core.edit import EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION
+    from voxe_core.tensorio import save_tensors
+
+    checkpoint = tmp_path / "c.safetensors"
+    edit(small_sphere, "a dog", FakeGuidance(), EditConfig(iterations=2, render_size=SIZE), checkpoint_path=checkpoint)
+    tensors, meta = load_edit_checkpoint(checkpoint)
+    assert meta["device"] == "cpu"
+    save_tensors(checkpoint, {**tensors, "rng_device": torch.zeros(16, dtype=torch.uint8)}, EDIT_CHECKPOINT_KIND,
+                 EDIT_CHECKPOINT_VERSION, {**meta, "device": "cuda"})  # as a CUDA worker writes it
+    longer = EditConfig(iterations=4, render_size=SIZE)
+    first, again = (edit(small_sphere, "a dog", FakeGuidance(), longer, resume_from=checkpoint) for _ in range(2))
+    assert torch.equal(first.features, again.features)  # reproducible, if not the uninterrupted run
+    assert not torch.equal(first.features, small_sphere.features)
+
+
 def test_an_initial_grid_with_a_nan_or_an_inf_is_refused_before_any_step(small_sphere, tmp_path):
     """A damaged G_i had made the first step's loss NaN: an EditDiverged blaming half precision or the lr."""
     for channel, value in ((0, math.nan), (2, math.inf)):

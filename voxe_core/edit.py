@@ -25,10 +25,13 @@ CPU one for poses, time steps and image-regulariser rays, and one on the
 compute device for render jitter, the VAE posterior sample and the SDS noise.
 Checkpoints (``kind="edit_checkpoint"``, safetensors + JSON header, no pickle)
 hold G_e's features, Adam's moments and step, both generator states, the
-iteration and, under an image regulariser, a summary of the input views it compares with, so a run interrupted after k iterations and resumed from its
-checkpoint ends with exactly the grid an uninterrupted run would (on CPU;
-on CUDA only as far as the kernels are deterministic: scatter-adds with atomics
-are not). A cancelled run writes a checkpoint before it stops.
+iteration and, under an image regulariser, a summary of the input views it
+compares with, so a run interrupted after k iterations and resumed from its
+checkpoint ends with exactly the grid an uninterrupted run would (on CPU; on
+CUDA only as far as the kernels are deterministic: scatter-adds with atomics are
+not; resumed on another device type, the device generator is reseeded from where
+the run stands, its state meaning nothing there). A cancelled run writes a
+checkpoint before it stops.
 
 Mixed precision. ``autocast_dtype`` ("bf16" / "fp16") runs the guidance (VAE
 encoder forward and UNet) under ``torch.autocast``; on CPU only bfloat16 is
@@ -380,7 +383,7 @@ def edit(
     fingerprint = initial_fingerprint(initial_grid) if (checkpoint_path or resume_from) else None
     run_meta = {"prompt": str(prompt), "seed": config.seed, "initial_sha256": fingerprint,
                 "regulariser": config.regulariser, "model": str(getattr(guidance, "model_id", "")),
-                "recipe": config.recipe()}
+                "recipe": config.recipe(), "device": device.type}  # the device generator's
 
     start = 0
     if resume_from is not None:
@@ -414,8 +417,12 @@ def edit(
         if start > config.iterations:  # it would have returned the checkpoint's later grid as the one asked for
             raise ValueError(f"{resume_from}: checkpoint is at iteration {start}, past the {config.iterations} "
                              f"iterations asked for; ask for at least {start}")
-        for name, gen in generators.items():
-            gen.set_state(tensors[f"rng_{name}"])
+        host_gen.set_state(tensors["rng_host"])
+        if meta.get("device", device.type) == device.type:  # (a checkpoint older than the field: taken as this one's)
+            device_gen.set_state(tensors["rng_device"])
+        else:  # another device type's state (CUDA's 16-byte Philox seed and offset, a CPU's 5,056 bytes) had raised a
+            # RuntimeError here, so a job moved to another worker failed for good: reseeded from where the run stands
+            device_gen.manual_seed(hash((config.seed + 1, start)) % 2**63)
 
     def checkpoint(done: int) -> None:
         save_edit_checkpoint(checkpoint_path, grid, optimizer, generators, done, run_meta, views_record)
