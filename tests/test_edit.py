@@ -550,9 +550,9 @@ def test_cli_builds_the_tiny_model_and_edits_with_it(tmp_path, make_sphere_grid,
     assert "voxe: edit cancelled before its first step" in said and "--resume" not in said
 
 
-def test_cli_refuses_a_resume_that_is_no_edit_checkpoint_before_loading_the_model(tmp_path, sphere_grid, capsys,
-                                                                                    monkeypatch):
-    """A missing --resume, or a grid given as one, had been said only after the model loaded (or downloaded)."""
+def test_cli_refuses_a_bad_resume_or_out_before_loading_the_model(tmp_path, sphere_grid, capsys, monkeypatch):
+    """A missing --resume, a grid given as one, or an --out that is a file had been said only after the model loaded
+    (or downloaded)."""
     grid_file = tmp_path / "g.safetensors"
     sphere_grid.save(grid_file)
 
@@ -566,6 +566,8 @@ def test_cli_refuses_a_resume_that_is_no_edit_checkpoint_before_loading_the_mode
                      "--resume", str(resume)]) == 2
         assert f"voxe edit: error: {resume}: {message}" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+    assert main(["edit", str(grid_file), "--prompt", "a dog", "--out", str(grid_file), "--quiet"]) == 2
+    assert f"voxe edit: error: cannot write into {grid_file}: it is a file, not a folder" in capsys.readouterr().err
 
 
 def test_cli_missing_model_exits_2_naming_it(tmp_path, sphere_grid, capsys, monkeypatch):

@@ -103,6 +103,7 @@ def cmd_edit(args) -> int:
         raise ValueError(f"{', '.join(dataset_only)} set how --data's images are read; without --data none are")
     if args.resume is not None:  # one that is no edit checkpoint (missing, a grid) had waited for the model's load
         load_header(args.resume, EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION)
+    writable_folder(args.out)  # (an --out that is a file or not writable had been said after the model loaded)
     views = None
     if args.data is not None:
         scene = load_views(args)
@@ -112,7 +113,6 @@ def cmd_edit(args) -> int:
                              compile_encoder=None if args.compile_encoder else False)
     if guidance is None:
         return EXIT_USAGE
-    writable_folder(args.out)
     checkpoint = args.out / "checkpoint.safetensors"
 
     def on_preview(iteration: int, image) -> None:
