@@ -149,6 +149,24 @@ def test_a_softplus_scene_grid_keeps_its_occupancy_through_a_sparse_file_and_no_
     assert int(occupancy.cells.sum()) == 4 ** 3 and float(occupancy.bbox_max.abs().max()) < 0.5
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.float16, torch.bfloat16])
+def test_a_softplus_scene_grids_empty_space_is_skipped_in_the_grids_own_dtype(dtype):
+    """The skip density's floor, what empty space activates to, is activated as the cells' densities are: in the
+    grid's dtype, on its device. Activated once in float32 on the host, it fell a last bit short of a float64 or
+    bfloat16 grid's empty space (here at density_scale 10) and the whole outermost shell counted as occupied again,
+    the box unbounded (nothing culled)."""
+    n = 17
+    grid = SceneGrid(n, activation="softplus", density_scale=10.0).to(dtype)
+    axis = torch.linspace(-2, 2, n)
+    r = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).abs().amax(-1)
+    with torch.no_grad():  # empty space but the object
+        grid.features[..., 0] = torch.where(r <= 0.2, 5.0, grid.empty_raw_density)
+    skip_density = grid.skip_density(1e-3)
+    assert skip_density.dtype == torch.promote_types(dtype, torch.float32)
+    occupancy = grid.occupancy(1e-3)
+    assert int(occupancy.cells.sum()) == 2 ** 3 and float(occupancy.bbox_max.abs().max()) < 0.5
+
+
 def test_gradients_reach_the_background_shell():
     grid = SceneGrid(9)
     origins, directions = torch.tensor([[0.0, 0.0, 0.0]]), torch.tensor([[1.0, 0.0, 0.0]])

@@ -142,14 +142,19 @@ class SceneGrid(VoxelGrid):
         units long: a uniform 3.3e-4 rendered opacity 0 instead of 0.84.
         """
         density = super().skip_density(sigma_threshold)
+        features = self.flat_features
+        # On the grid's device, at least as wide as its dtype (a float64 grid's densities are compared in float64).
+        device, dtype = features.device, torch.promote_types(features.dtype, torch.float32)
         per_axis = []  # (2 − r)² falls as r grows: at r = the largest |coordinate|, the least of the axes' factors
         for n in self.resolution:
-            vertices = torch.linspace(-CONTRACTED_EXTENT, CONTRACTED_EXTENT, n, device=self.bbox_min.device).abs()
+            vertices = torch.linspace(-CONTRACTED_EXTENT, CONTRACTED_EXTENT, n, dtype=dtype, device=device).abs()
             farthest = torch.maximum(vertices[:-1], vertices[1:])
             per_axis.append(density * (CONTRACTED_EXTENT - farthest).clamp(max=1.0).square())
         # At least what empty space activates to: softplus is never 0, and its whole outermost shell had counted
-        # as occupied (an object's sparse file 15x larger, nothing culled).
-        none = float(self.activate_density(torch.tensor(self.empty_raw_density)))
+        # as occupied (an object's sparse file 15x larger, nothing culled). Activated as the cells are, in the grid's
+        # dtype on its device: a float32 value from the host fell a last bit short of a float64 grid's empty space
+        # (the shell occupied again), as a device's own softplus may fall.
+        none = self.activate_density(torch.tensor(self.empty_raw_density, dtype=features.dtype, device=device))
         return torch.minimum(torch.minimum(per_axis[0][:, None, None], per_axis[1][None, :, None]),
                              per_axis[2][None, None, :]).clamp_min(none)
 
