@@ -28,6 +28,8 @@ from voxe_core.grid import VoxelGrid
 from voxe_core.guidance import Guidance
 from voxe_core.guidance.sds import StableDiffusionGuidance
 from voxe_core.progress import Callbacks, StageCancelled
+from voxe_core.render import RenderConfig, render_rays
+from voxe_core.scene_grid import SceneGrid
 from voxe_core.schedule import TimestepSchedule
 
 SIZE = 32  # render size of every test run
@@ -409,6 +411,47 @@ def test_renders_of_empty_space_edit_with_no_backward_time_on_the_guidance():
     config = EditConfig(iterations=2, render_size=16, regulariser="image_l2")
     edited = edit(empty, "a dog", SlowEncoderGuidance(), config, input_views=(torch.ones(1, 8, 8, 3), cameras))
     assert torch.equal(edited.features, empty.features)
+
+
+def test_a_scene_grids_skip_density_is_built_once_per_edit_and_every_step_skips_as_rebuilding_it_would(monkeypatch):
+    """A scene grid's per-cell skip density comes of its lattice, activation and scale, never of the features the
+    edit optimises: built once per edit (each step had rebuilt it), every step's occupancy is still the one its
+    current features give (``grid.occupancy``), so renders and losses are those of rebuilding it each step, bit for
+    bit. The occupancy changes from step to step here, and the threshold is not the default: an occupancy kept
+    from an earlier step, or a skip density built for another threshold, would differ."""
+    threshold = 3e-3
+    initial = SceneGrid(12, activation="softplus")
+    raw_at_threshold = math.log(math.expm1(threshold)) / initial.density_scale
+    with torch.no_grad():  # density e times more per vertex along x, the threshold's in the middle
+        initial.features[..., 0] = raw_at_threshold + (torch.arange(12.0) - 5.5)[:, None, None] / initial.density_scale
+    config = EditConfig(iterations=4, render_size=16, render=RenderConfig(step_ratio=0.6, sigma_threshold=threshold))
+    unwrapped = SceneGrid.skip_density
+    built = []
+    monkeypatch.setattr(SceneGrid, "skip_density", lambda grid, sigma: built.append(sigma) or unwrapped(grid, sigma))
+
+    def run(rebuilt_each_step: bool):
+        steps = []
+
+        def rendering(grid, origins, directions, render_config, occupancy, generator):
+            rebuilt = grid.occupancy_above(unwrapped(grid, render_config.sigma_threshold))  # grid.occupancy, uncounted
+            steps.append((occupancy, rebuilt))
+            return render_rays(grid, origins, directions, render_config, rebuilt if rebuilt_each_step else occupancy,
+                               generator)
+
+        monkeypatch.setattr(edit_module, "render_rays", rendering)
+        built.clear()
+        reports = []
+        edited = edit(initial, "a dog", FakeGuidance(), config, _collect(reports))
+        return edited, [r.losses for r in reports], steps, list(built)
+
+    edited, losses, steps, built_once = run(rebuilt_each_step=False)
+    assert built_once == [threshold]
+    for occupancy, rebuilt in steps:
+        assert torch.equal(occupancy.cells, rebuilt.cells)
+        assert torch.equal(occupancy.bbox_min, rebuilt.bbox_min) and torch.equal(occupancy.bbox_max, rebuilt.bbox_max)
+    assert not torch.equal(steps[0][1].cells, steps[-1][1].cells)  # the edit moves cells across the threshold
+    reference, reference_losses, _, _ = run(rebuilt_each_step=True)
+    assert losses == reference_losses and torch.equal(edited.features, reference.features)
 
 
 def test_cancellation_stops_within_one_iteration(small_sphere):

@@ -371,6 +371,9 @@ def edit(
     volumetric_reg = None if image_reg else volumetric_regulariser(  # G_i's share computed once
         config.regulariser, initial_grid.features.detach().to(device).clone())
     grid = initial_grid.clone_grid().to(device)
+    # The density each step's occupancy skips cells below comes of the lattice, activation and scale, never of the
+    # features optimised: built once here (a scene grid's, one per cell, had been rebuilt every step).
+    skip_density = grid.skip_density(config.render.sigma_threshold) if config.render.skip_empty else None
     param = grid.flat_features
     optimizer = _make_adam(param, config)
     views = _check_views(input_views, device) if image_reg else None
@@ -478,7 +481,7 @@ def edit(
             text = torch.cat([embedding(v) for v in views_words])
 
             # ---- render (fp32, with gradient, jitter from the device generator)
-            occupancy = grid.occupancy(config.render.sigma_threshold) if config.render.skip_empty else None
+            occupancy = grid.occupancy_above(skip_density) if skip_density is not None else None
             cameras = Cameras.from_fov(c2w, config.fov_x, size, size).to(device)
             renders, samples = [], 0
             for b in range(config.batch_size):
