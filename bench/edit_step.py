@@ -19,16 +19,27 @@ L_reg3D cost what they cost at paper scale).
     python bench/edit_step.py            # CPU: tiny @64², full-size @64² and @128² (~5-10 min on 2 cores)
     python bench/edit_step.py --quick    # CPU: tiny only, into bench/results/quick/
     python bench/edit_step.py --gpu      # CUDA fp16: full-size @512² guidance with 266² renders, tiny @64²
+    python bench/edit_step.py --skip-density 32 64   # tiny on a scene grid: skip density built once vs each step
 
 Writes bench/results/edit_step.json (a list of runs) and edit_step.png
 (per-run stacked bars), or ``--out`` and the PNG beside it. ``--gpu`` writes
 edit_step_gpu.json / .png and ``--quick`` bench/results/quick/ instead, so the
 full-size CPU record is kept. Prints a table.
+
+``--skip-density`` times the tiny model's step on a scene grid (the sphere in its
+foreground) at each given lattice size, with the per-cell skip density built
+once per edit (the loop as it is) against rebuilt every step (as the loop did:
+``occupancy_above`` patched to rebuild it), alternating step by step, into
+edit_step_skip_density.json: step, render and occupancy medians (the occupancy
+timed in both arms), the steps' ratio, and whether the alternating edit ended
+on the same features as one built once throughout.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import dataclasses
 import json
 import os
 import platform
@@ -39,6 +50,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from unittest import mock
 
 import torch
 
@@ -162,6 +174,107 @@ def sphere_grid(resolution: int, radius: float = 0.8, slope: float = 5.0):
     return grid
 
 
+def scene_sphere_grid(resolution: int, radius: float = 0.8, slope: float = 5.0):
+    """``sphere_grid``'s sphere in a scene grid's foreground (the contraction is the identity there; the
+    background, farther than the sphere anyway, is measured as if it were not contracted)."""
+    from voxe_core.scene_grid import CONTRACTED_EXTENT, SceneGrid
+
+    grid = SceneGrid(resolution)
+    axis = torch.linspace(-CONTRACTED_EXTENT, CONTRACTED_EXTENT, resolution) * grid.foreground_extent
+    x, y, z = torch.meshgrid(axis, axis, axis, indexing="ij")
+    distance = (x * x + y * y + z * z).sqrt()
+    with torch.no_grad():
+        grid.features[..., 0] = slope * (radius - distance) / (float(grid.voxel_size.min()) * grid.foreground_extent)
+        grid.features[..., 1:] = torch.tensor([2.0, -1.0, -1.0])
+    return grid
+
+
+SKIP_DENSITY_ARMS = ("built_once", "rebuilt_each_step")
+
+
+def step_arm(step: int) -> str:
+    """The arm a step of a ``--skip-density`` edit runs in: ABBA, so the shared machine's drift lands on both alike."""
+    return SKIP_DENSITY_ARMS[step % 4 in (1, 2)]
+
+
+@contextlib.contextmanager
+def occupancy_timed_by_arm(sigma_threshold: float, times: list[tuple[str, float]]):
+    """Patches a scene grid's ``occupancy_above`` (the edit loop's one call a step) to time itself into ``times``
+    as (arm, ms), the arm by :func:`step_arm`: ``built_once`` takes the skip density it is handed (the loop as it is),
+    ``rebuilt_each_step`` rebuilds it from the grid first, as the loop did before (``grid.occupancy``; the same
+    value, so the edit runs on unchanged)."""
+    from voxe_core.scene_grid import SceneGrid
+
+    built_once = SceneGrid.occupancy_above
+
+    @torch.no_grad()
+    def occupancy_above(grid, density):
+        arm = step_arm(len(times))
+        t0 = time.perf_counter()
+        occupancy = built_once(grid, grid.skip_density(sigma_threshold) if arm == "rebuilt_each_step" else density)
+        times.append((arm, (time.perf_counter() - t0) * 1e3))
+        return occupancy
+
+    with mock.patch.object(SceneGrid, "occupancy_above", occupancy_above):
+        yield
+
+
+def time_skip_density(model_path: Path, resolution: int, rounds: int, warm: int, timed: int) -> dict:
+    """The tiny model's step on ``scene_sphere_grid(resolution)``, skip density built once against rebuilt each
+    step, alternating by step within each of ``rounds`` edits (seeds 0, 1, ...); medians over every timed step of
+    an arm. ``same_features``: the first edit ended where one with the skip density built once throughout does."""
+    from voxe_core.edit import EditConfig, edit
+    from voxe_core.guidance.sds import StableDiffusionGuidance
+    from voxe_core.progress import Callbacks
+
+    guidance = StableDiffusionGuidance.from_pretrained(str(model_path), device="cpu", dtype=torch.float32,
+                                                       local_files_only=True, resolution=64, sync_timing=True)
+    grid = scene_sphere_grid(resolution)
+    prompt = "a dog wearing big sunglasses"
+    steps, renders, occupancies = ({arm: [] for arm in SKIP_DENSITY_ARMS} for _ in range(3))
+    load_before = os.getloadavg()[0]
+    for seed in range(rounds):
+        config = EditConfig(iterations=warm + timed, render_size=64, seed=seed, sync_timing=True)
+        reports, times = [], []
+        with occupancy_timed_by_arm(config.render.sigma_threshold, times):
+            edited = edit(grid, prompt, guidance, config, Callbacks(on_progress=reports.append))
+        if len(times) != len(reports):
+            raise RuntimeError(f"the edit built {len(times)} occupancies in {len(reports)} steps: steps cannot be "
+                               "told apart by arm")
+        for report, (arm, ms) in list(zip(reports, times))[warm:]:
+            steps[arm].append(report.info["ms_step"])
+            renders[arm].append(report.info["ms_render"])
+            occupancies[arm].append(ms)
+        if seed == 0:
+            alternating = edited
+    same_features = torch.equal(alternating.features, edit(grid, prompt, guidance, dataclasses.replace(
+        config, seed=0)).features)
+    median = {arm: statistics.median(steps[arm]) for arm in SKIP_DENSITY_ARMS}
+    return {
+        "model": "tiny",
+        "grid": "scene",
+        "grid_resolution": resolution,
+        "ms_occupancy_built_once": statistics.median(occupancies["built_once"]),
+        "ms_occupancy_rebuilt_each_step": statistics.median(occupancies["rebuilt_each_step"]),
+        "ms_step_built_once": median["built_once"],
+        "ms_step_rebuilt_each_step": median["rebuilt_each_step"],
+        "time_ratio_built_once_to_rebuilt": median["built_once"] / median["rebuilt_each_step"],
+        "ms_saved_per_step": median["rebuilt_each_step"] - median["built_once"],
+        "same_features": same_features,
+        "ms_render_built_once": statistics.median(renders["built_once"]),
+        "ms_render_rebuilt_each_step": statistics.median(renders["rebuilt_each_step"]),
+        "render_size": 64,
+        "rounds": rounds,
+        "iterations_warm": warm,
+        "iterations_timed": timed,
+        "threads": torch.get_num_threads(),
+        "load_average_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],
+        "torch": torch.__version__,
+        "cpu": platform.processor() or platform.machine(),
+        "model_note": COST_NOTE,
+    }
+
+
 # ---------------------------------------------------------------- one run
 def time_run(label: str, model_path: Path, device: str, dtype: torch.dtype, resolution: int, render_size: int,
              warm: int, timed: int, note: str) -> dict:
@@ -277,11 +390,18 @@ def main(argv: list[str] | None = None) -> None:
                         help="JSON to write, the PNG beside it (default: bench/results/edit_step[_gpu].json)")
     parser.add_argument("--threads", type=int, default=1,
                         help="torch CPU threads (default 1: on a shared 2-core box OpenMP hand-offs cost more than they give)")
+    parser.add_argument("--skip-density", type=int, nargs="+", metavar="RESOLUTION", default=None,
+                        help="only the tiny model on scene grids of these sizes, skip density built once vs each step "
+                             "(default --out: bench/results/edit_step_skip_density.json)")
+    parser.add_argument("--rounds", type=int, default=4, help="--skip-density: edits of 16 timed steps (default 4)")
     parser.add_argument("--build-full", type=Path, default=None, help=argparse.SUPPRESS)  # subprocess entry
     parser.add_argument("--tokenizer-from", type=Path, default=None, help=argparse.SUPPRESS)
     parser.add_argument("--family", choices=FAMILIES, default="sd2-base", help=argparse.SUPPRESS)
     parser.add_argument("--build-device", default="cpu", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.skip_density is not None and (args.gpu or args.quick or args.rounds < 1 or min(args.skip_density) < 2):
+        parser.error("--skip-density is a CPU run of its own (without --gpu or --quick), on lattices of at least "
+                     f"2 per axis, at least 1 round: got {args.skip_density}, --rounds {args.rounds}")
 
     if args.build_full is not None:
         build_sd2_base_shaped(args.build_full, args.tokenizer_from, family=args.family, device=args.build_device)
@@ -293,6 +413,21 @@ def main(argv: list[str] | None = None) -> None:
     device = "cuda" if args.gpu else "cpu"
     if args.gpu and not torch.cuda.is_available():
         sys.exit("--gpu needs a CUDA device")
+    if args.skip_density is not None:
+        out = args.out or RESULTS / "edit_step_skip_density.json"
+        with tempfile.TemporaryDirectory(prefix="voxe_edit_bench_") as tmp:
+            tiny = build_tiny_stable_diffusion(Path(tmp) / "tiny", seed=0)
+            rows = [time_skip_density(tiny, n, args.rounds, 2, 16) for n in args.skip_density]
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps({"description": "see bench/edit_step.py --skip-density", "runs": rows}, indent=2)
+                       + "\n")
+        for r in rows:
+            print(f"scene grid {r['grid_resolution']}³: {r['ms_step_built_once']:.2f} ms/step built once, "
+                  f"{r['ms_step_rebuilt_each_step']:.2f} rebuilt each step (ratio "
+                  f"{r['time_ratio_built_once_to_rebuilt']:.3f}); its occupancy {r['ms_occupancy_built_once']:.2f} "
+                  f"against {r['ms_occupancy_rebuilt_each_step']:.2f} ms; same features: {r['same_features']}")
+        print(f"wrote {out}")
+        return
     out = args.out or default_out(args.quick, args.gpu)
     out.parent.mkdir(parents=True, exist_ok=True)
     rows = []
