@@ -376,6 +376,33 @@ def plot(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+def plot_skip_density(rows: list[dict], path: Path) -> None:
+    """Per lattice size: the occupancy's and the whole step's medians in both arms, the step ratio and whether the
+    features ended the same (the accuracy the saving keeps) written beside them."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    x = range(len(rows))
+    for ax, part in zip(axes, ("occupancy", "step")):
+        for offset, arm, colour in ((-0.2, "built_once", "#4c72b0"), (0.2, "rebuilt_each_step", "#dd8452")):
+            ax.bar([i + offset for i in x], [r[f"ms_{part}_{arm}"] for r in rows], width=0.4, color=colour,
+                   label=arm.replace("_", " "))
+        ax.set_xticks(list(x), [f"{r['grid_resolution']}³" for r in rows])
+        ax.set_ylabel(f"{part}, median ms")
+        ax.set_title({"occupancy": "the step's occupancy", "step": "the whole step"}[part])
+    for i, r in enumerate(rows):
+        axes[1].annotate(f"×{r['time_ratio_built_once_to_rebuilt']:.3f}\nsame: {r['same_features']}", (i, 0),
+                         xytext=(0, 4), textcoords="offset points", ha="center", fontsize=8, color="white")
+    axes[0].legend(fontsize=8, frameon=False)
+    fig.suptitle("Scene grid skip density: built once per edit against rebuilt each step (tiny model, CPU)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def default_out(quick: bool, gpu: bool) -> Path:
     """The JSON a run writes unless told (its PNG beside it): a quick run's under results/quick/ (as
     ``bench/report.py --quick``'s), a GPU run's apart from the CPU's, so neither replaces the full-size CPU record."""
@@ -426,7 +453,8 @@ def main(argv: list[str] | None = None) -> None:
                   f"{r['ms_step_rebuilt_each_step']:.2f} rebuilt each step (ratio "
                   f"{r['time_ratio_built_once_to_rebuilt']:.3f}); its occupancy {r['ms_occupancy_built_once']:.2f} "
                   f"against {r['ms_occupancy_rebuilt_each_step']:.2f} ms; same features: {r['same_features']}")
-        print(f"wrote {out}")
+        plot_skip_density(rows, out.with_suffix(".png"))
+        print(f"wrote {out} and its .png")
         return
     out = args.out or default_out(args.quick, args.gpu)
     out.parent.mkdir(parents=True, exist_ok=True)
