@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, get_args, get_origin
 
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Request, Response, UploadFile, params, status
 from fastapi.routing import APIRoute
@@ -51,6 +51,8 @@ class UploadFilesRoute(APIRoute):
             for field in self.dependant.body_params:
                 wants_file = isinstance(field.field_info, params.File)
                 for part in form.getlist(field.alias):
+                    if part == "" and not _is_list(field.field_info.annotation):  # FastAPI's "not sent"
+                        continue
                     if wants_file and isinstance(part, str):
                         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"{field.alias!r} must be a file "
                                             f"({as_file(field.alias)}), not a text field")
@@ -60,6 +62,12 @@ class UploadFilesRoute(APIRoute):
             return await handler(request)
 
         return parse_then_handle
+
+
+def _is_list(annotation) -> bool:
+    """Whether a form field takes several parts (``list[UploadFile] | None``): FastAPI reads an empty text part of any
+    other as not sent (``curl -F archive= -F files=@...``), which the kind check above leaves to it."""
+    return get_origin(annotation) is list or any(get_origin(arg) is list for arg in get_args(annotation))
 
 
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"], route_class=UploadFilesRoute)
