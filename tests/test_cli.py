@@ -882,18 +882,22 @@ def test_ring_of_a_capture_grid_orbits_its_object_or_the_grid_named_by_centre_of
 
 
 def test_render_into_an_earlier_output_leaves_only_this_runs_views(sphere_file, tmp_path):
-    """A re-run into the same --out had left the earlier run's extra views beside its own (and a --data run's views
-    and metrics.json beside a ring's): files of the names this command writes go, others stay."""
+    """A re-run into the same --out had left the earlier run's extra views beside its own: the files an earlier run
+    listed in its manifest go; others stay, whatever their names (the user's own 1080.png or 123_scan.png too, which
+    a name pattern had deleted)."""
     out = tmp_path / "views"
     ring = ["render", str(sphere_file), "--size", "16", "--out", str(out), "--quiet", "--ring"]
     assert main(ring + ["3"]) == 0
-    for name in ("004_r_40.png", "metrics.json"):  # as a --data run writes them
-        (out / name).write_text("earlier")
-    for name in ("notes.txt", "cover.png", "0001.jpg"):
+    assert json.loads((out / "render.json").read_text()) == {"files": ["000.png", "001.png", "002.png"]}
+    for name in ("notes.txt", "cover.png", "0001.jpg", "1080.png", "123_scan.png", "metrics.json"):
         (out / name).write_text("mine")
     assert main(ring + ["2"]) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["000.png", "0001.jpg", "001.png", "cover.png", "notes.txt"]
+    assert sorted(p.name for p in out.iterdir()) == ["000.png", "0001.jpg", "001.png", "1080.png", "123_scan.png",
+                                                     "cover.png", "metrics.json", "notes.txt", "render.json"]
     assert np.asarray(Image.open(out / "001.png")).shape == (16, 16, 3)
+    (out / "render.json").write_text(json.dumps({"files": ["../views/notes.txt", "/etc/hostname", 3]}))
+    assert main(ring + ["1"]) == 0  # a manifest naming other folders' files, or not names, removes nothing
+    assert (out / "notes.txt").exists() and (out / "001.png").exists()
 
 
 def test_render_needs_exactly_one_camera_source(sphere_file, tmp_path):

@@ -8,19 +8,18 @@ initial grid, as the service's renders do).
 from __future__ import annotations
 
 import json
-import re
 import sys
 from pathlib import Path
 
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, add_device_argument, add_view_arguments, check_device, load_views, positive_int,
-    remove_earlier_outputs, run_stage, view_options_given, writable_folder,
+    run_stage, view_options_given, writable_folder,
 )
 from voxe_core.presets import ExportConfig
 
 
 METRICS_FILE = "metrics.json"
-VIEW_NAME = re.compile(rf"\d{{3,}}(_.*)?\.png|{re.escape(METRICS_FILE)}")  # what cmd_render writes into --out
+MANIFEST_FILE = "render.json"  # the files a run wrote into --out: the only ones a later run into it removes
 
 
 def add_parsers(commands, common) -> None:
@@ -35,7 +34,9 @@ def add_parsers(commands, common) -> None:
     ren.add_argument("--elevation", type=float, default=None,
                      help=f"ring elevation in degrees (default {ExportConfig.elevation:g})")
     add_centre_argument(ren)
-    ren.add_argument("--out", type=Path, required=True, metavar="DIR")
+    ren.add_argument("--out", type=Path, required=True, metavar="DIR",
+                     help=f"folder of the views (and metrics.json with --data); the files an earlier voxe render "
+                          f"listed in its {MANIFEST_FILE} there are replaced, others stay")
     add_device_argument(ren)
     ren.set_defaults(run=cmd_render)
 
@@ -93,13 +94,31 @@ def cmd_render(args) -> int:
     if frames is None:
         print("voxe: rendering cancelled", file=sys.stderr)
         return EXIT_INTERRUPTED
-    remove_earlier_outputs(args.out, VIEW_NAME)  # (a re-run writing fewer views had left the earlier run's beside them)
+    _replace_manifest(args.out, names + ([METRICS_FILE] if scene is not None else []))
     for frame, name in zip(frames, names):
         save_png(args.out / name, frame)
     print(f"wrote {len(names)} views to {args.out}")
     if scene is not None:
         _report_metrics(frames, scene, names, args.out)
     return 0
+
+
+def _replace_manifest(out_dir: Path, files: list[str]) -> None:
+    """Remove the files an earlier run listed in ``out_dir``'s manifest, then list ``files``, this run's (before it
+    writes them, so an interrupted run's are listed too). A re-run writing fewer views had left the earlier run's
+    beside them; files no run listed (the user's own, whatever their names) stay."""
+    from voxe_core.files import replacing
+
+    manifest = out_dir / MANIFEST_FILE
+    try:
+        earlier = json.loads(manifest.read_text())["files"]
+    except (OSError, ValueError, KeyError, TypeError):  # none, or not one this command wrote: nothing to remove
+        earlier = []
+    for name in earlier:
+        if isinstance(name, str) and Path(name).name == name and (out_dir / name).is_file():  # (only its own names)
+            (out_dir / name).unlink()
+    with replacing(manifest) as partial:
+        partial.write_text(json.dumps({"files": files}, indent=2))
 
 
 def _report_metrics(frames, scene, names, out_dir: Path) -> None:
