@@ -100,19 +100,22 @@ def node_mask(grid: VoxelGrid, node_alpha: float = 0.01, rule: str = "alpha") ->
 
 
 def pairwise_weights(diff: np.ndarray, config: RefineConfig) -> np.ndarray:
-    """(E,) weights of neighbour pairs from their colour differences (E, 3).
+    """(E,) float64 weights of neighbour pairs from their colour differences (E, 3).
 
-    ``"gaussian"`` (the text): λ·exp(−‖Δc‖²/2σ²); ``"exp_distance"`` (the code): λ·exp(−‖Δc‖/σ).
+    ``"gaussian"`` (the text): λ·exp(−‖Δc‖²/2σ²); ``"exp_distance"`` (the code): λ·exp(−‖Δc‖/σ). Both from
+    ‖Δc‖/σ in float64, so every positive σ gives weights in [0, λ]: in the colours' float32 a σ below float32's
+    range had become 0 (σ² below it, for the text's) and equal colours 0/0, a NaN weight that made every
+    capacity NaN and every node an edit.
 
     Examples:
         >>> weights = pairwise_weights(np.array([[0.1, 0.0, 0.0]]), RefineConfig(pairwise_weight="exp_distance"))
         >>> round(float(weights[0]), 4)  # λ·e⁻¹ with λ = 5, σ = 0.1
         1.8394
     """
-    squared = (diff * diff).sum(-1)
+    scaled = np.sqrt((diff.astype(np.float64) ** 2).sum(-1)) / config.sigma
     if config.pairwise_weight == "exp_distance":
-        return config.smoothness * np.exp(-np.sqrt(squared) / config.sigma)
-    return config.smoothness * np.exp(-squared / (2.0 * config.sigma**2))
+        return config.smoothness * np.exp(-scaled)
+    return config.smoothness * np.exp(-0.5 * scaled**2)
 
 
 def _top_seeds(score: np.ndarray, candidates: np.ndarray, count: int) -> np.ndarray:
