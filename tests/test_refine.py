@@ -20,6 +20,7 @@ import torch
 from voxe_core.backbones import load_grid
 from voxe_core.cameras import Cameras, random_hemisphere_poses, spherical_poses
 from voxe_core.cli import main
+from voxe_core.constants import FLOAT32_MAX
 from voxe_core.grid import VoxelGrid
 from voxe_core.edit import EditConfig, edit
 from voxe_core.guidance import Guidance
@@ -438,6 +439,17 @@ def test_any_positive_sigma_and_a_huge_smoothness_give_finite_weights_and_the_pa
         np.testing.assert_allclose(pairwise_weights(equal_colours, config), [smoothness], rtol=1e-12)
         mask, stats = graph_cut_detailed(grid, e, -e, config)
         assert torch.equal(mask, truth) and math.isfinite(stats.flow)
+
+
+def test_a_smoothness_beyond_float32_is_refused_and_the_largest_allowed_cuts_with_a_finite_flow():
+    """A λ near float64's largest had summed the weights into an infinite seed capacity and flow."""
+    with pytest.raises(ValueError, match=r"smoothness at most 3.403e\+38\), got 0.1, 1e\+308"):
+        RefineConfig(smoothness=1e308)
+    grid = box_grid(10, [((2, 2, 2), (8, 8, 8), (0.5, 0.5, 0.5))])  # one colour: every edge weighs λ
+    e = torch.where(torch.arange(10)[:, None, None] < 5, 1.0, -1.0).expand(10, 10, 10)
+    mask, stats = graph_cut_detailed(grid, e, -e, text_cut(smoothness=FLOAT32_MAX, edit_seeds=5, object_seeds=5))
+    assert math.isfinite(stats.flow) and json.loads(json.dumps(stats.flow)) == stats.flow
+    assert 0 < stats.edit_voxels < stats.nodes
 
 
 def test_maxpool_node_rule_is_the_occupied_set_dilated_by_one():

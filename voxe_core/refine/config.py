@@ -156,9 +156,13 @@ class RefineConfig:
         if self.iterations < 0 or self.edit_seeds < 0 or self.object_seeds < 0 or self.object_seed_fallback < 0:
             raise ValueError("iterations and seed counts must be non-negative")
         # As "not in range": NaN fails every comparison, so "x <= 0" let it through (a NaN sigma made the flow NaN).
-        if not (0 < self.sigma < math.inf and 0 <= self.smoothness < math.inf and 0 <= self.smoothing_sigma < math.inf):
-            raise ValueError(f"sigma must be positive; smoothness and smoothing_sigma non-negative (all finite), got "
-                             f"{self.sigma}, {self.smoothness}, {self.smoothing_sigma}")
+        # A smoothness beyond float32's range summed its weights into an infinite seed capacity and flow (a cut's
+        # refine.json read "Infinity", which is no JSON).
+        if not (0 < self.sigma < math.inf and 0 <= self.smoothness <= FLOAT32_MAX
+                and 0 <= self.smoothing_sigma < math.inf):
+            raise ValueError(f"sigma must be positive; smoothness and smoothing_sigma non-negative (all finite, "
+                             f"smoothness at most {FLOAT32_MAX:.4g}), got {self.sigma}, {self.smoothness}, "
+                             f"{self.smoothing_sigma}")
         if self.fit_pixels == "rendered_positive" and self.iterations and self.lift_start == "constant" \
                 and self.init_value <= 0:
             raise ValueError("fit_pixels='rendered_positive' fits nothing from a constant start <= 0 (nothing renders "
