@@ -8,6 +8,7 @@ the tiny random-weight SD (SMOKE-TEST MODEL) only proves the refine plumbing.
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
 import math
 import warnings
@@ -858,6 +859,23 @@ def test_cli_refine_smoke(tmp_path, tiny_model, make_sphere_grid):
     assert main(argv(model=str(tmp_path / "no_such_model"))) == 2  # ModelNotAvailableError -> exit 2
     assert main(argv(words=" , ")) == 2
     assert main(argv(words="zebra")) == 2  # not in the prompt
+
+    # A disk that fills while refine.json is written (the half of it written, then ENOSPC): the summary had been
+    # written into its final name, leaving half a JSON document in place of the earlier run's.
+    earlier = (out / "refine.json").read_text()
+    real_write_text = Path.write_text
+
+    def disk_fills(path, text, *args, **kwargs):
+        if not path.name.endswith(".json"):
+            return real_write_text(path, text, *args, **kwargs)
+        real_write_text(path, text[: len(text) // 2], *args, **kwargs)
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(Path, "write_text", disk_fills)
+        assert main(argv()) == 2
+    assert (out / "refine.json").read_text() == earlier
+    assert not list(out.glob(".*"))
 
 
 def test_relative_edit_seeds_take_every_node_near_the_largest_edit_probability():

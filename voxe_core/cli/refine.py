@@ -17,6 +17,7 @@ from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, check_device, load_guidance,
     non_negative_int, positive_int, run_stage, seed, writable_folder,
 )
+from voxe_core.files import replacing
 from voxe_core.presets import SEED, refine_config
 
 
@@ -133,7 +134,8 @@ def cmd_refine(args) -> int:
                "settings": {"views": config.views, "render_size": config.render_size, "iterations": config.iterations,
                             "seed": config.seed},
                "graph_cut": stats, "masked_voxels": int(result.mask.sum())}
-    (out / "refine.json").write_text(json.dumps(summary, indent=2))
+    with replacing(out / "refine.json") as partial:  # whole or not at all, as the files above
+        partial.write_text(json.dumps(summary, indent=2))
     for note in result.stats.notes:
         print(f"voxe refine: note: {note}", file=sys.stderr)
     print(f"wrote {out}: {stats['edit_voxels']} of {stats['nodes']} occupied voxels take the edit "
