@@ -830,6 +830,17 @@ def test_a_nan_density_fails_the_refinement_before_any_attention_map(tiny_guidan
     assert reports == []  # not after the attention passes, minutes into the stage
 
 
+def test_an_empty_edited_grid_fails_the_refinement_before_any_attention_map(tiny_guidance, make_sphere_grid):
+    """An edit that emptied the grid (or left only density below the render's threshold) had been refused by the
+    fit, after every attention pass."""
+    reports = []
+    for emptied in (VoxelGrid(12, init_density=-1.0), VoxelGrid(12, init_density=1e-6)):
+        with pytest.raises(SegmentationError, match="the edited grid has no occupied voxels"):
+            refine(make_sphere_grid(12), emptied, "a dog wearing sunglasses", ["sunglasses"], tiny_guidance,
+                   RefineConfig(views=2, render_size=16), Callbacks(on_progress=reports.append))
+    assert reports == []
+
+
 def test_cli_refine_smoke(tmp_path, tiny_model, make_sphere_grid):
     initial = make_sphere_grid(12)
     edited = initial.clone_grid()

@@ -49,6 +49,16 @@ def total_variation(values: torch.Tensor) -> torch.Tensor:
     return tv
 
 
+def attention_occupancy(grid: VoxelGrid, config: RefineConfig) -> Occupancy:
+    """The cells of ``grid`` the attention fields are rendered through (``config.render``'s threshold);
+    :class:`SegmentationError` when there are none. ``refine`` asks before its first attention pass (an emptied
+    edit had been refused only after every pass)."""
+    occupancy = grid.occupancy(config.render.sigma_threshold)
+    if occupancy.empty:
+        raise SegmentationError("the edited grid has no occupied voxels: there is nothing to attach attention to")
+    return occupancy
+
+
 def _occupied_slices(occupancy: Occupancy) -> tuple[slice, slice, slice]:
     """Vertex index ranges of the occupied cells' box (the only part of a field a render can see)."""
     idx = occupancy.cells.nonzero()
@@ -176,9 +186,7 @@ def fit_attention_grids(
         )
     device = grid.bbox_min.device
     frozen = frozen_density(grid)
-    occupancy = frozen.occupancy(config.render.sigma_threshold)
-    if occupancy.empty:
-        raise SegmentationError("the edited grid has no occupied voxels: there is nothing to attach attention to")
+    occupancy = attention_occupancy(frozen, config)
     origins, directions = all_camera_rays(cameras.to(device))
     targets = torch.stack([edit_maps, object_maps], -1).reshape(-1, 2).to(device=device, dtype=torch.float32)
     near, far = ray_box_intersection(origins, directions, occupancy.bbox_min.to(device), occupancy.bbox_max.to(device))
