@@ -429,17 +429,15 @@ def test_pairwise_weights_text_and_code_formulas():
 
 
 @pytest.mark.parametrize("kind", ["exp_distance", "gaussian"])
-def test_any_positive_sigma_and_a_huge_smoothness_give_finite_weights_and_the_partition(kind):
+def test_any_positive_sigma_gives_finite_weights_and_the_partition(kind):
     """The weights had been computed in the colours' float32: a σ below its range (σ² for the text's) made equal
-    colours 0/0, NaN capacities and every node an edit; a λ above it made them infinite and max-flow never ended."""
+    colours 0/0, NaN capacities and every node an edit."""
     grid, truth = two_blobs()
     e = torch.where(truth, 1.0, -1.0)
-    equal_colours = np.zeros((1, 3), np.float32)
-    for sigma, smoothness in ((1e-160, 5.0), (0.1, 1e39)):
-        config = RefineConfig(pairwise_weight=kind, sigma=sigma, smoothness=smoothness)
-        np.testing.assert_allclose(pairwise_weights(equal_colours, config), [smoothness], rtol=1e-12)
-        mask, stats = graph_cut_detailed(grid, e, -e, config)
-        assert torch.equal(mask, truth) and math.isfinite(stats.flow)
+    config = RefineConfig(pairwise_weight=kind, sigma=1e-160)
+    np.testing.assert_allclose(pairwise_weights(np.zeros((1, 3), np.float32), config), [config.smoothness], rtol=1e-12)
+    mask, stats = graph_cut_detailed(grid, e, -e, config)
+    assert torch.equal(mask, truth) and math.isfinite(stats.flow)
 
 
 def test_a_smoothness_beyond_float32_is_refused_and_the_largest_allowed_cuts_with_a_finite_flow():

@@ -112,7 +112,7 @@ def pairwise_weights(diff: np.ndarray, config: RefineConfig) -> np.ndarray:
         >>> round(float(weights[0]), 4)  # λ·e⁻¹ with λ = 5, σ = 0.1
         1.8394
     """
-    scaled = np.sqrt((diff.astype(np.float64) ** 2).sum(-1)) / config.sigma
+    scaled = np.sqrt((diff * diff).sum(-1, dtype=np.float64)) / config.sigma  # (no float64 copy of diff)
     if config.pairwise_weight == "exp_distance":
         return config.smoothness * np.exp(-scaled)
     return config.smoothness * np.exp(-0.5 * scaled**2)
