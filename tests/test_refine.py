@@ -451,6 +451,18 @@ def test_a_smoothness_beyond_float32_is_refused_and_the_largest_allowed_cuts_wit
     assert 0 < stats.edit_voxels < stats.nodes
 
 
+def test_a_seed_outside_the_services_range_is_refused_and_its_ends_cut():
+    """A negative seed had run every attention pass and then failed in the cut's numpy draw ("expected
+    non-negative integer")."""
+    for seed in (-1, 2**32):
+        with pytest.raises(ValueError, match=f"seed must lie in \\[0, 4294967295\\].*got {seed}"):
+            RefineConfig(seed=seed)
+    grid, truth = two_blobs()
+    e = torch.where(truth, 1.0, -1.0)
+    for seed in (0, 2**32 - 1):
+        assert torch.equal(graph_cut(grid, e, -e, RefineConfig(seed=seed)), truth)
+
+
 def test_maxpool_node_rule_is_the_occupied_set_dilated_by_one():
     grid = box_grid(7, [((3, 3, 3), (4, 4, 4), (0.5, 0.5, 0.5)), ((0, 0, 0), (1, 1, 1), (0.5, 0.5, 0.5))])
     assert int(node_mask(grid).sum()) == 2

@@ -30,6 +30,7 @@ from voxe_core.constants import (
     RENDER_SIZE,
 )
 from voxe_core.guidance.prompts import AUTHORS_FRONT_AZIMUTH_DEG
+from voxe_core.presets import MAX_SEED
 from voxe_core.render import RenderConfig
 
 
@@ -184,6 +185,8 @@ class RefineConfig:
         if not 0.0 < self.node_alpha < 1.0:
             raise ValueError(f"node_alpha must lie in (0, 1), got {self.node_alpha}")
         check_fov_x(self.fov_x)
+        if not 0 <= self.seed <= MAX_SEED:  # (-1 had run every attention pass, then failed in the cut's numpy draw)
+            raise ValueError(f"seed must lie in [0, {MAX_SEED}] (the service's and the CLI's range), got {self.seed}")
 
 
 AUTHORS_CODE_CUT = dict(edit_seed_rule="relative", object_seeds=SERVICE_OBJECT_SEEDS, object_seed_rule="random",
