@@ -61,7 +61,7 @@ from voxe_core.refine.maps import (
 from voxe_core.refine.pipeline import merge, refine
 from voxe_core.refine.renders import render_attention, render_feature_views, render_mask_overlay
 from voxe_core.refine.storage import load_mask, load_probabilities, save_mask, save_probabilities
-from voxe_core.tensorio import FormatError
+from voxe_core.tensorio import FormatError, load_tensors, save_tensors
 
 
 @pytest.fixture(autouse=True)
@@ -696,6 +696,18 @@ def test_a_grid_beyond_int32_voxel_indices_is_refused_before_its_probabilities_a
         with pytest.raises(ValueError, match="grid too large for int32 voxel indices"):
             save(tmp_path / "big.safetensors")
         assert not (tmp_path / "big.safetensors").exists()
+
+
+@pytest.mark.parametrize("shape", [(2**21,) * 3, (4096,) * 3])
+def test_a_damaged_file_claiming_a_grid_beyond_int32_indices_is_a_format_error(tmp_path, shape):
+    """Its shape had reached torch.zeros: an overflow TypeError, or a 64 GiB allocation's RuntimeError, where a
+    damaged file is a FormatError (voxe evaluate --mask had shown a traceback)."""
+    path = tmp_path / "mask.safetensors"
+    save_mask(path, torch.zeros(2, 2, 2, dtype=torch.bool))
+    tensors, _ = load_tensors(path, kind="edit_mask", max_version=1)
+    save_tensors(path, {**tensors, "shape": torch.tensor(shape)}, kind="edit_mask", version=1, meta={})
+    with pytest.raises(FormatError, match=r"beyond the int32 voxel indices"):
+        load_mask(path)
 
 
 def test_renders_grey_attention_and_red_mask(make_sphere_grid):

@@ -15,6 +15,8 @@ from voxe_core.tensorio import FormatError, load_tensors, save_tensors
 
 MASK_FORMAT_VERSION = 1
 PROBABILITY_FORMAT_VERSION = 1
+INDEXABLE_VOXELS = 2**31
+"""The files' int32 voxel indices address grids of fewer voxels than this."""
 
 
 def _set_voxels(mask: torch.Tensor) -> torch.Tensor:
@@ -22,7 +24,7 @@ def _set_voxels(mask: torch.Tensor) -> torch.Tensor:
     indices can address (beyond 2^31 voxels they had wrapped negative, and the file was refused as damaged)."""
     if mask.dim() != 3:
         raise ValueError(f"expected an (X, Y, Z) mask, got shape {tuple(mask.shape)}")
-    if mask.numel() >= 2**31:
+    if mask.numel() >= INDEXABLE_VOXELS:
         raise ValueError("grid too large for int32 voxel indices")
     return mask.reshape(-1).nonzero().squeeze(-1)
 
@@ -43,6 +45,8 @@ def _indices_and_shape(tensors: dict, path) -> tuple[torch.Tensor, tuple[int, in
     if len(shape) != 3 or min(shape) < 1:
         raise FormatError(f"{path}: bad grid shape {shape}")
     total = shape[0] * shape[1] * shape[2]
+    if total >= INDEXABLE_VOXELS:  # (a damaged header: it had reached torch.zeros, an overflow or a huge allocation)
+        raise FormatError(f"{path}: a grid of {shape} is beyond the int32 voxel indices these files hold")
     if indices.numel() and (int(indices.min()) < 0 or int(indices.max()) >= total):
         raise FormatError(f"{path}: voxel indices outside a grid of {shape}")
     return indices, shape
