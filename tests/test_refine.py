@@ -302,6 +302,13 @@ def test_view_words_follow_the_pose_as_in_the_edit():
     assert camera_view_words(cams, 270.0) == ["front", "back", "side", "side", "overhead"]
 
 
+@pytest.mark.parametrize("angle", [math.nan, math.inf])
+def test_a_front_azimuth_that_is_no_angle_is_refused(angle):
+    """It had been accepted, and every pose's attention prompt had read ", side view"."""
+    with pytest.raises(ValueError, match=f"front_azimuth_deg must be a finite angle in degrees, got {angle}"):
+        RefineConfig(front_azimuth_deg=angle)
+
+
 def test_view_words_are_read_around_the_point_the_cameras_orbit():
     """An off-centre capture's cameras orbit its centre: the words are the edit's for the same pose."""
     elevation, azimuth = torch.tensor([30.0, 30.0, 30.0, 30.0, 75.0]), torch.tensor([270.0, 90.0, 0.0, 180.0, 10.0])

@@ -185,6 +185,8 @@ class RefineConfig:
         if not 0.0 < self.node_alpha < 1.0:
             raise ValueError(f"node_alpha must lie in (0, 1), got {self.node_alpha}")
         check_fov_x(self.fov_x)
+        if not math.isfinite(self.front_azimuth_deg):  # (NaN had read every pose as a "side" view)
+            raise ValueError(f"front_azimuth_deg must be a finite angle in degrees, got {self.front_azimuth_deg}")
         if not 0 <= self.seed <= MAX_SEED:  # (-1 had run every attention pass, then failed in the cut's numpy draw)
             raise ValueError(f"seed must lie in [0, {MAX_SEED}] (the service's and the CLI's range), got {self.seed}")
 
