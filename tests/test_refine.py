@@ -21,6 +21,7 @@ import torch
 from voxe_core.backbones import load_grid
 from voxe_core.cameras import Cameras, random_hemisphere_poses, spherical_poses
 from voxe_core.cli import main
+from voxe_core.cli.refine import PREVIEW_FRAME
 from voxe_core.constants import FLOAT32_MAX
 from voxe_core.grid import VoxelGrid
 from voxe_core.edit import EditConfig, edit
@@ -878,6 +879,9 @@ def test_cli_refine_smoke(tmp_path, tiny_model, make_sphere_grid):
     initial.save(tmp_path / "initial.safetensors", dense=True)  # dense in and out: every vertex compared
     edited.save(tmp_path / "edited.safetensors", dense=True)
     out = tmp_path / "out"
+    (out / "renders").mkdir(parents=True)
+    for earlier in ("mask_07.png", "map2d_edit_11.png", "notes.png"):  # an earlier run's 8+ views, and the user's file
+        (out / "renders" / earlier).write_bytes(b"earlier")
     def argv(model=str(tiny_model), words="party hat"):
         return ["refine", str(tmp_path / "edited.safetensors"), "--initial", str(tmp_path / "initial.safetensors"),
                 "--prompt", "a dog wearing a party hat", "--edit-words", words, "--out", str(out),
@@ -892,6 +896,8 @@ def test_cli_refine_smoke(tmp_path, tiny_model, make_sphere_grid):
     assert summary["masked_voxels"] == int(mask.sum()) and summary["edit_words"] == ["party hat"]
     pngs = {p.name for p in (out / "renders").glob("*.png")}
     assert {"mask_00.png", "attention_edit_00.png", "attention_object_00.png", "refined_00.png", "map2d_edit_00.png"} <= pngs
+    assert "mask_07.png" not in pngs and "map2d_edit_11.png" not in pngs and "notes.png" in pngs  # (had stayed)
+    assert all(PREVIEW_FRAME.fullmatch(name) for name in pngs - {"notes.png"})  # every frame it writes it would clear
     _, _, where = load_probabilities(out / "probabilities.safetensors")
     assert torch.equal(where, node_mask(edited, rule=RefineConfig().node_rule))  # the cut's nodes: the default rule's
     assert not (mask & ~where).any()  # every masked voxel has its probabilities

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import re
 import sys
 import warnings
 from pathlib import Path
@@ -19,6 +20,11 @@ from voxe_core.cli.common import (
 )
 from voxe_core.files import replacing
 from voxe_core.presets import SEED, refine_config
+
+
+PREVIEW_FRAME = re.compile(r"(attention_edit|attention_object|probability_edit|mask|refined|map2d_edit|map2d_object)"
+                           r"_\d+\.png")
+"""The names of the frames ``voxe refine`` writes under ``renders/``."""
 
 
 def add_parsers(commands, common) -> None:
@@ -114,6 +120,7 @@ def cmd_refine(args) -> int:
     save_probabilities(out / "probabilities.safetensors", result.edit_probability, result.object_probability,
                        result.nodes)
     renders = out / "renders"
+    clear_preview_frames(renders)
     if args.preview_views:
         cameras = turntable_cameras(args.preview_views, 30.0, config.render_size, centre=initial.orbit_centre())
         groups = {
@@ -141,3 +148,13 @@ def cmd_refine(args) -> int:
     print(f"wrote {out}: {stats['edit_voxels']} of {stats['nodes']} occupied voxels take the edit "
           f"({stats['edit_seeds']} edit / {stats['object_seeds']} object seeds)")
     return 0
+
+
+def clear_preview_frames(renders: Path) -> None:
+    """Delete the frames an earlier ``voxe refine`` wrote in ``renders``: a re-run into the same --out with fewer
+    --preview-views had left another run's frames beside its own, which its refine.json does not describe. Only
+    files of the names this command writes (:data:`PREVIEW_FRAME`) go."""
+    if renders.is_dir():
+        for frame in renders.iterdir():
+            if PREVIEW_FRAME.fullmatch(frame.name):
+                frame.unlink()
