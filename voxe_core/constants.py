@@ -119,6 +119,9 @@ CUT_SIGMA = 0.1
 CUT_SMOOTHNESS = 5.0
 """The graph cut's smoothness weight λ."""
 
+MAX_SEED = 2**32 - 1
+"""The largest seed a job, the CLI or a RefineConfig takes (numpy's seed range; ``voxe_core.presets`` names it too)."""
+
 # ------------------------------------------------------------------ evaluation (SPEC §4)
 EVALUATION_RING_VIEWS = 100
 """Poses evenly on the 360° ring the edits are scored on (the paper's 100)."""

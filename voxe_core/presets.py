@@ -60,7 +60,7 @@ TIMESTEP_SCHEDULES = ("paper", "authors")
 PREVIEW_EVERY = 100
 """Edit iterations between preview renders (0: none)."""
 SEED = 0
-MAX_SEED = 2**32 - 1
+MAX_SEED = paper.MAX_SEED
 """The largest seed a job or the CLI takes (numpy's seed range)."""
 MESH_VIEWS, MESH_VIEW_SIZE = 100, 256
 """Renders of a mesh for route (a) (the paper: 100 upper-hemisphere views): the service stores them at 256 px and

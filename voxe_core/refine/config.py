@@ -14,6 +14,7 @@ from voxe_core.constants import (
     DEFAULT_ATTENTION_TIMESTEP,
     EDIT_SEEDS,
     FLOAT32_MAX,
+    MAX_SEED,
     MIN_RENDER_SIZE,
     NERF_SYNTHETIC_FOV_X,
     OBJECT_SEEDS,
@@ -30,7 +31,6 @@ from voxe_core.constants import (
     RENDER_SIZE,
 )
 from voxe_core.guidance.prompts import AUTHORS_FRONT_AZIMUTH_DEG
-from voxe_core.presets import MAX_SEED
 from voxe_core.render import RenderConfig
 
 
