@@ -663,6 +663,17 @@ def test_merge_selects_voxelwise_and_keeps_unmasked_bits():
         merge(VoxelGrid(8), edited, mask)
 
 
+@pytest.mark.parametrize("edited, refusal", [
+    (lambda: VoxelGrid(8, activation="softplus"), "the initial grid's activation is 'relu' but the edited grid's 'softplus'"),
+    (lambda: VoxelGrid(8, density_scale=3.0), r"the initial grid's density_scale is 33.3+ but the edited grid's 3.0"),
+])
+def test_grids_whose_raw_values_mean_different_densities_are_not_merged(edited, refusal):
+    """Same resolution and box had been enough: the merge gave a softplus edit's voxels the ReLU grid's activation
+    (a density of 0.87 read as 0.33)."""
+    with pytest.raises(ValueError, match=refusal):
+        merge(VoxelGrid(8), edited(), torch.ones(8, 8, 8, dtype=torch.bool))
+
+
 def test_the_readme_reader_of_a_downloaded_mask_gives_the_mask_in_the_grid_order(tmp_path):
     """The README's reader of mask.safetensors (safetensors + numpy, no voxe_core), run as written there: the
     artifact list named the file but nothing said what it holds."""
