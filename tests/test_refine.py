@@ -871,6 +871,26 @@ def test_a_nan_density_fails_the_refinement_before_any_attention_map(tiny_guidan
     assert reports == []  # not after the attention passes, minutes into the stage
 
 
+def test_attention_maps_that_are_not_finite_are_named_at_their_view(tiny_guidance, make_sphere_grid, monkeypatch):
+    """A pass that overflowed (NaN at an edit token of the second view) had been refused only by the cut, after the
+    fit, as fields "not finite" from "a diverged edit or attention-grid fit"."""
+    original, passes = tiny_guidance.cross_attention_maps, []
+
+    def overflowing(image, prompt, **kw):
+        maps = original(image, prompt, **kw)
+        passes.append(prompt)
+        if len(passes) == 2:
+            maps[tiny_guidance.token_spans(prompt, ["sunglasses"])[0], 3, 4] = float("nan")
+        return maps
+
+    monkeypatch.setattr(tiny_guidance, "cross_attention_maps", overflowing)
+    initial = make_sphere_grid(10)
+    with pytest.raises(SegmentationError, match="maps of view 2 of 3 are not finite"):
+        refine(initial, initial.clone_grid(), "a dog wearing sunglasses", ["sunglasses"], tiny_guidance,
+               RefineConfig(views=3, render_size=16))
+    assert len(passes) == 2
+
+
 def test_an_empty_edited_grid_fails_the_refinement_before_any_attention_map(tiny_guidance, make_sphere_grid):
     """An edit that emptied the grid (or left only density below the render's threshold) had been refused by the
     fit, after every attention pass."""

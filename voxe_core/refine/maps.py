@@ -21,7 +21,7 @@ from voxe_core.cameras import Cameras, random_hemisphere_poses
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance.prompts import edit_prompt, pose_view_word
 from voxe_core.progress import Callbacks, Progress
-from voxe_core.refine.config import RefineConfig
+from voxe_core.refine.config import RefineConfig, SegmentationError
 from voxe_core.render import RenderConfig, render_image
 
 
@@ -180,7 +180,12 @@ def attention_maps_2d(
             resolution_filter=config.resolution_filter, generator=generator,
         )
         edit, obj = combine_token_maps(maps, *groups[prompts[i]], config.edit_token_reduce)
-        both = postprocess_maps(torch.stack([edit, obj]), size, config)
+        both = torch.stack([edit, obj])
+        if not bool(torch.isfinite(both).all()):  # (had been refused only by the cut, as a "diverged fit")
+            raise SegmentationError(f"the attention model's maps of view {i + 1} of {len(cameras)} are not finite "
+                                    "(NaN or infinite) at the prompt's tokens: its pass overflowed (a float16 "
+                                    "model?), so there is no attention to lift")
+        both = postprocess_maps(both, size, config)
         edit_maps[i], object_maps[i] = both[0].to(device), both[1].to(device)
         callbacks.progress(Progress("attention_maps", i + 1, len(cameras), info={"stage": "attention maps"}))
     return edit_maps, object_maps
