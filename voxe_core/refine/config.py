@@ -157,8 +157,9 @@ class RefineConfig:
         if self.iterations < 0 or self.edit_seeds < 0 or self.object_seeds < 0 or self.object_seed_fallback < 0:
             raise ValueError("iterations and seed counts must be non-negative")
         # As "not in range": NaN fails every comparison, so "x <= 0" let it through (a NaN sigma made the flow NaN).
-        # A smoothness beyond float32's range summed its weights into an infinite seed capacity and flow (a cut's
-        # refine.json read "Infinity", which is no JSON).
+        # A smoothness beyond float32's range had made the cut's float32 weights infinite (max-flow never returned);
+        # near float64's largest their sum still makes the seeds' capacity and the flow infinite ("Infinity" in
+        # refine.json, which is no JSON).
         if not (0 < self.sigma < math.inf and 0 <= self.smoothness <= FLOAT32_MAX
                 and 0 <= self.smoothing_sigma < math.inf):
             raise ValueError(f"sigma must be positive; smoothness and smoothing_sigma non-negative (all finite, "
