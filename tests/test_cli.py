@@ -667,7 +667,7 @@ def test_a_failed_command_leaves_no_folder_it_made(sphere_file, tmp_path, capsys
     assert (tmp_path / "kept").is_dir() and not any((tmp_path / "kept").iterdir())
     assert main(["render", str(sphere_file), "--ring", "1", "--size", "8", "--out", str(tmp_path / "ok" / "views"),
                  "--quiet"]) == 0
-    assert [p.name for p in (tmp_path / "ok" / "views").iterdir()] == ["000.png"]
+    assert sorted(p.name for p in (tmp_path / "ok" / "views").iterdir()) == ["000.png", "render.json"]
 
 
 def test_a_grid_or_checkpoint_named_other_than_safetensors_is_refused(sphere_file, tmp_path, capsys):
