@@ -195,16 +195,20 @@ def test_greyscale_sixteen_bit_png(tmp_path):
 
 
 @pytest.mark.parametrize("key", [(0x1234, 0x5678, 0x9ABC), (100, 100, 100)])
-def test_sixteen_bit_rgb_colour_key_is_transparent_and_no_other_colour(tmp_path, key):
+def test_sixteen_bit_rgb_colour_key_is_transparent_at_the_8_bits_the_colour_is_read_with(tmp_path, key):
     """Pillow reads a 16-bit RGB PNG's colour at 8 bits and keeps its colour key at 16: the key colour had stayed
-    opaque, and a key of 100 had made samples of 25600 transparent."""
-    samples = np.array([[key, (0x1200, 0x5600, 0x9B00), (25600, 25600, 25600), (0, 0, 65535)]], np.uint16)
+    opaque, and a key of 100 had made samples of 25600 transparent. The key is matched at the 8 bits the colour is
+    read with: a colour sharing its high bytes (the last pixel), which the 8-bit image cannot tell from it, is keyed
+    too; one a high byte away (the second) is not."""
+    near = tuple(k ^ 0xFF for k in key)  # the same high bytes, other low bytes: another colour to the PNG spec
+    samples = np.array([[key, (0x1200, 0x5600, 0x9B00), (25600, 25600, 25600), (0, 0, 65535), near]], np.uint16)
     sixteen_bit_rgb_png(tmp_path / "s" / "train" / "r_0.png", samples, key)
     make_synthetic(tmp_path / "s", frames=[{"file_path": "./train/r_0", "transform_matrix": IDENTITY}])
     scene = load_scene(tmp_path / "s")
-    assert scene.alphas.tolist() == [[[0.0, 1.0, 1.0, 1.0]]]
+    assert scene.alphas.tolist() == [[[0.0, 1.0, 1.0, 1.0, 0.0]]]
     assert torch.equal(scene.images[0, 0, 0], torch.ones(3))  # on white
-    assert torch.equal(scene.images[0, 0, 1:], torch.tensor([[0x12, 0x56, 0x9B], [100, 100, 100], [0, 0, 255]]) / 255.0)
+    assert torch.equal(scene.images[0, 0, 1:4],
+                       torch.tensor([[0x12, 0x56, 0x9B], [100, 100, 100], [0, 0, 255]]) / 255.0)
 
 
 def test_sixteen_bit_greyscale_colour_key_is_transparent(tmp_path):

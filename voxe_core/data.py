@@ -523,7 +523,9 @@ def image_pixels(image: Image.Image, alpha: bool = True) -> np.ndarray:
     scaling had clipped to white. A 16-bit grey PNG's colour key (its tRNS: the one value that is transparent) is
     its alpha, as Pillow's conversion gives an 8-bit one's. So is a 16-bit RGB PNG's, at the 8 bits Pillow reads
     its colour with (each sample's high byte): Pillow compares those with the 16-bit key, which had missed the key
-    colour and keyed others (key 100 a sample of 25600). Whether it is 16-bit shows only before the image loads.
+    colour and keyed others (key 100 a sample of 25600). A colour sharing the key's high bytes is keyed with it: the
+    8-bit image cannot tell them apart (an exact match would need a 16-bit RGB decode, which Pillow lacks). Whether
+    it is 16-bit shows only before the image loads.
     """
     if image.mode == "F":
         raise PixelScaleError("holds floating-point pixels (Pillow mode F), whose scale the file does not record: "
