@@ -205,12 +205,15 @@ class Idempotency:
     noun: str = ""
     """What messages call the recorded resource when it is not the endpoint's own (a sweep records one of its jobs)."""
 
-    def record(self, session: Session, owner: ApiKey, resource_id: str) -> None:
+    def record(self, session: Session, owner: ApiKey, resource_id: str) -> IdempotencyRecord:
         """Add the record, pending until :meth:`answered`, to the session that creates the resource (one
-        transaction; a racing twin fails it)."""
-        session.add(IdempotencyRecord(owner_key_id=owner.id, endpoint=self.endpoint, idempotency_key=self.key,
-                                      request_sha256=self.request_sha256, resource_id=resource_id, pending=True,
-                                      created_at=utcnow()))
+        transaction; a racing twin fails it); returned, so the caller can name another of its resources before it
+        commits."""
+        record = IdempotencyRecord(owner_key_id=owner.id, endpoint=self.endpoint, idempotency_key=self.key,
+                                   request_sha256=self.request_sha256, resource_id=resource_id, pending=True,
+                                   created_at=utcnow())
+        session.add(record)
+        return record
 
     def answered(self, session: Session, owner: ApiKey) -> None:
         """The request keeps what it created (the broker took it, or it waits for its scene): retries replay it."""

@@ -581,14 +581,62 @@ def test_a_sweep_the_broker_refuses_part_way_is_withdrawn_whole_and_a_retry_runs
     jobs = local_client.get("/v1/jobs", params={"limit": 200}).json()["items"]
     assert len(jobs) == 12 and {j["state"] for j in jobs} == {"canceled"}
     assert refused.json()["detail"] == (
-        "could not queue the job: ConnectionError: down; the sweep is withdrawn: none of its 12 jobs runs (the 4 "
-        f"already sent were canceled; sweep {jobs[0]['batch_id']!r} lists them), so a retry repeats none of them")
+        "could not queue the job: ConnectionError: down; the sweep is withdrawn: its 12 jobs are canceled (the 4 "
+        "already sent too: any a worker already started stops at its next cancel check; sweep "
+        f"{jobs[0]['batch_id']!r} lists them), so a retry repeats none of them")
     assert {j["message"] for j in jobs} == {"the sweep was withdrawn: the broker refused part of it"}
     retried = local_client.post("/v1/sweeps", json=body, headers=headers)
     assert retried.status_code == 201 and retried.json()["counts"] == {"queued": 12}
     assert retried.json()["id"] != jobs[0]["batch_id"]
     again = local_client.post("/v1/sweeps", json=body, headers=headers)
     assert again.status_code == 200 and again.json()["id"] == retried.json()["id"]
+
+
+def test_a_sweep_retry_is_not_replayed_while_its_first_request_may_still_withdraw_it(root, mic_zip,  # noqa: F811
+                                                                                     monkeypatch):
+    """The record had named the sweep's last job: its scene still processing, that scene's ingest sent it while the
+    first request was still sending the other scene's, a retry replayed the sweep (200), and the broker refusing the
+    first request's next send withdrew it a moment later. The 503 had also counted as sent only what the request
+    itself sent."""
+    from voxe_service.queue import TaskQueue
+
+    monkeypatch.setenv("VOXE_MAX_ACTIVE_JOBS_PER_KEY", "24")
+    _reset()
+    from api.main import create_app
+
+    with TestClient(create_app()) as client:
+        ready = _upload(client, mic_zip, name="ready.zip").json()
+        assert ingest(ready["id"])["state"] == "ready"
+        processing = _upload(client, mic_zip, name="processing.zip").json()  # its jobs wait for its ingest
+        body = {"scenes": [{"scene_id": ready["id"], "object": "mic"},
+                           {"scene_id": processing["id"], "object": "mic"}]}
+        headers, sent, seen, real_send = {"Idempotency-Key": "sweep-3"}, [], {}, TaskQueue.send
+
+        def ingest_and_retry_during_the_second_send(self, *args):
+            if seen.get("ingesting"):  # the ingest's own sends go through
+                return real_send(self, *args)
+            if len(sent) == 1:  # the processing scene's ingest ends (sending its 6 chains), and a retry comes
+                seen["ingesting"] = True
+                seen["ingest"] = ingest(processing["id"])["state"]
+                seen["ingesting"] = False
+                seen["retry"] = client.post("/v1/sweeps", json=body, headers=headers)
+            if len(sent) == 2:
+                raise ConnectionError("down")
+            sent.append(real_send(self, *args))
+            return sent[-1]
+
+        with monkeypatch.context() as broker:
+            broker.setattr(TaskQueue, "send", ingest_and_retry_during_the_second_send)
+            refused = client.post("/v1/sweeps", json=body, headers=headers)
+        assert seen["ingest"] == "ready" and refused.status_code == 503, refused.text
+        retry = seen["retry"]
+        assert retry.status_code == 409 and "has not answered yet" in retry.json()["detail"], retry.text
+        jobs = client.get("/v1/jobs", params={"limit": 200}).json()["items"]
+        assert len(jobs) == 24 and {j["state"] for j in jobs} == {"canceled"}
+        # 2 chains of the ready scene's (an edit and its evaluation each), 6 of the processing one's by its ingest
+        assert "its 24 jobs are canceled (the 16 already sent too" in refused.json()["detail"]
+        again = client.post("/v1/sweeps", json=body, headers=headers)
+        assert again.status_code == 201 and again.json()["id"] != jobs[0]["batch_id"]
 
 
 def test_a_job_retried_across_an_upgrade_that_changed_a_default_replays(auth_client, mic_zip, monkeypatch):

@@ -8,7 +8,7 @@ own evaluation in the same Celery chain, so the batch spreads over every listeni
 from __future__ import annotations
 
 from fastapi import HTTPException, status
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -72,10 +72,11 @@ def create_sweep(*, session: Session, settings: Settings, queue: TaskQueue, key:
     whether this was a replay of an earlier request with the same Idempotency-Key).
 
     A broker refusing part of it (503) withdraws the whole sweep: what was sent is canceled with the rest (a worker
-    skips a canceled job), so a retry, which the Idempotency-Key lets run anew, repeats none of it.
+    skips a canceled job, and one it already started stops at its next cancel check), so a retry, which the
+    Idempotency-Key lets run anew, repeats none of it.
     """
     idem = None
-    if idempotency_key:  # the record names the sweep's last job (add_jobs), whose batch_id is the sweep's id
+    if idempotency_key:  # the record names the last job this request sends (add_jobs), whose batch_id is the sweep's
         idem = Idempotency(idempotency_key, sha256_hex(body.model_dump_json(exclude_unset=True)), "sweeps",
                            noun="sweep holding job")
         if (replayed := idem.replayed(session, key, Job)) is not None:
@@ -106,20 +107,22 @@ def create_sweep(*, session: Session, settings: Settings, queue: TaskQueue, key:
         if idem is not None and (replayed := idem.replayed(session, key, Job)) is not None:
             return replayed.batch_id, True  # a concurrent retry created it first
         raise
-    for k, job in enumerate(to_send):
+    for job in to_send:
         try:
             dispatch_job(session, queue, job, fail_refused=False)
         except QueueUnavailable as exc:
-            sent_edits = {j.id for j in to_send[:k]}
-            sent = sum(j.id in sent_edits or (j.source_job_ids or [None])[0] in sent_edits for j in jobs)
+            # Read, not counted from to_send: a scene still processing when the sweep was recorded has its jobs sent
+            # by its ingest, which may have sent them meanwhile.
+            sent = session.scalar(select(func.count()).select_from(Job)
+                                  .where(Job.batch_id == batch_id, Job.task_id.is_not(None)))
             if idem is not None:  # in the transaction that cancels the sweep: a retry never replays it canceled
                 idem.forget(session, key)
             request_cancel(session=session, job_ids=[j.id for j in jobs],
                            message="the sweep was withdrawn: the broker refused part of it")
             raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE,
-                                f"{exc}; the sweep is withdrawn: none of its {len(jobs)} jobs runs (the {sent} already "
-                                f"sent were canceled; sweep {batch_id!r} lists them), so a retry repeats none of "
-                                "them") from None
+                                f"{exc}; the sweep is withdrawn: its {len(jobs)} jobs are canceled (the {sent} already "
+                                "sent too: any a worker already started stops at its next cancel check; sweep "
+                                f"{batch_id!r} lists them), so a retry repeats none of them") from None
     if idem is not None:  # only now may a retry replay it (Idempotency.replayed)
         idem.answered(session, key)
         session.commit()

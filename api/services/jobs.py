@@ -151,7 +151,8 @@ def add_jobs(*, session: Session, key: ApiKey, settings: Settings, jobs: list[Jo
     """Record ``jobs`` within the key's quota of active jobs, all or none; the ones to send now.
 
     Jobs whose model no worker has are refused first (``refuse_without_models``). An ``idempotency`` record names
-    the last job: a batch's is sent last, so a retry replays the batch only once all of it is with the broker.
+    the last job this request sends (``last_sent``), so a retry replays the batch only once all of that is with the
+    broker.
 
     The scenes' states are read after the jobs' rows are written, under a lock on each scene's
     row, so an ingest finishing meanwhile either sees these jobs or is seen as done: jobs on a
@@ -163,8 +164,8 @@ def add_jobs(*, session: Session, key: ApiKey, settings: Settings, jobs: list[Jo
     try:
         lock_key(session, key.id)
         session.add_all(jobs)
-        if idempotency is not None:
-            idempotency.record(session, key, jobs[-1].id)
+        # Recorded before the quota is counted: a racing twin waits on the key's lock, then fails here and replays.
+        record = idempotency.record(session, key, jobs[-1].id) if idempotency is not None else None
         try:
             session.flush()
         except IntegrityError:  # a racing Idempotency-Key twin (the caller replays it), or a scene deleted meanwhile
@@ -186,12 +187,29 @@ def add_jobs(*, session: Session, key: ApiKey, settings: Settings, jobs: list[Jo
         for job in jobs:
             if states[job.scene_id] == PROCESSING:
                 job.message = f"waiting for the scene {job.scene_id} to be processed (its upload is being decoded)"
+        # A sweep's evaluation is not sent on its own: its task follows its edit's chain.
+        to_send = [j for j in jobs if states[j.scene_id] == READY and not (j.mode == EVALUATE and j.batch_id)]
+        if record is not None:
+            record.resource_id = last_sent(jobs, to_send).id
         session.commit()
     except BaseException:
         session.rollback()
         raise
-    # A sweep's evaluation is not sent on its own: its task follows its edit's chain.
-    return [j for j in jobs if states[j.scene_id] == READY and not (j.mode == EVALUATE and j.batch_id)]
+    return to_send
+
+
+def last_sent(jobs: list[Job], to_send: list[Job]) -> Job:
+    """The job an Idempotency record names: the last one this request sends (the evaluation riding in the last
+    edit's chain), so a retry replays only once the broker has taken all it sends; the last job when it sends none.
+
+    ``jobs[-1]`` had been named always: when its scene was still processing, that scene's ingest could send it while
+    this request was still sending the others, and a retry replayed a sweep that a broker refusing one of them then
+    withdrew.
+    """
+    if not to_send:
+        return jobs[-1]
+    last = to_send[-1]
+    return [j for j in jobs if j is last or j.source_job_ids == [last.id]][-1]
 
 
 def _scene_deleted(jobs: list[Job]) -> HTTPException:
