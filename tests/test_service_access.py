@@ -358,6 +358,34 @@ def test_an_upload_over_the_quota_is_refused_before_its_bytes_are_stored(auth_cl
     assert len(stored) == 4  # the accepted uploads' only
 
 
+def test_an_upload_retry_racing_its_first_request_replays_it_not_a_quota_refusal(auth_client, mic_zip, root,  # noqa: F811
+                                                                                   monkeypatch):
+    """A retry with the Idempotency-Key, unpacking while its first request commits, on a key with room for one
+    upload: the quota check before storing had answered it 429 (the first request's scene filling the quota), where
+    the check under the key's lock replays it."""
+    import api.services.scenes as scenes
+
+    _, probe = _create_key("probe")
+    size = _upload(auth_client, mic_zip, bearer(probe)).json()["size_bytes"]
+    _, token = _create_key("one", max_upload_bytes=size + size // 2)
+    headers, stagings, first = {**bearer(token), "Idempotency-Key": "up-1"}, [], {}
+    stage_upload = scenes.stage_upload
+
+    def first_request_completes_while_staging(*args, **kwargs):
+        staged_upload = stage_upload(*args, **kwargs)
+        stagings.append(staged_upload)
+        if len(stagings) == 1:  # the retry's: its first request comes and completes meanwhile
+            first["response"] = _upload(auth_client, mic_zip, headers)
+        return staged_upload
+
+    monkeypatch.setattr(scenes, "stage_upload", first_request_completes_while_staging)
+    retry = _upload(auth_client, mic_zip, headers)
+    assert first["response"].status_code == 201, first["response"].text
+    assert retry.status_code == 200 and retry.headers["idempotent-replayed"] == "true", retry.text
+    assert retry.json() == first["response"].json() and staged(root) == []
+    assert auth_client.get("/v1/scenes", headers=bearer(token)).json()["total"] == 1
+
+
 def test_an_upload_refused_by_a_racing_one_answers_its_quota_even_when_its_bytes_cannot_be_deleted(
         auth_client, mic_zip, monkeypatch, caplog):
     """Two uploads racing for a key's last room: the one refused under the key's lock deletes the bytes it stored.

@@ -69,7 +69,8 @@ def create_scene(*, session: Session, settings: Settings, storage: Storage, queu
     idem = Idempotency(idempotency_key, upload.digest(), "scenes") if idempotency_key else None
     if idem is not None and (replayed := idem.replayed(session, key, Scene)) is not None:
         return replayed, True
-    check_upload_bytes(session, key, settings, 0)  # already full: answer before unpacking anything
+    if (replayed := _replayed_or_room_checked(session, settings, key, idem, 0)) is not None:  # full: before unpacking
+        return replayed, True
     session.commit()  # its connection back to the pool while the upload is unpacked and stored (minutes for GBs)
     with staging_folder(settings.work_dir) as staging:
         try:
@@ -82,7 +83,9 @@ def create_scene(*, session: Session, settings: Settings, storage: Storage, queu
             raise HTTPException(exc.status, str(exc)) from None
         # The bytes to store are known now: an upload over the quota is refused before they are stored (they had
         # been written, GBs to S3, then deleted); the check under the key's lock below still decides a race.
-        check_upload_bytes(session, key, settings, staged.archive.stat().st_size)
+        size = staged.archive.stat().st_size
+        if (replayed := _replayed_or_room_checked(session, settings, key, idem, size)) is not None:
+            return replayed, True
         session.commit()  # the connection back to the pool while the archive is stored
         scene_id = new_id()
         storage_key = scene_key(scene_id, staged.archive_name)
@@ -111,6 +114,20 @@ def create_scene(*, session: Session, settings: Settings, storage: Storage, queu
             raise
     _queue_ingest(session, storage, queue, scene, key, idem)
     return scene, False
+
+
+def _replayed_or_room_checked(session: Session, settings: Settings, key: ApiKey, idem: Idempotency | None,
+                              adding: int) -> Scene | None:
+    """``check_upload_bytes`` before the upload is stored; None when there is room. When it refuses a retry whose
+    first request committed meanwhile (that request's scene is what fills the quota), that scene, to replay: the
+    retry had been answered 429 for its own upload (under the key's lock, later, the twin's record wins)."""
+    try:
+        check_upload_bytes(session, key, settings, adding)
+    except HTTPException:
+        if idem is not None and (replayed := idem.replayed(session, key, Scene)) is not None:
+            return replayed
+        raise
+    return None
 
 
 def _queue_ingest(session: Session, storage: Storage, queue: TaskQueue, scene: Scene, key: ApiKey,
