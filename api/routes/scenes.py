@@ -31,6 +31,7 @@ class UploadFilesRoute(APIRoute):
         if not (self.body_field and isinstance(self.body_field.field_info, params.Form)):
             return handler
         file_fields = [f.alias for f in self.dependant.body_params if isinstance(f.field_info, params.File)]
+        text_fields = [f.alias for f in self.dependant.body_params if f.alias not in file_fields]
 
         def as_file(field: str) -> str:
             return f"a part with a filename: curl -F '{field}=@<path>'"
@@ -42,11 +43,13 @@ class UploadFilesRoute(APIRoute):
             except StarletteHTTPException as exc:  # Starlette's 400 for a form it refuses
                 if exc.status_code == 400 and str(exc.detail).startswith("Too many files"):
                     raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE, too_many_files(max_files)) from None
-                if exc.status_code == 400 and "exceeded maximum size" in str(exc.detail) and file_fields:  # text's
+                # A text part's: Starlette's message names no field, so this one says what each field takes.
+                if exc.status_code == 400 and "exceeded maximum size" in str(exc.detail) and file_fields:
                     raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE,
-                                        f"a text field of the form is too long ({exc.detail}): send "
-                                        f"{' or '.join(map(repr, file_fields))} as a file ({as_file(file_fields[0])})"
-                                        ) from None
+                                        f"a text field of the form is too long ({exc.detail}): "
+                                        f"{', '.join(map(repr, text_fields))} take short text; "
+                                        f"{' or '.join(map(repr, file_fields))} take a file "
+                                        f"({as_file(file_fields[0])})") from None
                 raise
             for field in self.dependant.body_params:
                 wants_file = isinstance(field.field_info, params.File)
