@@ -3,6 +3,7 @@ the service tests run against (SQLite and a throwaway PostgreSQL)."""
 
 from __future__ import annotations
 
+import errno
 import os
 from pathlib import Path
 
@@ -85,6 +86,24 @@ def single_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+@pytest.fixture
+def fill_disk(monkeypatch):
+    """Call it to make ``Path.write_text`` run out of space half way (ENOSPC) from then on, for the paths ``where``
+    picks (every one by default): a torn file left under its name, as a full disk leaves it."""
+    write_text = Path.write_text
+
+    def fill(where=lambda path: True):
+        def disk_fills(path, text, *rest, **options):
+            if not where(path):
+                return write_text(path, text, *rest, **options)
+            write_text(path, text[: len(text) // 2], *rest, **options)
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        monkeypatch.setattr(Path, "write_text", disk_fills)
+
+    return fill
 
 
 # ------------------------------------------------------------------ databases

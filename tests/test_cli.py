@@ -803,24 +803,16 @@ def test_render_dataset_views_writes_pngs_and_metrics(sphere_grid, sphere_file, 
     assert f"PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}" in capsys.readouterr().out
 
 
-def test_render_metrics_that_cannot_be_written_keep_the_earlier_file(tmp_path, monkeypatch, capsys):
+def test_render_metrics_that_cannot_be_written_keep_the_earlier_file(tmp_path, fill_disk, capsys):
     """A full disk while metrics.json was written had left it torn, the earlier render's destroyed: it is written
     whole or not at all."""
-    import errno
-
     from voxe_core.cli.render import _report_metrics
 
     images = torch.rand(2, 12, 12, 3, generator=torch.Generator().manual_seed(0))
     scene = SimpleNamespace(images=images, split="test")
     _report_metrics(images.flip(1), scene, ["a.png", "b.png"], tmp_path)
     earlier = (tmp_path / "metrics.json").read_text()
-    write_text = Path.write_text
-
-    def disk_fills(self, text, *rest, **options):
-        write_text(self, text[: len(text) // 2], *rest, **options)
-        raise OSError(errno.ENOSPC, "No space left on device")
-
-    monkeypatch.setattr(Path, "write_text", disk_fills)
+    fill_disk()
     with pytest.raises(OSError, match="No space left on device"):
         _report_metrics(images.flip(2), scene, ["a.png", "b.png"], tmp_path)
     assert (tmp_path / "metrics.json").read_text() == earlier and json.loads(earlier)["views"] == 2

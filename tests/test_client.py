@@ -620,12 +620,9 @@ def test_a_submit_not_taken_says_what_became_of_the_scene_it_uploaded(job_status
     assert sent == ["POST /v1/scenes", "POST /v1/jobs"] + ["DELETE /v1/scenes/s1"] * (delete_status is not None)
 
 
-def test_voxe_sweep_that_cannot_write_its_out_file_keeps_the_earlier_one(tmp_path, monkeypatch, capsys):
+def test_voxe_sweep_that_cannot_write_its_out_file_keeps_the_earlier_one(tmp_path, monkeypatch, fill_disk, capsys):
     """A full disk while ``voxe sweep --out`` wrote the summary had left it torn, the earlier one destroyed: it is
     written whole or not at all."""
-    import errno
-    from pathlib import Path
-
     import voxe_core.cli.service
     from voxe_core.cli import main
 
@@ -638,13 +635,7 @@ def test_voxe_sweep_that_cannot_write_its_out_file_keeps_the_earlier_one(tmp_pat
                         lambda args: Client("http://svc.test/", transport=httpx.MockTransport(answer)))
     out = tmp_path / "sweep.json"
     assert main(["sweep", "--scene", "a=mic", "--out", str(out)]) == 0
-    write_text = Path.write_text
-
-    def disk_fills(self, text, *rest, **options):
-        write_text(self, text[: len(text) // 2], *rest, **options)
-        raise OSError(errno.ENOSPC, "No space left on device")
-
-    monkeypatch.setattr(Path, "write_text", disk_fills)
+    fill_disk()
     assert main(["sweep", "--scene", "a=mic", "--out", str(out)]) == 2
     assert "No space left on device" in capsys.readouterr().err
     assert json.loads(out.read_text())["id"] == "s1" and [p.name for p in tmp_path.iterdir()] == ["sweep.json"]

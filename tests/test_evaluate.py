@@ -487,12 +487,9 @@ def test_cli_evaluate_writes_json_table_and_ring_png_sets(sphere_grid, tiny_clip
 
 
 def test_cli_evaluate_that_cannot_write_its_results_keeps_the_earlier_ones(sphere_grid, tiny_clip_path, tmp_path,
-                                                                          monkeypatch, capsys):
+                                                                          fill_disk, capsys):
     """A full disk while evaluation.json / evaluation.md were written had left them torn under their names, the
     earlier run's destroyed: they are written whole or not at all, both or neither."""
-    import errno
-    from pathlib import Path
-
     from voxe_core.cli import main
 
     sphere_grid.save(tmp_path / "initial.safetensors")
@@ -502,15 +499,7 @@ def test_cli_evaluate_that_cannot_write_its_results_keeps_the_earlier_ones(spher
             "--edit", str(tmp_path / "initial.safetensors"), "a wood carving of a ball"]
     assert main(args) == 0
     earlier = {name: (out / name).read_text() for name in ("evaluation.json", "evaluation.md")}
-    write_text = Path.write_text
-
-    def disk_fills(self, text, *rest, **options):  # the table, written second, runs out of space half way
-        if self.suffix == ".md":
-            write_text(self, text[: len(text) // 2], *rest, **options)
-            raise OSError(errno.ENOSPC, "No space left on device")
-        return write_text(self, text, *rest, **options)
-
-    monkeypatch.setattr(Path, "write_text", disk_fills)
+    fill_disk(lambda path: path.suffix == ".md")  # the table, written second, runs out of space half way
     assert main([*args[:3], "sphere", *args[4:]]) == 2  # another object: another evaluation.json
     assert "No space left on device" in capsys.readouterr().err
     assert {name: (out / name).read_text() for name in earlier} == earlier
