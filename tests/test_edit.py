@@ -219,12 +219,19 @@ def test_a_checkpoint_from_another_device_type_resumes_from_a_reseeded_device_ge
     edit(small_sphere, "a dog", FakeGuidance(), EditConfig(iterations=2, render_size=SIZE), checkpoint_path=checkpoint)
     tensors, meta = load_edit_checkpoint(checkpoint)
     assert meta["device"] == "cpu"
-    save_tensors(checkpoint, {**tensors, "rng_device": torch.zeros(16, dtype=torch.uint8)}, EDIT_CHECKPOINT_KIND,
-                 EDIT_CHECKPOINT_VERSION, {**meta, "device": "cuda"})  # as a CUDA worker writes it
+    cuda_state = torch.zeros(16, dtype=torch.uint8)
     longer = EditConfig(iterations=4, render_size=SIZE)
-    first, again = (edit(small_sphere, "a dog", FakeGuidance(), longer, resume_from=checkpoint) for _ in range(2))
-    assert torch.equal(first.features, again.features)  # reproducible, if not the uninterrupted run
-    assert not torch.equal(first.features, small_sphere.features)
+    older = {k: v for k, v in meta.items() if k != "device"}  # a checkpoint written before the field: told by its size
+    for header in ({**meta, "device": "cuda"}, older):  # as a CUDA worker writes it, now and before
+        save_tensors(checkpoint, {**tensors, "rng_device": cuda_state}, EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION,
+                     header)
+        first, again = (edit(small_sphere, "a dog", FakeGuidance(), longer, resume_from=checkpoint) for _ in range(2))
+        assert torch.equal(first.features, again.features)  # reproducible, if not the uninterrupted run
+        assert not torch.equal(first.features, small_sphere.features)
+    save_tensors(checkpoint, tensors, EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION, older)  # this device's, older
+    uninterrupted = edit(small_sphere, "a dog", FakeGuidance(), longer)
+    assert torch.equal(edit(small_sphere, "a dog", FakeGuidance(), longer, resume_from=checkpoint).features,
+                       uninterrupted.features)
 
 
 def test_an_initial_grid_with_a_nan_or_an_inf_is_refused_before_any_step(small_sphere, tmp_path):
@@ -330,19 +337,24 @@ def test_a_run_that_takes_no_step_still_leaves_its_own_checkpoint_where_another_
 
 
 def test_resume_refuses_another_prompt_or_grid(small_sphere, make_sphere_grid, tiny_guidance, tmp_path):
+    """A checkpoint the run cannot go on from is a FormatError (the worker then starts the stage over, as it does a
+    reconstruction's); asking for fewer iterations than it holds is the request's own ValueError."""
+    from voxe_core.tensorio import FormatError
+
     checkpoint = tmp_path / "c.safetensors"
     config = EditConfig(iterations=1, render_size=SIZE)
     edit(small_sphere, "a dog", tiny_guidance, config, checkpoint_path=checkpoint)
-    with pytest.raises(ValueError, match="prompt"):
+    with pytest.raises(FormatError, match="prompt"):
         edit(small_sphere, "a cat", tiny_guidance, config, resume_from=checkpoint)
-    with pytest.raises(ValueError, match="initial grid"):
+    with pytest.raises(FormatError, match="initial grid"):
         edit(make_sphere_grid(20, radius=0.6), "a dog", tiny_guidance, config, resume_from=checkpoint)
     # another recipe (had resumed silently, mixing two runs); a longer run on the same recipe is a resume
     other = dataclasses.replace(config, guidance_scale=50.0, schedule=TimestepSchedule(i_start=10))
-    with pytest.raises(ValueError, match=r"another recipe: guidance_scale 100\.0 \(now 50\.0\), schedule \{"):
+    with pytest.raises(FormatError, match=r"another recipe: guidance_scale 100\.0 \(now 50\.0\), schedule \{"):
         edit(small_sphere, "a dog", tiny_guidance, other, resume_from=checkpoint)
-    with pytest.raises(ValueError, match="checkpoint is at iteration 1, past the 0 iterations asked for"):
+    with pytest.raises(ValueError, match="checkpoint is at iteration 1, past the 0 iterations asked for") as refused:
         edit(small_sphere, "a dog", tiny_guidance, dataclasses.replace(config, iterations=0), resume_from=checkpoint)
+    assert not isinstance(refused.value, FormatError)
     longer = dataclasses.replace(config, iterations=2,  # and another device's pass size
                                  render=dataclasses.replace(config.render, samples_per_pass=1 << 16))
     edit(small_sphere, "a dog", tiny_guidance, longer, resume_from=checkpoint)
@@ -511,6 +523,8 @@ def test_image_regulariser_against_the_grids_own_renders_is_small(small_sphere):
 
 def test_an_image_regularised_edit_resumes_only_against_the_input_views_it_was_made_with(small_sphere, tmp_path):
     """Another --data (other images or cameras) had gone on from the checkpoint silently, mixing two runs."""
+    from voxe_core.tensorio import FormatError
+
     cameras = Cameras.from_fov(spherical_poses(torch.tensor([30.0, 10.0]), torch.tensor([0.0, 120.0])), 0.6911, 24, 24)
     images = render_views(small_sphere, cameras, EditConfig().render)
     config = EditConfig(iterations=1, render_size=16, regulariser="image_l1", image_regulariser_rays=512)
@@ -519,7 +533,7 @@ def test_an_image_regularised_edit_resumes_only_against_the_input_views_it_was_m
     longer = dataclasses.replace(config, iterations=2)
     turned = Cameras.from_fov(spherical_poses(torch.tensor([30.0, 10.0]), torch.tensor([0.0, 150.0])), 0.6911, 24, 24)
     for views in ((torch.zeros_like(images), cameras), (images, turned), (images[:1], cameras[:1])):
-        with pytest.raises(ValueError, match="checkpoint was made against other input views"):
+        with pytest.raises(FormatError, match="checkpoint was made against other input views"):
             edit(small_sphere, "a dog", FakeGuidance(), longer, resume_from=checkpoint, input_views=views)
     edit(small_sphere, "a dog", FakeGuidance(), longer, resume_from=checkpoint, input_views=(images, cameras))
 

@@ -334,6 +334,35 @@ def test_a_damaged_or_foreign_edit_checkpoint_is_dropped_and_the_edit_starts_ove
     assert client.get(f"/v1/jobs/{job['id']}").json()["message"].startswith(f"the stored edit checkpoint {why}")
 
 
+def test_an_edit_that_cannot_go_on_from_its_checkpoint_starts_over(service, monkeypatch, tmp_path):
+    """A readable checkpoint of the same recipe that edit() still refuses to resume (other input views, prompt or
+    initial grid: a FormatError) had failed the job on every redelivery: the edit runs again from its start, as a
+    reconstruction does."""
+    import voxe_core.edit
+    from voxe_core.tensorio import FormatError
+    from voxe_service.storage import get_storage, job_key
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job = _reconstructed_job(client, scene_id, "relu_field")
+    get_storage().put_bytes(job_key(job["id"], "checkpoints/edit.safetensors"),
+                            _edit_checkpoint(tmp_path / "ours.safetensors"))
+    resumed_from = []
+
+    def refusing_resume(initial, prompt, guidance, config, callbacks, checkpoint_path, resume_from, **kwargs):
+        resumed_from.append(resume_from)
+        if resume_from is not None:
+            raise FormatError(f"{resume_from}: checkpoint was made against other input views")
+        return initial.clone_grid()
+
+    monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
+    monkeypatch.setattr(voxe_core.edit, "edit", refusing_resume)
+    assert tasks.edit_task.apply(args=(job["id"],)).get()["state"] == "done"
+    assert len(resumed_from) == 2 and resumed_from[0] is not None and resumed_from[1] is None
+    after = client.get(f"/v1/jobs/{job['id']}").json()
+    assert after["state"] == "running" and after["error"] is None, after  # on to its next stage
+
+
 @pytest.mark.parametrize("damage, why", [
     (lambda data: data, None),
     (lambda data: data[:-1], "was unreadable (.*incomplete metadata, file not fully covered)"),

@@ -95,7 +95,7 @@ from voxe_core.progress import Callbacks, Progress, StageCancelled
 from voxe_core.reconstruct import same_views, views_summary
 from voxe_core.render import RenderConfig, render_image, render_rays
 from voxe_core.schedule import TimestepSchedule
-from voxe_core.tensorio import config_recipe, load_tensors, recipe_changes, save_tensors
+from voxe_core.tensorio import FormatError, config_recipe, load_tensors, recipe_changes, save_tensors
 
 EDIT_CHECKPOINT_KIND = "edit_checkpoint"
 EDIT_CHECKPOINT_VERSION = 1
@@ -392,21 +392,22 @@ def edit(
     if resume_from is not None:
         tensors, meta = load_edit_checkpoint(resume_from)
         if tuple(tensors["features"].shape[:3]) != initial_grid.resolution:
-            raise ValueError(
+            raise FormatError(
                 f"{resume_from}: checkpoint grid is {tuple(tensors['features'].shape[:3])}, "
                 f"the initial grid {initial_grid.resolution}"
             )
         if meta.get("prompt") != str(prompt):
-            raise ValueError(f"{resume_from}: checkpoint was made for the prompt {meta.get('prompt')!r}, not {prompt!r}")
+            raise FormatError(f"{resume_from}: checkpoint was made for the prompt {meta.get('prompt')!r}, not "
+                              f"{prompt!r}")
         if meta.get("initial_sha256") != fingerprint:
-            raise ValueError(f"{resume_from}: checkpoint was made from a different initial grid")
+            raise FormatError(f"{resume_from}: checkpoint was made from a different initial grid")
         if changed := recipe_changes(meta, config):
-            raise ValueError(f"{resume_from}: checkpoint was made with another recipe: {', '.join(changed)}; resume "
-                             "with its settings, or start afresh")
+            raise FormatError(f"{resume_from}: checkpoint was made with another recipe: {', '.join(changed)}; "
+                              "resume with its settings, or start afresh")
         if "views" in tensors and not same_views(tensors["views"], views_record):  # (a checkpoint older than it resumes)
-            raise ValueError(f"{resume_from}: checkpoint was made against other input views (images or cameras) for "
-                             f"its {config.regulariser} regulariser; resume with the views it was made from, or start "
-                             "afresh")
+            raise FormatError(f"{resume_from}: checkpoint was made against other input views (images or cameras) "
+                              f"for its {config.regulariser} regulariser; resume with the views it was made from, or "
+                              "start afresh")
         with torch.no_grad():
             param.copy_(tensors["features"].reshape(-1, 4).to(device))
         if int(tensors["adam_step"].item()) > 0:
@@ -421,8 +422,10 @@ def edit(
             raise ValueError(f"{resume_from}: checkpoint is at iteration {start}, past the {config.iterations} "
                              f"iterations asked for; ask for at least {start}")
         host_gen.set_state(tensors["rng_host"])
-        if meta.get("device", device.type) == device.type:  # (a checkpoint older than the field: taken as this one's)
-            device_gen.set_state(tensors["rng_device"])
+        state = tensors["rng_device"]
+        if meta.get("device") == device.type or ("device" not in meta and  # (older: told by its state's size)
+                                                 state.numel() == device_gen.get_state().numel()):
+            device_gen.set_state(state)
         else:  # another device type's state (CUDA's 16-byte Philox seed and offset, a CPU's 5,056 bytes) had raised a
             # RuntimeError here, so a job moved to another worker failed for good: reseeded from where the run stands
             device_gen.manual_seed(hash((config.seed + 1, start)) % 2**63)

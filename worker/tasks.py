@@ -541,7 +541,6 @@ def _fit_grid(job: Job, rec, settings, storage, lease: runtime.LeaseKeeper, call
               checkpoint: Path, checkpoint_key: str, device: str):
     """Route (a) and image scenes: G_i fitted to the scene's images on ``device``; returns (grid, total iterations)."""
     from voxe_core.reconstruct import CHECKPOINT_FORMAT_VERSION, CHECKPOINT_KIND, reconstruct
-    from voxe_core.tensorio import FormatError
 
     scene = load_images(job, rec.params, settings, storage)
     backbone, config, cameras, initial = fit_setup(rec.params, scene.alphas, scene.cameras, settings.checkpoint_every,
@@ -558,14 +557,25 @@ def _fit_grid(job: Job, rec, settings, storage, lease: runtime.LeaseKeeper, call
             log.info("reconstruction %s: resuming from its checkpoint", rec.id)
             runtime.record_job_event(job.id, "resumed", stage="reconstruct",
                                      detail=f"reconstruction {rec.id} from its stored checkpoint")
+    grid = _resumed_or_started_over(
+        lambda start: reconstruct(scene.images, cameras, config, callbacks.callbacks, checkpoint, start, initial,
+                                  device), resume, f"reconstruction {rec.id}")
+    return grid, config.total_iterations
+
+
+def _resumed_or_started_over(run, resume: Path | None, what: str):
+    """``run(resume)``; when the stage cannot go on from that checkpoint (a FormatError: another recipe, other
+    views, prompt or initial grid, another device's generator it cannot read), ``run(None)``, the stage over from
+    its start: refused, it would fail every redelivery."""
+    from voxe_core.tensorio import FormatError
+
     try:
-        grid = reconstruct(scene.images, cameras, config, callbacks.callbacks, checkpoint, resume, initial, device)
-    except FormatError:
+        return run(resume)
+    except FormatError as exc:
         if resume is None:
             raise
-        log.warning("reconstruction %s: a checkpoint it cannot go on from, starting over", rec.id)
-        grid = reconstruct(scene.images, cameras, config, callbacks.callbacks, checkpoint, None, initial, device)
-    return grid, config.total_iterations
+        log.warning("%s: a checkpoint it cannot go on from (%s), starting over", what, exc)
+        return run(None)
 
 
 # --------------------------------------------------------------------------- edit
@@ -616,8 +626,10 @@ def _edit(job: Job, settings, device: str, storage) -> None:
     callbacks = StageCallbacks(job, "edit", settings, note=note,
                                on_checkpoint=lambda path: storage.put_file(checkpoint_key, path))
     compiled_before = guidance.encoder_compile_seconds
-    grid = edit(initial, job.prompt, guidance, config, callbacks.callbacks, checkpoint, resume,
-                input_views=input_views, on_preview=on_preview, device=device)
+    grid = _resumed_or_started_over(
+        lambda start: edit(initial, job.prompt, guidance, config, callbacks.callbacks, checkpoint, start,
+                           input_views=input_views, on_preview=on_preview, device=device),
+        resume, f"job {job.id}'s edit")
     compiled = guidance.encoder_compile_seconds
     if compiled is not None and compiled != compiled_before:  # this job's first iteration waited for the compile
         log.info("job %s: the VAE encoder compiled in %.1f s", job.id, compiled)
