@@ -16,7 +16,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validat
 
 from voxe_core import constants as paper
 from voxe_core import presets
-from voxe_core.guidance.prompts import TEXT_ENCODER_TOKENS, check_prompt_length
+from voxe_core.guidance.prompts import TEXT_ENCODER_TOKENS, check_edit_words_read, check_prompt_length
 from voxe_service.webhooks import DEFAULT_WEBHOOK_EVENTS, WEBHOOK_EVENTS
 
 T = TypeVar("T")
@@ -214,7 +214,9 @@ class JobCreate(Strict):
         default_factory=list, max_length=16,
         description="local edits: the word(s) of the prompt naming the edit (e.g. ['sunglasses']); required "
         "(non-empty) with mode 'local', empty otherwise. Rules beyond the schema (422 naming them): each occurs in "
-        "the prompt as whole words, and some other word of the prompt names the object",
+        "the prompt as whole words, also as the model reads the prompt (punctuation at a word's edge is read with "
+        "the punctuation beside it: 'hat.' is not found in '..., a hat.'), and some other word of the prompt names "
+        "the object",
     )
     params: JobParams = Field(default_factory=JobParams)
     webhook_url: str | None = Field(
@@ -255,6 +257,9 @@ class JobCreate(Strict):
                     raise ValueError(f"edit word {phrase!r} does not occur in the prompt {self.prompt!r}")
             if len(set(words_of(" ".join(self.edit_words)))) >= len(set(prompt_words)):
                 raise ValueError("edit_words cover the whole prompt: some other word must name the object")
+            # As the refinement's attention model will look for them, after the edit: "hat." or "hat!" had passed
+            # the whole-word match above and failed the job there.
+            check_edit_words_read(self.prompt, self.edit_words, self.params.view_words)
         elif self.edit_words:
             raise ValueError("edit_words apply to local edits only (mode 'local')")
         return self

@@ -11,6 +11,7 @@ import dataclasses
 import errno
 import json
 import math
+import re
 import warnings
 from pathlib import Path
 
@@ -26,6 +27,7 @@ from voxe_core.constants import FLOAT32_MAX
 from voxe_core.grid import VoxelGrid
 from voxe_core.edit import EditConfig, edit
 from voxe_core.guidance import Guidance
+from voxe_core.guidance.prompts import VIEW_WORDS, check_edit_words_read, edit_prompt
 from voxe_core.guidance.sds import StableDiffusionGuidance
 from voxe_core.progress import Callbacks, StageCancelled
 from voxe_core.refine.config import (
@@ -125,6 +127,39 @@ def test_token_groups_split_edit_and_object_tokens(tiny_guidance):
         token_groups(tiny_guidance, "sunglasses", ["sunglasses"])
     with pytest.raises(ValueError, match="no edit words"):
         token_groups(tiny_guidance, prompt, [" "])
+
+
+@pytest.mark.parametrize("prompt, word, view_words, found", [
+    ("a dog wearing a party hat", "party hat", True, True),
+    ("a dog wearing a hat.", "hat.", True, False),  # the full stop is dropped: "hat" ","
+    ("a dog wearing a hat!", "hat!", True, False),  # "hat" "!,"
+    ("a dog wearing a hat!", "hat!", False, True),  # "hat" "!"
+    ("a dog wearing 'hat'", "'hat'", True, False),
+    ("a dog wearing a hat- and a scarf", "hat-", True, True),
+    ("a dog wearing a cafe\u0301 hat", "cafe", True, False),  # the tokenizer reads "café" (NFC)
+    ("a dog wearing a caf\u00e9 hat", "caf\u00e9", True, True),
+    ("a dog's hat", "dog's", True, True),
+])
+def test_the_submission_check_of_an_edit_word_is_the_attention_models_token_match(tiny_guidance, prompt, word,
+                                                                                 view_words, found):
+    """``check_edit_words_read`` (torch-free, the API's) refuses exactly the edit words the refinement's token match
+    does not find (after the whole edit)."""
+    def matched() -> bool:
+        try:
+            for view in VIEW_WORDS if view_words else (None,):
+                token_groups(tiny_guidance, edit_prompt(prompt, view), [word])
+        except ValueError as exc:
+            assert "does not occur in the prompt" in str(exc)
+            return False
+        return True
+
+    assert matched() == found
+    if found:
+        check_edit_words_read(prompt, [word], view_words)
+    else:
+        with pytest.raises(ValueError, match=f"edit word {re.escape(repr(word))} does not occur in the prompt as the "
+                                             "model reads it"):
+            check_edit_words_read(prompt, [word], view_words)
 
 
 def test_combine_token_maps_mean_of_edit_max_of_others():

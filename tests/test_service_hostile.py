@@ -423,6 +423,12 @@ BAD_FIELDS = [
     ({"scene_id": "\x00" * 32}, ["body", "scene_id"], "contains a NUL character"),
     ({"webhook_url": "http://example.com/\x00"}, ["body", "webhook_url"], "contains a NUL character"),
     ({"edit_words": ["hat"]}, ["body"], "edit word 'hat' does not occur in the prompt"),
+    # had passed as whole words and failed the job at its refinement, after the whole edit: the model reads the full
+    # stop dropped, and "!" together with the view word's comma
+    ({"prompt": "a mic wearing big sunglasses.", "edit_words": ["sunglasses."]}, ["body"],
+     "edit word 'sunglasses.' does not occur in the prompt as the model reads it"),
+    ({"prompt": "a mic wearing big sunglasses!", "edit_words": ["sunglasses!"]}, ["body"],
+     "edit word 'sunglasses!' does not occur in the prompt as the model reads it"),
     # had been accepted and cut off at the text encoder: the local edit failed at its refinement, not finding
     # its edit word, after the whole edit
     ({"prompt": "a mic " + "very " * 80 + "wearing big sunglasses"}, ["body"],
@@ -463,6 +469,9 @@ def test_bad_job_fields_are_422_naming_the_field(client):
         assert any(e["loc"] == location and message in e["msg"] for e in errors), (change, errors)
     no_views = {"scene_id": NO_SCENE, "prompt": "a mic " + "very " * 67 + "shiny", "params": {"view_words": False}}
     assert client.post("/v1/jobs", json=no_views).status_code == 404  # 75 tokens without a view word: read whole
+    no_comma = {"scene_id": NO_SCENE, **JOB, "prompt": "a mic wearing big sunglasses!", "edit_words": ["sunglasses!"],
+                "params": {"view_words": False}}
+    assert client.post("/v1/jobs", json=no_comma).status_code == 404  # "!" read alone without ", front view"
 
 
 def test_non_finite_numbers_are_422_not_500(client):

@@ -83,10 +83,47 @@ TEXT_ENCODER_TOKENS = 77
 _CLIP_PIECES = re.compile(r"'s|'t|'re|'ve|'m|'ll|'d|[^\W\d_]+|\d|(?:[^\s\w]|_)+", re.IGNORECASE)
 
 
+def clip_pieces(text: str) -> list[str]:
+    """The pre-token pieces of ``text`` as CLIP's tokenizer reads it: in NFC (a decomposed accent is no piece of its
+    own there) and lower case. BPE makes each piece one token or more, the last one ending the word.
+
+    Examples:
+        >>> clip_pieces("A dog's hat, front view")
+        ['a', 'dog', "'s", 'hat', ',', 'front', 'view']
+    """
+    return _CLIP_PIECES.findall(unicodedata.normalize("NFC", text).lower())
+
+
 def tokens_at_least(text: str) -> int:
-    """A lower bound of the CLIP tokens of ``text`` with the start and end tokens: its pre-token pieces, plus two
-    (counted in NFC, as the tokenizer reads it: a decomposed accent is no piece of its own there)."""
-    return len(_CLIP_PIECES.findall(unicodedata.normalize("NFC", text))) + 2
+    """A lower bound of the CLIP tokens of ``text`` with the start and end tokens: its pieces, plus two."""
+    return len(clip_pieces(text)) + 2
+
+
+def check_edit_words_read(user_text: str, edit_words: list[str], view_words: bool = True) -> None:
+    """ValueError naming the first edit word whose pieces are no run of the pieces of the prompt's own text as the
+    model reads it (each prompt the refinement gives its attention model: "a render of <text>", with each view word
+    unless ``view_words`` is off), where the guidance's ``token_spans`` looks for its tokens, after the whole edit.
+    Punctuation at a word's edge is read with the punctuation beside it: "hat." at the prompt's end is read as
+    "hat" then ", front view" (the full stop dropped), "hat!" as "hat" then "!,".
+
+    Examples:
+        >>> check_edit_words_read("a dog wearing a hat!", ["hat"])
+        >>> check_edit_words_read("a dog wearing a hat!", ["hat!"])
+        Traceback (most recent call last):
+        ...
+        ValueError: edit word 'hat!' does not occur in the prompt as the model reads it, 'a render of a dog wearing a hat!, front view' (its pieces 'hat' '!' are no run of the prompt's; punctuation is read together with the punctuation beside it): name it as the prompt writes it, without the punctuation around it
+    """
+    for view in VIEW_WORDS if view_words else (None,):
+        prompt = edit_prompt(user_text, view)
+        pieces, text_end = clip_pieces(prompt), len(clip_pieces(without_view_word(prompt)))
+        for word in edit_words:
+            sub = clip_pieces(word)
+            if not any(pieces[i:i + len(sub)] == sub for i in range(text_end - len(sub) + 1)):
+                shown = " ".join(repr(piece) for piece in sub)
+                raise ValueError(f"edit word {word!r} does not occur in the prompt as the model reads it, {prompt!r} "
+                                 f"(its pieces {shown} are no run of the prompt's; punctuation is read together with "
+                                 "the punctuation beside it): name it as the prompt writes it, without the punctuation "
+                                 "around it")
 
 
 def tokens_read(tokenizer, max_position_embeddings: int) -> int:
