@@ -10,7 +10,7 @@ status pollers).
 What a stream sends (``event:`` names):
 
 * every timeline event (``stage_started``, ``stage_completed``, ``checkpoint``, ``resumed``,
-  ``requeued``, ``artifact``, ``preview``, then ``succeeded`` / ``failed`` / ``canceled``), with
+  ``requeued``, ``warning``, ``artifact``, ``preview``, then ``succeeded`` / ``failed`` / ``canceled``), with
   its ``id:`` -- a client reconnecting with ``Last-Event-ID`` gets every event after it, none twice;
 * ``progress`` (no id: it is a snapshot, sent again on reconnect) when the job's state, stage,
   iteration or losses changed since the last one, at most once per interval;

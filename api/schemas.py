@@ -438,7 +438,9 @@ class JobOut(BaseModel):
         "peak_memory_gb: each stage's peak memory in GiB (peak_memory_kind: cuda_allocated on a GPU worker, "
         "process_rss on a CPU one); edit_schedule: the edit the worker runs, recorded when the job's fit starts or its reconstruct stage ends (backbone of G_i, iterations, i_start, "
         "every, floor: SPEC §5's 5000 / 3000 / 400 for a capture's scene grid); fit: what the job's own fit runs, "
-        "recorded as it starts (backbone, steps, rays_per_step: what overall_progress weighs it by); orbit_centre: the point the "
+        "recorded as it starts (backbone, steps, rays_per_step: what overall_progress weighs it by); graph_cut: a local "
+        "edit's refinement cut, as voxe refine's refine.json (nodes: the occupied voxels, edit_voxels: those taking "
+        "the edit, seeds, flow, notes; none or all of them taken: a warning event too); orbit_centre: the point the "
         "renders and the turntable look at, in G_i's frame (the origin for objects, the fitted object's matter "
         "centre for captures); evaluation jobs: the metrics too (also the evaluation.json artifact)"))
     batch_id: str | None = Field(None, description="the sweep this job belongs to")
@@ -454,8 +456,9 @@ class JobOut(BaseModel):
 
 class JobEventOut(BaseModel):
     id: int
-    kind: str = Field(description="stage_started, stage_completed, checkpoint, resumed, requeued, artifact, "
-                                  "preview, succeeded, failed or canceled")
+    kind: str = Field(description="stage_started, stage_completed, checkpoint, resumed, requeued, warning (a "
+                                  "stage completed with a result to look at, detail says what), artifact, preview, "
+                                  "succeeded, failed or canceled")
     stage: str | None
     iteration: int | None = Field(description="checkpoint: the iteration it holds; resumed: where the stage went on")
     worker_hostname: str | None

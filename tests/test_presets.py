@@ -177,14 +177,16 @@ CHECKPOINT_EVERY = 50
 TINY_FIT = {"downsample": 16, "reconstruction": {"resolution": 12, "iterations": [2, 2, 2], "rays_per_step": 64}}
 
 
-def _reconstructed_job(client, scene_id: str, backbone: str, **params) -> dict:
-    """A job whose reconstruct task ran for real (a tiny fit of the given backbone)."""
+def _reconstructed_job(client, scene_id: str, backbone: str, job_fields: dict | None = None, **params) -> dict:
+    """A job (of "a mic", unless ``job_fields`` say otherwise) whose reconstruct task ran for real (a tiny fit of the
+    given backbone)."""
     from worker import tasks
 
     stages = 2 if backbone == "scene" else 3  # the stage count of the backbone's default preset
     body = {**TINY_FIT, **params, "reconstruction": {**TINY_FIT["reconstruction"], "backbone": backbone,
                                                      "iterations": [2] * stages}}
-    job = client.post("/v1/jobs", json={"scene_id": scene_id, "prompt": "a mic", "params": body}).json()
+    job = client.post("/v1/jobs", json={"scene_id": scene_id, "prompt": "a mic", **(job_fields or {}),
+                                        "params": body}).json()
     assert tasks.reconstruct_task.apply(args=(job["id"],)).get()["state"] == "done"
     return job
 
@@ -983,6 +985,66 @@ def test_a_job_that_lost_the_fit_goes_on_with_the_recorded_grid_not_its_own(serv
     listed = {x["name"]: x for x in client.get(f"/v1/jobs/{a}/artifacts").json()}["initial_grid.safetensors"]
     scratch = runtime.scratch_dir(a, tasks.get_settings()) / "initial_grid.safetensors"
     assert listed["sha256"] == rec.grid_sha256 == file_sha256(scratch)[1]
+
+
+@pytest.mark.parametrize("kept", ["nothing", "some", "everything"])
+def test_a_refinement_whose_cut_keeps_nothing_or_everything_says_so_and_records_the_cuts_statistics(
+        service, monkeypatch, kept):
+    """A cut that labelled every occupied voxel alike (here: attention grids that favour the object, or the edit,
+    everywhere) had let the job succeed with a refined grid equal to G_i (or to G_e), saying nothing, and the
+    cut's statistics (which voxe refine writes and prints) were dropped. The job's result keeps them, and a warning
+    event and the job's message say what became of the edit, with the cut's notes; a cut that kept some voxels and
+    not others warns of nothing."""
+    import voxe_core.edit
+    import voxe_core.refine.pipeline
+    from voxe_core.backbones import load_grid
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job_id = _reconstructed_job(client, scene_id, "relu_field",
+                                {"prompt": "a mic wearing a hat", "mode": "local", "edit_words": ["hat"]},
+                                refine={"views": 2, "render_size": 16, "iterations": 0})["id"]
+
+    def dense_block(initial, *args, **kwargs):  # an edit with occupied voxels (the tiny fit may have none)
+        edited = initial.clone_grid()
+        edited.features.data[4:8, 4:8, 4:8, 0] = 5.0
+        return edited
+
+    def favouring(grid, *args, **kwargs):  # the edit everywhere, nowhere, or at x < 6 (half the nodes)
+        edit_field = torch.full((*grid.resolution, 1), 5.0 if kept == "everything" else -5.0)
+        if kept == "some":
+            edit_field[:6] = 5.0
+        return edit_field, -edit_field
+
+    with monkeypatch.context() as recorded_edit:
+        recorded_edit.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
+        recorded_edit.setattr(voxe_core.edit, "edit", dense_block)
+        assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "done"
+    monkeypatch.setattr(voxe_core.refine.pipeline, "fit_attention_grids", favouring)
+    assert tasks.refine_task.apply(args=(job_id,)).get()["state"] == "done"
+
+    job = client.get(f"/v1/jobs/{job_id}").json()
+    cut = job["result"]["graph_cut"]
+    taken = {"nothing": 0, "some": 108, "everything": 216}[kept]  # of the block dilated by one (6³, max-pooled)
+    assert (cut["nodes"], cut["edit_voxels"]) == (216, taken)
+    assert (cut["edit_seeds"], cut["object_seeds"]) == (taken, 216 - taken)  # every node a seed of the label it favours
+    assert cut["notes"] == [f"only {taken} of 300 edit seeds qualified",
+                            f"only {216 - taken} of 5000 object seeds qualified"]
+    warnings = [(e["stage"], e["detail"]) for e in client.get(f"/v1/jobs/{job_id}/events").json()
+                if e["kind"] == "warning"]
+    if kept == "some":
+        assert warnings == [] and job["message"] == "refine: graph_cut"  # (its last progress phase)
+        return
+    said = ("the graph cut kept none of the edited grid's 216 occupied voxels: the refined grid is the initial "
+            "grid, the edit undone" if kept == "nothing" else
+            "the graph cut kept all 216 occupied voxels of the edited grid: the edit is not localised (the refined "
+            "grid takes the edited grid at every one of them)")
+    assert job["message"] == "; ".join([said, *cut["notes"]])
+    assert warnings == [("refine", job["message"])]
+    scratch = runtime.scratch_dir(job_id, tasks.get_settings())
+    refined = load_grid(scratch / "refined_grid.safetensors")
+    expected = load_grid(scratch / ("initial_grid.safetensors" if kept == "nothing" else "edited_grid.safetensors"))
+    assert torch.equal(refined.features[3:9, 3:9, 3:9], expected.features[3:9, 3:9, 3:9])
 
 
 def test_the_papers_constant_start_fits_every_pixel_the_default_start_the_codes_positive_ones():

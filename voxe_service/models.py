@@ -234,7 +234,9 @@ class JobEvent(Base):
     Kinds: ``stage_started`` / ``stage_completed`` (``stage``, the worker), ``checkpoint`` (a resumable
     checkpoint of ``stage`` at ``iteration`` is in the storage: the event is written after the upload),
     ``resumed`` (a redelivered stage went on from the checkpoint at ``iteration``), ``requeued`` (the
-    remaining stages were sent again: by a restarted worker, or by the reaper after the worker died), ``artifact`` / ``preview`` (``detail``: the name of an
+    remaining stages were sent again: by a restarted worker, or by the reaper after the worker died), ``warning``
+    (``stage`` completed with a result to look at, ``detail`` says what: a refinement whose graph cut kept none or
+    all of the occupied voxels), ``artifact`` / ``preview`` (``detail``: the name of an
     artifact just published, or of a new preview image), and the terminal ``succeeded`` / ``failed`` /
     ``canceled`` (``detail``: the error or message). Unlike the throttled progress columns of the job,
     every event is kept.

@@ -320,6 +320,18 @@ def record_job_event(job_id: str, kind: str, **fields) -> None:
         record_event(session, job_id, kind, **fields)
 
 
+def record_warning(job_id: str, stage: str, text: str) -> None:
+    """Say ``text`` as the job's message and as a ``warning`` event on its timeline, in one transaction: a stage that
+    completed with a result the user should look at (the message is the next stage's once that starts; the event
+    stays)."""
+    with session_scope() as session:
+        if (job := locked(session, Job, job_id)) is None:
+            return
+        _refuse_if_superseded(job_id, lambda: job.run_token)  # (read under the lock just taken)
+        job.message, job.updated_at = text, utcnow()
+        record_event(session, job_id, "warning", stage=stage, detail=text)
+
+
 # --------------------------------------------------------------------------- callbacks
 @contextmanager
 def outage_skipped(what: str) -> Iterator[None]:

@@ -20,6 +20,7 @@ take it over when the fitter's lease lapses (a dead worker) or it was released
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import os
 import socket
@@ -670,6 +671,10 @@ def _refine(job: Job, settings, device: str, storage) -> None:
     overlay = render_mask_overlay(edited, result.mask, cameras.to(edited.bbox_min.device))
     save_png(scratch / "mask_overlay.png", overlay[0])
     runtime.publish_artifact(job.id, "mask_overlay.png", scratch / "mask_overlay.png", "render", storage)
+    stats = result.stats  # as voxe refine's refine.json and notes say them
+    runtime.merge_job_result(job.id, {"graph_cut": dataclasses.asdict(stats)})
+    if (warning := stats.uniform_label()) is not None:
+        runtime.record_warning(job.id, "refine", "; ".join([warning, *stats.notes]))
 
 
 # --------------------------------------------------------------------------- export

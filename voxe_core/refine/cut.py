@@ -37,6 +37,17 @@ class GraphCutStats:
     solve_s: float
     notes: list[str] = field(default_factory=list)
 
+    def uniform_label(self) -> str | None:
+        """A warning when the cut gave every node one label, so the refinement localised nothing (a refined grid
+        equal to G_i, or G_e wherever it is occupied); None when it kept some of the nodes and not others."""
+        if self.edit_voxels == 0:
+            return (f"the graph cut kept none of the edited grid's {self.nodes} occupied voxels: the refined grid is "
+                    "the initial grid, the edit undone")
+        if self.edit_voxels == self.nodes:
+            return (f"the graph cut kept all {self.nodes} occupied voxels of the edited grid: the edit is not "
+                    "localised (the refined grid takes the edited grid at every one of them)")
+        return None
+
 
 def _scalar_field(values: torch.Tensor, shape: tuple[int, int, int], name: str) -> torch.Tensor:
     if values.dim() == 4 and values.shape[-1] == 1:
