@@ -124,6 +124,25 @@ def test_a_learning_rate_or_radius_outside_zero_to_infinity_is_refused_by_name(n
         EditConfig(**{name: value})
 
 
+@pytest.mark.parametrize("name", ["front_azimuth_deg", "preview_elevation_deg"])
+@pytest.mark.parametrize("angle", [math.nan, math.inf, -math.inf])
+def test_an_angle_that_is_no_angle_is_refused_by_name(name, angle):
+    """A NaN or infinite angle had been taken and failed only in the poses ("camera positions must be finite"), or
+    (a NaN front) read every pose as a side view; refused as RefineConfig refuses its front, by the shared check."""
+    with pytest.raises(ValueError, match=rf"^{name} must be a finite angle in degrees, got {angle}$"):
+        EditConfig(**{name: angle})
+
+
+@pytest.mark.parametrize("betas", [(1.0, 0.999), (0.9, 1.5), (-0.1, 0.999), (math.nan, 0.999), (0.9, math.inf),
+                                   (0.9,), (0.9, 0.99, 0.999)])
+def test_adams_betas_outside_zero_to_one_are_refused_by_name(betas):
+    """torch's Adam had refused them only as the edit started, naming no setting ("Invalid beta parameter")."""
+    with pytest.raises(ValueError, match=rf"^betas must be Adam's two decay rates, each in \[0, 1\), got "
+                                         rf"{re.escape(str(betas))}$"):
+        EditConfig(betas=betas)
+    assert EditConfig(betas=(0.0, 0.5)).betas == (0.0, 0.5)
+
+
 def test_learning_rate_matches_the_authors_loop():
     config = EditConfig()
     lr, used = config.lr, []

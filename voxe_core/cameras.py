@@ -103,6 +103,13 @@ class Cameras:
         return replace(self, distortion=None)
 
 
+def check_angle(name: str, degrees: float) -> None:
+    """ValueError naming the setting ``name`` unless ``degrees`` is a finite angle: a NaN or infinite one had failed
+    only deep in the poses ("camera positions must be finite"), or read every pose as a "side" view (a NaN front)."""
+    if not math.isfinite(degrees):
+        raise ValueError(f"{name} must be a finite angle in degrees, got {degrees}")
+
+
 def check_fov_x(fov_x: float) -> None:
     """ValueError unless ``fov_x`` is a horizontal field of view in (0, π) radians: at 0 the focal is infinite, at π
     zero, and past π negative (a mirrored camera)."""

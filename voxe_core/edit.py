@@ -55,6 +55,7 @@ import torch
 from voxe_core.cameras import (
     Cameras,
     camera_rays,
+    check_angle,
     check_fov_x,
     check_views,
     pixel_rays,
@@ -170,6 +171,12 @@ class EditConfig:
         for name in ("lr", "radius"):  # (used in float32: 1e39 overflowed as inf had)
             if not 0 < getattr(self, name) <= FLOAT32_MAX:
                 raise ValueError(f"{name} must be positive and finite in float32, got {getattr(self, name)}")
+        # As "not in range" (NaN fails every comparison): torch's Adam had refused them only as the edit started,
+        # naming no setting ("Invalid beta parameter at index 0").
+        if len(self.betas) != 2 or not all(0 <= beta < 1 for beta in self.betas):
+            raise ValueError(f"betas must be Adam's two decay rates, each in [0, 1), got {self.betas}")
+        for name in ("front_azimuth_deg", "preview_elevation_deg"):
+            check_angle(name, getattr(self, name))
         if self.render_size < MIN_RENDER_SIZE:
             raise ValueError(f"render_size must be at least {MIN_RENDER_SIZE} px, got {self.render_size}")
         if self.regulariser not in REGULARISERS:

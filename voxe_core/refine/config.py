@@ -6,7 +6,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal
 
-from voxe_core.cameras import check_fov_x
+from voxe_core.cameras import check_angle, check_fov_x
 from voxe_core.constants import (
     ATTENTION_MODEL_ID,
     CUT_SIGMA,
@@ -186,8 +186,7 @@ class RefineConfig:
         if not 0.0 < self.node_alpha < 1.0:
             raise ValueError(f"node_alpha must lie in (0, 1), got {self.node_alpha}")
         check_fov_x(self.fov_x)
-        if not math.isfinite(self.front_azimuth_deg):  # (NaN had read every pose as a "side" view)
-            raise ValueError(f"front_azimuth_deg must be a finite angle in degrees, got {self.front_azimuth_deg}")
+        check_angle("front_azimuth_deg", self.front_azimuth_deg)
         if not 0 <= self.seed <= MAX_SEED:  # (-1 had run every attention pass, then failed in the cut's numpy draw)
             raise ValueError(f"seed must lie in [0, {MAX_SEED}] (the service's and the CLI's range), got {self.seed}")
 
