@@ -607,6 +607,35 @@ def test_evaluation_job_end_to_end_through_the_api(service, sphere_grid):
     assert twice.status_code == 422 and "lists a job twice" in twice.text
 
 
+@pytest.mark.parametrize("failing_name", ["evaluation.md", "ring_initial_002.png"])
+def test_an_evaluation_whose_upload_fails_mid_set_lists_none_of_its_results(service, sphere_grid, monkeypatch,
+                                                                             failing_name):
+    """The storage failing after evaluation.json was uploaded (S3 throttling evaluation.md) had failed the job with
+    the JSON listed without its table; at a ring render, the renders before it. The rings, the JSON and the table
+    are published as one set: the failed job lists none of them and keeps none of their bytes."""
+    from voxe_service.storage import StorageUnavailable, get_storage
+    from worker import tasks
+
+    client, scene_id, root = service
+    edit = client.post("/v1/jobs", json={"scene_id": scene_id, "prompt": "a wood carving of a mic"}).json()
+    _as_if_edited(edit["id"], sphere_grid, sphere_grid, None, root)
+    job = client.post("/v1/evaluations", json={"job_ids": [edit["id"]], "object": "mic", "params": RING}).json()
+    storage = get_storage(tasks.get_settings())
+    put_file = type(storage).put_file
+
+    def failing_put(self, key, path, content_type=None):
+        if key.endswith(failing_name):
+            raise StorageUnavailable(f"S3 bucket 'voxe': SlowDown when uploading {key}")
+        return put_file(self, key, path, content_type)
+
+    monkeypatch.setattr(type(storage), "put_file", failing_put)
+    assert tasks.evaluate_task.apply(args=(job["id"],)).get()["state"] == "failed"
+    failed = client.get(f"/v1/jobs/{job['id']}").json()
+    assert failed["error"].startswith("evaluate: StorageUnavailable: S3 bucket 'voxe': SlowDown when uploading")
+    assert client.get(f"/v1/jobs/{job['id']}/artifacts").json() == []
+    assert storage.list(f"jobs/{job['id']}/") == []
+
+
 def test_evaluation_of_a_job_that_failed_after_queueing_fails_with_the_reason(service, sphere_grid):
     from sqlalchemy import update
 

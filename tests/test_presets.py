@@ -987,6 +987,40 @@ def test_a_job_that_lost_the_fit_goes_on_with_the_recorded_grid_not_its_own(serv
     assert listed["sha256"] == rec.grid_sha256 == file_sha256(scratch)[1]
 
 
+def _locally_edited_job(client, scene_id: str, monkeypatch) -> str:
+    """A local job ("hat" of "a mic wearing a hat") whose edit left a dense 4³ block (the tiny fit may have no
+    occupied voxel): its refine stage has a cut to make."""
+    import voxe_core.edit
+    from worker import runtime, tasks
+
+    job_id = _reconstructed_job(client, scene_id, "relu_field",
+                                {"prompt": "a mic wearing a hat", "mode": "local", "edit_words": ["hat"]},
+                                refine={"views": 2, "render_size": 16, "iterations": 0})["id"]
+
+    def dense_block(initial, *args, **kwargs):
+        edited = initial.clone_grid()
+        edited.features.data[4:8, 4:8, 4:8, 0] = 5.0
+        return edited
+
+    with monkeypatch.context() as recorded_edit:
+        recorded_edit.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
+        recorded_edit.setattr(voxe_core.edit, "edit", dense_block)
+        assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "done"
+    return job_id
+
+
+def _attention_favouring(kept: str):
+    """A stand-in for the attention-grid fit whose grids favour the edit everywhere, nowhere, or at x < 6 ("some":
+    half the block's nodes)."""
+    def fit(grid, *args, **kwargs):
+        edit_field = torch.full((*grid.resolution, 1), 5.0 if kept == "everything" else -5.0)
+        if kept == "some":
+            edit_field[:6] = 5.0
+        return edit_field, -edit_field
+
+    return fit
+
+
 @pytest.mark.parametrize("kept", ["nothing", "some", "everything"])
 def test_a_refinement_whose_cut_keeps_nothing_or_everything_says_so_and_records_the_cuts_statistics(
         service, monkeypatch, kept):
@@ -995,32 +1029,13 @@ def test_a_refinement_whose_cut_keeps_nothing_or_everything_says_so_and_records_
     cut's statistics (which voxe refine writes and prints) were dropped. The job's result keeps them, and a warning
     event and the job's message say what became of the edit, with the cut's notes; a cut that kept some voxels and
     not others warns of nothing."""
-    import voxe_core.edit
     import voxe_core.refine.pipeline
     from voxe_core.backbones import load_grid
     from worker import runtime, tasks
 
     client, scene_id = service
-    job_id = _reconstructed_job(client, scene_id, "relu_field",
-                                {"prompt": "a mic wearing a hat", "mode": "local", "edit_words": ["hat"]},
-                                refine={"views": 2, "render_size": 16, "iterations": 0})["id"]
-
-    def dense_block(initial, *args, **kwargs):  # an edit with occupied voxels (the tiny fit may have none)
-        edited = initial.clone_grid()
-        edited.features.data[4:8, 4:8, 4:8, 0] = 5.0
-        return edited
-
-    def favouring(grid, *args, **kwargs):  # the edit everywhere, nowhere, or at x < 6 (half the nodes)
-        edit_field = torch.full((*grid.resolution, 1), 5.0 if kept == "everything" else -5.0)
-        if kept == "some":
-            edit_field[:6] = 5.0
-        return edit_field, -edit_field
-
-    with monkeypatch.context() as recorded_edit:
-        recorded_edit.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
-        recorded_edit.setattr(voxe_core.edit, "edit", dense_block)
-        assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "done"
-    monkeypatch.setattr(voxe_core.refine.pipeline, "fit_attention_grids", favouring)
+    job_id = _locally_edited_job(client, scene_id, monkeypatch)
+    monkeypatch.setattr(voxe_core.refine.pipeline, "fit_attention_grids", _attention_favouring(kept))
     assert tasks.refine_task.apply(args=(job_id,)).get()["state"] == "done"
 
     job = client.get(f"/v1/jobs/{job_id}").json()
@@ -1045,6 +1060,36 @@ def test_a_refinement_whose_cut_keeps_nothing_or_everything_says_so_and_records_
     refined = load_grid(scratch / "refined_grid.safetensors")
     expected = load_grid(scratch / ("initial_grid.safetensors" if kept == "nothing" else "edited_grid.safetensors"))
     assert torch.equal(refined.features[3:9, 3:9, 3:9], expected.features[3:9, 3:9, 3:9])
+
+
+@pytest.mark.parametrize("failing_name", ["mask.safetensors", "mask_overlay.png"])
+def test_a_refinement_whose_upload_fails_mid_set_lists_none_of_its_files(service, monkeypatch, failing_name):
+    """The storage failing after refined_grid.safetensors was uploaded (S3 throttling the mask) had failed the job
+    with the refined grid listed without the mask it was merged by; at the overlay, every file but it. The four
+    are published as one set: the failed job lists none of them and keeps none of their bytes."""
+    import voxe_core.refine.pipeline
+    from voxe_service.storage import StorageUnavailable, get_storage
+    from worker import tasks
+
+    client, scene_id = service
+    job_id = _locally_edited_job(client, scene_id, monkeypatch)
+    monkeypatch.setattr(voxe_core.refine.pipeline, "fit_attention_grids", _attention_favouring("some"))
+    storage = get_storage(tasks.get_settings())
+    put_file = type(storage).put_file
+
+    def failing_put(self, key, path, content_type=None):
+        if key.endswith(failing_name):
+            raise StorageUnavailable(f"S3 bucket 'voxe': SlowDown when uploading {key}")
+        return put_file(self, key, path, content_type)
+
+    monkeypatch.setattr(type(storage), "put_file", failing_put)
+    assert tasks.refine_task.apply(args=(job_id,)).get()["state"] == "failed"
+    job = client.get(f"/v1/jobs/{job_id}").json()
+    assert job["error"].startswith("refine: StorageUnavailable: S3 bucket 'voxe': SlowDown when uploading")
+    listed = {a["name"] for a in client.get(f"/v1/jobs/{job_id}/artifacts").json()}
+    assert listed == {"initial_grid.safetensors", "edited_grid.safetensors", "preview.png"}
+    refine_files = ("refined_grid", "mask", "attention_probabilities")
+    assert [key for key in storage.list(f"jobs/{job_id}/") if key.rsplit("/", 1)[-1].startswith(refine_files)] == []
 
 
 def test_the_papers_constant_start_fits_every_pixel_the_default_start_the_codes_positive_ones():

@@ -113,13 +113,14 @@ def run_evaluation(job: Job, settings: Settings, device: str, storage) -> None:
                       device=device)
 
     scratch = runtime.scratch_dir(job.id, settings)
+    published = []  # (name, path, kind): one set, below
     if params.get("save_renders", True):
         sets = {"initial": result.initial_frames, **result.edit_frames}
         for label, frames in sets.items():
             for i, frame in enumerate(frames):
                 name = f"ring_{label}_{i:03d}.png"
                 save_png(scratch / name, frame)
-                runtime.publish_artifact(job.id, name, scratch / name, "render", storage)
+                published.append((name, scratch / name, "render"))
     for row, source in zip(result.rows, sources):  # rows are named by their source job's id
         row.update(job_id=row.pop("name"), scene_id=source.scene_id, object=params["object"])
     table = format_table(result.rows, extra_columns=("job_id",))
@@ -128,7 +129,8 @@ def run_evaluation(job: Job, settings: Settings, device: str, storage) -> None:
                "ring": {"views": config.views, "elevation": config.elevation, "size": config.size}, "table": table}
     (scratch / "evaluation.json").write_text(json.dumps(summary, indent=2))
     (scratch / "evaluation.md").write_text(table)
-    runtime.publish_artifact(job.id, "evaluation.json", scratch / "evaluation.json", "evaluation", storage)
-    runtime.publish_artifact(job.id, "evaluation.md", scratch / "evaluation.md", "evaluation", storage)
+    # One set: a storage failing part way had left a failed job listing some rings, or the JSON without its table
+    runtime.publish_artifacts(job.id, [*published, *((name, scratch / name, "evaluation")
+                                                     for name in ("evaluation.json", "evaluation.md"))], storage)
     runtime.merge_job_result(job.id, summary)
     log.info("job %s: evaluated %d edit(s) of scene %s", job.id, len(sources), sources[0].scene_id)

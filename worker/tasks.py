@@ -657,20 +657,18 @@ def _refine(job: Job, settings, device: str, storage) -> None:
     result = refine(initial, edited, job.prompt, job.edit_words, guidance, config, callbacks.callbacks, device=device)
 
     scratch = runtime.scratch_dir(job.id, settings)
-    refined = scratch / "refined_grid.safetensors"
-    result.refined_grid.save(refined)
-    runtime.publish_artifact(job.id, "refined_grid.safetensors", refined, "grid", storage)
-    mask = scratch / "mask.safetensors"
-    save_mask(mask, result.mask, {"prompt": job.prompt, "edit_words": list(job.edit_words)})
-    runtime.publish_artifact(job.id, "mask.safetensors", mask, "mask", storage)
-    probabilities = scratch / "attention_probabilities.safetensors"
-    save_probabilities(probabilities, result.edit_probability, result.object_probability, result.nodes)
-    runtime.publish_artifact(job.id, "attention_probabilities.safetensors", probabilities, "probabilities", storage)
+    result.refined_grid.save(scratch / "refined_grid.safetensors")
+    save_mask(scratch / "mask.safetensors", result.mask, {"prompt": job.prompt, "edit_words": list(job.edit_words)})
+    save_probabilities(scratch / "attention_probabilities.safetensors", result.edit_probability,
+                       result.object_probability, result.nodes)
     size = export_config(job.params).view_size
     cameras = turntable_cameras(1, 20.0, size, centre=initial.orbit_centre())  # G_i's, as every stage
     overlay = render_mask_overlay(edited, result.mask, cameras.to(edited.bbox_min.device))
     save_png(scratch / "mask_overlay.png", overlay[0])
-    runtime.publish_artifact(job.id, "mask_overlay.png", scratch / "mask_overlay.png", "render", storage)
+    # One set (as voxe refine's files): a storage failing part way had left the refined grid listed without its mask
+    runtime.publish_artifacts(job.id, [(name, scratch / name, kind) for name, kind in (
+        ("refined_grid.safetensors", "grid"), ("mask.safetensors", "mask"),
+        ("attention_probabilities.safetensors", "probabilities"), ("mask_overlay.png", "render"))], storage)
     stats = result.stats  # as voxe refine's refine.json and notes say them
     runtime.merge_job_result(job.id, {"graph_cut": dataclasses.asdict(stats)})
     if (warning := stats.uniform_label()) is not None:
