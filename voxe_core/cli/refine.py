@@ -16,7 +16,7 @@ from pathlib import Path
 from voxe_core import constants as paper
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, check_device, load_guidance,
-    non_negative_int, positive_int, run_stage, seed, writable_folder,
+    non_negative_int, positive_int, remove_earlier_outputs, run_stage, seed, writable_folder,
 )
 from voxe_core.files import replacing
 from voxe_core.presets import SEED, refine_config
@@ -120,7 +120,7 @@ def cmd_refine(args) -> int:
     save_probabilities(out / "probabilities.safetensors", result.edit_probability, result.object_probability,
                        result.nodes)
     renders = out / "renders"
-    clear_preview_frames(renders)
+    remove_earlier_outputs(renders, PREVIEW_FRAME)  # (fewer --preview-views had left another run's frames beside)
     if args.preview_views:
         cameras = turntable_cameras(args.preview_views, 30.0, config.render_size, centre=initial.orbit_centre())
         groups = {
@@ -148,13 +148,3 @@ def cmd_refine(args) -> int:
     print(f"wrote {out}: {stats['edit_voxels']} of {stats['nodes']} occupied voxels take the edit "
           f"({stats['edit_seeds']} edit / {stats['object_seeds']} object seeds)")
     return 0
-
-
-def clear_preview_frames(renders: Path) -> None:
-    """Delete the frames an earlier ``voxe refine`` wrote in ``renders``: a re-run into the same --out with fewer
-    --preview-views had left another run's frames beside its own, which its refine.json does not describe. Only
-    files of the names this command writes (:data:`PREVIEW_FRAME`) go."""
-    if renders.is_dir():
-        for frame in renders.iterdir():
-            if PREVIEW_FRAME.fullmatch(frame.name):
-                frame.unlink()
