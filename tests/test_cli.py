@@ -880,16 +880,19 @@ def test_render_into_an_earlier_output_leaves_only_this_runs_views(sphere_file, 
     out = tmp_path / "views"
     ring = ["render", str(sphere_file), "--size", "16", "--out", str(out), "--quiet", "--ring"]
     assert main(ring + ["3"]) == 0
-    assert json.loads((out / "render.json").read_text()) == {"files": ["000.png", "001.png", "002.png"]}
+    assert json.loads((out / "render.json").read_text()) == {"written_by": "voxe render",
+                                                             "files": ["000.png", "001.png", "002.png"]}
     for name in ("notes.txt", "cover.png", "0001.jpg", "1080.png", "123_scan.png", "metrics.json"):
         (out / name).write_text("mine")
     assert main(ring + ["2"]) == 0
     assert sorted(p.name for p in out.iterdir()) == ["000.png", "0001.jpg", "001.png", "1080.png", "123_scan.png",
                                                      "cover.png", "metrics.json", "notes.txt", "render.json"]
     assert np.asarray(Image.open(out / "001.png")).shape == (16, 16, 3)
-    (out / "render.json").write_text(json.dumps({"files": ["../views/notes.txt", "/etc/hostname", 3]}))
-    assert main(ring + ["1"]) == 0  # a manifest naming other folders' files, or not names, removes nothing
-    assert (out / "notes.txt").exists() and (out / "001.png").exists()
+    for manifest in ({"written_by": "voxe render", "files": ["../views/notes.txt", "/etc/hostname", 3]},
+                     {"files": ["notes.txt", "cover.png"]}, ["001.png"]):  # other folders' files; the user's own
+        (out / "render.json").write_text(json.dumps(manifest))
+        assert main(ring + ["1"]) == 0  # removes nothing
+        assert (out / "notes.txt").exists() and (out / "cover.png").exists() and (out / "001.png").exists()
 
 
 def test_render_needs_exactly_one_camera_source(sphere_file, tmp_path):

@@ -111,14 +111,15 @@ def _replace_manifest(out_dir: Path, files: list[str]) -> None:
 
     manifest = out_dir / MANIFEST_FILE
     try:
-        earlier = json.loads(manifest.read_text())["files"]
-    except (OSError, ValueError, KeyError, TypeError):  # none, or not one this command wrote: nothing to remove
+        listed = json.loads(manifest.read_text())
+        earlier = listed["files"] if listed.get("written_by") == "voxe render" else []  # (a file of the user's own)
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):  # none, or not this command's: none removed
         earlier = []
     for name in earlier:
         if isinstance(name, str) and Path(name).name == name and (out_dir / name).is_file():  # (only its own names)
             (out_dir / name).unlink()
     with replacing(manifest) as partial:
-        partial.write_text(json.dumps({"files": files}, indent=2))
+        partial.write_text(json.dumps({"written_by": "voxe render", "files": files}, indent=2))
 
 
 def _report_metrics(frames, scene, names, out_dir: Path) -> None:
