@@ -709,6 +709,23 @@ def test_grids_whose_raw_values_mean_different_densities_are_not_merged(edited, 
         merge(VoxelGrid(8), edited(), torch.ones(8, 8, 8, dtype=torch.bool))
 
 
+@pytest.mark.parametrize("changed, refusal", [
+    ({"foreground_extent": 4.0}, "the initial grid's foreground_extent is 1.5 but the edited grid's 4.0"),
+    ({"frame": [[1, 0, 0, 3], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}, "the initial grid's frame is"),
+    ({"far_ratio": 10.0}, "the initial grid's far_ratio is"),
+])
+def test_scene_grids_of_another_capture_are_not_merged(changed, refusal):
+    """A scene grid's box is always [-2, 2]³: its extent, frame and far samples (the header's) had not been
+    compared, so an edit of another capture merged read in the initial grid's frame and extent."""
+    from voxe_core.scene_grid import SceneGrid
+
+    initial = SceneGrid(8)
+    with pytest.raises(ValueError, match=re.escape(refusal)):
+        merge(initial, SceneGrid(8, **{"density_scale": initial.density_scale, **changed}),
+              torch.ones(8, 8, 8, dtype=torch.bool))
+    merge(initial, initial.clone_grid(), torch.ones(8, 8, 8, dtype=torch.bool))  # as the edit pairs them
+
+
 def test_the_readme_reader_of_a_downloaded_mask_gives_the_mask_in_the_grid_order(tmp_path):
     """The README's reader of mask.safetensors (safetensors + numpy, no voxe_core), run as written there: the
     artifact list named the file but nothing said what it holds."""

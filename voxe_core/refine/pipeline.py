@@ -36,8 +36,9 @@ class RefineResult:
 
 
 def check_compatible(initial_grid: VoxelGrid, edited_grid: VoxelGrid) -> None:
-    """ValueError unless the two grids' raw values mean the same: the merge takes G_i's kind, activation and density
-    scale for G_e's voxels too (a softplus edit merged into a ReLU grid had changed the edit's densities)."""
+    """ValueError unless the two grids' raw values mean the same: the merge takes G_i's header (kind, activation,
+    density scale; a scene grid's extent, frame, samples) for G_e's voxels too (a softplus edit merged into a ReLU
+    grid had changed the edit's densities, a scene grid of another capture's extent or frame had moved them)."""
     if initial_grid.resolution != edited_grid.resolution:
         raise ValueError(f"the initial grid is {initial_grid.resolution} but the edited grid {edited_grid.resolution}")
     if not (torch.equal(initial_grid.bbox_min.cpu(), edited_grid.bbox_min.cpu())
@@ -46,10 +47,11 @@ def check_compatible(initial_grid: VoxelGrid, edited_grid: VoxelGrid) -> None:
     if type(initial_grid) is not type(edited_grid):
         raise ValueError(f"the initial grid is a {type(initial_grid).__name__} but the edited grid a "
                          f"{type(edited_grid).__name__}")
-    for name in ("activation", "density_scale"):
-        if getattr(initial_grid, name) != getattr(edited_grid, name):
-            raise ValueError(f"the initial grid's {name} is {getattr(initial_grid, name)!r} but the edited grid's "
-                             f"{getattr(edited_grid, name)!r}: is the edit of another reconstruction?")
+    edited = edited_grid.header()
+    for name, value in initial_grid.header().items():  # (a scene grid's extent, frame and samples too)
+        if edited.get(name) != value:
+            raise ValueError(f"the initial grid's {name} is {value!r} but the edited grid's {edited.get(name)!r}: is "
+                             "the edit of another reconstruction?")
 
 
 @torch.no_grad()
