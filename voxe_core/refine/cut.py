@@ -116,7 +116,8 @@ def pairwise_weights(diff: np.ndarray, config: RefineConfig) -> np.ndarray:
     ``"gaussian"`` (the text): λ·exp(−‖Δc‖²/2σ²); ``"exp_distance"`` (the code): λ·exp(−‖Δc‖/σ). Both from
     ‖Δc‖/σ in float64, so every positive σ gives weights in [0, λ]: in the colours' float32 a σ below float32's
     range had become 0 (σ² below it, for the text's) and equal colours 0/0, a NaN weight that made every
-    capacity NaN and every node an edit.
+    capacity NaN and every node an edit. (Weights below float32's range, which it had rounded to 0 so that those
+    edges split the graph before max-flow, now join their pieces: the cut decides them, as the energy says.)
 
     Examples:
         >>> weights = pairwise_weights(np.array([[0.1, 0.0, 0.0]]), RefineConfig(pairwise_weight="exp_distance"))
@@ -126,7 +127,8 @@ def pairwise_weights(diff: np.ndarray, config: RefineConfig) -> np.ndarray:
     scaled = np.sqrt((diff * diff).sum(-1, dtype=np.float64)) / config.sigma  # (no float64 copy of diff)
     if config.pairwise_weight == "exp_distance":
         return config.smoothness * np.exp(-scaled)
-    return config.smoothness * np.exp(-0.5 * scaled**2)
+    with np.errstate(over="ignore"):  # a σ below 1e-154: the square inf, its weight the 0 it tends to
+        return config.smoothness * np.exp(-0.5 * scaled**2)
 
 
 def _top_seeds(score: np.ndarray, candidates: np.ndarray, count: int) -> np.ndarray:
