@@ -275,3 +275,15 @@ def test_the_kernels_compile_for_a_hopper_gpu_without_one():
     # relaxed (red.global... on Triton 3.9, atom.global... on 3.5): the adds commute; acq_rel had fenced each one
     assert done.stdout.split("\n")[:4] == ["False False 0 True", "False True 0 True", "True False 32 True",
                                            "True True 32 True"]
+
+
+@pytest.mark.parametrize("fused", [False, True])
+@pytest.mark.parametrize("n_origins, n_directions", [(3, 1), (1, 3), (3, 2)])
+def test_rays_that_do_not_pair_one_direction_with_each_origin_are_refused(fused, n_origins, n_directions):
+    """Regression: one direction for three origins had rendered three rays, the last two blank on the packed path and
+    read from past the directions in the fused kernel; one origin for three directions one ray; three origins and two
+    directions an IndexError or a RuntimeError from deep in the sampler."""
+    origins, directions = _rays(3, 15)
+    with pytest.raises(ValueError, match=rf"^origins and directions must be \(N, 3\) each, one direction per origin, "
+                                         rf"got \({n_origins}, 3\) and \({n_directions}, 3\)$"):
+        render_rays(VoxelGrid(9), origins[:n_origins], directions[:n_directions], RenderConfig(fused=fused))

@@ -161,6 +161,11 @@ def render_rays(
         >>> out.rgb.tolist(), out.opacity.tolist()
         ([[1.0, 1.0, 1.0]], [0.0])
     """
+    # (Rays that broadcast had rendered as many rays as origins: past the first, blank on the packed path (or an
+    # IndexError from its gathers) and read from past the directions by the fused kernel.)
+    if origins.ndim != 2 or origins.shape[-1] != 3 or directions.shape != origins.shape:
+        raise ValueError(f"origins and directions must be (N, 3) each, one direction per origin, got "
+                         f"{tuple(origins.shape)} and {tuple(directions.shape)}")
     with full_precision(origins):
         origins, directions = origins.float(), unit_directions(directions.float())
         device, n_rays = origins.device, origins.shape[0]
