@@ -157,11 +157,15 @@ def test_a_nan_colour_where_nothing_is_dense_shows_in_the_render():
         assert out.rgb[0, 0].isnan() and out.rgb[0, 1:].tolist() == [1.0, 1.0]
 
 
-def test_an_occupancy_of_another_grid_is_refused():
-    """Cells of another resolution: the packed path's lookup fails; the kernel would read past them."""
+@pytest.mark.parametrize("fused", [False, True])
+@pytest.mark.parametrize("other", [6, 12])
+def test_an_occupancy_of_another_grid_is_refused(fused, other):
+    """Cells of another resolution: the kernel would read past fewer; the packed path had looked this grid's cell
+    indices up in them, an IndexError where they were fewer and a blank render where more (regression)."""
     grid = VoxelGrid(9)
-    with pytest.raises(ValueError, match=r"an occupancy of \(5, 5, 5\) cells does not fit a grid of \(9, 9, 9\)"):
-        render_rays(grid, *_rays(4, 14), RenderConfig(fused=True), occupancy=VoxelGrid(6).occupancy())
+    cells = rf"\({other - 1}, {other - 1}, {other - 1}\)"
+    with pytest.raises(ValueError, match=rf"^an occupancy of {cells} cells does not fit a grid of \(9, 9, 9\) vertices"):
+        render_rays(grid, *_rays(4, 14), RenderConfig(fused=fused), occupancy=VoxelGrid(other).occupancy())
 
 
 def test_a_nan_density_in_front_of_the_stop_shows_in_the_render():

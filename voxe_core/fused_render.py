@@ -223,9 +223,8 @@ class _Launch:
                  occupancy: Occupancy | None, early_stop: float):
         res = torch.tensor(grid.resolution)
         cells = res - 1
-        if occupancy is not None and tuple(occupancy.cells.shape) != tuple(cells.tolist()):
-            raise ValueError(f"an occupancy of {tuple(occupancy.cells.shape)} cells does not fit a grid of "
-                             f"{grid.resolution} vertices ({tuple(cells.tolist())} cells)")
+        if occupancy is not None:
+            grid.check_occupancy(occupancy)
         self.rays = [origins.contiguous(), directions.contiguous(), lattice.start.contiguous(),
                      lattice.length.contiguous(), lattice.first.to(torch.int32), lattice.last.to(torch.int32)]
         self.cells = (occupancy.cells.to(origins.device).contiguous().view(torch.uint8) if occupancy is not None

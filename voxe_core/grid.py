@@ -315,6 +315,14 @@ class VoxelGrid(torch.nn.Module):
                                          2.0 * _CORNERS - 1, 1.0 - _CORNERS)))
         return self._lattices[device]
 
+    def check_occupancy(self, occupancy: Occupancy) -> None:
+        """ValueError unless ``occupancy`` holds this grid's cells: another grid's had been looked up at this grid's
+        cell indices (a blank render where it had more cells, an IndexError where fewer; past them in the fused kernel)."""
+        cells = tuple(n - 1 for n in self._resolution)
+        if tuple(occupancy.cells.shape) != cells:
+            raise ValueError(f"an occupancy of {tuple(occupancy.cells.shape)} cells does not fit a grid of "
+                             f"{self._resolution} vertices ({cells} cells)")
+
     def like(self, features: torch.Tensor) -> "VoxelGrid":
         """A grid with this one's box and activation, holding ``features``."""
         return VoxelGrid(

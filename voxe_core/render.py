@@ -176,6 +176,8 @@ def render_rays(
         else:
             offsets = torch.full((n_rays,), 0.5, device=device)
         occupancy = occupancy if config.skip_empty else None
+        if occupancy is not None:
+            grid.check_occupancy(occupancy)
         channels = 3 if color_features is None else color_features.shape[-1]
         background = torch.as_tensor(config.background, dtype=torch.float32, device=device).expand(channels)
         if config.fused and fused_marcher_applies(grid, origins, directions, color_features, sparse_grad):
