@@ -605,3 +605,13 @@ def test_dilated_blocks_mark_every_block_with_an_occupied_cell_in_reach(shape, s
     for b in torch.cartesian_prod(*(torch.arange(n) for n in blocks.shape)):
         in_reach = bool(((occupied - b).abs() <= 1).all(1).any())
         assert bool(blocks[tuple(b)]) == in_reach, b
+
+
+@pytest.mark.parametrize("shape", [(12, 12, 12, 2), (6, 6, 6, 2), (9, 9, 9)])
+def test_colour_features_of_another_lattice_are_refused(shape):
+    """Regression: features of a 12³ lattice had been gathered at the 9³ grid's flat indices (the values of other
+    vertices, rendered without a word), those of a 6³ one or without a channel axis had raised an IndexError."""
+    with pytest.raises(ValueError, match=rf"^features must be \(X, Y, Z, C\) on this grid's \(9, 9, 9\) vertices, "
+                                         rf"got {re.escape(str(shape))}$"):
+        render_rays(uniform_grid(0.02, resolution=9), torch.tensor([[0.0, 0.1, -3.0]]), torch.tensor([[0.0, 0.0, 1.0]]),
+                    RenderConfig(background=(0.0,)), color_features=torch.rand(shape))

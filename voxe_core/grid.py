@@ -358,6 +358,10 @@ class VoxelGrid(torch.nn.Module):
         of this grid's features a sparse tensor holding only the vertices
         touched, so a step costs what the batch saw, not the grid.
         """
+        if features is not None and (features.ndim != 4 or tuple(features.shape[:3]) != self._resolution):
+            # (another lattice's had been gathered at this one's flat indices: wrong vertices, or an IndexError)
+            raise ValueError(f"features must be (X, Y, Z, C) on this grid's {self._resolution} vertices, got "
+                             f"{tuple(features.shape)}")
         feats = self.features if features is None else features
         flat_index, weights = self.trilinear_corners(points, feats.dtype)
         table = self.flat_features if features is None else feats.reshape(-1, feats.shape[-1])
