@@ -615,3 +615,15 @@ def test_colour_features_of_another_lattice_are_refused(shape):
                                          rf"got {re.escape(str(shape))}$"):
         render_rays(uniform_grid(0.02, resolution=9), torch.tensor([[0.0, 0.1, -3.0]]), torch.tensor([[0.0, 0.0, 1.0]]),
                     RenderConfig(background=(0.0,)), color_features=torch.rand(shape))
+
+
+@pytest.mark.parametrize("background, features", [((), None), ((1.0, 1.0), None), ((0.0, 0.0, 0.0, 1.0), None),
+                                                  ((0.0, 0.0, 0.0), torch.zeros(8, 8, 8, 2))])
+def test_a_background_of_another_channel_count_is_refused_by_name(background, features):
+    """Regression: a background of neither one value nor one per rendered channel (RGBA for RGB, RGB for two attention
+    fields, none at all) had failed in an expand, 'The expanded size of the tensor (3) must match ...'."""
+    channels = 3 if features is None else 2
+    with pytest.raises(ValueError, match=rf"^RenderConfig\.background must hold one value or one per rendered channel "
+                                         rf"\({channels}\), got {re.escape(repr(background))}$"):
+        render_rays(uniform_grid(0.02), torch.tensor([[0.0, 0.1, -3.0]]), torch.tensor([[0.0, 0.0, 1.0]]),
+                    RenderConfig(background=background), color_features=features)

@@ -179,6 +179,9 @@ def render_rays(
         if occupancy is not None:
             grid.check_occupancy(occupancy)
         channels = 3 if color_features is None else color_features.shape[-1]
+        if len(config.background) not in (1, channels):  # (had failed in an expand, naming no setting)
+            raise ValueError(f"RenderConfig.background must hold one value or one per rendered channel ({channels}), "
+                             f"got {config.background!r}")
         background = torch.as_tensor(config.background, dtype=torch.float32, device=device).expand(channels)
         if config.fused and fused_marcher_applies(grid, origins, directions, color_features, sparse_grad):
             from voxe_core.fused_render import march  # imports Triton
