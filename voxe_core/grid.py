@@ -317,7 +317,8 @@ class VoxelGrid(torch.nn.Module):
 
     def check_occupancy(self, occupancy: Occupancy) -> None:
         """ValueError unless ``occupancy`` holds this grid's cells: another grid's had been looked up at this grid's
-        cell indices (a blank render where it had more cells, an IndexError where fewer; past them in the fused kernel)."""
+        cell indices (other cells skipped where it had more, a blank render in the test; an IndexError where fewer;
+        past them in the fused kernel)."""
         cells = tuple(n - 1 for n in self._resolution)
         if tuple(occupancy.cells.shape) != cells:
             raise ValueError(f"an occupancy of {tuple(occupancy.cells.shape)} cells does not fit a grid of "
