@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from needs import MIC, require_triton_interpreter
+from needs import MIC, require_data, require_triton_interpreter
 
 pytestmark = pytest.mark.slow
 BENCH = Path(__file__).resolve().parents[1] / "bench" / "gpu.py"
@@ -33,8 +33,7 @@ def _load_bench(monkeypatch):
 
 
 def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
-    if not MIC.is_dir():
-        pytest.skip(f"shared data missing: {MIC}")
+    require_data(MIC)
     bench = _load_bench(monkeypatch)
     out, earlier = tmp_path / "gpu.json", tmp_path / "earlier.json"
     earlier_loop = {"name": "edit_loop, CUDA graphs", "kind": "edit", "section": "g", "call": 6, "device": "cuda",
@@ -113,8 +112,7 @@ def test_gpu_bench_smoke_run_writes_every_section(tmp_path, monkeypatch):
 def test_a_call_cut_off_by_its_time_limit_keeps_what_it_measured(tmp_path, monkeypatch):
     """SIGTERM (bench/gpu_device.sh's `timeout`) in the middle of the job: its row says so and keeps the stages done
     by then; a cut in an earlier section leaves the later ones unstarted; the handler is put back afterwards."""
-    if not MIC.is_dir():
-        pytest.skip(f"shared data missing: {MIC}")
+    require_data(MIC)
     bench = _load_bench(monkeypatch)
 
     def cut_off_job(*args):
