@@ -10,6 +10,7 @@ import tempfile
 from pathlib import Path
 
 import pytest
+from moto.server import ThreadedMotoServer
 
 from voxe_service.storage import LocalStorage, ObjectNotFound, S3Storage, StorageError, check_key
 from service_helpers import free_port
@@ -17,9 +18,8 @@ from service_helpers import free_port
 
 @pytest.fixture(scope="module")
 def s3_endpoint():
-    moto_server = pytest.importorskip("moto.server")
     port = free_port()
-    server = moto_server.ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
     server.start()
     try:
         yield f"http://127.0.0.1:{port}"
