@@ -197,17 +197,14 @@ def test_bodies_the_document_forbids_are_refused(client, spec, dataset, root, pa
                 "edit_words": ["sunglasses"]}
         assert post_json(client, path, base).status_code == 201
     jsonschema.validate(base, schema)
-
-    @LIMITED
-    @given(st.sampled_from(mutations))
-    def forbidden(mutation):
+    # Every mutation, not a sample: hypothesis' 60 draws of the ~260 had let one field the server accepts past the
+    # document's bound go unseen in most runs.
+    for mutation in mutations:
         body = _set(base, *mutation)
         with pytest.raises(jsonschema.ValidationError):  # the document forbids it ...
             jsonschema.validate(body, schema)
         response = post_json(client, path, body)
         assert response.status_code == 422, (mutation, response.text)  # ... and so does the server
-
-    forbidden()
 
 
 @pytest.mark.parametrize("path", ["/v1/jobs", "/v1/scenes"])
