@@ -419,6 +419,7 @@ def test_the_backward_time_is_split_where_the_gradient_reaches_the_renders(small
     reports = []
     edit(small_sphere, "a dog", SlowEncoderGuidance(), EditConfig(iterations=2, render_size=16, sync_timing=True),
          _collect(reports))
+    assert len(reports) == 2  # one per iteration: the loop below checks each
     for report in reports:
         info = report.info
         assert info["ms_backward_guidance"] >= 50 > info["ms_backward_render"] > 0
