@@ -60,6 +60,13 @@ def test_samples_within_range(iteration, lo, hi):
     assert float(t.float().mean()) == pytest.approx((lo + hi) / 2, rel=0.02)
 
 
+def test_a_schedule_starting_at_k_one_stops_at_the_last_time_step():
+    """k0 = 1 is allowed, and floor(k·T) = T is a time step the scheduler does not have: the range ends at T − 1."""
+    s = TimestepSchedule(k0=1.0)
+    assert s.bounds(0) == (20, 999) and s.bounds(0, num_train_timesteps=100) == (2, 99)
+    assert int(s.sample(0, 20000, generator=torch.Generator().manual_seed(0)).max()) == 999
+
+
 def test_sample_reproducible_and_scaled_by_T():
     s = TimestepSchedule()
     a = s.sample(0, 8, generator=torch.Generator().manual_seed(1))
