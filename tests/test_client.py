@@ -317,18 +317,23 @@ def test_download_checks_size_and_sha256_and_leaves_nothing_on_a_mismatch(tmp_pa
     import hashlib
 
     data = b"artifact bytes" * 1000
-    listing = [{"name": "good.bin", "size": len(data), "sha256": hashlib.sha256(data).hexdigest()},
-               {"name": "bad.bin", "size": len(data), "sha256": hashlib.sha256(data).hexdigest()}]
+    sha = hashlib.sha256(data).hexdigest()
+    listing = [{"name": "good.bin", "size": len(data), "sha256": sha},
+               {"name": "bad.bin", "size": len(data), "sha256": sha},
+               {"name": "long.bin", "size": len(data) + 1, "sha256": sha}]  # the bytes' sha256, not their size
 
     def answer(request: httpx.Request) -> httpx.Response:
         if request.url.path.endswith("/artifacts"):
             return httpx.Response(200, json=listing)
-        return httpx.Response(200, content=data if request.url.path.endswith("good.bin") else data[:-1] + b"X")
+        return httpx.Response(200, content=data[:-1] + b"X" if request.url.path.endswith("bad.bin") else data)
 
     with Client(transport=httpx.MockTransport(answer)) as client:
         assert client.download("j1", "good.bin", tmp_path / "good.bin").read_bytes() == data
-        with pytest.raises(ServiceError, match="sha256"):
+        with pytest.raises(ServiceError, match=f"with sha256 (?!{sha})[0-9a-f]{{64}}, the service lists {len(data)} "
+                                               f"bytes with sha256 {sha}"):
             client.download("j1", "bad.bin", tmp_path / "bad.bin")
+        with pytest.raises(ServiceError, match=f"downloaded {len(data)} bytes .* lists {len(data) + 1} bytes"):
+            client.download("j1", "long.bin", tmp_path / "long.bin")
         with pytest.raises(ServiceError, match="no artifact 'nope.bin'"):
             client.download("j1", "nope.bin", tmp_path / "nope.bin")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["good.bin"]  # no partial file, no bad one
