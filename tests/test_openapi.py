@@ -259,8 +259,11 @@ def test_malformed_json_is_a_documented_400(client, spec):
         assert response.status_code == 415 and response.json()["detail"] == (
             f"the body must be sent as JSON (Content-Type: application/json), not as {named}")
         assert "415" in spec["paths"]["/v1/jobs"]["post"]["responses"]
-    assert client.post("/v1/jobs", content=body, headers={"content-type": "application/merge-patch+json"}
-                       ).status_code == 404  # JSON under a +json type: read (no such scene)
+    plus_json = {"content-type": "application/merge-patch+json"}
+    # JSON under a +json type is read (no such scene), and one not the schema's is its 422, not a 415 "not JSON"
+    assert client.post("/v1/jobs", content=body, headers=plus_json).status_code == 404
+    response = client.post("/v1/jobs", content=b"[]", headers=plus_json)
+    assert (response.status_code, response.json()["detail"][0]["type"]) == (422, "model_attributes_type")
 
 
 def test_json_that_python_cannot_read_is_a_400_naming_why(client):
