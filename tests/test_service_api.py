@@ -891,6 +891,17 @@ def test_jobs_share_a_reconstruction_per_parameter_set_and_cancel_when_queued(cl
     assert listing["total"] == 3 and {j["id"] for j in listing["items"]} == {second["id"], other["id"], boxed["id"]}
 
 
+def test_the_job_listing_is_newest_first_and_pages_by_limit_and_offset(client, dataset, root):
+    """As its summary says; the listings' other tests had checked counts and sets only, so an oldest-first order or
+    an offset ignored had passed."""
+    scene = make_scene(client, dataset, root)
+    ids = [client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": f"a mic made of {stuff}"}).json()["id"]
+           for stuff in ("wood", "glass", "gold")]
+    assert [j["id"] for j in client.get("/v1/jobs").json()["items"]] == ids[::-1]
+    page = client.get("/v1/jobs", params={"scene_id": scene["id"], "limit": 1, "offset": 1}).json()
+    assert (page["total"], [j["id"] for j in page["items"]]) == (3, [ids[1]])
+
+
 def test_a_job_downsampling_past_its_scenes_images_is_refused_before_it_is_queued(client, dataset, root):
     """A scene of small images is ready (its ingest decodes them at full size); a job asking a downsample larger than
     them had been accepted and failed in the worker's fit. The scene's size is known from its upload's checks."""
