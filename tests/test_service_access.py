@@ -782,8 +782,11 @@ def test_malformed_credentials_are_401_never_5xx(root, monkeypatch):  # noqa: F8
 
 
 def test_an_anonymous_upload_is_refused_before_its_body_is_read(auth_client):
-    """The 401 comes from the middleware: neither the body nor the route is ever touched."""
+    """The 401 comes from the middleware: neither the body nor the route is ever touched; so too for a revoked key
+    (the routes' own check of it had hidden a middleware letting it through to the body)."""
     from api.auth import RequireKey
+    from voxe_service.db import session_scope
+    from voxe_service.models import ApiKey, utcnow
 
     def untouchable(*_args):
         raise AssertionError("the request body or the route was reached")
@@ -804,7 +807,7 @@ def test_an_anonymous_upload_is_refused_before_its_body_is_read(auth_client):
             anyio.run(run, [(b"content-length", b"2000000000"), *headers], root_path)
             assert sent[0]["status"] == 401 and b"API key" in sent[1]["body"]
 
-    _, token = _create_key("uploader")
+    key_id, token = _create_key("uploader")
     passed = []
 
     async def route(scope, _receive, _send):
@@ -817,3 +820,8 @@ def test_an_anonymous_upload_is_refused_before_its_body_is_read(auth_client):
 
     anyio.run(run_valid)
     assert passed == [token.split("_")[1]]
+    with session_scope() as session:
+        session.get(ApiKey, key_id).revoked_at = utcnow()
+    sent.clear()
+    anyio.run(run, [(b"content-length", b"2000000000"), (b"authorization", f"Bearer {token}".encode())], "")
+    assert sent[0]["status"] == 401 and b"invalid or revoked API key" in sent[1]["body"]
