@@ -831,6 +831,32 @@ def test_an_export_whose_disk_refuses_one_mesh_format_publishes_no_mesh(service,
                       "turntable.mp4"}
 
 
+def test_an_export_whose_grid_has_no_surface_succeeds_saying_why_it_has_no_mesh(service, monkeypatch):
+    """A mesh asked for and not exported (no density crosses the level) is said on the succeeded job: the message was
+    written, then blanked by the stage's last progress write and by the job's success, leaving no word of it."""
+    import voxe_core.edit
+    import voxe_core.export
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job_id = _reconstructed_job(client, scene_id, "relu_field", export={
+        "views": 1, "view_size": 16, "turntable_frames": 2, "turntable_size": 16, "gif": False, "mesh": True})["id"]
+    monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
+    monkeypatch.setattr(voxe_core.edit, "edit", lambda initial, *args, **kwargs: initial.clone_grid())
+    assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "done"
+
+    def no_surface(grid, resolution):
+        raise ValueError("no density crosses the level 10.0 (the grid's largest is 3.2)")
+
+    monkeypatch.setattr(voxe_core.export, "extract_mesh", no_surface)
+    assert tasks.export_task.apply(args=(job_id,)).get()["state"] == "done"
+    job = client.get(f"/v1/jobs/{job_id}").json()
+    assert (job["state"], job["error"]) == ("succeeded", None)
+    assert job["message"] == "no mesh exported: no density crosses the level 10.0 (the grid's largest is 3.2)"
+    listed = {a["name"] for a in client.get(f"/v1/jobs/{job_id}/artifacts").json()}
+    assert "turntable.mp4" in listed and not any(name.startswith("mesh.") for name in listed)
+
+
 class WorkerKilled(BaseException):
     """Stands in for the worker process going down mid-task (what _run_stage hands back to the queue)."""
 

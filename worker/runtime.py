@@ -245,8 +245,10 @@ def _wait_for_release(job_id: str, stage: str, held: tuple, settings: Settings) 
             raise StageHeld(f"job {job_id}: another run holds it (this {stage} message is a duplicate)")
 
 
-def complete_stage(job_id: str, stage: str, run_token: str, final: bool = False, again: bool = False) -> bool:
-    """Record ``stage`` done and release the job (or end it, ``final``); False when the run no longer held it.
+def complete_stage(job_id: str, stage: str, run_token: str, final: bool = False, again: bool = False,
+                   message: str | None = None) -> bool:
+    """Record ``stage`` done and release the job (or end it, ``final``, with ``message``: None clears the stage's
+    progress notes); False when the run no longer held it.
     ``again``: a try before raised, and may have committed with its answer lost (a dropped connection): the stage
     found recorded done and the job released (or succeeded) counts as this run's. (Another run completing the same
     stage would look the same, but none can have taken the job over within the retries' seconds: the hold was
@@ -261,7 +263,7 @@ def complete_stage(job_id: str, stage: str, run_token: str, final: bool = False,
         values = dict(completed_stages=done, eta_seconds=0.0, updated_at=utcnow(), run_token=None,
                       run_lease_until=None)
         if final:
-            values.update(state=SUCCEEDED, finished_at=utcnow(), message=None)
+            values.update(state=SUCCEEDED, finished_at=utcnow(), message=message)
         result = session.execute(update(Job).where(Job.id == job_id, Job.state == RUNNING,
                                                    Job.run_token == run_token).values(**values))
         if result.rowcount == 1:

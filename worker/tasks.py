@@ -124,6 +124,8 @@ def _begin_stage(task, job_id: str, stage: str, device: str, settings):
 
 
 def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> TaskResult:
+    """Run ``body(job, settings, device, storage)`` as one run of ``stage``; what a final stage's body returns is the
+    succeeded job's message (None: no word)."""
     settings = get_settings()
     device = settings.resolved_device
     try:
@@ -142,8 +144,9 @@ def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> Task
         with runtime.holding_job(job_id, token, settings):
             if stage == job_stages(job.mode)[0]:
                 _check_job_can_start(job, settings)
-            body(job, settings, device, get_storage(settings))
-        completed = _retried(lambda again: runtime.complete_stage(job_id, stage, token, final=final, again=again),
+            note = body(job, settings, device, get_storage(settings))
+        completed = _retried(lambda again: runtime.complete_stage(job_id, stage, token, final=final, again=again,
+                                                                  message=note),
                              job_id, f"{stage} could not be recorded done")
     except runtime.RunSuperseded as superseded:
         log.warning("job %s: %s: %s", job_id, stage, superseded)
@@ -676,7 +679,7 @@ def _refine(job: Job, settings, device: str, storage) -> None:
 
 
 # --------------------------------------------------------------------------- export
-def _export(job: Job, settings, device: str, storage) -> None:
+def _export(job: Job, settings, device: str, storage) -> str | None:
     from voxe_core.export import extract_mesh, render_views, save_mesh, save_png, turntable_cameras, write_video
 
     options = export_config(job.params)
@@ -713,8 +716,8 @@ def _export(job: Job, settings, device: str, storage) -> None:
         callbacks.callbacks.check_cancel("export")
         try:
             mesh = extract_mesh(grid, resolution=options.mesh_resolution)
-        except ValueError as exc:  # no surface at the level: report, keep the other artifacts
-            runtime.update_job(job.id, message=f"no mesh exported: {exc}")
+        except ValueError as exc:  # no surface at the level: said (by the last progress write, and the job's
+            callbacks.note = f"no mesh exported: {exc}"  # success), the other artifacts kept
         else:  # every format written before any is published, and published as one set: one the disk, its writer
             # or the storage refuses lists none
             written = [save_mesh(mesh, scratch / f"mesh.{suffix}") for suffix in ("ply", "glb", "obj")]
@@ -723,6 +726,7 @@ def _export(job: Job, settings, device: str, storage) -> None:
         callbacks.on_progress(Progress("export", total, total))
     _preview(job.id, grid, settings, storage, device,
              image=turntable[0] if options.turntable_size <= 512 else None, centre=centre)
+    return callbacks.note
 
 
 # --------------------------------------------------------------------------- tasks
