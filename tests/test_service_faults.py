@@ -655,6 +655,57 @@ def test_a_stage_that_kills_its_worker_each_time_fails_at_the_requeue_limit_leav
     assert not get_storage(db).exists(checkpoint)
 
 
+CUDA_OOM = ("CUDA out of memory. Tried to allocate 2.00 GiB. GPU 0 has a total capacity of 79.15 GiB of which 1.06 GiB "
+            "is free.\nIf reserved but unallocated memory is large try setting PYTORCH_CUDA_ALLOC_CONF")
+
+
+@pytest.mark.parametrize("raised,said", [
+    (MemoryError, "edit: out of memory on the worker (MemoryError)"),
+    (lambda: __import__("torch").cuda.OutOfMemoryError(CUDA_OOM),
+     "edit: out of memory on the worker (CUDA out of memory. Tried to allocate 2.00 GiB. GPU 0 has a total capacity "
+     "of 79.15 GiB of which 1.06 GiB is free.)"),
+    (KeyError, "edit: KeyError"),
+    (lambda: ValueError("render size 0"), "edit: ValueError: render size 0"),
+], ids=["MemoryError", "CUDA OOM", "no words", "words"])
+def test_a_stage_that_runs_out_of_memory_fails_its_job_saying_so(db, monkeypatch, raised, said):
+    """Python's MemoryError has no words: the job had failed as "edit: MemoryError: ", and CUDA's out of memory with
+    a page of allocator advice. The job fails (its next run would ask for as much), said in one line, its checkpoints
+    gone."""
+    from voxe_service.storage import get_storage, job_key
+    from worker import tasks
+
+    def body(*args):
+        raise raised()
+
+    monkeypatch.setattr(tasks, "_edit", body)
+    job_id = add_job(add_scene(), "queued", 0, completed_stages=["reconstruct"])
+    checkpoint = job_key(job_id, "checkpoints/edit.safetensors")
+    get_storage(db).put_bytes(checkpoint, b"edit at 600")
+    assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "failed"
+    job = job_row(job_id)
+    assert (job.state, job.error) == ("failed", said) and job.finished_at is not None
+    assert not get_storage(db).exists(checkpoint)
+
+
+def test_a_fit_that_runs_out_of_memory_tells_the_jobs_sharing_it_so(db, monkeypatch):
+    """A shared fit that failed out of memory records it in words the jobs waiting on it repeat (its record had said
+    "MemoryError: ")."""
+    from worker import runtime, tasks
+
+    def out_of_memory(*args):
+        raise MemoryError()
+
+    monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
+    monkeypatch.setattr(tasks, "_fit_grid", out_of_memory)
+    scene = add_scene()
+    rec_id = add_reconstruction(scene)
+    job_id = add_job(scene, "queued", 0, reconstruction_id=rec_id)
+    assert tasks.reconstruct_task.apply(args=(job_id,)).get()["state"] == "failed"
+    rec = runtime.load_reconstruction(rec_id)
+    assert (rec.state, rec.error) == ("failed", "out of memory on the worker (MemoryError)")
+    assert job_row(job_id).error == "reconstruct: out of memory on the worker (MemoryError)"
+
+
 def test_a_run_that_lost_its_job_publishes_records_and_fits_nothing(db, tmp_path, monkeypatch):
     """A stalled run whose job another run took over (its lease lapsed) comes back: its artifacts and results are
     refused (RunSuperseded; nothing uploaded, listed or merged), and the job's fit, taken by the new run of the

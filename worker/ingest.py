@@ -38,7 +38,7 @@ from voxe_service.scenes import fail_scene, mark_ready
 from voxe_service.scratch import locked_folder, sweep_unlocked
 from voxe_service.settings import Settings
 from voxe_service.storage import Storage, StorageUnavailable, StoredObject, scene_key
-from worker.runtime import fetch, scene_archive, worker_in_cold_shutdown
+from worker.runtime import failure_text, fetch, scene_archive, worker_in_cold_shutdown
 
 log = logging.getLogger("voxe.worker")
 
@@ -194,7 +194,7 @@ def _ingest(scene_id: str, upload: StoredObject, interrupted: int, settings: Set
                 raise Reject(f"the ingest of scene {scene_id} stopped by the worker's shutdown", requeue=True) from exc
             if isinstance(exc, StorageUnavailable):  # ... and a storage outage's, no fault of the upload either
                 raise
-            reason = str(exc) if isinstance(exc, IngestError) else f"ingest: {type(exc).__name__}: {exc}"
+            reason = str(exc) if isinstance(exc, IngestError) else f"ingest: {failure_text(exc)}"
             if not isinstance(exc, IngestError):
                 log.exception("scene %s: ingest failed", scene_id)
             _fail(scene_id, reason, storage)

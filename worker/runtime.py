@@ -61,6 +61,18 @@ def content_type(name: str) -> str:
     return CONTENT_TYPES.get(Path(name).suffix.lower(), "application/octet-stream")
 
 
+def failure_text(exc: BaseException) -> str:
+    """``exc`` as a job's or a scene's failure says it: ``Type: words``, or the type alone when it has no words; a
+    failed allocation as the worker out of memory, in the first line of its words (Python's MemoryError has none,
+    and had read "MemoryError: "; CUDA's adds a paragraph of allocator advice)."""
+    from voxe_core.guidance.loading import is_out_of_memory
+
+    words = str(exc)
+    if is_out_of_memory(exc):
+        return f"out of memory on the worker ({words.splitlines()[0] if words else type(exc).__name__})"
+    return f"{type(exc).__name__}: {words}" if words else type(exc).__name__
+
+
 # --------------------------------------------------------------------------- job records
 def load_job(job_id: str) -> Job | None:
     with session_scope() as session:

@@ -320,7 +320,7 @@ def _error_message(stage: str, exc: Exception, job: Job) -> str:
         return f"{stage}: not started: {exc}"
     if isinstance(exc, (ReconstructionFailed, EvaluationFailed)):
         return str(exc)
-    return f"{stage}: {type(exc).__name__}: {exc}"
+    return f"{stage}: {runtime.failure_text(exc)}"
 
 
 def _cleanup(job_id: str, settings) -> None:
@@ -519,7 +519,7 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
             if (isinstance(exc, Exception) and not isinstance(exc, NOT_THE_FITS_FAILURE)
                     and database_outage(exc) is None and not runtime.worker_in_cold_shutdown()):
                 runtime.set_reconstruction(rec.id, job.id, job.run_token, state=R_FAILED, lease_until=None,
-                                           finished_at=utcnow(), error=f"{type(exc).__name__}: {exc}")
+                                           finished_at=utcnow(), error=runtime.failure_text(exc))
             else:  # stopped for the owner's sake (NOT_THE_FITS_FAILURE), or the worker going down (SystemExit,
                 # KeyboardInterrupt, or what a cold shutdown raises in a solo pool's task): a waiting job, or this
                 # one redelivered, takes over from the checkpoint
