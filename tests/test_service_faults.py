@@ -75,13 +75,13 @@ def add_job(scene_id: str, state: str, age_s: float, worker: str | None = None, 
         return job.id
 
 
-def add_reconstruction(scene_id: str) -> str:
+def add_reconstruction(scene_id: str, params: dict | None = None) -> str:
     """A pending shared fit of the scene, no job holding it."""
     from voxe_service.db import session_scope
     from voxe_service.models import Reconstruction
 
     with session_scope() as session:
-        rec = Reconstruction(scene_id=scene_id, params_key="k", params={})
+        rec = Reconstruction(scene_id=scene_id, params_key="k", params=params or {})
         session.add(rec)
         session.flush()
         return rec.id
@@ -687,23 +687,49 @@ def test_a_stage_that_runs_out_of_memory_fails_its_job_saying_so(db, monkeypatch
     assert not get_storage(db).exists(checkpoint)
 
 
-def test_a_fit_that_runs_out_of_memory_tells_the_jobs_sharing_it_so(db, monkeypatch):
-    """A shared fit that failed out of memory records it in words the jobs waiting on it repeat (its record had said
-    "MemoryError: ")."""
+def test_a_fit_that_runs_out_of_memory_fails_its_job_alone_and_a_job_waiting_on_it_takes_it_over(db, monkeypatch):
+    """Out of memory is its worker's fault, not the scene's, as when the OOM killer ends the process (whose lapsed
+    lease a waiting job takes over): the fitting job fails saying so, and the job waiting on the shared fit (on a
+    worker with more memory) fits it, where it had failed with "the scene's reconstruction failed: MemoryError: "."""
+    import threading
+
+    from conftest import make_sphere_grid
+    from voxe_service.storage import get_storage
     from worker import runtime, tasks
 
-    def out_of_memory(*args):
-        raise MemoryError()
+    scene = add_scene()
+    rec_id = add_reconstruction(scene, params={"route": "voxelize"})  # (a mesh scene's fit: its G_i in one step)
+    fitter, waiting = (add_job(scene, "queued", 0, reconstruction_id=rec_id) for _ in range(2))
+
+    def voxelize(job, rec, settings, storage):
+        if job.id == fitter:
+            raise MemoryError()
+        return make_sphere_grid(8)
 
     monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
-    monkeypatch.setattr(tasks, "_fit_grid", out_of_memory)
-    scene = add_scene()
-    rec_id = add_reconstruction(scene)
-    job_id = add_job(scene, "queued", 0, reconstruction_id=rec_id)
-    assert tasks.reconstruct_task.apply(args=(job_id,)).get()["state"] == "failed"
+    monkeypatch.setattr(tasks, "_voxelize", voxelize)
+    assert runtime.try_claim_reconstruction(rec_id, fitter, "a@host", db, allow_failed=False)  # the fitter's first run
+    outcome = {}
+
+    def wait():
+        try:
+            tasks._reconstruct(runtime.load_job(waiting), db, "cpu", get_storage(db))
+            outcome["done"] = True
+        except BaseException as exc:  # noqa: BLE001
+            outcome["error"] = exc
+
+    thread = threading.Thread(target=wait)
+    thread.start()
+    deadline = time.monotonic() + 60  # until it records that it waits (however busy the machine is)
+    while not (job_row(waiting).message or "").startswith("waiting") and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert (job_row(waiting).message or "").startswith(f"waiting for the scene's reconstruction {rec_id}")
+    assert tasks.reconstruct_task.apply(args=(fitter,)).get()["state"] == "failed"  # its redelivered run
+    thread.join(60)
+    assert outcome == {"done": True}
+    assert job_row(fitter).error == "reconstruct: out of memory on the worker (MemoryError)"
     rec = runtime.load_reconstruction(rec_id)
-    assert (rec.state, rec.error) == ("failed", "out of memory on the worker (MemoryError)")
-    assert job_row(job_id).error == "reconstruct: out of memory on the worker (MemoryError)"
+    assert (rec.state, rec.owner_job_id, rec.error) == ("succeeded", waiting, None)
 
 
 def test_a_run_that_lost_its_job_publishes_records_and_fits_nothing(db, tmp_path, monkeypatch):

@@ -35,6 +35,7 @@ from celery.exceptions import Ignore, Reject, SoftTimeLimitExceeded
 from sqlalchemy import select
 from sqlalchemy.exc import SQLAlchemyError
 
+from voxe_core.guidance.loading import is_out_of_memory
 from voxe_core.presets import edit_config, export_config, fit_backbone, fit_setup, reconstruct_config, refine_config
 from voxe_core.progress import Callbacks, Progress, StageCancelled
 from voxe_service.db import database_outage, sync_clock
@@ -485,8 +486,9 @@ def _voxelize(job: Job, rec, settings, storage):
 NOT_THE_FITS_FAILURE = (StageCancelled, runtime.LeaseLost, runtime.RunSuperseded, SoftTimeLimitExceeded,
                         StorageUnavailable)
 """What stops an owner's fit without failing it (and every job waiting on it): its job canceled, its lease or job
-taken over, its task's time limit (a job's, which fails the owner's job alone), the storage out of reach; so does a
-database outage (``voxe_service.db.database_outage``)."""
+taken over, its task's time limit (a job's, which fails the owner's job alone), the storage out of reach; so do a
+database outage (``voxe_service.db.database_outage``) and its worker out of memory (``is_out_of_memory``: its
+machine's fault, as when the OOM killer ends its process and a waiting job takes the lapsed lease over)."""
 
 
 def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> None:
@@ -517,12 +519,13 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
             lease.check()
         except BaseException as exc:  # (each change below applies only while this job still owns the fit)
             if (isinstance(exc, Exception) and not isinstance(exc, NOT_THE_FITS_FAILURE)
-                    and database_outage(exc) is None and not runtime.worker_in_cold_shutdown()):
+                    and not is_out_of_memory(exc) and database_outage(exc) is None
+                    and not runtime.worker_in_cold_shutdown()):
                 runtime.set_reconstruction(rec.id, job.id, job.run_token, state=R_FAILED, lease_until=None,
                                            finished_at=utcnow(), error=runtime.failure_text(exc))
-            else:  # stopped for the owner's sake (NOT_THE_FITS_FAILURE), or the worker going down (SystemExit,
-                # KeyboardInterrupt, or what a cold shutdown raises in a solo pool's task): a waiting job, or this
-                # one redelivered, takes over from the checkpoint
+            else:  # stopped for the owner's sake (NOT_THE_FITS_FAILURE), its worker out of memory, or the worker
+                # going down (SystemExit, KeyboardInterrupt, or what a cold shutdown raises in a solo pool's task): a
+                # waiting job, or this one redelivered, takes over from the checkpoint
                 runtime.set_reconstruction(rec.id, job.id, job.run_token, state=R_PENDING, owner_job_id=None,
                                            owner_run_token=None, lease_until=None)
             raise
