@@ -732,6 +732,33 @@ def test_a_fit_that_runs_out_of_memory_fails_its_job_alone_and_a_job_waiting_on_
     assert (rec.state, rec.owner_job_id, rec.error) == ("succeeded", waiting, None)
 
 
+class WorkerGoingDown(BaseException):
+    """Stands in for what ends the worker inside a running task (SystemExit, KeyboardInterrupt)."""
+
+
+def test_a_worker_going_down_while_the_database_is_down_goes_down_its_message_kept(db, monkeypatch):
+    """A stage stopped by its worker going down gives its hold back and lets that through (its message, unacknowledged,
+    is delivered again); the database refusing the give-back (going down with the worker: one compose stack) had
+    raised in its place, ending the task as failed, its message acknowledged, the job left to the reaper."""
+    from sqlalchemy.exc import OperationalError
+
+    from worker import runtime, tasks
+
+    def going_down(*args):
+        raise WorkerGoingDown()
+
+    def refused(job_id, run_token):
+        raise OperationalError("UPDATE jobs", {}, Exception("connection refused"))
+
+    monkeypatch.setattr(tasks, "_edit", going_down)
+    monkeypatch.setattr(runtime, "release_stage", refused)
+    job_id = add_job(add_scene(), "queued", 0, completed_stages=["reconstruct"])
+    with pytest.raises(WorkerGoingDown):
+        tasks.edit_task.apply(args=(job_id,))
+    job = job_row(job_id)
+    assert (job.state, job.stage, job.error) == ("running", "edit", None) and job.run_token is not None
+
+
 def test_a_run_that_lost_its_job_publishes_records_and_fits_nothing(db, tmp_path, monkeypatch):
     """A stalled run whose job another run took over (its lease lapsed) comes back: its artifacts and results are
     refused (RunSuperseded; nothing uploaded, listed or merged), and the job's fit, taken by the new run of the

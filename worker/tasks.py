@@ -166,8 +166,9 @@ def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> Task
                                           f"a database outage ({why})", exc, settings)
         log.exception("job %s: %s failed", job_id, stage)
         return _end_job(job_id, stage, token, FAILED, settings, error=_error_message(stage, exc, job))
-    except BaseException:  # the worker going down: its redelivered message takes the job at once
-        runtime.release_stage(job_id, token)
+    except BaseException:  # the worker going down: its redelivered message takes the job at once (the database
+        with contextlib.suppress(SQLAlchemyError):  # refusing: once the hold runs out), and the worker goes down
+            runtime.release_stage(job_id, token)
         raise
     if not completed:
         _stop_if_taken_over(job_id, stage)
