@@ -178,6 +178,21 @@ class Deadline:
         return f"{time.monotonic() - self.start:.0f} s (limit {self.seconds:.0f} s on an unloaded machine)"
 
 
+def failing_uploads(patcher, storage, name: str, error: BaseException | None = None) -> None:
+    """Patch (with ``patcher``, a monkeypatch or its context) ``storage``'s uploads of keys ending in ``name`` to
+    raise ``error``: by default a store's throttling, as S3 answers it."""
+    from voxe_service.storage import StorageUnavailable
+
+    put_file = type(storage).put_file
+
+    def failing_put(self, key, path, content_type=None):
+        if key.endswith(name):
+            raise error or StorageUnavailable(f"S3 bucket 'voxe': SlowDown when uploading {key}")
+        return put_file(self, key, path, content_type)
+
+    patcher.setattr(type(storage), "put_file", failing_put)
+
+
 def wait_until(predicate, timeout: float, interval: float = 0.2, what: str = "condition", processes=()):
     deadline = Deadline(timeout)
     last = None

@@ -613,7 +613,8 @@ def test_an_evaluation_whose_upload_fails_mid_set_lists_none_of_its_results(serv
     """The storage failing after evaluation.json was uploaded (S3 throttling evaluation.md) had failed the job with
     the JSON listed without its table; at a ring render, the renders before it. The rings, the JSON and the table
     are published as one set: the failed job lists none of them and keeps none of their bytes."""
-    from voxe_service.storage import StorageUnavailable, get_storage
+    from service_helpers import failing_uploads
+    from voxe_service.storage import get_storage
     from worker import tasks
 
     client, scene_id, root = service
@@ -621,14 +622,7 @@ def test_an_evaluation_whose_upload_fails_mid_set_lists_none_of_its_results(serv
     _as_if_edited(edit["id"], sphere_grid, sphere_grid, None, root)
     job = client.post("/v1/evaluations", json={"job_ids": [edit["id"]], "object": "mic", "params": RING}).json()
     storage = get_storage(tasks.get_settings())
-    put_file = type(storage).put_file
-
-    def failing_put(self, key, path, content_type=None):
-        if key.endswith(failing_name):
-            raise StorageUnavailable(f"S3 bucket 'voxe': SlowDown when uploading {key}")
-        return put_file(self, key, path, content_type)
-
-    monkeypatch.setattr(type(storage), "put_file", failing_put)
+    failing_uploads(monkeypatch, storage, failing_name)
     assert tasks.evaluate_task.apply(args=(job["id"],)).get()["state"] == "failed"
     failed = client.get(f"/v1/jobs/{job['id']}").json()
     assert failed["error"].startswith("evaluate: StorageUnavailable: S3 bucket 'voxe': SlowDown when uploading")

@@ -18,7 +18,9 @@ from fastapi.testclient import TestClient
 
 from api.schemas import JobParams
 from needs import require_data
-from service_helpers import MIC, ingest, reset_service_caches, service_env, small_mic, zip_folder
+from service_helpers import (
+    MIC, failing_uploads, ingest, reset_service_caches, service_env, small_mic, zip_folder,
+)
 from voxe_core.cli import build_parser
 from voxe_core.cli import edit as edit_command
 from voxe_core.cli import reconstruct as reconstruct_command
@@ -796,25 +798,36 @@ def test_the_export_reads_the_orbit_centre_its_reconstruction_recorded_and_fetch
     assert centres and all(torch.equal(c, initial.orbit_centre()) for c in centres)
 
 
-def test_an_export_whose_disk_refuses_one_mesh_format_publishes_no_mesh(service, monkeypatch):
-    """The mesh formats (PLY, GLB, OBJ with its MTL) are one set: a full disk writing mesh.glb had failed the job with
-    mesh.ply already listed. Every format is written before any is published, so the failed job lists none."""
-    import errno
-
+def _edited_job_exporting_a_mesh(client, scene_id, monkeypatch) -> str:
+    """A reconstructed job, its edit run (the initial grid as the edit), whose export will extract a mesh (an
+    icosphere: the tiny fit's grid may have no surface at the level); its id."""
     import trimesh
 
     import voxe_core.edit
     import voxe_core.export
     from worker import runtime, tasks
 
-    client, scene_id = service
     job_id = _reconstructed_job(client, scene_id, "relu_field", export={
         "views": 1, "view_size": 16, "turntable_frames": 2, "turntable_size": 16, "gif": False, "mesh": True})["id"]
     monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
     monkeypatch.setattr(voxe_core.edit, "edit", lambda initial, *args, **kwargs: initial.clone_grid())
     assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "done"
-    surface = trimesh.creation.icosphere(subdivisions=1)  # (the tiny fit's grid may have none at the level)
+    surface = trimesh.creation.icosphere(subdivisions=1)
     monkeypatch.setattr(voxe_core.export, "extract_mesh", lambda grid, resolution: surface)
+    return job_id
+
+
+def test_an_export_whose_disk_refuses_one_mesh_format_publishes_no_mesh(service, monkeypatch):
+    """The mesh formats (PLY, GLB, OBJ with its MTL) are one set: a full disk writing mesh.glb had failed the job with
+    mesh.ply already listed. Every format is written before any is published, so the failed job lists none."""
+    import errno
+
+    import voxe_core.edit
+    import voxe_core.export
+    from worker import tasks
+
+    client, scene_id = service
+    job_id = _edited_job_exporting_a_mesh(client, scene_id, monkeypatch)
     save_mesh = voxe_core.export.save_mesh
 
     def full_disk_for_glb(mesh, path):
@@ -870,34 +883,15 @@ def test_an_export_whose_upload_fails_mid_mesh_set_lists_no_mesh_and_its_rerun_p
     bytes, and the stage run again (a redelivery) publishes all four."""
     import hashlib
 
-    import trimesh
-
-    import voxe_core.edit
-    import voxe_core.export
-    from voxe_service.storage import StorageUnavailable, get_storage
-    from worker import runtime, tasks
+    from voxe_service.storage import get_storage
+    from worker import tasks
 
     client, scene_id = service
-    job_id = _reconstructed_job(client, scene_id, "relu_field", export={
-        "views": 1, "view_size": 16, "turntable_frames": 2, "turntable_size": 16, "gif": False, "mesh": True})["id"]
-    monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
-    monkeypatch.setattr(voxe_core.edit, "edit", lambda initial, *args, **kwargs: initial.clone_grid())
-    assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "done"
-    surface = trimesh.creation.icosphere(subdivisions=1)  # (the tiny fit's grid may have none at the level)
-    monkeypatch.setattr(voxe_core.export, "extract_mesh", lambda grid, resolution: surface)
+    job_id = _edited_job_exporting_a_mesh(client, scene_id, monkeypatch)
     storage = get_storage(tasks.get_settings())
-    put_file = type(storage).put_file
     failing_name = "mesh.obj" if failure == "storage outage" else "mesh.mtl"
-
-    def failing_put(self, key, path, content_type=None):
-        if key.endswith(failing_name):
-            if failure == "worker killed":
-                raise WorkerKilled()
-            raise StorageUnavailable(f"S3 bucket 'voxe': SlowDown when uploading {key}")
-        return put_file(self, key, path, content_type)
-
     with monkeypatch.context() as failing:
-        failing.setattr(type(storage), "put_file", failing_put)
+        failing_uploads(failing, storage, failing_name, WorkerKilled() if failure == "worker killed" else None)
         if failure == "worker killed":
             with pytest.raises(WorkerKilled):
                 tasks.export_task.apply(args=(job_id,))
@@ -1094,21 +1088,14 @@ def test_a_refinement_whose_upload_fails_mid_set_lists_none_of_its_files(service
     with the refined grid listed without the mask it was merged by; at the overlay, every file but it. The four
     are published as one set: the failed job lists none of them and keeps none of their bytes."""
     import voxe_core.refine.pipeline
-    from voxe_service.storage import StorageUnavailable, get_storage
+    from voxe_service.storage import get_storage
     from worker import tasks
 
     client, scene_id = service
     job_id = _locally_edited_job(client, scene_id, monkeypatch)
     monkeypatch.setattr(voxe_core.refine.pipeline, "fit_attention_grids", _attention_favouring("some"))
     storage = get_storage(tasks.get_settings())
-    put_file = type(storage).put_file
-
-    def failing_put(self, key, path, content_type=None):
-        if key.endswith(failing_name):
-            raise StorageUnavailable(f"S3 bucket 'voxe': SlowDown when uploading {key}")
-        return put_file(self, key, path, content_type)
-
-    monkeypatch.setattr(type(storage), "put_file", failing_put)
+    failing_uploads(monkeypatch, storage, failing_name)
     assert tasks.refine_task.apply(args=(job_id,)).get()["state"] == "failed"
     job = client.get(f"/v1/jobs/{job_id}").json()
     assert job["error"].startswith("refine: StorageUnavailable: S3 bucket 'voxe': SlowDown when uploading")
