@@ -343,26 +343,37 @@ def test_an_edit_that_cannot_go_on_from_its_checkpoint_starts_over(service, monk
     initial grid: a FormatError) had failed the job on every redelivery: the edit runs again from its start, as a
     reconstruction does."""
     import voxe_core.edit
+    from voxe_core.progress import Progress
     from voxe_core.tensorio import FormatError
     from voxe_service.storage import get_storage, job_key
     from worker import runtime, tasks
 
     client, scene_id = service
     job = _reconstructed_job(client, scene_id, "relu_field")
-    get_storage().put_bytes(job_key(job["id"], "checkpoints/edit.safetensors"),
-                            _edit_checkpoint(tmp_path / "ours.safetensors"))
-    resumed_from = []
+    key = job_key(job["id"], "checkpoints/edit.safetensors")
+    get_storage().put_bytes(key, _edit_checkpoint(tmp_path / "ours.safetensors"))
+    resumed_from, during = [], {}
 
     def refusing_resume(initial, prompt, guidance, config, callbacks, checkpoint_path, resume_from, **kwargs):
         resumed_from.append(resume_from)
         if resume_from is not None:
-            raise FormatError(f"{resume_from}: checkpoint was made against other input views")
+            raise FormatError("checkpoint was made against other input views")
+        during.update(job=client.get(f"/v1/jobs/{job['id']}").json(), stored=get_storage().exists(key))
+        callbacks.progress(Progress("edit", 1, 2))  # a report of the run started over carries its note
+        during["reported"] = client.get(f"/v1/jobs/{job['id']}").json()["message"]
         return initial.clone_grid()
 
     monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
     monkeypatch.setattr(voxe_core.edit, "edit", refusing_resume)
     assert tasks.edit_task.apply(args=(job["id"],)).get()["state"] == "done"
     assert len(resumed_from) == 2 and resumed_from[0] is not None and resumed_from[1] is None
+    said = ("the stored edit checkpoint could not be gone on from (checkpoint was made against other input views): "
+            "started over")
+    assert (during["job"]["message"], during["job"]["iteration"], during["stored"]) == (said, 0, False)
+    assert during["reported"] == said  # (it had said "resumed from the checkpoint at iteration 2" throughout)
+    events = [(e["kind"], e.get("detail")) for e in client.get(f"/v1/jobs/{job['id']}/events").json()
+              if e.get("stage") == "edit" and e["kind"] in ("resumed", "warning")]
+    assert [kind for kind, _ in events] == ["resumed", "warning"] and events[1][1] == said
     after = client.get(f"/v1/jobs/{job['id']}").json()
     assert after["state"] == "running" and after["error"] is None, after  # on to its next stage
 

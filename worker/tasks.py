@@ -567,14 +567,17 @@ def _fit_grid(job: Job, rec, settings, storage, lease: runtime.LeaseKeeper, call
                                      detail=f"reconstruction {rec.id} from its stored checkpoint")
     grid = _resumed_or_started_over(
         lambda start: reconstruct(scene.images, cameras, config, callbacks.callbacks, checkpoint, start, initial,
-                                  device), resume, f"reconstruction {rec.id}")
+                                  device), resume, job.id, "reconstruct", callbacks, storage, checkpoint_key)
     return grid, config.total_iterations
 
 
-def _resumed_or_started_over(run, resume: Path | None, what: str):
+def _resumed_or_started_over(run, resume: Path | None, job_id: str, stage: str, callbacks: StageCallbacks, storage,
+                             checkpoint_key: str):
     """``run(resume)``; when the stage cannot go on from that checkpoint (a FormatError: another recipe, other
     views, prompt or initial grid, another device's generator it cannot read), ``run(None)``, the stage over from
-    its start: refused, it would fail every redelivery."""
+    its start: refused, it would fail every redelivery. The stored checkpoint goes (a redelivery before the new run's
+    first would meet it again), and the job says so, as a warning after its "resumed" event, in place of the
+    resumed note its progress reports carried."""
     from voxe_core.tensorio import FormatError
 
     try:
@@ -582,7 +585,11 @@ def _resumed_or_started_over(run, resume: Path | None, what: str):
     except FormatError as exc:
         if resume is None:
             raise
-        log.warning("%s: a checkpoint it cannot go on from (%s), starting over", what, exc)
+        storage.discard(checkpoint_key)
+        callbacks.note = f"the stored {stage} checkpoint could not be gone on from ({exc}): started over"
+        log.warning("job %s: %s", job_id, callbacks.note)
+        runtime.record_warning(job_id, stage, callbacks.note)
+        runtime.update_job(job_id, iteration=0)
         return run(None)
 
 
@@ -637,7 +644,7 @@ def _edit(job: Job, settings, device: str, storage) -> None:
     grid = _resumed_or_started_over(
         lambda start: edit(initial, job.prompt, guidance, config, callbacks.callbacks, checkpoint, start,
                            input_views=input_views, on_preview=on_preview, device=device),
-        resume, f"job {job.id}'s edit")
+        resume, job.id, "edit", callbacks, storage, checkpoint_key)
     compiled = guidance.encoder_compile_seconds
     if compiled is not None and compiled != compiled_before:  # this job's first iteration waited for the compile
         log.info("job %s: the VAE encoder compiled in %.1f s", job.id, compiled)
