@@ -139,6 +139,8 @@ def test_token_groups_split_edit_and_object_tokens(tiny_guidance):
     ("a dog wearing a cafe\u0301 hat", "cafe", True, False),  # the tokenizer reads "café" (NFC)
     ("a dog wearing a caf\u00e9 hat", "caf\u00e9", True, True),
     ("a dog's hat", "dog's", True, True),
+    ("a cafe\u0301\u00bd sign on a dog", "\u00bd", True, True),  # "café" "½": ½ is a number, no letter
+    ("a dog wearing a \u00b2hat", "hat", True, True),
 ])
 def test_the_submission_check_of_an_edit_word_is_the_attention_models_token_match(tiny_guidance, prompt, word,
                                                                                  view_words, found):

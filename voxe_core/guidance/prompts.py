@@ -78,9 +78,18 @@ def without_view_word(prompt: str) -> str:
 TEXT_ENCODER_TOKENS = 77
 """What Stable Diffusion's CLIP text encoder reads (1.x and 2.x alike), its start and end tokens included."""
 
-# CLIP's pre-tokenizer: a contraction, a run of letters, one digit, or a run of other marks; BPE then makes each
-# piece one token or more.
-_CLIP_PIECES = re.compile(r"'s|'t|'re|'ve|'m|'ll|'d|[^\W\d_]+|\d|(?:[^\s\w]|_)+", re.IGNORECASE)
+# CLIP's pre-tokenizer ('s|'t|'re|'ve|'m|'ll|'d|\p{L}+|\p{N}|[^\s\p{L}\p{N}]+): a contraction, a run of letters, one
+# number, or a run of other marks; BPE then makes each piece one token or more. Python's re has no \p{...} (its \w
+# counts ½ or ² as letters), so the classes are Unicode's categories.
+_CONTRACTION = re.compile(r"'s|'t|'re|'ve|'m|'ll|'d")
+
+
+def _piece_class(character: str) -> str:
+    """"L" (a letter), "N" (a number), " " (space) or "" (any other mark), as CLIP's pattern classes them."""
+    if character.isspace():
+        return " "
+    category = unicodedata.category(character)[0]
+    return category if category in "LN" else ""
 
 
 def clip_pieces(text: str) -> list[str]:
@@ -90,8 +99,25 @@ def clip_pieces(text: str) -> list[str]:
     Examples:
         >>> clip_pieces("A dog's hat, front view")
         ['a', 'dog', "'s", 'hat', ',', 'front', 'view']
+        >>> clip_pieces("café½ 12_x!?")
+        ['café', '½', '1', '2', '_', 'x', '!?']
     """
-    return _CLIP_PIECES.findall(unicodedata.normalize("NFC", text).lower())
+    text, pieces, at = unicodedata.normalize("NFC", text).lower(), [], 0
+    while at < len(text):
+        if contraction := _CONTRACTION.match(text, at):
+            pieces.append(contraction.group())
+            at = contraction.end()
+            continue
+        kind, end = _piece_class(text[at]), at + 1
+        if kind == " ":
+            at = end
+            continue
+        if kind != "N":  # (one number is a piece alone)
+            while end < len(text) and _piece_class(text[end]) == kind:
+                end += 1
+        pieces.append(text[at:end])
+        at = end
+    return pieces
 
 
 def tokens_at_least(text: str) -> int:
