@@ -483,6 +483,12 @@ def test_any_positive_sigma_gives_finite_weights_and_the_partition(kind):
     np.testing.assert_allclose(pairwise_weights(np.zeros((1, 3), np.float32), config), [config.smoothness], rtol=1e-12)
     mask, stats = graph_cut_detailed(grid, e, -e, config)
     assert torch.equal(mask, truth) and math.isfinite(stats.flow)
+    with warnings.catch_warnings():  # a σ whose quotient overflows: weights 0 (for colours apart) without a warning
+        warnings.simplefilter("error")
+        for sigma in (1e-160, 1e-310):
+            weights = pairwise_weights(np.array([[0.1, 0, 0], [0, 0, 0]], np.float32), RefineConfig(
+                pairwise_weight=kind, sigma=sigma))
+            assert weights.tolist() == [0.0, config.smoothness]
 
 
 def test_a_smoothness_beyond_float32_is_refused_and_the_largest_allowed_cuts_with_a_finite_flow():
