@@ -311,6 +311,29 @@ def test_wait_says_when_it_reconnects_and_when_the_stream_is_back(monkeypatch, c
     assert rows[4].startswith("[##############################] 100.0% succeeded export")
 
 
+def test_wait_says_a_stages_warning(monkeypatch, capsys):
+    """A refinement whose cut kept none of the voxels says so as a warning event and as the job's message only until
+    the export starts: ``voxe wait`` (and ``submit --wait``) had shown the progress alone, never the warning."""
+    import httpx
+
+    import voxe_core.cli.service as service
+    from voxe_client import Client
+
+    said = "the graph cut kept none of the 216 occupied voxels: the refined grid is the initial one"
+    stream = (b'id: 3\nevent: warning\ndata: {"kind": "warning", "stage": "refine", "detail": "' + said.encode()
+              + b'"}\n\nid: 4\nevent: succeeded\ndata: {}\n\nevent: progress\ndata: {"state": "succeeded", '
+              b'"stage": "export", "overall_progress": 1.0}\n\n')
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        if not request.url.path.endswith("/events"):
+            return httpx.Response(200, json={"id": "j1", "state": "succeeded"})
+        return httpx.Response(200, headers={"content-type": "text/event-stream"}, content=stream)
+
+    monkeypatch.setattr(service, "_client", lambda args: Client(transport=httpx.MockTransport(answer)))
+    assert main(["wait", "j1", "--quiet"]) == 0
+    assert capsys.readouterr().err.splitlines() == [f"voxe wait: refine: {said}"]
+
+
 def test_ctrl_c_while_waiting_stops_following_and_says_the_job_goes_on(monkeypatch, capsys):
     """Ctrl-C during ``voxe wait`` had said "voxe: interrupted", as if the job had stopped with the command."""
     import httpx

@@ -962,6 +962,29 @@ def test_an_empty_edited_grid_fails_the_refinement_before_any_attention_map(tiny
     assert reports == []
 
 
+def test_cli_refine_warns_when_the_cut_keeps_nothing(tmp_path, tiny_model, make_sphere_grid, monkeypatch, capsys):
+    """A cut that kept none of the voxels (attention favouring the object everywhere) said "0 of N voxels take the
+    edit" and nothing more; the service's job warns that the edit is undone, and so does the CLI."""
+    import voxe_core.refine.pipeline
+
+    initial = make_sphere_grid(8)
+    initial.save(tmp_path / "initial.safetensors", dense=True)
+    initial.save(tmp_path / "edited.safetensors", dense=True)
+
+    def favouring_the_object(grid, *args, **kwargs):
+        edit_field = torch.full((*grid.resolution, 1), -5.0)
+        return edit_field, -edit_field
+
+    monkeypatch.setattr(voxe_core.refine.pipeline, "fit_attention_grids", favouring_the_object)
+    assert main(["refine", str(tmp_path / "edited.safetensors"), "--initial", str(tmp_path / "initial.safetensors"),
+                 "--prompt", "a dog wearing a party hat", "--edit-words", "party hat", "--out", str(tmp_path / "out"),
+                 "--model", str(tiny_model), "--offline", "--device", "cpu", "--iterations", "1", "--render-size",
+                 "16", "--views", "1", "--preview-views", "0", "--quiet"]) == 0
+    warning = [line for line in capsys.readouterr().err.splitlines() if "warning" in line]
+    assert len(warning) == 1 and warning[0].startswith("voxe refine: warning: the graph cut kept none of the edited "
+                                                       "grid's "), warning
+
+
 def test_cli_refine_smoke(tmp_path, tiny_model, make_sphere_grid):
     initial = make_sphere_grid(12)
     edited = initial.clone_grid()

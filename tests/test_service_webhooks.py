@@ -452,6 +452,23 @@ def test_webhook_events_need_a_url_and_name_known_kinds(client):
             f"webhook_url {url!r} has an invalid port: {problem}")
 
 
+def test_a_job_can_subscribe_to_its_warnings(client):
+    """A stage's warning (a refinement whose cut kept none of the voxels) reached only the timeline: webhook_events
+    refused 'warning' (422), so a webhook user never heard of it."""
+    from voxe_service.db import session_scope
+    from voxe_service.jobs import record_event
+
+    test_client, scene = client
+    job = test_client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold",
+                                             "webhook_url": f"http://127.0.0.1:{closed_port()}/hook",
+                                             "webhook_events": ["warning"]})
+    assert job.status_code == 201, job.text
+    with session_scope() as session:  # as the worker's refine stage records it (runtime.record_warning)
+        record_event(session, job.json()["id"], "warning", stage="refine", detail="the graph cut kept none")
+    [delivery] = test_client.get(f"/v1/jobs/{job.json()['id']}/webhooks").json()
+    assert delivery["event_type"] == "job.warning", delivery
+
+
 def test_a_job_whose_webhook_name_finds_every_lookup_busy_is_told_to_try_again(client, monkeypatch):
     """Every lookup slot held by other names a resolver does not answer: a job whose webhook host was never looked
     up is a 503 with Retry-After, not its URL's fault (it had been a 422 saying its host "did not resolve"), and

@@ -241,12 +241,16 @@ class Client:
                            reconnect_for - (now - lost_since)))
 
     def wait(self, job_id: str, on_progress: Callable[[dict], None] | None = None,
-             reconnect_for: float | None = None, on_reconnect: Callable[[str], None] | None = None) -> dict:
+             reconnect_for: float | None = None, on_reconnect: Callable[[str], None] | None = None,
+             on_warning: Callable[[dict], None] | None = None) -> dict:
         """Follow the job's events until it ends (``reconnect_for``, ``on_reconnect``: see :meth:`events`), calling
-        ``on_progress(snapshot)`` on each progress event; the finished job."""
+        ``on_progress(snapshot)`` on each progress event and ``on_warning(event)`` on each warning (a stage's result
+        to look at, which the job's message says only until its next stage starts); the finished job."""
         for event in self.events(job_id, reconnect_for=reconnect_for, on_reconnect=on_reconnect):
             if event["event"] == "progress" and on_progress is not None:
                 on_progress(event["data"])
+            elif event["event"] == "warning" and on_warning is not None:
+                on_warning(event["data"])
         return self.get_job(job_id)
 
     def artifacts(self, job_id: str) -> list[dict]:

@@ -34,7 +34,8 @@ from sqlalchemy.orm import Session
 
 from voxe_service.models import ApiKey, Job, WebhookDelivery, utcnow
 
-WEBHOOK_EVENTS = ("stage_started", "stage_completed", "artifact", "preview", "succeeded", "failed", "canceled")
+WEBHOOK_EVENTS = ("stage_started", "stage_completed", "warning", "artifact", "preview", "succeeded", "failed",
+                  "canceled")
 DEFAULT_WEBHOOK_EVENTS = ("succeeded", "failed", "canceled")
 PENDING, DELIVERED, GAVE_UP = "pending", "delivered", "failed"
 SECRET_PREFIX = "whsec_"

@@ -145,6 +145,8 @@ def cmd_refine(args) -> int:
         partial.write_text(json.dumps(summary, indent=2))
     for note in result.stats.notes:
         print(f"voxe refine: note: {note}", file=sys.stderr)
+    if (warning := result.stats.uniform_label()) is not None:  # (as the service's job says it)
+        print(f"voxe refine: warning: {warning}", file=sys.stderr)
     print(f"wrote {out}: {stats['edit_voxels']} of {stats['nodes']} occupied voxels take the edit "
           f"({stats['edit_seeds']} edit / {stats['object_seeds']} object seeds)")
     return 0

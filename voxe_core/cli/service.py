@@ -150,9 +150,9 @@ def _follow(client, job_id: str, args) -> int:
 
     over_the_bar = not args.quiet and sys.stderr.isatty()
 
-    def say_reconnecting(line: str) -> None:
-        """Says the stream lost and back, on a line of its own (even with --quiet: the bar had frozen, nothing
-        said); on a terminal over the bar's row, the bar drawn again below."""
+    def say_aside(line: str) -> None:
+        """Says the stream lost and back, or a stage's warning, on a line of its own (even with --quiet: the bar had
+        frozen, nothing said); on a terminal over the bar's row, the bar drawn again below."""
         text = f"voxe {args.command}: {line}"
         if over_the_bar:
             text = "\r" + text.ljust(shutil.get_terminal_size().columns - 1)
@@ -160,7 +160,8 @@ def _follow(client, job_id: str, args) -> int:
 
     try:
         job = client.wait(job_id, on_progress=_progress_bar(args.quiet), reconnect_for=args.reconnect_for,
-                          on_reconnect=say_reconnecting)
+                          on_reconnect=say_aside,
+                          on_warning=lambda event: say_aside(f"{event.get('stage')}: {event.get('detail')}"))
     except EventStreamLost as exc:
         raise EventStreamLost(f"{exc}: `voxe wait {job_id}` follows it again (--reconnect-for SECONDS rides out "
                               "a longer outage)") from None
