@@ -857,6 +857,117 @@ def test_the_worker_acknowledges_a_duplicate_stage_message_without_continuing_it
         "running", "edit", holder.run_token, "a@host", None)
 
 
+WORKER_KILLED_TAKING_A_STAGE = """
+import os, signal, sys
+
+from worker import runtime
+from worker.celery_app import app
+
+
+def begin_stage(job_id, stage, *args, **kwargs):  # the message taken (its row deleted), the stage not yet begun
+    with open(sys.argv[1], "a") as taken:
+        taken.write(f"{job_id} {stage}\\n")
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+runtime.begin_stage = begin_stage
+app.worker_main(["worker", "-Q", "gpu,celery", "--pool", "solo", "--without-gossip", "--without-mingle",
+                 "--without-heartbeat", "-n", "w@host", "-l", "info"])
+"""
+
+
+def test_a_job_whose_message_a_killed_worker_had_taken_is_sent_again_by_the_next_worker(db, tmp_path):
+    """SQL broker, real workers: one SIGKILLed after taking a queued job's message, before its stage took the job,
+    lost it (the row goes as it is delivered, and the job, never running, was not re-queued): the next worker finds
+    the job queued with no message waiting and sends it again, once (the row it takes is the only one). Neither sent
+    the job again while its message waited: the first found it at its start, its consumer not yet polling."""
+    import signal
+    import subprocess
+    import sys
+
+    from service_helpers import REPO
+    from voxe_service.broker import waiting_tasks
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+    from voxe_service.queue import dispatch_job, get_queue
+
+    job_id = add_job(add_scene(), "queued", 0, task_id=None)
+    with session_scope() as session:
+        dispatch_job(session, get_queue(), session.get(Job, job_id))
+    taken = tmp_path / "taken"
+
+    def worker(n: int) -> list[str]:
+        """Run a worker until it is killed taking a stage; the stages taken so far."""
+        with open(tmp_path / f"worker-{n}.log", "wb") as log:
+            proc = subprocess.Popen([sys.executable, "-c", WORKER_KILLED_TAKING_A_STAGE, str(taken)], cwd=REPO,
+                                    env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}, stdout=log,
+                                    stderr=subprocess.STDOUT)
+            try:
+                proc.wait(90 * max(1.0, os.getloadavg()[0] / (os.cpu_count() or 1)))
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        assert proc.returncode == -signal.SIGKILL, (tmp_path / f"worker-{n}.log").read_text()[-3000:]
+        return taken.read_text().splitlines()
+
+    assert worker(1) == [f"{job_id} reconstruct"]
+    assert job_row(job_id).state == "queued" and waiting_tasks(db.broker_url) == set()  # gone, not sent twice
+    assert worker(2) == [f"{job_id} reconstruct"] * 2, "the next worker never ran the job"
+    assert waiting_tasks(db.broker_url) == set()  # sent once: the killed worker took the only copy
+    reason = "worker w@host started and the broker held no message for the queued job (a worker killed after " \
+             "taking it, before starting it)"
+    job = job_row(job_id)
+    assert (job.state, job.message) == ("queued", f"re-queued: {reason}") and job.task_id is not None
+    assert [(e["kind"], e["detail"]) for e in events_of(job_id)] == [("requeued", reason)]
+
+
+def test_a_starting_worker_sends_again_only_the_queued_jobs_no_waiting_message_carries(db):
+    """SQL broker: a starting worker sends again the queued jobs the broker holds no message for (from their next
+    stage; a sweep's evaluation alone once its edit ended), and none whose message waits (its own, or in a chain),
+    none never sent (the reaper's), none ended, and no evaluation an unfinished edit's chain will carry."""
+    import sqlite3
+
+    from sqlalchemy import update
+
+    from voxe_service.broker import waiting_tasks
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+    from voxe_service.queue import dispatch_job, get_queue
+    from worker import tasks
+
+    scene = add_scene()
+    waiting, edit = add_job(scene, "queued", 0, task_id=None), add_job(scene, "queued", 0, task_id=None, batch_id="b")
+    riding = add_job(scene, "queued", 0, task_id=None, mode="evaluate", batch_id="b", source_job_ids=[edit])
+    with session_scope() as session:
+        for job_id in (waiting, edit):  # (the edit's chain carries the evaluation) ...
+            dispatch_job(session, get_queue(), session.get(Job, job_id))
+        session.execute(update(Job).where(Job.id == edit).values(state="canceled"))  # ... its message still waiting
+    sent_before = {job_id: job_row(job_id).task_id for job_id in (waiting, edit, riding)}
+    lost = add_job(scene, "queued", 0)
+    lost_between = add_job(scene, "queued", 0, stage="reconstruct", completed_stages=["reconstruct"])
+    done_edit = add_job(scene, "succeeded", 0, batch_id="c")
+    lost_evaluation = add_job(scene, "queued", 0, mode="evaluate", batch_id="c", source_job_ids=[done_edit])
+    running_edit = add_job(scene, "running", 0, "v@host", "edit", batch_id="d", run_token="live")
+    carried_later = add_job(scene, "queued", 0, mode="evaluate", batch_id="d", source_job_ids=[running_edit])
+    never_sent = add_job(scene, "queued", 0, task_id=None)
+    ended = add_job(scene, "failed", 0)
+
+    assert sorted(tasks.resend_lost_queued_jobs("w@host")) == sorted([lost, lost_between, lost_evaluation])
+    assert waiting_tasks(db.broker_url) == {
+        *((f"voxe.{stage}", job_id) for stage in ("reconstruct", "edit", "export") for job_id in (waiting, edit, lost)),
+        ("voxe.evaluate", riding), ("voxe.edit", lost_between), ("voxe.export", lost_between),
+        ("voxe.evaluate", lost_evaluation)}
+    with sqlite3.connect(db.broker_url.split(":///", 1)[1]) as broker:  # one message a job: none sent twice
+        assert broker.execute("SELECT count(*) FROM kombu_message").fetchone()[0] == 5
+    assert {job_id: job_row(job_id).task_id for job_id in sent_before} == sent_before
+    for job_id in (lost, lost_between, lost_evaluation):
+        assert job_row(job_id).task_id not in (None, "task") and [e["kind"] for e in events_of(job_id)] == ["requeued"]
+    for job_id in (waiting, riding, carried_later, never_sent, ended):
+        assert events_of(job_id) == []
+    assert (job_row(carried_later).task_id, job_row(never_sent).task_id, job_row(ended).task_id) == ("task", None,
+                                                                                                      "task")
+
+
 def test_a_restarted_worker_sends_its_jobs_again_releasing_its_dead_runs_holds_up_to_the_limit(db):
     """SQL broker: a worker back under its name re-queues the jobs its previous process was running, though that
     process's lease has not run out (it is known dead), so the new message takes each job at once; a job sent

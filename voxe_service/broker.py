@@ -18,9 +18,11 @@ earlier version left invisible go when a process first opens the database.
 
 from __future__ import annotations
 
+from base64 import b64decode
 from json import loads
 from queue import Empty
 
+from kombu import Connection
 from kombu.transport import TRANSPORT_ALIASES
 from kombu.transport import sqlalchemy as _sqla
 from kombu.utils.encoding import bytes_to_str
@@ -74,6 +76,23 @@ class Channel(_sqla.Channel):
 
 class Transport(_sqla.Transport):
     Channel = Channel
+
+
+def waiting_tasks(url: str) -> set[tuple[str, str]]:
+    """(task name, its argument) of every task the broker's waiting messages are to run: each message's own and those
+    of the chain it sends next (Celery's message protocol 2: the chain rides in the body). A message a worker has
+    taken is not here (its row went as it was delivered): running, or lost with a worker killed before it ended."""
+    register()
+    tasks = set()
+    with Connection(url) as conn:
+        channel = conn.default_channel
+        for (payload,) in channel.session.query(channel.message_cls.payload).filter(
+                channel.message_cls.visible.is_not(False)):
+            message = loads(bytes_to_str(payload))
+            args, _kwargs, embed = loads(b64decode(message["body"]))
+            tasks.add((message["headers"]["task"], args[0]))  # (one argument each: voxe_service.queue's contract)
+            tasks.update((step["task"], step["args"][0]) for step in embed.get("chain") or ())
+    return tasks
 
 
 def register() -> None:

@@ -32,23 +32,25 @@ from typing import TYPE_CHECKING, NoReturn
 
 from celery import signals
 from celery.exceptions import Ignore, Reject, SoftTimeLimitExceeded
-from sqlalchemy import select
+from sqlalchemy import select, update
 from sqlalchemy.exc import SQLAlchemyError
 
 from voxe_core.guidance.loading import is_out_of_memory
 from voxe_core.presets import edit_config, export_config, fit_backbone, fit_setup, reconstruct_config, refine_config
 from voxe_core.progress import Callbacks, Progress, StageCancelled
+from voxe_service.broker import waiting_tasks
 from voxe_service.db import database_outage, sync_clock
+from voxe_service.jobs import record_event
 from voxe_service.models import (
-    CANCELED, FAILED, PROCESSING, R_FAILED, R_PENDING, R_SUCCEEDED, RUNNING, TERMINAL_STATES, Job, Scene,
-    WorkerHeartbeat, utcnow,
+    CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, R_FAILED, R_PENDING, R_SUCCEEDED, RUNNING, TERMINAL_STATES, Job,
+    Scene, WorkerHeartbeat, utcnow,
 )
 from voxe_service.model_inventory import (ROLES, check_models, job_models, missing_message, model_present,
                                           submission_note)
 from voxe_service.progress import device_costs, refine_phase_seconds
 from voxe_service.queue import (
-    INGEST_TASK, STAGE_TASKS, QueueUnavailable, TaskResult, get_queue, is_sql_broker, job_stages, requeue_interrupted,
-    reset_queue, send_evaluations_alone,
+    INGEST_TASK, STAGE_TASKS, QueueUnavailable, TaskResult, dispatch_job, get_queue, is_sql_broker, job_stages,
+    requeue_interrupted, reset_queue, send_evaluations_alone,
 )
 from voxe_service.settings import get_settings, model_label
 from voxe_service.storage import StorageUnavailable, StoredObject, get_storage, job_key, reconstruction_storage_key
@@ -848,6 +850,51 @@ def recover_interrupted_jobs(hostname: str) -> list[str]:
     return [job.id for job in jobs] + scenes
 
 
+def resend_lost_queued_jobs(hostname: str) -> list[str]:
+    """Send again the queued jobs whose message the broker no longer holds (SQL broker only, at the worker's start).
+
+    The SQL broker deletes a message's row as it delivers it (``voxe_service.broker``), so a worker killed after
+    taking a job's message and before its stage took the job (``runtime.begin_stage``) lost it: the job stayed
+    queued for ever (``recover_interrupted_jobs`` sends only running jobs; the reaper, only jobs never sent). The
+    embedded broker serves one worker (README), and ``worker_ready`` comes before its first fetch (the SQL transport
+    has no event loop: Celery's ``synloop`` sends it between registering the consumer and its first poll), so a
+    sent queued job no waiting message carries (its own, or in the chain of one) was taken by a worker that died.
+    The jobs are read before the broker: a job sent meanwhile is found with its message. A sweep's evaluation is sent
+    alone only once every edit it scores has ended (a live edit's chain carries it). A copy of a message that still
+    lives (a second worker on the same SQL broker took it and has yet to start the stage) is harmless: it finds the
+    stage held (dropped) or done (skipped).
+    """
+    queue, settings = get_queue(), get_settings()
+    reason = (f"worker {hostname} started and the broker held no message for the queued job (a worker killed after "
+              "taking it, before starting it)")
+    stage_names = {spec.name for spec in STAGE_TASKS.values()}
+    with runtime.session_scope() as session:
+        queued = list(session.scalars(select(Job).where(Job.state == QUEUED, Job.task_id.is_not(None),
+                                                        Job.run_token.is_(None))))
+        carried = {job_id for task, job_id in waiting_tasks(settings.broker_url) if task in stage_names}
+        lost = [job for job in queued if job.id not in carried and not (
+            job.mode == EVALUATE and session.scalar(select(Job.id).where(
+                Job.id.in_(job.source_job_ids or []), Job.state.not_in(TERMINAL_STATES)).limit(1)))]
+        sent = []
+        for job in lost:  # task_id NULL until the new chain is handed over: a send that fails leaves it to the reaper
+            claimed = session.execute(update(Job).where(
+                Job.id == job.id, Job.state == QUEUED, Job.task_id == job.task_id, Job.run_token.is_(None),
+            ).values(task_id=None, updated_at=utcnow()))
+            if claimed.rowcount != 1:  # started, ended or sent again since it was read
+                continue
+            record_event(session, job.id, "requeued", stage=job.stage, detail=reason)
+            session.commit()
+            try:
+                dispatch_job(session, queue, job, done=job.completed_stages or [], message=f"re-queued: {reason}",
+                             fail_refused=False)
+            except QueueUnavailable:
+                log.warning("job %s: %s; the broker refused it again: left unsent, to the reaper", job.id, reason)
+                continue
+            log.warning("job %s: %s; sent it again", job.id, reason)
+            sent.append(job.id)
+    return sent
+
+
 @signals.task_failure.connect
 def _next_stage_unsent(sender=None, args=None, exception=None, **_kwargs) -> None:
     """A stage task that fails after its stage finished failed to hand its chain's next message to the broker
@@ -886,10 +933,11 @@ def _start_heartbeat(sender=None, **_kwargs) -> None:
     # parent of a prefork pool, and forked children could not use it.
     device = get_settings().device
     if is_sql_broker(get_settings().broker_url):
-        try:
-            recover_interrupted_jobs(hostname)
-        except Exception:  # noqa: BLE001 - never keep the worker from starting
-            log.exception("could not re-queue interrupted jobs")
+        for recover in (recover_interrupted_jobs, resend_lost_queued_jobs):
+            try:
+                recover(hostname)
+            except Exception:  # noqa: BLE001 - never keep the worker from starting
+                log.exception("%s failed", recover.__name__)
     models = check_models(get_settings())
     _heartbeat_stop.clear()
     threading.Thread(target=_beat, args=(hostname, queues, device, models), name="voxe-heartbeat", daemon=True).start()
