@@ -968,6 +968,26 @@ def test_a_starting_worker_sends_again_only_the_queued_jobs_no_waiting_message_c
                                                                                                       "task")
 
 
+def test_a_starting_worker_sends_again_only_the_ingests_no_worker_took_and_no_waiting_message_carries(db):
+    """SQL broker: a processing scene whose ingest message a killed worker had taken, before the ingest took the
+    scene, had stayed processing for ever (the reaper fails only scenes whose ingesting worker is gone); a starting
+    worker sends its ingest again, and none whose message waits, none a worker took (recover_interrupted_jobs and
+    the reaper), none never sent (the reaper's)."""
+    import sqlite3
+
+    from voxe_service.broker import waiting_tasks
+    from voxe_service.queue import get_queue
+    from worker import tasks
+
+    waiting, lost = add_scene("processing"), add_scene("processing")
+    get_queue().send_ingest(waiting)
+    add_scene("processing", worker="v@host"), add_scene("processing", task_id=None), add_scene("ready")
+    assert tasks.resend_lost_ingests("w@host") == [lost]
+    assert waiting_tasks(db.broker_url) == {("voxe.ingest", waiting), ("voxe.ingest", lost)}
+    with sqlite3.connect(db.broker_url.split(":///", 1)[1]) as broker:  # one message a scene: none sent twice
+        assert broker.execute("SELECT count(*) FROM kombu_message").fetchone()[0] == 2
+
+
 def test_a_restarted_worker_sends_its_jobs_again_releasing_its_dead_runs_holds_up_to_the_limit(db):
     """SQL broker: a worker back under its name re-queues the jobs its previous process was running, though that
     process's lease has not run out (it is known dead), so the new message takes each job at once; a job sent

@@ -895,6 +895,24 @@ def resend_lost_queued_jobs(hostname: str) -> list[str]:
     return sent
 
 
+def resend_lost_ingests(hostname: str) -> list[str]:
+    """Send again the ingests of processing scenes that no worker took and whose message the broker no longer holds
+    (SQL broker only, at the worker's start): a worker killed after taking one, before the ingest took its scene, lost
+    it, as ``resend_lost_queued_jobs`` says of a job's; the scene stayed processing for ever, and the jobs on it
+    queued (the reaper fails a scene only once its ingesting worker is gone, and this one had none)."""
+    settings = get_settings()
+    with runtime.session_scope() as session:
+        untaken = list(session.scalars(select(Scene.id).where(Scene.state == PROCESSING, Scene.task_id.is_not(None),
+                                                              Scene.worker_hostname.is_(None))))
+    carried = {scene_id for task, scene_id in waiting_tasks(settings.broker_url) if task == INGEST_TASK.name}
+    lost = [scene_id for scene_id in untaken if scene_id not in carried]
+    for scene_id in lost:
+        get_queue().send_ingest(scene_id)
+        log.warning("worker %s started and the broker held no ingest message for scene %s (a worker killed after "
+                    "taking it, before the ingest began); sent it again", hostname, scene_id)
+    return lost
+
+
 @signals.task_failure.connect
 def _next_stage_unsent(sender=None, args=None, exception=None, **_kwargs) -> None:
     """A stage task that fails after its stage finished failed to hand its chain's next message to the broker
@@ -933,7 +951,7 @@ def _start_heartbeat(sender=None, **_kwargs) -> None:
     # parent of a prefork pool, and forked children could not use it.
     device = get_settings().device
     if is_sql_broker(get_settings().broker_url):
-        for recover in (recover_interrupted_jobs, resend_lost_queued_jobs):
+        for recover in (recover_interrupted_jobs, resend_lost_queued_jobs, resend_lost_ingests):
             try:
                 recover(hostname)
             except Exception:  # noqa: BLE001 - never keep the worker from starting
