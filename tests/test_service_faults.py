@@ -656,14 +656,20 @@ def test_a_stage_that_kills_its_worker_each_time_fails_at_the_requeue_limit_leav
 
 
 CUDA_OOM = ("CUDA out of memory. Tried to allocate 2.00 GiB. GPU 0 has a total capacity of 79.15 GiB of which 1.06 GiB "
-            "is free.\nIf reserved but unallocated memory is large try setting PYTORCH_CUDA_ALLOC_CONF")
+            "is free. Including non-PyTorch memory, this process has 78.08 GiB memory in use. Of the allocated memory "
+            "76.50 GiB is allocated by PyTorch, and 1.08 GiB is reserved by PyTorch but unallocated. If reserved but "
+            "unallocated memory is large try setting PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True to avoid "
+            "fragmentation.  See documentation for Memory Management  (https://pytorch.org/docs/stable/notes/"
+            "cuda.html#environment-variables)")  # one line, as PyTorch's caching allocator words it
 
 
 @pytest.mark.parametrize("raised,said", [
     (MemoryError, "edit: out of memory on the worker (MemoryError)"),
     (lambda: __import__("torch").cuda.OutOfMemoryError(CUDA_OOM),
      "edit: out of memory on the worker (CUDA out of memory. Tried to allocate 2.00 GiB. GPU 0 has a total capacity "
-     "of 79.15 GiB of which 1.06 GiB is free.)"),
+     "of 79.15 GiB of which 1.06 GiB is free. Including non-PyTorch memory, this process has 78.08 GiB memory in use. "
+     "Of the allocated memory 76.50 GiB is allocated by PyTorch, and 1.08 GiB is reserved by PyTorch but "
+     "unallocated.)"),
     (KeyError, "edit: KeyError"),
     (lambda: ValueError("render size 0"), "edit: ValueError: render size 0"),
 ], ids=["MemoryError", "CUDA OOM", "no words", "words"])

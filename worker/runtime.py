@@ -68,8 +68,9 @@ def failure_text(exc: BaseException) -> str:
     from voxe_core.guidance.loading import is_out_of_memory
 
     words = str(exc)
-    if is_out_of_memory(exc):
-        return f"out of memory on the worker ({words.splitlines()[0] if words else type(exc).__name__})"
+    if is_out_of_memory(exc):  # (PyTorch's advice follows "... is free." on the same line)
+        said = words.splitlines()[0].split(" If reserved but unallocated")[0] if words else type(exc).__name__
+        return f"out of memory on the worker ({said})"
     return f"{type(exc).__name__}: {words}" if words else type(exc).__name__
 
 
@@ -336,8 +337,8 @@ def record_job_event(job_id: str, kind: str, **fields) -> None:
 
 def record_warning(job_id: str, stage: str, text: str) -> None:
     """Say ``text`` as the job's message and as a ``warning`` event on its timeline, in one transaction: a stage that
-    completed with a result the user should look at (the message is the next stage's once that starts; the event
-    stays)."""
+    completed with a result the user should look at, or started over from a checkpoint it could not go on from (the
+    message is the next report's once that comes; the event stays)."""
     with session_scope() as session:
         if (job := locked(session, Job, job_id)) is None:
             return
