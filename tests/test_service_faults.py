@@ -988,10 +988,31 @@ def test_a_starting_worker_sends_again_only_the_ingests_no_worker_took_and_no_wa
     waiting, lost = add_scene("processing"), add_scene("processing")
     get_queue().send_ingest(waiting)
     add_scene("processing", worker="v@host"), add_scene("processing", task_id=None), add_scene("ready")
-    assert tasks.resend_lost_ingests("w@host") == [lost]
+    get_queue().app.send_task("voxe.ingest", kwargs={"scene_id": waiting}, queue="gpu")  # (`celery call`'s shape)
+    assert tasks.resend_lost_ingests("w@host") == [lost]  # (a message of another shape had raised an IndexError)
     assert waiting_tasks(db.broker_url) == {("voxe.ingest", waiting), ("voxe.ingest", lost)}
     with sqlite3.connect(db.broker_url.split(":///", 1)[1]) as broker:  # one message a scene: none sent twice
-        assert broker.execute("SELECT count(*) FROM kombu_message").fetchone()[0] == 2
+        assert broker.execute("SELECT count(*) FROM kombu_message").fetchone()[0] == 3
+
+
+def test_a_resend_the_broker_refuses_keeps_the_job_for_the_next_start(db, monkeypatch):
+    """A sweep's evaluation whose re-send the broker refused had been left unsent, and the reaper fails an unsent
+    evaluation ("never handed to the broker with its edit"): its task id comes back, and the next start sends it."""
+    from voxe_service.queue import QueueUnavailable, TaskQueue
+    from worker import tasks
+
+    scene = add_scene()
+    done_edit = add_job(scene, "succeeded", 0, batch_id="c")
+    evaluation = add_job(scene, "queued", 0, mode="evaluate", batch_id="c", source_job_ids=[done_edit])
+
+    def refused(self, signature):
+        raise QueueUnavailable("could not queue the job: ConnectionError: down")
+
+    with monkeypatch.context() as broker_down:
+        broker_down.setattr(TaskQueue, "send", refused)
+        assert tasks.resend_lost_queued_jobs("w@host") == []
+    assert (job_row(evaluation).state, job_row(evaluation).task_id) == ("queued", "task")
+    assert tasks.resend_lost_queued_jobs("w@host") == [evaluation]
 
 
 def test_a_restarted_worker_sends_its_jobs_again_releasing_its_dead_runs_holds_up_to_the_limit(db):

@@ -90,8 +90,10 @@ def waiting_tasks(url: str) -> set[tuple[str, str]]:
                 channel.message_cls.visible.is_not(False)):
             message = loads(bytes_to_str(payload))
             args, _kwargs, embed = loads(b64decode(message["body"]))
-            tasks.add((message["headers"]["task"], args[0]))  # (one argument each: voxe_service.queue's contract)
-            tasks.update((step["task"], step["args"][0]) for step in embed.get("chain") or ())
+            for task, task_args in ((message["headers"]["task"], args),
+                                    *((step["task"], step.get("args")) for step in embed.get("chain") or ())):
+                if task_args and len(task_args) == 1:  # (one argument each: voxe_service.queue's contract; a
+                    tasks.add((task, task_args[0]))    # message of another shape, `celery call`'s say, is no job's)
     return tasks
 
 

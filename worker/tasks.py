@@ -856,7 +856,7 @@ def resend_lost_queued_jobs(hostname: str) -> list[str]:
     The SQL broker deletes a message's row as it delivers it (``voxe_service.broker``), so a worker killed after
     taking a job's message and before its stage took the job (``runtime.begin_stage``) lost it: the job stayed
     queued for ever (``recover_interrupted_jobs`` sends only running jobs; the reaper, only jobs never sent). The
-    embedded broker serves one worker (README), and ``worker_ready`` comes before its first fetch (the SQL transport
+    embedded broker serves one worker (README's caveat), and ``worker_ready`` comes before its first fetch (the SQL transport
     has no event loop: Celery's ``synloop`` sends it between registering the consumer and its first poll), so a
     sent queued job no waiting message carries (its own, or in the chain of one) was taken by a worker that died.
     The jobs are read before the broker: a job sent meanwhile is found with its message. A sweep's evaluation is sent
@@ -875,8 +875,8 @@ def resend_lost_queued_jobs(hostname: str) -> list[str]:
         lost = [job for job in queued if job.id not in carried and not (
             job.mode == EVALUATE and session.scalar(select(Job.id).where(
                 Job.id.in_(job.source_job_ids or []), Job.state.not_in(TERMINAL_STATES)).limit(1)))]
-        sent = []
-        for job in lost:  # task_id NULL until the new chain is handed over: a send that fails leaves it to the reaper
+        sent, lost_task_ids = [], {job.id: job.task_id for job in lost}
+        for job in lost:  # task_id NULL until the new chain is handed over
             claimed = session.execute(update(Job).where(
                 Job.id == job.id, Job.state == QUEUED, Job.task_id == job.task_id, Job.run_token.is_(None),
             ).values(task_id=None, updated_at=utcnow()))
@@ -887,8 +887,12 @@ def resend_lost_queued_jobs(hostname: str) -> list[str]:
             try:
                 dispatch_job(session, queue, job, done=job.completed_stages or [], message=f"re-queued: {reason}",
                              fail_refused=False)
-            except QueueUnavailable:
-                log.warning("job %s: %s; the broker refused it again: left unsent, to the reaper", job.id, reason)
+            except QueueUnavailable:  # its task id back: the next start tries again (the reaper fails an unsent
+                session.execute(update(Job).where(Job.id == job.id, Job.task_id.is_(None))  # sweep evaluation)
+                                .values(task_id=lost_task_ids[job.id]))
+                session.commit()
+                log.warning("job %s: %s; the broker refused it again: the next worker start tries again", job.id,
+                            reason)
                 continue
             log.warning("job %s: %s; sent it again", job.id, reason)
             sent.append(job.id)
