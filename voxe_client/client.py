@@ -245,7 +245,7 @@ class Client:
              on_warning: Callable[[dict], None] | None = None) -> dict:
         """Follow the job's events until it ends (``reconnect_for``, ``on_reconnect``: see :meth:`events`), calling
         ``on_progress(snapshot)`` on each progress event and ``on_warning(event)`` on each warning (a stage's result
-        to look at, which the job's message says only until its next stage starts); the finished job."""
+        to look at, or its start over: the job's message says it only until the next report); the finished job."""
         for event in self.events(job_id, reconnect_for=reconnect_for, on_reconnect=on_reconnect):
             if event["event"] == "progress" and on_progress is not None:
                 on_progress(event["data"])

@@ -124,7 +124,7 @@ def pairwise_weights(diff: np.ndarray, config: RefineConfig) -> np.ndarray:
         >>> round(float(weights[0]), 4)  # λ·e⁻¹ with λ = 5, σ = 0.1
         1.8394
     """
-    with np.errstate(over="ignore"):  # a σ below 1e-308 (its square below 1e-154): inf, its weight the 0 it tends to
+    with np.errstate(over="ignore"):  # ‖Δc‖/σ past float64 (or its square): inf, its weight the 0 it tends to
         scaled = np.sqrt((diff * diff).sum(-1, dtype=np.float64)) / config.sigma  # (no float64 copy of diff)
         if config.pairwise_weight == "exp_distance":
             return config.smoothness * np.exp(-scaled)
