@@ -9,20 +9,19 @@ from __future__ import annotations
 
 from fastapi import HTTPException, status
 from sqlalchemy import func, select
-from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from api.schemas import EvaluationCreate, EvaluationParams, JobCreate, SweepCreate
 from api.auth import Idempotency, sha256_hex
 from api.services.jobs import (
-    add_jobs, get_job, new_edit_job, reconstruction_for, request_cancel, submit, usable_scene,
+    get_job, new_edit_job, reconstruction_for, record_and_send, request_cancel, submit, usable_scene,
 )
 from voxe_core.evaluate import paper_protocol
 from voxe_core.guidance.prompts import check_prompt_length
 from voxe_service.models import (
     CANCELED, EVALUATE, FAILED, QUEUED, RUNNING, SUCCEEDED, TERMINAL_STATES, ApiKey, Job, new_id,
 )
-from voxe_service.queue import QueueUnavailable, TaskQueue, dispatch_job
+from voxe_service.queue import QueueUnavailable, TaskQueue
 from voxe_service.settings import Settings
 
 
@@ -101,31 +100,22 @@ def create_sweep(*, session: Session, settings: Settings, queue: TaskQueue, key:
             job = new_edit_job(request, key, settings, rec, batch_id)
             jobs += [job, new_evaluation_job(key, settings, [job], entry.object, body.evaluation, batch_id,
                                              index=len(jobs) // 2)]
-    try:
-        to_send = add_jobs(session=session, key=key, settings=settings, jobs=jobs, idempotency=idem)
-    except IntegrityError:
-        if idem is not None and (replayed := idem.replayed(session, key, Job)) is not None:
-            return replayed.batch_id, True  # a concurrent retry created it first
-        raise
-    for job in to_send:
-        try:
-            dispatch_job(session, queue, job, fail_refused=False)
-        except QueueUnavailable as exc:
-            # Read, not counted from to_send: a scene still processing when the sweep was recorded has its jobs sent
-            # by its ingest, which may have sent them meanwhile.
-            sent = session.scalar(select(func.count()).select_from(Job)
-                                  .where(Job.batch_id == batch_id, Job.task_id.is_not(None)))
-            if idem is not None:  # in the transaction that cancels the sweep: a retry never replays it canceled
-                idem.forget(session, key)
-            request_cancel(session=session, job_ids=[j.id for j in jobs],
-                           message="the sweep was withdrawn: the broker refused part of it")
-            raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE,
-                                f"{exc}; the sweep is withdrawn: its {len(jobs)} jobs are canceled (the {sent} already "
-                                "sent too: any a worker already started stops at its next cancel check; sweep "
-                                f"{batch_id!r} lists them), so a retry repeats none of them") from None
-    if idem is not None:  # only now may a retry replay it (Idempotency.replayed)
-        idem.answered(session, key)
-        session.commit()
+
+    def withdraw(exc: QueueUnavailable) -> str:  # the sweep whole: what was sent canceled with the rest
+        # Read, not counted from what this request sent: a scene still processing when the sweep was recorded has its
+        # jobs sent by its ingest, which may have sent them meanwhile.
+        sent = session.scalar(select(func.count()).select_from(Job)
+                              .where(Job.batch_id == batch_id, Job.task_id.is_not(None)))
+        request_cancel(session=session, job_ids=[j.id for j in jobs],
+                       message="the sweep was withdrawn: the broker refused part of it")
+        return (f"{exc}; the sweep is withdrawn: its {len(jobs)} jobs are canceled (the {sent} already sent too: any "
+                f"a worker already started stops at its next cancel check; sweep {batch_id!r} lists them), so a retry "
+                "repeats none of them")
+
+    replayed = record_and_send(session=session, settings=settings, queue=queue, key=key, jobs=jobs, idem=idem,
+                               withdraw=withdraw)
+    if replayed is not None:
+        return replayed.batch_id, True
     return batch_id, False
 
 

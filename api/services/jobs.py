@@ -9,6 +9,7 @@ holding a worker). A failed scene refuses new jobs with a 409 naming its reason.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 
 from fastapi import HTTPException, status
 from sqlalchemy import delete, func, select, update
@@ -243,25 +244,47 @@ def submit(*, session: Session, settings: Settings, queue: TaskQueue, key: ApiKe
     created it first). A broker refusing it (503) withdraws it: nothing is listed, and a retry with the key runs
     anew."""
     job_id = job.id
+
+    def withdraw(exc: QueueUnavailable) -> str:  # the job was never accepted (no failed event): nothing listed
+        session.execute(delete(Job).where(Job.id == job_id))
+        return str(exc)
+
+    replayed = record_and_send(session=session, settings=settings, queue=queue, key=key, jobs=[job], idem=idem,
+                               withdraw=withdraw)
+    if replayed is not None:
+        return replayed, True
+    return created_job(session, job_id), False
+
+
+def record_and_send(*, session: Session, settings: Settings, queue: TaskQueue, key: ApiKey, jobs: list[Job],
+                    idem: Idempotency | None, withdraw: Callable[[QueueUnavailable], str]) -> Job | None:
+    """Record ``jobs`` (:func:`add_jobs`) and hand the ones it sends now to the broker, each chain with the
+    evaluations following it; the job an earlier request with the same Idempotency-Key recorded when a concurrent
+    retry created them first (nothing recorded here), else None.
+
+    A broker refusing a send is a 503 saying what ``withdraw(exc)`` did to take the jobs back (in the transaction
+    that forgets the Idempotency record, so a retry with the key runs anew); only once every send is taken may a
+    retry replay the request (:meth:`Idempotency.answered`).
+    """
     try:
-        to_send = add_jobs(session=session, key=key, settings=settings, jobs=[job], idempotency=idem)
+        to_send = add_jobs(session=session, key=key, settings=settings, jobs=jobs, idempotency=idem)
     except IntegrityError:
         if idem is not None and (replayed := idem.replayed(session, key, Job)) is not None:
-            return replayed, True  # a concurrent retry created it first
+            return replayed  # a concurrent retry created them first
         raise
     try:
-        for queued in to_send:  # its chain, with the evaluations following it (none while it waits for its scene)
+        for queued in to_send:
             dispatch_job(session, queue, queued, fail_refused=False)
-    except QueueUnavailable as exc:  # 503: the broker refused it, so the job was never accepted (no failed event)
-        session.execute(delete(Job).where(Job.id == job_id))  # nothing listed; a retry with the key runs anew
+    except QueueUnavailable as exc:
         if idem is not None:
             idem.forget(session, key)
+        said = withdraw(exc)
         session.commit()
-        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(exc)) from None
-    if idem is not None:  # only now may a retry replay it (Idempotency.replayed)
+        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, said) from None
+    if idem is not None:
         idem.answered(session, key)
         session.commit()
-    return created_job(session, job_id), False
+    return None
 
 
 def created_job(session: Session, job_id: str) -> Job:
