@@ -856,9 +856,9 @@ def resend_lost_queued_jobs(hostname: str) -> list[str]:
     The SQL broker deletes a message's row as it delivers it (``voxe_service.broker``), so a worker killed after
     taking a job's message and before its stage took the job (``runtime.begin_stage``) lost it: the job stayed
     queued for ever (``recover_interrupted_jobs`` sends only running jobs; the reaper, only jobs never sent). The
-    embedded broker serves one worker (README's caveat), and ``worker_ready`` comes before its first fetch (the SQL transport
-    has no event loop: Celery's ``synloop`` sends it between registering the consumer and its first poll), so a
-    sent queued job no waiting message carries (its own, or in the chain of one) was taken by a worker that died.
+    embedded broker serves one worker (README's caveat), and ``worker_ready`` comes before its first fetch (the SQL
+    transport has no event loop: Celery's ``synloop`` sends it between registering the consumer and its first poll),
+    so a sent queued job no waiting message carries (its own, or in the chain of one) was taken by a worker that died.
     The jobs are read before the broker: a job sent meanwhile is found with its message. A sweep's evaluation is sent
     alone only once every edit it scores has ended (a live edit's chain carries it). A copy of a message that still
     lives (a second worker on the same SQL broker took it and has yet to start the stage) is harmless: it finds the
@@ -875,10 +875,11 @@ def resend_lost_queued_jobs(hostname: str) -> list[str]:
         lost = [job for job in queued if job.id not in carried and not (
             job.mode == EVALUATE and session.scalar(select(Job.id).where(
                 Job.id.in_(job.source_job_ids or []), Job.state.not_in(TERMINAL_STATES)).limit(1)))]
-        sent, lost_task_ids = [], {job.id: job.task_id for job in lost}
+        sent = []
         for job in lost:  # task_id NULL until the new chain is handed over
+            sent_as = job.task_id  # (the claim sets the session's copy to None)
             claimed = session.execute(update(Job).where(
-                Job.id == job.id, Job.state == QUEUED, Job.task_id == job.task_id, Job.run_token.is_(None),
+                Job.id == job.id, Job.state == QUEUED, Job.task_id == sent_as, Job.run_token.is_(None),
             ).values(task_id=None, updated_at=utcnow()))
             if claimed.rowcount != 1:  # started, ended or sent again since it was read
                 continue
@@ -889,7 +890,7 @@ def resend_lost_queued_jobs(hostname: str) -> list[str]:
                              fail_refused=False)
             except QueueUnavailable:  # its task id back: the next start tries again (the reaper fails an unsent
                 session.execute(update(Job).where(Job.id == job.id, Job.task_id.is_(None))  # sweep evaluation)
-                                .values(task_id=lost_task_ids[job.id]))
+                                .values(task_id=sent_as))
                 session.commit()
                 log.warning("job %s: %s; the broker refused it again: the next worker start tries again", job.id,
                             reason)

@@ -15,6 +15,7 @@ from voxe_core.cli.common import (
     EXIT_INTERRUPTED, add_device_argument, add_view_arguments, check_device, load_views, positive_int,
     run_stage, view_options_given, writable_folder,
 )
+from voxe_core.files import replacing
 from voxe_core.presets import ExportConfig
 
 
@@ -107,8 +108,6 @@ def _replace_manifest(out_dir: Path, files: list[str]) -> None:
     """Remove the files an earlier run listed in ``out_dir``'s manifest, then list ``files``, this run's (before it
     writes them, so an interrupted run's are listed too). A re-run writing fewer views had left the earlier run's
     beside them; files no run listed (the user's own, whatever their names) stay."""
-    from voxe_core.files import replacing
-
     manifest = out_dir / MANIFEST_FILE
     try:
         listed = json.loads(manifest.read_text())
@@ -123,7 +122,6 @@ def _replace_manifest(out_dir: Path, files: list[str]) -> None:
 
 
 def _report_metrics(frames, scene, names, out_dir: Path) -> None:
-    from voxe_core.files import replacing
     from voxe_core.metrics import PSNR_CAP_DB, SSIM_WINDOW, psnr, ssim
 
     per_view_psnr = psnr(frames, scene.images).clamp(max=PSNR_CAP_DB).tolist()  # a view identical to its image: inf
