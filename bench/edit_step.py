@@ -165,11 +165,17 @@ def sphere_grid(resolution: int, radius: float = 0.8, slope: float = 5.0):
     from voxe_core.grid import VoxelGrid
 
     grid = VoxelGrid(resolution)
-    axis = torch.linspace(-1.5, 1.5, resolution)
+    return _holding_sphere(grid, torch.linspace(-1.5, 1.5, resolution), float(grid.voxel_size.min()), radius, slope)
+
+
+def _holding_sphere(grid, axis: torch.Tensor, voxel: float, radius: float, slope: float):
+    """``grid`` with a solid sphere of ``radius`` at the origin: raw density ``slope`` per ``voxel`` world units of
+    signed distance (positive inside), reddish colour; ``axis`` (resolution,): its vertices' world coordinates
+    along each axis."""
     x, y, z = torch.meshgrid(axis, axis, axis, indexing="ij")
     distance = (x * x + y * y + z * z).sqrt()
     with torch.no_grad():
-        grid.features[..., 0] = slope * (radius - distance) / float(grid.voxel_size.min())
+        grid.features[..., 0] = slope * (radius - distance) / voxel
         grid.features[..., 1:] = torch.tensor([2.0, -1.0, -1.0])
     return grid
 
@@ -180,13 +186,9 @@ def scene_sphere_grid(resolution: int, radius: float = 0.8, slope: float = 5.0):
     from voxe_core.scene_grid import CONTRACTED_EXTENT, SceneGrid
 
     grid = SceneGrid(resolution)
-    axis = torch.linspace(-CONTRACTED_EXTENT, CONTRACTED_EXTENT, resolution) * grid.foreground_extent
-    x, y, z = torch.meshgrid(axis, axis, axis, indexing="ij")
-    distance = (x * x + y * y + z * z).sqrt()
-    with torch.no_grad():
-        grid.features[..., 0] = slope * (radius - distance) / (float(grid.voxel_size.min()) * grid.foreground_extent)
-        grid.features[..., 1:] = torch.tensor([2.0, -1.0, -1.0])
-    return grid
+    fg = grid.foreground_extent
+    return _holding_sphere(grid, torch.linspace(-CONTRACTED_EXTENT, CONTRACTED_EXTENT, resolution) * fg,
+                           float(grid.voxel_size.min()) * fg, radius, slope)
 
 
 SKIP_DENSITY_ARMS = ("built_once", "rebuilt_each_step")
