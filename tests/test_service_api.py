@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import shutil
@@ -371,7 +372,8 @@ def test_a_scene_archive_damaged_in_the_storage_fails_naming_the_scene_and_the_c
     with session_scope() as session:
         scene = session.get(Scene, ready["id"])
     with pytest.raises(StorageError) as fetched:
-        runtime.scene_dataset_dir(scene, get_settings(), get_storage())
+        with runtime.scene_dataset(scene, get_settings(), get_storage()):
+            pass
     assert str(fetched.value) == f"scene {ready['id']}'s archive {words}"
     assert list((root / "work" / "scenes").iterdir()) == []
 
@@ -1974,7 +1976,7 @@ def test_reconstructions_stored_before_the_resample_option_load_box_filtered_ima
 
     require_data(MIC)
     monkeypatch.setattr(inputs, "job_scene", lambda job: None)
-    monkeypatch.setattr(inputs.runtime, "scene_dataset_dir", lambda scene, settings, storage: MIC)
+    monkeypatch.setattr(inputs.runtime, "scene_dataset", lambda scene, settings, storage: contextlib.nullcontext(MIC))
     current = reconstruction_params({"downsample": 16, "max_images": 2})
     legacy = {k: v for k, v in current.items() if k != "resample"}
     assert current["resample"] == "bilinear"

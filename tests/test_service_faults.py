@@ -1094,7 +1094,7 @@ def test_a_workers_scratch_of_ended_or_deleted_jobs_is_swept_and_a_live_jobs_kep
 
 
 def test_a_workers_unpacked_datasets_of_deleted_scenes_are_swept_and_a_ready_scenes_kept(db):
-    """Every worker that ran a job on a scene keeps its unpacked dataset (``runtime.scene_dataset_dir``); the sweep
+    """Every worker that ran a job on a scene keeps its unpacked dataset (``runtime.scene_dataset``); the sweep
     removes those of scenes deleted (or not ready) since, with the debris of their unpacks, and the debris a job's
     run killed mid-unpack left of a ready scene none of whose jobs runs, never a ready scene's dataset or the unpack
     a running job of it may be making."""
@@ -1114,6 +1114,96 @@ def test_a_workers_unpacked_datasets_of_deleted_scenes_are_swept_and_a_ready_sce
     assert sorted(sweep_scene_datasets(db)) == sorted(gone)
     assert sorted(p.name for p in root.iterdir()) == sorted(kept)
     assert sweep_scene_datasets(db) == []
+
+
+def stored_dataset_scene(settings, tmp_path, name: str):
+    """A ready scene (not recorded: what ``runtime.scene_dataset`` reads of it) whose stored archive holds a
+    1000-byte file named after it."""
+    from voxe_service.datasets import package
+    from voxe_service.models import Scene
+    from voxe_service.storage import get_storage
+
+    folder = tmp_path / "datasets" / name
+    folder.mkdir(parents=True)
+    (folder / "transforms_train.json").write_text(name * (1000 // len(name)))
+    package(folder, tmp_path / f"{name}.zip")
+    scene_id = uuid.uuid4().hex
+    stored = get_storage(settings).put_file(f"scenes/{scene_id}/dataset.zip", tmp_path / f"{name}.zip")
+    return Scene(id=scene_id, state="ready", storage_key=stored.key, size_bytes=stored.size, sha256=stored.sha256)
+
+
+def test_unpacked_datasets_past_the_cache_limit_evict_the_least_recently_used_one_no_stage_reads(db, tmp_path):
+    """A worker kept every scene's unpacked dataset until the scene was deleted: serving many scenes, it filled its
+    disk. Past VOXE_SCENE_CACHE_MAX_BYTES an unpack evicts the least recently used datasets no stage is reading (one
+    being read stays, though least recently used), and a job needing an evicted one unpacks it again."""
+    from pathlib import Path
+
+    from voxe_service.storage import get_storage
+    from worker import runtime
+
+    settings, storage = db.model_copy(update={"scene_cache_max_bytes": 2500}), get_storage(db)  # two of 1002 bytes
+    a, b, c = (stored_dataset_scene(db, tmp_path, name) for name in ("a", "b", "c"))
+    root = Path(db.work_dir) / "scenes"
+
+    def unpacked() -> set[str]:
+        return {p.name.partition("-")[0] for p in root.iterdir()}
+
+    def aged(scene, seconds: float) -> None:  # its last use set back (mtimes of one instant would tie)
+        complete = root / f"{scene.id}-{scene.sha256[:12]}" / ".complete"
+        os.utime(complete, (time.time() - seconds, time.time() - seconds))
+
+    def read(scene) -> str:
+        with runtime.scene_dataset(scene, settings, storage) as dataset:
+            return (dataset / "transforms_train.json").read_text()
+
+    assert (read(a), read(b)) == ("a" * 1000, "b" * 1000) and unpacked() == {a.id, b.id}
+    with runtime.scene_dataset(b, settings, storage) as held:  # a stage reads b ...
+        aged(b, 20)  # ... the least recently used, then a
+        aged(a, 10)
+        assert read(c) == "c" * 1000
+        assert unpacked() == {b.id, c.id}  # a went; b stays while it is read
+        assert (held / "transforms_train.json").read_text() == "b" * 1000
+    assert read(a) == "a" * 1000  # unpacked again; b, no longer read, goes
+    assert unpacked() == {a.id, c.id}
+    assert runtime.evict_scene_datasets(settings) == []
+
+
+def test_a_stage_that_waited_on_an_eviction_of_its_dataset_reads_one_it_holds(db, tmp_path):
+    """A stage that found its dataset as an eviction took it (the eviction holds its lock while it deletes it) waits
+    for the eviction, then reads the dataset as unpacked again (by another stage meanwhile, here), holding that one:
+    it had held the deleted folder's lock, and an eviction took the folder it read."""
+    import fcntl
+    import shutil
+    import threading
+    from pathlib import Path
+
+    from voxe_service.storage import get_storage
+    from worker import runtime
+
+    storage, scene = get_storage(db), stored_dataset_scene(db, tmp_path, "a")
+    with runtime.scene_dataset(scene, db, storage) as dataset:
+        pass
+    read = {}
+
+    def stage():
+        with runtime.scene_dataset(scene, db, storage) as again:
+            read["evicted"] = runtime.evict_scene_datasets(db.model_copy(update={"scene_cache_max_bytes": 1}))
+            read["text"] = (again / "transforms_train.json").read_text()
+
+    with open(dataset / ".complete", "rb") as lock:  # an eviction of it under way
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        thread = threading.Thread(target=stage)
+        thread.start()
+        thread.join(0.5)
+        assert thread.is_alive() and not read  # waiting for the lock
+        doomed = dataset.with_name(f".{dataset.name}-evicted")
+        os.rename(dataset, doomed)
+        shutil.rmtree(doomed)
+        with runtime.scene_dataset(scene, db, storage):  # another stage unpacks it again
+            pass
+    thread.join(30)
+    assert read == {"evicted": [], "text": "a" * 1000}
+    assert [p.name for p in Path(db.work_dir, "scenes").iterdir()] == [dataset.name]
 
 
 def test_the_uploads_killed_ingests_left_are_swept_once_their_scenes_are_no_longer_processing(db):

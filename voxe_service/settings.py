@@ -99,6 +99,10 @@ class Settings(BaseSettings):
     task_time_limit_s: int = Field(int(3.5 * 3600), gt=0)
     broker_visibility_timeout_s: int = Field(4 * 3600, gt=0)
     worker_max_tasks_per_child: int = Field(20, ge=1)
+    # Unpacked datasets a worker machine keeps (<work_dir>/scenes): past this, the least recently used that no stage
+    # reads are deleted, and unpacked again when a job needs them (4 of the largest uploads VOXE_MAX_EXTRACTED_BYTES
+    # allows by default).
+    scene_cache_max_bytes: int = Field(32 * 1024**3, gt=0)
     worker_heartbeat_s: float = Field(5.0, gt=0)
     readiness_timeout_s: float = Field(1.0, gt=0)
     # A running job whose worker sent no heartbeat and the job no progress for this long was

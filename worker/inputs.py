@@ -23,10 +23,11 @@ def load_images(job: Job, rec_params: dict, settings, storage):
     """The scene's images as the reconstruction parameters ask (split, downsampling, filter, count)."""
     from voxe_core.data import load_scene
 
-    root = runtime.scene_dataset_dir(job_scene(job), settings, storage)
     # Reconstructions stored before the option existed were fitted on box-filtered images.
     resample = rec_params.get("resample", "box")
-    return load_scene(root, rec_params["split"], rec_params["downsample"], rec_params["max_images"], resample=resample)
+    with runtime.scene_dataset(job_scene(job), settings, storage) as root:
+        return load_scene(root, rec_params["split"], rec_params["downsample"], rec_params["max_images"],
+                          resample=resample)
 
 
 def fetch_grid(job_id: str, name: str, settings, storage, stored: StoredObject | None = None):

@@ -6,6 +6,7 @@ and ``voxe_core`` calls, so the tasks in :mod:`worker.tasks` stay a few lines ea
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import logging
 import math
@@ -509,8 +510,9 @@ def sweep_scratch(settings: Settings) -> list[str]:
 def sweep_scene_datasets(settings: Settings) -> list[str]:
     """Delete this machine's unpacked datasets (``<scene id>-<sha>``) of scenes that are gone or not ready, and the
     half-unpacked debris (``.<scene id>-*``) of unpacks no running job of a ready scene may be making (a job's
-    run killed mid-unpack left it); the folder names swept. A job unpacks its scene while it runs, and a ready
-    scene cannot be deleted while it does."""
+    run killed mid-unpack left it), then evict datasets over ``VOXE_SCENE_CACHE_MAX_BYTES`` (a limit lowered since
+    they were unpacked: :func:`evict_scene_datasets`); the folder names swept. A job unpacks its scene while it runs,
+    and a ready scene cannot be deleted while it does."""
     def kept(owners: set[str]) -> set[str]:
         with session_scope() as session:
             ready = set(session.scalars(select(Scene.id).where(Scene.id.in_({o.lstrip(".") for o in owners}),
@@ -518,7 +520,7 @@ def sweep_scene_datasets(settings: Settings) -> list[str]:
             unpacking = set(session.scalars(select(Job.scene_id).where(Job.scene_id.in_(ready), Job.state == RUNNING)))
         return ready | {f".{scene_id}" for scene_id in unpacking}
 
-    return _sweep(Path(settings.work_dir) / "scenes", _leading_id, kept)
+    return _sweep(Path(settings.work_dir) / "scenes", _leading_id, kept) + evict_scene_datasets(settings)
 
 
 def sweep_ingest_scratch(settings: Settings) -> list[str]:
@@ -665,12 +667,34 @@ def _holds(path: Path, stored: StoredObject) -> bool:
     return path.stat().st_size == stored.size and file_sha256(path) == (stored.size, stored.sha256)
 
 
-def scene_dataset_dir(scene: Scene, settings: Settings, storage: Storage) -> Path:
-    """The scene's dataset folder on this machine: downloaded (checked against its recorded size and SHA-256) and
-    unpacked once, then reused."""
+COMPLETE = ".complete"
+"""The file an unpacked dataset's folder is renamed into place with, and that each reader locks shared."""
+
+
+@contextmanager
+def scene_dataset(scene: Scene, settings: Settings, storage: Storage) -> Iterator[Path]:
+    """The scene's dataset folder on this machine, for the block to read: downloaded (checked against its recorded
+    size and SHA-256) and unpacked once, then reused, while the datasets fit in ``VOXE_SCENE_CACHE_MAX_BYTES``. The
+    block holds the dataset's ``.complete`` locked shared, so no eviction (:func:`evict_scene_datasets`, which a new
+    unpack runs) takes it meanwhile; a dataset evicted is unpacked again when next asked for."""
     root = Path(settings.work_dir) / "scenes" / f"{scene.id}-{scene.sha256[:12]}"
-    if (root / ".complete").is_file():
-        return root
+    lock, unpacked = _read_lock(root), False
+    while lock is None:  # not unpacked on this machine, or evicted before its lock was taken
+        lock, unpacked = _unpack(scene, root, storage), True
+    with lock:
+        if unpacked:
+            try:
+                if evicted := evict_scene_datasets(settings):
+                    log.info("evicted the unpacked dataset(s) %s (VOXE_SCENE_CACHE_MAX_BYTES)", ", ".join(evicted))
+            except OSError:  # the cache's upkeep never fails the stage that reads it
+                log.warning("could not evict unpacked datasets", exc_info=True)
+        yield root
+
+
+def _unpack(scene: Scene, root: Path, storage: Storage):
+    """Unpack the scene's archive aside and rename it into place as ``root``; its read lock (:func:`_read_lock`),
+    taken before the folder shows, so no eviction takes it first; None when another process on this machine unpacked
+    it first and it was evicted since."""
     root.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=root.parent, prefix=f".{scene.id}-"))
     try:
@@ -678,15 +702,91 @@ def scene_dataset_dir(scene: Scene, settings: Settings, storage: Storage) -> Pat
                         f"scene {scene.id}'s archive {scene.storage_key}")
         datasets.unpack(archive, tmp / "data")
         archive.unlink()
-        (tmp / "data" / ".complete").write_text("ok")
+        (tmp / "data" / COMPLETE).write_text("ok")
+        lock = open(tmp / "data" / COMPLETE, "rb")
+        _share(lock)
         try:
             os.rename(tmp / "data", root)
         except OSError:  # another process on this machine finished first
-            if not (root / ".complete").is_file():
+            lock.close()
+            if not (root / COMPLETE).is_file():
                 raise
+            return _read_lock(root)
+        return lock
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    return root
+
+
+def _read_lock(root: Path):
+    """``root/.complete`` open and locked shared, its time of use marked (the eviction's order); None when ``root``
+    holds no dataset (never unpacked here, or evicted before the lock was taken)."""
+    path = root / COMPLETE
+    try:
+        lock = open(path, "rb")
+    except FileNotFoundError:
+        return None
+    _share(lock)
+    with contextlib.suppress(FileNotFoundError):
+        if os.path.samestat(os.fstat(lock.fileno()), os.stat(path)):  # (not evicted while the lock was awaited)
+            os.utime(path)
+            return lock
+    lock.close()
+    return None
+
+
+def _share(lock) -> None:
+    with contextlib.suppress(OSError):  # a filesystem without locks: no eviction can lock a dataset there either
+        fcntl.flock(lock, fcntl.LOCK_SH)
+
+
+def evict_scene_datasets(settings: Settings) -> list[str]:
+    """Delete this machine's least recently used unpacked datasets that no stage is reading until the rest fit in
+    ``VOXE_SCENE_CACHE_MAX_BYTES``; the folder names evicted. A dataset a stage reads stays (its lock is held:
+    :func:`scene_dataset`), over the limit if need be. Evictions run one at a time on the machine (a lock on the
+    folder of datasets), so two never both free the same excess. Nothing is evicted on a filesystem without locks."""
+    root = Path(settings.work_dir) / "scenes"
+    if not root.is_dir():
+        return []
+    folder_lock = os.open(root, os.O_RDONLY)
+    try:
+        try:
+            fcntl.flock(folder_lock, fcntl.LOCK_EX)
+        except OSError:  # a filesystem without locks
+            return []
+        unpacked = []
+        for folder in root.iterdir():
+            with contextlib.suppress(FileNotFoundError):  # (a sweep removed it meanwhile)
+                if not folder.name.startswith(".") and (folder / COMPLETE).is_file():
+                    unpacked.append(((folder / COMPLETE).stat().st_mtime, folder, _folder_bytes(folder)))
+        total, evicted = sum(size for *_, size in unpacked), []
+        for _used, folder, size in sorted(unpacked):  # least recently used first
+            if total <= settings.scene_cache_max_bytes:
+                break
+            if _evict(folder):
+                total -= size
+                evicted.append(folder.name)
+        return evicted
+    finally:
+        os.close(folder_lock)
+
+
+def _folder_bytes(folder: Path) -> int:
+    return sum(os.lstat(os.path.join(parent, name)).st_size for parent, _, names in os.walk(folder) for name in names)
+
+
+def _evict(folder: Path) -> bool:
+    """Delete the dataset ``folder`` unless a stage reads it (its ``.complete`` locked); whether it went. It is
+    renamed to unpack debris (``.<scene id>-...``) first, so a reader never finds it half deleted, and a deletion cut
+    short is swept as debris."""
+    try:
+        with open(folder / COMPLETE, "rb") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            doomed = folder.with_name(f".{folder.name}-{uuid.uuid4().hex[:8]}")
+            os.rename(folder, doomed)
+            shutil.rmtree(doomed, ignore_errors=True)
+    except OSError:  # read by a stage, evicted or swept meanwhile, or a filesystem without locks
+        return False
+    return True
 
 
 # --------------------------------------------------------------------------- reconstruction claim

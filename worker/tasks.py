@@ -480,7 +480,8 @@ def _voxelize(job: Job, rec, settings, storage):
     """Route (b): the mesh scene's uploaded mesh written straight into G_i at the reconstruction's final resolution."""
     from voxe_core.mesh_input import VoxelizeConfig, voxelize
 
-    mesh = load_stored_mesh(runtime.scene_dataset_dir(job_scene(job), settings, storage))
+    with runtime.scene_dataset(job_scene(job), settings, storage) as dataset:
+        mesh = load_stored_mesh(dataset)
     config = reconstruct_config(rec.params, settings.checkpoint_every)
     return voxelize(mesh, VoxelizeConfig(resolution=config.resolutions[-1], bbox_min=config.bbox_min,
                                          bbox_max=config.bbox_max, seed=rec.params["seed"]))
@@ -779,8 +780,8 @@ _heartbeat_stop = threading.Event()
 
 
 SCRATCH_SWEEP_S = 600.0
-"""How often the heartbeat thread also sweeps ended jobs' scratch, gone scenes' datasets, killed unpacks and ended
-ingests' uploads (runtime.sweep_*)."""
+"""How often the heartbeat thread also sweeps ended jobs' scratch, gone scenes' datasets, killed unpacks, datasets
+over the cache's limit and ended ingests' uploads (runtime.sweep_*)."""
 
 
 def _beat(hostname: str, queues: str, device: str, models: dict) -> None:
@@ -811,8 +812,8 @@ def _beat(hostname: str, queues: str, device: str, models: dict) -> None:
         if time.monotonic() >= next_sweep:
             next_sweep = time.monotonic() + SCRATCH_SWEEP_S
             for sweep, done in ((runtime.sweep_scratch, "removed the scratch of %d ended job(s)"),
-                                (runtime.sweep_scene_datasets, "removed %d dataset(s) of deleted scenes or killed "
-                                                               "unpacks"),
+                                (runtime.sweep_scene_datasets, "removed %d dataset(s) of deleted scenes, killed "
+                                                               "unpacks or over VOXE_SCENE_CACHE_MAX_BYTES"),
                                 (runtime.sweep_ingest_scratch, "removed %d upload(s) left by killed ingests")):
                 try:
                     if swept := sweep(settings):
