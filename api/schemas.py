@@ -379,7 +379,8 @@ class ReconstructionOut(BaseModel):
     iteration: int
     total: int
     params: dict
-    error: str | None
+    error: str | None = Field(description="why its last fit stopped: failed, or pending after a fit whose worker ran "
+                              "out of memory (handed back to a job of it not yet ended)")
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None

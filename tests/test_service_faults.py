@@ -738,6 +738,45 @@ def test_a_fit_that_runs_out_of_memory_fails_its_job_alone_and_a_job_waiting_on_
     assert (rec.state, rec.owner_job_id, rec.error) == ("succeeded", waiting, None)
 
 
+def test_a_fit_out_of_memory_says_so_on_the_reconstruction_and_fails_it_once_no_job_is_left_to_take_it_over(
+        db, monkeypatch):
+    """A fit whose worker ran out of memory was handed back with no word: the reconstruction listed pending, its
+    error empty, as if a job were about to fit it, while each job that took it over failed. It records the error,
+    pending while a job of it has not ended (that job takes it over), failed once none is left; a later job tries
+    it again."""
+    from conftest import make_sphere_grid
+    from voxe_service.storage import get_storage
+    from worker import runtime, tasks
+
+    scene = add_scene()
+    rec_id = add_reconstruction(scene, params={"route": "voxelize"})
+    fitter, queued = (add_job(scene, "queued", 0, reconstruction_id=rec_id) for _ in range(2))
+
+    def voxelize(job, rec, settings, storage):
+        if job.id in (fitter, queued):
+            raise MemoryError()
+        return make_sphere_grid(8)
+
+    monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
+    monkeypatch.setattr(tasks, "_voxelize", voxelize)
+
+    def reconstruction():
+        rec = runtime.load_reconstruction(rec_id)
+        return rec.state, rec.error
+
+    assert tasks.reconstruct_task.apply(args=(fitter,)).get()["state"] == "failed"
+    said = "out of memory on the worker (MemoryError)"
+    assert job_row(fitter).error == f"reconstruct: {said}"
+    assert reconstruction() == ("pending", f"job {fitter}'s fit: {said}")  # the queued job takes it over ...
+    assert tasks.reconstruct_task.apply(args=(queued,)).get()["state"] == "failed"
+    assert job_row(queued).error == f"reconstruct: {said}"
+    assert reconstruction() == ("failed", f"job {queued}'s fit: {said}")  # ... and none is left
+    assert runtime.load_reconstruction(rec_id).finished_at is not None
+    later = add_job(scene, "queued", 0, reconstruction_id=rec_id)  # (on a worker with more memory)
+    tasks._reconstruct(runtime.load_job(later), db, "cpu", get_storage(db))
+    assert reconstruction() == ("succeeded", None)
+
+
 class WorkerGoingDown(BaseException):
     """Stands in for what ends the worker inside a running task (SystemExit, KeyboardInterrupt)."""
 

@@ -492,7 +492,8 @@ NOT_THE_FITS_FAILURE = (StageCancelled, runtime.LeaseLost, runtime.RunSuperseded
 """What stops an owner's fit without failing it (and every job waiting on it): its job canceled, its lease or job
 taken over, its task's time limit (a job's, which fails the owner's job alone), the storage out of reach; so do a
 database outage (``voxe_service.db.database_outage``) and its worker out of memory (``is_out_of_memory``: its
-machine's fault, as when the OOM killer ends its process and a waiting job takes the lapsed lease over)."""
+machine's fault, as when the OOM killer ends its process and a waiting job takes the lapsed lease over; handed back
+saying so: ``runtime.hand_back_out_of_memory``)."""
 
 
 def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> None:
@@ -527,8 +528,11 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
                     and not runtime.worker_in_cold_shutdown()):
                 runtime.set_reconstruction(rec.id, job.id, job.run_token, state=R_FAILED, lease_until=None,
                                            finished_at=utcnow(), error=runtime.failure_text(exc))
-            else:  # stopped for the owner's sake (NOT_THE_FITS_FAILURE), its worker out of memory, or the worker
-                # going down (SystemExit, KeyboardInterrupt, or what a cold shutdown raises in a solo pool's task): a
+            elif is_out_of_memory(exc):  # the error recorded; a job still waiting takes over (more memory?)
+                runtime.hand_back_out_of_memory(rec.id, job.id, job.run_token,
+                                                f"job {job.id}'s fit: {runtime.failure_text(exc)}")
+            else:  # stopped for the owner's sake (NOT_THE_FITS_FAILURE), a database outage, or the worker going
+                # down (SystemExit, KeyboardInterrupt, or what a cold shutdown raises in a solo pool's task): a
                 # waiting job, or this one redelivered, takes over from the checkpoint
                 runtime.set_reconstruction(rec.id, job.id, job.run_token, state=R_PENDING, owner_job_id=None,
                                            owner_run_token=None, lease_until=None)
