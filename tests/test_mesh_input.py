@@ -508,6 +508,17 @@ def test_loading_normalises_and_refuses_bad_files(tmp_path):
         load_mesh(SPOT / "spot_triangulated.obj", tmp_path / "odd.png")
 
 
+def test_vertices_of_two_coordinates_are_refused_naming_the_count(tmp_path):
+    """trimesh reads an OBJ's "v x y" lines (or a file mixing them with "v x y z") as (V, 2) vertices: placing them
+    had raised a bare IndexError (an ingest's failure said no more), with or without a texture."""
+    (tmp_path / "flat.obj").write_text("v 0 0\nv 1 0\nv 0 1\nvt 0 0\nvt 1 0\nvt 0 1\nf 1/1 2/2 3/3\n")
+    (tmp_path / "mixed.obj").write_text("v 0 0 0\nv 1 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 3 4\n")
+    Image.new("RGB", (4, 4), RED[:3]).save(tmp_path / "red.png")
+    for name, texture in (("flat.obj", None), ("flat.obj", tmp_path / "red.png"), ("mixed.obj", None)):
+        with pytest.raises(MeshError, match=rf"{name}: its vertices read as 2 coordinates each, not 3 \(x y z\)"):
+            load_mesh(tmp_path / name, texture)
+
+
 # ------------------------------------------------------------------ voxelisation
 @pytest.fixture(scope="module")
 def green_sphere(tmp_path_factory):

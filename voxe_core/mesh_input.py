@@ -188,6 +188,8 @@ def load_mesh(
         vertices, faces, uv = _joined_parts(parts)
     if len(faces) == 0 or len(vertices) < 3:
         raise MeshError(f"{path.name}: no triangles in the file")
+    if vertices.shape[1] != 3:  # an OBJ's "v x y" lines load so (as (V, 2)); placing them had raised an IndexError
+        raise MeshError(f"{path.name}: its vertices read as {vertices.shape[1]} coordinates each, not 3 (x y z)")
     if faces.min() < 0 or faces.max() >= len(vertices):  # a PLY loads so (an OBJ's reader refuses it)
         raise MeshError(f"{path.name}: a face names vertex {int(faces.max()) + 1} of {len(vertices)} "
                         f"(or a negative index)")
