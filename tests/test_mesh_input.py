@@ -508,6 +508,22 @@ def test_loading_normalises_and_refuses_bad_files(tmp_path):
         load_mesh(SPOT / "spot_triangulated.obj", tmp_path / "odd.png")
 
 
+@pytest.mark.parametrize("unit", [1e-170, 1e155, 1e300])
+def test_a_mesh_in_any_float64_unit_is_placed_as_in_unit_one(tmp_path, unit):
+    """Placement is scale-free: the view radius's norm of coordinates near 1e-170 had underflowed to 0 (a
+    ZeroDivisionError), and at 1e155 overflowed to inf (scaled to nothing, refused as having zero area)."""
+    faces = "f 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"
+    for name, size in (("one.obj", 1.0), ("scaled.obj", unit)):  # text: a PLY's float32 holds neither unit
+        (tmp_path / name).write_text(f"v 0 0 0\nv {size!r} 0 0\nv 0 {size!r} 0\nv 0 0 {size!r}\n{faces}")
+    expected = load_mesh(tmp_path / "one.obj").vertices
+    assert np.allclose(load_mesh(tmp_path / "scaled.obj").vertices, expected, rtol=1e-12, atol=0)
+    (tmp_path / "wide.obj").write_text(f"v -1.7e308 0 0\nv 1.7e308 0 0\nv 0 1.7e308 0\nv 0 0 1.7e308\n{faces}")
+    assert np.isfinite(load_mesh(tmp_path / "wide.obj").vertices).all()
+    (tmp_path / "speck.obj").write_text("v 0 0 0\nv 1e-310 0 0\nv 0 1e-310 0\nf 1 2 3\n")
+    with pytest.raises(MeshError, match=r"speck.obj: the mesh's extent, 1e-310, is too small to scale up"):
+        load_mesh(tmp_path / "speck.obj")
+
+
 def test_vertices_of_two_coordinates_are_refused_naming_the_count(tmp_path):
     """trimesh reads an OBJ's "v x y" lines (or a file mixing them with "v x y z") as (V, 2) vertices: placing them
     had raised a bare IndexError (an ingest's failure said no more), with or without a texture."""

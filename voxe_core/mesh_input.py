@@ -223,16 +223,18 @@ def load_mesh(
     if mesh.uv is not None and not np.isfinite(mesh.uv).all():  # the texture lookup would sample garbage there
         raise MeshError(f"{path.name}: texture coordinates (vt) contain NaN or Inf")
     lo, hi = boxed.min(0), boxed.max(0)
-    half = float((hi - lo).max()) / 2
+    half = float((hi / 2 - lo / 2).max())  # each halved first: a span past float64's 1.8e308 had been inf
     if not half > 0:
         raise MeshError(f"{path.name}: all vertices coincide; the mesh has no extent")
+    if not math.isfinite(extent / half):
+        raise MeshError(f"{path.name}: the mesh's extent, {2 * half:.3g}, is too small to scale up in float64")
     up = UP_AXES[up_axis]
     order = [(up + 1) % 3, (up + 2) % 3, up]  # a cyclic permutation: a rotation, handedness kept
-    mesh.vertices = (mesh.vertices - (lo + hi) / 2)[:, order]
-    scale = extent / half
-    if frame == 2:
-        scale = min(scale, VIEW_RADIUS / float(np.linalg.norm(mesh.vertices, axis=1).max()))
-    mesh.vertices *= scale
+    mesh.vertices = (mesh.vertices - (lo / 2 + hi / 2))[:, order]
+    scale = extent
+    if frame == 2:  # the reach taken at half-extent 1: at 1e-170 (or 1e155) the norm's squares under- (over)flowed
+        scale = min(scale, VIEW_RADIUS / float(np.linalg.norm(mesh.vertices / half, axis=1).max()))
+    mesh.vertices *= scale / half
     if not _has_area(mesh.vertices, mesh.faces, 1e-12 * extent**2):  # voxelised, it would be an empty grid
         raise MeshError(f"{path.name}: every triangle has zero area (repeated or collinear vertices); "
                         "the mesh has no surface")
