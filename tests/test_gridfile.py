@@ -230,6 +230,7 @@ def test_damaged_or_unknown_sparse_files_are_named(tmp_path, make_sphere_grid):
     (lambda t, m: (t, {**m, "density_scale": "33"}), "density_scale '33' is not a positive number"),
     (lambda t, m: (t, {**m, "density_scale": True}), "density_scale True is not a positive number"),  # had been 1
     (lambda t, m: (t, {**m, "activation": "tanh"}), "damaged grid: unknown density activation 'tanh'"),
+    (lambda t, m: (t, {**m, "backbone": ["scene"]}), r"header names unknown backbone \['scene'\]"),  # TypeError
     (lambda t, m: ({**t, "features": t["features"][..., :3].contiguous()}, {**m, "layout": "dense"}),
      r"features of shape \(16, 16, 16, 3\)"),
 ])

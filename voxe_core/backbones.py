@@ -39,7 +39,7 @@ def find_backbone(name: str) -> type[VoxelGrid]:
     """The grid class registered as ``name`` (ValueError naming the known ones otherwise)."""
     try:
         return BACKBONES[name]
-    except KeyError:
+    except (KeyError, TypeError):  # TypeError: a damaged header's list or object, unhashable
         raise ValueError(f"unknown backbone {name!r}; use {' or '.join(map(repr, BACKBONES))}") from None
 
 
