@@ -231,6 +231,10 @@ def test_damaged_or_unknown_sparse_files_are_named(tmp_path, make_sphere_grid):
     (lambda t, m: (t, {**m, "density_scale": True}), "density_scale True is not a positive number"),  # had been 1
     (lambda t, m: (t, {**m, "activation": "tanh"}), "damaged grid: unknown density activation 'tanh'"),
     (lambda t, m: (t, {**m, "backbone": ["scene"]}), r"header names unknown backbone \['scene'\]"),  # TypeError
+    # A tensor or field of the layout missing: the message had been the bare key ("damaged sparse grid: 'fill'").
+    (lambda t, m: ({k: v for k, v in t.items() if k != "fill"}, m), "damaged sparse grid: no 'fill' in the file"),
+    (lambda t, m: (t, {k: v for k, v in m.items() if k != "resolution"}),
+     "damaged sparse grid: no 'resolution' in the file"),
     (lambda t, m: ({**t, "features": t["features"][..., :3].contiguous()}, {**m, "layout": "dense"}),
      r"features of shape \(16, 16, 16, 3\)"),
 ])

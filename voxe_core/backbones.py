@@ -52,7 +52,9 @@ def grid_from_state(tensors: dict[str, torch.Tensor], meta: dict) -> VoxelGrid:
         raise FormatError(f"the grid's header names {exc}") from None
     try:
         tensors = dense_tensors(tensors, meta)
-    except (KeyError, ValueError) as exc:
+    except KeyError as exc:  # a tensor or field the layout needs: the bare key alone had been the message
+        raise FormatError(f"damaged sparse grid: no {exc} in the file") from None
+    except ValueError as exc:
         raise FormatError(f"damaged sparse grid: {exc}") from None
     features = tensors.get("features")
     if features is not None and (features.dim() != 4 or features.shape[-1] != 4):
