@@ -302,6 +302,12 @@ def test_a_damaged_header_is_a_format_error_naming_the_file(tmp_path, header, me
     assert str(error.value).startswith(str(path))
 
 
+def test_a_folder_given_as_a_grid_file_is_named_a_folder(tmp_path):
+    with pytest.raises(FormatError) as error:  # it had been "no such file", of a path that is there
+        load_grid(tmp_path)
+    assert str(error.value) == f"{tmp_path}: is a folder, not a file"
+
+
 def test_dense_tensors_keeps_the_stored_dtype_and_other_tensors():
     features = torch.randn(5, 5, 5, 4)
     cells = torch.zeros(4, 4, 4, dtype=torch.bool)

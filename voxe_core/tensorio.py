@@ -75,6 +75,8 @@ def load_header(path: str | os.PathLike, kind: str, max_version: int) -> dict:
     there that the tensors' declared offsets cover the file exactly, so a truncated or padded file fails here as in
     :func:`load_tensors`."""
     path = Path(path)
+    if path.is_dir():  # (it had been "no such file", of a path that is there)
+        raise FormatError(f"{path}: is a folder, not a file")
     if not path.is_file():
         raise FormatError(f"{path}: no such file")
     try:
