@@ -269,6 +269,25 @@ def test_a_scene_grid_beyond_the_far_ratio_bound_says_so_rather_than_damaged(tmp
                                 "as a scene grid an older version saved may be: refit the scene with this one")
 
 
+@pytest.mark.parametrize("field, value, message", [
+    ("near_samples", 2.9, "near_samples must be a whole number, got 2.9"),  # had been cut to 2
+    ("far_samples", 1e300, "far_samples must be a whole number, got 1e+300"),  # the render had failed (an overflow)
+    ("foreground_extent", 1e300, "foreground_extent must be a positive length, finite in float32, got 1e+300"),
+    ("foreground_extent", True, "foreground_extent must be a positive length, finite in float32, got True"),  # 1
+])
+def test_a_scene_grid_header_it_cannot_render_is_a_format_error(tmp_path, field, value, message):
+    """Each had loaded: a sample count of 2.9 cut to 2, JSON's true an extent of 1, and an extent or sample count of
+    1e300 failing only as the grid rendered (float32's "cannot be converted without overflow", "Overflow when
+    unpacking long long")."""
+    grid = SceneGrid(9)
+    path = tmp_path / "scene.safetensors"
+    save_tensors(path, grid.state_tensors(), kind="voxel_grid", version=2,
+                 meta={**grid.header(), "layout": "dense", field: value})
+    with pytest.raises(FormatError) as error:
+        load_grid(path)
+    assert str(error.value) == f"{path}: damaged grid: {message}"
+
+
 @pytest.mark.parametrize("backbone", [VoxelGrid, SceneGrid])
 @pytest.mark.parametrize("scale", [0.0, -2.0, float("nan"), float("inf")])
 def test_a_grid_whose_file_could_not_be_read_back_is_refused_when_built(tmp_path, backbone, scale):

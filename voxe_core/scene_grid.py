@@ -36,14 +36,14 @@ methods ``SceneGrid`` overrides (``ray_samples``, ``dataset_cameras``,
 
 from __future__ import annotations
 
-import math
+import numbers
 from dataclasses import replace
 from typing import Iterator
 
 import torch
 
 from voxe_core.cameras import Cameras
-from voxe_core.constants import NERF_SYNTHETIC_RADIUS
+from voxe_core.constants import FLOAT32_MAX, NERF_SYNTHETIC_RADIUS
 from voxe_core.grid import Activation, Occupancy, VoxelGrid, default_density_scale, ray_box_intersection
 from voxe_core.tensorio import FormatError
 from voxe_core.volrend import RaySamples
@@ -90,8 +90,13 @@ class SceneGrid(VoxelGrid):
         far_ratio: float = 1000.0,
         frame: torch.Tensor | None = None,
     ):
-        if not (math.isfinite(foreground_extent) and foreground_extent > 0):
-            raise ValueError(f"foreground_extent must be a positive length, got {foreground_extent}")
+        # A file's header is read through here: its extent of 1e300 (past float32) had loaded and failed the render,
+        # JSON's true had been 1; its sample count of 2.9 had been cut to 2, of 1e300 failed the render.
+        if isinstance(foreground_extent, bool) or not 0 < foreground_extent <= FLOAT32_MAX:
+            raise ValueError(f"foreground_extent must be a positive length, finite in float32, got {foreground_extent}")
+        for name, count in (("near_samples", near_samples), ("far_samples", far_samples)):
+            if isinstance(count, bool) or not isinstance(count, numbers.Integral):
+                raise ValueError(f"{name} must be a whole number, got {count!r}")
         # far_ratio "not in range": an infinite one made the last far bin infinite, and an empty ray's render NaN;
         # so did a finite one whose float32 product with the exit distance overflowed (3e38, or 1e38 times 4).
         if near_samples < 1 or far_samples < 1 or not 1 < far_ratio <= MAX_FAR_RATIO:
