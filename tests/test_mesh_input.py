@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from contextlib import ExitStack, contextmanager
 
 
@@ -522,6 +523,8 @@ def test_a_mesh_in_any_float64_unit_is_placed_as_in_unit_one(tmp_path, unit):
     (tmp_path / "speck.obj").write_text("v 0 0 0\nv 1e-310 0 0\nv 0 1e-310 0\nf 1 2 3\n")
     with pytest.raises(MeshError, match=r"speck.obj: the mesh's extent, 1e-310, is too small to scale up"):
         load_mesh(tmp_path / "speck.obj")
+    with pytest.raises(MeshError, match="extent must be positive and finite, got inf"):
+        load_mesh(tmp_path / "one.obj", extent=math.inf)
 
 
 def test_vertices_of_two_coordinates_are_refused_naming_the_count(tmp_path):

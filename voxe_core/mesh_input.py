@@ -161,8 +161,8 @@ def load_mesh(
         raise MeshError(f"{path.name}: unsupported mesh type {path.suffix!r}; use one of {', '.join(MESH_INPUT_SUFFIXES)}")
     if up_axis not in UP_AXES:
         raise MeshError(f"up_axis must be one of {', '.join(UP_AXES)}, got {up_axis!r}")
-    if not extent > 0:
-        raise MeshError(f"extent must be positive, got {extent}")
+    if not 0 < extent < math.inf:  # an infinite one had been refused as the mesh's extent "too small to scale up"
+        raise MeshError(f"extent must be positive and finite, got {extent}")
     if frame not in MESH_FRAMES:
         raise MeshError(f"frame must be one of {MESH_FRAMES}, got {frame!r}")
     try:  # with a texture, its parts as they are: the file's materials are not what colours it
