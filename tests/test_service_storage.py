@@ -152,6 +152,46 @@ def test_keys_cannot_escape(storage, key):
         check_key(key)
 
 
+def test_local_keys_up_to_the_filesystem_limits_are_stored_and_longer_ones_refused_naming_the_limit(tmp_path):
+    """A key part over 217 characters (255 with the temporary name's 38), or a path over 4096 bytes, had failed
+    with a bare ENAMETOOLONG from inside the write, the folders of a long path already made and left behind."""
+    store = LocalStorage(tmp_path / "store")
+    store.put_bytes("jobs/j/" + "n" * 217, b"x")
+    with pytest.raises(StorageError, match=r"^storage key 'jobs/j/n+\.\.\.n+' \(225 characters\) is too long: its "
+                                           r"name is 218 characters, the most here is 217 \(255 less the 38 of the "
+                                           r"temporary name it is written under\)$"):
+        store.put_bytes("jobs/j/" + "n" * 218, b"x")
+    store.put_bytes("f" * 255 + "/a", b"x")
+    with pytest.raises(StorageError, match="its folder 'f+'... is 256 characters, the most a file name takes here "
+                                           "is 255$"):
+        store.put_bytes("f" * 256 + "/a", b"x")
+    room = 4096 - 1 - 38 - len(os.fsencode(store.root / "deep"))  # for "/<folder>" * k + "/<name>"
+    folders = (room - 17) // 200  # of 199 characters: a name of 17 to 216 characters fills the room
+    longest = "deep" + ("/" + "d" * 199) * folders + "/" + "x" * (room - 200 * folders - 1)
+    assert len(os.fsencode(store.root / longest)) == 4057
+    store.put_bytes(longest, b"x")
+    assert b"".join(store.open_range(longest)) == b"x"
+    with pytest.raises(StorageError, match=f"is too long: under {store.root} it makes a path of 4058 bytes, the "
+                                           r"most here is 4057 \(4096 less"):
+        store.put_bytes(longest + "x", b"x")
+    with pytest.raises(StorageError, match="is too long"):  # reads say so too, not ENAMETOOLONG
+        store.size("jobs/j/" + "n" * 300)
+    store.delete_prefix("deep/")
+    store.delete_prefix("jobs/")
+    store.delete_prefix("f")
+    assert list(store.root.iterdir()) == []  # nothing of the refused writes left behind
+
+
+def test_s3_keys_over_1024_bytes_with_the_prefix_are_refused_naming_the_limit(aws_env, s3_endpoint):
+    """S3 refuses them (KeyTooLongError) where moto stores them: refused here, before any request."""
+    store = S3Storage("voxe-test-long-keys", endpoint_url=s3_endpoint, region="us-east-1", prefix="svc")
+    store.put_bytes("jobs/" + "k" * 1015, b"x")  # 4 + 1020 bytes
+    with pytest.raises(StorageError, match=r"\(1021 characters\) is too long: with the prefix 'svc/' it is 1025 "
+                                           "bytes, the most an S3 key takes is 1024$"):
+        store.put_bytes("jobs/" + "k" * 1016, b"x")
+    assert store.list("jobs/") == ["jobs/" + "k" * 1015]
+
+
 def test_local_writes_are_atomic(tmp_path, monkeypatch):
     store = LocalStorage(tmp_path / "store")
     store.put_bytes("a/b.bin", b"old")

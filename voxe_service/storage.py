@@ -6,7 +6,9 @@ they produce. Writes are atomic (local: temporary name + rename; S3: a PUT is
 all-or-nothing) and return the object's size and SHA-256.
 
 Keys are relative POSIX paths (``scenes/<id>/dataset.zip``); ``..``, absolute paths
-and backslashes are refused, so a key can never leave the storage root.
+and backslashes are refused, so a key can never leave the storage root. A key too long
+for its backend (a local file name or path, S3's 1024 bytes) is refused before anything
+is written.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from typing import BinaryIO
 log = logging.getLogger("voxe.storage")
 CHUNK = 1 << 20
 _KEY_PART = re.compile(r"^[A-Za-z0-9._-]+$")
+S3_KEY_MAX_BYTES = 1024  # S3's (and MinIO's) longest object key, the prefix included
 
 
 class StorageError(RuntimeError):
@@ -179,13 +182,29 @@ class LocalStorage(Storage):
     def __init__(self, root: str | os.PathLike):
         self.root = Path(root).resolve()
         self.root.mkdir(parents=True, exist_ok=True)
+        self.name_max, self.path_max = _name_and_path_max(self.root)
 
     def path(self, key: str) -> Path:
-        return self.root / check_key(key)
+        """The object's file; StorageError for a key its file (or the temporary file put_file writes first) could
+        not be named by: a bare ENAMETOOLONG had come from deep in a write, its folders already made."""
+        path = self.root / check_key(key)
+        *folders, name = key.split("/")
+        if len(longest := max(folders, key=len, default="")) > self.name_max:
+            raise _too_long(key, f"its folder {longest[:40]!r}... is {len(longest)} characters, the most a file "
+                                 f"name takes here is {self.name_max}")
+        if len(name) + _TEMPORARY_EXTRA > self.name_max:
+            raise _too_long(key, f"its name is {len(name)} characters, the most here is "
+                                 f"{self.name_max - _TEMPORARY_EXTRA} ({self.name_max} less the "
+                                 f"{_TEMPORARY_EXTRA} of the temporary name it is written under)")
+        if len(os.fsencode(path)) + _TEMPORARY_EXTRA >= self.path_max:
+            raise _too_long(key, f"under {self.root} it makes a path of {len(os.fsencode(path))} bytes, the most "
+                                 f"here is {self.path_max - _TEMPORARY_EXTRA - 1} ({self.path_max} less the "
+                                 f"temporary name's {_TEMPORARY_EXTRA} and the terminating byte)")
+        return path
 
     def put_file(self, key, path, content_type=None) -> StoredObject:
         target = self.path(key)
-        tmp = target.with_name(f".{target.name}.{uuid.uuid4().hex}.tmp")
+        tmp = _temporary_sibling(target)
         digest, size = hashlib.sha256(), 0
         try:
             with open(path, "rb") as src, _create_in_folder(tmp) as dst:
@@ -213,7 +232,7 @@ class LocalStorage(Storage):
         with self._open(key) as source:
             dest = Path(dest)
             dest.parent.mkdir(parents=True, exist_ok=True)
-            tmp = dest.with_name(f".{dest.name}.{uuid.uuid4().hex}.tmp")
+            tmp = _temporary_sibling(dest)
             try:
                 with open(tmp, "wb") as copy:
                     shutil.copyfileobj(source, copy, CHUNK)
@@ -285,9 +304,31 @@ class LocalStorage(Storage):
         return f"local:{self.root}"
 
 
+def _temporary_sibling(path: Path) -> Path:
+    """Where ``path`` is written before it is renamed into place: ``.<name>.<uuid hex>.tmp`` beside it."""
+    return path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+
+
+_TEMPORARY_EXTRA = len(_temporary_sibling(Path("x")).name) - 1
+"""What the temporary name adds to a name's length (38 characters)."""
 _WRITING = re.compile(r"^\..+\.[0-9a-f]{32}\.tmp$")
-"""The name of a file being written (``put_file``'s ``.<name>.<uuid hex>.tmp``): never a key, whereas any other
-name ending in ``.tmp`` is one, as on S3."""
+"""The name of a file being written (:func:`_temporary_sibling`'s): never a key, whereas any other name ending in
+``.tmp`` is one, as on S3."""
+
+
+def _name_and_path_max(root: Path) -> tuple[int, int]:
+    """The longest file name and path, in bytes, the filesystem under ``root`` takes (Linux's 255 and 4096 where it
+    cannot be asked)."""
+    try:
+        return os.pathconf(root, "PC_NAME_MAX"), os.pathconf(root, "PC_PATH_MAX")
+    except (AttributeError, OSError, ValueError):  # no pathconf (Windows), or a filesystem that does not say
+        return 255, 4096
+
+
+def _too_long(key: str, why: str) -> StorageError:
+    shown = key if len(key) <= 120 else f"{key[:100]}...{key[-16:]}"
+    return StorageError(f"storage key {shown!r} ({len(key)} characters) is too long: {why}")
+
 
 _CREATE_ATTEMPTS = 3
 
@@ -394,7 +435,12 @@ class S3Storage(Storage):
             raise StorageError(f"S3 bucket {self.bucket!r}: {exc}") from exc
 
     def _full(self, key: str) -> str:
-        return self.prefix + check_key(key)
+        """The object's key in the bucket; StorageError for one over S3's limit (moto stores it, S3 refuses it)."""
+        full = self.prefix + check_key(key)
+        if len(full.encode()) > S3_KEY_MAX_BYTES:
+            raise _too_long(key, f"with the prefix {self.prefix!r} it is {len(full.encode())} bytes, the most an S3 "
+                                 f"key takes is {S3_KEY_MAX_BYTES}")
+        return full
 
     def put_file(self, key, path, content_type=None) -> StoredObject:
         from boto3.exceptions import S3UploadFailedError
@@ -418,7 +464,7 @@ class S3Storage(Storage):
     def get_file(self, key, dest) -> Path:
         dest = Path(dest)
         dest.parent.mkdir(parents=True, exist_ok=True)
-        tmp = dest.with_name(f".{dest.name}.{uuid.uuid4().hex}.tmp")
+        tmp = _temporary_sibling(dest)
         try:
             with self._as_storage_errors(key):
                 self.client.download_file(self.bucket, self._full(key), str(tmp))
