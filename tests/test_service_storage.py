@@ -6,6 +6,7 @@ import builtins
 import errno
 import hashlib
 import os
+import stat
 import tempfile
 from pathlib import Path
 
@@ -208,6 +209,56 @@ def test_local_writes_are_atomic(tmp_path, monkeypatch):
     monkeypatch.undo()
     assert b"".join(store.open_range("a/b.bin")) == b"old"
     assert sorted(p.name for p in (tmp_path / "store" / "a").iterdir()) == ["b.bin"]
+
+
+@pytest.fixture
+def synced(monkeypatch):
+    """What os.fsync is called on, in order with os.replace: ("file",), ("replace",) or ("folder", its inode)."""
+    calls, real_fsync, real_replace = [], os.fsync, os.replace
+
+    def fsync(descriptor):
+        info = os.fstat(descriptor)
+        calls.append(("folder", info.st_ino) if stat.S_ISDIR(info.st_mode) else ("file",))
+        real_fsync(descriptor)
+
+    def replace(source, target):
+        calls.append(("replace",))
+        real_replace(source, target)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", replace)
+    return calls
+
+
+def test_local_put_syncs_the_folders_holding_its_rename(tmp_path, synced):
+    """Only the file's bytes had been synced: a power loss after put_file returned (its key recorded) could lose the
+    rename, or the folders made for it, and with them the object."""
+    root = tmp_path / "store"
+    store = LocalStorage(root)
+    store.put_bytes("jobs/j/a.bin", b"x")
+    folders = [root / "jobs" / "j", root / "jobs", root]
+    assert synced == [("file",), ("replace",), *(("folder", folder.stat().st_ino) for folder in folders)]
+
+
+def test_local_put_goes_on_where_folders_cannot_be_synced(tmp_path, synced, monkeypatch):
+    store = LocalStorage(tmp_path / "store")
+    recording_fsync = os.fsync
+
+    def fsync(descriptor, refused=errno.EINVAL):  # a filesystem that cannot sync a folder
+        if stat.S_ISDIR(os.fstat(descriptor).st_mode):
+            raise OSError(refused, os.strerror(refused))
+        recording_fsync(descriptor)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    store.put_bytes("jobs/j/a.bin", b"a")
+    monkeypatch.setattr(os, "fsync", lambda descriptor: fsync(descriptor, errno.EIO))
+    with pytest.raises(OSError, match="Input/output error"):  # a failing disk is not a missing feature
+        store.put_bytes("jobs/j/b.bin", b"b")
+    monkeypatch.setattr(os, "fsync", recording_fsync)
+    monkeypatch.delattr(os, "O_DIRECTORY")  # a platform that cannot open a folder (Windows)
+    store.put_bytes("jobs/j/c.bin", b"c")
+    assert synced[-2:] == [("file",), ("replace",)]  # no folder synced
+    assert [b"".join(store.open_range(f"jobs/j/{name}.bin")) for name in "ac"] == [b"a", b"c"]
 
 
 def test_api_stores_uploads_in_s3(tmp_path, monkeypatch, aws_env, s3_endpoint):

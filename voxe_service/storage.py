@@ -13,6 +13,7 @@ is written.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import logging
 import os
@@ -218,6 +219,7 @@ class LocalStorage(Storage):
         except BaseException:
             tmp.unlink(missing_ok=True)
             raise
+        _sync_folders(target.parent, self.root)
         return StoredObject(key, size, digest.hexdigest())
 
     def _open(self, key: str) -> BinaryIO:
@@ -346,6 +348,31 @@ def _create_in_folder(path: Path) -> BinaryIO:
             attempts_left -= 1
             if not attempts_left:
                 raise
+
+
+def _sync_folders(folder: Path, root: Path) -> None:
+    """fsync ``folder`` and each folder above it up to ``root``: a rename, and a folder made for it, reach the disk
+    only with the folder holding their entries, and a power loss had been able to lose an object whose record was
+    written. Skipped where a folder cannot be opened (Windows) or synced (EINVAL, ENOTSUP); a folder a concurrent
+    delete() removed holds nothing left to keep."""
+    if not hasattr(os, "O_DIRECTORY"):
+        return
+    while True:
+        try:
+            descriptor = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+        except FileNotFoundError:
+            return
+        try:
+            os.fsync(descriptor)
+        except OSError as exc:
+            if exc.errno in (errno.EINVAL, errno.ENOTSUP):
+                return
+            raise
+        finally:
+            os.close(descriptor)
+        if folder == root:
+            return
+        folder = folder.parent
 
 
 def _unless_vanished(error: OSError) -> None:
