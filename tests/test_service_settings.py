@@ -54,6 +54,11 @@ def fresh_settings(monkeypatch):
                                         "URL naming a host"),
     ("VOXE_S3_ENDPOINT_URL", "http://:9000", "VOXE_S3_ENDPOINT_URL='http://:9000': an S3 endpoint is"),
     ("VOXE_S3_ENDPOINT_URL", "http://minio:90000", "VOXE_S3_ENDPOINT_URL='http://minio:90000': an S3 endpoint is"),
+    # taken, S3 then storing every object under "../x/", "a//b/" or "./" ("/x" quietly read as "x/")
+    *(("VOXE_S3_PREFIX", prefix, f"VOXE_S3_PREFIX={prefix!r}: a key prefix is folder names of letters, digits, dots, "
+                                 "hyphens and underscores joined by '/' (none of them '.' or '..', no '/' in front), "
+                                 "e.g. voxe/prod")
+      for prefix in ("../x", "/x", "a//b", ".", "x/..", "x//", "my prefix")),
     ("VOXE_TASK_SOFT_TIME_LIMIT_S", "30000", "VOXE_TASK_SOFT_TIME_LIMIT_S (30000 s) must be below "
                                              "VOXE_TASK_TIME_LIMIT_S (12600 s)"),
     # above Pillow's own limit, an image under the setting had been refused as "huge, over the limit"
@@ -89,6 +94,11 @@ def test_s3_storage_needs_a_bucket_name(fresh_settings):
 def test_s3_endpoints_naming_a_host_are_accepted():
     for endpoint in ("http://minio:9000", "https://s3.eu-west-1.amazonaws.com", "http://[::1]:9000", "http://10.0.0.5"):
         assert Settings(s3_endpoint_url=endpoint).s3_endpoint_url == endpoint
+
+
+def test_s3_prefixes_naming_folders_are_accepted():
+    for prefix in ("", "voxe", "voxe/prod", "voxe/prod/", "env_2.1-a"):
+        assert Settings(s3_prefix=prefix).s3_prefix == prefix
 
 
 def test_devices_a_worker_can_use_are_accepted():

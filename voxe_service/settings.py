@@ -171,6 +171,21 @@ class Settings(BaseSettings):
                              "any), e.g. http://minio:9000")
         return value
 
+    @field_validator("s3_prefix")
+    @classmethod
+    def _s3_prefix(cls, value: str) -> str:
+        """Folders of the bucket named as a key's are: "../x", "a//b" or "." had been taken, S3 then storing every
+        object under those literal names, and "/x" quietly read as "x/"."""
+        from voxe_service.storage import StorageError, check_key
+
+        try:
+            if value:
+                check_key(value.removesuffix("/"))
+        except StorageError:
+            raise ValueError("a key prefix is folder names of letters, digits, dots, hyphens and underscores joined "
+                             "by '/' (none of them '.' or '..', no '/' in front), e.g. voxe/prod") from None
+        return value
+
     @field_validator("webhook_allow_networks")
     @classmethod
     def _networks(cls, value: str) -> str:
