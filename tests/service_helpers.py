@@ -656,11 +656,12 @@ class WebhookReceiver:
     answered before that many are in flight (a 500 after 10 s waiting for them); ``tls``: (certificate
     file, key file) to serve HTTPS with; ``answer_bytes``: the length of each answer's body, sent as fast as
     the client reads it, or one byte every ``drip_s`` seconds. ``sent``: the body bytes each answer got
-    out before it ended or its client hung up.
+    out before it ended or its client hung up. ``redirect_to``: every answer is a 308 to that location.
     """
 
     def __init__(self, fail_first: bool = False, delay: float = 0.0, host: str = "127.0.0.1", port: int = 0,
-                 together: int = 1, tls: tuple[str, str] | None = None, answer_bytes: int = 0, drip_s: float = 0.0):
+                 together: int = 1, tls: tuple[str, str] | None = None, answer_bytes: int = 0, drip_s: float = 0.0,
+                 redirect_to: str | None = None):
         self.requests: list[dict] = []
         self.sent: list[int] = []
         receiver, lock, gathered = self, threading.Lock(), threading.Barrier(together, timeout=10)
@@ -677,7 +678,9 @@ class WebhookReceiver:
                 except threading.BrokenBarrierError:
                     failed = True
                 time.sleep(delay)
-                self.send_response(500 if failed else 200)
+                self.send_response(500 if failed else 308 if redirect_to else 200)
+                if redirect_to:
+                    self.send_header("location", redirect_to)
                 self.send_header("content-length", str(answer_bytes))
                 self.end_headers()
                 sent = 0

@@ -228,6 +228,33 @@ def test_an_attempt_reads_at_most_a_little_of_the_answer():
         flooding.close()
 
 
+def test_a_redirect_is_not_followed_and_its_error_says_where_it_pointed():
+    """The error had been a bare "the receiver answered 308", retried for the whole window: nothing said that the
+    sender follows no redirect, nor where the receiver had moved."""
+    import ipaddress
+
+    from voxe_service.models import WebhookDelivery
+    from voxe_service.webhooks import attempt, webhook_client
+
+    moved, target = WebhookReceiver(redirect_to="https://hooks.example.com/in"), WebhookReceiver()
+    try:
+        with webhook_client(10.0, [ipaddress.ip_network("127.0.0.1/32")]) as client:
+            answer = attempt(WebhookDelivery(id="msg_1", url=moved.url, payload="{}"), "whsec_" + "A" * 32, client)
+            assert answer == (308, "the receiver answered 308, a redirect to 'https://hooks.example.com/in': webhooks "
+                                   "follow no redirect (set webhook_url to where it points)")
+            long_moved = WebhookReceiver(redirect_to=target.url + "?" + "q" * 500)
+            try:
+                _, error = attempt(WebhookDelivery(id="msg_2", url=long_moved.url, payload="{}"), "whsec_" + "A" * 32,
+                                   client)
+            finally:
+                long_moved.close()
+        assert f"a redirect to '{target.url}?qqq" in error and "q" * 300 not in error, error
+        assert len(moved.requests) == 1 and target.requests == []  # neither redirect followed
+    finally:
+        moved.close()
+        target.close()
+
+
 @pytest.mark.parametrize("client", [{"VOXE_WEBHOOK_CONCURRENCY": "1"}], indirect=True)
 def test_a_dripping_receiver_holds_the_only_sender_slot_no_longer_than_the_timeout(client):
     """One attempt at a time, the first to a receiver that drips its answer for a minute: it ends at the 0.5 s

@@ -419,4 +419,9 @@ def attempt(delivery: WebhookDelivery, secret: str, client: httpx.Client) -> tup
         raise TargetRefused(f"webhook_url {delivery.url!r} cannot be sent to: {exc}") from None
     if 200 <= response.status_code < 300:
         return response.status_code, None
+    if response.is_redirect:  # had been a bare "answered 308", retried for the whole window with no word of why
+        location = response.headers["location"]
+        shown = location if len(location) <= 200 else location[:200] + "..."
+        return response.status_code, (f"the receiver answered {response.status_code}, a redirect to {shown!r}: "
+                                      "webhooks follow no redirect (set webhook_url to where it points)")
     return response.status_code, f"the receiver answered {response.status_code}"
