@@ -109,9 +109,10 @@ class Settings(BaseSettings):
     # not redelivered: the API's reaper sends its remaining stages again (api/reaper.py). Also
     # sends queued jobs the API never handed to the broker.
     job_stale_timeout_s: float = Field(900.0, gt=0)
-    # A job between stages on a live worker whose next stage has not started for this long: its message is taken
-    # as lost without the worker seeing it (a broker that lost what it had accepted) and sent again. Long, as it
-    # may wait its turn behind other jobs' on a busy queue; a copy that still comes is dropped or skipped.
+    # A job between stages on a live worker whose next stage has not started for this long, or a queued one sent as
+    # long ago: its message is taken as lost without the worker seeing it (a broker that lost what it had accepted)
+    # and sent again. Long, as it may wait its turn behind other jobs' on a busy queue; a copy that still comes is
+    # dropped or skipped.
     job_lost_message_timeout_s: float = Field(6 * 3600.0, gt=0)
     # A job whose worker stopped mid-stage is sent again (by the reaper, or by its worker restarting) at most
     # this many times; then it fails, so a job that kills its workers cannot loop for ever.
@@ -174,16 +175,13 @@ class Settings(BaseSettings):
     @field_validator("s3_prefix")
     @classmethod
     def _s3_prefix(cls, value: str) -> str:
-        """Folders of the bucket named as a key's are: "../x", "a//b" or "." had been taken, S3 then storing every
-        object under those literal names, and "/x" quietly read as "x/"."""
-        from voxe_service.storage import StorageError, check_key
-
-        try:
-            if value:
-                check_key(value.removesuffix("/"))
-        except StorageError:
+        """Folders of the bucket, named as a key's are (voxe_service.storage.check_key, which cannot be imported
+        here: the storage reads the settings): "../x", "a//b" or "." had been taken, S3 then storing every object
+        under those literal names, and "/x" quietly read as "x/"."""
+        if value and not all(re.fullmatch(r"[A-Za-z0-9._-]+", part) and part not in (".", "..")
+                             for part in value.removesuffix("/").split("/")):
             raise ValueError("a key prefix is folder names of letters, digits, dots, hyphens and underscores joined "
-                             "by '/' (none of them '.' or '..', no '/' in front), e.g. voxe/prod") from None
+                             "by '/' (none of them '.' or '..', no '/' in front), e.g. voxe/prod")
         return value
 
     @field_validator("webhook_allow_networks")
