@@ -24,7 +24,11 @@ A job is orphaned when
   broker, so no message exists (a job on a processing scene waits for the scene's ingest to send
   it). Such a job is not failed but sent now (``requeued`` on its timeline): it was accepted, and
   nothing else will send it. A sweep's evaluation, which only its edit's chain sends, fails (unless that
-  edit is itself still to be sent).
+  edit is itself still to be sent);
+* or it is ``queued``, handed to the broker, and no stage has taken it for ``VOXE_JOB_LOST_MESSAGE_TIMEOUT_S``:
+  its message is taken as lost (a broker that lost what it had accepted, as between stages above) and its
+  remaining stages are sent again (``requeued``); a copy that still comes is dropped or skipped. A sweep's
+  evaluation waits while its edit's chain may still carry it: until its edit ended as long ago.
 
 A broker that refuses a message fails nothing here: the job stays (or becomes) ``queued`` with no task
 id, its checkpoints kept, and a pass after the broker is back sends it, as above.
@@ -121,9 +125,22 @@ def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[
                 Job.scene_id.not_in(waiting_for_ingest))
         ).all()
         evaluations = [job for job in never_sent if job.mode == EVALUATE and job.batch_id is not None]
+        never_sent_detail = (f"sent by the reaper: recorded but not handed to the broker for {timeout:.0f} s (the API "
+                             "or the scene's ingest stopped in between, or the broker refused it)")
         for job in never_sent:
             if job not in evaluations:  # (an edit sent now takes its sweep's evaluations along)
-                _send_now(session, job.id, job.updated_at, timeout)
+                _send_now(session, job.id, job.updated_at, never_sent_detail)
+        lost = session.execute(select(Job.id, Job.mode, Job.source_job_ids, Job.task_id, Job.updated_at).where(
+            Job.state == QUEUED, Job.task_id.is_not(None), Job.updated_at < lost_cutoff)).all()
+        lost_reason = (f"no stage started for {lost_after:.0f} s after the job was sent: its message is taken as lost "
+                       "(VOXE_JOB_LOST_MESSAGE_TIMEOUT_S)")
+        for job in lost:
+            if job.mode == EVALUATE and session.scalar(select(Job.id).where(  # it rides in its edit's chain, sent
+                    Job.id.in_(job.source_job_ids or []),  # on when the edit ended: lately, or not yet
+                    or_(Job.finished_at.is_(None), Job.finished_at >= lost_cutoff)).limit(1)):
+                continue
+            _send_now(session, job.id, job.updated_at, lost_reason, sent_as=job.task_id,
+                      message=f"re-queued: {lost_reason}")
         unsent = set(session.scalars(select(Job.id).where(Job.state == QUEUED, Job.task_id.is_(None),
                                                           Job.mode != EVALUATE))) if evaluations else set()
         for job in evaluations:  # those still unsent: their edit's chain will never carry them ...
@@ -138,19 +155,22 @@ def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[
     return reaped
 
 
-def _send_now(session, job_id: str, seen_updated_at: datetime, timeout: float) -> None:
-    """Hand an accepted job nothing sent to the broker, once: claimed by a conditional update (several API
-    processes may reap side by side), then sent; a broker that refuses leaves it unsent for a later pass."""
-    detail = (f"sent by the reaper: recorded but not handed to the broker for {timeout:.0f} s (the API or the "
-              "scene's ingest stopped in between, or the broker refused it)")
-    claimed = session.execute(update(Job).where(Job.id == job_id, Job.state == QUEUED, Job.task_id.is_(None),
-                                                Job.updated_at == seen_updated_at).values(updated_at=utcnow()))
+def _send_now(session, job_id: str, seen_updated_at: datetime, detail: str, sent_as: str | None = None,
+              message: str | None = None) -> None:
+    """Hand an accepted queued job's remaining stages to the broker, once: claimed by a conditional update (several
+    API processes may reap side by side), then sent; a broker that refuses leaves it unsent (no task id) for a later
+    pass. ``sent_as``: the task id of a message taken as lost (None: the job was never sent)."""
+    claimed = session.execute(update(Job).where(
+        Job.id == job_id, Job.state == QUEUED, Job.updated_at == seen_updated_at,
+        Job.task_id.is_(None) if sent_as is None else Job.task_id == sent_as,
+    ).values(task_id=None, updated_at=utcnow()))
     if claimed.rowcount != 1:
         return
     record_event(session, job_id, "requeued", detail=detail)
     session.commit()
+    job = session.get(Job, job_id)
     try:
-        dispatch_job(session, get_queue(), session.get(Job, job_id), fail_refused=False)
+        dispatch_job(session, get_queue(), job, done=job.completed_stages or [], message=message, fail_refused=False)
     except QueueUnavailable:
         return
     log.warning("reaper: job %s %s", job_id, detail)

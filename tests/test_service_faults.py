@@ -220,14 +220,55 @@ def test_reaper_sends_again_or_fails_only_jobs_nothing_will_finish(db):
         assert before.error is None and before.state in ("running", "queued", "succeeded", "canceled"), what
         assert before.requeues == 0 and events_of(job_id) == [], what
     assert {job_row(j).state for j in kept.values()} == {"running", "queued", "succeeded", "canceled"}
-    # A second pass changes nothing: the jobs sent again wait in the broker for a worker, like any sent job, for
-    # however long that takes.
+    # A second pass changes nothing: the jobs sent again wait in the broker for a worker, like any sent job (for up
+    # to VOXE_JOB_LOST_MESSAGE_TIMEOUT_S: then their message is taken as lost).
     with session_scope() as session:
         session.execute(update(Job).where(Job.id.in_(list(requeued.values())))
                         .values(updated_at=utcnow() - timedelta(seconds=2 * timeout)))
     assert reap_orphaned_jobs(db) == []
     assert [job_row(j).state for j in requeued.values()] == ["queued"] * len(requeued)
     assert [e["kind"] for e in events_of(orphans["sent again too often"])] == ["failed"]  # on the job's timeline
+
+
+def test_reaper_sends_again_a_queued_job_whose_message_the_broker_lost(db):
+    """A queued job handed to the broker that no stage has taken for VOXE_JOB_LOST_MESSAGE_TIMEOUT_S: its message is
+    taken as lost (Redis's last second before a crash, under appendfsync everysec; a flushed broker), as the reaper's
+    own re-send of a dead worker's job can be. It had stayed queued for ever, holding a place in its key's quota,
+    where a job between stages is sent again; now it is sent again too, its done stages left out. One waiting less
+    long, and a sweep's evaluation riding in a live or lately ended edit's chain, are left waiting."""
+    from api.reaper import reap_orphaned_jobs
+    from voxe_service.broker import waiting_tasks
+    from voxe_service.models import utcnow
+    from voxe_service.queue import TASK_NAMES
+
+    lost_after = db.job_lost_message_timeout_s
+    scene = add_scene()
+    lost = add_job(scene, "queued", 2 * lost_after, completed_stages=["reconstruct"], requeues=1)
+    long_ended = add_job(scene, "succeeded", 3 * lost_after, finished_at=utcnow() - timedelta(seconds=2 * lost_after))
+    lost_evaluation = add_job(scene, "queued", 2 * lost_after, mode="evaluate", source_job_ids=[long_ended])
+    lately_ended = add_job(scene, "succeeded", 3 * lost_after, finished_at=utcnow() - timedelta(seconds=60))
+    kept = {
+        "waiting its turn": add_job(scene, "queued", lost_after / 2),
+        "a sweep's evaluation, its edit running": add_job(
+            scene, "queued", 2 * lost_after, mode="evaluate", batch_id="b1",
+            source_job_ids=[add_job(scene, "running", 60, "alive@host", "export", batch_id="b1")]),
+        "a sweep's evaluation, its edit ended lately": add_job(
+            scene, "queued", 2 * lost_after, mode="evaluate", batch_id="b2", source_job_ids=[lately_ended]),
+    }
+    assert reap_orphaned_jobs(db) == []
+    reason = (f"no stage started for {lost_after:.0f} s after the job was sent: its message is taken as lost "
+              "(VOXE_JOB_LOST_MESSAGE_TIMEOUT_S)")
+    for job_id in (lost, lost_evaluation):
+        job = job_row(job_id)
+        assert (job.state, job.message, job.error) == ("queued", f"re-queued: {reason}", None)
+        assert job.task_id not in (None, "task") and job.requeues == (1 if job_id == lost else 0)
+        assert [(e["kind"], e["detail"]) for e in events_of(job_id)] == [("requeued", reason)]
+    sent = waiting_tasks(db.broker_url)
+    assert {task for task, job_id in sent if job_id == lost} == {TASK_NAMES[s] for s in ("edit", "export")}
+    assert {task for task, job_id in sent if job_id == lost_evaluation} == {TASK_NAMES["evaluate"]}
+    for what, job_id in kept.items():
+        assert (job_row(job_id).task_id, events_of(job_id)) == ("task", []), what
+    assert reap_orphaned_jobs(db) == [] and len(events_of(lost)) == 1  # sent once: it waits again as sent
 
 
 def test_a_reaper_pass_meeting_a_broker_outage_fails_nothing_and_a_later_pass_sends_the_jobs(db, monkeypatch):
