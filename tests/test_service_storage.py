@@ -158,6 +158,8 @@ def test_local_keys_up_to_the_filesystem_limits_are_stored_and_longer_ones_refus
     with a bare ENAMETOOLONG from inside the write, the folders of a long path already made and left behind."""
     store = LocalStorage(tmp_path / "store")
     store.put_bytes("jobs/j/" + "n" * 217, b"x")
+    killed_writer = store.path("jobs/j/" + "n" * 217).with_name(f".{'n' * 217}.{'0' * 32}.tmp")
+    killed_writer.write_bytes(b"half")  # 255 characters: still deleted with its prefix, below
     with pytest.raises(StorageError, match=r"^storage key 'jobs/j/n+\.\.\.n+' \(225 characters\) is too long: its "
                                            r"name is 218 characters, the most here is 217 \(255 less the 38 of the "
                                            r"temporary name it is written under\)$"):

@@ -186,25 +186,29 @@ class LocalStorage(Storage):
         self.name_max, self.path_max = _name_and_path_max(self.root)
 
     def path(self, key: str) -> Path:
-        """The object's file; StorageError for a key its file (or the temporary file put_file writes first) could
-        not be named by: a bare ENAMETOOLONG had come from deep in a write, its folders already made."""
+        """The object's file; StorageError for a key no file can be named by."""
+        return self._named(key)
+
+    def _named(self, key: str, extra: int = 0) -> Path:
+        """The key's file, StorageError naming the limit when it, or a name ``extra`` characters longer (the
+        temporary file put_file writes first), is more than the filesystem takes: a bare ENAMETOOLONG had come from
+        deep in a write, its folders already made."""
         path = self.root / check_key(key)
         *folders, name = key.split("/")
+        why = f" ({self.name_max} less the {extra} of the temporary name it is written under)" if extra else ""
         if len(longest := max(folders, key=len, default="")) > self.name_max:
             raise _too_long(key, f"its folder {longest[:40]!r}... is {len(longest)} characters, the most a file "
                                  f"name takes here is {self.name_max}")
-        if len(name) + _TEMPORARY_EXTRA > self.name_max:
-            raise _too_long(key, f"its name is {len(name)} characters, the most here is "
-                                 f"{self.name_max - _TEMPORARY_EXTRA} ({self.name_max} less the "
-                                 f"{_TEMPORARY_EXTRA} of the temporary name it is written under)")
-        if len(os.fsencode(path)) + _TEMPORARY_EXTRA >= self.path_max:
+        if len(name) + extra > self.name_max:
+            raise _too_long(key, f"its name is {len(name)} characters, the most here is {self.name_max - extra}{why}")
+        if len(os.fsencode(path)) + extra >= self.path_max:
             raise _too_long(key, f"under {self.root} it makes a path of {len(os.fsencode(path))} bytes, the most "
-                                 f"here is {self.path_max - _TEMPORARY_EXTRA - 1} ({self.path_max} less the "
-                                 f"temporary name's {_TEMPORARY_EXTRA} and the terminating byte)")
+                                 f"here is {self.path_max - extra - 1} ({self.path_max} less the terminating byte"
+                                 + (f" and the temporary name's {extra})" if extra else ")"))
         return path
 
     def put_file(self, key, path, content_type=None) -> StoredObject:
-        target = self.path(key)
+        target = self._named(key, _TEMPORARY_EXTRA)
         tmp = _temporary_sibling(target)
         digest, size = hashlib.sha256(), 0
         try:
