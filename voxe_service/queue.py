@@ -229,8 +229,9 @@ def send_evaluations_alone(session: Session, queue: TaskQueue, job: Job, message
 def requeue_interrupted(session: Session, queue: TaskQueue, job: Job, settings: Settings, *, reason: str,
                         where: Iterable = ()) -> str | None:
     """Send a running job's remaining stages again after its worker stopped: the job is queued again, waiting
-    for a worker like any sent job (the reaper leaves those alone until their message is taken as lost), the hold of an interrupted run is released,
-    so the new message takes the job at once, and ``requeued`` goes on its timeline.
+    for a worker like any sent job (the reaper leaves those alone until their message is taken as lost), the hold
+    of an interrupted run is released, so the new message takes the job at once, and ``requeued`` goes on its
+    timeline.
 
     A job whose stage was interrupted (a run held it) ``job_max_requeues`` times already fails instead: a job
     that kills its workers must not loop; the evaluations that ride in its chain are sent alone, to record why.

@@ -332,6 +332,7 @@ def _name_and_path_max(root: Path) -> tuple[int, int]:
 
 
 def _too_long(key: str, why: str) -> StorageError:
+    """The error for a key over a backend's limit ``why``, a long key shown by its ends."""
     shown = key if len(key) <= 120 else f"{key[:100]}...{key[-16:]}"
     return StorageError(f"storage key {shown!r} ({len(key)} characters) is too long: {why}")
 
