@@ -19,6 +19,7 @@ from pydantic import Field, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from voxe_core.constants import ATTENTION_MODEL_ID, CLIP_MODEL_ID, SDS_MODEL_ID
+from voxe_service.keys import is_key
 
 TINY_MODEL = "tiny"
 TINY_MODEL_LABEL = "tiny (smoke test, random weights)"
@@ -175,11 +176,9 @@ class Settings(BaseSettings):
     @field_validator("s3_prefix")
     @classmethod
     def _s3_prefix(cls, value: str) -> str:
-        """Folders of the bucket, named as a key's are (voxe_service.storage.check_key, which cannot be imported
-        here: the storage reads the settings): "../x", "a//b" or "." had been taken, S3 then storing every object
-        under those literal names, and "/x" quietly read as "x/"."""
-        if value and not all(re.fullmatch(r"[A-Za-z0-9._-]+", part) and part not in (".", "..")
-                             for part in value.removesuffix("/").split("/")):
+        """Folders of the bucket, named as a key's are: "../x", "a//b" or "." had been taken, S3 then storing every
+        object under those literal names, and "/x" quietly read as "x/"."""
+        if value and not is_key(value.removesuffix("/")):
             raise ValueError("a key prefix is folder names of letters, digits, dots, hyphens and underscores joined "
                              "by '/' (none of them '.' or '..', no '/' in front), e.g. voxe/prod")
         return value

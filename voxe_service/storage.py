@@ -28,9 +28,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
 
+from voxe_service.keys import is_key
+
 log = logging.getLogger("voxe.storage")
 CHUNK = 1 << 20
-_KEY_PART = re.compile(r"^[A-Za-z0-9._-]+$")
 S3_KEY_MAX_BYTES = 1024  # S3's (and MinIO's) longest object key, the prefix included
 
 
@@ -69,8 +70,7 @@ def reconstruction_storage_key(reconstruction_id: str, name: str = "") -> str:
 
 
 def check_key(key: str) -> str:
-    parts = key.split("/")
-    if not key or key.startswith("/") or any(p in ("", ".", "..") or not _KEY_PART.match(p) for p in parts):
+    if not is_key(key):
         raise StorageError(f"invalid storage key {key!r}")
     return key
 
