@@ -256,6 +256,50 @@ def test_reads_answered_503_with_retry_after_are_sent_again_and_writes_are_not(m
         assert sent.count("GET /v1/jobs/j3") == 1
 
 
+def test_a_submission_is_sent_again_a_bounded_number_of_times_and_only_while_its_answer_is_lost(monkeypatch):
+    """A keyed submission waits Retry-After, else a doubling pause, between its sendings, at most ``retries`` times;
+    the service's own answers (a 422, a 429 over the quota, a 500) are errors at once, and a 409 with Retry-After
+    (its first sending not answered yet) is waited for. A write without a key (a cancel) is never sent again."""
+    import voxe_client.client as client_module
+
+    waits, sent = [], []
+    monkeypatch.setattr(client_module.time, "sleep", waits.append)
+    answers: list = []
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        sent.append((request.method, request.url.path, request.headers.get("idempotency-key")))
+        status, headers = answers.pop(0)
+        if status == "drop":
+            raise httpx.RemoteProtocolError("Server disconnected without sending a response.", request=request)
+        return httpx.Response(status, headers=headers, json={"id": "j1", "detail": "said"})
+
+    def submit(client, *given):
+        answers[:] = given
+        sent.clear()
+        waits.clear()
+        return client.create_job("s1", "gold")
+
+    with Client(transport=httpx.MockTransport(answer), retries=3) as client:
+        assert submit(client, ("drop", {}), (502, {}), (503, {"retry-after": "7"}), (201, {}))["id"] == "j1"
+        assert waits == [0.5, 1.0, 7.0] and len({key for *_, key in sent}) == 1
+        with pytest.raises(ServiceError, match="HTTP 504: said") as gave_up:
+            submit(client, *[(504, {})] * 5)
+        assert gave_up.value.status == 504 and len(sent) == 4 and waits == [0.5, 1.0, 2.0]
+        with pytest.raises(ServiceError, match="cannot reach the service") as gave_up:
+            submit(client, *[("drop", {})] * 5)
+        assert gave_up.value.status is None and len(sent) == 4
+        assert submit(client, (409, {"retry-after": "1"}), (200, {}))["id"] == "j1" and waits == [1.0]
+        for status, headers in ((422, {}), (429, {"retry-after": "60"}), (500, {}), (409, {})):
+            with pytest.raises(ServiceError, match=f"HTTP {status}: said"):
+                submit(client, (status, headers), (201, {}))
+            assert len(sent) == 1 and waits == []
+        answers[:] = [("drop", {}), (200, {})]
+        sent.clear()
+        with pytest.raises(ServiceError, match="cannot reach the service"):
+            client.cancel_job("j1")
+        assert sent == [("POST", "/v1/jobs/j1/cancel", None)]
+
+
 def test_a_download_answered_503_with_retry_after_is_sent_again(tmp_path, monkeypatch):
     """The class promises it for every GET, but download() streamed its GET outside the retry rule: a busy service
     (a 503 + Retry-After) failed the download at once."""
@@ -595,6 +639,59 @@ def test_a_submit_refused_deletes_the_scene_it_uploaded_and_no_other(api, tmp_pa
         assert [scene["id"] for scene in client.request("GET", "/v1/scenes")["items"]] == [kept]
 
 
+class _LosingAnswers(httpx.HTTPTransport):
+    """The network between client and service, losing the answers ``lose`` lists per ``METHOD path`` (in turn) once
+    the service has acted: "drop" as a connection reset, a status as a proxy's page; ``sent`` is each request's call
+    and Idempotency-Key."""
+
+    def __init__(self, lose: dict[str, list]):
+        super().__init__()
+        self.lose, self.sent = lose, []
+
+    def handle_request(self, request: httpx.Request) -> httpx.Response:
+        response = super().handle_request(request)
+        call = f"{request.method} {request.url.path}"
+        self.sent.append((call, request.headers.get("idempotency-key")))
+        if not self.lose.get(call):
+            return response
+        response.read()
+        response.close()
+        lost = self.lose[call].pop(0)
+        if lost == "drop":
+            raise httpx.ReadError("connection reset by peer", request=request)
+        return httpx.Response(lost, text="<html>bad gateway</html>")
+
+
+def test_a_submission_whose_answer_is_lost_is_sent_again_with_its_key_and_makes_one(api, tmp_path, monkeypatch):
+    """An upload, job or sweep whose answer a dropped connection or a proxy's 502 / 504 lost had been an error, the
+    service having made it all the same (a script trying again made a second): each goes with an Idempotency-Key and
+    is sent again with it (an upload's files read again whole), and the service answers with what it made first. A
+    key the caller gives makes its repeated call answer so too."""
+    import voxe_client.client as client_module
+
+    monkeypatch.setattr(client_module.time, "sleep", lambda _s: None)
+    url, _ = api
+    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+    network = _LosingAnswers({"POST /v1/scenes": ["drop"], "POST /v1/jobs": [502, "drop"], "POST /v1/sweeps": [504]})
+    with Client(url, transport=network) as client:
+        scene = client.upload_scene(tmp_path / "plane.obj", name="plane")
+        job = client.create_job(scene["id"], "a plane of gold")
+        sweep = client.create_sweep([{"scene_id": scene["id"], "object": "plane"}])
+        assert [s["id"] for s in client.request("GET", "/v1/scenes")["items"]] == [scene["id"]]
+        jobs = client.request("GET", "/v1/jobs", params={"limit": 200})  # one job, one sweep's edits and evaluations
+        assert jobs["total"] == 1 + 2 * len(sweep["entries"]) and job["id"] in [j["id"] for j in jobs["items"]]
+        assert client.create_job(scene["id"], "a plane of wood", idempotency_key="run-7")["id"] == \
+            client.create_job(scene["id"], "a plane of wood", idempotency_key="run-7")["id"]
+        with pytest.raises(ServiceError, match="Idempotency-Key 'run-7' was already used with a different request"):
+            client.create_job(scene["id"], "a plane of tin", idempotency_key="run-7")
+    keys = {call: [key for sent, key in network.sent if sent == call]
+            for call in ("POST /v1/scenes", "POST /v1/jobs", "POST /v1/sweeps")}
+    upload, (first, again, third, *_), sweeps = keys.values()
+    assert len(upload) == 2 and len(set(upload)) == 1 and None not in upload
+    assert first == again == third and len(sweeps) == 2 and len(set(sweeps)) == 1
+    assert len({upload[0], first, sweeps[0]}) == 3  # one key per submission
+
+
 @pytest.mark.parametrize("job_status, delete_status, said, exit_status", [
     (429, 204, "the scene s1 this command uploaded is deleted", 2),
     (429, 409, "the scene s1 this command uploaded stays, its deletion failed (DELETE /v1/scenes/s1: HTTP 409: busy)",
@@ -604,10 +701,13 @@ def test_a_submit_refused_deletes_the_scene_it_uploaded_and_no_other(api, tmp_pa
 def test_a_submit_not_taken_says_what_became_of_the_scene_it_uploaded(job_status, delete_status, said, exit_status,
                                                                        tmp_path, monkeypatch, capsys):
     """A refused job's scene is deleted, or said to stay when that fails; a job the service may have made (5xx, or
-    no answer) keeps its scene, named for --scene, and exits as a service that failed."""
+    no answer, after the submission's retries) keeps its scene, named for --scene, and exits as a service that
+    failed."""
+    import voxe_client.client as client_module
     import voxe_core.cli.service as service
     from voxe_core.cli import main
 
+    monkeypatch.setattr(client_module.time, "sleep", lambda _s: None)
     sent = []
 
     def answer(request: httpx.Request) -> httpx.Response:
@@ -622,7 +722,9 @@ def test_a_submit_not_taken_says_what_became_of_the_scene_it_uploaded(job_status
     (tmp_path / "plane.obj").write_text(PLANE_OBJ)
     assert main(["submit", "a plane", "--upload", str(tmp_path / "plane.obj")]) == exit_status
     assert capsys.readouterr().err.endswith(f"HTTP {job_status}: not now; {said}\n")
-    assert sent == ["POST /v1/scenes", "POST /v1/jobs"] + ["DELETE /v1/scenes/s1"] * (delete_status is not None)
+    retried = client_module.DEFAULT_RETRIES if job_status == 503 else 0
+    assert sent == (["POST /v1/scenes"] + ["POST /v1/jobs"] * (1 + retried)
+                    + ["DELETE /v1/scenes/s1"] * (delete_status is not None))
 
 
 def test_voxe_sweep_that_cannot_write_its_out_file_keeps_the_earlier_one(tmp_path, monkeypatch, fill_disk, capsys):

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import os
 import time
+import uuid
 import warnings
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, closing
@@ -28,6 +30,9 @@ job; it had given up after about 15 s) before :meth:`Client.events` gives up."""
 MAX_RECONNECT_PAUSE_S = 5.0
 PROXY_UNAVAILABLE = (502, 503, 504)
 """What a proxy in front of the API answers while the API restarts: a lost stream, not the service's refusal."""
+IDEMPOTENCY_HEADER = "Idempotency-Key"
+LOST_ANSWERS = (httpx.NetworkError, httpx.TimeoutException, httpx.RemoteProtocolError)
+"""A request whose answer never came: the service may or may not have acted on it."""
 TERMINAL_STATES = ("succeeded", "failed", "canceled")
 
 
@@ -73,7 +78,10 @@ class Client:
     Use it as a context manager (or call :meth:`close`) to release its connections. ``transport``
     replaces httpx's network transport (tests pass ``httpx.MockTransport``). A read (GET) answered 503 with
     ``Retry-After`` (the service's database or broker briefly unavailable) is sent again after that wait, at most
-    ``retries`` times; writes are not, as the service may have acted on them.
+    ``retries`` times. A submission (an upload, a job, a sweep) goes with an ``Idempotency-Key``, one per call, so it
+    too is sent again, with the same key, when its answer is lost (a dropped connection, a timeout, a 502 / 503 /
+    504) or the service is still answering its first sending (409 with ``Retry-After``): the service answers a
+    retry with what the first sending created, never a second one. Other writes (a cancel, a deletion) are not.
 
     Examples:
         >>> def answer(request):
@@ -107,12 +115,16 @@ class Client:
     def close(self) -> None:
         self._http.close()
 
-    def request(self, method: str, path: str, body: dict | None = None, **kwargs) -> Any:
+    def request(self, method: str, path: str, body: dict | None = None, idempotency_key: str | None = None,
+                **kwargs) -> Any:
         """The decoded JSON answer of ``method path`` (``body`` sent as JSON, ``kwargs`` to httpx), None for a 204
         No Content (``DELETE /v1/scenes/{id}``'s: it had been refused as not the API's JSON, the scene deleted);
-        ServiceError for an error status."""
+        ServiceError for an error status. With ``idempotency_key`` (its ``Idempotency-Key`` header) the request is
+        sent again when its answer is lost (see the class)."""
+        if idempotency_key is not None:
+            kwargs["headers"] = {**kwargs.get("headers", {}), IDEMPOTENCY_HEADER: idempotency_key}
         try:
-            response = self._send(method, path, json=body, **kwargs)
+            response = self._send(method, path, json=body, resendable=idempotency_key is not None, **kwargs)
         except (httpx.TransportError, httpx.InvalidURL) as exc:
             raise ServiceUnreachable(f"cannot reach the service at {self.base_url}: {exc}") from None
         _raise_for_error(response, method, path)
@@ -125,27 +137,40 @@ class Client:
                                f"{response.headers.get('content-type') or 'no content type'}, not the API's JSON "
                                "(is it the Vox-E service?)") from None
 
-    def _send(self, method: str, path: str, stream: bool = False, **kwargs) -> httpx.Response:
-        """The answer to ``method path`` (``kwargs`` to httpx's request), a GET answered 503 with ``Retry-After``
-        sent again after that wait, at most ``retries`` times; with ``stream`` its body is left unread (close it)."""
-        for attempt in range(self.retries + 1):
-            response = self._http.send(self._http.build_request(method, path, **kwargs), stream=stream)
-            wait = _retry_after(response)
-            if method != "GET" or wait is None or attempt == self.retries:
-                break
-            response.close()
+    def _send(self, method: str, path: str, stream: bool = False, resendable: bool = False,
+              **kwargs) -> httpx.Response:
+        """The answer to ``method path`` (``kwargs`` to httpx's request), sent again at most ``retries`` times: a GET
+        answered 503 with ``Retry-After`` after that wait, a ``resendable`` one (it carries an Idempotency-Key) also
+        whose answer was lost (:func:`_resend_wait`); with ``stream`` its body is left unread (close it).
+
+        Each sending builds the request anew, which reads an upload's files again from their start (httpx rewinds
+        them): a retried upload sends the same bytes, which the service's Idempotency-Key check compares."""
+        for attempt in itertools.count():
+            try:
+                response = self._http.send(self._http.build_request(method, path, **kwargs), stream=stream)
+            except LOST_ANSWERS:
+                if not resendable or attempt == self.retries:
+                    raise
+                wait = _backoff(attempt)
+            else:
+                wait = _resend_wait(response, attempt) if resendable else (
+                    _retry_after(response) if method == "GET" and response.status_code == 503 else None)
+                if wait is None or attempt == self.retries:
+                    return response
+                response.close()
             time.sleep(wait)
-        return response
 
     # ------------------------------------------------------------------ scenes and jobs
     def upload_scene(self, path: str | os.PathLike, name: str | None = None,
-                     texture: str | os.PathLike | None = None) -> dict:
+                     texture: str | os.PathLike | None = None, idempotency_key: str | None = None) -> dict:
         """``POST /v1/scenes``: a dataset zip, or one mesh file (.obj / .ply), sent under its own file name (the
         service reads a mesh's kind from it), with ``name`` the scene's display name; the scene, ``processing``.
 
         A mesh goes with the files that colour it: an OBJ's .mtl and the texture that names
         (:func:`obj_upload_files`), a PLY's texture its header names (:func:`ply_upload_files`); or ``texture``, an
-        image that colours it at its UVs instead (as ``voxe mesh-to-grid --texture``)."""
+        image that colours it at its UVs instead (as ``voxe mesh-to-grid --texture``).
+
+        ``idempotency_key`` (as :meth:`create_job`'s) makes a repeated call answer with the scene the first made."""
         path = Path(path)
         kind = path.suffix.lower()
         if path.is_dir():  # (open() had said only "[Errno 21] Is a directory")
@@ -156,15 +181,21 @@ class Client:
         field = "archive" if path.suffix.lower() == ".zip" else "files"
         with ExitStack() as stack:
             files = [(field, (each.name, stack.enter_context(open(each, "rb")))) for each in paths]
-            return self.request("POST", "/v1/scenes", files=files, data={"name": name} if name else None)
+            return self.request("POST", "/v1/scenes", files=files, data={"name": name} if name else None,
+                                idempotency_key=_submission_key(idempotency_key))
 
     def delete_scene(self, scene_id: str) -> None:
         """``DELETE /v1/scenes/{id}``: the scene with its finished jobs and their results (409 while one runs)."""
         self.request("DELETE", f"/v1/scenes/{_segment(scene_id)}")
 
-    def create_job(self, scene_id: str, prompt: str, **fields) -> dict:
-        """``POST /v1/jobs``: ``fields`` are the body's other members (mode, edit_words, params, webhook_url, ...)."""
-        return self.request("POST", "/v1/jobs", {"scene_id": scene_id, "prompt": prompt, **fields})
+    def create_job(self, scene_id: str, prompt: str, idempotency_key: str | None = None, **fields) -> dict:
+        """``POST /v1/jobs``: ``fields`` are the body's other members (mode, edit_words, params, webhook_url, ...).
+
+        Sent with ``idempotency_key`` (a new one when None): a caller that gives its own makes a repeated call, in
+        another run say, answer with the job the first call made rather than make another (the same key with another
+        request is a 422)."""
+        return self.request("POST", "/v1/jobs", {"scene_id": scene_id, "prompt": prompt, **fields},
+                            idempotency_key=_submission_key(idempotency_key))
 
     def get_job(self, job_id: str) -> dict:
         return self.request("GET", f"/v1/jobs/{_segment(job_id)}")
@@ -237,8 +268,7 @@ class Client:
                 raise EventStreamLost(f"event stream of job {job_id} at {self.base_url} lost: {lost} ({attempts} "
                                       f"attempt{'s' if attempts > 1 else ''} over {now - lost_since:.0f} s, "
                                       f"reconnecting for up to {reconnect_for:g} s); the job goes on in the service")
-            time.sleep(min(MAX_RECONNECT_PAUSE_S, 0.5 * 2.0 ** min(attempts - 1, 10),  # (2 ** 1024 overflows a float)
-                           reconnect_for - (now - lost_since)))
+            time.sleep(min(_backoff(attempts - 1), reconnect_for - (now - lost_since)))
 
     def wait(self, job_id: str, on_progress: Callable[[dict], None] | None = None,
              reconnect_for: float | None = None, on_reconnect: Callable[[str], None] | None = None,
@@ -292,14 +322,16 @@ class Client:
         return dest
 
     # ------------------------------------------------------------------ sweeps (SPEC §4)
-    def create_sweep(self, scenes: list[dict], params: dict | None = None, evaluation: dict | None = None) -> dict:
-        """``POST /v1/sweeps``: every scene ({scene_id, object}) × the paper's six prompts, each edit then evaluated."""
+    def create_sweep(self, scenes: list[dict], params: dict | None = None, evaluation: dict | None = None,
+                     idempotency_key: str | None = None) -> dict:
+        """``POST /v1/sweeps``: every scene ({scene_id, object}) × the paper's six prompts, each edit then evaluated;
+        ``idempotency_key`` as :meth:`create_job`'s."""
         body: dict = {"scenes": scenes}
         if params is not None:
             body["params"] = params
         if evaluation is not None:
             body["evaluation"] = evaluation
-        return self.request("POST", "/v1/sweeps", body)
+        return self.request("POST", "/v1/sweeps", body, idempotency_key=_submission_key(idempotency_key))
 
     def get_sweep(self, sweep_id: str) -> dict:
         """``GET /v1/sweeps/{id}``: the jobs' states and the summary table."""
@@ -408,14 +440,36 @@ def _keyed_values(path: Path, key: str) -> Iterator[str]:
                 yield words[1].strip()
 
 
+def _submission_key(given: str | None) -> str:
+    """The Idempotency-Key of one submission, sent with each of its sendings: the caller's, else a fresh one."""
+    return str(uuid.uuid4()) if given is None else given
+
+
 def _retry_after(response: httpx.Response) -> float | None:
-    """Seconds to wait before sending again a request answered 503 with ``Retry-After: <seconds>`` (at most
-    ``MAX_RETRY_WAIT_S``); None for any other answer."""
+    """The seconds its ``Retry-After: <seconds>`` asks to wait before sending the request again (at most
+    ``MAX_RETRY_WAIT_S``); None without one."""
     try:
-        seconds = float(response.headers["retry-after"]) if response.status_code == 503 else None
+        seconds = float(response.headers["retry-after"])
     except (KeyError, ValueError):
         return None
-    return None if seconds is None or not seconds >= 0 else min(seconds, MAX_RETRY_WAIT_S)
+    return min(seconds, MAX_RETRY_WAIT_S) if seconds >= 0 else None
+
+
+def _backoff(attempt: int) -> float:
+    """Seconds to wait before sending again a request whose ``attempt``-th sending (from 0) was lost, where the
+    service said nothing of when: doubling from 0.5 s, at most ``MAX_RECONNECT_PAUSE_S``, as the event stream's."""
+    return min(MAX_RECONNECT_PAUSE_S, 0.5 * 2.0 ** min(attempt, 10))  # (2 ** 1024 overflows a float)
+
+
+def _resend_wait(response: httpx.Response, attempt: int) -> float | None:
+    """Seconds to wait before sending again a request carrying an Idempotency-Key answered ``response``: a proxy's
+    502 / 503 / 504 or the service's 503 (the answer lost, or the submission withdrawn: a retry with the key
+    submits it anew) after its ``Retry-After``, else :func:`_backoff`; a 409 with ``Retry-After`` (the first
+    sending not answered yet) after that; None for any other answer, the service's own."""
+    asked = _retry_after(response)
+    if response.status_code in PROXY_UNAVAILABLE:
+        return _backoff(attempt) if asked is None else asked
+    return asked if response.status_code == httpx.codes.CONFLICT else None
 
 
 def _raise_for_error(response: httpx.Response, method: str, path: str) -> None:
