@@ -173,6 +173,43 @@ def test_a_waited_sweep_exits_1_unless_it_succeeded(monkeypatch, capsys, tmp_pat
     assert (f"ended {end}: jobs {{'{end}': 6, 'succeeded': 6}}" in err) == (code == 1)
 
 
+def test_ctrl_c_during_a_waited_sweeps_pause_stops_waiting_at_once(monkeypatch, capsys):
+    """Ctrl-C between a waited sweep's polls had been answered only once the pause was over (``--poll 600``: ten
+    minutes), the handler's return resuming the sleep."""
+    import threading
+
+    import voxe_core.cli.service as service
+
+    class Sweeps:
+        base_url = "http://service"
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return None
+
+        def create_sweep(self, scenes, params=None, evaluation=None):
+            return {"id": "s1", "entries": [{}] * 6, "state": "queued", "counts": {"queued": 12}, "table": "T\n"}
+
+        def get_sweep(self, sweep_id):
+            return {"id": sweep_id, "entries": [], "state": "running", "counts": {"running": 12}, "table": "T\n"}
+
+    def ctrl_c_while_waiting():
+        while signal.getsignal(signal.SIGINT) is default:  # once the command's handler is in place
+            time.sleep(0.01)
+        time.sleep(0.2)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    monkeypatch.setattr(service, "_client", lambda args: Sweeps())
+    default = signal.getsignal(signal.SIGINT)
+    threading.Thread(target=ctrl_c_while_waiting, daemon=True).start()
+    started = time.monotonic()
+    assert main(["sweep", "--scene", "s1=mic", "--wait", "--poll", "20"]) == 130
+    assert time.monotonic() - started < 10
+    assert capsys.readouterr().err.endswith("voxe sweep: stopped waiting; the sweep s1 goes on in the service\n")
+
+
 def test_a_sweep_not_waited_for_prints_its_id_and_where_its_table_fills_in(monkeypatch, capsys, tmp_path):
     """Without --wait it had printed its summary table's header with no row (the sweep had just been queued), its
     id nowhere on stdout."""

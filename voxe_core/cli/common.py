@@ -14,6 +14,7 @@ import re
 import signal
 import sys
 import threading
+import time
 from pathlib import Path
 from typing import Iterator
 
@@ -27,6 +28,10 @@ EXIT_INTERRUPTED = 130
 EXIT_OUTPUT_CLOSED = 141
 """The output's reader stopped reading (``voxe status J | head -c 10``): the status a shell reports for ``cat`` or
 ``seq`` ended there by SIGPIPE (128 + 13), said nothing about."""
+
+
+INTERRUPT_CHECK_S = 0.1
+"""How often a pause looks whether Ctrl-C was pressed."""
 
 
 class Interrupt:
@@ -43,6 +48,13 @@ class Interrupt:
             raise KeyboardInterrupt
         self.requested = True
         print("\nvoxe: interrupt received, stopping after this step (Ctrl-C again to abort)", file=sys.stderr)
+
+    def sleep(self, seconds: float) -> None:
+        """Pause ``seconds``, or until Ctrl-C: a signal handler that returns resumes ``time.sleep``, and ``voxe sweep
+        --wait --poll 600`` had answered a Ctrl-C only at the end of its 10-minute pause."""
+        end = time.monotonic() + seconds
+        while not self.requested and (left := end - time.monotonic()) > 0:
+            time.sleep(min(left, INTERRUPT_CHECK_S))
 
     @contextlib.contextmanager
     def installed(self) -> Iterator["Interrupt"]:

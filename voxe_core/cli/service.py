@@ -295,7 +295,7 @@ def cmd_sweep(args) -> int:
                 while args.wait and sweep["state"] in ("queued", "running") and not interrupt.requested:
                     if not args.quiet:
                         print(f"sweep {sweep['id']}: {sweep['state']}, jobs {sweep['counts']}", file=sys.stderr)
-                    time.sleep(args.poll or SWEEP_POLL_S)
+                    interrupt.sleep(args.poll or SWEEP_POLL_S)
                     sweep = client.get_sweep(sweep["id"])
         except ServiceError as exc:
             return _service_error("sweep", exc)
