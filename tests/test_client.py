@@ -7,6 +7,7 @@ The calls against a real service are in tests/test_evaluate.py (``voxe sweep`` e
 from __future__ import annotations
 
 import json
+import re
 
 import httpx
 import pytest
@@ -68,6 +69,21 @@ def test_an_unreachable_service_is_a_service_error_naming_it():
         with pytest.raises(ServiceError, match="^cannot reach the service at http://127.0.0.1:9: connection "
                                                "refused$"):  # a stream never opened: no reconnect window
             list(client.events("j1"))
+
+
+def test_a_url_without_http_or_a_host_is_bad_input_not_a_service_not_reached(capsys):
+    """``--api 127.0.0.1:8000`` (no scheme), ``ftp://...`` or ``http://`` had been taken, each call then failing as a
+    service not reached: exit 3, which tells a script to try again later, for a typo."""
+    from voxe_core.cli import main
+
+    for url in ("127.0.0.1:8000", "ftp://svc.test", "http://"):
+        with pytest.raises(ValueError, match=f"^{re.escape(repr(url))} is not a service URL: it takes http:// or "
+                                             "https:// and a host, as http://127.0.0.1:8000$"):
+            Client(url)
+        assert main(["status", "j1", "--api", url]) == 2
+        assert capsys.readouterr().err == (f"voxe status: error: {url!r} is not a service URL: it takes http:// or "
+                                           "https:// and a host, as http://127.0.0.1:8000\n")
+    Client("https://svc.test:8443/voxe/").close()
 
 
 class _Dropping(httpx.SyncByteStream):

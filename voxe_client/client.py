@@ -102,9 +102,13 @@ class Client:
         if api_key:
             headers["authorization"] = f"Bearer {api_key}"
         try:
-            self._http = httpx.Client(base_url=self.base_url, headers=headers, timeout=timeout, transport=transport)
+            url = httpx.URL(self.base_url)
         except httpx.InvalidURL as exc:  # (httpx's own type: a traceback in the CLI, which reports ValueErrors)
             raise ValueError(f"{base_url!r} is not a service URL: {exc}") from None
+        if url.scheme not in ("http", "https") or not url.host:  # (each call had failed as a service not reached)
+            raise ValueError(f"{base_url!r} is not a service URL: it takes http:// or https:// and a host, as "
+                             f"{DEFAULT_URL}")
+        self._http = httpx.Client(base_url=url, headers=headers, timeout=timeout, transport=transport)
 
     def __enter__(self) -> "Client":
         return self
