@@ -210,6 +210,50 @@ def test_ctrl_c_during_a_waited_sweeps_pause_stops_waiting_at_once(monkeypatch, 
     assert capsys.readouterr().err.endswith("voxe sweep: stopped waiting; the sweep s1 goes on in the service\n")
 
 
+def test_a_waited_sweep_polls_on_through_an_outage_for_as_long_as_wait_reconnects(monkeypatch, capsys, tmp_path):
+    """One poll refused (an API restarting) had ended ``voxe sweep --wait`` with exit 3 and no --out, and no command
+    takes the wait up again: polls the service fails or does not answer go on for ``RECONNECT_FOR_S``, said once;
+    after that, or at a refusal (4xx), the error ends it as before."""
+    import httpx
+
+    import voxe_client.client as client_module
+    import voxe_core.cli.service as service
+    from voxe_client import Client
+
+    polls = []
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        if request.method == "POST":
+            return httpx.Response(201, json={"id": "s1", "entries": [{}] * 6, "state": "queued",
+                                             "counts": {"queued": 12}, "table": "T\n"})
+        polls.append(outage.pop(0) if outage else "succeeded")
+        if polls[-1] == "refused":
+            raise httpx.ConnectError("connection refused")
+        if isinstance(polls[-1], int):
+            return httpx.Response(polls[-1], json={"detail": "no such sweep"})
+        return httpx.Response(200, json={"id": "s1", "entries": [], "state": polls[-1], "counts": {polls[-1]: 12},
+                                         "table": "T\n"})
+
+    monkeypatch.setattr(service, "_client", lambda args: Client(transport=httpx.MockTransport(answer)))
+    wait = ["sweep", "--scene", "s1=mic", "--wait", "--poll", "0.01", "--out", str(tmp_path / "s.json")]
+    outage = ["running", "refused", 502, "refused"]
+    assert main(wait) == 0 and polls == ["running", "refused", 502, "refused", "succeeded"]
+    assert json.loads((tmp_path / "s.json").read_text())["state"] == "succeeded"
+    err = capsys.readouterr().err
+    assert err.count("voxe sweep: cannot reach the service at http://127.0.0.1:8000: connection refused; polling on "
+                     "for up to 300 s (the sweep goes on in the service)") == 1 and err.count("running, jobs") == 1
+    monkeypatch.setattr(client_module, "RECONNECT_FOR_S", 0.05)
+    polls.clear()
+    outage = ["refused"] * 1000
+    assert main(wait) == 3 and 1 < len(polls) < 1000
+    assert capsys.readouterr().err.endswith("voxe sweep: error: cannot reach the service at http://127.0.0.1:8000: "
+                                            "connection refused\n")
+    polls.clear()
+    outage = [404]
+    assert main(wait) == 2 and polls == [404]
+    assert capsys.readouterr().err.endswith("voxe sweep: error: GET /v1/sweeps/s1: HTTP 404: no such sweep\n")
+
+
 def test_a_sweep_not_waited_for_prints_its_id_and_where_its_table_fills_in(monkeypatch, capsys, tmp_path):
     """Without --wait it had printed its summary table's header with no row (the sweep had just been queued), its
     id nowhere on stdout."""

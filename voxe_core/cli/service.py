@@ -86,7 +86,8 @@ def add_parsers(commands, common) -> None:
     sw.add_argument("--evaluation", type=_json_object, default=None, metavar="JSON",
                     help='evaluation params, e.g. \'{"views": 100, "size": 266}\'')
     sw.add_argument("--wait", action="store_true", help="poll until every job of the sweep is finished, then print "
-                    "its summary table (without: the sweep's id, at once)")
+                    "its summary table (without: the sweep's id, at once); polls through a service that stops "
+                    "answering for up to 300 s")
     sw.add_argument("--poll", type=positive_seconds, default=None, metavar="SECONDS",  # checked before the sweep
                     help=f"with --wait: seconds between polls (default {SWEEP_POLL_S:g})")
     sw.add_argument("--out", type=Path, default=None, metavar="FILE", help="also write the final summary JSON here")
@@ -277,6 +278,21 @@ def cmd_download(args) -> int:
     return 0
 
 
+def _poll_failed(error, failing_since: float | None) -> float:
+    """Since when a waited sweep's polls fail, ``error`` the latest, said on its first: one poll the service failed
+    or did not answer (an API restart) had ended the wait, which no command takes up again. ``error`` itself once
+    they have failed for ``RECONNECT_FOR_S`` (as ``voxe wait``'s event stream), or when the service refused it."""
+    from voxe_client.client import RECONNECT_FOR_S
+
+    now = time.monotonic()
+    if not error.service_failed or failing_since is not None and now - failing_since >= RECONNECT_FOR_S:
+        raise error
+    if failing_since is None:
+        print(f"voxe sweep: {error}; polling on for up to {RECONNECT_FOR_S:g} s (the sweep goes on in the service)",
+              file=sys.stderr)
+    return now if failing_since is None else failing_since
+
+
 def cmd_sweep(args) -> int:
     from voxe_client import ServiceError
     from voxe_core.files import replacing
@@ -290,13 +306,16 @@ def cmd_sweep(args) -> int:
             sweep = client.create_sweep(args.scene, params=args.params, evaluation=args.evaluation)
             print(f"sweep {sweep['id']}: {len(sweep['entries'])} edits of {len(args.scene)} scene(s) queued, each "
                   f"followed by its evaluation; GET {client.base_url}/v1/sweeps/{sweep['id']}", file=sys.stderr)
-            interrupt = Interrupt()
+            interrupt, failing_since = Interrupt(), None
             with interrupt.installed():
                 while args.wait and sweep["state"] in ("queued", "running") and not interrupt.requested:
-                    if not args.quiet:
+                    if not args.quiet and failing_since is None:  # (not again what the last answer said)
                         print(f"sweep {sweep['id']}: {sweep['state']}, jobs {sweep['counts']}", file=sys.stderr)
                     interrupt.sleep(args.poll or SWEEP_POLL_S)
-                    sweep = client.get_sweep(sweep["id"])
+                    try:
+                        sweep, failing_since = client.get_sweep(sweep["id"]), None
+                    except ServiceError as exc:
+                        failing_since = _poll_failed(exc, failing_since)
         except ServiceError as exc:
             return _service_error("sweep", exc)
     if args.out is not None:
