@@ -708,6 +708,20 @@ def test_a_submission_whose_answer_is_lost_is_sent_again_with_its_key_and_makes_
     assert len({upload[0], first, sweeps[0]}) == 3  # one key per submission
 
 
+def test_an_empty_webhook_url_is_sent_and_refused_not_dropped(api, tmp_path, capsys):
+    """``voxe submit --webhook-url "$HOOK"`` with HOOK unset had made the job without a webhook, exit 0: an empty
+    value was taken for none given. The service refuses it, naming the field."""
+    from voxe_core.cli import main
+
+    url, _ = api
+    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+    with Client(url) as client:
+        scene_id = client.upload_scene(tmp_path / "plane.obj")["id"]
+        assert main(["submit", "a plane", "--scene", scene_id, "--webhook-url", "", "--api", url]) == 2
+        assert "HTTP 422: body.webhook_url: String should match pattern" in capsys.readouterr().err
+        assert client.request("GET", "/v1/jobs")["items"] == []
+
+
 @pytest.mark.parametrize("job_status, delete_status, said, exit_status", [
     (429, 204, "the scene s1 this command uploaded is deleted", 2),
     (429, 409, "the scene s1 this command uploaded stays, its deletion failed (DELETE /v1/scenes/s1: HTTP 409: busy)",

@@ -198,7 +198,8 @@ def cmd_submit(args) -> int:
                         warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
                 print(f"uploaded {args.upload}: scene {scene_id}", file=sys.stderr)
             fields = {"mode": args.mode, "edit_words": args.edit_word}
-            fields.update({k: v for k, v in (("params", args.params), ("webhook_url", args.webhook_url)) if v})
+            fields.update({k: v for k, v in (("params", args.params), ("webhook_url", args.webhook_url))
+                           if v is not None})  # (an empty --webhook-url "$UNSET" had been dropped, the job made)
             try:
                 job = client.create_job(scene_id, args.prompt, **fields)
             except ServiceError as exc:
