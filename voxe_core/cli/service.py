@@ -288,10 +288,11 @@ def _poll_failed(error, failing_since: float | None) -> float:
     now = time.monotonic()
     if not error.service_failed or failing_since is not None and now - failing_since >= RECONNECT_FOR_S:
         raise error
-    if failing_since is None:
-        print(f"voxe sweep: {error}; polling on for up to {RECONNECT_FOR_S:g} s (the sweep goes on in the service)",
-              file=sys.stderr)
-    return now if failing_since is None else failing_since
+    if failing_since is not None:
+        return failing_since
+    print(f"voxe sweep: {error}; polling on for up to {RECONNECT_FOR_S:g} s (the sweep goes on in the service)",
+          file=sys.stderr)
+    return now
 
 
 def cmd_sweep(args) -> int:
