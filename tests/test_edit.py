@@ -379,6 +379,39 @@ def test_resume_refuses_another_prompt_or_grid(small_sphere, make_sphere_grid, t
     edit(small_sphere, "a dog", tiny_guidance, longer, resume_from=checkpoint)
 
 
+def test_resume_refuses_another_model_by_its_name_as_asked_for(small_sphere, tmp_path):
+    """The checkpoint had recorded the model and resumed under any other, mixing two models' edits. An older worker's
+    checkpoint, which recorded the folder its "tiny" resolved to, is refused as clearly."""
+    from voxe_core.edit import EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION
+    from voxe_core.tensorio import FormatError, save_tensors
+
+    def guidance(model_id):
+        named = FakeGuidance()
+        named.model_id = model_id
+        return named
+
+    checkpoint = tmp_path / "c.safetensors"
+    config = EditConfig(iterations=1, render_size=SIZE)
+    edit(small_sphere, "a dog", guidance("org/model-a"), config, checkpoint_path=checkpoint)
+    longer = dataclasses.replace(config, iterations=2)
+    with pytest.raises(FormatError, match="checkpoint was made with the model 'org/model-a', not 'org/model-b'"):
+        edit(small_sphere, "a dog", guidance("org/model-b"), longer, resume_from=checkpoint)
+    edit(small_sphere, "a dog", guidance("org/model-a"), longer, resume_from=checkpoint)
+
+    older = tmp_path / "older.safetensors"
+    tensors, meta = load_edit_checkpoint(checkpoint)
+    save_tensors(older, tensors, EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION,
+                 {**meta, "model": "/var/voxe/models/tiny-stable-diffusion"})
+    with pytest.raises(FormatError, match="made with the model '/var/voxe/models/tiny-stable-diffusion', not 'tiny'"):
+        edit(small_sphere, "a dog", guidance("tiny"), longer, resume_from=older)
+
+
+def test_a_guidance_loaded_from_a_folder_carries_the_name_it_was_asked_for(tiny_sd_path):
+    """The worker resolves "tiny" to a folder of its own machine; the name an edit checkpoint records is "tiny"."""
+    assert StableDiffusionGuidance.from_pretrained(str(tiny_sd_path), device="cpu", local_files_only=True,
+                                                   name="tiny").model_id == "tiny"
+
+
 def test_bf16_autocast_on_cpu_runs(small_sphere, tiny_guidance):
     reports = []
     out = edit(small_sphere, "a dog", tiny_guidance, EditConfig(iterations=2, render_size=SIZE, autocast_dtype="bf16"),

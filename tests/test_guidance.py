@@ -806,3 +806,20 @@ def test_the_workers_speed_up_settings_reach_the_guidance(variable, keyword, oth
     monkeypatch.setenv(variable, setting)
     runtime.get_guidance(str(tmp_path), "cpu", Settings())
     assert asked[keyword] is expected and asked[other] is None
+
+
+def test_the_worker_names_its_guidance_by_the_model_asked_for_not_the_folder_it_resolves_to(monkeypatch):
+    """"tiny" resolves to a folder under this machine's model_dir; edit checkpoints record the guidance's model_id,
+    which another worker resuming the job must match: the name, the same on every machine."""
+    from collections import OrderedDict
+
+    from voxe_service.settings import Settings
+    from worker import runtime
+
+    asked = {}
+    monkeypatch.setattr(StableDiffusionGuidance, "from_pretrained",
+                        lambda path, **kwargs: asked.update(kwargs, path=path))
+    monkeypatch.setattr(runtime, "_GUIDANCE_CACHE", OrderedDict())
+    monkeypatch.setattr(runtime, "resolve_model", lambda model, settings: f"/var/voxe/models/{model}-stable-diffusion")
+    runtime.get_guidance("tiny", "cpu", Settings())
+    assert (asked["path"], asked["name"]) == ("/var/voxe/models/tiny-stable-diffusion", "tiny")

@@ -25,11 +25,12 @@ CPU one for poses, time steps and image-regulariser rays, and one on the
 compute device for render jitter, the VAE posterior sample and the SDS noise.
 Checkpoints (``kind="edit_checkpoint"``, safetensors + JSON header, no pickle)
 hold G_e's features, Adam's moments and step, both generator states, the
-iteration and, under an image regulariser, a summary of the input views it
-compares with, so a run interrupted after k iterations and resumed from its
-checkpoint ends with exactly the grid an uninterrupted run would (on CPU; on
-CUDA only as far as the kernels are deterministic: scatter-adds with atomics are
-not; resumed on another device type, the device generator is reseeded from where
+iteration, the guidance's ``model_id`` (a resume with another model is refused)
+and, under an image regulariser, a summary of the input views it compares
+with, so a run interrupted after k iterations and resumed from its checkpoint
+ends with exactly the grid an uninterrupted run would (on CPU; on CUDA only
+as far as the kernels are deterministic: scatter-adds with atomics are not;
+resumed on another device type, the device generator is reseeded from where
 the run stands, its state meaning nothing there). A cancelled run writes a
 checkpoint before it stops.
 
@@ -408,6 +409,12 @@ def edit(
                               f"{prompt!r}")
         if meta.get("initial_sha256") != fingerprint:
             raise FormatError(f"{resume_from}: checkpoint was made from a different initial grid")
+        # The guidance's model_id, its name as asked for (a hub id, a folder as given, the worker's "tiny"): the same
+        # on every machine. An older worker's checkpoint, which recorded the folder "tiny" resolved to there, is
+        # refused too (the worker starts such a stage over): that folder is no model a run here is asked for.
+        if meta.get("model") != run_meta["model"]:
+            raise FormatError(f"{resume_from}: checkpoint was made with the model {meta.get('model')!r}, not "
+                              f"{run_meta['model']!r}; resume with that model, or start afresh")
         if changed := recipe_changes(meta, config):
             raise FormatError(f"{resume_from}: checkpoint was made with another recipe: {', '.join(changed)}; "
                               "resume with its settings, or start afresh")

@@ -1009,7 +1009,7 @@ def get_guidance(model: str, device: str, settings: Settings, job_id: str | None
     log.info("loading guidance model %s on %s", path, device)
     on_message = (lambda text: update_job(job_id, message=text)) if job_id is not None else None
     _GUIDANCE_CACHE[key] = StableDiffusionGuidance.from_pretrained(
-        path, device=device, on_message=on_message, cuda_graphs=None if settings.cuda_graphs else False,
+        path, device=device, on_message=on_message, name=model, cuda_graphs=None if settings.cuda_graphs else False,
         compile_encoder=None if settings.compile_encoder else False)
     return _GUIDANCE_CACHE[key]
 

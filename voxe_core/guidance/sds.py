@@ -239,6 +239,7 @@ class StableDiffusionGuidance:
         cuda_graphs: bool | None = None,
         compile_encoder: bool | None = None,
         on_message: Callable[[str], None] | None = None,
+        name: str | None = None,
     ) -> "StableDiffusionGuidance":
         """Load UNet, VAE, CLIP text encoder, tokenizer and noise schedule of ``model``.
 
@@ -250,6 +251,9 @@ class StableDiffusionGuidance:
         :class:`ModelNotAvailableError` (naming the model and how to provide it)
         when the weights cannot be found; never substitutes another model.
         ``on_message`` hears "downloading <model> (N GB)" before a first-use download.
+        ``name`` is the ``model_id`` an edit checkpoint records and its resume must match (default: ``model``, with
+        ``@revision`` when one is given): a caller that resolved a name to a folder of its own machine (the worker's
+        ``tiny``) passes the name, which is the same on every machine.
         ``resolution`` overrides the image size derived from the configs
         (``unet.sample_size · 2^(len(vae.block_out_channels) − 1)``, 512 for SD).
         ``cuda_graphs`` replays the SDS step's UNet (and VAE encoder, unless compiled) from CUDA graphs (default:
@@ -269,8 +273,8 @@ class StableDiffusionGuidance:
             model_str, dtype, local_files_only, revision, on_message)
         return cls(
             unet, vae, text_encoder, tokenizer, scheduler,
-            model_id=model_str, device=device, dtype=dtype, resolution=resolution, sync_timing=sync_timing,
-            cuda_graphs=cuda_graphs, compile_encoder=compile_encoder,
+            model_id=name or (f"{model_str}@{revision}" if revision else model_str), device=device, dtype=dtype,
+            resolution=resolution, sync_timing=sync_timing, cuda_graphs=cuda_graphs, compile_encoder=compile_encoder,
         )
 
     # ------------------------------------------------------------------ text
