@@ -268,6 +268,43 @@ def test_scene_frame_refuses_parallel_axes_and_cameras_on_the_centre():
         scene_frame(Cameras.from_fov(centred, 0.7, 8, 8))
 
 
+def _capture(root, c2w: torch.Tensor):
+    """An instant-ngp capture of 8x8 grey images from the poses ``c2w``, in this order."""
+    import json
+
+    from PIL import Image
+
+    (root / "images").mkdir(parents=True)
+    for i in range(len(c2w)):
+        Image.new("RGB", (8, 8), (120, 120, 120)).save(root / "images" / f"{i:03d}.png")
+    frames = [{"file_path": f"images/{i:03d}.png", "transform_matrix": pose.tolist()} for i, pose in enumerate(c2w)]
+    (root / "transforms.json").write_text(json.dumps({"camera_angle_x": 0.7, "frames": frames}))
+    return root
+
+
+def test_max_images_keeping_too_narrow_a_start_of_a_capture_is_named_as_the_cause(tmp_path, capsys):
+    """The first 3 of a 200-frame orbit look nearly one way: the fit had been refused as if the capture were not
+    around the object. A capture that is not keeps its own refusal."""
+    from voxe_core.cli import main
+    from voxe_core.data import load_scene
+
+    orbit = _capture(tmp_path / "orbit", ring_poses(200, 20.0, radius=4.0))
+    forward = torch.eye(4).repeat(200, 1, 1)
+    forward[:, 0, 3] = torch.linspace(0.0, 2.0, 200)
+    forward_facing = _capture(tmp_path / "forward", forward)
+    assert torch.allclose(load_scene(orbit, max_images=3).split_c2w, ring_poses(200, 20.0, radius=4.0), atol=1e-6)
+    assert load_scene(orbit, max_images=200).split_c2w is None
+
+    fit = ["--resolution", "8", "--iterations", "1", "--rays", "16", "--quiet", "--max-images", "3"]
+    assert main(["reconstruct", str(orbit), "--out", str(tmp_path / "g.safetensors"), *fit]) == 2
+    assert ("error: max_images keeps the first 3 of the split's 200 frames, too few to fit from where the whole split "
+            "would do: raise it, or leave it out (of those 3: the cameras' optical axes are (nearly) parallel"
+            ) in capsys.readouterr().err
+    assert main(["reconstruct", str(forward_facing), "--out", str(tmp_path / "g.safetensors"), *fit]) == 2
+    assert "error: the cameras' optical axes are (nearly) parallel, so they look at no common centre; the scene " \
+           "backbone needs a capture around the object\n" in capsys.readouterr().err
+
+
 def test_backbone_detection_from_alpha():
     with pytest.raises(ValueError, match="unknown backbone .dvgo.; use .auto., .relu_field. or .scene."):
         prepare_backbone("dvgo", None, Cameras.from_fov(ring_poses(3), 0.7, 4, 4), 8)

@@ -110,19 +110,41 @@ def resolve_backbone(backbone: str, alphas: torch.Tensor | None) -> str:
     return detect_backbone(alphas) if backbone == "auto" else backbone
 
 
-def prepare_backbone(backbone: str, alphas: torch.Tensor | None, cameras: Cameras, resolution: int):
+def prepare_backbone(backbone: str, alphas: torch.Tensor | None, cameras: Cameras, resolution: int,
+                     split_c2w: torch.Tensor | None = None):
     """Resolve ``backbone`` ('auto' | 'relu_field' | 'scene') for a loaded scene.
 
     Returns (name, cameras to fit with, initial grid for ``reconstruct`` or None):
     a scene grid is fitted in the canonical frame of ``scene_frame``, which it records; a ReLU field in the
     capture's own frame, which must hold the object in its box (``_check_cameras_see_box``).
+    ``split_c2w``: the split's every camera-to-world when ``cameras`` are the first ``max_images`` of it
+    (``Scene.split_c2w``); a refusal the whole split would pass names ``max_images``, not the capture.
     """
     name = resolve_backbone(backbone, alphas)
+    try:
+        frame = _capture_frame(name, cameras)
+    except ValueError as exc:
+        if split_c2w is None:
+            raise
+        try:
+            _capture_frame(name, Cameras.from_fov(split_c2w, 1.0, 1, 1))  # (the checks read the poses alone)
+        except ValueError:
+            raise exc from None
+        raise ValueError(f"max_images keeps the first {len(cameras)} of the split's {len(split_c2w)} frames, too few "
+                         f"to fit from where the whole split would do: raise it, or leave it out (of those "
+                         f"{len(cameras)}: {exc})") from None
+    if frame is None:
+        return name, cameras, None
+    return name, apply_frame(cameras, frame), SceneGrid(resolution, frame=frame)
+
+
+def _capture_frame(name: str, cameras: Cameras) -> torch.Tensor | None:
+    """The scene frame a ``name`` backbone fits ``cameras`` in (None: a ReLU field's, the capture's own); ValueError
+    for cameras it cannot fit from."""
     if name != SceneGrid.kind:
         _check_cameras_see_box(cameras)
-        return name, cameras, None
-    frame = scene_frame(cameras)
-    return name, apply_frame(cameras, frame), SceneGrid(resolution, frame=frame)
+        return None
+    return scene_frame(cameras)
 
 
 def _check_cameras_see_box(cameras: Cameras) -> None:

@@ -85,6 +85,9 @@ class Scene:
     format: str
     split: str
     aabb_scale: float | None = None
+    # (S, 4, 4) camera-to-world of every frame of the split when max_images kept fewer (None: the cameras are all of
+    # it): what tells a subset too narrow to fit from a capture that is (``voxe_core.backbones.prepare_backbone``).
+    split_c2w: torch.Tensor | None = None
 
     @property
     def has_alpha(self) -> bool:
@@ -222,9 +225,8 @@ def load_scene(
             raise where(f"duplicate file_path (same image as frame {seen[key]})", i)
         seen[key] = i
 
-    keep = _split_indices(fmt, split, len(frames), holdout_every, where)
-    if max_images is not None:
-        keep = keep[:max_images]
+    split_frames = _split_indices(fmt, split, len(frames), holdout_every, where)
+    keep = split_frames[:max_images]
 
     images, alphas, size = None, None, None
     for slot, i in enumerate(keep):
@@ -265,7 +267,8 @@ def load_scene(
     aabb = meta.get("aabb_scale")
     if aabb is not None:
         aabb = _number(aabb, "aabb_scale", where, None)
-    return Scene(images, alphas, cams, [paths[i] for i in keep], fmt, split, aabb)
+    split_c2w = torch.from_numpy(poses[split_frames]).float() if len(keep) < len(split_frames) else None
+    return Scene(images, alphas, cams, [paths[i] for i in keep], fmt, split, aabb, split_c2w)
 
 
 def _camera_model(source: dict, where: _Where, frame: int | None) -> str | None:

@@ -241,15 +241,17 @@ def check_fit(rec_params: dict, scene_backbone: str | None) -> None:
 
 
 def fit_setup(rec_params: dict, alphas: "torch.Tensor | None", cameras: "Cameras",
-              checkpoint_every: int = 0, scene_backbone: str | None = None) -> FitSetup:
+              checkpoint_every: int = 0, scene_backbone: str | None = None,
+              split_c2w: "torch.Tensor | None" = None) -> FitSetup:
     """The backbone ``rec_params`` asks for (resolved as ``scene_backbone`` when given, else for images with
-    ``alphas``), its config and starting point: what the CLI and the worker both run before ``reconstruct``."""
+    ``alphas``), its config and starting point: what the CLI and the worker both run before ``reconstruct``.
+    ``split_c2w``: ``Scene.split_c2w``, so that cameras too few to fit from name ``max_images`` when they are."""
     from voxe_core.backbones import prepare_backbone, resolve_backbone
 
     backbone = resolve_backbone(fit_backbone(rec_params, scene_backbone), alphas)
     check_fit(rec_params, backbone)  # a refusal says what "auto" became
     config = reconstruct_config(rec_params, checkpoint_every, backbone)  # the backbone's default preset
-    _, fit_cameras, initial = prepare_backbone(backbone, alphas, cameras, config.resolutions[0])
+    _, fit_cameras, initial = prepare_backbone(backbone, alphas, cameras, config.resolutions[0], split_c2w)
     return FitSetup(backbone, config, fit_cameras, initial)
 
 

@@ -559,7 +559,8 @@ def _fit_grid(job: Job, rec, settings, storage, lease: runtime.LeaseKeeper, call
 
     scene = load_images(job, rec.params, settings, storage)
     backbone, config, cameras, initial = fit_setup(rec.params, scene.alphas, scene.cameras, settings.checkpoint_every,
-                                                   scene_backbone=job_scene(job).backbone)  # what the API checked
+                                                   scene_backbone=job_scene(job).backbone,  # what the API checked
+                                                   split_c2w=scene.split_c2w)
     _record_fit(job, backbone, config, settings)
     lease.renew(total=config.total_iterations)
     resume = None

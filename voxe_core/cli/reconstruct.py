@@ -86,7 +86,8 @@ def cmd_reconstruct(args) -> int:
         load_header(args.resume, CHECKPOINT_KIND, CHECKPOINT_FORMAT_VERSION)
     scene = load_views(args)
     every = CHECKPOINT_EVERY if args.checkpoint_every is None else args.checkpoint_every
-    backbone, config, cameras, initial = fit_setup(params, scene.alphas, scene.cameras, every if args.checkpoint else 0)
+    backbone, config, cameras, initial = fit_setup(params, scene.alphas, scene.cameras, every if args.checkpoint else 0,
+                                                   split_c2w=scene.split_c2w)
     print(
         f"fitting {len(scene)} {scene.split} images of {scene.cameras.width}x{scene.cameras.height} "
         f"from {args.data} ({backbone} backbone) on {device}: resolutions {list(config.resolutions)}, "
