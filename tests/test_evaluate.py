@@ -396,6 +396,21 @@ def test_edits_of_one_name_are_refused_before_any_render(sphere_grid, tiny_clip_
     assert reports == []
 
 
+def test_an_object_name_longer_than_clip_reads_is_refused_before_any_render(sphere_grid, tiny_clip_path):
+    """CLIP's tokenizer had cut the text at its 77 tokens silently: two source texts differing past the cut scored
+    alike, the edit's CLIP_dir measured against a text other than the one asked for."""
+    clip = ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")
+    long_name = "ball " * 80
+    with pytest.raises(ValueError, match=r"^the text 'a render of a ball ball .*' is \d+ tokens; the CLIP text model of "
+                                         r".* reads 77, its start and end tokens included: shorten it$"):
+        clip.text_embeddings(["a render of a ball", f"a render of a {long_name}dog"])
+    reports = []
+    with pytest.raises(ValueError, match="the text 'a render of a ball ball"):
+        evaluate(sphere_grid, [EditSample("e", "a claymation ball", sphere_grid)], long_name, clip, None, None,
+                 EvaluateConfig(views=2, size=16), Callbacks(on_progress=reports.append))
+    assert reports == []
+
+
 @pytest.mark.parametrize("grid_resolution, mask_shape, message", [
     (None, (10, 12, 12), r"edit 'masked': its mask of shape \(10, 12, 12\) does not fit the grid's \(12, 12, 12\) "
                          "vertices"),

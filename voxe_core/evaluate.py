@@ -49,7 +49,7 @@ from voxe_core.guidance.loading import (
     ModelNotAvailableError, is_out_of_memory, load_clip_tokenizer, loading_errors, local_path, no_folder_note,
     offline_env, tokenizer_fits,
 )
-from voxe_core.guidance.prompts import edit_prompt
+from voxe_core.guidance.prompts import edit_prompt, tokens_read
 from voxe_core.metrics import PSNR_CAP_DB, SSIM_WINDOW, psnr, ssim
 from voxe_core.progress import Callbacks, Progress
 from voxe_core.render import RenderConfig, render_image
@@ -298,8 +298,15 @@ class ClipScorer:
 
     @torch.no_grad()
     def text_embeddings(self, texts: Sequence[str]) -> torch.Tensor:
-        tokens = self.tokenizer(list(texts), padding=True, truncation=True, return_tensors="pt").to(self.device)
-        return _unit(_tensor_of(self.model.get_text_features(**tokens)).float().cpu())
+        """(N, D) unit embeddings of ``texts``; ValueError for one longer than the text model reads (it had been cut
+        off there silently and scored as the shorter text, a long object name's CLIP_dir against another source)."""
+        limit = tokens_read(self.tokenizer, self.model.config.text_config.max_position_embeddings)
+        tokens = self.tokenizer(list(texts), padding=True, return_tensors="pt")  # uncut
+        for text, length in zip(texts, tokens.attention_mask.sum(1).tolist()):
+            if length > limit:
+                raise ValueError(f"the text {text!r} is {length} tokens; the CLIP text model of {self.name} reads "
+                                 f"{limit}, its start and end tokens included: shorten it")
+        return _unit(_tensor_of(self.model.get_text_features(**tokens.to(self.device))).float().cpu())
 
 
 def _clip_not_available(model_id: str, cause: str) -> str:
@@ -417,7 +424,7 @@ def evaluate(
     ``initial`` is); each grid moves there once. The scorers run where they were
     loaded. A ring render with a NaN or infinite pixel (a diverged grid) is a
     ValueError naming the grid, as are two edits of one name and, before any render, a masked edit whose grid or
-    mask does not fit ``initial``'s vertices. Progress: ("evaluate", i,
+    mask does not fit ``initial``'s vertices and a source text or prompt longer than CLIP's text model reads. Progress: ("evaluate", i,
     :func:`evaluation_steps`), one step per view rendered, footprinted or scored, info carrying the pass
     ("stage") and the peak memory so far; cancellation is checked between views
     and between scoring batches.
@@ -472,9 +479,9 @@ def evaluate(
                              centre)
         return _finite_frames(frames, label)
 
+    texts = clip.text_embeddings([source] + [edit_prompt(e.prompt) for e in edits])  # a text too long: before renders
     recon = ring(initial, "the initial grid")
     recon_clip = clip.image_embeddings(recon, per_batch("CLIP"))
-    texts = clip.text_embeddings([source] + [edit_prompt(e.prompt) for e in edits])
     recon_features = fid.features(recon, per_batch("FID")) if fid is not None else None
     input_features = None
     if fid is not None and input_images is not None:
