@@ -418,6 +418,23 @@ def test_fit_reports_progress_and_cancels(make_sphere_grid):
         fit_attention_grids(grid, cams, torch.zeros(3, 8, 8), torch.zeros(3, 8, 8), RefineConfig(iterations=1, fit_views="fixed"))
 
 
+def test_a_constant_start_too_short_to_part_the_grids_is_named_with_its_remedy(make_sphere_grid):
+    """From one value, both fields' L1 gradients agree until their renders reach the lower map, so a few steps left
+    them equal: a "no seeds" SegmentationError from the cut, blaming no setting. Enough steps part them."""
+    grid = make_sphere_grid(10)
+    cams = cameras_around(4, 12, seed=1)
+    axes = torch.linspace(0.2, 0.9, 12)
+    edit_maps = axes.expand(4, 12, 12)  # edit and object maps apart everywhere, both above 0.2
+    object_maps = edit_maps.flip(-1)
+    config = RefineConfig(lift_start="constant", iterations=2, rays_per_step=256, fit_views="fixed", fit_pixels="all")
+    with pytest.raises(SegmentationError, match=r"^the attention grids are still equal everywhere after 2 fitting "
+                                                r"iterations from lift_start='constant': .* fit more iterations \(the "
+                                                r"paper: 1500\) or use lift_start='backprojection'$"):
+        fit_attention_grids(grid, cams, edit_maps, object_maps, config)
+    edit, obj = fit_attention_grids(grid, cams, edit_maps, object_maps, dataclasses.replace(config, iterations=40))
+    assert not torch.equal(edit, obj)
+
+
 # ----------------------------------------------------------------- graph cut
 
 

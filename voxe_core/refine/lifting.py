@@ -20,6 +20,7 @@ from typing import Callable
 import torch
 
 from voxe_core.cameras import Cameras, camera_rays
+from voxe_core.constants import REFINE_ITERATIONS
 from voxe_core.grid import Occupancy, VoxelGrid, ray_box_intersection, unit_directions
 from voxe_core.progress import Callbacks, Progress
 from voxe_core.refine.config import RefineConfig, SegmentationError
@@ -175,7 +176,8 @@ def fit_attention_grids(
     ``lr``; stratified jitter along the rays. Pixels whose ray misses the
     occupied box render 0 whatever the field holds and are left out.
     Deterministic for ``config.seed``; reports ``Progress("attention_grids")``
-    every step and may be cancelled between steps.
+    every step and may be cancelled between steps. A constant start whose fit ends with both grids still equal
+    (too few iterations) is a SegmentationError naming that: the cut would find no seeds.
     """
     n_views, height, width = edit_maps.shape
     if object_maps.shape != edit_maps.shape:
@@ -236,4 +238,10 @@ def fit_attention_grids(
         callbacks.progress(Progress("attention_grids", iteration + 1, config.iterations,
                                     {"l1": float(l1.detach()), "tv": float(tv.detach())}, {"stage": "attention grids"}))
     values = flat_start.index_copy(0, rows, active.detach()).reshape(start.shape)
+    if config.lift_start == "constant" and torch.equal(values[..., 0], values[..., 1]):  # (the cut had found no seeds)
+        raise SegmentationError(
+            f"the attention grids are still equal everywhere after {config.iterations} fitting iterations from "
+            "lift_start='constant': from one value Adam moves both alike until their renders reach the lower of the "
+            "two maps, so no voxel is more likely edit than object and the cut has no seeds; fit more iterations "
+            f"(the paper: {REFINE_ITERATIONS}) or use lift_start='backprojection'")
     return values[..., 0:1].contiguous(), values[..., 1:2].contiguous()
