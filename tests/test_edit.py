@@ -424,6 +424,23 @@ def test_bf16_autocast_on_cpu_runs(small_sphere, tiny_guidance):
 # ------------------------------------------------------------------ the loop with a recording guidance
 
 
+def test_autocast_on_the_cpu_with_a_float16_model_is_refused_before_any_step(small_sphere, tiny_sd_path):
+    """CPU autocast is bfloat16, and a float16 model's GroupNorm failed in it at the first step with torch's "mixed
+    dtype (CPU)"; without autocast the float16 model runs (tests/test_hard_cases.py), as a bfloat16 one does with."""
+    half = StableDiffusionGuidance.from_pretrained(str(tiny_sd_path), device="cpu", dtype=torch.float16,
+                                                   local_files_only=True)
+    reports = []
+    for autocast in ("bf16", "fp16"):
+        with pytest.raises(ValueError, match=r"^autocast on the CPU runs under bfloat16, where a float16 model fails .*"
+                                             r"float32 \(from_pretrained's default on the CPU\) or bfloat16, or leave "
+                                             r"autocast_dtype None$"):
+            edit(small_sphere, "a dog", half, EditConfig(iterations=1, render_size=SIZE, autocast_dtype=autocast),
+                 _collect(reports))
+    assert reports == []
+    edit(small_sphere, "a dog", half, EditConfig(iterations=1, render_size=SIZE), _collect(reports))
+    assert len(reports) == 1
+
+
 def test_fake_guidance_satisfies_the_protocol():
     assert isinstance(FakeGuidance(), Guidance)
 

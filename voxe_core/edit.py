@@ -36,8 +36,9 @@ checkpoint before it stops.
 
 Mixed precision. ``autocast_dtype`` ("bf16" / "fp16") runs the guidance (VAE
 encoder forward and UNet) under ``torch.autocast``; on CPU only bfloat16 is
-used. The volume renderer and the regulariser always run in float32 (both
-disable autocast inside: transmittance products and correlations want fp32).
+used, and a float16 model is refused there (its GroupNorm fails under it). The
+volume renderer and the regulariser always run in float32 (both disable
+autocast inside: transmittance products and correlations want fp32).
 """
 
 from __future__ import annotations
@@ -374,6 +375,11 @@ def edit(
     if guidance_device is not None and not same_device(guidance_device, device):
         raise ValueError(f"the edit runs on {device} but its guidance model is on {guidance_device}; "
                          "load the guidance on the same device")
+    # (torch's "mixed dtype (CPU): expect parameter to have scalar type of Float" from GroupNorm, at the first step)
+    if config.autocast_dtype is not None and device.type == "cpu" and getattr(guidance, "dtype", None) == torch.float16:
+        raise ValueError("autocast on the CPU runs under bfloat16, where a float16 model fails (its GroupNorm layers "
+                         "get float32 inputs for float16 weights): load the guidance in float32 (from_pretrained's "
+                         "default on the CPU) or bfloat16, or leave autocast_dtype None")
     memory = PeakMemory(device).start()
     sync = config.sync_timing
     volumetric_reg = None if image_reg else volumetric_regulariser(  # G_i's share computed once
