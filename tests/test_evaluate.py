@@ -401,8 +401,8 @@ def test_an_object_name_longer_than_clip_reads_is_refused_before_any_render(sphe
     alike, the edit's CLIP_dir measured against a text other than the one asked for."""
     clip = ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")
     long_name = "ball " * 80
-    with pytest.raises(ValueError, match=r"^the text 'a render of a ball ball .*' is \d+ tokens; the CLIP text model of "
-                                         r".* reads 77, its start and end tokens included: shorten it$"):
+    with pytest.raises(ValueError, match=r"^the text 'a render of a ball ball .*' is \d+ tokens; the CLIP text "
+                                         r"model of .* reads 77, its start and end tokens included: shorten it$"):
         clip.text_embeddings(["a render of a ball", f"a render of a {long_name}dog"])
     reports = []
     with pytest.raises(ValueError, match="the text 'a render of a ball ball"):

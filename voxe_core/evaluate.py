@@ -424,10 +424,10 @@ def evaluate(
     ``initial`` is); each grid moves there once. The scorers run where they were
     loaded. A ring render with a NaN or infinite pixel (a diverged grid) is a
     ValueError naming the grid, as are two edits of one name and, before any render, a masked edit whose grid or
-    mask does not fit ``initial``'s vertices and a source text or prompt longer than CLIP's text model reads. Progress: ("evaluate", i,
-    :func:`evaluation_steps`), one step per view rendered, footprinted or scored, info carrying the pass
-    ("stage") and the peak memory so far; cancellation is checked between views
-    and between scoring batches.
+    mask does not fit ``initial``'s vertices and a source text or prompt longer than CLIP's text model reads.
+    Progress: ("evaluate", i, :func:`evaluation_steps`), one step per view rendered, footprinted or scored, info
+    carrying the pass ("stage") and the peak memory so far; cancellation is checked between views and between
+    scoring batches.
     """
     if not edits:
         raise ValueError("nothing to evaluate: no edits given")
