@@ -35,7 +35,7 @@ class Guidance(Protocol):
     """What the editing and refinement stages need from a text-to-image diffusion model.
 
     Every member is one the stages call. They also read ``device`` (where to run; default: the grids') and
-    ``model_id`` (recorded in the edit's checkpoint) when a guidance has them.
+    ``model_id`` (recorded in the edit's checkpoint; a resume with another is refused) when a guidance has them.
     """
 
     resolution: int
