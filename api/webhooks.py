@@ -20,7 +20,7 @@ from voxe_service.db import session_scope
 from voxe_service.models import ApiKey, Job, WebhookDelivery, utcnow
 from voxe_service.settings import Settings
 from voxe_service.webhooks import (
-    DELIVERED, GAVE_UP, PENDING, TargetRefused, attempt, claim_due, retry_at, webhook_client,
+    DELIVERED, GAVE_UP, PENDING, TargetRefused, attempt, backoff_s, claim_due, retry_at, webhook_client,
 )
 
 log = logging.getLogger("voxe.webhooks")
@@ -28,6 +28,8 @@ log = logging.getLogger("voxe.webhooks")
 # A claim outlasts its attempt's deadline by this much (reading the delivery, recording the outcome), so no other
 # sender takes a delivery whose attempt is still running.
 CLAIM_MARGIN_S = 30.0
+# While passes fail (the database unreachable), the next one waits the poll interval doubling per failure, up to this.
+FAILING_PASS_MAX_DELAY_S = 30.0
 
 
 class WebhookSender:
@@ -52,12 +54,34 @@ class WebhookSender:
         self._client.close()
 
     def _loop(self) -> None:
+        """Pass after pass, backing off while they fail: the first failure is logged with its traceback, the next
+        ones a line each, and the recovery too (a traceback every poll interval had filled the log while the
+        database was down: 7,200 an hour per API process)."""
+        failed = 0
         while not self._stop.is_set():
             try:
                 self.send_due()
-            except Exception:  # noqa: BLE001 - a database hiccup: try again next interval
-                log.warning("webhook sender: pass failed", exc_info=True)
+            except Exception as exc:  # noqa: BLE001 - a database hiccup or outage: try again, later each time
+                failed += 1
+                self._stop.wait(self._log_failed_pass(failed, exc))
+                continue
+            if failed:
+                log.warning("webhook sender: passes succeed again, after %d failed in a row", failed)
+                failed = 0
             self._stop.wait(self.settings.webhook_poll_interval_s)
+
+    def _log_failed_pass(self, failed: int, exc: Exception) -> float:
+        """Log failed pass number ``failed`` (in a row); the seconds until the next."""
+        interval = self.settings.webhook_poll_interval_s
+        longest = max(interval, FAILING_PASS_MAX_DELAY_S)
+        delay = backoff_s(failed, interval, longest)
+        if failed == 1:
+            log.warning("webhook sender: pass failed; next pass in %g s, backing off up to %g s while passes fail",
+                        delay, longest, exc_info=True)
+        else:
+            log.warning("webhook sender: pass %d in a row failed; next in %g s: %s: %s", failed, delay,
+                        type(exc).__name__, str(exc).partition("\n")[0])
+        return delay
 
     def send_due(self) -> int:
         """Claim what the pool has room for and hand it over; how many attempts were started."""

@@ -103,6 +103,55 @@ def test_a_sender_pass_whose_claim_fails_leaves_the_next_ones_their_slots(client
         receiver.close()
 
 
+def test_a_sender_facing_a_database_that_is_down_backs_off_logs_one_traceback_and_resumes(client, monkeypatch,
+                                                                                             caplog):
+    """Every pass failing (the database unreachable) for 4 s: the passes back off (0.1 s doubling, capped here at
+    1 s) instead of one every poll interval, only the first failure logs its traceback and the later ones a line
+    each, the recovery is logged, and the delivery waiting meanwhile goes out within a capped step of it. The
+    sender had logged a traceback every poll (0.5 s: about 7,200 an hour per API process)."""
+    import logging
+    import threading
+
+    from sqlalchemy.exc import OperationalError
+
+    import api.webhooks
+
+    test_client, scene = client
+    receiver, down, failed_passes, real_claim = WebhookReceiver(), threading.Event(), [], api.webhooks.claim_due
+
+    def unreachable_while_down(*args, **kwargs):
+        if down.is_set():
+            failed_passes.append(time.monotonic())
+            raise OperationalError("SELECT webhook_deliveries", {}, Exception("connection refused\nIs it running?"))
+        return real_claim(*args, **kwargs)
+
+    monkeypatch.setattr(api.webhooks, "FAILING_PASS_MAX_DELAY_S", 1.0)
+    monkeypatch.setattr(api.webhooks, "claim_due", unreachable_while_down)
+    caplog.set_level(logging.INFO, logger="voxe.webhooks")
+    try:
+        down.set()
+        job = test_client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold",
+                                                 "webhook_url": receiver.url}).json()
+        test_client.post(f"/v1/jobs/{job['id']}/cancel")
+        time.sleep(4.0)
+        down.clear()
+        back = time.monotonic()
+        [delivery] = deliveries_settled(test_client, job["id"], timeout=10)
+        assert delivery["state"] == "delivered" and len(receiver.requests) == 1, delivery
+        assert time.monotonic() - back < 3.0  # the 1 s step, the attempt and this poll, on a loaded machine
+    finally:
+        receiver.close()
+    assert 3 <= len(failed_passes) <= 10, len(failed_passes)  # one a poll (0.1 s) had been 40
+    passes = [r for r in caplog.records if r.name == "voxe.webhooks" and "pass" in r.getMessage()]
+    failures = [r for r in passes if "failed;" in r.getMessage()]
+    assert len(failures) == len(failed_passes) and [r.exc_info is not None for r in failures] == (
+        [True] + [False] * (len(failures) - 1)), [(r.getMessage(), r.exc_info) for r in failures]
+    assert "OperationalError: (builtins.Exception) connection refused" in failures[-1].getMessage()
+    assert "\n" not in failures[-1].getMessage()
+    assert [r.getMessage() for r in passes if r not in failures] == [
+        f"webhook sender: passes succeed again, after {len(failed_passes)} failed in a row"]
+
+
 def failed_once_more(test_client, scene, *, attempts: int = 0, event_age_s: float = 0.0,
                      url: str | None = None) -> dict:
     """A job's delivery to a dead receiver (or stored with ``url``), ``attempts`` attempts and ``event_age_s`` after
