@@ -2,7 +2,8 @@
 
 Attempts run on a small thread pool, each ending by its deadline (``VOXE_WEBHOOK_TIMEOUT_S``: name lookup,
 connect, send and the whole answer), so a slow or dead receiver holds one pool thread for at most that long and
-never a request or a worker. A failed attempt (an error, a timeout, a non-2xx) is retried after
+never a request or a worker; at most half the pool's threads go to one URL, so a receiver that never answers
+cannot hold them all while its deliveries pile up. A failed attempt (an error, a timeout, a non-2xx) is retried after
 ``VOXE_WEBHOOK_BACKOFF_S`` doubling per attempt, until ``VOXE_WEBHOOK_RETRY_FOR_S`` after the event (the last
 try at that time); then the delivery is ``failed`` with the last error. Claims are conditional updates, so several API
 processes may send side by side without sending one attempt twice.
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
 
 from sqlalchemy import select, update
@@ -40,6 +42,9 @@ class WebhookSender:
         self._pool = ThreadPoolExecutor(settings.webhook_concurrency, thread_name_prefix="voxe-webhook")
         self._client = webhook_client(settings.webhook_timeout_s, settings.webhook_networks)
         self._in_flight = threading.Semaphore(settings.webhook_concurrency)
+        self._per_url = max(1, settings.webhook_concurrency // 2)  # so one receiver never holds every slot
+        self._in_flight_to: Counter[str] = Counter()  # attempts in flight, by URL
+        self._in_flight_lock = threading.Lock()
 
     def start(self) -> "WebhookSender":
         self._thread = threading.Thread(target=self._loop, name="voxe-webhooks", daemon=True)
@@ -90,19 +95,24 @@ class WebhookSender:
             free += 1
         if not free:
             return 0
-        ids: list[str] = []
+        claimed: list[tuple[str, str]] = []
         try:
+            with self._in_flight_lock:
+                in_flight_to = dict(self._in_flight_to)
             with session_scope() as session:
-                won = claim_due(session, utcnow(), self.settings.webhook_timeout_s + CLAIM_MARGIN_S, free)
-            ids = won  # once committed: a claim whose commit failed took nothing
+                won = claim_due(session, utcnow(), self.settings.webhook_timeout_s + CLAIM_MARGIN_S, free,
+                                self._per_url, in_flight_to)
+            claimed = won  # once committed: a claim whose commit failed took nothing
         finally:  # the slots left over: all of them when the claim failed (a database hiccup had kept them for good)
-            for _ in range(free - len(ids)):
+            for _ in range(free - len(claimed)):
                 self._in_flight.release()
-        for delivery_id in ids:
-            self._pool.submit(self._send, delivery_id)
-        return len(ids)
+        with self._in_flight_lock:
+            self._in_flight_to.update(url for _, url in claimed)
+        for delivery_id, url in claimed:
+            self._pool.submit(self._send, delivery_id, url)
+        return len(claimed)
 
-    def _send(self, delivery_id: str) -> None:
+    def _send(self, delivery_id: str, url: str) -> None:
         try:
             with session_scope() as session:
                 delivery = session.get(WebhookDelivery, delivery_id)
@@ -117,6 +127,8 @@ class WebhookSender:
         except Exception:  # noqa: BLE001 - the claim's lease lapses and the next pass retries it
             log.warning("webhook delivery %s: attempt failed", delivery_id, exc_info=True)
         finally:
+            with self._in_flight_lock:
+                self._in_flight_to -= Counter({url: 1})
             self._in_flight.release()
 
     def _record(self, delivery: WebhookDelivery, status: int | None, error: str | None, refused: bool) -> None:

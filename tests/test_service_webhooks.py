@@ -326,6 +326,76 @@ def test_a_dripping_receiver_holds_the_only_sender_slot_no_longer_than_the_timeo
         healthy.close()
 
 
+def test_a_receiver_that_never_answers_holds_at_most_half_the_sender_slots(client):
+    """120 deliveries due to a receiver that never answers in time (each attempt waits out the 0.5 s deadline):
+    another receiver's delivery, due after them, goes out at once, as the stuck receiver holds at most half the 8
+    slots. Its backlog had taken all eight, wave after wave, the other's delivery waiting 7.5 s behind it."""
+    from voxe_service.db import session_scope
+    from voxe_service.jobs import record_event
+
+    test_client, scene = client
+    stuck, healthy = WebhookReceiver(delay=3.0), WebhookReceiver()
+    body = {"scene_id": scene["id"], "prompt": "a mic made of gold"}
+    try:
+        backlogged = test_client.post("/v1/jobs", json={**body, "webhook_url": stuck.url,
+                                                        "webhook_events": ["warning"]}).json()
+        with session_scope() as session:
+            for n in range(120):
+                record_event(session, backlogged["id"], "warning", stage="refine", detail=f"warning {n}")
+        other = test_client.post("/v1/jobs", json={**body, "webhook_url": healthy.url}).json()
+        started = time.monotonic()
+        test_client.post(f"/v1/jobs/{other['id']}/cancel")
+        [delivered] = deliveries_settled(test_client, other["id"], timeout=15)
+        waited = time.monotonic() - started
+        backlog = test_client.get(f"/v1/jobs/{backlogged['id']}/webhooks").json()
+        assert delivered["state"] == "delivered" and len(healthy.requests) == 1, delivered
+        assert waited < 2.0, waited
+        assert len([d for d in backlog if d["state"] == "pending" and d["attempts"] == 0]) > 60, backlog
+    finally:
+        stuck.close()
+        healthy.close()
+
+
+def test_a_claim_takes_the_earliest_due_deliveries_but_at_most_its_share_to_one_url(tmp_path, monkeypatch,
+                                                                                     database_url):
+    """claim_due on SQLite and PostgreSQL, 2 attempts at most to one URL: of ten due to ``a`` (one attempt to it
+    still in flight) before those to ``b``, ``c`` and ``d``, a claim of four takes ``a``'s earliest and one each of
+    the others; the next, those four in flight too, takes only ``d``'s second (``e``'s is not due)."""
+    from datetime import timedelta
+
+    from sqlalchemy import select
+
+    from test_service_faults import add_job, add_scene
+    from voxe_service.db import run_migrations, session_scope
+    from voxe_service.models import WebhookDelivery, utcnow
+    from voxe_service.settings import get_settings
+    from voxe_service.webhooks import PENDING, claim_due
+
+    for key, value in service_env(tmp_path, database_url=database_url).items():
+        monkeypatch.setenv(key, value)
+    reset_service_caches()
+    run_migrations(get_settings().database_url)
+    job_id, now = add_job(add_scene(), "running", 0), utcnow()
+    due = [("a", n) for n in range(10)] + [("b", 0), ("c", 0), ("d", 0), ("d", 1), ("e", 0)]
+    with session_scope() as session:
+        for order, (url, n) in enumerate(due):
+            session.add(WebhookDelivery(
+                id=f"msg_{url}{n}", job_id=job_id, event_id=order, event_type="job.warning", url=url, payload="{}",
+                state=PENDING, attempts=0, created_at=now,
+                next_attempt_at=now + timedelta(seconds=order - len(due) + (60 if url == "e" else 0))))
+    try:
+        with session_scope() as session:
+            first = claim_due(session, now, 30, 4, 2, {"a": 1})
+        with session_scope() as session:
+            second = claim_due(session, now, 30, 4, 2, {"a": 2, "b": 1, "c": 1, "d": 1})
+            claimed = session.scalars(select(WebhookDelivery.id).where(WebhookDelivery.attempts == 1)).all()
+    finally:
+        reset_service_caches()
+    assert first == [("msg_a0", "a"), ("msg_b0", "b"), ("msg_c0", "c"), ("msg_d0", "d")]
+    assert second == [("msg_d1", "d")]
+    assert sorted(claimed) == ["msg_a0", "msg_b0", "msg_c0", "msg_d0", "msg_d1"]
+
+
 def test_a_name_that_fails_to_resolve_for_a_moment_is_retried(client, monkeypatch):
     """A resolver failing at an attempt ("[Errno -3] Temporary failure in name resolution") is a connection error,
     retried: it had been taken for a refused target and the delivery failed at once, though the receiver was

@@ -23,13 +23,15 @@ import secrets
 import socket
 import threading
 import time
+from collections import Counter
+from collections.abc import Mapping
 from concurrent.futures import Future, TimeoutError as FutureTimeout
 from datetime import datetime, timedelta
 from urllib.parse import urlsplit
 
 import httpcore
 import httpx
-from sqlalchemy import select, update
+from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session
 
 from voxe_service.models import ApiKey, Job, WebhookDelivery, utcnow
@@ -335,14 +337,32 @@ def enqueue(session: Session, job_id: str, event) -> None:
     ))
 
 
-def claim_due(session: Session, now: datetime, lease_s: float, limit: int) -> list[str]:
-    """Take up to ``limit`` due deliveries: each moves its next attempt ``lease_s`` ahead (so no other sender
-    takes it meanwhile) and counts the attempt; the ids this caller won."""
-    due = session.scalars(select(WebhookDelivery.id)
-                          .where(WebhookDelivery.state == PENDING, WebhookDelivery.next_attempt_at <= now)
-                          .order_by(WebhookDelivery.next_attempt_at).limit(limit)).all()
+def claim_due(session: Session, now: datetime, lease_s: float, limit: int, per_url: int,
+              in_flight: Mapping[str, int]) -> list[tuple[str, str]]:
+    """Take up to ``limit`` due deliveries, the earliest first, but no more than ``per_url`` to one URL with the
+    attempts ``in_flight`` to it: each moves its next attempt ``lease_s`` ahead (so no other sender takes it
+    meanwhile) and counts the attempt; the (id, url) of each this caller won.
+
+    The cap keeps one receiver's backlog from taking every slot: a receiver that never answers in time, with many
+    deliveries due, had held them all, wave after wave, and every other receiver's webhooks waited behind it.
+    """
+    rank = func.row_number().over(partition_by=WebhookDelivery.url,
+                                  order_by=(WebhookDelivery.next_attempt_at, WebhookDelivery.id))
+    due = (select(WebhookDelivery.id, WebhookDelivery.url, WebhookDelivery.next_attempt_at, rank.label("rank"))
+           .where(WebhookDelivery.state == PENDING, WebhookDelivery.next_attempt_at <= now).subquery())
+    # Each URL's first per_url: of those, one per attempt in flight to its URL at most cannot go, so the first limit
+    # that can go are among the first limit + the attempts in flight.
+    candidates = session.execute(select(due.c.id, due.c.url).where(due.c.rank <= per_url)
+                                 .order_by(due.c.next_attempt_at, due.c.id)
+                                 .limit(limit + sum(in_flight.values()))).all()
+    taken = Counter(in_flight)
+    chosen = []
+    for delivery_id, url in candidates:
+        if len(chosen) < limit and taken[url] < per_url:
+            taken[url] += 1
+            chosen.append((delivery_id, url))
     won = []
-    for delivery_id in due:
+    for delivery_id, url in chosen:
         result = session.execute(
             update(WebhookDelivery)
             .where(WebhookDelivery.id == delivery_id, WebhookDelivery.state == PENDING,
@@ -350,7 +370,7 @@ def claim_due(session: Session, now: datetime, lease_s: float, limit: int) -> li
             .values(next_attempt_at=now + timedelta(seconds=lease_s), attempts=WebhookDelivery.attempts + 1)
         )
         if result.rowcount == 1:
-            won.append(delivery_id)
+            won.append((delivery_id, url))
     return won
 
 
