@@ -615,6 +615,36 @@ def test_a_job_can_subscribe_to_its_warnings(client):
     assert delivery["event_type"] == "job.warning", delivery
 
 
+def test_every_webhook_body_carries_its_events_id_which_orders_the_jobs_deliveries(client):
+    """A job's deliveries are sent in parallel and retried apart, so they may arrive in any order: every body
+    carries ``data.event.id`` (the README tells receivers to order by it), increasing in the order the job's events
+    were recorded, the ids of its timeline (GET /v1/jobs/{id}/events)."""
+    import json
+
+    from voxe_service.db import session_scope
+    from voxe_service.jobs import record_event
+    from voxe_service.webhooks import WEBHOOK_EVENTS
+
+    test_client, scene = client
+    receiver = WebhookReceiver()
+    kinds = [kind for kind in WEBHOOK_EVENTS if kind not in ("failed", "canceled")]
+    try:
+        job = test_client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold",
+                                                 "webhook_url": receiver.url,
+                                                 "webhook_events": list(WEBHOOK_EVENTS)}).json()
+        for kind in kinds:
+            with session_scope() as session:
+                record_event(session, job["id"], kind, stage="edit", detail="edit.png")
+        deliveries = deliveries_settled(test_client, job["id"])
+        assert [d["state"] for d in deliveries] == ["delivered"] * len(kinds), deliveries
+    finally:
+        receiver.close()
+    bodies = [json.loads(r["body"]) for r in receiver.requests]
+    timeline = [(e["id"], e["kind"]) for e in test_client.get(f"/v1/jobs/{job['id']}/events").json()]
+    assert sorted((b["data"]["event"]["id"], b["data"]["event"]["kind"]) for b in bodies) == timeline
+    assert [kind for _, kind in timeline] == kinds
+
+
 def test_a_job_whose_webhook_name_finds_every_lookup_busy_is_told_to_try_again(client, monkeypatch):
     """Every lookup slot held by other names a resolver does not answer: a job whose webhook host was never looked
     up is a 503 with Retry-After, not its URL's fault (it had been a 422 saying its host "did not resolve"), and

@@ -315,7 +315,10 @@ def key_secret(session: Session, key: ApiKey) -> str:
 
 
 def enqueue(session: Session, job_id: str, event) -> None:
-    """Queue a delivery of ``event`` (a flushed JobEvent) when the job has a webhook wanting its kind."""
+    """Queue a delivery of ``event`` (a flushed JobEvent) when the job has a webhook wanting its kind.
+
+    Its body carries the event's id (``data.event.id``): a job's deliveries may arrive in any order (sent side by
+    side, retried apart), and receivers order them by it, as the README tells them."""
     hook = session.execute(select(Job.webhook_url, Job.webhook_events, Job.state, Job.stage)
                            .where(Job.id == job_id)).first()
     if hook is None or not hook.webhook_url or event.kind not in (hook.webhook_events or DEFAULT_WEBHOOK_EVENTS):
