@@ -11,6 +11,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import zipfile
 from pathlib import Path
 from urllib.parse import urlparse
 
@@ -460,6 +461,32 @@ def test_a_dataset_folder_uploads_with_its_images_paths(live, browser):
     with httpx.Client(base_url=svc.base, headers={"Authorization": f"Bearer {token}"}) as client:
         scene = client.get(f"/v1/scenes/{scene_id}").json()
         assert (scene["name"], scene["format"], scene["image_count"]) == ("mic_small", "nerf_synthetic", 8)
+        assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204  # the other tests expect their own only
+
+
+def test_a_mesh_uploads_with_the_shading_and_up_axis_chosen(live, browser, tmp_path):
+    """The upload form's mesh options reach the stored upload (the form had no field for them: every mesh was
+    shaded "auto" and stood on its y axis)."""
+    from selenium.webdriver.support.select import Select
+
+    svc, token, _archive = live
+    driver = browser
+    set_key(driver, svc, token)
+    mesh = tmp_path / "tetra.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
+    Select(driver.find_element("id", "upload-mesh-shading")).select_by_value("baked")
+    Select(driver.find_element("id", "upload-mesh-up-axis")).select_by_value("z")
+    driver.find_element("id", "upload-files").send_keys(str(mesh))
+    driver.find_element("css selector", "#upload-form button").click()
+    wait_until(lambda: "stored as" in text(driver, "#upload-status"), 30, what="the mesh stored",
+               processes=svc.processes)
+    assert not text(driver, '[data-error-for="upload"]')
+    scene_id = text(driver, "#upload-status").split("stored as ")[1].split(";")[0]
+    stored = Path(svc.env["VOXE_STORAGE_DIR"]) / "scenes" / scene_id / "upload.zip"
+    with zipfile.ZipFile(stored) as archive:
+        options = json.loads(archive.read("mesh/options.json"))
+    assert (options["shading"], options["up_axis"]) == ("baked", "z")
+    with httpx.Client(base_url=svc.base, headers={"Authorization": f"Bearer {token}"}) as client:
         assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204  # the other tests expect their own only
 
 

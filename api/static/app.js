@@ -158,6 +158,10 @@ function initUpload() {
     if (archive) data.append("archive", archive, archive.name);
     for (const file of files) data.append("files", file, file.webkitRelativePath || file.name);
     if (name) data.append("name", name);
+    // A mesh's options only when chosen: the API refuses them (even its defaults) for a dataset of images.
+    const meshOptions = [["mesh_shading", "#upload-mesh-shading"], ["mesh_up_axis", "#upload-mesh-up-axis"]]
+      .map(([field, id]) => [field, $(id).value]).filter(([, value]) => value);
+    for (const [field, value] of meshOptions) data.append(field, value);
     if (!archive && !files.length) { showError("upload", "choose a zip, the dataset's folder, or its files"); return; }
     const bar = $("#upload-progress");
     const status = $("#upload-status");
@@ -168,7 +172,7 @@ function initUpload() {
     const xhr = new XMLHttpRequest();
     xhr.open("POST", "/v1/scenes");
     const upload = JSON.stringify([archive, ...files].filter(Boolean)
-      .map((f) => [f.webkitRelativePath || f.name, f.size, f.lastModified]).concat([name]));
+      .map((f) => [f.webkitRelativePath || f.name, f.size, f.lastModified]).concat([name, meshOptions]));
     for (const [name, value] of Object.entries(authHeaders({ "Idempotency-Key": idempotency.for(upload) }))) {
       xhr.setRequestHeader(name, value);
     }
