@@ -391,7 +391,7 @@ def test_errors_of_any_shape_are_shown_and_unreadable_input_is_not_sent(live, br
     stale = {"id": "stale-job", "prompt": "a mic", "mode": "global", "state": "canceled", "overall_progress": 0,
              "created_at": "2026-01-01T00:00:00Z"}
     faults(driver, {"/v1/jobs?limit=50": {"once": True, "delay": 1500, "status": 200, "type": "application/json",
-                                          "body": json.dumps({"items": [stale]})}})
+                                          "body": json.dumps({"items": [stale], "total": 1})}})
     driver.refresh()
     wait_until(lambda: requested(driver, "/v1/jobs?"), 10, interval=0.05, what="the poll's job list")
     Select(driver.find_element("id", "filter-state")).select_by_visible_text("failed")
@@ -490,6 +490,47 @@ def test_a_mesh_uploads_with_the_shading_and_up_axis_chosen(live, browser, tmp_p
         assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204  # the other tests expect their own only
 
 
+def test_the_job_list_pages_and_every_scene_is_offered(live, browser):
+    """A key with more jobs than a page (50) steps to its older ones and back, and every scene is offered, past the
+    API's largest page (200): the oldest had been out of reach."""
+    svc, token, _archive = live
+    driver = browser
+    answer = lambda body: {"status": 200, "type": "application/json", "body": json.dumps(body)}  # noqa: E731
+    scene = lambda i: {"id": f"scene-{i}", "name": f"scene {i}", "state": "ready"}  # noqa: E731
+    job = lambda i: {"id": f"job-{i}", "prompt": "a mic", "mode": "global", "state": "succeeded",  # noqa: E731
+                     "overall_progress": 1, "created_at": "2026-01-01T00:00:00Z"}
+    set_key(driver, svc, token)
+    faults(driver, {"/v1/scenes?limit=200&offset=0": answer({"items": [scene(i) for i in range(200)], "total": 201}),
+                    "/v1/scenes?limit=200&offset=200": answer({"items": [scene(200)], "total": 201}),
+                    "/v1/jobs?limit=50&offset=0": answer({"items": [job(i) for i in range(50)], "total": 51}),
+                    "/v1/jobs?limit=50&offset=50": answer({"items": [job(50)], "total": 51})})
+    driver.refresh()
+    rows = "return [...document.querySelectorAll('#job-list tr[data-job]')].map((row) => row.dataset.job)"
+    wait_until(lambda: len(driver.execute_script(rows)) == 50, 10, what="the first page of jobs")
+    assert text(driver, "#jobs-range") == "1–50 of 51"
+    assert not driver.find_element("id", "jobs-newer").is_enabled()
+    offered = "return [...document.querySelectorAll(arguments[0])].map((option) => option.value)"
+    wait_until(lambda: "scene-200" in driver.execute_script(offered, "#job-scene option"), 10, what="every scene")
+    assert len(driver.execute_script(offered, "#job-scene option")) == 201
+    assert len(driver.execute_script(offered, "#filter-scene option")) == 202  # and "all"
+    driver.find_element("id", "jobs-older").click()
+    wait_until(lambda: driver.execute_script(rows) == ["job-50"], 10, what="the older page")
+    assert text(driver, "#jobs-range") == "51–51 of 51"
+    assert not driver.find_element("id", "jobs-older").is_enabled()
+    time.sleep(3.5)  # the poll keeps the page shown
+    assert driver.execute_script(rows) == ["job-50"]
+    driver.find_element("id", "jobs-newer").click()
+    wait_until(lambda: len(driver.execute_script(rows)) == 50, 10, what="the newer page again")
+    # The older page emptied meanwhile (a job deleted): the poll shows the list's last page, not an empty one.
+    driver.find_element("id", "jobs-older").click()
+    wait_until(lambda: driver.execute_script(rows) == ["job-50"], 10, what="the older page")
+    faults(driver, {"/v1/jobs?limit=50&offset=0": answer({"items": [job(i) for i in range(50)], "total": 50}),
+                    "/v1/jobs?limit=50&offset=50": answer({"items": [], "total": 50})})
+    wait_until(lambda: len(driver.execute_script(rows)) == 50, 10, what="the last page")
+    assert text(driver, "#jobs-range") == "1–50 of 50" and not driver.find_element("id", "jobs-older").is_enabled()
+    faults(driver, {})
+
+
 def test_a_long_one_word_prompt_wraps_inside_the_window(live, browser):
     """A prompt (and the error quoting it) of one 500-character word, in the job list and on its job page: the
     text wraps, the page stays as wide as the window, and the list's State column stays on screen (the table and
@@ -506,7 +547,7 @@ def test_a_long_one_word_prompt_wraps_inside_the_window(live, browser):
     answer = lambda body, kind="application/json": {"status": 200, "type": kind, "body": body}  # noqa: E731
     set_key(driver, svc, token)
     end = f"id: 1\nevent: failed\ndata: {json.dumps({'detail': job['error']})}\n\n"
-    faults(driver, {"/v1/jobs?": answer(json.dumps({"items": [job]})),
+    faults(driver, {"/v1/jobs?": answer(json.dumps({"items": [job], "total": 1})),
                     "/v1/jobs/long-prompt$": answer(json.dumps(job)),
                     "/v1/jobs/long-prompt/artifacts": answer("[]"),
                     "/v1/jobs/long-prompt/events": answer(end, "text/event-stream")})

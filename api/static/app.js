@@ -239,9 +239,21 @@ async function refreshScenes(signal) {
   }
 }
 
+/** Every scene of the key, newest first, in pages of the API's largest (the 201st had been offered nowhere). */
+async function allScenes(signal) {
+  const scenes = new Map();  // id -> scene: one made meanwhile shifts the pages, and is met twice
+  for (let offset = 0; ; offset += SCENES_PER_REQUEST) {
+    const answer = await api(`/v1/scenes?limit=${SCENES_PER_REQUEST}&offset=${offset}`, { signal });
+    for (const scene of answer.items) scenes.set(scene.id, scene);
+    if (!answer.items.length || offset + answer.items.length >= answer.total) return [...scenes.values()];
+  }
+}
+
+const SCENES_PER_REQUEST = 200;
+
 async function loadScenes(signal, selected) {
-  const scenes = await api("/v1/scenes?limit=200", { signal });
-  const ready = scenes.items.filter((s) => s.state === "ready");
+  const scenes = await allScenes(signal);
+  const ready = scenes.filter((s) => s.state === "ready");
   const option = (s) => `<option value="${escapeHtml(s.id)}">${escapeHtml(s.name)} (${escapeHtml(s.id)})</option>`;
   const jobScene = $("#job-scene");
   const keep = selected || jobScene.value;
@@ -249,7 +261,7 @@ async function loadScenes(signal, selected) {
   if (keep) jobScene.value = keep;
   const filter = $("#filter-scene");
   const filterValue = filter.value;
-  filter.innerHTML = `<option value="">all</option>${scenes.items.map(option).join("")}`;
+  filter.innerHTML = `<option value="">all</option>${scenes.map(option).join("")}`;
   filter.value = filterValue;
 }
 
@@ -305,9 +317,16 @@ function jobRequest(form) {
 }
 
 // ------------------------------------------------------------------ job list
+const JOBS_PER_PAGE = 50;
+/** Where the shown page of the job list starts in the filtered list (newest first); kept while a job is looked at. */
+let jobsOffset = 0;
+
 function initJobList() {
-  $("#filter-scene").addEventListener("change", () => loadJobs(page.signal));
-  $("#filter-state").addEventListener("change", () => loadJobs(page.signal));
+  const show = (offset) => { jobsOffset = offset; loadJobs(page.signal); };
+  $("#filter-scene").addEventListener("change", () => show(0));
+  $("#filter-state").addEventListener("change", () => show(0));
+  $("#jobs-newer").addEventListener("click", () => show(Math.max(0, jobsOffset - JOBS_PER_PAGE)));
+  $("#jobs-older").addEventListener("click", () => show(jobsOffset + JOBS_PER_PAGE));
 }
 
 /** The newest job list request: an older one answering after it (the poll's, sent before a filter changed) is
@@ -316,13 +335,22 @@ let jobListRequest = 0;
 
 async function loadJobs(signal) {
   const request = ++jobListRequest;
-  const query = new URLSearchParams({ limit: "50" });
+  const offset = jobsOffset;
+  const query = new URLSearchParams({ limit: String(JOBS_PER_PAGE), offset: String(offset) });
   if ($("#filter-scene").value) query.set("scene_id", $("#filter-scene").value);
   if ($("#filter-state").value) query.set("state", $("#filter-state").value);
   try {
     const jobs = await api(`/v1/jobs?${query}`, { signal });
     if (request !== jobListRequest) return;
+    if (!jobs.items.length && offset > 0) {  // the list shrank below this page (jobs deleted): show its last
+      jobsOffset = Math.max(0, Math.ceil(jobs.total / JOBS_PER_PAGE) - 1) * JOBS_PER_PAGE;
+      return loadJobs(signal);
+    }
     showError("list", "");
+    $("#jobs-range").textContent = jobs.items.length
+      ? `${offset + 1}–${offset + jobs.items.length} of ${jobs.total}` : "no jobs";
+    $("#jobs-newer").disabled = offset === 0;
+    $("#jobs-older").disabled = offset + jobs.items.length >= jobs.total;
     $("#job-list tbody").innerHTML = jobs.items.map((job) => `
       <tr data-job="${escapeHtml(job.id)}">
         <td><a href="#/jobs/${escapeHtml(encodeURIComponent(job.id))}">${escapeHtml(job.id)}</a></td>
