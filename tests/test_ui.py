@@ -33,9 +33,11 @@ PARAMS = {  # tests/test_service_e2e.py's tiny local-edit parameters (8 frames: 
 }
 # Run in every page before its own scripts: collects the page's CSP violations (window.cspViolations) and its
 # fetch() requests (window.requests), and answers a request whose URL holds a key of sessionStorage "test.faults"
-# (a key ending in "$": whose path is the key) as a slow or failing server would: after `delay` ms, and/or with
-# the given status, type and body (`method`: requests of that method only; `skip`: the first so many such
-# requests go through; `once`: only the first such request after them).
+# (a key ending in "$": whose path is the key; the first in sorted order, as Selenium sends a dict's keys sorted)
+# as a slow or failing server would: after `delay` ms, and/or with the given status, type and body (`method`:
+# requests of that method only; `skip`: the first so many such requests go through; `once`: only the first such
+# request after them); or, given `timeline` (events {id, kind, ...}), as a job's events would: its first
+# `recorded` events as JSON, or as an event stream (Accept) every event after the request's Last-Event-ID.
 PAGE_HOOKS = """
 window.cspViolations = [];
 document.addEventListener("securitypolicyviolation",
@@ -61,6 +63,16 @@ window.fetch = async (resource, options = {}) => {
       setTimeout(resolve, fault.delay);
       options.signal?.addEventListener("abort", () => reject(options.signal.reason));
     });
+  }
+  if (fault?.timeline) {
+    if (options.headers?.Accept !== "text/event-stream") {
+      return new Response(JSON.stringify(fault.timeline.slice(0, fault.recorded)),
+                          { headers: { "Content-Type": "application/json" } });
+    }
+    const after = Number(options.headers["Last-Event-ID"] || 0);
+    return new Response(fault.timeline.filter((e) => e.id > after)
+                          .map((e) => `id: ${e.id}\nevent: ${e.kind}\ndata: ${JSON.stringify(e)}\n\n`).join(""),
+                        { headers: { "Content-Type": "text/event-stream" } });
   }
   if (fault?.status) {
     return new Response(fault.body, { status: fault.status, statusText: fault.statusText,
@@ -136,6 +148,12 @@ def requested(driver, part: str, method: str = "GET") -> list[dict]:
     """The page's fetch() requests (since it loaded, or ``window.requests = []``) whose URL holds ``part``."""
     return [r for r in driver.execute_script("return window.requests")
             if part in r["url"] and r["method"] == method]
+
+
+def streams(driver, job_id: str) -> list[dict]:
+    """The page's event stream requests for the job (its timeline read as JSON is none)."""
+    return [r for r in requested(driver, f"/v1/jobs/{job_id}/events")
+            if r["headers"].get("Accept") == "text/event-stream"]
 
 
 def go(driver, hash_: str) -> None:
@@ -307,40 +325,56 @@ def leave_and_revisit_job_pages(driver, svc, token: str, scene_id: str, done_id:
     time.sleep(2)
     assert other_id in text(driver, "#job-meta")
     assert "turntable.mp4" not in text(driver, "#job-artifacts") and set(shown_media(driver)) <= {"#job-preview"}
-    assert not requested(driver, f"/v1/jobs/{done_id}/events")
+    assert not streams(driver, done_id)
 
-    # A file of the job gone from storage: its preview's 404 is shown beside the media, and the event stream goes
-    # on to the job's end; a download that fails says so.
+    # A file of the job gone from storage: its preview's 404 is shown beside the media, the artifacts are listed
+    # all the same, and its timeline to the job's end; a download that fails says so.
     faults(driver, {"/artifacts/preview.png": {"status": 404, "type": "application/json",
                                                 "body": json.dumps({"detail": "artifact missing from storage"})},
                     "/artifacts/edited_grid.safetensors": {"status": 404, "type": "application/json",
                                                            "body": json.dumps({"detail": "artifact gone"})}})
     go(driver, f"#/jobs/{done_id}")
-    wait(lambda: driver.execute_script("return document.querySelector('#job-events li:last-child')?.dataset.event")
-         == "succeeded", "the stream to the job's end", 20)
+    wait(lambda: "edited_grid.safetensors" in text(driver, "#job-artifacts"), "the artifacts listed", 20)
+    assert driver.execute_script("return document.querySelector('#job-events li:last-child')?.dataset.event") \
+        == "succeeded"
     assert "404: artifact missing from storage" in text(driver, '[data-error-for="media"]')
     assert not text(driver, '[data-error-for="stream"]')
     driver.find_element("css selector", 'a[data-artifact="edited_grid.safetensors"]').click()
     wait(lambda: "404: artifact gone" in text(driver, '[data-error-for="artifacts"]'), "the download's 404", 20)
 
-    # The job read again at its terminal event failing once: the stream reconnects once, its terminal progress
-    # snapshot ends it (it had reconnected every 2 s for as long as the page stayed open).
-    faults(driver, {f"/v1/jobs/{done_id}$": {"skip": 1, "once": True, "status": 502, "statusText": "Bad Gateway",
+    # A finished job's page reads its timeline once and opens no stream.
+    go(driver, "#/")
+    driver.execute_script("window.requests = []")
+    go(driver, f"#/jobs/{done_id}")
+    wait(lambda: text(driver, "#job-state") == "succeeded", "the finished job's page", 20)
+    time.sleep(2.5)  # a retry interval
+    assert len(requested(driver, f"/v1/jobs/{done_id}/events")) == 1 and not streams(driver, done_id)
+
+    # The job read again at its terminal event (the page opened before it: its timeline read as empty) failing
+    # once: the stream reconnects once, its terminal progress snapshot ends it (it had reconnected every 2 s for as
+    # long as the page stayed open).
+    faults(driver, {f"/v1/jobs/{done_id}/events": {"once": True, "status": 200, "type": "application/json",
+                                                    "body": "[]"},
+                    f"/v1/jobs/{done_id}$": {"skip": 1, "once": True, "status": 502, "statusText": "Bad Gateway",
                                               "type": "text/plain", "body": "Bad Gateway"}})
     go(driver, "#/")
     driver.execute_script("window.requests = []")
     go(driver, f"#/jobs/{done_id}")
-    wait(lambda: len(requested(driver, f"/v1/jobs/{done_id}/events")) == 2, "the one reconnect", 20)
+    wait(lambda: len(streams(driver, done_id)) == 2, "the one reconnect", 20)
     time.sleep(5)  # two and a half retry intervals
-    assert len(requested(driver, f"/v1/jobs/{done_id}/events")) == 2
+    assert len(streams(driver, done_id)) == 2
     assert text(driver, "#job-state") == "succeeded"
 
     # Going on before a page has loaded: the job page left loading opens no event stream, and the home page left
-    # loading (its scene list slow) does not poll the job list on the job page shown next. There, the stream's
-    # 401 (the key revoked meanwhile) ends it, saying so.
+    # loading (its scene list slow) does not poll the job list on the job page shown next. There (its timeline
+    # read as empty: the page opened before the job ended), the stream's 401 (the key revoked meanwhile) ends it,
+    # saying so.
+    revoked = {"status": 401, "type": "application/json", "body": json.dumps({"detail": "API key revoked"})}
     faults(driver, {f"/v1/jobs/{other_id}/artifacts": {"delay": 1500}, "/v1/scenes?": {"delay": 1500},
-                    "/events": {"status": 401, "type": "application/json",
-                                "body": json.dumps({"detail": "API key revoked"})}})
+                    f"/v1/jobs/{other_id}/events": {"skip": 1, **revoked},  # its timeline read, not its stream
+                    f"/v1/jobs/{done_id}/events": {"once": True, "status": 200, "type": "application/json",
+                                                   "body": "[]"},
+                    f"/v1/jobs/{done_id}/events$": revoked})
     driver.execute_script("window.requests = []")
     go(driver, f"#/jobs/{other_id}")
     time.sleep(0.3)
@@ -348,8 +382,8 @@ def leave_and_revisit_job_pages(driver, svc, token: str, scene_id: str, done_id:
     time.sleep(0.3)
     go(driver, f"#/jobs/{done_id}")
     time.sleep(5)
-    assert not requested(driver, f"/v1/jobs/{other_id}/events") and not requested(driver, "/v1/jobs?")
-    assert len(requested(driver, f"/v1/jobs/{done_id}/events")) == 1
+    assert not streams(driver, other_id) and not requested(driver, "/v1/jobs?")
+    assert len(streams(driver, done_id)) == 1
     assert "401: API key revoked; not reconnecting" in text(driver, '[data-error-for="stream"]')
     faults(driver, {})
 
@@ -531,6 +565,40 @@ def test_the_job_list_pages_and_every_scene_is_offered(live, browser):
     faults(driver, {})
 
 
+def test_a_job_page_streams_only_the_events_after_its_timeline(live, browser):
+    """The timeline so far is read once and listed; the stream sends what follows (Last-Event-ID): replayed through
+    the stream, each past preview had been downloaded again, and the artifacts listed again per past artifact, at
+    every opening of the page."""
+    svc, token, _archive = live
+    driver = browser
+    job = {"id": "replay", "scene_id": "s", "prompt": "a mic", "mode": "global", "edit_words": [],
+           "models": {"sds": "tiny"}, "device": "cpu", "state": "running", "stage": "export",
+           "completed_stages": ["reconstruct", "edit"], "progress": 0.5, "iteration": 1, "total": 2,
+           "overall_progress": 0.9, "eta_seconds": 1, "overall_eta_seconds": 1, "losses": {}, "message": None,
+           "preview_url": "/v1/jobs/replay/artifacts/preview.png", "error": None, "cancel_requested": False,
+           "created_at": "2026-01-01T00:00:00Z"}
+    kinds = ["stage_started"] + ["preview"] * 10 + ["stage_completed"] + ["artifact"] * 4 + ["preview", "succeeded"]
+    timeline = [{"id": i, "kind": kind, "stage": "edit", "detail": {"preview": "preview.png", "artifact": "a.png"}
+                 .get(kind)} for i, kind in enumerate(kinds, 1)]
+    answer = lambda body, kind="application/json": {"status": 200, "type": kind, "body": body}  # noqa: E731
+    artifact = {"name": "a.png", "url": "/v1/jobs/replay/artifacts/a.png", "size": 1, "kind": "image",
+                "sha256": "0" * 64}
+    set_key(driver, svc, token)
+    faults(driver, {"/v1/jobs/replay$": answer(json.dumps(job)),
+                    "/v1/jobs/replay/artifacts$": answer(json.dumps([artifact])),
+                    "/v1/jobs/replay/artifacts/": answer("", "image/png"),
+                    "/v1/jobs/replay/events": {"timeline": timeline, "recorded": 16}})
+    driver.execute_script("window.requests = []")
+    go(driver, "#/jobs/replay")
+    listed = "return [...document.querySelectorAll('#job-events li')].map((item) => item.dataset.event)"
+    wait_until(lambda: driver.execute_script(listed)[-1:] == ["succeeded"], 10, what="the job's end")
+    assert driver.execute_script(listed) == kinds
+    assert len(requested(driver, "/artifacts/preview.png")) == 2  # the page's, the new preview's
+    assert len([r for r in requested(driver, "/artifacts") if r["url"].endswith("/artifacts")]) == 2  # and the end's
+    assert [r["headers"].get("Last-Event-ID") for r in streams(driver, "replay")] == ["16"]
+    faults(driver, {})
+
+
 def test_a_long_one_word_prompt_wraps_inside_the_window(live, browser):
     """A prompt (and the error quoting it) of one 500-character word, in the job list and on its job page: the
     text wraps, the page stays as wide as the window, and the list's State column stays on screen (the table and
@@ -546,11 +614,11 @@ def test_a_long_one_word_prompt_wraps_inside_the_window(live, browser):
            "created_at": "2026-01-01T00:00:00Z"}
     answer = lambda body, kind="application/json": {"status": 200, "type": kind, "body": body}  # noqa: E731
     set_key(driver, svc, token)
-    end = f"id: 1\nevent: failed\ndata: {json.dumps({'detail': job['error']})}\n\n"
+    end = [{"id": 1, "kind": "failed", "stage": "reconstruct", "detail": job["error"]}]
     faults(driver, {"/v1/jobs?": answer(json.dumps({"items": [job], "total": 1})),
                     "/v1/jobs/long-prompt$": answer(json.dumps(job)),
                     "/v1/jobs/long-prompt/artifacts": answer("[]"),
-                    "/v1/jobs/long-prompt/events": answer(end, "text/event-stream")})
+                    "/v1/jobs/long-prompt/events": {"timeline": end, "recorded": 1}})
     overflow = "return document.documentElement.scrollWidth - document.documentElement.clientWidth"
     driver.refresh()
     wait_until(lambda: driver.find_elements("css selector", 'tr[data-job="long-prompt"]'), 10, what="the job listed")

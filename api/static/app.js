@@ -379,7 +379,12 @@ function clearJobView() {
   for (const id of JOB_MEDIA) hideMedia($(id));
 }
 
+/** The job page: its timeline so far read once (before the job and its artifacts, so that nothing falls between
+ * them and the stream), then the stream of what comes after it, unless the timeline has ended. Replayed through
+ * the stream, the history had downloaded the preview again for each past preview, and listed the artifacts again
+ * for each past artifact, at every opening of the page. */
 async function showJob(jobId, signal) {
+  const history = await api(`${jobPath(jobId)}/events`, { signal });
   const job = await api(jobPath(jobId), { signal });
   $("#job-title").textContent = `“${job.prompt}”`;
   $("#job-meta").textContent = `job ${job.id} · ${job.mode}${job.edit_words.length ? ` (${job.edit_words.join(", ")})` : ""}`
@@ -390,11 +395,12 @@ async function showJob(jobId, signal) {
     catch (error) { if (!signal.aborted) showApiError(error, "cancel"); }
   };
   renderProgress(job);
-  await refreshMedia(async () => {
-    if (job.preview_url) await refreshPreview(job.preview_url, signal);
-    await refreshArtifacts(jobId, signal);
-  }, signal);
-  followEvents(jobId, signal);
+  for (const event of history) listEvent(event.kind, event);
+  // Each on its own: a preview gone from the storage leaves the artifacts listed (no later event lists them).
+  if (job.preview_url) await refreshMedia(() => refreshPreview(job.preview_url, signal), signal);
+  await refreshMedia(() => refreshArtifacts(jobId, signal), signal);
+  const last = history.at(-1);
+  if (!TERMINAL.has(last?.kind)) followEvents(jobId, last?.id, signal);
 }
 
 /** Run a refresh of the media or artifacts; its failure (a file gone, say) is shown beside the media, leaving the
@@ -489,10 +495,10 @@ async function showMedia(artifact, selector, signal) {
 /** Answers to the stream request that no reconnection changes: the key, or the job, is not (or no longer) valid. */
 const FINAL_STREAM_STATUS = new Set([401, 403, 404]);
 
-/** Read the job's Server-Sent Events with fetch() (the key in a header), reconnecting with Last-Event-ID until the
- * job ends or the page changes. */
-async function followEvents(jobId, signal) {
-  let lastId = null;
+/** Read the job's Server-Sent Events after event ``afterId`` (none: from its start) with fetch() (the key in a
+ * header), reconnecting with Last-Event-ID until the job ends or the page changes. */
+async function followEvents(jobId, afterId, signal) {
+  let lastId = afterId == null ? null : String(afterId);
   let retryMs = 2000;
   while (!signal.aborted) {
     let finished = false;
@@ -527,10 +533,7 @@ async function followEvents(jobId, signal) {
 
 async function handleEvent(jobId, kind, data, signal) {
   if (kind === "progress") { renderProgress(data); return; }
-  const item = document.createElement("li");
-  item.textContent = `${kind}${data.stage ? ` · ${data.stage}` : ""}${data.detail ? ` · ${data.detail}` : ""}`;
-  item.dataset.event = kind;
-  $("#job-events").append(item);
+  listEvent(kind, data);
   await refreshMedia(async () => {
     if (kind === "preview") {
       await refreshPreview(`${jobPath(jobId)}/artifacts/${encodeURIComponent(data.detail || "preview.png")}`, signal);
@@ -538,6 +541,14 @@ async function handleEvent(jobId, kind, data, signal) {
     if (kind === "artifact" || TERMINAL.has(kind)) await refreshArtifacts(jobId, signal);
   }, signal);
   if (TERMINAL.has(kind)) renderProgress(await api(jobPath(jobId), { signal }));
+}
+
+/** One timeline event at the end of the job page's list. */
+function listEvent(kind, data) {
+  const item = document.createElement("li");
+  item.textContent = `${kind}${data.stage ? ` · ${data.stage}` : ""}${data.detail ? ` · ${data.detail}` : ""}`;
+  item.dataset.event = kind;
+  $("#job-events").append(item);
 }
 
 /** Server-Sent Events from a byte stream: {id, event, data (JSON-decoded), retry} per blank-line-ended block. */
