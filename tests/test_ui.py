@@ -599,6 +599,31 @@ def test_a_job_page_streams_only_the_events_after_its_timeline(live, browser):
     faults(driver, {})
 
 
+def test_a_job_s_progress_reads_as_it_stands(live, browser):
+    """The list's and the job page's numbers as they are: a running job 99.6 % done is not "100 %"."""
+    svc, token, _archive = live
+    driver = browser
+    created = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(time.time() - 3 * 86400 - 2 * 3600 - 60))
+    job = {"id": "nearly", "scene_id": "s", "prompt": "a mic", "mode": "global", "edit_words": [],
+           "models": {"sds": "tiny"}, "device": "cpu", "state": "running", "stage": "export",
+           "completed_stages": ["reconstruct", "edit"], "progress": 0.5, "iteration": 2, "total": 4,
+           "overall_progress": 0.996, "eta_seconds": 1, "overall_eta_seconds": 2, "losses": {}, "message": None,
+           "preview_url": None, "error": None, "cancel_requested": False, "created_at": created}
+    answer = lambda body, kind="application/json": {"status": 200, "type": kind, "body": body}  # noqa: E731
+    set_key(driver, svc, token)
+    faults(driver, {"/v1/jobs?": answer(json.dumps({"items": [job], "total": 1})),
+                    "/v1/jobs/nearly$": answer(json.dumps(job)),
+                    "/v1/jobs/nearly/artifacts$": answer("[]"),
+                    "/v1/jobs/nearly/events": answer(json.dumps([]))})
+    driver.refresh()
+    wait_until(lambda: driver.find_elements("css selector", 'tr[data-job="nearly"]'), 10, what="the job listed")
+    assert "99 %" in text(driver, 'tr[data-job="nearly"]')
+    go(driver, "#/jobs/nearly")
+    wait_until(lambda: text(driver, "#job-state") == "running", 10, what="the job page")
+    assert text(driver, "#job-overall-text") == "99 %"
+    faults(driver, {})
+
+
 def test_a_long_one_word_prompt_wraps_inside_the_window(live, browser):
     """A prompt (and the error quoting it) of one 500-character word, in the job list and on its job page: the
     text wraps, the page stays as wide as the window, and the list's State column stays on screen (the table and

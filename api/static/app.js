@@ -177,7 +177,7 @@ function initUpload() {
       xhr.setRequestHeader(name, value);
     }
     xhr.upload.onprogress = (e) => {
-      if (e.lengthComputable) { bar.value = e.loaded / e.total; status.textContent = `${Math.round(100 * bar.value)} % sent`; }
+      if (e.lengthComputable) { bar.value = e.loaded / e.total; status.textContent = `${percent(bar.value)} sent`; }
     };
     xhr.onloadend = () => { button.disabled = false; };
     xhr.onerror = () => showError("upload", "the upload failed (network error)");
@@ -356,7 +356,7 @@ async function loadJobs(signal) {
         <td><a href="#/jobs/${escapeHtml(encodeURIComponent(job.id))}">${escapeHtml(job.id)}</a></td>
         <td class="prompt">${escapeHtml(job.prompt)}</td><td>${job.mode}</td>
         <td class="state-${job.state}">${job.state}</td>
-        <td><progress max="1" value="${job.overall_progress}"></progress> ${Math.round(100 * job.overall_progress)} %</td>
+        <td><progress max="1" value="${job.overall_progress}"></progress> ${percent(job.overall_progress)}</td>
         <td title="${job.created_at}">${age(job.created_at)}</td>
       </tr>`).join("");
   } catch (error) {
@@ -421,7 +421,7 @@ function renderProgress(p) {
   $("#job-stage-progress").value = p.progress ?? 0;
   $("#job-stage-text").textContent = `${p.iteration}/${p.total}`;
   $("#job-overall-progress").value = p.overall_progress ?? 0;
-  $("#job-overall-text").textContent = `${Math.round(100 * (p.overall_progress ?? 0))} %`;
+  $("#job-overall-text").textContent = percent(p.overall_progress ?? 0);
   $("#job-eta").textContent = p.overall_eta_seconds != null
     ? `${duration(p.overall_eta_seconds)} left (this stage: ${p.eta_seconds != null ? duration(p.eta_seconds) : "–"})` : "–";
   const losses = Object.entries(p.losses || {});
@@ -586,6 +586,12 @@ async function* parseSse(body) {
 // ------------------------------------------------------------------ formatting
 function escapeHtml(text) {
   return String(text).replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" })[c]);
+}
+
+/** A fraction as a whole percentage, rounded down: a job 99.6 % done reads 99 %, not 100 % (done). The epsilon
+ * keeps 0.57 at 57 % (100 * 0.57 is 56.99999999999999). */
+function percent(fraction) {
+  return `${Math.floor(100 * fraction + 1e-9)} %`;
 }
 
 function duration(seconds) {
