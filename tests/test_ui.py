@@ -600,7 +600,8 @@ def test_a_job_page_streams_only_the_events_after_its_timeline(live, browser):
 
 
 def test_a_job_s_progress_reads_as_it_stands(live, browser):
-    """The list's and the job page's numbers as they are: a running job 99.6 % done is not "100 %"."""
+    """The list's and the job page's numbers as they are: a running job 99.6 % done is not "100 %", a job made three
+    days ago is not "74 h" old."""
     svc, token, _archive = live
     driver = browser
     created = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(time.time() - 3 * 86400 - 2 * 3600 - 60))
@@ -618,6 +619,7 @@ def test_a_job_s_progress_reads_as_it_stands(live, browser):
     driver.refresh()
     wait_until(lambda: driver.find_elements("css selector", 'tr[data-job="nearly"]'), 10, what="the job listed")
     assert "99 %" in text(driver, 'tr[data-job="nearly"]')
+    assert text(driver, 'tr[data-job="nearly"] td:last-child') == "3 d 2 h ago"  # had read "74 h 1 min ago"
     go(driver, "#/jobs/nearly")
     wait_until(lambda: text(driver, "#job-state") == "running", 10, what="the job page")
     assert text(driver, "#job-overall-text") == "99 %"
