@@ -601,7 +601,7 @@ def test_a_job_page_streams_only_the_events_after_its_timeline(live, browser):
 
 def test_a_job_s_progress_reads_as_it_stands(live, browser):
     """The list's and the job page's numbers as they are: a running job 99.6 % done is not "100 %", a job made three
-    days ago is not "74 h" old."""
+    days ago is not "74 h" old, a checkpoint says which iteration it holds."""
     svc, token, _archive = live
     driver = browser
     created = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(time.time() - 3 * 86400 - 2 * 3600 - 60))
@@ -610,12 +610,14 @@ def test_a_job_s_progress_reads_as_it_stands(live, browser):
            "completed_stages": ["reconstruct", "edit"], "progress": 0.5, "iteration": 2, "total": 4,
            "overall_progress": 0.996, "eta_seconds": 1, "overall_eta_seconds": 2, "losses": {}, "message": None,
            "preview_url": None, "error": None, "cancel_requested": False, "created_at": created}
+    timeline = [{"id": 1, "kind": "checkpoint", "stage": "edit", "iteration": 200, "detail": None},
+                {"id": 2, "kind": "resumed", "stage": "edit", "iteration": 200, "detail": None}]
     answer = lambda body, kind="application/json": {"status": 200, "type": kind, "body": body}  # noqa: E731
     set_key(driver, svc, token)
     faults(driver, {"/v1/jobs?": answer(json.dumps({"items": [job], "total": 1})),
                     "/v1/jobs/nearly$": answer(json.dumps(job)),
                     "/v1/jobs/nearly/artifacts$": answer("[]"),
-                    "/v1/jobs/nearly/events": answer(json.dumps([]))})
+                    "/v1/jobs/nearly/events": {"timeline": timeline, "recorded": 2}})
     driver.refresh()
     wait_until(lambda: driver.find_elements("css selector", 'tr[data-job="nearly"]'), 10, what="the job listed")
     assert "99 %" in text(driver, 'tr[data-job="nearly"]')
@@ -623,6 +625,8 @@ def test_a_job_s_progress_reads_as_it_stands(live, browser):
     go(driver, "#/jobs/nearly")
     wait_until(lambda: text(driver, "#job-state") == "running", 10, what="the job page")
     assert text(driver, "#job-overall-text") == "99 %"
+    assert [item.text for item in driver.find_elements("css selector", "#job-events li")] == [
+        "checkpoint · edit · iteration 200", "resumed · edit · iteration 200"]  # the iterations had not been shown
     faults(driver, {})
 
 

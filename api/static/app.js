@@ -543,10 +543,11 @@ async function handleEvent(jobId, kind, data, signal) {
   if (TERMINAL.has(kind)) renderProgress(await api(jobPath(jobId), { signal }));
 }
 
-/** One timeline event at the end of the job page's list. */
+/** One timeline event at the end of the job page's list (a checkpoint's or a resume's iteration too). */
 function listEvent(kind, data) {
   const item = document.createElement("li");
-  item.textContent = `${kind}${data.stage ? ` · ${data.stage}` : ""}${data.detail ? ` · ${data.detail}` : ""}`;
+  const iteration = data.iteration != null ? `iteration ${data.iteration}` : "";
+  item.textContent = [kind, data.stage, iteration, data.detail].filter(Boolean).join(" · ");
   item.dataset.event = kind;
   $("#job-events").append(item);
 }
