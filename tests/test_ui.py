@@ -601,7 +601,8 @@ def test_a_job_page_streams_only_the_events_after_its_timeline(live, browser):
 
 def test_a_job_s_progress_reads_as_it_stands(live, browser):
     """The list's and the job page's numbers as they are: a running job 99.6 % done is not "100 %", a job made three
-    days ago is not "74 h" old, a checkpoint says which iteration it holds."""
+    days ago is not "74 h" old, a checkpoint says which iteration it holds,
+    a queued job has no stage's "0/0"."""
     svc, token, _archive = live
     driver = browser
     created = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(time.time() - 3 * 86400 - 2 * 3600 - 60))
@@ -614,8 +615,14 @@ def test_a_job_s_progress_reads_as_it_stands(live, browser):
                 {"id": 2, "kind": "resumed", "stage": "edit", "iteration": 200, "detail": None}]
     answer = lambda body, kind="application/json": {"status": 200, "type": kind, "body": body}  # noqa: E731
     set_key(driver, svc, token)
+    waiting = {**job, "id": "waiting", "state": "queued", "stage": None, "completed_stages": [], "progress": 0,
+               "iteration": 0, "total": 0, "overall_progress": 0, "eta_seconds": None, "overall_eta_seconds": None,
+               "message": "waiting for the scene 's' to be processed"}
     faults(driver, {"/v1/jobs?": answer(json.dumps({"items": [job], "total": 1})),
                     "/v1/jobs/nearly$": answer(json.dumps(job)),
+                    "/v1/jobs/waiting$": answer(json.dumps(waiting)),
+                    "/v1/jobs/waiting/artifacts$": answer("[]"),
+                    "/v1/jobs/waiting/events": {"timeline": [], "recorded": 0},
                     "/v1/jobs/nearly/artifacts$": answer("[]"),
                     "/v1/jobs/nearly/events": {"timeline": timeline, "recorded": 2}})
     driver.refresh()
@@ -627,6 +634,10 @@ def test_a_job_s_progress_reads_as_it_stands(live, browser):
     assert text(driver, "#job-overall-text") == "99 %"
     assert [item.text for item in driver.find_elements("css selector", "#job-events li")] == [
         "checkpoint · edit · iteration 200", "resumed · edit · iteration 200"]  # the iterations had not been shown
+    assert text(driver, "#job-stage-text") == "2/4"
+    go(driver, "#/jobs/waiting")
+    wait_until(lambda: text(driver, "#job-state") == "queued", 10, what="the queued job's page")
+    assert (text(driver, "#job-stage"), text(driver, "#job-stage-text"), text(driver, "#job-eta")) == ("–", "–", "–")
     faults(driver, {})
 
 

@@ -419,7 +419,7 @@ function renderProgress(p) {
   $("#job-state").className = `state-${p.state}`;
   $("#job-stage").textContent = p.stage ? `${p.stage}${p.completed_stages?.length ? ` (done: ${p.completed_stages.join(", ")})` : ""}` : "–";
   $("#job-stage-progress").value = p.progress ?? 0;
-  $("#job-stage-text").textContent = `${p.iteration}/${p.total}`;
+  $("#job-stage-text").textContent = p.total ? `${p.iteration}/${p.total}` : "–";  // none before a stage starts
   $("#job-overall-progress").value = p.overall_progress ?? 0;
   $("#job-overall-text").textContent = percent(p.overall_progress ?? 0);
   $("#job-eta").textContent = p.overall_eta_seconds != null
