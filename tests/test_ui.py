@@ -641,6 +641,37 @@ def test_a_job_s_progress_reads_as_it_stands(live, browser):
     faults(driver, {})
 
 
+def test_a_requested_cancel_stays_shown_until_the_job_stops(live, browser):
+    """The stream's progress snapshots carry no cancel_requested: the first after a cancel had wiped its
+    "(cancel requested)", the job still running as it would for a few iterations more."""
+    svc, token, _archive = live
+    driver = browser
+    job = {"id": "stopping", "scene_id": "s", "prompt": "a mic", "mode": "global", "edit_words": [],
+           "models": {"sds": "tiny"}, "device": "cpu", "state": "running", "stage": "edit",
+           "completed_stages": ["reconstruct"], "progress": 0.5, "iteration": 2, "total": 4, "overall_progress": 0.5,
+           "eta_seconds": 1, "overall_eta_seconds": 2, "losses": {}, "message": None, "preview_url": None,
+           "error": None, "cancel_requested": False, "created_at": "2026-01-01T00:00:00Z"}
+    snapshot = {key: job[key] for key in ("state", "stage", "progress", "total", "overall_progress", "losses",
+                                          "completed_stages", "eta_seconds", "overall_eta_seconds", "message",
+                                          "error", "preview_url")}
+    answer = lambda body: {"status": 200, "type": "application/json", "body": json.dumps(body)}  # noqa: E731
+    set_key(driver, svc, token)
+    faults(driver, {"/v1/jobs/stopping$": answer(job),
+                    "/v1/jobs/stopping/artifacts$": answer([]),
+                    "/v1/jobs/stopping/cancel": {"method": "POST", **answer({**job, "cancel_requested": True})},
+                    # the stream's snapshot comes 3 s after the page asked (its timeline as late)
+                    "/v1/jobs/stopping/events": {"delay": 3000, "recorded": 0,
+                                                 "timeline": [{**snapshot, "id": 1, "kind": "progress",
+                                                               "iteration": 3}]}})
+    go(driver, "#/jobs/stopping")
+    wait_until(lambda: driver.find_element("id", "job-cancel").is_enabled(), 10, what="Cancel")
+    driver.find_element("id", "job-cancel").click()
+    wait_until(lambda: text(driver, "#job-state") == "running (cancel requested)", 5, what="the cancel shown")
+    wait_until(lambda: text(driver, "#job-stage-text") == "3/4", 10, what="the next progress snapshot")
+    assert text(driver, "#job-state") == "running (cancel requested)"
+    faults(driver, {})
+
+
 def test_a_long_one_word_prompt_wraps_inside_the_window(live, browser):
     """A prompt (and the error quoting it) of one 500-character word, in the job list and on its job page: the
     text wraps, the page stays as wide as the window, and the list's State column stays on screen (the table and
