@@ -239,7 +239,9 @@ async function refreshScenes(signal) {
   }
 }
 
-/** Every scene of the key, newest first, in pages of the API's largest (the 201st had been offered nowhere). */
+const SCENES_PER_REQUEST = 200;  // the API's largest page
+
+/** Every scene of the key, newest first, page by page (the 201st had been offered nowhere). */
 async function allScenes(signal) {
   const scenes = new Map();  // id -> scene: one made meanwhile shifts the pages, and is met twice
   for (let offset = 0; ; offset += SCENES_PER_REQUEST) {
@@ -248,8 +250,6 @@ async function allScenes(signal) {
     if (!answer.items.length || offset + answer.items.length >= answer.total) return [...scenes.values()];
   }
 }
-
-const SCENES_PER_REQUEST = 200;
 
 async function loadScenes(signal, selected) {
   const scenes = await allScenes(signal);
