@@ -672,6 +672,33 @@ def test_a_requested_cancel_stays_shown_until_the_job_stops(live, browser):
     faults(driver, {})
 
 
+def test_a_stream_s_error_event_ends_it_saying_why(live, browser):
+    """The stream's ``error`` event (the job deleted, the key revoked) is said beside the stream, which ends: it had
+    been listed as a timeline event, and the stream opened again."""
+    svc, token, _archive = live
+    driver = browser
+    job = {"id": "gone", "scene_id": "s", "prompt": "a mic", "mode": "global", "edit_words": [],
+           "models": {"sds": "tiny"}, "device": "cpu", "state": "running", "stage": "edit", "completed_stages": [],
+           "progress": 0.5, "iteration": 2, "total": 4, "overall_progress": 0.5, "eta_seconds": 1,
+           "overall_eta_seconds": 2, "losses": {}, "message": None, "preview_url": None, "error": None,
+           "cancel_requested": False, "created_at": "2026-01-01T00:00:00Z"}
+    answer = lambda body, kind="application/json": {"status": 200, "type": kind, "body": body}  # noqa: E731
+    set_key(driver, svc, token)
+    faults(driver, {"/v1/jobs/gone$": answer(json.dumps(job)),
+                    "/v1/jobs/gone/artifacts$": answer("[]"),
+                    "/v1/jobs/gone/events": {"once": True, **answer("[]")},
+                    "/v1/jobs/gone/events$": answer('event: error\ndata: {"detail": "job \'gone\' was deleted"}\n\n',
+                                                    "text/event-stream")})
+    driver.execute_script("window.requests = []")
+    go(driver, "#/jobs/gone")
+    wait_until(lambda: "not reconnecting" in text(driver, '[data-error-for="stream"]'), 10, what="the stream's end")
+    assert text(driver, '[data-error-for="stream"]') == ("event stream: job 'gone' was deleted; not reconnecting "
+                                                         "(reload the page to try again)")
+    time.sleep(2.5)  # a retry interval
+    assert len(streams(driver, "gone")) == 1 and not driver.find_elements("css selector", "#job-events li")
+    faults(driver, {})
+
+
 def test_a_long_one_word_prompt_wraps_inside_the_window(live, browser):
     """A prompt (and the error quoting it) of one 500-character word, in the job list and on its job page: the
     text wraps, the page stays as wide as the window, and the list's State column stays on screen (the table and

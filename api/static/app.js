@@ -522,6 +522,10 @@ async function followEvents(jobId, afterId, signal) {
         if (event.retry) retryMs = event.retry;
         if (event.id) lastId = event.id;
         if (!event.event) continue;
+        if (event.event === "error") {  // the server's last word: the job was deleted, or the key revoked
+          showError("stream", `event stream: ${event.data?.detail}; not reconnecting (reload the page to try again)`);
+          return;
+        }
         await handleEvent(jobId, event.event, event.data, signal);
         // A reconnect after the terminal event gets only a progress snapshot in the terminal state (and the end).
         if (TERMINAL.has(event.event) || TERMINAL.has(event.data?.state)) finished = true;
