@@ -12,7 +12,7 @@ What a stream sends (``event:`` names):
 * every timeline event (``stage_started``, ``stage_completed``, ``checkpoint``, ``resumed``,
   ``requeued``, ``warning``, ``artifact``, ``preview``, then ``succeeded`` / ``failed`` / ``canceled``), with
   its ``id:`` -- a client reconnecting with ``Last-Event-ID`` gets every event after it, none twice;
-* ``progress`` (no id: it is a snapshot, sent again on reconnect) when the job's state, stage,
+* ``progress`` (no id: it is a snapshot, sent again on reconnect) when the job's state, stage, cancel request,
   iteration or losses changed since the last one, at most once per interval;
 * and the stream ends after the job's terminal event, or when the server stops (:meth:`EventHub.end_streams`;
   the client resumes with ``Last-Event-ID``), or with an ``error`` event once the job is deleted or the key that

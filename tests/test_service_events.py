@@ -341,6 +341,29 @@ def test_a_stream_shows_the_message_of_a_job_its_scenes_ingest_sent(in_process, 
     assert [e["data"]["message"] for e in events] == [job["message"], sent["message"]], events
 
 
+def test_a_streams_progress_says_a_cancel_was_requested_while_the_job_runs_on(in_process, tmp_path):
+    """A running job's cancel is seen at its next check: until then its stream's progress says it was asked for,
+    as the job resource does (the snapshot had left cancel_requested out, and the web UI's "(cancel requested)"
+    went at the next progress)."""
+    from sqlalchemy import update
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import RUNNING, Job
+
+    client, data = in_process
+    scene = make_scene(client, data, tmp_path)
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold"}).json()
+    with session_scope() as session:
+        session.execute(update(Job).where(Job.id == job["id"]).values(state=RUNNING, stage="edit"))
+    assert client.post(f"/v1/jobs/{job['id']}/cancel").json()["cancel_requested"] is True
+
+    async def first_progress(_job_id, _progress):
+        return True
+
+    [events] = follow([job["id"]], timeout=15, on_progress=first_progress)
+    assert [(e["data"]["state"], e["data"].get("cancel_requested")) for e in events] == [("running", True)], events
+
+
 def test_a_stream_ends_once_the_key_that_opened_it_is_revoked(in_process, tmp_path):
     """A revoked token stops working at once (README, ``revoke-key``): a stream opened before had gone on
     delivering the job's events for as long as the job ran."""

@@ -642,8 +642,8 @@ def test_a_job_s_progress_reads_as_it_stands(live, browser):
 
 
 def test_a_requested_cancel_stays_shown_until_the_job_stops(live, browser):
-    """The stream's progress snapshots carry no cancel_requested: the first after a cancel had wiped its
-    "(cancel requested)", the job still running as it would for a few iterations more."""
+    """A cancel requested is shown while the job runs its last iterations: the stream's progress snapshots say so
+    (they had left cancel_requested out, and the first after a cancel had wiped its "(cancel requested)")."""
     svc, token, _archive = live
     driver = browser
     job = {"id": "stopping", "scene_id": "s", "prompt": "a mic", "mode": "global", "edit_words": [],
@@ -662,7 +662,7 @@ def test_a_requested_cancel_stays_shown_until_the_job_stops(live, browser):
                     # the stream's snapshot comes 3 s after the page asked (its timeline as late)
                     "/v1/jobs/stopping/events": {"delay": 3000, "recorded": 0,
                                                  "timeline": [{**snapshot, "id": 1, "kind": "progress",
-                                                               "iteration": 3}]}})
+                                                               "iteration": 3, "cancel_requested": True}]}})
     go(driver, "#/jobs/stopping")
     wait_until(lambda: driver.find_element("id", "job-cancel").is_enabled(), 10, what="Cancel")
     driver.find_element("id", "job-cancel").click()

@@ -181,7 +181,8 @@ def progress_view(job: Job) -> dict:
 
 
 PROGRESS_FIELDS = {"id", "state", "stage", "iteration", "total", "progress", "overall_progress", "completed_stages",
-                   "eta_seconds", "overall_eta_seconds", "losses", "message", "error", "preview_url"}
+                   "eta_seconds", "overall_eta_seconds", "losses", "message", "error", "preview_url",
+                   "cancel_requested"}
 
 
 @router.get("/{job_id}/webhooks", response_model=list[WebhookDeliveryOut], responses=_ERRORS,

@@ -371,7 +371,6 @@ const JOB_MEDIA = ["#job-preview", "#job-mask", "#job-video", "#job-model"];
 function clearJobView() {
   for (const id of ["#job-title", "#job-meta", "#job-state", "#job-stage", "#job-stage-text", "#job-overall-text",
                     "#job-eta", "#job-losses", "#job-message", "#job-artifacts", "#job-events"]) $(id).textContent = "";
-  delete $("#job-state").dataset.cancelRequested;
   $("#job-stage-progress").value = 0;
   $("#job-overall-progress").value = 0;
   $("#job-cancel").disabled = true;
@@ -416,10 +415,7 @@ async function refreshMedia(refresh, signal) {
 }
 
 function renderProgress(p) {
-  // The stream's progress snapshots do not say whether a cancel was requested: the job's, or the cancel's, answer did.
-  if (p.cancel_requested !== undefined) $("#job-state").dataset.cancelRequested = p.cancel_requested;
-  const canceling = $("#job-state").dataset.cancelRequested === "true" && !TERMINAL.has(p.state);
-  $("#job-state").textContent = p.state + (canceling ? " (cancel requested)" : "");
+  $("#job-state").textContent = p.state + (p.cancel_requested && !TERMINAL.has(p.state) ? " (cancel requested)" : "");
   $("#job-state").className = `state-${p.state}`;
   $("#job-stage").textContent = p.stage ? `${p.stage}${p.completed_stages?.length ? ` (done: ${p.completed_stages.join(", ")})` : ""}` : "–";
   $("#job-stage-progress").value = p.progress ?? 0;
