@@ -14,9 +14,10 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from voxe_core.backbones import load_grid
 from voxe_core.cameras import Cameras, camera_rays, look_at, ring_poses
 from voxe_core.grid import Occupancy, VoxelGrid, _WeightedGather, ray_box_intersection, unit_directions
-from voxe_core.render import MIN_STEP_RATIO, RenderConfig, render_image, render_rays
+from voxe_core.render import MIN_STEP_RATIO, RenderConfig, composite, render_image, render_rays
 from voxe_core.scene_grid import SceneGrid
 from voxe_core.tensorio import FormatError, save_tensors
+from voxe_core.volrend import RaySamples
 
 
 def uniform_grid(raw_density: float, resolution: int = 8, color_logit: float = 0.0, **kwargs) -> VoxelGrid:
@@ -181,6 +182,36 @@ def test_a_ray_packed_behind_saturated_rays_keeps_its_own_transmittance():
     assert both.opacity[0].item() == 1.0
     assert both.opacity[1].item() == pytest.approx(1 - math.exp(-sigma * 3.0), rel=1e-5)
     assert torch.equal(both.opacity[1:], alone.opacity) and torch.equal(both.rgb[1:], alone.rgb)
+
+
+def test_a_ray_composited_behind_thousands_of_opaque_rays_is_the_ray_composited_alone():
+    """One pass: 3,000 opaque rays (~330 samples each at the clamped optical depth 1e4, a running sum near 1e10),
+    then a faint ray of 500 samples. Its pixel, opacity, depth and density gradients are those it gets alone:
+    the prefix sum's rounding near 1e10 (~1e-6 an addition) had put it 3e-6 off in its pixel and up to 8e-4 in a
+    sample's density gradient."""
+    g = torch.Generator().manual_seed(3)
+    lengths = torch.randint(165, 495, (3000,), generator=g)
+    n_opaque, n = int(lengths.sum()), 500
+
+    def composite_last_ray(opaque_rays: int):
+        hidden = int(lengths[:opaque_rays].sum())
+        ray = torch.cat([torch.arange(opaque_rays).repeat_interleave(lengths[:opaque_rays]),
+                         torch.full((n,), opaque_rays)])
+        t = torch.cat([torch.rand(hidden, generator=torch.Generator().manual_seed(4)), torch.linspace(0.5, 3.0, n)])
+        delta = torch.full((hidden + n,), 0.005)
+        sigma = torch.cat([torch.full((hidden,), 1e7), 2.0 * faint]).requires_grad_()
+        colour = torch.cat([torch.rand(hidden, 3, generator=torch.Generator().manual_seed(5)), faint_colour])
+        samples = RaySamples(ray, t, delta, torch.zeros(hidden + n, 3))
+        out = composite([samples], lambda points: (sigma, colour), opaque_rays + 1, torch.ones(3))
+        (out.rgb[-1].sum() + out.opacity[-1] + 0.1 * out.depth[-1]).backward()
+        return out.rgb[-1].detach(), out.opacity[-1].detach(), out.depth[-1].detach(), sigma.grad[hidden:]
+
+    faint, faint_colour = torch.rand(n, generator=g), torch.rand(n, 3, generator=g)
+    assert n_opaque > 900_000
+    behind, alone = composite_last_ray(3000), composite_last_ray(0)
+    assert 0.9 < float(alone[1]) < 0.99  # neither transparent nor opaque: every sample's gradient counts
+    for got, expected in zip(behind, alone):
+        torch.testing.assert_close(got, expected, rtol=1e-7, atol=0)
 
 
 def test_early_stopping_changes_a_pixel_by_at_most_the_threshold_and_saves_samples():

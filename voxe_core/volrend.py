@@ -2,7 +2,8 @@
 
 Samples are packed: the samples of all rays in one list, ray by ray in marching
 order (:class:`RaySamples`). Transmittance comes from one float64 prefix sum over
-the list, so a ray behind rays of large optical depth keeps its own.
+the list, its rounding errors added back per ray, so a ray behind rays of large
+optical depth keeps its own.
 
 Examples:
     >>> ray = torch.tensor([0, 0, 1])
@@ -62,7 +63,10 @@ def transmittance(optical: torch.Tensor, ray: torch.Tensor) -> torch.Tensor:
     """Transmittance in front of each packed sample (S,): exp of minus the optical depth before it on its ray.
 
     One float64 prefix sum over all rays, minus each ray's value at its first
-    sample: in float32 a ray behind rays of large optical depth would lose its own.
+    sample, plus what the sum rounded away on the ray (each addition's error, added up in a second prefix sum):
+    a segmented scan's result, each ray's own to float64 rounding of its own depths, in two scans.
+    Without them, a ray behind 3,000 opaque ones (a running sum near 1e10, rounding ~1e-6 an addition) had been
+    3e-6 off in its pixel and up to 8e-4 in a sample's density gradient.
     ``ray`` (S,) is non-decreasing (packed ray by ray), so each sample's ray starts
     at the leftmost position of its value: a binary search per sample, with no host
     read and in parallel on a GPU (a running maximum, ``cummax``, would scan a 1-D
@@ -73,9 +77,17 @@ def transmittance(optical: torch.Tensor, ray: torch.Tensor) -> torch.Tensor:
     if host_reads_are_free(optical.device) and not bool(nan.any()):  # skips the bookkeeping below: 2.5x the time
         nan = None
     wide = optical.double() if nan is None else optical.double().masked_fill(nan, 0.0)
-    before = wide.cumsum(0) - wide
+    running = wide.cumsum(0)
+    before = torch.cat([running.new_zeros(1), running])[:-1]  # the sum's value before each sample, as it added
     first = torch.searchsorted(ray, ray)
-    t = torch.exp(before.index_select(0, first) - before)
+    with torch.no_grad():  # a constant in the depths' gradient; in place: each 8-byte-a-sample buffer costs time
+        # What each addition rounded away, wide - (running - before): exact where the sum before is at least the
+        # sample (Fast2Sum), else to the sample's own rounding; then summed in front of each sample, on its ray.
+        error_before = wide.new_zeros(wide.shape[0] + 1)
+        torch.sub(before, running, out=error_before[1:]).add_(wide)
+        error_before = error_before.cumsum_(0)[:-1]
+        lost = error_before.index_select(0, first).neg_().add_(error_before)
+    t = torch.exp(before.index_select(0, first) - before - lost)
     if nan is not None:
         nans_before = nan.cumsum(0) - nan.long()
         t = t.masked_fill(nans_before > nans_before.index_select(0, first), float("nan"))
