@@ -159,6 +159,31 @@ def test_a_nan_colour_where_nothing_is_dense_shows_in_the_render():
         assert out.rgb[0, 0].isnan() and out.rgb[0, 1:].tolist() == [1.0, 1.0]
 
 
+def test_samples_of_no_length_add_no_optical_depth_however_dense():
+    """Lattice samples past the ray's path (``length`` ends half a step into sample 6, so samples 7 on stand for none
+    of it), from sample 8 on in cells of infinite density (a raw 1e38 overflows once scaled): they add nothing, so the
+    render and its gradient are those of the lattice that ends at the path (inf · 0 had made them NaN), as on the
+    packed path."""
+    from voxe_core.fused_render import march
+
+    features = _field(8, 15, density=0.3)
+    features[:, :, 5:, 0] = 1e38  # the cells of z > 0.21 reach it: σ = inf in float32
+    grid = VoxelGrid(8, features=features)
+    origins, directions = torch.tensor([[0.1, -0.3, -3.0], [-0.4, 0.2, -3.0]]), torch.tensor([[0.0, 0.0, 1.0]] * 2)
+    lattice = grid.ray_lattice(origins, directions, torch.full((2,), 0.5), step_ratio=0.5)
+    path = lattice._replace(length=torch.full((2,), 6.5 * lattice.step))
+    outs = []
+    for last in (lattice.last, torch.full((2,), 7)):  # to the box's far side; to the path's end
+        grid.flat_features.grad = None
+        colour, opacity, depth, _ = march(grid, origins, directions, path._replace(last=last), None, early_stop=0.0)
+        (colour.sum() + opacity.sum() + 0.1 * depth.sum()).backward()
+        outs.append((colour.detach(), opacity.detach(), depth.detach(), grid.flat_features.grad))
+    assert int(lattice.last.min()) > 12  # the rays' lattices reach the infinite cells past the path
+    assert all(bool(torch.isfinite(x).all()) for x in outs[0]) and float(outs[1][1].max()) < 0.9
+    for got, expected in zip(*outs):
+        torch.testing.assert_close(got, expected, rtol=0, atol=0)
+
+
 @pytest.mark.parametrize("fused", [False, True])
 @pytest.mark.parametrize("other", [6, 12])
 def test_an_occupancy_of_another_grid_is_refused(fused, other):

@@ -14,7 +14,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from voxe_core.backbones import load_grid
 from voxe_core.cameras import Cameras, camera_rays, look_at, ring_poses
 from voxe_core.grid import Occupancy, VoxelGrid, _WeightedGather, ray_box_intersection, unit_directions
-from voxe_core.render import MIN_STEP_RATIO, RenderConfig, composite, render_image, render_rays
+from voxe_core.render import MIN_STEP_RATIO, RenderConfig, composite, grid_field, render_image, render_rays
 from voxe_core.scene_grid import SceneGrid
 from voxe_core.tensorio import FormatError, save_tensors
 from voxe_core.volrend import RaySamples
@@ -212,6 +212,34 @@ def test_a_ray_composited_behind_thousands_of_opaque_rays_is_the_ray_composited_
     assert 0.9 < float(alone[1]) < 0.99  # neither transparent nor opaque: every sample's gradient counts
     for got, expected in zip(behind, alone):
         torch.testing.assert_close(got, expected, rtol=1e-7, atol=0)
+
+
+def test_a_sample_of_no_length_adds_no_optical_depth_however_dense():
+    """A zero path length at an infinite density (a raw 1e38, overflowing once scaled) had made the optical depth
+    inf · 0 = NaN, so the pixel and every gradient NaN. The sample weighs nothing: the render and its gradients are
+    those of the same samples without it, in front of a ray's other samples and behind them."""
+    def render(keep_empty: bool):
+        grid = VoxelGrid(4, features=torch.zeros(4, 4, 4, 4))
+        with torch.no_grad():
+            grid.features[:2, ..., 0] = 1e38  # σ = inf in float32
+            grid.features[2:, ..., 0] = 0.02
+            grid.features[..., 1:] = torch.linspace(-1.0, 1.0, 4 * 4 * 4 * 3).reshape(4, 4, 4, 3)
+        ray = torch.tensor([0, 0, 0, 1, 1, 1])
+        t = torch.tensor([0.2, 0.7, 1.2, 0.2, 0.7, 1.2])
+        delta = torch.tensor([0.0, 0.5, 0.5, 0.5, 0.5, 0.0])
+        points = torch.tensor([[-1.0, 0.2, 1.1], [1.0, 0.3, -0.6], [0.7, 1.2, 0.9],  # x < -0.5: σ = inf
+                               [1.1, -0.6, 0.1], [0.9, 1.4, -1.2], [-0.8, -0.2, 1.2]])
+        keep = torch.ones(6, dtype=torch.bool) if keep_empty else delta > 0
+        samples = RaySamples(ray[keep], t[keep], delta[keep], points[keep])
+        out = composite([samples], grid_field(grid), 2, torch.ones(3))
+        (out.rgb.sum() + out.opacity.sum() + out.depth.sum()).backward()
+        assert bool(grid.activate_density(grid.interpolate(points[[0, 5]])[:, 0]).isinf().all())
+        return out.rgb.detach(), out.opacity.detach(), out.depth.detach(), grid.flat_features.grad
+
+    with_empty, without = render(True), render(False)
+    assert torch.isfinite(with_empty[0]).all() and torch.isfinite(with_empty[3]).all()
+    for got, expected in zip(with_empty, without):
+        torch.testing.assert_close(got, expected, rtol=0, atol=0)
 
 
 def test_early_stopping_changes_a_pixel_by_at_most_the_threshold_and_saves_samples():

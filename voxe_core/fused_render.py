@@ -169,7 +169,7 @@ def _march(
         row = features + 4 * (bx * stride_x + by * stride_y + bz)
         scaled = _interpolate(row, stride_x, stride_y, fx, fy, fz, alive) * density_scale
         sigma = tl.where(scaled < 0.0, 0.0, scaled)  # ReLU keeping a NaN
-        free_tau = sigma * delta
+        free_tau = tl.where(delta > 0.0, sigma, 0.0) * delta  # no path, no depth: not inf · 0 = NaN
         tau = tl.where(alive, tl.where(free_tau > max_optical, max_optical, free_tau), 0.0)
         after = tl.exp(-(optical + tau.to(tl.float64)))  # T_{k+1}; T_k where the sample is not alive
         weight = transmitted - after

@@ -49,8 +49,9 @@ class RaySamples:
 
 
 def optical_depth(sigma: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
-    """sigma * delta per sample, clamped to ``MAX_SAMPLE_OPTICAL_DEPTH``."""
-    return (sigma * delta).clamp(max=MAX_SAMPLE_OPTICAL_DEPTH)
+    """sigma * delta per sample, clamped to ``MAX_SAMPLE_OPTICAL_DEPTH``; 0 where the path has no length, whatever
+    the density (an infinite one, a float32 overflow, had made it inf · 0 = NaN, and the pixel and gradients NaN)."""
+    return (torch.where(delta > 0, sigma, 0.0) * delta).clamp(max=MAX_SAMPLE_OPTICAL_DEPTH)
 
 
 def host_reads_are_free(device: torch.device) -> bool:
