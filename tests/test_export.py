@@ -219,27 +219,126 @@ def test_video_rejects_unknown_suffix_and_bad_frames(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["slowest.gif", "slowest.mp4"]
 
 
-def test_a_video_is_whole_or_absent(tmp_path, monkeypatch):
+def test_a_video_is_whole_or_absent(tmp_path):
     """It is written under a temporary name and renamed when whole: an interrupted encode had left a playable
     video of the frames so far, and an encoder that failed (ffmpeg logs and exits) a 'wrote' with no file."""
-    import voxe_core.export as export
-
     frames = gradient_frames(6, 16, 16)
 
-    def interrupted(array):
-        yield from array[:3]
-        raise KeyboardInterrupt  # what Ctrl-C raises in the encoding loop
+    def interrupted():
+        yield from frames[:3]
+        raise KeyboardInterrupt  # what Ctrl-C raises while the frames are rendered and encoded
 
-    with monkeypatch.context() as patched:
-        patched.setattr(export, "_pad_even", interrupted)
+    for name in ("t.mp4", "t.gif"):
         with pytest.raises(KeyboardInterrupt):
-            write_video(tmp_path / "t.mp4", frames, fps=10)
+            write_video(tmp_path / name, interrupted(), fps=10, n_frames=6)
     assert list(tmp_path.iterdir()) == []
     (tmp_path / "taken.mp4").mkdir()  # the destination is a folder: the encode succeeds, the rename cannot
     with pytest.raises(IsADirectoryError):
         write_video(tmp_path / "taken.mp4", frames, fps=10)
     assert [p.name for p in tmp_path.iterdir()] == ["taken.mp4"]
     assert write_video(tmp_path / "t.mp4", frames, fps=10).stat().st_size > 0
+
+
+@pytest.mark.parametrize("name", ["v.mp4", "v.gif"])
+def test_a_streamed_video_given_the_wrong_frames_leaves_nothing(tmp_path, name):
+    """A VideoWriter is opened for N frames of one size: fewer, more, or one of another size is a ValueError
+    naming it, and nothing is left (not a shorter clip, not the partial file)."""
+    frames = gradient_frames(4, 8, 10)
+    with pytest.raises(ValueError, match=r"opened for 4 frames; 3 were given"):
+        write_video(tmp_path / name, iter(frames[:3]), fps=10, n_frames=4)
+    with pytest.raises(ValueError, match=r"opened for 3 frames; one more was given"):
+        write_video(tmp_path / name, iter(frames), fps=10, n_frames=3)
+    with pytest.raises(ValueError, match=r"frame 2 is \(8, 9, 3\), frame 0 \(8, 10, 3\)"):
+        write_video(tmp_path / name, [frames[0], frames[1], frames[2, :, :9]], fps=10)
+    with pytest.raises(TypeError, match="needs n_frames for frames of no length"):
+        write_video(tmp_path / name, iter(frames), fps=10)
+    assert list(tmp_path.iterdir()) == []
+
+
+def decoded_video(path) -> tuple[list[np.ndarray], list[int]]:
+    """(the frames a player shows, each one's delay in ms; an MP4's from its frame rate)."""
+    if path.suffix == ".mp4":
+        frames, meta = read_mp4(path)
+        return frames, [round(1000 / meta["fps"])] * len(frames)
+    frames, delays = [], []
+    with Image.open(path) as gif:
+        for index in range(gif.n_frames):
+            gif.seek(index)
+            frames.append(np.asarray(gif.convert("RGB")))
+            delays.append(gif.info["duration"])
+    return frames, delays
+
+
+@pytest.mark.parametrize("name, n, fps", [("v.mp4", 7, 12.0), ("v.gif", 7, 30.0), ("v.gif", 9, 120.0),
+                                          ("v.gif", 2, 120.0)])
+def test_a_video_streamed_frame_by_frame_is_the_video_of_the_whole_array(tmp_path, name, n, fps):
+    """Frames appended one by one as they are rendered give the file the whole array gave (odd sizes padded the
+    same way, the GIF's shown frames and delays the same), and the GIF is the one Pillow writes from the whole
+    array, though each frame is quantised as it comes."""
+    import imageio.v3 as iio
+
+    from voxe_core.export import gif_timeline, iter_views, to_uint8
+
+    frames = gradient_frames(n, 31, 33)
+    frames[:, 5:9, 3:20, 1] = torch.rand(n, 4, 17, generator=torch.Generator().manual_seed(1))  # some texture
+    whole = write_video(tmp_path / "whole" / name, frames, fps=fps)
+    streamed = write_video(tmp_path / "streamed" / name, (frame.clone() for frame in frames), fps=fps, n_frames=n)
+    assert streamed.read_bytes() == whole.read_bytes()
+    (whole_frames, whole_delays), (streamed_frames, streamed_delays) = decoded_video(whole), decoded_video(streamed)
+    assert streamed_delays == whole_delays and len(streamed_frames) == len(whole_frames)
+    assert all(np.array_equal(a, b) for a, b in zip(streamed_frames, whole_frames))
+    if name.endswith(".gif"):
+        shown, delays = gif_timeline(n, fps)
+        assert streamed_delays == delays
+        reference = tmp_path / "pillow.gif"  # how write_video wrote a GIF before it streamed
+        iio.imwrite(reference, to_uint8(frames)[shown], plugin="pillow", extension=".gif",
+                    duration=delays if len(shown) > 1 else delays[0], loop=0)
+        assert streamed.read_bytes() == reference.read_bytes()
+    else:
+        assert streamed_frames[0].shape == (32, 34, 3)
+
+
+class FramesAlive:
+    """A frame source that counts how many of the frames it made are still referenced when it makes the next."""
+
+    def __init__(self, frames: torch.Tensor):
+        self.frames, self.alive, self.most_alive = frames, 0, 0
+
+    def _released(self) -> None:
+        self.alive -= 1
+
+    def __iter__(self):
+        import weakref
+
+        for frame in self.frames:
+            frame = frame.clone()
+            self.alive += 1
+            self.most_alive = max(self.most_alive, self.alive)
+            weakref.finalize(frame, self._released)
+            yield frame
+
+
+@pytest.mark.parametrize("name", ["v.mp4", "v.gif"])
+def test_a_streamed_video_holds_no_more_than_two_of_its_frames(tmp_path, name):
+    """Regression: write_video took the whole clip (render_views' (N, H, W, 3) floats, 50 GB for 1,000 frames of
+    2,048²) and converted it whole. Streamed, a frame is let go once it is encoded (the GIF keeps each shown
+    frame only as 8-bit palette indices): at most the one being appended and the next are alive."""
+    source = FramesAlive(gradient_frames(30, 12, 14))
+    write_video(tmp_path / name, iter(source), fps=30, n_frames=30)
+    assert source.most_alive <= 2 and source.alive == 0
+    assert len(decoded_video(tmp_path / name)[0]) == 30
+
+
+def test_iter_views_yields_render_views_frames_one_at_a_time(sphere_grid):
+    """render_views is iter_views' frames stacked; each comes after its progress report (a cancel between)."""
+    from voxe_core.export import iter_views
+
+    cams = turntable_cameras(n_frames=3, elevation_deg=20.0, size=12)
+    seen = []
+    views = iter_views(sphere_grid, cams, callbacks=Callbacks(on_progress=lambda p: seen.append(p.iteration)))
+    first = next(views)
+    assert seen == [1] and first.shape == (12, 12, 3)
+    assert torch.equal(torch.stack([first, *views]), render_views(sphere_grid, cams))
 
 
 # ---------------------------------------------------------------------- meshes

@@ -755,15 +755,15 @@ def test_the_worker_runs_every_stage_on_its_device_and_stores_their_peak_memory(
         seen["edit"] = device
         return initial.clone_grid()
 
-    real_render_views = voxe_core.export.render_views
+    real_iter_views = voxe_core.export.iter_views
 
-    def recorded_render_views(grid, cameras, *args, device=None, **kwargs):
+    def recorded_iter_views(grid, cameras, *args, device=None, **kwargs):
         seen.setdefault("render", set()).add(device)
-        return real_render_views(grid, cameras, *args, device=device, **kwargs)
+        return real_iter_views(grid, cameras, *args, device=device, **kwargs)
 
     monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
     monkeypatch.setattr(voxe_core.edit, "edit", recorded_edit)
-    monkeypatch.setattr(voxe_core.export, "render_views", recorded_render_views)
+    monkeypatch.setattr(voxe_core.export, "iter_views", recorded_iter_views)
     assert tasks.edit_task.apply(args=(job["id"],)).get()["state"] == "done"
     assert tasks.export_task.apply(args=(job["id"],)).get()["state"] == "done"
     assert seen == {"edit": "cpu", "render": {"cpu"}}
@@ -771,6 +771,45 @@ def test_the_worker_runs_every_stage_on_its_device_and_stores_their_peak_memory(
     assert result["peak_memory_kind"] == "process_rss"
     assert set(result["peak_memory_gb"]) == {"reconstruct", "export"}  # the recorded edit reported nothing
     assert all(0.01 < gb < 64 for gb in result["peak_memory_gb"].values())
+
+
+def test_the_export_writes_each_view_and_turntable_frame_as_it_is_rendered(service, monkeypatch, tmp_path):
+    """Regression: the export rendered the whole turntable (render_views' (N, H, W, 3) floats: 1,000 frames of 2,048²
+    are 50 GB) and then wrote the MP4 and the GIF from it, and all ring views before saving the first. Now each
+    frame goes to both videos (8-bit pixels for each) before the next is rendered, and each view to its PNG; both
+    videos hold every frame."""
+    import voxe_core.edit
+    import voxe_core.export
+    from test_export import decoded_video
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job = _reconstructed_job(client, scene_id, "relu_field", export={
+        "views": 3, "view_size": 16, "turntable_frames": 12, "turntable_size": 18, "gif": True, "mesh": False})
+    monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
+    monkeypatch.setattr(voxe_core.edit, "edit", lambda initial, *args, **kwargs: initial.clone_grid())
+    assert tasks.edit_task.apply(args=(job["id"],)).get()["state"] == "done"
+    events, real_render_image, real_to_uint8 = [], voxe_core.export.render_image, voxe_core.export.to_uint8
+
+    def recorded_render_image(grid, cameras, *args, **kwargs):
+        events.append(("render", cameras.width))
+        return real_render_image(grid, cameras, *args, **kwargs)
+
+    def recorded_to_uint8(image):  # what a PNG or a video frame is written from
+        events.append(("pixels", tuple(image.shape)))
+        return real_to_uint8(image)
+
+    monkeypatch.setattr(voxe_core.export, "render_image", recorded_render_image)
+    monkeypatch.setattr(voxe_core.export, "to_uint8", recorded_to_uint8)
+    assert tasks.export_task.apply(args=(job["id"],)).get()["state"] == "done"
+    views = [("render", 16), ("pixels", (16, 16, 3))] * 3
+    turntable = [("render", 18), ("pixels", (18, 18, 3)), ("pixels", (18, 18, 3))] * 12  # the MP4's, the GIF's
+    assert events[: len(views) + len(turntable)] == views + turntable
+    for name in ("turntable.mp4", "turntable.gif"):
+        (tmp_path / name).write_bytes(client.get(f"/v1/jobs/{job['id']}/artifacts/{name}").content)
+    frames, _ = decoded_video(tmp_path / "turntable.mp4")
+    assert len(frames) == 12 and frames[0].shape == (18, 18, 3)
+    assert sum(decoded_video(tmp_path / "turntable.gif")[1]) == 400  # 12 frames at 30 fps
 
 
 def test_the_export_reads_the_orbit_centre_its_reconstruction_recorded_and_fetches_no_initial_grid(service,

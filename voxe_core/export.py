@@ -1,8 +1,9 @@
 """Getting results out of a grid: PNG views, turntable videos and meshes.
 
-* ``render_views`` renders a batch of cameras, computing the occupancy once.
+* ``iter_views`` renders cameras one view at a time (``render_views``: all at once), computing the occupancy once.
 * ``turntable_cameras`` is the 360° ring of the evaluation protocol (SPEC §0, §4).
-* ``write_video`` writes H.264 MP4 (yuv420p, sizes padded to even) or a looping GIF.
+* ``VideoWriter`` writes H.264 MP4 (yuv420p, sizes padded to even) or a looping GIF frame by frame
+  (``write_video``: frames at hand).
 * ``extract_mesh`` runs marching cubes on the activated density (SPEC §6: users
   asked for mesh export) and ``save_mesh`` writes binary PLY or GLB with vertex colours.
 """
@@ -12,6 +13,9 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections import deque
+from collections.abc import Iterator
+from contextlib import ExitStack
 from pathlib import Path
 
 import numpy as np
@@ -63,17 +67,19 @@ def save_png(path: str | os.PathLike, image) -> None:
 
 # --------------------------------------------------------------------- renders
 @torch.no_grad()
-def render_views(
+def iter_views(
     grid: VoxelGrid,
     cameras: Cameras,
     config: RenderConfig = RenderConfig(),
     callbacks: Callbacks = Callbacks(),
     device: torch.device | str | None = None,
-) -> torch.Tensor:
-    """Render every camera: (N, H, W, 3) on ``config.background``, returned on the CPU.
+) -> Iterator[torch.Tensor]:
+    """Render every camera, one view at a time: yields each (H, W, 3) on ``config.background``, on the CPU.
 
+    A caller that writes each view as it comes (a :class:`VideoWriter`, PNGs) holds one frame, not all of them
+    (1,000 turntable frames of 2,048² had been 50 GB of floats at once).
     Renders run on ``device`` (None: where the grid is); grid (in place, as
-    ``nn.Module.to``) and cameras move there once. The occupancy structure is
+    ``nn.Module.to``) and cameras move there once, at the first view. The occupancy structure is
     built once for all views. ``callbacks`` gets a ``Progress("render", i, N)``
     after each view (info: peak memory, :class:`voxe_core.devices.PeakMemory`)
     and may cancel between views.
@@ -82,11 +88,24 @@ def render_views(
     memory = PeakMemory(device).start()
     grid, cameras = grid.to(device), cameras.to(device)
     occupancy = grid.occupancy(config.sigma_threshold) if config.skip_empty else None
-    frames = torch.empty(len(cameras), cameras.height, cameras.width, 3)
     for i in range(len(cameras)):
         callbacks.check_cancel("render")
-        frames[i] = render_image(grid, cameras, i, config, occupancy).rgb[..., :3].cpu()
+        frame = render_image(grid, cameras, i, config, occupancy).rgb[..., :3].cpu()
         callbacks.progress(Progress("render", i + 1, len(cameras), info=memory.info()))
+        yield frame
+
+
+def render_views(
+    grid: VoxelGrid,
+    cameras: Cameras,
+    config: RenderConfig = RenderConfig(),
+    callbacks: Callbacks = Callbacks(),
+    device: torch.device | str | None = None,
+) -> torch.Tensor:
+    """:func:`iter_views`' views all at once: (N, H, W, 3), on the CPU, for callers that need them together."""
+    frames = torch.empty(len(cameras), cameras.height, cameras.width, 3)
+    for i, frame in enumerate(iter_views(grid, cameras, config, callbacks, device)):
+        frames[i] = frame
     return frames
 
 
@@ -109,12 +128,12 @@ def turntable_cameras(
 
 
 # ---------------------------------------------------------------------- videos
-def _pad_even(frames: np.ndarray) -> np.ndarray:
+def _pad_even(frame: np.ndarray) -> np.ndarray:
     """Replicate the last row / column so height and width are even (yuv420p subsamples chroma 2x2)."""
-    _, h, w, _ = frames.shape
+    h, w, _ = frame.shape
     if h % 2 or w % 2:
-        frames = np.pad(frames, ((0, 0), (0, h % 2), (0, w % 2), (0, 0)), mode="edge")
-    return frames
+        frame = np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+    return frame
 
 
 GIF_MIN_DELAY_CS = 2
@@ -150,50 +169,112 @@ def check_video_output(path: str | os.PathLike, fps: float) -> Path:
     return path
 
 
-def write_video(path: str | os.PathLike, frames, fps: float = 30) -> Path:
-    """Write frames (N, H, W, 3), floats in [0, 1] or uint8, to ``path``; the suffix picks the format.
+class VideoWriter:
+    """A video of ``n_frames`` frames written as they come (``append``), so a caller that renders as it writes
+    holds one frame, not the clip; the suffix picks the format. Used as a context manager::
 
-    ``.mp4``: H.264 (libx264, CRF 18, yuv420p, +faststart) through imageio-ffmpeg;
-    odd sizes are padded by one replicated row / column, never rescaled. The stream is tagged with the matrix its
-    pixels were converted by (BT.601, limited range): untagged, a player that guesses BT.709 for it
-    had shown the render's red (250, 5, 5) as (255, 27, 1) and its greens 20 levels dimmer.
+        with VideoWriter(path, len(cameras), fps) as video:
+            for frame in iter_views(grid, cameras):
+                video.append(frame)
+
+    ``.mp4``: H.264 (libx264, CRF 18, yuv420p, +faststart) through imageio-ffmpeg, each frame piped to the encoder
+    as it is appended; odd sizes are padded by one replicated row / column, never rescaled. The stream is tagged
+    with the matrix its pixels were converted by (BT.601, limited range): untagged, a player that guesses BT.709
+    for it had shown the render's red (250, 5, 5) as (255, 27, 1) and its greens 20 levels dimmer.
     ``.gif``: palette GIF through Pillow, looping forever, on :func:`gif_timeline`'s whole-centisecond delays
-    (above 50 fps some frames are left out). Pillow folds consecutive identical frames into one longer frame,
-    so a static scene can decode to fewer frames; the total duration is kept.
-    The video is written beside ``path`` under a temporary name and renamed when whole: an interrupted or failed
-    write leaves nothing (OSError when the encoder wrote no file, as ffmpeg may fail with only a log line).
+    (above 50 fps some frames are left out). Each shown frame is kept as Pillow's 8-bit palette image (1 byte a
+    pixel, a twelfth of a float frame) until the block ends: Pillow's GIF encoder takes the clip at once, as it
+    folds consecutive identical frames into one longer frame (so a static scene can decode to fewer frames; the
+    total duration is kept).
+    The video is written beside ``path`` under a temporary name and renamed when whole, at the end of the block:
+    an error in it (a cancelled render), a frame of another shape, too few or too many frames leave nothing (OSError
+    when the encoder wrote no file, as ffmpeg may fail with only a log line).
     """
-    path = check_video_output(path, fps)
-    if isinstance(frames, (list, tuple)):
-        frames = torch.stack([torch.as_tensor(f) for f in frames]) if frames else torch.empty(0)
-    array = to_uint8(frames)
-    if array.ndim != 4 or array.shape[0] == 0 or array.shape[-1] != 3:
-        raise ValueError(f"write_video expects frames shaped (N, H, W, 3) with N >= 1, got {tuple(array.shape)}")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with replacing(path) as partial:
-        if path.suffix.lower() == ".mp4":
-            import imageio.v2 as imageio
 
-            writer = imageio.get_writer(
-                partial, format="FFMPEG", mode="I", fps=fps, codec="libx264", pixelformat="yuv420p",
-                quality=None, output_params=["-colorspace", "smpte170m", "-color_range", "tv", "-crf", "18", "-preset",
-                                             "medium", "-movflags", "+faststart"],
-                macro_block_size=1, ffmpeg_log_level="error",
-            )
-            try:
-                for frame in _pad_even(array):
-                    writer.append_data(frame)
-            finally:  # on an exception too: imageio's context closes only on success (else its __del__, later,
-                writer.close()  # had finished the file after it was removed)
-        else:
-            import imageio.v3 as iio
+    def __init__(self, path: str | os.PathLike, n_frames: int, fps: float = 30):
+        self.path = check_video_output(path, fps)
+        if n_frames < 1:
+            raise ValueError(f"write_video expects frames shaped (N, H, W, 3) with N >= 1, got {n_frames} frames")
+        self.n_frames, self.fps, self.appended = n_frames, fps, 0
+        self._shape: tuple[int, ...] | None = None
+        self._mp4 = None
+        shown, self._gif_delays = gif_timeline(n_frames, fps)
+        self._gif_shown = set(shown)
+        self._gif_frames: deque = deque()  # the shown frames so far, as palette images
 
-            shown, delays = gif_timeline(len(array), fps)
-            duration = delays if len(shown) > 1 else delays[0]  # Pillow takes a list only for several frames
-            iio.imwrite(partial, array[shown], plugin="pillow", extension=".gif", duration=duration, loop=0)
-        if not partial.is_file() or partial.stat().st_size == 0:
-            raise OSError(f"the video encoder wrote nothing for {path}")
-    return path
+    def __enter__(self) -> "VideoWriter":
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        with ExitStack() as files:
+            self._partial = files.enter_context(replacing(self.path))
+            if self.path.suffix.lower() == ".mp4":
+                import imageio.v2 as imageio
+
+                self._mp4 = imageio.get_writer(
+                    self._partial, format="FFMPEG", mode="I", fps=self.fps, codec="libx264", pixelformat="yuv420p",
+                    quality=None, output_params=["-colorspace", "smpte170m", "-color_range", "tv", "-crf", "18",
+                                                 "-preset", "medium", "-movflags", "+faststart"],
+                    macro_block_size=1, ffmpeg_log_level="error",
+                )
+                # closed on an exception too: imageio's context closes only on success (else its __del__, later,
+                files.callback(self._mp4.close)  # had finished the file after it was removed)
+            self._files = files.pop_all()
+        return self
+
+    def append(self, frame) -> None:
+        """Add the next frame (H, W, 3), floats in [0, 1] or uint8, of the first frame's size."""
+        pixels = to_uint8(frame)
+        if pixels.ndim != 3 or pixels.shape[-1] != 3 or pixels.shape != (self._shape or pixels.shape):
+            raise ValueError(f"write_video expects frames shaped (N, H, W, 3) of one size: frame {self.appended} is "
+                             f"{tuple(pixels.shape)}" + (f", frame 0 {self._shape}" if self._shape else ""))
+        if self.appended == self.n_frames:
+            raise ValueError(f"{self.path.name} was opened for {self.n_frames} frames; one more was given")
+        self._shape = pixels.shape
+        if self._mp4 is not None:
+            self._mp4.append_data(_pad_even(pixels))
+        elif self.appended in self._gif_shown:  # quantised now, as Pillow would at the end: the same GIF
+            from PIL import Image
+
+            self._gif_frames.append(Image.fromarray(pixels).convert("P", palette=Image.Palette.ADAPTIVE))
+        self.appended += 1
+
+    def __exit__(self, kind, error, traceback) -> None:
+        if kind is not None:  # the encoder closed, the partial file removed; the error goes on
+            self._files.__exit__(kind, error, traceback)
+            return
+        with self._files:  # then renamed into place, or removed on an error here
+            if self.appended != self.n_frames:
+                raise ValueError(f"{self.path.name} was opened for {self.n_frames} frames; {self.appended} were given")
+            if self._mp4 is not None:
+                self._mp4.close()
+            else:
+                self._save_gif()
+            if not self._partial.is_file() or self._partial.stat().st_size == 0:
+                raise OSError(f"the video encoder wrote nothing for {self.path}")
+
+    def _save_gif(self) -> None:
+        frames = self._gif_frames
+        first = frames.popleft()
+        duration = self._gif_delays if len(self._gif_delays) > 1 else self._gif_delays[0]  # a list for several only
+        # The rest handed over one by one (Pillow keeps its own copy of each): not held twice
+        rest = (frames.popleft() for _ in range(len(frames)))
+        first.save(self._partial, format="GIF", save_all=bool(frames), append_images=rest, duration=duration, loop=0)
+
+
+def write_video(path: str | os.PathLike, frames, fps: float = 30, n_frames: int | None = None) -> Path:
+    """Write ``frames`` to ``path`` through a :class:`VideoWriter` (its doc: formats, a file whole or absent).
+
+    ``frames``: an (N, H, W, 3) array or a sequence of (H, W, 3) frames, floats in [0, 1] or uint8; or any iterable
+    of frames (a generator of renders, :func:`iter_views`) with ``n_frames`` its length, each frame encoded as it
+    comes.
+    """
+    if n_frames is None:
+        if not hasattr(frames, "__len__"):
+            raise TypeError(f"write_video needs n_frames for frames of no length (a {type(frames).__name__})")
+        n_frames = len(frames)
+    with VideoWriter(path, n_frames, fps) as video:
+        for frame in frames:
+            video.append(frame)
+    return video.path
 
 
 # ---------------------------------------------------------------------- meshes

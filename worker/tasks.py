@@ -699,7 +699,7 @@ def _refine(job: Job, settings, device: str, storage) -> None:
 
 # --------------------------------------------------------------------------- export
 def _export(job: Job, settings, device: str, storage) -> str | None:
-    from voxe_core.export import extract_mesh, render_views, save_mesh, save_png, turntable_cameras, write_video
+    from voxe_core.export import VideoWriter, extract_mesh, iter_views, save_mesh, save_png, turntable_cameras
 
     options = export_config(job.params)
     name = "refined_grid.safetensors" if job.mode == "local" else "edited_grid.safetensors"
@@ -716,21 +716,24 @@ def _export(job: Job, settings, device: str, storage) -> str | None:
             should_cancel=callbacks.should_cancel,
         )
 
+    # Each view and turntable frame is written as it is rendered, never all held at once (1,000 frames of 2,048²
+    # had been 50 GB of floats before the first was written)
     if views:
-        images = render_views(grid, turntable_cameras(views, options.elevation, options.view_size, centre=centre),
-                              callbacks=offset(0), device=device)
-        for i, image in enumerate(images):
+        ring = turntable_cameras(views, options.elevation, options.view_size, centre=centre)
+        for i, image in enumerate(iter_views(grid, ring, callbacks=offset(0), device=device)):
             save_png(scratch / f"render_{i:03d}.png", image)
             runtime.publish_artifact(job.id, f"render_{i:03d}.png", scratch / f"render_{i:03d}.png", "render", storage)
-    turntable = render_views(
-        grid, turntable_cameras(frames, options.elevation, options.turntable_size, centre=centre),
-        callbacks=offset(views), device=device,
-    )
-    write_video(scratch / "turntable.mp4", turntable, fps=options.fps)
-    runtime.publish_artifact(job.id, "turntable.mp4", scratch / "turntable.mp4", "video", storage)
-    if options.gif:
-        write_video(scratch / "turntable.gif", turntable, fps=options.fps)
-        runtime.publish_artifact(job.id, "turntable.gif", scratch / "turntable.gif", "video", storage)
+    videos = [scratch / "turntable.mp4", *([scratch / "turntable.gif"] if options.gif else [])]
+    first_frame = None
+    with contextlib.ExitStack() as opened:  # the MP4 and the GIF fed by one render of each frame
+        writers = [opened.enter_context(VideoWriter(path, frames, options.fps)) for path in videos]
+        cameras = turntable_cameras(frames, options.elevation, options.turntable_size, centre=centre)
+        for frame in iter_views(grid, cameras, callbacks=offset(views), device=device):
+            first_frame = frame if first_frame is None else first_frame
+            for writer in writers:
+                writer.append(frame)
+    for path in videos:
+        runtime.publish_artifact(job.id, path.name, path, "video", storage)
     if options.mesh:
         callbacks.callbacks.check_cancel("export")
         try:
@@ -744,7 +747,7 @@ def _export(job: Job, settings, device: str, storage) -> str | None:
                                                for path in (*written, scratch / "mesh.mtl")], storage)
         callbacks.on_progress(Progress("export", total, total))
     _preview(job.id, grid, settings, storage, device,
-             image=turntable[0] if options.turntable_size <= 512 else None, centre=centre)
+             image=first_frame if options.turntable_size <= 512 else None, centre=centre)
     return callbacks.note
 
 

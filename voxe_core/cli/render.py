@@ -146,21 +146,21 @@ def _report_metrics(frames, scene, names, out_dir: Path) -> None:
 def cmd_turntable(args) -> int:
     from voxe_core.backbones import load_grid
     from voxe_core.export import (
-        GIF_MIN_DELAY_CS, check_video_output, gif_timeline, render_views, turntable_cameras, write_video,
+        GIF_MIN_DELAY_CS, check_video_output, gif_timeline, iter_views, turntable_cameras, write_video,
     )
 
     check_video_output(args.out, args.fps)  # fail before rendering, not after
     device = check_device(args)
     grid = load_grid(args.grid)
     cameras = turntable_cameras(args.frames, args.elevation, args.size, centre=orbit_centre(args, grid))
-    frames = run_stage(
-        lambda cb: render_views(grid, cameras, callbacks=cb, device=device), "turntable", "frame", len(cameras),
-        args.quiet,
+    written = run_stage(  # each frame encoded as it is rendered (a long turntable had been held whole first)
+        lambda cb: write_video(args.out, iter_views(grid, cameras, callbacks=cb, device=device), args.fps,
+                               n_frames=len(cameras)),
+        "turntable", "frame", len(cameras), args.quiet,
     )
-    if frames is None:
+    if written is None:
         print("voxe: turntable cancelled, nothing written", file=sys.stderr)
         return EXIT_INTERRUPTED
-    write_video(args.out, frames, fps=args.fps)
     shown = len(gif_timeline(args.frames, args.fps)[0]) if args.out.suffix.lower() == ".gif" else args.frames
     kept = "" if shown == args.frames else (f" ({shown} of them shown: a GIF plays at most "
                                             f"{100 // GIF_MIN_DELAY_CS} fps)")  # (it had said all were in it)
