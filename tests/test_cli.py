@@ -1193,3 +1193,28 @@ def test_evaluate_into_an_earlier_output_leaves_no_stale_ring_renders(sphere_fil
     assert sorted(p.name for p in (ring / "edit00").iterdir()) == ["000.png", "001.png"]
     assert (ring / "mine" / "000.png").read_bytes() == b"mine"  # not a name this command writes
     assert json.loads((out / "evaluation.json").read_text())["ring"]["views"] == 2
+
+
+
+def test_an_evaluation_that_fails_leaves_the_earlier_ring_renders_and_nothing_of_its_own(sphere_file, tmp_path,
+                                                                                      monkeypatch):
+    """Each ring is saved as it is scored (not all held to the end), into a staging folder beside --out's: a run that
+    fails after G_i's ring was saved leaves the earlier run's renders as they were, and no staging folder."""
+    import voxe_core.evaluate
+    from voxe_core.tiny_eval import build_tiny_clip
+
+    clip = build_tiny_clip(tmp_path / "clip")  # SMOKE-TEST MODEL: plumbing only
+    out = tmp_path / "eval"
+    command = ["evaluate", str(sphere_file), "--object", "ball", "--out", str(out), "--clip-model", str(clip),
+               "--size", "16", "-q", "--edit", str(sphere_file), "a claymation ball"]
+    assert main(command + ["--views", "2"]) == 0
+    before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+
+    def failing(*args, **kwargs):
+        raise RuntimeError("the disk is gone")
+
+    monkeypatch.setattr(voxe_core.evaluate, "preservation", failing)
+    with pytest.raises(RuntimeError, match="the disk is gone"):
+        main(command + ["--views", "3"])
+    assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    assert sorted(p.name for p in out.iterdir()) == ["evaluation.json", "evaluation.md", "ring"]

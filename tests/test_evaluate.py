@@ -324,15 +324,18 @@ def test_evaluate_scores_edits_and_an_unchanged_grid_scores_as_identical(sphere_
     refined = merge(sphere_grid, edited, mask)
     inputs = render_ring(sphere_grid, 5, 45.0, 24)
     edits = [EditSample("same", "a claymation ball", sphere_grid), EditSample("hat", "a ball wearing a party hat", refined, mask)]
-    reports = []
+    reports, rings = [], {}
     result = evaluate(sphere_grid, edits, "ball", clip, fid, inputs, EvaluateConfig(views=4, elevation=20.0, size=24),
-                      callbacks=Callbacks(on_progress=reports.append))
+                      callbacks=Callbacks(on_progress=reports.append),
+                      on_ring=lambda name, frames: rings.setdefault(name, frames))
     same, hat = result.rows
     assert same["mode"] == "global" and hat["mode"] == "local"
     assert same["fid_rec"] == pytest.approx(0.0, abs=1e-6) and same["clip_dir"] == 0.0
     assert same["psnr"] == 100.0 and same["ssim"] == pytest.approx(1.0)
     assert hat["fid_rec"] > 0 and hat["fid_input"] > 0 and hat["psnr"] > 60.0
-    expected_sim = clip_similarity(clip.image_embeddings(result.initial_frames),
+    assert list(rings) == [None, "same", "hat"] and torch.equal(rings[None], rings["same"])
+    assert torch.equal(rings[None], render_ring(sphere_grid, 4, 20.0, 24))
+    expected_sim = clip_similarity(clip.image_embeddings(rings[None]),
                                    clip.text_embeddings(["a render of a claymation ball"])[0])
     assert same["clip_sim"] == pytest.approx(expected_sim, abs=1e-5)
     # Steps: 3 ring renders and 3 CLIP passes of 4 views, 4 footprint views, FID on the 12 renders and 5 inputs.
@@ -342,6 +345,32 @@ def test_evaluate_scores_edits_and_an_unchanged_grid_scores_as_identical(sphere_
     table = format_table(result.rows, extra_columns=("name",))
     assert "| hat | a ball wearing a party hat | local |" in table and "**mean (2)**" in table
     assert json.loads(json.dumps(result.summary()))["means"]["local"]["count"] == 1
+
+
+def test_an_evaluation_holds_one_edits_ring_renders_at_a_time(sphere_grid, tiny_clip_path):
+    """Regression: every edit's ring renders were kept in the Evaluation to its end (60 edits × 360 views of 1,024²
+    are 270 GB of floats). Handed to ``on_ring`` as each edit is scored, they are let go after it: when an edit's
+    ring arrives only G_i's and its own are alive, and while the next edit's renders are made only G_i's."""
+    import weakref
+
+    clip = ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")
+    edits = [EditSample(f"edit{k}", "a claymation ball", sphere_grid) for k in range(4)]
+    alive, seen, rendering = [0], [], []
+
+    def on_ring(name, frames):
+        alive[0] += 1
+        weakref.finalize(frames, lambda: alive.__setitem__(0, alive[0] - 1))
+        seen.append((name, alive[0]))
+
+    def on_progress(report):
+        if report.info["stage"] == "ring renders":
+            rendering.append(alive[0])
+
+    result = evaluate(sphere_grid, edits, "ball", clip, None, None, EvaluateConfig(views=2, size=16),
+                      Callbacks(on_progress=on_progress), on_ring=on_ring)
+    assert seen == [(None, 1), ("edit0", 2), ("edit1", 2), ("edit2", 2), ("edit3", 2)]
+    assert rendering == [0, 0] + [1, 1] * 4  # G_i's ring, then each edit's beside G_i's alone
+    assert vars(result).keys() == {"rows"} and len(result.rows) == 4
 
 
 def _after_the_last_ring_render(reports) -> bool:
@@ -384,7 +413,7 @@ def test_a_diverged_grid_is_refused_naming_it_rather_than_scored(sphere_grid, ti
 
 
 def test_edits_of_one_name_are_refused_before_any_render(sphere_grid, tiny_clip_path):
-    """Regression: both were scored, but ``edit_frames`` is keyed by name, so the first edit's renders were
+    """Regression: both were scored, but their renders were kept by name, so the first edit's renders were
     silently replaced by the second's (the service refuses an evaluation listing a job twice, too)."""
     clip = ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")
     edits = [EditSample("seed", "a claymation ball", sphere_grid), EditSample("seed", "a yarn ball", sphere_grid),
@@ -747,7 +776,7 @@ def test_a_sweep_summarises_while_an_evaluation_runs_and_after_one_failed(servic
     _as_if_edited(entry["edit_job_id"], sphere_grid, sphere_grid, None, root)
     seen = {}
 
-    def evaluate(initial, edits, obj, clip, fid, images, config, callbacks, device=None):
+    def evaluate(initial, edits, obj, clip, fid, images, config, callbacks, device=None, on_ring=None):
         callbacks.progress(Progress("evaluate", 1, 10, info={"peak_memory_gb": 0.5, "peak_memory_kind": "process_rss"}))
         seen["running"] = client.get(f"/v1/sweeps/{sweep['id']}")
         raise ValueError("a ring render has a NaN pixel")

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Protocol, Sequence
 
@@ -382,8 +382,6 @@ class EditSample:
 @dataclass
 class Evaluation:
     rows: list[dict]  # one per edit: name, prompt, mode and the metrics
-    initial_frames: torch.Tensor
-    edit_frames: dict[str, torch.Tensor] = field(default_factory=dict)
 
     def summary(self) -> dict:
         return {"rows": self.rows, "means": mean_by_mode(self.rows)}
@@ -417,8 +415,14 @@ def evaluate(
     config: EvaluateConfig = EvaluateConfig(),
     callbacks: Callbacks = Callbacks(),
     device: torch.device | str | None = None,
+    on_ring: Callable[[str | None, torch.Tensor], None] | None = None,
 ) -> Evaluation:
     """Score ``edits`` of ``initial`` on the ring (see the module doc); FID only when ``fid`` is given.
+
+    ``on_ring(name, renders)`` gets each grid's ring renders (V, H, W, 3), to save them: ``initial``'s first (name
+    None), then each edit's once it is scored. Nothing keeps them after that: one edit's renders are held at a
+    time besides ``initial``'s (every edit's had been kept to the end: 270 GB of floats for 60 edits × 360 views
+    of 1,024²).
 
     The ring renders (and the masks' footprints) run on ``device`` (None: where
     ``initial`` is); each grid moves there once. The scorers run where they were
@@ -432,8 +436,8 @@ def evaluate(
     if not edits:
         raise ValueError("nothing to evaluate: no edits given")
     names = [sample.name for sample in edits]
-    if repeated := sorted({name for name in names if names.count(name) > 1}):  # edit_frames is keyed by name
-        raise ValueError(f"edit names must differ (their renders are kept by name): {', '.join(map(repr, repeated))} "
+    if repeated := sorted({name for name in names if names.count(name) > 1}):  # on_ring tells them by name
+        raise ValueError(f"edit names must differ (their renders are saved by name): {', '.join(map(repr, repeated))} "
                          "given more than once")
     if fid is not None and input_images is not None and (  # before any render: a torch.cat or TorchScript error
             input_images.dim() != 4 or input_images.shape[-1] != 3 or len(input_images) < 2):  # had come after
@@ -481,12 +485,14 @@ def evaluate(
 
     texts = clip.text_embeddings([source] + [edit_prompt(e.prompt) for e in edits])  # a text too long: before renders
     recon = ring(initial, "the initial grid")
+    if on_ring is not None:
+        on_ring(None, recon)
     recon_clip = clip.image_embeddings(recon, per_batch("CLIP"))
     recon_features = fid.features(recon, per_batch("FID")) if fid is not None else None
     input_features = None
     if fid is not None and input_images is not None:
         input_features = fid.features(input_images, per_batch("FID"))
-    rows, frames = [], {}
+    rows = []
     for k, sample in enumerate(edits):
         images = ring(sample.grid, f"edit {sample.name!r}")
         embeddings = clip.image_embeddings(images, per_batch("CLIP"))
@@ -499,8 +505,10 @@ def evaluate(
             row["fid_input"] = fid_from_features(features, input_features) if input_features is not None else None
         row.update(preservation(images, recon, sample, initial, config, centre, per_view("mask footprints")))
         rows.append(row)
-        frames[sample.name] = images
-    return Evaluation(rows, recon, frames)
+        if on_ring is not None:
+            on_ring(sample.name, images)
+        del images  # before the next edit's are rendered
+    return Evaluation(rows)
 
 
 def _finite_frames(frames: torch.Tensor, label: str) -> torch.Tensor:

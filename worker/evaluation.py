@@ -109,18 +109,18 @@ def run_evaluation(job: Job, settings: Settings, device: str, storage) -> None:
     input_images = load_images(sources[0], rec.params, settings, storage).images if params["fid_input"] else None
     config = EvaluateConfig(views=params["views"], elevation=params["elevation"], size=params["size"])
     callbacks = StageCallbacks(job, "evaluate", settings)
-    result = evaluate(initial, edits, params["object"], clip, fid, input_images, config, callbacks.callbacks,
-                      device=device)
-
     scratch = runtime.scratch_dir(job.id, settings)
     published = []  # (name, path, kind): one set, below
-    if params.get("save_renders", True):
-        sets = {"initial": result.initial_frames, **result.edit_frames}
-        for label, frames in sets.items():
-            for i, frame in enumerate(frames):
-                name = f"ring_{label}_{i:03d}.png"
-                save_png(scratch / name, frame)
-                published.append((name, scratch / name, "render"))
+
+    def save_ring(source_id: str | None, frames) -> None:
+        """Each grid's ring written as it is scored (every ring had been held to the end of the evaluation)."""
+        for i, frame in enumerate(frames):
+            name = f"ring_{source_id or 'initial'}_{i:03d}.png"
+            save_png(scratch / name, frame)
+            published.append((name, scratch / name, "render"))
+
+    result = evaluate(initial, edits, params["object"], clip, fid, input_images, config, callbacks.callbacks,
+                      device=device, on_ring=save_ring if params.get("save_renders", True) else None)
     for row, source in zip(result.rows, sources):  # rows are named by their source job's id
         row.update(job_id=row.pop("name"), scene_id=source.scene_id, object=params["object"])
     table = format_table(result.rows, extra_columns=("job_id",))

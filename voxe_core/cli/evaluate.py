@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import sys
+import tempfile
 from pathlib import Path
 
 from voxe_core.cli.common import (
@@ -77,18 +79,22 @@ def cmd_evaluate(args) -> int:
     except ModelNotAvailableError as exc:
         print(f"voxe evaluate: model not available: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    result = run_stage(
-        lambda cb: evaluate(initial, edits, args.object, clip, fid, input_images, config, cb, device=device),
-        "evaluate", "view", evaluation_steps(edits, config, fid, input_images), args.quiet,
-    )
-    if result is None:
-        print("voxe: evaluation cancelled, nothing written", file=sys.stderr)
-        return EXIT_INTERRUPTED
     out = args.out
-    clear_ring_renders(out / "ring")
-    save_png_set(out / "ring" / "initial", result.initial_frames)
-    for name, frames in result.edit_frames.items():
-        save_png_set(out / "ring" / name, frames)
+    # Each ring saved as it is scored, beside the earlier run's until the evaluation ends (all had been held to the
+    # end); a cancelled or failed run leaves the earlier one as it was
+    with tempfile.TemporaryDirectory(prefix=".ring-", dir=out) as staging:
+        result = run_stage(
+            lambda cb: evaluate(initial, edits, args.object, clip, fid, input_images, config, cb, device=device,
+                                on_ring=lambda name, frames: save_png_set(Path(staging) / (name or "initial"), frames)),
+            "evaluate", "view", evaluation_steps(edits, config, fid, input_images), args.quiet,
+        )
+        if result is None:
+            print("voxe: evaluation cancelled, nothing written", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        clear_ring_renders(out / "ring")
+        for frame in sorted(Path(staging).glob("*/*.png")):
+            (out / "ring" / frame.parent.name).mkdir(parents=True, exist_ok=True)
+            os.replace(frame, out / "ring" / frame.parent.name / frame.name)
     summary = {**result.summary(), "object": args.object, "clip_model": model,
                "inception": str(args.inception) if args.inception else None,
                "ring": {"views": config.views, "elevation": config.elevation, "size": config.size},
