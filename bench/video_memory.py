@@ -166,7 +166,7 @@ def plot(record: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows = record["variants"]
+    rows, summary = record["runs"], record["summary"]
     names, floors = [r["variant"] for r in rows], [r["one_view_mb"] for r in rows]
     fig, ax = plt.subplots(figsize=(6.4, 3.6))
     ax.bar(names, floors, color="#ccc", label="one view's render")
@@ -174,8 +174,8 @@ def plot(record: dict, path: Path) -> None:
                   color=["#c44", "#888", "#4a4"], label="the clip's frames")
     ax.bar_label(bars, labels=[f"{r['peak_mb']:.0f} MB" for r in rows])
     ax.set_ylabel("peak RSS rise (MB)")
-    ax.set_title(f"turntable MP4 + GIF, {record['frames']} frames of {record['size']}² "
-                 f"(float stack {record['float_stack_mb']:.0f} MB)")
+    ax.set_title(f"turntable MP4 + GIF, {summary['frames']} frames of {summary['size']}² "
+                 f"(float stack {summary['float_stack_mb']:.0f} MB)")
     ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -204,16 +204,18 @@ def main() -> None:
                             text=True).stdout.strip()
     stack_mb = args.frames * args.size * args.size * 3 * 4 / 2**20
     peaks = {r["variant"]: r["peak_mb"] for r in rows}
-    record = {"frames": args.frames, "size": args.size, "fps": FPS, "before": args.before, "code": commit,
-              "float_stack_mb": stack_mb, "variants": rows, "equal_to_before": equality,
-              "peak_ratio_before_to_stream": peaks["before"] / peaks["stream"],
-              "peak_ratio_array_to_stream": peaks["array"] / peaks["stream"]}
+    summary = {"frames": args.frames, "size": args.size, "fps": FPS, "before": args.before, "code": commit,
+               "float_stack_mb": stack_mb, "peak_ratio_before_to_stream": peaks["before"] / peaks["stream"],
+               "peak_ratio_array_to_stream": peaks["array"] / peaks["stream"],
+               "all_files_equal_to_before": all(all(v for k, v in same.items() if k.endswith("_equal"))
+                                                for same in equality.values())}
+    record = {"runs": rows, "summary": summary, "equal_to_before": equality}
     print(f"turntable MP4 + GIF, {args.frames} frames of {args.size}² (float stack {stack_mb:.0f} MB):")
     print("| variant | peak RSS rise MB | of which one view's render MB | seconds |\n| --- | --- | --- | --- |")
     for r in rows:
         print(f"| {r['variant']} | {r['peak_mb']:.1f} | {r['one_view_mb']:.1f} | {r['seconds']:.1f} |")
-    print(f"peak before / stream: {record['peak_ratio_before_to_stream']:.1f}x; "
-          f"array / stream: {record['peak_ratio_array_to_stream']:.1f}x")
+    print(f"peak before / stream: {summary['peak_ratio_before_to_stream']:.1f}x; "
+          f"array / stream: {summary['peak_ratio_array_to_stream']:.1f}x")
     for name, same in equality.items():
         print(f"{name} vs before.{name.split('.')[1]}: {same}")
     RESULTS.mkdir(exist_ok=True)
