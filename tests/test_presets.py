@@ -407,6 +407,26 @@ def test_a_stored_checkpoint_is_checked_by_its_header_alone(tmp_path, monkeypatc
         assert not storage.exists(key)
 
 
+@pytest.mark.parametrize("recipe, kind", [(["lr", 0.03], "list"), (None, "NoneType"), ("reg3d", "str")])
+def test_a_stored_checkpoint_whose_recipe_is_no_object_is_dropped_as_unreadable(tmp_path, recipe, kind):
+    """A checkpoint whose header's recipe is no JSON object (hand-edited, damaged) had raised an AttributeError from
+    the recipe comparison, failing the stage on every redelivery: it is unreadable, named so, and deleted."""
+    from voxe_core.edit import EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION, EditConfig, save_edit_checkpoint
+    from voxe_core.grid import VoxelGrid
+    from voxe_service.storage import LocalStorage
+    from worker.tasks import _stored_checkpoint
+
+    grid, made = VoxelGrid(4), tmp_path / "made.safetensors"
+    save_edit_checkpoint(made, grid, torch.optim.Adam([grid.flat_features]), {}, 2, {"recipe": recipe})
+    storage, key = LocalStorage(tmp_path / "store"), "jobs/j/checkpoints/edit.safetensors"
+    got = tmp_path / "got.safetensors"
+    storage.put_bytes(key, made.read_bytes())
+    resume, meta, said = _stored_checkpoint(storage, key, got, EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION,
+                                            EditConfig())
+    assert (resume, meta) == (None, None) and not storage.exists(key)
+    assert said == f"was unreadable ({got}: damaged checkpoint: its recipe is a {kind}, not an object)"
+
+
 def _fit_checkpoint_of_another_recipe(path) -> bytes:
     """A checkpoint TINY_FIT's fit could go on from, but made with lr 0.5 (a worker of another version's preset)."""
     from voxe_core.grid import VoxelGrid

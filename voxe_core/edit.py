@@ -421,7 +421,7 @@ def edit(
         if meta.get("model") != run_meta["model"]:
             raise FormatError(f"{resume_from}: checkpoint was made with the model {meta.get('model')!r}, not "
                               f"{run_meta['model']!r}; resume with that model, or start afresh")
-        if changed := recipe_changes(meta, config):
+        if changed := recipe_changes(resume_from, meta, config):
             raise FormatError(f"{resume_from}: checkpoint was made with another recipe: {', '.join(changed)}; "
                               "resume with its settings, or start afresh")
         if "views" in tensors and not same_views(tensors["views"], views_record):  # (a checkpoint older than it resumes)

@@ -484,7 +484,7 @@ def _resume(path, config: ReconstructConfig, device: torch.device, views: torch.
             f"{list(config.resolutions)}, iterations {list(config.iterations)}) does not reach: resume with the "
             "recipe that wrote it")
     # Another seed, lr, averaging, TV... had gone on silently; a checkpoint older than recipes resumes, as edit's.
-    if changed := recipe_changes(meta, config):
+    if changed := recipe_changes(path, meta, config):
         raise ValueError(f"{path}: checkpoint was made with another recipe: {', '.join(changed)}; resume with its "
                          "settings, or start afresh")
     state = {name: tensors[name].to(device) for name in shapes}

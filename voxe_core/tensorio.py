@@ -35,11 +35,15 @@ def config_recipe(config, left_out: Iterable[str]) -> dict:
     return json.loads(json.dumps(fields))
 
 
-def recipe_changes(meta: dict, config) -> list[str]:
+def recipe_changes(path: str | os.PathLike, meta: dict, config) -> list[str]:
     """What of ``config.recipe()`` (the fields a resumed run must share with its checkpoint's) differs from the
-    recipe a checkpoint's ``meta`` was made with ("name old (now new)"); none for a checkpoint older than recipes."""
+    recipe the checkpoint at ``path``, of ``meta``, was made with ("name old (now new)"); none for a checkpoint older
+    than recipes. FormatError for a recipe that is no JSON object (an AttributeError had failed the worker's stage,
+    which starts over from a damaged checkpoint)."""
     now = config.recipe()
     made_with = meta.get("recipe", now)
+    if not isinstance(made_with, dict):
+        raise FormatError(f"{path}: damaged checkpoint: its recipe is a {type(made_with).__name__}, not an object")
     return [f"{name} {made_with.get(name)!r} (now {now[name]!r})" for name in now if made_with.get(name) != now[name]]
 
 

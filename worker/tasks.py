@@ -356,7 +356,7 @@ def _stored_checkpoint(storage, key: str, path: Path, kind: str, max_version: in
     resume = storage.get_file(key, path)
     try:
         meta = load_header(resume, kind, max_version)
-        changed = recipe_changes(meta, config)
+        changed = recipe_changes(resume, meta, config)
     except FormatError as exc:
         why = f"was unreadable ({exc})"
     else:
