@@ -22,6 +22,7 @@ import voxe_core.edit as edit_module
 from voxe_core.backbones import load_grid
 from voxe_core.cameras import Cameras, spherical_poses
 from voxe_core.cli import main
+from voxe_core.constants import FLOAT32_MAX
 from voxe_core.edit import EditConfig, EditDiverged, build_prompt, edit, learning_rate, load_edit_checkpoint
 from voxe_core.export import render_views
 from voxe_core.grid import VoxelGrid
@@ -122,6 +123,30 @@ def test_a_learning_rate_or_radius_outside_zero_to_infinity_is_refused_by_name(n
     failed in the cameras, naming no setting). 1e39, finite in float64, is inf in the float32 they are used in."""
     with pytest.raises(ValueError, match=rf"^{name} must be positive and finite in float32, got {re.escape(str(value))}$"):
         EditConfig(**{name: value})
+
+
+@pytest.mark.parametrize("name, rule", [("guidance_scale", "positive"), ("regulariser_weight", ">= 0")])
+@pytest.mark.parametrize("value", [1e39, math.inf, math.nan, -1.0])
+def test_a_loss_scale_beyond_float32_is_refused_by_name(name, rule, value):
+    """A scale of 1e39, finite in float64, was accepted and is inf in the float32 it scales the losses in (a
+    regulariser weight of 1e39 had diverged the first step, blamed on half precision or the lr); bounded as lr is."""
+    with pytest.raises(ValueError, match=rf"^{name} must be {rule} and finite in float32, got {re.escape(str(value))}$"):
+        EditConfig(**{name: value})
+    assert getattr(EditConfig(**{name: FLOAT32_MAX}), name) == FLOAT32_MAX
+
+
+@pytest.mark.parametrize("flag, message", [("--guidance-scale", "guidance_scale must be positive"),
+                                           ("--reg-weight", "regulariser_weight must be >= 0")])
+def test_voxe_edit_refuses_a_loss_scale_beyond_float32_before_the_model_loads(flag, message, small_sphere, tmp_path,
+                                                                              monkeypatch, capsys):
+    import voxe_core.cli.edit as edit_command
+
+    monkeypatch.setattr(edit_command, "load_guidance", lambda *args, **kwargs: pytest.fail("loaded the model"))
+    small_sphere.save(tmp_path / "g.safetensors")
+    assert main(["edit", str(tmp_path / "g.safetensors"), "--prompt", "a dog", "--out", str(tmp_path / "out"),
+                 "--device", "cpu", flag, "1e39"]) == 2
+    assert capsys.readouterr().err == f"voxe edit: error: {message} and finite in float32, got 1e+39\n"
+    assert not (tmp_path / "out").exists()
 
 
 @pytest.mark.parametrize("name", ["front_azimuth_deg", "preview_elevation_deg"])

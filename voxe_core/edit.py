@@ -183,10 +183,12 @@ class EditConfig:
             raise ValueError(f"render_size must be at least {MIN_RENDER_SIZE} px, got {self.render_size}")
         if self.regulariser not in REGULARISERS:
             raise ValueError(f"unknown regulariser {self.regulariser!r}; expected one of {', '.join(REGULARISERS)}")
-        if not 0 <= self.regulariser_weight < math.inf:  # as "not in range": NaN fails every comparison
-            raise ValueError(f"regulariser_weight must be >= 0 and finite, got {self.regulariser_weight}")
-        if not 0 < self.guidance_scale < math.inf:  # a NaN scale had zeroed the SDS gradient (nan_to_num), silently
-            raise ValueError(f"guidance_scale must be positive and finite, got {self.guidance_scale}")
+        # As "not in range" (NaN fails every comparison), in the float32 they scale the losses in: 1e39 had been inf
+        # there, the edit's loss NaN. A NaN scale had zeroed the SDS gradient (nan_to_num), silently.
+        if not 0 <= self.regulariser_weight <= FLOAT32_MAX:
+            raise ValueError(f"regulariser_weight must be >= 0 and finite in float32, got {self.regulariser_weight}")
+        if not 0 < self.guidance_scale <= FLOAT32_MAX:
+            raise ValueError(f"guidance_scale must be positive and finite in float32, got {self.guidance_scale}")
         if self.autocast_dtype not in (None, *AUTOCAST_DTYPES):
             raise ValueError(f"autocast_dtype must be None, 'bf16' or 'fp16', got {self.autocast_dtype!r}")
         if self.batch_size < 1 or self.image_regulariser_rays < 1:
