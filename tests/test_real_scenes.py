@@ -19,7 +19,7 @@ from voxe_core.metrics import psnr
 from voxe_core.presets import edit_config
 from voxe_core.reconstruct import ReconstructConfig, reconstruct
 from voxe_core.render import RenderConfig, render_image, render_rays
-from voxe_core.scene_grid import SceneGrid, apply_frame, contract, scene_frame
+from voxe_core.scene_grid import MAX_NEAR_FAR_SAMPLES, SceneGrid, apply_frame, contract, scene_frame
 
 
 pytestmark = pytest.mark.usefixtures("single_thread")
@@ -77,6 +77,17 @@ def test_uniform_density_renders_the_analytic_colour():
     opacity = 1.0 - torch.exp(-sigma * 10.0 * exit_t)
     assert torch.allclose(out.opacity, opacity, atol=1e-5)
     assert torch.allclose(out.rgb, opacity[:, None] * torch.sigmoid(torch.tensor([2.0, 0.0, -2.0])), atol=1e-5)
+
+
+@pytest.mark.parametrize("name", ["near_samples", "far_samples"])
+def test_more_near_or_far_bins_than_a_pass_holds_are_refused_by_name(name):
+    """1e12 bins had been taken, and failed the render allocating 4 TB; the bound itself renders."""
+    with pytest.raises(ValueError, match=rf"^{name} must be at most 1024 \(MAX_NEAR_FAR_SAMPLES\), got 1000000000000$"):
+        SceneGrid(9, **{name: 10**12})
+    most = SceneGrid(9, init_density=-1.0, **{name: MAX_NEAR_FAR_SAMPLES})
+    out = render_rays(most, torch.tensor([[0.0, 0.0, 4.0]]), torch.tensor([[0.0, 0.0, -1.0]]),
+                      RenderConfig(background=(0.2, 0.4, 0.6), skip_empty=False))
+    assert torch.allclose(out.rgb, torch.tensor([[0.2, 0.4, 0.6]])) and out.opacity.item() == 0.0
 
 
 @pytest.mark.parametrize("far_ratio", [math.inf, math.nan, 1.0, 3e38, 1.1e6])

@@ -52,6 +52,11 @@ CONTRACTED_EXTENT = 2.0  # the contraction maps all of space into [-2, 2]^3
 _RAYS_PER_PASS = 4096  # rays sampled together, bounding the (rays, bins) tensors of whole-image renders
 _UNBOUNDED = 1e6  # world half-extent standing in for "the occupied cells reach into the background"
 MAX_FAR_RATIO = 1e6  # the far bins reach this times the exit distance at most: past ~1e38 its float32 product overflowed
+MAX_NEAR_FAR_SAMPLES = 1024
+"""The most ``near_samples`` or ``far_samples`` a scene grid takes: a pass of ``_RAYS_PER_PASS`` rays then holds at
+most 2^22 of either's bins, the samples a pass holds on an accelerator (``RenderConfig.pass_samples``); 16 times the
+default far bins. At 1024 each a 64x64 render held 2.9 GB on the CPU (0.4 GB at the defaults); 1e12 near bins had
+loaded from a file and failed its render, allocating 4 TB."""
 EARLY_STOP_CAP = 1e-6
 """The scene sampler stops rays at transmittance min(``early_stop``, this). Behind the cut lies the
 room, not the white background the compositor puts there, so the density gradient of the last kept
@@ -91,12 +96,14 @@ class SceneGrid(VoxelGrid):
         frame: torch.Tensor | None = None,
     ):
         # A file's header is read through here: its extent of 1e300 (past float32) had loaded and failed the render,
-        # JSON's true had been 1; its sample count of 2.9 had been cut to 2, of 1e300 failed the render.
+        # JSON's true had been 1; its sample count of 2.9 had been cut to 2, of 1e300 (or 1e12) failed the render.
         if isinstance(foreground_extent, bool) or not 0 < foreground_extent <= FLOAT32_MAX:
             raise ValueError(f"foreground_extent must be a positive length, finite in float32, got {foreground_extent}")
         for name, count in (("near_samples", near_samples), ("far_samples", far_samples)):
             if isinstance(count, bool) or not isinstance(count, numbers.Integral):
                 raise ValueError(f"{name} must be a whole number, got {count!r}")
+            if count > MAX_NEAR_FAR_SAMPLES:
+                raise ValueError(f"{name} must be at most {MAX_NEAR_FAR_SAMPLES} (MAX_NEAR_FAR_SAMPLES), got {count}")
         # far_ratio "not in range": an infinite one made the last far bin infinite, and an empty ray's render NaN;
         # so did a finite one whose float32 product with the exit distance overflowed (3e38, or 1e38 times 4).
         if near_samples < 1 or far_samples < 1 or not 1 < far_ratio <= MAX_FAR_RATIO:
