@@ -300,7 +300,9 @@ def test_a_grid_whose_file_could_not_be_read_back_is_refused_when_built(tmp_path
 
 
 @pytest.mark.parametrize("header, message", [
-    ("[1, 2]", "damaged 'voxe' header"),  # a list: had been an AttributeError
+    # a list: had been an AttributeError, then "'list' object has no attribute 'get'"
+    ("[1, 2]", r"damaged 'voxe' header \(it is a list, not an object\)$"),
+    ("null", r"damaged 'voxe' header \(it is a NoneType, not an object\)$"),
     ('{"kind": "voxel_grid", "format_version": 2, "meta": null}', r"damaged 'voxe' header \(its meta is a NoneType\)"),
     ('{"kind": "voxel_grid", "format_version": "two"}', "damaged 'voxe' header"),
     ("{not json", "damaged 'voxe' header"),  # json's message alone had not named the file

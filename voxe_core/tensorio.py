@@ -94,13 +94,15 @@ def load_header(path: str | os.PathLike, kind: str, max_version: int) -> dict:
         raise FormatError(f"{path}: missing the '{HEADER_KEY}' header; not a Vox-E file")
     try:  # a damaged header is the file's error, named (it had been an AttributeError or json's bare message)
         header = json.loads(raw_header)
+        if not isinstance(header, dict):  # a list had been named by Python's "'list' object has no attribute 'get'"
+            raise TypeError(f"it is a {type(header).__name__}, not an object")
         version = header.get("format_version")
         meta = header.get("meta", {})
         if isinstance(version, bool) or not isinstance(version, int):  # JSON's true had read as version 1, "2" as 2
             raise TypeError(f"its format_version {version!r} is not a whole number")
         if not isinstance(meta, dict):
             raise TypeError(f"its meta is a {type(meta).__name__}")
-    except (ValueError, TypeError, AttributeError) as exc:
+    except (ValueError, TypeError) as exc:
         raise FormatError(f"{path}: damaged '{HEADER_KEY}' header ({exc})") from None
     if header.get("kind") != kind:
         raise FormatError(f"{path}: holds a '{header.get('kind')}', expected a '{kind}'")
