@@ -509,6 +509,36 @@ def test_loading_normalises_and_refuses_bad_files(tmp_path):
         load_mesh(SPOT / "spot_triangulated.obj", tmp_path / "odd.png")
 
 
+_TETRAHEDRON_PLY = ("ply\nformat ascii 1.0\nelement vertex {vertices}\nproperty float x\nproperty float y\n"
+                    "property float z\nelement face {faces}\nproperty list uchar int vertex_indices\nend_header\n"
+                    "0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 1 2\n3 0 1 3\n3 0 2 3\n3 1 2 3\n")
+
+
+@pytest.mark.parametrize("text, message", [
+    (_TETRAHEDRON_PLY.format(vertices=4, faces=6), "declares 6 face elements, the file holds 4"),  # had loaded 4
+    (_TETRAHEDRON_PLY.format(vertices=4, faces=4)[:-10], "declares 4 face elements, the file holds 3"),  # had 2
+    (_TETRAHEDRON_PLY.format(vertices=5, faces=4), "declares 4 face elements, the file holds 3"),  # a face a vertex
+])
+def test_an_ascii_ply_holding_fewer_rows_than_its_header_declares_is_refused_naming_the_counts(tmp_path, text,
+                                                                                                  message):
+    """trimesh reads the rows an ASCII PLY holds, one per line, and had loaded a truncated file, or one whose header
+    overstates a count, as part of its mesh without a word."""
+    (tmp_path / "short.ply").write_text(text)
+    with pytest.raises(MeshError) as error:
+        load_mesh(tmp_path / "short.ply")
+    assert str(error.value) == f"short.ply: its header {message}: it is truncated, or its header overstates a count"
+
+
+@pytest.mark.parametrize("text, faces", [
+    (_TETRAHEDRON_PLY.format(vertices=4, faces=4) + "\n", 4),  # a blank last line
+    (_TETRAHEDRON_PLY.format(vertices=4, faces=4).replace("\n", "\r\n"), 4),
+    (_TETRAHEDRON_PLY.format(vertices=4, faces=3), 3),  # rows past the counts: trimesh reads the declared ones
+])
+def test_an_ascii_ply_holding_the_rows_its_header_declares_loads(tmp_path, text, faces):
+    (tmp_path / "whole.ply").write_bytes(text.encode())
+    assert len(load_mesh(tmp_path / "whole.ply").faces) == faces
+
+
 @pytest.mark.parametrize("unit", [1e-170, 1e155, 1e300])
 def test_a_mesh_in_any_float64_unit_is_placed_as_in_unit_one(tmp_path, unit):
     """Placement is scale-free: the view radius's norm of coordinates near 1e-170 had underflowed to 0 (a

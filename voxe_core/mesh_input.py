@@ -51,6 +51,7 @@ from voxe_core.cameras import Cameras, random_hemisphere_poses
 from voxe_core.constants import NERF_SYNTHETIC_FOV_X, NERF_SYNTHETIC_RADIUS
 from voxe_core.data import PixelScaleError, image_pixels
 from voxe_core.grid import DEFAULT_BOX, VoxelGrid
+from voxe_core.ply_header import short_ascii_element
 
 MESH_INPUT_SUFFIXES = (".obj", ".ply")
 DEFAULT_ALBEDO = (0.7, 0.7, 0.7)  # meshes without texture or vertex colours
@@ -175,6 +176,10 @@ def load_mesh(
             loaded = trimesh.util.concatenate(meshes)
     except Exception as e:  # trimesh raises many types for damaged files
         raise MeshError(f"{path.name}: cannot read as a mesh: {e}") from e
+    if path.suffix.lower() == ".ply" and (short := short_ascii_element(path)) is not None:
+        name, declared, held = short
+        raise MeshError(f"{path.name}: its header declares {declared} {name} elements, the file holds {held}: it is "
+                        "truncated, or its header overstates a count")
     if library.problem:
         raise MeshError(library.problem)
     if unread_texture.error is not None:
