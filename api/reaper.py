@@ -31,7 +31,8 @@ A job is orphaned when
   evaluation waits while its edit's chain may still carry it: until its edit ended as long ago.
 
 A broker that refuses a message fails nothing here: the job stays (or becomes) ``queued`` with no task
-id, its checkpoints kept, and a pass after the broker is back sends it, as above.
+id (one whose message was taken as lost keeps its task id), its checkpoints kept, and a pass after the broker is
+back sends it, as above.
 
 A scene is orphaned, and fails with the reason (the jobs waiting on it with it), when it is
 ``processing`` and unchanged for as long, and either its ingest was never handed to the
@@ -50,13 +51,13 @@ import logging
 import threading
 from datetime import datetime, timedelta
 
-from sqlalchemy import and_, or_, select, update
+from sqlalchemy import and_, or_, select
 
 from voxe_service.db import session_scope, sync_clock
-from voxe_service.jobs import finish_jobs, record_event
+from voxe_service.jobs import finish_jobs
 from voxe_service.models import (CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, RUNNING, Job, Scene, WorkerHeartbeat,
                                  utcnow)
-from voxe_service.queue import QueueUnavailable, dispatch_job, get_queue, requeue_interrupted
+from voxe_service.queue import QueueUnavailable, get_queue, requeue_interrupted, send_queued_again
 from voxe_service.scenes import fail_scene
 from voxe_service.settings import Settings
 from voxe_service.storage import get_storage, job_key, scene_key
@@ -157,23 +158,16 @@ def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[
 
 def _send_now(session, job_id: str, seen_updated_at: datetime, detail: str, sent_as: str | None = None,
               message: str | None = None) -> None:
-    """Hand an accepted queued job's remaining stages to the broker, once: claimed by a conditional update (several
-    API processes may reap side by side), then sent; a broker that refuses leaves it unsent (no task id) for a later
-    pass. ``sent_as``: the task id of a message taken as lost (None: the job was never sent)."""
-    claimed = session.execute(update(Job).where(
-        Job.id == job_id, Job.state == QUEUED, Job.updated_at == seen_updated_at,
-        Job.task_id.is_(None) if sent_as is None else Job.task_id == sent_as,
-    ).values(task_id=None, updated_at=utcnow()))
-    if claimed.rowcount != 1:
-        return
-    record_event(session, job_id, "requeued", detail=detail)
-    session.commit()
-    job = session.get(Job, job_id)
+    """Hand an accepted queued job's remaining stages to the broker, once (``send_queued_again``: several API
+    processes may reap side by side); a broker that refuses leaves it as it was for a later pass. ``sent_as``: the
+    task id of a message taken as lost (None: the job was never sent)."""
     try:
-        dispatch_job(session, get_queue(), job, done=job.completed_stages or [], message=message, fail_refused=False)
+        sent = send_queued_again(session, get_queue(), job_id, sent_as=sent_as, reason=detail, message=message,
+                                 where=[Job.updated_at == seen_updated_at])
     except QueueUnavailable:
         return
-    log.warning("reaper: job %s %s", job_id, detail)
+    if sent:
+        log.warning("reaper: job %s %s", job_id, detail)
 
 
 def reap_orphaned_scenes(settings: Settings, now: datetime | None = None) -> list[str]:

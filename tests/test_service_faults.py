@@ -316,6 +316,41 @@ def test_a_reaper_pass_meeting_a_broker_outage_fails_nothing_and_a_later_pass_se
     assert job_row(interrupted).requeues == 1  # sent now without counting the interruption twice
 
 
+def test_a_lost_message_resend_the_broker_refuses_keeps_the_sweep_evaluation_for_a_later_pass(db, monkeypatch):
+    """The reaper's re-send of a sweep's evaluation whose message was taken as lost meets a broker outage: the claim
+    had left it queued with no task id, and the next pass failed it as "never handed to the broker with its edit".
+    Its task id comes back (as a starting worker's re-send does), and the pass after the broker is back sends it."""
+    from kombu.exceptions import OperationalError
+    from sqlalchemy import update
+
+    from api.reaper import reap_orphaned_jobs
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, utcnow
+    from voxe_service.queue import TaskQueue
+
+    lost_after = db.job_lost_message_timeout_s
+    scene = add_scene()
+    edit = add_job(scene, "succeeded", 3 * lost_after, batch_id="b1",
+                   finished_at=utcnow() - timedelta(seconds=2 * lost_after))
+    evaluation = add_job(scene, "queued", 2 * lost_after, mode="evaluate", batch_id="b1", source_job_ids=[edit])
+
+    def refused(self, signature):
+        raise OperationalError("Error 111 connecting to 127.0.0.1:6379. Connection refused.")
+
+    with monkeypatch.context() as broker_down:
+        broker_down.setattr(TaskQueue, "send", refused)
+        assert reap_orphaned_jobs(db) == []
+    job = job_row(evaluation)
+    assert (job.state, job.task_id, job.error) == ("queued", "task", None)
+    with session_scope() as session:  # the broker is back, a stale period later
+        session.execute(update(Job).where(Job.id == evaluation)
+                        .values(updated_at=utcnow() - timedelta(seconds=2 * lost_after)))
+    assert reap_orphaned_jobs(db) == []
+    job = job_row(evaluation)
+    assert job.state == "queued" and job.task_id not in (None, "task") and job.error is None
+    assert [e["kind"] for e in events_of(evaluation)] == ["requeued", "requeued"]
+
+
 def test_a_stage_whose_next_message_the_broker_refuses_leaves_its_job_for_the_reaper_to_send(db, monkeypatch):
     """Celery sends a chain's next message after the task returns; refused, the task fails with the job running
     between stages, held by no run, which the reaper leaves alone on a live worker (it may be waiting its turn).

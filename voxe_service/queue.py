@@ -209,6 +209,34 @@ def dispatch_job(session: Session, queue: TaskQueue, job: Job, done: Iterable[st
     session.commit()
 
 
+def send_queued_again(session: Session, queue: TaskQueue, job_id: str, *, sent_as: str | None, reason: str,
+                      message: str | None = None, where: Iterable = ()) -> bool:
+    """Hand a queued job's remaining stages (and the evaluations waiting on it) to the broker again, once: claimed by
+    a conditional update (its task id still ``sent_as``, that of a message taken as lost, or None for a job never
+    sent; and ``where``, what the caller saw: several senders may run side by side), ``requeued`` on its timeline
+    with ``reason``, then sent with ``message``. Returns False, nothing done, when the row changed since it was read.
+
+    A broker that refuses raises :class:`QueueUnavailable`, the job given its task id ``sent_as`` back: left as it
+    was, for a later try (with no task id, a sweep's evaluation would be failed by the reaper as never sent with its
+    edit)."""
+    claimed = session.execute(update(Job).where(  # task_id NULL until the new chain is handed over
+        Job.id == job_id, Job.state == QUEUED, Job.task_id.is_(None) if sent_as is None else Job.task_id == sent_as,
+        *where).values(task_id=None, updated_at=utcnow()))
+    if claimed.rowcount != 1:
+        return False
+    job = session.get(Job, job_id)
+    record_event(session, job_id, "requeued", stage=job.stage, detail=reason)
+    session.commit()
+    try:
+        dispatch_job(session, queue, job, done=job.completed_stages or [], message=message, fail_refused=False)
+    except QueueUnavailable:
+        if sent_as is not None:
+            session.execute(update(Job).where(Job.id == job_id, Job.task_id.is_(None)).values(task_id=sent_as))
+            session.commit()
+        raise
+    return True
+
+
 def requeue_limit_error(requeues: int, settings: Settings, reason: str) -> str | None:
     """Why a job (or a scene's ingest) interrupted again (``reason``) fails, once it was sent again ``requeues`` times
     already, the ``job_max_requeues`` limit (what kills its workers must not loop); None below the limit."""

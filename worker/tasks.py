@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, NoReturn
 
 from celery import signals
 from celery.exceptions import Ignore, Reject, SoftTimeLimitExceeded
-from sqlalchemy import select, update
+from sqlalchemy import select
 from sqlalchemy.exc import SQLAlchemyError
 
 from voxe_core.guidance.loading import is_out_of_memory
@@ -40,7 +40,6 @@ from voxe_core.presets import edit_config, export_config, fit_backbone, fit_setu
 from voxe_core.progress import Callbacks, Progress, StageCancelled
 from voxe_service.broker import waiting_tasks
 from voxe_service.db import database_outage, sync_clock
-from voxe_service.jobs import record_event
 from voxe_service.models import (
     CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, R_FAILED, R_PENDING, R_SUCCEEDED, RUNNING, TERMINAL_STATES, Job,
     Scene, WorkerHeartbeat, utcnow,
@@ -49,8 +48,8 @@ from voxe_service.model_inventory import (ROLES, check_models, job_models, missi
                                           submission_note)
 from voxe_service.progress import device_costs, refine_phase_seconds
 from voxe_service.queue import (
-    INGEST_TASK, STAGE_TASKS, QueueUnavailable, TaskResult, dispatch_job, get_queue, is_sql_broker, job_stages,
-    requeue_interrupted, reset_queue, send_evaluations_alone,
+    INGEST_TASK, STAGE_TASKS, QueueUnavailable, TaskResult, get_queue, is_sql_broker, job_stages, requeue_interrupted,
+    reset_queue, send_evaluations_alone, send_queued_again,
 )
 from voxe_service.settings import get_settings, model_label
 from voxe_service.storage import StorageUnavailable, StoredObject, get_storage, job_key, reconstruction_storage_key
@@ -881,31 +880,22 @@ def resend_lost_queued_jobs(hostname: str) -> list[str]:
         queued = list(session.scalars(select(Job).where(Job.state == QUEUED, Job.task_id.is_not(None),
                                                         Job.run_token.is_(None))))
         carried = {job_id for task, job_id in waiting_tasks(settings.broker_url) if task in stage_names}
-        lost = [job for job in queued if job.id not in carried and not (
+        # (each with the task id read before the broker: a commit below expires the session's copies)
+        lost = [(job.id, job.task_id) for job in queued if job.id not in carried and not (
             job.mode == EVALUATE and session.scalar(select(Job.id).where(
                 Job.id.in_(job.source_job_ids or []), Job.state.not_in(TERMINAL_STATES)).limit(1)))]
         sent = []
-        for job in lost:  # task_id NULL until the new chain is handed over
-            sent_as = job.task_id  # (the claim sets the session's copy to None)
-            claimed = session.execute(update(Job).where(
-                Job.id == job.id, Job.state == QUEUED, Job.task_id == sent_as, Job.run_token.is_(None),
-            ).values(task_id=None, updated_at=utcnow()))
-            if claimed.rowcount != 1:  # started, ended or sent again since it was read
-                continue
-            record_event(session, job.id, "requeued", stage=job.stage, detail=reason)
-            session.commit()
+        for job_id, sent_as in lost:
             try:
-                dispatch_job(session, queue, job, done=job.completed_stages or [], message=f"re-queued: {reason}",
-                             fail_refused=False)
-            except QueueUnavailable:  # its task id back: the next start tries again (the reaper fails an unsent
-                session.execute(update(Job).where(Job.id == job.id, Job.task_id.is_(None))  # sweep evaluation)
-                                .values(task_id=sent_as))
-                session.commit()
-                log.warning("job %s: %s; the broker refused it again: the next worker start tries again", job.id,
+                if not send_queued_again(session, queue, job_id, sent_as=sent_as, reason=reason,
+                                         message=f"re-queued: {reason}", where=[Job.run_token.is_(None)]):
+                    continue  # started, ended or sent again since it was read
+            except QueueUnavailable:  # its task id back: the next start tries again
+                log.warning("job %s: %s; the broker refused it again: the next worker start tries again", job_id,
                             reason)
                 continue
-            log.warning("job %s: %s; sent it again", job.id, reason)
-            sent.append(job.id)
+            log.warning("job %s: %s; sent it again", job_id, reason)
+            sent.append(job_id)
     return sent
 
 
