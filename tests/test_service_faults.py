@@ -819,14 +819,17 @@ def test_a_fit_out_of_memory_says_so_on_the_reconstruction_and_fails_it_once_no_
     """A fit whose worker ran out of memory was handed back with no word: the reconstruction listed pending, its
     error empty, as if a job were about to fit it, while each job that took it over failed. It records the error,
     pending while a job of it has not ended (that job takes it over), failed once none is left; a later job tries
-    it again."""
+    it again. The sweep's evaluation of those jobs, which shares their reconstruction and never fits, is no job to
+    take it over (the fit of a sweep had stayed pending for ever)."""
     from conftest import make_sphere_grid
     from voxe_service.storage import get_storage
     from worker import runtime, tasks
 
     scene = add_scene()
     rec_id = add_reconstruction(scene, params={"route": "voxelize"})
-    fitter, queued = (add_job(scene, "queued", 0, reconstruction_id=rec_id) for _ in range(2))
+    fitter, queued = (add_job(scene, "queued", 0, reconstruction_id=rec_id, batch_id="b1") for _ in range(2))
+    add_job(scene, "queued", 0, mode="evaluate", batch_id="b1", source_job_ids=[fitter, queued],
+            reconstruction_id=rec_id)
 
     def voxelize(job, rec, settings, storage):
         if job.id in (fitter, queued):

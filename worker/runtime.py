@@ -31,7 +31,7 @@ from voxe_service import datasets
 from voxe_service.db import DATABASE_UNAVAILABLE, database_outage, locked, session_scope, sync_clock
 from voxe_service.jobs import finish_jobs, record_event
 from voxe_service.models import (
-    CANCELED, FAILED, PROCESSING, QUEUED, R_FAILED, R_PENDING, R_RUNNING, READY, RUNNING, SUCCEEDED,
+    CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, R_FAILED, R_PENDING, R_RUNNING, READY, RUNNING, SUCCEEDED,
     TERMINAL_STATES, Artifact, Job, Reconstruction, Scene, utcnow,
 )
 from voxe_service.queue import requeue_limit_error
@@ -852,10 +852,13 @@ def hand_back_out_of_memory(rec_id: str, job_id: str, run_token: str | None, err
     """Give back the fit ``job_id`` owns, its worker out of memory (a fault of the machine's, not the scene's), with
     ``error`` recorded: pending while another job of the reconstruction has not ended (it takes the fit over, maybe on
     a worker with more memory), failed when none is left to (a later job's first claim tries a failed fit again).
-    Handed back with no word, it had been listed pending with no error, as if a job were about to fit it, and each job
-    that took it over failed without it saying why. Whether the job still owned the fit."""
+    A sweep's evaluation shares its edits' reconstruction but never fits: it takes nothing over (counted, the fit of
+    a sweep had stayed pending for ever). Handed back with no word, it had been listed pending with no error, as if a
+    job were about to fit it, and each job that took it over failed without it saying why. Whether the job still
+    owned the fit."""
     with session_scope() as session:
         waiting = session.scalar(select(select(Job.id).where(Job.reconstruction_id == rec_id, Job.id != job_id,
+                                                             Job.mode != EVALUATE,
                                                              Job.state.not_in(TERMINAL_STATES)).exists()))
         values = ({"state": R_PENDING, "owner_job_id": None, "owner_run_token": None} if waiting
                   else {"state": R_FAILED, "finished_at": utcnow()})
