@@ -316,6 +316,41 @@ def test_a_submission_is_sent_again_a_bounded_number_of_times_and_only_while_its
         assert sent == [("POST", "/v1/jobs/j1/cancel", None)]
 
 
+@pytest.mark.parametrize("timeout", [httpx.ReadTimeout, httpx.WriteTimeout])
+def test_a_submission_not_answered_in_time_is_not_sent_again_and_the_error_names_its_key(timeout, tmp_path,
+                                                                                         monkeypatch):
+    """An upload whose staging took the service longer than the read timeout had been sent again, whole, up to
+    ``retries`` times, each staged again (the service records its key only once it is done): a submission not
+    answered in time goes once, and the error says why and names its key, to send it again with for what it made. A
+    request that never reached the service (a connect timeout) is still sent again."""
+    import voxe_client.client as client_module
+    from voxe_client.client import ServiceUnreachable
+
+    monkeypatch.setattr(client_module.time, "sleep", lambda _s: None)
+    (tmp_path / "scene.zip").write_bytes(b"PK" + b"x" * 1000)
+    sent, answers = [], []
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        sent.append((len(request.read()), request.headers.get("idempotency-key")))
+        raised = answers.pop(0)
+        if raised is not None:
+            raise raised("timed out", request=request)
+        return httpx.Response(201, json={"id": "s1"})
+
+    with Client(transport=httpx.MockTransport(answer), retries=3) as client:
+        answers[:] = [timeout, None]
+        with pytest.raises(ServiceUnreachable) as no_answer:
+            client.upload_scene(tmp_path / "scene.zip", idempotency_key="upload-1")
+        assert sent == [(sent[0][0], "upload-1")] and sent[0][0] > 1000
+        assert str(no_answer.value) == (
+            f"POST /v1/scenes: {client.base_url} did not answer in time ({timeout.__name__}: timed out); the service "
+            "may have taken the request and still be working on it, so it was not sent again (it would be done "
+            "twice): send it again later with Idempotency-Key 'upload-1' for what it made")
+        sent.clear()
+        answers[:] = [httpx.ConnectTimeout, None]
+        assert client.upload_scene(tmp_path / "scene.zip")["id"] == "s1" and len(sent) == 2
+
+
 def test_a_download_answered_503_with_retry_after_is_sent_again(tmp_path, monkeypatch):
     """The class promises it for every GET, but download() streamed its GET outside the retry rule: a busy service
     (a 503 + Retry-After) failed the download at once."""

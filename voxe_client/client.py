@@ -31,8 +31,12 @@ MAX_RECONNECT_PAUSE_S = 5.0
 PROXY_UNAVAILABLE = (502, 503, 504)
 """What a proxy in front of the API answers while the API restarts: a lost stream, not the service's refusal."""
 IDEMPOTENCY_HEADER = "Idempotency-Key"
-LOST_ANSWERS = (httpx.NetworkError, httpx.TimeoutException, httpx.RemoteProtocolError)
-"""A request whose answer never came: the service may or may not have acted on it."""
+LOST_ANSWERS = (httpx.NetworkError, httpx.ConnectTimeout, httpx.PoolTimeout, httpx.RemoteProtocolError)
+"""A request never sent, or whose answer the connection lost (refused, reset, dropped: an API restarting): a
+submission goes again with its Idempotency-Key."""
+UNANSWERED_IN_TIME = (httpx.ReadTimeout, httpx.WriteTimeout)
+"""A request the service may still be working on (its answer slower than the timeout: a large upload's staging): a
+submission is not sent again, which would have the service do it a second time."""
 TERMINAL_STATES = ("succeeded", "failed", "canceled")
 
 
@@ -79,9 +83,11 @@ class Client:
     replaces httpx's network transport (tests pass ``httpx.MockTransport``). A read (GET) answered 503 with
     ``Retry-After`` (the service's database or broker briefly unavailable) is sent again after that wait, at most
     ``retries`` times. A submission (an upload, a job, a sweep) goes with an ``Idempotency-Key``, one per call, so it
-    too is sent again, with the same key, when its answer is lost (a dropped connection, a timeout, a 502 / 503 /
+    too is sent again, with the same key, when its answer is lost (a connection refused or dropped, a 502 / 503 /
     504) or the service is still answering its first sending (409 with ``Retry-After``): the service answers a
-    retry with what the first sending created, never a second one. Other writes (a cancel, a deletion) are not.
+    retry with what the first sending created, never a second one. A submission not answered within ``timeout``
+    is not (the service may still be working on it): the error names its key, to send it again with once it is
+    done. Other writes (a cancel, a deletion) are not.
 
     Examples:
         >>> def answer(request):
@@ -130,6 +136,12 @@ class Client:
         try:
             response = self._send(method, path, json=body, resendable=idempotency_key is not None, **kwargs)
         except (httpx.TransportError, httpx.InvalidURL) as exc:
+            if idempotency_key is not None and isinstance(exc, UNANSWERED_IN_TIME):
+                raise ServiceUnreachable(
+                    f"{method} {path}: {self.base_url} did not answer in time ({type(exc).__name__}: {exc}); the "
+                    "service may have taken the request and still be working on it, so it was not sent again (it "
+                    f"would be done twice): send it again later with {IDEMPOTENCY_HEADER} '{idempotency_key}' for "
+                    "what it made") from None
             raise ServiceUnreachable(f"cannot reach the service at {self.base_url}: {exc}") from None
         _raise_for_error(response, method, path)
         if response.status_code == httpx.codes.NO_CONTENT:
