@@ -30,6 +30,10 @@ A job is orphaned when
   remaining stages are sent again (``requeued``); a copy that still comes is dropped or skipped. A sweep's
   evaluation waits while its edit's chain may still carry it: until its edit ended as long ago.
 
+Each time a job's message was already taken as lost doubles the wait before it is again (from
+``VOXE_JOB_LOST_MESSAGE_TIMEOUT_S``): one waiting its turn behind a long backlog is sent again ever more rarely, not each
+period. On the SQL broker, whose table lists the waiting messages, a job one of them carries is never taken as lost.
+
 A broker that refuses a message fails nothing here: the job stays (or becomes) ``queued`` with no task
 id (one whose message was taken as lost keeps its task id), its checkpoints kept, and a pass after the broker is
 back sends it, as above.
@@ -51,18 +55,22 @@ import logging
 import threading
 from datetime import datetime, timedelta
 
-from sqlalchemy import and_, or_, select
+from sqlalchemy import and_, func, or_, select
 
+from voxe_service.broker import waiting_tasks
 from voxe_service.db import session_scope, sync_clock
 from voxe_service.jobs import finish_jobs
-from voxe_service.models import (CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, RUNNING, Job, Scene, WorkerHeartbeat,
-                                 utcnow)
-from voxe_service.queue import QueueUnavailable, get_queue, requeue_interrupted, send_queued_again
+from voxe_service.models import (CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, RUNNING, Job, JobEvent, Scene,
+                                 WorkerHeartbeat, utcnow)
+from voxe_service.queue import QueueUnavailable, get_queue, is_sql_broker, requeue_interrupted, send_queued_again
 from voxe_service.scenes import fail_scene
 from voxe_service.settings import Settings
 from voxe_service.storage import get_storage, job_key, scene_key
 
 log = logging.getLogger("voxe.reaper")
+
+LOST_MESSAGE_SETTING = "VOXE_JOB_LOST_MESSAGE_TIMEOUT_S"
+"""Named in the reason of each re-send of a job whose message was taken as lost: what counts them."""
 
 
 def _fail(session, job_id: str, seen_updated_at: datetime, seen_state: str, error: str, *where) -> bool:
@@ -82,8 +90,7 @@ def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[
     the ids of those ended."""
     now = now or utcnow()
     timeout, cutoff, alive = _stale_window(settings, now)
-    lost_after = settings.job_lost_message_timeout_s
-    lost_cutoff = now - timedelta(seconds=lost_after)
+    lost_cutoff = now - timedelta(seconds=settings.job_lost_message_timeout_s)
     reaped = []
     with session_scope() as session:
         lapsed = or_(Job.run_lease_until.is_(None), Job.run_lease_until < now)  # no live run renews a hold
@@ -99,6 +106,9 @@ def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[
             )
         ).all()
         alive_now = set(session.scalars(alive)) if running else set()
+        unstarted = _messages_taken_as_lost(session, settings, now, [  # (between stages on a live worker)
+            job for job in running if job.run_token is None and not job.cancel_requested
+            and job.worker_hostname in alive_now])
         for job in running:
             if job.run_token is None and job.cancel_requested:  # (a stage not done: its run gave the job back)
                 done = job.stage in (job.completed_stages or [])
@@ -107,8 +117,10 @@ def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[
                 reason = (f"worker {job.worker_hostname or '(unknown)'} stopped while the job was in {job.stage}: "
                           f"no heartbeat and no progress for {timeout:.0f} s (VOXE_JOB_STALE_TIMEOUT_S)")
             elif job.run_token is None:
-                reason = (f"no stage started for {lost_after:.0f} s after {job.stage}: its next message is taken as "
-                          f"lost (VOXE_JOB_LOST_MESSAGE_TIMEOUT_S)")
+                if job.id not in unstarted:  # its next message waits its turn (or not as long as a lost one)
+                    continue
+                reason = (f"no stage started for {unstarted[job.id]:.0f} s after {job.stage} ({LOST_MESSAGE_SETTING}, "
+                          "doubled for each earlier such re-send): sent again, its next message taken as lost")
             else:
                 reason = (f"the run of {job.stage} on worker {job.worker_hostname} stopped renewing its hold "
                           f"{timeout:.0f} s ago and made no progress (VOXE_JOB_STALE_TIMEOUT_S)")
@@ -131,15 +143,17 @@ def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[
         for job in never_sent:
             if job not in evaluations:  # (an edit sent now takes its sweep's evaluations along)
                 _send_now(session, job.id, job.updated_at, never_sent_detail)
-        lost = session.execute(select(Job.id, Job.mode, Job.source_job_ids, Job.task_id, Job.updated_at).where(
-            Job.state == QUEUED, Job.task_id.is_not(None), Job.updated_at < lost_cutoff)).all()
-        lost_reason = (f"no stage started for {lost_after:.0f} s after the job was sent: its message is taken as lost "
-                       "(VOXE_JOB_LOST_MESSAGE_TIMEOUT_S)")
-        for job in lost:
-            if job.mode == EVALUATE and session.scalar(select(Job.id).where(  # it rides in its edit's chain, sent
-                    Job.id.in_(job.source_job_ids or []),  # on when the edit ended: lately, or not yet
-                    or_(Job.finished_at.is_(None), Job.finished_at >= lost_cutoff)).limit(1)):
+        sent_long_ago = session.execute(select(Job.id, Job.mode, Job.source_job_ids, Job.task_id, Job.updated_at)
+                                        .where(Job.state == QUEUED, Job.task_id.is_not(None),
+                                               Job.updated_at < lost_cutoff)).all()
+        lost = _messages_taken_as_lost(session, settings, now, sent_long_ago)
+        for job in sent_long_ago:
+            if job.id not in lost or job.mode == EVALUATE and session.scalar(select(Job.id).where(  # it rides in
+                    Job.id.in_(job.source_job_ids or []),  # its edit's chain, sent on when the edit ended: lately,
+                    or_(Job.finished_at.is_(None), Job.finished_at >= lost_cutoff)).limit(1)):  # or not yet
                 continue
+            lost_reason = (f"no stage started for {lost[job.id]:.0f} s after the job was sent ({LOST_MESSAGE_SETTING}, "
+                           "doubled for each earlier such re-send): sent again, its message taken as lost")
             _send_now(session, job.id, job.updated_at, lost_reason, sent_as=job.task_id,
                       message=f"re-queued: {lost_reason}")
         unsent = set(session.scalars(select(Job.id).where(Job.state == QUEUED, Job.task_id.is_(None),
@@ -154,6 +168,27 @@ def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[
     for job_id in reaped:
         log.warning("reaper: job %s ended as orphaned (failed, or canceled as asked)", job_id)
     return reaped
+
+
+def _messages_taken_as_lost(session, settings: Settings, now: datetime, jobs) -> dict[str, float]:
+    """Of ``jobs`` (rows with ``id`` and ``updated_at``: sent, no stage started since), those whose message is taken
+    as lost, each with the wait that decided it: ``VOXE_JOB_LOST_MESSAGE_TIMEOUT_S``, doubled for each time the job
+    was already sent again so. A job waiting its turn behind a long backlog had been sent again each period, without
+    end (a ``requeued`` event and a copy of its message each time); now ever more rarely. On the SQL broker, whose
+    table lists the waiting messages, a job one of them carries is not lost at all."""
+    if not jobs:
+        return {}
+    resent = dict(session.execute(select(JobEvent.job_id, func.count()).where(
+        JobEvent.job_id.in_([job.id for job in jobs]), JobEvent.kind == "requeued",
+        JobEvent.detail.contains(LOST_MESSAGE_SETTING)).group_by(JobEvent.job_id)).all())
+    waiting = ({job_id for _task, job_id in waiting_tasks(settings.broker_url)}
+               if is_sql_broker(settings.broker_url) else set())
+    lost = {}
+    for job in jobs:
+        wait = settings.job_lost_message_timeout_s * 2 ** min(resent.get(job.id, 0), 20)
+        if job.id not in waiting and job.updated_at < now - timedelta(seconds=wait):
+            lost[job.id] = wait
+    return lost
 
 
 def _send_now(session, job_id: str, seen_updated_at: datetime, detail: str, sent_as: str | None = None,

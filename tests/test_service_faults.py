@@ -191,8 +191,9 @@ def test_reaper_sends_again_or_fails_only_jobs_nothing_will_finish(db):
     assert job_row(requeued["no worker recorded"]).message.startswith(
         "re-queued: worker (unknown) stopped while the job was in reconstruct")
     assert job_row(requeued["between stages on a live worker, its next message lost unseen"]).message == (
-        f"re-queued: no stage started for {db.job_lost_message_timeout_s:.0f} s after edit: its next message is "
-        f"taken as lost (VOXE_JOB_LOST_MESSAGE_TIMEOUT_S)")
+        f"re-queued: no stage started for {db.job_lost_message_timeout_s:.0f} s after edit "
+        "(VOXE_JOB_LOST_MESSAGE_TIMEOUT_S, doubled for each earlier such re-send): sent again, its next message taken "
+        "as lost")
     assert job_row(requeued["a live worker's run that stopped renewing long ago"]).message == (
         f"re-queued: the run of edit on worker alive@host stopped renewing its hold {timeout:.0f} s ago and made "
         f"no progress (VOXE_JOB_STALE_TIMEOUT_S)")
@@ -256,8 +257,8 @@ def test_reaper_sends_again_a_queued_job_whose_message_the_broker_lost(db):
             scene, "queued", 2 * lost_after, mode="evaluate", batch_id="b2", source_job_ids=[lately_ended]),
     }
     assert reap_orphaned_jobs(db) == []
-    reason = (f"no stage started for {lost_after:.0f} s after the job was sent: its message is taken as lost "
-              "(VOXE_JOB_LOST_MESSAGE_TIMEOUT_S)")
+    reason = (f"no stage started for {lost_after:.0f} s after the job was sent (VOXE_JOB_LOST_MESSAGE_TIMEOUT_S, "
+              "doubled for each earlier such re-send): sent again, its message taken as lost")
     for job_id in (lost, lost_evaluation):
         job = job_row(job_id)
         assert (job.state, job.message, job.error) == ("queued", f"re-queued: {reason}", None)
@@ -269,6 +270,49 @@ def test_reaper_sends_again_a_queued_job_whose_message_the_broker_lost(db):
     for what, job_id in kept.items():
         assert (job_row(job_id).task_id, events_of(job_id)) == ("task", []), what
     assert reap_orphaned_jobs(db) == [] and len(events_of(lost)) == 1  # sent once: it waits again as sent
+
+
+def test_a_job_waiting_its_turn_behind_a_long_backlog_is_sent_again_ever_more_rarely(db, monkeypatch):
+    """A sent job no stage has taken for VOXE_JOB_LOST_MESSAGE_TIMEOUT_S had been sent again each period, without
+    end, a "requeued" event each time, while its message was only waiting its turn. On the SQL broker a job a waiting
+    message carries is not sent again at all; its message gone, it is sent once. Elsewhere (a Redis, whose queue the
+    reaper does not read) each earlier such re-send doubles the wait before the next, between stages or queued."""
+    from sqlalchemy import update
+
+    import api.reaper as reaper
+    from voxe_service.broker import waiting_tasks
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, utcnow
+
+    lost_after = db.job_lost_message_timeout_s
+    scene = add_scene()
+    add_heartbeat("alive@host", age_s=1)
+    queued = add_job(scene, "queued", 2 * lost_after)
+    between = add_job(scene, "running", 2 * lost_after, "alive@host", "edit", completed_stages=["reconstruct", "edit"])
+    jobs = [queued, between]
+
+    def waited(age_in_periods: float) -> list[int]:
+        """One reaper pass after the jobs were last sent ``age_in_periods`` VOXE_JOB_LOST_MESSAGE_TIMEOUT_S ago; how
+        many times each has been sent again."""
+        with session_scope() as session:
+            session.execute(update(Job).where(Job.id.in_(jobs))
+                            .values(updated_at=utcnow() - timedelta(seconds=age_in_periods * lost_after)))
+        assert reaper.reap_orphaned_jobs(db) == []
+        return [len(events_of(job_id)) for job_id in jobs]
+
+    assert waited(2) == [1, 1]  # no message for them in the SQL broker: sent again
+    assert job_row(between).message.startswith(f"re-queued: no stage started for {lost_after:.0f} s after edit (")
+    assert all(job_id in {j for _, j in waiting_tasks(db.broker_url)} for job_id in jobs)
+    assert [waited(2) for _ in range(4)] == [[1, 1]] * 4  # their messages wait their turn: never again
+    assert events_of(queued)[0]["detail"] == (
+        f"no stage started for {lost_after:.0f} s after the job was sent (VOXE_JOB_LOST_MESSAGE_TIMEOUT_S, doubled "
+        "for each earlier such re-send): sent again, its message taken as lost")
+    monkeypatch.setattr(reaper, "is_sql_broker", lambda url: False)  # a broker whose queue the reaper cannot read
+    assert [waited(age) for age in (1.5, 2.5, 3.5, 4.5, 7.5, 8.5)] == [
+        [1, 1], [2, 2], [2, 2], [3, 3], [3, 3], [4, 4]]  # after 2, 4, then 8 periods
+    for job_id in jobs:  # (the job between stages was queued by its first re-send)
+        assert job_row(job_id).message.startswith(f"re-queued: no stage started for {8 * lost_after:.0f} s after the "
+                                                  "job was sent")
 
 
 def test_a_reaper_pass_meeting_a_broker_outage_fails_nothing_and_a_later_pass_sends_the_jobs(db, monkeypatch):

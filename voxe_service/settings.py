@@ -113,7 +113,8 @@ class Settings(BaseSettings):
     # A job between stages on a live worker whose next stage has not started for this long, or a queued one sent as
     # long ago: its message is taken as lost without the worker seeing it (a broker that lost what it had accepted)
     # and sent again. Long, as it may wait its turn behind other jobs' on a busy queue; a copy that still comes is
-    # dropped or skipped.
+    # dropped or skipped. Doubled for each earlier such re-send of the job; on the SQL broker a job a waiting
+    # message carries is never sent again.
     job_lost_message_timeout_s: float = Field(6 * 3600.0, gt=0)
     # A job whose worker stopped mid-stage is sent again (by the reaper, or by its worker restarting) at most
     # this many times; then it fails, so a job that kills its workers cannot loop for ever.
