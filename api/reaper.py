@@ -31,8 +31,9 @@ A job is orphaned when
   evaluation waits while its edit's chain may still carry it: until its edit ended as long ago.
 
 Each time a job's message was already taken as lost doubles the wait before it is again (from
-``VOXE_JOB_LOST_MESSAGE_TIMEOUT_S``): one waiting its turn behind a long backlog is sent again ever more rarely, not each
-period. On the SQL broker, whose table lists the waiting messages, a job one of them carries is never taken as lost.
+``VOXE_JOB_LOST_MESSAGE_TIMEOUT_S``): one waiting its turn behind a long backlog is sent again ever more rarely,
+not each period. On the SQL broker, whose table lists the waiting messages, a job one of them carries is never
+taken as lost.
 
 A broker that refuses a message fails nothing here: the job stays (or becomes) ``queued`` with no task
 id (one whose message was taken as lost keeps its task id), its checkpoints kept, and a pass after the broker is
