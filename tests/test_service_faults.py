@@ -1274,7 +1274,7 @@ def test_a_workers_unpacked_datasets_of_deleted_scenes_are_swept_and_a_ready_sce
         (root / name).mkdir(parents=True)
         (root / name / "transforms_train.json").write_text("{}")
     assert sorted(sweep_scene_datasets(db)) == sorted(gone)
-    assert sorted(p.name for p in root.iterdir()) == sorted(kept)
+    assert sorted(p.name for p in root.iterdir() if p.is_dir()) == sorted(kept)
     assert sweep_scene_datasets(db) == []
 
 
@@ -1308,7 +1308,7 @@ def test_unpacked_datasets_past_the_cache_limit_evict_the_least_recently_used_on
     root = Path(db.work_dir) / "scenes"
 
     def unpacked() -> set[str]:
-        return {p.name.partition("-")[0] for p in root.iterdir()}
+        return {p.name.partition("-")[0] for p in root.iterdir() if p.is_dir()}
 
     def aged(scene, seconds: float) -> None:  # its last use set back (mtimes of one instant would tie)
         complete = root / f"{scene.id}-{scene.sha256[:12]}" / ".complete"
@@ -1328,6 +1328,48 @@ def test_unpacked_datasets_past_the_cache_limit_evict_the_least_recently_used_on
     assert read(a) == "a" * 1000  # unpacked again; b, no longer read, goes
     assert unpacked() == {a.id, c.id}
     assert runtime.evict_scene_datasets(settings) == []
+
+
+def test_datasets_are_evicted_where_an_exclusive_lock_needs_a_file_open_for_writing(db, tmp_path, monkeypatch,
+                                                                                  caplog):
+    """On NFS, Linux emulates flock with fcntl locks, and an exclusive one needs a descriptor open for writing: the
+    eviction locked the folder of datasets (opened to read) and each ``.complete`` (opened to read), was refused
+    (EBADF), took it for a filesystem without locks and evicted nothing, silently, the disk filling. It locks files
+    open for writing, so it evicts there; and a filesystem without locks at all is said once, as a warning."""
+    import errno
+    import fcntl
+    from pathlib import Path
+
+    from voxe_service.storage import get_storage
+    from worker import runtime
+
+    settings, storage = db.model_copy(update={"scene_cache_max_bytes": 1500}), get_storage(db)  # one of 1002 bytes
+    a, b = (stored_dataset_scene(db, tmp_path, name) for name in ("a", "b"))
+    root = Path(db.work_dir) / "scenes"
+    local_flock = fcntl.flock
+
+    def nfs_flock(file, operation):
+        fd = file if isinstance(file, int) else file.fileno()
+        if operation & fcntl.LOCK_EX and fcntl.fcntl(fd, fcntl.F_GETFL) & os.O_ACCMODE == os.O_RDONLY:
+            raise OSError(errno.EBADF, os.strerror(errno.EBADF))
+        local_flock(file, operation)
+
+    monkeypatch.setattr(fcntl, "flock", nfs_flock)
+    for scene in (a, b):
+        with runtime.scene_dataset(scene, settings, storage):
+            pass
+    assert [p.name.partition("-")[0] for p in root.iterdir() if p.is_dir()] == [b.id]  # a went as b was unpacked
+
+    def no_locks(file, operation):
+        raise OSError(errno.ENOLCK, os.strerror(errno.ENOLCK))
+
+    monkeypatch.setattr(fcntl, "flock", no_locks)
+    with caplog.at_level(logging.WARNING, logger="voxe.worker"):
+        tiny = settings.model_copy(update={"scene_cache_max_bytes": 1})
+        assert runtime.evict_scene_datasets(tiny) == runtime.evict_scene_datasets(tiny) == []
+    said = [r.getMessage() for r in caplog.records if "takes no file locks" in r.getMessage()]
+    assert said == [f"{root} takes no file locks ([Errno {errno.ENOLCK}] {os.strerror(errno.ENOLCK)}): its unpacked "
+                    "datasets are never evicted, whatever VOXE_SCENE_CACHE_MAX_BYTES says"]
 
 
 def test_a_stage_that_waited_on_an_eviction_of_its_dataset_reads_one_it_holds(db, tmp_path):
@@ -1365,7 +1407,7 @@ def test_a_stage_that_waited_on_an_eviction_of_its_dataset_reads_one_it_holds(db
             pass
     thread.join(30)
     assert read == {"evicted": [], "text": "a" * 1000}
-    assert [p.name for p in Path(db.work_dir, "scenes").iterdir()] == [dataset.name]
+    assert [p.name for p in Path(db.work_dir, "scenes").iterdir() if p.is_dir()] == [dataset.name]
 
 
 def test_the_uploads_killed_ingests_left_are_swept_once_their_scenes_are_no_longer_processing(db):

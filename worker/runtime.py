@@ -739,19 +739,31 @@ def _share(lock) -> None:
         fcntl.flock(lock, fcntl.LOCK_SH)
 
 
+EVICTION_LOCK = ".evict.lock"
+_said_no_locks: set[Path] = set()
+
+
 def evict_scene_datasets(settings: Settings) -> list[str]:
     """Delete this machine's least recently used unpacked datasets that no stage is reading until the rest fit in
     ``VOXE_SCENE_CACHE_MAX_BYTES``; the folder names evicted. A dataset a stage reads stays (its lock is held:
     :func:`scene_dataset`), over the limit if need be. Evictions run one at a time on the machine (a lock on the
-    folder of datasets), so two never both free the same excess. Nothing is evicted on a filesystem without locks."""
+    file ``scenes/.evict.lock``), so two never both free the same excess.
+
+    Each exclusive lock is taken on a file open for writing: NFS emulates ``flock`` with ``fcntl`` locks, which take
+    an exclusive lock on nothing else (EBADF: on the folder, or on a ``.complete`` opened to read, it had evicted
+    nothing, silently). Nothing is evicted on a filesystem without locks, as a warning says once."""
     root = Path(settings.work_dir) / "scenes"
     if not root.is_dir():
         return []
-    folder_lock = os.open(root, os.O_RDONLY)
+    folder_lock = os.open(root / EVICTION_LOCK, os.O_RDWR | os.O_CREAT, 0o644)
     try:
         try:
             fcntl.flock(folder_lock, fcntl.LOCK_EX)
-        except OSError:  # a filesystem without locks
+        except OSError as exc:  # a filesystem without locks
+            if root not in _said_no_locks:
+                _said_no_locks.add(root)
+                log.warning("%s takes no file locks (%s): its unpacked datasets are never evicted, whatever "
+                            "VOXE_SCENE_CACHE_MAX_BYTES says", root, exc)
             return []
         unpacked = []
         for folder in root.iterdir():
@@ -779,7 +791,7 @@ def _evict(folder: Path) -> bool:
     renamed to unpack debris (``.<scene id>-...``) first, so a reader never finds it half deleted, and a deletion cut
     short is swept as debris."""
     try:
-        with open(folder / COMPLETE, "rb") as lock:
+        with open(folder / COMPLETE, "r+b") as lock:  # (for writing: see evict_scene_datasets)
             fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
             doomed = folder.with_name(f".{folder.name}-{uuid.uuid4().hex[:8]}")
             os.rename(folder, doomed)
