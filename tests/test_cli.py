@@ -811,6 +811,15 @@ def test_safetensors_outputs_follow_the_umask_as_other_outputs(sphere_file, tmp_
     assert (tmp_path / "tiny" / "model_index.json").stat().st_mode & 0o777 == 0o666 & ~umask
 
 
+def test_bad_data_is_said_as_a_dataset_error_and_a_bad_grid_as_an_error(tmp_path, capsys):
+    """The one-line message names which input was bad: found without importing the dataset module where no command
+    had (``voxe status`` must not load torch to say its error)."""
+    assert main(["reconstruct", str(tmp_path), "--out", str(tmp_path / "grid.safetensors")]) == 2
+    assert capsys.readouterr().err.startswith(f"voxe reconstruct: dataset error: {tmp_path}: no dataset found")
+    assert main(["convert-grid", str(tmp_path / "none.safetensors"), "--out", str(tmp_path / "g.safetensors")]) == 2
+    assert capsys.readouterr().err == f"voxe convert-grid: error: {tmp_path / 'none.safetensors'}: no such file\n"
+
+
 def test_cli_as_a_real_process_has_no_traceback(tmp_path):
     result = subprocess.run(
         [sys.executable, "-m", "voxe_core.cli", "export-mesh", str(tmp_path / "missing.safetensors"),

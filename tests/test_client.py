@@ -8,11 +8,16 @@ from __future__ import annotations
 
 import json
 import re
+import subprocess
+import sys
+from pathlib import Path
 
 import httpx
 import pytest
 
 from voxe_client import Client, ServiceError
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 def test_it_sends_json_with_the_key_and_returns_the_answer():
@@ -688,6 +693,44 @@ def test_a_submit_refused_deletes_the_scene_it_uploaded_and_no_other(api, tmp_pa
         assert main(["submit", "a plane", "--scene", kept, *bad]) == 2
         assert "HTTP 422" in capsys.readouterr().err
         assert [scene["id"] for scene in client.request("GET", "/v1/scenes")["items"]] == [kept]
+
+
+def _voxe_in_a_process(*argv: str) -> tuple[subprocess.CompletedProcess, set[str]]:
+    """``voxe ARGV`` run as its own process (``python -m voxe_core.cli``): what it ended with, its stderr without
+    the lines of ``-X importtime``, and the modules it imported (those lines' names)."""
+    result = subprocess.run([sys.executable, "-X", "importtime", "-m", "voxe_core.cli", *argv], cwd=REPO,
+                            capture_output=True, text=True, timeout=120)
+    lines = result.stderr.splitlines(keepends=True)
+    imported = {line.rsplit("|", 1)[1].strip() for line in lines if line.startswith("import time:")}
+    result.stderr = "".join(line for line in lines if not line.startswith("import time:"))
+    return result, imported
+
+
+def test_the_service_commands_talk_to_the_service_without_loading_torch(api, tmp_path):
+    """Every ``voxe`` command had imported torch as it started (its error handling imported the library's dataset
+    and tensor-file modules), so ``voxe status`` took seconds; the commands that only talk to the service load
+    neither torch nor the library's stages, and answer as before."""
+    url, _ = api
+    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+    with Client(url) as client:
+        scene_id = client.upload_scene(tmp_path / "plane.obj")["id"]
+    service = ["--api", url]
+    submitted, imported = _voxe_in_a_process("submit", "a plane of gold", "--scene", scene_id, *service)
+    assert submitted.returncode == 0, submitted.stderr
+    job_id = submitted.stdout.strip()
+    assert "torch" not in imported and "voxe_core.data" not in imported and "voxe_client" in imported
+    said = {}
+    for argv in (["status", job_id], ["cancel", job_id], ["wait", job_id, "--quiet"],
+                 ["download", job_id, "--out", str(tmp_path / "artifacts")], ["sweep", "--scene", f"{scene_id}=plane"]):
+        result, imported = _voxe_in_a_process(*argv, *service)
+        said[argv[0]] = result.returncode, "torch" in imported, result.stdout
+    assert {command: said[command][:2] for command in said} == {
+        "status": (0, False), "cancel": (0, False), "wait": (1, False), "download": (0, False), "sweep": (0, False)}
+    assert json.loads(said["status"][2])["id"] == job_id and json.loads(said["wait"][2])["state"] == "canceled"
+    refused, imported = _voxe_in_a_process("status", job_id, "--api", "http://127.0.0.1:9")
+    assert (refused.returncode, "torch" in imported) == (3, False)
+    assert refused.stderr == "voxe status: error: cannot reach the service at http://127.0.0.1:9: [Errno 111] " \
+                             "Connection refused\n"
 
 
 class _LosingAnswers(httpx.HTTPTransport):

@@ -61,9 +61,6 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     """The command's exit status, its errors said in one line on stderr."""
-    from voxe_core.data import DatasetError
-    from voxe_core.tensorio import FormatError
-
     try:
         status = args.run(args)
         sys.stdout.flush()  # here, not as Python exits: a reader gone is then a BrokenPipeError caught below
@@ -71,8 +68,9 @@ def _run(args: argparse.Namespace) -> int:
     except BrokenPipeError:  # (an OSError: it had printed "error: [Errno 32] Broken pipe" and exited 2)
         _stdout_to_null()
         return EXIT_OUTPUT_CLOSED
-    except (DatasetError, FormatError, ValueError, ArithmeticError, OSError) as exc:  # Arithmetic: EditDiverged
-        kind = "dataset error" if isinstance(exc, DatasetError) else "error"
+    # (DatasetError and FormatError are ValueErrors, EditDiverged an ArithmeticError)
+    except (ValueError, ArithmeticError, OSError) as exc:
+        kind = "dataset error" if _is_dataset_error(exc) else "error"
         print(f"voxe {args.command}: {kind}: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except (MemoryError, RuntimeError) as exc:  # torch's allocators raise RuntimeErrors ("can't allocate memory")
@@ -86,6 +84,13 @@ def _run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print("\nvoxe: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+
+
+def _is_dataset_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is a ``voxe_core.data.DatasetError``, without importing that module: it loads torch, which had
+    taken seconds of every ``voxe status`` that never reads a dataset (one that raised it had imported it)."""
+    data = sys.modules.get("voxe_core.data")
+    return data is not None and isinstance(exc, data.DatasetError)
 
 
 def _stdout_to_null() -> None:
