@@ -160,7 +160,7 @@ def test_a_waited_sweep_exits_1_unless_it_succeeded(monkeypatch, capsys, tmp_pat
         def __exit__(self, *exc):
             return None
 
-        def create_sweep(self, scenes, params=None, evaluation=None):
+        def create_sweep(self, scenes, params=None, evaluation=None, idempotency_key=None):
             return {"id": "s1", "entries": [{}] * 6, "state": "queued", "counts": {"queued": 12}, "table": "T\n"}
 
         def get_sweep(self, sweep_id):
@@ -189,7 +189,7 @@ def test_ctrl_c_during_a_waited_sweeps_pause_stops_waiting_at_once(monkeypatch, 
         def __exit__(self, *exc):
             return None
 
-        def create_sweep(self, scenes, params=None, evaluation=None):
+        def create_sweep(self, scenes, params=None, evaluation=None, idempotency_key=None):
             return {"id": "s1", "entries": [{}] * 6, "state": "queued", "counts": {"queued": 12}, "table": "T\n"}
 
         def get_sweep(self, sweep_id):

@@ -695,6 +695,42 @@ def test_a_submit_refused_deletes_the_scene_it_uploaded_and_no_other(api, tmp_pa
         assert [scene["id"] for scene in client.request("GET", "/v1/scenes")["items"]] == [kept]
 
 
+def test_submit_and_sweep_run_again_with_their_idempotency_key_make_one(api, tmp_path, capsys):
+    """``voxe submit`` and ``voxe sweep`` had sent a new key each run, so a script running one again after a failure
+    made a second job. With ``--idempotency-key`` a run again answers with what the first made; the key the job
+    refused (bad params) made nothing, and the scene it uploaded stays for the run that fixes them: it may be an
+    earlier run's, whose job deleting it would take too."""
+    from voxe_core.cli import main
+
+    url, _ = api
+    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+    submit = ["submit", "a plane of gold", "--upload", str(tmp_path / "plane.obj"), "--api", url,
+              "--idempotency-key", "nightly-7"]
+    assert main([*submit, "--params", '{"iterations": -1}']) == 2
+    err = capsys.readouterr().err
+    scene_id = err.split("scene ", 1)[1].split()[0]
+    assert "HTTP 422" in err and err.endswith(f"the scene {scene_id} stays: a run with --idempotency-key 'nightly-7' "
+                                              f"takes it up again, as --scene {scene_id} does\n")
+    runs = []
+    for _ in range(2):
+        assert main(submit) == 0
+        runs.append(capsys.readouterr().out.strip())
+    assert main(["submit", "a plane of tin", *submit[2:]]) == 2
+    assert "Idempotency-Key 'nightly-7' was already used with a different request body" in capsys.readouterr().err
+    with Client(url) as client:
+        assert [scene["id"] for scene in client.request("GET", "/v1/scenes")["items"]] == [scene_id]
+        assert [job["id"] for job in client.request("GET", "/v1/jobs")["items"]] == runs[:1] and runs[0] == runs[1]
+        assert client.get_job(runs[0])["scene_id"] == scene_id
+    sweep = ["sweep", "--scene", f"{scene_id}=plane", "--api", url, "--idempotency-key", "nightly-7"]
+    sweeps = []
+    for _ in range(2):
+        assert main(sweep) == 0
+        sweeps.append(capsys.readouterr().out.strip())
+    with Client(url) as client:
+        assert sweeps[0] == sweeps[1] and len(client.request("GET", "/v1/jobs", params={"limit": 200})["items"]) == \
+            1 + 2 * len(client.get_sweep(sweeps[0])["entries"])
+
+
 def _voxe_in_a_process(*argv: str) -> tuple[subprocess.CompletedProcess, set[str]]:
     """``voxe ARGV`` run as its own process (``python -m voxe_core.cli``): what it ended with, its stderr without
     the lines of ``-X importtime``, and the modules it imported (those lines' names)."""

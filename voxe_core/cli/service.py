@@ -61,6 +61,7 @@ def add_parsers(commands, common) -> None:
     sub.add_argument("--webhook-url", default=None, metavar="URL", help="POST the job's events here, signed")
     sub.add_argument("--wait", action="store_true", help="follow the job's events until it ends")
     _add_reconnect_argument(sub)
+    _add_idempotency_argument(sub, "the job (with --upload, also the scene) the first run made")
     sub.set_defaults(run=cmd_submit)
     for name, help_text in (("status", "the job's record as JSON"), ("wait", "follow the job's live events until "
                             "it ends (a progress bar on stderr)"), ("cancel", "cancel the job")):
@@ -91,6 +92,7 @@ def add_parsers(commands, common) -> None:
     sw.add_argument("--poll", type=positive_seconds, default=None, metavar="SECONDS",  # checked before the sweep
                     help=f"with --wait: seconds between polls (default {SWEEP_POLL_S:g})")
     sw.add_argument("--out", type=Path, default=None, metavar="FILE", help="also write the final summary JSON here")
+    _add_idempotency_argument(sw, "the sweep the first run made")
     sw.set_defaults(run=cmd_sweep)
 
 
@@ -100,6 +102,14 @@ def _add_reconnect_argument(parser: argparse.ArgumentParser) -> None:
                         help="while following the job, keep reconnecting to a service that stopped answering (an "
                              "API restart) this long before giving up (default 300; the job goes on in the service "
                              "either way)")
+
+
+def _add_idempotency_argument(parser: argparse.ArgumentParser, made: str) -> None:
+    """``--idempotency-key``: a script that runs the command again after a failure gets back ``made``, not a second
+    one (each run had sent a key of its own)."""
+    parser.add_argument("--idempotency-key", default=None, metavar="KEY",
+                        help=f"sent as the Idempotency-Key header: a run with the same KEY and request answers with "
+                             f"{made} instead of making another (default: a new key each run; 1-255 characters)")
 
 
 SWEEP_POLL_S = 10.0
@@ -190,7 +200,8 @@ def cmd_submit(args) -> int:
             if args.upload is not None:
                 with warnings.catch_warnings(record=True) as left_out:  # a mesh's .mtl or texture not found
                     warnings.simplefilter("always", MissingCompanionWarning)
-                    scene_id = client.upload_scene(args.upload, texture=args.texture)["id"]
+                    scene_id = client.upload_scene(args.upload, texture=args.texture,
+                                                   idempotency_key=args.idempotency_key)["id"]
                 for warning in left_out:
                     if issubclass(warning.category, MissingCompanionWarning):
                         print(f"voxe submit: warning: {warning.message}", file=sys.stderr)
@@ -201,11 +212,12 @@ def cmd_submit(args) -> int:
             fields.update({k: v for k, v in (("params", args.params), ("webhook_url", args.webhook_url))
                            if v is not None})  # (an empty --webhook-url "$UNSET" had been dropped, the job made)
             try:
-                job = client.create_job(scene_id, args.prompt, **fields)
+                job = client.create_job(scene_id, args.prompt, idempotency_key=args.idempotency_key, **fields)
             except ServiceError as exc:
                 if args.upload is None:
                     raise
-                raise type(exc)(f"{exc}; {_after_refusal(client, scene_id, exc)}", exc.status, exc.detail) from None
+                raise type(exc)(f"{exc}; {_after_refusal(client, scene_id, exc, args.idempotency_key)}", exc.status,
+                                exc.detail) from None
             print(f"job {job['id']}: {job['state']}", file=sys.stderr)
             if args.wait:
                 return _follow(client, job["id"], args)
@@ -223,14 +235,19 @@ def _service_error(command: str, error) -> int:
     return EXIT_SERVICE_FAILED if error.service_failed else EXIT_USAGE
 
 
-def _after_refusal(client, scene_id: str, refusal) -> str:
+def _after_refusal(client, scene_id: str, refusal, idempotency_key: str | None) -> str:
     """What became of the scene ``voxe submit --upload`` uploaded for a job the service did not take: deleted when
     the service refused the job (a 4xx: no job was made, and the scene had stayed behind, counting towards the key's
-    upload quota), else kept for ``--scene`` (the service may have made the job before the answer was lost)."""
+    upload quota), else kept for ``--scene`` (the service may have made the job before the answer was lost). One sent
+    with an ``idempotency_key`` stays too: it may be an earlier run's scene answered again, with that run's job, and
+    a run with the key takes it up again."""
     from voxe_client import ServiceError
 
     if refusal.status is None or not 400 <= refusal.status < 500:
         return f"the scene {scene_id} this command uploaded stays (use it with --scene {scene_id})"
+    if idempotency_key is not None:
+        return (f"the scene {scene_id} stays: a run with --idempotency-key {idempotency_key!r} takes it up again, "
+                f"as --scene {scene_id} does")
     try:
         client.delete_scene(scene_id)
     except ServiceError as exc:
@@ -305,7 +322,8 @@ def cmd_sweep(args) -> int:
         writable_file(args.out)
     with _client(args) as client:
         try:
-            sweep = client.create_sweep(args.scene, params=args.params, evaluation=args.evaluation)
+            sweep = client.create_sweep(args.scene, params=args.params, evaluation=args.evaluation,
+                                        idempotency_key=args.idempotency_key)
             print(f"sweep {sweep['id']}: {len(sweep['entries'])} edits of {len(args.scene)} scene(s) queued, each "
                   f"followed by its evaluation; GET {client.base_url}/v1/sweeps/{sweep['id']}", file=sys.stderr)
             interrupt, failing_since = Interrupt(), None
