@@ -731,6 +731,28 @@ def test_submit_and_sweep_run_again_with_their_idempotency_key_make_one(api, tmp
             1 + 2 * len(client.get_sweep(sweeps[0])["entries"])
 
 
+def test_an_idempotency_key_is_sent_as_utf8_and_one_no_header_carries_is_refused_naming_it(api, tmp_path, capsys):
+    """The service takes a key of UTF-8 text, but the client had sent headers as ASCII: ``--idempotency-key clé``
+    failed with "'ascii' codec can't encode characters"; a key with a line break had been said as "cannot reach the
+    service" (exit 3, for a script: try again later)."""
+    from voxe_core.cli import main
+
+    url, _ = api
+    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+    submit = ["submit", "a plane of gold", "--upload", str(tmp_path / "plane.obj"), "--api", url]
+    jobs = []
+    for _ in range(2):
+        assert main([*submit, "--idempotency-key", "clé du soir"]) == 0
+        jobs.append(capsys.readouterr().out.strip())
+    assert jobs[0] == jobs[1]
+    assert main([*submit, "--idempotency-key", "run\n7"]) == 2
+    assert capsys.readouterr().err == ("voxe submit: error: Idempotency-Key 'run\\n7' cannot be sent: a header "
+                                       "carries no line break, NUL or other whitespace than spaces and tabs\n")
+    with Client(url) as client:
+        assert len(client.request("GET", "/v1/scenes")["items"]) == 1
+        assert [job["id"] for job in client.request("GET", "/v1/jobs")["items"]] == jobs[:1]
+
+
 def _voxe_in_a_process(*argv: str) -> tuple[subprocess.CompletedProcess, set[str]]:
     """``voxe ARGV`` run as its own process (``python -m voxe_core.cli``): what it ended with, its stderr without
     the lines of ``-X importtime``, and the modules it imported (those lines' names)."""

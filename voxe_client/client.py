@@ -6,6 +6,7 @@ import hashlib
 import itertools
 import json
 import os
+import re
 import time
 import uuid
 import warnings
@@ -132,7 +133,7 @@ class Client:
         ServiceError for an error status. With ``idempotency_key`` (its ``Idempotency-Key`` header) the request is
         sent again when its answer is lost (see the class)."""
         if idempotency_key is not None:
-            kwargs["headers"] = {**kwargs.get("headers", {}), IDEMPOTENCY_HEADER: idempotency_key}
+            kwargs["headers"] = {**kwargs.get("headers", {}), IDEMPOTENCY_HEADER: _header_bytes(idempotency_key)}
         try:
             response = self._send(method, path, json=body, resendable=idempotency_key is not None, **kwargs)
         except (httpx.TransportError, httpx.InvalidURL) as exc:
@@ -459,6 +460,20 @@ def _keyed_values(path: Path, key: str) -> Iterator[str]:
 def _submission_key(given: str | None) -> str:
     """The Idempotency-Key of one submission, sent with each of its sendings: the caller's, else a fresh one."""
     return str(uuid.uuid4()) if given is None else given
+
+
+HEADER_BREAKS = re.compile(r"[\x00\r\n\v\f]")
+"""What no HTTP header value carries (httpx's h11 refuses NUL and any whitespace but spaces and tabs)."""
+
+
+def _header_bytes(key: str) -> bytes:
+    """An Idempotency-Key as its header's bytes: UTF-8, as the service reads it (httpx's default ASCII had refused a
+    key the service takes, "clé", with "'ascii' codec can't encode"); a ValueError naming a key no header carries
+    (one with a line break had been said as "cannot reach the service", exit 3)."""
+    if HEADER_BREAKS.search(key):
+        raise ValueError(f"Idempotency-Key {key!r} cannot be sent: a header carries no line break, NUL or other "
+                         "whitespace than spaces and tabs")
+    return key.encode()
 
 
 def _retry_after(response: httpx.Response) -> float | None:
