@@ -529,13 +529,14 @@ def test_a_download_of_an_unfinished_job_says_it_has_only_what_it_has_so_far(sta
 
 
 def test_an_output_that_cannot_be_written_is_refused_before_the_inputs_are_read(tmp_path, capsys):
-    """render, refine, evaluate, mesh-to-grid and export-mesh had run their whole stage, then failed on --out (a
-    file where a folder goes, a folder where a file goes): each input here is missing, so a check made after
+    """render, refine, evaluate, mesh-to-grid, export-mesh and turntable had run their whole stage, then failed on
+    --out (a file where a folder goes, a folder where a file goes): each input here is missing, so a check made after
     reading them would name the input, not the output."""
     a_file, a_folder, a_grid_folder = tmp_path / "afile", tmp_path / "afolder.ply", tmp_path / "afolder.safetensors"
+    a_video_folder = tmp_path / "afolder.gif"
     a_file.write_text("x")
-    a_folder.mkdir()
-    a_grid_folder.mkdir()
+    for folder in (a_folder, a_grid_folder, a_video_folder):
+        folder.mkdir()
     missing = str(tmp_path / "missing.safetensors")
     for command, out, said in (
         (["render", missing, "--ring", "2"], a_file, f"cannot write into {a_file}: it is a file, not a folder"),
@@ -545,6 +546,7 @@ def test_an_output_that_cannot_be_written_is_refused_before_the_inputs_are_read(
          f"cannot write into {a_file}: it is a file, not a folder"),
         (["mesh-to-grid", str(tmp_path / "missing.obj")], a_grid_folder, f"cannot write {a_grid_folder}: it is a folder"),
         (["export-mesh", missing], a_folder, f"cannot write {a_folder}: it is a folder"),
+        (["turntable", missing], a_video_folder, f"cannot write {a_video_folder}: it is a folder"),
     ):
         assert main([*command, "--out", str(out), "--device", "cpu"]) == 2, command
         err = capsys.readouterr().err

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, add_device_argument, add_view_arguments, check_device, load_views, positive_int,
-    run_stage, view_options_given, writable_folder,
+    run_stage, view_options_given, writable_file, writable_folder,
 )
 from voxe_core.files import replacing
 from voxe_core.presets import ExportConfig
@@ -151,6 +151,7 @@ def cmd_turntable(args) -> int:
 
     check_video_output(args.out, args.fps)  # fail before rendering, not after
     device = check_device(args)
+    writable_file(args.out)  # (a folder not writable had failed after the render, imageio's traceback beside it)
     grid = load_grid(args.grid)
     cameras = turntable_cameras(args.frames, args.elevation, args.size, centre=orbit_centre(args, grid))
     written = run_stage(  # each frame encoded as it is rendered (a long turntable had been held whole first)
