@@ -553,6 +553,33 @@ def test_an_output_that_cannot_be_written_is_refused_before_the_inputs_are_read(
         assert said in err and "missing" not in err.replace(said, ""), (command, err)
 
 
+def test_an_output_under_a_file_or_in_a_folder_not_writable_is_refused_naming_why(sphere_file, tmp_path, capsys,
+                                                                                   monkeypatch):
+    """``--out notes.txt/grid.safetensors`` had said "[Errno 17] File exists: 'notes.txt'", a folder deeper under it
+    "[Errno 20] Not a directory", and build-tiny-model onto a file the first; a folder the command may not make
+    "[Errno 13] Permission denied: 'ro/views'" (as root here: mkdir refused by hand)."""
+    notes = tmp_path / "notes.txt"
+    notes.write_text("x")
+    for command, said in (
+        (["convert-grid", str(sphere_file), "--out", str(notes / "g.safetensors")],
+         f"cannot make the folder {notes}: {notes} is a file, not a folder"),
+        (["render", str(sphere_file), "--ring", "2", "--size", "8", "--out", str(notes / "views" / "ring")],
+         f"cannot make the folder {notes / 'views' / 'ring'}: {notes} is a file, not a folder"),
+        (["build-tiny-model", str(notes)], f"cannot write into {notes}: it is a file, not a folder"),
+    ):
+        assert main([*command, "--quiet"]) == 2
+        assert capsys.readouterr().err == f"voxe {command[0]}: error: {said}\n"
+    assert notes.read_text() == "x" and sorted(tmp_path.iterdir()) == sorted([notes, sphere_file])
+
+    def refused(path, *args, **kwargs):
+        raise PermissionError(13, "Permission denied", str(path))
+
+    monkeypatch.setattr(Path, "mkdir", refused)
+    assert main(["render", str(sphere_file), "--ring", "2", "--size", "8", "--out", str(tmp_path / "views")]) == 2
+    assert capsys.readouterr().err == \
+        f"voxe render: error: cannot make the folder {tmp_path / 'views'}: permission denied\n"
+
+
 def test_progress_off_a_terminal_is_a_line_now_and_then_not_ten_redraws_a_second(capsys, monkeypatch):
     """A 13 s reconstruct into a log had written 125 carriage-returned redraws (3.8 MB an hour); voxe wait's bar
     redrew unchanged snapshots too."""

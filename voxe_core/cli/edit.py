@@ -141,7 +141,7 @@ def cmd_edit(args) -> int:
 def cmd_build_tiny_model(args) -> int:
     from voxe_core.tiny_sd import build_tiny_stable_diffusion
 
-    path = build_tiny_stable_diffusion(args.out, seed=args.seed)
+    path = build_tiny_stable_diffusion(writable_folder(args.out), seed=args.seed)
     print(
         f"wrote {path}: SMOKE-TEST MODEL with RANDOM WEIGHTS (seed {args.seed}), for plumbing only; "
         f"edits made with it are noise and say nothing about quality. Use it as `voxe edit ... --model {path}`."
