@@ -849,6 +849,16 @@ def test_bad_data_is_said_as_a_dataset_error_and_a_bad_grid_as_an_error(tmp_path
     assert capsys.readouterr().err == f"voxe convert-grid: error: {tmp_path / 'none.safetensors'}: no such file\n"
 
 
+def test_a_grid_that_cannot_be_read_is_said_so_not_missing(sphere_file, tmp_path, capsys):
+    """A grid without read permission had been "not a readable safetensors file (No such file or directory: ...)",
+    safetensors' words, of a file that is there. (Root reads it all the same: skipped where this process does.)"""
+    sphere_file.chmod(0)
+    if os.access(sphere_file, os.R_OK):
+        pytest.skip("this process reads files without read permission (root)")
+    assert main(["convert-grid", str(sphere_file), "--out", str(tmp_path / "g.safetensors")]) == 2
+    assert capsys.readouterr().err == f"voxe convert-grid: error: {sphere_file}: cannot be read: permission denied\n"
+
+
 def test_cli_as_a_real_process_has_no_traceback(tmp_path):
     result = subprocess.run(
         [sys.executable, "-m", "voxe_core.cli", "export-mesh", str(tmp_path / "missing.safetensors"),

@@ -83,6 +83,8 @@ def load_header(path: str | os.PathLike, kind: str, max_version: int) -> dict:
         raise FormatError(f"{path}: is a folder, not a file")
     if not path.is_file():
         raise FormatError(f"{path}: no such file")
+    if not os.access(path, os.R_OK):  # (safetensors had said "No such file or directory" of it)
+        raise FormatError(f"{path}: cannot be read: permission denied")
     try:
         from safetensors import safe_open
 
