@@ -175,7 +175,8 @@ def test_a_waited_sweep_exits_1_unless_it_succeeded(monkeypatch, capsys, tmp_pat
 
 def test_ctrl_c_during_a_waited_sweeps_pause_stops_waiting_at_once(monkeypatch, capsys):
     """Ctrl-C between a waited sweep's polls had been answered only once the pause was over (``--poll 600``: ten
-    minutes), the handler's return resuming the sleep."""
+    minutes), the handler's return resuming the sleep; and no poll follows the Ctrl-C (a hung service's had held it up
+    to a minute more)."""
     import threading
 
     import voxe_core.cli.service as service
@@ -193,7 +194,10 @@ def test_ctrl_c_during_a_waited_sweeps_pause_stops_waiting_at_once(monkeypatch, 
             return {"id": "s1", "entries": [{}] * 6, "state": "queued", "counts": {"queued": 12}, "table": "T\n"}
 
         def get_sweep(self, sweep_id):
+            polls.append(sweep_id)
             return {"id": sweep_id, "entries": [], "state": "running", "counts": {"running": 12}, "table": "T\n"}
+
+    polls = []
 
     def ctrl_c_while_waiting():
         while signal.getsignal(signal.SIGINT) is default:  # once the command's handler is in place
@@ -206,7 +210,7 @@ def test_ctrl_c_during_a_waited_sweeps_pause_stops_waiting_at_once(monkeypatch, 
     threading.Thread(target=ctrl_c_while_waiting, daemon=True).start()
     started = time.monotonic()
     assert main(["sweep", "--scene", "s1=mic", "--wait", "--poll", "20"]) == 130
-    assert time.monotonic() - started < 10
+    assert time.monotonic() - started < 10 and polls == []
     assert capsys.readouterr().err.endswith("voxe sweep: stopped waiting; the sweep s1 goes on in the service\n")
 
 

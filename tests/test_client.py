@@ -350,7 +350,7 @@ def test_a_submission_not_answered_in_time_is_not_sent_again_and_the_error_names
         assert str(no_answer.value) == (
             f"POST /v1/scenes: {client.base_url} did not answer in time ({timeout.__name__}: timed out); the service "
             "may have taken the request and still be working on it, so it was not sent again (it would be done "
-            "twice): send it again later with Idempotency-Key 'upload-1' for what it made")
+            "twice): send it again later with Idempotency-Key 'upload-1' (voxe: --idempotency-key) for what it made")
         sent.clear()
         answers[:] = [httpx.ConnectTimeout, None]
         assert client.upload_scene(tmp_path / "scene.zip")["id"] == "s1" and len(sent) == 2

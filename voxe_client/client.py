@@ -141,8 +141,8 @@ class Client:
                 raise ServiceUnreachable(
                     f"{method} {path}: {self.base_url} did not answer in time ({type(exc).__name__}: {exc}); the "
                     "service may have taken the request and still be working on it, so it was not sent again (it "
-                    f"would be done twice): send it again later with {IDEMPOTENCY_HEADER} '{idempotency_key}' for "
-                    "what it made") from None
+                    f"would be done twice): send it again later with {IDEMPOTENCY_HEADER} '{idempotency_key}' (voxe: "
+                    "--idempotency-key) for what it made") from None
             raise ServiceUnreachable(f"cannot reach the service at {self.base_url}: {exc}") from None
         _raise_for_error(response, method, path)
         if response.status_code == httpx.codes.NO_CONTENT:

@@ -11,9 +11,9 @@
     voxe refine EDITED_GRID --initial GRID --prompt TEXT --edit-words WORDS --out DIR ...         (refine)
     voxe evaluate GRID --edit EDITED_GRID PROMPT [MASK] ... --object NAME --out DIR ...          (evaluate)
     voxe export-mesh GRID --out mesh.obj (+ mesh.mtl beside it)                                    (mesh)
-    voxe submit PROMPT --scene SCENE_ID | --upload PATH [--texture IMG] [--mode local --edit-word W] [--wait] (service)
+    voxe submit PROMPT --scene SCENE_ID | --upload PATH [--mode local --edit-word W] [--idempotency-key K] [--wait]
     voxe status | wait | cancel JOB_ID;  voxe download JOB_ID [--name N] --out DIR (sha256 checked) (service)
-    voxe sweep --api URL --scene SCENE_ID=OBJECT ... [--params JSON] [--evaluation JSON] [--wait] (service)
+    voxe sweep --api URL --scene SCENE_ID=OBJECT ... [--params JSON] [--idempotency-key K] [--wait]     (service)
 
 Options that are job parameters of the service take their defaults from ``voxe_core.presets`` and
 resolve to stage configs there, as the worker's do. Bad input (dataset, grid file, option values)

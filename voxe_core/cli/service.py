@@ -332,6 +332,8 @@ def cmd_sweep(args) -> int:
                     if not args.quiet and failing_since is None:  # (not again what the last answer said)
                         print(f"sweep {sweep['id']}: {sweep['state']}, jobs {sweep['counts']}", file=sys.stderr)
                     interrupt.sleep(args.poll or SWEEP_POLL_S)
+                    if interrupt.requested:  # no poll after a Ctrl-C: a hung service's would hold it up
+                        break
                     try:
                         sweep, failing_since = client.get_sweep(sweep["id"]), None
                     except ServiceError as exc:
