@@ -272,7 +272,7 @@ def test_a_scene_grid_beyond_the_far_ratio_bound_says_so_rather_than_damaged(tmp
 @pytest.mark.parametrize("field, value, message", [
     ("near_samples", 2.9, "near_samples must be a whole number, got 2.9"),  # had been cut to 2
     ("far_samples", 1e300, "far_samples must be a whole number, got 1e+300"),  # the render had failed (an overflow)
-    ("near_samples", 10**12, "near_samples must be at most 1024 (MAX_NEAR_FAR_SAMPLES), got 1000000000000"),  # 4 TB
+    ("near_samples", 10**12, "near_samples must be at most 4194304 (MAX_NEAR_FAR_SAMPLES), got 1000000000000"),  # 4 TB
     ("foreground_extent", 1e300, "foreground_extent must be a positive length, finite in float32, got 1e+300"),
     ("foreground_extent", True, "foreground_extent must be a positive length, finite in float32, got True"),  # 1
 ])

@@ -81,13 +81,34 @@ def test_uniform_density_renders_the_analytic_colour():
 
 @pytest.mark.parametrize("name", ["near_samples", "far_samples"])
 def test_more_near_or_far_bins_than_a_pass_holds_are_refused_by_name(name):
-    """1e12 bins had been taken, and failed the render allocating 4 TB; the bound itself renders."""
-    with pytest.raises(ValueError, match=rf"^{name} must be at most 1024 \(MAX_NEAR_FAR_SAMPLES\), got 1000000000000$"):
+    """1e12 bins had been taken, and failed the render allocating 4 TB."""
+    with pytest.raises(ValueError, match=rf"^{name} must be at most 4194304 \(MAX_NEAR_FAR_SAMPLES\), got 10{{12}}$"):
         SceneGrid(9, **{name: 10**12})
-    most = SceneGrid(9, init_density=-1.0, **{name: MAX_NEAR_FAR_SAMPLES})
-    out = render_rays(most, torch.tensor([[0.0, 0.0, 4.0]]), torch.tensor([[0.0, 0.0, -1.0]]),
+    assert MAX_NEAR_FAR_SAMPLES == 4194304
+
+
+def test_a_scene_grid_of_many_far_bins_loads_and_samples_fewer_rays_a_pass(tmp_path):
+    """A grid of 2048 far bins, as an older version saved (it took any count), had been refused on load as damaged;
+    past 2 x 1024 near and far bins a pass samples fewer rays, each ray's samples as in a pass of its own."""
+    older = SceneGrid(9, init_density=-1.0)
+    older.far_samples = 2048
+    older.save(tmp_path / "older.safetensors")
+    loaded = load_grid(tmp_path / "older.safetensors")
+    assert loaded.far_samples == 2048
+    out = render_rays(loaded, torch.tensor([[0.0, 0.0, 4.0]]), torch.tensor([[0.0, 0.0, -1.0]]),
                       RenderConfig(background=(0.2, 0.4, 0.6), skip_empty=False))
     assert torch.allclose(out.rgb, torch.tensor([[0.2, 0.4, 0.6]])) and out.opacity.item() == 0.0
+
+    many = SceneGrid(9, far_samples=2**20)  # 2**23 bins a pass: 7 rays
+    origins = torch.tensor([[0.0, 0.0, 4.0]]).repeat(10, 1) + torch.linspace(-0.5, 0.5, 10)[:, None]
+    directions = torch.tensor([[0.0, 0.0, -1.0]]).repeat(10, 1)
+    offsets = torch.full((10,), 0.5)
+    passes = list(many.ray_samples(origins, directions, offsets, step_ratio=0.5))
+    assert [int(p.ray.unique().numel()) for p in passes] == [7, 3]
+    for i in (0, 8):  # a ray of each pass: its samples as alone
+        [alone] = many.ray_samples(origins[i : i + 1], directions[i : i + 1], offsets[i : i + 1], step_ratio=0.5)
+        mine = next(p for p in passes if (p.ray == i).any())
+        assert torch.equal(mine.t[mine.ray == i], alone.t) and torch.equal(mine.points[mine.ray == i], alone.points)
 
 
 @pytest.mark.parametrize("far_ratio", [math.inf, math.nan, 1.0, 3e38, 1.1e6])

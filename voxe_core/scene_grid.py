@@ -52,11 +52,13 @@ CONTRACTED_EXTENT = 2.0  # the contraction maps all of space into [-2, 2]^3
 _RAYS_PER_PASS = 4096  # rays sampled together, bounding the (rays, bins) tensors of whole-image renders
 _UNBOUNDED = 1e6  # world half-extent standing in for "the occupied cells reach into the background"
 MAX_FAR_RATIO = 1e6  # the far bins reach this times the exit distance at most: past ~1e38 its float32 product overflowed
-MAX_NEAR_FAR_SAMPLES = 1024
-"""The most ``near_samples`` or ``far_samples`` a scene grid takes: a pass of ``_RAYS_PER_PASS`` rays then holds at
-most 2^22 of either's bins, the samples a pass holds on an accelerator (``RenderConfig.pass_samples``); 16 times the
-default far bins. At 1024 each a 64x64 render held 2.9 GB on the CPU (0.4 GB at the defaults); 1e12 near bins had
-loaded from a file and failed its render, allocating 4 TB."""
+_NEAR_FAR_BINS_PER_PASS = 2 * 1024 * _RAYS_PER_PASS
+"""The near and far bins a pass holds at most: 4,096 rays of up to 1024 of each, 16 times the default far bins (at
+1024 each a 64x64 render held 2.9 GB on the CPU, 0.4 GB at the defaults). A grid with more bins (an older version
+took any count) samples fewer rays a pass."""
+MAX_NEAR_FAR_SAMPLES = _NEAR_FAR_BINS_PER_PASS // 2
+"""The most ``near_samples`` or ``far_samples`` a scene grid takes: both at most fill a pass with one ray. 1e12 near
+bins had loaded from a file and failed its render, allocating 4 TB."""
 EARLY_STOP_CAP = 1e-6
 """The scene sampler stops rays at transmittance min(``early_stop``, this). Behind the cut lies the
 room, not the white background the compositor puts there, so the density gradient of the last kept
@@ -244,7 +246,7 @@ class SceneGrid(VoxelGrid):
     ) -> Iterator[RaySamples]:
         """``VoxelGrid.ray_samples`` for this backbone: one sample per bin of :meth:`ray_bins`, at ``offsets`` (N,) within it.
 
-        Rays go in groups of 4,096 (their bins are laid out densely first);
+        Rays go in groups of 4,096, fewer past 2 x 1024 near and far bins (their bins are laid out densely first);
         ``samples_per_pass`` is not used. Points are returned contracted (the
         lattice's coordinates); with an ``occupancy`` only those in occupied cells are kept.
         ``early_stop`` > 0 drops, as the ReLU field's sampler does (``VoxelGrid._stop_early``),
@@ -260,12 +262,13 @@ class SceneGrid(VoxelGrid):
         # Zeroed, a ray that is none gets finite bins, and none of them is kept.
         origins = torch.where(is_ray[:, None], origins, 0.0)
         directions = torch.where(is_ray[:, None], directions, 0.0)
-        for s in range(0, origins.shape[0], _RAYS_PER_PASS):
-            o, d = origins[s : s + _RAYS_PER_PASS], directions[s : s + _RAYS_PER_PASS]
+        rays = max(1, min(_RAYS_PER_PASS, _NEAR_FAR_BINS_PER_PASS // (self.near_samples + self.far_samples)))
+        for s in range(0, origins.shape[0], rays):
+            o, d = origins[s : s + rays], directions[s : s + rays]
             edges, valid = self.ray_bins(o, d, step_ratio)
-            valid = valid & is_ray[s : s + _RAYS_PER_PASS, None]
+            valid = valid & is_ray[s : s + rays, None]
             delta = edges[:, 1:] - edges[:, :-1]
-            t = edges[:, :-1] + offsets[s : s + _RAYS_PER_PASS, None] * delta
+            t = edges[:, :-1] + offsets[s : s + rays, None] * delta
             points = self.lattice_points(o[:, None, :] + t[..., None] * d[:, None, :])
             candidates = int(valid.sum())
             if occupancy is not None:
