@@ -1251,7 +1251,8 @@ def test_evaluate_into_an_earlier_output_leaves_no_stale_ring_renders(sphere_fil
 def test_an_evaluation_that_fails_leaves_the_earlier_ring_renders_and_nothing_of_its_own(sphere_file, tmp_path,
                                                                                       monkeypatch):
     """Each ring is saved as it is scored (not all held to the end), into a staging folder beside --out's: a run that
-    fails after G_i's ring was saved leaves the earlier run's renders as they were, and no staging folder."""
+    fails after G_i's ring was saved leaves the earlier run's renders as they were, and no staging folder; a killed
+    run's staging folder (a full ring a grid) goes at the next run."""
     import voxe_core.evaluate
     from voxe_core.tiny_eval import build_tiny_clip
 
@@ -1259,7 +1260,10 @@ def test_an_evaluation_that_fails_leaves_the_earlier_ring_renders_and_nothing_of
     out = tmp_path / "eval"
     command = ["evaluate", str(sphere_file), "--object", "ball", "--out", str(out), "--clip-model", str(clip),
                "--size", "16", "-q", "--edit", str(sphere_file), "a claymation ball"]
+    (out / ".ring-staging" / "initial").mkdir(parents=True)
+    (out / ".ring-staging" / "initial" / "000.png").write_bytes(b"a killed run's")
     assert main(command + ["--views", "2"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["evaluation.json", "evaluation.md", "ring"]
     before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
 
     def failing(*args, **kwargs):

@@ -6,7 +6,7 @@ import json
 import os
 import re
 import sys
-import tempfile
+import shutil
 from pathlib import Path
 
 from voxe_core.cli.common import (
@@ -81,20 +81,26 @@ def cmd_evaluate(args) -> int:
         return EXIT_USAGE
     out = args.out
     # Each ring saved as it is scored, beside the earlier run's until the evaluation ends (all had been held to the
-    # end); a cancelled or failed run leaves the earlier one as it was
-    with tempfile.TemporaryDirectory(prefix=".ring-", dir=out) as staging:
+    # end); a cancelled or failed run leaves the earlier one as it was. One staging name, so a killed run's goes at
+    # the next run's start.
+    staging = out / RING_STAGING
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir()
+    try:
         result = run_stage(
             lambda cb: evaluate(initial, edits, args.object, clip, fid, input_images, config, cb, device=device,
-                                on_ring=lambda name, frames: save_png_set(Path(staging) / (name or "initial"), frames)),
+                                on_ring=lambda name, frames: save_png_set(staging / (name or "initial"), frames)),
             "evaluate", "view", evaluation_steps(edits, config, fid, input_images), args.quiet,
         )
         if result is None:
             print("voxe: evaluation cancelled, nothing written", file=sys.stderr)
             return EXIT_INTERRUPTED
         clear_ring_renders(out / "ring")
-        for frame in sorted(Path(staging).glob("*/*.png")):
+        for frame in sorted(staging.glob("*/*.png")):
             (out / "ring" / frame.parent.name).mkdir(parents=True, exist_ok=True)
             os.replace(frame, out / "ring" / frame.parent.name / frame.name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     summary = {**result.summary(), "object": args.object, "clip_model": model,
                "inception": str(args.inception) if args.inception else None,
                "ring": {"views": config.views, "elevation": config.elevation, "size": config.size},
@@ -109,6 +115,7 @@ def cmd_evaluate(args) -> int:
     return 0
 
 
+RING_STAGING = ".ring-staging"  # where a run's ring renders wait, in --out, until its evaluation ends
 RING_SET_NAME = re.compile(r"initial|edit\d{2,}")  # the ring/<name>/ folders this command writes
 RING_FRAME_NAME = re.compile(r"\d+\.png")  # and the frames in them
 
