@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import math
 
 import imageio.v2 as imageio
@@ -18,6 +19,7 @@ from voxe_core.export import (
     render_views,
     save_mesh,
     save_png,
+    VideoWriter,
     turntable_cameras,
     write_video,
 )
@@ -252,6 +254,12 @@ def test_a_streamed_video_given_the_wrong_frames_leaves_nothing(tmp_path, name):
         write_video(tmp_path / name, [frames[0], frames[1], frames[2, :, :9]], fps=10)
     with pytest.raises(TypeError, match="needs n_frames for frames of no length"):
         write_video(tmp_path / name, iter(frames), fps=10)
+    renders = (frame for frame in frames)  # a generator of renders, holding its grid: let go on the error
+    with pytest.raises(ValueError, match=r"opened for 2 frames; one more was given"):
+        write_video(tmp_path / name, renders, fps=10, n_frames=2)
+    assert inspect.getgeneratorstate(renders) == inspect.GEN_CLOSED
+    with pytest.raises(RuntimeError, match=rf"VideoWriter\({name}\): append within its with block"):
+        VideoWriter(tmp_path / name, 1, fps=10).append(frames[0])  # a GIF's frame had gone nowhere, silently
     assert list(tmp_path.iterdir()) == []
 
 
@@ -296,6 +304,15 @@ def test_a_video_streamed_frame_by_frame_is_the_video_of_the_whole_array(tmp_pat
         assert streamed.read_bytes() == reference.read_bytes()
     else:
         assert streamed_frames[0].shape == (32, 34, 3)
+        reference = tmp_path / "ffmpeg.mp4"  # how write_video wrote an MP4 before it streamed
+        padded = np.pad(to_uint8(frames), ((0, 0), (0, 1), (0, 1), (0, 0)), mode="edge")
+        with imageio.get_writer(reference, format="FFMPEG", mode="I", fps=fps, codec="libx264", pixelformat="yuv420p",
+                                quality=None, output_params=["-colorspace", "smpte170m", "-color_range", "tv", "-crf",
+                                                             "18", "-preset", "medium", "-movflags", "+faststart"],
+                                macro_block_size=1, ffmpeg_log_level="error") as writer:
+            for frame in padded:
+                writer.append_data(frame)
+        assert streamed.read_bytes() == reference.read_bytes()
 
 
 class FramesAlive:

@@ -194,8 +194,9 @@ class VideoWriter:
     def __init__(self, path: str | os.PathLike, n_frames: int, fps: float = 30):
         self.path = check_video_output(path, fps)
         if n_frames < 1:
-            raise ValueError(f"write_video expects frames shaped (N, H, W, 3) with N >= 1, got {n_frames} frames")
+            raise ValueError(f"a video needs frames shaped (N, H, W, 3) with N >= 1, got {n_frames} frames")
         self.n_frames, self.fps, self.appended = n_frames, fps, 0
+        self._files: ExitStack | None = None  # set while open
         self._shape: tuple[int, ...] | None = None
         self._mp4 = None
         shown, self._gif_delays = gif_timeline(n_frames, fps)
@@ -222,9 +223,11 @@ class VideoWriter:
 
     def append(self, frame) -> None:
         """Add the next frame (H, W, 3), floats in [0, 1] or uint8, of the first frame's size."""
+        if self._files is None:  # an MP4's encoder starts with the block: a GIF's frames would go nowhere
+            raise RuntimeError(f"VideoWriter({self.path.name}): append within its with block")
         pixels = to_uint8(frame)
         if pixels.ndim != 3 or pixels.shape[-1] != 3 or pixels.shape != (self._shape or pixels.shape):
-            raise ValueError(f"write_video expects frames shaped (N, H, W, 3) of one size: frame {self.appended} is "
+            raise ValueError(f"a video's frames are shaped (H, W, 3), all of one size: frame {self.appended} is "
                              f"{tuple(pixels.shape)}" + (f", frame 0 {self._shape}" if self._shape else ""))
         if self.appended == self.n_frames:
             raise ValueError(f"{self.path.name} was opened for {self.n_frames} frames; one more was given")
@@ -271,9 +274,13 @@ def write_video(path: str | os.PathLike, frames, fps: float = 30, n_frames: int 
         if not hasattr(frames, "__len__"):
             raise TypeError(f"write_video needs n_frames for frames of no length (a {type(frames).__name__})")
         n_frames = len(frames)
-    with VideoWriter(path, n_frames, fps) as video:
-        for frame in frames:
-            video.append(frame)
+    try:
+        with VideoWriter(path, n_frames, fps) as video:
+            for frame in frames:
+                video.append(frame)
+    finally:  # a generator of renders left by an error lets go of its grid now, not with the traceback
+        if hasattr(frames, "close"):
+            frames.close()
     return video.path
 
 
