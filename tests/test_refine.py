@@ -49,6 +49,7 @@ from voxe_core.refine.cut import (
     node_mask,
     object_seed_indices,
     pairwise_weights,
+    prefer_neither,
     probabilities,
 )
 from voxe_core.refine.lifting import attention_l1, fit_attention_grids
@@ -433,6 +434,43 @@ def test_a_constant_start_too_short_to_part_the_grids_is_named_with_its_remedy(m
         fit_attention_grids(grid, cams, edit_maps, object_maps, config)
     edit, obj = fit_attention_grids(grid, cams, edit_maps, object_maps, dataclasses.replace(config, iterations=40))
     assert not torch.equal(edit, obj)
+
+
+def test_a_constant_start_fit_equal_but_for_the_order_its_gradients_are_summed_in_is_still_named(make_sphere_grid,
+                                                                                                 monkeypatch):
+    """On CUDA the backward's atomic adds sum each channel's terms in any order, so the two grids differ by rounding
+    (1e-8): an exact comparison had let the fit through and the cut seed on float noise. Emulated here by summing
+    the object channel's gradient in the reverse order."""
+    from voxe_core.grid import _WeightedGather
+
+    def reordered_backward(ctx, grad):
+        index, weights, _ = ctx.saved_tensors
+        rows = (weights[..., None] * grad[:, None, :]).to(ctx.table_dtype).reshape(-1, ctx.table_shape[-1])
+        flat = index.reshape(-1)
+        table = grad.new_zeros(ctx.table_shape, dtype=ctx.table_dtype)
+        table[:, :1].index_add_(0, flat, rows[:, :1])
+        table[:, 1:].index_add_(0, flat.flip(0), rows[:, 1:].flip(0))  # the same terms, another order
+        return table, None, None
+
+    monkeypatch.setattr(_WeightedGather, "backward", staticmethod(reordered_backward))
+    grid = make_sphere_grid(10)
+    edit_maps = torch.linspace(0.2, 0.9, 12).expand(4, 12, 12)
+    config = RefineConfig(lift_start="constant", iterations=2, rays_per_step=256, fit_views="fixed", fit_pixels="all")
+    with pytest.raises(SegmentationError, match="^the attention grids are still equal everywhere after 2 fitting"):
+        fit_attention_grids(grid, cameras_around(4, 12, seed=1), edit_maps, edit_maps.flip(-1), config)
+
+
+def test_fields_equal_but_for_float32_rounding_have_no_seeds():
+    """Fields a CUDA fit left equal but for rounding, one ulp apart either way, prefer neither label anywhere: no
+    seeds, where the cut had seeded on the noise."""
+    grid, _ = two_blobs()
+    edit_field = torch.full(grid.resolution, 0.7)
+    checker = torch.arange(edit_field.numel()).reshape(grid.resolution) % 2 == 0
+    object_field = torch.where(checker, torch.nextafter(edit_field, torch.tensor(1.0)),
+                               torch.nextafter(edit_field, torch.tensor(0.0)))
+    with pytest.raises(SegmentationError, match="^no seeds: none of the .* occupied voxels is more likely edit"):
+        graph_cut(grid, edit_field, object_field)
+    assert not prefer_neither(edit_field, object_field + 1e-4) and not prefer_neither(edit_field, edit_field * math.nan)
 
 
 # ----------------------------------------------------------------- graph cut

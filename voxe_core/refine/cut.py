@@ -67,6 +67,22 @@ def log_probabilities(edit_field: torch.Tensor, object_field: torch.Tensor) -> t
     return logs[0], logs[1]
 
 
+# The two attention grids fitted from one start differ on CUDA by the order atomic adds sum their gradients in: a
+# few float32 ulps (at most 3 over 1500 fitting steps with the sums reordered on the CPU). A preference worth seeding
+# on is orders of magnitude larger; this many ulps of the values' scale is the line between them.
+ROUNDING_ULPS = 16
+
+
+def prefer_neither(edit_values: torch.Tensor, object_values: torch.Tensor) -> bool:
+    """Whether the two attention fields (or maps) are equal everywhere but for float32 rounding: within
+    :data:`ROUNDING_ULPS` ulps of their scale, the larger of 1 (the maps' range, [0, 1]) and their largest magnitude.
+    A NaN or infinity differs from anything."""
+    edit_values, object_values = edit_values.detach().double(), object_values.detach().double()
+    scale = max(1.0, float(torch.maximum(edit_values.abs().max(), object_values.abs().max())))
+    tolerance = ROUNDING_ULPS * torch.finfo(torch.float32).eps * scale
+    return bool(((edit_values - object_values).abs() <= tolerance).all())
+
+
 def probabilities(edit_field: torch.Tensor, object_field: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(P_e, P_obj) float32 per voxel: softmax of the two fields' values."""
     log_e, log_o = log_probabilities(edit_field, object_field)
@@ -252,7 +268,8 @@ def graph_cut_detailed(
             f"no occupied voxels: {_node_test(config)}, so there is nothing to segment "
             "(is it an empty or untrained grid?)"
         )
-    log_e, log_o = log_probabilities(edit_field.detach().cpu(), object_field.detach().cpu())
+    edit_field, object_field = edit_field.detach().cpu(), object_field.detach().cpu()
+    log_e, log_o = log_probabilities(edit_field, object_field)
     nodes_np = nodes.numpy()
     log_e = log_e.numpy()[nodes_np]
     log_o = log_o.numpy()[nodes_np]
@@ -275,7 +292,8 @@ def graph_cut_detailed(
     else:
         edit_seeds = _top_seeds(p_e, p_e > 0.5, config.edit_seeds)
     object_seeds = np.setdiff1d(object_seed_indices(p_e, p_o, config), edit_seeds)  # a fallback may overlap
-    if edit_seeds.size + object_seeds.size == 0 or not (p_e != p_o).any():  # a fallback seeds no preference
+    # (a fallback seeds no preference; on CUDA equal grids differ by rounding alone)
+    if edit_seeds.size + object_seeds.size == 0 or prefer_neither(edit_field[nodes], object_field[nodes]):
         raise SegmentationError(
             f"no seeds: none of the {n} occupied voxels is more likely edit than object or the reverse "
             "(the attention grids are equal everywhere: too few fitting iterations, or maps that do not tell "

@@ -24,6 +24,7 @@ from voxe_core.constants import REFINE_ITERATIONS
 from voxe_core.grid import Occupancy, VoxelGrid, ray_box_intersection, unit_directions
 from voxe_core.progress import Callbacks, Progress
 from voxe_core.refine.config import RefineConfig, SegmentationError
+from voxe_core.refine.cut import prefer_neither
 from voxe_core.render import render_rays
 from voxe_core.volrend import optical_depth, transmittance
 
@@ -177,7 +178,8 @@ def fit_attention_grids(
     occupied box render 0 whatever the field holds and are left out.
     Deterministic for ``config.seed``; reports ``Progress("attention_grids")``
     every step and may be cancelled between steps. A constant start whose fit ends with both grids still equal
-    (too few iterations) is a SegmentationError naming that: the cut would find no seeds.
+    (:func:`~voxe_core.refine.cut.prefer_neither`: too few iterations) is a SegmentationError naming that: the cut
+    would find no seeds.
     """
     n_views, height, width = edit_maps.shape
     if object_maps.shape != edit_maps.shape:
@@ -238,7 +240,7 @@ def fit_attention_grids(
         callbacks.progress(Progress("attention_grids", iteration + 1, config.iterations,
                                     {"l1": float(l1.detach()), "tv": float(tv.detach())}, {"stage": "attention grids"}))
     values = flat_start.index_copy(0, rows, active.detach()).reshape(start.shape)
-    if config.lift_start == "constant" and torch.equal(values[..., 0], values[..., 1]):  # (the cut had found no seeds)
+    if config.lift_start == "constant" and prefer_neither(values[..., 0], values[..., 1]):  # the cut has no seeds
         raise SegmentationError(
             f"the attention grids are still equal everywhere after {config.iterations} fitting iterations from "
             "lift_start='constant': from one value Adam moves both alike until their renders reach the lower of the "
