@@ -52,6 +52,7 @@ from voxe_core.refine.cut import (
     prefer_neither,
     probabilities,
 )
+from voxe_core.refine import lifting
 from voxe_core.refine.lifting import attention_l1, fit_attention_grids
 from voxe_core.refine.maps import (
     attention_maps_2d,
@@ -434,6 +435,35 @@ def test_a_constant_start_too_short_to_part_the_grids_is_named_with_its_remedy(m
         fit_attention_grids(grid, cams, edit_maps, object_maps, config)
     edit, obj = fit_attention_grids(grid, cams, edit_maps, object_maps, dataclasses.replace(config, iterations=40))
     assert not torch.equal(edit, obj)
+
+
+@pytest.mark.parametrize("cause", ["maps equal", "every fresh view missed", "the paper's iterations"])
+def test_a_constant_start_left_equal_names_its_cause(make_sphere_grid, monkeypatch, cause):
+    """The error had always said "fit more iterations (the paper: 1500)": wrong for maps that never differ, for fresh
+    views that all missed the object (no step fitted) and for a fit of the paper's iterations already."""
+    grid = make_sphere_grid(10)
+    edit_maps = torch.linspace(0.2, 0.9, 12).expand(4, 12, 12)
+    object_maps = edit_maps.clone() if cause == "maps equal" else edit_maps.flip(-1)
+    config = RefineConfig(lift_start="constant", iterations=2, rays_per_step=256, fit_views="fixed", fit_pixels="all")
+    fresh_view = None
+    if cause == "every fresh view missed":
+        away = torch.eye(4)
+        away[:3, :3], away[2, 3] = torch.diag(torch.tensor([1.0, -1.0, -1.0])), 4.0  # at +z, looking up +z
+        config = dataclasses.replace(config, fit_views="fresh")
+        fresh_view = lambda step: (Cameras.from_fov(away, 0.3, 12, 12), edit_maps[0], object_maps[0])  # noqa: E731
+    elif cause == "the paper's iterations":
+        monkeypatch.setattr(lifting, "REFINE_ITERATIONS", 2)  # 1500 steps that part nothing, in 2
+    expected = {"maps equal": r"the edit and object maps are equal on every pixel fitted: they do not tell the edit "
+                              r"from the object .* the cut has no seeds$",
+                "every fresh view missed": r"no step fitted them, every fresh view having missed the edited object "
+                                           r".* are the fresh poses aimed at it\?$",
+                "the paper's iterations": r"which these did not in as many iterations as the paper's \(2\), .* use "
+                                          r"lift_start='backprojection', or a larger lr or an init_value nearer the "
+                                          r"maps \(now 0.035 and 0.0\)$"}[cause]
+    with pytest.raises(SegmentationError, match="^the attention grids are still equal everywhere after 2 fitting "
+                                                "iterations from lift_start='constant': ") as raised:
+        fit_attention_grids(grid, cameras_around(4, 12, seed=1), edit_maps, object_maps, config, fresh_view=fresh_view)
+    assert re.search(expected, str(raised.value)) and "fit more iterations" not in str(raised.value)
 
 
 def test_a_constant_start_fit_equal_but_for_the_order_its_gradients_are_summed_in_is_still_named(make_sphere_grid,

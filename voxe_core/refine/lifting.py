@@ -155,6 +155,26 @@ def attention_l1(rendered: torch.Tensor, targets: torch.Tensor, pixels: str = "a
     return error.mean()
 
 
+def _why_still_equal(config: RefineConfig, fitted: int, maps_differ: bool) -> str:
+    """Why a constant start's fit left both grids equal, and what to do: the cut would have said only "no seeds"."""
+    if not fitted:
+        return ("no step fitted them, every fresh view having missed the edited object (no pixel's ray meets its "
+                "occupied box), so no voxel is more likely edit than object and the cut has no seeds; are the fresh "
+                "poses aimed at it?")
+    if not maps_differ:
+        return ("the edit and object maps are equal on every pixel fitted: they do not tell the edit from the object "
+                "(the edit words' cross-attention is the rest of the prompt's), so neither can the grids fitted to "
+                "them, and the cut has no seeds")
+    alike = "from one value Adam moves both alike until their renders reach the lower of the two maps"
+    no_seeds = "so no voxel is more likely edit than object and the cut has no seeds"
+    if config.iterations < REFINE_ITERATIONS:
+        return (f"{alike}, {no_seeds}; fit more iterations (the paper: {REFINE_ITERATIONS}) or use "
+                "lift_start='backprojection'")
+    return (f"{alike}, which these did not in as many iterations as the paper's ({REFINE_ITERATIONS}), {no_seeds}; "
+            f"use lift_start='backprojection', or a larger lr or an init_value nearer the maps (now {config.lr} and "
+            f"{config.init_value})")
+
+
 def fit_attention_grids(
     grid: VoxelGrid,
     cameras: Cameras,
@@ -178,8 +198,8 @@ def fit_attention_grids(
     occupied box render 0 whatever the field holds and are left out.
     Deterministic for ``config.seed``; reports ``Progress("attention_grids")``
     every step and may be cancelled between steps. A constant start whose fit ends with both grids still equal
-    (:func:`~voxe_core.refine.cut.prefer_neither`: too few iterations) is a SegmentationError naming that: the cut
-    would find no seeds.
+    (:func:`~voxe_core.refine.cut.prefer_neither`) is a SegmentationError naming why (no step fitted, maps that never
+    differ, or too few iterations): the cut would find no seeds.
     """
     n_views, height, width = edit_maps.shape
     if object_maps.shape != edit_maps.shape:
@@ -215,6 +235,8 @@ def fit_attention_grids(
     box = _occupied_slices(occupancy)
     generator = torch.Generator(device=device).manual_seed(config.seed)
     n_rays = origins.shape[0]
+    # "fresh" fits other maps than these: whether they differ is told step by step
+    fitted, maps_differ = 0, config.fit_views == "fixed" and not prefer_neither(targets[:, 0], targets[:, 1])
     for iteration in range(config.iterations):
         callbacks.check_cancel("attention_grids")
         values = flat_start.index_copy(0, rows, active).reshape(start.shape)
@@ -227,6 +249,7 @@ def fit_attention_grids(
             o, d, t = o[hit], d[hit], t[hit]
             if not hit.any():  # the pose missed the object: nothing to fit this step
                 continue
+            maps_differ = maps_differ or not prefer_neither(t[:, 0], t[:, 1])
         else:
             batch = torch.randint(0, n_rays, (min(config.rays_per_step, n_rays),), generator=generator, device=device)
             o, d, t = origins[batch], directions[batch], targets[batch]
@@ -237,13 +260,11 @@ def fit_attention_grids(
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
+        fitted += 1
         callbacks.progress(Progress("attention_grids", iteration + 1, config.iterations,
                                     {"l1": float(l1.detach()), "tv": float(tv.detach())}, {"stage": "attention grids"}))
     values = flat_start.index_copy(0, rows, active.detach()).reshape(start.shape)
     if config.lift_start == "constant" and prefer_neither(values[..., 0], values[..., 1]):  # the cut has no seeds
-        raise SegmentationError(
-            f"the attention grids are still equal everywhere after {config.iterations} fitting iterations from "
-            "lift_start='constant': from one value Adam moves both alike until their renders reach the lower of the "
-            "two maps, so no voxel is more likely edit than object and the cut has no seeds; fit more iterations "
-            f"(the paper: {REFINE_ITERATIONS}) or use lift_start='backprojection'")
+        raise SegmentationError(f"the attention grids are still equal everywhere after {config.iterations} fitting "
+                                f"iterations from lift_start='constant': {_why_still_equal(config, fitted, maps_differ)}")
     return values[..., 0:1].contiguous(), values[..., 1:2].contiguous()
