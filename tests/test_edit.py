@@ -95,6 +95,13 @@ class FakeGuidance:
         raise NotImplementedError
 
 
+def named_guidance(model_id: str) -> FakeGuidance:
+    """A FakeGuidance whose ``model_id`` (the model an edit checkpoint records) is ``model_id``."""
+    named = FakeGuidance()
+    named.model_id = model_id
+    return named
+
+
 def _collect(reports):
     return Callbacks(on_progress=reports.append)
 
@@ -410,31 +417,59 @@ def test_resume_refuses_another_model_by_its_name_as_asked_for(small_sphere, tmp
     from voxe_core.edit import EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION
     from voxe_core.tensorio import FormatError, save_tensors
 
-    def guidance(model_id):
-        named = FakeGuidance()
-        named.model_id = model_id
-        return named
-
     checkpoint = tmp_path / "c.safetensors"
     config = EditConfig(iterations=1, render_size=SIZE)
-    edit(small_sphere, "a dog", guidance("org/model-a"), config, checkpoint_path=checkpoint)
+    edit(small_sphere, "a dog", named_guidance("org/model-a"), config, checkpoint_path=checkpoint)
     longer = dataclasses.replace(config, iterations=2)
     with pytest.raises(FormatError, match="checkpoint was made with the model 'org/model-a', not 'org/model-b'"):
-        edit(small_sphere, "a dog", guidance("org/model-b"), longer, resume_from=checkpoint)
-    edit(small_sphere, "a dog", guidance("org/model-a"), longer, resume_from=checkpoint)
+        edit(small_sphere, "a dog", named_guidance("org/model-b"), longer, resume_from=checkpoint)
+    edit(small_sphere, "a dog", named_guidance("org/model-a"), longer, resume_from=checkpoint)
 
     older = tmp_path / "older.safetensors"
     tensors, meta = load_edit_checkpoint(checkpoint)
     save_tensors(older, tensors, EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION,
                  {**meta, "model": "/var/voxe/models/tiny-stable-diffusion"})
     with pytest.raises(FormatError, match="made with the model '/var/voxe/models/tiny-stable-diffusion', not 'tiny'"):
-        edit(small_sphere, "a dog", guidance("tiny"), longer, resume_from=older)
+        edit(small_sphere, "a dog", named_guidance("tiny"), longer, resume_from=older)
 
 
 def test_a_guidance_loaded_from_a_folder_carries_the_name_it_was_asked_for(tiny_sd_path):
     """The worker resolves "tiny" to a folder of its own machine; the name an edit checkpoint records is "tiny"."""
     assert StableDiffusionGuidance.from_pretrained(str(tiny_sd_path), device="cpu", local_files_only=True,
                                                    name="tiny").model_id == "tiny"
+
+
+def test_a_revision_is_in_the_name_of_a_hub_model_only(tiny_sd_path, monkeypatch):
+    """A folder has no revisions (loading ignores one there): its name had become '<folder>@main', which a checkpoint
+    made without the revision then did not match."""
+    from voxe_core.guidance import sds
+
+    assert StableDiffusionGuidance.from_pretrained(str(tiny_sd_path), device="cpu", local_files_only=True,
+                                                   revision="main").model_id == str(tiny_sd_path)
+    load = sds.load_stable_diffusion
+    monkeypatch.setattr(sds, "load_stable_diffusion", lambda model, *args: load(str(tiny_sd_path), *args))
+    assert StableDiffusionGuidance.from_pretrained("org/model", device="cpu", local_files_only=True,
+                                                   revision="v2").model_id == "org/model@v2"
+
+
+def test_resume_accepts_a_checkpoint_older_than_the_revision_in_the_model_name(small_sphere, tmp_path):
+    """A checkpoint recorded "org/model" before the name carried "@revision": it resumes under "org/model@v2". One of
+    another model is still refused, and so is a folder's checkpoint under a folder of that name with "@v2" appended
+    (a folder's name carries no revision)."""
+    from voxe_core.tensorio import FormatError
+
+    config = EditConfig(iterations=1, render_size=SIZE)
+    longer = dataclasses.replace(config, iterations=2)
+    folder = tmp_path / "model"
+    folder.mkdir()
+    checkpoints = {recorded: tmp_path / f"{n}.safetensors" for n, recorded in enumerate(("org/model", str(folder)))}
+    for recorded, refused in (("org/model", ("org/other@v2", "org/model-v2")), (str(folder), (f"{folder}@v2",))):
+        edit(small_sphere, "a dog", named_guidance(recorded), config, checkpoint_path=checkpoints[recorded])
+        for model_id in refused:
+            with pytest.raises(FormatError, match=f"model '{re.escape(recorded)}', not '{re.escape(model_id)}'"):
+                edit(small_sphere, "a dog", named_guidance(model_id), longer, resume_from=checkpoints[recorded])
+    resumed = edit(small_sphere, "a dog", named_guidance("org/model@v2"), longer, resume_from=checkpoints["org/model"])
+    assert torch.equal(resumed.features, edit(small_sphere, "a dog", named_guidance("org/model"), longer).features)
 
 
 def test_bf16_autocast_on_cpu_runs(small_sphere, tiny_guidance):

@@ -79,6 +79,7 @@ from voxe_core.constants import (
 from voxe_core.devices import PeakMemory, resolve_device, same_device, synchronize
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance import Guidance
+from voxe_core.guidance.loading import local_path
 from voxe_core.guidance.prompts import (
     AUTHORS_FRONT_AZIMUTH_DEG,
     RENDER_PREFIX,
@@ -296,6 +297,13 @@ def load_edit_checkpoint(path) -> tuple[dict[str, torch.Tensor], dict]:
     return load_tensors(path, kind=EDIT_CHECKPOINT_KIND, max_version=EDIT_CHECKPOINT_VERSION)
 
 
+def _same_model(recorded, current: str) -> bool:
+    """Whether a checkpoint recording the model ``recorded`` resumes under the guidance ``model_id`` ``current``: the
+    same name, or ``current``'s hub id without its ``@revision`` (a checkpoint older than the revision in the name)."""
+    hub_id, at, _ = current.partition("@")  # a hub id holds no "@"
+    return recorded == current or (bool(at) and recorded == hub_id and local_path(hub_id) is None)
+
+
 def _check_views(input_views, device):
     images, cameras = input_views
     images = torch.as_tensor(images)
@@ -420,7 +428,7 @@ def edit(
         # The guidance's model_id, its name as asked for (a hub id, a folder as given, the worker's "tiny"): the same
         # on every machine. An older worker's checkpoint, which recorded the folder "tiny" resolved to there, is
         # refused too (the worker starts such a stage over): that folder is no model a run here is asked for.
-        if meta.get("model") != run_meta["model"]:
+        if not _same_model(meta.get("model"), run_meta["model"]):
             raise FormatError(f"{resume_from}: checkpoint was made with the model {meta.get('model')!r}, not "
                               f"{run_meta['model']!r}; resume with that model, or start afresh")
         if changed := recipe_changes(resume_from, meta, config):

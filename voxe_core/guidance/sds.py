@@ -59,7 +59,7 @@ from voxe_core.guidance import Diagnostics
 from voxe_core.guidance.attention import AttentionStore, capturing
 from voxe_core.guidance.compiled import CompiledEncoder
 from voxe_core.guidance.cuda_graphs import GraphedEncoder, GraphedUNet
-from voxe_core.guidance.loading import load_stable_diffusion
+from voxe_core.guidance.loading import load_stable_diffusion, local_path
 from voxe_core.guidance.prompts import tokens_read, without_view_word
 
 
@@ -252,8 +252,9 @@ class StableDiffusionGuidance:
         when the weights cannot be found; never substitutes another model.
         ``on_message`` hears "downloading <model> (N GB)" before a first-use download.
         ``name`` is the ``model_id`` an edit checkpoint records and its resume must match (default: ``model``, with
-        ``@revision`` when one is given): a caller that resolved a name to a folder of its own machine (the worker's
-        ``tiny``) passes the name, which is the same on every machine.
+        ``@revision`` when one is given for a hub id; a folder has no revisions, loading ignores it there): a caller
+        that resolved a name to a folder of its own machine (the worker's ``tiny``) passes the name, which is the same
+        on every machine.
         ``resolution`` overrides the image size derived from the configs
         (``unet.sample_size · 2^(len(vae.block_out_channels) − 1)``, 512 for SD).
         ``cuda_graphs`` replays the SDS step's UNet (and VAE encoder, unless compiled) from CUDA graphs (default:
@@ -271,9 +272,10 @@ class StableDiffusionGuidance:
         model_str = os.fspath(model)
         unet, vae, text_encoder, tokenizer, scheduler = load_stable_diffusion(
             model_str, dtype, local_files_only, revision, on_message)
+        hub_revision = revision if local_path(model_str) is None else None
         return cls(
             unet, vae, text_encoder, tokenizer, scheduler,
-            model_id=name or (f"{model_str}@{revision}" if revision else model_str), device=device, dtype=dtype,
+            model_id=name or (f"{model_str}@{hub_revision}" if hub_revision else model_str), device=device, dtype=dtype,
             resolution=resolution, sync_timing=sync_timing, cuda_graphs=cuda_graphs, compile_encoder=compile_encoder,
         )
 
