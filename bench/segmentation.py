@@ -269,16 +269,16 @@ def run_level(grids, truth, nodes, cameras, noise, config, seed):
 def views_figure(grid, truth, cameras, artefacts, path, n_views=4):
     """Rows: object, corrupted 2D edit map, lifted edit grid, P_e, graph-cut mask (red), true region (red)."""
     from voxe_core.export import render_views, save_png
-    from voxe_core.refine.renders import render_attention, render_mask_overlay
+    from voxe_core.refine.renders import iter_attention_views, iter_mask_overlays
 
     cams = cameras[0:n_views]
     rows = [
         render_views(grid, cams),
         artefacts["edit_maps"][:n_views, ..., None].expand(-1, -1, -1, 3),
-        render_attention(grid, artefacts["edit_field"], cams),
-        render_attention(grid, artefacts["p_edit"], cams),
-        render_mask_overlay(grid, artefacts["masks"]["distinct"], cams),
-        render_mask_overlay(grid, truth, cams),
+        iter_attention_views(grid, artefacts["edit_field"], cams),
+        iter_attention_views(grid, artefacts["p_edit"], cams),
+        iter_mask_overlays(grid, artefacts["masks"]["distinct"], cams),
+        iter_mask_overlays(grid, truth, cams),
     ]
     save_png(path, torch.cat([torch.cat(list(r), dim=1) for r in rows], dim=0))
 

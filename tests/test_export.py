@@ -335,6 +335,20 @@ class FramesAlive:
             yield frame
 
 
+def views_alive(height: int, width: int) -> float:
+    """How many (height, width, 3) float views' worth of memory the tensors of that image size alive now hold, for
+    renders made inside a command (where :class:`FramesAlive` cannot stand in for the renderer): a stack of N views
+    counts N, a one-channel coverage a third, a storage several tensors share once."""
+    import gc
+
+    storages = {}
+    for obj in gc.get_objects():  # (type(obj), not isinstance: that reads __class__, which some objects warn on)
+        if issubclass(type(obj), torch.Tensor) and obj.dim() >= 3 and tuple(obj.shape[-3:-1]) == (height, width):
+            storage = obj.untyped_storage()
+            storages[storage.data_ptr()] = storage.nbytes()
+    return sum(storages.values()) / (height * width * 3 * 4)
+
+
 @pytest.mark.parametrize("name", ["v.mp4", "v.gif"])
 def test_a_streamed_video_holds_no_more_than_two_of_its_frames(tmp_path, name):
     """Regression: write_video took the whole clip (render_views' (N, H, W, 3) floats, 50 GB for 1,000 frames of

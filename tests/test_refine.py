@@ -64,7 +64,9 @@ from voxe_core.refine.maps import (
     token_groups,
 )
 from voxe_core.refine.pipeline import merge, refine
-from voxe_core.refine.renders import render_attention, render_feature_views, render_mask_overlay
+from voxe_core.refine.renders import (
+    iter_attention_views, iter_feature_views, iter_mask_overlays, render_feature_views,
+)
 from voxe_core.refine.storage import load_mask, load_probabilities, save_mask, save_probabilities
 from voxe_core.tensorio import FormatError, load_tensors, save_tensors
 
@@ -881,12 +883,73 @@ def test_renders_grey_attention_and_red_mask(make_sphere_grid):
     cams = Cameras.from_fov(torch.tensor([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 4.0], [0, 0, 0, 1]]), 0.69, 24, 24)
     half = torch.zeros(grid.resolution, dtype=torch.bool)
     half[:8] = True  # x < 0: the left of the image for a camera on +z looking down
-    grey = render_attention(grid, half.float(), cams)[0]
+    grey = next(iter_attention_views(grid, half.float(), cams))
     assert torch.equal(grey[..., 0], grey[..., 1]) and grey[12, 8, 0] > 0.9 and grey[12, 16, 0] < 0.1
     assert grey[0, 0].abs().max() == 0  # black background
-    over = render_mask_overlay(grid, half, cams)[0]
+    over = next(iter_mask_overlays(grid, half, cams))
     assert over[12, 8, 0] > 0.8 and over[12, 8, 1] < 0.5  # tinted red where the mask is
     assert over[12, 16].min() > 0.8 and over[0, 0].min() == 1.0  # untouched (white) elsewhere
+
+
+def test_streamed_pictures_are_those_of_the_whole_ring_at_once(make_sphere_grid):
+    """One view at a time, each picture is bit for bit the one rendering the whole ring at once gave (the views
+    stacked, then tinted / clamped as one tensor)."""
+    from voxe_core.export import render_views, turntable_cameras
+
+    grid = make_sphere_grid(12)
+    cams = turntable_cameras(4, 30.0, 20)
+    field = torch.rand(grid.resolution, generator=torch.Generator().manual_seed(0))
+    mask = field > 0.5
+    coverage = (0.65 * render_feature_views(grid, cams, mask.float()[..., None])).clamp(0.0, 1.0)
+    overlays = render_views(grid, cams) * (1.0 - coverage) + coverage * torch.tensor((1.0, 0.0, 0.0))
+    assert torch.equal(torch.stack(list(iter_mask_overlays(grid, mask, cams))), overlays)
+    grey = render_feature_views(grid, cams, field[..., None]).clamp(0.0, 1.0).expand(-1, -1, -1, 3)
+    assert torch.equal(torch.stack(list(iter_attention_views(grid, field, cams))), grey)
+    features = torch.stack([field, 1 - field], -1)
+    assert torch.equal(render_feature_views(grid, cams, features),
+                       torch.stack(list(iter_feature_views(grid, cams, features))))
+
+
+def test_cli_refine_saves_each_preview_view_before_rendering_the_next(tmp_path, tiny_model, make_sphere_grid,
+                                                                      monkeypatch):
+    """Regression: voxe refine rendered all five preview sets whole before it saved the first PNG (the service
+    allows 1,000 views of 1,024²: 12.6 GB of floats a set). Each view is saved before the next is rendered: at
+    every save at most the view and its sources (an overlay's render and coverage) are alive. The PNGs are those of
+    the whole sets."""
+    import voxe_core.export
+    import voxe_core.refine.pipeline
+    from test_export import views_alive
+    from voxe_core.export import render_views, save_png, turntable_cameras
+
+    grid = make_sphere_grid(12)
+    grid.save(tmp_path / "grid.safetensors", dense=True)
+    edit_field = torch.where(torch.arange(12)[:, None, None, None] < 6, 5.0, -5.0).expand(12, 12, 12, 1)
+    monkeypatch.setattr(voxe_core.refine.pipeline, "fit_attention_grids", lambda *args, **kwargs: (edit_field,
+                                                                                                   -edit_field))
+    real_save_png, alive = voxe_core.export.save_png, []
+
+    def counting_save_png(path, image):
+        alive.append(views_alive(16, 16))
+        real_save_png(path, image)
+
+    monkeypatch.setattr(voxe_core.export, "save_png", counting_save_png)
+    out = tmp_path / "out"
+    assert main(["refine", str(tmp_path / "grid.safetensors"), "--initial", str(tmp_path / "grid.safetensors"),
+                 "--prompt", "a dog wearing a party hat", "--edit-words", "party hat", "--out", str(out),
+                 "--model", str(tiny_model), "--offline", "--device", "cpu", "--iterations", "1", "--render-size",
+                 "16", "--views", "1", "--preview-views", "5", "--quiet"]) == 0
+    assert len(alive) == 5 * 5 + 2 and max(alive) <= 3, alive  # five sets of five views, a 2D map of each kind
+    mask = load_mask(out / "mask.safetensors")
+    assert mask[:6].any()  # the half the attention favoured is tinted
+    cams = turntable_cameras(5, 30.0, 16, centre=grid.orbit_centre())
+    coverage = (0.65 * render_feature_views(grid, cams, mask.float()[..., None])).clamp(0.0, 1.0)
+    whole_sets = {"mask": render_views(grid, cams) * (1.0 - coverage) + coverage * torch.tensor((1.0, 0.0, 0.0)),
+                  "attention_edit": render_feature_views(grid, cams, edit_field).clamp(0.0, 1.0).expand(-1, -1, -1, 3)}
+    for name, frames in whole_sets.items():
+        for i, frame in enumerate(frames):
+            real_save_png(tmp_path / "whole" / f"{name}_{i:02d}.png", frame)
+            assert (out / "renders" / f"{name}_{i:02d}.png").read_bytes() == \
+                (tmp_path / "whole" / f"{name}_{i:02d}.png").read_bytes()
 
 
 def test_masked_l1_ignores_pixels_whose_rendered_attention_is_not_positive():

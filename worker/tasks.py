@@ -665,7 +665,7 @@ def _edit(job: Job, settings, device: str, storage) -> None:
 def _refine(job: Job, settings, device: str, storage) -> None:
     from voxe_core.export import save_png, turntable_cameras
     from voxe_core.refine.pipeline import refine
-    from voxe_core.refine.renders import render_mask_overlay
+    from voxe_core.refine.renders import iter_mask_overlays
     from voxe_core.refine.storage import save_mask, save_probabilities
 
     guidance = runtime.get_guidance(job.attention_model, device, settings, job.id)
@@ -684,8 +684,8 @@ def _refine(job: Job, settings, device: str, storage) -> None:
                        result.object_probability, result.nodes)
     size = export_config(job.params).view_size
     cameras = turntable_cameras(1, 20.0, size, centre=initial.orbit_centre())  # G_i's, as every stage
-    overlay = render_mask_overlay(edited, result.mask, cameras.to(edited.bbox_min.device))
-    save_png(scratch / "mask_overlay.png", overlay[0])
+    overlay = next(iter_mask_overlays(edited, result.mask, cameras.to(edited.bbox_min.device)))  # (its one view)
+    save_png(scratch / "mask_overlay.png", overlay)
     # One set (as voxe refine's files): a storage failing part way had left the refined grid listed without its mask
     runtime.publish_artifacts(job.id, [(name, scratch / name, kind) for name, kind in (
         ("refined_grid.safetensors", "grid"), ("mask.safetensors", "mask"),

@@ -87,7 +87,7 @@ def cmd_refine(args) -> int:
     from voxe_core.backbones import load_grid
     from voxe_core.export import save_png, turntable_cameras
     from voxe_core.refine.pipeline import check_compatible, refine
-    from voxe_core.refine.renders import render_attention, render_mask_overlay
+    from voxe_core.refine.renders import iter_attention_views, iter_mask_overlays
     from voxe_core.refine.storage import save_mask, save_probabilities
 
     words = [w.strip() for w in args.edit_words.split(",") if w.strip()]
@@ -123,12 +123,12 @@ def cmd_refine(args) -> int:
     remove_earlier_outputs(renders, PREVIEW_FRAME)  # (fewer --preview-views had left another run's frames beside)
     if args.preview_views:
         cameras = turntable_cameras(args.preview_views, 30.0, config.render_size, centre=initial.orbit_centre())
-        groups = {
-            "attention_edit": render_attention(edited, result.edit_field, cameras),
-            "attention_object": render_attention(edited, result.object_field, cameras),
-            "probability_edit": render_attention(edited, result.edit_probability, cameras),
-            "mask": render_mask_overlay(edited, result.mask, cameras),
-            "refined": render_mask_overlay(result.refined_grid, torch.zeros_like(result.mask), cameras, strength=0.0),
+        groups = {  # each view saved as it is rendered (all five sets had been held first)
+            "attention_edit": iter_attention_views(edited, result.edit_field, cameras),
+            "attention_object": iter_attention_views(edited, result.object_field, cameras),
+            "probability_edit": iter_attention_views(edited, result.edit_probability, cameras),
+            "mask": iter_mask_overlays(edited, result.mask, cameras),
+            "refined": iter_mask_overlays(result.refined_grid, torch.zeros_like(result.mask), cameras, strength=0.0),
         }
         for name, frames in groups.items():
             for i, frame in enumerate(frames):
