@@ -966,11 +966,11 @@ def test_render_metrics_that_cannot_be_written_keep_the_earlier_file(tmp_path, f
 
     images = torch.rand(2, 12, 12, 3, generator=torch.Generator().manual_seed(0))
     scene = SimpleNamespace(images=images, split="test")
-    _report_metrics(images.flip(1), scene, ["a.png", "b.png"], tmp_path)
+    _report_metrics(psnr(images.flip(1), images), ssim(images.flip(1), images), scene, ["a.png", "b.png"], tmp_path)
     earlier = (tmp_path / "metrics.json").read_text()
     fill_disk()
     with pytest.raises(OSError, match="No space left on device"):
-        _report_metrics(images.flip(2), scene, ["a.png", "b.png"], tmp_path)
+        _report_metrics(psnr(images.flip(2), images), None, scene, ["a.png", "b.png"], tmp_path)
     assert (tmp_path / "metrics.json").read_text() == earlier and json.loads(earlier)["views"] == 2
     assert [p.name for p in tmp_path.iterdir()] == ["metrics.json"]
 
@@ -983,7 +983,8 @@ def test_render_metrics_of_a_view_identical_to_its_image_stay_finite(tmp_path, c
 
     images = torch.rand(2, 12, 12, 3, generator=torch.Generator().manual_seed(0))
     frames = torch.stack([images[0], 1 - images[1]])
-    _report_metrics(frames, SimpleNamespace(images=images, split="test"), ["a.png", "b.png"], tmp_path)
+    _report_metrics(psnr(frames, images), ssim(frames, images), SimpleNamespace(images=images, split="test"),
+                    ["a.png", "b.png"], tmp_path)
     other = float(psnr(frames[1], images[1]))
 
     def refuse(constant):
@@ -1049,6 +1050,75 @@ def test_render_into_an_earlier_output_leaves_only_this_runs_views(sphere_file, 
         (out / "render.json").write_text(json.dumps(manifest))
         assert main(ring + ["1"]) == 0  # removes nothing
         assert (out / "notes.txt").exists() and (out / "cover.png").exists() and (out / "001.png").exists()
+
+
+@pytest.mark.parametrize("source", ["ring", pytest.param("data", marks=needs_mic)])
+def test_render_saves_each_view_before_rendering_the_next(sphere_grid, sphere_file, tmp_path, monkeypatch, source):
+    """Regression: voxe render rendered every view before it saved the first (a ring of 1,000 views of 2,048²: 50 GB
+    of floats). Each is saved as it is rendered: at every save at most one view is alive (beside the dataset's
+    images, read whole). The PNGs, and the dataset views' metrics, are bit for bit those of the views rendered and
+    scored all at once."""
+    import voxe_core.export
+    from test_export import views_alive
+    from voxe_core.cli.render import METRICS_FILE
+    from voxe_core.export import turntable_cameras
+
+    views = 6 if source == "ring" else 4
+    options = (["--ring", "6", "--size", "20"] if source == "ring" else
+               ["--data", str(MIC), "--split", "test", "--downsample", "16", "--max-images", "4"])
+    size, images_read = ((20, 20), 0) if source == "ring" else ((50, 50), views)  # (MIC's 800² / 16)
+    real_save_png, alive = voxe_core.export.save_png, []
+
+    def counting_save_png(path, image):
+        alive.append(views_alive(*size) - images_read)
+        real_save_png(path, image)
+
+    monkeypatch.setattr(voxe_core.export, "save_png", counting_save_png)
+    out = tmp_path / "views"
+    assert main(["render", str(sphere_file), *options, "--out", str(out), "--quiet"]) == 0
+    assert len(alive) == views and max(alive) <= 1.5, alive
+    if source == "ring":
+        cameras, images = turntable_cameras(6, 30.0, 20, centre=sphere_grid.orbit_centre()), None
+    else:
+        scene = load_scene(MIC, "test", 16, 4)
+        cameras, images = sphere_grid.dataset_cameras(scene.cameras), scene.images
+    whole = render_views(sphere_grid, cameras)
+    names = json.loads((out / "render.json").read_text())["files"]
+    for name, frame in zip(names, whole):
+        real_save_png(tmp_path / "whole" / name, frame)
+        assert (out / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()
+    if images is not None:
+        metrics = json.loads((out / METRICS_FILE).read_text())
+        assert [view["psnr"] for view in metrics["per_view"]] == psnr(whole, images).tolist()
+        assert [view["ssim"] for view in metrics["per_view"]] == ssim(whole, images).tolist()
+
+
+@pytest.mark.parametrize("failure", ["disk full", "cancelled"])
+def test_a_render_failing_part_way_leaves_the_earlier_runs_views_as_they_were(sphere_file, tmp_path, monkeypatch,
+                                                                              failure):
+    """Saving each view as it is rendered, a run that fails or is cancelled at its third view must not leave a mix
+    of its own views and the earlier run's: they are staged beside --out and moved in once all are written."""
+    import errno
+
+    import voxe_core.export
+    from voxe_core.progress import StageCancelled
+
+    out = tmp_path / "views"
+    assert main(["render", str(sphere_file), "--ring", "3", "--size", "16", "--out", str(out), "--quiet"]) == 0
+    earlier = {path.name: path.read_bytes() for path in out.iterdir()}
+    real_save_png, saved = voxe_core.export.save_png, []
+
+    def failing_at_the_third(path, image):
+        if len(saved) == 2:
+            raise (OSError(errno.ENOSPC, "No space left on device") if failure == "disk full"
+                   else StageCancelled("render"))
+        saved.append(path)
+        real_save_png(path, image)
+
+    monkeypatch.setattr(voxe_core.export, "save_png", failing_at_the_third)
+    assert main(["render", str(sphere_file), "--ring", "4", "--size", "20", "--out", str(out), "--quiet"]) == (
+        2 if failure == "disk full" else 130)
+    assert len(saved) == 2 and {path.name: path.read_bytes() for path in out.iterdir()} == earlier
 
 
 def test_render_needs_exactly_one_camera_source(sphere_file, tmp_path):

@@ -8,7 +8,9 @@ initial grid, as the service's renders do).
 from __future__ import annotations
 
 import json
+import os
 import sys
+import tempfile
 from pathlib import Path
 
 from voxe_core.cli.common import (
@@ -68,7 +70,7 @@ def orbit_centre(args, grid):
 
 def cmd_render(args) -> int:
     from voxe_core.backbones import load_grid
-    from voxe_core.export import render_views, save_png, turntable_cameras
+    from voxe_core.export import turntable_cameras
 
     device = check_device(args)
     ring_only = [flag for flag, value in (("--size", args.size), ("--elevation", args.elevation),
@@ -90,18 +92,42 @@ def cmd_render(args) -> int:
         size = ExportConfig.view_size if args.size is None else args.size
         cameras = turntable_cameras(args.ring, elevation, size, centre=orbit_centre(args, grid))
         names = [f"{i:03d}.png" for i in range(args.ring)]
-    frames = run_stage(lambda cb: render_views(grid, cameras, callbacks=cb, device=device), "render", "view",
-                       len(cameras), args.quiet)
-    if frames is None:
-        print("voxe: rendering cancelled", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    _replace_manifest(args.out, names + ([METRICS_FILE] if scene is not None else []))
-    for frame, name in zip(frames, names):
-        save_png(args.out / name, frame)
+    # Each view saved as it is rendered (all had been held first) into a staging folder, moved over the earlier
+    # run's views once all are: a cancelled or failed run leaves those as they were, not a mix of the two runs'
+    with tempfile.TemporaryDirectory(prefix=".render-", dir=args.out) as staging:
+        scores = run_stage(lambda cb: _render_into(Path(staging), grid, cameras, names, scene, cb, device), "render",
+                           "view", len(cameras), args.quiet)
+        if scores is None:
+            print("voxe: rendering cancelled, nothing written", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        _replace_manifest(args.out, names + ([METRICS_FILE] if scene is not None else []))
+        for name in names:
+            os.replace(Path(staging) / name, args.out / name)
     print(f"wrote {len(names)} views to {args.out}")
     if scene is not None:
-        _report_metrics(frames, scene, names, args.out)
+        _report_metrics(*scores, scene, names, args.out)
     return 0
+
+
+def _render_into(folder: Path, grid, cameras, names: list[str], scene, callbacks, device):
+    """Render each camera and save it as ``folder / names[i]`` before the next is rendered (one view alive, not
+    the ring). With ``scene``, each view is scored against its image as it comes: (PSNR per view, SSIM per view or
+    None when the views are under SSIM's window); without, (None, None)."""
+    import torch
+
+    from voxe_core.export import iter_views, save_png
+    from voxe_core.metrics import SSIM_WINDOW, psnr, ssim
+
+    scored = scene is not None
+    with_ssim = scored and min(cameras.height, cameras.width) >= SSIM_WINDOW
+    psnr_values, ssim_values = [], []
+    for i, frame in enumerate(iter_views(grid, cameras, callbacks=callbacks, device=device)):
+        save_png(folder / names[i], frame)
+        if scored:  # one view at a time: the values of the whole set, but SSIM's float64 buffers are one view's
+            psnr_values.append(psnr(frame[None], scene.images[i : i + 1]))
+            if with_ssim:
+                ssim_values.append(ssim(frame[None], scene.images[i : i + 1]))
+    return (torch.cat(psnr_values) if scored else None), (torch.cat(ssim_values) if with_ssim else None)
 
 
 def _replace_manifest(out_dir: Path, files: list[str]) -> None:
@@ -121,12 +147,12 @@ def _replace_manifest(out_dir: Path, files: list[str]) -> None:
         partial.write_text(json.dumps({"written_by": "voxe render", "files": files}, indent=2))
 
 
-def _report_metrics(frames, scene, names, out_dir: Path) -> None:
-    from voxe_core.metrics import PSNR_CAP_DB, SSIM_WINDOW, psnr, ssim
+def _report_metrics(psnr_values, ssim_values, scene, names, out_dir: Path) -> None:
+    """Print and write (metrics.json) the views' PSNR and SSIM (None: views under SSIM's window)."""
+    from voxe_core.metrics import PSNR_CAP_DB, SSIM_WINDOW
 
-    per_view_psnr = psnr(frames, scene.images).clamp(max=PSNR_CAP_DB).tolist()  # a view identical to its image: inf
-    height, width = frames.shape[1:3]
-    per_view_ssim = ssim(frames, scene.images).tolist() if min(height, width) >= SSIM_WINDOW else None
+    per_view_psnr = psnr_values.clamp(max=PSNR_CAP_DB).tolist()  # a view identical to its image: inf
+    per_view_ssim = ssim_values.tolist() if ssim_values is not None else None
     mean_psnr = sum(per_view_psnr) / len(per_view_psnr)
     line = f"{scene.split}: PSNR {mean_psnr:.2f} dB"
     summary = {"split": scene.split, "views": len(names), "psnr": mean_psnr, "ssim": None,
