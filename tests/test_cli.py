@@ -1097,14 +1097,18 @@ def test_render_saves_each_view_before_rendering_the_next(sphere_grid, sphere_fi
 def test_a_render_failing_part_way_leaves_the_earlier_runs_views_as_they_were(sphere_file, tmp_path, monkeypatch,
                                                                               failure):
     """Saving each view as it is rendered, a run that fails or is cancelled at its third view must not leave a mix
-    of its own views and the earlier run's: they are staged beside --out and moved in once all are written."""
+    of its own views and the earlier run's: they are staged beside --out and moved in once all are written. A killed
+    run's staging folder goes at the next run."""
     import errno
 
     import voxe_core.export
     from voxe_core.progress import StageCancelled
 
     out = tmp_path / "views"
+    (out / ".render-staging").mkdir(parents=True)
+    (out / ".render-staging" / "000.png").write_bytes(b"a killed run's")
     assert main(["render", str(sphere_file), "--ring", "3", "--size", "16", "--out", str(out), "--quiet"]) == 0
+    assert sorted(path.name for path in out.iterdir()) == ["000.png", "001.png", "002.png", "render.json"]
     earlier = {path.name: path.read_bytes() for path in out.iterdir()}
     real_save_png, saved = voxe_core.export.save_png, []
 
@@ -1330,8 +1334,8 @@ def test_an_evaluation_that_fails_leaves_the_earlier_ring_renders_and_nothing_of
     out = tmp_path / "eval"
     command = ["evaluate", str(sphere_file), "--object", "ball", "--out", str(out), "--clip-model", str(clip),
                "--size", "16", "-q", "--edit", str(sphere_file), "a claymation ball"]
-    (out / ".ring-staging" / "initial").mkdir(parents=True)
-    (out / ".ring-staging" / "initial" / "000.png").write_bytes(b"a killed run's")
+    (out / ".evaluate-staging" / "initial").mkdir(parents=True)
+    (out / ".evaluate-staging" / "initial" / "000.png").write_bytes(b"a killed run's")
     assert main(command + ["--views", "2"]) == 0
     assert sorted(p.name for p in out.iterdir()) == ["evaluation.json", "evaluation.md", "ring"]
     before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}

@@ -11,6 +11,7 @@ import contextvars
 import importlib
 import os
 import re
+import shutil
 import signal
 import sys
 import threading
@@ -287,6 +288,20 @@ def writable_folder(path: Path) -> Path:
     if not os.access(path, os.W_OK):
         raise OSError(f"cannot write into {path}: the folder is not writable")
     return path
+
+
+@contextlib.contextmanager
+def staging_folder(out: Path, command: str) -> Iterator[Path]:
+    """``out/.<command>-staging``, empty, where a command saves its views as it makes them until all are made, then
+    moves them over the earlier run's: a cancelled or failed run leaves those as they were, not a mix of two runs'.
+    One name a command, so a killed run's (a whole ring of views) goes at the next run's start; gone on leaving."""
+    staging = out / f".{command}-staging"
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir()
+    try:
+        yield staging
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
 
 
 def remove_earlier_outputs(folder: Path, names: re.Pattern) -> None:

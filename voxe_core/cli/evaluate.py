@@ -6,12 +6,11 @@ import json
 import os
 import re
 import sys
-import shutil
 from pathlib import Path
 
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_model_arguments, add_view_arguments, check_device, load_views, positive_int,
-    remove_earlier_outputs, run_stage, view_options_given, writable_folder,
+    remove_earlier_outputs, run_stage, staging_folder, view_options_given, writable_folder,
 )
 from voxe_core.constants import (
     CLIP_MODEL_ID, EVALUATION_RING_ELEVATION, EVALUATION_RING_SIZE, EVALUATION_RING_VIEWS, INCEPTION_FILE,
@@ -80,13 +79,8 @@ def cmd_evaluate(args) -> int:
         print(f"voxe evaluate: model not available: {exc}", file=sys.stderr)
         return EXIT_USAGE
     out = args.out
-    # Each ring saved as it is scored, beside the earlier run's until the evaluation ends (all had been held to the
-    # end); a cancelled or failed run leaves the earlier one as it was. One staging name, so a killed run's goes at
-    # the next run's start.
-    staging = out / RING_STAGING
-    shutil.rmtree(staging, ignore_errors=True)
-    staging.mkdir()
-    try:
+    # Each ring saved as it is scored (all had been held to the end)
+    with staging_folder(out, "evaluate") as staging:
         result = run_stage(
             lambda cb: evaluate(initial, edits, args.object, clip, fid, input_images, config, cb, device=device,
                                 on_ring=lambda name, frames: save_png_set(staging / (name or "initial"), frames)),
@@ -99,8 +93,6 @@ def cmd_evaluate(args) -> int:
         for frame in sorted(staging.glob("*/*.png")):
             (out / "ring" / frame.parent.name).mkdir(parents=True, exist_ok=True)
             os.replace(frame, out / "ring" / frame.parent.name / frame.name)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
     summary = {**result.summary(), "object": args.object, "clip_model": model,
                "inception": str(args.inception) if args.inception else None,
                "ring": {"views": config.views, "elevation": config.elevation, "size": config.size},
@@ -115,7 +107,6 @@ def cmd_evaluate(args) -> int:
     return 0
 
 
-RING_STAGING = ".ring-staging"  # where a run's ring renders wait, in --out, until its evaluation ends
 RING_SET_NAME = re.compile(r"initial|edit\d{2,}")  # the ring/<name>/ folders this command writes
 RING_FRAME_NAME = re.compile(r"\d+\.png")  # and the frames in them
 

@@ -10,12 +10,11 @@ from __future__ import annotations
 import json
 import os
 import sys
-import tempfile
 from pathlib import Path
 
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, add_device_argument, add_view_arguments, check_device, load_views, positive_int,
-    run_stage, view_options_given, writable_file, writable_folder,
+    run_stage, staging_folder, view_options_given, writable_file, writable_folder,
 )
 from voxe_core.files import replacing
 from voxe_core.presets import ExportConfig
@@ -92,17 +91,16 @@ def cmd_render(args) -> int:
         size = ExportConfig.view_size if args.size is None else args.size
         cameras = turntable_cameras(args.ring, elevation, size, centre=orbit_centre(args, grid))
         names = [f"{i:03d}.png" for i in range(args.ring)]
-    # Each view saved as it is rendered (all had been held first) into a staging folder, moved over the earlier
-    # run's views once all are: a cancelled or failed run leaves those as they were, not a mix of the two runs'
-    with tempfile.TemporaryDirectory(prefix=".render-", dir=args.out) as staging:
-        scores = run_stage(lambda cb: _render_into(Path(staging), grid, cameras, names, scene, cb, device), "render",
+    # Each view saved as it is rendered (all had been held first)
+    with staging_folder(args.out, "render") as staging:
+        scores = run_stage(lambda cb: _render_into(staging, grid, cameras, names, scene, cb, device), "render",
                            "view", len(cameras), args.quiet)
         if scores is None:
             print("voxe: rendering cancelled, nothing written", file=sys.stderr)
             return EXIT_INTERRUPTED
         _replace_manifest(args.out, names + ([METRICS_FILE] if scene is not None else []))
         for name in names:
-            os.replace(Path(staging) / name, args.out / name)
+            os.replace(staging / name, args.out / name)
     print(f"wrote {len(names)} views to {args.out}")
     if scene is not None:
         _report_metrics(*scores, scene, names, args.out)
