@@ -285,7 +285,7 @@ def test_a_video_streamed_frame_by_frame_is_the_video_of_the_whole_array(tmp_pat
     array, though each frame is quantised as it comes."""
     import imageio.v3 as iio
 
-    from voxe_core.export import gif_timeline, iter_views, to_uint8
+    from voxe_core.export import gif_timeline, to_uint8
 
     frames = gradient_frames(n, 31, 33)
     frames[:, 5:9, 3:20, 1] = torch.rand(n, 4, 17, generator=torch.Generator().manual_seed(1))  # some texture

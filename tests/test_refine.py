@@ -919,7 +919,7 @@ def test_cli_refine_saves_each_preview_view_before_rendering_the_next(tmp_path, 
     import voxe_core.export
     import voxe_core.refine.pipeline
     from test_export import views_alive
-    from voxe_core.export import render_views, save_png, turntable_cameras
+    from voxe_core.export import render_views, turntable_cameras
 
     grid = make_sphere_grid(12)
     grid.save(tmp_path / "grid.safetensors", dense=True)
