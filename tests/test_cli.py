@@ -796,7 +796,7 @@ def test_a_failed_command_leaves_no_folder_it_made(sphere_file, tmp_path, capsys
     assert main(["render", missing, "--ring", "2", "--out", str(tmp_path / "new" / "views")]) == 2
     assert "missing.safetensors: no such file" in capsys.readouterr().err
     assert main(["mesh-to-grid", str(tmp_path / "bad.obj"), "--out", str(tmp_path / "made" / "g.safetensors")]) == 2
-    assert "bad.obj: cannot read as a mesh" in capsys.readouterr().err
+    assert "bad.obj: no such file" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["sphere.safetensors"]
     (tmp_path / "kept").mkdir()
     for out in (tmp_path / "kept", tmp_path / "kept" / "views"):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 from contextlib import ExitStack, contextmanager
 
 
@@ -161,10 +162,28 @@ def test_a_one_value_kd_is_a_grey_and_keeps_the_librarys_materials(tmp_path):
         assert np.allclose(load_mesh(tmp_path / "cube.obj").colour, colour, atol=1 / 255), kd  # comment left out
 
 
-def test_a_mesh_in_a_folder_that_is_not_there_is_a_mesh_error_naming_it(tmp_path):
-    """trimesh's file lookup, made before the read, had raised its own ValueError ("not a directory!")."""
-    with pytest.raises(MeshError, match=r"^cube.obj: cannot read as a mesh: "):
-        load_mesh(tmp_path / "gone" / "cube.obj")
+def test_a_mesh_or_texture_that_is_not_a_readable_file_is_a_mesh_error_naming_it(tmp_path):
+    """trimesh had said "string is not a file: `<the full path>`" of a mesh not there or a folder (its file lookup,
+    in a folder not there, "not a directory!"), Pillow "[Errno 2] No such file or directory: '<the full path>'" of
+    a texture, and an empty PLY was "Not a ply file!"."""
+    (tmp_path / "cube.obj").write_text(CUBE_WITH_UVS)
+    (tmp_path / "folder.obj").mkdir()
+    (tmp_path / "empty.ply").write_bytes(b"")
+    (tmp_path / "empty.png").write_bytes(b"")
+    for mesh, texture, message in ((tmp_path / "gone" / "cube.obj", None, "cube.obj: no such file"),
+                                   (tmp_path / "missing.ply", None, "missing.ply: no such file"),
+                                   (tmp_path / "folder.obj", None, "folder.obj: is a folder, not a mesh file"),
+                                   (tmp_path / "empty.ply", None, "empty.ply: the file is empty"),
+                                   (tmp_path / "cube.obj", tmp_path / "gone.png", "gone.png: no such file"),
+                                   (tmp_path / "cube.obj", tmp_path, f"{tmp_path.name}: is a folder, not an image"),
+                                   (tmp_path / "cube.obj", tmp_path / "empty.png", "empty.png: the file is empty")):
+        with pytest.raises(MeshError) as error:
+            load_mesh(mesh, texture)
+        assert str(error.value) == message
+    (tmp_path / "cube.obj").chmod(0)
+    if not os.access(tmp_path / "cube.obj", os.R_OK):  # (root reads it all the same)
+        with pytest.raises(MeshError, match=r"^cube.obj: cannot be read: permission denied$"):
+            load_mesh(tmp_path / "cube.obj")
 
 
 CUBE_WITH_UVS = "vt 0.5 0.5\n" + "".join(

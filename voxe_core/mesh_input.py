@@ -150,9 +150,9 @@ def load_mesh(
     ``up_axis``: the file's up axis ('y' for OBJ/glTF exports, 'z' for CAD and
     most scanners), turned onto +z. The box is centred on the origin and its
     largest half-extent made ``extent``, or less where the mesh would reach past
-    ``VIEW_RADIUS`` (``frame`` 1: see ``MESH_FRAMES``). Raises ``MeshError`` naming the file for
-    unreadable, empty, degenerate or non-finite meshes (vertices or UVs), for a texture
-    without UVs and for an .mtl's Kd that is neither one number nor three.
+    ``VIEW_RADIUS`` (``frame`` 1: see ``MESH_FRAMES``). Raises ``MeshError`` naming the file for a mesh or texture not
+    there (or a folder, or an empty file), for unreadable, triangle-less, degenerate or non-finite meshes (vertices or
+    UVs), for a texture without UVs and for an .mtl's Kd that is neither one number nor three.
     """
     import trimesh
     from PIL import Image
@@ -166,6 +166,9 @@ def load_mesh(
         raise MeshError(f"extent must be positive and finite, got {extent}")
     if frame not in MESH_FRAMES:
         raise MeshError(f"frame must be one of {MESH_FRAMES}, got {frame!r}")
+    _check_readable(path, "a mesh file")
+    if texture is not None:
+        _check_readable(Path(texture), "an image")
     try:  # with a texture, its parts as they are: the file's materials are not what colours it
         library = _MtlBySpec(trimesh.resolvers.FilePathResolver(path))
         with _PlyTextureWarning() as unread_texture:
@@ -244,6 +247,20 @@ def load_mesh(
         raise MeshError(f"{path.name}: every triangle has zero area (repeated or collinear vertices); "
                         "the mesh has no surface")
     return mesh
+
+
+def _check_readable(path: Path, kind: str) -> None:
+    """Raises a MeshError naming ``path`` unless it is a readable file with something in it: trimesh had said "string
+    is not a file: `<the full path>`" of a mesh that is not there or a folder, Pillow "[Errno 2] No such file or
+    directory: '<the full path>'" of a texture (a worker's scratch path, in a service's error)."""
+    if path.is_dir():
+        raise MeshError(f"{path.name}: is a folder, not {kind}")
+    if not path.is_file():
+        raise MeshError(f"{path.name}: no such file")
+    if not os.access(path, os.R_OK):
+        raise MeshError(f"{path.name}: cannot be read: permission denied")
+    if path.stat().st_size == 0:
+        raise MeshError(f"{path.name}: the file is empty")
 
 
 def _texture_rgb(image, name: str) -> np.ndarray:
