@@ -548,6 +548,51 @@ def test_an_ascii_ply_holding_fewer_rows_than_its_header_declares_is_refused_nam
     assert str(error.value) == f"short.ply: its header {message}: it is truncated, or its header overstates a count"
 
 
+_TETRAHEDRON = _TETRAHEDRON_PLY.format(vertices=4, faces=4)
+_TETRAHEDRON_BINARY = (_TETRAHEDRON.split("end_header\n")[0].replace("ascii", "binary_little_endian").encode()
+                       + b"end_header\n" + np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], "<f4").tobytes()
+                       + b"".join(b"\x03" + np.array(face, "<i4").tobytes()
+                                  for face in ([0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3])))
+
+
+@pytest.mark.parametrize("data, message", [
+    (_TETRAHEDRON.replace("end_header\n", ""),  # trimesh: "list index out of range"
+     "its header has no end_header line: it is truncated, or not a PLY file"),
+    (_TETRAHEDRON.replace("ascii", "binary_middle_endian"),  # "PLY is unexpected length!"
+     "its format line is 'format binary_middle_endian 1.0', not 'format' and one of ascii, binary_little_endian, "
+     "binary_big_endian (then the version, 1.0)"),
+    (_TETRAHEDRON.replace("list uchar int", "list int"),  # "not enough values to unpack (expected 3, got 2)"
+     "its header's line 8, 'property list int vertex_indices', is not 'property <type> <name>' nor "
+     "'property list <count type> <type> <name>'"),
+    (_TETRAHEDRON.replace("float y", "flot y"),  # "'flot'"
+     "its header's line 5, 'property flot y': 'flot' is not a property type (char, uchar, short, ushort, int, uint, "
+     "float, double, or a sized one: int32 ...)"),
+    (_TETRAHEDRON.replace("\n3 0 1 3\n", "\n3 0 1\n"),  # loaded without that face
+     "line 15 (face 2), '3 0 1', holds 3 values where its header's properties (and the lengths of its lists) make 4"),
+    (_TETRAHEDRON.replace("1 0 0\n", "1 0 x\n"),  # "string or file could not be read to its end due to unmatched data"
+     "line 11 (vertex 2): 'x' is not a number"),
+    (_TETRAHEDRON.replace("ascii", "binary_little_endian"),  # "PLY is unexpected length!"
+     "its format line says binary_little_endian, but its body is text: an ASCII PLY's format line is "
+     "'format ascii 1.0'"),
+    (_TETRAHEDRON_BINARY.replace(b"binary_little_endian", b"ascii"),  # "'utf-8' codec can't decode byte 0x80 ..."
+     "its format line says ascii, but its body is not text: a binary body's format line is "
+     "'format binary_little_endian 1.0' (or binary_big_endian)"),
+])
+def test_a_malformed_ply_is_refused_saying_what_in_it_is_wrong(tmp_path, data, message):
+    """trimesh had failed in words of its own (in the comments), or loaded the mesh short of a face."""
+    (tmp_path / "bad.ply").write_bytes(data if isinstance(data, bytes) else data.encode())
+    with pytest.raises(MeshError) as error:
+        load_mesh(tmp_path / "bad.ply")
+    assert str(error.value) == f"bad.ply: {message}"
+
+
+def test_a_binary_ply_loads_as_its_ascii_twin(tmp_path):
+    (tmp_path / "binary.ply").write_bytes(_TETRAHEDRON_BINARY)
+    (tmp_path / "ascii.ply").write_text(_TETRAHEDRON)
+    binary, ascii_ = load_mesh(tmp_path / "binary.ply"), load_mesh(tmp_path / "ascii.ply")
+    assert np.array_equal(binary.faces, ascii_.faces) and np.allclose(binary.vertices, ascii_.vertices)
+
+
 @pytest.mark.parametrize("text, faces", [
     (_TETRAHEDRON_PLY.format(vertices=4, faces=4) + "\n", 4),  # a blank last line
     (_TETRAHEDRON_PLY.format(vertices=4, faces=4).replace("\n", "\r\n"), 4),

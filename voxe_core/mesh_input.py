@@ -51,7 +51,7 @@ from voxe_core.cameras import Cameras, random_hemisphere_poses
 from voxe_core.constants import NERF_SYNTHETIC_FOV_X, NERF_SYNTHETIC_RADIUS
 from voxe_core.data import PixelScaleError, image_pixels
 from voxe_core.grid import DEFAULT_BOX, VoxelGrid
-from voxe_core.ply_header import short_ascii_element
+from voxe_core.ply_header import ply_fault
 
 MESH_INPUT_SUFFIXES = (".obj", ".ply")
 DEFAULT_ALBEDO = (0.7, 0.7, 0.7)  # meshes without texture or vertex colours
@@ -169,6 +169,8 @@ def load_mesh(
     _check_readable(path, "a mesh file")
     if texture is not None:
         _check_readable(Path(texture), "an image")
+    if path.suffix.lower() == ".ply" and (fault := ply_fault(path)) is not None:
+        raise MeshError(f"{path.name}: {fault}")
     try:  # with a texture, its parts as they are: the file's materials are not what colours it
         library = _MtlBySpec(trimesh.resolvers.FilePathResolver(path))
         with _PlyTextureWarning() as unread_texture:
@@ -179,10 +181,6 @@ def load_mesh(
             loaded = trimesh.util.concatenate(meshes)
     except Exception as e:  # trimesh raises many types for damaged files
         raise MeshError(f"{path.name}: cannot read as a mesh: {e}") from e
-    if path.suffix.lower() == ".ply" and (short := short_ascii_element(path)) is not None:
-        name, declared, held = short
-        raise MeshError(f"{path.name}: its header declares {declared} {name} elements, the file holds {held}: it is "
-                        "truncated, or its header overstates a count")
     if library.problem:
         raise MeshError(library.problem)
     if unread_texture.error is not None:

@@ -1,6 +1,6 @@
 """A PLY's header, read without its body and without torch or trimesh (the API's upload checks and the client's
 upload both read it): the texture coordinates it declares and the texture its ``comment TextureFile`` names; and, for
-the mesh loader, whether an ASCII body holds the rows its header declares.
+the mesh loader, what in its header or body trimesh would fail on, or misread, said in words of PLY's (``ply_fault``).
 
 Examples:
     >>> import tempfile
@@ -24,6 +24,11 @@ TEXTURE_COORDINATES = ({("face", "texcoord")}, {("vertex", "texture_u"), ("verte
 """The (element, property) sets a PLY's texture coordinates are read from (trimesh's names: per corner, or per
 vertex)."""
 HEADER_LINES, HEADER_LINE_BYTES = 10_000, 1024  # far past any real header (a few dozen short lines)
+BODY_FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
+PROPERTY_TYPES = ("char", "uchar", "short", "ushort", "int", "uint", "float", "double", "int8", "uint8", "int16",
+                  "uint16", "int32", "uint32", "int64", "uint64", "float16", "float32", "float64")
+"""The property types trimesh's PLY reader knows."""
+TEXT_NUMBER_BYTES = b"0123456789+-.eE \t\r\n"  # what a body of numbers written as text is made of
 
 
 @dataclass(frozen=True)
@@ -58,28 +63,108 @@ def read_ply_header(path: str | os.PathLike) -> PlyHeader:
     return PlyHeader(False, False, texture_file)
 
 
-def short_ascii_element(path: str | os.PathLike) -> tuple[str, int, int] | None:
-    """The first element of the ASCII PLY at ``path`` whose rows its body holds fewer of than its header declares:
-    (name, declared, held); None when each is whole, the body is binary or the header is not one to count by (the
-    loader names its fault). trimesh reads an element's rows one per line and takes the lines there are: a truncated
-    file, or a header overstating a count, had loaded as part of its mesh without a word."""
-    counts, ascii_body = [], False
+def ply_fault(path: str | os.PathLike) -> str | None:
+    """What in the PLY at ``path`` the mesh loader (trimesh) would fail on in words of its own, or misread without a
+    word, said for a user (the file not named), or None: a header line not of PLY's forms, and an ASCII body whose
+    rows do not hold what the header declares (``_ascii_body_fault``) or a binary one that is text. trimesh had
+    said "list index out of range" (no end_header), "'flot'" (a type it does not know), "not enough values to
+    unpack" (a list property without its two types), "string or file could not be read to its end" (a word in a
+    row), "PLY is unexpected length!" (a text body under a binary format line), and had dropped a face row holding
+    fewer indices than its count."""
+    elements: list[tuple[str, int, list[bool]]] = []  # (name, count, per property: whether it is a list)
+    body_format, lines_read = None, 1
     with open(path, "rb") as handle:
         for text in _header_lines(handle):
+            lines_read += 1
             words = text.split()
-            if words[:1] == ["format"]:
-                ascii_body = "ascii" in text.lower()  # as trimesh tells the body's format
+            if lines_read == 2:  # trimesh takes the second line as the format line, whatever it says
+                body_format = words[1].lower() if words[:1] == ["format"] and len(words) > 1 else None
+                if body_format not in BODY_FORMATS:
+                    return (f"its format line is {text[:60]!r}, not 'format' and one of {', '.join(BODY_FORMATS)} "
+                            "(then the version, 1.0)")
             elif words[:1] == ["element"]:
                 if len(words) != 3 or not words[2].isdigit():
-                    return None
-                counts.append((words[1], int(words[2])))
+                    return f"its header's line {lines_read}, {text[:60]!r}, is not 'element <name> <count>'"
+                elements.append((words[1], int(words[2]), []))
+            elif words[:1] == ["property"]:
+                if not elements:
+                    return f"its header's line {lines_read}, {text[:60]!r}, is a property before any element"
+                is_list = words[1:2] == ["list"]
+                if len(words) != (5 if is_list else 3):
+                    return (f"its header's line {lines_read}, {text[:60]!r}, is not 'property <type> <name>' nor "
+                            "'property list <count type> <type> <name>'")
+                if unknown := [word for word in words[1 + is_list:-1] if word not in PROPERTY_TYPES]:
+                    return (f"its header's line {lines_read}, {text[:60]!r}: {unknown[0][:20]!r} is not a property "
+                            "type (char, uchar, short, ushort, int, uint, float, double, or a sized one: int32 ...)")
+                elements[-1][2].append(is_list)
             elif words[:1] == ["end_header"]:
-                if not ascii_body:
-                    return None
-                rows = len(handle.read().decode("utf-8", "replace").splitlines())  # as trimesh splits them
-                for name, declared in counts:
-                    if rows < declared:
-                        return name, declared, rows
-                    rows -= declared
+                body = handle.read()
+                if body_format == "ascii":
+                    return _ascii_body_fault(body, elements, lines_read)
+                if body and not body.strip(TEXT_NUMBER_BYTES):
+                    return (f"its format line says {body_format}, but its body is text: an ASCII PLY's format line "
+                            "is 'format ascii 1.0'")
                 return None
+    if lines_read == 1:
+        return "its first line is not 'ply': it is not a PLY file"
+    return "its header has no end_header line: it is truncated, or not a PLY file"
+
+
+def _ascii_body_fault(body: bytes, elements: list, header_lines: int) -> str | None:
+    """What in an ASCII body the rows of ``elements`` (read one a line, as trimesh reads them) hold other than
+    their header declares: too few rows (trimesh takes the lines there are: a truncated file, or a header
+    overstating a count, had loaded as part of its mesh), a row short of its properties' values (a face of
+    two indices under a count of 3: trimesh had dropped it), or a word that is not a number."""
+    try:
+        rows = body.decode("utf-8").splitlines()  # as trimesh decodes and splits them
+    except UnicodeDecodeError:
+        rows = None
+    if rows is None or b"\0" in body:
+        return ("its format line says ascii, but its body is not text: a binary body's format line is "
+                "'format binary_little_endian 1.0' (or binary_big_endian)")
+    first = 0
+    for name, count, lists in elements:
+        if len(rows) - first < count:
+            return (f"its header declares {count} {name} elements, the file holds {len(rows) - first}: it is "
+                    "truncated, or its header overstates a count")
+        block, line = rows[first:first + count], header_lines + first + 1  # the file's line of the block's first row
+        for index, row in enumerate(block):
+            words, needed = row.split(), 0
+            for is_list in lists:
+                if is_list and needed < len(words):
+                    length = _number(words[needed])
+                    if length is None or not (length >= 0 and length.is_integer()):
+                        return (f"line {line + index} ({name} {index + 1}): a list's length, "
+                                f"{words[needed][:20]!r}, is not a count")
+                    needed += int(length)
+                needed += 1
+            if len(words) < needed:
+                return (f"line {line + index} ({name} {index + 1}), {row.strip()[:40]!r}, holds {len(words)} values "
+                        f"where its header's properties (and the lengths of its lists) make {needed}")
+        if not _numbers(" ".join(block)):  # every word at once; a word at a time only to name the one that is not
+            for index, row in enumerate(block):
+                if word := next((word for word in row.split() if not _numbers(word)), None):
+                    return f"line {line + index} ({name} {index + 1}): {word[:20]!r} is not a number"
+            return f"its {name} rows hold words that are not numbers"
+        first += count
     return None
+
+
+def _number(word: str) -> float | None:
+    """``word`` as a number (Python's reading: a list's length, whose words ``_numbers`` checks as trimesh reads
+    them), or None."""
+    try:
+        return float(word)
+    except ValueError:
+        return None
+
+
+def _numbers(text: str) -> bool:
+    """Whether ``text`` is numbers apart, as numpy's text parsing (trimesh's) reads them."""
+    import numpy as np  # here: the client and the API read headers only, and ``voxe status`` need not load numpy
+
+    try:
+        np.fromstring(text, sep=" ")
+    except ValueError:
+        return False
+    return True
