@@ -515,8 +515,11 @@ def test_loading_normalises_and_refuses_bad_files(tmp_path):
     (tmp_path / "far.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
                                       "property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
                                       "end_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n")
-    with pytest.raises(MeshError, match=r"far.ply: a face names vertex 8 of 3"):
+    with pytest.raises(MeshError, match=r"far.ply: a face names vertex 8 of 3$"):
         load_mesh(tmp_path / "far.ply")  # had raised a bare IndexError
+    (tmp_path / "negative.ply").write_text((tmp_path / "far.ply").read_text().replace("3 0 1 7", "3 0 1 -5"))
+    with pytest.raises(MeshError, match=r"^negative.ply: a face names a negative vertex index, -5$"):
+        load_mesh(tmp_path / "negative.ply")  # had been named as "vertex 2 of 3 (or a negative index)"
     ply = _write_ply(tmp_path / "square.ply", _square(0.0, 1.0, RED))
     with pytest.raises(MeshError, match="square.ply: a texture was given but the mesh has no texture coordinates"):
         load_mesh(ply, SPOT / "spot_texture.png")
