@@ -551,6 +551,42 @@ def test_an_ascii_ply_holding_fewer_rows_than_its_header_declares_is_refused_nam
     assert str(error.value) == f"short.ply: its header {message}: it is truncated, or its header overstates a count"
 
 
+_TRIANGLE_OBJ = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 0 1\nvn 0 0 1\n"
+
+
+@pytest.mark.parametrize("lines, message", [
+    ("f 1 2 9", "line 8, 'f 1 2 9': a face names vertex 9, of the 3 the file holds"),  # numpy's "index 8 is out of
+    ("f -1 -2 -9", "line 8, 'f -1 -2 -9': a face names vertex -9, of the 3 the file holds"),  # bounds for axis 0 ..."
+    ("f 0 1 2",  # read as vertex 1: "no triangles" (with another face, a wrong one)
+     "line 8, 'f 0 1 2': a face names vertex 0, of the 3 the file holds (an OBJ counts them from 1)"),
+    ("f 1/1 2/2 3/4",  # every texture coordinate dropped: the mesh loaded uncoloured (with a texture: "has no vt")
+     "line 8, 'f 1/1 2/2 3/4': a face names texture coordinate (vt) 4, of the 3 the file holds"),
+    ("f 1/1 2/2 3/0",  # read as vt 1
+     "line 8, 'f 1/1 2/2 3/0': a face names texture coordinate (vt) 0, of the 3 the file holds (an OBJ counts them "
+     "from 1)"),
+    ("f 1 2 x",  # "string or file could not be read to its end due to unmatched data"
+     "line 8, 'f 1 2 x': not a face of three or more corners, each v, v/vt, v//vn or v/vt/vn"),
+    ("f 1/1/1 2/2/1 3/3/1\nf 1 2",  # dropped without a word
+     "line 9, 'f 1 2': not a face of three or more corners, each v, v/vt, v//vn or v/vt/vn"),
+    ("v 0 0 one\nf 1 2 3", "line 8, 'v 0 0 one': 'one' is not a number"),  # "string or file could not be read ..."
+])
+def test_an_obj_naming_what_it_does_not_hold_is_refused_naming_the_line(tmp_path, lines, message):
+    (tmp_path / "bad.obj").write_text(_TRIANGLE_OBJ + lines + "\n")
+    Image.new("RGB", (4, 4), RED[:3]).save(tmp_path / "red.png")
+    for texture in (None, tmp_path / "red.png"):
+        with pytest.raises(MeshError) as error:
+            load_mesh(tmp_path / "bad.obj", texture)
+        assert str(error.value) == f"bad.obj: {message}"
+
+
+def test_an_obj_of_every_corner_form_loads(tmp_path):
+    """Negative indices count back from the last; a normal's index is not checked (the loader reads none)."""
+    (tmp_path / "forms.obj").write_text(_TRIANGLE_OBJ + "f 1 2 3\nf 1/1 2/2 3/3\nf -3//1 -2//1 -1//9\n"
+                                        "f 1/-3/1  2/2/1 3/3/1 \n")
+    mesh = load_mesh(tmp_path / "forms.obj")
+    assert len(mesh.faces) == 4 and np.allclose(mesh.vertices[mesh.faces[0]], mesh.vertices[mesh.faces[2]])
+
+
 _TETRAHEDRON = _TETRAHEDRON_PLY.format(vertices=4, faces=4)
 _TETRAHEDRON_BINARY = (_TETRAHEDRON.split("end_header\n")[0].replace("ascii", "binary_little_endian").encode()
                        + b"end_header\n" + np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], "<f4").tobytes()

@@ -37,6 +37,7 @@ import json
 import logging
 import math
 import os
+import re
 import threading
 import warnings
 from collections.abc import Mapping
@@ -51,7 +52,7 @@ from voxe_core.cameras import Cameras, random_hemisphere_poses
 from voxe_core.constants import NERF_SYNTHETIC_FOV_X, NERF_SYNTHETIC_RADIUS
 from voxe_core.data import PixelScaleError, image_pixels
 from voxe_core.grid import DEFAULT_BOX, VoxelGrid
-from voxe_core.ply_header import ply_fault
+from voxe_core.ply_header import is_numbers, ply_fault
 
 MESH_INPUT_SUFFIXES = (".obj", ".ply")
 DEFAULT_ALBEDO = (0.7, 0.7, 0.7)  # meshes without texture or vertex colours
@@ -151,8 +152,9 @@ def load_mesh(
     most scanners), turned onto +z. The box is centred on the origin and its
     largest half-extent made ``extent``, or less where the mesh would reach past
     ``VIEW_RADIUS`` (``frame`` 1: see ``MESH_FRAMES``). Raises ``MeshError`` naming the file for a mesh or texture not
-    there (or a folder, or an empty file), for unreadable, triangle-less, degenerate or non-finite meshes (vertices or
-    UVs), for a texture without UVs and for an .mtl's Kd that is neither one number nor three.
+    there (or a folder, or an empty file), for a malformed file (``ply_header.ply_fault``, ``_obj_fault``: what in it,
+    where), for unreadable, triangle-less, degenerate or non-finite meshes (vertices or UVs), for a texture without
+    UVs and for an .mtl's Kd that is neither one number nor three.
     """
     import trimesh
     from PIL import Image
@@ -169,7 +171,7 @@ def load_mesh(
     _check_readable(path, "a mesh file")
     if texture is not None:
         _check_readable(Path(texture), "an image")
-    if path.suffix.lower() == ".ply" and (fault := ply_fault(path)) is not None:
+    if (fault := (ply_fault if path.suffix.lower() == ".ply" else _obj_fault)(path)) is not None:
         raise MeshError(f"{path.name}: {fault}")
     try:  # with a texture, its parts as they are: the file's materials are not what colours it
         library = _MtlBySpec(trimesh.resolvers.FilePathResolver(path))
@@ -260,6 +262,58 @@ def _check_readable(path: Path, kind: str) -> None:
         raise MeshError(f"{path.name}: cannot be read: permission denied")
     if path.stat().st_size == 0:
         raise MeshError(f"{path.name}: the file is empty")
+
+
+OBJ_CORNER_FIELDS = {"v": "vertex", "vt": "texture coordinate (vt)", "vn": "normal (vn)"}
+"""What the fields of an OBJ face's corner (v/vt/vn) name, by the keyword of the lines that hold them."""
+_OBJ_FACE = re.compile(r"\s*f(?:\s+[+-]?[0-9]+(?:/(?:[+-]?[0-9]+)?){0,2}){3,}\s*")
+"""An OBJ face line of three or more corners, each v, v/vt, v//vn or v/vt/vn."""
+_OBJ_INDICES = {"v": re.compile(r"(?<=\s)([+-]?[0-9]+)"), "vt": re.compile(r"(?<=\s)[+-]?[0-9]+/([+-]?[0-9]+)")}
+"""The vertex and texture coordinate indices of the corners of face lines (which ``_OBJ_FACE`` matches)."""
+
+
+def _obj_fault(path: Path) -> str | None:
+    """What in the OBJ at ``path`` the mesh loader (trimesh) would fail on in words of its own, or misread without a
+    word, said for a user (the file not named), or None: a v, vt or vn line's word that is not a number, a face
+    line that is not three or more corners of indices, or a corner naming a vertex or texture coordinate the file
+    does not hold (0, or past their count either way; normals, which the loader does not read, are not counted).
+    trimesh had said "index 8 is out of bounds for axis 0 with size 3" or "string or file could not be read to its
+    end due to unmatched data", read index 0 as vertex 1, and dropped every texture coordinate for one vt index past
+    the count. As trimesh counts them, a negative index counts back from the file's last vertex (or vt).
+
+    Each check runs over the whole file at once, and over its lines one by one only to name the first at fault.
+    """
+    text = path.read_bytes().decode("utf-8", "replace").replace("\r\n", "\n").replace("\\\n", "")  # as trimesh
+    counts = dict.fromkeys(OBJ_CORNER_FIELDS, 0)
+    numbers, faces = [], []  # (line number, line, the words after its keyword), of v/vt/vn lines and of f lines
+    for number, line in enumerate(text.split("\n"), 1):
+        keyword, *rest = line.split(None, 1) or [""]
+        if keyword == "f":
+            faces.append((number, line, "".join(rest)))
+        elif keyword in counts:
+            counts[keyword] += 1
+            numbers.append((number, line, "".join(rest)))
+
+    def where(number: int, line: str) -> str:
+        return f"line {number}, {line.strip()[:40]!r}"
+
+    if not is_numbers(" ".join(rest for _, _, rest in numbers)):
+        for number, line, rest in numbers:
+            if word := next((word for word in rest.split() if not is_numbers(word)), None):
+                return f"{where(number, line)}: {word[:20]!r} is not a number"
+    for number, line, _ in faces:
+        if not _OBJ_FACE.fullmatch(line):
+            return f"{where(number, line)}: not a face of three or more corners, each v, v/vt, v//vn or v/vt/vn"
+    for kind, pattern in _OBJ_INDICES.items():
+        indices = np.array(pattern.findall(" " + " ".join(rest for _, _, rest in faces)), dtype=np.int64)
+        if not ((indices != 0) & (np.abs(indices) <= counts[kind])).all():
+            for number, line, rest in faces:
+                index = next((int(index) for index in pattern.findall(" " + rest)
+                              if not 1 <= abs(int(index)) <= counts[kind]), None)
+                if index is not None:
+                    return (f"{where(number, line)}: a face names {OBJ_CORNER_FIELDS[kind]} {index}, of the "
+                            f"{counts[kind]} the file holds" + (" (an OBJ counts them from 1)" if index == 0 else ""))
+    return None
 
 
 def _texture_rgb(image, name: str) -> np.ndarray:

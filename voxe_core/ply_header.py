@@ -141,9 +141,9 @@ def _ascii_body_fault(body: bytes, elements: list, header_lines: int) -> str | N
             if len(words) < needed:
                 return (f"line {line + index} ({name} {index + 1}), {row.strip()[:40]!r}, holds {len(words)} values "
                         f"where its header's properties (and the lengths of its lists) make {needed}")
-        if not _numbers(" ".join(block)):  # every word at once; a word at a time only to name the one that is not
+        if not is_numbers(" ".join(block)):  # every word at once; a word at a time only to name the one that is not
             for index, row in enumerate(block):
-                if word := next((word for word in row.split() if not _numbers(word)), None):
+                if word := next((word for word in row.split() if not is_numbers(word)), None):
                     return f"line {line + index} ({name} {index + 1}): {word[:20]!r} is not a number"
             return f"its {name} rows hold words that are not numbers"
         first += count
@@ -151,7 +151,7 @@ def _ascii_body_fault(body: bytes, elements: list, header_lines: int) -> str | N
 
 
 def _number(word: str) -> float | None:
-    """``word`` as a number (Python's reading: a list's length, whose words ``_numbers`` checks as trimesh reads
+    """``word`` as a number (Python's reading: a list's length, whose words ``is_numbers`` checks as trimesh reads
     them), or None."""
     try:
         return float(word)
@@ -159,7 +159,7 @@ def _number(word: str) -> float | None:
         return None
 
 
-def _numbers(text: str) -> bool:
+def is_numbers(text: str) -> bool:
     """Whether ``text`` is numbers apart, as numpy's text parsing (trimesh's) reads them."""
     import numpy as np  # here: the client and the API read headers only, and ``voxe status`` need not load numpy
 
