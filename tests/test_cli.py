@@ -1211,6 +1211,24 @@ def test_export_mesh_errors_exit_2(sphere_file, tmp_path, capsys):
     assert not (tmp_path / "m.ply").exists()
 
 
+@pytest.mark.parametrize("name, content, message", [
+    ("gone.obj", None, "gone.obj: no such file"),  # trimesh: "string is not a file: `<the full path>`"
+    ("folder.ply", "folder", "folder.ply: is a folder, not a mesh file"),
+    ("cut.ply", "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\n",  # "list index out of range"
+     "cut.ply: its header has no end_header line: it is truncated, or not a PLY file"),
+    ("faces.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 4\n",  # "index 3 is out of bounds for axis 0 with size 3"
+     "faces.obj: line 4, 'f 1 2 4': a face names vertex 4, of the 3 the file holds"),
+    ("scene.glb", "glTF garbage", "scene.glb: unsupported mesh type '.glb'; use one of .obj, .ply"),
+])
+def test_mesh_to_grid_says_what_is_wrong_with_its_mesh_in_one_line(tmp_path, capsys, name, content, message):
+    if content == "folder":
+        (tmp_path / name).mkdir()
+    elif content is not None:
+        (tmp_path / name).write_text(content)
+    assert main(["mesh-to-grid", str(tmp_path / name), "--out", str(tmp_path / "g.safetensors")]) == 2
+    assert capsys.readouterr().err == f"voxe mesh-to-grid: error: {message}\n"
+
+
 def test_edit_with_missing_weights_names_the_model_and_how_to_provide_it(sphere_grid, tmp_path, capsys, monkeypatch):
     """A hub id is told how to fill the cache; a folder had been told to download itself from the hub
     (`huggingface-cli download ./models/sd`, and `models/sd/v15`, which no hub id can be), and a hub id that reads
