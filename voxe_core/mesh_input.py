@@ -198,7 +198,7 @@ def load_mesh(
         raise MeshError(f"{path.name}: no triangles in the file")
     if vertices.shape[1] != 3:  # an OBJ's "v x y" lines load so (as (V, 2)); placing them had raised an IndexError
         raise MeshError(f"{path.name}: its vertices read as {vertices.shape[1]} coordinates each, not 3 (x y z)")
-    if faces.min() < 0:  # a PLY's load so (as its indices past the count below; an OBJ's reader refuses them)
+    if faces.min() < 0:  # a PLY's load so, as do its indices past the count below (``_obj_fault`` refuses an OBJ's)
         raise MeshError(f"{path.name}: a face names a negative vertex index, {int(faces.min())}")
     if faces.max() >= len(vertices):
         raise MeshError(f"{path.name}: a face names vertex {int(faces.max()) + 1} of {len(vertices)}")

@@ -145,14 +145,12 @@ def _ascii_body_fault(body: bytes, elements: list, header_lines: int) -> str | N
             for index, row in enumerate(block):
                 if word := next((word for word in row.split() if not is_numbers(word)), None):
                     return f"line {line + index} ({name} {index + 1}): {word[:20]!r} is not a number"
-            return f"its {name} rows hold words that are not numbers"
         first += count
     return None
 
 
 def _number(word: str) -> float | None:
-    """``word`` as a number (Python's reading: a list's length, whose words ``is_numbers`` checks as trimesh reads
-    them), or None."""
+    """A list's length, ``word``, as a number, or None (every word's reading as trimesh's: ``is_numbers``)."""
     try:
         return float(word)
     except ValueError:
