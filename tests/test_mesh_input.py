@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import re
 import os
 from contextlib import ExitStack, contextmanager
 
@@ -656,8 +657,10 @@ def test_a_mesh_in_any_float64_unit_is_placed_as_in_unit_one(tmp_path, unit):
     (tmp_path / "speck.obj").write_text("v 0 0 0\nv 1e-310 0 0\nv 0 1e-310 0\nf 1 2 3\n")
     with pytest.raises(MeshError, match=r"speck.obj: the mesh's extent, 1e-310, is too small to scale up"):
         load_mesh(tmp_path / "speck.obj")
-    with pytest.raises(MeshError, match="extent must be positive and finite, got inf"):
-        load_mesh(tmp_path / "one.obj", extent=math.inf)
+    for extent in (math.inf, 1e155):  # 1e155 had overflowed squared, a bare OverflowError
+        with pytest.raises(MeshError, match=re.escape(f"extent must be positive and finite in float32, got {extent}")):
+            load_mesh(tmp_path / "one.obj", extent=extent)
+    assert np.isfinite(load_mesh(tmp_path / "wide.obj", extent=3e38).vertices).all()
 
 
 def test_vertices_of_two_coordinates_are_refused_naming_the_count(tmp_path):

@@ -49,7 +49,7 @@ import torch
 import torch.nn.functional as F
 
 from voxe_core.cameras import Cameras, random_hemisphere_poses
-from voxe_core.constants import NERF_SYNTHETIC_FOV_X, NERF_SYNTHETIC_RADIUS
+from voxe_core.constants import FLOAT32_MAX, NERF_SYNTHETIC_FOV_X, NERF_SYNTHETIC_RADIUS
 from voxe_core.data import PixelScaleError, image_pixels
 from voxe_core.grid import DEFAULT_BOX, VoxelGrid
 from voxe_core.ply_header import is_numbers, ply_fault
@@ -164,8 +164,9 @@ def load_mesh(
         raise MeshError(f"{path.name}: unsupported mesh type {path.suffix!r}; use one of {', '.join(MESH_INPUT_SUFFIXES)}")
     if up_axis not in UP_AXES:
         raise MeshError(f"up_axis must be one of {', '.join(UP_AXES)}, got {up_axis!r}")
-    if not 0 < extent < math.inf:  # an infinite one had been refused as the mesh's extent "too small to scale up"
-        raise MeshError(f"extent must be positive and finite, got {extent}")
+    # An infinite one had been refused as the mesh's extent "too small to scale up"; one past 1.3e154 overflowed
+    if not 0 < extent <= FLOAT32_MAX:  # squaring in the area test (its grid is float32 anyway)
+        raise MeshError(f"extent must be positive and finite in float32, got {extent}")
     if frame not in MESH_FRAMES:
         raise MeshError(f"frame must be one of {MESH_FRAMES}, got {frame!r}")
     _check_readable(path, "a mesh file")
@@ -244,7 +245,9 @@ def load_mesh(
     if frame == 2:  # the reach taken at half-extent 1: at 1e-170 (or 1e155) the norm's squares under- (over)flowed
         scale = min(scale, VIEW_RADIUS / float(np.linalg.norm(mesh.vertices / half, axis=1).max()))
     mesh.vertices *= scale / half
-    if not _has_area(mesh.vertices, mesh.faces, 1e-12 * extent**2):  # voxelised, it would be an empty grid
+    # Voxelised, a mesh of no area would be an empty grid. Relative to the half-extent placed: the extent squared had
+    # overflowed past 1.3e154, and at 3e38 refused every mesh shrunk into the view
+    if not _has_area(mesh.vertices, mesh.faces, (1e-6 * scale) ** 2):
         raise MeshError(f"{path.name}: every triangle has zero area (repeated or collinear vertices); "
                         "the mesh has no surface")
     return mesh
