@@ -386,11 +386,11 @@ def test_a_prompt_is_counted_against_what_the_text_encoder_reads_whatever_its_to
 
 def test_a_home_relative_folder_is_a_folder_not_a_hub_id(tiny_path, tmp_path, monkeypatch):
     """VOXE_SDS_MODEL=~/models/sd had been read as a hub id: reported missing, with `hf download ~/models/sd`."""
-    from voxe_core.guidance.loading import load_stable_diffusion, model_file_present
+    from voxe_core.guidance.loading import load_stable_diffusion, model_file
 
     monkeypatch.setenv("HOME", str(tmp_path))
     shutil.copytree(tiny_path, tmp_path / "models" / "sd")
-    assert model_file_present("~/models/sd", "model_index.json")
+    assert model_file("~/models/sd", "model_index.json") is not None
     assert load_stable_diffusion("~/models/sd", torch.float32, local_files_only=True)[0] is not None
     with pytest.raises(ModelNotAvailableError, match=f"no folder {tmp_path / 'models' / 'gone'}"):
         load_stable_diffusion("~/models/gone", torch.float32, local_files_only=True)

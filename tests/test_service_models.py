@@ -3,19 +3,22 @@ and failure at the start of the chain (SQLite, the in-process API and the real w
 
 from __future__ import annotations
 
+import shutil
 import time
 
 import pytest
 from sqlalchemy import select
 
 from test_service_api import client, dataset, make_scene, root  # noqa: F401 - the service fixtures
-from voxe_core.guidance.loading import DIFFUSERS_FILES, diffusers_model_present, model_file_present
+from voxe_core.guidance.loading import CLIP_FILES, DIFFUSERS_FILES, diffusers_model_present, model_file
 from voxe_service.model_inventory import ROLES, check_models, unavailable_models
 
 ABSENT = "nobody-here/absent-diffusion-model"
 WHOLE_SD = (*DIFFUSERS_FILES, "unet/diffusion_pytorch_model.safetensors", "vae/diffusion_pytorch_model.safetensors",
             "text_encoder/model.safetensors")
 """The files of a whole diffusers-layout Stable Diffusion (SD 2's names) that the presence check looks for."""
+WHOLE_CLIP = (*CLIP_FILES, "model.safetensors")
+"""The files of a whole CLIP model (the tiny one's) that the presence check looks for."""
 
 
 @pytest.fixture
@@ -44,15 +47,15 @@ def hub_cache(tmp_path, monkeypatch):
 def test_presence_is_one_small_file_in_a_folder_or_the_hub_cache(tmp_path, hub_cache):
     folder = tmp_path / "sd"
     folder.mkdir()
-    assert not model_file_present(str(folder), "model_index.json")
+    assert model_file(str(folder), "model_index.json") is None
     (folder / "model_index.json").write_text("{}")
-    assert model_file_present(str(folder), "model_index.json")
-    assert not model_file_present(str(tmp_path / "missing"), "model_index.json")
-    assert not model_file_present("owner/cached-model", "model_index.json")
+    assert model_file(str(folder), "model_index.json") is not None
+    assert model_file(str(tmp_path / "missing"), "model_index.json") is None
+    assert model_file("owner/cached-model", "model_index.json") is None
     hub_cache("owner/cached-model", "model_index.json")
-    assert model_file_present("owner/cached-model", "model_index.json")
-    assert not model_file_present("owner/cached-model", "config.json")
-    assert not model_file_present("not a valid id!", "model_index.json")
+    assert model_file("owner/cached-model", "model_index.json") is not None
+    assert model_file("owner/cached-model", "config.json") is None
+    assert model_file("not a valid id!", "model_index.json") is None
 
 
 def test_a_diffusion_model_is_present_only_whole_in_a_folder_or_the_hub_cache(tmp_path, hub_cache):
@@ -82,10 +85,38 @@ def test_a_diffusion_model_is_present_only_whole_in_a_folder_or_the_hub_cache(tm
     assert not diffusers_model_present("owner/dangling")
 
 
+def test_a_clip_model_is_present_only_whole_in_a_folder_or_the_hub_cache(tmp_path, hub_cache):
+    """config.json alone had counted: a download cut short (the weights never arrived) was offered by the workers, and
+    an evaluation sweep failed loading it only after all its edits had run."""
+    from voxe_core.evaluate import ClipScorer
+    from voxe_core.guidance.loading import ModelNotAvailableError
+    from voxe_core.tiny_eval import build_tiny_clip
+    from voxe_service.model_inventory import model_present
+    from voxe_service.settings import Settings
+
+    clip, settings = ROLES["clip"], Settings(model_dir=str(tmp_path / "models"))
+    whole = build_tiny_clip(tmp_path / "whole")
+    assert model_present(clip, str(whole), settings)
+    ClipScorer.from_pretrained(str(whole), device="cpu")  # what presence promises: it loads
+    for lacking in WHOLE_CLIP:
+        partial = shutil.copytree(whole, tmp_path / f"lacks-{lacking}")
+        (partial / lacking).unlink()
+        assert not model_present(clip, str(partial), settings), lacking
+        with pytest.raises(ModelNotAvailableError):
+            ClipScorer.from_pretrained(str(partial), device="cpu")
+    (whole / "model.safetensors").rename(whole / "pytorch_model.bin")  # the older weights format
+    assert model_present(clip, str(whole), settings)
+    hub_cache("owner/whole-clip", *WHOLE_CLIP)
+    assert model_present(clip, "owner/whole-clip", settings)
+    for i, lacking in enumerate(WHOLE_CLIP):
+        hub_cache(f"owner/clip-lacks-{i}", *(name for name in WHOLE_CLIP if name != lacking))
+        assert not model_present(clip, f"owner/clip-lacks-{i}", settings), lacking
+
+
 def test_the_worker_inventory_counts_tiny_models_and_finds_the_missing(root, hub_cache, monkeypatch):
     from voxe_service.settings import Settings
 
-    hub_cache("owner/clip", "config.json")
+    hub_cache("owner/clip", *WHOLE_CLIP)
     settings = Settings(sds_model="tiny", attention_model=ABSENT, clip_model="owner/clip", fid_model="")
     assert check_models(settings) == {
         "sds": {"model": "tiny", "present": True},

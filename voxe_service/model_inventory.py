@@ -20,7 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from voxe_core.constants import INCEPTION_FILE, inception_path
-from voxe_core.guidance.loading import DIFFUSERS_LAYOUT, diffusers_model_present, model_file_present
+from voxe_core.guidance.loading import CLIP_LAYOUT, DIFFUSERS_LAYOUT, clip_model_present, diffusers_model_present
 from voxe_service.models import EVALUATE
 from voxe_service.settings import TINY_MODEL, Settings, model_label
 
@@ -32,8 +32,8 @@ class ModelRole:
 
     name: str
     setting: str  # attribute of Settings
-    # DIFFUSERS_LAYOUT: a Stable Diffusion, every component checked; else the one small file inside the model
-    # folder / hub repo that proves it is there; None: the model is one file
+    # DIFFUSERS_LAYOUT: a Stable Diffusion, every component checked; CLIP_LAYOUT: a CLIP model, its files and weights
+    # checked; None: the model is one file
     marker: str | None
 
     @property
@@ -44,7 +44,7 @@ class ModelRole:
 ROLES = {role.name: role for role in (
     ModelRole("sds", "sds_model", DIFFUSERS_LAYOUT),
     ModelRole("attention", "attention_model", DIFFUSERS_LAYOUT),
-    ModelRole("clip", "clip_model", "config.json"),
+    ModelRole("clip", "clip_model", CLIP_LAYOUT),
     ModelRole("fid", "fid_model", None),
 )}
 
@@ -55,7 +55,7 @@ def model_present(role: ModelRole, model: str, settings: Settings) -> bool:
         return True
     if role.marker is None:  # FID: a TorchScript file, by default in the model dir
         return inception_path(model or settings.model_dir).is_file()
-    return diffusers_model_present(model) if role.marker == DIFFUSERS_LAYOUT else model_file_present(model, role.marker)
+    return diffusers_model_present(model) if role.marker == DIFFUSERS_LAYOUT else clip_model_present(model)
 
 
 def check_models(settings: Settings) -> dict[str, dict]:

@@ -15,6 +15,12 @@ DIFFUSERS_FILES = ("model_index.json", "unet/config.json", "vae/config.json", "t
 """The small files loading reads of every diffusers-layout Stable Diffusion: each component's config, the vocabulary."""
 WEIGHTED_COMPONENTS = ("unet", "vae", "text_encoder")
 """The components with weights (``*.safetensors`` or ``*.bin`` inside their folder)."""
+CLIP_FILES = ("config.json", "preprocessor_config.json", "vocab.json", "merges.txt")
+"""The small files loading a CLIP model reads (``voxe_core.evaluate.ClipScorer``): the model's and the image
+processor's configs, the vocabulary."""
+CLIP_WEIGHTS = ("model.safetensors", "model.safetensors.index.json", "pytorch_model.bin", "pytorch_model.bin.index.json")
+"""The weights files transformers loads a model from, any one of them."""
+CLIP_LAYOUT = f"{', '.join(CLIP_FILES)} and its weights ({' or '.join(CLIP_WEIGHTS[::2])})"
 
 
 class ModelNotAvailableError(RuntimeError):
@@ -104,11 +110,6 @@ def model_file(model: str, filename: str) -> str | None:
     return path if isinstance(path, str) else None
 
 
-def model_file_present(model: str, filename: str) -> bool:
-    """Whether ``filename`` of ``model`` is on this machine (:func:`model_file`): one small file, e.g. ``config.json``."""
-    return model_file(model, filename) is not None
-
-
 def diffusers_model_present(model: str) -> bool:
     """Whether the diffusers-layout ``model`` (a folder, or a hub id in the Hugging Face cache) is whole on this machine.
 
@@ -129,6 +130,22 @@ def diffusers_model_present(model: str) -> bool:
 
     return (all(os.path.isfile(os.path.join(folder, name)) for name in DIFFUSERS_FILES)
             and all(has_weights(component) for component in WEIGHTED_COMPONENTS))
+
+
+def clip_model_present(model: str) -> bool:
+    """Whether the CLIP ``model`` (a folder, or a hub id in the Hugging Face cache) is whole on this machine: every
+    file of :data:`CLIP_FILES` and one of :data:`CLIP_WEIGHTS`, offline and no weights read. ``config.json`` alone had
+    counted: a download cut short (the weights arrive last) was offered by the workers, and an evaluation sweep failed
+    loading it only after all its edits had run."""
+    config = model_file(model, "config.json")
+    if config is None:
+        return False
+    folder = os.path.dirname(config)  # the local folder, or the cached snapshot of the hub's revision
+
+    def has(name: str) -> bool:
+        return os.path.isfile(os.path.join(folder, name))
+
+    return all(map(has, CLIP_FILES)) and any(map(has, CLIP_WEIGHTS))
 
 
 def loading_errors() -> tuple[type[BaseException], ...]:
