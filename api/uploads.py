@@ -550,6 +550,9 @@ def stage_upload(
         if value is not None:
             raise UploadError(f"{option} applies to mesh uploads only (.obj or .ply); this upload is a dataset of "
                               "images")
+    if (root / datasets.UNPACKED_MARK).is_dir():  # the worker could not write its mark: every job had failed
+        raise UploadError(f"the dataset folder holds a folder {datasets.UNPACKED_MARK!r}, the name of the mark a "
+                          "worker writes in a dataset it unpacked: rename or remove it")
     fmt, count, width, height, splits = check_dataset(root, unpacked, validation_downsample)
     package(root, packed)
     return StagedUpload(fmt, count, width, height, splits, packed, DATASET_ARCHIVE)

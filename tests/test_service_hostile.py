@@ -128,6 +128,11 @@ HOSTILE_UPLOADS = {
                            "'camera_angle_x' is out of range (10000000000000000000..., 401 digits)"),
     "number of 5000 digits": (lambda d: _with_json_number(d, "camera_angle_x", "1" * 5000), 422,
                               "transforms_train.json: cannot read as JSON text: Exceeds the limit"),
+    # had made a ready scene whose every job failed: the worker that unpacked it could not write its mark there
+    # (IsADirectoryError naming its cache's path)
+    "folder named as the workers' mark": (lambda d: _zip({**_dataset_entries(d), ".complete/notes.txt": b"x"}), 422,
+                                          "the dataset folder holds a folder '.complete', the name of the mark a "
+                                          "worker writes in a dataset it unpacked: rename or remove it"),
 }
 
 
@@ -340,6 +345,27 @@ def test_utf8_names_info_zip_stores_without_the_utf8_flag_are_read_as_utf8(clien
     assert response.status_code == 201, response.text
     with zipfile.ZipFile(root / "storage" / "scenes" / response.json()["id"] / "dataset.zip") as stored:
         assert name in stored.namelist()
+
+
+def test_a_file_named_as_the_workers_mark_is_kept_and_the_stages_read_the_dataset(client, dataset, root):  # noqa: F811
+    """A file where a worker writes its mark of an unpacked dataset (a download tool's own marker) is harmless: the
+    worker writes its mark over it."""
+    from service_helpers import ingest
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
+    from voxe_service.settings import get_settings
+    from voxe_service.storage import get_storage
+    from worker import runtime
+
+    upload = _zip({**_dataset_entries(dataset), ".complete": b"downloaded"})
+    response = client.post("/v1/scenes", files={"archive": ("marked.zip", upload, "application/zip")})
+    assert response.status_code == 201, response.text
+    assert ingest(response.json()["id"])["state"] == "ready"
+    with session_scope() as session:
+        scene = session.get(Scene, response.json()["id"])
+        session.expunge(scene)
+    with runtime.scene_dataset(scene, get_settings(), get_storage()) as folder:
+        assert (folder / "transforms_train.json").is_file() and (folder / ".complete").read_text() == "ok"
 
 
 def test_duplicate_and_unwritable_multipart_files(client, dataset, root):  # noqa: F811

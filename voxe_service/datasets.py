@@ -22,6 +22,10 @@ MESH_FOLDER = "mesh"  # the uploaded mesh as ``mesh.obj`` / ``mesh.ply``, its te
 MESH_NAMES = "names.json"  # in MESH_FOLDER: {kept name: the name it was uploaded under}
 # in MESH_FOLDER: {"shading": "auto" | "baked" | "none", "up_axis": "x" | "y" | "z", "frame": voxe_core.mesh_input.MESH_FRAMES}
 MESH_OPTIONS = "options.json"
+UNPACKED_MARK = ".complete"
+"""The file a scene's dataset folder is renamed into place with once a worker unpacked it whole, and that each stage
+reading it locks shared (``worker.runtime.scene_dataset``): an upload's dataset folder may hold a file of that name
+(written over), not a folder."""
 
 
 def ignored(path: PurePosixPath) -> bool:

@@ -667,10 +667,6 @@ def _holds(path: Path, stored: StoredObject) -> bool:
     return path.stat().st_size == stored.size and file_sha256(path) == (stored.size, stored.sha256)
 
 
-COMPLETE = ".complete"
-"""The file an unpacked dataset's folder is renamed into place with, and that each reader locks shared."""
-
-
 @contextmanager
 def scene_dataset(scene: Scene, settings: Settings, storage: Storage) -> Iterator[Path]:
     """The scene's dataset folder on this machine, for the block to read: downloaded (checked against its recorded
@@ -702,14 +698,14 @@ def _unpack(scene: Scene, root: Path, storage: Storage):
                         f"scene {scene.id}'s archive {scene.storage_key}")
         datasets.unpack(archive, tmp / "data")
         archive.unlink()
-        (tmp / "data" / COMPLETE).write_text("ok")
-        lock = open(tmp / "data" / COMPLETE, "rb")
+        (tmp / "data" / datasets.UNPACKED_MARK).write_text("ok")
+        lock = open(tmp / "data" / datasets.UNPACKED_MARK, "rb")
         _share(lock)
         try:
             os.rename(tmp / "data", root)
         except OSError:  # another process on this machine finished first
             lock.close()
-            if not (root / COMPLETE).is_file():
+            if not (root / datasets.UNPACKED_MARK).is_file():
                 raise
             return _read_lock(root)
         return lock
@@ -720,7 +716,7 @@ def _unpack(scene: Scene, root: Path, storage: Storage):
 def _read_lock(root: Path):
     """``root/.complete`` open and locked shared, its time of use marked (the eviction's order); None when ``root``
     holds no dataset (never unpacked here, or evicted before the lock was taken)."""
-    path = root / COMPLETE
+    path = root / datasets.UNPACKED_MARK
     try:
         lock = open(path, "rb")
     except FileNotFoundError:
@@ -768,8 +764,8 @@ def evict_scene_datasets(settings: Settings) -> list[str]:
         unpacked = []
         for folder in root.iterdir():
             with contextlib.suppress(FileNotFoundError):  # (a sweep removed it meanwhile)
-                if not folder.name.startswith(".") and (folder / COMPLETE).is_file():
-                    unpacked.append(((folder / COMPLETE).stat().st_mtime, folder, _folder_bytes(folder)))
+                if not folder.name.startswith(".") and (folder / datasets.UNPACKED_MARK).is_file():
+                    unpacked.append(((folder / datasets.UNPACKED_MARK).stat().st_mtime, folder, _folder_bytes(folder)))
         total, evicted = sum(size for *_, size in unpacked), []
         for _used, folder, size in sorted(unpacked):  # least recently used first
             if total <= settings.scene_cache_max_bytes:
@@ -791,7 +787,7 @@ def _evict(folder: Path) -> bool:
     renamed to unpack debris (``.<scene id>-...``) first, so a reader never finds it half deleted, and a deletion cut
     short is swept as debris."""
     try:
-        with open(folder / COMPLETE, "r+b") as lock:  # (for writing: see evict_scene_datasets)
+        with open(folder / datasets.UNPACKED_MARK, "r+b") as lock:  # (for writing: see evict_scene_datasets)
             fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
             doomed = folder.with_name(f".{folder.name}-{uuid.uuid4().hex[:8]}")
             os.rename(folder, doomed)
