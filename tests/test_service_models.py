@@ -11,6 +11,8 @@ from sqlalchemy import select
 
 from test_service_api import client, dataset, make_scene, root  # noqa: F401 - the service fixtures
 from voxe_core.guidance.loading import CLIP_FILES, DIFFUSERS_FILES, diffusers_model_present, model_file
+from voxe_core.constants import INCEPTION_FILE
+from voxe_core.tiny_eval import build_tiny_inception
 from voxe_service.model_inventory import ROLES, check_models, unavailable_models
 
 ABSENT = "nobody-here/absent-diffusion-model"
@@ -125,21 +127,40 @@ def test_the_worker_inventory_counts_tiny_models_and_finds_the_missing(root, hub
         "fid": {"model": "", "present": False},  # no Inception file in VOXE_MODEL_DIR
     }
     (root / "models").mkdir(exist_ok=True)
-    (root / "models" / "inception-2015-12-05.pt").write_bytes(b"x")
+    build_tiny_inception(root / "models" / "inception-2015-12-05.pt")
     assert check_models(settings)["fid"]["present"]
 
 
 def test_an_fid_model_folder_is_present_when_it_holds_the_file_the_loader_reads(tmp_path):
-    from voxe_service.model_inventory import INCEPTION_FILE, model_present
+    from voxe_service.model_inventory import model_present
     from voxe_service.settings import Settings
 
     settings = Settings(model_dir=str(tmp_path / "models"))
     folder = tmp_path / "inception"
     folder.mkdir()
     assert not model_present(ROLES["fid"], str(folder), settings)
-    (folder / INCEPTION_FILE).write_bytes(b"x")
+    build_tiny_inception(folder / INCEPTION_FILE)
     assert model_present(ROLES["fid"], str(folder), settings)  # InceptionFeatures.load reads folder/INCEPTION_FILE
     assert model_present(ROLES["fid"], str(folder / INCEPTION_FILE), settings)
+
+
+def test_an_fid_model_file_cut_short_is_not_present(tmp_path):
+    """Any file had counted: a download cut short (curl -o writes under the final name) was offered by the workers,
+    and an evaluation sweep failed loading it ("not a TorchScript Inception file") only after all its edits had run."""
+    from voxe_core.evaluate import InceptionFeatures
+    from voxe_core.guidance.loading import ModelNotAvailableError
+    from voxe_service.model_inventory import model_present
+    from voxe_service.settings import Settings
+
+    whole = build_tiny_inception(tmp_path / "whole" / INCEPTION_FILE)
+    cut = tmp_path / "cut" / INCEPTION_FILE
+    cut.parent.mkdir()
+    cut.write_bytes(whole.read_bytes()[:whole.stat().st_size // 2])
+    settings = Settings(model_dir=str(cut.parent))
+    assert not model_present(ROLES["fid"], "", settings)
+    with pytest.raises(ModelNotAvailableError, match="is not a TorchScript Inception file"):
+        InceptionFeatures.load(str(cut), device="cpu")
+    assert model_present(ROLES["fid"], "", Settings(model_dir=str(whole.parent)))
 
 
 def test_a_model_is_refused_only_when_every_worker_reporting_on_it_lacks_it():

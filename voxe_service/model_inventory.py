@@ -17,6 +17,7 @@ Examples:
 
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass
 
 from voxe_core.constants import INCEPTION_FILE, inception_path
@@ -54,7 +55,8 @@ def model_present(role: ModelRole, model: str, settings: Settings) -> bool:
     if model == TINY_MODEL:
         return True
     if role.marker is None:  # FID: a TorchScript file, by default in the model dir
-        return inception_path(model or settings.model_dir).is_file()
+        # A zip archive: one cut short (a download written under its final name) lacks the directory at its end.
+        return zipfile.is_zipfile(inception_path(model or settings.model_dir))
     return diffusers_model_present(model) if role.marker == DIFFUSERS_LAYOUT else clip_model_present(model)
 
 
