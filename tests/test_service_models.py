@@ -10,8 +10,8 @@ import pytest
 from sqlalchemy import select
 
 from test_service_api import client, dataset, make_scene, root  # noqa: F401 - the service fixtures
-from voxe_core.guidance.loading import CLIP_FILES, DIFFUSERS_FILES, diffusers_model_present, model_file
 from voxe_core.constants import INCEPTION_FILE
+from voxe_core.guidance.loading import CLIP_FILES, CLIP_TOKENIZERS, DIFFUSERS_FILES, diffusers_model_present, model_file
 from voxe_core.tiny_eval import build_tiny_inception
 from voxe_service.model_inventory import ROLES, check_models, unavailable_models
 
@@ -19,7 +19,7 @@ ABSENT = "nobody-here/absent-diffusion-model"
 WHOLE_SD = (*DIFFUSERS_FILES, "unet/diffusion_pytorch_model.safetensors", "vae/diffusion_pytorch_model.safetensors",
             "text_encoder/model.safetensors")
 """The files of a whole diffusers-layout Stable Diffusion (SD 2's names) that the presence check looks for."""
-WHOLE_CLIP = (*CLIP_FILES, "model.safetensors")
+WHOLE_CLIP = (*CLIP_FILES, *CLIP_TOKENIZERS[0], "model.safetensors")
 """The files of a whole CLIP model (the tiny one's) that the presence check looks for."""
 
 
@@ -113,6 +113,9 @@ def test_a_clip_model_is_present_only_whole_in_a_folder_or_the_hub_cache(tmp_pat
     for i, lacking in enumerate(WHOLE_CLIP):
         hub_cache(f"owner/clip-lacks-{i}", *(name for name in WHOLE_CLIP if name != lacking))
         assert not model_present(clip, f"owner/clip-lacks-{i}", settings), lacking
+    tokenizer_json = [*CLIP_FILES, *CLIP_TOKENIZERS[1], "model.safetensors"]  # transformers 5's, and it reads it alone
+    hub_cache("owner/clip-tokenizer-json", *tokenizer_json)
+    assert model_present(clip, "owner/clip-tokenizer-json", settings)
 
 
 def test_the_worker_inventory_counts_tiny_models_and_finds_the_missing(root, hub_cache, monkeypatch):

@@ -15,12 +15,15 @@ DIFFUSERS_FILES = ("model_index.json", "unet/config.json", "vae/config.json", "t
 """The small files loading reads of every diffusers-layout Stable Diffusion: each component's config, the vocabulary."""
 WEIGHTED_COMPONENTS = ("unet", "vae", "text_encoder")
 """The components with weights (``*.safetensors`` or ``*.bin`` inside their folder)."""
-CLIP_FILES = ("config.json", "preprocessor_config.json", "vocab.json", "merges.txt")
-"""The small files loading a CLIP model reads (``voxe_core.evaluate.ClipScorer``): the model's and the image
-processor's configs, the vocabulary."""
-CLIP_WEIGHTS = ("model.safetensors", "model.safetensors.index.json", "pytorch_model.bin", "pytorch_model.bin.index.json")
+CLIP_FILES = ("config.json", "preprocessor_config.json")
+"""The configs loading a CLIP model reads (``voxe_core.evaluate.ClipScorer``): the model's and its image processor's."""
+CLIP_TOKENIZERS = (("vocab.json", "merges.txt"), ("tokenizer.json",))
+"""The files of a CLIP tokenizer, one set of them whole (transformers 5 reads ``tokenizer.json`` alone)."""
+CLIP_WEIGHTS = ("model.safetensors", "model.safetensors.index.json",
+                "pytorch_model.bin", "pytorch_model.bin.index.json")
 """The weights files transformers loads a model from, any one of them."""
-CLIP_LAYOUT = f"{', '.join(CLIP_FILES)} and its weights ({' or '.join(CLIP_WEIGHTS[::2])})"
+CLIP_LAYOUT = (f"{', '.join(CLIP_FILES)}, its tokenizer ({' and '.join(CLIP_TOKENIZERS[0])}, or "
+               f"{CLIP_TOKENIZERS[1][0]}) and its weights ({' or '.join(CLIP_WEIGHTS[::2])})")
 
 
 class ModelNotAvailableError(RuntimeError):
@@ -134,9 +137,9 @@ def diffusers_model_present(model: str) -> bool:
 
 def clip_model_present(model: str) -> bool:
     """Whether the CLIP ``model`` (a folder, or a hub id in the Hugging Face cache) is whole on this machine: every
-    file of :data:`CLIP_FILES` and one of :data:`CLIP_WEIGHTS`, offline and no weights read. ``config.json`` alone had
-    counted: a download cut short (the weights arrive last) was offered by the workers, and an evaluation sweep failed
-    loading it only after all its edits had run."""
+    file of :data:`CLIP_FILES`, one set of :data:`CLIP_TOKENIZERS` and one of :data:`CLIP_WEIGHTS`, offline and no
+    weights read. ``config.json`` alone had counted: a download cut short (the weights arrive last) was offered by the
+    workers, and an evaluation sweep failed loading it only after all its edits had run."""
     config = model_file(model, "config.json")
     if config is None:
         return False
@@ -145,7 +148,8 @@ def clip_model_present(model: str) -> bool:
     def has(name: str) -> bool:
         return os.path.isfile(os.path.join(folder, name))
 
-    return all(map(has, CLIP_FILES)) and any(map(has, CLIP_WEIGHTS))
+    return (all(map(has, CLIP_FILES)) and any(all(map(has, files)) for files in CLIP_TOKENIZERS)
+            and any(map(has, CLIP_WEIGHTS)))
 
 
 def loading_errors() -> tuple[type[BaseException], ...]:
