@@ -1372,6 +1372,31 @@ def test_datasets_are_evicted_where_an_exclusive_lock_needs_a_file_open_for_writ
                     "datasets are never evicted, whatever VOXE_SCENE_CACHE_MAX_BYTES says"]
 
 
+def test_where_flock_is_a_posix_lock_a_stages_own_process_evicts_no_dataset_it_reads(db, tmp_path, monkeypatch):
+    """On NFS, Linux emulates flock with POSIX (fcntl) locks, which belong to the process: the eviction's exclusive
+    lock on a ``.complete`` was granted over its own process's shared one, and closing it released the stage's, so
+    the dataset a stage had just unpacked (alone over the limit) was deleted from under it. A dataset a stage of the
+    process reads is never evicted by it; once no stage reads it, it goes."""
+    import fcntl
+    from pathlib import Path
+
+    from voxe_service.storage import get_storage
+    from worker import runtime
+
+    settings, storage = db.model_copy(update={"scene_cache_max_bytes": 500}), get_storage(db)  # dataset: 1002 bytes
+    scene = stored_dataset_scene(db, tmp_path, "a")
+
+    def nfs_flock(file, operation):  # what the NFS client makes of flock(): a whole-file POSIX lock
+        fcntl.lockf(file, operation)
+
+    monkeypatch.setattr(fcntl, "flock", nfs_flock)
+    with runtime.scene_dataset(scene, settings, storage) as dataset:
+        assert runtime.evict_scene_datasets(settings) == []
+        assert (dataset / "transforms_train.json").read_text() == "a" * 1000
+    assert runtime.evict_scene_datasets(settings) == [dataset.name]
+    assert [p for p in Path(db.work_dir, "scenes").iterdir() if p.is_dir()] == []
+
+
 def test_a_stage_that_waited_on_an_eviction_of_its_dataset_reads_one_it_holds(db, tmp_path):
     """A stage that found its dataset as an eviction took it (the eviction holds its lock while it deletes it) waits
     for the eviction, then reads the dataset as unpacked again (by another stage meanwhile, here), holding that one:

@@ -16,7 +16,7 @@ import tempfile
 import threading
 import time
 import uuid
-from collections import OrderedDict
+from collections import Counter, OrderedDict
 from collections.abc import Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
@@ -674,17 +674,40 @@ def scene_dataset(scene: Scene, settings: Settings, storage: Storage) -> Iterato
     block holds the dataset's ``.complete`` locked shared, so no eviction (:func:`evict_scene_datasets`, which a new
     unpack runs) takes it meanwhile; a dataset evicted is unpacked again when next asked for."""
     root = Path(settings.work_dir) / "scenes" / f"{scene.id}-{scene.sha256[:12]}"
-    lock, unpacked = _read_lock(root), False
-    while lock is None:  # not unpacked on this machine, or evicted before its lock was taken
-        lock, unpacked = _unpack(scene, root, storage), True
-    with lock:
-        if unpacked:
-            try:
-                if evicted := evict_scene_datasets(settings):
-                    log.info("evicted the unpacked dataset(s) %s (VOXE_SCENE_CACHE_MAX_BYTES)", ", ".join(evicted))
-            except OSError:  # the cache's upkeep never fails the stage that reads it
-                log.warning("could not evict unpacked datasets", exc_info=True)
-        yield root
+    with _held_here(root):
+        lock, unpacked = _read_lock(root), False
+        while lock is None:  # not unpacked on this machine, or evicted before its lock was taken
+            lock, unpacked = _unpack(scene, root, storage), True
+        with lock:
+            if unpacked:
+                try:
+                    if evicted := evict_scene_datasets(settings):
+                        log.info("evicted the unpacked dataset(s) %s (VOXE_SCENE_CACHE_MAX_BYTES)",
+                                 ", ".join(evicted))
+                except OSError:  # the cache's upkeep never fails the stage that reads it
+                    log.warning("could not evict unpacked datasets", exc_info=True)
+            yield root
+
+
+_held_datasets: Counter[Path] = Counter()
+_held_datasets_lock = threading.Lock()
+
+
+@contextmanager
+def _held_here(root: Path) -> Iterator[None]:
+    """``root`` recorded as read by a stage of this process, from before its lock is taken until after it is
+    released, so that no eviction in this process takes it (:func:`_evict`). Its lock cannot keep those off where
+    ``flock`` is emulated by POSIX locks (NFS): those belong to the process, so its own eviction's exclusive lock is
+    granted, and closing that eviction's descriptor releases the stage's."""
+    with _held_datasets_lock:
+        _held_datasets[root] += 1
+    try:
+        yield
+    finally:
+        with _held_datasets_lock:
+            _held_datasets[root] -= 1
+            if not _held_datasets[root]:
+                del _held_datasets[root]
 
 
 def _unpack(scene: Scene, root: Path, storage: Storage):
@@ -785,15 +808,19 @@ def _folder_bytes(folder: Path) -> int:
 def _evict(folder: Path) -> bool:
     """Delete the dataset ``folder`` unless a stage reads it (its ``.complete`` locked); whether it went. It is
     renamed to unpack debris (``.<scene id>-...``) first, so a reader never finds it half deleted, and a deletion cut
-    short is swept as debris."""
-    try:
-        with open(folder / datasets.UNPACKED_MARK, "r+b") as lock:  # (for writing: see evict_scene_datasets)
-            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            doomed = folder.with_name(f".{folder.name}-{uuid.uuid4().hex[:8]}")
-            os.rename(folder, doomed)
-            shutil.rmtree(doomed, ignore_errors=True)
-    except OSError:  # read by a stage, evicted or swept meanwhile, or a filesystem without locks
-        return False
+    short is swept as debris. One a stage of this process reads is not even opened (:func:`_held_here`); that check
+    and the rename are one step for this process's stages, so none takes the folder's lock in between."""
+    doomed = folder.with_name(f".{folder.name}-{uuid.uuid4().hex[:8]}")
+    with _held_datasets_lock:
+        if folder in _held_datasets:
+            return False
+        try:
+            with open(folder / datasets.UNPACKED_MARK, "r+b") as lock:  # (for writing: see evict_scene_datasets)
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                os.rename(folder, doomed)
+        except OSError:  # read by a stage, evicted or swept meanwhile, or a filesystem without locks
+            return False
+    shutil.rmtree(doomed, ignore_errors=True)
     return True
 
 
