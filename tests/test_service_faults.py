@@ -392,7 +392,69 @@ def test_a_lost_message_resend_the_broker_refuses_keeps_the_sweep_evaluation_for
     assert reap_orphaned_jobs(db) == []
     job = job_row(evaluation)
     assert job.state == "queued" and job.task_id not in (None, "task") and job.error is None
-    assert [e["kind"] for e in events_of(evaluation)] == ["requeued", "requeued"]
+    assert [e["kind"] for e in events_of(evaluation)] == ["requeued"]  # (the refused re-send none)
+
+
+def test_a_resend_the_broker_refused_is_not_on_the_timeline_nor_doubles_the_next_wait(db, monkeypatch):
+    """The reaper's re-send of a job whose message was taken as lost meets a broker outage: its ``requeued`` event
+    ("sent again") had been committed before the send and stayed, so the timeline said a re-send that never
+    happened, and the next pass counted it, waiting twice as long before the first real one. A refused re-send
+    leaves no event, and the job is sent one period after the refusal; that re-send (an event) doubles the wait."""
+    from kombu.exceptions import OperationalError
+    from sqlalchemy import update
+
+    import api.reaper as reaper
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, utcnow
+    from voxe_service.queue import TaskQueue
+
+    lost_after = db.job_lost_message_timeout_s
+    monkeypatch.setattr(reaper, "is_sql_broker", lambda url: False)  # a Redis, whose queue the reaper cannot read
+    job = add_job(add_scene(), "queued", 2 * lost_after)
+
+    def refused(self, signature):
+        raise OperationalError("Error 111 connecting to 127.0.0.1:6379. Connection refused.")
+
+    def reaped(age_in_periods: float):
+        """The job after a reaper pass, its last try ``age_in_periods`` VOXE_JOB_LOST_MESSAGE_TIMEOUT_S ago."""
+        with session_scope() as session:
+            session.execute(update(Job).where(Job.id == job)
+                            .values(updated_at=utcnow() - timedelta(seconds=age_in_periods * lost_after)))
+        assert reaper.reap_orphaned_jobs(db) == []
+        return job_row(job)
+
+    with monkeypatch.context() as broker_down:
+        broker_down.setattr(TaskQueue, "send", refused)
+        assert (reaped(2).task_id, events_of(job)) == ("task", [])
+    sent = reaped(1.5)
+    assert sent.task_id not in (None, "task")
+    assert [e["kind"] for e in events_of(job)] == ["requeued"]
+    assert reaped(1.5).task_id == sent.task_id  # the next waits twice as long
+    assert reaped(2.5).task_id != sent.task_id and len(events_of(job)) == 2
+
+
+def test_a_refused_resend_gives_the_task_id_back_only_to_the_job_as_it_claimed_it(db, monkeypatch):
+    """A refused re-send gave the job its old task id back wherever it had none, though another sender had taken
+    it meanwhile (the reaper sending again a dead worker's job, queued with no task id after its own refusal): the
+    job then looked sent, its old message's, and waited to be taken as lost rather than being sent as never sent."""
+    from kombu.exceptions import OperationalError
+    from sqlalchemy import update
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, utcnow
+    from voxe_service.queue import QueueUnavailable, TaskQueue, get_queue, send_queued_again
+
+    job = add_job(add_scene(), "queued", 0)
+
+    def taken_then_refused(self, signature):
+        with session_scope() as other:  # another sender's claim of the job, its send refused too
+            other.execute(update(Job).where(Job.id == job).values(task_id=None, updated_at=utcnow()))
+        raise OperationalError("Connection refused.")
+
+    monkeypatch.setattr(TaskQueue, "send", taken_then_refused)
+    with session_scope() as session, pytest.raises(QueueUnavailable):
+        send_queued_again(session, get_queue(), job, sent_as="task", reason="taken as lost")
+    assert (job_row(job).state, job_row(job).task_id, events_of(job)) == ("queued", None, [])
 
 
 def test_a_stage_whose_next_message_the_broker_refuses_leaves_its_job_for_the_reaper_to_send(db, monkeypatch):

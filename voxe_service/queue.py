@@ -178,9 +178,10 @@ def evaluations_waiting_on(session: Session, job: Job) -> list[str]:
 
 
 def dispatch_job(session: Session, queue: TaskQueue, job: Job, done: Iterable[str] = (),
-                 message: str | None = None, fail_refused: bool = True) -> None:
+                 message: str | None = None, fail_refused: bool = True, requeued: str | None = None) -> None:
     """Send the job's remaining stages (and the evaluations waiting on it), recording the task id on each, and
-    ``message`` on the job.
+    ``message`` on the job; with ``requeued``, a ``requeued`` event of that detail on its timeline in the same
+    commit, so that a send the broker refused is never on it (:func:`send_queued_again`).
 
     When the broker refuses, :class:`QueueUnavailable` is raised, the jobs failed with the reason first unless
     ``fail_refused`` is off (a caller withdrawing a job it has just created: no failed event, no webhook; or
@@ -206,6 +207,8 @@ def dispatch_job(session: Session, queue: TaskQueue, job: Job, done: Iterable[st
     if ids[1:]:
         session.execute(update(Job).where(Job.id.in_(ids[1:])).values(
             task_id=task_id, message=case((Job.state == QUEUED, None), else_=Job.message), updated_at=now))
+    if requeued is not None:
+        record_event(session, job.id, "requeued", stage=job.stage, detail=requeued)
     session.commit()
 
 
@@ -213,25 +216,30 @@ def send_queued_again(session: Session, queue: TaskQueue, job_id: str, *, sent_a
                       message: str | None = None, where: Iterable = ()) -> bool:
     """Hand a queued job's remaining stages (and the evaluations waiting on it) to the broker again, once: claimed by
     a conditional update (its task id still ``sent_as``, that of a message taken as lost, or None for a job never
-    sent; and ``where``, what the caller saw: several senders may run side by side), ``requeued`` on its timeline
-    with ``reason``, then sent with ``message``. Returns False, nothing done, when the row changed since it was read.
+    sent; and ``where``, what the caller saw: several senders may run side by side), then sent with ``message``,
+    ``requeued`` going on its timeline with ``reason`` as the broker takes it. Returns False, nothing done, when the
+    row changed since it was read.
 
-    A broker that refuses raises :class:`QueueUnavailable`, the job given its task id ``sent_as`` back: left as it
-    was, for a later try (with no task id, a sweep's evaluation would be failed by the reaper as never sent with its
-    edit)."""
+    A broker that refuses raises :class:`QueueUnavailable`, nothing on the timeline (a refused re-send counted as one
+    had doubled the reaper's next wait: ``api.reaper``), the job given its task id ``sent_as`` back unless another
+    sender changed it meanwhile: left as it was, for a later try (with no task id, a sweep's evaluation would be
+    failed by the reaper as never sent with its edit). A sender that stops after the broker took the chain, before
+    recording it, leaves the job with no task id, which the reaper sends again."""
+    claimed_at = utcnow()
     claimed = session.execute(update(Job).where(  # task_id NULL until the new chain is handed over
         Job.id == job_id, Job.state == QUEUED, Job.task_id.is_(None) if sent_as is None else Job.task_id == sent_as,
-        *where).values(task_id=None, updated_at=utcnow()))
+        *where).values(task_id=None, updated_at=claimed_at))
     if claimed.rowcount != 1:
         return False
-    job = session.get(Job, job_id)
-    record_event(session, job_id, "requeued", stage=job.stage, detail=reason)
     session.commit()
+    job = session.get(Job, job_id)
     try:
-        dispatch_job(session, queue, job, done=job.completed_stages or [], message=message, fail_refused=False)
+        dispatch_job(session, queue, job, done=job.completed_stages or [], message=message, fail_refused=False,
+                     requeued=reason)
     except QueueUnavailable:
         if sent_as is not None:
-            session.execute(update(Job).where(Job.id == job_id, Job.task_id.is_(None)).values(task_id=sent_as))
+            session.execute(update(Job).where(Job.id == job_id, Job.task_id.is_(None), Job.updated_at == claimed_at)
+                            .values(task_id=sent_as))
             session.commit()
         raise
     return True
