@@ -33,7 +33,7 @@ A job is orphaned when
 Each time a job's message was already taken as lost doubles the wait before it is again (from
 ``VOXE_JOB_LOST_MESSAGE_TIMEOUT_S``): one waiting its turn behind a long backlog is sent again ever more rarely,
 not each period. On the SQL broker, whose table lists the waiting messages, a job one of them carries is never
-taken as lost.
+taken as lost, and none is while that table cannot be read (the rest of the pass goes on).
 
 A broker that refuses a message fails nothing here: the job stays (or becomes) ``queued`` with no task
 id (one whose message was taken as lost keeps its task id), its checkpoints kept, and a pass after the broker is
@@ -176,20 +176,42 @@ def _messages_taken_as_lost(session, settings: Settings, now: datetime, jobs) ->
     as lost, each with the wait that decided it: ``VOXE_JOB_LOST_MESSAGE_TIMEOUT_S``, doubled for each time the job
     was already sent again so. A job waiting its turn behind a long backlog had been sent again each period, without
     end (a ``requeued`` event and a copy of its message each time); now ever more rarely. On the SQL broker, whose
-    table lists the waiting messages, a job one of them carries is not lost at all."""
+    table lists the waiting messages, a job one of them carries is not lost at all; while that table cannot be read,
+    none is (the rest of the pass goes on: :func:`_sql_broker_waiting`)."""
     if not jobs:
         return {}
     resent = dict(session.execute(select(JobEvent.job_id, func.count()).where(
         JobEvent.job_id.in_([job.id for job in jobs]), JobEvent.kind == "requeued",
         JobEvent.detail.contains(LOST_MESSAGE_SETTING)).group_by(JobEvent.job_id)).all())
-    waiting = ({job_id for _task, job_id in waiting_tasks(settings.broker_url)}
-               if is_sql_broker(settings.broker_url) else set())
+    waiting = _sql_broker_waiting(settings.broker_url) if is_sql_broker(settings.broker_url) else set()
+    if waiting is None:
+        return {}
     lost = {}
     for job in jobs:
         wait = settings.job_lost_message_timeout_s * 2 ** min(resent.get(job.id, 0), 20)
         if job.id not in waiting and job.updated_at < now - timedelta(seconds=wait):
             lost[job.id] = wait
     return lost
+
+
+_broker_unreadable: set[str] = set()
+"""The SQL brokers whose table of waiting messages the last try could not read (said once per outage)."""
+
+
+def _sql_broker_waiting(broker_url: str) -> set[str] | None:
+    """The ids of the jobs the SQL broker's waiting messages carry; None while its table cannot be read (its
+    database unreachable, say), as a warning says once until it is read again: no message can be taken as lost
+    then, and the reaper's other work (cancels, dead workers' jobs, jobs never sent) must not stop for it."""
+    try:
+        waiting = {job_id for _task, job_id in waiting_tasks(broker_url)}
+    except Exception as exc:  # noqa: BLE001 - whatever the broker's database says, the pass goes on
+        if broker_url not in _broker_unreadable:
+            _broker_unreadable.add(broker_url)
+            log.warning("reaper: the SQL broker's waiting messages cannot be read (%s: %s): no queued job's message "
+                        "is taken as lost until they can", type(exc).__name__, exc)
+        return None
+    _broker_unreadable.discard(broker_url)
+    return waiting
 
 
 def _send_now(session, job_id: str, seen_updated_at: datetime, detail: str, sent_as: str | None = None,

@@ -315,6 +315,42 @@ def test_a_job_waiting_its_turn_behind_a_long_backlog_is_sent_again_ever_more_ra
                                                   "job was sent")
 
 
+def test_a_sql_broker_that_cannot_be_read_stops_no_other_reaper_work(db, monkeypatch, caplog):
+    """The SQL broker's table of waiting messages could not be read (its database unreachable): the whole reaper
+    pass raised, a cancel between stages, a dead worker's job and a job never sent all left for as long. Now no
+    queued job's message is taken as lost meanwhile, as a warning says once, and the rest of the pass is done; once
+    the table is read again, the job whose message is lost is sent."""
+    import api.reaper as reaper
+
+    lost_after, timeout = db.job_lost_message_timeout_s, db.job_stale_timeout_s
+    scene = add_scene()
+    add_heartbeat("alive@host", age_s=1)
+    add_heartbeat("dead@host", age_s=2 * timeout)
+    lost = add_job(scene, "running", 2 * lost_after, "alive@host", "edit", completed_stages=["reconstruct", "edit"])
+    canceled = add_job(scene, "running", 10, "alive@host", "edit", completed_stages=["reconstruct", "edit"],
+                       cancel_requested=True)
+    dead_workers = add_job(scene, "running", 2 * timeout, "dead@host", "edit", completed_stages=["reconstruct"])
+    never_sent = add_job(scene, "queued", 2 * timeout, task_id=None)
+    readable = reaper.waiting_tasks
+
+    def unreadable(url):
+        raise OSError("unable to open database file")
+
+    monkeypatch.setattr(reaper, "waiting_tasks", unreadable)
+    with caplog.at_level(logging.WARNING, logger="voxe.reaper"):
+        assert reaper.reap_orphaned_jobs(db) == [canceled]
+        assert reaper.reap_orphaned_jobs(db) == []
+    assert [(r.getMessage()) for r in caplog.records if "cannot be read" in r.getMessage()] == [
+        "reaper: the SQL broker's waiting messages cannot be read (OSError: unable to open database file): no "
+        "queued job's message is taken as lost until they can"]
+    assert job_row(canceled).state == "canceled"
+    assert (job_row(dead_workers).state, job_row(never_sent).state) == ("queued", "queued")
+    assert job_row(never_sent).task_id is not None and job_row(dead_workers).task_id is not None
+    assert (job_row(lost).state, events_of(lost)) == ("running", [])
+    monkeypatch.setattr(reaper, "waiting_tasks", readable)
+    assert reaper.reap_orphaned_jobs(db) == [] and job_row(lost).state == "queued"
+
+
 def test_a_reaper_pass_meeting_a_broker_outage_fails_nothing_and_a_later_pass_sends_the_jobs(db, monkeypatch):
     """The broker refuses every message (a Redis restarting) during a pass: a dead worker's job, an accepted job
     never sent and a sweep's edit never sent had been failed for good, their checkpoints deleted. Now they wait,
