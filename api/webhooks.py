@@ -2,11 +2,12 @@
 
 Attempts run on a small thread pool, each ending by its deadline (``VOXE_WEBHOOK_TIMEOUT_S``: name lookup,
 connect, send and the whole answer), so a slow or dead receiver holds one pool thread for at most that long and
-never a request or a worker; at most half the pool's threads go to one URL, so a receiver that never answers
-cannot hold them all while its deliveries pile up. A failed attempt (an error, a timeout, a non-2xx) is retried after
-``VOXE_WEBHOOK_BACKOFF_S`` doubling per attempt, until ``VOXE_WEBHOOK_RETRY_FOR_S`` after the event (the last
-try at that time); then the delivery is ``failed`` with the last error. Claims are conditional updates, so several API
-processes may send side by side without sending one attempt twice.
+never a request or a worker; at most half the pool's threads go to one receiver (``scheme://host:port``, whatever
+path each job's URL names), so a receiver that never answers cannot hold them all while its deliveries pile up. A
+failed attempt (an error, a timeout, a non-2xx) is retried after ``VOXE_WEBHOOK_BACKOFF_S`` doubling per attempt,
+until ``VOXE_WEBHOOK_RETRY_FOR_S`` after the event (the last try at that time); then the delivery is ``failed`` with
+the last error. Claims are conditional updates, so several API processes may send side by side without sending one
+attempt twice.
 """
 
 from __future__ import annotations
@@ -42,8 +43,8 @@ class WebhookSender:
         self._pool = ThreadPoolExecutor(settings.webhook_concurrency, thread_name_prefix="voxe-webhook")
         self._client = webhook_client(settings.webhook_timeout_s, settings.webhook_networks)
         self._in_flight = threading.Semaphore(settings.webhook_concurrency)
-        self._per_url = max(1, settings.webhook_concurrency // 2)  # so one receiver never holds every slot
-        self._in_flight_to: Counter[str] = Counter()  # attempts in flight, by URL
+        self._per_origin = max(1, settings.webhook_concurrency // 2)  # so one receiver never holds every slot
+        self._in_flight_to: Counter[str] = Counter()  # attempts in flight, by receiver (webhook_origin)
         self._in_flight_lock = threading.Lock()
 
     def start(self) -> "WebhookSender":
@@ -101,18 +102,18 @@ class WebhookSender:
                 in_flight_to = dict(self._in_flight_to)
             with session_scope() as session:
                 won = claim_due(session, utcnow(), self.settings.webhook_timeout_s + CLAIM_MARGIN_S, free,
-                                self._per_url, in_flight_to)
+                                self._per_origin, in_flight_to)
             claimed = won  # once committed: a claim whose commit failed took nothing
         finally:  # the slots left over: all of them when the claim failed (a database hiccup had kept them for good)
             for _ in range(free - len(claimed)):
                 self._in_flight.release()
         with self._in_flight_lock:
-            self._in_flight_to.update(url for _, url in claimed)
-        for delivery_id, url in claimed:
-            self._pool.submit(self._send, delivery_id, url)
+            self._in_flight_to.update(origin for _, origin in claimed)
+        for delivery_id, origin in claimed:
+            self._pool.submit(self._send, delivery_id, origin)
         return len(claimed)
 
-    def _send(self, delivery_id: str, url: str) -> None:
+    def _send(self, delivery_id: str, origin: str) -> None:
         try:
             with session_scope() as session:
                 delivery = session.get(WebhookDelivery, delivery_id)
@@ -128,7 +129,7 @@ class WebhookSender:
             log.warning("webhook delivery %s: attempt failed", delivery_id, exc_info=True)
         finally:
             with self._in_flight_lock:
-                self._in_flight_to -= Counter({url: 1})
+                self._in_flight_to -= Counter({origin: 1})
             self._in_flight.release()
 
     def _record(self, delivery: WebhookDelivery, status: int | None, error: str | None, refused: bool) -> None:

@@ -122,6 +122,42 @@ def test_a_database_of_the_previous_head_upgrades_in_place(database_url):
     assert "state" not in {c["name"] for c in tables.get_columns("scenes")}
 
 
+def test_webhook_deliveries_written_before_their_receiver_was_recorded_get_their_urls(database_url):
+    """0012 records each delivery's receiver (scheme, host and port), which the sender's cap counts by: those
+    already written get their URL's, a URL that cannot be read so standing for itself; downgrading drops it."""
+    from alembic import command
+    from sqlalchemy import inspect, text
+
+    from service_helpers import database_at
+
+    urls = ["https://Hooks.Example.com/jobs/j1?try=1", "http://hooks.example.com:8080/a", "http://[::1]:9000/x",
+            "https://[::1/broken"]
+    config, engine = database_at(
+        database_url, "0011_idempotency_pending",
+        "INSERT INTO scenes (id, owner_key_id, name, format, image_count, width, height, splits, storage_key, "
+        "size_bytes, sha256, state, created_at, updated_at) VALUES ('s1', 'local', 'old', 'nerf_synthetic', 3, 8, "
+        "8, '[\"train\"]', 'scenes/s1/dataset.zip', 10, 'x', 'ready', '2026-01-01 00:00:00+00', "
+        "'2026-01-01 00:00:00+00')",
+        "INSERT INTO jobs (id, scene_id, owner_key_id, prompt, mode, edit_words, params, sds_model, attention_model, "
+        "device, state, iteration, total, losses, cancel_requested, completed_stages, requeues, created_at, "
+        "updated_at) VALUES ('j1', 's1', 'local', 'a mic', 'global', '[]', '{}', 'tiny', 'tiny', 'cpu', 'running', 0, "
+        "0, '{}', false, '[]', 0, '2026-01-01 00:00:00+00', '2026-01-01 00:00:00+00')")
+    with engine.begin() as conn:
+        conn.execute(text("INSERT INTO webhook_deliveries (id, job_id, event_id, event_type, url, payload, state, "
+                          "attempts, next_attempt_at, created_at) VALUES (:id, 'j1', :n, 'job.warning', :url, '{}', "
+                          "'pending', 0, '2026-01-01 00:00:00+00', '2026-01-01 00:00:00+00')"),
+                     [{"id": f"d{n}", "n": n, "url": url} for n, url in enumerate(urls)])
+    command.upgrade(config, "head")
+    with engine.connect() as conn:
+        assert conn.execute(text("SELECT origin FROM webhook_deliveries ORDER BY id")).scalars().all() == [
+            "https://hooks.example.com:443", "http://hooks.example.com:8080", "http://[::1]:9000",
+            "https://[::1/broken"]
+    command.check(config)
+    command.downgrade(config, "0011_idempotency_pending")
+    assert "origin" not in {c["name"] for c in inspect(engine).get_columns("webhook_deliveries")}
+    engine.dispose()
+
+
 def test_byte_sizes_past_2_gib_are_stored(db):
     """A 2 GiB upload is allowed (VOXE_MAX_UPLOAD_BYTES) and a key may store 50 GiB: PostgreSQL's 32-bit integer
     had refused such a scene and artifact ("integer out of range")."""

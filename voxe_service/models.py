@@ -7,8 +7,8 @@ import uuid
 from datetime import datetime, timedelta, timezone
 
 from sqlalchemy import (
-    JSON, BigInteger, Boolean, DateTime, Float, ForeignKey, Integer, String, Text, TypeDecorator, UniqueConstraint,
-    false,
+    JSON, BigInteger, Boolean, DateTime, Float, ForeignKey, Index, Integer, String, Text, TypeDecorator,
+    UniqueConstraint, false,
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 
@@ -259,22 +259,26 @@ class WebhookDelivery(Base):
     the API's :class:`api.webhooks.WebhookSender`.
 
     ``id`` is the Standard Webhooks ``webhook-id``, equal across retries so receivers can dedupe;
-    ``payload`` is the exact body, fixed at creation, so every attempt sends the same bytes.
+    ``payload`` is the exact body, fixed at creation, so every attempt sends the same bytes; ``origin`` is the
+    receiver ``url`` goes to (``voxe_service.webhooks.webhook_origin``), which the sender's cap counts by (the index
+    on state, origin and due time lets a claim read each receiver's earliest due deliveries, however many are due).
     States: ``pending`` (due at ``next_attempt_at``), ``delivered`` (a 2xx), ``failed`` (gave up).
     """
 
     __tablename__ = "webhook_deliveries"
-    __table_args__ = (UniqueConstraint("job_id", "event_id", name="uq_webhook_delivery_event"),)
+    __table_args__ = (UniqueConstraint("job_id", "event_id", name="uq_webhook_delivery_event"),
+                      Index("ix_webhook_deliveries_state_origin_due", "state", "origin", "next_attempt_at"))
 
     id: Mapped[str] = mapped_column(String(40), primary_key=True)
     job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), index=True)
     event_id: Mapped[int] = mapped_column(Integer)
     event_type: Mapped[str] = mapped_column(String(40))
     url: Mapped[str] = mapped_column(Text)
+    origin: Mapped[str] = mapped_column(Text, server_default="")
     payload: Mapped[str] = mapped_column(Text)
     state: Mapped[str] = mapped_column(String(16), default="pending")
     attempts: Mapped[int] = mapped_column(Integer, default=0)
-    next_attempt_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True, index=True)
+    next_attempt_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
     last_status: Mapped[int | None] = mapped_column(Integer, nullable=True)
     last_error: Mapped[str | None] = mapped_column(Text, nullable=True)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
