@@ -342,8 +342,10 @@ def views_alive(height: int, width: int) -> float:
     import gc
 
     storages = {}
-    for obj in gc.get_objects():  # (type(obj), not isinstance: that reads __class__, which some objects warn on)
-        if issubclass(type(obj), torch.Tensor) and obj.dim() >= 3 and tuple(obj.shape[-3:-1]) == (height, width):
+    # type(obj), not isinstance: that reads __class__, which some objects warn on. Plain tensors only: renders are,
+    # and a FakeTensor an earlier test's torch.compile left has no storage to read
+    for obj in gc.get_objects():
+        if type(obj) is torch.Tensor and obj.dim() >= 3 and tuple(obj.shape[-3:-1]) == (height, width):
             storage = obj.untyped_storage()
             storages[storage.data_ptr()] = storage.nbytes()
     return sum(storages.values()) / (height * width * 3 * 4)
