@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterable
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -144,30 +145,37 @@ def test_bad_data_dir_exits_2_with_a_message(tmp_path, capsys):
     assert "transforms_train.json" in capsys.readouterr().err
 
 
+class FakeSweeps:
+    """A service client for ``voxe sweep``: the sweep it makes is in each of ``states`` at the polls in turn, with
+    job ``counts``; ``polls`` counts them."""
+
+    base_url = "http://service"
+
+    def __init__(self, states: Iterable[str], counts: dict[str, int]):
+        self.states, self.counts, self.polls = iter(states), counts, 0
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return None
+
+    def create_sweep(self, scenes, params=None, evaluation=None, idempotency_key=None):
+        return {"id": "s1", "entries": [{}] * 6, "state": "queued", "counts": {"queued": 12}, "table": "T\n"}
+
+    def get_sweep(self, sweep_id):
+        self.polls += 1
+        return {"id": sweep_id, "entries": [], "state": next(self.states), "counts": self.counts, "table": "T\n"}
+
+
 @pytest.mark.parametrize("end, code", [("succeeded", 0), ("failed", 1), ("canceled", 1)])
 def test_a_waited_sweep_exits_1_unless_it_succeeded(monkeypatch, capsys, tmp_path, end, code):
     """As voxe wait does for a job: a failed sweep had exited 0, saying nothing of its failed jobs."""
     import voxe_core.cli.service as service
 
-    states = iter(["running", end])
-
-    class Sweeps:
-        base_url = "http://service"
-
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *exc):
-            return None
-
-        def create_sweep(self, scenes, params=None, evaluation=None, idempotency_key=None):
-            return {"id": "s1", "entries": [{}] * 6, "state": "queued", "counts": {"queued": 12}, "table": "T\n"}
-
-        def get_sweep(self, sweep_id):
-            counts = {"succeeded": 12} if end == "succeeded" else {end: 6, "succeeded": 6}
-            return {"id": sweep_id, "entries": [], "state": next(states), "counts": counts, "table": "T\n"}
-
-    monkeypatch.setattr(service, "_client", lambda args: Sweeps())
+    counts = {"succeeded": 12} if end == "succeeded" else {end: 6, "succeeded": 6}
+    sweeps = FakeSweeps(["running", end], counts)
+    monkeypatch.setattr(service, "_client", lambda args: sweeps)
     assert main(["sweep", "--scene", "s1=mic", "--wait", "--poll", "0.01", "--out", str(tmp_path / "s.json")]) == code
     err = capsys.readouterr().err
     assert (f"ended {end}: jobs {{'{end}': 6, 'succeeded': 6}}" in err) == (code == 1)
@@ -177,27 +185,10 @@ def test_ctrl_c_during_a_waited_sweeps_pause_stops_waiting_at_once(monkeypatch, 
     """Ctrl-C between a waited sweep's polls had been answered only once the pause was over (``--poll 600``: ten
     minutes), the handler's return resuming the sleep; and no poll follows the Ctrl-C (a hung service's had held it up
     to a minute more)."""
+    import itertools
     import threading
 
     import voxe_core.cli.service as service
-
-    class Sweeps:
-        base_url = "http://service"
-
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *exc):
-            return None
-
-        def create_sweep(self, scenes, params=None, evaluation=None, idempotency_key=None):
-            return {"id": "s1", "entries": [{}] * 6, "state": "queued", "counts": {"queued": 12}, "table": "T\n"}
-
-        def get_sweep(self, sweep_id):
-            polls.append(sweep_id)
-            return {"id": sweep_id, "entries": [], "state": "running", "counts": {"running": 12}, "table": "T\n"}
-
-    polls = []
 
     def ctrl_c_while_waiting():
         while signal.getsignal(signal.SIGINT) is default:  # once the command's handler is in place
@@ -205,12 +196,13 @@ def test_ctrl_c_during_a_waited_sweeps_pause_stops_waiting_at_once(monkeypatch, 
         time.sleep(0.2)
         os.kill(os.getpid(), signal.SIGINT)
 
-    monkeypatch.setattr(service, "_client", lambda args: Sweeps())
+    sweeps = FakeSweeps(itertools.repeat("running"), {"running": 12})
+    monkeypatch.setattr(service, "_client", lambda args: sweeps)
     default = signal.getsignal(signal.SIGINT)
     threading.Thread(target=ctrl_c_while_waiting, daemon=True).start()
     started = time.monotonic()
     assert main(["sweep", "--scene", "s1=mic", "--wait", "--poll", "20"]) == 130
-    assert time.monotonic() - started < 10 and polls == []
+    assert time.monotonic() - started < 10 and sweeps.polls == 0
     assert capsys.readouterr().err.endswith("voxe sweep: stopped waiting; the sweep s1 goes on in the service\n")
 
 
