@@ -124,8 +124,18 @@ def significant(value: float, digits: int = 3) -> str:
 
 
 def table(header: list[str], rows: list[list]) -> list[str]:
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    return lines + ["| " + " | ".join(fmt(c) if not isinstance(c, str) else c for c in row) + " |" for row in rows]
+    r"""A Markdown table, each cell's text on one line with its pipes escaped (a command's stderr, newline and all,
+    had broken its row in two).
+
+    Examples:
+        >>> table(["case", "stderr"], [["refused", "error: no | service\n"]])[2]
+        '| refused | error: no \\| service |'
+    """
+    def cell(value) -> str:
+        return " ".join((value if isinstance(value, str) else fmt(value)).split()).replace("|", r"\|")
+
+    return ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)] + [
+        "| " + " | ".join(cell(c) for c in row) + " |" for row in rows]
 
 
 def ratio(a, b) -> str:

@@ -53,6 +53,12 @@ def test_report_plots_cpu_and_gpu_runs_and_handles_a_missing_gpu_json(tmp_path):
     assert report.device_kind({"device": "cuda:0"}) == "cuda" and report.device_kind({}) == "cpu"
 
 
+def test_a_table_cell_holding_a_newline_or_a_pipe_keeps_its_row_whole():
+    """bench/cli_startup.py's stderr column (a refusal and its newline) had broken its REPORT row in two."""
+    lines = report.table(["case", "stderr", "seconds"], [["refused", "voxe: error: a | b\n", 0.5], ["ok", "", None]])
+    assert lines[2:] == [r"| refused | voxe: error: a \| b | 0.50 |", "| ok |  | – |"]
+
+
 def test_every_results_file_names_a_script_that_exists():
     from report import producer
 
