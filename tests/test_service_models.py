@@ -3,8 +3,10 @@ and failure at the start of the chain (SQLite, the in-process API and the real w
 
 from __future__ import annotations
 
+import json
 import shutil
 import time
+from pathlib import Path
 
 import pytest
 from sqlalchemy import select
@@ -87,10 +89,13 @@ def test_a_diffusion_model_is_present_only_whole_in_a_folder_or_the_hub_cache(tm
     assert not diffusers_model_present("owner/dangling")
 
 
-def test_a_clip_model_is_present_only_whole_in_a_folder_or_the_hub_cache(tmp_path, hub_cache):
+def test_a_clip_model_is_present_only_whole_in_a_folder_or_the_hub_cache(tmp_path, hub_cache, monkeypatch):
     """config.json alone had counted: a download cut short (the weights never arrived) was offered by the workers, and
     an evaluation sweep failed loading it only after all its edits had run."""
+    from safetensors import safe_open
+
     from voxe_core.evaluate import ClipScorer
+    from voxe_core.guidance import loading
     from voxe_core.guidance.loading import ModelNotAvailableError
     from voxe_core.tiny_eval import build_tiny_clip
     from voxe_service.model_inventory import model_present
@@ -116,6 +121,21 @@ def test_a_clip_model_is_present_only_whole_in_a_folder_or_the_hub_cache(tmp_pat
     tokenizer_json = [*CLIP_FILES, *CLIP_TOKENIZERS[1], "model.safetensors"]  # transformers 5's, and it reads it alone
     hub_cache("owner/clip-tokenizer-json", *tokenizer_json)
     assert model_present(clip, "owner/clip-tokenizer-json", settings)
+    monkeypatch.setattr(loading, "_transformers_major", lambda: 4)  # whose CLIPTokenizer needs vocab.json, merges.txt
+    assert not model_present(clip, "owner/clip-tokenizer-json", settings)
+    monkeypatch.undo()
+    # Sharded weights: the index arrives before its shards, and had counted alone
+    sharded = shutil.copytree(tmp_path / "lacks-model.safetensors", tmp_path / "sharded")
+    shard = shutil.copy(tmp_path / "lacks-config.json" / "model.safetensors",
+                        sharded / "model-00001-of-00001.safetensors")
+    with safe_open(shard, "pt") as weights:
+        names = list(weights.keys())
+    (sharded / "model.safetensors.index.json").write_text(json.dumps({"metadata": {}, "weight_map": {
+        name: "model-00001-of-00001.safetensors" for name in names}}))
+    assert model_present(clip, str(sharded), settings)
+    ClipScorer.from_pretrained(str(sharded), device="cpu")
+    Path(shard).unlink()
+    assert not model_present(clip, str(sharded), settings)
 
 
 def test_the_worker_inventory_counts_tiny_models_and_finds_the_missing(root, hub_cache, monkeypatch):

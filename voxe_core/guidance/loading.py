@@ -6,6 +6,7 @@ Real weights are never substituted: a model that cannot be loaded is a
 
 from __future__ import annotations
 
+import json
 import os
 from typing import Callable
 
@@ -18,12 +19,13 @@ WEIGHTED_COMPONENTS = ("unet", "vae", "text_encoder")
 CLIP_FILES = ("config.json", "preprocessor_config.json")
 """The configs loading a CLIP model reads (``voxe_core.evaluate.ClipScorer``): the model's and its image processor's."""
 CLIP_TOKENIZERS = (("vocab.json", "merges.txt"), ("tokenizer.json",))
-"""The files of a CLIP tokenizer, one set of them whole (transformers 5 reads ``tokenizer.json`` alone)."""
-CLIP_WEIGHTS = ("model.safetensors", "model.safetensors.index.json",
-                "pytorch_model.bin", "pytorch_model.bin.index.json")
-"""The weights files transformers loads a model from, any one of them."""
+"""The files of a CLIP tokenizer, one set of them whole (transformers 5 reads ``tokenizer.json`` alone; 4's
+``CLIPTokenizer`` needs the first)."""
+CLIP_WEIGHTS = ("model.safetensors", "pytorch_model.bin")
+"""The weights files transformers loads a model from, any one of them whole, or its shards an index of that name
+plus ``.index.json`` lists."""
 CLIP_LAYOUT = (f"{', '.join(CLIP_FILES)}, its tokenizer ({' and '.join(CLIP_TOKENIZERS[0])}, or "
-               f"{CLIP_TOKENIZERS[1][0]}) and its weights ({' or '.join(CLIP_WEIGHTS[::2])})")
+               f"{CLIP_TOKENIZERS[1][0]}) and its weights ({' or '.join(CLIP_WEIGHTS)}, or their shards)")
 
 
 class ModelNotAvailableError(RuntimeError):
@@ -148,8 +150,28 @@ def clip_model_present(model: str) -> bool:
     def has(name: str) -> bool:
         return os.path.isfile(os.path.join(folder, name))
 
-    return (all(map(has, CLIP_FILES)) and any(all(map(has, files)) for files in CLIP_TOKENIZERS)
-            and any(map(has, CLIP_WEIGHTS)))
+    def sharded(weights: str) -> bool:  # the index arrives before its shards: each one it lists must be there
+        try:
+            with open(os.path.join(folder, f"{weights}.index.json"), encoding="utf-8") as index:
+                shards = set(json.load(index)["weight_map"].values())
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            return False
+        return bool(shards) and all(isinstance(shard, str) and has(shard) for shard in shards)
+
+    tokenizers = CLIP_TOKENIZERS if _transformers_major() >= 5 else CLIP_TOKENIZERS[:1]
+    return (all(map(has, CLIP_FILES)) and any(all(map(has, files)) for files in tokenizers)
+            and any(has(weights) or sharded(weights) for weights in CLIP_WEIGHTS))
+
+
+def _transformers_major() -> int:
+    """The installed transformers' major version (0 when it is not installed or reads otherwise), read from its
+    metadata: importing it takes seconds."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return int(version("transformers").split(".")[0])
+    except (PackageNotFoundError, ValueError):
+        return 0
 
 
 def loading_errors() -> tuple[type[BaseException], ...]:
