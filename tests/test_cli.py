@@ -1087,11 +1087,12 @@ def test_render_saves_each_view_before_rendering_the_next(sphere_grid, sphere_fi
 
 @pytest.mark.parametrize("failure", ["disk full", "cancelled"])
 def test_a_render_failing_part_way_leaves_the_earlier_runs_views_as_they_were(sphere_file, tmp_path, monkeypatch,
-                                                                              failure):
+                                                                              capsys, failure):
     """Saving each view as it is rendered, a run that fails or is cancelled at its third view must not leave a mix
     of its own views and the earlier run's: they are staged beside --out and moved in once all are written. A killed
-    run's staging folder goes at the next run."""
+    run's staging folder goes at the next run; one a running run holds is not emptied, the second run refused."""
     import errno
+    import fcntl
 
     import voxe_core.export
     from voxe_core.progress import StageCancelled
@@ -1099,6 +1100,12 @@ def test_a_render_failing_part_way_leaves_the_earlier_runs_views_as_they_were(sp
     out = tmp_path / "views"
     (out / ".render-staging").mkdir(parents=True)
     (out / ".render-staging" / "000.png").write_bytes(b"a killed run's")
+    staging = os.open(out / ".render-staging", os.O_RDONLY)  # a run writing into the same --out holds it
+    fcntl.flock(staging, fcntl.LOCK_EX)
+    assert main(["render", str(sphere_file), "--ring", "3", "--size", "16", "--out", str(out), "--quiet"]) == 2
+    assert f"another voxe render is writing into {out}" in capsys.readouterr().err
+    assert (out / ".render-staging" / "000.png").read_bytes() == b"a killed run's"  # that run's left as it was
+    os.close(staging)
     assert main(["render", str(sphere_file), "--ring", "3", "--size", "16", "--out", str(out), "--quiet"]) == 0
     assert sorted(path.name for path in out.iterdir()) == ["000.png", "001.png", "002.png", "render.json"]
     earlier = {path.name: path.read_bytes() for path in out.iterdir()}

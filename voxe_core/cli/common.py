@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import contextvars
+import fcntl
 import importlib
 import os
 import re
@@ -292,16 +293,25 @@ def writable_folder(path: Path) -> Path:
 
 @contextlib.contextmanager
 def staging_folder(out: Path, command: str) -> Iterator[Path]:
-    """``out/.<command>-staging``, empty, where a command saves its views as it makes them until all are made, then
+    """``out/.<command>-staging``, emptied, where a command saves its views as it makes them until all are made, then
     moves them over the earlier run's: a cancelled or failed run leaves those as they were, not a mix of two runs'.
-    One name a command, so a killed run's (a whole ring of views) goes at the next run's start; gone on leaving."""
+    One name a command, so a killed run's (a whole ring of views) goes at the next run's start; held locked while in
+    use, so a second run into the same --out is refused rather than emptying the first's; gone on leaving."""
     staging = out / f".{command}-staging"
-    shutil.rmtree(staging, ignore_errors=True)
-    staging.mkdir()
+    staging.mkdir(exist_ok=True)
+    held = os.open(staging, os.O_RDONLY)
     try:
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(held)
+        raise OSError(f"another voxe {command} is writing into {out}: let it end, or choose another --out") from None
+    try:
+        for leftover in staging.iterdir():  # a killed run's
+            shutil.rmtree(leftover) if leftover.is_dir() and not leftover.is_symlink() else leftover.unlink()
         yield staging
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+        os.close(held)
 
 
 def remove_earlier_outputs(folder: Path, names: re.Pattern) -> None:
