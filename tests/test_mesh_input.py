@@ -567,8 +567,8 @@ _TRIANGLE_OBJ = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 0 1\nvn 0 0 1\n"
      "from 1)"),
     ("f 1 2 x",  # "string or file could not be read to its end due to unmatched data"
      "line 8, 'f 1 2 x': not a face of three or more corners, each v, v/vt, v//vn or v/vt/vn"),
-    ("f 1/1/1 2/2/1 3/3/1\nf 1 2",  # dropped without a word
-     "line 9, 'f 1 2': not a face of three or more corners, each v, v/vt, v//vn or v/vt/vn"),
+    ("f 1/1/1 2/2/1 3/3/1\nf 1 x",  # (a line of one or two corners trimesh skips, words or not)
+     "line 9, 'f 1 x': not a face of three or more corners, each v, v/vt, v//vn or v/vt/vn"),
     ("v 0 0 one\nf 1 2 3", "line 8, 'v 0 0 one': 'one' is not a number"),  # "string or file could not be read ..."
 ])
 def test_an_obj_naming_what_it_does_not_hold_is_refused_naming_the_line(tmp_path, lines, message):
@@ -586,6 +586,21 @@ def test_an_obj_of_every_corner_form_loads(tmp_path):
                                         "f 1/-3/1  2/2/1 3/3/1 \n")
     mesh = load_mesh(tmp_path / "forms.obj")
     assert len(mesh.faces) == 4 and np.allclose(mesh.vertices[mesh.faces[0]], mesh.vertices[mesh.faces[2]])
+
+
+def test_an_obj_loads_as_trimesh_reads_its_face_lines_of_fewer_than_three_corners_and_vt_it_does_not_hold(tmp_path):
+    """trimesh skips a face line of fewer than three corners (a stray edge, a bare f) and, in a file without vt lines,
+    every corner's vt: the mesh loads without them, uncoloured (a texture given: it has no texture coordinates)."""
+    vertices = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\n"
+    (tmp_path / "short.obj").write_text(vertices + "f 1 2 3\nf 3 4\nf 4\nf\nf 2 4 3\n")
+    (tmp_path / "no_vt.obj").write_text(vertices + "f 1/1 2/2 3/3\nf 2/4/1 4/5/1 3/6/1\n")
+    for name in ("short.obj", "no_vt.obj"):
+        mesh = load_mesh(tmp_path / name, up_axis="z")
+        assert len(mesh.faces) == 2 and mesh.uv is None and mesh.texture is None, name
+    Image.new("RGB", (4, 4), RED[:3]).save(tmp_path / "red.png")
+    with pytest.raises(MeshError, match=r"^no_vt.obj: a texture was given but the mesh has no texture coordinates "
+                                        r"\(vt\)$"):
+        load_mesh(tmp_path / "no_vt.obj", tmp_path / "red.png")
 
 
 _TETRAHEDRON = _TETRAHEDRON_PLY.format(vertices=4, faces=4)

@@ -269,8 +269,8 @@ def _check_readable(path: Path, kind: str) -> None:
 
 OBJ_CORNER_FIELDS = {"v": "vertex", "vt": "texture coordinate (vt)", "vn": "normal (vn)"}
 """What the fields of an OBJ face's corner (v/vt/vn) name, by the keyword of the lines that hold them."""
-_OBJ_FACE = re.compile(r"\s*f(?:\s+[+-]?[0-9]+(?:/(?:[+-]?[0-9]+)?){0,2}){3,}\s*")
-"""An OBJ face line of three or more corners, each v, v/vt, v//vn or v/vt/vn."""
+_OBJ_FACE = re.compile(r"\s*f(?:\s+[+-]?[0-9]+(?:/(?:[+-]?[0-9]+)?){0,2})*\s*")
+"""An OBJ face line of corners, each v, v/vt, v//vn or v/vt/vn (a line of fewer than three trimesh skips)."""
 _OBJ_INDICES = {"v": re.compile(r"(?<=\s)([+-]?[0-9]+)"), "vt": re.compile(r"(?<=\s)[+-]?[0-9]+/([+-]?[0-9]+)")}
 """The vertex and texture coordinate indices of the corners of face lines (which ``_OBJ_FACE`` matches)."""
 
@@ -278,11 +278,13 @@ _OBJ_INDICES = {"v": re.compile(r"(?<=\s)([+-]?[0-9]+)"), "vt": re.compile(r"(?<
 def _obj_fault(path: Path) -> str | None:
     """What in the OBJ at ``path`` the mesh loader (trimesh) would fail on in words of its own, or misread without a
     word, said for a user (the file not named), or None: a v, vt or vn line's word that is not a number, a face
-    line that is not three or more corners of indices, or a corner naming a vertex or texture coordinate the file
-    does not hold (0, or past their count either way; normals, which the loader does not read, are not counted).
-    trimesh had said "index 8 is out of bounds for axis 0 with size 3" or "string or file could not be read to its
-    end due to unmatched data", read index 0 as vertex 1, and dropped every texture coordinate for one vt index past
-    the count. As trimesh counts them, a negative index counts back from the file's last vertex (or vt).
+    line that is not corners of indices, or a corner naming a vertex or texture coordinate the file does not hold (0,
+    or past their count either way; normals, which the loader does not read, are not counted; texture coordinates
+    neither in a file without vt lines, whose corners' vt the loader ignores). trimesh had said "index 8 is out of
+    bounds for axis 0 with size 3" or "string or file could not be read to its end due to unmatched data", read index
+    0 as vertex 1, and dropped every texture coordinate for one vt index past the count. As trimesh counts them, a
+    negative index counts back from the file's last vertex (or vt). A face line of fewer than three corners trimesh
+    skips, as it does a line (l) or a point (p).
 
     Each check runs over the whole file at once, and over its lines one by one only to name the first at fault.
     """
@@ -308,6 +310,8 @@ def _obj_fault(path: Path) -> str | None:
         if not _OBJ_FACE.fullmatch(line):
             return f"{where(number, line)}: not a face of three or more corners, each v, v/vt, v//vn or v/vt/vn"
     for kind, pattern in _OBJ_INDICES.items():
+        if kind == "vt" and counts[kind] == 0:  # the loader ignores the corners' vt then
+            continue
         indices = np.array(pattern.findall(" " + " ".join(rest for _, _, rest in faces)), dtype=np.int64)
         if not ((indices != 0) & (np.abs(indices) <= counts[kind])).all():
             for number, line, rest in faces:
