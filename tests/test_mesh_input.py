@@ -565,6 +565,12 @@ _TRIANGLE_OBJ = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 0 1\nvn 0 0 1\n"
     ("f 1/1 2/2 3/0",  # read as vt 1
      "line 8, 'f 1/1 2/2 3/0': a face names texture coordinate (vt) 0, of the 3 the file holds (an OBJ counts them "
      "from 1)"),
+    ("f 1 2 99999999999999999999",  # (past int64: the check had raised an OverflowError)
+     "line 8, 'f 1 2 99999999999999999999': a face names vertex 99999999999999999999, of the 3 the file holds"),
+    ("f 1 2 -99999999999999999999",
+     "line 8, 'f 1 2 -99999999999999999999': a face names vertex -99999999999999999999, of the 3 the file holds"),
+    ("f 1//1 2/2/1 3/4",  # a corner's vt read after one of none
+     "line 8, 'f 1//1 2/2/1 3/4': a face names texture coordinate (vt) 4, of the 3 the file holds"),
     ("f 1 2 x",  # "string or file could not be read to its end due to unmatched data"
      "line 8, 'f 1 2 x': not a face of three or more corners, each v, v/vt, v//vn or v/vt/vn"),
     ("f 1/1/1 2/2/1 3/3/1\nf 1 x",  # (a line of one or two corners trimesh skips, words or not)
