@@ -260,13 +260,14 @@ class WebhookDelivery(Base):
 
     ``id`` is the Standard Webhooks ``webhook-id``, equal across retries so receivers can dedupe;
     ``payload`` is the exact body, fixed at creation, so every attempt sends the same bytes; ``origin`` is the
-    receiver ``url`` goes to (``voxe_service.webhooks.webhook_origin``), which the sender's cap counts by (the index
-    on state, origin and due time lets a claim read each receiver's earliest due deliveries, however many are due).
+    receiver ``url`` goes to (``voxe_service.webhooks.webhook_origin``), which the sender's cap counts by (a claim reads
+    the earliest due off the index on state and due time, each receiver's earliest off the one with origin too).
     States: ``pending`` (due at ``next_attempt_at``), ``delivered`` (a 2xx), ``failed`` (gave up).
     """
 
     __tablename__ = "webhook_deliveries"
     __table_args__ = (UniqueConstraint("job_id", "event_id", name="uq_webhook_delivery_event"),
+                      Index("ix_webhook_deliveries_state_due", "state", "next_attempt_at"),
                       Index("ix_webhook_deliveries_state_origin_due", "state", "origin", "next_attempt_at"))
 
     id: Mapped[str] = mapped_column(String(40), primary_key=True)

@@ -1,7 +1,8 @@
 """A webhook delivery records the receiver its URL goes to (``scheme://host:port``), indexed with its state and due
-time: the sender caps its attempts in flight per receiver, whatever path each job's URL names, and a claim reads each
-receiver's earliest due deliveries off the index rather than ranking every due one (the index on the due time alone
-goes: PostgreSQL had scanned it for a receiver's earliest, past every other receiver's due before it)
+time: the sender caps its attempts in flight per receiver, whatever path each job's URL names, and when receivers at
+their cap have the earliest due, a claim reads each receiver's earliest off that index rather than ranking every due
+one. The index on the due time alone becomes one on (state, due time), off which a claim reads the earliest due first
+(alone, PostgreSQL had scanned it for a receiver's earliest, past every other receiver's due before it).
 
 Deliveries written before the column existed get their URL's origin. The column keeps its server default (''), as
 the model declares it: on SQLite, taking it off would rebuild the table (see 0009_byte_sizes).
@@ -37,11 +38,13 @@ def upgrade() -> None:
         last = rows[-1].id
     op.create_index('ix_webhook_deliveries_state_origin_due', 'webhook_deliveries',
                     ['state', 'origin', 'next_attempt_at'], unique=False)
+    op.create_index('ix_webhook_deliveries_state_due', 'webhook_deliveries', ['state', 'next_attempt_at'], unique=False)
     op.drop_index('ix_webhook_deliveries_next_attempt_at', table_name='webhook_deliveries')
 
 
 def downgrade() -> None:
     op.create_index('ix_webhook_deliveries_next_attempt_at', 'webhook_deliveries', ['next_attempt_at'], unique=False)
+    op.drop_index('ix_webhook_deliveries_state_due', table_name='webhook_deliveries')
     op.drop_index('ix_webhook_deliveries_state_origin_due', table_name='webhook_deliveries')
     with op.batch_alter_table('webhook_deliveries', schema=None) as batch_op:
         batch_op.drop_column('origin')
