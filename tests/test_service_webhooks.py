@@ -499,6 +499,30 @@ def claim_steps(limit: int, per_origin: int, in_flight: dict[str, int]) -> tuple
     return counted[0], won
 
 
+def test_deliveries_written_without_an_origin_get_their_urls_before_a_claim(tmp_path, monkeypatch, database_url):
+    """Code older than migration 0012, still running in a rolling upgrade, writes deliveries with no origin (its
+    server default, ''): all of them had shared one receiver's cap, so of two receivers' deliveries one went. A
+    claim gives them their URL's first: both go, each counted to its own receiver."""
+    from sqlalchemy import select, update
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import WebhookDelivery, utcnow
+    from voxe_service.webhooks import claim_due
+
+    due_deliveries(tmp_path, monkeypatch, database_url, [("https://a.example/hook", -2), ("https://B.example/h", -1)])
+    try:
+        with session_scope() as session:
+            session.execute(update(WebhookDelivery).values(origin=""))
+        with session_scope() as session:
+            won = claim_due(session, utcnow(), 30, 8, 1, {})
+        with session_scope() as session:
+            origins = session.scalars(select(WebhookDelivery.origin).order_by(WebhookDelivery.id)).all()
+    finally:
+        reset_service_caches()
+    assert won == [("msg_000000", "https://a.example:443"), ("msg_000001", "https://b.example:443")]
+    assert origins == ["https://a.example:443", "https://b.example:443"]
+
+
 def test_a_name_that_fails_to_resolve_for_a_moment_is_retried(client, monkeypatch):
     """A resolver failing at an attempt ("[Errno -3] Temporary failure in name resolution") is a connection error,
     retried: it had been taken for a refused target and the delivery failed at once, though the receiver was

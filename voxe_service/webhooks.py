@@ -363,6 +363,7 @@ def webhook_origin(url: str) -> str:
 CLAIM_READ_FACTOR = 4
 """A claim first reads this many times its ``limit`` of the earliest due deliveries: enough, unless receivers at
 their cap have that many due before the others' (then it reads each receiver's earliest, :func:`_pending_origins`)."""
+ORIGIN_FILL_BATCH = 1000  # deliveries without an origin given one per claim, at most
 
 
 def claim_due(session: Session, now: datetime, lease_s: float, limit: int, per_origin: int,
@@ -377,9 +378,11 @@ def claim_due(session: Session, now: datetime, lease_s: float, limit: int, per_o
     receivers backing off: it reads the earliest due few off the index on (state, due time) and caps them here; only
     when receivers at their cap fill that read does it read each receiver's earliest off the index on (state,
     origin, due time) (ranking every due delivery had taken a quarter of a second each poll with 100,000 due to a
-    dead receiver; visiting every receiver with one pending, 55 ms with 20,000 backing off).
+    dead receiver; visiting every receiver with one pending, 55 ms with 20,000 backing off). Deliveries written with
+    no origin are given their URL's first (:func:`_fill_origins`).
     """
     pending = WebhookDelivery.state == PENDING
+    _fill_origins(session)
     due = (select(WebhookDelivery.next_attempt_at, WebhookDelivery.id, WebhookDelivery.origin)
            .where(pending, WebhookDelivery.next_attempt_at <= now)
            .order_by(WebhookDelivery.next_attempt_at, WebhookDelivery.id))
@@ -420,6 +423,19 @@ def _within_caps(due: list, limit: int, per_origin: int, in_flight: Mapping[str,
             taken[row.origin] = taken.get(row.origin, 0) + 1
             chosen.append(row)
     return chosen
+
+
+def _fill_origins(session: Session) -> None:
+    """Give pending deliveries with no origin (``''``: written by code older than migration 0012, still running in a
+    rolling upgrade) their URL's, a batch at a time: all of them had shared one receiver's cap. In id order, so
+    senders filling the same ones at once take their rows' locks in the same order."""
+    unknown = session.execute(select(WebhookDelivery.id, WebhookDelivery.url)
+                              .where(WebhookDelivery.state == PENDING, WebhookDelivery.origin == "")
+                              .order_by(WebhookDelivery.id).limit(ORIGIN_FILL_BATCH)).all()
+    if unknown:
+        session.execute(update(WebhookDelivery).where(WebhookDelivery.origin == "")
+                        .execution_options(synchronize_session=False),
+                        [{"id": row.id, "origin": webhook_origin(row.url)} for row in unknown])
 
 
 def _pending_origins(session: Session, now: datetime) -> list[tuple[str, datetime | None]]:
