@@ -232,15 +232,18 @@ def test_a_database_out_of_connections_is_a_503_with_retry_after(root, monkeypat
     """A request finding every pooled connection busy is refused 503 + Retry-After naming the pool settings (not a
     bare 500), whether the key check (auth on, a middleware) or the route (auth off) meets it; served again once a
     connection is returned."""
-    for key, value in {"VOXE_AUTH": auth, "VOXE_DATABASE_POOL_SIZE": "1", "VOXE_DATABASE_MAX_OVERFLOW": "0",
-                       "VOXE_DATABASE_POOL_TIMEOUT_S": "0.2"}.items():
-        monkeypatch.setenv(key, value)
-    _reset()
     from api.main import create_app
     from voxe_service.db import get_engine
 
+    monkeypatch.setenv("VOXE_AUTH", auth)
+    _reset()
+    with TestClient(create_app()):  # the key made on the usual pool: on one connection, the app's own threads (the
+        headers = bearer(_create_key("busy")[1]) if auth == "on" else {}  # webhook sender, the reaper) had taken it
+    for key, value in {"VOXE_DATABASE_POOL_SIZE": "1", "VOXE_DATABASE_MAX_OVERFLOW": "0",
+                       "VOXE_DATABASE_POOL_TIMEOUT_S": "0.2"}.items():
+        monkeypatch.setenv(key, value)
+    _reset()
     with TestClient(create_app(), raise_server_exceptions=False) as client:
-        headers = bearer(_create_key("busy")[1]) if auth == "on" else {}
         held = get_engine().connect()
         try:
             response = client.get("/v1/jobs", headers=headers)

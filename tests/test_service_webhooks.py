@@ -65,7 +65,8 @@ def test_a_failing_receiver_blocks_nothing_and_is_given_up_on_in_bounded_time(cl
     assert canceled.status_code == 200 and canceled.json()["state"] == "canceled"
     for _ in range(5):  # the API answers while the sender is stuck on the receiver
         assert test_client.get(f"/v1/jobs/{job['id']}").status_code == 200
-    assert time.monotonic() - started < 2.0
+    # Under the 3 s the slow receiver holds each attempt (2.0 s had been missed by 0.08 on a loaded CI machine)
+    assert time.monotonic() - started < 2.5
     [delivery] = deliveries_settled(test_client, job["id"])
     assert delivery["event_type"] == "job.canceled" and delivery["state"] == "failed", delivery
     assert delivery["attempts"] >= 2 and delivery["last_status"] is None
