@@ -282,6 +282,21 @@ def test_a_frames_own_focal_comes_before_the_top_levels(tmp_path):
     assert torch.equal(cameras.fy, cameras.fx)
 
 
+def test_a_focal_given_for_the_y_axis_alone_is_both_axes_as_instant_ngp_reads_it(tmp_path):
+    """instant-ngp takes fl_y or camera_angle_y without an x-axis key as both focals; they had been refused as
+    missing intrinsics."""
+    root = make_ngp(tmp_path / "a", n=3, size=(8, 6))
+    meta = json.loads((root / "transforms.json").read_text())
+    del meta["fl_x"]
+    meta["camera_angle_y"] = math.pi / 2  # 0.5*6/tan(pi/4) = 3
+    meta["frames"][1]["fl_y"] = 5.0
+    meta["frames"][2]["fl_x"] = 7.0  # its own x focal; y still the top level's angle
+    (root / "transforms.json").write_text(json.dumps(meta))
+    cameras = load_scene(root).cameras
+    assert torch.allclose(cameras.fx, torch.tensor([3.0, 5.0, 7.0]))
+    assert torch.allclose(cameras.fy, torch.tensor([3.0, 5.0, 3.0]))
+
+
 def test_holdout_split_semantics(tmp_path):
     root = make_ngp(tmp_path / "s", n=10)
     assert len(load_scene(root)) == 10

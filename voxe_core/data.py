@@ -204,8 +204,9 @@ def load_scene(
         if confine_paths and not _inside(root, file_path):
             raise where("'file_path' leads outside the dataset folder (absolute or through '..')", i)
         merged = _merge_intrinsics(top, _check_intrinsics(frame, where, i))
-        if "fl_x" not in merged and "camera_angle_x" not in merged:
-            raise where("missing intrinsics: need 'camera_angle_x' or 'fl_x' (top level or per frame)", i)
+        if not any(k in merged for keys in _FOCAL_KEYS for k in keys):
+            raise where("missing intrinsics: need 'camera_angle_x' or 'fl_x' (or their y-axis keys, "
+                        "'camera_angle_y' or 'fl_y'), top level or per frame", i)
         model = _camera_model(frame, where, i) or top_model or ("OPENCV" if _distorts(merged) else "PINHOLE")
         _check_distortion(model, merged, where, i)
         # Cameras hold one lens model: a pinhole is an OPENCV lens without terms, but no fisheye lens is a pinhole.
@@ -621,22 +622,23 @@ def _focal_from_angle(pixels: int, angle: float) -> float:
     return 0.5 * pixels / half_width if half_width > 0 else math.inf
 
 
+def _axis_focal(v: dict, keys: tuple[str, str], pixels: int) -> float | None:
+    """One axis's focal in pixels from its ``fl_*``, else its ``camera_angle_*`` (None: neither is given)."""
+    focal, angle = keys
+    if focal in v:
+        return v[focal]
+    return _focal_from_angle(pixels, v[angle]) if angle in v else None
+
+
 def _resolve_intrinsics(v: dict, W: int, H: int, where: _Where, frame: int) -> tuple[float, float, float, float]:
     """fx, fy, cx, cy in pixels of the full-size image from ``_merge_intrinsics``'s ``v``: fl_* wins over
-    camera_angle_*, and fy is fx only where neither ``fl_y`` nor ``camera_angle_y`` is given."""
+    camera_angle_*, and an axis given neither takes the other's focal (fy is fx, or fx is fy where only the y axis
+    has one, as instant-ngp reads it: such a file had been refused as lacking intrinsics)."""
     for key, actual in (("w", W), ("h", H)):
         if key in v and round(v[key]) != actual:
             raise where(f"image is {W}x{H} but the intrinsics say {key}={v[key]:g}", frame)
-    if "fl_x" in v:
-        fx = v["fl_x"]
-    else:
-        fx = _focal_from_angle(W, v["camera_angle_x"])
-    if "fl_y" in v:
-        fy = v["fl_y"]
-    elif "camera_angle_y" in v:
-        fy = _focal_from_angle(H, v["camera_angle_y"])
-    else:
-        fy = fx
+    fx, fy = (_axis_focal(v, keys, pixels) for keys, pixels in zip(_FOCAL_KEYS, (W, H)))
+    fx, fy = (fy if fx is None else fx), (fx if fy is None else fy)
     for name, f in (("fx", fx), ("fy", fy)):
         if not math.isfinite(f) or f < _MIN_FOCAL:
             raise where(f"focal length {name} = {f:.3g} pixels is non-finite or near-singular", frame)
