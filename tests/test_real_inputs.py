@@ -521,6 +521,21 @@ def test_relu_field_refuses_a_box_its_cameras_do_not_aim_at():
     assert name == "relu_field" and fit_cameras is centred and initial is None
 
 
+@pytest.mark.parametrize("backbone", ["relu_field", "scene"])
+def test_cameras_all_at_one_position_are_refused_for_either_backbone(backbone):
+    """Views from one point hold no parallax: here a ring's rotations with their translations lost, at the origin
+    (inside the ReLU field's box, which its aim check had passed) and away from it. One camera is no such capture."""
+    ring = look_at(torch.stack([4.0 * torch.arange(6).cos(), 4.0 * torch.arange(6).sin(), torch.full((6,), 1.0)], -1))
+    for position in ([0.0, 0.0, 0.0], [0.0, 0.0, 4.0]):
+        c2w = ring.clone()
+        c2w[:, :3, 3] = torch.tensor(position)
+        with pytest.raises(ValueError, match=r"all 6 cameras sit at one position .*no parallax"):
+            prepare_backbone(backbone, None, Cameras.from_fov(c2w, 0.7, 4, 4), 16)
+    c2w[1:, :3, 3] = ring[1:, :3, 3]  # only the first sits there: a capture with its translations
+    prepare_backbone(backbone, None, Cameras.from_fov(c2w, 0.7, 4, 4), 16)
+    prepare_backbone("relu_field", None, Cameras.from_fov(ring[:1], 0.7, 4, 4), 16)
+
+
 @needs.needs_data(MIC)
 @pytest.mark.parametrize("split", ["train", "val", "test"])
 def test_nerf_synthetic_cameras_aim_at_the_relu_field_box(split):

@@ -33,6 +33,7 @@ BACKBONE_CHOICES = ("auto", *BACKBONES)  # what a user may ask for ("auto": from
 OPAQUE_ALPHA = 0.5  # a pixel with alpha below this is transparent background
 TRANSPARENT_FRACTION = 0.01  # images with at least this share of transparent pixels are objects on a background
 AIMED_AT_BOX_FRACTION = 0.5  # a ReLU-field fit needs at least this share of the optical axes through its box
+_COINCIDENT = 1e-6  # cameras this close (relative to their distance from the origin, or 1) are at one position
 
 
 def find_backbone(name: str) -> type[VoxelGrid]:
@@ -141,10 +142,26 @@ def prepare_backbone(backbone: str, alphas: torch.Tensor | None, cameras: Camera
 def _capture_frame(name: str, cameras: Cameras) -> torch.Tensor | None:
     """The scene frame a ``name`` backbone fits ``cameras`` in (None: a ReLU field's, the capture's own); ValueError
     for cameras it cannot fit from."""
+    _check_cameras_apart(cameras)
     if name != SceneGrid.kind:
         _check_cameras_see_box(cameras)
         return None
     return scene_frame(cameras)
+
+
+def _check_cameras_apart(cameras: Cameras) -> None:
+    """ValueError when two or more cameras all sit at one position (to float32's rounding of it): their views hold
+    no parallax, so no fit can place anything in depth. A ReLU field had fitted such a capture (its cameras inside
+    the box pass ``_check_cameras_see_box``) and the scene frame named it cameras "on the point they look at"."""
+    if len(cameras) < 2:
+        return
+    positions = cameras.c2w[:, :3, 3].double()
+    spread = float((positions - positions.mean(0)).norm(dim=-1).max())
+    if spread <= _COINCIDENT * max(1.0, float(positions.norm(dim=-1).max())):
+        x, y, z = positions[0].tolist()
+        raise ValueError(f"all {len(cameras)} cameras sit at one position ({x:.4g}, {y:.4g}, {z:.4g}): views from one "
+                         "point hold no parallax, so no fit can place anything in depth (have the poses lost their "
+                         "translations?)")
 
 
 def _check_cameras_see_box(cameras: Cameras) -> None:
