@@ -378,6 +378,33 @@ def test_size_disagrees_with_intrinsics(tmp_path):
     assert_names(err, "transforms.json", 0)
 
 
+def test_a_size_refusal_names_the_exif_orientation_that_turns_the_image(tmp_path):
+    """A phone's portrait photo stored landscape, tagged to display turned: read as stored (as COLMAP and instant-ngp
+    read it), so a size given as displayed, or an image among upright ones, is refused, now naming the tag."""
+    root = make_ngp(tmp_path / "s", n=3, size=(8, 6))
+    meta = json.loads((root / "transforms.json").read_text())
+    del meta["w"], meta["h"]
+    (root / "transforms.json").write_text(json.dumps(meta))
+    exif = Image.Exif()
+    exif[0x0112] = 6  # displayed rotated 90° clockwise
+    Image.new("RGB", (6, 8)).save(root / "images" / "0001.png", exif=exif)  # as displayed: 8x6, the others' size
+    with pytest.raises(DatasetError, match=r"size 6x8 differs .* share one size \(its EXIF orientation 6 displays "
+                                           r"it turned a quarter, 8x6, but images are read as stored") as err:
+        load_scene(root)
+    assert_names(err, "transforms.json", 1)
+    meta["frames"] = meta["frames"][1:2]
+    meta.update(w=6, h=8)
+    (root / "transforms.json").write_text(json.dumps(meta))
+    assert load_scene(root).images.shape[1:3] == (8, 6)  # its stored pixels, as its size says
+    meta.update(w=8, h=6)
+    (root / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match=r"image is 6x8 but the intrinsics say w=8 \(its EXIF orientation 6"):
+        load_scene(root)
+    Image.new("RGB", (6, 8)).save(root / "images" / "0001.png")  # untagged: no orientation to name
+    with pytest.raises(DatasetError, match=r"image is 6x8 but the intrinsics say w=8$"):
+        load_scene(root)
+
+
 def test_nan_in_pose(tmp_path):
     root = make_synthetic(tmp_path / "s")
     meta = json.loads((root / "transforms_train.json").read_text())

@@ -62,6 +62,8 @@ _MIN_FOCAL = 1e-3  # pixels; below this the projection is numerically singular
 _FLOAT32_MAX = float(np.finfo(np.float32).max)  # Cameras hold float32: a larger magnitude would become inf
 _SIXTEEN_BIT_MODES = ("I;16", "I;16L", "I;16B", "I;16N", "I")
 RESAMPLE_FILTERS = ("bilinear", "box")
+_EXIF_ORIENTATION = 0x0112  # the EXIF tag
+_QUARTER_TURN_ORIENTATIONS = (5, 6, 7, 8)  # its values that display the stored pixels turned by 90° (5, 7 mirrored)
 _IMPLIED_EXTENSIONS = (".png", ".jpg", ".jpeg")  # tried in turn after a file_path as written (``image_candidates``)
 
 
@@ -233,6 +235,7 @@ def load_scene(
     for slot, i in enumerate(keep):
         arr, image_path = _read_image(root, paths[i], where, i)
         h, w = arr.shape[:2]
+        _check_stated_size(per_frame[i], w, h, image_path, where, i)
         if size is None:
             size, first = (w, h), i
             if w < downsample or h < downsample:
@@ -242,7 +245,8 @@ def load_scene(
         elif (w, h) != size:
             raise where(
                 f"image size {w}x{h} differs from frame {first} ({paths[first]!r}) size {size[0]}x{size[1]}; "
-                "all images of a split must share one size", i, image_path,
+                f"all images of a split must share one size{_quarter_turn_hint(image_path, w, h, *size)}", i,
+                image_path,
             )
         rgb, alpha = _composite_downsampled(arr, downsample, resample)
         images[slot] = torch.from_numpy(rgb)
@@ -572,6 +576,34 @@ def _read_image(root: Path, file_path: str, where: _Where, frame: int) -> tuple[
         raise where(f"cannot read image {path.name} (not an image or damaged): {e}", frame, path) from e
 
 
+def _check_stated_size(intrinsics: dict, w: int, h: int, image_path: Path, where: _Where, frame: int) -> None:
+    """The frame's ``w`` and ``h``, where given, must be its image's size (as stored)."""
+    stated_w, stated_h = intrinsics.get("w", w), intrinsics.get("h", h)
+    for key, stated, actual in (("w", stated_w, w), ("h", stated_h, h)):
+        if round(stated) != actual:
+            raise where(f"image is {w}x{h} but the intrinsics say {key}={stated:g}"
+                        f"{_quarter_turn_hint(image_path, w, h, stated_w, stated_h)}", frame)
+
+
+def _quarter_turn_hint(path: Path, w: int, h: int, expected_w: float, expected_h: float) -> str:
+    """For a refusal of an image stored ``w`` x ``h`` where ``expected_w`` x ``expected_h`` was wanted: what explains
+    it when that is the size its EXIF orientation displays it at (a quarter turn, as a phone tags a portrait photo
+    stored landscape); else nothing. Viewers show such an image turned, but the pixels are read as stored, as COLMAP
+    and instant-ngp read them (and pose them)."""
+    if (round(expected_w), round(expected_h)) != (h, w):
+        return ""
+    try:
+        with Image.open(path) as image:
+            orientation = image.getexif().get(_EXIF_ORIENTATION)
+    except Exception:  # noqa: BLE001 - a hint only: the image itself was read
+        return ""
+    if orientation not in _QUARTER_TURN_ORIENTATIONS:
+        return ""
+    return (f" (its EXIF orientation {orientation} displays it turned a quarter, {h}x{w}, but images are read as "
+            f"stored, as COLMAP and instant-ngp read them: save it upright without the tag, or give the size, "
+            f"intrinsics and pose of the stored pixels)")
+
+
 def _composite_downsampled(arr: np.ndarray, factor: int, resample: str) -> tuple[np.ndarray, np.ndarray | None]:
     """Downsample premultiplied RGBA, then composite on white.
 
@@ -633,10 +665,8 @@ def _axis_focal(v: dict, keys: tuple[str, str], pixels: int) -> float | None:
 def _resolve_intrinsics(v: dict, W: int, H: int, where: _Where, frame: int) -> tuple[float, float, float, float]:
     """fx, fy, cx, cy in pixels of the full-size image from ``_merge_intrinsics``'s ``v``: fl_* wins over
     camera_angle_*, and an axis given neither takes the other's focal (fy is fx, or fx is fy where only the y axis
-    has one, as instant-ngp reads it: such a file had been refused as lacking intrinsics)."""
-    for key, actual in (("w", W), ("h", H)):
-        if key in v and round(v[key]) != actual:
-            raise where(f"image is {W}x{H} but the intrinsics say {key}={v[key]:g}", frame)
+    has one, as instant-ngp reads it: such a file had been refused as lacking intrinsics). ``w`` and ``h``:
+    ``_check_stated_size``."""
     fx, fy = (_axis_focal(v, keys, pixels) for keys, pixels in zip(_FOCAL_KEYS, (W, H)))
     fx, fy = (fy if fx is None else fx), (fx if fy is None else fy)
     for name, f in (("fx", fx), ("fy", fy)):
