@@ -298,6 +298,8 @@ def test_scene_frame_refuses_parallel_axes_and_cameras_on_the_centre():
     centred[:, :3, 3] = 0.0
     with pytest.raises(ValueError, match="sit on the point they look at"):
         scene_frame(Cameras.from_fov(centred, 0.7, 8, 8))
+    with pytest.raises(ValueError, match="a single camera has no centre to orbit"):
+        scene_frame(Cameras.from_fov(look_at(torch.tensor([[4.0, 0, 0]])), 0.7, 8, 8))
 
 
 def _capture(root, c2w: torch.Tensor):

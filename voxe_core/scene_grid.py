@@ -315,10 +315,13 @@ def scene_frame(cameras: Cameras, radius: float = NERF_SYNTHETIC_RADIUS) -> torc
     Centre: the point nearest (least squares) to every optical axis, i.e. what
     the cameras look at. Up: the cameras' mean +y axis (phones are held
     upright) turned onto +z. Scale: the mean camera distance becomes ``radius``.
-    Raises ``ValueError`` when the axes are (nearly) parallel (a forward-facing
+    Raises ``ValueError`` for a single camera, when the axes are (nearly) parallel (a forward-facing
     capture has no centre to orbit), the centre lies behind most cameras (poses
     in OpenCV's camera axes, which look down +z) or the cameras sit on the centre.
     """
+    if len(cameras) == 1:  # its one axis had been called "parallel" axes
+        raise ValueError("a single camera has no centre to orbit: the scene backbone needs views from around the "
+                         "object")
     c2w = cameras.c2w.double()
     position, forward = c2w[:, :3, 3], -c2w[:, :3, 2]
     forward = forward / forward.norm(dim=-1, keepdim=True)
