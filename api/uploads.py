@@ -49,7 +49,7 @@ from typing import BinaryIO
 from PIL import Image
 
 from voxe_core.data import (DatasetError, colmap_transforms, detect_format, image_candidates, is_dataset_folder,
-                            load_scene)
+                            load_scene, quarter_turn_hint)
 from voxe_core.constants import TEXTURE_SUFFIXES
 from voxe_core.mesh_input import MESH_FRAMES, MESH_INPUT_SUFFIXES
 from voxe_core.ply_header import read_ply_header
@@ -482,7 +482,7 @@ def _check_frame_images(root: Path, json_name: str, frames: list[dict], staging:
         elif size != first[0]:
             (w, h), ((fw, fh), first_path) = size, first
             raise _invalid(f"{where}: image size {w}x{h} differs from frame 0 ({first_path!r}) size {fw}x{fh}; all "
-                           "images of a split must share one size", staging)
+                           f"images of a split must share one size{quarter_turn_hint(path, w, h, fw, fh)}", staging)
     return first[0]
 
 

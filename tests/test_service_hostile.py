@@ -209,6 +209,27 @@ def test_a_directory_that_lies_about_compressed_sizes_is_still_a_bomb(client, ro
     assert stored_files(root) == [] and staged(root) == []
 
 
+def test_an_image_stored_a_quarter_turn_round_is_refused_naming_its_exif_orientation(tmp_path):
+    """A phone's portrait photo stored landscape and tagged to display turned, among upright ones: the upload's size
+    check names the tag, as the loader's refusals do (``voxe_core.data.quarter_turn_hint``)."""
+    from api.uploads import UploadError, check_dataset
+
+    root = tmp_path / "capture"
+    (root / "images").mkdir(parents=True)
+    frames = []
+    for i in range(3):
+        Image.new("RGB", (8, 6)).save(root / "images" / f"{i}.png")
+        frames.append({"file_path": f"images/{i}.png", "transform_matrix": [[1, 0, 0, i], [0, 1, 0, 0], [0, 0, 1, 4],
+                                                                            [0, 0, 0, 1]]})
+    (root / "transforms.json").write_text(json.dumps({"fl_x": 8.0, "frames": frames}))
+    exif = Image.Exif()
+    exif[0x0112] = 6  # displayed turned 90° clockwise: 8x6, as the others
+    Image.new("RGB", (6, 8)).save(root / "images" / "2.png", exif=exif)
+    with pytest.raises(UploadError, match=r"frame 2 \('images/2.png'\): image size 6x8 differs from frame 0 .* "
+                                          r"share one size \(its EXIF orientation 6 displays it turned a quarter, 8x6"):
+        check_dataset(root, tmp_path, downsample=1)
+
+
 def test_entries_each_under_the_ratio_floor_are_still_a_bomb_together(tmp_path):
     """The ratio was checked per entry past 4 MiB only: entries of just under 4 MiB of zeros each had written
     256 MiB from a 267 kB upload. The archive's bytes written are checked against its compressed bytes read too."""

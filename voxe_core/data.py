@@ -245,7 +245,7 @@ def load_scene(
         elif (w, h) != size:
             raise where(
                 f"image size {w}x{h} differs from frame {first} ({paths[first]!r}) size {size[0]}x{size[1]}; "
-                f"all images of a split must share one size{_quarter_turn_hint(image_path, w, h, *size)}", i,
+                f"all images of a split must share one size{quarter_turn_hint(image_path, w, h, *size)}", i,
                 image_path,
             )
         rgb, alpha = _composite_downsampled(arr, downsample, resample)
@@ -582,14 +582,14 @@ def _check_stated_size(intrinsics: dict, w: int, h: int, image_path: Path, where
     for key, stated, actual in (("w", stated_w, w), ("h", stated_h, h)):
         if round(stated) != actual:
             raise where(f"image is {w}x{h} but the intrinsics say {key}={stated:g}"
-                        f"{_quarter_turn_hint(image_path, w, h, stated_w, stated_h)}", frame)
+                        f"{quarter_turn_hint(image_path, w, h, stated_w, stated_h)}", frame)
 
 
-def _quarter_turn_hint(path: Path, w: int, h: int, expected_w: float, expected_h: float) -> str:
+def quarter_turn_hint(path: Path, w: int, h: int, expected_w: float, expected_h: float) -> str:
     """For a refusal of an image stored ``w`` x ``h`` where ``expected_w`` x ``expected_h`` was wanted: what explains
     it when that is the size its EXIF orientation displays it at (a quarter turn, as a phone tags a portrait photo
     stored landscape); else nothing. Viewers show such an image turned, but the pixels are read as stored, as COLMAP
-    and instant-ngp read them (and pose them)."""
+    and instant-ngp read them (and pose them). The loader's refusals and the upload check's."""
     if (round(expected_w), round(expected_h)) != (h, w):
         return ""
     try:
