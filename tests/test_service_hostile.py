@@ -431,6 +431,20 @@ def test_a_multipart_part_of_the_wrong_kind_is_a_4xx_naming_its_field(client, ro
     assert client.get("/v1/scenes").json()["total"] == 0 and stored_files(root) == [] and staged(root) == []
 
 
+def test_a_multipart_part_no_field_takes_is_a_422_naming_it(client, dataset, root):  # noqa: F811
+    """A misspelt form field (``-F mesh_shadng=baked``, a file sent as ``file``) had been ignored: the scene was made
+    without it, as JSON bodies' unknown fields are not."""
+    archive = _zip(_dataset_entries(dataset))
+    for data, files, named in (({"mesh_shadng": "baked"}, {"archive": ("a.zip", archive)}, "'mesh_shadng'"),
+                               (None, {"file": ("a.zip", archive)}, "'file'"),
+                               ({"b": "1", "a": "2"}, {"archive": ("a.zip", archive)}, "'a', 'b'")):
+        response = client.post("/v1/scenes", data=data, files=files)
+        assert response.status_code == 422, response.text
+        assert response.json()["detail"] == (f"unknown form field(s) {named}: the upload takes 'archive', 'files', "
+                                             "'name', 'mesh_shading', 'mesh_up_axis'")
+    assert client.get("/v1/scenes").json()["total"] == 0 and stored_files(root) == [] and staged(root) == []
+
+
 def test_an_empty_text_archive_beside_files_is_not_sent(client, dataset):  # noqa: F811
     """FastAPI reads an empty text part of a one-part field as not sent (``curl -F archive= -F files=@...``, a
     script's variable come out empty): the kind check leaves it so (it had refused it 422, "must be a file")."""

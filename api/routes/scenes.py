@@ -24,7 +24,8 @@ class UploadFilesRoute(APIRoute):
     A part of the wrong kind is a 4xx naming the field: a text field where a file is expected (``curl -F
     archive=<scene.zip``) had been a 422 "Expected UploadFile, received: <class 'str'>" (over Starlette's 1 MB per
     text field, a 400 "Part exceeded maximum size of 1024KB."), and a file where text is expected a 422 dumping the
-    server's upload object."""
+    server's upload object. A part no field takes is a 422 naming it: a misspelt ``mesh_shadng=baked`` had been
+    ignored, the scene made without it."""
 
     def get_route_handler(self):
         handler = super().get_route_handler()
@@ -62,6 +63,10 @@ class UploadFilesRoute(APIRoute):
                     if not wants_file and not isinstance(part, str):
                         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
                                             f"{field.alias!r} must be a text field, not a file ({part.filename!r})")
+            if unknown := sorted(set(form.keys()) - {*file_fields, *text_fields}):
+                raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                                    f"unknown form field(s) {', '.join(map(repr, unknown))}: the upload takes "
+                                    f"{', '.join(map(repr, [*file_fields, *text_fields]))}")
             return await handler(request)
 
         return parse_then_handle
@@ -102,8 +107,9 @@ async def one_archive(request: Request) -> None:
                                     "scene was deleted before its upload answered"},
                413: {"description": "upload over a limit: its size, its count of files, a zip's compression ratio or "
                                     "an image's pixels (the message names the setting)"},
-               422: {"description": "not a valid dataset (the message names the file and frame), or an "
-                                    "Idempotency-Key reused with a different upload"},
+               422: {"description": "not a valid dataset (the message names the file and frame), a form field "
+                                    "the upload does not take or of the wrong kind (named), or an Idempotency-Key "
+                                    "reused with a different upload"},
                429: {"description": "the key's upload quota is used up (Retry-After)"},
                503: {"description": "the ingest could not be queued (broker unreachable)"}},
     summary="Upload a posed image set or a mesh (optionally with an Idempotency-Key header)",
