@@ -6,6 +6,8 @@
   ``json.loads`` refuses otherwise than as a syntax error (a number past Python's int-string conversion limit, bytes
   not UTF-8, nesting past the recursion limit) is that 400 too, naming why, not FastAPI's bare "There was an error
   parsing the body".
+* A form route's body (an upload) sent as another media type than a form is a 415 naming it
+  (:class:`api.routes.scenes.UploadFilesRoute`); Starlette's 400 for a multipart body it cannot parse is documented.
 * A path holding a NUL character is a 404 (no resource is named so) and such a query string a 422: neither
   reaches the database, whose PostgreSQL text cannot hold one.
 * ``HEAD`` is served wherever ``GET`` is (:class:`HeadAsGet`).
@@ -47,6 +49,8 @@ SECURITY_SCHEMES = {
 
 
 _METHODS = ("DELETE", "GET", "HEAD", "PATCH", "POST", "PUT")
+FORM_MEDIA_TYPE = "multipart/form-data"
+FORM_MEDIA_TYPES = (FORM_MEDIA_TYPE, "application/x-www-form-urlencoded")
 UNAVAILABLE = (*DATABASE_UNAVAILABLE, StorageError)
 RETRY_AFTER_S = 5
 _UNAVAILABLE_503 = "the database or the storage is busy or unreachable (Retry-After says when to try again)"
@@ -98,24 +102,26 @@ async def method_not_allowed(request: Request, exc: StarletteHTTPException) -> R
                         status_code=405, headers={"Allow": allow})
 
 
-def _media_type(request: Request) -> str:
+def media_type(request: Request) -> str:
+    """The request's Content-Type without its parameters, lower-case; "" when none is sent."""
     return request.headers.get("content-type", "").split(";")[0].strip().lower()
 
 
-def _json_sent(media_type: str) -> bool:
-    """Whether FastAPI reads a body of ``media_type`` as JSON: application/json or another ``+json`` type."""
-    return media_type == "application/json" or media_type.endswith("+json")
+def _json_sent(sent_as: str) -> bool:
+    """Whether FastAPI reads a body sent as the media type ``sent_as`` as JSON: application/json or another ``+json``
+    type."""
+    return sent_as == "application/json" or sent_as.endswith("+json")
 
 
 def malformed_body(request: Request, exc: RequestValidationError) -> JSONResponse | None:
     """The 400 for a body that did not parse as JSON, the 415 for one not sent as JSON, else None (a schema
     error: the 422 stays)."""
-    media_type = _media_type(request)
-    json_sent = _json_sent(media_type)
+    sent_as = media_type(request)
+    json_sent = _json_sent(sent_as)
     for error in exc.errors():
         if not json_sent and error.get("loc") == ("body",) and error.get("type") == "model_attributes_type":
             return JSONResponse({"detail": f"the body must be sent as JSON (Content-Type: application/json), not as "
-                                           f"{media_type or 'no media type'}"}, status_code=415)
+                                           f"{sent_as or 'no media type'}"}, status_code=415)
         if error.get("type") == "json_invalid":
             reason = (error.get("ctx") or {}).get("error", "JSON decode error")
             position = error.get("loc", [None, None])[-1]
@@ -128,7 +134,7 @@ async def unreadable_body(request: Request, exc: StarletteHTTPException) -> Resp
     """The 400 ``malformed JSON body`` naming why ``json.loads`` refused the body with an error other than
     ``JSONDecodeError`` (FastAPI answers those with a bare "There was an error parsing the body"); any other 400
     unchanged."""
-    cause = exc.__cause__ if _json_sent(_media_type(request)) else None  # a form's parse error is no JSON's
+    cause = exc.__cause__ if _json_sent(media_type(request)) else None  # a form's parse error is no JSON's
     if isinstance(cause, UnicodeDecodeError):
         reason = f"it is not UTF-8 ({cause.reason} at byte {cause.start})"
     elif isinstance(cause, RecursionError):
@@ -235,8 +241,8 @@ def install(app: FastAPI) -> None:
 
 
 def document(schema: dict) -> dict:
-    """Add to each operation what middleware and handlers answer: 400 and 415 (a JSON body), 413 (any body), 401 and
-    the key schemes (/v1), and an OPTIONS operation per path (204 + Allow; other methods 405 + Allow)."""
+    """Add to each operation what middleware and handlers answer: 400 and 415 (a JSON or multipart body), 413 (any
+    body), 401 and the key schemes (/v1), and an OPTIONS operation per path (204 + Allow; other methods 405 + Allow)."""
     components = schema.setdefault("components", {})
     components.setdefault("securitySchemes", {}).update(SECURITY_SCHEMES)
     components.setdefault("schemas", {})["Problem"] = {
@@ -249,6 +255,12 @@ def document(schema: dict) -> dict:
                 responses.setdefault("400", {"description": "malformed JSON body (it does not parse as JSON)",
                                              "content": _PROBLEM})
                 responses.setdefault("415", {"description": "the body was not sent as JSON (Content-Type)",
+                                             "content": _PROBLEM})
+            if FORM_MEDIA_TYPE in operation.get("requestBody", {}).get("content", {}):
+                responses.setdefault("400", {"description": "malformed multipart body (Starlette's parser names "
+                                                            "the fault: a missing boundary, a bad part header)",
+                                             "content": _PROBLEM})
+                responses.setdefault("415", {"description": f"the body was not sent as a form ({FORM_MEDIA_TYPE})",
                                              "content": _PROBLEM})
             if method in ("post", "put", "patch"):
                 responses.setdefault("413", {"description": "request body over the upload limit "

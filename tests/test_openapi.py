@@ -266,6 +266,20 @@ def test_malformed_json_is_a_documented_400(client, spec):
     assert (response.status_code, response.json()["detail"][0]["type"]) == (422, "model_attributes_type")
 
 
+def test_an_upload_not_sent_as_a_form_is_a_documented_415_and_a_broken_form_a_documented_400(client, spec):
+    """A raw zip or JSON posted to /v1/scenes had been read as an empty form: a 422 telling to send an 'archive' it
+    had been sent. Starlette's 400 for a multipart body it cannot parse was answered but not documented."""
+    for body, sent_as in ((b"PK\x05\x06" + bytes(18), "application/zip"), (b'{"archive": "scene.zip"}',
+                                                                           "application/json")):
+        response = client.post("/v1/scenes", content=body, headers={"content-type": sent_as})
+        assert (response.status_code, response.json()["detail"]) == (
+            415, f"the body must be sent as a form (multipart/form-data, as curl -F sends it), not as {sent_as}")
+    broken = client.post("/v1/scenes", content=b"x", headers={"content-type": "multipart/form-data"})
+    assert (broken.status_code, broken.json()["detail"]) == (400, "Missing boundary in multipart.")
+    assert {"400", "415"} <= set(spec["paths"]["/v1/scenes"]["post"]["responses"])
+    assert client.get("/v1/scenes").json()["total"] == 0
+
+
 def test_json_that_python_cannot_read_is_a_400_naming_why(client):
     """JSON with a number past Python's int-string conversion limit, bytes not UTF-8, or nesting past the recursion
     limit: ``json.loads`` raises no JSONDecodeError for them, and FastAPI had answered a bare "There was an error

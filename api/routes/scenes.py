@@ -10,6 +10,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from api.auth import mark_replayed
 from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep, StorageDep
+from api.http_semantics import FORM_MEDIA_TYPE, FORM_MEDIA_TYPES, media_type
 from api.schemas import Page, ReconstructionOut, SceneOut
 from api.services import scenes
 from api.uploads import too_many_files
@@ -25,7 +26,8 @@ class UploadFilesRoute(APIRoute):
     archive=<scene.zip``) had been a 422 "Expected UploadFile, received: <class 'str'>" (over Starlette's 1 MB per
     text field, a 400 "Part exceeded maximum size of 1024KB."), and a file where text is expected a 422 dumping the
     server's upload object. A part no field takes is a 422 naming it: a misspelt ``mesh_shadng=baked`` had been
-    ignored, the scene made without it."""
+    ignored, the scene made without it. A body sent as another media type than a form (a raw zip, JSON) is a 415
+    naming it: it had been read as an empty form, a 422 "send either one zip 'archive' or the dataset's 'files'"."""
 
     def get_route_handler(self):
         handler = super().get_route_handler()
@@ -38,6 +40,10 @@ class UploadFilesRoute(APIRoute):
             return f"a part with a filename: curl -F '{field}=@<path>'"
 
         async def parse_then_handle(request: Request) -> Response:
+            if (sent_as := media_type(request)) and sent_as not in FORM_MEDIA_TYPES:
+                raise HTTPException(status.HTTP_415_UNSUPPORTED_MEDIA_TYPE,
+                                    f"the body must be sent as a form ({FORM_MEDIA_TYPE}, as curl -F sends it), not "
+                                    f"as {sent_as}")
             max_files = get_settings().max_upload_files
             try:
                 form = await request.form(max_files=max_files)
