@@ -6,6 +6,9 @@
   ``json.loads`` refuses otherwise than as a syntax error (a number past Python's int-string conversion limit, bytes
   not UTF-8, nesting past the recursion limit) is that 400 too, naming why, not FastAPI's bare "There was an error
   parsing the body".
+* A JSON body whose object names a member twice is that 400 too, naming it (:class:`StrictJsonRoute`): ``json.loads``
+  keeps the last one silently, where another reader of the same body (a proxy, the client's own checks) may take
+  the first.
 * A form route's body (an upload) sent as another media type than a form is a 415 naming it
   (:class:`api.routes.scenes.UploadFilesRoute`); Starlette's 400 for a multipart body it cannot parse is documented.
 * A path holding a NUL character is a 404 (no resource is named so) and such a query string a 422: neither
@@ -26,13 +29,15 @@ Examples:
 
 from __future__ import annotations
 
+import json
 import logging
 import sys
 
-from fastapi import FastAPI, Request
+from fastapi import FastAPI, HTTPException, Request
 from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
+from fastapi.routing import APIRoute
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match, Mount
 
@@ -146,6 +151,42 @@ async def unreadable_body(request: Request, exc: StarletteHTTPException) -> Resp
     return JSONResponse({"detail": f"malformed JSON body: {reason}"}, status_code=400)
 
 
+class _NamedTwice(ValueError):
+    """A JSON object naming the member ``args[0]`` twice."""
+
+
+def _unique_members(pairs: list[tuple[str, object]]) -> dict:
+    """``json.loads``' ``object_pairs_hook``: the object, or _NamedTwice for a name it holds twice."""
+    members = {}
+    for name, value in pairs:
+        if name in members:
+            raise _NamedTwice(name)
+        members[name] = value
+    return members
+
+
+class StrictJsonRoute(APIRoute):
+    """A route whose JSON body is refused 400, naming the member, when one of its objects names a member twice
+    (``{"prompt": "a", "prompt": "b"}`` had made a job of "b"). A body that does not parse is left to FastAPI's own
+    parse, which meets the same error (:func:`malformed_body`, :func:`unreadable_body`)."""
+
+    def get_route_handler(self):
+        handler = super().get_route_handler()
+
+        async def check_then_handle(request: Request) -> Response:
+            if _json_sent(media_type(request)):
+                try:
+                    json.loads(await request.body(), object_pairs_hook=_unique_members)
+                except _NamedTwice as named:
+                    raise HTTPException(400, f"malformed JSON body: an object names the member {named.args[0]!r} "
+                                             "twice (which one counts is undefined: send it once)") from None
+                except (ValueError, RecursionError):
+                    pass
+            return await handler(request)
+
+        return check_then_handle
+
+
 def unavailability(exc: Exception) -> str | None:
     """Why an ``UNAVAILABLE`` error means the database or the storage cannot serve now, or None when it does not: a
     fault of the service or its settings (``voxe_service.db.database_outage``; a missing bucket, access denied, a bad
@@ -252,7 +293,8 @@ def document(schema: dict) -> dict:
         for method, operation in item.items():
             responses = operation["responses"]
             if "application/json" in operation.get("requestBody", {}).get("content", {}):
-                responses.setdefault("400", {"description": "malformed JSON body (it does not parse as JSON)",
+                responses.setdefault("400", {"description": "malformed JSON body (it does not parse as JSON, or an "
+                                                            "object names a member twice)",
                                              "content": _PROBLEM})
                 responses.setdefault("415", {"description": "the body was not sent as JSON (Content-Type)",
                                              "content": _PROBLEM})

@@ -280,6 +280,27 @@ def test_an_upload_not_sent_as_a_form_is_a_documented_415_and_a_broken_form_a_do
     assert client.get("/v1/scenes").json()["total"] == 0
 
 
+def test_json_naming_a_member_twice_is_a_documented_400_naming_it(client, spec, dataset, root):  # noqa: F811
+    """``json.loads`` keeps a duplicate name's last value silently: ``{"prompt": "a", "prompt": "b"}`` had made a job
+    of "b", though a proxy or the client's own checks may read the first."""
+    scene = make_scene(client, dataset, root)
+    job = f'"scene_id": "{scene["id"]}", "mode": "global", "prompt": "a red mic"'
+    for path, body, named in (
+            ("/v1/jobs", '{%s, "prompt": "a blue mic"}' % job, "prompt"),
+            ("/v1/jobs", '{%s, "params": {"seed": 1, "iterations": 5, "seed": 2}}' % job, "seed"),
+            ("/v1/evaluations", '{"job_ids": ["x"], "object": "mic", "object": "hat"}', "object"),
+            ("/v1/sweeps", '{"scenes": [{"scene_id": "x", "object": "a", "scene_id": "y"}]}', "scene_id")):
+        response = client.post(path, content=body, headers={"content-type": "application/json"})
+        assert (response.status_code, response.json()["detail"]) == (
+            400, f"malformed JSON body: an object names the member {named!r} twice (which one counts is undefined: "
+                 "send it once)"), (path, body)
+        assert "names a member twice" in spec["paths"][path]["post"]["responses"]["400"]["description"]
+    assert client.get("/v1/jobs").json()["total"] == 0
+    same_name_apart = '{%s, "params": {"seed": 1, "reconstruction": {"seed": 2}}}' % job  # one name per object
+    assert client.post("/v1/jobs", content=same_name_apart, headers={"content-type": "application/json"}
+                       ).status_code == 201
+
+
 def test_json_that_python_cannot_read_is_a_400_naming_why(client):
     """JSON with a number past Python's int-string conversion limit, bytes not UTF-8, or nesting past the recursion
     limit: ``json.loads`` raises no JSONDecodeError for them, and FastAPI had answered a bare "There was an error
