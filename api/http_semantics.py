@@ -6,9 +6,11 @@
   ``json.loads`` refuses otherwise than as a syntax error (a number past Python's int-string conversion limit, bytes
   not UTF-8, nesting past the recursion limit) is that 400 too, naming why, not FastAPI's bare "There was an error
   parsing the body".
-* A JSON body whose object names a member twice is that 400 too, naming it (:class:`StrictJsonRoute`): ``json.loads``
+* A JSON body whose object names a member twice is that 400 too, naming it (:class:`StrictRoute`): ``json.loads``
   keeps the last one silently, where another reader of the same body (a proxy, the client's own checks) may take
   the first.
+* On /v1, a query parameter an operation does not take, or a one-valued one sent twice, is a 422 naming them
+  (:class:`StrictRoute`), rather than ignored or read as its last value.
 * A form route's body (an upload) sent as another media type than a form is a 415 naming it
   (:class:`api.routes.scenes.UploadFilesRoute`); Starlette's 400 for a multipart body it cannot parse is documented.
 * A path holding a NUL character is a 404 (no resource is named so) and such a query string a 422: neither
@@ -32,8 +34,12 @@ from __future__ import annotations
 import json
 import logging
 import sys
+from functools import cached_property
 
-from fastapi import FastAPI, HTTPException, Request
+from typing import get_args, get_origin
+
+from fastapi import FastAPI, HTTPException, Request, params
+from fastapi.dependencies.utils import get_flat_params
 from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
@@ -59,6 +65,7 @@ FORM_MEDIA_TYPES = (FORM_MEDIA_TYPE, "application/x-www-form-urlencoded")
 UNAVAILABLE = (*DATABASE_UNAVAILABLE, StorageError)
 RETRY_AFTER_S = 5
 _UNAVAILABLE_503 = "the database or the storage is busy or unreachable (Retry-After says when to try again)"
+_ODD_QUERY_422 = "a query parameter the operation does not take, or a one-valued one sent twice (named)"
 
 
 _MOUNTED_METHODS = ("GET", "HEAD")  # what a mount serves: the only one is the UI's static files (api/ui.py)
@@ -165,15 +172,38 @@ def _unique_members(pairs: list[tuple[str, object]]) -> dict:
     return members
 
 
-class StrictJsonRoute(APIRoute):
-    """A route whose JSON body is refused 400, naming the member, when one of its objects names a member twice
-    (``{"prompt": "a", "prompt": "b"}`` had made a job of "b"). A body that does not parse is left to FastAPI's own
-    parse, which meets the same error (:func:`malformed_body`, :func:`unreadable_body`)."""
+def takes_several(annotation) -> bool:
+    """Whether a parameter or form field of this annotation takes several values (``list[UploadFile] | None``)."""
+    return get_origin(annotation) is list or any(get_origin(arg) is list for arg in get_args(annotation))
+
+
+class StrictRoute(APIRoute):
+    """A route refusing what FastAPI would read one way silently: a query parameter it does not take or a
+    one-valued one sent twice (422, naming them: ``GET /v1/jobs?stat=running`` had listed every job, and
+    ``?limit=1&limit=500`` took the last), and a JSON body one of whose objects names a member twice (400, naming
+    it: ``{"prompt": "a", "prompt": "b"}`` had made a job of "b"). A body that does not parse is left to FastAPI's
+    own parse, which meets the same error (:func:`malformed_body`, :func:`unreadable_body`)."""
+
+    @cached_property
+    def query_fields(self) -> dict:
+        """The query parameters the route takes, by name."""
+        return {f.alias: f for f in get_flat_params(self.dependant) if isinstance(f.field_info, params.Query)}
+
+    def refuse_odd_query(self, request: Request) -> None:
+        sent, takes = request.query_params, self.query_fields
+        if unknown := sorted(set(sent) - set(takes)):
+            raise HTTPException(422, f"unknown query parameter(s) {', '.join(map(repr, unknown))}: "
+                                     f"{request.method} {self.path} takes {', '.join(map(repr, takes)) or 'none'}")
+        if twice := sorted(name for name in set(sent) if len(sent.getlist(name)) > 1
+                           and not takes_several(takes[name].field_info.annotation)):
+            raise HTTPException(422, f"query parameter(s) {', '.join(map(repr, twice))} sent more than once: send "
+                                     "each once")
 
     def get_route_handler(self):
         handler = super().get_route_handler()
 
         async def check_then_handle(request: Request) -> Response:
+            self.refuse_odd_query(request)
             if _json_sent(media_type(request)):
                 try:
                     json.loads(await request.body(), object_pairs_hook=_unique_members)
@@ -283,7 +313,8 @@ def install(app: FastAPI) -> None:
 
 def document(schema: dict) -> dict:
     """Add to each operation what middleware and handlers answer: 400 and 415 (a JSON or multipart body), 413 (any
-    body), 401 and the key schemes (/v1), and an OPTIONS operation per path (204 + Allow; other methods 405 + Allow)."""
+    body), 401, 422 (:class:`StrictRoute`'s query checks), 503 and the key schemes (/v1), and an OPTIONS operation per
+    path (204 + Allow; other methods 405 + Allow)."""
     components = schema.setdefault("components", {})
     components.setdefault("securitySchemes", {}).update(SECURITY_SCHEMES)
     components.setdefault("schemas", {})["Problem"] = {
@@ -311,10 +342,11 @@ def document(schema: dict) -> dict:
                 responses.setdefault("401", {"description": "authentication on (VOXE_AUTH) and no live API key "
                                                             "sent", "content": _PROBLEM})
                 operation["security"] = [{"bearer": []}, {"apiKey": []}, {}]
-                busy = responses.setdefault("503", {"description": _UNAVAILABLE_503, "content": _PROBLEM})
-                if busy["description"] != _UNAVAILABLE_503:
-                    busy["description"] += f"; or {_UNAVAILABLE_503}"
-                    busy.setdefault("content", _PROBLEM)
+                for code, answer in (("503", _UNAVAILABLE_503), ("422", _ODD_QUERY_422)):
+                    documented = responses.setdefault(code, {"description": answer, "content": _PROBLEM})
+                    if documented["description"] != answer:
+                        documented["description"] += f"; or {answer}"
+                        documented.setdefault("content", _PROBLEM)
         methods = ", ".join(m.upper() for m in sorted({*item, "options", *(("head",) if "get" in item else ())}))
         item["options"] = {
             "summary": "The methods this path serves", "operationId": "options" + path.replace("/", "_").replace(

@@ -226,6 +226,31 @@ def test_listing_queries_follow_their_documented_parameters(client, spec, path):
         assert response.status_code == 422 and name in response.text, (name, bad)
 
 
+def test_a_query_parameter_not_taken_or_sent_twice_is_a_documented_422_naming_it(client, spec):
+    """``GET /v1/jobs?stat=running`` (a typo) had listed every job, and ``?limit=1&limit=500`` read the last value,
+    where a proxy or a cache may read the first."""
+    for method, url, detail in (
+            ("GET", "/v1/jobs?stat=running", "unknown query parameter(s) 'stat': GET /v1/jobs takes 'state', "
+                                             "'scene_id', 'limit', 'offset'"),
+            ("GET", "/v1/scenes?offset=0&z=1&a=", "unknown query parameter(s) 'a', 'z': GET /v1/scenes takes 'limit', "
+                                                  "'offset'"),
+            ("GET", "/v1/jobs/x/artifacts/y?download=1", "unknown query parameter(s) 'download': GET "
+                                                         "/v1/jobs/{job_id}/artifacts/{name} takes none"),
+            ("POST", "/v1/jobs/x/cancel?force=1", "unknown query parameter(s) 'force': POST /v1/jobs/{job_id}/cancel "
+                                                  "takes none"),
+            ("POST", "/v1/scenes?name=x", "unknown query parameter(s) 'name': POST /v1/scenes takes none"),
+            ("GET", "/v1/jobs?limit=1&state=queued&limit=500&state=failed",
+             "query parameter(s) 'limit', 'state' sent more than once: send each once")):
+        response = client.request(method, url)
+        assert (response.status_code, response.json()["detail"]) == (422, detail), url
+        path = url.split("?")[0].replace("/x/", "/{job_id}/").replace("/y", "/{name}")
+        assert "a query parameter the operation does not take" in (
+            spec["paths"][path][method.lower()]["responses"]["422"]["description"]), path
+    assert client.head("/v1/jobs?stat=running").status_code == 422  # HEAD as the GET
+    assert client.get("/v1/jobs?limit=1&offset=0&state=queued&scene_id=x").status_code == 200
+    assert client.get("/healthz?probe=1").status_code == 200  # outside /v1: a prober's own parameters pass
+
+
 def test_strict_types_refuse_coercions(client):
     for params in ({"view_words": 1}, {"iterations": "5"}, {"iterations": 5.0}, {"export": {"gif": "true"}}):
         response = post_json(client, "/v1/jobs", {"scene_id": "x", "prompt": "a mic", "params": params})

@@ -14,14 +14,14 @@ from sqlalchemy.orm import Session
 
 from api.auth import mark_replayed
 from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep
-from api.http_semantics import StrictJsonRoute
+from api.http_semantics import StrictRoute
 from api.routes.jobs import job_out
 from api.schemas import EvaluationCreate, JobOut, SweepCreate, SweepEntry, SweepOut
 from api.services import evaluations
 from voxe_core.evaluate import format_table, mean_by_mode
 from voxe_service.models import EVALUATE, SUCCEEDED, ApiKey
 
-router = APIRouter(tags=["evaluation"], route_class=StrictJsonRoute)
+router = APIRouter(tags=["evaluation"], route_class=StrictRoute)
 
 _QUOTA = {429: {"description": "the key's quota of queued + running jobs is used up (Retry-After)"},
           503: {"description": "the jobs could not be queued (broker unreachable)"}}

@@ -11,7 +11,7 @@ from sqlalchemy import select
 from api.auth import mark_replayed
 from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep
 from api.events import SSE_MEDIA_TYPE
-from api.http_semantics import StrictJsonRoute
+from api.http_semantics import StrictRoute
 from api.routes.scenes import MAX_OFFSET
 from api.schemas import (
     JobCreate, JobEventOut, JobOut, JobReconstruction, JobState, Models, Page, WebhookDeliveryOut,
@@ -22,7 +22,7 @@ from voxe_service.models import EVALUATE, R_SUCCEEDED, RUNNING, SUCCEEDED, Job, 
 from voxe_service.progress import NO_FIT, fit_work, overall, stage_costs, stage_fraction
 from voxe_service.settings import model_label
 
-router = APIRouter(prefix="/v1/jobs", tags=["jobs"], route_class=StrictJsonRoute)
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"], route_class=StrictRoute)
 
 _ERRORS = {404: {"description": "no such job (or another key's)"}}
 

@@ -2,22 +2,21 @@
 
 from __future__ import annotations
 
-from typing import Literal, get_args, get_origin
+from typing import Literal
 
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Request, Response, UploadFile, params, status
-from fastapi.routing import APIRoute
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from api.auth import mark_replayed
 from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep, StorageDep
-from api.http_semantics import FORM_MEDIA_TYPE, FORM_MEDIA_TYPES, media_type
+from api.http_semantics import FORM_MEDIA_TYPE, FORM_MEDIA_TYPES, StrictRoute, media_type, takes_several
 from api.schemas import Page, ReconstructionOut, SceneOut
 from api.services import scenes
 from api.uploads import too_many_files
 from voxe_service.settings import get_settings
 
 
-class UploadFilesRoute(APIRoute):
+class UploadFilesRoute(StrictRoute):
     """A form route whose multipart body is parsed allowing ``VOXE_MAX_UPLOAD_FILES`` files, before FastAPI parses it
     (then reusing this parse): Starlette's default of 1000 had answered an upload of 1001 ``files`` 400 "Too many
     files". More than the setting is the upload's own 413.
@@ -40,6 +39,7 @@ class UploadFilesRoute(APIRoute):
             return f"a part with a filename: curl -F '{field}=@<path>'"
 
         async def parse_then_handle(request: Request) -> Response:
+            self.refuse_odd_query(request)  # before the form is read (the handler checks it again)
             if (sent_as := media_type(request)) and sent_as not in FORM_MEDIA_TYPES:
                 raise HTTPException(status.HTTP_415_UNSUPPORTED_MEDIA_TYPE,
                                     f"the body must be sent as a form ({FORM_MEDIA_TYPE}, as curl -F sends it), not "
@@ -61,7 +61,7 @@ class UploadFilesRoute(APIRoute):
             for field in self.dependant.body_params:
                 wants_file = isinstance(field.field_info, params.File)
                 for part in form.getlist(field.alias):
-                    if part == "" and not _is_list(field.field_info.annotation):  # FastAPI's "not sent"
+                    if part == "" and not takes_several(field.field_info.annotation):  # FastAPI's "not sent"
                         continue
                     if wants_file and isinstance(part, str):
                         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"{field.alias!r} must be a file "
@@ -76,12 +76,6 @@ class UploadFilesRoute(APIRoute):
             return await handler(request)
 
         return parse_then_handle
-
-
-def _is_list(annotation) -> bool:
-    """Whether a form field takes several parts (``list[UploadFile] | None``): FastAPI reads an empty text part of any
-    other as not sent (``curl -F archive= -F files=@...``), which the kind check above leaves to it."""
-    return get_origin(annotation) is list or any(get_origin(arg) is list for arg in get_args(annotation))
 
 
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"], route_class=UploadFilesRoute)

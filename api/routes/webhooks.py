@@ -5,10 +5,11 @@ from __future__ import annotations
 from fastapi import APIRouter
 
 from api.deps import CurrentKey, SessionDep
+from api.http_semantics import StrictRoute
 from api.schemas import WebhookSecretOut
 from api.services import jobs
 
-router = APIRouter(prefix="/v1/webhooks", tags=["webhooks"])
+router = APIRouter(prefix="/v1/webhooks", tags=["webhooks"], route_class=StrictRoute)
 
 
 @router.get("/secret", response_model=WebhookSecretOut,
