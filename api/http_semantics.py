@@ -35,7 +35,6 @@ import json
 import logging
 import sys
 from functools import cached_property
-
 from typing import get_args, get_origin
 
 from fastapi import FastAPI, HTTPException, Request, params
@@ -190,6 +189,7 @@ class StrictRoute(APIRoute):
         return {f.alias: f for f in get_flat_params(self.dependant) if isinstance(f.field_info, params.Query)}
 
     def refuse_odd_query(self, request: Request) -> None:
+        """422 for a query parameter the route does not take, or a one-valued one sent more than once."""
         sent, takes = request.query_params, self.query_fields
         if unknown := sorted(set(sent) - set(takes)):
             raise HTTPException(422, f"unknown query parameter(s) {', '.join(map(repr, unknown))}: "
