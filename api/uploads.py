@@ -18,7 +18,7 @@ directory. Images are checked against ``max_image_pixels`` from their headers
 before any is decoded (decompression bombs).
 
 Datasets (NeRF-synthetic, instant-ngp / nerfstudio ``transforms.json``, a COLMAP model
-``sparse/0/cameras|images.bin|txt`` beside ``images/``): ``voxe_core.data.load_scene`` checks
+``sparse/0/`` or ``sparse/`` ``cameras|images.bin|txt`` beside ``images/``): ``voxe_core.data.load_scene`` checks
 the cameras with only the first image decoded (frames, poses, intrinsics, lens distortion,
 paths inside the upload); then every frame's image must exist and have a readable header
 of the first image's size.
@@ -430,7 +430,7 @@ def check_dataset(root: Path, staging: Path, downsample: int) -> tuple[str, int,
         listing = ", ".join(map(repr, held[:5])) + (f" and {len(held) - 5} more" if len(held) > 5 else "")
         raise UploadError(f"the upload is neither a dataset nor a mesh (it holds {listing or 'no file'}): send a "
                           "dataset folder or .zip (transforms_train.json: NeRF-synthetic; transforms.json: instant-ngp "
-                          "/ nerfstudio; a COLMAP model sparse/0/ beside images/), or one mesh (.obj, .ply)")
+                          "/ nerfstudio; a COLMAP model sparse/0/ or sparse/ beside images/), or one mesh (.obj, .ply)")
     try:
         fmt = detect_format(root)
         try:

@@ -484,6 +484,26 @@ def test_colmap_errors_name_file_frame_and_problem(tmp_path):
         load_scene(root)
 
 
+@pytest.mark.parametrize("binary", [True, False])
+def test_colmap_model_in_sparse_itself_is_read_as_the_image_undistorter_writes_it(tmp_path, binary):
+    """COLMAP's image undistorter writes its model to ``sparse/`` itself (no ``0/``): it had been no dataset. Where
+    both are, ``sparse/0`` (the mapper's) is read."""
+    root = square_capture(tmp_path)
+    write_colmap_model(root / "sparse", [("PINHOLE", 16, 12, [12.0, 13.0, 8.0, 6.0])],
+                       [(f"{i}.png", 0, pose_at(i)) for i in range(3)], binary)
+    assert detect_format(root) == "colmap" and is_dataset_folder(root)
+    scene = load_scene(root)
+    assert scene.names == ["images/0.png", "images/1.png", "images/2.png"]
+    assert torch.allclose(scene.cameras.fy, torch.tensor(13.0)) and scene.cameras.distortion is None
+    assert torch.allclose(scene.cameras.c2w[2], torch.from_numpy(pose_at(2)).float(), atol=1e-6)
+    (root / "images" / "1.png").unlink()
+    with pytest.raises(DatasetError, match=r"^sparse/images.(bin|txt) frame 1 \('images/1.png'\): image not found"):
+        load_scene(root)
+    write_colmap_model(root / "sparse" / "0", [("PINHOLE", 16, 12, [12.0, 12.0, 8.0, 6.0])],
+                       [(f"{i}.png", 0, pose_at(i)) for i in (0, 2)], binary)
+    assert load_scene(root).names == ["images/0.png", "images/2.png"]
+
+
 def test_poses_in_opencv_axes_are_refused_by_the_scene_frame(tmp_path):
     """A transforms.json of OpenCV-axis matrices loads (they are rigid) but every camera faces away from the centre
     its axes meet: the scene frame names the likely mix-up rather than framing what lies behind the cameras."""

@@ -715,7 +715,7 @@ def _dataset_entries(dataset: Path, drop: str | None = None, json_text: str | No
     ("broken json", "transforms_train.json: invalid JSON"),
     ("no dataset", "the upload is neither a dataset nor a mesh (it holds 'readme.txt'): send a dataset folder or "
                    ".zip (transforms_train.json: NeRF-synthetic; transforms.json: instant-ngp / nerfstudio; a COLMAP "
-                   "model sparse/0/ beside images/), or one mesh (.obj, .ply)"),
+                   "model sparse/0/ or sparse/ beside images/), or one mesh (.obj, .ply)"),
 ])
 def test_bad_upload_is_422_and_leaves_nothing(client, dataset, root, case, expected):
     if case == "not a zip":

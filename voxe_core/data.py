@@ -11,7 +11,8 @@ with ``k1..k4, p1, p2`` (top level or per frame); instant-ngp's
 ``"is_fisheye": true`` is OPENCV_FISHEYE and its ``k1, k2, p1, p2`` without either are
 OPENCV. The declared model decides the lens: a fisheye without coefficients is still the
 equidistant projection, not a pinhole. A COLMAP model
-(``sparse/0/cameras.bin|txt`` and ``images.bin|txt``, images under ``images/``)
+(``sparse/0/`` as COLMAP's mapper writes it, or ``sparse/`` as its image undistorter does: ``cameras.bin|txt``
+and ``images.bin|txt``, images under ``images/``)
 is read by ``voxe_core.colmap`` and turned into the same frames (its poses from OpenCV's
 camera axes into the OpenGL ones, the world frame kept).
 """
@@ -55,7 +56,9 @@ _COLMAP_MODELS = {
     "RADIAL_FISHEYE": (("f", "cx", "cy", "k1", "k2"), "OPENCV_FISHEYE"),
     "OPENCV_FISHEYE": (("fl_x", "fl_y", "cx", "cy", "k1", "k2", "k3", "k4"), "OPENCV_FISHEYE"),
 }
-COLMAP_MODEL_DIR = Path("sparse") / "0"
+# Where a COLMAP model is looked for, in turn: the mapper's first model, then the image undistorter's (its
+# ``sparse/`` beside the undistorted ``images/``). Both there: sparse/0, which had been read before sparse/ was.
+COLMAP_MODEL_DIRS = (Path("sparse") / "0", Path("sparse"))
 COLMAP_IMAGE_DIR = "images"
 _OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])  # camera axes: y down, z forward -> y up, z backward
 _MIN_FOCAL = 1e-3  # pixels; below this the projection is numerically singular
@@ -116,7 +119,7 @@ class _Where:
 
 def detect_format(root: str | os.PathLike) -> str:
     """'nerf_synthetic' (transforms_{train,val,test}.json), 'instant_ngp' (one transforms.json, also
-    nerfstudio's) or 'colmap' (``sparse/0/cameras.bin|txt``); a transforms json wins over a COLMAP model."""
+    nerfstudio's) or 'colmap' (``colmap_model_dir``); a transforms json wins over a COLMAP model."""
     root = Path(root)
     if not root.is_dir():
         raise DatasetError(f"{root}: not a folder (expected a dataset folder with transforms json files)", root)
@@ -124,12 +127,18 @@ def detect_format(root: str | os.PathLike) -> str:
         return "nerf_synthetic"
     if (root / "transforms.json").is_file():
         return "instant_ngp"
-    if any((root / COLMAP_MODEL_DIR / f"cameras.{ext}").is_file() for ext in ("bin", "txt")):
+    if colmap_model_dir(root) is not None:
         return "colmap"
     raise DatasetError(
         f"{root}: no dataset found (expected transforms_train.json for NeRF-synthetic, transforms.json for "
-        f"instant-ngp / nerfstudio, or a COLMAP model {COLMAP_MODEL_DIR.as_posix()}/cameras.bin|txt)", root
+        f"instant-ngp / nerfstudio, or a COLMAP model sparse/0/cameras.bin|txt or sparse/cameras.bin|txt)", root
     )
+
+
+def colmap_model_dir(root: Path) -> Path | None:
+    """The first of ``COLMAP_MODEL_DIRS`` under ``root`` that holds a ``cameras.bin|txt`` (None: neither does)."""
+    return next((root / d for d in COLMAP_MODEL_DIRS
+                 if any((root / d / f"cameras.{ext}").is_file() for ext in ("bin", "txt"))), None)
 
 
 def is_dataset_folder(root: str | os.PathLike) -> bool:
@@ -362,11 +371,14 @@ def colmap_transforms(root: Path) -> tuple[Path, dict]:
     Frames are the model's images sorted by name (``images/<name>``), each with its camera's
     intrinsics and distortion and its pose as an OpenGL camera-to-world matrix.
     """
-    model_dir = root / COLMAP_MODEL_DIR
+    model_dir = colmap_model_dir(root)
+    if model_dir is None:
+        raise DatasetError(f"{root}: no COLMAP model (sparse/0/cameras.bin|txt or sparse/cameras.bin|txt)", root)
+    label = model_dir.relative_to(root).as_posix()
     try:
         cameras, images = read_model(model_dir)
     except ColmapError as e:
-        raise DatasetError(f"{COLMAP_MODEL_DIR.as_posix()}/{e}", e.path) from None
+        raise DatasetError(f"{label}/{e}", e.path) from None
     images_file = model_dir / ("images.bin" if (model_dir / "cameras.bin").is_file() else "images.txt")
     frames: list[dict] = []
     where = _Where(images_file, frames, label=images_file.relative_to(root).as_posix())
@@ -375,7 +387,7 @@ def colmap_transforms(root: Path) -> tuple[Path, dict]:
         frames.append(frame)
         camera = cameras.get(image.camera_id)
         if camera is None:
-            raise where(f"camera {image.camera_id} is not in {COLMAP_MODEL_DIR.as_posix()}/cameras"
+            raise where(f"camera {image.camera_id} is not in {label}/cameras"
                         f"{images_file.suffix}", len(frames) - 1)
         if camera.model not in _COLMAP_MODELS:
             raise where(f"camera {image.camera_id} has COLMAP model {camera.model}, which is not supported (use one "

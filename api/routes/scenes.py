@@ -126,9 +126,9 @@ def create_scene(
     archive: UploadFile | None = File(
         None, description="a zip of a NeRF-synthetic folder (transforms_train.json, ...), an instant-ngp / "
                           "nerfstudio folder (transforms.json, camera_model with k1..k4, p1, p2), a COLMAP model "
-                          "(sparse/0/cameras.bin|txt and images.bin|txt beside images/), or one mesh (.obj with "
-                          "its texture and .mtl, or .ply); the folder may be the archive root or its only top-level "
-                          "folder"),
+                          "(sparse/0/ or sparse/ cameras.bin|txt and images.bin|txt beside images/), or one mesh "
+                          "(.obj with its texture and .mtl, or .ply); the folder may be the archive root or its only "
+                          "top-level folder"),
     files: list[UploadFile] | None = File(
         None, description="alternatively the dataset's files, each named by its path in the dataset folder "
                           "(e.g. transforms.json, images/0001.png)"),

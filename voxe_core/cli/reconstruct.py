@@ -24,7 +24,7 @@ CHECKPOINT_EVERY = 100
 
 def add_parsers(commands, common) -> None:
     rec = commands.add_parser("reconstruct", parents=[common], help="fit a voxel grid to posed images (SPEC §1)")
-    rec.add_argument("data", type=Path, metavar="DATA_DIR", help="dataset folder: NeRF-synthetic, instant-ngp / nerfstudio transforms.json, or a COLMAP model (sparse/0/ beside images/)")
+    rec.add_argument("data", type=Path, metavar="DATA_DIR", help="dataset folder: NeRF-synthetic, instant-ngp / nerfstudio transforms.json, or a COLMAP model (sparse/0/ or sparse/ beside images/)")
     rec.add_argument("--out", type=tensor_file, required=True, help="grid file to write (.safetensors)")
     add_grid_output_arguments(rec)
     add_view_arguments(rec, "train")
