@@ -297,6 +297,28 @@ def test_a_focal_given_for_the_y_axis_alone_is_both_axes_as_instant_ngp_reads_it
     assert torch.allclose(cameras.fy, torch.tensor([3.0, 5.0, 3.0]))
 
 
+def test_instant_ngp_fields_of_view_in_degrees_give_the_focal(tmp_path):
+    """instant-ngp's x_fov and y_fov: the full field of view in degrees (its fov_to_focal_length), read before fl_*
+    and camera_angle_* as it reads them. A file with only these had been refused as missing intrinsics."""
+    root = make_ngp(tmp_path / "a", n=3, size=(8, 6))
+    meta = json.loads((root / "transforms.json").read_text())
+    del meta["fl_x"]
+    meta["x_fov"] = 90.0  # 0.5*8/tan(45°) = 4
+    meta["frames"][1]["y_fov"] = 60.0  # 0.5*6/tan(30°) = 3*sqrt(3) = 5.196152
+    meta["frames"][2]["fl_x"] = 7.0  # a frame's own key for the axis hides the top level's x_fov
+    (root / "transforms.json").write_text(json.dumps(meta))
+    cameras = load_scene(root).cameras
+    assert torch.allclose(cameras.fx, torch.tensor([4.0, 4.0, 7.0]))
+    assert torch.allclose(cameras.fy, torch.tensor([4.0, 5.196152, 7.0]))
+    meta["fl_x"] = 10.0  # beside x_fov, as instant-ngp: x_fov wins
+    (root / "transforms.json").write_text(json.dumps(meta))
+    assert torch.allclose(load_scene(root).cameras.fx, torch.tensor([4.0, 4.0, 7.0]))
+    meta["frames"][1]["y_fov"] = 180.0
+    (root / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match=r"frame 1 .*'y_fov' = 180.0 is outside \(0, 180\) degrees"):
+        load_scene(root)
+
+
 def test_holdout_split_semantics(tmp_path):
     root = make_ngp(tmp_path / "s", n=10)
     assert len(load_scene(root)) == 10

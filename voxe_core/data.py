@@ -35,8 +35,10 @@ from PIL import Image
 from .cameras import DISTORTION_KEYS, Cameras, fisheye_angles, fold_in_view, undistort_points
 from .colmap import MAX_IMAGE_SIDE, ColmapError, read_model
 
-_INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y")
-_FOCAL_KEYS = (("fl_x", "camera_angle_x"), ("fl_y", "camera_angle_y"))  # each axis's focal, either key
+_INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y", "x_fov", "y_fov")
+# Each axis's focal, any one key, the first given read as instant-ngp reads them (its read_focal_length): x_fov,
+# y_fov (the full field of view in degrees), fl_x, fl_y (pixels), camera_angle_x, camera_angle_y (radians).
+_FOCAL_KEYS = (("x_fov", "fl_x", "camera_angle_x"), ("y_fov", "fl_y", "camera_angle_y"))
 # nerfstudio's camera_model -> Cameras.distortion_model (None: a pinhole)
 CAMERA_MODELS = {"PINHOLE": None, "OPENCV": "opencv", "OPENCV_FISHEYE": "fisheye"}
 # The other camera_model names nerfstudio's reader takes (its CAMERA_MODEL_TO_TYPE: perspective cameras whose lens is
@@ -216,8 +218,8 @@ def load_scene(
             raise where("'file_path' leads outside the dataset folder (absolute or through '..')", i)
         merged = _merge_intrinsics(top, _check_intrinsics(frame, where, i))
         if not any(k in merged for keys in _FOCAL_KEYS for k in keys):
-            raise where("missing intrinsics: need 'camera_angle_x' or 'fl_x' (or their y-axis keys, "
-                        "'camera_angle_y' or 'fl_y'), top level or per frame", i)
+            raise where("missing intrinsics: need 'camera_angle_x', 'fl_x' or 'x_fov' (or their y-axis keys, "
+                        "'camera_angle_y', 'fl_y' or 'y_fov'), top level or per frame", i)
         model = _camera_model(frame, where, i) or top_model or ("OPENCV" if _distorts(merged) else "PINHOLE")
         _check_distortion(model, merged, where, i)
         # Cameras hold one lens model: a pinhole is an OPENCV lens without terms, but no fisheye lens is a pinhole.
@@ -306,7 +308,7 @@ def _camera_model(source: dict, where: _Where, frame: int | None) -> str | None:
 
 def _merge_intrinsics(top: dict, own: dict) -> dict:
     """A frame's intrinsics (``own``) over the top level's, key by key, except that a frame giving an axis's
-    focal (``fl_*`` or ``camera_angle_*``) hides both of the top level's keys for that axis: as in instant-ngp,
+    focal (any of its ``_FOCAL_KEYS``) hides all of the top level's keys for that axis: as in instant-ngp,
     a frame's ``camera_angle_x`` overrides a top-level ``fl_x``."""
     hidden = {k for keys in _FOCAL_KEYS if any(k in own for k in keys) for k in keys}
     return {**{k: v for k, v in top.items() if k not in hidden}, **own}
@@ -442,6 +444,9 @@ def _check_intrinsics(source: dict, where: _Where, frame: int | None) -> dict[st
     for k in ("camera_angle_x", "camera_angle_y"):
         if k in out and not 0.0 < out[k] < math.pi:
             raise where(f"'{k}' = {out[k]} is outside (0, pi) radians", frame)
+    for k in ("x_fov", "y_fov"):
+        if k in out and not 0.0 < out[k] < 180.0:
+            raise where(f"'{k}' = {out[k]} is outside (0, 180) degrees", frame)
     for k in ("fl_x", "fl_y"):
         if k in out and out[k] <= 0:
             raise where(f"focal length '{k}' = {out[k]} must be positive", frame)
@@ -666,19 +671,21 @@ def _focal_from_angle(pixels: int, angle: float) -> float:
     return 0.5 * pixels / half_width if half_width > 0 else math.inf
 
 
-def _axis_focal(v: dict, keys: tuple[str, str], pixels: int) -> float | None:
-    """One axis's focal in pixels from its ``fl_*``, else its ``camera_angle_*`` (None: neither is given)."""
-    focal, angle = keys
+def _axis_focal(v: dict, keys: tuple[str, str, str], pixels: int) -> float | None:
+    """One axis's focal in pixels from the first of its ``_FOCAL_KEYS`` given (None: none is)."""
+    degrees, focal, angle = keys
+    if degrees in v:
+        return _focal_from_angle(pixels, math.radians(v[degrees]))
     if focal in v:
         return v[focal]
     return _focal_from_angle(pixels, v[angle]) if angle in v else None
 
 
 def _resolve_intrinsics(v: dict, W: int, H: int, where: _Where, frame: int) -> tuple[float, float, float, float]:
-    """fx, fy, cx, cy in pixels of the full-size image from ``_merge_intrinsics``'s ``v``: fl_* wins over
-    camera_angle_*, and an axis given neither takes the other's focal (fy is fx, or fx is fy where only the y axis
-    has one, as instant-ngp reads it: such a file had been refused as lacking intrinsics). ``w`` and ``h``:
-    ``_check_stated_size``."""
+    """fx, fy, cx, cy in pixels of the full-size image from ``_merge_intrinsics``'s ``v``: each axis's focal from
+    its first ``_FOCAL_KEYS`` given (x_fov over fl_x over camera_angle_x, as instant-ngp reads them), and an axis
+    given none takes the other's focal (fy is fx, or fx is fy where only the y axis has one, as instant-ngp reads
+    it: such a file had been refused as lacking intrinsics). ``w`` and ``h``: ``_check_stated_size``."""
     fx, fy = (_axis_focal(v, keys, pixels) for keys, pixels in zip(_FOCAL_KEYS, (W, H)))
     fx, fy = (fy if fx is None else fx), (fx if fy is None else fy)
     for name, f in (("fx", fx), ("fy", fy)):
