@@ -333,6 +333,16 @@ def test_holdout_split_semantics(tmp_path):
     assert_names(err, "transforms.json", None)
 
 
+def test_holdout_every_is_refused_for_nerf_synthetic_whose_splits_are_files(tmp_path):
+    """It had been ignored: split 'train' with holdout_every=2 gave every training frame, none held out."""
+    root = make_synthetic(tmp_path / "s", n=4)
+    assert len(load_scene(root, split="train")) == 4
+    for split in ("train", "test"):
+        with pytest.raises(ValueError, match=r"holdout_every applies to a capture's .* is NeRF-synthetic, whose "
+                                             r"splits are its transforms_\{train,val,test\}.json"):
+            load_scene(root, split=split, holdout_every=2)
+
+
 def test_detect_format(tmp_path):
     assert detect_format(make_synthetic(tmp_path / "a", n=1)) == "nerf_synthetic"
     assert detect_format(make_ngp(tmp_path / "b", n=1)) == "instant_ngp"

@@ -169,8 +169,9 @@ def load_scene(
     and torchvision's resize, which the authors' loader uses; where the size is not a
     multiple, theirs resizes the uncropped image by a slightly larger factor) or "box"
     (the mean of each factor x factor block).
-    ``holdout_every`` (instant-ngp and COLMAP; NeRF-synthetic has its own split files): frames
-    0, k, 2k, ... form "test" and the rest "train". ``max_images`` keeps the first k
+    ``holdout_every`` (instant-ngp and COLMAP: one set of frames): frames 0, k, 2k, ... form "test" and the rest
+    "train"; NeRF-synthetic's splits are its files, so it is refused there (ignored, a "test" had been the test
+    file and a "train" every training frame, whatever was asked). ``max_images`` keeps the first k
     frames of the split. Frame indices in errors are positions in the json's ``frames``.
     ``confine_paths``: refuse a ``file_path`` that leads outside ``root`` (absolute, or up
     through ``..``), so an untrusted upload cannot read other files on the machine.
@@ -187,6 +188,10 @@ def load_scene(
         raise ValueError(f"split must be a plain name, got {split!r}")
     root = Path(root)
     fmt = detect_format(root)
+    if holdout_every is not None and fmt == "nerf_synthetic":
+        raise ValueError(f"holdout_every applies to a capture's single set of frames (instant-ngp, COLMAP); {root} is "
+                         f"NeRF-synthetic, whose splits are its transforms_{{train,val,test}}.json: load split "
+                         f"'test' (or 'val') without holdout_every")
     if fmt == "colmap":
         json_path, meta = colmap_transforms(root)
     else:
