@@ -437,6 +437,23 @@ def test_a_size_refusal_names_the_exif_orientation_that_turns_the_image(tmp_path
         load_scene(root)
 
 
+def test_each_images_exif_orientation_gives_its_displayed_up_and_a_damaged_block_none(tmp_path):
+    """The cameras carry each image's up as displayed (``Cameras.display_up``, what the scene frame levels by);
+    pixels and poses stay as stored. A damaged EXIF block (Pillow raises on it) is no tag: the image still loads."""
+    root = make_ngp(tmp_path / "s", n=4, size=(8, 6))
+    for i, orientation in enumerate((6, 8, 3)):
+        exif = Image.Exif()
+        exif[0x0112] = orientation
+        Image.new("RGB", (8, 6), (10, 20, 30)).save(root / "images" / f"{i:04d}.png", exif=exif)
+    Image.new("RGB", (8, 6), (10, 20, 30)).save(root / "images" / "0003.png", exif=b"not an EXIF block")
+    scene = load_scene(root, downsample=2)
+    assert scene.images.shape == (4, 3, 4, 3)
+    expected = torch.tensor([[-1.0, 0, 0], [1.0, 0, 0], [0, -1.0, 0], [0, 1.0, 0]])
+    assert torch.equal(scene.cameras.display_up, expected)
+    assert torch.equal(scene.cameras[1:3].display_up, expected[1:3])
+    assert load_scene(root, max_images=1).cameras.display_up.tolist() == [[-1.0, 0, 0]]
+
+
 def test_nan_in_pose(tmp_path):
     root = make_synthetic(tmp_path / "s")
     meta = json.loads((root / "transforms_train.json").read_text())

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import re
 
@@ -302,10 +303,50 @@ def test_scene_frame_refuses_parallel_axes_and_cameras_on_the_centre():
         scene_frame(Cameras.from_fov(look_at(torch.tensor([[4.0, 0, 0]])), 0.7, 8, 8))
 
 
+def test_scene_frame_takes_up_from_the_images_as_their_exif_orientation_displays_them(tmp_path):
+    """Photos stored landscape and tagged to display a quarter (or half) turn round, as a phone's portrait photos
+    are: their poses are the stored pixels' (rolled about the optical axis), and up had been the stored images' +y,
+    sideways, so the scene's edits and turntables came out rolled 90°. Up is each displayed image's, as the same
+    capture's upright cameras with untagged images give it: the tilted ring's own up."""
+    from PIL import Image
+
+    from voxe_core.data import load_scene
+
+    tilt = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.8, -0.6], [0.0, 0.6, 0.8]])  # up z -> (0, -0.6, 0.8)
+    upright = ring_poses(8, 25.0, radius=5.0)
+    upright[:, :3, :3] = tilt @ upright[:, :3, :3]
+    upright[:, :3, 3] = (tilt @ upright[:, :3, 3, None])[..., 0]
+    # EXIF orientation -> the roll of the stored image's camera about its optical axis: displayed up is the stored
+    # left side (-x) for 6, the right (+x) for 8, the bottom for 3
+    rolls = {1: 0.0, 6: -90.0, 8: 90.0, 3: 180.0}
+    orientations = [6, 6, 8, 6, 3, 6, 1, 6]
+    stored = upright.clone()
+    tagged, untagged = tmp_path / "tagged", tmp_path / "untagged"
+    for root in (tagged, untagged):
+        (root / "images").mkdir(parents=True)
+    for i, orientation in enumerate(orientations):
+        a = math.radians(rolls[orientation])
+        roll = torch.tensor([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]])
+        stored[i, :3, :3] = upright[i, :3, :3] @ roll
+        exif = Image.Exif()
+        exif[0x0112] = orientation
+        Image.new("RGB", (16, 12), (120, 120, 120)).save(tagged / "images" / f"{i}.png", exif=exif)
+        Image.new("RGB", (16, 12), (120, 120, 120)).save(untagged / "images" / f"{i}.png")
+    for root, c2w in ((tagged, stored), (untagged, upright)):
+        frames = [{"file_path": f"images/{i}.png", "transform_matrix": pose.tolist()} for i, pose in enumerate(c2w)]
+        (root / "transforms.json").write_text(json.dumps({"camera_angle_x": 0.7, "frames": frames}))
+    photos, upright_photos = load_scene(tagged, downsample=2), load_scene(untagged, downsample=2)
+    assert torch.allclose(photos.cameras.c2w, stored, atol=1e-6)  # the stored pixels' poses, as given
+    frame = scene_frame(photos.cameras)
+    level = frame[:3, :3] @ tilt[:, 2]
+    assert torch.allclose(level / level.norm(), torch.tensor([0.0, 0.0, 1.0]), atol=1e-5)
+    assert torch.allclose(frame, scene_frame(upright_photos.cameras), atol=1e-5)
+    assert torch.allclose(scene_frame(photos.cameras[1:]), scene_frame(upright_photos.cameras[1:]), atol=1e-5)
+    assert upright_photos.cameras.display_up is None  # untagged images: no per-image up to carry
+
+
 def _capture(root, c2w: torch.Tensor):
     """An instant-ngp capture of 8x8 grey images from the poses ``c2w``, in this order."""
-    import json
-
     from PIL import Image
 
     (root / "images").mkdir(parents=True)

@@ -40,6 +40,10 @@ class Cameras:
     ``distortion_model``: "opencv" (radial k1..k4 as 1 + k1 r² + ... + k4 r⁸, tangential
     p1, p2: OpenCV's and nerfstudio's OPENCV) or "fisheye" (θ_d = θ (1 + k1 θ² + ... + k4 θ⁸),
     OpenCV's and nerfstudio's OPENCV_FISHEYE; p1, p2 unused). None: a pinhole.
+    ``display_up`` (N, 3): each image's up as it is displayed, in camera axes (x right, y up, z back): a phone's
+    portrait photo stored landscape with an EXIF orientation is shown a quarter turn round, its up then the stored
+    image's -x or +x (``voxe_core.data.display_up``). None: every image's +y, its stored up. It tells only which
+    way is up (``voxe_core.scene_grid.scene_frame``): the rays are those of the stored pixels.
     """
 
     c2w: torch.Tensor  # (N, 4, 4) float32
@@ -51,6 +55,7 @@ class Cameras:
     height: int
     distortion: torch.Tensor | None = None  # (N, 6) float32, DISTORTION_KEYS
     distortion_model: str = "opencv"
+    display_up: torch.Tensor | None = None  # (N, 3) float32
 
     def __post_init__(self):
         if self.distortion_model not in DISTORTION_MODELS:
@@ -68,6 +73,7 @@ class Cameras:
         return replace(
             self, c2w=self.c2w[index], fx=self.fx[index], fy=self.fy[index], cx=self.cx[index], cy=self.cy[index],
             distortion=None if self.distortion is None else self.distortion[index],
+            display_up=None if self.display_up is None else self.display_up[index],
         )
 
     @staticmethod
@@ -96,6 +102,7 @@ class Cameras:
         return replace(
             self, c2w=self.c2w.to(device), fx=self.fx.to(device), fy=self.fy.to(device), cx=self.cx.to(device),
             cy=self.cy.to(device), distortion=None if self.distortion is None else self.distortion.to(device),
+            display_up=None if self.display_up is None else self.display_up.to(device),
         )
 
     def undistorted(self) -> "Cameras":

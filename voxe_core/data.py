@@ -69,6 +69,11 @@ _SIXTEEN_BIT_MODES = ("I;16", "I;16L", "I;16B", "I;16N", "I")
 RESAMPLE_FILTERS = ("bilinear", "box")
 _EXIF_ORIENTATION = 0x0112  # the EXIF tag
 _QUARTER_TURN_ORIENTATIONS = (5, 6, 7, 8)  # its values that display the stored pixels turned by 90° (5, 7 mirrored)
+# The stored image's side each value displays at the top, in camera axes (x right, y up): Pillow's exif_transpose
+# turns the left side up for 5 and 6, the right for 7 and 8, the bottom for 3 and 4; 1, 2 and no tag keep +y.
+_DISPLAY_UP = {3: (0.0, -1.0, 0.0), 4: (0.0, -1.0, 0.0), 5: (-1.0, 0.0, 0.0), 6: (-1.0, 0.0, 0.0),
+               7: (1.0, 0.0, 0.0), 8: (1.0, 0.0, 0.0)}
+_STORED_UP = (0.0, 1.0, 0.0)
 _IMPLIED_EXTENSIONS = (".png", ".jpg", ".jpeg")  # tried in turn after a file_path as written (``image_candidates``)
 
 
@@ -247,9 +252,10 @@ def load_scene(
     split_frames = _split_indices(fmt, split, len(frames), holdout_every, where)
     keep = split_frames[:max_images]
 
-    images, alphas, size = None, None, None
+    images, alphas, size, orientations = None, None, None, []
     for slot, i in enumerate(keep):
-        arr, image_path = _read_image(root, paths[i], where, i)
+        arr, image_path, orientation = _read_image(root, paths[i], where, i)
+        orientations.append(orientation)
         h, w = arr.shape[:2]
         _check_stated_size(per_frame[i], w, h, image_path, where, i)
         if size is None:
@@ -282,6 +288,7 @@ def load_scene(
         cams.distortion = torch.tensor([[per_frame[i].get(k, 0.0) for k in DISTORTION_KEYS] for i in keep])
         cams.distortion_model = distortion_model
         _check_invertible(cams, keep, where)
+    cams.display_up = display_up(orientations)
     if downsample > 1:
         cams.width, cams.height = wd * downsample, hd * downsample  # the crop that was resampled
         cams = cams.scaled(1.0 / downsample)
@@ -578,16 +585,17 @@ def image_pixels(image: Image.Image, alpha: bool = True) -> np.ndarray:
     return np.asarray(image.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
 
 
-def _read_image(root: Path, file_path: str, where: _Where, frame: int) -> tuple[np.ndarray, Path]:
-    """(H, W, 3 or 4) float32 in [0, 1] (``image_pixels``), a DatasetError naming the file and frame for an image
-    that is missing, damaged, or of a scale it does not record."""
+def _read_image(root: Path, file_path: str, where: _Where, frame: int) -> tuple[np.ndarray, Path, int | None]:
+    """(H, W, 3 or 4) float32 in [0, 1] (``image_pixels``) as stored, its path and its EXIF orientation
+    (``display_up``); a DatasetError naming the file and frame for an image that is missing, damaged, or of a scale
+    it does not record."""
     path = _find_image(root, file_path)
     if path is None:
         candidates = image_candidates(root, file_path)
         raise where("image not found (tried " + ", ".join(str(p) for p in candidates) + ")", frame, candidates[0])
     try:
         with Image.open(path) as im:
-            return image_pixels(im), path
+            return image_pixels(im), path, _exif_orientation(im)
     except PixelScaleError as e:
         raise where(f"image {path.name} {e}", frame, path) from None
     except Image.DecompressionBombError as e:
@@ -607,6 +615,23 @@ def _check_stated_size(intrinsics: dict, w: int, h: int, image_path: Path, where
                         f"{quarter_turn_hint(image_path, w, h, stated_w, stated_h)}", frame)
 
 
+def _exif_orientation(image: Image.Image) -> int | None:
+    """The image's EXIF orientation tag (None: none). A damaged EXIF block reads as none, as viewers then show the
+    image as stored: its pixels are read all the same."""
+    try:
+        return image.getexif().get(_EXIF_ORIENTATION)
+    except Exception:  # noqa: BLE001 - Pillow's EXIF parser raises many kinds on damaged blocks
+        return None
+
+
+def display_up(orientations: list[int | None]) -> torch.Tensor | None:
+    """``Cameras.display_up`` of images with these EXIF orientations: each displayed image's up in camera axes
+    (a portrait photo stored landscape, orientation 6, is shown with its stored left side up: -x). None where every
+    image is shown upright as stored."""
+    ups = [_DISPLAY_UP.get(orientation, _STORED_UP) for orientation in orientations]
+    return None if all(up == _STORED_UP for up in ups) else torch.tensor(ups)
+
+
 def quarter_turn_hint(path: Path, w: int, h: int, expected_w: float, expected_h: float) -> str:
     """For a refusal of an image stored ``w`` x ``h`` where ``expected_w`` x ``expected_h`` was wanted: what explains
     it when that is the size its EXIF orientation displays it at (a quarter turn, as a phone tags a portrait photo
@@ -616,7 +641,7 @@ def quarter_turn_hint(path: Path, w: int, h: int, expected_w: float, expected_h:
         return ""
     try:
         with Image.open(path) as image:
-            orientation = image.getexif().get(_EXIF_ORIENTATION)
+            orientation = _exif_orientation(image)
     except Exception:  # noqa: BLE001 - a hint only: the image itself was read
         return ""
     if orientation not in _QUARTER_TURN_ORIENTATIONS:

@@ -313,8 +313,11 @@ def scene_frame(cameras: Cameras, radius: float = NERF_SYNTHETIC_RADIUS) -> torc
     """Similarity ``canonical_from_world`` (4x4) for a 360° capture.
 
     Centre: the point nearest (least squares) to every optical axis, i.e. what
-    the cameras look at. Up: the cameras' mean +y axis (phones are held
-    upright) turned onto +z. Scale: the mean camera distance becomes ``radius``.
+    the cameras look at. Up: the cameras' mean image up axis as the images are
+    displayed (phones are held upright; ``Cameras.display_up``: +y unless an EXIF
+    orientation turns the image: a portrait photo stored landscape had put up
+    sideways, and edits' views rolled 90°) turned onto +z. Scale: the mean camera
+    distance becomes ``radius``.
     Raises ``ValueError`` for a single camera, when the axes are (nearly) parallel (a forward-facing
     capture has no centre to orbit), the centre lies behind most cameras (poses
     in OpenCV's camera axes, which look down +z) or the cameras sit on the centre.
@@ -345,7 +348,8 @@ def scene_frame(cameras: Cameras, radius: float = NERF_SYNTHETIC_RADIUS) -> torc
             "camera axes (x right, y down, looking down +z) where OpenGL's (y up, looking down -z) are expected; "
             "only in that case multiply each camera-to-world matrix by diag(1, -1, -1, 1)"
         )
-    up = c2w[:, :3, 1].mean(0)
+    image_up = c2w.new_tensor([0.0, 1.0, 0.0]) if cameras.display_up is None else cameras.display_up.double()
+    up = torch.einsum("nij,nj->i", c2w[:, :3, :3], image_up.expand(len(cameras), 3)) / len(cameras)
     up = up / up.norm().clamp_min(1e-12)
     rotation = _rotation_onto_z(up)
     scale = radius / distance
