@@ -68,12 +68,18 @@ def mark_ready(session: Session, scene_id: str, **values) -> list[Job] | None:
 
 def fail_scene(session: Session, scene_id: str, reason: str, where=()) -> bool:
     """processing -> failed with ``reason`` (its stored bytes no longer count: ``size_bytes`` 0); the jobs
-    waiting on it fail naming it. False when the scene was not processing (or not as ``where`` says)."""
+    waiting on it fail naming it, and so do their reconstructions (pending: no job can ever fit them on this
+    scene; they had stayed pending for good). False when the scene was not processing (or not as ``where``
+    says)."""
+    now = utcnow()
     changed = session.execute(update(Scene).where(Scene.id == scene_id, Scene.state == PROCESSING, *where)
-                              .values(state=FAILED, error=reason, size_bytes=0, updated_at=utcnow()))
+                              .values(state=FAILED, error=reason, size_bytes=0, updated_at=now))
     if changed.rowcount != 1:
         return False
-    waiting = waiting_jobs(session, scene_id, include_evaluations=True)
-    finish_jobs(session, [j.id for j in waiting], FAILED,
-                error=f"the scene's upload failed processing: {reason}")
+    error = f"the scene's upload failed processing: {reason}"
+    finish_jobs(session, [j.id for j in waiting_jobs(session, scene_id, include_evaluations=True)], FAILED,
+                error=error)
+    session.execute(update(Reconstruction).where(Reconstruction.scene_id == scene_id,
+                                                 Reconstruction.state == R_PENDING)
+                    .values(state=R_FAILED, error=error, finished_at=now))
     return True
