@@ -389,6 +389,8 @@ class ReconstructionOut(BaseModel):
 class JobReconstruction(BaseModel):
     id: str | None
     state: str | None
+    error: str | None = Field(description="why its last fit stopped, as the scene's reconstructions list it: "
+                              "failed, or pending after a fit whose worker ran out of memory")
     run_count: int | None
     reused: bool | None = Field(description="true when this job used a reconstruction another job had fitted")
 

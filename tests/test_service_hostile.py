@@ -182,6 +182,7 @@ def test_uploads_only_a_full_decode_refuses_fail_the_scene_with_the_reason(clien
         (never_fitted,) = client.get(f"/v1/scenes/{scene_id}/reconstructions").json()
         assert (never_fitted["id"], never_fitted["state"], never_fitted["error"]) == (
             waited["reconstruction"]["id"], "failed", waited["error"]), (case, never_fitted)
+        assert (waited["reconstruction"]["state"], waited["reconstruction"]["error"]) == ("failed", waited["error"])
         refused = client.post("/v1/jobs", json={"scene_id": scene_id, **JOB})
         assert refused.status_code == 409, refused.text
         assert refused.json()["detail"] == f"scene {scene_id!r} failed processing: {scene['error']}; upload it again"

@@ -43,7 +43,7 @@ def job_out(job: Job) -> JobOut:
         **dict(zip(("overall_progress", "overall_eta_seconds"), _overall(job))),
         message=job.message, error=job.error, cancel_requested=job.cancel_requested,
         reconstruction=JobReconstruction(
-            id=rec.id if rec else None, state=rec.state if rec else None,
+            id=rec.id if rec else None, state=rec.state if rec else None, error=rec.error if rec else None,
             run_count=rec.run_count if rec else None, reused=job.reconstruction_reused,
         ),
         preview_url=f"{base}/artifacts/{job.preview_artifact}" if job.preview_artifact else None,
