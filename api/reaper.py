@@ -39,10 +39,14 @@ A broker that refuses a message fails nothing here: the job stays (or becomes) `
 id (one whose message was taken as lost keeps its task id), its checkpoints kept, and a pass after the broker is
 back sends it, as above.
 
-A scene is orphaned, and fails with the reason (the jobs waiting on it with it), when it is
-``processing`` and unchanged for as long, and either its ingest was never handed to the
-broker or the worker that took it has stopped heartbeating. A processing scene whose ingest
-waits in the broker for a worker is not orphaned, as a queued job is not.
+A scene is orphaned when it is ``processing``, unchanged for as long, and no run holds its ingest (a live run
+renews its lease), and either its ingest was never handed to the broker (it fails with the reason, the jobs waiting on
+it with it), or the worker that took it has stopped heartbeating, or the run that took it stopped renewing as long
+ago on a live worker: its ingest is sent again (a copy that still comes finds it held, and is dropped, or ready, and
+is skipped: ``worker.ingest``), an accepted upload lost to no dead worker, unless the SQL broker's waiting messages
+carry it (or cannot be read). A scene whose ingest was taken ``VOXE_JOB_MAX_REQUEUES`` + 1 times (each run that took it
+was interrupted) fails instead, naming why, as a job does. A processing scene whose ingest waits in the broker for a
+worker is not orphaned, as a queued job is not.
 
 The API runs :func:`reap_orphaned_jobs` at startup and then every ``VOXE_REAPER_INTERVAL_S`` in a
 background thread (:class:`Reaper`). Every update is conditional on the row still being what the
@@ -56,14 +60,15 @@ import logging
 import threading
 from datetime import datetime, timedelta
 
-from sqlalchemy import and_, func, or_, select
+from sqlalchemy import and_, func, or_, select, update
 
 from voxe_service.broker import waiting_tasks
 from voxe_service.db import session_scope, sync_clock
 from voxe_service.jobs import finish_jobs
 from voxe_service.models import (CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, RUNNING, Job, JobEvent, Scene,
                                  WorkerHeartbeat, utcnow)
-from voxe_service.queue import QueueUnavailable, get_queue, is_sql_broker, requeue_interrupted, send_queued_again
+from voxe_service.queue import (QueueUnavailable, get_queue, is_sql_broker, requeue_interrupted, requeue_limit_error,
+                                 send_queued_again)
 from voxe_service.scenes import fail_scene
 from voxe_service.settings import Settings
 from voxe_service.storage import get_storage, job_key, scene_key
@@ -199,8 +204,8 @@ _broker_unreadable: set[str] = set()
 
 
 def _sql_broker_waiting(broker_url: str) -> set[str] | None:
-    """The ids of the jobs the SQL broker's waiting messages carry; None while its table cannot be read (its
-    database unreachable, say), as a warning says once until it is read again: no message can be taken as lost
+    """The ids of the jobs (and scenes) the SQL broker's waiting messages carry; None while its table cannot be read
+    (its database unreachable, say), as a warning says once until it is read again: no message can be taken as lost
     then, and the reaper's other work (cancels, dead workers' jobs, jobs never sent) must not stop for it."""
     try:
         waiting = {job_id for _task, job_id in waiting_tasks(broker_url)}
@@ -229,26 +234,62 @@ def _send_now(session, job_id: str, seen_updated_at: datetime, detail: str, sent
 
 
 def reap_orphaned_scenes(settings: Settings, now: datetime | None = None) -> list[str]:
-    """Fail processing scenes whose ingest nothing will run, with the reason; returns their ids."""
+    """Send again the ingests of processing scenes whose worker died, or fail them (and those never sent) with the
+    reason; returns the ids of those failed."""
+    now = now or utcnow()
     timeout, cutoff, alive = _stale_window(settings, now)
     reaped = []
     with session_scope() as session:
-        stale = session.execute(select(Scene.id, Scene.task_id, Scene.worker_hostname, Scene.updated_at).where(
+        stale = session.execute(select(
+            Scene.id, Scene.task_id, Scene.worker_hostname, Scene.ingest_attempts, Scene.updated_at).where(
             Scene.state == PROCESSING, Scene.updated_at < cutoff,
-            or_(Scene.task_id.is_(None), Scene.worker_hostname.not_in(alive)))).all()
+            or_(Scene.ingest_lease_until.is_(None), Scene.ingest_lease_until < now),  # no live run renews a hold
+            or_(Scene.task_id.is_(None), Scene.worker_hostname.not_in(alive),
+                Scene.ingest_lease_until < cutoff))).all()  # (a run that ended without a word on a live worker)
+        alive_now = set(session.scalars(alive)) if stale else set()
+        waiting = _sql_broker_waiting(settings.broker_url) if stale and is_sql_broker(settings.broker_url) else set()
         for scene in stale:
             if scene.task_id is None:
                 reason = (f"the upload was never handed to a worker (the API stopped while storing it); failed after "
                           f"{timeout:.0f} s (VOXE_JOB_STALE_TIMEOUT_S): upload it again")
             else:
-                reason = (f"worker {scene.worker_hostname} stopped while processing the upload: no heartbeat for "
-                          f"{timeout:.0f} s, and the ingest was not redelivered (VOXE_JOB_STALE_TIMEOUT_S): upload "
-                          "it again")
+                if scene.worker_hostname in alive_now:
+                    why = (f"its run on worker {scene.worker_hostname} stopped renewing its hold {timeout:.0f} s ago "
+                           "(VOXE_JOB_STALE_TIMEOUT_S)")
+                else:
+                    why = (f"worker {scene.worker_hostname} stopped while processing the upload: no heartbeat for "
+                           f"{timeout:.0f} s (VOXE_JOB_STALE_TIMEOUT_S)")
+                # (each run that took it was interrupted: the runs, less the first, were re-sends)
+                reason = requeue_limit_error(scene.ingest_attempts - 1, settings, f"ingest: interrupted "
+                                             f"{scene.ingest_attempts} times, the last as {why}")
+                if reason is None:
+                    if waiting is not None and scene.id not in waiting:  # (its message waits: a worker takes it)
+                        _send_ingest_again(session, scene.id, scene.updated_at, why)
+                    continue
             if fail_scene(session, scene.id, reason, where=[Scene.updated_at == scene.updated_at]):
                 reaped.append(scene.id)
     for scene_id in reaped:
         log.warning("reaper: scene %s failed as orphaned", scene_id)
     return reaped
+
+
+def _send_ingest_again(session, scene_id: str, seen_updated_at: datetime, why: str) -> None:
+    """Hand the ingest of a scene whose run was interrupted to the broker again, recorded as waiting for a worker (no
+    worker, no hold) unless the row changed since it was read (a worker took it meanwhile, or another reaper sent it:
+    the extra message finds it held or ready). Sent before it is recorded: a reaper stopping in between leaves it as
+    it was, for a later pass (a copy too many is harmless), and a broker that refuses leaves it so too."""
+    try:
+        task_id = get_queue().send_ingest(scene_id)
+    except Exception as exc:  # noqa: BLE001 - the broker refused: a later pass tries again
+        log.warning("reaper: scene %s: %s; the broker refused its ingest (%s: %s): a later pass sends it", scene_id,
+                    why, type(exc).__name__, exc)
+        return
+    sent = session.execute(update(Scene).where(Scene.id == scene_id, Scene.state == PROCESSING,
+                                               Scene.updated_at == seen_updated_at).values(
+        task_id=task_id, worker_hostname=None, ingest_token=None, ingest_lease_until=None, updated_at=utcnow()))
+    session.commit()
+    if sent.rowcount == 1:
+        log.warning("reaper: scene %s: %s; its ingest sent again", scene_id, why)
 
 
 class Reaper:

@@ -480,7 +480,7 @@ def test_a_mesh_ingest_over_quota_keeps_nothing_whatever_became_of_its_scene(roo
     def scene(state: str) -> str:
         with session_scope() as session:
             row = Scene(owner_key_id=key_id, name="m", format="mesh", image_count=1, width=1, height=1,
-                        storage_key="k", size_bytes=10, sha256="0" * 64, state=state)
+                        storage_key="k", size_bytes=10, sha256="0" * 64, state=state, ingest_token="run")
             session.add(row)
             session.flush()
             storage.put_bytes(scene_key(row.id, datasets.DATASET_ARCHIVE), b"rendered views" * 100)
@@ -496,12 +496,12 @@ def test_a_mesh_ingest_over_quota_keeps_nothing_whatever_became_of_its_scene(roo
     for state in (PROCESSING, FAILED):
         scene_id = scene(state)
         cleared.clear()
-        assert _ready(scene_id, {"size_bytes": 1400, "storage_key": "x"}, storage, settings, None).keys() >= \
+        assert _ready(scene_id, "run", {"size_bytes": 1400, "storage_key": "x"}, storage, settings, None).keys() >= \
             {"scene_id"}
         assert storage.list(scene_key(scene_id)) == [] and cleared == [scene_key(scene_id)], (state, cleared)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # SQLAlchemy's "fully NULL primary key identity" warning
-        gone = _ready("0" * 32, {"size_bytes": 1400, "storage_key": "x"}, storage, settings, None)
+        gone = _ready("0" * 32, "run", {"size_bytes": 1400, "storage_key": "x"}, storage, settings, None)
     assert "deleted or failed meanwhile" in gone["skipped"]
 
 

@@ -409,7 +409,7 @@ def test_an_upload_landing_while_a_mesh_ingest_checks_its_rendered_size_never_ex
         session.execute(update(ApiKey).where(ApiKey.id == LOCAL_KEY_ID).values(max_upload_bytes=100))
         mesh = Scene(name="mesh", format="mesh", image_count=1, width=8, height=8, splits=["train"],
                      storage_key="scenes/m/upload.obj", size_bytes=10, sha256="0" * 64, state="processing",
-                     task_id="ingest", owner_key_id=LOCAL_KEY_ID)
+                     task_id="ingest", ingest_token="run", owner_key_id=LOCAL_KEY_ID)
         session.add(mesh)
         session.flush()
         mesh_id = mesh.id
@@ -441,7 +441,7 @@ def test_an_upload_landing_while_a_mesh_ingest_checks_its_rendered_size_never_ex
         return counted
 
     monkeypatch.setattr(quotas, "stored_bytes", upload_lands_after_the_read)
-    assert ingest._ready(mesh_id, {"size_bytes": 60}, get_storage(db), db, None)["state"] == "ready"
+    assert ingest._ready(mesh_id, "run", {"size_bytes": 60}, get_storage(db), db, None)["state"] == "ready"
     uploading.join(60)
     assert answers == [429]
     with session_scope() as session:

@@ -46,7 +46,7 @@ def owner() -> dict:
 
 
 def add_scene(state: str = "ready", age_s: float = 0, task_id: str | None = "ingest",
-              worker: str | None = None) -> str:
+              worker: str | None = None, **columns) -> str:
     from voxe_service.db import session_scope
     from voxe_service.models import Scene, utcnow
 
@@ -54,7 +54,7 @@ def add_scene(state: str = "ready", age_s: float = 0, task_id: str | None = "ing
     with session_scope() as session:
         scene = Scene(name="s", format="nerf_synthetic", image_count=1, width=8, height=8, splits=["train"],
                       storage_key="scenes/s/dataset.zip", size_bytes=1, sha256="0" * 64, state=state,
-                      task_id=task_id, worker_hostname=worker, created_at=then, updated_at=then, **owner())
+                      task_id=task_id, worker_hostname=worker, created_at=then, updated_at=then, **owner(), **columns)
         session.add(scene)
         session.flush()
         return scene.id
@@ -1588,6 +1588,7 @@ def test_an_upload_whose_ingest_kills_its_worker_fails_its_scene_at_the_requeue_
     for _ in range(db.job_max_requeues + 1):  # the first run and its re-sends: each decodes
         with pytest.raises(Killed):
             ingest.ingest_scene(scene, db, storage, "w@host")
+        expire_ingest_hold(scene)  # (the killed run renews its hold no more: the next takes the scene over)
     assert len(decoded) == db.job_max_requeues + 1
     assert ingest.ingest_scene(scene, db, storage, "w@host") == {"scene_id": scene, "state": "failed"}
     assert len(decoded) == db.job_max_requeues + 1  # not decoded again
@@ -1599,6 +1600,18 @@ def test_an_upload_whose_ingest_kills_its_worker_fails_its_scene_at_the_requeue_
         assert (row.state, row.error, row.size_bytes) == ("failed", reason, 0)
     assert job_row(waiting).error == f"the scene's upload failed processing: {reason}"
     assert not storage.exists(stored.key)
+
+
+def expire_ingest_hold(scene_id: str) -> None:
+    """The lease of the run holding the scene's ingest ran out (its process killed, it is renewed no more)."""
+    from sqlalchemy import update
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene, utcnow
+
+    with session_scope() as session:
+        session.execute(update(Scene).where(Scene.id == scene_id)
+                        .values(ingest_lease_until=utcnow() - timedelta(seconds=1)))
 
 
 def test_a_scratch_copy_is_reused_only_while_it_holds_the_recorded_bytes(tmp_path):
@@ -1635,41 +1648,138 @@ def events_of(job_id: str) -> list[dict]:
                 session.scalars(select(JobEvent).where(JobEvent.job_id == job_id).order_by(JobEvent.id))]
 
 
-def test_reaper_fails_scenes_nothing_will_ingest_and_the_jobs_waiting_on_them(db):
-    from api.reaper import reap_orphaned_scenes
-    from voxe_service.db import session_scope
-    from voxe_service.models import Scene
+def test_reaper_sends_again_the_ingests_of_scenes_whose_worker_died_and_fails_those_never_sent(db):
+    """A processing scene whose ingesting worker died had been failed ("upload it again"), an accepted upload lost
+    to a crash, where a job in that state is sent again. Its ingest is sent again (the scene waits for a worker, the
+    jobs on it still queued), unless the SQL broker still holds its message or a live run holds it; one taken
+    VOXE_JOB_MAX_REQUEUES + 1 times (each run interrupted) fails instead naming why, and so does one never sent, with
+    the jobs waiting on them."""
+    import sqlite3
 
-    timeout = db.job_stale_timeout_s
+    from api.reaper import reap_orphaned_scenes
+    from voxe_service.broker import waiting_tasks
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene, utcnow
+    from voxe_service.queue import get_queue
+
+    timeout, limit = db.job_stale_timeout_s, db.job_max_requeues
     add_heartbeat("alive@host", age_s=1)
     add_heartbeat("dead@host", age_s=2 * timeout)
-    orphans = {
+    long_ago, later = utcnow() - timedelta(seconds=2 * timeout), utcnow() + timedelta(seconds=60)
+    resent = {
+        "its worker died": add_scene("processing", 2 * timeout, worker="dead@host", ingest_attempts=1),
+        "its worker never heartbeat": add_scene("processing", 2 * timeout, worker="gone@host", ingest_attempts=limit),
+        "its run stopped renewing on a live worker": add_scene("processing", 2 * timeout, worker="alive@host",
+                                                               ingest_attempts=1, ingest_token="t",
+                                                               ingest_lease_until=long_ago),
+    }
+    failed = {
         "never sent": add_scene("processing", 2 * timeout, task_id=None),
-        "its worker died": add_scene("processing", 2 * timeout, worker="dead@host"),
-        "its worker never heartbeat": add_scene("processing", 2 * timeout, worker="gone@host"),
+        "interrupted once too often": add_scene("processing", 2 * timeout, worker="dead@host",
+                                                ingest_attempts=limit + 1),
     }
     kept = {
         "waiting in the broker for a worker": add_scene("processing", 2 * timeout),
-        "its worker alive (a long decode)": add_scene("processing", 2 * timeout, worker="alive@host"),
+        "its worker alive (a long decode)": add_scene("processing", 2 * timeout, worker="alive@host", ingest_attempts=1,
+                                                      ingest_token="t", ingest_lease_until=later),
+        "held by a run that renews its lease": add_scene("processing", 2 * timeout, worker="dead@host",
+                                                         ingest_attempts=1, ingest_token="t", ingest_lease_until=later),
+        "its message waits in the SQL broker": add_scene("processing", 2 * timeout, worker="dead@host",
+                                                         ingest_attempts=1),
         "just stored, not yet sent": add_scene("processing", timeout / 2, task_id=None),
         "ready": add_scene("ready", 2 * timeout, task_id=None),
     }
-    waiting = add_job(orphans["its worker died"], "queued", 0, task_id=None)
-    assert sorted(reap_orphaned_scenes(db)) == sorted(orphans.values())
+    get_queue().send_ingest(kept["its message waits in the SQL broker"])
+    waiting = add_job(resent["its worker died"], "queued", 0, task_id=None)
+    doomed = add_job(failed["interrupted once too often"], "queued", 0, task_id=None)
+
+    def rows() -> dict:
+        with session_scope() as session:
+            return {what: (r.state, r.error, r.task_id, r.worker_hostname, r.ingest_token, r.updated_at) for what, r in
+                    ((what, session.get(Scene, i)) for what, i in {**resent, **failed, **kept}.items())}
+
+    before = rows()
+    assert sorted(reap_orphaned_scenes(db)) == sorted(failed.values())
+    row = rows()
+    for what in resent:  # waiting for a worker, held by none, its message the new one
+        assert row[what][:2] == ("processing", None) and row[what][3:5] == (None, None), (what, row[what])
+        assert row[what][2] not in (None, "ingest"), (what, row[what])
+    assert row["never sent"][:2] == ("failed", f"the upload was never handed to a worker (the API stopped while "
+                                               f"storing it); failed after {timeout:.0f} s (VOXE_JOB_STALE_TIMEOUT_S): "
+                                               "upload it again")
+    reason = row["interrupted once too often"][1]
+    assert reason == (f"ingest: interrupted {limit + 1} times, the last as worker dead@host stopped while processing "
+                      f"the upload: no heartbeat for {timeout:.0f} s (VOXE_JOB_STALE_TIMEOUT_S); it was sent again "
+                      f"{limit} time(s) already, the limit (VOXE_JOB_MAX_REQUEUES={limit})")
+    assert all(row[what] == before[what] for what in kept), row
+    assert (job_row(waiting).state, job_row(waiting).task_id) == ("queued", None)  # the ingest sends it once ready
+    assert (job_row(doomed).state, job_row(doomed).error) == ("failed",
+                                                              f"the scene's upload failed processing: {reason}")
+
+    carried = {scene for task, scene in waiting_tasks(db.broker_url) if task == "voxe.ingest"}
+    assert carried == {*resent.values(), kept["its message waits in the SQL broker"]}
+    assert reap_orphaned_scenes(db) == []  # (each just sent: waiting for a worker)
+    with sqlite3.connect(db.broker_url.split(":///", 1)[1]) as broker:  # one message a scene: none sent twice
+        assert broker.execute("SELECT count(*) FROM kombu_message").fetchone()[0] == len(resent) + 1
+
+
+def test_an_ingest_held_by_a_live_run_is_dropped_and_one_whose_hold_ran_out_is_taken_over(db, tmp_path):
+    """Two workers could ingest one scene at once (a broker's redelivery, or a re-send, beside a live run). The run
+    holds the scene under a lease, as a stage's run holds its job: a second message waits, and is dropped once the
+    holder renews; a run that lost its hold writes nothing (its final update refused, the stored bytes kept); once the
+    lease runs out unrenewed (its process killed) a message takes the scene over."""
+    import threading
+    import zipfile
+
+    from sqlalchemy import update
+
+    from voxe_service import datasets
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene, utcnow
+    from voxe_service.storage import get_storage, scene_key
+    from worker import ingest
+
+    settings, storage = db.model_copy(update={"stage_lease_s": 0.4}), get_storage(db)
+    with zipfile.ZipFile(tmp_path / "upload.zip", "w") as zf:
+        zf.writestr("transforms_train.json", "{}")
+    scene = add_scene("processing", worker="w1@host", ingest_attempts=1, ingest_token="w1's run",
+                      ingest_lease_until=utcnow() + timedelta(seconds=0.4))
+    stored = storage.put_file(scene_key(scene, datasets.DATASET_ARCHIVE), tmp_path / "upload.zip")
     with session_scope() as session:
-        state = {what: (session.get(Scene, i).state, session.get(Scene, i).error) for what, i in
-                 {**orphans, **kept}.items()}
-    assert state["never sent"] == ("failed", f"the upload was never handed to a worker (the API stopped while "
-                                             f"storing it); failed after {timeout:.0f} s (VOXE_JOB_STALE_TIMEOUT_S): "
-                                             "upload it again")
-    reason = state["its worker died"][1]
-    assert reason == (f"worker dead@host stopped while processing the upload: no heartbeat for {timeout:.0f} s, and "
-                      "the ingest was not redelivered (VOXE_JOB_STALE_TIMEOUT_S): upload it again")
-    assert state["its worker never heartbeat"][0] == "failed"
-    assert all(state[what] == ("processing", None) for what in kept if what != "ready"), state
-    job = job_row(waiting)
-    assert job.state == "failed" and job.error == f"the scene's upload failed processing: {reason}"
-    assert reap_orphaned_scenes(db) == []
+        row = session.get(Scene, scene)
+        row.storage_key, row.size_bytes, row.sha256 = stored.key, stored.size, stored.sha256
+
+    def live_run():  # the holder's lease keeper, renewing each 0.1 s for a second
+        for _ in range(10):
+            time.sleep(0.1)
+            with session_scope() as session:
+                session.execute(update(Scene).where(Scene.id == scene, Scene.ingest_token == "w1's run")
+                                .values(ingest_lease_until=utcnow() + timedelta(seconds=0.4)))
+
+    renewing = threading.Thread(target=live_run)
+    renewing.start()
+    try:
+        assert ingest.ingest_scene(scene, settings, storage, "w2@host") == {
+            "scene_id": scene, "skipped": f"scene {scene}: another run holds its ingest (this message is a duplicate)"}
+    finally:
+        renewing.join()
+
+    def held() -> tuple:
+        with session_scope() as session:
+            row = session.get(Scene, scene)
+            return row.state, row.worker_hostname, row.ingest_token, row.ingest_attempts
+
+    assert held() == ("processing", "w1@host", "w1's run", 1)
+    # A run whose hold was taken over ends without a word: neither failed nor ready, the upload kept.
+    assert not ingest._fail(scene, "a superseded run", "invalid dataset", storage)
+    assert ingest._ready(scene, "a superseded run", {"backbone": "relu_field"}, storage, settings, None) == {
+        "scene_id": scene, "skipped": f"scene {scene}: another run took its ingest over"}
+    assert held() == ("processing", "w1@host", "w1's run", 1) and storage.exists(stored.key)
+
+    expire_ingest_hold(scene)  # w1 killed: its lease runs out
+    assert ingest.ingest_scene(scene, settings, storage, "w2@host") == {"scene_id": scene, "state": "failed"}
+    state, worker, _token, attempts = held()
+    assert (state, worker, attempts) == ("failed", "w2@host", 2)
 
 
 def test_api_startup_reaps_and_deletes_the_orphans_checkpoints(db):

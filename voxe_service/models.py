@@ -103,8 +103,9 @@ class Scene(Base):
     """An uploaded dataset. ``storage_key`` is its archive: the dataset a job reads once ``state`` is ready.
 
     ``task_id`` records that the ingest was handed to the broker; ``worker_hostname`` the worker
-    running it (the reaper fails a scene whose ingest nothing will finish, as it does for jobs); ``ingest_attempts``
-    how many runs took it (an upload that kills its workers fails once too many were interrupted).
+    running it (the reaper sends again the ingest of a scene whose worker died, as it does a job's); ``ingest_attempts``
+    how many runs took it (an upload that kills its workers fails once too many were interrupted); ``ingest_token``
+    and ``ingest_lease_until`` the one run that holds the ingest, as a job's ``run_token`` holds its stage.
     """
 
     __tablename__ = "scenes"
@@ -130,6 +131,10 @@ class Scene(Base):
     # Runs of the ingest that took the scene: while it is processing, every earlier one was interrupted (its worker
     # process killed), and past VOXE_JOB_MAX_REQUEUES of them the next fails the scene instead of looping.
     ingest_attempts: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    # The one run of the ingest that holds the scene (worker.ingest): its token, its lease renewed while it runs; a
+    # duplicate message waits for the lease to run out (then takes the scene over) or be renewed (then is dropped).
+    ingest_token: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    ingest_lease_until: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     updated_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
 

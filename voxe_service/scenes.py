@@ -36,16 +36,17 @@ def waiting_jobs(session: Session, scene_id: str, include_evaluations: bool = Fa
     return list(session.scalars(query.order_by(Job.created_at, Job.id)))
 
 
-def mark_ready(session: Session, scene_id: str, **values) -> list[Job] | None:
+def mark_ready(session: Session, scene_id: str, where=(), **values) -> list[Job] | None:
     """processing -> ready with ``values`` (sizes, the final archive, the backbone "auto" means); the jobs to
     dispatch now. A waiting job whose reconstruction parameters that backbone cannot take (what a 422 refuses on
     a ready scene) fails naming why, and so do the evaluations of its sweep that wait on it and its reconstruction
     (still pending: no job can ever fit it on this scene, and its listing says why).
 
-    None when the scene is no longer processing (deleted, or failed by the reaper meanwhile).
+    None when the scene is no longer processing (deleted, or failed by the reaper meanwhile), or not as ``where``
+    says (another run of its ingest took it over).
     """
     now = utcnow()
-    changed = session.execute(update(Scene).where(Scene.id == scene_id, Scene.state == PROCESSING)
+    changed = session.execute(update(Scene).where(Scene.id == scene_id, Scene.state == PROCESSING, *where)
                               .values(state=READY, error=None, updated_at=now, **values))
     if changed.rowcount != 1:
         return None

@@ -18,11 +18,13 @@ import logging
 import os
 import re
 import time
+import uuid
+from datetime import timedelta
 from pathlib import Path
 from typing import NamedTuple
 
 from celery.exceptions import Reject
-from sqlalchemy import update
+from sqlalchemy import or_, update
 from sqlalchemy.exc import SQLAlchemyError
 
 from voxe_core.backbones import detect_backbone
@@ -31,14 +33,14 @@ from voxe_core.data import DatasetError, load_scene
 from voxe_core.mesh_input import MESH_INPUT_SUFFIXES, MeshError, load_mesh, shade_mesh, write_mesh_dataset
 from voxe_service import datasets
 from voxe_service.db import DATABASE_UNAVAILABLE, database_outage, session_scope
-from voxe_service.models import PROCESSING, Scene, utcnow
+from voxe_service.models import FAILED, PROCESSING, Scene, utcnow
 from voxe_service.queue import QueueUnavailable, TaskResult, dispatch_job, get_queue, requeue_limit_error
 from voxe_service.quotas import ingest_over_quota
 from voxe_service.scenes import fail_scene, mark_ready
 from voxe_service.scratch import locked_folder, sweep_unlocked
 from voxe_service.settings import Settings
 from voxe_service.storage import Storage, StorageUnavailable, StoredObject, scene_key
-from worker.runtime import failure_text, fetch, scene_archive, worker_in_cold_shutdown
+from worker.runtime import failure_text, fetch, ingest_lease, scene_archive, worker_in_cold_shutdown
 
 log = logging.getLogger("voxe.worker")
 
@@ -119,9 +121,13 @@ loop, nor spend the scene's runs in seconds."""
 def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: str | None) -> TaskResult:
     """Take the scene's ingest (processing only), decode it, then mark it ready or failed.
 
-    Every run that takes the scene counts (``Scene.ingest_attempts``); one finding more than ``job_max_requeues``
-    runs before it interrupted (their worker processes killed, e.g. out of memory on this upload) fails the scene
-    instead: an upload that kills its workers must not loop, as a job must not (``requeue_interrupted``).
+    The run holds the scene under a lease (``Scene.ingest_token``, renewed while it runs), as a stage's run holds
+    its job (``worker.runtime.begin_stage``): a duplicate message (the reaper's re-send, a broker's redelivery) waits
+    for the lease to run out, then takes the scene over, or is dropped once the holder renews it, so two workers never
+    ingest one scene at once; only the holder marks it ready or failed. Every run that takes the scene counts
+    (``Scene.ingest_attempts``); one finding more than ``job_max_requeues`` runs before it interrupted (their worker
+    processes killed, e.g. out of memory on this upload) fails the scene instead: an upload that kills its workers
+    must not loop, as a job must not (``requeue_interrupted``).
 
     An outage of the database (down, locked) or of the storage (unreachable, throttled) is no fault of the upload:
     the message goes back to the queue after a pause that doubles with each run (``OUTAGE_PAUSE_S``: 5, 10, 20 s ...),
@@ -131,17 +137,14 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
     outage every time (a full disk, a statement timeout) fails the scene at the limit, naming it, rather than
     decoding the upload again for ever; one that could not take it (the database down) does not.
     """
-    interrupted = None
+    interrupted, token = None, uuid.uuid4().hex
     try:
-        with session_scope() as session:
-            scene = session.get(Scene, scene_id)
-            if scene is None or scene.state != PROCESSING:
-                return {"scene_id": scene_id, "skipped": f"scene {scene_id} is {scene.state if scene else 'gone'}"}
-            upload, interrupted = scene_archive(scene), scene.ingest_attempts
-            session.execute(update(Scene).where(Scene.id == scene_id, Scene.state == PROCESSING)
-                            .values(worker_hostname=hostname, ingest_attempts=Scene.ingest_attempts + 1,
-                                    updated_at=utcnow()))
-        return _ingest(scene_id, upload, interrupted, settings, storage)
+        taken = _take(scene_id, token, hostname, settings)
+        if isinstance(taken, str):
+            return {"scene_id": scene_id, "skipped": taken}
+        upload, interrupted = taken
+        with ingest_lease(scene_id, token, settings):
+            return _ingest(scene_id, token, upload, interrupted, settings, storage)
     except (*DATABASE_UNAVAILABLE, StorageUnavailable) as exc:
         if isinstance(exc, StorageUnavailable):
             cause = f"a storage outage ({exc})"
@@ -150,6 +153,7 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
         else:
             raise
         log.warning("scene %s: the ingest stopped by %s; its message goes back to the queue", scene_id, cause)
+        _give_back(scene_id, token)
         try:
             time.sleep(OUTAGE_PAUSE_S * 2 ** min(interrupted or 0, 6))
         except Exception:  # noqa: BLE001 - a cold shutdown raises in the task: it cuts the pause short, no more
@@ -158,14 +162,42 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
         raise Reject(f"the ingest of scene {scene_id} stopped by {cause}", requeue=True) from exc
 
 
-def _ingest(scene_id: str, upload: StoredObject, interrupted: int, settings: Settings, storage: Storage) -> TaskResult:
-    """The ingest of the scene this run took, its archive ``upload`` as recorded, after ``interrupted`` runs before
-    it."""
+def _take(scene_id: str, token: str, hostname: str | None, settings: Settings) -> tuple[StoredObject, int] | str:
+    """Take the processing scene's ingest for the run ``token``: (its archive as recorded, the runs that took it
+    before); why not, when it is no longer processing or another run holds it and renews its lease."""
+    held = None  # the hold (token, lease end) this run waits out
+    while True:
+        with session_scope() as session:
+            scene = session.get(Scene, scene_id)
+            if scene is None or scene.state != PROCESSING:
+                return f"scene {scene_id} is {scene.state if scene else 'gone'}"
+            now = utcnow()
+            hold = (scene.ingest_token, scene.ingest_lease_until)
+            if scene.ingest_token is None or scene.ingest_lease_until < now:
+                upload, before = scene_archive(scene), scene.ingest_attempts  # (read before the update changes it)
+                taken = session.execute(update(Scene).where(
+                    Scene.id == scene_id, Scene.state == PROCESSING, Scene.updated_at == scene.updated_at,
+                    or_(Scene.ingest_token.is_(None), Scene.ingest_lease_until < now)).values(
+                    worker_hostname=hostname, ingest_attempts=Scene.ingest_attempts + 1, ingest_token=token,
+                    ingest_lease_until=now + timedelta(seconds=settings.stage_lease_s), updated_at=now)).rowcount
+                if taken == 1:
+                    return upload, before
+                continue  # taken (or changed) since it was read: read it again
+        if held is not None and hold != held:
+            return f"scene {scene_id}: another run holds its ingest (this message is a duplicate)"
+        held = hold
+        time.sleep(settings.stage_lease_s / 8)
+
+
+def _ingest(scene_id: str, token: str, upload: StoredObject, interrupted: int, settings: Settings,
+            storage: Storage) -> TaskResult:
+    """The ingest of the scene this run (``token``) took, its archive ``upload`` as recorded, after ``interrupted``
+    runs before it."""
     # The runs before this one, less the first: how often the ingest was sent again.
     if error := requeue_limit_error(interrupted - 1, settings, f"ingest: interrupted {interrupted} times, its worker "
                                     "process dying each time (killed: out of memory?) or a database or storage "
                                     "outage stopping it"):
-        _fail(scene_id, error, storage)
+        _fail(scene_id, token, error, storage)
         return {"scene_id": scene_id, "state": "failed"}
     mesh_upload = upload.key == scene_key(scene_id, datasets.UPLOAD_ARCHIVE)
     work = Path(settings.work_dir) / "ingest"
@@ -190,49 +222,53 @@ def _ingest(scene_id: str, upload: StoredObject, interrupted: int, settings: Set
                               width=size, height=size, splits=["train", "test"])
         except Exception as exc:  # noqa: BLE001 - every failure becomes the scene's reason ...
             if worker_in_cold_shutdown():  # ... but a cold shutdown's (it had failed the scene and deleted its upload)
-                _uncount_run(scene_id)
+                _give_back(scene_id, token, uncount=True)
                 raise Reject(f"the ingest of scene {scene_id} stopped by the worker's shutdown", requeue=True) from exc
             if isinstance(exc, StorageUnavailable):  # ... and a storage outage's, no fault of the upload either
                 raise
             reason = str(exc) if isinstance(exc, IngestError) else f"ingest: {failure_text(exc)}"
             if not isinstance(exc, IngestError):
                 log.exception("scene %s: ingest failed", scene_id)
-            _fail(scene_id, reason, storage)
+            _fail(scene_id, token, reason, storage)
             return {"scene_id": scene_id, "state": "failed"}
-    return _ready(scene_id, values, storage, settings, upload.key if mesh_upload else None)
+    return _ready(scene_id, token, values, storage, settings, upload.key if mesh_upload else None)
 
 
-def _uncount_run(scene_id: str) -> None:
-    """A run a worker's shutdown stopped is not one the upload killed: it does not count towards the limit (four
-    deploys had failed a scene as "killed: out of memory?"). Only where the shutdown raises in the task (the solo
-    pool's); a prefork pool's children are ended from outside, and their runs still count."""
+def _give_back(scene_id: str, token: str, uncount: bool = False) -> None:
+    """Give the run's hold back as its message goes back to the queue, so its redelivery takes the scene at once
+    (not after the lease). ``uncount``: a run a worker's shutdown stopped is not one the upload killed: it does not
+    count towards the limit (four deploys had failed a scene as "killed: out of memory?"). Only where the shutdown
+    raises in the task (the solo pool's); a prefork pool's children are ended from outside, and their runs still
+    count."""
+    values = dict(ingest_token=None, ingest_lease_until=None)
+    if uncount:
+        values["ingest_attempts"] = Scene.ingest_attempts - 1  # (this run's, counted as it took the scene)
     try:
         with session_scope() as session:
             session.execute(update(Scene).where(Scene.id == scene_id, Scene.state == PROCESSING,
-                                                Scene.ingest_attempts > 0)
-                            .values(ingest_attempts=Scene.ingest_attempts - 1))
-    except SQLAlchemyError:  # the message goes back all the same; the run stays counted
-        log.warning("scene %s: could not uncount the ingest run the shutdown stopped", scene_id, exc_info=True)
+                                                Scene.ingest_token == token).values(**values))
+    except SQLAlchemyError:  # (an outage) the message goes back all the same: its redelivery waits out the lease
+        log.warning("scene %s: could not give back the ingest's hold", scene_id, exc_info=True)
 
 
-def _fail(scene_id: str, reason: str, storage: Storage) -> bool:
-    """Fail the processing scene and discard its stored bytes; False (nothing discarded) when it was no longer
-    processing."""
+def _fail(scene_id: str, token: str, reason: str, storage: Storage) -> bool:
+    """Fail the processing scene this run (``token``) holds and discard its stored bytes; False (nothing discarded)
+    when it was no longer processing, or no longer held by this run."""
     with session_scope() as session:
-        failed = fail_scene(session, scene_id, reason)
+        failed = fail_scene(session, scene_id, reason, where=[Scene.ingest_token == token])
     if failed:  # its bytes are of no use to any job: free the key's upload quota
         storage.discard_prefixes(scene_key(scene_id))
         log.warning("scene %s failed: %s", scene_id, reason)
     return failed
 
 
-def _ready(scene_id: str, values: dict, storage: Storage, settings: Settings,
+def _ready(scene_id: str, token: str, values: dict, storage: Storage, settings: Settings,
            replaced_key: str | None) -> TaskResult:
     """processing -> ready and its waiting jobs sent; a mesh whose rendered views put its key over the upload quota
     (checked with the key locked, in the transaction that would store the new size) fails instead."""
     with session_scope() as session:
         over = "size_bytes" in values and ingest_over_quota(session, scene_id, values["size_bytes"], settings)
-        waiting = None if over else mark_ready(session, scene_id, **values)
+        waiting = None if over else mark_ready(session, scene_id, where=[Scene.ingest_token == token], **values)
         if waiting is None:
             session.rollback()
         else:
@@ -244,13 +280,23 @@ def _ready(scene_id: str, values: dict, storage: Storage, settings: Settings,
                 except QueueUnavailable:  # left queued with no task id: the reaper sends it once the broker is back
                     log.warning("scene %s: could not dispatch job %s", scene_id, job.id)
     if over:
-        if not _fail(scene_id, over, storage):  # ended otherwise meanwhile: its views go all the same
+        if not _fail(scene_id, token, over, storage) and _ended(scene_id):  # (its views go all the same)
             storage.discard_prefixes(scene_key(scene_id))
         return {"scene_id": scene_id, "state": "failed"}
-    if waiting is None:  # deleted (or failed by the reaper) while it was decoded: keep nothing of it
-        storage.discard_prefixes(scene_key(scene_id))
+    if waiting is None:
+        if not _ended(scene_id):  # another run took the ingest over (this one's lease ran out): its bytes are kept
+            return {"scene_id": scene_id, "skipped": f"scene {scene_id}: another run took its ingest over"}
+        storage.discard_prefixes(scene_key(scene_id))  # deleted (or failed) while it was decoded: keep nothing of it
         return {"scene_id": scene_id, "skipped": f"scene {scene_id} was deleted or failed meanwhile"}
     if replaced_key:  # the mesh upload, now packaged
         storage.discard(replaced_key)
     log.info("scene %s ready; dispatched %d waiting job(s)", scene_id, len(waiting))
     return {"scene_id": scene_id, "state": "ready"}
+
+
+def _ended(scene_id: str) -> bool:
+    """Whether the scene was deleted or failed (its stored bytes of no use), rather than taken over by another run of
+    its ingest (processing, or made ready by it)."""
+    with session_scope() as session:
+        scene = session.get(Scene, scene_id)
+        return scene is None or scene.state == FAILED

@@ -986,6 +986,19 @@ def stage_lease(job_id: str, run_token: str, settings: Settings) -> LeaseKeeper:
                        f"voxe-stage-{job_id}")
 
 
+def ingest_lease(scene_id: str, token: str, settings: Settings) -> LeaseKeeper:
+    """The lease of the run that holds the scene's ingest (``worker.ingest``), kept while it runs."""
+    def renew() -> bool:
+        with session_scope() as session:
+            return session.execute(
+                update(Scene).where(Scene.id == scene_id, Scene.ingest_token == token)
+                .values(ingest_lease_until=utcnow() + timedelta(seconds=settings.stage_lease_s))
+            ).rowcount == 1
+
+    return LeaseKeeper(renew, settings.stage_lease_s, f"scene {scene_id}'s ingest", "another run took it over",
+                       f"voxe-ingest-{scene_id}")
+
+
 def load_reconstruction(rec_id: str) -> Reconstruction | None:
     with session_scope() as session:
         return session.get(Reconstruction, rec_id)

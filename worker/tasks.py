@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, NoReturn
 
 from celery import signals
 from celery.exceptions import Ignore, Reject, SoftTimeLimitExceeded
-from sqlalchemy import select
+from sqlalchemy import select, update
 from sqlalchemy.exc import SQLAlchemyError
 
 from voxe_core.guidance.loading import is_out_of_memory
@@ -852,6 +852,9 @@ def recover_interrupted_jobs(hostname: str) -> list[str]:
                 log.warning("job %s was interrupted in %s: %s", job.id, job.stage, outcome)
         scenes = list(session.scalars(select(Scene.id).where(Scene.state == PROCESSING,
                                                              Scene.worker_hostname == hostname)))
+        # (the holds of this worker's earlier process are released too: the new messages take the scenes at once)
+        session.execute(update(Scene).where(Scene.id.in_(scenes), Scene.worker_hostname == hostname)
+                        .values(ingest_token=None, ingest_lease_until=None))
     for scene_id in scenes:
         queue.send_ingest(scene_id)
         log.warning("the ingest of scene %s was interrupted; re-queued it", scene_id)
