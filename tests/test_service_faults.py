@@ -1278,8 +1278,10 @@ def test_a_resend_the_broker_refuses_keeps_the_job_for_the_next_start(db, monkey
 def test_a_restarted_worker_sends_its_jobs_again_releasing_its_dead_runs_holds_up_to_the_limit(db):
     """SQL broker: a worker back under its name re-queues the jobs its previous process was running, though that
     process's lease has not run out (it is known dead), so the new message takes each job at once; a job sent
-    again VOXE_JOB_MAX_REQUEUES times already fails instead of looping."""
-    from voxe_service.models import utcnow
+    again VOXE_JOB_MAX_REQUEUES times already fails instead of looping. So are the ingests it was running, their holds
+    released too."""
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene, utcnow
     from worker import runtime, tasks
 
     scene, lease = add_scene(), utcnow() + timedelta(seconds=60)
@@ -1287,7 +1289,14 @@ def test_a_restarted_worker_sends_its_jobs_again_releasing_its_dead_runs_holds_u
     looping = add_job(scene, "running", 1, "w@host", "edit", requeues=db.job_max_requeues, run_token="dead too",
                       run_lease_until=lease)
     elsewhere = add_job(scene, "running", 1, "v@host", "edit", run_token="live", run_lease_until=lease)
-    assert sorted(tasks.recover_interrupted_jobs("w@host")) == sorted([interrupted, looping])
+    ingesting = add_scene("processing", worker="w@host", ingest_attempts=1, ingest_token="dead",
+                          ingest_lease_until=lease)
+    ingesting_elsewhere = add_scene("processing", worker="v@host", ingest_attempts=1, ingest_token="live",
+                                    ingest_lease_until=lease)
+    assert sorted(tasks.recover_interrupted_jobs("w@host")) == sorted([interrupted, looping, ingesting])
+    with session_scope() as session:
+        assert session.get(Scene, ingesting).ingest_token is None  # its new message takes it at once
+        assert session.get(Scene, ingesting_elsewhere).ingest_token == "live"
     job = job_row(interrupted)
     assert (job.state, job.run_token, job.requeues, job.message) == (
         "queued", None, 1, "re-queued: worker w@host restarted while the job was in edit")
