@@ -26,6 +26,7 @@ from voxe_core.mesh_input import (
     DEFAULT_ALBEDO, SHADING_AMBIENT, SHADING_LIGHT, VIEW_RADIUS, MeshError, SurfaceMesh, VoxelizeConfig,
     chamfer_distance, hemisphere_cameras, load_mesh, rasterize, render_mesh_views, sample_texture, shade_mesh, voxelize,
 )
+from voxe_core.ply_header import read_ply_header
 from voxe_core.reconstruct import ReconstructConfig, reconstruct
 from voxe_core.render import render_image
 
@@ -576,6 +577,25 @@ _TRIANGLE_OBJ = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 0 1\nvn 0 0 1\n"
     ("f 1/1/1 2/2/1 3/3/1\nf 1 x",  # (a line of one or two corners trimesh skips, words or not)
      "line 9, 'f 1 x': not a face of three or more corners, each v, v/vt, v//vn or v/vt/vn"),
     ("v 0 0 one\nf 1 2 3", "line 8, 'v 0 0 one': 'one' is not a number"),  # "string or file could not be read ..."
+    ("f 1 2 \\\n3\nf 1 2 9",  # numbered as the file's lines, a continued one by its first (had been line 9)
+     "line 10, 'f 1 2 9': a face names vertex 9, of the 3 the file holds"),
+    ("f -3 -2 -1\nv 1 1 1\nf 1 2 4",  # read as vertices 2, 3 and 4 (an OBJ's -3 is vertex 1 there)
+     "line 8, 'f -3 -2 -1': its vertex index -3 counts back from the last before this line, but the loader counts "
+     "back from the file's last, and the file has more after this line: write the index positive"),
+    ("  f 1 2 3\nf 1 3 2",  # dropped
+     "line 8, 'f 1 2 3': indented: the loader reads a f line only where its keyword begins the line"),
+    ("f 1 2 3\nf\t1 3 2",  # dropped after the last "f " line ("no triangles" in a file of them alone)
+     "line 9, 'f\\t1 3 2': a '\\t' after its keyword: the loader reads a f line only where a space follows it"),
+    ("v\t1 1 1\nf 1 2 4",  # not a vertex: "index 3 is out of bounds for axis 0 with size 3"
+     "line 8, 'v\\t1 1 1': a '\\t' after its keyword: the loader reads a v line only where a space follows it"),
+    ("f 1/1 2/2 3/3\nf 1//1 2//1 3//1",  # the normal's index read as the vt's
+     "line 9, 'f 1//1 2//1 3//1': a corner v//vn among corners v/vt (line 8's) in one material's faces: the loader "
+     "reads them all as v/vt"),
+    ("f 1/1 2/2 3",  # read as the face 1 1 2
+     "line 8, 'f 1/1 2/2 3': a corner v among corners v/vt (this line's first) in one material's faces: the loader "
+     "reads them all as v/vt"),
+    ("vt 0.5\nf 1/4 2/2 3/3",  # every vt read as one value: rendering raised an IndexError
+     "line 8, 'vt 0.5': a texture coordinate of 1 value, not 2 (u v): the loader reads every vt as short then"),
 ])
 def test_an_obj_naming_what_it_does_not_hold_is_refused_naming_the_line(tmp_path, lines, message):
     (tmp_path / "bad.obj").write_text(_TRIANGLE_OBJ + lines + "\n")
@@ -592,6 +612,58 @@ def test_an_obj_of_every_corner_form_loads(tmp_path):
                                         "f 1/-3/1  2/2/1 3/3/1 \n")
     mesh = load_mesh(tmp_path / "forms.obj")
     assert len(mesh.faces) == 4 and np.allclose(mesh.vertices[mesh.faces[0]], mesh.vertices[mesh.faces[2]])
+
+
+@pytest.mark.parametrize("text, faces", [
+    ("f 1/1/1 2/2/1 3/3/1\nf\t1/1/1 3/3/1 2/2/1\nf 3/3/1 2/2/1 1/1/1\n", 3),  # a tab: read between "f " lines
+    ("f 1/1/1 2/2/1 3/3/1\nf 1/1 3/3 2/2 1/1\n", 3),  # a corner lacking a vn only: read line by line
+    ("usemtl a\nf 1/1 2/2 3/3\nusemtl b\nf 1//1 3//1 2//1\nf 1 2 3\nusemtl a\nf 3/3 2/2 1/1\n", 4),  # (by material)
+    ("f 1/1/1 2/2/1 3/3/1\nvt 0 0 1\nvt 0.5 0.5 1\nf 1/-1/1 2/-2/1 3/-3/1\n", 2),  # negative after its vt's last
+])
+def test_an_obj_trimesh_reads_as_written_loads(tmp_path, text, faces):
+    """What the OBJ check refuses trimesh misreads, and no more: a face line with a tab after its keyword between
+    two "f " lines, corners of different forms in different materials' faces, or differing only in a normal (which
+    the loader does not read), a negative index after the last vertex (vt) it counts back from."""
+    (tmp_path / "read.obj").write_text(_TRIANGLE_OBJ + text)
+    Image.new("RGB", (4, 4), RED[:3]).save(tmp_path / "red.png")
+    mesh = load_mesh(tmp_path / "read.obj", tmp_path / "red.png", up_axis="z")
+    assert len(mesh.faces) == faces and mesh.uv is not None and np.allclose(mesh.texture, np.asarray(RED[:3]) / 255)
+
+
+def test_corners_without_vt_among_one_materials_are_refused_where_its_texture_coordinates_colour_the_mesh(tmp_path):
+    """trimesh reads a material's face lines of differing lengths line by line, dropping every corner's vt where one
+    corner has none: the mesh had loaded uncoloured (a texture given: "has no texture coordinates"). Without a
+    texture or a material library the texture coordinates colour nothing: it loads."""
+    faces = "f 1/1/1 2/2/1 3/3/1\nf 3 2 1 2\n"
+    (tmp_path / "plain.obj").write_text(_TRIANGLE_OBJ + faces)
+    (tmp_path / "library.obj").write_text("mtllib library.mtl\n" + _TRIANGLE_OBJ + "usemtl red\n" + faces)
+    (tmp_path / "library.mtl").write_text("newmtl red\nmap_Kd red.png\n")
+    Image.new("RGB", (4, 4), RED[:3]).save(tmp_path / "red.png")
+    for name, texture, line in (("plain.obj", tmp_path / "red.png", 9), ("library.obj", None, 11)):
+        with pytest.raises(MeshError) as error:
+            load_mesh(tmp_path / name, texture)
+        assert str(error.value) == (f"{name}: line {line}, 'f 3 2 1 2': a corner v among corners v/vt/vn (line "
+                                    f"{line - 1}'s) in one material's faces: the loader drops every corner's "
+                                    "texture coordinates (vt)")
+    assert len(load_mesh(tmp_path / "plain.obj").faces) == 3
+
+
+def test_a_byte_order_mark_is_refused_before_an_obj_line_it_hides_and_read_past_before_a_ply(tmp_path):
+    """trimesh reads an OBJ's "\\ufeffv" as no vertex (every index after it one off: "index 3 is out of bounds", or
+    a wrong mesh), and reads past one before a PLY's "ply" (whose check had refused it: "its first line is not
+    'ply'")."""
+    (tmp_path / "marked.obj").write_text("\ufeff" + _TRIANGLE_OBJ + "f 1 2 3\n")
+    with pytest.raises(MeshError) as error:
+        load_mesh(tmp_path / "marked.obj")
+    assert str(error.value) == ("marked.obj: line 1, '\\ufeffv 0 0 0': the file begins with a byte order mark "
+                                "(U+FEFF), which the loader reads as part of this line's keyword, 'v': save it as "
+                                "UTF-8 without one")
+    (tmp_path / "commented.obj").write_text("\ufeff# a comment\n" + _TRIANGLE_OBJ + "f 1 2 3\n")
+    assert len(load_mesh(tmp_path / "commented.obj").faces) == 1
+    for name, data in (("ascii.ply", _TETRAHEDRON.encode()), ("binary.ply", _TETRAHEDRON_BINARY)):
+        (tmp_path / name).write_bytes(b"\xef\xbb\xbf" + data)
+        assert len(load_mesh(tmp_path / name).faces) == 4, name
+    assert read_ply_header(tmp_path / "binary.ply").complete
 
 
 def test_an_obj_loads_as_trimesh_reads_its_face_lines_of_fewer_than_three_corners_and_vt_it_does_not_hold(tmp_path):

@@ -173,7 +173,8 @@ def load_mesh(
     _check_readable(path, "a mesh file")
     if texture is not None:
         _check_readable(Path(texture), "an image")
-    if (fault := (ply_fault if path.suffix.lower() == ".ply" else _obj_fault)(path)) is not None:
+    fault = ply_fault(path) if path.suffix.lower() == ".ply" else _obj_fault(path, textured=texture is not None)
+    if fault is not None:
         raise MeshError(f"{path.name}: {fault}")
     try:  # with a texture, its parts as they are: the file's materials are not what colours it
         library = _MtlBySpec(trimesh.resolvers.FilePathResolver(path))
@@ -276,59 +277,167 @@ _OBJ_FACE = re.compile(rf"[^\S\n]*(?:{_OBJ_CORNER}(?:[^\S\n]+{_OBJ_CORNER})*)?[^
 """What follows an OBJ face line's keyword: corners (a line of fewer than three trimesh skips)."""
 _OBJ_BAD_FACE = re.compile(rf"\n(?!{_OBJ_FACE.pattern}$)", re.M)
 """The start of a face line's words (of those joined, each after a newline) that ``_OBJ_FACE`` does not match."""
-_OBJ_WORDS = {keyword: re.compile(rf"\n[^\S\n]*{keyword}(?:[^\S\n](.*)|$)", re.M)
-              for keyword in (*OBJ_CORNER_FIELDS, "f")}
-"""The words after the keyword of each line of a text (a newline put first) whose first word is that keyword."""
+_OBJ_WORDS = {**{keyword: re.compile(rf"\n{keyword} (.*)") for keyword in OBJ_CORNER_FIELDS},
+              "f": re.compile(r"\nf(?:[^\S\n](.*)|$)", re.M)}
+"""The words after the keyword of each line of a text (a newline put first) that trimesh reads as that keyword's
+(a v, vt or vn line where a space follows it; ``_OBJ_UNREAD`` refuses the rest)."""
+_OBJ_UNREAD = re.compile(r"\n(?:([ \t\r\v\f]+)(vt|vn|v|f)(?=\s)|(vt|vn|v|f)([\t\r\v\f]))")
+"""The newline before a v, vt, vn or f line trimesh does not read as one: indented, or a tab after its keyword."""
 _OBJ_INDICES = {"v": re.compile(r"(?<=\s)([+-]?[0-9]+)"), "vt": re.compile(r"(?<=\s)[+-]?[0-9]+/([+-]?[0-9]+)")}
 """The vertex and texture coordinate indices of the corners of one face line (which ``_OBJ_FACE`` matches)."""
+_OBJ_NEGATIVE = {"v": re.compile(r"\nf[^\S\n][^\n]*?(?<=\s)(-[0-9]+)"),
+                 "vt": re.compile(r"\nf[^\S\n][^\n]*?/(-[0-9]+)")}
+"""A face line (a newline put first) with a negative vertex (vt) index, and that index."""
+_OBJ_SHORT_ROW = re.compile(r"\n[^\S\n]*(?:\S+[^\S\n]*)?(?=\n)")
+"""A line (of lines joined, a newline put first and last) of fewer than two words."""
+_OBJ_FORMS = {(False, False): "v", (True, False): "v/vt", (False, True): "v//vn", (True, True): "v/vt/vn"}
 
 
-def _obj_fault(path: Path) -> str | None:
+def _obj_fault(path: Path, textured: bool = False) -> str | None:
     """What in the OBJ at ``path`` the mesh loader (trimesh) would fail on in words of its own, or misread without a
-    word, said for a user (the file not named), or None: a v, vt or vn line's word that is not a number, a face
-    line that is not corners of indices, or a corner naming a vertex or texture coordinate the file does not hold (0,
-    or past their count either way; normals, which the loader does not read, are not counted; texture coordinates
-    neither in a file without vt lines, whose corners' vt the loader ignores). trimesh had said "index 8 is out of
-    bounds for axis 0 with size 3" or "string or file could not be read to its end due to unmatched data", read index
-    0 as vertex 1, and dropped every texture coordinate for one vt index past the count. As trimesh counts them, a
-    negative index counts back from the file's last vertex (or vt). A face line of fewer than three corners trimesh
-    skips, as it does a line (l) or a point (p).
+    word, said for a user (the file not named), or None: a v, vt, vn or f line it does not read as one (indented, a
+    tab after its keyword, a byte order mark before it: ``_obj_unread_line``), a v, vt or vn line's word that is not
+    a number, a face line that is not corners of indices, corners of one material's faces not all of one form
+    (``_obj_form_fault``; forms dropping the texture coordinates, only where they colour the mesh: ``textured``, a
+    texture given, or a material library named), a vt line of fewer than two values where corners name vt (trimesh
+    reads every vt so short, which the rasteriser had failed on), a negative index in a face line with vertices (vt)
+    after it, or a corner naming a vertex or texture coordinate the file does not hold (0, or past their count
+    either way; normals, which the loader does not read, are not counted; texture coordinates neither in a file
+    without vt lines, whose corners' vt the loader ignores). trimesh had said "index 8 is out of bounds for axis 0
+    with size 3" or "string or file could not be read to its end due to unmatched data", read index 0 as vertex 1,
+    and dropped every texture coordinate for one vt index past the count. As trimesh counts them, a negative index
+    counts back from the file's last vertex (or vt), where an OBJ's counts back from the last before its line. A
+    face line of fewer than three corners trimesh skips, as it does a line (l) or a point (p). Lines are numbered as
+    the file's (a continued one, its backslash at the end, by its first).
 
     Each check runs over the whole file at once (a 13 MB OBJ of 327,680 faces in a fraction of trimesh's load), and
     over its lines one by one only to name the first at fault.
     """
-    text = path.read_bytes().decode("utf-8", "replace").replace("\r\n", "\n").replace("\\\n", "")  # as trimesh
-    words = {keyword: pattern.findall("\n" + text) for keyword, pattern in _OBJ_WORDS.items()}
-    counts = {kind: len(words[kind]) for kind in OBJ_CORNER_FIELDS}
-    faces = "\n".join(words["f"])
+    raw = path.read_bytes().decode("utf-8", "replace")
+    pieces = raw.strip().replace("\r\n", "\n").split("\\\n")  # as trimesh: stripped, continued lines joined
+    text = "".join(pieces)
+    joins = np.cumsum([len(piece) for piece in pieces[:-1]])  # where in ``text`` a line was continued
+    blank_lines = raw[:len(raw) - len(raw.lstrip())].count("\n")
+
+    def number(start: int) -> int:
+        """The file's number of the line at ``start`` in ``text``."""
+        return blank_lines + 1 + text.count("\n", 0, start) + int(np.searchsorted(joins, start))
+
+    def named(start: int, problem: str) -> str:
+        """``problem`` of the line at ``start`` in ``text``, said with its number and its start."""
+        end = text.find("\n", start)
+        return f"line {number(start)}, {text[start:end if end >= 0 else None].strip()[:40]!r}: {problem}"
 
     def first(keywords: tuple, fault) -> str | None:
         """The first line of one of ``keywords`` at fault (``fault`` of its words after the keyword), named."""
-        for number, line in enumerate(text.split("\n"), 1):
+        start = 0
+        for line in text.split("\n"):
             keyword, *rest = line.split(None, 1) or [""]
             if keyword in keywords and (problem := fault("".join(rest))):
-                return f"line {number}, {line.strip()[:40]!r}: {problem}"
+                return named(start, problem)
+            start += len(line) + 1
         return None
 
+    if unread := _obj_unread_line(text):
+        return named(*unread)
+    words = {keyword: pattern.findall("\n" + text) for keyword, pattern in _OBJ_WORDS.items()}
+    counts = {kind: len(words[kind]) for kind in OBJ_CORNER_FIELDS}
+    faces = "\n".join(words["f"])
     if not is_numbers(" ".join(" ".join(words[kind]) for kind in OBJ_CORNER_FIELDS)) and (
             fault := first(tuple(OBJ_CORNER_FIELDS), _obj_number_fault)):
         return fault
     if _OBJ_BAD_FACE.search("\n" + faces) and (fault := first(("f",), _obj_face_fault)):
         return fault
+    corners = _corner_fields(faces)
+    vertices, *fields = _corners_giving(corners)
     for field, kind in enumerate(_OBJ_INDICES):
         count = counts[kind]
         if kind == "vt" and count == 0:  # the loader ignores the corners' vt then
             continue
-        indices = _corner_field(faces, field)
+        if negative := _OBJ_NEGATIVE[kind].search("\n" + text, 0, ("\n" + text).rfind(f"\n{kind} ")):
+            return named(negative.start(), (
+                f"its {OBJ_CORNER_FIELDS[kind]} index {negative[1]} counts back from the last before this line, but "
+                "the loader counts back from the file's last, and the file has more after this line: write the "
+                "index positive"))
+        indices = _corner_field(corners, field)
         if not ((indices != 0) & (indices >= -count) & (indices <= count)).all() and (
                 fault := first(("f",), partial(_obj_index_fault, kind, count))):
             return fault
+    if any(0 < given < vertices for given in fields) and (
+            misread := _obj_form_fault(text, number, textured or "mtllib" in text)):
+        return named(*misread)
+    if fields[0] and _OBJ_SHORT_ROW.search("\n" + "\n".join(words["vt"]) + "\n") and (
+            fault := first(("vt",), _obj_short_vt_fault)):
+        return fault
+    return None
+
+
+def _obj_unread_line(text: str) -> tuple[int, str] | None:
+    """The first v, vt, vn or f line of ``text`` (an OBJ's, stripped) that trimesh does not read as one, as (its
+    start, the problem), or None: one indented, with a tab after its keyword (a face line so trimesh reads only
+    between its first face, o, g, s or usemtl line and its last "f " line), or after a byte order mark at the start
+    (which takes a usemtl line's material from the faces under it too)."""
+    keyword = text[1:].split(None, 1)[:1]
+    if text.startswith("\ufeff") and keyword and keyword[0] in (*_OBJ_WORDS, "usemtl"):
+        return 0, (f"the file begins with a byte order mark (U+FEFF), which the loader reads as part of this line's "
+                   f"keyword, {keyword[0]!r}: save it as UTF-8 without one")
+    text = "\n" + text + "\n"
+    starts = [position for key in ("usemtl", "o", "f", "g", "s") if (position := text.find(f"\n{key} ")) >= 0]
+    faces_from, faces_to = min(starts, default=len(text)), text.find("\n", text.rfind("\nf ") + 3)
+    for line in _OBJ_UNREAD.finditer(text):
+        indent, keyword = line[1], line[2] or line[3]
+        if not indent and keyword == "f" and faces_from <= line.start() < faces_to - 1:
+            continue
+        return line.start(), (
+            f"indented: the loader reads a {keyword} line only where its keyword begins the line" if indent else
+            f"a {line[4]!r} after its keyword: the loader reads a {keyword} line only where a space follows it")
+    return None
+
+
+def _obj_form_fault(text: str, number, uv_used: bool) -> tuple[int, str] | None:
+    """The first face line of ``text`` (an OBJ's) whose corners trimesh misreads among its material's, as (its start,
+    the problem), or None (``number``: the file's number of the line at a start). trimesh reads the faces of one
+    material (``usemtl``) at once as corners of the first line's form where every line holds as many numbers (a v/vt
+    corner's vt read off a v//vn one's vn, three v/vt corners as six vertices), or else line by line, dropping
+    every corner's vt when one corner (of a line of three or more) has none: a misreading where ``uv_used``."""
+    materials: dict = {}  # a material's face lines: (start, their corners' forms, how many numbers)
+    start, material = 0, None
+    for line in text.split("\n"):
+        words = line.split()
+        if words[:1] == ["usemtl"]:
+            material = line.strip()[6:].strip()
+        elif words[:1] == ["f"]:
+            forms = [_OBJ_FORMS[tuple(field != "" for field in (corner.split("/") + ["", ""])[1:3])]
+                     for corner in words[1:]]
+            numbers = len(" ".join(words[1:]).replace("/", " ").split())
+            materials.setdefault(material, []).append((start, forms, numbers))
+        start += len(line) + 1
+    for faces in materials.values():
+        if len({numbers for *_, numbers in faces}) == 1:
+            kind, reading = (lambda form: form), "the loader reads them all as {}"
+        elif uv_used:
+            faces = [face for face in faces if len(face[1]) >= 3]
+            kind, reading = (lambda form: "/vt" in form), "the loader drops every corner's texture coordinates (vt)"
+        else:
+            continue
+        for start, forms, _ in faces:
+            expected = faces[0][1][0]
+            if odd := next((form for form in forms if kind(form) != kind(expected)), None):
+                first = "this line's first" if start == faces[0][0] else f"line {number(faces[0][0])}'s"
+                return start, (f"a corner {odd} among corners {expected} ({first}) in one material's faces: "
+                               + reading.format(expected))
     return None
 
 
 def _obj_number_fault(words: str) -> str | None:
     """What in a v, vt or vn line's ``words`` is not a number, or None."""
     return next((f"{word[:20]!r} is not a number" for word in words.split() if not is_numbers(word)), None)
+
+
+def _obj_short_vt_fault(words: str) -> str | None:
+    """Why a vt line's ``words`` are not a texture coordinate the loader reads, or None."""
+    return None if len(words.split()) >= 2 else (
+        f"a texture coordinate of {len(words.split())} value, not 2 (u v): the loader reads every vt as short then")
 
 
 def _obj_face_fault(words: str) -> str | None:
@@ -346,11 +455,11 @@ def _obj_index_fault(kind: str, count: int, words: str) -> str | None:
             + (" (an OBJ counts them from 1)" if index == 0 else ""))
 
 
-def _corner_field(faces: str, field: int) -> np.ndarray:
-    """The indices in field ``field`` (0: the vertex, 1: the texture coordinate) of the corners in ``faces`` (face
-    lines' words that ``_OBJ_FACE`` matches) that give it, as int64 (one past its range made the nearest end of it).
-
-    Read off the characters all at once: a regex's match per corner costs more than trimesh's whole load."""
+def _corner_fields(faces: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The characters of ``faces`` (face lines' words that ``_OBJ_FACE`` matches) as bytes, whether each is between
+    corners, and the field of each within its corner (0: the vertex, 1: the texture coordinate, 2: the normal; a slash
+    the field it opens). Read off the characters all at once: a regex's match per corner costs more than trimesh's
+    whole load."""
     data = np.frombuffer(faces.encode(), dtype=np.uint8)
     slash = data == ord("/")
     between = ~(slash | ((data >= ord("0")) & (data <= ord("9"))) | (data == ord("+")) | (data == ord("-")))
@@ -358,10 +467,25 @@ def _corner_field(faces: str, field: int) -> np.ndarray:
     ends = np.flatnonzero(between)
     steps = slash.view(np.int8).copy()
     steps[ends] = -np.diff(np.searchsorted(np.flatnonzero(slash), ends), prepend=0)
-    digits = (np.cumsum(steps, dtype=np.int8) == field) & ~slash & ~between
+    return data, between, np.cumsum(steps, dtype=np.int8)
+
+
+def _corner_field(corners: tuple, field: int) -> np.ndarray:
+    """The indices in field ``field`` of the corners (``_corner_fields``) that give it, as int64 (one past its range
+    made the nearest end of it)."""
+    data, between, fields = corners
+    digits = (fields == field) & (data != ord("/")) & ~between
     if not digits.any():  # numpy reads blank text as one 0
         return np.empty(0, dtype=np.int64)
     return np.fromstring(np.where(between, ord(" "), data)[digits | between].tobytes(), sep=" ", dtype=np.int64)
+
+
+def _corners_giving(corners: tuple) -> np.ndarray:
+    """How many of the corners (``_corner_fields``) give a vertex, a texture coordinate and a normal (3,)."""
+    data, between, fields = corners
+    number = (data != ord("/")) & ~between
+    starts = number & ~np.concatenate([[False], number[:-1]])
+    return np.bincount(fields[starts], minlength=3)[:3]
 
 
 def _texture_rgb(image, name: str) -> np.ndarray:

@@ -28,6 +28,7 @@ BODY_FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
 PROPERTY_TYPES = ("char", "uchar", "short", "ushort", "int", "uint", "float", "double", "int8", "uint8", "int16",
                   "uint16", "int32", "uint32", "int64", "uint64", "float16", "float32", "float64")
 """The property types trimesh's PLY reader knows."""
+UTF8_BOM = b"\xef\xbb\xbf"
 TEXT_NUMBER_BYTES = b"0123456789+-.eE \t\r\n"  # what a body of numbers written as text is made of
 
 
@@ -39,9 +40,10 @@ class PlyHeader:
 
 
 def _header_lines(handle: BinaryIO) -> Iterator[str]:
-    """The lines of the header of the PLY open in ``handle`` after its "ply" line (none without one), each stripped,
-    the handle left past the last one read; their count and bytes are bounded: a damaged file may hold no newline."""
-    if handle.readline(HEADER_LINE_BYTES).strip() == b"ply":
+    """The lines of the header of the PLY open in ``handle`` after its "ply" line (none without one; a UTF-8 byte
+    order mark before it trimesh reads past too), each stripped, the handle left past the last one read; their count
+    and bytes are bounded: a damaged file may hold no newline."""
+    if handle.readline(HEADER_LINE_BYTES).removeprefix(UTF8_BOM).strip() == b"ply":
         for _ in range(HEADER_LINES):
             yield handle.readline(HEADER_LINE_BYTES).decode("utf-8", "replace").strip()
 
