@@ -710,6 +710,15 @@ _TETRAHEDRON_BINARY = (_TETRAHEDRON.split("end_header\n")[0].replace("ascii", "b
     (_TETRAHEDRON_BINARY.replace(b"binary_little_endian", b"ascii"),  # "'utf-8' codec can't decode byte 0x80 ..."
      "its format line says ascii, but its body is not text: a binary body's format line is "
      "'format binary_little_endian 1.0' (or binary_big_endian)"),
+    (_TETRAHEDRON_BINARY[:-5],  # "PLY is unexpected length!" (as for each of these)
+     "its body ends within its face element 4, of the 4 its header declares: it is truncated, or its header "
+     "overstates a count"),
+    (_TETRAHEDRON_BINARY + bytes(7),
+     "its body holds 7 bytes past its elements' last (face 4): its header understates a count, or something was "
+     "appended"),
+    (_TETRAHEDRON_BINARY[:-13] + b"\x04" + np.array([0, 1, 2, 3], "<i4").tobytes(),  # (one as long: a wrong mesh)
+     "its face element 4 holds a list of 4 where the first holds 3: the loader reads a binary PLY's lists all as "
+     "long as the first (save it as ASCII, or its faces all of one size)"),
 ])
 def test_a_malformed_ply_is_refused_saying_what_in_it_is_wrong(tmp_path, data, message):
     """trimesh had failed in words of its own (in the comments), or loaded the mesh short of a face."""

@@ -25,9 +25,10 @@ TEXTURE_COORDINATES = ({("face", "texcoord")}, {("vertex", "texture_u"), ("verte
 vertex)."""
 HEADER_LINES, HEADER_LINE_BYTES = 10_000, 1024  # far past any real header (a few dozen short lines)
 BODY_FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
-PROPERTY_TYPES = ("char", "uchar", "short", "ushort", "int", "uint", "float", "double", "int8", "uint8", "int16",
-                  "uint16", "int32", "uint32", "int64", "uint64", "float16", "float32", "float64")
-"""The property types trimesh's PLY reader knows."""
+PROPERTY_TYPES = {"char": "i1", "uchar": "u1", "short": "i2", "ushort": "u2", "int": "i4", "uint": "u4", "float": "f4",
+                  "double": "f8", "int8": "i1", "uint8": "u1", "int16": "i2", "uint16": "u2", "int32": "i4",
+                  "uint32": "u4", "int64": "i8", "uint64": "u8", "float16": "f2", "float32": "f4", "float64": "f8"}
+"""The property types trimesh's PLY reader knows, and their numpy types."""
 UTF8_BOM = b"\xef\xbb\xbf"
 TEXT_NUMBER_BYTES = b"0123456789+-.eE \t\r\n"  # what a body of numbers written as text is made of
 
@@ -71,9 +72,9 @@ def ply_fault(path: str | os.PathLike) -> str | None:
     rows do not hold what the header declares (``_ascii_body_fault``) or a binary one that is text. trimesh had
     said "list index out of range" (no end_header), "'flot'" (a type it does not know), "not enough values to
     unpack" (a list property without its two types), "string or file could not be read to its end" (a word in a
-    row), "PLY is unexpected length!" (a text body under a binary format line), and had dropped a face row holding
-    fewer indices than its count."""
-    elements: list[tuple[str, int, list[bool]]] = []  # (name, count, per property: whether it is a list)
+    row), "PLY is unexpected length!" (a text body under a binary format line, or a binary body not the length its
+    header makes: ``_binary_body_fault``), and had dropped a face row holding fewer indices than its count."""
+    elements: list[tuple[str, int, list[list[str]]]] = []  # (name, count, per property its types: a list's two)
     body_format, lines_read = None, 1
     with open(path, "rb") as handle:
         for text in _header_lines(handle):
@@ -98,7 +99,7 @@ def ply_fault(path: str | os.PathLike) -> str | None:
                 if unknown := [word for word in words[1 + is_list:-1] if word not in PROPERTY_TYPES]:
                     return (f"its header's line {lines_read}, {text[:60]!r}: {unknown[0][:20]!r} is not a property "
                             "type (char, uchar, short, ushort, int, uint, float, double, or a sized one: int32 ...)")
-                elements[-1][2].append(is_list)
+                elements[-1][2].append(words[1 + is_list:-1])
             elif words[:1] == ["end_header"]:
                 body = handle.read()
                 if body_format == "ascii":
@@ -106,7 +107,7 @@ def ply_fault(path: str | os.PathLike) -> str | None:
                 if body and not body.strip(TEXT_NUMBER_BYTES):
                     return (f"its format line says {body_format}, but its body is text: an ASCII PLY's format line "
                             "is 'format ascii 1.0'")
-                return None
+                return _binary_body_fault(body, elements, "<" if body_format == "binary_little_endian" else ">")
     if lines_read == 1:
         return "its first line is not 'ply': it is not a PLY file"
     return "its header has no end_header line: it is truncated, or not a PLY file"
@@ -132,8 +133,8 @@ def _ascii_body_fault(body: bytes, elements: list, header_lines: int) -> str | N
         block, line = rows[first:first + count], header_lines + first + 1  # the file's line of the block's first row
         for index, row in enumerate(block):
             words, needed = row.split(), 0
-            for is_list in lists:
-                if is_list and needed < len(words):
+            for types in lists:
+                if len(types) == 2 and needed < len(words):
                     length = _number(words[needed])
                     if length is None or not (length >= 0 and length.is_integer()):
                         return (f"line {line + index} ({name} {index + 1}): a list's length, "
@@ -148,6 +149,41 @@ def _ascii_body_fault(body: bytes, elements: list, header_lines: int) -> str | N
                 if word := next((word for word in row.split() if not is_numbers(word)), None):
                     return f"line {line + index} ({name} {index + 1}): {word[:20]!r} is not a number"
         first += count
+    return None
+
+
+def _binary_body_fault(body: bytes, elements: list, endian: str) -> str | None:
+    """What in a binary body the rows of ``elements`` hold other than trimesh reads: it takes each list's length from
+    its element's first row for every row, and refuses a body not the length that makes ("PLY is unexpected
+    length!"; a mix of triangles and quads, a truncated file, a count overstated or understated)."""
+    import numpy as np  # (as in ``is_numbers``)
+
+    start = 0
+    for name, count, properties in elements:
+        fields, lengths = [], {}
+        for index, types in enumerate(properties):
+            fields.append((f"{index}", endian + PROPERTY_TYPES[types[0]]))
+            if len(types) == 2 and count:  # a list: its length, then as many items as the first row's
+                offset = start + np.dtype(fields).itemsize - np.dtype(fields[-1][1]).itemsize
+                first = np.frombuffer(body[offset:offset + np.dtype(fields[-1][1]).itemsize], dtype=fields[-1][1])
+                if not len(first):
+                    break  # the body ends there
+                lengths[f"{index}"] = int(first[0])
+                fields.append((f"{index} items", endian + PROPERTY_TYPES[types[1]], (lengths[f"{index}"],)))
+        row = np.dtype(fields)
+        rows = np.frombuffer(body, dtype=row, count=min(count, max(0, len(body) - start) // row.itemsize), offset=start)
+        for field, length in lengths.items():
+            if len(odd := np.flatnonzero(rows[field] != length)):
+                return (f"its {name} element {odd[0] + 1} holds a list of {rows[field][odd[0]]} where the first holds "
+                        f"{length}: the loader reads a binary PLY's lists all as long as the first (save it as ASCII, "
+                        "or its faces all of one size)")
+        if len(rows) < count:
+            return (f"its body ends within its {name} element {len(rows) + 1}, of the {count} its header declares: "
+                    "it is truncated, or its header overstates a count")
+        start += count * row.itemsize
+    if len(body) > start:
+        return (f"its body holds {len(body) - start} bytes past its elements' last ({elements[-1][0]} "
+                f"{elements[-1][1]}): its header understates a count, or something was appended")
     return None
 
 
