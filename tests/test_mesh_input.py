@@ -596,6 +596,15 @@ _TRIANGLE_OBJ = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 0 1\nvn 0 0 1\n"
      "reads them all as v/vt"),
     ("vt 0.5\nf 1/4 2/2 3/3",  # every vt read as one value: rendering raised an IndexError
      "line 8, 'vt 0.5': a texture coordinate of 1 value, not 2 (u v): the loader reads every vt as short then"),
+    ("v 0 0 1 # top\nf 1 2 4",  # "string or file could not be read to its end due to unmatched data"
+     "line 8, 'v 0 0 1 # top': a comment after its values, '# top', which the loader reads as values: put it on a "
+     "line of its own"),
+    ("f 1 2 3 # a face",  # "invalid literal for int() with base 10: '#'"
+     "line 8, 'f 1 2 3 # a face': a comment after its values, '# a face', which the loader reads as values: put it "
+     "on a line of its own"),
+    ("f 1 2 3\rf 1 3 2",  # one line to the loader
+     "line 8, 'f 1 2 3\\rf 1 3 2': a carriage return (CR) alone ends a line within it, where the loader ends lines "
+     "only at a line feed (LF, or CR LF): save it with those"),
 ])
 def test_an_obj_naming_what_it_does_not_hold_is_refused_naming_the_line(tmp_path, lines, message):
     (tmp_path / "bad.obj").write_text(_TRIANGLE_OBJ + lines + "\n")

@@ -283,6 +283,8 @@ _OBJ_WORDS = {**{keyword: re.compile(rf"\n{keyword} (.*)") for keyword in OBJ_CO
 (a v, vt or vn line where a space follows it; ``_OBJ_UNREAD`` refuses the rest)."""
 _OBJ_UNREAD = re.compile(r"\n(?:([ \t\r\v\f]+)(vt|vn|v|f)(?=\s)|(vt|vn|v|f)([\t\r\v\f]))")
 """The newline before a v, vt, vn or f line trimesh does not read as one: indented, or a tab after its keyword."""
+_OBJ_LONE_CR = re.compile(r"\r[ \t\v\f]*(?:vt|vn|v|f|usemtl)\s")
+"""A v, vt, vn, f or usemtl line after a CR alone, which trimesh reads as part of the line before."""
 _OBJ_INDICES = {"v": re.compile(r"(?<=\s)([+-]?[0-9]+)"), "vt": re.compile(r"(?<=\s)[+-]?[0-9]+/([+-]?[0-9]+)")}
 """The vertex and texture coordinate indices of the corners of one face line (which ``_OBJ_FACE`` matches)."""
 _OBJ_NEGATIVE = {"v": re.compile(r"\nf[^\S\n][^\n]*?(?<=\s)(-[0-9]+)"),
@@ -375,12 +377,17 @@ def _obj_fault(path: Path, textured: bool = False) -> str | None:
 def _obj_unread_line(text: str) -> tuple[int, str] | None:
     """The first v, vt, vn or f line of ``text`` (an OBJ's, stripped) that trimesh does not read as one, as (its
     start, the problem), or None: one indented, with a tab after its keyword (a face line so trimesh reads only
-    between its first face, o, g, s or usemtl line and its last "f " line), or after a byte order mark at the start
-    (which takes a usemtl line's material from the faces under it too)."""
+    between its first face, o, g, s or usemtl line and its last "f " line), after a carriage return alone (a classic
+    Mac OS line end), or after a byte order mark at the start (which takes a usemtl line's material from the faces
+    under it too)."""
     keyword = text[1:].split(None, 1)[:1]
     if text.startswith("\ufeff") and keyword and keyword[0] in (*_OBJ_WORDS, "usemtl"):
         return 0, (f"the file begins with a byte order mark (U+FEFF), which the loader reads as part of this line's "
                    f"keyword, {keyword[0]!r}: save it as UTF-8 without one")
+    if "\r" in text and (alone := _OBJ_LONE_CR.search(text)):  # (each CR LF's CR is gone)
+        return text.rfind("\n", 0, alone.start()) + 1, (
+            "a carriage return (CR) alone ends a line within it, where the loader ends lines only at a line feed (LF, "
+            "or CR LF): save it with those")
     text = "\n" + text + "\n"
     starts = [position for key in ("usemtl", "o", "f", "g", "s") if (position := text.find(f"\n{key} ")) >= 0]
     faces_from, faces_to = min(starts, default=len(text)), text.find("\n", text.rfind("\nf ") + 3)
@@ -431,7 +438,15 @@ def _obj_form_fault(text: str, number, uv_used: bool) -> tuple[int, str] | None:
 
 def _obj_number_fault(words: str) -> str | None:
     """What in a v, vt or vn line's ``words`` is not a number, or None."""
-    return next((f"{word[:20]!r} is not a number" for word in words.split() if not is_numbers(word)), None)
+    if (word := next((word for word in words.split() if not is_numbers(word)), None)) is None:
+        return None
+    return _obj_comment_fault(words) if word.startswith("#") else f"{word[:20]!r} is not a number"
+
+
+def _obj_comment_fault(words: str) -> str:
+    """A line's comment after its values, ``words`` (which hold a #), said."""
+    return (f"a comment after its values, {words[words.index('#'):][:20]!r}, which the loader reads as values: put it "
+            "on a line of its own")
 
 
 def _obj_short_vt_fault(words: str) -> str | None:
@@ -442,7 +457,11 @@ def _obj_short_vt_fault(words: str) -> str | None:
 
 def _obj_face_fault(words: str) -> str | None:
     """Why a face line's ``words`` are not a face, or None."""
-    return None if _OBJ_FACE.fullmatch(words) else "not a face of three or more corners, each v, v/vt, v//vn or v/vt/vn"
+    if _OBJ_FACE.fullmatch(words):
+        return None
+    if "#" in words and _OBJ_FACE.fullmatch(words[:words.index("#")]):
+        return _obj_comment_fault(words)
+    return "not a face of three or more corners, each v, v/vt, v//vn or v/vt/vn"
 
 
 def _obj_index_fault(kind: str, count: int, words: str) -> str | None:
