@@ -748,6 +748,7 @@ def test_a_binary_ply_loads_as_its_ascii_twin(tmp_path):
     (_TETRAHEDRON_PLY.format(vertices=4, faces=4) + "\n", 4),  # a blank last line
     (_TETRAHEDRON_PLY.format(vertices=4, faces=4).replace("\n", "\r\n"), 4),
     (_TETRAHEDRON_PLY.format(vertices=4, faces=3), 3),  # rows past the counts: trimesh reads the declared ones
+    ("PLY" + _TETRAHEDRON_PLY.format(vertices=4, faces=4)[3:], 4),  # (had been refused: "its first line is not 'ply'")
 ])
 def test_an_ascii_ply_holding_the_rows_its_header_declares_loads(tmp_path, text, faces):
     (tmp_path / "whole.ply").write_bytes(text.encode())

@@ -41,10 +41,10 @@ class PlyHeader:
 
 
 def _header_lines(handle: BinaryIO) -> Iterator[str]:
-    """The lines of the header of the PLY open in ``handle`` after its "ply" line (none without one; a UTF-8 byte
-    order mark before it trimesh reads past too), each stripped, the handle left past the last one read; their count
-    and bytes are bounded: a damaged file may hold no newline."""
-    if handle.readline(HEADER_LINE_BYTES).removeprefix(UTF8_BOM).strip() == b"ply":
+    """The lines of the header of the PLY open in ``handle`` after its "ply" line (none without one; in capitals, or
+    after a UTF-8 byte order mark, trimesh reads it too), each stripped, the handle left past the last one read;
+    their count and bytes are bounded: a damaged file may hold no newline."""
+    if handle.readline(HEADER_LINE_BYTES).removeprefix(UTF8_BOM).strip().lower() == b"ply":
         for _ in range(HEADER_LINES):
             yield handle.readline(HEADER_LINE_BYTES).decode("utf-8", "replace").strip()
 
