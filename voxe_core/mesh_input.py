@@ -340,9 +340,10 @@ def _obj_fault(path: Path, textured: bool = False) -> str | None:
             start += len(line) + 1
         return None
 
-    if unread := _obj_unread_line(text):
+    lined = "\n" + text + "\n"  # (a line's start in ``text``: the index of the newline before it here)
+    if unread := _obj_unread_line(lined):
         return named(*unread)
-    words = {keyword: pattern.findall("\n" + text) for keyword, pattern in _OBJ_WORDS.items()}
+    words = {keyword: pattern.findall(lined) for keyword, pattern in _OBJ_WORDS.items()}
     counts = {kind: len(words[kind]) for kind in OBJ_CORNER_FIELDS}
     faces = "\n".join(words["f"])
     if not is_numbers(" ".join(" ".join(words[kind]) for kind in OBJ_CORNER_FIELDS)) and (
@@ -356,7 +357,7 @@ def _obj_fault(path: Path, textured: bool = False) -> str | None:
         count = counts[kind]
         if kind == "vt" and count == 0:  # the loader ignores the corners' vt then
             continue
-        if negative := _OBJ_NEGATIVE[kind].search("\n" + text, 0, ("\n" + text).rfind(f"\n{kind} ")):
+        if negative := _OBJ_NEGATIVE[kind].search(lined, 0, lined.rfind(f"\n{kind} ")):
             return named(negative.start(), (
                 f"its {OBJ_CORNER_FIELDS[kind]} index {negative[1]} counts back from the last before this line, but "
                 "the loader counts back from the file's last, and the file has more after this line: write the "
@@ -374,27 +375,29 @@ def _obj_fault(path: Path, textured: bool = False) -> str | None:
     return None
 
 
-def _obj_unread_line(text: str) -> tuple[int, str] | None:
-    """The first v, vt, vn or f line of ``text`` (an OBJ's, stripped) that trimesh does not read as one, as (its
-    start, the problem), or None: one indented, with a tab after its keyword (a face line so trimesh reads only
-    between its first face, o, g, s or usemtl line and its last "f " line), after a carriage return alone (a classic
-    Mac OS line end), or after a byte order mark at the start (which takes a usemtl line's material from the faces
-    under it too)."""
-    keyword = text[1:].split(None, 1)[:1]
-    if text.startswith("\ufeff") and keyword and keyword[0] in (*_OBJ_WORDS, "usemtl"):
+def _obj_unread_line(lined: str) -> tuple[int, str] | None:
+    """The first v, vt, vn or f line of ``lined`` (an OBJ's text as trimesh reads it, a newline put first and last)
+    that trimesh does not read as one, as (its start in the text, the problem), or None: one indented, with a tab
+    after its keyword (a face line so trimesh reads only between its first face, o, g, s or usemtl line and its last
+    "f " line), after a carriage return alone (a classic Mac OS line end), or after a byte order mark at the start
+    (which takes a usemtl line's material from the faces under it too)."""
+    if lined.startswith("\n\ufeff") and (keyword := lined[2:lined.find("\n", 1)].split(None, 1)[:1]) and (
+            keyword[0] in (*_OBJ_WORDS, "usemtl")):
         return 0, (f"the file begins with a byte order mark (U+FEFF), which the loader reads as part of this line's "
                    f"keyword, {keyword[0]!r}: save it as UTF-8 without one")
-    if "\r" in text and (alone := _OBJ_LONE_CR.search(text)):  # (each CR LF's CR is gone)
-        return text.rfind("\n", 0, alone.start()) + 1, (
+    if "\r" in lined and (alone := _OBJ_LONE_CR.search(lined)):  # (each CR LF's CR is gone)
+        return lined.rfind("\n", 0, alone.start()), (
             "a carriage return (CR) alone ends a line within it, where the loader ends lines only at a line feed (LF, "
             "or CR LF): save it with those")
-    text = "\n" + text + "\n"
-    starts = [position for key in ("usemtl", "o", "f", "g", "s") if (position := text.find(f"\n{key} ")) >= 0]
-    faces_from, faces_to = min(starts, default=len(text)), text.find("\n", text.rfind("\nf ") + 3)
-    for line in _OBJ_UNREAD.finditer(text):
+    faces = None  # where trimesh reads face lines (found for a tabbed one only: each search costs a scan)
+    for line in _OBJ_UNREAD.finditer(lined):
         indent, keyword = line[1], line[2] or line[3]
-        if not indent and keyword == "f" and faces_from <= line.start() < faces_to - 1:
-            continue
+        if not indent and keyword == "f":
+            if faces is None:
+                starts = [at for key in ("usemtl", "o", "f", "g", "s") if (at := lined.find(f"\n{key} ")) >= 0]
+                faces = min(starts, default=len(lined)), lined.find("\n", lined.rfind("\nf ") + 3)
+            if faces[0] <= line.start() < faces[1] - 1:
+                continue
         return line.start(), (
             f"indented: the loader reads a {keyword} line only where its keyword begins the line" if indent else
             f"a {line[4]!r} after its keyword: the loader reads a {keyword} line only where a space follows it")
