@@ -6,6 +6,7 @@ only, never edit quality. A screenshot of each page lands in tests/.artifacts/ (
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -520,6 +521,33 @@ def test_a_mesh_uploads_with_the_shading_and_up_axis_chosen(live, browser, tmp_p
     with zipfile.ZipFile(stored) as archive:
         options = json.loads(archive.read("mesh/options.json"))
     assert (options["shading"], options["up_axis"]) == ("baked", "z")
+    with httpx.Client(base_url=svc.base, headers={"Authorization": f"Bearer {token}"}) as client:
+        assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204  # the other tests expect their own only
+
+
+def test_an_upload_answered_after_a_look_at_a_job_is_watched_until_its_scene_is_ready(live, browser, tmp_path):
+    """An upload still being sent while the user looks at a job and comes back: its scene is watched until it is
+    ready, and offered. The answer had been watched on the page it was sent from, gone by then, and the home page
+    shown since had found nothing to watch when it opened: "processing…" for good, the scene offered nowhere."""
+    svc, token, _archive = live
+    driver = browser
+    set_key(driver, svc, token)
+    mesh = tmp_path / "tetra.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
+    # The upload leaves 4 s late, as a large one would take that long to send.
+    driver.execute_script("const send = XMLHttpRequest.prototype.send;"
+                          "XMLHttpRequest.prototype.send = function (body) {"
+                          "  setTimeout(() => send.call(this, body), 4000); };")
+    driver.find_element("id", "upload-files").send_keys(str(mesh))
+    driver.find_element("css selector", "#upload-form button").click()
+    go(driver, "#/jobs/elsewhere")
+    go(driver, "#/")
+    assert "stored as" not in text(driver, "#upload-status")  # not answered yet
+    wait_until(lambda: "ready" in text(driver, "#upload-status"), 120, what="the scene to be ready",
+               processes=svc.processes)
+    scene_id = re.search(r"\((\S+)\): ready$", text(driver, "#upload-status"))[1]
+    offered = "return [...document.querySelectorAll('#job-scene option')].map((option) => option.value)"
+    wait_until(lambda: scene_id in driver.execute_script(offered), 10, what="the scene offered for editing")
     with httpx.Client(base_url=svc.base, headers={"Authorization": f"Bearer {token}"}) as client:
         assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204  # the other tests expect their own only
 

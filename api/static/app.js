@@ -165,7 +165,6 @@ function initUpload() {
     if (!archive && !files.length) { showError("upload", "choose a zip, the dataset's folder, or its files"); return; }
     const bar = $("#upload-progress");
     const status = $("#upload-status");
-    const { signal } = page;  // the scene is watched on this page (and again on a later home page: ingesting)
     bar.hidden = false;
     bar.value = 0;
     button.disabled = true;  // until the upload is answered: a second click would upload it twice
@@ -193,7 +192,10 @@ function initUpload() {
       bar.value = 1;
       status.textContent = `stored as ${body.id}; ${body.state}…`;
       ingesting = body.id;
-      await waitForScene(body.id, status, signal);
+      // Watched on the page shown when the upload is answered (and again on a later home page: ingesting): the
+      // page it was sent from is gone after a look at a job meanwhile, and the home page shown since had found
+      // nothing to watch when it opened, leaving the scene "processing…" and never offered.
+      await waitForScene(body.id, status, page.signal);
     };
     xhr.send(data);
   });
