@@ -552,6 +552,33 @@ def test_an_upload_answered_after_a_look_at_a_job_is_watched_until_its_scene_is_
         assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204  # the other tests expect their own only
 
 
+def test_a_scene_chosen_then_deleted_leaves_one_offered_chosen(live, browser):
+    """The scene chosen for an edit, and as the job list's filter, deleted meanwhile: the next look at the scenes
+    chooses one offered, and the filter "all" (both had shown nothing chosen, the edit sent with no scene)."""
+    from selenium.webdriver.support.select import Select
+
+    svc, token, _archive = live
+    driver = browser
+    answer = lambda body: {"status": 200, "type": "application/json", "body": json.dumps(body)}  # noqa: E731
+    scene = lambda i: {"id": f"scene-{i}", "name": f"scene {i}", "state": "ready"}  # noqa: E731
+    no_jobs = answer({"items": [], "total": 0})
+    set_key(driver, svc, token)
+    faults(driver, {"/v1/scenes?": answer({"items": [scene(1), scene(2)], "total": 2}), "/v1/jobs?": no_jobs})
+    driver.refresh()
+    offered = "return [...document.querySelectorAll('#job-scene option')].map((option) => option.value)"
+    wait_until(lambda: driver.execute_script(offered) == ["scene-1", "scene-2"], 10, what="the scenes offered")
+    Select(driver.find_element("id", "job-scene")).select_by_value("scene-2")
+    Select(driver.find_element("id", "filter-scene")).select_by_value("scene-2")
+    faults(driver, {"/v1/scenes?": answer({"items": [scene(1)], "total": 1}), "/v1/jobs?": no_jobs})
+    go(driver, "#/jobs/elsewhere")
+    go(driver, "#/")
+    wait_until(lambda: driver.execute_script(offered) == ["scene-1"], 10, what="the scenes offered again")
+    chosen = "return ['#job-scene', '#filter-scene'].map((s) => [document.querySelector(s).value," \
+             " document.querySelector(s).selectedIndex])"
+    assert driver.execute_script(chosen) == [["scene-1", 0], ["", 0]]
+    faults(driver, {})
+
+
 def test_the_job_list_pages_and_every_scene_is_offered(live, browser):
     """A key with more jobs than a page (50) steps to its older ones and back, and every scene is offered, past the
     API's largest page (200): the oldest had been out of reach."""

@@ -260,11 +260,13 @@ async function loadScenes(signal, selected) {
   const jobScene = $("#job-scene");
   const keep = selected || jobScene.value;
   jobScene.innerHTML = ready.map(option).join("");
-  if (keep) jobScene.value = keep;
+  // A choice kept only while its scene is offered: set to one gone (deleted meanwhile), a <select> shows nothing
+  // chosen, the edit would be sent with no scene, and the job list, shown unfiltered, read as filtered.
+  if (ready.some((s) => s.id === keep)) jobScene.value = keep;
   const filter = $("#filter-scene");
   const filterValue = filter.value;
   filter.innerHTML = `<option value="">all</option>${scenes.map(option).join("")}`;
-  filter.value = filterValue;
+  filter.value = scenes.some((s) => s.id === filterValue) ? filterValue : "";
 }
 
 // ------------------------------------------------------------------ submit an edit
