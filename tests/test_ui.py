@@ -38,7 +38,8 @@ PARAMS = {  # tests/test_service_e2e.py's tiny local-edit parameters (8 frames: 
 # as a slow or failing server would: after `delay` ms, and/or with the given status, type and body (`method`:
 # requests of that method only; `skip`: the first so many such requests go through; `once`: only the first such
 # request after them); or, given `timeline` (events {id, kind, ...}), as a job's events would: its first
-# `recorded` events as JSON, or as an event stream (Accept) every event after the request's Last-Event-ID.
+# `recorded` events as JSON, or as an event stream (Accept) every event after the request's Last-Event-ID, left open
+# with nothing more sent when `open` (a connection dropped unsaid).
 PAGE_HOOKS = """
 window.cspViolations = [];
 document.addEventListener("securitypolicyviolation",
@@ -71,9 +72,11 @@ window.fetch = async (resource, options = {}) => {
                           { headers: { "Content-Type": "application/json" } });
     }
     const after = Number(options.headers["Last-Event-ID"] || 0);
-    return new Response(fault.timeline.filter((e) => e.id > after)
-                          .map((e) => `id: ${e.id}\nevent: ${e.kind}\ndata: ${JSON.stringify(e)}\n\n`).join(""),
-                        { headers: { "Content-Type": "text/event-stream" } });
+    const text = fault.timeline.filter((e) => e.id > after)
+      .map((e) => `id: ${e.id}\nevent: ${e.kind}\ndata: ${JSON.stringify(e)}\n\n`).join("");
+    const body = fault.open
+      ? new ReadableStream({ start: (out) => out.enqueue(new TextEncoder().encode(text)) }) : text;
+    return new Response(body, { headers: { "Content-Type": "text/event-stream" } });
   }
   if (fault?.status) {
     return new Response(fault.body, { status: fault.status, statusText: fault.statusText,
@@ -724,6 +727,36 @@ def test_a_requested_cancel_stays_shown_until_the_job_stops(live, browser):
     wait_until(lambda: text(driver, "#job-state") == "running (cancel requested)", 5, what="the cancel shown")
     wait_until(lambda: text(driver, "#job-stage-text") == "3/4", 10, what="the next progress snapshot")
     assert text(driver, "#job-state") == "running (cancel requested)"
+    faults(driver, {})
+
+
+def test_a_silent_stream_is_opened_again_after_its_last_event(live, browser):
+    """A stream on which nothing comes for 45 s, not even the server's keepalive comment (sent every 15 s), is taken
+    for a dropped connection and opened again after its last event: a connection dropped unsaid (a laptop's sleep, a
+    network change) had left the page waiting for ever, frozen at its last progress."""
+    svc, token, _archive = live
+    driver = browser
+    job = {"id": "silent", "scene_id": "s", "prompt": "a mic", "mode": "global", "edit_words": [],
+           "models": {"sds": "tiny"}, "device": "cpu", "state": "running", "stage": "edit", "completed_stages": [],
+           "progress": 0.5, "iteration": 2, "total": 4, "overall_progress": 0.5, "eta_seconds": 1,
+           "overall_eta_seconds": 2, "losses": {}, "message": None, "preview_url": None, "error": None,
+           "cancel_requested": False, "created_at": "2026-01-01T00:00:00Z"}
+    answer = lambda body: {"status": 200, "type": "application/json", "body": json.dumps(body)}  # noqa: E731
+    set_key(driver, svc, token)
+    faults(driver, {"/v1/jobs/silent$": answer(job), "/v1/jobs/silent/artifacts$": answer([]),
+                    "/v1/jobs/silent/events": {"recorded": 0, "open": True, "timeline": [
+                        {"id": 7, "kind": "stage_started", "stage": "edit", "detail": None}]}})
+    driver.execute_script("window.requests = []")
+    go(driver, "#/jobs/silent")
+    wait_until(lambda: streams(driver, "silent"), 10, what="the stream")
+    started = time.monotonic()
+    wait_until(lambda: "nothing received for 45 s; reconnecting" in text(driver, '[data-error-for="stream"]'), 60,
+               what="the silence noticed")
+    assert time.monotonic() - started > 40
+    wait_until(lambda: len(streams(driver, "silent")) == 2, 10, what="the stream opened again")
+    assert [r["headers"].get("Last-Event-ID") for r in streams(driver, "silent")] == [None, "7"]
+    listed = "return [...document.querySelectorAll('#job-events li')].map((item) => item.dataset.event)"
+    assert driver.execute_script(listed) == ["stage_started"]
     faults(driver, {})
 
 

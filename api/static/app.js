@@ -498,6 +498,10 @@ async function showMedia(artifact, selector, signal) {
 
 /** Answers to the stream request that no reconnection changes: the key, or the job, is not (or no longer) valid. */
 const FINAL_STREAM_STATUS = new Set([401, 403, 404]);
+/** The longest wait for a word of the stream (the server sends a comment every 15 s when nothing happens): past it
+ * the connection is taken for dead and opened again. A connection dropped unsaid (a laptop's sleep, a network change,
+ * a proxy's timeout) had left the read waiting for ever, the page frozen at its last progress. */
+const STREAM_SILENCE_MS = 45_000;
 
 /** Read the job's Server-Sent Events after event ``afterId`` (none: from its start) with fetch() (the key in a
  * header), reconnecting with Last-Event-ID until the job ends or the page changes. */
@@ -518,7 +522,7 @@ async function followEvents(jobId, afterId, signal) {
         throw error;
       }
       showError("stream", "");
-      for await (const event of parseSse(response.body)) {
+      for await (const event of parseSse(response.body, STREAM_SILENCE_MS)) {
         if (event.retry) retryMs = event.retry;
         if (event.id) lastId = event.id;
         if (!event.event) continue;
@@ -560,13 +564,23 @@ function listEvent(kind, data) {
   $("#job-events").append(item);
 }
 
-/** Server-Sent Events from a byte stream: {id, event, data (JSON-decoded), retry} per blank-line-ended block. */
-async function* parseSse(body) {
+/** Server-Sent Events from a byte stream: {id, event, data (JSON-decoded), retry} per blank-line-ended block. A
+ * TimeoutError when nothing arrives for ``silenceMs``; the stream is cancelled (its connection closed) when its
+ * reading ends, however it ends. */
+async function* parseSse(body, silenceMs) {
   const reader = body.pipeThrough(new TextDecoderStream()).getReader();
+  try {
+    yield* sseBlocks(reader, silenceMs);
+  } finally {
+    reader.cancel().catch(() => {});  // (refused for a stream that failed: nothing is left to close)
+  }
+}
+
+async function* sseBlocks(reader, silenceMs) {
   let buffer = "";
   let block = { data: [] };
   for (;;) {
-    const { value, done } = await reader.read();
+    const { value, done } = await within(reader.read(), silenceMs, "nothing received");
     if (done) return;
     buffer += value;
     let newline;
@@ -589,6 +603,19 @@ async function* parseSse(body) {
         else if (field === "retry" && /^\d+$/.test(value)) block.retry = Number(value);
       }
     }
+  }
+}
+
+/** ``promise``'s outcome, or a TimeoutError ("``what`` for N s") if it has none after ``ms``. */
+async function within(promise, ms, what) {
+  let timer;
+  const late = new Promise((_, reject) => {
+    timer = setTimeout(() => reject(new DOMException(`${what} for ${ms / 1000} s`, "TimeoutError")), ms);
+  });
+  try {
+    return await Promise.race([promise, late]);
+  } finally {
+    clearTimeout(timer);
   }
 }
 
