@@ -760,6 +760,36 @@ def test_a_silent_stream_is_opened_again_after_its_last_event(live, browser):
     faults(driver, {})
 
 
+def test_a_job_page_whose_first_read_fails_on_a_proxy_s_502_loads_when_it_answers(live, browser):
+    """The job page's first reads failing as the API restarts (a proxy's 502 page) are tried again until they answer,
+    the failure said meanwhile: the page had stayed empty for good, its 502 beside it."""
+    svc, token, _archive = live
+    driver = browser
+    job = {"id": "flaky", "scene_id": "s", "prompt": "a mic", "mode": "global", "edit_words": [],
+           "models": {"sds": "tiny"}, "device": "cpu", "state": "succeeded", "stage": "export",
+           "completed_stages": ["reconstruct", "edit", "export"], "progress": 1, "iteration": 4, "total": 4,
+           "overall_progress": 1, "eta_seconds": None, "overall_eta_seconds": None, "losses": {}, "message": None,
+           "preview_url": None, "error": None, "cancel_requested": False, "created_at": "2026-01-01T00:00:00Z"}
+    answer = lambda body: {"status": 200, "type": "application/json", "body": json.dumps(body)}  # noqa: E731
+    set_key(driver, svc, token)
+    faults(driver, {"/v1/jobs/flaky$": answer(job), "/v1/jobs/flaky/artifacts$": answer([]),
+                    "/v1/jobs/flaky/events": {"once": True, "status": 502, "statusText": "Bad Gateway",
+                                              "type": "text/html", "body": "<h1>502 Bad Gateway</h1>"},
+                    "/v1/jobs/flaky/events$": {"recorded": 1, "timeline": [
+                        {"id": 1, "kind": "succeeded", "stage": "export", "detail": None}]}})
+    go(driver, "#/jobs/flaky")
+    wait_until(lambda: text(driver, '[data-error-for="stream"]') == "loading the job: 502: Bad Gateway; retrying", 10,
+               what="the failure said")
+    wait_until(lambda: text(driver, "#job-state") == "succeeded", 10, what="the job shown")
+    assert not text(driver, '[data-error-for="stream"]')
+    listed = "return [...document.querySelectorAll('#job-events li')].map((item) => item.dataset.event)"
+    assert driver.execute_script(listed) == ["succeeded"]
+    go(driver, "#/jobs/%E0")  # no URI-encoded text: said, and not tried again
+    wait_until(lambda: "URI malformed" in text(driver, '[data-error-for="stream"]'), 10, what="the id refused")
+    assert "retrying" not in text(driver, '[data-error-for="stream"]')
+    faults(driver, {})
+
+
 def test_a_stream_s_error_event_ends_it_saying_why(live, browser):
     """The stream's ``error`` event (the job deleted, the key revoked) is said beside the stream, which ends: it had
     been listed as a timeline event, and the stream opened again."""

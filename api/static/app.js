@@ -407,6 +407,31 @@ async function showJob(jobId, signal) {
   if (!TERMINAL.has(last?.kind)) followEvents(jobId, last?.id, signal);
 }
 
+/** Whether a failed request may succeed sent again: it got no answer (fetch's TypeError), or a 5xx or 429. */
+const transient = (error) => error instanceof TypeError
+  || (error instanceof ApiError && (error.status >= 500 || error.status === 429));
+
+/** The job page of ``encodedId`` (the id as the URL has it), its first reads tried again (less often each time)
+ * while they fail for a reason that a retry may change (the API restarting, a proxy's 502): such a failure had left
+ * the page empty for good. Nothing is shown before those reads succeed, so nothing is shown twice. */
+async function openJob(encodedId, signal) {
+  for (let failures = 1; !signal.aborted; failures += 1) {
+    try {
+      await showJob(decodeURIComponent(encodedId), signal);
+      showError("stream", "");
+      return;
+    } catch (error) {
+      if (signal.aborted) return;
+      if (!transient(error)) {  // the job, or the key, is wrong (or the URL's id is no URI-encoded text)
+        showApiError(error, "stream");
+        return;
+      }
+      showError("stream", `loading the job: ${errorText(error)}; retrying`);
+    }
+    await sleep(Math.min(1000 * 2 ** failures, 30_000), signal);
+  }
+}
+
 /** Run a refresh of the media or artifacts; its failure (a file gone, say) is shown beside the media, leaving the
  * rest of the page and the event stream going. */
 async function refreshMedia(refresh, signal) {
@@ -658,8 +683,7 @@ async function route() {
   $("#home").hidden = Boolean(match);
   $("#job").hidden = !match;
   if (match) {
-    try { await showJob(decodeURIComponent(match[1]), signal); }
-    catch (error) { if (!signal.aborted) showApiError(error, "stream"); }
+    await openJob(match[1], signal);
     return;
   }
   // The scenes are loaded again with the job list until they load (the API restarting, a proxy's 502): a failure
