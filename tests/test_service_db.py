@@ -62,6 +62,19 @@ def add_scene(state: str = "ready") -> str:
         return scene.id
 
 
+def add_job(scene_id: str) -> str:
+    """A queued job on the scene; its id."""
+    from voxe_service.db import session_scope
+    from voxe_service.models import LOCAL_KEY_ID, Job
+
+    with session_scope() as session:
+        job = Job(scene_id=scene_id, owner_key_id=LOCAL_KEY_ID, prompt="a mic", mode="global", edit_words=[],
+                  params={}, sds_model="tiny", attention_model="tiny", device="cpu")
+        session.add(job)
+        session.flush()
+        return job.id
+
+
 class RecordingQueue:
     """The real sender's chains, recorded instead of published: which job each chain starts with."""
 
@@ -561,16 +574,10 @@ def test_an_event_recorded_while_another_writer_holds_its_job_commits_after_it(d
 
     from voxe_service.db import get_sessionmaker, session_scope
     from voxe_service.jobs import record_event
-    from voxe_service.models import LOCAL_KEY_ID, Job, JobEvent, utcnow
+    from voxe_service.models import Job, JobEvent, utcnow
     from worker import runtime
 
-    scene_id = add_scene()
-    with session_scope() as session:
-        job = Job(scene_id=scene_id, owner_key_id=LOCAL_KEY_ID, prompt="a mic", mode="global", edit_words=[],
-                  params={}, sds_model="tiny", attention_model="tiny", device="cpu")
-        session.add(job)
-        session.flush()
-        job_id = job.id
+    job_id = add_job(add_scene())
     reaper = get_sessionmaker()()
     try:  # the reaper's way: the job written, then its event numbered, the commit still to come
         reaper.execute(update(Job).where(Job.id == job_id).values(updated_at=utcnow()))
@@ -589,3 +596,57 @@ def test_an_event_recorded_while_another_writer_holds_its_job_commits_after_it(d
     with session_scope() as session:
         kinds = session.scalars(select(JobEvent.kind).where(JobEvent.job_id == job_id).order_by(JobEvent.id)).all()
     assert kinds == ["requeued", "checkpoint"]
+
+
+def test_a_stream_misses_no_event_numbered_before_one_committed_first(db):
+    """An event stream sends each job's events past the last id it sent. On PostgreSQL an event numbered by one
+    writer and committed after a later-numbered one of another writer of the job (here the API canceling it)
+    was never sent: the stream read the cancel, ended with it, and a reconnect (Last-Event-ID) or a timeline read
+    handing over to a stream had missed it as well. ``record_event`` holds the job's row until the writer commits,
+    whatever the writer wrote before, so a job's events commit in id order. (SQLite lets one writer in at a time.)"""
+    import asyncio
+    from contextlib import aclosing
+
+    from api.events import EventHub
+    from api.routes.jobs import progress_view
+    from voxe_client.client import parse_sse
+    from voxe_service.db import get_sessionmaker, session_scope
+    from voxe_service.jobs import finish_jobs, record_event
+    from voxe_service.models import CANCELED, QUEUED, Job
+
+    job_id = add_job(add_scene())
+    writer = get_sessionmaker()()  # a writer that wrote nothing of the job before its event
+    ended = []
+
+    def cancel():  # the API's way with a queued job
+        with session_scope() as session:
+            ended.extend(finish_jobs(session, [job_id], CANCELED, message="canceled", where=[Job.state == QUEUED]))
+
+    async def interleave():
+        """The checkpoint numbered first; the cancel written meanwhile, and the stream polling, for a second; then
+        the checkpoint committed."""
+        record_event(writer, job_id, "checkpoint", iteration=200)
+        canceling = asyncio.create_task(asyncio.to_thread(cancel))
+        await asyncio.sleep(1.0)
+        writer.commit()
+        await canceling
+
+    async def main():
+        hub = EventHub(0.05, progress_view)
+        try:
+            sent = []
+            async with aclosing(hub.stream(job_id, "local")) as stream:
+                writing = asyncio.create_task(interleave())
+                async for chunk in stream:
+                    sent += [event["event"] for event in parse_sse(chunk.splitlines()) if event["id"] is not None]
+                await writing
+            return sent
+        finally:
+            await hub.close()
+
+    try:
+        sent = asyncio.run(asyncio.wait_for(main(), 30))
+    finally:
+        writer.close()
+    assert ended == [job_id]
+    assert sent == ["checkpoint", "canceled"], sent

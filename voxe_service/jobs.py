@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from sqlalchemy import update
+from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from voxe_service import webhooks
@@ -20,7 +20,16 @@ from voxe_service.models import TERMINAL_STATES, Job, JobEvent, utcnow
 def record_event(session: Session, job_id: str, kind: str, *, stage: str | None = None,
                  iteration: int | None = None, worker: str | None = None, detail: str | None = None) -> None:
     """Add one event to the job's timeline, and its webhook delivery if the job wants one (both committed with
-    the caller's transaction)."""
+    the caller's transaction), under the job's row lock.
+
+    Event streams read each job's events past the last id they sent. PostgreSQL numbers an event as it is written,
+    so an event numbered while another writer of the job had yet to commit became visible after one numbered later,
+    and a stream (or a timeline read handing over to one) that had read past that number never sent it. The job's
+    row is locked first and held until the commit, so a job's events commit in id order: ``FOR NO KEY UPDATE``, the
+    lock its UPDATE takes (a writer that changed the job first holds it already, and waits for nothing more), which
+    lets rows naming the job be written meanwhile. SQLite lets one writer in at a time anyway.
+    """
+    session.execute(select(Job.id).where(Job.id == job_id).with_for_update(key_share=True))
     event = JobEvent(job_id=job_id, kind=kind, stage=stage, iteration=iteration, worker_hostname=worker,
                      detail=detail, at=utcnow())
     session.add(event)

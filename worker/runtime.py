@@ -327,12 +327,8 @@ def finish_job(job_id: str, state: str, message: str | None = None, error: str |
 
 
 def record_job_event(job_id: str, kind: str, **fields) -> None:
-    """One event on the job's timeline, in its own transaction (checkpoints, resumes), under the job's row lock
-    as every other event writer is (they update the job first): PostgreSQL numbers an event when it is written,
-    so an event numbered while another writer of the job waited to commit had become visible after one numbered
-    later, and a stream that had read on past that number never sent it."""
+    """One event on the job's timeline, in its own transaction (checkpoints, resumes)."""
     with session_scope() as session:
-        locked(session, Job, job_id)
         record_event(session, job_id, kind, **fields)
 
 
