@@ -23,6 +23,7 @@ from PIL import Image
 import voxe_core.reconstruct
 from voxe_core.backbones import load_grid
 from voxe_core.cli import main
+from voxe_core.cli.common import STAGING_MARKER
 from voxe_core.data import load_scene
 from voxe_core.export import render_views
 from voxe_core.grid import VoxelGrid
@@ -1099,6 +1100,7 @@ def test_a_render_failing_part_way_leaves_the_earlier_runs_views_as_they_were(sp
 
     out = tmp_path / "views"
     (out / ".render-staging").mkdir(parents=True)
+    (out / ".render-staging" / STAGING_MARKER).write_text("voxe render's")
     (out / ".render-staging" / "000.png").write_bytes(b"a killed run's")
     staging = os.open(out / ".render-staging", os.O_RDONLY)  # a run writing into the same --out holds it
     fcntl.flock(staging, fcntl.LOCK_EX)
@@ -1122,6 +1124,30 @@ def test_a_render_failing_part_way_leaves_the_earlier_runs_views_as_they_were(sp
     assert main(["render", str(sphere_file), "--ring", "4", "--size", "20", "--out", str(out), "--quiet"]) == (
         2 if failure == "disk full" else 130)
     assert len(saved) == 2 and {path.name: path.read_bytes() for path in out.iterdir()} == earlier
+
+
+@pytest.mark.parametrize("command", ["render", "evaluate"])
+def test_a_users_own_folder_named_like_the_staging_is_refused_not_emptied(sphere_file, tmp_path, capsys, command):
+    """A folder of the staging's name that no run made (the user's, holding their files) had been emptied by the
+    next run: it is refused, naming it, and left as it was; one a run made and was killed in (marked) is cleared."""
+    out = tmp_path / "out"
+    staging = out / f".{command}-staging"
+    (staging / "mine").mkdir(parents=True)
+    (staging / "mine" / "notes.txt").write_text("mine")
+    argv = {"render": ["render", str(sphere_file), "--ring", "2", "--size", "16"],
+            "evaluate": ["evaluate", str(sphere_file), "--object", "ball", "--size", "16", "--views", "2",
+                         "--edit", str(sphere_file), "a claymation ball"]}[command]
+    if command == "evaluate":
+        from voxe_core.tiny_eval import build_tiny_clip
+
+        argv += ["--clip-model", str(build_tiny_clip(tmp_path / "clip"))]  # SMOKE-TEST MODEL: plumbing only
+    assert main([*argv, "--out", str(out), "--quiet"]) == 2
+    assert f"{staging} is not a staging folder voxe {command} made" in capsys.readouterr().err
+    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == [
+        f".{command}-staging", f".{command}-staging/mine", f".{command}-staging/mine/notes.txt"]
+    (staging / STAGING_MARKER).write_text("a killed run's")  # as a run that made it leaves it
+    assert main([*argv, "--out", str(out), "--quiet"]) == 0
+    assert not staging.exists()
 
 
 def test_render_needs_exactly_one_camera_source(sphere_file, tmp_path):
@@ -1352,6 +1378,7 @@ def test_an_evaluation_that_fails_leaves_the_earlier_ring_renders_and_nothing_of
     command = ["evaluate", str(sphere_file), "--object", "ball", "--out", str(out), "--clip-model", str(clip),
                "--size", "16", "-q", "--edit", str(sphere_file), "a claymation ball"]
     (out / ".evaluate-staging" / "initial").mkdir(parents=True)
+    (out / ".evaluate-staging" / STAGING_MARKER).write_text("voxe evaluate's")
     (out / ".evaluate-staging" / "initial" / "000.png").write_bytes(b"a killed run's")
     assert main(command + ["--views", "2"]) == 0
     assert sorted(p.name for p in out.iterdir()) == ["evaluation.json", "evaluation.md", "ring"]

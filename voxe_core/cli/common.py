@@ -291,12 +291,18 @@ def writable_folder(path: Path) -> Path:
     return path
 
 
+STAGING_MARKER = ".voxe-staging"
+"""The file a command writes into the staging folder it makes: a folder of that name without it is not ours."""
+
+
 @contextlib.contextmanager
 def staging_folder(out: Path, command: str) -> Iterator[Path]:
     """``out/.<command>-staging``, emptied, where a command saves its views as it makes them until all are made, then
     moves them over the earlier run's: a cancelled or failed run leaves those as they were, not a mix of two runs'.
     One name a command, so a killed run's (a whole ring of views) goes at the next run's start; held locked while in
-    use, so a second run into the same --out is refused rather than emptying the first's; gone on leaving."""
+    use, so a second run into the same --out is refused rather than emptying the first's; gone on leaving. Marked
+    (:data:`STAGING_MARKER`) when made: a folder of that name holding files but no mark is the user's, and is
+    refused rather than emptied (a user's own ``.render-staging`` had been)."""
     staging = out / f".{command}-staging"
     staging.mkdir(exist_ok=True)
     held = os.open(staging, os.O_RDONLY)
@@ -305,9 +311,16 @@ def staging_folder(out: Path, command: str) -> Iterator[Path]:
     except BlockingIOError:
         os.close(held)
         raise OSError(f"another voxe {command} is writing into {out}: let it end, or choose another --out") from None
+    marker = staging / STAGING_MARKER
+    if not marker.is_file() and any(staging.iterdir()):  # (one left empty, by a run killed as it made it, is ours)
+        os.close(held)
+        raise OSError(f"{staging} is not a staging folder voxe {command} made (it has no {STAGING_MARKER} file), "
+                      "and voxe would empty it: move it away, or choose another --out")
     try:
+        marker.write_text(f"voxe {command}'s staging folder: emptied by its next run\n")
         for leftover in staging.iterdir():  # a killed run's
-            shutil.rmtree(leftover) if leftover.is_dir() and not leftover.is_symlink() else leftover.unlink()
+            if leftover != marker:
+                shutil.rmtree(leftover) if leftover.is_dir() and not leftover.is_symlink() else leftover.unlink()
         yield staging
     finally:
         shutil.rmtree(staging, ignore_errors=True)
