@@ -1186,6 +1186,59 @@ def test_cli_refine_smoke(tmp_path, tiny_model, make_sphere_grid):
     assert not list(out.glob(".*"))
 
 
+def test_a_refinement_failing_part_way_leaves_the_earlier_runs_outputs_as_they_were(tmp_path, tiny_model,
+                                                                                   make_sphere_grid, monkeypatch,
+                                                                                   capsys):
+    """Its outputs had been written straight into --out: one failing while it wrote its previews (a full disk) left
+    its own grids and mask beside the earlier run's previews, and refine.json of neither, as if complete. They are
+    staged beside --out and moved in once all are written; a second run into the same --out is refused."""
+    import fcntl
+    import os
+
+    import voxe_core.export
+
+    grid = make_sphere_grid(8)
+    grid.save(tmp_path / "grid.safetensors", dense=True)
+    out = tmp_path / "out"
+
+    def refine_into_out(iterations: str) -> int:
+        return main(["refine", str(tmp_path / "grid.safetensors"), "--initial", str(tmp_path / "grid.safetensors"),
+                     "--prompt", "a dog wearing a party hat", "--edit-words", "party hat", "--out", str(out),
+                     "--model", str(tiny_model), "--offline", "--device", "cpu", "--iterations", iterations,
+                     "--render-size", "16", "--views", "1", "--preview-views", "2", "--quiet"])
+
+    assert refine_into_out("1") == 0
+    earlier = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert len([p for p in earlier if p.parent.name == "renders"]) == 5 * 2 + 2 * 1
+    real_save_png, saved = voxe_core.export.save_png, []
+
+    def failing_at_the_third(path, image):
+        if len(saved) == 2:
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        saved.append(path)
+        real_save_png(path, image)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(voxe_core.export, "save_png", failing_at_the_third)
+        assert refine_into_out("2") == 2
+    assert len(saved) == 2
+    assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == earlier
+
+    assert refine_into_out("0") == 0  # (the same --out again: the staging folder went with the failed run)
+    staging = out / ".refine-staging"
+    staging.mkdir()
+    (staging / ".voxe-staging").write_text("voxe refine's")
+    held = os.open(staging, os.O_RDONLY)  # a run writing into the same --out holds it
+    try:
+        fcntl.flock(held, fcntl.LOCK_EX)
+        capsys.readouterr()
+        assert refine_into_out("1") == 2
+        assert f"another voxe refine is writing into {out}" in capsys.readouterr().err
+        assert staging.is_dir()  # that run's left as it was
+    finally:
+        os.close(held)
+
+
 def test_relative_edit_seeds_take_every_node_near_the_largest_edit_probability():
     # the authors' rule: every node with P_e >= 0.992 max P_e (here 40 nodes), at least edit_seeds by P_e,
     # never a node the object claims more

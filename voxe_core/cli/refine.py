@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import re
 import sys
 import warnings
@@ -16,15 +17,16 @@ from pathlib import Path
 from voxe_core import constants as paper
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, check_device, load_guidance,
-    non_negative_int, positive_int, remove_earlier_outputs, run_stage, seed, writable_folder,
+    non_negative_int, positive_int, remove_earlier_outputs, run_stage, seed, staging_folder, writable_folder,
 )
-from voxe_core.files import replacing
 from voxe_core.presets import SEED, refine_config
 
 
 PREVIEW_FRAME = re.compile(r"(attention_edit|attention_object|probability_edit|mask|refined|map2d_edit|map2d_object)"
                            r"_\d+\.png")
 """The names of the frames ``voxe refine`` writes under ``renders/``."""
+OUTPUT_FILES = ("refined.safetensors", "mask.safetensors", "probabilities.safetensors", "refine.json")
+"""Its other outputs, in the order they are moved into --out (refine.json, which describes them, last)."""
 
 
 def add_parsers(commands, common) -> None:
@@ -82,13 +84,8 @@ def job_params(args: argparse.Namespace) -> dict:
 
 
 def cmd_refine(args) -> int:
-    import torch
-
     from voxe_core.backbones import load_grid
-    from voxe_core.export import save_png, turntable_cameras
     from voxe_core.refine.pipeline import check_compatible, refine
-    from voxe_core.refine.renders import iter_attention_views, iter_mask_overlays
-    from voxe_core.refine.storage import save_mask, save_probabilities
 
     words = [w.strip() for w in args.edit_words.split(",") if w.strip()]
     if not words:
@@ -99,31 +96,54 @@ def cmd_refine(args) -> int:
     config = refine_config(job_params(args), model)
     initial, edited = load_grid(args.initial), load_grid(args.edited)
     check_compatible(initial, edited)
-    guidance = load_guidance(args, model)
-    if guidance is None:
-        return EXIT_USAGE
-    print(f"refining {args.edited} against {args.initial} for {words} of {args.prompt!r} with {model} on "
-          f"{guidance.device}: {config.views} views of {config.render_size} px, {config.iterations} iterations",
-          file=sys.stderr)
-    with warnings.catch_warnings():  # seed shortfalls are reported below from the result
-        warnings.filterwarnings("ignore", message=r"only \d+ of \d+ (edit|object) seeds")
-        result = run_stage(
-            lambda cb: refine(initial, edited, args.prompt, words, guidance, config, cb, device=args.device),
-            "refine", "it", None, args.quiet,
-        )
-    if result is None:
-        print("voxe: refinement cancelled, nothing written", file=sys.stderr)
-        return EXIT_INTERRUPTED
     out = args.out
-    result.refined_grid.save(out / "refined.safetensors", dense=args.dense)
-    save_mask(out / "mask.safetensors", result.mask, meta={"prompt": result.info["prompt"], "edit_words": words})
-    save_probabilities(out / "probabilities.safetensors", result.edit_probability, result.object_probability,
+    with staging_folder(out, "refine") as staging:  # (a run that failed part way had left a mix of two runs' files)
+        guidance = load_guidance(args, model)
+        if guidance is None:
+            return EXIT_USAGE
+        print(f"refining {args.edited} against {args.initial} for {words} of {args.prompt!r} with {model} on "
+              f"{guidance.device}: {config.views} views of {config.render_size} px, {config.iterations} iterations",
+              file=sys.stderr)
+        with warnings.catch_warnings():  # seed shortfalls are reported below from the result
+            warnings.filterwarnings("ignore", message=r"only \d+ of \d+ (edit|object) seeds")
+            result = run_stage(
+                lambda cb: refine(initial, edited, args.prompt, words, guidance, config, cb, device=args.device),
+                "refine", "it", None, args.quiet,
+            )
+        if result is None:
+            print("voxe: refinement cancelled, nothing written", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        stats = dataclasses.asdict(result.stats)
+        _write_outputs(staging, result, words, model, config, stats, initial, edited, args)
+        _move_outputs(staging, out)
+    for note in result.stats.notes:
+        print(f"voxe refine: note: {note}", file=sys.stderr)
+    if (warning := result.stats.uniform_label()) is not None:  # (as the service's job says it)
+        print(f"voxe refine: warning: {warning}", file=sys.stderr)
+    print(f"wrote {out}: {stats['edit_voxels']} of {stats['nodes']} occupied voxels take the edit "
+          f"({stats['edit_seeds']} edit / {stats['object_seeds']} object seeds)")
+    return 0
+
+
+def _write_outputs(folder: Path, result, words: list[str], model: str, config, stats: dict, initial, edited,
+                   args) -> None:
+    """Write the refinement's files into ``folder`` (the staging): the grids, the previews (each view saved as it
+    is rendered: all five sets had been held first), then refine.json."""
+    import torch
+
+    from voxe_core.export import save_png, turntable_cameras
+    from voxe_core.refine.renders import iter_attention_views, iter_mask_overlays
+    from voxe_core.refine.storage import save_mask, save_probabilities
+
+    result.refined_grid.save(folder / "refined.safetensors", dense=args.dense)
+    save_mask(folder / "mask.safetensors", result.mask, meta={"prompt": result.info["prompt"], "edit_words": words})
+    save_probabilities(folder / "probabilities.safetensors", result.edit_probability, result.object_probability,
                        result.nodes)
-    renders = out / "renders"
-    remove_earlier_outputs(renders, PREVIEW_FRAME)  # (fewer --preview-views had left another run's frames beside)
+    renders = folder / "renders"
+    renders.mkdir()
     if args.preview_views:
         cameras = turntable_cameras(args.preview_views, 30.0, config.render_size, centre=initial.orbit_centre())
-        groups = {  # each view saved as it is rendered (all five sets had been held first)
+        groups = {
             "attention_edit": iter_attention_views(edited, result.edit_field, cameras),
             "attention_object": iter_attention_views(edited, result.object_field, cameras),
             "probability_edit": iter_attention_views(edited, result.edit_probability, cameras),
@@ -136,17 +156,19 @@ def cmd_refine(args) -> int:
     for i in range(min(args.preview_views, len(result.edit_maps))):
         save_png(renders / f"map2d_edit_{i:02d}.png", result.edit_maps[i].cpu()[..., None].expand(-1, -1, 3))
         save_png(renders / f"map2d_object_{i:02d}.png", result.object_maps[i].cpu()[..., None].expand(-1, -1, 3))
-    stats = dataclasses.asdict(result.stats)
     summary = {"prompt": result.info["prompt"], "edit_words": words, "model": model,
                "settings": {"views": config.views, "render_size": config.render_size, "iterations": config.iterations,
                             "seed": config.seed},
                "graph_cut": stats, "masked_voxels": int(result.mask.sum())}
-    with replacing(out / "refine.json") as partial:  # whole or not at all, as the files above
-        partial.write_text(json.dumps(summary, indent=2))
-    for note in result.stats.notes:
-        print(f"voxe refine: note: {note}", file=sys.stderr)
-    if (warning := result.stats.uniform_label()) is not None:  # (as the service's job says it)
-        print(f"voxe refine: warning: {warning}", file=sys.stderr)
-    print(f"wrote {out}: {stats['edit_voxels']} of {stats['nodes']} occupied voxels take the edit "
-          f"({stats['edit_seeds']} edit / {stats['object_seeds']} object seeds)")
-    return 0
+    (folder / "refine.json").write_text(json.dumps(summary, indent=2))
+
+
+def _move_outputs(staging: Path, out: Path) -> None:
+    """Move a whole set of outputs from ``staging`` into ``out`` over an earlier run's: the earlier previews go first
+    (fewer --preview-views had left another run's frames beside), refine.json, which describes the set, last."""
+    remove_earlier_outputs(out / "renders", PREVIEW_FRAME)
+    (out / "renders").mkdir(exist_ok=True)
+    for frame in sorted((staging / "renders").iterdir()):
+        os.replace(frame, out / "renders" / frame.name)
+    for name in OUTPUT_FILES:
+        os.replace(staging / name, out / name)
