@@ -349,7 +349,9 @@ class Page(BaseModel, Generic[T]):
     items: list[T]
     total: int
     limit: int
-    offset: int
+    offset: int = Field(description="how many rows come before this page (with a cursor: as the list is now)")
+    next_cursor: str | None = Field(description="send as `cursor` for the page after this one's last row (stable "
+                                                "while rows are added); null on the last page")
 
 
 class SceneOut(BaseModel):

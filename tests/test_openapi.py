@@ -210,7 +210,9 @@ def test_bodies_the_document_forbids_are_refused(client, spec, dataset, root, pa
 @pytest.mark.parametrize("path", ["/v1/jobs", "/v1/scenes"])
 def test_listing_queries_follow_their_documented_parameters(client, spec, path):
     parameters = {p["name"]: p["schema"] for p in spec["paths"][path]["get"]["parameters"]}
-    query = st.fixed_dictionaries({}, optional={name: from_schema(schema) for name, schema in parameters.items()})
+    # A cursor is what a page's next_cursor gives (documented so), not any text its schema allows.
+    query = st.fixed_dictionaries({}, optional={name: from_schema(schema) for name, schema in parameters.items()
+                                                if name != "cursor"})
 
     @LIMITED
     @given(query)
@@ -220,10 +222,24 @@ def test_listing_queries_follow_their_documented_parameters(client, spec, path):
         assert response.status_code == 200, (params, response.text)
 
     allowed()
-    bad_values = [("limit", 0), ("limit", parameters["limit"]["maximum"] + 1), ("offset", -1), ("limit", "1.5")]
+    bad_values = [("limit", 0), ("limit", parameters["limit"]["maximum"] + 1), ("offset", -1), ("limit", "1.5"),
+                  ("cursor", "x"), ("cursor", "x" * (parameters["cursor"]["anyOf"][0]["maxLength"] + 1))]
     for name, bad in bad_values + ([("state", "sleeping")] if "state" in parameters else []):
         response = client.get(path, params={name: bad})
         assert response.status_code == 422 and name in response.text, (name, bad)
+
+
+@pytest.mark.parametrize("path", ["/v1/jobs", "/v1/scenes"])
+def test_the_listings_document_their_cursor(spec, path):
+    """A listing takes the ``cursor`` its page's ``next_cursor`` gives, not with ``offset``; both documented."""
+    operation = spec["paths"][path]["get"]
+    parameters = {p["name"]: p for p in operation["parameters"]}
+    assert "next_cursor" in parameters["cursor"]["description"] and "offset" in parameters["cursor"]["description"]
+    assert "cursor" in parameters["offset"]["description"]
+    page = spec["components"]["schemas"][operation["responses"]["200"]["content"]["application/json"]["schema"]
+                                         ["$ref"].split("/")[-1]]
+    assert "next_cursor" in page["required"] and "cursor" in page["properties"]["next_cursor"]["description"]
+    assert "cursor" in operation["responses"]["422"]["description"]
 
 
 def test_a_query_parameter_not_taken_or_sent_twice_is_a_documented_422_naming_it(client, spec):
@@ -231,9 +247,9 @@ def test_a_query_parameter_not_taken_or_sent_twice_is_a_documented_422_naming_it
     where a proxy or a cache may read the first."""
     for method, url, detail in (
             ("GET", "/v1/jobs?stat=running", "unknown query parameter(s) 'stat': GET /v1/jobs takes 'state', "
-                                             "'scene_id', 'limit', 'offset'"),
+                                             "'scene_id', 'limit', 'offset', 'cursor'"),
             ("GET", "/v1/scenes?offset=0&z=1&a=", "unknown query parameter(s) 'a', 'z': GET /v1/scenes takes 'limit', "
-                                                  "'offset'"),
+                                                  "'offset', 'cursor'"),
             ("GET", "/v1/jobs/x/artifacts/y?download=1", "unknown query parameter(s) 'download': GET "
                                                          "/v1/jobs/{job_id}/artifacts/{name} takes none"),
             ("POST", "/v1/jobs/x/cancel?force=1", "unknown query parameter(s) 'force': POST /v1/jobs/{job_id}/cancel "

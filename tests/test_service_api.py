@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import base64
 import contextlib
 import io
 import json
@@ -902,6 +903,95 @@ def test_the_job_listing_is_newest_first_and_pages_by_limit_and_offset(client, d
     assert [j["id"] for j in client.get("/v1/jobs").json()["items"]] == ids[::-1]
     page = client.get("/v1/jobs", params={"scene_id": scene["id"], "limit": 1, "offset": 1}).json()
     assert (page["total"], [j["id"] for j in page["items"]]) == (3, [ids[1]])
+
+
+def listed(client, path: str, **params) -> tuple[list[str], dict]:
+    page = client.get(path, params=params)
+    assert page.status_code == 200, page.text
+    return [row["id"] for row in page.json()["items"]], page.json()
+
+
+@BOTH_DATABASES
+def test_a_job_added_between_page_reads_is_neither_repeated_nor_skipped_by_the_cursor(client, dataset, root):
+    """Paging by offset, a job created while the first page was shown shifted the next: "older" repeated the first
+    page's last job. The cursor names that row, so the next page starts after it wherever it now stands."""
+    scene = make_scene(client, dataset, root)
+
+    def new_job(stuff: str) -> str:
+        return client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": f"a mic made of {stuff}"}).json()["id"]
+
+    ids = [new_job(stuff) for stuff in ("wood", "glass", "gold")]  # oldest first
+    first, page = listed(client, "/v1/jobs", limit=2)
+    assert first == ids[:0:-1] and page["next_cursor"] and page["offset"] == 0
+    added = new_job("silver")
+    by_offset, _ = listed(client, "/v1/jobs", limit=2, offset=2)
+    assert by_offset == [ids[1], ids[0]]  # the original behaviour: the first page's last job again
+    second, after = listed(client, "/v1/jobs", limit=2, cursor=page["next_cursor"])
+    assert second == [ids[0]] and after["next_cursor"] is None  # the last page
+    assert (after["total"], after["offset"]) == (4, 3)  # its place in the list as it is now (the added one first)
+    assert listed(client, "/v1/jobs", limit=2)[0] == [added, ids[2]]
+    filtered, page = listed(client, "/v1/jobs", limit=1, state="queued", scene_id=scene["id"])
+    assert listed(client, "/v1/jobs", limit=3, state="queued", scene_id=scene["id"],
+                  cursor=page["next_cursor"])[0] == [ids[2], ids[1], ids[0]]
+
+
+@BOTH_DATABASES
+def test_the_cursor_orders_jobs_created_at_the_same_instant_by_id(client, dataset, root):
+    """Jobs whose created_at is the same (a sweep's, written together) are each listed once, paged by cursor."""
+    from sqlalchemy import update
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+
+    scene = make_scene(client, dataset, root)
+    ids = [client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": f"a mic {n}"}).json()["id"]
+           for n in range(4)]
+    with session_scope() as session:  # all at the first one's instant
+        session.execute(update(Job).values(created_at=session.get(Job, ids[0]).created_at))
+    seen, cursor = [], None
+    while True:
+        rows, page = listed(client, "/v1/jobs", limit=1, **({"cursor": cursor} if cursor else {}))
+        seen += rows
+        if (cursor := page["next_cursor"]) is None:
+            break
+    assert seen == sorted(ids, reverse=True)
+
+
+def test_a_scene_deleted_between_page_reads_does_not_make_the_cursor_skip_one(client, dataset, root):
+    """By offset, a scene of the first page deleted meanwhile moved the next page past a scene never shown."""
+    archive = zip_folder(dataset, root / "ok.zip", prefix="mic_small")
+    ids = [upload_zip(client, archive).json()["id"] for _ in range(3)]  # oldest first
+    first, page = listed(client, "/v1/scenes", limit=2)
+    assert first == ids[:0:-1]
+    assert client.delete(f"/v1/scenes/{ids[2]}").status_code == 204
+    assert listed(client, "/v1/scenes", limit=2, offset=2)[0] == []  # the original behaviour: ids[0] skipped
+    second, after = listed(client, "/v1/scenes", limit=2, cursor=page["next_cursor"])
+    assert second == [ids[0]] and (after["offset"], after["total"], after["next_cursor"]) == (1, 2, None)
+
+
+@pytest.mark.parametrize("path", ["/v1/jobs", "/v1/scenes"])
+def test_a_cursor_not_of_the_listing_or_sent_with_an_offset_is_a_422_naming_it(client, dataset, root, path):
+    archive = zip_folder(dataset, root / "ok.zip", prefix="mic_small")
+    for _ in range(2):
+        assert upload_zip(client, archive).status_code == 201
+    scenes_cursor = listed(client, "/v1/scenes", limit=1)[1]["next_cursor"]
+    jobs_cursor = base64.urlsafe_b64encode(
+        base64.urlsafe_b64decode(scenes_cursor + "==").replace(b"/v1/scenes", b"/v1/jobs")).decode().rstrip("=")
+    cursor, foreign, listing_of_foreign = ((jobs_cursor, scenes_cursor, "/v1/scenes") if path == "/v1/jobs"
+                                          else (scenes_cursor, jobs_cursor, "/v1/jobs"))
+    assert client.get(path, params={"cursor": cursor}).status_code == 200
+    for sent, detail in (
+            ({"cursor": "bm90IGEgY3Vyc29y"}, f"cursor 'bm90IGEgY3Vyc29y' is not a cursor of GET {path}: send a "
+                                             "page's next_cursor unchanged"),
+            ({"cursor": "!!"}, f"cursor '!!' is not a cursor of GET {path}: send a page's next_cursor unchanged"),
+            ({"cursor": foreign},
+             f"cursor {foreign[:40]!r} is a cursor of GET {listing_of_foreign}, not of GET {path}"),
+            ({"cursor": cursor, "offset": 0}, "send either cursor or offset, not both: a cursor names where its page "
+                                              "starts")):
+        response = client.get(path, params=sent)
+        assert (response.status_code, response.json()["detail"]) == (422, detail), sent
+    too_long = client.get(path, params={"cursor": "a" * 201})
+    assert too_long.status_code == 422 and "cursor" in too_long.text
 
 
 def test_a_job_downsampling_past_its_scenes_images_is_refused_before_it_is_queued(client, dataset, root):

@@ -109,6 +109,8 @@ class Scene(Base):
     """
 
     __tablename__ = "scenes"
+    # The listing's order, newest first, read off it (api/paging.py); a cursor's page seeks into it.
+    __table_args__ = (Index("ix_scenes_owner_created", "owner_key_id", "created_at", "id"),)
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
     owner_key_id: Mapped[str] = mapped_column(ForeignKey("api_keys.id"), index=True)
@@ -178,6 +180,8 @@ class Reconstruction(Base):
 
 class Job(Base):
     __tablename__ = "jobs"
+    # The listing's order, newest first, read off it (api/paging.py); a cursor's page seeks into it.
+    __table_args__ = (Index("ix_jobs_owner_created", "owner_key_id", "created_at", "id"),)
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
     scene_id: Mapped[str] = mapped_column(ForeignKey("scenes.id", ondelete="CASCADE"), index=True)

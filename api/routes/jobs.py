@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Header, HTTPException, Query, Request, Response, status
+from fastapi import APIRouter, Depends, Header, HTTPException, Query, Request, Response, status
 from fastapi.responses import StreamingResponse
 from sqlalchemy import select
 
@@ -12,7 +12,7 @@ from api.auth import mark_replayed
 from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep
 from api.events import SSE_MEDIA_TYPE
 from api.http_semantics import StrictRoute
-from api.routes.scenes import MAX_OFFSET
+from api.paging import PageQuery, page_query
 from api.schemas import (
     JobCreate, JobEventOut, JobOut, JobReconstruction, JobState, Models, Page, WebhookDeliveryOut,
 )
@@ -119,17 +119,19 @@ def create_job(body: JobCreate, response: Response, session: SessionDep, setting
     return job_out(job)
 
 
-@router.get("", response_model=Page[JobOut], summary="List jobs, newest first")
+@router.get("", response_model=Page[JobOut], summary="List jobs, newest first",
+            responses={422: {"description": "a limit or offset out of range, or a cursor that is not this "
+                                              "listing's or is sent with offset (named)"}})
 def list_jobs(
     session: SessionDep,
     key: CurrentKey,
+    page: Annotated[PageQuery, Depends(page_query("/v1/jobs"))],
     state: JobState | None = Query(None),
     scene_id: str | None = Query(None, pattern=r"^[^\x00]*$"),  # (documents the NUL refusal of http_semantics)
-    limit: int = Query(20, ge=1, le=200),
-    offset: int = Query(0, ge=0, le=MAX_OFFSET),
 ) -> Page[JobOut]:
-    rows, total = jobs.list_jobs(session=session, key=key, state=state, scene_id=scene_id, limit=limit, offset=offset)
-    return Page[JobOut](items=[job_out(j) for j in rows], total=total, limit=limit, offset=offset)
+    found = jobs.list_jobs(session=session, key=key, state=state, scene_id=scene_id, page=page)
+    return Page[JobOut](items=[job_out(j) for j in found.rows], total=found.total, limit=page.limit,
+                        offset=found.offset, next_cursor=found.next_cursor)
 
 
 @router.get("/{job_id}", response_model=JobOut, responses=_ERRORS)

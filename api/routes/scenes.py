@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
-from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Request, Response, UploadFile, params, status
+from fastapi import APIRouter, Depends, File, Form, HTTPException, Request, Response, UploadFile, params, status
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from api.auth import mark_replayed
 from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep, StorageDep
 from api.http_semantics import FORM_MEDIA_TYPE, FORM_MEDIA_TYPES, StrictRoute, media_type, takes_several
+from api.paging import PageQuery, page_query
 from api.schemas import Page, ReconstructionOut, SceneOut
 from api.services import scenes
 from api.uploads import too_many_files
@@ -81,7 +82,6 @@ class UploadFilesRoute(StrictRoute):
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"], route_class=UploadFilesRoute)
 
 _ERRORS = {404: {"description": "no such scene (or another key's)"}}
-MAX_OFFSET = 1_000_000_000
 
 
 def scene_out(scene) -> SceneOut:
@@ -155,15 +155,17 @@ def create_scene(
     return scene_out(scene)
 
 
-@router.get("", response_model=Page[SceneOut], summary="List scenes, newest first")
+@router.get("", response_model=Page[SceneOut], summary="List scenes, newest first",
+            responses={422: {"description": "a limit or offset out of range, or a cursor that is not this "
+                                              "listing's or is sent with offset (named)"}})
 def list_scenes(
     session: SessionDep,
     key: CurrentKey,
-    limit: int = Query(20, ge=1, le=200),
-    offset: int = Query(0, ge=0, le=MAX_OFFSET),
+    page: Annotated[PageQuery, Depends(page_query("/v1/scenes"))],
 ) -> Page[SceneOut]:
-    rows, total = scenes.list_scenes(session=session, key=key, limit=limit, offset=offset)
-    return Page[SceneOut](items=[scene_out(s) for s in rows], total=total, limit=limit, offset=offset)
+    found = scenes.list_scenes(session=session, key=key, page=page)
+    return Page[SceneOut](items=[scene_out(s) for s in found.rows], total=found.total, limit=page.limit,
+                          offset=found.offset, next_cursor=found.next_cursor)
 
 
 @router.get("/{scene_id}", response_model=SceneOut, responses=_ERRORS,

@@ -18,6 +18,7 @@ from sqlalchemy.orm import Session
 
 from api.auth import Idempotency, check_active_jobs, sha256_hex
 from api.http_semantics import RETRY_AFTER_S
+from api.paging import PageQuery, PageRows, read_page
 from api.schemas import JobCreate
 from api.services.scenes import get_scene, refuse_unless_usable
 from voxe_core.presets import check_fit, reconstruction_key, reconstruction_params
@@ -296,18 +297,15 @@ def created_job(session: Session, job_id: str) -> Job:
     return job
 
 
-def list_jobs(*, session: Session, key: ApiKey, state: str | None, scene_id: str | None, limit: int,
-              offset: int) -> tuple[list[Job], int]:
+def list_jobs(*, session: Session, key: ApiKey, state: str | None, scene_id: str | None,
+              page: PageQuery) -> PageRows:
     """A page of the key's jobs, newest first, and how many match."""
     filters = [Job.owner_key_id == key.id]
     if state is not None:
         filters.append(Job.state == state)
     if scene_id is not None:
         filters.append(Job.scene_id == scene_id)
-    total = session.scalar(select(func.count()).select_from(Job).where(*filters)) or 0
-    rows = session.scalars(select(Job).where(*filters).order_by(Job.created_at.desc(), Job.id)
-                           .limit(limit).offset(offset))
-    return list(rows), total
+    return read_page(session, "/v1/jobs", Job, filters, page)
 
 
 def cancel_job(*, session: Session, key: ApiKey, job_id: str) -> Job:

@@ -14,6 +14,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from api.auth import Idempotency, check_upload_bytes
+from api.paging import PageQuery, PageRows, read_page
 from api.uploads import UploadError, stage_upload, staging_folder
 from voxe_service.models import FAILED, QUEUED, RUNNING, ApiKey, Job, Reconstruction, Scene, new_id
 from voxe_service.queue import TaskQueue
@@ -163,13 +164,9 @@ def _queue_ingest(session: Session, storage: Storage, queue: TaskQueue, scene: S
     session.commit()
 
 
-def list_scenes(*, session: Session, key: ApiKey, limit: int, offset: int) -> tuple[list[Scene], int]:
+def list_scenes(*, session: Session, key: ApiKey, page: PageQuery) -> PageRows:
     """A page of the key's scenes, newest first, and how many there are."""
-    mine = Scene.owner_key_id == key.id
-    total = session.scalar(select(func.count()).select_from(Scene).where(mine)) or 0
-    rows = session.scalars(select(Scene).where(mine).order_by(Scene.created_at.desc(), Scene.id)
-                           .limit(limit).offset(offset))
-    return list(rows), total
+    return read_page(session, "/v1/scenes", Scene, [Scene.owner_key_id == key.id], page)
 
 
 def list_reconstructions(*, session: Session, key: ApiKey, scene_id: str) -> list[Reconstruction]:

@@ -1,0 +1,106 @@
+"""Paging of the listings, newest first: by ``offset``, or by the ``cursor`` a page's ``next_cursor`` gives.
+
+A cursor names the last row's sort key (created_at, id), so the next page starts after that row wherever it now
+stands: jobs added or deleted meanwhile had shifted an offset's page (an "older" page repeated rows, or skipped them).
+The order is total (ties on created_at by id) and read off an index on (owner_key_id, created_at, id).
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import datetime, timezone
+
+from fastapi import HTTPException, Query, Request, status
+from sqlalchemy import func, select, tuple_
+from sqlalchemy.orm import Session
+
+MAX_OFFSET = 1_000_000_000
+MAX_CURSOR_LENGTH = 200
+
+
+@dataclass(frozen=True)
+class PageQuery:
+    """What a listing request asks for: ``limit`` rows from ``offset``, or after the row ``after`` names."""
+
+    limit: int
+    offset: int
+    after: tuple[datetime, str] | None
+
+
+@dataclass(frozen=True)
+class PageRows:
+    """A page's rows, how many rows match, how many come before the page, and the cursor of the next (None: last)."""
+
+    rows: list
+    total: int
+    offset: int
+    next_cursor: str | None
+
+
+def page_query(listing: str) -> Callable[..., PageQuery]:
+    """The dependency reading ``limit``, ``offset`` and ``cursor`` of ``listing`` (its path, as a cursor names it)."""
+
+    def read(request: Request,
+             limit: int = Query(20, ge=1, le=200),
+             offset: int = Query(0, ge=0, le=MAX_OFFSET, description="rows to skip (a page shifts while rows are "
+                                 "added: prefer `cursor`); not with `cursor`"),
+             cursor: str | None = Query(None, max_length=MAX_CURSOR_LENGTH,
+                                        description="the `next_cursor` of the page before: the page after its last "
+                                                    "row, however many rows were added or deleted since; not with "
+                                                    "`offset`")) -> PageQuery:
+        if cursor is None:
+            return PageQuery(limit=limit, offset=offset, after=None)
+        if "offset" in request.query_params:
+            raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                                "send either cursor or offset, not both: a cursor names where its page starts")
+        return PageQuery(limit=limit, offset=0, after=decode_cursor(listing, cursor))
+
+    return read
+
+
+def encode_cursor(listing: str, row) -> str:
+    """An opaque cursor naming ``row``'s place in ``listing``."""
+    text = json.dumps([listing, row.created_at.isoformat(), row.id], separators=(",", ":"))
+    return base64.urlsafe_b64encode(text.encode()).decode().rstrip("=")
+
+
+def decode_cursor(listing: str, cursor: str) -> tuple[datetime, str]:
+    """The (created_at, id) a cursor of ``listing`` names; 422 naming the cursor for any other text."""
+    try:
+        name, created_at, row_id = json.loads(base64.urlsafe_b64decode(cursor + "=" * (-len(cursor) % 4)))
+        when = datetime.fromisoformat(created_at)
+        readable = isinstance(name, str) and isinstance(row_id, str) and when.tzinfo is not None
+        when = when.astimezone(timezone.utc) if readable else when  # (SQLite compares the stored UTC wall time)
+    except (ValueError, TypeError, OverflowError, binascii.Error):
+        readable = False
+    if not readable:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                            f"cursor {cursor[:40]!r} is not a cursor of GET {listing}: send a page's next_cursor "
+                            "unchanged")
+    if name != listing:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                            f"cursor {cursor[:40]!r} is a cursor of GET {name[:40]}, not of GET {listing}")
+    return when, row_id
+
+
+def read_page(session: Session, listing: str, model, filters: list, page: PageQuery) -> PageRows:
+    """The page of ``model`` rows matching ``filters``, newest first (ties: the larger id first)."""
+    count = select(func.count()).select_from(model)
+    total = session.scalar(count.where(*filters)) or 0
+    place = tuple_(model.created_at, model.id)
+    query = select(model).where(*filters).order_by(model.created_at.desc(), model.id.desc()).limit(page.limit + 1)
+    if page.after is None:
+        offset = page.offset
+        query = query.offset(offset)
+    else:
+        offset = session.scalar(count.where(*filters, place >= page.after)) or 0
+        query = query.where(place < page.after)
+    rows = list(session.scalars(query))
+    more = len(rows) > page.limit  # (read one past the page: a count taken apart may be stale by then)
+    rows = rows[:page.limit]
+    return PageRows(rows=rows, total=total, offset=offset,
+                    next_cursor=encode_cursor(listing, rows[-1]) if more else None)
