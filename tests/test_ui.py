@@ -584,18 +584,24 @@ def test_a_scene_chosen_then_deleted_leaves_one_offered_chosen(live, browser):
 
 def test_the_job_list_pages_and_every_scene_is_offered(live, browser):
     """A key with more jobs than a page (50) steps to its older ones and back, and every scene is offered, past the
-    API's largest page (200): the oldest had been out of reach."""
+    API's largest page (200): the oldest had been out of reach. Each page is read after the last one shown (its
+    next_cursor): by offset, a job created while the first page was shown made "older" show its last job again."""
     svc, token, _archive = live
     driver = browser
     answer = lambda body: {"status": 200, "type": "application/json", "body": json.dumps(body)}  # noqa: E731
     scene = lambda i: {"id": f"scene-{i}", "name": f"scene {i}", "state": "ready"}  # noqa: E731
     job = lambda i: {"id": f"job-{i}", "prompt": "a mic", "mode": "global", "state": "succeeded",  # noqa: E731
                      "overall_progress": 1, "created_at": "2026-01-01T00:00:00Z"}
+    page = lambda items, total, offset, after: answer(  # noqa: E731
+        {"items": items, "total": total, "limit": 50, "offset": offset, "next_cursor": after})
     set_key(driver, svc, token)
-    faults(driver, {"/v1/scenes?limit=200&offset=0": answer({"items": [scene(i) for i in range(200)], "total": 201}),
-                    "/v1/scenes?limit=200&offset=200": answer({"items": [scene(200)], "total": 201}),
-                    "/v1/jobs?limit=50&offset=0": answer({"items": [job(i) for i in range(50)], "total": 51}),
-                    "/v1/jobs?limit=50&offset=50": answer({"items": [job(50)], "total": 51})})
+    # (a job created while the first page is shown: read by offset 50, the older page had shown job-49 again)
+    faults(driver, {"/v1/scenes?cursor=after-scene-199&limit=200": answer(
+                        {"items": [scene(200)], "total": 201, "next_cursor": None}),
+                    "/v1/scenes?limit=200": answer(
+                        {"items": [scene(i) for i in range(200)], "total": 201, "next_cursor": "after-scene-199"}),
+                    "/v1/jobs?cursor=after-job-49&limit=50": page([job(50)], 52, 51, None),
+                    "/v1/jobs?limit=50": page([job(i) for i in range(50)], 51, 0, "after-job-49")})
     driver.refresh()
     rows = "return [...document.querySelectorAll('#job-list tr[data-job]')].map((row) => row.dataset.job)"
     wait_until(lambda: len(driver.execute_script(rows)) == 50, 10, what="the first page of jobs")
@@ -607,17 +613,17 @@ def test_the_job_list_pages_and_every_scene_is_offered(live, browser):
     assert len(driver.execute_script(offered, "#filter-scene option")) == 202  # and "all"
     driver.find_element("id", "jobs-older").click()
     wait_until(lambda: driver.execute_script(rows) == ["job-50"], 10, what="the older page")
-    assert text(driver, "#jobs-range") == "51–51 of 51"
+    assert text(driver, "#jobs-range") == "52–52 of 52"  # where it stands now, the job created meanwhile first
     assert not driver.find_element("id", "jobs-older").is_enabled()
     time.sleep(3.5)  # the poll keeps the page shown
     assert driver.execute_script(rows) == ["job-50"]
     driver.find_element("id", "jobs-newer").click()
     wait_until(lambda: len(driver.execute_script(rows)) == 50, 10, what="the newer page again")
-    # The older page emptied meanwhile (a job deleted): the poll shows the list's last page, not an empty one.
+    # The older page emptied meanwhile (a job deleted): the poll shows the page before it, not an empty one.
     driver.find_element("id", "jobs-older").click()
     wait_until(lambda: driver.execute_script(rows) == ["job-50"], 10, what="the older page")
-    faults(driver, {"/v1/jobs?limit=50&offset=0": answer({"items": [job(i) for i in range(50)], "total": 50}),
-                    "/v1/jobs?limit=50&offset=50": answer({"items": [], "total": 50})})
+    faults(driver, {"/v1/jobs?cursor=after-job-49&limit=50": page([], 50, 50, None),
+                    "/v1/jobs?limit=50": page([job(i) for i in range(50)], 50, 0, None)})
     wait_until(lambda: len(driver.execute_script(rows)) == 50, 10, what="the last page")
     assert text(driver, "#jobs-range") == "1–50 of 50" and not driver.find_element("id", "jobs-older").is_enabled()
     faults(driver, {})

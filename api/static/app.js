@@ -243,14 +243,19 @@ async function refreshScenes(signal) {
 
 const SCENES_PER_REQUEST = 200;  // the API's largest page
 
-/** Every scene of the key, newest first, page by page (the 201st had been offered nowhere). */
+/** Every scene of the key, newest first, page by page (the 201st had been offered nowhere), each page after the
+ * last one read (by offset, a scene made meanwhile shifted the pages: one was met twice, and one deleted made the
+ * next page skip a scene). */
 async function allScenes(signal) {
-  const scenes = new Map();  // id -> scene: one made meanwhile shifts the pages, and is met twice
-  for (let offset = 0; ; offset += SCENES_PER_REQUEST) {
-    const answer = await api(`/v1/scenes?limit=${SCENES_PER_REQUEST}&offset=${offset}`, { signal });
-    for (const scene of answer.items) scenes.set(scene.id, scene);
-    if (!answer.items.length || offset + answer.items.length >= answer.total) return [...scenes.values()];
-  }
+  const scenes = [];
+  let cursor = null;
+  do {
+    const query = new URLSearchParams({ ...(cursor && { cursor }), limit: String(SCENES_PER_REQUEST) });
+    const answer = await api(`/v1/scenes?${query}`, { signal });
+    scenes.push(...answer.items);
+    cursor = answer.next_cursor;
+  } while (cursor);
+  return scenes;
 }
 
 async function loadScenes(signal, selected) {
@@ -322,15 +327,24 @@ function jobRequest(form) {
 
 // ------------------------------------------------------------------ job list
 const JOBS_PER_PAGE = 50;
-/** Where the shown page of the job list starts in the filtered list (newest first); kept while a job is looked at. */
-let jobsOffset = 0;
+/** The shown page of the job list (newest first), kept while a job is looked at: the cursor it starts after (null:
+ * the newest jobs), those of the newer pages it was reached through, and its own next_cursor, where "older" goes.
+ * By offset, a job created while a page was shown shifted the next: "older" had repeated jobs just seen. */
+let jobsCursor = null;
+const newerJobsCursors = [];
+let olderJobsCursor = null;
 
 function initJobList() {
-  const show = (offset) => { jobsOffset = offset; loadJobs(page.signal); };
-  $("#filter-scene").addEventListener("change", () => show(0));
-  $("#filter-state").addEventListener("change", () => show(0));
-  $("#jobs-newer").addEventListener("click", () => show(Math.max(0, jobsOffset - JOBS_PER_PAGE)));
-  $("#jobs-older").addEventListener("click", () => show(jobsOffset + JOBS_PER_PAGE));
+  const show = (cursor) => { jobsCursor = cursor; loadJobs(page.signal); };
+  const newest = () => { newerJobsCursors.length = 0; show(null); };
+  $("#filter-scene").addEventListener("change", newest);
+  $("#filter-state").addEventListener("change", newest);
+  $("#jobs-newer").addEventListener("click", () => show(newerJobsCursors.pop() ?? null));
+  $("#jobs-older").addEventListener("click", () => {
+    $("#jobs-older").disabled = true;  // until the page after answers (a second click would skip it in the stack)
+    newerJobsCursors.push(jobsCursor);
+    show(olderJobsCursor);
+  });
 }
 
 /** The newest job list request: an older one answering after it (the poll's, sent before a filter changed) is
@@ -339,22 +353,23 @@ let jobListRequest = 0;
 
 async function loadJobs(signal) {
   const request = ++jobListRequest;
-  const offset = jobsOffset;
-  const query = new URLSearchParams({ limit: String(JOBS_PER_PAGE), offset: String(offset) });
+  const cursor = jobsCursor;
+  const query = new URLSearchParams({ ...(cursor && { cursor }), limit: String(JOBS_PER_PAGE) });
   if ($("#filter-scene").value) query.set("scene_id", $("#filter-scene").value);
   if ($("#filter-state").value) query.set("state", $("#filter-state").value);
   try {
     const jobs = await api(`/v1/jobs?${query}`, { signal });
     if (request !== jobListRequest) return;
-    if (!jobs.items.length && offset > 0) {  // the list shrank below this page (jobs deleted): show its last
-      jobsOffset = Math.max(0, Math.ceil(jobs.total / JOBS_PER_PAGE) - 1) * JOBS_PER_PAGE;
+    if (!jobs.items.length && cursor) {  // every job past the cursor deleted meanwhile: show the page before
+      jobsCursor = newerJobsCursors.pop() ?? null;
       return loadJobs(signal);
     }
+    olderJobsCursor = jobs.next_cursor;
     showError("list", "");
     $("#jobs-range").textContent = jobs.items.length
-      ? `${offset + 1}–${offset + jobs.items.length} of ${jobs.total}` : "no jobs";
-    $("#jobs-newer").disabled = offset === 0;
-    $("#jobs-older").disabled = offset + jobs.items.length >= jobs.total;
+      ? `${jobs.offset + 1}–${jobs.offset + jobs.items.length} of ${jobs.total}` : "no jobs";
+    $("#jobs-newer").disabled = cursor === null;
+    $("#jobs-older").disabled = !jobs.next_cursor;
     $("#job-list tbody").innerHTML = jobs.items.map((job) => `
       <tr data-job="${escapeHtml(job.id)}">
         <td><a href="#/jobs/${escapeHtml(encodeURIComponent(job.id))}">${escapeHtml(job.id)}</a></td>
