@@ -44,6 +44,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from fastapi.routing import APIRoute
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import HTTPConnection
 from starlette.routing import Match, Mount
 
 from voxe_service.db import DATABASE_UNAVAILABLE, database_outage
@@ -113,12 +114,12 @@ async def method_not_allowed(request: Request, exc: StarletteHTTPException) -> R
                         status_code=405, headers={"Allow": allow})
 
 
-def media_type(request: Request) -> str:
+def media_type(request: HTTPConnection) -> str:
     """The request's Content-Type without its parameters, lower-case; "" when none is sent."""
     return request.headers.get("content-type", "").split(";")[0].strip().lower()
 
 
-def _json_sent(sent_as: str) -> bool:
+def json_sent(sent_as: str) -> bool:
     """Whether FastAPI reads a body sent as the media type ``sent_as`` as JSON: application/json or another ``+json``
     type."""
     return sent_as == "application/json" or sent_as.endswith("+json")
@@ -128,9 +129,9 @@ def malformed_body(request: Request, exc: RequestValidationError) -> JSONRespons
     """The 400 for a body that did not parse as JSON, the 415 for one not sent as JSON, else None (a schema
     error: the 422 stays)."""
     sent_as = media_type(request)
-    json_sent = _json_sent(sent_as)
+    as_json = json_sent(sent_as)
     for error in exc.errors():
-        if not json_sent and error.get("loc") == ("body",) and error.get("type") == "model_attributes_type":
+        if not as_json and error.get("loc") == ("body",) and error.get("type") == "model_attributes_type":
             return JSONResponse({"detail": f"the body must be sent as JSON (Content-Type: application/json), not as "
                                            f"{sent_as or 'no media type'}"}, status_code=415)
         if error.get("type") == "json_invalid":
@@ -145,7 +146,7 @@ async def unreadable_body(request: Request, exc: StarletteHTTPException) -> Resp
     """The 400 ``malformed JSON body`` naming why ``json.loads`` refused the body with an error other than
     ``JSONDecodeError`` (FastAPI answers those with a bare "There was an error parsing the body"); any other 400
     unchanged."""
-    cause = exc.__cause__ if _json_sent(media_type(request)) else None  # a form's parse error is no JSON's
+    cause = exc.__cause__ if json_sent(media_type(request)) else None  # a form's parse error is no JSON's
     if isinstance(cause, UnicodeDecodeError):
         reason = f"it is not UTF-8 ({cause.reason} at byte {cause.start})"
     elif isinstance(cause, RecursionError):
@@ -176,12 +177,27 @@ def takes_several(annotation) -> bool:
     return get_origin(annotation) is list or any(get_origin(arg) is list for arg in get_args(annotation))
 
 
+class UniqueMembersRequest(Request):
+    """A request whose JSON body is parsed refusing an object naming a member twice (400, naming it), in FastAPI's
+    own single parse: FastAPI reads the body (a client gone mid-body is its 400) and parses it with
+    :meth:`json`."""
+
+    async def json(self):
+        if not hasattr(self, "_json"):
+            try:
+                self._json = json.loads(await self.body(), object_pairs_hook=_unique_members)
+            except _NamedTwice as named:
+                raise HTTPException(400, f"malformed JSON body: an object names the member {named.args[0]!r} "
+                                         "twice (which one counts is undefined: send it once)") from None
+        return self._json
+
+
 class StrictRoute(APIRoute):
     """A route refusing what FastAPI would read one way silently: a query parameter it does not take or a
     one-valued one sent twice (422, naming them: ``GET /v1/jobs?stat=running`` had listed every job, and
     ``?limit=1&limit=500`` took the last), and a JSON body one of whose objects names a member twice (400, naming
-    it: ``{"prompt": "a", "prompt": "b"}`` had made a job of "b"). A body that does not parse is left to FastAPI's
-    own parse, which meets the same error (:func:`malformed_body`, :func:`unreadable_body`)."""
+    it: ``{"prompt": "a", "prompt": "b"}`` had made a job of "b"; :class:`UniqueMembersRequest`). A body that does
+    not parse is FastAPI's error as before (:func:`malformed_body`, :func:`unreadable_body`)."""
 
     @cached_property
     def query_fields(self) -> dict:
@@ -204,14 +220,8 @@ class StrictRoute(APIRoute):
 
         async def check_then_handle(request: Request) -> Response:
             self.refuse_odd_query(request)
-            if self.body_field is not None and _json_sent(media_type(request)):  # (a route taking none ignores it)
-                try:
-                    json.loads(await request.body(), object_pairs_hook=_unique_members)
-                except _NamedTwice as named:
-                    raise HTTPException(400, f"malformed JSON body: an object names the member {named.args[0]!r} "
-                                             "twice (which one counts is undefined: send it once)") from None
-                except (ValueError, RecursionError):
-                    pass
+            if self.body_field is not None and json_sent(media_type(request)):  # (a route taking none ignores it)
+                request = UniqueMembersRequest(request.scope, request.receive)  # nothing read yet
             return await handler(request)
 
         return check_then_handle
@@ -337,7 +347,8 @@ def document(schema: dict) -> dict:
                                              "content": _PROBLEM})
             if method in ("post", "put", "patch"):
                 responses.setdefault("413", {"description": "request body over the upload limit "
-                                                            "(VOXE_MAX_UPLOAD_BYTES)", "content": _PROBLEM})
+                                                            "(VOXE_MAX_UPLOAD_BYTES; a JSON body over "
+                                                            "VOXE_MAX_JSON_BODY_BYTES)", "content": _PROBLEM})
             if path.startswith("/v1"):
                 responses.setdefault("401", {"description": "authentication on (VOXE_AUTH) and no live API key "
                                                             "sent", "content": _PROBLEM})

@@ -9,11 +9,13 @@ import signal
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import asynccontextmanager, contextmanager
+from typing import NamedTuple
 
 from fastapi import FastAPI, HTTPException
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, PlainTextResponse
+from starlette.requests import HTTPConnection
 
 from api import http_semantics
 from voxe_service.db import run_migrations, sync_clock
@@ -23,18 +25,24 @@ log = logging.getLogger("voxe.api")
 
 
 class UploadLimit:
-    """Answer 413 to a request body above ``max_bytes`` (by Content-Length, or counted while streaming)."""
+    """Answer 413 to a request body above ``max_bytes`` (VOXE_MAX_UPLOAD_BYTES), or to a JSON one above
+    ``max_json_bytes`` (VOXE_MAX_JSON_BODY_BYTES), by Content-Length, or counted while streaming. A JSON body is
+    held in memory whole and parsed on the event loop: up to the upload limit (2 GiB), one had been the whole
+    process's memory and seconds of every request's time."""
 
-    def __init__(self, app, max_bytes: int):
-        self.app, self.max_bytes = app, max_bytes
+    def __init__(self, app, max_bytes: int, max_json_bytes: int):
+        self.app, self.max_bytes, self.max_json_bytes = app, max_bytes, max_json_bytes
 
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http" or scope["method"] not in ("POST", "PUT", "PATCH"):
             return await self.app(scope, receive, send)
+        limit = _Limit(self.max_bytes, "VOXE_MAX_UPLOAD_BYTES", "request body")
+        if http_semantics.json_sent(http_semantics.media_type(HTTPConnection(scope))):
+            limit = min(limit, _Limit(self.max_json_bytes, "VOXE_MAX_JSON_BODY_BYTES", "JSON body"))
         headers = dict(scope.get("headers") or [])
         length = headers.get(b"content-length")
-        if length is not None and length.isdigit() and int(length) > self.max_bytes:
-            return await self._reject(send)
+        if length is not None and length.isdigit() and int(length) > limit.max_bytes:
+            return await self._reject(send, limit)
         received = 0
         started = False
 
@@ -43,8 +51,8 @@ class UploadLimit:
             message = await receive()
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
-                if received > self.max_bytes:
-                    raise _TooLarge(self.max_bytes)
+                if received > limit.max_bytes:
+                    raise _TooLarge(limit)
             return message
 
         async def tracking_send(message):
@@ -57,12 +65,13 @@ class UploadLimit:
             await self.app(scope, counting_receive, tracking_send)
         except _TooLarge:
             if not started:
-                await self._reject(send)
+                await self._reject(send, limit)
 
-    async def _reject(self, send):
+    @staticmethod
+    async def _reject(send, limit: _Limit):
         import json
 
-        body = json.dumps({"detail": _TooLarge(self.max_bytes).detail}).encode()
+        body = json.dumps({"detail": _TooLarge(limit).detail}).encode()
         await send({"type": "http.response.start", "status": 413,
                     "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]})
         await send({"type": "http.response.body", "body": body})
@@ -120,12 +129,20 @@ def on_exit_signal(callback: Callable[[], None]) -> Iterator[None]:
                 signal.signal(sig, handler)
 
 
+class _Limit(NamedTuple):
+    """A body size limit: its bytes, its setting, and what it limits."""
+
+    max_bytes: int
+    setting: str
+    body: str
+
+
 class _TooLarge(HTTPException):
     """A body found too large while streaming. An HTTPException, so that FastAPI, reading the body for a route,
     answers it as the 413 it is (any other exception there becomes its 400 "error parsing the body")."""
 
-    def __init__(self, max_bytes: int):
-        super().__init__(413, f"request body over the upload limit of {max_bytes} bytes (VOXE_MAX_UPLOAD_BYTES)")
+    def __init__(self, limit: _Limit):
+        super().__init__(413, f"{limit.body} over the limit of {limit.max_bytes} bytes ({limit.setting})")
 
 
 def create_app(settings: Settings | None = None, migrate: bool = True) -> FastAPI:
@@ -195,7 +212,8 @@ def create_app(settings: Settings | None = None, migrate: bool = True) -> FastAP
     from api.auth import RequireKey
 
     app.add_middleware(RequireKey)  # inside UploadLimit: an over-size body is 413 first, then a missing key 401
-    app.add_middleware(UploadLimit, max_bytes=settings.max_upload_bytes)
+    app.add_middleware(UploadLimit, max_bytes=settings.max_upload_bytes,
+                       max_json_bytes=settings.max_json_body_bytes)
     app.add_exception_handler(RequestValidationError, validation_error)
     http_semantics.install(app)
     app.add_middleware(SecurityHeaders)  # outermost: the 401, 404 and 413 of the middleware above get them too

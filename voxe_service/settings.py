@@ -73,6 +73,9 @@ class Settings(BaseSettings):
 
     # --- uploads
     max_upload_bytes: int = Field(2 * 1024**3, gt=0)
+    # A JSON body (a job, sweep or evaluation) is read whole and parsed on the API's event loop: the largest the
+    # schemas allow, every string at its longest and each character \\u-escaped, is under 100 KiB.
+    max_json_body_bytes: int = Field(1024**2, gt=0)
     max_extracted_bytes: int = Field(8 * 1024**3, gt=0)
     max_upload_files: int = Field(20_000, gt=0)
     validation_downsample: int = Field(8, ge=1)  # images are decoded at 1/8 size to validate an upload
