@@ -11,8 +11,8 @@
   the first.
 * On /v1, a query parameter an operation does not take, or a one-valued one sent twice, is a 422 naming them
   (:class:`StrictRoute`), rather than ignored or read as its last value.
-* A form route's body (an upload) sent as another media type than a form is a 415 naming it
-  (:class:`api.routes.scenes.UploadFilesRoute`); Starlette's 400 for a multipart body it cannot parse is documented.
+* A form route's body (an upload) sent as another media type than multipart/form-data (a urlencoded form cannot
+  carry a file), or with none, is a 415 naming it (:class:`api.routes.scenes.UploadFilesRoute`); Starlette's 400 for a multipart body it cannot parse is documented.
 * A path holding a NUL character is a 404 (no resource is named so) and such a query string a 422: neither
   reaches the database, whose PostgreSQL text cannot hold one.
 * ``HEAD`` is served wherever ``GET`` is (:class:`HeadAsGet`).
@@ -61,7 +61,6 @@ SECURITY_SCHEMES = {
 
 _METHODS = ("DELETE", "GET", "HEAD", "PATCH", "POST", "PUT")
 FORM_MEDIA_TYPE = "multipart/form-data"
-FORM_MEDIA_TYPES = (FORM_MEDIA_TYPE, "application/x-www-form-urlencoded")
 UNAVAILABLE = (*DATABASE_UNAVAILABLE, StorageError)
 RETRY_AFTER_S = 5
 _UNAVAILABLE_503 = "the database or the storage is busy or unreachable (Retry-After says when to try again)"
@@ -117,6 +116,24 @@ async def method_not_allowed(request: Request, exc: StarletteHTTPException) -> R
 def media_type(request: HTTPConnection) -> str:
     """The request's Content-Type without its parameters, lower-case; "" when none is sent."""
     return request.headers.get("content-type", "").split(";")[0].strip().lower()
+
+
+def sends_body(request: Request) -> bool:
+    """Whether the request frames a body (RFC 9112 section 6.1): a Content-Length other than 0, or a
+    Transfer-Encoding."""
+    return "transfer-encoding" in request.headers or request.headers.get("content-length", "0").strip() != "0"
+
+
+def listed(names: list[str], most: int = 5, width: int = 40) -> str:
+    """``names`` for a message, quoted: the first ``most``, each cut to ``width`` characters, then how many more. A
+    name the client sent may be anything: a raw zip read as a form had named its whole body (a 1.9 MB message).
+
+    Examples:
+        >>> listed(["a", "b"]), listed([str(n) for n in range(7)], most=2), listed(["x" * 9], width=4)
+        ("'a', 'b'", "'0', '1' and 5 more", "'xxxx...'")
+    """
+    shown = ", ".join(repr(name if len(name) <= width else name[:width] + "...") for name in names[:most])
+    return shown + (f" and {len(names) - most} more" if len(names) > most else "")
 
 
 def json_sent(sent_as: str) -> bool:
@@ -208,12 +225,11 @@ class StrictRoute(APIRoute):
         """422 for a query parameter the route does not take, or a one-valued one sent more than once."""
         sent, takes = request.query_params, self.query_fields
         if unknown := sorted(set(sent) - set(takes)):
-            raise HTTPException(422, f"unknown query parameter(s) {', '.join(map(repr, unknown))}: "
+            raise HTTPException(422, f"unknown query parameter(s) {listed(unknown)}: "
                                      f"{request.method} {self.path} takes {', '.join(map(repr, takes)) or 'none'}")
         if twice := sorted(name for name in set(sent) if len(sent.getlist(name)) > 1
                            and not takes_several(takes[name].field_info.annotation)):
-            raise HTTPException(422, f"query parameter(s) {', '.join(map(repr, twice))} sent more than once: send "
-                                     "each once")
+            raise HTTPException(422, f"query parameter(s) {listed(twice)} sent more than once: send each once")
 
     def get_route_handler(self):
         handler = super().get_route_handler()

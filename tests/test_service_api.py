@@ -803,9 +803,10 @@ def test_mesh_shading_is_checked_at_upload(client, dataset, root):
 
 
 def test_upload_needs_exactly_one_source(client):
-    response = client.post("/v1/scenes", data={"name": "nothing"})
+    response = client.post("/v1/scenes", files={"name": (None, "nothing")})
     assert response.status_code == 422 and "either one zip" in response.json()["detail"]
-    response = client.post("/v1/scenes", data={"name": "no\x00thing"})  # checked first, and never stored
+    assert client.post("/v1/scenes").status_code == 422  # no body: an empty form, as above
+    response = client.post("/v1/scenes", files={"name": (None, "no\x00thing")})  # checked first, and never stored
     assert response.status_code == 422 and response.json()["detail"][0]["loc"] == ["body", "name"]
 
 

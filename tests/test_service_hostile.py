@@ -402,8 +402,24 @@ def test_duplicate_and_unwritable_multipart_files(client, dataset, root):  # noq
     assert long_name.status_code == 422 and "cannot store file" in long_name.json()["detail"]
     archive = _zip(_dataset_entries(dataset))
     two = client.post("/v1/scenes", files=[("archive", ("a.zip", archive)), ("archive", ("b.zip", archive))])
-    assert two.status_code == 422 and two.json()["detail"].startswith("send one archive")  # the last had won
+    assert (two.status_code, two.json()["detail"]) == (422, "form field(s) 'archive' sent more than once: send each "
+                                                            "once (only 'files' may be sent several times)")
     assert client.get("/v1/scenes").json()["total"] == 0 and stored_files(root) == [] and staged(root) == []
+
+
+def test_a_one_valued_form_field_sent_twice_is_a_422_naming_it(client, root):  # noqa: F811
+    """``-F name=first -F name=second`` had made a scene named 'second' (and ``-F mesh_shading`` twice took the
+    last), where the README promises nothing sent is silently dropped or picked."""
+    obj = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n"
+    twice = [("name", (None, "first")), ("name", (None, "second")),
+             ("mesh_shading", (None, "baked")), ("mesh_shading", (None, "none"))]
+    response = client.post("/v1/scenes", files=[("files", ("t.obj", obj)), *twice])
+    assert (response.status_code, response.json()["detail"]) == (
+        422, "form field(s) 'name', 'mesh_shading' sent more than once: send each once (only 'files' may be sent "
+             "several times)")
+    assert client.get("/v1/scenes").json()["total"] == 0 and stored_files(root) == [] and staged(root) == []
+    once = client.post("/v1/scenes", files=[("files", ("t.obj", obj)), *twice[1:3]])
+    assert (once.status_code, once.json()["name"]) == (201, "second")
 
 
 def test_a_multipart_part_of_the_wrong_kind_is_a_4xx_naming_its_field(client, root):  # noqa: F811
@@ -412,8 +428,7 @@ def test_a_multipart_part_of_the_wrong_kind_is_a_4xx_naming_its_field(client, ro
     maximum size of 1024KB."), and a file where text is expected a 422 dumping the server's upload object (its
     temporary file's arguments)."""
     small, large = _zip({"transforms_train.json": b"{}"}), _zip({"big.bin": random.Random(0).randbytes(3 << 19)})
-    for data, files, field in (({"archive": small.decode("latin-1")}, None, "archive"),  # url-encoded
-                               (None, {"archive": (None, small)}, "archive"),  # multipart, no filename
+    for data, files, field in ((None, {"archive": (None, small)}, "archive"),  # multipart, no filename
                                ({"files": "{}"}, {"files": ("images/0.png", b"x")}, "files")):
         response = client.post("/v1/scenes", data=data, files=files)
         assert response.status_code == 422, response.text
@@ -421,7 +436,7 @@ def test_a_multipart_part_of_the_wrong_kind_is_a_4xx_naming_its_field(client, ro
                                              f"'{field}=@<path>'), not a text field")
     # Over Starlette's 1 MB a part is refused unnamed: the 413 had told to send 'archive' or 'files' as a file even
     # when the part was 'name'.
-    for data, files in (({"archive": large.decode("latin-1")}, None), (None, {"archive": (None, large)}),
+    for data, files in ((None, {"archive": (None, large)}),
                         (None, {"archive": ("a.zip", small), "name": (None, large)})):
         response = client.post("/v1/scenes", data=data, files=files)
         assert response.status_code == 413, response.text
@@ -442,7 +457,10 @@ def test_a_multipart_part_no_field_takes_is_a_422_naming_it(client, dataset, roo
     archive = _zip(_dataset_entries(dataset))
     for data, files, named in (({"mesh_shadng": "baked"}, {"archive": ("a.zip", archive)}, "'mesh_shadng'"),
                                (None, {"file": ("a.zip", archive)}, "'file'"),
-                               ({"b": "1", "a": "2"}, {"archive": ("a.zip", archive)}, "'a', 'b'")):
+                               ({"b": "1", "a": "2"}, {"archive": ("a.zip", archive)}, "'a', 'b'"),
+                               # the client's names, however many and long: 5 shown, each cut to 40 characters
+                               ({f"{n}{'x' * 50}": "1" for n in range(7)}, {"archive": ("a.zip", archive)},
+                                ", ".join(repr(f"{n}{'x' * 39}...") for n in range(5)) + " and 2 more")):
         response = client.post("/v1/scenes", data=data, files=files)
         assert response.status_code == 422, response.text
         assert response.json()["detail"] == (f"unknown form field(s) {named}: the upload takes 'archive', 'files', "

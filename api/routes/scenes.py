@@ -9,7 +9,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from api.auth import mark_replayed
 from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep, StorageDep
-from api.http_semantics import FORM_MEDIA_TYPE, FORM_MEDIA_TYPES, StrictRoute, media_type, takes_several
+from api.http_semantics import FORM_MEDIA_TYPE, StrictRoute, listed, media_type, sends_body, takes_several
 from api.paging import PageQuery, page_query
 from api.schemas import Page, ReconstructionOut, SceneOut
 from api.services import scenes
@@ -20,14 +20,17 @@ from voxe_service.settings import get_settings
 class UploadFilesRoute(StrictRoute):
     """A form route whose multipart body is parsed allowing ``VOXE_MAX_UPLOAD_FILES`` files, before FastAPI parses it
     (then reusing this parse): Starlette's default of 1000 had answered an upload of 1001 ``files`` 400 "Too many
-    files". More than the setting is the upload's own 413.
+    files". More than the setting is the upload's own 413. A one-valued field sent twice (``-F name=a -F name=b``) is
+    a 422 naming it: the last had silently won.
 
     A part of the wrong kind is a 4xx naming the field: a text field where a file is expected (``curl -F
     archive=<scene.zip``) had been a 422 "Expected UploadFile, received: <class 'str'>" (over Starlette's 1 MB per
     text field, a 400 "Part exceeded maximum size of 1024KB."), and a file where text is expected a 422 dumping the
     server's upload object. A part no field takes is a 422 naming it: a misspelt ``mesh_shadng=baked`` had been
-    ignored, the scene made without it. A body sent as another media type than a form (a raw zip, JSON) is a 415
-    naming it: it had been read as an empty form, a 422 "send either one zip 'archive' or the dataset's 'files'"."""
+    ignored, the scene made without it. A body sent as another media type than multipart/form-data (a raw zip, JSON;
+    a urlencoded form, curl --data-binary's default, which cannot carry a file), or a body with no media type, is a
+    415 naming it: it had been read as an empty form, a 422 "send either one zip 'archive' or the dataset's 'files'"
+    (a urlencoded one as field names: a 422 naming the whole body)."""
 
     def get_route_handler(self):
         handler = super().get_route_handler()
@@ -35,16 +38,17 @@ class UploadFilesRoute(StrictRoute):
             return handler
         file_fields = [f.alias for f in self.dependant.body_params if isinstance(f.field_info, params.File)]
         text_fields = [f.alias for f in self.dependant.body_params if f.alias not in file_fields]
+        several = [f.alias for f in self.dependant.body_params if takes_several(f.field_info.annotation)]
 
         def as_file(field: str) -> str:
             return f"a part with a filename: curl -F '{field}=@<path>'"
 
         async def parse_then_handle(request: Request) -> Response:
             self.refuse_odd_query(request)  # before the form is read (the handler checks it again)
-            if (sent_as := media_type(request)) and sent_as not in FORM_MEDIA_TYPES:
+            if (sent_as := media_type(request)) != FORM_MEDIA_TYPE and (sent_as or sends_body(request)):
                 raise HTTPException(status.HTTP_415_UNSUPPORTED_MEDIA_TYPE,
                                     f"the body must be sent as a form ({FORM_MEDIA_TYPE}, as curl -F sends it), not "
-                                    f"as {sent_as}")
+                                    f"as {sent_as or 'no media type'}")
             max_files = get_settings().max_upload_files
             try:
                 form = await request.form(max_files=max_files)
@@ -72,8 +76,13 @@ class UploadFilesRoute(StrictRoute):
                                             f"{field.alias!r} must be a text field, not a file ({part.filename!r})")
             if unknown := sorted(set(form.keys()) - {*file_fields, *text_fields}):
                 raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
-                                    f"unknown form field(s) {', '.join(map(repr, unknown))}: the upload takes "
+                                    f"unknown form field(s) {listed(unknown)}: the upload takes "
                                     f"{', '.join(map(repr, [*file_fields, *text_fields]))}")
+            if twice := [alias for alias in [*file_fields, *text_fields]
+                         if alias not in several and len(form.getlist(alias)) > 1]:  # the last had silently won
+                raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                                    f"form field(s) {listed(twice)} sent more than once: send each once "
+                                    f"(only {listed(several)} may be sent several times)")
             return await handler(request)
 
         return parse_then_handle
@@ -88,14 +97,6 @@ def scene_out(scene) -> SceneOut:
     return SceneOut.model_validate(scene, from_attributes=True)
 
 
-async def one_archive(request: Request) -> None:
-    """422 for an upload of several ``archive`` parts (the form parsed for the route, read again from its cache):
-    the last had silently won."""
-    if len((await request.form()).getlist("archive")) > 1:
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
-                            "send one archive: the upload has several 'archive' parts (use 'files' for many files)")
-
-
 @router.post(
     "",
     status_code=status.HTTP_201_CREATED,
@@ -108,12 +109,11 @@ async def one_archive(request: Request) -> None:
                413: {"description": "upload over a limit: its size, its count of files, a zip's compression ratio or "
                                     "an image's pixels (the message names the setting)"},
                422: {"description": "not a valid dataset (the message names the file and frame), a form field "
-                                    "the upload does not take or of the wrong kind (named), or an Idempotency-Key "
-                                    "reused with a different upload"},
+                                    "the upload does not take, of the wrong kind, or one-valued and sent twice "
+                                    "(named), or an Idempotency-Key reused with a different upload"},
                429: {"description": "the key's upload quota is used up (Retry-After)"},
                503: {"description": "the ingest could not be queued (broker unreachable)"}},
     summary="Upload a posed image set or a mesh (optionally with an Idempotency-Key header)",
-    dependencies=[Depends(one_archive)],
 )
 def create_scene(
     response: Response,
