@@ -337,6 +337,16 @@ def install(app: FastAPI) -> None:
     app.openapi = openapi
 
 
+def _or_problem(content: dict | None) -> dict:
+    """A response's ``content`` whose JSON schema admits a Problem too: the answer merged into a response the route
+    documents (FastAPI's 422, HTTPValidationError, whose detail is an array) sends its detail as a string."""
+    schema = (content or {}).get("application/json", {}).get("schema")
+    problem = _PROBLEM["application/json"]["schema"]
+    if schema is None or schema == problem:
+        return _PROBLEM
+    return {**content, "application/json": {**content["application/json"], "schema": {"anyOf": [schema, problem]}}}
+
+
 def document(schema: dict) -> dict:
     """Add to each operation what middleware and handlers answer: 400 and 415 (a JSON or multipart body), 413 (any
     body), 401, 422 (:class:`StrictRoute`'s query checks), 503 and the key schemes (/v1), and an OPTIONS operation per
@@ -373,7 +383,7 @@ def document(schema: dict) -> dict:
                     documented = responses.setdefault(code, {"description": answer, "content": _PROBLEM})
                     if documented["description"] != answer:
                         documented["description"] += f"; or {answer}"
-                        documented.setdefault("content", _PROBLEM)
+                        documented["content"] = _or_problem(documented.get("content"))
         methods = ", ".join(m.upper() for m in sorted({*item, "options", *(("head",) if "get" in item else ())}))
         item["options"] = {
             "summary": "The methods this path serves", "operationId": "options" + path.replace("/", "_").replace(
