@@ -12,7 +12,8 @@
 * On /v1, a query parameter an operation does not take, or a one-valued one sent twice, is a 422 naming them
   (:class:`StrictRoute`), rather than ignored or read as its last value.
 * A form route's body (an upload) sent as another media type than multipart/form-data (a urlencoded form cannot
-  carry a file), or with none, is a 415 naming it (:class:`api.routes.scenes.UploadFilesRoute`); Starlette's 400 for a multipart body it cannot parse is documented.
+  carry a file), or with none, is a 415 naming it (:class:`api.routes.scenes.UploadFilesRoute`); Starlette's 400
+  for a multipart body it cannot parse is documented.
 * A path holding a NUL character is a 404 (no resource is named so) and such a query string a 422: neither
   reaches the database, whose PostgreSQL text cannot hold one.
 * ``HEAD`` is served wherever ``GET`` is (:class:`HeadAsGet`).
