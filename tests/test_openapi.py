@@ -260,7 +260,7 @@ def test_a_query_parameter_not_taken_or_sent_twice_is_a_documented_422_naming_it
              "query parameter(s) 'limit', 'state' sent more than once: send each once"),
             ("GET", "/v1/jobs?" + "&".join(f"{n}{'y' * 50}=1" for n in range(7)),  # 5 named, each cut to 40
              "unknown query parameter(s) " + ", ".join(repr(f"{n}{'y' * 39}...") for n in range(5)) + " and 2 more: "
-             "GET /v1/jobs takes 'state', 'scene_id', 'limit', 'offset'")):
+             "GET /v1/jobs takes 'state', 'scene_id', 'limit', 'offset', 'cursor'")):
         response = client.request(method, url)
         assert (response.status_code, response.json()["detail"]) == (422, detail), url
         path = url.split("?")[0].replace("/x/", "/{job_id}/").replace("/y", "/{name}")
