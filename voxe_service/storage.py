@@ -538,6 +538,8 @@ class S3Storage(Storage):
         return chunks()
 
     def list(self, prefix="") -> list[str]:
+        if not _may_start_a_key(prefix):
+            return []
         keys = []
         paginator = self.client.get_paginator("list_objects_v2")
         with self._as_storage_errors():
@@ -550,6 +552,8 @@ class S3Storage(Storage):
             self.client.delete_object(Bucket=self.bucket, Key=self._full(key))
 
     def delete_prefix(self, prefix: str) -> int:
+        if not _may_start_a_key(prefix):
+            return 0
         try:
             self._abort_uploads(prefix)  # first: one completing meanwhile is an object, listed next
         except StorageError as exc:  # a best effort: a role without the multipart permissions must not keep objects
@@ -584,6 +588,13 @@ class S3Storage(Storage):
 
     def describe(self) -> str:
         return f"s3:{self.bucket}/{self.prefix}"
+
+
+def _may_start_a_key(prefix: str) -> bool:
+    """Whether some key starts with ``prefix``. One no key can start with ("jobs//a", "./") is never sent: an
+    S3-compatible store may read it as another (SeaweedFS lists "jobs//a" as the objects under "jobs/a", under keys
+    that are not theirs, and a prefix's delete would take them), as a local folder no key names holds nothing."""
+    return is_key(prefix + "x")
 
 
 _HEAD_NOT_FOUND = ("404", "NotFound")
