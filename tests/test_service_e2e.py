@@ -1,7 +1,7 @@
 """End to end over real HTTP: a uvicorn API and a Celery worker as subprocesses, run twice:
 
 * ``embedded``: the default setup of ``bash .ci/serve`` (SQL broker, SQLite, local storage);
-* ``redis``: a real redis-server as broker and S3 storage (moto's server), with the API and the
+* ``redis``: a real redis-server as broker and S3 storage (a real SeaweedFS), with the API and the
   worker on separate scratch folders, so the worker gets every input through the storage and
   nothing through a shared filesystem.
 
@@ -22,7 +22,7 @@ import pytest
 
 from needs import MIC, missing, require_data
 from service_helpers import (
-    check_resumed_from_the_last_checkpoint, checkpoint_at_least, job_events, moto_s3, poll_job, redis_server, service,
+    check_resumed_from_the_last_checkpoint, checkpoint_at_least, job_events, poll_job, redis_server, service,
     verify_artifacts, wait_for_event, wait_for_scene, zip_folder,
 )
 
@@ -73,7 +73,7 @@ def stack(request, tmp_path_factory, mic_zip):
             if shutil.which("redis-server") is None:
                 missing("redis-server is not installed (.ci/test installs it)")
             broker_url = stack_.enter_context(redis_server(root / "redis")).url
-            extra = stack_.enter_context(moto_s3())
+            extra = {**request.getfixturevalue("seaweedfs"), "VOXE_S3_BUCKET": "voxe-e2e"}
             worker_env = {"VOXE_WORK_DIR": str(root / "worker-work"), "VOXE_MODEL_DIR": str(root / "worker-models")}
         svc = stack_.enter_context(service(root, broker_url, worker_env, VOXE_CHECKPOINT_EVERY="10", **extra))
         client = stack_.enter_context(httpx.Client(base_url=svc.base, timeout=60))

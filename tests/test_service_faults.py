@@ -7,6 +7,7 @@ SMOKE-TEST model (VOXE_SDS_MODEL=tiny): they prove the plumbing, never edit qual
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import os
@@ -2381,13 +2382,25 @@ def test_a_writer_killed_mid_write_leaves_nothing_listed_and_deleting_the_job_re
     assert not (tmp_path / "store" / "jobs").exists()
 
 
-def test_a_multipart_s3_upload_failing_half_way_is_never_listed(db, tmp_path, monkeypatch):
+@contextlib.contextmanager
+def s3_server(request, server: str):
+    """The variables that point at moto's server (started for the test) or at the session's SeaweedFS."""
+    if server == "seaweedfs":
+        yield request.getfixturevalue("seaweedfs")
+    else:
+        from service_helpers import moto_s3
+
+        with moto_s3() as env:
+            yield env
+
+
+@pytest.mark.parametrize("server", ["moto", "seaweedfs"])
+def test_a_multipart_s3_upload_failing_half_way_is_never_listed(db, tmp_path, monkeypatch, request, server):
     """boto3 uploads large files in parts; a part that fails aborts the upload: no object, no row."""
     from voxe_service.storage import S3Storage
-    from service_helpers import moto_s3
     from worker.runtime import publish_artifact
 
-    with moto_s3() as env:
+    with s3_server(request, server) as env:
         for key in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_DEFAULT_REGION"):
             monkeypatch.setenv(key, env[key])
         bucket = f"voxe-faults-{uuid.uuid4().hex[:8]}"  # moto keeps buckets per process: one of its own
@@ -2416,7 +2429,8 @@ def test_a_multipart_s3_upload_failing_half_way_is_never_listed(db, tmp_path, mo
         assert data == big.read_bytes()
 
 
-def test_the_parts_an_s3_writer_killed_mid_upload_left_go_with_its_job(tmp_path, monkeypatch, caplog):
+@pytest.mark.parametrize("server", ["moto", "seaweedfs"])
+def test_the_parts_an_s3_writer_killed_mid_upload_left_go_with_its_job(tmp_path, monkeypatch, caplog, request, server):
     """SIGKILL a process whose multipart upload has stored a part: S3 keeps the parts (and bills them) under an upload
     no object listing shows, and deleting the job's prefix had left them for ever. They are aborted with it; another
     job's are not touched."""
@@ -2424,7 +2438,7 @@ def test_the_parts_an_s3_writer_killed_mid_upload_left_go_with_its_job(tmp_path,
     import subprocess
     import sys
 
-    from service_helpers import REPO, moto_s3
+    from service_helpers import REPO
     from voxe_service.storage import S3Storage
 
     source = tmp_path / "edit.safetensors"
@@ -2435,7 +2449,7 @@ def test_the_parts_an_s3_writer_killed_mid_upload_left_go_with_its_job(tmp_path,
               "storage.client.meta.events.register('after-call.s3.UploadPart',\n"
               "                                    lambda **_: (print('part', flush=True), time.sleep(60)))\n"
               "storage.put_file('jobs/j/checkpoints/edit.safetensors', sys.argv[3])\n")
-    with moto_s3() as env:
+    with s3_server(request, server) as env:
         for key in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_DEFAULT_REGION"):
             monkeypatch.setenv(key, env[key])
         bucket = f"voxe-faults-{uuid.uuid4().hex[:8]}"
@@ -2450,7 +2464,8 @@ def test_the_parts_an_s3_writer_killed_mid_upload_left_go_with_its_job(tmp_path,
         other = storage.client.create_multipart_upload(Bucket=bucket, Key="jobs/other/edit.safetensors")
 
         def uploads() -> list[str]:
-            return [u["Key"] for u in storage.client.list_multipart_uploads(Bucket=bucket).get("Uploads", [])]
+            # (sorted: S3 lists them by key, SeaweedFS not)
+            return sorted(u["Key"] for u in storage.client.list_multipart_uploads(Bucket=bucket).get("Uploads", []))
 
         assert storage.list() == [] and uploads() == ["jobs/j/checkpoints/edit.safetensors",
                                                       "jobs/other/edit.safetensors"]

@@ -1,5 +1,6 @@
 """Scale-out for real: two workers on one Redis, the metadata in SQLite and then in PostgreSQL (the deployment's
-database), the API and the workers as subprocesses with their own scratch folders.
+database), the objects in S3 (a real SeaweedFS), the API and the workers as subprocesses with their own scratch
+folders.
 
 The model is the random-weight SMOKE-TEST Stable Diffusion (VOXE_SDS_MODEL=tiny): the plumbing, not quality.
 """
@@ -35,8 +36,9 @@ def test_two_workers_on_one_redis_split_the_jobs_and_fit_one_reconstruction(tmp_
     if shutil.which("redis-server") is None:
         missing("redis-server is not installed (.ci/test installs it)")
     database_url = request.getfixturevalue("postgres_server").create_database() if database == "postgres" else None
+    s3 = {**request.getfixturevalue("seaweedfs"), "VOXE_S3_BUCKET": f"voxe-scaleout-{database}"}
     with redis_server(tmp_path / "redis") as redis, \
-            service(tmp_path, redis.url, {"VOXE_WORK_DIR": str(tmp_path / "work-a")}, database_url) as svc:
+            service(tmp_path, redis.url, {"VOXE_WORK_DIR": str(tmp_path / "work-a")}, database_url, **s3) as svc:
         svc.start_worker(suffix="-b", env={"VOXE_WORK_DIR": str(tmp_path / "work-b")})
         client = svc_client(svc)
         with open(scene_zip, "rb") as handle:
@@ -58,6 +60,7 @@ def test_two_workers_on_one_redis_split_the_jobs_and_fit_one_reconstruction(tmp_
         first_stage = [next(e["worker_hostname"] for e in job_events(client, job["id"])
                             if e["kind"] == "stage_started" and e["stage"] == "reconstruct") for job in jobs]
         assert set(first_stage) == workers, first_stage  # one job's reconstruct on each worker
+        assert not (tmp_path / "storage").exists()  # every object went through S3
 
 
 def svc_client(svc):
