@@ -10,6 +10,7 @@ from __future__ import annotations
 import base64
 import binascii
 import json
+import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -20,6 +21,10 @@ from sqlalchemy.orm import Session
 
 MAX_OFFSET = 1_000_000_000
 MAX_CURSOR_LENGTH = 200
+ROW_ID = re.compile(r"[0-9a-f]{32}")
+"""The form of the rows' ids (voxe_service.models.new_id: uuid4().hex); a cursor's id of any other form is unreadable."""
+LISTINGS: set[str] = set()
+"""The listings :func:`page_query` reads cursors of: a cursor naming one of them may be named in a 422."""
 
 
 @dataclass(frozen=True)
@@ -43,6 +48,7 @@ class PageRows:
 
 def page_query(listing: str) -> Callable[..., PageQuery]:
     """The dependency reading ``limit``, ``offset`` and ``cursor`` of ``listing`` (its path, as a cursor names it)."""
+    LISTINGS.add(listing)
 
     def read(request: Request,
              limit: int = Query(20, ge=1, le=200),
@@ -69,11 +75,15 @@ def encode_cursor(listing: str, row) -> str:
 
 
 def decode_cursor(listing: str, cursor: str) -> tuple[datetime, str]:
-    """The (created_at, id) a cursor of ``listing`` names; 422 naming the cursor for any other text."""
+    """The (created_at, id) a cursor of ``listing`` names; 422 naming the cursor for any other text.
+
+    The name and id are checked against what they can be before use: a crafted cursor's lone surrogate or NUL had
+    failed the 422's encoding, or the database's, as a 500."""
     try:
         name, created_at, row_id = json.loads(base64.urlsafe_b64decode(cursor + "=" * (-len(cursor) % 4)))
         when = datetime.fromisoformat(created_at)
-        readable = isinstance(name, str) and isinstance(row_id, str) and when.tzinfo is not None
+        readable = (name in LISTINGS and isinstance(row_id, str) and ROW_ID.fullmatch(row_id) is not None
+                    and when.tzinfo is not None)
         when = when.astimezone(timezone.utc) if readable else when  # (SQLite compares the stored UTC wall time)
     except (ValueError, TypeError, OverflowError, binascii.Error):
         readable = False
@@ -83,7 +93,7 @@ def decode_cursor(listing: str, cursor: str) -> tuple[datetime, str]:
                             "unchanged")
     if name != listing:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
-                            f"cursor {cursor[:40]!r} is a cursor of GET {name[:40]}, not of GET {listing}")
+                            f"cursor {cursor[:40]!r} is a cursor of GET {name}, not of GET {listing}")
     return when, row_id
 
 

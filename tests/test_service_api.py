@@ -995,6 +995,25 @@ def test_a_cursor_not_of_the_listing_or_sent_with_an_offset_is_a_422_naming_it(c
     assert too_long.status_code == 422 and "cursor" in too_long.text
 
 
+CRAFTED_CURSORS = {
+    "id a lone surrogate": '["/v1/jobs","2026-12-06T13:00:00+00:00","\\ud800"]',
+    "listing a lone surrogate": '["\\ud800","2026-12-06T13:00:00+00:00","' + "0" * 32 + '"]',
+    "id holding NUL": '["/v1/jobs","2026-12-06T13:00:00+00:00","' + "0" * 15 + '\\u0000' + "0" * 16 + '"]',
+    "id not of the ids' form": '["/v1/jobs","2026-12-06T13:00:00+00:00","' + "A" * 32 + '"]',
+}
+
+
+@BOTH_DATABASES
+@pytest.mark.parametrize("crafted", CRAFTED_CURSORS)
+def test_a_crafted_cursor_is_a_422_naming_it_on_either_database(client, root, crafted):
+    """A lone surrogate had failed the database's encoding (or, in the listing's name, the 422's) and a NUL
+    PostgreSQL's: 500s. The cursor's id must be of the ids' form and its listing one the API lists."""
+    cursor = base64.urlsafe_b64encode(CRAFTED_CURSORS[crafted].encode()).decode().rstrip("=")
+    response = client.get("/v1/jobs", params={"cursor": cursor})
+    assert (response.status_code, response.json()["detail"]) == (
+        422, f"cursor {cursor[:40]!r} is not a cursor of GET /v1/jobs: send a page's next_cursor unchanged")
+
+
 def test_a_job_downsampling_past_its_scenes_images_is_refused_before_it_is_queued(client, dataset, root):
     """A scene of small images is ready (its ingest decodes them at full size); a job asking a downsample larger than
     them had been accepted and failed in the worker's fit. The scene's size is known from its upload's checks."""
