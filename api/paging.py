@@ -98,16 +98,21 @@ def decode_cursor(listing: str, cursor: str) -> tuple[datetime, str]:
 
 
 def read_page(session: Session, listing: str, model, filters: list, page: PageQuery) -> PageRows:
-    """The page of ``model`` rows matching ``filters``, newest first (ties: the larger id first)."""
-    count = select(func.count()).select_from(model)
-    total = session.scalar(count.where(*filters)) or 0
+    """The page of ``model`` rows matching ``filters``, newest first (ties: the larger id first).
+
+    With a cursor, the total and the offset are counted in one statement: counted apart, a row created between them
+    had given an offset past the total ("4–4 of 3"). The rows are read by a statement of their own: a row deleted since
+    the counts leaves the page a row short, and by offset a row created since shifts the page by one (a last page may
+    then end a row past the total)."""
     place = tuple_(model.created_at, model.id)
     query = select(model).where(*filters).order_by(model.created_at.desc(), model.id.desc()).limit(page.limit + 1)
     if page.after is None:
         offset = page.offset
+        total = session.scalar(select(func.count()).select_from(model).where(*filters)) or 0
         query = query.offset(offset)
     else:
-        offset = session.scalar(count.where(*filters, place >= page.after)) or 0
+        counts = select(func.count(), func.count().filter(place >= page.after)).select_from(model).where(*filters)
+        total, offset = session.execute(counts).one()
         query = query.where(place < page.after)
     rows = list(session.scalars(query))
     more = len(rows) > page.limit  # (read one past the page: a count taken apart may be stale by then)
