@@ -1239,6 +1239,46 @@ def test_a_refinement_failing_part_way_leaves_the_earlier_runs_outputs_as_they_w
         os.close(held)
 
 
+def test_an_output_path_refine_cannot_write_fails_it_at_once_and_a_failed_move_leaves_no_summary(
+        tmp_path, tiny_model, make_sphere_grid, monkeypatch, capsys):
+    """A folder named as one of its outputs in --out had failed the move after the whole refinement, the earlier
+    previews already deleted and some new grids moved in beside the earlier refine.json, which described neither
+    run. Every output path is checked before the refinement, and the earlier refine.json goes before the first
+    move: refine.json in --out means the set is whole."""
+    import voxe_core.refine.pipeline
+    from voxe_core.cli.common import staging_folder
+    from voxe_core.cli.refine import OUTPUT_FILES, _move_outputs
+
+    grid = make_sphere_grid(8)
+    grid.save(tmp_path / "grid.safetensors", dense=True)
+    out = tmp_path / "out"
+    (out / "renders").mkdir(parents=True)
+    for name in OUTPUT_FILES:
+        (out / name).write_text("earlier")
+    (out / "renders" / "refined_00.png").write_text("earlier")
+    (out / "probabilities.safetensors").unlink()
+    (out / "probabilities.safetensors").mkdir()  # in the way
+    earlier = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    refined = []
+    monkeypatch.setattr(voxe_core.refine.pipeline, "refine", lambda *args, **kwargs: refined.append(args))
+    capsys.readouterr()
+    assert main(["refine", str(tmp_path / "grid.safetensors"), "--initial", str(tmp_path / "grid.safetensors"),
+                 "--prompt", "a dog wearing a party hat", "--edit-words", "party hat", "--out", str(out),
+                 "--model", str(tiny_model), "--offline", "--device", "cpu", "--iterations", "1",
+                 "--render-size", "16", "--views", "1", "--preview-views", "1", "--quiet"]) == 2
+    assert f"cannot write {out / 'probabilities.safetensors'}: it is a folder" in capsys.readouterr().err
+    assert refined == []  # failed before the refinement
+    assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == earlier
+
+    with pytest.raises(OSError), staging_folder(out, "refine") as staging:  # a move failing part way all the same
+        (staging / "renders").mkdir()
+        (staging / "renders" / "refined_00.png").write_text("new")
+        for name in OUTPUT_FILES:
+            (staging / name).write_text("new")
+        _move_outputs(staging, out)
+    assert not (out / "refine.json").exists()  # no summary beside the mix
+
+
 def test_relative_edit_seeds_take_every_node_near_the_largest_edit_probability():
     # the authors' rule: every node with P_e >= 0.992 max P_e (here 40 nodes), at least edit_seeds by P_e,
     # never a node the object claims more

@@ -17,7 +17,8 @@ from pathlib import Path
 from voxe_core import constants as paper
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, check_device, load_guidance,
-    non_negative_int, positive_int, remove_earlier_outputs, run_stage, seed, staging_folder, writable_folder,
+    non_negative_int, positive_int, remove_earlier_outputs, run_stage, seed, staging_folder, writable_file,
+    writable_folder,
 )
 from voxe_core.presets import SEED, refine_config
 
@@ -40,7 +41,8 @@ def add_parsers(commands, common) -> None:
     ref.add_argument("--edit-words", required=True, metavar="WORDS",
                      help='comma-separated words or phrases of the prompt that name the edit, e.g. "sunglasses" or "party hat"')
     ref.add_argument("--out", type=Path, required=True, metavar="DIR",
-                     help="writes refined.safetensors, mask.safetensors, probabilities.safetensors, refine.json, renders/*.png")
+                     help="writes refined.safetensors, mask.safetensors, probabilities.safetensors, renders/*.png and, last, "
+                          "refine.json: where it is, the set is whole")
     add_grid_output_arguments(ref)
     add_model_arguments(ref, "--model", "diffusers-layout Stable Diffusion for the cross-attention maps",
                         paper.ATTENTION_MODEL_ID)
@@ -92,6 +94,9 @@ def cmd_refine(args) -> int:
         raise ValueError("--edit-words names no word")
     check_device(args)
     writable_folder(args.out)
+    for name in OUTPUT_FILES:  # (a folder in the way had failed the move, after the whole refinement)
+        writable_file(args.out / name)
+    writable_folder(args.out / "renders")
     model = args.model or paper.ATTENTION_MODEL_ID
     config = refine_config(job_params(args), model)
     initial, edited = load_grid(args.initial), load_grid(args.edited)
@@ -164,8 +169,10 @@ def _write_outputs(folder: Path, result, words: list[str], model: str, config, s
 
 
 def _move_outputs(staging: Path, out: Path) -> None:
-    """Move a whole set of outputs from ``staging`` into ``out`` over an earlier run's: the earlier previews go first
-    (fewer --preview-views had left another run's frames beside), refine.json, which describes the set, last."""
+    """Move a whole set of outputs from ``staging`` into ``out`` over an earlier run's: the earlier refine.json goes
+    first, so a move failing part way leaves no summary beside a mix of two runs' files, then the earlier previews
+    (fewer --preview-views had left another run's frames beside); refine.json, which describes the set, comes last."""
+    (out / "refine.json").unlink(missing_ok=True)
     remove_earlier_outputs(out / "renders", PREVIEW_FRAME)
     (out / "renders").mkdir(exist_ok=True)
     for frame in sorted((staging / "renders").iterdir()):
