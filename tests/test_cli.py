@@ -1127,6 +1127,59 @@ def test_a_render_failing_part_way_leaves_the_earlier_runs_views_as_they_were(sp
 
 
 @pytest.mark.parametrize("command", ["render", "evaluate"])
+def test_an_output_path_in_the_way_fails_the_run_before_it_renders(sphere_file, tmp_path, capsys, command):
+    """A folder named as one of its outputs in --out had failed the move after the whole run: the earlier run's
+    files replaced in part (evaluate's, beside the earlier evaluation.json). Every output path is checked first."""
+    import voxe_core.export
+
+    out = tmp_path / "out"
+    argv = {"render": ["render", str(sphere_file), "--ring", "2", "--size", "16"],
+            "evaluate": ["evaluate", str(sphere_file), "--object", "ball", "--size", "16", "--views", "2",
+                         "--edit", str(sphere_file), "a claymation ball"]}[command]
+    if command == "evaluate":
+        from voxe_core.tiny_eval import build_tiny_clip
+
+        argv += ["--clip-model", str(build_tiny_clip(tmp_path / "clip"))]  # SMOKE-TEST MODEL: plumbing only
+    assert main([*argv, "--out", str(out), "--quiet"]) == 0
+    in_the_way = out / {"render": "001.png", "evaluate": "evaluation.md"}[command]
+    in_the_way.unlink()
+    in_the_way.mkdir()
+    earlier = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    real_save_png, saved = voxe_core.export.save_png, []
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(voxe_core.export, "save_png", lambda path, image: saved.append(path) or real_save_png(path, image))
+        capsys.readouterr()
+        assert main([*argv, "--out", str(out), "--quiet"]) == 2
+    assert f"cannot write {in_the_way}: it is a folder" in capsys.readouterr().err and saved == []
+    assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == earlier
+
+
+def test_an_evaluation_whose_move_fails_part_way_leaves_no_summary(sphere_file, tmp_path, monkeypatch):
+    """The earlier evaluation.json had stayed beside this run's ring renders moved in before the failure: it goes
+    before the first move, so evaluation.json in --out means the set is whole."""
+    import errno
+
+    from voxe_core.tiny_eval import build_tiny_clip
+
+    out = tmp_path / "eval"
+    command = ["evaluate", str(sphere_file), "--object", "ball", "--out", str(out), "--size", "16", "-q",
+               "--clip-model", str(build_tiny_clip(tmp_path / "clip")), "--edit", str(sphere_file), "a claymation ball"]
+    assert main(command + ["--views", "2"]) == 0
+    real_replace, moved = os.replace, []
+
+    def failing_at_the_second_frame(source, target):
+        if Path(target).parent.parent == out / "ring":  # (other renames, a frame saved in the staging, go on)
+            if moved:
+                raise OSError(errno.EIO, "Input/output error", str(target))
+            moved.append(target)
+        real_replace(source, target)
+
+    monkeypatch.setattr(os, "replace", failing_at_the_second_frame)
+    assert main(command + ["--views", "3"]) == 2
+    assert len(moved) == 1 and not (out / "evaluation.json").exists() and not (out / "evaluation.md").exists()
+
+
+@pytest.mark.parametrize("command", ["render", "evaluate"])
 def test_a_users_own_folder_named_like_the_staging_is_refused_not_emptied(sphere_file, tmp_path, capsys, command):
     """A folder of the staging's name that no run made (the user's, holding their files) had been emptied by the
     next run: it is refused, naming it, and left as it was; one a run made and was killed in (marked) is cleared."""

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_model_arguments, add_view_arguments, check_device, load_views, positive_int,
-    remove_earlier_outputs, run_stage, staging_folder, view_options_given, writable_folder,
+    remove_earlier_outputs, run_stage, staging_folder, view_options_given, writable_file, writable_folder,
 )
 from voxe_core.constants import (
     CLIP_MODEL_ID, EVALUATION_RING_ELEVATION, EVALUATION_RING_SIZE, EVALUATION_RING_VIEWS, INCEPTION_FILE,
@@ -28,8 +28,8 @@ def add_parsers(commands, common) -> None:
                          "its mask.safetensors (repeat --edit for several edits)")
     ev.add_argument("--object", required=True, help='what the object is, for the source text "a render of a <object>"')
     ev.add_argument("--out", type=Path, required=True, metavar="DIR",
-                    help="writes evaluation.json, evaluation.md and the ring renders ring/<name>/NNN.png "
-                         "(replacing those of an earlier run there)")
+                    help="writes the ring renders ring/<name>/NNN.png, then evaluation.json and evaluation.md "
+                         "(replacing those of an earlier run there; evaluation.json there: the set is whole)")
     add_model_arguments(ev, "--clip-model", "transformers CLIPModel", CLIP_MODEL_ID)
     ev.add_argument("--inception", type=Path, default=None, metavar="PATH",
                     help=f"TorchScript Inception file ({INCEPTION_FILE}) or its folder; without it no FID")
@@ -68,6 +68,11 @@ def cmd_evaluate(args) -> int:
     for k, (grid_path, prompt, *mask_path) in enumerate(args.edit):
         mask = load_mask(Path(mask_path[0])) if mask_path else None
         edits.append(EditSample(f"edit{k:02d}", prompt, load_grid(Path(grid_path)), mask))
+    # Every output path checked now: a folder in the way had failed the move, after the whole evaluation
+    for path in (args.out / "evaluation.json", args.out / "evaluation.md",
+                 *(args.out / "ring" / name / f"{i:03d}.png"
+                   for name in ("initial", *(e.name for e in edits)) for i in range(config.views))):
+        writable_file(path)
     input_images = None
     if args.data is not None:
         input_images = load_views(args).images
@@ -89,6 +94,8 @@ def cmd_evaluate(args) -> int:
         if result is None:
             print("voxe: evaluation cancelled, nothing written", file=sys.stderr)
             return EXIT_INTERRUPTED
+        for summary_file in ("evaluation.json", "evaluation.md"):  # (none beside a move failing part way)
+            (out / summary_file).unlink(missing_ok=True)
         clear_ring_renders(out / "ring")
         for frame in sorted(staging.glob("*/*.png")):
             (out / "ring" / frame.parent.name).mkdir(parents=True, exist_ok=True)

@@ -91,6 +91,9 @@ def cmd_render(args) -> int:
         size = ExportConfig.view_size if args.size is None else args.size
         cameras = turntable_cameras(args.ring, elevation, size, centre=orbit_centre(args, grid))
         names = [f"{i:03d}.png" for i in range(args.ring)]
+    outputs = names + ([METRICS_FILE] if scene is not None else [])
+    for name in outputs:  # (a folder in the way had failed the move, after the whole render)
+        writable_file(args.out / name)
     # Each view saved as it is rendered (all had been held first)
     with staging_folder(args.out, "render") as staging:
         scores = run_stage(lambda cb: _render_into(staging, grid, cameras, names, scene, cb, device), "render",
@@ -98,7 +101,7 @@ def cmd_render(args) -> int:
         if scores is None:
             print("voxe: rendering cancelled, nothing written", file=sys.stderr)
             return EXIT_INTERRUPTED
-        _replace_manifest(args.out, names + ([METRICS_FILE] if scene is not None else []))
+        _replace_manifest(args.out, outputs)
         for name in names:
             os.replace(staging / name, args.out / name)
     print(f"wrote {len(names)} views to {args.out}")
