@@ -122,7 +122,8 @@ def media_type(request: HTTPConnection) -> str:
 def sends_body(request: Request) -> bool:
     """Whether the request frames a body (RFC 9112 section 6.1): a Content-Length other than 0, or a
     Transfer-Encoding."""
-    return "transfer-encoding" in request.headers or request.headers.get("content-length", "0").strip() != "0"
+    length = request.headers.get("content-length", "0").strip()
+    return "transfer-encoding" in request.headers or not (length.isdigit() and int(length) == 0)
 
 
 def listed(names: list[str], most: int = 5, width: int = 40) -> str:

@@ -346,6 +346,9 @@ def test_an_upload_not_sent_as_a_form_is_a_documented_415_and_a_broken_form_a_do
         assert (response.status_code, response.json()["detail"]) == (
             415, "the body must be sent as a form (multipart/form-data, as curl -F sends it), not as "
                  f"{sent_as or 'no media type'}"), sent_as
+    for length in ("0", "00"):  # no body, however its length is written: the 422 naming what to send
+        response = client.post("/v1/scenes", headers={"content-length": length})
+        assert response.status_code == 422 and response.json()["detail"].startswith("send either one zip"), length
     broken = client.post("/v1/scenes", content=b"x", headers={"content-type": "multipart/form-data"})
     assert (broken.status_code, broken.json()["detail"]) == (400, "Missing boundary in multipart.")
     assert {"400", "415"} <= set(spec["paths"]["/v1/scenes"]["post"]["responses"])
@@ -416,13 +419,22 @@ def test_a_client_gone_mid_json_body_is_fastapis_400_not_a_500(client):
 
 def test_a_json_body_over_its_own_limit_is_a_documented_413_naming_it(client, spec):
     """JSON bodies had been allowed up to the upload limit (VOXE_MAX_UPLOAD_BYTES, 2 GiB), each read whole and
-    parsed on the event loop; the largest job, sweep or evaluation the schemas allow is under 100 KiB."""
+    parsed on the event loop; the largest job, sweep or evaluation the schemas allow is under 100 KiB. Any body but
+    a multipart form has the limit: FastAPI reads a text/plain one (or one of no media type) whole before its 415,
+    and a JSON route's limit had been escaped by naming another type."""
     padding = b" " * (1 << 20)  # whitespace: valid JSON, only its size refuses it
     body = b'{"scene_id": "x", "prompt": "a mic"' + padding + b"}"
-    for content in (body, iter([body[:1000], body[1000:]])):  # by Content-Length, and counted while it streams
-        response = client.post("/v1/jobs", content=content, headers={"content-type": "application/json"})
-        assert (response.status_code, response.json()["detail"]) == (
-            413, f"JSON body over the limit of {1 << 20} bytes (VOXE_MAX_JSON_BODY_BYTES)")
+    over = (413, f"JSON body (any body but an upload's multipart form) over the limit of {1 << 20} bytes "
+                 "(VOXE_MAX_JSON_BODY_BYTES)")
+    for streamed in (False, True):  # by Content-Length, and counted while it streams
+        for path, sent_as in (("/v1/jobs", "application/json"), ("/v1/jobs", "text/plain"), ("/v1/jobs", None),
+                              ("/v1/sweeps", "application/x-www-form-urlencoded"), ("/v1/scenes", "application/zip")):
+            content = iter([body[:1000], body[1000:]]) if streamed else body
+            response = client.post(path, content=content, headers={"content-type": sent_as} if sent_as else {})
+            if path == "/v1/scenes" and streamed:  # the upload's 415 comes first, before any of the body is read
+                assert response.status_code == 415, sent_as
+                continue
+            assert (response.status_code, response.json()["detail"]) == over, (path, sent_as, streamed)
     assert "VOXE_MAX_JSON_BODY_BYTES" in spec["paths"]["/v1/jobs"]["post"]["responses"]["413"]["description"]
     under = b'{"scene_id": "x", "prompt": "a mic"' + padding[:-100] + b"}"
     assert client.post("/v1/jobs", content=under, headers={"content-type": "application/json"}).status_code == 404
