@@ -6,6 +6,7 @@ import base64
 import contextlib
 import io
 import json
+import re
 import shutil
 import threading
 import zipfile
@@ -1779,9 +1780,10 @@ def test_a_mesh_scene_archive_keeps_the_uploaded_mesh(client, root, monkeypatch)
     from voxe_service.models import Scene
 
     scene = _mesh_scene(client, monkeypatch)
-    assert stored_files(root) == [f"scenes/{scene['id']}/dataset.zip"]  # the upload's archive was replaced
     with session_scope() as session:
         key = session.get(Scene, scene["id"]).storage_key
+    assert re.fullmatch(rf"scenes/{scene['id']}/dataset-[0-9a-f]{{8}}\.zip", key)  # (its ingest run's own key)
+    assert stored_files(root) == [key]  # the upload's archive was replaced
     with zipfile.ZipFile(root / "storage" / key) as archive:
         names = set(archive.namelist())
         assert archive.read("mesh/mesh.obj") == (SPOT / "spot_triangulated.obj").read_bytes()

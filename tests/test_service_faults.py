@@ -1792,6 +1792,101 @@ def test_an_ingest_held_by_a_live_run_is_dropped_and_one_whose_hold_ran_out_is_t
     assert (state, worker, attempts) == ("failed", "w2@host", 2)
 
 
+@pytest.mark.parametrize("stalled_in", ["render", "package"])
+def test_a_superseded_mesh_ingest_leaves_the_winners_archive_as_recorded(db, tmp_path, monkeypatch, stalled_in):
+    """A mesh ingest whose hold lapsed (its renewals could not reach the database) went on and stored its rendered
+    dataset over the archive of the run that had taken the scene over and made it ready (the zips differ: every job's
+    fetch then failed its SHA-256 check). Stalled before it stores, it stops at its lease's check; stalled past that
+    check, it stores under a key of its own, which it deletes once its result is refused: the scene keeps the
+    winner's archive, as recorded, and nothing else."""
+    import io
+    import threading
+    import zipfile
+
+    from celery.exceptions import Reject
+    from sqlalchemy.exc import OperationalError
+
+    from voxe_service import datasets
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
+    from voxe_service.storage import get_storage, scene_key
+    from worker import ingest, runtime
+
+    settings, storage = db.model_copy(update={"stage_lease_s": 0.5}), get_storage(db)
+    monkeypatch.setattr(ingest, "OUTAGE_PAUSE_S", 0.0)
+    scene = add_scene("processing")
+    mesh = io.BytesIO()
+    with zipfile.ZipFile(mesh, "w") as zf:
+        zf.writestr("mesh/mesh.obj", "v 0 0 0\n")
+    upload = storage.put_bytes(scene_key(scene, datasets.UPLOAD_ARCHIVE), mesh.getvalue())
+    with session_scope() as session:
+        row = session.get(Scene, scene)
+        row.format, row.storage_key, row.size_bytes, row.sha256 = "mesh", upload.key, upload.size, upload.sha256
+
+    stalled, go_on = threading.Event(), threading.Event()
+
+    def stall(where: str) -> None:  # run A stops at ``stalled_in`` until run B made the scene ready
+        if threading.current_thread().name == "A" and where == stalled_in:
+            stalled.set()
+            go_on.wait(10)
+
+    def render_mesh(root):  # each run's views its own (a real render's zip differs by its file times)
+        stall("render")
+        (root / "transforms_train.json").write_text("{}")
+        (root / "r_0.png").write_text(threading.current_thread().name)
+
+    package, lease = datasets.package, ingest.ingest_lease
+
+    def stalled_package(root, archive):
+        stall("package")
+        return package(root, archive)
+
+    def unreachable(**_values):
+        raise OperationalError("UPDATE scenes", {}, Exception("server closed the connection unexpectedly"),
+                               connection_invalidated=True)
+
+    def a_cut_off(scene_id, token, settings_):  # run A's renewals cannot reach the database
+        keeper = lease(scene_id, token, settings_)
+        if threading.current_thread().name == "A":
+            keeper._renew = unreachable
+        return keeper
+
+    monkeypatch.setattr(ingest, "render_mesh", render_mesh)
+    monkeypatch.setattr(ingest, "decode", lambda root, downsample: ingest.Decoded(1, "relu_field"))
+    monkeypatch.setattr(datasets, "package", stalled_package)
+    monkeypatch.setattr(ingest, "ingest_lease", a_cut_off)
+
+    outcome = {}
+
+    def run_a():
+        try:
+            outcome["A"] = ingest.ingest_scene(scene, settings, storage, "w1@host")
+        except Reject as exc:
+            outcome["A"] = exc
+
+    a = threading.Thread(target=run_a, name="A")
+    a.start()
+    try:
+        assert stalled.wait(10)
+        time.sleep(0.6)  # A's lease runs out unrenewed: B (the reaper's re-send) takes the scene over
+        assert ingest.ingest_scene(scene, settings, storage, "w2@host") == {"scene_id": scene, "state": "ready"}
+    finally:
+        go_on.set()
+        a.join()
+    with session_scope() as session:
+        row = session.get(Scene, scene)
+        assert (row.state, row.worker_hostname) == ("ready", "w2@host")
+        recorded = runtime.scene_archive(row)
+    runtime.fetch(storage, recorded, tmp_path / "job.zip")  # the bytes recorded (raises otherwise)
+    with zipfile.ZipFile(tmp_path / "job.zip") as zf:
+        assert zf.read("r_0.png") == b"MainThread"  # (B's)
+    assert storage.list(scene_key(scene)) == [recorded.key]  # (the upload, packed into it, and A's archive gone)
+    if stalled_in == "render":  # stopped before storing: its message goes back (a redelivery finds the scene ready)
+        assert isinstance(outcome["A"], Reject)
+    else:
+        assert outcome["A"] == {"scene_id": scene, "skipped": f"scene {scene}: another run took its ingest over"}
+
+
 def test_api_startup_reaps_and_deletes_the_orphans_checkpoints(db):
     """The reaper runs in the API process: a restarted API sends again what a dead worker left running, keeping
     its checkpoints to resume from, and fails a job sent again too often, deleting its checkpoints."""

@@ -2,7 +2,8 @@
 
 The API packs what it accepted (``scenes/<id>/dataset.zip`` for images; ``scenes/<id>/upload.zip``
 holding only ``mesh/`` for a mesh); the worker's ingest decodes it, renders a mesh into a
-NeRF-synthetic dataset beside ``mesh/`` and packs that as the mesh scene's ``dataset.zip``.
+NeRF-synthetic dataset beside ``mesh/`` and packs that as the mesh scene's archive, under a key of
+the run's own (``scenes/<id>/dataset-<run>.zip``; ``dataset.zip`` for scenes made ready before).
 Jobs read ``Scene.storage_key``, always the dataset archive once the scene is ready.
 """
 

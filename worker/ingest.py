@@ -40,7 +40,8 @@ from voxe_service.scenes import fail_scene, mark_ready
 from voxe_service.scratch import locked_folder, sweep_unlocked
 from voxe_service.settings import Settings
 from voxe_service.storage import Storage, StorageUnavailable, StoredObject, scene_key
-from worker.runtime import failure_text, fetch, ingest_lease, scene_archive, worker_in_cold_shutdown
+from worker.runtime import (LeaseKeeper, LeaseLost, failure_text, fetch, ingest_lease, scene_archive,
+                            worker_in_cold_shutdown)
 
 log = logging.getLogger("voxe.worker")
 
@@ -143,10 +144,15 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
         if isinstance(taken, str):
             return {"scene_id": scene_id, "skipped": taken}
         upload, interrupted = taken
-        with ingest_lease(scene_id, token, settings):
-            return _ingest(scene_id, token, upload, interrupted, settings, storage)
-    except (*DATABASE_UNAVAILABLE, StorageUnavailable) as exc:
-        if isinstance(exc, StorageUnavailable):
+        with ingest_lease(scene_id, token, settings) as lease:
+            return _ingest(scene_id, token, upload, interrupted, lease, settings, storage)
+    except (*DATABASE_UNAVAILABLE, StorageUnavailable, LeaseLost) as exc:
+        if isinstance(exc, LeaseLost):
+            if lease.lost:  # another run holds the scene: what it stores is the scene's, this run writes nothing
+                log.warning("scene %s: %s; this run stops", scene_id, exc)
+                return {"scene_id": scene_id, "skipped": str(exc)}
+            cause = f"a database outage ({exc})"  # (its renewals could not reach the database)
+        elif isinstance(exc, StorageUnavailable):
             cause = f"a storage outage ({exc})"
         elif (why := database_outage(exc)) is not None:
             cause = f"a database outage ({why})"
@@ -189,10 +195,12 @@ def _take(scene_id: str, token: str, hostname: str | None, settings: Settings) -
         time.sleep(settings.stage_lease_s / 8)
 
 
-def _ingest(scene_id: str, token: str, upload: StoredObject, interrupted: int, settings: Settings,
-            storage: Storage) -> TaskResult:
-    """The ingest of the scene this run (``token``) took, its archive ``upload`` as recorded, after ``interrupted``
-    runs before it."""
+def _ingest(scene_id: str, token: str, upload: StoredObject, interrupted: int, lease: LeaseKeeper,
+            settings: Settings, storage: Storage) -> TaskResult:
+    """The ingest of the scene this run (``token``, its hold kept by ``lease``) took, its archive ``upload`` as
+    recorded, after ``interrupted`` runs before it. A mesh's rendered dataset is stored under a key of this run's own
+    (:func:`run_archive_key`): a run that lost its hold, stalled past the check before it stores, never overwrites
+    the archive another run recorded (every job's fetch had then failed its SHA-256 check)."""
     # The runs before this one, less the first: how often the ingest was sent again.
     if error := requeue_limit_error(interrupted - 1, settings, f"ingest: interrupted {interrupted} times, its worker "
                                     "process dying each time (killed: out of memory?) or a database or storage "
@@ -214,9 +222,10 @@ def _ingest(scene_id: str, token: str, upload: StoredObject, interrupted: int, s
                 render_mesh(root)
             count, values["backbone"] = decode(root, settings.validation_downsample)
             if mesh_upload:  # the rendered dataset (and the mesh beside it) becomes the scene's archive
+                lease.check()
                 archive = scratch / datasets.DATASET_ARCHIVE
                 datasets.package(root, archive)
-                stored = storage.put_file(scene_key(scene_id, datasets.DATASET_ARCHIVE), archive, "application/zip")
+                stored = storage.put_file(run_archive_key(scene_id, token), archive, "application/zip")
                 size = datasets.MESH_VIEW_SIZE
                 values.update(storage_key=stored.key, size_bytes=stored.size, sha256=stored.sha256, image_count=count,
                               width=size, height=size, splits=["train", "test"])
@@ -224,14 +233,20 @@ def _ingest(scene_id: str, token: str, upload: StoredObject, interrupted: int, s
             if worker_in_cold_shutdown():  # ... but a cold shutdown's (it had failed the scene and deleted its upload)
                 _give_back(scene_id, token, uncount=True)
                 raise Reject(f"the ingest of scene {scene_id} stopped by the worker's shutdown", requeue=True) from exc
-            if isinstance(exc, StorageUnavailable):  # ... and a storage outage's, no fault of the upload either
-                raise
+            if isinstance(exc, (StorageUnavailable, LeaseLost)):  # ... a storage outage's, no fault of the upload
+                raise  # either, and a lost hold's (the scene another run's to end)
             reason = str(exc) if isinstance(exc, IngestError) else f"ingest: {failure_text(exc)}"
             if not isinstance(exc, IngestError):
                 log.exception("scene %s: ingest failed", scene_id)
             _fail(scene_id, token, reason, storage)
             return {"scene_id": scene_id, "state": "failed"}
     return _ready(scene_id, token, values, storage, settings, upload.key if mesh_upload else None)
+
+
+def run_archive_key(scene_id: str, token: str) -> str:
+    """The key the run ``token`` stores a mesh scene's rendered dataset under (``scenes/<id>/dataset-<run>.zip``);
+    scenes made ready before it keep theirs at ``scenes/<id>/dataset.zip``, read as recorded."""
+    return scene_key(scene_id, f"{Path(datasets.DATASET_ARCHIVE).stem}-{token[:8]}.zip")
 
 
 def _give_back(scene_id: str, token: str, uncount: bool = False) -> None:
@@ -280,18 +295,29 @@ def _ready(scene_id: str, token: str, values: dict, storage: Storage, settings: 
                 except QueueUnavailable:  # left queued with no task id: the reaper sends it once the broker is back
                     log.warning("scene %s: could not dispatch job %s", scene_id, job.id)
     if over:
-        if not _fail(scene_id, token, over, storage) and _ended(scene_id):  # (its views go all the same)
-            storage.discard_prefixes(scene_key(scene_id))
+        if not _fail(scene_id, token, over, storage):
+            _discard_refused(scene_id, values.get("storage_key"), storage)
         return {"scene_id": scene_id, "state": "failed"}
     if waiting is None:
-        if not _ended(scene_id):  # another run took the ingest over (this one's lease ran out): its bytes are kept
-            return {"scene_id": scene_id, "skipped": f"scene {scene_id}: another run took its ingest over"}
-        storage.discard_prefixes(scene_key(scene_id))  # deleted (or failed) while it was decoded: keep nothing of it
-        return {"scene_id": scene_id, "skipped": f"scene {scene_id} was deleted or failed meanwhile"}
+        if _discard_refused(scene_id, values.get("storage_key"), storage):
+            return {"scene_id": scene_id, "skipped": f"scene {scene_id} was deleted or failed meanwhile"}
+        return {"scene_id": scene_id, "skipped": f"scene {scene_id}: another run took its ingest over"}
     if replaced_key:  # the mesh upload, now packaged
         storage.discard(replaced_key)
     log.info("scene %s ready; dispatched %d waiting job(s)", scene_id, len(waiting))
     return {"scene_id": scene_id, "state": "ready"}
+
+
+def _discard_refused(scene_id: str, stored_key: str | None, storage: Storage) -> bool:
+    """Discard what a run whose result was refused leaves of no use, and say whether the scene ended: all its bytes
+    when it was deleted or failed meanwhile; else (another run took the ingest over) only ``stored_key``, the
+    dataset this run rendered under its own key, the upload and the other run's archive kept."""
+    if _ended(scene_id):
+        storage.discard_prefixes(scene_key(scene_id))
+        return True
+    if stored_key:
+        storage.discard(stored_key)
+    return False
 
 
 def _ended(scene_id: str) -> bool:
