@@ -244,7 +244,8 @@ def reap_orphaned_scenes(settings: Settings, now: datetime | None = None) -> lis
             Scene.id, Scene.task_id, Scene.worker_hostname, Scene.ingest_attempts, Scene.updated_at).where(
             Scene.state == PROCESSING, Scene.updated_at < cutoff,
             or_(Scene.ingest_lease_until.is_(None), Scene.ingest_lease_until < now),  # no live run renews a hold
-            or_(Scene.task_id.is_(None), Scene.worker_hostname.not_in(alive),
+            or_(Scene.task_id.is_(None),  # its worker gone (one no worker took waits, even while none is alive):
+                and_(Scene.worker_hostname.is_not(None), Scene.worker_hostname.not_in(alive)),
                 Scene.ingest_lease_until < cutoff))).all()  # (a run that ended without a word on a live worker)
         alive_now = set(session.scalars(alive)) if stale else set()
         waiting = _sql_broker_waiting(settings.broker_url) if stale and is_sql_broker(settings.broker_url) else set()

@@ -1733,6 +1733,31 @@ def test_reaper_sends_again_the_ingests_of_scenes_whose_worker_died_and_fails_th
         assert broker.execute("SELECT count(*) FROM kombu_message").fetchone()[0] == len(resent) + 1
 
 
+def test_reaper_leaves_an_untaken_ingest_waiting_while_no_worker_heartbeats(db, monkeypatch):
+    """With no worker heartbeating for VOXE_JOB_STALE_TIMEOUT_S (the fleet down, or scaled to zero), a scene whose
+    ingest message no worker took yet (no worker recorded) had been taken for one whose worker died ("worker None
+    stopped": a NULL hostname is NOT IN an empty list) and sent again on every pass. It waits for a worker; one whose
+    worker died is sent again once, and then waits too."""
+    from types import SimpleNamespace
+
+    import api.reaper as reaper
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene, utcnow
+
+    sent = []
+    monkeypatch.setattr(reaper, "get_queue", lambda: SimpleNamespace(
+        send_ingest=lambda scene_id: sent.append(scene_id) or f"task-{len(sent)}"))
+    timeout = db.job_stale_timeout_s
+    untaken = add_scene("processing", 2 * timeout, task_id="the upload's message")
+    orphan = add_scene("processing", 2 * timeout, worker="dead@host", ingest_attempts=1)
+    for later in range(3):  # passes while the fleet stays down
+        assert reaper.reap_orphaned_scenes(db, now=utcnow() + timedelta(seconds=later * 2 * timeout)) == []
+    assert sent == [orphan]
+    with session_scope() as session:
+        row = session.get(Scene, untaken)
+        assert (row.state, row.task_id, row.worker_hostname) == ("processing", "the upload's message", None)
+
+
 def test_an_ingest_held_by_a_live_run_is_dropped_and_one_whose_hold_ran_out_is_taken_over(db, tmp_path):
     """Two workers could ingest one scene at once (a broker's redelivery, or a re-send, beside a live run). The run
     holds the scene under a lease, as a stage's run holds its job: a second message waits, and is dropped once the
