@@ -1758,6 +1758,49 @@ def test_reaper_leaves_an_untaken_ingest_waiting_while_no_worker_heartbeats(db, 
         assert (row.state, row.task_id, row.worker_hostname) == ("processing", "the upload's message", None)
 
 
+@pytest.mark.parametrize("released_by", ["a restart's recovery", "a run giving it back"])
+def test_an_ingest_hold_released_while_the_broker_refuses_is_sent_again_by_the_reaper(db, monkeypatch, released_by):
+    """A hold is released so that a new message takes the scene at once: by a restarted worker's recovery before it
+    re-sends the ingest, by a run an outage stopped before its message goes back. Released to no lease at all, a
+    scene whose message never came (the broker refusing the re-send) stayed processing for good: the reaper sends
+    again only a scene whose lease ran out long ago. The lease is left run out: a message takes the scene at once, as
+    before, and without one the reaper sends the ingest again after VOXE_JOB_STALE_TIMEOUT_S."""
+    from types import SimpleNamespace
+
+    import api.reaper as reaper
+    from voxe_service.models import utcnow
+    from voxe_service.queue import QueueUnavailable, get_queue
+    from worker import ingest, tasks
+
+    timeout, held = db.job_stale_timeout_s, utcnow() + timedelta(seconds=60)
+    scenes = [add_scene("processing", 2 * timeout, worker="w@host", ingest_attempts=1, ingest_token=f"run {i}",
+                        ingest_lease_until=held) for i in range(2)]
+
+    def refused(scene_id):
+        raise QueueUnavailable("the broker refused the message (database is locked)")
+
+    if released_by == "a restart's recovery":
+        monkeypatch.setattr(get_queue(), "send_ingest", refused)
+        with pytest.raises(QueueUnavailable):
+            tasks.recover_interrupted_jobs("w@host")
+    else:  # (its message lost on its way back to the queue)
+        for i, scene in enumerate(scenes):
+            ingest._give_back(scene, f"run {i}")
+    later = timeout + 1
+    add_heartbeat("w@host", age_s=-later)  # the worker alive, heartbeating until the reaper's later pass
+
+    took = time.monotonic()
+    assert not isinstance(ingest._take(scenes[0], "a new message's run", "w@host", db), str)
+    assert time.monotonic() - took < db.stage_lease_s / 8  # at once (not after waiting out a lease)
+
+    sent = []
+    monkeypatch.setattr(reaper, "get_queue", lambda: SimpleNamespace(
+        send_ingest=lambda scene_id: sent.append(scene_id) or "sent again"))
+    assert reaper.reap_orphaned_scenes(db) == [] and sent == []  # (its message may yet come)
+    assert reaper.reap_orphaned_scenes(db, now=utcnow() + timedelta(seconds=later)) == []
+    assert sent == [scenes[1]]  # (the one taken above is held by that run)
+
+
 def test_an_ingest_held_by_a_live_run_is_dropped_and_one_whose_hold_ran_out_is_taken_over(db, tmp_path):
     """Two workers could ingest one scene at once (a broker's redelivery, or a re-send, beside a live run). The run
     holds the scene under a lease, as a stage's run holds its job: a second message waits, and is dropped once the

@@ -254,8 +254,9 @@ def _give_back(scene_id: str, token: str, uncount: bool = False) -> None:
     (not after the lease). ``uncount``: a run a worker's shutdown stopped is not one the upload killed: it does not
     count towards the limit (four deploys had failed a scene as "killed: out of memory?"). Only where the shutdown
     raises in the task (the solo pool's); a prefork pool's children are ended from outside, and their runs still
-    count."""
-    values = dict(ingest_token=None, ingest_lease_until=None)
+    count. The lease is left run out, not none: should the message be lost on its way back, the reaper sends the
+    ingest again (it never takes a scene with no lease for one whose run stopped)."""
+    values = dict(ingest_token=None, ingest_lease_until=utcnow())
     if uncount:
         values["ingest_attempts"] = Scene.ingest_attempts - 1  # (this run's, counted as it took the scene)
     try:

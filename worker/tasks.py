@@ -852,9 +852,10 @@ def recover_interrupted_jobs(hostname: str) -> list[str]:
                 log.warning("job %s was interrupted in %s: %s", job.id, job.stage, outcome)
         scenes = list(session.scalars(select(Scene.id).where(Scene.state == PROCESSING,
                                                              Scene.worker_hostname == hostname)))
-        # (the holds of this worker's earlier process are released too: the new messages take the scenes at once)
+        # (the holds of this worker's earlier process are released too: the new messages take the scenes at once; the
+        # lease run out, not none, so the reaper sends again what a broker refusing below leaves with no message)
         session.execute(update(Scene).where(Scene.id.in_(scenes), Scene.worker_hostname == hostname)
-                        .values(ingest_token=None, ingest_lease_until=None))
+                        .values(ingest_token=None, ingest_lease_until=utcnow()))
     for scene_id in scenes:
         queue.send_ingest(scene_id)
         log.warning("the ingest of scene %s was interrupted; re-queued it", scene_id)
