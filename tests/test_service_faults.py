@@ -1955,6 +1955,98 @@ def test_a_superseded_mesh_ingest_leaves_the_winners_archive_as_recorded(db, tmp
         assert outcome["A"] == {"scene_id": scene, "skipped": f"scene {scene}: another run took its ingest over"}
 
 
+def _mesh_scene_rendering(storage, monkeypatch, render=None) -> str:
+    """A processing mesh scene whose ingest renders ``render`` (a view and transforms file by default) and decodes
+    as one image: the ingest's storage and database paths run, not its rasteriser."""
+    import io
+    import zipfile
+
+    from voxe_service import datasets
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
+    from voxe_service.storage import scene_key
+    from worker import ingest
+
+    scene = add_scene("processing")
+    mesh = io.BytesIO()
+    with zipfile.ZipFile(mesh, "w") as zf:
+        zf.writestr("mesh/mesh.obj", "v 0 0 0\n")
+    upload = storage.put_bytes(scene_key(scene, datasets.UPLOAD_ARCHIVE), mesh.getvalue())
+    with session_scope() as session:
+        row = session.get(Scene, scene)
+        row.format, row.storage_key, row.size_bytes, row.sha256 = "mesh", upload.key, upload.size, upload.sha256
+
+    def views(root):
+        (root / "transforms_train.json").write_text("{}")
+        (root / "r_0.png").write_text("x" * 1000)
+    monkeypatch.setattr(ingest, "render_mesh", render or views)
+    monkeypatch.setattr(ingest, "decode", lambda root, downsample: ingest.Decoded(1, "relu_field"))
+    return scene
+
+
+@pytest.mark.parametrize("stopped_by", ["a killed worker", "a database outage"])
+def test_a_mesh_ingest_stopped_between_storing_and_marking_leaves_no_archive_once_ready(db, monkeypatch, stopped_by):
+    """A run stopped after storing its rendered dataset under its own key and before marking the scene ready (its
+    worker killed; the database down at its mark, its message sent back) left that archive behind, never recorded
+    nor counted by the upload quota, one more at each such stop, until the scene was deleted: the run that makes the
+    scene ready discards them."""
+    from celery.exceptions import Reject
+    from sqlalchemy.exc import OperationalError
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
+    from voxe_service.storage import get_storage, scene_key
+    from worker import ingest
+
+    settings, storage = db.model_copy(update={"stage_lease_s": 0.5}), get_storage(db)
+    monkeypatch.setattr(ingest, "OUTAGE_PAUSE_S", 0.0)
+    scene = _mesh_scene_rendering(storage, monkeypatch)
+    mark_ready, marks = ingest.mark_ready, []
+
+    def stopped(*args, **kwargs):
+        marks.append(1)
+        if len(marks) > 1:
+            return mark_ready(*args, **kwargs)
+        if stopped_by == "a killed worker":
+            raise SystemExit("killed")  # (a SIGKILL: nothing after it runs)
+        raise OperationalError("UPDATE scenes", {}, Exception("database is locked"))
+
+    monkeypatch.setattr(ingest, "mark_ready", stopped)
+    with pytest.raises(SystemExit if stopped_by == "a killed worker" else Reject):
+        ingest.ingest_scene(scene, settings, storage, "w1@host")
+    if stopped_by == "a killed worker":
+        expire_ingest_hold(scene)  # its lease runs out; the redelivery takes the scene over
+    assert len(storage.list(scene_key(scene, "dataset-"))) == 1
+    assert ingest.ingest_scene(scene, settings, storage, "w1@host")["state"] == "ready"
+    with session_scope() as session:
+        recorded = session.get(Scene, scene).storage_key
+    assert storage.list(scene_key(scene)) == [recorded]
+
+
+def test_a_mesh_scene_deleted_while_it_renders_is_said_to_be_deleted(db, monkeypatch):
+    """A processing mesh scene deleted while its ingest rendered: the renewal finding no row stops the run, which
+    had said that another run took the ingest over."""
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
+    from voxe_service.storage import get_storage, scene_key
+    from worker import ingest
+
+    settings, storage = db.model_copy(update={"stage_lease_s": 0.5}), get_storage(db)
+    scene = None
+
+    def deleted_meanwhile(root):
+        with session_scope() as session:
+            session.delete(session.get(Scene, scene))
+        storage.delete_prefix(scene_key(scene))  # (as the API's delete does)
+        time.sleep(0.4)  # a renewal finds the row gone
+        (root / "r_0.png").write_text("x")
+
+    scene = _mesh_scene_rendering(storage, monkeypatch, deleted_meanwhile)
+    assert ingest.ingest_scene(scene, settings, storage, "w1@host") == {
+        "scene_id": scene, "skipped": f"scene {scene} was deleted or failed meanwhile"}
+    assert storage.list(scene_key(scene)) == []
+
+
 def test_api_startup_reaps_and_deletes_the_orphans_checkpoints(db):
     """The reaper runs in the API process: a restarted API sends again what a dead worker left running, keeping
     its checkpoints to resume from, and fails a job sent again too often, deleting its checkpoints."""

@@ -149,6 +149,8 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
     except (*DATABASE_UNAVAILABLE, StorageUnavailable, LeaseLost) as exc:
         if isinstance(exc, LeaseLost):
             if lease.lost:  # another run holds the scene: what it stores is the scene's, this run writes nothing
+                if _ended(scene_id):  # (or none: the scene was deleted or failed meanwhile)
+                    return {"scene_id": scene_id, "skipped": f"scene {scene_id} was deleted or failed meanwhile"}
                 log.warning("scene %s: %s; this run stops", scene_id, exc)
                 return {"scene_id": scene_id, "skipped": str(exc)}
             cause = f"a database outage ({exc})"  # (its renewals could not reach the database)
@@ -305,6 +307,8 @@ def _ready(scene_id: str, token: str, values: dict, storage: Storage, settings: 
         return {"scene_id": scene_id, "skipped": f"scene {scene_id}: another run took its ingest over"}
     if replaced_key:  # the mesh upload, now packaged
         storage.discard(replaced_key)
+    if values.get("storage_key"):
+        _discard_earlier_runs(scene_id, values["storage_key"], storage)
     log.info("scene %s ready; dispatched %d waiting job(s)", scene_id, len(waiting))
     return {"scene_id": scene_id, "state": "ready"}
 
@@ -319,6 +323,17 @@ def _discard_refused(scene_id: str, stored_key: str | None, storage: Storage) ->
     if stored_key:
         storage.discard(stored_key)
     return False
+
+
+def _discard_earlier_runs(scene_id: str, recorded_key: str, storage: Storage) -> None:
+    """Discard the rendered datasets earlier runs stored under keys of their own (:func:`run_archive_key`) and never
+    had recorded (stopped between storing and marking the scene ready: a database outage, a killed worker), now that
+    ``recorded_key`` is the scene's: none else can be, and the upload quota counts only the recorded one. An earlier
+    run cannot discard its own there: its mark may have committed with the answer lost."""
+    runs_prefix = run_archive_key(scene_id, "").removesuffix(".zip")  # scenes/<id>/dataset-
+    for key in storage.list(runs_prefix):
+        if key != recorded_key:
+            storage.discard(key)
 
 
 def _ended(scene_id: str) -> bool:
