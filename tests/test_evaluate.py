@@ -290,7 +290,7 @@ def test_preservation_scores_one_view_at_a_time_with_the_values_of_the_whole_rin
     monkeypatch.setattr(voxe_core.evaluate, "psnr", recorded(psnr))
     monkeypatch.setattr(voxe_core.evaluate, "ssim", recorded(ssim))
     scores = preservation(images, recon, sample, sphere_grid, config)
-    assert views_scored == [("psnr", 1)] * 5 + [("ssim", 1)] * 5
+    assert views_scored == [("psnr", 1), ("ssim", 1)] * 5
     whole_ring = {"psnr": psnr(images, recon, keep=keep), "ssim": ssim(images, recon, keep=keep)}
     assert {name: scores[name] for name in whole_ring} == {name: voxe_core.evaluate._finite_mean(values)
                                                            for name, values in whole_ring.items()}
@@ -354,54 +354,84 @@ def test_evaluate_scores_edits_and_an_unchanged_grid_scores_as_identical(sphere_
     reports, rings = [], {}
     result = evaluate(sphere_grid, edits, "ball", clip, fid, inputs, EvaluateConfig(views=4, elevation=20.0, size=24),
                       callbacks=Callbacks(on_progress=reports.append),
-                      on_ring=lambda name, frames: rings.setdefault(name, frames))
+                      on_ring=lambda name, i, view: rings.setdefault(name, []).append(view))
     same, hat = result.rows
     assert same["mode"] == "global" and hat["mode"] == "local"
     assert same["fid_rec"] == pytest.approx(0.0, abs=1e-6) and same["clip_dir"] == 0.0
     assert same["psnr"] == 100.0 and same["ssim"] == pytest.approx(1.0)
     assert hat["fid_rec"] > 0 and hat["fid_input"] > 0 and hat["psnr"] > 60.0
+    rings = {name: torch.stack(views) for name, views in rings.items()}
     assert list(rings) == [None, "same", "hat"] and torch.equal(rings[None], rings["same"])
     assert torch.equal(rings[None], render_ring(sphere_grid, 4, 20.0, 24))
     expected_sim = clip_similarity(clip.image_embeddings(rings[None]),
                                    clip.text_embeddings(["a render of a claymation ball"])[0])
     assert same["clip_sim"] == pytest.approx(expected_sim, abs=1e-5)
-    # Steps: 3 ring renders and 3 CLIP passes of 4 views, 4 footprint views, FID on the 12 renders and 5 inputs.
-    assert evaluation_steps(edits, EvaluateConfig(views=4), fid, inputs) == 45
-    assert reports[-1].iteration == 45 and {r.total for r in reports} == {45}
+    # Steps: 3 ring renders, G_i's again beside each edit's, and 3 CLIP passes of 4 views, 4 footprint views, FID on
+    # the 12 renders and 5 inputs.
+    assert evaluation_steps(edits, EvaluateConfig(views=4), fid, inputs) == 53
+    assert reports[-1].iteration == 53 and {r.total for r in reports} == {53}
     assert {r.info["stage"] for r in reports} == {"ring renders", "CLIP", "FID", "mask footprints"}
     table = format_table(result.rows, extra_columns=("name",))
     assert "| hat | a ball wearing a party hat | local |" in table and "**mean (2)**" in table
     assert json.loads(json.dumps(result.summary()))["means"]["local"]["count"] == 1
 
 
-def test_an_evaluation_holds_one_edits_ring_renders_at_a_time(sphere_grid, tiny_clip_path):
+def test_an_evaluation_holds_one_view_of_each_grid_at_a_time(sphere_grid, tiny_clip_path):
     """Regression: every edit's ring renders were kept in the Evaluation to its end (60 edits × 360 views of 1,024²
-    are 270 GB of floats). Handed to ``on_ring`` as each edit is scored, they are let go after it: when an edit's
-    ring arrives only G_i's and its own are alive, and while the next edit's renders are made only G_i's."""
-    import weakref
+    are 270 GB of floats), then G_i's ring was held to the end beside each edit's (9 GB). The rings go view by view,
+    view i of an edit scored against G_i's view i and both let go; CLIP takes them in its batches as 8-bit pixels (a
+    quarter of a float view each): a few views' worth are alive at any step, not two rings'."""
+    from test_export import views_alive
 
     clip = ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")
-    edits = [EditSample(f"edit{k}", "a claymation ball", sphere_grid) for k in range(4)]
-    alive, seen, rendering = [0], [], []
+    clip.batch_size = 4
+    edited, mask = _local_edit(sphere_grid)
+    edits = [EditSample("global", "a claymation ball", edited), EditSample("hat", "a ball wearing a party hat",
+                                                                           merge(sphere_grid, edited, mask), mask)]
+    alive, handed = [], []
+    result = evaluate(sphere_grid, edits, "ball", clip, None, None, EvaluateConfig(views=16, size=16),
+                      Callbacks(on_progress=lambda report: alive.append(views_alive(16, 16))),
+                      on_ring=lambda name, i, view: handed.append((name, i)))
+    assert handed == [(name, i) for name in (None, "global", "hat") for i in range(16)]
+    # Both grids' views being rendered and the pair before them, CLIP's batch of 4 as 8-bit pixels and a view's
+    # worth to spare (it had been 32 and more: two whole rings)
+    assert len(alive) > 5 * 16 and max(alive) <= 6, alive
+    assert vars(result).keys() == {"rows"} and len(result.rows) == 2
 
-    def on_ring(name, frames):
-        alive[0] += 1
-        weakref.finalize(frames, lambda: alive.__setitem__(0, alive[0] - 1))
-        seen.append((name, alive[0]))
 
-    def on_progress(report):
-        if report.info["stage"] == "ring renders":
-            rendering.append(alive[0])
+def test_the_views_scored_one_by_one_give_the_numbers_of_the_whole_rings(sphere_grid, tiny_clip_path,
+                                                                          tiny_inception_path):
+    """Scored view by view, in the scorers' batches, the rows are those of each whole ring scored at once, bit for
+    bit (batches that do not divide the ring included)."""
+    from voxe_core.evaluate import _finite_mean
 
-    result = evaluate(sphere_grid, edits, "ball", clip, None, None, EvaluateConfig(views=2, size=16),
-                      Callbacks(on_progress=on_progress), on_ring=on_ring)
-    assert seen == [(None, 1), ("edit0", 2), ("edit1", 2), ("edit2", 2), ("edit3", 2)]
-    assert rendering == [0, 0] + [1, 1] * 4  # G_i's ring, then each edit's beside G_i's alone
-    assert vars(result).keys() == {"rows"} and len(result.rows) == 4
+    clip = ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")
+    clip.batch_size = 3
+    fid = InceptionFeatures.load(tiny_inception_path, device="cpu", batch_size=2)
+    edited, mask = _local_edit(sphere_grid)
+    inputs = render_ring(sphere_grid, 5, 45.0, 24)
+    edits = [EditSample("global", "a claymation ball", edited), EditSample("masked", "a blue ball", edited, mask)]
+    config = EvaluateConfig(views=7, elevation=20.0, size=24)
+    rows = evaluate(sphere_grid, edits, "ball", clip, fid, inputs, config).rows
+    centre = sphere_grid.orbit_centre()
+    recon = render_ring(sphere_grid, 7, 20.0, 24, centre=centre)
+    images = render_ring(edited, 7, 20.0, 24, centre=centre)
+    texts = clip.text_embeddings(["a render of a ball", "a render of a claymation ball", "a render of a blue ball"])
+    footprint = mask_footprint(sphere_grid, mask, 7, 20.0, 24, centre)
+    for row, text, keep in zip(rows, texts[1:], (torch.ones_like(footprint), ~footprint)):
+        assert row["clip_sim"] == clip_similarity(clip.image_embeddings(images), text)
+        assert row["clip_dir"] == clip_direction(clip.image_embeddings(images), clip.image_embeddings(recon), text,
+                                                 texts[0])
+        assert row["fid_rec"] == fid_from_features(fid.features(images), fid.features(recon))
+        assert row["fid_input"] == fid_from_features(fid.features(images), fid.features(inputs))
+        assert row["psnr"] == _finite_mean(psnr(images, recon, keep=keep))
+        assert row["ssim"] == _finite_mean(ssim(images, recon, keep=keep))
+        assert row["kept_fraction"] == float(keep.float().mean())
+    assert rows[1]["kept_fraction"] < 1.0 and rows[1]["psnr"] < 20.0  # the mask keeps a part that changed
 
 
 def _after_the_last_ring_render(reports) -> bool:
-    return sum(r.info["stage"] == "ring renders" for r in reports) == 3 * 4
+    return sum(r.info["stage"] == "ring renders" for r in reports) == 5 * 4  # (G_i's again beside each edit's)
 
 
 @pytest.mark.parametrize("when", [_after_the_last_ring_render, *(
@@ -433,9 +463,9 @@ def test_a_diverged_grid_is_refused_naming_it_rather_than_scored(sphere_grid, ti
     with torch.no_grad():
         diverged.features[..., 1:] = math.nan  # the colours: every view of the sphere shows NaN
     config = EvaluateConfig(views=3, elevation=20.0, size=16)
-    with pytest.raises(ValueError, match="edit 'nan': 3 of 3 ring views have NaN or infinite pixels"):
+    with pytest.raises(ValueError, match="edit 'nan': ring view 0 of 3 has NaN or infinite pixels"):
         evaluate(sphere_grid, [EditSample("nan", "a claymation ball", diverged)], "ball", clip, None, None, config)
-    with pytest.raises(ValueError, match="the initial grid: 3 of 3 ring views have NaN"):
+    with pytest.raises(ValueError, match="the initial grid: ring view 0 of 3 has NaN"):
         evaluate(diverged, [EditSample("same", "a claymation ball", sphere_grid)], "ball", clip, None, None, config)
 
 

@@ -29,11 +29,12 @@ random-weight smoke-test stand-ins for both, loaded through the same code.
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Protocol, Sequence
+from typing import Callable, Iterable, Iterator, Protocol, Sequence
 
 import numpy as np
 import torch
@@ -43,7 +44,7 @@ from voxe_core.constants import (
     inception_path,
 )
 from voxe_core.devices import PeakMemory, resolve_device
-from voxe_core.export import render_views, save_png, to_uint8, turntable_cameras
+from voxe_core.export import iter_views, render_views, to_uint8, turntable_cameras
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance.loading import (
     ModelNotAvailableError, is_out_of_memory, load_clip_tokenizer, loading_errors, local_path, no_folder_note,
@@ -99,19 +100,20 @@ def render_ring(grid: VoxelGrid, views: int, elevation_deg: float, size: int, ca
                         device=device)
 
 
-def save_png_set(folder, frames: torch.Tensor) -> list[Path]:
-    """Write frames as ``folder/000.png``, ``001.png``, ... and return the paths."""
-    folder = Path(folder)
-    paths = [folder / f"{i:03d}.png" for i in range(len(frames))]
-    for path, frame in zip(paths, frames):
-        save_png(path, frame)
-    return paths
+def mask_footprint(grid: VoxelGrid, mask: torch.Tensor, views: int, elevation_deg: float, size: int,
+                   centre: torch.Tensor | None = None, callbacks: Callbacks = Callbacks()) -> torch.Tensor:
+    """(N, H, W) bool: :func:`iter_mask_footprint`'s views all at once."""
+    hits = torch.zeros(views, size, size, dtype=torch.bool)
+    for i, view in enumerate(iter_mask_footprint(grid, mask, views, elevation_deg, size, centre, callbacks)):
+        hits[i] = view
+    return hits
 
 
 @torch.no_grad()
-def mask_footprint(grid: VoxelGrid, mask: torch.Tensor, views: int, elevation_deg: float, size: int,
-                   centre: torch.Tensor | None = None, callbacks: Callbacks = Callbacks()) -> torch.Tensor:
-    """(N, H, W) bool: pixels of the ring views whose ray samples a cell with a masked corner vertex.
+def iter_mask_footprint(grid: VoxelGrid, mask: torch.Tensor, views: int, elevation_deg: float, size: int,
+                        centre: torch.Tensor | None = None,
+                        callbacks: Callbacks = Callbacks()) -> Iterator[torch.Tensor]:
+    """Yields, view by view of the ring, (H, W) bool: pixels whose ray samples a cell with a masked corner vertex.
 
     ``mask`` (X, Y, Z) bool over ``grid``'s vertices. Rendered through the same
     renderer and ray sampling as the views, over an opaque stand-in of the
@@ -130,13 +132,12 @@ def mask_footprint(grid: VoxelGrid, mask: torch.Tensor, views: int, elevation_de
     cameras = turntable_cameras(views, elevation_deg, size, centre=centre).to(grid.bbox_min.device)
     config = RenderConfig(sigma_threshold=0.0)  # every cell touching a masked vertex is 'occupied'
     occupancy = stand_in.occupancy(config.sigma_threshold)
-    hits = torch.zeros(views, size, size, dtype=torch.bool)
     for i in range(views):
         callbacks.check_cancel("mask footprint")
-        if not occupancy.empty:
-            hits[i] = render_image(stand_in, cameras, i, config, occupancy).opacity.cpu() > 0
+        hits = (render_image(stand_in, cameras, i, config, occupancy).opacity.cpu() > 0 if not occupancy.empty
+                else torch.zeros(size, size, dtype=torch.bool))
         callbacks.progress(Progress("mask footprint", i + 1, views))
-    return hits
+        yield hits
 
 
 # --------------------------------------------------------------------------- Fréchet distance
@@ -185,12 +186,47 @@ AfterBatch = Callable[[int], None]  # called with a batch's image count once it 
 
 class FeatureExtractor(Protocol):
     """Maps images (N, H, W, 3), floats in [0, 1] or uint8, to feature vectors (N, D), calling ``after_batch`` after
-    each batch."""
+    each batch of (at most) ``batch_size`` images."""
 
     name: str
+    batch_size: int
 
     def features(self, images: torch.Tensor, after_batch: AfterBatch | None = None) -> torch.Tensor:
         ...
+
+
+class ViewBatches:
+    """Views handed over one at a time, scored by ``score(images, after_batch)`` (CLIP's embeddings, FID's features)
+    in batches of the scorer's ``batch_size``, held till then as the 8-bit pixels both score (a quarter of a float
+    view) in one batch buffer: the values of the whole ring scored at once, bit for bit, with a batch's pixels held,
+    not the ring's. ``before_batch`` is called before each batch is scored (a cancellation point)."""
+
+    def __init__(self, score: Callable[[torch.Tensor, AfterBatch], torch.Tensor], batch_size: int,
+                 after_batch: AfterBatch, before_batch: Callable[[], None]):
+        self.score, self.batch_size, self.after_batch, self.before_batch = score, batch_size, after_batch, before_batch
+        self.batch: torch.Tensor | None = None  # (batch_size, H, W, 3) uint8, made at the first view
+        self.pending = 0
+        self.scored: list[torch.Tensor] = []
+
+    def add(self, view: torch.Tensor) -> None:
+        if self.batch is None:
+            self.batch = torch.empty(self.batch_size, *view.shape, dtype=torch.uint8)
+        self.batch[self.pending] = torch.from_numpy(to_uint8(view))
+        self.pending += 1
+        if self.pending == self.batch_size:
+            self._score_pending()
+
+    def result(self) -> torch.Tensor:
+        """(N, D): the scores of every view added, in order; the batch buffer let go."""
+        self._score_pending()
+        self.batch = None
+        return torch.cat(self.scored)
+
+    def _score_pending(self) -> None:
+        if self.pending:
+            self.before_batch()
+            self.scored.append(self.score(self.batch[: self.pending], self.after_batch))
+            self.pending = 0
 
 
 class InceptionFeatures:
@@ -394,15 +430,15 @@ def evaluation_steps(edits: Sequence[EditSample], config: EvaluateConfig, fid: F
                      input_images: torch.Tensor | None = None) -> int:
     """The progress total of :func:`evaluate`: one step per view of each pass over the ring.
 
-    The ring renders of G_i and of every edit, the mask footprint of every
-    masked edit, CLIP on every ring render, and with ``fid`` the Inception
-    features of every ring render and input image.
+    The ring renders of G_i and of every edit, G_i's again beside each edit's, the mask footprint of every
+    masked edit, CLIP on every ring (G_i's once), and with ``fid`` the Inception features of every ring
+    and input image.
     """
     ring_views = (1 + len(edits)) * config.views
     footprint_views = sum(sample.mask is not None for sample in edits) * config.views
     input_views = len(input_images) if input_images is not None else 0
     fid_images = ring_views + input_views if fid is not None else 0
-    return ring_views + footprint_views + ring_views + fid_images
+    return ring_views + len(edits) * config.views + footprint_views + ring_views + fid_images
 
 
 def evaluate(
@@ -419,10 +455,12 @@ def evaluate(
 ) -> Evaluation:
     """Score ``edits`` of ``initial`` on the ring (see the module doc); FID only when ``fid`` is given.
 
-    ``on_ring(name, renders)`` gets each grid's ring renders (V, H, W, 3), to save them: ``initial``'s first (name
-    None), then each edit's once it is scored. Nothing keeps them after that: one edit's renders are held at a
-    time besides ``initial``'s (every edit's had been kept to the end: 270 GB of floats for 60 edits × 360 views
-    of 1,024²).
+    ``on_ring(name, i, render)`` gets each grid's ring render i (H, W, 3), to save it: ``initial``'s first (name
+    None), then each edit's. The rings go view by view: view i of an edit is scored against view i of ``initial``,
+    rendered again beside it, and both are let go before the next; CLIP and FID take them in their batches, as
+    8-bit pixels. One view of each grid is held at a time, a batch's pixels and the scores besides (each ring had
+    been held whole, ``initial``'s to the end: 9 GB of floats for 360 views of 1,024²; every edit's before that,
+    270 GB for 60 edits). ``initial``'s ring is rendered once more for each edit: the numbers are the same.
 
     The ring renders (and the masks' footprints) run on ``device`` (None: where
     ``initial`` is); each grid moves there once. The scorers run where they were
@@ -430,8 +468,7 @@ def evaluate(
     ValueError naming the grid, as are two edits of one name and, before any render, a masked edit whose grid or
     mask does not fit ``initial``'s vertices and a source text or prompt longer than CLIP's text model reads.
     Progress: ("evaluate", i, :func:`evaluation_steps`), one step per view rendered, footprinted or scored, info
-    carrying the pass ("stage") and the peak memory so far; cancellation is checked between views and between
-    scoring batches.
+    carrying the pass ("stage") and the peak memory so far; cancellation is checked before each of them.
     """
     if not edits:
         raise ValueError("nothing to evaluate: no edits given")
@@ -468,6 +505,9 @@ def evaluate(
         memory.peak_bytes()  # read before a ring's renders reset the counter
         return Callbacks(on_progress=lambda report: step(1, stage), should_cancel=callbacks.should_cancel)
 
+    def check_cancel() -> None:
+        callbacks.check_cancel("evaluate")
+
     def per_batch(stage: str) -> AfterBatch:
         """The hook of a scoring pass about to start: a cancellation is honoured now and after each batch,
         whose images are steps."""
@@ -478,79 +518,93 @@ def evaluate(
             callbacks.check_cancel("evaluate")
         return batch_done
 
-    def ring(grid: VoxelGrid, label: str) -> torch.Tensor:
-        frames = render_ring(grid, config.views, config.elevation, config.size, per_view("ring renders"), device,
-                             centre)
-        return _finite_frames(frames, label)
+    def ring(grid: VoxelGrid, label: str) -> Iterator[torch.Tensor]:
+        cameras = turntable_cameras(config.views, config.elevation, config.size, centre=centre)
+        for i, view in enumerate(iter_views(grid, cameras, callbacks=per_view("ring renders"), device=device)):
+            yield _finite_view(view, label, i, config.views)
+
+    def scored(name: str | None, views: Iterable[torch.Tensor]) -> tuple[Iterator[torch.Tensor], ViewBatches,
+                                                                          ViewBatches | None]:
+        """``views`` handed on one by one, each given on its way to CLIP, FID and ``on_ring``."""
+        embeddings = ViewBatches(clip.image_embeddings, clip.batch_size, per_batch("CLIP"), check_cancel)
+        features = (ViewBatches(fid.features, fid.batch_size, per_batch("FID"), check_cancel) if fid is not None
+                    else None)
+
+        def handed_on() -> Iterator[torch.Tensor]:
+            for i, view in enumerate(views):
+                embeddings.add(view)
+                if features is not None:
+                    features.add(view)
+                if on_ring is not None:
+                    on_ring(name, i, view)
+                yield view
+        return handed_on(), embeddings, features
 
     texts = clip.text_embeddings([source] + [edit_prompt(e.prompt) for e in edits])  # a text too long: before renders
-    recon = ring(initial, "the initial grid")
-    if on_ring is not None:
-        on_ring(None, recon)
-    recon_clip = clip.image_embeddings(recon, per_batch("CLIP"))
-    recon_features = fid.features(recon, per_batch("FID")) if fid is not None else None
+    views, recon_embeddings, recon_features = scored(None, ring(initial, "the initial grid"))
+    for _ in views:  # each scored and saved on its way
+        pass
+    recon_clip = recon_embeddings.result()
+    recon_features = recon_features.result() if recon_features is not None else None
     input_features = None
     if fid is not None and input_images is not None:
         input_features = fid.features(input_images, per_batch("FID"))
     rows = []
     for k, sample in enumerate(edits):
-        images = ring(sample.grid, f"edit {sample.name!r}")
-        embeddings = clip.image_embeddings(images, per_batch("CLIP"))
+        views, embeddings, features = scored(sample.name, ring(sample.grid, f"edit {sample.name!r}"))
+        kept = preservation(views, ring(initial, "the initial grid"), sample, initial, config, centre,
+                            per_view("mask footprints"))
+        embeddings = embeddings.result()
         row = {"name": sample.name, "prompt": sample.prompt, "mode": "local" if sample.mask is not None else "global",
                "clip_sim": clip_similarity(embeddings, texts[k + 1]),
                "clip_dir": clip_direction(embeddings, recon_clip, texts[k + 1], texts[0])}
-        if recon_features is not None:
-            features = fid.features(images, per_batch("FID"))
+        if features is not None:
+            features = features.result()
             row["fid_rec"] = fid_from_features(features, recon_features)
             row["fid_input"] = fid_from_features(features, input_features) if input_features is not None else None
-        row.update(preservation(images, recon, sample, initial, config, centre, per_view("mask footprints")))
-        rows.append(row)
-        if on_ring is not None:
-            on_ring(sample.name, images)
-        del images  # before the next edit's are rendered
+        rows.append(row | kept)
     return Evaluation(rows)
 
 
-def _finite_frames(frames: torch.Tensor, label: str) -> torch.Tensor:
-    """``frames`` (V, H, W, 3) if every pixel is finite, else a ValueError naming the grid (``label``).
+def _finite_view(view: torch.Tensor, label: str, i: int, views: int) -> torch.Tensor:
+    """Ring view ``i`` (H, W, 3) if every pixel is finite, else a ValueError naming the grid (``label``).
 
     A diverged grid renders NaN, which the scores would read as a masked-out view (PSNR / SSIM),
     black (CLIP) or nothing (FID): it would pass for a perfect edit.
     """
-    broken = (~torch.isfinite(frames)).flatten(1).any(1)
-    if bool(broken.any()):
-        raise ValueError(f"{label}: {int(broken.sum())} of {len(frames)} ring views have NaN or infinite pixels "
-                         "(the grid has diverged); it cannot be scored")
-    return frames
+    if not bool(torch.isfinite(view).all()):
+        raise ValueError(f"{label}: ring view {i} of {views} has NaN or infinite pixels (the grid has diverged); it "
+                         "cannot be scored")
+    return view
 
 
-def preservation(images: torch.Tensor, recon: torch.Tensor, sample: EditSample, initial: VoxelGrid,
-                 config: EvaluateConfig, centre: torch.Tensor | None = None,
+def preservation(images: Iterable[torch.Tensor], recon: Iterable[torch.Tensor], sample: EditSample,
+                 initial: VoxelGrid, config: EvaluateConfig, centre: torch.Tensor | None = None,
                  callbacks: Callbacks = Callbacks()) -> dict:
     """PSNR / SSIM of an edit's ring renders against G_i's, outside the mask's footprint (whole image if no mask).
 
-    ``images``, ``recon``: (V, H, W, 3) renders of the ring looking at ``centre`` (3,), G_i's ``orbit_centre()``
-    (None: computed here; an evaluation of several edits passes the one it rendered them with).
-    ``callbacks`` goes to :func:`mask_footprint` (progress per view, cancellation).
+    ``images``, ``recon``: the (H, W, 3) views of the ring looking at ``centre`` (3,), G_i's ``orbit_centre()``
+    (None: computed here; an evaluation of several edits passes the one it rendered them with), as (V, H, W, 3)
+    tensors or one at a time (:func:`evaluate`'s, rendered as they are scored). Each view is scored on its own: the
+    values of the whole ring at once, bit for bit, but SSIM's float64 filter buffers are one view's (~130 times its
+    float pixels: a whole ring at once had peaked at 3.2 GB for 32 views of 256²).
+    ``callbacks`` goes to :func:`iter_mask_footprint` (progress per view, cancellation).
     """
     if sample.mask is None:
-        keep = torch.ones(images.shape[:3], dtype=torch.bool)
-        region = "whole image"
+        footprints, region = itertools.repeat(None), "whole image"
     else:
-        keep = ~mask_footprint(initial, sample.mask, config.views, config.elevation, config.size,
-                               initial.orbit_centre() if centre is None else centre, callbacks)
+        footprints = iter_mask_footprint(initial, sample.mask, config.views, config.elevation, config.size,
+                                         initial.orbit_centre() if centre is None else centre, callbacks)
         region = "outside mask"
-    psnr_values = _per_view(psnr, images, recon, keep)
-    ssim_values = _per_view(ssim, images, recon, keep)
-    return {"psnr": _finite_mean(psnr_values), "ssim": _finite_mean(ssim_values),
-            "region": region, "kept_fraction": float(keep.float().mean())}
-
-
-def _per_view(metric, images: torch.Tensor, recon: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
-    """``metric`` (PSNR or SSIM) of each view on its own: the values of the whole ring at once, bit for bit, but
-    SSIM's float64 filter buffers are one view's (~130 times its float pixels): a whole ring at once had peaked at
-    3.2 GB for 32 views of 256²."""
-    return torch.cat([metric(images[i : i + 1], recon[i : i + 1], keep=keep[i : i + 1]) for i in range(len(images))])
+    psnr_values, ssim_values, kept, pixels = [], [], 0, 0
+    for image, initial_view, footprint in zip(images, recon, footprints):
+        keep = torch.ones(image.shape[:2], dtype=torch.bool) if footprint is None else ~footprint
+        psnr_values.append(psnr(image[None], initial_view[None], keep=keep[None]))
+        ssim_values.append(ssim(image[None], initial_view[None], keep=keep[None]))
+        kept, pixels = kept + int(keep.sum()), pixels + keep.numel()
+    kept_fraction = float(torch.tensor(kept / pixels, dtype=torch.float32))  # as the whole ring's float32 mean was
+    return {"psnr": _finite_mean(torch.cat(psnr_values)), "ssim": _finite_mean(torch.cat(ssim_values)),
+            "region": region, "kept_fraction": kept_fraction}
 
 
 def _finite_mean(values: torch.Tensor) -> float | None:
@@ -599,6 +653,6 @@ __all__ = [
     "INCEPTION_URL", "PAPER_PROMPTS", "METRICS",
     "ClipScorer", "EditSample", "EvaluateConfig", "Evaluation", "FeatureExtractor", "InceptionFeatures",
     "ProtocolEdit", "clip_direction", "clip_similarity", "evaluate", "evaluation_steps", "feature_statistics",
-    "fid_from_features", "format_table", "frechet_distance", "mask_footprint", "mean_by_mode", "paper_protocol",
-    "preservation", "render_ring", "save_png_set", "source_text",
+    "fid_from_features", "format_table", "frechet_distance", "iter_mask_footprint", "mask_footprint", "mean_by_mode",
+    "paper_protocol", "preservation", "render_ring", "source_text", "ViewBatches",
 ]

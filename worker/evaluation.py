@@ -112,12 +112,11 @@ def run_evaluation(job: Job, settings: Settings, device: str, storage) -> None:
     scratch = runtime.scratch_dir(job.id, settings)
     published = []  # (name, path, kind): one set, below
 
-    def save_ring(source_id: str | None, frames) -> None:
-        """Each grid's ring written as it is scored (every ring had been held to the end of the evaluation)."""
-        for i, frame in enumerate(frames):
-            name = f"ring_{source_id or 'initial'}_{i:03d}.png"
-            save_png(scratch / name, frame)
-            published.append((name, scratch / name, "render"))
+    def save_ring(source_id: str | None, i: int, view) -> None:
+        """Each ring view written as it is scored (every ring had been held to the end of the evaluation)."""
+        name = f"ring_{source_id or 'initial'}_{i:03d}.png"
+        save_png(scratch / name, view)
+        published.append((name, scratch / name, "render"))
 
     result = evaluate(initial, edits, params["object"], clip, fid, input_images, config, callbacks.callbacks,
                       device=device, on_ring=save_ring if params.get("save_renders", True) else None)

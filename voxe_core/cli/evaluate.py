@@ -48,8 +48,8 @@ def cmd_evaluate(args) -> int:
     from voxe_core.backbones import load_grid
     from voxe_core.evaluate import (
         ClipScorer, EditSample, EvaluateConfig, InceptionFeatures, evaluate, evaluation_steps, format_table,
-        save_png_set,
     )
+    from voxe_core.export import save_png
     from voxe_core.files import replacing
     from voxe_core.guidance.loading import ModelNotAvailableError
     from voxe_core.refine.storage import load_mask
@@ -84,11 +84,12 @@ def cmd_evaluate(args) -> int:
         print(f"voxe evaluate: model not available: {exc}", file=sys.stderr)
         return EXIT_USAGE
     out = args.out
-    # Each ring saved as it is scored (all had been held to the end)
+    # Each ring view saved as it is scored (all had been held to the end)
     with staging_folder(out, "evaluate") as staging:
         result = run_stage(
             lambda cb: evaluate(initial, edits, args.object, clip, fid, input_images, config, cb, device=device,
-                                on_ring=lambda name, frames: save_png_set(staging / (name or "initial"), frames)),
+                                on_ring=lambda name, i, view: save_png(staging / (name or "initial") / f"{i:03d}.png",
+                                                                       view)),
             "evaluate", "view", evaluation_steps(edits, config, fid, input_images), args.quiet,
         )
         if result is None:
