@@ -430,15 +430,14 @@ def evaluation_steps(edits: Sequence[EditSample], config: EvaluateConfig, fid: F
                      input_images: torch.Tensor | None = None) -> int:
     """The progress total of :func:`evaluate`: one step per view of each pass over the ring.
 
-    The ring renders of G_i and of every edit, G_i's again beside each edit's, the mask footprint of every
-    masked edit, CLIP on every ring (G_i's once), and with ``fid`` the Inception features of every ring
-    and input image.
+    The ring renders of G_i and of every edit, the mask footprint of every masked edit, CLIP on every ring, and
+    with ``fid`` the Inception features of every ring and input image.
     """
     ring_views = (1 + len(edits)) * config.views
     footprint_views = sum(sample.mask is not None for sample in edits) * config.views
     input_views = len(input_images) if input_images is not None else 0
     fid_images = ring_views + input_views if fid is not None else 0
-    return ring_views + len(edits) * config.views + footprint_views + ring_views + fid_images
+    return ring_views + footprint_views + ring_views + fid_images
 
 
 def evaluate(
@@ -451,16 +450,19 @@ def evaluate(
     config: EvaluateConfig = EvaluateConfig(),
     callbacks: Callbacks = Callbacks(),
     device: torch.device | str | None = None,
-    on_ring: Callable[[str | None, torch.Tensor], None] | None = None,
+    on_ring: Callable[[str | None, int, torch.Tensor], None] | None = None,
 ) -> Evaluation:
     """Score ``edits`` of ``initial`` on the ring (see the module doc); FID only when ``fid`` is given.
 
-    ``on_ring(name, i, render)`` gets each grid's ring render i (H, W, 3), to save it: ``initial``'s first (name
-    None), then each edit's. The rings go view by view: view i of an edit is scored against view i of ``initial``,
-    rendered again beside it, and both are let go before the next; CLIP and FID take them in their batches, as
-    8-bit pixels. One view of each grid is held at a time, a batch's pixels and the scores besides (each ring had
-    been held whole, ``initial``'s to the end: 9 GB of floats for 360 views of 1,024²; every edit's before that,
-    270 GB for 60 edits). ``initial``'s ring is rendered once more for each edit: the numbers are the same.
+    The rings go view-major: for each view i, ``initial``'s view i is rendered (once), then each edit's, scored
+    against it (PSNR / SSIM outside the footprint, rendered beside them) and all let go before view i + 1; CLIP
+    and FID take each grid's views in their batches, as 8-bit pixels (one batch buffer per grid and scorer). So
+    one view of each grid is held at a time, each grid's batch pixels and the scores besides (each ring had been
+    held whole, ``initial``'s to the end: 9 GB of floats for 360 views of 1,024²; every edit's before that, 270 GB
+    for 60 edits), and every ring is rendered once; each masked edit's footprint stand-in (4 floats a vertex) is
+    held to the end too. The numbers are those of the whole rings.
+    ``on_ring(name, i, render)`` gets each ring render (H, W, 3), to save it, in that order: view 0 of
+    ``initial`` (name None), view 0 of each edit in ``edits``' order, then view 1 of ``initial``, and so on.
 
     The ring renders (and the masks' footprints) run on ``device`` (None: where
     ``initial`` is); each grid moves there once. The scorers run where they were
@@ -523,46 +525,45 @@ def evaluate(
         for i, view in enumerate(iter_views(grid, cameras, callbacks=per_view("ring renders"), device=device)):
             yield _finite_view(view, label, i, config.views)
 
-    def scored(name: str | None, views: Iterable[torch.Tensor]) -> tuple[Iterator[torch.Tensor], ViewBatches,
-                                                                          ViewBatches | None]:
-        """``views`` handed on one by one, each given on its way to CLIP, FID and ``on_ring``."""
-        embeddings = ViewBatches(clip.image_embeddings, clip.batch_size, per_batch("CLIP"), check_cancel)
-        features = (ViewBatches(fid.features, fid.batch_size, per_batch("FID"), check_cancel) if fid is not None
-                    else None)
-
-        def handed_on() -> Iterator[torch.Tensor]:
-            for i, view in enumerate(views):
-                embeddings.add(view)
-                if features is not None:
-                    features.add(view)
-                if on_ring is not None:
-                    on_ring(name, i, view)
-                yield view
-        return handed_on(), embeddings, features
-
     texts = clip.text_embeddings([source] + [edit_prompt(e.prompt) for e in edits])  # a text too long: before renders
-    views, recon_embeddings, recon_features = scored(None, ring(initial, "the initial grid"))
-    for _ in views:  # each scored and saved on its way
-        pass
-    recon_clip = recon_embeddings.result()
-    recon_features = recon_features.result() if recon_features is not None else None
     input_features = None
     if fid is not None and input_images is not None:
         input_features = fid.features(input_images, per_batch("FID"))
+    ring_names = [None] + [sample.name for sample in edits]
+    rings = [ring(initial, "the initial grid")] + [ring(sample.grid, f"edit {sample.name!r}") for sample in edits]
+    embeddings = [ViewBatches(clip.image_embeddings, clip.batch_size, per_batch("CLIP"), check_cancel) for _ in rings]
+    features = [ViewBatches(fid.features, fid.batch_size, per_batch("FID"), check_cancel) if fid is not None
+                else None for _ in rings]
+    kept = [Preservation(sample, initial, config, centre, per_view("mask footprints")) for sample in edits]
+
+    def take(k: int, i: int) -> torch.Tensor:
+        """Ring k's view i (0: ``initial``'s), rendered and given to CLIP, FID and ``on_ring``."""
+        view = next(rings[k])
+        embeddings[k].add(view)
+        if features[k] is not None:
+            features[k].add(view)
+        if on_ring is not None:
+            on_ring(ring_names[k], i, view)
+        return view
+
+    for i in range(config.views):  # view-major: G_i's view i rendered once, each edit's scored against it
+        recon_view = take(0, i)
+        for k, scores in enumerate(kept, 1):
+            scores.add(take(k, i), recon_view)
+    recon_clip = embeddings[0].result()
+    recon_features = features[0].result() if features[0] is not None else None
     rows = []
     for k, sample in enumerate(edits):
-        views, embeddings, features = scored(sample.name, ring(sample.grid, f"edit {sample.name!r}"))
-        kept = preservation(views, ring(initial, "the initial grid"), sample, initial, config, centre,
-                            per_view("mask footprints"))
-        embeddings = embeddings.result()
+        edit_clip = embeddings[k + 1].result()
         row = {"name": sample.name, "prompt": sample.prompt, "mode": "local" if sample.mask is not None else "global",
-               "clip_sim": clip_similarity(embeddings, texts[k + 1]),
-               "clip_dir": clip_direction(embeddings, recon_clip, texts[k + 1], texts[0])}
-        if features is not None:
-            features = features.result()
-            row["fid_rec"] = fid_from_features(features, recon_features)
-            row["fid_input"] = fid_from_features(features, input_features) if input_features is not None else None
-        rows.append(row | kept)
+               "clip_sim": clip_similarity(edit_clip, texts[k + 1]),
+               "clip_dir": clip_direction(edit_clip, recon_clip, texts[k + 1], texts[0])}
+        if recon_features is not None:
+            edit_features = features[k + 1].result()
+            row["fid_rec"] = fid_from_features(edit_features, recon_features)
+            row["fid_input"] = (fid_from_features(edit_features, input_features) if input_features is not None
+                                else None)
+        rows.append(row | kept[k].result())
     return Evaluation(rows)
 
 
@@ -585,26 +586,43 @@ def preservation(images: Iterable[torch.Tensor], recon: Iterable[torch.Tensor], 
 
     ``images``, ``recon``: the (H, W, 3) views of the ring looking at ``centre`` (3,), G_i's ``orbit_centre()``
     (None: computed here; an evaluation of several edits passes the one it rendered them with), as (V, H, W, 3)
-    tensors or one at a time (:func:`evaluate`'s, rendered as they are scored). Each view is scored on its own: the
-    values of the whole ring at once, bit for bit, but SSIM's float64 filter buffers are one view's (~130 times its
-    float pixels: a whole ring at once had peaked at 3.2 GB for 32 views of 256²).
-    ``callbacks`` goes to :func:`iter_mask_footprint` (progress per view, cancellation).
+    tensors or one at a time. See :class:`Preservation`, which scores them view by view.
     """
-    if sample.mask is None:
-        footprints, region = itertools.repeat(None), "whole image"
-    else:
-        footprints = iter_mask_footprint(initial, sample.mask, config.views, config.elevation, config.size,
-                                         initial.orbit_centre() if centre is None else centre, callbacks)
-        region = "outside mask"
-    psnr_values, ssim_values, kept, pixels = [], [], 0, 0
-    for image, initial_view, footprint in zip(images, recon, footprints):
+    scores = Preservation(sample, initial, config, centre, callbacks)
+    for image, initial_view in zip(images, recon):
+        scores.add(image, initial_view)
+    return scores.result()
+
+
+class Preservation:
+    """:func:`preservation` of one edit, its views and G_i's handed over a pair at a time (:func:`evaluate` renders
+    them view-major). Each view is scored on its own: the values of the whole ring at once, bit for bit, but SSIM's
+    float64 filter buffers are one view's (~130 times its float pixels: a whole ring at once had peaked at 3.2 GB
+    for 32 views of 256²). A masked edit's footprint is rendered a view at a time beside its pair
+    (:func:`iter_mask_footprint`, given ``callbacks``: progress per view, cancellation)."""
+
+    def __init__(self, sample: EditSample, initial: VoxelGrid, config: EvaluateConfig,
+                 centre: torch.Tensor | None = None, callbacks: Callbacks = Callbacks()):
+        if sample.mask is None:
+            self.footprints, self.region = itertools.repeat(None), "whole image"
+        else:
+            self.footprints = iter_mask_footprint(initial, sample.mask, config.views, config.elevation, config.size,
+                                                  initial.orbit_centre() if centre is None else centre, callbacks)
+            self.region = "outside mask"
+        self.psnr_values, self.ssim_values, self.kept, self.pixels = [], [], 0, 0
+
+    def add(self, image: torch.Tensor, initial_view: torch.Tensor) -> None:
+        """Scores the edit's next (H, W, 3) view against G_i's."""
+        footprint = next(self.footprints)
         keep = torch.ones(image.shape[:2], dtype=torch.bool) if footprint is None else ~footprint
-        psnr_values.append(psnr(image[None], initial_view[None], keep=keep[None]))
-        ssim_values.append(ssim(image[None], initial_view[None], keep=keep[None]))
-        kept, pixels = kept + int(keep.sum()), pixels + keep.numel()
-    kept_fraction = float(torch.tensor(kept / pixels, dtype=torch.float32))  # as the whole ring's float32 mean was
-    return {"psnr": _finite_mean(torch.cat(psnr_values)), "ssim": _finite_mean(torch.cat(ssim_values)),
-            "region": region, "kept_fraction": kept_fraction}
+        self.psnr_values.append(psnr(image[None], initial_view[None], keep=keep[None]))
+        self.ssim_values.append(ssim(image[None], initial_view[None], keep=keep[None]))
+        self.kept, self.pixels = self.kept + int(keep.sum()), self.pixels + keep.numel()
+
+    def result(self) -> dict:
+        kept_fraction = float(torch.tensor(self.kept / self.pixels, dtype=torch.float32))  # as the ring's float32 mean
+        return {"psnr": _finite_mean(torch.cat(self.psnr_values)), "ssim": _finite_mean(torch.cat(self.ssim_values)),
+                "region": self.region, "kept_fraction": kept_fraction}
 
 
 def _finite_mean(values: torch.Tensor) -> float | None:
@@ -654,5 +672,5 @@ __all__ = [
     "ClipScorer", "EditSample", "EvaluateConfig", "Evaluation", "FeatureExtractor", "InceptionFeatures",
     "ProtocolEdit", "clip_direction", "clip_similarity", "evaluate", "evaluation_steps", "feature_statistics",
     "fid_from_features", "format_table", "frechet_distance", "iter_mask_footprint", "mask_footprint", "mean_by_mode",
-    "paper_protocol", "preservation", "render_ring", "source_text", "ViewBatches",
+    "paper_protocol", "Preservation", "preservation", "render_ring", "source_text", "ViewBatches",
 ]
