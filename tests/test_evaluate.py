@@ -700,8 +700,10 @@ def test_evaluation_job_end_to_end_through_the_api(service, sphere_grid):
     assert [(r["job_id"], r["mode"]) for r in rows] == [(local["id"], "local"), (glob["id"], "global")]
     assert rows[0]["region"] == "outside mask" and rows[0]["psnr"] > 60  # the refined edit kept the rest exactly
     assert rows[1]["psnr"] < rows[0]["psnr"] and all(r["fid_rec"] > 0 and r["fid_input"] > 0 for r in rows)
-    names = {a["name"] for a in client.get(f"/v1/jobs/{job['id']}/artifacts").json()}
-    assert {"evaluation.json", "evaluation.md", "ring_initial_003.png", f"ring_{local['id']}_000.png"} <= names
+    names = [a["name"] for a in client.get(f"/v1/jobs/{job['id']}/artifacts").json()]
+    # Listed grid by grid (the views come view-major): G_i's ring, then each edit's
+    assert names == [f"ring_{grid}_{i:03d}.png" for grid in ("initial", local["id"], glob["id"]) for i in range(4)] + [
+        "evaluation.json", "evaluation.md"]
     table = client.get(f"/v1/jobs/{job['id']}/artifacts/evaluation.md")
     assert table.text == done["result"]["table"] and table.headers["content-type"].startswith("text/markdown")
     assert json.loads(client.get(f"/v1/jobs/{job['id']}/artifacts/evaluation.json").content)["rows"] == rows

@@ -110,13 +110,13 @@ def run_evaluation(job: Job, settings: Settings, device: str, storage) -> None:
     config = EvaluateConfig(views=params["views"], elevation=params["elevation"], size=params["size"])
     callbacks = StageCallbacks(job, "evaluate", settings)
     scratch = runtime.scratch_dir(job.id, settings)
-    published = []  # (name, path, kind): one set, below
+    rings = {}  # grid -> its ring's (name, path, kind): one set, below, listed grid by grid as the views come
 
     def save_ring(source_id: str | None, i: int, view) -> None:
         """Each ring view written as it is scored (every ring had been held to the end of the evaluation)."""
         name = f"ring_{source_id or 'initial'}_{i:03d}.png"
         save_png(scratch / name, view)
-        published.append((name, scratch / name, "render"))
+        rings.setdefault(source_id, []).append((name, scratch / name, "render"))
 
     result = evaluate(initial, edits, params["object"], clip, fid, input_images, config, callbacks.callbacks,
                       device=device, on_ring=save_ring if params.get("save_renders", True) else None)
@@ -129,6 +129,7 @@ def run_evaluation(job: Job, settings: Settings, device: str, storage) -> None:
     (scratch / "evaluation.json").write_text(json.dumps(summary, indent=2))
     (scratch / "evaluation.md").write_text(table)
     # One set: a storage failing part way had left a failed job listing some rings, or the JSON without its table
+    published = [artifact for ring in rings.values() for artifact in ring]
     runtime.publish_artifacts(job.id, [*published, *((name, scratch / name, "evaluation")
                                                      for name in ("evaluation.json", "evaluation.md"))], storage)
     runtime.merge_job_result(job.id, summary)
