@@ -1421,7 +1421,7 @@ def test_evaluate_into_an_earlier_output_leaves_no_stale_ring_renders(sphere_fil
 def test_an_evaluation_that_fails_leaves_the_earlier_ring_renders_and_nothing_of_its_own(sphere_file, tmp_path,
                                                                                       monkeypatch):
     """Each ring is saved as it is scored (not all held to the end), into a staging folder beside --out's: a run that
-    fails after G_i's ring was saved leaves the earlier run's renders as they were, and no staging folder; a killed
+    fails after ring views were saved (G_i's and the edit's first) leaves the earlier run's renders as they were, and no staging folder; a killed
     run's staging folder (a full ring a grid) goes at the next run."""
     import voxe_core.evaluate
     from voxe_core.tiny_eval import build_tiny_clip
@@ -1440,7 +1440,7 @@ def test_an_evaluation_that_fails_leaves_the_earlier_ring_renders_and_nothing_of
     def failing(*args, **kwargs):
         raise RuntimeError("the disk is gone")
 
-    monkeypatch.setattr(voxe_core.evaluate, "preservation", failing)
+    monkeypatch.setattr(voxe_core.evaluate, "ssim", failing)  # scoring the first pair, once both are saved
     with pytest.raises(RuntimeError, match="the disk is gone"):
         main(command + ["--views", "3"])
     assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
