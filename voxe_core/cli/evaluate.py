@@ -50,7 +50,6 @@ def cmd_evaluate(args) -> int:
         ClipScorer, EditSample, EvaluateConfig, InceptionFeatures, evaluate, evaluation_steps, format_table,
     )
     from voxe_core.export import save_png
-    from voxe_core.files import replacing
     from voxe_core.guidance.loading import ModelNotAvailableError
     from voxe_core.refine.storage import load_mask
 
@@ -95,22 +94,24 @@ def cmd_evaluate(args) -> int:
         if result is None:
             print("voxe: evaluation cancelled, nothing written", file=sys.stderr)
             return EXIT_INTERRUPTED
+        summary = {**result.summary(), "object": args.object, "clip_model": model,
+                   "inception": str(args.inception) if args.inception else None,
+                   "ring": {"views": config.views, "elevation": config.elevation, "size": config.size},
+                   "edits": [{"name": e.name, "grid": str(g[0]), "mask": g[2] if len(g) > 2 else None}
+                             for e, g in zip(edits, args.edit)]}
+        table = format_table(result.rows, extra_columns=("name",))
+        # Written whole into the staging first: a full disk there leaves --out as it was (it had left the
+        # earlier run's summaries torn, then none beside this run's ring renders)
+        (staging / "evaluation.json").write_text(json.dumps(summary, indent=2))
+        (staging / "evaluation.md").write_text(table)
         for summary_file in ("evaluation.json", "evaluation.md"):  # (none beside a move failing part way)
             (out / summary_file).unlink(missing_ok=True)
         clear_ring_renders(out / "ring")
         for frame in sorted(staging.glob("*/*.png")):
             (out / "ring" / frame.parent.name).mkdir(parents=True, exist_ok=True)
             os.replace(frame, out / "ring" / frame.parent.name / frame.name)
-    summary = {**result.summary(), "object": args.object, "clip_model": model,
-               "inception": str(args.inception) if args.inception else None,
-               "ring": {"views": config.views, "elevation": config.elevation, "size": config.size},
-               "edits": [{"name": e.name, "grid": str(g[0]), "mask": g[2] if len(g) > 2 else None}
-                         for e, g in zip(edits, args.edit)]}
-    table = format_table(result.rows, extra_columns=("name",))
-    # Whole or not at all, both or neither: a full disk had left them torn, the earlier run's destroyed.
-    with replacing(out / "evaluation.json") as summary_partial, replacing(out / "evaluation.md") as table_partial:
-        summary_partial.write_text(json.dumps(summary, indent=2))
-        table_partial.write_text(table)
+        os.replace(staging / "evaluation.md", out / "evaluation.md")
+        os.replace(staging / "evaluation.json", out / "evaluation.json")  # last: present, the set is whole
     print(table, end="")
     return 0
 
