@@ -219,20 +219,20 @@ def test_an_image_stored_a_quarter_turn_round_is_refused_naming_its_exif_orienta
     check names the tag, as the loader's refusals do (``voxe_core.data.quarter_turn_hint``)."""
     from api.uploads import UploadError, check_dataset
 
-    root = tmp_path / "capture"
-    (root / "images").mkdir(parents=True)
+    capture = tmp_path / "capture"
+    (capture / "images").mkdir(parents=True)
     frames = []
     for i in range(3):
-        Image.new("RGB", (8, 6)).save(root / "images" / f"{i}.png")
+        Image.new("RGB", (8, 6)).save(capture / "images" / f"{i}.png")
         frames.append({"file_path": f"images/{i}.png", "transform_matrix": [[1, 0, 0, i], [0, 1, 0, 0], [0, 0, 1, 4],
                                                                             [0, 0, 0, 1]]})
-    (root / "transforms.json").write_text(json.dumps({"fl_x": 8.0, "frames": frames}))
+    (capture / "transforms.json").write_text(json.dumps({"fl_x": 8.0, "frames": frames}))
     exif = Image.Exif()
     exif[0x0112] = 6  # displayed turned 90° clockwise: 8x6, as the others
-    Image.new("RGB", (6, 8)).save(root / "images" / "2.png", exif=exif)
+    Image.new("RGB", (6, 8)).save(capture / "images" / "2.png", exif=exif)
     with pytest.raises(UploadError, match=r"frame 2 \('images/2.png'\): image size 6x8 differs from frame 0 .* "
                                           r"share one size \(its EXIF orientation 6 displays it turned a quarter, 8x6"):
-        check_dataset(root, tmp_path, downsample=1)
+        check_dataset(capture, tmp_path, downsample=1)
 
 
 def test_entries_each_under_the_ratio_floor_are_still_a_bomb_together(tmp_path):
