@@ -1126,6 +1126,17 @@ def test_a_render_failing_part_way_leaves_the_earlier_runs_views_as_they_were(sp
     assert len(saved) == 2 and {path.name: path.read_bytes() for path in out.iterdir()} == earlier
 
 
+def staging_command(command: str, sphere_file, tmp_path) -> list[str]:
+    """A small ``voxe render`` or ``voxe evaluate`` of ``sphere_file`` (--out not given): the commands that stage."""
+    if command == "render":
+        return ["render", str(sphere_file), "--ring", "2", "--size", "16"]
+    from voxe_core.tiny_eval import build_tiny_clip
+
+    return ["evaluate", str(sphere_file), "--object", "ball", "--size", "16", "--views", "2",
+            "--edit", str(sphere_file), "a claymation ball",
+            "--clip-model", str(build_tiny_clip(tmp_path / "clip"))]  # SMOKE-TEST MODEL: plumbing only
+
+
 @pytest.mark.parametrize("command", ["render", "evaluate"])
 def test_an_output_path_in_the_way_fails_the_run_before_it_renders(sphere_file, tmp_path, capsys, command):
     """A folder named as one of its outputs in --out had failed the move after the whole run: the earlier run's
@@ -1133,13 +1144,7 @@ def test_an_output_path_in_the_way_fails_the_run_before_it_renders(sphere_file, 
     import voxe_core.export
 
     out = tmp_path / "out"
-    argv = {"render": ["render", str(sphere_file), "--ring", "2", "--size", "16"],
-            "evaluate": ["evaluate", str(sphere_file), "--object", "ball", "--size", "16", "--views", "2",
-                         "--edit", str(sphere_file), "a claymation ball"]}[command]
-    if command == "evaluate":
-        from voxe_core.tiny_eval import build_tiny_clip
-
-        argv += ["--clip-model", str(build_tiny_clip(tmp_path / "clip"))]  # SMOKE-TEST MODEL: plumbing only
+    argv = staging_command(command, sphere_file, tmp_path)
     assert main([*argv, "--out", str(out), "--quiet"]) == 0
     in_the_way = out / {"render": "001.png", "evaluate": "evaluation.md"}[command]
     in_the_way.unlink()
@@ -1187,13 +1192,7 @@ def test_a_users_own_folder_named_like_the_staging_is_refused_not_emptied(sphere
     staging = out / f".{command}-staging"
     (staging / "mine").mkdir(parents=True)
     (staging / "mine" / "notes.txt").write_text("mine")
-    argv = {"render": ["render", str(sphere_file), "--ring", "2", "--size", "16"],
-            "evaluate": ["evaluate", str(sphere_file), "--object", "ball", "--size", "16", "--views", "2",
-                         "--edit", str(sphere_file), "a claymation ball"]}[command]
-    if command == "evaluate":
-        from voxe_core.tiny_eval import build_tiny_clip
-
-        argv += ["--clip-model", str(build_tiny_clip(tmp_path / "clip"))]  # SMOKE-TEST MODEL: plumbing only
+    argv = staging_command(command, sphere_file, tmp_path)
     assert main([*argv, "--out", str(out), "--quiet"]) == 2
     assert f"{staging} is not a staging folder voxe {command} made" in capsys.readouterr().err
     assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == [

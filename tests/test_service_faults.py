@@ -1867,7 +1867,6 @@ def test_a_superseded_mesh_ingest_leaves_the_winners_archive_as_recorded(db, tmp
     fetch then failed its SHA-256 check). Stalled before it stores, it stops at its lease's check; stalled past that
     check, it stores under a key of its own, which it deletes once its result is refused: the scene keeps the
     winner's archive, as recorded, and nothing else."""
-    import io
     import threading
     import zipfile
 
@@ -1882,15 +1881,6 @@ def test_a_superseded_mesh_ingest_leaves_the_winners_archive_as_recorded(db, tmp
 
     settings, storage = db.model_copy(update={"stage_lease_s": 0.5}), get_storage(db)
     monkeypatch.setattr(ingest, "OUTAGE_PAUSE_S", 0.0)
-    scene = add_scene("processing")
-    mesh = io.BytesIO()
-    with zipfile.ZipFile(mesh, "w") as zf:
-        zf.writestr("mesh/mesh.obj", "v 0 0 0\n")
-    upload = storage.put_bytes(scene_key(scene, datasets.UPLOAD_ARCHIVE), mesh.getvalue())
-    with session_scope() as session:
-        row = session.get(Scene, scene)
-        row.format, row.storage_key, row.size_bytes, row.sha256 = "mesh", upload.key, upload.size, upload.sha256
-
     stalled, go_on = threading.Event(), threading.Event()
 
     def stall(where: str) -> None:  # run A stops at ``stalled_in`` until run B made the scene ready
@@ -1919,8 +1909,7 @@ def test_a_superseded_mesh_ingest_leaves_the_winners_archive_as_recorded(db, tmp
             keeper._renew = unreachable
         return keeper
 
-    monkeypatch.setattr(ingest, "render_mesh", render_mesh)
-    monkeypatch.setattr(ingest, "decode", lambda root, downsample: ingest.Decoded(1, "relu_field"))
+    scene = _mesh_scene_rendering(storage, monkeypatch, render_mesh)
     monkeypatch.setattr(datasets, "package", stalled_package)
     monkeypatch.setattr(ingest, "ingest_lease", a_cut_off)
 

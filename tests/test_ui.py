@@ -629,18 +629,24 @@ def test_the_job_list_pages_and_every_scene_is_offered(live, browser):
     faults(driver, {})
 
 
+def running_job(job_id: str, **fields) -> dict:
+    """A running job's fields as GET /v1/jobs/{id} answers them, ``fields`` replacing its own."""
+    return {"id": job_id, "scene_id": "s", "prompt": "a mic", "mode": "global", "edit_words": [],
+            "models": {"sds": "tiny"}, "device": "cpu", "state": "running", "stage": "edit", "completed_stages": [],
+            "progress": 0.5, "iteration": 2, "total": 4, "overall_progress": 0.5, "eta_seconds": 1,
+            "overall_eta_seconds": 2, "losses": {}, "message": None, "preview_url": None, "error": None,
+            "cancel_requested": False, "created_at": "2026-01-01T00:00:00Z", **fields}
+
+
 def test_a_job_page_streams_only_the_events_after_its_timeline(live, browser):
     """The timeline so far is read once and listed; the stream sends what follows (Last-Event-ID): replayed through
     the stream, each past preview had been downloaded again, and the artifacts listed again per past artifact, at
     every opening of the page."""
     svc, token, _archive = live
     driver = browser
-    job = {"id": "replay", "scene_id": "s", "prompt": "a mic", "mode": "global", "edit_words": [],
-           "models": {"sds": "tiny"}, "device": "cpu", "state": "running", "stage": "export",
-           "completed_stages": ["reconstruct", "edit"], "progress": 0.5, "iteration": 1, "total": 2,
-           "overall_progress": 0.9, "eta_seconds": 1, "overall_eta_seconds": 1, "losses": {}, "message": None,
-           "preview_url": "/v1/jobs/replay/artifacts/preview.png", "error": None, "cancel_requested": False,
-           "created_at": "2026-01-01T00:00:00Z"}
+    job = running_job("replay", stage="export", completed_stages=["reconstruct", "edit"], iteration=1, total=2,
+                      overall_progress=0.9, overall_eta_seconds=1,
+                      preview_url="/v1/jobs/replay/artifacts/preview.png")
     kinds = ["stage_started"] + ["preview"] * 10 + ["stage_completed"] + ["artifact"] * 4 + ["preview", "succeeded"]
     timeline = [{"id": i, "kind": kind, "stage": "edit", "detail": {"preview": "preview.png", "artifact": "a.png"}
                  .get(kind)} for i, kind in enumerate(kinds, 1)]
@@ -670,11 +676,8 @@ def test_a_job_s_progress_reads_as_it_stands(live, browser):
     svc, token, _archive = live
     driver = browser
     created = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(time.time() - 3 * 86400 - 2 * 3600 - 60))
-    job = {"id": "nearly", "scene_id": "s", "prompt": "a mic", "mode": "global", "edit_words": [],
-           "models": {"sds": "tiny"}, "device": "cpu", "state": "running", "stage": "export",
-           "completed_stages": ["reconstruct", "edit"], "progress": 0.5, "iteration": 2, "total": 4,
-           "overall_progress": 0.996, "eta_seconds": 1, "overall_eta_seconds": 2, "losses": {}, "message": None,
-           "preview_url": None, "error": None, "cancel_requested": False, "created_at": created}
+    job = running_job("nearly", stage="export", completed_stages=["reconstruct", "edit"], overall_progress=0.996,
+                      created_at=created)
     timeline = [{"id": 1, "kind": "checkpoint", "stage": "edit", "iteration": 200, "detail": None},
                 {"id": 2, "kind": "resumed", "stage": "edit", "iteration": 200, "detail": None}]
     answer = lambda body, kind="application/json": {"status": 200, "type": kind, "body": body}  # noqa: E731
@@ -710,11 +713,7 @@ def test_a_requested_cancel_stays_shown_until_the_job_stops(live, browser):
     (they had left cancel_requested out, and the first after a cancel had wiped its "(cancel requested)")."""
     svc, token, _archive = live
     driver = browser
-    job = {"id": "stopping", "scene_id": "s", "prompt": "a mic", "mode": "global", "edit_words": [],
-           "models": {"sds": "tiny"}, "device": "cpu", "state": "running", "stage": "edit",
-           "completed_stages": ["reconstruct"], "progress": 0.5, "iteration": 2, "total": 4, "overall_progress": 0.5,
-           "eta_seconds": 1, "overall_eta_seconds": 2, "losses": {}, "message": None, "preview_url": None,
-           "error": None, "cancel_requested": False, "created_at": "2026-01-01T00:00:00Z"}
+    job = running_job("stopping", completed_stages=["reconstruct"])
     snapshot = {key: job[key] for key in ("state", "stage", "progress", "total", "overall_progress", "losses",
                                           "completed_stages", "eta_seconds", "overall_eta_seconds", "message",
                                           "error", "preview_url")}
@@ -742,11 +741,7 @@ def test_a_silent_stream_is_opened_again_after_its_last_event(live, browser):
     network change) had left the page waiting for ever, frozen at its last progress."""
     svc, token, _archive = live
     driver = browser
-    job = {"id": "silent", "scene_id": "s", "prompt": "a mic", "mode": "global", "edit_words": [],
-           "models": {"sds": "tiny"}, "device": "cpu", "state": "running", "stage": "edit", "completed_stages": [],
-           "progress": 0.5, "iteration": 2, "total": 4, "overall_progress": 0.5, "eta_seconds": 1,
-           "overall_eta_seconds": 2, "losses": {}, "message": None, "preview_url": None, "error": None,
-           "cancel_requested": False, "created_at": "2026-01-01T00:00:00Z"}
+    job = running_job("silent")
     answer = lambda body: {"status": 200, "type": "application/json", "body": json.dumps(body)}  # noqa: E731
     set_key(driver, svc, token)
     faults(driver, {"/v1/jobs/silent$": answer(job), "/v1/jobs/silent/artifacts$": answer([]),
@@ -801,11 +796,7 @@ def test_a_stream_s_error_event_ends_it_saying_why(live, browser):
     been listed as a timeline event, and the stream opened again."""
     svc, token, _archive = live
     driver = browser
-    job = {"id": "gone", "scene_id": "s", "prompt": "a mic", "mode": "global", "edit_words": [],
-           "models": {"sds": "tiny"}, "device": "cpu", "state": "running", "stage": "edit", "completed_stages": [],
-           "progress": 0.5, "iteration": 2, "total": 4, "overall_progress": 0.5, "eta_seconds": 1,
-           "overall_eta_seconds": 2, "losses": {}, "message": None, "preview_url": None, "error": None,
-           "cancel_requested": False, "created_at": "2026-01-01T00:00:00Z"}
+    job = running_job("gone")
     answer = lambda body, kind="application/json": {"status": 200, "type": kind, "body": body}  # noqa: E731
     set_key(driver, svc, token)
     faults(driver, {"/v1/jobs/gone$": answer(json.dumps(job)),

@@ -17,14 +17,14 @@ import threading
 import time
 import uuid
 from collections import Counter, OrderedDict
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
 from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
 
-from sqlalchemy import func, or_, select, update
+from sqlalchemy import Update, func, or_, select, update
 
 from voxe_core.progress import Callbacks, Progress
 from voxe_service import datasets
@@ -969,28 +969,28 @@ def fit_lease(rec_id: str, job_id: str, settings: Settings, run_token: str | Non
                        f"voxe-lease-{rec_id}", taken_at)
 
 
-def stage_lease(job_id: str, run_token: str, settings: Settings) -> LeaseKeeper:
-    """The lease of the run that holds the job (:func:`begin_stage`), kept while its stage runs."""
+def _held_row_renewal(held_row: Callable[[], Update], lease_s: float, lease_column: str) -> Callable[[], bool]:
+    """A :class:`LeaseKeeper`'s renewal: ``lease_column`` of the row ``held_row`` selects moved ``lease_s`` on from
+    now; whether the row is still held (one updated)."""
     def renew() -> bool:
         with session_scope() as session:
             return session.execute(
-                update(Job).where(Job.id == job_id, Job.run_token == run_token)
-                .values(run_lease_until=utcnow() + timedelta(seconds=settings.stage_lease_s))
-            ).rowcount == 1
+                held_row().values({lease_column: utcnow() + timedelta(seconds=lease_s)})).rowcount == 1
+    return renew
 
+
+def stage_lease(job_id: str, run_token: str, settings: Settings) -> LeaseKeeper:
+    """The lease of the run that holds the job (:func:`begin_stage`), kept while its stage runs."""
+    renew = _held_row_renewal(lambda: update(Job).where(Job.id == job_id, Job.run_token == run_token),
+                              settings.stage_lease_s, "run_lease_until")
     return LeaseKeeper(renew, settings.stage_lease_s, f"job {job_id}'s run", "another run took the job over",
                        f"voxe-stage-{job_id}")
 
 
 def ingest_lease(scene_id: str, token: str, settings: Settings) -> LeaseKeeper:
     """The lease of the run that holds the scene's ingest (``worker.ingest``), kept while it runs."""
-    def renew() -> bool:
-        with session_scope() as session:
-            return session.execute(
-                update(Scene).where(Scene.id == scene_id, Scene.ingest_token == token)
-                .values(ingest_lease_until=utcnow() + timedelta(seconds=settings.stage_lease_s))
-            ).rowcount == 1
-
+    renew = _held_row_renewal(lambda: update(Scene).where(Scene.id == scene_id, Scene.ingest_token == token),
+                              settings.stage_lease_s, "ingest_lease_until")
     return LeaseKeeper(renew, settings.stage_lease_s, f"scene {scene_id}'s ingest", "another run took it over",
                        f"voxe-ingest-{scene_id}")
 
