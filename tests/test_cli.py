@@ -1420,8 +1420,8 @@ def test_evaluate_into_an_earlier_output_leaves_no_stale_ring_renders(sphere_fil
 def test_an_evaluation_that_fails_leaves_the_earlier_ring_renders_and_nothing_of_its_own(sphere_file, tmp_path,
                                                                                       monkeypatch):
     """Each ring is saved as it is scored (not all held to the end), into a staging folder beside --out's: a run that
-    fails after ring views were saved (G_i's and the edit's first) leaves the earlier run's renders as they were, and no staging folder; a killed
-    run's staging folder (a full ring a grid) goes at the next run."""
+    fails after ring views were saved (G_i's and the edit's first) leaves the earlier run's renders as they were,
+    and no staging folder; a killed run's staging folder (a full ring a grid) goes at the next run."""
     import voxe_core.evaluate
     from voxe_core.tiny_eval import build_tiny_clip
 

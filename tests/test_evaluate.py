@@ -410,7 +410,8 @@ def test_an_evaluation_holds_one_view_of_each_grid_at_a_time(sphere_grid, tiny_c
 def test_the_views_scored_one_by_one_give_the_numbers_of_the_whole_rings(sphere_grid, tiny_clip_path,
                                                                           tiny_inception_path):
     """Scored view by view, in the scorers' batches, the rows are those of each whole ring scored at once, bit for
-    bit (batches that do not divide the ring included)."""
+    bit (batches that do not divide the ring included; ``kept_fraction`` is the exact ratio rounded to float32,
+    which the whole ring's float32 mean equals below 2^24 pixels, as here)."""
     from voxe_core.evaluate import _finite_mean
 
     clip = ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")

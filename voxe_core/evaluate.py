@@ -459,8 +459,11 @@ def evaluate(
     and FID take each grid's views in their batches, as 8-bit pixels (one batch buffer per grid and scorer). So
     one view of each grid is held at a time, each grid's batch pixels and the scores besides (each ring had been
     held whole, ``initial``'s to the end: 9 GB of floats for 360 views of 1,024²; every edit's before that, 270 GB
-    for 60 edits), and every ring is rendered once; each masked edit's footprint stand-in (4 floats a vertex) is
-    held to the end too. The numbers are those of the whole rings.
+    for 60 edits), and every ring is rendered once; each masked edit's footprint stand-in (4 floats a vertex and
+    its occupancy, ~70 MB at 160³, on ``device``) is held to the end too, all of them at once (the whole-ring
+    code had built one at a time: 60 masked edits at 160³ hold ~4 GB more). The numbers are those of the whole
+    rings (``kept_fraction`` the exact ratio rounded to float32, which a float32 mean over a ring past 2^24 pixels
+    had missed in its last bits).
     ``on_ring(name, i, render)`` gets each ring render (H, W, 3), to save it, in that order: view 0 of
     ``initial`` (name None), view 0 of each edit in ``edits``' order, then view 1 of ``initial``, and so on.
 
@@ -620,7 +623,7 @@ class Preservation:
         self.kept, self.pixels = self.kept + int(keep.sum()), self.pixels + keep.numel()
 
     def result(self) -> dict:
-        kept_fraction = float(torch.tensor(self.kept / self.pixels, dtype=torch.float32))  # as the ring's float32 mean
+        kept_fraction = float(torch.tensor(self.kept / self.pixels, dtype=torch.float32))  # exact, rounded to float32
         return {"psnr": _finite_mean(torch.cat(self.psnr_values)), "ssim": _finite_mean(torch.cat(self.ssim_values)),
                 "region": self.region, "kept_fraction": kept_fraction}
 
