@@ -18,7 +18,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 from voxe_core.presets import DOWNSAMPLE, MAX_SEED, RESAMPLE
 
@@ -325,6 +325,24 @@ def staging_folder(out: Path, command: str) -> Iterator[Path]:
     finally:
         shutil.rmtree(staging, ignore_errors=True)
         os.close(held)
+
+
+def move_staged(staging: Path, out: Path, summaries: tuple[str, ...], clear_earlier: Callable[[], None]) -> None:
+    """Move the whole set of outputs ``staging`` holds (every file but its mark) to the same paths under ``out``, over
+    an earlier run's. The earlier ``summaries`` go first, then what ``clear_earlier`` removes (the earlier run's files
+    this run may not replace), so a move failing part way leaves no summary beside a mix of two runs' files;
+    ``summaries`` come last, the last of them last: where it is, the set is whole."""
+    for name in summaries:
+        (out / name).unlink(missing_ok=True)
+    clear_earlier()
+    last = [staging / name for name in summaries]
+    for path in sorted(staging.rglob("*")):
+        if path.is_file() and path.name != STAGING_MARKER and path not in last:
+            target = out / path.relative_to(staging)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(path, target)
+    for path in last:
+        os.replace(path, out / path.name)
 
 
 def remove_earlier_outputs(folder: Path, names: re.Pattern) -> None:

@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import json
-import os
 import re
 import sys
 from pathlib import Path
 
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_model_arguments, add_view_arguments, check_device, load_views, positive_int,
-    remove_earlier_outputs, run_stage, staging_folder, view_options_given, writable_file, writable_folder,
+    move_staged, remove_earlier_outputs, run_stage, staging_folder, view_options_given, writable_file, writable_folder,
 )
 from voxe_core.constants import (
     CLIP_MODEL_ID, EVALUATION_RING_ELEVATION, EVALUATION_RING_SIZE, EVALUATION_RING_VIEWS, INCEPTION_FILE,
@@ -87,8 +86,8 @@ def cmd_evaluate(args) -> int:
     with staging_folder(out, "evaluate") as staging:
         result = run_stage(
             lambda cb: evaluate(initial, edits, args.object, clip, fid, input_images, config, cb, device=device,
-                                on_ring=lambda name, i, view: save_png(staging / (name or "initial") / f"{i:03d}.png",
-                                                                       view)),
+                                on_ring=lambda name, i, view: save_png(
+                                    staging / "ring" / (name or "initial") / f"{i:03d}.png", view)),
             "evaluate", "view", evaluation_steps(edits, config, fid, input_images), args.quiet,
         )
         if result is None:
@@ -104,14 +103,7 @@ def cmd_evaluate(args) -> int:
         # earlier run's summaries torn, then none beside this run's ring renders)
         (staging / "evaluation.json").write_text(json.dumps(summary, indent=2))
         (staging / "evaluation.md").write_text(table)
-        for summary_file in ("evaluation.json", "evaluation.md"):  # (none beside a move failing part way)
-            (out / summary_file).unlink(missing_ok=True)
-        clear_ring_renders(out / "ring")
-        for frame in sorted(staging.glob("*/*.png")):
-            (out / "ring" / frame.parent.name).mkdir(parents=True, exist_ok=True)
-            os.replace(frame, out / "ring" / frame.parent.name / frame.name)
-        os.replace(staging / "evaluation.md", out / "evaluation.md")
-        os.replace(staging / "evaluation.json", out / "evaluation.json")  # last: present, the set is whole
+        move_staged(staging, out, ("evaluation.md", "evaluation.json"), lambda: clear_ring_renders(out / "ring"))
     print(table, end="")
     return 0
 

@@ -8,7 +8,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
 import re
 import sys
 import warnings
@@ -17,8 +16,8 @@ from pathlib import Path
 from voxe_core import constants as paper
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, check_device, load_guidance,
-    non_negative_int, positive_int, remove_earlier_outputs, run_stage, seed, staging_folder, writable_file,
-    writable_folder,
+    move_staged, non_negative_int, positive_int, remove_earlier_outputs, run_stage, seed, staging_folder,
+    writable_file, writable_folder,
 )
 from voxe_core.presets import SEED, refine_config
 
@@ -27,7 +26,7 @@ PREVIEW_FRAME = re.compile(r"(attention_edit|attention_object|probability_edit|m
                            r"_\d+\.png")
 """The names of the frames ``voxe refine`` writes under ``renders/``."""
 OUTPUT_FILES = ("refined.safetensors", "mask.safetensors", "probabilities.safetensors", "refine.json")
-"""Its other outputs, in the order they are moved into --out (refine.json, which describes them, last)."""
+"""Its other outputs (refine.json, which describes them, moved into --out last)."""
 
 
 def add_parsers(commands, common) -> None:
@@ -169,13 +168,6 @@ def _write_outputs(folder: Path, result, words: list[str], model: str, config, s
 
 
 def _move_outputs(staging: Path, out: Path) -> None:
-    """Move a whole set of outputs from ``staging`` into ``out`` over an earlier run's: the earlier refine.json goes
-    first, so a move failing part way leaves no summary beside a mix of two runs' files, then the earlier previews
-    (fewer --preview-views had left another run's frames beside); refine.json, which describes the set, comes last."""
-    (out / "refine.json").unlink(missing_ok=True)
-    remove_earlier_outputs(out / "renders", PREVIEW_FRAME)
-    (out / "renders").mkdir(exist_ok=True)
-    for frame in sorted((staging / "renders").iterdir()):
-        os.replace(frame, out / "renders" / frame.name)
-    for name in OUTPUT_FILES:
-        os.replace(staging / name, out / name)
+    """Move the whole set from ``staging`` into ``out`` (:func:`move_staged`: refine.json, which describes it, last),
+    the earlier previews removed first (fewer --preview-views had left another run's frames beside)."""
+    move_staged(staging, out, ("refine.json",), lambda: remove_earlier_outputs(out / "renders", PREVIEW_FRAME))
