@@ -1279,6 +1279,45 @@ def test_an_output_path_refine_cannot_write_fails_it_at_once_and_a_failed_move_l
     assert not (out / "refine.json").exists()  # no summary beside the mix
 
 
+@pytest.mark.parametrize("frame", ["mask_00.png", "map2d_object_00.png"])
+def test_a_folder_named_as_a_preview_frame_fails_refine_before_the_refinement(
+        tmp_path, make_sphere_grid, monkeypatch, capsys, frame):
+    """A folder under renders/ named as a frame this run writes had failed the move after the whole refinement, the
+    earlier refine.json already removed: the frames' paths are checked with the other outputs', first."""
+    import voxe_core.refine.pipeline
+    from voxe_core.cli.refine import OUTPUT_FILES
+
+    make_sphere_grid(8).save(tmp_path / "grid.safetensors", dense=True)
+    out = tmp_path / "out"
+    (out / "renders" / frame).mkdir(parents=True)  # in the way
+    for name in OUTPUT_FILES:
+        (out / name).write_text("earlier")
+    earlier = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    refined = []
+    monkeypatch.setattr(voxe_core.refine.pipeline, "refine", lambda *args, **kwargs: refined.append(args))
+    capsys.readouterr()
+    assert main(["refine", str(tmp_path / "grid.safetensors"), "--initial", str(tmp_path / "grid.safetensors"),
+                 "--prompt", "a dog wearing a party hat", "--edit-words", "party hat", "--out", str(out),
+                 "--model", str(tmp_path / "no-model"), "--offline", "--device", "cpu", "--iterations", "1",
+                 "--render-size", "16", "--views", "1", "--preview-views", "1", "--quiet"]) == 2
+    assert f"cannot write {out / 'renders' / frame}: it is a folder" in capsys.readouterr().err
+    assert refined == []
+    assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == earlier
+
+
+def test_refine_checks_the_preview_frames_it_writes_and_no_others():
+    """Ring previews for every preview view; the 2D maps only for views the refinement has (a folder named as a
+    frame of more views is none of this run's business)."""
+    from voxe_core.cli.refine import PREVIEW_FRAME, _preview_frames
+
+    frames = _preview_frames(2, 1)
+    assert frames == ["attention_edit_00.png", "attention_edit_01.png", "attention_object_00.png",
+                      "attention_object_01.png", "probability_edit_00.png", "probability_edit_01.png", "mask_00.png",
+                      "mask_01.png", "refined_00.png", "refined_01.png", "map2d_edit_00.png", "map2d_object_00.png"]
+    assert all(PREVIEW_FRAME.fullmatch(name) for name in frames)
+    assert _preview_frames(0, 4) == []
+
+
 def test_relative_edit_seeds_take_every_node_near_the_largest_edit_probability():
     # the authors' rule: every node with P_e >= 0.992 max P_e (here 40 nodes), at least edit_seeds by P_e,
     # never a node the object claims more

@@ -22,8 +22,11 @@ from voxe_core.cli.common import (
 from voxe_core.presets import SEED, refine_config
 
 
-PREVIEW_FRAME = re.compile(r"(attention_edit|attention_object|probability_edit|mask|refined|map2d_edit|map2d_object)"
-                           r"_\d+\.png")
+RING_PREVIEWS = ("attention_edit", "attention_object", "probability_edit", "mask", "refined")
+"""The previews rendered on the turntable ring, ``--preview-views`` frames each."""
+MAP_PREVIEWS = ("map2d_edit", "map2d_object")
+"""The 2D attention maps shown, one frame per view up to ``--preview-views``."""
+PREVIEW_FRAME = re.compile(rf"({'|'.join(RING_PREVIEWS + MAP_PREVIEWS)})_\d+\.png")
 """The names of the frames ``voxe refine`` writes under ``renders/``."""
 OUTPUT_FILES = ("refined.safetensors", "mask.safetensors", "probabilities.safetensors", "refine.json")
 """Its other outputs (refine.json, which describes them, moved into --out last)."""
@@ -98,6 +101,8 @@ def cmd_refine(args) -> int:
     writable_folder(args.out / "renders")
     model = args.model or paper.ATTENTION_MODEL_ID
     config = refine_config(job_params(args), model)
+    for name in _preview_frames(args.preview_views, config.views):  # (a folder of a frame's name: the same)
+        writable_file(args.out / "renders" / name)
     initial, edited = load_grid(args.initial), load_grid(args.edited)
     check_compatible(initial, edited)
     out = args.out
@@ -147,24 +152,34 @@ def _write_outputs(folder: Path, result, words: list[str], model: str, config, s
     renders.mkdir()
     if args.preview_views:
         cameras = turntable_cameras(args.preview_views, 30.0, config.render_size, centre=initial.orbit_centre())
-        groups = {
-            "attention_edit": iter_attention_views(edited, result.edit_field, cameras),
-            "attention_object": iter_attention_views(edited, result.object_field, cameras),
-            "probability_edit": iter_attention_views(edited, result.edit_probability, cameras),
-            "mask": iter_mask_overlays(edited, result.mask, cameras),
-            "refined": iter_mask_overlays(result.refined_grid, torch.zeros_like(result.mask), cameras, strength=0.0),
-        }
+        groups = dict(zip(RING_PREVIEWS, (
+            iter_attention_views(edited, result.edit_field, cameras),
+            iter_attention_views(edited, result.object_field, cameras),
+            iter_attention_views(edited, result.edit_probability, cameras),
+            iter_mask_overlays(edited, result.mask, cameras),
+            iter_mask_overlays(result.refined_grid, torch.zeros_like(result.mask), cameras, strength=0.0),
+        )))
         for name, frames in groups.items():
             for i, frame in enumerate(frames):
-                save_png(renders / f"{name}_{i:02d}.png", frame)
+                save_png(renders / _frame_name(name, i), frame)
     for i in range(min(args.preview_views, len(result.edit_maps))):
-        save_png(renders / f"map2d_edit_{i:02d}.png", result.edit_maps[i].cpu()[..., None].expand(-1, -1, 3))
-        save_png(renders / f"map2d_object_{i:02d}.png", result.object_maps[i].cpu()[..., None].expand(-1, -1, 3))
+        for name, maps in zip(MAP_PREVIEWS, (result.edit_maps, result.object_maps)):
+            save_png(renders / _frame_name(name, i), maps[i].cpu()[..., None].expand(-1, -1, 3))
     summary = {"prompt": result.info["prompt"], "edit_words": words, "model": model,
                "settings": {"views": config.views, "render_size": config.render_size, "iterations": config.iterations,
                             "seed": config.seed},
                "graph_cut": stats, "masked_voxels": int(result.mask.sum())}
     (folder / "refine.json").write_text(json.dumps(summary, indent=2))
+
+
+def _frame_name(preview: str, view: int) -> str:
+    return f"{preview}_{view:02d}.png"
+
+
+def _preview_frames(preview_views: int, views: int) -> list[str]:
+    """The names of the frames a run writes under ``renders/``: each ring preview's, and a 2D map per view shown."""
+    return ([_frame_name(name, i) for name in RING_PREVIEWS for i in range(preview_views)]
+            + [_frame_name(name, i) for name in MAP_PREVIEWS for i in range(min(preview_views, views))])
 
 
 def _move_outputs(staging: Path, out: Path) -> None:
