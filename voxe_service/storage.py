@@ -392,7 +392,10 @@ class S3Storage(Storage):
 
     Credentials come from boto3's usual chain (AWS_ACCESS_KEY_ID / AWS_SECRET_ACCESS_KEY,
     a profile, an instance role); never from the service settings. The SHA-256 of each
-    object is stored as object metadata.
+    object is stored as object metadata. Keys are checked against S3's 1,024-byte limit
+    (:data:`S3_KEY_MAX_BYTES`); a store may limit more (SeaweedFS takes each "/"-separated
+    part up to 255 bytes, as a file name, and refuses a longer one with KeyTooLongError;
+    the service's own keys' parts are far shorter).
     """
 
     def __init__(self, bucket: str, endpoint_url: str | None = None, region: str | None = None,
