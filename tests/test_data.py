@@ -377,6 +377,25 @@ def test_a_file_path_without_its_extension_finds_a_jpeg(tmp_path):
     assert torch.allclose(scene.images[:, 3, 4], torch.tensor([200.0, 100, 50]) / 255, atol=0.02)
 
 
+@pytest.mark.parametrize("on_disk, in_json", [("NFD", "NFC"), ("NFC", "NFD")])
+def test_an_image_name_in_another_unicode_normal_form_is_found(tmp_path, on_disk, in_json):
+    """"café" decomposed (NFD, as macOS often writes file names) and composed (NFC, as most JSON holds it) are one
+    name to the user and other bytes to Linux: the image had not been found."""
+    import unicodedata
+
+    root = tmp_path / "u"
+    name = "images/café_{}.png"
+    frames = []
+    for i in range(2):
+        write_png(root / unicodedata.normalize(on_disk, name.format(i)), mode="RGB", color=(200, 100, 50))
+        frames.append({"file_path": unicodedata.normalize(in_json, name.format(i)),
+                       "transform_matrix": pose(translation=(i, 0, 4.0))})
+    (root / "transforms.json").write_text(json.dumps({"fl_x": 10.0, "frames": frames}))
+    scene = load_scene(root)
+    assert len(scene.names) == 2
+    assert torch.allclose(scene.images[:, 3, 4], torch.tensor([200.0, 100, 50]) / 255, atol=0.01)
+
+
 def test_unreadable_image(tmp_path):
     root = make_synthetic(tmp_path / "s")
     (root / "train" / "r_2.png").write_bytes(b"this is not a png at all")

@@ -23,6 +23,7 @@ import json
 import math
 import os
 import re
+import unicodedata
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -530,9 +531,12 @@ def _posix_file_path(file_path: str) -> str:
 def image_candidates(root: Path, file_path: str) -> list[Path]:
     """Where a frame's image may be: its ``file_path`` (Windows' separators read as '/'), or that with an extension
     implied: ``.png`` (NeRF-synthetic's), ``.jpg`` or ``.jpeg`` (instant-ngp tries these too). The loader's rule, and
-    the upload check's."""
+    the upload check's. Then the same in the other Unicode normal forms, where they differ: a name written on macOS
+    (whose file names are often decomposed, NFD: "é" as "e" and an accent) is the same name to its user as the
+    composed (NFC) one a JSON file or another system holds, yet other bytes to Linux, which had found no image."""
     file_path = _posix_file_path(file_path)
-    return [root / file_path] + [root / (file_path + extension) for extension in _IMPLIED_EXTENSIONS]
+    spellings = dict.fromkeys([file_path, *(unicodedata.normalize(form, file_path) for form in ("NFC", "NFD"))])
+    return [root / (spelling + extension) for spelling in spellings for extension in ("", *_IMPLIED_EXTENSIONS)]
 
 
 def _find_image(root: Path, file_path: str) -> Path | None:
