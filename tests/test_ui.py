@@ -814,6 +814,32 @@ def test_a_stream_s_error_event_ends_it_saying_why(live, browser):
     faults(driver, {})
 
 
+def test_the_api_s_values_are_shown_as_text_never_as_markup(live, browser):
+    """Every value the API sends is shown as text: a job's mode, state and creation time had been spliced into the
+    job list's HTML unescaped, and parsed as the elements and attributes they wrote."""
+    svc, token, _archive = live
+    driver = browser
+    markup = '<img src="/static/app.css" class="injected">'
+    job = running_job("marked", mode=markup, state='running"><b class="injected">x</b>',
+                      created_at='2026-01-01T00:00:00Z" class="injected', prompt=markup)
+    scene = {"id": 'scene"><i class="injected"></i>', "name": markup, "state": "ready"}
+    answer = lambda body: {"status": 200, "type": "application/json", "body": json.dumps(body)}  # noqa: E731
+    set_key(driver, svc, token)
+    faults(driver, {"/v1/jobs?": answer({"items": [job], "total": 1}),
+                    "/v1/scenes?": answer({"items": [scene], "total": 1, "next_cursor": None})})
+    driver.refresh()
+    wait_until(lambda: driver.find_elements("css selector", 'tr[data-job="marked"]'), 10, what="the job listed")
+    wait_until(lambda: driver.find_elements("css selector", "#job-scene option"), 10, what="the scene offered")
+    assert not driver.find_elements("css selector", ".injected")
+    cells = driver.find_elements("css selector", 'tr[data-job="marked"] td')
+    assert [cell.text for cell in cells[1:4]] == [markup, markup, job["state"]]
+    assert cells[5].get_attribute("title") == job["created_at"]
+    assert text(driver, "#job-scene option") == f"{markup} ({scene['id']})"
+    assert driver.find_element("css selector", "#job-scene option").get_attribute("value") == scene["id"]
+    faults(driver, {})
+
+
+
 def test_a_long_one_word_prompt_wraps_inside_the_window(live, browser):
     """A prompt (and the error quoting it) of one 500-character word, in the job list and on its job page: the
     text wraps, the page stays as wide as the window, and the list's State column stays on screen (the table and

@@ -261,16 +261,16 @@ async function allScenes(signal) {
 async function loadScenes(signal, selected) {
   const scenes = await allScenes(signal);
   const ready = scenes.filter((s) => s.state === "ready");
-  const option = (s) => `<option value="${escapeHtml(s.id)}">${escapeHtml(s.name)} (${escapeHtml(s.id)})</option>`;
+  const option = (s) => new Option(`${s.name} (${s.id})`, s.id);
   const jobScene = $("#job-scene");
   const keep = selected || jobScene.value;
-  jobScene.innerHTML = ready.map(option).join("");
+  jobScene.replaceChildren(...ready.map(option));
   // A choice kept only while its scene is offered: set to one gone (deleted meanwhile), a <select> shows nothing
   // chosen, the edit would be sent with no scene, and the job list, shown unfiltered, read as filtered.
   if (ready.some((s) => s.id === keep)) jobScene.value = keep;
   const filter = $("#filter-scene");
   const filterValue = filter.value;
-  filter.innerHTML = `<option value="">all</option>${scenes.map(option).join("")}`;
+  filter.replaceChildren(new Option("all", ""), ...scenes.map(option));
   filter.value = scenes.some((s) => s.id === filterValue) ? filterValue : "";
 }
 
@@ -370,17 +370,32 @@ async function loadJobs(signal) {
       ? `${jobs.offset + 1}–${jobs.offset + jobs.items.length} of ${jobs.total}` : "no jobs";
     $("#jobs-newer").disabled = cursor === null;
     $("#jobs-older").disabled = !jobs.next_cursor;
-    $("#job-list tbody").innerHTML = jobs.items.map((job) => `
-      <tr data-job="${escapeHtml(job.id)}">
-        <td><a href="#/jobs/${escapeHtml(encodeURIComponent(job.id))}">${escapeHtml(job.id)}</a></td>
-        <td class="prompt">${escapeHtml(job.prompt)}</td><td>${job.mode}</td>
-        <td class="state-${job.state}">${job.state}</td>
-        <td><progress max="1" value="${job.overall_progress}"></progress> ${percent(job.overall_progress)}</td>
-        <td title="${job.created_at}">${age(job.created_at)}</td>
-      </tr>`).join("");
+    $("#job-list tbody").replaceChildren(...jobs.items.map(jobRow));
   } catch (error) {
     if (!signal.aborted && request === jobListRequest) showApiError(error, "list");
   }
+}
+
+/** A job's row in the list, built as elements: every field the API sends is set as text (a mode or a time spliced
+ * into HTML had been parsed as markup). */
+function jobRow(job) {
+  const row = document.createElement("tr");
+  row.dataset.job = job.id;
+  const cell = (...content) => { const td = document.createElement("td"); td.append(...content); return td; };
+  const link = document.createElement("a");
+  link.href = `#/jobs/${encodeURIComponent(job.id)}`;
+  link.textContent = job.id;
+  const progress = document.createElement("progress");
+  progress.setAttribute("max", "1");
+  progress.setAttribute("value", job.overall_progress);  // (a property refuses a value that is no number)
+  const prompt = cell(job.prompt);
+  prompt.className = "prompt";
+  const state = cell(job.state);
+  state.className = `state-${job.state}`;
+  const created = cell(age(job.created_at));
+  created.title = job.created_at;
+  row.append(cell(link), prompt, cell(job.mode), state, cell(progress, ` ${percent(job.overall_progress)}`), created);
+  return row;
 }
 
 // ------------------------------------------------------------------ job page
@@ -500,7 +515,7 @@ async function refreshPreview(url, signal) {
 async function refreshArtifacts(jobId, signal) {
   const artifacts = await api(`${jobPath(jobId)}/artifacts`, { signal });
   const list = $("#job-artifacts");
-  list.innerHTML = "";
+  list.replaceChildren();
   for (const artifact of artifacts) {
     const item = document.createElement("li");
     const link = document.createElement("a");
@@ -660,10 +675,6 @@ async function within(promise, ms, what) {
 }
 
 // ------------------------------------------------------------------ formatting
-function escapeHtml(text) {
-  return String(text).replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" })[c]);
-}
-
 /** A fraction as a whole percentage, rounded down: a job 99.6 % done reads 99 %, not 100 % (done). The epsilon
  * keeps 0.57 at 57 % (100 * 0.57 is 56.99999999999999). */
 function percent(fraction) {
