@@ -27,14 +27,27 @@ async function api(path, { method = "GET", body, headers = {}, signal } = {}) {
 }
 
 /** The error of a non-2xx answer: FastAPI's `detail` from a JSON body, else the status text (a plain-text 500 or
- * a proxy's HTML 502 page says nothing more useful, and is no JSON to parse). */
+ * a proxy's HTML 502 page says nothing more useful, and is no JSON to parse). HTTP/2 sends no status text: then the
+ * status's standard reason phrase, or for a status without one a plain-text body's first line (it had read
+ * "502: error"). */
 function apiError(status, statusText, contentType, text) {
   let detail = null;
   if (/^application\/([\w.-]+\+)?json\b/i.test(contentType || "")) {
     try { detail = JSON.parse(text).detail; } catch { /* a broken JSON body: the status text below */ }
   }
-  return new ApiError(status, detail ?? (statusText || "error"));
+  const plain = /^text\/plain\b/i.test(contentType || "") ? text.trim().split("\n")[0].slice(0, 200) : "";
+  return new ApiError(status, detail ?? (statusText || REASON_PHRASES[status] || plain || "no reason given"));
 }
+
+/** The standard reason phrases (RFC 9110, and 429 of RFC 6585) of the statuses the API or a proxy before it sends. */
+const REASON_PHRASES = {
+  400: "Bad Request", 401: "Unauthorized", 403: "Forbidden", 404: "Not Found", 405: "Method Not Allowed",
+  408: "Request Timeout", 409: "Conflict", 410: "Gone", 411: "Length Required", 412: "Precondition Failed",
+  413: "Content Too Large", 414: "URI Too Long", 415: "Unsupported Media Type", 422: "Unprocessable Content",
+  429: "Too Many Requests", 431: "Request Header Fields Too Large", 500: "Internal Server Error",
+  501: "Not Implemented", 502: "Bad Gateway", 503: "Service Unavailable", 504: "Gateway Timeout",
+  507: "Insufficient Storage",
+};
 
 async function responseError(response) {
   return apiError(response.status, response.statusText, response.headers.get("Content-Type"), await response.text());
