@@ -40,6 +40,7 @@ PARAMS = {  # tests/test_service_e2e.py's tiny local-edit parameters (8 frames: 
 # request after them); or, given `timeline` (events {id, kind, ...}), as a job's events would: its first
 # `recorded` events as JSON, or as an event stream (Accept) every event after the request's Last-Event-ID, left open
 # with nothing more sent when `open` (a connection dropped unsaid).
+# Each request in window.requests has `at`: when it was sent (Date.now()).
 PAGE_HOOKS = """
 window.cspViolations = [];
 document.addEventListener("securitypolicyviolation",
@@ -48,7 +49,7 @@ window.requests = [];
 const realFetch = window.fetch;
 window.fetch = async (resource, options = {}) => {
   const url = resource instanceof Request ? resource.url : String(resource);
-  requests.push({ url, method: options.method || "GET", headers: options.headers || {} });
+  requests.push({ url, method: options.method || "GET", headers: options.headers || {}, at: Date.now() });
   const method = options.method || "GET";
   const faults = JSON.parse(sessionStorage.getItem("test.faults") || "{}");
   const matches = ([key, fault]) => (!fault.method || fault.method === method)
@@ -853,6 +854,40 @@ def test_an_error_answer_without_a_status_text_says_its_status_s_reason(live, br
         wait_until(lambda: text(driver, '[data-error-for="list"]'), 10, what="the job list's error")
         assert text(driver, '[data-error-for="list"]') == f"{status}: {said}"
     faults(driver, {})
+
+
+def test_a_failing_stream_is_asked_again_less_often_each_time(live, browser):
+    """The event stream's reconnections after failures in a row wait twice as long each time (from the server's
+    retry interval), back to that interval once a connection is answered: a failing server had been asked again
+    every 2 s for as long as the page stayed open."""
+    svc, token, _archive = live
+    driver = browser
+    answer = lambda body, kind="application/json": {"status": 200, "type": kind, "body": body}  # noqa: E731
+    failing = {"status": 503, "statusText": "Service Unavailable", "type": "application/json",
+               "body": json.dumps({"detail": "database busy"})}
+    answered = {"once": True, **answer("retry: 100\n\n", "text/event-stream")}  # then it ends: opened again
+    set_key(driver, svc, token)
+    # (the keys in sorted order: the timeline read as JSON, then a stream answered with its retry, then failures)
+    faults(driver, {"/v1/jobs/busy$": answer(json.dumps(running_job("busy"))),
+                    "/v1/jobs/busy/artifacts$": answer("[]"),
+                    "/v1/jobs/busy/event": {"once": True, **answer("[]")},
+                    "/v1/jobs/busy/events": answered, "/v1/jobs/busy/events$": failing})
+    driver.execute_script("window.requests = []")
+    go(driver, "#/jobs/busy")
+    wait_until(lambda: len(streams(driver, "busy")) >= 6, 10, what="five failed reconnections")
+    faults(driver, {"/v1/jobs/busy/events": answered, "/v1/jobs/busy/events$": failing})
+    count = len(streams(driver, "busy"))
+    wait_until(lambda: len(streams(driver, "busy")) >= count + 3, 20, what="an answered stream and a failure")
+    times = [r["at"] for r in streams(driver, "busy")]
+    gaps = [later - earlier for earlier, later in zip(times, times[1:])]
+    # 100 ms after the answered stream and after the first failure, then 200, 400, 800, 1600
+    for earlier, later in zip(gaps[1:5], gaps[2:6]):
+        assert 1.5 * earlier < later < 3 * earlier, gaps
+    answered_at = count  # the stream answered after the failures, then the first failure after it
+    assert gaps[answered_at] < 500 and gaps[answered_at] < gaps[answered_at - 1] / 2, gaps
+    go(driver, "#/")
+    faults(driver, {})
+
 
 
 def test_a_long_one_word_prompt_wraps_inside_the_window(live, browser):

@@ -570,12 +570,17 @@ const FINAL_STREAM_STATUS = new Set([401, 403, 404]);
  * the connection is taken for dead and opened again. A connection dropped unsaid (a laptop's sleep, a network change,
  * a proxy's timeout) had left the read waiting for ever, the page frozen at its last progress. */
 const STREAM_SILENCE_MS = 45_000;
+/** The longest wait before a reconnection after failures in a row (each doubles the wait). */
+const STREAM_RETRY_CAP_MS = 30_000;
 
 /** Read the job's Server-Sent Events after event ``afterId`` (none: from its start) with fetch() (the key in a
- * header), reconnecting with Last-Event-ID until the job ends or the page changes. */
+ * header), reconnecting with Last-Event-ID until the job ends or the page changes: after the server's retry
+ * interval, doubled for each failure in a row (a failing server had been asked again every 2 s for as long as the
+ * page stayed open), back to it once a connection is answered. */
 async function followEvents(jobId, afterId, signal) {
   let lastId = afterId == null ? null : String(afterId);
   let retryMs = 2000;
+  let failures = 0;
   while (!signal.aborted) {
     let finished = false;
     try {
@@ -589,6 +594,7 @@ async function followEvents(jobId, afterId, signal) {
         }
         throw error;
       }
+      failures = 0;
       showError("stream", "");
       for await (const event of parseSse(response.body, STREAM_SILENCE_MS)) {
         if (event.retry) retryMs = event.retry;
@@ -605,9 +611,11 @@ async function followEvents(jobId, afterId, signal) {
       if (finished) return;  // the server ends the stream after the terminal event
     } catch (error) {
       if (signal.aborted) return;
+      failures += 1;
       showError("stream", `event stream: ${errorText(error)}; reconnecting`);
     }
-    await sleep(retryMs, signal);
+    const backoff = retryMs * 2 ** Math.max(0, failures - 1);
+    await sleep(Math.min(backoff, Math.max(retryMs, STREAM_RETRY_CAP_MS)), signal);
   }
 }
 
