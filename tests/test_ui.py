@@ -889,6 +889,21 @@ def test_a_failing_stream_is_asked_again_less_often_each_time(live, browser):
     faults(driver, {})
 
 
+def test_an_eta_already_past_reads_finishing(live, browser):
+    """A running job slower than its estimate (the ETA below zero) reads "finishing…", not "0 s left"."""
+    svc, token, _archive = live
+    driver = browser
+    job = running_job("late", overall_eta_seconds=-30, eta_seconds=-30)
+    answer = lambda body: {"status": 200, "type": "application/json", "body": json.dumps(body)}  # noqa: E731
+    set_key(driver, svc, token)
+    faults(driver, {"/v1/jobs/late$": answer(job), "/v1/jobs/late/artifacts$": answer([]),
+                    "/v1/jobs/late/events": {"timeline": [], "recorded": 0, "open": True}})
+    go(driver, "#/jobs/late")
+    wait_until(lambda: text(driver, "#job-state") == "running", 10, what="the job page")
+    assert text(driver, "#job-eta") == "finishing… (this stage: finishing…)"
+    go(driver, "#/")
+    faults(driver, {})
+
 
 def test_a_long_one_word_prompt_wraps_inside_the_window(live, browser):
     """A prompt (and the error quoting it) of one 500-character word, in the job list and on its job page: the

@@ -495,7 +495,7 @@ function renderProgress(p) {
   $("#job-overall-progress").value = p.overall_progress ?? 0;
   $("#job-overall-text").textContent = percent(p.overall_progress ?? 0);
   $("#job-eta").textContent = p.overall_eta_seconds != null
-    ? `${duration(p.overall_eta_seconds)} left (this stage: ${p.eta_seconds != null ? duration(p.eta_seconds) : "–"})` : "–";
+    ? `${timeLeft(p.overall_eta_seconds)} (this stage: ${timeLeft(p.eta_seconds)})` : "–";
   const losses = Object.entries(p.losses || {});
   $("#job-losses").textContent = losses.length ? losses.map(([k, v]) => `${k} ${Number(v).toPrecision(4)}`).join(" · ") : "–";
   $("#job-message").textContent = p.error || p.message || "";
@@ -707,6 +707,12 @@ function duration(seconds) {
   return s >= 86400 ? `${Math.floor(s / 86400)} d ${Math.floor((s % 86400) / 3600)} h`
     : s >= 3600 ? `${Math.floor(s / 3600)} h ${Math.floor((s % 3600) / 60)} min`
     : s >= 60 ? `${Math.floor(s / 60)} min ${s % 60} s` : `${s} s`;
+}
+
+/** An ETA as the time left; one already past (the job slower than its estimate) reads "finishing…", not
+ * "0 s left". */
+function timeLeft(seconds) {
+  return seconds == null ? "–" : Math.round(seconds) > 0 ? `${duration(seconds)} left` : "finishing…";
 }
 
 function age(iso) {
