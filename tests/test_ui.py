@@ -556,6 +556,28 @@ def test_an_upload_answered_after_a_look_at_a_job_is_watched_until_its_scene_is_
         assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204  # the other tests expect their own only
 
 
+def test_an_upload_answered_with_no_scene_says_so(live, browser, tmp_path):
+    """An upload answered 200 with no scene (a proxy's login page it was redirected to) is said beside the upload: its
+    answer had been parsed unguarded, an unhandled rejection left the form at "100 % sent"."""
+    svc, token, _archive = live
+    driver = browser
+    set_key(driver, svc, token)
+    mesh = tmp_path / "tetra.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
+    driver.execute_script("window.rejections = [];"
+                          "addEventListener('unhandledrejection', (e) => rejections.push(String(e.reason)));"
+                          "XMLHttpRequest.prototype.open = ((open) => function () { open.call(this, 'GET', '/'); })"
+                          "(XMLHttpRequest.prototype.open);")
+    driver.find_element("id", "upload-files").send_keys(str(mesh))
+    driver.find_element("css selector", "#upload-form button").click()
+    wait_until(lambda: text(driver, '[data-error-for="upload"]'), 10, what="the answer refused")
+    assert text(driver, '[data-error-for="upload"]') == ("200: the answer (text/html; charset=utf-8) is no scene: the "
+                                                         "upload may not have been stored")
+    assert driver.execute_script("return window.rejections") == []
+    assert driver.find_element("css selector", "#upload-form button").is_enabled()
+    driver.refresh()
+
+
 def test_a_scene_chosen_then_deleted_leaves_one_offered_chosen(live, browser):
     """The scene chosen for an edit, and as the job list's filter, deleted meanwhile: the next look at the scenes
     chooses one offered, and the filter "all" (both had shown nothing chosen, the edit sent with no scene)."""

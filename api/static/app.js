@@ -200,8 +200,15 @@ function initUpload() {
         status.textContent = "";
         return;
       }
+      let body = null;
+      try { body = JSON.parse(xhr.responseText); } catch { /* no JSON: said below */ }
+      if (typeof body?.id !== "string") {  // no API answer (a login page a proxy sent the upload to): said, not thrown
+        showError("upload", `${xhr.status}: the answer (${xhr.getResponseHeader("Content-Type") || "untyped"}) is no `
+                            + "scene: the upload may not have been stored");
+        status.textContent = "";
+        return;
+      }
       idempotency.succeeded();
-      const body = JSON.parse(xhr.responseText);
       bar.value = 1;
       status.textContent = `stored as ${body.id}; ${body.state}…`;
       ingesting = body.id;
