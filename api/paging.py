@@ -16,8 +16,8 @@ from dataclasses import dataclass
 from datetime import datetime, timezone
 
 from fastapi import HTTPException, Query, Request, status
-from sqlalchemy import func, select, tuple_
-from sqlalchemy.orm import Session
+from sqlalchemy import func, select, true, tuple_
+from sqlalchemy.orm import Session, aliased
 
 MAX_OFFSET = 1_000_000_000
 MAX_CURSOR_LENGTH = 200
@@ -100,22 +100,26 @@ def decode_cursor(listing: str, cursor: str) -> tuple[datetime, str]:
 def read_page(session: Session, listing: str, model, filters: list, page: PageQuery) -> PageRows:
     """The page of ``model`` rows matching ``filters``, newest first (ties: the larger id first).
 
-    With a cursor, the total and the offset are counted in one statement: counted apart, a row created between them
-    had given an offset past the total ("4–4 of 3"). The rows are read by a statement of their own: a row deleted since
-    the counts leaves the page a row short, and by offset a row created since shifts the page by one (a last page may
-    then end a row past the total)."""
+    The total, the page's offset and its rows come from one statement, so from one snapshot of the table: counted
+    apart, a row created between the statements had shifted an offset's page by one against its total, and given a
+    cursor's page an offset past the total ("4–4 of 3"). The counts are the statement's first table, the page joined
+    to it, so a page past the end is still one row: the counts, with no page row."""
     place = tuple_(model.created_at, model.id)
-    query = select(model).where(*filters).order_by(model.created_at.desc(), model.id.desc()).limit(page.limit + 1)
+    counts = [func.count().label("total")]
+    chosen = select(model).where(*filters).order_by(model.created_at.desc(), model.id.desc())
     if page.after is None:
-        offset = page.offset
-        total = session.scalar(select(func.count()).select_from(model).where(*filters)) or 0
-        query = query.offset(offset)
+        chosen = chosen.offset(page.offset)
     else:
-        counts = select(func.count(), func.count().filter(place >= page.after)).select_from(model).where(*filters)
-        total, offset = session.execute(counts).one()
-        query = query.where(place < page.after)
-    rows = list(session.scalars(query))
-    more = len(rows) > page.limit  # (read one past the page: a count taken apart may be stale by then)
+        counts.append(func.count().filter(place >= page.after).label("before"))
+        chosen = chosen.where(place < page.after)
+    counted = select(*counts).select_from(model).where(*filters).subquery("counts")
+    chosen = chosen.limit(page.limit + 1).subquery("page")  # (one past the page: is there a next one?)
+    row = aliased(model, chosen)
+    found = session.execute(select(counted, row).select_from(counted).outerjoin(chosen, true())
+                            .order_by(row.created_at.desc(), row.id.desc())).all()
+    total, offset = found[0].total, (page.offset if page.after is None else found[0].before)
+    rows = [found_row[-1] for found_row in found if found_row[-1] is not None]
+    more = len(rows) > page.limit
     rows = rows[:page.limit]
     return PageRows(rows=rows, total=total, offset=offset,
                     next_cursor=encode_cursor(listing, rows[-1]) if more else None)

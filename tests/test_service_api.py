@@ -1025,40 +1025,69 @@ def test_a_crafted_cursor_is_a_422_naming_it_on_either_database(client, root, cr
         422, f"cursor {cursor[:40]!r} is not a cursor of GET /v1/jobs: send a page's next_cursor unchanged")
 
 
-@BOTH_DATABASES
-def test_a_scene_created_while_a_cursor_page_is_counted_leaves_its_offset_within_the_total(client, root):
-    """The total and the cursor's offset had been two statements: a scene created between them gave an offset past
-    the total (the UI showed "4–4 of 3"). They are one now."""
-    from sqlalchemy import event
-
-    from voxe_service.db import get_engine, session_scope
+def add_ready_scene(n: int) -> None:
+    """A ready scene of the local key, written straight to the database (as another request's upload commits it)."""
+    from voxe_service.db import session_scope
     from voxe_service.models import LOCAL_KEY_ID, Scene
 
-    def add_scene(n: int) -> None:
-        with session_scope() as session:
-            session.add(Scene(name="s", format="nerf_synthetic", image_count=1, width=8, height=8, splits=["train"],
-                              storage_key=f"scenes/{n}/d.zip", size_bytes=1, sha256="0" * 64, state="ready",
-                              task_id="ingest", owner_key_id=LOCAL_KEY_ID))
+    with session_scope() as session:
+        session.add(Scene(name="s", format="nerf_synthetic", image_count=1, width=8, height=8, splits=["train"],
+                          storage_key=f"scenes/{n}/d.zip", size_bytes=1, sha256="0" * 64, state="ready",
+                          task_id="ingest", owner_key_id=LOCAL_KEY_ID))
 
-    for n in range(3):
-        add_scene(n)
-    cursor = listed(client, "/v1/scenes", limit=2)[1]["next_cursor"]
+
+@contextlib.contextmanager
+def a_scene_added_after_the_listings_count(n: int):
+    """Within it, the first statement counting scenes is followed, before the listing reads on, by another
+    connection's scene ``n``; yields the statements it followed (one, once it has)."""
+    from sqlalchemy import event
+
+    from voxe_service.db import get_engine
+
     counted = []
 
     def another_upload_after_the_first_count(_conn, _cursor, statement, *_args):
-        if not counted and statement.lstrip().startswith("SELECT count(*)") and "scenes" in statement:
+        if not counted and "count(*)" in statement and "scenes" in statement:
             counted.append(statement)
-            upload = threading.Thread(target=add_scene, args=(3,))  # another request's, on its own connection
+            upload = threading.Thread(target=add_ready_scene, args=(n,))  # another request's, on its own connection
             upload.start()
             upload.join()
 
     event.listen(get_engine(), "after_cursor_execute", another_upload_after_the_first_count)
     try:
-        rows, page = listed(client, "/v1/scenes", limit=2, cursor=cursor)
+        yield counted
     finally:
         event.remove(get_engine(), "after_cursor_execute", another_upload_after_the_first_count)
+
+
+@BOTH_DATABASES
+def test_a_scene_created_while_a_cursor_page_is_counted_leaves_its_offset_within_the_total(client, root):
+    """The total and the cursor's offset had been two statements: a scene created between them gave an offset past
+    the total (the UI showed "4–4 of 3"). They are one now."""
+    for n in range(3):
+        add_ready_scene(n)
+    cursor = listed(client, "/v1/scenes", limit=2)[1]["next_cursor"]
+    with a_scene_added_after_the_listings_count(3) as counted:
+        rows, page = listed(client, "/v1/scenes", limit=2, cursor=cursor)
     assert counted and len(listed(client, "/v1/scenes")[0]) == 4  # the scene was added while the page was read
     assert (page["offset"], len(rows), page["total"]) == (2, 1, 3)  # as the list stood at the counts
+
+
+@BOTH_DATABASES
+def test_a_scene_created_while_an_offset_page_is_read_shifts_neither_its_rows_nor_its_total(client, root):
+    """By offset, the total and the page had been two statements: a scene created between them shifted the page by
+    one (its first row one the page before had shown) against a total without it. A page past the end still
+    counts the list as it stood."""
+    for n in range(3):
+        add_ready_scene(n)
+    ids = listed(client, "/v1/scenes")[0]  # newest first
+    with a_scene_added_after_the_listings_count(3) as counted:
+        rows, page = listed(client, "/v1/scenes", limit=2, offset=1)
+    assert counted and len(listed(client, "/v1/scenes")[0]) == 4  # the scene was added while the page was read
+    assert (rows, page["total"], page["next_cursor"]) == (ids[1:], 3, None)  # as the list stood at the count
+    with a_scene_added_after_the_listings_count(4) as counted:
+        rows, page = listed(client, "/v1/scenes", limit=2, offset=9)
+    assert counted and (rows, page["total"], page["offset"], page["next_cursor"]) == ([], 4, 9, None)
 
 
 def test_a_job_downsampling_past_its_scenes_images_is_refused_before_it_is_queued(client, dataset, root):
