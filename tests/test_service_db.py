@@ -252,6 +252,35 @@ def test_jobs_of_0004_upgrade_to_webhooks_off_and_back(database_url):
     engine.dispose()
 
 
+def test_no_index_of_the_listed_tables_leads_another(database_url):
+    """A non-unique index whose columns lead another index's serves no lookup the longer one does not, and costs
+    every insert an update: the owner_key_id indexes of jobs and scenes had, once 0014 indexed (owner_key_id,
+    created_at, id). 0015 drops them; downgrading it gives them back."""
+    from alembic import command
+    from sqlalchemy import create_engine, inspect
+
+    from voxe_service.db import alembic_config
+
+    config = alembic_config(database_url)
+    command.upgrade(config, "head")
+    engine = create_engine(database_url)
+    schema = inspect(engine)
+    leading = []
+    for table in ("jobs", "scenes"):
+        keys = {index["name"]: index["column_names"] for index in schema.get_indexes(table)}
+        keys |= {unique["name"]: unique["column_names"] for unique in schema.get_unique_constraints(table)}
+        keys[None] = schema.get_pk_constraint(table)["constrained_columns"]
+        leading += [(index["name"], name) for index in schema.get_indexes(table) if not index["unique"]
+                    for name, columns in keys.items()
+                    if name != index["name"] and columns[:len(index["column_names"])] == index["column_names"]]
+    assert leading == []
+    command.downgrade(config, "0014_listing_order")
+    schema = inspect(engine)
+    assert "ix_jobs_owner_key_id" in {index["name"] for index in schema.get_indexes("jobs")}
+    assert "ix_scenes_owner_key_id" in {index["name"] for index in schema.get_indexes("scenes")}
+    engine.dispose()
+
+
 # ------------------------------------------------------------------------------------------ the reconstruction claim
 def test_exactly_one_of_many_racing_workers_claims_a_reconstruction(db):
     """The conditional UPDATE lets one claim win per round, however many workers race it at once."""

@@ -109,11 +109,12 @@ class Scene(Base):
     """
 
     __tablename__ = "scenes"
-    # The listing's order, newest first, read off it (api/paging.py); a cursor's page seeks into it.
+    # The listing's order, newest first, read off it (api/paging.py); a cursor's page seeks into it. Led by
+    # owner_key_id, it is also the index of every lookup by owner (migration 0015 dropped that column's own).
     __table_args__ = (Index("ix_scenes_owner_created", "owner_key_id", "created_at", "id"),)
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
-    owner_key_id: Mapped[str] = mapped_column(ForeignKey("api_keys.id"), index=True)
+    owner_key_id: Mapped[str] = mapped_column(ForeignKey("api_keys.id"))
     name: Mapped[str] = mapped_column(String(255))
     format: Mapped[str] = mapped_column(String(32))
     image_count: Mapped[int] = mapped_column(Integer)
@@ -180,12 +181,13 @@ class Reconstruction(Base):
 
 class Job(Base):
     __tablename__ = "jobs"
-    # The listing's order, newest first, read off it (api/paging.py); a cursor's page seeks into it.
+    # The listing's order, newest first, read off it (api/paging.py); a cursor's page seeks into it. Led by
+    # owner_key_id, it is also the index of every lookup by owner (migration 0015 dropped that column's own).
     __table_args__ = (Index("ix_jobs_owner_created", "owner_key_id", "created_at", "id"),)
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
     scene_id: Mapped[str] = mapped_column(ForeignKey("scenes.id", ondelete="CASCADE"), index=True)
-    owner_key_id: Mapped[str] = mapped_column(ForeignKey("api_keys.id"), index=True)
+    owner_key_id: Mapped[str] = mapped_column(ForeignKey("api_keys.id"))
     reconstruction_id: Mapped[str | None] = mapped_column(
         ForeignKey("reconstructions.id", ondelete="SET NULL"), nullable=True, index=True
     )
