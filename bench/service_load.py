@@ -243,13 +243,21 @@ async def submit_jobs(host: str, port: int, scene_id: str, count: int, concurren
 
 
 async def listed_job_ids(client: httpx.AsyncClient) -> list[str]:
-    ids, offset = [], 0
+    """Every listed job, newest first, paged as a client pages: each page after the one before's ``next_cursor``
+    (by offset, a job created meanwhile shifts the next page by one). An API from before cursors (a
+    ``--baseline-tree``'s) answers none: it is paged by offset."""
+    ids, params = [], {"limit": 200}
     for _ in range(10_000):  # bounded: 200 per page
-        page = (await client.get("/v1/jobs", params={"limit": 200, "offset": offset})).json()
+        page = (await client.get("/v1/jobs", params=params)).json()
         ids += [item["id"] for item in page["items"]]
-        offset += len(page["items"])
-        if not page["items"] or offset >= page["total"]:
+        if "next_cursor" in page:
+            if page["next_cursor"] is None:
+                break
+            params = {"limit": 200, "cursor": page["next_cursor"]}
+        elif not page["items"] or len(ids) >= page["total"]:
             break
+        else:
+            params = {"limit": 200, "offset": len(ids)}
     return ids
 
 

@@ -1025,15 +1025,19 @@ def test_a_crafted_cursor_is_a_422_naming_it_on_either_database(client, root, cr
         422, f"cursor {cursor[:40]!r} is not a cursor of GET /v1/jobs: send a page's next_cursor unchanged")
 
 
-def add_ready_scene(n: int) -> None:
-    """A ready scene of the local key, written straight to the database (as another request's upload commits it)."""
+def add_ready_scene(n: int) -> str:
+    """A ready scene of the local key, written straight to the database (as another request's upload commits it);
+    its id."""
     from voxe_service.db import session_scope
     from voxe_service.models import LOCAL_KEY_ID, Scene
 
     with session_scope() as session:
-        session.add(Scene(name="s", format="nerf_synthetic", image_count=1, width=8, height=8, splits=["train"],
-                          storage_key=f"scenes/{n}/d.zip", size_bytes=1, sha256="0" * 64, state="ready",
-                          task_id="ingest", owner_key_id=LOCAL_KEY_ID))
+        scene = Scene(name="s", format="nerf_synthetic", image_count=1, width=8, height=8, splits=["train"],
+                      storage_key=f"scenes/{n}/d.zip", size_bytes=1, sha256="0" * 64, state="ready",
+                      task_id="ingest", owner_key_id=LOCAL_KEY_ID)
+        session.add(scene)
+        session.flush()
+        return scene.id
 
 
 @contextlib.contextmanager
@@ -1088,6 +1092,53 @@ def test_a_scene_created_while_an_offset_page_is_read_shifts_neither_its_rows_no
     with a_scene_added_after_the_listings_count(4) as counted:
         rows, page = listed(client, "/v1/scenes", limit=2, offset=9)
     assert counted and (rows, page["total"], page["offset"], page["next_cursor"]) == ([], 4, 9, None)
+
+
+@pytest.mark.parametrize("api", ["of cursors", "from before cursors"])
+def test_the_load_bench_lists_each_job_once_while_jobs_are_added(client, root, api):
+    """bench/service_load.py counts a submitted job it does not list as lost. It had paged by offset: a job created
+    while it listed shifted the next page by one, listing the first page's last job twice. It pages by each page's
+    next_cursor now, as a client does; an API from before cursors (a --baseline-tree's, answering none, and where no
+    job is added meanwhile) still by offset."""
+    import asyncio
+    import runpy
+
+    import httpx
+
+    from service_helpers import REPO
+    from voxe_service.db import session_scope
+    from voxe_service.models import LOCAL_KEY_ID, Job
+
+    def add_jobs(count: int) -> list[str]:
+        with session_scope() as session:
+            jobs = [Job(scene_id=scene_id, owner_key_id=LOCAL_KEY_ID, prompt="a mic", mode="global", edit_words=[],
+                        params={}, sds_model="tiny", attention_model="tiny", device="cpu") for _ in range(count)]
+            session.add_all(jobs)
+            session.flush()
+            return [job.id for job in jobs]
+
+    class BenchClient:
+        """The bench's HTTP client, on the test client: with cursors, a job is submitted once the first page is
+        answered; from before them, the pages name no next_cursor."""
+
+        def __init__(self):
+            self.pages = 0
+
+        async def get(self, path: str, params: dict) -> httpx.Response:
+            page = client.get(path, params=params).json()
+            self.pages += 1
+            if api == "from before cursors":
+                del page["next_cursor"]
+            elif self.pages == 1:
+                add_jobs(1)
+            return httpx.Response(200, json=page)
+
+    scene_id = add_ready_scene(0)
+    jobs = add_jobs(201)  # two pages of the bench's 200
+    listed_job_ids = runpy.run_path(str(REPO / "bench" / "service_load.py"))["listed_job_ids"]
+    bench_client = BenchClient()
+    ids = asyncio.run(listed_job_ids(bench_client))
+    assert (bench_client.pages, len(ids), set(ids)) == (2, 201, set(jobs))
 
 
 def test_a_job_downsampling_past_its_scenes_images_is_refused_before_it_is_queued(client, dataset, root):
