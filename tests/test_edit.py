@@ -316,6 +316,30 @@ def test_a_diverged_step_stops_the_edit_before_its_progress_or_checkpoint(small_
     assert meta["iteration"] == 2 and torch.isfinite(tensors["features"]).all()  # a resume starts from before
 
 
+class OverflowingBackwardGuidance(FakeGuidance):
+    """Its second SDS loss is finite (0) but its gradient into the renders infinite, as a float16 VAE encoder's
+    backward overflowing makes it."""
+
+    def sds_loss(self, images, text_embeddings, timesteps, guidance_scale=100.0, generator=None):
+        loss, diagnostics = super().sds_loss(images, text_embeddings, timesteps, guidance_scale, generator)
+        return ((images - images.detach()).sqrt().sum() if len(self.calls) == 2 else loss), diagnostics
+
+
+def test_a_grid_a_finite_loss_made_nan_is_neither_returned_nor_checkpointed(small_sphere, tmp_path):
+    """Only the loss was checked: a last step (or one before a checkpoint) whose gradient overflowed had returned and
+    saved a NaN G_e, the job "succeeding" with it."""
+    config = EditConfig(iterations=2, render_size=SIZE, checkpoint_every=1)
+    checkpoint, reports = tmp_path / "c.safetensors", []
+    with pytest.raises(EditDiverged, match="diverged by iteration 2: G_e's features hold infinite or NaN values though "
+                                           "every loss was finite"):
+        edit(small_sphere, "a dog", OverflowingBackwardGuidance(), config, _collect(reports), checkpoint_path=checkpoint)
+    assert [math.isfinite(r.losses["total"]) for r in reports] == [True, True]
+    tensors, meta = load_edit_checkpoint(checkpoint)
+    assert meta["iteration"] == 1 and torch.isfinite(tensors["features"]).all()  # a resume starts from before
+    with pytest.raises(EditDiverged, match="diverged by iteration 2"):  # nor returned where nothing is saved
+        edit(small_sphere, "a dog", OverflowingBackwardGuidance(), dataclasses.replace(config, checkpoint_every=0))
+
+
 def _overflowing_unet(guidance, monkeypatch, channels):
     """The tiny guidance's UNet output infinite in ``channels`` of its latent's 4, as a float16 UNet overflowing."""
     eager = guidance._eager_unet

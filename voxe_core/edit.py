@@ -107,7 +107,8 @@ AUTOCAST_DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
 
 
 class EditDiverged(ArithmeticError):
-    """An edit step's loss was NaN or infinite (G_e took a step it cannot recover from), or the guidance's SDS
+    """An edit step's loss was NaN or infinite (G_e took a step it cannot recover from), so were G_e's features where
+    it was to be saved or returned (a finite loss whose gradient overflowed in the backward), or the guidance's SDS
     gradient was wholly non-finite for :data:`MAX_NONFINITE_GUIDANCE_STEPS` steps in a row (G_e no longer edits)."""
 
 
@@ -361,7 +362,9 @@ def edit(
     once, and the returned grid lives there. A ``device`` other than the
     guidance's is refused at once (every step would copy renders across). A step whose loss is not finite raises
     :class:`EditDiverged` before its progress is reported or a checkpoint written (its NaN or infinite gradient
-    has reached G_e, which no later step recovers); so does a guidance whose SDS gradient was wholly non-finite
+    has reached G_e, which no later step recovers); so does a G_e holding an infinite or NaN feature where a
+    checkpoint is to be written or the grid returned (a finite loss whose gradient overflowed); and a guidance whose
+    SDS gradient was wholly non-finite
     (``nonfinite_fraction`` 1) for :data:`MAX_NONFINITE_GUIDANCE_STEPS` steps in a row, the last one's progress not
     reported (a float16 UNet overflowing: G_e would take no more SDS steps).
     """
@@ -460,7 +463,17 @@ def edit(
             # RuntimeError here, so a job moved to another worker failed for good: reseeded from where the run stands
             device_gen.manual_seed(hash((config.seed + 1, start)) % 2**63)
 
+    def check_finite(done: int) -> None:
+        """EditDiverged unless G_e is finite: a loss is finite while its gradient overflows (a float16 VAE encoder's
+        backward, say), and such a last step, or one just before a checkpoint, had been saved or returned NaN."""
+        if not bool(param.detach().isfinite().all()):
+            raise EditDiverged(
+                f"the edit diverged by iteration {done}: G_e's features hold infinite or NaN values though every loss "
+                "was finite (a gradient that overflowed in the backward: a float16 (fp16) guidance? try autocast "
+                "off, or a lower lr); not saved")
+
     def checkpoint(done: int) -> None:
+        check_finite(done)
         save_edit_checkpoint(checkpoint_path, grid, optimizer, generators, done, run_meta, views_record)
         callbacks.checkpoint_written(str(checkpoint_path))
 
@@ -622,6 +635,7 @@ def edit(
         if checkpoint_path is not None and done != last_checkpoint:
             checkpoint(done)
         raise
+    check_finite(done)  # before G_e is saved or returned
     if checkpoint_path is not None and (done != last_checkpoint or not Path(checkpoint_path).is_file()):
         checkpoint(done)
     if config.preview_every and done % config.preview_every != 0:
