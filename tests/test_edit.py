@@ -175,6 +175,25 @@ def test_adams_betas_outside_zero_to_one_are_refused_by_name(betas):
     assert EditConfig(betas=(0.0, 0.5)).betas == (0.0, 0.5)
 
 
+@pytest.mark.parametrize("name", ["iterations", "render_size", "batch_size", "image_regulariser_rays", "lr_decay_start",
+                                  "lr_decay_every", "preview_every", "checkpoint_every", "seed"])
+@pytest.mark.parametrize("value", [2.5, math.nan, True, "8"])
+def test_a_count_that_is_no_whole_number_is_refused_by_name(name, value):
+    """NaN, 2.5 or True had passed the range checks and failed once the edit had begun (a TypeError from range(),
+    torch.rand or a reshape) naming no setting, or run (checkpoint_every 0.5 checkpointed every step)."""
+    with pytest.raises(ValueError, match=rf"^{name} takes whole numbers, got {re.escape(repr(value))}$"):
+        EditConfig(**{name: value})
+    assert getattr(EditConfig(**{name: 400}), name) == 400
+
+
+@pytest.mark.parametrize("seed", [-1, 2**32, 2**64 - 1])
+def test_a_seed_outside_the_services_range_is_refused(seed):
+    """2**64 - 1 had overflowed the device generator's seed + 1 as the edit started; the range is RefineConfig's."""
+    with pytest.raises(ValueError, match=rf"^seed must lie in \[0, 4294967295\] .*, got {seed}$"):
+        EditConfig(seed=seed)
+    assert EditConfig(seed=2**32 - 1).seed == 2**32 - 1
+
+
 def test_learning_rate_matches_the_authors_loop():
     config = EditConfig()
     lr, used = config.lr, []

@@ -46,6 +46,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import math
+import numbers
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -71,6 +72,7 @@ from voxe_core.constants import (
     EDIT_ITERATIONS,
     EDIT_LR,
     FLOAT32_MAX,
+    MAX_SEED,
     MIN_RENDER_SIZE,
     NERF_SYNTHETIC_FOV_X,
     NERF_SYNTHETIC_RADIUS,
@@ -116,6 +118,11 @@ class EditDiverged(ArithmeticError):
 # loss and an edit that changes nothing. One such step can be a rare overflow at a large t; this many in a row is a
 # model that cannot run in this precision, and a job would otherwise "succeed" with the object unchanged.
 MAX_NONFINITE_GUIDANCE_STEPS = 10
+
+
+COUNT_FIELDS = ("iterations", "render_size", "batch_size", "image_regulariser_rays", "lr_decay_start", "lr_decay_every",
+                "preview_every", "checkpoint_every", "seed")
+"""EditConfig's fields that count (iterations, pixels, rays, poses) or seed: whole numbers."""
 
 
 NOT_RECIPE_FIELDS = ("iterations", "preview_every", "preview_elevation_deg", "checkpoint_every", "autocast_dtype",
@@ -168,6 +175,15 @@ class EditConfig:
         return config_recipe(self, NOT_RECIPE_FIELDS)
 
     def __post_init__(self):
+        # NaN, 2.5 or True had passed the range checks below and failed once the edit had begun (a TypeError from
+        # range(), torch.rand or a reshape), naming no setting, or run (checkpoint_every 0.5: every step); a seed of
+        # 2**64 - 1 had overflowed the device generator's seed + 1 there.
+        for name in COUNT_FIELDS:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+                raise ValueError(f"{name} takes whole numbers, got {value!r}")
+        if not 0 <= self.seed <= MAX_SEED:
+            raise ValueError(f"seed must lie in [0, {MAX_SEED}] (the service's and the CLI's range), got {self.seed}")
         if self.iterations < 0:
             raise ValueError(f"iterations must be >= 0, got {self.iterations}")
         # As "not in range": an infinite lr had run a step and diverged on the next (NaN features, blamed on half
