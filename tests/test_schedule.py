@@ -1,3 +1,6 @@
+import math
+import re
+
 import pytest
 import torch
 
@@ -83,3 +86,12 @@ def test_invalid_schedules_rejected():
         TimestepSchedule(every=0)
     with pytest.raises(ValueError):
         TimestepSchedule().max_fraction(-1)
+
+
+@pytest.mark.parametrize("name", ["i_start", "every"])
+@pytest.mark.parametrize("value", [math.nan, 600.5, True])
+def test_an_annealing_step_that_is_no_whole_number_is_refused_by_name(name, value):
+    """A NaN i_start had annealed to the floor from iteration 0 (max(floor, NaN) is the floor), silently."""
+    with pytest.raises(ValueError, match=rf"^{name} takes whole numbers \(iterations\), got {re.escape(repr(value))}$"):
+        TimestepSchedule(**{name: value})
+    assert TimestepSchedule(**{name: 600}).max_fraction(0) == 0.98

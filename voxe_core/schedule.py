@@ -17,6 +17,7 @@ iterations early.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import torch
@@ -37,6 +38,12 @@ class TimestepSchedule:
     floor: float = PAPER_FLOOR
 
     def __post_init__(self):
+        # A NaN i_start had passed the range checks and annealed to the floor from iteration 0 (a NaN every from
+        # i_start on), silently: max(floor, NaN) is the floor.
+        for name in ("i_start", "every"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+                raise ValueError(f"{name} takes whole numbers (iterations), got {value!r}")
         if not 0.0 <= self.t_min < self.floor <= self.k0 <= 1.0:
             raise ValueError(
                 f"need 0 <= t_min < floor <= k0 <= 1, got t_min={self.t_min}, floor={self.floor}, k0={self.k0}"
