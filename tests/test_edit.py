@@ -454,6 +454,22 @@ def test_resume_refuses_another_prompt_or_grid(small_sphere, make_sphere_grid, t
     edit(small_sphere, "a dog", tiny_guidance, longer, resume_from=checkpoint)
 
 
+@pytest.mark.parametrize("name", ["features", "adam_exp_avg", "adam_exp_avg_sq"])
+def test_a_checkpoint_holding_a_nan_is_refused_as_one_to_start_afresh_from(name, small_sphere, tmp_path):
+    """One saved NaN (before G_e's finiteness was checked) had diverged at its first step on every resume, blamed on
+    half precision: a FormatError is what the worker starts a stage over from."""
+    from voxe_core.edit import EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION
+    from voxe_core.tensorio import FormatError, save_tensors
+
+    checkpoint = tmp_path / "c.safetensors"
+    edit(small_sphere, "a dog", FakeGuidance(), EditConfig(iterations=1, render_size=SIZE), checkpoint_path=checkpoint)
+    tensors, meta = load_edit_checkpoint(checkpoint)
+    tensors[name].view(-1)[7] = math.nan
+    save_tensors(checkpoint, tensors, EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION, meta)
+    with pytest.raises(FormatError, match="checkpoint holds infinite or NaN features or Adam moments"):
+        edit(small_sphere, "a dog", FakeGuidance(), EditConfig(iterations=2, render_size=SIZE), resume_from=checkpoint)
+
+
 def test_resume_refuses_another_model_by_its_name_as_asked_for(small_sphere, tmp_path):
     """The checkpoint had recorded the model and resumed under any other, mixing two models' edits. An older worker's
     checkpoint, which recorded the folder its "tiny" resolved to, is refused as clearly."""

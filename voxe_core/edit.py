@@ -457,6 +457,11 @@ def edit(
             raise FormatError(f"{resume_from}: checkpoint was made against other input views (images or cameras) "
                               f"for its {config.regulariser} regulariser; resume with the views it was made from, or "
                               "start afresh")
+        # One saved before G_e's finiteness was checked (or damaged): its first step had diverged, blamed on half
+        # precision, at every resume, where the worker starts a stage over from a checkpoint it cannot go on from.
+        if not all(bool(tensors[name].isfinite().all()) for name in ("features", "adam_exp_avg", "adam_exp_avg_sq")):
+            raise FormatError(f"{resume_from}: checkpoint holds infinite or NaN features or Adam moments (saved by a "
+                              "run that had diverged, or damaged); start afresh")
         with torch.no_grad():
             param.copy_(tensors["features"].reshape(-1, 4).to(device))
         if int(tensors["adam_step"].item()) > 0:
