@@ -177,3 +177,15 @@ def test_lift_options_are_checked(bad):
     infinite one every value 0, and the cut failed on fields 'not finite' or with 'no seeds' after every map.)"""
     with pytest.raises(ValueError, match=next(iter(bad))):
         RefineConfig(**bad)
+
+
+@pytest.mark.parametrize("stride", [16, 17, 1000])
+def test_a_backprojection_stride_of_the_render_size_or_more_is_refused(stride):
+    """Every stride-th row and column of a view no wider than the stride is at most one pixel: accepted, such a
+    stride had lifted next to nothing, for the cut to fail with 'no seeds' after every attention pass."""
+    from voxe_core.refine.lifting import strided_pixels
+
+    assert int(strided_pixels(4, 16, 16, stride).view(4, 16, 16).sum((1, 2)).max()) <= 1
+    with pytest.raises(ValueError, match=f"backprojection_stride must be below render_size \\(16 px\\), got {stride}"):
+        RefineConfig(render_size=16, backprojection_stride=stride)
+    assert RefineConfig(render_size=16, backprojection_stride=15).backprojection_stride == 15

@@ -154,6 +154,10 @@ class RefineConfig:
         for name in ("views", "rays_per_step", "backprojection_stride"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if self.backprojection_stride >= self.render_size:  # (it had lifted nothing, for the cut to find "no seeds")
+            raise ValueError(f"backprojection_stride must be below render_size ({self.render_size} px), got "
+                             f"{self.backprojection_stride}: the back-projection would read at most one pixel of each "
+                             f"view, so it lifts next to nothing (the default: {REFINE_BACKPROJECTION_STRIDE})")
         if self.iterations < 0 or self.edit_seeds < 0 or self.object_seeds < 0 or self.object_seed_fallback < 0:
             raise ValueError("iterations and seed counts must be non-negative")
         # As "not in range": NaN fails every comparison, so "x <= 0" let it through (a NaN sigma made the flow NaN).
