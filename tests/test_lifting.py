@@ -189,3 +189,50 @@ def test_a_backprojection_stride_of_the_render_size_or_more_is_refused(stride):
     with pytest.raises(ValueError, match=f"backprojection_stride must be below render_size \\(16 px\\), got {stride}"):
         RefineConfig(render_size=16, backprojection_stride=stride)
     assert RefineConfig(render_size=16, backprojection_stride=15).backprojection_stride == 15
+
+
+def _speck_grid() -> VoxelGrid:
+    grid = VoxelGrid(10)
+    with torch.no_grad():
+        grid.features[..., 0] = -1.0
+        grid.features[5, 5, 5, 0] = 50.0  # one dense vertex at the centre
+    return grid
+
+
+def _camera_on_z(fov: float, size: int) -> Cameras:
+    c2w = torch.eye(4)[None].clone()
+    c2w[0, :3, 3] = torch.tensor([0.0, 0.0, 4.0])  # on the +z axis, looking down -z at the centre
+    return Cameras.from_fov(c2w, fov, size, size)
+
+
+def test_a_backprojection_whose_pixels_miss_the_object_is_a_segmentation_error_naming_the_stride():
+    """An object small in the view, seen by pixels off the default stride's rows and columns: the start had lifted
+    nothing, and the grids reached the cut 'equal everywhere' ('too few fitting iterations, or maps that do not tell
+    the edit from the object'). Every pixel read (stride 1), it lifts."""
+    from voxe_core.refine.config import SegmentationError
+
+    grid, cams = _speck_grid(), _camera_on_z(0.8, 8)  # one pixel, (3, 4), sees the speck's box
+    maps = torch.rand(1, 8, 8, generator=torch.Generator().manual_seed(0))
+    with pytest.raises(SegmentationError, match=r"^1 pixels of the 1 views see the edited object's box, but none that "
+                                                r"the back-projection reads \(one row and column in 2\) meets its "
+                                                r"density: .* lower backprojection_stride"):
+        fit_attention_grids(grid, cams, maps, maps.flip(-1), RefineConfig(render_size=8))
+    edit, obj = fit_attention_grids(grid, cams, maps, maps.flip(-1), RefineConfig(render_size=8, backprojection_stride=1))
+    assert (edit != 0).any() and not torch.equal(edit, obj)
+
+
+def test_a_constant_start_whose_views_miss_the_object_is_refused_though_fresh_views_would_see_it():
+    """The fit moves only the vertices the start's views see: with none, a constant start fitted on fresh views
+    had run every step and then blamed its length ('Adam moves both alike ... fit more iterations')."""
+    from voxe_core.refine.config import SegmentationError
+
+    grid = _speck_grid()
+    away = _camera_on_z(0.05, 8)
+    away.c2w[0, :2, 3] = 3.0  # off the axis, still looking down -z: it misses
+    seeing, maps = _camera_on_z(0.3, 8), torch.rand(1, 8, 8, generator=torch.Generator().manual_seed(0))
+    config = RefineConfig(render_size=8, lift_start="constant", fit_views="fresh", fit_pixels="all", iterations=3)
+    steps = []
+    with pytest.raises(SegmentationError, match="none of the 1 views sees the edited object"):
+        fit_attention_grids(grid, away, maps, maps, config,
+                            fresh_view=lambda step: steps.append(step) or (seeing, maps, maps.flip(-1)))
+    assert steps == []

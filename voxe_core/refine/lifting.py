@@ -199,7 +199,8 @@ def fit_attention_grids(
     Deterministic for ``config.seed``; reports ``Progress("attention_grids")``
     every step and may be cancelled between steps. A constant start whose fit ends with both grids still equal
     (:func:`~voxe_core.refine.cut.prefer_neither`) is a SegmentationError naming why (no step fitted, maps that never
-    differ, or too few iterations): the cut would find no seeds.
+    differ, or too few iterations): the cut would find no seeds. So are views that miss the object, and a
+    back-projection whose pixels see none of its density (the fit moves only the vertices they see).
     """
     n_views, height, width = edit_maps.shape
     if object_maps.shape != edit_maps.shape:
@@ -216,19 +217,26 @@ def fit_attention_grids(
     near, far = ray_box_intersection(origins, directions, occupancy.bbox_min.to(device), occupancy.bbox_max.to(device))
     hits = far > near
     keep = hits.nonzero().squeeze(-1)
-    if keep.numel() == 0 and (config.lift_start == "backprojection" or config.fit_views == "fixed"):
+    # (a constant start fitted on fresh views is no exception: the fit moves only the vertices these views see)
+    if keep.numel() == 0:
         raise SegmentationError(f"none of the {n_views} views sees the edited object (no pixel's ray meets its "
                                 "occupied box): there is no attention to lift; are the views aimed at it?")
     strided = (hits & strided_pixels(n_views, height, width, config.backprojection_stride, device)).nonzero().squeeze(-1)
     start, seen = backproject(frozen, origins[strided], directions[strided], targets[strided], config, occupancy,
                               callbacks)
+    rows = (seen.reshape(-1) > 0).nonzero().squeeze(-1)  # vertices some pixel sees: the only ones L1 moves
+    if rows.numel() == 0:  # (as above: the grids had reached the cut "equal everywhere", or a fit moved nothing)
+        raise SegmentationError(
+            f"{keep.numel()} pixels of the {n_views} views see the edited object's box, but none that the "
+            f"back-projection reads (one row and column in {config.backprojection_stride}) meets its density: there "
+            "is no attention to lift (and no voxel the fit may move); lower backprojection_stride, or render larger "
+            "views")
     origins, directions, targets = origins[keep], directions[keep], targets[keep]
 
     if config.fit_views == "fresh" and config.iterations and fresh_view is None:
         raise ValueError("fit_views='fresh' needs fresh_view: a new pose and its maps for every step")
     if config.lift_start == "constant":
         start = torch.full_like(start, float(config.init_value))
-    rows = (seen.reshape(-1) > 0).nonzero().squeeze(-1)  # vertices some pixel sees: the only ones L1 moves
     flat_start = start.reshape(-1, 2)
     active = flat_start[rows].clone().requires_grad_(True)
     optimizer = torch.optim.Adam([active], lr=config.lr, fused=active.is_cuda or None)  # one kernel per step on CUDA
