@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from voxe_core.backbones import load_grid
 from voxe_core.cameras import Cameras, random_hemisphere_poses, spherical_poses
@@ -316,6 +317,23 @@ def test_a_smoothing_sigma_below_float32s_smallest_blurs_nothing(sigma):
     config = RefineConfig(smoothing_sigma=sigma, map_scale="raw")
     torch.testing.assert_close(postprocess_maps(maps, (40, 40), config),
                                postprocess_maps(maps, (40, 40), dataclasses.replace(config, smoothing_sigma=0.0)))
+
+
+@pytest.mark.parametrize("sigma", [16 / 3, 1e4, 1e12, FLOAT32_MAX])
+def test_a_3sigma_kernel_wider_than_the_maps_is_refused_and_the_3x3_one_takes_any_sigma(sigma):
+    """A "3sigma" kernel has 2·ceil(3σ) + 1 taps: σ = 1e4 had taken 38 s a 266 px view (one CPU thread), 1e12 asked for 48 TB.
+    The authors' 3x3 kernel of a large σ is a 3x3 box blur."""
+    with pytest.raises(ValueError, match=r"smoothing_kernel='3sigma' spans ceil\(3 sigma\) = \d+ px either side .* "
+                                         r"past the render_size \(16 px\) maps it smooths: use a smoothing_sigma "
+                                         r"below 5.33333 or smoothing_kernel='3x3'"):
+        RefineConfig(render_size=16, smoothing_kernel="3sigma", smoothing_sigma=sigma)
+    maps = torch.rand(2, 16, 16, generator=torch.Generator().manual_seed(4))
+    if sigma >= 1e4:  # taps e^(-1/2σ²) ≈ 1 on either side of the centre's
+        box = RefineConfig(render_size=16, smoothing_sigma=sigma, smooth_upsampled=False, map_scale="raw")
+        box_blur = F.avg_pool2d(F.pad(maps[:, None], (1, 1, 1, 1), mode="reflect"), 3, stride=1)[:, 0]
+        torch.testing.assert_close(postprocess_maps(maps, (16, 16), box), box_blur)
+    widest = RefineConfig(render_size=16, smoothing_kernel="3sigma", smoothing_sigma=5.0)  # 15 px either side
+    assert postprocess_maps(maps, (16, 16), widest).isfinite().all()
 
 
 def test_raw_maps_keep_the_relative_scale_of_edit_and_object_minmax_does_not():
