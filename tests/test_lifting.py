@@ -217,7 +217,8 @@ def test_a_backprojection_whose_pixels_miss_the_object_is_a_segmentation_error_n
                                                 r"the back-projection reads \(one row and column in 2\) meets its "
                                                 r"density: .* lower backprojection_stride"):
         fit_attention_grids(grid, cams, maps, maps.flip(-1), RefineConfig(render_size=8))
-    edit, obj = fit_attention_grids(grid, cams, maps, maps.flip(-1), RefineConfig(render_size=8, backprojection_stride=1))
+    every_pixel = RefineConfig(render_size=8, backprojection_stride=1)
+    edit, obj = fit_attention_grids(grid, cams, maps, maps.flip(-1), every_pixel)
     assert (edit != 0).any() and not torch.equal(edit, obj)
 
 

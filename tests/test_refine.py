@@ -321,8 +321,8 @@ def test_a_smoothing_sigma_below_float32s_smallest_blurs_nothing(sigma):
 
 @pytest.mark.parametrize("sigma", [16 / 3, 1e4, 1e12, FLOAT32_MAX])
 def test_a_3sigma_kernel_wider_than_the_maps_is_refused_and_the_3x3_one_takes_any_sigma(sigma):
-    """A "3sigma" kernel has 2·ceil(3σ) + 1 taps: σ = 1e4 had taken 38 s a 266 px view (one CPU thread), 1e12 asked for 48 TB.
-    The authors' 3x3 kernel of a large σ is a 3x3 box blur."""
+    """A "3sigma" kernel has 2·ceil(3σ) + 1 taps: σ = 1e4 had taken 38 s a 266 px view (one CPU thread), 1e12 asked
+    for 48 TB. The authors' 3x3 kernel of a large σ is a 3x3 box blur."""
     with pytest.raises(ValueError, match=r"smoothing_kernel='3sigma' spans ceil\(3 sigma\) = \d+ px either side .* "
                                          r"past the render_size \(16 px\) maps it smooths: use a smoothing_sigma "
                                          r"below 5.33333 or smoothing_kernel='3x3'"):
