@@ -237,3 +237,23 @@ def test_a_constant_start_whose_views_miss_the_object_is_refused_though_fresh_vi
         fit_attention_grids(grid, away, maps, maps, config,
                             fresh_view=lambda step: steps.append(step) or (seeing, maps, maps.flip(-1)))
     assert steps == []
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf])
+def test_maps_that_are_not_finite_are_refused_before_any_work(bad):
+    """A NaN or infinite map pixel had made the back-projected start (and every fitting step) NaN, for the cut to
+    blame 'a diverged edit or attention-grid fit?' at the end."""
+    from voxe_core.progress import Callbacks
+    from voxe_core.refine.config import SegmentationError
+
+    grid = cloud_grid()
+    cams = Cameras.from_fov(random_hemisphere_poses(3, torch.Generator().manual_seed(1))[0], 0.7, 8, 8)
+    maps = torch.rand(3, 8, 8, generator=torch.Generator().manual_seed(2))
+    broken = maps.clone()
+    broken[1, 4, 4] = bad
+    reports = []
+    with pytest.raises(SegmentationError, match=r"^the object maps are not finite \(NaN or infinite\) in 1 of the 3 "
+                                                r"views \(the first: view 2\)"):
+        fit_attention_grids(grid, cams, maps, broken, RefineConfig(render_size=8),
+                            Callbacks(on_progress=reports.append))
+    assert reports == []  # refused before the back-projection

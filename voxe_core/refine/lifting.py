@@ -209,6 +209,11 @@ def fit_attention_grids(
         raise ValueError(
             f"{n_views} maps of {height}x{width} do not match {len(cameras)} cameras of {cameras.height}x{cameras.width}"
         )
+    for name, maps in (("edit", edit_maps), ("object", object_maps)):  # (the cut had blamed a "diverged fit")
+        bad = (~torch.isfinite(maps)).flatten(1).any(1).nonzero().squeeze(-1).tolist()
+        if bad:
+            raise SegmentationError(f"the {name} maps are not finite (NaN or infinite) in {len(bad)} of the {n_views} "
+                                    f"views (the first: view {bad[0] + 1}): there is no attention to lift there")
     device = grid.bbox_min.device
     frozen = frozen_density(grid)
     occupancy = attention_occupancy(frozen, config)
