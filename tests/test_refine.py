@@ -1128,6 +1128,20 @@ def test_an_empty_edited_grid_fails_the_refinement_before_any_attention_map(tiny
     assert reports == []
 
 
+def test_a_grid_with_no_node_under_the_cuts_rule_fails_the_refinement_before_any_attention_map(tiny_guidance,
+                                                                                             make_sphere_grid):
+    """A faint edit, rendered (above the render's threshold) but never 1% opaque a voxel, has no node under the
+    text's rule (node_rule="alpha"): it had been refused by the cut, after every attention pass and the lift."""
+    faint, reports = VoxelGrid(12, init_density=1e-3), []
+    config = RefineConfig(views=2, render_size=16, node_rule="alpha")
+    with pytest.raises(SegmentationError, match="no occupied voxels: the edited grid's density never makes a voxel 1% "
+                                                "opaque"):
+        refine(make_sphere_grid(12), faint, "a dog wearing sunglasses", ["sunglasses"], tiny_guidance, config,
+               Callbacks(on_progress=reports.append))
+    assert reports == []
+    assert not faint.occupancy(config.render.sigma_threshold).empty  # the render's own test passes it
+
+
 def test_cli_refine_warns_when_the_cut_keeps_nothing(tmp_path, tiny_model, make_sphere_grid, monkeypatch, capsys):
     """A cut that kept none of the voxels (attention favouring the object everywhere) said "0 of N voxels take the
     edit" and nothing more; the service's job warns that the edit is undone, and so does the CLI."""

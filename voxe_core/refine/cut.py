@@ -176,6 +176,18 @@ def _node_test(config: RefineConfig) -> str:
     return f"the edited grid's density never makes a voxel {config.node_alpha:.0%} opaque"
 
 
+def graph_nodes(grid: VoxelGrid, config: RefineConfig) -> torch.Tensor:
+    """(X, Y, Z) bool on the CPU: :func:`node_mask` by ``config``'s rule; :class:`SegmentationError` when no vertex
+    is a node (``refine`` asks before its first attention pass)."""
+    nodes = node_mask(grid, config.node_alpha, config.node_rule).cpu()
+    if not nodes.any():
+        raise SegmentationError(
+            f"no occupied voxels: {_node_test(config)}, so there is nothing to segment "
+            "(is it an empty or untrained grid?)"
+        )
+    return nodes
+
+
 def graph_pieces(nodes: np.ndarray, heads: np.ndarray, tails: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """(N,) the piece of each node: nodes joined by pairwise edges of positive weight share one.
 
@@ -261,13 +273,8 @@ def graph_cut_detailed(
     shape = grid.resolution
     edit_field = _scalar_field(edit_field, shape, "edit_field")
     object_field = _scalar_field(object_field, shape, "object_field")
-    nodes = node_mask(grid, config.node_alpha, config.node_rule).cpu()
+    nodes = graph_nodes(grid, config)
     n = int(nodes.sum())
-    if n == 0:
-        raise SegmentationError(
-            f"no occupied voxels: {_node_test(config)}, so there is nothing to segment "
-            "(is it an empty or untrained grid?)"
-        )
     edit_field, object_field = edit_field.detach().cpu(), object_field.detach().cpu()
     log_e, log_o = log_probabilities(edit_field, object_field)
     nodes_np = nodes.numpy()

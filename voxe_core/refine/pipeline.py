@@ -13,7 +13,7 @@ from voxe_core.grid import VoxelGrid
 from voxe_core.guidance.prompts import edit_prompt, prompt_text
 from voxe_core.progress import Callbacks, Progress, in_phases
 from voxe_core.refine.config import RefineConfig
-from voxe_core.refine.cut import GraphCutStats, graph_cut_detailed, node_mask, probabilities
+from voxe_core.refine.cut import GraphCutStats, graph_cut_detailed, graph_nodes, probabilities
 from voxe_core.presets import backprojection_chunks
 from voxe_core.refine.lifting import attention_occupancy, fit_attention_grids
 from voxe_core.refine.maps import attention_cameras, attention_maps_2d, token_groups
@@ -116,8 +116,8 @@ def refine(
     # the prefix this stage adds had supplied an edit word ("render") or the words naming the object (a prompt of
     # the edit words alone; its trailing full stop, which the model never reads, too).
     token_groups(guidance, prompt_text(prompt), edit_words)
-    nodes = node_mask(edited_grid, config.node_alpha, config.node_rule).cpu()  # and on a NaN density
     attention_occupancy(edited_grid, config)  # and on an empty one
+    nodes = graph_nodes(edited_grid, config)  # and on a NaN density, or none the cut's rule counts
     centre = initial_grid.orbit_centre()  # G_i's: the object, wherever it sits
     cameras = attention_cameras(config, centre=centre)
     fresh_view = fresh_attention_views(guidance, edited_grid, text, edit_words, config, centre) \
