@@ -257,3 +257,17 @@ def test_maps_that_are_not_finite_are_refused_before_any_work(bad):
         fit_attention_grids(grid, cams, maps, broken, RefineConfig(render_size=8),
                             Callbacks(on_progress=reports.append))
     assert reports == []  # refused before the back-projection
+
+
+@pytest.mark.parametrize("bad", [dict(backprojection_stride=1.5), dict(backprojection_stride=math.nan),
+                                 dict(views=2.5), dict(render_size=16.5), dict(iterations=1.5), dict(timestep=200.7),
+                                 dict(rays_per_step=True), dict(edit_seeds=300.0)])
+def test_counts_that_are_not_whole_numbers_are_refused(bad):
+    """A stride of 1.5 had read one pixel row and column in 3 (a lattice it names nowhere), a timestep of 200.7 ran
+    at 200, and a NaN stride failed in int() ('cannot convert float NaN to integer'). numpy's integers are whole."""
+    import numpy as np
+
+    name, value = next(iter(bad.items()))
+    with pytest.raises(ValueError, match=f"^{name} must be a whole number, got {value!r}$"):
+        RefineConfig(**bad)
+    assert RefineConfig(views=np.int64(3), backprojection_stride=np.int32(3)).backprojection_stride == 3

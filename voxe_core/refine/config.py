@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -149,10 +150,15 @@ class RefineConfig:
                              f"{self.resolution_filter!r}")
         if self.edit_token_reduce not in ("mean", "max"):
             raise ValueError(f"edit_token_reduce must be 'mean' or 'max', got {self.edit_token_reduce!r}")
+        for name in ("timestep", "render_size", "views", "iterations", "backprojection_stride", "rays_per_step",
+                     "edit_seeds", "object_seeds", "object_seed_fallback", "seed"):
+            value = getattr(self, name)  # (a stride of 1.5 had read a lattice of every third pixel)
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+                raise ValueError(f"{name} must be a whole number, got {value!r}")
         if self.render_size < MIN_RENDER_SIZE:
             raise ValueError(f"render_size must be at least {MIN_RENDER_SIZE} px, got {self.render_size}")
         for name in ("views", "rays_per_step", "backprojection_stride"):
-            if int(getattr(self, name)) < 1:
+            if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
         if self.backprojection_stride >= self.render_size:  # (it had lifted nothing, for the cut to find "no seeds")
             raise ValueError(f"backprojection_stride must be below render_size ({self.render_size} px), got "
