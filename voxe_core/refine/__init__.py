@@ -33,9 +33,10 @@ Pipeline (``refine``):
    in the field over the frozen density, so the fit starts from the weighted
    back-projection of the maps (``lift_start="backprojection"``, every
    ``backprojection_stride``-th pixel row and column) and Adam moves only the
-   vertices some pixel sees; on bench/localisation.py the back-projection alone
-   (``iterations=0``) cuts as well as the paper's 1,500-step fit from a
-   constant (``lift_start="constant"``).
+   vertices those pixels see (with a constant start too; a fresh view moves no
+   other, and a back-projection that sees none is refused); on
+   bench/localisation.py the back-projection alone (``iterations=0``) cuts as
+   well as the paper's 1,500-step fit from a constant (``lift_start="constant"``).
 
    Initial value: the authors initialise the feature to −20. Rendered raw, an
    untrained −20 grid renders −20·opacity, far outside the [0, 1] range of the
