@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +12,8 @@ import pytest
 import torch
 from PIL import Image
 
-from voxe_core.data import DatasetError, Scene, detect_format, load_scene
+from voxe_core.cameras import DISTORTION_KEYS
+from voxe_core.data import _INTRINSIC_KEYS, DatasetError, Scene, detect_format, load_scene
 
 import needs
 from captures import sixteen_bit_rgb_png
@@ -505,6 +507,53 @@ def test_numbers_beyond_float_range_name_frame_and_field(tmp_path):
             load_scene(make_ngp(tmp_path / f"case{case}", n=1, **top))
         assert_names(err, "transforms.json", frame)
         assert err.value.frame == frame
+
+
+@pytest.mark.parametrize("value", [True, "1", None, "nan"])
+def test_a_pose_entry_that_is_no_number_is_refused_naming_frame_and_entry(tmp_path, value):
+    """Regression: numpy had read JSON's true and "1" as 1 (the pose taken) and null as NaN (refused as a NaN)."""
+    root = make_ngp(tmp_path / "s", n=2)
+    meta = json.loads((root / "transforms.json").read_text())
+    meta["frames"][1]["transform_matrix"][2][2] = value
+    (root / "transforms.json").write_text(json.dumps(meta))
+    message = rf"transform_matrix\[2\]\[2\] is {re.escape(repr(value))}, not a number"
+    with pytest.raises(DatasetError, match=message) as err:
+        load_scene(root)
+    assert_names(err, "transforms.json", 1)
+
+
+def test_every_numeric_field_refuses_a_boolean_or_a_string_naming_frame_and_field(tmp_path):
+    root = make_ngp(tmp_path / "s", n=2)
+    meta = json.loads((root / "transforms.json").read_text())
+    for key in (*_INTRINSIC_KEYS, *DISTORTION_KEYS):
+        for value in (True, "1"):
+            frames = [dict(frame) for frame in meta["frames"]]
+            frames[1][key] = value
+            (root / "transforms.json").write_text(json.dumps({**meta, "frames": frames}))
+            with pytest.raises(DatasetError, match=f"'{key}' must be a number, got {re.escape(repr(value))}") as err:
+                load_scene(root)
+            assert_names(err, "transforms.json", 1)
+
+
+@pytest.mark.parametrize("scale", [0, -4, 0.0])
+def test_an_aabb_scale_that_is_not_positive_is_refused(tmp_path, scale):
+    """Regression: an aabb_scale of 0 or -4 had been taken into Scene.aabb_scale."""
+    with pytest.raises(DatasetError, match=f"'aabb_scale' = {scale:g} must be positive") as err:
+        load_scene(make_ngp(tmp_path / "s", n=1, aabb_scale=scale))
+    assert_names(err, "transforms.json", None)
+    assert load_scene(make_ngp(tmp_path / "ok", n=1, aabb_scale=0.5)).aabb_scale == 0.5
+
+
+def test_an_image_size_that_is_not_a_whole_number_is_refused(tmp_path):
+    """Regression: w = 8.4 had been rounded to the 8-pixel image's width and taken."""
+    root = make_ngp(tmp_path / "s", n=2)
+    meta = json.loads((root / "transforms.json").read_text())
+    meta["frames"][1]["w"] = 8.4
+    (root / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match="image size 'w' = 8.4 is not a whole number of pixels") as err:
+        load_scene(root)
+    assert_names(err, "transforms.json", 1)
+    assert load_scene(make_ngp(tmp_path / "whole", n=1, w=8.0, h=6.0)).cameras.width == 8
 
 
 def test_pose_not_four_by_four_or_bad_last_row(tmp_path):

@@ -212,6 +212,7 @@ def load_scene(
     where.frames = frames
 
     top = _check_intrinsics(meta, where, None)
+    aabb = _aabb_scale(meta, where)
     top_model = _camera_model(meta, where, None)
     per_frame, paths, models = [], [], []
     for i, frame in enumerate(frames):
@@ -293,9 +294,6 @@ def load_scene(
     if downsample > 1:
         cams.width, cams.height = wd * downsample, hd * downsample  # the crop that was resampled
         cams = cams.scaled(1.0 / downsample)
-    aabb = meta.get("aabb_scale")
-    if aabb is not None:
-        aabb = _number(aabb, "aabb_scale", where, None)
     split_c2w = torch.from_numpy(poses[split_frames]).float() if len(keep) < len(split_frames) else None
     return Scene(images, alphas, cams, [paths[i] for i in keep], fmt, split, aabb, split_c2w)
 
@@ -451,6 +449,17 @@ def _number(value, key: str, where: _Where, frame: int | None) -> float:
     return number
 
 
+def _aabb_scale(meta: dict, where: _Where) -> float | None:
+    """The top level's ``aabb_scale`` (None: not given): instant-ngp's scene bound, a multiple of the unit cube, so
+    positive; nothing here reads it, but a file holding 0 or a negative one is not the format's."""
+    if meta.get("aabb_scale") is None:
+        return None
+    scale = _number(meta["aabb_scale"], "aabb_scale", where, None)
+    if scale <= 0:
+        raise where(f"'aabb_scale' = {scale:g} must be positive (the scene's bound as a multiple of the unit cube)")
+    return scale
+
+
 def _check_intrinsics(source: dict, where: _Where, frame: int | None) -> dict[str, float]:
     """Numeric, finite, in-range intrinsics/distortion keys present in ``source`` (top level or one frame)."""
     out = {k: _number(source[k], k, where, frame) for k in _INTRINSIC_KEYS + DISTORTION_KEYS if source.get(k) is not None}
@@ -468,6 +477,8 @@ def _check_intrinsics(source: dict, where: _Where, frame: int | None) -> dict[st
     for k in ("w", "h"):
         if k in out and out[k] < 1:
             raise where(f"image size '{k}' = {out[k]} must be at least 1", frame)
+        if k in out and not out[k].is_integer():  # it had been rounded to the image's size and taken
+            raise where(f"image size '{k}' = {out[k]:g} is not a whole number of pixels", frame)
     return out
 
 
@@ -475,6 +486,10 @@ def _check_poses(frames: list, where: _Where) -> np.ndarray:
     """(N, 4, 4) float64 camera-to-world, checked to be finite rigid transforms."""
     mats = []
     for i, frame in enumerate(frames):
+        entry = _non_number_entry(frame["transform_matrix"])
+        if entry is not None:  # numpy reads JSON's true as 1, "1" as 1 and null as NaN
+            (row, column), value = entry
+            raise where(f"transform_matrix[{row}][{column}] is {value!r}, not a number", i)
         try:
             m = np.asarray(frame["transform_matrix"], dtype=np.float64)
         except OverflowError:  # an integer beyond float range
@@ -503,6 +518,15 @@ def _check_poses(frames: list, where: _Where) -> np.ndarray:
         i = int((det <= 0).argmax())
         raise where(f"rotation is a reflection, not a rigid rotation (det R = {det[i]:.3g})", i)
     return poses
+
+
+def _non_number_entry(matrix) -> tuple[tuple[int, int], object] | None:
+    """The first entry (its (row, column) and value) of a list of rows that is no JSON number (None: all are, or
+    ``matrix`` is no list of rows, which the shape check names)."""
+    if not isinstance(matrix, list) or not all(isinstance(row, list) for row in matrix):
+        return None
+    return next((((r, c), value) for r, row in enumerate(matrix) for c, value in enumerate(row)
+                 if isinstance(value, bool) or not isinstance(value, (int, float))), None)
 
 
 def _split_indices(fmt: str, split: str, n: int, holdout_every: int | None, where: _Where) -> list[int]:
