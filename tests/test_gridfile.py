@@ -237,6 +237,12 @@ def test_damaged_or_unknown_sparse_files_are_named(tmp_path, make_sphere_grid):
      "damaged sparse grid: no 'resolution' in the file"),
     (lambda t, m: ({**t, "features": t["features"][..., :3].contiguous()}, {**m, "layout": "dense"}),
      r"features of shape \(16, 16, 16, 3\)"),
+    # Tensors of no floating-point dtype had been read as features (true as 1.0, a byte's 255 as 255.0).
+    (lambda t, m: ({**t, "features": (t["features"] > 0).to(torch.uint8)}, {**m, "layout": "dense"}),
+     "damaged grid: features is torch.uint8, not floating point"),
+    (lambda t, m: ({**t, "values": t["values"].long()}, m), "damaged sparse grid: values is torch.int64, not floating"),
+    (lambda t, m: ({**t, "fill": t["fill"] > 0}, m), "damaged sparse grid: fill is torch.bool, not floating point"),
+    (lambda t, m: ({**t, "bbox_max": t["bbox_max"].int()}, m), "damaged grid: bbox_max is torch.int32, not floating"),
 ])
 def test_a_grid_file_with_tensors_or_fields_of_the_wrong_shape_or_value_is_a_format_error(
         tmp_path, make_sphere_grid, damage, message):

@@ -57,6 +57,10 @@ def grid_from_state(tensors: dict[str, torch.Tensor], meta: dict) -> VoxelGrid:
         raise FormatError(f"damaged sparse grid: no {exc} in the file") from None
     except ValueError as exc:
         raise FormatError(f"damaged sparse grid: {exc}") from None
+    for name in ("features", "bbox_min", "bbox_max"):
+        if name in tensors and not tensors[name].is_floating_point():  # bool or integer ones had been read as floats
+            raise FormatError(f"damaged grid: {name} is {tensors[name].dtype}, not floating point (the format's "
+                              "float32)")
     features = tensors.get("features")
     if features is not None and (features.dim() != 4 or features.shape[-1] != 4):
         raise FormatError(f"damaged grid: features of shape {tuple(features.shape)}, not (X, Y, Z, 4)")

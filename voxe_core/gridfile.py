@@ -123,6 +123,9 @@ def dense_tensors(tensors: dict[str, torch.Tensor], meta: dict) -> dict[str, tor
     bits, values, fill = tensors["stored_bits"], tensors["values"], tensors["fill"]
     if bits.dtype != torch.uint8 or bits.dim() != 1:
         raise ValueError(f"stored_bits is {bits.dtype} of shape {tuple(bits.shape)}, not a uint8 vector")
+    for name, tensor in (("values", values), ("fill", fill)):
+        if not tensor.is_floating_point():  # an integer or bool tensor had been read as features
+            raise ValueError(f"{name} is {tensor.dtype}, not floating point (the format's float32)")
     if fill.dim() != 1 or values.dim() != 2 or values.shape[1] != fill.shape[0]:
         raise ValueError(f"values {tuple(values.shape)} and fill {tuple(fill.shape)} are not (N, C) and (C,)")
     bits = bits.numpy()
