@@ -1392,6 +1392,19 @@ def test_the_evaluation_ring_defaults_are_the_same_for_the_cli_the_library_and_t
         assert (source.views, source.elevation, source.size) == ring
 
 
+def test_evaluate_refuses_a_mask_of_another_grid_before_reading_its_voxels(sphere_file, tmp_path, capsys):
+    """Regression: the mask file's own shape was allocated first (a 252-byte file claiming 1290³ voxels: 2 GB), and
+    a mask of another grid found out only after the CLIP model had loaded."""
+    from voxe_core.refine.storage import save_mask
+
+    mask = tmp_path / "mask.safetensors"
+    save_mask(mask, torch.ones(7, 7, 7, dtype=torch.bool))
+    resolution = load_grid(sphere_file).resolution
+    assert main(["evaluate", str(sphere_file), "--edit", str(sphere_file), "a hat", str(mask), "--object", "ball",
+                 "--out", str(tmp_path / "e"), "--clip-model", str(tmp_path / "no_model")]) == 2
+    assert f"{mask}: a grid of (7, 7, 7) voxels does not fit the grid's {resolution}" in capsys.readouterr().err
+
+
 def test_evaluate_into_an_earlier_output_leaves_no_stale_ring_renders(sphere_file, tmp_path):
     from voxe_core.tiny_eval import build_tiny_clip
 

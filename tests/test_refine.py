@@ -894,6 +894,57 @@ def test_a_damaged_file_claiming_a_grid_beyond_int32_indices_is_a_format_error(t
         load_mask(path)
 
 
+INDEX_DAMAGES = [
+    # indices of no integer dtype had been cut to integers (1.7 read as voxel 1, true as voxel 1)
+    (lambda t: {**t, "indices": t["indices"].float() + 0.7}, "'indices' is torch.float32, not integers"),
+    (lambda t: {**t, "indices": t["indices"] > 0}, "'indices' is torch.bool, not integers"),
+    (lambda t: {**t, "shape": t["shape"].double() + 0.9}, "'shape' is torch.float64, not integers"),
+    # a shape not of 3 entries had been a TypeError from int() (a list, or an int not iterable)
+    (lambda t: {**t, "shape": t["shape"][None]}, r"bad grid shape \[\[4, 5, 6\]\], not 3 positive voxel counts"),
+    (lambda t: {**t, "shape": t["shape"][0]}, "bad grid shape 4, not 3 positive voxel counts"),
+    # a voxel given twice had loaded: a probability file's two values for it, one taken as it happened
+    (lambda t: {**t, "indices": t["indices"][[0, 1, 1, 2, 2]]}, r"voxel index 9 is given more than once \(2 repeats\)"),
+]
+PROBABILITY_DAMAGES = [  # had loaded: NaN and 2.5 as probabilities
+    (lambda t: {**t, "edit": t["edit"] * float("nan")}, r"'edit' holds values outside \[0, 1\] \(or NaN\)"),
+    (lambda t: {**t, "object": t["object"] + 1.5}, r"'object' holds values outside \[0, 1\]"),
+]
+
+
+@pytest.mark.parametrize("kind, damage, message", [
+    *(("edit_mask", *case) for case in INDEX_DAMAGES),
+    *(("attention_probabilities", *case) for case in INDEX_DAMAGES + PROBABILITY_DAMAGES),
+])
+def test_a_damaged_mask_or_probability_file_is_a_format_error_naming_the_problem(tmp_path, kind, damage, message):
+    where = torch.zeros(4, 5, 6, dtype=torch.bool)
+    where.view(-1)[[3, 9, 77]] = True
+    path = tmp_path / "file.safetensors"
+    save_probabilities(path, torch.full(where.shape, 0.25), torch.full(where.shape, 0.75), where)
+    tensors, _ = load_tensors(path, kind="attention_probabilities", max_version=1)
+    save_tensors(path, damage(tensors), kind=kind, version=1, meta={})
+    with pytest.raises(FormatError, match=message) as error:
+        (load_mask if kind == "edit_mask" else load_probabilities)(path)
+    assert str(error.value).startswith(str(path))
+
+
+def test_a_mask_file_claiming_another_grid_is_refused_before_its_voxels_are_allocated(tmp_path):
+    """Regression: a 252-byte file claiming 1290³ voxels allocated 2 GB before its caller
+    (voxe evaluate --edit ... MASK, the worker's evaluation) found that it did not fit the grid."""
+    path = tmp_path / "mask.safetensors"
+    save_tensors(path, {"indices": torch.tensor([3], dtype=torch.int32), "shape": torch.tensor([1290] * 3)},
+                 kind="edit_mask", version=1, meta={})
+    allocations = []
+    real_zeros = torch.zeros
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(torch, "zeros", lambda *a, **k: allocations.append(a) or real_zeros(*a, **k))
+        with pytest.raises(FormatError, match=r"a grid of \(1290, 1290, 1290\) voxels does not fit the grid's "
+                                              r"\(16, 16, 16\)"):
+            load_mask(path, (16, 16, 16))
+    assert allocations == []
+    save_mask(path, torch.ones(16, 16, 16, dtype=torch.bool))
+    assert load_mask(path, (16, 16, 16)).all()
+
+
 def test_renders_grey_attention_and_red_mask(make_sphere_grid):
     grid = make_sphere_grid(16)
     with torch.no_grad():

@@ -104,7 +104,7 @@ def run_evaluation(job: Job, settings: Settings, device: str, storage) -> None:
         if source.mode == "local":
             mask_path = runtime.fetch(storage, runtime.recorded_artifact(source.id, "mask.safetensors"),
                                       runtime.scratch_dir(job.id, settings) / f"{source.id}_mask.safetensors")
-            mask = load_mask(mask_path)
+            mask = load_mask(mask_path, initial.resolution)
         edits.append(EditSample(source.id, source.prompt, grid, mask))
     input_images = load_images(sources[0], rec.params, settings, storage).images if params["fid_input"] else None
     config = EvaluateConfig(views=params["views"], elevation=params["elevation"], size=params["size"])

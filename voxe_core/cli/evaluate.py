@@ -64,7 +64,7 @@ def cmd_evaluate(args) -> int:
     initial = load_grid(args.initial)
     edits = []
     for k, (grid_path, prompt, *mask_path) in enumerate(args.edit):
-        mask = load_mask(Path(mask_path[0])) if mask_path else None
+        mask = load_mask(Path(mask_path[0]), initial.resolution) if mask_path else None
         edits.append(EditSample(f"edit{k:02d}", prompt, load_grid(Path(grid_path)), mask))
     # Every output path checked now: a folder in the way had failed the move, after the whole evaluation
     for path in (args.out / "evaluation.json", args.out / "evaluation.md",

@@ -37,25 +37,41 @@ def save_mask(path, mask: torch.Tensor, meta: dict | None = None) -> None:
                  kind="edit_mask", version=MASK_FORMAT_VERSION, meta={"set_voxels": int(indices.numel()), **(meta or {})})
 
 
-def _indices_and_shape(tensors: dict, path) -> tuple[torch.Tensor, tuple[int, int, int]]:
+def _indices_and_shape(tensors: dict, path,
+                       expected: tuple[int, ...] | None = None) -> tuple[torch.Tensor, tuple[int, int, int]]:
+    """The file's flat voxel indices and grid shape, checked before anything the shape's size is allocated: the
+    shape ``expected`` where given (a 252-byte file claiming 1290³ voxels had allocated 2 GB before its caller found
+    it did not fit the grid), indices of an integer dtype (1.7 had been read as 1, true as 1), each within the grid
+    and given once (two values for one voxel are no file these functions write)."""
     if "indices" not in tensors or "shape" not in tensors:
         raise FormatError(f"{path}: missing 'indices' or 'shape'")
-    shape = tuple(int(s) for s in tensors["shape"].tolist())
-    indices = tensors["indices"].long().reshape(-1)
-    if len(shape) != 3 or min(shape) < 1:
-        raise FormatError(f"{path}: bad grid shape {shape}")
+    stored_shape, indices = tensors["shape"], tensors["indices"]
+    for name, tensor in (("shape", stored_shape), ("indices", indices)):
+        if tensor.is_floating_point() or tensor.is_complex() or tensor.dtype == torch.bool:
+            raise FormatError(f"{path}: '{name}' is {tensor.dtype}, not integers")
+    if stored_shape.shape != (3,) or int(stored_shape.min()) < 1:
+        raise FormatError(f"{path}: bad grid shape {stored_shape.tolist()}, not 3 positive voxel counts")
+    shape = tuple(int(s) for s in stored_shape.tolist())
+    if expected is not None and shape != tuple(expected):
+        raise FormatError(f"{path}: a grid of {shape} voxels does not fit the grid's {tuple(expected)}")
     total = shape[0] * shape[1] * shape[2]
     if total >= INDEXABLE_VOXELS:  # (a damaged header: it had reached torch.zeros, an overflow or a huge allocation)
         raise FormatError(f"{path}: a grid of {shape} is beyond the int32 voxel indices these files hold")
+    indices = indices.long().reshape(-1)
     if indices.numel() and (int(indices.min()) < 0 or int(indices.max()) >= total):
         raise FormatError(f"{path}: voxel indices outside a grid of {shape}")
+    ordered = indices.sort().values
+    repeats = ordered[1:][ordered[1:] == ordered[:-1]]
+    if repeats.numel():
+        raise FormatError(f"{path}: voxel index {int(repeats[0])} is given more than once ({repeats.numel()} "
+                          "repeats)")
     return indices, shape
 
 
-def load_mask(path) -> torch.Tensor:
-    """The (X, Y, Z) bool mask written by :func:`save_mask`."""
+def load_mask(path, shape: tuple[int, ...] | None = None) -> torch.Tensor:
+    """The (X, Y, Z) bool mask written by :func:`save_mask`; ``shape``: the grid's, which the file must hold."""
     tensors, _ = load_tensors(path, kind="edit_mask", max_version=MASK_FORMAT_VERSION)
-    indices, shape = _indices_and_shape(tensors, path)
+    indices, shape = _indices_and_shape(tensors, path, shape)
     mask = torch.zeros(math.prod(shape), dtype=torch.bool)
     mask[indices] = True
     return mask.reshape(shape)
@@ -84,6 +100,8 @@ def load_probabilities(path) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         values = tensors.get(name)
         if values is None or values.numel() != indices.numel():
             raise FormatError(f"{path}: '{name}' values do not match the stored indices")
+        if values.numel() and not bool(((values >= 0) & (values <= 1)).all()):  # NaN fails both comparisons
+            raise FormatError(f"{path}: '{name}' holds values outside [0, 1] (or NaN), which no probability is")
         dense = torch.zeros(math.prod(shape))
         dense[indices] = values.float()
         out.append(dense.reshape(shape))
