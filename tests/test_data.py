@@ -647,6 +647,16 @@ def test_invalid_json(tmp_path):
     assert_names(err, "transforms_train.json", None)
 
 
+def test_json_nested_too_deeply_is_a_dataset_error(tmp_path):
+    """Regression: json's RecursionError had escaped load_scene (an upload's check answered 500)."""
+    root = tmp_path / "s"
+    root.mkdir()
+    (root / "transforms.json").write_text('{"frames": ' + "[" * 100_000 + "]" * 100_000 + "}")
+    with pytest.raises(DatasetError, match="transforms.json: its JSON arrays or objects nest too deeply") as err:
+        load_scene(root)
+    assert_names(err, "transforms.json", None)
+
+
 def test_missing_split_file(tmp_path):
     root = make_synthetic(tmp_path / "s")
     with pytest.raises(DatasetError, match="not found") as err:

@@ -312,6 +312,7 @@ def test_a_grid_whose_file_could_not_be_read_back_is_refused_when_built(tmp_path
     ('{"kind": "voxel_grid", "format_version": 2, "meta": null}', r"damaged 'voxe' header \(its meta is a NoneType\)"),
     ('{"kind": "voxel_grid", "format_version": "two"}', "damaged 'voxe' header"),
     ("{not json", "damaged 'voxe' header"),  # json's message alone had not named the file
+    ("[" * 100_000 + "]" * 100_000, r"damaged 'voxe' header \(its JSON nests too deeply\)$"),  # a RecursionError
     ('{"kind": "voxel_grid", "format_version": 2, "meta": {}}', "damaged grid: no 'features' in the file"),
     ('{"kind": "voxel_grid", "format_version": 0, "meta": {}}', "format version 0 is none a voxe_core wrote"),
     # JSON's true, a string and a fraction had been read as versions 1, 2 and 1 (int() of each)

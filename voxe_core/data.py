@@ -430,6 +430,8 @@ def _read_json(path: Path) -> dict:
         raise DatasetError(f"{path.name}: invalid JSON at line {e.lineno} column {e.colno} (char {e.pos}): {e.msg}", path) from e
     except (UnicodeDecodeError, OSError, ValueError) as e:  # ValueError: e.g. an integer of over 4,300 digits
         raise DatasetError(f"{path.name}: cannot read as JSON text: {e}", path) from e
+    except RecursionError:  # (it had escaped as itself: an upload's check answered 500)
+        raise DatasetError(f"{path.name}: its JSON arrays or objects nest too deeply", path) from None
     if not isinstance(meta, dict):
         raise DatasetError(f"{path.name}: top level must be a JSON object, got {type(meta).__name__}", path)
     return meta

@@ -106,6 +106,8 @@ def load_header(path: str | os.PathLike, kind: str, max_version: int) -> dict:
             raise TypeError(f"its meta is a {type(meta).__name__}")
     except (ValueError, TypeError) as exc:
         raise FormatError(f"{path}: damaged '{HEADER_KEY}' header ({exc})") from None
+    except RecursionError:  # (it had escaped as itself, a traceback)
+        raise FormatError(f"{path}: damaged '{HEADER_KEY}' header (its JSON nests too deeply)") from None
     if header.get("kind") != kind:
         raise FormatError(f"{path}: holds a '{header.get('kind')}', expected a '{kind}'")
     if version < 1:
