@@ -295,6 +295,29 @@ def test_a_scene_grid_header_it_cannot_render_is_a_format_error(tmp_path, field,
     assert str(error.value) == f"{path}: damaged grid: {message}"
 
 
+@pytest.mark.parametrize("frame, message", [
+    ([float("nan")] * 16, "frame must be finite in float32"),
+    ([1e300] + [0.0] * 4 + [1e300] + [0.0] * 4 + [1e300] + [0.0] * 4 + [1.0], "frame must be finite in float32"),
+    ([0.0] * 15 + [1.0], r"frame must be a similarity \(a positive scale times a rotation"),  # no scale
+    ([2.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0], "frame must be a similarity"),  # stretched along x
+    ([-1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0], "frame must be a similarity"),  # a mirror
+    ([1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 5.0, 1.0], "frame must be a similarity"),  # last row
+])
+def test_a_scene_grid_whose_frame_is_no_similarity_is_a_format_error(tmp_path, frame, message):
+    """Regression: a NaN, infinite or singular frame had loaded, and every camera it moved into the grid's frame
+    (``dataset_cameras``) was NaN."""
+    grid = SceneGrid(9)
+    path = tmp_path / "scene.safetensors"
+    save_tensors(path, grid.state_tensors(), kind="voxel_grid", version=2,
+                 meta={**grid.header(), "layout": "dense", "frame": frame})
+    with pytest.raises(FormatError, match=f"damaged grid: {message}"):
+        load_grid(path)
+    scaled = [0.5, 0, 0, 0.1, 0, 0, -0.5, 0.2, 0, 0.5, 0, 0.3, 0, 0, 0, 1.0]  # half scale, a quarter turn, a shift
+    save_tensors(path, grid.state_tensors(), kind="voxel_grid", version=2,
+                 meta={**grid.header(), "layout": "dense", "frame": scaled})
+    assert torch.equal(load_grid(path).frame, torch.tensor(scaled).reshape(4, 4))
+
+
 @pytest.mark.parametrize("backbone", [VoxelGrid, SceneGrid])
 @pytest.mark.parametrize("scale", [0.0, -2.0, float("nan"), float("inf")])
 def test_a_grid_whose_file_could_not_be_read_back_is_refused_when_built(tmp_path, backbone, scale):

@@ -118,7 +118,7 @@ class SceneGrid(VoxelGrid):
                          density_scale, init_density, features)
         self.foreground_extent = fg
         self.near_samples, self.far_samples, self.far_ratio = int(near_samples), int(far_samples), float(far_ratio)
-        self.frame = torch.eye(4) if frame is None else torch.as_tensor(frame, dtype=torch.float32).reshape(4, 4)
+        self.frame = torch.eye(4) if frame is None else _similarity(frame)
 
     # ------------------------------------------------------------ interface
     def like(self, features: torch.Tensor) -> "SceneGrid":
@@ -309,6 +309,24 @@ class SceneGrid(VoxelGrid):
         return edges, exists
 
 # ------------------------------------------------------------------ frames
+def _similarity(frame) -> torch.Tensor:
+    """``frame`` as the (4, 4) float32 similarity ``scene_frame`` makes (a positive scale times a rotation, then a
+    translation), ValueError otherwise: a file's NaN, zero or 1e300 frame had loaded, and every camera
+    ``apply_frame`` moved with it was NaN."""
+    matrix = torch.as_tensor(frame, dtype=torch.float64).reshape(4, 4)
+    if not bool((matrix.abs() <= FLOAT32_MAX).all()):  # NaN fails the comparison
+        raise ValueError(f"frame must be finite in float32, got {matrix.tolist()}")
+    linear = matrix[:3, :3]
+    scale = float(linear.norm(dim=0).mean())
+    rotation = linear / scale if scale > 0 else linear
+    deviation = float((rotation.T @ rotation - torch.eye(3, dtype=torch.float64)).abs().max())
+    if not (scale > 0 and deviation <= 1e-4 and float(torch.linalg.det(rotation)) > 0
+            and matrix[3].tolist() == [0.0, 0.0, 0.0, 1.0]):
+        raise ValueError(f"frame must be a similarity (a positive scale times a rotation, then a translation; last "
+                         f"row 0, 0, 0, 1), got {matrix.tolist()}")
+    return matrix.float()
+
+
 def scene_frame(cameras: Cameras, radius: float = NERF_SYNTHETIC_RADIUS) -> torch.Tensor:
     """Similarity ``canonical_from_world`` (4x4) for a 360° capture.
 
