@@ -128,6 +128,12 @@ HOSTILE_UPLOADS = {
                            "'camera_angle_x' is out of range (10000000000000000000..., 401 digits)"),
     "number of 5000 digits": (lambda d: _with_json_number(d, "camera_angle_x", "1" * 5000), 422,
                               "transforms_train.json: cannot read as JSON text: Exceeds the limit"),
+    # json's RecursionError had escaped the check: a 500
+    "json nested too deeply": (lambda d: _with_json_number(d, "nested", "[" * 100_000 + "]" * 100_000), 422,
+                               "transforms_train.json: its JSON arrays or objects nest too deeply"),
+    # numpy had read JSON's true as 1: the pose taken
+    "boolean in a pose": (lambda d: _with_json(d, lambda m: m["frames"][1]["transform_matrix"][3].__setitem__(3, True)),
+                          422, "frame 1 ('./train/r_4'): transform_matrix[3][3] is True, not a number"),
     # had made a ready scene whose every job failed: the worker that unpacked it could not write its mark there
     # (IsADirectoryError naming its cache's path)
     "folder named as the workers' mark": (lambda d: _zip({**_dataset_entries(d), ".complete/notes.txt": b"x"}), 422,
