@@ -3,7 +3,8 @@
 Attempts run on a small thread pool, each ending by its deadline (``VOXE_WEBHOOK_TIMEOUT_S``: name lookup,
 connect, send and the whole answer), so a slow or dead receiver holds one pool thread for at most that long and
 never a request or a worker; at most half the pool's threads go to one receiver (``scheme://host:port``, whatever
-path each job's URL names), so a receiver that never answers cannot hold them all while its deliveries pile up. A
+path each job's URL names) and all but a quarter to one API key's jobs (:class:`Shares`), so neither a receiver that
+never answers nor a key whose jobs each name a receiver of their own can hold them all while its deliveries pile up. A
 failed attempt (an error, a timeout, a non-2xx) is retried after ``VOXE_WEBHOOK_BACKOFF_S`` doubling per attempt,
 until ``VOXE_WEBHOOK_RETRY_FOR_S`` after the event (the last try at that time); then the delivery is ``failed`` with
 the last error. Claims are conditional updates, so several API processes may send side by side without sending one
@@ -23,7 +24,8 @@ from voxe_service.db import session_scope
 from voxe_service.models import ApiKey, Job, WebhookDelivery, utcnow
 from voxe_service.settings import Settings
 from voxe_service.webhooks import (
-    DELIVERED, GAVE_UP, PENDING, TargetRefused, attempt, backoff_s, claim_due, retry_at, webhook_client,
+    DELIVERED, GAVE_UP, PENDING, Claim, InFlight, Shares, TargetRefused, attempt, backoff_s, claim_due, retry_at,
+    webhook_client,
 )
 
 log = logging.getLogger("voxe.webhooks")
@@ -42,9 +44,9 @@ class WebhookSender:
         self._thread: threading.Thread | None = None
         self._pool = ThreadPoolExecutor(settings.webhook_concurrency, thread_name_prefix="voxe-webhook")
         self._client = webhook_client(settings.webhook_timeout_s, settings.webhook_networks)
-        self._in_flight = threading.Semaphore(settings.webhook_concurrency)
-        self._per_origin = max(1, settings.webhook_concurrency // 2)  # so one receiver never holds every slot
-        self._in_flight_to: Counter[str] = Counter()  # attempts in flight, by receiver (webhook_origin)
+        self._slots = threading.Semaphore(settings.webhook_concurrency)
+        self._shares = Shares.of(settings.webhook_concurrency)  # so no receiver or key ever holds every slot
+        self._in_flight = InFlight()  # attempts in flight, by receiver (webhook_origin) and key
         self._in_flight_lock = threading.Lock()
 
     def start(self) -> "WebhookSender":
@@ -92,28 +94,32 @@ class WebhookSender:
     def send_due(self) -> int:
         """Claim what the pool has room for and hand it over; how many attempts were started."""
         free = 0
-        while self._in_flight.acquire(blocking=False):
+        while self._slots.acquire(blocking=False):
             free += 1
         if not free:
             return 0
-        claimed: list[tuple[str, str]] = []
+        claimed: list[Claim] = []
         try:
             with self._in_flight_lock:
-                in_flight_to = dict(self._in_flight_to)
+                in_flight = InFlight(self._in_flight.by_origin.copy(), self._in_flight.by_key.copy(),
+                                     self._in_flight.walked_to)
             with session_scope() as session:
                 won = claim_due(session, utcnow(), self.settings.webhook_timeout_s + CLAIM_MARGIN_S, free,
-                                self._per_origin, in_flight_to)
+                                self._shares, in_flight)
             claimed = won  # once committed: a claim whose commit failed took nothing
         finally:  # the slots left over: all of them when the claim failed (a database hiccup had kept them for good)
             for _ in range(free - len(claimed)):
-                self._in_flight.release()
+                self._slots.release()
         with self._in_flight_lock:
-            self._in_flight_to.update(origin for _, origin in claimed)
-        for delivery_id, origin in claimed:
-            self._pool.submit(self._send, delivery_id, origin)
+            self._in_flight.walked_to = in_flight.walked_to
+            self._in_flight.by_origin.update(claim.origin for claim in claimed)
+            self._in_flight.by_key.update(claim.key_id for claim in claimed)
+        for claim in claimed:
+            self._pool.submit(self._send, claim)
         return len(claimed)
 
-    def _send(self, delivery_id: str, origin: str) -> None:
+    def _send(self, claim: Claim) -> None:
+        delivery_id = claim.delivery_id
         try:
             with session_scope() as session:
                 delivery = session.get(WebhookDelivery, delivery_id)
@@ -129,8 +135,9 @@ class WebhookSender:
             log.warning("webhook delivery %s: attempt failed", delivery_id, exc_info=True)
         finally:
             with self._in_flight_lock:
-                self._in_flight_to -= Counter({origin: 1})
-            self._in_flight.release()
+                self._in_flight.by_origin -= Counter({claim.origin: 1})
+                self._in_flight.by_key -= Counter({claim.key_id: 1})
+            self._slots.release()
 
     def _record(self, delivery: WebhookDelivery, status: int | None, error: str | None, refused: bool) -> None:
         now = utcnow()

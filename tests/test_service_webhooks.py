@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import socket
 import time
+from collections import Counter
 
 import pytest
 from fastapi.testclient import TestClient
@@ -357,15 +358,16 @@ def test_a_receiver_that_never_answers_holds_at_most_half_the_sender_slots(clien
         healthy.close()
 
 
-def due_deliveries(tmp_path, monkeypatch, database_url, due: list[tuple[str, float]]) -> None:
-    """A migrated database whose job has a pending delivery ``due`` seconds from now to each of the URLs, in order."""
+def due_deliveries(tmp_path, monkeypatch, database_url, due: list[tuple]) -> None:
+    """A migrated database with a pending delivery ``due`` seconds from now to each of the URLs, in order: ``(url,
+    seconds)``, or ``(url, seconds, key)`` for a job of that API key's (the built-in key's otherwise)."""
     from datetime import timedelta
 
-    from sqlalchemy import insert
+    from sqlalchemy import insert, update
 
     from test_service_faults import add_job, add_scene
     from voxe_service.db import run_migrations, session_scope
-    from voxe_service.models import WebhookDelivery, utcnow
+    from voxe_service.models import LOCAL_KEY_ID, ApiKey, Job, WebhookDelivery, utcnow
     from voxe_service.settings import get_settings
     from voxe_service.webhooks import PENDING, webhook_origin
 
@@ -373,12 +375,21 @@ def due_deliveries(tmp_path, monkeypatch, database_url, due: list[tuple[str, flo
         monkeypatch.setenv(key, value)
     reset_service_caches()
     run_migrations(get_settings().database_url)
-    job_id, now = add_job(add_scene(), "running", 0), utcnow()
+    scene_id, now = add_scene(), utcnow()
+    job_of = {}
+    for key_id in dict.fromkeys(entry[2] if len(entry) == 3 else LOCAL_KEY_ID for entry in due):
+        job_of[key_id] = add_job(scene_id, "running", 0)
+        if key_id != LOCAL_KEY_ID:
+            with session_scope() as session:
+                session.add(ApiKey(id=key_id, name=key_id))
+                session.flush()
+                session.execute(update(Job).where(Job.id == job_of[key_id]).values(owner_key_id=key_id))
     with session_scope() as session:
         session.execute(insert(WebhookDelivery), [dict(
-            id=f"msg_{order:06d}", job_id=job_id, event_id=order, event_type="job.warning", url=url,
+            id=f"msg_{order:06d}", job_id=job_of[key_id], event_id=order, event_type="job.warning", url=url,
             origin=webhook_origin(url), payload="{}", state=PENDING, attempts=0, created_at=now,
-            next_attempt_at=now + timedelta(seconds=seconds)) for order, (url, seconds) in enumerate(due)])
+            next_attempt_at=now + timedelta(seconds=seconds))
+            for order, (url, seconds, key_id) in enumerate((*entry, LOCAL_KEY_ID)[:3] for entry in due)])
 
 
 def test_a_claim_takes_the_earliest_due_deliveries_but_at_most_its_share_to_one_receiver(tmp_path, monkeypatch,
@@ -390,23 +401,25 @@ def test_a_claim_takes_the_earliest_due_deliveries_but_at_most_its_share_to_one_
 
     from voxe_service.db import session_scope
     from voxe_service.models import WebhookDelivery, utcnow
-    from voxe_service.webhooks import claim_due
+    from voxe_service.webhooks import InFlight, Shares, claim_due
 
     due = [("a", n) for n in range(10)] + [("b", 0), ("c", 0), ("d", 0), ("d", 1), ("e", 0)]
     due_deliveries(tmp_path, monkeypatch, database_url, [
-        (f"https://{host}.example/hook", order - len(due) + (60 if host == "e" else 0))
+        (f"https://{host}.example/hook", order - len(due) + (60 if host == "e" else 0), host)  # a key each
         for order, (host, _n) in enumerate(due)])
     a, b, c, d = (f"https://{host}.example:443" for host in "abcd")
     try:
         with session_scope() as session:
-            first = claim_due(session, utcnow(), 30, 4, 2, {a: 1})
+            first = claim_due(session, utcnow(), 30, 4, Shares(2, 2), InFlight(Counter({a: 1})))
         with session_scope() as session:
-            second = claim_due(session, utcnow(), 30, 4, 2, {a: 2, b: 1, c: 1, d: 1})
+            second = claim_due(session, utcnow(), 30, 4, Shares(2, 2),
+                               InFlight(Counter({a: 2, b: 1, c: 1, d: 1})))
             claimed = session.scalars(select(WebhookDelivery.id).where(WebhookDelivery.attempts == 1)).all()
     finally:
         reset_service_caches()
-    assert first == [("msg_000000", a), ("msg_000010", b), ("msg_000011", c), ("msg_000012", d)]
-    assert second == [("msg_000013", d)]
+    assert [claim[:2] for claim in first] == [("msg_000000", a), ("msg_000010", b), ("msg_000011", c),
+                                             ("msg_000012", d)]
+    assert [claim[:2] for claim in second] == [("msg_000013", d)]
     assert sorted(claimed) == ["msg_000000", "msg_000010", "msg_000011", "msg_000012", "msg_000013"]
 
 
@@ -418,20 +431,21 @@ def test_a_receiver_whose_urls_name_each_job_is_one_receiver_to_the_cap(tmp_path
     of the earliest due: the other receiver's is found by reading each receiver's earliest.)"""
     from voxe_service.db import session_scope
     from voxe_service.models import utcnow
-    from voxe_service.webhooks import claim_due
+    from voxe_service.webhooks import InFlight, Shares, claim_due
 
     due_deliveries(tmp_path, monkeypatch, database_url,
-                   [(f"https://DEAD.example/hooks/job-{n}?try=1", n - 100) for n in range(40)]
-                   + [("https://ok.example/hook", -50), ("https://dead.example:443/other", -40)])
+                   [(f"https://DEAD.example/hooks/job-{n}?try=1", n - 100, "dead") for n in range(40)]
+                   + [("https://ok.example/hook", -50, "ok"), ("https://dead.example:443/other", -40, "dead")])
     dead = "https://dead.example:443"
     try:
         with session_scope() as session:
-            first = claim_due(session, utcnow(), 30, 8, 4, {})
+            first = claim_due(session, utcnow(), 30, 8, Shares(4, 4), InFlight())
         with session_scope() as session:
-            second = claim_due(session, utcnow(), 30, 8, 4, {dead: 4})
+            second = claim_due(session, utcnow(), 30, 8, Shares(4, 4), InFlight(Counter({dead: 4})))
     finally:
         reset_service_caches()
-    assert first == [*((f"msg_{n:06d}", dead) for n in range(4)), ("msg_000040", "https://ok.example:443")]
+    assert [claim[:2] for claim in first] == [*((f"msg_{n:06d}", dead) for n in range(4)),
+                                             ("msg_000040", "https://ok.example:443")]
     assert second == []
 
 
@@ -447,8 +461,8 @@ def test_a_claims_work_does_not_grow_with_a_dead_receivers_backlog(tmp_path, mon
         folder = tmp_path / str(backlog)
         folder.mkdir()
         due_deliveries(folder, monkeypatch, f"sqlite:///{folder / 'voxe.db'}",
-                       [(f"https://dead.example/hooks/job-{n}", n - 2 * backlog) for n in range(backlog)]
-                       + [(f"https://ok-{n}.example/hook", n - backlog) for n in range(7)])
+                       [(f"https://dead.example/hooks/job-{n}", n - 2 * backlog, "dead") for n in range(backlog)]
+                       + [(f"https://ok-{n}.example/hook", n - backlog, f"ok-{n}") for n in range(7)])
         try:
             for at_cap in (True, False):
                 steps[backlog, at_cap], won = claim_steps(8, 4, {dead: 4} if at_cap else {})
@@ -475,15 +489,92 @@ def test_a_claims_work_does_not_grow_with_the_receivers_backing_off(tmp_path, mo
             steps[receivers], won = claim_steps(8, 4, {})
         finally:
             reset_service_caches()
-        assert won == [(f"msg_{receivers:06d}", "https://ok.example:443")]
+        assert [claim[:2] for claim in won] == [(f"msg_{receivers:06d}", "https://ok.example:443")]
     assert steps[10_000] <= 1.1 * steps[1_000], steps
+
+
+def test_a_claims_walk_of_the_receivers_does_not_grow_with_those_backing_off(tmp_path, monkeypatch):
+    """A dead receiver's forty due (at its cap) fill the claim's first read, so it walks the receivers: it had visited
+    every one with a delivery pending, all but one backing off (55 ms each poll on SQLite with 20,000). It visits
+    RECEIVERS_WALKED at most: its work is the same with ten times the receivers, and it takes the one due."""
+    from voxe_service.webhooks import RECEIVERS_WALKED
+
+    dead = "https://dead.example:443"
+    steps: dict[int, int] = {}
+    for receivers in (RECEIVERS_WALKED, 10 * RECEIVERS_WALKED):
+        folder = tmp_path / str(receivers)
+        folder.mkdir()
+        due_deliveries(folder, monkeypatch, f"sqlite:///{folder / 'voxe.db'}",
+                       [(f"https://dead.example/hooks/job-{n}", n - 100, "dead") for n in range(40)]
+                       + [("https://ok.example/hook", -1)]
+                       + [(f"https://r{n}.example/hook", 600) for n in range(receivers)])
+        try:
+            steps[receivers], won = claim_steps(8, 4, {dead: 4})
+        finally:
+            reset_service_caches()
+        assert [claim[:2] for claim in won] == [("msg_000040", "https://ok.example:443")]
+    assert steps[10 * RECEIVERS_WALKED] <= 1.1 * steps[RECEIVERS_WALKED], steps
+
+
+def test_a_receiver_past_one_walks_bound_is_reached_by_the_next(tmp_path, monkeypatch, database_url):
+    """Walks of at most two receivers, a dead one's due (at its cap) filling each claim's first read: each walk goes
+    on after the last, so the receivers with one due, past the first walk, go in the next claims."""
+    import voxe_service.webhooks
+    from voxe_service.db import session_scope
+    from voxe_service.models import utcnow
+    from voxe_service.webhooks import InFlight, Shares, claim_due
+
+    monkeypatch.setattr(voxe_service.webhooks, "RECEIVERS_WALKED", 2)
+    due_deliveries(tmp_path, monkeypatch, database_url,
+                   [(f"https://a-dead.example/{n}", n - 100, "dead") for n in range(8)]
+                   + [(f"https://{host}.example/hook", -1, host) for host in ("b", "c", "d")])
+    in_flight, claimed = InFlight(Counter({"https://a-dead.example:443": 1})), []
+    try:
+        for _ in range(3):
+            with session_scope() as session:
+                won = claim_due(session, utcnow(), 30, 2, Shares(1, 1), in_flight)
+                claimed.append([claim.origin for claim in won])
+    finally:
+        reset_service_caches()
+    assert claimed == [["https://b.example:443"], ["https://c.example:443", "https://d.example:443"], []], claimed
+
+
+@pytest.mark.parametrize("receivers", [12, 40])  # within the claim's first read of the earliest due, and past it
+def test_one_keys_many_receivers_leave_the_other_keys_their_share_of_the_slots(tmp_path, monkeypatch, database_url,
+                                                                             receivers):
+    """A key whose jobs each name a receiver of its own (dead ones, say), with deliveries due before another key's:
+    its receivers had each had room under the receivers' cap, so they took all eight slots, wave after wave, and the
+    other key's delivery waited behind them all. A key gets all but a quarter of the eight: the other's goes at
+    once."""
+    from sqlalchemy import func, select
+
+    from api.webhooks import WebhookSender
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, WebhookDelivery
+    from voxe_service.settings import get_settings
+
+    due_deliveries(tmp_path, monkeypatch, database_url,
+                   [(f"http://127.0.0.1:{closed_port()}/hook", n - 100, "many") for n in range(receivers)]
+                   + [(f"http://127.0.0.1:{closed_port()}/hook", -1, "other")])
+    sender = WebhookSender(get_settings())
+    try:
+        started = sender.send_due()
+        with session_scope() as session:
+            claimed = dict(session.execute(
+                select(Job.owner_key_id, func.count()).join(WebhookDelivery, WebhookDelivery.job_id == Job.id)
+                .where(WebhookDelivery.attempts == 1).group_by(Job.owner_key_id)).all())
+    finally:
+        sender._pool.shutdown(wait=True)
+        sender.stop()
+        reset_service_caches()
+    assert started == 7 and claimed == {"many": 6, "other": 1}, (started, claimed)
 
 
 def claim_steps(limit: int, per_origin: int, in_flight: dict[str, int]) -> tuple[int, list[tuple[str, str]]]:
     """The work SQLite does for a claim (virtual machine steps, in tens: no clock), and what it took (rolled back)."""
     from voxe_service.db import session_scope
     from voxe_service.models import utcnow
-    from voxe_service.webhooks import claim_due
+    from voxe_service.webhooks import InFlight, Shares, claim_due
 
     counted = [0]
 
@@ -494,7 +585,7 @@ def claim_steps(limit: int, per_origin: int, in_flight: dict[str, int]) -> tuple
     with session_scope() as session:
         database = session.connection().connection.dbapi_connection
         database.set_progress_handler(step, 10)
-        won = claim_due(session, utcnow(), 30, limit, per_origin, in_flight)
+        won = claim_due(session, utcnow(), 30, limit, Shares(per_origin, per_origin), InFlight(Counter(in_flight)))
         database.set_progress_handler(None, 0)
         session.rollback()
     return counted[0], won
@@ -508,19 +599,21 @@ def test_deliveries_written_without_an_origin_get_their_urls_before_a_claim(tmp_
 
     from voxe_service.db import session_scope
     from voxe_service.models import WebhookDelivery, utcnow
-    from voxe_service.webhooks import claim_due
+    from voxe_service.webhooks import InFlight, Shares, claim_due
 
-    due_deliveries(tmp_path, monkeypatch, database_url, [("https://a.example/hook", -2), ("https://B.example/h", -1)])
+    due_deliveries(tmp_path, monkeypatch, database_url, [("https://a.example/hook", -2, "a"),
+                                                         ("https://B.example/h", -1, "b")])
     try:
         with session_scope() as session:
             session.execute(update(WebhookDelivery).values(origin=""))
         with session_scope() as session:
-            won = claim_due(session, utcnow(), 30, 8, 1, {})
+            won = claim_due(session, utcnow(), 30, 8, Shares(1, 1), InFlight())
         with session_scope() as session:
             origins = session.scalars(select(WebhookDelivery.origin).order_by(WebhookDelivery.id)).all()
     finally:
         reset_service_caches()
-    assert won == [("msg_000000", "https://a.example:443"), ("msg_000001", "https://b.example:443")]
+    assert [claim[:2] for claim in won] == [("msg_000000", "https://a.example:443"),
+                                           ("msg_000001", "https://b.example:443")]
     assert origins == ["https://a.example:443", "https://b.example:443"]
 
 

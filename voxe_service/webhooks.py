@@ -23,14 +23,16 @@ import secrets
 import socket
 import threading
 import time
-from collections.abc import Mapping
+from collections import Counter
 from concurrent.futures import Future, TimeoutError as FutureTimeout
+from dataclasses import dataclass, field
 from datetime import datetime, timedelta
+from typing import NamedTuple
 from urllib.parse import urlsplit
 
 import httpcore
 import httpx
-from sqlalchemy import func, select, update
+from sqlalchemy import Integer, func, literal_column, select, update
 from sqlalchemy.orm import Session
 
 from voxe_service.models import ApiKey, Job, WebhookDelivery, utcnow
@@ -361,67 +363,127 @@ def webhook_origin(url: str) -> str:
 
 
 CLAIM_READ_FACTOR = 4
-"""A claim first reads this many times its ``limit`` of the earliest due deliveries: enough, unless receivers at
-their cap have that many due before the others' (then it reads each receiver's earliest, :func:`_pending_origins`)."""
+"""A claim first reads this many times its ``limit`` of the earliest due deliveries: enough, unless receivers or keys
+at their share have that many due before the others' (then it walks the receivers, :func:`_walk_origins`)."""
+RECEIVERS_WALKED = 1000
+"""Receivers with deliveries pending that one claim's walk visits at most, each the next after where the last walk
+ended: a walk of every one took 55 ms each poll with 20,000 backing off (some 3 µs each on SQLite)."""
 ORIGIN_FILL_BATCH = 1000  # deliveries without an origin given one per claim, at most
 
 
-def claim_due(session: Session, now: datetime, lease_s: float, limit: int, per_origin: int,
-              in_flight: Mapping[str, int]) -> list[tuple[str, str]]:
-    """Take up to ``limit`` due deliveries, the earliest first, but no more than ``per_origin`` to one receiver (its
-    :func:`webhook_origin`) with the attempts ``in_flight`` to it: each moves its next attempt ``lease_s`` ahead (so
-    no other sender takes it meanwhile) and counts the attempt; the (id, origin) of each this caller won.
+class Claim(NamedTuple):
+    """A delivery a claim won: the receiver (:func:`webhook_origin`) and the API key its attempt counts to."""
 
-    The cap keeps one receiver's backlog from taking every slot: a receiver that never answers in time, with many
-    deliveries due, had held them all, wave after wave, and every other receiver's webhooks waited behind it; capped
-    per URL, one whose URLs name each job still had. Its cost grows neither with a receiver's backlog nor with the
-    receivers backing off: it reads the earliest due few off the index on (state, due time) and caps them here; only
-    when receivers at their cap fill that read does it read each receiver's earliest off the index on (state,
-    origin, due time) (ranking every due delivery had taken a quarter of a second each poll with 100,000 due to a
-    dead receiver; visiting every receiver with one pending, 55 ms with 20,000 backing off). Deliveries written with
-    no origin are given their URL's first (:func:`_fill_origins`).
+    delivery_id: str
+    origin: str
+    key_id: str
+
+
+class Shares(NamedTuple):
+    """The most attempts a sender has in flight to one receiver, and to one API key's jobs."""
+
+    origin: int
+    key: int
+
+    @classmethod
+    def of(cls, concurrency: int) -> "Shares":
+        """Half the ``concurrency`` slots to a receiver (at least one), and all but a quarter (at least one) to a key,
+        no fewer than to a receiver: a key's dead receiver, at its share, leaves the key's other receivers some
+        room, and the quarter is kept for the other keys.
+
+        Examples:
+            >>> [tuple(Shares.of(n)) for n in (1, 2, 4, 8)]
+            [(1, 1), (1, 1), (2, 3), (4, 6)]
+        """
+        origin = max(1, concurrency // 2)
+        return cls(origin, max(origin, concurrency - max(1, concurrency // 4)))
+
+
+@dataclass
+class InFlight:
+    """A sender's attempts in flight, by receiver and by API key, and the receiver its last walk of the receivers
+    ended at (:func:`claim_due` moves it on; None: the next walk starts at the first)."""
+
+    by_origin: Counter[str] = field(default_factory=Counter)
+    by_key: Counter[str] = field(default_factory=Counter)
+    walked_to: str | None = None
+
+
+def claim_due(session: Session, now: datetime, lease_s: float, limit: int, shares: Shares,
+              in_flight: InFlight) -> list[Claim]:
+    """Take up to ``limit`` due deliveries, the earliest first, but no more than their ``shares`` to one receiver (its
+    :func:`webhook_origin`) and to one API key (the job's owner), counting the attempts ``in_flight``: each moves its
+    next attempt ``lease_s`` ahead (so no other sender takes it meanwhile) and counts the attempt; those this
+    caller won.
+
+    The shares keep one receiver's backlog, or one key's many receivers, from taking every slot: a receiver that
+    never answers in time, with many deliveries due, had held them all, wave after wave, and so had a key whose jobs
+    each named a receiver of their own; every other key's webhooks waited behind. Its cost grows neither with a
+    backlog nor with the receivers backing off: it reads the earliest due few off the index on (state, due time)
+    and caps them here; only when receivers or keys at their share fill that read does it walk the receivers off
+    the index on (state, origin, due time), at most :data:`RECEIVERS_WALKED` of them, each walk going on after the
+    last (``in_flight.walked_to``), and take the earliest of those due soonest (ranking every due delivery had taken
+    a quarter of a second each poll with 100,000 due to a dead receiver; visiting every receiver with one pending,
+    55 ms with 20,000 backing off). Deliveries written with no origin are given their URL's first
+    (:func:`_fill_origins`).
     """
     pending = WebhookDelivery.state == PENDING
     _fill_origins(session)
-    due = (select(WebhookDelivery.next_attempt_at, WebhookDelivery.id, WebhookDelivery.origin)
+    due = (select(WebhookDelivery.next_attempt_at, WebhookDelivery.id, WebhookDelivery.origin, Job.owner_key_id)
+           .join(Job, Job.id == WebhookDelivery.job_id)
            .where(pending, WebhookDelivery.next_attempt_at <= now)
            .order_by(WebhookDelivery.next_attempt_at, WebhookDelivery.id))
     read = CLAIM_READ_FACTOR * limit
     earliest = session.execute(due.limit(read)).all()
-    chosen = _within_caps(earliest, limit, per_origin, in_flight)
-    if len(chosen) < limit and len(earliest) == read:  # capped receivers' deliveries filled the read
-        room = {origin: (first_due, per_origin - in_flight.get(origin, 0))
-                for origin, first_due in _pending_origins(session, now)
-                if first_due is not None and in_flight.get(origin, 0) < per_origin}
-        # Each receiver with room sends its earliest first, so the first ``limit`` that can go are those of the
-        # ``limit`` receivers due soonest.
-        soonest = sorted(room, key=lambda origin: (room[origin][0], origin))[:limit]
+    chosen = _within_shares(earliest, limit, shares, in_flight)
+    if len(chosen) < limit and len(earliest) == read:  # receivers or keys at their share filled the read
         candidates = []
-        for origin in soonest:
-            candidates += session.execute(due.where(WebhookDelivery.origin == origin).limit(room[origin][1])).all()
-        chosen = sorted(candidates)[:limit]
+        for origin, room in _soonest_with_room(_walk_origins(session, now, in_flight), limit, shares, in_flight):
+            candidates += session.execute(due.where(WebhookDelivery.origin == origin).limit(room)).all()
+        chosen = _within_shares(sorted(candidates), limit, shares, in_flight)
     won = []
-    for _due, delivery_id, origin in chosen:
+    for _due, delivery_id, origin, key_id in chosen:
         result = session.execute(
             update(WebhookDelivery)
             .where(WebhookDelivery.id == delivery_id, pending, WebhookDelivery.next_attempt_at <= now)
             .values(next_attempt_at=now + timedelta(seconds=lease_s), attempts=WebhookDelivery.attempts + 1)
         )
         if result.rowcount == 1:
-            won.append((delivery_id, origin))
+            won.append(Claim(delivery_id, origin, key_id))
     return won
 
 
-def _within_caps(due: list, limit: int, per_origin: int, in_flight: Mapping[str, int]) -> list:
-    """Of ``due`` (due time, id, origin rows, the earliest first), the first ``limit`` whose receivers have room."""
-    taken = dict(in_flight)
+def _within_shares(due: list, limit: int, shares: Shares, in_flight: InFlight) -> list:
+    """Of ``due`` (due time, id, origin, key rows, the earliest first), the first ``limit`` whose receivers and keys
+    have room."""
+    by_origin, by_key = Counter(in_flight.by_origin), Counter(in_flight.by_key)
     chosen = []
     for row in due:
         if len(chosen) == limit:
             break
-        if taken.get(row.origin, 0) < per_origin:
-            taken[row.origin] = taken.get(row.origin, 0) + 1
+        if by_origin[row.origin] < shares.origin and by_key[row.owner_key_id] < shares.key:
+            by_origin[row.origin] += 1
+            by_key[row.owner_key_id] += 1
             chosen.append(row)
+    return chosen
+
+
+def _soonest_with_room(origins: list[tuple[str, datetime | None, str | None]], limit: int, shares: Shares,
+                       in_flight: InFlight) -> list[tuple[str, int]]:
+    """Of walked receivers (each with its earliest due time and that delivery's key), the ``limit`` due soonest with
+    room, each with how many of its earliest to read: those whose earliest delivery's key has room, counting one
+    for each receiver of the key already taken, so one key's many receivers cannot crowd the others' out. (A
+    receiver whose earliest delivery's key is at its share waits until that one goes, though other keys' are due
+    behind it: one receiver's deliveries go the earliest first.)"""
+    by_key = Counter(in_flight.by_key)
+    chosen = []
+    for origin, _first_due, key_id in sorted((o for o in origins if o[1] is not None), key=lambda o: (o[1], o[0])):
+        room = min(shares.origin - in_flight.by_origin[origin], shares.key - by_key[key_id])
+        if room > 0:
+            by_key[key_id] += 1
+            chosen.append((origin, room))
+            if len(chosen) == limit:
+                break
     return chosen
 
 
@@ -438,19 +500,42 @@ def _fill_origins(session: Session) -> None:
                         [{"id": row.id, "origin": webhook_origin(row.url)} for row in unknown])
 
 
-def _pending_origins(session: Session, now: datetime) -> list[tuple[str, datetime | None]]:
-    """Each receiver with deliveries pending, and its earliest due at ``now`` (None: none is), read off the index
-    one receiver after the other (a recursive query: SQLite and PostgreSQL scan an index for its distinct values
-    whole, every delivery pending)."""
+def _walk_origins(session: Session, now: datetime,
+                  in_flight: InFlight) -> list[tuple[str, datetime | None, str | None]]:
+    """Up to :data:`RECEIVERS_WALKED` receivers with deliveries pending, the next after ``in_flight.walked_to`` on
+    (then from the first), which it moves to the last visited: each with its earliest due at ``now`` and that
+    delivery's key (None, None: none is due)."""
+    after = in_flight.walked_to
+    walked = _pending_origins(session, now, after, RECEIVERS_WALKED)
+    if after is not None and len(walked) < RECEIVERS_WALKED:  # past the last receiver: on from the first
+        walked += [row for row in _pending_origins(session, now, None, RECEIVERS_WALKED - len(walked))
+                   if row[0] <= after]
+    in_flight.walked_to = walked[-1][0] if len(walked) == RECEIVERS_WALKED else None
+    return walked
+
+
+def _pending_origins(session: Session, now: datetime, after: str | None,
+                     count: int) -> list[tuple[str, datetime | None, str | None]]:
+    """The first ``count`` receivers with deliveries pending (those after ``after``), each with its earliest due at
+    ``now`` and that delivery's key (None, None: none is due), read off the index one receiver after the other (a
+    recursive query: SQLite and PostgreSQL scan an index for its distinct values whole, every delivery pending)."""
     pending = WebhookDelivery.state == PENDING
-    origins = select(func.min(WebhookDelivery.origin).label("origin")).where(pending).cte("origins", recursive=True)
+    first = (select(func.min(WebhookDelivery.origin).label("origin"), literal_column("1", Integer).label("visited"))
+             .where(pending))
+    if after is not None:
+        first = first.where(WebhookDelivery.origin > after)
+    origins = first.cte("origins", recursive=True)
     following = select(func.min(WebhookDelivery.origin)).where(pending, WebhookDelivery.origin > origins.c.origin)
-    origins = origins.union_all(select(following.scalar_subquery()).where(origins.c.origin.is_not(None)))
-    first_due = (select(func.min(WebhookDelivery.next_attempt_at))
-                 .where(pending, WebhookDelivery.origin == origins.c.origin, WebhookDelivery.next_attempt_at <= now)
-                 .scalar_subquery())
-    return [tuple(row) for row in session.execute(select(origins.c.origin, first_due)
-                                                  .where(origins.c.origin.is_not(None)))]
+    origins = origins.union_all(select(following.scalar_subquery(), origins.c.visited + 1)
+                                .where(origins.c.origin.is_not(None), origins.c.visited < count))
+    earliest_due = (select(WebhookDelivery.next_attempt_at, Job.owner_key_id)
+                    .join(Job, Job.id == WebhookDelivery.job_id)
+                    .where(pending, WebhookDelivery.origin == origins.c.origin, WebhookDelivery.next_attempt_at <= now)
+                    .order_by(WebhookDelivery.next_attempt_at, WebhookDelivery.id).limit(1))
+    return [tuple(row) for row in session.execute(
+        select(origins.c.origin, earliest_due.with_only_columns(WebhookDelivery.next_attempt_at).scalar_subquery(),
+               earliest_due.with_only_columns(Job.owner_key_id).scalar_subquery())
+        .where(origins.c.origin.is_not(None)))]
 
 
 def backoff_s(attempts: int, base_s: float, max_s: float) -> float:
