@@ -8,7 +8,7 @@ never answers nor a key whose jobs each name a receiver of their own can hold th
 failed attempt (an error, a timeout, a non-2xx) is retried after ``VOXE_WEBHOOK_BACKOFF_S`` doubling per attempt,
 until ``VOXE_WEBHOOK_RETRY_FOR_S`` after the event (the last try at that time); then the delivery is ``failed`` with
 the last error. Claims are conditional updates, so several API processes may send side by side without sending one
-attempt twice.
+attempt twice. The pool and the shares are this process's own: N API processes hold up to N times as many.
 """
 
 from __future__ import annotations
