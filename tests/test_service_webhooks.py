@@ -617,6 +617,73 @@ def test_deliveries_written_without_an_origin_get_their_urls_before_a_claim(tmp_
     assert origins == ["https://a.example:443", "https://b.example:443"]
 
 
+def test_senders_filling_origins_an_older_api_left_out_do_not_deadlock(tmp_path, monkeypatch, postgres_server):
+    """PostgreSQL, a rolling upgrade: one sender has filled in the origin of a delivery an older API wrote without one
+    when the older API writes another (its id first, due first), which a second sender starts filling (in id order:
+    the new one, then the first, waiting for the first sender). The first sender's claim had taken the new one while
+    still holding the row it filled: a deadlock, the second's pass failed. The fill is committed before the claim
+    and deliveries still without an origin wait for the next: both claims go through, each delivery claimed once,
+    counted to its own receiver."""
+    import threading
+    from datetime import timedelta
+
+    from sqlalchemy import insert, select, text, update
+
+    import voxe_service.webhooks
+    from voxe_service.db import session_scope
+    from voxe_service.models import WebhookDelivery, utcnow
+    from voxe_service.webhooks import InFlight, Shares, claim_due
+
+    due_deliveries(tmp_path, monkeypatch, postgres_server.create_database(), [("https://b.example/h", -5)])
+    with session_scope() as session:
+        session.execute(update(WebhookDelivery).values(origin=""))
+        job_id = session.scalar(select(WebhookDelivery.job_id))
+    real_fill, claims = voxe_service.webhooks._fill_origins, {}
+    first_filled, go_on = threading.Event(), threading.Event()
+
+    def a_sender_waits() -> bool:
+        with session_scope() as session:
+            return bool(session.scalar(text("SELECT count(*) FROM pg_locks WHERE NOT granted")))
+
+    def fill_then_wait_in_the_first(session):
+        filled = real_fill(session)
+        if threading.current_thread().name == "first":
+            first_filled.set()
+            go_on.wait(20)
+        return filled
+
+    def claim() -> None:
+        try:
+            with session_scope() as session:
+                claims[threading.current_thread().name] = claim_due(session, utcnow(), 30, 8, Shares(4, 6), InFlight())
+        except Exception as exc:  # noqa: BLE001 - reported by the assertion
+            claims[threading.current_thread().name] = exc
+
+    monkeypatch.setattr(voxe_service.webhooks, "_fill_origins", fill_then_wait_in_the_first)
+    senders = [threading.Thread(target=claim, name=name) for name in ("first", "second")]
+    try:
+        senders[0].start()
+        assert first_filled.wait(20)
+        with session_scope() as session:  # the older API's, its id before the first's
+            session.execute(insert(WebhookDelivery).values(
+                id="msg_00000", job_id=job_id, event_id=99, event_type="job.warning", url="https://c.example/h",
+                origin="", payload="{}", state="pending", attempts=0, created_at=utcnow(),
+                next_attempt_at=utcnow() - timedelta(seconds=10)))
+        senders[1].start()
+        wait_until(a_sender_waits, 10, interval=0.05, what="the second sender waiting for the first's row")
+    finally:
+        go_on.set()
+        for sender in senders:
+            sender.join(30)
+    with session_scope() as session:
+        attempts = dict(session.execute(select(WebhookDelivery.id, WebhookDelivery.attempts)).all())
+    reset_service_caches()
+    assert not [c for c in claims.values() if isinstance(c, Exception)], claims
+    assert sorted(c[:2] for won in claims.values() for c in won) == [
+        ("msg_00000", "https://c.example:443"), ("msg_000000", "https://b.example:443")], claims
+    assert attempts == {"msg_00000": 1, "msg_000000": 1}
+
+
 def test_a_name_that_fails_to_resolve_for_a_moment_is_retried(client, monkeypatch):
     """A resolver failing at an attempt ("[Errno -3] Temporary failure in name resolution") is a connection error,
     retried: it had been taken for a refused target and the delivery failed at once, though the receiver was

@@ -425,13 +425,16 @@ def claim_due(session: Session, now: datetime, lease_s: float, limit: int, share
     last (``in_flight.walked_to``), and take the earliest of those due soonest (ranking every due delivery had taken
     a quarter of a second each poll with 100,000 due to a dead receiver; visiting every receiver with one pending,
     55 ms with 20,000 backing off). Deliveries written with no origin are given their URL's first
-    (:func:`_fill_origins`).
+    (:func:`_fill_origins`), committed before the claim, which leaves any still without one to the next: a sender
+    holding the rows it filled while claiming others had deadlocked on PostgreSQL with one filling deliveries an
+    older API had just written (one claimed, the other's pass failed).
     """
     pending = WebhookDelivery.state == PENDING
-    _fill_origins(session)
+    if _fill_origins(session):
+        session.commit()
     due = (select(WebhookDelivery.next_attempt_at, WebhookDelivery.id, WebhookDelivery.origin, Job.owner_key_id)
            .join(Job, Job.id == WebhookDelivery.job_id)
-           .where(pending, WebhookDelivery.next_attempt_at <= now)
+           .where(pending, WebhookDelivery.next_attempt_at <= now, WebhookDelivery.origin != "")
            .order_by(WebhookDelivery.next_attempt_at, WebhookDelivery.id))
     read = CLAIM_READ_FACTOR * limit
     earliest = session.execute(due.limit(read)).all()
@@ -487,10 +490,10 @@ def _soonest_with_room(origins: list[tuple[str, datetime | None, str | None]], l
     return chosen
 
 
-def _fill_origins(session: Session) -> None:
+def _fill_origins(session: Session) -> bool:
     """Give pending deliveries with no origin (``''``: written by code older than migration 0012, still running in a
     rolling upgrade) their URL's, a batch at a time: all of them had shared one receiver's cap. In id order, so
-    senders filling the same ones at once take their rows' locks in the same order."""
+    senders filling the same ones at once take their rows' locks in the same order. Whether there were any."""
     unknown = session.execute(select(WebhookDelivery.id, WebhookDelivery.url)
                               .where(WebhookDelivery.state == PENDING, WebhookDelivery.origin == "")
                               .order_by(WebhookDelivery.id).limit(ORIGIN_FILL_BATCH)).all()
@@ -498,6 +501,7 @@ def _fill_origins(session: Session) -> None:
         session.execute(update(WebhookDelivery).where(WebhookDelivery.origin == "")
                         .execution_options(synchronize_session=False),
                         [{"id": row.id, "origin": webhook_origin(row.url)} for row in unknown])
+    return bool(unknown)
 
 
 def _walk_origins(session: Session, now: datetime,
