@@ -553,9 +553,10 @@ def test_one_keys_many_receivers_leave_the_other_keys_their_share_of_the_slots(t
     from voxe_service.models import Job, WebhookDelivery
     from voxe_service.settings import get_settings
 
+    port = closed_port()  # on every loopback address: each receiver an address of its own
     due_deliveries(tmp_path, monkeypatch, database_url,
-                   [(f"http://127.0.0.1:{closed_port()}/hook", n - 100, "many") for n in range(receivers)]
-                   + [(f"http://127.0.0.1:{closed_port()}/hook", -1, "other")])
+                   [(f"http://127.0.0.{n + 2}:{port}/hook", n - 100, "many") for n in range(receivers)]
+                   + [(f"http://127.0.0.1:{port}/hook", -1, "other")])
     sender = WebhookSender(get_settings())
     try:
         started = sender.send_due()
