@@ -48,8 +48,8 @@ from typing import BinaryIO
 
 from PIL import Image
 
-from voxe_core.data import (DatasetError, colmap_transforms, detect_format, image_candidates, is_dataset_folder,
-                            load_scene, quarter_turn_hint)
+from voxe_core.data import (DatasetError, colmap_transforms, detect_format, find_image, image_candidates,
+                            is_dataset_folder, load_scene, quarter_turn_hint)
 from voxe_core.constants import TEXTURE_SUFFIXES
 from voxe_core.mesh_input import MESH_FRAMES, MESH_INPUT_SUFFIXES
 from voxe_core.ply_header import read_ply_header
@@ -461,12 +461,13 @@ def _check_frame_images(root: Path, json_name: str, frames: list[dict], staging:
     for i, frame in enumerate(frames):
         file_path = frame["file_path"]
         where = f"{json_name} frame {i} ({file_path!r})"
-        candidates = image_candidates(root, file_path)
-        try:
-            path = next((p for p in candidates if p.is_file()), None)
-        except OSError as exc:  # e.g. a name over the file system's length limit
-            raise _invalid(f"{where}: 'file_path' is not a usable path ({exc.strerror})", staging) from None
+        path = find_image(root, file_path)
         if path is None:
+            candidates = image_candidates(root, file_path)
+            try:
+                candidates[0].is_file()
+            except OSError as exc:  # e.g. a name over the file system's length limit
+                raise _invalid(f"{where}: 'file_path' is not a usable path ({exc.strerror})", staging) from None
             raise _invalid(f"{where}: image not found (tried {', '.join(map(str, candidates))})", staging)
         try:
             with warnings.catch_warnings():

@@ -1402,7 +1402,8 @@ def test_evaluate_refuses_a_mask_of_another_grid_before_reading_its_voxels(spher
     resolution = load_grid(sphere_file).resolution
     assert main(["evaluate", str(sphere_file), "--edit", str(sphere_file), "a hat", str(mask), "--object", "ball",
                  "--out", str(tmp_path / "e"), "--clip-model", str(tmp_path / "no_model")]) == 2
-    assert f"{mask}: a grid of (7, 7, 7) voxels does not fit the grid's {resolution}" in capsys.readouterr().err
+    assert (f"{mask}: a mask of a grid of (7, 7, 7) voxels, where {resolution} was expected (a mask is of its "
+            "initial grid" in capsys.readouterr().err)
 
 
 def test_evaluate_into_an_earlier_output_leaves_no_stale_ring_renders(sphere_file, tmp_path):

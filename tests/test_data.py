@@ -522,6 +522,23 @@ def test_a_pose_entry_that_is_no_number_is_refused_naming_frame_and_entry(tmp_pa
     assert_names(err, "transforms.json", 1)
 
 
+def test_a_long_value_in_the_wrong_place_is_quoted_cut_short(tmp_path):
+    """A 4 MB string as a pose entry or a focal had been quoted whole in the refusal (a 4 MB 422 from the API)."""
+    root = make_ngp(tmp_path / "s", n=2)
+    meta = json.loads((root / "transforms.json").read_text())
+    for place in ("pose", "focal"):
+        frames = [dict(frame) for frame in meta["frames"]]
+        if place == "pose":
+            frames[1]["transform_matrix"] = [[*row] for row in frames[1]["transform_matrix"]]
+            frames[1]["transform_matrix"][0][0] = "x" * 4_000_000
+        else:
+            frames[1]["fl_x"] = "x" * 4_000_000
+        (root / "transforms.json").write_text(json.dumps({**meta, "frames": frames}))
+        with pytest.raises(DatasetError, match=r"'xxxxx+\.\.\. \(4,000,002 characters\)") as err:
+            load_scene(root)
+        assert len(str(err.value)) < 200, place
+
+
 def test_every_numeric_field_refuses_a_boolean_or_a_string_naming_frame_and_field(tmp_path):
     root = make_ngp(tmp_path / "s", n=2)
     meta = json.loads((root / "transforms.json").read_text())

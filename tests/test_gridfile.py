@@ -302,6 +302,8 @@ def test_a_scene_grid_header_it_cannot_render_is_a_format_error(tmp_path, field,
     ([2.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0], "frame must be a similarity"),  # stretched along x
     ([-1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0], "frame must be a similarity"),  # a mirror
     ([1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 5.0, 1.0], "frame must be a similarity"),  # last row
+    ([True, False, False, 0, False, True, False, 0, False, False, True, 0, 0, 0, 0, 1],  # read as the identity
+     "frame must hold numbers, not booleans"),
 ])
 def test_a_scene_grid_whose_frame_is_no_similarity_is_a_format_error(tmp_path, frame, message):
     """Regression: a NaN, infinite or singular frame had loaded, and every camera it moved into the grid's frame

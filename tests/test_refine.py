@@ -937,8 +937,8 @@ def test_a_mask_file_claiming_another_grid_is_refused_before_its_voxels_are_allo
     real_zeros = torch.zeros
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(torch, "zeros", lambda *a, **k: allocations.append(a) or real_zeros(*a, **k))
-        with pytest.raises(FormatError, match=r"a grid of \(1290, 1290, 1290\) voxels does not fit the grid's "
-                                              r"\(16, 16, 16\)"):
+        with pytest.raises(FormatError, match=r"a mask of a grid of \(1290, 1290, 1290\) voxels, where "
+                                              r"\(16, 16, 16\) was expected"):
             load_mask(path, (16, 16, 16))
     assert allocations == []
     save_mask(path, torch.ones(16, 16, 16, dtype=torch.bool))

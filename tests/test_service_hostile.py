@@ -241,6 +241,25 @@ def test_an_image_stored_a_quarter_turn_round_is_refused_naming_its_exif_orienta
         check_dataset(capture, tmp_path, downsample=1)
 
 
+def test_an_image_whose_nfd_spelling_is_too_long_a_name_is_found_by_its_nfc_one(tmp_path):
+    """A name's NFD spelling is longer in bytes than its NFC one: past the file system's 255 bytes, that candidate's
+    lookup raised ENAMETOOLONG, and the upload check (unlike the loader) refused the dataset at it."""
+    import unicodedata
+
+    from api.uploads import check_dataset
+
+    capture = tmp_path / "capture"
+    (capture / "images").mkdir(parents=True)
+    frames = []
+    for i in range(2):
+        name = f"images/{'é' * 100}{i}.png"  # 205 bytes in NFC, 305 in NFD
+        Image.new("RGB", (8, 6)).save(capture / unicodedata.normalize("NFC", name))
+        frames.append({"file_path": unicodedata.normalize("NFD", name),
+                       "transform_matrix": [[1, 0, 0, i], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]]})
+    (capture / "transforms.json").write_text(json.dumps({"fl_x": 8.0, "frames": frames}))
+    assert check_dataset(capture, tmp_path, downsample=1)[:4] == ("instant_ngp", 2, 8, 6)
+
+
 def test_entries_each_under_the_ratio_floor_are_still_a_bomb_together(tmp_path):
     """The ratio was checked per entry past 4 MiB only: entries of just under 4 MiB of zeros each had written
     256 MiB from a 267 kB upload. The archive's bytes written are checked against its compressed bytes read too."""

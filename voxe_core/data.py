@@ -246,7 +246,7 @@ def load_scene(
     poses = _check_poses(frames, where)
     seen: dict[Path, int] = {}
     for i, p in enumerate(paths):
-        key = (_find_image(root, p) or root / p).resolve()  # 'images/0' reads 'images/0.png' when only that exists
+        key = (find_image(root, p) or root / p).resolve()  # 'images/0' reads 'images/0.png' when only that exists
         if key in seen:
             raise where(f"duplicate file_path (same image as frame {seen[key]})", i)
         seen[key] = i
@@ -437,9 +437,15 @@ def _read_json(path: Path) -> dict:
     return meta
 
 
+def _shown(value, limit: int = 40) -> str:
+    """``value``'s repr cut to ``limit`` characters: a message quotes what a file holds, not a 4 MB string of it."""
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[:limit - 3]}... ({len(text):,} characters)"
+
+
 def _number(value, key: str, where: _Where, frame: int | None) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise where(f"'{key}' must be a number, got {value!r}", frame)
+        raise where(f"'{key}' must be a number, got {_shown(value)}", frame)
     try:
         number = float(value)
     except OverflowError:  # an integer beyond float range
@@ -491,7 +497,7 @@ def _check_poses(frames: list, where: _Where) -> np.ndarray:
         entry = _non_number_entry(frame["transform_matrix"])
         if entry is not None:  # numpy reads JSON's true as 1, "1" as 1 and null as NaN
             (row, column), value = entry
-            raise where(f"transform_matrix[{row}][{column}] is {value!r}, not a number", i)
+            raise where(f"transform_matrix[{row}][{column}] is {_shown(value)}, not a number", i)
         try:
             m = np.asarray(frame["transform_matrix"], dtype=np.float64)
         except OverflowError:  # an integer beyond float range
@@ -565,8 +571,10 @@ def image_candidates(root: Path, file_path: str) -> list[Path]:
     return [root / (spelling + extension) for spelling in spellings for extension in ("", *_IMPLIED_EXTENSIONS)]
 
 
-def _find_image(root: Path, file_path: str) -> Path | None:
-    """The file a frame's ``file_path`` reads (None: no candidate is there)."""
+def find_image(root: Path, file_path: str) -> Path | None:
+    """The file a frame's ``file_path`` reads (None: no candidate is there); a candidate whose name the file system
+    cannot hold is none (a name's NFD spelling may pass the length limit its NFC one is within). The loader's rule,
+    and the upload check's."""
     for path in image_candidates(root, file_path):
         try:
             if path.is_file():
@@ -619,7 +627,7 @@ def _read_image(root: Path, file_path: str, where: _Where, frame: int) -> tuple[
     """(H, W, 3 or 4) float32 in [0, 1] (``image_pixels``) as stored, its path and its EXIF orientation
     (``display_up``); a DatasetError naming the file and frame for an image that is missing, damaged, or of a scale
     it does not record."""
-    path = _find_image(root, file_path)
+    path = find_image(root, file_path)
     if path is None:
         candidates = image_candidates(root, file_path)
         raise where("image not found (tried " + ", ".join(str(p) for p in candidates) + ")", frame, candidates[0])

@@ -313,6 +313,8 @@ def _similarity(frame) -> torch.Tensor:
     """``frame`` as the (4, 4) float32 similarity ``scene_frame`` makes (a positive scale times a rotation, then a
     translation), ValueError otherwise: a file's NaN, zero or 1e300 frame had loaded, and every camera
     ``apply_frame`` moved with it was NaN."""
+    if isinstance(frame, torch.Tensor) and frame.dtype == torch.bool or _holds_a_bool(frame):
+        raise ValueError("frame must hold numbers, not booleans (a file's true and false had been read as 1 and 0)")
     matrix = torch.as_tensor(frame, dtype=torch.float64).reshape(4, 4)
     if not bool((matrix.abs() <= FLOAT32_MAX).all()):  # NaN fails the comparison
         raise ValueError(f"frame must be finite in float32, got {matrix.tolist()}")
@@ -325,6 +327,11 @@ def _similarity(frame) -> torch.Tensor:
         raise ValueError(f"frame must be a similarity (a positive scale times a rotation, then a translation; last "
                          f"row 0, 0, 0, 1), got {matrix.tolist()}")
     return matrix.float()
+
+
+def _holds_a_bool(value) -> bool:
+    """Whether a (nested) list of a file's header holds a boolean anywhere."""
+    return isinstance(value, bool) or isinstance(value, (list, tuple)) and any(map(_holds_a_bool, value))
 
 
 def scene_frame(cameras: Cameras, radius: float = NERF_SYNTHETIC_RADIUS) -> torch.Tensor:

@@ -53,7 +53,8 @@ def _indices_and_shape(tensors: dict, path,
         raise FormatError(f"{path}: bad grid shape {stored_shape.tolist()}, not 3 positive voxel counts")
     shape = tuple(int(s) for s in stored_shape.tolist())
     if expected is not None and shape != tuple(expected):
-        raise FormatError(f"{path}: a grid of {shape} voxels does not fit the grid's {tuple(expected)}")
+        raise FormatError(f"{path}: a mask of a grid of {shape} voxels, where {tuple(expected)} was expected (a mask "
+                          "is of its initial grid, whose resolution its edited grid shares)")
     total = shape[0] * shape[1] * shape[2]
     if total >= INDEXABLE_VOXELS:  # (a damaged header: it had reached torch.zeros, an overflow or a huge allocation)
         raise FormatError(f"{path}: a grid of {shape} is beyond the int32 voxel indices these files hold")
