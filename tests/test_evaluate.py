@@ -439,6 +439,49 @@ def test_the_views_scored_one_by_one_give_the_numbers_of_the_whole_rings(sphere_
     assert rows[1]["kept_fraction"] < 1.0 and rows[1]["psnr"] < 20.0  # the mask keeps a part that changed
 
 
+def _stand_ins_alive(*grids) -> int:
+    """How many float storages of ``grids``' feature size (4 floats a vertex) are alive now besides their own: a
+    footprint stand-in is one."""
+    import gc
+
+    own = {grid.flat_features.untyped_storage().data_ptr() for grid in grids}
+    nbytes = grids[0].flat_features.untyped_storage().nbytes()
+    alive = set()
+    for obj in gc.get_objects():  # type(obj), not isinstance: see test_export.views_alive
+        if type(obj) in (torch.Tensor, torch.nn.Parameter) and obj.dtype == torch.float32:
+            if obj.untyped_storage().nbytes() == nbytes:
+                alive.add(obj.untyped_storage().data_ptr())
+    return len(alive - own)
+
+
+def test_many_masked_edits_hold_no_footprint_stand_in_between_steps(sphere_grid, tiny_clip_path):
+    """Regression: view-major, each masked edit's footprint stand-in (4 floats a vertex and its occupancy, ~70 MB at
+    160³ on the render device) was held from its edit's first view to the end, all of them at once (~4 GB for 60
+    masked edits). Each is now built from its bool mask for the view it renders and let go: none is alive at any
+    step, however many masked edits, and each edit's row is that of its whole ring, bit for bit."""
+    from voxe_core.evaluate import _finite_mean
+
+    clip = ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")
+    edited, _ = _local_edit(sphere_grid)
+    x = torch.linspace(-1.5, 1.5, sphere_grid.resolution[0])[:, None, None].expand(sphere_grid.resolution)
+    masks = [(x > bound) & (edited.features[..., 0].detach() > 0) for bound in (0.1, 0.3, 0.5, 0.7, 0.9, 1.1)]
+    edits = [EditSample(f"m{k}", "a blue ball", edited, mask) for k, mask in enumerate(masks)]
+    config = EvaluateConfig(views=3, elevation=20.0, size=16)
+    alive = []
+    rows = evaluate(sphere_grid, edits, "ball", clip, None, None, config,
+                    Callbacks(on_progress=lambda report: alive.append(_stand_ins_alive(sphere_grid, edited)))).rows
+    assert len(alive) > 2 * len(edits) * config.views and max(alive) == 0, alive  # it had been up to 6
+    centre = sphere_grid.orbit_centre()
+    recon = render_ring(sphere_grid, 3, 20.0, 16, centre=centre)
+    images = render_ring(edited, 3, 20.0, 16, centre=centre)
+    for row, mask in zip(rows, masks):
+        keep = ~mask_footprint(sphere_grid, mask, 3, 20.0, 16, centre)
+        assert (row["psnr"], row["ssim"], row["kept_fraction"]) == (
+            _finite_mean(psnr(images, recon, keep=keep)), _finite_mean(ssim(images, recon, keep=keep)),
+            float(keep.float().mean()))
+    assert len({row["kept_fraction"] for row in rows}) == len(masks)  # six footprints, each edit scored on its own
+
+
 def _after_the_last_ring_render(reports) -> bool:
     return sum(r.info["stage"] == "ring renders" for r in reports) == 3 * 4
 

@@ -109,7 +109,6 @@ def mask_footprint(grid: VoxelGrid, mask: torch.Tensor, views: int, elevation_de
     return hits
 
 
-@torch.no_grad()
 def iter_mask_footprint(grid: VoxelGrid, mask: torch.Tensor, views: int, elevation_deg: float, size: int,
                         centre: torch.Tensor | None = None,
                         callbacks: Callbacks = Callbacks()) -> Iterator[torch.Tensor]:
@@ -119,25 +118,36 @@ def iter_mask_footprint(grid: VoxelGrid, mask: torch.Tensor, views: int, elevati
     renderer and ray sampling as the views, over an opaque stand-in of the
     grid's own backbone (``grid.like``: its box, contraction and samples) that
     is dense exactly in those cells, so "no hit" means no sample of that ray saw
-    them. ``callbacks`` gets a ``Progress("mask footprint", i, N)`` after each
-    view and may cancel between views.
+    them. The stand-in (4 floats a vertex and its occupancy, ~70 MB at 160³) is
+    built from ``mask`` for each view and let go before the view is yielded:
+    between views only the bool mask is held, so :func:`evaluate` holds no
+    stand-in per masked edit, however many (building it again costs ~0.1 s a
+    view at 160³ on one CPU core). ``callbacks`` gets a
+    ``Progress("mask footprint", i, N)`` after each view and may cancel between views.
     """
     if tuple(mask.shape) != tuple(grid.resolution):
         raise ValueError(f"mask of shape {tuple(mask.shape)} does not fit the grid {grid.resolution}")
+    cameras = turntable_cameras(views, elevation_deg, size, centre=centre).to(grid.bbox_min.device)
+    for i in range(views):
+        callbacks.check_cancel("mask footprint")
+        hits = _footprint_view(grid, mask, cameras, i)
+        callbacks.progress(Progress("mask footprint", i + 1, views))
+        yield hits
+
+
+@torch.no_grad()
+def _footprint_view(grid: VoxelGrid, mask: torch.Tensor, cameras, i: int) -> torch.Tensor:
+    """(H, W) bool: :func:`iter_mask_footprint`'s view ``i`` of ``cameras``, its stand-in built here and let go."""
     features = torch.zeros(*grid.resolution, 4, device=grid.bbox_min.device)
     # Raw 1e3 at masked vertices: any sample with a positive trilinear weight on one is near-opaque.
     features[..., 0] = mask.to(features.device, torch.float32) * 1e3
     stand_in = grid.like(features)
     stand_in.activation = "relu"  # raw 0 is no density only under ReLU (softplus would haze every cell)
-    cameras = turntable_cameras(views, elevation_deg, size, centre=centre).to(grid.bbox_min.device)
     config = RenderConfig(sigma_threshold=0.0)  # every cell touching a masked vertex is 'occupied'
     occupancy = stand_in.occupancy(config.sigma_threshold)
-    for i in range(views):
-        callbacks.check_cancel("mask footprint")
-        hits = (render_image(stand_in, cameras, i, config, occupancy).opacity.cpu() > 0 if not occupancy.empty
-                else torch.zeros(size, size, dtype=torch.bool))
-        callbacks.progress(Progress("mask footprint", i + 1, views))
-        yield hits
+    if occupancy.empty:
+        return torch.zeros(cameras.height, cameras.width, dtype=torch.bool)
+    return render_image(stand_in, cameras, i, config, occupancy).opacity.cpu() > 0
 
 
 # --------------------------------------------------------------------------- Fréchet distance
@@ -459,11 +469,11 @@ def evaluate(
     and FID take each grid's views in their batches, as 8-bit pixels (one batch buffer per grid and scorer). So
     one view of each grid is held at a time, each grid's batch pixels and the scores besides (each ring had been
     held whole, ``initial``'s to the end: 9 GB of floats for 360 views of 1,024²; every edit's before that, 270 GB
-    for 60 edits), and every ring is rendered once; each masked edit's footprint stand-in (4 floats a vertex and
-    its occupancy, ~70 MB at 160³, on ``device``) is held to the end too, all of them at once (the whole-ring
-    code had built one at a time: 60 masked edits at 160³ hold ~4 GB more). The numbers are those of the whole
-    rings (``kept_fraction`` the exact ratio rounded to float32, which a float32 mean over a ring past 2^24 pixels
-    had missed in its last bits).
+    for 60 edits), and every ring is rendered once; a masked edit's footprint view is rendered from a stand-in
+    (4 floats a vertex and its occupancy, ~70 MB at 160³, on ``device``) built from its bool mask for that view
+    and let go, so one is alive at a time however many edits are masked (each had been held to the end, all at
+    once: ~4 GB for 60 masked edits at 160³). The numbers are those of the whole rings (``kept_fraction`` the
+    exact ratio rounded to float32, which a float32 mean over a ring past 2^24 pixels had missed in its last bits).
     ``on_ring(name, i, render)`` gets each ring render (H, W, 3), to save it, in that order: view 0 of
     ``initial`` (name None), view 0 of each edit in ``edits``' order, then view 1 of ``initial``, and so on.
 
@@ -601,8 +611,9 @@ class Preservation:
     """:func:`preservation` of one edit, its views and G_i's handed over a pair at a time (:func:`evaluate` renders
     them view-major). Each view is scored on its own: the values of the whole ring at once, bit for bit, but SSIM's
     float64 filter buffers are one view's (~130 times its float pixels: a whole ring at once had peaked at 3.2 GB
-    for 32 views of 256²). A masked edit's footprint is rendered a view at a time beside its pair
-    (:func:`iter_mask_footprint`, given ``callbacks``: progress per view, cancellation)."""
+    for 32 views of 256²). A masked edit's footprint is rendered a view at a time beside its pair, its stand-in
+    built for that view and let go (:func:`iter_mask_footprint`, given ``callbacks``: progress per view,
+    cancellation): between views an edit holds its bool mask, not a stand-in."""
 
     def __init__(self, sample: EditSample, initial: VoxelGrid, config: EvaluateConfig,
                  centre: torch.Tensor | None = None, callbacks: Callbacks = Callbacks()):
