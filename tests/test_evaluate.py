@@ -407,6 +407,26 @@ def test_an_evaluation_holds_one_view_of_each_grid_at_a_time(sphere_grid, tiny_c
     assert vars(result).keys() == {"rows"} and len(result.rows) == 2
 
 
+def test_clip_and_fid_share_one_batch_buffer_per_grid(sphere_grid, tiny_clip_path, tiny_inception_path):
+    """Regression: CLIP and FID each kept their own batch of a grid's views as 8-bit pixels ((32 + 25) views a grid:
+    11 GB for 60 edits at 1,024²). They score one buffer per grid, of the larger batch (32 views: 44 % less); the
+    rows stay those of the whole rings, bit for bit (test_the_views_scored_one_by_one_give_the_numbers_of_the_whole_
+    rings, whose batches wrap around the buffer's end)."""
+    from test_export import views_alive
+
+    clip = ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")
+    clip.batch_size = 8
+    fid = InceptionFeatures.load(tiny_inception_path, device="cpu", batch_size=8)
+    edits = [EditSample("global", "a claymation ball", _local_edit(sphere_grid)[0])]
+    alive = []
+    evaluate(sphere_grid, edits, "ball", clip, fid, None, EvaluateConfig(views=16, size=16),
+             Callbacks(on_progress=lambda report: alive.append(views_alive(16, 16))))
+    # One buffer of 8 views as 8-bit pixels for each of the 2 grids (4 float views' worth), G_i's view and the edit's
+    # in hand, G_i's view before them while its next renders, and a view's worth to spare (a buffer per scorer had
+    # been twice that: 8 float views' worth)
+    assert len(alive) > 2 * 16 and max(alive) <= 2 * 8 / 4 + 4, alive
+
+
 def test_the_views_scored_one_by_one_give_the_numbers_of_the_whole_rings(sphere_grid, tiny_clip_path,
                                                                           tiny_inception_path):
     """Scored view by view, in the scorers' batches, the rows are those of each whole ring scored at once, bit for

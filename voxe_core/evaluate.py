@@ -205,38 +205,54 @@ class FeatureExtractor(Protocol):
         ...
 
 
-class ViewBatches:
-    """Views handed over one at a time, scored by ``score(images, after_batch)`` (CLIP's embeddings, FID's features)
-    in batches of the scorer's ``batch_size``, held till then as the 8-bit pixels both score (a quarter of a float
-    view) in one batch buffer: the values of the whole ring scored at once, bit for bit, with a batch's pixels held,
-    not the ring's. ``before_batch`` is called before each batch is scored (a cancellation point)."""
+Scorer = tuple[Callable[[torch.Tensor, AfterBatch], torch.Tensor], int, AfterBatch]  # score, batch size, hook
 
-    def __init__(self, score: Callable[[torch.Tensor, AfterBatch], torch.Tensor], batch_size: int,
-                 after_batch: AfterBatch, before_batch: Callable[[], None]):
-        self.score, self.batch_size, self.after_batch, self.before_batch = score, batch_size, after_batch, before_batch
-        self.batch: torch.Tensor | None = None  # (batch_size, H, W, 3) uint8, made at the first view
-        self.pending = 0
-        self.scored: list[torch.Tensor] = []
+
+class ViewBatches:
+    """Views handed over one at a time, scored by each of ``scorers`` (``(score(images, after_batch), batch_size,
+    after_batch)``: CLIP's embeddings, FID's features) in batches of its ``batch_size``, held till then as the 8-bit
+    pixels they all score (a quarter of a float view) in one buffer they share: the values of the whole ring scored
+    at once by each, bit for bit, with the largest batch's pixels held, not the ring's, nor a buffer per scorer
+    (CLIP's 32 views and FID's 25 had been 57). ``before_batch`` is called before each batch is scored (a
+    cancellation point)."""
+
+    def __init__(self, scorers: Sequence[Scorer], before_batch: Callable[[], None]):
+        self.scorers, self.before_batch = scorers, before_batch
+        self.capacity = max(batch_size for _, batch_size, _ in scorers)
+        self.buffer: torch.Tensor | None = None  # (capacity, H, W, 3) uint8, made at the first view: view n in
+        # slot n % capacity
+        self.added = 0
+        self.unscored = [0] * len(scorers)  # per scorer, the first view it has not scored
+        self.scored: list[list[torch.Tensor]] = [[] for _ in scorers]
 
     def add(self, view: torch.Tensor) -> None:
-        if self.batch is None:
-            self.batch = torch.empty(self.batch_size, *view.shape, dtype=torch.uint8)
-        self.batch[self.pending] = torch.from_numpy(to_uint8(view))
-        self.pending += 1
-        if self.pending == self.batch_size:
-            self._score_pending()
+        if self.buffer is None:
+            self.buffer = torch.empty(self.capacity, *view.shape, dtype=torch.uint8)
+        # The slot's earlier view (added − capacity) every scorer has scored: each has fewer pending than its batch.
+        self.buffer[self.added % self.capacity] = torch.from_numpy(to_uint8(view))
+        self.added += 1
+        for k, (_, batch_size, _) in enumerate(self.scorers):
+            if self.added - self.unscored[k] == batch_size:
+                self._score_pending(k)
 
-    def result(self) -> torch.Tensor:
-        """(N, D): the scores of every view added, in order; the batch buffer let go."""
-        self._score_pending()
-        self.batch = None
-        return torch.cat(self.scored)
+    def results(self) -> list[torch.Tensor]:
+        """Per scorer, (N, D): the scores of every view added, in order; the buffer let go."""
+        for k in range(len(self.scorers)):
+            self._score_pending(k)
+        self.buffer = None
+        return [torch.cat(scored) for scored in self.scored]
 
-    def _score_pending(self) -> None:
-        if self.pending:
+    def _score_pending(self, k: int) -> None:
+        if self.added > self.unscored[k]:
+            first = self.unscored[k] % self.capacity
+            count = self.added - self.unscored[k]
+            # A batch that wraps past the buffer's end is gathered (a copy of that batch alone, while it is scored).
+            images = (self.buffer[first : first + count] if first + count <= self.capacity
+                      else self.buffer[torch.arange(first, first + count) % self.capacity])
             self.before_batch()
-            self.scored.append(self.score(self.batch[: self.pending], self.after_batch))
-            self.pending = 0
+            score, _, after_batch = self.scorers[k]
+            self.scored[k].append(score(images, after_batch))
+            self.unscored[k] = self.added
 
 
 class InceptionFeatures:
@@ -466,7 +482,7 @@ def evaluate(
 
     The rings go view-major: for each view i, ``initial``'s view i is rendered (once), then each edit's, scored
     against it (PSNR / SSIM outside the footprint, rendered beside them) and all let go before view i + 1; CLIP
-    and FID take each grid's views in their batches, as 8-bit pixels (one batch buffer per grid and scorer). So
+    and FID take each grid's views in their batches, as 8-bit pixels (one buffer per grid, of the larger batch). So
     one view of each grid is held at a time, each grid's batch pixels and the scores besides (each ring had been
     held whole, ``initial``'s to the end: 9 GB of floats for 360 views of 1,024²; every edit's before that, 270 GB
     for 60 edits), and every ring is rendered once; a masked edit's footprint view is rendered from a stand-in
@@ -544,17 +560,19 @@ def evaluate(
         input_features = fid.features(input_images, per_batch("FID"))
     ring_names = [None] + [sample.name for sample in edits]
     rings = [ring(initial, "the initial grid")] + [ring(sample.grid, f"edit {sample.name!r}") for sample in edits]
-    embeddings = [ViewBatches(clip.image_embeddings, clip.batch_size, per_batch("CLIP"), check_cancel) for _ in rings]
-    features = [ViewBatches(fid.features, fid.batch_size, per_batch("FID"), check_cancel) if fid is not None
-                else None for _ in rings]
+
+    def scorers() -> list[Scorer]:
+        """CLIP, then FID if given, as one grid's :class:`ViewBatches` scores its views."""
+        clip_scorer = (clip.image_embeddings, clip.batch_size, per_batch("CLIP"))
+        return [clip_scorer] if fid is None else [clip_scorer, (fid.features, fid.batch_size, per_batch("FID"))]
+
+    batches = [ViewBatches(scorers(), check_cancel) for _ in rings]
     kept = [Preservation(sample, initial, config, centre, per_view("mask footprints")) for sample in edits]
 
     def take(k: int, i: int) -> torch.Tensor:
         """Ring k's view i (0: ``initial``'s), rendered and given to CLIP, FID and ``on_ring``."""
         view = next(rings[k])
-        embeddings[k].add(view)
-        if features[k] is not None:
-            features[k].add(view)
+        batches[k].add(view)
         if on_ring is not None:
             on_ring(ring_names[k], i, view)
         return view
@@ -563,18 +581,16 @@ def evaluate(
         recon_view = take(0, i)
         for k, scores in enumerate(kept, 1):
             scores.add(take(k, i), recon_view)
-    recon_clip = embeddings[0].result()
-    recon_features = features[0].result() if features[0] is not None else None
+    recon_clip, *recon_features = batches[0].results()
     rows = []
     for k, sample in enumerate(edits):
-        edit_clip = embeddings[k + 1].result()
+        edit_clip, *edit_features = batches[k + 1].results()
         row = {"name": sample.name, "prompt": sample.prompt, "mode": "local" if sample.mask is not None else "global",
                "clip_sim": clip_similarity(edit_clip, texts[k + 1]),
                "clip_dir": clip_direction(edit_clip, recon_clip, texts[k + 1], texts[0])}
-        if recon_features is not None:
-            edit_features = features[k + 1].result()
-            row["fid_rec"] = fid_from_features(edit_features, recon_features)
-            row["fid_input"] = (fid_from_features(edit_features, input_features) if input_features is not None
+        if recon_features:
+            row["fid_rec"] = fid_from_features(edit_features[0], recon_features[0])
+            row["fid_input"] = (fid_from_features(edit_features[0], input_features) if input_features is not None
                                 else None)
         rows.append(row | kept[k].result())
     return Evaluation(rows)
