@@ -359,6 +359,28 @@ def test_a_grid_a_finite_loss_made_nan_is_neither_returned_nor_checkpointed(smal
         edit(small_sphere, "a dog", OverflowingBackwardGuidance(), dataclasses.replace(config, checkpoint_every=0))
 
 
+@pytest.mark.parametrize("resumed", [False, True])
+def test_a_cancel_after_a_step_that_left_the_grid_nan_stays_a_cancel_keeping_the_earlier_checkpoint(
+        resumed, small_sphere, tmp_path):
+    """The checkpoint a cancel writes had checked G_e first: a step whose finite loss left it NaN turned the user's
+    cancel into an EditDiverged, and the worker ended the job FAILED. The NaN grid is not saved: the file stays the
+    one the run resumed from (a fresh run saving only on cancel leaves none)."""
+    config = EditConfig(iterations=5, render_size=SIZE)
+    checkpoint, reports = tmp_path / "c.safetensors", []
+    if resumed:
+        edit(small_sphere, "a dog", FakeGuidance(), dataclasses.replace(config, iterations=1), checkpoint_path=checkpoint)
+    callbacks = Callbacks(on_progress=reports.append, should_cancel=lambda: len(reports) >= 2)  # the 2nd step NaN
+    with pytest.raises(StageCancelled, match="edit canceled"):
+        edit(small_sphere, "a dog", OverflowingBackwardGuidance(), config, callbacks, checkpoint_path=checkpoint,
+             resume_from=checkpoint if resumed else None)
+    assert len(reports) == 2
+    if resumed:
+        tensors, meta = load_edit_checkpoint(checkpoint)
+        assert meta["iteration"] == 1 and torch.isfinite(tensors["features"]).all()
+    else:
+        assert not checkpoint.exists()
+
+
 def _overflowing_unet(guidance, monkeypatch, channels):
     """The tiny guidance's UNet output infinite in ``channels`` of its latent's 4, as a float16 UNet overflowing."""
     eager = guidance._eager_unet

@@ -32,7 +32,7 @@ ends with exactly the grid an uninterrupted run would (on CPU; on CUDA only
 as far as the kernels are deterministic: scatter-adds with atomics are not;
 resumed on another device type, the device generator is reseeded from where
 the run stands, its state meaning nothing there). A cancelled run writes a
-checkpoint before it stops.
+checkpoint before it stops (unless G_e is no longer finite: the earlier one stays).
 
 Mixed precision. ``autocast_dtype`` ("bf16" / "fp16") runs the guidance (VAE
 encoder forward and UNet) under ``torch.autocast``; on CPU only bfloat16 is
@@ -370,7 +370,7 @@ def edit(
     ``ms_optimizer``, ``ms_step``, and ``sds_nonfinite_fraction`` (the share of the
     SDS gradient's entries the guidance found infinite or NaN and zeroed). Cancellation is checked before each
     iteration (``StageCancelled``; a checkpoint is written first when
-    ``checkpoint_path`` is set). Info also carries ``peak_memory_gb`` /
+    ``checkpoint_path`` is set and G_e is finite, else the earlier one stays). Info also carries ``peak_memory_gb`` /
     ``peak_memory_kind`` (:class:`voxe_core.devices.PeakMemory`).
 
     Everything runs on ``device`` (None: ``guidance.device`` when the guidance
@@ -484,10 +484,13 @@ def edit(
             # RuntimeError here, so a job moved to another worker failed for good: reseeded from where the run stands
             device_gen.manual_seed(hash((config.seed + 1, start)) % 2**63)
 
+    def finite() -> bool:
+        return bool(param.detach().isfinite().all())
+
     def check_finite(done: int) -> None:
         """EditDiverged unless G_e is finite: a loss is finite while its gradient overflows (a float16 VAE encoder's
         backward, say), and such a last step, or one just before a checkpoint, had been saved or returned NaN."""
-        if not bool(param.detach().isfinite().all()):
+        if not finite():
             raise EditDiverged(
                 f"the edit diverged by iteration {done}: G_e's features hold infinite or NaN values though every loss "
                 "was finite (a gradient that overflowed in the backward: a float16 (fp16) guidance? try autocast "
@@ -653,7 +656,9 @@ def edit(
             if config.preview_every and done % config.preview_every == 0:
                 preview(done)
     except StageCancelled:
-        if checkpoint_path is not None and done != last_checkpoint:
+        # Saved only where G_e is finite, else the earlier checkpoint stands: a step whose finite loss had left it NaN
+        # turned the user's cancel into an EditDiverged here (the job FAILED, not cancelled).
+        if checkpoint_path is not None and done != last_checkpoint and finite():
             checkpoint(done)
         raise
     check_finite(done)  # before G_e is saved or returned
