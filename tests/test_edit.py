@@ -476,8 +476,10 @@ def test_resume_refuses_another_prompt_or_grid(small_sphere, make_sphere_grid, t
     edit(small_sphere, "a dog", tiny_guidance, longer, resume_from=checkpoint)
 
 
-@pytest.mark.parametrize("name", ["features", "adam_exp_avg", "adam_exp_avg_sq"])
-def test_a_checkpoint_holding_a_nan_is_refused_as_one_to_start_afresh_from(name, small_sphere, tmp_path):
+@pytest.mark.parametrize("name, value", [("features", math.nan), ("adam_exp_avg", math.nan),
+                                         ("adam_exp_avg_sq", math.nan), ("features", math.inf),
+                                         ("adam_exp_avg", -math.inf), ("adam_exp_avg_sq", -math.inf)])
+def test_a_checkpoint_holding_a_nan_is_refused_as_one_to_start_afresh_from(name, value, small_sphere, tmp_path):
     """One saved NaN (before G_e's finiteness was checked) had diverged at its first step on every resume, blamed on
     half precision: a FormatError is what the worker starts a stage over from."""
     from voxe_core.edit import EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION
@@ -486,10 +488,34 @@ def test_a_checkpoint_holding_a_nan_is_refused_as_one_to_start_afresh_from(name,
     checkpoint = tmp_path / "c.safetensors"
     edit(small_sphere, "a dog", FakeGuidance(), EditConfig(iterations=1, render_size=SIZE), checkpoint_path=checkpoint)
     tensors, meta = load_edit_checkpoint(checkpoint)
-    tensors[name].view(-1)[7] = math.nan
+    tensors[name].view(-1)[7] = value
     save_tensors(checkpoint, tensors, EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION, meta)
-    with pytest.raises(FormatError, match="checkpoint holds infinite or NaN features or Adam moments"):
+    with pytest.raises(FormatError, match=rf"checkpoint holds {name} no run leaves \(NaN or infinite features or first "
+                                          r"Adam moments, NaN or negative second moments\): saved by a run that had "
+                                          r"diverged, or damaged; start afresh"):
         edit(small_sphere, "a dog", FakeGuidance(), EditConfig(iterations=2, render_size=SIZE), resume_from=checkpoint)
+
+
+class HugeGradientGuidance(FakeGuidance):
+    """Its first SDS loss is finite with a gradient finite but past float32's square root: Adam's second moment
+    overflows to +inf there and those vertices stand still, the grid finite."""
+
+    def sds_loss(self, images, text_embeddings, timesteps, guidance_scale=100.0, generator=None):
+        loss, diagnostics = super().sds_loss(images, text_embeddings, timesteps, guidance_scale, generator)
+        return (images.sum() * 1e30 if len(self.calls) == 1 else loss), diagnostics
+
+
+def test_a_checkpoint_whose_second_adam_moment_overflowed_resumes_as_the_run_goes_on(small_sphere, tmp_path):
+    """The run goes on from a +inf second moment (Adam tolerates it) and saved it, but its own resume had refused the
+    checkpoint as diverged: the worker started the stage over. Resumed, it ends as the uninterrupted run."""
+    checkpoint, config = tmp_path / "c.safetensors", EditConfig(iterations=3, render_size=SIZE)
+    uninterrupted = edit(small_sphere, "a dog", HugeGradientGuidance(), config)
+    edit(small_sphere, "a dog", HugeGradientGuidance(), dataclasses.replace(config, iterations=2),
+         checkpoint_path=checkpoint)
+    tensors, _ = load_edit_checkpoint(checkpoint)
+    assert tensors["adam_exp_avg_sq"].isinf().any() and tensors["features"].isfinite().all()
+    resumed = edit(small_sphere, "a dog", FakeGuidance(), config, resume_from=checkpoint)  # past the huge step
+    assert torch.equal(resumed.features, uninterrupted.features) and resumed.features.isfinite().all()
 
 
 def test_resume_refuses_another_model_by_its_name_as_asked_for(small_sphere, tmp_path):

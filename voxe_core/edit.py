@@ -459,9 +459,16 @@ def edit(
                               "start afresh")
         # One saved before G_e's finiteness was checked (or damaged): its first step had diverged, blamed on half
         # precision, at every resume, where the worker starts a stage over from a checkpoint it cannot go on from.
-        if not all(bool(tensors[name].isfinite().all()) for name in ("features", "adam_exp_avg", "adam_exp_avg_sq")):
-            raise FormatError(f"{resume_from}: checkpoint holds infinite or NaN features or Adam moments (saved by a "
-                              "run that had diverged, or damaged); start afresh")
+        # The save's rule, G_e finite, leaves the first moment finite and the second in [0, +inf] (either NaN, or
+        # the first infinite, makes the step NaN): +inf, a finite gradient whose square overflowed, Adam goes on from
+        # (those vertices stand still), and a resume had refused the run's own checkpoint for it.
+        if unresumable := [name for name, ok in (("features", tensors["features"].isfinite().all()),
+                                                 ("adam_exp_avg", tensors["adam_exp_avg"].isfinite().all()),
+                                                 ("adam_exp_avg_sq", (tensors["adam_exp_avg_sq"] >= 0).all()))
+                           if not bool(ok)]:
+            raise FormatError(f"{resume_from}: checkpoint holds {', '.join(unresumable)} no run leaves (NaN or "
+                              "infinite features or first Adam moments, NaN or negative second moments): saved by a "
+                              "run that had diverged, or damaged; start afresh")
         with torch.no_grad():
             param.copy_(tensors["features"].reshape(-1, 4).to(device))
         if int(tensors["adam_step"].item()) > 0:
