@@ -381,6 +381,17 @@ def test_a_cancel_after_a_step_that_left_the_grid_nan_stays_a_cancel_keeping_the
         assert not checkpoint.exists()
 
 
+def test_a_preview_on_the_step_that_left_the_grid_nan_is_not_rendered_and_the_edit_stops_there(small_sphere):
+    """The preview had been rendered from the NaN grid and handed on (the worker published it as the job's preview)
+    before the next step's NaN loss stopped the edit, an iteration late."""
+    previews = []
+    config = EditConfig(iterations=4, render_size=SIZE, preview_every=2)
+    with pytest.raises(EditDiverged, match="diverged by iteration 2: G_e's features hold infinite or NaN values"):
+        edit(small_sphere, "a dog", OverflowingBackwardGuidance(), config,
+             on_preview=lambda done, image: previews.append(done))
+    assert previews == [0]
+
+
 def _overflowing_unet(guidance, monkeypatch, channels):
     """The tiny guidance's UNet output infinite in ``channels`` of its latent's 4, as a float16 UNet overflowing."""
     eager = guidance._eager_unet

@@ -379,8 +379,8 @@ def edit(
     guidance's is refused at once (every step would copy renders across). A step whose loss is not finite raises
     :class:`EditDiverged` before its progress is reported or a checkpoint written (its NaN or infinite gradient
     has reached G_e, which no later step recovers); so does a G_e holding an infinite or NaN feature where a
-    checkpoint is to be written or the grid returned (a finite loss whose gradient overflowed); and a guidance whose
-    SDS gradient was wholly non-finite
+    checkpoint is to be written, a preview rendered or the grid returned (a finite loss whose gradient overflowed);
+    and a guidance whose SDS gradient was wholly non-finite
     (``nonfinite_fraction`` 1) for :data:`MAX_NONFINITE_GUIDANCE_STEPS` steps in a row, the last one's progress not
     reported (a float16 UNet overflowing: G_e would take no more SDS steps).
     """
@@ -496,7 +496,8 @@ def edit(
 
     def check_finite(done: int) -> None:
         """EditDiverged unless G_e is finite: a loss is finite while its gradient overflows (a float16 VAE encoder's
-        backward, say), and such a last step, or one just before a checkpoint, had been saved or returned NaN."""
+        backward, say), and such a last step, or one just before a checkpoint or preview, had been saved, returned or
+        shown NaN."""
         if not finite():
             raise EditDiverged(
                 f"the edit diverged by iteration {done}: G_e's features hold infinite or NaN values though every loss "
@@ -528,6 +529,7 @@ def edit(
 
     def preview(done: int) -> None:
         if on_preview is not None and config.preview_every:
+            check_finite(done)  # a render of a NaN G_e had been handed on, the edit stopping a step later
             image = render_image(grid, preview_cameras, 0, config.render).rgb[..., :3]
             on_preview(done, image.detach().to("cpu", torch.float32))
 
