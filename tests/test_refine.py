@@ -325,7 +325,7 @@ def test_a_3sigma_kernel_wider_than_the_maps_is_refused_and_the_3x3_one_takes_an
     for 48 TB. The authors' 3x3 kernel of a large σ is a 3x3 box blur."""
     with pytest.raises(ValueError, match=r"smoothing_kernel='3sigma' spans ceil\(3 sigma\) = \d+ px either side .* "
                                          r"past the render_size \(16 px\) maps it smooths: use a smoothing_sigma "
-                                         r"below 5.33333 or smoothing_kernel='3x3'"):
+                                         r"of at most 5.0 or smoothing_kernel='3x3'"):
         RefineConfig(render_size=16, smoothing_kernel="3sigma", smoothing_sigma=sigma)
     maps = torch.rand(2, 16, 16, generator=torch.Generator().manual_seed(4))
     if sigma >= 1e4:  # taps e^(-1/2σ²) ≈ 1 on either side of the centre's
@@ -334,6 +334,18 @@ def test_a_3sigma_kernel_wider_than_the_maps_is_refused_and_the_3x3_one_takes_an
         torch.testing.assert_close(postprocess_maps(maps, (16, 16), box), box_blur)
     widest = RefineConfig(render_size=16, smoothing_kernel="3sigma", smoothing_sigma=5.0)  # 15 px either side
     assert postprocess_maps(maps, (16, 16), widest).isfinite().all()
+
+
+@pytest.mark.parametrize("render_size, sigma", [(16, 5.2), (17, 5.5), (18, 5.8), (33, 10.7)])
+def test_the_3sigma_refusal_advises_the_largest_sigma_it_accepts(render_size, sigma):
+    """ceil(3σ) >= render_size is refused, so σ above (render_size - 1)/3: the advice had said "below
+    render_size/3", a bound itself refused (and σ between the two refused while below it)."""
+    assert (render_size - 1) / 3 < sigma < render_size / 3
+    with pytest.raises(ValueError, match="use a smoothing_sigma of at most") as refused:
+        RefineConfig(render_size=render_size, smoothing_kernel="3sigma", smoothing_sigma=sigma)
+    advised = float(re.search(r"of at most (\S+) or", str(refused.value)).group(1))
+    assert advised == (render_size - 1) / 3
+    RefineConfig(render_size=render_size, smoothing_kernel="3sigma", smoothing_sigma=advised)  # accepted
 
 
 def test_raw_maps_keep_the_relative_scale_of_edit_and_object_minmax_does_not():

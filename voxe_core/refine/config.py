@@ -175,12 +175,13 @@ class RefineConfig:
             raise ValueError(f"sigma must be positive; smoothness and smoothing_sigma non-negative (all finite, "
                              f"smoothness at most {FLOAT32_MAX:.4g}), got {self.sigma}, {self.smoothness}, "
                              f"{self.smoothing_sigma}")
-        # (a kernel of 2·ceil(3σ) + 1 taps: σ = 1e4 had taken 38 s a 266 px view, 1e12 asked for 48 TB)
+        # (a kernel of 2·ceil(3σ) + 1 taps: σ = 1e4 had taken 38 s a 266 px view, 1e12 asked for 48 TB). The advice
+        # is the largest σ accepted, in full: rounded (5.66667 for 17/3) it can be refused itself.
         if self.smoothing_kernel == "3sigma" and math.ceil(3.0 * self.smoothing_sigma) >= self.render_size:
             raise ValueError(f"smoothing_kernel='3sigma' spans ceil(3 sigma) = {math.ceil(3.0 * self.smoothing_sigma)} "
                              f"px either side at smoothing_sigma {self.smoothing_sigma}, past the render_size "
-                             f"({self.render_size} px) maps it smooths: use a smoothing_sigma below "
-                             f"{self.render_size / 3:g} or smoothing_kernel='3x3'")
+                             f"({self.render_size} px) maps it smooths: use a smoothing_sigma of at most "
+                             f"{(self.render_size - 1) / 3} or smoothing_kernel='3x3'")
         if self.fit_pixels == "rendered_positive" and self.iterations and self.lift_start == "constant" \
                 and self.init_value <= 0:
             raise ValueError("fit_pixels='rendered_positive' fits nothing from a constant start <= 0 (nothing renders "
