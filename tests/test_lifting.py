@@ -222,6 +222,24 @@ def test_a_backprojection_whose_pixels_miss_the_object_is_a_segmentation_error_n
     assert (edit != 0).any() and not torch.equal(edit, obj)
 
 
+def test_a_backprojection_reading_every_pixel_that_meets_no_density_blames_the_views_not_the_stride():
+    """Two dense specks, and a narrow view whose pixels all cross their occupied box between them: at stride 1 every
+    pixel is read, yet the refusal had blamed the stride and said to lower it."""
+    from voxe_core.refine.config import SegmentationError
+
+    grid = VoxelGrid(10)
+    with torch.no_grad():
+        grid.features[..., 0] = -1.0
+        grid.features[2, 2, 5, 0] = grid.features[7, 7, 5, 0] = 50.0
+    maps = torch.rand(1, 8, 8, generator=torch.Generator().manual_seed(0))
+    with pytest.raises(SegmentationError, match=r"^64 pixels of the 1 views see the edited object's box, but each "
+                                                r"pixel's ray passes through its empty space, meeting none of its "
+                                                r"density: .* aim the views at the object") as refused:
+        fit_attention_grids(grid, _camera_on_z(0.05, 8), maps, maps.flip(-1),
+                            RefineConfig(render_size=8, backprojection_stride=1))
+    assert "stride" not in str(refused.value)
+
+
 def test_a_constant_start_whose_views_miss_the_object_is_refused_though_fresh_views_would_see_it():
     """The fit moves only the vertices the start's views see: with none, a constant start fitted on fresh views
     had run every step and then blamed its length ('Adam moves both alike ... fit more iterations')."""

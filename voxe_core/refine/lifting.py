@@ -231,11 +231,16 @@ def fit_attention_grids(
                               callbacks)
     rows = (seen.reshape(-1) > 0).nonzero().squeeze(-1)  # vertices some pixel sees: the only ones L1 moves
     if rows.numel() == 0:  # (as above: the grids had reached the cut "equal everywhere", or a fit moved nothing)
+        nothing = "there is no attention to lift (and no voxel the fit may move)"
+        if config.backprojection_stride == 1:  # every pixel read: the stride is not why (it had been blamed)
+            raise SegmentationError(
+                f"{keep.numel()} pixels of the {n_views} views see the edited object's box, but each pixel's ray "
+                f"passes through its empty space, meeting none of its density: {nothing}; aim the views at the "
+                "object, or render larger views (rays closer together)")
         raise SegmentationError(
             f"{keep.numel()} pixels of the {n_views} views see the edited object's box, but none that the "
-            f"back-projection reads (one row and column in {config.backprojection_stride}) meets its density: there "
-            "is no attention to lift (and no voxel the fit may move); lower backprojection_stride, or render larger "
-            "views")
+            f"back-projection reads (one row and column in {config.backprojection_stride}) meets its density: "
+            f"{nothing}; lower backprojection_stride, or render larger views")
     origins, directions, targets = origins[keep], directions[keep], targets[keep]
 
     if config.fit_views == "fresh" and config.iterations and fresh_view is None:
