@@ -16,7 +16,8 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validat
 
 from voxe_core import constants as paper
 from voxe_core import presets
-from voxe_core.guidance.prompts import TEXT_ENCODER_TOKENS, check_edit_words_read, check_prompt_length
+from voxe_core.guidance.prompts import (TEXT_ENCODER_TOKENS, check_edit_words_name_an_edit, check_edit_words_read,
+                                        check_prompt_length)
 from voxe_service.webhooks import DEFAULT_WEBHOOK_EVENTS, WEBHOOK_EVENTS
 
 T = TypeVar("T")
@@ -247,16 +248,9 @@ class JobCreate(Strict):
         if self.mode == "local":
             if not self.edit_words:
                 raise ValueError("edit_words is required for a local edit: the word(s) of the prompt naming the edit")
-            prompt_words = words_of(self.prompt)
-            for phrase in self.edit_words:
-                words = words_of(phrase)
-                if not words:
-                    raise ValueError(f"edit word {phrase!r} has no letters")
-                n = len(words)
-                if not any(prompt_words[i:i + n] == words for i in range(len(prompt_words) - n + 1)):
-                    raise ValueError(f"edit word {phrase!r} does not occur in the prompt {self.prompt!r}")
-            if len(set(words_of(" ".join(self.edit_words)))) >= len(set(prompt_words)):
-                raise ValueError("edit_words cover the whole prompt: some other word must name the object")
+            # Words as the model splits them, in NFC: "dog" in "a dog's hat", "sunglasses" in "sunglasses-wearing"
+            # and a decomposed "café" in a composed one had been refused as "not in the prompt".
+            check_edit_words_name_an_edit(self.prompt, self.edit_words)
             # As the refinement's attention model will look for them, after the edit: "hat." or "hat!" had passed
             # the whole-word match above and failed the job there.
             check_edit_words_read(self.prompt, self.edit_words, self.params.view_words)

@@ -874,6 +874,21 @@ def test_bad_edit_words_are_422(client, dataset, root, body, message):
     assert message in json.dumps(response.json()), response.json()
 
 
+@pytest.mark.parametrize("prompt, edit_word", [
+    ("a mic wearing a caf\u00e9 hat", "cafe\u0301 hat"),  # composed prompt, decomposed word: one text in NFC
+    ("a mic wearing a cafe\u0301 hat", "Caf\u00e9 hat"),
+    ("a dog's mic wearing sunglasses", "dog"),  # the model reads "dog" "'s"
+    ("a sunglasses-wearing mic", "sunglasses"),  # and "sunglasses" "-" "wearing"
+])
+def test_an_edit_word_the_model_finds_in_the_prompt_is_accepted(client, dataset, root, prompt, edit_word):
+    """The API had matched words of its own ([\\w'-]+, not normalised): these were 422s saying the word 'does not
+    occur in the prompt', which the refinement's tokenizer finds there."""
+    scene = make_scene(client, dataset, root)
+    response = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": prompt, "mode": "local",
+                                             "edit_words": [edit_word]})
+    assert response.status_code == 201, response.json()
+
+
 def test_parameter_ranges_are_checked(client, dataset, root):
     scene = make_scene(client, dataset, root)
     for params in ({"iterations": -1}, {"render_size": 4}, {"guidance_scale": 0}, {"regulariser": "l3"},

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 import unicodedata
+from typing import Sequence
 
 RENDER_PREFIX = "a render of"
 VIEW_WORDS = ("front", "side", "back", "overhead")
@@ -118,6 +119,38 @@ def clip_pieces(text: str) -> list[str]:
         pieces.append(text[at:end])
         at = end
     return pieces
+
+
+def _names(piece: str) -> bool:
+    """Whether a piece is a word or a number, not punctuation or a contraction's ending ("'s")."""
+    return _piece_class(piece[0]) in ("L", "N")
+
+
+def check_edit_words_name_an_edit(text: str, edit_words: Sequence[str]) -> None:
+    """ValueError naming the problem when ``edit_words`` cannot name an edit of ``text`` as the model reads both
+    (:func:`clip_pieces`: in NFC, any case, whole words as the guidance's ``token_spans`` finds them): a word with no
+    letter or number, one whose pieces are no run of the text's, or words leaving no word of the text to name the
+    object (its punctuation alone would).
+
+    Examples:
+        >>> check_edit_words_name_an_edit("a sunglasses-wearing dog's hat", ["Sunglasses", "dog"])
+        >>> check_edit_words_name_an_edit("big sunglasses, party hat", ["big sunglasses", "party hat"])
+        Traceback (most recent call last):
+        ...
+        ValueError: the edit words ['big sunglasses', 'party hat'] cover the whole prompt 'big sunglasses, party hat', punctuation aside: nothing names the object; some other word of the prompt must
+    """
+    pieces, covered = clip_pieces(text), set()
+    for word in edit_words:
+        sub = clip_pieces(word)
+        if not any(map(_names, sub)):
+            raise ValueError(f"edit word {word!r} does not occur in the prompt as a word: it has no letters or numbers")
+        starts = [i for i in range(len(pieces) - len(sub) + 1) if pieces[i:i + len(sub)] == sub]
+        if not starts:
+            raise ValueError(f"edit word {word!r} does not occur in the prompt {text!r} as whole words")
+        covered.update(i + k for i in starts for k in range(len(sub)))
+    if all(i in covered or not _names(piece) for i, piece in enumerate(pieces)):
+        raise ValueError(f"the edit words {list(edit_words)} cover the whole prompt {text!r}, punctuation "
+                         "aside: nothing names the object; some other word of the prompt must")
 
 
 def tokens_at_least(text: str) -> int:
