@@ -134,6 +134,24 @@ def test_token_groups_split_edit_and_object_tokens(tiny_guidance):
         token_groups(tiny_guidance, prompt, [" "])
 
 
+@pytest.mark.parametrize("prompt, edit_words, refusal", [
+    ("big sunglasses, party hat", ["big sunglasses", "party hat"], "nothing names the object"),  # only the comma
+    ("sunglasses!", ["sunglasses"], "nothing names the object"),  # only the "!"
+    ("a dog, wearing sunglasses", [","], "has no letters or numbers"),  # the comma's map as the edit's
+])
+def test_punctuation_neither_names_the_object_nor_the_edit(tiny_guidance, make_sphere_grid, prompt, edit_words,
+                                                          refusal):
+    """The object map had been a comma's or an exclamation mark's attention (the edit map a comma's), and the
+    refinement had run on it; it is refused before its first attention pass."""
+    with pytest.raises(ValueError, match=refusal):
+        token_groups(tiny_guidance, prompt, edit_words)
+    reports, initial = [], make_sphere_grid(12)
+    with pytest.raises(ValueError, match=refusal):
+        refine(initial, initial.clone_grid(), prompt, edit_words, tiny_guidance, RefineConfig(views=2, render_size=16),
+               Callbacks(on_progress=reports.append))
+    assert reports == []
+
+
 @pytest.mark.parametrize("prompt, word, view_words, found", [
     ("a dog wearing a party hat", "party hat", True, True),
     ("a dog wearing a hat.", "hat.", True, False),  # the full stop is dropped: "hat" ","

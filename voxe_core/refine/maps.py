@@ -19,7 +19,7 @@ import torch.nn.functional as F
 
 from voxe_core.cameras import Cameras, random_hemisphere_poses
 from voxe_core.grid import VoxelGrid
-from voxe_core.guidance.prompts import edit_prompt, pose_view_word
+from voxe_core.guidance.prompts import check_edit_words_name_an_edit, edit_prompt, pose_view_word, without_view_word
 from voxe_core.progress import Callbacks, Progress
 from voxe_core.refine.config import RefineConfig, SegmentationError
 from voxe_core.render import RenderConfig, render_image
@@ -109,10 +109,11 @@ def token_groups(
     if not edit_words:
         raise ValueError("no edit words given: name the word(s) of the prompt that describe the edit")
     edit = guidance.token_spans(prompt, edit_words)
+    # A word of the text must be left to name the object (a comma or "!" had been its map), and each edit word
+    # must hold one (a comma had been the edit's map).
+    check_edit_words_name_an_edit(without_view_word(prompt), edit_words)
     content = guidance.content_token_indices(prompt)
     others = [i for i in content if i not in set(edit)]
-    if not others:
-        raise ValueError(f"the prompt {prompt!r} has no words besides the edit words {edit_words}: nothing names the object")
     if object_tokens == "through_end":
         others.append(content[-1] + 1)  # the first end-of-text token
     return edit, others
