@@ -363,10 +363,40 @@ def test_a_prompt_longer_than_its_models_tokenizer_reads_fails_at_the_start_of_i
     error = client.get(f"/v1/jobs/{job.json()['id']}").json()["error"]
     assert error.startswith("reconstruct: not started: the prompt 'a render of a mic wearing zyxwv") and error.endswith(
         "tokens as the model's tokenizer reads it; its text encoder reads 77, its start and end tokens included: "
-        "shorten it")
+        "shorten it (the sds model 'tiny')")
     with session_scope() as session:  # the reconstruction never ran
         rec = session.scalars(select(Reconstruction).where(Reconstruction.scene_id == scene["id"])).one()
         assert rec.grid_key is None and rec.iteration == 0
+
+
+def test_a_prompt_longer_than_the_attention_model_reads_fails_at_the_start_of_its_chain(root, client, dataset,
+                                                                                       monkeypatch):
+    """The refinement prompts its attention model as the edit prompts its SDS model, but only the SDS model's count
+    was checked before the fit: a prompt the attention model reads fewer tokens of (here 40) had run the whole
+    edit, then failed at the refinement."""
+    from voxe_core.tiny_sd import build_tiny_stable_diffusion
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+    from voxe_service.settings import get_settings
+    from worker import tasks
+
+    short = build_tiny_stable_diffusion(root / "short-sd")
+    config = json.loads((short / "tokenizer" / "tokenizer_config.json").read_text())
+    (short / "tokenizer" / "tokenizer_config.json").write_text(json.dumps({**config, "model_max_length": 40}))
+    monkeypatch.setattr(get_settings(), "attention_model", str(short))
+    scene = make_scene(client, dataset, root)
+    prompt = "a mic wearing " + "big " * 30 + "sunglasses"  # 42 tokens with "a render of" and ", overhead view"
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": prompt, "mode": "local",
+                                        "edit_words": ["sunglasses"]})
+    assert job.status_code == 201, job.text
+    assert tasks.reconstruct_task.apply(args=(job.json()["id"],)).get()["state"] == "failed"
+    error = client.get(f"/v1/jobs/{job.json()['id']}").json()["error"]
+    assert error.startswith("reconstruct: not started: the prompt 'a render of a mic wearing big") and error.endswith(
+        f"tokens as the model's tokenizer reads it; its text encoder reads 40, its start and end tokens included: "
+        f"shorten it (the attention model {str(short)!r})")
+    global_job = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": prompt})  # no attention pass
+    with session_scope() as session:
+        tasks._check_job_can_start(session.get(Job, global_job.json()["id"]), get_settings())
 
 
 def test_migration_0006_adds_the_models_column_and_removes_it(tmp_path):

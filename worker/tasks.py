@@ -284,8 +284,9 @@ class CannotStart(RuntimeError):
 
 def _check_job_can_start(job: Job, settings) -> None:
     """Fail before the chain's first stage runs when a model the job will load is not here (no weights read), or
-    when its SDS model's tokenizer reads its prompt as longer than the text encoder does (the API's check is a
-    lower bound: BPE splits some words into several tokens)."""
+    when the tokenizer of a model it prompts (the edit's SDS model, a local edit's attention model) reads its
+    prompt as longer than that model's text encoder does (the API's check is a lower bound: BPE splits some words
+    into several tokens, and a model may read fewer than 77)."""
     from voxe_core.guidance.loading import load_clip_tokenizer, loading_errors
     from voxe_core.guidance.prompts import check_prompt_tokens, tokens_read
 
@@ -294,22 +295,25 @@ def _check_job_can_start(job: Job, settings) -> None:
                for role, model in needed.items() if not model_present(ROLES[role], model, settings)]
     if missing:
         raise CannotStart("; ".join(missing))
-    if "sds" not in needed:
-        return
     from transformers import CLIPTextConfig
 
-    model = runtime.resolve_model(job.sds_model, settings)
-    try:
-        tokenizer = load_clip_tokenizer(model, subfolder="tokenizer", local_files_only=True)
-        positions = CLIPTextConfig.from_pretrained(model, subfolder="text_encoder",
-                                                   local_files_only=True).max_position_embeddings
-    except loading_errors():  # the edit's loading says what is wrong with the model
-        return
-    try:
-        check_prompt_tokens(job.prompt, tokenizer, tokens_read(tokenizer, positions),
-                            (job.params or {}).get("view_words", True))
-    except ValueError as exc:
-        raise CannotStart(str(exc)) from None
+    # The refinement prompts its attention model as the edit prompts its SDS model: with the SDS model's count
+    # alone, a prompt longer than the attention model reads had failed at the refinement, after the whole edit.
+    for role in ("sds", "attention"):
+        if role not in needed:
+            continue
+        model = runtime.resolve_model(needed[role], settings)
+        try:
+            tokenizer = load_clip_tokenizer(model, subfolder="tokenizer", local_files_only=True)
+            positions = CLIPTextConfig.from_pretrained(model, subfolder="text_encoder",
+                                                       local_files_only=True).max_position_embeddings
+        except loading_errors():  # the stage's loading says what is wrong with the model
+            continue
+        try:
+            check_prompt_tokens(job.prompt, tokenizer, tokens_read(tokenizer, positions),
+                                (job.params or {}).get("view_words", True))
+        except ValueError as exc:
+            raise CannotStart(f"{exc} (the {role} model {needed[role]!r})") from None
 
 
 def _error_message(stage: str, exc: Exception, job: Job) -> str:
