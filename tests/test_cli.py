@@ -134,6 +134,28 @@ def test_stage_commands_refuse_a_missing_device_before_reading_anything(command,
     assert "device 'meta' is not supported here: use 'cpu' or a CUDA device" in err and "no_such" not in err
 
 
+REFINE_MISSING = ["refine", "no_such_edit.safetensors", "--initial", "no_such_grid.safetensors", "--out", "refine"]
+
+
+@pytest.mark.parametrize("command, said", [
+    ([*REFINE_MISSING, "--prompt", "a dog wearing a hat", "--edit-words", "zebra"],
+     "edit word 'zebra' does not occur in the prompt"),
+    ([*REFINE_MISSING, "--prompt", "a dog wearing a hat!", "--edit-words", "hat!"],
+     "does not occur in the prompt as the model reads it"),
+    ([*REFINE_MISSING, "--prompt", "sunglasses", "--edit-words", "sunglasses"], "nothing names the object"),
+    ([*REFINE_MISSING, "--prompt", "a mic " + "very " * 80, "--edit-words", "mic"], "tokens as the model sees it"),
+    (["edit", "no_such_grid.safetensors", "--prompt", "a mic " + "very " * 80, "--out", "edit"],
+     "tokens as the model sees it"),
+])
+def test_a_prompt_or_edit_word_the_model_cannot_read_is_refused_before_anything_is_read(command, said, tmp_path,
+                                                                                         capsys, monkeypatch):
+    """They had been found after the grids were read and the model loaded (a download of gigabytes, maybe)."""
+    monkeypatch.chdir(tmp_path)
+    assert main([*command, "--device", "cpu"]) == 2
+    err = capsys.readouterr().err
+    assert said in err and "no_such" not in err, err
+
+
 def test_bad_data_dir_exits_2_with_a_message(tmp_path, capsys):
     missing = tmp_path / "no_such_scene"
     assert main(["reconstruct", str(missing), "--out", str(tmp_path / "g.safetensors")]) == 2

@@ -15,6 +15,7 @@ from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, add_view_arguments, check_device, load_guidance, load_views,
     non_negative_int, positive_int, run_stage, seed, view_options_given, writable_folder,
 )
+from voxe_core.guidance.prompts import check_prompt_length
 from voxe_core.presets import EDIT_SCHEDULES, PREVIEW_EVERY, SEED, TIMESTEP_SCHEDULES, edit_config
 
 _SCENE = EDIT_SCHEDULES["scene"]
@@ -90,6 +91,7 @@ def cmd_edit(args) -> int:
 
     if not args.prompt.strip():
         raise ValueError("the edit prompt is empty")
+    check_prompt_length(args.prompt, not args.no_view_words)  # (had been said after the model's load, a download maybe)
     check_device(args)  # before the grid is read: a device this machine lacks had been said only after it
     grid = load_grid(args.grid)
     config = edit_config(job_params(args), grid.kind, args.checkpoint_every)  # bad options fail before the model loads

@@ -19,6 +19,8 @@ from voxe_core.cli.common import (
     move_staged, non_negative_int, positive_int, remove_earlier_outputs, run_stage, seed, staging_folder,
     writable_file, writable_folder,
 )
+from voxe_core.guidance.prompts import (check_edit_words_name_an_edit, check_edit_words_read, check_prompt_length,
+                                        prompt_text)
 from voxe_core.presets import SEED, refine_config
 
 
@@ -94,6 +96,12 @@ def cmd_refine(args) -> int:
     words = [w.strip() for w in args.edit_words.split(",") if w.strip()]
     if not words:
         raise ValueError("--edit-words names no word")
+    # As the refinement will read them, before the grids are read and the model loads (a download, maybe): a word
+    # not in the prompt, or a prompt longer than the text encoder reads, had been said only after that.
+    view_words = not args.no_view_words
+    check_prompt_length(args.prompt, view_words)
+    check_edit_words_name_an_edit(prompt_text(args.prompt), words)
+    check_edit_words_read(args.prompt, words, view_words)
     check_device(args)
     writable_folder(args.out)
     for name in OUTPUT_FILES:  # (a folder in the way had failed the move, after the whole refinement)
