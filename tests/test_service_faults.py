@@ -999,6 +999,42 @@ def test_a_fit_out_of_memory_says_so_on_the_reconstruction_and_fails_it_once_no_
     assert reconstruction() == ("succeeded", None)
 
 
+@pytest.mark.parametrize("failing", ["upload", "save"])
+def test_a_fit_whose_grid_cannot_be_stored_is_handed_back_at_once(db, monkeypatch, failing):
+    """A fit that made its G_i and could not keep it (the storage refusing its upload, the worker's scratch disk
+    full) had left the reconstruction running under a failed job, its lease unrenewed: a job waiting on it took it
+    over only once the lease ran out, and with none waiting it was listed running for good. The fit is no failure of
+    the scene's: it is handed back pending at once, and the job fails naming why."""
+    import errno
+
+    from conftest import make_sphere_grid
+    from service_helpers import failing_uploads
+    from voxe_service.storage import StorageError, get_storage
+    from worker import runtime, tasks
+
+    scene = add_scene()
+    rec_id = add_reconstruction(scene, params={"route": "voxelize"})
+    job_id = add_job(scene, "queued", 0, reconstruction_id=rec_id)
+    grid = make_sphere_grid(8)
+    if failing == "upload":
+        failing_uploads(monkeypatch, get_storage(db), ".safetensors",
+                        StorageError("S3 bucket 'voxe': AccessDenied when uploading"))
+    else:
+        def full(path):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+        monkeypatch.setattr(grid, "save", full)
+    monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
+    monkeypatch.setattr(tasks, "_voxelize", lambda *args: grid)
+    assert tasks.reconstruct_task.apply(args=(job_id,)).get()["state"] == "failed"
+    said = {"upload": "StorageError: S3 bucket 'voxe': AccessDenied when uploading",
+            "save": f"OSError: [Errno {errno.ENOSPC}] {os.strerror(errno.ENOSPC)}"}[failing]
+    assert job_row(job_id).error == f"reconstruct: {said}"
+    rec = runtime.load_reconstruction(rec_id)
+    assert (rec.state, rec.owner_job_id, rec.owner_run_token, rec.lease_until) == ("pending", None, None, None)
+    assert get_storage(db).list(f"reconstructions/{rec_id}/") == []
+
+
 class WorkerGoingDown(BaseException):
     """Stands in for what ends the worker inside a running task (SystemExit, KeyboardInterrupt)."""
 

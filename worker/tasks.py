@@ -517,6 +517,7 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
             lease.check()
 
         callbacks = StageCallbacks(job, "reconstruct", settings, on_progress, on_checkpoint)
+        grid = None
         try:
             if rec.params.get("route") == "voxelize":  # one step: reported once, at completion
                 grid, total = _voxelize(job, rec, settings, storage), 1
@@ -525,8 +526,14 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
                 grid, total = _fit_grid(job, rec, settings, storage, lease, callbacks, checkpoint, checkpoint_key,
                                         device)
             lease.check()
+            path = scratch / "initial_grid.safetensors"
+            grid.save(path)
+            # Under this run's own name: a run that lost the fit meanwhile never overwrites the recorded grid.
+            stored: StoredObject = storage.put_file(
+                reconstruction_storage_key(rec.id, f"grid-{job.run_token or job.id}.safetensors"), path)
         except BaseException as exc:  # (each change below applies only while this job still owns the fit)
-            if (isinstance(exc, Exception) and not isinstance(exc, NOT_THE_FITS_FAILURE)
+            # G_i made and not kept (a full scratch disk, a storage refusing it) is no failure of the fit's either
+            if (grid is None and isinstance(exc, Exception) and not isinstance(exc, NOT_THE_FITS_FAILURE)
                     and not is_out_of_memory(exc) and database_outage(exc) is None
                     and not runtime.worker_in_cold_shutdown()):
                 runtime.set_reconstruction(rec.id, job.id, job.run_token, state=R_FAILED, lease_until=None,
@@ -540,11 +547,6 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
                 runtime.set_reconstruction(rec.id, job.id, job.run_token, state=R_PENDING, owner_job_id=None,
                                            owner_run_token=None, lease_until=None)
             raise
-        path = scratch / "initial_grid.safetensors"
-        grid.save(path)
-        # Under this run's own name: a run that lost the fit meanwhile never overwrites the recorded grid.
-        stored: StoredObject = storage.put_file(
-            reconstruction_storage_key(rec.id, f"grid-{job.run_token or job.id}.safetensors"), path)
         done = runtime.set_reconstruction(
             rec.id, job.id, job.run_token, state=R_SUCCEEDED, grid_key=stored.key, grid_size=stored.size,
             grid_sha256=stored.sha256, iteration=total, total=total, lease_until=None, finished_at=utcnow(),
