@@ -912,6 +912,39 @@ def test_a_stage_that_runs_out_of_memory_fails_its_job_saying_so(db, monkeypatch
     assert not get_storage(db).exists(checkpoint)
 
 
+@pytest.mark.parametrize("fault", ["scratch", "sql"])
+def test_a_stage_failure_says_what_failed_without_the_workers_paths_or_statements(db, monkeypatch, fault):
+    """A job's error is the user's to read: a worker's scratch folder that cannot be made (a file in its place, a
+    full disk) had failed the job naming the worker's path (``/var/lib/voxe/work/jobs/<id>``), and a statement the
+    database refused (a worker of another version, a column it lacks) with SQLAlchemy's text: the SQL, its
+    parameters and a link. They say the error's own words; the worker's log keeps the rest."""
+    from pathlib import Path
+
+    from sqlalchemy import text
+
+    from voxe_service.db import session_scope
+    from worker import runtime, tasks
+
+    def body(job, settings, device, storage):
+        if fault == "scratch":
+            runtime.scratch_dir(job.id, settings)
+        else:
+            with session_scope() as session:
+                session.execute(text("SELECT no_such_column FROM jobs WHERE id = :id"), {"id": job.id})
+
+    (Path(db.work_dir) / "jobs").parent.mkdir(parents=True, exist_ok=True)
+    (Path(db.work_dir) / "jobs").write_text("not a folder")
+    monkeypatch.setattr(tasks, "_edit", body)
+    job_id = add_job(add_scene(), "queued", 0, completed_stages=["reconstruct"])
+    assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "failed"
+    error = job_row(job_id).error
+    assert str(db.work_dir) not in error and "SELECT" not in error and "sqlalche.me" not in error, error
+    if fault == "scratch":
+        assert error == "edit: NotADirectoryError: [Errno 20] Not a directory"
+    else:
+        assert error.startswith("edit: ") and "no_such_column" in error and "\n" not in error, error
+
+
 def test_a_fit_that_runs_out_of_memory_fails_its_job_alone_and_a_job_waiting_on_it_takes_it_over(db, monkeypatch):
     """Out of memory is its worker's fault, not the scene's, as when the OOM killer ends the process (whose lapsed
     lease a waiting job takes over): the fitting job fails saying so, and the job waiting on the shared fit (on a

@@ -25,6 +25,7 @@ from datetime import timedelta
 from pathlib import Path
 
 from sqlalchemy import Update, func, or_, select, update
+from sqlalchemy.exc import SQLAlchemyError
 
 from voxe_core.progress import Callbacks, Progress
 from voxe_service import datasets
@@ -65,10 +66,17 @@ def content_type(name: str) -> str:
 def failure_text(exc: BaseException) -> str:
     """``exc`` as a job's or a scene's failure says it: ``Type: words``, or the type alone when it has no words; a
     failed allocation as the worker out of memory, in the first line of its words (Python's MemoryError has none,
-    and had read "MemoryError: "; CUDA's adds a paragraph of allocator advice)."""
+    and had read "MemoryError: "; CUDA's adds a paragraph of allocator advice). Said to the job's or scene's owner,
+    it names nothing of the worker's (its log does): an OSError not the files on its disk it names, a database
+    error only the first line of the driver's words (SQLAlchemy adds the statement and its parameters, PostgreSQL
+    quotes the statement)."""
     from voxe_core.guidance.loading import is_out_of_memory
 
     words = str(exc)
+    if isinstance(exc, OSError) and exc.strerror and (exc.filename is not None or exc.filename2 is not None):
+        words = f"[Errno {exc.errno}] {exc.strerror}" if exc.errno is not None else exc.strerror
+    elif isinstance(exc, SQLAlchemyError) and getattr(exc, "orig", None) is not None:
+        words = str(exc.orig).strip().partition("\n")[0]  # (PostgreSQL's next lines quote the statement)
     if is_out_of_memory(exc):  # (PyTorch's advice follows "... is free." on the same line)
         said = words.splitlines()[0].split(" If reserved but unallocated")[0] if words else type(exc).__name__
         return f"out of memory on the worker ({said})"
