@@ -300,6 +300,40 @@ def test_an_ingest_stopped_by_a_storage_outage_goes_back_to_the_queue_keeping_th
                                                   "(VOXE_JOB_MAX_REQUEUES=3)")
 
 
+def test_an_ingest_on_a_worker_whose_disk_is_full_goes_back_to_the_queue_keeping_the_upload(client, dataset, root,
+                                                                                           monkeypatch):
+    """One worker's scratch disk full as it unpacks an upload (killed runs' folders, another job's grids) had failed
+    the scene and deleted its upload, a valid one, for good: every upload that worker took was lost. A full disk is
+    the machine's state, not the upload's fault: the message goes back to the queue, counted as an outage's return
+    is (a disk full at every run fails the scene at the limit), and the redelivery readies the scene."""
+    import errno
+    import os
+
+    from voxe_service import datasets
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
+    from worker import ingest as ingest_module
+    from worker import tasks
+
+    scene = upload_zip(client, zip_folder(dataset, root / "ok.zip", prefix="mic_small")).json()
+
+    def full(archive, dest):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(dest))
+
+    monkeypatch.setattr(ingest_module, "OUTAGE_PAUSE_S", 0.0)
+    with monkeypatch.context() as disk:
+        disk.setattr(datasets, "unpack", full)
+        result = tasks.ingest_task.apply(args=(scene["id"],))
+    assert result.state == "REJECTED" and result.result.requeue, result.result
+    assert result.result.reason == (f"the ingest of scene {scene['id']} stopped by the worker's disk full (OSError: "
+                                    f"[Errno {errno.ENOSPC}] {os.strerror(errno.ENOSPC)})")
+    assert client.get(f"/v1/scenes/{scene['id']}").json()["state"] == "processing"
+    assert stored_files(root) == [f"scenes/{scene['id']}/dataset.zip"]
+    with session_scope() as session:
+        assert session.get(Scene, scene["id"]).ingest_attempts == 1
+    assert ingest(scene["id"]) == {"scene_id": scene["id"], "state": "ready"}
+
+
 def test_a_cold_shutdown_in_an_ingests_outage_pause_sends_its_message_back(client, dataset, root, monkeypatch):
     """The pause before an ingest stopped by an outage goes back to the queue (up to minutes) is where a worker
     stopped meanwhile cancels it, raising in the task: that went through, the message acknowledged as failed and the
@@ -451,6 +485,8 @@ def test_an_ingest_that_cannot_make_its_folder_still_removes_the_killed_runs_and
     import tempfile
 
     from voxe_service.settings import get_settings
+    from worker import ingest as ingest_module
+    from worker import tasks
 
     scene = upload_zip(client, zip_folder(dataset, root / "ok.zip", prefix="mic_small")).json()
     work = Path(get_settings().work_dir) / "ingest"
@@ -471,8 +507,9 @@ def test_an_ingest_that_cannot_make_its_folder_still_removes_the_killed_runs_and
         return [path for path in paths if path.startswith(str(work.resolve()))]
 
     monkeypatch.setattr(tempfile, "mkdtemp", full)
-    with pytest.raises(OSError, match="No space left"):
-        ingest(scene["id"])
+    monkeypatch.setattr(ingest_module, "OUTAGE_PAUSE_S", 0.0)
+    result = tasks.ingest_task.apply(args=(scene["id"],))  # (the machine's state: the message goes back)
+    assert result.state == "REJECTED" and "No space left" in result.result.reason
     assert list(work.iterdir()) == [] and open_in_work() == []
 
 

@@ -13,6 +13,7 @@ error (file and frame, as the API's 422s) and the jobs waiting on it fail naming
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
@@ -130,13 +131,14 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
     processes killed, e.g. out of memory on this upload) fails the scene instead: an upload that kills its workers
     must not loop, as a job must not (``requeue_interrupted``).
 
-    An outage of the database (down, locked) or of the storage (unreachable, throttled) is no fault of the upload:
-    the message goes back to the queue after a pause that doubles with each run (``OUTAGE_PAUSE_S``: 5, 10, 20 s ...),
-    and its redelivery starts over. A database's, acknowledged as a failed task, had left the scene processing for
-    good (its worker alive, the reaper never failed it) and the jobs waiting on it queued; a storage's had failed the
-    scene and deleted its upload. A run that took the scene counts, as a stage's give-back counts: what answers as an
-    outage every time (a full disk, a statement timeout) fails the scene at the limit, naming it, rather than
-    decoding the upload again for ever; one that could not take it (the database down) does not.
+    An outage of the database (down, locked) or of the storage (unreachable, throttled), or the worker's disk full,
+    is no fault of the upload: the message goes back to the queue after a pause that doubles with each run
+    (``OUTAGE_PAUSE_S``: 5, 10, 20 s ...), and its redelivery starts over. A database's, acknowledged as a failed
+    task, had left the scene processing for good (its worker alive, the reaper never failed it) and the jobs waiting
+    on it queued; a storage's, or one worker's full disk, had failed the scene and deleted its upload. A run that
+    took the scene counts, as a stage's give-back counts: what answers as an outage every time (a full disk, a
+    statement timeout) fails the scene at the limit, naming it, rather than decoding the upload again for ever; one
+    that could not take it (the database down) does not.
     """
     interrupted, token = None, uuid.uuid4().hex
     try:
@@ -146,7 +148,7 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
         upload, interrupted = taken
         with ingest_lease(scene_id, token, settings) as lease:
             return _ingest(scene_id, token, upload, interrupted, lease, settings, storage)
-    except (*DATABASE_UNAVAILABLE, StorageUnavailable, LeaseLost) as exc:
+    except (*DATABASE_UNAVAILABLE, StorageUnavailable, LeaseLost, OSError) as exc:
         if isinstance(exc, LeaseLost):
             if lease.lost:  # another run holds the scene: what it stores is the scene's, this run writes nothing
                 if _ended(scene_id):  # (or none: the scene was deleted or failed meanwhile)
@@ -158,6 +160,8 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
             cause = f"a storage outage ({exc})"
         elif (why := database_outage(exc)) is not None:
             cause = f"a database outage ({why})"
+        elif _disk_full(exc):
+            cause = f"the worker's disk full ({failure_text(exc)})"
         else:
             raise
         log.warning("scene %s: the ingest stopped by %s; its message goes back to the queue", scene_id, cause)
@@ -168,6 +172,11 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
             if not worker_in_cold_shutdown():  # (raised through, the message had been acknowledged as failed)
                 raise
         raise Reject(f"the ingest of scene {scene_id} stopped by {cause}", requeue=True) from exc
+
+
+def _disk_full(exc: BaseException) -> bool:
+    """Whether ``exc`` is the worker's disk (or its quota) full: the machine's state, not the upload's fault."""
+    return isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT)
 
 
 def _take(scene_id: str, token: str, hostname: str | None, settings: Settings) -> tuple[StoredObject, int] | str:
@@ -235,8 +244,8 @@ def _ingest(scene_id: str, token: str, upload: StoredObject, interrupted: int, l
             if worker_in_cold_shutdown():  # ... but a cold shutdown's (it had failed the scene and deleted its upload)
                 _give_back(scene_id, token, uncount=True)
                 raise Reject(f"the ingest of scene {scene_id} stopped by the worker's shutdown", requeue=True) from exc
-            if isinstance(exc, (StorageUnavailable, LeaseLost)):  # ... a storage outage's, no fault of the upload
-                raise  # either, and a lost hold's (the scene another run's to end)
+            if isinstance(exc, (StorageUnavailable, LeaseLost)) or _disk_full(exc):  # ... a storage outage's or a
+                raise  # full disk's, no fault of the upload either, and a lost hold's (the scene another run's to end)
             reason = str(exc) if isinstance(exc, IngestError) else f"ingest: {failure_text(exc)}"
             if not isinstance(exc, IngestError):
                 log.exception("scene %s: ingest failed", scene_id)
