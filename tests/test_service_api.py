@@ -295,9 +295,9 @@ def test_an_ingest_stopped_by_a_storage_outage_goes_back_to_the_queue_keeping_th
     assert states == ["REJECTED"] * 4 + ["SUCCESS"] and pauses == [1.0, 2.0, 4.0, 8.0]
     failed = client.get(f"/v1/scenes/{again['id']}").json()
     assert (failed["state"], failed["error"]) == ("failed", "ingest: interrupted 4 times, its worker process dying "
-                                                  "each time (killed: out of memory?) or a database or storage outage "
-                                                  "stopping it; it was sent again 3 time(s) already, the limit "
-                                                  "(VOXE_JOB_MAX_REQUEUES=3)")
+                                                  "each time (killed: out of memory?), a database or storage outage or "
+                                                  "a full disk stopping it; it was sent again 3 time(s) already, the "
+                                                  "limit (VOXE_JOB_MAX_REQUEUES=3)")
 
 
 def test_an_ingest_on_a_worker_whose_disk_is_full_goes_back_to_the_queue_keeping_the_upload(client, dataset, root,

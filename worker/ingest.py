@@ -214,8 +214,8 @@ def _ingest(scene_id: str, token: str, upload: StoredObject, interrupted: int, l
     the archive another run recorded (every job's fetch had then failed its SHA-256 check)."""
     # The runs before this one, less the first: how often the ingest was sent again.
     if error := requeue_limit_error(interrupted - 1, settings, f"ingest: interrupted {interrupted} times, its worker "
-                                    "process dying each time (killed: out of memory?) or a database or storage "
-                                    "outage stopping it"):
+                                    "process dying each time (killed: out of memory?), a database or storage "
+                                    "outage or a full disk stopping it"):
         _fail(scene_id, token, error, storage)
         return {"scene_id": scene_id, "state": "failed"}
     mesh_upload = upload.key == scene_key(scene_id, datasets.UPLOAD_ARCHIVE)
