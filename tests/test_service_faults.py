@@ -2343,6 +2343,27 @@ def test_a_stage_the_database_refuses_to_start_each_time_fails_its_job_at_the_re
         ("requeued", reason)] * (limit - 1) + [("failed", job.error)]
 
 
+def test_a_stage_start_refused_names_the_drivers_first_line_not_the_statement(db, monkeypatch):
+    """PostgreSQL's words for a statement it refuses quote the statement on their next lines ("LINE 1: UPDATE jobs
+    SET ..."): a start refused so (a worker newer than its migrations) had put them on the job's timeline, and in its
+    error at the limit. The reason says the driver's first line, as a stage's failure does."""
+    from sqlalchemy.exc import ProgrammingError
+
+    from worker import runtime, tasks
+
+    monkeypatch.setattr(tasks, "DATABASE_RETRY_S", ())
+    refused = ProgrammingError("UPDATE jobs", {}, Exception(
+        'column "new_column" of relation "jobs" does not exist\nLINE 1: UPDATE jobs SET new_column=$1 WHERE '
+        'jobs.id = $2\n                         ^'))
+    monkeypatch.setattr(runtime, "begin_stage", lambda *a, **k: (_ for _ in ()).throw(refused))
+    job_id = add_job(add_scene(), "queued", 0)
+    result = tasks.reconstruct_task.apply(args=(job_id,))
+    assert result.state == "REJECTED" and job_row(job_id).requeues == 1
+    assert [(e["kind"], e["detail"]) for e in events_of(job_id)] == [
+        ("requeued", 'reconstruct could not start: ProgrammingError: column "new_column" of relation "jobs" does not '
+                     "exist")]
+
+
 def _ending_edit(ending: str, settings):
     """An edit stage that ends its job by ``ending`` (one of ``ENDINGS``), and the state and the words the job is to
     end with."""

@@ -111,7 +111,7 @@ def _begin_stage(task, job_id: str, stage: str, device: str, settings):
         if not isinstance(exc, SQLAlchemyError):
             raise
         # the driver's words (database is locked, value too long), not the statement and its parameters
-        reason = f"{stage} could not start: {type(exc).__name__}: {getattr(exc, 'orig', None) or exc}"
+        reason = f"{stage} could not start: {runtime.failure_text(exc)}"
         error = None
         with contextlib.suppress(SQLAlchemyError):  # a try that took the job, its answer lost: its hold, unrenewed,
             runtime.release_stage(job_id, run_token)  # had held the redelivery off for the lease (then counted)
@@ -163,8 +163,7 @@ def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> Task
         _requeue_if_shut_down(job_id, stage, token, exc)  # ... the one a cold shutdown raises in the task ...
         if (why := database_outage(exc)) is not None:  # ... and a database outage, no fault of the job's
             return _give_back_and_requeue(job_id, stage, token, f"{stage} stopped by a database outage ({why}): "
-                                          f"{type(exc).__name__}: {getattr(exc, 'orig', None) or exc}",
-                                          f"a database outage ({why})", exc, settings)
+                                          f"{runtime.failure_text(exc)}", f"a database outage ({why})", exc, settings)
         log.exception("job %s: %s failed", job_id, stage)
         return _end_job(job_id, stage, token, FAILED, settings, error=_error_message(stage, exc, job))
     except BaseException:  # the worker going down: its redelivered message takes the job at once (the database
