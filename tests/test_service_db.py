@@ -252,10 +252,12 @@ def test_jobs_of_0004_upgrade_to_webhooks_off_and_back(database_url):
     engine.dispose()
 
 
-def test_no_index_of_the_listed_tables_leads_another(database_url):
-    """A non-unique index whose columns lead another index's serves no lookup the longer one does not, and costs
-    every insert an update: the owner_key_id indexes of jobs and scenes had, once 0014 indexed (owner_key_id,
-    created_at, id). 0015 drops them; downgrading it gives them back."""
+def test_no_index_leads_another(database_url):
+    """A non-unique index whose columns lead another index, a unique constraint or the primary key serves no lookup
+    the longer one does not, and costs every insert an update: the owner_key_id indexes of jobs and scenes had, once
+    0014 indexed (owner_key_id, created_at, id), and the job_id (scene_id) indexes of artifacts, webhook_deliveries
+    and reconstructions, the lead of their unique constraints, since 0001 and 0005. Every table is checked; 0015
+    drops them; downgrading it gives them back."""
     from alembic import command
     from sqlalchemy import create_engine, inspect
 
@@ -265,19 +267,24 @@ def test_no_index_of_the_listed_tables_leads_another(database_url):
     command.upgrade(config, "head")
     engine = create_engine(database_url)
     schema = inspect(engine)
+    tables = schema.get_table_names()
+    assert {"jobs", "scenes", "artifacts", "webhook_deliveries", "reconstructions"} <= set(tables)
     leading = []
-    for table in ("jobs", "scenes"):
-        keys = {index["name"]: index["column_names"] for index in schema.get_indexes(table)}
+    for table in tables:
+        indexes = schema.get_indexes(table)
+        keys = {index["name"]: index["column_names"] for index in indexes}
         keys |= {unique["name"]: unique["column_names"] for unique in schema.get_unique_constraints(table)}
         keys[None] = schema.get_pk_constraint(table)["constrained_columns"]
-        leading += [(index["name"], name) for index in schema.get_indexes(table) if not index["unique"]
+        leading += [(table, index["name"], name) for index in indexes if not index["unique"]
                     for name, columns in keys.items()
                     if name != index["name"] and columns[:len(index["column_names"])] == index["column_names"]]
     assert leading == []
     command.downgrade(config, "0014_listing_order")
     schema = inspect(engine)
-    assert "ix_jobs_owner_key_id" in {index["name"] for index in schema.get_indexes("jobs")}
-    assert "ix_scenes_owner_key_id" in {index["name"] for index in schema.get_indexes("scenes")}
+    for table, name in [("jobs", "ix_jobs_owner_key_id"), ("scenes", "ix_scenes_owner_key_id"),
+                        ("artifacts", "ix_artifacts_job_id"), ("webhook_deliveries", "ix_webhook_deliveries_job_id"),
+                        ("reconstructions", "ix_reconstructions_scene_id")]:
+        assert name in {index["name"] for index in schema.get_indexes(table)}
     engine.dispose()
 
 

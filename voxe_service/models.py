@@ -153,10 +153,11 @@ class Reconstruction(Base):
     """
 
     __tablename__ = "reconstructions"
+    # Led by scene_id, its index is also that of every lookup by scene (migration 0015 dropped that column's own).
     __table_args__ = (UniqueConstraint("scene_id", "params_key", name="uq_reconstruction_scene_params"),)
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
-    scene_id: Mapped[str] = mapped_column(ForeignKey("scenes.id", ondelete="CASCADE"), index=True)
+    scene_id: Mapped[str] = mapped_column(ForeignKey("scenes.id", ondelete="CASCADE"))
     params_key: Mapped[str] = mapped_column(String(64))
     params: Mapped[dict] = mapped_column(JSON)
     state: Mapped[str] = mapped_column(String(16), default=R_PENDING)
@@ -277,12 +278,13 @@ class WebhookDelivery(Base):
     """
 
     __tablename__ = "webhook_deliveries"
+    # The unique (job_id, event_id), led by job_id, is also the index of every lookup by job (0015 dropped its own).
     __table_args__ = (UniqueConstraint("job_id", "event_id", name="uq_webhook_delivery_event"),
                       Index("ix_webhook_deliveries_state_due", "state", "next_attempt_at"),
                       Index("ix_webhook_deliveries_state_origin_due", "state", "origin", "next_attempt_at"))
 
     id: Mapped[str] = mapped_column(String(40), primary_key=True)
-    job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), index=True)
+    job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"))
     event_id: Mapped[int] = mapped_column(Integer)
     event_type: Mapped[str] = mapped_column(String(40))
     url: Mapped[str] = mapped_column(Text)
@@ -299,10 +301,11 @@ class WebhookDelivery(Base):
 
 class Artifact(Base):
     __tablename__ = "artifacts"
+    # Led by job_id, its index is also that of every lookup by job (migration 0015 dropped that column's own).
     __table_args__ = (UniqueConstraint("job_id", "name", name="uq_artifact_job_name"),)
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
-    job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), index=True)
+    job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"))
     name: Mapped[str] = mapped_column(String(255))
     key: Mapped[str] = mapped_column(String(512))
     size: Mapped[int] = mapped_column(BYTE_COUNT)
