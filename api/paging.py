@@ -17,7 +17,7 @@ from datetime import datetime, timezone
 
 from fastapi import HTTPException, Query, Request, status
 from sqlalchemy import func, select, true, tuple_
-from sqlalchemy.orm import Session, aliased
+from sqlalchemy.orm import Session, join
 
 MAX_OFFSET = 1_000_000_000
 MAX_CURSOR_LENGTH = 200
@@ -103,10 +103,12 @@ def read_page(session: Session, listing: str, model, filters: list, page: PageQu
     The total, the page's offset and its rows come from one statement, so from one snapshot of the table: counted
     apart, a row created between the statements had shifted an offset's page by one against its total, and given a
     cursor's page an offset past the total ("4–4 of 3"). The counts are the statement's first table, the page joined
-    to it, so a page past the end is still one row: the counts, with no page row."""
+    to it, so a page past the end is still one row: the counts, with no page row. The page is chosen by its ids (the
+    listing's index holds them) and its rows joined to those, so the statement is ordered by the model's own columns:
+    ordered by an aliased page's, each call had adapted them to it, three times the two statements' Python time."""
     place = tuple_(model.created_at, model.id)
     counts = [func.count().label("total")]
-    chosen = select(model).where(*filters).order_by(model.created_at.desc(), model.id.desc())
+    chosen = select(model.id).where(*filters).order_by(model.created_at.desc(), model.id.desc())
     if page.after is None:
         chosen = chosen.offset(page.offset)
     else:
@@ -114,9 +116,9 @@ def read_page(session: Session, listing: str, model, filters: list, page: PageQu
         chosen = chosen.where(place < page.after)
     counted = select(*counts).select_from(model).where(*filters).subquery("counts")
     chosen = chosen.limit(page.limit + 1).subquery("page")  # (one past the page: is there a next one?)
-    row = aliased(model, chosen)
-    found = session.execute(select(counted, row).select_from(counted).outerjoin(chosen, true())
-                            .order_by(row.created_at.desc(), row.id.desc())).all()
+    page_rows = join(model, chosen, model.id == chosen.c.id)
+    found = session.execute(select(counted, model).select_from(counted.outerjoin(page_rows, true()))
+                            .order_by(model.created_at.desc(), model.id.desc())).all()
     total, offset = found[0].total, (page.offset if page.after is None else found[0].before)
     rows = [found_row[-1] for found_row in found if found_row[-1] is not None]
     more = len(rows) > page.limit
