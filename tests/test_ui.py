@@ -255,6 +255,7 @@ def test_upload_edit_and_watch_a_local_edit_to_its_video_and_3d_view(live, brows
     assert text(driver, "#job-state") == "succeeded", text(driver, "#job-message")
     assert len({v for v in seen if 0 < v < 1}) >= 2, seen  # several values in between, as the job ran
     assert driver.execute_script("return document.querySelector('#job-overall-progress').value") == 1
+    assert text(driver, "#job-eta") == "–"  # (the API's 0 s left for it had read "finishing…")
     assert max(seen[:len(seen) // 2]) < 1, seen
     events = [e.get_attribute("data-event") for e in driver.find_elements("css selector", "#job-events li")]
     assert events[-1] == "succeeded" and "preview" in events and "stage_completed" in events, events
@@ -911,19 +912,35 @@ def test_a_failing_stream_is_asked_again_less_often_each_time(live, browser):
     faults(driver, {})
 
 
-def test_an_eta_already_past_reads_finishing(live, browser):
-    """A running job slower than its estimate (the ETA below zero) reads "finishing…", not "0 s left"."""
+def test_only_a_running_job_and_stage_show_a_time_left(live, browser):
+    """The ETAs the API sends (voxe_service.progress.overall's): a succeeded job's 0 s left shows no ETA, a running
+    job between stages (the worker's 0 s left for the stage done) none for the stage, and only a running stage's
+    ETA reached reads "finishing…" (each had read "finishing…")."""
+    from voxe_service.progress import overall
+
     svc, token, _archive = live
     driver = browser
-    job = running_job("late", overall_eta_seconds=-30, eta_seconds=-30)
+    costs = [("reconstruct", 10.0), ("edit", 80.0), ("export", 10.0)]
+    ended = dict(state="succeeded", stage="export", completed_stages=["reconstruct", "edit", "export"])
+    between = dict(state="running", stage="edit", completed_stages=["reconstruct", "edit"])
+    last = dict(state="running", stage="export", completed_stages=["reconstruct", "edit"])
+    jobs = {"done": ({**ended, "eta_seconds": None}, 1.0, None, True),
+            "between": ({**between, "eta_seconds": 0.0}, 1.0, 0.0, False),
+            "last": ({**last, "eta_seconds": 0.3}, 0.99, 0.3, False)}
     answer = lambda body: {"status": 200, "type": "application/json", "body": json.dumps(body)}  # noqa: E731
     set_key(driver, svc, token)
-    faults(driver, {"/v1/jobs/late$": answer(job), "/v1/jobs/late/artifacts$": answer([]),
-                    "/v1/jobs/late/events": {"timeline": [], "recorded": 0, "open": True}})
-    go(driver, "#/jobs/late")
-    wait_until(lambda: text(driver, "#job-state") == "running", 10, what="the job page")
-    assert text(driver, "#job-eta") == "finishing… (this stage: finishing…)"
-    go(driver, "#/")
+    shown = {}
+    for job_id, (fields, fraction, stage_eta, finished) in jobs.items():
+        _, left = overall(costs=costs, completed=fields["completed_stages"], stage=fields["stage"],
+                          stage_fraction=fraction, stage_eta_s=stage_eta, finished=finished)
+        faults(driver, {f"/v1/jobs/{job_id}$": answer(running_job(job_id, **fields, overall_eta_seconds=left)),
+                        f"/v1/jobs/{job_id}/artifacts$": answer([]),
+                        f"/v1/jobs/{job_id}/events": {"timeline": [], "recorded": 0, "open": True}})
+        go(driver, f"#/jobs/{job_id}")
+        wait_until(lambda: text(driver, "#job-state") == fields["state"], 10, what="the job page")
+        shown[job_id] = text(driver, "#job-eta")
+        go(driver, "#/")
+    assert shown == {"done": "–", "between": "10 s left", "last": "finishing… (this stage: finishing…)"}
     faults(driver, {})
 
 

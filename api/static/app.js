@@ -501,12 +501,20 @@ function renderProgress(p) {
   $("#job-stage-text").textContent = p.total ? `${p.iteration}/${p.total}` : "–";  // none before a stage starts
   $("#job-overall-progress").value = p.overall_progress ?? 0;
   $("#job-overall-text").textContent = percent(p.overall_progress ?? 0);
-  $("#job-eta").textContent = p.overall_eta_seconds != null
-    ? `${timeLeft(p.overall_eta_seconds)} (this stage: ${timeLeft(p.eta_seconds)})` : "–";
+  $("#job-eta").textContent = eta(p);
   const losses = Object.entries(p.losses || {});
   $("#job-losses").textContent = losses.length ? losses.map(([k, v]) => `${k} ${Number(v).toPrecision(4)}`).join(" · ") : "–";
   $("#job-message").textContent = p.error || p.message || "";
   $("#job-cancel").disabled = TERMINAL.has(p.state);
+}
+
+/** The time left of a running job, and of its stage while one runs; none for a job that ended (the API's 0 s left
+ * for a succeeded job had read "finishing…"), nor for a stage done (the worker's 0 s left between stages had read
+ * "this stage: finishing…"). */
+function eta(p) {
+  if (TERMINAL.has(p.state) || p.overall_eta_seconds == null) return "–";
+  const stageRuns = p.stage && !(p.completed_stages || []).includes(p.stage);
+  return timeLeft(p.overall_eta_seconds) + (stageRuns ? ` (this stage: ${timeLeft(p.eta_seconds)})` : "");
 }
 
 /** Show a file in an <img>, <video> or <model-viewer> (through the attribute, which all three read). */
@@ -716,8 +724,8 @@ function duration(seconds) {
     : s >= 60 ? `${Math.floor(s / 60)} min ${s % 60} s` : `${s} s`;
 }
 
-/** An ETA as the time left; one already past (the job slower than its estimate) reads "finishing…", not
- * "0 s left". */
+/** A running job's or stage's ETA as the time left; one that rounds to 0 (its estimate reached) reads "finishing…",
+ * not "0 s left". */
 function timeLeft(seconds) {
   return seconds == null ? "–" : Math.round(seconds) > 0 ? `${duration(seconds)} left` : "finishing…";
 }
