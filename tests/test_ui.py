@@ -912,6 +912,47 @@ def test_a_failing_stream_is_asked_again_less_often_each_time(live, browser):
     faults(driver, {})
 
 
+def test_a_stream_answered_with_no_event_stream_is_a_failure_said_and_asked_less_often(live, browser):
+    """A 2xx answer to the stream request that is no event stream (a proxy's login page), or an event stream that
+    ends with nothing delivered, is a failure, said and asked again less often each time; the count goes back to
+    none once a stream delivers anything, be it a comment (the server's keepalive). Counted answered on any 2xx,
+    such answers had been asked for again every 2 s (here: the retry interval), with no word on the page."""
+    svc, token, _archive = live
+    driver = browser
+    answer = lambda body, kind="application/json": {"status": 200, "type": kind, "body": body}  # noqa: E731
+    stream_error = lambda: text(driver, '[data-error-for="stream"]')  # noqa: E731
+    login = answer("<html><body><form>Sign in</form></body></html>", "text/html; charset=utf-8")
+    set_key(driver, svc, token)
+
+    def gaps_after(first: dict, then: dict, count: int) -> list[int]:
+        """The gaps between the stream requests (ms) once ``first`` answered one and ``then`` the next ``count``."""
+        faults(driver, {"/v1/jobs/proxied/events": {"once": True, **first}, "/v1/jobs/proxied/events$": then})
+        known = len(streams(driver, "proxied"))
+        wait_until(lambda: len(streams(driver, "proxied")) >= known + count + 1, 20, what="the stream asked again")
+        times = [r["at"] for r in streams(driver, "proxied")][known:known + count + 1]
+        return [later - earlier for earlier, later in zip(times, times[1:])]
+
+    faults(driver, {"/v1/jobs/proxied$": answer(json.dumps(running_job("proxied"))),
+                    "/v1/jobs/proxied/artifacts$": answer("[]"),
+                    "/v1/jobs/proxied/event": {"once": True, **answer("[]")},  # the timeline read as JSON
+                    "/v1/jobs/proxied/events$": login})
+    driver.execute_script("window.requests = []")
+    go(driver, "#/jobs/proxied")
+    wait_until(lambda: "no event stream" in stream_error(), 10, what="the login page refused")
+    assert stream_error() == ("event stream: 200: the answer (text/html; charset=utf-8) is no event stream; "
+                              "reconnecting")
+    # The server's retry interval (100 ms) after its stream, then twice as long after each login page.
+    for first, then in ((answer("retry: 100\n\n", "text/event-stream"), login),
+                        (answer(": keepalive\n\n", "text/event-stream"), answer("", "text/event-stream"))):
+        gaps = gaps_after(first, then, 5)
+        for earlier, later in zip(gaps[1:], gaps[2:]):
+            assert 1.5 * earlier < later < 3 * earlier, gaps
+        assert gaps[0] < 250, gaps
+    assert stream_error() == "event stream: 200: the stream ended with nothing received; reconnecting"
+    go(driver, "#/")
+    faults(driver, {})
+
+
 def test_only_a_running_job_and_stage_show_a_time_left(live, browser):
     """The ETAs the API sends (voxe_service.progress.overall's): a succeeded job's 0 s left shows no ETA, a running
     job between stages (the worker's 0 s left for the stage done) none for the stage, and only a running stage's

@@ -49,6 +49,12 @@ const REASON_PHRASES = {
   507: "Insufficient Storage",
 };
 
+/** The error of a 2xx answer that is no ``expected`` (a login page a proxy sent the request to), naming what came
+ * back. */
+function notTheApis(status, contentType, expected) {
+  return new ApiError(status, `the answer (${contentType || "untyped"}) is no ${expected}`);
+}
+
 async function responseError(response) {
   return apiError(response.status, response.statusText, response.headers.get("Content-Type"), await response.text());
 }
@@ -203,8 +209,8 @@ function initUpload() {
       let body = null;
       try { body = JSON.parse(xhr.responseText); } catch { /* no JSON: said below */ }
       if (typeof body?.id !== "string") {  // no API answer (a login page a proxy sent the upload to): said, not thrown
-        showError("upload", `${xhr.status}: the answer (${xhr.getResponseHeader("Content-Type") || "untyped"}) is no `
-                            + "scene: the upload may not have been stored");
+        const error = notTheApis(xhr.status, xhr.getResponseHeader("Content-Type"), "scene");
+        showError("upload", `${errorText(error)}: the upload may not have been stored`);
         status.textContent = "";
         return;
       }
@@ -591,7 +597,9 @@ const STREAM_RETRY_CAP_MS = 30_000;
 /** Read the job's Server-Sent Events after event ``afterId`` (none: from its start) with fetch() (the key in a
  * header), reconnecting with Last-Event-ID until the job ends or the page changes: after the server's retry
  * interval, doubled for each failure in a row (a failing server had been asked again every 2 s for as long as the
- * page stayed open), back to it once a connection is answered. */
+ * page stayed open), back to it once a stream delivers an event or a comment. A 2xx answer that is no event stream
+ * (a proxy's login page), or a stream that ends with nothing delivered, is such a failure: reset on any 2xx, they
+ * had been asked again every 2 s, saying nothing. */
 async function followEvents(jobId, afterId, signal) {
   let lastId = afterId == null ? null : String(afterId);
   let retryMs = 2000;
@@ -609,9 +617,18 @@ async function followEvents(jobId, afterId, signal) {
         }
         throw error;
       }
-      failures = 0;
-      showError("stream", "");
+      const type = response.headers.get("Content-Type");
+      if (!/^text\/event-stream\b/i.test(type || "")) {
+        response.body?.cancel().catch(() => {});  // (unread, it would hold its connection)
+        throw notTheApis(response.status, type, "event stream");
+      }
+      let delivered = false;
       for await (const event of parseSse(response.body, STREAM_SILENCE_MS)) {
+        if (!delivered) {
+          delivered = true;
+          failures = 0;
+          showError("stream", "");
+        }
         if (event.retry) retryMs = event.retry;
         if (event.id) lastId = event.id;
         if (!event.event) continue;
@@ -624,6 +641,7 @@ async function followEvents(jobId, afterId, signal) {
         if (TERMINAL.has(event.event) || TERMINAL.has(event.data?.state)) finished = true;
       }
       if (finished) return;  // the server ends the stream after the terminal event
+      if (!delivered) throw new ApiError(response.status, "the stream ended with nothing received");
     } catch (error) {
       if (signal.aborted) return;
       failures += 1;
@@ -655,7 +673,8 @@ function listEvent(kind, data) {
   $("#job-events").append(item);
 }
 
-/** Server-Sent Events from a byte stream: {id, event, data (JSON-decoded), retry} per blank-line-ended block. A
+/** Server-Sent Events from a byte stream: {id, event, data (JSON-decoded), retry} per blank-line-ended block, and
+ * {comment} per comment line (the server's keepalive: a sign of life, with no event). A
  * TimeoutError when nothing arrives for ``silenceMs``; the stream is cancelled (its connection closed) when its
  * reading ends, however it ends. */
 async function* parseSse(body, silenceMs) {
@@ -684,7 +703,9 @@ async function* sseBlocks(reader, silenceMs) {
           yield { id: block.id, event: block.event, retry: block.retry, data: text ? JSON.parse(text) : null };
         }
         block = { data: [] };
-      } else if (!line.startsWith(":")) {
+      } else if (line.startsWith(":")) {
+        yield { comment: line.slice(1) };
+      } else {
         const colon = line.indexOf(":");
         const field = colon < 0 ? line : line.slice(0, colon);
         const value = colon < 0 ? "" : line.slice(colon + 1).replace(/^ /, "");
