@@ -559,7 +559,8 @@ def test_an_upload_answered_after_a_look_at_a_job_is_watched_until_its_scene_is_
 
 def test_an_upload_answered_with_no_scene_says_so(live, browser, tmp_path):
     """An upload answered 200 with no scene (a proxy's login page it was redirected to) is said beside the upload: its
-    answer had been parsed unguarded, an unhandled rejection left the form at "100 % sent"."""
+    answer had been parsed unguarded, an unhandled rejection left the form at "100 % sent". Sent again, it keeps its
+    Idempotency-Key: it may have been stored."""
     svc, token, _archive = live
     driver = browser
     set_key(driver, svc, token)
@@ -567,15 +568,22 @@ def test_an_upload_answered_with_no_scene_says_so(live, browser, tmp_path):
     mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
     driver.execute_script("window.rejections = [];"
                           "addEventListener('unhandledrejection', (e) => rejections.push(String(e.reason)));"
+                          "window.keys = [];"
+                          "XMLHttpRequest.prototype.setRequestHeader = ((set) => function (name, value) {"
+                          " if (name === 'Idempotency-Key') keys.push(value); set.call(this, name, value); })"
+                          "(XMLHttpRequest.prototype.setRequestHeader);"
                           "XMLHttpRequest.prototype.open = ((open) => function () { open.call(this, 'GET', '/'); })"
                           "(XMLHttpRequest.prototype.open);")
     driver.find_element("id", "upload-files").send_keys(str(mesh))
-    driver.find_element("css selector", "#upload-form button").click()
-    wait_until(lambda: text(driver, '[data-error-for="upload"]'), 10, what="the answer refused")
-    assert text(driver, '[data-error-for="upload"]') == ("200: the answer (text/html; charset=utf-8) is no scene: the "
-                                                         "upload may not have been stored")
-    assert driver.execute_script("return window.rejections") == []
-    assert driver.find_element("css selector", "#upload-form button").is_enabled()
+    for _ in range(2):
+        driver.find_element("css selector", "#upload-form button").click()
+        wait_until(lambda: text(driver, '[data-error-for="upload"]'), 10, what="the answer refused")
+        assert text(driver, '[data-error-for="upload"]') == ("200: the answer (text/html; charset=utf-8) is no scene: "
+                                                             "the upload may not have been stored")
+        assert driver.execute_script("return window.rejections") == []
+        assert driver.find_element("css selector", "#upload-form button").is_enabled()
+    keys = driver.execute_script("return window.keys")
+    assert len(keys) == 2 and keys[0] == keys[1], keys
     driver.refresh()
 
 
