@@ -35,7 +35,7 @@ function apiError(status, statusText, contentType, text) {
   if (/^application\/([\w.-]+\+)?json\b/i.test(contentType || "")) {
     try { detail = JSON.parse(text).detail; } catch { /* a broken JSON body: the status text below */ }
   }
-  const plain = /^text\/plain\b/i.test(contentType || "") ? text.trim().split("\n")[0].slice(0, 200) : "";
+  const plain = /^text\/plain\b/i.test(contentType || "") ? text.trim().split(/\r?\n/)[0].slice(0, 200) : "";
   return new ApiError(status, detail ?? (statusText || REASON_PHRASES[status] || plain || "no reason given"));
 }
 
