@@ -587,6 +587,34 @@ def test_an_upload_answered_with_no_scene_says_so(live, browser, tmp_path):
     driver.refresh()
 
 
+def test_an_edit_answered_with_no_job_says_so(live, browser):
+    """An edit's submission answered 2xx with no job, a proxy's HTML login page or a JSON answer without an id, is
+    said beside the form, naming what came back, and sent again with the same Idempotency-Key (it may have been
+    created): the HTML had shown JSON.parse's "SyntaxError: Unexpected token…", the JSON opened "#/jobs/undefined"."""
+    svc, token, _archive = live
+    driver = browser
+    error = lambda: text(driver, '[data-error-for="job"]')  # noqa: E731
+    set_key(driver, svc, token)
+    driver.execute_script("window.rejections = [];"
+                          "addEventListener('unhandledrejection', (e) => rejections.push(String(e.reason)));")
+    driver.find_element("id", "job-prompt").send_keys("a mic made of gold")
+    for kind, body, said in (("text/html; charset=utf-8", "<html><body><form>Sign in</form></body></html>",
+                              "200: the answer (text/html; charset=utf-8) is no JSON"),
+                             ("application/json", '{"ok": true}',
+                              'the answer ({"ok":true}) is no job: it may not have been created')):
+        faults(driver, {"/v1/jobs$": {"method": "POST", "status": 200, "type": kind, "body": body}})
+        driver.find_element("css selector", "#job-form button").click()
+        wait_until(error, 10, what="the answer refused")
+        assert error() == said
+        assert driver.execute_script("return location.hash") in ("", "#/")
+        assert driver.find_element("css selector", "#job-form button").is_enabled()
+    assert driver.execute_script("return window.rejections") == []
+    keys = [r["headers"]["Idempotency-Key"] for r in requested(driver, "/v1/jobs", "POST")]
+    assert len(keys) == 2 and keys[0] == keys[1], keys
+    faults(driver, {})
+    driver.refresh()
+
+
 def test_a_scene_chosen_then_deleted_leaves_one_offered_chosen(live, browser):
     """The scene chosen for an edit, and as the job list's filter, deleted meanwhile: the next look at the scenes
     chooses one offered, and the filter "all" (both had shown nothing chosen, the edit sent with no scene)."""

@@ -16,14 +16,21 @@ function authHeaders(extra = {}) {
   return key ? { ...extra, Authorization: `Bearer ${key}` } : extra;
 }
 
-/** A JSON request; throws an ApiError carrying the response's `detail` on a non-2xx answer. */
+/** A JSON request; throws an ApiError carrying the response's `detail` on a non-2xx answer, and one naming its type
+ * on a 2xx answer that is no JSON (a login page a proxy sent the request to: JSON.parse's SyntaxError had been shown,
+ * "Unexpected token '<'"). */
 async function api(path, { method = "GET", body, headers = {}, signal } = {}) {
   const sent = authHeaders(body === undefined ? headers : { ...headers, "Content-Type": "application/json" });
   const response = await fetch(path, { method, signal, headers: sent,
                                        body: body === undefined ? undefined : JSON.stringify(body) });
   if (!response.ok) throw await responseError(response);
   const text = await response.text();
-  return text ? JSON.parse(text) : null;
+  if (!text) return null;
+  try {
+    return JSON.parse(text);
+  } catch {
+    throw notTheApis(response.status, response.headers.get("Content-Type"), "JSON");
+  }
 }
 
 /** The error of a non-2xx answer: FastAPI's `detail` from a JSON body, else the status text (a plain-text 500 or
@@ -314,6 +321,10 @@ function initJobForm() {
     try {
       const headers = { "Idempotency-Key": idempotency.for(JSON.stringify(body)) };
       const job = await api("/v1/jobs", { method: "POST", body, headers });
+      if (typeof job?.id !== "string") {  // no job (a proxy's own JSON): said, not opened as "#/jobs/undefined"
+        showError("job", `the answer (${JSON.stringify(job).slice(0, 200)}) is no job: it may not have been created`);
+        return;
+      }
       idempotency.succeeded();
       location.hash = `#/jobs/${encodeURIComponent(job.id)}`;
     } catch (error) {
