@@ -539,6 +539,31 @@ def test_a_receiver_past_one_walks_bound_is_reached_by_the_next(tmp_path, monkey
     assert claimed == [["https://b.example:443"], ["https://c.example:443", "https://d.example:443"], []], claimed
 
 
+def test_a_claim_that_walks_the_receivers_still_takes_what_its_first_read_found(tmp_path, monkeypatch, database_url):
+    """A dead receiver's due (at its cap) and another receiver's fill the claim's first read (eight for two slots), so
+    it walks the receivers, at most two here: the dead one and one backing off. The walk's choice had replaced the
+    first read's, so ``zz-ok``'s due delivery, found by the first read but outside the walk's window, was dropped
+    and the claim took nothing; it goes at once."""
+    import voxe_service.webhooks
+    from voxe_service.db import session_scope
+    from voxe_service.models import utcnow
+    from voxe_service.webhooks import InFlight, Shares, claim_due
+
+    monkeypatch.setattr(voxe_service.webhooks, "RECEIVERS_WALKED", 2)
+    due_deliveries(tmp_path, monkeypatch, database_url,
+                   [(f"https://a-dead.example/{n}", n - 100, "dead") for n in range(7)]
+                   + [("https://zz-ok.example/hook", -50, "ok")]
+                   + [(f"https://m{n}.example/hook", 600, f"m{n}") for n in range(3)])
+    in_flight = InFlight(Counter({"https://a-dead.example:443": 1}), Counter({"dead": 1}))
+    try:
+        with session_scope() as session:
+            won = claim_due(session, utcnow(), 30, 2, Shares(1, 1), in_flight)
+    finally:
+        reset_service_caches()
+    assert in_flight.walked_to == "https://m0.example:443"  # (the walk ran, and stopped short of zz-ok)
+    assert [claim[:2] for claim in won] == [("msg_000007", "https://zz-ok.example:443")]
+
+
 @pytest.mark.parametrize("receivers", [12, 40])  # within the claim's first read of the earliest due, and past it
 def test_one_keys_many_receivers_leave_the_other_keys_their_share_of_the_slots(tmp_path, monkeypatch, database_url,
                                                                              receivers):

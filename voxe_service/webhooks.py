@@ -422,9 +422,10 @@ def claim_due(session: Session, now: datetime, lease_s: float, limit: int, share
     backlog nor with the receivers backing off: it reads the earliest due few off the index on (state, due time)
     and caps them here; only when receivers or keys at their share fill that read does it walk the receivers off
     the index on (state, origin, due time), at most :data:`RECEIVERS_WALKED` of them, each walk going on after the
-    last (``in_flight.walked_to``), and take the earliest of those due soonest (ranking every due delivery had taken
-    a quarter of a second each poll with 100,000 due to a dead receiver; visiting every receiver with one pending,
-    55 ms with 20,000 backing off). Deliveries written with no origin are given their URL's first
+    last (``in_flight.walked_to``), and take the earliest of the first read's and the walk's (a walk's alone had
+    dropped those of the first read's receivers outside its window, whole claims taking none; ranking every due
+    delivery had taken a quarter of a second each poll with 100,000 due to a dead receiver; visiting every receiver
+    with one pending, 55 ms with 20,000 backing off). Deliveries written with no origin are given their URL's first
     (:func:`_fill_origins`), committed before the claim, which leaves any still without one to the next: a sender
     holding the rows it filled while claiming others had deadlocked on PostgreSQL with one filling deliveries an
     older API had just written (one claimed, the other's pass failed).
@@ -443,7 +444,8 @@ def claim_due(session: Session, now: datetime, lease_s: float, limit: int, share
         candidates = []
         for origin, room in _soonest_with_room(_walk_origins(session, now, in_flight), limit, shares, in_flight):
             candidates += session.execute(due.where(WebhookDelivery.origin == origin).limit(room)).all()
-        chosen = _within_shares(sorted(candidates), limit, shares, in_flight)
+        found = {row.id: row for row in (*earliest, *candidates)}  # (the walk's window may not hold the first read's)
+        chosen = _within_shares(sorted(found.values()), limit, shares, in_flight)
     won = []
     for _due, delivery_id, origin, key_id in chosen:
         result = session.execute(
