@@ -645,6 +645,34 @@ def test_deliveries_written_without_an_origin_get_their_urls_before_a_claim(tmp_
     assert origins == ["https://a.example:443", "https://b.example:443"]
 
 
+def test_a_walk_of_the_receivers_passes_over_deliveries_whose_origin_is_not_filled_in(tmp_path, monkeypatch,
+                                                                                     database_url):
+    """A rolling upgrade leaves more deliveries without an origin than one claim fills in (one here, the first, due
+    after ``ok``'s): those left (due before it) had been walked as a receiver, ``''``, the soonest due of the walk with room, so the claim's
+    one pick went to deliveries no claim takes and ``ok``'s due delivery waited. The walk passes over them."""
+    from sqlalchemy import update
+
+    import voxe_service.webhooks
+    from voxe_service.db import session_scope
+    from voxe_service.models import WebhookDelivery, utcnow
+    from voxe_service.webhooks import InFlight, Shares, claim_due
+
+    monkeypatch.setattr(voxe_service.webhooks, "ORIGIN_FILL_BATCH", 1)
+    due_deliveries(tmp_path, monkeypatch, database_url,
+                   [(f"https://dead.example/{n}", n - 100, "dead") for n in range(4)]
+                   + [(f"https://old{n}.example/hook", due, f"old{n}") for n, due in enumerate((-40, -60, -60))]
+                   + [("https://ok.example/hook", -50, "ok")])
+    try:
+        with session_scope() as session:
+            session.execute(update(WebhookDelivery).where(WebhookDelivery.url.like("https://old%")).values(origin=""))
+        with session_scope() as session:
+            won = claim_due(session, utcnow(), 30, 1, Shares(1, 1),
+                            InFlight(Counter({"https://dead.example:443": 1}), Counter({"dead": 1})))
+    finally:
+        reset_service_caches()
+    assert [claim[:2] for claim in won] == [("msg_000007", "https://ok.example:443")]
+
+
 def test_senders_filling_origins_an_older_api_left_out_do_not_deadlock(tmp_path, monkeypatch, postgres_server):
     """PostgreSQL, a rolling upgrade: one sender has filled in the origin of a delivery an older API wrote without one
     when the older API writes another (its id first, due first), which a second sender starts filling (in id order:

@@ -524,12 +524,12 @@ def _pending_origins(session: Session, now: datetime, after: str | None,
                      count: int) -> list[tuple[str, datetime | None, str | None]]:
     """The first ``count`` receivers with deliveries pending (those after ``after``), each with its earliest due at
     ``now`` and that delivery's key (None, None: none is due), read off the index one receiver after the other (a
-    recursive query: SQLite and PostgreSQL scan an index for its distinct values whole, every delivery pending)."""
+    recursive query: SQLite and PostgreSQL scan an index for its distinct values whole, every delivery pending).
+    Never ``''``, deliveries whose origin is not filled in yet (:func:`_fill_origins`): no claim takes them, and
+    walked as a receiver they had used one of the claim's picks for nothing."""
     pending = WebhookDelivery.state == PENDING
     first = (select(func.min(WebhookDelivery.origin).label("origin"), literal_column("1", Integer).label("visited"))
-             .where(pending))
-    if after is not None:
-        first = first.where(WebhookDelivery.origin > after)
+             .where(pending, WebhookDelivery.origin > (after or "")))
     origins = first.cte("origins", recursive=True)
     following = select(func.min(WebhookDelivery.origin)).where(pending, WebhookDelivery.origin > origins.c.origin)
     origins = origins.union_all(select(following.scalar_subquery(), origins.c.visited + 1)
