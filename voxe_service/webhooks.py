@@ -534,14 +534,16 @@ def _pending_origins(session: Session, now: datetime, after: str | None,
     following = select(func.min(WebhookDelivery.origin)).where(pending, WebhookDelivery.origin > origins.c.origin)
     origins = origins.union_all(select(following.scalar_subquery(), origins.c.visited + 1)
                                 .where(origins.c.origin.is_not(None), origins.c.visited < count))
-    earliest_due = (select(WebhookDelivery.next_attempt_at, Job.owner_key_id)
-                    .join(Job, Job.id == WebhookDelivery.job_id)
+    earliest_due = (select(WebhookDelivery.id)
                     .where(pending, WebhookDelivery.origin == origins.c.origin, WebhookDelivery.next_attempt_at <= now)
-                    .order_by(WebhookDelivery.next_attempt_at, WebhookDelivery.id).limit(1))
-    return [tuple(row) for row in session.execute(
-        select(origins.c.origin, earliest_due.with_only_columns(WebhookDelivery.next_attempt_at).scalar_subquery(),
-               earliest_due.with_only_columns(Job.owner_key_id).scalar_subquery())
-        .where(origins.c.origin.is_not(None)))]
+                    .order_by(WebhookDelivery.next_attempt_at, WebhookDelivery.id).limit(1).scalar_subquery())
+    walked = (select(origins.c.origin, earliest_due.label("earliest_due_id"))
+              .where(origins.c.origin.is_not(None)).subquery())
+    return [tuple(row) for row in session.execute(  # (its due time and key joined to its id: one search a receiver)
+        select(walked.c.origin, WebhookDelivery.next_attempt_at, Job.owner_key_id)
+        .outerjoin(WebhookDelivery, WebhookDelivery.id == walked.c.earliest_due_id)
+        .outerjoin(Job, Job.id == WebhookDelivery.job_id)
+        .order_by(walked.c.origin))]
 
 
 def backoff_s(attempts: int, base_s: float, max_s: float) -> float:
