@@ -479,7 +479,7 @@ def _soonest_with_room(origins: list[tuple[str, datetime | None, str | None]], l
     room, each with how many of its earliest to read: those whose earliest delivery's key has room, counting one
     for each receiver of the key already taken, so one key's many receivers cannot crowd the others' out. (A
     receiver whose earliest delivery's key is at its share waits until that one goes, though other keys' are due
-    behind it: one receiver's deliveries go the earliest first.)"""
+    behind it, unless the first read found them: looking past it would read all its due of that key, a backlog.)"""
     by_key = Counter(in_flight.by_key)
     chosen = []
     for origin, _first_due, key_id in sorted((o for o in origins if o[1] is not None), key=lambda o: (o[1], o[0])):
