@@ -430,6 +430,22 @@ def test_matter_touching_the_box_is_capped_on_the_box():
     assert mesh.is_watertight and mesh.volume == pytest.approx(27.0, rel=1e-6)
 
 
+@pytest.mark.parametrize("dense", ["all", "corner voxel", "edge voxel"])
+@pytest.mark.parametrize("resolution", [None, 13])
+def test_a_mesh_capped_on_the_box_stays_closed_when_a_reader_welds_its_vertices(dense, resolution, tmp_path):
+    grid = VoxelGrid(8, init_density=-10.0)
+    with torch.no_grad():
+        target = {"all": (...,), "corner voxel": (0, 0, 0), "edge voxel": (0, 0, 3)}[dense]
+        grid.features[target + (0,)] = 100.0
+    mesh = extract_mesh(grid, resolution=resolution)
+    assert (mesh.area_faces > 0).all()
+    assert len(np.unique(mesh.vertices, axis=0)) == len(mesh.vertices)
+    save_mesh(mesh, tmp_path / "m.ply")
+    loaded = trimesh.load(tmp_path / "m.ply")  # welds equal vertices, as MeshLab's and Blender's imports may
+    assert loaded.is_watertight and loaded.is_winding_consistent
+    assert loaded.volume == pytest.approx(mesh.volume) and loaded.volume > 0
+
+
 def test_empty_grid_raises_clear_error():
     grid = VoxelGrid(8, init_density=-1.0)
     with pytest.raises(ValueError, match="grid has no surface at level"):
