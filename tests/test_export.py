@@ -19,6 +19,7 @@ from voxe_core.export import (
     render_views,
     save_mesh,
     save_png,
+    to_uint8,
     VideoWriter,
     turntable_cameras,
     write_video,
@@ -281,8 +282,8 @@ def decoded_video(path) -> tuple[list[np.ndarray], list[int]]:
                                           ("v.gif", 2, 120.0)])
 def test_a_video_streamed_frame_by_frame_is_the_video_of_the_whole_array(tmp_path, name, n, fps):
     """Frames appended one by one as they are rendered give the file the whole array gave (odd sizes padded the
-    same way, the GIF's shown frames and delays the same), and the GIF is the one Pillow writes from the whole
-    array, though each frame is quantised as it comes."""
+    same way, the GIF's shown frames and delays the same), and the GIF shows what Pillow's from the whole array
+    shows, though each frame is quantised and written as it comes."""
     import imageio.v3 as iio
 
     from voxe_core.export import gif_timeline, to_uint8
@@ -301,7 +302,9 @@ def test_a_video_streamed_frame_by_frame_is_the_video_of_the_whole_array(tmp_pat
         reference = tmp_path / "pillow.gif"  # how write_video wrote a GIF before it streamed
         iio.imwrite(reference, to_uint8(frames)[shown], plugin="pillow", extension=".gif",
                     duration=delays if len(shown) > 1 else delays[0], loop=0)
-        assert streamed.read_bytes() == reference.read_bytes()
+        reference_frames, reference_delays = decoded_video(reference)  # (written as it comes, not byte for byte)
+        assert streamed_delays == reference_delays and len(streamed_frames) == len(reference_frames)
+        assert all(np.array_equal(a, b) for a, b in zip(streamed_frames, reference_frames))
     else:
         assert streamed_frames[0].shape == (32, 34, 3)
         reference = tmp_path / "ffmpeg.mp4"  # how write_video wrote an MP4 before it streamed
@@ -360,6 +363,21 @@ def test_a_streamed_video_holds_no_more_than_two_of_its_frames(tmp_path, name):
     write_video(tmp_path / name, iter(source), fps=30, n_frames=30)
     assert source.most_alive <= 2 and source.alive == 0
     assert len(decoded_video(tmp_path / name)[0]) == 30
+
+
+def test_a_gif_is_written_as_its_frames_come_not_held_to_the_end(tmp_path):
+    """Regression: each shown frame was kept (as a palette image) until the block ended, for Pillow's encoder to take
+    the clip at once: 4 GB for 1,000 frames of 2,048². Now a frame is in the file once the next one differs."""
+    frames = gradient_frames(6, 20, 24)
+    written = []
+    with VideoWriter(tmp_path / "v.gif", 6, fps=10) as video:
+        for frame in frames:
+            video.append(frame)
+            written.append(sum(path.stat().st_size for path in tmp_path.iterdir()))  # (the partial file's)
+    assert all(later > earlier for earlier, later in zip(written[1:], written[2:]))
+    shown, delays = decoded_video(tmp_path / "v.gif")
+    assert delays == [100] * 6
+    assert all(np.abs(a.astype(int) - b).max() <= 8 for a, b in zip(shown, (to_uint8(f).astype(int) for f in frames)))
 
 
 def test_iter_views_yields_render_views_frames_one_at_a_time(sphere_grid):

@@ -13,7 +13,6 @@ from __future__ import annotations
 import json
 import math
 import os
-from collections import deque
 from collections.abc import Iterator
 from contextlib import ExitStack
 from pathlib import Path
@@ -182,10 +181,11 @@ class VideoWriter:
     with the matrix its pixels were converted by (BT.601, limited range): untagged, a player that guesses BT.709
     for it had shown the render's red (250, 5, 5) as (255, 27, 1) and its greens 20 levels dimmer.
     ``.gif``: palette GIF through Pillow, looping forever, on :func:`gif_timeline`'s whole-centisecond delays
-    (above 50 fps some frames are left out). Each shown frame is kept as Pillow's 8-bit palette image (1 byte a
-    pixel, a twelfth of a float frame) until the block ends: Pillow's GIF encoder takes the clip at once, as it
-    folds consecutive identical frames into one longer frame (so a static scene can decode to fewer frames; the
-    total duration is kept).
+    (above 50 fps some frames are left out). Each shown frame is quantised to its own 256-colour palette and
+    written once the next shown frame differs from it (Pillow's GIF encoder, which takes the clip at once, had held
+    every frame until the end: 4 GB for 1,000 frames of 2,048²); a frame identical to the one before lengthens it
+    (so a static scene can decode to fewer frames; the total duration is kept), and a frame that differs is written
+    as the rectangle that changed, drawn over the one before.
     The video is written beside ``path`` under a temporary name and renamed when whole, at the end of the block:
     an error in it (a cancelled render), a frame of another shape, too few or too many frames leave nothing (OSError
     when the encoder wrote no file, as ffmpeg may fail with only a log line).
@@ -199,9 +199,10 @@ class VideoWriter:
         self._files: ExitStack | None = None  # set while open
         self._shape: tuple[int, ...] | None = None
         self._mp4 = None
-        shown, self._gif_delays = gif_timeline(n_frames, fps)
-        self._gif_shown = set(shown)
-        self._gif_frames: deque = deque()  # the shown frames so far, as palette images
+        shown, delays = gif_timeline(n_frames, fps)
+        self._gif_delays = dict(zip(shown, delays))  # ms, of each shown frame
+        self._gif_file = None  # the GIF's partial file, while open
+        self._gif_pending: list | None = None  # [palette image, delay in ms, changed box or None] not written yet
 
     def __enter__(self) -> "VideoWriter":
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -218,6 +219,8 @@ class VideoWriter:
                 )
                 # closed on an exception too: imageio's context closes only on success (else its __del__, later,
                 files.callback(self._mp4.close)  # had finished the file after it was removed)
+            else:
+                self._gif_file = files.enter_context(open(self._partial, "wb", buffering=0))  # each frame on disk
             self._files = files.pop_all()
         return self
 
@@ -234,10 +237,8 @@ class VideoWriter:
         self._shape = pixels.shape
         if self._mp4 is not None:
             self._mp4.append_data(_pad_even(pixels))
-        elif self.appended in self._gif_shown:  # quantised now, as Pillow would at the end: the same GIF
-            from PIL import Image
-
-            self._gif_frames.append(Image.fromarray(pixels).convert("P", palette=Image.Palette.ADAPTIVE))
+        elif self.appended in self._gif_delays:
+            self._add_gif_frame(pixels, self._gif_delays[self.appended])
         self.appended += 1
 
     def __exit__(self, kind, error, traceback) -> None:
@@ -250,17 +251,38 @@ class VideoWriter:
             if self._mp4 is not None:
                 self._mp4.close()
             else:
-                self._save_gif()
+                self._write_gif_frame(*self._gif_pending)
+                self._gif_file.write(b";")  # the trailer
             if not self._partial.is_file() or self._partial.stat().st_size == 0:
                 raise OSError(f"the video encoder wrote nothing for {self.path}")
 
-    def _save_gif(self) -> None:
-        frames = self._gif_frames
-        first = frames.popleft()
-        duration = self._gif_delays if len(self._gif_delays) > 1 else self._gif_delays[0]  # a list for several only
-        # The rest handed over one by one (Pillow keeps its own copy of each): not held twice
-        rest = (frames.popleft() for _ in range(len(frames)))
-        first.save(self._partial, format="GIF", save_all=bool(frames), append_images=rest, duration=duration, loop=0)
+    def _add_gif_frame(self, pixels: np.ndarray, delay_ms: int) -> None:
+        """Quantise the next shown frame; write the one before once it is known to differ (its delay is final)."""
+        from PIL import GifImagePlugin, Image, ImageChops
+
+        image = Image.fromarray(pixels).convert("P", palette=Image.Palette.ADAPTIVE)
+        if self._gif_pending is None:  # the first: its palette is the global one, and the screen its size
+            header, _ = GifImagePlugin.getheader(image, info={"loop": 0})
+            self._gif_file.write(b"".join(header))
+            self._gif_pending = [image, delay_ms, None]
+            return
+        changed = ImageChops.difference(self._gif_pending[0].convert("RGB"), image.convert("RGB")).getbbox()
+        if changed is None:  # as Pillow folds a repeated frame: the one before shows longer
+            self._gif_pending[1] += delay_ms
+            return
+        self._write_gif_frame(*self._gif_pending)
+        self._gif_pending = [image, delay_ms, changed]
+
+    def _write_gif_frame(self, image, delay_ms: int, changed: tuple[int, int, int, int] | None) -> None:
+        """One frame: the first whole on the global palette, a later one the box that changed, with its own."""
+        from PIL import GifImagePlugin
+
+        if changed is None:
+            chunks = GifImagePlugin.getdata(image, duration=delay_ms)
+        else:
+            chunks = GifImagePlugin.getdata(image.crop(changed), offset=changed[:2], duration=delay_ms,
+                                            include_color_table=True)
+        self._gif_file.write(b"".join(chunks))
 
 
 def write_video(path: str | os.PathLike, frames, fps: float = 30, n_frames: int | None = None) -> Path:
