@@ -380,6 +380,16 @@ def test_a_gif_is_written_as_its_frames_come_not_held_to_the_end(tmp_path):
     assert all(np.abs(a.astype(int) - b).max() <= 8 for a, b in zip(shown, (to_uint8(f).astype(int) for f in frames)))
 
 
+def test_a_gif_of_a_still_scene_longer_than_a_gif_delay_plays_its_whole_length(tmp_path):
+    """Regression: the repeated frames of a still scene (an empty grid's turntable, a sphere's) were folded into one
+    frame, whose 700 s overflowed the GIF's 16-bit delay (655.35 s): OverflowError, after the whole render."""
+    still = torch.full((700, 8, 8, 3), 0.5)
+    write_video(tmp_path / "v.gif", still, fps=1.0)
+    shown, delays = decoded_video(tmp_path / "v.gif")
+    assert sum(delays) == 700_000 and max(delays) <= 655_350
+    assert all((frame == 128).all() for frame in shown)
+
+
 def test_iter_views_yields_render_views_frames_one_at_a_time(sphere_grid):
     """render_views is iter_views' frames stacked; each comes after its progress report (a cancel between)."""
     from voxe_core.export import iter_views

@@ -137,6 +137,8 @@ def _pad_even(frame: np.ndarray) -> np.ndarray:
 
 GIF_MIN_DELAY_CS = 2
 """GIF delays are whole centiseconds, and browsers play 0 or 1 as 10 (about 10 fps): 2 is the shortest kept."""
+GIF_MAX_DELAY_CS = 65535
+"""A GIF frame's delay is 16 bits of centiseconds (655.35 s): a frame shown longer is written again."""
 
 
 def gif_timeline(n_frames: int, fps: float) -> tuple[list[int], list[int]]:
@@ -267,11 +269,12 @@ class VideoWriter:
             self._gif_pending = [image, delay_ms, None]
             return
         changed = ImageChops.difference(self._gif_pending[0].convert("RGB"), image.convert("RGB")).getbbox()
-        if changed is None:  # as Pillow folds a repeated frame: the one before shows longer
-            self._gif_pending[1] += delay_ms
+        if changed is None and self._gif_pending[1] + delay_ms <= 10 * GIF_MAX_DELAY_CS:
+            self._gif_pending[1] += delay_ms  # as Pillow folds a repeated frame: the one before shows longer
             return
-        self._write_gif_frame(*self._gif_pending)
-        self._gif_pending = [image, delay_ms, changed]
+        # (a repeat past the longest delay, which Pillow's encoder had overflowed on after the whole render, is
+        self._write_gif_frame(*self._gif_pending)  # written again as one unchanged pixel)
+        self._gif_pending = [image, delay_ms, changed or (0, 0, 1, 1)]
 
     def _write_gif_frame(self, image, delay_ms: int, changed: tuple[int, int, int, int] | None) -> None:
         """One frame: the first whole on the global palette, a later one the box that changed, with its own."""
