@@ -357,8 +357,8 @@ def views_alive(height: int, width: int) -> float:
 @pytest.mark.parametrize("name", ["v.mp4", "v.gif"])
 def test_a_streamed_video_holds_no_more_than_two_of_its_frames(tmp_path, name):
     """Regression: write_video took the whole clip (render_views' (N, H, W, 3) floats, 50 GB for 1,000 frames of
-    2,048²) and converted it whole. Streamed, a frame is let go once it is encoded (the GIF keeps each shown
-    frame only as 8-bit palette indices): at most the one being appended and the next are alive."""
+    2,048²) and converted it whole. Streamed, a frame is let go once it is encoded (the GIF quantises each shown
+    frame to palette indices, written once the next differs): at most the one being appended and the next are alive."""
     source = FramesAlive(gradient_frames(30, 12, 14))
     write_video(tmp_path / name, iter(source), fps=30, n_frames=30)
     assert source.most_alive <= 2 and source.alive == 0
