@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import errno
 import json
+import signal
+from pathlib import Path
 
 import numpy as np
 import pytest
+import safetensors.torch
 import torch
-from safetensors import safe_open
+from safetensors import SafetensorError, safe_open
 from safetensors.numpy import load_file
 
 from voxe_core.backbones import load_grid
@@ -381,6 +385,49 @@ def test_a_save_into_a_missing_folder_names_the_file_asked_for_and_leaves_nothin
         make_sphere_grid(8).save(target)
     assert error.value.filename == str(target) and ".partial" not in str(error.value)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_full_disk_while_saving_keeps_its_errno_the_file_asked_for_and_the_earlier_file(tmp_path, monkeypatch):
+    """Regression: safetensors' ENOSPC had become an OSError of words alone, no errno (the worker's disk-full
+    check missed it) and no filename. The full disk is /dev/full (a real ENOSPC), written by a stand-in for
+    safetensors' save_file after half the file is down, which says it in the library's words."""
+    target = tmp_path / "grid.safetensors"
+    save_tensors(target, {"a": torch.ones(4)}, kind="test", version=1, meta={})
+
+    def write_onto_a_full_disk(tensors, filename, metadata=None):
+        data = safetensors.torch.save(tensors, metadata)
+        Path(filename).write_bytes(data[: len(data) // 2])
+        try:
+            with open("/dev/full", "wb", buffering=0) as full:
+                full.write(data[len(data) // 2:])
+        except OSError as exc:
+            words = f"{exc.strerror} (os error {exc.errno})"  # (Rust's, for an io::Error from the system)
+            raise SafetensorError(f"Error while serializing: I/O error: {words}") from None
+
+    monkeypatch.setattr("voxe_core.tensorio.save_file", write_onto_a_full_disk)
+    with pytest.raises(OSError) as error:
+        save_tensors(target, {"a": torch.zeros(1000)}, kind="test", version=1, meta={})
+    assert (error.value.errno, error.value.filename) == (errno.ENOSPC, str(target))
+    assert "No space left on device" in str(error.value) and ".partial" not in str(error.value)
+    assert [p.name for p in tmp_path.iterdir()] == [target.name]
+    assert torch.equal(load_tensors(target, "test", 1)[0]["a"], torch.ones(4))
+
+
+def test_a_write_the_system_refuses_keeps_the_errno_safetensors_reports(tmp_path):
+    """safetensors' own words for a write the system refused (here past the process's file size limit, EFBIG) give
+    the errno back: its text ends "(os error N)" (what the ENOSPC above is read from)."""
+    resource = pytest.importorskip("resource")
+    target = tmp_path / "grid.safetensors"
+    limits, on_too_large = resource.getrlimit(resource.RLIMIT_FSIZE), signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (64 * 1024, limits[1]))
+    try:
+        with pytest.raises(OSError) as error:
+            save_tensors(target, {"a": torch.zeros(100_000)}, kind="test", version=1, meta={})
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, limits)
+        signal.signal(signal.SIGXFSZ, on_too_large)
+    assert (error.value.errno, error.value.filename) == (errno.EFBIG, str(target))
+    assert isinstance(error.value.__cause__, SafetensorError) and list(tmp_path.iterdir()) == []
 
 
 def test_users_read_downloads_with_numpy_alone(tmp_path, make_sphere_grid):

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import stat
 from collections.abc import Iterable
 from dataclasses import asdict
@@ -20,6 +21,8 @@ from safetensors.torch import load_file, save_file
 from voxe_core.files import replacing
 
 HEADER_KEY = "voxe"
+OS_ERROR_NUMBER = re.compile(r"\(os error (\d+)\)")
+"""How safetensors (Rust's ``std::io::Error``) ends the text of a failed write: its only trace of the errno."""
 
 
 class FormatError(ValueError):
@@ -48,8 +51,9 @@ def recipe_changes(path: str | os.PathLike, meta: dict, config) -> list[str]:
 
 
 def save_tensors(path: str | os.PathLike, tensors: dict[str, torch.Tensor], kind: str, version: int, meta: dict) -> None:
-    """Write atomically (:func:`voxe_core.files.replacing`) so a crash never leaves a torn file. OSError naming the path when it cannot be written (safetensors' own
-    error type had reached the CLI as a traceback)."""
+    """Write atomically (:func:`voxe_core.files.replacing`) so a crash never leaves a torn file. OSError naming the
+    path when it cannot be written (safetensors' own error type had reached the CLI as a traceback), with the
+    system's errno where there is one (:func:`_write_error`)."""
     path = Path(path)
     header = json.dumps({"kind": kind, "format_version": version, "meta": meta}, sort_keys=True)
     with replacing(path) as partial:
@@ -60,8 +64,18 @@ def save_tensors(path: str | os.PathLike, tensors: dict[str, torch.Tensor], kind
             save_file({k: v.detach().contiguous().cpu() for k, v in tensors.items()}, str(partial),
                       metadata={HEADER_KEY: header})
         except SafetensorError as exc:
-            raise OSError(f"cannot write {path}: {exc}") from exc
+            raise _write_error(path, exc) from exc
         os.chmod(partial, mode)
+
+
+def _write_error(path: Path, exc: SafetensorError) -> OSError:
+    """safetensors' failed write of ``path`` as the OSError the system gave it: its errno, read back from the text,
+    and ``path`` as its filename (a full disk had been an OSError of words alone, ``path`` among them: a caller's
+    ENOSPC check missed it, and could not say it without the path). Without an errno in the text, the words alone."""
+    number = OS_ERROR_NUMBER.search(str(exc))
+    if number is None:
+        return OSError(f"cannot write {path}: {exc}")
+    return OSError(int(number[1]), os.strerror(int(number[1])), str(path))
 
 
 def load_tensors(path: str | os.PathLike, kind: str, max_version: int) -> tuple[dict[str, torch.Tensor], dict]:
