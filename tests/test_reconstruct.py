@@ -277,6 +277,18 @@ def test_averaging_returns_the_mean_of_the_final_iterates():
     ("lr", math.nan, "lr must be positive and finite, got nan"),
     ("lr", 0.0, "lr must be positive and finite, got 0.0"),
     ("resolutions", (12, 1), r"grid resolutions must be at least 2, got \[12, 1\]"),
+    # as EditConfig's and RefineConfig's: each had been accepted, and failed inside the fit or fitted NaN
+    ("rays_per_step", 2.5, r"rays_per_step takes whole numbers, got 2\.5"),
+    ("rays_per_step", True, "rays_per_step takes whole numbers, got True"),
+    ("iterations", (3, 2.5), r"iterations takes whole numbers, got \(3, 2\.5\)"),
+    ("checkpoint_every", 0.5, r"checkpoint_every takes whole numbers, got 0\.5"),
+    ("seed", 2**64, r"seed must lie in \[0, 4294967295\]"),
+    ("lr", 1e39, "lr must be positive and finite, got 1e\\+39"),
+    ("lr_stage_decay", math.nan, r"lr_stage_decay must lie in \(0, 1\]"),
+    ("lr_drop_factor", 0.0, r"lr_drop_factor must lie in \(0, 1\]"),
+    ("color_lr_scale", math.nan, "color_lr_scale must be >= 0"),
+    ("init_density", math.inf, "init_density a number"),
+    ("tv_color", math.nan, "tv_density and tv_color must be >= 0 and finite"),
 ])
 def test_a_config_no_fit_can_run_is_refused_when_it_is_made(field, value, message):
     with pytest.raises(ValueError, match=message):

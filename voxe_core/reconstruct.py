@@ -12,6 +12,7 @@ in 25 s, 47 CPU s, its six seeds 30.63–30.70 dB).
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -20,6 +21,7 @@ import torch.nn.functional as F
 
 from voxe_core.backbones import grid_from_state
 from voxe_core.cameras import Cameras, check_views, pixel_rays
+from voxe_core.constants import FLOAT32_MAX, MAX_SEED
 from voxe_core.devices import PeakMemory, resolve_device
 from voxe_core.grid import Activation, Occupancy, VoxelGrid
 from voxe_core.losses import sampled_total_variation
@@ -29,6 +31,11 @@ from voxe_core.tensorio import FormatError, config_recipe, load_tensors, recipe_
 
 CHECKPOINT_FORMAT_VERSION = 1
 CHECKPOINT_KIND = "reconstruction_checkpoint"
+
+COUNT_FIELDS = ("resolutions", "iterations", "image_downsample", "rays_per_step", "images_per_step",
+                "lr_drop_iteration", "occupancy_every", "average_every", "tv_voxels", "seed", "checkpoint_every")
+"""ReconstructConfig's fields that count (voxels, iterations, rays, images) or seed: whole numbers, per stage for
+the tuples."""
 
 
 @dataclass
@@ -78,6 +85,16 @@ class ReconstructConfig:
         n = len(self.resolutions)
         if not (len(self.iterations) == len(self.image_downsample) == n) or n == 0:
             raise ValueError("resolutions, iterations and image_downsample need one entry per stage")
+        # As EditConfig's: 2.5 rays, iterations or voxels (or True) had passed the range checks below and failed
+        # inside the fit (a TypeError from torch.randint or range(), after the earlier stages' work), or run
+        # (checkpoint_every 0.5: a checkpoint every step); a seed of 2**64 had overflowed the generator's seed.
+        for name in COUNT_FIELDS:
+            value = getattr(self, name)
+            if any(isinstance(v, bool) or not isinstance(v, numbers.Integral)
+                   for v in (value if isinstance(value, (tuple, list)) else (value,))):
+                raise ValueError(f"{name} takes whole numbers, got {value!r}")
+        if not 0 <= self.seed <= MAX_SEED:
+            raise ValueError(f"seed must lie in [0, {MAX_SEED}] (the service's and the CLI's range), got {self.seed}")
         if self.rays_per_step < 1 or any(i < 0 for i in self.iterations):
             raise ValueError("rays_per_step must be >= 1 and iterations >= 0")
         if min(self.resolutions) < 2:  # as a grid's own refusal, but before any stage has run
@@ -85,8 +102,17 @@ class ReconstructConfig:
         if min(self.image_downsample) < 1:  # 0 had divided by zero after the earlier stages' work, -1 fitted 1x1 px
             raise ValueError(f"image_downsample must be >= 1 per stage (1: the images as given), "
                              f"got {list(self.image_downsample)}")
-        if not 0 < self.lr < math.inf:  # as "not in range": NaN fails every comparison
+        # As "not in range" (NaN fails every comparison), in the float32 the steps are taken in: a NaN factor or
+        # colour scale had made every feature NaN from its first step on, 1e39 had been inf there.
+        if not 0 < self.lr <= FLOAT32_MAX:
             raise ValueError(f"lr must be positive and finite, got {self.lr}")
+        for name in ("lr_stage_decay", "lr_drop_factor"):
+            if not 0 < getattr(self, name) <= 1:
+                raise ValueError(f"{name} must lie in (0, 1] (a factor the lr is multiplied by), got "
+                                 f"{getattr(self, name)}")
+        if not 0 <= self.color_lr_scale <= FLOAT32_MAX or not abs(self.init_density) <= FLOAT32_MAX:
+            raise ValueError(f"color_lr_scale must be >= 0 and init_density a number (both finite in float32), got "
+                             f"{self.color_lr_scale} and {self.init_density}")
         if self.occupancy_every < 1 or self.checkpoint_every < 0:
             raise ValueError(f"occupancy_every must be >= 1 and checkpoint_every >= 0 (0: none), got "
                              f"{self.occupancy_every} and {self.checkpoint_every}")
@@ -94,8 +120,9 @@ class ReconstructConfig:
             raise ValueError(f"images_per_step must be >= 0 (0: all images), got {self.images_per_step}")
         if not 0.0 <= self.average_from <= 1.0 or self.average_every < 1:
             raise ValueError("average_from must lie in [0, 1] and average_every be >= 1")
-        if min(self.tv_density, self.tv_color) < 0 or self.tv_voxels < 1:
-            raise ValueError("tv_density and tv_color must be >= 0 and tv_voxels >= 1")
+        if not (0 <= self.tv_density <= FLOAT32_MAX and 0 <= self.tv_color <= FLOAT32_MAX) or self.tv_voxels < 1:
+            raise ValueError(f"tv_density and tv_color must be >= 0 and finite, and tv_voxels >= 1, got "
+                             f"{self.tv_density}, {self.tv_color} and {self.tv_voxels}")
         if not 0 <= self.camera_clearance < 1:
             raise ValueError(f"camera_clearance must lie in [0, 1), got {self.camera_clearance}")
 
