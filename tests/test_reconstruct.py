@@ -154,6 +154,12 @@ def stopped_fit(tmp_path_factory):
     return config, *load_checkpoint(checkpoint)
 
 
+def _with_nan(tensor: torch.Tensor) -> torch.Tensor:
+    damaged = tensor.clone()
+    damaged.view(-1)[100] = math.nan
+    return damaged
+
+
 def _rewritten(path, tensors, meta):
     save_tensors(path, tensors, kind=CHECKPOINT_KIND, version=CHECKPOINT_FORMAT_VERSION, meta=meta)
     return path
@@ -182,6 +188,11 @@ def test_a_checkpoint_written_on_another_device_type_resumes_from_a_reseeded_gen
      r"its adam_exp_avg_sq holds shape \(13823, 4\), not shape \(13824, 4\)"),
     (lambda t, m: ({**t, "occupancy": t["occupancy"][1:]}, m), r"its occupancy holds shape \(22, 23, 23\)"),
     (lambda t, m: ({k: v for k, v in t.items() if k != "average_count"}, m), "its average_count holds nothing"),
+    # a NaN had been resumed from, and the fit returned a NaN grid as its result
+    (lambda t, m: ({**t, "features": _with_nan(t["features"])}, m), "checkpoint holds features no fit leaves"),
+    (lambda t, m: ({**t, "adam_exp_avg": _with_nan(t["adam_exp_avg"])}, m), "holds adam_exp_avg no fit leaves"),
+    (lambda t, m: ({**t, "adam_exp_avg_sq": -t["adam_exp_avg_sq"] - 1}, m), "holds adam_exp_avg_sq no fit leaves"),
+    (lambda t, m: ({**t, "average_total": _with_nan(t["average_total"])}, m), "holds average_total no fit leaves"),
 ])
 def test_a_checkpoint_that_cannot_be_applied_is_a_format_error(tmp_path, stopped_fit, damage, message):
     """FormatError, which the worker answers by starting the fit over (a KeyError, or a RuntimeError from a

@@ -502,6 +502,16 @@ def _resume(path, config: ReconstructConfig, device: torch.device, views: torch.
         if name not in tensors or tuple(tensors[name].shape) != shape:
             found = f"shape {tuple(tensors[name].shape)}" if name in tensors else "nothing"
             raise FormatError(f"{path}: damaged checkpoint: its {name} holds {found}, not shape {shape}")
+    # As an edit's resume: a NaN here had gone on through every step (a NaN cell is occupied, so rendered) and the
+    # fit returned a NaN grid as its result. The rule an edit's save keeps: the first moment finite, the second in
+    # [0, +inf] (a finite gradient whose square overflowed leaves +inf, which Adam goes on from).
+    finite = {"features": grid.flat_features.isfinite().all(), "adam_exp_avg": tensors["adam_exp_avg"].isfinite().all(),
+              "adam_exp_avg_sq": (tensors["adam_exp_avg_sq"] >= 0).all(),
+              "average_total": "average_total" not in tensors or tensors["average_total"].isfinite().all()}
+    if unresumable := [name for name, ok in finite.items() if not bool(ok)]:
+        raise FormatError(f"{path}: checkpoint holds {', '.join(unresumable)} no fit leaves (NaN or infinite features, "
+                          "first Adam moments or iterate sums, NaN or negative second moments): damaged, or saved by "
+                          "a run that had diverged; start afresh")
     stages = len(config.resolutions)
     if not (stage < stages and grid.resolution == (config.resolutions[stage],) * 3
             and iteration <= config.iterations[stage]):  # it had gone on with the checkpoint's grid
