@@ -115,6 +115,29 @@ def test_rays_from_inside_the_box_and_rays_that_are_none():
 
 
 @pytest.mark.parametrize("fused", [False, True])
+@pytest.mark.parametrize("step_ratio,origin_y,origin_z", [(2.0, 0.5, 1.2), (0.5, 0.72, 1.45)])
+def test_a_rays_last_sample_lies_on_its_path_in_the_box(fused, step_ratio, origin_y, origin_z):
+    """Density only above y = 0.786 (1/21 of the way from the vertices at y = 0.75, raw -1, to those at 1.5, raw 20);
+    the ray leaves the box's top face below it (y 0.65 or 0.745), a partial step after its last full one. That
+    sample had been placed a whole step on, past the face, and read the density above y = 0.786 from the face's far
+    side where the render with empty-space skipping, culled at the exit, saw none: its path is empty, so both see
+    nothing."""
+    features = torch.full((5, 5, 5, 4), -1.0)
+    features[:, 4, :, 0] = 20.0  # the vertices at y = 1.5
+    origins, directions = torch.tensor([[0.0, origin_y, origin_z]]), torch.tensor([[0.0, 1.0, 2.0]])
+    grid = VoxelGrid(5, features=features)
+    for skip_empty in (False, True):
+        config = RenderConfig(step_ratio=step_ratio, skip_empty=skip_empty, sigma_threshold=0.0, fused=fused)
+        out = render_rays(grid, origins, directions, config)
+        assert out.opacity.tolist() == [0.0] and out.rgb.tolist() == [[1.0, 1.0, 1.0]]
+    # every sample within the path it stands for, inside the box (jittered too)
+    offsets = torch.tensor([0.0, 0.5, 0.999])
+    for samples in grid.ray_samples(origins.expand(3, 3), unit_directions(directions).expand(3, 3), offsets,
+                                    step_ratio):
+        assert (samples.points.abs() <= 1.5 + 1e-6).all() and samples.delta.sum() > 0
+
+
+@pytest.mark.parametrize("fused", [False, True])
 @pytest.mark.parametrize("sigma", [0.5, 1e-4, 20 / 3])
 def test_a_constant_density_slab_gives_the_analytic_opacity_and_gradient(sigma, fused):
     """σ constant in a box of side 3, a ray along an axis through it: opacity 1 − exp(−3σ), depth the mean of the
@@ -277,8 +300,8 @@ from triton.compiler import ASTSource
 
 from voxe_core.fused_render import RAYS_PER_PROGRAM, _march
 
-pointers = dict.fromkeys(["origins", "directions", "starts", "lengths", "features", "grad_features", "rgb", "opacity",
-                          "depth", "grad_rgb", "grad_opacity", "grad_depth"], "*fp32")
+pointers = dict.fromkeys(["origins", "directions", "starts", "offsets", "lengths", "features", "grad_features", "rgb",
+                          "opacity", "depth", "grad_rgb", "grad_opacity", "grad_depth"], "*fp32")
 pointers.update(firsts="*i32", lasts="*i32", count="*i32", cells="*u8", totals="*fp64")
 integers = {"n_rays", "stride_x", "stride_y", "cell_stride_x", "cell_stride_y"}
 flags = {"SKIP_EMPTY", "BACKWARD", "BLOCK"}

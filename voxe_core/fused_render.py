@@ -49,11 +49,12 @@ RAYS_PER_PROGRAM = 128  # one ray per thread of a 4-warp program; neighbouring p
 
 
 @triton.jit
-def _sample_at(ox, oy, oz, dx, dy, dz, start, length, k, step):
-    """Lattice sample ``k`` of each ray: its distance, point and the path it stands for (as ``ray_samples``)."""
+def _sample_at(ox, oy, oz, dx, dy, dz, start, offset, length, k, step):
+    """Lattice sample ``k`` of each ray: its distance, point and the path it stands for (as ``ray_samples``: the last
+    within its path, cut at the box's exit)."""
     kf = k.to(tl.float32)
-    t = start + kf * step
     delta = tl.minimum(tl.maximum(length - kf * step, 0.0), step)
+    t = start + kf * step - offset * (step - delta)
     return t, ox + t * dx, oy + t * dy, oz + t * dz, delta
 
 
@@ -106,7 +107,7 @@ def _scatter(row, stride_x, stride_y, fx, fy, fz, grad, mask):
 
 @triton.jit
 def _march(
-    origins, directions, starts, lengths, firsts, lasts, features, cells, grad_features,
+    origins, directions, starts, offsets, lengths, firsts, lasts, features, cells, grad_features,
     rgb, opacity, depth, count, totals, grad_rgb, grad_opacity, grad_depth,
     n_rays, step, early_stop, density_scale, max_optical,
     lo_x, lo_y, lo_z, extent_x, extent_y, extent_z, upper_x, upper_y, upper_z,
@@ -130,6 +131,7 @@ def _march(
     dy = tl.load(directions + 3 * ray + 1, mask=lane, other=0.0)
     dz = tl.load(directions + 3 * ray + 2, mask=lane, other=0.0)
     start = tl.load(starts + ray, mask=lane, other=0.0)
+    offset = tl.load(offsets + ray, mask=lane, other=0.0)
     length = tl.load(lengths + ray, mask=lane, other=0.0)
     k = tl.load(firsts + ray, mask=lane, other=0)
     last = tl.load(lasts + ray, mask=lane, other=0)
@@ -157,7 +159,7 @@ def _march(
     while going > 0:
         # "not at most": a NaN transmittance marches on, so the NaN shows (as the packed path's early stop).
         marching = lane & (k < last) & ~(transmitted <= early_stop)
-        t, px, py, pz, delta = _sample_at(ox, oy, oz, dx, dy, dz, start, length, k, step)
+        t, px, py, pz, delta = _sample_at(ox, oy, oz, dx, dy, dz, start, offset, length, k, step)
         alive = marching
         if SKIP_EMPTY:
             cell = (_cell(px, lo_x, voxel_x, last_x) * cell_stride_x + _cell(py, lo_y, voxel_y, last_y) * cell_stride_y
@@ -226,7 +228,8 @@ class _Launch:
         if occupancy is not None:
             grid.check_occupancy(occupancy)
         self.rays = [origins.contiguous(), directions.contiguous(), lattice.start.contiguous(),
-                     lattice.length.contiguous(), lattice.first.to(torch.int32), lattice.last.to(torch.int32)]
+                     lattice.offset.float().contiguous(), lattice.length.contiguous(), lattice.first.to(torch.int32),
+                     lattice.last.to(torch.int32)]
         self.cells = (occupancy.cells.to(origins.device).contiguous().view(torch.uint8) if occupancy is not None
                       else torch.zeros(1, dtype=torch.uint8, device=origins.device))
         host_min, host_max = grid._host_box

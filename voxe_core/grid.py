@@ -215,8 +215,9 @@ class Occupancy:
 
 
 class RayLattice(NamedTuple):
-    """Where each of N rays is sampled: sample k at distance ``start + k·step``, standing for the path
-    ``clamp(length − k·step, 0, step)``, for k in [``first``, ``last``) (int64)."""
+    """Where each of N rays is sampled: sample k stands for the path from ``k·step`` past ``t_near``, of length
+    δ_k = ``clamp(length − k·step, 0, step)``, and lies ``offset``·δ_k into it: at ``start + k·step`` but for
+    the last, cut at the box's exit, for k in [``first``, ``last``) (int64)."""
 
     step: float  # world units between samples
     t_near: torch.Tensor  # (N,) where the ray enters the box (0 for a camera inside)
@@ -224,6 +225,7 @@ class RayLattice(NamedTuple):
     length: torch.Tensor  # (N,) the path inside the box
     first: torch.Tensor  # (N,)
     last: torch.Tensor  # (N,)
+    offset: torch.Tensor  # (N,) in [0, 1): where within the path it stands for each sample lies
 
     def candidates(self) -> torch.Tensor:
         """(N,) samples per ray before the occupancy test (a ray that misses has none)."""
@@ -434,7 +436,7 @@ class VoxelGrid(torch.nn.Module):
             hit = tight_far > tight_near
             first = torch.where(hit, ((tight_near - t_near) / step).floor().long().clamp_min(0), first)
             last = torch.where(hit, torch.minimum(((tight_far - t_near) / step).ceil().long(), n_total), first)
-        return RayLattice(step, t_near, t_near + offsets * step, t_far - t_near, first, last)
+        return RayLattice(step, t_near, t_near + offsets * step, t_far - t_near, first, last, offsets)
 
     def ray_samples(
         self,
@@ -467,7 +469,7 @@ class VoxelGrid(torch.nn.Module):
             (torch.Size([4, 3]), 3.0)
         """
         lattice = self.ray_lattice(origins, directions, offsets, step_ratio, occupancy)
-        step, t_near, start, length, first, last = lattice
+        step, t_near, first, last = lattice.step, lattice.t_near, lattice.first, lattice.last
         segments, n_segments = _ray_segments(self, occupancy, origins, directions, t_near, step, first, last)
         if not n_segments.numel():
             return
@@ -486,10 +488,9 @@ class VoxelGrid(torch.nn.Module):
             host = torch.cat([ends, counts.diff(prepend=counts.new_zeros(1))]).tolist()
             ends, group_candidates = host[: len(ends)], host[len(ends) :]
         for lo, hi, n_candidates in zip([0] + ends[:-1], ends, group_candidates):
-            ray, k, t, points = _packed_samples(
-                self, occupancy, origins, directions, start, step, first, last, segments[lo:hi], n_segments[lo:hi], lo
+            ray, t, delta, points = _packed_samples(
+                self, occupancy, origins, directions, lattice, segments[lo:hi], n_segments[lo:hi], lo
             )
-            delta = (length.index_select(0, ray) - k * step).clamp(0.0, step)
             samples = RaySamples(ray, t, delta, points, n_candidates)
             yield self._stop_early(samples, early_stop) if early_stop > 0 and ray.numel() else samples
 
@@ -692,9 +693,9 @@ def _ray_segments(grid, occupancy, origins, directions, t_near, step, first, las
     return segments.gather(1, order), keep.sum(1)  # the caller trims to the widest kept count
 
 
-def _packed_samples(grid, occupancy, origins, directions, start, step, first, last, segments, n_segments, ray_offset):
+def _packed_samples(grid, occupancy, origins, directions, lattice, segments, n_segments, ray_offset):
     """The samples of the kept segments (in occupied cells when ``occupancy`` is given), packed ray
-    by ray in marching order: ray index, lattice index, distance and point of each.
+    by ray in marching order: ray index, distance, path length and point of each (:class:`RayLattice`).
 
     Work is laid out per segment (16 samples wide) so the per-ray values are
     gathered once per segment, not once per sample.
@@ -703,11 +704,19 @@ def _packed_samples(grid, occupancy, origins, directions, start, step, first, la
     row, column = kept.nonzero().unbind(1)  # a mask index would find the same entries again, with a host read
     seg_ray = row + ray_offset
     k = segments[row, column][:, None] * SEGMENT + torch.arange(SEGMENT, device=segments.device)  # (G, SEGMENT)
-    inside = (k >= first.index_select(0, seg_ray)[:, None]) & (k < last.index_select(0, seg_ray)[:, None])
-    t = start.index_select(0, seg_ray)[:, None] + k * step
+    step = lattice.step
+    inside = ((k >= lattice.first.index_select(0, seg_ray)[:, None])
+              & (k < lattice.last.index_select(0, seg_ray)[:, None]))
+    delta = (lattice.length.index_select(0, seg_ray)[:, None] - k * step).clamp(0.0, step)
+    # The last sample within the path it stands for (the others: step − δ is 0, the same bits). At start + k·step it
+    # had lain up to a step past the box's exit, read from the face's far side (interpolation clamps onto the box),
+    # where the occupancy's tight box, cut at the exit, dropped it: skipping had changed the render.
+    t = lattice.start.index_select(0, seg_ray)[:, None] + k * step \
+        - lattice.offset.index_select(0, seg_ray)[:, None] * (step - delta)
     points = origins.index_select(0, seg_ray)[:, None, :] + t[..., None] * directions.index_select(0, seg_ray)[:, None, :]
     if occupancy is not None:
         inside &= occupancy.occupied(grid.cell_index(points))
     pick = inside.reshape(-1).nonzero().squeeze(1)
     ray = seg_ray.index_select(0, torch.div(pick, SEGMENT, rounding_mode="floor"))
-    return ray, k.reshape(-1).index_select(0, pick), t.reshape(-1).index_select(0, pick), points.reshape(-1, 3).index_select(0, pick)
+    return (ray, t.reshape(-1).index_select(0, pick), delta.reshape(-1).index_select(0, pick),
+            points.reshape(-1, 3).index_select(0, pick))
