@@ -399,6 +399,29 @@ def test_a_prompt_longer_than_the_attention_model_reads_fails_at_the_start_of_it
         tasks._check_job_can_start(session.get(Job, global_job.json()["id"]), get_settings())
 
 
+def test_a_local_job_whose_attention_tokenizer_cannot_be_read_fails_at_the_start_of_its_chain(root, client, dataset,
+                                                                                             monkeypatch):
+    """A damaged attention model (every file there, vocab.json cut short) had been skipped by the start-of-chain
+    check, the job running its whole fit and edit before the refinement's load failed on the same file."""
+    from voxe_core.tiny_sd import build_tiny_stable_diffusion
+    from voxe_service.settings import get_settings
+    from worker import tasks
+
+    damaged = build_tiny_stable_diffusion(root / "damaged-sd")
+    vocab = damaged / "tokenizer" / "vocab.json"
+    vocab.write_bytes(vocab.read_bytes()[: vocab.stat().st_size // 2])
+    monkeypatch.setattr(get_settings(), "attention_model", str(damaged))
+    scene = make_scene(client, dataset, root)
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic wearing a party hat",
+                                        "mode": "local", "edit_words": ["party hat"]})
+    assert job.status_code == 201, job.text
+    assert tasks.reconstruct_task.apply(args=(job.json()["id"],)).get()["state"] == "failed"
+    error = client.get(f"/v1/jobs/{job.json()['id']}").json()["error"]
+    assert error.startswith(f"reconstruct: not started: the attention model {str(damaged)!r} on this worker cannot "
+                            "be read (OSError: tokenizer files unreadable: "), error
+    assert API_SETTING.format("VOXE_ATTENTION_MODEL") in error
+
+
 def test_migration_0006_adds_the_models_column_and_removes_it(tmp_path):
     from alembic import command
     from sqlalchemy import inspect, text

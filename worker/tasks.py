@@ -44,8 +44,8 @@ from voxe_service.models import (
     CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, R_FAILED, R_PENDING, R_SUCCEEDED, RUNNING, TERMINAL_STATES, Job,
     Scene, WorkerHeartbeat, utcnow,
 )
-from voxe_service.model_inventory import (ROLES, check_models, job_models, missing_message, model_present,
-                                          submission_note)
+from voxe_service.model_inventory import (ROLES, check_models, how_to_provide, job_models, missing_message,
+                                          model_present, submission_note)
 from voxe_service.progress import device_costs, refine_phase_seconds
 from voxe_service.queue import (
     INGEST_TASK, STAGE_TASKS, QueueUnavailable, TaskResult, get_queue, is_sql_broker, job_stages, requeue_interrupted,
@@ -278,12 +278,12 @@ def _stop_if_taken_over(job_id: str, stage: str) -> None:
 
 class CannotStart(RuntimeError):
     """The job cannot run (found at the start of its chain, before its fit): a model it needs is not on this worker
-    (the message says how to add it), or its prompt is longer than its model reads."""
+    or cannot be read there (the message says how to add it), or its prompt is longer than its model reads."""
 
 
 def _check_job_can_start(job: Job, settings) -> None:
-    """Fail before the chain's first stage runs when a model the job will load is not here (no weights read), or
-    when the tokenizer of a model it prompts (the edit's SDS model, a local edit's attention model) reads its
+    """Fail before the chain's first stage runs when a model the job will load is not here (no weights read), when
+    the tokenizer or text encoder config of a model it prompts cannot be read (a damaged model), or when the tokenizer of a model it prompts (the edit's SDS model, a local edit's attention model) reads its
     prompt as longer than that model's text encoder does (the API's check is a lower bound: BPE splits some words
     into several tokens, and a model may read fewer than 77)."""
     from voxe_core.guidance.loading import load_clip_tokenizer, loading_errors
@@ -306,8 +306,9 @@ def _check_job_can_start(job: Job, settings) -> None:
             tokenizer = load_clip_tokenizer(model, subfolder="tokenizer", local_files_only=True)
             positions = CLIPTextConfig.from_pretrained(model, subfolder="text_encoder",
                                                        local_files_only=True).max_position_embeddings
-        except loading_errors():  # the stage's loading says what is wrong with the model
-            continue
+        except loading_errors() as exc:  # a damaged model (vocab.json cut short) had failed only at its stage's load
+            raise CannotStart(f"the {role} model {model_label(needed[role])!r} on this worker cannot be read "
+                              f"({runtime.failure_text(exc)}): {how_to_provide(role, needed[role])}") from None
         try:
             check_prompt_tokens(job.prompt, tokenizer, tokens_read(tokenizer, positions),
                                 (job.params or {}).get("view_words", True))
