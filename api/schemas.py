@@ -33,6 +33,8 @@ StageIterations = Annotated[int, Field(ge=0, le=1_000_000)]
 # What clean_text accepts, for the document: a word character somewhere, no control character but whitespace.
 _ALLOWED = r"[^\x00-\x08\x0e-\x1b\x7f-\x84\x86-\x9f]"
 TEXT_PATTERN = rf"^{_ALLOWED}*[\w'-]{_ALLOWED}*$"
+# An edit word's: something but whitespace (whether it names anything, a symbol as "🎩" does, is the core's rule).
+EDIT_WORD_PATTERN = rf"^{_ALLOWED}*[^\s\x00-\x08\x0e-\x1b\x7f-\x84\x86-\x9f]{_ALLOWED}*$"
 _TEXT_RULE = " (a word somewhere; no control characters but whitespace, which is collapsed)"
 
 
@@ -185,13 +187,16 @@ class JobParams(Strict):
 _WORD = re.compile(r"[\w'-]+")
 
 
-def clean_text(value: str, what: str) -> str:
-    """Free text with whitespace collapsed; control characters or no word at all are errors naming ``what``."""
+def clean_text(value: str, what: str, need_words: bool = True) -> str:
+    """Free text with whitespace collapsed; control characters or no word at all (without ``need_words``: nothing
+    at all) are errors naming ``what``."""
     if any(unicodedata.category(c) == "Cc" and not c.isspace() for c in value):
         raise ValueError(f"{what} contains control characters")
     value = " ".join(value.split())
-    if not words_of(value):
+    if need_words and not words_of(value):
         raise ValueError(f"{what} has no words")
+    if not value:
+        raise ValueError(f"{what} is blank")
     return value
 
 
@@ -199,8 +204,9 @@ def words_of(text: str) -> list[str]:
     return [w.lower() for w in _WORD.findall(text)]
 
 
-EditWord = Annotated[str, Field(min_length=1, max_length=100, json_schema_extra={"pattern": TEXT_PATTERN}),
-                     AfterValidator(lambda value: clean_text(value, "an edit word"))]
+# A symbol the model reads names an edit ("🎩"): check_edit_words_name_an_edit refuses what names nothing.
+EditWord = Annotated[str, Field(min_length=1, max_length=100, json_schema_extra={"pattern": EDIT_WORD_PATTERN}),
+                     AfterValidator(lambda value: clean_text(value, "an edit word", need_words=False))]
 
 
 class JobCreate(Strict):
@@ -214,7 +220,8 @@ class JobCreate(Strict):
     edit_words: list[EditWord] = Field(
         default_factory=list, max_length=16,
         description="local edits: the word(s) of the prompt naming the edit (e.g. ['sunglasses']); required "
-        "(non-empty) with mode 'local', empty otherwise. Rules beyond the schema (422 naming them): each occurs in "
+        "(non-empty) with mode 'local', empty otherwise. Rules beyond the schema (422 naming them): each names "
+        "something (a word, number or symbol such as an emoji; punctuation alone names nothing), occurs in "
         "the prompt as whole words, also as the model reads the prompt (punctuation at a word's edge is read with "
         "the punctuation beside it: 'hat.' is not found in '..., a hat.'), and some other word of the prompt names "
         "the object",

@@ -143,6 +143,7 @@ REFINE_MISSING = ["refine", "no_such_edit.safetensors", "--initial", "no_such_gr
     ([*REFINE_MISSING, "--prompt", "a dog wearing a hat!", "--edit-words", "hat!"],
      "does not occur in the prompt as the model reads it"),
     ([*REFINE_MISSING, "--prompt", "sunglasses", "--edit-words", "sunglasses"], "nothing names the object"),
+    ([*REFINE_MISSING, "--prompt", "a dog! a hat", "--edit-words", "!"], "edit word '!' names nothing"),
     ([*REFINE_MISSING, "--prompt", "a mic " + "very " * 80, "--edit-words", "mic"], "tokens as the model sees it"),
     (["edit", "no_such_grid.safetensors", "--prompt", "a mic " + "very " * 80, "--out", "edit"],
      "tokens as the model sees it"),
@@ -154,6 +155,15 @@ def test_a_prompt_or_edit_word_the_model_cannot_read_is_refused_before_anything_
     assert main([*command, "--device", "cpu"]) == 2
     err = capsys.readouterr().err
     assert said in err and "no_such" not in err, err
+
+
+@pytest.mark.parametrize("prompt, edit_word", [("a \U0001f3a9 on a mic", "\U0001f3a9"), ("a \u2665 necklace on a dog", "\u2665")])
+def test_a_symbol_the_model_reads_is_an_edit_word(prompt, edit_word, tmp_path, capsys, monkeypatch):
+    """An emoji or symbol edit word, which the tokenizer finds, had been refused up front as having no letters or
+    numbers: the refinement now goes on to read its grids (missing here)."""
+    monkeypatch.chdir(tmp_path)
+    assert main([*REFINE_MISSING, "--prompt", prompt, "--edit-words", edit_word, "--device", "cpu"]) == 2
+    assert "no_such_grid.safetensors: no such file" in capsys.readouterr().err
 
 
 def test_bad_data_dir_exits_2_with_a_message(tmp_path, capsys):

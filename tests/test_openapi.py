@@ -21,7 +21,7 @@ from test_service_api import dataset, make_scene  # noqa: F401 - the fixture
 # Refusals for reasons a JSON schema cannot state (they relate two fields, or the scene); each is said in the
 # document's descriptions of the fields involved.
 BEYOND_SCHEMA = (
-    "edit_words is required for a local edit", "does not occur in the prompt", "cover the whole prompt",
+    "edit_words is required for a local edit", "does not occur in the prompt", "names nothing", "cover the whole prompt",
     "apply to local edits only", "webhook_events needs a webhook_url", "takes one value or one per stage",
     "cannot give backbone 'scene'", "needs a scene uploaded as a mesh", "tokens as the model sees it",
     "needs iterations > 0",
@@ -303,16 +303,18 @@ def test_strict_types_refuse_coercions(client):
 
 
 def test_prompt_pattern_states_the_text_rule():
-    from api.schemas import TEXT_PATTERN, clean_text
+    from api.schemas import EDIT_WORD_PATTERN, TEXT_PATTERN, clean_text
     import re
 
-    for text in ("a mic", "é", "'", "mic\t\n", "mic\x1f", "!!!", "  ", "mic\x00", "mic\x7f", "\x85x", "?\x9f"):
-        try:
-            clean_text(text, "text")
-            server = True
-        except ValueError:
-            server = False
-        assert bool(re.search(TEXT_PATTERN, text)) == server, repr(text)
+    for text in ("a mic", "é", "'", "mic\t\n", "mic\x1f", "!!!", "  ", "mic\x00", "mic\x7f", "\x85x", "?\x9f",
+                 "\U0001f3a9", "\u2665 ", "\x1c\x85", "\x85"):
+        for pattern, need_words in ((TEXT_PATTERN, True), (EDIT_WORD_PATTERN, False)):
+            try:
+                clean_text(text, "text", need_words)
+                server = True
+            except ValueError:
+                server = False
+            assert bool(re.search(pattern, text)) == server, (repr(text), pattern)
 
 
 def test_malformed_json_is_a_documented_400(client, spec):

@@ -899,6 +899,8 @@ def test_unknown_fields_are_422_naming_the_field(client, dataset, root, body, lo
 @pytest.mark.parametrize("body, message", [
     ({"edit_words": ["hat"]}, "edit word 'hat' does not occur in the prompt"),
     ({"edit_words": []}, "edit_words is required for a local edit"),
+    ({"prompt": "a mic, wearing sunglasses", "edit_words": [","]}, "edit word ',' names nothing"),
+    ({"edit_words": [" \t"]}, "an edit word is blank"),
     ({"mode": "global"}, "edit_words apply to local edits only"),
     ({"edit_words": ["a mic wearing big sunglasses"]}, "cover the whole prompt"),
     ({"prompt": "   "}, "no words"),
@@ -916,6 +918,8 @@ def test_bad_edit_words_are_422(client, dataset, root, body, message):
     ("a mic wearing a cafe\u0301 hat", "Caf\u00e9 hat"),
     ("a dog's mic wearing sunglasses", "dog"),  # the model reads "dog" "'s"
     ("a sunglasses-wearing mic", "sunglasses"),  # and "sunglasses" "-" "wearing"
+    ("a \U0001f3a9 on a mic", "\U0001f3a9"),  # a symbol the model reads (it had been 'an edit word has no words')
+    ("a dog wearing a \u2665 necklace", "\u2665"),
 ])
 def test_an_edit_word_the_model_finds_in_the_prompt_is_accepted(client, dataset, root, prompt, edit_word):
     """The API had matched words of its own ([\\w'-]+, not normalised): these were 422s saying the word 'does not

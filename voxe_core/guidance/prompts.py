@@ -122,14 +122,15 @@ def clip_pieces(text: str) -> list[str]:
 
 
 def _names(piece: str) -> bool:
-    """Whether a piece is a word or a number, not punctuation or a contraction's ending ("'s")."""
-    return _piece_class(piece[0]) in ("L", "N")
+    """Whether a piece names something: a word, a number or a symbol (an emoji, "♥"), not punctuation alone nor a
+    contraction's ending ("'s")."""
+    return not _CONTRACTION.fullmatch(piece) and any(unicodedata.category(c)[0] in "LNS" for c in piece)
 
 
 def check_edit_words_name_an_edit(text: str, edit_words: Sequence[str]) -> None:
     """ValueError naming the problem when ``edit_words`` cannot name an edit of ``text`` as the model reads both
-    (:func:`clip_pieces`: in NFC, any case, whole words as the guidance's ``token_spans`` finds them): a word with no
-    letter or number, one whose pieces are no run of the text's, or words leaving no word of the text to name the
+    (:func:`clip_pieces`: in NFC, any case, whole words as the guidance's ``token_spans`` finds them): a word of
+    punctuation alone (a symbol, "🎩", names something), one whose pieces are no run of the text's, or words leaving no word of the text to name the
     object (its punctuation alone would).
 
     Examples:
@@ -143,7 +144,8 @@ def check_edit_words_name_an_edit(text: str, edit_words: Sequence[str]) -> None:
     for word in edit_words:
         sub = clip_pieces(word)
         if not any(map(_names, sub)):
-            raise ValueError(f"edit word {word!r} does not occur in the prompt as a word: it has no letters or numbers")
+            raise ValueError(f"edit word {word!r} names nothing: it is punctuation alone (or a contraction's ending, "
+                             "\"'s\"); name a word, number or symbol of the prompt")
         starts = [i for i in range(len(pieces) - len(sub) + 1) if pieces[i:i + len(sub)] == sub]
         if not starts:
             raise ValueError(f"edit word {word!r} does not occur in the prompt {text!r} as whole words")
