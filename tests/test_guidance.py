@@ -16,7 +16,7 @@ from voxe_core.constants import ATTENTION_MODEL_ID, SDS_MODEL_ID
 from voxe_core.guidance import Guidance
 from voxe_core.guidance.attention import AttentionStore, CrossAttentionCapture
 from voxe_core.guidance.loading import ModelNotAvailableError
-from voxe_core.guidance.prompts import TEXT_ENCODER_TOKENS, edit_prompt, tokens_at_least, view_word
+from voxe_core.guidance.prompts import TEXT_ENCODER_TOKENS, clip_pieces, edit_prompt, tokens_at_least, view_word
 from voxe_core.guidance.sds import StableDiffusionGuidance
 from voxe_core.tiny_sd import build_tiny_stable_diffusion
 
@@ -329,6 +329,17 @@ def test_a_prompt_longer_than_the_text_encoder_reads_is_refused_not_cut_off(guid
                                   "a cafe\u0301 hat"])  # a decomposed accent: one piece once NFC, as CLIP reads it
 def test_the_apis_token_count_is_a_lower_bound_of_the_clip_tokenizers(guidance, text):
     assert tokens_at_least(text) <= len(guidance.tokenizer(text).input_ids)
+
+
+@pytest.mark.parametrize("text", ["\u0395\u039d\u0391\u03a3 \u03a3\u039a\u03a5\u039b\u039f\u03a3 wearing a hat",
+                                  "a \U0001f3a9 on a dog's mic, front view", "a cafe\u0301 hat!! 3D", "\u0130stanbul"])
+def test_the_apis_pieces_are_the_clip_tokenizers_words(guidance, text):
+    """The tokenizer lowers character by character: a word-final capital sigma had been the final \u03c2 in the
+    API's pieces and \u03c3 in the model's, the API accepting an edit word the refinement refused."""
+    backend = guidance.tokenizer.backend_tokenizer
+    normal = backend.normalizer.normalize_str(text)
+    words = [normal[start:end] for _, (start, end) in backend.pre_tokenizer.pre_tokenize_str(normal)]  # not byte-level
+    assert clip_pieces(text) == words
 
 
 # ----------------------------------------------------------------- missing weights

@@ -901,6 +901,9 @@ def test_unknown_fields_are_422_naming_the_field(client, dataset, root, body, lo
     ({"edit_words": []}, "edit_words is required for a local edit"),
     ({"prompt": "a mic, wearing sunglasses", "edit_words": [","]}, "edit word ',' names nothing"),
     ({"edit_words": [" \t"]}, "an edit word is blank"),
+    # the model lowers the prompt's final capital sigma to \u03c3, not to the final \u03c2 the word has
+    ({"prompt": "\u0395\u039d\u0391\u03a3 \u03a3\u039a\u03a5\u039b\u039f\u03a3 wearing a hat",
+      "edit_words": ["\u03c3\u03ba\u03c5\u03bb\u03bf\u03c2"]}, "does not occur in the prompt"),
     ({"mode": "global"}, "edit_words apply to local edits only"),
     ({"edit_words": ["a mic wearing big sunglasses"]}, "cover the whole prompt"),
     ({"prompt": "   "}, "no words"),

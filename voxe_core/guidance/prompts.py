@@ -95,7 +95,8 @@ def _piece_class(character: str) -> str:
 
 def clip_pieces(text: str) -> list[str]:
     """The pre-token pieces of ``text`` as CLIP's tokenizer reads it: in NFC (a decomposed accent is no piece of its
-    own there) and lower case. BPE makes each piece one token or more, the last one ending the word.
+    own there) and lower case, character by character as its normalizer lowers (str.lower() makes a word-final
+    capital sigma the final ς, the tokenizer σ). BPE makes each piece one token or more, the last one ending the word.
 
     Examples:
         >>> clip_pieces("A dog's hat, front view")
@@ -103,7 +104,7 @@ def clip_pieces(text: str) -> list[str]:
         >>> clip_pieces("café½ 12_x!?")
         ['café', '½', '1', '2', '_', 'x', '!?']
     """
-    text, pieces, at = unicodedata.normalize("NFC", text).lower(), [], 0
+    text, pieces, at = "".join(c.lower() for c in unicodedata.normalize("NFC", text)), [], 0
     while at < len(text):
         if contraction := _CONTRACTION.match(text, at):
             pieces.append(contraction.group())
