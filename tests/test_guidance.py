@@ -342,6 +342,27 @@ def test_the_apis_pieces_are_the_clip_tokenizers_words(guidance, text):
     assert clip_pieces(text) == words
 
 
+@pytest.mark.parametrize("prompt, word, said", [
+    ("\u4e00\u53ea\u6234\u5e3d\u5b50\u7684\u72d7", "\u5e3d\u5b50",  # no spaces: one word to CLIP
+     "the model reads '\u4e00\u53ea\u6234\u5e3d\u5b50\u7684\u72d7' as one word (text written without spaces, as "
+     "Chinese is, is one word to it): name all of it, or separate the edit word from the words around it with spaces "
+     "in the prompt"),
+    ("a dog\u2019s hat", "dog's hat",
+     "its apostrophes and quotes must be the prompt's own (\u2019 is not ', \u201d is not \")"),
+    ("a dog with a hat", "zebra", ""),
+])
+def test_an_edit_word_not_found_is_told_the_likely_cause(prompt, word, said):
+    """Text without spaces (Chinese) is one word to CLIP's tokenizer, and a curly apostrophe no straight one: both
+    had been refused only as "does not occur ... as whole words", which does not say what to change."""
+    from voxe_core.guidance.prompts import check_edit_words_name_an_edit
+
+    with pytest.raises(ValueError) as refused:
+        check_edit_words_name_an_edit(prompt, [word])
+    assert str(refused.value) == f"edit word {word!r} does not occur in the prompt {prompt!r} as whole words" + (
+        f": {said}" if said else "")
+    check_edit_words_name_an_edit("\u4e00\u53ea \u6234 \u5e3d\u5b50 \u7684 \u72d7", ["\u5e3d\u5b50"])
+
+
 # ----------------------------------------------------------------- missing weights
 
 

@@ -904,6 +904,10 @@ def test_unknown_fields_are_422_naming_the_field(client, dataset, root, body, lo
     # the model lowers the prompt's final capital sigma to \u03c3, not to the final \u03c2 the word has
     ({"prompt": "\u0395\u039d\u0391\u03a3 \u03a3\u039a\u03a5\u039b\u039f\u03a3 wearing a hat",
       "edit_words": ["\u03c3\u03ba\u03c5\u03bb\u03bf\u03c2"]}, "does not occur in the prompt"),
+    ({"prompt": "\u4e00\u53ea\u6234\u5e3d\u5b50\u7684\u72d7", "edit_words": ["\u5e3d\u5b50"]},
+     "separate the edit word from the words around it with spaces in the prompt"),
+    ({"prompt": "a mic wearing a dog\u2019s hat", "edit_words": ["dog's hat"]},
+     "its apostrophes and quotes must be the prompt's own"),
     ({"mode": "global"}, "edit_words apply to local edits only"),
     ({"edit_words": ["a mic wearing big sunglasses"]}, "cover the whole prompt"),
     ({"prompt": "   "}, "no words"),

@@ -128,11 +128,31 @@ def _names(piece: str) -> bool:
     return not _CONTRACTION.fullmatch(piece) and any(unicodedata.category(c)[0] in "LNS" for c in piece)
 
 
+_STRAIGHT_QUOTES = str.maketrans("‘’‚‛′“”„‟″", "'" * 5 + '"' * 5)
+
+
+def _why_not_found(word: str, text: str, pieces: list[str]) -> str:
+    """What to say beyond "does not occur as whole words", where the cause is likely: quotes other than the prompt's
+    (’ against '), or the word inside a longer one: text written without spaces (Chinese) is one word to CLIP.
+    (transformers 4.x's slow tokenizer, without ftfy, puts spaces round each CJK character; 5.x's does not.)"""
+    if _is_run(clip_pieces(word.translate(_STRAIGHT_QUOTES)), clip_pieces(text.translate(_STRAIGHT_QUOTES))):
+        return ": its apostrophes and quotes must be the prompt's own (’ is not ', ” is not \")"
+    sub = clip_pieces(word)
+    if len(sub) == 1 and (whole := next((piece for piece in pieces if sub[0] in piece), None)):
+        return (f": the model reads {whole!r} as one word (text written without spaces, as Chinese is, is one word "
+                "to it): name all of it, or separate the edit word from the words around it with spaces in the prompt")
+    return ""
+
+
+def _is_run(sub: list[str], pieces: list[str]) -> bool:
+    return any(pieces[i:i + len(sub)] == sub for i in range(len(pieces) - len(sub) + 1))
+
+
 def check_edit_words_name_an_edit(text: str, edit_words: Sequence[str]) -> None:
     """ValueError naming the problem when ``edit_words`` cannot name an edit of ``text`` as the model reads both
     (:func:`clip_pieces`: in NFC, any case, whole words as the guidance's ``token_spans`` finds them): a word of
-    punctuation alone (a symbol, "🎩", names something), one whose pieces are no run of the text's, or words leaving no word of the text to name the
-    object (its punctuation alone would).
+    punctuation alone (a symbol, "🎩", names something), one whose pieces are no run of the text's, or words leaving
+    no word of the text to name the object (its punctuation alone would).
 
     Examples:
         >>> check_edit_words_name_an_edit("a sunglasses-wearing dog's hat", ["Sunglasses", "dog"])
@@ -149,7 +169,8 @@ def check_edit_words_name_an_edit(text: str, edit_words: Sequence[str]) -> None:
                              "\"'s\"); name a word, number or symbol of the prompt")
         starts = [i for i in range(len(pieces) - len(sub) + 1) if pieces[i:i + len(sub)] == sub]
         if not starts:
-            raise ValueError(f"edit word {word!r} does not occur in the prompt {text!r} as whole words")
+            raise ValueError(f"edit word {word!r} does not occur in the prompt {text!r} as whole words"
+                             + _why_not_found(word, text, pieces))
         covered.update(i + k for i in starts for k in range(len(sub)))
     if all(i in covered or not _names(piece) for i, piece in enumerate(pieces)):
         raise ValueError(f"the edit words {list(edit_words)} cover the whole prompt {text!r}, punctuation "
