@@ -157,7 +157,8 @@ def test_a_prompt_or_edit_word_the_model_cannot_read_is_refused_before_anything_
     assert said in err and "no_such" not in err, err
 
 
-@pytest.mark.parametrize("prompt, edit_word", [("a \U0001f3a9 on a mic", "\U0001f3a9"), ("a \u2665 necklace on a dog", "\u2665")])
+@pytest.mark.parametrize("prompt, edit_word", [("a \U0001f3a9 on a mic", "\U0001f3a9"),
+                                               ("a \u2665 necklace on a dog", "\u2665")])
 def test_a_symbol_the_model_reads_is_an_edit_word(prompt, edit_word, tmp_path, capsys, monkeypatch):
     """An emoji or symbol edit word, which the tokenizer finds, had been refused up front as having no letters or
     numbers: the refinement now goes on to read its grids (missing here)."""

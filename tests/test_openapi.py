@@ -21,8 +21,8 @@ from test_service_api import dataset, make_scene  # noqa: F401 - the fixture
 # Refusals for reasons a JSON schema cannot state (they relate two fields, or the scene); each is said in the
 # document's descriptions of the fields involved.
 BEYOND_SCHEMA = (
-    "edit_words is required for a local edit", "does not occur in the prompt", "names nothing", "cover the whole prompt",
-    "apply to local edits only", "webhook_events needs a webhook_url", "takes one value or one per stage",
+    "edit_words is required for a local edit", "does not occur in the prompt", "names nothing",
+    "cover the whole prompt", "apply to local edits only", "webhook_events needs a webhook_url", "takes one value or one per stage",
     "cannot give backbone 'scene'", "needs a scene uploaded as a mesh", "tokens as the model sees it",
     "needs iterations > 0",
 )

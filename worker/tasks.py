@@ -283,9 +283,10 @@ class CannotStart(RuntimeError):
 
 def _check_job_can_start(job: Job, settings) -> None:
     """Fail before the chain's first stage runs when a model the job will load is not here (no weights read), when
-    the tokenizer or text encoder config of a model it prompts cannot be read (a damaged model), or when the tokenizer of a model it prompts (the edit's SDS model, a local edit's attention model) reads its
-    prompt as longer than that model's text encoder does (the API's check is a lower bound: BPE splits some words
-    into several tokens, and a model may read fewer than 77)."""
+    the tokenizer or text encoder config of a model it prompts (the edit's SDS model, a local edit's attention
+    model) cannot be read (a damaged model), or when that tokenizer reads its prompt as longer than that model's
+    text encoder does (the API's check is a lower bound: BPE splits some words into several tokens, and a model may
+    read fewer than 77)."""
     from voxe_core.guidance.loading import load_clip_tokenizer, loading_errors
     from voxe_core.guidance.prompts import check_prompt_tokens, tokens_read
 
