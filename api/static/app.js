@@ -322,13 +322,15 @@ function initJobForm() {
       const headers = { "Idempotency-Key": idempotency.for(JSON.stringify(body)) };
       const job = await api("/v1/jobs", { method: "POST", body, headers });
       if (typeof job?.id !== "string") {  // no job (a proxy's own JSON): said, not opened as "#/jobs/undefined"
-        showError("job", `the answer (${JSON.stringify(job).slice(0, 200)}) is no job: it may not have been created`);
+        showError("job", `the answer (${JSON.stringify(job).slice(0, 200)}) is no job: it may have been created (sent again, it is found)`);
         return;
       }
       idempotency.succeeded();
       location.hash = `#/jobs/${encodeURIComponent(job.id)}`;
     } catch (error) {
-      showApiError(error, "job");
+      const answered = error instanceof ApiError && error.status >= 200 && error.status < 300;  // a proxy's page
+      if (answered) showError("job", `${errorText(error)}: it may have been created (sent again, it is found)`);
+      else showApiError(error, "job");
     } finally {
       button.disabled = false;
     }
