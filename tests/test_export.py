@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import inspect
 import math
 
@@ -240,6 +241,32 @@ def test_a_video_is_whole_or_absent(tmp_path):
         write_video(tmp_path / "taken.mp4", frames, fps=10)
     assert [p.name for p in tmp_path.iterdir()] == ["taken.mp4"]
     assert write_video(tmp_path / "t.mp4", frames, fps=10).stat().st_size > 0
+
+
+@pytest.mark.parametrize("reads, says, code", [
+    ("cat > /dev/null", "Error writing trailer: No space left on device", errno.ENOSPC),  # the disk filled at the end
+    ("", "Error writing trailer: No space left on device", errno.ENOSPC),  # it stopped reading: the pipe broke
+    ("cat > /dev/null", "Conversion failed!", None),  # a failure that names no system error
+])
+def test_an_mp4_whose_encoder_failed_is_an_error_and_leaves_the_earlier_file(tmp_path, monkeypatch, reads, says, code):
+    """Regression: imageio-ffmpeg never read ffmpeg's exit status, so on a full disk write_video returned and left the
+    64 KiB ffmpeg had written (no video) under the final name. Now the encoder's failure is an OSError naming what
+    ffmpeg said, with the errno it names (ENOSPC: a worker can tell a full disk), the earlier file kept, no other left.
+    Here an ffmpeg that does what the real one did on a full 64 KiB tmpfs."""
+    ffmpeg = tmp_path / "bin" / "ffmpeg"
+    ffmpeg.parent.mkdir()
+    ffmpeg.write_text(f'#!/bin/sh\nfor out; do :; done\n{reads}\nhead -c 65536 /dev/zero > "$out"\n'
+                      f'echo "[out#0/mp4 @ 0x5603c2d1a2c0] {says}" >&2\nexit 1\n')
+    ffmpeg.chmod(0o755)
+    monkeypatch.setenv("IMAGEIO_FFMPEG_EXE", str(ffmpeg))
+    videos = tmp_path / "videos"
+    videos.mkdir()
+    (videos / "v.mp4").write_bytes(b"the earlier video")
+    with pytest.raises(OSError, match=rf"the video encoder failed \(ffmpeg exited with status 1: {says}\)") as error:
+        write_video(videos / "v.mp4", gradient_frames(12, 96, 96), fps=10)  # 320 KiB: more than a pipe holds
+    assert error.value.errno == code
+    assert str(videos / "v.mp4") in str(error.value)
+    assert [p.name for p in videos.iterdir()] == ["v.mp4"] and (videos / "v.mp4").read_bytes() == b"the earlier video"
 
 
 @pytest.mark.parametrize("name", ["v.mp4", "v.gif"])

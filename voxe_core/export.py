@@ -10,11 +10,17 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
+import re
+import subprocess
+import sys
+import threading
 from collections.abc import Iterator
-from contextlib import ExitStack
+from contextlib import ExitStack, suppress
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -170,6 +176,85 @@ def check_video_output(path: str | os.PathLike, fps: float) -> Path:
     return path
 
 
+class _Mp4Encoder:
+    """ffmpeg encoding the RGB frames piped to it into an H.264 MP4 at ``path`` (started at the first frame, which
+    gives the size), its exit status checked: imageio-ffmpeg's writer, used before, never read it, so an encode that
+    failed (a full disk: "Error writing trailer: No space left on device") had left a torn MP4 as if written.
+    ``shown_as``: the file ``path`` becomes, which its errors name."""
+
+    OUTPUT_OPTIONS = ("-vcodec", "libx264", "-pix_fmt", "yuv420p", "-v", "error", "-colorspace", "smpte170m",
+                      "-color_range", "tv", "-crf", "18", "-preset", "medium", "-movflags", "+faststart")
+
+    def __init__(self, path: Path, fps: float, shown_as: Path):
+        self.path, self.fps, self.shown_as = path, fps, shown_as
+        self._process: subprocess.Popen | None = None
+        self._log: list[bytes] = []  # ffmpeg's stderr, read by a thread (a full pipe would stall it)
+        self._log_reader: threading.Thread | None = None
+
+    def write(self, pixels: np.ndarray) -> None:
+        """Pipe one (H, W, 3) uint8 frame to ffmpeg; the OSError of :meth:`close` if ffmpeg has stopped."""
+        if self._process is None:
+            self._start(width=pixels.shape[1], height=pixels.shape[0])
+        try:
+            self._process.stdin.write(np.ascontiguousarray(pixels).data)
+        except BrokenPipeError:  # ffmpeg exited: its log says why (the broken pipe's EPIPE would hide a full disk)
+            self.close()
+            raise
+
+    def close(self) -> None:
+        """Let ffmpeg finish the file; an OSError if it failed, with the errno its log names (ENOSPC for a full
+        disk)."""
+        with suppress(BrokenPipeError):  # (flushing to an ffmpeg that has exited, which its status says)
+            self._process.stdin.close()
+        returncode = self._process.wait()
+        log = self._read_log()
+        if returncode != 0:
+            raise self._failure(returncode, log)
+        sys.stderr.write(log)  # what it said of an encode that succeeded (imageio-ffmpeg left it on stderr too)
+
+    def stop(self) -> None:
+        """Kill ffmpeg if it is still running (a render that failed or was cancelled: its file is not wanted)."""
+        if self._process is None or self._process.returncode is not None:
+            return
+        self._process.kill()
+        with suppress(BrokenPipeError):
+            self._process.stdin.close()
+        self._process.wait()
+        self._read_log()
+
+    def _start(self, width: int, height: int) -> None:
+        import imageio_ffmpeg
+
+        rate = Fraction(self.fps).limit_denominator()  # (as imageio-ffmpeg gives it: 24000/1001 is not rounded)
+        command = [imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-f", "rawvideo", "-vcodec", "rawvideo", "-s",
+                   f"{width}x{height}", "-pix_fmt", "rgb24", "-r", str(rate), "-i", "-", "-an", *self.OUTPUT_OPTIONS,
+                   str(self.path)]
+        # its own process group: a Ctrl-C at the terminal (a worker's warm shutdown, which lets the job finish) does
+        # not stop the encoder of a video still wanted; one that reaches the render stops it (:meth:`stop`)
+        self._process = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
+                                         stderr=subprocess.PIPE, process_group=0)
+        self._log_reader = threading.Thread(target=lambda: self._log.append(self._process.stderr.read()), daemon=True)
+        self._log_reader.start()
+
+    def _read_log(self) -> str:
+        """What ffmpeg, which has exited, wrote to stderr; the file it wrote named as the caller knows it."""
+        self._log_reader.join()
+        self._process.stderr.close()
+        return b"".join(self._log).decode(errors="replace").replace(str(self.path), self.shown_as.name)
+
+    def _failure(self, returncode: int, log: str) -> OSError:
+        """The error of an encode that failed: its first logged line (the cause; later ones are its consequences),
+        and the errno of the first system error the log names, so a caller can tell a full disk."""
+        lines = [re.sub(r"^\[[^]]* @ 0x[0-9a-f]+\] ", "", line) for line in log.splitlines() if line.strip()]
+        status = f"exited with status {returncode}" if returncode > 0 else f"was killed by signal {-returncode}"
+        words = f"the video encoder failed (ffmpeg {status}" + (f": {lines[0]})" if lines else ")")
+        named = [(log.find(os.strerror(code)), -len(os.strerror(code)), code) for code in errno.errorcode
+                 if os.strerror(code) in log]  # (of two alike, the longer: "No such device or address")
+        if not named:
+            return OSError(f"{words}: {self.shown_as}")
+        return OSError(min(named)[2], words, str(self.shown_as))
+
+
 class VideoWriter:
     """A video of ``n_frames`` frames written as they come (``append``), so a caller that renders as it writes
     holds one frame, not the clip; the suffix picks the format. Used as a context manager::
@@ -178,7 +263,7 @@ class VideoWriter:
             for frame in iter_views(grid, cameras):
                 video.append(frame)
 
-    ``.mp4``: H.264 (libx264, CRF 18, yuv420p, +faststart) through imageio-ffmpeg, each frame piped to the encoder
+    ``.mp4``: H.264 (libx264, CRF 18, yuv420p, +faststart) by ffmpeg (imageio-ffmpeg's), each frame piped to it
     as it is appended; odd sizes are padded by one replicated row / column, never rescaled. The stream is tagged
     with the matrix its pixels were converted by (BT.601, limited range): untagged, a player that guesses BT.709
     for it had shown the render's red (250, 5, 5) as (255, 27, 1) and its greens 20 levels dimmer.
@@ -189,8 +274,9 @@ class VideoWriter:
     (so a static scene can decode to fewer frames; the total duration is kept), and a frame that differs is written
     as the rectangle that changed, drawn over the one before.
     The video is written beside ``path`` under a temporary name and renamed when whole, at the end of the block:
-    an error in it (a cancelled render), a frame of another shape, too few or too many frames leave nothing (OSError
-    when the encoder wrote no file, as ffmpeg may fail with only a log line).
+    an error in it (a cancelled render), a frame of another shape, too few or too many frames, or an encoder that
+    failed leave nothing, and the file already at ``path`` as it was (an OSError for the encoder, with the errno its
+    log names: ENOSPC for a full disk; or when it wrote no file).
     """
 
     def __init__(self, path: str | os.PathLike, n_frames: int, fps: float = 30):
@@ -211,16 +297,8 @@ class VideoWriter:
         with ExitStack() as files:
             self._partial = files.enter_context(replacing(self.path))
             if self.path.suffix.lower() == ".mp4":
-                import imageio.v2 as imageio
-
-                self._mp4 = imageio.get_writer(
-                    self._partial, format="FFMPEG", mode="I", fps=self.fps, codec="libx264", pixelformat="yuv420p",
-                    quality=None, output_params=["-colorspace", "smpte170m", "-color_range", "tv", "-crf", "18",
-                                                 "-preset", "medium", "-movflags", "+faststart"],
-                    macro_block_size=1, ffmpeg_log_level="error",
-                )
-                # closed on an exception too: imageio's context closes only on success (else its __del__, later,
-                files.callback(self._mp4.close)  # had finished the file after it was removed)
+                self._mp4 = _Mp4Encoder(self._partial, self.fps, self.path)
+                files.callback(self._mp4.stop)  # on an error in the block: before the partial file is removed
             else:
                 self._gif_file = files.enter_context(open(self._partial, "wb", buffering=0))  # each frame on disk
             self._files = files.pop_all()
@@ -238,7 +316,7 @@ class VideoWriter:
             raise ValueError(f"{self.path.name} was opened for {self.n_frames} frames; one more was given")
         self._shape = pixels.shape
         if self._mp4 is not None:
-            self._mp4.append_data(_pad_even(pixels))
+            self._mp4.write(_pad_even(pixels))
         elif self.appended in self._gif_delays:
             self._add_gif_frame(pixels, self._gif_delays[self.appended])
         self.appended += 1
