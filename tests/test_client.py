@@ -147,6 +147,55 @@ def test_events_resume_a_stream_the_server_ended_before_the_job_ended(monkeypatc
     assert [e["event"] for e in events] == ["stage_started", "canceled", "progress"]
 
 
+def test_events_resume_a_stream_gone_silent_without_a_reset(monkeypatch):
+    """A connection that dies with no reset (a NAT's or Wi-Fi's drop) delivers nothing more, not even the service's
+    15 s keepalive: with no read timeout the stream waited on it for good, and ``voxe wait`` with it. A stream silent
+    for ``STREAM_SILENCE_S`` is lost and resumed with Last-Event-ID (here a server silent for 10 s at most, then
+    closing, and a silence of 0.5 s)."""
+    import socket
+    import threading
+    import time
+
+    import voxe_client.client as client_module
+
+    monkeypatch.setattr(client_module, "STREAM_SILENCE_S", 0.5)
+    asked, done = [], threading.Event()
+    head = b"HTTP/1.1 200 OK\r\ncontent-type: text/event-stream\r\nconnection: close\r\n\r\n"
+    server = socket.create_server(("127.0.0.1", 0))
+
+    def answer(connection: socket.socket) -> None:
+        with connection:
+            request = b""
+            while b"\r\n\r\n" not in request:
+                request += connection.recv(4096)
+            asked.append(re.search(rb"(?im)^last-event-id: *(\S+)", request))
+            if len(asked) == 1:
+                connection.sendall(head + b'id: 1\nevent: stage_started\ndata: {"stage": "edit"}\n\n')
+                done.wait(10)  # silent, the connection open
+            else:
+                connection.sendall(head + b'id: 2\nevent: succeeded\ndata: {"stage": "export"}\n\n')
+
+    def serve() -> None:
+        for _ in range(2):
+            threading.Thread(target=answer, args=(server.accept()[0],), daemon=True).start()
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    lost = []
+    try:
+        with Client(f"http://127.0.0.1:{server.getsockname()[1]}") as client:
+            started = time.monotonic()
+            events = [e["id"] for e in client.events("j1", on_reconnect=lost.append)]
+            took = time.monotonic() - started
+    finally:
+        done.set()
+        thread.join(5)
+        server.close()
+    assert events == ["1", "2"] and asked[0] is None and asked[1].group(1) == b"1"
+    assert took < 5, f"the silent stream was waited on for {took:.1f} s"
+    assert lost[0].startswith("event stream of job j1 lost (nothing received for 0.5 s); reconnecting")
+
+
 def test_events_reconnect_through_an_api_restart_of_minutes_then_give_up_saying_how_long(monkeypatch):
     """The stream had given up after 5 reconnects, about 15 s: an API restarted during a long job (its proxy
     answering 502 meanwhile) ended ``voxe wait``. It now reconnects for ``reconnect_for`` seconds from the loss."""

@@ -29,6 +29,10 @@ RECONNECT_FOR_S = 300.0
 """How long an event stream keeps reconnecting to a service that stopped answering (an API restarted during a long
 job; it had given up after about 15 s) before :meth:`Client.events` gives up."""
 MAX_RECONNECT_PAUSE_S = 5.0
+STREAM_SILENCE_S = 60.0
+"""How long an open event stream may deliver nothing before it counts as lost and is resumed: the service sends a
+keepalive comment every 15 s, so a connection silent this long is dead (a NAT's or a Wi-Fi's drop sends no reset; with
+no read timeout, :meth:`Client.wait` had waited on it for good)."""
 PROXY_UNAVAILABLE = (502, 503, 504)
 """What a proxy in front of the API answers while the API restarts: a lost stream, not the service's refusal."""
 IDEMPOTENCY_HEADER = "Idempotency-Key"
@@ -224,12 +228,12 @@ class Client:
                on_reconnect: Callable[[str], None] | None = None) -> Iterator[dict]:
         """The job's live events (``{"event", "id", "data"}``) until it ends, over Server-Sent Events.
 
-        A dropped connection, a stream the server ended before the job's end (it was stopping), or a proxy's
-        502 / 503 / 504 while the API restarts is resumed with ``Last-Event-ID``, so no timeline event is missed or
-        repeated, for up to ``reconnect_for`` seconds from its loss (default :data:`RECONNECT_FOR_S`); ``progress``
-        snapshots carry no id. ``on_reconnect`` hears a line when the stream is lost and one when it is back (the
-        events had stopped with nothing said). A stream never opened is an error at once: a wrong URL is not waited
-        for.
+        A dropped connection, one silent for :data:`STREAM_SILENCE_S` (no keepalive either: dead without a reset), a
+        stream the server ended before the job's end (it was stopping), or a proxy's 502 / 503 / 504 while the API
+        restarts is resumed with ``Last-Event-ID``, so no timeline event is missed or repeated, for up to
+        ``reconnect_for`` seconds from its loss (default :data:`RECONNECT_FOR_S`); ``progress`` snapshots carry no id.
+        ``on_reconnect`` hears a line when the stream is lost and one when it is back (the events had stopped with
+        nothing said). A stream never opened is an error at once: a wrong URL is not waited for.
         """
         reconnect_for = RECONNECT_FOR_S if reconnect_for is None else reconnect_for
         opened, lost_since, attempts, reconnecting = False, None, 0, False
@@ -251,7 +255,7 @@ class Client:
             path = f"/v1/jobs/{_segment(job_id)}/events"
             try:
                 with closing(self._send("GET", path, stream=True, headers=headers,
-                                        timeout=httpx.Timeout(30.0, read=None))) as response:
+                                        timeout=httpx.Timeout(30.0, read=STREAM_SILENCE_S))) as response:
                     if response.is_error:
                         response.read()
                         if not opened or response.status_code not in PROXY_UNAVAILABLE:
@@ -273,7 +277,8 @@ class Client:
             except httpx.TransportError as exc:
                 if not opened:
                     raise ServiceUnreachable(f"cannot reach the service at {self.base_url}: {exc}") from None
-                lost = str(exc)
+                lost = (f"nothing received for {STREAM_SILENCE_S:g} s" if isinstance(exc, httpx.ReadTimeout)
+                        else str(exc))
             now = time.monotonic()
             lost_since = now if lost_since is None else lost_since
             attempts += 1
