@@ -429,6 +429,63 @@ def test_a_download_answered_503_with_retry_after_is_sent_again(tmp_path, monkey
     assert sent == ["/v1/jobs/j1/artifacts/a.bin"] * 3 and waits == [1.0, 1.0]
 
 
+def test_a_download_broken_off_goes_on_where_it_stopped_and_a_dead_one_fails_leaving_nothing(tmp_path, monkeypatch):
+    """A connection reset, a stall or a body cut short mid-download had failed it, the bytes received thrown away
+    (a multi-GB result started over by hand, or never arriving over a flaky link). It goes on with Range from the
+    bytes it has, If-Range the listed SHA-256 (the ETag); an answer of the whole file (a server ignoring Range, an
+    artifact replaced) starts it over; ``retries`` breaks in a row with no byte more fail it, nothing left behind."""
+    import hashlib
+
+    import voxe_client.client as client_module
+
+    waits, asked, served = [], [], [0]
+    monkeypatch.setattr(client_module.time, "sleep", waits.append)
+    data = bytes(range(256)) * 40
+    sha = hashlib.sha256(data).hexdigest()
+    breaks = [httpx.ReadError("connection reset"), httpx.ReadTimeout("timed out"),
+              httpx.RemoteProtocolError("peer closed connection without sending complete message body")]
+    whole_at = set()  # the sendings answered with the whole file, Range or not
+
+    class Breaking(httpx.SyncByteStream):
+        def __init__(self, body: bytes, cut: Exception | None):
+            self.body, self.cut = body, cut
+
+        def __iter__(self):
+            part = self.body[:3000] if self.cut else self.body
+            served[0] += len(part)
+            yield part
+            if self.cut:
+                raise self.cut
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        if request.url.path.endswith("/artifacts"):
+            return httpx.Response(200, json=[{"name": "a.bin", "size": len(data), "sha256": sha}])
+        asked.append((request.headers.get("range"), request.headers.get("if-range")))
+        cut = breaks.pop(0) if breaks else None
+        if isinstance(cut, httpx.ConnectError):
+            raise cut
+        start = int(re.fullmatch(r"bytes=(\d+)-", asked[-1][0]).group(1)) if asked[-1][0] else 0
+        if len(asked) in whole_at or not start:
+            return httpx.Response(200, stream=Breaking(data, cut))
+        return httpx.Response(206, headers={"content-range": f"bytes {start}-{len(data) - 1}/{len(data)}"},
+                              stream=Breaking(data[start:], cut))
+
+    with Client(transport=httpx.MockTransport(answer), retries=1) as client:
+        assert client.download("j1", "a.bin", tmp_path / "a.bin").read_bytes() == data
+        assert asked == [(None, None), ("bytes=3000-", f'"{sha}"'), ("bytes=6000-", f'"{sha}"'),
+                         ("bytes=9000-", f'"{sha}"')]
+        assert served == [len(data)] and len(waits) == 3  # each byte sent once: one more try after each break
+        asked.clear()
+        breaks[:], whole_at = [httpx.ReadError("connection reset")], {2}
+        assert client.download("j1", "a.bin", tmp_path / "b.bin").read_bytes() == data  # not the head twice
+        assert [r for r, _ in asked] == [None, "bytes=3000-"]
+        breaks[:] = [httpx.ReadError("connection reset")] + [httpx.ConnectError("connection refused")] * 2
+        with pytest.raises(ServiceError, match=r"^cannot download a.bin of job j1 \(3000 of 10240 bytes received\): "
+                                               "connection refused$"):
+            client.download("j1", "a.bin", tmp_path / "c.bin")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.bin", "b.bin"]  # no partial file
+
+
 def test_upload_scene_sends_the_display_name_as_the_name_field_and_keeps_the_file_name(tmp_path):
     """``name`` had been sent as the uploaded file's name: a mesh named "My spot" lost its .obj (422 "no dataset
     found"), and a zip's display name lost the text after its last dot (the service took the file name's stem)."""
@@ -891,6 +948,61 @@ def test_a_submission_whose_answer_is_lost_is_sent_again_with_its_key_and_makes_
     assert len(upload) == 2 and len(set(upload)) == 1 and None not in upload
     assert first == again == third and len(sweeps) == 2 and len(set(sweeps)) == 1
     assert len({upload[0], first, sweeps[0]}) == 3  # one key per submission
+
+
+class _CutStream(httpx.SyncByteStream):
+    """A response body the connection drops after ``keep`` bytes."""
+
+    def __init__(self, inner: httpx.SyncByteStream, keep: int):
+        self.inner, self.keep = inner, keep
+
+    def __iter__(self):
+        for chunk in self.inner:
+            yield chunk[:self.keep]
+            self.keep -= len(chunk)
+            if self.keep < 0:
+                raise httpx.ReadError("connection reset by peer")
+
+    def close(self) -> None:
+        self.inner.close()
+
+
+def test_voxe_download_broken_off_goes_on_from_the_service_where_it_stopped(api, tmp_path, monkeypatch):
+    """Against the API app: a download whose connection drops mid-way is resumed with the Range and If-Range the
+    service serves a 206 for, and lands whole (``voxe download`` had failed it, exit 3, the bytes thrown away)."""
+    import hashlib
+
+    import voxe_core.cli.service as service_commands
+    from voxe_core.cli import main
+    from voxe_service.db import session_scope
+    from voxe_service.models import Artifact
+    from voxe_service.storage import get_storage
+
+    url, _ = api
+    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+    data = bytes(range(256)) * 4000
+    with Client(url) as client:
+        job = client.create_job(client.upload_scene(tmp_path / "plane.obj")["id"], "a plane of gold")
+    stored = get_storage().put_bytes(f"jobs/{job['id']}/grid.npz", data)
+    with session_scope() as session:
+        session.add(Artifact(job_id=job["id"], name="grid.npz", key=stored.key, size=stored.size, sha256=stored.sha256,
+                             content_type="application/octet-stream", kind="grid"))
+    sent = []
+
+    class Cutting(httpx.HTTPTransport):
+        def handle_request(self, request: httpx.Request) -> httpx.Response:
+            response = super().handle_request(request)
+            if request.url.path.endswith("/grid.npz"):
+                sent.append((request.headers.get("range"), response.status_code))
+                if len(sent) == 1:
+                    response.stream = _CutStream(response.stream, 300_000)
+            return response
+
+    monkeypatch.setattr(service_commands, "_client", lambda args: Client(args.api, transport=Cutting()))
+    assert main(["download", job["id"], "--out", str(tmp_path / "out"), "--api", url, "--quiet"]) == 0
+    assert (tmp_path / "out" / "grid.npz").read_bytes() == data and hashlib.sha256(data).hexdigest() == stored.sha256
+    assert sent[0] == (None, 200) and sent[1][1] == 206 and sent[1][0].startswith("bytes=")
+    assert 0 < int(sent[1][0].removeprefix("bytes=").rstrip("-")) <= 300_000  # went on, not over
 
 
 def test_an_empty_webhook_url_is_sent_and_refused_not_dropped(api, tmp_path, capsys):

@@ -42,6 +42,8 @@ submission goes again with its Idempotency-Key."""
 UNANSWERED_IN_TIME = (httpx.ReadTimeout, httpx.WriteTimeout)
 """A request the service may still be working on (its answer slower than the timeout: a large upload's staging): a
 submission is not sent again, which would have the service do it a second time."""
+BROKEN_DOWNLOADS = (*LOST_ANSWERS, httpx.ReadTimeout)
+"""A download the connection broke off or stalled: it goes on from the bytes it has (a GET, sent again at no risk)."""
 TERMINAL_STATES = ("succeeded", "failed", "canceled")
 
 
@@ -311,7 +313,10 @@ class Client:
     def download(self, job_id: str, name: str, dest: str | os.PathLike) -> Path:
         """Stream the artifact to ``dest`` and check its size and SHA-256 against the job's listing.
 
-        A mismatch is a ServiceError and leaves no file; the bytes land under ``dest`` only once checked.
+        A connection broken off or stalled mid-way (:data:`BROKEN_DOWNLOADS`) is resumed where it stopped, with
+        ``Range`` and ``If-Range`` (the listed SHA-256, the service's ETag: an artifact replaced since comes whole), up
+        to ``retries`` times in a row without a byte more; it had failed the download, its bytes thrown away, however
+        large. A mismatch is a ServiceError and leaves no file; the bytes land under ``dest`` only once checked.
         """
         if name in ("", ".", "..") or any(c in name for c in "/\\\0"):  # it names a file inside dest's folder only
             raise ServiceError(f"artifact name {name!r} of job {job_id} is not a plain file name; nothing written")
@@ -322,23 +327,41 @@ class Client:
         expected, dest = listed[name], Path(dest)
         dest.parent.mkdir(parents=True, exist_ok=True)
         partial = dest.with_name(f".{dest.name}.partial")
-        digest, size = hashlib.sha256(), 0
+        digest, size, failures = hashlib.sha256(), 0, 0
         path = f"/v1/jobs/{_segment(job_id)}/artifacts/{_segment(name)}"
         try:
-            with closing(self._send("GET", path, stream=True)) as response, open(partial, "wb") as out:
-                if response.is_error:
-                    response.read()
-                    _raise_for_error(response, "GET", path)
-                for chunk in response.iter_bytes(1 << 20):
-                    digest.update(chunk)
-                    size += len(chunk)
-                    out.write(chunk)
+            with open(partial, "wb") as out:
+                while True:
+                    had = size
+                    resume = {"range": f"bytes={size}-", "if-range": f'"{expected["sha256"]}"'} if size else {}
+                    try:
+                        with closing(self._send("GET", path, stream=True, headers=resume)) as response:
+                            if response.is_error:
+                                response.read()
+                                _raise_for_error(response, "GET", path)
+                            if response.status_code != httpx.codes.PARTIAL_CONTENT:  # the whole file, from its start
+                                digest, size = hashlib.sha256(), 0
+                                out.seek(0)
+                                out.truncate()
+                            for chunk in response.iter_bytes():  # as received: a break loses none held back
+                                digest.update(chunk)
+                                size += len(chunk)
+                                out.write(chunk)
+                        break
+                    except BROKEN_DOWNLOADS:
+                        failures = 0 if size > had else failures + 1
+                        if size and size >= expected["size"]:  # every byte listed is here: the check says the rest
+                            break
+                        if failures > self.retries:
+                            raise
+                        time.sleep(_backoff(failures))
             if size != expected["size"] or digest.hexdigest() != expected["sha256"]:
                 raise ServiceError(f"{name} of job {job_id}: downloaded {size} bytes with sha256 {digest.hexdigest()}, "
                                    f"the service lists {expected['size']} bytes with sha256 {expected['sha256']}")
             os.replace(partial, dest)
         except (httpx.TransportError, httpx.InvalidURL) as exc:
-            raise ServiceUnreachable(f"cannot download {name} of job {job_id}: {exc}") from None
+            raise ServiceUnreachable(f"cannot download {name} of job {job_id} ({size} of {expected['size']} bytes "
+                                     f"received): {exc}") from None
         finally:
             partial.unlink(missing_ok=True)
         return dest
