@@ -52,6 +52,8 @@ def test_error_statuses_name_the_call_the_status_and_the_detail():
     def answer(request: httpx.Request) -> httpx.Response:
         if request.url.path.endswith("/plain"):
             return httpx.Response(502, text="<html>bad gateway</html>")
+        if request.url.path.endswith("/gateway-json"):  # a gateway's JSON error, no detail in it
+            return httpx.Response(504, json={"message": "upstream request timeout"})
         return httpx.Response(422, json={"detail": [{"loc": ["body", "scenes"], "msg": "lists a scene twice"}]})
 
     with Client(transport=httpx.MockTransport(answer)) as client:
@@ -61,6 +63,8 @@ def test_error_statuses_name_the_call_the_status_and_the_detail():
         assert str(error.value) == "POST /v1/sweeps: HTTP 422: body.scenes: lists a scene twice"  # not a dict list
         with pytest.raises(ServiceError, match=r"^GET /plain: HTTP 502: Bad Gateway$"):
             client.request("GET", "/plain")
+        with pytest.raises(ServiceError, match=r"^GET /gateway-json: HTTP 504: Gateway Timeout$"):  # not "None"
+            client.request("GET", "/gateway-json")
 
 
 def test_an_unreachable_service_is_a_service_error_naming_it():

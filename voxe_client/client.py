@@ -536,6 +536,8 @@ def _raise_for_error(response: httpx.Response, method: str, path: str) -> None:
         try:
             detail = response.json().get("detail")
         except (ValueError, AttributeError):
+            detail = None
+        if detail is None:  # not the API's error (a proxy's HTML, or JSON of its own): it had read "HTTP 502: None"
             detail = response.reason_phrase
         raise ServiceError(f"{method} {path}: HTTP {response.status_code}: {_readable(detail)}", response.status_code,
                            detail)
