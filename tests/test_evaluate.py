@@ -789,7 +789,8 @@ def test_an_evaluation_whose_upload_fails_mid_set_lists_none_of_its_results(serv
                                                                              failing_name):
     """The storage failing after evaluation.json was uploaded (S3 throttling evaluation.md) had failed the job with
     the JSON listed without its table; at a ring render, the renders before it. The rings, the JSON and the table
-    are published as one set: the failed job lists none of them and keeps none of their bytes."""
+    are published as one set: the stopped run (the outage gives the job back) lists none of them and keeps none of
+    their bytes."""
     from service_helpers import failing_uploads
     from voxe_service.storage import get_storage
     from worker import tasks
@@ -800,9 +801,11 @@ def test_an_evaluation_whose_upload_fails_mid_set_lists_none_of_its_results(serv
     job = client.post("/v1/evaluations", json={"job_ids": [edit["id"]], "object": "mic", "params": RING}).json()
     storage = get_storage(tasks.get_settings())
     failing_uploads(monkeypatch, storage, failing_name)
-    assert tasks.evaluate_task.apply(args=(job["id"],)).get()["state"] == "failed"
-    failed = client.get(f"/v1/jobs/{job['id']}").json()
-    assert failed["error"].startswith("evaluate: StorageUnavailable: S3 bucket 'voxe': SlowDown when uploading")
+    monkeypatch.setattr("worker.runtime.OUTAGE_PAUSE_S", 0.0)
+    result = tasks.evaluate_task.apply(args=(job["id"],))
+    assert result.state == "REJECTED" and "SlowDown when uploading" in result.result.reason
+    stopped = client.get(f"/v1/jobs/{job['id']}").json()
+    assert (stopped["state"], stopped["error"]) == ("running", None)
     assert client.get(f"/v1/jobs/{job['id']}/artifacts").json() == []
     assert storage.list(f"jobs/{job['id']}/") == []
 

@@ -686,6 +686,127 @@ def test_an_outage_met_at_every_try_fails_the_job_at_the_requeue_limit_naming_it
                          f"limit (VOXE_JOB_MAX_REQUEUES={limit})")
 
 
+def _checkpoint_upload_refused(monkeypatch, storage, cause: str, refused_at: set) -> list:
+    """The edit's checkpoint refused at the checkpoints numbered in ``refused_at`` (1 for the first): its upload
+    throttled by the storage (``cause`` "storage outage"), or its write to the worker's scratch disk, full ("full
+    disk"), the same way every time (``refused_at`` empty: from the first on); the checkpoints tried."""
+    import errno
+
+    import voxe_core.edit
+    from voxe_service.storage import StorageUnavailable
+
+    tried = []
+    if cause == "storage outage":
+        put_file = type(storage).put_file
+
+        def throttled(self, key, path, content_type=None):
+            if key.endswith("checkpoints/edit.safetensors"):
+                tried.append(key)
+                if not refused_at or len(tried) in refused_at:
+                    raise StorageUnavailable(f"S3 bucket 'voxe': SlowDown when uploading {key}")
+            return put_file(self, key, path, content_type)
+
+        monkeypatch.setattr(type(storage), "put_file", throttled)
+    else:
+        save_tensors = voxe_core.edit.save_tensors
+
+        def full(path, *args, **kwargs):
+            tried.append(path)
+            if not refused_at or len(tried) in refused_at:
+                raise OSError(errno.ENOSPC, "No space left on device", str(path))
+            return save_tensors(path, *args, **kwargs)
+
+        monkeypatch.setattr(voxe_core.edit, "save_tensors", full)
+    return tried
+
+
+OUTAGE_SAID = {"storage outage": "a storage outage (S3 bucket 'voxe': SlowDown when uploading "
+                                 "jobs/{job_id}/checkpoints/edit.safetensors)",
+               "full disk": "the worker's disk full (OSError: [Errno 28] No space left on device)"}
+
+
+@pytest.mark.parametrize("cause", OUTAGE_SAID)
+def test_an_edit_whose_checkpoint_meets_a_storage_outage_or_a_full_disk_goes_back_to_the_queue_and_resumes(
+        service, monkeypatch, cause):
+    """The storage throttled or unreachable (S3 SlowDown, a 5xx) as the edit stored a checkpoint, or the worker's
+    scratch disk full as it wrote one, had failed the job and deleted its checkpoints: hours of a GPU edit lost to
+    a passing outage, and a worker with a full disk failing every job it took. The run gives the job back (the
+    hold released: any worker takes it), counted as a re-queue naming the cause, pauses as an ingest does, and the
+    message goes back to the queue; the redelivery resumes from the last checkpoint stored."""
+    from voxe_service.storage import get_storage, job_key
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job_id = _reconstructed_job(client, scene_id, "scene", iterations=3, render_size=16, preview_every=0)["id"]
+    monkeypatch.setattr(tasks.get_settings(), "checkpoint_every", 1)  # checkpoints at iterations 1, 2 and 3
+    storage = get_storage(tasks.get_settings())
+    pauses = []
+    monkeypatch.setattr(tasks.time, "sleep", pauses.append)
+    with monkeypatch.context() as outage:
+        tried = _checkpoint_upload_refused(outage, storage, cause, refused_at={2})
+        result = tasks.edit_task.apply(args=(job_id,))
+    assert result.state == "REJECTED" and result.result.requeue, result.result  # back to the broker
+    assert len(tried) == 2 and pauses == [5.0]
+    said = OUTAGE_SAID[cause].format(job_id=job_id)
+    assert result.result.reason == f"edit of job {job_id} stopped by {said}"
+    job = runtime.load_job(job_id)
+    assert (job.state, job.error, job.completed_stages, job.run_token, job.requeues) == (
+        "running", None, ["reconstruct"], None, 1)
+    assert storage.exists(job_key(job_id, "checkpoints/edit.safetensors"))  # the one of iteration 1, kept
+    assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "done"  # the redelivered message
+    done = client.get(f"/v1/jobs/{job_id}").json()
+    assert (done["state"], done["completed_stages"], done["iteration"]) == ("running", ["reconstruct", "edit"], 3)
+    events = client.get(f"/v1/jobs/{job_id}/events").json()
+    assert [e["detail"] for e in events if e["kind"] == "requeued"] == [f"edit stopped by {said}"]
+    assert [e["iteration"] for e in events if e["kind"] == "resumed" and e["stage"] == "edit"] == [1]
+    assert client.get(f"/v1/jobs/{job_id}/artifacts/edited_grid.safetensors").status_code == 200
+
+
+@pytest.mark.parametrize("cause", OUTAGE_SAID)
+def test_a_storage_outage_or_full_disk_met_at_every_run_fails_the_job_at_the_requeue_limit_naming_it(
+        service, monkeypatch, cause):
+    """Given back at each run, a stage the storage refuses (or the disk) every time would run for ever: each return
+    counts, its pause doubling (5, 10, 20 s), and at ``VOXE_JOB_MAX_REQUEUES`` the job fails naming the cause, its
+    checkpoints deleted."""
+    from voxe_service.settings import get_settings
+    from voxe_service.storage import get_storage
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job_id = _reconstructed_job(client, scene_id, "scene", iterations=3, render_size=16, preview_every=0)["id"]
+    limit = get_settings().job_max_requeues
+    storage = get_storage(get_settings())
+    pauses = []
+    monkeypatch.setattr(tasks.time, "sleep", pauses.append)
+    _checkpoint_upload_refused(monkeypatch, storage, cause, refused_at=set())
+    outcomes = [tasks.edit_task.apply(args=(job_id,)) for _ in range(limit + 1)]
+    assert [outcome.state for outcome in outcomes] == ["REJECTED"] * limit + ["SUCCESS"]
+    assert outcomes[-1].get()["state"] == "failed"
+    assert pauses == [5.0 * 2 ** n for n in range(limit)]
+    job = runtime.load_job(job_id)
+    assert (job.state, job.requeues) == ("failed", limit)
+    assert job.error == (f"edit stopped by {OUTAGE_SAID[cause].format(job_id=job_id)}; it was sent again {limit} "
+                         f"time(s) already, the limit (VOXE_JOB_MAX_REQUEUES={limit})")
+    assert storage.list(f"jobs/{job_id}/checkpoints/") == []
+
+
+def test_a_storage_error_that_is_no_outage_at_a_checkpoint_fails_the_job_naming_it(service, monkeypatch):
+    """A storage fault a retry would meet again (access denied, a missing bucket) is no outage: the job fails with
+    it at once, not after re-running the stage VOXE_JOB_MAX_REQUEUES times."""
+    from service_helpers import failing_uploads
+    from voxe_service.storage import StorageError, get_storage
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job_id = _reconstructed_job(client, scene_id, "scene", iterations=3, render_size=16, preview_every=0)["id"]
+    failing_uploads(monkeypatch, get_storage(tasks.get_settings()), "checkpoints/edit.safetensors",
+                    StorageError("S3 bucket 'voxe': AccessDenied when uploading"))
+    assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "failed"
+    job = runtime.load_job(job_id)
+    assert (job.state, job.requeues) == ("failed", 0)
+    assert job.error == "edit: StorageError: S3 bucket 'voxe': AccessDenied when uploading"
+
+
 def test_a_stages_end_committed_with_its_answer_lost_goes_on_with_the_chain(service, monkeypatch):
     """A dropped connection can lose the answer to a COMMIT that landed: the end's retry found the job released
     and took it for another run's takeover, stopping the chain (the job left running until the reaper's
@@ -889,7 +1010,9 @@ def _edited_job_exporting_a_mesh(client, scene_id, monkeypatch) -> str:
 
 def test_an_export_whose_disk_refuses_one_mesh_format_publishes_no_mesh(service, monkeypatch):
     """The mesh formats (PLY, GLB, OBJ with its MTL) are one set: a full disk writing mesh.glb had failed the job with
-    mesh.ply already listed. Every format is written before any is published, so the failed job lists none."""
+    mesh.ply already listed. Every format is written before any is published, so the stopped run lists none; the
+    full disk, the worker's state, gives the job back (it had failed it) and the stage run again publishes every
+    format."""
     import errno
 
     import voxe_core.edit
@@ -905,13 +1028,21 @@ def test_an_export_whose_disk_refuses_one_mesh_format_publishes_no_mesh(service,
             raise OSError(errno.ENOSPC, "No space left on device", str(path))
         return save_mesh(mesh, path)
 
-    monkeypatch.setattr(voxe_core.export, "save_mesh", full_disk_for_glb)
-    assert tasks.export_task.apply(args=(job_id,)).get()["state"] == "failed"
+    monkeypatch.setattr("worker.runtime.OUTAGE_PAUSE_S", 0.0)
+    with monkeypatch.context() as disk:
+        disk.setattr(voxe_core.export, "save_mesh", full_disk_for_glb)
+        result = tasks.export_task.apply(args=(job_id,))
+    assert result.state == "REJECTED" and result.result.requeue, result.result
+    assert result.result.reason == (f"export of job {job_id} stopped by the worker's disk full (OSError: [Errno 28] "
+                                    "No space left on device)")
     job = client.get(f"/v1/jobs/{job_id}").json()
-    assert job["error"].startswith("export: OSError: [Errno 28] No space left on device")
+    assert (job["state"], job["error"]) == ("running", None)
     listed = {a["name"] for a in client.get(f"/v1/jobs/{job_id}/artifacts").json()}
     assert listed == {"initial_grid.safetensors", "edited_grid.safetensors", "preview.png", "render_000.png",
                       "turntable.mp4"}
+    assert tasks.export_task.apply(args=(job_id,)).get()["state"] == "done"  # the redelivered message
+    listed = {a["name"] for a in client.get(f"/v1/jobs/{job_id}/artifacts").json()}
+    assert {"mesh.ply", "mesh.glb", "mesh.obj", "mesh.mtl"} <= listed
 
 
 def test_an_export_whose_grid_has_no_surface_succeeds_saying_why_it_has_no_mesh(service, monkeypatch):
@@ -949,8 +1080,8 @@ def test_an_export_whose_upload_fails_mid_mesh_set_lists_no_mesh_and_its_rerun_p
         service, monkeypatch, failure):
     """The storage failing after mesh.ply and mesh.glb were uploaded (S3 throttling mesh.obj) had failed the job
     with those two listed; a failure at mesh.mtl, mesh.obj without its material. The set is recorded in one
-    transaction once every format is stored: the ended (or stopped) run lists none of it and leaves none of its
-    bytes, and the stage run again (a redelivery) publishes all four."""
+    transaction once every format is stored: the stopped run (the outage gives the job back) lists none of it and
+    leaves none of its bytes, and the stage run again (a redelivery) publishes all four."""
     import hashlib
 
     from voxe_service.storage import get_storage
@@ -960,22 +1091,21 @@ def test_an_export_whose_upload_fails_mid_mesh_set_lists_no_mesh_and_its_rerun_p
     job_id = _edited_job_exporting_a_mesh(client, scene_id, monkeypatch)
     storage = get_storage(tasks.get_settings())
     failing_name = "mesh.obj" if failure == "storage outage" else "mesh.mtl"
+    monkeypatch.setattr("worker.runtime.OUTAGE_PAUSE_S", 0.0)
     with monkeypatch.context() as failing:
         failing_uploads(failing, storage, failing_name, WorkerKilled() if failure == "worker killed" else None)
         if failure == "worker killed":
             with pytest.raises(WorkerKilled):
                 tasks.export_task.apply(args=(job_id,))
         else:
-            assert tasks.export_task.apply(args=(job_id,)).get()["state"] == "failed"
+            result = tasks.export_task.apply(args=(job_id,))
+            assert result.state == "REJECTED" and "SlowDown when uploading" in result.result.reason
     job = client.get(f"/v1/jobs/{job_id}").json()
-    if failure == "storage outage":
-        assert job["error"].startswith("export: StorageUnavailable: S3 bucket 'voxe': SlowDown when uploading")
+    assert (job["state"], job["error"]) == ("running", None)
     listed = {a["name"] for a in client.get(f"/v1/jobs/{job_id}/artifacts").json()}
     assert listed == {"initial_grid.safetensors", "edited_grid.safetensors", "preview.png", "render_000.png",
                       "turntable.mp4"}
     assert [key for key in storage.list(f"jobs/{job_id}/") if "mesh" in key] == []
-    if failure == "storage outage":
-        return
     assert tasks.export_task.apply(args=(job_id,)).get()["state"] == "done"  # the redelivered message
     artifacts = {a["name"]: a for a in client.get(f"/v1/jobs/{job_id}/artifacts").json()}
     assert {"mesh.ply", "mesh.glb", "mesh.obj", "mesh.mtl", "preview.png"} <= set(artifacts)
@@ -1156,7 +1286,8 @@ def test_a_refinement_whose_cut_keeps_nothing_or_everything_says_so_and_records_
 def test_a_refinement_whose_upload_fails_mid_set_lists_none_of_its_files(service, monkeypatch, failing_name):
     """The storage failing after refined_grid.safetensors was uploaded (S3 throttling the mask) had failed the job
     with the refined grid listed without the mask it was merged by; at the overlay, every file but it. The four
-    are published as one set: the failed job lists none of them and keeps none of their bytes."""
+    are published as one set: the stopped run (the outage gives the job back) lists none of them and keeps none of
+    their bytes."""
     import voxe_core.refine.pipeline
     from voxe_service.storage import get_storage
     from worker import tasks
@@ -1166,9 +1297,11 @@ def test_a_refinement_whose_upload_fails_mid_set_lists_none_of_its_files(service
     monkeypatch.setattr(voxe_core.refine.pipeline, "fit_attention_grids", _attention_favouring("some"))
     storage = get_storage(tasks.get_settings())
     failing_uploads(monkeypatch, storage, failing_name)
-    assert tasks.refine_task.apply(args=(job_id,)).get()["state"] == "failed"
+    monkeypatch.setattr("worker.runtime.OUTAGE_PAUSE_S", 0.0)
+    result = tasks.refine_task.apply(args=(job_id,))
+    assert result.state == "REJECTED" and "SlowDown when uploading" in result.result.reason
     job = client.get(f"/v1/jobs/{job_id}").json()
-    assert job["error"].startswith("refine: StorageUnavailable: S3 bucket 'voxe': SlowDown when uploading")
+    assert (job["state"], job["error"]) == ("running", None)
     listed = {a["name"] for a in client.get(f"/v1/jobs/{job_id}/artifacts").json()}
     assert listed == {"initial_grid.safetensors", "edited_grid.safetensors", "preview.png"}
     refine_files = ("refined_grid", "mask", "attention_probabilities")

@@ -242,7 +242,7 @@ def test_an_ingest_stopped_by_a_database_outage_goes_back_to_the_queue(client, d
         return real(*args, **kwargs)
 
     monkeypatch.setattr(ingest_module, name, locked_once)
-    monkeypatch.setattr(ingest_module, "OUTAGE_PAUSE_S", 0.0)
+    monkeypatch.setattr("worker.runtime.OUTAGE_PAUSE_S", 0.0)
     result = tasks.ingest_task.apply(args=(scene["id"],))
     assert result.state == "REJECTED" and result.result.requeue
     assert result.result.reason == (f"the ingest of scene {scene['id']} stopped by a database outage (the database "
@@ -272,7 +272,7 @@ def test_an_ingest_stopped_by_a_storage_outage_goes_back_to_the_queue_keeping_th
     def throttled(self, key, dest):
         raise StorageUnavailable(f"S3 bucket 'voxe': SlowDown when fetching {key}")
 
-    monkeypatch.setattr(ingest_module, "OUTAGE_PAUSE_S", 0.0)
+    monkeypatch.setattr("worker.runtime.OUTAGE_PAUSE_S", 0.0)
     with monkeypatch.context() as outage:
         outage.setattr(type(get_storage()), "get_file", throttled)
         result = tasks.ingest_task.apply(args=(scene["id"],))
@@ -288,7 +288,7 @@ def test_an_ingest_stopped_by_a_storage_outage_goes_back_to_the_queue_keeping_th
     again = upload_zip(client, zip_folder(dataset, root / "again.zip", prefix="mic_small")).json()
     pauses = []
     monkeypatch.setattr(ingest_module.time, "sleep", pauses.append)
-    monkeypatch.setattr(ingest_module, "OUTAGE_PAUSE_S", 1.0)
+    monkeypatch.setattr("worker.runtime.OUTAGE_PAUSE_S", 1.0)
     with monkeypatch.context() as outage:
         outage.setattr(type(get_storage()), "get_file", throttled)
         states = [tasks.ingest_task.apply(args=(again["id"],)).state for _ in range(5)]
@@ -312,7 +312,6 @@ def test_an_ingest_on_a_worker_whose_disk_is_full_goes_back_to_the_queue_keeping
     from voxe_service import datasets
     from voxe_service.db import session_scope
     from voxe_service.models import Scene
-    from worker import ingest as ingest_module
     from worker import tasks
 
     scene = upload_zip(client, zip_folder(dataset, root / "ok.zip", prefix="mic_small")).json()
@@ -320,7 +319,7 @@ def test_an_ingest_on_a_worker_whose_disk_is_full_goes_back_to_the_queue_keeping
     def full(archive, dest):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(dest))
 
-    monkeypatch.setattr(ingest_module, "OUTAGE_PAUSE_S", 0.0)
+    monkeypatch.setattr("worker.runtime.OUTAGE_PAUSE_S", 0.0)
     with monkeypatch.context() as disk:
         disk.setattr(datasets, "unpack", full)
         result = tasks.ingest_task.apply(args=(scene["id"],))
@@ -485,7 +484,6 @@ def test_an_ingest_that_cannot_make_its_folder_still_removes_the_killed_runs_and
     import tempfile
 
     from voxe_service.settings import get_settings
-    from worker import ingest as ingest_module
     from worker import tasks
 
     scene = upload_zip(client, zip_folder(dataset, root / "ok.zip", prefix="mic_small")).json()
@@ -507,7 +505,7 @@ def test_an_ingest_that_cannot_make_its_folder_still_removes_the_killed_runs_and
         return [path for path in paths if path.startswith(str(work.resolve()))]
 
     monkeypatch.setattr(tempfile, "mkdtemp", full)
-    monkeypatch.setattr(ingest_module, "OUTAGE_PAUSE_S", 0.0)
+    monkeypatch.setattr("worker.runtime.OUTAGE_PAUSE_S", 0.0)
     result = tasks.ingest_task.apply(args=(scene["id"],))  # (the machine's state: the message goes back)
     assert result.state == "REJECTED" and "No space left" in result.result.reason
     assert list(work.iterdir()) == [] and open_in_work() == []
@@ -1871,13 +1869,16 @@ def test_an_owner_that_cannot_renew_its_fits_lease_before_it_runs_out_hands_the_
     assert tasks.reconstruct_task.apply(args=(b,)).get()["state"] == "done"
 
 
-@pytest.mark.parametrize("stop", ["time limit", "database outage", "storage outage"])
+@pytest.mark.parametrize("stop", ["time limit", "database outage", "storage outage", "full disk"])
 def test_an_owner_stopped_by_its_time_limit_or_a_database_outage_hands_the_fit_to_the_waiting_jobs(
         client, dataset, root, monkeypatch, stop):
-    """The owner's soft time limit is its job's (that job fails, naming it), and a database or storage outage is no
-    fault of the fit's: each hands the shared fit back, and a job waiting on it fits it, where each had failed the
-    fit and every job waiting on it. A database outage is no fault of the owner's job either: its message goes back
-    to the queue, and its redelivery takes the fit the other job stored."""
+    """The owner's soft time limit is its job's (that job fails, naming it), and a database or storage outage or
+    its worker's disk full is no fault of the fit's: each hands the shared fit back, and a job waiting on it fits
+    it, where each had failed the fit and every job waiting on it. An outage or a full disk is no fault of the
+    owner's job either: its message goes back to the queue, and its redelivery takes the fit the other job
+    stored."""
+    import errno
+
     from celery.exceptions import SoftTimeLimitExceeded
     from sqlalchemy.exc import OperationalError
 
@@ -1893,26 +1894,28 @@ def test_an_owner_stopped_by_its_time_limit_or_a_database_outage_hands_the_fit_t
             raise SoftTimeLimitExceeded()
         if stop == "storage outage":  # storing a checkpoint, say
             raise StorageUnavailable("the storage cannot be reached: connect timeout")
+        if stop == "full disk":  # writing one to the worker's scratch
+            raise OSError(errno.ENOSPC, "No space left on device", "reconstruction_checkpoint.safetensors")
         raise OperationalError("UPDATE jobs", {}, Exception("server closed the connection unexpectedly"))
 
     monkeypatch.setattr(tasks, "_fit_grid", stopped_fit)
+    monkeypatch.setattr(runtime, "OUTAGE_PAUSE_S", 0.0)
     result = tasks.reconstruct_task.apply(args=(a,))
     owner = client.get(f"/v1/jobs/{a}").json()
-    if stop == "database outage":
+    if stop == "time limit":
+        assert result.get()["state"] == "failed"
+        assert owner["state"] == "failed" and owner["error"].startswith(
+            f"reconstruct: time limit of {get_settings().task_soft_time_limit_s} s exceeded")
+    else:
         assert result.state == "REJECTED" and result.result.requeue
         assert (owner["state"], owner["error"]) == ("running", None)
-    else:
-        assert result.get()["state"] == "failed"
-        expected = {"time limit": f"reconstruct: time limit of {get_settings().task_soft_time_limit_s} s exceeded",
-                    "storage outage": "reconstruct: StorageUnavailable"}[stop]
-        assert owner["state"] == "failed" and owner["error"].startswith(expected)
     rec = runtime.load_reconstruction(rec_id)
     assert (rec.state, rec.owner_job_id, rec.owner_run_token, rec.error) == ("pending", None, None, None)
     monkeypatch.setattr(tasks, "_fit_grid", real_fit)
     assert tasks.reconstruct_task.apply(args=(b,)).get()["state"] == "done"
     rec = runtime.load_reconstruction(rec_id)
     assert (rec.state, rec.owner_job_id, rec.run_count) == ("succeeded", b, 2)
-    if stop == "database outage":  # the owner's redelivered message
+    if stop != "time limit":  # the owner's redelivered message
         assert tasks.reconstruct_task.apply(args=(a,)).get()["state"] == "done"
         assert client.get(f"/v1/jobs/{a}").json()["reconstruction"]["reused"] is True
 

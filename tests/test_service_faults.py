@@ -1037,7 +1037,8 @@ def test_a_fit_whose_grid_cannot_be_stored_is_handed_back_at_once(db, monkeypatc
     """A fit that made its G_i and could not keep it (the storage refusing its upload, the worker's scratch disk
     full) had left the reconstruction running under a failed job, its lease unrenewed: a job waiting on it took it
     over only once the lease ran out, and with none waiting it was listed running for good. The fit is no failure of
-    the scene's: it is handed back pending at once, and the job fails naming why."""
+    the scene's: it is handed back pending at once. The job fails naming a storage fault a retry meets again
+    (access denied); a full disk, the worker's state, gives it back to the queue instead."""
     import errno
 
     from conftest import make_sphere_grid
@@ -1059,10 +1060,14 @@ def test_a_fit_whose_grid_cannot_be_stored_is_handed_back_at_once(db, monkeypatc
         monkeypatch.setattr(grid, "save", full)
     monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
     monkeypatch.setattr(tasks, "_voxelize", lambda *args: grid)
-    assert tasks.reconstruct_task.apply(args=(job_id,)).get()["state"] == "failed"
-    said = {"upload": "StorageError: S3 bucket 'voxe': AccessDenied when uploading",
-            "save": f"OSError: [Errno {errno.ENOSPC}] {os.strerror(errno.ENOSPC)}"}[failing]
-    assert job_row(job_id).error == f"reconstruct: {said}"
+    monkeypatch.setattr(runtime, "OUTAGE_PAUSE_S", 0.0)
+    result = tasks.reconstruct_task.apply(args=(job_id,))
+    if failing == "upload":
+        assert result.get()["state"] == "failed"
+        assert job_row(job_id).error == "reconstruct: StorageError: S3 bucket 'voxe': AccessDenied when uploading"
+    else:
+        assert result.state == "REJECTED" and result.result.requeue
+        assert (job_row(job_id).state, job_row(job_id).error) == ("running", None)
     rec = runtime.load_reconstruction(rec_id)
     assert (rec.state, rec.owner_job_id, rec.owner_run_token, rec.lease_until) == ("pending", None, None, None)
     assert get_storage(db).list(f"reconstructions/{rec_id}/") == []
@@ -1949,7 +1954,7 @@ def test_a_superseded_mesh_ingest_leaves_the_winners_archive_as_recorded(db, tmp
     from worker import ingest, runtime
 
     settings, storage = db.model_copy(update={"stage_lease_s": 0.5}), get_storage(db)
-    monkeypatch.setattr(ingest, "OUTAGE_PAUSE_S", 0.0)
+    monkeypatch.setattr("worker.runtime.OUTAGE_PAUSE_S", 0.0)
     stalled, go_on = threading.Event(), threading.Event()
 
     def stall(where: str) -> None:  # run A stops at ``stalled_in`` until run B made the scene ready
@@ -2057,7 +2062,7 @@ def test_a_mesh_ingest_stopped_between_storing_and_marking_leaves_no_archive_onc
     from worker import ingest
 
     settings, storage = db.model_copy(update={"stage_lease_s": 0.5}), get_storage(db)
-    monkeypatch.setattr(ingest, "OUTAGE_PAUSE_S", 0.0)
+    monkeypatch.setattr("worker.runtime.OUTAGE_PAUSE_S", 0.0)
     scene = _mesh_scene_rendering(storage, monkeypatch)
     mark_ready, marks = ingest.mark_ready, []
 

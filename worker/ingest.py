@@ -13,7 +13,6 @@ error (file and frame, as the API's 422s) and the jobs waiting on it fail naming
 
 from __future__ import annotations
 
-import errno
 import json
 import logging
 import os
@@ -41,8 +40,8 @@ from voxe_service.scenes import fail_scene, mark_ready
 from voxe_service.scratch import locked_folder, sweep_unlocked
 from voxe_service.settings import Settings
 from voxe_service.storage import Storage, StorageUnavailable, StoredObject, scene_key
-from worker.runtime import (LeaseKeeper, LeaseLost, failure_text, fetch, ingest_lease, scene_archive,
-                            worker_in_cold_shutdown)
+from worker.runtime import (LeaseKeeper, LeaseLost, failure_text, fetch, ingest_lease, pause_after_outage,
+                            scene_archive, storage_or_disk_outage, worker_in_cold_shutdown)
 
 log = logging.getLogger("voxe.worker")
 
@@ -114,12 +113,6 @@ def decode(root: Path, downsample: int) -> Decoded:
     return Decoded(len(scene), detect_backbone(scene.alphas))
 
 
-OUTAGE_PAUSE_S = 5.0
-"""How long an ingest an outage stopped waits before its message goes back to the queue, doubled for each run
-before it: a database or a storage down for a while must not have the workers take and drop the message in a tight
-loop, nor spend the scene's runs in seconds."""
-
-
 def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: str | None) -> TaskResult:
     """Take the scene's ingest (processing only), decode it, then mark it ready or failed.
 
@@ -131,12 +124,12 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
     processes killed, e.g. out of memory on this upload) fails the scene instead: an upload that kills its workers
     must not loop, as a job must not (``requeue_interrupted``).
 
-    An outage of the database (down, locked) or of the storage (unreachable, throttled), or the worker's disk full,
-    is no fault of the upload: the message goes back to the queue after a pause that doubles with each run
-    (``OUTAGE_PAUSE_S``: 5, 10, 20 s ...), and its redelivery starts over. A database's, acknowledged as a failed
-    task, had left the scene processing for good (its worker alive, the reaper never failed it) and the jobs waiting
-    on it queued; a storage's, or one worker's full disk, had failed the scene and deleted its upload. A run that
-    took the scene counts, as a stage's give-back counts: what answers as an outage every time (a full disk, a
+    An outage of the database (down, locked) or of the storage (unreachable, throttled), or the worker's disk full, is
+    no fault of the upload: the message goes back to the queue after a pause that doubles with each run
+    (``runtime.OUTAGE_PAUSE_S``: 5, 10, 20 s ...), and its redelivery starts over. A database's, acknowledged as a
+    failed task, had left the scene processing for good (its worker alive, the reaper never failed it) and the jobs
+    waiting on it queued; a storage's, or one worker's full disk, had failed the scene and deleted its upload. A run
+    that took the scene counts, as a stage's give-back counts: what answers as an outage every time (a full disk, a
     statement timeout) fails the scene at the limit, naming it, rather than decoding the upload again for ever; one
     that could not take it (the database down) does not.
     """
@@ -156,27 +149,14 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
                 log.warning("scene %s: %s; this run stops", scene_id, exc)
                 return {"scene_id": scene_id, "skipped": str(exc)}
             cause = f"a database outage ({exc})"  # (its renewals could not reach the database)
-        elif isinstance(exc, StorageUnavailable):
-            cause = f"a storage outage ({exc})"
         elif (why := database_outage(exc)) is not None:
             cause = f"a database outage ({why})"
-        elif _disk_full(exc):
-            cause = f"the worker's disk full ({failure_text(exc)})"
-        else:
+        elif (cause := storage_or_disk_outage(exc)) is None:
             raise
         log.warning("scene %s: the ingest stopped by %s; its message goes back to the queue", scene_id, cause)
         _give_back(scene_id, token)
-        try:
-            time.sleep(OUTAGE_PAUSE_S * 2 ** min(interrupted or 0, 6))
-        except Exception:  # noqa: BLE001 - a cold shutdown raises in the task: it cuts the pause short, no more
-            if not worker_in_cold_shutdown():  # (raised through, the message had been acknowledged as failed)
-                raise
+        pause_after_outage(interrupted or 0)
         raise Reject(f"the ingest of scene {scene_id} stopped by {cause}", requeue=True) from exc
-
-
-def _disk_full(exc: BaseException) -> bool:
-    """Whether ``exc`` is the worker's disk (or its quota) full: the machine's state, not the upload's fault."""
-    return isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT)
 
 
 def _take(scene_id: str, token: str, hostname: str | None, settings: Settings) -> tuple[StoredObject, int] | str:
@@ -244,7 +224,7 @@ def _ingest(scene_id: str, token: str, upload: StoredObject, interrupted: int, l
             if worker_in_cold_shutdown():  # ... but a cold shutdown's (it had failed the scene and deleted its upload)
                 _give_back(scene_id, token, uncount=True)
                 raise Reject(f"the ingest of scene {scene_id} stopped by the worker's shutdown", requeue=True) from exc
-            if isinstance(exc, (StorageUnavailable, LeaseLost)) or _disk_full(exc):  # ... a storage outage's or a
+            if isinstance(exc, LeaseLost) or storage_or_disk_outage(exc):  # ... a storage outage's or a
                 raise  # full disk's, no fault of the upload either, and a lost hold's (the scene another run's to end)
             reason = str(exc) if isinstance(exc, IngestError) else f"ingest: {failure_text(exc)}"
             if not isinstance(exc, IngestError):

@@ -7,6 +7,7 @@ and ``voxe_core`` calls, so the tasks in :mod:`worker.tasks` stay a few lines ea
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import logging
 import math
@@ -37,7 +38,8 @@ from voxe_service.models import (
 )
 from voxe_service.queue import requeue_limit_error
 from voxe_service.settings import TINY_MODEL, Settings
-from voxe_service.storage import Storage, StorageError, StoredObject, file_sha256, get_storage, job_key
+from voxe_service.storage import (Storage, StorageError, StorageUnavailable, StoredObject, file_sha256, get_storage,
+                                  job_key)
 
 log = logging.getLogger("voxe.worker")
 
@@ -307,12 +309,41 @@ def worker_in_cold_shutdown() -> bool:
     return state.should_terminate is not None and state.should_terminate is not False  # (an exit code: 0 counts)
 
 
+OUTAGE_PAUSE_S = 5.0
+"""How long a stage that a storage outage or a full disk stopped, or an ingest any outage stopped, waits before its
+message goes back to the queue, doubled for each run before it: a storage down for a while must not have the
+workers take and drop the message in a tight loop, nor spend the job's or the scene's runs in seconds."""
+
+
+def storage_or_disk_outage(exc: BaseException) -> str | None:
+    """What ``exc`` says stopped a stage or an ingest, when it is the storage out of reach (``StorageUnavailable``:
+    unreachable, throttled, a 5xx) or the worker's disk (or quota) full: the service's or the machine's state, which
+    a later run, or another worker, may not meet; None for anything else (a ``StorageError`` that is no outage, a
+    missing bucket or access denied, is a fault a retry meets again)."""
+    if isinstance(exc, StorageUnavailable):
+        return f"a storage outage ({exc})"
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return f"the worker's disk full ({failure_text(exc)})"
+    return None
+
+
+def pause_after_outage(runs_before: int) -> None:
+    """Wait ``OUTAGE_PAUSE_S`` doubled ``runs_before`` times (5, 10, 20 s ..., at most 64 times) before an outage's
+    message goes back to the queue. A cold shutdown raising in the task cuts it short, no more: raised through, the
+    message had been acknowledged as failed."""
+    try:
+        time.sleep(OUTAGE_PAUSE_S * 2 ** min(runs_before, 6))
+    except Exception:  # noqa: BLE001 - what a cold shutdown raises in a solo pool's task
+        if not worker_in_cold_shutdown():
+            raise
+
+
 def give_back_stage(job_id: str, stage: str, run_token: str, reason: str, settings: Settings) -> str | None:
-    """Give the run's hold back after a database outage stopped its stage (its redelivery resumes from the stored
-    checkpoint), counted as a re-queue with a ``requeued`` event naming ``reason``; at ``job_max_requeues`` fail the
-    job instead and return why: what the database answers as an outage every time (a statement timeout, a full
-    disk) must not re-run a stage for ever. A job this run no longer holds, or that it ended (a commit whose answer
-    was lost keeps the ended job's token), is left as it is."""
+    """Give the run's hold back after an outage (the database's, the storage's) or its worker's full disk stopped its
+    stage (its redelivery resumes from the stored checkpoint), counted as a re-queue with a ``requeued`` event naming
+    ``reason``; at ``job_max_requeues`` fail the job instead and return why: what the database answers as an outage
+    every time (a statement timeout, a full disk) must not re-run a stage for ever. A job this run no longer holds, or
+    that it ended (a commit whose answer was lost keeps the ended job's token), is left as it is."""
     with session_scope() as session:
         return _count_requeue(session, job_id, stage, reason, settings,
                               [Job.id == job_id, Job.state == RUNNING, Job.run_token == run_token], run_token=None,

@@ -52,7 +52,7 @@ from voxe_service.queue import (
     reset_queue, send_evaluations_alone, send_queued_again,
 )
 from voxe_service.settings import get_settings, model_label
-from voxe_service.storage import StorageUnavailable, StoredObject, get_storage, job_key, reconstruction_storage_key
+from voxe_service.storage import StoredObject, get_storage, job_key, reconstruction_storage_key
 from worker import runtime
 from worker.celery_app import app
 from worker.evaluation import EvaluationFailed, run_evaluation
@@ -159,11 +159,14 @@ def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> Task
     except SoftTimeLimitExceeded:
         return _end_job(job_id, stage, token, FAILED, settings,
                         error=f"{stage}: time limit of {settings.task_soft_time_limit_s} s exceeded")
-    except Exception as exc:  # noqa: BLE001 - every failure ends the job with its message, but two: ...
+    except Exception as exc:  # noqa: BLE001 - every failure ends the job with its message, but these: ...
         _requeue_if_shut_down(job_id, stage, token, exc)  # ... the one a cold shutdown raises in the task ...
-        if (why := database_outage(exc)) is not None:  # ... and a database outage, no fault of the job's
+        if (why := database_outage(exc)) is not None:  # ... a database outage, no fault of the job's ...
             return _give_back_and_requeue(job_id, stage, token, f"{stage} stopped by a database outage ({why}): "
                                           f"{runtime.failure_text(exc)}", f"a database outage ({why})", exc, settings)
+        if (cause := runtime.storage_or_disk_outage(exc)) is not None:  # ... nor a storage's or a full disk's
+            return _give_back_and_requeue(job_id, stage, token, f"{stage} stopped by {cause}", cause, exc, settings,
+                                          pause_after=job.requeues)
         log.exception("job %s: %s failed", job_id, stage)
         return _end_job(job_id, stage, token, FAILED, settings, error=_error_message(stage, exc, job))
     except BaseException:  # the worker going down: its redelivered message takes the job at once (the database
@@ -222,12 +225,18 @@ def _release_and_requeue(job_id: str, stage: str, run_token: str, cause: str, ex
 
 
 def _give_back_and_requeue(job_id: str, stage: str, run_token: str, reason: str, cause: str, exc: Exception,
-                           settings) -> TaskResult:
+                           settings, pause_after: int | None = None) -> TaskResult:
     """Give the run's hold back as a counted re-queue naming ``reason`` and reject the message back to the queue
-    (``cause``); at the re-queue limit the job fails instead, and the task ends with it."""
+    (``cause``); at the re-queue limit the job fails instead, and the task ends with it. ``pause_after``: the job's
+    re-queues before this run, after which a storage outage or a full disk pauses as an ingest's does
+    (``runtime.pause_after_outage``), the hold given back meanwhile: a storage down for a while is not met again at
+    once, and a worker whose disk is full takes no job in the pause, while the job's checkpoints are kept for the
+    worker its message goes to next."""
     if error := _give_back(job_id, stage, run_token, reason, settings):
         log.error("job %s failed: %s", job_id, error)
         return _ended(job_id, stage, FAILED, True, settings)
+    if pause_after is not None:
+        runtime.pause_after_outage(pause_after)
     _requeue(job_id, stage, cause, exc)
 
 
@@ -491,13 +500,13 @@ def _voxelize(job: Job, rec, settings, storage):
                                          bbox_max=config.bbox_max, seed=rec.params["seed"]))
 
 
-NOT_THE_FITS_FAILURE = (StageCancelled, runtime.LeaseLost, runtime.RunSuperseded, SoftTimeLimitExceeded,
-                        StorageUnavailable)
+NOT_THE_FITS_FAILURE = (StageCancelled, runtime.LeaseLost, runtime.RunSuperseded, SoftTimeLimitExceeded)
 """What stops an owner's fit without failing it (and every job waiting on it): its job canceled, its lease or job
-taken over, its task's time limit (a job's, which fails the owner's job alone), the storage out of reach; so do a
-database outage (``voxe_service.db.database_outage``) and its worker out of memory (``is_out_of_memory``: its
-machine's fault, as when the OOM killer ends its process and a waiting job takes the lapsed lease over; handed back
-saying so: ``runtime.hand_back_out_of_memory``)."""
+taken over, its task's time limit (a job's, which fails the owner's job alone); so do a database outage
+(``voxe_service.db.database_outage``), the storage out of reach or the worker's disk full
+(``runtime.storage_or_disk_outage``) and its worker out of memory (``is_out_of_memory``: its machine's fault, as
+when the OOM killer ends its process and a waiting job takes the lapsed lease over; handed back saying so:
+``runtime.hand_back_out_of_memory``)."""
 
 
 def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> None:
@@ -536,14 +545,14 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
             # G_i made and not kept (a full scratch disk, a storage refusing it) is no failure of the fit's either
             if (grid is None and isinstance(exc, Exception) and not isinstance(exc, NOT_THE_FITS_FAILURE)
                     and not is_out_of_memory(exc) and database_outage(exc) is None
-                    and not runtime.worker_in_cold_shutdown()):
+                    and runtime.storage_or_disk_outage(exc) is None and not runtime.worker_in_cold_shutdown()):
                 runtime.set_reconstruction(rec.id, job.id, job.run_token, state=R_FAILED, lease_until=None,
                                            finished_at=utcnow(), error=runtime.failure_text(exc))
             elif is_out_of_memory(exc):  # the error recorded; a job still waiting takes over (more memory?)
                 runtime.hand_back_out_of_memory(rec.id, job.id, job.run_token,
                                                 f"job {job.id}'s fit: {runtime.failure_text(exc)}")
-            else:  # stopped for the owner's sake (NOT_THE_FITS_FAILURE), a database outage, or the worker going
-                # down (SystemExit, KeyboardInterrupt, or what a cold shutdown raises in a solo pool's task): a
+            else:  # stopped for the owner's sake (NOT_THE_FITS_FAILURE), an outage, a full disk, or the worker
+                # going down (SystemExit, KeyboardInterrupt, or what a cold shutdown raises in a solo pool's task): a
                 # waiting job, or this one redelivered, takes over from the checkpoint
                 runtime.set_reconstruction(rec.id, job.id, job.run_token, state=R_PENDING, owner_job_id=None,
                                            owner_run_token=None, lease_until=None)
