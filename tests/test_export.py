@@ -5,6 +5,7 @@ from __future__ import annotations
 import errno
 import inspect
 import math
+import sys
 
 import imageio.v2 as imageio
 import numpy as np
@@ -21,6 +22,7 @@ from voxe_core.export import (
     save_mesh,
     save_png,
     to_uint8,
+    VideoEncoderError,
     VideoWriter,
     turntable_cameras,
     write_video,
@@ -247,6 +249,7 @@ def test_a_video_is_whole_or_absent(tmp_path):
     ("cat > /dev/null", "Error writing trailer: No space left on device", errno.ENOSPC),  # the disk filled at the end
     ("", "Error writing trailer: No space left on device", errno.ENOSPC),  # it stopped reading: the pipe broke
     ("cat > /dev/null", "Conversion failed!", None),  # a failure that names no system error
+    ("cat > /dev/null", "Error writing trailer: Broken pipe", errno.EPIPE),  # not a BrokenPipeError (the CLI's own)
 ])
 def test_an_mp4_whose_encoder_failed_is_an_error_and_leaves_the_earlier_file(tmp_path, monkeypatch, reads, says, code):
     """Regression: imageio-ffmpeg never read ffmpeg's exit status, so on a full disk write_video returned and left the
@@ -264,9 +267,17 @@ def test_an_mp4_whose_encoder_failed_is_an_error_and_leaves_the_earlier_file(tmp
     (videos / "v.mp4").write_bytes(b"the earlier video")
     with pytest.raises(OSError, match=rf"the video encoder failed \(ffmpeg exited with status 1: {says}\)") as error:
         write_video(videos / "v.mp4", gradient_frames(12, 96, 96), fps=10)  # 320 KiB: more than a pipe holds
-    assert error.value.errno == code
-    assert str(videos / "v.mp4") in str(error.value)
+    assert type(error.value) is VideoEncoderError and error.value.errno == code
+    assert error.value.filename == str(videos / "v.mp4") and str(videos / "v.mp4") in str(error.value)
+    assert str(videos) not in error.value.strerror  # (a worker's failure text gives the words, not its files)
     assert [p.name for p in videos.iterdir()] == ["v.mp4"] and (videos / "v.mp4").read_bytes() == b"the earlier video"
+
+
+def test_an_mp4_is_written_by_a_process_without_a_stderr(tmp_path, monkeypatch):
+    """A process started with its stderr closed (a daemon) has sys.stderr None: the encoder's log, empty, had been
+    written to it all the same, and every finished encode failed (AttributeError) and was removed."""
+    monkeypatch.setattr(sys, "stderr", None)
+    assert write_video(tmp_path / "v.mp4", gradient_frames(3, 16, 16), fps=10).stat().st_size > 0
 
 
 @pytest.mark.parametrize("name", ["v.mp4", "v.gif"])

@@ -176,6 +176,16 @@ def check_video_output(path: str | os.PathLike, fps: float) -> Path:
     return path
 
 
+class VideoEncoderError(OSError):
+    """An encode that failed, with the errno its log names (None: none) and its file as ``filename``, never in the
+    words (a worker's failure text leaves the files of its disk out). Its own type whatever the errno: an OSError
+    made with EPIPE becomes a BrokenPipeError, which the CLI reads as its output's reader gone (exit 141, said
+    nothing)."""
+
+    def __str__(self) -> str:
+        return super().__str__() if self.errno is not None else f"{self.strerror}: {self.filename}"
+
+
 class _Mp4Encoder:
     """ffmpeg encoding the RGB frames piped to it into an H.264 MP4 at ``path`` (started at the first frame, which
     gives the size), its exit status checked: imageio-ffmpeg's writer, used before, never read it, so an encode that
@@ -198,8 +208,8 @@ class _Mp4Encoder:
         try:
             self._process.stdin.write(np.ascontiguousarray(pixels).data)
         except BrokenPipeError:  # ffmpeg exited: its log says why (the broken pipe's EPIPE would hide a full disk)
-            self.close()
-            raise
+            self._process.wait()
+            raise self._failure(self._process.returncode, self._read_log()) from None
 
     def close(self) -> None:
         """Let ffmpeg finish the file; an OSError if it failed, with the errno its log names (ENOSPC for a full
@@ -210,7 +220,8 @@ class _Mp4Encoder:
         log = self._read_log()
         if returncode != 0:
             raise self._failure(returncode, log)
-        sys.stderr.write(log)  # what it said of an encode that succeeded (imageio-ffmpeg left it on stderr too)
+        if log and sys.stderr is not None:  # (a process started without a stderr has None)
+            sys.stderr.write(log)  # what it said of an encode that succeeded (imageio-ffmpeg left it on stderr too)
 
     def stop(self) -> None:
         """Kill ffmpeg if it is still running (a render that failed or was cancelled: its file is not wanted)."""
@@ -231,8 +242,9 @@ class _Mp4Encoder:
                    str(self.path)]
         # its own process group: a Ctrl-C at the terminal (a worker's warm shutdown, which lets the job finish) does
         # not stop the encoder of a video still wanted; one that reaches the render stops it (:meth:`stop`)
+        # in the C locale: its log's system errors in English, the words the errno is read from
         self._process = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
-                                         stderr=subprocess.PIPE, process_group=0)
+                                         stderr=subprocess.PIPE, process_group=0, env={**os.environ, "LC_ALL": "C"})
         self._log_reader = threading.Thread(target=lambda: self._log.append(self._process.stderr.read()), daemon=True)
         self._log_reader.start()
 
@@ -242,7 +254,7 @@ class _Mp4Encoder:
         self._process.stderr.close()
         return b"".join(self._log).decode(errors="replace").replace(str(self.path), self.shown_as.name)
 
-    def _failure(self, returncode: int, log: str) -> OSError:
+    def _failure(self, returncode: int, log: str) -> VideoEncoderError:
         """The error of an encode that failed: its first logged line (the cause; later ones are its consequences),
         and the errno of the first system error the log names, so a caller can tell a full disk."""
         lines = [re.sub(r"^\[[^]]* @ 0x[0-9a-f]+\] ", "", line) for line in log.splitlines() if line.strip()]
@@ -250,9 +262,7 @@ class _Mp4Encoder:
         words = f"the video encoder failed (ffmpeg {status}" + (f": {lines[0]})" if lines else ")")
         named = [(log.find(os.strerror(code)), -len(os.strerror(code)), code) for code in errno.errorcode
                  if os.strerror(code) in log]  # (of two alike, the longer: "No such device or address")
-        if not named:
-            return OSError(f"{words}: {self.shown_as}")
-        return OSError(min(named)[2], words, str(self.shown_as))
+        return VideoEncoderError(min(named)[2] if named else None, words, str(self.shown_as))
 
 
 class VideoWriter:
