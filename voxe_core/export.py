@@ -521,11 +521,12 @@ def _weld_on_box(verts: np.ndarray, faces: np.ndarray, box: tuple[np.ndarray, np
     The lattice's last plane is not exactly on the box when its voxel size is not exact in binary (a box of
     ±1.2 puts it at 1.2000000179, the box at 1.2000000477), so without the snap its vertices stayed 3e-8 from
     the clipped ones, in slivers that readers welding within 1e-8 left open."""
-    for plane in box:
-        verts = np.where(np.abs(verts - plane) <= tolerance, plane, verts)
-    on_box = np.flatnonzero(((verts == box[0]) | (verts == box[1])).any(1))
+    near_min, near_max = verts - box[0] <= tolerance, box[1] - verts <= tolerance  # verts lie in the box
+    on_box = np.flatnonzero((near_min | near_max).any(1))
     if len(on_box) == 0:
         return verts, faces
+    verts = verts.copy()
+    verts[on_box] = np.where(near_min[on_box], box[0], np.where(near_max[on_box], box[1], verts[on_box]))
     _, first, same = np.unique(verts[on_box], axis=0, return_index=True, return_inverse=True)
     index = np.arange(len(verts))
     index[on_box] = on_box[first][same.reshape(-1)]
