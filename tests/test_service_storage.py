@@ -110,6 +110,30 @@ def test_both_backends_agree_on_tmp_keys_and_empty_ranges(storage):
     assert storage.delete_prefix("jobs/t/") == 2 and storage.list() == []
 
 
+def test_a_range_closed_before_its_first_chunk_holds_no_file_or_connection(storage, monkeypatch):
+    """A download whose client left before its first chunk: closing the stream had run none of the generator's
+    code, so the open file (the S3 response, its connection) stayed held until a garbage collection."""
+    storage.put_bytes("jobs/c/data.bin", b"x" * 5000)
+    held = []
+    if isinstance(storage, LocalStorage):
+        opened = LocalStorage._open
+        monkeypatch.setattr(LocalStorage, "_open", lambda self, key: held.append(opened(self, key)) or held[-1])
+    else:
+        get_object = storage.client.get_object
+
+        def recorded(**kwargs):
+            answer = get_object(**kwargs)
+            held.append(answer["Body"]._raw_stream)  # urllib3's response: closed, its connection is let go
+            return answer
+
+        monkeypatch.setattr(storage.client, "get_object", recorded)
+    for end in (None, 99):
+        chunks = storage.open_range("jobs/c/data.bin", 10, end)
+        assert not held[-1].closed
+        chunks.close()
+        assert held[-1].closed, end
+
+
 @pytest.mark.parametrize("end", [None, 5, 20])
 def test_a_negative_range_start_is_refused_on_either_backend(storage, end):
     """The local seek had failed with a bare "[Errno 22] Invalid argument" once read, and S3 had ignored the

@@ -22,7 +22,7 @@ import shutil
 import tempfile
 import uuid
 from abc import ABC, abstractmethod
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -84,6 +84,23 @@ def check_range_start(start: int) -> None:
                          "size - N)")
 
 
+class Chunks(Iterator[bytes]):
+    """An ``open_range`` stream: its chunks, and ``close()`` releasing what it reads from (a file, an S3 connection)
+    also before the first chunk is read, when a generator's own ``close()`` runs none of its code."""
+
+    def __init__(self, chunks: Iterator[bytes], release: Callable[[], object]):
+        self._chunks, self._release = chunks, release
+
+    def __next__(self) -> bytes:
+        return next(self._chunks)
+
+    def close(self) -> None:
+        try:
+            getattr(self._chunks, "close", lambda: None)()
+        finally:
+            self._release()
+
+
 def file_sha256(path: str | os.PathLike) -> tuple[int, str]:
     digest, size = hashlib.sha256(), 0
     with open(path, "rb") as handle:
@@ -118,7 +135,8 @@ class Storage(ABC):
     @abstractmethod
     def open_range(self, key: str, start: int = 0, end: int | None = None) -> Iterator[bytes]:
         """Bytes ``start`` .. ``end`` (inclusive; None: to the end) as a stream of chunks; none when ``start`` lies
-        past the end or ``end`` before ``start``. ValueError for a negative ``start`` (:func:`check_range_start`)."""
+        past the end or ``end`` before ``start``. ValueError for a negative ``start`` (:func:`check_range_start`).
+        Read to its end or closed (:class:`Chunks`), it holds no file or connection."""
 
     @abstractmethod
     def list(self, prefix: str = "") -> list[str]: ...
@@ -268,7 +286,7 @@ class LocalStorage(Storage):
                         remaining -= len(chunk)
                     yield chunk
 
-        return chunks()
+        return Chunks(chunks(), handle.close)
 
     def _files(self, prefix: str) -> list[tuple[str, bool]]:
         """(name under the root, whether it is a writer's temporary file) of each file whose name starts with
@@ -538,7 +556,7 @@ class S3Storage(Storage):
                 finally:
                     body.close()
 
-        return chunks()
+        return Chunks(chunks(), body.close)
 
     def list(self, prefix="") -> list[str]:
         if not _may_start_a_key(prefix):
