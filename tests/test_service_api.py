@@ -1474,6 +1474,42 @@ def test_a_download_racing_its_artifacts_replacement_serves_the_new_bytes(client
         assert response.headers["content-length"] == str(len(data)) and response.content in (b"", data)
 
 
+def test_a_download_whose_client_leaves_mid_stream_holds_no_file(client, dataset, root):
+    """A client gone mid-stream (curl stopped, a download manager's probe): Starlette drops the body's iterator
+    unclosed, and the artifact's file stayed open until a garbage collection (with the collector off: forever)."""
+    import asyncio
+    import gc
+    import os
+
+    from starlette.requests import ClientDisconnect
+
+    job_id, _ = _job_with_artifact(client, dataset, root, b"x" * 300_000)
+    path = f"/v1/jobs/{job_id}/artifacts/render_000.png"
+    scope = {"type": "http", "asgi": {"version": "3.0", "spec_version": "2.4"}, "http_version": "1.1",
+             "method": "GET", "scheme": "http", "path": path, "raw_path": path.encode(), "root_path": "",
+             "query_string": b"", "headers": [(b"host", b"testserver")], "client": ("127.0.0.1", 1),
+             "server": ("testserver", 80)}
+
+    async def receive():
+        await asyncio.sleep(60)
+
+    async def send(message):
+        if message["type"] == "http.response.body":
+            raise OSError("the client closed the connection")  # as uvicorn's send does
+
+    async def download():
+        with pytest.raises(ClientDisconnect):
+            await client.app(scope, receive, send)
+
+    gc.disable()
+    try:
+        client.portal.call(download)
+        held = [os.path.realpath(f"/proc/self/fd/{fd}") for fd in os.listdir("/proc/self/fd")]
+    finally:
+        gc.enable()
+    assert [file for file in held if file.startswith(str(root.resolve() / "storage"))] == []
+
+
 def test_a_storage_that_cannot_be_reached_is_a_503_with_retry_after(client, dataset, root):
     """A storage outage (S3 refusing connections) answered a bare 500 where a database outage answers 503 with
     Retry-After: the request may be sent again. A missing object is no outage (the routes' 404)."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from collections.abc import Iterator
 from typing import Annotated
 
 from fastapi import APIRouter, Header, HTTPException, Request, Response, status
@@ -19,6 +20,22 @@ from voxe_service.storage import ObjectNotFound, Storage
 router = APIRouter(prefix="/v1/jobs/{job_id}/artifacts", tags=["artifacts"], route_class=StrictRoute)
 
 _RANGE = re.compile(r"^\s*(\d*)\s*-\s*(\d*)\s*$")
+
+
+class ClosingStreamingResponse(StreamingResponse):
+    """A streamed answer that closes its chunks (``Storage.open_range``'s) when it ends, also when its client leaves
+    mid-stream: Starlette drops the iterator unclosed, and its file (or S3 connection) stayed open until a garbage
+    collection found it."""
+
+    def __init__(self, chunks: Iterator[bytes], **kwargs):
+        super().__init__(chunks, **kwargs)
+        self.chunks = chunks
+
+    async def __call__(self, scope, receive, send) -> None:
+        try:
+            await super().__call__(scope, receive, send)
+        finally:
+            getattr(self.chunks, "close", lambda: None)()
 
 
 def artifact_out(job_id: str, artifact: Artifact) -> ArtifactOut:
@@ -138,4 +155,4 @@ def _answer(method: str, storage: Storage, artifact: Artifact, range_: str | Non
             storage.size(artifact.key)
         return Response(status_code=code, headers=headers, media_type=artifact.content_type)
     body = storage.open_range(artifact.key, start, end) if size else iter(())
-    return StreamingResponse(body, status_code=code, headers=headers, media_type=artifact.content_type)
+    return ClosingStreamingResponse(body, status_code=code, headers=headers, media_type=artifact.content_type)
