@@ -1449,6 +1449,33 @@ def test_conditional_downloads_follow_if_range_and_if_none_match(client, dataset
         assert {"Range", "if-range", "if-none-match"} <= {p["name"] for p in documented[method]["parameters"]}
 
 
+def test_if_match_refuses_a_replaced_artifact_with_412(client, dataset, root):
+    """If-Match was ignored: a download fetched in parts, each asking If-Match with the first part's ETag (RFC 9110
+    §13.1.1), was given the replaced artifact's bytes for its later parts, a spliced file. Now a 412 unless If-Match
+    names the current ETag (strong comparison) or is *."""
+    old, new = b"A" * 5000, b"B" * 6000
+    job_id, _ = _job_with_artifact(client, dataset, root, old)
+    url = f"/v1/jobs/{job_id}/artifacts/render_000.png"
+    etag = client.head(url).headers["etag"]
+    part = client.get(url, headers={"Range": "bytes=2500-", "If-Match": f'"other", {etag}'})
+    assert part.status_code == 206 and part.content == old[2500:]
+    _replace_artifact(job_id, new)
+    current = client.head(url).headers["etag"]
+    for request in (client.get, client.head):
+        for held in (etag, f"W/{current}"):
+            refused = request(url, headers={"Range": "bytes=2500-", "If-Match": held})
+            assert refused.status_code == 412, (request, held)
+        assert request(url, headers={"If-Match": "*", "If-None-Match": current}).status_code == 304
+    detail = client.get(url, headers={"If-Match": etag}).json()["detail"]
+    assert detail == (f"If-Match {etag!r} does not name artifact 'render_000.png''s current ETag {current}: it was "
+                      "replaced (download it again from the start)")
+    assert client.get(url, headers={"Range": "bytes=5000-", "If-Match": current}).content == new[5000:]
+    documented = client.get("/openapi.json").json()["paths"]["/v1/jobs/{job_id}/artifacts/{name}"]
+    for method in ("get", "head"):
+        assert "412" in documented[method]["responses"] and "if-match" in {
+            p["name"] for p in documented[method]["parameters"]}, method
+
+
 def test_a_download_racing_its_artifacts_replacement_serves_the_new_bytes(client, dataset, root, monkeypatch):
     """An artifact replaced between the route's read of its row and its open of the object (the old one deleted)
     had answered 404 "missing from storage" though the next GET was 200: the row is read again once."""

@@ -1,4 +1,4 @@
-"""/v1/jobs/{id}/artifacts: list a job's files and download them (HTTP Range, If-Range and If-None-Match)."""
+"""/v1/jobs/{id}/artifacts: list a job's files and download them (HTTP Range, If-Range, If-Match and If-None-Match)."""
 
 from __future__ import annotations
 
@@ -93,19 +93,23 @@ _DOWNLOAD = {
                          "resumed download of a replaced artifact starts over; RFC 9110 §13.1.5)"},
     206: {"description": "the requested byte range (Range: bytes=..., If-Range, when sent, the current ETag)"},
     304: {"description": "not modified: If-None-Match names the current ETag (or is *); no body"},
-    404: {"description": "no such job or artifact"}, 416: {"description": "range not satisfiable"},
+    404: {"description": "no such job or artifact"},
+    412: {"description": "If-Match names none of the current ETag (or *): the artifact was replaced"},
+    416: {"description": "range not satisfiable"},
 }
 
 
 @router.head("/{name}", responses=_DOWNLOAD, summary="An artifact's headers (size, checksum) without its bytes")
 @router.get("/{name}", response_class=StreamingResponse, responses=_DOWNLOAD,
-            summary="Download an artifact (supports Range: bytes=..., If-Range and If-None-Match)")
+            summary="Download an artifact (supports Range: bytes=..., If-Range, If-Match and If-None-Match)")
 def get_artifact(
     job_id: str, name: str, request: Request, session: SessionDep, storage: StorageDep, key: CurrentKey,
     range_: Annotated[str | None, Header(alias="Range", description="bytes=first-last, first- or -suffix")] = None,
     if_range: Annotated[str | None, Header(description="the ETag the Range's earlier bytes came from: another "
                                                        "(or a date) gets the whole file")] = None,
     if_none_match: Annotated[str | None, Header(description="ETags held (or *): the current one gets 304")] = None,
+    if_match: Annotated[str | None, Header(description="ETags any of which the artifact must still have (or *): "
+                                                       "else 412")] = None,
 ) -> Response:
     # The session is closed before the body streams: a download had held its pooled connection (on PostgreSQL, a
     # transaction open) until its client read the last byte, and two slow ones made every other request wait.
@@ -117,7 +121,7 @@ def get_artifact(
             if artifact is None:
                 raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id!r} has no artifact {name!r}")
             try:
-                return _answer(request.method, storage, artifact, range_, if_range, if_none_match)
+                return _answer(request.method, storage, artifact, range_, if_range, if_none_match, if_match)
             except ObjectNotFound:
                 if attempt:
                     raise HTTPException(status.HTTP_404_NOT_FOUND,
@@ -128,9 +132,15 @@ def get_artifact(
 
 
 def _answer(method: str, storage: Storage, artifact: Artifact, range_: str | None, if_range: str | None,
-            if_none_match: str | None) -> Response:
+            if_none_match: str | None, if_match: str | None) -> Response:
     """The artifact's answer to a GET or HEAD with these headers; ObjectNotFound when its object is not stored."""
     etag = f'"{artifact.sha256}"'
+    # Strong comparison, before If-None-Match (RFC 9110 §13.1.1, §13.2.2): a download fetched in parts, each asking
+    # If-Match, had been given the replaced artifact's bytes for the later parts (a spliced file) where a 412 says so.
+    if if_match is not None and not {"*", etag} & {tag.strip() for tag in if_match.split(",")}:
+        raise HTTPException(status.HTTP_412_PRECONDITION_FAILED,
+                            f"If-Match {if_match!r} does not name artifact {artifact.name!r}'s current ETag {etag}: "
+                            "it was replaced (download it again from the start)")
     if if_none_match is not None and {"*", etag} & {tag.strip().removeprefix("W/") for tag in if_none_match.split(",")}:
         return Response(status_code=status.HTTP_304_NOT_MODIFIED, headers={"ETag": etag})  # (weak comparison)
     if if_range is not None and if_range.strip() != etag:  # strong comparison; a date never matches (no Last-Modified)
