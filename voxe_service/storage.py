@@ -22,7 +22,7 @@ import shutil
 import tempfile
 import uuid
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -88,7 +88,7 @@ class Chunks(Iterator[bytes]):
     """An ``open_range`` stream: its chunks, and ``close()`` releasing what it reads from (a file, an S3 connection)
     also before the first chunk is read, when a generator's own ``close()`` runs none of its code."""
 
-    def __init__(self, chunks: Iterator[bytes], release: Callable[[], object]):
+    def __init__(self, chunks: Generator[bytes, None, None], release: Callable[[], object]):
         self._chunks, self._release = chunks, release
 
     def __next__(self) -> bytes:
@@ -96,7 +96,7 @@ class Chunks(Iterator[bytes]):
 
     def close(self) -> None:
         try:
-            getattr(self._chunks, "close", lambda: None)()
+            self._chunks.close()
         finally:
             self._release()
 
