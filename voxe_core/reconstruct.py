@@ -11,7 +11,6 @@ in 25 s, 47 CPU s, its six seeds 30.63–30.70 dB).
 
 from __future__ import annotations
 
-import math
 import numbers
 from dataclasses import dataclass, field, replace
 from pathlib import Path
