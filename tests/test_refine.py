@@ -1363,6 +1363,13 @@ def test_a_refinement_failing_part_way_leaves_the_earlier_runs_outputs_as_they_w
         os.close(held)
 
 
+def refine_one_view_into(out, grid, model) -> int:
+    """``voxe refine`` of ``grid`` against itself into ``out``: one view of 16 px, one preview, one iteration."""
+    return main(["refine", str(grid), "--initial", str(grid), "--prompt", "a dog wearing a party hat",
+                 "--edit-words", "party hat", "--out", str(out), "--model", str(model), "--offline", "--device", "cpu",
+                 "--iterations", "1", "--render-size", "16", "--views", "1", "--preview-views", "1", "--quiet"])
+
+
 def test_an_output_path_refine_cannot_write_fails_it_at_once_and_a_failed_move_leaves_no_summary(
         tmp_path, tiny_model, make_sphere_grid, monkeypatch, capsys):
     """A folder named as one of its outputs in --out had failed the move after the whole refinement, the earlier
@@ -1386,10 +1393,7 @@ def test_an_output_path_refine_cannot_write_fails_it_at_once_and_a_failed_move_l
     refined = []
     monkeypatch.setattr(voxe_core.refine.pipeline, "refine", lambda *args, **kwargs: refined.append(args))
     capsys.readouterr()
-    assert main(["refine", str(tmp_path / "grid.safetensors"), "--initial", str(tmp_path / "grid.safetensors"),
-                 "--prompt", "a dog wearing a party hat", "--edit-words", "party hat", "--out", str(out),
-                 "--model", str(tiny_model), "--offline", "--device", "cpu", "--iterations", "1",
-                 "--render-size", "16", "--views", "1", "--preview-views", "1", "--quiet"]) == 2
+    assert refine_one_view_into(out, tmp_path / "grid.safetensors", tiny_model) == 2
     assert f"cannot write {out / 'probabilities.safetensors'}: it is a folder" in capsys.readouterr().err
     assert refined == []  # failed before the refinement
     assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == earlier
@@ -1420,10 +1424,7 @@ def test_a_folder_named_as_a_preview_frame_fails_refine_before_the_refinement(
     refined = []
     monkeypatch.setattr(voxe_core.refine.pipeline, "refine", lambda *args, **kwargs: refined.append(args))
     capsys.readouterr()
-    assert main(["refine", str(tmp_path / "grid.safetensors"), "--initial", str(tmp_path / "grid.safetensors"),
-                 "--prompt", "a dog wearing a party hat", "--edit-words", "party hat", "--out", str(out),
-                 "--model", str(tmp_path / "no-model"), "--offline", "--device", "cpu", "--iterations", "1",
-                 "--render-size", "16", "--views", "1", "--preview-views", "1", "--quiet"]) == 2
+    assert refine_one_view_into(out, tmp_path / "grid.safetensors", tmp_path / "no-model") == 2
     assert f"cannot write {out / 'renders' / frame}: it is a folder" in capsys.readouterr().err
     assert refined == []
     assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == earlier

@@ -504,6 +504,13 @@ def test_a_dataset_folder_uploads_with_its_images_paths(live, browser):
         assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204  # the other tests expect their own only
 
 
+def tetrahedron(folder: Path) -> Path:
+    """A closed tetrahedron's OBJ in ``folder``: the smallest mesh an upload takes."""
+    mesh = folder / "tetra.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
+    return mesh
+
+
 def test_a_mesh_uploads_with_the_shading_and_up_axis_chosen(live, browser, tmp_path):
     """The upload form's mesh options reach the stored upload (the form had no field for them: every mesh was
     shaded "auto" and stood on its y axis)."""
@@ -512,8 +519,7 @@ def test_a_mesh_uploads_with_the_shading_and_up_axis_chosen(live, browser, tmp_p
     svc, token, _archive = live
     driver = browser
     set_key(driver, svc, token)
-    mesh = tmp_path / "tetra.obj"
-    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
+    mesh = tetrahedron(tmp_path)
     Select(driver.find_element("id", "upload-mesh-shading")).select_by_value("baked")
     Select(driver.find_element("id", "upload-mesh-up-axis")).select_by_value("z")
     driver.find_element("id", "upload-files").send_keys(str(mesh))
@@ -537,8 +543,7 @@ def test_an_upload_answered_after_a_look_at_a_job_is_watched_until_its_scene_is_
     svc, token, _archive = live
     driver = browser
     set_key(driver, svc, token)
-    mesh = tmp_path / "tetra.obj"
-    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
+    mesh = tetrahedron(tmp_path)
     # The upload leaves 4 s late, as a large one would take that long to send.
     driver.execute_script("const send = XMLHttpRequest.prototype.send;"
                           "XMLHttpRequest.prototype.send = function (body) {"
@@ -564,8 +569,7 @@ def test_an_upload_answered_with_no_scene_says_so(live, browser, tmp_path):
     svc, token, _archive = live
     driver = browser
     set_key(driver, svc, token)
-    mesh = tmp_path / "tetra.obj"
-    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
+    mesh = tetrahedron(tmp_path)
     driver.execute_script("window.rejections = [];"
                           "addEventListener('unhandledrejection', (e) => rejections.push(String(e.reason)));"
                           "window.keys = [];"
