@@ -300,10 +300,20 @@ def test_averaging_returns_the_mean_of_the_final_iterates():
     ("color_lr_scale", math.nan, "color_lr_scale must be >= 0"),
     ("init_density", math.inf, "init_density a number"),
     ("tv_color", math.nan, "tv_density and tv_color must be >= 0 and finite"),
+    ("iterations", 500, "iterations takes one whole number per stage, got 500"),  # had been len()'s TypeError
+    ("resolutions", "12", "resolutions takes one whole number per stage, got '12'"),
 ])
 def test_a_config_no_fit_can_run_is_refused_when_it_is_made(field, value, message):
     with pytest.raises(ValueError, match=message):
         tiny_config(**{field: value})
+
+
+def test_a_config_takes_its_stages_as_any_sequence_of_whole_numbers():
+    """An array of a stage's entries (numpy's integers) had been refused as 'takes whole numbers'."""
+    import numpy as np
+
+    config = tiny_config(resolutions=np.array([12, 16]), iterations=[15, np.int64(15)])
+    assert list(config.resolutions) == [12, 16] and list(config.iterations) == [15, 15]
 
 
 def test_progress_reports_every_iteration_and_cancellation_stops_early():

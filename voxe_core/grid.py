@@ -417,7 +417,8 @@ class VoxelGrid(torch.nn.Module):
     ) -> RayLattice:
         """Each ray's lattice (N,): where its samples lie and which of them are candidates (:class:`RayLattice`).
 
-        Sample k of a ray lies at ``start + k·step``, k in [``first``, ``last``): the box's samples, or, with an
+        Sample k of a ray lies at ``start + k·step`` (the last, cut at the box's exit, ``offset``·δ into what is
+        left: :class:`RayLattice`), k in [``first``, ``last``): the box's samples, or, with an
         ``occupancy``, those within its tight box (every one :meth:`ray_samples` may keep, and what the fused
         marcher walks).
         """

@@ -12,6 +12,7 @@ in 25 s, 47 CPU s, its six seeds 30.63–30.70 dB).
 from __future__ import annotations
 
 import numbers
+from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -31,6 +32,8 @@ from voxe_core.tensorio import FormatError, config_recipe, load_tensors, recipe_
 CHECKPOINT_FORMAT_VERSION = 1
 CHECKPOINT_KIND = "reconstruction_checkpoint"
 
+PER_STAGE_FIELDS = ("resolutions", "iterations", "image_downsample")
+"""ReconstructConfig's fields of one entry per stage (tuples, lists, arrays: any sequence)."""
 COUNT_FIELDS = ("resolutions", "iterations", "image_downsample", "rays_per_step", "images_per_step",
                 "lr_drop_iteration", "occupancy_every", "average_every", "tv_voxels", "seed", "checkpoint_every")
 """ReconstructConfig's fields that count (voxels, iterations, rays, images) or seed: whole numbers, per stage for
@@ -81,6 +84,9 @@ class ReconstructConfig:
     checkpoint_every: int = 0  # 0: no checkpoints
 
     def __post_init__(self):
+        for name in PER_STAGE_FIELDS:  # (an int had failed len() below, a TypeError naming no setting)
+            if isinstance(getattr(self, name), (numbers.Number, str)) or not isinstance(getattr(self, name), Iterable):
+                raise ValueError(f"{name} takes one whole number per stage, got {getattr(self, name)!r}")
         n = len(self.resolutions)
         if not (len(self.iterations) == len(self.image_downsample) == n) or n == 0:
             raise ValueError("resolutions, iterations and image_downsample need one entry per stage")
@@ -90,7 +96,7 @@ class ReconstructConfig:
         for name in COUNT_FIELDS:
             value = getattr(self, name)
             if any(isinstance(v, bool) or not isinstance(v, numbers.Integral)
-                   for v in (value if isinstance(value, (tuple, list)) else (value,))):
+                   for v in (value if name in PER_STAGE_FIELDS else (value,))):
                 raise ValueError(f"{name} takes whole numbers, got {value!r}")
         if not 0 <= self.seed <= MAX_SEED:
             raise ValueError(f"seed must lie in [0, {MAX_SEED}] (the service's and the CLI's range), got {self.seed}")
