@@ -1037,10 +1037,13 @@ def test_a_fit_whose_grid_cannot_be_stored_is_handed_back_at_once(db, monkeypatc
     """A fit that made its G_i and could not keep it (the storage refusing its upload, the worker's scratch disk
     full) had left the reconstruction running under a failed job, its lease unrenewed: a job waiting on it took it
     over only once the lease ran out, and with none waiting it was listed running for good. The fit is no failure of
-    the scene's: it is handed back pending at once. The job fails naming a storage fault a retry meets again
-    (access denied); a full disk, the worker's state, gives it back to the queue instead."""
-    import errno
+    the scene's: it is handed back at once. The job fails naming a storage fault a retry meets again (access denied),
+    the fit handed back as one out of memory is, saying why (it had been listed pending, its error empty, for good):
+    pending while another job waits on it, failed once none is left. A full disk (safetensors' own error, as a real
+    one raises it), the worker's state, gives the job back to the queue instead, the fit pending for its redelivery."""
+    from safetensors import SafetensorError
 
+    import voxe_core.tensorio
     from conftest import make_sphere_grid
     from service_helpers import failing_uploads
     from voxe_service.storage import StorageError, get_storage
@@ -1048,28 +1051,36 @@ def test_a_fit_whose_grid_cannot_be_stored_is_handed_back_at_once(db, monkeypatc
 
     scene = add_scene()
     rec_id = add_reconstruction(scene, params={"route": "voxelize"})
-    job_id = add_job(scene, "queued", 0, reconstruction_id=rec_id)
-    grid = make_sphere_grid(8)
+    job_id, waiting = (add_job(scene, "queued", 0, reconstruction_id=rec_id) for _ in range(2))
     if failing == "upload":
         failing_uploads(monkeypatch, get_storage(db), ".safetensors",
                         StorageError("S3 bucket 'voxe': AccessDenied when uploading"))
     else:
-        def full(path):
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        def full(tensors, path, metadata=None):
+            raise SafetensorError("Error while serializing: I/O error: No space left on device (os error 28)")
 
-        monkeypatch.setattr(grid, "save", full)
+        monkeypatch.setattr(voxe_core.tensorio, "save_file", full)
     monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
-    monkeypatch.setattr(tasks, "_voxelize", lambda *args: grid)
+    monkeypatch.setattr(tasks, "_voxelize", lambda *args: make_sphere_grid(8))
     monkeypatch.setattr(runtime, "OUTAGE_PAUSE_S", 0.0)
+
+    def reconstruction():
+        rec = runtime.load_reconstruction(rec_id)
+        return rec.state, rec.owner_job_id, rec.owner_run_token, rec.lease_until, rec.error
+
     result = tasks.reconstruct_task.apply(args=(job_id,))
+    said = "StorageError: S3 bucket 'voxe': AccessDenied when uploading"
     if failing == "upload":
         assert result.get()["state"] == "failed"
-        assert job_row(job_id).error == "reconstruct: StorageError: S3 bucket 'voxe': AccessDenied when uploading"
+        assert job_row(job_id).error == f"reconstruct: {said}"
+        assert reconstruction() == ("pending", None, None, None,
+                                    f"job {job_id}'s fit: its grid could not be stored: {said}")
+        assert tasks.reconstruct_task.apply(args=(waiting,)).get()["state"] == "failed"  # ... and none is left
+        assert reconstruction()[::4] == ("failed", f"job {waiting}'s fit: its grid could not be stored: {said}")
     else:
         assert result.state == "REJECTED" and result.result.requeue
         assert (job_row(job_id).state, job_row(job_id).error) == ("running", None)
-    rec = runtime.load_reconstruction(rec_id)
-    assert (rec.state, rec.owner_job_id, rec.owner_run_token, rec.lease_until) == ("pending", None, None, None)
+        assert reconstruction() == ("pending", None, None, None, None)
     assert get_storage(db).list(f"reconstructions/{rec_id}/") == []
 
 

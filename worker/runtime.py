@@ -918,14 +918,14 @@ def set_reconstruction(rec_id: str, job_id: str, run_token: str | None = None, *
                                ).rowcount == 1
 
 
-def hand_back_out_of_memory(rec_id: str, job_id: str, run_token: str | None, error: str) -> bool:
-    """Give back the fit ``job_id`` owns, its worker out of memory (a fault of the machine's, not the scene's), with
-    ``error`` recorded: pending while another job of the reconstruction has not ended (it takes the fit over, maybe on
-    a worker with more memory), failed when none is left to (a later job's first claim tries a failed fit again).
-    A sweep's evaluation shares its edits' reconstruction but never fits: it takes nothing over (counted, the fit of
-    a sweep had stayed pending for ever). Handed back with no word, it had been listed pending with no error, as if a
-    job were about to fit it, and each job that took it over failed without it saying why. Whether the job still
-    owned the fit."""
+def hand_back_fit(rec_id: str, job_id: str, run_token: str | None, error: str) -> bool:
+    """Give back the fit ``job_id`` owns, stopped by no fault of the scene's (its worker out of memory, its G_i made
+    and not kept: the storage refusing it), its job failing, with ``error`` recorded: pending while another job of the
+    reconstruction has not ended (it takes the fit over, maybe on a worker with more memory), failed when none is left
+    to (a later job's first claim tries a failed fit again). A sweep's evaluation shares its edits' reconstruction but
+    never fits: it takes nothing over (counted, the fit of a sweep had stayed pending for ever). Handed back with no
+    word, it had been listed pending with no error, as if a job were about to fit it, and each job that took it over
+    failed without it saying why. Whether the job still owned the fit."""
     with session_scope() as session:
         waiting = session.scalar(select(select(Job.id).where(Job.reconstruction_id == rec_id, Job.id != job_id,
                                                              Job.mode != EVALUATE,

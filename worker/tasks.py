@@ -506,7 +506,7 @@ taken over, its task's time limit (a job's, which fails the owner's job alone); 
 (``voxe_service.db.database_outage``), the storage out of reach or the worker's disk full
 (``runtime.storage_or_disk_outage``) and its worker out of memory (``is_out_of_memory``: its machine's fault, as
 when the OOM killer ends its process and a waiting job takes the lapsed lease over; handed back saying so:
-``runtime.hand_back_out_of_memory``)."""
+``runtime.hand_back_fit``)."""
 
 
 def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> None:
@@ -542,15 +542,17 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
             stored: StoredObject = storage.put_file(
                 reconstruction_storage_key(rec.id, f"grid-{job.run_token or job.id}.safetensors"), path)
         except BaseException as exc:  # (each change below applies only while this job still owns the fit)
-            # G_i made and not kept (a full scratch disk, a storage refusing it) is no failure of the fit's either
-            if (grid is None and isinstance(exc, Exception) and not isinstance(exc, NOT_THE_FITS_FAILURE)
-                    and not is_out_of_memory(exc) and database_outage(exc) is None
-                    and runtime.storage_or_disk_outage(exc) is None and not runtime.worker_in_cold_shutdown()):
+            fails_the_job = (isinstance(exc, Exception) and not isinstance(exc, NOT_THE_FITS_FAILURE)
+                             and database_outage(exc) is None and runtime.storage_or_disk_outage(exc) is None
+                             and not runtime.worker_in_cold_shutdown())
+            if fails_the_job and grid is None and not is_out_of_memory(exc):
                 runtime.set_reconstruction(rec.id, job.id, job.run_token, state=R_FAILED, lease_until=None,
                                            finished_at=utcnow(), error=runtime.failure_text(exc))
-            elif is_out_of_memory(exc):  # the error recorded; a job still waiting takes over (more memory?)
-                runtime.hand_back_out_of_memory(rec.id, job.id, job.run_token,
-                                                f"job {job.id}'s fit: {runtime.failure_text(exc)}")
+            elif is_out_of_memory(exc) or fails_the_job:  # out of memory, or G_i made and not kept (a storage
+                # refusing it): no failure of the fit's; the error recorded, a job still waiting takes over
+                said = "" if grid is None else "its grid could not be stored: "
+                runtime.hand_back_fit(rec.id, job.id, job.run_token,
+                                      f"job {job.id}'s fit: {said}{runtime.failure_text(exc)}")
             else:  # stopped for the owner's sake (NOT_THE_FITS_FAILURE), an outage, a full disk, or the worker
                 # going down (SystemExit, KeyboardInterrupt, or what a cold shutdown raises in a solo pool's task): a
                 # waiting job, or this one redelivered, takes over from the checkpoint
