@@ -917,7 +917,8 @@ def test_a_stage_failure_says_what_failed_without_the_workers_paths_or_statement
     """A job's error is the user's to read: a worker's scratch folder that cannot be made (a file in its place, a
     full disk) had failed the job naming the worker's path (``/var/lib/voxe/work/jobs/<id>``), and a statement the
     database refused (a worker of another version, a column it lacks) with SQLAlchemy's text: the SQL, its
-    parameters and a link. They say the error's own words; the worker's log keeps the rest."""
+    parameters and a link. They say the error's own words; the worker's log keeps the rest. The scratch's says the
+    fault is the worker's (its bare errno had read as the user's doing)."""
     from pathlib import Path
 
     from sqlalchemy import text
@@ -940,7 +941,7 @@ def test_a_stage_failure_says_what_failed_without_the_workers_paths_or_statement
     error = job_row(job_id).error
     assert str(db.work_dir) not in error and "SELECT" not in error and "sqlalche.me" not in error, error
     if fault == "scratch":
-        assert error == "edit: NotADirectoryError: [Errno 20] Not a directory"
+        assert error == "edit: NotADirectoryError: [Errno 20] Not a directory on the worker (see its log)"
     else:
         assert error.startswith("edit: ") and "no_such_column" in error and "\n" not in error, error
 

@@ -65,18 +65,21 @@ def content_type(name: str) -> str:
     return CONTENT_TYPES.get(Path(name).suffix.lower(), "application/octet-stream")
 
 
-def failure_text(exc: BaseException) -> str:
+def failure_text(exc: BaseException, say_the_worker: bool = True) -> str:
     """``exc`` as a job's or a scene's failure says it: ``Type: words``, or the type alone when it has no words; a
     failed allocation as the worker out of memory, in the first line of its words (Python's MemoryError has none,
     and had read "MemoryError: "; CUDA's adds a paragraph of allocator advice). Said to the job's or scene's owner,
     it names nothing of the worker's (its log does): an OSError not the files on its disk it names, a database
     error only the first line of the driver's words (SQLAlchemy adds the statement and its parameters, PostgreSQL
-    quotes the statement)."""
+    quotes the statement). Such an OSError, the worker's environment (its scratch), says the fault is the worker's
+    (unless ``say_the_worker`` is False: its caller says so): its bare errno had read as the owner's doing."""
     from voxe_core.guidance.loading import is_out_of_memory
 
     words = str(exc)
     if isinstance(exc, OSError) and exc.strerror and (exc.filename is not None or exc.filename2 is not None):
         words = f"[Errno {exc.errno}] {exc.strerror}" if exc.errno is not None else exc.strerror
+        if say_the_worker:
+            words += " on the worker (see its log)"
     elif isinstance(exc, SQLAlchemyError) and getattr(exc, "orig", None) is not None:
         words = str(exc.orig).strip().partition("\n")[0]  # (PostgreSQL's next lines quote the statement)
     if is_out_of_memory(exc):  # (PyTorch's advice follows "... is free." on the same line)
@@ -323,7 +326,7 @@ def storage_or_disk_outage(exc: BaseException) -> str | None:
     if isinstance(exc, StorageUnavailable):
         return f"a storage outage ({exc})"
     if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
-        return f"the worker's disk full ({failure_text(exc)})"
+        return f"the worker's disk full ({failure_text(exc, say_the_worker=False)})"
     return None
 
 
