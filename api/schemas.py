@@ -361,7 +361,9 @@ class SceneOut(BaseModel):
     format: str
     state: SceneState = Field(description="processing: stored, its images being decoded (a mesh rendered) by a "
                                           "worker; ready: jobs run on it; failed: see error")
-    error: str | None = Field(description="why the scene failed (the file and frame, as a 422 would say)")
+    error: str | None = Field(description="why the scene failed (the file and frame, as a 422 would say); while "
+                                          "processing, what stopped its ingest's last run (an outage, the worker's "
+                                          "disk full: it is tried again)")
     image_count: int
     width: int
     height: int

@@ -294,10 +294,11 @@ def test_an_ingest_stopped_by_a_storage_outage_goes_back_to_the_queue_keeping_th
         states = [tasks.ingest_task.apply(args=(again["id"],)).state for _ in range(5)]
     assert states == ["REJECTED"] * 4 + ["SUCCESS"] and pauses == [1.0, 2.0, 4.0, 8.0]
     failed = client.get(f"/v1/scenes/{again['id']}").json()
-    assert (failed["state"], failed["error"]) == ("failed", "ingest: interrupted 4 times, its worker process dying "
-                                                  "each time (killed: out of memory?), a database or storage outage or "
-                                                  "a full disk stopping it; it was sent again 3 time(s) already, the "
-                                                  "limit (VOXE_JOB_MAX_REQUEUES=3)")
+    assert (failed["state"], failed["error"]) == ("failed", "ingest: stopped 4 times, the last by a storage outage (S3 "
+                                                  "bucket 'voxe': SlowDown when fetching scenes/"
+                                                  f"{again['id']}/dataset.zip): no fault of the upload (upload it "
+                                                  "again once that is mended); it was sent again 3 time(s) already, "
+                                                  "the limit (VOXE_JOB_MAX_REQUEUES=3)")
 
 
 def test_an_ingest_on_a_worker_whose_disk_is_full_goes_back_to_the_queue_keeping_the_upload(client, dataset, root,
@@ -305,7 +306,8 @@ def test_an_ingest_on_a_worker_whose_disk_is_full_goes_back_to_the_queue_keeping
     """One worker's scratch disk full as it unpacks an upload (killed runs' folders, another job's grids) had failed
     the scene and deleted its upload, a valid one, for good: every upload that worker took was lost. A full disk is
     the machine's state, not the upload's fault: the message goes back to the queue, counted as an outage's return
-    is (a disk full at every run fails the scene at the limit), and the redelivery readies the scene."""
+    is (a disk full at every run fails the scene at the limit, naming it: it had named "killed: out of memory?"
+    first), and the redelivery readies the scene. While it waits, the scene says what stopped its last run."""
     import errno
     import os
 
@@ -324,13 +326,25 @@ def test_an_ingest_on_a_worker_whose_disk_is_full_goes_back_to_the_queue_keeping
         disk.setattr(datasets, "unpack", full)
         result = tasks.ingest_task.apply(args=(scene["id"],))
     assert result.state == "REJECTED" and result.result.requeue, result.result
-    assert result.result.reason == (f"the ingest of scene {scene['id']} stopped by the worker's disk full (OSError: "
-                                    f"[Errno {errno.ENOSPC}] {os.strerror(errno.ENOSPC)})")
-    assert client.get(f"/v1/scenes/{scene['id']}").json()["state"] == "processing"
+    full_disk = f"the worker's disk full (OSError: [Errno {errno.ENOSPC}] {os.strerror(errno.ENOSPC)})"
+    assert result.result.reason == f"the ingest of scene {scene['id']} stopped by {full_disk}"
+    listed = client.get(f"/v1/scenes/{scene['id']}").json()
+    assert (listed["state"], listed["error"]) == ("processing", full_disk)
     assert stored_files(root) == [f"scenes/{scene['id']}/dataset.zip"]
     with session_scope() as session:
         assert session.get(Scene, scene["id"]).ingest_attempts == 1
     assert ingest(scene["id"]) == {"scene_id": scene["id"], "state": "ready"}
+    assert client.get(f"/v1/scenes/{scene['id']}").json()["error"] is None
+
+    again = upload_zip(client, zip_folder(dataset, root / "again.zip", prefix="mic_small")).json()
+    with monkeypatch.context() as disk:
+        disk.setattr(datasets, "unpack", full)
+        states = [tasks.ingest_task.apply(args=(again["id"],)).state for _ in range(5)]
+    assert states == ["REJECTED"] * 4 + ["SUCCESS"]
+    failed = client.get(f"/v1/scenes/{again['id']}").json()
+    assert (failed["state"], failed["error"]) == ("failed", f"ingest: stopped 4 times, the last by {full_disk}: no "
+                                                  "fault of the upload (upload it again once that is mended); it was "
+                                                  "sent again 3 time(s) already, the limit (VOXE_JOB_MAX_REQUEUES=3)")
 
 
 def test_a_cold_shutdown_in_an_ingests_outage_pause_sends_its_message_back(client, dataset, root, monkeypatch):

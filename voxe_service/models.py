@@ -128,7 +128,8 @@ class Scene(Base):
     # all its training images; None while processing (and for scenes ingested before it was recorded).
     backbone: Mapped[str | None] = mapped_column(String(16), nullable=True)
     state: Mapped[str] = mapped_column(String(16), default=PROCESSING, index=True)
-    error: Mapped[str | None] = mapped_column(Text, nullable=True)  # why a failed scene failed
+    # Why a failed scene failed; while processing, what stopped the ingest's last run, given back (worker.ingest)
+    error: Mapped[str | None] = mapped_column(Text, nullable=True)
     task_id: Mapped[str | None] = mapped_column(String(64), nullable=True)
     worker_hostname: Mapped[str | None] = mapped_column(String(255), nullable=True)
     # Runs of the ingest that took the scene: while it is processing, every earlier one was interrupted (its worker

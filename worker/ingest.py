@@ -138,9 +138,9 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
         taken = _take(scene_id, token, hostname, settings)
         if isinstance(taken, str):
             return {"scene_id": scene_id, "skipped": taken}
-        upload, interrupted = taken
+        upload, interrupted, stopped_by = taken
         with ingest_lease(scene_id, token, settings) as lease:
-            return _ingest(scene_id, token, upload, interrupted, lease, settings, storage)
+            return _ingest(scene_id, token, upload, interrupted, stopped_by, lease, settings, storage)
     except (*DATABASE_UNAVAILABLE, StorageUnavailable, LeaseLost, OSError) as exc:
         if isinstance(exc, LeaseLost):
             if lease.lost:  # another run holds the scene: what it stores is the scene's, this run writes nothing
@@ -154,14 +154,17 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
         elif (cause := storage_or_disk_outage(exc)) is None:
             raise
         log.warning("scene %s: the ingest stopped by %s; its message goes back to the queue", scene_id, cause)
-        _give_back(scene_id, token)
+        _give_back(scene_id, token, stopped_by=cause)
         pause_after_outage(interrupted or 0)
         raise Reject(f"the ingest of scene {scene_id} stopped by {cause}", requeue=True) from exc
 
 
-def _take(scene_id: str, token: str, hostname: str | None, settings: Settings) -> tuple[StoredObject, int] | str:
+def _take(scene_id: str, token: str, hostname: str | None, settings: Settings
+          ) -> tuple[StoredObject, int, str | None] | str:
     """Take the processing scene's ingest for the run ``token``: (its archive as recorded, the runs that took it
-    before); why not, when it is no longer processing or another run holds it and renews its lease."""
+    before, what stopped the last of them when it gave the scene back: :func:`_give_back`); why not, when it is no
+    longer processing or another run holds it and renews its lease. The cause read is cleared: a run killed after
+    it leaves none, and must not be said to have met it."""
     held = None  # the hold (token, lease end) this run waits out
     while True:
         with session_scope() as session:
@@ -171,14 +174,15 @@ def _take(scene_id: str, token: str, hostname: str | None, settings: Settings) -
             now = utcnow()
             hold = (scene.ingest_token, scene.ingest_lease_until)
             if scene.ingest_token is None or scene.ingest_lease_until < now:
-                upload, before = scene_archive(scene), scene.ingest_attempts  # (read before the update changes it)
+                # (read before the update changes them)
+                upload, before, stopped_by = scene_archive(scene), scene.ingest_attempts, scene.error
                 taken = session.execute(update(Scene).where(
                     Scene.id == scene_id, Scene.state == PROCESSING, Scene.updated_at == scene.updated_at,
                     or_(Scene.ingest_token.is_(None), Scene.ingest_lease_until < now)).values(
-                    worker_hostname=hostname, ingest_attempts=Scene.ingest_attempts + 1, ingest_token=token,
+                    worker_hostname=hostname, ingest_attempts=Scene.ingest_attempts + 1, ingest_token=token, error=None,
                     ingest_lease_until=now + timedelta(seconds=settings.stage_lease_s), updated_at=now)).rowcount
                 if taken == 1:
-                    return upload, before
+                    return upload, before, stopped_by
                 continue  # taken (or changed) since it was read: read it again
         if held is not None and hold != held:
             return f"scene {scene_id}: another run holds its ingest (this message is a duplicate)"
@@ -186,16 +190,20 @@ def _take(scene_id: str, token: str, hostname: str | None, settings: Settings) -
         time.sleep(settings.stage_lease_s / 8)
 
 
-def _ingest(scene_id: str, token: str, upload: StoredObject, interrupted: int, lease: LeaseKeeper,
-            settings: Settings, storage: Storage) -> TaskResult:
+def _ingest(scene_id: str, token: str, upload: StoredObject, interrupted: int, stopped_by: str | None,
+            lease: LeaseKeeper, settings: Settings, storage: Storage) -> TaskResult:
     """The ingest of the scene this run (``token``, its hold kept by ``lease``) took, its archive ``upload`` as
-    recorded, after ``interrupted`` runs before it. A mesh's rendered dataset is stored under a key of this run's own
-    (:func:`run_archive_key`): a run that lost its hold, stalled past the check before it stores, never overwrites
+    recorded, after ``interrupted`` runs before it, the last stopped by ``stopped_by`` (an outage, a full disk) when
+    it said so; at the limit the scene fails naming it, the upload no fault of it (it had said "killed: out of
+    memory?" first, a full disk met at every run last). A mesh's rendered dataset is stored under a key of this
+    run's own (:func:`run_archive_key`): a run that lost its hold, stalled past the check before it stores, never overwrites
     the archive another run recorded (every job's fetch had then failed its SHA-256 check)."""
     # The runs before this one, less the first: how often the ingest was sent again.
-    if error := requeue_limit_error(interrupted - 1, settings, f"ingest: interrupted {interrupted} times, its worker "
-                                    "process dying each time (killed: out of memory?), a database or storage "
-                                    "outage or a full disk stopping it"):
+    why = (f"ingest: stopped {interrupted} times, the last by {stopped_by}: no fault of the upload (upload it again "
+           "once that is mended)" if stopped_by else
+           f"ingest: interrupted {interrupted} times, its worker process dying each time (killed: out of memory?), a "
+           "database or storage outage or a full disk stopping it")
+    if error := requeue_limit_error(interrupted - 1, settings, why):
         _fail(scene_id, token, error, storage)
         return {"scene_id": scene_id, "state": "failed"}
     mesh_upload = upload.key == scene_key(scene_id, datasets.UPLOAD_ARCHIVE)
@@ -240,14 +248,15 @@ def run_archive_key(scene_id: str, token: str) -> str:
     return scene_key(scene_id, f"{Path(datasets.DATASET_ARCHIVE).stem}-{token[:8]}.zip")
 
 
-def _give_back(scene_id: str, token: str, uncount: bool = False) -> None:
+def _give_back(scene_id: str, token: str, uncount: bool = False, stopped_by: str | None = None) -> None:
     """Give the run's hold back as its message goes back to the queue, so its redelivery takes the scene at once
     (not after the lease). ``uncount``: a run a worker's shutdown stopped is not one the upload killed: it does not
     count towards the limit (four deploys had failed a scene as "killed: out of memory?"). Only where the shutdown
     raises in the task (the solo pool's); a prefork pool's children are ended from outside, and their runs still
     count. The lease is left run out, not none: should the message be lost on its way back, the reaper sends the
-    ingest again (it never takes a scene with no lease for one whose run stopped)."""
-    values = dict(ingest_token=None, ingest_lease_until=utcnow())
+    ingest again (it never takes a scene with no lease for one whose run stopped). ``stopped_by``: the outage or
+    full disk that stopped the run, kept as the scene's error while it is processing (the next run reads it)."""
+    values = dict(ingest_token=None, ingest_lease_until=utcnow(), error=stopped_by)
     if uncount:
         values["ingest_attempts"] = Scene.ingest_attempts - 1  # (this run's, counted as it took the scene)
     try:
