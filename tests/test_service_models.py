@@ -458,3 +458,22 @@ def test_a_failed_smoke_test_model_build_leaves_nothing_and_the_next_one_complet
     built = build_once(settings, "tiny-sd", "model_index.json", lambda folder: (folder / "model_index.json").write_text("{}"))
     assert built == tmp_path / "tiny-sd" and (built / "model_index.json").is_file()
     assert sorted(p.name for p in tmp_path.iterdir()) == [".tiny.lock", "tiny-sd"]
+
+
+def test_an_edit_word_the_attention_tokenizer_does_not_find_fails_at_the_start_of_its_chain(root, client):
+    """The API finds edit words reading the prompt as CLIP's tokenizer should; where the real one reads it otherwise
+    (a special token written out, characters newer than Python's Unicode tables, transformers 4.x's slow tokenizer)
+    the job had run its whole fit and edit, then failed at the refinement. The worker finds each word with the
+    attention model's tokenizer before the fit: here "<|endoftext|>" is one token, after which no word starts."""
+    from voxe_service.models import Job
+    from voxe_service.settings import get_settings
+    from worker import tasks
+
+    settings = get_settings()
+    job = Job(mode="local", prompt="a <|endoftext|> hat on a mic", edit_words=["hat"], params={},
+              sds_model=settings.sds_model, attention_model=settings.attention_model)
+    with pytest.raises(tasks.CannotStart, match=r"^'hat' does not occur in the prompt 'a <\|endoftext\|> hat on a mic'.*"
+                                                 r"\(the attention model "):
+        tasks._check_job_can_start(job, settings)
+    tasks._check_job_can_start(Job(mode="local", prompt="a hat on a mic", edit_words=["hat"], params={},
+                                   sds_model=settings.sds_model, attention_model=settings.attention_model), settings)

@@ -295,9 +295,10 @@ def _check_job_can_start(job: Job, settings) -> None:
     the tokenizer or text encoder config of a model it prompts (the edit's SDS model, a local edit's attention
     model) cannot be read (a damaged model), or when that tokenizer reads its prompt as longer than that model's
     text encoder does (the API's check is a lower bound: BPE splits some words into several tokens, and a model may
-    read fewer than 77)."""
+    read fewer than 77), or when that attention model's tokenizer does not find an edit word where the refinement
+    will look for it (the API reads the prompt as the tokenizer should, which it may not)."""
     from voxe_core.guidance.loading import load_clip_tokenizer, loading_errors
-    from voxe_core.guidance.prompts import check_prompt_tokens, tokens_read
+    from voxe_core.guidance.prompts import check_edit_words_tokens, check_prompt_tokens, tokens_read
 
     needed = job_models(job.mode, job.sds_model, job.attention_model, job.params or {})
     missing = [missing_message(role, model, "this worker")
@@ -319,9 +320,11 @@ def _check_job_can_start(job: Job, settings) -> None:
         except loading_errors() as exc:  # a damaged model (vocab.json cut short) had failed only at its stage's load
             raise CannotStart(f"the {role} model {model_label(needed[role])!r} on this worker cannot be read "
                               f"({runtime.failure_text(exc)}): {how_to_provide(role, needed[role])}") from None
+        view_words = (job.params or {}).get("view_words", True)
         try:
-            check_prompt_tokens(job.prompt, tokenizer, tokens_read(tokenizer, positions),
-                                (job.params or {}).get("view_words", True))
+            check_prompt_tokens(job.prompt, tokenizer, tokens_read(tokenizer, positions), view_words)
+            if role == "attention":  # where the API's offline reading and the tokenizer disagree ("<|endoftext|>")
+                check_edit_words_tokens(job.prompt, job.edit_words, tokenizer, view_words)
         except ValueError as exc:
             raise CannotStart(f"{exc} (the {role} model {needed[role]!r})") from None
 

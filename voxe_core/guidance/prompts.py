@@ -228,6 +228,42 @@ def check_prompt_tokens(user_text: str, tokenizer, limit: int, view_words: bool 
                              f"encoder reads {limit}, its start and end tokens included: shorten it")
 
 
+def word_token_spans(tokenizer, prompt: str, words: Sequence[str]) -> list[int]:
+    """Positions in the token sequence of ``prompt`` under ``tokenizer`` (CLIPTokenizer; 0 is the start token) of
+    every occurrence of each word, as the guidance's ``token_spans`` finds them: every sub-token of a multi-token
+    word or phrase, only whole words (an occurrence starts a word: "shade" is not found in "lampshade"), only in
+    the prompt's own text, before its view word. Sorted, without duplicates; ValueError naming a word not found."""
+    if isinstance(words, str):
+        words = [words]
+    ids = tokenizer(prompt).input_ids
+    # CLIP's BPE ends each word's last token with "</w>": a word starts after one, or after the start token.
+    tokens = tokenizer.convert_ids_to_tokens(ids)
+    starts = {1} | {i + 1 for i, token in enumerate(tokens) if token.endswith("</w>")}
+    text_end = 1 + len(tokenizer(without_view_word(prompt), add_special_tokens=False).input_ids)
+    positions: set[int] = set()
+    for word in words:
+        sub = tokenizer(word, add_special_tokens=False).input_ids
+        if not sub:
+            raise ValueError(f"{word!r} has no tokens")
+        found = [i for i in starts if i + len(sub) <= text_end and ids[i : i + len(sub)] == sub]
+        if not found:
+            raise ValueError(f"{word!r} does not occur in the prompt {prompt!r} (tokens {tokenizer.tokenize(prompt)})")
+        for i in found:
+            positions.update(range(i, i + len(sub)))
+    return sorted(positions)
+
+
+def check_edit_words_tokens(user_text: str, edit_words: Sequence[str], tokenizer, view_words: bool = True) -> None:
+    """ValueError naming the first edit word ``tokenizer`` (the attention model's) does not find where the
+    refinement looks for it (:func:`word_token_spans`): in the prompt's own text, then in "a render of <text>" with
+    each view word unless ``view_words`` is off. For a caller holding the tokenizer (a worker, before a job's fit):
+    :func:`check_edit_words_read` reads the prompt as the tokenizer should, this one as it does."""
+    prompts = [prompt_text(user_text)] + [edit_prompt(user_text, view) for view in
+                                          (VIEW_WORDS if view_words else (None,))]
+    for prompt in prompts:
+        word_token_spans(tokenizer, prompt, edit_words)
+
+
 def check_prompt_length(user_text: str, view_words: bool = True) -> None:
     """ValueError when "a render of <text>, overhead view" (the longest prompt an edit gives the diffusion model;
     without ``view_words``, no view) surely holds more tokens than its text encoder reads

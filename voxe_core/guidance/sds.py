@@ -60,7 +60,7 @@ from voxe_core.guidance.attention import AttentionStore, capturing
 from voxe_core.guidance.compiled import CompiledEncoder
 from voxe_core.guidance.cuda_graphs import GraphedEncoder, GraphedUNet
 from voxe_core.guidance.loading import load_stable_diffusion, local_path
-from voxe_core.guidance.prompts import tokens_read, without_view_word
+from voxe_core.guidance.prompts import tokens_read, word_token_spans
 
 
 PREDICTION_TYPES = ("epsilon", "v_prediction", "sample")
@@ -324,24 +324,8 @@ class StableDiffusionGuidance:
         Sorted, without duplicates. Raises ``ValueError`` when a word does not
         occur in the prompt.
         """
-        if isinstance(words, str):
-            words = [words]
-        ids = self._tokenize([prompt])[0].tolist()
-        # CLIP's BPE ends each word's last token with "</w>": a word starts after one, or after the start token.
-        tokens = self.tokenizer.convert_ids_to_tokens(ids)
-        starts = {1} | {i + 1 for i, token in enumerate(tokens) if token.endswith("</w>")}
-        text_end = 1 + len(self.tokenizer(without_view_word(prompt), add_special_tokens=False).input_ids)
-        positions: set[int] = set()
-        for word in words:
-            sub = self.tokenizer(word, add_special_tokens=False).input_ids
-            if not sub:
-                raise ValueError(f"{word!r} has no tokens")
-            found = [i for i in starts if i + len(sub) <= text_end and ids[i : i + len(sub)] == sub]
-            if not found:
-                raise ValueError(f"{word!r} does not occur in the prompt {prompt!r} (tokens {self.tokenizer.tokenize(prompt)})")
-            for i in found:
-                positions.update(range(i, i + len(sub)))
-        return sorted(positions)
+        self._tokenize([prompt])  # a prompt longer than the text encoder reads is refused, naming its length
+        return word_token_spans(self.tokenizer, prompt, words)
 
     def content_token_indices(self, prompt: str) -> list[int]:
         """Positions of the prompt's own tokens: excludes start, end and padding tokens."""
