@@ -185,13 +185,18 @@ class JobParams(Strict):
 
 
 _WORD = re.compile(r"[\w'-]+")
+CLIP_SPECIAL_TOKENS = ("<|startoftext|>", "<|endoftext|>")
 
 
 def clean_text(value: str, what: str, need_words: bool = True) -> str:
-    """Free text with whitespace collapsed; control characters or no word at all (without ``need_words``: nothing
-    at all) are errors naming ``what``."""
+    """Free text with whitespace collapsed; control characters, CLIP's special tokens written out (its tokenizer
+    reads each as the text's start or end, and no word starts after it) or no word at all (without ``need_words``:
+    nothing at all) are errors naming ``what``."""
     if any(unicodedata.category(c) == "Cc" and not c.isspace() for c in value):
         raise ValueError(f"{what} contains control characters")
+    if special := [token for token in CLIP_SPECIAL_TOKENS if token in value]:
+        raise ValueError(f"{what} contains {' and '.join(map(repr, special))}, which the model reads as the start or "
+                         "end of its text, not as words: remove it")
     value = " ".join(value.split())
     if need_words and not words_of(value):
         raise ValueError(f"{what} has no words")

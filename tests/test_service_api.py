@@ -923,6 +923,10 @@ def test_unknown_fields_are_422_naming_the_field(client, dataset, root, body, lo
     ({"mode": "global"}, "edit_words apply to local edits only"),
     ({"edit_words": ["a mic wearing big sunglasses"]}, "cover the whole prompt"),
     ({"prompt": "   "}, "no words"),
+    ({"prompt": "a <|endoftext|> hat on a mic"}, "the prompt contains '<|endoftext|>', which the model reads as"),
+    ({"prompt": "<|startoftext|>a mic wearing sunglasses<|endoftext|>"},
+     "the prompt contains '<|startoftext|>' and '<|endoftext|>'"),
+    ({"edit_words": ["sunglasses<|endoftext|>"]}, "an edit word contains '<|endoftext|>'"),
     ({"params": {"refine": {"lift_start": "constant"}}}, "refine.lift_start 'constant' needs iterations > 0"),
 ])
 def test_bad_edit_words_are_422(client, dataset, root, body, message):
