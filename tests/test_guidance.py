@@ -855,3 +855,17 @@ def test_the_worker_names_its_guidance_by_the_model_asked_for_not_the_folder_it_
     monkeypatch.setattr(runtime, "resolve_model", lambda model, settings: f"/var/voxe/models/{model}-stable-diffusion")
     runtime.get_guidance("tiny", "cpu", Settings())
     assert (asked["path"], asked["name"]) == ("/var/voxe/models/tiny-stable-diffusion", "tiny")
+
+
+def test_the_transformers_required_is_the_one_the_offline_word_check_reads_as():
+    """clip_pieces (the API's edit-word check) reads prompts as transformers 5.x's fast CLIP tokenizer does; 4.x's
+    slow one lower-cases whole words and splits CJK characters apart, yet pyproject.toml had allowed 4.40."""
+    import tomllib
+    from importlib.metadata import version
+    from pathlib import Path
+
+    from packaging.requirements import Requirement
+
+    project = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())["project"]
+    required = next(r for r in map(Requirement, project["dependencies"]) if r.name == "transformers")
+    assert not required.specifier.contains("4.57.3") and required.specifier.contains(version("transformers"))
