@@ -33,8 +33,11 @@ StageIterations = Annotated[int, Field(ge=0, le=1_000_000)]
 # What clean_text accepts, for the document: a word character somewhere, no control character but whitespace.
 _ALLOWED = r"[^\x00-\x08\x0e-\x1b\x7f-\x84\x86-\x9f]"
 TEXT_PATTERN = rf"^{_ALLOWED}*[\w'-]{_ALLOWED}*$"
+# What str.split() splits at, spelt out: a JSON Schema pattern is ECMA-262's, whose \s lacks \x1c-\x1f and \x85 and
+# has \ufeff.
+_WHITESPACE = r"\t-\r\x1c-\x20\x85\xa0\u1680\u2000-\u200a\u2028\u2029\u202f\u205f\u3000"
 # An edit word's: something but whitespace (whether it names anything, a symbol as "🎩" does, is the core's rule).
-EDIT_WORD_PATTERN = rf"^{_ALLOWED}*[^\s\x00-\x08\x0e-\x1b\x7f-\x84\x86-\x9f]{_ALLOWED}*$"
+EDIT_WORD_PATTERN = rf"^{_ALLOWED}*[^{_WHITESPACE}\x00-\x08\x0e-\x1b\x7f-\x84\x86-\x9f]{_ALLOWED}*$"
 _TEXT_RULE = " (a word somewhere; no control characters but whitespace, which is collapsed)"
 
 

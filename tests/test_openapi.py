@@ -317,6 +317,24 @@ def test_prompt_pattern_states_the_text_rule():
             assert bool(re.search(pattern, text)) == server, (repr(text), pattern)
 
 
+
+def test_edit_word_pattern_read_as_json_schema_states_the_server_rule():
+    """A JSON Schema pattern is ECMA-262's: its \\s lacks \\x1c-\\x1f and \\x85 (str.split() splits at them) and
+    has \\ufeff (it does not), so the published pattern had said "\\x1c" was an edit word and "\\ufeff" was none."""
+    from api.schemas import EDIT_WORD_PATTERN, clean_text
+    import re
+
+    ecma_space = r"\t\n\v\f\r \xa0\u1680\u2000-\u200a\u2028\u2029\u202f\u205f\u3000\ufeff"
+    as_ecma = EDIT_WORD_PATTERN.replace(r"\s", ecma_space)  # (only ever inside a class)
+    for code in [*range(0x3001), 0xfeff]:
+        try:
+            clean_text(chr(code), "an edit word", need_words=False)
+            server = True
+        except ValueError:
+            server = False
+        assert bool(re.search(as_ecma, chr(code))) == server, hex(code)
+
+
 def test_malformed_json_is_a_documented_400(client, spec):
     for path in ("/v1/jobs", "/v1/evaluations", "/v1/sweeps"):
         response = client.post(path, content=b'{"prompt": ', headers={"content-type": "application/json"})
