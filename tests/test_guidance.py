@@ -350,10 +350,16 @@ def test_the_apis_pieces_are_the_clip_tokenizers_words(guidance, text):
     ("a dog\u2019s hat", "dog's hat",
      "its apostrophes and quotes must be the prompt's own (\u2019 is not ', \u201d is not \")"),
     ("a dog with a hat", "zebra", ""),
+    ("a mic wearing Sunglasses", "glasses", "'glasses' is part of the word 'sunglasses'"),  # no text without spaces
+    ("\u307c\u3046\u3057\u3092\u304b\u3076\u3063\u305f\u3044\u306c", "\u307c\u3046\u3057",  # kana
+     "the model reads '\u307c\u3046\u3057\u3092\u304b\u3076\u3063\u305f\u3044\u306c' as one word (text written without "
+     "spaces, as Chinese is, is one word to it): name all of it, or separate the edit word from the words around it "
+     "with spaces in the prompt"),
 ])
 def test_an_edit_word_not_found_is_told_the_likely_cause(prompt, word, said):
     """Text without spaces (Chinese) is one word to CLIP's tokenizer, and a curly apostrophe no straight one: both
-    had been refused only as "does not occur ... as whole words", which does not say what to change."""
+    had been refused only as "does not occur ... as whole words", which does not say what to change. An English word
+    inside a longer one ("glasses" in "sunglasses") had been told about text without spaces."""
     from voxe_core.guidance.prompts import check_edit_words_name_an_edit
 
     with pytest.raises(ValueError) as refused:

@@ -133,15 +133,23 @@ _STRAIGHT_QUOTES = str.maketrans("‘’‚‛′“”„‟″", "'" * 5 + '"'
 
 def _why_not_found(word: str, text: str, pieces: list[str]) -> str:
     """What to say beyond "does not occur as whole words", where the cause is likely: quotes other than the prompt's
-    (’ against '), or the word inside a longer one: text written without spaces (Chinese) is one word to CLIP.
+    (’ against '), or the word inside a longer one ("glasses" in "sunglasses"), told how to separate it when that
+    one is in a script written without spaces (Chinese, Japanese, Thai): such text is one word to CLIP.
     (transformers 4.x's slow tokenizer, without ftfy, puts spaces round each CJK character; 5.x's does not.)"""
     if _is_run(clip_pieces(word.translate(_STRAIGHT_QUOTES)), clip_pieces(text.translate(_STRAIGHT_QUOTES))):
         return ": its apostrophes and quotes must be the prompt's own (’ is not ', ” is not \")"
     sub = clip_pieces(word)
     if len(sub) == 1 and (whole := next((piece for piece in pieces if sub[0] in piece), None)):
+        if not any(unicodedata.name(c, "").startswith(_UNSPACED_SCRIPTS) for c in whole):
+            return f": {sub[0]!r} is part of the word {whole!r}"
         return (f": the model reads {whole!r} as one word (text written without spaces, as Chinese is, is one word "
                 "to it): name all of it, or separate the edit word from the words around it with spaces in the prompt")
     return ""
+
+
+_UNSPACED_SCRIPTS = ("CJK ", "HIRAGANA ", "KATAKANA", "HALFWIDTH KATAKANA ", "THAI ", "LAO ", "KHMER ", "MYANMAR ",
+                     "TIBETAN ")
+"""Unicode names' beginnings of the characters of scripts written without spaces between words."""
 
 
 def _is_run(sub: list[str], pieces: list[str]) -> bool:
