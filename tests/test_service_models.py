@@ -472,8 +472,8 @@ def test_an_edit_word_the_attention_tokenizer_does_not_find_fails_at_the_start_o
     settings = get_settings()
     job = Job(mode="local", prompt="a <|endoftext|> hat on a mic", edit_words=["hat"], params={},
               sds_model=settings.sds_model, attention_model=settings.attention_model)
-    with pytest.raises(tasks.CannotStart, match=r"^'hat' does not occur in the prompt 'a <\|endoftext\|> hat on a mic'.*"
-                                                 r"\(the attention model "):
+    with pytest.raises(tasks.CannotStart, match=r"^'hat' does not occur in the prompt 'a <\|endoftext\|> hat on a "
+                                                 r"mic'.*\(the attention model "):
         tasks._check_job_can_start(job, settings)
     tasks._check_job_can_start(Job(mode="local", prompt="a hat on a mic", edit_words=["hat"], params={},
                                    sds_model=settings.sds_model, attention_model=settings.attention_model), settings)
