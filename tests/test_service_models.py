@@ -404,6 +404,7 @@ def test_a_local_job_whose_attention_tokenizer_cannot_be_read_fails_at_the_start
     """A damaged attention model (every file there, vocab.json cut short) had been skipped by the start-of-chain
     check, the job running its whole fit and edit before the refinement's load failed on the same file."""
     from voxe_core.tiny_sd import build_tiny_stable_diffusion
+    from voxe_service.model_inventory import how_to_repair
     from voxe_service.settings import get_settings
     from worker import tasks
 
@@ -420,6 +421,10 @@ def test_a_local_job_whose_attention_tokenizer_cannot_be_read_fails_at_the_start
     assert error.startswith(f"reconstruct: not started: the attention model {str(damaged)!r} on this worker cannot "
                             "be read (OSError: tokenizer files unreadable: "), error
     assert API_SETTING.format("VOXE_ATTENTION_MODEL") in error
+    # `hf download` keeps a cached file as it is: the copy is replaced (a hub id: downloaded with --force-download)
+    assert f"replace the folder {str(damaged)!r} on the workers with an intact copy" in error and "hf download" not in error
+    hub = how_to_repair("attention", "owner/model")
+    assert "`hf download owner/model --force-download`" in hub and "delete its folder there" in hub
 
 
 def test_migration_0006_adds_the_models_column_and_removes_it(tmp_path):

@@ -21,7 +21,8 @@ import zipfile
 from dataclasses import dataclass
 
 from voxe_core.constants import INCEPTION_FILE, inception_path
-from voxe_core.guidance.loading import CLIP_LAYOUT, DIFFUSERS_LAYOUT, clip_model_present, diffusers_model_present
+from voxe_core.guidance.loading import (CLIP_LAYOUT, DIFFUSERS_LAYOUT, clip_model_present, diffusers_model_present,
+                                       local_path)
 from voxe_service.models import EVALUATE
 from voxe_service.settings import TINY_MODEL, Settings, model_label
 
@@ -101,6 +102,17 @@ def how_to_provide(role_name: str, model: str) -> str:
         provide = (f"download it into the workers' Hugging Face cache (HF_HOME) with `hf download {model}` on a "
                    "machine with internet")
     return f"{provide}. {submission_note(role_name)}"
+
+
+def how_to_repair(role_name: str, model: str) -> str:
+    """What an operator does about a damaged copy of ``model`` (a hub id or a local folder; a file cut short):
+    ``hf download`` alone keeps a file already in the cache as it is, damaged or not."""
+    if (folder := local_path(model)) is not None:
+        repair = f"replace the folder {folder!r} on the workers with an intact copy"
+    else:
+        repair = (f"download it again into the workers' Hugging Face cache (HF_HOME) with `hf download {model} "
+                  "--force-download` on a machine with internet, or delete its folder there and download it")
+    return f"{repair}. {submission_note(role_name)}"
 
 
 def missing_message(role_name: str, model: str, where: str) -> str:

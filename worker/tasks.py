@@ -44,7 +44,7 @@ from voxe_service.models import (
     CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, R_FAILED, R_PENDING, R_SUCCEEDED, RUNNING, TERMINAL_STATES, Job,
     Scene, WorkerHeartbeat, utcnow,
 )
-from voxe_service.model_inventory import (ROLES, check_models, how_to_provide, job_models, missing_message,
+from voxe_service.model_inventory import (ROLES, check_models, how_to_repair, job_models, missing_message,
                                           model_present, submission_note)
 from voxe_service.progress import device_costs, refine_phase_seconds
 from voxe_service.queue import (
@@ -319,7 +319,7 @@ def _check_job_can_start(job: Job, settings) -> None:
                                                        local_files_only=True).max_position_embeddings
         except loading_errors() as exc:  # a damaged model (vocab.json cut short) had failed only at its stage's load
             raise CannotStart(f"the {role} model {model_label(needed[role])!r} on this worker cannot be read "
-                              f"({runtime.failure_text(exc)}): {how_to_provide(role, needed[role])}") from None
+                              f"({runtime.failure_text(exc)}): {how_to_repair(role, model)}") from None
         view_words = (job.params or {}).get("view_words", True)
         try:
             check_prompt_tokens(job.prompt, tokenizer, tokens_read(tokenizer, positions), view_words)
