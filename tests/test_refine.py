@@ -139,6 +139,9 @@ def test_token_groups_split_edit_and_object_tokens(tiny_guidance):
     ("sunglasses!", ["sunglasses"], "nothing names the object"),  # only the "!"
     ("a dog, wearing sunglasses", [","], "names nothing: it is punctuation alone"),  # the comma's map as the edit's
     ("a dog's hat", ["'s"], "names nothing"),  # a contraction's ending
+    ("sunglasses ^^", ["sunglasses"], "nothing names the object"),  # marks of mathematics or modifiers name nothing
+    ("sunglasses +", ["sunglasses"], "nothing names the object"),
+    ("a mic | a hat", ["|"], "names nothing"),
 ])
 def test_punctuation_neither_names_the_object_nor_the_edit(tiny_guidance, make_sphere_grid, prompt, edit_words,
                                                           refusal):
@@ -156,7 +159,8 @@ def test_punctuation_neither_names_the_object_nor_the_edit(tiny_guidance, make_s
 @pytest.mark.parametrize("prompt, edit_words", [("a \U0001f3a9 on a mic", ["\U0001f3a9"]),
                                                 ("a mic wearing \U0001f576 and a hat", ["\U0001f576"]),
                                                 ("a dog with a \u2665 and a hat", ["\u2665"]),
-                                                ("a \U0001f436 wearing sunglasses", ["sunglasses"])])
+                                                ("\U0001f436 sunglasses", ["sunglasses"]),
+                                                ("a \u20ac on a mic", ["\u20ac"])])
 def test_a_symbol_names_an_edit_or_the_object(tiny_guidance, prompt, edit_words):
     """An emoji or symbol the tokenizer finds had been refused as an edit word with no letters or numbers."""
     edit, others = token_groups(tiny_guidance, prompt, edit_words)

@@ -123,9 +123,14 @@ def clip_pieces(text: str) -> list[str]:
 
 
 def _names(piece: str) -> bool:
-    """Whether a piece names something: a word, a number or a symbol (an emoji, "♥"), not punctuation alone nor a
-    contraction's ending ("'s")."""
-    return not _CONTRACTION.fullmatch(piece) and any(unicodedata.category(c)[0] in "LNS" for c in piece)
+    """Whether a piece names something: a word, a number or a symbol (an "other symbol", as an emoji or "♥" is, or a
+    currency's), not punctuation alone, a mathematical or modifier mark ("^^", "+", "|") nor a contraction's ending
+    ("'s")."""
+    return not _CONTRACTION.fullmatch(piece) and any(unicodedata.category(c) in _NAMING_CATEGORIES or
+                                                     unicodedata.category(c)[0] in "LN" for c in piece)
+
+
+_NAMING_CATEGORIES = ("So", "Sc")
 
 
 _STRAIGHT_QUOTES = str.maketrans("‘’‚‛′“”„‟″", "'" * 5 + '"' * 5)
@@ -173,8 +178,8 @@ def check_edit_words_name_an_edit(text: str, edit_words: Sequence[str]) -> None:
     for word in edit_words:
         sub = clip_pieces(word)
         if not any(map(_names, sub)):
-            raise ValueError(f"edit word {word!r} names nothing: it is punctuation alone (or a contraction's ending, "
-                             "\"'s\"); name a word, number or symbol of the prompt")
+            raise ValueError(f"edit word {word!r} names nothing: it is punctuation alone (a mark such as ^ + | too, "
+                             "or a contraction's ending, \"'s\"); name a word, number or symbol of the prompt")
         starts = [i for i in range(len(pieces) - len(sub) + 1) if pieces[i:i + len(sub)] == sub]
         if not starts:
             raise ValueError(f"edit word {word!r} does not occur in the prompt {text!r} as whole words"
