@@ -861,7 +861,7 @@ def test_a_database_fault_that_is_no_outage_at_a_stages_checkpoint_or_end_fails_
     assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "failed"
     job = runtime.load_job(job_id)
     assert job.state == "failed"
-    assert job.error.startswith("edit: OperationalError: (sqlite3.OperationalError) no such table: jobs_v2"), job.error
+    assert job.error == "edit: OperationalError: no such table: jobs_v2"  # the driver's words, not the statement
 
 
 def test_a_real_scene_edit_runs_through_the_worker_on_the_smoke_test_model(service, tmp_path):
