@@ -230,9 +230,9 @@ class JobCreate(Strict):
         description="local edits: the word(s) of the prompt naming the edit (e.g. ['sunglasses']); required "
         "(non-empty) with mode 'local', empty otherwise. Rules beyond the schema (422 naming them): each names "
         "something (a word, number or symbol such as an emoji or a currency sign; punctuation and marks such as "
-        "^ + | name nothing), occurs in the prompt as whole words, also as the model reads the prompt (punctuation at a word's edge is read with "
-        "the punctuation beside it: 'hat.' is not found in '..., a hat.'), and some other word of the prompt names "
-        "the object",
+        "^ + | name nothing), occurs in the prompt as whole words, also as the model reads the prompt (punctuation "
+        "at a word's edge is read with the punctuation beside it: 'hat.' is not found in '..., a hat.'), and some "
+        "other word of the prompt names the object",
     )
     params: JobParams = Field(default_factory=JobParams)
     webhook_url: str | None = Field(

@@ -196,8 +196,8 @@ def _ingest(scene_id: str, token: str, upload: StoredObject, interrupted: int, s
     recorded, after ``interrupted`` runs before it, the last stopped by ``stopped_by`` (an outage, a full disk) when
     it said so; at the limit the scene fails naming it, the upload no fault of it (it had said "killed: out of
     memory?" first, a full disk met at every run last). A mesh's rendered dataset is stored under a key of this
-    run's own (:func:`run_archive_key`): a run that lost its hold, stalled past the check before it stores, never overwrites
-    the archive another run recorded (every job's fetch had then failed its SHA-256 check)."""
+    run's own (:func:`run_archive_key`): a run that lost its hold, stalled past the check before it stores, never
+    overwrites the archive another run recorded (every job's fetch had then failed its SHA-256 check)."""
     # The runs before this one, less the first: how often the ingest was sent again.
     why = (f"ingest: stopped {interrupted} times, the last by {stopped_by}: no fault of the upload (upload it again "
            "once that is mended)" if stopped_by else
