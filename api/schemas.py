@@ -30,15 +30,23 @@ WebhookEvent = Literal[WEBHOOK_EVENTS]
 
 
 StageIterations = Annotated[int, Field(ge=0, le=1_000_000)]
-# What clean_text accepts, for the document: a word character somewhere, no control character but whitespace.
-_ALLOWED = r"[^\x00-\x08\x0e-\x1b\x7f-\x84\x86-\x9f]"
-TEXT_PATTERN = rf"^{_ALLOWED}*[\w'-]{_ALLOWED}*$"
 # What str.split() splits at, spelt out: a JSON Schema pattern is ECMA-262's, whose \s lacks \x1c-\x1f and \x85 and
 # has \ufeff.
 _WHITESPACE = r"\t-\r\x1c-\x20\x85\xa0\u1680\u2000-\u200a\u2028\u2029\u202f\u205f\u3000"
+# What clean_text accepts, for the document: no control character but whitespace, and a word character somewhere:
+# exactly so in ASCII (0-9 A-Z a-z _ ' -); beyond it, any character but whitespace. ECMA-262 has no class of
+# Unicode's letters and digits that every JSON Schema validator reads alike (its \w is ASCII's: "猫" had been no word
+# to the document; \p{L} needs the u flag), so the descriptions say the rule, and the server applies it.
+_ALLOWED = r"[^\x00-\x08\x0e-\x1b\x7f-\x84\x86-\x9f]"
+_WORD_CHARACTER = rf"[^{_WHITESPACE}\x00-\x26\x28-\x2c\x2e\x2f\x3a-\x40\x5b-\x5e\x60\x7b-\x9f]"
+TEXT_PATTERN = rf"^{_ALLOWED}*{_WORD_CHARACTER}{_ALLOWED}*$"
 # An edit word's: something but whitespace (whether it names anything, a symbol as "🎩" does, is the core's rule).
 EDIT_WORD_PATTERN = rf"^{_ALLOWED}*[^{_WHITESPACE}\x00-\x08\x0e-\x1b\x7f-\x84\x86-\x9f]{_ALLOWED}*$"
-_TEXT_RULE = " (a word somewhere; no control characters but whitespace, which is collapsed)"
+CLIP_SPECIAL_TOKENS = ("<|startoftext|>", "<|endoftext|>")
+_NO_SPECIAL_TOKENS = (f"nor CLIP's special tokens {' or '.join(CLIP_SPECIAL_TOKENS)} written out (the model reads "
+                      "each as its text's start or end)")
+_TEXT_RULE = (" (a word somewhere: letters or digits of any script, _ ' or -; no control characters but whitespace, "
+              f"which is collapsed, {_NO_SPECIAL_TOKENS})")
 
 
 class Strict(BaseModel):
@@ -188,7 +196,6 @@ class JobParams(Strict):
 
 
 _WORD = re.compile(r"[\w'-]+")
-CLIP_SPECIAL_TOKENS = ("<|startoftext|>", "<|endoftext|>")
 
 
 def clean_text(value: str, what: str, need_words: bool = True) -> str:
@@ -232,7 +239,7 @@ class JobCreate(Strict):
         "something (a word, number or symbol such as an emoji or a currency sign; punctuation and marks such as "
         "^ + | name nothing), occurs in the prompt as whole words, also as the model reads the prompt (punctuation "
         "at a word's edge is read with the punctuation beside it: 'hat.' is not found in '..., a hat.'), and some "
-        "other word of the prompt names the object",
+        f"other word of the prompt names the object; no control characters but whitespace, {_NO_SPECIAL_TOKENS}",
     )
     params: JobParams = Field(default_factory=JobParams)
     webhook_url: str | None = Field(
@@ -301,7 +308,8 @@ class EvaluationCreate(Strict):
     job_ids: list[Annotated[str, Field(min_length=1, max_length=64)]] = Field(
         min_length=1, max_length=60, json_schema_extra={"uniqueItems": True},
         description="succeeded edit jobs of one scene and reconstruction")
-    object: ObjectName = Field(description='what the object is: the source text is "a render of a <object>"')
+    object: ObjectName = Field(description='what the object is: the source text is "a render of a <object>"'
+                               + _TEXT_RULE)
     params: EvaluationParams = Field(default_factory=EvaluationParams)
 
     @field_validator("job_ids")
@@ -314,7 +322,7 @@ class EvaluationCreate(Strict):
 
 class SweepScene(Strict):
     scene_id: str = Field(min_length=1, max_length=64)
-    object: ObjectName = Field(description='the object\'s name in the prompts, e.g. "microphone"')
+    object: ObjectName = Field(description='the object\'s name in the prompts, e.g. "microphone"' + _TEXT_RULE)
 
 
 class SweepCreate(Strict):

@@ -24,7 +24,7 @@ BEYOND_SCHEMA = (
     "edit_words is required for a local edit", "does not occur in the prompt", "names nothing",
     "cover the whole prompt", "apply to local edits only", "webhook_events needs a webhook_url", "takes one value or one per stage",
     "cannot give backbone 'scene'", "needs a scene uploaded as a mesh", "tokens as the model sees it",
-    "needs iterations > 0",
+    "needs iterations > 0", "has no words",  # (a word beyond ASCII: no pattern every validator reads alike states it)
 )
 HOOK = "http://127.0.0.1:9/hook"
 LIMITED = settings(max_examples=60, deadline=None, database=None,
@@ -303,18 +303,36 @@ def test_strict_types_refuse_coercions(client):
 
 
 def test_prompt_pattern_states_the_text_rule():
+    """The patterns refuse nothing the server accepts; the prompt's refuses exactly what it refuses in ASCII (beyond
+    it, the description says the rule), the edit word's everywhere. (As JavaScript reads them: tests/test_ui.py.)"""
     from api.schemas import EDIT_WORD_PATTERN, TEXT_PATTERN, clean_text
     import re
 
     for text in ("a mic", "é", "'", "mic\t\n", "mic\x1f", "!!!", "  ", "mic\x00", "mic\x7f", "\x85x", "?\x9f",
-                 "\U0001f3a9", "\u2665 ", "\x1c\x85", "\x85"):
+                 "\U0001f3a9", "\u2665 ", "\x1c\x85", "\x85", "猫", "½", *map(chr, range(0x80))):
         for pattern, need_words in ((TEXT_PATTERN, True), (EDIT_WORD_PATTERN, False)):
             try:
                 clean_text(text, "text", need_words)
                 server = True
             except ValueError:
                 server = False
-            assert bool(re.search(pattern, text)) == server, (repr(text), pattern)
+            matched = bool(re.search(pattern, text))
+            assert matched == server or (matched and need_words and not text.isascii()), (repr(text), pattern)
+
+
+def test_the_text_fields_descriptions_state_the_special_tokens_refused(spec):
+    """Every field of text the model reads (a pattern of clean_text's) says that CLIP's special tokens written out
+    are refused: the 422 had been stated nowhere in the document."""
+    from api.schemas import CLIP_SPECIAL_TOKENS, EDIT_WORD_PATTERN, TEXT_PATTERN
+
+    stated = []
+    for name, schema in spec["components"]["schemas"].items():
+        for field, prop in schema.get("properties", {}).items():
+            if {prop.get("pattern"), prop.get("items", {}).get("pattern")} & {TEXT_PATTERN, EDIT_WORD_PATTERN}:
+                stated.append(f"{name}.{field}")
+                assert all(token in prop["description"] for token in CLIP_SPECIAL_TOKENS), (name, field)
+    assert sorted(stated) == ["EvaluationCreate.object", "JobCreate.edit_words", "JobCreate.prompt",
+                              "SweepScene.object"]
 
 
 

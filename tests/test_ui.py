@@ -1079,3 +1079,49 @@ def same_origin_only(driver, svc) -> bool:
     foreign = [u for u in urls if urlparse(u).scheme in ("http", "https") and not u.startswith(svc.base)]
     assert not foreign, foreign
     return True
+
+
+def test_the_published_text_patterns_read_in_javascript_refuse_nothing_the_server_accepts(browser):
+    """A JSON Schema pattern is an ECMA-262 regular expression (read with the u flag by some validators, without by
+    others): so read, the prompt's pattern matches every character the server takes as a prompt, and exactly those
+    in ASCII; the edit word's matches exactly what the server takes. Its \\w had been ASCII's there: a Chinese
+    prompt, which the server accepts, was one the document refused."""
+    from api.schemas import EDIT_WORD_PATTERN, TEXT_PATTERN, clean_text
+
+    def accepted(text: str, need_words: bool) -> bool:
+        try:
+            clean_text(text, "text", need_words)
+            return True
+        except ValueError:
+            return False
+
+    # Every code point but the surrogates (no text of its own); each range's [first, last] the pattern matches.
+    matched_ranges = """
+        const re = new RegExp(arguments[0], arguments[1]);
+        const ranges = [];
+        for (let c = 0; c <= 0x10ffff; c++) {
+          if (c === 0xd800) c = 0xe000;
+          if (!re.test(String.fromCodePoint(c))) continue;
+          if (ranges.length && ranges.at(-1)[1] === c - 1) ranges.at(-1)[1] = c; else ranges.push([c, c]);
+        }
+        return ranges;"""
+    code_points = [*range(0xd800), *range(0xe000, 0x110000)]
+    texts = ["猫が好き", "一只戴着墨镜的猫", "𠀀", "a\x1fb", "\x85x", "mic\x7f", "  猫 ", "!!!", "½", "--"]
+    for pattern, need_words in ((TEXT_PATTERN, True), (EDIT_WORD_PATTERN, False)):
+        server = bytearray(0x110000)
+        for code in code_points:
+            server[code] = accepted(chr(code), need_words)
+        for flags in ("", "u"):
+            matched = bytearray(0x110000)
+            for first, last in browser.execute_script(matched_ranges, pattern, flags):
+                matched[first:last + 1] = b"\x01" * (last + 1 - first)
+            refused = [hex(code) for code in code_points if server[code] and not matched[code]]
+            assert not refused, (pattern, flags, len(refused), refused[:20])
+            exact_up_to = 0x80 if need_words else 0x110000  # beyond ASCII the prompt's rule is the description's
+            differ = [hex(code) for code in code_points[:exact_up_to] if server[code] != matched[code]]
+            assert not differ, (pattern, flags, differ[:20])
+            read = browser.execute_script("return arguments[2].map((t) => new RegExp(arguments[0], arguments[1])"
+                                          ".test(t))", pattern, flags, texts)
+            for text, js in zip(texts, read):
+                assert js or not accepted(text, need_words), (pattern, flags, text)
+                assert js == accepted(text, need_words) or need_words and not text.isascii(), (pattern, flags, text)
