@@ -35,9 +35,9 @@ PARAMS = {  # tests/test_service_e2e.py's tiny local-edit parameters (8 frames: 
 # Run in every page before its own scripts: collects the page's CSP violations (window.cspViolations) and its
 # fetch() requests (window.requests), and answers a request whose URL holds a key of sessionStorage "test.faults"
 # (a key ending in "$": whose path is the key; the first in sorted order, as Selenium sends a dict's keys sorted)
-# as a slow or failing server would: after `delay` ms, and/or with the given status, type and body (`method`:
-# requests of that method only; `skip`: the first so many such requests go through; `once`: only the first such
-# request after them); or, given `timeline` (events {id, kind, ...}), as a job's events would: its first
+# as a slow or failing server would: after `delay` ms, and/or with the given status, type, body and other `headers`
+# (`method`: requests of that method only; `skip`: the first so many such requests go through; `once`: only the first
+# such request after them); or, given `timeline` (events {id, kind, ...}), as a job's events would: its first
 # `recorded` events as JSON, or as an event stream (Accept) every event after the request's Last-Event-ID, left open
 # with nothing more sent when `open` (a connection dropped unsaid).
 # Each request in window.requests has `at`: when it was sent (Date.now()).
@@ -81,7 +81,7 @@ window.fetch = async (resource, options = {}) => {
   }
   if (fault?.status) {
     return new Response(fault.body, { status: fault.status, statusText: fault.statusText,
-                                      headers: { "Content-Type": fault.type } });
+                                      headers: { "Content-Type": fault.type, ...fault.headers } });
   }
   return realFetch(resource, options);
 };
@@ -606,7 +606,8 @@ def test_an_edit_answered_with_no_job_says_so(live, browser):
                               "200: the answer (text/html; charset=utf-8) is no JSON: it may have been created "
                               "(sent again, it is found)"),
                              ("application/json", '{"ok": true}',
-                              'the answer ({"ok":true}) is no job: it may have been created (sent again, it is found)')):
+                              '200: the answer ({"ok": true}) is no job: it may have been created (sent again, it is '
+                              'found)')):
         faults(driver, {"/v1/jobs$": {"method": "POST", "status": 200, "type": kind, "body": body}})
         driver.find_element("css selector", "#job-form button").click()
         wait_until(error, 10, what="the answer refused")
@@ -732,6 +733,81 @@ def test_a_job_page_streams_only_the_events_after_its_timeline(live, browser):
     assert len([r for r in requested(driver, "/artifacts") if r["url"].endswith("/artifacts")]) == 2  # and the end's
     assert [r["headers"].get("Last-Event-ID") for r in streams(driver, "replay")] == ["16"]
     faults(driver, {})
+
+
+def test_an_answer_of_another_shape_is_said_not_met_as_a_type_error(live, browser):
+    """A 2xx JSON answer of another shape than the API's (a proxy's own JSON), or an empty one, is said where it was
+    asked for, quoted: the job list had shown "TypeError: Cannot read properties of undefined (reading 'length')", a
+    cancel answered with nothing "TypeError: Cannot read properties of null (reading 'state')"."""
+    svc, token, _archive = live
+    driver = browser
+    error = lambda name: text(driver, f'[data-error-for="{name}"]')  # noqa: E731
+    answer = lambda body: {"status": 200, "type": "application/json", "body": body}  # noqa: E731
+    set_key(driver, svc, token)
+    faults(driver, {"/v1/jobs?": answer('{"ok": true}'), "/v1/scenes?": answer('{"items": null}')})
+    driver.refresh()
+    wait_until(lambda: error("list") and error("scene_id"), 10, what="the answers said")
+    assert error("list") == '200: the answer ({"ok": true}) is no page of jobs'
+    assert error("scene_id") == 'loading the scenes: 200: the answer ({"items": null}) is no page of scenes; retrying'
+    faults(driver, {"/v1/jobs/shapeless$": answer(json.dumps(running_job("shapeless"))),
+                    "/v1/jobs/shapeless/artifacts$": answer("[]"),
+                    "/v1/jobs/shapeless/events": {"recorded": 0, "open": True, "timeline": []},
+                    "/v1/jobs/shapeless/cancel": {"method": "POST", **answer("")}})
+    go(driver, "#/jobs/shapeless")
+    wait_until(lambda: driver.find_element("id", "job-cancel").is_enabled(), 10, what="Cancel")
+    driver.find_element("id", "job-cancel").click()
+    wait_until(lambda: error("cancel"), 10, what="the cancel's answer said")
+    assert error("cancel") == "200: the answer (empty) is no job"
+    assert text(driver, "#job-state") == "running"
+    faults(driver, {})
+
+
+def test_a_retry_after_is_waited_for_and_said(live, browser):
+    """An answer with Retry-After (a 429, a 503) is asked again no sooner than it says, saying so: the job list had
+    been asked again every 3 s, the job page's first reads 2 s after their failure."""
+    svc, token, _archive = live
+    driver = browser
+    error = lambda name: text(driver, f'[data-error-for="{name}"]')  # noqa: E731
+    throttled = lambda seconds: {  # noqa: E731
+        "status": 429, "statusText": "Too Many Requests", "type": "application/json",
+        "body": json.dumps({"detail": "slow down"}), "headers": {"Retry-After": seconds}}
+    set_key(driver, svc, token)
+    faults(driver, {"/v1/jobs?": throttled("7")})
+    driver.refresh()
+    wait_until(lambda: error("list"), 10, what="the 429 said")
+    assert error("list") == "429: slow down (the server asks to wait 7 s)"
+    wait_until(lambda: len(requested(driver, "/v1/jobs?")) == 2, 12, interval=0.1, what="the list asked again")
+    first, second = (r["at"] for r in requested(driver, "/v1/jobs?"))
+    assert second - first >= 7000
+    faults(driver, {"/v1/jobs/throttled": throttled("5")})
+    go(driver, "#/jobs/throttled")
+    wait_until(lambda: len(requested(driver, "/v1/jobs/throttled/events")) == 2, 10, interval=0.1,
+               what="the job asked again")
+    assert error("stream") == "loading the job: 429: slow down (the server asks to wait 5 s); retrying"
+    first, second = (r["at"] for r in requested(driver, "/v1/jobs/throttled/events"))
+    assert second - first >= 5000
+    faults(driver, {})
+
+
+def test_a_hidden_page_polls_nothing_until_it_shows(live, browser):
+    """While the tab is hidden (Page Visibility) the job list is not asked for, and it is asked as soon as the tab
+    shows again: it had been asked every 3 s for a tab nobody looked at."""
+    svc, token, _archive = live
+    driver = browser
+    visible = """const hidden = !arguments[0];
+                 Object.defineProperty(document, "hidden", { configurable: true, get: () => hidden });
+                 Object.defineProperty(document, "visibilityState", { configurable: true,
+                                                                      get: () => hidden ? "hidden" : "visible" });
+                 document.dispatchEvent(new Event("visibilitychange"));"""
+    set_key(driver, svc, token)
+    wait_until(lambda: requested(driver, "/v1/jobs?"), 10, what="the job list")
+    driver.execute_script(visible, False)
+    time.sleep(0.5)  # (a look already sent)
+    driver.execute_script("window.requests = []")
+    time.sleep(7)  # two polls' time
+    assert not requested(driver, "/v1/jobs?")
+    driver.execute_script(visible, True)
+    wait_until(lambda: requested(driver, "/v1/jobs?"), 1, interval=0.05, what="the list asked once shown")
 
 
 def test_a_job_s_progress_reads_as_it_stands(live, browser):

@@ -16,35 +16,69 @@ function authHeaders(extra = {}) {
   return key ? { ...extra, Authorization: `Bearer ${key}` } : extra;
 }
 
-/** A JSON request; throws an ApiError carrying the response's `detail` on a non-2xx answer, and one naming its type
- * on a 2xx answer that is no JSON (a login page a proxy sent the request to: JSON.parse's SyntaxError had been shown,
- * "Unexpected token '<'"). */
-async function api(path, { method = "GET", body, headers = {}, signal } = {}) {
+/** A JSON request whose answer is ``answer`` (one of ANSWERS); throws an ApiError carrying the response's `detail`
+ * on a non-2xx answer, one naming its type on a 2xx answer that is no JSON (a login page a proxy sent the request
+ * to: JSON.parse's SyntaxError had been shown, "Unexpected token '<'"), and one quoting it on a 2xx answer of another
+ * shape (a proxy's own JSON, an empty body: the caller's TypeError had been shown, "Cannot read properties of
+ * null"). */
+async function api(path, answer, { method = "GET", body, headers = {}, signal } = {}) {
   const sent = authHeaders(body === undefined ? headers : { ...headers, "Content-Type": "application/json" });
   const response = await fetch(path, { method, signal, headers: sent,
                                        body: body === undefined ? undefined : JSON.stringify(body) });
   if (!response.ok) throw await responseError(response);
   const text = await response.text();
-  if (!text) return null;
+  let value = null;
   try {
-    return JSON.parse(text);
+    value = text ? JSON.parse(text) : null;
   } catch {
     throw notTheApis(response.status, response.headers.get("Content-Type"), "JSON");
   }
+  if (!answer.fits(value)) {
+    throw new ApiError(response.status, `the answer (${text ? text.slice(0, 200) : "empty"}) is no ${answer.name}`);
+  }
+  return value;
 }
+
+const isObject = (value) => typeof value === "object" && value !== null && !Array.isArray(value);
+const identified = (value) => isObject(value) && typeof value.id === "string" && typeof value.state === "string";
+const listOf = (name, fits) => ({ name, fits: (value) => Array.isArray(value) && value.every(fits) });
+const pageOf = (name) => ({ name, fits: (value) => isObject(value) && Array.isArray(value.items)
+                                                    && value.items.every(isObject) });
+/** The answers the page reads, each with what it is called when another came instead. */
+const ANSWERS = {
+  job: { name: "job", fits: identified },
+  scene: { name: "scene", fits: identified },
+  jobs: pageOf("page of jobs"),
+  scenes: pageOf("page of scenes"),
+  events: listOf("list of events", isObject),
+  artifacts: listOf("list of artifacts", (a) => isObject(a) && ["name", "url", "sha256"]
+    .every((key) => typeof a[key] === "string")),
+};
 
 /** The error of a non-2xx answer: FastAPI's `detail` from a JSON body, else the status text (a plain-text 500 or
  * a proxy's HTML 502 page says nothing more useful, and is no JSON to parse). HTTP/2 sends no status text: then the
  * status's standard reason phrase, or for a status without one a plain-text body's first line (it had read
  * "502: error"). */
-function apiError(status, statusText, contentType, text) {
+function apiError(status, statusText, contentType, text, retryAfter) {
   let detail = null;
   if (/^application\/([\w.-]+\+)?json\b/i.test(contentType || "")) {
     try { detail = JSON.parse(text).detail; } catch { /* a broken JSON body: the status text below */ }
   }
   const plain = /^text\/plain\b/i.test(contentType || "") ? text.trim().split(/\r?\n/)[0].slice(0, 200) : "";
-  return new ApiError(status, detail ?? (statusText || REASON_PHRASES[status] || plain || "no reason given"));
+  return new ApiError(status, detail ?? (statusText || REASON_PHRASES[status] || plain || "no reason given"),
+                      retryAfterMs(retryAfter));
 }
+
+/** A Retry-After header's wait in ms (seconds, or an HTTP date: RFC 9110 §10.2.3); null when absent or unreadable. */
+function retryAfterMs(value) {
+  if (/^\s*\d+\s*$/.test(value || "")) return Number(value) * 1000;
+  const at = Date.parse(value || "");
+  return Number.isNaN(at) ? null : Math.max(0, at - Date.now());
+}
+
+/** How long to wait before asking again: ``ms``, or longer where a failure's Retry-After (a 429's, a 503's) asks it
+ * (a throttled page had asked again at its own pace, every 3 s for the job list). */
+const retryWait = (ms, ...failures) => Math.max(ms, ...failures.map((failure) => failure?.retryAfterMs ?? 0));
 
 /** The standard reason phrases (RFC 9110, and 429 of RFC 6585) of the statuses the API or a proxy before it sends. */
 const REASON_PHRASES = {
@@ -63,14 +97,16 @@ function notTheApis(status, contentType, expected) {
 }
 
 async function responseError(response) {
-  return apiError(response.status, response.statusText, response.headers.get("Content-Type"), await response.text());
+  return apiError(response.status, response.statusText, response.headers.get("Content-Type"), await response.text(),
+                  response.headers.get("Retry-After"));
 }
 
 class ApiError extends Error {
-  constructor(status, detail) {
+  constructor(status, detail, retryAfterMs = null) {
     super(typeof detail === "string" ? detail : JSON.stringify(detail));
     this.status = status;
     this.detail = detail;
+    this.retryAfterMs = retryAfterMs;
   }
 }
 
@@ -87,6 +123,22 @@ function sleep(ms, signal) {
     const done = () => { clearTimeout(timer); signal.removeEventListener("abort", done); resolve(); };
     const timer = setTimeout(done, ms);
     signal.addEventListener("abort", done);
+  });
+}
+
+/** Resolves once the page is shown (at once if it is), or as soon as `signal` is aborted: a hidden tab's polls wait
+ * for it (the job list had been asked for every 3 s in a tab nobody looked at). */
+function shown(signal) {
+  return new Promise((resolve) => {
+    const done = () => {
+      if (document.hidden && !signal.aborted) return;
+      document.removeEventListener("visibilitychange", done);
+      signal.removeEventListener("abort", done);
+      resolve();
+    };
+    document.addEventListener("visibilitychange", done);
+    signal.addEventListener("abort", done);
+    done();
   });
 }
 
@@ -126,7 +178,9 @@ function showError(name, message) {
 }
 
 function errorText(error) {
-  return error instanceof ApiError ? `${error.status}: ${error.message}` : String(error);
+  if (!(error instanceof ApiError)) return String(error);
+  const wait = error.retryAfterMs == null ? "" : ` (the server asks to wait ${duration(error.retryAfterMs / 1000)})`;
+  return `${error.status}: ${error.message}${wait}`;
 }
 
 /** FastAPI's 422 list ({loc, msg}) shown beside each named field, all of a field's together; anything else
@@ -208,7 +262,8 @@ function initUpload() {
     xhr.onerror = () => showError("upload", "the upload failed (network error)");
     xhr.onload = async () => {
       if (xhr.status >= 400) {
-        const error = apiError(xhr.status, xhr.statusText, xhr.getResponseHeader("Content-Type"), xhr.responseText);
+        const error = apiError(xhr.status, xhr.statusText, xhr.getResponseHeader("Content-Type"), xhr.responseText,
+                               xhr.getResponseHeader("Retry-After"));
         showApiError(error, "upload");
         status.textContent = "";
         return;
@@ -238,12 +293,13 @@ function initUpload() {
  * page shows (a look at a job meanwhile had left it "processing…" for good, and the scene never offered). */
 let ingesting = null;
 
-/** Poll a new scene until its ingest is done; a failed ingest's reason goes beside the upload field. A failed
- * poll is shown there too and retried, less often each time, until the page changes. */
+/** Poll a new scene until its ingest is done, while the page is shown; a failed ingest's reason goes beside the
+ * upload field. A failed poll is shown there too and retried, less often each time, until the page changes. */
 async function waitForScene(sceneId, status, signal) {
   for (let failures = 0; !signal.aborted;) {
+    let failure = null;
     try {
-      const scene = await api(`/v1/scenes/${encodeURIComponent(sceneId)}`, { signal });
+      const scene = await api(`/v1/scenes/${encodeURIComponent(sceneId)}`, ANSWERS.scene, { signal });
       showError("upload", "");
       failures = 0;
       if (scene.state !== "processing") {
@@ -256,21 +312,23 @@ async function waitForScene(sceneId, status, signal) {
     } catch (error) {
       if (signal.aborted) return;
       failures += 1;
+      failure = error;
       showError("upload", `checking scene ${sceneId}: ${errorText(error)}; retrying`);
     }
-    await sleep(Math.min(1000 * 2 ** failures, 30_000), signal);
+    await sleep(retryWait(Math.min(1000 * 2 ** failures, 30_000), failure), signal);
+    await shown(signal);
   }
 }
 
-/** Load the scene lists; a failure is shown beside the Scene field it leaves empty. Whether they loaded. */
+/** Load the scene lists; a failure is shown beside the Scene field it leaves empty, and returned (null: none). */
 async function refreshScenes(signal) {
   try {
     await loadScenes(signal);
     showError("scene_id", "");
-    return true;
+    return null;
   } catch (error) {
     if (!signal.aborted) showError("scene_id", `loading the scenes: ${errorText(error)}; retrying`);
-    return false;
+    return error;
   }
 }
 
@@ -284,7 +342,7 @@ async function allScenes(signal) {
   let cursor = null;
   do {
     const query = new URLSearchParams({ ...(cursor && { cursor }), limit: String(SCENES_PER_REQUEST) });
-    const answer = await api(`/v1/scenes?${query}`, { signal });
+    const answer = await api(`/v1/scenes?${query}`, ANSWERS.scenes, { signal });
     scenes.push(...answer.items);
     cursor = answer.next_cursor;
   } while (cursor);
@@ -320,15 +378,12 @@ function initJobForm() {
     button.disabled = true;  // until answered: a double click would create the job twice
     try {
       const headers = { "Idempotency-Key": idempotency.for(JSON.stringify(body)) };
-      const job = await api("/v1/jobs", { method: "POST", body, headers });
-      if (typeof job?.id !== "string") {  // no job (a proxy's own JSON): said, not opened as "#/jobs/undefined"
-        showError("job", `the answer (${JSON.stringify(job).slice(0, 200)}) is no job: it may have been created (sent again, it is found)`);
-        return;
-      }
+      const job = await api("/v1/jobs", ANSWERS.job, { method: "POST", body, headers });
       idempotency.succeeded();
       location.hash = `#/jobs/${encodeURIComponent(job.id)}`;
     } catch (error) {
-      const answered = error instanceof ApiError && error.status >= 200 && error.status < 300;  // a proxy's page
+      // a proxy's page or own JSON: said, not opened as "#/jobs/undefined"
+      const answered = error instanceof ApiError && error.status >= 200 && error.status < 300;
       if (answered) showError("job", `${errorText(error)}: it may have been created (sent again, it is found)`);
       else showApiError(error, "job");
     } finally {
@@ -366,6 +421,7 @@ function jobRequest(form) {
 
 // ------------------------------------------------------------------ job list
 const JOBS_PER_PAGE = 50;
+const JOB_LIST_POLL_MS = 3000;
 /** The shown page of the job list (newest first), kept while a job is looked at: the cursor it starts after (null:
  * the newest jobs), those of the newer pages it was reached through, and its own next_cursor, where "older" goes.
  * By offset, a job created while a page was shown shifted the next: "older" had repeated jobs just seen. */
@@ -390,6 +446,7 @@ function initJobList() {
  * dropped, else it had shown the jobs the filter hides until the next poll. */
 let jobListRequest = 0;
 
+/** Show the job list's page; its failure is shown beside it, and returned (null: none). */
 async function loadJobs(signal) {
   const request = ++jobListRequest;
   const cursor = jobsCursor;
@@ -397,8 +454,8 @@ async function loadJobs(signal) {
   if ($("#filter-scene").value) query.set("scene_id", $("#filter-scene").value);
   if ($("#filter-state").value) query.set("state", $("#filter-state").value);
   try {
-    const jobs = await api(`/v1/jobs?${query}`, { signal });
-    if (request !== jobListRequest) return;
+    const jobs = await api(`/v1/jobs?${query}`, ANSWERS.jobs, { signal });
+    if (request !== jobListRequest) return null;
     if (!jobs.items.length && cursor) {  // every job past the cursor deleted meanwhile: show the page before
       jobsCursor = newerJobsCursors.pop() ?? null;
       return loadJobs(signal);
@@ -410,8 +467,11 @@ async function loadJobs(signal) {
     $("#jobs-newer").disabled = cursor === null;
     $("#jobs-older").disabled = !jobs.next_cursor;
     $("#job-list tbody").replaceChildren(...jobs.items.map(jobRow));
+    return null;
   } catch (error) {
-    if (!signal.aborted && request === jobListRequest) showApiError(error, "list");
+    if (signal.aborted || request !== jobListRequest) return null;
+    showApiError(error, "list");
+    return error;
   }
 }
 
@@ -457,14 +517,14 @@ function clearJobView() {
  * the stream, the history had downloaded the preview again for each past preview, and listed the artifacts again
  * for each past artifact, at every opening of the page. */
 async function showJob(jobId, signal) {
-  const history = await api(`${jobPath(jobId)}/events`, { signal });
-  const job = await api(jobPath(jobId), { signal });
+  const history = await api(`${jobPath(jobId)}/events`, ANSWERS.events, { signal });
+  const job = await api(jobPath(jobId), ANSWERS.job, { signal });
   $("#job-title").textContent = `“${job.prompt}”`;
   $("#job-meta").textContent = `job ${job.id} · ${job.mode}${job.edit_words.length ? ` (${job.edit_words.join(", ")})` : ""}`
     + ` · scene ${job.scene_id} · model ${job.models.sds ?? "?"} · ${job.device}`;
   $("#job-cancel").onclick = async () => {
     showError("cancel", "");
-    try { renderProgress(await api(`${jobPath(jobId)}/cancel`, { method: "POST", signal })); }
+    try { renderProgress(await api(`${jobPath(jobId)}/cancel`, ANSWERS.job, { method: "POST", signal })); }
     catch (error) { if (!signal.aborted) showApiError(error, "cancel"); }
   };
   renderProgress(job);
@@ -485,6 +545,7 @@ const transient = (error) => error instanceof TypeError
  * the page empty for good. Nothing is shown before those reads succeed, so nothing is shown twice. */
 async function openJob(encodedId, signal) {
   for (let failures = 1; !signal.aborted; failures += 1) {
+    let failure = null;
     try {
       await showJob(decodeURIComponent(encodedId), signal);
       showError("stream", "");
@@ -495,9 +556,10 @@ async function openJob(encodedId, signal) {
         showApiError(error, "stream");
         return;
       }
+      failure = error;
       showError("stream", `loading the job: ${errorText(error)}; retrying`);
     }
-    await sleep(Math.min(1000 * 2 ** failures, 30_000), signal);
+    await sleep(retryWait(Math.min(1000 * 2 ** failures, 30_000), failure), signal);
   }
 }
 
@@ -560,7 +622,7 @@ async function refreshPreview(url, signal) {
 
 /** Every artifact as a download (fetched with the key, saved from a blob: URL); the media shown inline. */
 async function refreshArtifacts(jobId, signal) {
-  const artifacts = await api(`${jobPath(jobId)}/artifacts`, { signal });
+  const artifacts = await api(`${jobPath(jobId)}/artifacts`, ANSWERS.artifacts, { signal });
   const list = $("#job-artifacts");
   list.replaceChildren();
   for (const artifact of artifacts) {
@@ -619,6 +681,7 @@ async function followEvents(jobId, afterId, signal) {
   let failures = 0;
   while (!signal.aborted) {
     let finished = false;
+    let failure = null;
     try {
       const headers = authHeaders({ Accept: "text/event-stream", ...(lastId ? { "Last-Event-ID": lastId } : {}) });
       const response = await fetch(`${jobPath(jobId)}/events`, { headers, signal, cache: "no-store" });
@@ -658,10 +721,11 @@ async function followEvents(jobId, afterId, signal) {
     } catch (error) {
       if (signal.aborted) return;
       failures += 1;
+      failure = error;
       showError("stream", `event stream: ${errorText(error)}; reconnecting`);
     }
     const backoff = retryMs * 2 ** Math.max(0, failures - 1);
-    await sleep(Math.min(backoff, Math.max(retryMs, STREAM_RETRY_CAP_MS)), signal);
+    await sleep(retryWait(Math.min(backoff, Math.max(retryMs, STREAM_RETRY_CAP_MS)), failure), signal);
   }
 }
 
@@ -674,7 +738,7 @@ async function handleEvent(jobId, kind, data, signal) {
     }
     if (kind === "artifact" || TERMINAL.has(kind)) await refreshArtifacts(jobId, signal);
   }, signal);
-  if (TERMINAL.has(kind)) renderProgress(await api(jobPath(jobId), { signal }));
+  if (TERMINAL.has(kind)) renderProgress(await api(jobPath(jobId), ANSWERS.job, { signal }));
 }
 
 /** One timeline event at the end of the job page's list (a checkpoint's or a resume's iteration too). */
@@ -789,13 +853,15 @@ async function route() {
     return;
   }
   // The scenes are loaded again with the job list until they load (the API restarting, a proxy's 502): a failure
-  // had left the Scene field empty for good, its message at once wiped by the job list's.
-  let scenesLoaded = await refreshScenes(signal);
+  // had left the Scene field empty for good, its message at once wiped by the job list's. Both are asked again
+  // once the page shows, no sooner than a failure's Retry-After asks.
+  let scenesFailure = await refreshScenes(signal);
   if (ingesting) waitForScene(ingesting, $("#upload-status"), signal);
   while (!signal.aborted) {
-    await loadJobs(signal);
-    await sleep(3000, signal);
-    if (!scenesLoaded) scenesLoaded = await refreshScenes(signal);
+    const jobsFailure = await loadJobs(signal);
+    await sleep(retryWait(JOB_LIST_POLL_MS, jobsFailure, scenesFailure), signal);
+    await shown(signal);
+    if (scenesFailure) scenesFailure = await refreshScenes(signal);
   }
 }
 
