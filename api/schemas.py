@@ -7,7 +7,6 @@ fields, so a misspelt parameter is a 422 naming it instead of a silently ignored
 
 from __future__ import annotations
 
-import re
 import unicodedata
 from datetime import datetime
 from typing import Annotated, Generic, Literal, TypeVar
@@ -17,7 +16,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validat
 from voxe_core import constants as paper
 from voxe_core import presets
 from voxe_core.guidance.prompts import (TEXT_ENCODER_TOKENS, check_edit_words_name_an_edit, check_edit_words_read,
-                                        check_prompt_length)
+                                        check_prompt_length, names_something)
 from voxe_service.webhooks import DEFAULT_WEBHOOK_EVENTS, WEBHOOK_EVENTS
 
 T = TypeVar("T")
@@ -33,20 +32,22 @@ StageIterations = Annotated[int, Field(ge=0, le=1_000_000)]
 # What str.split() splits at, spelt out: a JSON Schema pattern is ECMA-262's, whose \s lacks \x1c-\x1f and \x85 and
 # has \ufeff.
 _WHITESPACE = r"\t-\r\x1c-\x20\x85\xa0\u1680\u2000-\u200a\u2028\u2029\u202f\u205f\u3000"
-# What clean_text accepts, for the document: no control character but whitespace, and a word character somewhere:
-# exactly so in ASCII (0-9 A-Z a-z _ ' -); beyond it, any character but whitespace. ECMA-262 has no class of
-# Unicode's letters and digits that every JSON Schema validator reads alike (its \w is ASCII's: "猫" had been no word
-# to the document; \p{L} needs the u flag), so the descriptions say the rule, and the server applies it.
+# What clean_text accepts, for the document: no control character but whitespace, and a character naming something
+# (names_something: a letter, digit or symbol) somewhere: exactly so in ASCII (0-9 A-Z a-z $); beyond it, any
+# character but whitespace. ECMA-262 has no class of Unicode's letters, digits and symbols that every JSON Schema
+# validator reads alike (its \w is ASCII's: "猫" had been no word to the document; \p{L} needs the u flag), so the
+# descriptions say the rule, and the server applies it.
 _ALLOWED = r"[^\x00-\x08\x0e-\x1b\x7f-\x84\x86-\x9f]"
-_WORD_CHARACTER = rf"[^{_WHITESPACE}\x00-\x26\x28-\x2c\x2e\x2f\x3a-\x40\x5b-\x5e\x60\x7b-\x9f]"
-TEXT_PATTERN = rf"^{_ALLOWED}*{_WORD_CHARACTER}{_ALLOWED}*$"
+_NAMING_CHARACTER = rf"[^{_WHITESPACE}\x00-\x23\x25-\x2f\x3a-\x40\x5b-\x60\x7b-\x9f]"
+TEXT_PATTERN = rf"^{_ALLOWED}*{_NAMING_CHARACTER}{_ALLOWED}*$"
 # An edit word's: something but whitespace (whether it names anything, a symbol as "🎩" does, is the core's rule).
 EDIT_WORD_PATTERN = rf"^{_ALLOWED}*[^{_WHITESPACE}\x00-\x08\x0e-\x1b\x7f-\x84\x86-\x9f]{_ALLOWED}*$"
 CLIP_SPECIAL_TOKENS = ("<|startoftext|>", "<|endoftext|>")
 _NO_SPECIAL_TOKENS = (f"nor CLIP's special tokens {' or '.join(CLIP_SPECIAL_TOKENS)} written out (the model reads "
                       "each as its text's start or end)")
-_TEXT_RULE = (" (a word somewhere: letters or digits of any script, _ ' or -; no control characters but whitespace, "
-              f"which is collapsed, {_NO_SPECIAL_TOKENS})")
+_TEXT_RULE = (" (something that names: a word or number of any script, or a symbol such as an emoji or a currency "
+              "sign, not punctuation or marks such as ^ + | alone; no control characters but whitespace, which is "
+              f"collapsed, {_NO_SPECIAL_TOKENS})")
 
 
 class Strict(BaseModel):
@@ -195,28 +196,24 @@ class JobParams(Strict):
     export: ExportParams = Field(default_factory=ExportParams)
 
 
-_WORD = re.compile(r"[\w'-]+")
-
-
 def clean_text(value: str, what: str, need_words: bool = True) -> str:
     """Free text with whitespace collapsed; control characters, CLIP's special tokens written out (its tokenizer
-    reads each as the text's start or end, and no word starts after it) or no word at all (without ``need_words``:
-    nothing at all) are errors naming ``what``."""
+    reads each as the text's start or end, and no word starts after it) or nothing the model reads as naming anything
+    (a word, number or symbol; without ``need_words``: nothing at all) are errors naming ``what``. A prompt of an
+    emoji alone ("🐶") had been refused as having no words, one of punctuation alone ("---") accepted: the other
+    way round from what names an edit or the object (check_edit_words_name_an_edit)."""
     if any(unicodedata.category(c) == "Cc" and not c.isspace() for c in value):
         raise ValueError(f"{what} contains control characters")
     if special := [token for token in CLIP_SPECIAL_TOKENS if token in value]:
         raise ValueError(f"{what} contains {' and '.join(map(repr, special))}, which the model reads as the start or "
                          "end of its text, not as words: remove it")
     value = " ".join(value.split())
-    if need_words and not words_of(value):
-        raise ValueError(f"{what} has no words")
+    if need_words and not names_something(value):
+        raise ValueError(f"{what} has no words: nothing in it names anything (a word, number or symbol such as an "
+                         "emoji does; punctuation and marks such as ^ + | alone do not)")
     if not value:
         raise ValueError(f"{what} is blank")
     return value
-
-
-def words_of(text: str) -> list[str]:
-    return [w.lower() for w in _WORD.findall(text)]
 
 
 # A symbol the model reads names an edit ("🎩"): check_edit_words_name_an_edit refuses what names nothing.

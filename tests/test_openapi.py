@@ -24,7 +24,7 @@ BEYOND_SCHEMA = (
     "edit_words is required for a local edit", "does not occur in the prompt", "names nothing",
     "cover the whole prompt", "apply to local edits only", "webhook_events needs a webhook_url", "takes one value or one per stage",
     "cannot give backbone 'scene'", "needs a scene uploaded as a mesh", "tokens as the model sees it",
-    "needs iterations > 0", "has no words",  # (a word beyond ASCII: no pattern every validator reads alike states it)
+    "needs iterations > 0", "has no words",  # (beyond ASCII: no pattern every validator reads alike states it)
 )
 HOOK = "http://127.0.0.1:9/hook"
 LIMITED = settings(max_examples=60, deadline=None, database=None,

@@ -133,6 +133,12 @@ def _names(piece: str) -> bool:
 _NAMING_CATEGORIES = ("So", "Sc")
 
 
+def names_something(text: str) -> bool:
+    """Whether ``text`` names anything as the model reads it: a word, a number or a symbol ("🐶", "$"), not
+    punctuation or marks alone ("---", "'", "^^")."""
+    return any(map(_names, clip_pieces(text)))
+
+
 _STRAIGHT_QUOTES = str.maketrans("‘’‚‛′“”„‟″", "'" * 5 + '"' * 5)
 
 
