@@ -265,6 +265,12 @@ def unavailable(_request: Request | None, exc: Exception) -> JSONResponse:
                         headers={"Retry-After": str(RETRY_AFTER_S)})
 
 
+def try_again_soon(detail: str) -> HTTPException:
+    """A 503 saying ``detail`` and when to send the request again (``Retry-After``): what a dependency's outage
+    refused (nothing of the request kept) may succeed then."""
+    return HTTPException(503, f"{detail}; try again in {RETRY_AFTER_S} s", headers={"Retry-After": str(RETRY_AFTER_S)})
+
+
 class _HeadersSent(Exception):
     """Raised into a streamed answer to a HEAD once its headers are out: its body would be dropped anyway, and an
     event stream's runs until its job ends."""

@@ -629,9 +629,9 @@ def test_a_sweep_the_broker_refuses_part_way_is_withdrawn_whole_and_a_retry_runs
     jobs = local_client.get("/v1/jobs", params={"limit": 200}).json()["items"]
     assert len(jobs) == 12 and {j["state"] for j in jobs} == {"canceled"}
     assert refused.json()["detail"] == (
-        "could not queue the job: ConnectionError: down; the sweep is withdrawn: its 12 jobs are canceled (the 4 "
-        "already sent too: any a worker already started stops at its next cancel check; sweep "
-        f"{jobs[0]['batch_id']!r} lists them), so a retry repeats none of them")
+        "could not queue the job: the job queue is unavailable; the sweep is withdrawn: its 12 jobs are canceled (the "
+        "4 already sent too: any a worker already started stops at its next cancel check; sweep "
+        f"{jobs[0]['batch_id']!r} lists them), so a retry repeats none of them; try again in 5 s")
     assert {j["message"] for j in jobs} == {"the sweep was withdrawn: the broker refused part of it"}
     retried = local_client.post("/v1/sweeps", json=body, headers=headers)
     assert retried.status_code == 201 and retried.json()["counts"] == {"queued": 12}

@@ -494,6 +494,38 @@ def test_a_refused_resend_gives_the_task_id_back_only_to_the_job_as_it_claimed_i
     assert (job_row(job).state, job_row(job).task_id, events_of(job)) == ("queued", None, [])
 
 
+def test_a_broker_refusal_names_the_queue_unavailable_and_leaves_the_brokers_words_to_the_log(db, monkeypatch,
+                                                                                             caplog):
+    """A refused send had put the broker's own text (the embedded broker's SQL statement and parameters, a Redis
+    address) into the jobs' error and timeline: they read the cause, and the log keeps the broker's words."""
+    import sqlite3
+
+    from sqlalchemy.exc import OperationalError
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+    from voxe_service.queue import QueueUnavailable, TaskQueue, dispatch_job, get_queue
+
+    statement = "INSERT INTO kombu_message (queue_id, visible, sent_at, payload, version) VALUES (?, ?, ?, ?, ?)"
+
+    def refused(self, signature):
+        raise OperationalError(statement, (1, 1, "2026-12-06", "{}", 1), sqlite3.OperationalError("database is locked"))
+
+    scene = add_scene()
+    edit = add_job(scene, "queued", 0, task_id=None, batch_id="b")
+    evaluation = add_job(scene, "queued", 0, task_id=None, mode="evaluate", batch_id="b", source_job_ids=[edit])
+    monkeypatch.setattr(TaskQueue, "send", refused)
+    with (caplog.at_level(logging.ERROR, logger="voxe.queue"), session_scope() as session,
+          pytest.raises(QueueUnavailable) as refusal):
+        dispatch_job(session, get_queue(), session.get(Job, edit))
+    reason = "could not queue the job: the job queue is unavailable"
+    assert str(refusal.value) == reason
+    for job_id in (edit, evaluation):
+        assert (job_row(job_id).state, job_row(job_id).error) == ("failed", reason)
+        assert [e["detail"] for e in events_of(job_id)] == [reason]
+    assert "INSERT INTO kombu_message" in caplog.text and "database is locked" in caplog.text
+
+
 def test_a_stage_whose_next_message_the_broker_refuses_leaves_its_job_for_the_reaper_to_send(db, monkeypatch):
     """Celery sends a chain's next message after the task returns; refused, the task fails with the job running
     between stages, held by no run, which the reaper leaves alone on a live worker (it may be waiting its turn).
@@ -529,9 +561,10 @@ def test_a_stage_whose_next_message_the_broker_refuses_leaves_its_job_for_the_re
         assert result.state == "FAILURE" and isinstance(result.result, OperationalError)
     job = job_row(job_id)
     assert (job.state, job.task_id, job.run_token, job.requeues, job.error) == ("queued", None, None, 0, None)
-    assert job.message.startswith("re-queued: the message of the stage after edit could not be sent: "
-                                  "OperationalError: Error 111")
-    assert [e["kind"] for e in events_of(job_id)] == ["requeued"]
+    # The user reads the cause; the broker's own words (its address here) stay in the log.
+    reason = "the message of the stage after edit could not be sent: the job queue is unavailable"
+    assert job.message == f"re-queued: {reason}"
+    assert [(e["kind"], e["detail"]) for e in events_of(job_id)] == [("requeued", reason)]
     with session_scope() as session:  # the broker is back, a stale window later
         session.execute(update(Job).where(Job.id == job_id).values(updated_at=utcnow() - timedelta(seconds=2 * timeout)))
     assert reap_orphaned_jobs(db) == []

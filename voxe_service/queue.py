@@ -62,6 +62,11 @@ class TaskResult(TypedDict, total=False):
     skipped: str  # why nothing ran (a redelivered or stale message)
 
 
+QUEUE_UNAVAILABLE = "the job queue is unavailable"
+"""What a user reads of a broker that refused a message: its own text (SQL of the embedded broker, a Redis address)
+goes to the log only."""
+
+
 class QueueUnavailable(RuntimeError):
     """The broker refused a message; the jobs (or the scene) it was for have been failed with the reason, unless
     the sender keeps them to send again (:func:`dispatch_job`'s ``fail_refused``)."""
@@ -190,9 +195,9 @@ def dispatch_job(session: Session, queue: TaskQueue, job: Job, done: Iterable[st
     ids = [job.id, *evaluations_waiting_on(session, job)]
     try:
         task_id = queue.send(queue.stage_chain(job.id, job.mode, done, ids[1:]))
-    except Exception as exc:  # noqa: BLE001 - broker down: the jobs cannot run
-        log.exception("could not queue job(s) %s", ids)
-        reason = f"could not queue the job: {type(exc).__name__}: {exc}"
+    except Exception:  # noqa: BLE001 - broker down: the jobs cannot run
+        log.exception("could not queue job(s) %s", ids)  # the broker's own words: the log's, not the user's
+        reason = f"could not queue the job: {QUEUE_UNAVAILABLE}"
         if fail_refused:
             finish_jobs(session, ids, FAILED, error=reason)
             session.commit()

@@ -48,8 +48,8 @@ from voxe_service.model_inventory import (ROLES, check_models, how_to_repair, jo
                                           model_present, submission_note)
 from voxe_service.progress import device_costs, refine_phase_seconds
 from voxe_service.queue import (
-    INGEST_TASK, STAGE_TASKS, QueueUnavailable, TaskResult, get_queue, is_sql_broker, job_stages, requeue_interrupted,
-    reset_queue, send_evaluations_alone, send_queued_again,
+    INGEST_TASK, QUEUE_UNAVAILABLE, STAGE_TASKS, QueueUnavailable, TaskResult, get_queue, is_sql_broker, job_stages,
+    requeue_interrupted, reset_queue, send_evaluations_alone, send_queued_again,
 )
 from voxe_service.settings import get_settings, model_label
 from voxe_service.storage import StoredObject, get_storage, job_key, reconstruction_storage_key
@@ -943,7 +943,7 @@ def resend_lost_ingests(hostname: str) -> list[str]:
 
 
 @signals.task_failure.connect
-def _next_stage_unsent(sender=None, args=None, exception=None, **_kwargs) -> None:
+def _next_stage_unsent(sender=None, args=None, **_kwargs) -> None:
     """A stage task that fails after its stage finished failed to hand its chain's next message to the broker
     (Celery's send after the task returns; every failure inside a stage ends the job in ``_run_stage``, or sends
     its message back to the queue). The job, between stages and held by no run, is sent again at once, or left
@@ -954,7 +954,8 @@ def _next_stage_unsent(sender=None, args=None, exception=None, **_kwargs) -> Non
     stage = next((name for name, spec in STAGE_TASKS.items() if spec.name == getattr(sender, "name", None)), None)
     if stage is None or not args:
         return
-    reason = f"the message of the stage after {stage} could not be sent: {type(exception).__name__}: {exception}"
+    # (the broker's own words, an address or SQL, are in the log of the task's failure, not on the job's timeline)
+    reason = f"the message of the stage after {stage} could not be sent: {QUEUE_UNAVAILABLE}"
     with runtime.session_scope() as session:
         job = session.get(Job, args[0])
         if job is not None and job.state in TERMINAL_STATES:

@@ -17,7 +17,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from api.auth import Idempotency, check_active_jobs, sha256_hex
-from api.http_semantics import RETRY_AFTER_S
+from api.http_semantics import try_again_soon
 from api.paging import PageQuery, PageRows, read_page
 from api.schemas import JobCreate
 from api.services.scenes import get_scene, refuse_unless_usable
@@ -132,11 +132,9 @@ def check_webhook(*, settings: Settings, body: JobCreate) -> None:
     except webhooks.TargetRefused as exc:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc)) from None
     except webhooks.LookupSlotsBusy:  # other hosts' lookups stuck on their resolvers: had been a 422 "did not resolve"
-        raise HTTPException(
-            status.HTTP_503_SERVICE_UNAVAILABLE,
+        raise try_again_soon(
             f"the webhook_url host could not be looked up within {settings.webhook_timeout_s:g} s: every name lookup "
-            f"({webhooks.LOOKUP_THREADS}) waits on a resolver that has not answered; try again in {RETRY_AFTER_S} s",
-            headers={"Retry-After": str(RETRY_AFTER_S)}) from None
+            f"({webhooks.LOOKUP_THREADS}) waits on a resolver that has not answered") from None
 
 
 def refuse_without_models(*, session: Session, settings: Settings, jobs: list[Job]) -> None:
@@ -281,7 +279,7 @@ def record_and_send(*, session: Session, settings: Settings, queue: TaskQueue, k
             idem.forget(session, key)
         said = withdraw(exc)
         session.commit()
-        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, said) from None
+        raise try_again_soon(said) from None
     if idem is not None:
         idem.answered(session, key)
         session.commit()

@@ -14,10 +14,11 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from api.auth import Idempotency, check_upload_bytes
+from api.http_semantics import try_again_soon
 from api.paging import PageQuery, PageRows, read_page
 from api.uploads import UploadError, stage_upload, staging_folder
 from voxe_service.models import FAILED, QUEUED, RUNNING, ApiKey, Job, Reconstruction, Scene, new_id
-from voxe_service.queue import TaskQueue
+from voxe_service.queue import QUEUE_UNAVAILABLE, TaskQueue
 from voxe_service.quotas import lock_key
 from voxe_service.scenes import fail_scene, lock_scene
 from voxe_service.settings import Settings
@@ -140,9 +141,9 @@ def _queue_ingest(session: Session, storage: Storage, queue: TaskQueue, scene: S
     scene_id = scene.id
     try:
         task_id = queue.send_ingest(scene_id)
-    except Exception as exc:  # noqa: BLE001 - broker down: nothing will ingest it
-        log.exception("could not queue the ingest of scene %s", scene_id)
-        reason = f"could not queue the ingest: {type(exc).__name__}: {exc}"
+    except Exception:  # noqa: BLE001 - broker down: nothing will ingest it
+        log.exception("could not queue the ingest of scene %s", scene_id)  # the broker's own words: the log's
+        reason = f"could not queue the ingest: {QUEUE_UNAVAILABLE}"
         lock_scene(session, scene_id)  # before counting, as delete_scene does: a job is counted here or refused there
         if session.scalar(select(func.count()).select_from(Job).where(Job.scene_id == scene_id)):
             fail_scene(session, scene_id, reason)
@@ -152,7 +153,7 @@ def _queue_ingest(session: Session, storage: Storage, queue: TaskQueue, scene: S
                 idem.forget(session, key)
         session.commit()
         storage.discard_prefixes(scene_key(scene_id))
-        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, reason) from None
+        raise try_again_soon(reason) from None
     # Conditional: the scene was listed while the broker took the ingest, and a DELETE meanwhile had made this
     # write fail with a 500 (the deletion stands: the ingest finds the scene gone and keeps nothing).
     if session.execute(update(Scene).where(Scene.id == scene_id).values(task_id=task_id)).rowcount != 1:
