@@ -273,6 +273,28 @@ def test_reaper_sends_again_a_queued_job_whose_message_the_broker_lost(db):
     assert reap_orphaned_jobs(db) == [] and len(events_of(lost)) == 1  # sent once: it waits again as sent
 
 
+def test_the_jobs_a_scene_just_made_ready_is_sending_are_left_to_its_ingest_for_a_stale_window(db):
+    """A job created on a processing scene waits for its ingest, which sends it once the scene is ready. One created
+    longer than VOXE_JOB_STALE_TIMEOUT_S ago (a long ingest) looked never sent to a reaper pass between the scene's
+    readiness and the ingest's send: the reaper sent it too (a second chain, and a ``requeued`` event saying it was
+    never handed to the broker). The ingest sends it alone; should the ingest stop first, a stale window later the
+    reaper does."""
+    from api.reaper import reap_orphaned_jobs
+    from voxe_service.db import session_scope
+    from voxe_service.models import utcnow
+    from voxe_service.scenes import mark_ready
+
+    timeout = db.job_stale_timeout_s
+    scene = add_scene("processing")
+    job = add_job(scene, "queued", 2 * timeout, task_id=None, reconstruction_id=add_reconstruction(scene))
+    with session_scope() as session:  # the ingest's readiness, committed before it sends the jobs
+        assert [waiting.id for waiting in mark_ready(session, scene)] == [job]
+    assert reap_orphaned_jobs(db) == []
+    assert (job_row(job).task_id, events_of(job)) == (None, [])  # the ingest's to send
+    assert reap_orphaned_jobs(db, now=utcnow() + timedelta(seconds=2 * timeout)) == []  # the ingest stopped
+    assert job_row(job).task_id is not None and [e["kind"] for e in events_of(job)] == ["requeued"]
+
+
 def test_a_job_waiting_its_turn_behind_a_long_backlog_is_sent_again_ever_more_rarely(db, monkeypatch):
     """A sent job no stage has taken for VOXE_JOB_LOST_MESSAGE_TIMEOUT_S had been sent again each period, without
     end, a "requeued" event each time, while its message was only waiting its turn. On the SQL broker a job a waiting

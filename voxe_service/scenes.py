@@ -38,9 +38,11 @@ def waiting_jobs(session: Session, scene_id: str, include_evaluations: bool = Fa
 
 def mark_ready(session: Session, scene_id: str, where=(), **values) -> list[Job] | None:
     """processing -> ready with ``values`` (sizes, the final archive, the backbone "auto" means); the jobs to
-    dispatch now. A waiting job whose reconstruction parameters that backbone cannot take (what a 422 refuses on
-    a ready scene) fails naming why, and so do the evaluations of its sweep that wait on it and its reconstruction
-    (still pending: no job can ever fit it on this scene, and its listing says why).
+    dispatch now, touched: the reaper leaves them to the ingest for ``VOXE_JOB_STALE_TIMEOUT_S`` (one waiting longer,
+    behind a long ingest, had looked never sent to a pass before the ingest sent it, and was sent twice). A waiting job
+    whose reconstruction parameters that backbone cannot take (what a 422 refuses on a ready scene) fails naming why,
+    and so do the evaluations of its sweep that wait on it and its reconstruction (still pending: no job can ever fit
+    it on this scene, and its listing says why).
 
     None when the scene is no longer processing (deleted, or failed by the reaper meanwhile), or not as ``where``
     says (another run of its ingest took it over).
@@ -64,6 +66,8 @@ def mark_ready(session: Session, scene_id: str, where=(), **values) -> list[Job]
                             .values(state=R_FAILED, error=error, finished_at=now))
         else:
             dispatch.append(job)
+    if dispatch:
+        session.execute(update(Job).where(Job.id.in_([job.id for job in dispatch])).values(updated_at=now))
     return dispatch
 
 
