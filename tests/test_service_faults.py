@@ -492,6 +492,29 @@ def test_a_resend_the_broker_refused_is_not_on_the_timeline_nor_doubles_the_next
     assert reaped(2.5).task_id != sent.task_id and len(events_of(job)) == 2
 
 
+def test_a_job_canceled_while_the_broker_takes_its_resend_ends_its_timeline_canceled(db, monkeypatch):
+    """A job canceled while a re-send of it was with the broker had a ``requeued`` event (and webhook) after its
+    ``canceled`` one: a timeline going on past its end. The message goes (its stages skip the canceled job), and the
+    timeline ends with the cancel."""
+    from api.services.jobs import request_cancel
+    from voxe_service.db import session_scope
+    from voxe_service.queue import TaskQueue, get_queue, send_queued_again
+
+    job = add_job(add_scene(), "queued", 0, task_id=None)
+    send = TaskQueue.send
+
+    def canceled_meanwhile(self, signature):
+        with session_scope() as other:  # the user's cancel, committed while the broker takes the message
+            request_cancel(session=other, job_ids=[job])
+        return send(self, signature)
+
+    monkeypatch.setattr(TaskQueue, "send", canceled_meanwhile)
+    with session_scope() as session:
+        assert send_queued_again(session, get_queue(), job, sent_as=None, reason="sent by the reaper")
+    assert (job_row(job).state, job_row(job).message) == ("canceled", "canceled while queued")
+    assert [e["kind"] for e in events_of(job)] == ["canceled"]
+
+
 def test_a_refused_resend_gives_the_task_id_back_only_to_the_job_as_it_claimed_it(db, monkeypatch):
     """A refused re-send gave the job its old task id back wherever it had none, though another sender had taken
     it meanwhile (the reaper sending again a dead worker's job, queued with no task id after its own refusal): the

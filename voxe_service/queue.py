@@ -186,7 +186,9 @@ def dispatch_job(session: Session, queue: TaskQueue, job: Job, done: Iterable[st
                  message: str | None = None, fail_refused: bool = True, requeued: str | None = None) -> None:
     """Send the job's remaining stages (and the evaluations waiting on it), recording the task id on each, and
     ``message`` on the job; with ``requeued``, a ``requeued`` event of that detail on its timeline in the same
-    commit, so that a send the broker refused is never on it (:func:`send_queued_again`).
+    commit, so that a send the broker refused is never on it (:func:`send_queued_again`), unless the job is no longer
+    queued (canceled while the broker took it: its end stays its timeline's last event; or started by the message
+    taken as lost: the new one is a copy its stages drop).
 
     When the broker refuses, :class:`QueueUnavailable` is raised, the jobs failed with the reason first unless
     ``fail_refused`` is off (a caller withdrawing a job it has just created: no failed event, no webhook; or
@@ -207,12 +209,13 @@ def dispatch_job(session: Session, queue: TaskQueue, job: Job, done: Iterable[st
     # A job ended while the broker took it (canceled as it was created, a waiting evaluation failed with it) keeps
     # the message of its end: it had been overwritten.
     now = utcnow()
-    session.execute(update(Job).where(Job.id == job.id).values(
-        task_id=task_id, message=case((Job.state == job.state, message), else_=Job.message), updated_at=now))
+    state = session.execute(update(Job).where(Job.id == job.id).values(
+        task_id=task_id, message=case((Job.state == job.state, message), else_=Job.message), updated_at=now)
+        .returning(Job.state)).scalar_one_or_none()
     if ids[1:]:
         session.execute(update(Job).where(Job.id.in_(ids[1:])).values(
             task_id=task_id, message=case((Job.state == QUEUED, None), else_=Job.message), updated_at=now))
-    if requeued is not None:
+    if requeued is not None and state == QUEUED:  # (a canceled one's timeline had gone on past its end)
         record_event(session, job.id, "requeued", stage=job.stage, detail=requeued)
     session.commit()
 
