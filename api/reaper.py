@@ -46,7 +46,9 @@ ago on a live worker: its ingest is sent again (a copy that still comes finds it
 is skipped: ``worker.ingest``), an accepted upload lost to no dead worker, unless the SQL broker's waiting messages
 carry it (or cannot be read). A scene whose ingest was taken ``VOXE_JOB_MAX_REQUEUES`` + 1 times (each run that took it
 was interrupted) fails instead, naming why, as a job does. A processing scene whose ingest waits in the broker for a
-worker is not orphaned, as a queued job is not.
+worker is not orphaned, as a queued job is not, until no worker took it for ``VOXE_JOB_LOST_MESSAGE_TIMEOUT_S``: its
+message is then taken as lost, as a job's is, and its ingest sent again, once a window (not doubled: a scene has no
+timeline to count them on; a copy that still comes finds the scene held, or ready).
 
 The API runs :func:`reap_orphaned_jobs` at startup and then every ``VOXE_REAPER_INTERVAL_S`` in a
 background thread (:class:`Reaper`). Every update is conditional on the row still being what the
@@ -234,10 +236,11 @@ def _send_now(session, job_id: str, seen_updated_at: datetime, detail: str, sent
 
 
 def reap_orphaned_scenes(settings: Settings, now: datetime | None = None) -> list[str]:
-    """Send again the ingests of processing scenes whose worker died, or fail them (and those never sent) with the
-    reason; returns the ids of those failed."""
+    """Send again the ingests of processing scenes whose worker died or whose message is taken as lost, or fail them
+    (and those never sent) with the reason; returns the ids of those failed."""
     now = now or utcnow()
     timeout, cutoff, alive = _stale_window(settings, now)
+    lost_cutoff = now - timedelta(seconds=settings.job_lost_message_timeout_s)
     reaped = []
     with session_scope() as session:
         stale = session.execute(select(
@@ -247,8 +250,17 @@ def reap_orphaned_scenes(settings: Settings, now: datetime | None = None) -> lis
             or_(Scene.task_id.is_(None),  # its worker gone (one no worker took waits, even while none is alive):
                 and_(Scene.worker_hostname.is_not(None), Scene.worker_hostname.not_in(alive)),
                 Scene.ingest_lease_until < cutoff))).all()  # (a run that ended without a word on a live worker)
+        untaken = session.execute(select(Scene.id, Scene.updated_at).where(  # its message taken as lost, as a job's
+            Scene.state == PROCESSING, Scene.task_id.is_not(None), Scene.worker_hostname.is_(None),
+            Scene.ingest_token.is_(None), Scene.updated_at < lost_cutoff)).all()
         alive_now = set(session.scalars(alive)) if stale else set()
-        waiting = _sql_broker_waiting(settings.broker_url) if stale and is_sql_broker(settings.broker_url) else set()
+        waiting = (_sql_broker_waiting(settings.broker_url) if (stale or untaken) and is_sql_broker(settings.broker_url)
+                   else set())
+        lost = (f"no worker took its ingest for {settings.job_lost_message_timeout_s:.0f} s ({LOST_MESSAGE_SETTING}): "
+                "its message taken as lost")
+        for scene in untaken:
+            if waiting is not None and scene.id not in waiting:
+                _send_ingest_again(session, scene.id, scene.updated_at, lost)
         for scene in stale:
             if scene.task_id is None:
                 reason = (f"the upload was never handed to a worker (the API stopped while storing it); failed after "

@@ -1922,6 +1922,36 @@ def test_reaper_leaves_an_untaken_ingest_waiting_while_no_worker_heartbeats(db, 
         assert (row.state, row.task_id, row.worker_hostname) == ("processing", "the upload's message", None)
 
 
+def test_reaper_sends_again_an_ingest_no_worker_took_for_the_lost_message_timeout(db, monkeypatch):
+    """A job whose message no worker took for VOXE_JOB_LOST_MESSAGE_TIMEOUT_S is sent again (a broker that lost what it
+    had accepted: a Redis restarted without its data); a scene's ingest was not: the scene stayed processing, and the
+    jobs on it queued, for good. It is sent again, once a window, unless the SQL broker still holds its message."""
+    from types import SimpleNamespace
+
+    import api.reaper as reaper
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene, utcnow
+    from voxe_service.queue import get_queue
+
+    lost_after = db.job_lost_message_timeout_s
+    lost = add_scene("processing", 2 * lost_after, task_id="the upload's message")
+    carried = add_scene("processing", 2 * lost_after, task_id="the upload's message")
+    waiting = add_scene("processing", lost_after / 2, task_id="the upload's message")
+    get_queue().send_ingest(carried)
+    sent = []
+    monkeypatch.setattr(reaper, "get_queue", lambda: SimpleNamespace(
+        send_ingest=lambda scene_id: sent.append(scene_id) or f"task-{len(sent)}"))
+    job = add_job(lost, "queued", 0, task_id=None)
+    assert reaper.reap_orphaned_scenes(db) == [] and sent == [lost]
+    with session_scope() as session:
+        row = session.get(Scene, lost)
+        assert (row.state, row.task_id, row.worker_hostname) == ("processing", "task-1", None)
+    assert reaper.reap_orphaned_scenes(db) == [] and sent == [lost]  # sent again once a window
+    assert reaper.reap_orphaned_scenes(db, now=utcnow() + timedelta(seconds=1.1 * lost_after)) == []
+    assert sent[0] == lost and sorted(sent[1:]) == sorted([lost, waiting])
+    assert (job_row(job).state, job_row(job).task_id) == ("queued", None)  # the ingest sends it once ready
+
+
 @pytest.mark.parametrize("released_by", ["a restart's recovery", "a run giving it back"])
 def test_an_ingest_hold_released_while_the_broker_refuses_is_sent_again_by_the_reaper(db, monkeypatch, released_by):
     """A hold is released so that a new message takes the scene at once: by a restarted worker's recovery before it
