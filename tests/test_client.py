@@ -330,6 +330,42 @@ def test_reads_answered_503_with_retry_after_are_sent_again_and_writes_are_not(m
         assert sent.count("GET /v1/jobs/j3") == 1
 
 
+def test_a_retry_after_given_as_an_http_date_is_waited_out_counted_from_the_servers_clock(monkeypatch):
+    """``Retry-After`` may be an HTTP-date (RFC 9110 §10.2.3): it had been ignored, a read or a keyed submission
+    answered so failing at once. The wait is the date less the answer's ``Date`` (the server's clock), else less
+    now; a date past is no wait, one far off is capped, and one unreadable is no Retry-After."""
+    from datetime import datetime, timedelta, timezone
+    from email.utils import format_datetime
+
+    import voxe_client.client as client_module
+
+    waits, answers = [], []
+    monkeypatch.setattr(client_module.time, "sleep", waits.append)
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        status, headers = answers.pop(0)
+        return httpx.Response(status, headers=headers, json={"id": "j1", "detail": "busy"})
+
+    def http_date(seconds_from_now: float) -> str:
+        return format_datetime(datetime.now(timezone.utc) + timedelta(seconds=seconds_from_now), usegmt=True)
+
+    served = "Wed, 21 Oct 2015 07:28:00 GMT"
+    with Client(transport=httpx.MockTransport(answer), retries=3) as client:
+        answers[:] = [(503, {"retry-after": "Wed, 21 Oct 2015 07:28:07 GMT", "date": served}), (200, {})]
+        assert client.get_job("j1")["id"] == "j1"
+    assert waits == [7.0]  # from the server's clock (7 s after its Date), not this machine's (years after)
+    waits.clear()
+    with Client(transport=httpx.MockTransport(answer), retries=3) as client:
+        answers[:] = [(503, {"retry-after": http_date(20)}), (409, {"retry-after": http_date(-60)}),
+                      (503, {"retry-after": http_date(3600)}), (201, {})]
+        assert client.create_job("s1", "gold")["id"] == "j1"
+        assert 18 < waits[0] <= 20 and waits[1:] == [0.0, client_module.MAX_RETRY_WAIT_S]
+        answers[:] = [(503, {"retry-after": "soon"}), (200, {})]
+        with pytest.raises(ServiceError, match="HTTP 503: busy"):
+            client.get_job("j1")
+        assert answers == [(200, {})]
+
+
 def test_a_submission_is_sent_again_a_bounded_number_of_times_and_only_while_its_answer_is_lost(monkeypatch):
     """A keyed submission waits Retry-After, else a doubling pause, between its sendings, at most ``retries`` times;
     the service's own answers (a 422, a 429 over the quota, a 500) are errors at once, and a 409 with Retry-After

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import email.utils
 import hashlib
 import itertools
 import json
@@ -12,6 +13,7 @@ import uuid
 import warnings
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, closing
+from datetime import datetime, timezone
 from pathlib import Path, PureWindowsPath
 from typing import Any
 from urllib.parse import quote
@@ -505,13 +507,31 @@ def _header_bytes(key: str) -> bytes:
 
 
 def _retry_after(response: httpx.Response) -> float | None:
-    """The seconds its ``Retry-After: <seconds>`` asks to wait before sending the request again (at most
-    ``MAX_RETRY_WAIT_S``); None without one."""
-    try:
-        seconds = float(response.headers["retry-after"])
-    except (KeyError, ValueError):
+    """The seconds its ``Retry-After`` asks to wait before sending the request again (at most ``MAX_RETRY_WAIT_S``):
+    a number of seconds, or an HTTP-date (RFC 9110 §10.2.3; it had been ignored, the request not sent again) counted
+    from the answer's ``Date`` (the server's clock: a client's skewed one had stretched or cut the wait), else from
+    now, a date past being no wait; None without one or with one unreadable."""
+    value = response.headers.get("retry-after")
+    if value is None:
         return None
+    try:
+        seconds = float(value)
+    except ValueError:
+        when = _http_date(value)
+        if when is None:
+            return None
+        seconds = max(0.0, (when - (_http_date(response.headers.get("date", "")) or datetime.now(timezone.utc)))
+                      .total_seconds())
     return min(seconds, MAX_RETRY_WAIT_S) if seconds >= 0 else None
+
+
+def _http_date(value: str) -> datetime | None:
+    """``value`` as an HTTP-date (``Wed, 21 Oct 2015 07:28:00 GMT``), an aware datetime; None when it is not one."""
+    try:
+        when = email.utils.parsedate_to_datetime(value)
+    except (TypeError, ValueError, IndexError, OverflowError):
+        return None
+    return when if when.tzinfo is not None else when.replace(tzinfo=timezone.utc)  # ("-0000": UTC, said naively)
 
 
 def _backoff(attempt: int) -> float:
