@@ -330,6 +330,98 @@ def test_reads_answered_503_with_retry_after_are_sent_again_and_writes_are_not(m
         assert sent.count("GET /v1/jobs/j3") == 1
 
 
+def test_reads_answered_429_with_retry_after_wait_it_out_and_unkeyed_writes_do_not(monkeypatch):
+    """A rate or quota limit's 429 + Retry-After had failed a read at once: it is waited out as a 503's, at most
+    ``retries`` times; a 429 without Retry-After, or one to a write without an Idempotency-Key, is the error."""
+    import voxe_client.client as client_module
+
+    waits, sent, answers = [], [], []
+    monkeypatch.setattr(client_module.time, "sleep", waits.append)
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        sent.append(f"{request.method} {request.url.path}")
+        status, headers = answers.pop(0)
+        return httpx.Response(status, headers=headers, json={"id": "j1", "detail": "over the rate"})
+
+    with Client(transport=httpx.MockTransport(answer), retries=3) as client:
+        answers[:] = [(429, {"retry-after": "2"}), (429, {"retry-after": "3"}), (200, {})]
+        assert client.get_job("j1")["id"] == "j1" and waits == [2.0, 3.0] and len(sent) == 3
+        answers[:] = [(429, {"retry-after": "1"})] * 4
+        with pytest.raises(ServiceError, match="HTTP 429: over the rate") as gave_up:
+            client.get_job("j1")
+        assert gave_up.value.status == 429 and len(sent) == 3 + 4
+        for call, refused in ((client.get_job, (429, {})), (client.cancel_job, (429, {"retry-after": "1"}))):
+            answers[:], waits[:], sent[:] = [refused, (200, {})], [], []
+            with pytest.raises(ServiceError, match="HTTP 429"):
+                call("j1")
+            assert len(sent) == 1 and waits == []
+
+
+def test_reads_whose_connection_dropped_before_the_answer_are_sent_again(monkeypatch):
+    """A GET whose connection was reset or closed before its answer (a kept-alive connection the service or a proxy
+    had closed, an API restarting) had failed at once: it goes again after a doubling pause, at most ``retries``
+    times. A connection refused is said at once (a wrong URL), and an unkeyed write is not sent again. Against a
+    socket server: the errors a real close and a real reset raise are the ones resent."""
+    import socket
+    import struct
+    import threading
+
+    import voxe_client.client as client_module
+    from voxe_client.client import ServiceUnreachable
+
+    waits, sent, answers = [], [], []
+    monkeypatch.setattr(client_module.time, "sleep", waits.append)
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        sent.append(request.method)
+        raised = answers.pop(0)
+        if raised is not None:
+            raise raised
+        return httpx.Response(200, json={"id": "j1"})
+
+    dropped = httpx.RemoteProtocolError("Server disconnected without sending a response.")
+    with Client(transport=httpx.MockTransport(answer), retries=3) as client:
+        answers[:] = [dropped, httpx.ReadError("connection reset"), httpx.WriteError("broken pipe"), None]
+        assert client.get_job("j1")["id"] == "j1" and waits == [0.5, 1.0, 2.0] and sent == ["GET"] * 4
+        answers[:], sent[:] = [dropped] * 5, []
+        with pytest.raises(ServiceUnreachable, match="cannot reach the service .*without sending a response"):
+            client.get_job("j1")
+        assert sent == ["GET"] * 4
+        for call, raised in ((client.get_job, httpx.ConnectError("connection refused")), (client.cancel_job, dropped)):
+            answers[:], sent[:] = [raised, None], []
+            with pytest.raises(ServiceUnreachable):
+                call("j1")
+            assert len(sent) == 1
+
+    server = socket.create_server(("127.0.0.1", 0))
+    asked = []
+
+    def serve() -> None:
+        for way in ("close", "reset", "answer"):
+            connection = server.accept()[0]
+            with connection:
+                request = b""
+                while b"\r\n\r\n" not in request:
+                    request += connection.recv(4096)
+                asked.append(request.split(b"\r\n")[0])
+                if way == "reset":  # an RST, not a FIN
+                    connection.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+                elif way == "answer":
+                    connection.sendall(b"HTTP/1.1 200 OK\r\ncontent-type: application/json\r\ncontent-length: 12"
+                                       b"\r\nconnection: close\r\n\r\n{\"id\": \"j1\"}")
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    waits.clear()
+    try:
+        with Client(f"http://127.0.0.1:{server.getsockname()[1]}", retries=3) as client:
+            assert client.get_job("j1") == {"id": "j1"}
+    finally:
+        thread.join(5)
+        server.close()
+    assert asked == [b"GET /v1/jobs/j1 HTTP/1.1"] * 3 and waits == [0.5, 1.0]
+
+
 def test_a_retry_after_given_as_an_http_date_is_waited_out_counted_from_the_servers_clock(monkeypatch):
     """``Retry-After`` may be an HTTP-date (RFC 9110 §10.2.3): it had been ignored, a read or a keyed submission
     answered so failing at once. The wait is the date less the answer's ``Date`` (the server's clock), else less
@@ -368,8 +460,9 @@ def test_a_retry_after_given_as_an_http_date_is_waited_out_counted_from_the_serv
 
 def test_a_submission_is_sent_again_a_bounded_number_of_times_and_only_while_its_answer_is_lost(monkeypatch):
     """A keyed submission waits Retry-After, else a doubling pause, between its sendings, at most ``retries`` times;
-    the service's own answers (a 422, a 429 over the quota, a 500) are errors at once, and a 409 with Retry-After
-    (its first sending not answered yet) is waited for. A write without a key (a cancel) is never sent again."""
+    the service's own answers (a 422, a 500, a 429 or 409 without Retry-After) are errors at once, and a 409 with
+    Retry-After (its first sending not answered yet) or a 429 with it (over the quota: it had been an error at once)
+    is waited for. A write without a key (a cancel) is never sent again."""
     import voxe_client.client as client_module
 
     waits, sent = [], []
@@ -399,7 +492,12 @@ def test_a_submission_is_sent_again_a_bounded_number_of_times_and_only_while_its
             submit(client, *[("drop", {})] * 5)
         assert gave_up.value.status is None and len(sent) == 4
         assert submit(client, (409, {"retry-after": "1"}), (200, {}))["id"] == "j1" and waits == [1.0]
-        for status, headers in ((422, {}), (429, {"retry-after": "60"}), (500, {}), (409, {})):
+        assert submit(client, (429, {"retry-after": "60"}), (201, {}))["id"] == "j1"
+        assert waits == [client_module.MAX_RETRY_WAIT_S] and len({key for *_, key in sent}) == 1  # capped, one key
+        with pytest.raises(ServiceError, match="HTTP 429: said") as gave_up:
+            submit(client, *[(429, {"retry-after": "2"})] * 5)
+        assert gave_up.value.status == 429 and len(sent) == 4 and waits == [2.0] * 3
+        for status, headers in ((422, {}), (429, {}), (500, {}), (409, {})):
             with pytest.raises(ServiceError, match=f"HTTP {status}: said"):
                 submit(client, (status, headers), (201, {}))
             assert len(sent) == 1 and waits == []

@@ -41,6 +41,11 @@ IDEMPOTENCY_HEADER = "Idempotency-Key"
 LOST_ANSWERS = (httpx.NetworkError, httpx.ConnectTimeout, httpx.PoolTimeout, httpx.RemoteProtocolError)
 """A request never sent, or whose answer the connection lost (refused, reset, dropped: an API restarting): a
 submission goes again with its Idempotency-Key."""
+DROPPED_CONNECTIONS = (httpx.ReadError, httpx.WriteError, httpx.RemoteProtocolError)
+"""A connection reset or closed before its answer came (a kept-alive connection the service or a proxy had closed, an
+API restarting): a read goes again. Not a connection refused: a wrong URL is said at once."""
+SAFE_METHODS = ("GET", "HEAD")
+"""Reads: the service changes nothing for them, so they are sent again at no risk."""
 UNANSWERED_IN_TIME = (httpx.ReadTimeout, httpx.WriteTimeout)
 """A request the service may still be working on (its answer slower than the timeout: a large upload's staging): a
 submission is not sent again, which would have the service do it a second time."""
@@ -89,14 +94,16 @@ class Client:
     """The job service at ``base_url``; ``api_key`` goes as ``Authorization: Bearer`` (none on a loopback service).
 
     Use it as a context manager (or call :meth:`close`) to release its connections. ``transport``
-    replaces httpx's network transport (tests pass ``httpx.MockTransport``). A read (GET) answered 503 with
-    ``Retry-After`` (the service's database or broker briefly unavailable) is sent again after that wait, at most
-    ``retries`` times. A submission (an upload, a job, a sweep) goes with an ``Idempotency-Key``, one per call, so it
-    too is sent again, with the same key, when its answer is lost (a connection refused or dropped, a 502 / 503 /
-    504) or the service is still answering its first sending (409 with ``Retry-After``): the service answers a
-    retry with what the first sending created, never a second one. A submission not answered within ``timeout``
-    is not (the service may still be working on it): the error names its key, to send it again with once it is
-    done. Other writes (a cancel, a deletion) are not.
+    replaces httpx's network transport (tests pass ``httpx.MockTransport``). A read (GET, HEAD) answered 503 or 429
+    with ``Retry-After`` (the service's database or broker briefly unavailable, a rate or quota limit) is sent again
+    after that wait (seconds or an HTTP-date, at most :data:`MAX_RETRY_WAIT_S`), at most ``retries`` times, and so is
+    one whose connection dropped before its answer (:data:`DROPPED_CONNECTIONS`), after a doubling pause. A
+    submission (an upload, a job, a sweep) goes with an ``Idempotency-Key``, one per call, so it too is sent again,
+    with the same key, when its answer is lost (a connection refused or dropped, a 502 / 503 / 504), the service is
+    still answering its first sending (409 with ``Retry-After``) or asks it to wait (429 with ``Retry-After``: over
+    a quota): the service answers a retry with what the first sending created, never a second one. A submission not
+    answered within ``timeout`` is not (the service may still be working on it): the error names its key, to send
+    it again with once it is done. Other writes (a cancel, a deletion) are not.
 
     Examples:
         >>> def answer(request):
@@ -163,23 +170,26 @@ class Client:
                                "(is it the Vox-E service?)") from None
 
     def _send(self, method: str, path: str, stream: bool = False, resendable: bool = False,
-              **kwargs) -> httpx.Response:
-        """The answer to ``method path`` (``kwargs`` to httpx's request), sent again at most ``retries`` times: a GET
-        answered 503 with ``Retry-After`` after that wait, a ``resendable`` one (it carries an Idempotency-Key) also
-        whose answer was lost (:func:`_resend_wait`); with ``stream`` its body is left unread (close it).
+              resend_dropped: bool = True, **kwargs) -> httpx.Response:
+        """The answer to ``method path`` (``kwargs`` to httpx's request), sent again at most ``retries`` times: a read
+        or a ``resendable`` one (it carries an Idempotency-Key) after the wait its answer asks (:func:`_resend_wait`),
+        a read whose connection dropped before its answer (unless not ``resend_dropped``: a caller that goes on from
+        where it stopped), a ``resendable`` one whose answer was lost; with ``stream`` its body is left unread (close
+        it).
 
         Each sending builds the request anew, which reads an upload's files again from their start (httpx rewinds
         them): a retried upload sends the same bytes, which the service's Idempotency-Key check compares."""
+        read = method in SAFE_METHODS
+        lost = LOST_ANSWERS if resendable else DROPPED_CONNECTIONS if read and resend_dropped else ()
         for attempt in itertools.count():
             try:
                 response = self._http.send(self._http.build_request(method, path, **kwargs), stream=stream)
-            except LOST_ANSWERS:
-                if not resendable or attempt == self.retries:
+            except lost:
+                if attempt == self.retries:
                     raise
                 wait = _backoff(attempt)
             else:
-                wait = _resend_wait(response, attempt) if resendable else (
-                    _retry_after(response) if method == "GET" and response.status_code == 503 else None)
+                wait = _resend_wait(response, attempt, resendable) if read or resendable else None
                 if wait is None or attempt == self.retries:
                     return response
                 response.close()
@@ -258,7 +268,7 @@ class Client:
                 headers["last-event-id"] = str(last_event_id)
             path = f"/v1/jobs/{_segment(job_id)}/events"
             try:
-                with closing(self._send("GET", path, stream=True, headers=headers,
+                with closing(self._send("GET", path, stream=True, headers=headers, resend_dropped=False,
                                         timeout=httpx.Timeout(30.0, read=STREAM_SILENCE_S))) as response:
                     if response.is_error:
                         response.read()
@@ -337,7 +347,8 @@ class Client:
                     had = size
                     resume = {"range": f"bytes={size}-", "if-range": f'"{expected["sha256"]}"'} if size else {}
                     try:
-                        with closing(self._send("GET", path, stream=True, headers=resume)) as response:
+                        with closing(self._send("GET", path, stream=True, headers=resume,
+                                                resend_dropped=False)) as response:
                             if response.is_error:
                                 response.read()
                                 _raise_for_error(response, "GET", path)
@@ -540,12 +551,17 @@ def _backoff(attempt: int) -> float:
     return min(MAX_RECONNECT_PAUSE_S, 0.5 * 2.0 ** min(attempt, 10))  # (2 ** 1024 overflows a float)
 
 
-def _resend_wait(response: httpx.Response, attempt: int) -> float | None:
-    """Seconds to wait before sending again a request carrying an Idempotency-Key answered ``response``: a proxy's
-    502 / 503 / 504 or the service's 503 (the answer lost, or the submission withdrawn: a retry with the key
-    submits it anew) after its ``Retry-After``, else :func:`_backoff`; a 409 with ``Retry-After`` (the first
-    sending not answered yet) after that; None for any other answer, the service's own."""
+def _resend_wait(response: httpx.Response, attempt: int, keyed: bool) -> float | None:
+    """Seconds to wait before sending again a read, or a request carrying an Idempotency-Key (``keyed``), answered
+    ``response``; None for an answer that stands. A 503 or 429 with ``Retry-After`` (busy, over a rate or quota: it
+    had failed a waiting caller at once) after that wait. A keyed one also after a proxy's 502 / 503 / 504 (the
+    answer lost, or the submission withdrawn: a retry with the key submits it anew), after its ``Retry-After``, else
+    :func:`_backoff`, and after a 409 with ``Retry-After`` (the first sending not answered yet)."""
     asked = _retry_after(response)
+    if response.status_code in (httpx.codes.SERVICE_UNAVAILABLE, httpx.codes.TOO_MANY_REQUESTS) and asked is not None:
+        return asked
+    if not keyed:
+        return None
     if response.status_code in PROXY_UNAVAILABLE:
         return _backoff(attempt) if asked is None else asked
     return asked if response.status_code == httpx.codes.CONFLICT else None
