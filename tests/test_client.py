@@ -290,6 +290,96 @@ def test_a_reconnect_window_of_hours_keeps_its_pauses_and_a_quiet_stream_restart
             list(client.events("j1", reconnect_for=60))
 
 
+def test_wait_with_a_timeout_gives_up_then_naming_the_job_and_its_last_state(monkeypatch):
+    """``wait()`` had no overall deadline: a job stuck queued or running (its stream alive on keepalives, or lost
+    and reconnecting) held the caller for good. With ``timeout`` it raises JobWaitTimeout once that has passed,
+    naming the job and the state it was last heard in, through keepalives and through reconnects alike."""
+    import voxe_client.client as client_module
+    from voxe_client import JobWaitTimeout
+
+    clock = [0.0]
+    monkeypatch.setattr(client_module.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(client_module.time, "sleep", lambda seconds: clock.__setitem__(0, clock[0] + seconds))
+    snapshot = b'event: progress\ndata: {"state": "running", "stage": "edit", "overall_progress": 0.4}\n\n'
+    sent = []
+
+    class Keepalives(httpx.SyncByteStream):  # a stream on a job that does not end: 15 s between keepalives
+        def __init__(self, dropped: bool):
+            self.dropped = dropped
+
+        def __iter__(self):
+            yield snapshot
+            for _ in range(1000):
+                clock[0] += 15.0
+                if self.dropped:
+                    raise httpx.ReadError("connection reset")
+                yield b": keepalive\n\n"
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        sent.append((clock[0], request.extensions["timeout"]["read"]))
+        lost = request.url.path == "/v1/jobs/lost/events"
+        if lost and len(sent) > 1:
+            raise httpx.ConnectError("connection refused")
+        return httpx.Response(200, headers={"content-type": "text/event-stream"}, stream=Keepalives(lost))
+
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        with pytest.raises(JobWaitTimeout) as late:
+            client.wait("j1", timeout=100)
+        assert 100 <= clock[0] <= 115 and len(sent) == 1  # within a keepalive of it
+        assert str(late.value) == ("job j1 did not end within 100 s (last heard running, stage edit, 40% done); it "
+                                   "goes on in the service")
+        assert (late.value.job_id, late.value.state, late.value.progress["overall_progress"]) == ("j1", "running", 0.4)
+        assert isinstance(late.value, TimeoutError)
+        clock[0], sent[:] = 0.0, []
+        with pytest.raises(JobWaitTimeout, match=r"^job lost did not end within 20 s \(last heard running"):
+            client.wait("lost", timeout=20, reconnect_for=300)  # lost at 15 s, reconnecting: not for 300 s
+        assert clock[0] == 20.0 and sent[0][1] == 20.0 and all(read <= 20.0 - at for at, read in sent)
+        clock[0] = 0.0
+        with pytest.raises(JobWaitTimeout, match=r"^job j1 did not end within 0 s \(no progress heard from its event "
+                                                 r"stream\)"):
+            client.wait("j1", timeout=0)
+        with pytest.raises(ValueError, match="timeout must be 0 or more seconds, got nan"):
+            client.wait("j1", timeout=float("nan"))
+        with pytest.raises(JobWaitTimeout, match="^job j1 did not end within 30 s"):
+            list(client.events("j1", timeout=30))
+
+
+def test_wait_with_a_timeout_is_not_held_past_it_by_a_silent_stream():
+    """A stream gone silent (no keepalive: dead without a reset) had been read for STREAM_SILENCE_S (60 s) before
+    anything was checked: against a socket server that goes silent, ``wait(timeout=1)`` gives up in about 1 s."""
+    import socket
+    import threading
+    import time
+
+    from voxe_client import JobWaitTimeout
+
+    done = threading.Event()
+    server = socket.create_server(("127.0.0.1", 0))
+
+    def serve() -> None:
+        connection = server.accept()[0]
+        with connection:
+            while b"\r\n\r\n" not in connection.recv(4096):
+                pass
+            connection.sendall(b"HTTP/1.1 200 OK\r\ncontent-type: text/event-stream\r\n\r\n"
+                               b'event: progress\ndata: {"state": "queued"}\n\n')
+            done.wait(10)  # silent, the connection open
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        with Client(f"http://127.0.0.1:{server.getsockname()[1]}") as client:
+            started = time.monotonic()
+            with pytest.raises(JobWaitTimeout, match=r"^job j1 did not end within 1 s \(last heard queued\)"):
+                client.wait("j1", timeout=1)
+            took = time.monotonic() - started
+    finally:
+        done.set()
+        thread.join(5)
+        server.close()
+    assert 1 <= took < 3, f"the silent stream was waited on for {took:.1f} s"
+
+
 def test_reads_answered_503_with_retry_after_are_sent_again_and_writes_are_not(monkeypatch):
     """A GET (and the event stream) answered 503 + Retry-After waits that long and asks again, at most ``retries``
     times; a POST, which the service may have acted on, and a 503 without Retry-After are errors at once."""

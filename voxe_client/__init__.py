@@ -10,9 +10,10 @@
         sweep = client.create_sweep([{"scene_id": scene_id, "object": "microphone"}])
 
 Errors the service answers with (4xx / 5xx) and unreachable services are :class:`ServiceError` (its
-``service_failed`` tells a 5xx or an unreachable service from a refusal).
+``service_failed`` tells a 5xx or an unreachable service from a refusal); a ``wait(job_id, timeout=...)`` past its
+timeout is a :class:`JobWaitTimeout` (a ``TimeoutError``) naming the job and its last state.
 """
 
-from voxe_client.client import Client, ServiceError
+from voxe_client.client import Client, JobWaitTimeout, ServiceError
 
-__all__ = ["Client", "ServiceError"]
+__all__ = ["Client", "JobWaitTimeout", "ServiceError"]

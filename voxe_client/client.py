@@ -6,6 +6,7 @@ import email.utils
 import hashlib
 import itertools
 import json
+import math
 import os
 import re
 import time
@@ -88,6 +89,25 @@ class ServiceUnreachable(ServiceError):
 class EventStreamLost(ServiceUnreachable):
     """A job's event stream lost for longer than :meth:`Client.events` reconnects: the service stopped answering (the
     job itself goes on there)."""
+
+
+class JobWaitTimeout(TimeoutError):
+    """A job not ended within the ``timeout`` its :meth:`Client.wait` (or :meth:`Client.events`) was given: it goes on
+    in the service. ``job_id``, ``state`` and ``progress`` (the last progress snapshot heard, None before any) say
+    where it stood."""
+
+    def __init__(self, job_id: str, timeout: float, progress: dict | None):
+        self.job_id, self.timeout, self.progress = job_id, timeout, progress
+        self.state = None if progress is None else progress.get("state")
+        if progress is None:
+            stood = "no progress heard from its event stream"
+        else:
+            stood = f"last heard {self.state}"
+            if progress.get("stage"):
+                stood += f", stage {progress['stage']}"
+            if progress.get("overall_progress") is not None:
+                stood += f", {progress['overall_progress']:.0%} done"
+        super().__init__(f"job {job_id} did not end within {timeout:g} s ({stood}); it goes on in the service")
 
 
 class Client:
@@ -239,7 +259,7 @@ class Client:
         return self.request("POST", f"/v1/jobs/{_segment(job_id)}/cancel")
 
     def events(self, job_id: str, last_event_id: int | None = None, reconnect_for: float | None = None,
-               on_reconnect: Callable[[str], None] | None = None) -> Iterator[dict]:
+               on_reconnect: Callable[[str], None] | None = None, timeout: float | None = None) -> Iterator[dict]:
         """The job's live events (``{"event", "id", "data"}``) until it ends, over Server-Sent Events.
 
         A dropped connection, one silent for :data:`STREAM_SILENCE_S` (no keepalive either: dead without a reset), a
@@ -248,9 +268,26 @@ class Client:
         ``reconnect_for`` seconds from its loss (default :data:`RECONNECT_FOR_S`); ``progress`` snapshots carry no id.
         ``on_reconnect`` hears a line when the stream is lost and one when it is back (the events had stopped with
         nothing said). A stream never opened is an error at once: a wrong URL is not waited for.
+
+        With ``timeout`` (seconds), a job not ended by then is a :class:`JobWaitTimeout` naming it and the state it
+        was last heard in. It is checked at each line the stream brings (the service's keepalive comes every 15 s)
+        and at each reconnect, and a stream opens with a read timeout no longer than the time left (one gone silent
+        is not waited on :data:`STREAM_SILENCE_S` past it): it may run over by about a keepalive's interval, or by a
+        ``Retry-After`` waited while opening a stream.
         """
         reconnect_for = RECONNECT_FOR_S if reconnect_for is None else reconnect_for
-        opened, lost_since, attempts, reconnecting = False, None, 0, False
+        if timeout is not None and not timeout >= 0:  # (NaN had never run out)
+            raise ValueError(f"timeout must be 0 or more seconds, got {timeout!r}")
+        deadline = None if timeout is None else time.monotonic() + timeout
+        opened, lost_since, attempts, reconnecting, progress = False, None, 0, False, None
+
+        def left() -> float:
+            """Seconds until ``timeout`` runs out (infinite without one); a JobWaitTimeout once it has."""
+            if deadline is None:
+                return math.inf
+            if (remaining := deadline - time.monotonic()) <= 0:
+                raise JobWaitTimeout(job_id, timeout, progress)
+            return remaining
 
         def alive(lines: Iterator[str]) -> Iterator[str]:
             """The stream's lines, an event's or a keepalive a sign of life that restarts the reconnect window (reset
@@ -258,6 +295,7 @@ class Client:
             the ``retry:`` every stream opens with, or a server opening and dropping streams is waited on for good."""
             nonlocal lost_since, attempts
             for line in lines:
+                left()
                 if line and not line.startswith("retry:"):
                     lost_since, attempts = None, 0
                 yield line
@@ -267,9 +305,11 @@ class Client:
             if last_event_id is not None:
                 headers["last-event-id"] = str(last_event_id)
             path = f"/v1/jobs/{_segment(job_id)}/events"
+            limit = left()
+            silence = min(STREAM_SILENCE_S, limit)
             try:
                 with closing(self._send("GET", path, stream=True, headers=headers, resend_dropped=False,
-                                        timeout=httpx.Timeout(30.0, read=STREAM_SILENCE_S))) as response:
+                                        timeout=httpx.Timeout(min(30.0, limit), read=silence))) as response:
                     if response.is_error:
                         response.read()
                         if not opened or response.status_code not in PROXY_UNAVAILABLE:
@@ -283,16 +323,19 @@ class Client:
                         for event in parse_sse(alive(response.iter_lines())):
                             if event["id"] is not None:
                                 last_event_id = int(event["id"])
+                            if event["event"] == "progress":
+                                progress = event["data"]
                             ended = ended or _ends_job(event)
                             yield event
                         if ended:
                             return
                         lost = "the server ended the stream before the job ended"
             except httpx.TransportError as exc:
+                left()
                 if not opened:
                     raise ServiceUnreachable(f"cannot reach the service at {self.base_url}: {exc}") from None
-                lost = (f"nothing received for {STREAM_SILENCE_S:g} s" if isinstance(exc, httpx.ReadTimeout)
-                        else str(exc))
+                lost = f"nothing received for {silence:g} s" if isinstance(exc, httpx.ReadTimeout) else str(exc)
+            remaining = left()
             now = time.monotonic()
             lost_since = now if lost_since is None else lost_since
             attempts += 1
@@ -304,15 +347,19 @@ class Client:
                 raise EventStreamLost(f"event stream of job {job_id} at {self.base_url} lost: {lost} ({attempts} "
                                       f"attempt{'s' if attempts > 1 else ''} over {now - lost_since:.0f} s, "
                                       f"reconnecting for up to {reconnect_for:g} s); the job goes on in the service")
-            time.sleep(min(_backoff(attempts - 1), reconnect_for - (now - lost_since)))
+            time.sleep(min(_backoff(attempts - 1), reconnect_for - (now - lost_since), remaining))
 
     def wait(self, job_id: str, on_progress: Callable[[dict], None] | None = None,
              reconnect_for: float | None = None, on_reconnect: Callable[[str], None] | None = None,
-             on_warning: Callable[[dict], None] | None = None) -> dict:
+             on_warning: Callable[[dict], None] | None = None, timeout: float | None = None) -> dict:
         """Follow the job's events until it ends (``reconnect_for``, ``on_reconnect``: see :meth:`events`), calling
         ``on_progress(snapshot)`` on each progress event and ``on_warning(event)`` on each warning (a stage's result
-        to look at, or its start over: the job's message says it only until the next report); the finished job."""
-        for event in self.events(job_id, reconnect_for=reconnect_for, on_reconnect=on_reconnect):
+        to look at, or its start over: the job's message says it only until the next report); the finished job.
+
+        ``timeout`` (seconds; none by default) bounds the whole wait, reconnects included: past it, a
+        :class:`JobWaitTimeout` names the job and the state it was last heard in (it had waited for good on a job
+        stuck queued or running)."""
+        for event in self.events(job_id, reconnect_for=reconnect_for, on_reconnect=on_reconnect, timeout=timeout):
             if event["event"] == "progress" and on_progress is not None:
                 on_progress(event["data"])
             elif event["event"] == "warning" and on_warning is not None:
