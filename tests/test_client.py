@@ -657,11 +657,12 @@ def test_a_download_answered_503_with_retry_after_is_sent_again(tmp_path, monkey
     assert sent == ["/v1/jobs/j1/artifacts/a.bin"] * 3 and waits == [1.0, 1.0]
 
 
-def test_a_download_broken_off_goes_on_where_it_stopped_and_a_dead_one_fails_leaving_nothing(tmp_path, monkeypatch):
+def test_a_download_broken_off_goes_on_where_it_stopped_and_a_dead_one_fails_keeping_its_bytes(tmp_path, monkeypatch):
     """A connection reset, a stall or a body cut short mid-download had failed it, the bytes received thrown away
     (a multi-GB result started over by hand, or never arriving over a flaky link). It goes on with Range from the
     bytes it has, If-Range the listed SHA-256 (the ETag); an answer of the whole file (a server ignoring Range, an
-    artifact replaced) starts it over; ``retries`` breaks in a row with no byte more fail it, nothing left behind."""
+    artifact replaced) starts it over; ``retries`` breaks in a row with no byte more fail it, its bytes kept in its
+    part file for the next call (test_an_interrupted_download_goes_on_from_its_part_file_at_the_next_call)."""
     import hashlib
 
     import voxe_client.client as client_module
@@ -708,10 +709,83 @@ def test_a_download_broken_off_goes_on_where_it_stopped_and_a_dead_one_fails_lea
         assert client.download("j1", "a.bin", tmp_path / "b.bin").read_bytes() == data  # not the head twice
         assert [r for r, _ in asked] == [None, "bytes=3000-"]
         breaks[:] = [httpx.ReadError("connection reset")] + [httpx.ConnectError("connection refused")] * 2
-        with pytest.raises(ServiceError, match=r"^cannot download a.bin of job j1 \(3000 of 10240 bytes received\): "
+        part = tmp_path / f".c.bin.{sha[:16]}.part"
+        with pytest.raises(ServiceError, match=rf"^cannot download a.bin of job j1 \(3000 of 10240 bytes here, kept in "
+                                               rf"{re.escape(str(part))} for the next download of it to go on from\): "
                                                "connection refused$"):
             client.download("j1", "a.bin", tmp_path / "c.bin")
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.bin", "b.bin"]  # no partial file
+    assert sorted(p.name for p in tmp_path.iterdir()) == [part.name, "a.bin", "b.bin"]  # none of a.bin's, b.bin's
+    assert part.read_bytes() == data[:3000]
+
+
+def test_an_interrupted_download_goes_on_from_its_part_file_at_the_next_call(tmp_path, monkeypatch):
+    """A download that failed (the service gone) or was interrupted (Ctrl-C) had deleted its bytes: the next run
+    fetched it all again. They stay in ``.<name>.<ETag head>.part`` beside it, and the next call, in a new run,
+    asks for the rest with Range and If-Range that ETag, replacing the target only once the whole is checked. A part
+    of another version of the artifact is deleted; one not a head of it (longer, or bytes that fail the check) is
+    started over, and none is left by a download that got no byte."""
+    import hashlib
+
+    import voxe_client.client as client_module
+
+    monkeypatch.setattr(client_module.time, "sleep", lambda _s: None)
+    data = bytes(range(256)) * 40
+    sha = hashlib.sha256(data).hexdigest()
+    asked, plan = [], []
+    dest = tmp_path / "out" / "a.bin"
+    part = dest.with_name(f".a.bin.{sha[:16]}.part")
+
+    class Cut(httpx.SyncByteStream):
+        def __init__(self, body: bytes, at: int | None, cut: BaseException):
+            self.body, self.at, self.cut = body, at, cut
+
+        def __iter__(self):
+            yield self.body[:self.at]
+            if self.at is not None:
+                raise self.cut
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        if request.url.path.endswith("/artifacts"):
+            return httpx.Response(200, json=[{"name": "a.bin", "size": len(data), "sha256": sha}])
+        asked.append((request.headers.get("range"), request.headers.get("if-range")))
+        at, cut = plan.pop(0) if plan else (None, None)
+        if isinstance(cut, httpx.ConnectError):
+            raise cut
+        start = int(asked[-1][0].removeprefix("bytes=").rstrip("-")) if asked[-1][0] else 0
+        headers = {"content-range": f"bytes {start}-{len(data) - 1}/{len(data)}"} if start else {}
+        return httpx.Response(206 if start else 200, headers=headers, stream=Cut(data[start:], at, cut))
+
+    def run(*steps) -> Path:  # a run of its own: a new client
+        plan[:], asked[:] = steps, []
+        with Client(transport=httpx.MockTransport(answer), retries=1) as client:
+            return client.download("j1", "a.bin", dest)
+
+    with pytest.raises(ServiceError, match=r"\(2500 of 10240 bytes here, kept in "):
+        run((2500, httpx.ReadError("connection reset")), (None, httpx.ConnectError("refused")),
+            (None, httpx.ConnectError("refused")))
+    assert part.read_bytes() == data[:2500] and not dest.exists()
+    with pytest.raises(KeyboardInterrupt):
+        run((3000, KeyboardInterrupt()))
+    assert part.read_bytes() == data[:5500] and asked == [("bytes=2500-", f'"{sha}"')]
+    assert run().read_bytes() == data and asked == [("bytes=5500-", f'"{sha}"')]
+    assert sorted(p.name for p in dest.parent.iterdir()) == ["a.bin"]  # the part became it
+
+    earlier = dest.with_name(f".a.bin.{'0' * 16}.part")  # of a version of a.bin listed before: not completed now
+    mine = dest.with_name("a.bin.0000000000000000.part")  # not a part file's name: a file of the caller's
+    mine.write_bytes(b"mine")
+    earlier.write_bytes(b"z" * 100)
+    part.write_bytes(data[:4000] + b"x" * 20000)  # longer than the artifact: not a head of it, fetched whole
+    assert run().read_bytes() == data and asked == [(None, None)]
+    assert sorted(p.name for p in dest.parent.iterdir()) == ["a.bin", mine.name]
+    part.write_bytes(b"y" * 4000)  # a head that is not the artifact's: the check fails, the bytes go
+    with pytest.raises(ServiceError, match="downloaded 10240 bytes with sha256"):
+        run()
+    assert asked == [("bytes=4000-", f'"{sha}"')] and dest.read_bytes() == data  # the target not replaced
+    assert sorted(p.name for p in dest.parent.iterdir()) == ["a.bin", mine.name]
+    assert run().read_bytes() == data and asked == [(None, None)]  # the failed one's bytes not gone on from
+    with pytest.raises(ServiceError, match=r"\(0 of 10240 bytes here\): refused$"):
+        run(*[(None, httpx.ConnectError("refused"))] * 2)
+    assert sorted(p.name for p in dest.parent.iterdir()) == ["a.bin", mine.name]
 
 
 def test_upload_scene_sends_the_display_name_as_the_name_field_and_keeps_the_file_name(tmp_path):
@@ -754,7 +828,8 @@ def test_download_checks_size_and_sha256_and_leaves_nothing_on_a_mismatch(tmp_pa
     sha = hashlib.sha256(data).hexdigest()
     listing = [{"name": "good.bin", "size": len(data), "sha256": sha},
                {"name": "bad.bin", "size": len(data), "sha256": sha},
-               {"name": "long.bin", "size": len(data) + 1, "sha256": sha}]  # the bytes' sha256, not their size
+               {"name": "long.bin", "size": len(data) + 1, "sha256": sha},  # the bytes' sha256, not their size
+               {"name": "odd.bin", "size": len(data), "sha256": "../../" + sha}]  # (it names the part file)
 
     def answer(request: httpx.Request) -> httpx.Response:
         if request.url.path.endswith("/artifacts"):
@@ -770,6 +845,9 @@ def test_download_checks_size_and_sha256_and_leaves_nothing_on_a_mismatch(tmp_pa
             client.download("j1", "long.bin", tmp_path / "long.bin")
         with pytest.raises(ServiceError, match="no artifact 'nope.bin'"):
             client.download("j1", "nope.bin", tmp_path / "nope.bin")
+        with pytest.raises(ServiceError, match=r"^artifact 'odd.bin' of job j1 is listed with sha256 "
+                                               r"'\.\./\.\./[0-9a-f]+', not a SHA-256; nothing written$"):
+            client.download("j1", "odd.bin", tmp_path / "odd.bin")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["good.bin"]  # no partial file, no bad one
 
 
@@ -1197,7 +1275,8 @@ class _CutStream(httpx.SyncByteStream):
 
 def test_voxe_download_broken_off_goes_on_from_the_service_where_it_stopped(api, tmp_path, monkeypatch):
     """Against the API app: a download whose connection drops mid-way is resumed with the Range and If-Range the
-    service serves a 206 for, and lands whole (``voxe download`` had failed it, exit 3, the bytes thrown away)."""
+    service serves a 206 for, and lands whole (``voxe download`` had failed it, exit 3, the bytes thrown away); and
+    one whose service then stopped answering (exit 3) goes on from its part file at the next ``voxe download``."""
     import hashlib
 
     import voxe_core.cli.service as service_commands
@@ -1231,6 +1310,34 @@ def test_voxe_download_broken_off_goes_on_from_the_service_where_it_stopped(api,
     assert (tmp_path / "out" / "grid.npz").read_bytes() == data and hashlib.sha256(data).hexdigest() == stored.sha256
     assert sent[0] == (None, 200) and sent[1][1] == 206 and sent[1][0].startswith("bytes=")
     assert 0 < int(sent[1][0].removeprefix("bytes=").rstrip("-")) <= 300_000  # went on, not over
+
+    import voxe_client.client as client_module
+
+    class CutThenDown(Cutting):  # the service stops answering after the cut: the run fails
+        def handle_request(self, request: httpx.Request) -> httpx.Response:
+            if sent and request.url.path.endswith("/grid.npz"):
+                raise httpx.ConnectError("connection refused")
+            return super().handle_request(request)
+
+    class Recording(httpx.HTTPTransport):
+        def handle_request(self, request: httpx.Request) -> httpx.Response:
+            response = super().handle_request(request)
+            if request.url.path.endswith("/grid.npz"):
+                sent.append((request.headers.get("range"), response.status_code))
+            return response
+
+    monkeypatch.setattr(client_module.time, "sleep", lambda _s: None)
+    out = tmp_path / "again"
+    for transport, exit_status in ((CutThenDown, 3), (Recording, 0)):  # two runs
+        sent.clear()
+        monkeypatch.setattr(service_commands, "_client",
+                            lambda args, made=transport: Client(args.api, transport=made()))
+        assert main(["download", job["id"], "--out", str(out), "--api", url, "--quiet"]) == exit_status
+        if exit_status:
+            part = out / f".grid.npz.{stored.sha256[:16]}.part"
+            kept = part.stat().st_size
+            assert sent == [(None, 200)] and 0 < kept <= 300_000 and not (out / "grid.npz").exists()
+    assert sent == [(f"bytes={kept}-", 206)] and (out / "grid.npz").read_bytes() == data and not part.exists()
 
 
 def test_an_empty_webhook_url_is_sent_and_refused_not_dropped(api, tmp_path, capsys):

@@ -375,7 +375,10 @@ class Client:
         A connection broken off or stalled mid-way (:data:`BROKEN_DOWNLOADS`) is resumed where it stopped, with
         ``Range`` and ``If-Range`` (the listed SHA-256, the service's ETag: an artifact replaced since comes whole), up
         to ``retries`` times in a row without a byte more; it had failed the download, its bytes thrown away, however
-        large. A mismatch is a ServiceError and leaves no file; the bytes land under ``dest`` only once checked.
+        large. The bytes go to a ``.part`` file beside ``dest`` named by that ETag (:func:`_part_file`), kept when the
+        download fails or is interrupted, so the next call for it goes on from them (a run stopped by Ctrl-C or an
+        outage had thrown them away); those of its earlier versions are deleted. A mismatch is a ServiceError
+        and deletes them; the bytes land under ``dest`` only once checked.
         """
         if name in ("", ".", "..") or any(c in name for c in "/\\\0"):  # it names a file inside dest's folder only
             raise ServiceError(f"artifact name {name!r} of job {job_id} is not a plain file name; nothing written")
@@ -384,12 +387,23 @@ class Client:
             raise ServiceError(f"job {job_id} has no artifact {name!r}; it has {', '.join(sorted(listed)) or 'none'}",
                                404)
         expected, dest = listed[name], Path(dest)
+        if not SHA256_HEX.fullmatch(str(expected.get("sha256"))):  # (it names the part file)
+            raise ServiceError(f"artifact {name!r} of job {job_id} is listed with sha256 {expected.get('sha256')!r}, "
+                               "not a SHA-256; nothing written")
         dest.parent.mkdir(parents=True, exist_ok=True)
-        partial = dest.with_name(f".{dest.name}.partial")
-        digest, size, failures = hashlib.sha256(), 0, 0
+        partial = _part_file(dest, expected["sha256"])
+        _drop_other_parts(dest, partial)
+        size, failures = 0, 0
         path = f"/v1/jobs/{_segment(job_id)}/artifacts/{_segment(name)}"
         try:
-            with open(partial, "wb") as out:
+            with open(partial, "ab") as out:
+                size = out.tell()
+                if size < expected["size"]:  # an earlier call's bytes, a head of the artifact: it goes on from them
+                    with open(partial, "rb") as earlier:
+                        digest = hashlib.file_digest(earlier, "sha256")
+                else:  # more: not a head of it (nor a whole one, which a finished call had renamed)
+                    out.truncate(0)
+                    digest, size = hashlib.sha256(), 0
                 while True:
                     had = size
                     resume = {"range": f"bytes={size}-", "if-range": f'"{expected["sha256"]}"'} if size else {}
@@ -416,14 +430,17 @@ class Client:
                             raise
                         time.sleep(_backoff(failures))
             if size != expected["size"] or digest.hexdigest() != expected["sha256"]:
+                partial.unlink()
                 raise ServiceError(f"{name} of job {job_id}: downloaded {size} bytes with sha256 {digest.hexdigest()}, "
                                    f"the service lists {expected['size']} bytes with sha256 {expected['sha256']}")
             os.replace(partial, dest)
         except (httpx.TransportError, httpx.InvalidURL) as exc:
+            kept = f", kept in {partial} for the next download of it to go on from" if size else ""
             raise ServiceUnreachable(f"cannot download {name} of job {job_id} ({size} of {expected['size']} bytes "
-                                     f"received): {exc}") from None
+                                     f"here{kept}): {exc}") from None
         finally:
-            partial.unlink(missing_ok=True)
+            if not size:  # nothing to go on from
+                partial.unlink(missing_ok=True)
         return dest
 
     # ------------------------------------------------------------------ sweeps (SPEC §4)
@@ -543,6 +560,24 @@ def _keyed_values(path: Path, key: str) -> Iterator[str]:
             words = line.decode("utf-8", errors="replace").split(maxsplit=1)
             if len(words) == 2 and words[0].lower() == key:
                 yield words[1].strip()
+
+
+SHA256_HEX = re.compile(r"[0-9a-f]{64}")
+
+
+def _part_file(dest: Path, sha256: str) -> Path:
+    """Where a download to ``dest`` of the artifact whose SHA-256 (its ETag) is ``sha256`` keeps its bytes until they
+    are checked: hidden beside it, named by the ETag's head, so a later call goes on from bytes of that version only."""
+    return dest.with_name(f".{dest.name}.{sha256[:16]}.part")
+
+
+def _drop_other_parts(dest: Path, kept: Path) -> None:
+    """Delete the part files (:func:`_part_file`) beside ``dest`` but ``kept``: bytes of the artifact's earlier
+    versions (a preview republished since the download was interrupted), which no call completes now."""
+    others = re.compile(re.escape(f".{dest.name}.") + r"[0-9a-f]{16}\.part")
+    for part in dest.parent.iterdir():
+        if part != kept and others.fullmatch(part.name):
+            part.unlink(missing_ok=True)
 
 
 def _submission_key(given: str | None) -> str:
