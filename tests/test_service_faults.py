@@ -872,6 +872,41 @@ def test_a_cancel_that_lands_between_stages_ends_the_job_when_the_next_stage_beg
     assert ended.state == "canceled" and ended.message == "canceled before edit" and ended.finished_at is not None
 
 
+@pytest.mark.parametrize("stage", ["export", "evaluate"])
+def test_a_cancel_during_a_final_stages_last_uploads_ends_the_job_canceled(db, monkeypatch, stage):
+    """A cancel that landed after the final stage's last cancel check (while it uploaded its last artifacts) was
+    answered as accepted (the job running, flagged), and the job then ended succeeded. It ends canceled, as during
+    the stage; a cancel asked once the job succeeded is refused (409), the job left succeeded."""
+    from fastapi import HTTPException
+
+    from api.services.jobs import cancel_job, request_cancel
+    from voxe_service.db import session_scope
+    from voxe_service.models import ApiKey
+    from worker import tasks
+
+    def body(job, *_args):
+        with session_scope() as session:
+            request_cancel(session=session, job_ids=[job.id])  # (the API's cancel of the running job)
+
+    monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
+    monkeypatch.setattr(tasks, "_export" if stage == "export" else "run_evaluation", body)
+    done = ["reconstruct", "edit"] if stage == "export" else []
+    job_id = add_job(add_scene(), "queued", 0, mode="global" if stage == "export" else "evaluate",
+                     completed_stages=done)
+    task = tasks.export_task if stage == "export" else tasks.evaluate_task
+    assert task.apply(args=(job_id,)).get() == {"job_id": job_id, "stage": stage, "state": "canceled"}
+    job = job_row(job_id)
+    assert (job.state, job.message, job.completed_stages) == ("canceled", f"canceled during {stage}", done)
+    assert [e["kind"] for e in events_of(job_id)] == ["stage_started", "canceled"]
+
+    succeeded = add_job(add_scene(), "queued", 0, completed_stages=["reconstruct", "edit"])
+    monkeypatch.setattr(tasks, "_export", lambda *_args: None)
+    assert tasks.export_task.apply(args=(succeeded,)).get()["state"] == "done"
+    with session_scope() as session, pytest.raises(HTTPException) as refused:
+        cancel_job(session=session, key=session.get(ApiKey, job_row(succeeded).owner_key_id), job_id=succeeded)
+    assert refused.value.status_code == 409 and job_row(succeeded).state == "succeeded"
+
+
 def test_one_run_holds_a_job_a_duplicate_message_is_dropped_and_a_dead_run_is_taken_over(db, monkeypatch):
     """A chain message sent twice (a worker died after its stage sent the next one, before its ack) must not run
     a stage on two workers: while the run holding the job renews its lease, the duplicate is dropped (StageHeld,

@@ -28,7 +28,7 @@ from pathlib import Path
 from sqlalchemy import Update, func, or_, select, update
 from sqlalchemy.exc import SQLAlchemyError
 
-from voxe_core.progress import Callbacks, Progress
+from voxe_core.progress import Callbacks, Progress, StageCancelled
 from voxe_service import datasets
 from voxe_service.db import DATABASE_UNAVAILABLE, database_outage, locked, session_scope, sync_clock
 from voxe_service.jobs import finish_jobs, record_event
@@ -275,7 +275,9 @@ def _wait_for_release(job_id: str, stage: str, held: tuple, settings: Settings) 
 def complete_stage(job_id: str, stage: str, run_token: str, final: bool = False, again: bool = False,
                    message: str | None = None) -> bool:
     """Record ``stage`` done and release the job (or end it, ``final``, with ``message``: None clears the stage's
-    progress notes); False when the run no longer held it.
+    progress notes); False when the run no longer held it. A final stage whose job was asked to cancel after the
+    stage's last check (during its last uploads) raises StageCancelled instead: the user who canceled sees it
+    canceled, not succeeded (a cancel landing once it succeeded finds it so, as the API answers).
     ``again``: a try before raised, and may have committed with its answer lost (a dropped connection): the stage
     found recorded done and the job released (or succeeded) counts as this run's. (Another run completing the same
     stage would look the same, but none can have taken the job over within the retries' seconds: the hold was
@@ -289,15 +291,18 @@ def complete_stage(job_id: str, stage: str, run_token: str, final: bool = False,
             done.append(stage)
         values = dict(completed_stages=done, eta_seconds=0.0, updated_at=utcnow(), run_token=None,
                       run_lease_until=None)
+        held = [Job.id == job_id, Job.state == RUNNING, Job.run_token == run_token]
         if final:
             values.update(state=SUCCEEDED, finished_at=utcnow(), message=message)
-        result = session.execute(update(Job).where(Job.id == job_id, Job.state == RUNNING,
-                                                   Job.run_token == run_token).values(**values))
+        result = session.execute(update(Job).where(*held, *([Job.cancel_requested.is_(False)] if final else []))
+                                 .values(**values))
         if result.rowcount == 1:
             record_event(session, job_id, "stage_completed", stage=stage, worker=job.worker_hostname)
             if final:
                 record_event(session, job_id, SUCCEEDED, stage=stage)
             return True
+        if final and session.scalar(select(Job.cancel_requested).where(*held)):
+            raise StageCancelled(f"{stage} canceled before its end was recorded")
         return (again and stage in (job.completed_stages or []) and job.run_token is None
                 and job.state == (SUCCEEDED if final else RUNNING))
 
