@@ -351,6 +351,18 @@ def test_a_job_that_ended_or_went_back_to_the_queue_keeps_the_fraction_it_reache
     assert running.overall_eta_seconds is not None and 0.25 < running.overall_progress < 0.6
 
 
+def test_the_stage_progress_stays_within_0_and_1_as_the_overall_one_does():
+    """A row whose iteration had passed its total (or fallen below 0) gave a stage progress past 1 (below 0) beside
+    an overall progress held within [0, 1]."""
+    from api.routes.jobs import job_out
+
+    rec = Reconstruction(id="r", scene_id="s", params_key="k", params={}, state="succeeded", owner_job_id="j", total=200)
+    for iteration, progress in ((120, 1.0), (-5, 0.0), (50, 0.5)):
+        job = job_out(_job(reconstruction=rec, state="running", stage="edit", iteration=iteration, total=100,
+                           completed_stages=["reconstruct"], started_at=utcnow(), stage_started_at=utcnow()))
+        assert job.progress == progress and 0 <= job.overall_progress <= 1, (iteration, job.progress)
+
+
 def test_a_reused_reconstruction_weighs_nothing():
     from api.routes.jobs import job_out
 

@@ -37,7 +37,7 @@ def job_out(job: Job) -> JobOut:
         params=job.params,
         models=_models(job),
         device=job.device, state=job.state, stage=job.stage, iteration=job.iteration, total=job.total,
-        progress=(job.iteration / job.total) if job.total else (1.0 if job.state == "succeeded" else 0.0),
+        progress=_stage_progress(job),
         completed_stages=job.completed_stages or [], elapsed_seconds=elapsed,
         eta_seconds=job.eta_seconds if job.state == RUNNING else None, losses=job.losses or {},
         **dict(zip(("overall_progress", "overall_eta_seconds"), _overall(job))),
@@ -53,6 +53,15 @@ def job_out(job: Job) -> JobOut:
         created_at=job.created_at, started_at=job.started_at, stage_started_at=job.stage_started_at,
         finished_at=job.finished_at, updated_at=job.updated_at,
     )
+
+
+def _stage_progress(job: Job) -> float:
+    """The current stage's fraction done, within [0, 1] as the overall one (``stage_fraction``) reads it: the row's
+    iteration and total are written by separate writers (a stage's reports, a resumed checkpoint's iteration, a
+    waited-for fit's count), and one past its total had said more than all of the stage."""
+    if not job.total:
+        return 1.0 if job.state == SUCCEEDED else 0.0
+    return min(1.0, max(0.0, job.iteration / job.total))
 
 
 def _overall(job: Job) -> tuple[float, float | None]:
