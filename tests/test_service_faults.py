@@ -1198,6 +1198,40 @@ def test_a_fit_whose_grid_cannot_be_stored_is_handed_back_at_once(db, monkeypatc
     assert get_storage(db).list(f"reconstructions/{rec_id}/") == []
 
 
+@pytest.mark.parametrize("cause", ["full disk", "storage outage"])
+def test_a_stage_given_back_for_a_full_disk_frees_its_scratch_and_keeps_its_stored_checkpoint(db, monkeypatch,
+                                                                                                cause):
+    """A stage stopped by its worker's full scratch disk goes back to the queue, its stored checkpoint kept for the
+    redelivery; its scratch folder (the grids it fetched, its local checkpoint) had stayed, keeping the disk full for
+    the next job this worker takes. It goes as the job is given back; a storage outage's is kept (the disk is not
+    the fault, and a redelivery here reuses the grids fetched)."""
+    import errno
+    from pathlib import Path
+
+    from voxe_service.storage import StorageUnavailable, get_storage, job_key
+    from worker import runtime, tasks
+
+    job_id = add_job(add_scene(), "queued", 0, completed_stages=["reconstruct"])
+    checkpoint = job_key(job_id, "checkpoints/edit.safetensors")
+    get_storage(db).put_bytes(checkpoint, b"edit at 600")
+    scratch = Path(db.work_dir) / "jobs" / job_id
+
+    def body(job, settings, device, storage):
+        (runtime.scratch_dir(job.id, settings) / "initial_grid.safetensors").write_bytes(b"grid" * 1000)
+        if cause == "full disk":
+            raise OSError(errno.ENOSPC, "No space left on device", str(scratch / "edit_checkpoint.safetensors"))
+        raise StorageUnavailable(f"S3 bucket 'voxe': SlowDown when uploading {checkpoint}")
+
+    monkeypatch.setattr(tasks, "_edit", body)
+    monkeypatch.setattr(runtime, "OUTAGE_PAUSE_S", 0.0)
+    result = tasks.edit_task.apply(args=(job_id,))
+    assert result.state == "REJECTED" and result.result.requeue, result.result
+    job = job_row(job_id)
+    assert (job.state, job.error, job.run_token, job.requeues) == ("running", None, None, 1)
+    assert get_storage(db).exists(checkpoint)
+    assert scratch.is_dir() == (cause == "storage outage")
+
+
 class WorkerGoingDown(BaseException):
     """Stands in for what ends the worker inside a running task (SystemExit, KeyboardInterrupt)."""
 

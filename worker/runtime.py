@@ -330,9 +330,14 @@ def storage_or_disk_outage(exc: BaseException) -> str | None:
     missing bucket or access denied, is a fault a retry meets again)."""
     if isinstance(exc, StorageUnavailable):
         return f"a storage outage ({exc})"
-    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+    if disk_full(exc):
         return f"the worker's disk full ({failure_text(exc, say_the_worker=False)})"
     return None
+
+
+def disk_full(exc: BaseException) -> bool:
+    """Whether ``exc`` is the worker's disk (or quota) full."""
+    return isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT)
 
 
 def pause_after_outage(runs_before: int) -> None:

@@ -165,6 +165,8 @@ def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> Task
             return _give_back_and_requeue(job_id, stage, token, f"{stage} stopped by a database outage ({why}): "
                                           f"{runtime.failure_text(exc)}", f"a database outage ({why})", exc, settings)
         if (cause := runtime.storage_or_disk_outage(exc)) is not None:  # ... nor a storage's or a full disk's
+            if runtime.disk_full(exc):  # the job's scratch (its grids, a local checkpoint) went towards filling it:
+                runtime.cleanup_scratch(job_id, settings)  # freed while the run holds the job (stored checkpoints kept)
             return _give_back_and_requeue(job_id, stage, token, f"{stage} stopped by {cause}", cause, exc, settings,
                                           pause_after=job.requeues)
         log.exception("job %s: %s failed", job_id, stage)
