@@ -2005,8 +2005,13 @@ def test_an_owner_stopped_by_its_time_limit_or_a_database_outage_hands_the_fit_t
     else:
         assert result.state == "REJECTED" and result.result.requeue
         assert (owner["state"], owner["error"]) == ("running", None)
+    said = {"time limit": None,  # (the owner's job failed saying so; the fit, no fault of it, has no error)
+            "database outage": "a database outage (the database cannot be reached or is locked)",
+            "storage outage": "a storage outage (the storage cannot be reached: connect timeout)",
+            "full disk": "the worker's disk full (OSError: [Errno 28] No space left on device)"}[stop]
     rec = runtime.load_reconstruction(rec_id)
-    assert (rec.state, rec.owner_job_id, rec.owner_run_token, rec.error) == ("pending", None, None, None)
+    assert (rec.state, rec.owner_job_id, rec.owner_run_token, rec.error) == (
+        "pending", None, None, said and f"job {a}'s fit: stopped by {said}")
     monkeypatch.setattr(tasks, "_fit_grid", real_fit)
     assert tasks.reconstruct_task.apply(args=(b,)).get()["state"] == "done"
     rec = runtime.load_reconstruction(rec_id)

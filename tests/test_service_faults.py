@@ -1193,9 +1193,59 @@ def test_a_fit_whose_grid_cannot_be_stored_is_handed_back_at_once(db, monkeypatc
         assert reconstruction()[::4] == ("failed", f"job {waiting}'s fit: its grid could not be stored: {said}")
     else:
         assert result.state == "REJECTED" and result.result.requeue
+        said = "the worker's disk full (OSError: [Errno 28] No space left on device)"
         assert (job_row(job_id).state, job_row(job_id).error) == ("running", None)
-        assert reconstruction() == ("pending", None, None, None, None)
+        assert job_row(job_id).message == f"re-queued: reconstruct stopped by {said}"
+        assert reconstruction() == ("pending", None, None, None, f"job {job_id}'s fit: stopped by {said}")
     assert get_storage(db).list(f"reconstructions/{rec_id}/") == []
+
+
+@pytest.mark.parametrize("outage", ["storage", "database"])
+def test_a_fit_handed_back_for_an_outage_says_why_on_its_job_and_its_reconstruction(db, monkeypatch, outage):
+    """A fit stopped by a storage outage (its grid's upload throttled) or a database outage went back to the queue
+    saying nothing a user polling the job could read: the reconstruction listed pending with no error (as if about
+    to run) and the job running with its last progress note. The job's message and the reconstruction's error say
+    what stopped it until the redelivery takes it; the fit's next claim clears the error."""
+    import sqlite3
+
+    from sqlalchemy.exc import OperationalError
+
+    from api.routes.jobs import job_out
+    from conftest import make_sphere_grid
+    from service_helpers import failing_uploads
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+    from voxe_service.storage import StorageUnavailable, get_storage
+    from worker import runtime, tasks
+
+    scene = add_scene()
+    rec_id = add_reconstruction(scene, params={"route": "voxelize"})
+    job_id = add_job(scene, "queued", 0, reconstruction_id=rec_id)
+    monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
+    monkeypatch.setattr(runtime, "OUTAGE_PAUSE_S", 0.0)
+    with monkeypatch.context() as failing:
+        if outage == "storage":
+            failing.setattr(tasks, "_voxelize", lambda *args: make_sphere_grid(8))
+            failing_uploads(failing, get_storage(db), ".safetensors",
+                            StorageUnavailable("S3 bucket 'voxe': SlowDown when uploading"))
+            said = "a storage outage (S3 bucket 'voxe': SlowDown when uploading)"
+        else:
+            def locked(*args):
+                raise OperationalError("UPDATE jobs", {}, sqlite3.OperationalError("database is locked"))
+
+            failing.setattr(tasks, "_voxelize", locked)
+            said = "a database outage (the database cannot be reached or is locked)"
+        result = tasks.reconstruct_task.apply(args=(job_id,))
+    assert result.state == "REJECTED" and result.result.requeue, result.result
+    with session_scope() as session:
+        shown = job_out(session.get(Job, job_id))
+        assert (shown.state, shown.error, shown.reconstruction.state) == ("running", None, "pending")
+        assert shown.reconstruction.error == f"job {job_id}'s fit: stopped by {said}"
+        assert shown.message.startswith(f"re-queued: reconstruct stopped by {said}"), shown.message
+    monkeypatch.setattr(tasks, "_voxelize", lambda *args: make_sphere_grid(8))
+    assert tasks.reconstruct_task.apply(args=(job_id,)).get()["state"] == "done"  # the redelivery
+    rec = runtime.load_reconstruction(rec_id)
+    assert (rec.state, rec.error, job_row(job_id).message) == ("succeeded", None, None)
 
 
 @pytest.mark.parametrize("cause", ["full disk", "storage outage"])

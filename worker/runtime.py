@@ -354,13 +354,14 @@ def pause_after_outage(runs_before: int) -> None:
 def give_back_stage(job_id: str, stage: str, run_token: str, reason: str, settings: Settings) -> str | None:
     """Give the run's hold back after an outage (the database's, the storage's) or its worker's full disk stopped its
     stage (its redelivery resumes from the stored checkpoint), counted as a re-queue with a ``requeued`` event naming
-    ``reason``; at ``job_max_requeues`` fail the job instead and return why: what the database answers as an outage
+    ``reason``, and ``reason`` the job's message until the redelivery starts (its last progress note had stayed,
+    nothing saying why the job waited); at ``job_max_requeues`` fail the job instead and return why: what the database answers as an outage
     every time (a statement timeout, a full disk) must not re-run a stage for ever. A job this run no longer holds, or
     that it ended (a commit whose answer was lost keeps the ended job's token), is left as it is."""
     with session_scope() as session:
         return _count_requeue(session, job_id, stage, reason, settings,
                               [Job.id == job_id, Job.state == RUNNING, Job.run_token == run_token], run_token=None,
-                              run_lease_until=None)
+                              run_lease_until=None, message=f"re-queued: {reason}")
 
 
 def release_stage(job_id: str, run_token: str) -> None:

@@ -547,9 +547,9 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
             stored: StoredObject = storage.put_file(
                 reconstruction_storage_key(rec.id, f"grid-{job.run_token or job.id}.safetensors"), path)
         except BaseException as exc:  # (each change below applies only while this job still owns the fit)
+            outage = _outage(exc)
             fails_the_job = (isinstance(exc, Exception) and not isinstance(exc, NOT_THE_FITS_FAILURE)
-                             and database_outage(exc) is None and runtime.storage_or_disk_outage(exc) is None
-                             and not runtime.worker_in_cold_shutdown())
+                             and outage is None and not runtime.worker_in_cold_shutdown())
             if fails_the_job and grid is None and not is_out_of_memory(exc):
                 runtime.set_reconstruction(rec.id, job.id, job.run_token, state=R_FAILED, lease_until=None,
                                            finished_at=utcnow(), error=runtime.failure_text(exc))
@@ -560,9 +560,11 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
                                       f"job {job.id}'s fit: {said}{runtime.failure_text(exc)}")
             else:  # stopped for the owner's sake (NOT_THE_FITS_FAILURE), an outage, a full disk, or the worker
                 # going down (SystemExit, KeyboardInterrupt, or what a cold shutdown raises in a solo pool's task): a
-                # waiting job, or this one redelivered, takes over from the checkpoint
+                # waiting job, or this one redelivered, takes over from the checkpoint; an outage said (pending with
+                # no error, the fit had read as about to run while its jobs waited out the outage)
                 runtime.set_reconstruction(rec.id, job.id, job.run_token, state=R_PENDING, owner_job_id=None,
-                                           owner_run_token=None, lease_until=None)
+                                           owner_run_token=None, lease_until=None,
+                                           **({"error": f"job {job.id}'s fit: stopped by {outage}"} if outage else {}))
             raise
         done = runtime.set_reconstruction(
             rec.id, job.id, job.run_token, state=R_SUCCEEDED, grid_key=stored.key, grid_size=stored.size,
@@ -572,6 +574,14 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
         storage.delete(stored.key)
         raise runtime.LeaseLost(f"reconstruction {rec.id}: another job took the fit over before it was stored")
     storage.discard(checkpoint_key)
+
+
+def _outage(exc: BaseException) -> str | None:
+    """The outage that stopped a fit, as its job's give-back names it: the database's, the storage's or the worker's
+    disk full; None for anything else."""
+    if (why := database_outage(exc)) is not None:
+        return f"a database outage ({why})"
+    return runtime.storage_or_disk_outage(exc)
 
 
 def _fit_grid(job: Job, rec, settings, storage, lease: runtime.LeaseKeeper, callbacks: StageCallbacks,
