@@ -1721,6 +1721,36 @@ def test_unpacked_datasets_past_the_cache_limit_evict_the_least_recently_used_on
     assert runtime.evict_scene_datasets(settings) == []
 
 
+def test_a_full_dataset_cache_evicts_before_an_unpack_writes_anything(db, tmp_path, monkeypatch):
+    """With the cache full (two datasets of 1002 bytes under a limit of 2500), a third scene's unpack wrote its
+    dataset beside both and evicted one only after: on a disk the cache filled, it needed first the very space that
+    eviction frees. The least recently used dataset goes before the archive is unpacked."""
+    from pathlib import Path
+
+    from voxe_service import datasets
+    from voxe_service.storage import get_storage
+    from worker import runtime
+
+    settings, storage = db.model_copy(update={"scene_cache_max_bytes": 2500}), get_storage(db)
+    a, b, c = (stored_dataset_scene(db, tmp_path, name) for name in ("a", "b", "c"))
+    root = Path(db.work_dir) / "scenes"
+    for scene, age in ((a, 20), (b, 10)):
+        with runtime.scene_dataset(scene, settings, storage) as dataset:
+            os.utime(dataset / ".complete", (time.time() - age, time.time() - age))
+    cached_at_unpack, unpack = [], datasets.unpack
+
+    def unpacked(archive, dest):
+        cached_at_unpack.append({p.name.partition("-")[0] for p in root.iterdir()
+                                 if p.is_dir() and not p.name.startswith(".")})
+        return unpack(archive, dest)
+
+    monkeypatch.setattr(datasets, "unpack", unpacked)
+    with runtime.scene_dataset(c, settings, storage) as dataset:
+        assert (dataset / "transforms_train.json").read_text() == "c" * 1000
+    assert cached_at_unpack == [{b.id}]
+    assert {p.name.partition("-")[0] for p in root.iterdir() if p.is_dir()} == {b.id, c.id}
+
+
 def test_datasets_are_evicted_where_an_exclusive_lock_needs_a_file_open_for_writing(db, tmp_path, monkeypatch,
                                                                                   caplog):
     """On NFS, Linux emulates flock with fcntl locks, and an exclusive one needs a descriptor open for writing: the

@@ -43,6 +43,12 @@ def package(root: Path, archive: Path) -> None:
                 zf.write(path, path.relative_to(root).as_posix(), compress_type=compress)
 
 
+def unpacked_bytes(archive: Path) -> int:
+    """What the stored archive's files take unpacked, as its entries declare it (the service's own archive)."""
+    with zipfile.ZipFile(archive) as zf:
+        return sum(info.file_size for info in zf.infolist())
+
+
 def unpack(archive: Path, dest: Path) -> Path:
     """Unpack a stored archive (the service's own, checked when it was packed) into ``dest``."""
     with zipfile.ZipFile(archive) as zf:

@@ -721,21 +721,25 @@ def scene_dataset(scene: Scene, settings: Settings, storage: Storage) -> Iterato
     """The scene's dataset folder on this machine, for the block to read: downloaded (checked against its recorded
     size and SHA-256) and unpacked once, then reused, while the datasets fit in ``VOXE_SCENE_CACHE_MAX_BYTES``. The
     block holds the dataset's ``.complete`` locked shared, so no eviction (:func:`evict_scene_datasets`, which a new
-    unpack runs) takes it meanwhile; a dataset evicted is unpacked again when next asked for."""
+    unpack runs first) takes it meanwhile; a dataset evicted is unpacked again when next asked for."""
     root = Path(settings.work_dir) / "scenes" / f"{scene.id}-{scene.sha256[:12]}"
     with _held_here(root):
-        lock, unpacked = _read_lock(root), False
+        lock = _read_lock(root)
         while lock is None:  # not unpacked on this machine, or evicted before its lock was taken
-            lock, unpacked = _unpack(scene, root, storage), True
+            lock = _unpack(scene, root, settings, storage)
         with lock:
-            if unpacked:
-                try:
-                    if evicted := evict_scene_datasets(settings):
-                        log.info("evicted the unpacked dataset(s) %s (VOXE_SCENE_CACHE_MAX_BYTES)",
-                                 ", ".join(evicted))
-                except OSError:  # the cache's upkeep never fails the stage that reads it
-                    log.warning("could not evict unpacked datasets", exc_info=True)
             yield root
+
+
+def _make_room(settings: Settings, room: int) -> None:
+    """Evict unpacked datasets so that they and ``room`` bytes about to be written fit in
+    ``VOXE_SCENE_CACHE_MAX_BYTES``: run before an unpack writes (evicted after it, a full cache had needed the space
+    the eviction frees before it could unpack). The cache's upkeep never fails the stage that reads it."""
+    try:
+        if evicted := evict_scene_datasets(settings, room):
+            log.info("evicted the unpacked dataset(s) %s (VOXE_SCENE_CACHE_MAX_BYTES)", ", ".join(evicted))
+    except OSError:
+        log.warning("could not evict unpacked datasets", exc_info=True)
 
 
 _held_datasets: Counter[Path] = Counter()
@@ -759,15 +763,17 @@ def _held_here(root: Path) -> Iterator[None]:
                 del _held_datasets[root]
 
 
-def _unpack(scene: Scene, root: Path, storage: Storage):
+def _unpack(scene: Scene, root: Path, settings: Settings, storage: Storage):
     """Unpack the scene's archive aside and rename it into place as ``root``; its read lock (:func:`_read_lock`),
     taken before the folder shows, so no eviction takes it first; None when another process on this machine unpacked
-    it first and it was evicted since."""
+    it first and it was evicted since. Room is made before the archive is fetched, and before it is unpacked."""
     root.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=root.parent, prefix=f".{scene.id}-"))
     try:
+        _make_room(settings, scene.size_bytes)
         archive = fetch(storage, scene_archive(scene), tmp / datasets.DATASET_ARCHIVE,
                         f"scene {scene.id}'s archive {scene.storage_key}")
+        _make_room(settings, scene.size_bytes + datasets.unpacked_bytes(archive))  # (the archive goes once unpacked)
         datasets.unpack(archive, tmp / "data")
         archive.unlink()
         (tmp / "data" / datasets.UNPACKED_MARK).write_text("ok")
@@ -811,11 +817,11 @@ EVICTION_LOCK = ".evict.lock"
 _said_no_locks: set[Path] = set()
 
 
-def evict_scene_datasets(settings: Settings) -> list[str]:
-    """Delete this machine's least recently used unpacked datasets that no stage is reading until the rest fit in
-    ``VOXE_SCENE_CACHE_MAX_BYTES``; the folder names evicted. A dataset a stage reads stays (its lock is held:
-    :func:`scene_dataset`), over the limit if need be. Evictions run one at a time on the machine (a lock on the
-    file ``scenes/.evict.lock``), so two never both free the same excess.
+def evict_scene_datasets(settings: Settings, room: int = 0) -> list[str]:
+    """Delete this machine's least recently used unpacked datasets that no stage is reading until the rest, and
+    ``room`` bytes more, fit in ``VOXE_SCENE_CACHE_MAX_BYTES``; the folder names evicted. A dataset a stage reads
+    stays (its lock is held: :func:`scene_dataset`), over the limit if need be. Evictions run one at a time on the
+    machine (a lock on the file ``scenes/.evict.lock``), so two never both free the same excess.
 
     Each exclusive lock is taken on a file open for writing: NFS emulates ``flock`` with ``fcntl`` locks, which take
     an exclusive lock on nothing else (EBADF: on the folder, or on a ``.complete`` opened to read, it had evicted
@@ -840,7 +846,7 @@ def evict_scene_datasets(settings: Settings) -> list[str]:
                     unpacked.append(((folder / datasets.UNPACKED_MARK).stat().st_mtime, folder, _folder_bytes(folder)))
         total, evicted = sum(size for *_, size in unpacked), []
         for _used, folder, size in sorted(unpacked):  # least recently used first
-            if total <= settings.scene_cache_max_bytes:
+            if total + room <= settings.scene_cache_max_bytes:
                 break
             if _evict(folder):
                 total -= size
