@@ -1200,6 +1200,42 @@ def test_a_fit_whose_grid_cannot_be_stored_is_handed_back_at_once(db, monkeypatc
     assert get_storage(db).list(f"reconstructions/{rec_id}/") == []
 
 
+def test_a_fit_whose_grid_record_meets_a_database_outage_leaves_no_orphan_grid_once_fitted_again(db, monkeypatch):
+    """The database down exactly as a finished fit recorded its stored grid: the job went back to the queue and its
+    redelivery fitted again, storing its grid under its own run's name, while the first run's grid stayed in the
+    storage for good, recorded nowhere. Once the fit's grid is recorded, the others go."""
+    import sqlite3
+
+    from sqlalchemy.exc import OperationalError
+
+    from conftest import make_sphere_grid
+    from voxe_service.storage import get_storage
+    from worker import runtime, tasks
+
+    scene = add_scene()
+    rec_id = add_reconstruction(scene, params={"route": "voxelize"})
+    job_id = add_job(scene, "queued", 0, reconstruction_id=rec_id)
+    monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
+    monkeypatch.setattr(tasks, "_voxelize", lambda *args: make_sphere_grid(8))
+    monkeypatch.setattr(runtime, "OUTAGE_PAUSE_S", 0.0)
+    with monkeypatch.context() as outage:
+        set_reconstruction = runtime.set_reconstruction
+
+        def down_as_the_grid_is_recorded(*args, **values):
+            if values.get("state") == "succeeded":
+                raise OperationalError("UPDATE reconstructions", {}, sqlite3.OperationalError("database is locked"))
+            return set_reconstruction(*args, **values)
+
+        outage.setattr(runtime, "set_reconstruction", down_as_the_grid_is_recorded)
+        result = tasks.reconstruct_task.apply(args=(job_id,))
+    assert result.state == "REJECTED" and result.result.requeue, result.result
+    assert len(get_storage(db).list(f"reconstructions/{rec_id}/grid-")) == 1  # the first run's, recorded nowhere
+    assert tasks.reconstruct_task.apply(args=(job_id,)).get()["state"] == "done"  # the redelivery
+    rec = runtime.load_reconstruction(rec_id)
+    assert rec.state == "succeeded" and get_storage(db).list(f"reconstructions/{rec_id}/") == [rec.grid_key]
+    assert runtime.recorded_key(job_id, "initial_grid.safetensors") == rec.grid_key
+
+
 @pytest.mark.parametrize("outage", ["storage", "database"])
 def test_a_fit_handed_back_for_an_outage_says_why_on_its_job_and_its_reconstruction(db, monkeypatch, outage):
     """A fit stopped by a storage outage (its grid's upload throttled) or a database outage went back to the queue

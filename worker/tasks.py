@@ -574,6 +574,21 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
         storage.delete(stored.key)
         raise runtime.LeaseLost(f"reconstruction {rec.id}: another job took the fit over before it was stored")
     storage.discard(checkpoint_key)
+    _discard_unrecorded_grids(storage, rec.id, stored.key)
+
+
+def _discard_unrecorded_grids(storage, rec_id: str, recorded: str) -> None:
+    """Delete the reconstruction's stored grids but the one ``recorded``: a run whose record of its grid the database
+    refused (down as it was written) left that grid stored under its own name, and its fit ran again. Once a grid is
+    recorded the fit is done for good, so another is such an orphan, or a run's that lost the fit (which deletes its
+    own). A cleanup: a storage failing it fails nothing."""
+    try:
+        orphans = [key for key in storage.list(reconstruction_storage_key(rec_id, "grid-")) if key != recorded]
+    except Exception:  # noqa: BLE001 - see the docstring
+        log.warning("reconstruction %s: could not list its stored grids", rec_id, exc_info=True)
+        return
+    for key in orphans:
+        storage.discard(key)
 
 
 def _outage(exc: BaseException) -> str | None:
