@@ -398,7 +398,8 @@ class ReconstructionOut(BaseModel):
     total: int
     params: dict
     error: str | None = Field(description="why its last fit stopped: failed, or pending after a fit whose worker ran "
-                              "out of memory (handed back to a job of it not yet ended)")
+                              "out of memory, could not store its grid, or met a storage or database outage or a full "
+                              "disk (handed back to a job of it not yet ended)")
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
@@ -408,7 +409,8 @@ class JobReconstruction(BaseModel):
     id: str | None
     state: str | None
     error: str | None = Field(description="why its last fit stopped, as the scene's reconstructions list it: "
-                              "failed, or pending after a fit whose worker ran out of memory")
+                              "failed, or pending after a fit whose worker ran out of memory, could not store its grid, "
+                              "or met a storage or database outage or a full disk")
     run_count: int | None
     reused: bool | None = Field(description="true when this job used a reconstruction another job had fitted")
 
