@@ -1373,6 +1373,47 @@ def _job_with_artifact(client, dataset, root, data: bytes) -> tuple[str, str]:
     return job["id"], scene["id"]
 
 
+def _job_row(owner_key_id: str = "local") -> str:
+    """A succeeded job on a ready scene, written straight to the database (no dataset, no ingest): its id."""
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, Scene
+
+    with session_scope() as session:
+        scene = Scene(owner_key_id=owner_key_id, name="s", format="nerf_synthetic", image_count=1, width=1, height=1,
+                      splits=["train"], storage_key="scenes/s/dataset.zip", size_bytes=1, sha256="0" * 64,
+                      state="ready")
+        session.add(scene)
+        session.flush()
+        job = Job(scene_id=scene.id, owner_key_id=owner_key_id, prompt="a mic", mode="global", params={},
+                  sds_model="tiny", attention_model="tiny", device="cpu", state="succeeded")
+        session.add(job)
+        session.flush()
+        return job.id
+
+
+def test_mesh_artifacts_are_served_as_their_model_types(client, root):
+    """mesh.ply had been served as application/octet-stream beside its siblings' model/gltf-binary and model/obj: a
+    browser or a viewer given the URL saw an unknown binary. No PLY type is registered; model/ply is the one 3D
+    viewers (f3d) and other services declare, in the model/ family of the others."""
+    from worker.runtime import publish_artifacts
+
+    job_id = _job_row()
+    files = {"mesh.ply": b"ply\nformat ascii 1.0\nend_header\n", "mesh.glb": b"glTF", "mesh.obj": b"v 0 0 0\n",
+             "mesh.mtl": b"newmtl m\n"}
+    for name, data in files.items():
+        (root / name).write_bytes(data)
+    publish_artifacts(job_id, [(name, root / name, "mesh") for name in files])
+    expected = {"mesh.ply": "model/ply", "mesh.glb": "model/gltf-binary", "mesh.obj": "model/obj",
+                "mesh.mtl": "model/mtl"}
+    listing = client.get(f"/v1/jobs/{job_id}/artifacts").json()
+    assert {a["name"]: a["content_type"] for a in listing} == expected
+    for name, content_type in expected.items():
+        for request in (client.get, client.head):
+            served = request(f"/v1/jobs/{job_id}/artifacts/{name}")
+            assert served.status_code == 200 and served.headers["content-type"] == content_type, (request, name)
+            assert served.headers["content-disposition"] == f'inline; filename="{name}"'
+
+
 def test_artifact_download_ranges_and_names(client, dataset, root):
     import hashlib
 

@@ -43,12 +43,12 @@ from voxe_service.storage import (Storage, StorageError, StorageUnavailable, Sto
 
 log = logging.getLogger("voxe.worker")
 
-CONTENT_TYPES = {
+CONTENT_TYPES = {  # (no PLY type is registered: model/ply is the one model/obj's family and 3D viewers use)
     ".safetensors": "application/octet-stream",
     ".png": "image/png",
     ".mp4": "video/mp4",
     ".gif": "image/gif",
-    ".ply": "application/octet-stream",
+    ".ply": "model/ply",
     ".glb": "model/gltf-binary",
     ".obj": "model/obj",
     ".mtl": "model/mtl",
