@@ -1550,6 +1550,38 @@ def test_if_match_refuses_a_replaced_artifact_with_412(client, dataset, root):
             p["name"] for p in documented[method]["parameters"]}, method
 
 
+def test_conditional_headers_read_every_line_and_refuse_a_bare_tag(client, root):
+    """An If-Match or If-None-Match sent as several lines (RFC 9110 §5.3) had been read from its first line only: the
+    current ETag on the second line got a 412, or a whole download for a 304. A bare tag (the listing's sha256, not
+    quoted as the ETag header gives it) never matched: If-Match answered 412 "it was replaced", If-None-Match the
+    whole file. Now every line counts, and an element that is not an entity tag is a 422 naming the header."""
+    from worker.runtime import publish_artifact
+
+    job_id = _job_row()
+    (root / "render_000.png").write_bytes(b"A" * 5000)
+    publish_artifact(job_id, "render_000.png", root / "render_000.png", "render")
+    url = f"/v1/jobs/{job_id}/artifacts/render_000.png"
+    etag = client.head(url).headers["etag"]
+    sha256 = client.get(f"/v1/jobs/{job_id}/artifacts").json()[0]["sha256"]
+    for request in (client.get, client.head):
+        unchanged = request(url, headers=[("If-None-Match", '"old"'), ("If-None-Match", f"W/{etag}")])
+        assert unchanged.status_code == 304, request
+        part = request(url, headers=[("Range", "bytes=4000-"), ("If-Match", '"old"'), ("If-Match", etag)])
+        assert part.status_code == 206 and part.headers["content-range"] == "bytes 4000-4999/5000", request
+        assert request(url, headers={"If-None-Match": ""}).status_code == 200  # an empty list holds no tag
+        for header, value in (("If-Match", sha256), ("If-None-Match", sha256), ("If-Match", f'"old", {sha256}'),
+                              ("If-None-Match", f'W/{sha256}'), ("If-Match", f'{etag} x')):
+            refused = request(url, headers={header: value})
+            assert refused.status_code == 422, (request, header, value)
+        assert request(url, headers={"If-Match": '*, "old"'}).status_code == 422
+    detail = client.get(url, headers={"If-Match": sha256}).json()["detail"]
+    assert detail == (f"If-Match {sha256!r} is not an entity tag: send ETags quoted, as the ETag header gives them "
+                      '("<sha256>" or W/"<sha256>"), or *')
+    assert client.get(url, headers={"If-Match": '"a,b", ' + etag}).status_code == 200  # a quoted tag may hold a comma
+    documented = client.get("/openapi.json").json()["paths"]["/v1/jobs/{job_id}/artifacts/{name}"]
+    assert all("422" in documented[method]["responses"] for method in ("get", "head"))
+
+
 def test_a_download_racing_its_artifacts_replacement_serves_the_new_bytes(client, dataset, root, monkeypatch):
     """An artifact replaced between the route's read of its row and its open of the object (the old one deleted)
     had answered 404 "missing from storage" though the next GET was 200: the row is read again once."""

@@ -11,7 +11,7 @@ from fastapi.responses import StreamingResponse
 from sqlalchemy import select
 
 from api.deps import CurrentKey, SessionDep, StorageDep
-from api.http_semantics import StrictRoute
+from api.http_semantics import StrictRoute, listed
 from api.schemas import ArtifactOut
 from api.services.jobs import get_job
 from voxe_service.models import Artifact
@@ -20,6 +20,8 @@ from voxe_service.storage import ObjectNotFound, Storage
 router = APIRouter(prefix="/v1/jobs/{job_id}/artifacts", tags=["artifacts"], route_class=StrictRoute)
 
 _RANGE = re.compile(r"^\s*(\d*)\s*-\s*(\d*)\s*$")
+_ENTITY_TAG = re.compile(r'(?:W/)?"[\x21\x23-\x7e\x80-\xff]*"')  # RFC 9110 §8.8.3 (a header's text is Latin-1)
+_LIST_ELEMENT = re.compile(r'(?:W/)?"[^"]*"|[^,]+')  # a quoted tag may hold a comma
 
 
 class ClosingStreamingResponse(StreamingResponse):
@@ -76,6 +78,26 @@ def _position(digits: str) -> int:
     return int(digits) if len(digits) <= 18 else 10**18
 
 
+def entity_tags(header: str, lines: list[str] | None) -> set[str] | None:
+    """The entity tags, or {"*"}, that an If-Match or If-None-Match lists over all its field lines (RFC 9110 §5.3: a
+    list may be sent as several lines; only the first had been read); None when it is not sent.
+
+    422 naming the header for an element that is not an entity tag: a bare tag (the listing's sha256, unquoted) had
+    never matched, so an If-Match was a 412 saying the artifact "was replaced" and an If-None-Match a whole download.
+    """
+    if lines is None:
+        return None
+    elements = [element.strip() for element in _LIST_ELEMENT.findall(",".join(lines)) if element.strip()]
+    if bad := [element for element in elements if element != "*" and not _ENTITY_TAG.fullmatch(element)]:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                            f"{header} {listed(bad, width=70)} is not an entity tag: send ETags quoted, as the ETag "
+                            'header gives them ("<sha256>" or W/"<sha256>"), or *')
+    if "*" in elements and len(elements) > 1:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                            f"{header} lists * with entity tags: * (any version) stands alone")
+    return set(elements)
+
+
 def _unsatisfiable(size: int, detail: str) -> HTTPException:
     return HTTPException(status.HTTP_416_RANGE_NOT_SATISFIABLE, detail,
                          headers={"Content-Range": f"bytes */{size}", "Accept-Ranges": "bytes"})
@@ -96,6 +118,7 @@ _DOWNLOAD = {
     404: {"description": "no such job or artifact"},
     412: {"description": "If-Match names none of the current ETag (or *): the artifact was replaced"},
     416: {"description": "range not satisfiable"},
+    422: {"description": "If-Match or If-None-Match is not * or a list of quoted entity tags (named)"},
 }
 
 
@@ -107,13 +130,15 @@ def get_artifact(
     range_: Annotated[str | None, Header(alias="Range", description="bytes=first-last, first- or -suffix")] = None,
     if_range: Annotated[str | None, Header(description="the ETag the Range's earlier bytes came from: another "
                                                        "(or a date) gets the whole file")] = None,
-    if_none_match: Annotated[str | None, Header(description="ETags held (or *): the current one gets 304")] = None,
-    if_match: Annotated[str | None, Header(description="ETags any of which the artifact must still have (or *): "
-                                                       "else 412")] = None,
+    if_none_match: Annotated[list[str] | None, Header(description="ETags held (or *): the current one gets 304")
+                             ] = None,
+    if_match: Annotated[list[str] | None, Header(description="ETags any of which the artifact must still have (or "
+                                                             "*): else 412")] = None,
 ) -> Response:
     # The session is closed before the body streams: a download had held its pooled connection (on PostgreSQL, a
     # transaction open) until its client read the last byte, and two slow ones made every other request wait.
     try:
+        held, required = entity_tags("If-None-Match", if_none_match), entity_tags("If-Match", if_match)
         get_job(session=session, key=key, job_id=job_id)
         for attempt in range(2):
             # Only names recorded for this job are served: no path is ever built from the request.
@@ -121,7 +146,7 @@ def get_artifact(
             if artifact is None:
                 raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id!r} has no artifact {name!r}")
             try:
-                return _answer(request.method, storage, artifact, range_, if_range, if_none_match, if_match)
+                return _answer(request.method, storage, artifact, range_, if_range, held, required)
             except ObjectNotFound:
                 if attempt:
                     raise HTTPException(status.HTTP_404_NOT_FOUND,
@@ -132,16 +157,17 @@ def get_artifact(
 
 
 def _answer(method: str, storage: Storage, artifact: Artifact, range_: str | None, if_range: str | None,
-            if_none_match: str | None, if_match: str | None) -> Response:
+            if_none_match: set[str] | None, if_match: set[str] | None) -> Response:
     """The artifact's answer to a GET or HEAD with these headers; ObjectNotFound when its object is not stored."""
     etag = f'"{artifact.sha256}"'
     # Strong comparison, before If-None-Match (RFC 9110 §13.1.1, §13.2.2): a download fetched in parts, each asking
     # If-Match, had been given the replaced artifact's bytes for the later parts (a spliced file) where a 412 says so.
-    if if_match is not None and not {"*", etag} & {tag.strip() for tag in if_match.split(",")}:
+    if if_match is not None and not {"*", etag} & if_match:
+        sent = listed(sorted(if_match), width=70) or "with no entity tag"
         raise HTTPException(status.HTTP_412_PRECONDITION_FAILED,
-                            f"If-Match {if_match!r} does not name artifact {artifact.name!r}'s current ETag {etag}: "
-                            "it was replaced (download it again from the start)")
-    if if_none_match is not None and {"*", etag} & {tag.strip().removeprefix("W/") for tag in if_none_match.split(",")}:
+                            f"If-Match {sent} does not name artifact {artifact.name!r}'s current ETag {etag}: it was "
+                            "replaced (download it again from the start)")
+    if if_none_match is not None and {"*", etag} & {tag.removeprefix("W/") for tag in if_none_match}:
         return Response(status_code=status.HTTP_304_NOT_MODIFIED, headers={"ETag": etag})  # (weak comparison)
     if if_range is not None and if_range.strip() != etag:  # strong comparison; a date never matches (no Last-Modified)
         range_ = None
