@@ -283,14 +283,20 @@ def mark_replayed(response: Response) -> None:
 def idempotency_key(value: Annotated[str | None, Header(
         alias=IDEMPOTENCY_HEADER, json_schema_extra={"minLength": 1, "maxLength": 255, "pattern": r"\S"},
         description="a retry with the same key and body answers 200 with what the first request created")] = None,
+        lines: Annotated[list[str] | None, Header(alias=IDEMPOTENCY_HEADER, include_in_schema=False)] = None,
         ) -> str | None:
-    """The request's Idempotency-Key header (422 when blank, longer than 255 characters, or not UTF-8).
+    """The request's Idempotency-Key header (422 when blank, longer than 255 characters, not UTF-8, or sent more
+    than once: the first line had silently counted, where a proxy or the client's own retry logic may take the last).
 
     Counted in characters, as the README and the schema's ``maxLength`` say: the server reads a header's bytes as
-    Latin-1, one character per byte, and had refused a key of 200 "é" as 400 characters long.
+    Latin-1, one character per byte, and had refused a key of 200 "é" as 400 characters long. ``lines``: every line
+    of the header (``value`` documents it).
     """
     if value is None:
         return None
+    if lines is not None and len(lines) > 1:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                            f"{IDEMPOTENCY_HEADER} header sent more than once: send one key")
     try:
         value = value.encode("latin-1").decode("utf-8").strip()
     except UnicodeDecodeError:

@@ -1379,8 +1379,8 @@ def _job_row(owner_key_id: str = "local") -> str:
     from voxe_service.models import Job, Scene
 
     with session_scope() as session:
-        scene = Scene(owner_key_id=owner_key_id, name="s", format="nerf_synthetic", image_count=1, width=1, height=1,
-                      splits=["train"], storage_key="scenes/s/dataset.zip", size_bytes=1, sha256="0" * 64,
+        scene = Scene(owner_key_id=owner_key_id, name="s", format="nerf_synthetic", image_count=3, width=800,
+                      height=800, splits=["train"], storage_key="scenes/s/dataset.zip", size_bytes=1, sha256="0" * 64,
                       state="ready")
         session.add(scene)
         session.flush()
@@ -1548,6 +1548,22 @@ def test_if_match_refuses_a_replaced_artifact_with_412(client, dataset, root):
     for method in ("get", "head"):
         assert "412" in documented[method]["responses"] and "if-match" in {
             p["name"] for p in documented[method]["parameters"]}, method
+
+
+def test_an_idempotency_key_sent_twice_is_a_422_and_creates_nothing(client):
+    """Two Idempotency-Key lines had created the job under the first, silently: a retry through a proxy keeping the
+    last (or the client's own retry logic adding another) then made a second job."""
+    scene_id = client.get(f"/v1/jobs/{_job_row()}").json()["scene_id"]
+    body = json.dumps({"scene_id": scene_id, **JOB}).encode()
+    for path in ("/v1/jobs", "/v1/sweeps"):
+        sent = {"/v1/jobs": body, "/v1/sweeps": json.dumps({"scenes": [{"scene_id": scene_id, "object": "mic"}]})}
+        response = client.post(path, content=sent[path], headers=[("Content-Type", "application/json"),
+                                                                   ("Idempotency-Key", "a"), ("Idempotency-Key", "b")])
+        assert response.status_code == 422, (path, response.text)
+        assert response.json()["detail"] == "Idempotency-Key header sent more than once: send one key"
+    assert client.get("/v1/jobs").json()["total"] == 1  # only _job_row's
+    assert client.post("/v1/jobs", content=body, headers={"Content-Type": "application/json",
+                                                          "Idempotency-Key": "a"}).status_code == 201
 
 
 def test_conditional_headers_read_every_line_and_refuse_a_bare_tag(client, root):
