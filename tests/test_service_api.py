@@ -1550,6 +1550,23 @@ def test_if_match_refuses_a_replaced_artifact_with_412(client, dataset, root):
             p["name"] for p in documented[method]["parameters"]}, method
 
 
+def test_a_416_names_a_long_range_cut_short(client, root):
+    """A Range of thousands of digits had come back whole in the 416's message (as long as the server's header
+    limit allows)."""
+    from worker.runtime import publish_artifact
+
+    job_id = _job_row()
+    (root / "render_000.png").write_bytes(b"A" * 5000)
+    publish_artifact(job_id, "render_000.png", root / "render_000.png", "render")
+    url = f"/v1/jobs/{job_id}/artifacts/render_000.png"
+    for header in ("bytes=" + "1" * 5000 + "-", "bytes=" + "x" * 5000, "bytes=-0" + "0" * 5000):
+        refused = client.get(url, headers={"Range": header})
+        assert refused.status_code == 416 and len(refused.json()["detail"]) < 120, header[:20]
+        assert repr(header[:60] + "...") in refused.json()["detail"]
+    assert client.get(url, headers={"Range": "bytes=9000-"}).json()["detail"] == (
+        "range 'bytes=9000-' is outside the 5000-byte file")
+
+
 def test_an_idempotency_key_sent_twice_is_a_422_and_creates_nothing(client):
     """Two Idempotency-Key lines had created the job under the first, silently: a retry through a proxy keeping the
     last (or the client's own retry logic adding another) then made a second job."""

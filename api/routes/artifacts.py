@@ -48,9 +48,11 @@ def artifact_out(job_id: str, artifact: Artifact) -> ArtifactOut:
 
 
 def parse_range(header: str | None, size: int) -> tuple[int, int] | None:
-    """(first, last) inclusive for a single ``bytes=`` range; None to send the whole file; 416 when unsatisfiable."""
+    """(first, last) inclusive for a single ``bytes=`` range; None to send the whole file; 416 when unsatisfiable,
+    naming the range cut short (a header of thousands of digits had come back whole in the message)."""
     if not header:
         return None
+    sent = listed([header], width=60)
     unit, _, spec = header.partition("=")
     if unit.strip().lower() != "bytes":
         return None  # unknown unit: ignore the header (RFC 9110 §14.2)
@@ -58,17 +60,17 @@ def parse_range(header: str | None, size: int) -> tuple[int, int] | None:
         return None  # several ranges: answer with the whole file (allowed by RFC 9110)
     match = _RANGE.match(spec)
     if not match or (not match.group(1) and not match.group(2)):
-        raise _unsatisfiable(size, f"malformed range {header!r}")
+        raise _unsatisfiable(size, f"malformed range {sent}")
     first, last = match.group(1), match.group(2)
     if not first:  # suffix: the last N bytes
         n = _position(last)
         if n == 0 or size == 0:
-            raise _unsatisfiable(size, f"empty suffix range {header!r}")
+            raise _unsatisfiable(size, f"empty suffix range {sent}")
         return max(0, size - n), size - 1
     start = _position(first)
     end = _position(last) if last else size - 1
     if start >= size or end < start:
-        raise _unsatisfiable(size, f"range {header!r} is outside the {size}-byte file")
+        raise _unsatisfiable(size, f"range {sent} is outside the {size}-byte file")
     return start, min(end, size - 1)
 
 
