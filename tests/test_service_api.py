@@ -1475,6 +1475,21 @@ def test_head_answers_wherever_get_does_with_its_headers_and_no_body(client, dat
     assert refused.status_code == 405 and refused.headers["allow"] == "OPTIONS, POST"
 
 
+def test_the_event_stream_is_negotiated_by_the_accept_media_type_and_its_weight(client):
+    """text/event-stream had been found in Accept as a substring: ``text/event-stream;q=0`` (anything but a stream)
+    got a stream, and ``Text/Event-Stream`` (media types are case-insensitive) the JSON timeline."""
+    url = f"/v1/jobs/{_job_row()}/events"
+    for accept, streamed in (("text/event-stream", True), ("Text/Event-Stream", True),
+                             ("application/json, text/event-stream; q=0.5", True),
+                             ("text/event-stream;q=0, application/json", False), ("text/event-stream; Q=0.000", False),
+                             ("text/event-streams", False), ("*/*", False)):
+        response = client.get(url, headers={"Accept": accept})
+        assert response.status_code == 200, accept
+        assert response.headers["content-type"].startswith("text/event-stream") is streamed, accept
+    split = client.get(url, headers=[("Accept", "application/json"), ("Accept", "text/event-stream")])
+    assert split.headers["content-type"].startswith("text/event-stream")
+
+
 def _replace_artifact(job_id: str, data: bytes) -> None:
     """Replace the job's render_000.png as the worker's publish_artifact does (a republished preview): the bytes under
     a new key, the row switched to it, the old object deleted."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Header, HTTPException, Query, Request, Response, status
@@ -161,13 +162,27 @@ def list_events(job_id: str, request: Request, session: SessionDep, key: Current
                 last_event_id: Annotated[str | None, Header(description="stream: resume after this event id")] = None,
                 ) -> list[JobEventOut] | StreamingResponse:
     jobs.get_job(session=session, key=key, job_id=job_id)
-    if SSE_MEDIA_TYPE in request.headers.get("accept", ""):
+    if wants_stream(request.headers.getlist("accept")):
         after = _event_id(last_event_id)
         session.close()  # the stream reads through the hub's short sessions: hold no connection meanwhile
         return StreamingResponse(request.app.state.event_hub.stream(job_id, key.id, after), media_type=SSE_MEDIA_TYPE,
                                  headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
     rows = session.scalars(select(JobEvent).where(JobEvent.job_id == job_id).order_by(JobEvent.id))
     return [JobEventOut.model_validate(e, from_attributes=True) for e in rows]
+
+
+def wants_stream(accept: list[str]) -> bool:
+    """Whether an Accept (all its lines) names text/event-stream, in any case (RFC 9110 §8.3.1), with a q above 0.
+
+    It had been found as a substring: ``text/event-stream;q=0`` (anything but a stream) got a stream open until the
+    job ends, and ``Text/Event-Stream`` the JSON timeline.
+    """
+    for media_range in ",".join(accept).split(","):
+        media_type, *params = (part.strip().lower() for part in media_range.split(";"))
+        if media_type == SSE_MEDIA_TYPE:
+            weights = [value.strip() for name, _, value in (p.partition("=") for p in params) if name.strip() == "q"]
+            return not (weights and re.fullmatch(r"0(\.0{0,3})?", weights[0]))
+    return False
 
 
 def _event_id(value: str | None) -> int:
