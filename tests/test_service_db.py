@@ -222,6 +222,43 @@ def test_api_replicas_starting_at_once_migrate_a_fresh_database_one_after_anothe
     command.check(alembic_config(database_url))
 
 
+def test_ply_artifacts_recorded_as_octet_stream_get_their_model_type_and_back(database_url):
+    """0016 gives PLY artifacts recorded before the worker named their type model/ply, as it records them now; other
+    artifacts keep theirs; downgrading gives the PLY ones back octet-stream."""
+    from alembic import command
+    from sqlalchemy import text
+
+    from service_helpers import database_at
+
+    config, engine = database_at(
+        database_url, "0015_owner_index_prefix",
+        "INSERT INTO scenes (id, owner_key_id, name, format, image_count, width, height, splits, storage_key, "
+        "size_bytes, sha256, state, created_at, updated_at) VALUES ('s1', 'local', 'old', 'nerf_synthetic', 3, 8, "
+        "8, '[\"train\"]', 'scenes/s1/dataset.zip', 10, 'x', 'ready', '2026-01-01 00:00:00+00', "
+        "'2026-01-01 00:00:00+00')",
+        "INSERT INTO jobs (id, scene_id, owner_key_id, prompt, mode, edit_words, params, sds_model, attention_model, "
+        "device, state, iteration, total, losses, cancel_requested, completed_stages, requeues, created_at, "
+        "updated_at) VALUES ('j1', 's1', 'local', 'a mic', 'global', '[]', '{}', 'tiny', 'tiny', 'cpu', 'succeeded', "
+        "0, 0, '{}', false, '[]', 0, '2026-01-01 00:00:00+00', '2026-01-01 00:00:00+00')")
+    recorded = {"mesh.ply": "application/octet-stream", "UPPER.PLY": "application/octet-stream",
+                "mesh.obj": "model/obj", "grid.safetensors": "application/octet-stream"}
+    with engine.begin() as conn:
+        conn.execute(text("INSERT INTO artifacts (job_id, name, key, size, content_type, sha256, kind, created_at) "
+                          "VALUES ('j1', :name, :name, 1, :type, 'x', 'mesh', '2026-01-01 00:00:00+00')"),
+                     [{"name": name, "type": kind} for name, kind in recorded.items()])
+
+    def types() -> dict[str, str]:
+        with engine.connect() as conn:
+            return dict(conn.execute(text("SELECT name, content_type FROM artifacts")).all())
+
+    command.upgrade(config, "head")
+    assert types() == {**recorded, "mesh.ply": "model/ply", "UPPER.PLY": "model/ply"}
+    command.check(config)
+    command.downgrade(config, "0015_owner_index_prefix")
+    assert types() == recorded
+    engine.dispose()
+
+
 def test_jobs_of_0004_upgrade_to_webhooks_off_and_back(database_url):
     """0005 adds the webhook columns (NULL: no webhook) and the deliveries outbox; downgrading drops them."""
     from alembic import command
