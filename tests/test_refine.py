@@ -990,6 +990,32 @@ def test_a_mask_file_claiming_another_grid_is_refused_before_its_voxels_are_allo
     assert load_mask(path, (16, 16, 16)).all()
 
 
+def test_a_probability_file_claiming_another_grid_or_damaged_is_refused_before_its_grids_are_allocated(tmp_path):
+    """As a mask file is: a 300-byte file claiming 1290³ voxels had allocated two 8.6 GB float grids and a 2 GB
+    mask, with no way to say which grid it must fit; a damaged 'object' was found after 'edit''s grid was made."""
+    path = tmp_path / "probabilities.safetensors"
+    one = {"indices": torch.tensor([3], dtype=torch.int32), "edit": torch.tensor([0.5]), "object": torch.tensor([0.5])}
+    save_tensors(path, {**one, "shape": torch.tensor([1290] * 3)}, kind="attention_probabilities", version=1, meta={})
+    damaged = tmp_path / "damaged.safetensors"
+    save_tensors(damaged, {**one, "shape": torch.tensor([16] * 3), "object": torch.tensor([2.0])},
+                 kind="attention_probabilities", version=1, meta={})
+    allocations = []
+    real_zeros = torch.zeros
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(torch, "zeros", lambda *a, **k: allocations.append(a) or real_zeros(*a, **k))
+        with pytest.raises(FormatError, match=r"probabilities of a grid of \(1290, 1290, 1290\) voxels, where "
+                                              r"\(16, 16, 16\) was expected"):
+            load_probabilities(path, (16, 16, 16))
+        with pytest.raises(FormatError, match=r"'object' holds values outside \[0, 1\]"):
+            load_probabilities(damaged, (16, 16, 16))
+    assert allocations == []
+    where = torch.zeros(16, 16, 16, dtype=torch.bool)
+    where[1, 2, 3] = True
+    save_probabilities(path, torch.full(where.shape, 0.25), torch.full(where.shape, 0.75), where)
+    edit, object_, stored = load_probabilities(path, (16, 16, 16))
+    assert torch.equal(stored, where) and float(edit.sum()) == 0.25 and float(object_.sum()) == 0.75
+
+
 def test_renders_grey_attention_and_red_mask(make_sphere_grid):
     grid = make_sphere_grid(16)
     with torch.no_grad():
