@@ -785,6 +785,22 @@ def test_bad_option_values_exit_2(tmp_path, capsys):
                 capsys.readouterr().err
 
 
+@pytest.mark.parametrize("text, message", [
+    ('{"a": ' * 5000 + "1" + "}" * 5000, "its arrays or objects nest too deeply"),  # had been a RecursionError
+    # had been argparse's "invalid _json_object value: '{...}'", quoting the whole text
+    ('{"a": ' + "9" * 5000 + "}", f"a number has more than {sys.get_int_max_str_digits()} digits"),
+    ('{"a": 1', "not JSON: Expecting ',' delimiter"),
+])
+def test_json_options_json_loads_refuses_are_usage_errors_saying_why(text, message, capsys):
+    """``--params`` and ``--evaluation``, refused before any request: one usage line, exit 2, no traceback."""
+    for command in (["submit", "p", "--scene", "s1"], ["sweep", "--scene", "s1=mic"]):
+        flag = "--params" if command[0] == "submit" else "--evaluation"
+        with pytest.raises(SystemExit) as exc:
+            main([*command, "--api", "http://127.0.0.1:9", flag, text])
+        err = capsys.readouterr().err
+        assert exc.value.code == 2 and f"argument {flag}: " in err and message in err and len(err) < 1000
+
+
 @pytest.mark.parametrize("command,flag", [
     (["edit", "g", "--prompt", "p", "--out", "o"], flag) for flag in ("--iterations", "--checkpoint-every",
                                                                       "--preview-every")] + [

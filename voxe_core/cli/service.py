@@ -30,10 +30,18 @@ def _scene_object(text: str) -> dict:
 
 
 def _json_object(text: str) -> dict:
+    """``--params`` and ``--evaluation``: a JSON object, or a usage error saying why not (nesting past the recursion
+    limit had escaped argparse as a RecursionError traceback, and a number past Python's int-string limit had been
+    "invalid _json_object value" quoting the whole text)."""
     try:
         value = json.loads(text)
     except json.JSONDecodeError as exc:
         raise argparse.ArgumentTypeError(f"not JSON: {exc}") from None
+    except RecursionError:
+        raise argparse.ArgumentTypeError("not JSON this command reads: its arrays or objects nest too deeply") from None
+    except ValueError:  # json.loads' only other ValueError: int() past the int-string limit
+        raise argparse.ArgumentTypeError(f"not JSON this command reads: a number has more than "
+                                         f"{sys.get_int_max_str_digits()} digits") from None
     if not isinstance(value, dict):
         raise argparse.ArgumentTypeError(f"expected a JSON object, got {text!r}")
     return value
