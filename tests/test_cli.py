@@ -1340,6 +1340,7 @@ def test_export_mesh_errors_exit_2(sphere_file, tmp_path, capsys):
 @pytest.mark.parametrize("name, content, message", [
     ("gone.obj", None, "gone.obj: no such file"),  # trimesh: "string is not a file: `<the full path>`"
     ("folder.ply", "folder", "folder.ply: is a folder, not a mesh file"),
+    ("pipe.obj", "fifo", "pipe.obj: is a FIFO (named pipe), not a regular file"),  # "no such file"; trimesh waits
     ("cut.ply", "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\n",  # "list index out of range"
      "cut.ply: its header has no end_header line: it is truncated, or not a PLY file"),
     ("faces.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 4\n",  # "index 3 is out of bounds for axis 0 with size 3"
@@ -1349,6 +1350,8 @@ def test_export_mesh_errors_exit_2(sphere_file, tmp_path, capsys):
 def test_mesh_to_grid_says_what_is_wrong_with_its_mesh_in_one_line(tmp_path, capsys, name, content, message):
     if content == "folder":
         (tmp_path / name).mkdir()
+    elif content == "fifo":
+        os.mkfifo(tmp_path / name)
     elif content is not None:
         (tmp_path / name).write_text(content)
     assert main(["mesh-to-grid", str(tmp_path / name), "--out", str(tmp_path / "g.safetensors")]) == 2

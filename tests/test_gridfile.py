@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import json
+import os
 import signal
 from pathlib import Path
 
@@ -364,6 +365,17 @@ def test_a_folder_given_as_a_grid_file_is_named_a_folder(tmp_path):
     with pytest.raises(FormatError) as error:  # it had been "no such file", of a path that is there
         load_grid(tmp_path)
     assert str(error.value) == f"{tmp_path}: is a folder, not a file"
+
+
+def test_a_fifo_or_device_given_as_a_grid_file_is_named_what_it_is(tmp_path):
+    """They had been "no such file", of a path that is there: the refusal says what it is, before anything opens it
+    (a reader that opened the FIFO would wait for a writer)."""
+    fifo = tmp_path / "grid.safetensors"
+    os.mkfifo(fifo)
+    for path, what in ((fifo, "a FIFO (named pipe)"), (Path(os.devnull), "a character device")):
+        with pytest.raises(FormatError) as error:
+            load_grid(path)
+        assert str(error.value) == f"{path}: is {what}, not a regular file"
 
 
 def test_dense_tensors_keeps_the_stored_dtype_and_other_tensors():

@@ -4,9 +4,35 @@ the final name, nor destroys the one already there."""
 from __future__ import annotations
 
 import os
+import stat
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+
+SPECIAL_FILES = ((stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISSOCK, "a socket"),
+                 (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"))
+"""What a path that is neither a regular file nor a folder is, by its mode."""
+
+
+def unreadable_file(path: str | os.PathLike, kind: str = "a file") -> str | None:
+    """Why ``path`` is no regular file this process can read, in the words a refusal after the path gives ("no such
+    file", "is a folder, not ``kind``", "is a FIFO (named pipe), not a regular file", "cannot be read: permission
+    denied"); None when it is one. A FIFO, socket or device had been "no such file", of a path that is there (and
+    a reader that opened a FIFO would wait for a writer that never comes)."""
+    try:
+        mode = os.stat(path).st_mode
+    except (FileNotFoundError, NotADirectoryError):
+        return "no such file"
+    except OSError as exc:  # a folder on the way without search permission, a symlink loop, a name too long
+        return f"cannot be read: {exc.strerror.lower() if exc.strerror else exc}"
+    if stat.S_ISDIR(mode):
+        return f"is a folder, not {kind}"
+    if not stat.S_ISREG(mode):
+        what = next((name for is_it, name in SPECIAL_FILES if is_it(mode)), "no regular file")
+        return f"is {what}, not a regular file"
+    if not os.access(path, os.R_OK):
+        return "cannot be read: permission denied"
+    return None
 
 
 @contextmanager

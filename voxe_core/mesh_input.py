@@ -52,6 +52,7 @@ import torch.nn.functional as F
 from voxe_core.cameras import Cameras, random_hemisphere_poses
 from voxe_core.constants import FLOAT32_MAX, NERF_SYNTHETIC_FOV_X, NERF_SYNTHETIC_RADIUS
 from voxe_core.data import PixelScaleError, image_pixels
+from voxe_core.files import unreadable_file
 from voxe_core.grid import DEFAULT_BOX, VoxelGrid
 from voxe_core.ply_header import is_numbers, ply_fault
 
@@ -259,12 +260,8 @@ def _check_readable(path: Path, kind: str) -> None:
     """Raises a MeshError naming ``path`` unless it is a readable file with something in it: trimesh had said "string
     is not a file: `<the full path>`" of a mesh that is not there or a folder, Pillow "[Errno 2] No such file or
     directory: '<the full path>'" of a texture (a worker's scratch path, in a service's error)."""
-    if path.is_dir():
-        raise MeshError(f"{path.name}: is a folder, not {kind}")
-    if not path.is_file():
-        raise MeshError(f"{path.name}: no such file")
-    if not os.access(path, os.R_OK):
-        raise MeshError(f"{path.name}: cannot be read: permission denied")
+    if problem := unreadable_file(path, kind):  # (a FIFO had been "no such file", and trimesh would wait on it)
+        raise MeshError(f"{path.name}: {problem}")
     if path.stat().st_size == 0:
         raise MeshError(f"{path.name}: the file is empty")
 

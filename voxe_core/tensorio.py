@@ -18,7 +18,7 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
-from voxe_core.files import replacing
+from voxe_core.files import replacing, unreadable_file
 
 HEADER_KEY = "voxe"
 OS_ERROR_NUMBER = re.compile(r"\(os error (\d+)\)")
@@ -93,12 +93,8 @@ def load_header(path: str | os.PathLike, kind: str, max_version: int) -> dict:
     there that the tensors' declared offsets cover the file exactly, so a truncated or padded file fails here as in
     :func:`load_tensors`."""
     path = Path(path)
-    if path.is_dir():  # (it had been "no such file", of a path that is there)
-        raise FormatError(f"{path}: is a folder, not a file")
-    if not path.is_file():
-        raise FormatError(f"{path}: no such file")
-    if not os.access(path, os.R_OK):  # (safetensors had said "No such file or directory" of it)
-        raise FormatError(f"{path}: cannot be read: permission denied")
+    if problem := unreadable_file(path):  # (safetensors had said "No such file or directory" of an unreadable one)
+        raise FormatError(f"{path}: {problem}")
     try:
         from safetensors import safe_open
 
