@@ -229,6 +229,55 @@ def test_an_evaluation_model_that_fails_to_load_is_blamed_on_the_apis_setting(ro
     assert "The worker reads this model" not in str(failed.value)
 
 
+def test_a_worker_keeps_one_evaluation_model_of_each_kind_loaded(root, monkeypatch):
+    """Each (kind, model, device) had stayed loaded for the worker's life: evaluations with several CLIP and FID
+    models kept every one. Now the last of each kind stays; one of another model or device replaces it, let go
+    before the new one loads (two were never needed at once)."""
+    import gc
+    import weakref
+
+    from voxe_core.evaluate import ClipScorer, InceptionFeatures
+    from voxe_service.settings import get_settings
+    from worker import evaluation
+
+    class Model:
+        def __init__(self, kind, name, device):
+            self.kind, self.name, self.device = kind, name, device
+
+    loads, alive = [], []
+
+    def load(kind):
+        def loader(path, device=None):
+            alive.append(sum(ref() is not None for ref in refs))  # models of any kind still alive as this loads
+            loads.append((kind, path, device))
+            model = Model(kind, path, device)
+            refs.append(weakref.ref(model))
+            return model
+        return staticmethod(loader)
+
+    refs = []
+    monkeypatch.setattr(evaluation, "_SCORERS", {})
+    monkeypatch.setattr(ClipScorer, "from_pretrained", load("clip"))
+    monkeypatch.setattr(InceptionFeatures, "load", load("fid"))
+    settings = get_settings()
+    clip_a = evaluation._scorer("clip", "clip-a", "cpu", settings)
+    fid_a = evaluation._scorer("fid", "/models/fid-a.pt", "cpu", settings)
+    assert evaluation._scorer("clip", "clip-a", "cpu", settings) is clip_a  # the same model: not loaded again
+    assert evaluation._scorer("fid", "/models/fid-a.pt", "cpu", settings) is fid_a
+    first = weakref.ref(clip_a)
+    del clip_a
+    clip_b = evaluation._scorer("clip", "clip-b", "cpu", settings)
+    gc.collect()
+    assert first() is None and alive[-1] == 1  # clip-a let go before clip-b loaded; fid-a kept
+    assert evaluation._scorer("fid", "/models/fid-a.pt", "cpu", settings) is fid_a
+    evaluation._scorer("clip", "clip-b", "meta", settings)  # another device is another model to hold
+    assert loads == [("clip", "clip-a", "cpu"), ("fid", "/models/fid-a.pt", "cpu"), ("clip", "clip-b", "cpu"),
+                     ("clip", "clip-b", "meta")]
+    del clip_b
+    gc.collect()
+    assert sum(ref() is not None for ref in refs) == 2 and len(evaluation._SCORERS) == 2
+
+
 def heartbeat_row(until=lambda beat: True) -> dict:
     """The worker's heartbeat row once written and ``until(row)`` holds (within 5 s)."""
     from voxe_service.db import session_scope

@@ -24,7 +24,9 @@ from worker.runtime import StageCallbacks
 
 log = logging.getLogger("voxe.worker")
 
-_SCORERS: dict[tuple[str, str, str], object] = {}  # one loaded model per (kind, model, device) per process
+_SCORERS: dict[str, tuple[tuple[str, str], object]] = {}
+"""The scorer last loaded of each kind ('clip', 'fid') with its (model, device): one of each per process. Every
+(kind, model, device) had stayed loaded, so a worker evaluating with several CLIP or FID models kept them all."""
 
 
 class EvaluationFailed(RuntimeError):
@@ -48,21 +50,28 @@ def _scorer(kind: str, model: str, device: str, settings: Settings):
     from voxe_core.evaluate import ClipScorer, InceptionFeatures
     from voxe_core.guidance.loading import ModelNotAvailableError
 
-    key = (kind, model, device)
-    if key not in _SCORERS:
-        try:
-            if kind == "clip":
-                path = model
-                if model == TINY_MODEL:
-                    from voxe_core.tiny_eval import build_tiny_clip
+    loaded = _SCORERS.get(kind)
+    if loaded is not None and loaded[0] == (model, device):
+        return loaded[1]
+    if loaded is not None:  # let go before the next one loads: two had been held at once
+        del _SCORERS[kind]
+        log.info("freeing %s model %s on %s", kind, *loaded[0])
+        del loaded
+        runtime.give_back_freed_memory()
+    try:
+        if kind == "clip":
+            path = model
+            if model == TINY_MODEL:
+                from voxe_core.tiny_eval import build_tiny_clip
 
-                    path = str(runtime.build_once(settings, "tiny-clip", "config.json", build_tiny_clip))
-                _SCORERS[key] = ClipScorer.from_pretrained(path, device=device)
-            else:
-                _SCORERS[key] = InceptionFeatures.load(fid_model_path(model, settings), device=device)
-        except ModelNotAvailableError as exc:
-            raise EvaluationFailed(f"evaluate: {exc}. {submission_note(kind)}.") from exc
-    return _SCORERS[key]
+                path = str(runtime.build_once(settings, "tiny-clip", "config.json", build_tiny_clip))
+            scorer = ClipScorer.from_pretrained(path, device=device)
+        else:
+            scorer = InceptionFeatures.load(fid_model_path(model, settings), device=device)
+    except ModelNotAvailableError as exc:
+        raise EvaluationFailed(f"evaluate: {exc}. {submission_note(kind)}.") from exc
+    _SCORERS[kind] = ((model, device), scorer)
+    return scorer
 
 
 def _sources(job: Job) -> list[Job]:

@@ -1122,12 +1122,17 @@ def get_guidance(model: str, device: str, settings: Settings, job_id: str | None
 
 def _free_least_recent_guidance() -> None:
     """Drop the least recently used guidance and give its memory back (on CUDA, the allocator's cache too)."""
+    model, device = _GUIDANCE_CACHE.popitem(last=False)[0]  # the guidance itself kept by no name here
+    log.info("freeing guidance model %s on %s", model, device)
+    give_back_freed_memory()
+
+
+def give_back_freed_memory() -> None:
+    """Collect the reference cycles of models just let go, then (on CUDA) give the allocator's cached blocks back."""
     import gc
 
     import torch
 
-    model, device = _GUIDANCE_CACHE.popitem(last=False)[0]  # the guidance itself kept by no name here
-    log.info("freeing guidance model %s on %s", model, device)
     gc.collect()  # the modules' reference cycles, before the allocator can give their blocks back
     if torch.cuda.is_initialized():
         torch.cuda.empty_cache()
