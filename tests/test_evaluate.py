@@ -504,6 +504,27 @@ def test_many_masked_edits_hold_no_footprint_stand_in_between_steps(sphere_grid,
     assert len({row["kept_fraction"] for row in rows}) == len(masks)  # six footprints, each edit scored on its own
 
 
+def test_an_edits_grid_is_on_the_render_device_only_while_its_view_renders(sphere_grid, tiny_clip_path):
+    """Regression: view-major, each edit's grid moved to the render device at its first view and stayed there with
+    its occupancy to the end, all of them at once (~70 MB a grid at 160³: 4 GB for 60 edits). Each view of an edit
+    is now rendered from a grid on the device and its occupancy, both let go before the next: at any step at most
+    G_i's occupancy and the one edit's being rendered are alive, however many edits; the grids given are not moved.
+    """
+    import gc
+
+    from voxe_core.grid import Occupancy
+
+    clip = ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")
+    edited, _ = _local_edit(sphere_grid)
+    edits = [EditSample(f"e{k}", "a blue ball", edited) for k in range(5)]
+    features = edited.flat_features
+    alive = []
+    evaluate(sphere_grid, edits, "ball", clip, None, None, EvaluateConfig(views=3, size=16),
+             Callbacks(on_progress=lambda report: alive.append(sum(type(o) is Occupancy for o in gc.get_objects()))))
+    assert len(alive) > len(edits) * 3 and max(alive) <= 2, alive  # it had been 1 + 5
+    assert edited.flat_features is features
+
+
 def _after_the_last_ring_render(reports) -> bool:
     return sum(r.info["stage"] == "ring renders" for r in reports) == 3 * 4
 

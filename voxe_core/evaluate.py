@@ -493,11 +493,12 @@ def evaluate(
     ``on_ring(name, i, render)`` gets each ring render (H, W, 3), to save it, in that order: view 0 of
     ``initial`` (name None), view 0 of each edit in ``edits``' order, then view 1 of ``initial``, and so on.
 
-    The ring renders (and the masks' footprints) run on ``device`` (None: where
-    ``initial`` is); each grid moves there once. The scorers run where they were
-    loaded. A ring render with a NaN or infinite pixel (a diverged grid) is a
-    ValueError naming the grid, as are two edits of one name and, before any render, a masked edit whose grid or
-    mask does not fit ``initial``'s vertices and a source text or prompt longer than CLIP's text model reads.
+    The ring renders (and the masks' footprints) run on ``device`` (None: where ``initial`` is); ``initial`` moves
+    there once, each edit's grid is there only while one of its views renders (:func:`_views_one_at_a_time`; the
+    grid given stays where it is). The scorers run where they were loaded. A ring render with a NaN or infinite
+    pixel (a diverged grid) is a ValueError naming the grid, as are two edits of one name and, before any render,
+    a masked edit whose grid or mask does not fit ``initial``'s vertices and a source text or prompt longer than
+    CLIP's text model reads.
     Progress: ("evaluate", i, :func:`evaluation_steps`), one step per view rendered, footprinted or scored, info
     carrying the pass ("stage") and the peak memory so far; cancellation is checked before each of them.
     """
@@ -550,8 +551,12 @@ def evaluate(
         return batch_done
 
     def ring(grid: VoxelGrid, label: str) -> Iterator[torch.Tensor]:
+        """``grid``'s ring on ``device``: ``initial``, rendered every view, kept there; an edit's grid only while
+        its view renders (:func:`_views_one_at_a_time`)."""
         cameras = turntable_cameras(config.views, config.elevation, config.size, centre=centre)
-        for i, view in enumerate(iter_views(grid, cameras, callbacks=per_view("ring renders"), device=device)):
+        views = (iter_views if grid is initial else _views_one_at_a_time)(
+            grid, cameras, callbacks=per_view("ring renders"), device=device)
+        for i, view in enumerate(views):
             yield _finite_view(view, label, i, config.views)
 
     texts = clip.text_embeddings([source] + [edit_prompt(e.prompt) for e in edits])  # a text too long: before renders
@@ -594,6 +599,19 @@ def evaluate(
                                 else None)
         rows.append(row | kept[k].result())
     return Evaluation(rows)
+
+
+def _views_one_at_a_time(grid: VoxelGrid, cameras, callbacks: Callbacks,
+                         device: torch.device) -> Iterator[torch.Tensor]:
+    """:func:`iter_views` of ``grid``, which stays where it is: each view is rendered from a grid on ``device``
+    sharing its box and backbone (its features, not copied where they are there already) with its occupancy, both
+    let go before the view is yielded. :func:`evaluate` goes view-major, so each edit's grid had moved to the device
+    at its first view and stayed there, with its occupancy, to the end: all of them at once (~70 MB a grid at 160³,
+    4 GB for 60 edits); now one is there at a time, copied there again for each view."""
+    for i in range(len(cameras)):
+        [view] = iter_views(grid.like(grid.features.detach().to(device)), cameras[i], callbacks=callbacks,
+                            device=device)
+        yield view
 
 
 def _finite_view(view: torch.Tensor, label: str, i: int, views: int) -> torch.Tensor:
