@@ -378,6 +378,26 @@ def test_a_fifo_or_device_given_as_a_grid_file_is_named_what_it_is(tmp_path):
         assert str(error.value) == f"{path}: is {what}, not a regular file"
 
 
+@pytest.mark.parametrize("backbone, change, message", [
+    # a dense file's header resolution had gone unread: a grid of another size loaded
+    ("relu_field", {"resolution": [32, 32, 32]}, r"its header's resolution \[32, 32, 32\] is not its features' "
+                                                 r"\[8, 8, 8\]$"),
+    # torch's words had been the message: "shape '[4, 4]' is invalid for input of size 3", "too many dimensions 'str'"
+    ("scene", {"frame": [1, 0, 0]}, r"frame must be 16 numbers \(a 4x4 matrix\), got \[1, 0, 0\]$"),
+    ("scene", {"frame": ["a"] * 16}, r"frame must be 16 numbers \(a 4x4 matrix\), got \['a', "),
+])
+def test_a_dense_header_that_contradicts_its_tensors_is_refused_naming_the_field(tmp_path, backbone, change, message):
+    from voxe_core.backbones import BACKBONES
+
+    path = tmp_path / "grid.safetensors"
+    BACKBONES[backbone](8).save(path, dense=True)
+    tensors, meta = load_tensors(path, kind="voxel_grid", max_version=2)
+    save_tensors(path, tensors, kind="voxel_grid", version=2, meta={**meta, **change})
+    with pytest.raises(FormatError, match=message) as error:
+        load_grid(path)
+    assert str(error.value).startswith(f"{path}: damaged grid: ")
+
+
 def test_dense_tensors_keeps_the_stored_dtype_and_other_tensors():
     features = torch.randn(5, 5, 5, 4)
     cells = torch.zeros(4, 4, 4, dtype=torch.bool)

@@ -315,7 +315,10 @@ def _similarity(frame) -> torch.Tensor:
     ``apply_frame`` moved with it was NaN."""
     if isinstance(frame, torch.Tensor) and frame.dtype == torch.bool or _holds_a_bool(frame):
         raise ValueError("frame must hold numbers, not booleans (a file's true and false had been read as 1 and 0)")
-    matrix = torch.as_tensor(frame, dtype=torch.float64).reshape(4, 4)
+    try:  # torch's own words had been the message: "shape '[4, 4]' is invalid for input of size 3"
+        matrix = torch.as_tensor(frame, dtype=torch.float64).reshape(4, 4)
+    except (TypeError, ValueError, RuntimeError):
+        raise ValueError(f"frame must be 16 numbers (a 4x4 matrix), got {str(frame)[:200]}") from None
     if not bool((matrix.abs() <= FLOAT32_MAX).all()):  # NaN fails the comparison
         raise ValueError(f"frame must be finite in float32, got {matrix.tolist()}")
     linear = matrix[:3, :3]
