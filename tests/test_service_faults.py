@@ -515,6 +515,30 @@ def test_a_job_canceled_while_the_broker_takes_its_resend_ends_its_timeline_canc
     assert [e["kind"] for e in events_of(job)] == ["canceled"]
 
 
+def test_a_job_canceled_just_after_its_resend_was_claimed_keeps_its_cancels_message_and_is_not_sent(db, monkeypatch):
+    """A cancel committed between a re-send's claim and its reading of the job found the job canceled, and the
+    re-send went on: its message replaced "canceled while queued" (None, from the reaper, wiped it) and a chain
+    was sent for the canceled job. The re-send now stops there, nothing sent."""
+    from sqlalchemy import event
+
+    from api.services.jobs import request_cancel
+    from voxe_service.db import session_scope
+    from voxe_service.queue import TaskQueue, get_queue, send_queued_again
+
+    job = add_job(add_scene(), "queued", 0, task_id=None)
+    sent = []
+    monkeypatch.setattr(TaskQueue, "send", lambda self, signature: sent.append(signature) or "task")
+    with session_scope() as session:
+        def canceled_after_the_claim(_session):
+            with session_scope() as other:
+                request_cancel(session=other, job_ids=[job])
+
+        event.listen(session, "after_commit", canceled_after_the_claim, once=True)
+        assert not send_queued_again(session, get_queue(), job, sent_as=None, reason="sent by the reaper")
+    assert (job_row(job).state, job_row(job).message, sent) == ("canceled", "canceled while queued", [])
+    assert [e["kind"] for e in events_of(job)] == ["canceled"]
+
+
 def test_a_refused_resend_gives_the_task_id_back_only_to_the_job_as_it_claimed_it(db, monkeypatch):
     """A refused re-send gave the job its old task id back wherever it had none, though another sender had taken
     it meanwhile (the reaper sending again a dead worker's job, queued with no task id after its own refusal): the

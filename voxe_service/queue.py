@@ -232,7 +232,8 @@ def send_queued_again(session: Session, queue: TaskQueue, job_id: str, *, sent_a
     had doubled the reaper's next wait: ``api.reaper``), the job given its task id ``sent_as`` back unless another
     sender changed it meanwhile: left as it was, for a later try (with no task id, a sweep's evaluation would be
     failed by the reaper as never sent with its edit). A sender that stops after the broker took the chain, before
-    recording it, leaves the job with no task id, which the reaper sends again."""
+    recording it, leaves the job with no task id, which the reaper sends again. A job canceled (or deleted) just
+    after the claim is not sent: False."""
     claimed_at = utcnow()
     claimed = session.execute(update(Job).where(  # task_id NULL until the new chain is handed over
         Job.id == job_id, Job.state == QUEUED, Job.task_id.is_(None) if sent_as is None else Job.task_id == sent_as,
@@ -240,7 +241,9 @@ def send_queued_again(session: Session, queue: TaskQueue, job_id: str, *, sent_a
     if claimed.rowcount != 1:
         return False
     session.commit()
-    job = session.get(Job, job_id)
+    job = session.get(Job, job_id, populate_existing=True)
+    if job is None or job.state != QUEUED:  # canceled or deleted since the claim: its ending stands, nothing sent
+        return False
     try:
         dispatch_job(session, queue, job, done=job.completed_stages or [], message=message, fail_refused=False,
                      requeued=reason)
