@@ -789,6 +789,26 @@ def test_a_retry_after_is_waited_for_and_said(live, browser):
     faults(driver, {})
 
 
+def test_a_far_off_retry_after_is_waited_for_minutes_at_most_and_said_so(live, browser):
+    """A Retry-After of weeks or years (a proxy's: seconds past setTimeout()'s 2^31-1 ms, an HTTP date in 2100) is
+    waited for a few minutes, and the page says that wait: setTimeout() had fired at once, the page asking again
+    hundreds of times a second while saying it waits 24 days."""
+    svc, token, _archive = live
+    driver = browser
+    set_key(driver, svc, token)
+    for retry_after in ("2147484", "Fri, 01 Jan 2100 00:00:00 GMT"):
+        faults(driver, {"/v1/jobs?": {"status": 429, "statusText": "Too Many Requests", "type": "application/json",
+                                      "body": json.dumps({"detail": "slow down"}),
+                                      "headers": {"Retry-After": retry_after}}})
+        driver.refresh()
+        wait_until(lambda: text(driver, '[data-error-for="list"]'), 10, what="the 429 said")
+        time.sleep(3)  # a poll interval: the list is not asked again in it
+        assert len(requested(driver, "/v1/jobs?")) == 1, retry_after
+        assert text(driver, '[data-error-for="list"]') == (
+            "429: slow down (the server asks to wait 5 min 0 s or more; this page waits 5 min 0 s at most)")
+    faults(driver, {})
+
+
 def test_a_hidden_page_polls_nothing_until_it_shows(live, browser):
     """While the tab is hidden (Page Visibility) the job list is not asked for, and it is asked as soon as the tab
     shows again: it had been asked every 3 s for a tab nobody looked at."""

@@ -69,11 +69,16 @@ function apiError(status, statusText, contentType, text, retryAfter) {
                       retryAfterMs(retryAfter));
 }
 
-/** A Retry-After header's wait in ms (seconds, or an HTTP date: RFC 9110 §10.2.3); null when absent or unreadable. */
+/** The longest a Retry-After is waited for: setTimeout() fires at once for a wait over 2^31-1 ms (24.8 days), so a
+ * proxy's far-off Retry-After (an HTTP date in 2100) had the page asking again hundreds of times a second while
+ * saying it waits; and a wait of days or weeks, even kept, leaves the page stopped long after the server is back. */
+const RETRY_AFTER_CAP_MS = 5 * 60_000;
+
+/** A Retry-After header's wait in ms (seconds, or an HTTP date: RFC 9110 §10.2.3), at most RETRY_AFTER_CAP_MS; null
+ * when absent or unreadable. */
 function retryAfterMs(value) {
-  if (/^\s*\d+\s*$/.test(value || "")) return Number(value) * 1000;
-  const at = Date.parse(value || "");
-  return Number.isNaN(at) ? null : Math.max(0, at - Date.now());
+  const ms = /^\s*\d+\s*$/.test(value || "") ? Number(value) * 1000 : Date.parse(value || "") - Date.now();
+  return Number.isNaN(ms) ? null : Math.min(Math.max(0, ms), RETRY_AFTER_CAP_MS);
 }
 
 /** How long to wait before asking again: ``ms``, or longer where a failure's Retry-After (a 429's, a 503's) asks it
@@ -179,7 +184,10 @@ function showError(name, message) {
 
 function errorText(error) {
   if (!(error instanceof ApiError)) return String(error);
-  const wait = error.retryAfterMs == null ? "" : ` (the server asks to wait ${duration(error.retryAfterMs / 1000)})`;
+  const cap = duration(RETRY_AFTER_CAP_MS / 1000);
+  const wait = error.retryAfterMs == null ? ""
+    : error.retryAfterMs < RETRY_AFTER_CAP_MS ? ` (the server asks to wait ${duration(error.retryAfterMs / 1000)})`
+    : ` (the server asks to wait ${cap} or more; this page waits ${cap} at most)`;
   return `${error.status}: ${error.message}${wait}`;
 }
 
