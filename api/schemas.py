@@ -33,8 +33,10 @@ StageIterations = Annotated[int, Field(ge=0, le=1_000_000)]
 # has \ufeff.
 _WHITESPACE = r"\t-\r\x1c-\x20\x85\xa0\u1680\u2000-\u200a\u2028\u2029\u202f\u205f\u3000"
 # What clean_text accepts, for the document: no control character but whitespace, and a character naming something
-# (names_something: a letter, digit or symbol) somewhere: exactly so in ASCII (0-9 A-Z a-z $); beyond it, any
-# character but whitespace. ECMA-262 has no class of Unicode's letters, digits and symbols that every JSON Schema
+# (names_something: a letter, digit or symbol) somewhere: for a single ASCII character exactly so (0-9 A-Z a-z $);
+# beyond it, any character but whitespace. So it never refuses what the server takes, but takes some texts the server
+# refuses: a contraction's ending alone ("'s", "'ll-") is no word to the model, and neither is a character beyond
+# ASCII that names nothing. ECMA-262 has no class of Unicode's letters, digits and symbols that every JSON Schema
 # validator reads alike (its \w is ASCII's: "猫" had been no word to the document; \p{L} needs the u flag), so the
 # descriptions say the rule, and the server applies it.
 _ALLOWED = r"[^\x00-\x08\x0e-\x1b\x7f-\x84\x86-\x9f]"
@@ -46,8 +48,8 @@ CLIP_SPECIAL_TOKENS = ("<|startoftext|>", "<|endoftext|>")
 _NO_SPECIAL_TOKENS = (f"nor CLIP's special tokens {' or '.join(CLIP_SPECIAL_TOKENS)} written out (the model reads "
                       "each as its text's start or end)")
 _TEXT_RULE = (" (something that names: a word or number of any script, or a symbol such as an emoji or a currency "
-              "sign, not punctuation or marks such as ^ + | alone; no control characters but whitespace, which is "
-              f"collapsed, {_NO_SPECIAL_TOKENS})")
+              "sign, not punctuation, marks such as ^ + | or a contraction's ending such as 's alone; no control "
+              f"characters but whitespace, which is collapsed, {_NO_SPECIAL_TOKENS})")
 
 
 class Strict(BaseModel):
@@ -210,7 +212,8 @@ def clean_text(value: str, what: str, need_words: bool = True) -> str:
     value = " ".join(value.split())
     if need_words and not names_something(value):
         raise ValueError(f"{what} has no words: nothing in it names anything (a word, number or symbol such as an "
-                         "emoji does; punctuation and marks such as ^ + | alone do not)")
+                         "emoji does; punctuation, marks such as ^ + | or a contraction's ending such as 's alone do "
+                         "not)")
     if not value:
         raise ValueError(f"{what} is blank")
     return value
@@ -233,10 +236,11 @@ class JobCreate(Strict):
         default_factory=list, max_length=16,
         description="local edits: the word(s) of the prompt naming the edit (e.g. ['sunglasses']); required "
         "(non-empty) with mode 'local', empty otherwise. Rules beyond the schema (422 naming them): each names "
-        "something (a word, number or symbol such as an emoji or a currency sign; punctuation and marks such as "
-        "^ + | name nothing), occurs in the prompt as whole words, also as the model reads the prompt (punctuation "
-        "at a word's edge is read with the punctuation beside it: 'hat.' is not found in '..., a hat.'), and some "
-        f"other word of the prompt names the object; no control characters but whitespace, {_NO_SPECIAL_TOKENS}",
+        "something (a word, number or symbol such as an emoji or a currency sign; punctuation, marks such as "
+        "^ + | and a contraction's ending such as 's name nothing), occurs in the prompt as whole words, also as "
+        "the model reads the prompt (punctuation at a word's edge is read with the punctuation beside it: 'hat.' "
+        "is not found in '..., a hat.'), and some other word of the prompt names the object; no control characters "
+        f"but whitespace, {_NO_SPECIAL_TOKENS}",
     )
     params: JobParams = Field(default_factory=JobParams)
     webhook_url: str | None = Field(

@@ -24,7 +24,8 @@ BEYOND_SCHEMA = (
     "edit_words is required for a local edit", "does not occur in the prompt", "names nothing",
     "cover the whole prompt", "apply to local edits only", "webhook_events needs a webhook_url", "takes one value or one per stage",
     "cannot give backbone 'scene'", "needs a scene uploaded as a mesh", "tokens as the model sees it",
-    "needs iterations > 0", "has no words",  # (beyond ASCII: no pattern every validator reads alike states it)
+    # (has no words: beyond single ASCII characters, no pattern every validator reads alike states it)
+    "needs iterations > 0", "has no words",
 )
 HOOK = "http://127.0.0.1:9/hook"
 LIMITED = settings(max_examples=60, deadline=None, database=None,
@@ -303,8 +304,9 @@ def test_strict_types_refuse_coercions(client):
 
 
 def test_prompt_pattern_states_the_text_rule():
-    """The patterns refuse nothing the server accepts; the prompt's refuses exactly what it refuses in ASCII (beyond
-    it, the description says the rule), the edit word's everywhere. (As JavaScript reads them: tests/test_ui.py.)"""
+    """The patterns refuse nothing the server accepts; the prompt's is exact for single ASCII characters (beyond them,
+    and for texts such as a contraction's ending alone, "'s", the description says the rule), the edit word's
+    everywhere. (As JavaScript reads them: tests/test_ui.py.)"""
     from api.schemas import EDIT_WORD_PATTERN, TEXT_PATTERN, clean_text
     import re
 

@@ -956,16 +956,19 @@ def test_an_edit_word_the_model_finds_in_the_prompt_is_accepted(client, dataset,
 def test_a_prompt_or_object_is_accepted_when_it_names_something_as_the_model_reads_it(client, dataset, root):
     """An emoji or currency sign alone names what to edit into (as it names the object beside an edit word), and
     punctuation alone names nothing: the API had refused the first as having 'no words' and accepted the second
-    (its words were [\\w'-]+: "---" was one)."""
+    (its words were [\\w'-]+: "---" was one). A contraction's ending alone names nothing either, and the 422 says
+    so: it had named punctuation and marks only, though the pattern takes "'s"."""
     scene = make_scene(client, dataset, root)
     for text, names in (("\U0001f436", True), ("\U0001f436 \U0001f3a9", True), ("$", True), ("---", False),
-                        ("'", False), ("_", False), ("^^", False)):
+                        ("'", False), ("_", False), ("^^", False), ("'s", False), ("'ll 's-", False)):
         job = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": text})
         assert job.status_code == (201 if names else 422), (text, job.json())
         evaluation = client.post("/v1/evaluations", json={"job_ids": ["nope"], "object": text})
         assert evaluation.status_code == (404 if names else 422), (text, evaluation.json())  # (404: no such job)
         if not names:
-            assert "has no words: nothing in it names anything" in job.text + evaluation.text
+            for refusal in (job, evaluation):
+                assert "has no words: nothing in it names anything" in refusal.text, (text, refusal.json())
+                assert "or a contraction's ending such as 's alone do not" in refusal.text, (text, refusal.json())
 
 
 def test_parameter_ranges_are_checked(client, dataset, root):

@@ -1179,9 +1179,10 @@ def same_origin_only(driver, svc) -> bool:
 
 def test_the_published_text_patterns_read_in_javascript_refuse_nothing_the_server_accepts(browser):
     """A JSON Schema pattern is an ECMA-262 regular expression (read with the u flag by some validators, without by
-    others): so read, the prompt's pattern matches every character the server takes as a prompt, and exactly those
-    in ASCII; the edit word's matches exactly what the server takes. Its \\w had been ASCII's there: a Chinese
-    prompt, which the server accepts, was one the document refused."""
+    others): so read, the prompt's pattern never refuses what the server takes as a prompt, and is exact for single
+    ASCII characters (a contraction's ending alone, "'s", it takes and the server refuses); the edit word's matches
+    exactly what the server takes. Its \\w had been ASCII's there: a Chinese prompt, which the server accepts, was
+    one the document refused."""
     from api.schemas import EDIT_WORD_PATTERN, TEXT_PATTERN, clean_text
 
     def accepted(text: str, need_words: bool) -> bool:
