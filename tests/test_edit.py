@@ -416,6 +416,32 @@ def test_a_guidance_overflowing_everywhere_stops_the_edit_naming_fp16(small_sphe
     assert all(math.isfinite(r.losses["total"]) for r in reports)
 
 
+def test_a_guidance_overflowing_across_a_resume_stops_where_an_uninterrupted_run_does(small_sphere, tiny_guidance,
+                                                                                      monkeypatch, tmp_path):
+    """The count of wholly non-finite steps had restarted at a resume: a run overflowing on every step, resumed more
+    often than every MAX_NONFINITE_GUIDANCE_STEPS steps (a worker restarted), never stopped. A damaged count is a
+    FormatError."""
+    from voxe_core.tensorio import FormatError, save_tensors
+
+    _overflowing_unet(tiny_guidance, monkeypatch, slice(None))
+    steps, checkpoint = edit_module.MAX_NONFINITE_GUIDANCE_STEPS, tmp_path / "c.safetensors"
+    config = EditConfig(iterations=steps - 4, render_size=16)
+    edit(small_sphere, "a dog", tiny_guidance, config, checkpoint_path=checkpoint)
+    assert load_edit_checkpoint(checkpoint)[1]["nonfinite_steps"] == steps - 4
+    reports = []
+    with pytest.raises(EditDiverged, match=rf"at iteration {steps}: .* for the last {steps} iterations"):
+        edit(small_sphere, "a dog", tiny_guidance, dataclasses.replace(config, iterations=steps + 5), _collect(reports),
+             checkpoint_path=checkpoint, resume_from=checkpoint)
+    assert len(reports) == 3  # steps 7 to 9; the 10th stops it
+    tensors, meta = load_edit_checkpoint(checkpoint)
+    for damaged in (-1, 2.5, "3", True):
+        save_tensors(tmp_path / "d.safetensors", tensors, kind=edit_module.EDIT_CHECKPOINT_KIND,
+                     version=edit_module.EDIT_CHECKPOINT_VERSION, meta={**meta, "nonfinite_steps": damaged})
+        with pytest.raises(FormatError, match=re.escape(f"damaged checkpoint: its nonfinite_steps is {damaged!r},")):
+            edit(small_sphere, "a dog", tiny_guidance, dataclasses.replace(config, iterations=steps + 5),
+                 resume_from=tmp_path / "d.safetensors")
+
+
 def test_a_guidance_overflowing_in_part_is_reported_and_edits_on(small_sphere, tiny_guidance, monkeypatch):
     _overflowing_unet(tiny_guidance, monkeypatch, 0)
     reports, steps = [], edit_module.MAX_NONFINITE_GUIDANCE_STEPS + 1

@@ -25,7 +25,9 @@ CPU one for poses, time steps and image-regulariser rays, and one on the
 compute device for render jitter, the VAE posterior sample and the SDS noise.
 Checkpoints (``kind="edit_checkpoint"``, safetensors + JSON header, no pickle)
 hold G_e's features, Adam's moments and step, both generator states, the
-iteration, the guidance's ``model_id`` (a resume with another model is refused)
+iteration, how many steps in a row the SDS gradient was wholly non-finite
+(:data:`MAX_NONFINITE_GUIDANCE_STEPS` stops a run across resumes), the
+guidance's ``model_id`` (a resume with another model is refused)
 and, under an image regulariser, a summary of the input views it compares
 with, so a run interrupted after k iterations and resumed from its checkpoint
 ends with exactly the grid an uninterrupted run would (on CPU; on CUDA only
@@ -432,6 +434,9 @@ def edit(
                 "recipe": config.recipe(), "device": device.type}  # the device generator's
 
     start = 0
+    # Consecutive steps whose SDS gradient was wholly non-finite, carried across a resume (in the checkpoint's header):
+    # restarted there, a run overflowing on every step that was resumed more often than every 10 steps never stopped.
+    nonfinite_steps = 0
     if resume_from is not None:
         tensors, meta = load_edit_checkpoint(resume_from)
         if tuple(tensors["features"].shape[:3]) != initial_grid.resolution:
@@ -479,6 +484,10 @@ def edit(
                 "param_groups": groups,
             })
         start = int(meta["iteration"])
+        nonfinite_steps = meta.get("nonfinite_steps", 0)  # (a checkpoint older than the field: none counted)
+        if isinstance(nonfinite_steps, bool) or not isinstance(nonfinite_steps, int) or nonfinite_steps < 0:
+            raise FormatError(f"{resume_from}: damaged checkpoint: its nonfinite_steps is {nonfinite_steps!r}, not a "
+                              "count of steps")
         if start > config.iterations:  # it would have returned the checkpoint's later grid as the one asked for
             raise ValueError(f"{resume_from}: checkpoint is at iteration {start}, past the {config.iterations} "
                              f"iterations asked for; ask for at least {start}")
@@ -506,7 +515,8 @@ def edit(
 
     def checkpoint(done: int) -> None:
         check_finite(done)
-        save_edit_checkpoint(checkpoint_path, grid, optimizer, generators, done, run_meta, views_record)
+        save_edit_checkpoint(checkpoint_path, grid, optimizer, generators, done,
+                             {**run_meta, "nonfinite_steps": nonfinite_steps}, views_record)
         callbacks.checkpoint_written(str(checkpoint_path))
 
     embeddings: dict[str | None, torch.Tensor] = {}
@@ -538,7 +548,6 @@ def edit(
     if start == 0:
         preview(0)
     done = start
-    nonfinite_steps = 0  # consecutive steps whose SDS gradient was wholly non-finite
     try:
         for iteration in range(start, config.iterations):
             callbacks.check_cancel("edit")
