@@ -326,6 +326,18 @@ def test_progress_reports_every_iteration_and_cancellation_stops_early():
     assert all(p.total == 30 and p.stage == "reconstruct" and p.losses["l1"] > 0 for p in seen)
 
 
+def test_an_initial_grid_with_non_finite_features_is_refused_naming_them():
+    """Its NaN had gone on through every step (a NaN cell is occupied, so rendered) and the fit returned a NaN grid,
+    where a resume refuses a NaN checkpoint and an edit a NaN initial grid."""
+    images, cams = synthetic_views()
+    grid = VoxelGrid(12)
+    with torch.no_grad():
+        grid.features[3, 4, 5, 0], grid.features[0, 0, 0, 2] = math.nan, math.inf
+    with pytest.raises(ValueError, match=r"^the initial grid has non-finite \(NaN or infinite\) features at 2 of its "
+                                         "1728 vertices, which its renders would carry into every step"):
+        reconstruct(images, cams, tiny_config(), Callbacks(on_progress=pytest.fail), initial_grid=grid)
+
+
 def test_total_variation_smooths_the_fit_and_bad_weights_are_refused():
     images, cams = synthetic_views()
     plain = reconstruct(images, cams, tiny_config(iterations=(40, 40)))

@@ -100,7 +100,7 @@ from voxe_core.losses import (
     volumetric_regulariser,
 )
 from voxe_core.progress import Callbacks, Progress, StageCancelled
-from voxe_core.reconstruct import same_views, views_summary
+from voxe_core.reconstruct import check_finite_grid, same_views, views_summary
 from voxe_core.render import RenderConfig, render_image, render_rays
 from voxe_core.schedule import TimestepSchedule
 from voxe_core.tensorio import FormatError, config_recipe, load_tensors, recipe_changes, save_tensors
@@ -396,10 +396,7 @@ def edit(
             "input_views=(images, cameras), or use a volumetric regulariser such as 'reg3d'"
         )
     # Its NaN had made the first step's loss NaN: an EditDiverged blaming half precision or the lr, after a UNet pass.
-    if nonfinite := int((~initial_grid.features.detach().isfinite()).any(-1).sum()):
-        raise ValueError(f"the initial grid has non-finite (NaN or infinite) features at {nonfinite} of its "
-                         f"{math.prod(initial_grid.resolution)} vertices, which its renders and the regulariser "
-                         "would carry into every step (a damaged grid file?)")
+    check_finite_grid(initial_grid, "its renders and the regulariser")
 
     guidance_device = getattr(guidance, "device", None)
     device = resolve_device(device if device is not None else (guidance_device or initial_grid.flat_features.device))

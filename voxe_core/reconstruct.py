@@ -11,6 +11,7 @@ in 25 s, 47 CPU s, its six seeds 30.63–30.70 dB).
 
 from __future__ import annotations
 
+import math
 import numbers
 from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
@@ -422,6 +423,15 @@ def camera_clear_rows(grid: VoxelGrid, cameras: Cameras, clearance: float) -> to
     return grid.rows_within(centres, clearance * centres.norm(dim=-1))
 
 
+def check_finite_grid(grid: VoxelGrid, carried_into: str) -> None:
+    """ValueError unless every feature of ``grid``, a run's initial grid, is finite, naming how many vertices are not
+    and what ``carried_into`` (its renders, a regulariser) would carry their NaN into: every step of the run."""
+    if nonfinite := int((~grid.features.detach().isfinite()).any(-1).sum()):
+        raise ValueError(f"the initial grid has non-finite (NaN or infinite) features at {nonfinite} of its "
+                         f"{math.prod(grid.resolution)} vertices, which {carried_into} would carry into every step "
+                         "(a damaged grid file?)")
+
+
 def views_summary(images: torch.Tensor, cameras: Cameras) -> torch.Tensor:
     """What a checkpoint records of the views its fit sees, so that it resumes only a fit to them: per view (a row of
     the (N, 66) float64 result, (N, 72) with lens terms), its mean colour over a 4 x 4 grid of blocks, the image
@@ -581,6 +591,10 @@ def reconstruct(
     memory = PeakMemory(device).start()
     views = views_summary(images, cameras) if (checkpoint_path or resume_from) else None
     images, cameras = images.to(device, torch.float32), cameras.to(device)
+    # As an edit's and a resume's: its NaN had gone on through every step (a NaN cell is occupied, so rendered) and
+    # the fit returned a NaN grid as its result.
+    if initial_grid is not None and resume_from is None:
+        check_finite_grid(initial_grid, "its renders")
     if resume_from is None:
         start_stage, start_iteration, resumed = 0, 0, None
         generator = _sampling_generator(device, config.seed)
