@@ -193,6 +193,10 @@ def test_a_checkpoint_written_on_another_device_type_resumes_from_a_reseeded_gen
     (lambda t, m: ({**t, "adam_exp_avg": _with_nan(t["adam_exp_avg"])}, m), "holds adam_exp_avg no fit leaves"),
     (lambda t, m: ({**t, "adam_exp_avg_sq": -t["adam_exp_avg_sq"] - 1}, m), "holds adam_exp_avg_sq no fit leaves"),
     (lambda t, m: ({**t, "average_total": _with_nan(t["average_total"])}, m), "holds average_total no fit leaves"),
+    # a count of 0 had dropped the average, a negative one negated the grid, 2.5 been taken as 2, NaN a ValueError
+    *[(lambda t, m, count=count: ({**t, "average_count": torch.tensor([count])}, m), "holds average_count no fit "
+       r"leaves \(.* a count of iterates summed that is not a whole number from 1 to the stage's iteration\)")
+      for count in (0, -3, 2.5, math.nan, 10_000)],
 ])
 def test_a_checkpoint_that_cannot_be_applied_is_a_format_error(tmp_path, stopped_fit, damage, message):
     """FormatError, which the worker answers by starting the fit over (a KeyError, or a RuntimeError from a

@@ -519,13 +519,19 @@ def _resume(path, config: ReconstructConfig, device: torch.device, views: torch.
             raise FormatError(f"{path}: damaged checkpoint: its {name} holds {found}, not shape {shape}")
     # As an edit's resume: a NaN here had gone on through every step (a NaN cell is occupied, so rendered) and the
     # fit returned a NaN grid as its result. The rule an edit's save keeps: the first moment finite, the second in
-    # [0, +inf] (a finite gradient whose square overflowed leaves +inf, which Adam goes on from).
+    # [0, +inf] (a finite gradient whose square overflowed leaves +inf, which Adam goes on from). The sum holds at
+    # least one iterate and at most one a step: a count of 0 had dropped the average silently, a negative one
+    # negated the grid, 2.5 been taken as 2 and NaN failed the resume as a ValueError.
+    averaged = "average_total" not in tensors or float(tensors["average_count"]).is_integer() \
+        and 1 <= float(tensors["average_count"]) <= iteration
     finite = {"features": grid.flat_features.isfinite().all(), "adam_exp_avg": tensors["adam_exp_avg"].isfinite().all(),
               "adam_exp_avg_sq": (tensors["adam_exp_avg_sq"] >= 0).all(),
-              "average_total": "average_total" not in tensors or tensors["average_total"].isfinite().all()}
+              "average_total": "average_total" not in tensors or tensors["average_total"].isfinite().all(),
+              "average_count": averaged}
     if unresumable := [name for name, ok in finite.items() if not bool(ok)]:
         raise FormatError(f"{path}: checkpoint holds {', '.join(unresumable)} no fit leaves (NaN or infinite features, "
-                          "first Adam moments or iterate sums, NaN or negative second moments): damaged, or saved by "
+                          "first Adam moments or iterate sums, NaN or negative second moments, a count of iterates "
+                          "summed that is not a whole number from 1 to the stage's iteration): damaged, or saved by "
                           "a run that had diverged; start afresh")
     stages = len(config.resolutions)
     if not (stage < stages and grid.resolution == (config.resolutions[stage],) * 3
