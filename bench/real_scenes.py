@@ -244,14 +244,14 @@ def step_cost(args) -> dict:
     for round_ in range(args.cost_warmup + args.cost_steps):
         for name, (grid, optimizer, variant_config, occupancy, generator) in state.items():
             t0, c0 = time.perf_counter(), time.process_time()
-            loss, out = train_step(grid, optimizer, rays, variant_config, occupancy, generator)
+            losses, out = train_step(grid, optimizer, rays, variant_config, occupancy, generator)
             wall, cpu = time.perf_counter() - t0, time.process_time() - c0
             if round_ >= args.cost_warmup:
                 record = timings[name]
                 record["wall_s"].append(wall)
                 record["cpu_s"].append(cpu)
                 record["samples_per_ray"].append(out.samples / config.rays_per_step)
-                record["l1"].append(float(loss.detach()))
+                record["l1"].append(float(losses["l1"].detach()))
     mean = lambda xs: sum(xs) / len(xs)  # noqa: E731
     summary = {name: {key: mean(values) for key, values in record.items()} for name, record in timings.items()}
     relu = summary["relu_field"]

@@ -342,6 +342,25 @@ def test_an_initial_grid_with_non_finite_features_is_refused_naming_them():
         reconstruct(images, cams, tiny_config(), Callbacks(on_progress=pytest.fail), initial_grid=grid)
 
 
+def test_progress_names_the_l1_and_the_total_variation_apart():
+    """The value named "l1" had been the loss minimised, total variation included: 10^3 times a fit's TV reported as
+    its L1 of colours in [0, 1]. Now "l1" is the photometric L1 alone, beside "tv" (its weighted term) and "total"."""
+    images, cams = synthetic_views()
+    noisy = VoxelGrid(12, features=torch.randn(12, 12, 12, 4, generator=torch.Generator().manual_seed(0)))
+    seen = []
+    reconstruct(images, cams, tiny_config(iterations=(5,), resolutions=(12,), image_downsample=(1,), tv_density=1e3,
+                                          tv_color=1e3), Callbacks(on_progress=seen.append), initial_grid=noisy)
+    assert all(p.losses.keys() == {"l1", "tv", "total"} for p in seen)
+    assert all(0 < p.losses["l1"] <= 1 for p in seen)  # mean |colour - target|, both in [0, 1]
+    assert min(p.losses["tv"] for p in seen) > 1  # a noisy grid's
+    for p in seen:
+        assert p.losses["total"] == pytest.approx(p.losses["l1"] + p.losses["tv"], rel=1e-6)
+    seen.clear()
+    reconstruct(images, cams, tiny_config(iterations=(2,), resolutions=(12,), image_downsample=(1,)),
+                Callbacks(on_progress=seen.append))
+    assert [p.losses.keys() for p in seen] == [{"l1"}] * 2  # no TV: the L1 is the loss
+
+
 def test_total_variation_smooths_the_fit_and_bad_weights_are_refused():
     images, cams = synthetic_views()
     plain = reconstruct(images, cams, tiny_config(iterations=(40, 40)))

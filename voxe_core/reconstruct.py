@@ -389,7 +389,8 @@ def train_step(
 ):
     """One iteration: ``config.rays_per_step`` rays drawn from ``rays`` (origins, directions and target colours,
     each (N, P, 3): N images of P pixels; :func:`ray_batch`), rendered with jitter, L1 loss, one optimizer step.
-    Returns (loss, render output).
+    Returns (losses, render output): losses ``l1`` (the photometric L1) and, with total variation on, ``tv`` (its
+    weighted term) and ``total`` (their sum, the loss minimised), 0-d tensors.
     ``clear_rows`` (K,): feature rows whose density is then projected back to none (:func:`camera_clear_rows`).
 
     The whole of an iteration's cost, so bench/real_scenes.py times exactly this for both backbones.
@@ -397,11 +398,14 @@ def train_step(
     origins, directions, targets = (r.reshape(-1, 3) for r in rays)
     batch = ray_batch(config, rays[2].shape[0], rays[2].shape[1], generator, targets.device)
     out = render_rays(grid, origins[batch], directions[batch], config.render, occupancy, generator, sparse_grad=True)
-    loss = (out.rgb - targets[batch]).abs().mean()
+    loss = l1 = (out.rgb - targets[batch]).abs().mean()
+    losses = {"l1": l1}
     if config.tv_density or config.tv_color:
         tv = sampled_total_variation(grid.flat_features, grid.resolution, occupancy.flat_cells(), config.tv_voxels,
                                      generator)
-        loss = loss + config.tv_density * tv[0] + config.tv_color * tv[1:].mean()
+        tv = config.tv_density * tv[0] + config.tv_color * tv[1:].mean()
+        loss = l1 + tv
+        losses.update(tv=tv, total=loss)
     optimizer.zero_grad()
     # No sample in occupied space (e.g. an object-free, all-white scene whose density has
     # died): the batch rendered pure background, nothing here depends on the grid.
@@ -412,7 +416,7 @@ def train_step(
         with torch.no_grad():
             density = grid.flat_features[:, 0]
             density.index_copy_(0, clear_rows, density.index_select(0, clear_rows).clamp(max=grid.empty_raw_density))
-    return loss, out
+    return losses, out
 
 
 def camera_clear_rows(grid: VoxelGrid, cameras: Cameras, clearance: float) -> torch.Tensor | None:
@@ -576,7 +580,8 @@ def reconstruct(
     ReLU-field grid; its type, box and activation win over ``config.bbox_*`` and ``activation``.
     Everything runs on ``device``: images, cameras and the grid move there once, the rays of
     each stage are built there, and the sampling generator lives there (so CPU and CUDA runs
-    of one seed draw different rays). The returned grid lives on ``device``. Progress info
+    of one seed draw different rays). The returned grid lives on ``device``. Progress losses
+    are :func:`train_step`'s (``l1``; with total variation on, also ``tv`` and ``total``); its info
     carries the stage's peak memory (:class:`voxe_core.devices.PeakMemory`). ``resume_from``
     resumes on any device: a checkpoint written on another device type (CPU, CUDA) holds a
     generator state this one cannot take, so the run goes on drawing from a generator seeded
@@ -641,11 +646,12 @@ def reconstruct(
                 occupancy = grid.occupancy(config.render.sigma_threshold)
             for group in optimizer.param_groups:
                 group["lr"] = _learning_rate(config, stage, iteration)
-            loss, out = train_step(grid, optimizer, rays, config, occupancy, generator, clear_rows)
+            losses, out = train_step(grid, optimizer, rays, config, occupancy, generator, clear_rows)
             done += 1
             average.after_step(grid, iteration)
             callbacks.progress(Progress(
-                "reconstruct", done, total, {"l1": float(loss.detach())},
+                "reconstruct", done, total,
+                dict(zip(losses, torch.stack([loss.detach() for loss in losses.values()]).tolist())),
                 {"stage": stage, "resolution": config.resolutions[stage],
                  "samples_per_ray": out.samples / config.rays_per_step, **memory.info()},
             ))
