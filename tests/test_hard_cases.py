@@ -216,12 +216,12 @@ def _(fx):
     o, d = rays(
         [[-3.0, 1.5 - 1e-4, 0.0],  # just inside the +y face: the full 3-unit chord
          [-3.0, 1.5 + 1e-4, 0.0],  # just outside: nothing
-         [-3.0, -1.5, 0.3],  # in the plane of the -y face: the box is half-open [min, max), so inside
-         [-3.0, 1.5, 0.3],  # in the plane of the +y face: outside
+         [-3.0, -1.5, 0.3],  # in the plane of the -y face: the box is closed, so inside
+         [-3.0, 1.5, 0.3],  # in the plane of the +y face: inside too (it had been outside, the box half-open)
          [1.5 - 3 / math.sqrt(2), 1.5 + 3 / math.sqrt(2), 0.0]],  # touches the box only along the x=y=1.5 edge
         [[1.0, 0.0, 0.0]] * 4 + [[1.0, -1.0, 0.0]],
     )
-    expected = torch.tensor([full, 0.0, full, 0.0, 0.0])
+    expected = torch.tensor([full, 0.0, full, full, 0.0])
     return [(f"opacity skip={s}", out.opacity, expected, 1e-5)
             for s, out in zip((True, False), both_paths(grid, o, d, background=(0.0, 0.0, 0.0)))]
 

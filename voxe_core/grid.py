@@ -124,7 +124,9 @@ def ray_box_intersection(
     """Slab test of rays (N, 3) against a box (3,): (t_near, t_far), each (N,), t_near clamped at 0 for cameras inside.
 
     Misses, non-finite rays and zero-length directions get t_far <= t_near. Axis-parallel rays use a
-    signed tiny reciprocal instead of dividing by zero. Boxes (B, 3) give (B, N) each, the rays' own work done once
+    signed tiny reciprocal instead of dividing by zero. The box is closed: a ray lying in one of its faces (a zero
+    direction component whose origin is on the lower or the upper face along that axis) meets it, as the face's
+    points are inside to :meth:`VoxelGrid.query`. Boxes (B, 3) give (B, N) each, the rays' own work done once
     (``box_min`` and ``box_max`` of one shape and dtype: they are stacked).
 
     Examples:
@@ -138,6 +140,10 @@ def ray_box_intersection(
     inv = torch.copysign(magnitude.clamp_min(1e-12), directions + 0.0).reciprocal()
     # Both slabs' ends in one product, (..., 2, N, 3), and their order in one reduction.
     entry, exit_ = torch.aminmax((torch.stack([box_min, box_max], -2).unsqueeze(-2) - origins) * inv, dim=-3)
+    # A zero component's slab ends are 0 × its reciprocal where the origin lies on a face: on the lower face that 0
+    # is an entry (harmless, t_near is clamped at 0), on the upper one an exit at 0, and the ray in that face had
+    # missed the box. It is in the slab from end to end, as on the lower face.
+    exit_ = exit_.masked_fill((exit_ == 0) & (directions == 0), math.inf)
     t_near = entry.amax(-1).clamp_min(0.0)  # in [0, inf] or NaN
     t_far = exit_.amin(-1)
     # Finite ends imply a finite origin (an infinite or NaN coordinate makes one end infinite or NaN), not a finite

@@ -1,0 +1,77 @@
+"""The grid's slab test (``ray_box_intersection``): a closed box, a ray lying in any of its faces meets it."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from needs import require_triton_interpreter
+from voxe_core.grid import VoxelGrid, ray_box_intersection
+from voxe_core.render import RenderConfig, render_rays
+
+BOX = torch.tensor([-1.0, -2.0, 0.5]), torch.tensor([2.0, 1.0, 3.0])
+
+
+def _face_rays(box_min, box_max, inset: float = 0.0):
+    """A ray in each face of the box (or ``inset`` inside it), per face along both other axes: origins 5 before the
+    box, unit directions whose other components are zero of either sign; and each ray's span through the box."""
+    centre = (box_min + box_max) / 2
+    origins, directions, spans = [], [], []
+    for face_axis in range(3):
+        for face, inward in ((box_min[face_axis], inset), (box_max[face_axis], -inset)):
+            for travel in {0, 1, 2} - {face_axis}:
+                origin = centre.clone()
+                origin[face_axis], origin[travel] = face + inward, box_min[travel] - 5.0
+                direction = torch.tensor([-0.0, -0.0, -0.0]) if travel % 2 else torch.zeros(3)
+                direction[travel] = 1.0
+                origins.append(origin)
+                directions.append(direction)
+                spans.append((5.0, 5.0 + float(box_max[travel] - box_min[travel])))
+    return torch.stack(origins), torch.stack(directions), torch.tensor(spans)
+
+
+def test_a_ray_in_any_face_of_the_box_meets_it_as_one_just_inside_does():
+    """A ray in the box's upper face along an axis had missed it (its slab's exit 0 × the stand-in reciprocal), one in
+    the lower face met it: the test is now the closed box's on every face, for one box or several stacked."""
+    origins, directions, spans = _face_rays(*BOX)
+    near, far = ray_box_intersection(origins, directions, *BOX)
+    assert torch.equal(torch.stack([near, far], -1), spans)  # all twelve faces-and-directions
+    inside = ray_box_intersection(*_face_rays(*BOX, inset=1e-3)[:2], *BOX)
+    assert torch.equal(torch.stack(inside, -1), spans)
+    other = torch.stack([BOX[0] - 1.0, BOX[0]]), torch.stack([BOX[1] + 1.0, BOX[1]])  # (the sampler's two boxes)
+    near, far = ray_box_intersection(origins, directions, *other)
+    assert torch.equal(torch.stack([near[1], far[1]], -1), spans) and (far[0] > near[0]).all()
+    # just outside a face (one float32 step off it): a miss, on either side
+    sign = torch.where(spans.new_tensor([i // 2 % 2 for i in range(12)]) == 0, -1.0, 1.0)
+    face_axis = torch.arange(12) // 4
+    off = origins.clone()
+    off[torch.arange(12), face_axis] = torch.nextafter(off[torch.arange(12), face_axis],
+                                                       off[torch.arange(12), face_axis] + sign * math.inf)
+    near, far = ray_box_intersection(off, directions, *BOX)
+    assert (far <= near).all()
+
+
+@pytest.mark.parametrize("fused", [False, True])
+def test_a_ray_grazing_a_face_renders_that_faces_vertices(fused):
+    """Uniform density, the vertices of the x faces coloured (lower red, upper blue): a ray along z in either x face
+    renders its face's colour at a full path's opacity, where the one in the upper face had rendered the white
+    background; with empty-space skipping too (the occupied cells' tight box is the grid's)."""
+    if fused:
+        require_triton_interpreter()
+    features = torch.full((5, 5, 5, 4), -10.0)
+    features[..., 0] = 1.0
+    features[0, :, :, 1] = features[4, :, :, 3] = 10.0  # red at x = -1.5, blue at x = 1.5
+    grid = VoxelGrid(5, features=features)
+    origins = torch.tensor([[-1.5, 0.3, -4.0], [1.5, 0.3, -4.0], [0.0, 0.3, -4.0]])
+    directions = torch.tensor([[0.0, 0.0, 1.0]] * 3)
+    for skip_empty in (False, True):
+        out = render_rays(grid, origins, directions, RenderConfig(fused=fused, skip_empty=skip_empty))
+        assert isinstance(out.samples, torch.Tensor) == fused  # the marcher asked for ran
+        opacity = 1 - math.exp(-float(grid.activate_density(torch.tensor(1.0))) * 3.0)
+        torch.testing.assert_close(out.opacity, torch.full((3,), opacity), atol=1e-5, rtol=0)
+        colour = torch.sigmoid(torch.tensor(10.0)) * opacity + (1 - opacity)  # on white
+        plain = torch.sigmoid(torch.tensor(-10.0)) * opacity + (1 - opacity)
+        expected = torch.tensor([[colour, plain, plain], [plain, plain, colour], [plain, plain, plain]])
+        torch.testing.assert_close(out.rgb.detach(), expected, atol=1e-5, rtol=0)
