@@ -511,7 +511,10 @@ def test_a_constant_start_left_equal_names_its_cause(make_sphere_grid, monkeypat
     object_maps = edit_maps.clone() if cause == "maps equal" else edit_maps.flip(-1)
     config = RefineConfig(lift_start="constant", iterations=2, rays_per_step=256, fit_views="fixed", fit_pixels="all")
     fresh_view = None
-    if cause == "every fresh view missed":
+    if cause == "maps equal":  # fresh views' (fixed maps that never differ are refused before the fit)
+        config = dataclasses.replace(config, fit_views="fresh")
+        fresh_view = lambda step: (cameras_around(1, 12, seed=step), edit_maps[0], edit_maps[0])  # noqa: E731
+    elif cause == "every fresh view missed":
         away = torch.eye(4)
         away[:3, :3], away[2, 3] = torch.diag(torch.tensor([1.0, -1.0, -1.0])), 4.0  # at +z, looking up +z
         config = dataclasses.replace(config, fit_views="fresh")
@@ -529,6 +532,36 @@ def test_a_constant_start_left_equal_names_its_cause(make_sphere_grid, monkeypat
                                                 "iterations from lift_start='constant': ") as raised:
         fit_attention_grids(grid, cameras_around(4, 12, seed=1), edit_maps, object_maps, config, fresh_view=fresh_view)
     assert re.search(expected, str(raised.value)) and "fit more iterations" not in str(raised.value)
+
+
+@pytest.mark.parametrize("views", ["fixed", "fresh"])
+def test_a_constant_start_on_fixed_maps_that_never_differ_is_refused_before_any_work(make_sphere_grid, views):
+    """The paper's fit (constant start, fixed views) of edit and object maps equal on every pixel had run all of its
+    1,500 steps to end with both grids equal and say so. Fresh views' maps are told step by step: their fit runs."""
+    grid = make_sphere_grid(10)
+    edit_maps = torch.linspace(0.2, 0.9, 12).expand(4, 12, 12)
+    config = RefineConfig(**{**PAPER_TEXT_FIT, "rays_per_step": 64, "fit_views": views})
+    reports = []
+    on_progress = reports.append if views == "fresh" else lambda p: pytest.fail(f"{p.stage} progress reported")
+    fresh_view = lambda step: (cameras_around(1, 12, seed=step), edit_maps[0], edit_maps[0].flip(-1))  # noqa: E731
+    if views == "fixed":
+        with pytest.raises(SegmentationError, match=r"^the edit and object maps are equal on every pixel of the 4 "
+                                                    r"views that sees the edited object: they do not tell the edit "
+                                                    r"from the object .* nothing was fitted$"):
+            fit_attention_grids(grid, cameras_around(4, 12, seed=1), edit_maps, edit_maps.clone(), config,
+                                Callbacks(on_progress=on_progress, should_cancel=lambda: len(reports) >= 3))
+        # maps apart on one pixel's worth: fitted
+        object_maps = edit_maps.clone()
+        object_maps[:, 6, 6] += 0.05
+        with pytest.raises(StageCancelled):
+            fit_attention_grids(grid, cameras_around(4, 12, seed=1), edit_maps, object_maps, config,
+                                Callbacks(on_progress=reports.append, should_cancel=lambda: len(reports) >= 3))
+    else:
+        with pytest.raises(StageCancelled):
+            fit_attention_grids(grid, cameras_around(4, 12, seed=1), edit_maps, edit_maps.clone(), config,
+                                Callbacks(on_progress=on_progress, should_cancel=lambda: len(reports) >= 3),
+                                fresh_view=fresh_view)
+    assert [p.stage for p in reports] == ["backprojection", "attention_grids", "attention_grids"]
 
 
 def test_a_constant_start_fit_equal_but_for_the_order_its_gradients_are_summed_in_is_still_named(make_sphere_grid,

@@ -155,16 +155,18 @@ def attention_l1(rendered: torch.Tensor, targets: torch.Tensor, pixels: str = "a
     return error.mean()
 
 
+_MAPS_ALIKE = ("they do not tell the edit from the object (the edit words' cross-attention is the rest of the "
+              "prompt's), so neither can the grids fitted to them")
+
+
 def _why_still_equal(config: RefineConfig, fitted: int, maps_differ: bool) -> str:
     """Why a constant start's fit left both grids equal, and what to do: the cut would have said only "no seeds"."""
     if not fitted:
         return ("no step fitted them, every fresh view having missed the edited object (no pixel's ray meets its "
                 "occupied box), so no voxel is more likely edit than object and the cut has no seeds; are the fresh "
                 "poses aimed at it?")
-    if not maps_differ:
-        return ("the edit and object maps are equal on every pixel fitted: they do not tell the edit from the object "
-                "(the edit words' cross-attention is the rest of the prompt's), so neither can the grids fitted to "
-                "them, and the cut has no seeds")
+    if not maps_differ:  # (fresh views' maps: fixed ones are told before the fit)
+        return f"the edit and object maps are equal on every pixel fitted: {_MAPS_ALIKE}, and the cut has no seeds"
     alike = "from one value Adam moves both alike until their renders reach the lower of the two maps"
     no_seeds = "so no voxel is more likely edit than object and the cut has no seeds"
     if config.iterations < REFINE_ITERATIONS:
@@ -199,7 +201,8 @@ def fit_attention_grids(
     Deterministic for ``config.seed``; reports ``Progress("attention_grids")``
     every step and may be cancelled between steps. A constant start whose fit ends with both grids still equal
     (:func:`~voxe_core.refine.cut.prefer_neither`) is a SegmentationError naming why (no step fitted, maps that never
-    differ, or too few iterations): the cut would find no seeds. So are views that miss the object, and a
+    differ, or too few iterations): the cut would find no seeds; with ``fit_views="fixed"``, maps equal on every
+    pixel are that error before any work. So are views that miss the object, and a
     back-projection whose pixels see none of its density (the fit moves only the vertices they see).
     """
     n_views, height, width = edit_maps.shape
@@ -226,6 +229,13 @@ def fit_attention_grids(
     if keep.numel() == 0:
         raise SegmentationError(f"none of the {n_views} views sees the edited object (no pixel's ray meets its "
                                 "occupied box): there is no attention to lift; are the views aimed at it?")
+    # A constant start fitted on maps that never differ ends with both grids equal: refused at once, where it had run
+    # every step (the paper's 1,500) to say so.
+    if config.lift_start == "constant" and config.fit_views == "fixed" and prefer_neither(targets[keep, 0],
+                                                                                         targets[keep, 1]):
+        raise SegmentationError(f"the edit and object maps are equal on every pixel of the {n_views} views that sees "
+                                f"the edited object: {_MAPS_ALIKE} from lift_start='constant', and the cut would have "
+                                "no seeds; nothing was fitted")
     strided = (hits & strided_pixels(n_views, height, width, config.backprojection_stride, device)).nonzero().squeeze(-1)
     start, seen = backproject(frozen, origins[strided], directions[strided], targets[strided], config, occupancy,
                               callbacks)
@@ -253,8 +263,9 @@ def fit_attention_grids(
     box = _occupied_slices(occupancy)
     generator = torch.Generator(device=device).manual_seed(config.seed)
     n_rays = origins.shape[0]
-    # "fresh" fits other maps than these: whether they differ is told step by step
-    fitted, maps_differ = 0, config.fit_views == "fixed" and not prefer_neither(targets[:, 0], targets[:, 1])
+    # "fresh" fits other maps than these: whether they differ is told step by step (a constant start's fixed maps
+    # that never differ were refused above)
+    fitted, maps_differ = 0, config.fit_views == "fixed"
     for iteration in range(config.iterations):
         callbacks.check_cancel("attention_grids")
         values = flat_start.index_copy(0, rows, active).reshape(start.shape)
