@@ -1051,6 +1051,31 @@ def test_a_failing_stream_is_asked_again_less_often_each_time(live, browser):
     faults(driver, {})
 
 
+def test_a_far_off_stream_retry_interval_is_waited_for_minutes_at_most(live, browser):
+    """A stream's ``retry:`` past setTimeout()'s 2^31-1 ms (or past any number) is waited for a few minutes before
+    reconnecting: setTimeout() had fired at once, the failing stream asked again hundreds of times a second."""
+    svc, token, _archive = live
+    driver = browser
+    answer = lambda body, kind="application/json": {"status": 200, "type": kind, "body": body}  # noqa: E731
+    failing = {"status": 503, "statusText": "Service Unavailable", "type": "application/json",
+               "body": json.dumps({"detail": "database busy"})}
+    set_key(driver, svc, token)
+    for retry in ("3000000000", "9" * 400):
+        # (the keys in sorted order: the timeline read as JSON, then a stream answered with its retry, then failures)
+        faults(driver, {"/v1/jobs/far$": answer(json.dumps(running_job("far"))),
+                        "/v1/jobs/far/artifacts$": answer("[]"),
+                        "/v1/jobs/far/event": {"once": True, **answer("[]")},
+                        "/v1/jobs/far/events": {"once": True, **answer(f"retry: {retry}\n\n", "text/event-stream")},
+                        "/v1/jobs/far/events$": failing})
+        driver.execute_script("window.requests = []")
+        go(driver, "#/jobs/far")
+        wait_until(lambda: streams(driver, "far"), 10, what="the stream")
+        time.sleep(3)  # the stream is not asked again in 3 s (it had been thousands of times)
+        assert len(streams(driver, "far")) == 1, retry
+        go(driver, "#/")
+    faults(driver, {})
+
+
 def test_a_stream_answered_with_no_event_stream_is_a_failure_said_and_asked_less_often(live, browser):
     """A 2xx answer to the stream request that is no event stream (a proxy's login page), or an event stream that
     ends with nothing delivered, is a failure, said and asked again less often each time; the count goes back to

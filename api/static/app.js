@@ -69,9 +69,10 @@ function apiError(status, statusText, contentType, text, retryAfter) {
                       retryAfterMs(retryAfter));
 }
 
-/** The longest a Retry-After is waited for: setTimeout() fires at once for a wait over 2^31-1 ms (24.8 days), so a
- * proxy's far-off Retry-After (an HTTP date in 2100) had the page asking again hundreds of times a second while
- * saying it waits; and a wait of days or weeks, even kept, leaves the page stopped long after the server is back. */
+/** The longest a Retry-After, or an event stream's ``retry:``, is waited for: setTimeout() fires at once for a wait
+ * over 2^31-1 ms (24.8 days), so a proxy's far-off Retry-After (an HTTP date in 2100) had the page asking again
+ * hundreds of times a second while saying it waits, and a ``retry: 3000000000`` the stream reconnecting as often;
+ * and a wait of days or weeks, even kept, leaves the page stopped long after the server is back. */
 const RETRY_AFTER_CAP_MS = 5 * 60_000;
 
 /** A Retry-After header's wait in ms (seconds, or an HTTP date: RFC 9110 §10.2.3), at most RETRY_AFTER_CAP_MS; null
@@ -679,10 +680,10 @@ const STREAM_RETRY_CAP_MS = 30_000;
 
 /** Read the job's Server-Sent Events after event ``afterId`` (none: from its start) with fetch() (the key in a
  * header), reconnecting with Last-Event-ID until the job ends or the page changes: after the server's retry
- * interval, doubled for each failure in a row (a failing server had been asked again every 2 s for as long as the
- * page stayed open), back to it once a stream delivers an event or a comment. A 2xx answer that is no event stream
- * (a proxy's login page), or a stream that ends with nothing delivered, is such a failure: reset on any 2xx, they
- * had been asked again every 2 s, saying nothing. */
+ * interval (RETRY_AFTER_CAP_MS at most), doubled for each failure in a row (a failing server had been asked again
+ * every 2 s for as long as the page stayed open), back to it once a stream delivers an event or a comment. A 2xx
+ * answer that is no event stream (a proxy's login page), or a stream that ends with nothing delivered, is such a
+ * failure: reset on any 2xx, they had been asked again every 2 s, saying nothing. */
 async function followEvents(jobId, afterId, signal) {
   let lastId = afterId == null ? null : String(afterId);
   let retryMs = 2000;
@@ -713,7 +714,7 @@ async function followEvents(jobId, afterId, signal) {
           failures = 0;
           showError("stream", "");
         }
-        if (event.retry) retryMs = event.retry;
+        if (event.retry) retryMs = Math.min(event.retry, RETRY_AFTER_CAP_MS);
         if (event.id) lastId = event.id;
         if (!event.event) continue;
         if (event.event === "error") {  // the server's last word: the job was deleted, or the key revoked
