@@ -714,12 +714,15 @@ def _packed_samples(grid, occupancy, origins, directions, lattice, segments, n_s
     step = lattice.step
     inside = ((k >= lattice.first.index_select(0, seg_ray)[:, None])
               & (k < lattice.last.index_select(0, seg_ray)[:, None]))
-    delta = (lattice.length.index_select(0, seg_ray)[:, None] - k * step).clamp(0.0, step)
+    # k·step formed once, t and the correction below in place: fresh (G, SEGMENT) tensors cost the CPU about as
+    # much as their arithmetic (the same operations on the same operands: the same bits).
+    t = k * step
+    delta = (lattice.length.index_select(0, seg_ray)[:, None] - t).clamp_(0.0, step)
     # The last sample within the path it stands for (the others: step − δ is 0, the same bits). At start + k·step it
     # had lain up to a step past the box's exit, read from the face's far side (interpolation clamps onto the box),
     # where the occupancy's tight box, cut at the exit, dropped it: skipping had changed the render.
-    t = lattice.start.index_select(0, seg_ray)[:, None] + k * step \
-        - lattice.offset.index_select(0, seg_ray)[:, None] * (step - delta)
+    t.add_(lattice.start.index_select(0, seg_ray)[:, None])
+    t.sub_((step - delta).mul_(lattice.offset.index_select(0, seg_ray)[:, None]))
     points = origins.index_select(0, seg_ray)[:, None, :] + t[..., None] * directions.index_select(0, seg_ray)[:, None, :]
     if occupancy is not None:
         inside &= occupancy.occupied(grid.cell_index(points))
