@@ -149,7 +149,8 @@ def _packed_samples_as_d2ce580(grid, occupancy, origins, directions, lattice, se
     delta = (lattice.length.index_select(0, seg_ray)[:, None] - k * step).clamp(0.0, step)
     t = lattice.start.index_select(0, seg_ray)[:, None] + k * step \
         - lattice.offset.index_select(0, seg_ray)[:, None] * (step - delta)
-    points = origins.index_select(0, seg_ray)[:, None, :] + t[..., None] * directions.index_select(0, seg_ray)[:, None, :]
+    points = (origins.index_select(0, seg_ray)[:, None, :]
+              + t[..., None] * directions.index_select(0, seg_ray)[:, None, :])
     if occupancy is not None:
         inside &= occupancy.occupied(grid.cell_index(points))
     pick = inside.reshape(-1).nonzero().squeeze(1)
@@ -194,7 +195,8 @@ def test_the_sampler_places_every_sample_as_the_reference_formula_does(step_rati
     monkeypatch.setattr(grid_module, "_packed_samples", _packed_samples_as_d2ce580)
     expected = list(grid.ray_samples(origins, directions, offsets, step_ratio))
     assert len(got) == len(expected) == 1
-    assert all(torch.equal(getattr(got[0], name), getattr(expected[0], name)) for name in ("ray", "t", "delta", "points"))
+    for name in ("ray", "t", "delta", "points"):
+        assert torch.equal(getattr(got[0], name), getattr(expected[0], name)), name
 
 
 @pytest.mark.parametrize("step_ratio", [0.3, 0.8, 2.5])
