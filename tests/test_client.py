@@ -512,6 +512,28 @@ def test_reads_whose_connection_dropped_before_the_answer_are_sent_again(monkeyp
     assert asked == [b"GET /v1/jobs/j1 HTTP/1.1"] * 3 and waits == [0.5, 1.0]
 
 
+def test_a_negative_number_of_retries_is_refused_and_none_sends_once(monkeypatch):
+    """``retries=-1`` had been taken: no sending was ever the last, so a read whose connection kept dropping was sent
+    for good. It is a ValueError; 0 sends once."""
+    import voxe_client.client as client_module
+
+    monkeypatch.setattr(client_module.time, "sleep", lambda _s: None)
+    sent = []
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        sent.append(request.method)
+        if len(sent) > 10:
+            raise AssertionError("still sending")
+        raise httpx.ReadError("connection reset")
+
+    with pytest.raises(ValueError, match="^retries must be 0 or more, got -1$"):
+        Client(transport=httpx.MockTransport(answer), retries=-1)
+    with Client(transport=httpx.MockTransport(answer), retries=0) as client:
+        with pytest.raises(ServiceError, match="connection reset"):
+            client.get_job("j1")
+    assert sent == ["GET"]
+
+
 def test_a_retry_after_given_as_an_http_date_is_waited_out_counted_from_the_servers_clock(monkeypatch):
     """``Retry-After`` may be an HTTP-date (RFC 9110 §10.2.3): it had been ignored, a read or a keyed submission
     answered so failing at once. The wait is the date less the answer's ``Date`` (the server's clock), else less

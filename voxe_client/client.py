@@ -139,6 +139,8 @@ class Client:
     def __init__(self, base_url: str = DEFAULT_URL, api_key: str | None = None, timeout: float = DEFAULT_TIMEOUT_S,
                  transport: httpx.BaseTransport | None = None, retries: int = DEFAULT_RETRIES):
         self.base_url = base_url.rstrip("/")
+        if retries < 0:  # (no sending is ever the last: -1 had sent a read whose connection kept dropping for good)
+            raise ValueError(f"retries must be 0 or more, got {retries}")
         self.retries = retries
         headers = {"accept": "application/json"}
         if api_key:
