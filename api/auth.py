@@ -145,9 +145,13 @@ def check_startup(settings: Settings) -> str:
 
 # ------------------------------------------------------------------ quotas
 class QuotaExceeded(HTTPException):
-    def __init__(self, message: str, settings: Settings):
+    """429 over a key's quota, with ``Retry-After`` only where waiting can clear it (``retry_after_s``): a job
+    ending frees a place, but only deleting scenes frees upload bytes (a client waiting that out had sent the whole
+    upload again and again, to the same 429)."""
+
+    def __init__(self, message: str, retry_after_s: int | None):
         super().__init__(status.HTTP_429_TOO_MANY_REQUESTS, message,
-                         headers={"Retry-After": str(settings.quota_retry_after_s)})
+                         headers=None if retry_after_s is None else {"Retry-After": str(retry_after_s)})
 
 
 def check_active_jobs(session: Session, key: ApiKey, settings: Settings, adding: int = 1) -> None:
@@ -166,7 +170,7 @@ def check_active_jobs(session: Session, key: ApiKey, settings: Settings, adding:
         raise QuotaExceeded(f"quota of concurrent jobs exceeded: key {key.name!r} already has {active - adding} "
                             f"queued or running job(s) and asked for {adding} more, the limit is {limit} "
                             "(VOXE_MAX_ACTIVE_JOBS_PER_KEY or the key's own); retry when one finishes, or cancel one",
-                            settings)
+                            settings.quota_retry_after_s)
 
 
 def check_upload_bytes(session: Session, key: ApiKey, settings: Settings, adding: int,
@@ -189,7 +193,7 @@ def check_upload_bytes(session: Session, key: ApiKey, settings: Settings, adding
         this = f"this upload adds {adding}" if adding else "before this upload is read"
         raise QuotaExceeded(f"quota of upload bytes exceeded: key {key.name!r} stores {stored} bytes of scenes, "
                             f"{this}, the limit is {limit} (VOXE_MAX_UPLOAD_BYTES_PER_KEY or the key's own); delete "
-                            "scenes to free space", settings)
+                            "scenes to free space", None)
 
 
 # ------------------------------------------------------------------ Idempotency-Key

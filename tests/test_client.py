@@ -382,7 +382,8 @@ def test_wait_with_a_timeout_is_not_held_past_it_by_a_silent_stream():
 
 def test_reads_answered_503_with_retry_after_are_sent_again_and_writes_are_not(monkeypatch):
     """A GET (and the event stream) answered 503 + Retry-After waits that long and asks again, at most ``retries``
-    times; a POST, which the service may have acted on, and a 503 without Retry-After are errors at once."""
+    times; a POST, which the service may have acted on, a 503 without Retry-After, and one asking longer than
+    MAX_RETRY_WAIT_S (it had been sent again after 30 s, sooner than asked) are errors at once, naming that wait."""
     import voxe_client.client as client_module
 
     waits, sent = [], []
@@ -406,8 +407,12 @@ def test_reads_answered_503_with_retry_after_are_sent_again_and_writes_are_not(m
     with Client(transport=httpx.MockTransport(answer), retries=3) as client:
         assert client.get_job("j1")["state"] == "running"
         assert sent == ["GET /v1/jobs/j1"] * 3 and waits == [2.0, 2.0]
+        sent.clear()
+        with pytest.raises(ServiceError, match=r"^GET /v1/jobs/j1/events: HTTP 503: the database is busy \(the service "
+                                               r"asks to send it again in 120 s, longer than this client waits: 30 s\)$"):
+            list(client.events("j1"))
+        assert sent == ["GET /v1/jobs/j1/events"] and waits == [2.0, 2.0]
         assert [e["event"] for e in client.events("j1")] == ["succeeded"]
-        assert waits[-1] == client_module.MAX_RETRY_WAIT_S  # 120 s asked, capped
         sent.clear()
         with pytest.raises(ServiceError) as refused:
             client.cancel_job("j1")
@@ -537,7 +542,8 @@ def test_a_negative_number_of_retries_is_refused_and_none_sends_once(monkeypatch
 def test_a_retry_after_given_as_an_http_date_is_waited_out_counted_from_the_servers_clock(monkeypatch):
     """``Retry-After`` may be an HTTP-date (RFC 9110 §10.2.3): it had been ignored, a read or a keyed submission
     answered so failing at once. The wait is the date less the answer's ``Date`` (the server's clock), else less
-    now; a date past is no wait, one far off is capped, and one unreadable is no Retry-After."""
+    now; a date past is no wait, one further off than MAX_RETRY_WAIT_S the error at once, and one unreadable is no
+    Retry-After."""
     from datetime import datetime, timedelta, timezone
     from email.utils import format_datetime
 
@@ -560,10 +566,13 @@ def test_a_retry_after_given_as_an_http_date_is_waited_out_counted_from_the_serv
     assert waits == [7.0]  # from the server's clock (7 s after its Date), not this machine's (years after)
     waits.clear()
     with Client(transport=httpx.MockTransport(answer), retries=3) as client:
-        answers[:] = [(503, {"retry-after": http_date(20)}), (409, {"retry-after": http_date(-60)}),
-                      (503, {"retry-after": http_date(3600)}), (201, {})]
+        answers[:] = [(503, {"retry-after": http_date(20)}), (409, {"retry-after": http_date(-60)}), (201, {})]
         assert client.create_job("s1", "gold")["id"] == "j1"
-        assert 18 < waits[0] <= 20 and waits[1:] == [0.0, client_module.MAX_RETRY_WAIT_S]
+        assert 18 < waits[0] <= 20 and waits[1:] == [0.0]
+        answers[:] = [(503, {"retry-after": http_date(3600)}), (201, {})]
+        with pytest.raises(ServiceError, match=r"HTTP 503: busy \(the service asks to send it again in 3[56]\d\d s"):
+            client.create_job("s1", "gold")
+        assert answers == [(201, {})] and len(waits) == 2
         answers[:] = [(503, {"retry-after": "soon"}), (200, {})]
         with pytest.raises(ServiceError, match="HTTP 503: busy"):
             client.get_job("j1")
@@ -574,7 +583,8 @@ def test_a_submission_is_sent_again_a_bounded_number_of_times_and_only_while_its
     """A keyed submission waits Retry-After, else a doubling pause, between its sendings, at most ``retries`` times;
     the service's own answers (a 422, a 500, a 429 or 409 without Retry-After) are errors at once, and a 409 with
     Retry-After (its first sending not answered yet) or a 429 with it (over the quota: it had been an error at once)
-    is waited for. A write without a key (a cancel) is never sent again."""
+    is waited for, unless it asks longer than MAX_RETRY_WAIT_S: the quota's 60 s had been waited 30 s, three times,
+    each time the whole upload sent again. A write without a key (a cancel) is never sent again."""
     import voxe_client.client as client_module
 
     waits, sent = [], []
@@ -604,8 +614,12 @@ def test_a_submission_is_sent_again_a_bounded_number_of_times_and_only_while_its
             submit(client, *[("drop", {})] * 5)
         assert gave_up.value.status is None and len(sent) == 4
         assert submit(client, (409, {"retry-after": "1"}), (200, {}))["id"] == "j1" and waits == [1.0]
-        assert submit(client, (429, {"retry-after": "60"}), (201, {}))["id"] == "j1"
-        assert waits == [client_module.MAX_RETRY_WAIT_S] and len({key for *_, key in sent}) == 1  # capped, one key
+        assert submit(client, (429, {"retry-after": "30"}), (201, {}))["id"] == "j1"
+        assert waits == [client_module.MAX_RETRY_WAIT_S] and len({key for *_, key in sent}) == 1
+        with pytest.raises(ServiceError, match=r"^POST /v1/jobs: HTTP 429: said \(the service asks to send it again in "
+                                               r"60 s, longer than this client waits: 30 s\)$"):
+            submit(client, (429, {"retry-after": "60"}), (201, {}))
+        assert len(sent) == 1 and waits == []
         with pytest.raises(ServiceError, match="HTTP 429: said") as gave_up:
             submit(client, *[(429, {"retry-after": "2"})] * 5)
         assert gave_up.value.status == 429 and len(sent) == 4 and waits == [2.0] * 3

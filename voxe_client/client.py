@@ -113,17 +113,18 @@ class JobWaitTimeout(TimeoutError):
 class Client:
     """The job service at ``base_url``; ``api_key`` goes as ``Authorization: Bearer`` (none on a loopback service).
 
-    Use it as a context manager (or call :meth:`close`) to release its connections. ``transport``
-    replaces httpx's network transport (tests pass ``httpx.MockTransport``). A read (GET, HEAD) answered 503 or 429
-    with ``Retry-After`` (the service's database or broker briefly unavailable, a rate or quota limit) is sent again
-    after that wait (seconds or an HTTP-date, at most :data:`MAX_RETRY_WAIT_S`), at most ``retries`` times, and so is
-    one whose connection dropped before its answer (:data:`DROPPED_CONNECTIONS`), after a doubling pause. A
-    submission (an upload, a job, a sweep) goes with an ``Idempotency-Key``, one per call, so it too is sent again,
-    with the same key, when its answer is lost (a connection refused or dropped, a 502 / 503 / 504), the service is
-    still answering its first sending (409 with ``Retry-After``) or asks it to wait (429 with ``Retry-After``: over
-    a quota): the service answers a retry with what the first sending created, never a second one. A submission not
-    answered within ``timeout`` is not (the service may still be working on it): the error names its key, to send
-    it again with once it is done. Other writes (a cancel, a deletion) are not.
+    Use it as a context manager (or call :meth:`close`) to release its connections. ``transport`` replaces httpx's
+    network transport (tests pass ``httpx.MockTransport``). A read (GET, HEAD) answered 503 or 429 with ``Retry-After``
+    (the service's database or broker briefly unavailable, a rate or quota limit) is sent again after that wait (seconds
+    or an HTTP-date; one asking more than :data:`MAX_RETRY_WAIT_S` is the error at once, naming it), at most ``retries``
+    times, and so is one whose connection dropped before its answer (:data:`DROPPED_CONNECTIONS`), after a doubling
+    pause. A submission (an upload, a job, a sweep) goes with an ``Idempotency-Key``, one per call, so it too is sent
+    again, with the same key, when its answer is lost (a connection refused or dropped, a 502 / 503 / 504), the service
+    is still answering its first sending (409 with ``Retry-After``) or asks it to wait (429 with ``Retry-After``: over a
+    quota that waiting clears; the upload-bytes quota, which only deleting scenes clears, has none): the service answers
+    a retry with what the first sending created, never a second one. A submission not answered within ``timeout`` is not
+    (the service may still be working on it): the error names its key, to send it again with once it is done. Other
+    writes (a cancel, a deletion) are not.
 
     Examples:
         >>> def answer(request):
@@ -602,8 +603,7 @@ def _header_bytes(key: str) -> bytes:
 
 
 def _retry_after(response: httpx.Response) -> float | None:
-    """The seconds its ``Retry-After`` asks to wait before sending the request again (at most ``MAX_RETRY_WAIT_S``):
-    a number of seconds, or an HTTP-date (RFC 9110 §10.2.3; it had been ignored, the request not sent again) counted
+    """The seconds its ``Retry-After`` asks to wait before sending the request again: a number of seconds, or an HTTP-date (RFC 9110 §10.2.3; it had been ignored, the request not sent again) counted
     from the answer's ``Date`` (the server's clock: a client's skewed one had stretched or cut the wait), else from
     now, a date past being no wait; None without one or with one unreadable."""
     value = response.headers.get("retry-after")
@@ -617,7 +617,7 @@ def _retry_after(response: httpx.Response) -> float | None:
             return None
         seconds = max(0.0, (when - (_http_date(response.headers.get("date", "")) or datetime.now(timezone.utc)))
                       .total_seconds())
-    return min(seconds, MAX_RETRY_WAIT_S) if seconds >= 0 else None
+    return seconds if 0 <= seconds < math.inf else None
 
 
 def _http_date(value: str) -> datetime | None:
@@ -640,8 +640,12 @@ def _resend_wait(response: httpx.Response, attempt: int, keyed: bool) -> float |
     ``response``; None for an answer that stands. A 503 or 429 with ``Retry-After`` (busy, over a rate or quota: it
     had failed a waiting caller at once) after that wait. A keyed one also after a proxy's 502 / 503 / 504 (the
     answer lost, or the submission withdrawn: a retry with the key submits it anew), after its ``Retry-After``, else
-    :func:`_backoff`, and after a 409 with ``Retry-After`` (the first sending not answered yet)."""
+    :func:`_backoff`, and after a 409 with ``Retry-After`` (the first sending not answered yet). One asking longer
+    than :data:`MAX_RETRY_WAIT_S` stands (it had been sent again sooner than asked, in vain; its error names the
+    wait)."""
     asked = _retry_after(response)
+    if asked is not None and asked > MAX_RETRY_WAIT_S:
+        return None
     if response.status_code in (httpx.codes.SERVICE_UNAVAILABLE, httpx.codes.TOO_MANY_REQUESTS) and asked is not None:
         return asked
     if not keyed:
@@ -659,8 +663,11 @@ def _raise_for_error(response: httpx.Response, method: str, path: str) -> None:
             detail = None
         if detail is None:  # not the API's error (a proxy's HTML, or JSON of its own): it had read "HTTP 502: None"
             detail = response.reason_phrase
-        raise ServiceError(f"{method} {path}: HTTP {response.status_code}: {_readable(detail)}", response.status_code,
-                           detail)
+        asked = _retry_after(response)
+        later = (f" (the service asks to send it again in {asked:.0f} s, longer than this client waits: "
+                 f"{MAX_RETRY_WAIT_S:g} s)" if asked is not None and asked > MAX_RETRY_WAIT_S else "")
+        raise ServiceError(f"{method} {path}: HTTP {response.status_code}: {_readable(detail)}{later}",
+                           response.status_code, detail)
 
 
 def _readable(detail) -> str:

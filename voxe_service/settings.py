@@ -87,7 +87,7 @@ class Settings(BaseSettings):
     auth: Literal["auto", "on", "off"] = "auto"  # auto: off on a loopback host, on anywhere else
     max_active_jobs_per_key: int = Field(20, ge=1)  # queued + running jobs; a key's own value wins
     max_upload_bytes_per_key: int = Field(50 * 1024**3, ge=1)  # stored scene bytes; a key's own value wins
-    quota_retry_after_s: int = Field(60, ge=1)
+    quota_retry_after_s: int = Field(60, ge=1)  # the concurrent-job quota's Retry-After (the upload quota has none)
 
     # --- worker behaviour
     progress_interval_s: float = Field(0.5, gt=0)  # at most one progress write per interval (2/s)

@@ -111,7 +111,8 @@ def scene_out(scene) -> SceneOut:
                422: {"description": "not a valid dataset (the message names the file and frame), a form field "
                                     "the upload does not take, of the wrong kind, or one-valued and sent twice "
                                     "(named), or an Idempotency-Key reused with a different upload"},
-               429: {"description": "the key's upload quota is used up (Retry-After)"},
+               429: {"description": "the key's upload quota is used up (no Retry-After: deleting scenes frees it, "
+                                    "waiting does not)"},
                503: {"description": "the ingest could not be queued (broker unreachable)"}},
     summary="Upload a posed image set or a mesh (optionally with an Idempotency-Key header)",
 )
