@@ -344,6 +344,60 @@ def test_wait_with_a_timeout_gives_up_then_naming_the_job_and_its_last_state(mon
             list(client.events("j1", timeout=30))
 
 
+def test_wait_with_a_timeout_cuts_a_retry_after_at_it(monkeypatch):
+    """A stream lost and its reconnect answered 503 + Retry-After: 30 (a proxy while the API restarts) had been
+    waited out ``retries`` times before the deadline was looked at: ``wait(timeout=5)`` held the caller 91 s. The
+    wait is cut at the deadline, and the timeout is said then."""
+    import voxe_client.client as client_module
+    from voxe_client import JobWaitTimeout
+
+    clock, sent = [0.0], []
+    monkeypatch.setattr(client_module.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(client_module.time, "sleep", lambda seconds: clock.__setitem__(0, clock[0] + seconds))
+
+    class Dropped(httpx.SyncByteStream):
+        def __iter__(self):
+            yield b'event: progress\ndata: {"state": "running"}\n\n'
+            clock[0] += 1.0
+            raise httpx.ReadError("connection reset")
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        sent.append(clock[0])
+        if len(sent) == 1:
+            return httpx.Response(200, headers={"content-type": "text/event-stream"}, stream=Dropped())
+        return httpx.Response(503, headers={"retry-after": "30"}, text="Service Unavailable")
+
+    with Client(transport=httpx.MockTransport(answer), retries=3) as client:
+        with pytest.raises(JobWaitTimeout, match=r"^job j1 did not end within 5 s \(last heard running\)"):
+            client.wait("j1", timeout=5)
+    assert clock[0] == 5.0 and sent == [0.0, 1.5, 5.0]  # reconnected after a 0.5 s pause, the 30 s cut to 3.5
+
+
+def test_wait_with_no_time_left_looks_at_the_job_once(monkeypatch):
+    """``wait(job, timeout=0)`` had raised JobWaitTimeout "did not end" on a job long succeeded, asking nothing: a
+    wait that ran out before the stream said where the job stood looks at it once, and returns it if it has ended;
+    one not ended, or a look that fails, is the timeout."""
+    from voxe_client import JobWaitTimeout
+
+    states, sent = {"done": "succeeded", "busy": "running"}, []
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        sent.append(request.url.path)
+        job = request.url.path.rsplit("/", 1)[-1]
+        if job not in states:
+            return httpx.Response(503, json={"detail": "down"})
+        return httpx.Response(200, json={"id": job, "state": states[job]})
+
+    with Client(transport=httpx.MockTransport(answer), retries=3) as client:
+        assert client.wait("done", timeout=0) == {"id": "done", "state": "succeeded"}
+        assert sent == ["/v1/jobs/done"]
+        for job in ("busy", "gone"):
+            sent.clear()
+            with pytest.raises(JobWaitTimeout, match=rf"^job {job} did not end within 0 s"):
+                client.wait(job, timeout=0)
+            assert sent == [f"/v1/jobs/{job}"]
+
+
 def test_wait_with_a_timeout_is_not_held_past_it_by_a_silent_stream():
     """A stream gone silent (no keepalive: dead without a reset) had been read for STREAM_SILENCE_S (60 s) before
     anything was checked: against a socket server that goes silent, ``wait(timeout=1)`` gives up in about 1 s."""

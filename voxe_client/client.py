@@ -193,12 +193,13 @@ class Client:
                                "(is it the Vox-E service?)") from None
 
     def _send(self, method: str, path: str, stream: bool = False, resendable: bool = False,
-              resend_dropped: bool = True, **kwargs) -> httpx.Response:
+              resend_dropped: bool = True, deadline: float | None = None, **kwargs) -> httpx.Response:
         """The answer to ``method path`` (``kwargs`` to httpx's request), sent again at most ``retries`` times: a read
         or a ``resendable`` one (it carries an Idempotency-Key) after the wait its answer asks (:func:`_resend_wait`),
         a read whose connection dropped before its answer (unless not ``resend_dropped``: a caller that goes on from
         where it stopped), a ``resendable`` one whose answer was lost; with ``stream`` its body is left unread (close
-        it).
+        it). No wait goes past ``deadline`` (a ``time.monotonic()``; a caller's timeout: three Retry-After waits had
+        held a ``wait(timeout=5)`` for 90 s): it is cut there, and the answer or loss at it stands.
 
         Each sending builds the request anew, which reads an upload's files again from their start (httpx rewinds
         them): a retried upload sends the same bytes, which the service's Idempotency-Key check compares."""
@@ -208,15 +209,17 @@ class Client:
             try:
                 response = self._http.send(self._http.build_request(method, path, **kwargs), stream=stream)
             except lost:
-                if attempt == self.retries:
+                left = math.inf if deadline is None else deadline - time.monotonic()
+                if attempt == self.retries or left <= 0:
                     raise
                 wait = _backoff(attempt)
             else:
                 wait = _resend_wait(response, attempt, resendable) if read or resendable else None
-                if wait is None or attempt == self.retries:
+                left = math.inf if deadline is None else deadline - time.monotonic()
+                if wait is None or attempt == self.retries or left <= 0:
                     return response
                 response.close()
-            time.sleep(wait)
+            time.sleep(min(wait, left))
 
     # ------------------------------------------------------------------ scenes and jobs
     def upload_scene(self, path: str | os.PathLike, name: str | None = None,
@@ -275,8 +278,8 @@ class Client:
         With ``timeout`` (seconds), a job not ended by then is a :class:`JobWaitTimeout` naming it and the state it
         was last heard in. It is checked at each line the stream brings (the service's keepalive comes every 15 s)
         and at each reconnect, and a stream opens with a read timeout no longer than the time left (one gone silent
-        is not waited on :data:`STREAM_SILENCE_S` past it): it may run over by about a keepalive's interval, or by a
-        ``Retry-After`` waited while opening a stream.
+        is not waited on :data:`STREAM_SILENCE_S` past it), and a ``Retry-After`` waited while opening one is cut at
+        it: it may run over by about a keepalive's interval.
         """
         reconnect_for = RECONNECT_FOR_S if reconnect_for is None else reconnect_for
         if timeout is not None and not timeout >= 0:  # (NaN had never run out)
@@ -312,6 +315,7 @@ class Client:
             silence = min(STREAM_SILENCE_S, limit)
             try:
                 with closing(self._send("GET", path, stream=True, headers=headers, resend_dropped=False,
+                                        deadline=deadline,
                                         timeout=httpx.Timeout(min(30.0, limit), read=silence))) as response:
                     if response.is_error:
                         response.read()
@@ -359,15 +363,29 @@ class Client:
         ``on_progress(snapshot)`` on each progress event and ``on_warning(event)`` on each warning (a stage's result
         to look at, or its start over: the job's message says it only until the next report); the finished job.
 
-        ``timeout`` (seconds; none by default) bounds the whole wait, reconnects included: past it, a
-        :class:`JobWaitTimeout` names the job and the state it was last heard in (it had waited for good on a job
-        stuck queued or running)."""
-        for event in self.events(job_id, reconnect_for=reconnect_for, on_reconnect=on_reconnect, timeout=timeout):
-            if event["event"] == "progress" and on_progress is not None:
-                on_progress(event["data"])
-            elif event["event"] == "warning" and on_warning is not None:
-                on_warning(event["data"])
-        return self.get_job(job_id)
+        ``timeout`` (seconds; none by default) bounds the whole wait, reconnects and ``Retry-After`` waits included:
+        past it, a :class:`JobWaitTimeout` names the job and the state it was last heard in (it had waited for good on
+        a job stuck queued or running). One that ran out before the stream said where the job stood (``timeout=0``)
+        looks at the job once first: one ended is returned (it had been a JobWaitTimeout, nothing asked)."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        path = f"/v1/jobs/{_segment(job_id)}"
+        try:
+            for event in self.events(job_id, reconnect_for=reconnect_for, on_reconnect=on_reconnect, timeout=timeout):
+                if event["event"] == "progress" and on_progress is not None:
+                    on_progress(event["data"])
+                elif event["event"] == "warning" and on_warning is not None:
+                    on_warning(event["data"])
+        except JobWaitTimeout as timed_out:
+            if timed_out.progress is not None:  # the stream said where it stood, and that it had not ended
+                raise
+            try:
+                job = self.request("GET", path, deadline=deadline)
+            except ServiceError:  # (the service gone: the timeout says where the job stood)
+                raise timed_out from None
+            if job.get("state") not in TERMINAL_STATES:
+                raise
+            return job
+        return self.request("GET", path, deadline=deadline)
 
     def artifacts(self, job_id: str) -> list[dict]:
         return self.request("GET", f"/v1/jobs/{_segment(job_id)}/artifacts")
