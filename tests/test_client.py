@@ -813,7 +813,8 @@ def test_an_interrupted_download_goes_on_from_its_part_file_at_the_next_call(tmp
     fetched it all again. They stay in ``.<name>.<ETag head>.part`` beside it, and the next call, in a new run,
     asks for the rest with Range and If-Range that ETag, replacing the target only once the whole is checked. A part
     of another version of the artifact is deleted; one not a head of it (longer, or bytes that fail the check) is
-    started over, and none is left by a download that got no byte."""
+    fetched whole, once more (a failing check had blamed the service), a whole one (a run stopped before its rename)
+    checked without a request (it had been fetched again), and none is left by a download that got no byte."""
     import hashlib
 
     import voxe_client.client as client_module
@@ -867,15 +868,98 @@ def test_an_interrupted_download_goes_on_from_its_part_file_at_the_next_call(tmp
     part.write_bytes(data[:4000] + b"x" * 20000)  # longer than the artifact: not a head of it, fetched whole
     assert run().read_bytes() == data and asked == [(None, None)]
     assert sorted(p.name for p in dest.parent.iterdir()) == ["a.bin", mine.name]
-    part.write_bytes(b"y" * 4000)  # a head that is not the artifact's: the check fails, the bytes go
-    with pytest.raises(ServiceError, match="downloaded 10240 bytes with sha256"):
-        run()
-    assert asked == [("bytes=4000-", f'"{sha}"')] and dest.read_bytes() == data  # the target not replaced
+    part.write_bytes(b"y" * 4000)  # not a head of it (a crash's zeroed tail): the check fails, fetched whole once
+    assert run().read_bytes() == data and asked == [("bytes=4000-", f'"{sha}"'), (None, None)]
     assert sorted(p.name for p in dest.parent.iterdir()) == ["a.bin", mine.name]
-    assert run().read_bytes() == data and asked == [(None, None)]  # the failed one's bytes not gone on from
+    dest.unlink()
+    part.write_bytes(data)  # every byte, the run stopped (Ctrl-C) before its rename: checked, nothing fetched again
+    assert run().read_bytes() == data and asked == []
     with pytest.raises(ServiceError, match=r"\(0 of 10240 bytes here\): refused$"):
         run(*[(None, httpx.ConnectError("refused"))] * 2)
     assert sorted(p.name for p in dest.parent.iterdir()) == ["a.bin", mine.name]
+
+
+def _serving(data: bytes, name: str = "a.bin", refuse=lambda request: None):
+    """A MockTransport answer serving ``data`` as the artifact ``name`` of a job, from a Range's start (206) or
+    whole, unless ``refuse(request)`` answers first; the Range headers asked go to its ``asked``."""
+    import hashlib
+
+    asked = []
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        if request.url.path.endswith("/artifacts"):
+            return httpx.Response(200, json=[{"name": name, "size": len(data),
+                                              "sha256": hashlib.sha256(data).hexdigest()}])
+        asked.append(request.headers.get("range"))
+        if (refused := refuse(request)) is not None:
+            return refused
+        start = int(asked[-1].removeprefix("bytes=").rstrip("-")) if asked[-1] else 0
+        headers = {"content-range": f"bytes {start}-{len(data) - 1}/{len(data)}"} if start else {}
+        return httpx.Response(206 if start else 200, headers=headers, content=data[start:])
+
+    answer.asked = asked
+    return answer
+
+
+def test_a_416_to_a_kept_part_fetches_it_whole_and_an_error_names_the_part_kept(tmp_path):
+    """A 416 to a kept part's Range (bytes no head of the artifact) had failed the download and left the part, so
+    every later call was answered 416 again: the part goes and the artifact is fetched whole. An error answered
+    while going on from a part says where its bytes are kept (it had not)."""
+    import hashlib
+
+    data = bytes(range(256)) * 40
+    part = tmp_path / f".a.bin.{hashlib.sha256(data).hexdigest()[:16]}.part"
+    unsatisfiable = httpx.Response(416, headers={"content-range": f"bytes */{len(data)}"}, json={"detail": "no range"})
+    answer = _serving(data, refuse=lambda request: unsatisfiable if "range" in request.headers else None)
+    part.write_bytes(data[:5000])
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        assert client.download("j1", "a.bin", tmp_path / "a.bin").read_bytes() == data
+    assert answer.asked == ["bytes=5000-", None] and sorted(p.name for p in tmp_path.iterdir()) == ["a.bin"]
+    gone = httpx.Response(404, json={"detail": "job 'j1' not found"})
+    answer = _serving(data, refuse=lambda request: gone)
+    part.write_bytes(data[:5000])
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        with pytest.raises(ServiceError, match=rf"^GET /v1/jobs/j1/artifacts/a.bin: HTTP 404: job 'j1' not found "
+                                               rf"\(5000 of 10240 bytes here, kept in {re.escape(str(part))} for the "
+                                               r"next download of it to go on from\)$") as refused:
+            client.download("j1", "a.bin", tmp_path / "a.bin")
+    assert refused.value.status == 404 and part.read_bytes() == data[:5000]
+
+
+def test_a_second_download_of_it_at_once_is_refused_and_the_part_file_itself_is_checked(tmp_path):
+    """Two downloads of one artifact to one place at once (two ``voxe download`` runs) had appended their bytes to
+    one part file, interleaved, and the first to end renamed it over the target, the bytes it received having been
+    checked, not the file. The part is locked: a second is an OSError naming it, the first's part left alone. And
+    the file itself is checked: bytes another writer added to it are a mismatch, the target left as it was."""
+    import fcntl
+    import hashlib
+
+    data = bytes(range(256)) * 40
+    sha = hashlib.sha256(data).hexdigest()
+    part, dest = tmp_path / f".a.bin.{sha[:16]}.part", tmp_path / "a.bin"
+    answer = _serving(data)
+    part.write_bytes(data[:100])
+    with open(part, "ab") as held, Client(transport=httpx.MockTransport(answer)) as client:
+        fcntl.flock(held, fcntl.LOCK_EX)  # another download of it, running
+        with pytest.raises(OSError, match=rf"^another download of a.bin of job j1 to {re.escape(str(tmp_path))} is "
+                                          rf"running \(its part file {re.escape(str(part))} is locked\)"):
+            client.download("j1", "a.bin", dest)
+    assert answer.asked == [] and part.read_bytes() == data[:100] and not dest.exists()
+
+    class Meddled(httpx.SyncByteStream):  # a writer that takes no lock (an older client) adds bytes as they come
+        def __iter__(self):
+            yield data[:4000]
+            with open(part, "ab") as other:
+                other.write(b"X" * 4000)
+            yield data[4000:]
+
+    part.unlink()
+    dest.write_bytes(b"earlier")
+    with Client(transport=httpx.MockTransport(_serving(data, refuse=lambda r: httpx.Response(200, stream=Meddled())))) \
+            as client:
+        with pytest.raises(ServiceError, match=f"downloaded {len(data) + 4000} bytes with sha256 (?!{sha})"):
+            client.download("j1", "a.bin", dest)
+    assert dest.read_bytes() == b"earlier" and sorted(p.name for p in tmp_path.iterdir()) == ["a.bin"]
 
 
 def test_upload_scene_sends_the_display_name_as_the_name_field_and_keeps_the_file_name(tmp_path):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import email.utils
+import fcntl
 import hashlib
 import itertools
 import json
@@ -13,10 +14,10 @@ import time
 import uuid
 import warnings
 from collections.abc import Callable, Iterator
-from contextlib import ExitStack, closing
+from contextlib import ExitStack, closing, contextmanager
 from datetime import datetime, timezone
 from pathlib import Path, PureWindowsPath
-from typing import Any
+from typing import Any, BinaryIO
 from urllib.parse import quote
 
 import httpx
@@ -398,8 +399,11 @@ class Client:
         to ``retries`` times in a row without a byte more; it had failed the download, its bytes thrown away, however
         large. The bytes go to a ``.part`` file beside ``dest`` named by that ETag (:func:`_part_file`), kept when the
         download fails or is interrupted, so the next call for it goes on from them (a run stopped by Ctrl-C or an
-        outage had thrown them away); those of its earlier versions are deleted. A mismatch is a ServiceError
-        and deletes them; the bytes land under ``dest`` only once checked.
+        outage had thrown them away), and locked while one call writes it (:func:`_locked_part`); those of its
+        earlier versions are deleted. The part file's own bytes are checked, and land under ``dest`` only then: a
+        whole one kept (a run stopped before its rename) without a request, one whose check fails having gone on from
+        an earlier call's bytes (not a head of the artifact) fetched whole once more, and a 416 to its Range (no head
+        of it either) fetched whole. A mismatch then is a ServiceError and deletes them.
         """
         if name in ("", ".", "..") or any(c in name for c in "/\\\0"):  # it names a file inside dest's folder only
             raise ServiceError(f"artifact name {name!r} of job {job_id} is not a plain file name; nothing written")
@@ -414,55 +418,71 @@ class Client:
         dest.parent.mkdir(parents=True, exist_ok=True)
         partial = _part_file(dest, expected["sha256"])
         _drop_other_parts(dest, partial)
-        size, failures = 0, 0
         path = f"/v1/jobs/{_segment(job_id)}/artifacts/{_segment(name)}"
-        try:
-            with open(partial, "ab") as out:
-                size = out.tell()
-                if size < expected["size"]:  # an earlier call's bytes, a head of the artifact: it goes on from them
-                    with open(partial, "rb") as earlier:
-                        digest = hashlib.file_digest(earlier, "sha256")
-                else:  # more: not a head of it (nor a whole one, which a finished call had renamed)
-                    out.truncate(0)
-                    digest, size = hashlib.sha256(), 0
+        what = f"{name} of job {job_id}"
+        with _locked_part(partial, what) as out:
+            try:
+                earlier = out.seek(0, os.SEEK_END)  # bytes an earlier call kept
                 while True:
-                    had = size
-                    resume = {"range": f"bytes={size}-", "if-range": f'"{expected["sha256"]}"'} if size else {}
-                    try:
-                        with closing(self._send("GET", path, stream=True, headers=resume,
-                                                resend_dropped=False)) as response:
-                            if response.is_error:
-                                response.read()
-                                _raise_for_error(response, "GET", path)
-                            if response.status_code != httpx.codes.PARTIAL_CONTENT:  # the whole file, from its start
-                                digest, size = hashlib.sha256(), 0
-                                out.seek(0)
-                                out.truncate()
-                            for chunk in response.iter_bytes():  # as received: a break loses none held back
-                                digest.update(chunk)
-                                size += len(chunk)
-                                out.write(chunk)
+                    if not self._fill_part(out, path, expected, what, partial):
+                        earlier = 0  # started over: none of them is checked now
+                    size, sha256 = _size_and_sha256(out)
+                    if (size, sha256) == (expected["size"], expected["sha256"]):
                         break
-                    except BROKEN_DOWNLOADS:
-                        failures = 0 if size > had else failures + 1
-                        if size and size >= expected["size"]:  # every byte listed is here: the check says the rest
-                            break
-                        if failures > self.retries:
-                            raise
-                        time.sleep(_backoff(failures))
-            if size != expected["size"] or digest.hexdigest() != expected["sha256"]:
-                partial.unlink()
-                raise ServiceError(f"{name} of job {job_id}: downloaded {size} bytes with sha256 {digest.hexdigest()}, "
-                                   f"the service lists {expected['size']} bytes with sha256 {expected['sha256']}")
-            os.replace(partial, dest)
-        except (httpx.TransportError, httpx.InvalidURL) as exc:
-            kept = f", kept in {partial} for the next download of it to go on from" if size else ""
-            raise ServiceUnreachable(f"cannot download {name} of job {job_id} ({size} of {expected['size']} bytes "
-                                     f"here{kept}): {exc}") from None
-        finally:
-            if not size:  # nothing to go on from
-                partial.unlink(missing_ok=True)
+                    if not earlier:
+                        partial.unlink()
+                        raise ServiceError(f"{what}: downloaded {size} bytes with sha256 {sha256}, the service lists "
+                                           f"{expected['size']} bytes with sha256 {expected['sha256']}")
+                    out.truncate(0)  # the earlier call's bytes were no head of it (a crash's zeroed tail): once, whole
+                    earlier = 0
+                os.replace(partial, dest)
+            finally:
+                if not out.seek(0, os.SEEK_END):  # nothing to go on from
+                    partial.unlink(missing_ok=True)
         return dest
+
+    def _fill_part(self, out: BinaryIO, path: str, expected: dict, what: str, partial: Path) -> bool:
+        """Append to ``out`` (the part file, open to append) the artifact at ``path`` from the bytes it holds (none
+        or a head of it, the listing ``expected`` says its size), going on where a broken connection stopped (see
+        :meth:`download`); whether the bytes it held at the start are kept (not started over: the service sent the
+        whole, or a 416 to their Range said they are no head of it). An error names the bytes kept, and where."""
+        size, kept, failures = out.seek(0, os.SEEK_END), True, 0
+        try:
+            while size < expected["size"]:
+                had = size
+                resume = {"range": f"bytes={size}-", "if-range": f'"{expected["sha256"]}"'} if size else {}
+                try:
+                    with closing(self._send("GET", path, stream=True, headers=resume,
+                                            resend_dropped=False)) as response:
+                        if response.status_code == httpx.codes.REQUESTED_RANGE_NOT_SATISFIABLE and size:
+                            out.truncate(0)  # (kept, every later call had asked the same range again)
+                            size, kept = 0, False
+                            continue
+                        if response.is_error:
+                            response.read()
+                            _raise_for_error(response, "GET", path)
+                        if response.status_code != httpx.codes.PARTIAL_CONTENT:  # the whole file, from its start
+                            out.truncate(0)
+                            size, kept = 0, False
+                        for chunk in response.iter_bytes():  # as received: a break loses none held back
+                            out.write(chunk)
+                            size += len(chunk)
+                    return kept
+                except BROKEN_DOWNLOADS:
+                    failures = 0 if size > had else failures + 1
+                    if failures > self.retries:
+                        raise
+                    if size < expected["size"]:  # (every byte listed here: the check says the rest)
+                        time.sleep(_backoff(failures))
+        except (httpx.TransportError, httpx.InvalidURL) as exc:
+            raise ServiceUnreachable(f"cannot download {what} ({size} of {expected['size']} bytes here"
+                                     f"{_kept_in(partial, size)}): {exc}") from None
+        except ServiceError as exc:
+            if not size:
+                raise
+            raise ServiceError(f"{exc} ({size} of {expected['size']} bytes here{_kept_in(partial, size)})",
+                               exc.status, exc.detail) from None
+        return kept
 
     # ------------------------------------------------------------------ sweeps (SPEC §4)
     def create_sweep(self, scenes: list[dict], params: dict | None = None, evaluation: dict | None = None,
@@ -590,6 +610,37 @@ def _part_file(dest: Path, sha256: str) -> Path:
     """Where a download to ``dest`` of the artifact whose SHA-256 (its ETag) is ``sha256`` keeps its bytes until they
     are checked: hidden beside it, named by the ETag's head, so a later call goes on from bytes of that version only."""
     return dest.with_name(f".{dest.name}.{sha256[:16]}.part")
+
+
+@contextmanager
+def _locked_part(partial: Path, what: str) -> Iterator[BinaryIO]:
+    """``partial`` open to append and read, locked (``flock``) for this download alone: two at once (two ``voxe
+    download`` runs into one folder) had interleaved their bytes in it, the first to end renaming that mix over the
+    target. Another is an OSError naming it, its part left alone, as is a part another download renamed as this one
+    opened it."""
+    with open(partial, "a+b") as out:
+        try:
+            fcntl.flock(out, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            ours = os.path.samestat(os.fstat(out.fileno()), os.stat(partial))
+        except (BlockingIOError, FileNotFoundError):
+            ours = False
+        if not ours:
+            raise OSError(f"another download of {what} to {partial.parent} is running (its part file {partial} is "
+                          "locked): let it end, then download again if it failed")
+        yield out
+
+
+def _size_and_sha256(part: BinaryIO) -> tuple[int, str]:
+    """The size and SHA-256 of the bytes in the file ``part`` itself, as they will land (the bytes received had been
+    checked, not the file)."""
+    part.flush()
+    part.seek(0)
+    return os.fstat(part.fileno()).st_size, hashlib.file_digest(part, "sha256").hexdigest()
+
+
+def _kept_in(partial: Path, size: int) -> str:
+    """What an error says of a download's ``size`` bytes kept in its part file ``partial``."""
+    return f", kept in {partial} for the next download of it to go on from" if size else ""
 
 
 def _drop_other_parts(dest: Path, kept: Path) -> None:
