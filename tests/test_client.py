@@ -962,6 +962,45 @@ def test_a_second_download_of_it_at_once_is_refused_and_the_part_file_itself_is_
     assert dest.read_bytes() == b"earlier" and sorted(p.name for p in tmp_path.iterdir()) == ["a.bin"]
 
 
+def test_an_artifact_with_a_long_name_downloads_through_a_part_file_of_a_name_that_fits(tmp_path):
+    """The part file's name adds 23 characters to the artifact's: one of 240 (names go up to 255 bytes) failed with
+    "File name too long". A part's name is at most 255 bytes, and a download broken off goes on from it."""
+    import hashlib
+    import os
+
+    data = bytes(range(256)) * 40
+    down = [True]
+
+    def refuse(request: httpx.Request) -> httpx.Response | None:  # while down: cut at 3000 bytes, then unreachable
+        if down[0] and request.headers.get("range"):
+            raise httpx.ConnectError("connection refused")
+        return httpx.Response(200, stream=_CutAt(data, 3000)) if down[0] else None
+
+    for name in ("n" * 236 + ".bin", "é" * 125 + ".bin"):  # 240 bytes; 254 bytes in UTF-8
+        answer, down[0] = _serving(data, name, refuse), True
+        with Client(transport=httpx.MockTransport(answer), retries=0) as client:
+            with pytest.raises(ServiceError, match=r"\(3000 of 10240 bytes here, kept in "):
+                client.download("j1", name, tmp_path / name)
+            part, = tmp_path.iterdir()
+            assert len(os.fsencode(part.name)) <= 255 and part.name.startswith(".nnn" if name[0] == "n" else ".éé")
+            assert part.name.endswith(f".{hashlib.sha256(data).hexdigest()[:16]}.part")
+            down[0] = False
+            assert client.download("j1", name, tmp_path / name).read_bytes() == data
+        assert answer.asked == [None, "bytes=3000-", "bytes=3000-"] and [p.name for p in tmp_path.iterdir()] == [name]
+        (tmp_path / name).unlink()
+
+
+class _CutAt(httpx.SyncByteStream):
+    """A body broken off (a connection reset) after its first ``at`` bytes."""
+
+    def __init__(self, body: bytes, at: int):
+        self.body, self.at = body, at
+
+    def __iter__(self):
+        yield self.body[:self.at]
+        raise httpx.ReadError("connection reset")
+
+
 def test_upload_scene_sends_the_display_name_as_the_name_field_and_keeps_the_file_name(tmp_path):
     """``name`` had been sent as the uploaded file's name: a mesh named "My spot" lost its .obj (422 "no dataset
     found"), and a zip's display name lost the text after its last dot (the service took the file name's stem)."""

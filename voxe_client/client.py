@@ -606,10 +606,30 @@ def _keyed_values(path: Path, key: str) -> Iterator[str]:
 SHA256_HEX = re.compile(r"[0-9a-f]{64}")
 
 
+PART_SUFFIX = ".0123456789abcdef.part"
+"""What a part file's name (:func:`_part_file`) adds to its stem (:func:`_part_stem`): the ETag's head."""
+NAME_MAX_BYTES = 255
+"""The longest file name Linux's and macOS's file systems take."""
+
+
+def _part_stem(dest: Path) -> str:
+    """The start of the names of the part files of a download to ``dest``: "." and its name; where that and
+    :data:`PART_SUFFIX` would pass :data:`NAME_MAX_BYTES` (an artifact name of 240 characters had failed "File name
+    too long"), the head of it that fits with "~" and a digest of the whole name, so two long names alike at their
+    start keep parts of their own."""
+    stem, room = f".{dest.name}", NAME_MAX_BYTES - len(PART_SUFFIX)
+    if len(os.fsencode(stem)) <= room:
+        return stem
+    mark = "~" + hashlib.sha256(os.fsencode(dest.name)).hexdigest()[:16]
+    while len(os.fsencode(stem + mark)) > room:  # by characters: a name cut inside a UTF-8 one is not printable
+        stem = stem[:-1]
+    return stem + mark
+
+
 def _part_file(dest: Path, sha256: str) -> Path:
     """Where a download to ``dest`` of the artifact whose SHA-256 (its ETag) is ``sha256`` keeps its bytes until they
     are checked: hidden beside it, named by the ETag's head, so a later call goes on from bytes of that version only."""
-    return dest.with_name(f".{dest.name}.{sha256[:16]}.part")
+    return dest.with_name(f"{_part_stem(dest)}.{sha256[:16]}.part")
 
 
 @contextmanager
@@ -646,7 +666,7 @@ def _kept_in(partial: Path, size: int) -> str:
 def _drop_other_parts(dest: Path, kept: Path) -> None:
     """Delete the part files (:func:`_part_file`) beside ``dest`` but ``kept``: bytes of the artifact's earlier
     versions (a preview republished since the download was interrupted), which no call completes now."""
-    others = re.compile(re.escape(f".{dest.name}.") + r"[0-9a-f]{16}\.part")
+    others = re.compile(re.escape(f"{_part_stem(dest)}.") + r"[0-9a-f]{16}\.part")
     for part in dest.parent.iterdir():
         if part != kept and others.fullmatch(part.name):
             part.unlink(missing_ok=True)
