@@ -462,8 +462,9 @@ def test_reads_answered_503_with_retry_after_are_sent_again_and_writes_are_not(m
         assert client.get_job("j1")["state"] == "running"
         assert sent == ["GET /v1/jobs/j1"] * 3 and waits == [2.0, 2.0]
         sent.clear()
-        with pytest.raises(ServiceError, match=r"^GET /v1/jobs/j1/events: HTTP 503: the database is busy \(the service "
-                                               r"asks to send it again in 120 s, longer than this client waits: 30 s\)$"):
+        with pytest.raises(ServiceError, match=r"^GET /v1/jobs/j1/events: HTTP 503: the database is busy \(the "
+                                               r"service asks to send it again in 120 s, longer than this client "
+                                               r"waits: 30 s\)$"):
             list(client.events("j1"))
         assert sent == ["GET /v1/jobs/j1/events"] and waits == [2.0, 2.0]
         assert [e["event"] for e in client.events("j1")] == ["succeeded"]

@@ -1,5 +1,6 @@
 """Access to the API: hashed keys, ownership (another key's resources are 404), the auth switch and its
-loopback rule, per-key quotas (429, with Retry-After where waiting can clear it) and Idempotency-Key replay. In-process (TestClient)."""
+loopback rule, per-key quotas (429, with Retry-After where waiting can clear it) and Idempotency-Key replay.
+In-process (TestClient)."""
 
 from __future__ import annotations
 
@@ -328,7 +329,7 @@ def test_upload_quota_is_429_and_leaves_nothing(auth_client, mic_zip, root):  # 
     assert first.status_code == 201
     before = stored_files(root)
     refused = _upload(auth_client, mic_zip, bearer(token))
-    assert refused.status_code == 429 and "retry-after" not in refused.headers  # waiting frees no space: no client waits
+    assert refused.status_code == 429 and "retry-after" not in refused.headers  # waiting frees no space
     detail = refused.json()["detail"]
     assert "quota of upload bytes exceeded" in detail and f"stores {size} bytes" in detail and f"adds {size}" in detail
     assert auth_client.get("/v1/scenes", headers=bearer(token)).json()["total"] == 1

@@ -692,9 +692,11 @@ def _header_bytes(key: str) -> bytes:
 
 
 def _retry_after(response: httpx.Response) -> float | None:
-    """The seconds its ``Retry-After`` asks to wait before sending the request again: a number of seconds, or an HTTP-date (RFC 9110 §10.2.3; it had been ignored, the request not sent again) counted
-    from the answer's ``Date`` (the server's clock: a client's skewed one had stretched or cut the wait), else from
-    now, a date past being no wait; None without one or with one unreadable."""
+    """The seconds its ``Retry-After`` asks to wait before sending the request again (uncapped: one asking more
+    than :data:`MAX_RETRY_WAIT_S` is refused, not cut short): a number of seconds, or an HTTP-date (RFC 9110
+    §10.2.3; it had been ignored, the request not sent again) counted from the answer's ``Date`` (the server's clock:
+    a client's skewed one had stretched or cut the wait), else from now, a date past being no wait; None without one
+    or with one unreadable (an infinite one too)."""
     value = response.headers.get("retry-after")
     if value is None:
         return None
