@@ -1342,6 +1342,38 @@ def test_a_stage_given_back_for_a_full_disk_frees_its_scratch_and_keeps_its_stor
     assert scratch.is_dir() == (cause == "storage outage")
 
 
+def test_a_run_taken_over_that_meets_a_full_disk_leaves_the_new_runs_scratch(db, monkeypatch):
+    """A run that stalled past its lease, its job taken over by another run on the same machine (the same scratch
+    folder), then stopped by the full disk, had deleted the job's scratch as it gave the job back, which it no longer
+    held: the new run's fetched grids and local checkpoint gone mid-stage, failing it. The folder goes only with a
+    give-back that takes effect; the other run's hold and its count of re-queues are left as they are."""
+    import errno
+    from pathlib import Path
+
+    from sqlalchemy import update
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+    from worker import runtime, tasks
+
+    job_id = add_job(add_scene(), "queued", 0, completed_stages=["reconstruct"])
+    grid = Path(db.work_dir) / "jobs" / job_id / "initial_grid.safetensors"
+
+    def stalled_then_full(job, settings, device, storage):
+        with session_scope() as session:  # the lease ran out meanwhile and another run took the job over
+            session.execute(update(Job).where(Job.id == job.id).values(run_token="other run"))
+        runtime.scratch_dir(job.id, settings)
+        grid.write_bytes(b"the other run's grid")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(tasks, "_edit", stalled_then_full)
+    monkeypatch.setattr(runtime, "OUTAGE_PAUSE_S", 0.0)
+    tasks.edit_task.apply(args=(job_id,))
+    assert grid.read_bytes() == b"the other run's grid"
+    job = job_row(job_id)
+    assert (job.state, job.run_token, job.requeues, job.message) == ("running", "other run", 0, None)
+
+
 class WorkerGoingDown(BaseException):
     """Stands in for what ends the worker inside a running task (SystemExit, KeyboardInterrupt)."""
 

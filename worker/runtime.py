@@ -243,9 +243,10 @@ def count_unstarted(job_id: str, stage: str, reason: str, settings: Settings) ->
 
 
 def _count_requeue(session, job_id: str, stage: str, reason: str, settings: Settings, where: list,
-                   **values) -> str | None:
-    """One more re-queue of the job while it matches ``where`` (with ``values`` set, and a ``requeued`` event naming
-    ``reason``), or at ``job_max_requeues`` the job failed and why returned; nothing when it matches no more."""
+                   counted: Callable[[], None] | None = None, **values) -> str | None:
+    """One more re-queue of the job while it matches ``where`` (with ``values`` set, a ``requeued`` event naming
+    ``reason``, and ``counted()`` called before the commit), or at ``job_max_requeues`` the job failed and why
+    returned; nothing when it matches no more."""
     requeues = session.scalar(select(Job.requeues).where(*where))
     if requeues is None:
         return None
@@ -255,6 +256,8 @@ def _count_requeue(session, job_id: str, stage: str, reason: str, settings: Sett
     if session.execute(update(Job).where(*as_read).values(requeues=Job.requeues + 1, updated_at=utcnow(),
                                                           **values)).rowcount == 1:
         record_event(session, job_id, "requeued", stage=stage, detail=reason)
+        if counted is not None:
+            counted()
     return None
 
 
@@ -351,17 +354,22 @@ def pause_after_outage(runs_before: int) -> None:
             raise
 
 
-def give_back_stage(job_id: str, stage: str, run_token: str, reason: str, settings: Settings) -> str | None:
+def give_back_stage(job_id: str, stage: str, run_token: str, reason: str, settings: Settings,
+                    free_scratch: bool = False) -> str | None:
     """Give the run's hold back after an outage (the database's, the storage's) or its worker's full disk stopped its
     stage (its redelivery resumes from the stored checkpoint), counted as a re-queue with a ``requeued`` event naming
     ``reason``, and ``reason`` the job's message until the redelivery starts (its last progress note had stayed,
     nothing saying why the job waited); at ``job_max_requeues`` fail the job instead and return why: what the database answers as an outage
     every time (a statement timeout, a full disk) must not re-run a stage for ever. A job this run no longer holds, or
-    that it ended (a commit whose answer was lost keeps the ended job's token), is left as it is."""
+    that it ended (a commit whose answer was lost keeps the ended job's token), is left as it is.
+    ``free_scratch``: the job's scratch folder is deleted once the give-back matched, before it commits (the row
+    still this run's, locked by its update): never the scratch of a run that took the job over from this one, on
+    this machine, and none can take it over while the folder goes."""
+    counted = (lambda: cleanup_scratch(job_id, settings)) if free_scratch else None
     with session_scope() as session:
         return _count_requeue(session, job_id, stage, reason, settings,
-                              [Job.id == job_id, Job.state == RUNNING, Job.run_token == run_token], run_token=None,
-                              run_lease_until=None, message=f"re-queued: {reason}")
+                              [Job.id == job_id, Job.state == RUNNING, Job.run_token == run_token], counted=counted,
+                              run_token=None, run_lease_until=None, message=f"re-queued: {reason}")
 
 
 def release_stage(job_id: str, run_token: str) -> None:
