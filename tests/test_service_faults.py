@@ -1843,6 +1843,44 @@ def test_a_full_dataset_cache_evicts_before_an_unpack_writes_anything(db, tmp_pa
     assert {p.name.partition("-")[0] for p in root.iterdir() if p.is_dir()} == {b.id, c.id}
 
 
+def test_two_unpacks_at_once_leave_the_dataset_cache_within_its_limit(db, tmp_path, monkeypatch):
+    """Two unpacks at once (two pool processes of one worker; here two threads): each made room before it wrote,
+    neither counting the other's dataset while still unpacked aside, and nothing evicted after, so the cache
+    stayed over VOXE_SCENE_CACHE_MAX_BYTES until the next sweep. Room is made again once a dataset is in place: the
+    least recently used one goes, the dataset just unpacked stays."""
+    import threading
+    from pathlib import Path
+
+    from voxe_service import datasets
+    from voxe_service.storage import get_storage
+    from worker import runtime
+
+    settings, storage = db.model_copy(update={"scene_cache_max_bytes": 2500}), get_storage(db)  # two of 1002 bytes
+    a, b, c = (stored_dataset_scene(db, tmp_path, name) for name in ("a", "b", "c"))
+    root = Path(db.work_dir) / "scenes"
+    with runtime.scene_dataset(a, settings, storage) as dataset:
+        os.utime(dataset / ".complete", (time.time() - 20, time.time() - 20))
+    unpack = datasets.unpack
+
+    def read_c() -> None:
+        with runtime.scene_dataset(c, settings, storage):
+            pass
+
+    def c_unpacked_meanwhile(archive, dest):  # b's unpack, its room made: c's unpack runs from start to end
+        if dest.parent.name.startswith(f".{b.id}-"):
+            other = threading.Thread(target=read_c)
+            other.start()
+            other.join()
+        return unpack(archive, dest)
+
+    monkeypatch.setattr(datasets, "unpack", c_unpacked_meanwhile)
+    with runtime.scene_dataset(b, settings, storage) as dataset:
+        assert (dataset / "transforms_train.json").read_text() == "b" * 1000
+    cached = [p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")]
+    assert {p.name.partition("-")[0] for p in cached} == {b.id, c.id}
+    assert sum(runtime._folder_bytes(p) for p in cached) <= settings.scene_cache_max_bytes
+
+
 def test_datasets_are_evicted_where_an_exclusive_lock_needs_a_file_open_for_writing(db, tmp_path, monkeypatch,
                                                                                   caplog):
     """On NFS, Linux emulates flock with fcntl locks, and an exclusive one needs a descriptor open for writing: the

@@ -729,7 +729,7 @@ def scene_dataset(scene: Scene, settings: Settings, storage: Storage) -> Iterato
     """The scene's dataset folder on this machine, for the block to read: downloaded (checked against its recorded
     size and SHA-256) and unpacked once, then reused, while the datasets fit in ``VOXE_SCENE_CACHE_MAX_BYTES``. The
     block holds the dataset's ``.complete`` locked shared, so no eviction (:func:`evict_scene_datasets`, which a new
-    unpack runs first) takes it meanwhile; a dataset evicted is unpacked again when next asked for."""
+    unpack runs before and after) takes it meanwhile; a dataset evicted is unpacked again when next asked for."""
     root = Path(settings.work_dir) / "scenes" / f"{scene.id}-{scene.sha256[:12]}"
     with _held_here(root):
         lock = _read_lock(root)
@@ -741,8 +741,9 @@ def scene_dataset(scene: Scene, settings: Settings, storage: Storage) -> Iterato
 
 def _make_room(settings: Settings, room: int) -> None:
     """Evict unpacked datasets so that they and ``room`` bytes about to be written fit in
-    ``VOXE_SCENE_CACHE_MAX_BYTES``: run before an unpack writes (evicted after it, a full cache had needed the space
-    the eviction frees before it could unpack). The cache's upkeep never fails the stage that reads it."""
+    ``VOXE_SCENE_CACHE_MAX_BYTES``: run before an unpack writes (evicted only after it, a full cache had needed the
+    space the eviction frees before it could unpack), and after (:func:`_unpack`). The cache's upkeep never fails
+    the stage that reads it."""
     try:
         if evicted := evict_scene_datasets(settings, room):
             log.info("evicted the unpacked dataset(s) %s (VOXE_SCENE_CACHE_MAX_BYTES)", ", ".join(evicted))
@@ -774,7 +775,9 @@ def _held_here(root: Path) -> Iterator[None]:
 def _unpack(scene: Scene, root: Path, settings: Settings, storage: Storage):
     """Unpack the scene's archive aside and rename it into place as ``root``; its read lock (:func:`_read_lock`),
     taken before the folder shows, so no eviction takes it first; None when another process on this machine unpacked
-    it first and it was evicted since. Room is made before the archive is fetched, and before it is unpacked."""
+    it first and it was evicted since. Room is made before the archive is fetched, before it is unpacked, and again
+    once it is in place (its lock held, so it stays): an unpack in flight in another process (a folder still named
+    ``.<scene id>-...``) is not counted, and two at once had left the cache over the limit until the next sweep."""
     root.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=root.parent, prefix=f".{scene.id}-"))
     try:
@@ -794,6 +797,7 @@ def _unpack(scene: Scene, root: Path, settings: Settings, storage: Storage):
             if not (root / datasets.UNPACKED_MARK).is_file():
                 raise
             return _read_lock(root)
+        _make_room(settings, 0)
         return lock
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
