@@ -419,8 +419,8 @@ def test_a_guidance_overflowing_everywhere_stops_the_edit_naming_fp16(small_sphe
 def test_a_guidance_overflowing_across_a_resume_stops_where_an_uninterrupted_run_does(small_sphere, tiny_guidance,
                                                                                       monkeypatch, tmp_path):
     """The count of wholly non-finite steps had restarted at a resume: a run overflowing on every step, resumed more
-    often than every MAX_NONFINITE_GUIDANCE_STEPS steps (a worker restarted), never stopped. A damaged count is a
-    FormatError."""
+    often than every MAX_NONFINITE_GUIDANCE_STEPS steps (a worker restarted), never stopped. A damaged count (not a
+    whole number, more than the steps it ran, or one that would have stopped it) is a FormatError."""
     from voxe_core.tensorio import FormatError, save_tensors
 
     _overflowing_unet(tiny_guidance, monkeypatch, slice(None))
@@ -434,7 +434,7 @@ def test_a_guidance_overflowing_across_a_resume_stops_where_an_uninterrupted_run
              checkpoint_path=checkpoint, resume_from=checkpoint)
     assert len(reports) == 3  # steps 7 to 9; the 10th stops it
     tensors, meta = load_edit_checkpoint(checkpoint)
-    for damaged in (-1, 2.5, "3", True):
+    for damaged in (-1, 2.5, "3", True, meta["iteration"] + 1, steps):  # (more steps than it ran; a stopping count)
         save_tensors(tmp_path / "d.safetensors", tensors, kind=edit_module.EDIT_CHECKPOINT_KIND,
                      version=edit_module.EDIT_CHECKPOINT_VERSION, meta={**meta, "nonfinite_steps": damaged})
         with pytest.raises(FormatError, match=re.escape(f"damaged checkpoint: its nonfinite_steps is {damaged!r},")):

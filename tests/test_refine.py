@@ -546,10 +546,17 @@ def test_a_constant_start_on_fixed_maps_that_never_differ_is_refused_before_any_
     fresh_view = lambda step: (cameras_around(1, 12, seed=step), edit_maps[0], edit_maps[0].flip(-1))  # noqa: E731
     if views == "fixed":
         with pytest.raises(SegmentationError, match=r"^the edit and object maps are equal on every pixel of the 4 "
-                                                    r"views that sees the edited object: they do not tell the edit "
-                                                    r"from the object .* nothing was fitted$"):
+                                                    r"views \(of 4\) that see the edited object: they do not tell "
+                                                    r"the edit from the object .* nothing was fitted$"):
             fit_attention_grids(grid, cameras_around(4, 12, seed=1), edit_maps, edit_maps.clone(), config,
                                 Callbacks(on_progress=on_progress, should_cancel=lambda: len(reports) >= 3))
+        # the views counted are those that see it: two of four turned away
+        turned = cameras_around(4, 12, seed=1)
+        away = torch.eye(4)
+        away[:3, :3], away[2, 3] = torch.diag(torch.tensor([1.0, -1.0, -1.0])), 4.0  # above it, looking up
+        turned.c2w[2:] = away
+        with pytest.raises(SegmentationError, match=r"every pixel of the 2 views \(of 4\) that see the edited"):
+            fit_attention_grids(grid, turned, edit_maps, edit_maps.clone(), config, Callbacks(on_progress=on_progress))
         # maps apart on one pixel's worth: fitted
         object_maps = edit_maps.clone()
         object_maps[:, 6, 6] += 0.05

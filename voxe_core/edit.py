@@ -482,9 +482,11 @@ def edit(
             })
         start = int(meta["iteration"])
         nonfinite_steps = meta.get("nonfinite_steps", 0)  # (a checkpoint older than the field: none counted)
-        if isinstance(nonfinite_steps, bool) or not isinstance(nonfinite_steps, int) or nonfinite_steps < 0:
+        # at most the steps it ran, and below the count that stops a run (such a run saves no checkpoint)
+        most = min(start, MAX_NONFINITE_GUIDANCE_STEPS - 1)
+        if isinstance(nonfinite_steps, bool) or not isinstance(nonfinite_steps, int) or not 0 <= nonfinite_steps <= most:
             raise FormatError(f"{resume_from}: damaged checkpoint: its nonfinite_steps is {nonfinite_steps!r}, not a "
-                              "count of steps")
+                              f"count of steps from 0 to {most} (at iteration {start})")
         if start > config.iterations:  # it would have returned the checkpoint's later grid as the one asked for
             raise ValueError(f"{resume_from}: checkpoint is at iteration {start}, past the {config.iterations} "
                              f"iterations asked for; ask for at least {start}")

@@ -233,9 +233,10 @@ def fit_attention_grids(
     # every step (the paper's 1,500) to say so.
     if config.lift_start == "constant" and config.fit_views == "fixed" and prefer_neither(targets[keep, 0],
                                                                                          targets[keep, 1]):
-        raise SegmentationError(f"the edit and object maps are equal on every pixel of the {n_views} views that sees "
-                                f"the edited object: {_MAPS_ALIKE} from lift_start='constant', and the cut would have "
-                                "no seeds; nothing was fitted")
+        seeing = int(hits.reshape(n_views, -1).any(-1).sum())
+        raise SegmentationError(f"the edit and object maps are equal on every pixel of the {seeing} views (of "
+                                f"{n_views}) that see the edited object: {_MAPS_ALIKE} from lift_start='constant', and "
+                                "the cut would have no seeds; nothing was fitted")
     strided = (hits & strided_pixels(n_views, height, width, config.backprojection_stride, device)).nonzero().squeeze(-1)
     start, seen = backproject(frozen, origins[strided], directions[strided], targets[strided], config, occupancy,
                               callbacks)
