@@ -1625,12 +1625,41 @@ def test_conditional_headers_read_every_line_and_refuse_a_bare_tag(client, root)
             refused = request(url, headers={header: value})
             assert refused.status_code == 422, (request, header, value)
         assert request(url, headers={"If-Match": '*, "old"'}).status_code == 422
-    detail = client.get(url, headers={"If-Match": sha256}).json()["detail"]
-    assert detail == (f"If-Match {sha256!r} is not an entity tag: send ETags quoted, as the ETag header gives them "
-                      '("<sha256>" or W/"<sha256>"), or *')
+    detail = client.get(url, headers={"If-None-Match": sha256}).json()["detail"]
+    assert detail == (f"If-None-Match {sha256!r} is not an entity tag: send ETags quoted, as the ETag header gives "
+                      'them ("<sha256>" or W/"<sha256>"), or *')
     assert client.get(url, headers={"If-Match": '"a,b", ' + etag}).status_code == 200  # a quoted tag may hold a comma
     documented = client.get("/openapi.json").json()["paths"]["/v1/jobs/{job_id}/artifacts/{name}"]
     assert all("422" in documented[method]["responses"] for method in ("get", "head"))
+
+
+def test_if_match_is_told_it_compares_strongly_and_an_empty_one_is_named(client, root):
+    """If-Match's 422 for a bare tag advised W/"<sha256>", but If-Match compares strongly (RFC 9110 §13.1.1): a W/
+    tag, even the current ETag's, got 412 "it was replaced", as did an empty If-Match, both untrue. Now the advice
+    offers W/ to If-None-Match only, a weak-only If-Match is a 412 saying a W/ tag never matches, and an empty one a
+    422 naming it."""
+    from worker.runtime import publish_artifact
+
+    job_id = _job_row()
+    (root / "render_000.png").write_bytes(b"A" * 5000)
+    publish_artifact(job_id, "render_000.png", root / "render_000.png", "render")
+    url = f"/v1/jobs/{job_id}/artifacts/render_000.png"
+    etag = client.head(url).headers["etag"]
+    sha256 = etag.strip('"')
+    assert client.get(url, headers={"If-Match": sha256}).json()["detail"] == (
+        f"If-Match {sha256!r} is not an entity tag: send ETags quoted, as the ETag header gives them (\"<sha256>\"), "
+        "or *")
+    for request in (client.get, client.head):
+        for weak in (f"W/{etag}", f'W/"old", W/{etag}'):
+            assert request(url, headers={"If-Match": weak}).status_code == 412, (request, weak)
+        for empty in ("", " , "):
+            assert request(url, headers={"If-Match": empty}).status_code == 422, (request, empty)
+    weak = client.get(url, headers={"If-Match": f"W/{etag}"}).json()["detail"]
+    assert weak == (f"If-Match compares strongly: a W/ tag never matches, and If-Match {'W/' + etag!r} lists no other "
+                    "(send the ETag as the ETag header gives it, without W/)")
+    assert client.get(url, headers={"If-Match": " , "}).json()["detail"] == (
+        'If-Match is empty: send ETags quoted, as the ETag header gives them ("<sha256>"), or *')
+    assert client.get(url, headers={"If-Match": f"W/{etag}, {etag}"}).status_code == 200  # its strong tag matches
 
 
 def test_a_download_racing_its_artifacts_replacement_serves_the_new_bytes(client, dataset, root, monkeypatch):

@@ -22,6 +22,11 @@ router = APIRouter(prefix="/v1/jobs/{job_id}/artifacts", tags=["artifacts"], rou
 _RANGE = re.compile(r"^\s*(\d*)\s*-\s*(\d*)\s*$")
 _ENTITY_TAG = re.compile(r'(?:W/)?"[\x21\x23-\x7e\x80-\xff]*"')  # RFC 9110 §8.8.3 (a header's text is Latin-1)
 _LIST_ELEMENT = re.compile(r'(?:W/)?"[^"]*"|[^,]+')  # a quoted tag may hold a comma
+# How to send an ETag in each header: W/ only where a weak tag can match (If-Match compares strongly, RFC 9110 §13.1.1).
+_SEND_ETAG = {
+    "If-None-Match": 'send ETags quoted, as the ETag header gives them ("<sha256>" or W/"<sha256>"), or *',
+    "If-Match": 'send ETags quoted, as the ETag header gives them ("<sha256>"), or *',
+}
 
 
 class ClosingStreamingResponse(StreamingResponse):
@@ -86,17 +91,19 @@ def entity_tags(header: str, lines: list[str] | None) -> set[str] | None:
 
     422 naming the header for an element that is not an entity tag: a bare tag (the listing's sha256, unquoted) had
     never matched, so an If-Match was a 412 saying the artifact "was replaced" and an If-None-Match a whole download.
+    So is an If-Match listing nothing, which no artifact matches (it too had been told "it was replaced").
     """
     if lines is None:
         return None
     elements = [element.strip() for element in _LIST_ELEMENT.findall(",".join(lines)) if element.strip()]
     if bad := [element for element in elements if element != "*" and not _ENTITY_TAG.fullmatch(element)]:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
-                            f"{header} {listed(bad, width=70)} is not an entity tag: send ETags quoted, as the ETag "
-                            'header gives them ("<sha256>" or W/"<sha256>"), or *')
+                            f"{header} {listed(bad, width=70)} is not an entity tag: {_SEND_ETAG[header]}")
     if "*" in elements and len(elements) > 1:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
                             f"{header} lists * with entity tags: * (any version) stands alone")
+    if not elements and header == "If-Match":  # (an empty If-None-Match is simply true: the file)
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"If-Match is empty: {_SEND_ETAG[header]}")
     return set(elements)
 
 
@@ -118,9 +125,11 @@ _DOWNLOAD = {
     206: {"description": "the requested byte range (Range: bytes=..., If-Range, when sent, the current ETag)"},
     304: {"description": "not modified: If-None-Match names the current ETag (or is *); no body"},
     404: {"description": "no such job or artifact"},
-    412: {"description": "If-Match names none of the current ETag (or *): the artifact was replaced"},
+    412: {"description": "If-Match names none of the current ETag (or *): the artifact was replaced; or it lists only "
+                         "weak (W/) tags, which never match (If-Match compares strongly)"},
     416: {"description": "range not satisfiable"},
-    422: {"description": "If-Match or If-None-Match is not * or a list of quoted entity tags (named)"},
+    422: {"description": "If-Match or If-None-Match is not * or a list of quoted entity tags, or If-Match is empty "
+                         "(the header named)"},
 }
 
 
@@ -165,7 +174,11 @@ def _answer(method: str, storage: Storage, artifact: Artifact, range_: str | Non
     # Strong comparison, before If-None-Match (RFC 9110 §13.1.1, §13.2.2): a download fetched in parts, each asking
     # If-Match, had been given the replaced artifact's bytes for the later parts (a spliced file) where a 412 says so.
     if if_match is not None and not {"*", etag} & if_match:
-        sent = listed(sorted(if_match), width=70) or "with no entity tag"
+        sent = listed(sorted(if_match), width=70)
+        if all(tag.startswith("W/") for tag in if_match):  # (it had been told "it was replaced", also when it was not)
+            raise HTTPException(status.HTTP_412_PRECONDITION_FAILED,
+                                f"If-Match compares strongly: a W/ tag never matches, and If-Match {sent} lists no "
+                                "other (send the ETag as the ETag header gives it, without W/)")
         raise HTTPException(status.HTTP_412_PRECONDITION_FAILED,
                             f"If-Match {sent} does not name artifact {artifact.name!r}'s current ETag {etag}: it was "
                             "replaced (download it again from the start)")
