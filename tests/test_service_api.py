@@ -1605,7 +1605,8 @@ def test_conditional_headers_read_every_line_and_refuse_a_bare_tag(client, root)
     """An If-Match or If-None-Match sent as several lines (RFC 9110 §5.3) had been read from its first line only: the
     current ETag on the second line got a 412, or a whole download for a 304. A bare tag (the listing's sha256, not
     quoted as the ETag header gives it) never matched: If-Match answered 412 "it was replaced", If-None-Match the
-    whole file. Now every line counts, and an element that is not an entity tag is a 422 naming the header."""
+    whole file. Now every line counts, and an element that is not an entity tag is a 422 naming the header; * sent
+    on two lines had been a 422 "lists * with entity tags" though it listed none: it is *."""
     from worker.runtime import publish_artifact
 
     job_id = _job_row()
@@ -1625,6 +1626,8 @@ def test_conditional_headers_read_every_line_and_refuse_a_bare_tag(client, root)
             refused = request(url, headers={header: value})
             assert refused.status_code == 422, (request, header, value)
         assert request(url, headers={"If-Match": '*, "old"'}).status_code == 422
+        assert request(url, headers=[("If-None-Match", "*"), ("If-None-Match", "*")]).status_code == 304
+        assert request(url, headers=[("Range", "bytes=4000-"), ("If-Match", "*"), ("If-Match", "*")]).status_code == 206
     detail = client.get(url, headers={"If-None-Match": sha256}).json()["detail"]
     assert detail == (f"If-None-Match {sha256!r} is not an entity tag: send ETags quoted, as the ETag header gives "
                       'them ("<sha256>" or W/"<sha256>"), or *')
