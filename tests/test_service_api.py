@@ -1636,6 +1636,32 @@ def test_conditional_headers_read_every_line_and_refuse_a_bare_tag(client, root)
     assert all("422" in documented[method]["responses"] for method in ("get", "head"))
 
 
+def test_an_if_range_that_is_neither_an_entity_tag_nor_a_date_is_a_422_naming_it(client, root):
+    """If-Range holding the listing's sha256 unquoted never matched: a resumed download silently got the whole file
+    again (If-Match and If-None-Match answer it with a 422). Now it is a 422 naming If-Range when a Range is sent;
+    without one If-Range is ignored (RFC 9110 §13.1.5), and a date, in any of HTTP's three forms, is still a date."""
+    from worker.runtime import publish_artifact
+
+    job_id = _job_row()
+    (root / "render_000.png").write_bytes(b"A" * 5000)
+    publish_artifact(job_id, "render_000.png", root / "render_000.png", "render")
+    url = f"/v1/jobs/{job_id}/artifacts/render_000.png"
+    etag = client.head(url).headers["etag"]
+    sha256 = etag.strip('"')
+    for request in (client.get, client.head):
+        for bare in (sha256, f" {sha256} ", "", f"{etag}, {etag}"):
+            refused = request(url, headers={"Range": "bytes=4000-", "If-Range": bare})
+            assert refused.status_code == 422, (request, bare)
+        assert request(url, headers={"If-Range": sha256}).status_code == 200  # no Range: ignored
+        assert request(url, headers={"Range": "bytes=4000-", "If-Range": etag}).status_code == 206
+        for date in ("Sun, 06 Nov 1994 08:49:37 GMT", "Sunday, 06-Nov-94 08:49:37 GMT", "Sun Nov  6 08:49:37 1994"):
+            whole = request(url, headers={"Range": "bytes=4000-", "If-Range": date})
+            assert whole.status_code == 200 and whole.headers["content-length"] == "5000", (request, date)
+    assert client.get(url, headers={"Range": "bytes=4000-", "If-Range": sha256}).json()["detail"] == (
+        f"If-Range {sha256!r} is neither an entity tag nor a date: send the ETag quoted, as the ETag header gives it "
+        '("<sha256>")')
+
+
 def test_if_match_is_told_it_compares_strongly_and_an_empty_one_is_named(client, root):
     """If-Match's 422 for a bare tag advised W/"<sha256>", but If-Match compares strongly (RFC 9110 §13.1.1): a W/
     tag, even the current ETag's, got 412 "it was replaced", as did an empty If-Match, both untrue. Now the advice

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Iterator
+from email.utils import parsedate_tz
 from typing import Annotated
 
 from fastapi import APIRouter, Header, HTTPException, Request, Response, status
@@ -22,10 +23,12 @@ router = APIRouter(prefix="/v1/jobs/{job_id}/artifacts", tags=["artifacts"], rou
 _RANGE = re.compile(r"^\s*(\d*)\s*-\s*(\d*)\s*$")
 _ENTITY_TAG = re.compile(r'(?:W/)?"[\x21\x23-\x7e\x80-\xff]*"')  # RFC 9110 §8.8.3 (a header's text is Latin-1)
 _LIST_ELEMENT = re.compile(r'(?:W/)?"[^"]*"|[^,]+')  # a quoted tag may hold a comma
-# How to send an ETag in each header: W/ only where a weak tag can match (If-Match compares strongly, RFC 9110 §13.1.1).
+# How to send an ETag in each header: W/ only where a weak tag can match (If-Match and If-Range compare strongly, RFC
+# 9110 §13.1.1, §13.1.5).
 _SEND_ETAG = {
     "If-None-Match": 'send ETags quoted, as the ETag header gives them ("<sha256>" or W/"<sha256>"), or *',
     "If-Match": 'send ETags quoted, as the ETag header gives them ("<sha256>"), or *',
+    "If-Range": 'send the ETag quoted, as the ETag header gives it ("<sha256>")',
 }
 
 
@@ -107,6 +110,22 @@ def entity_tags(header: str, lines: list[str] | None) -> set[str] | None:
     return set(elements)
 
 
+def range_validator(if_range: str | None, range_: str | None) -> str | None:
+    """If-Range's entity tag or date when a Range is sent; None without one (RFC 9110 §13.1.5: it is then ignored).
+
+    422 naming the header for anything else: a bare tag (the listing's sha256, unquoted) had never matched, so a
+    resumed download silently got the whole file again (If-Match and If-None-Match refuse it so).
+    """
+    if if_range is None or not range_:
+        return None
+    validator = if_range.strip()
+    if not _ENTITY_TAG.fullmatch(validator) and parsedate_tz(validator) is None:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                            f"If-Range {listed([if_range], width=70)} is neither an entity tag nor a date: "
+                            f"{_SEND_ETAG['If-Range']}")
+    return validator
+
+
 def _unsatisfiable(size: int, detail: str) -> HTTPException:
     return HTTPException(status.HTTP_416_RANGE_NOT_SATISFIABLE, detail,
                          headers={"Content-Range": f"bytes */{size}", "Accept-Ranges": "bytes"})
@@ -128,8 +147,8 @@ _DOWNLOAD = {
     412: {"description": "If-Match names none of the current ETag (or *): the artifact was replaced; or it lists only "
                          "weak (W/) tags, which never match (If-Match compares strongly)"},
     416: {"description": "range not satisfiable"},
-    422: {"description": "If-Match or If-None-Match is not * or a list of quoted entity tags, or If-Match is empty "
-                         "(the header named)"},
+    422: {"description": "If-Match or If-None-Match is not * or a list of quoted entity tags, If-Match is empty, or "
+                         "If-Range (with a Range) is neither an entity tag nor a date (the header named)"},
 }
 
 
@@ -140,7 +159,7 @@ def get_artifact(
     job_id: str, name: str, request: Request, session: SessionDep, storage: StorageDep, key: CurrentKey,
     range_: Annotated[str | None, Header(alias="Range", description="bytes=first-last, first- or -suffix")] = None,
     if_range: Annotated[str | None, Header(description="the ETag the Range's earlier bytes came from: another "
-                                                       "(or a date) gets the whole file")] = None,
+                                                       "(or a date) gets the whole file; a bare sha256, 422")] = None,
     if_none_match: Annotated[list[str] | None, Header(description="ETags held (or *): the current one gets 304")
                              ] = None,
     if_match: Annotated[list[str] | None, Header(description="ETags any of which the artifact must still have (or "
@@ -150,6 +169,7 @@ def get_artifact(
     # transaction open) until its client read the last byte, and two slow ones made every other request wait.
     try:
         held, required = entity_tags("If-None-Match", if_none_match), entity_tags("If-Match", if_match)
+        if_range = range_validator(if_range, range_)
         get_job(session=session, key=key, job_id=job_id)
         for attempt in range(2):
             # Only names recorded for this job are served: no path is ever built from the request.
@@ -184,7 +204,7 @@ def _answer(method: str, storage: Storage, artifact: Artifact, range_: str | Non
                             "replaced (download it again from the start)")
     if if_none_match is not None and {"*", etag} & {tag.removeprefix("W/") for tag in if_none_match}:
         return Response(status_code=status.HTTP_304_NOT_MODIFIED, headers={"ETag": etag})  # (weak comparison)
-    if if_range is not None and if_range.strip() != etag:  # strong comparison; a date never matches (no Last-Modified)
+    if if_range is not None and if_range != etag:  # strong comparison; a date never matches (no Last-Modified)
         range_ = None
     size = artifact.size
     headers = {
