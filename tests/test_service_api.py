@@ -1480,10 +1480,17 @@ def test_head_answers_wherever_get_does_with_its_headers_and_no_body(client, dat
 
 def test_the_event_stream_is_negotiated_by_the_accept_media_type_and_its_weight(client):
     """text/event-stream had been found in Accept as a substring: ``text/event-stream;q=0`` (anything but a stream)
-    got a stream, and ``Text/Event-Stream`` (media types are case-insensitive) the JSON timeline."""
+    got a stream, and ``Text/Event-Stream`` (media types are case-insensitive) the JSON timeline. Then any q above 0
+    streamed, also where application/json was weighted higher: now the stream needs a q at least JSON's (named, or
+    through application/* or */*)."""
     url = f"/v1/jobs/{_job_row()}/events"
     for accept, streamed in (("text/event-stream", True), ("Text/Event-Stream", True),
-                             ("application/json, text/event-stream; q=0.5", True),
+                             ("application/json, text/event-stream; q=0.5", False),
+                             ("application/json, text/event-stream;q=0.1", False),
+                             ("application/json;q=0.5, text/event-stream;q=0.5", True),
+                             ("application/json;q=0.4, text/event-stream;q=0.5", True),
+                             ("application/*;q=0.6, text/event-stream;q=0.5", False),
+                             ("text/event-stream;q=0.5, */*;q=0.1", True), ("*/*, text/event-stream;q=0.9", False),
                              ("text/event-stream;q=0, application/json", False), ("text/event-stream; Q=0.000", False),
                              ("text/event-streams", False), ("*/*", False)):
         response = client.get(url, headers={"Accept": accept})

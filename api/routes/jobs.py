@@ -152,8 +152,9 @@ def get_job(job_id: str, session: SessionDep, key: CurrentKey) -> JobOut:
 @router.get(
     "/{job_id}/events", response_model=list[JobEventOut],
     responses={**_ERRORS,
-               200: {"description": "the timeline as JSON; with `Accept: text/event-stream`, a live stream of "
-                                    "Server-Sent Events (api/events.py) ending when the job ends",
+               200: {"description": "the timeline as JSON; with `Accept: text/event-stream` (its q at least "
+                                    "application/json's), a live stream of Server-Sent Events (api/events.py) ending "
+                                    "when the job ends",
                      "content": {SSE_MEDIA_TYPE: {"schema": {"type": "string"}}}},
                422: {"description": "Last-Event-ID is not an event id"}},
     summary="The job's timeline (stages, checkpoints, artifacts, its end), or a live stream of it",
@@ -172,17 +173,24 @@ def list_events(job_id: str, request: Request, session: SessionDep, key: Current
 
 
 def wants_stream(accept: list[str]) -> bool:
-    """Whether an Accept (all its lines) names text/event-stream, in any case (RFC 9110 §8.3.1), with a q above 0.
+    """Whether an Accept (all its lines) weights text/event-stream, in any case (RFC 9110 §8.3.1), above 0 and at
+    least as high as application/json (named, or through application/* or */*).
 
     It had been found as a substring: ``text/event-stream;q=0`` (anything but a stream) got a stream open until the
-    job ends, and ``Text/Event-Stream`` the JSON timeline.
+    job ends, and ``Text/Event-Stream`` the JSON timeline; then any q above 0 streamed, also where JSON was preferred
+    (``application/json, text/event-stream;q=0.1``).
     """
+    weights: dict[str, float] = {}
     for media_range in ",".join(accept).split(","):
         media_type, *params = (part.strip().lower() for part in media_range.split(";"))
-        if media_type == SSE_MEDIA_TYPE:
-            weights = [value.strip() for name, _, value in (p.partition("=") for p in params) if name.strip() == "q"]
-            return not (weights and re.fullmatch(r"0(\.0{0,3})?", weights[0]))
-    return False
+        q = [value.strip() for name, _, value in (p.partition("=") for p in params) if name.strip() == "q"]
+        weights.setdefault(media_type, float(q[0]) if q and _QVALUE.fullmatch(q[0]) else 1.0)
+    stream = weights.get(SSE_MEDIA_TYPE, 0.0)
+    as_json = next((weights[t] for t in ("application/json", "application/*", "*/*") if t in weights), 0.0)
+    return stream > 0 and stream >= as_json
+
+
+_QVALUE = re.compile(r"0(\.\d{0,3})?|1(\.0{0,3})?")  # RFC 9110 §12.4.2 (another q counts as absent: 1)
 
 
 def _event_id(value: str | None) -> int:
