@@ -224,7 +224,8 @@ def test_api_replicas_starting_at_once_migrate_a_fresh_database_one_after_anothe
 
 def test_ply_artifacts_recorded_as_octet_stream_get_their_model_type_and_back(database_url):
     """0016 gives PLY artifacts recorded before the worker named their type model/ply, as it records them now; other
-    artifacts keep theirs; downgrading gives the PLY ones back octet-stream."""
+    artifacts keep theirs; downgrading gives the PLY ones back octet-stream. One an earlier worker publishes after it
+    ran keeps octet-stream until the revision is run again (its docstring says so)."""
     from alembic import command
     from sqlalchemy import text
 
@@ -256,6 +257,15 @@ def test_ply_artifacts_recorded_as_octet_stream_get_their_model_type_and_back(da
     command.check(config)
     command.downgrade(config, "0015_owner_index_prefix")
     assert types() == recorded
+    command.upgrade(config, "head")
+    with engine.begin() as conn:  # an earlier worker's, after the API migrated (as its docstring says: it stays)
+        conn.execute(text("INSERT INTO artifacts (job_id, name, key, size, content_type, sha256, kind, created_at) "
+                          "VALUES ('j1', 'late.ply', 'late.ply', 1, 'application/octet-stream', 'x', 'mesh', "
+                          "'2026-01-01 00:00:00+00')"))
+    assert types()["late.ply"] == "application/octet-stream"
+    command.downgrade(config, "0015_owner_index_prefix")
+    command.upgrade(config, "head")  # the docstring's remedy
+    assert types() == {**recorded, "mesh.ply": "model/ply", "UPPER.PLY": "model/ply", "late.ply": "model/ply"}
     engine.dispose()
 
 

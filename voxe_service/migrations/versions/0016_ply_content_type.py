@@ -2,6 +2,12 @@
 records for them now, so a download's Content-Type does not depend on when its job ran. Downgrading gives them back
 the type the earlier worker recorded.
 
+It retypes the rows there are when it runs, once: a PLY that a worker still running the earlier code publishes after
+it (the window of a rolling upgrade: the API migrates at startup, so restarting it before the workers opens one)
+keeps application/octet-stream, in its listing and its download, and no later revision retypes it. Restart the
+workers first to leave none; to retype those left, run this revision again once every worker is new (downgrade to
+0015_owner_index_prefix, then upgrade: the downgrade's rows come back with the rest).
+
 Revision ID: 0016_ply_content_type
 Revises: 0015_owner_index_prefix
 Create Date: 2026-12-06 18:45:00
