@@ -47,8 +47,10 @@ is skipped: ``worker.ingest``), an accepted upload lost to no dead worker, unles
 carry it (or cannot be read). A scene whose ingest was taken ``VOXE_JOB_MAX_REQUEUES`` + 1 times (each run that took it
 was interrupted) fails instead, naming why, as a job does. A processing scene whose ingest waits in the broker for a
 worker is not orphaned, as a queued job is not, until no worker took it for ``VOXE_JOB_LOST_MESSAGE_TIMEOUT_S``: its
-message is then taken as lost, as a job's is, and its ingest sent again, once a window (not doubled: a scene has no
-timeline to count them on; a copy that still comes finds the scene held, or ready).
+message is then taken as lost, as a job's is, and its ingest sent again (a copy that still comes finds the scene held,
+or ready), the scene counting such re-sends, each doubling the wait before the next, as a job's do. Each re-send of
+an ingest is claimed first (a conditional update of the row as read), so of several reapers reading it at once one
+sends it.
 
 The API runs :func:`reap_orphaned_jobs` at startup and then every ``VOXE_REAPER_INTERVAL_S`` in a
 background thread (:class:`Reaper`). Every update is conditional on the row still being what the
@@ -195,10 +197,16 @@ def _messages_taken_as_lost(session, settings: Settings, now: datetime, jobs) ->
         return {}
     lost = {}
     for job in jobs:
-        wait = settings.job_lost_message_timeout_s * 2 ** min(resent.get(job.id, 0), 20)
+        wait = _lost_message_wait(settings, resent.get(job.id, 0))
         if job.id not in waiting and job.updated_at < now - timedelta(seconds=wait):
             lost[job.id] = wait
     return lost
+
+
+def _lost_message_wait(settings: Settings, resends: int) -> float:
+    """How long a message no worker took waits before it is taken as lost, once the job (or scene) was already sent
+    again so ``resends`` times: ``VOXE_JOB_LOST_MESSAGE_TIMEOUT_S``, doubled for each."""
+    return settings.job_lost_message_timeout_s * 2 ** min(resends, 20)
 
 
 _broker_unreadable: set[str] = set()
@@ -250,17 +258,19 @@ def reap_orphaned_scenes(settings: Settings, now: datetime | None = None) -> lis
             or_(Scene.task_id.is_(None),  # its worker gone (one no worker took waits, even while none is alive):
                 and_(Scene.worker_hostname.is_not(None), Scene.worker_hostname.not_in(alive)),
                 Scene.ingest_lease_until < cutoff))).all()  # (a run that ended without a word on a live worker)
-        untaken = session.execute(select(Scene.id, Scene.updated_at).where(  # its message taken as lost, as a job's
+        untaken = session.execute(select(  # its message taken as lost, as a job's (after its doubled wait, below)
+            Scene.id, Scene.lost_ingest_resends, Scene.updated_at).where(
             Scene.state == PROCESSING, Scene.task_id.is_not(None), Scene.worker_hostname.is_(None),
             Scene.ingest_token.is_(None), Scene.updated_at < lost_cutoff)).all()
         alive_now = set(session.scalars(alive)) if stale else set()
         waiting = (_sql_broker_waiting(settings.broker_url) if (stale or untaken) and is_sql_broker(settings.broker_url)
                    else set())
-        lost = (f"no worker took its ingest for {settings.job_lost_message_timeout_s:.0f} s ({LOST_MESSAGE_SETTING}): "
-                "its message taken as lost")
         for scene in untaken:
-            if waiting is not None and scene.id not in waiting:
-                _send_ingest_again(session, scene.id, scene.updated_at, lost)
+            wait = _lost_message_wait(settings, scene.lost_ingest_resends)
+            if scene.updated_at < now - timedelta(seconds=wait) and waiting is not None and scene.id not in waiting:
+                _send_ingest_again(session, scene.id, scene.updated_at, f"no worker took its ingest for {wait:.0f} s "
+                                   f"({LOST_MESSAGE_SETTING}, doubled for each earlier such re-send): its message "
+                                   "taken as lost", lost=True)
         for scene in stale:
             if scene.task_id is None:
                 reason = (f"the upload was never handed to a worker (the API stopped while storing it); failed after "
@@ -286,20 +296,32 @@ def reap_orphaned_scenes(settings: Settings, now: datetime | None = None) -> lis
     return reaped
 
 
-def _send_ingest_again(session, scene_id: str, seen_updated_at: datetime, why: str) -> None:
-    """Hand the ingest of a scene whose run was interrupted to the broker again, recorded as waiting for a worker (no
-    worker, no hold) unless the row changed since it was read (a worker took it meanwhile, or another reaper sent it:
-    the extra message finds it held or ready). Sent before it is recorded: a reaper stopping in between leaves it as
-    it was, for a later pass (a copy too many is harmless), and a broker that refuses leaves it so too."""
+def _send_ingest_again(session, scene_id: str, seen_updated_at: datetime, why: str, lost: bool = False) -> None:
+    """Hand the ingest of a scene whose run was interrupted (or whose message is taken as lost: ``lost``, counted) to
+    the broker again, recorded as waiting for a worker (no worker, no hold). Claimed first, by a conditional update of
+    the row as it was read: of several reapers reading it at once, each had sent a copy; now one does. A worker taking
+    it after the claim keeps it (the message finds it held or ready), nothing recorded. A reaper stopping between claim
+    and send leaves it as it was but for the time, for a later pass; a broker that refuses gives it back as read."""
+    claimed_at = utcnow()
+    claimed = session.execute(update(Scene).where(Scene.id == scene_id, Scene.state == PROCESSING,
+                                                  Scene.updated_at == seen_updated_at).values(updated_at=claimed_at))
+    session.commit()
+    if claimed.rowcount != 1:  # a worker took it, or another reaper claimed it, since it was read
+        return
     try:
         task_id = get_queue().send_ingest(scene_id)
     except Exception as exc:  # noqa: BLE001 - the broker refused: a later pass tries again
+        session.execute(update(Scene).where(Scene.id == scene_id, Scene.updated_at == claimed_at)
+                        .values(updated_at=seen_updated_at))
+        session.commit()
         log.warning("reaper: scene %s: %s; the broker refused its ingest (%s: %s): a later pass sends it", scene_id,
                     why, type(exc).__name__, exc)
         return
+    counted = {"lost_ingest_resends": Scene.lost_ingest_resends + 1} if lost else {}
     sent = session.execute(update(Scene).where(Scene.id == scene_id, Scene.state == PROCESSING,
-                                               Scene.updated_at == seen_updated_at).values(
-        task_id=task_id, worker_hostname=None, ingest_token=None, ingest_lease_until=None, updated_at=utcnow()))
+                                               Scene.updated_at == claimed_at).values(
+        task_id=task_id, worker_hostname=None, ingest_token=None, ingest_lease_until=None, updated_at=utcnow(),
+        **counted))
     session.commit()
     if sent.rowcount == 1:
         log.warning("reaper: scene %s: %s; its ingest sent again", scene_id, why)

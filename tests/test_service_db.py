@@ -269,6 +269,31 @@ def test_ply_artifacts_recorded_as_octet_stream_get_their_model_type_and_back(da
     engine.dispose()
 
 
+def test_scenes_of_0016_upgrade_to_no_lost_ingest_resends_and_back(database_url):
+    """0017 counts the re-sends of a scene's ingest whose message was taken as lost (the reaper doubles its wait by
+    them): a scene written before it was never sent again so (0); downgrading drops the count, the scene kept."""
+    from alembic import command
+    from sqlalchemy import inspect, text
+
+    from service_helpers import database_at
+
+    config, engine = database_at(
+        database_url, "0016_ply_content_type",
+        "INSERT INTO scenes (id, owner_key_id, name, format, image_count, width, height, splits, storage_key, "
+        "size_bytes, sha256, state, task_id, ingest_attempts, created_at, updated_at) VALUES ('s1', 'local', 'old', "
+        "'nerf_synthetic', 3, 8, 8, '[\"train\"]', 'scenes/s1/dataset.zip', 10, 'x', 'processing', 'ingest', 0, "
+        "'2026-01-01 00:00:00+00', '2026-01-01 00:00:00+00')")
+    command.upgrade(config, "head")
+    with engine.connect() as conn:
+        assert conn.execute(text("SELECT state, lost_ingest_resends FROM scenes")).one() == ("processing", 0)
+    command.check(config)
+    command.downgrade(config, "0016_ply_content_type")
+    with engine.connect() as conn:
+        assert conn.execute(text("SELECT state, task_id FROM scenes")).one() == ("processing", "ingest")
+    assert "lost_ingest_resends" not in {c["name"] for c in inspect(engine).get_columns("scenes")}
+    engine.dispose()
+
+
 def test_jobs_of_0004_upgrade_to_webhooks_off_and_back(database_url):
     """0005 adds the webhook columns (NULL: no webhook) and the deliveries outbox; downgrading drops them."""
     from alembic import command
@@ -585,6 +610,46 @@ def test_jobs_racing_a_scenes_ingest_are_each_sent_exactly_once(db):
         with session_scope() as session:
             unsent = session.scalars(select(Job.id).where(Job.scene_id == scene, Job.task_id.is_(None))).all()
         assert unsent == [], round_
+
+
+def test_reapers_reading_a_lost_ingest_at_once_send_it_once(db, monkeypatch):
+    """API processes reap side by side: each that read a scene whose ingest message is taken as lost had sent a copy
+    (sent, then recorded if the row was unchanged). The re-send is claimed first: one sends it, and records it."""
+    from types import SimpleNamespace
+
+    from sqlalchemy import update
+
+    import api.reaper as reaper
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene, utcnow
+
+    sent, lock = [], threading.Lock()
+
+    def send_ingest(scene_id):
+        with lock:
+            sent.append(scene_id)
+            return f"task-{len(sent)}"
+
+    monkeypatch.setattr(reaper, "get_queue", lambda: SimpleNamespace(send_ingest=send_ingest))
+    all_read, broker_waiting = threading.Barrier(RACERS), reaper._sql_broker_waiting
+
+    def once_all_read(url):  # (read after the scenes: every reaper has read them before any sends)
+        all_read.wait(60)
+        return broker_waiting(url)
+
+    monkeypatch.setattr(reaper, "_sql_broker_waiting", once_all_read)
+    for round_ in range(ROUNDS // 6):
+        scene = add_scene("processing")
+        with session_scope() as session:
+            session.execute(update(Scene).where(Scene.id == scene).values(
+                updated_at=utcnow() - timedelta(seconds=2 * db.job_lost_message_timeout_s)))
+        del sent[:]
+        results = race(lambda i: reaper.reap_orphaned_scenes(db))
+        assert results == [[]] * RACERS, results
+        assert sent == [scene], round_
+        with session_scope() as session:
+            row = session.get(Scene, scene)
+            assert (row.task_id, row.lost_ingest_resends) == ("task-1", 1)
 
 
 # ------------------------------------------------------------------------------------------ the connection pool

@@ -2204,7 +2204,8 @@ def test_reaper_leaves_an_untaken_ingest_waiting_while_no_worker_heartbeats(db, 
 def test_reaper_sends_again_an_ingest_no_worker_took_for_the_lost_message_timeout(db, monkeypatch):
     """A job whose message no worker took for VOXE_JOB_LOST_MESSAGE_TIMEOUT_S is sent again (a broker that lost what it
     had accepted: a Redis restarted without its data); a scene's ingest was not: the scene stayed processing, and the
-    jobs on it queued, for good. It is sent again, once a window, unless the SQL broker still holds its message."""
+    jobs on it queued, for good. It is sent again, unless the SQL broker still holds its message, the wait before the
+    next doubled (as a job's: below)."""
     from types import SimpleNamespace
 
     import api.reaper as reaper
@@ -2225,10 +2226,58 @@ def test_reaper_sends_again_an_ingest_no_worker_took_for_the_lost_message_timeou
     with session_scope() as session:
         row = session.get(Scene, lost)
         assert (row.state, row.task_id, row.worker_hostname) == ("processing", "task-1", None)
-    assert reaper.reap_orphaned_scenes(db) == [] and sent == [lost]  # sent again once a window
+    assert reaper.reap_orphaned_scenes(db) == [] and sent == [lost]  # (just sent: waiting for a worker)
     assert reaper.reap_orphaned_scenes(db, now=utcnow() + timedelta(seconds=1.1 * lost_after)) == []
-    assert sent[0] == lost and sorted(sent[1:]) == sorted([lost, waiting])
+    assert sent == [lost, waiting]  # (the lost one's wait doubled)
     assert (job_row(job).state, job_row(job).task_id) == ("queued", None)  # the ingest sends it once ready
+
+
+def test_an_ingest_no_worker_takes_is_sent_again_ever_more_rarely_as_a_jobs_message_is(db, monkeypatch):
+    """A scene whose ingest no worker takes (a backlog past VOXE_JOB_LOST_MESSAGE_TIMEOUT_S, or every worker down) had
+    been sent again each window, a copy more of its message each time (8 in 8 windows), where a job so placed waits
+    twice as long after each such re-send (3). Its re-sends are counted and double its wait as a job's do; one the
+    broker refuses leaves the scene as it was read, not counted, and the next pass sends it."""
+    from types import SimpleNamespace
+
+    import api.reaper as reaper
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene, utcnow
+    from voxe_service.queue import QueueUnavailable
+
+    window = db.job_lost_message_timeout_s
+    scene = add_scene("processing", 1.01 * window, task_id="the upload's message")
+    job = add_job(add_scene(), "queued", 1.01 * window, task_id="the job's message")
+    sent, refused = {"scene": [], "job": []}, []
+
+    def send_ingest(scene_id):
+        if not refused:  # (the first: the broker down)
+            refused.append(scene_id)
+            raise QueueUnavailable("the broker refused the message")
+        sent["scene"].append(k)
+        return f"ingest {k}"
+
+    def send(chain):
+        sent["job"].append(k)
+        return f"chain {k}"
+
+    monkeypatch.setattr(reaper, "get_queue", lambda: SimpleNamespace(
+        send_ingest=send_ingest, send=send, stage_chain=lambda job_id, *_a, **_k: SimpleNamespace(tasks=[job_id])))
+
+    def row():
+        with session_scope() as session:
+            found = session.get(Scene, scene)
+            return found.task_id, found.lost_ingest_resends, found.updated_at
+
+    k, read = 0, row()
+    assert reaper.reap_orphaned_scenes(db) == [] and sent["scene"] == []  # refused: as it was read, not counted
+    assert row() == read
+    start = utcnow()
+    for k in range(8):  # a pass every 1.01 windows: 8 windows with no worker taking anything
+        now = start + timedelta(seconds=k * 1.01 * window)
+        assert reaper.reap_orphaned_scenes(db, now=now) == [] and reaper.reap_orphaned_jobs(db, now=now) == []
+    assert sent["scene"] == sent["job"] == [0, 2, 4]  # after 1, 2 and 4 windows: each wait doubled
+    assert row()[:2] == ("ingest 4", 3)
+    assert job_row(job).state == "queued"
 
 
 @pytest.mark.parametrize("released_by", ["a restart's recovery", "a run giving it back"])

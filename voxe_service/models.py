@@ -139,6 +139,9 @@ class Scene(Base):
     # duplicate message waits for the lease to run out (then takes the scene over) or be renewed (then is dropped).
     ingest_token: Mapped[str | None] = mapped_column(String(32), nullable=True)
     ingest_lease_until: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    # Times the reaper sent the ingest again, no worker having taken its message for VOXE_JOB_LOST_MESSAGE_TIMEOUT_S:
+    # each doubles its wait before the next, as a job's such re-sends do (api.reaper).
+    lost_ingest_resends: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     updated_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
 
