@@ -931,6 +931,118 @@ def test_a_cancel_during_a_final_stages_last_uploads_ends_the_job_canceled(db, m
     assert refused.value.status_code == 409 and job_row(succeeded).state == "succeeded"
 
 
+def listed_artifacts(job_id: str) -> dict[str, str]:
+    """The job's listed artifacts: name -> storage key."""
+    from sqlalchemy import select
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Artifact
+
+    with session_scope() as session:
+        return dict(session.execute(select(Artifact.name, Artifact.key).where(Artifact.job_id == job_id)).all())
+
+
+@pytest.mark.parametrize("seen", ["at the mesh's check", "at the stage's end", "by the redelivery"])
+def test_a_job_canceled_during_its_export_lists_none_of_the_exports_outputs(db, tmp_path, monkeypatch, seen):
+    """A cancel landing just after the export published its first output (turntable.mp4) ended the job canceled
+    with the turntables, the views (and, seen at the stage's end, the mesh) listed: half an export. The stage's
+    outputs are withdrawn as it ends canceled, their rows and then their bytes, whether the cancel is seen at the
+    mesh's check, at the stage's end, or by the redelivery of a run a database outage stopped after it; the
+    outputs of the stages it completed, and the preview, stay listed and whole."""
+    from sqlalchemy.exc import OperationalError
+
+    from api.services.jobs import request_cancel
+    from voxe_service.db import session_scope
+    from voxe_service.storage import get_storage
+    from worker import runtime, tasks
+
+    storage = get_storage(db)
+
+    def publish(job_id: str, name: str, kind: str) -> None:
+        (tmp_path / name).write_bytes(f"{job_id} {name}".encode())
+        runtime.publish_artifact(job_id, name, tmp_path / name, kind, storage)
+
+    def edit(job, *_args):
+        publish(job.id, "edited_grid.safetensors", "grid")
+        publish(job.id, "preview.png", "preview")
+
+    def export(job, settings, *_args):  # as tasks._export publishes
+        publish(job.id, "render_000.png", "render")
+        for name in ("turntable.mp4", "turntable.gif"):
+            publish(job.id, name, "video")
+            if name == "turntable.mp4":  # the fault: the user's cancel, just after the first output is listed
+                with session_scope() as session:
+                    request_cancel(session=session, job_ids=[job.id])
+        if seen == "by the redelivery":  # the run's end refused by an outage: it gives the job back unended
+            raise OperationalError("UPDATE jobs", {}, Exception("server closed the connection unexpectedly"))
+        runtime.StageCallbacks(job, "export", settings).callbacks.check_cancel("export")  # the mesh's check
+        for name in ("mesh.ply", "mesh.glb", "mesh.obj", "mesh.mtl"):  # (one set in tasks._export)
+            publish(job.id, name, "mesh")
+
+    monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
+    monkeypatch.setattr(tasks, "_edit", edit)
+    monkeypatch.setattr(tasks, "_export", export)
+    monkeypatch.setattr(runtime.StageCallbacks, "should_cancel",
+                        lambda callbacks: seen == "at the mesh's check" and runtime.load_job(job_id).cancel_requested)
+    job_id = add_job(add_scene(), "queued", 0, completed_stages=["reconstruct"])
+    assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "done"
+    kept = listed_artifacts(job_id)
+    assert set(kept) == {"edited_grid.safetensors", "preview.png"}
+    result = tasks.export_task.apply(args=(job_id,), throw=False)
+    if seen == "by the redelivery":
+        assert result.state == "REJECTED" and result.result.requeue, result.result  # back to the queue
+        assert set(listed_artifacts(job_id)) > set(kept)  # (the stopped run's outputs, listed until the job ends)
+        assert "canceled" in tasks.export_task.apply(args=(job_id,)).get()["skipped"]
+    else:
+        assert result.get() == {"job_id": job_id, "stage": "export", "state": "canceled"}
+    job = job_row(job_id)
+    assert (job.state, job.message, job.completed_stages) == ("canceled", "canceled during export",
+                                                              ["reconstruct", "edit"])
+    assert listed_artifacts(job_id) == kept
+    for name, key in kept.items():
+        assert b"".join(storage.open_range(key)) == f"{job_id} {name}".encode()
+    assert storage.list(f"jobs/{job_id}/") == sorted(kept.values())  # the withdrawn outputs' bytes are gone
+
+
+def test_a_worker_dying_as_it_withdraws_a_canceled_evaluations_outputs_leaves_none_listed(db, tmp_path, monkeypatch):
+    """A cancel landing as the evaluation published its results (after its last check) ended it canceled with
+    evaluation.json and its rings listed. They are withdrawn: their rows go with the job's ending, in one
+    transaction, and their bytes after; a worker dying between the two leaves bytes no row lists, never a listed
+    artifact whose bytes are gone."""
+    from api.services.jobs import request_cancel
+    from voxe_service.db import session_scope
+    from voxe_service.storage import get_storage
+    from worker import runtime, tasks
+
+    class WorkerKilled(BaseException):
+        pass
+
+    storage = get_storage(db)
+
+    def evaluation(job, *_args):  # as worker.evaluation publishes: one set, after the last cancel check
+        for name in ("ring_initial_000.png", "evaluation.json", "evaluation.md"):
+            (tmp_path / name).write_bytes(name.encode())
+        runtime.publish_artifacts(job.id, [(name, tmp_path / name, kind) for name, kind in (
+            ("ring_initial_000.png", "render"), ("evaluation.json", "evaluation"), ("evaluation.md", "evaluation"))],
+            storage)
+        with session_scope() as session:
+            request_cancel(session=session, job_ids=[job.id])
+
+    def killed(key: str) -> None:
+        raise WorkerKilled(f"the worker died deleting {key}")
+
+    monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
+    monkeypatch.setattr(tasks, "run_evaluation", evaluation)
+    monkeypatch.setattr(storage, "delete", killed)
+    job_id = add_job(add_scene(), "queued", 0, mode="evaluate")
+    with pytest.raises(WorkerKilled):
+        tasks.evaluate_task.apply(args=(job_id,))
+    job = job_row(job_id)
+    assert (job.state, job.message) == ("canceled", "canceled during evaluate")
+    assert listed_artifacts(job_id) == {}
+    assert len(storage.list(f"jobs/{job_id}/")) == 3  # unlisted, deleted with the job
+
+
 def test_one_run_holds_a_job_a_duplicate_message_is_dropped_and_a_dead_run_is_taken_over(db, monkeypatch):
     """A chain message sent twice (a worker died after its stage sent the next one, before its ack) must not run
     a stage on two workers: while the run holding the job renews its lease, the duplicate is dropped (StageHeld,

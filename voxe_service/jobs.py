@@ -10,11 +10,11 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from sqlalchemy import select, update
+from sqlalchemy import delete, func, select, update
 from sqlalchemy.orm import Session
 
 from voxe_service import webhooks
-from voxe_service.models import TERMINAL_STATES, Job, JobEvent, utcnow
+from voxe_service.models import TERMINAL_STATES, Artifact, Job, JobEvent, utcnow
 
 
 def record_event(session: Session, job_id: str, kind: str, *, stage: str | None = None,
@@ -55,3 +55,21 @@ def finish_jobs(session: Session, job_ids: Iterable[str], state: str, *, message
     for job_id, stage in changed:
         record_event(session, job_id, state, stage=stage, detail=error or message)
     return [job_id for job_id, _ in changed]
+
+
+def withdraw_unfinished_stage_artifacts(session: Session, job_id: str) -> list[str]:
+    """Delete the rows of the artifacts the job's unfinished stage published, by this run of it or an earlier one
+    (those announced on the timeline since the last ``stage_completed``), as the job ends canceled; return their
+    storage keys, for the caller to delete once this transaction is committed.
+
+    A job canceled during a stage lists none of that stage's outputs (an export's turntable without its mesh),
+    only those of the stages it completed. Previews stay: progress images, announced as ``preview`` events, no
+    stage's output. Rows first, in the ending's transaction: a worker dying before the bytes go leaves only bytes no
+    row lists (deleted with the job), never a listed artifact whose bytes are gone.
+    """
+    since = select(func.coalesce(func.max(JobEvent.id), 0)).where(
+        JobEvent.job_id == job_id, JobEvent.kind == "stage_completed").scalar_subquery()
+    published = select(JobEvent.detail).where(JobEvent.job_id == job_id, JobEvent.kind == "artifact",
+                                              JobEvent.id > since)
+    return list(session.scalars(delete(Artifact).where(Artifact.job_id == job_id, Artifact.name.in_(published))
+                                .returning(Artifact.key)))
