@@ -1043,6 +1043,57 @@ def test_a_worker_dying_as_it_withdraws_a_canceled_evaluations_outputs_leaves_no
     assert len(storage.list(f"jobs/{job_id}/")) == 3  # unlisted, deleted with the job
 
 
+@pytest.mark.parametrize("asked", ["before the reaper's pass", "once the reaper re-queued it"])
+def test_a_job_whose_worker_died_mid_export_canceled_lists_none_of_the_exports_outputs(db, tmp_path, monkeypatch,
+                                                                                       asked):
+    """A job whose worker died after its export published the turntable ends canceled by the reaper (its cancel
+    asked while it ran) or by the API (asked once the reaper re-queued it): either way it listed the dead run's
+    turntable. The interrupted stage's outputs are withdrawn with the ending, rows then bytes; the completed
+    edit's grid and the preview stay."""
+    from sqlalchemy import update
+
+    from api.reaper import reap_orphaned_jobs
+    from api.services.jobs import cancel_job, request_cancel
+    from voxe_service.db import session_scope
+    from voxe_service.models import ApiKey, Job, utcnow
+    from voxe_service.storage import get_storage
+    from worker import runtime, tasks
+
+    storage = get_storage(db)
+
+    def publish(job_id: str, name: str, kind: str) -> None:
+        (tmp_path / name).write_bytes(name.encode())
+        runtime.publish_artifact(job_id, name, tmp_path / name, kind, storage)
+
+    def edit(job, *_args):
+        publish(job.id, "edited_grid.safetensors", "grid")
+        publish(job.id, "preview.png", "preview")
+
+    monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
+    monkeypatch.setattr(tasks, "_edit", edit)
+    job_id = add_job(add_scene(), "queued", 0, completed_stages=["reconstruct"])
+    assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "done"
+    kept = listed_artifacts(job_id)
+    runtime.begin_stage(job_id, "export", "dead@host", "cpu", db)
+    publish(job_id, "turntable.mp4", "video")  # ... and the worker died
+    if asked == "before the reaper's pass":
+        with session_scope() as session:
+            request_cancel(session=session, job_ids=[job_id])
+    add_heartbeat("dead@host", age_s=2 * db.job_stale_timeout_s)
+    long_ago = utcnow() - timedelta(seconds=2 * db.job_stale_timeout_s)
+    with session_scope() as session:
+        session.execute(update(Job).where(Job.id == job_id).values(updated_at=long_ago, run_lease_until=long_ago))
+    if asked == "before the reaper's pass":
+        assert reap_orphaned_jobs(db) == [job_id]
+    else:
+        assert reap_orphaned_jobs(db) == [] and job_row(job_id).state == "queued"
+        with session_scope() as session:
+            cancel_job(session=session, key=session.get(ApiKey, job_row(job_id).owner_key_id), job_id=job_id)
+    assert job_row(job_id).state == "canceled"
+    assert listed_artifacts(job_id) == kept
+    assert storage.list(f"jobs/{job_id}/") == sorted(kept.values())
+
+
 def test_one_run_holds_a_job_a_duplicate_message_is_dropped_and_a_dead_run_is_taken_over(db, monkeypatch):
     """A chain message sent twice (a worker died after its stage sent the next one, before its ack) must not run
     a stage on two workers: while the run holding the job renews its lease, the duplicate is dropped (StageHeld,

@@ -15,6 +15,7 @@ from sqlalchemy.orm import Session
 
 from voxe_service import webhooks
 from voxe_service.models import TERMINAL_STATES, Artifact, Job, JobEvent, utcnow
+from voxe_service.storage import get_storage, job_key
 
 
 def record_event(session: Session, job_id: str, kind: str, *, stage: str | None = None,
@@ -41,7 +42,8 @@ def finish_jobs(session: Session, job_ids: Iterable[str], state: str, *, message
                 error: str | None = None, where: Iterable = ()) -> list[str]:
     """Move the unfinished jobs among ``job_ids`` (that also match ``where``) to the terminal ``state``.
 
-    Returns the ids that changed, each with a ``state`` event carrying the error or message.
+    Returns the ids that changed, each with a ``state`` event carrying the error or message. A caller ending jobs
+    canceled withdraws their unfinished stage's artifacts (:func:`withdraw_unfinished_stage_artifacts`).
     """
     ids = list(job_ids)
     if not ids:
@@ -73,3 +75,11 @@ def withdraw_unfinished_stage_artifacts(session: Session, job_id: str) -> list[s
                                               JobEvent.id > since)
     return list(session.scalars(delete(Artifact).where(Artifact.job_id == job_id, Artifact.name.in_(published))
                                 .returning(Artifact.key)))
+
+
+def discard_withdrawn(job_id: str, keys: Iterable[str], settings=None) -> None:
+    """Delete the stored bytes of the job's withdrawn artifacts, once the withdrawal is committed: only the job's own
+    (an initial grid's bytes are the shared reconstruction's)."""
+    for key in keys:
+        if key.startswith(job_key(job_id, "")):
+            get_storage(settings).discard(key)

@@ -31,7 +31,7 @@ from sqlalchemy.exc import SQLAlchemyError
 from voxe_core.progress import Callbacks, Progress, StageCancelled
 from voxe_service import datasets
 from voxe_service.db import DATABASE_UNAVAILABLE, database_outage, locked, session_scope, sync_clock
-from voxe_service.jobs import finish_jobs, record_event, withdraw_unfinished_stage_artifacts
+from voxe_service.jobs import discard_withdrawn, finish_jobs, record_event, withdraw_unfinished_stage_artifacts
 from voxe_service.models import (
     CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, R_FAILED, R_PENDING, R_RUNNING, READY, RUNNING, SUCCEEDED,
     TERMINAL_STATES, Artifact, Job, Reconstruction, Scene, utcnow,
@@ -199,7 +199,7 @@ def begin_stage(job_id: str, stage: str, hostname: str | None, device: str, sett
                 if finish_jobs(session, [job_id], CANCELED, message=f"canceled {when} {stage}"):
                     withdrawn = withdraw_unfinished_stage_artifacts(session, job_id)  # what that run published
                 session.commit()  # before raising: session_scope rolls back on the way out of an exception
-                _discard_withdrawn(job_id, withdrawn)
+                discard_withdrawn(job_id, withdrawn)
                 raise JobSkipped(f"job {job_id} canceled")
             if stage in (job.completed_stages or []):
                 raise JobSkipped(f"job {job_id}: {stage} already done (redelivered task)")
@@ -392,16 +392,8 @@ def finish_job(job_id: str, state: str, message: str | None = None, error: str |
                                  where=[Job.run_token == run_token] if run_token else []))
         if ended and state == CANCELED:
             withdrawn = withdraw_unfinished_stage_artifacts(session, job_id)
-    _discard_withdrawn(job_id, withdrawn)
+    discard_withdrawn(job_id, withdrawn)
     return ended
-
-
-def _discard_withdrawn(job_id: str, keys: list[str]) -> None:
-    """Delete the stored bytes of the job's withdrawn artifacts, once no row lists them: only the job's own (an
-    initial grid's bytes are the shared reconstruction's)."""
-    for key in keys:
-        if key.startswith(job_key(job_id, "")):
-            get_storage().discard(key)
 
 
 def record_job_event(job_id: str, kind: str, **fields) -> None:
