@@ -782,6 +782,46 @@ def test_reg3d_is_zero_for_identical_grids_then_grows(small_sphere):
     assert free[-1].losses["reg"] > 1e-4
 
 
+def test_a_regulariser_a_constant_initial_grid_switches_off_is_said_before_the_first_step(small_sphere):
+    """A constant G_i density (an empty or unfitted grid) makes L_reg3D a constant 1 with no gradient: the edit had
+    run unregularised, its reg of 1.0 reading as a very poor correlation, saying nothing. The callbacks' warning says
+    so, once, before the first step's report; as it does for reg3d_plus's colour channels that are constant (the
+    sphere is one red), and for nothing where the regulariser has something to correlate or its weight is 0."""
+    def run(grid, **config):
+        said = []
+        callbacks = Callbacks(on_progress=lambda report: said.append(("progress", report.losses["reg"])),
+                              on_warning=lambda stage, text: said.append((stage, text)))
+        edit(grid, "a dog", FakeGuidance(), EditConfig(iterations=2, render_size=16, **config), callbacks)
+        return said
+
+    unfitted = VoxelGrid(12)  # density 0.01 in every voxel, colour 0
+    off = ("the reconstruction's density is constant: the 3D regulariser (reg3d) has nothing to correlate and is off; "
+           "the edit runs unregularised, its reg a constant 1.0 (an empty or unfitted reconstruction?)")
+    assert run(unfitted) == [("edit", off), ("progress", 1.0), ("progress", 1.0)]
+    assert run(unfitted, regulariser="reg3d_plus")[:2] == [
+        ("edit", "the reconstruction's density and its red, green and blue colour channels are constant: the 3D "
+                 "regulariser (reg3d_plus) has nothing to correlate and is off; the edit runs unregularised, its reg "
+                 "a constant 2.0 (an empty or unfitted reconstruction?)"), ("progress", 2.0)]
+    assert run(small_sphere, regulariser="reg3d_plus")[0] == (
+        "edit", "the reconstruction's red, green and blue colour channels are constant: the 3D regulariser "
+                "(reg3d_plus) has nothing to correlate on them: its terms for them are off (1 per term in its reg, "
+                "with no gradient)")
+    one_colour = small_sphere.clone_grid()
+    with torch.no_grad():
+        one_colour.features[..., 0] = 3.0
+        one_colour.features[..., 1] = torch.linspace(-1.0, 1.0, one_colour.features[..., 1].numel()).reshape(
+            one_colour.features.shape[:3])
+    assert run(one_colour, regulariser="reg3d_plus")[0] == (
+        "edit", "the reconstruction's density and its green and blue colour channels are constant: the 3D "
+                "regulariser (reg3d_plus) has nothing to correlate on them: its terms for them are off (1 per term in "
+                "its reg, with no gradient)")
+    for grid, config in [(small_sphere, {}), (unfitted, {"regulariser_weight": 0.0}),
+                         (unfitted, {"regulariser": "volumetric_l2"})]:
+        assert [kind for kind, _ in run(grid, **config)] == ["progress", "progress"], config
+    with pytest.warns(UserWarning, match=re.escape(f"edit: {off}")):  # no on_warning: a Python warning says it
+        edit(unfitted, "a dog", FakeGuidance(), EditConfig(iterations=1, render_size=16))
+
+
 def test_image_regulariser_against_the_grids_own_renders_is_small(small_sphere):
     cameras = Cameras.from_fov(spherical_poses(torch.tensor([30.0, 10.0]), torch.tensor([0.0, 120.0])), 0.6911, 24, 24)
     images = render_views(small_sphere, cameras, EditConfig().render)
@@ -879,6 +919,22 @@ def test_cli_builds_the_tiny_model_and_edits_with_it(tmp_path, make_sphere_grid,
         assert main(["edit", str(grid_file), "--out", str(tmp_path / "stopped"), "--iterations", "3", *common]) == 130
     said = capsys.readouterr().err
     assert "voxe: edit cancelled before its first step" in said and "--resume" not in said
+
+
+def test_cli_says_the_regulariser_a_constant_grid_switches_off(tmp_path, tiny_sd_path, make_sphere_grid, capsys):
+    """``voxe edit`` of an unfitted grid (constant density) prints what the edit's warning says, even with --quiet;
+    of a fitted one, no warning."""
+    common = ["--prompt", "a dog", "--model", str(tiny_sd_path), "--render-size", "16", "--device", "cpu", "--quiet",
+              "--offline", "--iterations", "1", "--preview-every", "0"]
+    for name, grid in [("unfitted", VoxelGrid(8)), ("sphere", make_sphere_grid(8))]:
+        grid.save(tmp_path / f"{name}.safetensors")
+        capsys.readouterr()
+        assert main(["edit", str(tmp_path / f"{name}.safetensors"), "--out", str(tmp_path / name), *common]) == 0
+        warned = [line for line in capsys.readouterr().err.splitlines() if "warning" in line]
+        assert warned == ([
+            "voxe edit: warning: the reconstruction's density is constant: the 3D regulariser (reg3d) has nothing to "
+            "correlate and is off; the edit runs unregularised, its reg a constant 1.0 (an empty or unfitted "
+            "reconstruction?)"] if name == "unfitted" else [])
 
 
 def test_cli_refuses_a_bad_resume_or_out_before_loading_the_model(tmp_path, sphere_grid, capsys, monkeypatch):

@@ -5,6 +5,7 @@ import torch
 
 from voxe_core.losses import (
     REGULARISERS,
+    constant_correlated_channels,
     correlation_loss,
     correlation_loss_plus_rgb,
     image_l1,
@@ -87,6 +88,32 @@ def test_constant_grids_are_finite():
     loss = correlation_loss(torch.zeros_like(g), edited)  # constant initial grid
     loss.backward()
     assert loss.item() == 1.0 and torch.isfinite(edited.grad).all()
+
+
+@pytest.mark.parametrize("value", [0.0, 0.01, -1e30])
+def test_the_channels_a_correlation_regulariser_finds_constant_are_exactly_those_whose_term_is_off(value):
+    """A constant channel of G_i makes its correlation term a constant 1 with no gradient (the term is off): those
+    are named, exactly; one voxel a float32 step apart, where the term works, is not (nor any channel a regulariser
+    that correlates nothing reads)."""
+    features = torch.full((6, 5, 4, 4), value)
+    features[..., 2] = _grid(shape=(6, 5, 4))  # green varies
+    assert constant_correlated_channels("reg3d", features) == ("density",)
+    assert constant_correlated_channels("reg3d_plus", features) == ("density", "red", "blue")
+    for kind in ("volumetric_l1", "volumetric_l2", "image_l1"):
+        assert constant_correlated_channels(kind, features) == ()
+    for channel in (0, 1, 3):  # each constant channel's term: 1 whatever G_e, with no gradient
+        edited = _grid(1, (6, 5, 4)).requires_grad_(True)
+        loss = correlation_loss(features[..., channel], edited)
+        loss.backward()
+        assert loss.item() == 1.0 and not edited.grad.any()
+
+    features[2, 3, 1, 0] = torch.nextafter(torch.tensor(value), torch.tensor(1.0))  # one step off: not constant
+    assert constant_correlated_channels("reg3d", features) == ()
+    assert constant_correlated_channels("reg3d_plus", features) == ("red", "blue")
+    edited = features[..., 0].clone().requires_grad_(True)
+    loss = correlation_loss(features[..., 0], edited)
+    loss.backward()
+    assert abs(loss.item()) < 1e-6  # its term works: itself correlates fully
 
 
 def test_tiny_variance_and_huge_values():

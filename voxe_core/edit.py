@@ -92,9 +92,11 @@ from voxe_core.guidance.prompts import (
     pose_view_word,
 )
 from voxe_core.losses import (
+    CORRELATED_CHANNELS,
     IMAGE_REGULARISERS,
     REGULARISERS,
     Regulariser,
+    constant_correlated_channels,
     image_l1,
     image_l2,
     volumetric_regulariser,
@@ -341,6 +343,39 @@ def _checkpoint_holds(checkpoint_path, resume_from, start: int) -> int | None:
     return None if Path(checkpoint_path).exists() else 0
 
 
+def _listed(words: list[str]) -> str:
+    """``a``, ``a and b``, ``a, b and c``."""
+    return " and ".join(filter(None, [", ".join(words[:-1]), words[-1]]))
+
+
+def regulariser_off(initial_grid: VoxelGrid, config: EditConfig) -> str | None:
+    """What a constant channel of G_i switches off of the edit's correlation regulariser, said for its user; None
+    where nothing is (or the weight is 0: off as asked).
+
+    Such a channel's term is a constant 1 with no gradient (:func:`~voxe_core.losses.constant_correlated_channels`):
+    the edit runs on unregularised there, and its ``reg`` of 1.0 throughout had read as a very poor correlation. It
+    is said, not refused: an edit without L_reg3D is one of the paper's ablations (SPEC §2), and a one-coloured grid
+    under reg3d_plus keeps its density term.
+    """
+    if config.regulariser_weight == 0:
+        return None
+    constant = constant_correlated_channels(config.regulariser, initial_grid.features)
+    if not constant:
+        return None
+    colours = [name for name in constant if name != "density"]
+    parts = ["density"] if "density" in constant else []
+    if colours:
+        parts.append(f"{'its ' if parts else ''}{_listed(colours)} colour channel{'s' if len(colours) > 1 else ''}")
+    what = _listed(parts)
+    are, them, terms = ("is", "it", "term") if len(constant) == 1 else ("are", "them", "terms")
+    said = (f"the reconstruction's {what} {are} constant: the 3D regulariser ({config.regulariser}) has nothing to "
+            "correlate")
+    if len(constant) < len(CORRELATED_CHANNELS[config.regulariser]):
+        return f"{said} on {them}: its {terms} for {them} {are} off (1 per term in its reg, with no gradient)"
+    return (f"{said} and is off; the edit runs unregularised, its reg a constant {2.0 if colours else 1.0} "
+            "(an empty or unfitted reconstruction?)")
+
+
 def edit(
     initial_grid: VoxelGrid,
     prompt: str,
@@ -373,7 +408,8 @@ def edit(
     SDS gradient's entries the guidance found infinite or NaN and zeroed). Cancellation is checked before each
     iteration (``StageCancelled``; a checkpoint is written first when
     ``checkpoint_path`` is set and G_e is finite, else the earlier one stays). Info also carries ``peak_memory_gb`` /
-    ``peak_memory_kind`` (:class:`voxe_core.devices.PeakMemory`).
+    ``peak_memory_kind`` (:class:`voxe_core.devices.PeakMemory`). Before the first step, ``callbacks.warning`` says
+    what of the regulariser a constant channel of G_i switches off (:func:`regulariser_off`).
 
     Everything runs on ``device`` (None: ``guidance.device`` when the guidance
     has one, else the initial grid's); G_i, G_e and the input views move there
@@ -542,6 +578,8 @@ def edit(
             image = render_image(grid, preview_cameras, 0, config.render).rgb[..., :3]
             on_preview(done, image.detach().to("cpu", torch.float32))
 
+    if (off := regulariser_off(initial_grid, config)) is not None:  # (where the run starts: after what it refuses)
+        callbacks.warning("edit", off)
     T = int(guidance.num_train_timesteps)
     last_checkpoint = _checkpoint_holds(checkpoint_path, resume_from, start)
     if start == 0:

@@ -29,6 +29,9 @@ Regulariser = Literal["reg3d", "reg3d_plus", "volumetric_l1", "volumetric_l2", "
 REGULARISERS: tuple[str, ...] = get_args(Regulariser)
 VOLUMETRIC_REGULARISERS: tuple[str, ...] = ("reg3d", "reg3d_plus", "volumetric_l1", "volumetric_l2")
 IMAGE_REGULARISERS: tuple[str, ...] = ("image_l1", "image_l2")
+CORRELATED_CHANNELS: dict[str, tuple[int, ...]] = {"reg3d": (0,), "reg3d_plus": (0, 1, 2, 3)}
+"""The feature channels each correlation regulariser correlates between G_i and G_e."""
+CHANNEL_NAMES: tuple[str, ...] = ("density", "red", "green", "blue")
 
 
 def _standardise(x: torch.Tensor, eps: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -165,7 +168,7 @@ def volumetric_regulariser(
     shape = initial_features.shape
     _check_features(shape, shape)
     initial_features = initial_features.detach()
-    channels = {"reg3d": (0,), "reg3d_plus": (0, 1, 2, 3)}.get(kind, ())
+    channels = CORRELATED_CHANNELS.get(kind, ())
     with full_precision(initial_features):
         standardised = [_standardise(initial_features[..., c], eps)[0] for c in channels]
     initial_density = None if channels else initial_features[..., 0].clone()
@@ -180,6 +183,26 @@ def volumetric_regulariser(
         return density + torch.stack(colour).mean() if colour else density
 
     return loss
+
+
+def constant_correlated_channels(kind: Regulariser, initial_features: torch.Tensor) -> tuple[str, ...]:
+    """The names (:data:`CHANNEL_NAMES`) of the channels of G_i's ``(..., 4)`` features that the regulariser ``kind``
+    correlates and that hold one value in every voxel; none for a regulariser that correlates nothing.
+
+    Against such a channel the correlation is undefined and its loss term is a constant 1 with zero gradient: that
+    term regularises nothing (an empty or unfitted grid's density, a one-coloured grid's colour), while the ``reg``
+    it reports reads as the worst correlation. The condition is :func:`_standardise`'s own (its range is 0).
+
+    Examples:
+        >>> features = torch.zeros(2, 2, 2, 4)
+        >>> features[..., 1] = torch.arange(8.0).reshape(2, 2, 2)  # only the red channel varies
+        >>> constant_correlated_channels("reg3d", features), constant_correlated_channels("reg3d_plus", features)
+        (('density',), ('density', 'green', 'blue'))
+    """
+    _check_features(initial_features.shape, initial_features.shape)
+    with torch.no_grad(), full_precision(initial_features):
+        return tuple(CHANNEL_NAMES[c] for c in CORRELATED_CHANNELS.get(kind, ())
+                     if bool(_standardise(initial_features[..., c], 1e-12)[1]))
 
 
 def sampled_total_variation(

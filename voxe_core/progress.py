@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
@@ -26,6 +27,7 @@ class Callbacks:
     on_progress: Callable[[Progress], None] | None = None
     should_cancel: Callable[[], bool] | None = None
     on_checkpoint: Callable[[str], None] | None = None  # receives the checkpoint path
+    on_warning: Callable[[str, str], None] | None = None  # receives the stage and what its user should know
 
     def progress(self, report: Progress) -> None:
         if self.on_progress is not None:
@@ -38,6 +40,14 @@ class Callbacks:
     def checkpoint_written(self, path: str) -> None:
         if self.on_checkpoint is not None:
             self.on_checkpoint(path)
+
+    def warning(self, stage: str, text: str) -> None:
+        """Tell the caller ``text`` about a stage that runs on but not as asked: to ``on_warning`` (the service's job,
+        the CLI's stderr), else as a Python warning (never shown to a service's user, whom the job tells)."""
+        if self.on_warning is not None:
+            self.on_warning(stage, text)
+        else:
+            warnings.warn(f"{stage}: {text}", stacklevel=3)
 
 
 def in_phases(callbacks: Callbacks, sizes: dict[str, int]) -> Callbacks:

@@ -80,7 +80,8 @@ of carriage-returned lines."""
 def progress_callbacks(
     desc: str, unit: str = "it", should_cancel=None, quiet: bool = False, total: int | None = None
 ):
-    """Callbacks whose ``on_progress`` drives one tqdm bar (total and losses taken from each report). The bar's
+    """Callbacks whose ``on_progress`` drives one tqdm bar (total and losses taken from each report) and whose
+    ``on_warning`` prints ``voxe DESC: warning: ...`` on stderr. The bar's
     rate, and so its time left, counts the steps done since its first report: a resumed stage's first report stands
     where its checkpoint did, and counted as done in the moment it took had shown several times the real rate."""
     from tqdm import tqdm
@@ -109,8 +110,11 @@ def progress_callbacks(
             bar.set_postfix(postfix, refresh=False)
         bar.update(report.iteration - bar.n)
 
+    def on_warning(stage: str, text: str) -> None:  # (even with --quiet; above the bar, which tqdm draws again)
+        bar.write(f"voxe {desc}: warning: {text if stage == desc else f'{stage}: {text}'}", file=sys.stderr)
+
     try:
-        yield Callbacks(on_progress=on_progress, should_cancel=should_cancel)
+        yield Callbacks(on_progress=on_progress, should_cancel=should_cancel, on_warning=on_warning)
     finally:
         bar.close()
 
