@@ -484,9 +484,9 @@ class JobOut(BaseModel):
 class JobEventOut(BaseModel):
     id: int
     kind: str = Field(description="stage_started, stage_completed, checkpoint, resumed, requeued, warning (a "
-                                  "stage's result to look at, or its start over from a checkpoint it could not go on "
-                                  "from: detail says what), artifact, preview, "
-                                  "succeeded, failed or canceled")
+                                  "stage's result to look at, an edit's regulariser a constant reconstruction switches "
+                                  "off, or a start over from a checkpoint it could not go on from: detail says "
+                                  "what), artifact, preview, succeeded, failed or canceled")
     stage: str | None
     iteration: int | None = Field(description="checkpoint: the iteration it holds; resumed: where the stage went on")
     worker_hostname: str | None

@@ -880,6 +880,49 @@ def test_a_real_scene_edit_runs_through_the_worker_on_the_smoke_test_model(servi
     assert load_grid(tmp_path / "edited.safetensors").kind == "scene"
 
 
+@pytest.mark.parametrize("density", ["constant", "varying"])
+def test_an_edit_whose_regulariser_a_constant_reconstruction_switches_off_says_so_on_the_job(service, monkeypatch,
+                                                                                           density):
+    """A G_i of constant density (an empty or unfitted reconstruction) leaves L_reg3D nothing to correlate: the edit
+    had run unregularised with ``reg`` 1.0 on every report, which reads as a very poor correlation, and the job said
+    nothing (a Python warning reaches no user of the service). A real edit (the tiny model) of such a G_i now says it
+    as a warning event of the edit (its webhook's job.warning; the CLI's line) and as the message its progress
+    reports carry; of a G_i whose density varies, nothing."""
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job = _reconstructed_job(client, scene_id, "relu_field", iterations=2, render_size=16, preview_every=0)
+    real_fetch_grid = tasks.fetch_grid
+
+    def with_density(job_id, name, *args, **kwargs):
+        grid = real_fetch_grid(job_id, name, *args, **kwargs)
+        if name == "initial_grid.safetensors":  # (the tiny fit's is constant: its steps had moved every voxel alike)
+            with torch.no_grad():
+                ramp = torch.linspace(-1.0, 1.0, grid.features[..., 0].numel()).reshape(grid.features.shape[:3])
+                grid.features[..., 0] = 0.5 if density == "constant" else ramp
+        return grid
+
+    real_update_job, messages = runtime.update_job, []
+
+    def recorded_update_job(job_id, **fields):
+        if "losses" in fields:  # a progress write
+            messages.append((fields["losses"]["reg"], fields["message"]))
+        return real_update_job(job_id, **fields)
+
+    monkeypatch.setattr(tasks, "fetch_grid", with_density)
+    monkeypatch.setattr(runtime, "update_job", recorded_update_job)
+    assert tasks.edit_task.apply(args=(job["id"],)).get()["state"] == "done"
+    warnings = [(e["stage"], e["detail"]) for e in client.get(f"/v1/jobs/{job['id']}/events").json()
+                if e["kind"] == "warning"]
+    if density == "varying":
+        assert warnings == [] and messages and all(message is None for _, message in messages)
+        return
+    said = ("the reconstruction's density is constant: the 3D regulariser (reg3d) has nothing to correlate and is off; "
+            "the edit runs unregularised, its reg a constant 1.0 (an empty or unfitted reconstruction?)")
+    assert warnings == [("edit", said)]
+    assert messages and all(report == (1.0, said) for report in messages)  # (a progress write had dropped it)
+
+
 def test_the_worker_runs_every_stage_on_its_device_and_stores_their_peak_memory(service, monkeypatch):
     """The worker's resolved VOXE_DEVICE (auto: cpu here) reaches each stage as its ``device``; each stage's
     reported peak lands in Job.result."""

@@ -251,8 +251,9 @@ class JobEvent(Base):
     checkpoint of ``stage`` at ``iteration`` is in the storage: the event is written after the upload),
     ``resumed`` (a redelivered stage went on from the checkpoint at ``iteration``), ``requeued`` (the
     remaining stages were sent again: by a restarted worker, or by the reaper after the worker died), ``warning``
-    (``detail`` says what: a refinement whose graph cut kept none or all of the occupied voxels, or ``stage`` started
-    over from a checkpoint it could not go on from), ``artifact`` / ``preview`` (``detail``: the name of an
+    (``detail`` says what: an edit whose 3D regulariser a constant channel of the reconstruction switches off, a
+    refinement whose graph cut kept none or all of the occupied voxels, or ``stage`` started over from a checkpoint it
+    could not go on from), ``artifact`` / ``preview`` (``detail``: the name of an
     artifact just published, or of a new preview image), and the terminal ``succeeded`` / ``failed`` /
     ``canceled`` (``detail``: the error or message). Unlike the throttled progress columns of the job,
     every event is kept.

@@ -457,7 +457,16 @@ class StageCallbacks:
         self.peak_memory_gb: float | None = None
         self._peak_written: float | None = None
         self.callbacks = Callbacks(on_progress=self.on_progress, should_cancel=self.should_cancel,
-                                   on_checkpoint=self.on_checkpoint if on_checkpoint else None)
+                                   on_checkpoint=self.on_checkpoint if on_checkpoint else None,
+                                   on_warning=self.on_warning)
+
+    def on_warning(self, stage: str, text: str) -> None:
+        """Say what the stage warns of as a ``warning`` event (the timeline, its webhook, the CLI's line) and keep it
+        in the message its progress reports carry, which had replaced it at the next write."""
+        text = text if stage == self.stage else f"{stage}: {text}"
+        log.warning("job %s: %s: %s", self.job_id, self.stage, text)
+        self.note = text if self.note is None else f"{self.note}; {text}"
+        record_warning(self.job_id, self.stage, text)
 
     def on_checkpoint(self, path: str) -> None:
         """Store the checkpoint, then record where it was taken (stages report progress just before). A run that
