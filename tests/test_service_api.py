@@ -1482,7 +1482,8 @@ def test_the_event_stream_is_negotiated_by_the_accept_media_type_and_its_weight(
     """text/event-stream had been found in Accept as a substring: ``text/event-stream;q=0`` (anything but a stream)
     got a stream, and ``Text/Event-Stream`` (media types are case-insensitive) the JSON timeline. Then any q above 0
     streamed, also where application/json was weighted higher: now the stream needs a q at least JSON's (named, or
-    through application/* or */*)."""
+    through application/* or */*). A q not in RFC 9110's form (.5) had counted as 1, opening a stream ranked below
+    JSON."""
     url = f"/v1/jobs/{_job_row()}/events"
     for accept, streamed in (("text/event-stream", True), ("Text/Event-Stream", True),
                              ("application/json, text/event-stream; q=0.5", False),
@@ -1492,7 +1493,14 @@ def test_the_event_stream_is_negotiated_by_the_accept_media_type_and_its_weight(
                              ("application/*;q=0.6, text/event-stream;q=0.5", False),
                              ("text/event-stream;q=0.5, */*;q=0.1", True), ("*/*, text/event-stream;q=0.9", False),
                              ("text/event-stream;q=0, application/json", False), ("text/event-stream; Q=0.000", False),
-                             ("text/event-streams", False), ("*/*", False)):
+                             ("text/event-streams", False), ("*/*", False),
+                             # a q written otherwise is read as a number within [0, 1]; no number counts as absent
+                             ("application/json;q=0.9, text/event-stream;q=.5", False),
+                             ("application/json, text/event-stream;q=0.0001", False),
+                             ("application/json;q=0.5, text/event-stream;q=7", True),
+                             ("application/json;q=0.5, text/event-stream;q=-1", False),
+                             ("application/json;q=0.5, text/event-stream;q=high", True),
+                             ("application/json;q=0.5, text/event-stream;q=nan", True)):
         response = client.get(url, headers={"Accept": accept})
         assert response.status_code == 200, accept
         assert response.headers["content-type"].startswith("text/event-stream") is streamed, accept

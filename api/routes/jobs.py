@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import re
+import math
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Header, HTTPException, Query, Request, Response, status
@@ -184,13 +184,21 @@ def wants_stream(accept: list[str]) -> bool:
     for media_range in ",".join(accept).split(","):
         media_type, *params = (part.strip().lower() for part in media_range.split(";"))
         q = [value.strip() for name, _, value in (p.partition("=") for p in params) if name.strip() == "q"]
-        weights.setdefault(media_type, float(q[0]) if q and _QVALUE.fullmatch(q[0]) else 1.0)
+        weights.setdefault(media_type, _qvalue(q[0]) if q else 1.0)
     stream = weights.get(SSE_MEDIA_TYPE, 0.0)
     as_json = next((weights[t] for t in ("application/json", "application/*", "*/*") if t in weights), 0.0)
     return stream > 0 and stream >= as_json
 
 
-_QVALUE = re.compile(r"0(\.\d{0,3})?|1(\.0{0,3})?")  # RFC 9110 §12.4.2 (another q counts as absent: 1)
+def _qvalue(text: str) -> float:
+    """A media range's weight: RFC 9110 §12.4.2's (0 to 1, three decimals), or read leniently as a number within [0, 1]
+    where a client writes it otherwise (``.5``, ``0.0001``: such a q had counted as 1, so a stream ranked below JSON
+    was opened); one that is no number counts as absent (1)."""
+    try:
+        weight = float(text)
+    except ValueError:
+        return 1.0
+    return min(max(weight, 0.0), 1.0) if math.isfinite(weight) else 1.0
 
 
 def _event_id(value: str | None) -> int:
