@@ -5,8 +5,10 @@ the type the earlier worker recorded.
 It retypes the rows there are when it runs, once: a PLY that a worker still running the earlier code publishes after
 it (the window of a rolling upgrade: the API migrates at startup, so restarting it before the workers opens one)
 keeps application/octet-stream, in its listing and its download, and no later revision retypes it. Restart the
-workers first to leave none; to retype those left, run this revision again once every worker is new (downgrade to
-0015_owner_index_prefix, then upgrade: the downgrade's rows come back with the rest).
+workers first to leave none; to retype those left once every worker is new, run RETYPE_TO_PLY's statement (below)
+by hand: it changes nothing else and may run any number of times. (Not a downgrade and upgrade: a downgrade to
+0015 also undoes every later revision, 0017's scenes.lost_ingest_resends among them, which the running service
+reads.)
 
 Revision ID: 0016_ply_content_type
 Revises: 0015_owner_index_prefix
@@ -23,14 +25,14 @@ branch_labels = None
 depends_on = None
 
 
-def _retype(old: str, new: str) -> None:
-    op.execute(f"UPDATE artifacts SET content_type = '{new}' "
-               f"WHERE content_type = '{old}' AND lower(name) LIKE '%.ply'")
+RETYPE_TO_PLY = ("UPDATE artifacts SET content_type = 'model/ply' "
+                 "WHERE content_type = 'application/octet-stream' AND lower(name) LIKE '%.ply'")
 
 
 def upgrade() -> None:
-    _retype('application/octet-stream', 'model/ply')
+    op.execute(RETYPE_TO_PLY)
 
 
 def downgrade() -> None:
-    _retype('model/ply', 'application/octet-stream')
+    op.execute("UPDATE artifacts SET content_type = 'application/octet-stream' "
+               "WHERE content_type = 'model/ply' AND lower(name) LIKE '%.ply'")
