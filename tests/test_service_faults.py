@@ -273,6 +273,33 @@ def test_reaper_sends_again_a_queued_job_whose_message_the_broker_lost(db):
     assert reap_orphaned_jobs(db) == [] and len(events_of(lost)) == 1  # sent once: it waits again as sent
 
 
+@pytest.mark.parametrize("sent_as", ["lost message", None])
+def test_a_resend_the_broker_refused_is_tried_again_at_the_reapers_next_pass(db, monkeypatch, sent_as):
+    """A re-send of a job (its message taken as lost, or never sent) that the broker refused left the job's time at
+    the claim's: the reaper waited a whole window (6 h by default) before trying again, where a scene's refused
+    ingest re-send is tried at the next pass. The job gets its time back with its task id."""
+    from kombu.exceptions import OperationalError
+
+    from api.reaper import reap_orphaned_jobs
+    from voxe_service.models import utcnow
+    from voxe_service.queue import TaskQueue
+
+    window = db.job_lost_message_timeout_s if sent_as else db.job_stale_timeout_s
+    job = add_job(add_scene(), "queued", 1.01 * window, task_id=sent_as)
+    before = job_row(job).updated_at
+    send = TaskQueue.send
+
+    def refused_once(self, signature):
+        monkeypatch.setattr(TaskQueue, "send", send)
+        raise OperationalError("Connection refused.")
+
+    monkeypatch.setattr(TaskQueue, "send", refused_once)
+    assert reap_orphaned_jobs(db) == []
+    assert (job_row(job).task_id, job_row(job).updated_at, events_of(job)) == (sent_as, before, [])
+    assert reap_orphaned_jobs(db, now=utcnow() + timedelta(minutes=1)) == []  # the broker back: sent
+    assert job_row(job).task_id not in (None, sent_as) and [e["kind"] for e in events_of(job)] == ["requeued"]
+
+
 def test_the_jobs_a_scene_just_made_ready_is_sending_are_left_to_its_ingest_for_a_stale_window(db):
     """A job created on a processing scene waits for its ingest, which sends it once the scene is ready. One created
     longer than VOXE_JOB_STALE_TIMEOUT_S ago (a long ingest) looked never sent to a reaper pass between the scene's

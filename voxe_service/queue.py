@@ -229,15 +229,16 @@ def send_queued_again(session: Session, queue: TaskQueue, job_id: str, *, sent_a
     row changed since it was read.
 
     A broker that refuses raises :class:`QueueUnavailable`, nothing on the timeline (a refused re-send counted as one
-    had doubled the reaper's next wait: ``api.reaper``), the job given its task id ``sent_as`` back unless another
-    sender changed it meanwhile: left as it was, for a later try (with no task id, a sweep's evaluation would be
+    had doubled the reaper's next wait: ``api.reaper``), the job given its task id ``sent_as`` and its time back
+    (the reaper's next pass tries again) unless another sender changed it meanwhile: left as it was, for a later try (with no task id, a sweep's evaluation would be
     failed by the reaper as never sent with its edit). A sender that stops after the broker took the chain, before
     recording it, leaves the job with no task id, which the reaper sends again. A job canceled (or deleted) just
     after the claim is not sent: False."""
     claimed_at = utcnow()
+    seen_at = session.scalar(select(Job.updated_at).where(Job.id == job_id))
     claimed = session.execute(update(Job).where(  # task_id NULL until the new chain is handed over
         Job.id == job_id, Job.state == QUEUED, Job.task_id.is_(None) if sent_as is None else Job.task_id == sent_as,
-        *where).values(task_id=None, updated_at=claimed_at))
+        Job.updated_at == seen_at, *where).values(task_id=None, updated_at=claimed_at))
     if claimed.rowcount != 1:
         return False
     session.commit()
@@ -247,11 +248,10 @@ def send_queued_again(session: Session, queue: TaskQueue, job_id: str, *, sent_a
     try:
         dispatch_job(session, queue, job, done=job.completed_stages or [], message=message, fail_refused=False,
                      requeued=reason)
-    except QueueUnavailable:
-        if sent_as is not None:
-            session.execute(update(Job).where(Job.id == job_id, Job.task_id.is_(None), Job.updated_at == claimed_at)
-                            .values(task_id=sent_as))
-            session.commit()
+    except QueueUnavailable:  # as it was (its time too, so the next pass tries again, as a scene's ingest is)
+        session.execute(update(Job).where(Job.id == job_id, Job.task_id.is_(None), Job.updated_at == claimed_at)
+                        .values(task_id=sent_as, updated_at=seen_at))
+        session.commit()
         raise
     return True
 
