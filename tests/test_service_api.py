@@ -2639,6 +2639,24 @@ def test_reconstruction_iterations_that_fit_no_stage_count_are_a_422(client, dat
     assert reconstruction_rows(scene["id"]) == []  # nothing half made (the listing would hide an unused row)
 
 
+def test_a_scene_backbone_fit_of_a_single_image_is_a_422_at_submission(client, dataset, root):
+    """max_images 1 leaves the scene backbone one camera, which orbits no centre: the job had been accepted and its
+    fit failed in the worker once the images were loaded. An object fit of one image, or a scene fit of two, runs."""
+    scene = make_scene(client, dataset, root)
+
+    def submit(backbone: str, max_images: int):
+        params = {"max_images": max_images, "reconstruction": {"backbone": backbone}}
+        return client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB, "params": params})
+
+    refused = submit("scene", 1)
+    assert refused.status_code == 422, refused.text
+    assert refused.json()["detail"].startswith("params.reconstruction: max_images 1 keeps a single image, whose one "
+                                               "camera has no centre to orbit")
+    assert reconstruction_rows(scene["id"]) == []
+    assert submit("scene", 2).status_code == 201
+    assert submit("relu_field", 1).status_code == 201
+
+
 def _opaque_copy(dataset: Path, dest: Path) -> Path:
     """``dataset`` with its images flattened onto white, saved without alpha: photos, as a capture's are."""
     from PIL import Image

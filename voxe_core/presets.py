@@ -233,11 +233,21 @@ def check_fit(rec_params: dict, scene_backbone: str | None) -> None:
         return
     try:
         reconstruct_config(rec_params, backbone=backbone)
+        _check_views_kept(rec_params, backbone)
     except ValueError as exc:
         if rec_params.get("backbone", "auto") != "auto":
             raise
         raise ValueError(f"{exc}: backbone 'auto' is {backbone!r} for this scene "
                          f"({BACKBONE_REASONS[backbone]})") from None
+
+
+def _check_views_kept(rec_params: dict, backbone: str) -> None:
+    """ValueError for a scene-backbone fit of one image: its frame is the centre the cameras orbit, which one camera
+    has none of (``scene_frame``); the worker had found it only once it had loaded the images, after the job was
+    accepted."""
+    if backbone == "scene" and rec_params.get("max_images") == 1:
+        raise ValueError("max_images 1 keeps a single image, whose one camera has no centre to orbit: the scene "
+                         "backbone needs views from around the object (raise max_images, or leave it out)")
 
 
 def fit_setup(rec_params: dict, alphas: "torch.Tensor | None", cameras: "Cameras",
