@@ -2657,6 +2657,37 @@ def test_a_scene_backbone_fit_of_a_single_image_is_a_422_at_submission(client, d
     assert submit("relu_field", 1).status_code == 201
 
 
+def test_fid_input_against_a_single_input_image_is_a_422_at_submission(client, dataset, root):
+    """FID_input compares the ring with the edits' fit's input images, and FID needs two: an evaluation of edits
+    fitted from max_images 1 had been accepted and failed in the worker (a sweep's, after each edit had run)."""
+    from sqlalchemy import update
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+
+    scene = make_scene(client, dataset, root)
+    one_image = {"max_images": 1}
+    sweep = client.post("/v1/sweeps", json={"scenes": [{"scene_id": scene["id"], "object": "mic"}],
+                                            "params": one_image})
+    assert sweep.status_code == 422, sweep.text
+    assert sweep.json()["detail"] == ("evaluation.fid_input needs at least 2 input images to compare the ring with "
+                                      "(FID), but params.max_images 1 keeps 1: set evaluation.fid_input false, or "
+                                      "fit from more images")
+    assert client.get("/v1/jobs").json()["total"] == 0 and reconstruction_rows(scene["id"]) == []
+
+    edit = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB, "params": one_image}).json()
+    with session_scope() as session:
+        session.execute(update(Job).where(Job.id == edit["id"]).values(state="succeeded"))
+    evaluation = {"job_ids": [edit["id"]], "object": "mic"}
+    refused = client.post("/v1/evaluations", json=evaluation)
+    assert refused.status_code == 422, refused.text
+    assert refused.json()["detail"].startswith("params.fid_input needs at least 2 input images")
+    assert client.post("/v1/evaluations", json={**evaluation, "params": {"fid_input": False}}).status_code == 201
+    two = client.post("/v1/sweeps", json={"scenes": [{"scene_id": scene["id"], "object": "mic"}],
+                                          "params": {"max_images": 2}})
+    assert two.status_code == 201, two.text
+
+
 def _opaque_copy(dataset: Path, dest: Path) -> Path:
     """``dataset`` with its images flattened onto white, saved without alpha: photos, as a capture's are."""
     from PIL import Image

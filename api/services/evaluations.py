@@ -19,7 +19,7 @@ from api.services.jobs import (
 from voxe_core.evaluate import paper_protocol
 from voxe_core.guidance.prompts import check_prompt_length
 from voxe_service.models import (
-    CANCELED, EVALUATE, FAILED, QUEUED, RUNNING, SUCCEEDED, TERMINAL_STATES, ApiKey, Job, new_id,
+    CANCELED, EVALUATE, FAILED, QUEUED, RUNNING, SUCCEEDED, TERMINAL_STATES, ApiKey, Job, Reconstruction, Scene, new_id,
 )
 from voxe_service.queue import QueueUnavailable, TaskQueue
 from voxe_service.settings import Settings
@@ -37,6 +37,20 @@ def new_evaluation_job(key: ApiKey, settings: Settings, sources: list[Job], obje
         sds_model="", attention_model="", device=settings.device, state=QUEUED,
         source_job_ids=[s.id for s in sources], batch_id=batch_id,
     )
+
+
+def refuse_fid_input_of_one_image(params: EvaluationParams, scene: Scene, max_images: int | None,
+                                  field: str) -> None:
+    """422 naming ``field`` (the request's fid_input) for FID_input against fewer than 2 input images (the edits'
+    fit's: the scene's training images, the first ``max_images``): FID compares two sets' statistics, and the
+    evaluation had been accepted and failed in the worker, a sweep's after each edit it follows had run."""
+    kept = scene.image_count if max_images is None else min(max_images, scene.image_count)
+    if params.fid_input and kept < 2:
+        why = (f"params.max_images {max_images} keeps {kept}" if max_images is not None and max_images < 2
+               else f"scene {scene.id!r} has {kept}")
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                            f"{field} needs at least 2 input images to compare the ring with (FID), but {why}: set "
+                            f"{field} false, or fit from more images")
 
 
 def create_evaluation(*, session: Session, settings: Settings, queue: TaskQueue, key: ApiKey,
@@ -61,6 +75,9 @@ def create_evaluation(*, session: Session, settings: Settings, queue: TaskQueue,
     if len({s.reconstruction_id for s in sources}) > 1:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "the jobs edit different reconstructions of the "
                                                                   "scene (reconstruction parameters differ)")
+    rec = session.get(Reconstruction, sources[0].reconstruction_id)
+    refuse_fid_input_of_one_image(body.params, session.get(Scene, sources[0].scene_id), rec.params.get("max_images"),
+                                  "params.fid_input")
     job = new_evaluation_job(key, settings, sources, body.object, body.params)
     return submit(session=session, settings=settings, queue=queue, key=key, job=job, idem=idem)
 
@@ -82,6 +99,8 @@ def create_sweep(*, session: Session, settings: Settings, queue: TaskQueue, key:
             return replayed.batch_id, True
     params = body.params.model_dump(mode="json")
     scenes = [usable_scene(session=session, key=key, scene_id=s.scene_id, params=params) for s in body.scenes]
+    for scene in scenes:
+        refuse_fid_input_of_one_image(body.evaluation, scene, body.params.max_images, "evaluation.fid_input")
     for index, entry in enumerate(body.scenes):  # as JobCreate will check each edit, before any row is made
         for edit in paper_protocol(entry.object):
             try:
