@@ -170,7 +170,9 @@ class JobParams(Strict):
     resample: Literal["bilinear", "box"] = Field(
         presets.RESAMPLE, description="the downsampling's antialiasing filter (bilinear: as the authors' loader)"
     )
-    max_images: int | None = Field(None, ge=1, le=100_000, description="use only the first N training images")
+    max_images: int | None = Field(None, ge=1, le=100_000, description=(
+        "use only the first N training images; 1 is a 422 for a scene-backbone fit (one camera orbits no centre) and "
+        "for a sweep's evaluation with fid_input (FID compares at least 2)"))
     # editing (SPEC §2)
     iterations: int = Field(
         paper.EDIT_ITERATIONS, ge=0, le=200_000,
@@ -297,7 +299,8 @@ class EvaluationParams(Strict):
     elevation: float = Field(paper.EVALUATION_RING_ELEVATION, gt=-90, lt=90,
                              description="ring elevation above the horizon, degrees")
     size: int = Field(paper.EVALUATION_RING_SIZE, ge=11, le=1024, description="ring render size in pixels")
-    fid_input: bool = Field(True, description="also FID against the scene's input images (FID_input)")
+    fid_input: bool = Field(True, description="also FID against the scene's input images (FID_input): a 422 where "
+                            "the edits were fitted from fewer than 2 (params.max_images, or the scene's images)")
     save_renders: bool = Field(True, description="publish the ring renders as PNG artifacts")
 
 

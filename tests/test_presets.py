@@ -137,6 +137,117 @@ def test_export_parameters_are_the_export_config():
     assert (turntable.frames, turntable.size, turntable.elevation, turntable.fps) == (100, 256, 30.0, 30.0)
 
 
+# ------------------------------------------------------------------ what submission accepts, the stages take
+def _limit_cases() -> list[tuple[str, object]]:
+    """(dotted field, value) at each numeric bound JobParams' JSON schema states, and just past it (the next integer,
+    or the next float), for every field of the parameters and their reconstruction, refine and export sections."""
+    import math
+
+    definitions = JobParams.model_json_schema()["$defs"]
+    sections = {"": JobParams.model_json_schema(), "reconstruction.": definitions["ReconstructionParams"],
+                "refine.": definitions["RefineParams"], "export.": definitions["ExportParams"]}
+    cases = []
+    for prefix, schema in sections.items():
+        for name, field in schema["properties"].items():
+            for option in field.get("anyOf", [field]):
+                if option.get("type") not in ("integer", "number"):
+                    continue
+                step = (lambda v, d: v + d) if option["type"] == "integer" else (
+                    lambda v, d: math.nextafter(v, d * math.inf))
+                for key, inward in (("minimum", 1), ("exclusiveMinimum", 1), ("maximum", -1), ("exclusiveMaximum", -1)):
+                    if key in option:
+                        at = option[key] if "exclusive" not in key else step(option[key], inward)
+                        cases += [(prefix + name, at), (prefix + name, step(at, -inward))]
+    return cases
+
+
+def _params(dotted: str, value, **more) -> dict:
+    section, _, name = dotted.rpartition(".")
+    given = {name: value} if not section else {section: {name: value}}
+    for key, extra in more.items():
+        given[key] = {**given.get(key, {}), **extra} if isinstance(extra, dict) else extra
+    return given
+
+
+# Combinations of limits: a preset and its overrides, the refinement's start and fitting, the render size the
+# back-projection's stride reads, iteration counts and preview intervals, the slowest and fastest videos, seeds.
+COMBINATIONS = [
+    *({"reconstruction": {"preset": preset, "resolution": resolution, "iterations": iterations}}
+      for preset in ("fast", "paper", "scene") for resolution in (4, 512) for iterations in (0, 1_000_000)),
+    {"reconstruction": {"preset": "paper", "iterations": [0, 1, 2, 1_000_000]}},
+    {"reconstruction": {"iterations": [1, 2]}}, {"reconstruction": {"iterations": [1, 2, 3]}},
+    {"render_size": 8, "mode": "local"}, {"render_size": 8, "refine": {"render_size": 8, "smoothing_sigma": 16}},
+    {"refine": {"lift_start": "constant", "iterations": 0}}, {"refine": {"lift_start": "constant", "iterations": 1}},
+    {"iterations": 0, "preview_every": 200_000}, {"iterations": 200_000, "preview_every": 1},
+    {"export": {"fps": 100 / 65535, "turntable_frames": 1000}}, {"export": {"fps": 120, "turntable_frames": 1}},
+    {"seed": 2**32 - 1, "reconstruction": {"seed": 2**32 - 1}}, {"seed": 2**32},
+    *({"max_images": count, "reconstruction": {"backbone": backbone}}
+      for count in (1, 2) for backbone in ("relu_field", "scene")),
+]
+
+
+def _submitted(params: dict, scene_backbone: str) -> bool:
+    """Whether POST /v1/jobs takes ``params`` on a ready scene of ``scene_backbone``: the body's validation, then
+    the reconstruction's check against the scene (``api.services.jobs.usable_scene``)."""
+    from pydantic import ValidationError
+
+    from api.schemas import JobCreate
+    from voxe_core.presets import check_fit
+
+    mode = params.pop("mode", "global")
+    words = ["hat"] if mode == "local" else []
+    try:
+        body = JobCreate(scene_id="s", prompt="a mic wearing a hat", mode=mode, edit_words=words, params=params)
+        check_fit(reconstruction_params(body.params.model_dump(mode="json")), scene_backbone)
+    except (ValidationError, ValueError):
+        return False
+    return True
+
+
+def _every_stage_builds(params: dict, scene_backbone: str) -> None:
+    """What the worker builds from a job's parameters, each stage's config (the fit's backbone set up for cameras
+    on a ring, as many as max_images keeps) and the export's videos, cameras and rings; raises what it would."""
+    from voxe_core.backbones import prepare_backbone
+    from voxe_core.export import VideoWriter, turntable_cameras
+    from voxe_core.presets import fit_backbone
+
+    params = JobParams.model_validate(params).model_dump(mode="json")
+    rec_params = reconstruction_params(params)
+    backbone = fit_backbone(rec_params, scene_backbone)
+    config = reconstruct_config(rec_params, 1, backbone)
+    prepare_backbone(backbone, None, turntable_cameras(min(params["max_images"] or 4, 4), 30.0, 8),
+                     config.resolutions[0])
+    edit_config(params, backbone, checkpoint_every=1)
+    refine_config(params, ATTENTION_MODEL_ID)
+    export = export_config(params)
+    for suffix in ("mp4", "gif"):
+        VideoWriter(f"turntable.{suffix}", export.turntable_frames, export.fps)
+    turntable_cameras(export.turntable_frames, export.elevation, export.turntable_size)
+    if export.views:
+        turntable_cameras(export.views, export.elevation, export.view_size)
+
+
+@pytest.mark.parametrize("scene_backbone", ["relu_field", "scene"])
+def test_parameters_at_and_past_each_limit_are_refused_at_submission_or_build_every_stage(scene_backbone):
+    """A job the API accepts must not fail in the worker for its parameters (after its fit, its edit...): each
+    value at and just past a bound the schema states, and the combinations above, is either refused at submission
+    or builds every stage the worker runs."""
+    cases = [_params(dotted, value) for dotted, value in _limit_cases()] + COMBINATIONS
+    assert len(cases) > 150  # every section's bounds were found
+    accepted = 0
+    for given in cases:
+        given = {k: (dict(v) if isinstance(v, dict) else v) for k, v in given.items()}
+        if not _submitted(dict(given), scene_backbone):
+            continue
+        given.pop("mode", None)
+        try:
+            _every_stage_builds(given, scene_backbone)
+        except ValueError as exc:
+            pytest.fail(f"accepted at submission on a {scene_backbone} scene, refused by the worker: {given}: {exc}")
+        accepted += 1
+    assert accepted > len(cases) / 2  # the property was not met by refusing everything
+
+
 # ------------------------------------------------------------------ SPEC §5 for real scenes
 def test_a_scene_backbone_gets_the_real_scene_schedule_and_objects_keep_the_papers():
     objects, scene = edit_config(service_json({})), edit_config(service_json({}), backbone="scene")
