@@ -138,15 +138,6 @@ class RefineParams(Strict):
     sigma: float = Field(paper.CUT_SIGMA, gt=0, le=1e6, description="colour scale of the pairwise weights")
     smoothness: float = Field(paper.CUT_SMOOTHNESS, ge=0, le=1e6, description="graph-cut smoothness weight λ")
 
-    @model_validator(mode="after")
-    def _constant_start_is_fitted(self):
-        # At submission: the worker's RefineConfig refuses it too, but only once the job's edit has run.
-        if self.lift_start == "constant" and self.iterations == 0:
-            raise ValueError("refine.lift_start 'constant' needs iterations > 0 (the paper: "
-                             f"{paper.REFINE_ITERATIONS}): unfitted, both attention grids stay at their start and the "
-                             "graph cut has no seeds")
-        return self
-
 
 class ExportParams(Strict):
     """What the export stage writes (``voxe_core.presets.ExportConfig``)."""
@@ -198,6 +189,13 @@ class JobParams(Strict):
     reconstruction: ReconstructionParams = Field(default_factory=ReconstructionParams)
     refine: RefineParams = Field(default_factory=RefineParams)
     export: ExportParams = Field(default_factory=ExportParams)
+
+    @model_validator(mode="after")
+    def _stages_take_them(self):
+        # Each stage's config built as the worker will (a rule the bounds above miss had failed the job after its
+        # fit); the reconstruction's is checked against the scene (api.services.jobs.usable_scene).
+        presets.check_stages(self.model_dump(mode="json"))
+        return self
 
 
 def clean_text(value: str, what: str, need_words: bool = True) -> str:

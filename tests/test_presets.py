@@ -248,6 +248,31 @@ def test_parameters_at_and_past_each_limit_are_refused_at_submission_or_build_ev
     assert accepted > len(cases) / 2  # the property was not met by refusing everything
 
 
+def test_a_stage_configs_rule_no_bound_states_is_refused_at_submission(monkeypatch):
+    """Submission builds each stage's config as the worker will (``voxe_core.presets.check_stages``): a rule of
+    EditConfig's that no bound of the job parameters states (made up here: a render size in multiples of 8) is a
+    422 naming the stage, as RefineConfig's constant start without fitting is, rather than a job failing after its
+    fit."""
+    from pydantic import ValidationError
+
+    from api.schemas import JobCreate
+    from voxe_core.edit import EditConfig
+
+    with pytest.raises(ValidationError, match="refine: lift_start='constant' with no fitting iterations"):
+        JobParams.model_validate({"refine": {"lift_start": "constant", "iterations": 0}})
+    real = EditConfig.__post_init__
+
+    def stricter(self):
+        real(self)
+        if self.render_size % 8:
+            raise ValueError(f"render_size must be a multiple of 8, got {self.render_size}")
+
+    monkeypatch.setattr(EditConfig, "__post_init__", stricter)
+    with pytest.raises(ValidationError, match="edit: render_size must be a multiple of 8, got 100"):
+        JobCreate(scene_id="s", prompt="a mic", params={"render_size": 100})
+    assert JobCreate(scene_id="s", prompt="a mic", params={"render_size": 96}).params.render_size == 96
+
+
 # ------------------------------------------------------------------ SPEC §5 for real scenes
 def test_a_scene_backbone_gets_the_real_scene_schedule_and_objects_keep_the_papers():
     objects, scene = edit_config(service_json({})), edit_config(service_json({}), backbone="scene")

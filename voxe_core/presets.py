@@ -389,6 +389,20 @@ def export_config(params: dict) -> ExportConfig:
     return ExportConfig(**{k: v for k, v in export.items() if v is not None})
 
 
+def check_stages(params: dict) -> None:
+    """ValueError, naming the stage, for job parameters a stage's config refuses: the edit's on either backbone G_i
+    may be, the refinement's, the export's videos. The service calls it on submission, so a rule of a config that
+    the job parameters' bounds do not state is a 422 there, not a job failing after its fit."""
+    stages = [*(("edit", lambda kind=kind: edit_config(params, kind)) for kind in BACKBONE_KINDS),
+              ("refine", lambda: refine_config(params, paper.ATTENTION_MODEL_ID)),
+              ("export", lambda: check_video_fps(export_config(params).fps))]
+    for stage, build in stages:
+        try:
+            build()
+        except ValueError as exc:
+            raise ValueError(f"{stage}: {exc}") from None
+
+
 def _given(params: dict, key: str, default):
     """``params[key]`` unless it is missing or None."""
     value = params.get(key)
