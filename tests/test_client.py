@@ -347,7 +347,8 @@ def test_wait_with_a_timeout_gives_up_then_naming_the_job_and_its_last_state(mon
 def test_wait_with_a_timeout_cuts_a_retry_after_at_it(monkeypatch):
     """A stream lost and its reconnect answered 503 + Retry-After: 30 (a proxy while the API restarts) had been
     waited out ``retries`` times before the deadline was looked at: ``wait(timeout=5)`` held the caller 91 s. The
-    wait is cut at the deadline, and the timeout is said then."""
+    wait is cut at the deadline, and the timeout is said then, the stream not opened again there: a first opening
+    answered so had been sent again at the deadline, sooner than asked, and its 503 said instead of the timeout."""
     import voxe_client.client as client_module
     from voxe_client import JobWaitTimeout
 
@@ -370,7 +371,11 @@ def test_wait_with_a_timeout_cuts_a_retry_after_at_it(monkeypatch):
     with Client(transport=httpx.MockTransport(answer), retries=3) as client:
         with pytest.raises(JobWaitTimeout, match=r"^job j1 did not end within 5 s \(last heard running\)"):
             client.wait("j1", timeout=5)
-    assert clock[0] == 5.0 and sent == [0.0, 1.5, 5.0]  # reconnected after a 0.5 s pause, the 30 s cut to 3.5
+        assert clock[0] == 5.0 and sent == [0.0, 1.5]  # reconnected after a 0.5 s pause, the 30 s cut to 3.5
+        clock[0], sent[:] = 0.0, [None]  # (counted as one sending: every opening is answered 503 + Retry-After: 30)
+        with pytest.raises(JobWaitTimeout, match=r"^job j1 did not end within 5 s \(no progress heard"):
+            list(client.events("j1", timeout=5))
+        assert clock[0] == 5.0 and sent == [None, 0.0]
 
 
 def test_wait_with_no_time_left_looks_at_the_job_once(monkeypatch):

@@ -200,7 +200,8 @@ class Client:
         a read whose connection dropped before its answer (unless not ``resend_dropped``: a caller that goes on from
         where it stopped), a ``resendable`` one whose answer was lost; with ``stream`` its body is left unread (close
         it). No wait goes past ``deadline`` (a ``time.monotonic()``; a caller's timeout: three Retry-After waits had
-        held a ``wait(timeout=5)`` for 90 s): it is cut there, and the answer or loss at it stands.
+        held a ``wait(timeout=5)`` for 90 s): one that would is cut there (:func:`_ends_before`), and the answer or
+        loss at hand stands, not sent again at it.
 
         Each sending builds the request anew, which reads an upload's files again from their start (httpx rewinds
         them): a retried upload sends the same bytes, which the service's Idempotency-Key check compares."""
@@ -210,17 +211,15 @@ class Client:
             try:
                 response = self._http.send(self._http.build_request(method, path, **kwargs), stream=stream)
             except lost:
-                left = math.inf if deadline is None else deadline - time.monotonic()
-                if attempt == self.retries or left <= 0:
-                    raise
                 wait = _backoff(attempt)
+                if attempt == self.retries or not _ends_before(wait, deadline):
+                    raise
             else:
                 wait = _resend_wait(response, attempt, resendable) if read or resendable else None
-                left = math.inf if deadline is None else deadline - time.monotonic()
-                if wait is None or attempt == self.retries or left <= 0:
+                if wait is None or attempt == self.retries or not _ends_before(wait, deadline):
                     return response
                 response.close()
-            time.sleep(min(wait, left))
+            time.sleep(wait)
 
     # ------------------------------------------------------------------ scenes and jobs
     def upload_scene(self, path: str | os.PathLike, name: str | None = None,
@@ -320,6 +319,8 @@ class Client:
                                         timeout=httpx.Timeout(min(30.0, limit), read=silence))) as response:
                     if response.is_error:
                         response.read()
+                        if _resend_wait(response, attempts, False) is not None:
+                            left()  # a wait for it cut at the deadline: the timeout, not the answer it stood on
                         if not opened or response.status_code not in PROXY_UNAVAILABLE:
                             _raise_for_error(response, "GET", path)
                         lost = f"HTTP {response.status_code} {response.reason_phrase}"
@@ -724,6 +725,18 @@ def _backoff(attempt: int) -> float:
     """Seconds to wait before sending again a request whose ``attempt``-th sending (from 0) was lost, where the
     service said nothing of when: doubling from 0.5 s, at most ``MAX_RECONNECT_PAUSE_S``, as the event stream's."""
     return min(MAX_RECONNECT_PAUSE_S, 0.5 * 2.0 ** min(attempt, 10))  # (2 ** 1024 overflows a float)
+
+
+def _ends_before(wait: float, deadline: float | None) -> bool:
+    """Whether a ``wait`` of seconds before sending a request again ends before ``deadline`` (a ``time.monotonic()``;
+    None: none), with time left to send it; if not, the wait is slept up to the deadline only, where the caller's
+    time is up: the request is not sent again there (it had been, sooner than its ``Retry-After`` asked, and a
+    ``wait(timeout=5)`` had said the service's 503 to that early retry rather than its timeout)."""
+    left = math.inf if deadline is None else deadline - time.monotonic()
+    if wait < left:
+        return True
+    time.sleep(max(0.0, left))
+    return False
 
 
 def _resend_wait(response: httpx.Response, attempt: int, keyed: bool) -> float | None:
