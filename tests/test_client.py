@@ -381,13 +381,15 @@ def test_wait_with_a_timeout_cuts_a_retry_after_at_it(monkeypatch):
 def test_wait_with_no_time_left_looks_at_the_job_once(monkeypatch):
     """``wait(job, timeout=0)`` had raised JobWaitTimeout "did not end" on a job long succeeded, asking nothing: a
     wait that ran out before the stream said where the job stood looks at it once, and returns it if it has ended;
-    one not ended, or a look that fails, is the timeout."""
+    one not ended, or a look that fails, is the timeout. The look lasts at most LOOK_AT_JOB_S (5 s): under the
+    client's own timeout (60 s), ``wait(timeout=1)`` against a hung service had taken 61 s."""
     from voxe_client import JobWaitTimeout
 
-    states, sent = {"done": "succeeded", "busy": "running"}, []
+    states, sent, limits = {"done": "succeeded", "busy": "running"}, [], []
 
     def answer(request: httpx.Request) -> httpx.Response:
         sent.append(request.url.path)
+        limits.append(set(request.extensions["timeout"].values()))
         job = request.url.path.rsplit("/", 1)[-1]
         if job not in states:
             return httpx.Response(503, json={"detail": "down"})
@@ -401,6 +403,9 @@ def test_wait_with_no_time_left_looks_at_the_job_once(monkeypatch):
             with pytest.raises(JobWaitTimeout, match=rf"^job {job} did not end within 0 s"):
                 client.wait(job, timeout=0)
             assert sent == [f"/v1/jobs/{job}"]
+    assert limits == [{5.0}] * 3
+    with Client(transport=httpx.MockTransport(answer), timeout=httpx.Timeout(2.0, connect=None)) as client:
+        assert client.wait("done", timeout=0)["state"] == "succeeded" and limits[-1] == {2.0, 5.0}
 
 
 def test_wait_with_a_timeout_is_not_held_past_it_by_a_silent_stream():

@@ -37,6 +37,9 @@ STREAM_SILENCE_S = 60.0
 """How long an open event stream may deliver nothing before it counts as lost and is resumed: the service sends a
 keepalive comment every 15 s, so a connection silent this long is dead (a NAT's or a Wi-Fi's drop sends no reset; with
 no read timeout, :meth:`Client.wait` had waited on it for good)."""
+LOOK_AT_JOB_S = 5.0
+"""How long the one look at a job that :meth:`Client.wait` takes once its timeout ran out may last (at most the
+client's timeout): under the client's own, against a hung service, ``wait(timeout=1)`` had taken 61 s."""
 PROXY_UNAVAILABLE = (502, 503, 504)
 """What a proxy in front of the API answers while the API restarts: a lost stream, not the service's refusal."""
 IDEMPOTENCY_HEADER = "Idempotency-Key"
@@ -368,7 +371,8 @@ class Client:
         ``timeout`` (seconds; none by default) bounds the whole wait, reconnects and ``Retry-After`` waits included:
         past it, a :class:`JobWaitTimeout` names the job and the state it was last heard in (it had waited for good on
         a job stuck queued or running). One that ran out before the stream said where the job stood (``timeout=0``)
-        looks at the job once first: one ended is returned (it had been a JobWaitTimeout, nothing asked)."""
+        looks at the job once first, for at most :data:`LOOK_AT_JOB_S` more: one ended is returned (it had been a
+        JobWaitTimeout, nothing asked)."""
         deadline = None if timeout is None else time.monotonic() + timeout
         path = f"/v1/jobs/{_segment(job_id)}"
         try:
@@ -381,7 +385,9 @@ class Client:
             if timed_out.progress is not None:  # the stream said where it stood, and that it had not ended
                 raise
             try:
-                job = self.request("GET", path, deadline=deadline)
+                job = self.request("GET", path, deadline=deadline, timeout=httpx.Timeout(**{
+                    part: LOOK_AT_JOB_S if limit is None else min(LOOK_AT_JOB_S, limit)
+                    for part, limit in self._http.timeout.as_dict().items()}))
             except ServiceError:  # (the service gone: the timeout says where the job stood)
                 raise timed_out from None
             if job.get("state") not in TERMINAL_STATES:
