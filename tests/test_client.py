@@ -973,6 +973,31 @@ def test_a_second_download_of_it_at_once_is_refused_and_the_part_file_itself_is_
     assert dest.read_bytes() == b"earlier" and sorted(p.name for p in tmp_path.iterdir()) == ["a.bin"]
 
 
+@pytest.mark.parametrize("refused", ["ENOLCK", "EOPNOTSUPP", "ENOSYS"])
+def test_a_download_into_a_folder_that_takes_no_locks_goes_on_unlocked(refused, tmp_path, monkeypatch):
+    """A folder whose file system refuses ``flock`` (NFSv3 without lockd: ENOLCK; some SMB or FUSE mounts:
+    EOPNOTSUPP, ENOSYS) had failed every download with that OSError, an empty part file left behind: the download
+    goes on unlocked, and one that fails before a byte came leaves no part either."""
+    import errno
+    import os
+
+    import voxe_client.client as client_module
+
+    def flock(file, operation):
+        raise OSError(getattr(errno, refused), os.strerror(getattr(errno, refused)))
+
+    monkeypatch.setattr(client_module.fcntl, "flock", flock)
+    data = bytes(range(256)) * 40
+    with Client(transport=httpx.MockTransport(_serving(data))) as client:
+        assert client.download("j1", "a.bin", tmp_path / "a.bin").read_bytes() == data
+    assert [p.name for p in tmp_path.iterdir()] == ["a.bin"]
+    down = httpx.Response(503, json={"detail": "down"})
+    with Client(transport=httpx.MockTransport(_serving(data, refuse=lambda request: down))) as client:
+        with pytest.raises(ServiceError, match="HTTP 503: down"):
+            client.download("j1", "a.bin", tmp_path / "b.bin")
+    assert [p.name for p in tmp_path.iterdir()] == ["a.bin"]
+
+
 def test_an_artifact_with_a_long_name_downloads_through_a_part_file_of_a_name_that_fits(tmp_path):
     """The part file's name adds 23 characters to the artifact's: one of 240 (names go up to 255 bytes) failed with
     "File name too long". A part's name is at most 255 bytes, and a download broken off goes on from it."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import email.utils
+import errno
 import fcntl
 import hashlib
 import itertools
@@ -639,15 +640,25 @@ def _part_file(dest: Path, sha256: str) -> Path:
     return dest.with_name(f"{_part_stem(dest)}.{sha256[:16]}.part")
 
 
+LOCKS_REFUSED = {errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOTSUP, errno.ENOSYS}
+"""What ``flock`` fails with in a folder whose file system takes no locks (NFSv3 without lockd, some SMB or FUSE
+mounts): a download there goes on unlocked, the part file's own size and SHA-256 check its backstop."""
+
+
 @contextmanager
 def _locked_part(partial: Path, what: str) -> Iterator[BinaryIO]:
     """``partial`` open to append and read, locked (``flock``) for this download alone: two at once (two ``voxe
     download`` runs into one folder) had interleaved their bytes in it, the first to end renaming that mix over the
     target. Another is an OSError naming it, its part left alone, as is a part another download renamed as this one
-    opened it."""
+    opened it. Where the file system takes no locks (:data:`LOCKS_REFUSED`) it is not locked (the download had
+    failed there, leaving an empty part)."""
     with open(partial, "a+b") as out:
         try:
-            fcntl.flock(out, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            try:
+                fcntl.flock(out, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as exc:
+                if exc.errno not in LOCKS_REFUSED:
+                    raise
             ours = os.path.samestat(os.fstat(out.fileno()), os.stat(partial))
         except (BlockingIOError, FileNotFoundError):
             ours = False
