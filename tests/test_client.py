@@ -912,11 +912,14 @@ def _serving(data: bytes, name: str = "a.bin", refuse=lambda request: None):
     return answer
 
 
-def test_a_416_to_a_kept_part_fetches_it_whole_and_an_error_names_the_part_kept(tmp_path):
+def test_a_416_to_a_kept_part_fetches_it_whole_and_an_error_names_the_part_kept(tmp_path, monkeypatch):
     """A 416 to a kept part's Range (bytes no head of the artifact) had failed the download and left the part, so
-    every later call was answered 416 again: the part goes and the artifact is fetched whole. An error answered
-    while going on from a part says where its bytes are kept (it had not)."""
+    every later call was answered 416 again: the part goes and the artifact is fetched whole, once: a 416 to bytes
+    the call fetched itself is the error (a whole fetch broken off mid-way every time had been started over for
+    good). An error answered while going on from a part says where its bytes are kept (it had not)."""
     import hashlib
+
+    import voxe_client.client as client_module
 
     data = bytes(range(256)) * 40
     part = tmp_path / f".a.bin.{hashlib.sha256(data).hexdigest()[:16]}.part"
@@ -935,6 +938,18 @@ def test_a_416_to_a_kept_part_fetches_it_whole_and_an_error_names_the_part_kept(
                                                r"next download of it to go on from\)$") as refused:
             client.download("j1", "a.bin", tmp_path / "a.bin")
     assert refused.value.status == 404 and part.read_bytes() == data[:5000]
+
+    def cut(request: httpx.Request) -> httpx.Response:  # every whole fetch broken off mid-way
+        if len(answer.asked) > 10:
+            pytest.fail(f"still asking after {answer.asked[:4]}")
+        return unsatisfiable if "range" in request.headers else httpx.Response(200, stream=_CutAt(data, 3000))
+
+    monkeypatch.setattr(client_module.time, "sleep", lambda seconds: None)
+    answer = _serving(data, refuse=cut)
+    with Client(transport=httpx.MockTransport(answer), retries=3) as client:
+        with pytest.raises(ServiceError, match=r"HTTP 416: no range \(3000 of 10240 bytes here, kept in "):
+            client.download("j1", "a.bin", tmp_path / "a.bin")  # had started over for good
+    assert answer.asked == ["bytes=5000-", None, "bytes=3000-"] and part.read_bytes() == data[:3000]
 
 
 def test_a_second_download_of_it_at_once_is_refused_and_the_part_file_itself_is_checked(tmp_path):

@@ -410,8 +410,9 @@ class Client:
         outage had thrown them away), and locked while one call writes it (:func:`_locked_part`); those of its
         earlier versions are deleted. The part file's own bytes are checked, and land under ``dest`` only then: a
         whole one kept (a run stopped before its rename) without a request, one whose check fails having gone on from
-        an earlier call's bytes (not a head of the artifact) fetched whole once more, and a 416 to its Range (no head
-        of it either) fetched whole. A mismatch then is a ServiceError and deletes them.
+        an earlier call's bytes (not a head of the artifact) fetched whole once more, and a 416 to their Range (no head
+        of it either) fetched whole, once (a 416 to bytes this call fetched is the error). A mismatch then is a
+        ServiceError and deletes them.
         """
         if name in ("", ".", "..") or any(c in name for c in "/\\\0"):  # it names a file inside dest's folder only
             raise ServiceError(f"artifact name {name!r} of job {job_id} is not a plain file name; nothing written")
@@ -453,8 +454,11 @@ class Client:
         """Append to ``out`` (the part file, open to append) the artifact at ``path`` from the bytes it holds (none
         or a head of it, the listing ``expected`` says its size), going on where a broken connection stopped (see
         :meth:`download`); whether the bytes it held at the start are kept (not started over: the service sent the
-        whole, or a 416 to their Range said they are no head of it). An error names the bytes kept, and where."""
+        whole, or a 416 to their Range said they are no head of it: once, for bytes an earlier call kept; one to
+        bytes this call fetched is the error, or a whole fetch broken off mid-way every time had been asked again for
+        good). An error names the bytes kept, and where."""
         size, kept, failures = out.seek(0, os.SEEK_END), True, 0
+        earlier = size  # bytes an earlier call kept
         try:
             while size < expected["size"]:
                 had = size
@@ -462,7 +466,8 @@ class Client:
                 try:
                     with closing(self._send("GET", path, stream=True, headers=resume,
                                             resend_dropped=False)) as response:
-                        if response.status_code == httpx.codes.REQUESTED_RANGE_NOT_SATISFIABLE and size:
+                        if response.status_code == httpx.codes.REQUESTED_RANGE_NOT_SATISFIABLE and kept and \
+                                0 < size == earlier:
                             out.truncate(0)  # (kept, every later call had asked the same range again)
                             size, kept = 0, False
                             continue
