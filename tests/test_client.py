@@ -988,6 +988,28 @@ def test_a_second_download_of_it_at_once_is_refused_and_the_part_file_itself_is_
     assert dest.read_bytes() == b"earlier" and sorted(p.name for p in tmp_path.iterdir()) == ["a.bin"]
 
 
+def test_a_zero_byte_download_leaves_the_part_another_download_opened_after_its_rename(tmp_path, monkeypatch):
+    """A zero-byte artifact's download, once its part was renamed over the target, deleted the part file's path as
+    holding nothing to go on from: a second download of it had opened a new part there by then, and lost it."""
+    import hashlib
+    import os
+
+    import voxe_client.client as client_module
+
+    rename = os.replace
+    part = tmp_path / f".e.txt.{hashlib.sha256(b'').hexdigest()[:16]}.part"
+
+    def replace_then_another_opens(source, target):
+        rename(source, target)
+        part.write_bytes(b"")  # a second download's part, opened as the first renamed its own
+
+    monkeypatch.setattr(client_module.os, "replace", replace_then_another_opens)
+    listed = [{"name": "e.txt", "size": 0, "sha256": hashlib.sha256(b"").hexdigest()}]
+    with Client(transport=httpx.MockTransport(lambda request: httpx.Response(200, json=listed))) as client:
+        assert client.download("j1", "e.txt", tmp_path / "e.txt").read_bytes() == b""
+    assert sorted(p.name for p in tmp_path.iterdir()) == [part.name, "e.txt"]
+
+
 @pytest.mark.parametrize("refused", ["ENOLCK", "EOPNOTSUPP", "ENOSYS"])
 def test_a_download_into_a_folder_that_takes_no_locks_goes_on_unlocked(refused, tmp_path, monkeypatch):
     """A folder whose file system refuses ``flock`` (NFSv3 without lockd: ENOLCK; some SMB or FUSE mounts:

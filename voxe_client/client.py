@@ -429,6 +429,7 @@ class Client:
         _drop_other_parts(dest, partial)
         path = f"/v1/jobs/{_segment(job_id)}/artifacts/{_segment(name)}"
         what = f"{name} of job {job_id}"
+        replaced = False
         with _locked_part(partial, what) as out:
             try:
                 earlier = out.seek(0, os.SEEK_END)  # bytes an earlier call kept
@@ -445,8 +446,9 @@ class Client:
                     out.truncate(0)  # the earlier call's bytes were no head of it (a crash's zeroed tail): once, whole
                     earlier = 0
                 os.replace(partial, dest)
+                replaced = True  # a part file there now is another download's (a zero-byte artifact's had deleted it)
             finally:
-                if not out.seek(0, os.SEEK_END):  # nothing to go on from
+                if not replaced and not out.seek(0, os.SEEK_END):  # nothing to go on from
                     partial.unlink(missing_ok=True)
         return dest
 
