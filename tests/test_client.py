@@ -447,19 +447,23 @@ def test_wait_with_a_timeout_is_not_held_past_it_by_a_silent_stream():
 def test_reads_answered_503_with_retry_after_are_sent_again_and_writes_are_not(monkeypatch):
     """A GET (and the event stream) answered 503 + Retry-After waits that long and asks again, at most ``retries``
     times; a POST, which the service may have acted on, a 503 without Retry-After, and one asking longer than
-    MAX_RETRY_WAIT_S (it had been sent again after 30 s, sooner than asked) are errors at once, naming that wait."""
+    MAX_RETRY_WAIT_S (it had been sent again after 30 s, sooner than asked) are errors at once, naming that wait,
+    rounded up (30.4 s had read "30 s, longer than ... 30 s"); a write never sent again does not say it (a cancel's
+    had read "longer than this client waits")."""
     import voxe_client.client as client_module
 
     waits, sent = [], []
     monkeypatch.setattr(client_module.time, "sleep", waits.append)
-    busy = {"GET /v1/jobs/j1": 2, "GET /v1/jobs/j1/events": 1, "GET /v1/jobs/j2": 99, "POST /v1/jobs/j1/cancel": 1}
+    busy = {"GET /v1/jobs/j1": 2, "GET /v1/jobs/j1/events": 1, "GET /v1/jobs/j2": 99, "POST /v1/jobs/j1/cancel": 1,
+            "GET /v1/jobs/j4": 1}
+    asks = {"GET /v1/jobs/j1/events": "120", "POST /v1/jobs/j1/cancel": "120", "GET /v1/jobs/j4": "30.4"}
 
     def answer(request: httpx.Request) -> httpx.Response:
         call = f"{request.method} {request.url.path}"
         sent.append(call)
         if busy.get(call, 0) > 0:
             busy[call] -= 1
-            return httpx.Response(503, headers={"retry-after": "120" if call.endswith("events") else "2"},
+            return httpx.Response(503, headers={"retry-after": asks.get(call, "2")},
                                   json={"detail": "the database is busy"})
         if call == "GET /v1/jobs/j3":
             return httpx.Response(503, json={"detail": "down"})
@@ -481,7 +485,11 @@ def test_reads_answered_503_with_retry_after_are_sent_again_and_writes_are_not(m
         sent.clear()
         with pytest.raises(ServiceError) as refused:
             client.cancel_job("j1")
+        assert str(refused.value) == "POST /v1/jobs/j1/cancel: HTTP 503: the database is busy"
         assert refused.value.status == 503 and sent == ["POST /v1/jobs/j1/cancel"]
+        with pytest.raises(ServiceError, match=r"busy \(the service asks to send it again in 31 s, longer than this "
+                                               r"client waits: 30 s\)$"):
+            client.get_job("j4")
         with pytest.raises(ServiceError) as exhausted:
             client.get_job("j2")
         assert exhausted.value.status == 503 and sent.count("GET /v1/jobs/j2") == 4

@@ -187,7 +187,7 @@ class Client:
                     f"would be done twice): send it again later with {IDEMPOTENCY_HEADER} '{idempotency_key}' (voxe: "
                     "--idempotency-key) for what it made") from None
             raise ServiceUnreachable(f"cannot reach the service at {self.base_url}: {exc}") from None
-        _raise_for_error(response, method, path)
+        _raise_for_error(response, method, path, keyed=idempotency_key is not None)
         if response.status_code == httpx.codes.NO_CONTENT:
             return None
         try:
@@ -783,7 +783,9 @@ def _resend_wait(response: httpx.Response, attempt: int, keyed: bool) -> float |
     return asked if response.status_code == httpx.codes.CONFLICT else None
 
 
-def _raise_for_error(response: httpx.Response, method: str, path: str) -> None:
+def _raise_for_error(response: httpx.Response, method: str, path: str, keyed: bool = False) -> None:
+    """A ServiceError for an error ``response`` to ``method path``: its detail, and for a read or a request carrying
+    an Idempotency-Key (``keyed``; the requests sent again) the ``Retry-After`` longer than this client waits."""
     if response.is_error:
         try:
             detail = response.json().get("detail")
@@ -791,8 +793,8 @@ def _raise_for_error(response: httpx.Response, method: str, path: str) -> None:
             detail = None
         if detail is None:  # not the API's error (a proxy's HTML, or JSON of its own): it had read "HTTP 502: None"
             detail = response.reason_phrase
-        asked = _retry_after(response)
-        later = (f" (the service asks to send it again in {asked:.0f} s, longer than this client waits: "
+        asked = _retry_after(response) if method in SAFE_METHODS or keyed else None
+        later = (f" (the service asks to send it again in {math.ceil(asked)} s, longer than this client waits: "
                  f"{MAX_RETRY_WAIT_S:g} s)" if asked is not None and asked > MAX_RETRY_WAIT_S else "")
         raise ServiceError(f"{method} {path}: HTTP {response.status_code}: {_readable(detail)}{later}",
                            response.status_code, detail)
