@@ -125,11 +125,13 @@ class Client:
     times, and so is one whose connection dropped before its answer (:data:`DROPPED_CONNECTIONS`), after a doubling
     pause. A submission (an upload, a job, a sweep) goes with an ``Idempotency-Key``, one per call, so it too is sent
     again, with the same key, when its answer is lost (a connection refused or dropped, a 502 / 503 / 504), the service
-    is still answering its first sending (409 with ``Retry-After``) or asks it to wait (429 with ``Retry-After``: over a
-    quota that waiting clears; the upload-bytes quota, which only deleting scenes clears, has none): the service answers
-    a retry with what the first sending created, never a second one. A submission not answered within ``timeout`` is not
-    (the service may still be working on it): the error names its key, to send it again with once it is done. Other
-    writes (a cancel, a deletion) are not.
+    is still answering its first sending (409 with ``Retry-After``) or asks it to wait (429 with ``Retry-After``, over a
+    quota that waiting clears, where it asks no more than :data:`MAX_RETRY_WAIT_S`: the job quota's is the service's
+    ``VOXE_QUOTA_RETRY_AFTER_S``, 60 s by default, so there it is the error at once, naming the wait; the upload-bytes
+    quota, which only deleting scenes clears, has none): the service answers a retry with what the first sending
+    created, never a second one. A submission not answered within ``timeout`` is not (the service may still be working
+    on it): the error names its key, to send it again with once it is done. Other writes (a cancel, a deletion) are
+    not.
 
     Examples:
         >>> def answer(request):
