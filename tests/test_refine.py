@@ -1044,7 +1044,8 @@ def test_a_probability_file_claiming_another_grid_or_damaged_is_refused_before_i
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(torch, "zeros", lambda *a, **k: allocations.append(a) or real_zeros(*a, **k))
         with pytest.raises(FormatError, match=r"probabilities of a grid of \(1290, 1290, 1290\) voxels, where "
-                                              r"\(16, 16, 16\) was expected"):
+                                              r"\(16, 16, 16\) was expected \(probabilities are of their initial "
+                                              r"grid, whose resolution its edited grid shares\)"):
             load_probabilities(path, (16, 16, 16))
         with pytest.raises(FormatError, match=r"'object' holds values outside \[0, 1\]"):
             load_probabilities(damaged, (16, 16, 16))

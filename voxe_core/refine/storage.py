@@ -38,12 +38,13 @@ def save_mask(path, mask: torch.Tensor, meta: dict | None = None) -> None:
 
 
 def _indices_and_shape(tensors: dict, path, expected: tuple[int, ...] | None = None,
-                       holding: str = "a mask") -> tuple[torch.Tensor, tuple[int, int, int]]:
+                       holding: tuple[str, str] = ("a mask", "a mask is of its initial grid"),
+                       ) -> tuple[torch.Tensor, tuple[int, int, int]]:
     """The file's flat voxel indices and grid shape, checked before anything the shape's size is allocated: the
     shape ``expected`` where given (a 252-byte file claiming 1290³ voxels had allocated 2 GB before its caller found
-    it did not fit the grid; ``holding`` names what the file holds in that refusal), indices of an integer dtype
-    (1.7 had been read as 1, true as 1), each within the grid and given once (two values for one voxel are no file
-    these functions write)."""
+    it did not fit the grid; ``holding``: what the file holds and which grid that is of, in that refusal's words),
+    indices of an integer dtype (1.7 had been read as 1, true as 1), each within the grid and given once (two values
+    for one voxel are no file these functions write)."""
     if "indices" not in tensors or "shape" not in tensors:
         raise FormatError(f"{path}: missing 'indices' or 'shape'")
     stored_shape, indices = tensors["shape"], tensors["indices"]
@@ -54,8 +55,9 @@ def _indices_and_shape(tensors: dict, path, expected: tuple[int, ...] | None = N
         raise FormatError(f"{path}: bad grid shape {stored_shape.tolist()}, not 3 positive voxel counts")
     shape = tuple(int(s) for s in stored_shape.tolist())
     if expected is not None and shape != tuple(expected):
-        raise FormatError(f"{path}: {holding} of a grid of {shape} voxels, where {tuple(expected)} was expected "
-                          "(they are of the initial grid, whose resolution its edited grid shares)")
+        what, of_which_grid = holding
+        raise FormatError(f"{path}: {what} of a grid of {shape} voxels, where {tuple(expected)} was expected "
+                          f"({of_which_grid}, whose resolution its edited grid shares)")
     total = shape[0] * shape[1] * shape[2]
     if total >= INDEXABLE_VOXELS:  # (a damaged header: it had reached torch.zeros, an overflow or a huge allocation)
         raise FormatError(f"{path}: a grid of {shape} is beyond the int32 voxel indices these files hold")
@@ -98,7 +100,8 @@ def load_probabilities(path, shape: tuple[int, ...] | None = None) -> tuple[torc
     grid's, which the file must hold. Every check comes before the dense grids are allocated (a damaged 'object' had
     been found after 'edit''s grid was, and a file claiming another grid's shape after both were)."""
     tensors, _ = load_tensors(path, kind="attention_probabilities", max_version=PROBABILITY_FORMAT_VERSION)
-    indices, shape = _indices_and_shape(tensors, path, shape, "probabilities")
+    indices, shape = _indices_and_shape(tensors, path, shape,
+                                        ("probabilities", "probabilities are of their initial grid"))
     stored = {}
     for name in ("edit", "object"):
         values = tensors.get(name)
