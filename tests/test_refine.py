@@ -1032,12 +1032,17 @@ def test_a_mask_file_claiming_another_grid_is_refused_before_its_voxels_are_allo
 
 def test_a_probability_file_claiming_another_grid_or_damaged_is_refused_before_its_grids_are_allocated(tmp_path):
     """As a mask file is: a 300-byte file claiming 1290³ voxels had allocated two 8.6 GB float grids and a 2 GB
-    mask, with no way to say which grid it must fit; a damaged 'object' was found after 'edit''s grid was made."""
+    mask, with no way to say which grid it must fit; a damaged 'object' was found after 'edit''s grid was made, and
+    values of the right count but shaped (K, 1) failed as torch's broadcast error after both grids were made."""
     path = tmp_path / "probabilities.safetensors"
     one = {"indices": torch.tensor([3], dtype=torch.int32), "edit": torch.tensor([0.5]), "object": torch.tensor([0.5])}
     save_tensors(path, {**one, "shape": torch.tensor([1290] * 3)}, kind="attention_probabilities", version=1, meta={})
     damaged = tmp_path / "damaged.safetensors"
     save_tensors(damaged, {**one, "shape": torch.tensor([16] * 3), "object": torch.tensor([2.0])},
+                 kind="attention_probabilities", version=1, meta={})
+    column = tmp_path / "column.safetensors"
+    two = {"indices": torch.tensor([3, 4], dtype=torch.int32), "edit": torch.tensor([0.5, 0.5])}
+    save_tensors(column, {**two, "shape": torch.tensor([16] * 3), "object": torch.tensor([[0.5], [0.5]])},
                  kind="attention_probabilities", version=1, meta={})
     allocations = []
     real_zeros = torch.zeros
@@ -1049,6 +1054,8 @@ def test_a_probability_file_claiming_another_grid_or_damaged_is_refused_before_i
             load_probabilities(path, (16, 16, 16))
         with pytest.raises(FormatError, match=r"'object' holds values outside \[0, 1\]"):
             load_probabilities(damaged, (16, 16, 16))
+        with pytest.raises(FormatError, match=r"'object' values do not match the stored indices"):
+            load_probabilities(column, (16, 16, 16))
     assert allocations == []
     where = torch.zeros(16, 16, 16, dtype=torch.bool)
     where[1, 2, 3] = True

@@ -105,8 +105,8 @@ def load_probabilities(path, shape: tuple[int, ...] | None = None) -> tuple[torc
     stored = {}
     for name in ("edit", "object"):
         values = tensors.get(name)
-        if values is None or values.numel() != indices.numel():
-            raise FormatError(f"{path}: '{name}' values do not match the stored indices")
+        if values is None or values.dim() != 1 or values.numel() != indices.numel():  # (K, 1) had passed to fail
+            raise FormatError(f"{path}: '{name}' values do not match the stored indices")  # after the allocations
         if values.numel() and not bool(((values >= 0) & (values <= 1)).all()):  # NaN fails both comparisons
             raise FormatError(f"{path}: '{name}' holds values outside [0, 1] (or NaN), which no probability is")
         stored[name] = values.float()
