@@ -234,6 +234,10 @@ def test_damaged_or_unknown_sparse_files_are_named(tmp_path, make_sphere_grid):
     (lambda t, m: (t, {**m, "density_scale": float("nan")}), "density_scale nan is not a positive number"),
     (lambda t, m: (t, {**m, "density_scale": "33"}), "density_scale '33' is not a positive number"),
     (lambda t, m: (t, {**m, "density_scale": True}), "density_scale True is not a positive number"),  # had been 1
+    # Past float32 every density is infinite; past float64 (a whole number) Python's "int too large to convert to
+    # float" had escaped, naming neither the file nor the field.
+    (lambda t, m: (t, {**m, "density_scale": 1e300}), r"density_scale 1e\+300 is not a positive number finite in "),
+    (lambda t, m: (t, {**m, "density_scale": 10**400}), "density_scale 10{400} is not a positive number finite in "),
     (lambda t, m: (t, {**m, "activation": "tanh"}), "damaged grid: unknown density activation 'tanh'"),
     (lambda t, m: (t, {**m, "backbone": ["scene"]}), r"header names unknown backbone \['scene'\]"),  # TypeError
     # A tensor or field of the layout missing: the message had been the bare key ("damaged sparse grid: 'fill'").
@@ -303,6 +307,7 @@ def test_a_scene_grid_header_it_cannot_render_is_a_format_error(tmp_path, field,
 @pytest.mark.parametrize("frame, message", [
     ([float("nan")] * 16, "frame must be finite in float32"),
     ([1e300] + [0.0] * 4 + [1e300] + [0.0] * 4 + [1e300] + [0.0] * 4 + [1.0], "frame must be finite in float32"),
+    ([10**400] + [0] * 15, r"frame must be finite in float32, got \[10000"),  # had escaped: "int too large to convert"
     ([0.0] * 15 + [1.0], r"frame must be a similarity \(a positive scale times a rotation"),  # no scale
     ([2.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0], "frame must be a similarity"),  # stretched along x
     ([-1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0], "frame must be a similarity"),  # a mirror

@@ -18,11 +18,10 @@ Examples:
 
 from __future__ import annotations
 
-import math
-
 import torch
 
 from voxe_core.cameras import Cameras
+from voxe_core.constants import FLOAT32_MAX
 from voxe_core.grid import DEFAULT_BOX, GRID_KIND, VoxelGrid, ray_box_intersection
 from voxe_core.gridfile import GRID_FORMAT_VERSION, dense_tensors
 from voxe_core.scene_grid import SceneGrid, apply_frame, scene_frame
@@ -71,11 +70,11 @@ def grid_from_state(tensors: dict[str, torch.Tensor], meta: dict) -> VoxelGrid:
     for name in ("bbox_min", "bbox_max"):
         if name in tensors and tuple(tensors[name].shape) != (3,):
             raise FormatError(f"damaged grid: {name} of shape {tuple(tensors[name].shape)}, not (3,)")
-    scale = meta.get("density_scale")
+    scale = meta.get("density_scale")  # compared, not converted: a whole number past float64's range (10**400)
     if scale is not None and not (isinstance(scale, (int, float)) and not isinstance(scale, bool)  # JSON's true: 1
-                                  and math.isfinite(scale) and scale > 0):
-        raise FormatError(f"damaged grid: density_scale {scale!r} is not a positive number (every density would "
-                          "be wrong)")
+                                  and 0 < scale <= FLOAT32_MAX):  # had escaped as "int too large to convert to float"
+        raise FormatError(f"damaged grid: density_scale {scale!r} is not a positive number finite in float32 (every "
+                          "density would be wrong)")
     try:
         return cls.from_state(tensors, meta)
     except FormatError:  # what the class names itself

@@ -317,6 +317,8 @@ def _similarity(frame) -> torch.Tensor:
         raise ValueError("frame must hold numbers, not booleans (a file's true and false had been read as 1 and 0)")
     try:  # torch's own words had been the message: "shape '[4, 4]' is invalid for input of size 3"
         matrix = torch.as_tensor(frame, dtype=torch.float64).reshape(4, 4)
+    except OverflowError:  # a whole number past float64's range (10**400): Python's words, no field, had escaped
+        raise ValueError(f"frame must be finite in float32, got {str(frame)[:200]}") from None
     except (TypeError, ValueError, RuntimeError):
         raise ValueError(f"frame must be 16 numbers (a 4x4 matrix), got {str(frame)[:200]}") from None
     if not bool((matrix.abs() <= FLOAT32_MAX).all()):  # NaN fails the comparison
