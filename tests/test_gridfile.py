@@ -383,6 +383,13 @@ def test_a_fifo_or_device_given_as_a_grid_file_is_named_what_it_is(tmp_path):
         assert str(error.value) == f"{path}: is {what}, not a regular file"
 
 
+def test_a_grid_file_name_holding_a_null_byte_is_a_format_error():
+    """os.stat's ValueError ("embedded null byte") had escaped, no FormatError naming the file."""
+    with pytest.raises(FormatError) as error:
+        load_grid("grid\0.safetensors")
+    assert str(error.value) == "grid\0.safetensors: cannot be read: its name holds a null byte, which no file's can"
+
+
 @pytest.mark.parametrize("backbone, change, message", [
     # a dense file's header resolution had gone unread: a grid of another size loaded
     ("relu_field", {"resolution": [32, 32, 32]}, r"its header's resolution \[32, 32, 32\] is not its features' "

@@ -25,6 +25,8 @@ def unreadable_file(path: str | os.PathLike, kind: str = "a file") -> str | None
         return "no such file"
     except OSError as exc:  # a folder on the way without search permission, a symlink loop, a name too long
         return f"cannot be read: {exc.strerror.lower() if exc.strerror else exc}"
+    except ValueError:  # os.stat's "embedded null byte" had escaped the callers' FormatError
+        return "cannot be read: its name holds a null byte, which no file's can"
     if stat.S_ISDIR(mode):
         return f"is a folder, not {kind}"
     if not stat.S_ISREG(mode):
