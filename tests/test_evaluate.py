@@ -376,15 +376,22 @@ def test_evaluate_scores_edits_and_an_unchanged_grid_scores_as_identical(sphere_
     assert json.loads(json.dumps(result.summary()))["means"]["local"]["count"] == 1
 
 
-def test_an_evaluation_holds_one_view_of_each_grid_at_a_time(sphere_grid, tiny_clip_path):
+def _chunks_of(views: int, size: int, monkeypatch) -> None:
+    """Makes :func:`evaluate` render its rings in chunks of ``views`` views of ``size``²."""
+    monkeypatch.setattr("voxe_core.evaluate.RING_CHUNK_BYTES", views * size * size * 3 * 4)
+
+
+def test_an_evaluation_holds_a_chunk_of_initial_views_and_one_view_of_each_edit_at_a_time(sphere_grid, tiny_clip_path,
+                                                                                          monkeypatch):
     """Regression: every edit's ring renders were kept in the Evaluation to its end (60 edits × 360 views of 1,024²
     are 270 GB of floats), then G_i's ring was held to the end beside each edit's (9 GB), then rendered again beside
-    each edit's (a CPU time 41-63 % longer). The rings go view-major: G_i's view i rendered once, each edit's view i
-    scored against it and all let go; CLIP takes each grid's views in its batches as 8-bit pixels (a quarter of a
-    float view each): a few views' worth per grid are alive at any step, not two rings', and each ring is rendered
-    once."""
+    each edit's (a CPU time 41-63 % longer). The rings go a chunk of views at a time: G_i's views of the chunk
+    rendered once, each edit's scored against them one by one and all let go; CLIP takes each grid's views in its
+    batches as 8-bit pixels (a quarter of a float view each): G_i's chunk and a few views' worth per grid are alive
+    at any step, not two rings', and each ring is rendered once."""
     from test_export import views_alive
 
+    _chunks_of(4, 16, monkeypatch)
     clip = ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")
     clip.batch_size = 4
     edited, mask = _local_edit(sphere_grid)
@@ -398,22 +405,23 @@ def test_an_evaluation_holds_one_view_of_each_grid_at_a_time(sphere_grid, tiny_c
 
     result = evaluate(sphere_grid, edits, "ball", clip, None, None, EvaluateConfig(views=16, size=16),
                       Callbacks(on_progress=on_progress), on_ring=lambda name, i, view: handed.append((name, i)))
-    assert handed == [(name, i) for i in range(16) for name in (None, "global", "hat")]  # view-major
+    assert handed == [(name, i) for chunk in (0, 4, 8, 12) for name in (None, "global", "hat")
+                      for i in range(chunk, chunk + 4)]
     assert stages.count("ring renders") == 3 * 16 and stages.count("mask footprints") == 16
-    # CLIP's batch of 4 as 8-bit pixels for each of the 3 grids (3 views' worth), G_i's view and the edit's in hand,
-    # G_i's view before them while its next renders, and a view's worth to spare (it had been 32 and more: two
-    # whole rings)
-    assert len(alive) > 4 * 16 and max(alive) <= 3 * 4 / 4 + 4, alive
+    # CLIP's batch of 4 as 8-bit pixels for each of the 3 grids (3 views' worth), G_i's chunk of 4 views and the
+    # edit's view in hand, and a view's worth to spare (it had been 32 and more: two whole rings)
+    assert len(alive) > 4 * 16 and max(alive) <= 3 * 4 / 4 + 4 + 2, alive
     assert vars(result).keys() == {"rows"} and len(result.rows) == 2
 
 
-def test_clip_and_fid_share_one_batch_buffer_per_grid(sphere_grid, tiny_clip_path, tiny_inception_path):
+def test_clip_and_fid_share_one_batch_buffer_per_grid(sphere_grid, tiny_clip_path, tiny_inception_path, monkeypatch):
     """Regression: CLIP and FID each kept their own batch of a grid's views as 8-bit pixels ((32 + 25) views a grid:
     11 GB for 60 edits at 1,024²). They score one buffer per grid, of the larger batch (32 views: 44 % less); the
     rows stay those of the whole rings, bit for bit (test_the_views_scored_one_by_one_give_the_numbers_of_the_whole_
     rings, whose batches wrap around the buffer's end)."""
     from test_export import views_alive
 
+    _chunks_of(1, 16, monkeypatch)  # G_i's view one at a time, as the bound below counts it
     clip = ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")
     clip.batch_size = 8
     fid = InceptionFeatures.load(tiny_inception_path, device="cpu", batch_size=8)
@@ -504,25 +512,69 @@ def test_many_masked_edits_hold_no_footprint_stand_in_between_steps(sphere_grid,
     assert len({row["kept_fraction"] for row in rows}) == len(masks)  # six footprints, each edit scored on its own
 
 
-def test_an_edits_grid_is_on_the_render_device_only_while_its_view_renders(sphere_grid, tiny_clip_path):
+def test_an_edits_grid_is_on_the_render_device_only_while_its_views_of_a_chunk_render(sphere_grid, tiny_clip_path,
+                                                                                       monkeypatch):
     """Regression: view-major, each edit's grid moved to the render device at its first view and stayed there with
-    its occupancy to the end, all of them at once (~70 MB a grid at 160³: 4 GB for 60 edits). Each view of an edit
-    is now rendered from a grid on the device and its occupancy, both let go before the next: at any step at most
-    G_i's occupancy and the one edit's being rendered are alive, however many edits; the grids given are not moved.
-    """
+    its occupancy to the end, all of them at once (~70 MB a grid at 160³: 4 GB for 60 edits). An edit's views of a
+    chunk are now rendered from a grid on the device and its occupancy, both let go before the next edit's: at any
+    step at most G_i's occupancy and the one edit's being rendered are alive, however many edits; the grids given
+    are not moved (``iter_views`` moves the grid it renders in place: each edit's is a grid made on the device)."""
     import gc
 
-    from voxe_core.grid import Occupancy
+    from voxe_core.grid import Occupancy, VoxelGrid
 
     clip = ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")
     edited, _ = _local_edit(sphere_grid)
     edits = [EditSample(f"e{k}", "a blue ball", edited) for k in range(5)]
-    features = edited.flat_features
-    alive = []
+    alive, moved = [], []
+    _chunks_of(2, 16, monkeypatch)
+    monkeypatch.setattr(VoxelGrid, "to", lambda grid, *args, **kwargs: moved.append(grid) or torch.nn.Module.to(
+        grid, *args, **kwargs))
     evaluate(sphere_grid, edits, "ball", clip, None, None, EvaluateConfig(views=3, size=16),
              Callbacks(on_progress=lambda report: alive.append(sum(type(o) is Occupancy for o in gc.get_objects()))))
     assert len(alive) > len(edits) * 3 and max(alive) <= 2, alive  # it had been 1 + 5
-    assert edited.flat_features is features
+    assert len(moved) > len(edits) * 2 and not any(grid is edited for grid in moved)  # a grid a chunk, on the device
+
+
+def test_each_edits_grid_goes_to_the_render_device_and_has_its_occupancy_built_once_a_chunk(
+        sphere_grid, tiny_clip_path, monkeypatch):
+    """Regression (59dc08b): each view of each edit copied the edit's grid to the render device and built its
+    occupancy again (~65 MB copied a view at 160³ on a GPU, ~3 % more CPU time on the CPU). The ring is rendered in
+    chunks of views, G_i's views of a chunk held: an edit's grid goes there, and its occupancy is built, once a
+    chunk (B times fewer for chunks of B views), and the rows are those of one view at a time, bit for bit."""
+    import voxe_core.evaluate as evaluation
+    from voxe_core.grid import VoxelGrid
+
+    clip = ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")
+    edited, mask = _local_edit(sphere_grid)
+    edits = [EditSample("global", "a blue ball", edited), EditSample("other", "a red ball", edited.clone_grid()),
+             EditSample("masked", "a ball wearing a hat", merge(sphere_grid, edited, mask), mask)]
+    config = EvaluateConfig(views=6, elevation=20.0, size=16)
+
+    def counted(views_a_chunk: int) -> tuple[list[dict], list[tuple[str, int]], int]:
+        """The rows, the grids given to the renderer (of ``edits``' features or G_i, with how many views) and the
+        occupancies built, footprint stand-ins' left out (one a view of a masked edit, as ever)."""
+        _chunks_of(views_a_chunk, 16, monkeypatch)
+        rendered, built = [], []
+        real_iter_views, real_occupancy = evaluation.iter_views, VoxelGrid.occupancy
+        names = {sample.grid.features.untyped_storage().data_ptr(): sample.name for sample in edits}
+
+        def iter_views(grid, cameras, *args, **kwargs):
+            rendered.append((names.get(grid.features.untyped_storage().data_ptr(), "initial"), len(cameras)))
+            return real_iter_views(grid, cameras, *args, **kwargs)
+
+        monkeypatch.setattr(evaluation, "iter_views", iter_views)
+        monkeypatch.setattr(VoxelGrid, "occupancy", lambda grid, *a, **k: built.append(grid) or real_occupancy(
+            grid, *a, **k))
+        rows = evaluate(sphere_grid, edits, "ball", clip, None, None, config).rows
+        monkeypatch.undo()
+        return rows, rendered, len(built) - config.views  # (the masked edit's footprint stand-ins)
+
+    rows, rendered, built = counted(3)
+    assert rendered == [("initial", 6)] + [(sample.name, 3) for sample in edits] * 2 and built == 1 + 3 * 2
+    one_by_one, rendered, built = counted(1)
+    assert rendered == [("initial", 6)] + [(sample.name, 1) for sample in edits] * 6 and built == 1 + 3 * 6
+    assert rows == one_by_one
 
 
 def _after_the_last_ring_render(reports) -> bool:
@@ -788,7 +840,7 @@ def test_evaluation_job_end_to_end_through_the_api(service, sphere_grid):
     assert rows[0]["region"] == "outside mask" and rows[0]["psnr"] > 60  # the refined edit kept the rest exactly
     assert rows[1]["psnr"] < rows[0]["psnr"] and all(r["fid_rec"] > 0 and r["fid_input"] > 0 for r in rows)
     names = [a["name"] for a in client.get(f"/v1/jobs/{job['id']}/artifacts").json()]
-    # Listed grid by grid (the views come view-major): G_i's ring, then each edit's
+    # Listed grid by grid (the views come a chunk at a time): G_i's ring, then each edit's
     assert names == [f"ring_{grid}_{i:03d}.png" for grid in ("initial", local["id"], glob["id"]) for i in range(4)] + [
         "evaluation.json", "evaluation.md"]
     table = client.get(f"/v1/jobs/{job['id']}/artifacts/evaluation.md")

@@ -57,6 +57,10 @@ from voxe_core.render import RenderConfig, render_image
 
 INCEPTION_URL = "https://nvlabs-fi-cdn.nvidia.com/stylegan2-ada-pytorch/pretrained/metrics/inception-2015-12-05.pt"
 SOURCE_TEMPLATE = "a render of a {object}"
+RING_CHUNK_BYTES = 64 * 2**20
+"""G_i's ring views (float pixels) :func:`evaluate` holds at most, to score each edit's views of the same cameras
+against: each edit's grid goes to the render device, and has its occupancy built, once for so many views (at
+least one), not once a view (~65 MB copied and an occupancy built a view at 160³)."""
 
 # SPEC §4: (prompt template, mode, words naming the edit for the refinement).
 PAPER_PROMPTS: tuple[tuple[str, str, tuple[str, ...]], ...] = (
@@ -480,22 +484,24 @@ def evaluate(
 ) -> Evaluation:
     """Score ``edits`` of ``initial`` on the ring (see the module doc); FID only when ``fid`` is given.
 
-    The rings go view-major: for each view i, ``initial``'s view i is rendered (once), then each edit's, scored
-    against it (PSNR / SSIM outside the footprint, rendered beside them) and all let go before view i + 1; CLIP
-    and FID take each grid's views in their batches, as 8-bit pixels (one buffer per grid, of the larger batch). So
-    one view of each grid is held at a time, each grid's batch pixels and the scores besides (each ring had been
-    held whole, ``initial``'s to the end: 9 GB of floats for 360 views of 1,024²; every edit's before that, 270 GB
-    for 60 edits), and every ring is rendered once; a masked edit's footprint view is rendered from a stand-in
-    (4 floats a vertex and its occupancy, ~70 MB at 160³, on ``device``) built from its bool mask for that view
-    and let go, so one is alive at a time however many edits are masked (each had been held to the end, all at
-    once: ~4 GB for 60 masked edits at 160³). The numbers are those of the whole rings (``kept_fraction`` the
-    exact ratio rounded to float32, which a float32 mean over a ring past 2^24 pixels had missed in its last bits).
-    ``on_ring(name, i, render)`` gets each ring render (H, W, 3), to save it, in that order: view 0 of
-    ``initial`` (name None), view 0 of each edit in ``edits``' order, then view 1 of ``initial``, and so on.
+    The rings go a chunk of views at a time (:func:`ring_chunks`): ``initial``'s views of the chunk are rendered
+    (once), then each edit's, each scored against ``initial``'s of its camera (PSNR / SSIM outside the footprint,
+    rendered beside them), and all let go before the next chunk; CLIP and FID take each grid's views in their
+    batches, as 8-bit pixels (one buffer per grid, of the larger batch). So ``initial``'s views of one chunk
+    (:data:`RING_CHUNK_BYTES` at most, or one view) and one view of an edit are held at a time, each grid's batch
+    pixels and the scores besides (each ring had been held whole, ``initial``'s to the end: 9 GB of floats for 360
+    views of 1,024²; every edit's before that, 270 GB for 60 edits), and every ring is rendered once; a masked
+    edit's footprint view is rendered from a stand-in (4 floats a vertex and its occupancy, ~70 MB at 160³, on
+    ``device``) built from its bool mask for that view and let go, so one is alive at a time however many edits are
+    masked (each had been held to the end, all at once: ~4 GB for 60 masked edits at 160³). The numbers are those of
+    the whole rings (``kept_fraction`` the exact ratio rounded to float32, which a float32 mean over a ring past
+    2^24 pixels had missed in its last bits).
+    ``on_ring(name, i, render)`` gets each ring render (H, W, 3), to save it, in that order: the first chunk's
+    views of ``initial`` (name None), then of each edit in ``edits``' order, then the next chunk's, and so on.
 
     The ring renders (and the masks' footprints) run on ``device`` (None: where ``initial`` is); ``initial`` moves
-    there once, each edit's grid is there only while one of its views renders (:func:`_views_one_at_a_time`; the
-    grid given stays where it is). The scorers run where they were loaded. A ring render with a NaN or infinite
+    there once, each edit's grid is there, with its occupancy, only while its views of one chunk render (the grid
+    given stays where it is). The scorers run where they were loaded. A ring render with a NaN or infinite
     pixel (a diverged grid) is a ValueError naming the grid, as are two edits of one name and, before any render,
     a masked edit whose grid or mask does not fit ``initial``'s vertices and a source text or prompt longer than
     CLIP's text model reads.
@@ -550,42 +556,47 @@ def evaluate(
             callbacks.check_cancel("evaluate")
         return batch_done
 
-    def ring(grid: VoxelGrid, label: str) -> Iterator[torch.Tensor]:
-        """``grid``'s ring on ``device``: ``initial``, rendered every view, kept there; an edit's grid only while
-        its view renders (:func:`_views_one_at_a_time`)."""
-        cameras = turntable_cameras(config.views, config.elevation, config.size, centre=centre)
-        views = (iter_views if grid is initial else _views_one_at_a_time)(
-            grid, cameras, callbacks=per_view("ring renders"), device=device)
-        for i, view in enumerate(views):
-            yield _finite_view(view, label, i, config.views)
+    cameras = turntable_cameras(config.views, config.elevation, config.size, centre=centre)
+
+    def ring(grid: VoxelGrid, label: str, views: range) -> Iterator[tuple[int, torch.Tensor]]:
+        """(i, view i) of ``grid``'s ring for each i of ``views``, rendered on ``device`` with one occupancy:
+        ``initial`` is there; an edit's grid is put there as a grid sharing its box and backbone (its features not
+        copied where they are there already), let go with its occupancy once the views are rendered."""
+        if grid is not initial:
+            grid = grid.like(grid.features.detach().to(device))
+        rendered = iter_views(grid, cameras[views.start:views.stop], callbacks=per_view("ring renders"),
+                              device=device)
+        for i, view in enumerate(rendered, views.start):
+            yield i, _finite_view(view, label, i, config.views)
 
     texts = clip.text_embeddings([source] + [edit_prompt(e.prompt) for e in edits])  # a text too long: before renders
     input_features = None
     if fid is not None and input_images is not None:
         input_features = fid.features(input_images, per_batch("FID"))
     ring_names = [None] + [sample.name for sample in edits]
-    rings = [ring(initial, "the initial grid")] + [ring(sample.grid, f"edit {sample.name!r}") for sample in edits]
 
     def scorers() -> list[Scorer]:
         """CLIP, then FID if given, as one grid's :class:`ViewBatches` scores its views."""
         clip_scorer = (clip.image_embeddings, clip.batch_size, per_batch("CLIP"))
         return [clip_scorer] if fid is None else [clip_scorer, (fid.features, fid.batch_size, per_batch("FID"))]
 
-    batches = [ViewBatches(scorers(), check_cancel) for _ in rings]
+    batches = [ViewBatches(scorers(), check_cancel) for _ in ring_names]
     kept = [Preservation(sample, initial, config, centre, per_view("mask footprints")) for sample in edits]
 
-    def take(k: int, i: int) -> torch.Tensor:
-        """Ring k's view i (0: ``initial``'s), rendered and given to CLIP, FID and ``on_ring``."""
-        view = next(rings[k])
+    def take(k: int, i: int, view: torch.Tensor) -> torch.Tensor:
+        """Ring k's view i (0: ``initial``'s), given to CLIP, FID and ``on_ring``."""
         batches[k].add(view)
         if on_ring is not None:
             on_ring(ring_names[k], i, view)
         return view
 
-    for i in range(config.views):  # view-major: G_i's view i rendered once, each edit's scored against it
-        recon_view = take(0, i)
-        for k, scores in enumerate(kept, 1):
-            scores.add(take(k, i), recon_view)
+    recon_ring = ring(initial, "the initial grid", range(config.views))  # its occupancy built once
+    for chunk in ring_chunks(config):  # G_i's views of the chunk rendered once, each edit's scored against them
+        recon_views = [take(0, i, next(recon_ring)[1]) for i in chunk]
+        for k, (sample, scores) in enumerate(zip(edits, kept), 1):
+            for i, view in ring(sample.grid, f"edit {sample.name!r}", chunk):
+                scores.add(take(k, i, view), recon_views[i - chunk.start])
+        del recon_views  # (before the next chunk's are rendered)
     recon_clip, *recon_features = batches[0].results()
     rows = []
     for k, sample in enumerate(edits):
@@ -601,17 +612,12 @@ def evaluate(
     return Evaluation(rows)
 
 
-def _views_one_at_a_time(grid: VoxelGrid, cameras, callbacks: Callbacks,
-                         device: torch.device) -> Iterator[torch.Tensor]:
-    """:func:`iter_views` of ``grid``, which stays where it is: each view is rendered from a grid on ``device``
-    sharing its box and backbone (its features, not copied where they are there already) with its occupancy, both
-    let go before the view is yielded. :func:`evaluate` goes view-major, so each edit's grid had moved to the device
-    at its first view and stayed there, with its occupancy, to the end: all of them at once (~70 MB a grid at 160³,
-    4 GB for 60 edits); now one is there at a time, copied there again for each view."""
-    for i in range(len(cameras)):
-        [view] = iter_views(grid.like(grid.features.detach().to(device)), cameras[i], callbacks=callbacks,
-                            device=device)
-        yield view
+def ring_chunks(config: EvaluateConfig) -> list[range]:
+    """The ring's views, in order, in chunks of about one size, each of at most :data:`RING_CHUNK_BYTES` of G_i's
+    float views (one view at least): :func:`evaluate` puts each edit's grid on the render device once a chunk."""
+    most = max(1, RING_CHUNK_BYTES // (config.size * config.size * 3 * 4))
+    chunks = -(-config.views // most)
+    return [range(j * config.views // chunks, (j + 1) * config.views // chunks) for j in range(chunks)]
 
 
 def _finite_view(view: torch.Tensor, label: str, i: int, views: int) -> torch.Tensor:
@@ -643,11 +649,11 @@ def preservation(images: Iterable[torch.Tensor], recon: Iterable[torch.Tensor], 
 
 class Preservation:
     """:func:`preservation` of one edit, its views and G_i's handed over a pair at a time (:func:`evaluate` renders
-    them view-major). Each view is scored on its own: the values of the whole ring at once, bit for bit, but SSIM's
-    float64 filter buffers are one view's (~130 times its float pixels: a whole ring at once had peaked at 3.2 GB
-    for 32 views of 256²). A masked edit's footprint is rendered a view at a time beside its pair, its stand-in
-    built for that view and let go (:func:`iter_mask_footprint`, given ``callbacks``: progress per view,
-    cancellation): between views an edit holds its bool mask, not a stand-in."""
+    them a chunk of views at a time). Each view is scored on its own: the values of the whole ring at once, bit for
+    bit, but SSIM's float64 filter buffers are one view's (~130 times its float pixels: a whole ring at once had
+    peaked at 3.2 GB for 32 views of 256²). A masked edit's footprint is rendered a view at a time beside its pair,
+    its stand-in built for that view and let go (:func:`iter_mask_footprint`, given ``callbacks``: progress per
+    view, cancellation): between views an edit holds its bool mask, not a stand-in."""
 
     def __init__(self, sample: EditSample, initial: VoxelGrid, config: EvaluateConfig,
                  centre: torch.Tensor | None = None, callbacks: Callbacks = Callbacks()):
