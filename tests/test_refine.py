@@ -7,6 +7,7 @@ the tiny random-weight SD (SMOKE-TEST MODEL) only proves the refine plumbing.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import errno
 import json
@@ -1012,16 +1013,23 @@ def test_a_damaged_mask_or_probability_file_is_a_format_error_naming_the_problem
     assert str(error.value).startswith(str(path))
 
 
+@contextlib.contextmanager
+def zeros_allocated():
+    """The shapes given to torch.zeros meanwhile (a list filled as they come): what a reader allocated."""
+    allocations = []
+    real_zeros = torch.zeros
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(torch, "zeros", lambda *a, **k: allocations.append(a) or real_zeros(*a, **k))
+        yield allocations
+
+
 def test_a_mask_file_claiming_another_grid_is_refused_before_its_voxels_are_allocated(tmp_path):
     """Regression: a 252-byte file claiming 1290³ voxels allocated 2 GB before its caller
     (voxe evaluate --edit ... MASK, the worker's evaluation) found that it did not fit the grid."""
     path = tmp_path / "mask.safetensors"
     save_tensors(path, {"indices": torch.tensor([3], dtype=torch.int32), "shape": torch.tensor([1290] * 3)},
                  kind="edit_mask", version=1, meta={})
-    allocations = []
-    real_zeros = torch.zeros
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(torch, "zeros", lambda *a, **k: allocations.append(a) or real_zeros(*a, **k))
+    with zeros_allocated() as allocations:
         with pytest.raises(FormatError, match=r"a mask of a grid of \(1290, 1290, 1290\) voxels, where "
                                               r"\(16, 16, 16\) was expected"):
             load_mask(path, (16, 16, 16))
@@ -1044,10 +1052,7 @@ def test_a_probability_file_claiming_another_grid_or_damaged_is_refused_before_i
     two = {"indices": torch.tensor([3, 4], dtype=torch.int32), "edit": torch.tensor([0.5, 0.5])}
     save_tensors(column, {**two, "shape": torch.tensor([16] * 3), "object": torch.tensor([[0.5], [0.5]])},
                  kind="attention_probabilities", version=1, meta={})
-    allocations = []
-    real_zeros = torch.zeros
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(torch, "zeros", lambda *a, **k: allocations.append(a) or real_zeros(*a, **k))
+    with zeros_allocated() as allocations:
         with pytest.raises(FormatError, match=r"probabilities of a grid of \(1290, 1290, 1290\) voxels, where "
                                               r"\(16, 16, 16\) was expected \(probabilities are of their initial "
                                               r"grid, whose resolution its edited grid shares\)"):

@@ -1394,6 +1394,17 @@ def _job_row(owner_key_id: str = "local") -> str:
         return job.id
 
 
+def _published_render(root) -> tuple[str, str]:
+    """A job (``_job_row``) whose render_000.png (5,000 bytes of "A") the worker published: its id and the download's
+    URL."""
+    from worker.runtime import publish_artifact
+
+    job_id = _job_row()
+    (root / "render_000.png").write_bytes(b"A" * 5000)
+    publish_artifact(job_id, "render_000.png", root / "render_000.png", "render")
+    return job_id, f"/v1/jobs/{job_id}/artifacts/render_000.png"
+
+
 def test_mesh_artifacts_are_served_as_their_model_types(client, root):
     """mesh.ply had been served as application/octet-stream beside its siblings' model/gltf-binary and model/obj: a
     browser or a viewer given the URL saw an unknown binary. No PLY type is registered; model/ply is the one 3D
@@ -1586,12 +1597,7 @@ def test_if_match_refuses_a_replaced_artifact_with_412(client, dataset, root):
 def test_a_416_names_a_long_range_cut_short(client, root):
     """A Range of thousands of digits had come back whole in the 416's message (as long as the server's header
     limit allows)."""
-    from worker.runtime import publish_artifact
-
-    job_id = _job_row()
-    (root / "render_000.png").write_bytes(b"A" * 5000)
-    publish_artifact(job_id, "render_000.png", root / "render_000.png", "render")
-    url = f"/v1/jobs/{job_id}/artifacts/render_000.png"
+    _, url = _published_render(root)
     for header in ("bytes=" + "1" * 5000 + "-", "bytes=" + "x" * 5000, "bytes=-0" + "0" * 5000):
         refused = client.get(url, headers={"Range": header})
         assert refused.status_code == 416 and len(refused.json()["detail"]) < 120, header[:20]
@@ -1622,12 +1628,7 @@ def test_conditional_headers_read_every_line_and_refuse_a_bare_tag(client, root)
     quoted as the ETag header gives it) never matched: If-Match answered 412 "it was replaced", If-None-Match the
     whole file. Now every line counts, and an element that is not an entity tag is a 422 naming the header; * sent
     on two lines had been a 422 "lists * with entity tags" though it listed none: it is *."""
-    from worker.runtime import publish_artifact
-
-    job_id = _job_row()
-    (root / "render_000.png").write_bytes(b"A" * 5000)
-    publish_artifact(job_id, "render_000.png", root / "render_000.png", "render")
-    url = f"/v1/jobs/{job_id}/artifacts/render_000.png"
+    job_id, url = _published_render(root)
     etag = client.head(url).headers["etag"]
     sha256 = client.get(f"/v1/jobs/{job_id}/artifacts").json()[0]["sha256"]
     for request in (client.get, client.head):
@@ -1655,12 +1656,7 @@ def test_an_if_range_that_is_neither_an_entity_tag_nor_a_date_is_a_422_naming_it
     """If-Range holding the listing's sha256 unquoted never matched: a resumed download silently got the whole file
     again (If-Match and If-None-Match answer it with a 422). Now it is a 422 naming If-Range when a Range is sent;
     without one If-Range is ignored (RFC 9110 §13.1.5), and a date, in any of HTTP's three forms, is still a date."""
-    from worker.runtime import publish_artifact
-
-    job_id = _job_row()
-    (root / "render_000.png").write_bytes(b"A" * 5000)
-    publish_artifact(job_id, "render_000.png", root / "render_000.png", "render")
-    url = f"/v1/jobs/{job_id}/artifacts/render_000.png"
+    _, url = _published_render(root)
     etag = client.head(url).headers["etag"]
     sha256 = etag.strip('"')
     for request in (client.get, client.head):
@@ -1682,12 +1678,7 @@ def test_if_match_is_told_it_compares_strongly_and_an_empty_one_is_named(client,
     tag, even the current ETag's, got 412 "it was replaced", as did an empty If-Match, both untrue. Now the advice
     offers W/ to If-None-Match only, a weak-only If-Match is a 412 saying a W/ tag never matches, and an empty one a
     422 naming it."""
-    from worker.runtime import publish_artifact
-
-    job_id = _job_row()
-    (root / "render_000.png").write_bytes(b"A" * 5000)
-    publish_artifact(job_id, "render_000.png", root / "render_000.png", "render")
-    url = f"/v1/jobs/{job_id}/artifacts/render_000.png"
+    _, url = _published_render(root)
     etag = client.head(url).headers["etag"]
     sha256 = etag.strip('"')
     assert client.get(url, headers={"If-Match": sha256}).json()["detail"] == (

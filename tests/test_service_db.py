@@ -99,6 +99,20 @@ class RecordingQueue:
 
 
 # ------------------------------------------------------------------------------------------ migrations
+READY_SCENE_ROW = (  # a ready scene as written from 0004 (scenes' states) on
+    "INSERT INTO scenes (id, owner_key_id, name, format, image_count, width, height, splits, storage_key, size_bytes, "
+    "sha256, state, created_at, updated_at) VALUES ('s1', 'local', 'old', 'nerf_synthetic', 3, 8, 8, '[\"train\"]', "
+    "'scenes/s1/dataset.zip', 10, 'x', 'ready', '2026-01-01 00:00:00+00', '2026-01-01 00:00:00+00')")
+
+
+def job_row_of_0007(state: str) -> str:
+    """A job of scene s1 in ``state`` as written from 0007 (its re-send count) on."""
+    return ("INSERT INTO jobs (id, scene_id, owner_key_id, prompt, mode, edit_words, params, sds_model, "
+            "attention_model, device, state, iteration, total, losses, cancel_requested, completed_stages, requeues, "
+            "created_at, updated_at) VALUES ('j1', 's1', 'local', 'a mic', 'global', '[]', '{}', 'tiny', 'tiny', "
+            f"'cpu', '{state}', 0, 0, '{{}}', false, '[]', 0, '2026-01-01 00:00:00+00', '2026-01-01 00:00:00+00')")
+
+
 def test_a_database_of_the_previous_head_upgrades_in_place(database_url):
     """Rows written before scenes had states keep their data and become ready; downgrading gives them back."""
     from alembic import command
@@ -151,14 +165,8 @@ def test_webhook_deliveries_written_before_their_receiver_was_recorded_get_their
             "https://[::1/broken"]
     config, engine = database_at(
         database_url, "0011_idempotency_pending",
-        "INSERT INTO scenes (id, owner_key_id, name, format, image_count, width, height, splits, storage_key, "
-        "size_bytes, sha256, state, created_at, updated_at) VALUES ('s1', 'local', 'old', 'nerf_synthetic', 3, 8, "
-        "8, '[\"train\"]', 'scenes/s1/dataset.zip', 10, 'x', 'ready', '2026-01-01 00:00:00+00', "
-        "'2026-01-01 00:00:00+00')",
-        "INSERT INTO jobs (id, scene_id, owner_key_id, prompt, mode, edit_words, params, sds_model, attention_model, "
-        "device, state, iteration, total, losses, cancel_requested, completed_stages, requeues, created_at, "
-        "updated_at) VALUES ('j1', 's1', 'local', 'a mic', 'global', '[]', '{}', 'tiny', 'tiny', 'cpu', 'running', 0, "
-        "0, '{}', false, '[]', 0, '2026-01-01 00:00:00+00', '2026-01-01 00:00:00+00')")
+        READY_SCENE_ROW,
+        job_row_of_0007("running"))
     with engine.begin() as conn:
         conn.execute(text("INSERT INTO webhook_deliveries (id, job_id, event_id, event_type, url, payload, state, "
                           "attempts, next_attempt_at, created_at) VALUES (:id, 'j1', :n, 'job.warning', :url, '{}', "
@@ -237,14 +245,8 @@ def test_ply_artifacts_recorded_as_octet_stream_get_their_model_type_and_back(da
 
     config, engine = database_at(
         database_url, "0015_owner_index_prefix",
-        "INSERT INTO scenes (id, owner_key_id, name, format, image_count, width, height, splits, storage_key, "
-        "size_bytes, sha256, state, created_at, updated_at) VALUES ('s1', 'local', 'old', 'nerf_synthetic', 3, 8, "
-        "8, '[\"train\"]', 'scenes/s1/dataset.zip', 10, 'x', 'ready', '2026-01-01 00:00:00+00', "
-        "'2026-01-01 00:00:00+00')",
-        "INSERT INTO jobs (id, scene_id, owner_key_id, prompt, mode, edit_words, params, sds_model, attention_model, "
-        "device, state, iteration, total, losses, cancel_requested, completed_stages, requeues, created_at, "
-        "updated_at) VALUES ('j1', 's1', 'local', 'a mic', 'global', '[]', '{}', 'tiny', 'tiny', 'cpu', 'succeeded', "
-        "0, 0, '{}', false, '[]', 0, '2026-01-01 00:00:00+00', '2026-01-01 00:00:00+00')")
+        READY_SCENE_ROW,
+        job_row_of_0007("succeeded"))
     recorded = {"mesh.ply": "application/octet-stream", "UPPER.PLY": "application/octet-stream",
                 "mesh.obj": "model/obj", "grid.safetensors": "application/octet-stream"}
     with engine.begin() as conn:
@@ -312,9 +314,7 @@ def test_jobs_of_0004_upgrade_to_webhooks_off_and_back(database_url):
 
     config, engine = database_at(
         database_url, "0004_ingest_and_events",
-        "INSERT INTO scenes (id, owner_key_id, name, format, image_count, width, height, splits, storage_key, "
-        "size_bytes, sha256, state, created_at, updated_at) VALUES ('s1', 'local', 'old', 'nerf_synthetic', 3, 8, 8, "
-        "'[\"train\"]', 'scenes/s1/dataset.zip', 10, 'x', 'ready', '2026-01-01 00:00:00+00', '2026-01-01 00:00:00+00')",
+        READY_SCENE_ROW,
         "INSERT INTO jobs (id, scene_id, owner_key_id, prompt, mode, edit_words, params, sds_model, attention_model, "
         "device, state, iteration, total, losses, cancel_requested, completed_stages, created_at, updated_at) VALUES "
         "('j1', 's1', 'local', 'a mic', 'global', '[]', '{}', 'tiny', 'tiny', 'cpu', 'succeeded', 0, 0, '{}', false, "
