@@ -1121,6 +1121,62 @@ def test_a_job_whose_worker_died_mid_export_canceled_lists_none_of_the_exports_o
     assert storage.list(f"jobs/{job_id}/") == sorted(kept.values())
 
 
+@pytest.mark.parametrize("ender", ["its redelivery, canceled", "the reaper, canceled", "the reaper, at the limit"])
+def test_a_stalled_run_publishes_nothing_into_the_job_another_ended(db, tmp_path, ender):
+    """A run whose lease lapsed with its process alive (stalled) while its job was ended (canceled by its redelivery's
+    start or the reaper, its unfinished stage's outputs withdrawn, or failed at the re-queue limit) went on
+    publishing into the ended job when it woke: the ending left its hold (``run_token``), which was all the
+    publication checked, so a canceled job listed an output of the stage it was canceled in. The ending releases
+    the hold: the stalled run's publication and result writes are refused (RunSuperseded) and list nothing."""
+    from sqlalchemy import update
+
+    from api.reaper import reap_orphaned_jobs
+    from api.services.jobs import request_cancel
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, utcnow
+    from voxe_service.storage import get_storage
+    from worker import runtime
+
+    storage = get_storage(db)
+
+    def publish(name: str, kind: str) -> None:
+        (tmp_path / name).write_bytes(name.encode())
+        runtime.publish_artifact(job_id, name, tmp_path / name, kind, storage)
+
+    job_id = add_job(add_scene(), "queued", 0, completed_stages=["reconstruct", "edit"],
+                     requeues=db.job_max_requeues if ender.endswith("at the limit") else 0)
+    stalled = runtime.begin_stage(job_id, "export", "a@host", "cpu", db)
+    outside = runtime._HOLDING.set((job_id, stalled.run_token))  # this thread is the stalled run's
+    try:
+        publish("render_000.png", "render")
+        if ender.endswith("canceled"):
+            with session_scope() as session:
+                request_cancel(session=session, job_ids=[job_id])
+        long_ago = utcnow() - timedelta(seconds=2 * db.job_stale_timeout_s)
+        with session_scope() as session:
+            session.execute(update(Job).where(Job.id == job_id).values(updated_at=long_ago, run_lease_until=long_ago))
+        if ender.startswith("its redelivery"):
+            runtime._HOLDING.set(None)  # (the redelivery runs on another worker)
+            with pytest.raises(runtime.JobSkipped, match="canceled"):
+                runtime.begin_stage(job_id, "export", "b@host", "cpu", db)
+            runtime._HOLDING.set((job_id, stalled.run_token))
+        else:
+            add_heartbeat("a@host", age_s=2 * db.job_stale_timeout_s)
+            assert reap_orphaned_jobs(db) == [job_id]
+        ended = job_row(job_id)
+        assert ended.state == ("failed" if ender.endswith("at the limit") else "canceled")
+        left = listed_artifacts(job_id)  # the withdrawal took the render; a failed job keeps it
+        assert left == ({} if ended.state == "canceled" else {"render_000.png": f"jobs/{job_id}/render_000.png"})
+        with pytest.raises(runtime.RunSuperseded):  # the stalled run wakes and goes on
+            publish("turntable.mp4", "video")
+        with pytest.raises(runtime.RunSuperseded):
+            runtime.merge_job_result(job_id, {"video_frames": 60})
+    finally:
+        runtime._HOLDING.reset(outside)
+    assert listed_artifacts(job_id) == left and job_row(job_id).state == ended.state
+    assert "video_frames" not in (job_row(job_id).result or {})
+
+
 def test_one_run_holds_a_job_a_duplicate_message_is_dropped_and_a_dead_run_is_taken_over(db, monkeypatch):
     """A chain message sent twice (a worker died after its stage sent the next one, before its ack) must not run
     a stage on two workers: while the run holding the job renews its lease, the duplicate is dropped (StageHeld,

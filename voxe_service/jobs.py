@@ -43,7 +43,9 @@ def finish_jobs(session: Session, job_ids: Iterable[str], state: str, *, message
     """Move the unfinished jobs among ``job_ids`` (that also match ``where``) to the terminal ``state``.
 
     Returns the ids that changed, each with a ``state`` event carrying the error or message. A caller ending jobs
-    canceled withdraws their unfinished stage's artifacts (:func:`withdraw_unfinished_stage_artifacts`).
+    canceled withdraws their unfinished stage's artifacts (:func:`withdraw_unfinished_stage_artifacts`). The hold of
+    a run of the job goes with the ending (``run_token``): a run still going (stalled past its lease, its process
+    alive) finds the job no longer its own, and publishes or records nothing more into it (``RunSuperseded``).
     """
     ids = list(job_ids)
     if not ids:
@@ -51,7 +53,8 @@ def finish_jobs(session: Session, job_ids: Iterable[str], state: str, *, message
     now = utcnow()
     changed = session.execute(
         update(Job).where(Job.id.in_(ids), Job.state.not_in(TERMINAL_STATES), *where)
-        .values(state=state, finished_at=now, updated_at=now, eta_seconds=None, message=message, error=error)
+        .values(state=state, finished_at=now, updated_at=now, eta_seconds=None, message=message, error=error,
+                run_token=None, run_lease_until=None)
         .returning(Job.id, Job.stage)
     ).all()
     for job_id, stage in changed:

@@ -100,8 +100,8 @@ def update_job(job_id: str, **values) -> None:
 
 
 class RunSuperseded(JobSkipped):
-    """This run stalled past its lease and another run took its job over: the job's results are the other
-    run's to write, so this run's are refused."""
+    """This run stalled past its lease and another run took its job over, or the job ended (its hold went with the
+    ending): the job's results are the other run's to write, or no run's, so this run's are refused."""
 
 
 _HOLDING: ContextVar[tuple[str, str] | None] = ContextVar("voxe_holding", default=None)
@@ -125,7 +125,8 @@ def _refuse_if_superseded(job_id: str, read_token) -> None:
     is not its own; outside a stage of that job nothing is read."""
     held = _HOLDING.get()
     if held is not None and held[0] == job_id and read_token() != held[1]:
-        raise RunSuperseded(f"job {job_id}: another run took the job over; this run's results are refused")
+        raise RunSuperseded(f"job {job_id}: this run no longer holds it (another run took the job over, or the job "
+                            "ended); this run's results are refused")
 
 
 def _token_query(job_id: str):
