@@ -2347,6 +2347,37 @@ def events_of(job_id: str) -> list[dict]:
                 session.scalars(select(JobEvent).where(JobEvent.job_id == job_id).order_by(JobEvent.id))]
 
 
+def test_a_database_outage_skips_a_stages_warning_event_and_its_next_progress_write_says_the_warning(db, monkeypatch):
+    """A database blip as the edit's warning event was written raised out of the stage (a re-queue counting towards
+    job_max_requeues) where a progress write in it is skipped. The event is skipped alike, and the next progress
+    write carries the warning as the job's message; a fault that is no outage still raises."""
+    import sqlite3
+
+    from sqlalchemy.exc import OperationalError
+
+    from voxe_core.progress import Progress
+    from worker import runtime
+
+    job_id = add_job(add_scene(), "queued", 0, completed_stages=["reconstruct"])
+    callbacks = runtime.StageCallbacks(runtime.begin_stage(job_id, "edit", "a@host", "cpu", db), "edit", db)
+    said = "the reconstruction's density is constant: the 3D regulariser (reg3d) has nothing to correlate and is off"
+    blip = OperationalError("SELECT jobs", {}, Exception("server closed the connection unexpectedly"))
+
+    def down(*args, **kwargs):
+        raise blip
+
+    with monkeypatch.context() as outage:
+        outage.setattr(runtime, "locked", down)
+        callbacks.callbacks.warning("edit", said)  # skipped: the stage goes on
+    callbacks.on_progress(Progress("edit", 1, 10))
+    assert job_row(job_id).message == said
+    assert [e for e in events_of(job_id) if e["kind"] == "warning"] == []
+    blip = OperationalError("SELECT jobs", {}, sqlite3.OperationalError("no such column: jobs.message"))
+    monkeypatch.setattr(runtime, "locked", down)
+    with pytest.raises(OperationalError, match="no such column"):
+        callbacks.callbacks.warning("edit", said)
+
+
 def test_reaper_sends_again_the_ingests_of_scenes_whose_worker_died_and_fails_those_never_sent(db):
     """A processing scene whose ingesting worker died had been failed ("upload it again"), an accepted upload lost
     to a crash, where a job in that state is sent again. Its ingest is sent again (the scene waits for a worker, the

@@ -463,11 +463,14 @@ class StageCallbacks:
 
     def on_warning(self, stage: str, text: str) -> None:
         """Say what the stage warns of as a ``warning`` event (the timeline, its webhook, the CLI's line) and keep it
-        in the message its progress reports carry, which had replaced it at the next write."""
+        in the message its progress reports carry, which had replaced it at the next write. In a database outage the
+        event is skipped, as a progress write is (it had stopped the stage: a counted re-queue); the message stays
+        for the next progress write to carry."""
         text = text if stage == self.stage else f"{stage}: {text}"
         log.warning("job %s: %s: %s", self.job_id, self.stage, text)
         self.note = text if self.note is None else f"{self.note}; {text}"
-        record_warning(self.job_id, self.stage, text)
+        with outage_skipped(f"job {self.job_id}: {self.stage}'s warning event"):
+            record_warning(self.job_id, self.stage, text)
 
     def on_checkpoint(self, path: str) -> None:
         """Store the checkpoint, then record where it was taken (stages report progress just before). A run that
