@@ -2378,6 +2378,35 @@ def test_a_database_outage_skips_a_stages_warning_event_and_its_next_progress_wr
         callbacks.callbacks.warning("edit", said)
 
 
+def test_a_stages_warning_said_again_by_its_next_run_is_one_event_and_one_webhook(db):
+    """Each run of an edit (a resume after a re-queue, a redelivery) said its constant-regulariser warning again:
+    another ``warning`` event and job.warning webhook per run. The timeline keeps one per stage and text; the
+    later run still carries the warning as its progress reports' message, and a new warning is recorded."""
+    from sqlalchemy import func, select
+
+    from voxe_core.progress import Progress
+    from voxe_service.db import session_scope
+    from voxe_service.models import WebhookDelivery
+    from worker import runtime
+
+    job_id = add_job(add_scene(), "queued", 0, completed_stages=["reconstruct"],
+                     webhook_url="https://hooks.example/voxe", webhook_events=["warning"])
+    said = "the reconstruction's density is constant: the 3D regulariser (reg3d) has nothing to correlate and is off"
+    first = runtime.begin_stage(job_id, "edit", "a@host", "cpu", db)
+    runtime.StageCallbacks(first, "edit", db).callbacks.warning("edit", said)
+    runtime.release_stage(job_id, first.run_token)  # (the worker went down; its message redelivered)
+    again = runtime.StageCallbacks(runtime.begin_stage(job_id, "edit", "b@host", "cpu", db), "edit", db)
+    again.callbacks.warning("edit", said)
+    again.on_progress(Progress("edit", 1, 10))
+    assert job_row(job_id).message == said
+    assert [e["detail"] for e in events_of(job_id) if e["kind"] == "warning"] == [said]
+    again.callbacks.warning("edit", colours := "its colour channels are constant")
+    assert [e["detail"] for e in events_of(job_id) if e["kind"] == "warning"] == [said, colours]
+    with session_scope() as session:  # one job.warning each
+        assert session.scalar(select(func.count()).select_from(WebhookDelivery).where(
+            WebhookDelivery.job_id == job_id, WebhookDelivery.event_type == "job.warning")) == 2
+
+
 def test_reaper_sends_again_the_ingests_of_scenes_whose_worker_died_and_fails_those_never_sent(db):
     """A processing scene whose ingesting worker died had been failed ("upload it again"), an accepted upload lost
     to a crash, where a job in that state is sent again. Its ingest is sent again (the scene waits for a worker, the

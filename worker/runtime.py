@@ -34,7 +34,7 @@ from voxe_service.db import DATABASE_UNAVAILABLE, database_outage, locked, sessi
 from voxe_service.jobs import discard_withdrawn, finish_jobs, record_event, withdraw_unfinished_stage_artifacts
 from voxe_service.models import (
     CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, R_FAILED, R_PENDING, R_RUNNING, READY, RUNNING, SUCCEEDED,
-    TERMINAL_STATES, Artifact, Job, Reconstruction, Scene, utcnow,
+    TERMINAL_STATES, Artifact, Job, JobEvent, Reconstruction, Scene, utcnow,
 )
 from voxe_service.queue import requeue_limit_error
 from voxe_service.settings import TINY_MODEL, Settings
@@ -406,13 +406,17 @@ def record_job_event(job_id: str, kind: str, **fields) -> None:
 def record_warning(job_id: str, stage: str, text: str) -> None:
     """Say ``text`` as the job's message and as a ``warning`` event on its timeline, in one transaction: a stage that
     completed with a result the user should look at, or started over from a checkpoint it could not go on from (the
-    message is the next report's once that comes; the event stays)."""
+    message is the next report's once that comes; the event stays). A warning the timeline holds for ``stage``
+    already (an earlier run of it said it: a resume, a redelivery) is not recorded again, nor its webhook sent."""
     with session_scope() as session:
         if (job := locked(session, Job, job_id)) is None:
             return
         _refuse_if_superseded(job_id, lambda: job.run_token)  # (read under the lock just taken)
         job.message, job.updated_at = text, utcnow()
-        record_event(session, job_id, "warning", stage=stage, detail=text)
+        said = select(JobEvent.id).where(JobEvent.job_id == job_id, JobEvent.kind == "warning",
+                                         JobEvent.stage == stage, JobEvent.detail == text)
+        if session.scalar(said.limit(1)) is None:
+            record_event(session, job_id, "warning", stage=stage, detail=text)
 
 
 # --------------------------------------------------------------------------- callbacks
