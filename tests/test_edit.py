@@ -804,8 +804,8 @@ def test_a_regulariser_a_constant_initial_grid_switches_off_is_said_before_the_f
                  "a constant 2.0 (an empty or unfitted reconstruction?)"), ("progress", 2.0)]
     assert run(small_sphere, regulariser="reg3d_plus")[0] == (
         "edit", "the reconstruction's red, green and blue colour channels are constant: the 3D regulariser "
-                "(reg3d_plus) has nothing to correlate on them: its terms for them are off (1 per term in its reg, "
-                "with no gradient)")
+                "(reg3d_plus) has nothing to correlate on them: its terms for them are off, adding a constant 1 to "
+                "its reg with no gradient (its reg: the density term plus the mean of the red, green and blue terms)")
     one_colour = small_sphere.clone_grid()
     with torch.no_grad():
         one_colour.features[..., 0] = 3.0
@@ -813,13 +813,39 @@ def test_a_regulariser_a_constant_initial_grid_switches_off_is_said_before_the_f
             one_colour.features.shape[:3])
     assert run(one_colour, regulariser="reg3d_plus")[0] == (
         "edit", "the reconstruction's density and its green and blue colour channels are constant: the 3D "
-                "regulariser (reg3d_plus) has nothing to correlate on them: its terms for them are off (1 per term in "
-                "its reg, with no gradient)")
+                "regulariser (reg3d_plus) has nothing to correlate on them: its terms for them are off, adding a "
+                "constant 5/3 to its reg with no gradient (its reg: the density term plus the mean of the red, green "
+                "and blue terms)")
     for grid, config in [(small_sphere, {}), (unfitted, {"regulariser_weight": 0.0}),
                          (unfitted, {"regulariser": "volumetric_l2"})]:
         assert [kind for kind, _ in run(grid, **config)] == ["progress", "progress"], config
     with pytest.warns(UserWarning, match=re.escape(f"edit: {off}")):  # no on_warning: a Python warning says it
         edit(unfitted, "a dog", FakeGuidance(), EditConfig(iterations=1, render_size=16))
+
+
+def test_the_partly_constant_reg3d_plus_warning_states_what_its_constant_terms_add_to_the_reg():
+    """reg3d_plus's reg is the density term plus the MEAN of the three colour terms, so a constant colour channel's
+    term (a constant 1) adds 1/3 to it, not 1 as the warning had said ("1 per term in its reg"). For each set of
+    constant channels that leaves something to correlate, the constant the warning states is the reg of G_i against
+    itself (where the varying channels' terms are 0)."""
+    from fractions import Fraction
+    from itertools import combinations
+
+    from voxe_core.edit import regulariser_off
+    from voxe_core.losses import volumetric_regulariser
+
+    config = EditConfig(regulariser="reg3d_plus")
+    for count in (1, 2, 3):
+        for constant in combinations(range(4), count):
+            grid = VoxelGrid(6)
+            with torch.no_grad():
+                for channel in range(4):
+                    grid.features[..., channel] = 0.5 if channel in constant else torch.randn(6, 6, 6)
+            said = regulariser_off(grid, config)
+            stated = re.search(r"adding a constant (\S+) to its reg", said or "")
+            assert stated, (constant, said)
+            reg = float(volumetric_regulariser("reg3d_plus", grid.features)(grid.features))
+            assert float(Fraction(stated.group(1))) == pytest.approx(reg, abs=1e-5), (constant, said, reg)
 
 
 def test_image_regulariser_against_the_grids_own_renders_is_small(small_sphere):

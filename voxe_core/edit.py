@@ -52,6 +52,7 @@ import numbers
 import time
 import warnings
 from dataclasses import dataclass, field
+from fractions import Fraction
 from pathlib import Path
 from typing import Callable
 
@@ -370,8 +371,11 @@ def regulariser_off(initial_grid: VoxelGrid, config: EditConfig) -> str | None:
     are, them, terms = ("is", "it", "term") if len(constant) == 1 else ("are", "them", "terms")
     said = (f"the reconstruction's {what} {are} constant: the 3D regulariser ({config.regulariser}) has nothing to "
             "correlate")
-    if len(constant) < len(CORRELATED_CHANNELS[config.regulariser]):
-        return f"{said} on {them}: its {terms} for {them} {are} off (1 per term in its reg, with no gradient)"
+    correlated = CORRELATED_CHANNELS[config.regulariser]
+    if len(constant) < len(correlated):  # (reg3d_plus: its reg is the density term + the mean of the colour terms)
+        added = ("density" in constant) + Fraction(len(colours), len(correlated) - 1)
+        return (f"{said} on {them}: its {terms} for {them} {are} off, adding a constant {added} to its reg with no "
+                "gradient (its reg: the density term plus the mean of the red, green and blue terms)")
     return (f"{said} and is off; the edit runs unregularised, its reg a constant {2.0 if colours else 1.0} "
             "(an empty or unfitted reconstruction?)")
 
