@@ -2649,6 +2649,34 @@ def test_a_scene_backbone_fit_of_a_single_image_is_a_422_at_submission(client, d
     assert submit("relu_field", 1).status_code == 201
 
 
+def test_a_scene_backbone_fit_of_a_one_image_scene_is_a_422_at_submission(client, root, tmp_path):
+    """A scene of one photo leaves the scene backbone one camera whatever max_images says: its jobs had been
+    accepted (max_images unset) and failed in the worker. Refused on the ready scene, jobs and sweeps alike (the
+    sweep's fid_input 422 had advised fid_input false, which led there); a job waiting on its ingest fails as the
+    ingest decides 'auto'."""
+    one_photo = _opaque_copy(small_mic(tmp_path / "mic1", frames=1), tmp_path / "photo1")
+    photo_zip = zip_folder(one_photo, tmp_path / "one.zip", prefix="mic_small")
+    waiting = upload_zip(client, photo_zip).json()
+    waiting_job = client.post("/v1/jobs", json={"scene_id": waiting["id"], **JOB})
+    assert waiting_job.status_code == 201, waiting_job.text  # processing: its backbone not decided yet
+    assert ingest(waiting["id"])["state"] == "ready"
+    scene = client.get(f"/v1/scenes/{waiting['id']}").json()
+    assert (scene["backbone"], scene["image_count"]) == ("scene", 1)
+    why = ("params.reconstruction: the scene has a single training image, whose one camera has no centre to orbit: "
+           "the scene backbone needs views from around the object (upload them): backbone 'auto' is 'scene' for "
+           "this scene (its images are opaque photos)")
+    failed = client.get(f"/v1/jobs/{waiting_job.json()['id']}").json()
+    assert (failed["state"], failed["error"]) == ("failed", why)
+
+    refused = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB})
+    assert refused.status_code == 422 and refused.json()["detail"] == why
+    sweep = client.post("/v1/sweeps", json={"scenes": [{"scene_id": scene["id"], "object": "mic"}],
+                                            "evaluation": {"fid_input": False}})
+    assert sweep.status_code == 422 and sweep.json()["detail"] == why
+    named = {"reconstruction": {"backbone": "relu_field"}}
+    assert client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB, "params": named}).status_code == 201
+
+
 def test_fid_input_against_a_single_input_image_is_a_422_at_submission(client, dataset, root):
     """FID_input compares the ring with the edits' fit's input images, and FID needs two: an evaluation of edits
     fitted from max_images 1 had been accepted and failed in the worker (a sweep's, after each edit had run)."""

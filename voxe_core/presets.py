@@ -225,15 +225,16 @@ def fit_backbone(rec_params: dict, scene_backbone: str | None = None) -> str:
     return scene_backbone if asked == "auto" and scene_backbone else asked
 
 
-def check_fit(rec_params: dict, scene_backbone: str | None) -> None:
+def check_fit(rec_params: dict, scene_backbone: str | None, image_count: int | None = None) -> None:
     """ValueError, naming what "auto" became and why, for parameters that resolve to no recipe on a scene of kind
-    ``scene_backbone`` (None: not known yet, so only what fits no backbone is refused, by ``reconstruction_key``)."""
+    ``scene_backbone`` (None: not known yet, so only what fits no backbone is refused, by ``reconstruction_key``)
+    and ``image_count`` training images (None: not known)."""
     backbone = fit_backbone(rec_params, scene_backbone)
     if backbone == "auto":
         return
     try:
         reconstruct_config(rec_params, backbone=backbone)
-        _check_views_kept(rec_params, backbone)
+        _check_views_kept(rec_params, backbone, image_count)
     except ValueError as exc:
         if rec_params.get("backbone", "auto") != "auto":
             raise
@@ -241,13 +242,18 @@ def check_fit(rec_params: dict, scene_backbone: str | None) -> None:
                          f"({BACKBONE_REASONS[backbone]})") from None
 
 
-def _check_views_kept(rec_params: dict, backbone: str) -> None:
-    """ValueError for a scene-backbone fit of one image: its frame is the centre the cameras orbit, which one camera
-    has none of (``scene_frame``); the worker had found it only once it had loaded the images, after the job was
-    accepted."""
-    if backbone == "scene" and rec_params.get("max_images") == 1:
+def _check_views_kept(rec_params: dict, backbone: str, image_count: int | None) -> None:
+    """ValueError for a scene-backbone fit of one image (``max_images`` 1, or a scene of ``image_count`` 1): its
+    frame is the centre the cameras orbit, which one camera has none of (``scene_frame``); the worker had found it
+    only once it had loaded the images, after the job was accepted."""
+    if backbone != "scene":
+        return
+    if rec_params.get("max_images") == 1:
         raise ValueError("max_images 1 keeps a single image, whose one camera has no centre to orbit: the scene "
                          "backbone needs views from around the object (raise max_images, or leave it out)")
+    if image_count == 1:
+        raise ValueError("the scene has a single training image, whose one camera has no centre to orbit: the scene "
+                         "backbone needs views from around the object (upload them)")
 
 
 def fit_setup(rec_params: dict, alphas: "torch.Tensor | None", cameras: "Cameras",

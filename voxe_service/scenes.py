@@ -53,9 +53,10 @@ def mark_ready(session: Session, scene_id: str, where=(), **values) -> list[Job]
     if changed.rowcount != 1:
         return None
     dispatch = []
+    image_count = session.scalar(select(Scene.image_count).where(Scene.id == scene_id))  # as updated (a mesh: its views)
     for job in waiting_jobs(session, scene_id):
         try:
-            check_fit(job.reconstruction.params, values.get("backbone"))
+            check_fit(job.reconstruction.params, values.get("backbone"), image_count)
         except ValueError as exc:
             error = f"params.reconstruction: {exc}"
             finish_jobs(session, [job.id], FAILED, error=error)

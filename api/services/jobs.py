@@ -81,7 +81,7 @@ def refuse_unfit(scene: Scene, rec_params: dict) -> None:
     """422 when the backbone the scene's ingest chose cannot take these reconstruction parameters, naming what
     ``auto`` became and why (a processing scene's jobs are checked once its ingest decides)."""
     try:
-        check_fit(rec_params, scene.backbone)
+        check_fit(rec_params, scene.backbone, scene.image_count)
     except ValueError as exc:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"params.reconstruction: {exc}") from exc
 
