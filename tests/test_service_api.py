@@ -2708,6 +2708,35 @@ def test_fid_input_against_a_single_input_image_is_a_422_at_submission(client, d
     assert two.status_code == 201, two.text
 
 
+def test_an_evaluation_whose_scene_is_deleted_while_it_is_created_is_404(client, dataset, root, monkeypatch):
+    """The scene (its reconstructions and jobs with it) deleted after the edit jobs were read: a 404 naming it, as
+    a job's submission answers, and nothing recorded (the FID_input check's read of it had raised, a 500)."""
+    from sqlalchemy import delete, func, select, update
+
+    import api.services.evaluations as evaluations
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, Scene
+
+    scene = make_scene(client, dataset, root)
+    edit = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}).json()
+    with session_scope() as session:
+        session.execute(update(Job).where(Job.id == edit["id"]).values(state="succeeded"))
+    read_job = evaluations.get_job
+
+    def read_then_scene_deleted(**kwargs):
+        job = read_job(**kwargs)
+        with session_scope() as other:  # a DELETE /v1/scenes/{id} committed meanwhile
+            other.execute(delete(Scene).where(Scene.id == scene["id"]))
+        return job
+
+    monkeypatch.setattr(evaluations, "get_job", read_then_scene_deleted)
+    response = client.post("/v1/evaluations", json={"job_ids": [edit["id"]], "object": "mic"})
+    assert response.status_code == 404, response.text
+    assert response.json()["detail"] == f"scene {scene['id']!r} was deleted while the job was created"
+    with session_scope() as session:
+        assert session.scalar(select(func.count()).select_from(Job)) == 0
+
+
 def _opaque_copy(dataset: Path, dest: Path) -> Path:
     """``dataset`` with its images flattened onto white, saved without alpha: photos, as a capture's are."""
     from PIL import Image

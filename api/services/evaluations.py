@@ -14,7 +14,7 @@ from sqlalchemy.orm import Session
 from api.schemas import EvaluationCreate, EvaluationParams, JobCreate, SweepCreate
 from api.auth import Idempotency, sha256_hex
 from api.services.jobs import (
-    get_job, new_edit_job, reconstruction_for, record_and_send, request_cancel, submit, usable_scene,
+    get_job, new_edit_job, reconstruction_for, record_and_send, request_cancel, scene_deleted, submit, usable_scene,
 )
 from voxe_core.evaluate import paper_protocol
 from voxe_core.guidance.prompts import check_prompt_length
@@ -75,9 +75,12 @@ def create_evaluation(*, session: Session, settings: Settings, queue: TaskQueue,
     if len({s.reconstruction_id for s in sources}) > 1:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "the jobs edit different reconstructions of the "
                                                                   "scene (reconstruction parameters differ)")
-    rec = session.get(Reconstruction, sources[0].reconstruction_id)
-    refuse_fid_input_of_one_image(body.params, session.get(Scene, sources[0].scene_id), rec.params.get("max_images"),
-                                  "params.fid_input")
+    scene = session.get(Scene, sources[0].scene_id)
+    rec_id = sources[0].reconstruction_id
+    rec = None if rec_id is None else session.get(Reconstruction, rec_id)
+    if scene is None or rec is None:  # deleted since the jobs were read (a reconstruction goes only with its scene)
+        raise scene_deleted(sources)
+    refuse_fid_input_of_one_image(body.params, scene, rec.params.get("max_images"), "params.fid_input")
     job = new_evaluation_job(key, settings, sources, body.object, body.params)
     return submit(session=session, settings=settings, queue=queue, key=key, job=job, idem=idem)
 

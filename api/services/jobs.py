@@ -172,13 +172,13 @@ def add_jobs(*, session: Session, key: ApiKey, settings: Settings, jobs: list[Jo
             session.rollback()
             scene_ids = {j.scene_id for j in jobs}
             if session.scalar(select(func.count()).select_from(Scene).where(Scene.id.in_(scene_ids))) < len(scene_ids):
-                raise _scene_deleted(jobs) from None
+                raise scene_deleted(jobs) from None
             raise
         check_active_jobs(session, key, settings, adding=len(jobs))
         states = {}
         for scene_id in sorted({j.scene_id for j in jobs}):
             if (scene := lock_scene(session, scene_id)) is None:
-                raise _scene_deleted(jobs)
+                raise scene_deleted(jobs)
             refuse_unless_usable(scene)
             states[scene_id] = scene.state
             for job in jobs:  # (its ingest may have decided since usable_scene read it processing)
@@ -212,7 +212,8 @@ def last_sent(jobs: list[Job], to_send: list[Job]) -> Job:
     return [j for j in jobs if j is last or j.source_job_ids == [last.id]][-1]
 
 
-def _scene_deleted(jobs: list[Job]) -> HTTPException:
+def scene_deleted(jobs: list[Job]) -> HTTPException:
+    """404 for ``jobs`` whose scene was deleted while they were being created."""
     scenes = ", ".join(repr(s) for s in sorted({j.scene_id for j in jobs}))
     return HTTPException(status.HTTP_404_NOT_FOUND, f"scene {scenes} was deleted while the job was created")
 
