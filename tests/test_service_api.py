@@ -2701,7 +2701,9 @@ def test_fid_input_against_a_single_input_image_is_a_422_at_submission(client, d
     evaluation = {"job_ids": [edit["id"]], "object": "mic"}
     refused = client.post("/v1/evaluations", json=evaluation)
     assert refused.status_code == 422, refused.text
-    assert refused.json()["detail"].startswith("params.fid_input needs at least 2 input images")
+    assert refused.json()["detail"] == ("params.fid_input needs at least 2 input images to compare the ring with "
+                                        f"(FID), but the edits' params.max_images 1 (job {edit['id']!r}) keeps 1: "
+                                        "set params.fid_input false, or fit from more images")
     assert client.post("/v1/evaluations", json={**evaluation, "params": {"fid_input": False}}).status_code == 201
     two = client.post("/v1/sweeps", json={"scenes": [{"scene_id": scene["id"], "object": "mic"}],
                                           "params": {"max_images": 2}})

@@ -40,14 +40,18 @@ def new_evaluation_job(key: ApiKey, settings: Settings, sources: list[Job], obje
 
 
 def refuse_fid_input_of_one_image(params: EvaluationParams, scene: Scene, max_images: int | None,
-                                  field: str) -> None:
+                                  field: str, edit_job_id: str | None = None) -> None:
     """422 naming ``field`` (the request's fid_input) for FID_input against fewer than 2 input images (the edits'
     fit's: the scene's training images, the first ``max_images``): FID compares two sets' statistics, and the
-    evaluation had been accepted and failed in the worker, a sweep's after each edit it follows had run."""
+    evaluation had been accepted and failed in the worker, a sweep's after each edit it follows had run.
+    ``edit_job_id``: the edit job whose params set ``max_images`` (an evaluation's; a sweep's are its own)."""
     kept = scene.image_count if max_images is None else min(max_images, scene.image_count)
     if params.fid_input and kept < 2:
-        why = (f"params.max_images {max_images} keeps {kept}" if max_images is not None and max_images < 2
-               else f"scene {scene.id!r} has {kept}")
+        if max_images is not None and max_images < 2:
+            why = (f"params.max_images {max_images}" if edit_job_id is None
+                   else f"the edits' params.max_images {max_images} (job {edit_job_id!r})") + f" keeps {kept}"
+        else:
+            why = f"scene {scene.id!r} has {kept}"
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
                             f"{field} needs at least 2 input images to compare the ring with (FID), but {why}: set "
                             f"{field} false, or fit from more images")
@@ -80,7 +84,8 @@ def create_evaluation(*, session: Session, settings: Settings, queue: TaskQueue,
     rec = None if rec_id is None else session.get(Reconstruction, rec_id)
     if scene is None or rec is None:  # deleted since the jobs were read (a reconstruction goes only with its scene)
         raise scene_deleted(sources)
-    refuse_fid_input_of_one_image(body.params, scene, rec.params.get("max_images"), "params.fid_input")
+    refuse_fid_input_of_one_image(body.params, scene, rec.params.get("max_images"), "params.fid_input",
+                                  sources[0].id)
     job = new_evaluation_job(key, settings, sources, body.object, body.params)
     return submit(session=session, settings=settings, queue=queue, key=key, job=job, idem=idem)
 
