@@ -11,7 +11,9 @@ import unicodedata
 from datetime import datetime
 from typing import Annotated, Generic, Literal, TypeVar
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator, model_serializer, model_validator
+from pydantic import (
+    AfterValidator, BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_serializer, model_validator,
+)
 
 from voxe_core import constants as paper
 from voxe_core import presets
@@ -187,14 +189,28 @@ class JobParams(Strict):
     preview_every: int = Field(presets.PREVIEW_EVERY, ge=0, le=200_000,
                                description="iterations between preview renders (0: none)")
     reconstruction: ReconstructionParams = Field(default_factory=ReconstructionParams)
-    refine: RefineParams = Field(default_factory=RefineParams)
-    export: ExportParams = Field(default_factory=ExportParams)
+    refine: RefineParams = Field(default_factory=RefineParams, validate_default=True)
+    export: ExportParams = Field(default_factory=ExportParams, validate_default=True)
+
+    # Each stage's config built as the worker will (a rule the bounds above miss had failed the job after its fit),
+    # a refusal located at the stage's section; the reconstruction's is checked against the scene
+    # (api.services.jobs.usable_scene).
+    @field_validator("refine")
+    @classmethod
+    def _refinement_takes_it(cls, refine: RefineParams, info: ValidationInfo) -> RefineParams:
+        # with the edit's fields above it (its render size is the refinement's default; view words, seed)
+        presets.check_stage("refine", {**info.data, "refine": refine.model_dump(mode="json")})
+        return refine
+
+    @field_validator("export")
+    @classmethod
+    def _export_takes_it(cls, export: ExportParams) -> ExportParams:
+        presets.check_stage("export", {"export": export.model_dump(mode="json")})
+        return export
 
     @model_validator(mode="after")
-    def _stages_take_them(self):
-        # Each stage's config built as the worker will (a rule the bounds above miss had failed the job after its
-        # fit); the reconstruction's is checked against the scene (api.services.jobs.usable_scene).
-        presets.check_stages(self.model_dump(mode="json"))
+    def _edit_takes_them(self):
+        presets.check_stage("edit", self.model_dump(mode="json"))
         return self
 
 

@@ -25,7 +25,7 @@ BEYOND_SCHEMA = (
     "cover the whole prompt", "apply to local edits only", "webhook_events needs a webhook_url", "takes one value or one per stage",
     "cannot give backbone 'scene'", "needs a scene uploaded as a mesh", "tokens as the model sees it",
     # (has no words: beyond single ASCII characters, no pattern every validator reads alike states it)
-    "lift_start='constant' with no fitting iterations", "has no words", "max_images 1 keeps a single image",
+    "lift_start='constant' with iterations=0", "has no words", "max_images 1 keeps a single image",
 )
 HOOK = "http://127.0.0.1:9/hook"
 LIMITED = settings(max_examples=60, deadline=None, database=None,

@@ -248,29 +248,56 @@ def test_parameters_at_and_past_each_limit_are_refused_at_submission_or_build_ev
     assert accepted > len(cases) / 2  # the property was not met by refusing everything
 
 
-def test_a_stage_configs_rule_no_bound_states_is_refused_at_submission(monkeypatch):
-    """Submission builds each stage's config as the worker will (``voxe_core.presets.check_stages``): a rule of
-    EditConfig's that no bound of the job parameters states (made up here: a render size in multiples of 8) is a
-    422 naming the stage, as RefineConfig's constant start without fitting is, rather than a job failing after its
-    fit."""
+def test_a_stage_configs_rule_no_bound_states_is_refused_at_submission_at_its_section(monkeypatch):
+    """Submission builds each stage's config as the worker will (``voxe_core.presets.check_stage``): a rule of a
+    config that no bound of the job parameters states (RefineConfig's constant start without fitting; made up here:
+    render sizes and frame rates in multiples of 8) is a 422 located at the stage's section of the parameters (the
+    refinement's had been at ``params``, naming the config's init_value), rather than a job failing after its fit."""
     from pydantic import ValidationError
 
     from api.schemas import JobCreate
+    from voxe_core import presets
     from voxe_core.edit import EditConfig
+    from voxe_core.refine.config import RefineConfig
 
-    with pytest.raises(ValidationError, match="refine: lift_start='constant' with no fitting iterations"):
-        JobParams.model_validate({"refine": {"lift_start": "constant", "iterations": 0}})
-    real = EditConfig.__post_init__
+    def refusal(params: dict) -> tuple[tuple, str]:
+        with pytest.raises(ValidationError) as refused:
+            JobCreate(scene_id="s", prompt="a mic", params=params)
+        (error,) = refused.value.errors()
+        return error["loc"], error["msg"]
 
-    def stricter(self):
-        real(self)
-        if self.render_size % 8:
-            raise ValueError(f"render_size must be a multiple of 8, got {self.render_size}")
+    loc, message = refusal({"refine": {"lift_start": "constant"}})
+    assert loc == ("params", "refine")
+    assert message.startswith("Value error, refine: lift_start='constant' with iterations=0 leaves both attention "
+                              "grids at their constant start") and "init_value" not in message
 
-    monkeypatch.setattr(EditConfig, "__post_init__", stricter)
-    with pytest.raises(ValidationError, match="edit: render_size must be a multiple of 8, got 100"):
-        JobCreate(scene_id="s", prompt="a mic", params={"render_size": 100})
-    assert JobCreate(scene_id="s", prompt="a mic", params={"render_size": 96}).params.render_size == 96
+    def in_eights(real, what: str):
+        def stricter(self):
+            real(self)
+            if getattr(self, what) % 8:
+                raise ValueError(f"{what} must be a multiple of 8, got {getattr(self, what)}")
+        return stricter
+
+    with monkeypatch.context() as patched:  # the refinement's render size is the edit's by default
+        patched.setattr(RefineConfig, "__post_init__", in_eights(RefineConfig.__post_init__, "render_size"))
+        assert refusal({"render_size": 100}) == (("params", "refine"),
+                                                 "Value error, refine: render_size must be a multiple of 8, got 100")
+        assert JobCreate(scene_id="s", prompt="a mic", params={"render_size": 96}).params.render_size == 96
+    with monkeypatch.context() as patched:
+        patched.setattr(EditConfig, "__post_init__", in_eights(EditConfig.__post_init__, "render_size"))
+        assert refusal({"render_size": 100}) == (("params",), "Value error, edit: render_size must be a multiple of 8, "
+                                                              "got 100")
+    real_fps_check = presets.check_video_fps
+
+    def fps_in_eights(fps: float) -> None:
+        real_fps_check(fps)
+        if fps % 8:
+            raise ValueError(f"fps must be a multiple of 8, got {fps:g}")
+
+    monkeypatch.setattr(presets, "check_video_fps", fps_in_eights)
+    assert refusal({"export": {"fps": 12.0}}) == (("params", "export"),
+                                                  "Value error, export: fps must be a multiple of 8, got 12")
+    assert JobCreate(scene_id="s", prompt="a mic", params={"export": {"fps": 16.0}}).params.export.fps == 16
 
 
 # ------------------------------------------------------------------ SPEC §5 for real scenes

@@ -290,7 +290,7 @@ def _refine_cli(tmp_path, make_sphere_grid, *options: str) -> int:
 def test_a_constant_start_without_fitting_steps_is_refused_before_any_work(tmp_path, make_sphere_grid, capsys):
     # Both grids would stay at init_value: P_e = P_obj = 1/2 at every voxel, no seed, a SegmentationError at the cut,
     # after every attention pass (a job's: after its whole edit). The service's 0 steps suit only the back-projection.
-    with pytest.raises(ValueError, match="lift_start='constant' with no fitting iterations .* no seeds"):
+    with pytest.raises(ValueError, match="lift_start='constant' with iterations=0 .* no seeds"):
         RefineConfig(lift_start="constant", iterations=0, fit_views="fixed", fit_pixels="all")
     RefineConfig(lift_start="backprojection", iterations=0)
     out = tmp_path / "out"

@@ -928,7 +928,7 @@ def test_unknown_fields_are_422_naming_the_field(client, dataset, root, body, lo
     ({"prompt": "<|startoftext|>a mic wearing sunglasses<|endoftext|>"},
      "the prompt contains '<|startoftext|>' and '<|endoftext|>'"),
     ({"edit_words": ["sunglasses<|endoftext|>"]}, "an edit word contains '<|endoftext|>'"),
-    ({"params": {"refine": {"lift_start": "constant"}}}, "refine: lift_start='constant' with no fitting iterations"),
+    ({"params": {"refine": {"lift_start": "constant"}}}, "refine: lift_start='constant' with iterations=0"),
 ])
 def test_bad_edit_words_are_422(client, dataset, root, body, message):
     scene = make_scene(client, dataset, root)

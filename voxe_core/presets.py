@@ -395,18 +395,21 @@ def export_config(params: dict) -> ExportConfig:
     return ExportConfig(**{k: v for k, v in export.items() if v is not None})
 
 
-def check_stages(params: dict) -> None:
-    """ValueError, naming the stage, for job parameters a stage's config refuses: the edit's on either backbone G_i
-    may be, the refinement's, the export's videos. The service calls it on submission, so a rule of a config that
-    the job parameters' bounds do not state is a 422 there, not a job failing after its fit."""
-    stages = [*(("edit", lambda kind=kind: edit_config(params, kind)) for kind in BACKBONE_KINDS),
-              ("refine", lambda: refine_config(params, paper.ATTENTION_MODEL_ID)),
-              ("export", lambda: check_video_fps(export_config(params).fps))]
-    for stage, build in stages:
-        try:
-            build()
-        except ValueError as exc:
-            raise ValueError(f"{stage}: {exc}") from None
+STAGE_CHECKS = {"edit": lambda params: [edit_config(params, kind) for kind in BACKBONE_KINDS],
+                "refine": lambda params: refine_config(params, paper.ATTENTION_MODEL_ID),
+                "export": lambda params: check_video_fps(export_config(params).fps)}
+"""Each stage's config built from the job parameters as the worker will: the edit's on either backbone G_i may be,
+the refinement's, the export's videos."""
+
+
+def check_stage(stage: str, params: dict) -> None:
+    """ValueError, naming ``stage`` (a key of ``STAGE_CHECKS``), for job parameters its config refuses. The service
+    calls it on submission, each stage's at its own section of the parameters, so a rule of a config that the job
+    parameters' bounds do not state is a 422 there, not a job failing after its fit."""
+    try:
+        STAGE_CHECKS[stage](params)
+    except ValueError as exc:
+        raise ValueError(f"{stage}: {exc}") from None
 
 
 def _given(params: dict, key: str, default):

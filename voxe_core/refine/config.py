@@ -187,9 +187,9 @@ class RefineConfig:
             raise ValueError("fit_pixels='rendered_positive' fits nothing from a constant start <= 0 (nothing renders "
                              "positive, so no pixel is ever counted): use lift_start='backprojection' or fit_pixels='all'")
         if self.lift_start == "constant" and not self.iterations:  # (it had failed at the cut, after every map)
-            raise ValueError(f"lift_start='constant' with no fitting iterations leaves both attention grids at "
-                             f"init_value everywhere: no voxel is more likely edit than object, so the cut has no "
-                             f"seeds; fit them (the paper: {REFINE_ITERATIONS} iterations) or use "
+            raise ValueError(f"lift_start='constant' with iterations=0 leaves both attention grids at their constant "
+                             f"start everywhere: no voxel is more likely edit than object, so the cut has no seeds; "
+                             f"fit them (iterations > 0; the paper: {REFINE_ITERATIONS}) or use "
                              "lift_start='backprojection'")
         if not (0 < self.lr < math.inf and 0 <= self.tv_weight < math.inf and math.isfinite(self.init_value)):
             raise ValueError(f"the fit's lr must be positive, tv_weight non-negative and init_value a number (all "
