@@ -164,8 +164,10 @@ class JobParams(Strict):
         presets.RESAMPLE, description="the downsampling's antialiasing filter (bilinear: as the authors' loader)"
     )
     max_images: int | None = Field(None, ge=1, le=100_000, description=(
-        "use only the first N training images; 1 is a 422 for a scene-backbone fit (one camera orbits no centre) and "
-        "for a sweep's evaluation with fid_input (FID compares at least 2)"))
+        "use only the first N training images. A scene-backbone fit of one image (1 here, or a one-image scene; one "
+        "camera orbits no centre) is a 422 where the backbone is known: named 'scene', or 'auto' on a ready scene of "
+        "photos; a job on a scene still processing fails when its ingest decides 'auto' is the scene backbone. 1 is "
+        "a 422 too for a sweep's evaluation with fid_input (FID compares at least 2)"))
     # editing (SPEC §2)
     iterations: int = Field(
         paper.EDIT_ITERATIONS, ge=0, le=200_000,
