@@ -53,7 +53,7 @@ def mark_ready(session: Session, scene_id: str, where=(), **values) -> list[Job]
     if changed.rowcount != 1:
         return None
     dispatch = []
-    image_count = session.scalar(select(Scene.image_count).where(Scene.id == scene_id))  # as updated (a mesh: its views)
+    image_count = session.scalar(select(Scene.image_count).where(Scene.id == scene_id))  # (a mesh's: as rendered)
     for job in waiting_jobs(session, scene_id):
         try:
             check_fit(job.reconstruction.params, values.get("backbone"), image_count)
