@@ -2378,6 +2378,45 @@ def test_a_database_outage_skips_a_stages_warning_event_and_its_next_progress_wr
         callbacks.callbacks.warning("edit", said)
 
 
+def test_a_database_outage_as_a_checkpoint_that_cannot_be_gone_on_from_is_started_over_skips_its_warning(db,
+                                                                                                       monkeypatch,
+                                                                                                       tmp_path):
+    """The warning that a stored checkpoint could not be gone on from was written straight to the database: a blip
+    there raised out of the stage (a counted re-queue) after the checkpoint was discarded, so the redelivery started
+    over with nothing said. It goes through the callbacks' warning: the event skipped, the stage started over, the
+    next progress write saying why."""
+    from sqlalchemy.exc import OperationalError
+
+    from voxe_core.progress import Progress
+    from voxe_core.tensorio import FormatError
+    from voxe_service.storage import get_storage
+    from worker import runtime, tasks
+
+    job_id = add_job(add_scene(), "queued", 0, completed_stages=["reconstruct"])
+    callbacks = runtime.StageCallbacks(runtime.begin_stage(job_id, "edit", "a@host", "cpu", db), "edit", db)
+    storage, key = get_storage(db), f"jobs/{job_id}/checkpoints/edit.safetensors"
+    (tmp_path / "c").write_bytes(b"x")
+    storage.put_file(key, tmp_path / "c", "application/octet-stream")
+
+    def run(resume):
+        if resume is not None:
+            raise FormatError("checkpoint was made against other input views")
+        return "started over"
+
+    def down(*args, **kwargs):
+        raise OperationalError("SELECT jobs", {}, Exception("server closed the connection unexpectedly"))
+
+    with monkeypatch.context() as outage:
+        outage.setattr(runtime, "locked", down)
+        outage.setattr(runtime, "update_job", down)
+        assert tasks._resumed_or_started_over(run, tmp_path / "c", job_id, "edit", callbacks, storage,
+                                              key) == "started over"
+    assert not storage.exists(key) and [e for e in events_of(job_id) if e["kind"] == "warning"] == []
+    callbacks.on_progress(Progress("edit", 1, 10))
+    assert job_row(job_id).message == ("the stored edit checkpoint could not be gone on from (checkpoint was made "
+                                       "against other input views): started over")
+
+
 def test_a_stages_warning_said_again_by_its_next_run_is_one_event_and_one_webhook(db):
     """Each run of an edit (a resume after a re-queue, a redelivery) said its constant-regulariser warning again:
     another ``warning`` event and job.warning webhook per run. The timeline keeps one per stage and text; the

@@ -635,7 +635,8 @@ def _resumed_or_started_over(run, resume: Path | None, job_id: str, stage: str, 
     views, prompt or initial grid, another device's generator it cannot read), ``run(None)``, the stage over from
     its start: refused, it would fail every redelivery. The stored checkpoint goes (a redelivery before the new run's
     first would meet it again), and the job says so, as a warning after its "resumed" event, in place of the
-    resumed note its progress reports carried."""
+    resumed note its progress reports carried (the callbacks' warning: a database blip skips the event, as it skips
+    a progress write, where it had stopped the stage, a counted re-queue starting over with nothing said)."""
     from voxe_core.tensorio import FormatError
 
     try:
@@ -644,10 +645,10 @@ def _resumed_or_started_over(run, resume: Path | None, job_id: str, stage: str, 
         if resume is None:
             raise
         storage.discard(checkpoint_key)
-        callbacks.note = f"the stored {stage} checkpoint could not be gone on from ({exc}): started over"
-        log.warning("job %s: %s", job_id, callbacks.note)
-        runtime.record_warning(job_id, stage, callbacks.note)
-        runtime.update_job(job_id, iteration=0)
+        callbacks.note = None  # (the resumed note it replaces)
+        callbacks.on_warning(stage, f"the stored {stage} checkpoint could not be gone on from ({exc}): started over")
+        with runtime.outage_skipped(f"job {job_id}: {stage}'s iteration set back"):  # (a blip: the next write sets it)
+            runtime.update_job(job_id, iteration=0)
         return run(None)
 
 
