@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import logging
+import math
 import os
 import time
 import uuid
@@ -2415,6 +2416,43 @@ def test_a_database_outage_as_a_checkpoint_that_cannot_be_gone_on_from_is_starte
     callbacks.on_progress(Progress("edit", 1, 10))
     assert job_row(job_id).message == ("the stored edit checkpoint could not be gone on from (checkpoint was made "
                                        "against other input views): started over")
+
+
+@pytest.mark.parametrize("then", ["canceled", "taken over"])
+def test_a_stalled_runs_progress_writes_nothing_on_a_job_it_no_longer_holds(db, then):
+    """A run stalled past its lease wrote its progress over the job all the same: over a cancel's ending (its reason
+    erased, the canceled job at the stalled run's iteration), or over the progress of the run that took it over.
+    Its progress (and the last report written as it stops) is written only while it holds the job."""
+    from sqlalchemy import update
+
+    from api.services.jobs import request_cancel
+    from voxe_core.progress import Progress
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, utcnow
+    from worker import runtime
+
+    job_id = add_job(add_scene(), "queued", 0, completed_stages=["reconstruct"])
+    stalled = runtime.StageCallbacks(runtime.begin_stage(job_id, "edit", "a@host", "cpu", db), "edit", db)
+    if then == "canceled":
+        with session_scope() as session:
+            request_cancel(session=session, job_ids=[job_id])
+    long_ago = utcnow() - timedelta(seconds=2 * db.job_stale_timeout_s)
+    with session_scope() as session:
+        session.execute(update(Job).where(Job.id == job_id).values(run_lease_until=long_ago))
+    if then == "canceled":
+        with pytest.raises(runtime.JobSkipped, match="canceled"):
+            runtime.begin_stage(job_id, "edit", "b@host", "cpu", db)
+    else:
+        taker = runtime.StageCallbacks(runtime.begin_stage(job_id, "edit", "b@host", "cpu", db), "edit", db)
+        taker.on_progress(Progress("edit", 5, 100))
+    before = job_row(job_id)
+    stalled.on_progress(Progress("edit", 77, 100))  # the stalled run wakes
+    stalled._last_check = -math.inf
+    stalled.on_progress(Progress("edit", 78, 100))  # (held back by the write interval) then asks: it stops
+    assert stalled.should_cancel()
+    after = job_row(job_id)
+    assert (after.state, after.message, after.iteration) == (before.state, before.message, before.iteration)
+    assert after.iteration == (0 if then == "canceled" else 5)
 
 
 def test_a_stages_warning_said_again_by_its_next_run_is_one_event_and_one_webhook(db):

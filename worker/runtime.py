@@ -94,9 +94,12 @@ def load_job(job_id: str) -> Job | None:
         return session.get(Job, job_id)
 
 
-def update_job(job_id: str, **values) -> None:
+def update_job(job_id: str, *, held_by: str | None = None, **values) -> None:
+    """Write ``values`` on the job; with ``held_by`` (a run's token) only while that run still holds it: a stalled
+    run's progress must not overwrite a job another run took over or an ending (its message, its iteration)."""
+    held = () if held_by is None else (Job.run_token == held_by,)
     with session_scope() as session:
-        session.execute(update(Job).where(Job.id == job_id).values(updated_at=utcnow(), **values))
+        session.execute(update(Job).where(Job.id == job_id, *held).values(updated_at=utcnow(), **values))
 
 
 class RunSuperseded(JobSkipped):
@@ -505,8 +508,8 @@ class StageCallbacks:
         losses = {k: round(float(v), 6) for k, v in report.losses.items() if math.isfinite(float(v))}
         message = self.note if report.stage == self.stage else f"{self.stage}: {report.stage}"
         with outage_skipped(f"job {self.job_id}: {self.stage}'s progress write"):
-            update_job(self.job_id, iteration=int(report.iteration), total=int(report.total), eta_seconds=eta,
-                       losses=losses, message=message)
+            update_job(self.job_id, held_by=self.run_token, iteration=int(report.iteration), total=int(report.total),
+                       eta_seconds=eta, losses=losses, message=message)
             if self.peak_memory_gb is not None and self.peak_memory_gb != self._peak_written:
                 record_peak_memory(self.job_id, self.stage, self.peak_memory_gb, report.info.get("peak_memory_kind"))
                 self._peak_written = self.peak_memory_gb
@@ -542,7 +545,7 @@ class StageCallbacks:
         if self._canceled and self._last_report is not None and self._last_report is not self._written:
             # Record where the stage stopped (the throttle may have held the last report back).
             report = self._last_report
-            update_job(self.job_id, iteration=int(report.iteration), total=int(report.total))
+            update_job(self.job_id, held_by=self.run_token, iteration=int(report.iteration), total=int(report.total))
         return self._canceled
 
 
