@@ -2455,6 +2455,74 @@ def test_a_stalled_runs_progress_writes_nothing_on_a_job_it_no_longer_holds(db, 
     assert after.iteration == (0 if then == "canceled" else 5)
 
 
+@contextlib.contextmanager
+def holding(job_id: str, run_token: str):
+    """This thread runs a stage of ``job_id`` as the run ``run_token`` (its hold, with no lease renewed)."""
+    from worker import runtime
+
+    mark = runtime._HOLDING.set((job_id, run_token))
+    try:
+        yield
+    finally:
+        runtime._HOLDING.reset(mark)
+
+
+def _ended_by_another_worker(db, job_id: str, stage: str) -> None:
+    """The job canceled and its lease lapsed, a redelivery on another worker ending it as it starts (run from a
+    stalled run's storage call, as another worker would, outside its hold)."""
+    from sqlalchemy import update
+
+    from api.services.jobs import request_cancel
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, utcnow
+    from worker import runtime
+
+    outside = runtime._HOLDING.set(None)
+    try:
+        with session_scope() as session:
+            request_cancel(session=session, job_ids=[job_id])
+            session.execute(update(Job).where(Job.id == job_id).values(run_lease_until=utcnow() - timedelta(hours=1)))
+        with pytest.raises(runtime.JobSkipped, match="canceled"):
+            runtime.begin_stage(job_id, stage, "b@host", "cpu", db)
+    finally:
+        runtime._HOLDING.reset(outside)
+
+
+def test_a_stalled_runs_upload_or_checkpoint_meeting_its_jobs_ending_leaves_nothing_after_it(db, tmp_path,
+                                                                                            monkeypatch):
+    """A stalled run whose job another worker ended while it uploaded an artifact kept the bytes at the artifact's
+    fixed key (kept for a new owner, which an ended job has not): stored, listed by no row. One ended while it
+    stored a checkpoint recorded a ``checkpoint`` event after the ending. Neither now."""
+    from voxe_core.progress import Progress
+    from voxe_service.storage import get_storage
+    from worker import runtime
+
+    storage = get_storage(db)
+    job_id = add_job(add_scene(), "queued", 0, completed_stages=["reconstruct", "edit"])
+    stalled = runtime.begin_stage(job_id, "export", "a@host", "cpu", db)
+    real_put = storage.put_file
+
+    def put_while_ended(key, path, *args, **kwargs):
+        stored = real_put(key, path, *args, **kwargs)
+        _ended_by_another_worker(db, job_id, "export")
+        return stored
+
+    monkeypatch.setattr(storage, "put_file", put_while_ended)
+    (tmp_path / "turntable.mp4").write_bytes(b"video")
+    with holding(job_id, stalled.run_token), pytest.raises(runtime.RunSuperseded):
+        runtime.publish_artifact(job_id, "turntable.mp4", tmp_path / "turntable.mp4", "video", storage)
+    assert storage.list(f"jobs/{job_id}/") == []
+
+    job_id = add_job(add_scene(), "queued", 0, completed_stages=["reconstruct"])
+    stalled = runtime.begin_stage(job_id, "edit", "a@host", "cpu", db)
+    callbacks = runtime.StageCallbacks(stalled, "edit", db, on_checkpoint=lambda path: _ended_by_another_worker(
+        db, job_id, "edit"))
+    callbacks.on_progress(Progress("edit", 10, 100))
+    with holding(job_id, stalled.run_token), pytest.raises(runtime.RunSuperseded):
+        callbacks.on_checkpoint(str(tmp_path / "checkpoint"))
+    assert [e["kind"] for e in events_of(job_id)][-1] == "canceled"
+
+
 def test_a_stages_warning_said_again_by_its_next_run_is_one_event_and_one_webhook(db):
     """Each run of an edit (a resume after a re-queue, a redelivery) said its constant-regulariser warning again:
     another ``warning`` event and job.warning webhook per run. The timeline keeps one per stage and text; the

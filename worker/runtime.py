@@ -486,7 +486,11 @@ class StageCallbacks:
             _refuse_if_superseded(self.job_id, lambda: session.scalar(_token_query(self.job_id)))
         self._store_checkpoint(path)
         iteration = self._last_report.iteration if self._last_report is not None else 0
-        record_job_event(self.job_id, "checkpoint", stage=self.stage, iteration=int(iteration))
+        with session_scope() as session:  # (not after an ending or a take-over that came as it was stored)
+            if (job := locked(session, Job, self.job_id)) is None:
+                return
+            _refuse_if_superseded(self.job_id, lambda: job.run_token)
+            record_event(session, self.job_id, "checkpoint", stage=self.stage, iteration=int(iteration))
 
     def on_progress(self, report: Progress) -> None:
         now = time.monotonic()
@@ -667,9 +671,11 @@ def _publish(job_id: str, files: list[tuple[str, str | os.PathLike, str, str | N
             _refuse_if_superseded(job_id, lambda: job.run_token if job is not None else None)
             artifacts = [_record_artifact(session, job_id, name, kind, stored[name]) for name, _, kind, _ in files]
     except RunSuperseded:
-        for name in uploaded:
-            if stored[name].key != job_key(job_id, name):  # the fixed key may be the new owner's
-                storage.discard(stored[name].key)
+        ended = bool(uploaded) and has_ended(job_id)
+        for name in uploaded:  # the fixed key may be the new owner's; an ended job has none (unless a row lists it)
+            key = stored[name].key
+            if key != job_key(job_id, name) or (ended and not _may_be_recorded(job_id, name, key)):
+                storage.discard(key)
         raise
     except BaseException:  # the records were not written: neither are the bytes kept, unless a row does record them
         for name in uploaded:  # (a commit may fail on its way back)
@@ -695,6 +701,14 @@ def _record_artifact(session, job_id: str, name: str, kind: str, stored: StoredO
     # On the timeline in the same transaction: an event stream announces each artifact once it can be read.
     record_event(session, job_id, "preview" if kind == "preview" else "artifact", detail=name)
     return artifact
+
+
+def has_ended(job_id: str) -> bool:
+    """Whether the job is finished or deleted: no run holds it, nor will (a skipped message that found it so may
+    clean up after it; one for a stage already done, redelivered, may not)."""
+    with session_scope() as session:
+        state = session.scalar(select(Job.state).where(Job.id == job_id))
+    return state is None or state in TERMINAL_STATES
 
 
 def _may_be_recorded(job_id: str, name: str, key: str) -> bool:

@@ -137,7 +137,7 @@ def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> Task
         raise Ignore() from None
     except JobSkipped as skipped:
         log.info("%s: skipped: %s", stage, skipped)
-        if _has_ended(job_id):  # canceled (or ended) before this stage: nothing resumes it, so nothing is kept
+        if runtime.has_ended(job_id):  # canceled (or ended) before this stage: nothing resumes it, so nothing is kept
             _cleanup(job_id, settings)
         return {"job_id": job_id, "stage": stage, "skipped": str(skipped)}
     log.info("job %s: %s started on %s", job_id, stage, device)
@@ -274,17 +274,10 @@ def _ended(job_id: str, stage: str, state: str, ended: bool, settings) -> TaskRe
     return {"job_id": job_id, "stage": stage, "state": state}
 
 
-def _has_ended(job_id: str) -> bool:
-    """Whether the job is finished or deleted (a skipped message that found it so may clean up after it; one for
-    a stage already done, redelivered, may not)."""
-    job = runtime.load_job(job_id)
-    return job is None or job.state in TERMINAL_STATES
-
-
 def _stop_if_taken_over(job_id: str, stage: str) -> None:
     """A run that stalled past its lease, while another run took the unfinished job over, drops its outcome and
     stops its chain (``Ignore``), leaving the job, its scratch and checkpoints to that run."""
-    if not _has_ended(job_id):
+    if not runtime.has_ended(job_id):
         log.warning("job %s: another run took the job over while this %s stalled; its outcome is dropped",
                     job_id, stage)
         raise Ignore()
