@@ -401,8 +401,13 @@ def finish_job(job_id: str, state: str, message: str | None = None, error: str |
 
 
 def record_job_event(job_id: str, kind: str, **fields) -> None:
-    """One event on the job's timeline, in its own transaction (checkpoints, resumes)."""
+    """One event on the job's timeline, in its own transaction (checkpoints, resumes); refused
+    (:class:`RunSuperseded`) to a stage's run that no longer holds the job: not after an ending or a take-over that
+    came meanwhile (a checkpoint stored as the job ended had put its event after the ending)."""
     with session_scope() as session:
+        if (job := locked(session, Job, job_id)) is None:
+            return
+        _refuse_if_superseded(job_id, lambda: job.run_token)  # (read under the lock just taken)
         record_event(session, job_id, kind, **fields)
 
 
@@ -486,11 +491,7 @@ class StageCallbacks:
             _refuse_if_superseded(self.job_id, lambda: session.scalar(_token_query(self.job_id)))
         self._store_checkpoint(path)
         iteration = self._last_report.iteration if self._last_report is not None else 0
-        with session_scope() as session:  # (not after an ending or a take-over that came as it was stored)
-            if (job := locked(session, Job, self.job_id)) is None:
-                return
-            _refuse_if_superseded(self.job_id, lambda: job.run_token)
-            record_event(session, self.job_id, "checkpoint", stage=self.stage, iteration=int(iteration))
+        record_job_event(self.job_id, "checkpoint", stage=self.stage, iteration=int(iteration))
 
     def on_progress(self, report: Progress) -> None:
         now = time.monotonic()
