@@ -2677,6 +2677,32 @@ def test_a_scene_backbone_fit_of_a_one_image_scene_is_a_422_at_submission(client
     assert client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB, "params": named}).status_code == 201
 
 
+def test_a_one_image_scene_ingested_before_backbones_were_recorded_fails_its_fit_naming_the_count(client, root,
+                                                                                                   tmp_path):
+    """A scene ingested before its backbone was recorded (NULL: "auto" is decided by the worker from the images it
+    loads) passes the submission's check, which cannot resolve "auto"; the worker's check of the fit knew no image
+    count, so a one-photo scene failed in the scene frame's own words, naming neither the count nor what "auto"
+    became. It fails as a submission on a newer scene is refused, before any fitting."""
+    from sqlalchemy import update
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
+    from worker import tasks
+
+    one_photo = _opaque_copy(small_mic(tmp_path / "mic1", frames=1), tmp_path / "photo1")
+    scene = upload_zip(client, zip_folder(one_photo, tmp_path / "one.zip", prefix="mic_small")).json()
+    assert ingest(scene["id"])["state"] == "ready"
+    with session_scope() as session:
+        session.execute(update(Scene).where(Scene.id == scene["id"]).values(backbone=None))
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB, "params": {"downsample": 16}})
+    assert job.status_code == 201, job.text
+    assert tasks.reconstruct_task.apply(args=(job.json()["id"],)).get()["state"] == "failed"
+    failed = client.get(f"/v1/jobs/{job.json()['id']}").json()
+    assert failed["error"] == ("reconstruct: ValueError: the scene has a single training image, whose one camera has "
+                               "no centre to orbit: the scene backbone needs views from around the object (upload "
+                               "them): backbone 'auto' is 'scene' for this scene (its images are opaque photos)")
+
+
 def test_fid_input_against_a_single_input_image_is_a_422_at_submission(client, dataset, root):
     """FID_input compares the ring with the edits' fit's input images, and FID needs two: an evaluation of edits
     fitted from max_images 1 had been accepted and failed in the worker (a sweep's, after each edit had run)."""

@@ -261,11 +261,13 @@ def fit_setup(rec_params: dict, alphas: "torch.Tensor | None", cameras: "Cameras
               split_c2w: "torch.Tensor | None" = None) -> FitSetup:
     """The backbone ``rec_params`` asks for (resolved as ``scene_backbone`` when given, else for images with
     ``alphas``), its config and starting point: what the CLI and the worker both run before ``reconstruct``.
-    ``split_c2w``: ``Scene.split_c2w``, so that cameras too few to fit from name ``max_images`` when they are."""
+    ``split_c2w``: ``Scene.split_c2w``, so that cameras too few to fit from name ``max_images`` when they are.
+    Too few cameras for the backbone are refused as a submission is, naming their count: a scene whose "auto" only
+    its images decide (one ingested before its backbone was recorded) passed the submission's check unresolved."""
     from voxe_core.backbones import prepare_backbone, resolve_backbone
 
     backbone = resolve_backbone(fit_backbone(rec_params, scene_backbone), alphas)
-    check_fit(rec_params, backbone)  # a refusal says what "auto" became
+    check_fit(rec_params, backbone, len(cameras))  # a refusal says what "auto" became
     config = reconstruct_config(rec_params, checkpoint_every, backbone)  # the backbone's default preset
     _, fit_cameras, initial = prepare_backbone(backbone, alphas, cameras, config.resolutions[0], split_c2w)
     return FitSetup(backbone, config, fit_cameras, initial)
