@@ -712,6 +712,21 @@ def verify_artifacts(client: httpx.Client, job: dict, expected: set[str], downlo
     return grids
 
 
+def check_the_edit_changed_the_object(client: httpx.Client, job: dict, grids: dict) -> None:
+    """The job's edit changed G_i where G_i holds the object (positive density), warning of nothing. A fit whose
+    first stage is a few voxels wide (the fast preset's at ``resolution`` 12 is 4; at 24 it is 8) pushes every
+    density below zero in its first steps, and the edit of that empty G_i changes nothing, warning that its
+    regulariser is off: such a job proves the plumbing only."""
+    import torch
+
+    initial, edited = grids["initial_grid.safetensors"], grids["edited_grid.safetensors"]
+    occupied = initial.features[..., 0] > 0
+    assert occupied.any(), f"job {job['id']}: G_i is empty, so its edit could change nothing"
+    assert not torch.equal(edited.features[occupied], initial.features[occupied]), f"job {job['id']}: edit did nothing"
+    warnings = [e for e in job_events(client, job["id"]) if e["kind"] == "warning" and e.get("stage") == "edit"]
+    assert warnings == [], warnings
+
+
 class WebhookReceiver:
     """A webhook receiver on a loopback ``host`` that records every request (headers lower-cased, body bytes).
 

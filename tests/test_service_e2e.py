@@ -22,8 +22,8 @@ import pytest
 
 from needs import MIC, missing, require_data
 from service_helpers import (
-    check_resumed_from_the_last_checkpoint, checkpoint_at_least, job_events, poll_job, redis_server, service,
-    verify_artifacts, wait_for_event, wait_for_scene, zip_folder,
+    check_resumed_from_the_last_checkpoint, check_the_edit_changed_the_object, checkpoint_at_least, job_events,
+    poll_job, redis_server, service, verify_artifacts, wait_for_event, wait_for_scene, zip_folder,
 )
 
 pytestmark = pytest.mark.slow
@@ -173,6 +173,10 @@ def test_local_and_global_jobs_share_one_reconstruction(stack):
     initial = verify_artifacts(stack.client, global_, COMMON_ARTIFACTS, stack.root)
     grids = verify_artifacts(stack.client, local, COMMON_ARTIFACTS | LOCAL_ARTIFACTS, stack.root)
     assert initial["initial_grid.safetensors"].resolution == grids["initial_grid.safetensors"].resolution == (24,) * 3
+    # Each edit changed the object G_i holds, and the local one's cut kept some of it.
+    check_the_edit_changed_the_object(stack.client, global_, initial)
+    check_the_edit_changed_the_object(stack.client, local, grids)
+    assert grids["mask"].any()
     stack.jobs.update(local=local, global_=global_)
 
 
