@@ -1018,11 +1018,12 @@ def test_a_zero_byte_download_leaves_the_part_another_download_opened_after_its_
     assert sorted(p.name for p in tmp_path.iterdir()) == [part.name, "e.txt"]
 
 
-@pytest.mark.parametrize("refused", ["ENOLCK", "EOPNOTSUPP", "ENOSYS"])
+@pytest.mark.parametrize("refused", ["ENOLCK", "EOPNOTSUPP", "ENOSYS", "EINVAL"])
 def test_a_download_into_a_folder_that_takes_no_locks_goes_on_unlocked(refused, tmp_path, monkeypatch):
     """A folder whose file system refuses ``flock`` (NFSv3 without lockd: ENOLCK; some SMB or FUSE mounts:
-    EOPNOTSUPP, ENOSYS) had failed every download with that OSError, an empty part file left behind: the download
-    goes on unlocked, and one that fails before a byte came leaves no part either."""
+    EOPNOTSUPP, ENOSYS, EINVAL to the valid operation asked) had failed every download with that OSError, an empty
+    part file left behind: the download goes on unlocked, and one that fails before a byte came leaves no part
+    either."""
     import errno
     import os
 
@@ -1041,6 +1042,31 @@ def test_a_download_into_a_folder_that_takes_no_locks_goes_on_unlocked(refused, 
         with pytest.raises(ServiceError, match="HTTP 503: down"):
             client.download("j1", "a.bin", tmp_path / "b.bin")
     assert [p.name for p in tmp_path.iterdir()] == ["a.bin"]
+
+
+def test_a_part_file_whose_lock_fails_with_an_io_error_fails_the_download_naming_it(tmp_path, monkeypatch):
+    """``flock`` failing for another reason than a file system that takes no locks (EIO: a disk or a network mount
+    failing) is no licence to go on unlocked: the download fails before asking for a byte, and its OSError keeps the
+    errno and names the part file (it had said a bare "[Errno 5] Input/output error")."""
+    import errno
+    import hashlib
+    import os
+
+    import voxe_client.client as client_module
+
+    def flock(file, operation):
+        raise OSError(errno.EIO, os.strerror(errno.EIO))
+
+    monkeypatch.setattr(client_module.fcntl, "flock", flock)
+    data = bytes(range(256)) * 40
+    part = tmp_path / f".a.bin.{hashlib.sha256(data).hexdigest()[:16]}.part"
+    answer = _serving(data)
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        with pytest.raises(OSError, match=rf"cannot lock the download's part file \(Input/output error\): "
+                                          rf"'{re.escape(str(part))}'$") as failed:
+            client.download("j1", "a.bin", tmp_path / "a.bin")
+    assert failed.value.errno == errno.EIO and failed.value.filename == str(part)
+    assert answer.asked == [] and not (tmp_path / "a.bin").exists()
 
 
 def test_an_artifact_with_a_long_name_downloads_through_a_part_file_of_a_name_that_fits(tmp_path):

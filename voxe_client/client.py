@@ -649,29 +649,39 @@ def _part_file(dest: Path, sha256: str) -> Path:
     return dest.with_name(f"{_part_stem(dest)}.{sha256[:16]}.part")
 
 
-LOCKS_REFUSED = {errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOTSUP, errno.ENOSYS}
+LOCKS_REFUSED = {errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOTSUP, errno.ENOSYS, errno.EINVAL}
 """What ``flock`` fails with in a folder whose file system takes no locks (NFSv3 without lockd, some SMB or FUSE
-mounts): a download there goes on unlocked, the part file's own size and SHA-256 check its backstop."""
+mounts; EINVAL where it refuses the valid operation asked): a download there goes on unlocked, the part file's own
+size and SHA-256 check its backstop. Any other failure (EIO) is the file's error."""
+
+
+def _lock_alone(file: BinaryIO, path: Path) -> bool:
+    """Whether ``file``, open at ``path``, is now locked (``flock``, not waiting) for this call alone, ``path`` still
+    naming it: not where another download holds it, or renamed or deleted it as it was opened. Where the file system
+    takes no locks (:data:`LOCKS_REFUSED`) it is not locked; another failure is an OSError naming ``path`` (a bare
+    "[Errno 5] Input/output error" had said no file)."""
+    try:
+        fcntl.flock(file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return False
+    except OSError as exc:
+        if exc.errno not in LOCKS_REFUSED:
+            raise OSError(exc.errno, f"cannot lock the download's part file ({exc.strerror})", str(path)) from None
+    try:
+        return os.path.samestat(os.fstat(file.fileno()), os.stat(path))
+    except FileNotFoundError:
+        return False
 
 
 @contextmanager
 def _locked_part(partial: Path, what: str) -> Iterator[BinaryIO]:
-    """``partial`` open to append and read, locked (``flock``) for this download alone: two at once (two ``voxe
-    download`` runs into one folder) had interleaved their bytes in it, the first to end renaming that mix over the
-    target. Another is an OSError naming it, its part left alone, as is a part another download renamed as this one
-    opened it. Where the file system takes no locks (:data:`LOCKS_REFUSED`) it is not locked (the download had
+    """``partial`` open to append and read, locked (:func:`_lock_alone`) for this download alone: two at once (two
+    ``voxe download`` runs into one folder) had interleaved their bytes in it, the first to end renaming that mix over
+    the target. Another is an OSError naming it, its part left alone, as is a part another download renamed as this
+    one opened it. Where the file system takes no locks (:data:`LOCKS_REFUSED`) it is not locked (the download had
     failed there, leaving an empty part)."""
     with open(partial, "a+b") as out:
-        try:
-            try:
-                fcntl.flock(out, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except OSError as exc:
-                if exc.errno not in LOCKS_REFUSED:
-                    raise
-            ours = os.path.samestat(os.fstat(out.fileno()), os.stat(partial))
-        except (BlockingIOError, FileNotFoundError):
-            ours = False
-        if not ours:
+        if not _lock_alone(out, partial):
             raise OSError(f"another download of {what} to {partial.parent} is running (its part file {partial} is "
                           "locked): let it end, then download again if it failed")
         yield out
