@@ -996,6 +996,32 @@ def test_a_second_download_of_it_at_once_is_refused_and_the_part_file_itself_is_
     assert dest.read_bytes() == b"earlier" and sorted(p.name for p in tmp_path.iterdir()) == ["a.bin"]
 
 
+def test_a_download_leaves_the_part_of_another_version_that_another_download_holds(tmp_path):
+    """A download deletes the part files of the artifact's other versions beside its target, which no call
+    completes now: it had deleted one that another download (another run, fetching the version it had listed) held
+    locked and was writing, which then lost its bytes mid-way. That one stays, its lock held in another process; an
+    unlocked one still goes."""
+    import hashlib
+
+    data = bytes(range(256)) * 40
+    held = tmp_path / f".a.bin.{'1' * 16}.part"  # another version's, being downloaded by another process
+    stale = tmp_path / f".a.bin.{'2' * 16}.part"  # another version's, its download over
+    held.write_bytes(b"h" * 100)
+    stale.write_bytes(b"s" * 100)
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import fcntl, sys\n"
+         f"part = open({str(held)!r}, 'ab')\nfcntl.flock(part, fcntl.LOCK_EX)\nprint('locked', flush=True)\n"
+         "sys.stdin.read()"], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline() == "locked\n"
+        with Client(transport=httpx.MockTransport(_serving(data))) as client:
+            assert client.download("j1", "a.bin", tmp_path / "a.bin").read_bytes() == data
+    finally:
+        holder.communicate("")
+    assert sorted(p.name for p in tmp_path.iterdir()) == [held.name, "a.bin"]
+    assert held.read_bytes() == b"h" * 100
+
+
 def test_a_zero_byte_download_leaves_the_part_another_download_opened_after_its_rename(tmp_path, monkeypatch):
     """A zero-byte artifact's download, once its part was renamed over the target, deleted the part file's path as
     holding nothing to go on from: a second download of it had opened a new part there by then, and lost it."""

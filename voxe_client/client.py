@@ -15,7 +15,7 @@ import time
 import uuid
 import warnings
 from collections.abc import Callable, Iterator
-from contextlib import ExitStack, closing, contextmanager
+from contextlib import ExitStack, closing, contextmanager, suppress
 from datetime import datetime, timezone
 from pathlib import Path, PureWindowsPath
 from typing import Any, BinaryIO
@@ -410,11 +410,11 @@ class Client:
         large. The bytes go to a ``.part`` file beside ``dest`` named by that ETag (:func:`_part_file`), kept when the
         download fails or is interrupted, so the next call for it goes on from them (a run stopped by Ctrl-C or an
         outage had thrown them away), and locked while one call writes it (:func:`_locked_part`); those of its
-        earlier versions are deleted. The part file's own bytes are checked, and land under ``dest`` only then: a
-        whole one kept (a run stopped before its rename) without a request, one whose check fails having gone on from
-        an earlier call's bytes (not a head of the artifact) fetched whole once more, and a 416 to their Range (no head
-        of it either) fetched whole, once (a 416 to bytes this call fetched is the error). A mismatch then is a
-        ServiceError and deletes them.
+        other versions are deleted but one another download holds (:func:`_drop_other_parts`). The part file's own
+        bytes are checked, and land under ``dest`` only then: a whole one kept (a run stopped before its rename)
+        without a request, one whose check fails having gone on from an earlier call's bytes (not a head of the
+        artifact) fetched whole once more, and a 416 to their Range (no head of it either) fetched whole, once (a 416
+        to bytes this call fetched is the error). A mismatch then is a ServiceError and deletes them.
         """
         if name in ("", ".", "..") or any(c in name for c in "/\\\0"):  # it names a file inside dest's folder only
             raise ServiceError(f"artifact name {name!r} of job {job_id} is not a plain file name; nothing written")
@@ -702,11 +702,15 @@ def _kept_in(partial: Path, size: int) -> str:
 
 def _drop_other_parts(dest: Path, kept: Path) -> None:
     """Delete the part files (:func:`_part_file`) beside ``dest`` but ``kept``: bytes of the artifact's earlier
-    versions (a preview republished since the download was interrupted), which no call completes now."""
+    versions (a preview republished since the download was interrupted), which no call completes now. Not one that
+    another download holds locked (:func:`_lock_alone`: a download of another version, in another run, had lost its
+    part mid-way), nor one gone or that cannot be locked (an I/O error): left for a later call."""
     others = re.compile(re.escape(f"{_part_stem(dest)}.") + r"[0-9a-f]{16}\.part")
     for part in dest.parent.iterdir():
         if part != kept and others.fullmatch(part.name):
-            part.unlink(missing_ok=True)
+            with suppress(OSError), open(part, "rb") as other:
+                if _lock_alone(other, part):
+                    part.unlink()  # locked as it goes: a download opening it now finds it gone
 
 
 def _submission_key(given: str | None) -> str:
