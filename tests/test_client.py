@@ -1197,6 +1197,27 @@ def test_download_checks_size_and_sha256_and_leaves_nothing_on_a_mismatch(tmp_pa
     assert sorted(p.name for p in tmp_path.iterdir()) == ["good.bin"]  # no partial file, no bad one
 
 
+def test_a_download_stops_reading_a_body_longer_than_the_listed_size(tmp_path):
+    """A body going on past the size the listing gives (a broken proxy's or a hostile service's endless one) had
+    been written to the part file to its end, however long (the disk filled) before the check refused it: reading
+    stops at the first chunk past the size, the check says the mismatch and no part is left."""
+    data = b"listed" * 100
+    chunks = []
+
+    class Endless(httpx.SyncByteStream):
+        def __iter__(self):
+            for _ in range(10_000):
+                chunks.append(b"z" * 4096)
+                yield chunks[-1]
+
+    answer = _serving(data, refuse=lambda request: httpx.Response(200, stream=Endless()))
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        with pytest.raises(ServiceError, match=rf"^a.bin of job j1: downloaded 4096 bytes with sha256 [0-9a-f]{{64}}, "
+                                               rf"the service lists {len(data)} bytes"):
+            client.download("j1", "a.bin", tmp_path / "a.bin")
+    assert len(chunks) == 1 and list(tmp_path.iterdir()) == []
+
+
 def test_ids_are_one_path_segment_and_names_stay_inside_the_download_folder(tmp_path):
     """A job id holding "/" had addressed another resource ("../scenes" printed the scene listing), and a listed
     artifact named "../escape.bin" was written outside the download folder."""

@@ -484,6 +484,8 @@ class Client:
                         for chunk in response.iter_bytes():  # as received: a break loses none held back
                             out.write(chunk)
                             size += len(chunk)
+                            if size > expected["size"]:  # past the listing (an endless body had filled the disk)
+                                break  # the check says the mismatch
                     return kept
                 except BROKEN_DOWNLOADS:
                     failures = 0 if size > had else failures + 1
