@@ -1175,7 +1175,10 @@ def test_download_checks_size_and_sha256_and_leaves_nothing_on_a_mismatch(tmp_pa
     listing = [{"name": "good.bin", "size": len(data), "sha256": sha},
                {"name": "bad.bin", "size": len(data), "sha256": sha},
                {"name": "long.bin", "size": len(data) + 1, "sha256": sha},  # the bytes' sha256, not their size
-               {"name": "odd.bin", "size": len(data), "sha256": "../../" + sha}]  # (it names the part file)
+               {"name": "odd.bin", "size": len(data), "sha256": "../../" + sha},  # (it names the part file)
+               {"name": "text.bin", "size": str(len(data)), "sha256": sha},  # (these had been a TypeError,
+               {"name": "none.bin", "sha256": sha},  # a KeyError, a mismatch of -1 bytes)
+               {"name": "minus.bin", "size": -1, "sha256": sha}]
 
     def answer(request: httpx.Request) -> httpx.Response:
         if request.url.path.endswith("/artifacts"):
@@ -1194,7 +1197,24 @@ def test_download_checks_size_and_sha256_and_leaves_nothing_on_a_mismatch(tmp_pa
         with pytest.raises(ServiceError, match=r"^artifact 'odd.bin' of job j1 is listed with sha256 "
                                                r"'\.\./\.\./[0-9a-f]+', not a SHA-256; nothing written$"):
             client.download("j1", "odd.bin", tmp_path / "odd.bin")
+        for name, size in (("text.bin", f"'{len(data)}'"), ("none.bin", "None"), ("minus.bin", "-1")):
+            with pytest.raises(ServiceError, match=rf"^artifact '{name}' of job j1 is listed with size {size}, not a "
+                                                   r"number of bytes; nothing written$"):
+                client.download("j1", name, tmp_path / name)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["good.bin"]  # no partial file, no bad one
+
+
+@pytest.mark.parametrize("answered", [{"detail": "moved"}, [["a.bin"]], [{"size": 1}], [{"name": 7}]])
+def test_an_answer_that_is_no_artifact_listing_is_a_service_error_quoting_it(answered, tmp_path):
+    """A listing that is no list of named artifacts (a proxy's JSON, a broken service's) had been a TypeError or a
+    KeyError from the code reading it, out of ``artifacts()``, ``download()`` and ``voxe download``."""
+    with Client(transport=httpx.MockTransport(lambda request: httpx.Response(200, json=answered))) as client:
+        for call in (lambda: client.artifacts("j1"), lambda: client.download("j1", "a.bin", tmp_path / "a.bin")):
+            with pytest.raises(ServiceError, match=rf"^GET /v1/jobs/j1/artifacts: http://127.0.0.1:8000 answered "
+                                                   rf"{re.escape(repr(answered))}, not a list of artifacts each with "
+                                                   r"a name$"):
+                call()
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_a_download_stops_reading_a_body_longer_than_the_listed_size(tmp_path):

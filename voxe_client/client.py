@@ -11,6 +11,7 @@ import json
 import math
 import os
 import re
+import reprlib
 import time
 import uuid
 import warnings
@@ -399,7 +400,16 @@ class Client:
         return self.request("GET", path, deadline=deadline)
 
     def artifacts(self, job_id: str) -> list[dict]:
-        return self.request("GET", f"/v1/jobs/{_segment(job_id)}/artifacts")
+        """``GET /v1/jobs/{id}/artifacts``: the job's artifacts, each ``{name, size, sha256, ...}``; an answer that is
+        no list of named ones (a proxy's JSON, a broken service's) is a ServiceError quoting it (it had been a
+        TypeError or KeyError from the code reading it)."""
+        path = f"/v1/jobs/{_segment(job_id)}/artifacts"
+        listed = self.request("GET", path)
+        if not isinstance(listed, list) or not all(isinstance(each, dict) and isinstance(each.get("name"), str)
+                                                   for each in listed):
+            raise ServiceError(f"GET {path}: {self.base_url} answered {reprlib.repr(listed)}, not a list of artifacts "
+                               "each with a name")
+        return listed
 
     def download(self, job_id: str, name: str, dest: str | os.PathLike) -> Path:
         """Stream the artifact to ``dest`` and check its size and SHA-256 against the job's listing.
@@ -426,6 +436,10 @@ class Client:
         if not SHA256_HEX.fullmatch(str(expected.get("sha256"))):  # (it names the part file)
             raise ServiceError(f"artifact {name!r} of job {job_id} is listed with sha256 {expected.get('sha256')!r}, "
                                "not a SHA-256; nothing written")
+        size = expected.get("size")
+        if isinstance(size, bool) or not isinstance(size, int) or size < 0:  # (one missing had been a KeyError)
+            raise ServiceError(f"artifact {name!r} of job {job_id} is listed with size {size!r}, not a number of "
+                               "bytes; nothing written")
         dest.parent.mkdir(parents=True, exist_ok=True)
         partial = _part_file(dest, expected["sha256"])
         _drop_other_parts(dest, partial)
