@@ -126,6 +126,30 @@ def test_events_resume_after_a_dropped_stream_with_last_event_id():
                                                        ("succeeded", "2"), ("progress", None)]
 
 
+@pytest.mark.parametrize("sent, said", [
+    (b"event: progress\ndata: not json\n\n", "progress event's data 'not json' is not JSON"),
+    (b"id: x7\nevent: checkpoint\ndata: {}\n\n", "event id 'x7' is not a number"),
+    (b"event: progress\ndata: [1]\n\n", "progress snapshot [1] is not an object"),
+    (b'event: progress\ndata: "running"\n\n', "progress snapshot 'running' is not an object"),
+])
+def test_an_event_that_is_not_the_services_is_a_service_error_quoting_it(sent, said):
+    """A stream bringing what is not the service's events (a broken proxy's, a hostile service's) had failed
+    ``events()`` and ``wait()`` with json's "Expecting value: line 1 column 1", int()'s "invalid literal" or an
+    AttributeError: it is a ServiceError of the job's stream, quoting it, an event before it still heard."""
+    def answer(request: httpx.Request) -> httpx.Response:
+        return httpx.Response(200, headers={"content-type": "text/event-stream"},
+                              content=b'id: 1\nevent: stage_started\ndata: {"stage": "edit"}\n\n' + sent)
+
+    heard = []
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        with pytest.raises(ServiceError, match=rf"^event stream of job j1: {re.escape(said)}: not the service's "
+                                               "events$") as refused:
+            heard.extend(event["event"] for event in client.events("j1"))
+        assert heard == ["stage_started"] and not refused.value.service_failed
+        with pytest.raises(ServiceError, match=re.escape(said)):
+            client.wait("j1")
+
+
 def test_events_resume_a_stream_the_server_ended_before_the_job_ended(monkeypatch):
     """A stopping API ends its open streams cleanly: the client asks again with Last-Event-ID until the job's
     terminal event (it had taken any end of a stream for the job's, and wait() returned a running job)."""

@@ -336,7 +336,7 @@ class Client:
                             on_reconnect(f"event stream of job {job_id} back after "
                                          f"{time.monotonic() - lost_since:.0f} s")
                         opened, ended, reconnecting = True, False, False
-                        for event in parse_sse(alive(response.iter_lines())):
+                        for event in _job_events(parse_sse(alive(response.iter_lines())), job_id):
                             if event["id"] is not None:
                                 last_event_id = int(event["id"])
                             if event["event"] == "progress":
@@ -854,6 +854,31 @@ def _ends_job(event: dict) -> bool:
             or event["event"] == "progress" and event["data"].get("state") in TERMINAL_STATES)
 
 
+def _job_events(events: Iterator[dict], job_id: str) -> Iterator[dict]:
+    """``events`` (:func:`parse_sse`'s) of job ``job_id``'s stream, each as the client reads it, or a ServiceError
+    quoting one that is not the service's (a broken proxy's, a hostile service's): data not JSON, an id not a number
+    (``Last-Event-ID`` resumes from it), a progress snapshot not an object. They had been a JSONDecodeError, a
+    ValueError or an AttributeError out of :meth:`Client.events`."""
+    try:
+        for event in events:
+            if event["id"] is not None and not re.fullmatch(r"[0-9]+", event["id"]):
+                raise ValueError(f"event id {event['id']!r} is not a number")
+            if event["event"] == "progress" and not isinstance(event["data"], dict):
+                raise ValueError(f"progress snapshot {reprlib.repr(event['data'])} is not an object")
+            yield event
+    except ValueError as exc:
+        raise ServiceError(f"event stream of job {job_id}: {exc}: not the service's events") from None
+
+
+def _json(fields: dict[str, str]) -> Any:
+    """An event's ``data`` field decoded; a ValueError quoting it when it is not JSON (json's own said no event)."""
+    try:
+        return json.loads(fields["data"])
+    except ValueError:
+        raise ValueError(f"{fields.get('event', 'message')} event's data {reprlib.repr(fields['data'])} is not "
+                         "JSON") from None
+
+
 def parse_sse(lines) -> Iterator[dict]:
     """Server-Sent Events from text lines: ``{"event", "id", "data"}`` with ``data`` decoded as JSON.
 
@@ -866,9 +891,10 @@ def parse_sse(lines) -> Iterator[dict]:
     for line in lines:
         if line == "":
             if "data" in fields:
-                yield {"event": fields.get("event", "message"), "id": fields.get("id"), "data": json.loads(fields["data"])}
+                yield {"event": fields.get("event", "message"), "id": fields.get("id"), "data": _json(fields)}
             fields = {}
         elif not line.startswith(":"):
             name, _, value = line.partition(":")
             value = value[1:] if value.startswith(" ") else value
             fields[name] = fields[name] + "\n" + value if name == "data" and name in fields else value
+
