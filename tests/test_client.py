@@ -368,6 +368,18 @@ def test_wait_with_a_timeout_gives_up_then_naming_the_job_and_its_last_state(mon
             list(client.events("j1", timeout=30))
 
 
+@pytest.mark.parametrize("done, said", [(0.5, ", 50% done"), ("50%", ""), (True, ""), (float("nan"), "")])
+def test_a_wait_timeout_says_the_progress_heard_only_where_it_is_a_number(done, said):
+    """A progress snapshot whose ``overall_progress`` was no number (a broken service's "50%") had made the
+    JobWaitTimeout's message a ValueError ("Unknown format code '%'"), said in place of the timeout; a bool had read
+    as "100% done"."""
+    from voxe_client import JobWaitTimeout
+
+    timed_out = JobWaitTimeout("j1", 5, {"state": "running", "stage": "edit", "overall_progress": done})
+    assert str(timed_out) == f"job j1 did not end within 5 s (last heard running, stage edit{said}); it goes on in " \
+                             "the service"
+
+
 def test_wait_with_a_timeout_cuts_a_retry_after_at_it(monkeypatch):
     """A stream lost and its reconnect answered 503 + Retry-After: 30 (a proxy while the API restarts) had been
     waited out ``retries`` times before the deadline was looked at: ``wait(timeout=5)`` held the caller 91 s. The

@@ -111,8 +111,9 @@ class JobWaitTimeout(TimeoutError):
             stood = f"last heard {self.state}"
             if progress.get("stage"):
                 stood += f", stage {progress['stage']}"
-            if progress.get("overall_progress") is not None:
-                stood += f", {progress['overall_progress']:.0%} done"
+            done = progress.get("overall_progress")
+            if isinstance(done, (int, float)) and not isinstance(done, bool) and math.isfinite(done):
+                stood += f", {done:.0%} done"  # (a snapshot's "50%" had been a ValueError in place of this timeout)
         super().__init__(f"job {job_id} did not end within {timeout:g} s ({stood}); it goes on in the service")
 
 
