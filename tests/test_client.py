@@ -150,6 +150,41 @@ def test_an_event_that_is_not_the_services_is_a_service_error_quoting_it(sent, s
             client.wait("j1")
 
 
+def test_an_answer_that_is_no_event_stream_is_not_waited_on_for_good(monkeypatch):
+    """An events route answered 200 with what is no event stream (a captive portal's or a proxy's page, the timeline
+    as JSON) had been read as a stream the server ended, and each of its lines restarted the reconnect window: the
+    client asked again for good, past any ``reconnect_for``. One never opened is the error at once; once a stream
+    opened, it counts as lost, reconnected for ``reconnect_for`` only."""
+    import voxe_client.client as client_module
+    from voxe_client.client import EventStreamLost
+
+    clock, sent = [0.0], []
+    monkeypatch.setattr(client_module.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(client_module.time, "sleep", lambda seconds: clock.__setitem__(0, clock[0] + seconds))
+    portal = httpx.Response(200, headers={"content-type": "text/html"}, text="<html>\n<body>Sign in</body>\n</html>\n")
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        sent.append(clock[0])
+        if len(sent) > 100:
+            pytest.fail(f"still asking at {clock[0]} s")
+        if opens_first and len(sent) == 1:
+            return httpx.Response(200, headers={"content-type": "text/event-stream; charset=utf-8"},
+                                  content=b'id: 1\nevent: stage_started\ndata: {"stage": "edit"}\n\n')
+        return portal
+
+    opens_first = False
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        with pytest.raises(ServiceError, match=r"^GET /v1/jobs/j1/events: http://127.0.0.1:8000 answered 200 with "
+                                               r"text/html, not an event stream \(is it the Vox-E service\?\)$"):
+            list(client.events("j1", reconnect_for=10))
+        assert len(sent) == 1
+        opens_first, sent[:] = True, []
+        with pytest.raises(EventStreamLost, match=r"lost: http://127.0.0.1:8000 answered 200 with text/html, not an "
+                                                  r"event stream \(\d+ attempts over 10 s"):
+            list(client.events("j1", reconnect_for=10))
+    assert clock[0] == 10.0 and 2 < len(sent) < 10
+
+
 def test_events_resume_a_stream_the_server_ended_before_the_job_ended(monkeypatch):
     """A stopping API ends its open streams cleanly: the client asks again with Last-Event-ID until the job's
     terminal event (it had taken any end of a stream for the job's, and wait() returned a running job)."""

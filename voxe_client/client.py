@@ -281,7 +281,8 @@ class Client:
         restarts is resumed with ``Last-Event-ID``, so no timeline event is missed or repeated, for up to
         ``reconnect_for`` seconds from its loss (default :data:`RECONNECT_FOR_S`); ``progress`` snapshots carry no id.
         ``on_reconnect`` hears a line when the stream is lost and one when it is back (the events had stopped with
-        nothing said). A stream never opened is an error at once: a wrong URL is not waited for.
+        nothing said). A stream never opened is an error at once: a wrong URL is not waited for, nor an answer that
+        is no event stream (a proxy's page); once one opened, such an answer is a loss.
 
         With ``timeout`` (seconds), a job not ended by then is a :class:`JobWaitTimeout` naming it and the state it
         was last heard in. It is checked at each line the stream brings (the service's keepalive comes every 15 s)
@@ -332,6 +333,11 @@ class Client:
                         if not opened or response.status_code not in PROXY_UNAVAILABLE:
                             _raise_for_error(response, "GET", path)
                         lost = f"HTTP {response.status_code} {response.reason_phrase}"
+                    elif not _is_event_stream(response):  # (its lines had restarted the reconnect window, for good)
+                        lost = (f"{self.base_url} answered {response.status_code} with "
+                                f"{response.headers.get('content-type') or 'no content type'}, not an event stream")
+                        if not opened:
+                            raise ServiceError(f"GET {path}: {lost} (is it the Vox-E service?)")
                     else:
                         if reconnecting and on_reconnect is not None:
                             on_reconnect(f"event stream of job {job_id} back after "
@@ -853,6 +859,12 @@ def _ends_job(event: dict) -> bool:
     job (a stream resumed after the terminal event), or the job's deletion (``error``)."""
     return (event["event"] in (*TERMINAL_STATES, "error")
             or event["event"] == "progress" and event["data"].get("state") in TERMINAL_STATES)
+
+
+def _is_event_stream(response: httpx.Response) -> bool:
+    """Whether ``response`` is a stream of Server-Sent Events, not a page a proxy or a captive portal answered 200
+    with, nor the job's timeline as JSON (what the events route answers a request not accepting a stream)."""
+    return response.headers.get("content-type", "").partition(";")[0].strip().lower() == "text/event-stream"
 
 
 def _job_events(events: Iterator[dict], job_id: str) -> Iterator[dict]:
