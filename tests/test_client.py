@@ -1031,6 +1031,40 @@ def test_a_416_to_a_kept_part_fetches_it_whole_and_an_error_names_the_part_kept(
     assert answer.asked == ["bytes=5000-", None, "bytes=3000-"] and part.read_bytes() == data[:3000]
 
 
+def test_a_206_from_another_byte_than_asked_is_not_appended(tmp_path, monkeypatch):
+    """A resumed download's Range answered 206 from another byte than asked (a proxy or server sending the whole
+    as 206, its Content-Range "bytes 0-"; one sending another range) had been appended to the bytes held, failing
+    the check, which threw them away, and saying "downloaded 13240 bytes". A 206 from byte 0 is the whole, written
+    from its start; one from another byte is the error, the bytes held kept."""
+    import hashlib
+
+    import voxe_client.client as client_module
+
+    monkeypatch.setattr(client_module.time, "sleep", lambda seconds: None)
+    data = bytes(range(256)) * 40
+    part = tmp_path / f".b.bin.{hashlib.sha256(data).hexdigest()[:16]}.part"
+    starts = []
+
+    def refuse(request: httpx.Request) -> httpx.Response:
+        if "range" not in request.headers:
+            return httpx.Response(200, stream=_CutAt(data, 3000))
+        start = starts.pop(0)
+        return httpx.Response(206, headers={"content-range": f"bytes {start}-{len(data) - 1}/{len(data)}"},
+                              content=data[start:])
+
+    answer = _serving(data, refuse=refuse)
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        starts[:] = [0]
+        assert client.download("j1", "a.bin", tmp_path / "a.bin").read_bytes() == data
+        starts[:] = [1000]
+        with pytest.raises(ServiceError, match=rf"^GET /v1/jobs/j1/artifacts/a.bin: asked for its bytes from 3000 on, "
+                                               rf"answered 206 with Content-Range 'bytes 1000-10239/10240' \(3000 of "
+                                               rf"10240 bytes here, kept in "):
+            client.download("j1", "a.bin", tmp_path / "b.bin")
+    assert answer.asked == [None, "bytes=3000-", None, "bytes=3000-"]
+    assert part.read_bytes() == data[:3000]
+
+
 def test_a_second_download_of_it_at_once_is_refused_and_the_part_file_itself_is_checked(tmp_path):
     """Two downloads of one artifact to one place at once (two ``voxe download`` runs) had appended their bytes to
     one part file, interleaved, and the first to end renamed it over the target, the bytes it received having been

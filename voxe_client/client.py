@@ -422,16 +422,17 @@ class Client:
         """Stream the artifact to ``dest`` and check its size and SHA-256 against the job's listing.
 
         A connection broken off or stalled mid-way (:data:`BROKEN_DOWNLOADS`) is resumed where it stopped, with
-        ``Range`` and ``If-Range`` (the listed SHA-256, the service's ETag: an artifact replaced since comes whole), up
-        to ``retries`` times in a row without a byte more; it had failed the download, its bytes thrown away, however
-        large. The bytes go to a ``.part`` file beside ``dest`` named by that ETag (:func:`_part_file`), kept when the
-        download fails or is interrupted, so the next call for it goes on from them (a run stopped by Ctrl-C or an
-        outage had thrown them away), and locked while one call writes it (:func:`_locked_part`); those of its
-        other versions are deleted but one another download holds (:func:`_drop_other_parts`). The part file's own
-        bytes are checked, and land under ``dest`` only then: a whole one kept (a run stopped before its rename)
-        without a request, one whose check fails having gone on from an earlier call's bytes (not a head of the
-        artifact) fetched whole once more, and a 416 to their Range (no head of it either) fetched whole, once (a 416
-        to bytes this call fetched is the error). A mismatch then is a ServiceError and deletes them.
+        ``Range`` and ``If-Range`` (the listed SHA-256, the service's ETag: an artifact replaced since comes whole, as
+        does a 206 from byte 0; one from another byte than asked is the error), up to ``retries`` times in a row without
+        a byte more; it had failed the download, its bytes thrown away, however large. The bytes go to a ``.part`` file
+        beside ``dest`` named by that ETag (:func:`_part_file`), kept when the download fails or is interrupted, so the
+        next call for it goes on from them (a run stopped by Ctrl-C or an outage had thrown them away), and locked while
+        one call writes it (:func:`_locked_part`); those of its other versions are deleted but one another download
+        holds (:func:`_drop_other_parts`). The part file's own bytes are checked, and land under ``dest`` only then: a
+        whole one kept (a run stopped before its rename) without a request, one whose check fails having gone on from an
+        earlier call's bytes (not a head of the artifact) fetched whole once more, and a 416 to their Range (no head of
+        it either) fetched whole, once (a 416 to bytes this call fetched is the error). A mismatch then is a
+        ServiceError and deletes them.
         """
         if name in ("", ".", "..") or any(c in name for c in "/\\\0"):  # it names a file inside dest's folder only
             raise ServiceError(f"artifact name {name!r} of job {job_id} is not a plain file name; nothing written")
@@ -499,9 +500,14 @@ class Client:
                         if response.is_error:
                             response.read()
                             _raise_for_error(response, "GET", path)
-                        if response.status_code != httpx.codes.PARTIAL_CONTENT:  # the whole file, from its start
+                        start = _range_start(response, size)
+                        if start == 0:  # the whole file, from its start
                             out.truncate(0)
                             size, kept = 0, False
+                        elif start != size:  # (appended, they had failed the check, the bytes held thrown away)
+                            raise ServiceError(f"GET {path}: asked for its bytes from {size} on, answered "
+                                               f"{response.status_code} with Content-Range "
+                                               f"{response.headers.get('content-range')!r}")
                         for chunk in response.iter_bytes():  # as received: a break loses none held back
                             out.write(chunk)
                             size += len(chunk)
@@ -708,6 +714,20 @@ def _locked_part(partial: Path, what: str) -> Iterator[BinaryIO]:
             raise OSError(f"another download of {what} to {partial.parent} is running (its part file {partial} is "
                           "locked): let it end, then download again if it failed")
         yield out
+
+
+CONTENT_RANGE = re.compile(r"bytes (\d+)-\d+/(?:\d+|\*)")
+
+
+def _range_start(response: httpx.Response, asked: int) -> int | None:
+    """The byte of the artifact a download's ``response`` starts at: 0 for the whole (not a 206), a 206's
+    ``Content-Range`` start (``asked``, the Range's, without one); None for one unreadable."""
+    if response.status_code != httpx.codes.PARTIAL_CONTENT:
+        return 0
+    if (content_range := response.headers.get("content-range")) is None:
+        return asked
+    match = CONTENT_RANGE.fullmatch(content_range.strip())
+    return None if match is None else int(match.group(1))
 
 
 def _size_and_sha256(part: BinaryIO) -> tuple[int, str]:
