@@ -415,6 +415,30 @@ def test_a_wait_timeout_says_the_progress_heard_only_where_it_is_a_number(done, 
                              "the service"
 
 
+@pytest.mark.parametrize("reconnect_for", [float("nan"), -1.0])
+def test_a_reconnect_for_that_is_no_number_of_seconds_is_refused(reconnect_for, monkeypatch):
+    """``events(reconnect_for=nan)`` never ran out: a lost stream was asked for again for good (``timeout`` had been
+    checked so, not this). It is a ValueError before any request, as a negative one."""
+    import voxe_client.client as client_module
+
+    sent = []
+    monkeypatch.setattr(client_module.time, "sleep", lambda seconds: None)
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        sent.append(request.url.path)
+        if len(sent) > 20:
+            pytest.fail("still reconnecting")
+        if len(sent) == 1:
+            return httpx.Response(200, headers={"content-type": "text/event-stream"},
+                                  content=b'id: 1\nevent: stage_started\ndata: {"stage": "edit"}\n\n')
+        raise httpx.ConnectError("connection refused")
+
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        with pytest.raises(ValueError, match=f"^reconnect_for must be 0 or more seconds, got {reconnect_for}$"):
+            client.wait("j1", reconnect_for=reconnect_for)
+    assert sent == []
+
+
 def test_wait_with_a_timeout_cuts_a_retry_after_at_it(monkeypatch):
     """A stream lost and its reconnect answered 503 + Retry-After: 30 (a proxy while the API restarts) had been
     waited out ``retries`` times before the deadline was looked at: ``wait(timeout=5)`` held the caller 91 s. The

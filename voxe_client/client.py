@@ -291,8 +291,9 @@ class Client:
         it: it may run over by about a keepalive's interval.
         """
         reconnect_for = RECONNECT_FOR_S if reconnect_for is None else reconnect_for
-        if timeout is not None and not timeout >= 0:  # (NaN had never run out)
-            raise ValueError(f"timeout must be 0 or more seconds, got {timeout!r}")
+        for limit, seconds in (("timeout", timeout), ("reconnect_for", reconnect_for)):
+            if seconds is not None and not seconds >= 0:  # (NaN had never run out: a lost stream asked again for good)
+                raise ValueError(f"{limit} must be 0 or more seconds, got {seconds!r}")
         deadline = None if timeout is None else time.monotonic() + timeout
         opened, lost_since, attempts, reconnecting, progress = False, None, 0, False, None
 
