@@ -1089,6 +1089,38 @@ def test_a_206_from_another_byte_than_asked_is_not_appended(tmp_path, monkeypatc
     assert part.read_bytes() == data[:3000]
 
 
+def test_a_body_ended_by_its_connection_closing_short_of_the_size_goes_on_where_it_stopped(tmp_path, monkeypatch):
+    """A body delimited by its connection's close (no Content-Length, not chunked: HTTP/1.0, some proxies) that a
+    dropped connection cut short ends as a whole one does, httpx saying nothing: the download had failed the check,
+    its bytes thrown away. It goes on with Range from them, as after any break, and one that stays cut fails keeping
+    them (a body whose Content-Length says it is whole is checked as it is: long.bin of
+    test_download_checks_size_and_sha256_and_leaves_nothing_on_a_mismatch)."""
+    import hashlib
+
+    import voxe_client.client as client_module
+
+    monkeypatch.setattr(client_module.time, "sleep", lambda seconds: None)
+    data = bytes(range(256)) * 40
+    part = tmp_path / f".b.bin.{hashlib.sha256(data).hexdigest()[:16]}.part"
+
+    class ClosedAt3000(httpx.SyncByteStream):
+        def __iter__(self):
+            yield data[:3000]
+
+    answer = _serving(data, refuse=lambda request: None if "range" in request.headers else
+                      httpx.Response(200, stream=ClosedAt3000()))
+    with Client(transport=httpx.MockTransport(answer), retries=1) as client:
+        assert client.download("j1", "a.bin", tmp_path / "a.bin").read_bytes() == data
+    assert answer.asked == [None, "bytes=3000-"]
+    answer = _serving(data, refuse=lambda request: httpx.Response(200, stream=ClosedAt3000()))  # Range ignored
+    with Client(transport=httpx.MockTransport(answer), retries=1) as client:
+        with pytest.raises(ServiceError, match=rf"^cannot download a.bin of job j1 \(3000 of 10240 bytes here, kept "
+                                               rf"in {re.escape(str(part))} for the next download of it to go on "
+                                               r"from\): the connection closed at byte 3000 of the 10240 listed$"):
+            client.download("j1", "a.bin", tmp_path / "b.bin")
+    assert answer.asked == [None, "bytes=3000-", "bytes=3000-"] and part.read_bytes() == data[:3000]
+
+
 def test_a_second_download_of_it_at_once_is_refused_and_the_part_file_itself_is_checked(tmp_path):
     """Two downloads of one artifact to one place at once (two ``voxe download`` runs) had appended their bytes to
     one part file, interleaved, and the first to end renamed it over the target, the bytes it received having been

@@ -422,15 +422,16 @@ class Client:
     def download(self, job_id: str, name: str, dest: str | os.PathLike) -> Path:
         """Stream the artifact to ``dest`` and check its size and SHA-256 against the job's listing.
 
-        A connection broken off or stalled mid-way (:data:`BROKEN_DOWNLOADS`) is resumed where it stopped, with
-        ``Range`` and ``If-Range`` (the listed SHA-256, the service's ETag: an artifact replaced since comes whole, as
-        does a 206 from byte 0; one from another byte than asked is the error), up to ``retries`` times in a row without
-        a byte more; it had failed the download, its bytes thrown away, however large. The bytes go to a ``.part`` file
-        beside ``dest`` named by that ETag (:func:`_part_file`), kept when the download fails or is interrupted, so the
-        next call for it goes on from them (a run stopped by Ctrl-C or an outage had thrown them away), and locked while
-        one call writes it (:func:`_locked_part`); those of its other versions are deleted but one another download
-        holds (:func:`_drop_other_parts`). The part file's own bytes are checked, and land under ``dest`` only then: a
-        whole one kept (a run stopped before its rename) without a request, one whose check fails having gone on from an
+        A connection broken off or stalled mid-way (:data:`BROKEN_DOWNLOADS`; a body its close ends, short of the size:
+        :func:`_ends_at_close`) is resumed where it stopped, with ``Range`` and ``If-Range`` (the listed SHA-256, the
+        service's ETag: an artifact replaced since comes whole, as does a 206 from byte 0; one from another byte than
+        asked is the error), up to ``retries`` times in a row without a byte more; it had failed the download, its bytes
+        thrown away, however large. The bytes go to a ``.part`` file beside ``dest`` named by that ETag
+        (:func:`_part_file`), kept when the download fails or is interrupted, so the next call for it goes on from them
+        (a run stopped by Ctrl-C or an outage had thrown them away), and locked while one call writes it
+        (:func:`_locked_part`); those of its other versions are deleted but one another download holds
+        (:func:`_drop_other_parts`). The part file's own bytes are checked, and land under ``dest`` only then: a whole
+        one kept (a run stopped before its rename) without a request, one whose check fails having gone on from an
         earlier call's bytes (not a head of the artifact) fetched whole once more, and a 416 to their Range (no head of
         it either) fetched whole, once (a 416 to bytes this call fetched is the error). A mismatch then is a
         ServiceError and deletes them.
@@ -514,6 +515,9 @@ class Client:
                             size += len(chunk)
                             if size > expected["size"]:  # past the listing (an endless body had filled the disk)
                                 break  # the check says the mismatch
+                        if size < expected["size"] and _ends_at_close(response):  # (failed, its bytes thrown away)
+                            raise httpx.RemoteProtocolError(f"the connection closed at byte {size} of the "
+                                                            f"{expected['size']} listed")
                     return kept
                 except BROKEN_DOWNLOADS:
                     failures = 0 if size > had else failures + 1
@@ -715,6 +719,13 @@ def _locked_part(partial: Path, what: str) -> Iterator[BinaryIO]:
             raise OSError(f"another download of {what} to {partial.parent} is running (its part file {partial} is "
                           "locked): let it end, then download again if it failed")
         yield out
+
+
+def _ends_at_close(response: httpx.Response) -> bool:
+    """Whether ``response``'s body ends where its connection closes (no Content-Length, not chunked: HTTP/1.0, some
+    proxies), so that one cut short by a dropped connection ends as a whole one does, httpx saying nothing."""
+    return "content-length" not in response.headers and \
+        "chunked" not in response.headers.get("transfer-encoding", "").lower()
 
 
 CONTENT_RANGE = re.compile(r"bytes (\d+)-\d+/(?:\d+|\*)")
