@@ -1089,6 +1089,27 @@ def test_a_206_from_another_byte_than_asked_is_not_appended(tmp_path, monkeypatc
     assert part.read_bytes() == data[:3000]
 
 
+@pytest.mark.parametrize("unit", ["Bytes", "BYTES", "bytes "])
+def test_a_206_whose_content_range_writes_its_unit_otherwise_resumes(unit, tmp_path, monkeypatch):
+    """A Content-Range unit is read case-blind (RFC 9110 14.1): a proxy's "Bytes 3000-10239/10240" had failed a
+    resumed download as answered from an unreadable byte."""
+    import voxe_client.client as client_module
+
+    monkeypatch.setattr(client_module.time, "sleep", lambda seconds: None)
+    data = bytes(range(256)) * 40
+
+    def refuse(request: httpx.Request) -> httpx.Response:
+        if "range" not in request.headers:
+            return httpx.Response(200, stream=_CutAt(data, 3000))
+        return httpx.Response(206, headers={"content-range": f"{unit} 3000-{len(data) - 1}/{len(data)}"},
+                              content=data[3000:])
+
+    answer = _serving(data, refuse=refuse)
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        assert client.download("j1", "a.bin", tmp_path / "a.bin").read_bytes() == data
+    assert answer.asked == [None, "bytes=3000-"]
+
+
 def test_a_body_ended_by_its_connection_closing_short_of_the_size_goes_on_where_it_stopped(tmp_path, monkeypatch):
     """A body delimited by its connection's close (no Content-Length, not chunked: HTTP/1.0, some proxies) that a
     dropped connection cut short ends as a whole one does, httpx saying nothing: the download had failed the check,
@@ -1183,6 +1204,56 @@ def test_a_download_leaves_the_part_of_another_version_that_another_download_hol
     assert held.read_bytes() == b"h" * 100
 
 
+def test_a_download_drops_a_stale_part_where_locks_need_a_file_open_for_writing(tmp_path, monkeypatch):
+    """On NFS ``flock`` is a whole-file POSIX lock, which refuses an exclusive lock on a file open only for reading
+    (EBADF): the part of an earlier version, opened read-only to be dropped, had stayed for good there."""
+    import errno
+    import fcntl
+    import os
+
+    import voxe_client.client as client_module
+
+    def posix_flock(file, operation):  # NFS's flock, as flock(2) describes it
+        mode = fcntl.fcntl(file.fileno(), fcntl.F_GETFL) & os.O_ACCMODE
+        if operation & fcntl.LOCK_EX and mode == os.O_RDONLY:
+            raise OSError(errno.EBADF, os.strerror(errno.EBADF))
+        return fcntl.lockf(file, operation)
+
+    monkeypatch.setattr(client_module.fcntl, "flock", posix_flock)
+    stale = tmp_path / f".a.bin.{'2' * 16}.part"
+    stale.write_bytes(b"s" * 100)
+    data = bytes(range(256)) * 40
+    with Client(transport=httpx.MockTransport(_serving(data))) as client:
+        assert client.download("j1", "a.bin", tmp_path / "a.bin").read_bytes() == data
+    assert [p.name for p in tmp_path.iterdir()] == ["a.bin"]
+
+
+def test_a_download_opening_a_part_as_another_call_drops_it_opens_it_again(tmp_path, monkeypatch):
+    """A part that another call deletes as this download opens it (an earlier version's, dropped while locked) had
+    refused the download as held by another running download: it is opened again and the download goes on."""
+    import hashlib
+    import os
+
+    import voxe_client.client as client_module
+
+    data = bytes(range(256)) * 40
+    part = tmp_path / f".a.bin.{hashlib.sha256(data).hexdigest()[:16]}.part"
+    lock_alone = client_module._lock_alone
+    dropped = []
+
+    def dropped_as_opened(file, path):
+        if not dropped:  # the first open's file is unlinked by another call's drop before it is locked
+            dropped.append(os.fstat(file.fileno()).st_ino)
+            path.unlink()
+        return lock_alone(file, path)
+
+    monkeypatch.setattr(client_module, "_lock_alone", dropped_as_opened)
+    monkeypatch.setattr(client_module.time, "sleep", lambda seconds: None)
+    with Client(transport=httpx.MockTransport(_serving(data))) as client:
+        assert client.download("j1", "a.bin", tmp_path / "a.bin").read_bytes() == data
+    assert dropped and not part.exists()
+
+
 def test_a_zero_byte_download_leaves_the_part_another_download_opened_after_its_rename(tmp_path, monkeypatch):
     """A zero-byte artifact's download, once its part was renamed over the target, deleted the part file's path as
     holding nothing to go on from: a second download of it had opened a new part there by then, and lost it."""
@@ -1253,7 +1324,7 @@ def test_a_part_file_whose_lock_fails_with_an_io_error_fails_the_download_naming
                                           rf"'{re.escape(str(part))}'$") as failed:
             client.download("j1", "a.bin", tmp_path / "a.bin")
     assert failed.value.errno == errno.EIO and failed.value.filename == str(part)
-    assert answer.asked == [] and not (tmp_path / "a.bin").exists()
+    assert answer.asked == [] and list(tmp_path.iterdir()) == []  # the empty part it made is not left behind
 
 
 def test_an_artifact_with_a_long_name_downloads_through_a_part_file_of_a_name_that_fits(tmp_path):

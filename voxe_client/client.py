@@ -713,12 +713,30 @@ def _locked_part(partial: Path, what: str) -> Iterator[BinaryIO]:
     ``voxe download`` runs into one folder) had interleaved their bytes in it, the first to end renaming that mix over
     the target. Another is an OSError naming it, its part left alone, as is a part another download renamed as this
     one opened it. Where the file system takes no locks (:data:`LOCKS_REFUSED`) it is not locked (the download had
-    failed there, leaving an empty part)."""
-    with open(partial, "a+b") as out:
-        if not _lock_alone(out, partial):
-            raise OSError(f"another download of {what} to {partial.parent} is running (its part file {partial} is "
-                          "locked): let it end, then download again if it failed")
-        yield out
+    failed there, leaving an empty part). A part that another call deletes as this one opens it (an earlier version's,
+    dropped by :func:`_drop_other_parts`, locked only as long as that takes) is opened again, a few times, before
+    the download is refused; one this call made and could not lock (an I/O error) is not left behind, empty."""
+    for attempt in range(PART_LOCK_TRIES):
+        made = not partial.exists()
+        with open(partial, "a+b") as out:
+            try:
+                locked = _lock_alone(out, partial)
+            except OSError:
+                if made and os.fstat(out.fileno()).st_size == 0:
+                    partial.unlink(missing_ok=True)
+                raise
+            if locked:
+                yield out
+                return
+        time.sleep(PART_LOCK_PAUSE)
+    raise OSError(f"another download of {what} to {partial.parent} is running (its part file {partial} is "
+                  "locked): let it end, then download again if it failed")
+
+
+PART_LOCK_TRIES = 3
+PART_LOCK_PAUSE = 0.05
+"""How often, and how many seconds apart, a download tries to lock its part file before it is refused as held by
+another (:func:`_locked_part`): long enough for a drop of an old version's part, short beside any download."""
 
 
 def _ends_at_close(response: httpx.Response) -> bool:
@@ -728,7 +746,8 @@ def _ends_at_close(response: httpx.Response) -> bool:
         "chunked" not in response.headers.get("transfer-encoding", "").lower()
 
 
-CONTENT_RANGE = re.compile(r"bytes (\d+)-\d+/(?:\d+|\*)")
+CONTENT_RANGE = re.compile(r"bytes\s+(\d+)\s*-\s*\d+\s*/\s*(?:\d+|\*)", re.IGNORECASE)
+"""A 206's Content-Range: its unit read case-blind (RFC 9110 14.1: a proxy writing ``Bytes`` is within it)."""
 
 
 def _range_start(response: httpx.Response, asked: int) -> int | None:
@@ -763,9 +782,9 @@ def _drop_other_parts(dest: Path, kept: Path) -> None:
     others = re.compile(re.escape(f"{_part_stem(dest)}.") + r"[0-9a-f]{16}\.part")
     for part in dest.parent.iterdir():
         if part != kept and others.fullmatch(part.name):
-            with suppress(OSError), open(part, "rb") as other:
+            with suppress(OSError), open(part, "r+b") as other:  # writable: NFS locks only those
                 if _lock_alone(other, part):
-                    part.unlink()  # locked as it goes: a download opening it now finds it gone
+                    part.unlink()  # locked as it goes: a download opening it meanwhile opens it again
 
 
 def _submission_key(given: str | None) -> str:
