@@ -1071,6 +1071,96 @@ def test_a_worker_dying_as_it_withdraws_a_canceled_evaluations_outputs_leaves_no
     assert len(storage.list(f"jobs/{job_id}/")) == 3  # unlisted, deleted with the job
 
 
+def _job_mid_export_with_outputs(db, tmp_path) -> tuple[str, dict[str, str]]:
+    """A job whose export has published a render and listed the shared reconstruction's grid, both stored: the
+    job's id and its listed artifacts."""
+    from voxe_service.storage import get_storage
+    from worker import runtime
+
+    storage = get_storage(db)
+    job_id = add_job(add_scene(), "queued", 0, completed_stages=["reconstruct", "edit"])
+    runtime.begin_stage(job_id, "export", "a@host", "cpu", db)
+    for name, key in (("render_000.png", None), ("initial_grid.safetensors", "reconstructions/r/grid.safetensors")):
+        (tmp_path / name).write_bytes(name.encode())
+        if key:
+            storage.put_file(key, tmp_path / name)
+        runtime.publish_artifact(job_id, name, tmp_path / name, "render", storage, key=key)
+    return job_id, listed_artifacts(job_id)
+
+
+def test_ending_a_job_canceled_withdraws_its_unfinished_stages_outputs_rows_then_bytes_once_committed(db, tmp_path):
+    """finish_jobs itself withdraws what a job ended canceled published in its unfinished stage (its four callers each
+    did, after it): the rows go in the ending's transaction, the bytes only once it commits, and only the job's own
+    (the shared reconstruction's grid, listed by the job, stays stored)."""
+    from voxe_service.db import session_scope
+    from voxe_service.jobs import finish_jobs
+    from voxe_service.models import CANCELED, Artifact
+    from voxe_service.storage import get_storage
+
+    storage = get_storage(db)
+    job_id, listed = _job_mid_export_with_outputs(db, tmp_path)
+    with session_scope() as session:
+        assert finish_jobs(session, [job_id], CANCELED, message="canceled") == [job_id]
+        assert session.query(Artifact).filter_by(job_id=job_id).all() == []  # in the ending's transaction
+        assert storage.exists(listed["render_000.png"])  # not yet committed: the bytes stay
+    assert listed_artifacts(job_id) == {}
+    assert not storage.exists(listed["render_000.png"])
+    assert storage.exists(listed["initial_grid.safetensors"])
+
+
+@pytest.mark.parametrize("undone", ["rolled back", "rolled back, then the session commits something else",
+                                    "its session closed uncommitted", "in a savepoint rolled back"])
+def test_a_canceled_ending_that_is_not_committed_withdraws_nothing(db, tmp_path, undone):
+    """A canceled ending rolled back (or never committed) deletes no bytes, then or at a later commit of the same
+    session: its rows are listed again, and their bytes must be there."""
+    from sqlalchemy import update
+
+    from voxe_service.db import get_sessionmaker
+    from voxe_service.jobs import finish_jobs
+    from voxe_service.models import CANCELED, Job
+    from voxe_service.storage import get_storage
+
+    storage = get_storage(db)
+    job_id, listed = _job_mid_export_with_outputs(db, tmp_path)
+    other = add_job(add_scene(), "queued", 0)
+    with get_sessionmaker()() as session:
+        if undone == "in a savepoint rolled back":
+            savepoint = session.begin_nested()
+            assert finish_jobs(session, [job_id], CANCELED, message="canceled") == [job_id]
+            savepoint.rollback()
+        else:
+            assert finish_jobs(session, [job_id], CANCELED, message="canceled") == [job_id]
+            if undone == "its session closed uncommitted":
+                session.close()
+            else:
+                session.rollback()
+        if undone != "rolled back":
+            session.execute(update(Job).where(Job.id == other).values(message="something else"))
+            session.commit()
+    assert job_row(job_id).state == "running"
+    assert listed_artifacts(job_id) == listed
+    assert all(storage.exists(key) for key in listed.values())
+
+
+def test_a_canceled_ending_in_a_savepoint_discards_its_bytes_once_the_transaction_commits(db, tmp_path):
+    """A savepoint's release is no commit: the bytes it withdrew go when the transaction holding it commits."""
+    from voxe_service.db import get_sessionmaker
+    from voxe_service.jobs import finish_jobs
+    from voxe_service.models import CANCELED
+    from voxe_service.storage import get_storage
+
+    storage = get_storage(db)
+    job_id, listed = _job_mid_export_with_outputs(db, tmp_path)
+    with get_sessionmaker()() as session:
+        with session.begin_nested():
+            assert finish_jobs(session, [job_id], CANCELED, message="canceled") == [job_id]
+        assert storage.exists(listed["render_000.png"])
+        session.commit()
+    assert listed_artifacts(job_id) == {}
+    assert not storage.exists(listed["render_000.png"])
+    assert storage.exists(listed["initial_grid.safetensors"])
+
+
 @pytest.mark.parametrize("asked", ["before the reaper's pass", "once the reaper re-queued it"])
 def test_a_job_whose_worker_died_mid_export_canceled_lists_none_of_the_exports_outputs(db, tmp_path, monkeypatch,
                                                                                        asked):

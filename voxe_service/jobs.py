@@ -8,14 +8,22 @@ transaction.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterable
 
-from sqlalchemy import delete, func, select, update
-from sqlalchemy.orm import Session
+from sqlalchemy import delete, event, func, select, update
+from sqlalchemy.orm import Session, SessionTransaction
 
 from voxe_service import webhooks
-from voxe_service.models import TERMINAL_STATES, Artifact, Job, JobEvent, utcnow
+from voxe_service.models import CANCELED, TERMINAL_STATES, Artifact, Job, JobEvent, utcnow
+from voxe_service.settings import Settings
 from voxe_service.storage import get_storage, job_key
+
+log = logging.getLogger("voxe.jobs")
+
+_WITHDRAWN, _COMMITTED = "voxe_withdrawn", "voxe_withdrawn_committed"
+"""``session.info`` keys: the withdrawn artifacts' keys of each open transaction of the session, whose bytes go once
+it commits ({transaction: [(keys, settings)]}), and those of the outermost transaction committed, as it closes."""
 
 
 def record_event(session: Session, job_id: str, kind: str, *, stage: str | None = None,
@@ -39,13 +47,15 @@ def record_event(session: Session, job_id: str, kind: str, *, stage: str | None 
 
 
 def finish_jobs(session: Session, job_ids: Iterable[str], state: str, *, message: str | None = None,
-                error: str | None = None, where: Iterable = ()) -> list[str]:
+                error: str | None = None, where: Iterable = (), settings: Settings | None = None) -> list[str]:
     """Move the unfinished jobs among ``job_ids`` (that also match ``where``) to the terminal ``state``.
 
-    Returns the ids that changed, each with a ``state`` event carrying the error or message. A caller ending jobs
-    canceled withdraws their unfinished stage's artifacts (:func:`withdraw_unfinished_stage_artifacts`). The hold of
-    a run of the job goes with the ending (``run_token``): a run still going (stalled past its lease, its process
-    alive) finds the job no longer its own, and publishes or records nothing more into it (``RunSuperseded``).
+    Returns the ids that changed, each with a ``state`` event carrying the error or message. Jobs ended canceled
+    have their unfinished stage's artifacts withdrawn here, so no caller can forget it: the rows in this transaction
+    (:func:`withdraw_unfinished_stage_artifacts`), the bytes once it commits, from the storage of ``settings`` (the
+    process's by default), and never where it rolls back. The hold of a run of the job goes with the ending
+    (``run_token``): a run still going (stalled past its lease, its process alive) finds the job no longer its own,
+    and publishes or records nothing more into it (``RunSuperseded``).
     """
     ids = list(job_ids)
     if not ids:
@@ -59,13 +69,15 @@ def finish_jobs(session: Session, job_ids: Iterable[str], state: str, *, message
     ).all()
     for job_id, stage in changed:
         record_event(session, job_id, state, stage=stage, detail=error or message)
+        if state == CANCELED:
+            _discard_once_committed(session, job_id, withdraw_unfinished_stage_artifacts(session, job_id), settings)
     return [job_id for job_id, _ in changed]
 
 
 def withdraw_unfinished_stage_artifacts(session: Session, job_id: str) -> list[str]:
     """Delete the rows of the artifacts the job's unfinished stage published, by this run of it or an earlier one
-    (those announced on the timeline since the last ``stage_completed``), as the job ends canceled; return their
-    storage keys, for the caller to delete once this transaction is committed.
+    (those announced on the timeline since the last ``stage_completed``), as :func:`finish_jobs` ends the job
+    canceled; return their storage keys, whose bytes go once this transaction is committed.
 
     A job canceled during a stage lists none of that stage's outputs (an export's turntable without its mesh),
     only those of the stages it completed. Previews stay: progress images, announced as ``preview`` events, no
@@ -80,9 +92,42 @@ def withdraw_unfinished_stage_artifacts(session: Session, job_id: str) -> list[s
                                 .returning(Artifact.key)))
 
 
-def discard_withdrawn(job_id: str, keys: Iterable[str], settings=None) -> None:
-    """Delete the stored bytes of the job's withdrawn artifacts, once the withdrawal is committed: only the job's own
-    (an initial grid's bytes are the shared reconstruction's)."""
-    for key in keys:
-        if key.startswith(job_key(job_id, "")):
-            get_storage(settings).discard(key)
+def _discard_once_committed(session: Session, job_id: str, keys: list[str], settings: Settings | None) -> None:
+    """Hold the job's own withdrawn keys (an initial grid's bytes are the shared reconstruction's) for the commit of
+    the transaction (or savepoint) they were withdrawn in."""
+    if own := [key for key in keys if key.startswith(job_key(job_id, ""))]:
+        transaction = session.get_nested_transaction() or session.get_transaction()
+        session.info.setdefault(_WITHDRAWN, {}).setdefault(transaction, []).append((own, settings))
+
+
+@event.listens_for(Session, "after_commit")
+def _hold_committed_withdrawals(session: Session) -> None:
+    """A savepoint's withdrawals wait for its parent's commit; the outermost commit's go as it closes."""
+    pending = session.info.get(_WITHDRAWN)
+    transaction = session.get_nested_transaction() or session.get_transaction()
+    if pending and (withdrawn := pending.pop(transaction, None)):
+        if transaction.nested:
+            pending.setdefault(transaction.parent, []).extend(withdrawn)
+        else:
+            session.info.setdefault(_COMMITTED, []).extend(withdrawn)
+
+
+@event.listens_for(Session, "after_transaction_end")
+def _discard_committed_withdrawals(session: Session, transaction: SessionTransaction) -> None:
+    """Delete the bytes a committed transaction withdrew, once it has closed (so nothing raised here can leave the
+    session half-committed), and forget those of one that ended without committing (rolled back, or its session
+    closed): no later commit of the session deletes bytes its rows still list. As cleanup after a committed ending,
+    a storage failure is logged, never raised to its caller: the bytes stay behind, listed by no row, deleted with
+    the job."""
+    if pending := session.info.get(_WITHDRAWN):
+        pending.pop(transaction, None)
+    if transaction.parent is not None:
+        return
+    for keys, settings in session.info.pop(_COMMITTED, []):
+        try:
+            storage = get_storage(settings)
+        except Exception:  # noqa: BLE001 - see the docstring
+            log.warning("could not delete the withdrawn artifacts %s", keys, exc_info=True)
+            continue
+        for key in keys:
+            storage.discard(key)  # (logs a failure)

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, TypedDict
 from sqlalchemy import case, select, update
 from sqlalchemy.orm import Session
 
-from voxe_service.jobs import discard_withdrawn, finish_jobs, record_event, withdraw_unfinished_stage_artifacts
+from voxe_service.jobs import finish_jobs, record_event
 from voxe_service.models import CANCELED, EVALUATE, FAILED, QUEUED, RUNNING, Job, utcnow
 from voxe_service.settings import Settings, get_settings
 
@@ -293,10 +293,9 @@ def requeue_interrupted(session: Session, queue: TaskQueue, job: Job, settings: 
     def end(state: str, **fields) -> str | None:
         """End the job in ``state``; the evaluations riding in its chain are sent alone (no stage left), to record
         why (the job's message kept). Canceled, the outputs its interrupted stage published are withdrawn."""
-        ended = finish_jobs(session, [job.id], state, where=[Job.state == RUNNING, *where], **fields)
-        withdrawn = withdraw_unfinished_stage_artifacts(session, job.id) if ended and state == CANCELED else []
+        ended = finish_jobs(session, [job.id], state, where=[Job.state == RUNNING, *where], settings=settings,
+                            **fields)
         session.commit()
-        discard_withdrawn(job.id, withdrawn, settings)
         if ended:
             try:
                 send_evaluations_alone(session, queue, job, fields.get("message"))

@@ -31,7 +31,7 @@ from sqlalchemy.exc import SQLAlchemyError
 from voxe_core.progress import Callbacks, Progress, StageCancelled
 from voxe_service import datasets
 from voxe_service.db import DATABASE_UNAVAILABLE, database_outage, locked, session_scope, sync_clock
-from voxe_service.jobs import discard_withdrawn, finish_jobs, record_event, withdraw_unfinished_stage_artifacts
+from voxe_service.jobs import finish_jobs, record_event
 from voxe_service.models import (
     CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, R_FAILED, R_PENDING, R_RUNNING, READY, RUNNING, SUCCEEDED,
     TERMINAL_STATES, Artifact, Job, JobEvent, Reconstruction, Scene, utcnow,
@@ -199,11 +199,8 @@ def begin_stage(job_id: str, stage: str, hostname: str | None, device: str, sett
         with session_scope() as session:
             if job.cancel_requested:  # "during": a run of the stage started, and left its end unrecorded (an outage)
                 when = "during" if job.stage == stage and stage not in (job.completed_stages or []) else "before"
-                withdrawn = []
-                if finish_jobs(session, [job_id], CANCELED, message=f"canceled {when} {stage}"):
-                    withdrawn = withdraw_unfinished_stage_artifacts(session, job_id)  # what that run published
+                finish_jobs(session, [job_id], CANCELED, message=f"canceled {when} {stage}")  # (its outputs withdrawn)
                 session.commit()  # before raising: session_scope rolls back on the way out of an exception
-                discard_withdrawn(job_id, withdrawn)
                 raise JobSkipped(f"job {job_id} canceled")
             if stage in (job.completed_stages or []):
                 raise JobSkipped(f"job {job_id}: {stage} already done (redelivered task)")
@@ -389,15 +386,10 @@ def release_stage(job_id: str, run_token: str) -> None:
 def finish_job(job_id: str, state: str, message: str | None = None, error: str | None = None,
                run_token: str | None = None) -> bool:
     """End the job in ``state``; with ``run_token``, only while that run holds it. Whether it ended now. Canceled,
-    the artifacts its unfinished stage published are withdrawn (:func:`withdraw_unfinished_stage_artifacts`)."""
-    withdrawn = []
+    the artifacts its unfinished stage published are withdrawn (:func:`~voxe_service.jobs.finish_jobs`)."""
     with session_scope() as session:
-        ended = bool(finish_jobs(session, [job_id], state, message=message, error=error,
-                                 where=[Job.run_token == run_token] if run_token else []))
-        if ended and state == CANCELED:
-            withdrawn = withdraw_unfinished_stage_artifacts(session, job_id)
-    discard_withdrawn(job_id, withdrawn)
-    return ended
+        return bool(finish_jobs(session, [job_id], state, message=message, error=error,
+                                where=[Job.run_token == run_token] if run_token else []))
 
 
 def record_job_event(job_id: str, kind: str, **fields) -> None:

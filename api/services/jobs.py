@@ -25,7 +25,7 @@ from voxe_core.presets import check_fit, reconstruction_key, reconstruction_para
 from voxe_service.datasets import MESH_FORMAT
 from voxe_service import webhooks
 from voxe_service.db import get_sessionmaker
-from voxe_service.jobs import discard_withdrawn, finish_jobs, withdraw_unfinished_stage_artifacts
+from voxe_service.jobs import finish_jobs
 from voxe_service.model_inventory import job_models, live_worker_models, unavailable_models
 from voxe_service.models import (
     CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, READY, TERMINAL_STATES, ApiKey, Job, Reconstruction, Scene,
@@ -327,15 +327,12 @@ def request_cancel(*, session: Session, job_ids: list[str], message: str = "canc
     """
     session.execute(update(Job).where(Job.id.in_(job_ids), Job.state.not_in(TERMINAL_STATES))
                     .values(cancel_requested=True, updated_at=utcnow()))
+    # (a job the reaper re-queued from a stage its dead worker had begun: that stage's outputs are withdrawn)
     canceled = finish_jobs(session, job_ids, CANCELED, message=message, where=[Job.state == QUEUED])
-    # (a job the reaper re-queued from a stage its dead worker had begun: that stage's outputs)
-    withdrawn = {job_id: withdraw_unfinished_stage_artifacts(session, job_id) for job_id in canceled}
     for job in session.scalars(select(Job).where(Job.id.in_(canceled))).all():
         finish_jobs(session, evaluations_waiting_on(session, job), FAILED,
                     error=f"evaluate: source job {job.id} {CANCELED}: {message}")
     session.commit()
-    for job_id, keys in withdrawn.items():
-        discard_withdrawn(job_id, keys)
 
 
 def list_webhooks(*, session: Session, key: ApiKey, job_id: str) -> list[WebhookDelivery]:
