@@ -1161,6 +1161,28 @@ def test_a_canceled_ending_in_a_savepoint_discards_its_bytes_once_the_transactio
     assert storage.exists(listed["initial_grid.safetensors"])
 
 
+def test_a_storage_refusing_a_withdrawn_outputs_delete_leaves_the_committed_ending_unraised(db, tmp_path, monkeypatch,
+                                                                                             caplog):
+    """The bytes go after the ending has committed: a storage refusing their delete is logged, the ending stands and
+    its caller sees no error (the bytes, listed by no row, go with the job)."""
+    from voxe_service.models import CANCELED
+    from voxe_service.storage import StorageUnavailable, get_storage
+    from worker import runtime
+
+    storage = get_storage(db)
+    job_id, listed = _job_mid_export_with_outputs(db, tmp_path)
+
+    def refused(key: str) -> None:
+        raise StorageUnavailable(f"S3 bucket 'voxe': SlowDown when deleting {key}")
+
+    monkeypatch.setattr(storage, "delete", refused)
+    with caplog.at_level(logging.WARNING, logger="voxe.storage"):
+        assert runtime.finish_job(job_id, CANCELED, message="canceled during export")
+    assert job_row(job_id).state == "canceled" and listed_artifacts(job_id) == {}
+    assert storage.exists(listed["render_000.png"])
+    assert f"could not delete the stored object {listed['render_000.png']}" in caplog.text
+
+
 @pytest.mark.parametrize("asked", ["before the reaper's pass", "once the reaper re-queued it"])
 def test_a_job_whose_worker_died_mid_export_canceled_lists_none_of_the_exports_outputs(db, tmp_path, monkeypatch,
                                                                                        asked):
