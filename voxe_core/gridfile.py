@@ -11,6 +11,12 @@ softplus grid's occupied cells are those above the default ``sigma_threshold``
 skipped at that threshold or above; a render without skipping sees the faint
 density of the cells left out replaced by ``fill``'s.
 
+``fill`` is each file's own. A grid computed from loaded grids and saved (a refinement's merge of the initial and
+edited files) leaves out its own vertices and fills them with their mean, so merging the downloaded files again
+gives every vertex that file stores exactly, but at those it leaves out the sources' values (their fills; where
+the edit thinned the shape, vertices the initial file stored): the same occupancy and renders, and saved, the
+same bytes.
+
 Format (format version 2 of ``voxel_grid`` files; version 1 files, dense, still load):
 
 * ``layout: "dense"`` — tensor ``features`` (X, Y, Z, 4) float32;
