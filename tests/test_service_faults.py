@@ -1109,7 +1109,8 @@ def test_ending_a_job_canceled_withdraws_its_unfinished_stages_outputs_rows_then
 
 
 @pytest.mark.parametrize("undone", ["rolled back", "rolled back, then the session commits something else",
-                                    "its session closed uncommitted", "in a savepoint rolled back"])
+                                    "its session closed uncommitted", "in a savepoint rolled back",
+                                    "in a savepoint released, its transaction rolled back"])
 def test_a_canceled_ending_that_is_not_committed_withdraws_nothing(db, tmp_path, undone):
     """A canceled ending rolled back (or never committed) deletes no bytes, then or at a later commit of the same
     session: its rows are listed again, and their bytes must be there."""
@@ -1128,6 +1129,11 @@ def test_a_canceled_ending_that_is_not_committed_withdraws_nothing(db, tmp_path,
             savepoint = session.begin_nested()
             assert finish_jobs(session, [job_id], CANCELED, message="canceled") == [job_id]
             savepoint.rollback()
+        elif undone == "in a savepoint released, its transaction rolled back":
+            session.execute(update(Job).where(Job.id == other).values(message="first"))  # (SQLite: a transaction
+            with session.begin_nested():  # before the savepoint, whose release would otherwise commit)
+                assert finish_jobs(session, [job_id], CANCELED, message="canceled") == [job_id]
+            session.rollback()
         else:
             assert finish_jobs(session, [job_id], CANCELED, message="canceled") == [job_id]
             if undone == "its session closed uncommitted":

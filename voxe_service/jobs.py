@@ -52,7 +52,7 @@ def finish_jobs(session: Session, job_ids: Iterable[str], state: str, *, message
 
     Returns the ids that changed, each with a ``state`` event carrying the error or message. Jobs ended canceled
     have their unfinished stage's artifacts withdrawn here, so no caller can forget it: the rows in this transaction
-    (:func:`withdraw_unfinished_stage_artifacts`), the bytes once it commits, from the storage of ``settings`` (the
+    (:func:`_withdraw_unfinished_stage_artifacts`), the bytes once it commits, from the storage of ``settings`` (the
     process's by default), and never where it rolls back. The hold of a run of the job goes with the ending
     (``run_token``): a run still going (stalled past its lease, its process alive) finds the job no longer its own,
     and publishes or records nothing more into it (``RunSuperseded``).
@@ -70,11 +70,11 @@ def finish_jobs(session: Session, job_ids: Iterable[str], state: str, *, message
     for job_id, stage in changed:
         record_event(session, job_id, state, stage=stage, detail=error or message)
         if state == CANCELED:
-            _discard_once_committed(session, job_id, withdraw_unfinished_stage_artifacts(session, job_id), settings)
+            _discard_once_committed(session, job_id, _withdraw_unfinished_stage_artifacts(session, job_id), settings)
     return [job_id for job_id, _ in changed]
 
 
-def withdraw_unfinished_stage_artifacts(session: Session, job_id: str) -> list[str]:
+def _withdraw_unfinished_stage_artifacts(session: Session, job_id: str) -> list[str]:
     """Delete the rows of the artifacts the job's unfinished stage published, by this run of it or an earlier one
     (those announced on the timeline since the last ``stage_completed``), as :func:`finish_jobs` ends the job
     canceled; return their storage keys, whose bytes go once this transaction is committed.
@@ -94,7 +94,9 @@ def withdraw_unfinished_stage_artifacts(session: Session, job_id: str) -> list[s
 
 def _discard_once_committed(session: Session, job_id: str, keys: list[str], settings: Settings | None) -> None:
     """Hold the job's own withdrawn keys (an initial grid's bytes are the shared reconstruction's) for the commit of
-    the transaction (or savepoint) they were withdrawn in."""
+    the transaction (or savepoint) they were withdrawn in. (On SQLite, pysqlite's legacy transaction control makes a
+    savepoint opened first in a transaction the transaction itself, its release a commit: an ending there rolled
+    back later stays, its bytes left listed by no row. The service opens no savepoints.)"""
     if own := [key for key in keys if key.startswith(job_key(job_id, ""))]:
         transaction = session.get_nested_transaction() or session.get_transaction()
         session.info.setdefault(_WITHDRAWN, {}).setdefault(transaction, []).append((own, settings))

@@ -199,7 +199,8 @@ def begin_stage(job_id: str, stage: str, hostname: str | None, device: str, sett
         with session_scope() as session:
             if job.cancel_requested:  # "during": a run of the stage started, and left its end unrecorded (an outage)
                 when = "during" if job.stage == stage and stage not in (job.completed_stages or []) else "before"
-                finish_jobs(session, [job_id], CANCELED, message=f"canceled {when} {stage}")  # (its outputs withdrawn)
+                finish_jobs(session, [job_id], CANCELED, message=f"canceled {when} {stage}",
+                            settings=settings)  # (its outputs withdrawn)
                 session.commit()  # before raising: session_scope rolls back on the way out of an exception
                 raise JobSkipped(f"job {job_id} canceled")
             if stage in (job.completed_stages or []):
@@ -384,11 +385,11 @@ def release_stage(job_id: str, run_token: str) -> None:
 
 
 def finish_job(job_id: str, state: str, message: str | None = None, error: str | None = None,
-               run_token: str | None = None) -> bool:
+               run_token: str | None = None, settings: Settings | None = None) -> bool:
     """End the job in ``state``; with ``run_token``, only while that run holds it. Whether it ended now. Canceled,
     the artifacts its unfinished stage published are withdrawn (:func:`~voxe_service.jobs.finish_jobs`)."""
     with session_scope() as session:
-        return bool(finish_jobs(session, [job_id], state, message=message, error=error,
+        return bool(finish_jobs(session, [job_id], state, message=message, error=error, settings=settings,
                                 where=[Job.run_token == run_token] if run_token else []))
 
 

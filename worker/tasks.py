@@ -194,7 +194,7 @@ def _end_job(job_id: str, stage: str, run_token: str, state: str, settings, mess
     an outage's, and never stays running until the reaper finds it."""
     try:
         ended = _retried(lambda _again: runtime.finish_job(job_id, state, message=message, error=error,
-                                                           run_token=run_token),
+                                                           run_token=run_token, settings=settings),
                          job_id, f"{stage} could not record the job {state}")
     except Exception as exc:  # noqa: BLE001 - a cold shutdown raises in the task while its tries wait
         _requeue_if_shut_down(job_id, stage, run_token, exc)
