@@ -629,13 +629,23 @@ def test_one_slab_test_of_two_boxes_is_two_slab_tests():
         assert len(ops.names) == 30
 
 
-def test_the_slab_test_computes_in_the_rays_dtype():
+def test_the_slab_test_computes_in_the_rays_dtype_or_float32_for_half_rays():
+    """float64 rays are tested in float64; half ones in float32, where float16's stand-in reciprocal had been
+    1 / 0 and a ray lying in a face of the box had missed it (inf × 0: NaN), in the lower face as in the upper."""
     box = -torch.ones(3, dtype=torch.float64), torch.ones(3, dtype=torch.float64)
     o, d = torch.tensor([[0.9, 0.0, 0.0]], dtype=torch.float64), torch.tensor([[0.0, 0.0, 1e-12]], dtype=torch.float64)
     near, far = ray_box_intersection(o, d, *box)
     assert far.dtype == torch.float64 and far.item() == (1.0 - 0.9) / 1e-12  # x's stand-in reciprocal, float64's 1e-12
     near, far = ray_box_intersection(o.half(), d.half(), *(b.half() for b in box))
-    assert far.dtype == near.dtype == torch.float16 and far.item() == near.item() == 0.0  # 1e-12 is no direction in fp16
+    assert far.dtype == near.dtype == torch.float32 and far.item() == near.item() == 0.0  # 1e-12 is 0 in fp16: no ray
+    grazing = torch.tensor([[1.0, 0.0, -3.0], [-1.0, 0.5, -3.0], [0.5, 1.0, -3.0]])  # in the x = ±1 and y = 1 faces
+    along_z = torch.tensor([[0.0, 0.0, 1.0]]).expand(3, 3)
+    for dtype in (torch.float16, torch.bfloat16):
+        for half_box in (False, True):
+            box = tuple(b.to(dtype) if half_box else b.float() for b in (-torch.ones(3), torch.ones(3)))
+            near, far = ray_box_intersection(grazing.to(dtype), along_z.to(dtype), *box)
+            assert near.dtype == far.dtype == torch.float32, (dtype, half_box)
+            assert near.tolist() == [2.0] * 3 and far.tolist() == [4.0] * 3, (dtype, half_box)
 
 
 def test_saturated_density_has_finite_values_and_gradients():

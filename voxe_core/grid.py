@@ -127,7 +127,8 @@ def ray_box_intersection(
     signed tiny reciprocal instead of dividing by zero. The box is closed: a ray lying in one of its faces (a zero
     direction component whose origin is on the lower or the upper face along that axis) meets it, as the face's
     points are inside to :meth:`VoxelGrid.query`. Boxes (B, 3) give (B, N) each, the rays' own work done once
-    (``box_min`` and ``box_max`` of one shape and dtype: they are stacked).
+    (``box_min`` and ``box_max`` of one shape and dtype: they are stacked). Half-precision rays and boxes are tested
+    in float32 (the ends come back in it).
 
     Examples:
         >>> near, far = ray_box_intersection(torch.tensor([[0.0, 0, -3]]), torch.tensor([[0.0, 0, 1]]),
@@ -135,8 +136,12 @@ def ray_box_intersection(
         >>> near.tolist(), far.tolist()
         ([2.0], [4.0])
     """
+    # In float32 at least: float16's 1e-12 is 0, whose reciprocal's inf times a face's 0 was NaN, and half rays
+    # lying in a face of the box had missed it.
+    origins, directions, box_min, box_max = (part.float() if part.dtype in (torch.float16, torch.bfloat16) else part
+                                             for part in (origins, directions, box_min, box_max))
     magnitude = directions.abs()
-    # |d| at least 1e-12 in the rays' dtype (0 in float16), with d's sign (+0.0 for -0.0): 5 dispatches for 8.
+    # |d| at least 1e-12, with d's sign (+0.0 for -0.0): 5 dispatches for 8.
     inv = torch.copysign(magnitude.clamp_min(1e-12), directions + 0.0).reciprocal()
     # Both slabs' ends in one product, (..., 2, N, 3), and their order in one reduction.
     entry, exit_ = torch.aminmax((torch.stack([box_min, box_max], -2).unsqueeze(-2) - origins) * inv, dim=-3)
