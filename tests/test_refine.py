@@ -481,7 +481,8 @@ def test_fit_reports_progress_and_cancels(make_sphere_grid):
     seen = []
     cb = Callbacks(on_progress=lambda p: seen.append((p.stage, p.iteration)), should_cancel=lambda: len(seen) >= 3)
     with pytest.raises(StageCancelled):
-        fit_attention_grids(grid, cams, maps, maps, RefineConfig(iterations=10, rays_per_step=64, fit_views="fixed"), cb)
+        fit_attention_grids(grid, cams, maps, maps + 0.5,  # (maps equal everywhere are refused before any work)
+                            RefineConfig(iterations=10, rays_per_step=64, fit_views="fixed"), cb)
     assert seen == [("backprojection", 1), ("attention_grids", 1), ("attention_grids", 2)]
     with pytest.raises(ValueError, match="do not match"):
         fit_attention_grids(grid, cams, torch.zeros(3, 8, 8), torch.zeros(3, 8, 8), RefineConfig(iterations=1, fit_views="fixed"))
@@ -571,6 +572,30 @@ def test_a_constant_start_on_fixed_maps_that_never_differ_is_refused_before_any_
                                 Callbacks(on_progress=on_progress, should_cancel=lambda: len(reports) >= 3),
                                 fresh_view=fresh_view)
     assert [p.stage for p in reports] == ["backprojection", "attention_grids", "attention_grids"]
+
+
+@pytest.mark.parametrize("views, iterations", [("fixed", 20), ("fresh", 0)])
+def test_a_backprojection_start_on_maps_that_never_differ_is_refused_before_any_work(make_sphere_grid, views,
+                                                                                     iterations):
+    """Maps equal on every pixel back-project to two equal grids, which a fit on those same maps (fixed views), or
+    none, leaves equal: the back-projection and every step had run for the cut to find no seeds. Refused first."""
+    grid = make_sphere_grid(10)
+    edit_maps = torch.linspace(0.2, 0.9, 12).expand(4, 12, 12)
+    config = RefineConfig(lift_start="backprojection", iterations=iterations, rays_per_step=64, fit_views=views)
+    reports = []
+    fresh_view = lambda step: (cameras_around(1, 12, seed=step), edit_maps[0], edit_maps[0].flip(-1))  # noqa: E731
+    with pytest.raises(SegmentationError, match=r"^the edit and object maps are equal on every pixel of the 4 views "
+                                                r"\(of 4\) that see the edited object: .* from "
+                                                r"lift_start='backprojection', and the cut would have no seeds; "
+                                                r"nothing was fitted$"):
+        fit_attention_grids(grid, cameras_around(4, 12, seed=1), edit_maps, edit_maps.clone(), config,
+                            Callbacks(on_progress=reports.append), fresh_view=fresh_view)
+    assert reports == []
+    object_maps = edit_maps.clone()  # apart on one pixel: back-projected, and fitted
+    object_maps[:, 6, 6] += 0.05
+    fit_attention_grids(grid, cameras_around(4, 12, seed=1), edit_maps, object_maps, config,
+                        Callbacks(on_progress=reports.append), fresh_view=fresh_view)
+    assert [p.stage for p in reports] == ["backprojection"] + ["attention_grids"] * iterations
 
 
 def test_a_constant_start_fit_equal_but_for_the_order_its_gradients_are_summed_in_is_still_named(make_sphere_grid,
