@@ -628,6 +628,27 @@ def test_bf16_autocast_on_cpu_runs(small_sphere, tiny_guidance):
 # ------------------------------------------------------------------ the loop with a recording guidance
 
 
+def test_fp16_autocast_run_as_bfloat16_on_the_cpu_is_said_once_through_the_callbacks(small_sphere):
+    """The note that fp16 autocast runs as bfloat16 on the CPU was a Python warning every step, which never reaches a
+    job's user: it goes through the callbacks' warning once, before the first step (a Python warning only where no
+    on_warning is given, as every stage's warning)."""
+    import warnings
+
+    config = EditConfig(iterations=3, render_size=16, autocast_dtype="fp16", regulariser_weight=0.0)
+    said = "fp16 autocast is not used on the CPU; the guidance runs under bfloat16 autocast"
+    reports = []
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        edit(small_sphere, "a dog", FakeGuidance(), config, Callbacks(
+            on_progress=lambda report: reports.append("progress"),
+            on_warning=lambda stage, text: reports.append((stage, text))))
+    assert reports == [("edit", said)] + ["progress"] * 3 and caught == []
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        edit(small_sphere, "a dog", FakeGuidance(), config)
+    assert [str(warning.message) for warning in caught] == [f"edit: {said}"]
+
+
 def test_autocast_on_the_cpu_with_a_float16_model_is_refused_before_any_step(small_sphere, tiny_sd_path):
     """CPU autocast is bfloat16, and a float16 model's GroupNorm failed in it at the first step with torch's "mixed
     dtype (CPU)"; without autocast the float16 model runs (tests/test_hard_cases.py), as a bfloat16 one does with."""

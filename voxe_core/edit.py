@@ -38,7 +38,8 @@ checkpoint before it stops (unless G_e is no longer finite: the earlier one stay
 
 Mixed precision. ``autocast_dtype`` ("bf16" / "fp16") runs the guidance (VAE
 encoder forward and UNet) under ``torch.autocast``; on CPU only bfloat16 is
-used, and a float16 model is refused there (its GroupNorm fails under it). The
+used (fp16 asked for is said once, through the callbacks' warning), and a
+float16 model is refused there (its GroupNorm fails under it). The
 volume renderer and the regulariser always run in float32 (both disable
 autocast inside: transmittance products and correlations want fp32).
 """
@@ -50,7 +51,6 @@ import hashlib
 import math
 import numbers
 import time
-import warnings
 from dataclasses import dataclass, field
 from fractions import Fraction
 from pathlib import Path
@@ -277,14 +277,17 @@ def _mark(marks: list[float], device: torch.device, sync: bool) -> None:
     marks.append(time.perf_counter())
 
 
-def _autocast(device: torch.device, name: str | None):
+def autocast_dtype(device: torch.device, name: str | None, callbacks: Callbacks) -> torch.dtype | None:
+    """The dtype the guidance runs under autocast on ``device`` (None: no autocast), decided once before the first
+    step: on the CPU bfloat16, where fp16 asked for is said through ``callbacks.warning`` (a Python warning every
+    step had never reached a job's user)."""
     if name is None:
-        return contextlib.nullcontext()
+        return None
     dtype = AUTOCAST_DTYPES[name]
     if device.type == "cpu" and dtype != torch.bfloat16:
-        warnings.warn("fp16 autocast is not used on CPU; running the guidance under bfloat16 autocast", stacklevel=3)
+        callbacks.warning("edit", "fp16 autocast is not used on the CPU; the guidance runs under bfloat16 autocast")
         dtype = torch.bfloat16
-    return torch.autocast(device_type=device.type, dtype=dtype)
+    return dtype
 
 
 def _make_adam(param: torch.nn.Parameter, config: EditConfig) -> torch.optim.Adam:
@@ -413,7 +416,8 @@ def edit(
     iteration (``StageCancelled``; a checkpoint is written first when
     ``checkpoint_path`` is set and G_e is finite, else the earlier one stays). Info also carries ``peak_memory_gb`` /
     ``peak_memory_kind`` (:class:`voxe_core.devices.PeakMemory`). Before the first step, ``callbacks.warning`` says
-    what of the regulariser a constant channel of G_i switches off (:func:`regulariser_off`).
+    what of the regulariser a constant channel of G_i switches off (:func:`regulariser_off`), and that fp16 autocast
+    runs as bfloat16 on the CPU (:func:`autocast_dtype`).
 
     Everything runs on ``device`` (None: ``guidance.device`` when the guidance
     has one, else the initial grid's); G_i, G_e and the input views move there
@@ -584,6 +588,7 @@ def edit(
 
     if (off := regulariser_off(initial_grid, config)) is not None:  # (where the run starts: after what it refuses)
         callbacks.warning("edit", off)
+    guidance_dtype = autocast_dtype(device, config.autocast_dtype, callbacks)
     T = int(guidance.num_train_timesteps)
     last_checkpoint = _checkpoint_holds(checkpoint_path, resume_from, start)
     if start == 0:
@@ -626,7 +631,8 @@ def edit(
                 images.register_hook(lambda grad: _mark(reached_renders, device, sync))
 
             # ---- SDS (optionally under autocast)
-            with _autocast(device, config.autocast_dtype):
+            with (contextlib.nullcontext() if guidance_dtype is None else
+                  torch.autocast(device_type=device.type, dtype=guidance_dtype)):
                 sds, diagnostics = guidance.sds_loss(images, text, timesteps, config.guidance_scale, generator=device_gen)
             _sync(device, sync)
             t_sds = time.perf_counter()
