@@ -601,9 +601,8 @@ def _(fx):
     cams = hemisphere_cameras(2, 8)
     maps = torch.rand(2, 8, 8, generator=torch.Generator().manual_seed(5))
     config = RefineConfig(iterations=10, rays_per_step=64, fit_views="fixed")
-    edit, obj = fit_attention_grids(grid, cams, maps, maps, config)
-    assert torch.equal(edit, obj)  # the same targets fit bit-identical fields
-    graph_cut(grid, edit, obj, config)
+    # the same targets would fit bit-identical fields, for the cut to find no seeds: refused before the lifting's work
+    fit_attention_grids(grid, cams, maps, maps, config)
 
 
 def _split_sphere(nan_at: str | None) -> tuple[VoxelGrid, torch.Tensor, torch.Tensor]:
