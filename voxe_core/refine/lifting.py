@@ -202,8 +202,9 @@ def fit_attention_grids(
     every step and may be cancelled between steps. A constant start whose fit ends with both grids still equal
     (:func:`~voxe_core.refine.cut.prefer_neither`) is a SegmentationError naming why (no step fitted, maps that never
     differ, or too few iterations): the cut would find no seeds; maps equal on every pixel are that error before any
-    work, from either start, where the fit sees only them (``fit_views="fixed"``, or no iterations). So are views that miss the object, and a
-    back-projection whose pixels see none of its density (the fit moves only the vertices they see).
+    work, from either start, where the fit sees only them (``fit_views="fixed"``, or no iterations). So are views
+    that miss the object, and a back-projection whose pixels see none of its density (the fit moves only the
+    vertices they see).
     """
     n_views, height, width = edit_maps.shape
     if object_maps.shape != edit_maps.shape:
@@ -236,7 +237,8 @@ def fit_attention_grids(
         seeing = int(hits.reshape(n_views, -1).any(-1).sum())
         raise SegmentationError(f"the edit and object maps are equal on every pixel of the {seeing} views (of "
                                 f"{n_views}) that see the edited object: {_MAPS_ALIKE} from "
-                                f"lift_start={config.lift_start!r}, and the cut would have no seeds; nothing was fitted")
+                                f"lift_start={config.lift_start!r}, and the cut would have no seeds; nothing was "
+                                "fitted")
     strided = (hits & strided_pixels(n_views, height, width, config.backprojection_stride, device)).nonzero().squeeze(-1)
     start, seen = backproject(frozen, origins[strided], directions[strided], targets[strided], config, occupancy,
                               callbacks)
