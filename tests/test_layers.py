@@ -9,6 +9,7 @@ Alembic migrations are left out (alembic loads them by path, nothing imports the
 from __future__ import annotations
 
 import ast
+import re
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -150,6 +151,19 @@ def test_every_package_is_checked():
     """Each package is found, not only no unknown one: a package without ``__init__.py`` (a namespace package, which
     still imports) had dropped out of every check below, and they passed on it unread."""
     assert {top(m) for m in package_modules()} == set(PACKAGES)
+
+
+@pytest.mark.parametrize("folder, row", [("voxe_core", "`voxe_core/`"), ("voxe_core/guidance", "`voxe_core/`"),
+                                         ("voxe_core/refine", "`voxe_core/`"), ("voxe_service", "`voxe_service/`"),
+                                         ("worker", "`api/`, `worker/`")])
+def test_the_readmes_layout_names_every_module(folder, row):
+    """The README's Layout row of the library, the service core and the workers names each of their modules: the
+    service core's row had left out six (webhooks, quotas and progress among them), the library's ten."""
+    layout = (REPO / "README.md").read_text().split("\n## Layout\n\n", 1)[1].split("\n\n", 1)[0]
+    cells = {line.split(" | ", 1)[0].removeprefix("| "): line for line in layout.splitlines()[2:]}
+    named = set(re.findall(r"`(\w+)`", cells[row]))
+    modules = {path.stem for path in (REPO / folder).glob("*.py")} - {"__init__", "__main__"}
+    assert modules <= named, f"README's Layout row {row} does not name {sorted(modules - named)} of {folder}/"
 
 
 @pytest.mark.parametrize("package", PACKAGES)
