@@ -16,7 +16,7 @@ import yaml
 from PIL import Image
 from pydantic import TypeAdapter
 
-from voxe_service.queue import broker_transport_options
+from voxe_service.queue import INGEST_TASK, STAGE_TASKS, broker_transport_options
 from voxe_service.settings import Settings, SettingsError, get_settings
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -124,6 +124,24 @@ def test_the_deployment_sets_only_variables_the_service_reads():
         assert used and used <= fields, f"{name}: {sorted(used - fields)} are not settings"
 
 
+def test_the_compose_files_fallbacks_are_the_settings_defaults():
+    """What a deployment runs with where its .env says nothing (``${VOXE_X:-fallback}``) is the default the README's
+    settings table gives for it: a default changed in settings.py alone would leave compose on the old one."""
+    fallbacks = re.findall(r"\$\{(VOXE_[A-Z0-9_]+):-([^}]*)\}", (ROOT / "docker-compose.yml").read_text())
+    assert fallbacks
+    for name, value in fallbacks:
+        field = Settings.model_fields[name.removeprefix("VOXE_").lower()]
+        assert TypeAdapter(field.annotation).validate_python(value) == field.default, (name, value)
+
+
+@pytest.mark.parametrize("name", ["docker/worker.Dockerfile", ".ci/serve"])
+def test_the_workers_the_project_starts_consume_every_queue_a_task_is_sent_to(name):
+    """A task routed to a queue no worker consumes waits there for ever, its job queued."""
+    consumed = re.search(r'-Q"?,? ?"?([\w,]+)', (ROOT / name).read_text())
+    assert consumed, f"{name} starts no worker with -Q"
+    sent = {spec.queue for spec in (*STAGE_TASKS.values(), INGEST_TASK)}
+    assert sent <= set(consumed.group(1).split(",")), (name, consumed.group(1))
+
 def test_every_variable_the_service_its_cli_and_scripts_read_is_in_the_readme():
     """Every setting is a row of the README's settings table (and every row a setting, or .ci/serve's own), and every
     other VOXE_ variable the packages or the .ci scripts read is named somewhere in it: the CLI's VOXE_API_KEY, the
@@ -137,20 +155,33 @@ def test_every_variable_the_service_its_cli_and_scripts_read_is_in_the_readme():
     settings = {f"VOXE_{name.upper()}" for name in Settings.model_fields}
     assert settings <= in_table <= settings | scripts, (sorted(settings - in_table),
                                                          sorted(in_table - settings - scripts))
-    for row in table.splitlines()[2:]:  # defaults written as values (`5` / `10` / `30`) read back as the settings'
+    for row in table.splitlines()[2:]:  # each default (`5` / `10` / `30`, 20 / 50 GiB, 3 h, –) read back as the settings'
         names, defaults = (cell.strip() for cell in row.split("|")[1:3])
-        if not re.fullmatch(r"`[^`]+`(?:(?: / |, )`[^`]+`)*", defaults):  # 2 GiB, 3 h, (none), – ...
-            continue
-        for name, value in zip(re.findall(r"`([^`]+)`", names), re.findall(r"`([^`]+)`", defaults), strict=True):
+        for name, written in zip(re.findall(r"`([^`]+)`", names), re.split(r" / |, ", defaults), strict=True):
             if name in settings:
                 field = Settings.model_fields[name.removeprefix("VOXE_").lower()]
-                assert TypeAdapter(field.annotation).validate_python(value) == field.default, (name, value)
+                unset = None if field.default == "" else field.default  # an empty string is as unset
+                assert documented_default(written, field.annotation) == unset, (name, written)
     read = set(scripts)
     for package in ("voxe_core", "voxe_client", "voxe_service", "api", "worker"):
         for source in (ROOT / package).rglob("*.py"):
             read |= set(re.findall(r"""(?:environ\.get\(|getenv\(|environ\[)\s*["'](VOXE_[A-Z0-9_]+)""",
                                    source.read_text()))
     assert read and {name for name in read if name not in readme} == set()
+
+
+UNITS = {"KiB": 1024, "MiB": 1024**2, "GiB": 1024**3, "h": 3600}
+
+
+def documented_default(written: str, annotation):
+    """A default as the settings table writes it: a value in backticks, a number with a unit (2 GiB, 3.5 h), or
+    "–" / "(none)" for None, unset or empty (what follows in brackets says what that means)."""
+    if re.fullmatch(r"`[^`]+`", written):
+        return TypeAdapter(annotation).validate_python(written.strip("`"))
+    if number := re.fullmatch(r"(\d+(?:\.\d+)?)(?: (KiB|MiB|GiB|h))?", written):
+        return TypeAdapter(annotation).validate_python(float(number.group(1)) * UNITS.get(number.group(2), 1))
+    assert re.fullmatch(r"(?:–|\(none\))(?: \(.*\))?", written), f"a default written as {written!r}"
+    return None
 
 
 def test_the_documented_weight_download_works_once_the_workers_are_offline():
