@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -722,6 +723,21 @@ def test_wait_in_a_log_says_each_state_stage_and_phase_at_once(monkeypatch, caps
         "[##############################] 100.0% succeeded export",
     ]
 
+
+def test_the_readmes_voxe_command_lines_name_commands_and_options_they_take():
+    """Every ``voxe <command> ... --option`` the README writes (its CLI block, the fresh-machine submit, options named
+    in its prose) is a command of ``voxe`` and an option of that command, as a user would copy it."""
+    from voxe_core.cli import build_parser
+
+    commands = next(action.choices for action in build_parser()._actions if action.dest == "command")
+    readme = re.sub(r"\\\n\s*", " ", (REPO / "README.md").read_text())  # a line continued by \ joined to the next
+    written = re.findall(r"(?:^\s*|[`;]\s*)(?:\.venv/bin/)?voxe ([a-z][a-z-]*)([^`\n#;]*)", readme, re.M)
+    assert len(written) > 20
+    for command, rest in written:
+        assert command in commands, f"README: `voxe {command}` is no command"
+        options = {option for action in commands[command]._actions for option in action.option_strings}
+        unknown = [option for option in re.findall(r"(?<![\w-])--[a-z][a-z0-9-]*", rest) if option not in options]
+        assert not unknown, f"README: `voxe {command}` takes no {unknown}"
 
 def test_options_a_command_would_ignore_are_refused(sphere_file, tmp_path, capsys):
     """render --data had taken --size / --elevation / --centre-of and rendered the dataset's cameras anyway;
