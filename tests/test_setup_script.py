@@ -1,8 +1,10 @@
-"""``.ci/setup``, which the README's two commands run first: a second run for the same project skips the install."""
+"""``.ci/setup``, which the README's two commands run first: a second run for the same project skips the install; and
+those two commands are the ones CI runs."""
 
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 from pathlib import Path
@@ -52,3 +54,14 @@ def test_setup_installs_once_for_the_same_project_and_torch(tmp_path):
     failed = subprocess.run(["bash", ".ci/setup"], cwd=tmp_path, capture_output=True, text=True, timeout=60,
                             env={**os.environ, "TORCH_SPEC": "torch"})
     assert failed.returncode != 0 and not (tmp_path / ".venv" / ".voxe-setup").exists()  # tried again next time
+
+
+def test_the_readmes_two_commands_are_the_ones_ci_runs():
+    """The README's fresh-machine section runs the service with ``bash .ci/serve`` and the tests with ``bash .ci/test``,
+    CI's entry point (``.ci/run``) runs exactly the latter, and both set up with ``.ci/setup``."""
+    readme = (REPO / "README.md").read_text()
+    section = readme.split("\n## Two commands for a fresh machine\n", 1)[1].split("\n## ", 1)[0]
+    assert re.findall(r"^    (bash \S+)$", section, re.M) == ["bash .ci/serve", "bash .ci/test"]
+    assert re.search(r"^exec bash \.ci/test$", (REPO / ".ci" / "run").read_text(), re.M)
+    for script in ("serve", "test"):
+        assert re.search(r"^[^#\n]*\bbash \.ci/setup\b", (REPO / ".ci" / script).read_text(), re.M), script
