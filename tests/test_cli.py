@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import shlex
 import shutil
 import signal
 import subprocess
@@ -738,6 +739,25 @@ def test_the_readmes_voxe_command_lines_name_commands_and_options_they_take():
         options = {option for action in commands[command]._actions for option in action.option_strings}
         unknown = [option for option in re.findall(r"(?<![\w-])--[a-z][a-z0-9-]*", rest) if option not in options]
         assert not unknown, f"README: `voxe {command}` takes no {unknown}"
+
+
+def test_the_readmes_voxe_commands_parse_as_written(capsys):
+    """The README's CLI block and its fresh-machine submit, each command as a user copies it (placeholders filled in,
+    ``[optional]`` brackets dropped), parse: required options, argument counts and choices included."""
+    from voxe_core.cli import build_parser
+
+    readme = re.sub(r"\\\n\s*", " ", (REPO / "README.md").read_text())
+    block = readme.split("\n## CLI\n", 1)[1].split("\n\n", 1)[0]
+    lines = [part.split("  #", 1)[0].strip() for line in block.splitlines() for part in line.split(";")]
+    lines += [line.replace("\n", " ") for line in re.findall(r"\.venv/bin/(voxe submit .*?\}\}')", readme, re.S)]
+    commands = [line for line in lines if line.startswith("voxe ")]
+    assert len(commands) > 15
+    for command in commands:
+        filled = command.replace("<job id>", "J1").replace("<scene id>", "S1").replace("[", "").replace("]", "")
+        try:
+            build_parser().parse_args(shlex.split(filled)[1:])
+        except SystemExit:
+            pytest.fail(f"README: `{command}` does not parse: {capsys.readouterr().err}")
 
 def test_options_a_command_would_ignore_are_refused(sphere_file, tmp_path, capsys):
     """render --data had taken --size / --elevation / --centre-of and rendered the dataset's cameras anyway;
