@@ -134,6 +134,17 @@ def test_the_compose_files_fallbacks_are_the_settings_defaults():
         assert TypeAdapter(field.annotation).validate_python(value) == field.default, (name, value)
 
 
+def test_the_readme_names_every_server_the_deployment_runs():
+    """Where the README says what docker-compose.yml deploys (its Layout row and its deployment paragraph), each of
+    the compose file's servers is named: the Layout row had left out MinIO, where the artifacts are kept."""
+    readme = (ROOT / "README.md").read_text()
+    layout_row = next(line for line in readme.splitlines() if line.startswith("| `docker/`, `docker-compose.yml` |"))
+    deployment = next(line for line in readme.splitlines() if line.startswith("Deployment with "))
+    servers = set(yaml.safe_load((ROOT / "docker-compose.yml").read_text())["services"]) - {"api", "worker"}
+    assert {"redis", "postgres", "minio"} <= servers
+    for said in (layout_row, deployment):
+        assert [server for server in sorted(servers) if server not in said.lower()] == [], said
+
 @pytest.mark.parametrize("name", ["docker/worker.Dockerfile", ".ci/serve"])
 def test_the_workers_the_project_starts_consume_every_queue_a_task_is_sent_to(name):
     """A task routed to a queue no worker consumes waits there for ever, its job queued."""
