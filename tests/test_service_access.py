@@ -763,7 +763,7 @@ def test_an_uploads_idempotency_digest_counts_a_field_added_later_only_when_it_i
 def test_scene_creation_is_idempotent(local_client, mic_zip, dataset, root, tmp_path):  # noqa: F811
     headers = {"Idempotency-Key": "upload-1"}
     created = _upload(local_client, mic_zip, headers)
-    replayed = _upload(local_client, mic_zip, headers, name="renamed-by-the-client-library.zip")
+    replayed = _upload(local_client, mic_zip, headers)
     assert created.status_code == 201 and replayed.status_code == 200
     assert replayed.json() == created.json() and replayed.headers["idempotent-replayed"] == "true"
     assert stored_files(root) == [f"scenes/{created.json()['id']}/dataset.zip"] and staged(root) == []
@@ -771,7 +771,21 @@ def test_scene_creation_is_idempotent(local_client, mic_zip, dataset, root, tmp_
     other = zip_folder(dataset, tmp_path / "two.zip", prefix="mic_small", only=lambda rel: "r_4" not in rel)
     conflict = _upload(local_client, other, headers)
     assert conflict.status_code == 422 and "different request body" in conflict.json()["detail"]
+    # The same bytes under another file name ask for another scene name (a scene is named after its zip): it had
+    # been replayed as the scene named "mic".
+    renamed = _upload(local_client, mic_zip, headers, name="guitar.zip")
+    assert renamed.status_code == 422 and "different request body" in renamed.json()["detail"]
     assert local_client.get("/v1/scenes").json()["total"] == 1
+    # With a name sent, the file name names nothing: a client renaming the file it sends still replays.
+    named = {"Idempotency-Key": "upload-2"}
+    with open(mic_zip, "rb") as handle:
+        first = local_client.post("/v1/scenes", files={"archive": ("mic.zip", handle, "application/zip")},
+                                  data={"name": "studio mic"}, headers=named)
+    with open(mic_zip, "rb") as handle:
+        again = local_client.post("/v1/scenes", files={"archive": ("tmp1234.zip", handle, "application/zip")},
+                                  data={"name": "studio mic"}, headers=named)
+    assert first.status_code == 201 and again.status_code == 200 and again.json() == first.json()
+    assert local_client.get("/v1/scenes").json()["total"] == 2
 
     assert local_client.delete(f"/v1/scenes/{created.json()['id']}").status_code == 204
     gone = _upload(local_client, mic_zip, headers)

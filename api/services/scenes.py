@@ -41,10 +41,15 @@ class Upload:
 
     def digest(self) -> str:
         """sha256 of what the upload asks for (field names, file names and bytes), not of its multipart framing; a
-        field added later counts only when sent, so a retry across an upgrade still matches its first request."""
+        field added later counts only when sent, so a retry across an upgrade still matches its first request.
+
+        The archive's file name counts where it names the scene (no ``name`` sent): the same bytes as guitar.zip
+        had replayed the scene named "mic" from mic.zip. With a name sent it names nothing, so it does not count
+        (a client may send a temporary file's name)."""
         fields = (self.name, self.mesh_shading) + ((self.mesh_up_axis,) if self.mesh_up_axis is not None else ())
         digest = hashlib.sha256(repr(fields).encode())
-        parts = [("archive", self.archive)] if self.archive is not None else [(f"files:{n}", h) for n, h in self.files]
+        archive = "archive" if self.name else f"archive:{self.archive_name or ''}"
+        parts = [(archive, self.archive)] if self.archive is not None else [(f"files:{n}", h) for n, h in self.files]
         for label, handle in parts:
             digest.update(b"\0" + label.encode() + b"\0")
             while chunk := handle.read(1 << 20):
