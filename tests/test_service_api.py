@@ -1698,6 +1698,30 @@ def test_if_match_is_told_it_compares_strongly_and_an_empty_one_is_named(client,
     assert client.get(url, headers={"If-Match": f"W/{etag}, {etag}"}).status_code == 200  # its strong tag matches
 
 
+def test_an_if_match_of_weak_and_strong_tags_is_told_why_none_matched(client, root):
+    """An If-Match listing W/ tags beside strong ones that all failed had been told the artifact "was replaced",
+    also where its W/ tag was the current ETag (nothing was replaced: the W/ kept it from matching). The 412 now
+    names the current ETag sent as W/, or else says the strong tags name an older version and W/ ones never match."""
+    from api.http_semantics import listed
+
+    _, url = _published_render(root)
+    etag = client.head(url).headers["etag"]
+    current_weak = client.get(url, headers={"If-Match": f'W/{etag}, "old"'})
+    assert current_weak.status_code == 412
+    sent = listed(['"old"', f"W/{etag}"], width=70)
+    assert current_weak.json()["detail"] == (
+        f"If-Match compares strongly: a W/ tag never matches, and If-Match {sent} "
+        f"names artifact 'render_000.png''s current ETag {etag} only with W/ (send the ETag as the ETag header gives "
+        "it, without W/)")
+    older = client.get(url, headers={"If-Match": 'W/"older", "old"'})
+    assert older.status_code == 412
+    sent = listed(['"old"', 'W/"older"'], width=70)
+    assert older.json()["detail"] == (
+        f"If-Match {sent} does not name artifact 'render_000.png''s "
+        f"current ETag {etag}: it was replaced (download it again from the start); its W/ tags never match (If-Match "
+        "compares strongly)")
+
+
 def test_a_download_racing_its_artifacts_replacement_serves_the_new_bytes(client, dataset, root, monkeypatch):
     """An artifact replaced between the route's read of its row and its open of the object (the old one deleted)
     had answered 404 "missing from storage" though the next GET was 200: the row is read again once."""

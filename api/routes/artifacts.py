@@ -144,8 +144,9 @@ _DOWNLOAD = {
     206: {"description": "the requested byte range (Range: bytes=..., If-Range, when sent, the current ETag)"},
     304: {"description": "not modified: If-None-Match names the current ETag (or is *); no body"},
     404: {"description": "no such job or artifact"},
-    412: {"description": "If-Match names none of the current ETag (or *): the artifact was replaced; or it lists only "
-                         "weak (W/) tags, which never match (If-Match compares strongly)"},
+    412: {"description": "If-Match names none of the current ETag (or *): the artifact was replaced; or it names it "
+                         "only as a weak (W/) tag, or lists only those, which never match (If-Match compares "
+                         "strongly)"},
     416: {"description": "range not satisfiable"},
     422: {"description": "If-Match or If-None-Match is not * or a list of quoted entity tags, If-Match is empty, or "
                          "If-Range (with a Range) is neither an entity tag nor a date (the header named)"},
@@ -193,15 +194,20 @@ def _answer(method: str, storage: Storage, artifact: Artifact, range_: str | Non
     etag = f'"{artifact.sha256}"'
     # Strong comparison, before If-None-Match (RFC 9110 §13.1.1, §13.2.2): a download fetched in parts, each asking
     # If-Match, had been given the replaced artifact's bytes for the later parts (a spliced file) where a 412 says so.
+    # The 412 names why no tag matched: "it was replaced" only where a strong tag names another version and no W/
+    # one the current (it had been said of W/ tags too, the current ETag's among them).
     if if_match is not None and not {"*", etag} & if_match:
-        sent = listed(sorted(if_match), width=70)
-        if all(tag.startswith("W/") for tag in if_match):  # (it had been told "it was replaced", also when it was not)
+        sent, weak = listed(sorted(if_match), width=70), {tag for tag in if_match if tag.startswith("W/")}
+        if f"W/{etag}" in weak or weak == if_match:
+            held = ("lists no other" if weak == if_match
+                    else f"names artifact {artifact.name!r}'s current ETag {etag} only with W/")
             raise HTTPException(status.HTTP_412_PRECONDITION_FAILED,
-                                f"If-Match compares strongly: a W/ tag never matches, and If-Match {sent} lists no "
-                                "other (send the ETag as the ETag header gives it, without W/)")
+                                f"If-Match compares strongly: a W/ tag never matches, and If-Match {sent} {held} "
+                                "(send the ETag as the ETag header gives it, without W/)")
         raise HTTPException(status.HTTP_412_PRECONDITION_FAILED,
                             f"If-Match {sent} does not name artifact {artifact.name!r}'s current ETag {etag}: it was "
-                            "replaced (download it again from the start)")
+                            "replaced (download it again from the start)"
+                            + ("; its W/ tags never match (If-Match compares strongly)" if weak else ""))
     if if_none_match is not None and {"*", etag} & {tag.removeprefix("W/") for tag in if_none_match}:
         return Response(status_code=status.HTTP_304_NOT_MODIFIED, headers={"ETag": etag})  # (weak comparison)
     if if_range is not None and if_range != etag:  # strong comparison; a date never matches (no Last-Modified)
