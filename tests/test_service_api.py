@@ -1495,7 +1495,7 @@ def test_the_event_stream_is_negotiated_by_the_accept_media_type_and_its_weight(
     got a stream, and ``Text/Event-Stream`` (media types are case-insensitive) the JSON timeline. Then any q above 0
     streamed, also where application/json was weighted higher: now the stream needs a q at least JSON's (named, or
     through application/* or */*). A q not in RFC 9110's form (.5) had counted as 1, opening a stream ranked below
-    JSON."""
+    JSON. Both answers say ``Vary: Accept`` (they had said nothing, so a cache could serve one for the other)."""
     url = f"/v1/jobs/{_job_row()}/events"
     for accept, streamed in (("text/event-stream", True), ("Text/Event-Stream", True),
                              ("application/json, text/event-stream; q=0.5", False),
@@ -1516,6 +1516,9 @@ def test_the_event_stream_is_negotiated_by_the_accept_media_type_and_its_weight(
         response = client.get(url, headers={"Accept": accept})
         assert response.status_code == 200, accept
         assert response.headers["content-type"].startswith("text/event-stream") is streamed, accept
+        assert response.headers.get("vary") == "Accept", accept
+    assert client.head(url, headers={"Accept": "text/event-stream"}).headers.get("vary") == "Accept"
+    assert client.head(url).headers.get("vary") == "Accept"
     split = client.get(url, headers=[("Accept", "application/json"), ("Accept", "text/event-stream")])
     assert split.headers["content-type"].startswith("text/event-stream")
 

@@ -155,19 +155,24 @@ def get_job(job_id: str, session: SessionDep, key: CurrentKey) -> JobOut:
                200: {"description": "the timeline as JSON; with `Accept: text/event-stream` (its q at least "
                                     "application/json's), a live stream of Server-Sent Events (api/events.py) ending "
                                     "when the job ends",
+                     "headers": {"Vary": {"description": "Accept: the answer depends on it",
+                                          "schema": {"type": "string"}}},
                      "content": {SSE_MEDIA_TYPE: {"schema": {"type": "string"}}}},
                422: {"description": "Last-Event-ID is not an event id"}},
     summary="The job's timeline (stages, checkpoints, artifacts, its end), or a live stream of it",
 )
-def list_events(job_id: str, request: Request, session: SessionDep, key: CurrentKey,
+def list_events(job_id: str, request: Request, response: Response, session: SessionDep, key: CurrentKey,
                 last_event_id: Annotated[str | None, Header(description="stream: resume after this event id")] = None,
                 ) -> list[JobEventOut] | StreamingResponse:
     jobs.get_job(session=session, key=key, job_id=job_id)
+    # Either answer depends on Accept: said, so a cache never serves the timeline for the stream or the other way.
+    negotiated = {"Vary": "Accept"}
     if wants_stream(request.headers.getlist("accept")):
         after = _event_id(last_event_id)
         session.close()  # the stream reads through the hub's short sessions: hold no connection meanwhile
         return StreamingResponse(request.app.state.event_hub.stream(job_id, key.id, after), media_type=SSE_MEDIA_TYPE,
-                                 headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+                                 headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no", **negotiated})
+    response.headers.update(negotiated)
     rows = session.scalars(select(JobEvent).where(JobEvent.job_id == job_id).order_by(JobEvent.id))
     return [JobEventOut.model_validate(e, from_attributes=True) for e in rows]
 
