@@ -46,6 +46,10 @@ _NAMING_CHARACTER = rf"[^{_WHITESPACE}\x00-\x23\x25-\x2f\x3a-\x40\x5b-\x60\x7b-\
 TEXT_PATTERN = rf"^{_ALLOWED}*{_NAMING_CHARACTER}{_ALLOWED}*$"
 # An edit word's: something but whitespace (whether it names anything, a symbol as "🎩" does, is the core's rule).
 EDIT_WORD_PATTERN = rf"^{_ALLOWED}*[^{_WHITESPACE}\x00-\x08\x0e-\x1b\x7f-\x84\x86-\x9f]{_ALLOWED}*$"
+# A webhook URL's: no whitespace, spelt out as str.split()'s and ECMA-262's \s (\ufeff): its \s had been read apart by
+# the document's readers (no \x85, \ufeff) and the server's check (\x85, no \ufeff). (NUL is every string's rule.)
+_NOT_IN_URL = rf"{_WHITESPACE}\ufeff"
+WEBHOOK_URL_PATTERN = rf"^https?://[^{_NOT_IN_URL}/?#]+[^{_NOT_IN_URL}]*$"
 CLIP_SPECIAL_TOKENS = ("<|startoftext|>", "<|endoftext|>")
 _NO_SPECIAL_TOKENS = (f"nor CLIP's special tokens {' or '.join(CLIP_SPECIAL_TOKENS)} written out (the model reads "
                       "each as its text's start or end)")
@@ -262,7 +266,7 @@ class JobCreate(Strict):
     )
     params: JobParams = Field(default_factory=JobParams)
     webhook_url: str | None = Field(
-        None, max_length=2000, pattern=r"^https?://[^\s/?#]+[^\s]*$",
+        None, max_length=2000, pattern=WEBHOOK_URL_PATTERN,
         description="POST each event of `webhook_events` here, signed (Standard Webhooks; the secret is at "
         "GET /v1/webhooks/secret); a public address unless the operator allows more (VOXE_WEBHOOK_ALLOW_NETWORKS)",
     )

@@ -355,6 +355,31 @@ def test_edit_word_pattern_read_as_json_schema_states_the_server_rule():
         assert bool(re.search(as_ecma, chr(code))) == server, hex(code)
 
 
+def test_webhook_url_pattern_read_as_json_schema_states_the_server_rule(spec):
+    """The published webhook_url pattern excluded whitespace as \\s, which ECMA-262 (a JSON Schema pattern's dialect)
+    and the server's check read apart: a URL holding \\x85 was valid to the document and refused by the server, one
+    holding \\ufeff the other way round. Read as JavaScript reads it, it now takes exactly what the server's check
+    takes, in the host and in the path (but NUL, which every string refuses with a 422 of its own: Strict)."""
+    import re
+
+    from pydantic import ValidationError
+
+    from api.schemas import JobCreate
+
+    (published,) = [s["pattern"] for s in spec["components"]["schemas"]["JobCreate"]["properties"]["webhook_url"]
+                    ["anyOf"] if "pattern" in s]
+    ecma_space = r"\t\n\v\f\r \xa0\u1680\u2000-\u200a\u2028\u2029\u202f\u205f\u3000\ufeff"
+    as_ecma = published.replace(r"\s", ecma_space)  # (only ever inside a class)
+    for code in [*range(1, 0x3001), 0xfeff]:
+        for url in (f"http://h{chr(code)}x/hook", f"http://h/{chr(code)}"):
+            try:
+                JobCreate.model_validate({"scene_id": "x", "prompt": "a mic", "webhook_url": url})
+                server = True
+            except ValidationError:
+                server = False
+            assert bool(re.fullmatch(as_ecma, url)) == server, (hex(code), url)
+
+
 def test_malformed_json_is_a_documented_400(client, spec):
     for path in ("/v1/jobs", "/v1/evaluations", "/v1/sweeps"):
         response = client.post(path, content=b'{"prompt": ', headers={"content-type": "application/json"})
