@@ -11,6 +11,8 @@
   the first.
 * On /v1, a query parameter an operation does not take, or a one-valued one sent twice, is a 422 naming them
   (:class:`StrictRoute`), rather than ignored or read as its last value.
+* A body sent to a POST or DELETE that takes none (a cancel, a deletion) is a 415 naming the operation
+  (:class:`StrictRoute`): it had been ignored, the caller left believing it was read.
 * A form route's body (an upload) sent as another media type than multipart/form-data (a urlencoded form cannot
   carry a file), or with none, is a 415 naming it (:class:`api.routes.scenes.UploadFilesRoute`); Starlette's 400
   for a multipart body it cannot parse is documented.
@@ -61,6 +63,7 @@ SECURITY_SCHEMES = {
 
 
 _METHODS = ("DELETE", "GET", "HEAD", "PATCH", "POST", "PUT")
+_TAKE_CONTENT = ("DELETE", "PATCH", "POST", "PUT")  # methods whose content means something (RFC 9110 §9.3)
 FORM_MEDIA_TYPE = "multipart/form-data"
 UNAVAILABLE = (*DATABASE_UNAVAILABLE, StorageError)
 RETRY_AFTER_S = 5
@@ -215,8 +218,9 @@ class StrictRoute(APIRoute):
     """A route refusing what FastAPI would read one way silently: a query parameter it does not take or a
     one-valued one sent twice (422, naming them: ``GET /v1/jobs?stat=running`` had listed every job, and
     ``?limit=1&limit=500`` took the last), and a JSON body one of whose objects names a member twice (400, naming
-    it: ``{"prompt": "a", "prompt": "b"}`` had made a job of "b"; :class:`UniqueMembersRequest`). A body that does
-    not parse is FastAPI's error as before (:func:`malformed_body`, :func:`unreadable_body`)."""
+    it: ``{"prompt": "a", "prompt": "b"}`` had made a job of "b"; :class:`UniqueMembersRequest`), and a body sent to
+    a POST or DELETE taking none (415, :meth:`refuse_body`). A body that does not parse is FastAPI's error as before
+    (:func:`malformed_body`, :func:`unreadable_body`)."""
 
     @cached_property
     def query_fields(self) -> dict:
@@ -233,12 +237,22 @@ class StrictRoute(APIRoute):
                            and not takes_several(takes[name].field_info.annotation)):
             raise HTTPException(422, f"query parameter(s) {listed(twice)} sent more than once: send each once")
 
+    async def refuse_body(self, request: Request) -> None:
+        """415 for a body sent to a POST or DELETE that takes none (a cancel's ``{"reason": ...}`` had been ignored
+        silently); an empty one is none. A GET's is left alone: RFC 9110 gives it no meaning."""
+        if request.method in _TAKE_CONTENT and sends_body(request) and (body := await request.body()):
+            sent_as = f" of {media_type(request)}" if media_type(request) else ""
+            raise HTTPException(415, f"{request.method} {self.path} takes no body: send none (got {len(body)} bytes"
+                                     f"{sent_as})")
+
     def get_route_handler(self):
         handler = super().get_route_handler()
 
         async def check_then_handle(request: Request) -> Response:
             self.refuse_odd_query(request)
-            if self.body_field is not None and json_sent(media_type(request)):  # (a route taking none ignores it)
+            if self.body_field is None:
+                await self.refuse_body(request)
+            elif json_sent(media_type(request)):
                 request = UniqueMembersRequest(request.scope, request.receive)  # nothing read yet
             return await handler(request)
 
@@ -356,9 +370,9 @@ def _or_problem(content: dict | None) -> dict:
 
 
 def document(schema: dict) -> dict:
-    """Add to each operation what middleware and handlers answer: 400 and 415 (a JSON or multipart body), 413 (any
-    body), 401, 422 (:class:`StrictRoute`'s query checks), 503 and the key schemes (/v1), and an OPTIONS operation per
-    path (204 + Allow; other methods 405 + Allow)."""
+    """Add to each operation what middleware and handlers answer: 400 and 415 (a JSON or multipart body; 415 for any
+    body sent to a POST or DELETE taking none), 413 (any body), 401, 422 (:class:`StrictRoute`'s query checks), 503
+    and the key schemes (/v1), and an OPTIONS operation per path (204 + Allow; other methods 405 + Allow)."""
     components = schema.setdefault("components", {})
     components.setdefault("securitySchemes", {}).update(SECURITY_SCHEMES)
     components.setdefault("schemas", {})["Problem"] = {
@@ -378,6 +392,9 @@ def document(schema: dict) -> dict:
                                                             "the fault: a missing boundary, a bad part header)",
                                              "content": _PROBLEM})
                 responses.setdefault("415", {"description": f"the body was not sent as a form ({FORM_MEDIA_TYPE})",
+                                             "content": _PROBLEM})
+            if method.upper() in _TAKE_CONTENT and "requestBody" not in operation:
+                responses.setdefault("415", {"description": "a body was sent: the operation takes none",
                                              "content": _PROBLEM})
             if method in ("post", "put", "patch"):
                 responses.setdefault("413", {"description": "request body over the upload limit "

@@ -436,8 +436,8 @@ def test_json_naming_a_member_twice_is_a_documented_400_naming_it(client, spec, 
                  "send it once)"), (path, body)
         assert "names a member twice" in spec["paths"][path]["post"]["responses"]["400"]["description"]
     assert client.get("/v1/jobs").json()["total"] == 0
-    ignored = client.post("/v1/jobs/x/cancel", content='{"a": 1, "a": 2}', headers={"content-type": "application/json"})
-    assert ignored.status_code == 404  # a route taking no body reads none (as it reads no body that does not parse)
+    refused = client.post("/v1/jobs/x/cancel", content='{"a": 1, "a": 2}', headers={"content-type": "application/json"})
+    assert refused.status_code == 415  # a route taking no body parses none: any body sent to it is refused as such
     same_name_apart = '{%s, "params": {"seed": 1, "reconstruction": {"seed": 2}}}' % job  # one name per object
     assert client.post("/v1/jobs", content=same_name_apart, headers={"content-type": "application/json"}
                        ).status_code == 201

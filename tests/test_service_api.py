@@ -1490,6 +1490,36 @@ def test_head_answers_wherever_get_does_with_its_headers_and_no_body(client, dat
     assert refused.status_code == 405 and refused.headers["allow"] == "OPTIONS, POST"
 
 
+def test_a_body_sent_to_an_operation_that_takes_none_is_a_documented_415_and_does_nothing(client):
+    """A cancel or a deletion sent with a body (``{"reason": ...}``, ``{"force": true}``) had ignored it silently:
+    the caller could believe it was read. Such a body is a 415 naming the operation, nothing done; an empty one (no
+    body, Content-Length 0) is none, and a GET's body is still ignored (RFC 9110 gives it no meaning)."""
+    from sqlalchemy import update
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+
+    job_id = _job_row()
+    with session_scope() as session:
+        session.execute(update(Job).where(Job.id == job_id).values(state="queued"))
+    scene_id = client.get(f"/v1/jobs/{job_id}").json()["scene_id"]
+    spec = client.get("/openapi.json").json()
+    for method, path, url in (("POST", "/v1/jobs/{job_id}/cancel", f"/v1/jobs/{job_id}/cancel"),
+                              ("POST", "/v1/sweeps/{sweep_id}/cancel", "/v1/sweeps/s1/cancel"),
+                              ("DELETE", "/v1/scenes/{scene_id}", f"/v1/scenes/{scene_id}")):
+        refused = client.request(method, url, content=b'{"reason": "not needed"}',
+                                 headers={"Content-Type": "application/json"})
+        assert refused.status_code == 415, (method, url, refused.text)
+        assert refused.json()["detail"] == (f"{method} {path} takes no body: send none (got 24 bytes of "
+                                            "application/json)")
+        assert "415" in spec["paths"][path][method.lower()]["responses"], (method, path)
+    assert client.get(f"/v1/jobs/{job_id}").json()["state"] == "queued"
+    assert client.get(f"/v1/scenes/{scene_id}").status_code == 200
+    assert client.request("GET", f"/v1/jobs/{job_id}/events", content=b"ignored").status_code == 200
+    canceled = client.post(f"/v1/jobs/{job_id}/cancel", headers={"Content-Length": "0"})
+    assert canceled.status_code == 200 and canceled.json()["state"] == "canceled"
+
+
 def test_the_event_stream_is_negotiated_by_the_accept_media_type_and_its_weight(client):
     """text/event-stream had been found in Accept as a substring: ``text/event-stream;q=0`` (anything but a stream)
     got a stream, and ``Text/Event-Stream`` (media types are case-insensitive) the JSON timeline. Then any q above 0
