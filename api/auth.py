@@ -63,14 +63,24 @@ def authenticate(session: Session, token: str) -> ApiKey | None:
     return key if hmac.compare_digest(key.token_sha256, sha256_hex(token)) else None
 
 
+CHALLENGE = {"WWW-Authenticate": "Bearer"}
+
+
 def presented_token(request: Request) -> str | None:
     """``Authorization: Bearer <token>``, else ``X-API-Key: <token>`` (the header for clients whose
-    ``Authorization`` carries another scheme: a proxy's Basic credentials)."""
-    scheme, _, value = request.headers.get("authorization", "").partition(" ")
-    return value.strip() if scheme.lower() == "bearer" else request.headers.get("x-api-key")
+    ``Authorization`` carries another scheme: a proxy's Basic credentials).
 
-
-CHALLENGE = {"WWW-Authenticate": "Bearer"}
+    401 when the request carries two different tokens (the headers repeated, or both forms): only the first line had
+    counted, where a proxy or another server may read the last, so one request could be taken as two keys.
+    """
+    bearers = [value.strip() for scheme, _, value in (line.partition(" ") for line in request.headers.getlist(
+        "authorization")) if scheme.lower() == "bearer"]
+    tokens = [token for token in bearers + request.headers.getlist("x-api-key") if token]
+    if len(set(tokens)) > 1:
+        raise HTTPException(status.HTTP_401_UNAUTHORIZED,
+                            f"{len(set(tokens))} different API keys sent (Authorization: Bearer and X-API-Key lines "
+                            "together): send one key", headers=CHALLENGE)
+    return tokens[0] if tokens else None
 
 
 def unauthorized(token: str | None) -> str:
@@ -120,7 +130,11 @@ class RequireKey:
                       "(VOXE_AUTH=on; keys from 'python -m api.admin create-key')")
             response = JSONResponse({"detail": detail}, status.HTTP_401_UNAUTHORIZED, headers=CHALLENGE)
             return await response(scope, receive, send)
-        token = presented_token(Request(scope))
+        try:
+            token = presented_token(Request(scope))
+        except HTTPException as exc:
+            response = JSONResponse({"detail": exc.detail}, exc.status_code, headers=exc.headers)
+            return await response(scope, receive, send)
         try:
             key_id = await anyio.to_thread.run_sync(_live_key_id, token) if token else None
         except DATABASE_UNAVAILABLE as exc:  # outside the app's handlers: answered here, as a route's would be

@@ -86,6 +86,26 @@ def test_requests_need_a_valid_live_key(auth_client, mic_zip):
     assert auth_client.get("/healthz").status_code == 200  # liveness needs no key
 
 
+def test_a_request_carrying_two_different_keys_is_401_whichever_comes_first(auth_client):
+    """Headers repeated, or both forms: the first line had counted (another reader may take the last), so one request
+    acted as either key by the order of its lines."""
+    _, alice = _create_key("alice")
+    _, bob = _create_key("bob")
+    for headers in ([("Authorization", f"Bearer {alice}"), ("Authorization", f"Bearer {bob}")],
+                    [("X-API-Key", bob), ("X-API-Key", alice)],
+                    [("Authorization", f"Bearer {alice}"), ("X-API-Key", bob)],
+                    [("Authorization", "Basic dXNlcjpwYXNz"), ("Authorization", f"Bearer {bob}"),
+                     ("X-API-Key", alice)]):
+        refused = auth_client.get("/v1/jobs", headers=headers)
+        assert refused.status_code == 401 and refused.headers["www-authenticate"] == "Bearer", headers
+        assert refused.json()["detail"].startswith("2 different API keys sent"), headers
+        assert alice not in refused.text and bob not in refused.text
+    # The same key twice, or beside an empty one, is one key.
+    for headers in ([("X-API-Key", alice), ("Authorization", f"Bearer {alice}")],
+                    [("Authorization", "Bearer "), ("X-API-Key", alice)]):
+        assert auth_client.get("/v1/jobs", headers=headers).status_code == 200, headers
+
+
 def test_only_the_tokens_hash_is_stored(auth_client):
     from sqlalchemy import text
 
