@@ -4,7 +4,8 @@
     python -m api.admin list-keys
     python -m api.admin revoke-key <key id>
 
-``create-key`` prints the token once; only its sha256 is stored, so a lost token means a new key.
+``create-key`` prints the token once; only its sha256 is stored, so a lost token means a new key. ``revoke-key``
+also cancels the key's unfinished jobs.
 """
 
 from __future__ import annotations
@@ -13,10 +14,12 @@ import argparse
 import sys
 
 from sqlalchemy import select
+from sqlalchemy.orm import Session
 
 from api.auth import create_key
+from api.services.jobs import request_cancel
 from voxe_service.db import run_migrations, session_scope
-from voxe_service.models import LOCAL_KEY_ID, ApiKey, utcnow
+from voxe_service.models import LOCAL_KEY_ID, TERMINAL_STATES, ApiKey, Job, utcnow
 from voxe_service.settings import get_settings
 
 
@@ -36,6 +39,15 @@ def _count_up_to(most: int):
     return count
 
 
+def cancel_unfinished_jobs(session: Session, key: ApiKey) -> int:
+    """Cancel a revoked key's queued and running jobs; how many. They had run on, holding workers for hours, with
+    results no key can read and no request able to cancel them."""
+    job_ids = list(session.scalars(select(Job.id).where(Job.owner_key_id == key.id,
+                                                        Job.state.not_in(TERMINAL_STATES))))
+    request_cancel(session=session, job_ids=job_ids, message=f"canceled while queued: its API key {key.id} was revoked")
+    return len(job_ids)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m api.admin", description="Manage the Vox-E service's API keys.")
     commands = parser.add_subparsers(dest="command", required=True)
@@ -46,7 +58,8 @@ def main(argv: list[str] | None = None) -> int:
     create.add_argument("--max-upload-bytes", type=_count_up_to(2**63 - 1), help="bytes of stored scenes (default: "
                         "VOXE_MAX_UPLOAD_BYTES_PER_KEY)")
     commands.add_parser("list-keys", help="list keys (never their tokens)")
-    revoke = commands.add_parser("revoke-key", help="revoke a key: its token stops working at once")
+    revoke = commands.add_parser("revoke-key", help="revoke a key: its token stops working at once, and its "
+                                    "unfinished jobs are canceled")
     revoke.add_argument("key_id")
     args = parser.parse_args(argv)
 
@@ -72,7 +85,10 @@ def main(argv: list[str] | None = None) -> int:
                 return 1
             if key.revoked_at is None:
                 key.revoked_at = utcnow()
-            print(f"revoked key {key.id} ({key.name})", file=sys.stderr)
+                session.commit()  # its token refused from here on, before its jobs are canceled
+            canceled = cancel_unfinished_jobs(session, key)
+            print(f"revoked key {key.id} ({key.name}); its {canceled} unfinished job(s) canceled (a running one "
+                  "stops at its next cancel check)", file=sys.stderr)
     return 0
 
 

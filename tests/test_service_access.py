@@ -181,6 +181,34 @@ def test_admin_cli_creates_lists_and_revokes_keys(auth_client, capsys):
     assert "printable characters" in capsys.readouterr().err
 
 
+@BOTH_DATABASES
+def test_revoking_a_key_cancels_its_unfinished_jobs(auth_client, mic_zip, capsys):
+    """Its jobs had run on, holding workers, with results no key could read and no request able to cancel them."""
+    from api import admin
+    from voxe_service.db import session_scope
+    from voxe_service.models import RUNNING, Job
+
+    key_id, token = _create_key("leaving")
+    _, other = _create_key("staying")
+    jobs = []
+    for owner in (token, token, other):
+        scene = _upload(auth_client, mic_zip, bearer(owner)).json()
+        jobs.append(auth_client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}, headers=bearer(owner)).json())
+    queued, running, others = (job["id"] for job in jobs)
+    with session_scope() as session:
+        session.get(Job, running).state = RUNNING
+
+    assert admin.main(["revoke-key", key_id]) == 0
+    assert "its 2 unfinished job(s) canceled" in capsys.readouterr().err
+    with session_scope() as session:
+        canceled, flagged, untouched = (session.get(Job, job_id) for job_id in (queued, running, others))
+        assert canceled.state == "canceled"
+        assert canceled.message == f"canceled while queued: its API key {key_id} was revoked"
+        assert flagged.state == RUNNING and flagged.cancel_requested  # stops at its worker's next cancel check
+        assert untouched.state == "queued" and not untouched.cancel_requested
+    assert auth_client.get("/v1/jobs", headers=bearer(token)).status_code == 401
+
+
 # ------------------------------------------------------------------------------------------ the auth switch
 def test_auth_is_off_only_on_loopback(root, monkeypatch, caplog):  # noqa: F811
     from api.main import create_app
