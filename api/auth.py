@@ -106,13 +106,24 @@ def off_loopback_address(scope) -> str | None:
     return None if is_loopback(address) else address
 
 
+PROXY_HEADERS = ("Forwarded", "X-Forwarded-For", "X-Forwarded-Host", "X-Forwarded-Proto", "X-Real-IP")
+
+
+def proxy_header(scope) -> str | None:
+    """The first header by which a proxy says it relayed the request (RFC 7239's, or the de facto X-Forwarded-* and
+    X-Real-IP); None when it has none."""
+    sent = {name.decode("latin-1").lower() for name, _ in scope.get("headers", ())}
+    return next((name for name in PROXY_HEADERS if name.lower() in sent), None)
+
+
 class RequireKey:
     """ASGI middleware: with authentication on, a /v1 request without a live key is answered 401 before its
     body is read, so an anonymous client cannot make the server receive and spool an upload.
 
     With authentication off, a /v1 request that came in on an address other than loopback is a 401 too: VOXE_HOST
     only tells the API where uvicorn listens, and uvicorn run with ``--host 0.0.0.0`` beside the default VOXE_HOST
-    had served the network as the local key, with no key asked."""
+    had served the network as the local key, with no key asked. So is one a proxy says it relayed (``proxy_header``):
+    a proxy on the machine comes in on loopback, and had served whoever reached the proxy as the local key."""
 
     def __init__(self, app):
         self.app = app
@@ -122,12 +133,16 @@ class RequireKey:
             return await self.app(scope, receive, send)  # OPTIONS: the Allow header only (api/http_semantics.py)
         settings = get_settings()
         if not settings.auth_enabled:
-            if (address := off_loopback_address(scope)) is None:
+            address, relayed = off_loopback_address(scope), proxy_header(scope)
+            if address is None and relayed is None:
                 return await self.app(scope, receive, send)
+            turn_on = "turn authentication on (VOXE_AUTH=on; keys from 'python -m api.admin create-key')"
+            why = (f"this one came in on {address}: have uvicorn listen on VOXE_HOST (--host {settings.host}, as "
+                   f"bash .ci/serve does), or {turn_on}" if address is not None else
+                   f"this one was relayed by a proxy (its {relayed} header), which serves whoever reaches it: "
+                   f"{turn_on}")
             detail = (f"authentication is off (VOXE_AUTH={settings.auth}, VOXE_HOST={settings.host}), so only "
-                      f"loopback connections are served, and this one came in on {address}: have uvicorn listen on "
-                      f"VOXE_HOST (--host {settings.host}, as bash .ci/serve does), or turn authentication on "
-                      "(VOXE_AUTH=on; keys from 'python -m api.admin create-key')")
+                      f"loopback connections are served, and {why}")
             response = JSONResponse({"detail": detail}, status.HTTP_401_UNAUTHORIZED, headers=CHALLENGE)
             return await response(scope, receive, send)
         try:

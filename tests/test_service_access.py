@@ -256,6 +256,23 @@ def test_with_authentication_off_only_loopback_connections_are_served(root):  # 
             assert response.status_code == 200, (server, response.text)
 
 
+def test_with_authentication_off_a_request_a_proxy_relayed_is_401(root):  # noqa: F811
+    """A proxy on the machine (nginx, Caddy in front of bash .ci/serve) comes in on loopback: whoever reached the
+    proxy had been served as the local key, no key asked."""
+    from api.main import create_app
+
+    with TestClient(create_app()) as client:
+        for sent, named in (("Forwarded", "Forwarded"), ("X-Forwarded-For", "X-Forwarded-For"),
+                            ("x-forwarded-host", "X-Forwarded-Host"), ("X-Forwarded-Proto", "X-Forwarded-Proto"),
+                            ("x-real-ip", "X-Real-IP")):
+            response = client.get("/v1/scenes", headers={sent: "203.0.113.7"})
+            assert response.status_code == 401 and response.headers["www-authenticate"] == "Bearer", sent
+            assert (f"so only loopback connections are served, and this one was relayed by a proxy (its {named} "
+                    "header), which serves whoever reaches it: turn authentication on (VOXE_AUTH=on"
+                    ) in response.json()["detail"], sent
+        assert client.get("/v1/scenes").status_code == 200
+
+
 def test_resources_made_before_keys_belong_to_the_local_key(database_url):
     from alembic import command
     from sqlalchemy import text
