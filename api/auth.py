@@ -25,7 +25,7 @@ from sqlalchemy.orm import Session
 
 from api.http_semantics import DATABASE_UNAVAILABLE, route_path, unavailable
 from voxe_service.db import get_sessionmaker
-from voxe_service.quotas import stored_bytes, upload_limit
+from voxe_service.quotas import lock_key, stored_bytes, upload_limit
 from voxe_service.models import PROCESSING, QUEUED, RUNNING, ApiKey, IdempotencyRecord, Job, utcnow
 from voxe_service.settings import Settings, get_settings, is_loopback
 
@@ -173,6 +173,17 @@ def check_startup(settings: Settings) -> str:
 
 
 # ------------------------------------------------------------------ quotas
+def lock_live_key(session: Session, key: ApiKey) -> None:
+    """Lock the key for what this request records under it (:func:`voxe_service.quotas.lock_key`); 401 when it was
+    revoked since the request was authenticated (an upload is unpacked for minutes in between): a job or scene
+    recorded after ``revoke-key`` had canceled the key's jobs ran on, for a key nothing could read or cancel it with.
+    ``revoke-key`` writes the key's row, so it waits for a request holding the lock, and then finds its jobs."""
+    lock_key(session, key.id)
+    if session.scalar(select(ApiKey.revoked_at).where(ApiKey.id == key.id)) is not None:
+        raise HTTPException(status.HTTP_401_UNAUTHORIZED, f"API key {key.id} was revoked while this request was "
+                            "handled: nothing was recorded", headers=CHALLENGE)
+
+
 class QuotaExceeded(HTTPException):
     """429 over a key's quota, with ``Retry-After`` only where waiting can clear it (``retry_after_s``): a job
     ending frees a place, but only deleting scenes frees upload bytes (a client waiting that out had sent the whole

@@ -209,6 +209,44 @@ def test_revoking_a_key_cancels_its_unfinished_jobs(auth_client, mic_zip, capsys
     assert auth_client.get("/v1/jobs", headers=bearer(token)).status_code == 401
 
 
+@BOTH_DATABASES
+def test_a_key_revoked_while_its_request_is_handled_records_nothing(auth_client, mic_zip, monkeypatch,
+                                                                    root):  # noqa: F811
+    """Revoked after the request was authenticated (an upload is unpacked for minutes), before it recorded its job or
+    scene: that job had run on after revoke-key canceled the key's jobs, for a key nothing could read or cancel with."""
+    from sqlalchemy import func, select
+
+    from api import admin
+    from api.services import jobs, scenes
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, Scene
+
+    key_id, token = _create_key("leaving")
+    scene = _upload(auth_client, mic_zip, bearer(token)).json()
+
+    def revoked_meanwhile(original):
+        def run(*args, **kwargs):
+            assert admin.main(["revoke-key", key_id]) == 0
+            return original(*args, **kwargs)
+        return run
+
+    monkeypatch.setattr(jobs, "refuse_without_models", revoked_meanwhile(jobs.refuse_without_models))
+    refused = auth_client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}, headers=bearer(token))
+    assert refused.status_code == 401 and refused.headers["www-authenticate"] == "Bearer"
+    assert refused.json()["detail"] == (f"API key {key_id} was revoked while this request was handled: nothing was "
+                                        "recorded")
+
+    key_id, token = _create_key("leaving too")
+    stored = stored_files(root)
+    monkeypatch.setattr(scenes, "stage_upload", revoked_meanwhile(scenes.stage_upload))
+    refused = _upload(auth_client, mic_zip, bearer(token))
+    assert refused.status_code == 401 and f"API key {key_id} was revoked while" in refused.json()["detail"]
+    assert stored_files(root) == stored
+    with session_scope() as session:
+        assert session.scalar(select(func.count()).select_from(Job)) == 0
+        assert [s.id for s in session.scalars(select(Scene))] == [scene["id"]]
+
+
 # ------------------------------------------------------------------------------------------ the auth switch
 def test_auth_is_off_only_on_loopback(root, monkeypatch, caplog):  # noqa: F811
     from api.main import create_app

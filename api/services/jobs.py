@@ -16,7 +16,7 @@ from sqlalchemy import delete, func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from api.auth import Idempotency, check_active_jobs, sha256_hex
+from api.auth import Idempotency, check_active_jobs, lock_live_key, sha256_hex
 from api.http_semantics import try_again_soon
 from api.paging import PageQuery, PageRows, read_page
 from api.schemas import JobCreate
@@ -32,7 +32,6 @@ from voxe_service.models import (
     WebhookDelivery, new_id, utcnow,
 )
 from voxe_service.queue import QueueUnavailable, TaskQueue, dispatch_job, evaluations_waiting_on
-from voxe_service.quotas import lock_key
 from voxe_service.scenes import lock_scene
 from voxe_service.settings import Settings
 
@@ -162,7 +161,7 @@ def add_jobs(*, session: Session, key: ApiKey, settings: Settings, jobs: list[Jo
     """
     refuse_without_models(session=session, settings=settings, jobs=jobs)
     try:
-        lock_key(session, key.id)
+        lock_live_key(session, key)
         session.add_all(jobs)
         # Recorded before the quota is counted: a racing twin waits on the key's lock, then fails here and replays.
         record = idempotency.record(session, key, jobs[-1].id) if idempotency is not None else None

@@ -13,13 +13,12 @@ from sqlalchemy import func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from api.auth import Idempotency, check_upload_bytes
+from api.auth import Idempotency, check_upload_bytes, lock_live_key
 from api.http_semantics import try_again_soon
 from api.paging import PageQuery, PageRows, read_page
 from api.uploads import UploadError, stage_upload, staging_folder
 from voxe_service.models import FAILED, QUEUED, RUNNING, ApiKey, Job, Reconstruction, Scene, new_id
 from voxe_service.queue import QUEUE_UNAVAILABLE, TaskQueue
-from voxe_service.quotas import lock_key
 from voxe_service.scenes import fail_scene, lock_scene
 from voxe_service.settings import Settings
 from voxe_service.storage import Storage, job_key, reconstruction_storage_key, scene_key
@@ -105,7 +104,7 @@ def create_scene(*, session: Session, settings: Settings, storage: Storage, queu
                 format=staged.format, image_count=staged.image_count, width=staged.width, height=staged.height,
                 splits=staged.splits, storage_key=storage_key, size_bytes=stored.size, sha256=stored.sha256,
             )
-            lock_key(session, key.id)
+            lock_live_key(session, key)
             session.add(scene)
             if idem is not None:
                 idem.record(session, key, scene_id)
