@@ -284,5 +284,7 @@ def get_settings() -> Settings:
 
 
 def _shown(value):
-    """A setting's value as an error may print it: a URL's password hidden (the database URL carries one)."""
-    return re.sub(r"(://[^/:@]*:)[^/@]*@", r"\1***@", value) if isinstance(value, str) else value
+    """A setting's value as an error may print it: a URL's password hidden (the database and broker URLs carry one), up
+    to the URL's last '@': one holding a '/' (a base64 password's, which SQLAlchemy and kombu read as such) had been
+    printed whole."""
+    return re.sub(r"(://[^/:@]*:).*@", r"\1***@", value) if isinstance(value, str) else value
