@@ -16,12 +16,14 @@ import re
 import secrets
 from dataclasses import dataclass
 from typing import Annotated
+from urllib.parse import urlsplit
 
 import anyio
 from fastapi import Header, HTTPException, Request, Response, status
 from fastapi.responses import JSONResponse
 from sqlalchemy import and_, delete, func, select, update
 from sqlalchemy.orm import Session
+from starlette.datastructures import Headers
 
 from api.http_semantics import DATABASE_UNAVAILABLE, route_path, unavailable
 from voxe_service.db import get_sessionmaker
@@ -116,6 +118,40 @@ def proxy_header(scope) -> str | None:
     return next((name for name in PROXY_HEADERS if name.lower() in sent), None)
 
 
+def foreign_name(scope) -> str | None:
+    """The Host or Origin header (as sent, cut short) naming a host other than a loopback one or the address the
+    request came in on; None when neither does. A browser sends them: a page of another site posting a form here
+    (Origin), or one whose name its owner pointed at 127.0.0.1 reading and writing the API as its own (DNS
+    rebinding: Host), had acted as the local key."""
+    server = (scope.get("server") or (None,))[0]
+    headers = Headers(scope=scope)
+    for name in ("Host", "Origin"):
+        if (value := headers.get(name)) is None:
+            continue
+        try:
+            host = urlsplit(value if name == "Origin" else f"//{value}").hostname
+        except ValueError:  # (an unclosed IPv6 bracket, a port that is no number)
+            host = None
+        if host is None or not (is_loopback(host) or host == server):
+            return f"{name}: {value[:80]}"
+    return None
+
+
+def not_local(scope, settings: Settings) -> str | None:
+    """With authentication off, why the request is not served as the local key (the clause of the 401's message that
+    says it and what to do); None when it came in on loopback from this machine."""
+    turn_on = "turn authentication on (VOXE_AUTH=on; keys from 'python -m api.admin create-key')"
+    if (address := off_loopback_address(scope)) is not None:
+        return (f"this one came in on {address}: have uvicorn listen on VOXE_HOST (--host {settings.host}, as bash "
+                f".ci/serve does), or {turn_on}")
+    if (relayed := proxy_header(scope)) is not None:
+        return f"this one was relayed by a proxy (its {relayed} header), which serves whoever reaches it: {turn_on}"
+    if (named := foreign_name(scope)) is not None:
+        return (f"this one names another host ({named}): a page of another site, or of a name pointed at this "
+                f"machine, may not act as the local key; open the API as 127.0.0.1 or localhost, or {turn_on}")
+    return None
+
+
 class RequireKey:
     """ASGI middleware: with authentication on, a /v1 request without a live key is answered 401 before its
     body is read, so an anonymous client cannot make the server receive and spool an upload.
@@ -123,7 +159,8 @@ class RequireKey:
     With authentication off, a /v1 request that came in on an address other than loopback is a 401 too: VOXE_HOST
     only tells the API where uvicorn listens, and uvicorn run with ``--host 0.0.0.0`` beside the default VOXE_HOST
     had served the network as the local key, with no key asked. So is one a proxy says it relayed (``proxy_header``):
-    a proxy on the machine comes in on loopback, and had served whoever reached the proxy as the local key."""
+    a proxy on the machine comes in on loopback, and had served whoever reached the proxy as the local key; and one a
+    browser sent for a page of another site (``foreign_name``)."""
 
     def __init__(self, app):
         self.app = app
@@ -133,14 +170,8 @@ class RequireKey:
             return await self.app(scope, receive, send)  # OPTIONS: the Allow header only (api/http_semantics.py)
         settings = get_settings()
         if not settings.auth_enabled:
-            address, relayed = off_loopback_address(scope), proxy_header(scope)
-            if address is None and relayed is None:
+            if (why := not_local(scope, settings)) is None:
                 return await self.app(scope, receive, send)
-            turn_on = "turn authentication on (VOXE_AUTH=on; keys from 'python -m api.admin create-key')"
-            why = (f"this one came in on {address}: have uvicorn listen on VOXE_HOST (--host {settings.host}, as "
-                   f"bash .ci/serve does), or {turn_on}" if address is not None else
-                   f"this one was relayed by a proxy (its {relayed} header), which serves whoever reaches it: "
-                   f"{turn_on}")
             detail = (f"authentication is off (VOXE_AUTH={settings.auth}, VOXE_HOST={settings.host}), so only "
                       f"loopback connections are served, and {why}")
             response = JSONResponse({"detail": detail}, status.HTTP_401_UNAUTHORIZED, headers=CHALLENGE)

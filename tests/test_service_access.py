@@ -294,6 +294,27 @@ def test_with_authentication_off_only_loopback_connections_are_served(root):  # 
             assert response.status_code == 200, (server, response.text)
 
 
+def test_with_authentication_off_a_browsers_request_for_another_site_is_401(root, mic_zip):  # noqa: F811
+    """A page of another site posting a form here (an upload needs no preflight; Origin), or one whose name its owner
+    pointed at 127.0.0.1 reading and writing the API as its own (DNS rebinding; Host), had acted as the local key."""
+    from api.main import create_app
+
+    with TestClient(create_app()) as client:
+        for headers in ({"Origin": "http://evil.example"}, {"Origin": "null"}, {"Host": "evil.example:8000"},
+                        {"Host": "[::1"}, {"Host": "127.0.0.1.evil.example"}):
+            refused = _upload(client, mic_zip, headers)
+            assert refused.status_code == 401 and refused.headers["www-authenticate"] == "Bearer", headers
+            (name, value), = headers.items()
+            assert (f"so only loopback connections are served, and this one names another host ({name}: {value}): a "
+                    "page of another site, or of a name pointed at this machine, may not act as the local key"
+                    ) in refused.json()["detail"], headers
+        assert client.get("/v1/scenes").json()["total"] == 0  # nothing stored
+        for headers in ({"Host": "localhost:8000", "Origin": "http://localhost:8000"}, {"Host": "[::1]:8000"},
+                        {"Host": "127.0.0.1:8000", "Origin": "http://127.0.0.1:8000"}, {"Origin": "http://testserver"}):
+            assert client.get("/v1/scenes", headers=headers).status_code == 200, headers
+        assert _upload(client, mic_zip, {"Origin": "http://127.0.0.1:8000"}).status_code == 201  # the web UI's
+
+
 def test_with_authentication_off_a_request_a_proxy_relayed_is_401(root):  # noqa: F811
     """A proxy on the machine (nginx, Caddy in front of bash .ci/serve) comes in on loopback: whoever reached the
     proxy had been served as the local key, no key asked."""
