@@ -1702,9 +1702,36 @@ def test_a_stage_given_back_for_a_full_disk_frees_its_scratch_and_keeps_its_stor
     result = tasks.edit_task.apply(args=(job_id,))
     assert result.state == "REJECTED" and result.result.requeue, result.result
     job = job_row(job_id)
-    assert (job.state, job.error, job.run_token, job.requeues) == ("running", None, None, 1)
+    assert (job.state, job.error, job.run_token, job.requeues) == ("running", None, None, int(cause == "full disk"))
     assert get_storage(db).exists(checkpoint)
     assert scratch.is_dir() == (cause == "storage outage")
+
+
+def test_a_storage_outage_does_not_count_towards_the_requeue_limit_and_its_pauses_grow(db, monkeypatch):
+    """A stage stopped by a storage outage (S3 throttling) was given back as a counted re-queue: a job that had been
+    re-queued VOXE_JOB_MAX_REQUEUES times (or a minute of throttling met at each run) failed for an outage that every
+    job met alike. It is given back uncounted, at the limit too, its ``requeued`` event naming the outage; the pause
+    before its message goes back still doubles with each run the storage stopped, so the job does not loop fast."""
+    from voxe_service.storage import StorageUnavailable
+    from worker import runtime, tasks
+
+    job_id = add_job(add_scene(), "queued", 0, completed_stages=["reconstruct"], requeues=db.job_max_requeues)
+
+    def throttled(job, settings, device, storage):
+        raise StorageUnavailable("S3 bucket 'voxe': SlowDown when fetching the grid")
+
+    pauses = []
+    monkeypatch.setattr(tasks, "_edit", throttled)
+    monkeypatch.setattr(runtime, "pause_after_outage", pauses.append)
+    for _ in range(3):
+        result = tasks.edit_task.apply(args=(job_id,))
+        assert result.state == "REJECTED" and result.result.requeue, result.result
+    job = job_row(job_id)
+    assert (job.state, job.error, job.run_token, job.requeues) == ("running", None, None, db.job_max_requeues)
+    said = "edit stopped by a storage outage (S3 bucket 'voxe': SlowDown when fetching the grid)"
+    assert job.message == f"re-queued: {said}"
+    assert [e["detail"] for e in events_of(job_id) if e["kind"] == "requeued"] == [said] * 3
+    assert pauses == [db.job_max_requeues, db.job_max_requeues + 1, db.job_max_requeues + 2]
 
 
 def test_a_run_taken_over_that_meets_a_full_disk_leaves_the_new_runs_scratch(db, monkeypatch):

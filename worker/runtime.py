@@ -248,17 +248,18 @@ def count_unstarted(job_id: str, stage: str, reason: str, settings: Settings) ->
 
 
 def _count_requeue(session, job_id: str, stage: str, reason: str, settings: Settings, where: list,
-                   counted: Callable[[], None] | None = None, **values) -> str | None:
+                   counted: Callable[[], None] | None = None, count: bool = True, **values) -> str | None:
     """One more re-queue of the job while it matches ``where`` (with ``values`` set, a ``requeued`` event naming
     ``reason``, and ``counted()`` called before the commit), or at ``job_max_requeues`` the job failed and why
-    returned; nothing when it matches no more."""
+    returned; nothing when it matches no more. ``count`` False: the same, but neither counted nor failed at the limit
+    (an outage of a service the job shares, no fault of its own)."""
     requeues = session.scalar(select(Job.requeues).where(*where))
     if requeues is None:
         return None
     as_read = [*where, Job.requeues == requeues]
-    if error := requeue_limit_error(requeues, settings, reason):
+    if count and (error := requeue_limit_error(requeues, settings, reason)):
         return error if finish_jobs(session, [job_id], FAILED, error=error, where=as_read) else None
-    if session.execute(update(Job).where(*as_read).values(requeues=Job.requeues + 1, updated_at=utcnow(),
+    if session.execute(update(Job).where(*as_read).values(requeues=Job.requeues + int(count), updated_at=utcnow(),
                                                           **values)).rowcount == 1:
         record_event(session, job_id, "requeued", stage=stage, detail=reason)
         if counted is not None:
@@ -331,13 +332,17 @@ message goes back to the queue, doubled for each run before it: a storage down f
 workers take and drop the message in a tight loop, nor spend the job's or the scene's runs in seconds."""
 
 
+STORAGE_OUTAGE = "a storage outage"
+"""How a stage's ``requeued`` event names the storage out of reach (:func:`storage_or_disk_outage`)."""
+
+
 def storage_or_disk_outage(exc: BaseException) -> str | None:
     """What ``exc`` says stopped a stage or an ingest, when it is the storage out of reach (``StorageUnavailable``:
     unreachable, throttled, a 5xx) or the worker's disk (or quota) full: the service's or the machine's state, which
     a later run, or another worker, may not meet; None for anything else (a ``StorageError`` that is no outage, a
     missing bucket or access denied, is a fault a retry meets again)."""
     if isinstance(exc, StorageUnavailable):
-        return f"a storage outage ({exc})"
+        return f"{STORAGE_OUTAGE} ({exc})"
     if disk_full(exc):
         return f"the worker's disk full ({failure_text(exc, say_the_worker=False)})"
     return None
@@ -346,6 +351,17 @@ def storage_or_disk_outage(exc: BaseException) -> str | None:
 def disk_full(exc: BaseException) -> bool:
     """Whether ``exc`` is the worker's disk (or quota) full."""
     return isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT)
+
+
+def storage_outage_give_backs(job_id: str) -> int:
+    """How many times a storage outage gave the job back (its ``requeued`` events naming one): not counted towards
+    ``job_max_requeues``, they still double the pause before the next one's message goes back. 0 when the database
+    cannot say (an outage of its own)."""
+    given_back = 0
+    with outage_skipped(f"job {job_id}: counting its storage outages"), session_scope() as session:
+        given_back = session.scalar(select(func.count()).where(
+            JobEvent.job_id == job_id, JobEvent.kind == "requeued", JobEvent.detail.contains(STORAGE_OUTAGE)))
+    return given_back
 
 
 def pause_after_outage(runs_before: int) -> None:
@@ -360,13 +376,16 @@ def pause_after_outage(runs_before: int) -> None:
 
 
 def give_back_stage(job_id: str, stage: str, run_token: str, reason: str, settings: Settings,
-                    free_scratch: bool = False) -> str | None:
+                    free_scratch: bool = False, count: bool = True) -> str | None:
     """Give the run's hold back after an outage (the database's, the storage's) or its worker's full disk stopped its
     stage (its redelivery resumes from the stored checkpoint), counted as a re-queue with a ``requeued`` event naming
     ``reason``, and ``reason`` the job's message until the redelivery starts (its last progress note had stayed,
     nothing saying why the job waited); at ``job_max_requeues`` fail the job instead and return why: what the database answers as an outage
-    every time (a statement timeout, a full disk) must not re-run a stage for ever. A job this run no longer holds, or
-    that it ended (a commit whose answer was lost keeps the ended job's token), is left as it is.
+    every time (a statement timeout, a full disk) must not re-run a stage for ever. ``count`` False (a storage
+    outage: throttling, a 5xx, the store unreachable, which every job meets alike) gives it back with its event and
+    message, neither counted nor failed at the limit: a minute of throttling had failed the running jobs near it.
+    A job this run no longer holds, or that it ended (a commit whose answer was lost keeps the ended job's token),
+    is left as it is.
     ``free_scratch``: the job's scratch folder is deleted once the give-back matched, before it commits (the row
     still this run's, locked by its update): never the scratch of a run that took the job over from this one, on
     this machine, and none can take it over while the folder goes."""
@@ -374,7 +393,7 @@ def give_back_stage(job_id: str, stage: str, run_token: str, reason: str, settin
     with session_scope() as session:
         return _count_requeue(session, job_id, stage, reason, settings,
                               [Job.id == job_id, Job.state == RUNNING, Job.run_token == run_token], counted=counted,
-                              run_token=None, run_lease_until=None, message=f"re-queued: {reason}")
+                              count=count, run_token=None, run_lease_until=None, message=f"re-queued: {reason}")
 
 
 def release_stage(job_id: str, run_token: str) -> None:
