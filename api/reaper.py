@@ -64,7 +64,7 @@ import logging
 import threading
 from datetime import datetime, timedelta
 
-from sqlalchemy import and_, func, or_, select, update
+from sqlalchemy import and_, func, or_, select
 
 from voxe_service.broker import waiting_tasks
 from voxe_service.db import session_scope, sync_clock
@@ -72,7 +72,7 @@ from voxe_service.jobs import finish_jobs
 from voxe_service.models import (CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, RUNNING, Job, JobEvent, Scene,
                                  WorkerHeartbeat, utcnow)
 from voxe_service.queue import (QueueUnavailable, get_queue, is_sql_broker, requeue_interrupted, requeue_limit_error,
-                                 send_queued_again)
+                                 send_ingest_again, send_queued_again)
 from voxe_service.scenes import fail_scene
 from voxe_service.settings import Settings
 from voxe_service.storage import get_storage, job_key, scene_key
@@ -297,33 +297,14 @@ def reap_orphaned_scenes(settings: Settings, now: datetime | None = None) -> lis
 
 
 def _send_ingest_again(session, scene_id: str, seen_updated_at: datetime, why: str, lost: bool = False) -> None:
-    """Hand the ingest of a scene whose run was interrupted (or whose message is taken as lost: ``lost``, counted) to
-    the broker again, recorded as waiting for a worker (no worker, no hold). Claimed first, by a conditional update of
-    the row as it was read: of several reapers reading it at once, each had sent a copy; now one does. A worker taking
-    it after the claim keeps it (the message finds it held or ready), nothing recorded. A reaper stopping between claim
-    and send leaves it as it was but for the time, for a later pass; a broker that refuses gives it back as read."""
-    claimed_at = utcnow()
-    claimed = session.execute(update(Scene).where(Scene.id == scene_id, Scene.state == PROCESSING,
-                                                  Scene.updated_at == seen_updated_at).values(updated_at=claimed_at))
-    session.commit()
-    if claimed.rowcount != 1:  # a worker took it, or another reaper claimed it, since it was read
-        return
+    """``send_ingest_again`` (claimed: of several reapers reading the scene at once, one sends it), said in the log;
+    a broker that refuses leaves the scene as it was read, for a later pass."""
     try:
-        task_id = get_queue().send_ingest(scene_id)
-    except Exception as exc:  # noqa: BLE001 - the broker refused: a later pass tries again
-        session.execute(update(Scene).where(Scene.id == scene_id, Scene.updated_at == claimed_at)
-                        .values(updated_at=seen_updated_at))
-        session.commit()
-        log.warning("reaper: scene %s: %s; the broker refused its ingest (%s: %s): a later pass sends it", scene_id,
-                    why, type(exc).__name__, exc)
+        sent = send_ingest_again(session, get_queue(), scene_id, seen_updated_at, lost=lost)
+    except QueueUnavailable:
+        log.warning("reaper: scene %s: %s; the broker refused its ingest: a later pass sends it", scene_id, why)
         return
-    counted = {"lost_ingest_resends": Scene.lost_ingest_resends + 1} if lost else {}
-    sent = session.execute(update(Scene).where(Scene.id == scene_id, Scene.state == PROCESSING,
-                                               Scene.updated_at == claimed_at).values(
-        task_id=task_id, worker_hostname=None, ingest_token=None, ingest_lease_until=None, updated_at=utcnow(),
-        **counted))
-    session.commit()
-    if sent.rowcount == 1:
+    if sent:
         log.warning("reaper: scene %s: %s; its ingest sent again", scene_id, why)
 
 

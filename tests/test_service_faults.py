@@ -104,6 +104,16 @@ def job_row(job_id: str):
     return load_job(job_id)
 
 
+def scene_row(scene_id: str):
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
+
+    with session_scope() as session:
+        scene = session.get(Scene, scene_id)
+        session.expunge(scene)
+        return scene
+
+
 # ---------------------------------------------------------------------------------------------- the reaper
 def test_reaper_sends_again_or_fails_only_jobs_nothing_will_finish(db):
     """A running job whose worker is gone is sent again (queued, its run's hold released), up to
@@ -2021,6 +2031,35 @@ def test_a_starting_worker_sends_again_only_the_ingests_no_worker_took_and_no_wa
     assert waiting_tasks(db.broker_url) == {("voxe.ingest", waiting), ("voxe.ingest", lost)}
     with sqlite3.connect(db.broker_url.split(":///", 1)[1]) as broker:  # one message a scene: none sent twice
         assert broker.execute("SELECT count(*) FROM kombu_message").fetchone()[0] == 3
+
+
+def test_two_workers_starting_together_send_a_lost_ingest_once_and_count_it(db, monkeypatch):
+    """SQL broker: two workers starting at once each read the lost ingest's scene and the broker (no message carrying
+    it) before either sent it, and each sent it: two copies. The start-up re-send claims the scene first (a
+    conditional update of the row as read), as the reaper's does, so one sends it; and it counts the re-send
+    (``Scene.lost_ingest_resends``), doubling the reaper's wait before it takes the new message as lost."""
+    import sqlite3
+
+    from voxe_service.broker import waiting_tasks as read_broker
+    from worker import tasks
+
+    lost = add_scene("processing")
+    other_start = []
+
+    def waiting_tasks(url):  # the other worker starts between this one's two reads and sends first
+        waiting = read_broker(url)
+        if not other_start:
+            other_start.append("v@host")
+            other_start.append(tasks.resend_lost_ingests("v@host"))
+        return waiting
+
+    monkeypatch.setattr(tasks, "waiting_tasks", waiting_tasks)
+    assert tasks.resend_lost_ingests("w@host") == [] and other_start == ["v@host", [lost]]
+    with sqlite3.connect(db.broker_url.split(":///", 1)[1]) as broker:
+        assert broker.execute("SELECT count(*) FROM kombu_message").fetchone()[0] == 1
+    scene = scene_row(lost)
+    assert (scene.state, scene.worker_hostname, scene.lost_ingest_resends) == ("processing", None, 1)
+    assert scene.task_id not in (None, "ingest")
 
 
 def test_a_resend_the_broker_refuses_keeps_the_job_for_the_next_start(db, monkeypatch):

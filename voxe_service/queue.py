@@ -24,10 +24,12 @@ from sqlalchemy import case, select, update
 from sqlalchemy.orm import Session
 
 from voxe_service.jobs import finish_jobs, record_event
-from voxe_service.models import CANCELED, EVALUATE, FAILED, QUEUED, RUNNING, Job, utcnow
+from voxe_service.models import CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, RUNNING, Job, Scene, utcnow
 from voxe_service.settings import Settings, get_settings
 
 if TYPE_CHECKING:
+    from datetime import datetime
+
     from celery import Celery
     from celery.canvas import Signature
 
@@ -254,6 +256,40 @@ def send_queued_again(session: Session, queue: TaskQueue, job_id: str, *, sent_a
         session.commit()
         raise
     return True
+
+
+def send_ingest_again(session: Session, queue: TaskQueue, scene_id: str, seen_updated_at: datetime, *,
+                      lost: bool = False) -> bool:
+    """Hand the ingest of a processing scene to the broker again, once, recorded as waiting for a worker (no worker,
+    no hold); ``lost``: its message taken as lost (the reaper's timeout, or a starting worker's SQL broker holding
+    none), counted in ``Scene.lost_ingest_resends``, which doubles the reaper's wait before the next. Claimed first,
+    by a conditional update of the row as it was read (``seen_updated_at``): of several senders reading it at once
+    (API processes reaping, workers starting), each had sent a copy; now one does. Returns False, nothing sent, when
+    the row changed since it was read (a worker took it, another sender claimed it); a worker taking it after the
+    claim keeps it (the message finds it held or ready), nothing recorded. A sender stopping between claim and send
+    leaves it as it was but for the time, for a later try; a broker that refuses raises :class:`QueueUnavailable`,
+    the scene given back as read."""
+    claimed_at = utcnow()
+    claimed = session.execute(update(Scene).where(Scene.id == scene_id, Scene.state == PROCESSING,
+                                                  Scene.updated_at == seen_updated_at).values(updated_at=claimed_at))
+    session.commit()
+    if claimed.rowcount != 1:
+        return False
+    try:
+        task_id = queue.send_ingest(scene_id)
+    except Exception:  # noqa: BLE001 - the broker refused: a later try sends it
+        log.exception("could not send the ingest of scene %s again", scene_id)  # the broker's words: the log's
+        session.execute(update(Scene).where(Scene.id == scene_id, Scene.updated_at == claimed_at)
+                        .values(updated_at=seen_updated_at))
+        session.commit()
+        raise QueueUnavailable(f"could not send the ingest again: {QUEUE_UNAVAILABLE}") from None
+    counted = {"lost_ingest_resends": Scene.lost_ingest_resends + 1} if lost else {}
+    sent = session.execute(update(Scene).where(Scene.id == scene_id, Scene.state == PROCESSING,
+                                               Scene.updated_at == claimed_at).values(
+        task_id=task_id, worker_hostname=None, ingest_token=None, ingest_lease_until=None, updated_at=utcnow(),
+        **counted))
+    session.commit()
+    return sent.rowcount == 1
 
 
 def requeue_limit_error(requeues: int, settings: Settings, reason: str) -> str | None:

@@ -49,7 +49,7 @@ from voxe_service.model_inventory import (ROLES, check_models, how_to_repair, jo
 from voxe_service.progress import device_costs, refine_phase_seconds
 from voxe_service.queue import (
     INGEST_TASK, QUEUE_UNAVAILABLE, STAGE_TASKS, QueueUnavailable, TaskResult, get_queue, is_sql_broker, job_stages,
-    requeue_interrupted, reset_queue, send_evaluations_alone, send_queued_again,
+    requeue_interrupted, reset_queue, send_evaluations_alone, send_ingest_again, send_queued_again,
 )
 from voxe_service.settings import get_settings, model_label
 from voxe_service.storage import StoredObject, get_storage, job_key, reconstruction_storage_key
@@ -957,18 +957,29 @@ def resend_lost_ingests(hostname: str) -> list[str]:
     """Send again the ingests of processing scenes that no worker took and whose message the broker no longer holds
     (SQL broker only, at the worker's start): a worker killed after taking one, before the ingest took its scene, lost
     it, as ``resend_lost_queued_jobs`` says of a job's; the scene stayed processing for ever, and the jobs on it
-    queued (the reaper fails a scene only once its ingesting worker is gone, and this one had none)."""
+    queued (the reaper fails a scene only once its ingesting worker is gone, and this one had none). Each re-send is
+    the reaper's (``send_ingest_again``): claimed first, so of workers starting together one sends it, and counted as
+    a message taken as lost. The scenes are read before the broker: one sent meanwhile is found with its message, or
+    its claim fails."""
     settings = get_settings()
     with runtime.session_scope() as session:
-        untaken = list(session.scalars(select(Scene.id).where(Scene.state == PROCESSING, Scene.task_id.is_not(None),
-                                                              Scene.worker_hostname.is_(None))))
-    carried = {scene_id for task, scene_id in waiting_tasks(settings.broker_url) if task == INGEST_TASK.name}
-    lost = [scene_id for scene_id in untaken if scene_id not in carried]
-    for scene_id in lost:
-        get_queue().send_ingest(scene_id)
-        log.warning("worker %s started and the broker held no ingest message for scene %s (a worker killed after "
-                    "taking it, before the ingest began); sent it again", hostname, scene_id)
-    return lost
+        untaken = session.execute(select(Scene.id, Scene.updated_at).where(
+            Scene.state == PROCESSING, Scene.task_id.is_not(None), Scene.worker_hostname.is_(None))).all()
+        carried = {scene_id for task, scene_id in waiting_tasks(settings.broker_url) if task == INGEST_TASK.name}
+        sent = []
+        for scene_id, seen_updated_at in untaken:
+            if scene_id in carried:
+                continue
+            try:
+                if not send_ingest_again(session, get_queue(), scene_id, seen_updated_at, lost=True):
+                    continue  # taken, or sent again by another worker (or a reaper), since it was read
+            except QueueUnavailable:
+                log.warning("scene %s: the broker refused its lost ingest again: the reaper sends it", scene_id)
+                continue
+            log.warning("worker %s started and the broker held no ingest message for scene %s (a worker killed after "
+                        "taking it, before the ingest began); sent it again", hostname, scene_id)
+            sent.append(scene_id)
+    return sent
 
 
 @signals.task_failure.connect
