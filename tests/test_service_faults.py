@@ -1350,6 +1350,25 @@ def test_one_run_holds_a_job_a_duplicate_message_is_dropped_and_a_dead_run_is_ta
         assert session.get(Job, job_id).stage == "edit"
 
 
+def test_a_redelivered_message_of_a_done_stage_carries_its_chain_on_only_while_the_next_stage_has_not_begun(db):
+    """A copy of a stage's message delivered again after the stage was done (Redis redelivering an unacknowledged
+    message) was skipped and carried its chain on, whatever the job had done since: a second chain of messages
+    followed the first's to the end of the job, each copy taking a worker (and waiting there on a held stage). Once a
+    later stage has begun, the first run's chain carries the job: the copy is dropped at once (Ignore, no chain).
+    While the next stage has not begun, its message may be the one a worker killed before sending it lost: the copy
+    still goes on."""
+    from worker import tasks
+
+    job_id = add_job(add_scene(), "running", 0, stage="refine", completed_stages=["reconstruct", "edit", "refine"],
+                     mode="local")
+    assert tasks.edit_task.apply(args=(job_id,)).state == "IGNORED"
+    carried_on = tasks.refine_task.apply(args=(job_id,))
+    assert carried_on.state == "SUCCESS" and "refine already done" in carried_on.get()["skipped"]
+    job = job_row(job_id)
+    assert (job.state, job.stage, job.run_token, job.requeues) == ("running", "refine", None, 0)
+    assert events_of(job_id) == []
+
+
 def test_a_stage_that_kills_its_worker_each_time_fails_at_the_requeue_limit_leaving_no_checkpoint(db):
     """A stage whose worker process dies (the OOM killer, a segfault) comes back as a redelivered message that
     takes the lapsed hold over: each takeover counts as a re-queue, so after VOXE_JOB_MAX_REQUEUES the next one

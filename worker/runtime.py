@@ -162,6 +162,11 @@ class StageHeld(JobSkipped):
     goes no further (the holder's own chain carries the job on)."""
 
 
+class StageCarriedOn(JobSkipped):
+    """The message's stage is done and a later stage has begun (a copy delivered again after its run carried the
+    chain on): it is dropped at once, and its chain goes no further (a second chain had followed the first's)."""
+
+
 def begin_stage(job_id: str, stage: str, hostname: str | None, device: str, settings: Settings,
                 run_token: str | None = None) -> Job:
     """Take the job for one run of ``stage`` and mark it running; the returned job's ``run_token`` is the run's:
@@ -172,11 +177,12 @@ def begin_stage(job_id: str, stage: str, hostname: str | None, device: str, sett
 
     The run holds the job under a lease (``run_lease_until``, renewed by :func:`stage_lease`) until the stage
     completes. Raises :class:`JobSkipped` when the job is terminal, canceled or has done ``stage`` already (a
-    redelivered message: its chain goes on), and :class:`StageHeld` when another run holds the job and renews
-    its lease. A holder that stopped renewing (its process died) is taken over once its lease has run out, which
-    counts in ``requeues`` as a re-queue does: a job whose stage was interrupted ``job_max_requeues`` times
-    already fails instead (:class:`JobSkipped`), so a job that kills its workers (a redelivered message each
-    time) cannot loop.
+    redelivered message: its chain goes on, as the worker that ran the stage may have died before sending the next
+    stage's message), :class:`StageCarriedOn` when it has done ``stage`` and begun a later one (that message was
+    sent), and :class:`StageHeld` when another run holds the job and renews its lease. A holder that stopped
+    renewing (its process died) is taken over once its lease has run out, which counts in ``requeues`` as a
+    re-queue does: a job whose stage was interrupted ``job_max_requeues`` times already fails instead
+    (:class:`JobSkipped`), so a job that kills its workers (a redelivered message each time) cannot loop.
 
     The job is read, then taken by one UPDATE conditional on the row being as read (``updated_at``: a stage
     completing meanwhile changes it, and the read is retried). One statement, not a claim followed by an update:
@@ -192,6 +198,8 @@ def begin_stage(job_id: str, stage: str, hostname: str | None, device: str, sett
             raise JobSkipped(f"job {job_id} is {job.state if job else 'gone'}")
         if job.run_token == run_token:  # taken by an earlier try of this run, its answer lost
             return job
+        if stage in (job.completed_stages or []) and job.stage not in (None, stage):  # (not waiting on its hold)
+            raise StageCarriedOn(f"job {job_id}: {stage} already done and {job.stage} begun (a redelivered task)")
         now = utcnow()
         if job.run_token is not None and job.run_lease_until >= now:
             _wait_for_release(job_id, stage, (job.run_token, job.run_lease_until), settings)

@@ -58,7 +58,7 @@ from worker.celery_app import app
 from worker.evaluation import EvaluationFailed, run_evaluation
 from worker.ingest import ingest_scene, load_stored_mesh
 from worker.inputs import fetch_grid, job_scene, load_images
-from worker.runtime import JobSkipped, StageCallbacks, StageHeld
+from worker.runtime import JobSkipped, StageCallbacks, StageCarriedOn, StageHeld
 
 if TYPE_CHECKING:
     import torch
@@ -132,7 +132,7 @@ def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> Task
     device = settings.resolved_device
     try:
         job = _begin_stage(task, job_id, stage, device, settings)
-    except StageHeld as held:  # a duplicate message: acknowledged, its chain not continued
+    except (StageHeld, StageCarriedOn) as held:  # a duplicate message: acknowledged, its chain not continued
         log.info("%s: dropped: %s", stage, held)
         raise Ignore() from None
     except JobSkipped as skipped:
