@@ -2726,6 +2726,48 @@ def test_a_stalled_runs_upload_or_checkpoint_meeting_its_jobs_ending_leaves_noth
     assert [e["kind"] for e in events_of(job_id)][-1] == "canceled"
 
 
+@pytest.mark.parametrize("then", ["ended", "taken over"])
+def test_a_stalled_runs_refused_checkpoint_goes_unless_its_key_is_the_new_runs(db, tmp_path, then):
+    """A stalled run whose checkpoint's event was refused (RunSuperseded: the job ended, or another run took it over,
+    as it stored the checkpoint) left the bytes at the job's checkpoint key: an ended job's cleanup had run already,
+    so they stayed, listed nowhere, until the job was deleted. They go when the job has ended; a run that took the
+    job over stores its checkpoints at the same fixed key, so there they stay (they may be the new run's)."""
+    from sqlalchemy import update
+
+    from voxe_core.progress import Progress
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, utcnow
+    from voxe_service.storage import get_storage, job_key
+    from worker import runtime
+
+    storage, job_id = get_storage(db), add_job(add_scene(), "queued", 0, completed_stages=["reconstruct"])
+    key = job_key(job_id, "checkpoints/edit.safetensors")
+    stalled = runtime.begin_stage(job_id, "edit", "a@host", "cpu", db)
+
+    def store(path):
+        stored = storage.put_file(key, path)
+        if then == "ended":
+            _ended_by_another_worker(db, job_id, "edit")
+            return stored
+        outside = runtime._HOLDING.set(None)  # (another worker takes the lapsed hold over)
+        try:
+            with session_scope() as session:
+                session.execute(update(Job).where(Job.id == job_id).values(
+                    run_lease_until=utcnow() - timedelta(hours=1)))
+            runtime.begin_stage(job_id, "edit", "b@host", "cpu", db)
+        finally:
+            runtime._HOLDING.reset(outside)
+        return stored
+
+    callbacks = runtime.StageCallbacks(stalled, "edit", db, on_checkpoint=store)
+    callbacks.on_progress(Progress("edit", 10, 100))
+    (tmp_path / "checkpoint").write_bytes(b"the edit at 10")
+    with holding(job_id, stalled.run_token), pytest.raises(runtime.RunSuperseded):
+        callbacks.on_checkpoint(str(tmp_path / "checkpoint"))
+    assert storage.exists(key) == (then == "taken over")
+    assert "checkpoint" not in [e["kind"] for e in events_of(job_id)]
+
+
 def test_a_stages_warning_said_again_by_its_next_run_is_one_event_and_one_webhook(db):
     """Each run of an edit (a resume after a re-queue, a redelivery) said its constant-regulariser warning again:
     another ``warning`` event and job.warning webhook per run. The timeline keeps one per stage and text; the

@@ -468,7 +468,8 @@ class StageCallbacks:
     the last iteration); the cancel flag is read at most once per
     ``cancel_check_interval_s``. ``extra_progress`` is called on every write
     (the reconstruction owner renews its lease there). ``on_checkpoint(path)`` stores
-    a checkpoint; a ``checkpoint`` event at the iteration it was taken follows it.
+    a checkpoint (returning the ``StoredObject`` where it is the job's own); a ``checkpoint`` event at the
+    iteration it was taken follows it.
     ``phase_seconds``: seconds per unit of each sub-step of a stage counted in phases
     (``voxe_core.progress.in_phases``; ``voxe_service.progress.refine_phase_seconds``), by which the
     time left weighs each sub-step's units left against the current one's, whose rate it measures.
@@ -506,12 +507,22 @@ class StageCallbacks:
 
     def on_checkpoint(self, path: str) -> None:
         """Store the checkpoint, then record where it was taken (stages report progress just before). A run that
-        lost its job stores nothing (:class:`RunSuperseded`): its older state would replace the new owner's."""
+        lost its job stores nothing (:class:`RunSuperseded`): its older state would replace the new owner's. One
+        that lost it as it stored (its event refused) discards the job's own checkpoint when the job has ended: its
+        ending's cleanup had come first. A run that took the job over stores at the same fixed key (the bytes may be
+        its own), and a reconstruction's checkpoint is the fit's, for the jobs waiting on it: both are kept."""
         with session_scope() as session:
             _refuse_if_superseded(self.job_id, lambda: session.scalar(_token_query(self.job_id)))
-        self._store_checkpoint(path)
+        stored = self._store_checkpoint(path)
         iteration = self._last_report.iteration if self._last_report is not None else 0
-        record_job_event(self.job_id, "checkpoint", stage=self.stage, iteration=int(iteration))
+        try:
+            record_job_event(self.job_id, "checkpoint", stage=self.stage, iteration=int(iteration))
+        except RunSuperseded:
+            if isinstance(stored, StoredObject) and stored.key.startswith(job_key(self.job_id)):
+                with outage_skipped(f"job {self.job_id}: reading whether it ended, its checkpoint refused"):
+                    if has_ended(self.job_id):
+                        get_storage(self.settings).discard(stored.key)
+            raise
 
     def on_progress(self, report: Progress) -> None:
         now = time.monotonic()
