@@ -1081,9 +1081,9 @@ def test_a_206_from_another_byte_than_asked_is_not_appended(tmp_path, monkeypatc
         starts[:] = [0]
         assert client.download("j1", "a.bin", tmp_path / "a.bin").read_bytes() == data
         starts[:] = [1000]
-        with pytest.raises(ServiceError, match=rf"^GET /v1/jobs/j1/artifacts/a.bin: asked for its bytes from 3000 on, "
-                                               rf"answered 206 with Content-Range 'bytes 1000-10239/10240' \(3000 of "
-                                               rf"10240 bytes here, kept in "):
+        with pytest.raises(ServiceError, match=r"^GET /v1/jobs/j1/artifacts/a.bin: asked for its bytes from 3000 on, "
+                                               r"answered 206 with Content-Range 'bytes 1000-10239/10240' \(3000 of "
+                                               r"10240 bytes here, kept in "):
             client.download("j1", "a.bin", tmp_path / "b.bin")
     assert answer.asked == [None, "bytes=3000-", None, "bytes=3000-"]
     assert part.read_bytes() == data[:3000]
@@ -1183,7 +1183,6 @@ def test_a_download_leaves_the_part_of_another_version_that_another_download_hol
     completes now: it had deleted one that another download (another run, fetching the version it had listed) held
     locked and was writing, which then lost its bytes mid-way. That one stays, its lock held in another process; an
     unlocked one still goes."""
-    import hashlib
 
     data = bytes(range(256)) * 40
     held = tmp_path / f".a.bin.{'1' * 16}.part"  # another version's, being downloaded by another process
