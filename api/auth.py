@@ -119,8 +119,9 @@ def proxy_header(scope) -> str | None:
 
 
 def foreign_name(scope) -> str | None:
-    """The Host or Origin header (as sent, cut short) naming a host other than a loopback one or the address the
-    request came in on; None when neither does. A browser sends them: a page of another site posting a form here
+    """The Host or Origin header (as sent, cut short) naming a host other than a loopback one or the server's own
+    name in the request's scope (uvicorn's is its loopback address; an in-process test client's "testserver");
+    None when neither does. A browser sends them: a page of another site posting a form here
     (Origin), or one whose name its owner pointed at 127.0.0.1 reading and writing the API as its own (DNS
     rebinding: Host), had acted as the local key."""
     server = (scope.get("server") or (None,))[0]

@@ -247,14 +247,45 @@ def test_a_key_revoked_while_its_request_is_handled_records_nothing(auth_client,
         assert [s.id for s in session.scalars(select(Scene))] == [scene["id"]]
 
 
+@BOTH_DATABASES
+def test_revoking_a_key_while_its_request_holds_it_waits_then_cancels_the_job_it_recorded(auth_client, mic_zip,
+                                                                                         monkeypatch):  # noqa: F811
+    """The other order: revoke-key run while a request holds the key's lock (its job flushed, not committed) waits for
+    it, then finds that job and cancels it (it had found none, and the job ran on for a key nothing could read it
+    with)."""
+    from api import admin
+    from api.services import jobs
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+
+    key_id, token = _create_key("leaving")
+    scene = _upload(auth_client, mic_zip, bearer(token)).json()
+    revoke = threading.Thread(target=admin.main, args=(["revoke-key", key_id],))
+    check_active_jobs = jobs.check_active_jobs
+
+    def revoked_under_the_lock(*args, **kwargs):
+        revoke.start()
+        revoke.join(2)
+        assert revoke.is_alive()  # waiting for the request's lock on the key
+        return check_active_jobs(*args, **kwargs)
+
+    monkeypatch.setattr(jobs, "check_active_jobs", revoked_under_the_lock)
+    made = auth_client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}, headers=bearer(token))
+    revoke.join(60)
+    assert made.status_code == 201 and not revoke.is_alive()
+    with session_scope() as session:
+        job = session.get(Job, made.json()["id"])
+        assert job.state == "canceled" and job.message == f"canceled while queued: its API key {key_id} was revoked"
+
+
 # ------------------------------------------------------------------------------------------ the auth switch
 def test_auth_is_off_only_on_loopback(root, monkeypatch, caplog):  # noqa: F811
     from api.main import create_app
     from voxe_service.settings import Settings, is_loopback
 
-    for host in ("127.0.0.1", "127.8.9.1", "::1", "[::1]", "localhost"):
+    for host in ("127.0.0.1", "127.8.9.1", "::1", "[::1]", "localhost", "localhost.", "LocalHost"):
         assert is_loopback(host) and not Settings(host=host).auth_enabled, host
-    for host in ("0.0.0.0", "::", "10.0.0.5", "example.com", ""):
+    for host in ("0.0.0.0", "::", "10.0.0.5", "example.com", "", "localhost.example", ".", "localhost.."):
         assert not is_loopback(host) and Settings(host=host).auth_enabled, host
     assert Settings(host="127.0.0.1", auth="on").auth_enabled
 
@@ -310,7 +341,8 @@ def test_with_authentication_off_a_browsers_request_for_another_site_is_401(root
                     ) in refused.json()["detail"], headers
         assert client.get("/v1/scenes").json()["total"] == 0  # nothing stored
         for headers in ({"Host": "localhost:8000", "Origin": "http://localhost:8000"}, {"Host": "[::1]:8000"},
-                        {"Host": "127.0.0.1:8000", "Origin": "http://127.0.0.1:8000"}, {"Origin": "http://testserver"}):
+                        {"Host": "127.0.0.1:8000", "Origin": "http://127.0.0.1:8000"}, {"Origin": "http://testserver"},
+                        {"Host": "localhost.:8000", "Origin": "http://localhost.:8000"}):  # (the root's dot)
             assert client.get("/v1/scenes", headers=headers).status_code == 200, headers
         assert _upload(client, mic_zip, {"Origin": "http://127.0.0.1:8000"}).status_code == 201  # the web UI's
 

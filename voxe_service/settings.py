@@ -253,11 +253,13 @@ def _http_url_with_host(url: str) -> bool:
 
 def is_loopback(host: str) -> bool:
     """True for localhost and loopback addresses (127.0.0.0/8, ::1, and 127.x mapped into IPv6 as a dual-stack
-    socket reports it); a name other than localhost is not."""
-    if host.strip().lower() == "localhost":
+    socket reports it), written with the root's trailing dot or without ("localhost.", as a browser sends it in
+    Host); a name other than localhost is not."""
+    name = host.strip().strip("[]").lower().removesuffix(".")
+    if name == "localhost":
         return True
     try:
-        address = ipaddress.ip_address(host.strip().strip("[]"))
+        address = ipaddress.ip_address(name)
     except ValueError:
         return False
     return address.is_loopback or (address.version == 6 and address.ipv4_mapped is not None
