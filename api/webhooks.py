@@ -24,8 +24,8 @@ from voxe_service.db import session_scope
 from voxe_service.models import ApiKey, Job, WebhookDelivery, utcnow
 from voxe_service.settings import Settings
 from voxe_service.webhooks import (
-    DELIVERED, GAVE_UP, PENDING, Claim, InFlight, Shares, TargetRefused, attempt, backoff_s, claim_due, retry_at,
-    webhook_client,
+    DELIVERED, GAVE_UP, PENDING, Claim, InFlight, Shares, TargetRefused, attempt, backoff_s, claim_due, redacted,
+    retry_at, webhook_client,
 )
 
 log = logging.getLogger("voxe.webhooks")
@@ -153,7 +153,7 @@ class WebhookSender:
             else:
                 values.update(next_attempt_at=again)
             log.info("webhook delivery %s (job %s) attempt %d: %s", delivery.id, delivery.job_id, delivery.attempts,
-                     error)
+                     redacted(error))
         with session_scope() as session:
             session.execute(update(WebhookDelivery).where(WebhookDelivery.id == delivery.id,
                                                           WebhookDelivery.state == PENDING).values(**values))

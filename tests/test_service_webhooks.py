@@ -238,6 +238,36 @@ def test_a_webhook_url_the_sender_cannot_read_is_refused_and_a_stored_one_fails(
     assert "Invalid IDNA hostname" in (stored["last_error"] or ""), stored
 
 
+@pytest.mark.parametrize("client", [SLOW_RETRIES], indirect=True)
+@pytest.mark.parametrize("failure", ["unreadable url", "redirect"])
+def test_an_attempts_error_is_logged_without_the_urls_credentials(client, caplog, failure):
+    """A webhook_url's userinfo and query values (``https://user:pass@host/?token=...``), in an attempt's error (a
+    URL the sender cannot read names itself; a redirect names where it points), had gone into the API's log whole.
+    The log hides them; the delivery's last_error, shown to the owner of the URL only, keeps them."""
+    import logging
+
+    test_client, scene = client
+    caplog.set_level(logging.INFO, logger="voxe.webhooks")
+    moved = WebhookReceiver(redirect_to="https://hooks.example.com/in?token=s3cr3t-moved&v=2")
+    try:
+        if failure == "redirect":
+            url = moved.url.replace("http://", "http://bob:s3cr3t-pass@") + "?token=s3cr3t-token"
+        else:
+            url = "http://bob:pa/ss-s3cr3t@\u2603.net/hook?token=s3cr3t-token"
+        delivery = failed_once_more(test_client, scene, url=url)
+    finally:
+        moved.close()
+    logged = [r.getMessage() for r in caplog.records if r.name == "voxe.webhooks" and "attempt 1" in r.getMessage()]
+    assert len(logged) == 1, logged
+    assert "s3cr3t" not in logged[0], logged[0]
+    if failure == "redirect":
+        assert "a redirect to 'https://hooks.example.com/in?token=***&v=***'" in logged[0], logged[0]
+        assert "s3cr3t-moved" in delivery["last_error"], delivery
+    else:
+        assert "'http://***@\u2603.net/hook?token=***' cannot be sent to" in logged[0], logged[0]
+        assert url in delivery["last_error"], delivery
+
+
 @pytest.mark.parametrize("fail", [False, True])
 def test_an_attempt_ends_by_its_deadline_however_slowly_the_receiver_answers(fail):
     """VOXE_WEBHOOK_TIMEOUT_S bounds the attempt, not each read: a receiver sending its answer a byte every 0.1 s

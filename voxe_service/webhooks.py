@@ -19,6 +19,7 @@ import hashlib
 import hmac
 import ipaddress
 import json
+import re
 import secrets
 import socket
 import threading
@@ -52,6 +53,31 @@ _request_deadline: contextvars.ContextVar[float | None] = contextvars.ContextVar
 
 class TargetRefused(ValueError):
     """A webhook URL the service will not call; the message names the rule and the setting that relaxes it."""
+
+
+_URL_IN_TEXT = re.compile(r"[A-Za-z][A-Za-z0-9+.-]*://[^\s'\"<>]+")
+
+
+def redacted(text: str) -> str:
+    """``text`` (an attempt's error) as a log may carry it: every URL in it without its userinfo's and query's
+    secrets. A webhook_url may hold credentials (``https://user:pass@host/``, ``?token=...``) that the owner sees
+    in the delivery's ``last_error``, but the operator's logs must not. The userinfo is hidden up to the last '@'
+    before the query (a password may hold a '/'); each query value is hidden, its name kept.
+
+    Examples:
+        >>> redacted("webhook_url 'https://bob:pa/ss@hooks.example.com/in?token=abc&x' cannot be sent to")
+        "webhook_url 'https://***@hooks.example.com/in?token=***&x' cannot be sent to"
+    """
+    def hide(match: re.Match) -> str:
+        scheme, _, rest = match.group().partition("://")
+        rest, hash_mark, fragment = rest.partition("#")
+        head, question, query = rest.partition("?")
+        if "@" in head:
+            head = "***@" + head.rpartition("@")[2]
+        query = "&".join(re.sub(r"=.*", "=***", pair, flags=re.S) for pair in query.split("&")) if question else ""
+        return f"{scheme}://{head}{question}{query}{hash_mark}{'***' if fragment else ''}"
+
+    return _URL_IN_TEXT.sub(hide, text)
 
 
 def new_secret() -> str:
