@@ -280,28 +280,31 @@ def test_ply_artifacts_recorded_as_octet_stream_get_their_model_type_and_back(da
     engine.dispose()
 
 
-def test_scenes_of_0016_upgrade_to_no_lost_ingest_resends_and_back(database_url):
+@pytest.mark.parametrize("before, column", [("0016_ply_content_type", "lost_ingest_resends"),
+                                            ("0017_lost_ingest_resends", "ingest_storage_outages")])
+def test_a_scenes_ingest_count_upgrades_from_none_and_back(database_url, before, column):
     """0017 counts the re-sends of a scene's ingest whose message was taken as lost (the reaper doubles its wait by
-    them): a scene written before it was never sent again so (0); downgrading drops the count, the scene kept."""
+    them), 0018 the runs of its ingest a storage outage stopped (doubling their pause): a scene written before either
+    was never sent again or stopped so (0); downgrading drops the count, the scene kept."""
     from alembic import command
     from sqlalchemy import inspect, text
 
     from service_helpers import database_at
 
     config, engine = database_at(
-        database_url, "0016_ply_content_type",
+        database_url, before,
         "INSERT INTO scenes (id, owner_key_id, name, format, image_count, width, height, splits, storage_key, "
         "size_bytes, sha256, state, task_id, ingest_attempts, created_at, updated_at) VALUES ('s1', 'local', 'old', "
         "'nerf_synthetic', 3, 8, 8, '[\"train\"]', 'scenes/s1/dataset.zip', 10, 'x', 'processing', 'ingest', 0, "
         "'2026-01-01 00:00:00+00', '2026-01-01 00:00:00+00')")
     command.upgrade(config, "head")
     with engine.connect() as conn:
-        assert conn.execute(text("SELECT state, lost_ingest_resends FROM scenes")).one() == ("processing", 0)
+        assert conn.execute(text(f"SELECT state, {column} FROM scenes")).one() == ("processing", 0)
     command.check(config)
-    command.downgrade(config, "0016_ply_content_type")
+    command.downgrade(config, before)
     with engine.connect() as conn:
         assert conn.execute(text("SELECT state, task_id FROM scenes")).one() == ("processing", "ingest")
-    assert "lost_ingest_resends" not in {c["name"] for c in inspect(engine).get_columns("scenes")}
+    assert column not in {c["name"] for c in inspect(engine).get_columns("scenes")}
     engine.dispose()
 
 

@@ -2498,7 +2498,7 @@ def test_an_upload_whose_ingest_kills_its_worker_fails_its_scene_at_the_requeue_
     with session_scope() as session:
         row = session.get(Scene, scene)
         reason = (f"ingest: interrupted {db.job_max_requeues + 1} times, its worker process dying each time (killed: "
-                  f"out of memory?), a database or storage outage or a full disk stopping it; it was sent again {db.job_max_requeues} time(s) already, the limit "
+                  f"out of memory?), a database outage or a full disk stopping it; it was sent again {db.job_max_requeues} time(s) already, the limit "
                   f"(VOXE_JOB_MAX_REQUEUES={db.job_max_requeues})")
         assert (row.state, row.error, row.size_bytes) == ("failed", reason, 0)
     assert job_row(waiting).error == f"the scene's upload failed processing: {reason}"

@@ -135,6 +135,9 @@ class Scene(Base):
     # Runs of the ingest that took the scene: while it is processing, every earlier one was interrupted (its worker
     # process killed), and past VOXE_JOB_MAX_REQUEUES of them the next fails the scene instead of looping.
     ingest_attempts: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    # Runs of the ingest a storage outage stopped (throttling, a 5xx, the store unreachable): not counted in
+    # ingest_attempts (every scene meets one alike), they double the pause before the next run's message goes back.
+    ingest_storage_outages: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
     # The one run of the ingest that holds the scene (worker.ingest): its token, its lease renewed while it runs; a
     # duplicate message waits for the lease to run out (then takes the scene over) or be renewed (then is dropped).
     ingest_token: Mapped[str | None] = mapped_column(String(32), nullable=True)

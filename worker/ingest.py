@@ -131,14 +131,16 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
     waiting on it queued; a storage's, or one worker's full disk, had failed the scene and deleted its upload. A run
     that took the scene counts, as a stage's give-back counts: what answers as an outage every time (a full disk, a
     statement timeout) fails the scene at the limit, naming it, rather than decoding the upload again for ever; one
-    that could not take it (the database down) does not.
+    that could not take it (the database down) does not, nor does one a storage outage stopped (counted in
+    ``Scene.ingest_storage_outages`` instead, for its pause), as a stage's does not: an outage every scene met alike
+    had failed the scenes ingesting through a few minutes of throttling.
     """
-    interrupted, token = None, uuid.uuid4().hex
+    interrupted, storage_outages, token = None, 0, uuid.uuid4().hex
     try:
         taken = _take(scene_id, token, hostname, settings)
         if isinstance(taken, str):
             return {"scene_id": scene_id, "skipped": taken}
-        upload, interrupted, stopped_by = taken
+        upload, interrupted, storage_outages, stopped_by = taken
         with ingest_lease(scene_id, token, settings) as lease:
             return _ingest(scene_id, token, upload, interrupted, stopped_by, lease, settings, storage)
     except (*DATABASE_UNAVAILABLE, StorageUnavailable, LeaseLost, OSError) as exc:
@@ -154,15 +156,17 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
         elif (cause := storage_or_disk_outage(exc)) is None:
             raise
         log.warning("scene %s: the ingest stopped by %s; its message goes back to the queue", scene_id, cause)
-        _give_back(scene_id, token, stopped_by=cause)
-        pause_after_outage(interrupted or 0)
+        storage_outage = isinstance(exc, StorageUnavailable)
+        _give_back(scene_id, token, stopped_by=cause, storage_outage=storage_outage)
+        pause_after_outage((interrupted or 0) + (storage_outages if storage_outage else 0))
         raise Reject(f"the ingest of scene {scene_id} stopped by {cause}", requeue=True) from exc
 
 
 def _take(scene_id: str, token: str, hostname: str | None, settings: Settings
-          ) -> tuple[StoredObject, int, str | None] | str:
+          ) -> tuple[StoredObject, int, int, str | None] | str:
     """Take the processing scene's ingest for the run ``token``: (its archive as recorded, the runs that took it
-    before, what stopped the last of them when it gave the scene back: :func:`_give_back`); why not, when it is no
+    before, the runs a storage outage stopped, what stopped the last of them when it gave the scene back:
+    :func:`_give_back`); why not, when it is no
     longer processing or another run holds it and renews its lease. The cause read is cleared: a run killed after
     it leaves none, and must not be said to have met it."""
     held = None  # the hold (token, lease end) this run waits out
@@ -176,13 +180,14 @@ def _take(scene_id: str, token: str, hostname: str | None, settings: Settings
             if scene.ingest_token is None or scene.ingest_lease_until < now:
                 # (read before the update changes them)
                 upload, before, stopped_by = scene_archive(scene), scene.ingest_attempts, scene.error
+                storage_outages = scene.ingest_storage_outages
                 taken = session.execute(update(Scene).where(
                     Scene.id == scene_id, Scene.state == PROCESSING, Scene.updated_at == scene.updated_at,
                     or_(Scene.ingest_token.is_(None), Scene.ingest_lease_until < now)).values(
                     worker_hostname=hostname, ingest_attempts=Scene.ingest_attempts + 1, ingest_token=token, error=None,
                     ingest_lease_until=now + timedelta(seconds=settings.stage_lease_s), updated_at=now)).rowcount
                 if taken == 1:
-                    return upload, before, stopped_by
+                    return upload, before, storage_outages, stopped_by
                 continue  # taken (or changed) since it was read: read it again
         if held is not None and hold != held:
             return f"scene {scene_id}: another run holds its ingest (this message is a duplicate)"
@@ -202,7 +207,7 @@ def _ingest(scene_id: str, token: str, upload: StoredObject, interrupted: int, s
     why = (f"ingest: stopped {interrupted} times, the last by {stopped_by}: no fault of the upload (upload it again "
            "once that is mended)" if stopped_by else
            f"ingest: interrupted {interrupted} times, its worker process dying each time (killed: out of memory?), a "
-           "database or storage outage or a full disk stopping it")
+           "database outage or a full disk stopping it")
     if error := requeue_limit_error(interrupted - 1, settings, why):
         _fail(scene_id, token, error, storage)
         return {"scene_id": scene_id, "state": "failed"}
@@ -248,17 +253,22 @@ def run_archive_key(scene_id: str, token: str) -> str:
     return scene_key(scene_id, f"{Path(datasets.DATASET_ARCHIVE).stem}-{token[:8]}.zip")
 
 
-def _give_back(scene_id: str, token: str, uncount: bool = False, stopped_by: str | None = None) -> None:
+def _give_back(scene_id: str, token: str, uncount: bool = False, stopped_by: str | None = None,
+               storage_outage: bool = False) -> None:
     """Give the run's hold back as its message goes back to the queue, so its redelivery takes the scene at once
     (not after the lease). ``uncount``: a run a worker's shutdown stopped is not one the upload killed: it does not
     count towards the limit (four deploys had failed a scene as "killed: out of memory?"). Only where the shutdown
     raises in the task (the solo pool's); a prefork pool's children are ended from outside, and their runs still
     count. The lease is left run out, not none: should the message be lost on its way back, the reaper sends the
     ingest again (it never takes a scene with no lease for one whose run stopped). ``stopped_by``: the outage or
-    full disk that stopped the run, kept as the scene's error while it is processing (the next run reads it)."""
+    full disk that stopped the run, kept as the scene's error while it is processing (the next run reads it).
+    ``storage_outage``: a storage outage stopped it, which every scene meets alike: uncounted too, it is counted in
+    ``Scene.ingest_storage_outages``, doubling the pause before the next such run's message goes back."""
     values = dict(ingest_token=None, ingest_lease_until=utcnow(), error=stopped_by)
-    if uncount:
+    if uncount or storage_outage:
         values["ingest_attempts"] = Scene.ingest_attempts - 1  # (this run's, counted as it took the scene)
+    if storage_outage:
+        values["ingest_storage_outages"] = Scene.ingest_storage_outages + 1
     try:
         with session_scope() as session:
             session.execute(update(Scene).where(Scene.id == scene_id, Scene.state == PROCESSING,
