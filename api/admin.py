@@ -5,7 +5,7 @@
     python -m api.admin revoke-key <key id>
 
 ``create-key`` prints the token once; only its sha256 is stored, so a lost token means a new key. ``revoke-key``
-also cancels the key's unfinished jobs.
+also cancels the key's unfinished jobs and fails its scenes still processing.
 """
 
 from __future__ import annotations
@@ -19,8 +19,10 @@ from sqlalchemy.orm import Session
 from api.auth import create_key
 from api.services.jobs import request_cancel
 from voxe_service.db import run_migrations, session_scope
-from voxe_service.models import LOCAL_KEY_ID, TERMINAL_STATES, ApiKey, Job, utcnow
+from voxe_service.models import LOCAL_KEY_ID, PROCESSING, TERMINAL_STATES, ApiKey, Job, Scene, utcnow
+from voxe_service.scenes import fail_scene
 from voxe_service.settings import get_settings
+from voxe_service.storage import get_storage, scene_key
 
 
 def _count_up_to(most: int):
@@ -48,6 +50,15 @@ def cancel_unfinished_jobs(session: Session, key: ApiKey) -> int:
     return len(job_ids)
 
 
+def fail_processing_scenes(session: Session, key: ApiKey) -> list[str]:
+    """Fail a revoked key's scenes still processing, naming the revoke; their ids. Their ingests had still run,
+    taking a worker for a scene no key can use or delete; a queued one now skips it, and a running one's result is
+    refused when it ends (what it stored discarded)."""
+    scene_ids = list(session.scalars(select(Scene.id).where(Scene.owner_key_id == key.id, Scene.state == PROCESSING)))
+    return [scene_id for scene_id in scene_ids
+            if fail_scene(session, scene_id, f"its API key {key.id} was revoked while it was processing")]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m api.admin", description="Manage the Vox-E service's API keys.")
     commands = parser.add_subparsers(dest="command", required=True)
@@ -58,8 +69,8 @@ def main(argv: list[str] | None = None) -> int:
     create.add_argument("--max-upload-bytes", type=_count_up_to(2**63 - 1), help="bytes of stored scenes (default: "
                         "VOXE_MAX_UPLOAD_BYTES_PER_KEY)")
     commands.add_parser("list-keys", help="list keys (never their tokens)")
-    revoke = commands.add_parser("revoke-key", help="revoke a key: its token stops working at once, and its "
-                                    "unfinished jobs are canceled")
+    revoke = commands.add_parser("revoke-key", help="revoke a key: its token stops working at once, its unfinished "
+                                    "jobs are canceled and its scenes still processing failed")
     revoke.add_argument("key_id")
     args = parser.parse_args(argv)
 
@@ -87,8 +98,12 @@ def main(argv: list[str] | None = None) -> int:
                 key.revoked_at = utcnow()
                 session.commit()  # its token refused from here on, before its jobs are canceled
             canceled = cancel_unfinished_jobs(session, key)
+            failed = fail_processing_scenes(session, key)
+            session.commit()
+            get_storage(get_settings()).discard_prefixes(*(scene_key(scene_id) for scene_id in failed))
             print(f"revoked key {key.id} ({key.name}); its {canceled} unfinished job(s) canceled (a running one "
-                  "stops at its next cancel check)", file=sys.stderr)
+                  f"stops at its next cancel check) and {len(failed)} scene(s) still processing failed",
+                  file=sys.stderr)
     return 0
 
 

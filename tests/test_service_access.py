@@ -278,6 +278,40 @@ def test_revoking_a_key_while_its_request_holds_it_waits_then_cancels_the_job_it
         assert job.state == "canceled" and job.message == f"canceled while queued: its API key {key_id} was revoked"
 
 
+@BOTH_DATABASES
+def test_revoking_a_key_fails_its_scenes_still_processing_so_no_worker_ingests_them(auth_client, mic_zip, capsys):
+    """A scene still processing when its key was revoked kept its ingest queued, and a worker decoded it for a scene
+    no key could use or delete. It fails naming the revoke, its bytes go, its ingest is skipped; the job waiting on
+    it is canceled, as the key's others are, and another key's scene is left processing."""
+    from api import admin
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, Scene
+    from voxe_service.settings import get_settings
+    from voxe_service.storage import get_storage
+    from worker.ingest import ingest_scene
+
+    key_id, token = _create_key("leaving")
+    _, other = _create_key("staying")
+    leaving, staying = (_upload(auth_client, mic_zip, bearer(owner)).json() for owner in (token, other))
+    waiting = auth_client.post("/v1/jobs", json={"scene_id": leaving["id"], **JOB}, headers=bearer(token)).json()
+    with session_scope() as session:
+        stored = session.get(Scene, leaving["id"]).storage_key
+    storage = get_storage(get_settings())
+    assert storage.exists(stored)
+
+    assert admin.main(["revoke-key", key_id]) == 0
+    assert "and 1 scene(s) still processing failed" in capsys.readouterr().err
+    with session_scope() as session:
+        failed, untouched, job = (session.get(Scene, leaving["id"]), session.get(Scene, staying["id"]),
+                                  session.get(Job, waiting["id"]))
+        assert (failed.state, failed.error) == ("failed", f"its API key {key_id} was revoked while it was processing")
+        assert untouched.state == "processing"
+        assert (job.state, job.message) == ("canceled", f"canceled while queued: its API key {key_id} was revoked")
+    assert not storage.exists(stored)
+    assert ingest_scene(leaving["id"], get_settings(), storage, "w@host") == {
+        "scene_id": leaving["id"], "skipped": f"scene {leaving['id']} is failed"}
+
+
 # ------------------------------------------------------------------------------------------ the auth switch
 def test_auth_is_off_only_on_loopback(root, monkeypatch, caplog):  # noqa: F811
     from api.main import create_app
