@@ -638,6 +638,24 @@ def test_progress_off_a_terminal_is_a_line_now_and_then_not_ten_redraws_a_second
     assert capsys.readouterr().err.count("\r") == 2
 
 
+def test_the_bar_draws_what_it_can_of_a_snapshot_the_service_sent_wrong(capsys):
+    """A snapshot without its state, or its progress or time left not a number ("50%", a bool, NaN), had been a
+    KeyError, TypeError or ValueError traceback ending ``voxe wait`` (a progress of 1e9, a bar of a billion #'s; True
+    one of 100%)."""
+    from voxe_core.cli.service import _progress_bar
+
+    draw = _progress_bar(quiet=False)
+    for snapshot in ({"stage": "edit", "overall_progress": 0.5}, {"state": "running", "overall_progress": "50%"},
+                     {"state": "queued", "overall_progress": True}, {"state": "failed", "overall_progress": float("nan")},
+                     {"state": "running", "overall_progress": 1e9, "overall_eta_seconds": "soon"}):
+        draw(snapshot)
+    assert capsys.readouterr().err.splitlines() == ["[###############               ]  50.0% edit",
+                                                    "[                              ]   ?  % running",
+                                                    "[                              ]   ?  % queued",
+                                                    "[                              ]   ?  % failed",
+                                                    "[                              ]   ?  % running"]
+
+
 @pytest.mark.parametrize("terminal", [False, True])
 def test_a_resumed_stages_bar_rates_only_the_steps_it_saw(terminal, capsys, monkeypatch):
     """A fit resumed at 300 of 400 had its first report counted as 301 steps done at once: 67 it/s shown for a real

@@ -140,14 +140,14 @@ def _progress_bar(quiet: bool):
     terminal, last = sys.stderr.isatty(), {"line": None, "step": None, "at": -math.inf, "shown": 0}
 
     def draw(snapshot: dict) -> None:
-        done = snapshot.get("overall_progress") or 0.0
-        eta = snapshot.get("overall_eta_seconds")
-        stage, message = snapshot.get("stage"), snapshot.get("message")
-        bar = "#" * round(30 * done)
-        line = " ".join(part for part in (f"[{bar:<30}] {100 * done:5.1f}%", snapshot["state"], stage,
-                                          eta is not None and f"~{eta:.0f} s left", message and f"- {message}")
+        done, eta = _number(snapshot.get("overall_progress"), 1.0), _number(snapshot.get("overall_eta_seconds"))
+        state, stage, message = snapshot.get("state"), snapshot.get("stage"), snapshot.get("message")
+        bar = "#" * round(30 * (done or 0.0))
+        share = "  ?  %" if done is None else f"{100 * done:5.1f}%"
+        line = " ".join(str(part) for part in (f"[{bar:<30}] {share}", state, stage,
+                                               eta is not None and f"~{eta:.0f} s left", message and f"- {message}")
                         if part)
-        now, step = time.monotonic(), (snapshot["state"], stage, message)
+        now, step = time.monotonic(), (state, stage, message)
         if quiet or line == last["line"] or (not terminal and step == last["step"]
                                              and now - last["at"] < LOG_PROGRESS_INTERVAL_S):
             return
@@ -160,6 +160,15 @@ def _progress_bar(quiet: bool):
             print(line, file=sys.stderr, flush=True)
         last.update(line=line, step=step, at=now)
     return draw
+
+
+def _number(value, most: float = math.inf) -> float | None:
+    """A snapshot's number from 0 to ``most`` as the bar shows it; None for anything else the service sent (``"50%"``,
+    a bool, NaN: each had been a traceback ending ``voxe wait``, the job going on unfollowed; a progress of 1e9, a bar
+    of 30 billion #'s)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= most:
+        return None
+    return float(value)
 
 
 def _follow(client, job_id: str, args) -> int:
