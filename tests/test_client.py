@@ -604,7 +604,8 @@ def test_reads_answered_429_with_retry_after_wait_it_out_and_unkeyed_writes_do_n
     def answer(request: httpx.Request) -> httpx.Response:
         sent.append(f"{request.method} {request.url.path}")
         status, headers = answers.pop(0)
-        return httpx.Response(status, headers=headers, json={"id": "j1", "detail": "over the rate"})
+        return httpx.Response(status, headers=headers, json={"id": "j1", "state": "running",
+                              "detail": "over the rate"})
 
     with Client(transport=httpx.MockTransport(answer), retries=3) as client:
         answers[:] = [(429, {"retry-after": "2"}), (429, {"retry-after": "3"}), (200, {})]
@@ -640,7 +641,7 @@ def test_reads_whose_connection_dropped_before_the_answer_are_sent_again(monkeyp
         raised = answers.pop(0)
         if raised is not None:
             raise raised
-        return httpx.Response(200, json={"id": "j1"})
+        return httpx.Response(200, json={"id": "j1", "state": "running"})
 
     dropped = httpx.RemoteProtocolError("Server disconnected without sending a response.")
     with Client(transport=httpx.MockTransport(answer), retries=3) as client:
@@ -670,15 +671,15 @@ def test_reads_whose_connection_dropped_before_the_answer_are_sent_again(monkeyp
                 if way == "reset":  # an RST, not a FIN
                     connection.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
                 elif way == "answer":
-                    connection.sendall(b"HTTP/1.1 200 OK\r\ncontent-type: application/json\r\ncontent-length: 12"
-                                       b"\r\nconnection: close\r\n\r\n{\"id\": \"j1\"}")
+                    connection.sendall(b"HTTP/1.1 200 OK\r\ncontent-type: application/json\r\ncontent-length: 32"
+                                       b"\r\nconnection: close\r\n\r\n{\"id\": \"j1\", \"state\": \"running\"}")
 
     thread = threading.Thread(target=serve, daemon=True)
     thread.start()
     waits.clear()
     try:
         with Client(f"http://127.0.0.1:{server.getsockname()[1]}", retries=3) as client:
-            assert client.get_job("j1") == {"id": "j1"}
+            assert client.get_job("j1") == {"id": "j1", "state": "running"}
     finally:
         thread.join(5)
         server.close()
@@ -722,7 +723,7 @@ def test_a_retry_after_given_as_an_http_date_is_waited_out_counted_from_the_serv
 
     def answer(request: httpx.Request) -> httpx.Response:
         status, headers = answers.pop(0)
-        return httpx.Response(status, headers=headers, json={"id": "j1", "detail": "busy"})
+        return httpx.Response(status, headers=headers, json={"id": "j1", "state": "running", "detail": "busy"})
 
     def http_date(seconds_from_now: float) -> str:
         return format_datetime(datetime.now(timezone.utc) + timedelta(seconds=seconds_from_now), usegmt=True)
@@ -1448,6 +1449,31 @@ def test_an_answer_that_is_no_artifact_listing_is_a_service_error_quoting_it(ans
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("answered", [["a", "job"], {"detail": "moved"}, {"id": "j1", "state": None}])
+def test_a_job_answer_with_no_state_is_a_service_error_quoting_it(answered, monkeypatch, capsys):
+    """``wait()`` had returned whatever the final GET answered (a proxy's JSON, a broken service's), and ``voxe wait``
+    ended in a KeyError or TypeError reading its state; ``get_job()`` and ``cancel_job()`` answer only a job too."""
+    import voxe_core.cli.service as service
+    from voxe_core.cli import main
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        if request.url.path.endswith("/events"):
+            return httpx.Response(200, headers={"content-type": "text/event-stream"},
+                                  text='id: 1\nevent: succeeded\ndata: {}\n\n')
+        return httpx.Response(200, json=answered)
+
+    said = rf"answered {re.escape(repr(answered))}, not a job with a state$"
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        for call, asked in ((client.wait, "GET /v1/jobs/j1"), (client.get_job, "GET /v1/jobs/j1"),
+                            (client.cancel_job, "POST /v1/jobs/j1/cancel")):
+            with pytest.raises(ServiceError, match=rf"^{asked}: http://127.0.0.1:8000 {said}"):
+                call("j1")
+    monkeypatch.setattr(service, "_client", lambda args: Client(args.api, transport=httpx.MockTransport(answer)))
+    assert main(["wait", "j1", "--quiet"]) == 2
+    assert re.search(rf"^voxe wait: error: GET /v1/jobs/j1: http://127.0.0.1:8000 {said}", capsys.readouterr().err,
+                     re.MULTILINE)
+
+
 def test_a_download_stops_reading_a_body_longer_than_the_listed_size(tmp_path):
     """A body going on past the size the listing gives (a broken proxy's or a hostile service's endless one) had
     been written to the part file to its end, however long (the disk filled) before the check refused it: reading
@@ -1480,7 +1506,7 @@ def test_ids_are_one_path_segment_and_names_stay_inside_the_download_folder(tmp_
             return httpx.Response(200, json=[{"name": "../escape.bin", "size": 1, "sha256": "0" * 64}])
         if "redirect" in request.url.raw_path.decode():
             return httpx.Response(200, text="<html>moved</html>", headers={"content-type": "text/html"})
-        return httpx.Response(200, json={"id": "x"})
+        return httpx.Response(200, json={"id": "x", "state": "running"})
 
     with Client("http://svc.test", transport=httpx.MockTransport(answer)) as client:
         client.get_job("../scenes")

@@ -267,10 +267,20 @@ class Client:
                             idempotency_key=_submission_key(idempotency_key))
 
     def get_job(self, job_id: str) -> dict:
-        return self.request("GET", f"/v1/jobs/{_segment(job_id)}")
+        return self._job("GET", f"/v1/jobs/{_segment(job_id)}")
 
     def cancel_job(self, job_id: str) -> dict:
-        return self.request("POST", f"/v1/jobs/{_segment(job_id)}/cancel")
+        return self._job("POST", f"/v1/jobs/{_segment(job_id)}/cancel")
+
+    def _job(self, method: str, path: str, **kwargs) -> dict:
+        """The job record ``method path`` answers (``kwargs`` to :meth:`request`); an answer that is no object with a
+        state (a proxy's JSON, a broken service's) is a ServiceError quoting it: :meth:`wait` had returned it as the
+        job, and ``voxe wait`` ended in a KeyError or TypeError reading its state."""
+        job = self.request(method, path, **kwargs)
+        if not isinstance(job, dict) or not isinstance(job.get("state"), str):
+            raise ServiceError(f"{method} {path}: {self.base_url} answered {reprlib.repr(job)}, not a job with a "
+                               "state")
+        return job
 
     def events(self, job_id: str, last_event_id: int | None = None, reconnect_for: float | None = None,
                on_reconnect: Callable[[str], None] | None = None, timeout: float | None = None) -> Iterator[dict]:
@@ -397,15 +407,15 @@ class Client:
             if timed_out.progress is not None:  # the stream said where it stood, and that it had not ended
                 raise
             try:
-                job = self.request("GET", path, deadline=deadline, timeout=httpx.Timeout(**{
+                job = self._job("GET", path, deadline=deadline, timeout=httpx.Timeout(**{
                     part: LOOK_AT_JOB_S if limit is None else min(LOOK_AT_JOB_S, limit)
                     for part, limit in self._http.timeout.as_dict().items()}))
             except ServiceError:  # (the service gone: the timeout says where the job stood)
                 raise timed_out from None
-            if job.get("state") not in TERMINAL_STATES:
+            if job["state"] not in TERMINAL_STATES:
                 raise
             return job
-        return self.request("GET", path, deadline=deadline)
+        return self._job("GET", path, deadline=deadline)
 
     def artifacts(self, job_id: str) -> list[dict]:
         """``GET /v1/jobs/{id}/artifacts``: the job's artifacts, each ``{name, size, sha256, ...}``; an answer that is
