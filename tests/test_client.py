@@ -1474,6 +1474,35 @@ def test_a_job_answer_with_no_state_is_a_service_error_quoting_it(answered, monk
                      re.MULTILINE)
 
 
+def test_an_answer_or_error_page_is_read_up_to_its_limit_only(tmp_path):
+    """A JSON answer or an error page (the event stream's, a download's too) had been buffered whole however long: a
+    hostile or broken server's 64 MiB (or endless) body is read to MAX_ANSWER_BYTES, then a ServiceError naming it."""
+    from voxe_client.client import MAX_ANSWER_BYTES
+
+    pulled = []
+
+    def long_body():
+        for chunk in range(64):
+            pulled.append(chunk)
+            yield b" " * 2**20
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        if request.url.path == "/v1/jobs/j1/artifacts":
+            return httpx.Response(200, json=[{"name": "a.bin", "size": 4, "sha256": "0" * 64}])
+        return httpx.Response(200 if request.url.path == "/v1/jobs/j1" else 502, content=long_body())
+
+    with Client(transport=httpx.MockTransport(answer), retries=0) as client:
+        for call, status, path in ((lambda: client.get_job("j1"), 200, "/v1/jobs/j1"),
+                                   (lambda: list(client.events("j2")), 502, "/v1/jobs/j2/events"),
+                                   (lambda: client.download("j1", "a.bin", tmp_path / "a.bin"), 502,
+                                    "/v1/jobs/j1/artifacts/a.bin")):
+            pulled.clear()
+            with pytest.raises(ServiceError, match=rf"^GET {path}: HTTP {status}: its answer runs over 8 MiB, the "
+                                                   r"most this client reads of one") as raised:
+                call()
+            assert raised.value.status == status and len(pulled) == MAX_ANSWER_BYTES // 2**20 + 1
+
+
 def test_a_download_stops_reading_a_body_longer_than_the_listed_size(tmp_path):
     """A body going on past the size the listing gives (a broken proxy's or a hostile service's endless one) had
     been written to the part file to its end, however long (the disk filled) before the check refused it: reading

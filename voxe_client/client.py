@@ -59,6 +59,10 @@ submission is not sent again, which would have the service do it a second time."
 BROKEN_DOWNLOADS = (*LOST_ANSWERS, httpx.ReadTimeout)
 """A download the connection broke off or stalled: it goes on from the bytes it has (a GET, sent again at no risk)."""
 TERMINAL_STATES = ("succeeded", "failed", "canceled")
+MAX_ANSWER_BYTES = 8 * 2**20
+"""The most bytes of an answer's body the client reads into memory (:func:`_read_capped`): a JSON answer or an error
+page, each a few KiB from the service (an artifact and an event stream are read as they come). A hostile or broken
+server's endless one had been buffered whole, gigabytes."""
 
 
 def _segment(value: str) -> str:
@@ -207,9 +211,9 @@ class Client:
         or a ``resendable`` one (it carries an Idempotency-Key) after the wait its answer asks (:func:`_resend_wait`),
         a read whose connection dropped before its answer (unless not ``resend_dropped``: a caller that goes on from
         where it stopped), a ``resendable`` one whose answer was lost; with ``stream`` its body is left unread (close
-        it). No wait goes past ``deadline`` (a ``time.monotonic()``; a caller's timeout: three Retry-After waits had
-        held a ``wait(timeout=5)`` for 90 s): one that would is cut there (:func:`_ends_before`), and the answer or
-        loss at hand stands, not sent again at it.
+        it), else read (:func:`_read_capped`: at most :data:`MAX_ANSWER_BYTES`). No wait goes past ``deadline`` (a
+        ``time.monotonic()``; a caller's timeout: three Retry-After waits had held a ``wait(timeout=5)`` for 90 s): one
+        that would is cut there (:func:`_ends_before`), and the answer or loss at hand stands, not sent again at it.
 
         Each sending builds the request anew, which reads an upload's files again from their start (httpx rewinds
         them): a retried upload sends the same bytes, which the service's Idempotency-Key check compares."""
@@ -217,7 +221,9 @@ class Client:
         lost = LOST_ANSWERS if resendable else DROPPED_CONNECTIONS if read and resend_dropped else ()
         for attempt in itertools.count():
             try:
-                response = self._http.send(self._http.build_request(method, path, **kwargs), stream=stream)
+                response = self._http.send(self._http.build_request(method, path, **kwargs), stream=True)
+                if not stream:
+                    response = _read_capped(response, method, path)
             except lost:
                 wait = _backoff(attempt)
                 if attempt == self.retries or not _ends_before(wait, deadline):
@@ -338,11 +344,10 @@ class Client:
                                         deadline=deadline,
                                         timeout=httpx.Timeout(min(30.0, limit), read=silence))) as response:
                     if response.is_error:
-                        response.read()
                         if _resend_wait(response, attempts, False) is not None:
                             left()  # a wait for it cut at the deadline: the timeout, not the answer it stood on
                         if not opened or response.status_code not in PROXY_UNAVAILABLE:
-                            _raise_for_error(response, "GET", path)
+                            _raise_for_error(_read_capped(response, "GET", path), "GET", path)
                         lost = f"HTTP {response.status_code} {response.reason_phrase}"
                     elif not _is_event_stream(response):  # (its lines had restarted the reconnect window, for good)
                         lost = (f"{self.base_url} answered {response.status_code} with "
@@ -510,8 +515,7 @@ class Client:
                             size, kept = 0, False
                             continue
                         if response.is_error:
-                            response.read()
-                            _raise_for_error(response, "GET", path)
+                            _raise_for_error(_read_capped(response, "GET", path), "GET", path)
                         start = _range_start(response, size)
                         if start == 0:  # the whole file, from its start
                             out.truncate(0)
@@ -881,6 +885,22 @@ def _resend_wait(response: httpx.Response, attempt: int, keyed: bool) -> float |
     if response.status_code in PROXY_UNAVAILABLE:
         return _backoff(attempt) if asked is None else asked
     return asked if response.status_code == httpx.codes.CONFLICT else None
+
+
+def _read_capped(response: httpx.Response, method: str, path: str) -> httpx.Response:
+    """``response`` (to ``method path``, streamed) read whole and closed, its body decoded as it comes, up to
+    :data:`MAX_ANSWER_BYTES`: a ServiceError naming that limit past it, the rest not read."""
+    body = bytearray()
+    with closing(response):
+        for chunk in response.iter_bytes():
+            body += chunk
+            if len(body) > MAX_ANSWER_BYTES:
+                raise ServiceError(f"{method} {path}: HTTP {response.status_code}: its answer runs over "
+                                   f"{MAX_ANSWER_BYTES // 2**20} MiB, the most this client reads of one (is it the "
+                                   "Vox-E service?)", response.status_code)
+    headers = [(name, value) for name, value in response.headers.multi_items() if name != "content-encoding"]
+    return httpx.Response(response.status_code, headers=headers, content=bytes(body), request=response.request,
+                          extensions=response.extensions)  # (decoded already: not again)
 
 
 def _raise_for_error(response: httpx.Response, method: str, path: str, keyed: bool = False) -> None:
