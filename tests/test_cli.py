@@ -646,7 +646,8 @@ def test_the_bar_draws_what_it_can_of_a_snapshot_the_service_sent_wrong(capsys):
 
     draw = _progress_bar(quiet=False)
     for snapshot in ({"stage": "edit", "overall_progress": 0.5}, {"state": "running", "overall_progress": "50%"},
-                     {"state": "queued", "overall_progress": True}, {"state": "failed", "overall_progress": float("nan")},
+                     {"state": "queued", "overall_progress": True},
+                     {"state": "failed", "overall_progress": float("nan")},
                      {"state": "running", "overall_progress": 1e9, "overall_eta_seconds": "soon"}):
         draw(snapshot)
     assert capsys.readouterr().err.splitlines() == ["[###############               ]  50.0% edit",
