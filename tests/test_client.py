@@ -700,12 +700,37 @@ def test_a_negative_number_of_retries_is_refused_and_none_sends_once(monkeypatch
             raise AssertionError("still sending")
         raise httpx.ReadError("connection reset")
 
-    with pytest.raises(ValueError, match="^retries must be 0 or more, got -1$"):
+    with pytest.raises(ValueError, match="^retries must be a whole number, 0 or more, got -1$"):
         Client(transport=httpx.MockTransport(answer), retries=-1)
     with Client(transport=httpx.MockTransport(answer), retries=0) as client:
         with pytest.raises(ServiceError, match="connection reset"):
             client.get_job("j1")
     assert sent == ["GET"]
+
+
+@pytest.mark.parametrize("given, said", [
+    ({"timeout": float("nan")}, "timeout must be seconds above 0 (or None: none), got nan"),
+    ({"timeout": -1}, "timeout must be seconds above 0 (or None: none), got -1"),
+    ({"timeout": 0}, "timeout must be seconds above 0 (or None: none), got 0"),
+    ({"timeout": "5"}, "timeout must be seconds above 0 (or None: none), got '5'"),
+    ({"timeout": httpx.Timeout(2.0, connect=-1.0)},
+     "timeout must be seconds above 0 (or None: none), got Timeout(connect=-1.0, read=2.0, write=2.0, pool=2.0) "
+     "(connect -1.0)"),
+    ({"retries": 2.5}, "retries must be a whole number, 0 or more, got 2.5"),
+    ({"retries": float("nan")}, "retries must be a whole number, 0 or more, got nan"),
+    ({"retries": True}, "retries must be a whole number, 0 or more, got True"),
+])
+def test_a_timeout_or_retries_that_is_no_such_number_is_refused_before_any_request(given, said):
+    """``Client(timeout=nan)`` or a negative timeout had been taken, each request then failing as the service not
+    reached (or never timing out), and ``retries=2.5`` or NaN never reached its last sending: each is a ValueError
+    before any request, as ``events(reconnect_for=...)``'s is; None, seconds and an ``httpx.Timeout`` go."""
+    sent = []
+    transport = httpx.MockTransport(lambda request: sent.append(request) or httpx.Response(200, json={}))
+    with pytest.raises(ValueError, match=rf"^{re.escape(said)}$"):
+        Client(transport=transport, **given)
+    assert sent == []
+    for timeout in (None, 3, httpx.Timeout(2.0, connect=None)):
+        Client(transport=transport, timeout=timeout).close()
 
 
 def test_a_retry_after_given_as_an_http_date_is_waited_out_counted_from_the_servers_clock(monkeypatch):

@@ -153,9 +153,10 @@ class Client:
     def __init__(self, base_url: str = DEFAULT_URL, api_key: str | None = None, timeout: float = DEFAULT_TIMEOUT_S,
                  transport: httpx.BaseTransport | None = None, retries: int = DEFAULT_RETRIES):
         self.base_url = base_url.rstrip("/")
-        if retries < 0:  # (no sending is ever the last: -1 had sent a read whose connection kept dropping for good)
-            raise ValueError(f"retries must be 0 or more, got {retries}")
+        if isinstance(retries, bool) or not isinstance(retries, int) or retries < 0:  # (no sending is ever the last:
+            raise ValueError(f"retries must be a whole number, 0 or more, got {retries!r}")  # -1 or 2.5 had sent on)
         self.retries = retries
+        timeout = _checked_timeout(timeout)
         headers = {"accept": "application/json"}
         if api_key:
             headers["authorization"] = f"Bearer {api_key}"
@@ -799,6 +800,22 @@ def _drop_other_parts(dest: Path, kept: Path) -> None:
             with suppress(OSError), open(part, "r+b") as other:  # writable: NFS locks only those
                 if _lock_alone(other, part):
                     part.unlink()  # locked as it goes: a download opening it meanwhile opens it again
+
+
+def _checked_timeout(timeout) -> httpx.Timeout:
+    """A :class:`Client`'s ``timeout`` (seconds, an ``httpx.Timeout``, or None: none) as httpx takes it; a ValueError
+    for a part that is no number of seconds above 0: NaN or a negative one had been taken, each request then failing
+    at once as the service not reached, or never timing out."""
+    try:
+        parts = httpx.Timeout(timeout)
+    except (TypeError, ValueError):  # (a tuple of the wrong length, a str)
+        raise ValueError(f"timeout must be seconds above 0, an httpx.Timeout or None, got {timeout!r}") from None
+    for part, seconds in parts.as_dict().items():
+        if seconds is not None and (isinstance(seconds, bool) or not isinstance(seconds, (int, float))
+                                    or not 0 < seconds < math.inf):
+            parted = f" ({part} {seconds!r})" if isinstance(timeout, httpx.Timeout) else ""
+            raise ValueError(f"timeout must be seconds above 0 (or None: none), got {timeout!r}{parted}")
+    return parts
 
 
 def _submission_key(given: str | None) -> str:
