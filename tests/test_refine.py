@@ -584,8 +584,9 @@ def test_a_backprojection_start_on_maps_that_never_differ_is_refused_before_any_
     config = RefineConfig(lift_start="backprojection", iterations=iterations, rays_per_step=64, fit_views=views)
     reports = []
     fresh_view = lambda step: (cameras_around(1, 12, seed=step), edit_maps[0], edit_maps[0].flip(-1))  # noqa: E731
-    with pytest.raises(SegmentationError, match=r"^the edit and object maps are equal on every pixel of the 4 views "
-                                                r"\(of 4\) that see the edited object: .* from "
+    read = "" if iterations else r" the back-projection reads \(one row and column in 2\)"  # (its pixels alone)
+    with pytest.raises(SegmentationError, match=rf"^the edit and object maps are equal on every pixel{read} of the 4 "
+                                                r"views \(of 4\) that see the edited object: .* from "
                                                 r"lift_start='backprojection', and the cut would have no seeds; "
                                                 r"nothing was fitted$"):
         fit_attention_grids(grid, cameras_around(4, 12, seed=1), edit_maps, edit_maps.clone(), config,
@@ -596,6 +597,30 @@ def test_a_backprojection_start_on_maps_that_never_differ_is_refused_before_any_
     fit_attention_grids(grid, cameras_around(4, 12, seed=1), edit_maps, object_maps, config,
                         Callbacks(on_progress=reports.append), fresh_view=fresh_view)
     assert [p.stage for p in reports] == ["backprojection"] + ["attention_grids"] * iterations
+
+
+def test_with_no_iterations_maps_apart_only_off_the_backprojections_stride_are_refused_before_any_work(
+        make_sphere_grid):
+    """With no fitting steps the grids are the back-projection's, which reads every ``backprojection_stride``-th row
+    and column: maps apart only on the other pixels had passed the early refusal (it compared every pixel that sees
+    the object), been back-projected to two equal grids and reached the cut for its "no seeds"."""
+    from voxe_core.refine.lifting import strided_pixels
+
+    grid = make_sphere_grid(10)
+    cameras = cameras_around(4, 12, seed=1)
+    edit_maps = torch.linspace(0.2, 0.9, 12).expand(4, 12, 12).clone()
+    read = strided_pixels(4, 12, 12, 2).view(4, 12, 12)
+    off_stride = edit_maps + 0.3 * ~read
+    config = RefineConfig(lift_start="backprojection", iterations=0, backprojection_stride=2)
+    reports = []
+    with pytest.raises(SegmentationError, match=r"^the edit and object maps are equal on every pixel the "
+                                                r"back-projection reads \(one row and column in 2\) of the 4 views "
+                                                r"\(of 4\) that see the edited object: .* nothing was fitted$"):
+        fit_attention_grids(grid, cameras, edit_maps, off_stride, config, Callbacks(on_progress=reports.append))
+    assert reports == []
+    on_stride = edit_maps + 0.3 * read  # apart on the pixels it reads: back-projected to grids that differ
+    edit, obj = fit_attention_grids(grid, cameras, edit_maps, on_stride, config, Callbacks(on_progress=reports.append))
+    assert [p.stage for p in reports] == ["backprojection"] and not prefer_neither(edit, obj)
 
 
 def test_a_constant_start_fit_equal_but_for_the_order_its_gradients_are_summed_in_is_still_named(make_sphere_grid,

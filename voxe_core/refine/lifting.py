@@ -202,9 +202,9 @@ def fit_attention_grids(
     every step and may be cancelled between steps. A constant start whose fit ends with both grids still equal
     (:func:`~voxe_core.refine.cut.prefer_neither`) is a SegmentationError naming why (no step fitted, maps that never
     differ, or too few iterations): the cut would find no seeds; maps equal on every pixel are that error before any
-    work, from either start, where the fit sees only them (``fit_views="fixed"``, or no iterations). So are views
-    that miss the object, and a back-projection whose pixels see none of its density (the fit moves only the
-    vertices they see).
+    work, from either start, where the fit sees only them (``fit_views="fixed"``), as are maps equal on every pixel
+    the back-projection reads with no iterations. So are views that miss the object, and a back-projection whose
+    pixels see none of its density (the fit moves only the vertices they see).
     """
     n_views, height, width = edit_maps.shape
     if object_maps.shape != edit_maps.shape:
@@ -230,16 +230,23 @@ def fit_attention_grids(
     if keep.numel() == 0:
         raise SegmentationError(f"none of the {n_views} views sees the edited object (no pixel's ray meets its "
                                 "occupied box): there is no attention to lift; are the views aimed at it?")
-    # Maps that never differ leave both grids equal from either start: the back-projection's two channels are alike,
-    # and so is every step on these views (or none is taken). Refused at once, where a constant start had run every
-    # step (the paper's 1,500) to say so, and a back-projection's its whole fit for the cut to find no seeds.
-    if (config.fit_views == "fixed" or not config.iterations) and prefer_neither(targets[keep, 0], targets[keep, 1]):
+    strided = (hits & strided_pixels(n_views, height, width, config.backprojection_stride, device)).nonzero().squeeze(-1)
+    # Maps that never differ on the pixels the grids come from leave both grids equal from either start: the
+    # back-projection's two channels are alike, and so is every step on these views (or none is taken). Refused at
+    # once, where a constant start had run every step (the paper's 1,500) to say so, and a back-projection's its whole
+    # fit for the cut to find no seeds. With no steps the grids are the back-projection's alone, which reads only the
+    # strided pixels (maps apart only off the stride had been back-projected to equal grids; no strided pixel that
+    # sees the object is the error below).
+    compared = keep if config.iterations else strided
+    if ((config.fit_views == "fixed" or not config.iterations) and compared.numel()
+            and prefer_neither(targets[compared, 0], targets[compared, 1])):
         seeing = int(hits.reshape(n_views, -1).any(-1).sum())
-        raise SegmentationError(f"the edit and object maps are equal on every pixel of the {seeing} views (of "
+        read = ("" if config.iterations or config.backprojection_stride == 1 else
+                f" the back-projection reads (one row and column in {config.backprojection_stride})")
+        raise SegmentationError(f"the edit and object maps are equal on every pixel{read} of the {seeing} views (of "
                                 f"{n_views}) that see the edited object: {_MAPS_ALIKE} from "
                                 f"lift_start={config.lift_start!r}, and the cut would have no seeds; nothing was "
                                 "fitted")
-    strided = (hits & strided_pixels(n_views, height, width, config.backprojection_stride, device)).nonzero().squeeze(-1)
     start, seen = backproject(frozen, origins[strided], directions[strided], targets[strided], config, occupancy,
                               callbacks)
     rows = (seen.reshape(-1) > 0).nonzero().squeeze(-1)  # vertices some pixel sees: the only ones L1 moves
