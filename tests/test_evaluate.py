@@ -435,6 +435,47 @@ def test_clip_and_fid_share_one_batch_buffer_per_grid(sphere_grid, tiny_clip_pat
     assert len(alive) > 2 * 16 and max(alive) <= 2 * 8 / 4 + 4, alive
 
 
+def test_masked_edits_hold_one_chunk_of_footprint_views_at_a_time(sphere_grid, tiny_clip_path, monkeypatch):
+    """Regression: a masked edit's footprint rendered its whole ring as its first view was asked for and held each
+    view's bits until it was scored; an evaluation asks every masked edit for its first view in its first chunk, so
+    every masked edit held its whole ring's at once (47 MB an edit for 360 views of 1,024², 2.8 GB for 60). They are
+    rendered a chunk at a time: at any step at most one chunk's footprints are rendered and not yet scored, however
+    many edits are masked, and the rows are those of each whole footprint."""
+    import voxe_core.evaluate as evaluation
+    from voxe_core.evaluate import _finite_mean
+
+    _chunks_of(2, 16, monkeypatch)
+    clip = ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")
+    edited, mask = _local_edit(sphere_grid)
+    edits = [EditSample(f"m{k}", "a blue ball", edited, mask) for k in range(4)]
+    rendered, scored, unscored = [], [], []
+    real_render, real_footprints = evaluation.render_image, evaluation.iter_mask_footprint
+
+    def render_image(*args, **kwargs):  # (a footprint's: the ring renders go through iter_views)
+        rendered.append(1)
+        return real_render(*args, **kwargs)
+
+    def iter_mask_footprint(*args, **kwargs):
+        for view in real_footprints(*args, **kwargs):
+            unscored.append(len(rendered) - len(scored))  # this view's and those rendered after it
+            scored.append(1)
+            yield view
+
+    monkeypatch.setattr(evaluation, "render_image", render_image)
+    monkeypatch.setattr(evaluation, "iter_mask_footprint", iter_mask_footprint)
+    rows = evaluate(sphere_grid, edits, "ball", clip, None, None, EvaluateConfig(views=6, elevation=20.0,
+                                                                                   size=16)).rows
+    monkeypatch.undo()
+    assert len(unscored) == 4 * 6 and max(unscored) == 2, unscored  # it had been 18: 4 rings rendered, 6 views scored
+    centre = sphere_grid.orbit_centre()
+    keep = ~mask_footprint(sphere_grid, mask, 6, 20.0, 16, centre)
+    recon = render_ring(sphere_grid, 6, 20.0, 16, centre=centre)
+    images = render_ring(edited, 6, 20.0, 16, centre=centre)
+    assert {(row["psnr"], row["ssim"], row["kept_fraction"]) for row in rows} == {
+        (_finite_mean(psnr(images, recon, keep=keep)), _finite_mean(ssim(images, recon, keep=keep)),
+         float(keep.float().mean()))}
+
+
 @pytest.mark.parametrize("clip_batch, fid_batch", [(3, 2), (2, 3)])  # the shared buffer sized by either
 def test_the_views_scored_one_by_one_give_the_numbers_of_the_whole_rings(sphere_grid, tiny_clip_path,
                                                                           tiny_inception_path, clip_batch, fid_batch):
@@ -512,11 +553,12 @@ def test_many_masked_edits_hold_no_footprint_stand_in_between_steps(sphere_grid,
     assert len({row["kept_fraction"] for row in rows}) == len(masks)  # six footprints, each edit scored on its own
 
 
-def test_a_masked_edits_footprint_stand_in_is_built_once_for_its_ring_with_the_footprints_of_one_a_view(
+def test_a_masked_edits_footprint_stand_in_is_built_once_a_chunk_with_the_footprints_of_one_a_view(
         sphere_grid, monkeypatch):
     """Each view of a masked edit's footprint had built its stand-in again (~0.09 s of CPU a view at 160³, 40 % of
-    the view's footprint): it is built once for the ring, let go before the first view is yielded, and the
-    footprints are those of a stand-in built for each view, bit for bit (a width no multiple of 8 included)."""
+    the view's footprint): it is built once for each chunk of the ring's views, let go before the chunk's first view
+    is yielded, and the footprints are those of a stand-in built for each view, bit for bit (a width no multiple of
+    8 included)."""
     from voxe_core.evaluate import iter_mask_footprint
     from voxe_core.export import turntable_cameras
     from voxe_core.grid import VoxelGrid
@@ -532,13 +574,14 @@ def test_a_masked_edits_footprint_stand_in_is_built_once_for_its_ring_with_the_f
         stand_in = sphere_grid.like(features)
         one_a_view.append(render_image(stand_in, cameras, i, RenderConfig(sigma_threshold=0.0)).opacity > 0)
     del features, stand_in  # (not counted as the footprint's)
+    _chunks_of(2, 21, monkeypatch)  # views 0, 1-2, 3-4
     built, alive, real_like = [], [], VoxelGrid.like
     monkeypatch.setattr(VoxelGrid, "like", lambda grid, features: built.append(1) or real_like(grid, features))
     footprints = []
     for view in iter_mask_footprint(sphere_grid, mask, 5, 20.0, 21):
         alive.append(_stand_ins_alive(sphere_grid))
         footprints.append(view)
-    assert len(built) == 1 and alive == [0] * 5, (built, alive)
+    assert len(built) == 3 and alive == [0] * 5, (built, alive)
     assert torch.equal(torch.stack(footprints), torch.stack(one_a_view)) and 0 < int(torch.stack(footprints).sum())
 
 
@@ -583,7 +626,7 @@ def test_each_edits_grid_goes_to_the_render_device_and_has_its_occupancy_built_o
 
     def counted(views_a_chunk: int) -> tuple[list[dict], list[tuple[str, int]], int]:
         """The rows, the grids given to the renderer (of ``edits``' features or G_i, with how many views) and the
-        occupancies built, the footprint stand-in's left out (one for the masked edit's ring)."""
+        occupancies built, the footprint stand-ins' left out (one for each chunk of the masked edit's ring)."""
         _chunks_of(views_a_chunk, 16, monkeypatch)
         rendered, built = [], []
         real_iter_views, real_occupancy = evaluation.iter_views, VoxelGrid.occupancy
@@ -597,8 +640,9 @@ def test_each_edits_grid_goes_to_the_render_device_and_has_its_occupancy_built_o
         monkeypatch.setattr(VoxelGrid, "occupancy", lambda grid, *a, **k: built.append(grid) or real_occupancy(
             grid, *a, **k))
         rows = evaluate(sphere_grid, edits, "ball", clip, None, None, config).rows
+        stand_ins = len(evaluation.ring_chunks(config.views, config.size))  # (the masked edit's footprint's)
         monkeypatch.undo()
-        return rows, rendered, len(built) - 1  # (the masked edit's footprint stand-in)
+        return rows, rendered, len(built) - stand_ins
 
     rows, rendered, built = counted(3)
     assert rendered == [("initial", 6)] + [(sample.name, 3) for sample in edits] * 2 and built == 1 + 3 * 2

@@ -122,29 +122,34 @@ def iter_mask_footprint(grid: VoxelGrid, mask: torch.Tensor, views: int, elevati
     renderer and ray sampling as the views, over an opaque stand-in of the
     grid's own backbone (``grid.like``: its box, contraction and samples) that
     is dense exactly in those cells, so "no hit" means no sample of that ray saw
-    them. The stand-in (4 floats a vertex and its occupancy, ~70 MB at 160³) is
-    built once, as the first view is asked for, renders every view and is let go
-    before that view is yielded: between views only the footprints are held, a
-    bit a pixel (0.9 MB for the default ring of 100 views of 266²), so :func:`evaluate`
-    holds no stand-in per masked edit, however many. (Built for each view, it
-    had cost ~0.09 s of CPU a view at 160³, 40 % of the view's footprint.)
+    them. The views go a chunk at a time, :func:`ring_chunks`' (those
+    :func:`evaluate` scores together): as a chunk's first view is asked for, a
+    stand-in (4 floats a vertex and its occupancy, ~70 MB at 160³) is built,
+    renders the chunk's views and is let go before that view is yielded, so
+    between views only the rest of one chunk's footprints are held, a bit a pixel
+    (0.7 MB at most, 1/96 of :data:`RING_CHUNK_BYTES`, or one view's), and
+    :func:`evaluate` holds no stand-in and one masked edit's chunk of bits at a
+    time, however many are masked. (Built for each view, the stand-in had cost
+    ~0.09 s of CPU a view at 160³, 40 % of the view's footprint; the whole ring's
+    bits, rendered at the first view, had been held by every masked edit at once:
+    47 MB each for 360 views of 1,024², 2.8 GB for 60.)
     ``callbacks`` may cancel before each view is rendered and gets a
     ``Progress("mask footprint", i, N)`` as each view is yielded.
     """
     if tuple(mask.shape) != tuple(grid.resolution):
         raise ValueError(f"mask of shape {tuple(mask.shape)} does not fit the grid {grid.resolution}")
     cameras = turntable_cameras(views, elevation_deg, size, centre=centre).to(grid.bbox_min.device)
-    packed = _footprint_views(grid, mask, cameras, callbacks)
-    for i in range(views):
-        hits = torch.from_numpy(np.unpackbits(packed[i], axis=-1, count=cameras.width).astype(bool))
-        packed[i] = None  # (each view's bits let go as it is yielded)
-        callbacks.progress(Progress("mask footprint", i + 1, views))
-        yield hits
+    for chunk in ring_chunks(views, size):
+        packed = _footprint_views(grid, mask, cameras, chunk, callbacks)
+        for i in chunk:  # each view's bits let go as it is yielded (its pixels not kept in a local while suspended)
+            callbacks.progress(Progress("mask footprint", i + 1, views))
+            yield torch.from_numpy(np.unpackbits(packed.pop(0), axis=-1, count=cameras.width).astype(bool))
 
 
 @torch.no_grad()
-def _footprint_views(grid: VoxelGrid, mask: torch.Tensor, cameras, callbacks: Callbacks) -> list[np.ndarray]:
-    """:func:`iter_mask_footprint`'s views of ``cameras``, each (H, ceil(W / 8)) uint8, a bit a pixel
+def _footprint_views(grid: VoxelGrid, mask: torch.Tensor, cameras, views: range,
+                     callbacks: Callbacks) -> list[np.ndarray]:
+    """:func:`iter_mask_footprint`'s views ``views`` of ``cameras``, each (H, ceil(W / 8)) uint8, a bit a pixel
     (``np.packbits``), rendered from one stand-in built here and let go."""
     features = torch.zeros(*grid.resolution, 4, device=grid.bbox_min.device)
     # Raw 1e3 at masked vertices: any sample with a positive trilinear weight on one is near-opaque.
@@ -154,7 +159,7 @@ def _footprint_views(grid: VoxelGrid, mask: torch.Tensor, cameras, callbacks: Ca
     config = RenderConfig(sigma_threshold=0.0)  # every cell touching a masked vertex is 'occupied'
     occupancy = stand_in.occupancy(config.sigma_threshold)
     packed = []
-    for i in range(len(cameras)):
+    for i in views:
         callbacks.check_cancel("mask footprint")
         hits = (torch.zeros(cameras.height, cameras.width, dtype=torch.bool) if occupancy.empty else
                 render_image(stand_in, cameras, i, config, occupancy).opacity.cpu() > 0)
@@ -499,11 +504,13 @@ def evaluate(
     (:data:`RING_CHUNK_BYTES` at most, or one view) and one view of an edit are held at a time, each grid's batch
     pixels and the scores besides (each ring had been held whole, ``initial``'s to the end: 9 GB of floats for 360
     views of 1,024²; every edit's before that, 270 GB for 60 edits), and every ring is rendered once; a masked
-    edit's footprint view is rendered from a stand-in (4 floats a vertex and its occupancy, ~70 MB at 160³, on
-    ``device``) built from its bool mask for that view and let go, so one is alive at a time however many edits are
-    masked (each had been held to the end, all at once: ~4 GB for 60 masked edits at 160³). The numbers are those of
-    the whole rings (``kept_fraction`` the exact ratio rounded to float32, which a float32 mean over a ring past
-    2^24 pixels had missed in its last bits).
+    edit's footprints of the chunk are rendered as its first view of the chunk is scored, from a stand-in (4 floats a
+    vertex and its occupancy, ~70 MB at 160³, on ``device``) built from its bool mask and let go, and held a bit a
+    pixel until scored, so one stand-in and one edit's chunk of footprint bits are alive at a time however many
+    edits are masked (each stand-in had been held to the end, all at once: ~4 GB for 60 masked edits at 160³; each
+    edit's whole ring of bits, 2.8 GB for 60 at 360 views of 1,024²). The numbers are those of the whole rings
+    (``kept_fraction`` the exact ratio rounded to float32, which a float32 mean over a ring past 2^24 pixels had
+    missed in its last bits).
     ``on_ring(name, i, render)`` gets each ring render (H, W, 3), to save it, in that order: the first chunk's
     views of ``initial`` (name None), then of each edit in ``edits``' order, then the next chunk's, and so on.
 
@@ -599,7 +606,7 @@ def evaluate(
         return view
 
     recon_ring = ring(initial, "the initial grid", range(config.views))  # its occupancy built once
-    for chunk in ring_chunks(config):  # G_i's views of the chunk rendered once, each edit's scored against them
+    for chunk in ring_chunks(config.views, config.size):  # G_i's chunk rendered once, each edit's scored against it
         recon_views = [take(0, i, next(recon_ring)[1]) for i in chunk]
         for k, (sample, scores) in enumerate(zip(edits, kept), 1):
             for i, view in ring(sample.grid, f"edit {sample.name!r}", chunk):
@@ -620,12 +627,13 @@ def evaluate(
     return Evaluation(rows)
 
 
-def ring_chunks(config: EvaluateConfig) -> list[range]:
-    """The ring's views, in order, in chunks of about one size, each of at most :data:`RING_CHUNK_BYTES` of G_i's
-    float views (one view at least): :func:`evaluate` puts each edit's grid on the render device once a chunk."""
-    most = max(1, RING_CHUNK_BYTES // (config.size * config.size * 3 * 4))
-    chunks = -(-config.views // most)
-    return [range(j * config.views // chunks, (j + 1) * config.views // chunks) for j in range(chunks)]
+def ring_chunks(views: int, size: int) -> list[range]:
+    """A ring's ``views`` of ``size``², in order, in chunks of about one size, each of at most
+    :data:`RING_CHUNK_BYTES` of G_i's float views (one view at least): :func:`evaluate` puts each edit's grid on the
+    render device once a chunk, and :func:`iter_mask_footprint` builds a masked edit's stand-in once a chunk."""
+    most = max(1, RING_CHUNK_BYTES // (size * size * 3 * 4))
+    chunks = -(-views // most)
+    return [range(j * views // chunks, (j + 1) * views // chunks) for j in range(chunks)]
 
 
 def _finite_view(view: torch.Tensor, label: str, i: int, views: int) -> torch.Tensor:
@@ -659,9 +667,10 @@ class Preservation:
     """:func:`preservation` of one edit, its views and G_i's handed over a pair at a time (:func:`evaluate` renders
     them a chunk of views at a time). Each view is scored on its own: the values of the whole ring at once, bit for
     bit, but SSIM's float64 filter buffers are one view's (~130 times its float pixels: a whole ring at once had
-    peaked at 3.2 GB for 32 views of 256²). A masked edit's footprints are rendered as its first pair comes, from
-    one stand-in let go before that pair is scored (:func:`iter_mask_footprint`, given ``callbacks``: progress per
-    view, cancellation): between views an edit holds its bool mask and its footprints' bits, not a stand-in."""
+    peaked at 3.2 GB for 32 views of 256²). A masked edit's footprints are rendered a chunk of views at a time
+    (:func:`ring_chunks`') as the chunk's first pair comes, from one stand-in let go before that pair is scored
+    (:func:`iter_mask_footprint`, given ``callbacks``: progress per view, cancellation): between views an edit holds
+    its bool mask and the rest of one chunk's footprint bits, not a stand-in."""
 
     def __init__(self, sample: EditSample, initial: VoxelGrid, config: EvaluateConfig,
                  centre: torch.Tensor | None = None, callbacks: Callbacks = Callbacks()):
