@@ -435,6 +435,25 @@ def test_clip_and_fid_share_one_batch_buffer_per_grid(sphere_grid, tiny_clip_pat
     assert len(alive) > 2 * 16 and max(alive) <= 2 * 8 / 4 + 4, alive
 
 
+def test_a_footprints_progress_is_reported_as_each_view_renders(sphere_grid, monkeypatch):
+    """Regression: a footprint's views were rendered a chunk at a time (once, the whole ring) as the chunk's first was
+    asked for, and each reported as it was yielded: the chunk's renders came before one report, the others as its
+    views were scored, with no work left. Each view is reported as it renders."""
+    import voxe_core.evaluate as evaluation
+
+    _chunks_of(3, 16, monkeypatch)  # views 0-1, 2-4
+    x = torch.linspace(-1.5, 1.5, sphere_grid.resolution[0])[:, None, None].expand(sphere_grid.resolution)
+    mask = (x > 0.2) & (sphere_grid.features[..., 0].detach() > 0)
+    rendered, reports = [], []
+    real_render = evaluation.render_image
+    monkeypatch.setattr(evaluation, "render_image", lambda *args: rendered.append(1) or real_render(*args))
+    footprints = evaluation.iter_mask_footprint(sphere_grid, mask, 5, 20.0, 16, callbacks=Callbacks(
+        on_progress=lambda report: reports.append((report.stage, report.iteration, report.total, len(rendered)))))
+    next(footprints)
+    assert reports == [("mask footprint", i, 5, i) for i in (1, 2)], reports  # it had been [(…, 1, 5, 2)]
+    assert len(list(footprints)) == 4 and reports == [("mask footprint", i, 5, i) for i in range(1, 6)], reports
+
+
 def test_masked_edits_hold_one_chunk_of_footprint_views_at_a_time(sphere_grid, tiny_clip_path, monkeypatch):
     """Regression: a masked edit's footprint rendered its whole ring as its first view was asked for and held each
     view's bits until it was scored; an evaluation asks every masked edit for its first view in its first chunk, so
@@ -528,8 +547,9 @@ def _stand_ins_alive(*grids) -> int:
 def test_many_masked_edits_hold_no_footprint_stand_in_between_steps(sphere_grid, tiny_clip_path):
     """Regression: view-major, each masked edit's footprint stand-in (4 floats a vertex and its occupancy, ~70 MB at
     160³ on the render device) was held from its edit's first view to the end, all of them at once (~4 GB for 60
-    masked edits). Each is now built from its bool mask for the view it renders and let go: none is alive at any
-    step, however many masked edits, and each edit's row is that of its whole ring, bit for bit."""
+    masked edits). Each is now built from its bool mask for the views it renders and let go: none is alive at any
+    step but a footprint's (reported as each view renders, from the one stand-in alive), however many masked edits,
+    and each edit's row is that of its whole ring, bit for bit."""
     from voxe_core.evaluate import _finite_mean
 
     clip = ClipScorer.from_pretrained(str(tiny_clip_path), device="cpu")
@@ -538,10 +558,15 @@ def test_many_masked_edits_hold_no_footprint_stand_in_between_steps(sphere_grid,
     masks = [(x > bound) & (edited.features[..., 0].detach() > 0) for bound in (0.1, 0.3, 0.5, 0.7, 0.9, 1.1)]
     edits = [EditSample(f"m{k}", "a blue ball", edited, mask) for k, mask in enumerate(masks)]
     config = EvaluateConfig(views=3, elevation=20.0, size=16)
-    alive = []
-    rows = evaluate(sphere_grid, edits, "ball", clip, None, None, config,
-                    Callbacks(on_progress=lambda report: alive.append(_stand_ins_alive(sphere_grid, edited)))).rows
-    assert len(alive) > 2 * len(edits) * config.views and max(alive) == 0, alive  # it had been up to 8
+    alive = {"mask footprints": [], "other": []}
+
+    def on_progress(report):
+        footprint = report.info["stage"] == "mask footprints"
+        alive["mask footprints" if footprint else "other"].append(_stand_ins_alive(sphere_grid, edited))
+
+    rows = evaluate(sphere_grid, edits, "ball", clip, None, None, config, Callbacks(on_progress=on_progress)).rows
+    assert len(alive["mask footprints"]) == len(edits) * config.views and max(alive["mask footprints"]) == 1, alive
+    assert len(alive["other"]) > len(edits) * config.views and max(alive["other"]) == 0, alive  # it had been up to 8
     centre = sphere_grid.orbit_centre()
     recon = render_ring(sphere_grid, 3, 20.0, 16, centre=centre)
     images = render_ring(edited, 3, 20.0, 16, centre=centre)

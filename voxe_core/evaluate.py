@@ -134,15 +134,15 @@ def iter_mask_footprint(grid: VoxelGrid, mask: torch.Tensor, views: int, elevati
     bits, rendered at the first view, had been held by every masked edit at once:
     47 MB each for 360 views of 1,024², 2.8 GB for 60.)
     ``callbacks`` may cancel before each view is rendered and gets a
-    ``Progress("mask footprint", i, N)`` as each view is yielded.
+    ``Progress("mask footprint", i, N)`` as each view is rendered (a chunk's come
+    as its first view is asked for).
     """
     if tuple(mask.shape) != tuple(grid.resolution):
         raise ValueError(f"mask of shape {tuple(mask.shape)} does not fit the grid {grid.resolution}")
     cameras = turntable_cameras(views, elevation_deg, size, centre=centre).to(grid.bbox_min.device)
     for chunk in ring_chunks(views, size):
         packed = _footprint_views(grid, mask, cameras, chunk, callbacks)
-        for i in chunk:  # each view's bits let go as it is yielded (its pixels not kept in a local while suspended)
-            callbacks.progress(Progress("mask footprint", i + 1, views))
+        for _ in chunk:  # each view's bits let go as it is yielded (its pixels not kept in a local while suspended)
             yield torch.from_numpy(np.unpackbits(packed.pop(0), axis=-1, count=cameras.width).astype(bool))
 
 
@@ -150,7 +150,7 @@ def iter_mask_footprint(grid: VoxelGrid, mask: torch.Tensor, views: int, elevati
 def _footprint_views(grid: VoxelGrid, mask: torch.Tensor, cameras, views: range,
                      callbacks: Callbacks) -> list[np.ndarray]:
     """:func:`iter_mask_footprint`'s views ``views`` of ``cameras``, each (H, ceil(W / 8)) uint8, a bit a pixel
-    (``np.packbits``), rendered from one stand-in built here and let go."""
+    (``np.packbits``), rendered from one stand-in built here and let go, each reported to ``callbacks`` as it is."""
     features = torch.zeros(*grid.resolution, 4, device=grid.bbox_min.device)
     # Raw 1e3 at masked vertices: any sample with a positive trilinear weight on one is near-opaque.
     features[..., 0] = mask.to(features.device, torch.float32) * 1e3
@@ -164,6 +164,7 @@ def _footprint_views(grid: VoxelGrid, mask: torch.Tensor, cameras, views: range,
         hits = (torch.zeros(cameras.height, cameras.width, dtype=torch.bool) if occupancy.empty else
                 render_image(stand_in, cameras, i, config, occupancy).opacity.cpu() > 0)
         packed.append(np.packbits(hits.numpy(), axis=-1))
+        callbacks.progress(Progress("mask footprint", i + 1, len(cameras)))
     return packed
 
 
