@@ -19,7 +19,7 @@ from fastapi.testclient import TestClient
 from api.schemas import JobParams
 from needs import require_data
 from service_helpers import (
-    MIC, failing_uploads, ingest, reset_service_caches, service_env, small_mic, zip_folder,
+    MIC, TINY_FIT, failing_uploads, ingest, reset_service_caches, service_env, small_mic, zip_folder,
 )
 from voxe_core.cli import build_parser
 from voxe_core.cli import edit as edit_command
@@ -339,7 +339,6 @@ def service(tmp_path, monkeypatch):
 
 
 CHECKPOINT_EVERY = 50
-TINY_FIT = {"downsample": 16, "reconstruction": {"resolution": 12, "iterations": [2, 2, 2], "rays_per_step": 64}}
 
 
 def _reconstructed_job(client, scene_id: str, backbone: str, job_fields: dict | None = None, **params) -> dict:
@@ -348,8 +347,9 @@ def _reconstructed_job(client, scene_id: str, backbone: str, job_fields: dict | 
     from worker import tasks
 
     stages = 2 if backbone == "scene" else 3  # the stage count of the backbone's default preset
-    body = {**TINY_FIT, **params, "reconstruction": {**TINY_FIT["reconstruction"], "backbone": backbone,
-                                                     "iterations": [2] * stages}}
+    fit = TINY_FIT["reconstruction"]
+    body = {**TINY_FIT, **params, "reconstruction": {**fit, "backbone": backbone,
+                                                     "iterations": fit["iterations"][-stages:]}}
     job = client.post("/v1/jobs", json={"scene_id": scene_id, "prompt": "a mic", **(job_fields or {}),
                                         "params": body}).json()
     assert tasks.reconstruct_task.apply(args=(job["id"],)).get()["state"] == "done"
@@ -1066,7 +1066,7 @@ def test_an_edit_whose_regulariser_a_constant_reconstruction_switches_off_says_s
 
     def with_density(job_id, name, *args, **kwargs):
         grid = real_fetch_grid(job_id, name, *args, **kwargs)
-        if name == "initial_grid.safetensors":  # (the tiny fit's is constant: its steps had moved every voxel alike)
+        if name == "initial_grid.safetensors":  # the tiny fit's density, made constant or a ramp
             with torch.no_grad():
                 ramp = torch.linspace(-1.0, 1.0, grid.features[..., 0].numel()).reshape(grid.features.shape[:3])
                 grid.features[..., 0] = 0.5 if density == "constant" else ramp
@@ -1421,8 +1421,8 @@ def test_a_job_that_lost_the_fit_goes_on_with_the_recorded_grid_not_its_own(serv
 
 
 def _locally_edited_job(client, scene_id: str, monkeypatch) -> str:
-    """A local job ("hat" of "a mic wearing a hat") whose edit left a dense 4³ block (the tiny fit may have no
-    occupied voxel): its refine stage has a cut to make."""
+    """A local job ("hat" of "a mic wearing a hat") whose edit left a dense 4³ block, and nothing else occupied: its
+    refine stage has a cut of a known size to make."""
     import voxe_core.edit
     from worker import runtime, tasks
 
@@ -1432,6 +1432,7 @@ def _locally_edited_job(client, scene_id: str, monkeypatch) -> str:
 
     def dense_block(initial, *args, **kwargs):
         edited = initial.clone_grid()
+        edited.features.data[..., 0] = -1.0  # (what the tiny fit occupied)
         edited.features.data[4:8, 4:8, 4:8, 0] = 5.0
         return edited
 

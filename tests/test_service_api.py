@@ -18,7 +18,9 @@ from fastapi.testclient import TestClient
 
 from captures import pose_at, square_capture, write_colmap_model
 from needs import SPOT, require_data
-from service_helpers import MIC, ingest, reset_service_caches as _reset, service_env, small_mic, zip_folder
+from service_helpers import (
+    MIC, TINY_FIT, ingest, reset_service_caches as _reset, service_env, small_mic, zip_folder,
+)
 
 
 @pytest.fixture
@@ -2103,9 +2105,6 @@ def test_a_job_waits_for_the_fit_another_job_runs(client, dataset, root):
         session.execute(update(Job).where(Job.id == d["id"]).values(state="running", cancel_requested=True))
     with pytest.raises(StageCancelled):
         tasks._reconstruct(runtime.load_job(d["id"]), settings, "cpu", get_storage())
-
-
-TINY_FIT = {"downsample": 16, "reconstruction": {"resolution": 12, "iterations": [2, 2, 2], "rays_per_step": 64}}
 
 
 def _two_tiny_fits(client, dataset, root) -> tuple[str, str, str]:
