@@ -703,11 +703,12 @@ def test_the_backward_time_is_split_where_the_gradient_reaches_the_renders(small
 
 def test_renders_of_empty_space_edit_with_no_backward_time_on_the_guidance():
     """Rays that meet no occupied cell render the background: no gradient reaches the renders, only the regulariser's
-    reaches the grid, and the guidance's share of the backward is nothing."""
+    reaches the grid, and the guidance's share of the backward is nothing. (A grid with no density is refused: its box
+    here lies far below every pose, which looks at the origin from near the horizon.)"""
     reports = []
-    empty = VoxelGrid(8, init_density=-1.0)
-    edited = edit(empty, "a dog", SlowEncoderGuidance(), EditConfig(iterations=1, render_size=16, sync_timing=True),
-                  _collect(reports))
+    unseen = VoxelGrid(8, (-0.5, -0.5, -20.0), (0.5, 0.5, -19.0), init_density=1.0)
+    edited = edit(unseen, "a dog", SlowEncoderGuidance(), EditConfig(iterations=1, render_size=16, sync_timing=True,
+                                                                     min_zenith_deg=80.0), _collect(reports))
     (info,) = [r.info for r in reports]
     assert info["samples_per_ray"] == 0 and info["ms_backward_guidance"] == 0
     assert info["ms_backward_render"] == pytest.approx(info["ms_backward"])
@@ -715,9 +716,9 @@ def test_renders_of_empty_space_edit_with_no_backward_time_on_the_guidance():
     # an image regulariser's rays meet nothing either: no gradient at all, where the backward had raised a
     # RuntimeError ("element 0 of tensors does not require grad"), a traceback out of voxe edit and a job's error
     cameras = Cameras.from_fov(spherical_poses(torch.tensor([30.0]), torch.tensor([0.0])), 0.6911, 8, 8)
-    config = EditConfig(iterations=2, render_size=16, regulariser="image_l2")
-    edited = edit(empty, "a dog", SlowEncoderGuidance(), config, input_views=(torch.ones(1, 8, 8, 3), cameras))
-    assert torch.equal(edited.features, empty.features)
+    config = EditConfig(iterations=2, render_size=16, regulariser="image_l2", min_zenith_deg=80.0)
+    edited = edit(unseen, "a dog", SlowEncoderGuidance(), config, input_views=(torch.ones(1, 8, 8, 3), cameras))
+    assert torch.equal(edited.features, unseen.features)
 
 
 def test_a_scene_grids_skip_density_is_built_once_per_edit_and_every_step_skips_as_rebuilding_it_would(monkeypatch):
@@ -842,6 +843,23 @@ def test_a_regulariser_a_constant_initial_grid_switches_off_is_said_before_the_f
         assert [kind for kind, _ in run(grid, **config)] == ["progress", "progress"], config
     with pytest.warns(UserWarning, match=re.escape(f"edit: {off}")):  # no on_warning: a Python warning says it
         edit(unfitted, "a dog", FakeGuidance(), EditConfig(iterations=1, render_size=16))
+
+
+def test_an_initial_grid_with_no_density_its_renders_sample_is_refused_before_the_first_step():
+    """Through a transparent volume (a ReLU field with no positive density, or none above the skip threshold) the
+    SDS gradient is 0: the edit had run every iteration and returned the grid it was given. It is refused at once."""
+    empty = VoxelGrid(12, init_density=-1.0)
+    faint = VoxelGrid(12, init_density=1e-6)  # positive, below the render's sigma_threshold: every cell skipped
+    for grid in (empty, faint):
+        reports = []
+        with pytest.raises(ValueError, match="the initial grid has no density the edit's renders sample"):
+            edit(grid, "a dog", FakeGuidance(), EditConfig(iterations=3, render_size=16), _collect(reports))
+        assert reports == []
+    reports = []  # rendering every cell, the faint density is seen: the edit runs
+    every_cell = RenderConfig(step_ratio=0.6, skip_empty=False)
+    edit(faint, "a dog", FakeGuidance(), EditConfig(iterations=1, render_size=16, regulariser_weight=0.0,
+                                                     render=every_cell), _collect(reports))
+    assert len(reports) == 1
 
 
 def test_the_partly_constant_reg3d_plus_warning_states_what_its_constant_terms_add_to_the_reg():

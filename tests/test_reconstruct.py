@@ -506,3 +506,26 @@ def test_only_a_scene_fit_pays_for_the_early_stop_density_pass(monkeypatch, pres
     config = replace(preset(), resolutions=(12,), iterations=(3,), image_downsample=(1,), rays_per_step=64)
     reconstruct(images, cams, config)
     assert bool(probed) == probes and config.render.early_stop == (1e-4 if probes else 0.0)
+
+
+def test_a_fit_from_or_ending_with_no_density_its_renders_sample_is_refused_or_said():
+    """A fit from a transparent ReLU field has no gradient (refused before its first step); one that ends transparent
+    (white views on white) is said through the callbacks' warning, as the edit of it is refused."""
+    images, cams = synthetic_views()
+    reports = []
+    with pytest.raises(ValueError, match="the fit's initial grid has no density its renders sample"):
+        reconstruct(images, cams, tiny_config(init_density=-0.5), Callbacks(on_progress=reports.append))
+    assert reports == []
+    grid = VoxelGrid(12, init_density=-1.0)
+    with torch.no_grad():  # a faint blob where every view looks, which white views fit away
+        grid.features[..., 0][(grid.vertex_positions().norm(dim=-1) < 0.5).reshape(12, 12, 12)] = 0.05
+    said = []
+    reconstruct(torch.ones_like(images), cams, tiny_config(resolutions=(12,), iterations=(30,), image_downsample=(1,)),
+                Callbacks(on_warning=lambda stage, text: said.append((stage, text))), initial_grid=grid)
+    assert said == [("reconstruct", "the fit ends with no density its renders sample (no positive density anywhere): "
+                     "the reconstruction is transparent, every render of it the background (views that show nothing "
+                     "but the background, or a fit that failed); an edit of it is refused")]
+    said.clear()
+    reconstruct(images, cams, tiny_config(iterations=(5, 5)), Callbacks(on_warning=lambda *warning: said.append(
+        warning)))
+    assert said == []

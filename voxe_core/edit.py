@@ -103,7 +103,7 @@ from voxe_core.losses import (
     volumetric_regulariser,
 )
 from voxe_core.progress import Callbacks, Progress, StageCancelled
-from voxe_core.reconstruct import check_finite_grid, same_views, views_summary
+from voxe_core.reconstruct import check_finite_grid, renders_nothing, same_views, views_summary
 from voxe_core.render import RenderConfig, render_image, render_rays
 from voxe_core.schedule import TimestepSchedule
 from voxe_core.tensorio import FormatError, config_recipe, load_tensors, recipe_changes, save_tensors
@@ -422,7 +422,9 @@ def edit(
     Everything runs on ``device`` (None: ``guidance.device`` when the guidance
     has one, else the initial grid's); G_i, G_e and the input views move there
     once, and the returned grid lives there. A ``device`` other than the
-    guidance's is refused at once (every step would copy renders across). A step whose loss is not finite raises
+    guidance's is refused at once (every step would copy renders across), as is an initial grid none of whose density
+    the renders sample (:func:`~voxe_core.reconstruct.renders_nothing`: the edit would change nothing). A step whose
+    loss is not finite raises
     :class:`EditDiverged` before its progress is reported or a checkpoint written (its NaN or infinite gradient
     has reached G_e, which no later step recovers); so does a G_e holding an infinite or NaN feature where a
     checkpoint is to be written, a preview rendered or the grid returned (a finite loss whose gradient overflowed);
@@ -441,6 +443,13 @@ def edit(
         )
     # Its NaN had made the first step's loss NaN: an EditDiverged blaming half precision or the lr, after a UNet pass.
     check_finite_grid(initial_grid, "its renders and the regulariser")
+    # Refused, not said as a constant regulariser is (an ablation that still edits): through a transparent volume the
+    # SDS gradient is 0, so the edit had run all its iterations and returned the grid it was given.
+    if renders_nothing(initial_grid, config.render):
+        raise ValueError("the initial grid has no density the edit's renders sample (no positive density anywhere, "
+                         "or none above the render's sigma_threshold): every render is the background, with no SDS "
+                         "gradient, so the edit would change nothing (an empty reconstruction, or one that fit "
+                         "nothing?)")
 
     guidance_device = getattr(guidance, "device", None)
     device = resolve_device(device if device is not None else (guidance_device or initial_grid.flat_features.device))

@@ -436,6 +436,13 @@ def check_finite_grid(grid: VoxelGrid, carried_into: str) -> None:
                          "(a damaged grid file?)")
 
 
+def renders_nothing(grid: VoxelGrid, render: RenderConfig) -> bool:
+    """Whether every render of ``grid`` under ``render`` is the background: a ReLU field with no positive density
+    anywhere (or, where empty cells are skipped, none above the skip threshold). No loss on its renders has a
+    gradient then (ReLU's is 0 below 0, a skipped cell is never sampled), so no fitting step changes what it shows."""
+    return grid.occupancy_above(grid.skip_density(render.sigma_threshold) if render.skip_empty else 0.0).empty
+
+
 def views_summary(images: torch.Tensor, cameras: Cameras) -> torch.Tensor:
     """What a checkpoint records of the views its fit sees, so that it resumes only a fit to them: per view (a row of
     the (N, 66) float64 result, (N, 72) with lens terms), its mean colour over a 4 x 4 grid of blocks, the image
@@ -612,6 +619,9 @@ def reconstruct(
         grid = (initial_grid if initial_grid is not None else VoxelGrid(
             config.resolutions[0], config.bbox_min, config.bbox_max, config.activation, init_density=config.init_density
         )).to(device)
+        if renders_nothing(grid, config.render):  # (its steps had all been run, the grid left as it was)
+            raise ValueError("the fit's initial grid has no density its renders sample (a ReLU field with no "
+                             "positive density, init_density <= 0?): no step of the fit would have a gradient")
     else:
         grid, generator, start_stage, start_iteration, resumed = _resume(resume_from, config, device, views)
 
@@ -659,4 +669,8 @@ def reconstruct(
                 checkpoint(stage, iteration + 1)
                 last_checkpoint = done
         average.finish(grid)
+    if renders_nothing(grid, config.render):  # its edit refuses it: said where the fit that made it ran
+        callbacks.warning("reconstruct", "the fit ends with no density its renders sample (no positive density "
+                          "anywhere): the reconstruction is transparent, every render of it the background (views "
+                          "that show nothing but the background, or a fit that failed); an edit of it is refused")
     return grid
