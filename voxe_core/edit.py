@@ -443,13 +443,6 @@ def edit(
         )
     # Its NaN had made the first step's loss NaN: an EditDiverged blaming half precision or the lr, after a UNet pass.
     check_finite_grid(initial_grid, "its renders and the regulariser")
-    # Refused, not said as a constant regulariser is (an ablation that still edits): through a transparent volume the
-    # SDS gradient is 0, so the edit had run all its iterations and returned the grid it was given.
-    if renders_nothing(initial_grid, config.render):
-        raise ValueError("the initial grid has no density the edit's renders sample (no positive density anywhere, "
-                         "or none above the render's sigma_threshold): every render is the background, with no SDS "
-                         "gradient, so the edit would change nothing (an empty reconstruction, or one that fit "
-                         "nothing?)")
 
     guidance_device = getattr(guidance, "device", None)
     device = resolve_device(device if device is not None else (guidance_device or initial_grid.flat_features.device))
@@ -469,6 +462,13 @@ def edit(
     # The density each step's occupancy skips cells below comes of the lattice, activation and scale, never of the
     # features optimised: built once here (a scene grid's, one per cell, had been rebuilt every step).
     skip_density = grid.skip_density(config.render.sigma_threshold) if config.render.skip_empty else None
+    # Refused, not said as a constant regulariser is (an ablation that still edits): through a transparent volume the
+    # SDS gradient is 0, so the edit had run all its iterations and returned the grid it was given.
+    if renders_nothing(grid, config.render, skip_density):
+        raise ValueError("the initial grid has no density the edit's renders sample (no positive density anywhere, "
+                         "or none above the render's sigma_threshold): every render is the background, with no SDS "
+                         "gradient, so the edit would change nothing (an empty reconstruction, or one that fit "
+                         "nothing?)")
     param = grid.flat_features
     optimizer = _make_adam(param, config)
     views = _check_views(input_views, device) if image_reg else None

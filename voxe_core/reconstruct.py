@@ -436,11 +436,15 @@ def check_finite_grid(grid: VoxelGrid, carried_into: str) -> None:
                          "(a damaged grid file?)")
 
 
-def renders_nothing(grid: VoxelGrid, render: RenderConfig) -> bool:
+def renders_nothing(grid: VoxelGrid, render: RenderConfig, skip_density: float | torch.Tensor | None = None) -> bool:
     """Whether every render of ``grid`` under ``render`` is the background: a ReLU field with no positive density
-    anywhere (or, where empty cells are skipped, none above the skip threshold). No loss on its renders has a
-    gradient then (ReLU's is 0 below 0, a skipped cell is never sampled), so no fitting step changes what it shows."""
-    return grid.occupancy_above(grid.skip_density(render.sigma_threshold) if render.skip_empty else 0.0).empty
+    anywhere (or, where empty cells are skipped, none above the skip threshold: ``skip_density``, where the caller
+    has built it). No loss on its renders has a gradient then (ReLU's is 0 below 0, a skipped cell is never
+    sampled), so no fitting step changes what it shows."""
+    if not render.skip_empty:
+        return grid.occupancy_above(0.0).empty
+    return grid.occupancy_above(grid.skip_density(render.sigma_threshold) if skip_density is None else
+                                skip_density).empty
 
 
 def views_summary(images: torch.Tensor, cameras: Cameras) -> torch.Tensor:
