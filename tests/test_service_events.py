@@ -35,7 +35,8 @@ pytestmark = pytest.mark.slow
 
 PARAMS = {
     "downsample": 16, "max_images": 3, "iterations": 6, "render_size": 32, "preview_every": 2,
-    "reconstruction": {"preset": "fast", "resolution": 16, "iterations": [10, 10, 20], "rays_per_step": 512},
+    # no step at the coarse stage's 5 voxels, whose steps on 3 views left no positive density (an edit it refuses)
+    "reconstruction": {"preset": "fast", "resolution": 16, "iterations": [0, 10, 20], "rays_per_step": 512},
     "export": {"views": 1, "view_size": 32, "turntable_frames": 4, "turntable_size": 32, "gif": False},
 }
 TERMINAL = ("succeeded", "failed", "canceled")
