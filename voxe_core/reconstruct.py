@@ -620,12 +620,14 @@ def reconstruct(
     if resume_from is None:
         start_stage, start_iteration, resumed = 0, 0, None
         generator = _sampling_generator(device, config.seed)
-        grid = (initial_grid if initial_grid is not None else VoxelGrid(
+        grid = initial_grid if initial_grid is not None else VoxelGrid(
             config.resolutions[0], config.bbox_min, config.bbox_max, config.activation, init_density=config.init_density
-        )).to(device)
-        if renders_nothing(grid, config.render):  # (its steps had all been run, the grid left as it was)
+        )
+        # Looked at where the grid was made, before it moves: its steps had all been run, the grid left as it was.
+        if renders_nothing(grid, config.render):
             raise ValueError("the fit's initial grid has no density its renders sample (a ReLU field with no "
                              "positive density, init_density <= 0?): no step of the fit would have a gradient")
+        grid = grid.to(device)
     else:
         grid, generator, start_stage, start_iteration, resumed = _resume(resume_from, config, device, views)
 
