@@ -63,7 +63,7 @@ SECURITY_SCHEMES = {
 
 
 _METHODS = ("DELETE", "GET", "HEAD", "PATCH", "POST", "PUT")
-_TAKE_CONTENT = ("DELETE", "PATCH", "POST", "PUT")  # methods whose content means something (RFC 9110 §9.3)
+TAKE_CONTENT = ("DELETE", "PATCH", "POST", "PUT")  # methods whose content means something (RFC 9110 §9.3)
 FORM_MEDIA_TYPE = "multipart/form-data"
 UNAVAILABLE = (*DATABASE_UNAVAILABLE, StorageError)
 RETRY_AFTER_S = 5
@@ -214,6 +214,14 @@ class UniqueMembersRequest(Request):
         return self._json
 
 
+async def _any_content(request: Request) -> bool:
+    """Whether the request's body holds a byte, read up to its first non-empty chunk only."""
+    async for chunk in request.stream():
+        if chunk:
+            return True
+    return False
+
+
 class StrictRoute(APIRoute):
     """A route refusing what FastAPI would read one way silently: a query parameter it does not take or a
     one-valued one sent twice (422, naming them: ``GET /v1/jobs?stat=running`` had listed every job, and
@@ -239,11 +247,21 @@ class StrictRoute(APIRoute):
 
     async def refuse_body(self, request: Request) -> None:
         """415 for a body sent to a POST or DELETE that takes none (a cancel's ``{"reason": ...}`` had been ignored
-        silently); an empty one is none. A GET's is left alone: RFC 9110 gives it no meaning."""
-        if request.method in _TAKE_CONTENT and sends_body(request) and (body := await request.body()):
-            sent_as = f" of {media_type(request)}" if media_type(request) else ""
-            raise HTTPException(415, f"{request.method} {self.path} takes no body: send none (got {len(body)} bytes"
-                                     f"{sent_as})")
+        silently); an empty one is none. A GET's is left alone: RFC 9110 gives it no meaning.
+
+        The body is not read to be refused (a 64 MiB DELETE had been held whole in memory before its 415): its
+        Content-Length says it is there, and one sent in chunks is read only to its first non-empty chunk."""
+        if request.method not in TAKE_CONTENT or not sends_body(request):
+            return
+        length = request.headers.get("content-length", "").strip()
+        if "transfer-encoding" not in request.headers and length.isdigit():
+            sent = f"{int(length)} bytes"
+        elif await _any_content(request):
+            sent = "a chunked body"
+        else:
+            return
+        sent_as = f" of {media_type(request)}" if media_type(request) else ""
+        raise HTTPException(415, f"{request.method} {self.path} takes no body: send none (got {sent}{sent_as})")
 
     def get_route_handler(self):
         handler = super().get_route_handler()
@@ -393,10 +411,10 @@ def document(schema: dict) -> dict:
                                              "content": _PROBLEM})
                 responses.setdefault("415", {"description": f"the body was not sent as a form ({FORM_MEDIA_TYPE})",
                                              "content": _PROBLEM})
-            if method.upper() in _TAKE_CONTENT and "requestBody" not in operation:
+            if method.upper() in TAKE_CONTENT and "requestBody" not in operation:
                 responses.setdefault("415", {"description": "a body was sent: the operation takes none",
                                              "content": _PROBLEM})
-            if method in ("post", "put", "patch"):
+            if method.upper() in TAKE_CONTENT:
                 responses.setdefault("413", {"description": "request body over the upload limit "
                                                             "(VOXE_MAX_UPLOAD_BYTES; a JSON body over "
                                                             "VOXE_MAX_JSON_BODY_BYTES)", "content": _PROBLEM})

@@ -27,15 +27,16 @@ log = logging.getLogger("voxe.api")
 class UploadLimit:
     """Answer 413 to a request body above ``max_bytes`` (VOXE_MAX_UPLOAD_BYTES), or to one not sent as a
     multipart form above ``max_json_bytes`` (VOXE_MAX_JSON_BODY_BYTES), by Content-Length, or counted while
-    streaming. Only an upload's form carries files; any other body is JSON or refused, and FastAPI holds it in
-    memory whole before its 415 (whatever its media type) or its parse on the event loop: up to the upload limit
-    (2 GiB), one had been the whole process's memory and seconds of every request's time."""
+    streaming, for every method whose body means something (a DELETE's too: no route takes one, and a 64 MiB one
+    had been read whole before its 415). Only an upload's form carries files; any other body is JSON or refused, and
+    FastAPI holds it in memory whole before its 415 (whatever its media type) or its parse on the event loop: up to
+    the upload limit (2 GiB), one had been the whole process's memory and seconds of every request's time."""
 
     def __init__(self, app, max_bytes: int, max_json_bytes: int):
         self.app, self.max_bytes, self.max_json_bytes = app, max_bytes, max_json_bytes
 
     async def __call__(self, scope, receive, send):
-        if scope["type"] != "http" or scope["method"] not in ("POST", "PUT", "PATCH"):
+        if scope["type"] != "http" or scope["method"] not in http_semantics.TAKE_CONTENT:
             return await self.app(scope, receive, send)
         limit = _Limit(self.max_bytes, "VOXE_MAX_UPLOAD_BYTES", "request body")
         if http_semantics.media_type(HTTPConnection(scope)) != http_semantics.FORM_MEDIA_TYPE:

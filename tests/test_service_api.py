@@ -1523,6 +1523,52 @@ def test_a_body_sent_to_an_operation_that_takes_none_is_a_documented_415_and_doe
     assert canceled.status_code == 200 and canceled.json()["state"] == "canceled"
 
 
+def test_a_body_sent_to_an_operation_that_takes_none_is_refused_unread(client):
+    """The 415 had read the body whole first, and a DELETE's escaped the 1 MiB limit (POST, PUT and PATCH only): a
+    64 MiB body sent to DELETE /v1/scenes/{id} was held in memory before its refusal. Its Content-Length says a body
+    is there; one sent in chunks is read to its first non-empty chunk; a DELETE over the limit is its 413."""
+    import asyncio
+
+    scene_id = client.get(f"/v1/jobs/{_job_row()}").json()["scene_id"]
+    path = f"/v1/scenes/{scene_id}"
+
+    def delete(framing: list[tuple[bytes, bytes]], chunks: list[bytes]) -> tuple[int, str | None, int]:
+        """(status, detail, bytes the app read) of a DELETE sending ``chunks`` framed by ``framing``'s headers."""
+        scope = {"type": "http", "asgi": {"version": "3.0", "spec_version": "2.4"}, "http_version": "1.1",
+                 "method": "DELETE", "scheme": "http", "path": path, "raw_path": path.encode(), "root_path": "",
+                 "query_string": b"", "client": ("127.0.0.1", 1), "server": ("testserver", 80),
+                 "headers": [(b"host", b"testserver"), (b"content-type", b"application/json"), *framing]}
+        messages = iter([*({"type": "http.request", "body": chunk, "more_body": True} for chunk in chunks),
+                         {"type": "http.request", "body": b"", "more_body": False}])
+        read, sent = [], []
+
+        async def receive():
+            message = next(messages, {"type": "http.disconnect"})
+            read.append(len(message.get("body", b"")))
+            return message
+
+        async def send(message):
+            sent.append(message)
+
+        client.portal.call(client.app, scope, receive, send)
+        (status,) = [m["status"] for m in sent if m["type"] == "http.response.start"]
+        body = b"".join(m.get("body", b"") for m in sent if m["type"] == "http.response.body")
+        return status, json.loads(body)["detail"] if body else None, sum(read)
+
+    mib, chunked = 1 << 20, [(b"transfer-encoding", b"chunked")]
+    large = [b"x" * mib] * 64
+    assert delete(chunked, [b"", *large]) == (415, "DELETE /v1/scenes/{scene_id} takes no body: send none (got a "
+                                                   "chunked body of application/json)", mib)
+    assert delete([(b"content-length", str(64 * mib).encode())], large) == (
+        413, f"JSON body (any body but an upload's multipart form) over the limit of {mib} bytes "
+             "(VOXE_MAX_JSON_BODY_BYTES)", 0)
+    assert delete([(b"content-length", b"24")], [b'{"reason": "not needed"}']) == (
+        415, "DELETE /v1/scenes/{scene_id} takes no body: send none (got 24 bytes of application/json)", 0)
+    assert client.get(path).status_code == 200
+    assert delete(chunked, [b"", b""]) == (204, None, 0)  # chunks, all empty: no body
+    assert client.get(path).status_code == 404
+
+
 def test_the_event_stream_is_negotiated_by_the_accept_media_type_and_its_weight(client):
     """text/event-stream had been found in Accept as a substring: ``text/event-stream;q=0`` (anything but a stream)
     got a stream, and ``Text/Event-Stream`` (media types are case-insensitive) the JSON timeline. Then any q above 0
