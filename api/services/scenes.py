@@ -38,23 +38,32 @@ class Upload:
     mesh_shading: str | None = None
     mesh_up_axis: str | None = None
 
-    def digest(self) -> str:
+    def digests(self) -> tuple[str, str | None]:
         """sha256 of what the upload asks for (field names, file names and bytes), not of its multipart framing; a
-        field added later counts only when sent, so a retry across an upgrade still matches its first request.
+        field added later counts only when sent, so a retry across an upgrade still matches its first request. Then
+        the digest an earlier version recorded for it where that differs (the Idempotency record's
+        ``earlier_sha256``), else None.
 
         The archive's file name counts where it names the scene (no ``name`` sent): the same bytes as guitar.zip
         had replayed the scene named "mic" from mic.zip. With a name sent it names nothing, so it does not count
-        (a client may send a temporary file's name)."""
+        (a client may send a temporary file's name). Before, it did not count at all: that digest is the earlier
+        one, so a record written then still replays its bytes sent under another file name."""
         fields = (self.name, self.mesh_shading) + ((self.mesh_up_axis,) if self.mesh_up_axis is not None else ())
-        digest = hashlib.sha256(repr(fields).encode())
-        archive = "archive" if self.name else f"archive:{self.archive_name or ''}"
+        named_by_file = self.archive is not None and not self.name
+        current = hashlib.sha256(repr(fields).encode())
+        earlier = current.copy() if named_by_file else None
+        archive = f"archive:{self.archive_name or ''}" if named_by_file else "archive"
         parts = [(archive, self.archive)] if self.archive is not None else [(f"files:{n}", h) for n, h in self.files]
         for label, handle in parts:
-            digest.update(b"\0" + label.encode() + b"\0")
+            current.update(b"\0" + label.encode() + b"\0")
+            if earlier is not None:  # (the archive: the only part)
+                earlier.update(b"\0archive\0")
             while chunk := handle.read(1 << 20):
-                digest.update(chunk)
+                current.update(chunk)
+                if earlier is not None:
+                    earlier.update(chunk)
             handle.seek(0)
-        return digest.hexdigest()
+        return current.hexdigest(), earlier.hexdigest() if earlier is not None else None
 
 
 def get_scene(*, session: Session, key: ApiKey, scene_id: str) -> Scene:
@@ -72,7 +81,10 @@ def create_scene(*, session: Session, settings: Settings, storage: Storage, queu
     Cheap checks answer 4xx at once with nothing stored; the scene is ``processing`` until a
     worker's ingest has decoded it.
     """
-    idem = Idempotency(idempotency_key, upload.digest(), "scenes") if idempotency_key else None
+    idem = None
+    if idempotency_key:
+        digest, earlier = upload.digests()
+        idem = Idempotency(idempotency_key, digest, "scenes", earlier_sha256=earlier)
     if idem is not None and (replayed := idem.replayed(session, key, Scene)) is not None:
         return replayed, True
     if (replayed := _replayed_or_room_checked(session, settings, key, idem, 0)) is not None:  # full: before unpacking
