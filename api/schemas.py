@@ -47,7 +47,8 @@ TEXT_PATTERN = rf"^{_ALLOWED}*{_NAMING_CHARACTER}{_ALLOWED}*$"
 # An edit word's: something but whitespace (whether it names anything, a symbol as "🎩" does, is the core's rule).
 EDIT_WORD_PATTERN = rf"^{_ALLOWED}*[^{_WHITESPACE}\x00-\x08\x0e-\x1b\x7f-\x84\x86-\x9f]{_ALLOWED}*$"
 # A webhook URL's: no whitespace, spelt out as str.split()'s and ECMA-262's \s (\ufeff): its \s had been read apart by
-# the document's readers (no \x85, \ufeff) and the server's check (\x85, no \ufeff). (NUL is every string's rule.)
+# the document's readers (no \x85, \ufeff) and the server's check (\x85, no \ufeff). (NUL and a lone surrogate are
+# every string's rule: Strict.)
 _NOT_IN_URL = rf"{_WHITESPACE}\ufeff"
 WEBHOOK_URL_PATTERN = rf"^https?://[^{_NOT_IN_URL}/?#]+[^{_NOT_IN_URL}]*$"
 CLIP_SPECIAL_TOKENS = ("<|startoftext|>", "<|endoftext|>")
@@ -60,8 +61,9 @@ _TEXT_RULE = (" (something that names: a word or number of any script, or a symb
 
 class Strict(BaseModel):
     """Unknown fields, non-finite numbers (JSON's NaN / Infinity extensions), coercions (1 for true, "5" for 5,
-    5.0 for an integer) and NUL characters in strings (PostgreSQL text cannot hold one) are 422s naming the field:
-    what the OpenAPI document says is all that is accepted."""
+    5.0 for an integer), NUL characters in strings (PostgreSQL text cannot hold one) and lone surrogates (JSON may
+    escape one; no UTF-8 holds it: pydantic's string_unicode) are 422s naming the field: what the OpenAPI document
+    says is all that is accepted."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
 
@@ -268,7 +270,8 @@ class JobCreate(Strict):
     webhook_url: str | None = Field(
         None, max_length=2000, pattern=WEBHOOK_URL_PATTERN,
         description="POST each event of `webhook_events` here, signed (Standard Webhooks; the secret is at "
-        "GET /v1/webhooks/secret); a public address unless the operator allows more (VOXE_WEBHOOK_ALLOW_NETWORKS)",
+        "GET /v1/webhooks/secret); a public address unless the operator allows more (VOXE_WEBHOOK_ALLOW_NETWORKS). "
+        "Beyond the pattern, as in every string: no NUL character and no lone surrogate (U+D800-U+DFFF)",
     )
     webhook_events: list[WebhookEvent] | None = Field(
         None, min_length=1, max_length=len(WEBHOOK_EVENTS), json_schema_extra={"uniqueItems": True},

@@ -358,26 +358,52 @@ def test_edit_word_pattern_read_as_json_schema_states_the_server_rule():
 def test_webhook_url_pattern_read_as_json_schema_states_the_server_rule(spec):
     """The published webhook_url pattern excluded whitespace as \\s, which ECMA-262 (a JSON Schema pattern's dialect)
     and the server's check read apart: a URL holding \\x85 was valid to the document and refused by the server, one
-    holding \\ufeff the other way round. Read as JavaScript reads it, it now takes exactly what the server's check
-    takes, in the host and in the path (but NUL, which every string refuses with a 422 of its own: Strict)."""
+    holding \\ufeff the other way round. Its classes now spell the characters out, in escapes ECMA-262 and Python's
+    re read alike, and it takes what the server's check takes, in the host and in the path: checked at each end of
+    each of its classes' ranges and beside it, for every whitespace character (refused), and for characters beyond
+    the BMP (two code units each to ECMA-262 without the u flag, neither excluded). But for the rule of every string,
+    which the field's description states: a NUL character and a lone surrogate (U+D800-U+DFFF) are 422s of their own
+    (Strict), which the pattern does not say."""
     import re
 
     from pydantic import ValidationError
 
     from api.schemas import JobCreate
 
-    (published,) = [s["pattern"] for s in spec["components"]["schemas"]["JobCreate"]["properties"]["webhook_url"]
-                    ["anyOf"] if "pattern" in s]
-    ecma_space = r"\t\n\v\f\r \xa0\u1680\u2000-\u200a\u2028\u2029\u202f\u205f\u3000\ufeff"
-    as_ecma = published.replace(r"\s", ecma_space)  # (only ever inside a class)
-    for code in [*range(1, 0x3001), 0xfeff]:
-        for url in (f"http://h{chr(code)}x/hook", f"http://h/{chr(code)}"):
-            try:
-                JobCreate.model_validate({"scene_id": "x", "prompt": "a mic", "webhook_url": url})
-                server = True
-            except ValidationError:
-                server = False
-            assert bool(re.fullmatch(as_ecma, url)) == server, (hex(code), url)
+    webhook_url = spec["components"]["schemas"]["JobCreate"]["properties"]["webhook_url"]
+    (published,) = [s["pattern"] for s in webhook_url["anyOf"] if "pattern" in s]
+    one = r"\\[tnvfr]|\\x[0-9a-f]{2}|\\u[0-9a-f]{4}|[^\\\]]"
+    escapes = {"t": "\t", "n": "\n", "v": "\v", "f": "\f", "r": "\r"}
+
+    def code(written: str) -> int:
+        return ord(written) if len(written) == 1 else ord(escapes.get(written[1]) or chr(int(written[2:], 16)))
+
+    classes = re.findall(r"\[\^((?:\\.|[^\\\]])*)\]", published)
+    ranges = [(code(low), code(high or low))
+              for body in classes for low, high in re.findall(f"({one})(?:-({one}))?", body)]
+    assert len(classes) == 2 and (0x2000, 0x200a) in ranges and (ord("#"), ord("#")) in ranges
+    every_strings_rule = {0: "value_error", 0xd800: "string_unicode", 0xdbff: "string_unicode",
+                          0xdc00: "string_unicode", 0xdfff: "string_unicode"}
+    near_the_ends = {c + step for low, high in ranges for c in (low, high) for step in (-1, 0, 1)}
+    beyond_the_bmp = {0x10000, 0x1f600, 0x20000, 0xe0041, 0x10ffff}
+    whitespace = {c for c in range(0x110000) if chr(c).isspace()} | {0xfeff}  # str.split()'s, and ECMA-262's \s
+
+    def refusal(url: str) -> str | None:
+        """The type of the server's error for a job sending ``url``; None when it takes it."""
+        try:
+            JobCreate.model_validate({"scene_id": "x", "prompt": "a mic", "webhook_url": url})
+        except ValidationError as exc:
+            return exc.errors()[0]["type"]
+        return None
+
+    for probe in sorted(near_the_ends | whitespace | beyond_the_bmp | set(every_strings_rule) | {ord("a"), 0xe9}):
+        for url in (f"http://h{chr(probe)}x/hook", f"http://h/{chr(probe)}"):
+            document_takes = bool(re.fullmatch(published, url))
+            if probe in every_strings_rule:  # refused as any string holding it is, whatever its pattern says
+                assert (document_takes, refusal(url)) == (True, every_strings_rule[probe]), (hex(probe), url)
+            else:
+                assert document_takes == (refusal(url) is None) != (probe in whitespace), (hex(probe), url)
+    assert "NUL" in webhook_url["description"] and "U+D800" in webhook_url["description"]
 
 
 def test_malformed_json_is_a_documented_400(client, spec):
