@@ -501,7 +501,7 @@ def test_a_client_gone_mid_json_body_is_fastapis_400_not_a_500(client):
     scope = {"type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1", "method": "POST", "scheme": "http",
              "path": "/v1/jobs", "raw_path": b"/v1/jobs", "root_path": "", "query_string": b"",
              "server": ("127.0.0.1", 80), "client": ("127.0.0.1", 5),
-             "headers": [(b"host", b"t"), (b"content-type", b"application/json")]}
+             "headers": [(b"host", b"127.0.0.1"), (b"content-type", b"application/json")]}
     asyncio.run(client.app(scope, receive, send))
     assert [m["status"] for m in sent if m["type"] == "http.response.start"] == [400]
     assert json.loads(b"".join(m.get("body", b"") for m in sent if m["type"] == "http.response.body")) == {
