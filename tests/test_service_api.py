@@ -1527,7 +1527,6 @@ def test_a_body_sent_to_an_operation_that_takes_none_is_refused_unread(client):
     """The 415 had read the body whole first, and a DELETE's escaped the 1 MiB limit (POST, PUT and PATCH only): a
     64 MiB body sent to DELETE /v1/scenes/{id} was held in memory before its refusal. Its Content-Length says a body
     is there; one sent in chunks is read to its first non-empty chunk; a DELETE over the limit is its 413."""
-    import asyncio
 
     scene_id = client.get(f"/v1/jobs/{_job_row()}").json()["scene_id"]
     path = f"/v1/scenes/{scene_id}"
