@@ -16,6 +16,7 @@ from voxe_core.metrics import psnr
 from voxe_core.progress import Callbacks, StageCancelled
 from voxe_core.reconstruct import (
     CHECKPOINT_FORMAT_VERSION, CHECKPOINT_KIND, ReconstructConfig, RowSparseAdam, load_checkpoint, ray_batch, reconstruct,
+    renders_nothing,
 )
 from voxe_core.render import RenderConfig, render_image
 from voxe_core.tensorio import FormatError, save_tensors
@@ -508,6 +509,19 @@ def test_only_a_scene_fit_pays_for_the_early_stop_density_pass(monkeypatch, pres
     assert bool(probed) == probes and config.render.early_stop == (1e-4 if probes else 0.0)
 
 
+TRANSPARENT = ("the fit ends with no density its renders sample (no positive density anywhere): the reconstruction "
+               "is transparent, every render of it the background (views that show nothing but the background, or a "
+               "fit that failed); an edit of it is refused")
+
+
+def faint_blob(resolution: int = 12) -> VoxelGrid:
+    """A faint blob where every view looks, which white views fit away."""
+    grid = VoxelGrid(resolution, init_density=-1.0)
+    with torch.no_grad():
+        grid.features[..., 0][(grid.vertex_positions().norm(dim=-1) < 0.5).reshape((resolution,) * 3)] = 0.05
+    return grid
+
+
 def test_a_fit_from_or_ending_with_no_density_its_renders_sample_is_refused_or_said():
     """A fit from a transparent ReLU field has no gradient (refused before its first step); one that ends transparent
     (white views on white) is said through the callbacks' warning, as the edit of it is refused."""
@@ -516,16 +530,27 @@ def test_a_fit_from_or_ending_with_no_density_its_renders_sample_is_refused_or_s
     with pytest.raises(ValueError, match="the fit's initial grid has no density its renders sample"):
         reconstruct(images, cams, tiny_config(init_density=-0.5), Callbacks(on_progress=reports.append))
     assert reports == []
-    grid = VoxelGrid(12, init_density=-1.0)
-    with torch.no_grad():  # a faint blob where every view looks, which white views fit away
-        grid.features[..., 0][(grid.vertex_positions().norm(dim=-1) < 0.5).reshape(12, 12, 12)] = 0.05
     said = []
     reconstruct(torch.ones_like(images), cams, tiny_config(resolutions=(12,), iterations=(30,), image_downsample=(1,)),
-                Callbacks(on_warning=lambda stage, text: said.append((stage, text))), initial_grid=grid)
-    assert said == [("reconstruct", "the fit ends with no density its renders sample (no positive density anywhere): "
-                     "the reconstruction is transparent, every render of it the background (views that show nothing "
-                     "but the background, or a fit that failed); an edit of it is refused")]
+                Callbacks(on_warning=lambda stage, text: said.append((stage, text))), initial_grid=faint_blob())
+    assert said == [("reconstruct", TRANSPARENT)]
     said.clear()
     reconstruct(images, cams, tiny_config(iterations=(5, 5)), Callbacks(on_warning=lambda *warning: said.append(
         warning)))
     assert said == []
+
+
+def test_a_fit_turned_transparent_stops_at_the_next_stage_start():
+    """Once its steps have fitted every density away, no later step has a gradient: the fit stops at the next
+    stage's start (the remaining stages are the finest, the dearest) and says so, its grid at the final
+    resolution."""
+    images, cams = synthetic_views()
+    reports, said = [], []
+    config = tiny_config(resolutions=(12, 24, 32), iterations=(30, 15, 15), image_downsample=(1, 1, 1))
+    grid = reconstruct(torch.ones_like(images), cams, config,
+                       Callbacks(on_progress=reports.append, on_warning=lambda stage, text: said.append(text)),
+                       initial_grid=faint_blob())
+    assert [(report.iteration, report.total) for report in reports] == [(i, 60) for i in range(1, 31)]
+    assert said == [TRANSPARENT + " (stopped at stage 2 of 3: none of the steps left would have had a "
+                    "gradient)"]
+    assert grid.resolution == (32, 32, 32) and renders_nothing(grid, config.render)

@@ -638,9 +638,17 @@ def reconstruct(
 
     total = config.total_iterations
     done = last_checkpoint = sum(config.iterations[:start_stage]) + start_iteration
+    stopped_at = None
     for stage in range(start_stage, len(config.resolutions)):
         if grid.resolution != (config.resolutions[stage],) * 3:  # (a resumed grid is at its stage's: _resume)
             grid = grid.upsampled(config.resolutions[stage])
+        # A fit turned transparent (the fast preset on few views can drive every density below zero in its first
+        # coarse steps) had run every later stage, the finest and dearest, with no gradient: it stops here, its
+        # grid at the final resolution, as the steps left would have returned it.
+        if renders_nothing(grid, config.render):
+            grid = grid.upsampled(config.resolutions[-1])
+            stopped_at = stage
+            break
         optimizer = make_optimizer(grid, config, _learning_rate(config, stage, 0))
         average = _IterateAverage(config, stage)
         if resumed is None:
@@ -675,8 +683,11 @@ def reconstruct(
                 checkpoint(stage, iteration + 1)
                 last_checkpoint = done
         average.finish(grid)
-    if renders_nothing(grid, config.render):  # its edit refuses it: said where the fit that made it ran
+    if stopped_at is not None or renders_nothing(grid, config.render):  # its edit refuses it: said where it ran
+        stopped = ("" if stopped_at is None else f" (stopped at stage {stopped_at + 1} of "
+                   f"{len(config.resolutions)}: none of the steps left would have had a gradient)")
         callbacks.warning("reconstruct", "the fit ends with no density its renders sample (no positive density "
                           "anywhere): the reconstruction is transparent, every render of it the background (views "
-                          "that show nothing but the background, or a fit that failed); an edit of it is refused")
+                          "that show nothing but the background, or a fit that failed); an edit of it is refused"
+                          f"{stopped}")
     return grid
