@@ -509,9 +509,9 @@ def test_only_a_scene_fit_pays_for_the_early_stop_density_pass(monkeypatch, pres
     assert bool(probed) == probes and config.render.early_stop == (1e-4 if probes else 0.0)
 
 
-TRANSPARENT = ("the fit ends with no density its renders sample (no positive density anywhere): the reconstruction "
-               "is transparent, every render of it the background (views that show nothing but the background, or a "
-               "fit that failed); an edit of it is refused")
+TRANSPARENT = ("the fit ends with no density its renders sample (no positive density anywhere, or none above the "
+               "render's sigma_threshold): the reconstruction is transparent, every render of it the background "
+               "(views that show nothing but the background, or a fit that failed); an edit of it is refused")
 
 
 def faint_blob(resolution: int = 12) -> VoxelGrid:
@@ -523,12 +523,18 @@ def faint_blob(resolution: int = 12) -> VoxelGrid:
 
 
 def test_a_fit_from_or_ending_with_no_density_its_renders_sample_is_refused_or_said():
-    """A fit from a transparent ReLU field has no gradient (refused before its first step); one that ends transparent
-    (white views on white) is said through the callbacks' warning, as the edit of it is refused."""
+    """A fit from a transparent ReLU field has no gradient (refused before its first step, init_density named only
+    where it made the grid); one that ends transparent (white views on white) is said through the callbacks'
+    warning, as the edit of it is refused."""
     images, cams = synthetic_views()
     reports = []
-    with pytest.raises(ValueError, match="the fit's initial grid has no density its renders sample"):
+    with pytest.raises(ValueError, match=r"the fit's initial grid has no density its renders sample \(a ReLU field "
+                       r"with no positive density, or none above the render's sigma_threshold; init_density <= 0\?\)"):
         reconstruct(images, cams, tiny_config(init_density=-0.5), Callbacks(on_progress=reports.append))
+    with pytest.raises(ValueError, match=r"or none above the render's sigma_threshold\): no step") as given:
+        reconstruct(images, cams, tiny_config(), Callbacks(on_progress=reports.append),
+                    initial_grid=VoxelGrid(12, init_density=-0.5))
+    assert "init_density" not in str(given.value)
     assert reports == []
     said = []
     reconstruct(torch.ones_like(images), cams, tiny_config(resolutions=(12,), iterations=(30,), image_downsample=(1,)),

@@ -625,8 +625,10 @@ def reconstruct(
         )
         # Looked at where the grid was made, before it moves: its steps had all been run, the grid left as it was.
         if renders_nothing(grid, config.render):
-            raise ValueError("the fit's initial grid has no density its renders sample (a ReLU field with no "
-                             "positive density, init_density <= 0?): no step of the fit would have a gradient")
+            hint = "" if initial_grid is not None else "; init_density <= 0?"
+            raise ValueError("the fit's initial grid has no density its renders sample (a ReLU field with no positive "
+                             f"density, or none above the render's sigma_threshold{hint}): no step of the fit would "
+                             "have a gradient")
         grid = grid.to(device)
     else:
         grid, generator, start_stage, start_iteration, resumed = _resume(resume_from, config, device, views)
@@ -687,7 +689,7 @@ def reconstruct(
         stopped = ("" if stopped_at is None else f" (stopped at stage {stopped_at + 1} of "
                    f"{len(config.resolutions)}: none of the steps left would have had a gradient)")
         callbacks.warning("reconstruct", "the fit ends with no density its renders sample (no positive density "
-                          "anywhere): the reconstruction is transparent, every render of it the background (views "
-                          "that show nothing but the background, or a fit that failed); an edit of it is refused"
-                          f"{stopped}")
+                          "anywhere, or none above the render's sigma_threshold): the reconstruction is transparent, "
+                          "every render of it the background (views that show nothing but the background, or a fit "
+                          f"that failed); an edit of it is refused{stopped}")
     return grid
