@@ -24,8 +24,8 @@ from voxe_service.db import session_scope
 from voxe_service.models import ApiKey, Job, WebhookDelivery, utcnow
 from voxe_service.settings import Settings
 from voxe_service.webhooks import (
-    DELIVERED, GAVE_UP, PENDING, Claim, InFlight, Shares, TargetRefused, attempt, backoff_s, claim_due, redacted,
-    retry_at, webhook_client,
+    DELIVERED, GAVE_UP, PENDING, Claim, InFlight, Shares, TargetRefused, attempt, backoff_s, claim_due, retry_at,
+    webhook_client,
 )
 
 log = logging.getLogger("voxe.webhooks")
@@ -126,11 +126,11 @@ class WebhookSender:
                 secret = session.scalar(select(ApiKey.webhook_secret).join(Job, Job.owner_key_id == ApiKey.id)
                                         .where(Job.id == delivery.job_id))
             try:
-                status, error = attempt(delivery, secret, self._client)
+                status, error, logged = attempt(delivery, secret, self._client)
                 refused = False
             except TargetRefused as exc:
-                status, error, refused = None, str(exc), True
-            self._record(delivery, status, error, refused)
+                status, error, logged, refused = None, str(exc), exc.logged, True
+            self._record(delivery, status, error, logged, refused)
         except Exception:  # noqa: BLE001 - the claim's lease lapses and the next pass retries it
             log.warning("webhook delivery %s: attempt failed", delivery_id, exc_info=True)
         finally:
@@ -139,7 +139,8 @@ class WebhookSender:
                 self._in_flight.by_key -= Counter({claim.key_id: 1})
             self._slots.release()
 
-    def _record(self, delivery: WebhookDelivery, status: int | None, error: str | None, refused: bool) -> None:
+    def _record(self, delivery: WebhookDelivery, status: int | None, error: str | None, logged: str | None,
+                refused: bool) -> None:
         now = utcnow()
         values: dict = {"last_status": status, "last_error": error}
         if error is None:
@@ -153,7 +154,7 @@ class WebhookSender:
             else:
                 values.update(next_attempt_at=again)
             log.info("webhook delivery %s (job %s) attempt %d: %s", delivery.id, delivery.job_id, delivery.attempts,
-                     redacted(error))
+                     logged)
         with session_scope() as session:
             session.execute(update(WebhookDelivery).where(WebhookDelivery.id == delivery.id,
                                                           WebhookDelivery.state == PENDING).values(**values))

@@ -239,7 +239,7 @@ def test_a_webhook_url_the_sender_cannot_read_is_refused_and_a_stored_one_fails(
 
 
 @pytest.mark.parametrize("client", [SLOW_RETRIES], indirect=True)
-@pytest.mark.parametrize("failure", ["unreadable url", "redirect"])
+@pytest.mark.parametrize("failure", ["unreadable url", "unreadable url with a quote", "redirect"])
 def test_an_attempts_error_is_logged_without_the_urls_credentials(client, caplog, failure):
     """A webhook_url's userinfo and query values (``https://user:pass@host/?token=...``), in an attempt's error (a
     URL the sender cannot read names itself; a redirect names where it points), had gone into the API's log whole.
@@ -252,8 +252,10 @@ def test_an_attempts_error_is_logged_without_the_urls_credentials(client, caplog
     try:
         if failure == "redirect":
             url = moved.url.replace("http://", "http://bob:s3cr3t-pass@") + "?token=s3cr3t-token"
-        else:
+        elif failure == "unreadable url":
             url = "http://bob:pa/ss-s3cr3t@\u2603.net/hook?token=s3cr3t-token"
+        else:  # its repr is in double quotes, and a URL picked out of the text had ended at the "'"
+            url = "http://bob:pa'ss-s3cr3t@\u2603.net/hook?token=s3cr3t'token"
         delivery = failed_once_more(test_client, scene, url=url)
     finally:
         moved.close()
@@ -266,6 +268,40 @@ def test_an_attempts_error_is_logged_without_the_urls_credentials(client, caplog
     else:
         assert "'http://***@\u2603.net/hook?token=***' cannot be sent to" in logged[0], logged[0]
         assert url in delivery["last_error"], delivery
+
+
+@pytest.mark.parametrize(("location", "logged_as"), [
+    ("/in?token=s3cret", "http://127.0.0.1:{port}/in?token=***"),  # resolved against the webhook_url
+    ("//bob:s3cret@hooks.example.com/in", "http://***@hooks.example.com/in"),
+    ("https://bob:pa'ss@hooks.example.com/in?token=s3c'ret", "https://***@hooks.example.com/in?token=***"),
+    ("https://bot:eyJ" + "s3cret" * 50 + "@hooks.example.com/in", "https://***@hooks.example.com/in")])
+def test_an_attempts_logged_error_hides_the_credentials_of_any_url_it_names(location, logged_as):
+    """The log's copy of an error had its URLs picked out of the text: one ended at its first "'" (a userinfo or
+    query may hold one), a redirect's relative Location (no scheme) went whole, and a Location over 200 characters
+    was cut before the hiding, leaving a token with no '@'. It is built from the URL itself, a relative one resolved
+    against the webhook_url; the error the owner sees keeps the Location as it came."""
+    import ipaddress
+
+    from voxe_service.models import WebhookDelivery
+    from voxe_service.webhooks import TargetRefused, attempt, webhook_client
+
+    moved = WebhookReceiver(redirect_to=location)
+    try:
+        with webhook_client(10.0, [ipaddress.ip_network("127.0.0.1/32")]) as client:
+            status, error, logged = attempt(WebhookDelivery(id="msg_1", url=moved.url, payload="{}"),
+                                            "whsec_" + "A" * 32, client)
+            with pytest.raises(TargetRefused) as refused:
+                attempt(WebhookDelivery(id="msg_2", url="http://bob:pa'ss-s3cret@\u2603.net/in?token=s3c'ret",
+                                        payload="{}"), "whsec_" + "A" * 32, client)
+    finally:
+        moved.close()
+    assert status == 308 and location[:150] in error, error
+    assert "s3c" not in logged and "eyJ" not in logged, logged
+    port = moved.url.rsplit(":", 1)[1].split("/")[0]
+    assert f"a redirect to '{logged_as.format(port=port)}': webhooks follow no redirect" in logged, logged
+    assert "s3cret" in str(refused.value), refused.value
+    assert refused.value.logged == ("webhook_url 'http://***@\u2603.net/in?token=***' cannot be sent to: httpx reads "
+                                    "it as an invalid URL"), refused.value.logged
 
 
 @pytest.mark.parametrize("fail", [False, True])
@@ -284,7 +320,7 @@ def test_an_attempt_ends_by_its_deadline_however_slowly_the_receiver_answers(fai
             started = time.monotonic()
             answer = attempt(WebhookDelivery(id="msg_1", url=dripping.url, payload="{}"), "whsec_" + "A" * 32, client)
         assert time.monotonic() - started < 1.5
-        assert answer == ((500, "the receiver answered 500") if fail else (200, None))
+        assert answer == ((500, "the receiver answered 500", "the receiver answered 500") if fail else (200, None, None))
         assert len(dripping.requests) == 1
     finally:
         dripping.close()
@@ -302,7 +338,7 @@ def test_an_attempt_reads_at_most_a_little_of_the_answer():
     try:
         with webhook_client(10.0, [ipaddress.ip_network("127.0.0.1/32")]) as client:
             assert attempt(WebhookDelivery(id="msg_1", url=flooding.url, payload="{}"), "whsec_" + "A" * 32,
-                           client) == (200, None)
+                           client) == (200, None, None)
         [sent] = wait_until(lambda: flooding.sent, 10, interval=0.05, what="the receiver to see the hang-up")
         assert sent < 32 * 2**20, sent
     finally:
@@ -321,12 +357,13 @@ def test_a_redirect_is_not_followed_and_its_error_says_where_it_pointed():
     try:
         with webhook_client(10.0, [ipaddress.ip_network("127.0.0.1/32")]) as client:
             answer = attempt(WebhookDelivery(id="msg_1", url=moved.url, payload="{}"), "whsec_" + "A" * 32, client)
-            assert answer == (308, "the receiver answered 308, a redirect to 'https://hooks.example.com/in': webhooks "
-                                   "follow no redirect (set webhook_url to where it points)")
+            error = ("the receiver answered 308, a redirect to 'https://hooks.example.com/in': webhooks follow no "
+                     "redirect (set webhook_url to where it points)")
+            assert answer == (308, error, error)
             long_moved = WebhookReceiver(redirect_to=target.url + "?" + "q" * 500)
             try:
-                _, error = attempt(WebhookDelivery(id="msg_2", url=long_moved.url, payload="{}"), "whsec_" + "A" * 32,
-                                   client)
+                _, error, _ = attempt(WebhookDelivery(id="msg_2", url=long_moved.url, payload="{}"),
+                                      "whsec_" + "A" * 32, client)
             finally:
                 long_moved.close()
         assert f"a redirect to '{target.url}?qqq" in error and "q" * 300 not in error, error
@@ -906,8 +943,8 @@ def test_an_attempt_ends_by_its_deadline_however_slowly_the_name_resolves(monkey
     try:
         with webhook_client(0.5, [ipaddress.ip_network("127.0.0.1/32")]) as client:
             started = time.monotonic()
-            status, error = attempt(WebhookDelivery(id="msg_1", url=f"http://hooks.test:{port}/hook", payload="{}"),
-                                    "whsec_" + "A" * 32, client)
+            status, error, _ = attempt(WebhookDelivery(id="msg_1", url=f"http://hooks.test:{port}/hook",
+                                                       payload="{}"), "whsec_" + "A" * 32, client)
             elapsed = time.monotonic() - started
         assert elapsed < 1.5, elapsed
         assert (status, error) == (None, "ConnectTimeout: webhook_url host 'hooks.test' did not resolve within the "
@@ -1083,7 +1120,7 @@ def test_a_webhook_connects_only_to_the_address_its_name_was_checked_as(monkeypa
     try:
         check_target(url, networks, 5.0)
         with webhook_client(5.0, networks) as client:
-            assert attempt(delivery, "whsec_" + "A" * 32, client) == (200, None)
+            assert attempt(delivery, "whsec_" + "A" * 32, client) == (200, None, None)
             assert answers == []  # the name was resolved once for the attempt, not again for the connection
             with webhook_client(5.0, networks) as fresh:  # (a new connection: the pooled one was checked)
                 with pytest.raises(TargetRefused, match="resolves to 127.0.0.2, a loopback address"):
@@ -1127,7 +1164,7 @@ def test_a_webhook_over_tls_names_the_host_not_the_checked_address(monkeypatch):
     delivery = WebhookDelivery(id="msg_1", url=f"https://hooks.test:{port}/hook", payload="{}")
     try:
         with webhook_client(5.0, [ipaddress.ip_network("127.0.0.1/32")]) as client:
-            status, error = attempt(delivery, "whsec_" + "A" * 32, client)
+            status, error, _ = attempt(delivery, "whsec_" + "A" * 32, client)
         assert status is None and error.startswith("ConnectError"), error
         assert asked == ["hooks.test"]
     finally:
@@ -1150,7 +1187,7 @@ def test_a_webhook_client_holds_more_connections_than_httpcores_default(monkeypa
         with webhook_client(8.0, [ipaddress.ip_network("127.0.0.1/32")]) as client:
             with ThreadPoolExecutor(12) as pool:
                 outcomes = list(pool.map(lambda _: attempt(delivery, "whsec_" + "A" * 32, client), range(12)))
-        assert outcomes == [(200, None)] * 12
+        assert outcomes == [(200, None, None)] * 12
     finally:
         receiver.close()
 
@@ -1180,11 +1217,11 @@ def test_a_webhook_over_tls_is_verified_against_the_host_with_the_operators_cas(
         monkeypatch.delenv("SSL_CERT_FILE", raising=False)
         monkeypatch.delenv("SSL_CERT_DIR", raising=False)
         with webhook_client(5.0, networks) as client:
-            status, error = attempt(delivery, "whsec_" + "A" * 32, client)
+            status, error, _ = attempt(delivery, "whsec_" + "A" * 32, client)
         assert status is None and "CERTIFICATE_VERIFY_FAILED" in error, error
         monkeypatch.setenv("SSL_CERT_FILE", str(cert))
         with webhook_client(5.0, networks) as client:
-            assert attempt(delivery, "whsec_" + "A" * 32, client) == (200, None)
+            assert attempt(delivery, "whsec_" + "A" * 32, client) == (200, None, None)
         assert [r["headers"]["host"] for r in receiver.requests] == [f"hooks.test:{port}"]
     finally:
         receiver.close()

@@ -19,7 +19,6 @@ import hashlib
 import hmac
 import ipaddress
 import json
-import re
 import secrets
 import socket
 import threading
@@ -29,7 +28,7 @@ from concurrent.futures import Future, TimeoutError as FutureTimeout
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from typing import NamedTuple
-from urllib.parse import urlsplit
+from urllib.parse import urljoin, urlsplit
 
 import httpcore
 import httpx
@@ -52,32 +51,47 @@ _request_deadline: contextvars.ContextVar[float | None] = contextvars.ContextVar
 
 
 class TargetRefused(ValueError):
-    """A webhook URL the service will not call; the message names the rule and the setting that relaxes it."""
+    """A webhook URL the service will not call; the message names the rule and the setting that relaxes it.
+    ``logged`` is the message as the operator's log may carry it (the URL's credentials hidden)."""
+
+    def __init__(self, message: str, logged: str | None = None):
+        super().__init__(message)
+        self.logged = message if logged is None else logged
 
 
-_URL_IN_TEXT = re.compile(r"[A-Za-z][A-Za-z0-9+.-]*://[^\s'\"<>]+")
-
-
-def redacted(text: str) -> str:
-    """``text`` (an attempt's error) as a log may carry it: every URL in it without its userinfo's and query's
-    secrets. A webhook_url may hold credentials (``https://user:pass@host/``, ``?token=...``) that the owner sees
-    in the delivery's ``last_error``, but the operator's logs must not. The userinfo is hidden up to the last '@'
-    before the query (a password may hold a '/'); each query value is hidden, its name kept.
+def log_safe_url(url: str, base: str = "") -> str:
+    """``url`` as a log may carry it: its userinfo, query values and fragment hidden, read as a URL (not picked out
+    of a message, where a ``'`` or a relative reference had ended or hidden it). A webhook_url may hold credentials
+    (``https://user:pass@host/``, ``?token=...``) that the owner sees in the delivery's ``last_error``, but the
+    operator's logs must not. A relative one (a redirect's Location) is first resolved against ``base``. The
+    userinfo is hidden up to the last '@' before the query (a password may hold a '/'); a query pair's name is
+    kept, a pair with no '=' hidden whole.
 
     Examples:
-        >>> redacted("webhook_url 'https://bob:pa/ss@hooks.example.com/in?token=abc&x' cannot be sent to")
-        "webhook_url 'https://***@hooks.example.com/in?token=***&x' cannot be sent to"
+        >>> log_safe_url("https://bob:pa/ss@hooks.example.com/in?token=abc&x#frag")
+        'https://***@hooks.example.com/in?token=***&***#***'
+        >>> log_safe_url("//bob:pw@hooks.example.com/in?t=a'b", "https://hooks.example.com/hook")
+        'https://***@hooks.example.com/in?t=***'
     """
-    def hide(match: re.Match) -> str:
-        scheme, _, rest = match.group().partition("://")
-        rest, hash_mark, fragment = rest.partition("#")
-        head, question, query = rest.partition("?")
-        if "@" in head:
-            head = "***@" + head.rpartition("@")[2]
-        query = "&".join(re.sub(r"=.*", "=***", pair, flags=re.S) for pair in query.split("&")) if question else ""
-        return f"{scheme}://{head}{question}{query}{hash_mark}{'***' if fragment else ''}"
+    try:
+        parts = urlsplit(urljoin(base, url) if base else url)
+    except ValueError:  # e.g. an unclosed "[" of an IPv6 host
+        return "<an unreadable URL>"
+    authority_and_path = parts.netloc + parts.path
+    if "@" in authority_and_path:
+        authority_and_path = "***@" + authority_and_path.rpartition("@")[2]
+    query = "&".join(name + "=***" if has_value else "***"
+                     for name, has_value, _ in (pair.partition("=") for pair in parts.query.split("&")))
+    return (f"{parts.scheme}:{'//' if parts.netloc else ''}{authority_and_path}"
+            f"{'?' + query if parts.query else ''}{'#***' if parts.fragment else ''}")
 
-    return _URL_IN_TEXT.sub(hide, text)
+
+class Attempt(NamedTuple):
+    """One delivery attempt's outcome: the HTTP status or None; the error or None for a 2xx, as the delivery's
+    ``last_error`` keeps it for the URL's owner; and that error as the operator's log may carry it."""
+    status: int | None
+    error: str | None
+    logged: str | None
 
 
 def new_secret() -> str:
@@ -607,10 +621,10 @@ def retry_at(created_at: datetime, now: datetime, attempts: int, base_s: float, 
     return min(now + timedelta(seconds=backoff_s(attempts, base_s, max_s)), give_up_at)
 
 
-def attempt(delivery: WebhookDelivery, secret: str, client: httpx.Client) -> tuple[int | None, str | None]:
-    """POST the delivery once with a :func:`webhook_client`: (the HTTP status or None, an error message or None
-    for a 2xx). Raises :class:`TargetRefused` when the URL now resolves to a refused address, or is one httpx cannot
-    send to (not worth a retry; it had been retried every lease for good, past the retry window, unrecorded).
+def attempt(delivery: WebhookDelivery, secret: str, client: httpx.Client) -> Attempt:
+    """POST the delivery once with a :func:`webhook_client`: its :class:`Attempt`. Raises :class:`TargetRefused`
+    when the URL now resolves to a refused address, or is one httpx cannot send to (not worth a retry; it had been
+    retried every lease for good, past the retry window, unrecorded).
 
     The attempt ends by the client's deadline (a timeout error, retried); of the answer, at most
     ``ANSWER_READ_BYTES`` are read. Its status decides: a body still coming at the deadline, or cut off, is dropped
@@ -632,14 +646,26 @@ def attempt(delivery: WebhookDelivery, secret: str, client: httpx.Client) -> tup
             except httpx.HTTPError:  # after the status line: the answer is in
                 pass
     except httpx.HTTPError as exc:
-        return None, f"{type(exc).__name__}: {exc}"
+        error = f"{type(exc).__name__}: {exc}"  # the transport's words: the URL is in exc.request, not here
+        return Attempt(None, error, error)
     except httpx.InvalidURL as exc:  # stored before check_target read URLs as httpx does
-        raise TargetRefused(f"webhook_url {delivery.url!r} cannot be sent to: {exc}") from None
+        # httpx's words may quote the userinfo ("Invalid port: 'pa'" of bob:pa/ss@host): the log does without them
+        raise TargetRefused(f"webhook_url {delivery.url!r} cannot be sent to: {exc}",
+                            f"webhook_url {log_safe_url(delivery.url)!r} cannot be sent to: "
+                            "httpx reads it as an invalid URL") from None
     if 200 <= response.status_code < 300:
-        return response.status_code, None
+        return Attempt(response.status_code, None, None)
     if response.is_redirect:  # had been a bare "answered 308", retried for the whole window with no word of why
         location = response.headers["location"]
-        shown = location if len(location) <= 200 else location[:200] + "..."
-        return response.status_code, (f"the receiver answered {response.status_code}, a redirect to {shown!r}: "
-                                      "webhooks follow no redirect (set webhook_url to where it points)")
-    return response.status_code, f"the receiver answered {response.status_code}"
+        # the log's copy is cut once hidden: a URL cut first had left a token with no '@' to hide it by
+        error, logged = (f"the receiver answered {response.status_code}, a redirect to {shorter(where)!r}: webhooks "
+                         "follow no redirect (set webhook_url to where it points)"
+                         for where in (location, log_safe_url(location, delivery.url)))
+        return Attempt(response.status_code, error, logged)
+    error = f"the receiver answered {response.status_code}"
+    return Attempt(response.status_code, error, error)
+
+
+def shorter(text: str, most: int = 200) -> str:
+    """``text`` cut to its first ``most`` characters, "..." saying so."""
+    return text if len(text) <= most else text[:most] + "..."
