@@ -724,6 +724,24 @@ def test_a_process_holds_at_most_its_configured_connections_then_waits_its_timeo
         reset_service_caches()
 
 
+def test_a_failed_statement_does_not_carry_the_secrets_it_binds(database_url):
+    """SQLAlchemy's error text names a statement's bound values: a failed UPDATE of a webhook delivery had logged its
+    last_error with the webhook_url's credentials. The statement is named, its values are not."""
+    from sqlalchemy import text
+    from sqlalchemy.exc import DBAPIError
+
+    from voxe_service.db import make_engine
+
+    engine = make_engine(database_url)
+    try:
+        with pytest.raises(DBAPIError) as failed, engine.connect() as connection:
+            connection.execute(text("UPDATE no_such_table SET last_error = :error"),
+                               {"error": "webhook_url 'https://bob:s3cr3t@hooks.example.com/' cannot be sent to"})
+    finally:
+        engine.dispose()
+    assert "UPDATE no_such_table" in str(failed.value) and "s3cr3t" not in str(failed.value), failed.value
+
+
 # ------------------------------------------------------------------------------------------ the event timeline
 def test_an_event_recorded_while_another_writer_holds_its_job_commits_after_it(db):
     """Event streams read each job's events past the last id they sent. PostgreSQL numbers an event as it is

@@ -55,14 +55,18 @@ def ensure_sqlite_dir(url: str) -> None:
 
 def make_engine(url: str, *, pool_size: int = 5, max_overflow: int = 10, pool_timeout_s: float = 30.0) -> Engine:
     """An engine for ``url`` whose pool holds ``pool_size`` connections, opens up to ``max_overflow`` more under load,
-    and makes a caller finding all in use wait ``pool_timeout_s`` before ``sqlalchemy.exc.TimeoutError``."""
+    and makes a caller finding all in use wait ``pool_timeout_s`` before ``sqlalchemy.exc.TimeoutError``.
+
+    Its errors (and echo) leave out a statement's bound values: a failed UPDATE of a webhook delivery had logged its
+    last_error, webhook_url credentials and all, and any other secret a statement binds (a key's webhook secret)."""
     parsed = make_url(url)
     pool = {"pool_size": pool_size, "max_overflow": max_overflow, "pool_timeout": pool_timeout_s}
     if parsed.get_backend_name() == "sqlite":
         ensure_sqlite_dir(url)
         if parsed.database in (None, "", ":memory:"):  # one connection per thread (SingletonThreadPool): no sizes
             pool = {}
-        engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30}, **pool)
+        engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30}, hide_parameters=True,
+                               **pool)
 
         @event.listens_for(engine, "connect")
         def _sqlite_pragmas(dbapi_connection, _record):  # API and workers write concurrently
@@ -73,7 +77,7 @@ def make_engine(url: str, *, pool_size: int = 5, max_overflow: int = 10, pool_ti
             cursor.close()
 
         return engine
-    return create_engine(url, pool_pre_ping=True, **pool)
+    return create_engine(url, pool_pre_ping=True, hide_parameters=True, **pool)
 
 
 @lru_cache
