@@ -639,22 +639,27 @@ def test_progress_off_a_terminal_is_a_line_now_and_then_not_ten_redraws_a_second
 
 
 def test_the_bar_draws_what_it_can_of_a_snapshot_the_service_sent_wrong(capsys):
-    """A snapshot without its state, or its progress or time left not a number ("50%", a bool, NaN), had been a
-    KeyError, TypeError or ValueError traceback ending ``voxe wait`` (a progress of 1e9, a bar of a billion #'s; True
-    one of 100%)."""
+    """A snapshot without its state, or its progress or time left not a number ("50%", a bool, NaN, an integer too
+    large for a float), had been a KeyError, TypeError, ValueError or OverflowError traceback ending ``voxe wait`` (a
+    progress of 1e9, a bar of a billion #'s; True one of 100%; a time left of 1e400, "~inf s left")."""
     from voxe_core.cli.service import _progress_bar
 
     draw = _progress_bar(quiet=False)
     for snapshot in ({"stage": "edit", "overall_progress": 0.5}, {"state": "running", "overall_progress": "50%"},
                      {"state": "queued", "overall_progress": True},
                      {"state": "failed", "overall_progress": float("nan")},
-                     {"state": "running", "overall_progress": 1e9, "overall_eta_seconds": "soon"}):
+                     {"state": "running", "overall_progress": 1e9, "overall_eta_seconds": "soon"},
+                     json.loads('{"state": "queued", "overall_progress": 1%s, "overall_eta_seconds": 1%s}'
+                                % ("0" * 400, "0" * 400)),
+                     json.loads('{"state": "running", "overall_progress": 0.5, "overall_eta_seconds": 1e400}')):
         draw(snapshot)
     assert capsys.readouterr().err.splitlines() == ["[###############               ]  50.0% edit",
                                                     "[                              ]   ?  % running",
                                                     "[                              ]   ?  % queued",
                                                     "[                              ]   ?  % failed",
-                                                    "[                              ]   ?  % running"]
+                                                    "[                              ]   ?  % running",
+                                                    "[                              ]   ?  % queued",
+                                                    "[###############               ]  50.0% running"]
 
 
 @pytest.mark.parametrize("terminal", [False, True])

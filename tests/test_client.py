@@ -403,11 +403,13 @@ def test_wait_with_a_timeout_gives_up_then_naming_the_job_and_its_last_state(mon
             list(client.events("j1", timeout=30))
 
 
-@pytest.mark.parametrize("done, said", [(0.5, ", 50% done"), ("50%", ""), (True, ""), (float("nan"), "")])
+@pytest.mark.parametrize("done, said", [(0.5, ", 50% done"), ("50%", ""), (True, ""), (float("nan"), ""),
+                                        pytest.param(10 ** 400, "", id="1e400-int"), (float("inf"), ""), (1e9, "")])
 def test_a_wait_timeout_says_the_progress_heard_only_where_it_is_a_number(done, said):
     """A progress snapshot whose ``overall_progress`` was no number (a broken service's "50%") had made the
-    JobWaitTimeout's message a ValueError ("Unknown format code '%'"), said in place of the timeout; a bool had read
-    as "100% done"."""
+    JobWaitTimeout's message a ValueError ("Unknown format code '%'"), said in place of the timeout, and an integer
+    too large for a float (JSON's 1 and 400 zeros) an OverflowError; a bool had read as "100% done", 1e9 as
+    "100000000000% done"."""
     from voxe_client import JobWaitTimeout
 
     timed_out = JobWaitTimeout("j1", 5, {"state": "running", "stage": "edit", "overall_progress": done})

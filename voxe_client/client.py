@@ -101,6 +101,20 @@ class EventStreamLost(ServiceUnreachable):
     job itself goes on there)."""
 
 
+def snapshot_number(value: Any, most: float = math.inf) -> float | None:
+    """A number of a job's progress snapshot (``overall_progress``, ``overall_eta_seconds``) from 0 to ``most``, as a
+    float; None for anything else a service sent: a str ("50%"), a bool, NaN, one over ``most`` (a progress of 1e9 had
+    drawn a bar of 30 billion #'s), an infinity (a time left of "~inf s"), an integer too large for a float (its
+    ``float()`` had been an OverflowError, a traceback ending ``voxe wait``)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    try:
+        number = float(value)
+    except OverflowError:
+        return None
+    return number if math.isfinite(number) and 0 <= number <= most else None
+
+
 class JobWaitTimeout(TimeoutError):
     """A job not ended within the ``timeout`` its :meth:`Client.wait` (or :meth:`Client.events`) was given: it goes on
     in the service. ``job_id``, ``state`` and ``progress`` (the last progress snapshot heard, None before any) say
@@ -115,8 +129,7 @@ class JobWaitTimeout(TimeoutError):
             stood = f"last heard {self.state}"
             if progress.get("stage"):
                 stood += f", stage {progress['stage']}"
-            done = progress.get("overall_progress")
-            if isinstance(done, (int, float)) and not isinstance(done, bool) and math.isfinite(done):
+            if (done := snapshot_number(progress.get("overall_progress"), 1.0)) is not None:
                 stood += f", {done:.0%} done"  # (a snapshot's "50%" had been a ValueError in place of this timeout)
         super().__init__(f"job {job_id} did not end within {timeout:g} s ({stood}); it goes on in the service")
 

@@ -137,10 +137,13 @@ def _progress_bar(quiet: bool):
     elsewhere (a log) a line at once whenever the job's state, stage or message (a phase of the stage: ``refine:
     attention_maps``) changes, and between those a line at most every ``LOG_PROGRESS_INTERVAL_S`` and only when it
     changed: a short job's log had shown only its first and last snapshot, none of the stages between."""
+    from voxe_client.client import snapshot_number  # (lazy: tests/test_layers.py)
+
     terminal, last = sys.stderr.isatty(), {"line": None, "step": None, "at": -math.inf, "shown": 0}
 
     def draw(snapshot: dict) -> None:
-        done, eta = _number(snapshot.get("overall_progress"), 1.0), _number(snapshot.get("overall_eta_seconds"))
+        done = snapshot_number(snapshot.get("overall_progress"), 1.0)
+        eta = snapshot_number(snapshot.get("overall_eta_seconds"))
         state, stage, message = snapshot.get("state"), snapshot.get("stage"), snapshot.get("message")
         bar = "#" * round(30 * (done or 0.0))
         share = "  ?  %" if done is None else f"{100 * done:5.1f}%"
@@ -160,15 +163,6 @@ def _progress_bar(quiet: bool):
             print(line, file=sys.stderr, flush=True)
         last.update(line=line, step=step, at=now)
     return draw
-
-
-def _number(value, most: float = math.inf) -> float | None:
-    """A snapshot's number from 0 to ``most`` as the bar shows it; None for anything else the service sent (``"50%"``,
-    a bool, NaN: each had been a traceback ending ``voxe wait``, the job going on unfollowed; a progress of 1e9, a bar
-    of 30 billion #'s)."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= most:
-        return None
-    return float(value)
 
 
 def _follow(client, job_id: str, args) -> int:
