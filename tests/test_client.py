@@ -710,14 +710,19 @@ def test_a_negative_number_of_retries_is_refused_and_none_sends_once(monkeypatch
     assert sent == ["GET"]
 
 
+TIMEOUT_REFUSED = "timeout must be seconds above 0 and at most 1000000 (or None: none), got "
+
+
 @pytest.mark.parametrize("given, said", [
-    ({"timeout": float("nan")}, "timeout must be seconds above 0 (or None: none), got nan"),
-    ({"timeout": -1}, "timeout must be seconds above 0 (or None: none), got -1"),
-    ({"timeout": 0}, "timeout must be seconds above 0 (or None: none), got 0"),
-    ({"timeout": "5"}, "timeout must be seconds above 0 (or None: none), got '5'"),
+    ({"timeout": float("nan")}, TIMEOUT_REFUSED + "nan"),
+    ({"timeout": -1}, TIMEOUT_REFUSED + "-1"),
+    ({"timeout": 0}, TIMEOUT_REFUSED + "0"),
+    ({"timeout": "5"}, TIMEOUT_REFUSED + "'5'"),
+    ({"timeout": 1e10}, TIMEOUT_REFUSED + "10000000000.0"),
     ({"timeout": httpx.Timeout(2.0, connect=-1.0)},
-     "timeout must be seconds above 0 (or None: none), got Timeout(connect=-1.0, read=2.0, write=2.0, pool=2.0) "
-     "(connect -1.0)"),
+     TIMEOUT_REFUSED + "Timeout(connect=-1.0, read=2.0, write=2.0, pool=2.0) (connect -1.0)"),
+    ({"timeout": httpx.Timeout(2.0, read=1e10)},
+     TIMEOUT_REFUSED + "Timeout(connect=2.0, read=10000000000.0, write=2.0, pool=2.0) (read 10000000000.0)"),
     ({"retries": 2.5}, "retries must be a whole number, 0 or more, got 2.5"),
     ({"retries": float("nan")}, "retries must be a whole number, 0 or more, got nan"),
     ({"retries": True}, "retries must be a whole number, 0 or more, got True"),
@@ -733,6 +738,36 @@ def test_a_timeout_or_retries_that_is_no_such_number_is_refused_before_any_reque
     assert sent == []
     for timeout in (None, 3, httpx.Timeout(2.0, connect=None)):
         Client(transport=transport, timeout=timeout).close()
+
+
+def test_the_longest_timeout_taken_is_one_a_real_connection_takes():
+    """``Client(timeout=1e10)`` had been taken, each request then an OverflowError ("timestamp out of range for
+    platform time_t") from the socket's timeout: it is refused (above), and MAX_TIMEOUT_S, the longest taken, serves a
+    request over a real socket."""
+    import http.server
+    import threading
+
+    from voxe_client.client import MAX_TIMEOUT_S
+
+    class Answer(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):
+            body = json.dumps({"id": "j1", "state": "running"}).encode()
+            self.send_response(200)
+            self.send_header("content-type", "application/json")
+            self.send_header("content-length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args):
+            pass
+
+    with http.server.ThreadingHTTPServer(("127.0.0.1", 0), Answer) as server:
+        threading.Thread(target=server.serve_forever, daemon=True).start()
+        try:
+            with Client(f"http://127.0.0.1:{server.server_port}", timeout=MAX_TIMEOUT_S) as client:
+                assert client.get_job("j1") == {"id": "j1", "state": "running"}
+        finally:
+            server.shutdown()
 
 
 def test_a_retry_after_given_as_an_http_date_is_waited_out_counted_from_the_servers_clock(monkeypatch):

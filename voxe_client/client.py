@@ -815,19 +815,26 @@ def _drop_other_parts(dest: Path, kept: Path) -> None:
                     part.unlink()  # locked as it goes: a download opening it meanwhile opens it again
 
 
+MAX_TIMEOUT_S = 1e6
+"""The longest a :class:`Client`'s ``timeout`` (each of its parts) may be, about 11 days: a socket's timeout past
+about 9.2e9 s (2**63 ns) fails, so ``Client(timeout=1e10)`` had been taken and each request then an OverflowError
+("timestamp out of range for platform time_t"); None is no timeout."""
+
+
 def _checked_timeout(timeout) -> httpx.Timeout:
     """A :class:`Client`'s ``timeout`` (seconds, an ``httpx.Timeout``, or None: none) as httpx takes it; a ValueError
-    for a part that is no number of seconds above 0: NaN or a negative one had been taken, each request then failing
-    at once as the service not reached, or never timing out."""
+    for a part that is no number of seconds above 0 and at most :data:`MAX_TIMEOUT_S`: NaN or a negative one had been
+    taken, each request then failing at once as the service not reached, or never timing out."""
     try:
         parts = httpx.Timeout(timeout)
     except (TypeError, ValueError):  # (a tuple of the wrong length, a str)
         raise ValueError(f"timeout must be seconds above 0, an httpx.Timeout or None, got {timeout!r}") from None
     for part, seconds in parts.as_dict().items():
         if seconds is not None and (isinstance(seconds, bool) or not isinstance(seconds, (int, float))
-                                    or not 0 < seconds < math.inf):
+                                    or not 0 < seconds <= MAX_TIMEOUT_S):
             parted = f" ({part} {seconds!r})" if isinstance(timeout, httpx.Timeout) else ""
-            raise ValueError(f"timeout must be seconds above 0 (or None: none), got {timeout!r}{parted}")
+            raise ValueError(f"timeout must be seconds above 0 and at most {MAX_TIMEOUT_S:.0f} (or None: none), got "
+                             f"{timeout!r}{parted}")
     return parts
 
 
