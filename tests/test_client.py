@@ -25,11 +25,11 @@ def test_it_sends_json_with_the_key_and_returns_the_answer():
 
     def answer(request: httpx.Request) -> httpx.Response:
         seen.append(request)
-        return httpx.Response(201, json={"id": "s1", "entries": []})
+        return httpx.Response(201, json={"id": "s1", "state": "queued", "entries": []})
 
     with Client("http://svc.test/", api_key="k-123", transport=httpx.MockTransport(answer)) as client:
         scenes = [{"scene_id": "a", "object": "mic"}]
-        assert client.create_sweep(scenes, evaluation={"views": 4}) == {"id": "s1", "entries": []}
+        assert client.create_sweep(scenes, evaluation={"views": 4}) == {"id": "s1", "state": "queued", "entries": []}
         client.get_sweep("s1")
     post, get = seen
     assert (post.method, str(post.url)) == ("POST", "http://svc.test/v1/sweeps")
@@ -827,7 +827,7 @@ def test_a_submission_is_sent_again_a_bounded_number_of_times_and_only_while_its
         status, headers = answers.pop(0)
         if status == "drop":
             raise httpx.RemoteProtocolError("Server disconnected without sending a response.", request=request)
-        return httpx.Response(status, headers=headers, json={"id": "j1", "detail": "said"})
+        return httpx.Response(status, headers=headers, json={"id": "j1", "state": "queued", "detail": "said"})
 
     def submit(client, *given):
         answers[:] = given
@@ -884,7 +884,7 @@ def test_a_submission_not_answered_in_time_is_not_sent_again_and_the_error_names
         raised = answers.pop(0)
         if raised is not None:
             raise raised("timed out", request=request)
-        return httpx.Response(201, json={"id": "s1"})
+        return httpx.Response(201, json={"id": "s1", "state": "processing"})
 
     with Client(transport=httpx.MockTransport(answer), retries=3) as client:
         answers[:] = [timeout, None]
@@ -1435,7 +1435,7 @@ def test_upload_scene_sends_the_display_name_as_the_name_field_and_keeps_the_fil
 
     def answer(request: httpx.Request) -> httpx.Response:
         bodies.append(request.read())
-        return httpx.Response(201, json={"id": "s1"})
+        return httpx.Response(201, json={"id": "s1", "state": "processing"})
 
     (tmp_path / "spot.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
     (tmp_path / "scene.zip").write_bytes(b"PK\x05\x06" + bytes(18))
@@ -1511,10 +1511,14 @@ def test_an_answer_that_is_no_artifact_listing_is_a_service_error_quoting_it(ans
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.parametrize("answered", [["a", "job"], {"detail": "moved"}, {"id": "j1", "state": None}])
-def test_a_job_answer_with_no_state_is_a_service_error_quoting_it(answered, monkeypatch, capsys):
+@pytest.mark.parametrize("answered", [["a", "job"], {"detail": "moved"}, {"id": "j1", "state": None},
+                                      {"state": "queued"}])
+def test_a_record_answered_with_no_id_or_state_is_a_service_error_quoting_it(answered, tmp_path, monkeypatch,
+                                                                               capsys):
     """``wait()`` had returned whatever the final GET answered (a proxy's JSON, a broken service's), and ``voxe wait``
-    ended in a KeyError or TypeError reading its state; ``get_job()`` and ``cancel_job()`` answer only a job too."""
+    ended in a KeyError or TypeError reading its state; ``create_job()``'s, ``upload_scene()``'s and the sweeps'
+    answers were not read at all: a 201 ``{"detail": "moved"}`` made ``voxe submit`` end in a KeyError 'id'. Each
+    call answering a job, scene or sweep takes only an object with an id and a state."""
     import voxe_core.cli.service as service
     from voxe_core.cli import main
 
@@ -1522,18 +1526,32 @@ def test_a_job_answer_with_no_state_is_a_service_error_quoting_it(answered, monk
         if request.url.path.endswith("/events"):
             return httpx.Response(200, headers={"content-type": "text/event-stream"},
                                   text='id: 1\nevent: succeeded\ndata: {}\n\n')
-        return httpx.Response(200, json=answered)
+        return httpx.Response(201 if request.method == "POST" else 200, json=answered)
 
-    said = rf"answered {re.escape(repr(answered))}, not a job with a state$"
+    def said(kind: str) -> str:
+        return rf"answered {re.escape(repr(answered))}, not a {kind} with an id and a state$"
+
+    archive = tmp_path / "mic.zip"
+    archive.write_bytes(b"PK\x05\x06" + bytes(18))
     with Client(transport=httpx.MockTransport(answer)) as client:
-        for call, asked in ((client.wait, "GET /v1/jobs/j1"), (client.get_job, "GET /v1/jobs/j1"),
-                            (client.cancel_job, "POST /v1/jobs/j1/cancel")):
-            with pytest.raises(ServiceError, match=rf"^{asked}: http://127.0.0.1:8000 {said}"):
-                call("j1")
+        for call, asked, kind in ((lambda: client.wait("j1"), "GET /v1/jobs/j1", "job"),
+                                  (lambda: client.get_job("j1"), "GET /v1/jobs/j1", "job"),
+                                  (lambda: client.cancel_job("j1"), "POST /v1/jobs/j1/cancel", "job"),
+                                  (lambda: client.create_job("s1", "gold"), "POST /v1/jobs", "job"),
+                                  (lambda: client.upload_scene(archive), "POST /v1/scenes", "scene"),
+                                  (lambda: client.create_sweep([{"scene_id": "s1", "object": "mic"}]),
+                                   "POST /v1/sweeps", "sweep"),
+                                  (lambda: client.get_sweep("w1"), "GET /v1/sweeps/w1", "sweep")):
+            with pytest.raises(ServiceError, match=rf"^{asked}: http://127.0.0.1:8000 {said(kind)}"):
+                call()
     monkeypatch.setattr(service, "_client", lambda args: Client(args.api, transport=httpx.MockTransport(answer)))
-    assert main(["wait", "j1", "--quiet"]) == 2
-    assert re.search(rf"^voxe wait: error: GET /v1/jobs/j1: http://127.0.0.1:8000 {said}", capsys.readouterr().err,
-                     re.MULTILINE)
+    for command, asked, kind in ((["wait", "j1", "--quiet"], "GET /v1/jobs/j1", "job"),
+                                 (["submit", "--scene", "s1", "a mic"], "POST /v1/jobs", "job"),
+                                 (["submit", "--upload", str(archive), "a mic"], "POST /v1/scenes", "scene"),
+                                 (["sweep", "--scene", "s1=mic"], "POST /v1/sweeps", "sweep")):
+        assert main(command) == 2
+        assert re.search(rf"^voxe {command[0]}: error: {asked}: http://127.0.0.1:8000 {said(kind)}",
+                         capsys.readouterr().err, re.MULTILINE)
 
 
 def test_an_answer_or_error_page_is_read_up_to_its_limit_only(tmp_path):

@@ -270,7 +270,7 @@ class Client:
         field = "archive" if path.suffix.lower() == ".zip" else "files"
         with ExitStack() as stack:
             files = [(field, (each.name, stack.enter_context(open(each, "rb")))) for each in paths]
-            return self.request("POST", "/v1/scenes", files=files, data={"name": name} if name else None,
+            return self._record("scene", "POST", "/v1/scenes", files=files, data={"name": name} if name else None,
                                 idempotency_key=_submission_key(idempotency_key))
 
     def delete_scene(self, scene_id: str) -> None:
@@ -283,24 +283,26 @@ class Client:
         Sent with ``idempotency_key`` (a new one when None): a caller that gives its own makes a repeated call, in
         another run say, answer with the job the first call made rather than make another (the same key with another
         request is a 422)."""
-        return self.request("POST", "/v1/jobs", {"scene_id": scene_id, "prompt": prompt, **fields},
+        return self._record("job", "POST", "/v1/jobs", {"scene_id": scene_id, "prompt": prompt, **fields},
                             idempotency_key=_submission_key(idempotency_key))
 
     def get_job(self, job_id: str) -> dict:
-        return self._job("GET", f"/v1/jobs/{_segment(job_id)}")
+        return self._record("job", "GET", f"/v1/jobs/{_segment(job_id)}")
 
     def cancel_job(self, job_id: str) -> dict:
-        return self._job("POST", f"/v1/jobs/{_segment(job_id)}/cancel")
+        return self._record("job", "POST", f"/v1/jobs/{_segment(job_id)}/cancel")
 
-    def _job(self, method: str, path: str, **kwargs) -> dict:
-        """The job record ``method path`` answers (``kwargs`` to :meth:`request`); an answer that is no object with a
-        state (a proxy's JSON, a broken service's) is a ServiceError quoting it: :meth:`wait` had returned it as the
-        job, and ``voxe wait`` ended in a KeyError or TypeError reading its state."""
-        job = self.request(method, path, **kwargs)
-        if not isinstance(job, dict) or not isinstance(job.get("state"), str):
-            raise ServiceError(f"{method} {path}: {self.base_url} answered {reprlib.repr(job)}, not a job with a "
-                               "state")
-        return job
+    def _record(self, kind: str, method: str, path: str, body: dict | None = None, **kwargs) -> dict:
+        """The record of a ``kind`` (job, scene, sweep) that ``method path`` answers (``body`` and ``kwargs`` to
+        :meth:`request`); an answer that is no object with a string ``id`` and ``state``, as each of them has (a
+        proxy's JSON, a 201 ``{"detail": "moved"}``, a broken service's), is a ServiceError quoting it: :meth:`wait`
+        had returned it as the job, ``voxe wait`` ending in a KeyError or TypeError reading its state, and ``voxe
+        submit`` in a KeyError 'id'."""
+        record = self.request(method, path, body, **kwargs)
+        if not isinstance(record, dict) or not all(isinstance(record.get(name), str) for name in ("id", "state")):
+            raise ServiceError(f"{method} {path}: {self.base_url} answered {reprlib.repr(record)}, not a {kind} with "
+                               "an id and a state")
+        return record
 
     def events(self, job_id: str, last_event_id: int | None = None, reconnect_for: float | None = None,
                on_reconnect: Callable[[str], None] | None = None, timeout: float | None = None) -> Iterator[dict]:
@@ -426,7 +428,7 @@ class Client:
             if timed_out.progress is not None:  # the stream said where it stood, and that it had not ended
                 raise
             try:
-                job = self._job("GET", path, deadline=deadline, timeout=httpx.Timeout(**{
+                job = self._record("job", "GET", path, deadline=deadline, timeout=httpx.Timeout(**{
                     part: LOOK_AT_JOB_S if limit is None else min(LOOK_AT_JOB_S, limit)
                     for part, limit in self._http.timeout.as_dict().items()}))
             except ServiceError:  # (the service gone: the timeout says where the job stood)
@@ -434,7 +436,7 @@ class Client:
             if job["state"] not in TERMINAL_STATES:
                 raise
             return job
-        return self._job("GET", path, deadline=deadline)
+        return self._record("job", "GET", path, deadline=deadline)
 
     def artifacts(self, job_id: str) -> list[dict]:
         """``GET /v1/jobs/{id}/artifacts``: the job's artifacts, each ``{name, size, sha256, ...}``; an answer that is
@@ -573,11 +575,11 @@ class Client:
             body["params"] = params
         if evaluation is not None:
             body["evaluation"] = evaluation
-        return self.request("POST", "/v1/sweeps", body, idempotency_key=_submission_key(idempotency_key))
+        return self._record("sweep", "POST", "/v1/sweeps", body, idempotency_key=_submission_key(idempotency_key))
 
     def get_sweep(self, sweep_id: str) -> dict:
         """``GET /v1/sweeps/{id}``: the jobs' states and the summary table."""
-        return self.request("GET", f"/v1/sweeps/{_segment(sweep_id)}")
+        return self._record("sweep", "GET", f"/v1/sweeps/{_segment(sweep_id)}")
 
 
 class MissingCompanionWarning(UserWarning):
