@@ -646,8 +646,9 @@ def reconstruct(
             grid = grid.upsampled(config.resolutions[stage])
         # A fit turned transparent (the fast preset on few views can drive every density below zero in its first
         # coarse steps) had run every later stage, the finest and dearest, with no gradient: it stops here, its
-        # grid at the final resolution, as the steps left would have returned it.
-        if renders_nothing(grid, config.render):
+        # grid at the final resolution, as the steps left would have returned it. (The first stage run is the fit's
+        # start, checked above before the grid went to its device; a resumed stage goes on as it was.)
+        if stage > start_stage and renders_nothing(grid, config.render):
             grid = grid.upsampled(config.resolutions[-1])
             stopped_at = stage
             break
