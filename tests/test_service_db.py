@@ -664,6 +664,24 @@ def test_reapers_reading_a_lost_ingest_at_once_send_it_once(db, monkeypatch):
             assert (row.task_id, row.lost_ingest_resends) == ("task-1", 1)
 
 
+def test_reading_the_sql_brokers_waiting_messages_gives_its_connection_back(db):
+    """kombu's channel never closes its session: each read of the broker's waiting messages kept a connection checked
+    out until the session was collected, and reapers reading at once (8 API processes' passes) ran the broker's pool
+    dry, each read then timing out after 30 s, none sending the lost ingest they had all read."""
+    import gc
+
+    from voxe_service.broker import Channel, waiting_tasks
+
+    gc.disable()  # (what had returned them)
+    try:
+        for _ in range(3):
+            waiting_tasks(db.broker_url)
+        engine, _sessions = Channel._engines[db.broker_url.removeprefix("sqla+")]  # (kombu's engine of the URL)
+        assert engine.pool.checkedout() == 0
+    finally:
+        gc.enable()
+
+
 # ------------------------------------------------------------------------------------------ the connection pool
 def test_racing_first_reads_of_a_keys_webhook_secret_all_get_the_stored_one(db):
     """Requests that have each read the key without a webhook secret make it at once (GET /v1/webhooks/secret, a

@@ -86,8 +86,12 @@ def waiting_tasks(url: str) -> set[tuple[str, str]]:
     tasks = set()
     with Connection(url) as conn:
         channel = conn.default_channel
-        for (payload,) in channel.session.query(channel.message_cls.payload).filter(
-                channel.message_cls.visible.is_not(False)):
+        try:
+            payloads = channel.session.query(channel.message_cls.payload).filter(
+                channel.message_cls.visible.is_not(False)).all()
+        finally:  # kombu's channel never closes its session, whose connection stayed checked out until collected:
+            channel.session.close()  # reapers reading at once ran the broker's pool dry, each read timing out
+        for (payload,) in payloads:
             message = loads(bytes_to_str(payload))
             args, _kwargs, embed = loads(b64decode(message["body"]))
             for task, task_args in ((message["headers"]["task"], args),
