@@ -733,6 +733,31 @@ def check_the_edit_changed_the_object(client: httpx.Client, job: dict, grids: di
     assert warnings == [], warnings
 
 
+@contextlib.contextmanager
+def answering(body: bytes, headers: dict[str, str] | None = None):
+    """A loopback HTTP server answering every GET 200 with ``body``, JSON unless ``headers`` (sent with it) say
+    otherwise: its base URL, for a client (``voxe_client``, the ``voxe`` commands) tested over a real socket."""
+    headers = {"content-type": "application/json", **(headers or {})}
+
+    class Handler(BaseHTTPRequestHandler):
+        def do_GET(self):
+            self.send_response(200)
+            for name, value in {**headers, "content-length": str(len(body))}.items():
+                self.send_header(name, value)
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args):
+            pass
+
+    with ThreadingHTTPServer(("127.0.0.1", 0), Handler) as server:
+        threading.Thread(target=server.serve_forever, daemon=True).start()
+        try:
+            yield f"http://127.0.0.1:{server.server_port}"
+        finally:
+            server.shutdown()
+
+
 class WebhookReceiver:
     """A webhook receiver on a loopback ``host`` that records every request (headers lower-cased, body bytes).
 

@@ -979,30 +979,14 @@ def test_cli_as_a_real_process_has_no_traceback(tmp_path):
 def test_output_whose_reader_stopped_reading_ends_the_command_quietly(log_lines):
     """``voxe status J | head -c 10`` had printed "voxe status: error: [Errno 32] Broken pipe" and exited 2, as bad
     input does; it now ends quietly with 141, as SIGPIPE ends ``cat``."""
-    import threading
-    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+    from service_helpers import answering
 
     job = json.dumps({"id": "j1", "state": "running", "log": ["a line of the job's log"] * log_lines}).encode()
-
-    class Service(BaseHTTPRequestHandler):
-        def do_GET(self):
-            self.send_response(200)
-            self.send_header("content-type", "application/json")
-            self.send_header("content-length", str(len(job)))
-            self.end_headers()
-            self.wfile.write(job)
-
-        def log_message(self, *args):
-            pass
-
-    with ThreadingHTTPServer(("127.0.0.1", 0), Service) as server:
-        threading.Thread(target=server.serve_forever, daemon=True).start()
-        process = subprocess.Popen(
-            [sys.executable, "-m", "voxe_core.cli", "status", "j1", "--api", f"http://127.0.0.1:{server.server_port}"],
-            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    with answering(job) as url:
+        process = subprocess.Popen([sys.executable, "-m", "voxe_core.cli", "status", "j1", "--api", url],
+                                   cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         process.stdout.close()  # the reader gone before the command prints
         err = process.communicate(timeout=120)[1]
-        server.shutdown()
     assert (process.returncode, err) == (141, "")
 
 

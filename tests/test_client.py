@@ -744,30 +744,13 @@ def test_the_longest_timeout_taken_is_one_a_real_connection_takes():
     """``Client(timeout=1e10)`` had been taken, each request then an OverflowError ("timestamp out of range for
     platform time_t") from the socket's timeout: it is refused (above), and MAX_TIMEOUT_S, the longest taken, serves a
     request over a real socket."""
-    import http.server
-    import threading
+    from service_helpers import answering
 
     from voxe_client.client import MAX_TIMEOUT_S
 
-    class Answer(http.server.BaseHTTPRequestHandler):
-        def do_GET(self):
-            body = json.dumps({"id": "j1", "state": "running"}).encode()
-            self.send_response(200)
-            self.send_header("content-type", "application/json")
-            self.send_header("content-length", str(len(body)))
-            self.end_headers()
-            self.wfile.write(body)
-
-        def log_message(self, *args):
-            pass
-
-    with http.server.ThreadingHTTPServer(("127.0.0.1", 0), Answer) as server:
-        threading.Thread(target=server.serve_forever, daemon=True).start()
-        try:
-            with Client(f"http://127.0.0.1:{server.server_port}", timeout=MAX_TIMEOUT_S) as client:
-                assert client.get_job("j1") == {"id": "j1", "state": "running"}
-        finally:
-            server.shutdown()
+    with answering(json.dumps({"id": "j1", "state": "running"}).encode()) as url:
+        with Client(url, timeout=MAX_TIMEOUT_S) as client:
+            assert client.get_job("j1") == {"id": "j1", "state": "running"}
 
 
 def test_a_retry_after_given_as_an_http_date_is_waited_out_counted_from_the_servers_clock(monkeypatch):
