@@ -6,6 +6,7 @@ The calls against a real service are in tests/test_evaluate.py (``voxe sweep`` e
 
 from __future__ import annotations
 
+import functools
 import json
 import re
 import subprocess
@@ -1564,6 +1565,70 @@ def test_an_answer_or_error_page_is_read_up_to_its_limit_only(tmp_path):
                                                    r"most this client reads of one") as raised:
                 call()
             assert raised.value.status == status and len(pulled) == MAX_ANSWER_BYTES // 2**20 + 1
+
+
+@functools.cache
+def _gzip_bomb(decoded_mib: int) -> bytes:
+    """``decoded_mib`` MiB of zero bytes gzipped: about 1 KiB on the wire per MiB decoded (made in about 30 ms per
+    MiB: once)."""
+    import zlib
+
+    gzipper = zlib.compressobj(9, zlib.DEFLATED, zlib.MAX_WBITS | 16)
+    return b"".join(gzipper.compress(bytes(2**20)) for _ in range(decoded_mib)) + gzipper.flush()
+
+
+@pytest.mark.parametrize("content_type, call, said, cap", [
+    ("application/json", lambda client: client.get_job("j1"),
+     r"^GET /v1/jobs/j1: HTTP 200: its answer runs over 8 MiB, the most this client reads of one", "MAX_ANSWER_BYTES"),
+], ids=["answer"])
+def test_a_gzip_bomb_is_capped_on_its_decoded_bytes_as_they_are_read(content_type, call, said, cap):
+    """A gzip-encoded answer was capped on the bytes httpx had decoded, and httpx inflates each chunk read whole: a
+    bomb's 32 KiB on the wire, 32 MiB of zeros decoded, sat in memory at once before any cap was checked (an event
+    stream's line too, held whole), a larger one hundreds of MiB. Inflated a piece at a time, reading stops at the
+    cap: the ServiceError names it and the memory the client took stays near it."""
+    import tracemalloc
+
+    from service_helpers import answering
+
+    import voxe_client.client as client_module
+
+    limit = getattr(client_module, cap)
+    with answering(_gzip_bomb(32), {"content-type": content_type, "content-encoding": "gzip"}) as url:
+        with Client(url) as client:
+            tracemalloc.start()
+            try:
+                with pytest.raises(ServiceError, match=said):
+                    call(client)
+                peak = tracemalloc.get_traced_memory()[1]
+            finally:
+                tracemalloc.stop()
+    assert peak < limit + limit // 2 + 2**20, f"{peak / 2**20:.1f} MiB taken reading it"
+
+
+def test_an_answer_is_read_through_the_encodings_the_client_asks_for_and_no_other():
+    """The client asks for gzip and deflate, the encodings it inflates a piece at a time (above), and reads them
+    in turn; another (brotli, which httpx had decoded whole where installed, else passed on undecoded to fail as
+    not JSON) or one broken (httpx's DecodingError, a traceback in ``voxe``) is a ServiceError naming it."""
+    import gzip
+    import zlib
+
+    job = json.dumps({"id": "j1", "state": "running"}).encode()
+    asked, answers = [], [({"content-encoding": "deflate, gzip"}, gzip.compress(zlib.compress(job))),
+                          ({"content-encoding": "br"}, job), ({"content-encoding": "gzip"}, b"not gzip")]
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        asked.append(request.headers["accept-encoding"])
+        headers, body = answers.pop(0)
+        return httpx.Response(200, headers={"content-type": "application/json", **headers}, content=iter([body]))
+
+    with Client(transport=httpx.MockTransport(answer), retries=0) as client:
+        assert client.get_job("j1") == {"id": "j1", "state": "running"}
+        for said in (r"its answer is encoded as 'br', which this client does not read \(it asks for gzip, deflate\)$",
+                     r"its answer's gzip encoding is broken \(Error -3 while decompressing data: incorrect header "
+                     r"check\)$"):
+            with pytest.raises(ServiceError, match=rf"^GET /v1/jobs/j1: HTTP 200: {said}"):
+                client.get_job("j1")
+    assert asked == ["gzip, deflate"] * 3
 
 
 def test_a_download_stops_reading_a_body_longer_than_the_listed_size(tmp_path):

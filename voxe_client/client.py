@@ -15,6 +15,7 @@ import reprlib
 import time
 import uuid
 import warnings
+import zlib
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, closing, contextmanager, suppress
 from datetime import datetime, timezone
@@ -62,7 +63,12 @@ TERMINAL_STATES = ("succeeded", "failed", "canceled")
 MAX_ANSWER_BYTES = 8 * 2**20
 """The most bytes of an answer's body the client reads into memory (:func:`_read_capped`): a JSON answer or an error
 page, each a few KiB from the service (an artifact and an event stream are read as they come). A hostile or broken
-server's endless one had been buffered whole, gigabytes."""
+server's endless one had been buffered whole, gigabytes. Counted decoded (:func:`_decoded`): a gzip bomb, small on the
+wire, had been inflated whole past it."""
+ACCEPTED_ENCODINGS = {"gzip": zlib.MAX_WBITS | 16, "deflate": zlib.MAX_WBITS}
+"""The Content-Encodings the client reads (its ``Accept-Encoding``), each with zlib's ``wbits`` for its container."""
+DECODED_PIECE_BYTES = 2**16
+"""The most bytes :func:`_decoded` inflates at a time."""
 
 
 def _segment(value: str) -> str:
@@ -170,7 +176,7 @@ class Client:
             raise ValueError(f"retries must be a whole number, 0 or more, got {retries!r}")  # -1 or 2.5 had sent on)
         self.retries = retries
         timeout = _checked_timeout(timeout)
-        headers = {"accept": "application/json"}
+        headers = {"accept": "application/json", "accept-encoding": ", ".join(ACCEPTED_ENCODINGS)}
         if api_key:
             headers["authorization"] = f"Bearer {api_key}"
         try:
@@ -927,12 +933,13 @@ def _resend_wait(response: httpx.Response, attempt: int, keyed: bool) -> float |
 
 
 def _read_capped(response: httpx.Response, method: str, path: str) -> httpx.Response:
-    """``response`` (to ``method path``, streamed) read whole and closed, its body decoded as it comes, up to
-    :data:`MAX_ANSWER_BYTES`: a ServiceError naming that limit past it, the rest not read."""
+    """``response`` (to ``method path``, streamed) read whole and closed, its body decoded as it comes
+    (:func:`_decoded`), up to :data:`MAX_ANSWER_BYTES` decoded: a ServiceError naming that limit past it, the rest not
+    read."""
     body = bytearray()
     with closing(response):
-        for chunk in response.iter_bytes():
-            body += chunk
+        for piece in _decoded(response, method, path):
+            body += piece
             if len(body) > MAX_ANSWER_BYTES:
                 raise ServiceError(f"{method} {path}: HTTP {response.status_code}: its answer runs over "
                                    f"{MAX_ANSWER_BYTES // 2**20} MiB, the most this client reads of one (is it the "
@@ -940,6 +947,45 @@ def _read_capped(response: httpx.Response, method: str, path: str) -> httpx.Resp
     headers = [(name, value) for name, value in response.headers.multi_items() if name != "content-encoding"]
     return httpx.Response(response.status_code, headers=headers, content=bytes(body), request=response.request,
                           extensions=response.extensions)  # (decoded already: not again)
+
+
+def _decoded(response: httpx.Response, method: str, path: str) -> Iterator[bytes]:
+    """The body of ``response`` (to ``method path``, streamed) as it is read, its Content-Encoding undone
+    (:data:`ACCEPTED_ENCODINGS`, several in turn) in pieces of at most :data:`DECODED_PIECE_BYTES`, so that a cap on
+    what a reader holds holds on the bytes decoded: httpx's decoder inflates each chunk read whole, a gzip bomb's 64
+    KiB, the most one read takes, 64 MiB at once. Another encoding, or one broken, is a ServiceError naming it."""
+    said = f"{method} {path}: HTTP {response.status_code}"
+    if response.is_stream_consumed:  # an answer made in memory (httpx.MockTransport's), decoded already
+        yield response.content
+        return
+    pieces, codings = response.iter_raw(), []
+    for coding in reversed(response.headers.get_list("content-encoding", split_commas=True)):
+        coding = coding.strip().lower()
+        if coding in ACCEPTED_ENCODINGS:
+            pieces = _inflated(pieces, ACCEPTED_ENCODINGS[coding])
+            codings.append(coding)
+        elif coding != "identity":
+            raise ServiceError(f"{said}: its answer is encoded as {coding!r}, which this client does not read (it "
+                               f"asks for {', '.join(ACCEPTED_ENCODINGS)})", response.status_code)
+    try:
+        yield from pieces
+    except zlib.error as exc:
+        raise ServiceError(f"{said}: its answer's {' then '.join(codings)} encoding is broken ({exc})",
+                           response.status_code) from None
+
+
+def _inflated(pieces: Iterator[bytes], wbits: int) -> Iterator[bytes]:
+    """``pieces`` inflated (zlib's ``wbits`` name their container) in pieces of at most :data:`DECODED_PIECE_BYTES`:
+    the rest of a piece waits in the inflater until the one before is taken."""
+    inflater = zlib.decompressobj(wbits)
+    for piece in pieces:
+        while True:
+            out = inflater.decompress(piece, DECODED_PIECE_BYTES)
+            if out:
+                yield out
+            piece = inflater.unconsumed_tail
+            if not piece and len(out) < DECODED_PIECE_BYTES:  # all of it taken in and given out
+                break
 
 
 def _raise_for_error(response: httpx.Response, method: str, path: str, keyed: bool = False) -> None:
