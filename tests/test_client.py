@@ -1580,7 +1580,10 @@ def _gzip_bomb(decoded_mib: int) -> bytes:
 @pytest.mark.parametrize("content_type, call, said, cap", [
     ("application/json", lambda client: client.get_job("j1"),
      r"^GET /v1/jobs/j1: HTTP 200: its answer runs over 8 MiB, the most this client reads of one", "MAX_ANSWER_BYTES"),
-], ids=["answer"])
+    ("text/event-stream", lambda client: list(client.events("j1", reconnect_for=0)),
+     r"^event stream of job j1: an event runs over 1 MiB, the most this client reads of one: not the service's "
+     r"events$", "MAX_EVENT_BYTES"),
+], ids=["answer", "event stream"])
 def test_a_gzip_bomb_is_capped_on_its_decoded_bytes_as_they_are_read(content_type, call, said, cap):
     """A gzip-encoded answer was capped on the bytes httpx had decoded, and httpx inflates each chunk read whole: a
     bomb's 32 KiB on the wire, 32 MiB of zeros decoded, sat in memory at once before any cap was checked (an event
@@ -1603,6 +1606,51 @@ def test_a_gzip_bomb_is_capped_on_its_decoded_bytes_as_they_are_read(content_typ
             finally:
                 tracemalloc.stop()
     assert peak < limit + limit // 2 + 2**20, f"{peak / 2**20:.1f} MiB taken reading it"
+
+
+def test_a_gzip_encoded_event_stream_is_read_event_by_event():
+    """An event stream gzip-encoded (by a proxy), its lines ended by CRLF, is read as the service's plain one."""
+    import gzip
+
+    from service_helpers import answering
+
+    stream = (b'retry: 2000\r\n\r\nid: 1\r\nevent: stage_started\r\ndata: {"stage": "edit"}\r\n\r\n: keepalive\r\n\r\n'
+              b'event: progress\r\ndata: {"state": "succeeded"}\r\n\r\n')
+    with answering(gzip.compress(stream), {"content-type": "text/event-stream", "content-encoding": "gzip"}) as url:
+        with Client(url) as client:
+            events = list(client.events("j1"))
+    assert events == [{"event": "stage_started", "id": "1", "data": {"stage": "edit"}},
+                      {"event": "progress", "id": None, "data": {"state": "succeeded"}}]
+
+
+@pytest.mark.parametrize("head, endless", [(b"data: ", b"x" * 2**16),
+                                           (b"event: checkpoint\n", b"data: " + b"x" * (2**16 - 7) + b"\n")],
+                         ids=["a line never ended", "an event never ended"])
+def test_an_event_stream_stops_reading_an_event_past_its_limit(head, endless):
+    """The event stream's lines were read by httpx's ``iter_lines``, which holds a line until its newline: a server
+    sending one never ended (or an event whose data lines no empty one ends, joined as they came) had the client hold
+    all of it, for good. Reading stops at the first piece past MAX_EVENT_BYTES, a ServiceError naming that limit, an event before it
+    still heard."""
+    from voxe_client.client import MAX_EVENT_BYTES
+
+    pulled = []
+
+    def long_event():
+        yield b'id: 1\nevent: stage_started\ndata: {"stage": "edit"}\n\n' + head
+        for piece in range(256):  # 16 MiB, then the stream ends
+            pulled.append(piece)
+            yield endless
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        return httpx.Response(200, headers={"content-type": "text/event-stream"}, content=long_event())
+
+    heard = []
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        with pytest.raises(ServiceError, match=r"^event stream of job j1: an event runs over 1 MiB, the most this "
+                                               r"client reads of one: not the service's events$"):
+            heard.extend(event["event"] for event in client.events("j1", reconnect_for=0))
+    pieces_to_cap = MAX_EVENT_BYTES // len(endless)
+    assert heard == ["stage_started"] and pieces_to_cap <= len(pulled) <= pieces_to_cap + 1
 
 
 def test_an_answer_is_read_through_the_encodings_the_client_asks_for_and_no_other():

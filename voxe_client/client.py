@@ -65,6 +65,10 @@ MAX_ANSWER_BYTES = 8 * 2**20
 page, each a few KiB from the service (an artifact and an event stream are read as they come). A hostile or broken
 server's endless one had been buffered whole, gigabytes. Counted decoded (:func:`_decoded`): a gzip bomb, small on the
 wire, had been inflated whole past it."""
+MAX_EVENT_BYTES = 2**20
+"""The most bytes one Server-Sent Event (its lines from the last empty one with their ends, a comment's too) may run
+to (:func:`_event_stream_lines`): the service's are a few KiB; a server's endless line, never ended by a newline, had
+been held whole."""
 ACCEPTED_ENCODINGS = {"gzip": zlib.MAX_WBITS | 16, "deflate": zlib.MAX_WBITS}
 """The Content-Encodings the client reads (its ``Accept-Encoding``), each with zlib's ``wbits`` for its container."""
 DECODED_PIECE_BYTES = 2**16
@@ -381,7 +385,8 @@ class Client:
                             on_reconnect(f"event stream of job {job_id} back after "
                                          f"{time.monotonic() - lost_since:.0f} s")
                         opened, ended, reconnecting = True, False, False
-                        for event in _job_events(parse_sse(alive(response.iter_lines())), job_id):
+                        lines = _event_stream_lines(_decoded(response, "GET", path))
+                        for event in _job_events(parse_sse(alive(lines)), job_id):
                             if event["id"] is not None:
                                 last_event_id = int(event["id"])
                             if event["event"] == "progress":
@@ -988,6 +993,37 @@ def _inflated(pieces: Iterator[bytes], wbits: int) -> Iterator[bytes]:
                 break
 
 
+LINE_END = re.compile(rb"\r\n|\r|\n")
+
+
+def _event_stream_lines(pieces: Iterator[bytes]) -> Iterator[str]:
+    """The text lines (ended by CRLF, LF or CR, UTF-8) of an event stream whose decoded body comes in ``pieces``; a
+    ValueError once an event, its lines since the last empty one, runs over :data:`MAX_EVENT_BYTES`: httpx's
+    ``iter_lines`` had held a line never ended whole, for good."""
+    def bounded(event_bytes: int) -> int:
+        if event_bytes > MAX_EVENT_BYTES:
+            raise ValueError(f"an event runs over {MAX_EVENT_BYTES // 2**20} MiB, the most this client reads of one")
+        return event_bytes
+
+    line, in_event, after_cr = bytearray(), 0, False
+    for piece in pieces:
+        if not piece:
+            continue
+        if after_cr and piece.startswith(b"\n"):  # the LF of a CRLF split between pieces
+            piece = piece[1:]
+        after_cr = piece.endswith(b"\r")
+        *ended, rest = LINE_END.split(piece)
+        for part in ended:
+            line += part
+            in_event = bounded(in_event + len(line) + 1) if line else 0  # (its end, one byte or two)
+            yield line.decode("utf-8", "replace")
+            line = bytearray()
+        line += rest
+        bounded(in_event + len(line))
+    if line:
+        yield line.decode("utf-8", "replace")
+
+
 def _raise_for_error(response: httpx.Response, method: str, path: str, keyed: bool = False) -> None:
     """A ServiceError for an error ``response`` to ``method path``: its detail, and for a read or a request carrying
     an Idempotency-Key (``keyed``; the requests sent again) the ``Retry-After`` longer than this client waits."""
@@ -1067,13 +1103,18 @@ def parse_sse(lines) -> Iterator[dict]:
         [{'event': 'checkpoint', 'id': '7', 'data': {'iteration': 4}}, {'event': 'progress', 'id': None, 'data': {'state': 'running'}}]
     """
     fields: dict[str, str] = {}
+    data: list[str] = []  # an event's data lines, joined at its end (joined at each, an event of many had been slow)
     for line in lines:
         if line == "":
-            if "data" in fields:
+            if data:
+                fields["data"] = "\n".join(data)
                 yield {"event": fields.get("event", "message"), "id": fields.get("id"), "data": _json(fields)}
-            fields = {}
+            fields, data = {}, []
         elif not line.startswith(":"):
             name, _, value = line.partition(":")
             value = value[1:] if value.startswith(" ") else value
-            fields[name] = fields[name] + "\n" + value if name == "data" and name in fields else value
+            if name == "data":
+                data.append(value)
+            else:
+                fields[name] = value
 
