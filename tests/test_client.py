@@ -11,6 +11,7 @@ import json
 import re
 import subprocess
 import sys
+import zlib
 from pathlib import Path
 
 import httpx
@@ -1571,8 +1572,6 @@ def test_an_answer_or_error_page_is_read_up_to_its_limit_only(tmp_path):
 def _gzip_bomb(decoded_mib: int) -> bytes:
     """``decoded_mib`` MiB of zero bytes gzipped: about 1 KiB on the wire per MiB decoded (made in about 30 ms per
     MiB: once)."""
-    import zlib
-
     gzipper = zlib.compressobj(9, zlib.DEFLATED, zlib.MAX_WBITS | 16)
     return b"".join(gzipper.compress(bytes(2**20)) for _ in range(decoded_mib)) + gzipper.flush()
 
@@ -1658,7 +1657,6 @@ def test_an_answer_is_read_through_the_encodings_the_client_asks_for_and_no_othe
     in turn; another (brotli, which httpx had decoded whole where installed, else passed on undecoded to fail as
     not JSON) or one broken (httpx's DecodingError, a traceback in ``voxe``) is a ServiceError naming it."""
     import gzip
-    import zlib
 
     job = json.dumps({"id": "j1", "state": "running"}).encode()
     asked, answers = [], [({"content-encoding": "deflate, gzip"}, gzip.compress(zlib.compress(job))),
@@ -1677,6 +1675,74 @@ def test_an_answer_is_read_through_the_encodings_the_client_asks_for_and_no_othe
             with pytest.raises(ServiceError, match=rf"^GET /v1/jobs/j1: HTTP 200: {said}"):
                 client.get_job("j1")
     assert asked == ["gzip, deflate"] * 3
+
+
+def _encoded_answers(answers: list[tuple[int, dict, bytes]]):
+    """A MockTransport answer giving ``answers`` (status, headers, body) in turn, each body streamed a byte at a time
+    (read raw, as off a socket, not decoded by httpx already); the requests it got go to its ``asked``."""
+    asked = []
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        asked.append(request)
+        status, headers, body = answers.pop(0)
+        return httpx.Response(status, headers={"content-type": "application/json", **headers},
+                              content=iter([body[at:at + 1] for at in range(len(body))]))
+
+    answer.asked = asked
+    return answer
+
+
+def _deflated(data: bytes, wbits: int) -> bytes:
+    deflater = zlib.compressobj(6, zlib.DEFLATED, wbits)
+    return deflater.compress(data) + deflater.flush()
+
+
+JOB = json.dumps({"id": "j1", "state": "running"}).encode()
+
+
+@pytest.mark.parametrize("encoding, body", [
+    ("deflate", _deflated(JOB, -zlib.MAX_WBITS)), ("deflate", _deflated(JOB, zlib.MAX_WBITS)),
+    ("gzip,", _deflated(JOB, zlib.MAX_WBITS | 16)), ("", JOB), ("x-gzip", _deflated(JOB, zlib.MAX_WBITS | 16)),
+    ("identity, , GZip", _deflated(JOB, zlib.MAX_WBITS | 16)),
+], ids=["raw deflate", "zlib deflate", "an empty coding after gzip", "an empty header", "x-gzip", "identity then gzip"])
+def test_an_answer_is_decoded_as_httpx_decoded_it(encoding, body):
+    """Reading answers raw to inflate them a piece at a time had read less than httpx had: a raw deflate body (no zlib
+    wrapper, which servers and proxies send as deflate; httpx falls back to it) was called broken, and an empty coding
+    (``gzip,``, an empty header) or x-gzip (gzip, RFC 9110 8.4.1.3) one the client does not read."""
+    answer = _encoded_answers([(200, {"content-encoding": encoding}, body)])
+    with Client(transport=httpx.MockTransport(answer), retries=0) as client:
+        assert client.get_job("j1") == {"id": "j1", "state": "running"}
+
+
+@pytest.mark.parametrize("encoding, cut", [("gzip", _deflated(JOB, zlib.MAX_WBITS | 16)[:-8]),
+                                          ("deflate", _deflated(JOB, zlib.MAX_WBITS)[:-4]),
+                                          ("deflate", _deflated(JOB, -zlib.MAX_WBITS)[:-2]),
+                                          ("gzip", _deflated(JOB, zlib.MAX_WBITS | 16)[:1])],
+                         ids=["gzip without its trailer", "zlib deflate without its checksum", "raw deflate",
+                              "gzip's first byte"])
+def test_an_encoded_answer_cut_short_is_a_service_error(encoding, cut):
+    """A gzip or deflate body ending before its stream did (its checksum, at the end, never checked) had been read as
+    whole, the JSON in it taken: it is a ServiceError naming the encoding. An empty body (a 204's) is none."""
+    answer = _encoded_answers([(200, {"content-encoding": encoding}, cut), (204, {"content-encoding": encoding}, b"")])
+    with Client(transport=httpx.MockTransport(answer), retries=0) as client:
+        with pytest.raises(ServiceError, match=rf"^GET /v1/jobs/j1: HTTP 200: its answer's {encoding} encoding is "
+                                               r"broken \(cut short: the body ended before its stream did\)$"):
+            client.get_job("j1")
+        assert client.request("DELETE", "/v1/scenes/s1") is None
+
+
+def test_an_error_page_none_can_decode_still_says_its_status():
+    """An answer's body is read before its status decides whether it is sent again: an error page whose encoding
+    could not be undone (a proxy's broken one) had replaced its status with the encoding's error, a 503's retry
+    called off. It reads as empty: the 503 is sent again, and a 404's error is the 404's."""
+    broken, page = {"content-encoding": "deflate", "content-type": "text/html"}, b"<html>busy</html>"
+    answer = _encoded_answers([(503, {**broken, "retry-after": "0"}, page[:9]), (200, {}, JOB),
+                               (404, {"content-encoding": "br"}, page)])
+    with Client(transport=httpx.MockTransport(answer), retries=1) as client:
+        assert client.get_job("j1") == {"id": "j1", "state": "running"}
+        with pytest.raises(ServiceError, match=r"^GET /v1/jobs/j1: HTTP 404: Not Found$") as raised:
+            client.get_job("j1")
+    assert raised.value.status == 404 and len(answer.asked) == 3
 
 
 def test_a_download_stops_reading_a_body_longer_than_the_listed_size(tmp_path):

@@ -66,11 +66,12 @@ page, each a few KiB from the service (an artifact and an event stream are read 
 server's endless one had been buffered whole, gigabytes. Counted decoded (:func:`_decoded`): a gzip bomb, small on the
 wire, had been inflated whole past it."""
 MAX_EVENT_BYTES = 2**20
-"""The most bytes one Server-Sent Event (its lines from the last empty one with their ends, a comment's too) may run
+"""The most bytes one Server-Sent Event (its lines from the last empty one, each end counted one byte, a comment's too) may run
 to (:func:`_event_stream_lines`): the service's are a few KiB; a server's endless line, never ended by a newline, had
 been held whole."""
-ACCEPTED_ENCODINGS = {"gzip": zlib.MAX_WBITS | 16, "deflate": zlib.MAX_WBITS}
-"""The Content-Encodings the client reads (its ``Accept-Encoding``), each with zlib's ``wbits`` for its container."""
+ACCEPTED_ENCODINGS = ("gzip", "deflate")
+"""The Content-Encodings the client reads (its ``Accept-Encoding``; x-gzip is read as gzip, RFC 9110
+8.4.1.3)."""
 DECODED_PIECE_BYTES = 2**16
 """The most bytes :func:`_decoded` inflates at a time."""
 
@@ -109,6 +110,10 @@ class ServiceUnreachable(ServiceError):
 class EventStreamLost(ServiceUnreachable):
     """A job's event stream lost for longer than :meth:`Client.events` reconnects: the service stopped answering (the
     job itself goes on there)."""
+
+
+class UndecodableAnswer(ServiceError):
+    """An answer whose Content-Encoding this client cannot undo: one it does not read, or one broken or cut short."""
 
 
 def snapshot_number(value: Any, most: float = math.inf) -> float | None:
@@ -943,47 +948,63 @@ def _read_capped(response: httpx.Response, method: str, path: str) -> httpx.Resp
     read."""
     body = bytearray()
     with closing(response):
-        for piece in _decoded(response, method, path):
-            body += piece
-            if len(body) > MAX_ANSWER_BYTES:
-                raise ServiceError(f"{method} {path}: HTTP {response.status_code}: its answer runs over "
-                                   f"{MAX_ANSWER_BYTES // 2**20} MiB, the most this client reads of one (is it the "
-                                   "Vox-E service?)", response.status_code)
+        try:
+            for piece in _decoded(response, method, path):
+                body += piece
+                if len(body) > MAX_ANSWER_BYTES:
+                    raise ServiceError(f"{method} {path}: HTTP {response.status_code}: its answer runs over "
+                                       f"{MAX_ANSWER_BYTES // 2**20} MiB, the most this client reads of one (is it "
+                                       "the Vox-E service?)", response.status_code)
+        except UndecodableAnswer:
+            if not response.is_error:
+                raise
+            body.clear()  # an error page none can read: its status still says what to do (a 503's retry)
     headers = [(name, value) for name, value in response.headers.multi_items() if name != "content-encoding"]
     return httpx.Response(response.status_code, headers=headers, content=bytes(body), request=response.request,
                           extensions=response.extensions)  # (decoded already: not again)
+
+
+def _content_codings(response: httpx.Response) -> list[str]:
+    """The codings ``response``'s Content-Encoding names, in the order they were applied, lower-cased, x-gzip as gzip
+    (RFC 9110 8.4.1.3); identity and empty ones (``gzip,``, an empty header) left out, as httpx did."""
+    named = (coding.strip().lower() for coding in response.headers.get_list("content-encoding", split_commas=True))
+    return ["gzip" if coding == "x-gzip" else coding for coding in named if coding not in ("", "identity")]
 
 
 def _decoded(response: httpx.Response, method: str, path: str) -> Iterator[bytes]:
     """The body of ``response`` (to ``method path``, streamed) as it is read, its Content-Encoding undone
     (:data:`ACCEPTED_ENCODINGS`, several in turn) in pieces of at most :data:`DECODED_PIECE_BYTES`, so that a cap on
     what a reader holds holds on the bytes decoded: httpx's decoder inflates each chunk read whole, a gzip bomb's 64
-    KiB, the most one read takes, 64 MiB at once. Another encoding, or one broken, is a ServiceError naming it."""
+    KiB, the most one read takes, 64 MiB at once. Another encoding, or one broken or cut short, is an
+    UndecodableAnswer naming it."""
     said = f"{method} {path}: HTTP {response.status_code}"
     if response.is_stream_consumed:  # an answer made in memory (httpx.MockTransport's), decoded already
         yield response.content
         return
-    pieces, codings = response.iter_raw(), []
-    for coding in reversed(response.headers.get_list("content-encoding", split_commas=True)):
-        coding = coding.strip().lower()
-        if coding in ACCEPTED_ENCODINGS:
-            pieces = _inflated(pieces, ACCEPTED_ENCODINGS[coding])
-            codings.append(coding)
-        elif coding != "identity":
-            raise ServiceError(f"{said}: its answer is encoded as {coding!r}, which this client does not read (it "
-                               f"asks for {', '.join(ACCEPTED_ENCODINGS)})", response.status_code)
+    pieces, codings = response.iter_raw(), _content_codings(response)
+    for coding in reversed(codings):
+        if coding not in ACCEPTED_ENCODINGS:
+            raise UndecodableAnswer(f"{said}: its answer is encoded as {coding!r}, which this client does not read "
+                                    f"(it asks for {', '.join(ACCEPTED_ENCODINGS)})", response.status_code)
+        pieces = _inflated(pieces, coding)
     try:
         yield from pieces
     except zlib.error as exc:
-        raise ServiceError(f"{said}: its answer's {' then '.join(codings)} encoding is broken ({exc})",
-                           response.status_code) from None
+        raise UndecodableAnswer(f"{said}: its answer's {' then '.join(reversed(codings))} encoding is broken ({exc})",
+                                response.status_code) from None
 
 
-def _inflated(pieces: Iterator[bytes], wbits: int) -> Iterator[bytes]:
-    """``pieces`` inflated (zlib's ``wbits`` name their container) in pieces of at most :data:`DECODED_PIECE_BYTES`:
-    the rest of a piece waits in the inflater until the one before is taken."""
-    inflater = zlib.decompressobj(wbits)
-    for piece in pieces:
+def _inflated(pieces: Iterator[bytes], coding: str) -> Iterator[bytes]:
+    """``pieces`` inflated from ``coding`` (gzip or deflate) in pieces of at most :data:`DECODED_PIECE_BYTES`: the
+    rest of a piece waits in the inflater until the one before is taken. A zlib.error where they end before their
+    stream does (cut short: its checksum, at the end, had never been checked); an empty body is no stream."""
+    pieces, head = iter(pieces), b""
+    while len(head) < 2 and (piece := next(pieces, None)) is not None:  # what a deflate body is wrapped in
+        head += piece
+    if not head:
+        return
+    inflater = zlib.decompressobj(zlib.MAX_WBITS | 16 if coding == "gzip" else _deflate_wbits(head))
+    for piece in itertools.chain([head], pieces):
         while True:
             out = inflater.decompress(piece, DECODED_PIECE_BYTES)
             if out:
@@ -991,6 +1012,16 @@ def _inflated(pieces: Iterator[bytes], wbits: int) -> Iterator[bytes]:
             piece = inflater.unconsumed_tail
             if not piece and len(out) < DECODED_PIECE_BYTES:  # all of it taken in and given out
                 break
+    if not inflater.eof:
+        raise zlib.error("cut short: the body ended before its stream did")
+
+
+def _deflate_wbits(head: bytes) -> int:
+    """zlib's ``wbits`` for a deflate body starting with ``head``: the zlib container (RFC 9110's deflate) where its
+    first two bytes are that container's header, else raw deflate, which some servers and proxies send (httpx reads
+    both; only the zlib one had been read)."""
+    zlib_header = len(head) >= 2 and head[0] & 0x0F == 8 and head[0] >> 4 <= 7 and (head[0] << 8 | head[1]) % 31 == 0
+    return zlib.MAX_WBITS if zlib_header else -zlib.MAX_WBITS
 
 
 LINE_END = re.compile(rb"\r\n|\r|\n")
@@ -1015,7 +1046,7 @@ def _event_stream_lines(pieces: Iterator[bytes]) -> Iterator[str]:
         *ended, rest = LINE_END.split(piece)
         for part in ended:
             line += part
-            in_event = bounded(in_event + len(line) + 1) if line else 0  # (its end, one byte or two)
+            in_event = bounded(in_event + len(line) + 1) if line else 0  # (its end counted one byte, a CRLF too)
             yield line.decode("utf-8", "replace")
             line = bytearray()
         line += rest
