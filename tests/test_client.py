@@ -1745,6 +1745,31 @@ def test_an_error_page_none_can_decode_still_says_its_status():
     assert raised.value.status == 404 and len(answer.asked) == 3
 
 
+def test_a_download_asks_for_the_artifact_unencoded_and_refuses_an_encoded_answer(tmp_path):
+    """An artifact was read through httpx's decoder, which inflates each chunk whole, and asked for gzip: a 64 KiB
+    gzip bomb took 141 MiB (a ``gzip, gzip`` one of 1.8 KiB, 2 GiB) and wrote its 64 MiB to the part file, past the
+    1 MiB listed, before the check. A Range counts an encoded body's bytes, no offset into the file: the artifact is
+    asked for unencoded (``Accept-Encoding: identity``) and an encoded answer is a ServiceError naming its encoding,
+    nothing written."""
+    import tracemalloc
+
+    bomb = httpx.Response(200, headers={"content-encoding": "gzip"}, content=iter([_gzip_bomb(64)]))
+    asked = []
+    answer = _serving(bytes(2**20), refuse=lambda request: asked.append(request.headers["accept-encoding"]) or bomb)
+    with Client(transport=httpx.MockTransport(answer), retries=0) as client:
+        tracemalloc.start()
+        try:
+            with pytest.raises(ServiceError, match=r"^GET /v1/jobs/j1/artifacts/a.bin: answered 200 encoded as gzip, "
+                                                   r"not the artifact's own bytes this client asks for "
+                                                   r"\(Accept-Encoding: identity\)$"):
+                client.download("j1", "a.bin", tmp_path / "a.bin")
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+    assert asked == ["identity"] and list(tmp_path.iterdir()) == []
+    assert peak < 4 * 2**20, f"{peak / 2**20:.1f} MiB taken"
+
+
 def test_a_download_stops_reading_a_body_longer_than_the_listed_size(tmp_path):
     """A body going on past the size the listing gives (a broken proxy's or a hostile service's endless one) had
     been written to the part file to its end, however long (the disk filled) before the check refused it: reading

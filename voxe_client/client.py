@@ -70,8 +70,12 @@ MAX_EVENT_BYTES = 2**20
 to (:func:`_event_stream_lines`): the service's are a few KiB; a server's endless line, never ended by a newline, had
 been held whole."""
 ACCEPTED_ENCODINGS = ("gzip", "deflate")
-"""The Content-Encodings the client reads (its ``Accept-Encoding``; x-gzip is read as gzip, RFC 9110
-8.4.1.3)."""
+"""The Content-Encodings the client reads (its ``Accept-Encoding``; x-gzip is read as gzip, RFC 9110 8.4.1.3), but
+for an artifact, asked unencoded (:meth:`Client._fill_part`)."""
+UNENCODED = {"accept-encoding": "identity"}
+"""The ``Accept-Encoding`` of an artifact's GET: a Range counts the bytes of the body as sent, and of an encoded one
+they are no offset into the file; the client refuses an encoded answer (a gzip bomb of GiB, inflated a chunk at a
+time into the part file, had been written past its listed size before the check)."""
 DECODED_PIECE_BYTES = 2**16
 """The most bytes :func:`_decoded` inflates at a time."""
 
@@ -539,7 +543,7 @@ class Client:
                 had = size
                 resume = {"range": f"bytes={size}-", "if-range": f'"{expected["sha256"]}"'} if size else {}
                 try:
-                    with closing(self._send("GET", path, stream=True, headers=resume,
+                    with closing(self._send("GET", path, stream=True, headers={**resume, **UNENCODED},
                                             resend_dropped=False)) as response:
                         if response.status_code == httpx.codes.REQUESTED_RANGE_NOT_SATISFIABLE and kept and \
                                 0 < size == earlier:
@@ -548,6 +552,10 @@ class Client:
                             continue
                         if response.is_error:
                             _raise_for_error(_read_capped(response, "GET", path), "GET", path)
+                        if codings := _content_codings(response):
+                            raise ServiceError(f"GET {path}: answered {response.status_code} encoded as "
+                                               f"{', '.join(codings)}, not the artifact's own bytes this client asks "
+                                               "for (Accept-Encoding: identity)", response.status_code)
                         start = _range_start(response, size)
                         if start == 0:  # the whole file, from its start
                             out.truncate(0)
