@@ -1628,8 +1628,8 @@ def test_a_gzip_encoded_event_stream_is_read_event_by_event():
 def test_an_event_stream_stops_reading_an_event_past_its_limit(head, endless):
     """The event stream's lines were read by httpx's ``iter_lines``, which holds a line until its newline: a server
     sending one never ended (or an event whose data lines no empty one ends, joined as they came) had the client hold
-    all of it, for good. Reading stops at the first piece past MAX_EVENT_BYTES, a ServiceError naming that limit, an event before it
-    still heard."""
+    all of it, for good. Reading stops at the first piece past MAX_EVENT_BYTES, a ServiceError naming that limit, an
+    event before it still heard."""
     from voxe_client.client import MAX_EVENT_BYTES
 
     pulled = []

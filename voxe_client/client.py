@@ -66,9 +66,9 @@ page, each a few KiB from the service (an artifact and an event stream are read 
 server's endless one had been buffered whole, gigabytes. Counted decoded (:func:`_decoded`): a gzip bomb, small on the
 wire, had been inflated whole past it."""
 MAX_EVENT_BYTES = 2**20
-"""The most bytes one Server-Sent Event (its lines from the last empty one, each end counted one byte, a comment's too) may run
-to (:func:`_event_stream_lines`): the service's are a few KiB; a server's endless line, never ended by a newline, had
-been held whole."""
+"""The most bytes one Server-Sent Event (its lines from the last empty one, each end counted one byte, a comment's
+too) may run to (:func:`_event_stream_lines`): the service's are a few KiB; a server's endless line, never ended by a
+newline, had been held whole."""
 ACCEPTED_ENCODINGS = ("gzip", "deflate")
 """The Content-Encodings the client reads (its ``Accept-Encoding``; x-gzip is read as gzip, RFC 9110 8.4.1.3), but
 for an artifact, asked unencoded (:meth:`Client._fill_part`)."""
