@@ -1622,6 +1622,27 @@ def test_a_gzip_encoded_event_stream_is_read_event_by_event():
                       {"event": "progress", "id": None, "data": {"state": "succeeded"}}]
 
 
+def test_a_gzip_event_stream_cut_short_after_the_job_ended_ends_it_as_the_service_would():
+    """The check that an encoded body is not cut short (its checksum, at its end) failed a job's events whose
+    stream, gzipped by a proxy, was cut short after the job's end and its last snapshot: the events were all read, the
+    job ended. Cut short before the job's end, it is still the error."""
+    import gzip
+
+    from service_helpers import answering
+
+    ended = (b'id: 1\nevent: stage_started\ndata: {"stage": "edit"}\n\nid: 2\nevent: succeeded\ndata: {}\n\n'
+             b'event: progress\ndata: {"state": "succeeded"}\n\n')
+    for stream, said in ((ended, None), (ended.split(b"id: 2")[0], "its answer's gzip encoding is broken")):
+        with answering(gzip.compress(stream)[:-8], {"content-type": "text/event-stream",
+                                                    "content-encoding": "gzip"}) as url:
+            with Client(url, retries=0) as client:
+                if said is None:
+                    assert [event["event"] for event in client.events("j1")] == ["stage_started", "succeeded",
+                                                                                 "progress"]
+                else:
+                    with pytest.raises(ServiceError, match=said):
+                        list(client.events("j1", reconnect_for=0))
+
 @pytest.mark.parametrize("head, endless", [(b"data: ", b"x" * 2**16),
                                            (b"event: checkpoint\n", b"data: " + b"x" * (2**16 - 7) + b"\n")],
                          ids=["a line never ended", "an event never ended"])

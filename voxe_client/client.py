@@ -395,13 +395,17 @@ class Client:
                                          f"{time.monotonic() - lost_since:.0f} s")
                         opened, ended, reconnecting = True, False, False
                         lines = _event_stream_lines(_decoded(response, "GET", path))
-                        for event in _job_events(parse_sse(alive(lines)), job_id):
-                            if event["id"] is not None:
-                                last_event_id = int(event["id"])
-                            if event["event"] == "progress":
-                                progress = event["data"]
-                            ended = ended or _ends_job(event)
-                            yield event
+                        try:
+                            for event in _job_events(parse_sse(alive(lines)), job_id):
+                                if event["id"] is not None:
+                                    last_event_id = int(event["id"])
+                                if event["event"] == "progress":
+                                    progress = event["data"]
+                                ended = ended or _ends_job(event)
+                                yield event
+                        except UndecodableAnswer:
+                            if not ended:  # (the job's end heard: a tail cut short or broken loses nothing)
+                                raise
                         if ended:
                             return
                         lost = "the server ended the stream before the job ended"
