@@ -37,7 +37,7 @@ from voxe_core.grid import VoxelGrid
 from voxe_core.guidance.attention import AttentionStore, CrossAttentionCapture
 from voxe_core.guidance.sds import StableDiffusionGuidance
 from voxe_core.losses import correlation_loss, correlation_loss_plus_rgb
-from voxe_core.reconstruct import ReconstructConfig, reconstruct
+from voxe_core.reconstruct import ReconstructConfig, make_optimizer, reconstruct, train_step
 from voxe_core.refine.config import RefineConfig, SegmentationError
 from voxe_core.refine.cut import graph_cut, graph_cut_detailed, node_mask, probabilities
 from voxe_core.refine.lifting import fit_attention_grids
@@ -346,14 +346,22 @@ TINY_FIT = dict(resolutions=(8,), iterations=(40,), image_downsample=(1,), rays_
 
 @case("reconstruct/all-white-images-object-absent", "exact")
 def _(fx):
-    # density dies after a few steps, then batches sample nothing (regression: backward on a loss
-    # without a graph crashed); the fit must stay finite and render white
+    # density dies after a few steps and the fit stops there (no later step has a gradient); a step on the dead grid
+    # samples nothing and leaves it as it was (regression: backward on a loss without a graph crashed); the fit must
+    # stay finite and render white
     cams = hemisphere_cameras(3, 12)
-    grid = reconstruct(torch.ones(3, 12, 12, 3), cams, ReconstructConfig(**TINY_FIT))
+    config = ReconstructConfig(**TINY_FIT)
+    grid = reconstruct(torch.ones(3, 12, 12, 3), cams, config)
     assert torch.isfinite(grid.features).all()
     renders = torch.stack([render_image(grid, cams, i).rgb for i in range(3)])
+    fitted = grid.features.detach().clone()
+    origins, directions = camera_rays(cams, 0)
+    rays = (origins[None], directions[None], renders[0].view(1, -1, 3))
+    train_step(grid, make_optimizer(grid, config, config.lr), rays, config, grid.occupancy(),
+               torch.Generator().manual_seed(0))
     return [("renders are white", renders, torch.ones_like(renders), 1e-6),
-            ("no occupied cell left", torch.tensor(grid.occupancy().fraction), torch.tensor(0.0), 0.0)]
+            ("no occupied cell left", torch.tensor(grid.occupancy().fraction), torch.tensor(0.0), 0.0),
+            ("a step that samples nothing changes nothing", grid.features.detach(), fitted, 0.0)]
 
 
 @case("reconstruct/single-view", "finite")

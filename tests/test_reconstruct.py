@@ -524,8 +524,8 @@ def faint_blob(resolution: int = 12) -> VoxelGrid:
 
 def test_a_fit_from_or_ending_with_no_density_its_renders_sample_is_refused_or_said():
     """A fit from a transparent ReLU field has no gradient (refused before its first step, init_density named only
-    where it made the grid); one that ends transparent (white views on white) is said through the callbacks'
-    warning, as the edit of it is refused."""
+    where it made the grid); one that ends transparent (white views on white: its second and last step fits the
+    blob away) is said through the callbacks' warning, as the edit of it is refused."""
     images, cams = synthetic_views()
     reports = []
     with pytest.raises(ValueError, match=r"the fit's initial grid has no density its renders sample \(a ReLU field "
@@ -537,7 +537,7 @@ def test_a_fit_from_or_ending_with_no_density_its_renders_sample_is_refused_or_s
     assert "init_density" not in str(given.value)
     assert reports == []
     said = []
-    reconstruct(torch.ones_like(images), cams, tiny_config(resolutions=(12,), iterations=(30,), image_downsample=(1,)),
+    reconstruct(torch.ones_like(images), cams, tiny_config(resolutions=(12,), iterations=(2,), image_downsample=(1,)),
                 Callbacks(on_warning=lambda stage, text: said.append((stage, text))), initial_grid=faint_blob())
     assert said == [("reconstruct", TRANSPARENT)]
     said.clear()
@@ -546,17 +546,47 @@ def test_a_fit_from_or_ending_with_no_density_its_renders_sample_is_refused_or_s
     assert said == []
 
 
-def test_a_fit_turned_transparent_stops_at_the_next_stage_start():
-    """Once its steps have fitted every density away, no later step has a gradient: the fit stops at the next
-    stage's start (the remaining stages are the finest, the dearest) and says so, its grid at the final
-    resolution."""
+def fit_white_views_from_a_faint_blob(iterations: tuple[int, ...]) -> tuple[VoxelGrid, list[int], list[str]]:
+    """A 12³ -> 24³ -> 32³ fit of white views from :func:`faint_blob`, whose second step fits its density away: the
+    grid, the steps it reported (of 60) and its warnings."""
     images, cams = synthetic_views()
     reports, said = [], []
-    config = tiny_config(resolutions=(12, 24, 32), iterations=(30, 15, 15), image_downsample=(1, 1, 1))
+    config = tiny_config(resolutions=(12, 24, 32), iterations=iterations, image_downsample=(1, 1, 1))
     grid = reconstruct(torch.ones_like(images), cams, config,
                        Callbacks(on_progress=reports.append, on_warning=lambda stage, text: said.append(text)),
                        initial_grid=faint_blob())
-    assert [(report.iteration, report.total) for report in reports] == [(i, 60) for i in range(1, 31)]
-    assert said == [TRANSPARENT + " (stopped at stage 2 of 3: none of the steps left would have had a "
-                    "gradient)"]
+    assert {report.total for report in reports} == {sum(iterations)}
     assert grid.resolution == (32, 32, 32) and renders_nothing(grid, config.render)
+    return grid, [report.iteration for report in reports], said
+
+
+def test_a_fit_turned_transparent_stops_at_the_next_stage_start():
+    """Once its steps have fitted every density away, no later step has a gradient: a fit whose stage ends so stops
+    at the next stage's start (the remaining stages are the finest, the dearest) and says so, its grid at the final
+    resolution."""
+    grid, steps, said = fit_white_views_from_a_faint_blob(iterations=(2, 29, 29))
+    assert steps == [1, 2]
+    assert said == [TRANSPARENT + " (stopped at stage 2 of 3: none of the steps left would have had a gradient)"]
+
+
+def test_a_fit_turned_transparent_mid_stage_stops_at_the_step_that_finds_it():
+    """Nor does the rest of the stage it turns so in: the first step whose batch renders nothing (its second step
+    fits the blob away, so its third renders nothing) finds the grid transparent and the fit stops there, 27 steps
+    before its first stage's end, and says where."""
+    grid, steps, said = fit_white_views_from_a_faint_blob(iterations=(30, 15, 15))
+    assert steps == [1, 2, 3]
+    assert said == [TRANSPARENT + " (stopped at stage 1 of 3, after 3 of its 30 steps: none of the steps left would "
+                    "have had a gradient)"]
+
+
+def test_a_fit_turned_transparent_while_averaging_its_iterates_runs_its_stage_out():
+    """An averaged stage's steps left weigh on the grid it returns, the mean of its iterates (stopped at its third
+    step, the mean of three had kept some of the blob's density): it runs to its end."""
+    images, cams = synthetic_views()
+    reports, said = [], []
+    config = tiny_config(resolutions=(12,), iterations=(30,), image_downsample=(1,), average_from=0.0,
+                         average_every=1)
+    grid = reconstruct(torch.ones_like(images), cams, config,
+                       Callbacks(on_progress=reports.append, on_warning=lambda stage, text: said.append(text)),
+                       initial_grid=faint_blob())
+    assert len(reports) == 30 and said == [TRANSPARENT] and renders_nothing(grid, config.render)

@@ -640,17 +640,18 @@ def reconstruct(
 
     total = config.total_iterations
     done = last_checkpoint = sum(config.iterations[:start_stage]) + start_iteration
+    # A fit turned transparent (the fast preset on few views can drive every density below zero in its first coarse
+    # steps) had run the rest of its stage and every later stage, the finest and dearest, with no gradient: it stops
+    # at the stage start or the step that finds it so, (stage, steps of it run), its grid at the final resolution
+    # as the steps left would have returned it.
     stopped_at = None
     for stage in range(start_stage, len(config.resolutions)):
         if grid.resolution != (config.resolutions[stage],) * 3:  # (a resumed grid is at its stage's: _resume)
             grid = grid.upsampled(config.resolutions[stage])
-        # A fit turned transparent (the fast preset on few views can drive every density below zero in its first
-        # coarse steps) had run every later stage, the finest and dearest, with no gradient: it stops here, its
-        # grid at the final resolution, as the steps left would have returned it. (The first stage run is the fit's
-        # start, checked above before the grid went to its device; a resumed stage goes on as it was.)
+        # (The first stage run is the fit's start, checked above before the grid went to its device; a resumed stage
+        # goes on as it was.)
         if stage > start_stage and renders_nothing(grid, config.render):
-            grid = grid.upsampled(config.resolutions[-1])
-            stopped_at = stage
+            stopped_at = (stage, 0)
             break
         optimizer = make_optimizer(grid, config, _learning_rate(config, stage, 0))
         average = _IterateAverage(config, stage)
@@ -685,10 +686,24 @@ def reconstruct(
             if checkpoint_path is not None and config.checkpoint_every and done % config.checkpoint_every == 0:
                 checkpoint(stage, iteration + 1)
                 last_checkpoint = done
+            # Within a stage, looked at only when the batch rendered nothing at all (a read of its opacity the
+            # step's progress has already waited for; a full-grid check then), and not once the stage's iterates
+            # are averaged: the steps left would still have weighed on the grid it returns.
+            if not average.count and not bool(out.opacity.any()) and renders_nothing(grid, config.render):
+                stopped_at = (stage, iteration + 1)
+                break
+        if stopped_at is not None:
+            break
         average.finish(grid)
+    if stopped_at is not None and grid.resolution != (config.resolutions[-1],) * 3:
+        grid = grid.upsampled(config.resolutions[-1])
     if stopped_at is not None or renders_nothing(grid, config.render):  # its edit refuses it: said where it ran
-        stopped = ("" if stopped_at is None else f" (stopped at stage {stopped_at + 1} of "
-                   f"{len(config.resolutions)}: none of the steps left would have had a gradient)")
+        stopped = ""
+        if stopped_at is not None:
+            stopped_stage, steps = stopped_at
+            within = f", after {steps} of its {config.iterations[stopped_stage]} steps" if steps else ""
+            stopped = (f" (stopped at stage {stopped_stage + 1} of {len(config.resolutions)}{within}: none of the "
+                       "steps left would have had a gradient)")
         callbacks.warning("reconstruct", "the fit ends with no density its renders sample (no positive density "
                           "anywhere, or none above the render's sigma_threshold): the reconstruction is transparent, "
                           "every render of it the background (views that show nothing but the background, or a fit "
