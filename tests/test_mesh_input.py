@@ -26,7 +26,7 @@ from voxe_core.mesh_input import (
     DEFAULT_ALBEDO, SHADING_AMBIENT, SHADING_LIGHT, VIEW_RADIUS, MeshError, SurfaceMesh, VoxelizeConfig,
     chamfer_distance, hemisphere_cameras, load_mesh, rasterize, render_mesh_views, sample_texture, shade_mesh, voxelize,
 )
-from voxe_core.ply_header import read_ply_header
+from voxe_core.ply_header import PROPERTY_TYPES, read_ply_header
 from voxe_core.reconstruct import ReconstructConfig, reconstruct
 from voxe_core.render import render_image
 
@@ -697,6 +697,16 @@ _TETRAHEDRON_BINARY = (_TETRAHEDRON.split("end_header\n")[0].replace("ascii", "b
                                   for face in ([0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3])))
 
 
+def _binary_tetrahedron_counted(count_type: str, first_count: bytes) -> bytes:
+    """The binary tetrahedron with its faces' list lengths of ``count_type`` (the other faces' 3) and its first face's
+    length the bytes ``first_count``."""
+    header, body = _TETRAHEDRON_BINARY.split(b"end_header\n")
+    three = np.array([3], PROPERTY_TYPES[count_type]).tobytes()
+    faces = [np.array(face, "<i4").tobytes() for face in ([0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3])]
+    return (header.replace(b"list uchar", f"list {count_type}".encode()) + b"end_header\n" + body[:48]
+            + first_count + faces[0] + b"".join(three + face for face in faces[1:]))
+
+
 @pytest.mark.parametrize("data, message", [
     (_TETRAHEDRON.replace("end_header\n", ""),  # trimesh: "list index out of range"
      "its header has no end_header line: it is truncated, or not a PLY file"),
@@ -728,6 +738,15 @@ _TETRAHEDRON_BINARY = (_TETRAHEDRON.split("end_header\n")[0].replace("ascii", "b
     (_TETRAHEDRON_BINARY[:-13] + b"\x04" + np.array([0, 1, 2, 3], "<i4").tobytes(),  # (one as long: a wrong mesh)
      "its face element 4 holds a list of 4 where the first holds 3: the loader reads a binary PLY's lists all as "
      "long as the first (save it as ASCII, or its faces all of one size)"),
+    # numpy's reading of the rows had failed: "invalid shape in fixed-type tuple: dimension smaller then zero"
+    (_binary_tetrahedron_counted("char", b"\xff"), "its face element 1: a list's length, -1, is not a count"),
+    (_binary_tetrahedron_counted("float", np.array([np.nan], "<f4").tobytes()),  # "cannot convert float NaN to ..."
+     "its face element 1: a list's length, nan, is not a count"),
+    (_binary_tetrahedron_counted("float", np.array([2.5], "<f4").tobytes()),  # (had been read as 2)
+     "its face element 1: a list's length, 2.5, is not a count"),
+    (_binary_tetrahedron_counted("uint", np.array([4_000_000_000], "<u4").tobytes()),  # "dimension does not fit ..."
+     "its face element 1: a list's length, 4000000000, runs past the end of its body (room for 15 items): it is "
+     "truncated, or that length is damaged"),
 ])
 def test_a_malformed_ply_is_refused_saying_what_in_it_is_wrong(tmp_path, data, message):
     """trimesh had failed in words of its own (in the comments), or loaded the mesh short of a face."""

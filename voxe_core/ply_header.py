@@ -168,6 +168,9 @@ def _binary_body_fault(body: bytes, elements: list, endian: str) -> str | None:
                 first = np.frombuffer(body[offset:offset + np.dtype(fields[-1][1]).itemsize], dtype=fields[-1][1])
                 if not len(first):
                     break  # the body ends there
+                items_left = (len(body) - offset - first.itemsize) // np.dtype(PROPERTY_TYPES[types[1]]).itemsize
+                if fault := _list_length_fault(first[0].item(), items_left, name):
+                    return fault
                 lengths[f"{index}"] = int(first[0])
                 fields.append((f"{index} items", endian + PROPERTY_TYPES[types[1]], (lengths[f"{index}"],)))
         row = np.dtype(fields)
@@ -184,6 +187,19 @@ def _binary_body_fault(body: bytes, elements: list, endian: str) -> str | None:
     if len(body) > start:
         return (f"its body holds {len(body) - start} bytes past its elements' last ({elements[-1][0]} "
                 f"{elements[-1][1]}): its header understates a count, or something was appended")
+    return None
+
+
+def _list_length_fault(length: int | float, items_left: int, name: str) -> str | None:
+    """What is wrong with the length ``length`` of a list in a binary body's first ``name`` element, with room for
+    ``items_left`` items after it, or None. A negative, fractional or NaN length (a signed or float count type), or
+    one past the end of the body, had failed numpy's reading of the rows in words of its own ("invalid shape in
+    fixed-type tuple: dimension smaller then zero", "cannot convert float NaN to integer"), not a ``MeshError``."""
+    if not (length >= 0 and float(length).is_integer()):  # (NaN fails both)
+        return f"its {name} element 1: a list's length, {length!r}, is not a count"
+    if length > items_left:
+        return (f"its {name} element 1: a list's length, {int(length)}, runs past the end of its body (room for "
+                f"{items_left} items): it is truncated, or that length is damaged")
     return None
 
 
