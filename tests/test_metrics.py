@@ -99,6 +99,22 @@ def test_ssim_uses_per_channel_statistics():
     assert ssim(a, swapped) < 0.9
 
 
+def test_uint8_images_are_8_bit_pixels_whose_255_is_the_peak():
+    """Read with the default peak of 1 they had been values up to 255: black against white scored -48 dB."""
+    black, white = torch.zeros(12, 12, 3, dtype=torch.uint8), torch.full((12, 12, 3), 255, dtype=torch.uint8)
+    assert psnr(black, white) == pytest.approx(0.0, abs=1e-6)  # MSE 1 on a peak of 1
+    pixels = (smooth_noise(16, 20, 4) * 255).round().to(torch.uint8)
+    other = (smooth_noise(16, 20, 5) * 255).round().to(torch.uint8)
+    as_floats = pixels.double() / 255, other.double() / 255
+    assert psnr(pixels, other) == pytest.approx(psnr(*as_floats), abs=1e-4)
+    assert psnr(pixels, as_floats[1]) == pytest.approx(psnr(*as_floats), abs=1e-4)  # one of each
+    assert psnr(pixels, other, max_val=255.0) == pytest.approx(psnr(*as_floats), abs=1e-4)  # 255 on a peak of 255
+    assert ssim(pixels, other) == pytest.approx(ssim(*as_floats), abs=1e-6)
+    assert ssim(pixels, other, data_range=255.0) == pytest.approx(ssim(*as_floats), abs=1e-6)
+    with pytest.raises(ValueError, match="int32"):
+        psnr(pixels.int(), other.int())
+
+
 def test_metric_input_errors():
     with pytest.raises(ValueError, match="shape"):
         psnr(torch.zeros(4, 4, 3), torch.zeros(4, 5, 3))

@@ -1,6 +1,8 @@
 """Image-quality metrics for renders against reference views: PSNR and SSIM.
 
-Images are float tensors (..., H, W, 3) in [0, 1] (any channel count works).
+Images are float tensors (..., H, W, 3) in [0, 1] (any channel count works), or uint8 pixels, 255 standing for
+``max_val`` / ``data_range`` (as every other reader of images here takes them: ``export.to_uint8``, the evaluation's
+scorers).
 A single pair (H, W, C) gives a Python float; a batch (N, ..., H, W, C) gives a
 tensor with one value per image. SSIM is the standard one of Wang et al. 2004
 as scikit-image computes it with ``gaussian_weights=True, sigma=1.5,
@@ -28,13 +30,23 @@ PSNR_CAP_DB = 100.0
 JSON, which has no infinity)."""
 
 
-def _as_pair(a, b) -> tuple[torch.Tensor, torch.Tensor]:
-    a, b = torch.as_tensor(a), torch.as_tensor(b)
+def _as_pair(a, b, peak: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The images as floats on one device, uint8 pixels scaled so 255 is ``peak`` (8-bit pixels read with the default
+    peak of 1 had been compared as values up to 255: two uint8 images, black and white, scored -48 dB)."""
+    a, b = _on_scale(torch.as_tensor(a), peak), _on_scale(torch.as_tensor(b), peak)
     if a.shape != b.shape:
         raise ValueError(f"images differ in shape: {tuple(a.shape)} vs {tuple(b.shape)}")
     if a.dim() < 3:
         raise ValueError(f"expected images shaped (..., H, W, C), got {tuple(a.shape)}")
     return a, b.to(a.device)
+
+
+def _on_scale(image: torch.Tensor, peak: float) -> torch.Tensor:
+    if image.dtype == torch.uint8:
+        return image.double() * (peak / 255.0)
+    if not image.is_floating_point():
+        raise ValueError(f"images are floats or uint8 pixels, got {image.dtype}, which says no scale")
+    return image
 
 
 def _keep_mask(keep, a: torch.Tensor) -> torch.Tensor | None:
@@ -63,7 +75,7 @@ def psnr(a, b, max_val: float = 1.0, keep=None):
 
     (H, W, C) -> float; (..., H, W, C) -> tensor of shape (...). Identical images give inf.
     """
-    a, b = _as_pair(a, b)
+    a, b = _as_pair(a, b, max_val)
     keep = _keep_mask(keep, a)
     diff = a.double() - b.double()
     mse = _masked_mean(diff.square().mean(-1), keep)
@@ -84,7 +96,7 @@ def ssim(a, b, data_range: float = 1.0, keep=None):
     (H, W, C) -> float; (..., H, W, C) -> tensor of shape (...). Images must be
     at least 11 pixels on each side. ``keep``: average only over windows lying wholly in it.
     """
-    a, b = _as_pair(a, b)
+    a, b = _as_pair(a, b, data_range)
     keep = _keep_mask(keep, a)
     *batch, h, w, c = a.shape
     if h < SSIM_WINDOW or w < SSIM_WINDOW:
