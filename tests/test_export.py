@@ -462,6 +462,23 @@ def test_sphere_mesh_radius_colour_and_closure(sphere_grid):
     assert mesh.volume == pytest.approx(4 / 3 * math.pi * R**3, rel=0.12)
 
 
+@pytest.mark.parametrize("resolution", [None, 45])
+def test_mesh_colours_are_the_renders_not_those_of_the_empty_vertices_outside(make_sphere_grid, resolution):
+    """A red ball whose empty vertices outside are grey (raw colour 0, where a fit starts them): on the level set the
+    colour had been interpolated with theirs, so the mesh came out a pinkish grey (about 146, 109, 109 to 175, 80, 80)
+    where its renders show red (a median of about 239, 16, 16 over the ball's opaque pixels)."""
+    grid = make_sphere_grid()
+    with torch.no_grad():
+        outside = grid.features[..., 0] <= 0
+        grid.features[..., 1:][outside] = 0.0  # sigmoid: 0.5, grey
+    cameras = turntable_cameras(2, 30.0, 64)
+    renders = [render_image(grid, cameras, i, RenderConfig()) for i in range(len(cameras))]
+    shown = np.concatenate([to_uint8(render.rgb[render.opacity > 0.999]) for render in renders]).astype(int)
+    colours = extract_mesh(grid, resolution=resolution).visual.vertex_colors[:, :3].astype(int)
+    assert np.abs(np.median(colours, 0) - np.median(shown, 0)).max() <= 6
+    assert colours[:, 0].min() >= shown[:, 0].min() - 5 and colours[:, 1:].max() <= shown[:, 1:].max() + 5
+
+
 def test_off_centre_sphere_lands_in_the_right_world_place(make_sphere_grid):
     centre = np.array([0.45, -0.3, 0.2])
     grid = make_sphere_grid(resolution=40, radius=0.5, center=tuple(centre))

@@ -443,7 +443,7 @@ def extract_mesh(grid: VoxelGrid, level: float | None = None, resolution: int | 
     Only the box around cells denser than ``level``, padded by one voxel, is
     processed. Outside the grid's box the density is 0 (as in the renderer), so
     matter touching the box is capped on the box faces and the mesh stays
-    closed. Vertex colours are the grid's colour at the vertices, uint8 RGBA.
+    closed. Vertex colours (uint8 RGBA) are what a render shows there: :func:`_surface_colours`.
     Raises ``ValueError`` when no density crosses ``level``.
     """
     import trimesh
@@ -501,13 +501,46 @@ def extract_mesh(grid: VoxelGrid, level: float | None = None, resolution: int | 
     verts = verts + origin
     box = grid.bbox_min.cpu().double().numpy(), grid.bbox_max.cpu().double().numpy()
     verts, faces = _weld_on_box(np.clip(verts, *box), faces, box, tolerance=1e-4 * spacing.double().numpy())
-    colors = np.empty((len(verts), 4), dtype=np.uint8)
-    colors[:, 3] = 255
-    points = torch.from_numpy(verts).float()
-    for start in range(0, len(points), _QUERY_CHUNK):
-        _, rgb = grid.query(points[start : start + _QUERY_CHUNK])
-        colors[start : start + _QUERY_CHUNK, :3] = to_uint8(rgb)
-    return trimesh.Trimesh(vertices=verts, faces=faces, vertex_colors=colors, process=False)
+    mesh = trimesh.Trimesh(vertices=verts, faces=faces, process=False)
+    colors = np.full((len(verts), 4), 255, dtype=np.uint8)
+    colors[:, :3] = _surface_colours(grid, mesh.vertices, mesh.vertex_normals)
+    mesh.visual.vertex_colors = colors
+    return mesh
+
+
+SURFACE_COLOUR_SPAN = (-1.0, 3.0)
+"""Where along its inward normal a mesh vertex's colour is composited from: voxels from the vertex, outside to in."""
+SURFACE_COLOUR_SAMPLES = 8  # half a voxel apart, the renderer's default step
+
+
+def _surface_colours(grid: VoxelGrid, verts: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(V, 3) uint8: at each vertex, the colour a ray meeting the surface there head-on composites, as the renderer
+    does (alpha from the density, each sample's colour weighted by what it adds), from
+    :data:`SURFACE_COLOUR_SPAN` along the inward normal, as an opaque surface's (the weights normalised).
+
+    The colour at the vertex itself had been the mesh's: on the level set the raw colour is interpolated with the
+    empty vertices just outside, whose colour no render shows (a fit leaves them near their grey start), so a red
+    object (230, 25, 25 in its renders) had come out a pinkish grey (146, 109, 109). A vertex whose span holds no
+    density keeps its own colour."""
+    voxel = float(grid.voxel_size.min())
+    first, last = SURFACE_COLOUR_SPAN
+    step = (last - first) / SURFACE_COLOUR_SAMPLES
+    depths = torch.tensor([(first + (k + 0.5) * step) * voxel for k in range(SURFACE_COLOUR_SAMPLES)])
+    points = torch.tensor(np.asarray(verts), dtype=torch.float32)
+    inward = -torch.tensor(np.asarray(normals), dtype=torch.float32)
+    colours = np.empty((len(verts), 3), dtype=np.uint8)
+    per_chunk = max(1, _QUERY_CHUNK // SURFACE_COLOUR_SAMPLES)
+    for start in range(0, len(points), per_chunk):
+        at, towards = points[start : start + per_chunk], inward[start : start + per_chunk]
+        samples = at[:, None, :] + depths[None, :, None] * towards[:, None, :]  # (n, K, 3)
+        density, rgb = grid.query(samples.reshape(-1, 3))
+        alpha = 1.0 - torch.exp(-(density * step * voxel).reshape(len(at), -1))
+        weights = alpha * torch.cumprod(torch.cat([torch.ones(len(at), 1), 1.0 - alpha[:, :-1]], 1), 1)
+        total = weights.sum(1, keepdim=True)
+        composited = (weights[..., None] * rgb.reshape(len(at), -1, 3)).sum(1) / total.clamp_min(1e-12)
+        own = grid.query(at)[1]
+        colours[start : start + per_chunk] = to_uint8(torch.where(total > 1e-6, composited, own))
+    return colours
 
 
 def _weld_on_box(verts: np.ndarray, faces: np.ndarray, box: tuple[np.ndarray, np.ndarray], tolerance: np.ndarray):
