@@ -33,7 +33,8 @@ from voxe_core.files import replacing
 from voxe_core.grid import VoxelGrid
 from voxe_core.presets import check_video_fps
 from voxe_core.progress import Callbacks, Progress
-from voxe_core.render import RenderConfig, render_image
+from voxe_core.render import RenderConfig, composite, render_image
+from voxe_core.volrend import RaySamples
 
 VIDEO_SUFFIXES = (".mp4", ".gif")
 MESH_SUFFIXES = (".ply", ".glb", ".obj")
@@ -514,9 +515,9 @@ SURFACE_COLOUR_SAMPLES = 8  # half a voxel apart, the renderer's default step
 
 
 def _surface_colours(grid: VoxelGrid, verts: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """(V, 3) uint8: at each vertex, the colour a ray meeting the surface there head-on composites, as the renderer
-    does (alpha from the density, each sample's colour weighted by what it adds), from
-    :data:`SURFACE_COLOUR_SPAN` along the inward normal, as an opaque surface's (the weights normalised).
+    """(V, 3) uint8: at each vertex, the colour a ray meeting the surface there head-on composites
+    (:func:`voxe_core.render.composite`, the renderer's own arithmetic), from :data:`SURFACE_COLOUR_SPAN` along the
+    inward normal, as an opaque surface's (divided by the ray's opacity).
 
     The colour at the vertex itself had been the mesh's: on the level set the raw colour is interpolated with the
     empty vertices just outside, whose colour no render shows (a fit leaves them near their grey start), so a red
@@ -532,14 +533,18 @@ def _surface_colours(grid: VoxelGrid, verts: np.ndarray, normals: np.ndarray) ->
     per_chunk = max(1, _QUERY_CHUNK // SURFACE_COLOUR_SAMPLES)
     for start in range(0, len(points), per_chunk):
         at, towards = points[start : start + per_chunk], inward[start : start + per_chunk]
-        samples = at[:, None, :] + depths[None, :, None] * towards[:, None, :]  # (n, K, 3)
-        density, rgb = grid.query(samples.reshape(-1, 3))
-        alpha = 1.0 - torch.exp(-(density * step * voxel).reshape(len(at), -1))
-        weights = alpha * torch.cumprod(torch.cat([torch.ones(len(at), 1), 1.0 - alpha[:, :-1]], 1), 1)
-        total = weights.sum(1, keepdim=True)
-        composited = (weights[..., None] * rgb.reshape(len(at), -1, 3)).sum(1) / total.clamp_min(1e-12)
-        own = grid.query(at)[1]
-        colours[start : start + per_chunk] = to_uint8(torch.where(total > 1e-6, composited, own))
+        samples = RaySamples(
+            ray=torch.arange(len(at)).repeat_interleave(SURFACE_COLOUR_SAMPLES),
+            t=depths.repeat(len(at)),
+            delta=torch.full((len(at) * SURFACE_COLOUR_SAMPLES,), step * voxel),
+            points=(at[:, None, :] + depths[None, :, None] * towards[:, None, :]).reshape(-1, 3),
+        )
+        ray = composite([samples], grid.query, len(at), torch.zeros(3))
+        colour = ray.rgb / ray.opacity.clamp_min(1e-12)[:, None]
+        empty = (ray.opacity <= 1e-6).nonzero().squeeze(1)
+        if len(empty):
+            colour[empty] = grid.query(at[empty])[1].float()
+        colours[start : start + per_chunk] = to_uint8(colour)
     return colours
 
 
