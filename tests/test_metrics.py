@@ -115,6 +115,23 @@ def test_uint8_images_are_8_bit_pixels_whose_255_is_the_peak():
         psnr(pixels.int(), other.int())
 
 
+def test_bool_images_are_0_and_1_and_integer_images_are_on_the_scale_they_are_given():
+    """53ec9c9 refused every integer image but uint8, bool and explicitly scaled ones too, which had worked."""
+    mask = smooth_noise(16, 20, 6) > 0.5
+    other = smooth_noise(16, 20, 7) > 0.5
+    assert psnr(mask, other) == pytest.approx(psnr(mask.double(), other.double()), abs=1e-4)
+    assert ssim(mask, other) == pytest.approx(ssim(mask.double(), other.double()), abs=1e-6)
+    assert psnr(mask, mask.float()) == math.inf
+    levels = (smooth_noise(16, 20, 4) * 1000).round().int()
+    other_levels = (smooth_noise(16, 20, 5) * 1000).round().int()
+    as_floats = levels.double() / 1000, other_levels.double() / 1000
+    assert psnr(levels, other_levels, max_val=1000) == pytest.approx(psnr(*as_floats), abs=1e-4)
+    assert ssim(levels, other_levels, data_range=1000) == pytest.approx(ssim(*as_floats), abs=1e-6)
+    assert psnr(levels.long(), other_levels.long(), max_val=1.0) == pytest.approx(psnr(*as_floats) - 60, abs=1e-4)
+    with pytest.raises(ValueError, match="int64 images say no scale"):
+        ssim(levels.long(), other_levels.long())
+
+
 def test_metric_input_errors():
     with pytest.raises(ValueError, match="shape"):
         psnr(torch.zeros(4, 4, 3), torch.zeros(4, 5, 3))

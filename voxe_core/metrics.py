@@ -2,7 +2,8 @@
 
 Images are float tensors (..., H, W, 3) in [0, 1] (any channel count works), or uint8 pixels, 255 standing for
 ``max_val`` / ``data_range`` (as every other reader of images here takes them: ``export.to_uint8``, the evaluation's
-scorers).
+scorers). bool images are 0 and 1; other integer images are values on the scale of an explicit ``max_val`` /
+``data_range`` (on the default peak of 1 they are refused).
 A single pair (H, W, C) gives a Python float; a batch (N, ..., H, W, C) gives a
 tensor with one value per image. SSIM is the standard one of Wang et al. 2004
 as scikit-image computes it with ``gaussian_weights=True, sigma=1.5,
@@ -25,28 +26,38 @@ SSIM_SIGMA = 1.5
 SSIM_WINDOW = 11  # 2 * int(3.5 * sigma + 0.5) + 1, scikit-image's truncation
 SSIM_K1 = 0.01
 SSIM_K2 = 0.03
+DEFAULT_PEAK = 1.0
+"""The peak (``max_val`` / ``data_range``) of images in [0, 1]."""
 PSNR_CAP_DB = 100.0
 """What an average over views counts an infinite PSNR (identical views) as, so one cannot swamp the mean (nor leave
 JSON, which has no infinity)."""
 
 
-def _as_pair(a, b, peak: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """The images as floats on one device, uint8 pixels scaled so 255 is ``peak`` (8-bit pixels read with the default
-    peak of 1 had been compared as values up to 255: two uint8 images, black and white, scored -48 dB)."""
-    a, b = _on_scale(torch.as_tensor(a), peak), _on_scale(torch.as_tensor(b), peak)
+def _as_pair(a, b, peak: float | None) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """The images as floats on one device, and the peak (``None``: the default, :data:`DEFAULT_PEAK`).
+
+    uint8 pixels are scaled so 255 is the peak (8-bit pixels read with the default peak of 1 had been compared as
+    values up to 255: two uint8 images, black and white, scored -48 dB); bool images are 0 and 1, as
+    ``export.to_uint8`` reads them; other integer images are values on the scale of an explicit peak, and refused
+    on the default one, which says nothing of theirs."""
+    scale = DEFAULT_PEAK if peak is None else peak
+    a, b = (_on_scale(torch.as_tensor(image), scale, explicit=peak is not None) for image in (a, b))
     if a.shape != b.shape:
         raise ValueError(f"images differ in shape: {tuple(a.shape)} vs {tuple(b.shape)}")
     if a.dim() < 3:
         raise ValueError(f"expected images shaped (..., H, W, C), got {tuple(a.shape)}")
-    return a, b.to(a.device)
+    return a, b.to(a.device), scale
 
 
-def _on_scale(image: torch.Tensor, peak: float) -> torch.Tensor:
+def _on_scale(image: torch.Tensor, peak: float, explicit: bool) -> torch.Tensor:
     if image.dtype == torch.uint8:
         return image.double() * (peak / 255.0)
-    if not image.is_floating_point():
-        raise ValueError(f"images are floats or uint8 pixels, got {image.dtype}, which says no scale")
-    return image
+    if image.is_floating_point():
+        return image
+    if image.dtype != torch.bool and not explicit:
+        raise ValueError(f"{image.dtype} images say no scale: give floats or uint8 pixels, or pass the value that "
+                         "stands for the peak (max_val / data_range)")
+    return image.double()
 
 
 def _keep_mask(keep, a: torch.Tensor) -> torch.Tensor | None:
@@ -70,12 +81,12 @@ def _result(values: torch.Tensor, single: bool):
     return float(values.reshape(())) if single else values
 
 
-def psnr(a, b, max_val: float = 1.0, keep=None):
+def psnr(a, b, max_val: float | None = None, keep=None):
     """Peak signal-to-noise ratio in dB, 10·log10(max_val² / MSE) per image (MSE over ``keep`` pixels).
 
     (H, W, C) -> float; (..., H, W, C) -> tensor of shape (...). Identical images give inf.
     """
-    a, b = _as_pair(a, b, max_val)
+    a, b, max_val = _as_pair(a, b, max_val)
     keep = _keep_mask(keep, a)
     diff = a.double() - b.double()
     mse = _masked_mean(diff.square().mean(-1), keep)
@@ -90,13 +101,13 @@ def gaussian_window(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA, dtype=to
     return w / w.sum()
 
 
-def ssim(a, b, data_range: float = 1.0, keep=None):
+def ssim(a, b, data_range: float | None = None, keep=None):
     """Structural similarity, matching ``skimage.metrics.structural_similarity`` (see module doc).
 
     (H, W, C) -> float; (..., H, W, C) -> tensor of shape (...). Images must be
     at least 11 pixels on each side. ``keep``: average only over windows lying wholly in it.
     """
-    a, b = _as_pair(a, b, data_range)
+    a, b, data_range = _as_pair(a, b, data_range)
     keep = _keep_mask(keep, a)
     *batch, h, w, c = a.shape
     if h < SSIM_WINDOW or w < SSIM_WINDOW:
