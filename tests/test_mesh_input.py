@@ -740,13 +740,18 @@ def _binary_tetrahedron_counted(count_type: str, first_count: bytes) -> bytes:
      "long as the first (save it as ASCII, or its faces all of one size)"),
     # numpy's reading of the rows had failed: "invalid shape in fixed-type tuple: dimension smaller then zero"
     (_binary_tetrahedron_counted("char", b"\xff"), "its face element 1: a list's length, -1, is not a count"),
+    *[(_binary_tetrahedron_counted(count_type, np.array([3], PROPERTY_TYPES[count_type]).tobytes()),  # whole lengths
+       f"its header's line 8, 'property list {count_type} int vertex_indices': a binary list's length is of "  # "'('
+       f"'{count_type}', not an integer type (uchar, ushort, uint, or a sized one: uint8 ...)")  # was never closed"
+      for count_type in ("float", "double", "float16")],
     (_binary_tetrahedron_counted("float", np.array([np.nan], "<f4").tobytes()),  # "cannot convert float NaN to ..."
-     "its face element 1: a list's length, nan, is not a count"),
-    (_binary_tetrahedron_counted("float", np.array([2.5], "<f4").tobytes()),  # (had been read as 2)
-     "its face element 1: a list's length, 2.5, is not a count"),
+     "its header's line 8, 'property list float int vertex_indices': a binary list's length is of 'float', not an "
+     "integer type (uchar, ushort, uint, or a sized one: uint8 ...)"),
     (_binary_tetrahedron_counted("uint", np.array([4_000_000_000], "<u4").tobytes()),  # "dimension does not fit ..."
      "its face element 1: a list's length, 4000000000, runs past the end of its body (room for 15 items): it is "
      "truncated, or that length is damaged"),
+    (_TETRAHEDRON.replace("\n3 0 1 2\n", "\n1e300 0 1 2\n"),  # (had told a count of 301 digits)
+     "line 14 (face 1): a list's length, '1e300', runs past its row of 4 values"),
 ])
 def test_a_malformed_ply_is_refused_saying_what_in_it_is_wrong(tmp_path, data, message):
     """trimesh had failed in words of its own (in the comments), or loaded the mesh short of a face."""
@@ -768,6 +773,7 @@ def test_a_binary_ply_loads_as_its_ascii_twin(tmp_path):
     (_TETRAHEDRON_PLY.format(vertices=4, faces=4).replace("\n", "\r\n"), 4),
     (_TETRAHEDRON_PLY.format(vertices=4, faces=3), 3),  # rows past the counts: trimesh reads the declared ones
     ("PLY" + _TETRAHEDRON_PLY.format(vertices=4, faces=4)[3:], 4),  # (had been refused: "its first line is not 'ply'")
+    (_TETRAHEDRON_PLY.format(vertices=4, faces=4).replace("list uchar", "list float"), 4),  # (binary ones are refused)
 ])
 def test_an_ascii_ply_holding_the_rows_its_header_declares_loads(tmp_path, text, faces):
     (tmp_path / "whole.ply").write_bytes(text.encode())

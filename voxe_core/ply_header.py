@@ -71,9 +71,10 @@ def ply_fault(path: str | os.PathLike) -> str | None:
     word, said for a user (the file not named), or None: a header line not of PLY's forms, and an ASCII body whose
     rows do not hold what the header declares (``_ascii_body_fault``) or a binary one that is text. trimesh had
     said "list index out of range" (no end_header), "'flot'" (a type it does not know), "not enough values to
-    unpack" (a list property without its two types), "string or file could not be read to its end" (a word in a
-    row), "PLY is unexpected length!" (a text body under a binary format line, or a binary body not the length its
-    header makes: ``_binary_body_fault``), and had dropped a face row holding fewer indices than its count."""
+    unpack" (a list property without its two types), "'(' was never closed" (a binary list's length of a float
+    type, even a whole one), "string or file could not be read to its end" (a word in a row), "PLY is unexpected
+    length!" (a text body under a binary format line, or a binary body not the length its header makes:
+    ``_binary_body_fault``), and had dropped a face row holding fewer indices than its count."""
     elements: list[tuple[str, int, list[list[str]]]] = []  # (name, count, per property its types: a list's two)
     body_format, lines_read = None, 1
     with open(path, "rb") as handle:
@@ -99,6 +100,9 @@ def ply_fault(path: str | os.PathLike) -> str | None:
                 if unknown := [word for word in words[1 + is_list:-1] if word not in PROPERTY_TYPES]:
                     return (f"its header's line {lines_read}, {text[:60]!r}: {unknown[0][:20]!r} is not a property "
                             "type (char, uchar, short, ushort, int, uint, float, double, or a sized one: int32 ...)")
+                if is_list and body_format != "ascii" and PROPERTY_TYPES[words[2]][0] not in "iu":
+                    return (f"its header's line {lines_read}, {text[:60]!r}: a binary list's length is of "
+                            f"{words[2]!r}, not an integer type (uchar, ushort, uint, or a sized one: uint8 ...)")
                 elements[-1][2].append(words[1 + is_list:-1])
             elif words[:1] == ["end_header"]:
                 body = handle.read()
@@ -139,6 +143,9 @@ def _ascii_body_fault(body: bytes, elements: list, header_lines: int) -> str | N
                     if length is None or not (length >= 0 and length.is_integer()):
                         return (f"line {line + index} ({name} {index + 1}): a list's length, "
                                 f"{words[needed][:20]!r}, is not a count")
+                    if length > len(words):  # a damaged length, not a short row (1e300 had been told in 301 digits)
+                        return (f"line {line + index} ({name} {index + 1}): a list's length, "
+                                f"{words[needed][:20]!r}, runs past its row of {len(words)} values")
                     needed += int(length)
                 needed += 1
             if len(words) < needed:
@@ -190,15 +197,15 @@ def _binary_body_fault(body: bytes, elements: list, endian: str) -> str | None:
     return None
 
 
-def _list_length_fault(length: int | float, items_left: int, name: str) -> str | None:
-    """What is wrong with the length ``length`` of a list in a binary body's first ``name`` element, with room for
-    ``items_left`` items after it, or None. A negative, fractional or NaN length (a signed or float count type), or
-    one past the end of the body, had failed numpy's reading of the rows in words of its own ("invalid shape in
-    fixed-type tuple: dimension smaller then zero", "cannot convert float NaN to integer"), not a ``MeshError``."""
-    if not (length >= 0 and float(length).is_integer()):  # (NaN fails both)
-        return f"its {name} element 1: a list's length, {length!r}, is not a count"
+def _list_length_fault(length: int, items_left: int, name: str) -> str | None:
+    """What is wrong with the length ``length`` (of an integer type: ``ply_fault`` refuses others) of a list in a
+    binary body's first ``name`` element, with room for ``items_left`` items after it, or None. A negative length (a
+    signed count type) or one past the end of the body had failed numpy's reading of the rows in words of its own
+    ("invalid shape in fixed-type tuple: dimension smaller then zero"), not a ``MeshError``."""
+    if length < 0:
+        return f"its {name} element 1: a list's length, {length}, is not a count"
     if length > items_left:
-        return (f"its {name} element 1: a list's length, {int(length)}, runs past the end of its body (room for "
+        return (f"its {name} element 1: a list's length, {length}, runs past the end of its body (room for "
                 f"{items_left} items): it is truncated, or that length is damaged")
     return None
 
