@@ -2726,46 +2726,101 @@ def test_a_stalled_runs_upload_or_checkpoint_meeting_its_jobs_ending_leaves_noth
     assert [e["kind"] for e in events_of(job_id)][-1] == "canceled"
 
 
-@pytest.mark.parametrize("then", ["ended", "taken over"])
-def test_a_stalled_runs_refused_checkpoint_goes_unless_its_key_is_the_new_runs(db, tmp_path, then):
-    """A stalled run whose checkpoint's event was refused (RunSuperseded: the job ended, or another run took it over,
-    as it stored the checkpoint) left the bytes at the job's checkpoint key: an ended job's cleanup had run already,
-    so they stayed, listed nowhere, until the job was deleted. They go when the job has ended; a run that took the
-    job over stores its checkpoints at the same fixed key, so there they stay (they may be the new run's)."""
+def _take_over_lapsed(db, job_id: str, stage: str):
+    """Another worker's run takes the job's lapsed hold over (run outside the stalled run's hold); its job row."""
     from sqlalchemy import update
 
-    from voxe_core.progress import Progress
     from voxe_service.db import session_scope
     from voxe_service.models import Job, utcnow
-    from voxe_service.storage import get_storage, job_key
+    from worker import runtime
+
+    outside = runtime._HOLDING.set(None)
+    try:
+        with session_scope() as session:
+            session.execute(update(Job).where(Job.id == job_id).values(run_lease_until=utcnow() - timedelta(hours=1)))
+        return runtime.begin_stage(job_id, stage, "b@host", "cpu", db)
+    finally:
+        runtime._HOLDING.reset(outside)
+
+
+def _run_checkpoint_store(storage, job):
+    """What the edit stores a checkpoint with (worker.tasks._edit): the run's own key."""
+    from worker import runtime
+
+    return lambda path: storage.put_file(runtime.run_checkpoint_key(job, "edit"), path)
+
+
+@pytest.mark.parametrize("then", ["ended", "taken over"])
+def test_a_stalled_runs_refused_checkpoint_goes_unless_it_is_the_jobs_live_one(db, tmp_path, then):
+    """A stalled run whose checkpoint's event was refused (RunSuperseded: the job ended, or another run took it over,
+    as it stored the checkpoint) left the bytes behind: an ended job's cleanup had run already, so they stayed, listed
+    nowhere, until the job was deleted. They go, as the bytes of a run that took over no longer share its key; the
+    job's live checkpoint (none here) is kept."""
+    from voxe_core.progress import Progress
+    from voxe_service.storage import get_storage
     from worker import runtime
 
     storage, job_id = get_storage(db), add_job(add_scene(), "queued", 0, completed_stages=["reconstruct"])
-    key = job_key(job_id, "checkpoints/edit.safetensors")
     stalled = runtime.begin_stage(job_id, "edit", "a@host", "cpu", db)
+    store = _run_checkpoint_store(storage, stalled)
 
-    def store(path):
-        stored = storage.put_file(key, path)
+    def store_as_it_loses_the_job(path):
+        stored = store(path)
         if then == "ended":
             _ended_by_another_worker(db, job_id, "edit")
-            return stored
-        outside = runtime._HOLDING.set(None)  # (another worker takes the lapsed hold over)
-        try:
-            with session_scope() as session:
-                session.execute(update(Job).where(Job.id == job_id).values(
-                    run_lease_until=utcnow() - timedelta(hours=1)))
-            runtime.begin_stage(job_id, "edit", "b@host", "cpu", db)
-        finally:
-            runtime._HOLDING.reset(outside)
+        else:
+            _take_over_lapsed(db, job_id, "edit")
         return stored
 
-    callbacks = runtime.StageCallbacks(stalled, "edit", db, on_checkpoint=store)
+    callbacks = runtime.StageCallbacks(stalled, "edit", db, on_checkpoint=store_as_it_loses_the_job)
     callbacks.on_progress(Progress("edit", 10, 100))
     (tmp_path / "checkpoint").write_bytes(b"the edit at 10")
     with holding(job_id, stalled.run_token), pytest.raises(runtime.RunSuperseded):
         callbacks.on_checkpoint(str(tmp_path / "checkpoint"))
-    assert storage.exists(key) == (then == "taken over")
+    assert storage.list(f"jobs/{job_id}/checkpoints/") == [] and job_row(job_id).checkpoint_key is None
     assert "checkpoint" not in [e["kind"] for e in events_of(job_id)]
+
+
+def test_a_stalled_runs_late_checkpoint_never_replaces_the_checkpoint_of_the_run_that_took_its_job_over(db,
+                                                                                                      tmp_path):
+    """A run stalled past its lease, its job taken over, passed its ownership check and then stored its checkpoint
+    after the new run had stored its own, at the same fixed key: the new run's checkpoint was replaced by the stalled
+    run's older state, which the job's next run resumed from. Each run stores at a key of its own and records it as
+    the job's live checkpoint only while it holds the job: the stalled run's late bytes are refused and deleted, the
+    new run's stay where the job's next run reads them; the replaced one (the stalled run's earlier) goes."""
+    from voxe_core.progress import Progress
+    from voxe_service.storage import get_storage
+    from worker import runtime
+
+    storage, job_id = get_storage(db), add_job(add_scene(), "queued", 0, completed_stages=["reconstruct"])
+    stalled = runtime.begin_stage(job_id, "edit", "a@host", "cpu", db)
+    stalled_callbacks = runtime.StageCallbacks(stalled, "edit", db,
+                                               on_checkpoint=_run_checkpoint_store(storage, stalled))
+    (tmp_path / "old").write_bytes(b"the stalled run's edit at 10")
+    stalled_callbacks.on_progress(Progress("edit", 10, 100))
+    with holding(job_id, stalled.run_token):
+        stalled_callbacks.on_checkpoint(str(tmp_path / "old"))  # its last checkpoint while it held the job
+
+    def taken_over_and_checkpointed_first(path):  # the stalled run passed its check, then stalled past its lease
+        taken = _take_over_lapsed(db, job_id, "edit")
+        assert taken.checkpoint_key == runtime.run_checkpoint_key(stalled, "edit")  # what the new run resumes from
+        new_callbacks = runtime.StageCallbacks(taken, "edit", db, on_checkpoint=_run_checkpoint_store(storage, taken))
+        (tmp_path / "new").write_bytes(b"the new run's edit at 30")
+        new_callbacks.on_progress(Progress("edit", 30, 100))
+        with holding(job_id, taken.run_token):
+            new_callbacks.on_checkpoint(str(tmp_path / "new"))
+        return _run_checkpoint_store(storage, stalled)(path)  # ... and only then uploads
+
+    stalled_callbacks._store_checkpoint = taken_over_and_checkpointed_first
+    (tmp_path / "late").write_bytes(b"the stalled run's edit at 12")
+    stalled_callbacks.on_progress(Progress("edit", 12, 100))
+    with holding(job_id, stalled.run_token), pytest.raises(runtime.RunSuperseded):
+        stalled_callbacks.on_checkpoint(str(tmp_path / "late"))
+
+    live = job_row(job_id).checkpoint_key
+    assert b"".join(storage.open_range(live)) == b"the new run's edit at 30"
+    assert storage.list(f"jobs/{job_id}/checkpoints/") == [live]  # the stalled run's, early and late, gone
+    assert [e["kind"] for e in events_of(job_id)].count("checkpoint") == 2  # the stalled run's first, the new run's
 
 
 def test_a_stages_warning_said_again_by_its_next_run_is_one_event_and_one_webhook(db):

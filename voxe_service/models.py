@@ -226,6 +226,9 @@ class Job(Base):
     # NULL between stages. A duplicate message waits for the lease to run out or be renewed (then it is dropped).
     run_token: Mapped[str | None] = mapped_column(String(32), nullable=True)
     run_lease_until: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    # Where the job's live checkpoint is stored: under the key of the run that stored it, recorded only while that run
+    # held the job (worker.runtime.StageCallbacks.on_checkpoint), so a stalled run's late upload replaces nothing.
+    checkpoint_key: Mapped[str | None] = mapped_column(String(512), nullable=True)
     requeues: Mapped[int] = mapped_column(Integer, default=0)  # sent again after its worker stopped mid-stage
     # Evaluation jobs (mode "evaluate"): the edit jobs scored, the metrics; sweeps: the batch a job belongs to.
     source_job_ids: Mapped[list | None] = mapped_column(JSON, nullable=True)

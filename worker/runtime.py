@@ -431,6 +431,34 @@ def record_job_event(job_id: str, kind: str, **fields) -> None:
         record_event(session, job_id, kind, **fields)
 
 
+def run_checkpoint_key(job: Job, stage: str) -> str:
+    """Where this run of ``stage`` stores the job's checkpoint: a key of its own (its token), so that no other run's
+    upload, a stalled one's above all, overwrites it."""
+    return job_key(job.id, f"checkpoints/{stage}-{job.run_token}.safetensors")
+
+
+def _record_checkpoint(job_id: str, stage: str, iteration: int, key: str | None) -> str | None:
+    """The ``checkpoint`` event at ``iteration`` and, given ``key``, that key recorded as the job's live checkpoint,
+    in one transaction under the job's lock, refused (:class:`RunSuperseded`) to a run that no longer holds the job;
+    the key it replaced (None when none)."""
+    with session_scope() as session:
+        if (job := locked(session, Job, job_id)) is None:
+            return None
+        _refuse_if_superseded(job_id, lambda: job.run_token)  # (read under the lock just taken)
+        replaced = job.checkpoint_key
+        if key is not None:
+            job.checkpoint_key = key
+        record_event(session, job_id, "checkpoint", stage=stage, iteration=iteration)
+    return replaced if key is not None else None
+
+
+def live_checkpoint_key(job_id: str) -> str | None:
+    """The key of the job's live checkpoint; None when it has none, or has ended (or is gone): its checkpoints go."""
+    with session_scope() as session:
+        row = session.execute(select(Job.state, Job.checkpoint_key).where(Job.id == job_id)).first()
+    return None if row is None or row.state in TERMINAL_STATES else row.checkpoint_key
+
+
 def record_warning(job_id: str, stage: str, text: str) -> None:
     """Say ``text`` as the job's message and as a ``warning`` event on its timeline, in one transaction: a stage that
     completed with a result the user should look at, or started over from a checkpoint it could not go on from (the
@@ -468,8 +496,8 @@ class StageCallbacks:
     the last iteration); the cancel flag is read at most once per
     ``cancel_check_interval_s``. ``extra_progress`` is called on every write
     (the reconstruction owner renews its lease there). ``on_checkpoint(path)`` stores
-    a checkpoint (returning the ``StoredObject`` where it is the job's own); a ``checkpoint`` event at the
-    iteration it was taken follows it.
+    a checkpoint (returning the ``StoredObject`` where it is the job's own, stored at :func:`run_checkpoint_key`); a
+    ``checkpoint`` event at the iteration it was taken follows it.
     ``phase_seconds``: seconds per unit of each sub-step of a stage counted in phases
     (``voxe_core.progress.in_phases``; ``voxe_service.progress.refine_phase_seconds``), by which the
     time left weighs each sub-step's units left against the current one's, whose rate it measures.
@@ -507,22 +535,28 @@ class StageCallbacks:
 
     def on_checkpoint(self, path: str) -> None:
         """Store the checkpoint, then record where it was taken (stages report progress just before). A run that
-        lost its job stores nothing (:class:`RunSuperseded`): its older state would replace the new owner's. One
-        that lost it as it stored (its event refused) discards the job's own checkpoint when the job has ended: its
-        ending's cleanup had come first. A run that took the job over stores at the same fixed key (the bytes may be
-        its own), and a reconstruction's checkpoint is the fit's, for the jobs waiting on it: both are kept."""
+        lost its job stores nothing (:class:`RunSuperseded`): its older state would replace the new owner's. A job's
+        own checkpoint (``on_checkpoint`` returns its ``StoredObject``, stored at :func:`run_checkpoint_key`) is
+        recorded as the job's live one with its event, under the job's lock and only while this run holds it; the
+        one it replaces goes. One refused as it stored (the job ended or was taken over meanwhile) is deleted unless
+        it is the job's live one still (this run's earlier one, which the run that took over may resume from): this
+        run's key is its own, so its late bytes never land on the new run's. A reconstruction's checkpoint is the
+        fit's, recorded by the fit's owner (``worker.tasks``)."""
         with session_scope() as session:
             _refuse_if_superseded(self.job_id, lambda: session.scalar(_token_query(self.job_id)))
         stored = self._store_checkpoint(path)
+        own = stored.key if isinstance(stored, StoredObject) else None
         iteration = self._last_report.iteration if self._last_report is not None else 0
         try:
-            record_job_event(self.job_id, "checkpoint", stage=self.stage, iteration=int(iteration))
+            replaced = _record_checkpoint(self.job_id, self.stage, int(iteration), own)
         except RunSuperseded:
-            if isinstance(stored, StoredObject) and stored.key.startswith(job_key(self.job_id)):
-                with outage_skipped(f"job {self.job_id}: reading whether it ended, its checkpoint refused"):
-                    if has_ended(self.job_id):
-                        get_storage(self.settings).discard(stored.key)
+            if own is not None:
+                with outage_skipped(f"job {self.job_id}: reading its live checkpoint, this run's refused"):
+                    if live_checkpoint_key(self.job_id) != own:
+                        get_storage(self.settings).discard(own)
             raise
+        if replaced is not None and replaced != own:
+            get_storage(self.settings).discard(replaced)
 
     def on_progress(self, report: Progress) -> None:
         now = time.monotonic()

@@ -664,9 +664,9 @@ def _edit(job: Job, settings, device: str, storage) -> None:
                     "triton package): the packed renderer renders", job.id, device)
     scratch = runtime.scratch_dir(job.id, settings)
     checkpoint = scratch / "edit_checkpoint.safetensors"
-    checkpoint_key = job_key(job.id, "checkpoints/edit.safetensors")
+    checkpoint_key = job.checkpoint_key  # the last run's, recorded while it held the job
     resume, note = None, None
-    if storage.exists(checkpoint_key):  # a redelivered / re-queued task: go on from the last checkpoint
+    if checkpoint_key and storage.exists(checkpoint_key):  # a redelivered / re-queued task: go on from there
         from voxe_core.edit import EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION
 
         resume, meta, why = _stored_checkpoint(storage, checkpoint_key, checkpoint, EDIT_CHECKPOINT_KIND,
@@ -696,7 +696,8 @@ def _edit(job: Job, settings, device: str, storage) -> None:
             _preview(job.id, None, settings, storage, device, image=image)
 
     callbacks = StageCallbacks(job, "edit", settings, note=note,
-                               on_checkpoint=lambda path: storage.put_file(checkpoint_key, path))
+                               on_checkpoint=lambda path: storage.put_file(runtime.run_checkpoint_key(job, "edit"),
+                                                                           path))
     compiled_before = guidance.encoder_compile_seconds
     grid = _resumed_or_started_over(
         lambda start: edit(initial, job.prompt, guidance, config, callbacks.callbacks, checkpoint, start,
