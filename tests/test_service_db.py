@@ -846,3 +846,40 @@ def test_a_stream_misses_no_event_numbered_before_one_committed_first(db):
         writer.close()
     assert ended == [job_id]
     assert sent == ["checkpoint", "canceled"], sent
+
+
+def _error_of_a_statement_binding(engine, secret: str) -> str:
+    """The text of the error a failing statement that binds ``secret`` raises on ``engine``."""
+    from sqlalchemy import text
+    from sqlalchemy.exc import DBAPIError
+
+    with pytest.raises(DBAPIError) as failed, engine.connect() as conn:
+        conn.execute(text("INSERT INTO no_such_table (token) VALUES (:token)"), {"token": secret})
+    return str(failed.value)
+
+
+def test_the_sql_brokers_and_alembics_engines_leave_bound_values_out_of_their_errors(database_url, monkeypatch):
+    """The metadata engines hid a statement's bound values from their errors (and logs), but kombu's engine of a SQL
+    broker other than SQLite (a message's body: a task's arguments) and the engine alembic migrates with did not.
+    Both hide them now."""
+    import sqlalchemy
+    from alembic import command
+    from types import SimpleNamespace
+
+    from voxe_service.broker import Channel
+    from voxe_service.db import alembic_config
+
+    client = SimpleNamespace(hostname=database_url, transport_options={"polling_interval": 1.0})
+    broker_engine = Channel._engine_from_config(SimpleNamespace(connection=SimpleNamespace(client=client)))
+    migrating, engine_from_config = [], sqlalchemy.engine_from_config
+    monkeypatch.setattr(sqlalchemy, "engine_from_config",
+                        lambda *args, **kwargs: migrating.append(engine_from_config(*args, **kwargs)) or migrating[-1])
+    command.upgrade(alembic_config(database_url), "head")
+    assert len(migrating) == 1
+    try:
+        for engine in (broker_engine, migrating[0]):
+            error = _error_of_a_statement_binding(engine, "whsec_s3cret")
+            assert "no_such_table" in error and "whsec_s3cret" not in error, error
+    finally:
+        broker_engine.dispose()
+        migrating[0].dispose()

@@ -47,7 +47,8 @@ class Channel(_sqla.Channel):
             # worker's read, and a commit is one WAL append) and a 30 s busy timeout.
             return make_engine(conninfo.hostname)
         options = {k: v for k, v in conninfo.transport_options.items() if k not in _NOT_ENGINE_OPTIONS}
-        return create_engine(conninfo.hostname, **options)
+        # Bound parameters out of its errors, as the metadata engines' (voxe_service.db): a message's body is a task's.
+        return create_engine(conninfo.hostname, hide_parameters=True, **options)
 
     def _open(self):
         first = self.connection.client.hostname not in self._engines
