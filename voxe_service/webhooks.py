@@ -60,18 +60,23 @@ class TargetRefused(ValueError):
 
 
 def log_safe_url(url: str, base: str = "") -> str:
-    """``url`` as a log may carry it: its userinfo, query values and fragment hidden, read as a URL (not picked out
-    of a message, where a ``'`` or a relative reference had ended or hidden it). A webhook_url may hold credentials
-    (``https://user:pass@host/``, ``?token=...``) that the owner sees in the delivery's ``last_error``, but the
-    operator's logs must not. A relative one (a redirect's Location) is first resolved against ``base``. The
-    userinfo is hidden up to the last '@' before the query (a password may hold a '/'); a query pair's name is
-    kept, a pair with no '=' hidden whole.
+    """``url`` as a log may carry it: its userinfo, path past its first segment, query values and fragment hidden, read
+    as a URL (not picked out of a message, where a ``'`` or a relative reference had ended or hidden it). A webhook_url
+    may hold credentials (``https://user:pass@host/``, ``?token=...``, or in the path, as Slack's and Discord's
+    ``/services/T0/B0/<secret>`` and ``/api/webhooks/<id>/<token>`` do) that the owner sees in the delivery's
+    ``last_error``, but the operator's logs must not. A relative one (a redirect's Location) is first resolved
+    against ``base``. The userinfo is hidden up to the last '@' before the query (a password may hold a '/'); the
+    path keeps its first segment, which tells receivers' endpoints apart, and the rest, where the tokens are, is
+    one ``***`` (no rule tells a token from a word reliably); a query pair's name is kept, a pair with no '=' hidden
+    whole.
 
     Examples:
         >>> log_safe_url("https://bob:pa/ss@hooks.example.com/in?token=abc&x#frag")
         'https://***@hooks.example.com/in?token=***&***#***'
         >>> log_safe_url("//bob:pw@hooks.example.com/in?t=a'b", "https://hooks.example.com/hook")
         'https://***@hooks.example.com/in?t=***'
+        >>> log_safe_url("https://hooks.example.com/services/T0KEN/secret")
+        'https://hooks.example.com/services/***'
     """
     try:
         parts = urlsplit(urljoin(base, url) if base else url)
@@ -80,6 +85,10 @@ def log_safe_url(url: str, base: str = "") -> str:
     authority_and_path = parts.netloc + parts.path
     if "@" in authority_and_path:
         authority_and_path = "***@" + authority_and_path.rpartition("@")[2]
+    authority, _, path = authority_and_path.partition("/")
+    first_segment, _, rest = path.partition("/")
+    if rest:
+        authority_and_path = f"{authority}/{first_segment}/***"
     query = "&".join(name + "=***" if has_value else "***"
                      for name, has_value, _ in (pair.partition("=") for pair in parts.query.split("&")))
     return (f"{parts.scheme}:{'//' if parts.netloc else ''}{authority_and_path}"
