@@ -356,6 +356,18 @@ def _reconstructed_job(client, scene_id: str, backbone: str, job_fields: dict | 
     return job
 
 
+def _stored_edit_checkpoint(job_id: str, data: bytes) -> str:
+    """``data`` stored and recorded as the job's live edit checkpoint, as an earlier run holding the job left it; its
+    key."""
+    from voxe_service.storage import get_storage, job_key
+    from worker import runtime
+
+    key = job_key(job_id, "checkpoints/an-earlier-run/edit.safetensors")
+    get_storage().put_bytes(key, data)
+    runtime.update_job(job_id, checkpoint_key=key)
+    return key
+
+
 def test_the_fit_and_the_edit_it_leads_to_are_recorded_before_the_fit_runs(service, monkeypatch):
     """Progress weighs a capture's fit (its rays cost 17.9x an object's) and its 5,000-iteration edit while it
     fits, not once the fit has ended (voxe_service.progress reads both from the job's result)."""
@@ -478,13 +490,12 @@ def test_a_damaged_or_foreign_edit_checkpoint_is_dropped_and_the_edit_starts_ove
     another version, mid rolling upgrade: edit() refuses to resume it), runs from the start instead of failing every
     redelivery: the object is deleted and the job says why."""
     import voxe_core.edit
-    from voxe_service.storage import get_storage, job_key
+    from voxe_service.storage import get_storage
     from worker import runtime, tasks
 
     client, scene_id = service
     job = _reconstructed_job(client, scene_id, "relu_field")
-    key = job_key(job["id"], "checkpoints/edit.safetensors")
-    get_storage().put_bytes(key, stored(tmp_path))
+    key = _stored_edit_checkpoint(job["id"], stored(tmp_path))
     seen = {}
 
     def recorded_edit(initial, prompt, guidance, config, callbacks, checkpoint_path, resume_from, **kwargs):
@@ -508,13 +519,12 @@ def test_an_edit_that_cannot_go_on_from_its_checkpoint_starts_over(service, monk
     import voxe_core.edit
     from voxe_core.progress import Progress
     from voxe_core.tensorio import FormatError
-    from voxe_service.storage import get_storage, job_key
+    from voxe_service.storage import get_storage
     from worker import runtime, tasks
 
     client, scene_id = service
     job = _reconstructed_job(client, scene_id, "relu_field")
-    key = job_key(job["id"], "checkpoints/edit.safetensors")
-    get_storage().put_bytes(key, _edit_checkpoint(tmp_path / "ours.safetensors"))
+    key = _stored_edit_checkpoint(job["id"], _edit_checkpoint(tmp_path / "ours.safetensors"))
     resumed_from, during = [], {}
 
     def refusing_resume(initial, prompt, guidance, config, callbacks, checkpoint_path, resume_from, **kwargs):
@@ -610,14 +620,21 @@ def test_a_damaged_or_foreign_fit_checkpoint_is_dropped_and_the_fit_starts_over(
                                                                                 stored, why, caplog):
     """As an edit's: a stored reconstruction checkpoint made with another recipe (reconstruct() refuses to resume it,
     a ValueError that had failed the shared fit for good) or unreadable is deleted and the fit runs from the start."""
+    from sqlalchemy import update
+
     import voxe_core.reconstruct
+    from voxe_service.db import session_scope
+    from voxe_service.models import Reconstruction
     from voxe_service.storage import get_storage, reconstruction_storage_key
     from worker import tasks
 
     client, scene_id = service
     job = client.post("/v1/jobs", json={"scene_id": scene_id, "prompt": "a mic", "params": TINY_FIT}).json()
-    key = reconstruction_storage_key(job["reconstruction"]["id"], "checkpoint.safetensors")
+    rec_id = job["reconstruction"]["id"]
+    key = reconstruction_storage_key(rec_id, "checkpoint-an-earlier-run.safetensors")
     get_storage().put_bytes(key, stored(tmp_path))
+    with session_scope() as session:  # (recorded, as the fit's earlier owner left it)
+        session.execute(update(Reconstruction).where(Reconstruction.id == rec_id).values(checkpoint_key=key))
     resumed_from, fit = [], voxe_core.reconstruct.reconstruct
 
     def recorded_fit(images, cameras, config, callbacks, checkpoint_path, resume_from, *args):
@@ -774,7 +791,7 @@ def _refusing(monkeypatch, name: str, error, when=lambda *args, **kwargs: True) 
 
 
 EDGES = {  # where in the edit stage the database refuses: its checkpoint's event, its grid's record, its end
-    "checkpoint event": ("record_job_event", "INSERT INTO job_events", lambda job_id, kind, **_: kind == "checkpoint"),
+    "checkpoint event": ("_record_checkpoint", "INSERT INTO job_events", lambda *args: True),
     "artifact record": ("record_event", "INSERT INTO job_events", lambda _, job_id, kind, **__: kind == "artifact"),
     "stage's end": ("complete_stage", "UPDATE jobs", lambda *args, **kwargs: True),
 }
@@ -822,7 +839,9 @@ def test_a_database_outage_at_a_stages_checkpoint_or_end_sends_it_back_to_the_qu
                             "OperationalError: database is locked"], requeued
     else:
         assert requeued == []
-    assert [e["iteration"] for e in events if e["kind"] == "resumed" and e["stage"] == "edit"] == [3]
+    # (from the last checkpoint recorded: one whose record the database refused is no run's, and here none was)
+    resumed = [e["iteration"] for e in events if e["kind"] == "resumed" and e["stage"] == "edit"]
+    assert resumed == ([] if edge == "checkpoint event" else [3])
     assert client.get(f"/v1/jobs/{job_id}/artifacts/edited_grid.safetensors").status_code == 200
 
 
@@ -863,7 +882,7 @@ def _checkpoint_upload_refused(monkeypatch, storage, cause: str, refused_at: set
         put_file = type(storage).put_file
 
         def throttled(self, key, path, content_type=None):
-            if key.endswith("checkpoints/edit.safetensors"):
+            if key.endswith("/edit.safetensors"):  # (checkpoints/<run token>/edit.safetensors)
                 tried.append(key)
                 if not refused_at or len(tried) in refused_at:
                     raise StorageUnavailable(f"S3 bucket 'voxe': SlowDown when uploading {key}")
@@ -883,8 +902,7 @@ def _checkpoint_upload_refused(monkeypatch, storage, cause: str, refused_at: set
     return tried
 
 
-OUTAGE_SAID = {"storage outage": "a storage outage (S3 bucket 'voxe': SlowDown when uploading "
-                                 "jobs/{job_id}/checkpoints/edit.safetensors)",
+OUTAGE_SAID = {"storage outage": "a storage outage (S3 bucket 'voxe': SlowDown when uploading {key})",
                "full disk": "the worker's disk full (OSError: [Errno 28] No space left on device)"}
 
 
@@ -896,7 +914,7 @@ def test_an_edit_whose_checkpoint_meets_a_storage_outage_or_a_full_disk_goes_bac
     a passing outage, and a worker with a full disk failing every job it took. The run gives the job back (the
     hold released: any worker takes it) with a re-queue naming the cause (counted for a full disk), pauses as an
     ingest does, and the message goes back to the queue; the redelivery resumes from the last checkpoint stored."""
-    from voxe_service.storage import get_storage, job_key
+    from voxe_service.storage import get_storage
     from worker import runtime, tasks
 
     client, scene_id = service
@@ -910,12 +928,12 @@ def test_an_edit_whose_checkpoint_meets_a_storage_outage_or_a_full_disk_goes_bac
         result = tasks.edit_task.apply(args=(job_id,))
     assert result.state == "REJECTED" and result.result.requeue, result.result  # back to the broker
     assert len(tried) == 2 and pauses == [5.0]
-    said = OUTAGE_SAID[cause].format(job_id=job_id)
+    said = OUTAGE_SAID[cause].format(key=tried[-1])
     assert result.result.reason == f"edit of job {job_id} stopped by {said}"
     job = runtime.load_job(job_id)
     assert (job.state, job.error, job.completed_stages, job.run_token, job.requeues) == (
         "running", None, ["reconstruct"], None, int(cause == "full disk"))  # (a storage outage does not count)
-    assert storage.exists(job_key(job_id, "checkpoints/edit.safetensors"))  # the one of iteration 1, kept
+    assert storage.exists(runtime.load_job(job_id).checkpoint_key)  # the one of iteration 1, kept
     assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "done"  # the redelivered message
     done = client.get(f"/v1/jobs/{job_id}").json()
     assert (done["state"], done["completed_stages"], done["iteration"]) == ("running", ["reconstruct", "edit"], 3)
@@ -955,7 +973,7 @@ def test_a_full_disk_met_at_every_run_fails_the_job_at_the_requeue_limit_and_a_s
     assert pauses == [5.0 * 2 ** n for n in range(limit)]
     job = runtime.load_job(job_id)
     assert (job.state, job.requeues) == ("failed", limit)
-    assert job.error == (f"edit stopped by {OUTAGE_SAID[cause].format(job_id=job_id)}; it was sent again {limit} "
+    assert job.error == (f"edit stopped by {OUTAGE_SAID[cause]}; it was sent again {limit} "
                          f"time(s) already, the limit (VOXE_JOB_MAX_REQUEUES={limit})")
     assert storage.list(f"jobs/{job_id}/checkpoints/") == []
 
@@ -969,7 +987,7 @@ def test_a_storage_error_that_is_no_outage_at_a_checkpoint_fails_the_job_naming_
 
     client, scene_id = service
     job_id = _reconstructed_job(client, scene_id, "scene", iterations=3, render_size=16, preview_every=0)["id"]
-    failing_uploads(monkeypatch, get_storage(tasks.get_settings()), "checkpoints/edit.safetensors",
+    failing_uploads(monkeypatch, get_storage(tasks.get_settings()), "/edit.safetensors",
                     StorageError("S3 bucket 'voxe': AccessDenied when uploading"))
     assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "failed"
     job = runtime.load_job(job_id)

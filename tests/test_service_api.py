@@ -2173,13 +2173,14 @@ def test_a_finished_fits_checkpoint_the_storage_cannot_delete_fails_nothing(clie
 
     def refused_for_checkpoints(self, key):
         deleted.append(key)
-        if key.endswith("/checkpoint.safetensors"):
+        if key.startswith(f"reconstructions/{rec_id}/checkpoint-"):  # (its owner's run's own)
             raise StorageUnavailable(f"S3 bucket 'voxe': SlowDown when deleting {key}")
         return real_delete(self, key)
 
     monkeypatch.setattr(storage_class, "delete", refused_for_checkpoints)
+    get_storage().put_bytes(f"reconstructions/{rec_id}/checkpoint-an-earlier-run.safetensors", b"its fit's state")
     assert tasks.reconstruct_task.apply(args=(a,)).get()["state"] == "done"
-    assert f"reconstructions/{rec_id}/checkpoint.safetensors" in deleted
+    assert f"reconstructions/{rec_id}/checkpoint-an-earlier-run.safetensors" in deleted
     assert runtime.load_reconstruction(rec_id).state == "succeeded"
     job = client.get(f"/v1/jobs/{a}").json()
     assert (job["state"], job["error"], job["completed_stages"]) == ("running", None, ["reconstruct"])

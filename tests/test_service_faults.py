@@ -2823,6 +2823,35 @@ def test_a_stalled_runs_late_checkpoint_never_replaces_the_checkpoint_of_the_run
     assert [e["kind"] for e in events_of(job_id)].count("checkpoint") == 2  # the stalled run's first, the new run's
 
 
+def test_a_fit_owner_that_lost_the_fit_never_replaces_the_new_owners_checkpoint(db, tmp_path):
+    """The fit's owner stored its checkpoint at the reconstruction's one fixed key and then recorded it, a record
+    refused once another run owned the fit but the upload not: an owner stalled past its lease, storing after the new
+    owner had stored, replaced the new owner's checkpoint with its older state. Each run stores under its own name
+    and records it only while it owns the fit: the stalled owner's late bytes go and it stops (LeaseLost)."""
+    from voxe_service.storage import get_storage, reconstruction_storage_key
+    from worker import runtime, tasks
+
+    storage, scene = get_storage(db), add_scene()
+    job_id, rec_id = add_job(scene, "queued", 0), add_reconstruction(scene)
+    stalled = runtime.begin_stage(job_id, "reconstruct", "a@host", "cpu", db)
+    assert runtime.try_claim_reconstruction(rec_id, job_id, "a@host", db, True, run_token=stalled.run_token)
+    for name in ("old", "new", "late"):
+        (tmp_path / name).write_bytes(f"the {name} fit checkpoint".encode())
+    tasks._store_fit_checkpoint(stalled, rec_id, storage, tmp_path / "old")
+
+    taken = _take_over_lapsed(db, job_id, "reconstruct")  # the stalled run's job, and then its fit, taken over
+    assert runtime.try_claim_reconstruction(rec_id, job_id, "b@host", db, True, run_token=taken.run_token)
+    resumed_from = runtime.load_reconstruction(rec_id).checkpoint_key
+    assert b"".join(storage.open_range(resumed_from)) == b"the old fit checkpoint"
+    tasks._store_fit_checkpoint(taken, rec_id, storage, tmp_path / "new")
+    with pytest.raises(runtime.LeaseLost):  # the stalled owner wakes and stores
+        tasks._store_fit_checkpoint(stalled, rec_id, storage, tmp_path / "late")
+
+    recorded = runtime.load_reconstruction(rec_id).checkpoint_key
+    assert b"".join(storage.open_range(recorded)) == b"the new fit checkpoint"
+    assert storage.list(reconstruction_storage_key(rec_id, "checkpoint")) == [recorded]
+
+
 def test_a_stages_warning_said_again_by_its_next_run_is_one_event_and_one_webhook(db):
     """Each run of an edit (a resume after a re-queue, a redelivery) said its constant-regulariser warning again:
     another ``warning`` event and job.warning webhook per run. The timeline keeps one per stage and text; the

@@ -434,7 +434,7 @@ def record_job_event(job_id: str, kind: str, **fields) -> None:
 def run_checkpoint_key(job: Job, stage: str) -> str:
     """Where this run of ``stage`` stores the job's checkpoint: a key of its own (its token), so that no other run's
     upload, a stalled one's above all, overwrites it."""
-    return job_key(job.id, f"checkpoints/{stage}-{job.run_token}.safetensors")
+    return job_key(job.id, f"checkpoints/{job.run_token}/{stage}.safetensors")
 
 
 def _record_checkpoint(job_id: str, stage: str, iteration: int, key: str | None) -> str | None:

@@ -520,13 +520,11 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
     resuming from a stored checkpoint."""
     scratch = runtime.scratch_dir(job.id, settings)
     checkpoint = scratch / "reconstruction_checkpoint.safetensors"
-    checkpoint_key = reconstruction_storage_key(rec.id, "checkpoint.safetensors")
 
     with runtime.fit_lease(rec.id, job.id, settings, job.run_token, claimed_at) as lease:
         def on_checkpoint(path: str) -> None:
             lease.check()
-            storage.put_file(checkpoint_key, path)
-            runtime.set_reconstruction(rec.id, job.id, job.run_token, checkpoint_key=checkpoint_key)
+            _store_fit_checkpoint(job, rec.id, storage, path)
 
         def on_progress(report: Progress) -> None:
             lease.renew(iteration=report.iteration, total=report.total)
@@ -539,8 +537,7 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
                 grid, total = _voxelize(job, rec, settings, storage), 1
                 callbacks.on_progress(Progress("reconstruct", total, total))
             else:
-                grid, total = _fit_grid(job, rec, settings, storage, lease, callbacks, checkpoint, checkpoint_key,
-                                        device)
+                grid, total = _fit_grid(job, rec, settings, storage, lease, callbacks, checkpoint, device)
             lease.check()
             path = scratch / "initial_grid.safetensors"
             grid.save(path)
@@ -574,19 +571,34 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
     if not done:
         storage.delete(stored.key)
         raise runtime.LeaseLost(f"reconstruction {rec.id}: another job took the fit over before it was stored")
-    storage.discard(checkpoint_key)
-    _discard_unrecorded_grids(storage, rec.id, stored.key)
+    _discard_unrecorded(storage, rec.id, "checkpoint", None)  # (every run's: the fit is done)
+    _discard_unrecorded(storage, rec.id, "grid-", stored.key)
 
 
-def _discard_unrecorded_grids(storage, rec_id: str, recorded: str) -> None:
-    """Delete the reconstruction's stored grids but the one ``recorded``: a run whose record of its grid the database
-    refused (down as it was written) left that grid stored under its own name, and its fit ran again. Once a grid is
-    recorded the fit is done for good, so another is such an orphan, or a run's that lost the fit (which deletes its
-    own). A cleanup: a storage failing it fails nothing."""
+def _store_fit_checkpoint(job: Job, rec_id: str, storage, path: str) -> None:
+    """Store the fit's checkpoint under this run's own name and record it as the fit's, only while this run owns the
+    fit: an owner that lost the fit (its lease lapsed, another job or run took it) and stored late had replaced the
+    new owner's checkpoint at the one fixed key. Refused, its bytes go (unless they are still the recorded ones, its
+    earlier checkpoint, which the new owner resumes from) and it stops (:class:`~worker.runtime.LeaseLost`)."""
+    key = reconstruction_storage_key(rec_id, f"checkpoint-{job.run_token or job.id}.safetensors")
+    storage.put_file(key, path)
+    if not runtime.set_reconstruction(rec_id, job.id, job.run_token, checkpoint_key=key):
+        if getattr(runtime.load_reconstruction(rec_id), "checkpoint_key", None) != key:
+            storage.discard(key)
+        raise runtime.LeaseLost(f"reconstruction {rec_id}: another job took the fit over before its checkpoint was "
+                                "recorded")
+
+
+def _discard_unrecorded(storage, rec_id: str, prefix: str, recorded: str | None) -> None:
+    """Delete the reconstruction's stored objects whose names start with ``prefix`` but the one ``recorded``: a run
+    whose record of its grid the database refused (down as it was written) left that grid stored under its own name,
+    and its fit ran again; once a grid is recorded the fit is done for good, so another grid is such an orphan, or a
+    run's that lost the fit (which deletes its own), and no checkpoint is needed any more. A cleanup: a storage
+    failing it fails nothing."""
     try:
-        orphans = [key for key in storage.list(reconstruction_storage_key(rec_id, "grid-")) if key != recorded]
+        orphans = [key for key in storage.list(reconstruction_storage_key(rec_id, prefix)) if key != recorded]
     except Exception:  # noqa: BLE001 - see the docstring
-        log.warning("reconstruction %s: could not list its stored grids", rec_id, exc_info=True)
+        log.warning("reconstruction %s: could not list its stored %s objects", rec_id, prefix, exc_info=True)
         return
     for key in orphans:
         storage.discard(key)
@@ -601,7 +613,7 @@ def _outage(exc: BaseException) -> str | None:
 
 
 def _fit_grid(job: Job, rec, settings, storage, lease: runtime.LeaseKeeper, callbacks: StageCallbacks,
-              checkpoint: Path, checkpoint_key: str, device: str):
+              checkpoint: Path, device: str):
     """Route (a) and image scenes: G_i fitted to the scene's images on ``device``; returns (grid, total iterations)."""
     from voxe_core.reconstruct import CHECKPOINT_FORMAT_VERSION, CHECKPOINT_KIND, reconstruct
 
@@ -611,8 +623,8 @@ def _fit_grid(job: Job, rec, settings, storage, lease: runtime.LeaseKeeper, call
                                                    split_c2w=scene.split_c2w)
     _record_fit(job, backbone, config, settings)
     lease.renew(total=config.total_iterations)
-    resume = None
-    if storage.exists(checkpoint_key):
+    resume, checkpoint_key = None, rec.checkpoint_key  # the last owner's, recorded while it owned the fit
+    if checkpoint_key and storage.exists(checkpoint_key):
         resume, _, why = _stored_checkpoint(storage, checkpoint_key, checkpoint, CHECKPOINT_KIND,
                                             CHECKPOINT_FORMAT_VERSION, config)
         if resume is None:
@@ -628,7 +640,7 @@ def _fit_grid(job: Job, rec, settings, storage, lease: runtime.LeaseKeeper, call
 
 
 def _resumed_or_started_over(run, resume: Path | None, job_id: str, stage: str, callbacks: StageCallbacks, storage,
-                             checkpoint_key: str):
+                             checkpoint_key: str | None):
     """``run(resume)``; when the stage cannot go on from that checkpoint (a FormatError: another recipe, other
     views, prompt or initial grid, another device's generator it cannot read), ``run(None)``, the stage over from
     its start: refused, it would fail every redelivery. The stored checkpoint goes (a redelivery before the new run's

@@ -1,5 +1,5 @@
 """A job records the storage key of its live checkpoint: each run stores its checkpoints under a key of its own
-(``jobs/<id>/checkpoints/<stage>-<run token>.safetensors``) and records it only while it holds the job, so a stalled
+(``jobs/<id>/checkpoints/<run token>/<stage>.safetensors``) and records it only while it holds the job, so a stalled
 run's late upload can no longer overwrite the checkpoint of the run that took the job over.
 
 Jobs written before the column existed stored theirs at the one fixed key ``checkpoints/edit.safetensors``: a job not
