@@ -65,8 +65,11 @@ def log_safe_url(url: str, base: str = "") -> str:
     may hold credentials (``https://user:pass@host/``, ``?token=...``, or in the path, as Slack's and Discord's
     ``/services/T0/B0/<secret>`` and ``/api/webhooks/<id>/<token>`` do) that the owner sees in the delivery's
     ``last_error``, but the operator's logs must not. A relative one (a redirect's Location) is first resolved
-    against ``base``. The userinfo is hidden up to the last '@' before the query (a password may hold a '/'); the
-    path keeps its first segment, which tells receivers' endpoints apart, and the rest, where the tokens are, is
+    against ``base``. The userinfo is the netloc's, up to its last '@': an '@' in the path is the path's (a rule
+    reading up to the last '@' anywhere had shown ``/hooks/ops@corp/<token>`` as ``***@corp/<token>``), unless the
+    netloc's port is unreadable (a password's unencoded '/' ended the netloc: ``bob:pa/ss@host``), where the
+    userinfo runs to the last '@' before the query. The path keeps its first segment, which tells receivers'
+    endpoints apart, unless it holds an '@' (the tail of such a password), and the rest, where the tokens are, is
     one ``***`` (no rule tells a token from a word reliably); a query pair's name is kept, a pair with no '=' hidden
     whole.
 
@@ -77,22 +80,38 @@ def log_safe_url(url: str, base: str = "") -> str:
         'https://***@hooks.example.com/in?t=***'
         >>> log_safe_url("https://hooks.example.com/services/T0KEN/secret")
         'https://hooks.example.com/services/***'
+        >>> log_safe_url("https://api.example.com/hooks/ops@corp/s3cretTOKEN")
+        'https://api.example.com/hooks/***'
     """
     try:
         parts = urlsplit(urljoin(base, url) if base else url)
     except ValueError:  # e.g. an unclosed "[" of an IPv6 host
         return "<an unreadable URL>"
     authority_and_path = parts.netloc + parts.path
-    if "@" in authority_and_path:
-        authority_and_path = "***@" + authority_and_path.rpartition("@")[2]
+    userinfo_end = parts.netloc.rfind("@")
+    if userinfo_end < 0 and "@" in parts.path and not _port_readable(parts):
+        userinfo_end = authority_and_path.rfind("@")
+    if userinfo_end >= 0:
+        authority_and_path = "***@" + authority_and_path[userinfo_end + 1:]
     authority, _, path = authority_and_path.partition("/")
     first_segment, _, rest = path.partition("/")
-    if rest:
+    if "@" in first_segment:
+        authority_and_path = f"{authority}/***"
+    elif rest:
         authority_and_path = f"{authority}/{first_segment}/***"
     query = "&".join(name + "=***" if has_value else "***"
                      for name, has_value, _ in (pair.partition("=") for pair in parts.query.split("&")))
     return (f"{parts.scheme}:{'//' if parts.netloc else ''}{authority_and_path}"
             f"{'?' + query if parts.query else ''}{'#***' if parts.fragment else ''}")
+
+
+def _port_readable(parts) -> bool:
+    """Whether the netloc's port, if any, is a number: not, where a password's '/' cut the netloc short."""
+    try:
+        parts.port
+    except ValueError:
+        return False
+    return True
 
 
 class Attempt(NamedTuple):
