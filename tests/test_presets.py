@@ -619,14 +619,15 @@ def _fit_checkpoint_of_another_recipe(path) -> bytes:
 def test_a_damaged_or_foreign_fit_checkpoint_is_dropped_and_the_fit_starts_over(service, monkeypatch, tmp_path,
                                                                                 stored, why, caplog):
     """As an edit's: a stored reconstruction checkpoint made with another recipe (reconstruct() refuses to resume it,
-    a ValueError that had failed the shared fit for good) or unreadable is deleted and the fit runs from the start."""
+    a ValueError that had failed the shared fit for good) or unreadable is deleted and the fit runs from the start.
+    Finished, the fit records no checkpoint (its record had still named a deleted one) and keeps none stored."""
     from sqlalchemy import update
 
     import voxe_core.reconstruct
     from voxe_service.db import session_scope
     from voxe_service.models import Reconstruction
     from voxe_service.storage import get_storage, reconstruction_storage_key
-    from worker import tasks
+    from worker import runtime, tasks
 
     client, scene_id = service
     job = client.post("/v1/jobs", json={"scene_id": scene_id, "prompt": "a mic", "params": TINY_FIT}).json()
@@ -647,6 +648,8 @@ def test_a_damaged_or_foreign_fit_checkpoint_is_dropped_and_the_fit_starts_over(
     assert f"the stored checkpoint {why}" in caplog.text
     events = client.get(f"/v1/jobs/{job['id']}/events").json()
     assert not any(e["kind"] == "resumed" and e.get("stage") == "reconstruct" for e in events), events
+    assert runtime.load_reconstruction(rec_id).checkpoint_key is None
+    assert get_storage().list(reconstruction_storage_key(rec_id, "checkpoint")) == []
 
 
 @pytest.mark.parametrize("canceled", ["between stages", "while re-queued"])
@@ -882,7 +885,7 @@ def _checkpoint_upload_refused(monkeypatch, storage, cause: str, refused_at: set
         put_file = type(storage).put_file
 
         def throttled(self, key, path, content_type=None):
-            if key.endswith("/edit.safetensors"):  # (checkpoints/<run token>/edit.safetensors)
+            if key.endswith("/edit.safetensors"):  # (checkpoints/<run token>/<iteration>/edit.safetensors)
                 tried.append(key)
                 if not refused_at or len(tried) in refused_at:
                     raise StorageUnavailable(f"S3 bucket 'voxe': SlowDown when uploading {key}")

@@ -1845,8 +1845,8 @@ def test_a_run_that_lost_its_job_publishes_records_and_fits_nothing(db, tmp_path
             runtime.publish_artifact(job_id, "edited_grid.safetensors", grid, "grid", storage)
         with pytest.raises(runtime.RunSuperseded):
             runtime.merge_job_result(job_id, {"orbit_centre": [0.0, 0.0, 0.0]})
-        stalled_callbacks = runtime.StageCallbacks(stalled, "edit", db, on_checkpoint=lambda path: storage.put_file(
-            f"jobs/{job_id}/checkpoints/edit.safetensors", path))
+        stalled_callbacks = runtime.StageCallbacks(stalled, "edit", db, on_checkpoint=lambda path, iteration: (
+            storage.put_file(f"jobs/{job_id}/checkpoints/edit.safetensors", path)))
         with pytest.raises(runtime.RunSuperseded):  # its older checkpoint had replaced the new owner's
             stalled_callbacks.on_checkpoint(str(grid))
     assert storage.list(f"jobs/{job_id}/") == [] and runtime.recorded_key(job_id, "edited_grid.safetensors") is None
@@ -2718,8 +2718,8 @@ def test_a_stalled_runs_upload_or_checkpoint_meeting_its_jobs_ending_leaves_noth
 
     job_id = add_job(add_scene(), "queued", 0, completed_stages=["reconstruct"])
     stalled = runtime.begin_stage(job_id, "edit", "a@host", "cpu", db)
-    callbacks = runtime.StageCallbacks(stalled, "edit", db, on_checkpoint=lambda path: _ended_by_another_worker(
-        db, job_id, "edit"))
+    callbacks = runtime.StageCallbacks(stalled, "edit", db, on_checkpoint=lambda path, iteration: (
+        _ended_by_another_worker(db, job_id, "edit")))
     callbacks.on_progress(Progress("edit", 10, 100))
     with holding(job_id, stalled.run_token), pytest.raises(runtime.RunSuperseded):
         callbacks.on_checkpoint(str(tmp_path / "checkpoint"))
@@ -2747,7 +2747,7 @@ def _run_checkpoint_store(storage, job):
     """What the edit stores a checkpoint with (worker.tasks._edit): the run's own key."""
     from worker import runtime
 
-    return lambda path: storage.put_file(runtime.run_checkpoint_key(job, "edit"), path)
+    return lambda path, iteration: storage.put_file(runtime.run_checkpoint_key(job, "edit", iteration), path)
 
 
 @pytest.mark.parametrize("then", ["ended", "taken over"])
@@ -2764,8 +2764,8 @@ def test_a_stalled_runs_refused_checkpoint_goes_unless_it_is_the_jobs_live_one(d
     stalled = runtime.begin_stage(job_id, "edit", "a@host", "cpu", db)
     store = _run_checkpoint_store(storage, stalled)
 
-    def store_as_it_loses_the_job(path):
-        stored = store(path)
+    def store_as_it_loses_the_job(path, iteration):
+        stored = store(path, iteration)
         if then == "ended":
             _ended_by_another_worker(db, job_id, "edit")
         else:
@@ -2801,15 +2801,15 @@ def test_a_stalled_runs_late_checkpoint_never_replaces_the_checkpoint_of_the_run
     with holding(job_id, stalled.run_token):
         stalled_callbacks.on_checkpoint(str(tmp_path / "old"))  # its last checkpoint while it held the job
 
-    def taken_over_and_checkpointed_first(path):  # the stalled run passed its check, then stalled past its lease
+    def taken_over_and_checkpointed_first(path, iteration):  # the stalled run passed its check, then stalled
         taken = _take_over_lapsed(db, job_id, "edit")
-        assert taken.checkpoint_key == runtime.run_checkpoint_key(stalled, "edit")  # what the new run resumes from
+        assert taken.checkpoint_key == runtime.run_checkpoint_key(stalled, "edit", 10)  # what the new run resumes from
         new_callbacks = runtime.StageCallbacks(taken, "edit", db, on_checkpoint=_run_checkpoint_store(storage, taken))
         (tmp_path / "new").write_bytes(b"the new run's edit at 30")
         new_callbacks.on_progress(Progress("edit", 30, 100))
         with holding(job_id, taken.run_token):
             new_callbacks.on_checkpoint(str(tmp_path / "new"))
-        return _run_checkpoint_store(storage, stalled)(path)  # ... and only then uploads
+        return _run_checkpoint_store(storage, stalled)(path, iteration)  # ... and only then uploads
 
     stalled_callbacks._store_checkpoint = taken_over_and_checkpointed_first
     (tmp_path / "late").write_bytes(b"the stalled run's edit at 12")
@@ -2837,19 +2837,161 @@ def test_a_fit_owner_that_lost_the_fit_never_replaces_the_new_owners_checkpoint(
     assert runtime.try_claim_reconstruction(rec_id, job_id, "a@host", db, True, run_token=stalled.run_token)
     for name in ("old", "new", "late"):
         (tmp_path / name).write_bytes(f"the {name} fit checkpoint".encode())
-    tasks._store_fit_checkpoint(stalled, rec_id, storage, tmp_path / "old")
+    tasks._store_fit_checkpoint(stalled, rec_id, storage, tmp_path / "old", 10)
 
     taken = _take_over_lapsed(db, job_id, "reconstruct")  # the stalled run's job, and then its fit, taken over
     assert runtime.try_claim_reconstruction(rec_id, job_id, "b@host", db, True, run_token=taken.run_token)
     resumed_from = runtime.load_reconstruction(rec_id).checkpoint_key
     assert b"".join(storage.open_range(resumed_from)) == b"the old fit checkpoint"
-    tasks._store_fit_checkpoint(taken, rec_id, storage, tmp_path / "new")
+    tasks._store_fit_checkpoint(taken, rec_id, storage, tmp_path / "new", 30)
     with pytest.raises(runtime.LeaseLost):  # the stalled owner wakes and stores
-        tasks._store_fit_checkpoint(stalled, rec_id, storage, tmp_path / "late")
+        tasks._store_fit_checkpoint(stalled, rec_id, storage, tmp_path / "late", 12)
 
     recorded = runtime.load_reconstruction(rec_id).checkpoint_key
     assert b"".join(storage.open_range(recorded)) == b"the new fit checkpoint"
     assert storage.list(reconstruction_storage_key(rec_id, "checkpoint")) == [recorded]
+
+
+def test_a_checkpoint_whose_record_failed_leaves_the_recorded_checkpoints_bytes_as_they_were(db, tmp_path,
+                                                                                             monkeypatch):
+    """A run stored every checkpoint at one key: one whose record then failed (the database out of reach as it
+    recorded the checkpoint at 20) had overwritten the recorded checkpoint's bytes (at 10), which the redelivery
+    resumed from as if they were 10's. Each checkpoint has a key of its own: the recorded one keeps its bytes and the
+    unrecorded one goes."""
+    from sqlalchemy.exc import OperationalError
+
+    from voxe_core.progress import Progress
+    from voxe_service.storage import get_storage
+    from worker import runtime
+
+    storage, job_id = get_storage(db), add_job(add_scene(), "queued", 0, completed_stages=["reconstruct"])
+    run = runtime.begin_stage(job_id, "edit", "a@host", "cpu", db)
+    callbacks = runtime.StageCallbacks(run, "edit", db, on_checkpoint=_run_checkpoint_store(storage, run))
+    for iteration in (10, 20):
+        (tmp_path / f"at{iteration}").write_bytes(f"the edit at {iteration}".encode())
+    with holding(job_id, run.run_token):
+        callbacks.on_progress(Progress("edit", 10, 100))
+        callbacks.on_checkpoint(str(tmp_path / "at10"))
+
+        def out_of_reach(*args, **kwargs):
+            raise OperationalError("INSERT INTO job_events", {}, Exception("database is locked"))
+
+        monkeypatch.setattr(runtime, "record_event", out_of_reach)
+        callbacks.on_progress(Progress("edit", 20, 100))
+        with pytest.raises(OperationalError):
+            callbacks.on_checkpoint(str(tmp_path / "at20"))
+    recorded = job_row(job_id).checkpoint_key
+    assert b"".join(storage.open_range(recorded)) == b"the edit at 10"
+    assert storage.list(f"jobs/{job_id}/checkpoints/") == [recorded]
+
+
+def _owned_fit(db, job_id: str, rec_id: str, host: str, take_over: bool = False):
+    """A run of the job's reconstruct stage (one that took the stalled one's lapsed hold over, with ``take_over``)
+    owning the fit; its job row."""
+    from worker import runtime
+
+    run = (_take_over_lapsed(db, job_id, "reconstruct") if take_over
+           else runtime.begin_stage(job_id, "reconstruct", host, "cpu", db))
+    assert runtime.try_claim_reconstruction(rec_id, job_id, host, db, True, run_token=run.run_token)
+    return run
+
+
+def test_a_refused_fit_checkpoint_leaves_the_recorded_checkpoints_bytes_as_they_were(db, tmp_path):
+    """A fit owner stored each of its checkpoints at one key: stalled past its lease after recording one, the fit
+    taken over and resumed from that one, its late upload (refused) had overwritten the bytes the new owner resumed
+    from, and the next one resumed from its later state. Each checkpoint has a key of its own: the refused one goes
+    and the recorded one keeps its bytes."""
+    from voxe_service.storage import get_storage, reconstruction_storage_key
+    from worker import runtime, tasks
+
+    storage, scene = get_storage(db), add_scene()
+    job_id, rec_id = add_job(scene, "queued", 0), add_reconstruction(scene)
+    for name in ("recorded", "late"):
+        (tmp_path / name).write_bytes(f"the {name} fit checkpoint".encode())
+    stalled = _owned_fit(db, job_id, rec_id, "a@host")
+    tasks._store_fit_checkpoint(stalled, rec_id, storage, tmp_path / "recorded", 10)
+    _owned_fit(db, job_id, rec_id, "b@host", take_over=True)
+    with pytest.raises(runtime.LeaseLost):
+        tasks._store_fit_checkpoint(stalled, rec_id, storage, tmp_path / "late", 20)
+    recorded = runtime.load_reconstruction(rec_id).checkpoint_key
+    assert b"".join(storage.open_range(recorded)) == b"the recorded fit checkpoint"
+    assert storage.list(reconstruction_storage_key(rec_id, "checkpoint")) == [recorded]
+
+
+def test_a_fit_checkpoint_replaced_by_the_next_owners_is_deleted(db, tmp_path):
+    """The edit deleted the checkpoint a new one replaced, the fit did not: a fit taken over kept its killed owner's
+    last checkpoint until the fit succeeded, and for good when it failed. It goes once the new owner records its
+    own."""
+    from voxe_service.storage import get_storage, reconstruction_storage_key
+    from worker import runtime, tasks
+
+    storage, scene = get_storage(db), add_scene()
+    job_id, rec_id = add_job(scene, "queued", 0), add_reconstruction(scene)
+    for name in ("killed", "new"):
+        (tmp_path / name).write_bytes(f"the {name} owner's fit checkpoint".encode())
+    killed = _owned_fit(db, job_id, rec_id, "a@host")
+    tasks._store_fit_checkpoint(killed, rec_id, storage, tmp_path / "killed", 10)
+    taken = _owned_fit(db, job_id, rec_id, "b@host", take_over=True)
+    tasks._store_fit_checkpoint(taken, rec_id, storage, tmp_path / "new", 30)
+    recorded = runtime.load_reconstruction(rec_id).checkpoint_key
+    assert b"".join(storage.open_range(recorded)) == b"the new owner's fit checkpoint"
+    assert storage.list(reconstruction_storage_key(rec_id, "checkpoint")) == [recorded]
+
+
+def test_a_stalled_owners_checkpoint_stored_after_the_fit_succeeded_is_deleted(db, tmp_path):
+    """A fit owner stalled past its lease, the fit taken over and finished (every checkpoint deleted), whose late
+    upload then landed kept its bytes: its refusal deleted them only when they were not the recorded checkpoint,
+    which they were (the key it had recorded before it stalled, shared by all its checkpoints). A succeeded fit
+    records no checkpoint, and the late one, refused, goes."""
+    from voxe_service.storage import get_storage, reconstruction_storage_key
+    from worker import runtime, tasks
+
+    storage, scene = get_storage(db), add_scene()
+    job_id, rec_id = add_job(scene, "queued", 0), add_reconstruction(scene)
+    for name in ("recorded", "late"):
+        (tmp_path / name).write_bytes(f"the {name} fit checkpoint".encode())
+    stalled = _owned_fit(db, job_id, rec_id, "a@host")
+    tasks._store_fit_checkpoint(stalled, rec_id, storage, tmp_path / "recorded", 10)
+    taken = _owned_fit(db, job_id, rec_id, "b@host", take_over=True)
+    assert runtime.set_reconstruction(rec_id, job_id, taken.run_token, state="succeeded", lease_until=None)
+    tasks._discard_unrecorded(storage, rec_id, "checkpoint", None)  # (as the fit's end does)
+    with pytest.raises(runtime.LeaseLost):
+        tasks._store_fit_checkpoint(stalled, rec_id, storage, tmp_path / "late", 20)
+    assert storage.list(reconstruction_storage_key(rec_id, "checkpoint")) == []
+
+
+def test_a_checkpoint_stored_as_its_job_was_deleted_is_deleted(db, tmp_path):
+    """A run whose job was canceled and deleted (rows, then stored objects) as it uploaded a checkpoint found no job
+    row to record it on and went on as if recorded: the bytes stayed, under a job no longer listed anywhere. The
+    record is refused (RunSuperseded) and the bytes go."""
+    from voxe_core.progress import Progress
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
+    from voxe_service.storage import get_storage, job_key
+    from worker import runtime
+
+    storage, scene = get_storage(db), add_scene()
+    job_id = add_job(scene, "queued", 0, completed_stages=["reconstruct"])
+    run = runtime.begin_stage(job_id, "edit", "a@host", "cpu", db)
+    store = _run_checkpoint_store(storage, run)
+
+    def deleted_as_it_uploads(path, iteration):  # as the API deletes a scene: its rows, then its stored objects
+        _ended_by_another_worker(db, job_id, "edit")
+        outside = runtime._HOLDING.set(None)
+        try:
+            with session_scope() as session:
+                session.delete(session.get(Scene, scene))
+            storage.discard_prefixes(job_key(job_id))
+        finally:
+            runtime._HOLDING.reset(outside)
+        return store(path, iteration)
+
+    callbacks = runtime.StageCallbacks(run, "edit", db, on_checkpoint=deleted_as_it_uploads)
+    callbacks.on_progress(Progress("edit", 10, 100))
+    (tmp_path / "checkpoint").write_bytes(b"the edit at 10")
+    with holding(job_id, run.run_token), pytest.raises(runtime.RunSuperseded):
+        callbacks.on_checkpoint(str(tmp_path / "checkpoint"))
+    assert storage.list(job_key(job_id)) == []
 
 
 def test_a_stages_warning_said_again_by_its_next_run_is_one_event_and_one_webhook(db):

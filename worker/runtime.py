@@ -431,32 +431,26 @@ def record_job_event(job_id: str, kind: str, **fields) -> None:
         record_event(session, job_id, kind, **fields)
 
 
-def run_checkpoint_key(job: Job, stage: str) -> str:
-    """Where this run of ``stage`` stores the job's checkpoint: a key of its own (its token), so that no other run's
-    upload, a stalled one's above all, overwrites it."""
-    return job_key(job.id, f"checkpoints/{job.run_token}/{stage}.safetensors")
+def run_checkpoint_key(job: Job, stage: str, iteration: int) -> str:
+    """Where this run of ``stage`` stores the job's checkpoint taken at ``iteration``: a key of that checkpoint's own
+    (the run's token and the iteration), so that no upload, a stalled run's or one whose record failed, overwrites
+    the recorded checkpoint's bytes, and one left unrecorded can always be deleted."""
+    return job_key(job.id, f"checkpoints/{job.run_token}/{iteration}/{stage}.safetensors")
 
 
 def _record_checkpoint(job_id: str, stage: str, iteration: int, key: str | None) -> str | None:
     """The ``checkpoint`` event at ``iteration`` and, given ``key``, that key recorded as the job's live checkpoint,
-    in one transaction under the job's lock, refused (:class:`RunSuperseded`) to a run that no longer holds the job;
-    the key it replaced (None when none)."""
+    in one transaction under the job's lock, refused (:class:`RunSuperseded`) to a run that no longer holds the job
+    or whose job is gone (deleted: its storage cleanup may have run already); the key it replaced (None when none)."""
     with session_scope() as session:
         if (job := locked(session, Job, job_id)) is None:
-            return None
+            raise RunSuperseded(f"job {job_id}: deleted; this run's checkpoint is refused")
         _refuse_if_superseded(job_id, lambda: job.run_token)  # (read under the lock just taken)
         replaced = job.checkpoint_key
         if key is not None:
             job.checkpoint_key = key
         record_event(session, job_id, "checkpoint", stage=stage, iteration=iteration)
     return replaced if key is not None else None
-
-
-def live_checkpoint_key(job_id: str) -> str | None:
-    """The key of the job's live checkpoint; None when it has none, or has ended (or is gone): its checkpoints go."""
-    with session_scope() as session:
-        row = session.execute(select(Job.state, Job.checkpoint_key).where(Job.id == job_id)).first()
-    return None if row is None or row.state in TERMINAL_STATES else row.checkpoint_key
 
 
 def record_warning(job_id: str, stage: str, text: str) -> None:
@@ -495,9 +489,9 @@ class StageCallbacks:
     Progress is written at most once per ``progress_interval_s`` (and always for
     the last iteration); the cancel flag is read at most once per
     ``cancel_check_interval_s``. ``extra_progress`` is called on every write
-    (the reconstruction owner renews its lease there). ``on_checkpoint(path)`` stores
-    a checkpoint (returning the ``StoredObject`` where it is the job's own, stored at :func:`run_checkpoint_key`); a
-    ``checkpoint`` event at the iteration it was taken follows it.
+    (the reconstruction owner renews its lease there). ``on_checkpoint(path, iteration)`` stores
+    a checkpoint taken at ``iteration`` (returning the ``StoredObject`` where it is the job's own, stored at
+    :func:`run_checkpoint_key`); a ``checkpoint`` event at the iteration it was taken follows it.
     ``phase_seconds``: seconds per unit of each sub-step of a stage counted in phases
     (``voxe_core.progress.in_phases``; ``voxe_service.progress.refine_phase_seconds``), by which the
     time left weighs each sub-step's units left against the current one's, whose rate it measures.
@@ -538,22 +532,20 @@ class StageCallbacks:
         lost its job stores nothing (:class:`RunSuperseded`): its older state would replace the new owner's. A job's
         own checkpoint (``on_checkpoint`` returns its ``StoredObject``, stored at :func:`run_checkpoint_key`) is
         recorded as the job's live one with its event, under the job's lock and only while this run holds it; the
-        one it replaces goes. One refused as it stored (the job ended or was taken over meanwhile) is deleted unless
-        it is the job's live one still (this run's earlier one, which the run that took over may resume from): this
-        run's key is its own, so its late bytes never land on the new run's. A reconstruction's checkpoint is the
-        fit's, recorded by the fit's owner (``worker.tasks``)."""
+        one it replaces goes. One whose record failed (refused: the job ended, was deleted or taken over meanwhile;
+        or the database out of reach) is deleted: its key is its own, so it is never the recorded checkpoint, whose
+        bytes it leaves as they were. A reconstruction's checkpoint is the fit's, recorded by the fit's owner
+        (``worker.tasks``)."""
         with session_scope() as session:
             _refuse_if_superseded(self.job_id, lambda: session.scalar(_token_query(self.job_id)))
-        stored = self._store_checkpoint(path)
+        iteration = int(self._last_report.iteration if self._last_report is not None else 0)
+        stored = self._store_checkpoint(path, iteration)
         own = stored.key if isinstance(stored, StoredObject) else None
-        iteration = self._last_report.iteration if self._last_report is not None else 0
         try:
-            replaced = _record_checkpoint(self.job_id, self.stage, int(iteration), own)
-        except RunSuperseded:
+            replaced = _record_checkpoint(self.job_id, self.stage, iteration, own)
+        except Exception:
             if own is not None:
-                with outage_skipped(f"job {self.job_id}: reading its live checkpoint, this run's refused"):
-                    if live_checkpoint_key(self.job_id) != own:
-                        get_storage(self.settings).discard(own)
+                get_storage(self.settings).discard(own)
             raise
         if replaced is not None and replaced != own:
             get_storage(self.settings).discard(replaced)
@@ -1057,6 +1049,22 @@ def set_reconstruction(rec_id: str, job_id: str, run_token: str | None = None, *
     with session_scope() as session:
         return session.execute(update(Reconstruction).where(*_owned(rec_id, job_id, run_token)).values(**values)
                                ).rowcount == 1
+
+
+def record_fit_checkpoint(rec_id: str, job_id: str, run_token: str | None, key: str) -> str | None:
+    """Record ``key`` as the fit's checkpoint while ``job_id`` (its run ``run_token``) owns the running fit, under
+    the reconstruction's lock; the key it replaced (None when none), for the caller to delete. :class:`LeaseLost`
+    when the run does not own it (taken over, or the fit ended: no checkpoint is kept past its end)."""
+    owned_and_running = (*_owned(rec_id, job_id, run_token), Reconstruction.state == R_RUNNING)
+    with session_scope() as session:
+        # A write first: it locks the row (PostgreSQL) or the database (SQLite) until the key is swapped.
+        if session.execute(update(Reconstruction).where(*owned_and_running)
+                           .values(owner_job_id=Reconstruction.owner_job_id)).rowcount != 1:
+            raise LeaseLost(f"reconstruction {rec_id}: another job took the fit over (or it ended) before its "
+                            "checkpoint was recorded")
+        replaced = session.scalar(select(Reconstruction.checkpoint_key).where(Reconstruction.id == rec_id))
+        session.execute(update(Reconstruction).where(Reconstruction.id == rec_id).values(checkpoint_key=key))
+    return replaced
 
 
 def hand_back_fit(rec_id: str, job_id: str, run_token: str | None, error: str) -> bool:

@@ -522,9 +522,9 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
     checkpoint = scratch / "reconstruction_checkpoint.safetensors"
 
     with runtime.fit_lease(rec.id, job.id, settings, job.run_token, claimed_at) as lease:
-        def on_checkpoint(path: str) -> None:
+        def on_checkpoint(path: str, iteration: int) -> None:
             lease.check()
-            _store_fit_checkpoint(job, rec.id, storage, path)
+            _store_fit_checkpoint(job, rec.id, storage, path, iteration)
 
         def on_progress(report: Progress) -> None:
             lease.renew(iteration=report.iteration, total=report.total)
@@ -567,6 +567,7 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
         done = runtime.set_reconstruction(
             rec.id, job.id, job.run_token, state=R_SUCCEEDED, grid_key=stored.key, grid_size=stored.size,
             grid_sha256=stored.sha256, iteration=total, total=total, lease_until=None, finished_at=utcnow(),
+            checkpoint_key=None,  # (none is resumed from any more; every run's goes below)
         )
     if not done:
         storage.delete(stored.key)
@@ -575,18 +576,22 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
     _discard_unrecorded(storage, rec.id, "grid-", stored.key)
 
 
-def _store_fit_checkpoint(job: Job, rec_id: str, storage, path: str) -> None:
-    """Store the fit's checkpoint under this run's own name and record it as the fit's, only while this run owns the
-    fit: an owner that lost the fit (its lease lapsed, another job or run took it) and stored late had replaced the
-    new owner's checkpoint at the one fixed key. Refused, its bytes go (unless they are still the recorded ones, its
-    earlier checkpoint, which the new owner resumes from) and it stops (:class:`~worker.runtime.LeaseLost`)."""
-    key = reconstruction_storage_key(rec_id, f"checkpoint-{job.run_token or job.id}.safetensors")
+def _store_fit_checkpoint(job: Job, rec_id: str, storage, path: str, iteration: int) -> None:
+    """Store the fit's checkpoint taken at ``iteration`` under a key of its own (this run's token and the iteration)
+    and record it as the fit's only while this run owns the running fit (:func:`runtime.record_fit_checkpoint`); the
+    one it replaces goes. An owner that lost the fit (its lease lapsed, another job or run took it, or the fit
+    ended) and stored late had overwritten the recorded checkpoint at a shared key: refused, or its record failing
+    (the database out of reach), its bytes go, never the recorded ones, and a refused run stops
+    (:class:`~worker.runtime.LeaseLost`)."""
+    key = reconstruction_storage_key(rec_id, f"checkpoint-{job.run_token or job.id}-{iteration}.safetensors")
     storage.put_file(key, path)
-    if not runtime.set_reconstruction(rec_id, job.id, job.run_token, checkpoint_key=key):
-        if getattr(runtime.load_reconstruction(rec_id), "checkpoint_key", None) != key:
-            storage.discard(key)
-        raise runtime.LeaseLost(f"reconstruction {rec_id}: another job took the fit over before its checkpoint was "
-                                "recorded")
+    try:
+        replaced = runtime.record_fit_checkpoint(rec_id, job.id, job.run_token, key)
+    except Exception:
+        storage.discard(key)
+        raise
+    if replaced is not None and replaced != key:
+        storage.discard(replaced)
 
 
 def _discard_unrecorded(storage, rec_id: str, prefix: str, recorded: str | None) -> None:
@@ -708,8 +713,8 @@ def _edit(job: Job, settings, device: str, storage) -> None:
             _preview(job.id, None, settings, storage, device, image=image)
 
     callbacks = StageCallbacks(job, "edit", settings, note=note,
-                               on_checkpoint=lambda path: storage.put_file(runtime.run_checkpoint_key(job, "edit"),
-                                                                           path))
+                               on_checkpoint=lambda path, iteration: storage.put_file(
+                                   runtime.run_checkpoint_key(job, "edit", iteration), path))
     compiled_before = guidance.encoder_compile_seconds
     grid = _resumed_or_started_over(
         lambda start: edit(initial, job.prompt, guidance, config, callbacks.callbacks, checkpoint, start,

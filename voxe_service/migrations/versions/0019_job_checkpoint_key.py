@@ -1,6 +1,6 @@
-"""A job records the storage key of its live checkpoint: each run stores its checkpoints under a key of its own
-(``jobs/<id>/checkpoints/<run token>/<stage>.safetensors``) and records it only while it holds the job, so a stalled
-run's late upload can no longer overwrite the checkpoint of the run that took the job over.
+"""A job records the storage key of its live checkpoint: each checkpoint is stored under a key of its own
+(``jobs/<id>/checkpoints/<run token>/<iteration>/<stage>.safetensors``) and recorded only while its run holds the job,
+so a stalled run's late upload can no longer overwrite the checkpoint of the run that took the job over.
 
 Jobs written before the column existed stored theirs at the one fixed key ``checkpoints/edit.safetensors``: a job not
 ended records that key, for its next run to resume from (it starts over where nothing is stored there).
