@@ -304,6 +304,43 @@ def test_an_ingest_stopped_by_a_storage_outage_goes_back_to_the_queue_keeping_th
     assert tasks.ingest_task.apply(args=(again["id"],)).result == {"scene_id": again["id"], "state": "ready"}
 
 
+def test_an_ingest_a_storage_outage_stops_past_its_bound_fails_the_scene_naming_it(client, dataset, root,
+                                                                                 monkeypatch):
+    """An upload whose stored object answers 5xx every time (after botocore's retries) was fetched for ever: a
+    storage outage uses up none of the ingest's attempts. Below VOXE_STORAGE_OUTAGE_MAX_RETRIES such runs each goes
+    back to the queue as before; the next run an outage stops fails the scene, naming the outage and how many times
+    it stopped the ingest, and its upload goes."""
+    from sqlalchemy import update
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
+    from voxe_service.settings import get_settings
+    from voxe_service.storage import StorageUnavailable, get_storage
+    from worker import tasks
+
+    scene = upload_zip(client, zip_folder(dataset, root / "ok.zip", prefix="mic_small")).json()
+    bound = get_settings().storage_outage_max_retries
+    with session_scope() as session:
+        session.execute(update(Scene).where(Scene.id == scene["id"]).values(ingest_storage_outages=bound - 1))
+
+    def broken_object(self, key, dest):
+        raise StorageUnavailable(f"S3 bucket 'voxe': InternalError (503) when fetching {key}")
+
+    monkeypatch.setattr("worker.runtime.OUTAGE_PAUSE_S", 0.0)
+    monkeypatch.setattr(type(get_storage()), "get_file", broken_object)
+    given_back = tasks.ingest_task.apply(args=(scene["id"],))
+    assert given_back.state == "REJECTED" and given_back.result.requeue
+    with session_scope() as session:
+        assert session.get(Scene, scene["id"]).ingest_storage_outages == bound
+    assert tasks.ingest_task.apply(args=(scene["id"],)).get() == {"scene_id": scene["id"], "state": "failed"}
+    failed = client.get(f"/v1/scenes/{scene['id']}").json()
+    assert failed["state"] == "failed"
+    assert failed["error"] == (f"ingest: stopped by a storage outage (S3 bucket 'voxe': InternalError (503) when "
+                               f"fetching scenes/{scene['id']}/dataset.zip); storage outages stopped it {bound + 1} "
+                               f"times ({bound} retries, the limit: VOXE_STORAGE_OUTAGE_MAX_RETRIES={bound})")
+    assert stored_files(root) == []
+
+
 def test_an_ingest_on_a_worker_whose_disk_is_full_goes_back_to_the_queue_keeping_the_upload(client, dataset, root,
                                                                                            monkeypatch):
     """One worker's scratch disk full as it unpacks an upload (killed runs' folders, another job's grids) had failed

@@ -308,6 +308,28 @@ def test_a_scenes_ingest_count_upgrades_from_none_and_back(database_url, before,
     engine.dispose()
 
 
+def test_a_jobs_storage_outage_count_upgrades_from_none_and_back(database_url):
+    """0019 counts the runs of a job's stages a storage outage stopped in a column (they had been counted from the
+    text of its ``requeued`` events), as 0018 does a scene's ingest's: a job written before it was never stopped so
+    (0); downgrading drops the count, the job kept."""
+    from alembic import command
+    from sqlalchemy import inspect, text
+
+    from service_helpers import database_at
+
+    config, engine = database_at(database_url, "0018_ingest_storage_outages", READY_SCENE_ROW,
+                                 job_row_of_0007("running"))
+    command.upgrade(config, "head")
+    with engine.connect() as conn:
+        assert conn.execute(text("SELECT state, storage_outages FROM jobs")).one() == ("running", 0)
+    command.check(config)
+    command.downgrade(config, "0018_ingest_storage_outages")
+    with engine.connect() as conn:
+        assert conn.execute(text("SELECT state, requeues FROM jobs")).one() == ("running", 0)
+    assert "storage_outages" not in {c["name"] for c in inspect(engine).get_columns("jobs")}
+    engine.dispose()
+
+
 def test_jobs_of_0004_upgrade_to_webhooks_off_and_back(database_url):
     """0005 adds the webhook columns (NULL: no webhook) and the deliveries outbox; downgrading drops them."""
     from alembic import command

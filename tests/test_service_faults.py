@@ -1756,11 +1756,41 @@ def test_a_storage_outage_does_not_count_towards_the_requeue_limit_and_its_pause
         result = tasks.edit_task.apply(args=(job_id,))
         assert result.state == "REJECTED" and result.result.requeue, result.result
     job = job_row(job_id)
-    assert (job.state, job.error, job.run_token, job.requeues) == ("running", None, None, db.job_max_requeues)
+    assert (job.state, job.error, job.run_token, job.requeues, job.storage_outages) == (
+        "running", None, None, db.job_max_requeues, 3)
     said = "edit stopped by a storage outage (S3 bucket 'voxe': SlowDown when fetching the grid)"
     assert job.message == f"re-queued: {said}"
     assert [e["detail"] for e in events_of(job_id) if e["kind"] == "requeued"] == [said] * 3
     assert pauses == [db.job_max_requeues, db.job_max_requeues + 1, db.job_max_requeues + 2]
+
+
+def test_a_storage_outage_met_past_its_bound_fails_the_job_naming_it(db, monkeypatch):
+    """A storage object that answers 5xx every time (after botocore's retries) re-ran its stage for ever, as a storage
+    outage counts towards no re-queue limit. Its give-backs are counted apart (``Job.storage_outages``), each still
+    given back uncounted below their bound; the run after VOXE_STORAGE_OUTAGE_MAX_RETRIES of them that an outage
+    stops fails the job, naming the outage and how many times it stopped the job."""
+    from voxe_service.storage import StorageUnavailable
+    from worker import runtime, tasks
+
+    bound = db.storage_outage_max_retries
+    job_id = add_job(add_scene(), "queued", 0, completed_stages=["reconstruct"], storage_outages=bound - 1)
+
+    def broken_object(job, settings, device, storage):
+        raise StorageUnavailable("S3 bucket 'voxe': InternalError (503) when fetching the grid")
+
+    pauses = []
+    monkeypatch.setattr(tasks, "_edit", broken_object)
+    monkeypatch.setattr(runtime, "pause_after_outage", pauses.append)
+    given_back = tasks.edit_task.apply(args=(job_id,))
+    assert given_back.state == "REJECTED" and given_back.result.requeue, given_back.result
+    job = job_row(job_id)
+    assert (job.state, job.error, job.requeues, job.storage_outages) == ("running", None, 0, bound)
+    assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "failed"
+    job = job_row(job_id)
+    assert (job.state, job.requeues, job.storage_outages, pauses) == ("failed", 0, bound, [bound - 1])
+    assert job.error == ("edit stopped by a storage outage (S3 bucket 'voxe': InternalError (503) when fetching the "
+                         f"grid); storage outages stopped it {bound + 1} times ({bound} retries, the limit: "
+                         f"VOXE_STORAGE_OUTAGE_MAX_RETRIES={bound})")
 
 
 def test_a_run_taken_over_that_meets_a_full_disk_leaves_the_new_runs_scratch(db, monkeypatch):

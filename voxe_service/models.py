@@ -136,7 +136,8 @@ class Scene(Base):
     # process killed), and past VOXE_JOB_MAX_REQUEUES of them the next fails the scene instead of looping.
     ingest_attempts: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
     # Runs of the ingest a storage outage stopped (throttling, a 5xx, the store unreachable): not counted in
-    # ingest_attempts (every scene meets one alike), they double the pause before the next run's message goes back.
+    # ingest_attempts (every scene meets one alike), they double the pause before the next run's message goes back,
+    # and past VOXE_STORAGE_OUTAGE_MAX_RETRIES of them the next fails the scene.
     ingest_storage_outages: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
     # The one run of the ingest that holds the scene (worker.ingest): its token, its lease renewed while it runs; a
     # duplicate message waits for the lease to run out (then takes the scene over) or be renewed (then is dropped).
@@ -230,6 +231,10 @@ class Job(Base):
     # held the job (worker.runtime.StageCallbacks.on_checkpoint), so a stalled run's late upload replaces nothing.
     checkpoint_key: Mapped[str | None] = mapped_column(String(512), nullable=True)
     requeues: Mapped[int] = mapped_column(Integer, default=0)  # sent again after its worker stopped mid-stage
+    # Runs of its stages a storage outage stopped (throttling, a 5xx, the store unreachable): not counted in requeues
+    # (every job meets one alike), they double the pause before the next run's message goes back, and past
+    # VOXE_STORAGE_OUTAGE_MAX_RETRIES of them the next fails the job.
+    storage_outages: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
     # Evaluation jobs (mode "evaluate"): the edit jobs scored, the metrics; sweeps: the batch a job belongs to.
     source_job_ids: Mapped[list | None] = mapped_column(JSON, nullable=True)
     result: Mapped[dict | None] = mapped_column(JSON, nullable=True)

@@ -301,6 +301,16 @@ def requeue_limit_error(requeues: int, settings: Settings, reason: str) -> str |
             f"(VOXE_JOB_MAX_REQUEUES={settings.job_max_requeues})")
 
 
+def storage_outage_limit_error(outages: int, settings: Settings, reason: str) -> str | None:
+    """Why a job (or a scene's ingest) a storage outage stopped again (``reason``) fails, once outages had stopped it
+    ``outages`` times already, the ``storage_outage_max_retries`` bound (a storage object that answers 5xx every time
+    must not be retried for ever); None below the bound."""
+    if outages < settings.storage_outage_max_retries:
+        return None
+    return (f"{reason}; storage outages stopped it {outages + 1} times ({outages} retries, the limit: "
+            f"VOXE_STORAGE_OUTAGE_MAX_RETRIES={settings.storage_outage_max_retries})")
+
+
 def send_evaluations_alone(session: Session, queue: TaskQueue, job: Job, message: str | None) -> None:
     """Send the sweep's evaluations that rode in an ended job's chain alone (no stage of it is left), to record why;
     the job keeps ``message``. Raises :class:`QueueUnavailable`, the evaluations failed with the reason, when the

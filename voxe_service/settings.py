@@ -122,6 +122,10 @@ class Settings(BaseSettings):
     # A job whose worker stopped mid-stage is sent again (by the reaper, or by its worker restarting) at most
     # this many times; then it fails, so a job that kills its workers cannot loop for ever.
     job_max_requeues: int = Field(3, ge=0)
+    # A job's stages (or a scene's ingest) a storage outage stopped are sent back uncounted above, after a pause
+    # doubling to 320 s, at most this many times (about half an hour of pauses); the next fails it, naming the outage:
+    # a storage object that answers 5xx every time must not be retried for ever.
+    storage_outage_max_retries: int = Field(10, ge=0)
     reaper_interval_s: float = Field(60.0, gt=0)
 
     # --- webhooks (voxe_service.webhooks; sent from the API process, api/webhooks.py)

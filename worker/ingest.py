@@ -34,7 +34,8 @@ from voxe_core.mesh_input import MESH_INPUT_SUFFIXES, MeshError, load_mesh, shad
 from voxe_service import datasets
 from voxe_service.db import DATABASE_UNAVAILABLE, database_outage, session_scope
 from voxe_service.models import FAILED, PROCESSING, Scene, utcnow
-from voxe_service.queue import QueueUnavailable, TaskResult, dispatch_job, get_queue, requeue_limit_error
+from voxe_service.queue import (QueueUnavailable, TaskResult, dispatch_job, get_queue, requeue_limit_error,
+                                storage_outage_limit_error)
 from voxe_service.quotas import ingest_over_quota
 from voxe_service.scenes import fail_scene, mark_ready
 from voxe_service.scratch import locked_folder, sweep_unlocked
@@ -133,7 +134,9 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
     statement timeout) fails the scene at the limit, naming it, rather than decoding the upload again for ever; one
     that could not take it (the database down) does not, nor does one a storage outage stopped (counted in
     ``Scene.ingest_storage_outages`` instead, for its pause), as a stage's does not: an outage every scene met alike
-    had failed the scenes ingesting through a few minutes of throttling.
+    had failed the scenes ingesting through a few minutes of throttling. Past ``storage_outage_max_retries`` of
+    those the next fails the scene, naming the outage: a storage object answering 5xx every time had been fetched for
+    ever.
     """
     interrupted, storage_outages, token = None, 0, uuid.uuid4().hex
     try:
@@ -155,8 +158,12 @@ def ingest_scene(scene_id: str, settings: Settings, storage: Storage, hostname: 
             cause = f"a database outage ({why})"
         elif (cause := storage_or_disk_outage(exc)) is None:
             raise
-        log.warning("scene %s: the ingest stopped by %s; its message goes back to the queue", scene_id, cause)
         storage_outage = isinstance(exc, StorageUnavailable)
+        if storage_outage and (error := storage_outage_limit_error(storage_outages, settings,
+                                                                   f"ingest: stopped by {cause}")):
+            _fail(scene_id, token, error, storage)
+            return {"scene_id": scene_id, "state": "failed"}
+        log.warning("scene %s: the ingest stopped by %s; its message goes back to the queue", scene_id, cause)
         _give_back(scene_id, token, stopped_by=cause, storage_outage=storage_outage)
         pause_after_outage((interrupted or 0) + (storage_outages if storage_outage else 0))
         raise Reject(f"the ingest of scene {scene_id} stopped by {cause}", requeue=True) from exc

@@ -36,7 +36,7 @@ from voxe_service.models import (
     CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, R_FAILED, R_PENDING, R_RUNNING, READY, RUNNING, SUCCEEDED,
     TERMINAL_STATES, Artifact, Job, JobEvent, Reconstruction, Scene, utcnow,
 )
-from voxe_service.queue import requeue_limit_error
+from voxe_service.queue import requeue_limit_error, storage_outage_limit_error
 from voxe_service.settings import TINY_MODEL, Settings
 from voxe_service.storage import (Storage, StorageError, StorageUnavailable, StoredObject, file_sha256, get_storage,
                                   job_key)
@@ -256,19 +256,22 @@ def count_unstarted(job_id: str, stage: str, reason: str, settings: Settings) ->
 
 
 def _count_requeue(session, job_id: str, stage: str, reason: str, settings: Settings, where: list,
-                   counted: Callable[[], None] | None = None, count: bool = True, **values) -> str | None:
+                   counted: Callable[[], None] | None = None, storage_outage: bool = False,
+                   **values) -> str | None:
     """One more re-queue of the job while it matches ``where`` (with ``values`` set, a ``requeued`` event naming
     ``reason``, and ``counted()`` called before the commit), or at ``job_max_requeues`` the job failed and why
-    returned; nothing when it matches no more. ``count`` False: the same, but neither counted nor failed at the limit
-    (an outage of a service the job shares, no fault of its own)."""
-    requeues = session.scalar(select(Job.requeues).where(*where))
-    if requeues is None:
+    returned; nothing when it matches no more. ``storage_outage``: the same, but counted in ``Job.storage_outages``
+    and failed at ``storage_outage_max_retries`` instead (an outage of a service the job shares, no fault of its
+    own, yet one that answers every time must not re-run the stage for ever)."""
+    counts = session.execute(select(Job.requeues, Job.storage_outages).where(*where)).first()
+    if counts is None:
         return None
-    as_read = [*where, Job.requeues == requeues]
-    if count and (error := requeue_limit_error(requeues, settings, reason)):
+    as_read = [*where, Job.requeues == counts.requeues, Job.storage_outages == counts.storage_outages]
+    if error := (storage_outage_limit_error(counts.storage_outages, settings, reason) if storage_outage
+                 else requeue_limit_error(counts.requeues, settings, reason)):
         return error if finish_jobs(session, [job_id], FAILED, error=error, where=as_read) else None
-    if session.execute(update(Job).where(*as_read).values(requeues=Job.requeues + int(count), updated_at=utcnow(),
-                                                          **values)).rowcount == 1:
+    one_more = {"storage_outages": Job.storage_outages + 1} if storage_outage else {"requeues": Job.requeues + 1}
+    if session.execute(update(Job).where(*as_read).values(**one_more, updated_at=utcnow(), **values)).rowcount == 1:
         record_event(session, job_id, "requeued", stage=stage, detail=reason)
         if counted is not None:
             counted()
@@ -340,17 +343,13 @@ message goes back to the queue, doubled for each run before it: a storage down f
 workers take and drop the message in a tight loop, nor spend the job's or the scene's runs in seconds."""
 
 
-STORAGE_OUTAGE = "a storage outage"
-"""How a stage's ``requeued`` event names the storage out of reach (:func:`storage_or_disk_outage`)."""
-
-
 def storage_or_disk_outage(exc: BaseException) -> str | None:
     """What ``exc`` says stopped a stage or an ingest, when it is the storage out of reach (``StorageUnavailable``:
     unreachable, throttled, a 5xx) or the worker's disk (or quota) full: the service's or the machine's state, which
     a later run, or another worker, may not meet; None for anything else (a ``StorageError`` that is no outage, a
     missing bucket or access denied, is a fault a retry meets again)."""
     if isinstance(exc, StorageUnavailable):
-        return f"{STORAGE_OUTAGE} ({exc})"
+        return f"a storage outage ({exc})"
     if disk_full(exc):
         return f"the worker's disk full ({failure_text(exc, say_the_worker=False)})"
     return None
@@ -359,17 +358,6 @@ def storage_or_disk_outage(exc: BaseException) -> str | None:
 def disk_full(exc: BaseException) -> bool:
     """Whether ``exc`` is the worker's disk (or quota) full."""
     return isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT)
-
-
-def storage_outage_give_backs(job_id: str) -> int:
-    """How many times a storage outage gave the job back (its ``requeued`` events naming one): not counted towards
-    ``job_max_requeues``, they still double the pause before the next one's message goes back. 0 when the database
-    cannot say (an outage of its own)."""
-    given_back = 0
-    with outage_skipped(f"job {job_id}: counting its storage outages"), session_scope() as session:
-        given_back = session.scalar(select(func.count()).where(
-            JobEvent.job_id == job_id, JobEvent.kind == "requeued", JobEvent.detail.contains(STORAGE_OUTAGE)))
-    return given_back
 
 
 def pause_after_outage(runs_before: int) -> None:
@@ -384,14 +372,16 @@ def pause_after_outage(runs_before: int) -> None:
 
 
 def give_back_stage(job_id: str, stage: str, run_token: str, reason: str, settings: Settings,
-                    free_scratch: bool = False, count: bool = True) -> str | None:
+                    free_scratch: bool = False, storage_outage: bool = False) -> str | None:
     """Give the run's hold back after an outage (the database's, the storage's) or its worker's full disk stopped its
     stage (its redelivery resumes from the stored checkpoint), counted as a re-queue with a ``requeued`` event naming
     ``reason``, and ``reason`` the job's message until the redelivery starts (its last progress note had stayed,
     nothing saying why the job waited); at ``job_max_requeues`` fail the job instead and return why: what the database answers as an outage
-    every time (a statement timeout, a full disk) must not re-run a stage for ever. ``count`` False (a storage
-    outage: throttling, a 5xx, the store unreachable, which every job meets alike) gives it back with its event and
-    message, neither counted nor failed at the limit: a minute of throttling had failed the running jobs near it.
+    every time (a statement timeout, a full disk) must not re-run a stage for ever. ``storage_outage`` (throttling,
+    a 5xx, the store unreachable, which every job meets alike) gives it back with its event and message, neither
+    counted as a re-queue nor failed at its limit (a minute of throttling had failed the running jobs near it), but
+    counted in ``Job.storage_outages``, failing at ``storage_outage_max_retries``: a permanent 5xx on one object had
+    re-run the stage for ever.
     A job this run no longer holds, or that it ended (a commit whose answer was lost keeps the ended job's token),
     is left as it is.
     ``free_scratch``: the job's scratch folder is deleted once the give-back matched, before it commits (the row
@@ -401,7 +391,8 @@ def give_back_stage(job_id: str, stage: str, run_token: str, reason: str, settin
     with session_scope() as session:
         return _count_requeue(session, job_id, stage, reason, settings,
                               [Job.id == job_id, Job.state == RUNNING, Job.run_token == run_token], counted=counted,
-                              count=count, run_token=None, run_lease_until=None, message=f"re-queued: {reason}")
+                              storage_outage=storage_outage, run_token=None, run_lease_until=None,
+                              message=f"re-queued: {reason}")
 
 
 def release_stage(job_id: str, run_token: str) -> None:

@@ -167,11 +167,12 @@ def _run_stage(task, job_id: str, stage: str, body, final: bool = False) -> Task
         if (cause := runtime.storage_or_disk_outage(exc)) is not None:  # ... nor a storage's or a full disk's
             # (a full disk: the job's scratch, its grids and local checkpoint, went towards filling it, and goes as
             # the job is given back, while this run holds it; its stored checkpoints stay. A storage outage, which
-            # every job meets alike, does not count towards the limit; its pause grows with the earlier ones)
+            # every job meets alike, does not count towards the limit but towards its own; its pause grows with the
+            # earlier ones)
             full = runtime.disk_full(exc)
-            runs_before = job.requeues + (0 if full else runtime.storage_outage_give_backs(job_id))
+            runs_before = job.requeues + (0 if full else job.storage_outages)
             return _give_back_and_requeue(job_id, stage, token, f"{stage} stopped by {cause}", cause, exc, settings,
-                                          pause_after=runs_before, free_scratch=full, count=full)
+                                          pause_after=runs_before, free_scratch=full, storage_outage=not full)
         log.exception("job %s: %s failed", job_id, stage)
         return _end_job(job_id, stage, token, FAILED, settings, error=_error_message(stage, exc, job))
     except BaseException:  # the worker going down: its redelivered message takes the job at once (the database
@@ -231,16 +232,16 @@ def _release_and_requeue(job_id: str, stage: str, run_token: str, cause: str, ex
 
 def _give_back_and_requeue(job_id: str, stage: str, run_token: str, reason: str, cause: str, exc: Exception,
                            settings, pause_after: int | None = None, free_scratch: bool = False,
-                           count: bool = True) -> TaskResult:
-    """Give the run's hold back as a counted re-queue naming ``reason`` (``count`` False: not counted, a storage
-    outage) and reject the message back to the queue (``cause``); at the re-queue limit the job fails instead, and
-    the task ends with it. ``pause_after``: the job's runs before this one that were given back (counted, or stopped
-    by a storage outage), after which a storage outage or a full disk pauses as an ingest's does
+                           storage_outage: bool = False) -> TaskResult:
+    """Give the run's hold back as a counted re-queue naming ``reason`` (``storage_outage``: counted in the job's
+    storage outages instead) and reject the message back to the queue (``cause``); at the limit the job fails
+    instead, and the task ends with it. ``pause_after``: the job's runs before this one that were given back
+    (counted, or stopped by a storage outage), after which a storage outage or a full disk pauses as an ingest's does
     (``runtime.pause_after_outage``), the hold given back meanwhile: a storage down for a while is not met again at
     once, and a worker whose disk is full takes no job in the pause, while the job's checkpoints are kept for the
     worker its message goes to next. ``free_scratch``: the job's scratch folder goes with the hold
     (``runtime.give_back_stage``), left when the hold is no longer this run's."""
-    if error := _give_back(job_id, stage, run_token, reason, settings, free_scratch, count):
+    if error := _give_back(job_id, stage, run_token, reason, settings, free_scratch, storage_outage):
         log.error("job %s failed: %s", job_id, error)
         return _ended(job_id, stage, FAILED, True, settings)
     if pause_after is not None:
@@ -249,13 +250,13 @@ def _give_back_and_requeue(job_id: str, stage: str, run_token: str, reason: str,
 
 
 def _give_back(job_id: str, stage: str, run_token: str, reason: str, settings, free_scratch: bool = False,
-               count: bool = True) -> str | None:
-    """``runtime.give_back_stage`` (a counted re-queue unless ``count`` is False; at the limit the job fails, and why
-    is returned), tried again while the database refuses; still refused, the hold runs out unrenewed and the
+               storage_outage: bool = False) -> str | None:
+    """``runtime.give_back_stage`` (a counted re-queue, or storage outage; at the limit the job fails, and why is
+    returned), tried again while the database refuses; still refused, the hold runs out unrenewed and the
     redelivery takes the job over then, counting it as it counts any lapsed hold."""
     try:
         return _retried(lambda _again: runtime.give_back_stage(job_id, stage, run_token, reason, settings,
-                                                               free_scratch, count), job_id,
+                                                               free_scratch, storage_outage), job_id,
                         f"{stage} could not give the job back")
     except Exception as exc:  # noqa: BLE001 - a cold shutdown raises in the task while its tries wait
         _requeue_if_shut_down(job_id, stage, run_token, exc)
