@@ -309,7 +309,7 @@ def test_a_scenes_ingest_count_upgrades_from_none_and_back(database_url, before,
 
 
 def test_a_jobs_storage_outage_count_upgrades_from_none_and_back(database_url):
-    """0019 counts the runs of a job's stages a storage outage stopped in a column (they had been counted from the
+    """0020 counts the runs of a job's stages a storage outage stopped in a column (they had been counted from the
     text of its ``requeued`` events), as 0018 does a scene's ingest's: a job written before it was never stopped so
     (0); downgrading drops the count, the job kept."""
     from alembic import command
@@ -317,13 +317,13 @@ def test_a_jobs_storage_outage_count_upgrades_from_none_and_back(database_url):
 
     from service_helpers import database_at
 
-    config, engine = database_at(database_url, "0018_ingest_storage_outages", READY_SCENE_ROW,
+    config, engine = database_at(database_url, "0019_job_checkpoint_key", READY_SCENE_ROW,
                                  job_row_of_0007("running"))
     command.upgrade(config, "head")
     with engine.connect() as conn:
         assert conn.execute(text("SELECT state, storage_outages FROM jobs")).one() == ("running", 0)
     command.check(config)
-    command.downgrade(config, "0018_ingest_storage_outages")
+    command.downgrade(config, "0019_job_checkpoint_key")
     with engine.connect() as conn:
         assert conn.execute(text("SELECT state, requeues FROM jobs")).one() == ("running", 0)
     assert "storage_outages" not in {c["name"] for c in inspect(engine).get_columns("jobs")}

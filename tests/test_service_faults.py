@@ -1793,6 +1793,20 @@ def test_a_storage_outage_met_past_its_bound_fails_the_job_naming_it(db, monkeyp
                          f"VOXE_STORAGE_OUTAGE_MAX_RETRIES={bound})")
 
 
+@pytest.mark.parametrize("bound, said", [(0, "once (no retry"), (1, "2 times (1 retry"), (4, "5 times (4 retries")])
+def test_the_storage_outage_bounds_message_counts_in_words(bound, said):
+    """The bound's message counts its runs and retries in words a person would write: a bound of 0 had read
+    "stopped it 1 times (0 retries", and 1 "2 times (1 retries"."""
+    from voxe_service.queue import storage_outage_limit_error
+    from voxe_service.settings import Settings
+
+    settings = Settings(storage_outage_max_retries=bound)
+    if bound:
+        assert storage_outage_limit_error(bound - 1, settings, "edit stopped") is None
+    assert storage_outage_limit_error(bound, settings, "edit stopped") == (
+        f"edit stopped; storage outages stopped it {said}, the limit: VOXE_STORAGE_OUTAGE_MAX_RETRIES={bound})")
+
+
 def test_a_run_taken_over_that_meets_a_full_disk_leaves_the_new_runs_scratch(db, monkeypatch):
     """A run that stalled past its lease, its job taken over by another run on the same machine (the same scratch
     folder), then stopped by the full disk, had deleted the job's scratch as it gave the job back, which it no longer

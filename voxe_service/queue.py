@@ -307,7 +307,9 @@ def storage_outage_limit_error(outages: int, settings: Settings, reason: str) ->
     must not be retried for ever); None below the bound."""
     if outages < settings.storage_outage_max_retries:
         return None
-    return (f"{reason}; storage outages stopped it {outages + 1} times ({outages} retries, the limit: "
+    times = "once" if outages == 0 else f"{outages + 1} times"
+    retries = {0: "no retry", 1: "1 retry"}.get(outages, f"{outages} retries")
+    return (f"{reason}; storage outages stopped it {times} ({retries}, the limit: "
             f"VOXE_STORAGE_OUTAGE_MAX_RETRIES={settings.storage_outage_max_retries})")
 
 

@@ -6,8 +6,8 @@ scene's ingest: a storage object answering 5xx every time had been retried for e
 Jobs written before the column existed: counted from 0 (their outages' events, if any, are not read back). The
 column keeps its server default (0), as the model declares it.
 
-Revision ID: 0019_job_storage_outages
-Revises: 0018_ingest_storage_outages
+Revision ID: 0020_job_storage_outages
+Revises: 0019_job_checkpoint_key
 Create Date: 2026-12-07 00:20:00
 """
 
@@ -16,8 +16,8 @@ from __future__ import annotations
 import sqlalchemy as sa
 from alembic import op
 
-revision = '0019_job_storage_outages'
-down_revision = '0018_ingest_storage_outages'
+revision = '0020_job_storage_outages'
+down_revision = '0019_job_checkpoint_key'
 branch_labels = None
 depends_on = None
 
