@@ -830,6 +830,45 @@ def test_a_hidden_page_polls_nothing_until_it_shows(live, browser):
     wait_until(lambda: requested(driver, "/v1/jobs?"), 1, interval=0.05, what="the list asked once shown")
 
 
+def test_a_refused_key_is_not_asked_with_again_until_another_is_used(live, browser, tmp_path):
+    """With no key or one the API refuses (401), the job list and the scenes are asked once, and the key field says
+    a key is needed: both had been asked again every 3 s for as long as the page stayed open, refused each time. An
+    upload's scene gone (404) is not watched again either: it had been asked every 30 s for good."""
+    svc, token, _archive = live
+    driver = browser
+    error = lambda name: text(driver, f'[data-error-for="{name}"]')  # noqa: E731
+    for key in ("", "voxe_not_a_key"):
+        driver.get(f"{svc.base}/")
+        driver.find_element("id", "api-key").clear()
+        driver.find_element("id", "api-key").send_keys(key)
+        driver.find_element("css selector", "#key-form button").click()
+        wait_until(lambda: "enter one" in text(driver, "#key-state"), 10, what="the key refused")
+        assert text(driver, "#key-state") == f"{'this key is refused' if key else 'a key is needed'}: enter one and Use it"
+        assert error("list").startswith("401: ") and not error("scene_id").endswith("retrying")
+        driver.execute_script("window.requests = []")
+        time.sleep(7)  # two polls' time
+        assert not requested(driver, "/v1/jobs?") and not requested(driver, "/v1/scenes?")
+    set_key(driver, svc, token)
+    wait_until(lambda: text(driver, "#jobs-range"), 10, what="the job list with the key")
+    assert not error("list")
+
+    faults(driver, {"/v1/scenes/": {"status": 404, "type": "application/json",
+                                    "body": json.dumps({"detail": "scene not found"})}})
+    driver.execute_script("window.requests = []")
+    driver.find_element("id", "upload-files").send_keys(str(tetrahedron(tmp_path)))
+    driver.find_element("css selector", "#upload-form button").click()
+    wait_until(lambda: "not asked again" in error("upload"), 10, what="the scene gone said")
+    scene_id = re.search(r"stored as (\S+);", text(driver, "#upload-status"))[1]
+    assert error("upload") == f"checking scene {scene_id}: 404: scene not found; not asked again"
+    time.sleep(3)  # the watch's first retry had come 2 s after its failure
+    assert len(requested(driver, "/v1/scenes/")) == 1
+    faults(driver, {})
+    with httpx.Client(base_url=svc.base, headers={"Authorization": f"Bearer {token}"}) as client:
+        wait_until(lambda: client.get(f"/v1/scenes/{scene_id}").json()["state"] != "processing", 60,
+                   what="the scene's ingest", processes=svc.processes)
+        assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204  # the other tests expect their own only
+
+
 def test_a_job_s_progress_reads_as_it_stands(live, browser):
     """The list's and the job page's numbers as they are: a running job 99.6 % done is not "100 %", a job made three
     days ago is not "74 h" old, a checkpoint says which iteration it holds,

@@ -320,6 +320,13 @@ async function waitForScene(sceneId, status, signal) {
       }
     } catch (error) {
       if (signal.aborted) return;
+      // The scene gone (deleted meanwhile) or the key refused: asked again it is answered the same (it had been
+      // asked every 30 s for as long as the page stayed open, and again on every later home page).
+      if (keyRefused(error) || error.status === 404) {
+        if (ingesting === sceneId) ingesting = null;
+        showError("upload", `checking scene ${sceneId}: ${errorText(error)}; not asked again`);
+        return;
+      }
       failures += 1;
       failure = error;
       showError("upload", `checking scene ${sceneId}: ${errorText(error)}; retrying`);
@@ -336,7 +343,9 @@ async function refreshScenes(signal) {
     showError("scene_id", "");
     return null;
   } catch (error) {
-    if (!signal.aborted) showError("scene_id", `loading the scenes: ${errorText(error)}; retrying`);
+    if (!signal.aborted) {
+      showError("scene_id", `loading the scenes: ${errorText(error)}${keyRefused(error) ? "" : "; retrying"}`);
+    }
     return error;
   }
 }
@@ -545,6 +554,11 @@ async function showJob(jobId, signal) {
   if (!TERMINAL.has(last?.kind)) followEvents(jobId, last?.id, signal);
 }
 
+/** The statuses of a request refused for its key (none, a wrong or a revoked one): sent again with the same key, it
+ * is refused again. */
+const KEY_REFUSED = new Set([401, 403]);
+const keyRefused = (error) => error instanceof ApiError && KEY_REFUSED.has(error.status);
+
 /** Whether a failed request may succeed sent again: it got no answer (fetch's TypeError), or a 5xx or 429. */
 const transient = (error) => error instanceof TypeError
   || (error instanceof ApiError && (error.status >= 500 || error.status === 429));
@@ -670,7 +684,7 @@ async function showMedia(artifact, selector, signal) {
 }
 
 /** Answers to the stream request that no reconnection changes: the key, or the job, is not (or no longer) valid. */
-const FINAL_STREAM_STATUS = new Set([401, 403, 404]);
+const FINAL_STREAM_STATUS = new Set([...KEY_REFUSED, 404]);
 /** The longest wait for a word of the stream (the server sends a comment every 15 s when nothing happens): past it
  * the connection is taken for dead and opened again. A connection dropped unsaid (a laptop's sleep, a network change,
  * a proxy's timeout) had left the read waiting for ever, the page frozen at its last progress. */
@@ -868,6 +882,10 @@ async function route() {
   if (ingesting) waitForScene(ingesting, $("#upload-status"), signal);
   while (!signal.aborted) {
     const jobsFailure = await loadJobs(signal);
+    if (keyRefused(jobsFailure) || keyRefused(scenesFailure)) {  // (both had been asked again every 3 s, for good)
+      $("#key-state").textContent = `${apiKey() ? "this key is refused" : "a key is needed"}: enter one and Use it`;
+      return;
+    }
     await sleep(retryWait(JOB_LIST_POLL_MS, jobsFailure, scenesFailure), signal);
     await shown(signal);
     if (scenesFailure) scenesFailure = await refreshScenes(signal);
