@@ -54,11 +54,13 @@ def index() -> FileResponse:
 
 
 class UiStaticFiles(StaticFiles):
-    """``/static`` with the Cache-Control above (a missing file raises its 404 in ``super()``)."""
+    """``/static`` with the Cache-Control above (a missing file raises its 404 in ``super()``), and the UI's policy
+    on every file: the page is also ``/static/index.html``, which had been served with none."""
 
     async def get_response(self, path: str, scope: Scope) -> Response:
         response = await super().get_response(path, scope)
         response.headers["Cache-Control"] = IMMUTABLE if path.startswith("vendor/") else REVALIDATE
+        response.headers["Content-Security-Policy"] = UI_POLICY
         return response
 
 

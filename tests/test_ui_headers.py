@@ -37,6 +37,13 @@ def test_pages_forbid_framing_and_foreign_code_and_answer_head(client):
     assert "img-src 'self' data: blob:" in docs_policy  # Swagger UI shows an image answer from a blob: URL
 
 
+def test_the_page_served_as_a_static_file_carries_the_ui_s_policy_too(client):
+    """The page is also /static/index.html, which had been served with no Content-Security-Policy at all."""
+    for path in ("/static/index.html", "/static/app.js"):
+        assert client.get(path).headers.get("content-security-policy") == client.get("/").headers[
+            "content-security-policy"], path
+
+
 def test_api_answers_carry_the_security_headers_too(client):
     for response in (client.get("/v1/jobs"), client.get("/v1/jobs/nope"), client.get("/healthz")):
         assert SECURITY.items() <= response.headers.items(), response.request.url
