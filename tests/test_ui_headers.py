@@ -1,7 +1,10 @@
 """The UI's HTTP headers (in-process, no browser): its caching, its Content-Security-Policy and the security
-headers on every answer. tests/test_ui.py checks in Chromium that the pages work under that policy."""
+headers on every answer; and what its page's markup tells assistive technology. tests/test_ui.py checks in Chromium
+that the pages work under that policy."""
 
 from __future__ import annotations
+
+from html.parser import HTMLParser
 
 import pytest
 from fastapi.testclient import TestClient
@@ -75,3 +78,40 @@ def test_the_app_s_own_files_are_revalidated_and_vendored_ones_cached(client):
         assert client.get(f"/static/{name}").headers["cache-control"] == "no-cache"
     vendored = client.get("/static/vendor/model-viewer-3.5.0/model-viewer.min.js")
     assert "max-age=31536000" in vendored.headers["cache-control"]
+
+
+class PageControls(HTMLParser):
+    """The page's form fields, each with whether it has a label (one around it, one naming its id, or an
+    aria-label), and its error slots (``data-error-for``) with their attributes."""
+
+    def __init__(self):
+        super().__init__()
+        self.open_labels = 0
+        self.labelled_ids: set[str] = set()
+        self.fields: list[tuple[str, bool]] = []
+        self.error_slots: list[dict] = []
+
+    def handle_starttag(self, tag, attrs):
+        attributes = dict(attrs)
+        if tag == "label":
+            self.open_labels += 1
+            self.labelled_ids.add(attributes.get("for"))
+        elif tag in ("input", "select", "textarea") and attributes.get("type") != "hidden":
+            self.fields.append((attributes.get("id") or attributes.get("name"),
+                                bool(self.open_labels or attributes.get("aria-label"))))
+        if "data-error-for" in attributes:
+            self.error_slots.append(attributes)
+
+    def handle_endtag(self, tag):
+        if tag == "label":
+            self.open_labels -= 1
+
+
+def test_every_field_is_labelled_and_every_error_is_announced(client):
+    """A screen reader names each field and reads out an error as it appears: the parameters' JSON had no label (its
+    placeholder only), and no error slot was a live region, so an upload or an edit refused was said to nobody."""
+    page = PageControls()
+    page.feed(client.get("/").text)
+    assert len(page.fields) > 10 and len(page.error_slots) > 10
+    assert [name for name, labelled in page.fields if not (labelled or name in page.labelled_ids)] == []
+    assert [slot["data-error-for"] for slot in page.error_slots if slot.get("aria-live") != "polite"] == []
