@@ -80,9 +80,12 @@ def test_the_app_s_own_files_are_revalidated_and_vendored_ones_cached(client):
     assert "max-age=31536000" in vendored.headers["cache-control"]
 
 
+STATUS_LINES = ("key-state", "upload-status")  # what a key or an upload came to: "this key is refused", "failed"
+
+
 class PageControls(HTMLParser):
     """The page's form fields, each with whether it has a label (one around it, one naming its id, or an
-    aria-label), and its error slots (``data-error-for``) with their attributes."""
+    aria-label), and its error slots (``data-error-for``) and STATUS_LINES with their attributes."""
 
     def __init__(self):
         super().__init__()
@@ -99,7 +102,7 @@ class PageControls(HTMLParser):
         elif tag in ("input", "select", "textarea") and attributes.get("type") != "hidden":
             self.fields.append((attributes.get("id") or attributes.get("name"),
                                 bool(self.open_labels or attributes.get("aria-label"))))
-        if "data-error-for" in attributes:
+        if "data-error-for" in attributes or attributes.get("id") in STATUS_LINES:
             self.error_slots.append(attributes)
 
     def handle_endtag(self, tag):
@@ -108,10 +111,13 @@ class PageControls(HTMLParser):
 
 
 def test_every_field_is_labelled_and_every_error_is_announced(client):
-    """A screen reader names each field and reads out an error as it appears: the parameters' JSON had no label (its
-    placeholder only), and no error slot was a live region, so an upload or an edit refused was said to nobody."""
+    """A screen reader names each field and reads out an error, or what a key or an upload came to, as it appears:
+    the parameters' JSON had no label (its placeholder only), and no error slot or status line was a live region, so
+    an upload or an edit refused, or a key refused, was said to nobody."""
     page = PageControls()
     page.feed(client.get("/").text)
     assert len(page.fields) > 10 and len(page.error_slots) > 10
     assert [name for name, labelled in page.fields if not (labelled or name in page.labelled_ids)] == []
-    assert [slot["data-error-for"] for slot in page.error_slots if slot.get("aria-live") != "polite"] == []
+    assert {slot.get("id") for slot in page.error_slots} >= set(STATUS_LINES)
+    assert [slot.get("data-error-for") or slot["id"] for slot in page.error_slots
+            if slot.get("aria-live") != "polite"] == []
