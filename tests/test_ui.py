@@ -869,6 +869,31 @@ def test_a_refused_key_is_not_asked_with_again_until_another_is_used(live, brows
         assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204  # the other tests expect their own only
 
 
+def test_a_keyboard_s_focus_follows_the_page_it_opens(live, browser):
+    """A job opened from the list with the keyboard (Enter on its link), and the list opened again ("← all jobs"),
+    take the focus with them: it had been dropped with the page hidden, the next Tab starting over at the header."""
+    from selenium.webdriver.common.keys import Keys
+
+    svc, token, _archive = live
+    driver = browser
+    answer = lambda body: {"status": 200, "type": "application/json", "body": json.dumps(body)}  # noqa: E731
+    job = running_job("keyed")
+    set_key(driver, svc, token)
+    faults(driver, {"/v1/jobs?": answer({"items": [job], "total": 1}), "/v1/jobs/keyed$": answer(job),
+                    "/v1/jobs/keyed/artifacts$": answer([]),
+                    "/v1/jobs/keyed/events": {"recorded": 0, "open": True, "timeline": []}})
+    driver.refresh()
+    focused_page = "return document.activeElement.closest('main:not([hidden])')?.id ?? null"
+    wait_until(lambda: driver.find_elements("css selector", 'tr[data-job="keyed"] a'), 10, what="the job listed")
+    driver.find_element("css selector", 'tr[data-job="keyed"] a').send_keys(Keys.ENTER)
+    wait_until(lambda: text(driver, "#job-state") == "running", 10, what="the job page")
+    assert driver.execute_script(focused_page) == "job"
+    driver.find_element("css selector", '#job a[href="#/"]').send_keys(Keys.ENTER)
+    wait_until(lambda: not driver.find_element("id", "home").get_attribute("hidden"), 10, what="the home page")
+    assert driver.execute_script(focused_page) == "home"
+    faults(driver, {})
+
+
 def test_a_job_s_progress_reads_as_it_stands(live, browser):
     """The list's and the job page's numbers as they are: a running job 99.6 % done is not "100 %", a job made three
     days ago is not "74 h" old, a checkpoint says which iteration it holds,

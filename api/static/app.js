@@ -869,8 +869,13 @@ async function route() {
   const { signal } = page;
   clearJobView();
   const match = location.hash.match(/^#\/jobs\/([^/]+)$/);
-  $("#home").hidden = Boolean(match);
-  $("#job").hidden = !match;
+  const [shownPage, hiddenPage] = match ? [$("#job"), $("#home")] : [$("#home"), $("#job")];
+  const focusHidden = hiddenPage.contains(document.activeElement);
+  shownPage.hidden = false;
+  hiddenPage.hidden = true;
+  // A keyboard's focus on the page just hidden (the job link pressed, "← all jobs") goes to the page shown: it had
+  // been dropped to the document's start, the next Tab back at the header's first link.
+  if (focusHidden) shownPage.focus();
   if (match) {
     await openJob(match[1], signal);
     return;
