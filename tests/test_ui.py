@@ -843,7 +843,8 @@ def test_a_refused_key_is_not_asked_with_again_until_another_is_used(live, brows
         driver.find_element("id", "api-key").send_keys(key)
         driver.find_element("css selector", "#key-form button").click()
         wait_until(lambda: "enter one" in text(driver, "#key-state"), 10, what="the key refused")
-        assert text(driver, "#key-state") == f"{'this key is refused' if key else 'a key is needed'}: enter one and Use it"
+        refused = "this key is refused" if key else "a key is needed"
+        assert text(driver, "#key-state") == f"{refused}: enter one and Use it"
         assert error("list").startswith("401: ") and not error("scene_id").endswith("retrying")
         driver.execute_script("window.requests = []")
         time.sleep(7)  # two polls' time
