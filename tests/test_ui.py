@@ -170,12 +170,17 @@ def shown_media(driver) -> list[str]:
                                  ".filter((s) => !document.querySelector(s).hidden)")
 
 
-def set_key(driver, svc, token: str) -> None:
-    driver.get(f"{svc.base}/")
+def use_key(driver, key: str) -> None:
+    """Enter the key in the header's field and Use it (the page's own form)."""
     field = driver.find_element("id", "api-key")
     field.clear()
-    field.send_keys(token)
+    field.send_keys(key)
     driver.find_element("css selector", "#key-form button").click()
+
+
+def set_key(driver, svc, token: str) -> None:
+    driver.get(f"{svc.base}/")
+    use_key(driver, token)
     wait_until(lambda: "key set" in text(driver, "#key-state"), 10, what="the key to be kept")
 
 
@@ -868,6 +873,24 @@ def test_a_refused_key_is_not_asked_with_again_until_another_is_used(live, brows
         wait_until(lambda: client.get(f"/v1/scenes/{scene_id}").json()["state"] != "processing", 60,
                    what="the scene's ingest", processes=svc.processes)
         assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204  # the other tests expect their own only
+
+
+def test_a_key_used_while_the_refused_one_s_job_list_is_read_is_not_said_refused(live, browser):
+    """The key-less page's job list still on its way when a good key is used: that page's scenes, refused for no
+    key, had named the good key "refused", the page showing that key's jobs beside it."""
+    svc, token, _archive = live
+    driver = browser
+    driver.get(f"{svc.base}/")
+    use_key(driver, "")
+    faults(driver, {"/v1/jobs?": {"once": True, "delay": 2000}})  # the key-less page's job list slow
+    driver.refresh()
+    wait_until(lambda: text(driver, '[data-error-for="scene_id"]').startswith("loading the scenes: 401"), 10,
+               what="the scenes refused", interval=0.05)
+    use_key(driver, token)
+    wait_until(lambda: text(driver, "#jobs-range"), 10, what="the job list with the key")
+    time.sleep(2)  # the slow list's answer (aborted) due
+    assert text(driver, "#key-state") == "key set for this session"
+    faults(driver, {})
 
 
 def test_a_keyboard_s_focus_follows_the_page_it_opens(live, browser):

@@ -887,6 +887,9 @@ async function route() {
   if (ingesting) waitForScene(ingesting, $("#upload-status"), signal);
   while (!signal.aborted) {
     const jobsFailure = await loadJobs(signal);
+    // A key used meanwhile aborted this page: its scenes' refusal was for the old key (the new one had been named
+    // refused).
+    if (signal.aborted) return;
     if (keyRefused(jobsFailure) || keyRefused(scenesFailure)) {  // (both had been asked again every 3 s, for good)
       $("#key-state").textContent = `${apiKey() ? "this key is refused" : "a key is needed"}: enter one and Use it`;
       return;
