@@ -836,9 +836,9 @@ def test_a_hidden_page_polls_nothing_until_it_shows(live, browser):
 
 
 def test_a_refused_key_is_not_asked_with_again_until_another_is_used(live, browser, tmp_path):
-    """With no key or one the API refuses (401), the job list and the scenes are asked once, and the key field says
-    a key is needed: both had been asked again every 3 s for as long as the page stayed open, refused each time. An
-    upload's scene gone (404) is not watched again either: it had been asked every 30 s for good."""
+    """With no key or one the API refuses (401, 403), the job list and the scenes are asked once, and the key field
+    says a key is needed: both had been asked again every 3 s for as long as the page stayed open, refused each time.
+    An upload's scene gone (404) is not watched again either: it had been asked every 30 s for good."""
     svc, token, _archive = live
     driver = browser
     error = lambda name: text(driver, f'[data-error-for="{name}"]')  # noqa: E731
@@ -891,6 +891,32 @@ def test_a_key_used_while_the_refused_one_s_job_list_is_read_is_not_said_refused
     time.sleep(2)  # the slow list's answer (aborted) due
     assert text(driver, "#key-state") == "key set for this session"
     faults(driver, {})
+
+
+def test_an_upload_s_scene_refused_for_a_mistyped_key_is_watched_again_once_a_good_key_is_used(live, browser,
+                                                                                                tmp_path):
+    """A key mistyped while a new scene's ingest is watched, then corrected: the watch goes on with the good key
+    until the scene is ready. A 401 had ended it for good: "processing…", the scene offered only on a reload."""
+    svc, token, _archive = live
+    driver = browser
+    error = lambda name: text(driver, f'[data-error-for="{name}"]')  # noqa: E731
+    set_key(driver, svc, token)
+    faults(driver, {"/v1/scenes/": {"delay": 3000}})  # the watch's first look slow: the mistyped key meets it
+    driver.find_element("id", "upload-files").send_keys(str(tetrahedron(tmp_path)))
+    driver.find_element("css selector", "#upload-form button").click()
+    wait_until(lambda: "stored as" in text(driver, "#upload-status"), 20, what="the upload stored")
+    scene_id = re.search(r"stored as (\S+);", text(driver, "#upload-status"))[1]
+    use_key(driver, "voxe_not_a_key")
+    faults(driver, {})
+    wait_until(lambda: error("upload").startswith(f"checking scene {scene_id}: 401: "), 10, what="the watch refused")
+    use_key(driver, token)
+    wait_until(lambda: "ready" in text(driver, "#upload-status"), 60, what="the scene ready",
+               processes=svc.processes)
+    assert not error("upload")
+    offered = "return [...document.querySelectorAll('#job-scene option')].map((option) => option.value)"
+    wait_until(lambda: scene_id in driver.execute_script(offered), 10, what="the scene offered for editing")
+    with httpx.Client(base_url=svc.base, headers={"Authorization": f"Bearer {token}"}) as client:
+        assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204  # the other tests expect their own only
 
 
 def test_a_keyboard_s_focus_follows_the_page_it_opens(live, browser):

@@ -320,11 +320,16 @@ async function waitForScene(sceneId, status, signal) {
       }
     } catch (error) {
       if (signal.aborted) return;
-      // The scene gone (deleted meanwhile) or the key refused: asked again it is answered the same (it had been
-      // asked every 30 s for as long as the page stayed open, and again on every later home page).
-      if (keyRefused(error) || error.status === 404) {
+      // The scene gone (deleted meanwhile): asked again it is answered the same (it had been asked every 30 s for
+      // as long as the page stayed open, and again on every later home page).
+      if (error.status === 404) {
         if (ingesting === sceneId) ingesting = null;
         showError("upload", `checking scene ${sceneId}: ${errorText(error)}; not asked again`);
+        return;
+      }
+      // The key refused: watched again (ingesting kept) by the next home page, the one a key's use opens.
+      if (keyRefused(error)) {
+        showError("upload", `checking scene ${sceneId}: ${errorText(error)}; asked again once a key is used`);
         return;
       }
       failures += 1;
