@@ -920,17 +920,19 @@ def test_an_upload_s_scene_refused_for_a_mistyped_key_is_watched_again_once_a_go
 
 
 def test_a_keyboard_s_focus_follows_the_page_it_opens(live, browser):
-    """A job opened from the list with the keyboard (Enter on its link), and the list opened again ("← all jobs"),
-    take the focus with them: it had been dropped with the page hidden, the next Tab starting over at the header."""
+    """A job opened from the list with the keyboard (Enter on its link), and the list opened again ("← all jobs", or
+    Back from an artifact's link), take the focus with them: it had been dropped with the page hidden, the next Tab
+    starting over at the header (from an artifact's link too, removed before the focus was looked for)."""
     from selenium.webdriver.common.keys import Keys
 
     svc, token, _archive = live
     driver = browser
     answer = lambda body: {"status": 200, "type": "application/json", "body": json.dumps(body)}  # noqa: E731
     job = running_job("keyed")
+    log = {"name": "log.txt", "url": "/v1/jobs/keyed/artifacts/log.txt", "sha256": "0" * 64, "size": 9, "kind": "log"}
     set_key(driver, svc, token)
     faults(driver, {"/v1/jobs?": answer({"items": [job], "total": 1}), "/v1/jobs/keyed$": answer(job),
-                    "/v1/jobs/keyed/artifacts$": answer([]),
+                    "/v1/jobs/keyed/artifacts$": answer([log]),
                     "/v1/jobs/keyed/events": {"recorded": 0, "open": True, "timeline": []}})
     driver.refresh()
     focused_page = "return document.activeElement.closest('main:not([hidden])')?.id ?? null"
@@ -939,6 +941,12 @@ def test_a_keyboard_s_focus_follows_the_page_it_opens(live, browser):
     wait_until(lambda: text(driver, "#job-state") == "running", 10, what="the job page")
     assert driver.execute_script(focused_page) == "job"
     driver.find_element("css selector", '#job a[href="#/"]').send_keys(Keys.ENTER)
+    wait_until(lambda: not driver.find_element("id", "home").get_attribute("hidden"), 10, what="the home page")
+    assert driver.execute_script(focused_page) == "home"
+    driver.execute_script("history.back()")
+    wait_until(lambda: driver.find_elements("css selector", "#job-artifacts a"), 10, what="the job's artifacts")
+    driver.execute_script("document.querySelector('#job-artifacts a').focus()")
+    driver.execute_script("history.back()")  # (Alt+Left)
     wait_until(lambda: not driver.find_element("id", "home").get_attribute("hidden"), 10, what="the home page")
     assert driver.execute_script(focused_page) == "home"
     faults(driver, {})

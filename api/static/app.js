@@ -872,10 +872,11 @@ async function route() {
   page.abort();
   page = new AbortController();
   const { signal } = page;
-  clearJobView();
   const match = location.hash.match(/^#\/jobs\/([^/]+)$/);
   const [shownPage, hiddenPage] = match ? [$("#job"), $("#home")] : [$("#home"), $("#job")];
+  // Before clearJobView(), which removes the artifact links (a focus on one had been dropped with it, unseen).
   const focusHidden = hiddenPage.contains(document.activeElement);
+  clearJobView();
   shownPage.hidden = false;
   hiddenPage.hidden = true;
   // A keyboard's focus on the page just hidden (the job link pressed, "← all jobs") goes to the page shown: it had
