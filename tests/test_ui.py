@@ -919,6 +919,31 @@ def test_an_upload_s_scene_refused_for_a_mistyped_key_is_watched_again_once_a_go
         assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204  # the other tests expect their own only
 
 
+def test_an_upload_s_progress_is_not_read_out_at_every_step(live, browser):
+    """The share of an upload sent is the progress bar's value, not the status line's text: that line is a live
+    region, and a screen reader queued each of its changes, many a second, before it could say "stored as…"."""
+    svc, token, archive = live
+    driver = browser
+    set_key(driver, svc, token)
+    driver.execute_script("""window.spoken = [];
+        const observer = new MutationObserver(() => {
+          for (const region of document.querySelectorAll("[aria-live]")) {
+            if (region.textContent) spoken.push(region.textContent);
+          }
+        });
+        observer.observe(document.body, { subtree: true, childList: true, characterData: true });""")
+    driver.find_element("id", "upload-archive").send_keys(str(archive))
+    driver.find_element("css selector", "#upload-form button").click()
+    wait_until(lambda: "stored as" in text(driver, "#upload-status"), 30, what="the upload stored")
+    scene_id = re.search(r"stored as (\S+);", text(driver, "#upload-status"))[1]
+    assert [line for line in driver.execute_script("return spoken") if "sent" in line] == []
+    assert driver.find_element("id", "upload-progress").get_attribute("aria-valuetext") == "100 % sent"
+    with httpx.Client(base_url=svc.base, headers={"Authorization": f"Bearer {token}"}) as client:
+        wait_until(lambda: client.get(f"/v1/scenes/{scene_id}").json()["state"] != "processing", 60,
+                   what="the scene's ingest", processes=svc.processes)
+        assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204  # the other tests expect their own only
+
+
 def test_a_keyboard_s_focus_follows_the_page_it_opens(live, browser):
     """A job opened from the list with the keyboard (Enter on its link), and the list opened again ("← all jobs", or
     Back from an artifact's link), take the focus with them: it had been dropped with the page hidden, the next Tab

@@ -254,8 +254,10 @@ function initUpload() {
     if (!archive && !files.length) { showError("upload", "choose a zip, the dataset's folder, or its files"); return; }
     const bar = $("#upload-progress");
     const status = $("#upload-status");
+    const sent = $("#upload-sent");
     bar.hidden = false;
     bar.value = 0;
+    status.textContent = "";  // (the last upload's outcome)
     button.disabled = true;  // until the upload is answered: a second click would upload it twice
     const xhr = new XMLHttpRequest();
     xhr.open("POST", "/v1/scenes");
@@ -264,10 +266,15 @@ function initUpload() {
     for (const [name, value] of Object.entries(authHeaders({ "Idempotency-Key": idempotency.for(upload) }))) {
       xhr.setRequestHeader(name, value);
     }
+    // The share sent is shown beside the bar and is the bar's spoken value, outside the status's live region: a
+    // screen reader had queued each of its many changes a second.
     xhr.upload.onprogress = (e) => {
-      if (e.lengthComputable) { bar.value = e.loaded / e.total; status.textContent = `${percent(bar.value)} sent`; }
+      if (!e.lengthComputable) return;
+      bar.value = e.loaded / e.total;
+      sent.textContent = `${percent(bar.value)} sent`;
+      bar.setAttribute("aria-valuetext", sent.textContent);
     };
-    xhr.onloadend = () => { button.disabled = false; };
+    xhr.onloadend = () => { button.disabled = false; sent.textContent = ""; };
     xhr.onerror = () => showError("upload", "the upload failed (network error)");
     xhr.onload = async () => {
       if (xhr.status >= 400) {
