@@ -21,6 +21,7 @@ from voxe_core.export import (
     render_views,
     save_mesh,
     save_png,
+    _surface_colours,
     to_uint8,
     VideoEncoderError,
     VideoWriter,
@@ -477,6 +478,24 @@ def test_mesh_colours_are_the_renders_not_those_of_the_empty_vertices_outside(ma
     colours = extract_mesh(grid, resolution=resolution).visual.vertex_colors[:, :3].astype(int)
     assert np.abs(np.median(colours, 0) - np.median(shown, 0)).max() <= 6
     assert colours[:, 0].min() >= shown[:, 0].min() - 5 and colours[:, 1:].max() <= shown[:, 1:].max() + 5
+
+
+@pytest.mark.parametrize("colour_samples", [1, 2])
+def test_colour_samples_set_how_many_samples_colour_each_vertex(make_sphere_grid, colour_samples):
+    """bench/mesh_colours.py weighs fewer samples against the default: the count must reach the compositing."""
+    grid = make_sphere_grid()
+    with torch.no_grad():
+        grid.features[..., 1:][grid.features[..., 0] <= 0] = 0.0  # grey outside, so the samples' depths matter
+    fewer = extract_mesh(grid, colour_samples=colour_samples)
+    colours = fewer.visual.vertex_colors[:, :3]
+    assert np.array_equal(colours, _surface_colours(grid, fewer.vertices, fewer.vertex_normals, colour_samples))
+    assert not np.array_equal(colours, extract_mesh(grid).visual.vertex_colors[:, :3])
+
+
+@pytest.mark.parametrize("colour_samples", [0, -1])
+def test_a_vertex_colour_needs_a_sample(sphere_grid, colour_samples):
+    with pytest.raises(ValueError, match="at least 1 sample"):
+        extract_mesh(sphere_grid, colour_samples=colour_samples)
 
 
 def test_off_centre_sphere_lands_in_the_right_world_place(make_sphere_grid):

@@ -429,8 +429,14 @@ def _lattice_density(grid: VoxelGrid, lo: torch.Tensor, hi: torch.Tensor, spacin
     return out
 
 
+SURFACE_COLOUR_SPAN = (-1.0, 3.0)
+"""Where along its inward normal a mesh vertex's colour is composited from: voxels from the vertex, outside to in."""
+SURFACE_COLOUR_SAMPLES = 8  # half a voxel apart, the renderer's default step
+
+
 @torch.no_grad()
-def extract_mesh(grid: VoxelGrid, level: float | None = None, resolution: int | None = None):
+def extract_mesh(grid: VoxelGrid, level: float | None = None, resolution: int | None = None,
+                 colour_samples: int = SURFACE_COLOUR_SAMPLES):
     """Marching cubes on the activated density -> ``trimesh.Trimesh`` in world coordinates.
 
     The mesh is of ``grid.foreground_grid()``: a scene grid's object in its canonical frame.
@@ -444,12 +450,15 @@ def extract_mesh(grid: VoxelGrid, level: float | None = None, resolution: int | 
     Only the box around cells denser than ``level``, padded by one voxel, is
     processed. Outside the grid's box the density is 0 (as in the renderer), so
     matter touching the box is capped on the box faces and the mesh stays
-    closed. Vertex colours (uint8 RGBA) are what a render shows there: :func:`_surface_colours`.
+    closed. Vertex colours (uint8 RGBA) are what a render shows there: :func:`_surface_colours`, from
+    ``colour_samples`` samples per vertex (bench/mesh_colours.py weighs their cost against their error).
     Raises ``ValueError`` when no density crosses ``level``.
     """
     import trimesh
     from skimage.measure import marching_cubes
 
+    if colour_samples < 1:
+        raise ValueError(f"a vertex's colour needs at least 1 sample, got colour_samples={colour_samples}")
     grid = grid.foreground_grid()  # a scene grid's object, not its background
     if grid.bbox_min.device.type != "cpu":  # marching cubes runs on the CPU; leave the caller's grid where it is
         grid = VoxelGrid(
@@ -504,20 +513,16 @@ def extract_mesh(grid: VoxelGrid, level: float | None = None, resolution: int | 
     verts, faces = _weld_on_box(np.clip(verts, *box), faces, box, tolerance=1e-4 * spacing.double().numpy())
     mesh = trimesh.Trimesh(vertices=verts, faces=faces, process=False)
     colors = np.full((len(verts), 4), 255, dtype=np.uint8)
-    colors[:, :3] = _surface_colours(grid, mesh.vertices, mesh.vertex_normals)
+    colors[:, :3] = _surface_colours(grid, mesh.vertices, mesh.vertex_normals, colour_samples)
     mesh.visual.vertex_colors = colors
     return mesh
 
 
-SURFACE_COLOUR_SPAN = (-1.0, 3.0)
-"""Where along its inward normal a mesh vertex's colour is composited from: voxels from the vertex, outside to in."""
-SURFACE_COLOUR_SAMPLES = 8  # half a voxel apart, the renderer's default step
-
-
-def _surface_colours(grid: VoxelGrid, verts: np.ndarray, normals: np.ndarray) -> np.ndarray:
+def _surface_colours(grid: VoxelGrid, verts: np.ndarray, normals: np.ndarray,
+                     samples: int = SURFACE_COLOUR_SAMPLES) -> np.ndarray:
     """(V, 3) uint8: at each vertex, the colour a ray meeting the surface there head-on composites
-    (:func:`voxe_core.render.composite`, the renderer's own arithmetic), from :data:`SURFACE_COLOUR_SPAN` along the
-    inward normal, as an opaque surface's (divided by the ray's opacity).
+    (:func:`voxe_core.render.composite`, the renderer's own arithmetic), from ``samples`` evenly spaced over
+    :data:`SURFACE_COLOUR_SPAN` along the inward normal, as an opaque surface's (divided by the ray's opacity).
 
     The colour at the vertex itself had been the mesh's: on the level set the raw colour is interpolated with the
     empty vertices just outside, whose colour no render shows (a fit leaves them near their grey start), so a red
@@ -525,21 +530,21 @@ def _surface_colours(grid: VoxelGrid, verts: np.ndarray, normals: np.ndarray) ->
     density keeps its own colour."""
     voxel = float(grid.voxel_size.min())
     first, last = SURFACE_COLOUR_SPAN
-    step = (last - first) / SURFACE_COLOUR_SAMPLES
-    depths = torch.tensor([(first + (k + 0.5) * step) * voxel for k in range(SURFACE_COLOUR_SAMPLES)])
+    step = (last - first) / samples
+    depths = torch.tensor([(first + (k + 0.5) * step) * voxel for k in range(samples)])
     points = torch.tensor(np.asarray(verts), dtype=torch.float32)
     inward = -torch.tensor(np.asarray(normals), dtype=torch.float32)
     colours = np.empty((len(verts), 3), dtype=np.uint8)
-    per_chunk = max(1, _QUERY_CHUNK // SURFACE_COLOUR_SAMPLES)
+    per_chunk = max(1, _QUERY_CHUNK // samples)
     for start in range(0, len(points), per_chunk):
         at, towards = points[start : start + per_chunk], inward[start : start + per_chunk]
-        samples = RaySamples(
-            ray=torch.arange(len(at)).repeat_interleave(SURFACE_COLOUR_SAMPLES),
+        along_normal = RaySamples(
+            ray=torch.arange(len(at)).repeat_interleave(samples),
             t=depths.repeat(len(at)),
-            delta=torch.full((len(at) * SURFACE_COLOUR_SAMPLES,), step * voxel),
+            delta=torch.full((len(at) * samples,), step * voxel),
             points=(at[:, None, :] + depths[None, :, None] * towards[:, None, :]).reshape(-1, 3),
         )
-        ray = composite([samples], grid.query, len(at), torch.zeros(3))
+        ray = composite([along_normal], grid.query, len(at), torch.zeros(3))
         colour = ray.rgb / ray.opacity.clamp_min(1e-12)[:, None]
         empty = (ray.opacity <= 1e-6).nonzero().squeeze(1)
         if len(empty):
