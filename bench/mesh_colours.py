@@ -21,7 +21,6 @@ bench/results/mesh_colours.json and mesh_colours.png.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
 from pathlib import Path
