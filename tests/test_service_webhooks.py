@@ -278,7 +278,10 @@ def test_an_attempts_error_is_logged_without_the_urls_credentials(client, caplog
     ("https://hooks.example.com/services/T0/B0/s3cret", "https://hooks.example.com/services/***"),  # Slack's
     ("https://bob:pw@discord.example/api/webhooks/1/s3cret/", "https://***@discord.example/api/***"),
     ("https://api.example.com/hooks/ops@corp/s3cret", "https://api.example.com/hooks/***"),  # an '@' in the path
-    ("https://bob:12/s3cret@hooks.example.com/in", "https://bob:12/***")])  # a '/' in a password, cut at a port
+    # a '/' in a password: its head read as a port, or not
+    ("https://bob:12/s3cret@hooks.example.com/in", "https://***@hooks.example.com/***"),
+    ("https://bob:1234/s3cret/tail@hooks.example.com/in", "https://***@hooks.example.com/***"),
+    ("https://hooks.example.com:8443/in?email=ops@corp.example", "https://hooks.example.com:8443/in?email=***")])
 def test_an_attempts_logged_error_hides_the_credentials_of_any_url_it_names(location, logged_as):
     """The log's copy of an error had its URLs picked out of the text: one ended at its first "'" (a userinfo or
     query may hold one), a redirect's relative Location (no scheme) went whole, and a Location over 200 characters

@@ -65,13 +65,14 @@ def log_safe_url(url: str, base: str = "") -> str:
     may hold credentials (``https://user:pass@host/``, ``?token=...``, or in the path, as Slack's and Discord's
     ``/services/T0/B0/<secret>`` and ``/api/webhooks/<id>/<token>`` do) that the owner sees in the delivery's
     ``last_error``, but the operator's logs must not. A relative one (a redirect's Location) is first resolved
-    against ``base``. The userinfo is the netloc's, up to its last '@': an '@' in the path is the path's (a rule
-    reading up to the last '@' anywhere had shown ``/hooks/ops@corp/<token>`` as ``***@corp/<token>``), unless the
-    netloc's port is unreadable (a password's unencoded '/' ended the netloc: ``bob:pa/ss@host``), where the
-    userinfo runs to the last '@' before the query. The path keeps its first segment, which tells receivers'
-    endpoints apart, unless it holds an '@' (the tail of such a password), and the rest, where the tokens are, is
-    one ``***`` (no rule tells a token from a word reliably); a query pair's name is kept, a pair with no '=' hidden
-    whole.
+    against ``base``. The userinfo is the netloc's, up to its last '@'. A netloc with no '@' but a ':' followed later
+    by an '@' may be a password's start, ended by its unencoded '/', '?' or '#' (``bob:pa/ss@host``, ``bob:12/x@host``,
+    whose "12" reads as a port): its userinfo runs to the first '@' after it, and where that ':' also reads as a
+    port's (``host:8443/a@b/c`` too), the path is hidden whole. An '@' in the path of any other netloc
+    is the path's (a rule reading up to the last '@' had shown ``/hooks/ops@corp/<token>`` as ``***@corp/<token>``).
+    The path keeps its first segment, which tells receivers' endpoints apart, unless it holds an '@', and the rest,
+    where the tokens are, is one ``***`` (no rule tells a token from a word reliably); a query pair's name is kept, a
+    pair with no '=' hidden whole.
 
     Examples:
         >>> log_safe_url("https://bob:pa/ss@hooks.example.com/in?token=abc&x#frag")
@@ -82,26 +83,38 @@ def log_safe_url(url: str, base: str = "") -> str:
         'https://hooks.example.com/services/***'
         >>> log_safe_url("https://api.example.com/hooks/ops@corp/s3cretTOKEN")
         'https://api.example.com/hooks/***'
+        >>> log_safe_url("https://bob:pa/ss@hooks.example.com/hooks/ops@corp/s3cretTOKEN")
+        'https://***@hooks.example.com/hooks/***'
+        >>> log_safe_url("https://bob:12/ab/cd@hooks.example.com/in")
+        'https://***@hooks.example.com/***'
     """
+    resolved = urljoin(base, url) if base else url
     try:
-        parts = urlsplit(urljoin(base, url) if base else url)
+        parts = urlsplit(resolved)
+        userinfo, guessed = "@" in parts.netloc, False
+        netloc_start = resolved.find("//") + 2  # (the scheme holds no '/')
+        # where the ':' reads as a port's ('bob:12/x@host' or 'host:8443/a@b/c') the path is hidden whole, and an
+        # '@' past the query's or fragment's start is theirs ('host:8443/in?email=a@b.example')
+        port_readable = _port_readable(parts)
+        userinfo_may_end = len(resolved) if not port_readable else min(
+            (at for at in (resolved.find("?", netloc_start), resolved.find("#", netloc_start)) if at >= 0),
+            default=len(resolved))
+        if not userinfo and ":" in parts.netloc and "@" in resolved[netloc_start:userinfo_may_end]:
+            parts = urlsplit(resolved[:netloc_start] + resolved[resolved.index("@", netloc_start) + 1:])
+            userinfo, guessed = True, port_readable
     except ValueError:  # e.g. an unclosed "[" of an IPv6 host
         return "<an unreadable URL>"
-    authority_and_path = parts.netloc + parts.path
-    userinfo_end = parts.netloc.rfind("@")
-    if userinfo_end < 0 and "@" in parts.path and not _port_readable(parts):
-        userinfo_end = authority_and_path.rfind("@")
-    if userinfo_end >= 0:
-        authority_and_path = "***@" + authority_and_path[userinfo_end + 1:]
-    authority, _, path = authority_and_path.partition("/")
-    first_segment, _, rest = path.partition("/")
-    if "@" in first_segment:
-        authority_and_path = f"{authority}/***"
+    authority = ("***@" if userinfo else "") + parts.netloc.rpartition("@")[2]
+    first_segment, _, rest = parts.path.removeprefix("/").partition("/")
+    if "@" in first_segment or (guessed and parts.path.strip("/")):
+        path = "/***"
     elif rest:
-        authority_and_path = f"{authority}/{first_segment}/***"
+        path = f"/{first_segment}/***"
+    else:
+        path = parts.path
     query = "&".join(name + "=***" if has_value else "***"
                      for name, has_value, _ in (pair.partition("=") for pair in parts.query.split("&")))
-    return (f"{parts.scheme}:{'//' if parts.netloc else ''}{authority_and_path}"
+    return (f"{parts.scheme + ':' if parts.scheme else ''}{'//' if parts.netloc else ''}{authority}{path}"
             f"{'?' + query if parts.query else ''}{'#***' if parts.fragment else ''}")
 
 
