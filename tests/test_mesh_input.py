@@ -22,6 +22,7 @@ from voxe_core.cameras import Cameras, look_at
 from voxe_core.data import DatasetError, load_scene
 from voxe_core.export import extract_mesh
 from voxe_core.metrics import psnr
+from voxe_core import mesh_input
 from voxe_core.mesh_input import (
     DEFAULT_ALBEDO, SHADING_AMBIENT, SHADING_LIGHT, VIEW_RADIUS, MeshError, SurfaceMesh, VoxelizeConfig,
     chamfer_distance, hemisphere_cameras, load_mesh, rasterize, render_mesh_views, sample_texture, shade_mesh, voxelize,
@@ -1141,3 +1142,21 @@ def test_mesh_up_axis_is_stored_with_the_upload_and_honoured_by_the_ingest(tmp_p
     with pytest.raises(UploadError, match="mesh_up_axis applies to mesh uploads only"), \
             _stage(tmp_path, [("transforms.json", tmp_path / "transforms.json")], mesh_up_axis="z"):
         pass
+
+
+def test_a_discs_wedges_are_rasterised_along_their_rows_not_over_their_screen_boxes(monkeypatch):
+    """A disc's cap is a fan of long thin wedges, each of whose screen boxes is a good part of the image: every pixel
+    of every box had been tested against its face (a CAD disc of 4,096 faces took 20 s a view, 40 min an ingest).
+    The pixels tested, three cross products each, are counted: the original tested about 160 per sample covered."""
+    disc = trimesh.creation.cylinder(radius=1.0, height=0.01, sections=256)
+    disc.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))  # facing the camera on -y
+    mesh = SurfaceMesh(np.asarray(disc.vertices), np.asarray(disc.faces))
+    cameras, supersample = _camera_on_minus_y(), 2
+    products = []
+    cross2 = mesh_input._cross2
+    monkeypatch.setattr(mesh_input, "_cross2", lambda u, v: products.append(np.size(u) // 2) or cross2(u, v))
+    _, alpha = rasterize(mesh, cameras, 0, supersample)
+    radius = float(cameras.fx[0]) * 1.0 / 4.0  # pixels, at distance 4
+    assert float(alpha.sum()) == pytest.approx(math.pi * radius**2, rel=0.01)
+    covered_samples = float(alpha.sum()) * supersample**2
+    assert sum(products) < 30 * covered_samples
