@@ -1160,3 +1160,18 @@ def test_a_discs_wedges_are_rasterised_along_their_rows_not_over_their_screen_bo
     assert float(alpha.sum()) == pytest.approx(math.pi * radius**2, rel=0.01)
     covered_samples = float(alpha.sum()) * supersample**2
     assert sum(products) < 30 * covered_samples
+
+
+@pytest.mark.parametrize("written", ["C:\\Users\\me\\Model.mtl", "..\\model.mtl", "MODEL.MTL"])
+def test_a_library_and_its_image_named_by_a_windows_path_or_in_another_case_colour_the_mesh(tmp_path, written):
+    """Windows exporters write absolute or backslashed paths, and Windows' and macOS' file systems ignore case: the
+    .mtl (and its map_Kd image) beside the OBJ had not been found, and the mesh had loaded grey without a word."""
+    (tmp_path / "model.mtl").write_text("newmtl red\nKd 1 0 0\nnewmtl wood\nmap_Kd D:\\textures\\Wood.PNG\n")
+    Image.fromarray(np.full((2, 2, 3), (0, 0, 255), dtype=np.uint8)).save(tmp_path / "wood.png")
+    tetrahedron = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nvt 0 0\nvt 1 0\nvt 0 1\n"
+    faces = "f 1/1 2/2 3/3\nf 1/1 2/2 4/3\nf 1/1 3/2 4/3\nf 2/1 3/2 4/3\n"
+    for material, colour in (("red", [1.0, 0.0, 0.0]), ("wood", [0.0, 0.0, 1.0])):
+        (tmp_path / "model.obj").write_text(f"mtllib {written}\n{tetrahedron}usemtl {material}\n{faces}")
+        mesh = load_mesh(tmp_path / "model.obj")
+        albedo = mesh.colour if mesh.texture is None else mesh.texture.reshape(-1, 3)[0]
+        assert albedo is not None and np.allclose(albedo, colour), material

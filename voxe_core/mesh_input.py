@@ -679,8 +679,23 @@ class _MtlBySpec(Mapping):
         self.problem: str | None = None
 
     def __getitem__(self, name: str) -> bytes:
-        data = self.files[name]
+        data = self._file(name)
         return self._by_spec(data, name) if name.strip().lower().endswith(".mtl") else data
+
+    def _file(self, name: str) -> bytes:
+        """The file ``name`` (an ``mtllib``'s, a ``map_Kd``'s) names: as trimesh looks it up (the path, then its base
+        name), else the mesh folder's file whose name is its base name after either separator, in any case. Windows
+        exporters write ``mtllib C:\\Users\\me\\model.mtl`` or ``..\\model.mtl``, and Windows' and macOS' file
+        systems find ``Model.MTL`` as ``model.mtl``: such a library had been dropped without a word, the mesh grey."""
+        try:
+            return self.files[name]
+        except (OSError, ValueError):  # not found, or outside the folder
+            base = re.split(r"[\\/]", name.strip())[-1].lower()
+            folder = Path(self.files.parent)
+            match = next((path.name for path in sorted(folder.iterdir()) if path.name.lower() == base), None)
+            if match is None:
+                raise
+            return self.files[match]
 
     def __iter__(self):
         return iter(self.files.keys())
