@@ -225,6 +225,9 @@ def load_scene(
             raise where("'file_path' must be a non-empty string", i)
         if "\0" in frame["file_path"]:
             raise where("'file_path' contains a NUL character", i)
+        if (unnamed := _unnameable(frame["file_path"])) is not None:
+            raise where(f"'file_path' holds {unnamed!r}, a lone surrogate (JSON's \\u escape of half a UTF-16 pair), "
+                        "which no file name can hold", i)
         file_path = _posix_file_path(frame["file_path"])
         if confine_paths and not _inside(root, file_path):
             raise where("'file_path' leads outside the dataset folder (absolute or through '..')", i)
@@ -552,6 +555,16 @@ def _split_indices(fmt: str, split: str, n: int, holdout_every: int | None, wher
     if not keep:
         raise where(f"empty split: {split!r} with holdout_every={holdout_every} selects none of {n} frames")
     return keep
+
+
+def _unnameable(file_path: str) -> str | None:
+    """The characters of ``file_path`` the file system cannot encode (None: none): a JSON "\\ud800" reads as a lone
+    surrogate, on which every lookup of the path had raised a UnicodeEncodeError (an upload's check answered 500)."""
+    try:
+        os.fsencode(file_path)
+    except UnicodeEncodeError as e:
+        return e.object[e.start:e.end]
+    return None
 
 
 def _posix_file_path(file_path: str) -> str:
