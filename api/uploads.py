@@ -320,6 +320,23 @@ def dataset_root(folder: Path) -> Path:
     return root
 
 
+MAX_MESH_FACES = 2_000_000
+"""The most faces a mesh upload may hold (its PLY header's count, or its OBJ's face lines): its ingest reads the
+whole file's text (several copies of an OBJ's), then loads, shades and renders 120 views of every face, in time and
+memory that grow with them (1.3 million faces took 14 minutes); the upload's size cap alone let through a few GB."""
+_FACE_LINE = b"\nf "  # an OBJ's face line as the loader reads one (``mesh_input._obj_fault`` refuses the rest)
+
+
+def _obj_face_lines(path: Path) -> int:
+    """How many face lines the OBJ at ``path`` holds, read a megabyte at a time."""
+    count, before = 0, b"\n"  # (a line's start: the file's, or the newline ending the line before)
+    with open(path, "rb") as handle:
+        while chunk := handle.read(1 << 20):
+            count += (before + chunk).count(_FACE_LINE)
+            before = chunk[-(len(_FACE_LINE) - 1):]  # a face line's start across the chunks' border
+    return count
+
+
 OTHER_TEXTURE_SUFFIXES = (".bmp", ".dds", ".exr", ".gif", ".hdr", ".jp2", ".ktx", ".ktx2", ".psd", ".tga", ".tif",
                           ".tiff", ".webp")
 """Texture image kinds 3D tools write that the mesh loader does not read (it reads ``TEXTURE_SUFFIXES``): beside an
@@ -331,9 +348,9 @@ def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str
     """The upload's mesh (and texture, and material library) copied to ``dest/mesh/`` with its ``shading`` and
     ``up_axis`` options for the ingest, or None when it is not a mesh.
 
-    The file rules are checked here: one mesh, at most one texture image (an OBJ's or a PLY's: the ingest's
-    ``load_mesh`` samples it at the file's texture coordinates, which a PLY with an image must declare) and for an
-    OBJ at most one .mtl. The texture is kept as ``texture.<ext>``, whatever the OBJ's .mtl or the PLY's TextureFile
+    The file rules are checked here: one mesh of at most ``MAX_MESH_FACES`` faces (else a 413), at most one texture
+    image (an OBJ's or a PLY's: the ingest's ``load_mesh`` samples it at the file's texture coordinates, which a PLY
+    with an image must declare) and for an OBJ at most one .mtl. The texture is kept as ``texture.<ext>``, whatever the OBJ's .mtl or the PLY's TextureFile
     comment call it. The .mtl keeps its file name, which the OBJ's ``mtllib`` names: trimesh looks it up (or its base
     name) inside the mesh's folder only. A dataset folder is no mesh even with a mesh in it (COLMAP's
     fused.ply, say).
@@ -352,6 +369,11 @@ def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str
     images = [p for p in files if p.suffix.lower() in TEXTURE_SUFFIXES]
     unread = [p for p in files if p.suffix.lower() in OTHER_TEXTURE_SUFFIXES]
     header = read_ply_header(mesh) if kind == "PLY" else None  # (an unread header: the ingest's load names it)
+    faces = (header.faces or 0) if kind == "PLY" else _obj_face_lines(mesh)
+    if faces > MAX_MESH_FACES:
+        raise UploadError(f"the {kind} holds {faces:,} faces, more than the {MAX_MESH_FACES:,} a mesh upload may "
+                          "hold: decimate it (Blender's Decimate modifier, MeshLab's quadric edge collapse) and send "
+                          "it again", 413)
     if header and header.complete and not header.declares_texture_coordinates and images + unread:  # dropped
         raise UploadError(f"the PLY comes with {'an image' if len(images + unread) == 1 else 'images'} "
                           f"({names(images + unread)}) but its header declares no "

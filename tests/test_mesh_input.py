@@ -1175,3 +1175,27 @@ def test_a_library_and_its_image_named_by_a_windows_path_or_in_another_case_colo
         mesh = load_mesh(tmp_path / "model.obj")
         albedo = mesh.colour if mesh.texture is None else mesh.texture.reshape(-1, 3)[0]
         assert albedo is not None and np.allclose(albedo, colour), material
+
+
+@pytest.mark.parametrize("kind", ["obj", "ply"])
+def test_a_mesh_upload_of_more_faces_than_an_ingest_renders_is_refused_at_once(tmp_path, monkeypatch, kind):
+    """Its ingest reads, shades and renders every face: a mesh of tens of millions had been taken (the upload's size cap
+    allows GBs) for the worker to load whole. The faces are counted from a PLY's header or an OBJ's face lines (one
+    straddling the counter's read of a megabyte among them), nothing else read."""
+    from api import uploads
+    from api.uploads import UploadError
+
+    monkeypatch.setattr(uploads, "MAX_MESH_FACES", 3)
+    path = tmp_path / f"box.{kind}"
+    trimesh.creation.box().export(path)  # 12 faces
+    if kind == "obj":  # a comment line first, so that the megabyte's border falls within the first "\nf "
+        text = path.read_text()
+        path.write_text("#" * ((1 << 20) - 3 - text.index("\nf ")) + "\n" + text)
+        assert path.read_bytes()[(1 << 20) - 2:(1 << 20) + 1] == b"\nf "
+    with pytest.raises(UploadError, match=f"the {kind.upper()} holds 12 faces, more than the 3 a mesh upload may hold: "
+                                          "decimate it") as refused, _stage(tmp_path, [(path.name, path)]):
+        pass
+    assert refused.value.status == 413
+    monkeypatch.setattr(uploads, "MAX_MESH_FACES", 12)
+    with _stage(tmp_path, [(path.name, path)]) as staged:
+        assert staged.format == "mesh"

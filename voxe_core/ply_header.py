@@ -9,7 +9,7 @@ Examples:
     >>> _ = path.write_bytes(b"ply\\nformat binary_little_endian 1.0\\ncomment TextureFile quad.png\\n"
     ...                      b"element vertex 4\\nproperty float x\\nproperty float s\\nproperty float t\\nend_header\\n")
     >>> read_ply_header(path)
-    PlyHeader(complete=True, declares_texture_coordinates=True, texture_file='quad.png')
+    PlyHeader(complete=True, declares_texture_coordinates=True, texture_file='quad.png', faces=None)
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ class PlyHeader:
     complete: bool  # a "ply" first line and an end_header within the bounds: otherwise the loader names the fault
     declares_texture_coordinates: bool
     texture_file: str | None  # the rest of its "comment TextureFile" line, as trimesh reads it
+    faces: int | None  # the count its "element face" line declares (None: no such line, or not a count)
 
 
 def _header_lines(handle: BinaryIO) -> Iterator[str]:
@@ -51,19 +52,21 @@ def _header_lines(handle: BinaryIO) -> Iterator[str]:
 
 def read_ply_header(path: str | os.PathLike) -> PlyHeader:
     """The header of the PLY at ``path`` (ASCII before ``end_header``, whatever the body's format)."""
-    declared, element, texture_file = set(), None, None
+    declared, element, texture_file, faces = set(), None, None, None
     with open(path, "rb") as handle:
         for text in _header_lines(handle):
             words = text.split()
             if words[:1] == ["end_header"]:
-                return PlyHeader(True, any(names <= declared for names in TEXTURE_COORDINATES), texture_file)
+                return PlyHeader(True, any(names <= declared for names in TEXTURE_COORDINATES), texture_file, faces)
             if words[:1] == ["element"] and len(words) > 1:
                 element = words[1]
+                if element == "face" and len(words) > 2 and words[2].isdigit():
+                    faces = int(words[2])
             elif words[:1] == ["property"] and len(words) > 1:
                 declared.add((element, words[-1]))
             elif "texturefile" in text.lower():
                 texture_file = text[text.lower().index("texturefile") + len("texturefile"):].strip() or None
-    return PlyHeader(False, False, texture_file)
+    return PlyHeader(False, False, texture_file, faces)
 
 
 def ply_fault(path: str | os.PathLike) -> str | None:
