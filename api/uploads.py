@@ -350,10 +350,10 @@ def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str
 
     The file rules are checked here: one mesh of at most ``MAX_MESH_FACES`` faces (else a 413), at most one texture
     image (an OBJ's or a PLY's: the ingest's ``load_mesh`` samples it at the file's texture coordinates, which a PLY
-    with an image must declare) and for an OBJ at most one .mtl. The texture is kept as ``texture.<ext>``, whatever the OBJ's .mtl or the PLY's TextureFile
-    comment call it. The .mtl keeps its file name, which the OBJ's ``mtllib`` names: trimesh looks it up (or its base
-    name) inside the mesh's folder only. A dataset folder is no mesh even with a mesh in it (COLMAP's
-    fused.ply, say).
+    with an image must declare) and for an OBJ at most one .mtl. The texture is kept as ``texture.<ext>``, whatever
+    the OBJ's .mtl or the PLY's TextureFile comment call it. The .mtl keeps its file name, which the OBJ's ``mtllib``
+    names: the loader looks it up (or its base name, in any case) inside the mesh's folder only. A dataset folder is
+    no mesh even with a mesh in it (COLMAP's fused.ply, say).
     """
     if is_dataset_folder(root):
         return None
