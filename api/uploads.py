@@ -51,7 +51,7 @@ from PIL import Image
 from voxe_core.data import (DatasetError, colmap_transforms, detect_format, find_image, image_candidates,
                             is_dataset_folder, load_scene, quarter_turn_hint)
 from voxe_core.constants import TEXTURE_SUFFIXES
-from voxe_core.mesh_input import MESH_FRAMES, MESH_INPUT_SUFFIXES
+from voxe_core.mesh_input import MAX_MESH_FACES, MESH_FRAMES, MESH_INPUT_SUFFIXES
 from voxe_core.ply_header import read_ply_header
 from voxe_service import datasets
 from voxe_service.datasets import (DATASET_ARCHIVE, MESH_FOLDER, MESH_FORMAT, MESH_NAMES, MESH_OPTIONS, UPLOAD_ARCHIVE,
@@ -320,21 +320,40 @@ def dataset_root(folder: Path) -> Path:
     return root
 
 
-MAX_MESH_FACES = 2_000_000
-"""The most faces a mesh upload may hold (its PLY header's count, or its OBJ's face lines): its ingest reads the
-whole file's text (several copies of an OBJ's), then loads, shades and renders 120 views of every face, in time and
-memory that grow with them (1.3 million faces took 14 minutes); the upload's size cap alone let through a few GB."""
-_FACE_LINE = b"\nf "  # an OBJ's face line as the loader reads one (``mesh_input._obj_fault`` refuses the rest)
+_FACE_LINE = re.compile(rb"\nf[ \t]([^\n]*)")  # an OBJ's face line (after its newline): "f", a space or tab, corners
 
 
-def _obj_face_lines(path: Path) -> int:
-    """How many face lines the OBJ at ``path`` holds, read a megabyte at a time."""
-    count, before = 0, b"\n"  # (a line's start: the file's, or the newline ending the line before)
+def _obj_triangles(path: Path, bound: int) -> int:
+    """How many triangles the face lines of the OBJ at ``path`` load as (a polygon of N corners is N - 2, a line at
+    least one), read a megabyte at a time and counted only until past ``bound``. A line still open at a megabyte's
+    end is carried over as its corners counted and its last, maybe unfinished, word (however long the line)."""
+    count, carried, open_corners = 0, b"\n", 0  # (a line's start: the file's, or the newline ending the line before)
+
+    def triangles(face_lines: bytes) -> int:
+        total = 0
+        for match in _FACE_LINE.finditer(face_lines):
+            corners = len(match[1].split()) + (open_corners if match.start() == 0 else 0)
+            total += max(corners - 2, 1)
+        return total
+
     with open(path, "rb") as handle:
-        while chunk := handle.read(1 << 20):
-            count += (before + chunk).count(_FACE_LINE)
-            before = chunk[-(len(_FACE_LINE) - 1):]  # a face line's start across the chunks' border
-    return count
+        while count <= bound and (chunk := handle.read(1 << 20)):
+            text = carried + chunk
+            end = text.rfind(b"\n")
+            count += triangles(text[:end])
+            if end > 0:
+                open_corners = 0
+            carried = text[end:]
+            if (line := _FACE_LINE.match(carried)) and not carried[-1:].isspace():  # its last word may go on
+                words = line[1].split()
+                open_corners += len(words) - 1
+                carried = b"\nf " + words[-1]
+            elif line:
+                open_corners += len(line[1].split())
+                carried = b"\nf "
+            elif len(carried) > 2:  # no face line: the rest of it does not count
+                carried = b"\n#"
+    return count + triangles(carried) if count <= bound else count
 
 
 OTHER_TEXTURE_SUFFIXES = (".bmp", ".dds", ".exr", ".gif", ".hdr", ".jp2", ".ktx", ".ktx2", ".psd", ".tga", ".tif",
@@ -348,8 +367,8 @@ def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str
     """The upload's mesh (and texture, and material library) copied to ``dest/mesh/`` with its ``shading`` and
     ``up_axis`` options for the ingest, or None when it is not a mesh.
 
-    The file rules are checked here: one mesh of at most ``MAX_MESH_FACES`` faces (else a 413), at most one texture
-    image (an OBJ's or a PLY's: the ingest's ``load_mesh`` samples it at the file's texture coordinates, which a PLY
+    The file rules are checked here: one mesh of at most ``MAX_MESH_FACES`` triangles (an OBJ's face lines', a PLY's
+    header's faces; else a 413), at most one texture image (an OBJ's or a PLY's: the ingest's ``load_mesh`` samples it at the file's texture coordinates, which a PLY
     with an image must declare) and for an OBJ at most one .mtl. The texture is kept as ``texture.<ext>``, whatever
     the OBJ's .mtl or the PLY's TextureFile comment call it. The .mtl keeps its file name, which the OBJ's ``mtllib``
     names: the loader looks it up (or its base name, in any case) inside the mesh's folder only. A dataset folder is
@@ -369,11 +388,13 @@ def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str
     images = [p for p in files if p.suffix.lower() in TEXTURE_SUFFIXES]
     unread = [p for p in files if p.suffix.lower() in OTHER_TEXTURE_SUFFIXES]
     header = read_ply_header(mesh) if kind == "PLY" else None  # (an unread header: the ingest's load names it)
-    faces = (header.faces or 0) if kind == "PLY" else _obj_face_lines(mesh)
+    # A PLY's faces as its header counts them (its polygons' corners are not summed: a binary body's would be read
+    # whole; the ingest's load_mesh refuses a mesh loading as more triangles), an OBJ's triangles from its face lines
+    faces = (header.faces or 0) if kind == "PLY" else _obj_triangles(mesh, MAX_MESH_FACES)
     if faces > MAX_MESH_FACES:
-        raise UploadError(f"the {kind} holds {faces:,} faces, more than the {MAX_MESH_FACES:,} a mesh upload may "
-                          "hold: decimate it (Blender's Decimate modifier, MeshLab's quadric edge collapse) and send "
-                          "it again", 413)
+        counted = f" declares {faces:,} faces" if kind == "PLY" else f"'s face lines make {faces:,} triangles or more"
+        raise UploadError(f"the {kind}{counted}, more than the {MAX_MESH_FACES:,} a mesh upload may hold: decimate "
+                          "it (Blender's Decimate modifier, MeshLab's quadric edge collapse) and send it again", 413)
     if header and header.complete and not header.declares_texture_coordinates and images + unread:  # dropped
         raise UploadError(f"the PLY comes with {'an image' if len(images + unread) == 1 else 'images'} "
                           f"({names(images + unread)}) but its header declares no "

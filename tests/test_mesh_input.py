@@ -1192,10 +1192,63 @@ def test_a_mesh_upload_of_more_faces_than_an_ingest_renders_is_refused_at_once(t
         text = path.read_text()
         path.write_text("#" * ((1 << 20) - 3 - text.index("\nf ")) + "\n" + text)
         assert path.read_bytes()[(1 << 20) - 2:(1 << 20) + 1] == b"\nf "
-    with pytest.raises(UploadError, match=f"the {kind.upper()} holds 12 faces, more than the 3 a mesh upload may hold: "
+    counted = " declares 12 faces" if kind == "ply" else "'s face lines make 12 triangles or more"
+    with pytest.raises(UploadError, match=f"the {kind.upper()}{counted}, more than the 3 a mesh upload may hold: "
                                           "decimate it") as refused, _stage(tmp_path, [(path.name, path)]):
         pass
     assert refused.value.status == 413
     monkeypatch.setattr(uploads, "MAX_MESH_FACES", 12)
     with _stage(tmp_path, [(path.name, path)]) as staged:
         assert staged.format == "mesh"
+
+
+def _fan_vertices(corners: int) -> str:
+    """An OBJ's vertex lines: a centre, then ``corners`` vertices about it, every other one lifted a little."""
+    rim = np.linspace(0, 2 * np.pi, corners, endpoint=False)
+    return "v 0 0 0\n" + "".join(f"v {np.cos(t):.6f} {np.sin(t):.6f} {0.001 * (i % 2)}\n" for i, t in enumerate(rim))
+
+
+@pytest.mark.parametrize("before_border", [0, 1, 2, 3, 5, 700])
+def test_a_mesh_uploads_face_bound_counts_the_triangles_its_polygons_and_tabbed_lines_load_as(
+        tmp_path, monkeypatch, before_border):
+    """trimesh splits a face of N corners into N - 2 triangles and reads "f<TAB>" lines too: the bound had counted
+    "\\nf " lines, so one line of 10 million corners passed it. Here a polygon of 200 corners (198 triangles), whose
+    line the counter's first megabyte ends within (``before_border`` bytes after its newline: in the "f", a number,
+    after a space), then 50 triangles on tabbed lines (read so between face lines), then one more, are counted as the
+    loader's 249 triangles."""
+    from api import uploads
+    from api.uploads import UploadError
+
+    polygon = "f " + " ".join(str(i) for i in range(2, 202)) + "\n"
+    tabbed = "".join(f"f\t1\t{i} {i + 1}\n" for i in range(2, 52)) + "f 1 52 53\n"
+    vertices = _fan_vertices(200)
+    path = tmp_path / "fan.obj"
+    path.write_text(vertices + "#" * ((1 << 20) - before_border - len(vertices) - 1) + "\n" + polygon + tabbed)
+    assert path.read_bytes()[(1 << 20) - before_border - 1:][:3] == b"\nf "  # the border is before_border into it
+    assert len(load_mesh(path).faces) == 198 + 50 + 1
+    monkeypatch.setattr(uploads, "MAX_MESH_FACES", 248)
+    with pytest.raises(UploadError, match="the OBJ's face lines make 249 triangles or more, more than the 248") as \
+            refused, _stage(tmp_path, [(path.name, path)]):
+        pass
+    assert refused.value.status == 413
+    monkeypatch.setattr(uploads, "MAX_MESH_FACES", 249)
+    with _stage(tmp_path, [(path.name, path)]) as staged:
+        assert staged.format == "mesh"
+
+
+def test_a_mesh_loading_as_more_triangles_than_the_bound_is_refused_by_its_load(tmp_path, monkeypatch):
+    """A PLY's header counts its faces, not their corners, and a binary body's lists are not summed at upload: a
+    binary PLY of one polygon of 10 million corners passed the upload's check, for its ingest to render as many
+    triangles. load_mesh refuses a mesh loading as more than MAX_MESH_FACES triangles, naming the count."""
+    rim = np.linspace(0, 2 * np.pi, 200, endpoint=False)
+    vertices = np.concatenate([[[0, 0, 0]], np.stack([np.cos(rim), np.sin(rim), 0.001 * (np.arange(200) % 2)], 1)])
+    path = tmp_path / "fan.ply"
+    path.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 201\nproperty float x\nproperty float y\n"
+                     b"property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
+                     + vertices.astype("<f4").tobytes() + np.uint8(200).tobytes()
+                     + np.arange(1, 201, dtype="<i4").tobytes())
+    assert read_ply_header(path).faces == 1
+    assert len(load_mesh(path).faces) == 198
+    monkeypatch.setattr(mesh_input, "MAX_MESH_FACES", 197)
+    with pytest.raises(MeshError, match="fan.ply: it loads as 198 triangles, more than the 197 a mesh may hold"):
+        load_mesh(path)

@@ -57,6 +57,9 @@ from voxe_core.grid import DEFAULT_BOX, VoxelGrid
 from voxe_core.ply_header import is_numbers, ply_fault
 
 MESH_INPUT_SUFFIXES = (".obj", ".ply")
+MAX_MESH_FACES = 2_000_000
+"""The most triangles a mesh may load as (an N-cornered polygon is N - 2 of them): its ingest shades and renders 120
+views of every one, in time and memory that grow with them (1.3 million faces took 14 minutes)."""
 DEFAULT_ALBEDO = (0.7, 0.7, 0.7)  # meshes without texture or vertex colours
 MESH_SHADING = ("auto", "baked", "none")
 SHADING_LIGHT = (-1.0, -1.0, 2.0)  # towards the key light, canonical frame (normalised where used)
@@ -157,8 +160,8 @@ def load_mesh(
     largest half-extent made ``extent``, or less where the mesh would reach past
     ``VIEW_RADIUS`` (``frame`` 1: see ``MESH_FRAMES``). Raises ``MeshError`` naming the file for a mesh or texture not
     there (or a folder, or an empty file), for a malformed file (``ply_header.ply_fault``, ``_obj_fault``: what in it,
-    where), for unreadable, triangle-less, degenerate or non-finite meshes (vertices or UVs), for a texture without
-    UVs and for an .mtl's Kd that is neither one number nor three.
+    where), for unreadable, triangle-less, degenerate or non-finite meshes (vertices or UVs), for one of more than
+    ``MAX_MESH_FACES`` triangles, for a texture without UVs and for an .mtl's Kd that is neither one number nor three.
     """
     import trimesh
     from PIL import Image
@@ -202,6 +205,9 @@ def load_mesh(
         vertices, faces, uv = _joined_parts(parts)
     if len(faces) == 0 or len(vertices) < 3:
         raise MeshError(f"{path.name}: no triangles in the file")
+    if len(faces) > MAX_MESH_FACES:  # a binary PLY's polygons, say, which the upload's check cannot count cheaply
+        raise MeshError(f"{path.name}: it loads as {len(faces):,} triangles, more than the {MAX_MESH_FACES:,} a mesh "
+                        "may hold: decimate it (Blender's Decimate modifier, MeshLab's quadric edge collapse)")
     if vertices.shape[1] != 3:  # an OBJ's "v x y" lines load so (as (V, 2)); placing them had raised an IndexError
         raise MeshError(f"{path.name}: its vertices read as {vertices.shape[1]} coordinates each, not 3 (x y z)")
     if faces.min() < 0:  # a PLY's load so, as do its indices past the count below (``_obj_fault`` refuses an OBJ's)
