@@ -52,7 +52,7 @@ from voxe_core.data import (DatasetError, colmap_transforms, detect_format, find
                             is_dataset_folder, load_scene, quarter_turn_hint)
 from voxe_core.constants import TEXTURE_SUFFIXES
 from voxe_core.mesh_input import MAX_MESH_FACES, MESH_FRAMES, MESH_INPUT_SUFFIXES
-from voxe_core.ply_header import read_ply_header
+from voxe_core.ply_header import ply_fault, read_ply_header
 from voxe_service import datasets
 from voxe_service.datasets import (DATASET_ARCHIVE, MESH_FOLDER, MESH_FORMAT, MESH_NAMES, MESH_OPTIONS, UPLOAD_ARCHIVE,
                                    ignored, package)
@@ -368,11 +368,12 @@ def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str
     ``up_axis`` options for the ingest, or None when it is not a mesh.
 
     The file rules are checked here: one mesh of at most ``MAX_MESH_FACES`` triangles (an OBJ's face lines', a PLY's
-    header's faces; else a 413), at most one texture image (an OBJ's or a PLY's: the ingest's ``load_mesh`` samples it at the file's texture coordinates, which a PLY
-    with an image must declare) and for an OBJ at most one .mtl. The texture is kept as ``texture.<ext>``, whatever
-    the OBJ's .mtl or the PLY's TextureFile comment call it. The .mtl keeps its file name, which the OBJ's ``mtllib``
-    names: the loader looks it up (or its base name, in any case) inside the mesh's folder only. A dataset folder is
-    no mesh even with a mesh in it (COLMAP's fused.ply, say).
+    header's faces; else a 413), a PLY's header as the loader reads it (``ply_fault``'s header faults; else a 422), at
+    most one texture image (an OBJ's or a PLY's: the ingest's ``load_mesh`` samples it at the file's texture
+    coordinates, which a PLY with an image must declare) and for an OBJ at most one .mtl. The texture is kept as
+    ``texture.<ext>``, whatever the OBJ's .mtl or the PLY's TextureFile comment call it. The .mtl keeps its file name,
+    which the OBJ's ``mtllib`` names: the loader looks it up (or its base name, in any case) inside the mesh's folder
+    only. A dataset folder is no mesh even with a mesh in it (COLMAP's fused.ply, say).
     """
     if is_dataset_folder(root):
         return None
@@ -387,7 +388,9 @@ def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str
     kind = mesh.suffix.lower()[1:].upper()
     images = [p for p in files if p.suffix.lower() in TEXTURE_SUFFIXES]
     unread = [p for p in files if p.suffix.lower() in OTHER_TEXTURE_SUFFIXES]
-    header = read_ply_header(mesh) if kind == "PLY" else None  # (an unread header: the ingest's load names it)
+    if kind == "PLY" and (fault := ply_fault(mesh, read_body=False)):  # (its body's: the ingest's load names them)
+        raise UploadError(f"{mesh.name}: {fault}")
+    header = read_ply_header(mesh) if kind == "PLY" else None
     # A PLY's faces as its header counts them (its polygons' corners are not summed: a binary body's would be read
     # whole; the ingest's load_mesh refuses a mesh loading as more triangles), an OBJ's triangles from its face lines
     faces = (header.faces or 0) if kind == "PLY" else _obj_triangles(mesh, MAX_MESH_FACES)

@@ -3037,3 +3037,16 @@ def test_an_upload_holds_no_database_connection_while_it_is_unpacked_and_stored(
     response = upload_zip(client, zip_folder(dataset, root / "held.zip", prefix="mic_small"))
     assert response.status_code == 201, response.text
     assert least_held == {"unpacking": 0, "storing": 0}
+
+
+def test_a_ply_whose_face_count_is_a_digit_not_ascii_is_a_422_naming_its_line(client, root):
+    """'²' is a digit to str.isdigit but no number to int(): a PLY whose header's face count was one had the
+    upload's check raise a ValueError, a 500."""
+    header = ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+              "element face \u00b2\nproperty list uchar int vertex_indices\nend_header\n")
+    body = (header + "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n").encode()
+    response = client.post("/v1/scenes", files=[("files", ("tri.ply", body))])
+    assert response.status_code == 422, response.text
+    assert response.json()["detail"] == ("tri.ply: its header's line 7, 'element face \u00b2', is not "
+                                         "'element <name> <count>'")
+    assert client.get("/v1/scenes").json()["total"] == 0

@@ -60,7 +60,7 @@ def read_ply_header(path: str | os.PathLike) -> PlyHeader:
                 return PlyHeader(True, any(names <= declared for names in TEXTURE_COORDINATES), texture_file, faces)
             if words[:1] == ["element"] and len(words) > 1:
                 element = words[1]
-                if element == "face" and len(words) > 2 and words[2].isdigit():
+                if element == "face" and len(words) > 2 and words[2].isascii() and words[2].isdigit():
                     faces = int(words[2])
             elif words[:1] == ["property"] and len(words) > 1:
                 declared.add((element, words[-1]))
@@ -69,7 +69,7 @@ def read_ply_header(path: str | os.PathLike) -> PlyHeader:
     return PlyHeader(False, False, texture_file, faces)
 
 
-def ply_fault(path: str | os.PathLike) -> str | None:
+def ply_fault(path: str | os.PathLike, read_body: bool = True) -> str | None:
     """What in the PLY at ``path`` the mesh loader (trimesh) would fail on in words of its own, or misread without a
     word, said for a user (the file not named), or None: a header line not of PLY's forms, and an ASCII body whose
     rows do not hold what the header declares (``_ascii_body_fault``) or a binary one that is text. trimesh had
@@ -77,7 +77,8 @@ def ply_fault(path: str | os.PathLike) -> str | None:
     unpack" (a list property without its two types), "'(' was never closed" (a binary list's length of a float
     type, even a whole one), "string or file could not be read to its end" (a word in a row), "PLY is unexpected
     length!" (a text body under a binary format line, or a binary body not the length its header makes:
-    ``_binary_body_fault``), and had dropped a face row holding fewer indices than its count."""
+    ``_binary_body_fault``), and had dropped a face row holding fewer indices than its count. Without
+    ``read_body``, the header's faults only."""
     elements: list[tuple[str, int, list[list[str]]]] = []  # (name, count, per property its types: a list's two)
     body_format, lines_read = None, 1
     with open(path, "rb") as handle:
@@ -90,7 +91,7 @@ def ply_fault(path: str | os.PathLike) -> str | None:
                     return (f"its format line is {text[:60]!r}, not 'format' and one of {', '.join(BODY_FORMATS)} "
                             "(then the version, 1.0)")
             elif words[:1] == ["element"]:
-                if len(words) != 3 or not words[2].isdigit():
+                if len(words) != 3 or not (words[2].isascii() and words[2].isdigit()):  # "²" is a digit int() refuses
                     return f"its header's line {lines_read}, {text[:60]!r}, is not 'element <name> <count>'"
                 elements.append((words[1], int(words[2]), []))
             elif words[:1] == ["property"]:
@@ -108,6 +109,8 @@ def ply_fault(path: str | os.PathLike) -> str | None:
                             f"{words[2]!r}, not an integer type (uchar, ushort, uint, or a sized one: uint8 ...)")
                 elements[-1][2].append(words[1 + is_list:-1])
             elif words[:1] == ["end_header"]:
+                if not read_body:  # the header's lines only (an upload's check: the body may be GBs)
+                    return None
                 body = handle.read()
                 if body_format == "ascii":
                     return _ascii_body_fault(body, elements, lines_read)
