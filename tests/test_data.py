@@ -744,11 +744,13 @@ def test_confined_paths_stay_inside_the_dataset(tmp_path):
     make_synthetic(root, frames=frames)
     with pytest.raises(DatasetError, match="'file_path' contains a NUL character"):
         load_scene(root)
-    frames[0]["file_path"] = "r_\ud800.png"  # JSON's "\ud800": half a surrogate pair, a UnicodeEncodeError (a 500)
-    make_synthetic(root, frames=frames)
-    for confine_paths in (False, True):
-        with pytest.raises(DatasetError, match=r"frame 0 .*'file_path' holds '\\ud800', a lone surrogate"):
-            load_scene(root, confine_paths=confine_paths)
+    for surrogate in ("\ud800", "\udc80"):  # JSON's "\ud800": half a surrogate pair, a UnicodeEncodeError (a 500);
+        frames[0]["file_path"] = f"r_{surrogate}.png"  # "\udc80" os.fsencode takes (an undecodable byte's escape)
+        make_synthetic(root, frames=frames)
+        for confine_paths in (False, True):
+            with pytest.raises(DatasetError, match=rf"frame 0 .*'file_path' holds {re.escape(repr(surrogate))}, a lone "
+                                                   "surrogate"):
+                load_scene(root, confine_paths=confine_paths)
 
 
 def test_bad_arguments_are_value_errors(tmp_path):

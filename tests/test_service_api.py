@@ -3050,3 +3050,16 @@ def test_a_ply_whose_face_count_is_a_digit_not_ascii_is_a_422_naming_its_line(cl
     assert response.json()["detail"] == ("tri.ply: its header's line 7, 'element face \u00b2', is not "
                                          "'element <name> <count>'")
     assert client.get("/v1/scenes").json()["total"] == 0
+
+
+@pytest.mark.parametrize("surrogate", ["\ud800", "\udc80"])
+def test_a_file_path_holding_a_lone_surrogate_is_a_422_naming_it(client, dataset, root, surrogate):
+    """JSON's "\\udc80" reads as a lone surrogate that os.fsencode lets through (an undecodable byte's escape):
+    the check's "image not found", naming the path, had held it, and the 422's JSON could not encode it (a 500)."""
+    meta = json.loads((dataset / "transforms_train.json").read_text())
+    meta["frames"][0]["file_path"] = f"./train/r_{surrogate}"
+    body = _zip_bytes(_dataset_entries(dataset, json_text=json.dumps(meta)))
+    response = client.post("/v1/scenes", files={"archive": ("surrogate.zip", body, "application/zip")})
+    assert response.status_code == 422, response.text
+    assert f"'file_path' holds {surrogate!r}, a lone surrogate" in response.json()["detail"]
+    assert client.get("/v1/scenes").json()["total"] == 0 and staged(root) == []

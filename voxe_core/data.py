@@ -558,10 +558,12 @@ def _split_indices(fmt: str, split: str, n: int, holdout_every: int | None, wher
 
 
 def _unnameable(file_path: str) -> str | None:
-    """The characters of ``file_path`` the file system cannot encode (None: none): a JSON "\\ud800" reads as a lone
-    surrogate, on which every lookup of the path had raised a UnicodeEncodeError (an upload's check answered 500)."""
+    """The characters of ``file_path`` UTF-8 cannot encode (None: none): a JSON "\\ud800" reads as a lone surrogate,
+    on which every lookup of the path had raised a UnicodeEncodeError (an upload's check answered 500). Strictly:
+    os.fsencode lets U+DC80..U+DCFF through (its surrogateescape, a name's undecodable bytes), and the "not found"
+    that followed, naming the path, could not be encoded in the 422's JSON (a 500 again)."""
     try:
-        os.fsencode(file_path)
+        file_path.encode("utf-8")
     except UnicodeEncodeError as e:
         return e.object[e.start:e.end]
     return None
