@@ -1252,3 +1252,22 @@ def test_a_mesh_loading_as_more_triangles_than_the_bound_is_refused_by_its_load(
     monkeypatch.setattr(mesh_input, "MAX_MESH_FACES", 197)
     with pytest.raises(MeshError, match="fan.ply: it loads as 198 triangles, more than the 197 a mesh may hold"):
         load_mesh(path)
+
+
+def test_small_compact_faces_are_tested_over_their_boxes_not_cut_into_row_spans(monkeypatch):
+    """A row's span costs about what a few of its pixels' tests cost: cut for every face, the horse's 43,730 small
+    faces rendered 13-34 % slower than over their boxes. A fine sphere's faces, a few pixels a row, are not cut;
+    the render is the same either way."""
+    sphere = trimesh.creation.icosphere(subdivisions=5)  # 20,480 faces
+    mesh = SurfaceMesh(np.asarray(sphere.vertices), np.asarray(sphere.faces))
+    cameras = _camera_on_minus_y()
+    rows_spanned = []
+    row_span = mesh_input._row_span
+    monkeypatch.setattr(mesh_input, "_row_span", lambda tri, *rest: rows_spanned.append(len(tri)) or row_span(tri,
+                                                                                                       *rest))
+    rgb, alpha = rasterize(mesh, cameras, 0, 2)
+    covered_samples = int(alpha.sum()) * 4
+    assert sum(rows_spanned) < 0.01 * covered_samples  # (none here; on the original 24,374 rows for 6,616 samples)
+    monkeypatch.setattr(mesh_input, "_SPANNED_MISSES_PER_ROW", -1.0)  # every face cut into its rows' spans
+    spanned_rgb, spanned_alpha = rasterize(mesh, cameras, 0, 2)
+    assert torch.equal(rgb, spanned_rgb) and torch.equal(alpha, spanned_alpha)

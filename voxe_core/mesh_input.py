@@ -75,6 +75,7 @@ _COLOR_EPS = 1e-3  # colours are clamped into (eps, 1 - eps) before the logit
 _MAX_PAIRS = 1 << 22  # (face, pixel) candidates rasterised together
 _INSIDE_TOLERANCE = 1e-9  # a pixel centre is in a face where none of its barycentric coordinates is below minus this
 _MIN_SCREEN_AREA = 1e-12  # twice a face's area on screen (pixels²) below which it is not drawn
+_SPANNED_MISSES_PER_ROW = 3.0  # a face whose box's rows hold more pixels outside it than this is drawn by row spans
 _SLAB_VERTICES = 1 << 20  # grid vertices voxelize reads together
 
 
@@ -881,7 +882,8 @@ def rasterize(mesh: SurfaceMesh, cameras: Cameras, index: int, supersample: int 
     """Unlit render of camera ``index``: (rgb on white (H, W, 3), coverage alpha (H, W)).
 
     A z-buffer over the (face, pixel-centre) pairs of each row of each face's
-    screen box that its span on the row reaches (``_row_span``), with
+    screen box (that its span on the row reaches, ``_row_span``, for a face its
+    box misses by many pixels a row: ``_SPANNED_MISSES_PER_ROW``), with
     perspective-correct barycentrics; ``supersample``² samples per pixel,
     box-filtered, anti-alias the silhouette. Faces reaching behind the
     camera are dropped (meshes sit in front of the orbiting cameras).
@@ -898,8 +900,12 @@ def rasterize(mesh: SurfaceMesh, cameras: Cameras, index: int, supersample: int 
     in_front = (w[mesh.faces] > 1e-6).all(1)
     lo = np.clip(np.ceil(tri.min(1) - 0.5), 0, [width, height]).astype(np.int64)  # first pixel index whose centre is >= min
     hi = np.clip(np.floor(tri.max(1) - 0.5) + 1, 0, [width, height]).astype(np.int64)
-    drawn = in_front & (np.abs(_cross2(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])) > _MIN_SCREEN_AREA)
+    doubled_area = np.abs(_cross2(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
+    drawn = in_front & (doubled_area > _MIN_SCREEN_AREA)
     rows = np.where(drawn & (hi[:, 0] > lo[:, 0]), np.maximum(hi[:, 1] - lo[:, 1], 0), 0)
+    # A row's span costs about as many products as a few pixels tested: where a face's box misses it by more pixels
+    # a row (a thin face's) its rows are cut to their spans, a small or compact face's box is tested whole
+    spanned = (hi[:, 0] - lo[:, 0]) * rows - doubled_area / 2 > _SPANNED_MISSES_PER_ROW * rows
     depth = np.full(width * height, np.inf)
     winner = np.full(width * height, -1, dtype=np.int64)
     bary_of = np.zeros((width * height, 3))
@@ -928,7 +934,9 @@ def rasterize(mesh: SurfaceMesh, cameras: Cameras, index: int, supersample: int 
     for chunk in _chunks(faces_with_rows, rows[faces_with_rows]):  # each row of each face's screen box
         face = np.repeat(chunk, rows[chunk])
         py = lo[face, 1] + _offsets(rows[chunk])
-        first, count = _row_span(tri[face], py + 0.5, lo[face, 0], hi[face, 0])
+        first, count = lo[face, 0], hi[face, 0] - lo[face, 0]
+        if (cut := np.nonzero(spanned[face])[0]).size:
+            first[cut], count[cut] = _row_span(tri[face[cut]], py[cut] + 0.5, first[cut], first[cut] + count[cut])
         segments = np.nonzero(count)[0]
         for segment in _chunks(segments, count[segments]):  # each candidate pixel of those rows
             repeat = partial(np.repeat, repeats=count[segment])
