@@ -325,9 +325,12 @@ _FACE_LINE = re.compile(rb"\nf[ \t]([^\n]*)")  # an OBJ's face line (after its n
 
 def _obj_triangles(path: Path, bound: int) -> int:
     """How many triangles the face lines of the OBJ at ``path`` load as (a polygon of N corners is N - 2, a line at
-    least one), read a megabyte at a time and counted only until past ``bound``. A line still open at a megabyte's
-    end is carried over as its corners counted and its last, maybe unfinished, word (however long the line)."""
+    least one), read a megabyte at a time and counted only until past ``bound``. Lines continued by a backslash are
+    joined first, as the loader joins them (a polygon of one corner a line had counted as one triangle). A line still
+    open at a megabyte's end is carried over as its corners counted and the first byte of its last, maybe unfinished,
+    word (carrying the whole word had made one long word cost time quadratic in its length)."""
     count, carried, open_corners = 0, b"\n", 0  # (a line's start: the file's, or the newline ending the line before)
+    held = b""  # a continuation's backslash (and CR) the megabyte ended after, joined with the next one
 
     def triangles(face_lines: bytes) -> int:
         total = 0
@@ -338,7 +341,10 @@ def _obj_triangles(path: Path, bound: int) -> int:
 
     with open(path, "rb") as handle:
         while count <= bound and (chunk := handle.read(1 << 20)):
-            text = carried + chunk
+            chunk = held + chunk
+            kept = len(chunk) - (2 if chunk.endswith(b"\\\r") else 1 if chunk.endswith(b"\\") else 0)
+            chunk, held = chunk[:kept], chunk[kept:]
+            text = carried + chunk.replace(b"\\\r\n", b"").replace(b"\\\n", b"")
             end = text.rfind(b"\n")
             count += triangles(text[:end])
             if end > 0:
@@ -347,13 +353,13 @@ def _obj_triangles(path: Path, bound: int) -> int:
             if (line := _FACE_LINE.match(carried)) and not carried[-1:].isspace():  # its last word may go on
                 words = line[1].split()
                 open_corners += len(words) - 1
-                carried = b"\nf " + words[-1]
+                carried = b"\nf " + words[-1][:1]
             elif line:
                 open_corners += len(line[1].split())
                 carried = b"\nf "
             elif len(carried) > 2:  # no face line: the rest of it does not count
                 carried = b"\n#"
-    return count + triangles(carried) if count <= bound else count
+    return count + triangles(carried + held) if count <= bound else count
 
 
 OTHER_TEXTURE_SUFFIXES = (".bmp", ".dds", ".exr", ".gif", ".hdr", ".jp2", ".ktx", ".ktx2", ".psd", ".tga", ".tif",

@@ -1236,6 +1236,41 @@ def test_a_mesh_uploads_face_bound_counts_the_triangles_its_polygons_and_tabbed_
         assert staged.format == "mesh"
 
 
+@pytest.mark.parametrize("line_end", ["\n", "\r\n"])
+@pytest.mark.parametrize("before_border", [0, 1, 2, 3, 700])
+def test_a_face_line_continued_by_backslashes_counts_as_the_polygon_it_loads_as(tmp_path, line_end, before_border):
+    """The loader joins lines ending in a backslash: a polygon of 200 corners written one corner a line had counted
+    as one triangle, so a continued line of 10 million corners passed the bound. Here the first megabyte ends
+    ``before_border`` bytes before the first continuation's line end (within its backslash and CR too)."""
+    from api.uploads import _obj_triangles
+
+    head = _fan_vertices(200).replace("\n", line_end) + "f 2"
+    path = tmp_path / "fan.obj"
+    padding = (1 << 20) - before_border - len(head) - len(line_end) - 2
+    corners = "".join(f" \\{line_end}{i}" for i in range(3, 202))
+    path.write_bytes(f"#{'#' * padding}{line_end}{head}{corners}{line_end}".encode())
+    assert len(load_mesh(path).faces) == 198
+    assert _obj_triangles(path, 10**6) == 198
+
+
+def test_a_face_lines_one_long_word_is_counted_in_memory_of_its_chunks_not_its_length(tmp_path):
+    """A face line still open at a megabyte's end had carried its whole last word into the next one, so a word of
+    16 MB was copied and searched again with every megabyte (time quadratic in its length) and held whole."""
+    import tracemalloc
+
+    from api.uploads import _obj_triangles
+
+    path = tmp_path / "long.obj"
+    path.write_bytes(b"v 0 0 0\nf 1 " + b"7" * (16 << 20) + b" 1\n")
+    tracemalloc.start()
+    try:
+        assert _obj_triangles(path, 10**6) == 1
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 6 << 20, peak
+
+
 def test_a_mesh_loading_as_more_triangles_than_the_bound_is_refused_by_its_load(tmp_path, monkeypatch):
     """A PLY's header counts its faces, not their corners, and a binary body's lists are not summed at upload: a
     binary PLY of one polygon of 10 million corners passed the upload's check, for its ingest to render as many
