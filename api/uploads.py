@@ -51,7 +51,7 @@ from PIL import Image
 from voxe_core.data import (DatasetError, colmap_transforms, detect_format, find_image, image_candidates,
                             is_dataset_folder, load_scene, quarter_turn_hint)
 from voxe_core.constants import TEXTURE_SUFFIXES
-from voxe_core.mesh_input import MAX_MESH_FACES, MESH_FRAMES, MESH_INPUT_SUFFIXES
+from voxe_core.mesh_input import DECIMATE, MAX_MESH_FACES, MESH_FRAMES, MESH_INPUT_SUFFIXES
 from voxe_core.ply_header import ply_fault, read_ply_header
 from voxe_service import datasets
 from voxe_service.datasets import (DATASET_ARCHIVE, MESH_FOLDER, MESH_FORMAT, MESH_NAMES, MESH_OPTIONS, UPLOAD_ARCHIVE,
@@ -402,8 +402,8 @@ def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str
     faces = (header.faces or 0) if kind == "PLY" else _obj_triangles(mesh, MAX_MESH_FACES)
     if faces > MAX_MESH_FACES:
         counted = f" declares {faces:,} faces" if kind == "PLY" else f"'s face lines make {faces:,} triangles or more"
-        raise UploadError(f"the {kind}{counted}, more than the {MAX_MESH_FACES:,} a mesh upload may hold: decimate "
-                          "it (Blender's Decimate modifier, MeshLab's quadric edge collapse) and send it again", 413)
+        raise UploadError(f"the {kind}{counted}, more than the {MAX_MESH_FACES:,} a mesh upload may hold: {DECIMATE} "
+                          "and send it again", 413)
     if header and header.complete and not header.declares_texture_coordinates and images + unread:  # dropped
         raise UploadError(f"the PLY comes with {'an image' if len(images + unread) == 1 else 'images'} "
                           f"({names(images + unread)}) but its header declares no "

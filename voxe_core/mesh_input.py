@@ -60,6 +60,8 @@ MESH_INPUT_SUFFIXES = (".obj", ".ply")
 MAX_MESH_FACES = 2_000_000
 """The most triangles a mesh may load as (an N-cornered polygon is N - 2 of them): its ingest shades and renders 120
 views of every one, in time and memory that grow with them (1.3 million faces took 14 minutes)."""
+DECIMATE = "decimate it (Blender's Decimate modifier, MeshLab's quadric edge collapse)"
+"""What to do with a mesh over :data:`MAX_MESH_FACES`, as its upload's and its load's refusals say."""
 DEFAULT_ALBEDO = (0.7, 0.7, 0.7)  # meshes without texture or vertex colours
 MESH_SHADING = ("auto", "baked", "none")
 SHADING_LIGHT = (-1.0, -1.0, 2.0)  # towards the key light, canonical frame (normalised where used)
@@ -208,7 +210,7 @@ def load_mesh(
         raise MeshError(f"{path.name}: no triangles in the file")
     if len(faces) > MAX_MESH_FACES:  # a binary PLY's polygons, say, which the upload's check cannot count cheaply
         raise MeshError(f"{path.name}: it loads as {len(faces):,} triangles, more than the {MAX_MESH_FACES:,} a mesh "
-                        "may hold: decimate it (Blender's Decimate modifier, MeshLab's quadric edge collapse)")
+                        f"may hold: {DECIMATE}")
     if vertices.shape[1] != 3:  # an OBJ's "v x y" lines load so (as (V, 2)); placing them had raised an IndexError
         raise MeshError(f"{path.name}: its vertices read as {vertices.shape[1]} coordinates each, not 3 (x y z)")
     if faces.min() < 0:  # a PLY's load so, as do its indices past the count below (``_obj_fault`` refuses an OBJ's)
