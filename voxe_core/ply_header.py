@@ -50,6 +50,12 @@ def _header_lines(handle: BinaryIO) -> Iterator[str]:
             yield handle.readline(HEADER_LINE_BYTES).decode("utf-8", "replace").strip()
 
 
+def _count(word: str) -> int | None:
+    """``word`` as an element's count, or None: ASCII digits only ("²" is a digit to ``str.isdigit`` that ``int``
+    refuses: an upload's check had raised a ValueError, a 500)."""
+    return int(word) if word.isascii() and word.isdigit() else None
+
+
 def read_ply_header(path: str | os.PathLike) -> PlyHeader:
     """The header of the PLY at ``path`` (ASCII before ``end_header``, whatever the body's format)."""
     declared, element, texture_file, faces = set(), None, None, None
@@ -60,8 +66,8 @@ def read_ply_header(path: str | os.PathLike) -> PlyHeader:
                 return PlyHeader(True, any(names <= declared for names in TEXTURE_COORDINATES), texture_file, faces)
             if words[:1] == ["element"] and len(words) > 1:
                 element = words[1]
-                if element == "face" and len(words) > 2 and words[2].isascii() and words[2].isdigit():
-                    faces = int(words[2])
+                if element == "face" and len(words) > 2 and (count := _count(words[2])) is not None:
+                    faces = count
             elif words[:1] == ["property"] and len(words) > 1:
                 declared.add((element, words[-1]))
             elif "texturefile" in text.lower():
@@ -91,9 +97,9 @@ def ply_fault(path: str | os.PathLike, read_body: bool = True) -> str | None:
                     return (f"its format line is {text[:60]!r}, not 'format' and one of {', '.join(BODY_FORMATS)} "
                             "(then the version, 1.0)")
             elif words[:1] == ["element"]:
-                if len(words) != 3 or not (words[2].isascii() and words[2].isdigit()):  # "²" is a digit int() refuses
+                if len(words) != 3 or (count := _count(words[2])) is None:
                     return f"its header's line {lines_read}, {text[:60]!r}, is not 'element <name> <count>'"
-                elements.append((words[1], int(words[2]), []))
+                elements.append((words[1], count, []))
             elif words[:1] == ["property"]:
                 if not elements:
                     return f"its header's line {lines_read}, {text[:60]!r}, is a property before any element"
