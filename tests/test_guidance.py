@@ -109,6 +109,18 @@ def test_a_full_embedding_cache_still_answers_a_call_mixing_cached_and_new_promp
     guidance._embedding_cache.clear()
 
 
+def test_an_embedding_first_asked_for_under_autocast_is_cached_as_the_model_computes_it(guidance):
+    """An edit under ``autocast_dtype`` asks for the empty prompt's embedding first inside its SDS step's autocast;
+    the cache, keyed on the prompt alone, had kept that bfloat16-computed embedding for every later job of the
+    worker's guidance, autocast or not."""
+    guidance._embedding_cache.clear()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        under_autocast = guidance.encode_prompts(["", "a render of a dog"])
+    guidance._embedding_cache.clear()
+    torch.testing.assert_close(under_autocast, guidance.encode_prompts(["", "a render of a dog"]), rtol=0, atol=0)
+    guidance._embedding_cache.clear()
+
+
 # ----------------------------------------------------------------- SDS
 
 

@@ -54,7 +54,7 @@ import torch
 import torch.nn.functional as F
 
 from voxe_core.constants import DEFAULT_ATTENTION_TIMESTEP, DEFAULT_GUIDANCE_SCALE, SDS_MODEL_ID
-from voxe_core.devices import synchronize
+from voxe_core.devices import full_precision, synchronize
 from voxe_core.guidance import Diagnostics
 from voxe_core.guidance.attention import AttentionStore, capturing
 from voxe_core.guidance.compiled import CompiledEncoder
@@ -294,13 +294,17 @@ class StableDiffusionGuidance:
 
     @torch.no_grad()
     def encode_prompts(self, prompts: list[str]) -> torch.Tensor:
-        """CLIP last hidden states ``(len(prompts), max_length, D)`` in the model dtype (cached per prompt)."""
+        """CLIP last hidden states ``(len(prompts), max_length, D)`` in the model dtype (cached per prompt).
+
+        Computed outside any autocast the caller is in (the SDS step's asks for the empty prompt's): the cache, keyed
+        on the prompt alone, serves every later caller of this guidance."""
         if isinstance(prompts, str):
             prompts = [prompts]
         missing = [p for p in dict.fromkeys(prompts) if p not in self._embedding_cache]
         if missing:
             ids = self._tokenize(missing).to(self.device)
-            hidden = dict(zip(missing, self.text_encoder(ids)[0]))
+            with full_precision(ids):  # autocast off: the text encoder runs in its own dtype
+                hidden = dict(zip(missing, self.text_encoder(ids)[0]))
             found = {p: self._embedding_cache.get(p, hidden.get(p)) for p in prompts}
             if len(self._embedding_cache) + len(missing) > _EMBEDDING_CACHE_SIZE:  # bounded: start afresh
                 self._embedding_cache.clear()
