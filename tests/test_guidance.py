@@ -454,6 +454,22 @@ def test_damaged_weights_are_reported_naming_the_model(tiny_path, tmp_path):
         StableDiffusionGuidance.from_pretrained(str(damaged), local_files_only=True)
 
 
+@pytest.mark.parametrize("config, damage, fault", [
+    ("vae/config.json", lambda config: None, r"vae/config.json is not a JSON object: it holds null"),
+    ("text_encoder/config.json", lambda config: [], r"text_encoder/config.json is not a JSON object: it holds \[\]"),
+    ("text_encoder/config.json", lambda config: {**config, "hidden_act": "nope"},
+     r"text_encoder/config.json names hidden_act 'nope', an activation this transformers \(.*\) does not have"),
+])
+def test_a_component_config_the_libraries_cannot_build_from_is_reported_naming_the_model(tiny_path, tmp_path, config,
+                                                                                        damage, fault):
+    """These had escaped loading as a TypeError or KeyError naming neither the model nor the file."""
+    folder = tmp_path / "damaged_config"
+    shutil.copytree(tiny_path, folder)
+    (folder / config).write_text(json.dumps(damage(json.loads((folder / config).read_text()))))
+    with pytest.raises(ModelNotAvailableError, match=f"'.*damaged_config' are not available.*{fault}"):
+        StableDiffusionGuidance.from_pretrained(str(folder), local_files_only=True)
+
+
 @pytest.mark.parametrize("damaged, content", [("vocab.json", b"{bad"), ("merges.txt", b"garbage"),
                                                ("vocab.json", b'{"a": 0}')])
 def test_unreadable_tokenizer_files_are_reported_naming_the_model(tiny_path, tmp_path, damaged, content):

@@ -14,6 +14,8 @@ DIFFUSERS_LAYOUT = "model_index.json, unet/, vae/, text_encoder/, tokenizer/, sc
 DIFFUSERS_FILES = ("model_index.json", "unet/config.json", "vae/config.json", "text_encoder/config.json",
                    "tokenizer/vocab.json", "tokenizer/merges.txt", "scheduler/scheduler_config.json")
 """The small files loading reads of every diffusers-layout Stable Diffusion: each component's config, the vocabulary."""
+COMPONENT_CONFIGS = tuple(name for name in DIFFUSERS_FILES if "/" in name and name.endswith("config.json"))
+"""The configs each component is built from (checked by :func:`component_config_fault` before loading)."""
 WEIGHTED_COMPONENTS = ("unet", "vae", "text_encoder")
 """The components with weights (``*.safetensors`` or ``*.bin`` inside their folder)."""
 CLIP_FILES = ("config.json", "preprocessor_config.json")
@@ -91,7 +93,7 @@ def no_folder_note(model: str) -> str:
     return f" (nor is there a folder {model}: {os.path.abspath(owner)} holds no {name!r})"
 
 
-def model_file(model: str, filename: str) -> str | None:
+def model_file(model: str, filename: str, revision: str | None = None) -> str | None:
     """Where ``filename`` of ``model`` (a folder, or a hub id in the Hugging Face cache) is on this machine, or None.
 
     Offline and cheap: it looks the file up and reads nothing, so a worker can say
@@ -109,7 +111,7 @@ def model_file(model: str, filename: str) -> str | None:
     from huggingface_hub.errors import HFValidationError
 
     try:
-        path = try_to_load_from_cache(model, filename)
+        path = try_to_load_from_cache(model, filename, revision=revision)
     except HFValidationError:  # not a valid hub id either
         return None
     return path if isinstance(path, str) else None
@@ -166,12 +168,20 @@ def clip_model_present(model: str) -> bool:
 def _transformers_major() -> int:
     """The installed transformers' major version (0 when it is not installed or reads otherwise), read from its
     metadata: importing it takes seconds."""
+    try:
+        return int(_transformers_version().split(".")[0])
+    except ValueError:
+        return 0
+
+
+def _transformers_version() -> str:
+    """The installed transformers' version ("" when it is not installed), from its metadata."""
     from importlib.metadata import PackageNotFoundError, version
 
     try:
-        return int(version("transformers").split(".")[0])
-    except (PackageNotFoundError, ValueError):
-        return 0
+        return version("transformers")
+    except PackageNotFoundError:
+        return ""
 
 
 def loading_errors() -> tuple[type[BaseException], ...]:
@@ -210,6 +220,36 @@ def is_out_of_memory(exc: BaseException) -> bool:
     import torch
 
     return isinstance(exc, (MemoryError, torch.cuda.OutOfMemoryError)) or "DefaultCPUAllocator" in str(exc)
+
+
+def component_config_fault(model: str, revision: str | None = None) -> str | None:
+    """What makes a component config of ``model`` on this machine unloadable, naming the file, or None.
+
+    The libraries build each component from its config unchecked: a ``vae/config.json`` holding ``null``, a
+    ``text_encoder/config.json`` holding a list or a ``hidden_act`` this transformers lacks had escaped loading as a
+    TypeError or KeyError naming no model. Those are caught here, not by widening :func:`loading_errors`, which would
+    report the libraries' own bugs as missing weights. A config that is absent or no JSON at all is left to loading,
+    which reports it (or, for a hub id not cached, downloads it).
+    """
+    for name in COMPONENT_CONFIGS:
+        path = model_file(model, name, revision)
+        if path is None:
+            continue
+        try:
+            with open(path, encoding="utf-8") as file:
+                config = json.load(file)
+        except (OSError, ValueError):
+            continue
+        if not isinstance(config, dict):
+            return f"{name} is not a JSON object: it holds {json.dumps(config)[:60]}"
+        if name == "text_encoder/config.json" and "hidden_act" in config:
+            from transformers.activations import ACT2FN
+
+            activation = config["hidden_act"]
+            if not isinstance(activation, str) or activation not in ACT2FN:
+                return (f"{name} names hidden_act {activation!r}, an activation this transformers "
+                        f"({_transformers_version()}) does not have")
+    return None
 
 
 def load_clip_tokenizer(model: str, **kwargs):
@@ -279,6 +319,9 @@ def load_stable_diffusion(model: str, dtype, local_files_only: bool | None = Non
     if folder is not None and not os.path.isdir(folder):
         raise ModelNotAvailableError(not_available_message(model, FileNotFoundError(f"no folder {folder}")))
     source = model if folder is None else folder
+    fault = component_config_fault(model, revision)
+    if fault is not None:
+        raise ModelNotAvailableError(not_available_message(model, ValueError(fault)))
     notice = download_notice(model, bool(local_files_only)) if on_message is not None else None
     if notice is not None:
         on_message(notice)
