@@ -89,6 +89,22 @@ def test_a_diffusion_model_is_present_only_whole_in_a_folder_or_the_hub_cache(tm
     assert not diffusers_model_present("owner/dangling")
 
 
+def test_a_sharded_diffusion_component_is_present_only_with_every_shard_its_index_names(tmp_path):
+    """Any one weights file had counted: a UNet sharded in two, its second shard not yet arrived, was offered by the
+    workers, and its jobs failed loading it at the edit."""
+    unet_weights = "unet/diffusion_pytorch_model.safetensors"
+    shards = ["diffusion_pytorch_model-00001-of-00002.safetensors", "diffusion_pytorch_model-00002-of-00002.safetensors"]
+    folder = tmp_path / "sharded"
+    for name in [file for file in WHOLE_SD if file != unet_weights] + [f"unet/{shards[0]}"]:
+        (folder / name).parent.mkdir(parents=True, exist_ok=True)
+        (folder / name).write_text("{}")
+    (folder / f"{unet_weights}.index.json").write_text(json.dumps({"metadata": {}, "weight_map": {
+        "conv_in.weight": shards[0], "conv_out.weight": shards[1]}}))
+    assert not diffusers_model_present(str(folder))
+    (folder / "unet" / shards[1]).write_text("{}")
+    assert diffusers_model_present(str(folder))
+
+
 def test_a_clip_model_is_present_only_whole_in_a_folder_or_the_hub_cache(tmp_path, hub_cache, monkeypatch):
     """config.json alone had counted: a download cut short (the weights never arrived) was offered by the workers, and
     an evaluation sweep failed loading it only after all its edits had run."""

@@ -17,7 +17,8 @@ DIFFUSERS_FILES = ("model_index.json", "unet/config.json", "vae/config.json", "t
 COMPONENT_CONFIGS = tuple(name for name in DIFFUSERS_FILES if "/" in name and name.endswith("config.json"))
 """The configs each component is built from (checked by :func:`component_config_fault` before loading)."""
 WEIGHTED_COMPONENTS = ("unet", "vae", "text_encoder")
-"""The components with weights (``*.safetensors`` or ``*.bin`` inside their folder)."""
+"""The components with weights (``*.safetensors`` or ``*.bin`` inside their folder, or all the shards its
+``*.index.json`` names)."""
 CLIP_FILES = ("config.json", "preprocessor_config.json")
 """The configs loading a CLIP model reads (``voxe_core.evaluate.ClipScorer``): the model's and its image processor's."""
 CLIP_TOKENIZERS = (("vocab.json", "merges.txt"), ("tokenizer.json",))
@@ -124,16 +125,23 @@ def diffusers_model_present(model: str) -> bool:
     weights file of each of :data:`WEIGHTED_COMPONENTS`. ``model_index.json`` alone is
     not enough: a download cut short leaves it in the cache's snapshot without the
     weights that had not arrived, and the model would fail only when a job loads it.
+    Nor is one shard of a sharded component: its index arrives before the shards it names.
     """
     index = model_file(model, "model_index.json")
     if index is None:
         return False
     folder = os.path.dirname(index)  # the local folder, or the cached snapshot of the hub's revision
 
-    def has_weights(component: str) -> bool:
+    def has_weights(component: str) -> bool:  # sharded (an index beside it): every shard of every index
         path = os.path.join(folder, component)
-        return os.path.isdir(path) and any(name.endswith((".safetensors", ".bin")) and
-                                           os.path.isfile(os.path.join(path, name)) for name in os.listdir(path))
+        if not os.path.isdir(path):
+            return False
+        names = os.listdir(path)
+        indexes = [name for name in names if name.endswith(".index.json")]
+        if indexes:
+            return all(shards_present(os.path.join(path, index)) for index in indexes)
+        return any(name.endswith((".safetensors", ".bin")) and os.path.isfile(os.path.join(path, name))
+                   for name in names)
 
     return (all(os.path.isfile(os.path.join(folder, name)) for name in DIFFUSERS_FILES)
             and all(has_weights(component) for component in WEIGHTED_COMPONENTS))
@@ -152,17 +160,23 @@ def clip_model_present(model: str) -> bool:
     def has(name: str) -> bool:
         return os.path.isfile(os.path.join(folder, name))
 
-    def sharded(weights: str) -> bool:  # the index arrives before its shards: each one it lists must be there
-        try:
-            with open(os.path.join(folder, f"{weights}.index.json"), encoding="utf-8") as index:
-                shards = set(json.load(index)["weight_map"].values())
-        except (OSError, ValueError, KeyError, TypeError, AttributeError):
-            return False
-        return bool(shards) and all(isinstance(shard, str) and has(shard) for shard in shards)
-
     tokenizers = CLIP_TOKENIZERS if _transformers_major() >= 5 else CLIP_TOKENIZERS[:1]
     return (all(map(has, CLIP_FILES)) and any(all(map(has, files)) for files in tokenizers)
-            and any(has(weights) or sharded(weights) for weights in CLIP_WEIGHTS))
+            and any(has(weights) or shards_present(os.path.join(folder, f"{weights}.index.json"))
+                    for weights in CLIP_WEIGHTS))
+
+
+def shards_present(index_path: str) -> bool:
+    """Whether the weights index at ``index_path`` (``*.index.json``) reads and every shard its ``weight_map`` names is
+    beside it: the index arrives before its shards, so it alone does not make the weights whole."""
+    try:
+        with open(index_path, encoding="utf-8") as index:
+            shards = set(json.load(index)["weight_map"].values())
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return False
+    folder = os.path.dirname(index_path)
+    return bool(shards) and all(isinstance(shard, str) and os.path.isfile(os.path.join(folder, shard))
+                                for shard in shards)
 
 
 def _transformers_major() -> int:
