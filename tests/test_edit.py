@@ -58,8 +58,8 @@ def small_sphere(make_sphere_grid) -> VoxelGrid:
 class FakeGuidance:
     """Implements the Guidance protocol; records prompts per SDS call. Its loss darkens the render."""
 
-    resolution = 32
     num_train_timesteps = 1000
+    dtype = torch.float32
 
     def __init__(self):
         self.prompts: list[str] = []  # embedding index -> prompt
@@ -72,9 +72,6 @@ class FakeGuidance:
                 self.prompts.append(p)
             out.append(torch.full((4, 8), float(self.prompts.index(p))))
         return torch.stack(out)
-
-    def unconditional_embedding(self):
-        return self.encode_prompts([""])
 
     def sds_loss(self, images, text_embeddings, timesteps, guidance_scale=100.0, generator=None):
         self.calls.append({

@@ -1321,6 +1321,16 @@ def test_a_guidance_with_only_the_protocols_members_edits_and_refines(tiny_guida
     assert result.mask.shape == (10, 10, 10)
 
 
+def test_a_float16_guidance_seen_through_the_protocol_alone_is_refused_cpu_autocast(tiny_sd_path, make_sphere_grid):
+    """The edit read ``dtype`` through getattr, outside the protocol: a float16 model implementing exactly the protocol
+    passed the check and failed its first step in GroupNorm with torch's "mixed dtype (CPU)"."""
+    half = StableDiffusionGuidance.from_pretrained(str(tiny_sd_path), device="cpu", dtype=torch.float16,
+                                                   local_files_only=True)
+    with pytest.raises(ValueError, match=r"^autocast on the CPU runs under bfloat16, where a float16 model fails"):
+        edit(make_sphere_grid(10), "a dog", ProtocolOnly(half),
+             EditConfig(iterations=1, render_size=16, autocast_dtype="bf16"))
+
+
 def test_refine_end_to_end_with_tiny_model(tiny_guidance, make_sphere_grid):
     initial = make_sphere_grid(12)
     edited = initial.clone_grid()

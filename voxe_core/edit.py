@@ -450,7 +450,7 @@ def edit(
         raise ValueError(f"the edit runs on {device} but its guidance model is on {guidance_device}; "
                          "load the guidance on the same device")
     # (torch's "mixed dtype (CPU): expect parameter to have scalar type of Float" from GroupNorm, at the first step)
-    if config.autocast_dtype is not None and device.type == "cpu" and getattr(guidance, "dtype", None) == torch.float16:
+    if config.autocast_dtype is not None and device.type == "cpu" and guidance.dtype == torch.float16:
         raise ValueError("autocast on the CPU runs under bfloat16, where a float16 model fails (its GroupNorm layers "
                          "get float32 inputs for float16 weights): load the guidance in float32 (from_pretrained's "
                          "default on the CPU) or bfloat16, or leave autocast_dtype None")

@@ -34,22 +34,18 @@ which the caller reads when it reports (one read for all of them, after the step
 class Guidance(Protocol):
     """What the editing and refinement stages need from a text-to-image diffusion model.
 
-    Every member is one the stages call. They also read ``device`` (where to run; default: the grids') and
+    Every member is one the stages call or read. They also read ``device`` (where to run; default: the grids') and
     ``model_id`` (recorded in the edit's checkpoint; a resume with another is refused) when a guidance has them.
     """
-
-    resolution: int
-    """Square image size (pixels) the model works at; renders are resized to it."""
 
     num_train_timesteps: int
     """Length of the model's training noise schedule (1000 for SD)."""
 
+    dtype: torch.dtype
+    """The dtype the model runs in: an edit refuses CPU autocast (bfloat16) for a float16 one, which would fail."""
+
     def encode_prompts(self, prompts: list[str]) -> torch.Tensor:
         """Text embeddings ``(len(prompts), L, D)`` for conditioning."""
-        ...
-
-    def unconditional_embedding(self) -> torch.Tensor:
-        """Embedding ``(1, L, D)`` of the empty prompt (classifier-free guidance)."""
         ...
 
     def sds_loss(
