@@ -1557,15 +1557,42 @@ def test_an_answer_or_error_page_is_read_up_to_its_limit_only(tmp_path):
         return httpx.Response(200 if request.url.path == "/v1/jobs/j1" else 502, content=long_body())
 
     with Client(transport=httpx.MockTransport(answer), retries=0) as client:
-        for call, status, path in ((lambda: client.get_job("j1"), 200, "/v1/jobs/j1"),
-                                   (lambda: list(client.events("j2")), 502, "/v1/jobs/j2/events"),
-                                   (lambda: client.download("j1", "a.bin", tmp_path / "a.bin"), 502,
-                                    "/v1/jobs/j1/artifacts/a.bin")):
+        for call, status, path, said in (
+                (lambda: client.get_job("j1"), 200, "/v1/jobs/j1",
+                 "its answer runs over 8 MiB, the most this client reads of one"),
+                (lambda: list(client.events("j2")), 502, "/v1/jobs/j2/events", "Bad Gateway$"),
+                (lambda: client.download("j1", "a.bin", tmp_path / "a.bin"), 502, "/v1/jobs/j1/artifacts/a.bin",
+                 "Bad Gateway$")):
             pulled.clear()
-            with pytest.raises(ServiceError, match=rf"^GET {path}: HTTP {status}: its answer runs over 8 MiB, the "
-                                                   r"most this client reads of one") as raised:
+            with pytest.raises(ServiceError, match=rf"^GET {path}: HTTP {status}: {said}") as raised:
                 call()
             assert raised.value.status == status and len(pulled) == MAX_ANSWER_BYTES // 2**20 + 1
+
+
+def test_an_error_page_past_the_answer_limit_still_says_its_status(monkeypatch):
+    """The limit's error replaced an error page's status: a 503 with a page of 9 MiB (a proxy's) was no retry, nor a
+    submission's 502. The page is cut at the limit and reads as empty: the status decides, as for one none can
+    decode."""
+    import voxe_client.client as client_module
+    from voxe_client.client import MAX_ANSWER_BYTES
+
+    monkeypatch.setattr(client_module.time, "sleep", lambda _s: None)
+    def page():
+        for _ in range(MAX_ANSWER_BYTES // 2**20 + 1):
+            yield b"<html>busy</html>" + b" " * 2**20
+
+    answers = [httpx.Response(503, headers={"retry-after": "0"}, content=page()), httpx.Response(200, content=JOB),
+               httpx.Response(502, content=page()), httpx.Response(201, content=JOB)]
+    sent = []
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        sent.append((request.method, request.headers.get("idempotency-key")))
+        return answers.pop(0)
+
+    with Client(transport=httpx.MockTransport(answer), retries=1) as client:
+        assert client.get_job("j1") == {"id": "j1", "state": "running"}
+        assert client.create_job("s1", "gold", idempotency_key="k1") == {"id": "j1", "state": "running"}
+    assert sent == [("GET", None)] * 2 + [("POST", "k1")] * 2
 
 
 @functools.cache

@@ -957,13 +957,17 @@ def _resend_wait(response: httpx.Response, attempt: int, keyed: bool) -> float |
 def _read_capped(response: httpx.Response, method: str, path: str) -> httpx.Response:
     """``response`` (to ``method path``, streamed) read whole and closed, its body decoded as it comes
     (:func:`_decoded`), up to :data:`MAX_ANSWER_BYTES` decoded: a ServiceError naming that limit past it, the rest not
-    read."""
+    read; but an error page past it reads as empty, as one none can decode, so its status still says what to do (a
+    503's retry: the limit's error had replaced it)."""
     body = bytearray()
     with closing(response):
         try:
             for piece in _decoded(response, method, path):
                 body += piece
                 if len(body) > MAX_ANSWER_BYTES:
+                    if response.is_error:
+                        body.clear()
+                        break
                     raise ServiceError(f"{method} {path}: HTTP {response.status_code}: its answer runs over "
                                        f"{MAX_ANSWER_BYTES // 2**20} MiB, the most this client reads of one (is it "
                                        "the Vox-E service?)", response.status_code)
