@@ -7,6 +7,7 @@ The calls against a real service are in tests/test_evaluate.py (``voxe sweep`` e
 from __future__ import annotations
 
 import functools
+import itertools
 import json
 import re
 import subprocess
@@ -1818,25 +1819,54 @@ def test_a_download_asks_for_the_artifact_unencoded_and_refuses_an_encoded_answe
     assert peak < 4 * 2**20, f"{peak / 2**20:.1f} MiB taken"
 
 
-def test_a_download_stops_reading_a_body_longer_than_the_listed_size(tmp_path):
+def test_a_download_writes_no_byte_past_the_listed_size_and_keeps_no_part(tmp_path):
     """A body going on past the size the listing gives (a broken proxy's or a hostile service's endless one) had
-    been written to the part file to its end, however long (the disk filled) before the check refused it: reading
-    stops at the first chunk past the size, the check says the mismatch and no part is left."""
-    data = b"listed" * 100
-    chunks = []
+    been written to the part file to its end (the disk filled), then a chunk past it before the check refused it:
+    no byte past the listed size is written, whether the body runs past it (the chunk crossing it is not written,
+    reading stops there) or its Content-Length says it will (nothing read), from byte 0 or resuming a kept part,
+    and no part is left."""
+    import hashlib
 
-    class Endless(httpx.SyncByteStream):
+    data = bytes(range(256)) * 1024  # 256 KiB, written in chunks of 64 KiB: past a file's buffer, on disk at once
+    part = tmp_path / f".a.bin.{hashlib.sha256(data).hexdigest()[:16]}.part"
+    on_disk, chunks = [], []
+
+    class Longer(httpx.SyncByteStream):
+        """The artifact's bytes from ``start`` on, 64 KiB at a time, then more for good; the part file's size is
+        noted as each chunk is asked for and as the client hangs up."""
+
+        def __init__(self, start: int):
+            self.start = start
+
         def __iter__(self):
-            for _ in range(10_000):
-                chunks.append(b"z" * 4096)
-                yield chunks[-1]
+            try:
+                for at in itertools.count(self.start, 2**16):
+                    on_disk.append(part.stat().st_size)
+                    chunks.append(at)
+                    yield (data + b"z" * 2**20)[at:at + 2**16]
+            finally:
+                on_disk.append(part.stat().st_size)
 
-    answer = _serving(data, refuse=lambda request: httpx.Response(200, stream=Endless()))
-    with Client(transport=httpx.MockTransport(answer)) as client:
-        with pytest.raises(ServiceError, match=rf"^a.bin of job j1: downloaded 4096 bytes with sha256 [0-9a-f]{{64}}, "
-                                               rf"the service lists {len(data)} bytes"):
-            client.download("j1", "a.bin", tmp_path / "a.bin")
-    assert len(chunks) == 1 and list(tmp_path.iterdir()) == []
+    def longer(request: httpx.Request) -> httpx.Response:
+        start = int(request.headers.get("range", "bytes=0-")[6:-1])
+        return httpx.Response(206 if start else 200, stream=Longer(start),
+                              headers={"content-range": f"bytes {start}-{len(data) - 1}/{len(data)}"} if start else {})
+
+    def announcing(request: httpx.Request) -> httpx.Response:
+        return httpx.Response(200, headers={"content-length": str(len(data) + 1)}, stream=Longer(0))
+
+    for refuse, kept, runs in ((longer, 0, "its body runs"), (longer, 3 * 2**16, "its body runs"),
+                               (announcing, 0, rf"its Content-Length, {len(data) + 1} bytes from byte 0, runs")):
+        on_disk.clear(), chunks.clear()
+        part.write_bytes(data[:kept])
+        answer = _serving(data, refuse=refuse)
+        with Client(transport=httpx.MockTransport(answer)) as client:
+            with pytest.raises(ServiceError, match=rf"^GET /v1/jobs/j1/artifacts/a.bin: answered 20[06]: {runs} "
+                                                   rf"past the {len(data)} bytes the artifact is listed with; "
+                                                   r"nothing kept$"):
+                client.download("j1", "a.bin", tmp_path / "a.bin")
+        assert max(on_disk, default=0) <= len(data) and list(tmp_path.iterdir()) == []
+        assert chunks == ([] if refuse is announcing else list(range(kept, len(data) + 1, 2**16)))
 
 
 def test_ids_are_one_path_segment_and_names_stay_inside_the_download_folder(tmp_path):

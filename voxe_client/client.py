@@ -568,11 +568,17 @@ class Client:
                             raise ServiceError(f"GET {path}: asked for its bytes from {size} on, answered "
                                                f"{response.status_code} with Content-Range "
                                                f"{response.headers.get('content-range')!r}")
+                        announced = response.headers.get("content-length", "")
+                        if announced.isdigit() and size + int(announced) > expected["size"]:
+                            size = 0
+                            raise _past_listing(out, path, response, expected["size"],
+                                                f"its Content-Length, {announced} bytes from byte {start}, runs")
                         for chunk in response.iter_bytes():  # as received: a break loses none held back
+                            if len(chunk) > expected["size"] - size:  # (written, it had filled the disk, an endless
+                                size = 0                              # body, or gone a chunk past before the check)
+                                raise _past_listing(out, path, response, expected["size"], "its body runs")
                             out.write(chunk)
                             size += len(chunk)
-                            if size > expected["size"]:  # past the listing (an endless body had filled the disk)
-                                break  # the check says the mismatch
                         if size < expected["size"] and _ends_at_close(response):  # (failed, its bytes thrown away)
                             raise httpx.RemoteProtocolError(f"the connection closed at byte {size} of the "
                                                             f"{expected['size']} listed")
@@ -817,6 +823,15 @@ def _range_start(response: httpx.Response, asked: int) -> int | None:
         return asked
     match = CONTENT_RANGE.fullmatch(content_range.strip())
     return None if match is None else int(match.group(1))
+
+
+def _past_listing(part: BinaryIO, path: str, response: httpx.Response, listed: int, runs: str) -> ServiceError:
+    """The error of a download whose ``response`` ``runs`` past the ``listed`` size (a broken proxy's or a hostile
+    service's body: not the listed artifact), its ``part`` file emptied (so the download deletes it): no byte past the
+    listing is written, nor kept."""
+    part.truncate(0)
+    return ServiceError(f"GET {path}: answered {response.status_code}: {runs} past the {listed} bytes the artifact "
+                        "is listed with; nothing kept", response.status_code)
 
 
 def _size_and_sha256(part: BinaryIO) -> tuple[int, str]:
