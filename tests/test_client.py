@@ -1653,16 +1653,17 @@ def test_a_gzip_encoded_event_stream_is_read_event_by_event():
 def test_a_gzip_event_stream_cut_short_after_the_job_ended_ends_it_as_the_service_would():
     """The check that an encoded body is not cut short (its checksum, at its end) failed a job's events whose
     stream, gzipped by a proxy, was cut short after the job's end and its last snapshot: the events were all read, the
-    job ended. Cut short before the job's end, it is still the error."""
+    job ended. One broken (its checksum wrong) before the job's end is still the error."""
     import gzip
 
     from service_helpers import answering
 
     ended = (b'id: 1\nevent: stage_started\ndata: {"stage": "edit"}\n\nid: 2\nevent: succeeded\ndata: {}\n\n'
              b'event: progress\ndata: {"state": "succeeded"}\n\n')
-    for stream, said in ((ended, None), (ended.split(b"id: 2")[0], "its answer's gzip encoding is broken")):
-        with answering(gzip.compress(stream)[:-8], {"content-type": "text/event-stream",
-                                                    "content-encoding": "gzip"}) as url:
+    broken = bytearray(gzip.compress(ended.split(b"id: 2")[0]))
+    broken[-8] ^= 1
+    for body, said in ((gzip.compress(ended)[:-8], None), (bytes(broken), "its answer's gzip encoding is broken")):
+        with answering(body, {"content-type": "text/event-stream", "content-encoding": "gzip"}) as url:
             with Client(url, retries=0) as client:
                 if said is None:
                     assert [event["event"] for event in client.events("j1")] == ["stage_started", "succeeded",
@@ -1670,6 +1671,50 @@ def test_a_gzip_event_stream_cut_short_after_the_job_ended_ends_it_as_the_servic
                 else:
                     with pytest.raises(ServiceError, match=said):
                         list(client.events("j1", reconnect_for=0))
+
+def test_a_gzip_event_stream_cut_short_before_the_job_ended_is_resumed_as_a_dropped_one(monkeypatch):
+    """An event stream gzipped by a proxy and cut short (its connection closed where the body ends at the close,
+    before its gzip stream ended) before the job's end was the error, 'its answer's gzip encoding is broken', where a
+    plain stream's drop is resumed: it is a loss, resumed with Last-Event-ID after the doubling pause, within
+    ``reconnect_for``; cut short every time, it is given up then, as a dropped one."""
+    import gzip
+
+    import voxe_client.client as client_module
+    from voxe_client.client import EventStreamLost
+
+    clock = [0.0]
+    monkeypatch.setattr(client_module.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(client_module.time, "sleep", lambda seconds: clock.__setitem__(0, clock[0] + seconds))
+    head = b'id: 1\nevent: stage_started\ndata: {"stage": "edit"}\n\nevent: progress\ndata: {"state": "running"}\n\n'
+    tail = b'id: 2\nevent: succeeded\ndata: {}\n\nevent: progress\ndata: {"state": "succeeded"}\n\n'
+    asked = []
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        asked.append((clock[0], request.headers.get("last-event-id")))
+        if len(asked) > 100:
+            pytest.fail("still reconnecting")
+        body = gzip.compress(head)[:-8] if len(asked) == 1 else gzip.compress(tail) if ends else \
+            gzip.compress(b"retry: 2000\n\n")[:-8]
+        return httpx.Response(200, headers={"content-type": "text/event-stream", "content-encoding": "gzip"},
+                              content=iter([body]))
+
+    said = []
+    ends = True
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        events = [(event["event"], event["id"]) for event in client.events("j1", on_reconnect=said.append)]
+    assert events == [("stage_started", "1"), ("progress", None), ("succeeded", "2"), ("progress", None)]
+    assert asked == [(0.0, None), (0.5, "1")]
+    assert said[0].startswith("event stream of job j1 lost (GET /v1/jobs/j1/events: HTTP 200: its answer's gzip "
+                              "encoding is broken (cut short: the body ended before its stream did)); reconnecting")
+
+    asked.clear(), clock.__setitem__(0, 0.0)
+    ends = False
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        with pytest.raises(EventStreamLost, match=r"cut short: the body ended before its stream did\)? \(\d+ "
+                                                  r"attempts over 60 s, reconnecting for up to 60 s\)"):
+            list(client.events("j1", reconnect_for=60))
+    assert {last for _, last in asked[1:]} == {"1"} and clock[0] == 60.0
+
 
 @pytest.mark.parametrize("head, endless", [(b"data: ", b"x" * 2**16),
                                            (b"event: checkpoint\n", b"data: " + b"x" * (2**16 - 7) + b"\n")],

@@ -120,6 +120,15 @@ class UndecodableAnswer(ServiceError):
     """An answer whose Content-Encoding this client cannot undo: one it does not read, or one broken or cut short."""
 
 
+class EncodedAnswerCutShort(UndecodableAnswer):
+    """An encoded answer whose body ended before its encoding's stream did: its connection closed early (where the
+    body ends at the close, or a proxy ended it cleanly), as a dropped one."""
+
+
+class _StreamCutShort(zlib.error):
+    """:func:`_inflated`'s pieces ending before their stream did."""
+
+
 def snapshot_number(value: Any, most: float = math.inf) -> float | None:
     """A number of a job's progress snapshot (``overall_progress``, ``overall_eta_seconds``) from 0 to ``most``, as a
     float; None for anything else a service sent: a str ("50%"), a bool, NaN, one over ``most`` (a progress of 1e9 had
@@ -328,9 +337,10 @@ class Client:
         """The job's live events (``{"event", "id", "data"}``) until it ends, over Server-Sent Events.
 
         A dropped connection, one silent for :data:`STREAM_SILENCE_S` (no keepalive either: dead without a reset), a
-        stream the server ended before the job's end (it was stopping), or a proxy's 502 / 503 / 504 while the API
-        restarts is resumed with ``Last-Event-ID``, so no timeline event is missed or repeated, for up to
-        ``reconnect_for`` seconds from its loss (default :data:`RECONNECT_FOR_S`); ``progress`` snapshots carry no id.
+        stream the server ended before the job's end (it was stopping) or cut short inside its gzip or deflate encoding
+        (:class:`EncodedAnswerCutShort`), or a proxy's 502 / 503 / 504 while the API restarts is resumed with
+        ``Last-Event-ID``, so no timeline event is missed or repeated, for up to ``reconnect_for`` seconds from its
+        loss (default :data:`RECONNECT_FOR_S`); ``progress`` snapshots carry no id.
         ``on_reconnect`` hears a line when the stream is lost and one when it is back (the events had stopped with
         nothing said). A stream never opened is an error at once: a wrong URL is not waited for, nor an answer that
         is no event stream (a proxy's page); once one opened, such an answer is a loss.
@@ -394,6 +404,7 @@ class Client:
                             on_reconnect(f"event stream of job {job_id} back after "
                                          f"{time.monotonic() - lost_since:.0f} s")
                         opened, ended, reconnecting = True, False, False
+                        lost = "the server ended the stream before the job ended"
                         lines = _event_stream_lines(_decoded(response, "GET", path))
                         try:
                             for event in _job_events(parse_sse(alive(lines)), job_id):
@@ -403,12 +414,13 @@ class Client:
                                     progress = event["data"]
                                 ended = ended or _ends_job(event)
                                 yield event
+                        except EncodedAnswerCutShort as exc:  # (a dropped connection: it had been the error)
+                            lost = str(exc)
                         except UndecodableAnswer:
                             if not ended:  # (the job's end heard: a tail cut short or broken loses nothing)
                                 raise
                         if ended:
                             return
-                        lost = "the server ended the stream before the job ended"
             except httpx.TransportError as exc:
                 left()
                 if not opened:
@@ -1021,8 +1033,9 @@ def _decoded(response: httpx.Response, method: str, path: str) -> Iterator[bytes
     try:
         yield from pieces
     except zlib.error as exc:
-        raise UndecodableAnswer(f"{said}: its answer's {' then '.join(reversed(codings))} encoding is broken ({exc})",
-                                response.status_code) from None
+        undecodable = EncodedAnswerCutShort if isinstance(exc, _StreamCutShort) else UndecodableAnswer
+        raise undecodable(f"{said}: its answer's {' then '.join(reversed(codings))} encoding is broken ({exc})",
+                          response.status_code) from None
 
 
 def _inflated(pieces: Iterator[bytes], coding: str) -> Iterator[bytes]:
@@ -1044,7 +1057,7 @@ def _inflated(pieces: Iterator[bytes], coding: str) -> Iterator[bytes]:
             if not piece and len(out) < DECODED_PIECE_BYTES:  # all of it taken in and given out
                 break
     if not inflater.eof:
-        raise zlib.error("cut short: the body ended before its stream did")
+        raise _StreamCutShort("cut short: the body ended before its stream did")
 
 
 def _deflate_wbits(head: bytes) -> int:
