@@ -352,6 +352,47 @@ def test_a_reconnect_window_of_hours_keeps_its_pauses_and_a_quiet_stream_restart
             list(client.events("j1", reconnect_for=60))
 
 
+def test_a_stream_dropped_after_the_same_snapshot_each_time_is_given_up_at_the_window(monkeypatch):
+    """Every line but ``retry:`` restarted the reconnect window, the progress snapshot each stream opens with too: a
+    stream dropped after it each time (a proxy cutting streams short), the job going nowhere, was asked again every
+    0.5 s for good. Only news restarts it: a timeline event after the last one heard, a snapshot that changed (or a
+    keepalive); a job moving on between drops is followed to its end, one not moving is given up."""
+    import voxe_client.client as client_module
+    from voxe_client.client import EventStreamLost
+
+    clock = [0.0]
+    monkeypatch.setattr(client_module.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(client_module.time, "sleep", lambda seconds: clock.__setitem__(0, clock[0] + seconds))
+    asked = []
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        asked.append(request.headers.get("last-event-id"))
+        if len(asked) > 1000:
+            raise AssertionError(f"still reconnecting at {clock[0]} s")
+        clock[0] += 1.0
+        iteration = len(asked) if moving else 0
+        if moving and len(asked) == 200:  # 200 s of drops, longer than the window: the job ends
+            return httpx.Response(200, headers={"content-type": "text/event-stream"},
+                                  content=b'id: 2\nevent: succeeded\ndata: {}\n\n')
+        head = b'id: 1\nevent: stage_started\ndata: {"stage": "edit"}\n\n' if len(asked) == 1 else b""
+        snapshot = json.dumps({"state": "running", "iteration": iteration}).encode()
+        return httpx.Response(200, headers={"content-type": "text/event-stream"}, stream=_Dropping(
+            [b"retry: 2000\n\n" + head + b"event: progress\ndata: " + snapshot + b"\n\n"]))
+
+    moving = False
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        with pytest.raises(EventStreamLost, match=r"lost: connection reset \(\d+ attempts over 6\d s, reconnecting for "
+                                                  r"up to 60 s\)"):
+            list(client.events("j1", reconnect_for=60))
+    assert set(asked[1:]) == {"1"} and clock[0] < 70
+
+    asked.clear(), clock.__setitem__(0, 0.0)
+    moving = True
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        events = list(client.events("j1", reconnect_for=60))
+    assert len(asked) == 200 and events[-1]["event"] == "succeeded" and events[-2]["data"]["iteration"] == 199
+
+
 def test_wait_with_a_timeout_gives_up_then_naming_the_job_and_its_last_state(monkeypatch):
     """``wait()`` had no overall deadline: a job stuck queued or running (its stream alive on keepalives, or lost
     and reconnecting) held the caller for good. With ``timeout`` it raises JobWaitTimeout once that has passed,

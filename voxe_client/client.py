@@ -366,15 +366,19 @@ class Client:
                 raise JobWaitTimeout(job_id, timeout, progress)
             return remaining
 
-        def alive(lines: Iterator[str]) -> Iterator[str]:
-            """The stream's lines, an event's or a keepalive a sign of life that restarts the reconnect window (reset
-            on events only, a quiet stream's drop had given up at once, its quiet time counted as the outage); not
-            the ``retry:`` every stream opens with, or a server opening and dropping streams is waited on for good."""
+        def restart_window() -> None:
             nonlocal lost_since, attempts
+            lost_since, attempts = None, 0
+
+        def alive(lines: Iterator[str]) -> Iterator[str]:
+            """The stream's lines, each a check of ``timeout``, a keepalive a sign of life that restarts the reconnect
+            window (reset on events only, a quiet stream's drop had given up at once, its quiet time counted as the
+            outage); not the ``retry:`` every stream opens with, or a server opening and dropping streams is waited on
+            for good."""
             for line in lines:
                 left()
-                if line and not line.startswith("retry:"):
-                    lost_since, attempts = None, 0
+                if line.startswith(":"):
+                    restart_window()
                 yield line
 
         while True:
@@ -408,6 +412,8 @@ class Client:
                         lines = _event_stream_lines(_decoded(response, "GET", path))
                         try:
                             for event in _job_events(parse_sse(alive(lines)), job_id):
+                                if _is_news(event, last_event_id, progress):
+                                    restart_window()
                                 if event["id"] is not None:
                                     last_event_id = int(event["id"])
                                 if event["event"] == "progress":
@@ -1136,6 +1142,16 @@ def _ends_job(event: dict) -> bool:
     job (a stream resumed after the terminal event), or the job's deletion (``error``)."""
     return (event["event"] in (*TERMINAL_STATES, "error")
             or event["event"] == "progress" and event["data"].get("state") in TERMINAL_STATES)
+
+
+def _is_news(event: dict, last_event_id: int | None, progress: dict | None) -> bool:
+    """Whether ``event`` is news of the job, a sign of life that restarts a stream's reconnect window: a timeline event
+    after ``last_event_id``, or a progress snapshot other than ``progress``, the last one heard. Not the snapshot every
+    stream opens with, unchanged: a stream that brought it, then dropped, each time (a proxy cutting streams short) had
+    restarted the window at each reconnect, asked again every 0.5 s for good."""
+    if event["id"] is not None:
+        return last_event_id is None or int(event["id"]) > last_event_id
+    return event["event"] != "progress" or event["data"] != progress
 
 
 def _is_event_stream(response: httpx.Response) -> bool:
