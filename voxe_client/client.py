@@ -122,7 +122,7 @@ class UndecodableAnswer(ServiceError):
 
 class EncodedAnswerCutShort(UndecodableAnswer):
     """An encoded answer whose body ended before its encoding's stream did: its connection closed early (where the
-    body ends at the close, or a proxy ended it cleanly), as a dropped one."""
+    body ends at the close, or a proxy ended it cleanly), sent again or resumed as a dropped one."""
 
 
 class _StreamCutShort(zlib.error):
@@ -260,7 +260,8 @@ class Client:
         Each sending builds the request anew, which reads an upload's files again from their start (httpx rewinds
         them): a retried upload sends the same bytes, which the service's Idempotency-Key check compares."""
         read = method in SAFE_METHODS
-        lost = LOST_ANSWERS if resendable else DROPPED_CONNECTIONS if read and resend_dropped else ()
+        dropped = LOST_ANSWERS if resendable else DROPPED_CONNECTIONS if read and resend_dropped else None
+        lost = () if dropped is None else (*dropped, EncodedAnswerCutShort)  # (a body its close cut: a drop too)
         for attempt in itertools.count():
             try:
                 response = self._http.send(self._http.build_request(method, path, **kwargs), stream=True)
