@@ -800,8 +800,8 @@ def test_the_longest_timeout_taken_is_one_a_real_connection_takes():
 def test_a_retry_after_given_as_an_http_date_is_waited_out_counted_from_the_servers_clock(monkeypatch):
     """``Retry-After`` may be an HTTP-date (RFC 9110 §10.2.3): it had been ignored, a read or a keyed submission
     answered so failing at once. The wait is the date less the answer's ``Date`` (the server's clock), else less
-    now; a date past is no wait, one further off than MAX_RETRY_WAIT_S the error at once, and one unreadable is no
-    Retry-After."""
+    now; a date past is no wait, one further off than MAX_RETRY_WAIT_S the error at once, and one unreadable (as
+    RFC 9110's digits or a date: Python's float() had taken "1_0", "1e1" and "+5") is no Retry-After."""
     from datetime import datetime, timedelta, timezone
     from email.utils import format_datetime
 
@@ -831,10 +831,11 @@ def test_a_retry_after_given_as_an_http_date_is_waited_out_counted_from_the_serv
         with pytest.raises(ServiceError, match=r"HTTP 503: busy \(the service asks to send it again in 3[56]\d\d s"):
             client.create_job("s1", "gold")
         assert answers == [(201, {})] and len(waits) == 2
-        answers[:] = [(503, {"retry-after": "soon"}), (200, {})]
-        with pytest.raises(ServiceError, match="HTTP 503: busy"):
-            client.get_job("j1")
-        assert answers == [(200, {})]
+        for unreadable in ("soon", "1_0", "1e1", "+5", "0x10", "5, 10"):  # (float() had read the middle four)
+            answers[:] = [(503, {"retry-after": unreadable}), (200, {})]
+            with pytest.raises(ServiceError, match="HTTP 503: busy"):
+                client.get_job("j1")
+            assert answers == [(200, {})]
 
 
 def test_a_submission_is_sent_again_a_bounded_number_of_times_and_only_while_its_answer_is_lost(monkeypatch):

@@ -921,6 +921,11 @@ def _header_bytes(key: str) -> bytes:
     return key.encode()
 
 
+DELAY_SECONDS = re.compile(r"[0-9]+(\.[0-9]+)?")
+"""A ``Retry-After`` in seconds: RFC 9110's digits, a fraction taken too (Python's float() had also read "1_0", "1e1"
+and "+5", which none sends as seconds, as a wait)."""
+
+
 def _retry_after(response: httpx.Response) -> float | None:
     """The seconds its ``Retry-After`` asks to wait before sending the request again (uncapped: one asking more
     than :data:`MAX_RETRY_WAIT_S` is refused, not cut short): a number of seconds, or an HTTP-date (RFC 9110
@@ -930,9 +935,9 @@ def _retry_after(response: httpx.Response) -> float | None:
     value = response.headers.get("retry-after")
     if value is None:
         return None
-    try:
+    if DELAY_SECONDS.fullmatch(value.strip()):
         seconds = float(value)
-    except ValueError:
+    else:
         when = _http_date(value)
         if when is None:
             return None
