@@ -368,14 +368,15 @@ class Client:
             return remaining
 
         def restart_window() -> None:
+            """A sign of life: a later loss is counted, and paused after, from its own start."""
             nonlocal lost_since, attempts
             lost_since, attempts = None, 0
 
         def alive(lines: Iterator[str]) -> Iterator[str]:
-            """The stream's lines, each a check of ``timeout``, a keepalive a sign of life that restarts the reconnect
-            window (reset on events only, a quiet stream's drop had given up at once, its quiet time counted as the
-            outage); not the ``retry:`` every stream opens with, or a server opening and dropping streams is waited on
-            for good."""
+            """The stream's lines, each a check of ``timeout``; a keepalive is a sign of life, as news is
+            (:func:`_is_news`: reset on events only, a quiet stream's drop had given up at once, its quiet time counted
+            as the outage); not the ``retry:`` every stream opens with, or a server opening and dropping streams is
+            waited on for good."""
             for line in lines:
                 left()
                 if line.startswith(":"):
@@ -593,8 +594,10 @@ class Client:
                             raise _past_listing(out, path, response, expected["size"],
                                                 f"its Content-Length, {announced} bytes from byte {start}, runs")
                         for chunk in response.iter_bytes():  # as received: a break loses none held back
-                            if len(chunk) > expected["size"] - size:  # (written, it had filled the disk, an endless
-                                size = 0                              # body, or gone a chunk past before the check)
+                            # past the listing, not written (an endless body had filled the disk; then one chunk
+                            # had gone past the size before the check)
+                            if len(chunk) > expected["size"] - size:
+                                size = 0
                                 raise _past_listing(out, path, response, expected["size"], "its body runs")
                             out.write(chunk)
                             size += len(chunk)
