@@ -734,15 +734,18 @@ def check_the_edit_changed_the_object(client: httpx.Client, job: dict, grids: di
 
 
 @contextlib.contextmanager
-def answering(body: bytes, headers: dict[str, str] | None = None):
+def answering(body: bytes, headers: dict[str, str] | None = None, ends_at_close: bool = False):
     """A loopback HTTP server answering every GET 200 with ``body``, JSON unless ``headers`` (sent with it) say
-    otherwise: its base URL, for a client (``voxe_client``, the ``voxe`` commands) tested over a real socket."""
+    otherwise: its base URL, for a client (``voxe_client``, the ``voxe`` commands) tested over a real socket. With
+    ``ends_at_close`` it sends no Content-Length, so the body ends at the connection's close (HTTP/1.0's own)."""
     headers = {"content-type": "application/json", **(headers or {})}
+    if not ends_at_close:
+        headers["content-length"] = str(len(body))
 
     class Handler(BaseHTTPRequestHandler):
         def do_GET(self):
             self.send_response(200)
-            for name, value in {**headers, "content-length": str(len(body))}.items():
+            for name, value in headers.items():
                 self.send_header(name, value)
             self.end_headers()
             self.wfile.write(body)

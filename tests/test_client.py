@@ -1738,7 +1738,7 @@ def test_a_gzip_event_stream_cut_short_before_the_job_ended_is_resumed_as_a_drop
         body = gzip.compress(head)[:-8] if len(asked) == 1 else gzip.compress(tail) if ends else \
             gzip.compress(b"retry: 2000\n\n")[:-8]
         return httpx.Response(200, headers={"content-type": "text/event-stream", "content-encoding": "gzip"},
-                              content=iter([body]))
+                              stream=httpx.ByteStream(body))  # (no Content-Length or chunks: it ends at the close)
 
     said = []
     ends = True
@@ -1813,16 +1813,20 @@ def test_an_answer_is_read_through_the_encodings_the_client_asks_for_and_no_othe
     assert asked == ["gzip, deflate"] * 3
 
 
-def _encoded_answers(answers: list[tuple[int, dict, bytes]]):
+def _encoded_answers(answers: list[tuple[int, dict, bytes]], ends_at_close: bool = False):
     """A MockTransport answer giving ``answers`` (status, headers, body) in turn, each body streamed a byte at a time
-    (read raw, as off a socket, not decoded by httpx already); the requests it got go to its ``asked``."""
+    (read raw, as off a socket, not decoded by httpx already), chunked, or with ``ends_at_close`` ending at the
+    connection's close (no Content-Length or chunks); the requests it got go to its ``asked``."""
     asked = []
 
     def answer(request: httpx.Request) -> httpx.Response:
         asked.append(request)
         status, headers, body = answers.pop(0)
-        return httpx.Response(status, headers={"content-type": "application/json", **headers},
-                              content=iter([body[at:at + 1] for at in range(len(body))]))
+        response = httpx.Response(status, headers={"content-type": "application/json", **headers},
+                                  content=iter([body[at:at + 1] for at in range(len(body))]))
+        if ends_at_close:
+            del response.headers["transfer-encoding"]
+        return response
 
     answer.asked = asked
     return answer
@@ -1879,7 +1883,7 @@ def test_an_encoded_answer_cut_short_is_sent_again_as_a_dropped_one_where_that_i
     cut, whole = gzip.compress(JOB)[:-8], gzip.compress(JOB)
     answer = _encoded_answers([(200, {"content-encoding": "gzip"}, cut), (200, {"content-encoding": "gzip"}, whole),
                                (201, {"content-encoding": "gzip"}, cut), (201, {"content-encoding": "gzip"}, whole),
-                               (200, {"content-encoding": "gzip"}, cut)])
+                               (200, {"content-encoding": "gzip"}, cut)], ends_at_close=True)
     with Client(transport=httpx.MockTransport(answer)) as client:
         assert client.get_job("j1") == {"id": "j1", "state": "running"}
         assert client.create_job("s1", "gold", idempotency_key="k1") == {"id": "j1", "state": "running"}
@@ -1888,6 +1892,28 @@ def test_an_encoded_answer_cut_short_is_sent_again_as_a_dropped_one_where_that_i
             client.cancel_job("j1")
     assert [(request.method, request.headers.get("idempotency-key")) for request in answer.asked] == [
         ("GET", None), ("GET", None), ("POST", "k1"), ("POST", "k1"), ("POST", None)]
+
+
+def test_an_encoded_answer_that_came_whole_but_short_is_broken_not_sent_again(monkeypatch):
+    """A gzip answer whose bytes all came, as its Content-Length or chunks said, but whose gzip stream is short, was
+    called cut short and sent again as a dropped connection (4 GETs, 4 s): its sender broke it, and it comes as broken
+    again. It is an UndecodableAnswer at once; only a body ending at its connection's close is a drop."""
+    import gzip
+
+    import voxe_client.client as client_module
+    from service_helpers import answering
+    from voxe_client.client import EncodedAnswerCutShort, UndecodableAnswer
+
+    waits = []
+    monkeypatch.setattr(client_module.time, "sleep", waits.append)
+    short = gzip.compress(JOB)[:-8]
+    chunked = _encoded_answers([(200, {"content-encoding": "gzip"}, short)])
+    with answering(short, {"content-encoding": "gzip"}) as url:  # (with its Content-Length)
+        for client in (Client(url), Client(transport=httpx.MockTransport(chunked))):
+            with client, pytest.raises(UndecodableAnswer, match=r"gzip encoding is broken \(cut short") as raised:
+                client.get_job("j1")
+            assert not isinstance(raised.value, EncodedAnswerCutShort)
+    assert waits == [] and len(chunked.asked) == 1
 
 
 def test_an_error_page_none_can_decode_still_says_its_status():

@@ -121,8 +121,9 @@ class UndecodableAnswer(ServiceError):
 
 
 class EncodedAnswerCutShort(UndecodableAnswer):
-    """An encoded answer whose body ended before its encoding's stream did: its connection closed early (where the
-    body ends at the close, or a proxy ended it cleanly), sent again or resumed as a dropped one."""
+    """An encoded answer whose body ended before its encoding's stream did where its body ends at its connection's
+    close (:func:`_ends_at_close`): a dropped connection, sent again or resumed as one. A body its Content-Length or
+    chunks say came whole is broken by its sender, an UndecodableAnswer: sent again, it would come as broken."""
 
 
 class _StreamCutShort(zlib.error):
@@ -1047,8 +1048,9 @@ def _decoded(response: httpx.Response, method: str, path: str) -> Iterator[bytes
         pieces = _inflated(pieces, coding)
     try:
         yield from pieces
-    except zlib.error as exc:
-        undecodable = EncodedAnswerCutShort if isinstance(exc, _StreamCutShort) else UndecodableAnswer
+    except zlib.error as exc:  # cut short where a dropped connection ends the body as a whole one (else it came whole)
+        cut = isinstance(exc, _StreamCutShort) and _ends_at_close(response)
+        undecodable = EncodedAnswerCutShort if cut else UndecodableAnswer
         raise undecodable(f"{said}: its answer's {' then '.join(reversed(codings))} encoding is broken ({exc})",
                           response.status_code) from None
 
