@@ -1894,6 +1894,28 @@ def test_an_encoded_answer_cut_short_is_sent_again_as_a_dropped_one_where_that_i
         ("GET", None), ("GET", None), ("POST", "k1"), ("POST", "k1"), ("POST", None)]
 
 
+def test_an_encoded_answer_cut_short_every_time_is_the_service_failing_as_a_dropped_one(monkeypatch, capsys):
+    """A read whose gzip answer its connection's close cut short each time is sent again as a dropped one, but then
+    ended as a refusal (``service_failed`` false, status 200), where a drop ends as the service failing: ``voxe``
+    exited 2 (bad input) not 3, and ``voxe sweep --wait`` gave up at its first such poll instead of polling on."""
+    import gzip
+
+    import voxe_client.client as client_module
+    from service_helpers import answering
+    from voxe_client.client import EncodedAnswerCutShort
+    from voxe_core.cli import main
+    from voxe_core.cli.service import _poll_failed
+
+    monkeypatch.setattr(client_module.time, "sleep", lambda _s: None)
+    with answering(gzip.compress(JOB)[:-8], {"content-encoding": "gzip"}, ends_at_close=True) as url:
+        with Client(url) as client, pytest.raises(EncodedAnswerCutShort, match="cut short") as raised:
+            client.get_job("j1")
+        assert raised.value.service_failed
+        assert isinstance(_poll_failed(raised.value, None), float)  # (polling on, not raised)
+        assert main(["status", "j1", "--api", url]) == 3
+    assert "gzip encoding is broken (cut short" in capsys.readouterr().err
+
+
 def test_an_encoded_answer_that_came_whole_but_short_is_broken_not_sent_again(monkeypatch):
     """A gzip answer whose bytes all came, as its Content-Length or chunks said, but whose gzip stream is short, was
     called cut short and sent again as a dropped connection (4 GETs, 4 s): its sender broke it, and it comes as broken

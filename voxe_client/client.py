@@ -120,10 +120,12 @@ class UndecodableAnswer(ServiceError):
     """An answer whose Content-Encoding this client cannot undo: one it does not read, or one broken or cut short."""
 
 
-class EncodedAnswerCutShort(UndecodableAnswer):
+class EncodedAnswerCutShort(UndecodableAnswer, ServiceUnreachable):
     """An encoded answer whose body ended before its encoding's stream did where its body ends at its connection's
-    close (:func:`_ends_at_close`): a dropped connection, sent again or resumed as one. A body its Content-Length or
-    chunks say came whole is broken by its sender, an UndecodableAnswer: sent again, it would come as broken."""
+    close (:func:`_ends_at_close`): a dropped connection, sent again or resumed as one, and the service failing
+    (``service_failed``) once it is not, as a drop is (it had read as a refusal: ``voxe`` exit 2, a sweep's wait given
+    up). A body its Content-Length or chunks say came whole is broken by its sender, an UndecodableAnswer: sent
+    again, it would come as broken."""
 
 
 class _StreamCutShort(zlib.error):
