@@ -1695,10 +1695,12 @@ def test_a_gzip_encoded_event_stream_is_read_event_by_event():
 def test_a_gzip_event_stream_cut_short_after_the_job_ended_ends_it_as_the_service_would():
     """The check that an encoded body is not cut short (its checksum, at its end) failed a job's events whose
     stream, gzipped by a proxy, was cut short after the job's end and its last snapshot: the events were all read, the
-    job ended. One broken (its checksum wrong) before the job's end is still the error."""
+    job ended. One broken (its checksum wrong) before the job's end is still the error, an UndecodableAnswer, not a
+    loss resumed (EventStreamLost once ``reconnect_for`` ran out)."""
     import gzip
 
     from service_helpers import answering
+    from voxe_client.client import EventStreamLost, UndecodableAnswer
 
     ended = (b'id: 1\nevent: stage_started\ndata: {"stage": "edit"}\n\nid: 2\nevent: succeeded\ndata: {}\n\n'
              b'event: progress\ndata: {"state": "succeeded"}\n\n')
@@ -1711,8 +1713,9 @@ def test_a_gzip_event_stream_cut_short_after_the_job_ended_ends_it_as_the_servic
                     assert [event["event"] for event in client.events("j1")] == ["stage_started", "succeeded",
                                                                                  "progress"]
                 else:
-                    with pytest.raises(ServiceError, match=said):
+                    with pytest.raises(UndecodableAnswer, match=said) as raised:
                         list(client.events("j1", reconnect_for=0))
+                    assert not isinstance(raised.value, EventStreamLost)
 
 def test_a_gzip_event_stream_cut_short_before_the_job_ended_is_resumed_as_a_dropped_one(monkeypatch):
     """An event stream gzipped by a proxy and cut short (its connection closed where the body ends at the close,
