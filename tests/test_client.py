@@ -393,6 +393,38 @@ def test_a_stream_dropped_after_the_same_snapshot_each_time_is_given_up_at_the_w
     assert len(asked) == 200 and events[-1]["event"] == "succeeded" and events[-2]["data"]["iteration"] == 199
 
 
+def test_a_stream_back_says_how_long_that_loss_lasted_not_the_reconnect_window(monkeypatch):
+    """The reconnect window runs from the first loss since news, over reconnects that bring none; "back after N s"
+    was counted from there too, so a stream up 10 s between drops said "back after 12 s", then 24, 38, 52 s, for
+    outages of 1 to 5 s. It counts from the loss it ends; the window (its "up to N s" and the error) is unchanged."""
+    import voxe_client.client as client_module
+    from voxe_client.client import EventStreamLost
+
+    clock = [0.0]
+    monkeypatch.setattr(client_module.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(client_module.time, "sleep", lambda seconds: clock.__setitem__(0, clock[0] + seconds))
+    asked = []
+
+    class UpTenSeconds(_Dropping):
+        def __iter__(self):
+            yield from self.chunks
+            clock[0] += 10
+            raise httpx.ReadError("connection reset")
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        asked.append(request)
+        head = b'id: 1\nevent: stage_started\ndata: {}\n\n' if len(asked) == 1 else b""
+        return httpx.Response(200, headers={"content-type": "text/event-stream"},
+                              stream=UpTenSeconds([head + b'event: progress\ndata: {"state": "queued"}\n\n']))
+
+    said = []
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        with pytest.raises(EventStreamLost, match=r"\(6 attempts over 62 s, reconnecting for up to 60 s\)"):
+            list(client.events("j1", reconnect_for=60, on_reconnect=said.append))
+    assert [re.search(r"back after (\d+) s$", line)[1] for line in said if "back" in line] == ["0", "1", "2", "4", "5"]
+    assert [re.search(r"up to (\d+) s", line)[1] for line in said if "lost" in line] == ["60", "50", "38", "26", "12"]
+
+
 def test_wait_with_a_timeout_gives_up_then_naming_the_job_and_its_last_state(monkeypatch):
     """``wait()`` had no overall deadline: a job stuck queued or running (its stream alive on keepalives, or lost
     and reconnecting) held the caller for good. With ``timeout`` it raises JobWaitTimeout once that has passed,

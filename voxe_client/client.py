@@ -343,11 +343,14 @@ class Client:
         A dropped connection, one silent for :data:`STREAM_SILENCE_S` (no keepalive either: dead without a reset), a
         stream the server ended before the job's end (it was stopping) or cut short inside its gzip or deflate encoding
         (:class:`EncodedAnswerCutShort`), or a proxy's 502 / 503 / 504 while the API restarts is resumed with
-        ``Last-Event-ID``, so no timeline event is missed or repeated, for up to ``reconnect_for`` seconds from its
-        loss (default :data:`RECONNECT_FOR_S`); ``progress`` snapshots carry no id.
-        ``on_reconnect`` hears a line when the stream is lost and one when it is back (the events had stopped with
-        nothing said). A stream never opened is an error at once: a wrong URL is not waited for, nor an answer that
-        is no event stream (a proxy's page); once one opened, such an answer is a loss.
+        ``Last-Event-ID``, so no timeline event is missed or repeated, for up to ``reconnect_for`` seconds (default
+        :data:`RECONNECT_FOR_S`) from the first loss since the stream last brought news or a keepalive
+        (:func:`_is_news`): a reconnect bringing only the snapshot already heard does not restart it (a stream
+        dropped after it each time is given up then), so its error's "N attempts over M s" may span several
+        reconnects; ``progress`` snapshots carry no id.
+        ``on_reconnect`` hears a line when the stream is lost and one when it is back, after how long that loss lasted
+        (the events had stopped with nothing said). A stream never opened is an error at once: a wrong URL is not
+        waited for, nor an answer that is no event stream (a proxy's page); once one opened, such an answer is a loss.
 
         With ``timeout`` (seconds), a job not ended by then is a :class:`JobWaitTimeout` naming it and the state it
         was last heard in. It is checked at each line the stream brings (the service's keepalive comes every 15 s)
@@ -361,6 +364,7 @@ class Client:
                 raise ValueError(f"{limit} must be 0 or more seconds, got {seconds!r}")
         deadline = None if timeout is None else time.monotonic() + timeout
         opened, lost_since, attempts, reconnecting, progress = False, None, 0, False, None
+        down_since = None  # this outage's start, for "back after": lost_since, the window's, may be an earlier one's
 
         def left() -> float:
             """Seconds until ``timeout`` runs out (infinite without one); a JobWaitTimeout once it has."""
@@ -411,7 +415,7 @@ class Client:
                     else:
                         if reconnecting and on_reconnect is not None:
                             on_reconnect(f"event stream of job {job_id} back after "
-                                         f"{time.monotonic() - lost_since:.0f} s")
+                                         f"{time.monotonic() - down_since:.0f} s")
                         opened, ended, reconnecting = True, False, False
                         lost = "the server ended the stream before the job ended"
                         lines = _event_stream_lines(_decoded(response, "GET", path))
@@ -440,6 +444,7 @@ class Client:
             remaining = left()
             now = time.monotonic()
             lost_since = now if lost_since is None else lost_since
+            down_since = down_since if reconnecting else now
             attempts += 1
             if not reconnecting and now - lost_since < reconnect_for and on_reconnect is not None:
                 on_reconnect(f"event stream of job {job_id} lost ({lost}); reconnecting for up to "
