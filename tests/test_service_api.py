@@ -2876,6 +2876,27 @@ def test_fid_input_against_a_single_input_image_is_a_422_at_submission(client, d
     assert two.status_code == 201, two.text
 
 
+def test_an_object_name_whose_source_text_clip_cannot_read_is_a_422_naming_it(client, dataset, root):
+    """The source text "a render of a <object>" is scored by CLIP, which reads 77 tokens: a 100-character object such
+    as "a-a-...-a" (99 tokens) had been accepted (201) and failed in the worker, after the models had loaded."""
+    from sqlalchemy import update
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+
+    scene = make_scene(client, dataset, root)
+    edit = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}).json()
+    with session_scope() as session:
+        session.execute(update(Job).where(Job.id == edit["id"]).values(state="succeeded"))
+    long_object = "-".join("a" * 50)
+    refused = client.post("/v1/evaluations", json={"job_ids": [edit["id"]], "object": long_object})
+    assert refused.status_code == 422, refused.text
+    assert refused.json()["detail"] == (
+        'object: the source text is at least 105 tokens as the model sees it ("a render of a a-a-a-a-a-a-a-a-...'
+        'a-a-a-a-a-a-a-a"); its text encoder reads 77, its start and end tokens included: shorten the object name')
+    assert client.post("/v1/evaluations", json={"job_ids": [edit["id"]], "object": "a" * 100}).status_code == 201
+
+
 def test_an_evaluation_whose_scene_is_deleted_while_it_is_created_is_404(client, dataset, root, monkeypatch):
     """The scene (its reconstructions and jobs with it) deleted after the edit jobs were read: a 404 naming it, as
     a job's submission answers, and nothing recorded (the FID_input check's read of it had raised, a 500)."""

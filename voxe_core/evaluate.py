@@ -50,7 +50,7 @@ from voxe_core.guidance.loading import (
     ModelNotAvailableError, is_out_of_memory, load_clip_tokenizer, loading_errors, local_path, no_folder_note,
     offline_env, tokenizer_fits,
 )
-from voxe_core.guidance.prompts import edit_prompt, tokens_read
+from voxe_core.guidance.prompts import check_text_length, edit_prompt, tokens_read
 from voxe_core.metrics import PSNR_CAP_DB, SSIM_WINDOW, psnr, ssim
 from voxe_core.progress import Callbacks, Progress
 from voxe_core.render import RenderConfig, render_image
@@ -93,6 +93,12 @@ def source_text(object_name: str) -> str:
     if not name:
         raise ValueError("the object name is empty")
     return SOURCE_TEMPLATE.format(object=name)
+
+
+def check_source_text_length(object_name: str) -> None:
+    """ValueError when the source text surely holds more tokens than CLIP's text model reads: a service takes it
+    before the evaluation is queued (the scorer's own tokenizer refuses it only once its models are loaded)."""
+    check_text_length(source_text(object_name), "the source text", "shorten the object name")
 
 
 # --------------------------------------------------------------------------- ring renders
@@ -742,7 +748,7 @@ def format_table(rows: Sequence[dict], extra_columns: Sequence[str] = ()) -> str
 __all__ = [
     "INCEPTION_URL", "PAPER_PROMPTS", "METRICS",
     "ClipScorer", "EditSample", "EvaluateConfig", "Evaluation", "FeatureExtractor", "InceptionFeatures",
-    "ProtocolEdit", "clip_direction", "clip_similarity", "evaluate", "evaluation_steps", "feature_statistics",
+    "ProtocolEdit", "check_source_text_length", "clip_direction", "clip_similarity", "evaluate", "evaluation_steps", "feature_statistics",
     "fid_from_features", "format_table", "frechet_distance", "iter_mask_footprint", "mask_footprint", "mean_by_mode",
     "paper_protocol", "Preservation", "preservation", "render_ring", "source_text", "ViewBatches",
 ]

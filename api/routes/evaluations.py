@@ -35,7 +35,8 @@ _QUOTA = {429: {"description": "the key's quota of queued + running jobs is used
                                              "deleted, or one sent while that first request has not answered yet "
                                              "(Retry-After); or the evaluation was canceled and deleted with its "
                                              "scene before its creation answered"},
-                        422: {"description": "invalid request, an evaluation listed, jobs of different scenes, or an "
+                        422: {"description": "invalid request, an object name whose source text is longer than CLIP "
+                                             "reads, an evaluation listed, jobs of different scenes, or an "
                                              "Idempotency-Key reused with a different body"},
                         **_QUOTA},
              summary="Evaluate finished edit jobs of one scene (CLIP_sim, CLIP_dir, FID, PSNR/SSIM outside the mask; "

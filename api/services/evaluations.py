@@ -16,7 +16,7 @@ from api.auth import Idempotency, sha256_hex
 from api.services.jobs import (
     get_job, new_edit_job, reconstruction_for, record_and_send, request_cancel, scene_deleted, submit, usable_scene,
 )
-from voxe_core.evaluate import paper_protocol
+from voxe_core.evaluate import check_source_text_length, paper_protocol
 from voxe_core.guidance.prompts import check_prompt_length
 from voxe_service.models import (
     CANCELED, EVALUATE, FAILED, QUEUED, RUNNING, SUCCEEDED, TERMINAL_STATES, ApiKey, Job, Reconstruction, Scene, new_id,
@@ -66,6 +66,10 @@ def create_evaluation(*, session: Session, settings: Settings, queue: TaskQueue,
         idem = Idempotency(idempotency_key, sha256_hex(body.model_dump_json(exclude_unset=True)), "evaluations")
         if (replayed := idem.replayed(session, key, Job)) is not None:
             return replayed, True
+    try:
+        check_source_text_length(body.object)
+    except ValueError as exc:  # CLIP would refuse it in the worker, the evaluation accepted and its models loaded
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"object: {exc}") from None
     sources = [get_job(session=session, key=key, job_id=job_id) for job_id in body.job_ids]
     for source in sources:
         if source.mode == EVALUATE:

@@ -296,8 +296,13 @@ def check_prompt_length(user_text: str, view_words: bool = True) -> None:
         ...
         ValueError: the prompt is at least 81 tokens as the model sees it ("a render of a mic very very ve..., overhead view"); its text encoder reads 77, its start and end tokens included: shorten it
     """
-    longest = edit_prompt(user_text, "overhead" if view_words else None)
-    if (tokens := tokens_at_least(longest)) > TEXT_ENCODER_TOKENS:
-        shown = longest if len(longest) <= 60 else f"{longest[:30]}...{longest[-15:]}"
-        raise ValueError(f'the prompt is at least {tokens} tokens as the model sees it ("{shown}"); its text '
-                         f"encoder reads {TEXT_ENCODER_TOKENS}, its start and end tokens included: shorten it")
+    check_text_length(edit_prompt(user_text, "overhead" if view_words else None), "the prompt", "shorten it")
+
+
+def check_text_length(text: str, what: str, remedy: str) -> None:
+    """ValueError naming ``what`` (and ``remedy``) when ``text`` surely holds more tokens than a CLIP text encoder
+    reads (:func:`tokens_at_least`); the encoder would cut it there and read a shorter text."""
+    if (tokens := tokens_at_least(text)) > TEXT_ENCODER_TOKENS:
+        shown = text if len(text) <= 60 else f"{text[:30]}...{text[-15:]}"
+        raise ValueError(f'{what} is at least {tokens} tokens as the model sees it ("{shown}"); its text '
+                         f"encoder reads {TEXT_ENCODER_TOKENS}, its start and end tokens included: {remedy}")
