@@ -2897,6 +2897,36 @@ def test_an_object_name_whose_source_text_clip_cannot_read_is_a_422_naming_it(cl
     assert client.post("/v1/evaluations", json={"job_ids": [edit["id"]], "object": "a" * 100}).status_code == 201
 
 
+def test_an_evaluation_of_jobs_of_different_scenes_or_reconstructions_names_the_jobs_apart(client, dataset, root):
+    """Up to 60 jobs are listed: the 422 had said only that some belong to different scenes (or reconstructions),
+    not which."""
+    from sqlalchemy import update
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+
+    scene, other_scene = make_scene(client, dataset, root), make_scene(client, dataset, root)
+    first, same, coarse, elsewhere = (
+        client.post("/v1/jobs", json={"scene_id": scene_id, **JOB, "params": params}).json()
+        for scene_id, params in ((scene["id"], {}), (scene["id"], {}), (scene["id"], {"downsample": 2}),
+                                 (other_scene["id"], {})))
+    with session_scope() as session:
+        session.execute(update(Job).values(state="succeeded"))
+    scenes = client.post("/v1/evaluations", json={"job_ids": [first["id"], same["id"], elsewhere["id"]],
+                                                  "object": "mic"})
+    assert scenes.status_code == 422, scenes.text
+    assert scenes.json()["detail"] == (
+        f"the jobs belong to different scenes: job {elsewhere['id']!r} edits scene {other_scene['id']!r}, job "
+        f"{first['id']!r} scene {scene['id']!r}; an evaluation scores edits of one object")
+    reconstructions = client.post("/v1/evaluations", json={"job_ids": [first["id"], same["id"], coarse["id"]],
+                                                           "object": "mic"})
+    assert reconstructions.status_code == 422, reconstructions.text
+    assert reconstructions.json()["detail"] == (
+        f"the jobs edit different reconstructions of the scene (reconstruction parameters differ): job "
+        f"{coarse['id']!r} edits reconstruction {coarse['reconstruction']['id']!r}, job {first['id']!r} "
+        f"{first['reconstruction']['id']!r}")
+
+
 def test_an_evaluation_whose_scene_is_deleted_while_it_is_created_is_404(client, dataset, root, monkeypatch):
     """The scene (its reconstructions and jobs with it) deleted after the edit jobs were read: a 404 naming it, as
     a job's submission answers, and nothing recorded (the FID_input check's read of it had raised, a 500)."""

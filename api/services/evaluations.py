@@ -77,19 +77,21 @@ def create_evaluation(*, session: Session, settings: Settings, queue: TaskQueue,
         if source.state != SUCCEEDED:
             raise HTTPException(status.HTTP_409_CONFLICT, f"job {source.id!r} is {source.state}: only succeeded "
                                                           "edit jobs can be evaluated")
-    if len({s.scene_id for s in sources}) > 1:
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "the jobs belong to different scenes: an "
-                                                                  "evaluation scores edits of one object")
-    if len({s.reconstruction_id for s in sources}) > 1:
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "the jobs edit different reconstructions of the "
-                                                                  "scene (reconstruction parameters differ)")
-    scene = session.get(Scene, sources[0].scene_id)
-    rec_id = sources[0].reconstruction_id
-    rec = None if rec_id is None else session.get(Reconstruction, rec_id)
+    first = sources[0]
+    if other := next((s for s in sources if s.scene_id != first.scene_id), None):
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                            f"the jobs belong to different scenes: job {other.id!r} edits scene {other.scene_id!r}, "
+                            f"job {first.id!r} scene {first.scene_id!r}; an evaluation scores edits of one object")
+    if other := next((s for s in sources if s.reconstruction_id != first.reconstruction_id), None):
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                            "the jobs edit different reconstructions of the scene (reconstruction parameters "
+                            f"differ): job {other.id!r} edits reconstruction {other.reconstruction_id!r}, job "
+                            f"{first.id!r} {first.reconstruction_id!r}")
+    scene = session.get(Scene, first.scene_id)
+    rec = None if first.reconstruction_id is None else session.get(Reconstruction, first.reconstruction_id)
     if scene is None or rec is None:  # deleted since the jobs were read (a reconstruction goes only with its scene)
         raise scene_deleted(sources)
-    refuse_fid_input_of_one_image(body.params, scene, rec.params.get("max_images"), "params.fid_input",
-                                  sources[0].id)
+    refuse_fid_input_of_one_image(body.params, scene, rec.params.get("max_images"), "params.fid_input", first.id)
     job = new_evaluation_job(key, settings, sources, body.object, body.params)
     return submit(session=session, settings=settings, queue=queue, key=key, job=job, idem=idem)
 
