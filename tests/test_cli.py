@@ -802,6 +802,11 @@ def test_options_a_command_would_ignore_are_refused(sphere_file, tmp_path, capsy
                  "--out", str(tmp_path / "e")]) == 2
     assert "--resample set how --data's images are read (for FID_input); without --data none are" in \
         capsys.readouterr().err
+    # --data is read for FID_input alone: without --inception its images had been loaded and compared with nothing
+    assert main(["evaluate", grid, "--edit", grid, "a hat", "--object", "dog", "--data", str(tmp_path),
+                 "--out", str(tmp_path / "e")]) == 2
+    assert "--data gives the input images FID_input compares with; without --inception no FID is computed" in \
+        capsys.readouterr().err
     # the voxelize route renders no views and fits nothing: these had been taken and ignored
     assert main(["mesh-to-grid", str(tmp_path / "m.obj"), "--views", "7", "--size", "999", "--iterations", "5000",
                  "--rays", "3", "--out", str(tmp_path / "m" / "g.safetensors")]) == 2

@@ -32,7 +32,7 @@ def add_parsers(commands, common) -> None:
     add_model_arguments(ev, "--clip-model", "transformers CLIPModel", CLIP_MODEL_ID)
     ev.add_argument("--inception", type=Path, default=None, metavar="PATH",
                     help=f"TorchScript Inception file ({INCEPTION_FILE}) or its folder; without it no FID")
-    ev.add_argument("--data", type=Path, default=None, metavar="DATA_DIR", help="input views for FID_input")
+    ev.add_argument("--data", type=Path, default=None, metavar="DATA_DIR", help="input views for FID_input (with --inception)")
     add_view_arguments(ev, "train")
     ev.add_argument("--views", type=positive_int, default=EVALUATION_RING_VIEWS,
                     help=f"ring views (default {EVALUATION_RING_VIEWS}: the paper's)")
@@ -59,6 +59,9 @@ def cmd_evaluate(args) -> int:
     if args.data is None and (dataset_only := view_options_given(args)):
         raise ValueError(f"{', '.join(dataset_only)} set how --data's images are read (for FID_input); "
                          "without --data none are")
+    if args.data is not None and args.inception is None:  # its images had been read and compared with nothing
+        raise ValueError("--data gives the input images FID_input compares with; without --inception no FID is "
+                         "computed")
     device = check_device(args)
     writable_folder(args.out)
     initial = load_grid(args.initial)
