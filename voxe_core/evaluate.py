@@ -748,7 +748,8 @@ def format_table(rows: Sequence[dict], extra_columns: Sequence[str] = ()) -> str
 __all__ = [
     "INCEPTION_URL", "PAPER_PROMPTS", "METRICS",
     "ClipScorer", "EditSample", "EvaluateConfig", "Evaluation", "FeatureExtractor", "InceptionFeatures",
-    "ProtocolEdit", "check_source_text_length", "clip_direction", "clip_similarity", "evaluate", "evaluation_steps", "feature_statistics",
+    "ProtocolEdit", "check_source_text_length", "clip_direction", "clip_similarity", "evaluate", "evaluation_steps",
+    "feature_statistics",
     "fid_from_features", "format_table", "frechet_distance", "iter_mask_footprint", "mask_footprint", "mean_by_mode",
     "paper_protocol", "Preservation", "preservation", "render_ring", "source_text", "ViewBatches",
 ]

@@ -32,7 +32,8 @@ def add_parsers(commands, common) -> None:
     add_model_arguments(ev, "--clip-model", "transformers CLIPModel", CLIP_MODEL_ID)
     ev.add_argument("--inception", type=Path, default=None, metavar="PATH",
                     help=f"TorchScript Inception file ({INCEPTION_FILE}) or its folder; without it no FID")
-    ev.add_argument("--data", type=Path, default=None, metavar="DATA_DIR", help="input views for FID_input (with --inception)")
+    ev.add_argument("--data", type=Path, default=None, metavar="DATA_DIR",
+                    help="input views for FID_input (with --inception)")
     add_view_arguments(ev, "train")
     ev.add_argument("--views", type=positive_int, default=EVALUATION_RING_VIEWS,
                     help=f"ring views (default {EVALUATION_RING_VIEWS}: the paper's)")
