@@ -779,6 +779,18 @@ def test_input_images_fid_cannot_read_are_refused_before_any_render(sphere_grid,
     assert reports == []
 
 
+def test_a_prompt_holding_a_line_break_stays_in_its_table_row():
+    """``voxe evaluate --edit GRID PROMPT`` takes the prompt as the shell gives it, line breaks and tabs included: a
+    line break had ended the Markdown row inside its prompt cell, the rest of the row a line of its own."""
+    rows = [{"name": "edit00", "prompt": "a claymation\nball", "mode": "global", "clip_sim": 0.25},
+            {"name": "edit01", "prompt": "a wood carving\r\nof a | ball", "mode": "global", "clip_sim": 0.5}]
+    lines = format_table(rows, extra_columns=("name",)).splitlines()
+    assert len(lines) == 2 + len(rows) + 2  # header, rule, the rows, the global and all means
+    assert all(line.startswith("|") and line.endswith("|") for line in lines)
+    assert lines[2].startswith("| edit00 | a claymation ball | global | 0.2500 |")
+    assert lines[3].startswith("| edit01 | a wood carving of a \\| ball | global | 0.5000 |")
+
+
 def test_paper_protocol_is_six_prompts_with_local_edit_words_in_them():
     edits = paper_protocol(" hot  dog ")
     assert [e.prompt for e in edits] == [

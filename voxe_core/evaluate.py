@@ -735,7 +735,7 @@ def format_table(rows: Sequence[dict], extra_columns: Sequence[str] = ()) -> str
             return "–"
         if isinstance(value, float):
             return f"{value:.4f}" if abs(value) < 10 else f"{value:.2f}"
-        return str(value).replace("|", "\\|")
+        return " ".join(str(value).split()).replace("|", "\\|")  # a line break would end the row
 
     lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
     lines += ["| " + " | ".join(cell(row.get(c)) for c in columns) + " |" for row in rows]
