@@ -336,7 +336,8 @@ class EvaluationCreate(Strict):
         min_length=1, max_length=60, json_schema_extra={"uniqueItems": True},
         description="succeeded edit jobs of one scene and reconstruction")
     object: ObjectName = Field(description='what the object is: the source text is "a render of a <object>"'
-                               + _TEXT_RULE)
+                               + _TEXT_RULE + f"; a source text surely longer than the {TEXT_ENCODER_TOKENS} "
+                               "tokens CLIP's text model reads is a 422")
     params: EvaluationParams = Field(default_factory=EvaluationParams)
 
     @field_validator("job_ids")
