@@ -1507,6 +1507,19 @@ def test_evaluate_refuses_a_mask_of_another_grid_before_reading_its_voxels(spher
             "initial grid" in capsys.readouterr().err)
 
 
+def test_evaluate_refuses_a_text_clip_cannot_read_before_loading_anything(sphere_file, tmp_path, capsys):
+    """An object name or prompt too long for CLIP's 77 tokens had been refused by the scorer's tokenizer only after
+    the grids, the images and the CLIP model had been loaded (here: a missing model was said first)."""
+    long_object = "-".join("a" * 50)  # "a render of a a-a-...-a": 105 tokens at least
+    for edit_prompt, object_name, what in (("a hat", long_object, "the source text"),
+                                           ("a " + "very " * 80 + "hat", "dog", "the prompt")):
+        assert main(["evaluate", str(sphere_file), "--edit", str(sphere_file), edit_prompt, "--object", object_name,
+                     "--out", str(tmp_path / "e"), "--clip-model", str(tmp_path / "no_model")]) == 2
+        err = capsys.readouterr().err
+        assert f"{what} is at least" in err and "model not available" not in err
+    assert not (tmp_path / "e").exists()
+
+
 def test_evaluate_into_an_earlier_output_leaves_no_stale_ring_renders(sphere_file, tmp_path):
     from voxe_core.tiny_eval import build_tiny_clip
 

@@ -2877,8 +2877,8 @@ def test_fid_input_against_a_single_input_image_is_a_422_at_submission(client, d
 
 
 def test_an_object_name_whose_source_text_clip_cannot_read_is_a_422_naming_it(client, dataset, root):
-    """The source text "a render of a <object>" is scored by CLIP, which reads 77 tokens: a 100-character object such
-    as "a-a-...-a" (99 tokens) had been accepted (201) and failed in the worker, after the models had loaded."""
+    """The source text "a render of a <object>" is scored by CLIP, which reads 77 tokens: a 99-character object such
+    as "a-a-...-a" (105 tokens with "a render of a" and the start and end tokens) had been accepted (201) and failed in the worker, after the models had loaded."""
     from sqlalchemy import update
 
     from voxe_service.db import session_scope

@@ -47,9 +47,11 @@ def add_parsers(commands, common) -> None:
 def cmd_evaluate(args) -> int:
     from voxe_core.backbones import load_grid
     from voxe_core.evaluate import (
-        ClipScorer, EditSample, EvaluateConfig, InceptionFeatures, evaluate, evaluation_steps, format_table,
+        ClipScorer, EditSample, EvaluateConfig, InceptionFeatures, check_source_text_length, evaluate,
+        evaluation_steps, format_table,
     )
     from voxe_core.export import save_png
+    from voxe_core.guidance.prompts import check_prompt_length
     from voxe_core.guidance.loading import ModelNotAvailableError
     from voxe_core.refine.storage import load_mask
 
@@ -57,6 +59,8 @@ def cmd_evaluate(args) -> int:
     for values in args.edit:
         if len(values) not in (2, 3):
             raise ValueError(f"--edit takes EDITED_GRID PROMPT [MASK], got {len(values)} values: {values}")
+        check_prompt_length(values[1], view_words=False)  # texts CLIP cannot read: before any grid or model is read
+    check_source_text_length(args.object)
     if args.data is None and (dataset_only := view_options_given(args)):
         raise ValueError(f"{', '.join(dataset_only)} set how --data's images are read (for FID_input); "
                          "without --data none are")
