@@ -1459,6 +1459,38 @@ def test_edit_asks_for_cuda_graphs_and_a_compiled_encoder_unless_told_not_to(fla
     assert code == 2 and {key: asked[key] for key in expected} == expected
 
 
+def test_a_fresh_edit_leaves_no_earlier_runs_previews_and_a_resumed_one_keeps_its_own(sphere_grid, tmp_path,
+                                                                                      monkeypatch):
+    """A re-run into the same --out writing fewer previews (fewer iterations, another --preview-every, another
+    prompt) had left the earlier run's beside its own, previews of an edit that edited.safetensors is not. A run
+    with --resume continues the edit whose previews they are; files of other names stay."""
+    import voxe_core.cli.edit as edit_command
+    import voxe_core.edit
+    from voxe_core.tensorio import save_tensors
+
+    def previewing_edit(grid, prompt, guidance, config, callbacks, checkpoint, resume, views, on_preview, **kwargs):
+        for iteration in range(0, config.iterations + 1, config.preview_every):
+            on_preview(iteration, torch.zeros(4, 4, 3))
+        save_tensors(checkpoint, {}, voxe_core.edit.EDIT_CHECKPOINT_KIND, voxe_core.edit.EDIT_CHECKPOINT_VERSION, {})
+        return grid
+
+    monkeypatch.setattr(voxe_core.edit, "edit", previewing_edit)
+    monkeypatch.setattr(edit_command, "load_guidance", lambda *args, **kwargs: SimpleNamespace(device="cpu"))
+    sphere_grid.save(tmp_path / "g.safetensors")
+    out = tmp_path / "out"
+    edit = ["edit", str(tmp_path / "g.safetensors"), "--prompt", "a dog", "--out", str(out), "--device", "cpu", "-q"]
+
+    def previews() -> list[str]:
+        return sorted(path.name for path in (out / "previews").iterdir())
+
+    assert main([*edit, "--iterations", "4", "--preview-every", "1"]) == 0
+    (out / "previews" / "notes.txt").write_text("the user's")
+    assert main([*edit, "--iterations", "2", "--preview-every", "2"]) == 0
+    assert previews() == ["notes.txt", "preview_00000.png", "preview_00002.png"]
+    assert main([*edit, "--iterations", "3", "--preview-every", "3", "--resume", str(out / "checkpoint.safetensors")]) == 0
+    assert previews() == ["notes.txt", "preview_00000.png", "preview_00002.png", "preview_00003.png"]
+
+
 @pytest.mark.parametrize("flag", [[], ["--fused-marcher"]])
 def test_edit_marches_its_renders_fused_only_when_asked(flag, sphere_grid, tmp_path, monkeypatch):
     import voxe_core.cli.edit as edit_command

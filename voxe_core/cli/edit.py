@@ -7,18 +7,21 @@ The edit options are the job parameters of the service (``api.schemas.JobParams`
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from pathlib import Path
 
 from voxe_core import constants as paper
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, add_view_arguments, check_device, load_guidance, load_views,
-    non_negative_int, positive_int, run_stage, seed, view_options_given, writable_folder,
+    non_negative_int, positive_int, remove_earlier_outputs, run_stage, seed, view_options_given, writable_folder,
 )
 from voxe_core.guidance.prompts import check_prompt_length
 from voxe_core.presets import EDIT_SCHEDULES, PREVIEW_EVERY, SEED, TIMESTEP_SCHEDULES, edit_config
 
 _SCENE = EDIT_SCHEDULES["scene"]
+PREVIEW_NAME = re.compile(r"preview_\d{5,}\.png")
+"""The names of the previews ``voxe edit`` writes under ``previews/`` (``preview_{iteration:05d}.png``)."""
 
 
 def add_parsers(commands, common) -> None:
@@ -26,7 +29,8 @@ def add_parsers(commands, common) -> None:
     ed.add_argument("grid", type=Path, metavar="GRID", help="initial grid G_i (.safetensors)")
     ed.add_argument("--prompt", required=True, help='edit text, e.g. "a dog wearing big sunglasses"')
     ed.add_argument("--out", type=Path, required=True, metavar="DIR",
-                    help="writes DIR/edited.safetensors, DIR/checkpoint.safetensors, DIR/previews/*.png")
+                    help="writes DIR/edited.safetensors, DIR/checkpoint.safetensors, DIR/previews/*.png (an earlier "
+                         "run's previews there removed first, unless --resume continues it)")
     add_grid_output_arguments(ed)
     add_model_arguments(ed, "--model", "diffusers-layout Stable Diffusion", paper.SDS_MODEL_ID)
     ed.add_argument("--no-cuda-graphs", dest="cuda_graphs", action="store_false",
@@ -116,6 +120,8 @@ def cmd_edit(args) -> int:
     if guidance is None:
         return EXIT_USAGE
     checkpoint = args.out / "checkpoint.safetensors"
+    if args.resume is None:  # a fresh edit: an earlier run's previews (other iterations, another prompt) had stayed
+        remove_earlier_outputs(args.out / "previews", PREVIEW_NAME)  # beside its own; a resumed one keeps its own
 
     def on_preview(iteration: int, image) -> None:
         save_png(args.out / "previews" / f"preview_{iteration:05d}.png", image)
