@@ -1354,9 +1354,11 @@ def test_export_mesh_ply_glb_and_obj(sphere_grid, sphere_file, tmp_path, capsys)
     assert (tmp_path / "m.mtl").is_file()
 
 
-def test_a_size_past_the_machines_memory_exits_2_naming_it(sphere_file, tmp_path, capsys):
-    """It had been torch's RuntimeError traceback (exit 1)."""
-    assert main(["export-mesh", str(sphere_file), "--out", str(tmp_path / "m.ply"), "--resolution", "100000"]) == 2
+@pytest.mark.parametrize("resolution", ["100000", "3000000"])
+def test_a_size_past_the_machines_memory_exits_2_naming_it(resolution, sphere_file, tmp_path, capsys):
+    """It had been torch's RuntimeError traceback (exit 1): "can't allocate memory", and at 3000000 "Storage size
+    calculation overflowed" (a byte count past 64 bits)."""
+    assert main(["export-mesh", str(sphere_file), "--out", str(tmp_path / "m.ply"), "--resolution", resolution]) == 2
     err = capsys.readouterr().err
     assert "voxe export-mesh: error: out of memory (" in err and "ask for less" in err and "Traceback" not in err
     assert not (tmp_path / "m.ply").exists()

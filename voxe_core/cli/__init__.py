@@ -35,6 +35,10 @@ from voxe_core.cli.common import (
 )
 
 COMMAND_GROUPS = (reconstruct, render, mesh, grids, edit, refine, evaluate, service)
+OUT_OF_MEMORY_SAYINGS = ("can't allocate memory", "Tried to allocate", "out of memory",
+                         "Storage size calculation overflowed")
+"""How torch's RuntimeErrors say a tensor asked for is past the machine's memory; the last, past what a byte count
+holds (``export-mesh --resolution 3000000``: it had been a traceback, exit 1)."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -74,8 +78,7 @@ def _run(args: argparse.Namespace) -> int:
         print(f"voxe {args.command}: {kind}: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except (MemoryError, RuntimeError) as exc:  # torch's allocators raise RuntimeErrors ("can't allocate memory")
-        if not isinstance(exc, MemoryError) and not any(
-                words in str(exc) for words in ("can't allocate memory", "Tried to allocate", "out of memory")):
+        if not isinstance(exc, MemoryError) and not any(words in str(exc) for words in OUT_OF_MEMORY_SAYINGS):
             raise  # any other RuntimeError is a bug to see whole
         first_line = (str(exc).splitlines() or [type(exc).__name__])[0]  # Python's own MemoryError has no message
         print(f"voxe {args.command}: error: out of memory ({first_line}): ask for less (a smaller --resolution, "
