@@ -1354,6 +1354,19 @@ def test_export_mesh_ply_glb_and_obj(sphere_grid, sphere_file, tmp_path, capsys)
     assert (tmp_path / "m.mtl").is_file()
 
 
+def test_export_mesh_obj_refuses_a_material_library_it_cannot_write_before_making_the_mesh(sphere_file, tmp_path,
+                                                                                          capsys, monkeypatch):
+    """A folder in the way of the .mtl beside --out m.obj had been found only as the mesh was saved, after the marching
+    cubes, and the OBJ written all the same (exit 2, '[Errno 21] Is a directory: ...m.mtl')."""
+    import voxe_core.export
+
+    (tmp_path / "m.mtl").mkdir()
+    monkeypatch.setattr(voxe_core.export, "extract_mesh", lambda *args, **kwargs: pytest.fail("the mesh was made"))
+    assert main(["export-mesh", str(sphere_file), "--out", str(tmp_path / "m.obj")]) == 2
+    assert capsys.readouterr().err == f"voxe export-mesh: error: cannot write {tmp_path / 'm.mtl'}: it is a folder\n"
+    assert not (tmp_path / "m.obj").exists()
+
+
 @pytest.mark.parametrize("resolution", ["100000", "3000000"])
 def test_a_size_past_the_machines_memory_exits_2_naming_it(resolution, sphere_file, tmp_path, capsys):
     """It had been torch's RuntimeError traceback (exit 1): "can't allocate memory", and at 3000000 "Storage size

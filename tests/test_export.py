@@ -651,6 +651,17 @@ def test_obj_round_trip_keeps_vertices_faces_and_colours(sphere_grid, tmp_path):
     assert (back.visual.vertex_colors[:, 0] > 240).all() and (back.visual.vertex_colors[:, 1:3] < 15).all()
 
 
+def test_an_obj_whose_material_library_cannot_be_written_leaves_the_earlier_obj(sphere_grid, tmp_path):
+    """The OBJ had been renamed into place before its MTL, so an MTL that failed (a folder of its name) left a new
+    OBJ over the earlier one, naming a library that is not there."""
+    (tmp_path / "m.obj").write_text("the earlier run's")
+    (tmp_path / "m.mtl").mkdir()
+    with pytest.raises(OSError):
+        save_mesh(extract_mesh(sphere_grid), tmp_path / "m.obj")
+    assert (tmp_path / "m.obj").read_text() == "the earlier run's"
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["m.mtl", "m.obj"]
+
+
 @pytest.mark.parametrize("size", [1e-5, 1e-3, 1e4])
 def test_every_mesh_format_keeps_the_vertices_of_a_tiny_or_huge_box(tmp_path, size):
     """Regression: OBJ positions had 6 decimals whatever the scale, so in a 1e-5 box every vertex moved by up to 5 %

@@ -674,7 +674,9 @@ def save_obj(mesh, path: str | os.PathLike) -> Path:
     rgb = np.asarray(mesh.visual.vertex_colors, dtype=np.float64)[:, :3] / 255.0
     mtl = path.with_suffix(".mtl")
     kd = rgb.mean(0) if len(rgb) else np.full(3, 0.8)
-    with replacing(mtl) as mtl_partial, replacing(path) as partial, open(partial, "w") as out:  # both or neither
+    # Both or neither: the MTL replaced first, the OBJ naming it only once that has been (the other way round, an
+    # MTL that could not be written, a folder of its name, had left a new OBJ over the earlier one)
+    with replacing(path) as partial, replacing(mtl) as mtl_partial, open(partial, "w") as out:
         mtl_partial.write_text(f"newmtl voxe\nKd {kd[0]:.6f} {kd[1]:.6f} {kd[2]:.6f}\nKa 0 0 0\nKs 0 0 0\nd 1\n"
                                "illum 1\n")
         out.write(f"# Vox-E mesh: {len(vertices)} vertices, {len(faces)} faces\nmtllib {mtl.name}\nusemtl voxe\n")

@@ -65,6 +65,8 @@ def cmd_export_mesh(args) -> int:
         raise ValueError(f"unsupported mesh suffix {args.out.suffix!r}; use one of {', '.join(MESH_SUFFIXES)}")
     device = check_device(args)
     writable_file(args.out)
+    if args.out.suffix.lower() == ".obj":  # and the material library beside it, before the mesh is made
+        writable_file(args.out.with_suffix(".mtl"))
     grid = load_grid(args.grid).to(device)  # the density lattice is sampled there; marching cubes runs on the CPU
     mesh = extract_mesh(grid, level=args.level, resolution=args.resolution)
     save_mesh(mesh, args.out)
