@@ -1659,3 +1659,17 @@ def test_relative_edit_seeds_take_every_node_near_the_largest_edit_probability()
     assert stats.edit_seeds == 45  # nodes at P_e = 1/2 are never edit seeds
     with pytest.raises(ValueError, match="edit_seed_rule"):
         RefineConfig(edit_seed_rule="max")
+
+
+@pytest.mark.parametrize("shape", [(6, 5, 4), (4, 4, 4, 2), (3, 5, 4), (4, 5, 4, 1, 2)])
+def test_probabilities_of_another_grid_than_where_are_refused_and_nothing_is_written(tmp_path, shape):
+    """``where`` of (4, 5, 4) and grids of 6·5·4 voxels had written the first 80 voxels' values at ``where``'s
+    indices, read back as the probabilities of other voxels; smaller grids failed on an IndexError."""
+    where = torch.ones(4, 5, 4, dtype=torch.bool)
+    right, wrong = torch.full((4, 5, 4), 0.25), torch.rand(shape)
+    for edit_probability, object_probability in ((wrong, right), (right, wrong)):
+        with pytest.raises(ValueError, match=r"of shape .* is not of the voxels 'where' names, \(4, 5, 4\)"):
+            save_probabilities(tmp_path / "p.safetensors", edit_probability, object_probability, where)
+        assert not (tmp_path / "p.safetensors").exists()
+    save_probabilities(tmp_path / "p.safetensors", right[..., None], 1 - right, where)  # (X, Y, Z, 1): its voxels
+    assert torch.equal(load_probabilities(tmp_path / "p.safetensors")[0], right)

@@ -82,7 +82,13 @@ def load_mask(path, shape: tuple[int, ...] | None = None) -> torch.Tensor:
 
 
 def save_probabilities(path, edit_probability: torch.Tensor, object_probability: torch.Tensor, where: torch.Tensor) -> None:
-    """Probability grids stored only at the voxels ``where`` (the graph's nodes): indices + float32 values."""
+    """Probability grids stored only at the voxels ``where`` (the graph's nodes): indices + float32 values.
+    ValueError when a grid is not of ``where``'s (X, Y, Z) voxels (a smaller ``where`` had stored the values of
+    other voxels without a word, a larger one failed on an IndexError)."""
+    for name, values in (("edit_probability", edit_probability), ("object_probability", object_probability)):
+        if tuple(values.shape[:3]) != tuple(where.shape) or values.numel() != where.numel():
+            raise ValueError(f"{name} of shape {tuple(values.shape)} is not of the voxels 'where' names, "
+                             f"{tuple(where.shape)}")
     where = where.detach().cpu().bool()
     flat = _set_voxels(where)
     tensors = {
