@@ -1673,3 +1673,15 @@ def test_probabilities_of_another_grid_than_where_are_refused_and_nothing_is_wri
         assert not (tmp_path / "p.safetensors").exists()
     save_probabilities(tmp_path / "p.safetensors", right[..., None], 1 - right, where)  # (X, Y, Z, 1): its voxels
     assert torch.equal(load_probabilities(tmp_path / "p.safetensors")[0], right)
+
+
+def test_fresh_views_without_their_source_are_refused_before_the_backprojection(make_sphere_grid, monkeypatch):
+    """The back-projection (81 s at 160³ and 32 views on a CPU) had run first, to be thrown away by this refusal."""
+    def no_backprojection(*args, **kwargs):
+        raise AssertionError("the back-projection ran")
+
+    monkeypatch.setattr(lifting, "backproject", no_backprojection)
+    grid, cams = make_sphere_grid(10), cameras_around(2, 8)
+    maps = torch.linspace(0, 1, 8).expand(2, 8, 8)
+    with pytest.raises(ValueError, match="fit_views='fresh' needs fresh_view"):
+        fit_attention_grids(grid, cams, maps, maps.flip(-1), RefineConfig(iterations=3, fit_views="fresh"))

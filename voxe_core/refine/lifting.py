@@ -213,6 +213,8 @@ def fit_attention_grids(
         raise ValueError(
             f"{n_views} maps of {height}x{width} do not match {len(cameras)} cameras of {cameras.height}x{cameras.width}"
         )
+    if config.fit_views == "fresh" and config.iterations and fresh_view is None:  # (asked after the back-projection)
+        raise ValueError("fit_views='fresh' needs fresh_view: a new pose and its maps for every step")
     for name, maps in (("edit", edit_maps), ("object", object_maps)):  # (the cut had blamed a "diverged fit")
         bad = (~torch.isfinite(maps)).flatten(1).any(1).nonzero().squeeze(-1).tolist()
         if bad:
@@ -263,8 +265,6 @@ def fit_attention_grids(
             f"{nothing}; lower backprojection_stride, or render larger views")
     origins, directions, targets = origins[keep], directions[keep], targets[keep]
 
-    if config.fit_views == "fresh" and config.iterations and fresh_view is None:
-        raise ValueError("fit_views='fresh' needs fresh_view: a new pose and its maps for every step")
     if config.lift_start == "constant":
         start = torch.full_like(start, float(config.init_value))
     flat_start = start.reshape(-1, 2)
