@@ -1685,3 +1685,25 @@ def test_fresh_views_without_their_source_are_refused_before_the_backprojection(
     maps = torch.linspace(0, 1, 8).expand(2, 8, 8)
     with pytest.raises(ValueError, match="fit_views='fresh' needs fresh_view"):
         fit_attention_grids(grid, cams, maps, maps.flip(-1), RefineConfig(iterations=3, fit_views="fresh"))
+
+
+def test_an_edited_grid_whose_colour_is_nan_is_named_before_any_attention_pass(tiny_guidance, make_sphere_grid,
+                                                                              monkeypatch):
+    """Its NaN render had reached the model, whose NaN maps were refused as "its pass overflowed (a float16
+    model?)": the model blamed for the grid."""
+    original, passes = tiny_guidance.cross_attention_maps, []
+
+    def counted(*args, **kwargs):
+        passes.append(args)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(tiny_guidance, "cross_attention_maps", counted)
+    initial = make_sphere_grid(12)
+    edited = initial.clone_grid()
+    with torch.no_grad():
+        edited.features[6, 6, 6, 2] = float("nan")
+    with pytest.raises(SegmentationError, match=r"^the render of the edited grid for view 1 of 2 is not finite "
+                                                r"\(NaN or infinite\): the grid's colour"):
+        refine(initial, edited, "a dog wearing sunglasses", ["sunglasses"], tiny_guidance,
+               RefineConfig(views=2, render_size=16))
+    assert passes == []

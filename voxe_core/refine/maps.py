@@ -176,6 +176,10 @@ def attention_maps_2d(
     for i in range(len(cameras)):
         callbacks.check_cancel("attention_maps")
         image = render_image(grid, cameras, i, RenderConfig(), occupancy).rgb[..., :3]
+        if not bool(torch.isfinite(image).all()):  # (the model's maps of it had been blamed, "a float16 model?")
+            raise SegmentationError(f"the render of the edited grid for view {i + 1} of {len(cameras)} is not finite "
+                                    "(NaN or infinite): the grid's colour (or density) is where the view sees it (a "
+                                    "diverged edit or a corrupted grid?), so the attention model has nothing to read")
         maps = guidance.cross_attention_maps(
             image.permute(2, 0, 1)[None], prompts[i], timestep=config.timestep,
             resolution_filter=config.resolution_filter, generator=generator,
