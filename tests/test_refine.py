@@ -1707,3 +1707,14 @@ def test_an_edited_grid_whose_colour_is_nan_is_named_before_any_attention_pass(t
         refine(initial, edited, "a dog wearing sunglasses", ["sunglasses"], tiny_guidance,
                RefineConfig(views=2, render_size=16))
     assert passes == []
+
+
+def test_a_mask_that_is_not_binary_is_refused_by_the_merge():
+    """G_r = M·G_e + (1 − M)·G_i is a selection: a soft mask had been cast to bool, 0.3 (or NaN) taking G_e whole."""
+    initial, edited = VoxelGrid(6, init_density=1.0), VoxelGrid(6, init_density=2.0)
+    for soft in (torch.full((6, 6, 6), 0.3), torch.full((6, 6, 6), float("nan")), torch.full((6, 6, 6), 2)):
+        with pytest.raises(ValueError, match="the mask must be binary"):
+            merge(initial, edited, soft)
+    ones = torch.zeros(6, 6, 6)
+    ones[:3] = 1.0  # 0 and 1 in another dtype select as a bool mask does
+    assert torch.equal(merge(initial, edited, ones).features, merge(initial, edited, ones.bool()).features)

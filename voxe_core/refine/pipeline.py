@@ -60,6 +60,9 @@ def merge(initial_grid: VoxelGrid, edited_grid: VoxelGrid, mask: torch.Tensor) -
     check_compatible(initial_grid, edited_grid)
     if tuple(mask.shape) != tuple(initial_grid.resolution):
         raise ValueError(f"mask of shape {tuple(mask.shape)} does not fit the grids {initial_grid.resolution}")
+    if mask.dtype != torch.bool and not bool(((mask == 0) | (mask == 1)).all()):  # (a 0.3 had taken G_e whole)
+        raise ValueError("the mask must be binary (bool, or only 0 and 1): the merge selects G_e or G_i per voxel, "
+                         "so a soft mask (the edit probabilities?) would take G_e wherever it is not 0")
     m = mask.to(device=initial_grid.features.device, dtype=torch.bool)[..., None]
     merged = torch.where(m, edited_grid.features.detach().to(initial_grid.features.device), initial_grid.features.detach())
     return initial_grid.like(merged)
