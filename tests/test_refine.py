@@ -1718,3 +1718,12 @@ def test_a_mask_that_is_not_binary_is_refused_by_the_merge():
     ones = torch.zeros(6, 6, 6)
     ones[:3] = 1.0  # 0 and 1 in another dtype select as a bool mask does
     assert torch.equal(merge(initial, edited, ones).features, merge(initial, edited, ones.bool()).features)
+
+
+def test_attention_views_of_more_than_one_value_per_vertex_are_refused_naming_the_shape(make_sphere_grid):
+    """Two channels (both attention fields at once) had failed in torch's expand, naming no argument."""
+    grid = make_sphere_grid(8)
+    cams = cameras_around(1, 8)
+    with pytest.raises(ValueError, match=r"one scalar per vertex, \(X, Y, Z\) or \(X, Y, Z, 1\), got \(8, 8, 8, 2\)"):
+        next(iter_attention_views(grid, torch.zeros(8, 8, 8, 2), cams))
+    assert next(iter_attention_views(grid, torch.zeros(8, 8, 8, 1), cams)).shape == (8, 8, 3)
