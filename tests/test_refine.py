@@ -1720,6 +1720,17 @@ def test_a_mask_that_is_not_binary_is_refused_by_the_merge():
     assert torch.equal(merge(initial, edited, ones).features, merge(initial, edited, ones.bool()).features)
 
 
+def test_a_mask_that_is_not_binary_is_not_saved(tmp_path):
+    """As the merge refuses it: a soft mask had been written set wherever it was not 0 (every voxel, for 0.3)."""
+    with pytest.raises(ValueError, match="the mask must be binary"):
+        save_mask(tmp_path / "mask.safetensors", torch.full((4, 4, 4), 0.3))
+    assert not (tmp_path / "mask.safetensors").exists()
+    ones = torch.zeros(4, 4, 4)
+    ones[1] = 1.0
+    save_mask(tmp_path / "mask.safetensors", ones)
+    assert torch.equal(load_mask(tmp_path / "mask.safetensors"), ones.bool())
+
+
 def test_attention_views_of_more_than_one_value_per_vertex_are_refused_naming_the_shape(make_sphere_grid):
     """Two channels (both attention fields at once) had failed in torch's expand, naming no argument."""
     grid = make_sphere_grid(8)

@@ -17,6 +17,7 @@ from voxe_core.refine.cut import GraphCutStats, graph_cut_detailed, graph_nodes,
 from voxe_core.presets import backprojection_chunks
 from voxe_core.refine.lifting import attention_occupancy, fit_attention_grids
 from voxe_core.refine.maps import attention_cameras, attention_maps_2d, token_groups
+from voxe_core.refine.storage import check_binary
 
 
 @dataclass
@@ -60,9 +61,7 @@ def merge(initial_grid: VoxelGrid, edited_grid: VoxelGrid, mask: torch.Tensor) -
     check_compatible(initial_grid, edited_grid)
     if tuple(mask.shape) != tuple(initial_grid.resolution):
         raise ValueError(f"mask of shape {tuple(mask.shape)} does not fit the grids {initial_grid.resolution}")
-    if mask.dtype != torch.bool and not bool(((mask == 0) | (mask == 1)).all()):  # (a 0.3 had taken G_e whole)
-        raise ValueError("the mask must be binary (bool, or only 0 and 1): the merge selects G_e or G_i per voxel, "
-                         "so a soft mask (the edit probabilities?) would take G_e wherever it is not 0")
+    check_binary(mask)
     m = mask.to(device=initial_grid.features.device, dtype=torch.bool)[..., None]
     merged = torch.where(m, edited_grid.features.detach().to(initial_grid.features.device), initial_grid.features.detach())
     return initial_grid.like(merged)

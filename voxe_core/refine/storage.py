@@ -29,8 +29,18 @@ def _set_voxels(mask: torch.Tensor) -> torch.Tensor:
     return mask.reshape(-1).nonzero().squeeze(-1)
 
 
+def check_binary(mask: torch.Tensor) -> None:
+    """ValueError unless ``mask`` holds only 0 and 1 (or is bool): a soft mask (the edit probabilities?) cast to bool
+    is set wherever it is not 0 (a 0.3, or NaN, had taken G_e or been written set)."""
+    if mask.dtype != torch.bool and not bool(((mask == 0) | (mask == 1)).all()):
+        raise ValueError("the mask must be binary (bool, or only 0 and 1): it selects G_e or G_i per voxel, so a soft "
+                         "mask (the edit probabilities?) would take G_e wherever it is not 0")
+
+
 def save_mask(path, mask: torch.Tensor, meta: dict | None = None) -> None:
-    """Sparse mask file: flat indices (int32, C order) of the set voxels plus the grid shape."""
+    """Sparse mask file: flat indices (int32, C order) of the set voxels plus the grid shape; ValueError for a mask
+    that is not binary (:func:`check_binary`)."""
+    check_binary(mask)
     mask = mask.detach().cpu().bool()
     indices = _set_voxels(mask).to(torch.int32)
     save_tensors(path, {"indices": indices, "shape": torch.tensor(mask.shape, dtype=torch.int64)},
