@@ -1738,3 +1738,19 @@ def test_attention_views_of_more_than_one_value_per_vertex_are_refused_naming_th
     with pytest.raises(ValueError, match=r"one scalar per vertex, \(X, Y, Z\) or \(X, Y, Z, 1\), got \(8, 8, 8, 2\)"):
         next(iter_attention_views(grid, torch.zeros(8, 8, 8, 2), cams))
     assert next(iter_attention_views(grid, torch.zeros(8, 8, 8, 1), cams)).shape == (8, 8, 3)
+
+
+@pytest.mark.parametrize("bad", [3.0, float("nan"), -0.25])
+def test_probabilities_the_loader_refuses_are_not_saved(tmp_path, bad):
+    """A raw (X, Y, Z, 1) attention field (or NaN) had been written, to be refused by load_probabilities as read."""
+    where = torch.ones(4, 5, 4, dtype=torch.bool)
+    fine, wrong = torch.full((4, 5, 4, 1), 0.5), torch.full((4, 5, 4, 1), bad)
+    for name, edit_probability, object_probability in (("edit", wrong, fine), ("object", fine, wrong)):
+        with pytest.raises(ValueError, match=rf"^{name}_probability holds values outside \[0, 1\] \(or NaN\)"):
+            save_probabilities(tmp_path / "p.safetensors", edit_probability, object_probability, where)
+        assert not (tmp_path / "p.safetensors").exists()
+    unstored = fine.clone()
+    unstored[0, 0, 0] = bad
+    where[0, 0, 0] = False  # only the stored voxels are held to it, as the loader holds them
+    save_probabilities(tmp_path / "p.safetensors", unstored, fine, where)
+    assert torch.equal(load_probabilities(tmp_path / "p.safetensors")[2], where)

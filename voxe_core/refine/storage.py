@@ -37,6 +37,12 @@ def check_binary(mask: torch.Tensor) -> None:
                          "mask (the edit probabilities?) would take G_e wherever it is not 0")
 
 
+def _are_probabilities(values: torch.Tensor) -> bool:
+    """Whether every value is in [0, 1] (NaN fails both comparisons): the rule :func:`load_probabilities` holds a
+    file's values to, and :func:`save_probabilities` the values it would write."""
+    return not values.numel() or bool(((values >= 0) & (values <= 1)).all())
+
+
 def save_mask(path, mask: torch.Tensor, meta: dict | None = None) -> None:
     """Sparse mask file: flat indices (int32, C order) of the set voxels plus the grid shape; ValueError for a mask
     that is not binary (:func:`check_binary`)."""
@@ -93,20 +99,23 @@ def load_mask(path, shape: tuple[int, ...] | None = None) -> torch.Tensor:
 
 def save_probabilities(path, edit_probability: torch.Tensor, object_probability: torch.Tensor, where: torch.Tensor) -> None:
     """Probability grids stored only at the voxels ``where`` (the graph's nodes): indices + float32 values.
-    ValueError when a grid is not of ``where``'s (X, Y, Z) voxels (a smaller ``where`` had stored the values of
-    other voxels without a word, a larger one failed on an IndexError)."""
-    for name, values in (("edit_probability", edit_probability), ("object_probability", object_probability)):
+    ValueError, before anything is written, for a grid that is not of ``where``'s (X, Y, Z) voxels (a smaller
+    ``where`` had stored the values of other voxels without a word, a larger one failed on an IndexError) or stored
+    values :func:`load_probabilities` refuses (a raw attention field had been written, to be refused as it was read)."""
+    grids = {"edit": ("edit_probability", edit_probability), "object": ("object_probability", object_probability)}
+    for name, values in grids.values():
         if tuple(values.shape[:3]) != tuple(where.shape) or values.numel() != where.numel():
             raise ValueError(f"{name} of shape {tuple(values.shape)} is not of the voxels 'where' names, "
                              f"{tuple(where.shape)}")
     where = where.detach().cpu().bool()
     flat = _set_voxels(where)
-    tensors = {
-        "indices": flat.to(torch.int32),
-        "shape": torch.tensor(where.shape, dtype=torch.int64),
-        "edit": edit_probability.detach().cpu().float().reshape(-1)[flat],
-        "object": object_probability.detach().cpu().float().reshape(-1)[flat],
-    }
+    stored = {}
+    for key, (name, values) in grids.items():
+        stored[key] = values.detach().cpu().float().reshape(-1)[flat]
+        if not _are_probabilities(stored[key]):
+            raise ValueError(f"{name} holds values outside [0, 1] (or NaN) at the voxels 'where' names, which no "
+                             "probability is (a raw attention field? its probability is the fields' softmax)")
+    tensors = {"indices": flat.to(torch.int32), "shape": torch.tensor(where.shape, dtype=torch.int64), **stored}
     save_tensors(path, tensors, kind="attention_probabilities", version=PROBABILITY_FORMAT_VERSION,
                  meta={"stored_voxels": int(flat.numel())})
 
@@ -123,7 +132,7 @@ def load_probabilities(path, shape: tuple[int, ...] | None = None) -> tuple[torc
         values = tensors.get(name)
         if values is None or values.dim() != 1 or values.numel() != indices.numel():  # (K, 1) had passed to fail
             raise FormatError(f"{path}: '{name}' values do not match the stored indices")  # after the allocations
-        if values.numel() and not bool(((values >= 0) & (values <= 1)).all()):  # NaN fails both comparisons
+        if not _are_probabilities(values):
             raise FormatError(f"{path}: '{name}' holds values outside [0, 1] (or NaN), which no probability is")
         stored[name] = values.float()
     out = []
