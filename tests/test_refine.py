@@ -1754,3 +1754,12 @@ def test_probabilities_the_loader_refuses_are_not_saved(tmp_path, bad):
     where[0, 0, 0] = False  # only the stored voxels are held to it, as the loader holds them
     save_probabilities(tmp_path / "p.safetensors", unstored, fine, where)
     assert torch.equal(load_probabilities(tmp_path / "p.safetensors")[2], where)
+
+
+def test_a_where_that_is_not_xyz_is_refused_naming_where(tmp_path):
+    """A (4, 5, 4, 1) ``where`` had been refused as "edit_probability of shape (4, 5, 4) is not of the voxels 'where'
+    names": the right grid blamed for the wrong mask."""
+    grid = torch.full((4, 5, 4), 0.5)
+    with pytest.raises(ValueError, match=r"^'where' must be the \(X, Y, Z\) mask .* got shape \(4, 5, 4, 1\)"):
+        save_probabilities(tmp_path / "p.safetensors", grid, grid, torch.ones(4, 5, 4, 1, dtype=torch.bool))
+    assert not (tmp_path / "p.safetensors").exists()

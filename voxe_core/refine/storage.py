@@ -99,9 +99,12 @@ def load_mask(path, shape: tuple[int, ...] | None = None) -> torch.Tensor:
 
 def save_probabilities(path, edit_probability: torch.Tensor, object_probability: torch.Tensor, where: torch.Tensor) -> None:
     """Probability grids stored only at the voxels ``where`` (the graph's nodes): indices + float32 values.
-    ValueError, before anything is written, for a grid that is not of ``where``'s (X, Y, Z) voxels (a smaller
-    ``where`` had stored the values of other voxels without a word, a larger one failed on an IndexError) or stored
-    values :func:`load_probabilities` refuses (a raw attention field had been written, to be refused as it was read)."""
+    ValueError, before anything is written, for a ``where`` that is not an (X, Y, Z) mask, a grid that is not of
+    ``where``'s voxels (a smaller ``where`` had stored the values of other voxels without a word, a larger one failed
+    on an IndexError) or stored values :func:`load_probabilities` refuses (a raw attention field had been written, to
+    be refused as it was read)."""
+    if where.dim() != 3:
+        raise ValueError(f"'where' must be the (X, Y, Z) mask of the voxels to store, got shape {tuple(where.shape)}")
     grids = {"edit": ("edit_probability", edit_probability), "object": ("object_probability", object_probability)}
     for name, values in grids.values():
         if tuple(values.shape[:3]) != tuple(where.shape) or values.numel() != where.numel():
