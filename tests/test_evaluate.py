@@ -1131,3 +1131,14 @@ def test_cli_sweep_submits_to_the_service_and_prints_the_sweep_id(service, tmp_p
     with pytest.raises(SystemExit):
         main(["sweep", "--scene", "no-object-given"])
     assert "expected SCENE_ID=OBJECT" in capsys.readouterr().err
+
+
+def test_the_footprint_of_a_mask_that_is_not_binary_is_refused(sphere_grid):
+    """A 0.3 mask (a probability) had the footprint of a 1 mask: its stand-in's 300 was as opaque as 1,000."""
+    half = torch.zeros(sphere_grid.resolution)
+    half[: half.shape[0] // 2] = 1.0
+    with pytest.raises(ValueError, match="the mask must be binary"):
+        mask_footprint(sphere_grid, half * 0.3, 2, 20.0, 16)
+    # 0 and 1 in another dtype have a bool mask's footprint
+    assert torch.equal(mask_footprint(sphere_grid, half, 2, 20.0, 16),
+                       mask_footprint(sphere_grid, half.bool(), 2, 20.0, 16))

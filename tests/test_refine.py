@@ -1763,3 +1763,15 @@ def test_a_where_that_is_not_xyz_is_refused_naming_where(tmp_path):
     with pytest.raises(ValueError, match=r"^'where' must be the \(X, Y, Z\) mask .* got shape \(4, 5, 4, 1\)"):
         save_probabilities(tmp_path / "p.safetensors", grid, grid, torch.ones(4, 5, 4, 1, dtype=torch.bool))
     assert not (tmp_path / "p.safetensors").exists()
+
+
+def test_a_where_that_is_not_binary_is_not_saved(tmp_path):
+    """A soft ``where`` (0.3, a probability) had been cast to bool: every voxel stored."""
+    grid = torch.full((4, 4, 4), 0.5)
+    with pytest.raises(ValueError, match="^'where' must be binary"):
+        save_probabilities(tmp_path / "p.safetensors", grid, grid, torch.full((4, 4, 4), 0.3))
+    assert not (tmp_path / "p.safetensors").exists()
+    where = torch.zeros(4, 4, 4)
+    where[1] = 1.0  # 0 and 1 in another dtype store as a bool mask does
+    save_probabilities(tmp_path / "p.safetensors", grid, grid, where)
+    assert torch.equal(load_probabilities(tmp_path / "p.safetensors")[2], where.bool())

@@ -53,6 +53,7 @@ from voxe_core.guidance.loading import (
 from voxe_core.guidance.prompts import check_text_length, edit_prompt, tokens_read
 from voxe_core.metrics import PSNR_CAP_DB, SSIM_WINDOW, psnr, ssim
 from voxe_core.progress import Callbacks, Progress
+from voxe_core.refine.storage import check_binary
 from voxe_core.render import RenderConfig, render_image
 
 INCEPTION_URL = "https://nvlabs-fi-cdn.nvidia.com/stylegan2-ada-pytorch/pretrained/metrics/inception-2015-12-05.pt"
@@ -145,6 +146,7 @@ def iter_mask_footprint(grid: VoxelGrid, mask: torch.Tensor, views: int, elevati
     """
     if tuple(mask.shape) != tuple(grid.resolution):
         raise ValueError(f"mask of shape {tuple(mask.shape)} does not fit the grid {grid.resolution}")
+    check_binary(mask)  # (a 0.3 mask's stand-in, 300 at its vertices, was as opaque as a 1 mask's)
     cameras = turntable_cameras(views, elevation_deg, size, centre=centre).to(grid.bbox_min.device)
     for chunk in ring_chunks(views, size):
         packed = _footprint_views(grid, mask, cameras, chunk, callbacks)

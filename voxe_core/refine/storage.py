@@ -29,12 +29,13 @@ def _set_voxels(mask: torch.Tensor) -> torch.Tensor:
     return mask.reshape(-1).nonzero().squeeze(-1)
 
 
-def check_binary(mask: torch.Tensor) -> None:
+def check_binary(mask: torch.Tensor, name: str = "the mask") -> None:
     """ValueError unless ``mask`` holds only 0 and 1 (or is bool): a soft mask (the edit probabilities?) cast to bool
-    is set wherever it is not 0 (a 0.3, or NaN, had taken G_e or been written set)."""
+    is set wherever it is not 0 (a 0.3, or NaN, had taken G_e, been written set or counted in a footprint);
+    ``name``: the argument, in the refusal's words."""
     if mask.dtype != torch.bool and not bool(((mask == 0) | (mask == 1)).all()):
-        raise ValueError("the mask must be binary (bool, or only 0 and 1): it selects G_e or G_i per voxel, so a soft "
-                         "mask (the edit probabilities?) would take G_e wherever it is not 0")
+        raise ValueError(f"{name} must be binary (bool, or only 0 and 1): a soft mask (the edit probabilities?) "
+                         "would count as set wherever it is not 0")
 
 
 def _are_probabilities(values: torch.Tensor) -> bool:
@@ -99,12 +100,13 @@ def load_mask(path, shape: tuple[int, ...] | None = None) -> torch.Tensor:
 
 def save_probabilities(path, edit_probability: torch.Tensor, object_probability: torch.Tensor, where: torch.Tensor) -> None:
     """Probability grids stored only at the voxels ``where`` (the graph's nodes): indices + float32 values.
-    ValueError, before anything is written, for a ``where`` that is not an (X, Y, Z) mask, a grid that is not of
-    ``where``'s voxels (a smaller ``where`` had stored the values of other voxels without a word, a larger one failed
-    on an IndexError) or stored values :func:`load_probabilities` refuses (a raw attention field had been written, to
-    be refused as it was read)."""
+    ValueError, before anything is written, for a ``where`` that is not a binary (X, Y, Z) mask (:func:`check_binary`:
+    a soft one had stored every voxel it was not 0 at), a grid that is not of ``where``'s voxels (a smaller ``where``
+    had stored the values of other voxels without a word, a larger one failed on an IndexError) or stored values
+    :func:`load_probabilities` refuses (a raw attention field had been written, to be refused as it was read)."""
     if where.dim() != 3:
         raise ValueError(f"'where' must be the (X, Y, Z) mask of the voxels to store, got shape {tuple(where.shape)}")
+    check_binary(where, "'where'")
     grids = {"edit": ("edit_probability", edit_probability), "object": ("object_probability", object_probability)}
     for name, values in grids.values():
         if tuple(values.shape[:3]) != tuple(where.shape) or values.numel() != where.numel():
