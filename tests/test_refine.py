@@ -54,7 +54,7 @@ from voxe_core.refine.cut import (
     prefer_neither,
     probabilities,
 )
-from voxe_core.refine import lifting
+from voxe_core.refine import lifting, renders
 from voxe_core.refine.lifting import attention_l1, fit_attention_grids
 from voxe_core.refine.maps import (
     attention_maps_2d,
@@ -1775,3 +1775,21 @@ def test_a_where_that_is_not_binary_is_not_saved(tmp_path):
     where[1] = 1.0  # 0 and 1 in another dtype store as a bool mask does
     save_probabilities(tmp_path / "p.safetensors", grid, grid, where)
     assert torch.equal(load_probabilities(tmp_path / "p.safetensors")[2], where.bool())
+
+
+def test_attention_views_of_a_wrong_shape_are_refused_by_the_call_before_any_view(make_sphere_grid, monkeypatch):
+    """The refusal had come at the first next(): the CLI builds every preview's views before writing any, so a later
+    group's bad grid was refused only after the earlier groups' frames had been written."""
+    rendered = []
+    real_views = renders.iter_feature_views
+
+    def counted(*args, **kwargs):
+        rendered.append(args)
+        return real_views(*args, **kwargs)
+
+    monkeypatch.setattr(renders, "iter_feature_views", counted)
+    grid, cams = make_sphere_grid(8), cameras_around(1, 8)
+    with pytest.raises(ValueError, match=r"one scalar per vertex, \(X, Y, Z\) or \(X, Y, Z, 1\), got \(8, 8, 8, 2\)"):
+        iter_attention_views(grid, torch.zeros(8, 8, 8, 2), cams)  # the call, not iteration, refuses it
+    assert rendered == []
+    assert len(list(iter_attention_views(grid, torch.zeros(8, 8, 8), cams))) == 1

@@ -56,13 +56,15 @@ def render_feature_views(
 
 def iter_attention_views(grid: VoxelGrid, values: torch.Tensor, cameras: Cameras) -> Iterator[torch.Tensor]:
     """Grey renders (H, W, 3) in [0, 1] of a scalar grid (an attention field or a probability) on black, one view
-    at a time. ValueError unless ``values`` is (X, Y, Z) or (X, Y, Z, 1) (more channels had failed in an expand)."""
+    at a time. ValueError unless ``values`` is (X, Y, Z) or (X, Y, Z, 1) (more channels had failed in an expand),
+    raised by the call itself, not by the first view asked for: a caller that builds several sets of views before
+    writing any (the CLI's previews) learns of a bad one before it has written the others."""
     if values.dim() == 3:
         values = values[..., None]
     if values.dim() != 4 or values.shape[-1] != 1:
         raise ValueError(f"expected one scalar per vertex, (X, Y, Z) or (X, Y, Z, 1), got {tuple(values.shape)}")
-    for grey in iter_feature_views(grid, cameras, values, background=(0.0,)):
-        yield grey.clamp(0.0, 1.0).expand(*grey.shape[:2], 3).contiguous()
+    return (grey.clamp(0.0, 1.0).expand(*grey.shape[:2], 3).contiguous()
+            for grey in iter_feature_views(grid, cameras, values, background=(0.0,)))
 
 
 def iter_mask_overlays(
