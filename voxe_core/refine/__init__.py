@@ -55,10 +55,18 @@ Pipeline (``refine``):
 4. :func:`graph_cut` labels the occupied voxels of G_e (by default, as the authors'
    code: vertices whose 3×3×3 max-pooled ReLU density is > 0; ``node_rule="alpha"``:
    those whose activated density makes a voxel-length at least ``node_alpha`` opaque) by
-   Boykov–Kolmogorov max-flow (PyMaxflow), built vectorised: unary costs
-   −log P of the label, seeds tied to their terminal with a capacity larger
-   than any finite cut, and 6-neighbour pairwise weights
-   λ·exp(−‖c_p − c_q‖² / 2σ²) on G_e's activated colours along all three axes.
+   Boykov–Kolmogorov max-flow (PyMaxflow), built vectorised. The default cut
+   (``SERVICE_CUT``, the authors' code's but for two choices) ties its seeds
+   to their terminal with a capacity larger than any finite cut (edit seeds:
+   the nodes within ``edit_seed_ratio`` of the largest P_e; object seeds:
+   drawn at random among P_obj > P_e + ``object_seed_margin``), gives the
+   unseeded voxels no unary cost, and weighs 6-neighbour pairs along all
+   three axes by
+   λ·exp(−‖c_p − c_q‖ / σ) on G_e's activated colours; a piece of the graph no
+   seed reaches takes the label its voxels' probabilities favour.
+   ``PAPER_TEXT_CUT`` gives the paper's text instead: unary costs −log P of the
+   label at every voxel, the top-P seeds, Gaussian weights
+   λ·exp(−‖c_p − c_q‖² / 2σ²) and the ``node_alpha`` nodes.
 5. :func:`merge`: G_r = M·G_e + (1 − M)·G_i voxel-wise on all four features;
    unmasked voxels are bit-identical to G_i.
 
