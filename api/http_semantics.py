@@ -19,6 +19,7 @@
 * A path holding a NUL character is a 404 (no resource is named so) and such a query string a 422: neither
   reaches the database, whose PostgreSQL text cannot hold one.
 * ``HEAD`` is served wherever ``GET`` is (:class:`HeadAsGet`).
+* Every /v1 answer is ``Cache-Control: private`` (:class:`PrivateAnswers`): it is one key's.
 * A method a path does not serve is a 405 whose ``Allow`` lists every method of every route on that
   path (Starlette names only the first route it tried), and ``OPTIONS`` on any path answers 204
   with the same ``Allow``. Without a key too: it says nothing ``/openapi.json`` does not.
@@ -340,6 +341,36 @@ class HeadAsGet:
             pass
 
 
+KEYS_OWN = "private, no-cache"
+"""The Cache-Control of a /v1 answer whose route says none: a browser may keep it, revalidating it (an artifact's
+ETag) before each use; a shared cache keeps none."""
+
+
+class PrivateAnswers:
+    """``Cache-Control: private, no-cache`` on every /v1 answer whose route sets no Cache-Control (ASGI middleware).
+
+    Each is the key's own (its jobs, scenes, artifacts, webhook secret), but its key may come in ``X-API-Key``, a
+    header shared caches know nothing of (RFC 9111 §3.5 keeps only answers to ``Authorization`` out of them) and no
+    answer varied on: a proxy caching by URL (Varnish's default: 120 s for a 200 with no Cache-Control) had answered
+    one key's ``GET /v1/jobs``, or its webhook secret, to the next key asking."""
+
+    def __init__(self, app):
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http" or not (route_path(scope) + "/").startswith("/v1/"):
+            return await self.app(scope, receive, send)
+
+        async def send_private(message):
+            if message["type"] == "http.response.start" and not any(
+                    name.lower() == b"cache-control" for name, _ in message.get("headers", [])):
+                message = {**message, "headers": [*message.get("headers", []),
+                                                  (b"cache-control", KEYS_OWN.encode())]}
+            await send(message)
+
+        await self.app(scope, receive, send_private)
+
+
 class RefuseNul:
     """The NUL answers above, before any route (ASGI middleware)."""
 
@@ -359,10 +390,11 @@ class RefuseNul:
 
 
 def install(app: FastAPI) -> None:
-    """Answer NUL paths, unreadable JSON, HEAD, 405 and OPTIONS as above, and document them with the statuses no
-    route declares itself."""
+    """Answer NUL paths, unreadable JSON, HEAD, 405 and OPTIONS as above, keep /v1 answers out of shared caches, and
+    document them with the statuses no route declares itself."""
     app.add_middleware(RefuseNul)
     app.add_middleware(HeadAsGet)
+    app.add_middleware(PrivateAnswers)
     app.add_exception_handler(405, method_not_allowed)
     app.add_exception_handler(400, unreadable_body)
     for error in UNAVAILABLE:

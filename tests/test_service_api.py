@@ -1530,6 +1530,26 @@ def test_head_answers_wherever_get_does_with_its_headers_and_no_body(client, dat
     assert refused.status_code == 405 and refused.headers["allow"] == "OPTIONS, POST"
 
 
+def test_every_v1_answer_is_kept_out_of_shared_caches_and_the_webhook_secret_out_of_every_cache(client, root):
+    """A /v1 answer is one key's, but its key may come in X-API-Key, which shared caches do not know (RFC 9111 §3.5
+    keeps only answers to Authorization out of them), and no answer said Cache-Control: a proxy caching by URL had
+    answered one key's job listing, or its webhook secret, to the next key. Each is now private (and revalidated, an
+    artifact's by its ETag), the secret not stored at all; an event stream's ``no-cache`` is private too."""
+    job_id, url = _published_render(root)
+    etag = client.head(url).headers["etag"]
+    answers = {"listing": client.get("/v1/jobs"), "job": client.get(f"/v1/jobs/{job_id}"),
+               "HEAD": client.head(f"/v1/jobs/{job_id}"), "artifact": client.get(url),
+               "range": client.get(url, headers={"Range": "bytes=0-9"}),
+               "304": client.get(url, headers={"If-None-Match": etag}), "404": client.get("/v1/jobs/no-such-job"),
+               "422": client.get("/v1/jobs?limit=0"), "405": client.delete(f"/v1/jobs/{job_id}"),
+               "stream": client.get(f"/v1/jobs/{job_id}/events", headers={"Accept": "text/event-stream"})}
+    for what, answer in answers.items():
+        assert answer.headers.get("cache-control") == "private, no-cache", (what, answer.status_code)
+    secret = client.get("/v1/webhooks/secret")
+    assert secret.status_code == 200 and secret.headers.get("cache-control") == "no-store"
+    assert "cache-control" not in client.get("/healthz").headers  # no key's: anyone's to cache
+
+
 def test_a_body_sent_to_an_operation_that_takes_none_is_a_documented_415_and_does_nothing(client):
     """A cancel or a deletion sent with a body (``{"reason": ...}``, ``{"force": true}``) had ignored it silently:
     the caller could believe it was read. Such a body is a 415 naming the operation, nothing done; an empty one (no

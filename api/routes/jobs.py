@@ -12,7 +12,7 @@ from sqlalchemy import select
 from api.auth import mark_replayed
 from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep
 from api.events import SSE_MEDIA_TYPE
-from api.http_semantics import StrictRoute
+from api.http_semantics import KEYS_OWN, StrictRoute
 from api.paging import PageQuery, page_query
 from api.schemas import (
     JobCreate, JobEventOut, JobOut, JobReconstruction, JobState, Models, Page, WebhookDeliveryOut,
@@ -171,7 +171,7 @@ def list_events(job_id: str, request: Request, response: Response, session: Sess
         after = _event_id(last_event_id)
         session.close()  # the stream reads through the hub's short sessions: hold no connection meanwhile
         return StreamingResponse(request.app.state.event_hub.stream(job_id, key.id, after), media_type=SSE_MEDIA_TYPE,
-                                 headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no", **negotiated})
+                                 headers={"Cache-Control": KEYS_OWN, "X-Accel-Buffering": "no", **negotiated})
     response.headers.update(negotiated)
     rows = session.scalars(select(JobEvent).where(JobEvent.job_id == job_id).order_by(JobEvent.id))
     return [JobEventOut.model_validate(e, from_attributes=True) for e in rows]

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Response
 
 from api.deps import CurrentKey, SessionDep
 from api.http_semantics import StrictRoute
@@ -14,5 +14,6 @@ router = APIRouter(prefix="/v1/webhooks", tags=["webhooks"], route_class=StrictR
 
 @router.get("/secret", response_model=WebhookSecretOut,
             summary="This key's webhook secret: verify deliveries' webhook-signature with it (Standard Webhooks)")
-def get_secret(session: SessionDep, key: CurrentKey) -> WebhookSecretOut:
+def get_secret(response: Response, session: SessionDep, key: CurrentKey) -> WebhookSecretOut:
+    response.headers["Cache-Control"] = "no-store"  # a secret: not kept even in the browser's cache
     return WebhookSecretOut(secret=jobs.webhook_secret(session=session, key=key))
