@@ -1745,6 +1745,34 @@ def test_a_416_names_a_long_range_cut_short(client, root):
         "range 'bytes=9000-' is outside the 5000-byte file")
 
 
+def test_a_range_ending_before_it_starts_says_so_and_an_empty_files_suffix_range_gets_the_file(client, root):
+    """bytes=3000-2000 had been a 416 saying the range "is outside the 5000-byte file", which it is not, and
+    bytes=-0 an "empty suffix range" however large the file. A suffix range of an empty artifact is satisfiable (RFC
+    9110 §14.1.1: by the empty file) and had been a 416: a client resuming every download with bytes=-N failed on an
+    empty one. It gets the empty file (200: no Content-Range can say 0 bytes)."""
+    from worker.runtime import publish_artifact
+
+    job_id, url = _published_render(root)
+    for request in (client.get, client.head):
+        backwards = request(url, headers={"Range": "bytes=3000-2000"})
+        assert backwards.status_code == 416 and backwards.headers["content-range"] == "bytes */5000", request
+        nothing = request(url, headers={"Range": "bytes=-0"})
+        assert nothing.status_code == 416 and nothing.headers["content-range"] == "bytes */5000", request
+    assert client.get(url, headers={"Range": "bytes=3000-2000"}).json()["detail"] == (
+        "range 'bytes=3000-2000' ends before it starts: send bytes=first-last with last >= first")
+    assert client.get(url, headers={"Range": "bytes=-0"}).json()["detail"] == (
+        "range 'bytes=-0' is a suffix of 0 bytes: it selects none")
+    (root / "empty.log").write_bytes(b"")
+    publish_artifact(job_id, "empty.log", root / "empty.log", "log")
+    empty = f"/v1/jobs/{job_id}/artifacts/empty.log"
+    for request in (client.get, client.head):
+        whole = request(empty, headers={"Range": "bytes=-100"})
+        assert (whole.status_code, whole.content, whole.headers["content-length"]) == (200, b"", "0"), request
+        assert "content-range" not in whole.headers
+        start = request(empty, headers={"Range": "bytes=0-"})  # (no first byte: unsatisfiable)
+        assert start.status_code == 416 and start.headers["content-range"] == "bytes */0", request
+
+
 def test_an_idempotency_key_sent_twice_is_a_422_and_creates_nothing(client):
     """Two Idempotency-Key lines had created the job under the first, silently: a retry through a proxy keeping the
     last (or the client's own retry logic adding another) then made a second job."""

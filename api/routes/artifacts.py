@@ -56,7 +56,8 @@ def artifact_out(job_id: str, artifact: Artifact) -> ArtifactOut:
 
 
 def parse_range(header: str | None, size: int) -> tuple[int, int] | None:
-    """(first, last) inclusive for a single ``bytes=`` range; None to send the whole file; 416 when unsatisfiable,
+    """(first, last) inclusive for a single ``bytes=`` range; None to send the whole file (an empty file's suffix
+    range too); 416 when unsatisfiable or invalid, saying which,
     naming the range cut short (a header of thousands of digits had come back whole in the message)."""
     if not header:
         return None
@@ -72,12 +73,16 @@ def parse_range(header: str | None, size: int) -> tuple[int, int] | None:
     first, last = match.group(1), match.group(2)
     if not first:  # suffix: the last N bytes
         n = _position(last)
-        if n == 0 or size == 0:
-            raise _unsatisfiable(size, f"empty suffix range {sent}")
+        if n == 0:
+            raise _unsatisfiable(size, f"range {sent} is a suffix of 0 bytes: it selects none")
+        if size == 0:  # (RFC 9110 §14.1.1: satisfiable, by the empty file; no Content-Range can say 0 bytes)
+            return None
         return max(0, size - n), size - 1
     start = _position(first)
     end = _position(last) if last else size - 1
-    if start >= size or end < start:
+    if last and end < start:  # (an invalid range, RFC 9110 §14.1.1; it had been said to be outside the file)
+        raise _unsatisfiable(size, f"range {sent} ends before it starts: send bytes=first-last with last >= first")
+    if start >= size:
         raise _unsatisfiable(size, f"range {sent} is outside the {size}-byte file")
     return start, min(end, size - 1)
 
