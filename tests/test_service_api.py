@@ -1773,6 +1773,23 @@ def test_a_range_ending_before_it_starts_says_so_and_an_empty_files_suffix_range
         assert start.status_code == 416 and start.headers["content-range"] == "bytes */0", request
 
 
+def test_a_range_or_if_range_sent_on_two_lines_is_read_as_both_not_as_its_first(client, root):
+    """A second Range or If-Range line had been dropped: bytes=0-1 then bytes=5-6 served bytes 0-1, where a proxy
+    reading the last line expects bytes 5-6, and a current ETag then an old one resumed the download. The lines are
+    one value, combined as RFC 9110 §5.3 does: two ranges are several (the whole file, as one line listing them) and
+    two If-Range validators none (422, as one line listing them)."""
+    _, url = _published_render(root)
+    etag = client.head(url).headers["etag"]
+    for request in (client.get, client.head):
+        two_ranges = request(url, headers=[("Range", "bytes=0-1"), ("Range", "bytes=5-6")])
+        assert (two_ranges.status_code, two_ranges.headers["content-length"]) == (200, "5000"), request
+        assert "content-range" not in two_ranges.headers
+        for validators in ((etag, '"old"'), ('"old"', etag)):
+            refused = request(url, headers=[("Range", "bytes=0-1"), *(("If-Range", v) for v in validators)])
+            assert refused.status_code == 422, (request, validators)
+        assert request(url, headers=[("Range", "bytes=0-1"), ("If-Range", etag)]).status_code == 206
+
+
 def test_an_idempotency_key_sent_twice_is_a_422_and_creates_nothing(client):
     """Two Idempotency-Key lines had created the job under the first, silently: a retry through a proxy keeping the
     last (or the client's own retry logic adding another) then made a second job."""

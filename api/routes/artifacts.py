@@ -115,6 +115,15 @@ def entity_tags(header: str, lines: list[str] | None) -> set[str] | None:
     return set(elements)
 
 
+def one_value(lines: list[str] | None) -> str | None:
+    """A header's field lines as one value, joined by commas as RFC 9110 §5.3 combines them (None: not sent).
+
+    A Range or If-Range sent on two lines had been read from its first only, where a proxy may read the last: the
+    bytes of one range served as those of the other, or a download resumed on the first line's ETag. Combined, two
+    ranges are several (the whole file) and two If-Range validators none (a 422)."""
+    return None if lines is None else ", ".join(lines)
+
+
 def range_validator(if_range: str | None, range_: str | None) -> str | None:
     """If-Range's entity tag or date when a Range is sent; None without one (RFC 9110 §13.1.5: it is then ignored).
 
@@ -163,9 +172,11 @@ _DOWNLOAD = {
             summary="Download an artifact (supports Range: bytes=..., If-Range, If-Match and If-None-Match)")
 def get_artifact(
     job_id: str, name: str, request: Request, session: SessionDep, storage: StorageDep, key: CurrentKey,
-    range_: Annotated[str | None, Header(alias="Range", description="bytes=first-last, first- or -suffix")] = None,
-    if_range: Annotated[str | None, Header(description="the ETag the Range's earlier bytes came from: another "
-                                                       "(or a date) gets the whole file; a bare sha256, 422")] = None,
+    range_lines: Annotated[list[str] | None, Header(alias="Range", description="bytes=first-last, first- or "
+                                                                           "-suffix")] = None,
+    if_range_lines: Annotated[list[str] | None, Header(alias="if-range", description="the ETag the Range's earlier "
+                                                       "bytes came from: another (or a date) gets the whole file; a "
+                                                       "bare sha256, 422")] = None,
     if_none_match: Annotated[list[str] | None, Header(description="ETags held (or *): the current one gets 304")
                              ] = None,
     if_match: Annotated[list[str] | None, Header(description="ETags any of which the artifact must still have (or "
@@ -175,6 +186,7 @@ def get_artifact(
     # transaction open) until its client read the last byte, and two slow ones made every other request wait.
     try:
         held, required = entity_tags("If-None-Match", if_none_match), entity_tags("If-Match", if_match)
+        range_, if_range = one_value(range_lines), one_value(if_range_lines)
         if_range = range_validator(if_range, range_)
         get_job(session=session, key=key, job_id=job_id)
         for attempt in range(2):
