@@ -195,6 +195,16 @@ def _unique_members(pairs: list[tuple[str, object]]) -> dict:
     return members
 
 
+def one_value(lines: list[str] | None) -> str | None:
+    """A header's field lines as one value, joined by commas as RFC 9110 §5.3 combines them (None: not sent).
+
+    For a one-valued header (Range, If-Range, Last-Event-ID) FastAPI reads the first line only, where a proxy may
+    read the last: the bytes of one range had been served as those of the other, a download resumed on the first
+    line's ETag, a stream resumed after the first line's event. Combined, two ranges are several (the whole file),
+    two If-Range validators or event ids none (a 422)."""
+    return None if lines is None else ", ".join(lines)
+
+
 def takes_several(annotation) -> bool:
     """Whether a parameter or form field of this annotation takes several values (``list[UploadFile] | None``)."""
     return get_origin(annotation) is list or any(get_origin(arg) is list for arg in get_args(annotation))

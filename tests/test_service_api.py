@@ -1790,6 +1790,18 @@ def test_a_range_or_if_range_sent_on_two_lines_is_read_as_both_not_as_its_first(
         assert request(url, headers=[("Range", "bytes=0-1"), ("If-Range", etag)]).status_code == 206
 
 
+def test_a_last_event_id_sent_on_two_lines_is_a_422_not_its_first_line(client):
+    """Last-Event-ID 5 then 9 had resumed the stream after event 5 (repeating 6 to 9 to a client whose proxy read
+    the last line), and 5 then "soon" had streamed too, though one line is no event id. Read as one value (RFC 9110
+    §5.3), two ids are none: a 422 naming the header, as "5, 9" on one line is."""
+    url = f"/v1/jobs/{_job_row()}/events"
+    for lines in (("5", "9"), ("5", "soon"), ("5", "5")):
+        refused = client.get(url, headers=[("Accept", "text/event-stream"), *(("Last-Event-ID", v) for v in lines)])
+        assert refused.status_code == 422 and "Last-Event-ID" in refused.json()["detail"], lines
+    with client.stream("GET", url, headers={"Accept": "text/event-stream", "Last-Event-ID": "5"}) as one:
+        assert one.status_code == 200  # (the job has ended: its stream ends at the hub's first poll)
+
+
 def test_an_idempotency_key_sent_twice_is_a_422_and_creates_nothing(client):
     """Two Idempotency-Key lines had created the job under the first, silently: a retry through a proxy keeping the
     last (or the client's own retry logic adding another) then made a second job."""

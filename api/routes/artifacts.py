@@ -12,7 +12,7 @@ from fastapi.responses import StreamingResponse
 from sqlalchemy import select
 
 from api.deps import CurrentKey, SessionDep, StorageDep
-from api.http_semantics import StrictRoute, listed
+from api.http_semantics import StrictRoute, listed, one_value
 from api.schemas import ArtifactOut
 from api.services.jobs import get_job
 from voxe_service.models import Artifact
@@ -113,15 +113,6 @@ def entity_tags(header: str, lines: list[str] | None) -> set[str] | None:
     if not elements and header == "If-Match":  # (an empty If-None-Match is simply true: the file)
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"If-Match is empty: {_SEND_ETAG[header]}")
     return set(elements)
-
-
-def one_value(lines: list[str] | None) -> str | None:
-    """A header's field lines as one value, joined by commas as RFC 9110 §5.3 combines them (None: not sent).
-
-    A Range or If-Range sent on two lines had been read from its first only, where a proxy may read the last: the
-    bytes of one range served as those of the other, or a download resumed on the first line's ETag. Combined, two
-    ranges are several (the whole file) and two If-Range validators none (a 422)."""
-    return None if lines is None else ", ".join(lines)
 
 
 def range_validator(if_range: str | None, range_: str | None) -> str | None:

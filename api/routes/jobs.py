@@ -12,7 +12,7 @@ from sqlalchemy import select
 from api.auth import mark_replayed
 from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep
 from api.events import SSE_MEDIA_TYPE
-from api.http_semantics import KEYS_OWN, StrictRoute
+from api.http_semantics import KEYS_OWN, StrictRoute, one_value
 from api.paging import PageQuery, page_query
 from api.schemas import (
     JobCreate, JobEventOut, JobOut, JobReconstruction, JobState, Models, Page, WebhookDeliveryOut,
@@ -162,13 +162,14 @@ def get_job(job_id: str, session: SessionDep, key: CurrentKey) -> JobOut:
     summary="The job's timeline (stages, checkpoints, artifacts, its end), or a live stream of it",
 )
 def list_events(job_id: str, request: Request, response: Response, session: SessionDep, key: CurrentKey,
-                last_event_id: Annotated[str | None, Header(description="stream: resume after this event id")] = None,
+                last_event_id_lines: Annotated[list[str] | None, Header(
+                    alias="last-event-id", description="stream: resume after this event id")] = None,
                 ) -> list[JobEventOut] | StreamingResponse:
     jobs.get_job(session=session, key=key, job_id=job_id)
     # Either answer depends on Accept: said, so a cache never serves the timeline for the stream or the other way.
     negotiated = {"Vary": "Accept"}
     if wants_stream(request.headers.getlist("accept")):
-        after = _event_id(last_event_id)
+        after = _event_id(one_value(last_event_id_lines))
         session.close()  # the stream reads through the hub's short sessions: hold no connection meanwhile
         return StreamingResponse(request.app.state.event_hub.stream(job_id, key.id, after), media_type=SSE_MEDIA_TYPE,
                                  headers={"Cache-Control": KEYS_OWN, "X-Accel-Buffering": "no", **negotiated})
