@@ -1802,6 +1802,27 @@ def test_a_last_event_id_sent_on_two_lines_is_a_422_not_its_first_line(client):
         assert one.status_code == 200  # (the job has ended: its stream ends at the hub's first poll)
 
 
+def test_a_scene_deleted_by_another_request_meanwhile_is_a_404_not_a_second_204(client, monkeypatch):
+    """Two DELETEs of one scene at once had both answered 204: the second read the scene, waited for the first's lock,
+    found its row gone and deleted nothing (a warning in the log). It is a 404, as any DELETE after the first is."""
+    from api.services import scenes
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
+
+    scene_id = add_ready_scene(0)
+    lock_scene = scenes.lock_scene
+
+    def deleted_by_another_request_first(session, locking):
+        with session_scope() as other:
+            other.delete(other.get(Scene, locking))
+        return lock_scene(session, locking)
+
+    monkeypatch.setattr(scenes, "lock_scene", deleted_by_another_request_first)
+    second = client.delete(f"/v1/scenes/{scene_id}")
+    assert second.status_code == 404 and second.json()["detail"] == (
+        f"scene {scene_id!r} not found (deleted meanwhile)")
+
+
 def test_an_idempotency_key_sent_twice_is_a_422_and_creates_nothing(client):
     """Two Idempotency-Key lines had created the job under the first, silently: a retry through a proxy keeping the
     last (or the client's own retry logic adding another) then made a second job."""

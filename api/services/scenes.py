@@ -204,7 +204,8 @@ def delete_scene(*, session: Session, storage: Storage, key: ApiKey, scene_id: s
     scene = get_scene(session=session, key=key, scene_id=scene_id)
     # Locked before counting, as creating a job locks it after writing its row (add_jobs): a job created meanwhile
     # is either counted here (409) or refused there (404), never accepted and then deleted with the scene.
-    lock_scene(session, scene_id)
+    if lock_scene(session, scene_id) is None:  # another DELETE's, committed meanwhile: it had been a 204 here too
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"scene {scene_id!r} not found (deleted meanwhile)")
     active = session.scalar(select(func.count()).select_from(Job)
                             .where(Job.scene_id == scene_id, Job.state.in_((QUEUED, RUNNING))))
     if active:
