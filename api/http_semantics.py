@@ -195,14 +195,23 @@ def _unique_members(pairs: list[tuple[str, object]]) -> dict:
     return members
 
 
-def one_value(lines: list[str] | None) -> str | None:
-    """A header's field lines as one value, joined by commas as RFC 9110 §5.3 combines them (None: not sent).
+def combined(lines: list[str] | None) -> str | None:
+    """A list header's field lines as one value, joined by commas as RFC 9110 §5.3 combines them (None: not sent).
 
-    For a one-valued header (Range, If-Range, Last-Event-ID) FastAPI reads the first line only, where a proxy may
-    read the last: the bytes of one range had been served as those of the other, a download resumed on the first
-    line's ETag, a stream resumed after the first line's event. Combined, two ranges are several (the whole file),
-    two If-Range validators or event ids none (a 422)."""
+    FastAPI reads a ``str`` header's first line only, where a proxy may read the last: the bytes of one range had
+    been served as those of the other. Combined, two ranges are several (the whole file)."""
     return None if lines is None else ", ".join(lines)
+
+
+def only_line(header: str, lines: list[str]) -> str | None:
+    """A one-valued header's value (If-Range, Last-Event-ID; None: not sent); 422 naming it when sent on several lines.
+
+    Such a header is no list, so its lines cannot be combined: an HTTP-date holds a comma, and a date joined with
+    anything had been read as that date alone. Its first line had been read where a proxy may read the last (a
+    download resumed on the first line's ETag, a stream after the first line's event)."""
+    if len(lines) > 1:
+        raise HTTPException(422, f"{header} was sent on {len(lines)} lines: it holds one value, send it once")
+    return lines[0] if lines else None
 
 
 def takes_several(annotation) -> bool:

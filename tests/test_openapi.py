@@ -632,3 +632,14 @@ def test_idempotent_operations_document_the_409_of_a_deleted_original(spec):
     assert {("/v1/scenes", "post"), ("/v1/jobs", "post")} <= idempotent
     for path, method in idempotent:
         assert "deleted" in spec["paths"][path][method]["responses"]["409"]["description"], (path, method)
+
+
+def test_the_one_line_headers_read_from_every_line_are_documented_as_strings(spec):
+    """Range, If-Range and Last-Event-ID are read from all their lines, but each is one string: their parameters had
+    been typed list[str], so the document (and clients generated from it, Swagger's form) made them arrays."""
+    documented = {(path, parameter["name"].lower()): parameter["schema"]
+                  for path, operations in spec["paths"].items() for operation in operations.values()
+                  for parameter in operation.get("parameters", []) if parameter["in"] == "header"}
+    artifact, events = "/v1/jobs/{job_id}/artifacts/{name}", "/v1/jobs/{job_id}/events"
+    for key in ((artifact, "range"), (artifact, "if-range"), (events, "last-event-id")):
+        assert documented[key]["anyOf"] == [{"type": "string"}, {"type": "null"}], (key, documented[key])

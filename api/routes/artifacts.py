@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import re
 from collections.abc import Iterator
-from email.utils import parsedate_tz
 from typing import Annotated
 
 from fastapi import APIRouter, Header, HTTPException, Request, Response, status
@@ -12,7 +11,7 @@ from fastapi.responses import StreamingResponse
 from sqlalchemy import select
 
 from api.deps import CurrentKey, SessionDep, StorageDep
-from api.http_semantics import StrictRoute, listed, one_value
+from api.http_semantics import StrictRoute, combined, listed, only_line
 from api.schemas import ArtifactOut
 from api.services.jobs import get_job
 from voxe_service.models import Artifact
@@ -22,6 +21,12 @@ router = APIRouter(prefix="/v1/jobs/{job_id}/artifacts", tags=["artifacts"], rou
 
 _RANGE = re.compile(r"^\s*(\d*)\s*-\s*(\d*)\s*$")
 _ENTITY_TAG = re.compile(r'(?:W/)?"[\x21\x23-\x7e\x80-\xff]*"')  # RFC 9110 §8.8.3 (a header's text is Latin-1)
+_MONTH = "(?:Jan|Feb|Mar|Apr|May|Jun|Jul|Aug|Sep|Oct|Nov|Dec)"
+_CLOCK = r"\d{2}:\d{2}:\d{2}"
+_HTTP_DATE = re.compile(  # RFC 9110 §5.6.7, the whole value: parsedate_tz had read a date at the start of any text
+    rf"(?:Mon|Tue|Wed|Thu|Fri|Sat|Sun), \d{{2}} {_MONTH} \d{{4}} {_CLOCK} GMT"  # IMF-fixdate
+    rf"|(?:Mon|Tues|Wednes|Thurs|Fri|Satur|Sun)day, \d{{2}}-{_MONTH}-\d{{2}} {_CLOCK} GMT"  # obsolete RFC 850
+    rf"|(?:Mon|Tue|Wed|Thu|Fri|Sat|Sun) {_MONTH} [ \d]\d {_CLOCK} \d{{4}}")  # obsolete asctime
 _LIST_ELEMENT = re.compile(r'(?:W/)?"[^"]*"|[^,]+')  # a quoted tag may hold a comma
 # How to send an ETag in each header: W/ only where a weak tag can match (If-Match and If-Range compare strongly, RFC
 # 9110 §13.1.1, §13.1.5).
@@ -103,7 +108,7 @@ def entity_tags(header: str, lines: list[str] | None) -> set[str] | None:
     """
     if lines is None:
         return None
-    elements = [element.strip() for element in _LIST_ELEMENT.findall(",".join(lines)) if element.strip()]
+    elements = [element.strip() for element in _LIST_ELEMENT.findall(combined(lines)) if element.strip()]
     if bad := [element for element in elements if element != "*" and not _ENTITY_TAG.fullmatch(element)]:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
                             f"{header} {listed(bad, width=70)} is not an entity tag: {_SEND_ETAG[header]}")
@@ -115,16 +120,18 @@ def entity_tags(header: str, lines: list[str] | None) -> set[str] | None:
     return set(elements)
 
 
-def range_validator(if_range: str | None, range_: str | None) -> str | None:
-    """If-Range's entity tag or date when a Range is sent; None without one (RFC 9110 §13.1.5: it is then ignored).
+def range_validator(if_range_lines: list[str], range_: str | None) -> str | None:
+    """If-Range's entity tag or date when a Range is sent; None without one (RFC 9110 §13.1.5: it is then ignored,
+    on several lines too).
 
     422 naming the header for anything else: a bare tag (the listing's sha256, unquoted) had never matched, so a
     resumed download silently got the whole file again (If-Match and If-None-Match refuse it so).
     """
-    if if_range is None or not range_:
+    if not if_range_lines or not range_:
         return None
+    if_range = only_line("If-Range", if_range_lines)
     validator = if_range.strip()
-    if not _ENTITY_TAG.fullmatch(validator) and parsedate_tz(validator) is None:
+    if not _ENTITY_TAG.fullmatch(validator) and not _HTTP_DATE.fullmatch(validator):
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
                             f"If-Range {listed([if_range], width=70)} is neither an entity tag nor a date: "
                             f"{_SEND_ETAG['If-Range']}")
@@ -154,7 +161,8 @@ _DOWNLOAD = {
                          "strongly)"},
     416: {"description": "range not satisfiable"},
     422: {"description": "If-Match or If-None-Match is not * or a list of quoted entity tags, If-Match is empty, or "
-                         "If-Range (with a Range) is neither an entity tag nor a date (the header named)"},
+                         "If-Range (with a Range) is neither an entity tag nor a date, or is sent on several lines (the "
+                         "header named)"},
 }
 
 
@@ -163,11 +171,10 @@ _DOWNLOAD = {
             summary="Download an artifact (supports Range: bytes=..., If-Range, If-Match and If-None-Match)")
 def get_artifact(
     job_id: str, name: str, request: Request, session: SessionDep, storage: StorageDep, key: CurrentKey,
-    range_lines: Annotated[list[str] | None, Header(alias="Range", description="bytes=first-last, first- or "
-                                                                           "-suffix")] = None,
-    if_range_lines: Annotated[list[str] | None, Header(alias="if-range", description="the ETag the Range's earlier "
-                                                       "bytes came from: another (or a date) gets the whole file; a "
-                                                       "bare sha256, 422")] = None,
+    # Range and If-Range are read from every line below (request.headers); these parameters document them.
+    range_: Annotated[str | None, Header(alias="Range", description="bytes=first-last, first- or -suffix")] = None,
+    if_range: Annotated[str | None, Header(description="the ETag the Range's earlier bytes came from: another "
+                                                       "(or a date) gets the whole file; a bare sha256, 422")] = None,
     if_none_match: Annotated[list[str] | None, Header(description="ETags held (or *): the current one gets 304")
                              ] = None,
     if_match: Annotated[list[str] | None, Header(description="ETags any of which the artifact must still have (or "
@@ -177,8 +184,8 @@ def get_artifact(
     # transaction open) until its client read the last byte, and two slow ones made every other request wait.
     try:
         held, required = entity_tags("If-None-Match", if_none_match), entity_tags("If-Match", if_match)
-        range_, if_range = one_value(range_lines), one_value(if_range_lines)
-        if_range = range_validator(if_range, range_)
+        range_ = combined(request.headers.getlist("range") or None)
+        if_range = range_validator(request.headers.getlist("if-range"), range_)
         get_job(session=session, key=key, job_id=job_id)
         for attempt in range(2):
             # Only names recorded for this job are served: no path is ever built from the request.

@@ -12,7 +12,7 @@ from sqlalchemy import select
 from api.auth import mark_replayed
 from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep
 from api.events import SSE_MEDIA_TYPE
-from api.http_semantics import KEYS_OWN, StrictRoute, one_value
+from api.http_semantics import KEYS_OWN, StrictRoute, combined, only_line
 from api.paging import PageQuery, page_query
 from api.schemas import (
     JobCreate, JobEventOut, JobOut, JobReconstruction, JobState, Models, Page, WebhookDeliveryOut,
@@ -158,18 +158,18 @@ def get_job(job_id: str, session: SessionDep, key: CurrentKey) -> JobOut:
                      "headers": {"Vary": {"description": "Accept: the answer depends on it",
                                           "schema": {"type": "string"}}},
                      "content": {SSE_MEDIA_TYPE: {"schema": {"type": "string"}}}},
-               422: {"description": "Last-Event-ID is not an event id"}},
+               422: {"description": "Last-Event-ID is not an event id, or is sent on several lines"}},
     summary="The job's timeline (stages, checkpoints, artifacts, its end), or a live stream of it",
 )
 def list_events(job_id: str, request: Request, response: Response, session: SessionDep, key: CurrentKey,
-                last_event_id_lines: Annotated[list[str] | None, Header(
-                    alias="last-event-id", description="stream: resume after this event id")] = None,
+                # (documents the header; every line of it is read from request.headers)
+                last_event_id: Annotated[str | None, Header(description="stream: resume after this event id")] = None,
                 ) -> list[JobEventOut] | StreamingResponse:
     jobs.get_job(session=session, key=key, job_id=job_id)
     # Either answer depends on Accept: said, so a cache never serves the timeline for the stream or the other way.
     negotiated = {"Vary": "Accept"}
     if wants_stream(request.headers.getlist("accept")):
-        after = _event_id(one_value(last_event_id_lines))
+        after = _event_id(only_line("Last-Event-ID", request.headers.getlist("last-event-id")))
         session.close()  # the stream reads through the hub's short sessions: hold no connection meanwhile
         return StreamingResponse(request.app.state.event_hub.stream(job_id, key.id, after), media_type=SSE_MEDIA_TYPE,
                                  headers={"Cache-Control": KEYS_OWN, "X-Accel-Buffering": "no", **negotiated})
@@ -187,7 +187,7 @@ def wants_stream(accept: list[str]) -> bool:
     (``application/json, text/event-stream;q=0.1``).
     """
     weights: dict[str, float] = {}
-    for media_range in ",".join(accept).split(","):
+    for media_range in combined(accept).split(","):
         media_type, *params = (part.strip().lower() for part in media_range.split(";"))
         q = [value.strip() for name, _, value in (p.partition("=") for p in params) if name.strip() == "q"]
         weights.setdefault(media_type, _qvalue(q[0]) if q else 1.0)
