@@ -365,6 +365,11 @@ KEYS_OWN = "private, no-cache"
 ETag) before each use; a shared cache keeps none."""
 
 
+def keys_own(scope) -> bool:
+    """Whether a request's answer is one key's: any under /v1."""
+    return (route_path(scope) + "/").startswith("/v1/")
+
+
 class PrivateAnswers:
     """``Cache-Control: private, no-cache`` on every /v1 answer whose route sets no Cache-Control (ASGI middleware).
 
@@ -377,7 +382,7 @@ class PrivateAnswers:
         self.app = app
 
     async def __call__(self, scope, receive, send):
-        if scope["type"] != "http" or not (route_path(scope) + "/").startswith("/v1/"):
+        if scope["type"] != "http" or not keys_own(scope):
             return await self.app(scope, receive, send)
 
         async def send_private(message):

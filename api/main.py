@@ -224,11 +224,13 @@ def create_app(settings: Settings | None = None, migrate: bool = True) -> FastAP
     return app
 
 
-def internal_error(_request, _exc) -> PlainTextResponse:
-    """Starlette's plain 500 for an unhandled error (still logged by the server), with the security headers: it
-    is answered outside every middleware."""
-    return PlainTextResponse("Internal Server Error", 500,
-                             headers={name.decode(): value.decode() for name, value in SecurityHeaders.HEADERS})
+def internal_error(request, _exc) -> PlainTextResponse:
+    """Starlette's plain 500 for an unhandled error (still logged by the server), with the security headers and, on
+    /v1, the Cache-Control every /v1 answer has: it is answered outside every middleware."""
+    headers = {name.decode(): value.decode() for name, value in SecurityHeaders.HEADERS}
+    if http_semantics.keys_own(request.scope):
+        headers["Cache-Control"] = http_semantics.KEYS_OWN
+    return PlainTextResponse("Internal Server Error", 500, headers=headers)
 
 
 def _json_safe(value):

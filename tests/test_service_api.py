@@ -1550,6 +1550,22 @@ def test_every_v1_answer_is_kept_out_of_shared_caches_and_the_webhook_secret_out
     assert "cache-control" not in client.get("/healthz").headers  # no key's: anyone's to cache
 
 
+def test_a_v1_internal_error_is_kept_out_of_shared_caches_too(root, monkeypatch):
+    """An unhandled error's 500 is answered outside every middleware, so on /v1 it had no Cache-Control, though every
+    /v1 answer is said to have one: a proxy could keep one key's 500 for the next key."""
+    from api.main import create_app
+    from api.routes import jobs as jobs_route
+
+    def fails(**_):
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(jobs_route.jobs, "get_job", fails)
+    with TestClient(create_app(), raise_server_exceptions=False) as failing:
+        answer = failing.get("/v1/jobs/any")
+        assert answer.status_code == 500 and answer.headers.get("cache-control") == "private, no-cache"
+        assert "cache-control" not in failing.get("/no-such-page").headers  # (a 404 off /v1: anyone's)
+
+
 def test_a_body_sent_to_an_operation_that_takes_none_is_a_documented_415_and_does_nothing(client):
     """A cancel or a deletion sent with a body (``{"reason": ...}``, ``{"force": true}``) had ignored it silently:
     the caller could believe it was read. Such a body is a 415 naming the operation, nothing done; an empty one (no
