@@ -103,7 +103,7 @@ class ReconstructionParams(Strict):
     rays_per_step: int | None = Field(None, ge=1, le=1 << 20)
     seed: int = Field(presets.SEED, ge=0, le=presets.MAX_SEED)
     backbone: Literal["auto", "relu_field", "scene"] = Field(
-        "auto", description="relu_field: objects on a transparent background; scene: captured photos with a "
+        presets.BACKBONE, description="relu_field: objects on a transparent background; scene: captured photos with a "
         "background (DVGO-style, SPEC §5); auto: the scene's backbone (decided from its images' alpha)"
     )
     route: Literal["auto", "fit", "voxelize"] = Field(
@@ -123,8 +123,8 @@ class RefineParams(Strict):
 
     iterations: int = Field(paper.SERVICE_REFINE_ITERATIONS, ge=0, le=100_000,
                             description="fitting steps of the 3D attention grids after their back-projection start (the paper: 1500)")
-    lift_start: Literal["backprojection", "constant"] = Field(
-        "backprojection", description="start of the attention grids: the maps' weighted back-projection, or 0 (the paper's; "
+    lift_start: Literal[presets.LIFT_STARTS] = Field(
+        presets.LIFT_START, description="start of the attention grids: the maps' weighted back-projection, or 0 (the paper's; "
         "it needs iterations > 0)")
     smoothing_sigma: float = Field(paper.SERVICE_SMOOTHING_SIGMA, ge=0, le=16,
                                    description="std in attention cells of the 2D maps' 3x3 Gaussian, applied on the 16x16 map and again "
@@ -190,8 +190,8 @@ class JobParams(Strict):
         description="annealing floor 0.35 (paper) or 0.22 (authors' code); a scene-backbone G_i anneals from "
         f"iteration {presets.EDIT_SCHEDULES['scene'].i_start} every {presets.EDIT_SCHEDULES['scene'].every} (SPEC §5)",
     )
-    view_words: bool = Field(True, description="append ', front view' etc. to the prompt from the pose (the authors' code)")
-    batch_size: int = Field(1, ge=1, le=16)
+    view_words: bool = Field(presets.VIEW_WORDS, description="append ', front view' etc. to the prompt from the pose (the authors' code)")
+    batch_size: int = Field(presets.BATCH_SIZE, ge=1, le=16)
     autocast: Literal["bf16", "fp16"] | None = None
     seed: int = Field(presets.SEED, ge=0, le=presets.MAX_SEED)
     preview_every: int = Field(presets.PREVIEW_EVERY, ge=0, le=200_000,

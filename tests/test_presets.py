@@ -21,6 +21,7 @@ from needs import require_data
 from service_helpers import (
     MIC, TINY_FIT, failing_uploads, ingest, reset_service_caches, service_env, small_mic, zip_folder,
 )
+from voxe_core import presets
 from voxe_core.cli import build_parser
 from voxe_core.cli import edit as edit_command
 from voxe_core.cli import reconstruct as reconstruct_command
@@ -102,6 +103,38 @@ def test_the_cli_and_the_service_fit_the_same_reconstruction(options, params):
     service = reconstruction_params(service_json(params))
     assert cli == service and reconstruction_key(cli) == reconstruction_key(service)
     assert reconstruct_config(cli, 10) == reconstruct_config(service, 10)
+
+
+def _shared_defaults(cli: dict, service: dict, where: str = "") -> dict:
+    """Dotted name -> (CLI default, service default) of every parameter both set (None: left to presets, as the
+    refinement's render size that is the edit's)."""
+    pairs = {}
+    for name, value in cli.items():
+        if isinstance(value, dict):
+            pairs.update(_shared_defaults(value, service[name], f"{where}{name}."))
+        elif value is not None and service[name] is not None:
+            pairs[where + name] = (value, service[name])
+    return pairs
+
+
+@pytest.mark.parametrize("command,module", [(EDIT, edit_command), (REFINE, refine_command),
+                                            (["reconstruct", "d", "--out", "g.safetensors"], reconstruct_command)])
+def test_each_default_the_cli_and_the_job_schema_share_is_the_presets_one(command, module):
+    """Defaults live in presets: the CLI's options, the API's schema and the stage configs built from parameters
+    that leave one out agree (a literal written in one of them had drifted from the others silently)."""
+    service = service_json({})
+    shared = _shared_defaults(module.job_params(build_parser().parse_args(command)), service)
+    assert shared
+    assert {name: cli for name, (cli, _) in shared.items()} == {name: api for name, (_, api) in shared.items()}
+    named = {"batch_size": presets.BATCH_SIZE, "view_words": presets.VIEW_WORDS, "seed": presets.SEED,
+             "preview_every": presets.PREVIEW_EVERY, "timestep_schedule": presets.TIMESTEP_SCHEDULES[0],
+             "downsample": presets.DOWNSAMPLE, "resample": presets.RESAMPLE, "refine.lift_start": presets.LIFT_START,
+             "reconstruction.backbone": presets.BACKBONE, "reconstruction.seed": presets.SEED}
+    assert {path: value for path, (value, _) in shared.items() if path in named} == {
+        path: value for path, value in named.items() if path in shared}
+    assert edit_config({}) == edit_config(service)  # the fallbacks of parameters left out
+    assert refine_config({}, ATTENTION_MODEL_ID) == refine_config(service, ATTENTION_MODEL_ID)
+    assert reconstruction_params({}) == reconstruction_params(service)
 
 
 @pytest.mark.parametrize("params,message", [

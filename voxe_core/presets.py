@@ -55,10 +55,19 @@ BACKBONE_PRESETS = {"scene": "scene"}
 """Backbone kind -> the preset its fits get when none is named (others: ``RECONSTRUCTION_PRESET``)."""
 BACKBONE_KINDS = ("relu_field", "scene")
 """What "auto" can resolve to (``voxe_core.backbones.BACKBONES``, spelt out: importing it loads torch)."""
+BACKBONE = "auto"
+"""The backbone of a fit when none is named: decided from the images' alpha."""
 TIMESTEP_SCHEDULES = ("paper", "authors")
 """The annealing floor: 0.35 (paper) or 0.22 (authors' code)."""
 PREVIEW_EVERY = 100
 """Edit iterations between preview renders (0: none)."""
+BATCH_SIZE = 1
+"""Poses (renders) per edit iteration."""
+VIEW_WORDS = True
+"""Append ', front view' etc. to the prompt from the pose (the authors' code), in the edit and the attention maps."""
+LIFT_STARTS = ("backprojection", "constant")
+"""Start of the attention grids: the maps' weighted back-projection (ours), or 0 everywhere (the paper's fit)."""
+LIFT_START = LIFT_STARTS[0]
 SEED = 0
 MAX_SEED = paper.MAX_SEED
 """The largest seed a job or the CLI takes (numpy's seed range)."""
@@ -114,7 +123,7 @@ def reconstruction_route(params: dict, mesh_scene: bool) -> str:
     rec = params.get("reconstruction") or {}
     route = rec.get("route", "auto")
     if route == "auto":
-        return "voxelize" if mesh_scene and rec.get("backbone", "auto") != "scene" else "fit"
+        return "voxelize" if mesh_scene and rec.get("backbone", BACKBONE) != "scene" else "fit"
     return route
 
 
@@ -122,7 +131,7 @@ def reconstruction_params(params: dict, mesh_scene: bool = False) -> dict:
     """The part of a job's parameters that determines G_i (the reconstruction cache key)."""
     rec = dict(params.get("reconstruction") or {})
     # "auto" (and route "fit") add nothing, so jobs that leave them out and jobs that name them share a fit.
-    backbone = {} if rec.get("backbone", "auto") == "auto" else {"backbone": rec["backbone"]}
+    backbone = {} if rec.get("backbone", BACKBONE) == "auto" else {"backbone": rec["backbone"]}
     route = reconstruction_route(params, mesh_scene)
     return {
         **backbone,
@@ -148,7 +157,7 @@ def reconstruction_key(rec_params: dict) -> str:
     Raises ValueError for parameters that resolve to no recipe (as ``reconstruct_config``); under
     "auto", only when they fit no backbone's (per-stage lists sized for one preset's stage count).
     """
-    backbone = rec_params.get("backbone", "auto")
+    backbone = rec_params.get("backbone", BACKBONE)
     recipes, errors = {}, []
     for kind in BACKBONE_KINDS if backbone == "auto" else (backbone,):
         try:  # what is fitted: not how often progress is saved nor how much memory a pass may hold
@@ -221,7 +230,7 @@ def fit_backbone(rec_params: dict, scene_backbone: str | None = None) -> str:
         >>> fit_backbone({}, "scene"), fit_backbone({"backbone": "relu_field"}, "scene"), fit_backbone({})
         ('scene', 'relu_field', 'auto')
     """
-    asked = rec_params.get("backbone", "auto")
+    asked = rec_params.get("backbone", BACKBONE)
     return scene_backbone if asked == "auto" and scene_backbone else asked
 
 
@@ -236,7 +245,7 @@ def check_fit(rec_params: dict, scene_backbone: str | None, image_count: int | N
         reconstruct_config(rec_params, backbone=backbone)
         _check_views_kept(rec_params, backbone, image_count)
     except ValueError as exc:
-        if rec_params.get("backbone", "auto") != "auto":
+        if rec_params.get("backbone", BACKBONE) != "auto":
             raise
         raise ValueError(f"{exc}: backbone 'auto' is {backbone!r} for this scene "
                          f"({BACKBONE_REASONS[backbone]})") from None
@@ -314,8 +323,8 @@ def edit_config(params: dict, backbone: str = "relu_field", checkpoint_every: in
         regulariser=_given(params, "regulariser", paper.DEFAULT_REGULARISER),
         regulariser_weight=_given(params, "regulariser_weight", paper.DEFAULT_REGULARISER_WEIGHT),
         schedule=schedule,
-        view_words=_given(params, "view_words", True),
-        batch_size=_given(params, "batch_size", 1),
+        view_words=_given(params, "view_words", VIEW_WORDS),
+        batch_size=_given(params, "batch_size", BATCH_SIZE),
         autocast_dtype=params.get("autocast"),
         seed=_given(params, "seed", SEED),
         preview_every=_given(params, "preview_every", PREVIEW_EVERY),
@@ -329,7 +338,7 @@ def refine_config(params: dict, attention_model: str) -> "RefineConfig":
 
     refine = params.get("refine") or {}
     views, render_size, iterations = _refine_work(params)
-    lift_start = _given(refine, "lift_start", "backprojection")
+    lift_start = _given(refine, "lift_start", LIFT_START)
     # The paper's start at 0 takes the paper's fit (fixed views, every pixel): the code's L1 counts only pixels
     # that render positive, and nothing does from 0.
     paper_fit = lift_start == "constant"
@@ -338,7 +347,7 @@ def refine_config(params: dict, attention_model: str) -> "RefineConfig":
         lift_start=lift_start,
         fit_views=PAPER_TEXT_FIT["fit_views"] if paper_fit else RefineConfig.fit_views,
         fit_pixels=PAPER_TEXT_FIT["fit_pixels"] if paper_fit else RefineConfig.fit_pixels,
-        view_word_prompt=_given(params, "view_words", True),  # the attention prompt says what the edit's said
+        view_word_prompt=_given(params, "view_words", VIEW_WORDS),  # the attention prompt says what the edit's said
         smoothing_sigma=_given(refine, "smoothing_sigma", paper.SERVICE_SMOOTHING_SIGMA),
         lr=_given(refine, "lr", paper.REFINE_LR),
         tv_weight=_given(refine, "tv_weight", paper.REFINE_TV_WEIGHT),

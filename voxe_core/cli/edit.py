@@ -17,7 +17,7 @@ from voxe_core.cli.common import (
     non_negative_int, positive_int, remove_earlier_outputs, run_stage, seed, view_options_given, writable_folder,
 )
 from voxe_core.guidance.prompts import check_prompt_length
-from voxe_core.presets import EDIT_SCHEDULES, PREVIEW_EVERY, SEED, TIMESTEP_SCHEDULES, edit_config
+from voxe_core.presets import BATCH_SIZE, EDIT_SCHEDULES, PREVIEW_EVERY, SEED, TIMESTEP_SCHEDULES, edit_config
 
 _SCENE = EDIT_SCHEDULES["scene"]
 PREVIEW_NAME = re.compile(r"preview_\d{5,}\.png")
@@ -54,7 +54,7 @@ def add_parsers(commands, common) -> None:
     ed.add_argument("--schedule", choices=TIMESTEP_SCHEDULES, default=TIMESTEP_SCHEDULES[0],
                     help="time-step annealing floor: paper 0.35, authors' code 0.22; a scene-backbone grid "
                          f"anneals from iteration {_SCENE.i_start} every {_SCENE.every} instead (SPEC §5)")
-    ed.add_argument("--batch-size", type=positive_int, default=1, help="poses (renders) per iteration")
+    ed.add_argument("--batch-size", type=positive_int, default=BATCH_SIZE, help="poses (renders) per iteration")
     ed.add_argument("--no-view-words", action="store_true", help="do not append ', front view' etc. to the prompt")
     ed.add_argument("--autocast", choices=("bf16", "fp16"), default=None, help="run the guidance under autocast")
     ed.add_argument("--seed", type=seed, default=SEED)

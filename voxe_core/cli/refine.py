@@ -21,7 +21,7 @@ from voxe_core.cli.common import (
 )
 from voxe_core.guidance.prompts import (check_edit_words_name_an_edit, check_edit_words_read, check_prompt_length,
                                         prompt_text)
-from voxe_core.presets import SEED, refine_config
+from voxe_core.presets import LIFT_START, LIFT_STARTS, SEED, refine_config
 
 
 RING_PREVIEWS = ("attention_edit", "attention_object", "probability_edit", "mask", "refined")
@@ -52,7 +52,7 @@ def add_parsers(commands, common) -> None:
                         paper.ATTENTION_MODEL_ID)
     ref.add_argument("--iterations", type=non_negative_int, default=paper.SERVICE_REFINE_ITERATIONS,
                      help=f"attention-grid fitting steps after the back-projection start (the paper: {paper.REFINE_ITERATIONS})")
-    ref.add_argument("--lift-start", choices=("backprojection", "constant"), default="backprojection",
+    ref.add_argument("--lift-start", choices=LIFT_STARTS, default=LIFT_START,
                      help="start of the attention grids: the maps' weighted back-projection, or 0 everywhere (the paper's fit)")
     ref.add_argument("--smoothing-sigma", type=float, default=paper.SERVICE_SMOOTHING_SIGMA,
                      help="Gaussian std (attention cells) of the 2D maps' smoothing (ours before issue 18: 1.0)")
