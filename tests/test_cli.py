@@ -113,6 +113,32 @@ def test_ctrl_c_cancels_cleanly_and_resume_finishes_the_same_fit(fitted, tmp_pat
     assert torch.allclose(resumed.features, uninterrupted.features, atol=1e-5)
 
 
+@needs_mic
+def test_reconstruct_refuses_to_resume_from_the_file_it_would_write_before_any_work(tmp_path, monkeypatch, capsys):
+    """--resume X --out X had been taken: the finished grid replaced the checkpoint it resumed from, so the fit could
+    not be resumed or rerun from it again."""
+    real = voxe_core.reconstruct.reconstruct
+
+    def cancelled_at_4(images, cameras, config, callbacks, *args):  # leaves its checkpoint, as Ctrl-C does
+        done, report = [], callbacks.on_progress
+        callbacks.on_progress = lambda progress: (done.append(progress.iteration), report(progress))
+        callbacks.should_cancel = lambda: len(done) >= 4
+        return real(images, cameras, config, callbacks, *args)
+
+    monkeypatch.setattr(voxe_core.reconstruct, "reconstruct", cancelled_at_4)
+    ck = tmp_path / "ck.safetensors"
+    assert main(["reconstruct", str(MIC), "--out", str(tmp_path / "g.safetensors"), "--checkpoint", str(ck),
+                 "--checkpoint-every", "2", *TINY]) == 130
+    monkeypatch.setattr(voxe_core.reconstruct, "reconstruct", real)
+    checkpoint = ck.read_bytes()
+    capsys.readouterr()
+    assert main(["reconstruct", str(MIC), "--resume", str(ck), "--out", str(tmp_path / "." / "ck.safetensors"),
+                 *TINY]) == 2
+    err = capsys.readouterr().err
+    assert "--resume and --out both name" in err and "fitting" not in err  # refused before the data is read
+    assert ck.read_bytes() == checkpoint
+
+
 @pytest.mark.skipif(torch.cuda.is_available(), reason="shows the refusal of a device this machine lacks")
 @pytest.mark.parametrize("command", [
     ["reconstruct", "no_such_scene", "--out", "g.safetensors"],

@@ -74,9 +74,10 @@ def cmd_reconstruct(args) -> int:
 
     if args.checkpoint_every is not None and args.checkpoint is None:  # (it had been taken and ignored)
         raise ValueError("--checkpoint-every sets how often --checkpoint is written; without --checkpoint none is")
-    if args.checkpoint is not None and args.checkpoint.resolve() == args.out.resolve():  # (the grid had replaced it)
-        raise ValueError(f"--checkpoint and --out both name {args.out}: the grid written at the end would replace the "
-                         "checkpoint; give the checkpoint a file of its own")
+    for flag, checkpoint in (("--checkpoint", args.checkpoint), ("--resume", args.resume)):  # (the grid had replaced it)
+        if checkpoint is not None and checkpoint.resolve() == args.out.resolve():
+            raise ValueError(f"{flag} and --out both name {args.out}: the grid written at the end would replace the "
+                             "checkpoint; give the checkpoint a file of its own")
     device = check_device(args)
     for path in (args.out, args.checkpoint):  # before the fit: its --checkpoint folder had not been made at all
         if path is not None:
