@@ -243,10 +243,23 @@ def test_a_waited_sweep_exits_1_unless_it_succeeded(monkeypatch, capsys, tmp_pat
     assert (f"ended {end}: jobs {{'{end}': 6, 'succeeded': 6}}" in err) == (code == 1)
 
 
-def test_ctrl_c_during_a_waited_sweeps_pause_stops_waiting_at_once(monkeypatch, capsys):
+@pytest.fixture
+def sigterm_fails_the_test():
+    """A SIGTERM that the command under test leaves unhandled fails the test, rather than killing pytest."""
+    def unhandled(signum, frame):
+        pytest.fail("the command left SIGTERM to its default: the process would have been killed")
+
+    previous = signal.signal(signal.SIGTERM, unhandled)
+    yield
+    signal.signal(signal.SIGTERM, previous)
+
+
+@pytest.mark.parametrize("signum,code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)], ids=["ctrl-c", "sigterm"])
+def test_ctrl_c_during_a_waited_sweeps_pause_stops_waiting_at_once(monkeypatch, capsys, sigterm_fails_the_test,
+                                                                  signum, code):
     """Ctrl-C between a waited sweep's polls had been answered only once the pause was over (``--poll 600``: ten
     minutes), the handler's return resuming the sleep; and no poll follows the Ctrl-C (a hung service's had held it up
-    to a minute more)."""
+    to a minute more). SIGTERM (docker stop) does the same, exiting 143: it had killed the command, no table said."""
     import itertools
     import threading
 
@@ -256,14 +269,14 @@ def test_ctrl_c_during_a_waited_sweeps_pause_stops_waiting_at_once(monkeypatch, 
         while signal.getsignal(signal.SIGINT) is default:  # once the command's handler is in place
             time.sleep(0.01)
         time.sleep(0.2)
-        os.kill(os.getpid(), signal.SIGINT)
+        os.kill(os.getpid(), signum)
 
     sweeps = FakeSweeps(itertools.repeat("running"), {"running": 12})
     monkeypatch.setattr(service, "_client", lambda args: sweeps)
     default = signal.getsignal(signal.SIGINT)
     threading.Thread(target=ctrl_c_while_waiting, daemon=True).start()
     started = time.monotonic()
-    assert main(["sweep", "--scene", "s1=mic", "--wait", "--poll", "20"]) == 130
+    assert main(["sweep", "--scene", "s1=mic", "--wait", "--poll", "20"]) == code
     assert time.monotonic() - started < 10 and sweeps.polls == 0
     assert capsys.readouterr().err.endswith("voxe sweep: stopped waiting; the sweep s1 goes on in the service\n")
 
@@ -473,18 +486,22 @@ def test_wait_says_a_stages_warning(monkeypatch, capsys):
     assert capsys.readouterr().err.splitlines() == [f"voxe wait: refine: {said}"]
 
 
-def test_ctrl_c_while_waiting_stops_following_and_says_the_job_goes_on(monkeypatch, capsys):
-    """Ctrl-C during ``voxe wait`` had said "voxe: interrupted", as if the job had stopped with the command."""
+@pytest.mark.parametrize("signum,code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)], ids=["ctrl-c", "sigterm"])
+def test_ctrl_c_while_waiting_stops_following_and_says_the_job_goes_on(monkeypatch, capsys, sigterm_fails_the_test,
+                                                                      signum, code):
+    """Ctrl-C during ``voxe wait`` had said "voxe: interrupted", as if the job had stopped with the command; SIGTERM
+    (docker stop) had killed it saying nothing. Both stop following and say so, SIGTERM exiting 143."""
     import httpx
 
     import voxe_core.cli.service as service
     from voxe_client import Client
 
     def answer(request: httpx.Request) -> httpx.Response:
-        raise KeyboardInterrupt
+        os.kill(os.getpid(), signum)  # its handler raises here, in the main thread
+        time.sleep(10)
 
     monkeypatch.setattr(service, "_client", lambda args: Client(transport=httpx.MockTransport(answer)))
-    assert main(["wait", "j1"]) == 130
+    assert main(["wait", "j1"]) == code
     assert capsys.readouterr().err == ("\nvoxe wait: stopped following; the job j1 goes on in the service (`voxe "
                                        "cancel j1` stops it)\n")
 
@@ -1004,6 +1021,28 @@ def test_cli_as_a_real_process_has_no_traceback(tmp_path):
     )
     assert result.returncode == 2
     assert "missing.safetensors: no such file" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_sigterm_cancels_a_long_command_as_ctrl_c_does_leaving_no_partial_file_and_exits_143(sphere_file, tmp_path):
+    """SIGTERM (docker stop, timeout, systemd) had killed the command at once: the turntable's hidden
+    .spot.partial.mp4 stayed in the output folder. It now cancels the stage at its next step, as Ctrl-C does."""
+    out = tmp_path / "videos" / "spot.mp4"
+    partial = out.with_name(".spot.partial.mp4")
+    process = subprocess.Popen([sys.executable, "-m", "voxe_core.cli", "turntable", str(sphere_file), "--frames",
+                                "100000", "--size", "16", "--device", "cpu", "--quiet", "--out", str(out)],
+                               cwd=REPO, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not partial.is_file() and process.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert partial.is_file(), "the turntable never started"
+        process.send_signal(signal.SIGTERM)
+        err = process.communicate(timeout=30)[1]
+    finally:
+        process.kill()
+    assert process.returncode == 143, err
+    assert "SIGTERM received" in err and "turntable cancelled, nothing written" in err and "Traceback" not in err
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["sphere.safetensors"]  # no partial file, no folder
 
 
 @pytest.mark.parametrize("log_lines", [1, 5000])  # its output buffered to the end, and written as printed

@@ -18,7 +18,8 @@
 Options that are job parameters of the service take their defaults from ``voxe_core.presets`` and
 resolve to stage configs there, as the worker's do. Bad input (dataset, grid file, option values)
 prints one line on stderr and exits 2 (a job service that failed, 5xx, or was not reached: 3);
-grids are written sparse unless ``--dense``; Ctrl-C during a long stage cancels it cleanly and exits 130;
+grids are written sparse unless ``--dense``; Ctrl-C during a long stage cancels it cleanly and exits 130 (SIGTERM, as
+``docker stop`` and ``timeout`` send: the same, exit 143);
 output whose reader stopped reading (``voxe status J | head``) ends the command quietly with 141, as SIGPIPE ends ``cat``.
 """
 
@@ -31,7 +32,8 @@ from typing import Sequence
 
 from voxe_core.cli import edit, evaluate, grids, mesh, reconstruct, refine, render, service
 from voxe_core.cli.common import (
-    EXIT_INTERRUPTED, EXIT_OUTPUT_CLOSED, EXIT_USAGE, library_progress_bars_off, removing_made_folders_unless,
+    EXIT_INTERRUPTED, EXIT_OUTPUT_CLOSED, EXIT_USAGE, interrupted_status, library_progress_bars_off,
+    removing_made_folders_unless, sigterm_as_ctrl_c,
 )
 
 COMMAND_GROUPS = (reconstruct, render, mesh, grids, edit, refine, evaluate, service)
@@ -54,13 +56,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``voxe``; returns the exit status (0 ok, 2 bad input, 3 the job service failed or was
-    not reached, 130 interrupted, 141 its output's reader gone). A command that does not succeed leaves no folder
-    it made and wrote nothing into."""
+    not reached, 130 interrupted, 143 stopped by SIGTERM, 141 its output's reader gone). A command that does not
+    succeed leaves no folder it made and wrote nothing into."""
     args = build_parser().parse_args(argv)
     status = None
-    with removing_made_folders_unless(lambda: status == 0), library_progress_bars_off(args.quiet):
+    with (removing_made_folders_unless(lambda: status == 0), library_progress_bars_off(args.quiet),
+          sigterm_as_ctrl_c()):
         status = _run(args)
-    return status
+    return interrupted_status() if status == EXIT_INTERRUPTED else status
 
 
 def _run(args: argparse.Namespace) -> int:

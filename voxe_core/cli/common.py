@@ -27,6 +27,9 @@ EXIT_SERVICE_FAILED = 3
 """The job service failed (an error status of 500 or more) or was not reached, where ``EXIT_USAGE`` says it refused
 the request (4xx): a script can try the one again later, not the other."""
 EXIT_INTERRUPTED = 130
+EXIT_TERMINATED = 128 + signal.SIGTERM
+"""SIGTERM (``docker stop``, ``timeout``, systemd) stopped the command, cancelled and cleaned up as Ctrl-C does: the
+status a shell gives 128 + the signal's number (143), where Ctrl-C's is 130."""
 EXIT_OUTPUT_CLOSED = 141
 """The output's reader stopped reading (``voxe status J | head -c 10``): the status a shell reports for ``cat`` or
 ``seq`` ended there by SIGPIPE (128 + 13), said nothing about."""
@@ -36,8 +39,22 @@ INTERRUPT_CHECK_S = 0.1
 """How often a pause looks whether Ctrl-C was pressed."""
 
 
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+"""Ctrl-C, and what ``docker stop``, ``timeout`` and systemd send: either cancels a command cleanly (a SIGTERM had
+killed it at once, its hidden partial files such as ``.spot.partial.mp4`` left in the output folder)."""
+
+_stop_signals_received: list[int] = []
+"""The stop signals the running command received (``sigterm_as_ctrl_c`` starts each command with none)."""
+
+
+def interrupted_status() -> int:
+    """The exit status of a command cancelled by a stop signal: 143 where a SIGTERM came, 130 (Ctrl-C) otherwise."""
+    return EXIT_TERMINATED if signal.SIGTERM in _stop_signals_received else EXIT_INTERRUPTED
+
+
 class Interrupt:
-    """SIGINT sets a flag that a stage polls through ``Callbacks.should_cancel``; a second Ctrl-C aborts at once."""
+    """A stop signal (Ctrl-C, SIGTERM) sets a flag that a stage polls through ``Callbacks.should_cancel``; a second
+    one aborts at once."""
 
     def __init__(self):
         self.requested = False
@@ -46,28 +63,53 @@ class Interrupt:
         return self.requested
 
     def _handle(self, signum, frame):
+        _stop_signals_received.append(signum)
         if self.requested:
             raise KeyboardInterrupt
         self.requested = True
-        print("\nvoxe: interrupt received, stopping after this step (Ctrl-C again to abort)", file=sys.stderr)
+        said, again = ("interrupt", "Ctrl-C") if signum == signal.SIGINT else (signal.Signals(signum).name,) * 2
+        print(f"\nvoxe: {said} received, stopping after this step ({again} again to abort)", file=sys.stderr)
 
     def sleep(self, seconds: float) -> None:
-        """Pause ``seconds``, or until Ctrl-C: a signal handler that returns resumes ``time.sleep``, and ``voxe sweep
-        --wait --poll 600`` had answered a Ctrl-C only at the end of its 10-minute pause."""
+        """Pause ``seconds``, or until a stop signal: a signal handler that returns resumes ``time.sleep``, and ``voxe
+        sweep --wait --poll 600`` had answered a Ctrl-C only at the end of its 10-minute pause."""
         end = time.monotonic() + seconds
         while not self.requested and (left := end - time.monotonic()) > 0:
             time.sleep(min(left, INTERRUPT_CHECK_S))
 
     @contextlib.contextmanager
     def installed(self) -> Iterator["Interrupt"]:
-        if threading.current_thread() is not threading.main_thread():
-            yield self  # signal handlers can only be set from the main thread
-            return
-        previous = signal.signal(signal.SIGINT, self._handle)
-        try:
+        with _handling(STOP_SIGNALS, self._handle):
             yield self
-        finally:
-            signal.signal(signal.SIGINT, previous)
+
+
+def _sigterm_as_ctrl_c(signum, frame):
+    _stop_signals_received.append(signum)
+    raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def sigterm_as_ctrl_c() -> Iterator[None]:
+    """A command's run: outside a stage, SIGTERM raises KeyboardInterrupt as Ctrl-C does (Python's default), so
+    cleanup runs (its own default had killed the process at once); ``interrupted_status`` then says which came."""
+    _stop_signals_received.clear()
+    with _handling((signal.SIGTERM,), _sigterm_as_ctrl_c):
+        yield
+
+
+@contextlib.contextmanager
+def _handling(signums: tuple[int, ...], handler) -> Iterator[None]:
+    """``signums`` handled by ``handler`` inside the block, the previous handlers back after it (signal handlers can
+    only be set from the main thread: elsewhere nothing changes)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {signum: signal.signal(signum, handler) for signum in signums}
+    try:
+        yield
+    finally:
+        for signum, earlier in previous.items():
+            signal.signal(signum, earlier)
 
 
 PROGRESS_INTERVAL_S = 0.1  # tqdm's own, on a terminal
