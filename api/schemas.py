@@ -255,7 +255,7 @@ class JobCreate(Strict):
                         + f"; at most {TEXT_ENCODER_TOKENS} text-encoder tokens as the model sees it (with the "
                           "view_words suffix, start and end tokens included): a prompt surely longer is a 422, "
                           "one the model's tokenizer splits further fails the job before its fit")
-    mode: Literal["global", "local"] = Field("global", description="local: refined to the edit_words' region")
+    mode: Literal[presets.EDIT_MODES] = Field(presets.EDIT_MODE, description="local: refined to the edit_words' region")
     edit_words: list[EditWord] = Field(
         default_factory=list, max_length=16,
         description="local edits: the word(s) of the prompt naming the edit (e.g. ['sunglasses']); required "

@@ -137,6 +137,13 @@ def test_each_default_the_cli_and_the_job_schema_share_is_the_presets_one(comman
     assert reconstruction_params({}) == reconstruction_params(service)
 
 
+def test_a_submitted_jobs_default_mode_is_the_presets_one():
+    from api.schemas import JobCreate
+
+    submit = build_parser().parse_args(["submit", "a dog", "--scene", "s1"])
+    assert submit.mode == JobCreate.model_fields["mode"].default == presets.EDIT_MODE
+
+
 @pytest.mark.parametrize("params,message", [
     ({"resolution": "96"}, "resolution takes whole numbers, got '96'"),  # had been the stages (9, 6)
     ({"iterations": "50"}, "iterations takes whole numbers, got '50'"),  # had been (5, 0)

@@ -61,6 +61,9 @@ TIMESTEP_SCHEDULES = ("paper", "authors")
 """The annealing floor: 0.35 (paper) or 0.22 (authors' code)."""
 PREVIEW_EVERY = 100
 """Edit iterations between preview renders (0: none)."""
+EDIT_MODES = ("global", "local")
+"""A job's edit: of the whole grid, or refined to its edit words' region (SPEC §3)."""
+EDIT_MODE = EDIT_MODES[0]
 BATCH_SIZE = 1
 """Poses (renders) per edit iteration."""
 VIEW_WORDS = True

@@ -20,6 +20,7 @@ from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_SERVICE_FAILED, EXIT_USAGE, LOG_PROGRESS_INTERVAL_S, Interrupt, positive_seconds,
     writable_file, writable_folder,
 )
+from voxe_core.presets import EDIT_MODE, EDIT_MODES
 
 
 def _scene_object(text: str) -> dict:
@@ -63,7 +64,7 @@ def add_parsers(commands, common) -> None:
     sub.add_argument("--texture", type=Path, default=None, metavar="IMAGE",
                      help="with --upload OBJ or PLY: the image that colours it at its UVs, instead of the one it "
                           "names (as mesh-to-grid --texture)")
-    sub.add_argument("--mode", choices=("global", "local"), default="global")
+    sub.add_argument("--mode", choices=EDIT_MODES, default=EDIT_MODE)
     sub.add_argument("--edit-word", action="append", default=[], metavar="WORD", help="local edits (repeat)")
     sub.add_argument("--params", type=_json_object, default=None, metavar="JSON", help="job params")
     sub.add_argument("--webhook-url", default=None, metavar="URL", help="POST the job's events here, signed")
