@@ -528,7 +528,8 @@ def test_a_damaged_or_foreign_edit_checkpoint_is_dropped_and_the_edit_starts_ove
                                                                                     stored, why):
     """A redelivered edit whose stored checkpoint cannot be read, or was made with another recipe (a worker of
     another version, mid rolling upgrade: edit() refuses to resume it), runs from the start instead of failing every
-    redelivery: the object is deleted and the job says why."""
+    redelivery: the object is deleted, the job's record of it cleared as the run starts over (it had named the
+    deleted object until the run's first checkpoint), and the job says why."""
     import voxe_core.edit
     from voxe_service.storage import get_storage
     from worker import runtime, tasks
@@ -539,13 +540,13 @@ def test_a_damaged_or_foreign_edit_checkpoint_is_dropped_and_the_edit_starts_ove
     seen = {}
 
     def recorded_edit(initial, prompt, guidance, config, callbacks, checkpoint_path, resume_from, **kwargs):
-        seen["resume_from"] = resume_from
+        seen.update(resume_from=resume_from, recorded=runtime.load_job(job["id"]).checkpoint_key)
         return initial.clone_grid()
 
     monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
     monkeypatch.setattr(voxe_core.edit, "edit", recorded_edit)
     assert tasks.edit_task.apply(args=(job["id"],)).get()["state"] == "done"
-    assert seen == {"resume_from": None}
+    assert seen == {"resume_from": None, "recorded": None}
     assert not get_storage().exists(key)
     events = client.get(f"/v1/jobs/{job['id']}/events").json()
     assert not any(e["kind"] == "resumed" and e.get("stage") == "edit" for e in events), events
@@ -571,7 +572,8 @@ def test_an_edit_that_cannot_go_on_from_its_checkpoint_starts_over(service, monk
         resumed_from.append(resume_from)
         if resume_from is not None:
             raise FormatError("checkpoint was made against other input views")
-        during.update(job=client.get(f"/v1/jobs/{job['id']}").json(), stored=get_storage().exists(key))
+        during.update(job=client.get(f"/v1/jobs/{job['id']}").json(), stored=get_storage().exists(key),
+                      recorded=runtime.load_job(job["id"]).checkpoint_key)
         callbacks.progress(Progress("edit", 1, 2))  # a report of the run started over carries its note
         during["reported"] = client.get(f"/v1/jobs/{job['id']}").json()["message"]
         return initial.clone_grid()
@@ -583,6 +585,7 @@ def test_an_edit_that_cannot_go_on_from_its_checkpoint_starts_over(service, monk
     said = ("the stored edit checkpoint could not be gone on from (checkpoint was made against other input views): "
             "started over")
     assert (during["job"]["message"], during["job"]["iteration"], during["stored"]) == (said, 0, False)
+    assert during["recorded"] is None  # (had named the deleted object until the new run's first checkpoint)
     assert during["reported"] == said  # (it had said "resumed from the checkpoint at iteration 2" throughout)
     events = [(e["kind"], e.get("detail")) for e in client.get(f"/v1/jobs/{job['id']}/events").json()
               if e.get("stage") == "edit" and e["kind"] in ("resumed", "warning")]
@@ -611,7 +614,7 @@ def test_a_stored_checkpoint_is_checked_by_its_header_alone(tmp_path, monkeypatc
     storage.put_bytes(key, damage(_edit_checkpoint(tmp_path / "made.safetensors")))
     monkeypatch.setattr(voxe_core.tensorio, "load_file", lambda *args: pytest.fail("read the checkpoint's tensors"))
     resume, meta, said = _stored_checkpoint(storage, key, tmp_path / "got.safetensors", EDIT_CHECKPOINT_KIND,
-                                            EDIT_CHECKPOINT_VERSION, EditConfig())
+                                            EDIT_CHECKPOINT_VERSION, EditConfig(), lambda key: None)
     if why is None:
         assert resume == tmp_path / "got.safetensors" and meta["iteration"] == 2 and said is None
         assert storage.exists(key)
@@ -635,7 +638,7 @@ def test_a_stored_checkpoint_whose_recipe_is_no_object_is_dropped_as_unreadable(
     got = tmp_path / "got.safetensors"
     storage.put_bytes(key, made.read_bytes())
     resume, meta, said = _stored_checkpoint(storage, key, got, EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION,
-                                            EditConfig())
+                                            EditConfig(), lambda key: None)
     assert (resume, meta) == (None, None) and not storage.exists(key)
     assert said == f"was unreadable ({got}: damaged checkpoint: its recipe is a {kind}, not an object)"
 
@@ -659,8 +662,9 @@ def _fit_checkpoint_of_another_recipe(path) -> bytes:
 def test_a_damaged_or_foreign_fit_checkpoint_is_dropped_and_the_fit_starts_over(service, monkeypatch, tmp_path,
                                                                                 stored, why, caplog):
     """As an edit's: a stored reconstruction checkpoint made with another recipe (reconstruct() refuses to resume it,
-    a ValueError that had failed the shared fit for good) or unreadable is deleted and the fit runs from the start.
-    Finished, the fit records no checkpoint (its record had still named a deleted one) and keeps none stored."""
+    a ValueError that had failed the shared fit for good) or unreadable is deleted and the fit runs from the start,
+    the record of it cleared as it starts over (it had named the deleted object until the fit's first checkpoint).
+    Finished, the fit records no checkpoint and keeps none stored."""
     from sqlalchemy import update
 
     import voxe_core.reconstruct
@@ -679,12 +683,12 @@ def test_a_damaged_or_foreign_fit_checkpoint_is_dropped_and_the_fit_starts_over(
     resumed_from, fit = [], voxe_core.reconstruct.reconstruct
 
     def recorded_fit(images, cameras, config, callbacks, checkpoint_path, resume_from, *args):
-        resumed_from.append(resume_from)
+        resumed_from.append((resume_from, runtime.load_reconstruction(rec_id).checkpoint_key))
         return fit(images, cameras, config, callbacks, checkpoint_path, resume_from, *args)
 
     monkeypatch.setattr(voxe_core.reconstruct, "reconstruct", recorded_fit)
     assert tasks.reconstruct_task.apply(args=(job["id"],)).get()["state"] == "done"
-    assert resumed_from == [None]
+    assert resumed_from == [(None, None)]
     assert f"the stored checkpoint {why}" in caplog.text
     events = client.get(f"/v1/jobs/{job['id']}/events").json()
     assert not any(e["kind"] == "resumed" and e.get("stage") == "reconstruct" for e in events), events

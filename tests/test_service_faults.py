@@ -8,6 +8,7 @@ SMOKE-TEST model (VOXE_SDS_MODEL=tiny): they prove the plumbing, never edit qual
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import logging
 import math
@@ -2657,8 +2658,8 @@ def test_a_database_outage_as_a_checkpoint_that_cannot_be_gone_on_from_is_starte
     with monkeypatch.context() as outage:
         outage.setattr(runtime, "locked", down)
         outage.setattr(runtime, "update_job", down)
-        assert tasks._resumed_or_started_over(run, tmp_path / "c", job_id, "edit", callbacks, storage,
-                                              key) == "started over"
+        assert tasks._resumed_or_started_over(run, tmp_path / "c", job_id, "edit", callbacks, storage, key,
+                                              functools.partial(runtime.forget_checkpoint, job_id)) == "started over"
     assert not storage.exists(key) and [e for e in events_of(job_id) if e["kind"] == "warning"] == []
     callbacks.on_progress(Progress("edit", 1, 10))
     assert job_row(job_id).message == ("the stored edit checkpoint could not be gone on from (checkpoint was made "

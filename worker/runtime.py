@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
 
-from sqlalchemy import Update, func, or_, select, update
+from sqlalchemy import Update, case, func, or_, select, update
 from sqlalchemy.exc import SQLAlchemyError
 
 from voxe_core.progress import Callbacks, Progress, StageCancelled
@@ -442,6 +442,20 @@ def _record_checkpoint(job_id: str, stage: str, iteration: int, key: str | None)
             job.checkpoint_key = key
         record_event(session, job_id, "checkpoint", stage=stage, iteration=iteration)
     return replaced if key is not None else None
+
+
+def forget_checkpoint(job_id: str, key: str) -> None:
+    """Clear the job's record of its live checkpoint ``key``, which a stage starting over is about to delete: a
+    record naming a deleted object had a later run of the stage look for it. A record naming another key is left as
+    it is; refused (:class:`RunSuperseded`) to a run that no longer holds the job: the checkpoint is not its own. A
+    database blip skips it, as it does a progress write (the stage starting over goes on: raised, it had been a
+    counted re-queue), and a later run finds the record's object gone and starts from the start."""
+    with outage_skipped(f"job {job_id}: the record of its dropped checkpoint cleared"), session_scope() as session:
+        if (job := locked(session, Job, job_id)) is None:
+            raise RunSuperseded(f"job {job_id}: deleted; this run's start over is refused")
+        _refuse_if_superseded(job_id, lambda: job.run_token)  # (read under the lock just taken)
+        if job.checkpoint_key == key:
+            job.checkpoint_key = None
 
 
 def record_warning(job_id: str, stage: str, text: str) -> None:
@@ -1056,6 +1070,20 @@ def record_fit_checkpoint(rec_id: str, job_id: str, run_token: str | None, key: 
         replaced = session.scalar(select(Reconstruction.checkpoint_key).where(Reconstruction.id == rec_id))
         session.execute(update(Reconstruction).where(Reconstruction.id == rec_id).values(checkpoint_key=key))
     return replaced
+
+
+def forget_fit_checkpoint(rec_id: str, job_id: str, run_token: str | None, key: str) -> None:
+    """Clear the fit's record of its checkpoint ``key``, which the fit starting over is about to delete, while
+    ``job_id`` (its run ``run_token``) owns the running fit, as :func:`forget_checkpoint` does a job's (a database
+    blip skips it); :class:`LeaseLost` when the run does not own it: the checkpoint is the new owner's."""
+    unless_another = case((Reconstruction.checkpoint_key == key, None), else_=Reconstruction.checkpoint_key)
+    with outage_skipped(f"reconstruction {rec_id}: the record of its dropped checkpoint cleared"), \
+            session_scope() as session:
+        if session.execute(update(Reconstruction).where(*_owned(rec_id, job_id, run_token),
+                                                        Reconstruction.state == R_RUNNING)
+                           .values(checkpoint_key=unless_another)).rowcount != 1:
+            raise LeaseLost(f"reconstruction {rec_id}: another job took the fit over (or it ended) before its "
+                            "checkpoint was dropped")
 
 
 def hand_back_fit(rec_id: str, job_id: str, run_token: str | None, error: str) -> bool:

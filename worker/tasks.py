@@ -21,12 +21,14 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import logging
 import os
 import socket
 import threading
 import time
 import uuid
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
 
@@ -364,13 +366,13 @@ def _preview(job_id: str, grid, settings, storage, device: str, image=None, cent
     runtime.update_job(job_id, preview_artifact=PREVIEW)
 
 
-def _stored_checkpoint(storage, key: str, path: Path, kind: str, max_version: int,
-                       config) -> tuple[Path | None, dict | None, str | None]:
+def _stored_checkpoint(storage, key: str, path: Path, kind: str, max_version: int, config,
+                       forget: Callable[[str], None]) -> tuple[Path | None, dict | None, str | None]:
     """The checkpoint of ``kind`` stored at ``key``, fetched to ``path``, and its header; or (None, None, why), the
-    object deleted, for one the stage cannot go on from: unreadable, or made with another recipe than ``config``'s
-    (a worker of another version, mid rolling upgrade: the stage refuses it). Either would fail every redelivery, so
-    the stage starts over instead. Only the header is read (the stage reads the tensors as it resumes): it names
-    a truncated or padded file as unreadable as a whole read does."""
+    object deleted, its record cleared first (``forget(key)``), for one the stage cannot go on from: unreadable, or
+    made with another recipe than ``config``'s (a worker of another version, mid rolling upgrade: the stage refuses
+    it). Either would fail every redelivery, so the stage starts over instead. Only the header is read (the stage
+    reads the tensors as it resumes): it names a truncated or padded file as unreadable as a whole read does."""
     from voxe_core.tensorio import FormatError, load_header, recipe_changes
 
     resume = storage.get_file(key, path)
@@ -383,6 +385,7 @@ def _stored_checkpoint(storage, key: str, path: Path, kind: str, max_version: in
         if not changed:
             return resume, meta, None
         why = f"was made with another recipe ({', '.join(changed)}: a worker of another version)"
+    forget(key)
     storage.delete(key)
     return None, None, why
 
@@ -630,29 +633,35 @@ def _fit_grid(job: Job, rec, settings, storage, lease: runtime.LeaseKeeper, call
     _record_fit(job, backbone, config, settings)
     lease.renew(total=config.total_iterations)
     resume, checkpoint_key = None, rec.checkpoint_key  # the last owner's, recorded while it owned the fit
+    forget = functools.partial(runtime.forget_fit_checkpoint, rec.id, job.id, job.run_token)
     if checkpoint_key and storage.exists(checkpoint_key):
         resume, _, why = _stored_checkpoint(storage, checkpoint_key, checkpoint, CHECKPOINT_KIND,
-                                            CHECKPOINT_FORMAT_VERSION, config)
+                                            CHECKPOINT_FORMAT_VERSION, config, forget)
         if resume is None:
             log.warning("reconstruction %s: the stored checkpoint %s; starting over", rec.id, why)
         else:
             log.info("reconstruction %s: resuming from its checkpoint", rec.id)
             runtime.record_job_event(job.id, "resumed", stage="reconstruct",
                                      detail=f"reconstruction {rec.id} from its stored checkpoint")
+    elif checkpoint_key:
+        log.info("reconstruction %s: its recorded checkpoint %s is not stored; starting from the start", rec.id,
+                 checkpoint_key)
     grid = _resumed_or_started_over(
         lambda start: reconstruct(scene.images, cameras, config, callbacks.callbacks, checkpoint, start, initial,
-                                  device), resume, job.id, "reconstruct", callbacks, storage, checkpoint_key)
+                                  device), resume, job.id, "reconstruct", callbacks, storage, checkpoint_key,
+        forget)
     return grid, config.total_iterations
 
 
 def _resumed_or_started_over(run, resume: Path | None, job_id: str, stage: str, callbacks: StageCallbacks, storage,
-                             checkpoint_key: str | None):
-    """``run(resume)``; when the stage cannot go on from that checkpoint (a FormatError: another recipe, other
-    views, prompt or initial grid, another device's generator it cannot read), ``run(None)``, the stage over from
-    its start: refused, it would fail every redelivery. The stored checkpoint goes (a redelivery before the new run's
-    first would meet it again), and the job says so, as a warning after its "resumed" event, in place of the
-    resumed note its progress reports carried (the callbacks' warning: a database blip skips the event, as it skips
-    a progress write, where it had stopped the stage, a counted re-queue starting over with nothing said)."""
+                             checkpoint_key: str | None, forget: Callable[[str], None]):
+    """``run(resume)``; when the stage cannot go on from that checkpoint (a FormatError: another recipe, other views,
+    prompt or initial grid, another device's generator it cannot read), ``run(None)``, the stage over from its
+    start: refused, it would fail every redelivery. The stored checkpoint goes, its record cleared first
+    (``forget(checkpoint_key)``: a redelivery before the new run's first would meet it again), and the job says so,
+    as a warning after its "resumed" event, in place of the resumed note its progress reports carried (the
+    callbacks' warning: a database blip skips the event, as it skips a progress write, where it had stopped the
+    stage, a counted re-queue starting over with nothing said)."""
     from voxe_core.tensorio import FormatError
 
     try:
@@ -660,6 +669,7 @@ def _resumed_or_started_over(run, resume: Path | None, job_id: str, stage: str, 
     except FormatError as exc:
         if resume is None:
             raise
+        forget(checkpoint_key)
         storage.discard(checkpoint_key)
         callbacks.note = None  # (the resumed note it replaces)
         callbacks.on_warning(stage, f"the stored {stage} checkpoint could not be gone on from ({exc}): started over")
@@ -683,12 +693,13 @@ def _edit(job: Job, settings, device: str, storage) -> None:
     scratch = runtime.scratch_dir(job.id, settings)
     checkpoint = scratch / "edit_checkpoint.safetensors"
     checkpoint_key = job.checkpoint_key  # the last run's, recorded while it held the job
+    forget = functools.partial(runtime.forget_checkpoint, job.id)
     resume, note = None, None
     if checkpoint_key and storage.exists(checkpoint_key):  # a redelivered / re-queued task: go on from there
         from voxe_core.edit import EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION
 
         resume, meta, why = _stored_checkpoint(storage, checkpoint_key, checkpoint, EDIT_CHECKPOINT_KIND,
-                                               EDIT_CHECKPOINT_VERSION, config)
+                                               EDIT_CHECKPOINT_VERSION, config, forget)
         if resume is None:
             log.warning("job %s: the stored edit checkpoint %s; starting over", job.id, why)
             note = f"the stored edit checkpoint {why}: started over"
@@ -700,6 +711,9 @@ def _edit(job: Job, settings, device: str, storage) -> None:
         # Where the run goes on from, at once: the row kept what the interrupted run last wrote (begin_stage), which
         # may lie before the checkpoint (progress is written every few seconds, checkpoints every N iterations).
         runtime.update_job(job.id, message=note, **({"iteration": at} if resume is not None else {}))
+    elif checkpoint_key:  # (a start over's record a database blip kept; 0019's old fixed key, nothing stored there)
+        log.info("job %s: its recorded edit checkpoint %s is not stored; the edit starts from the start", job.id,
+                 checkpoint_key)
     input_views = None
     if config.regulariser.startswith("image_"):
         scene = load_images(job, rec.params, settings, storage)
@@ -720,7 +734,7 @@ def _edit(job: Job, settings, device: str, storage) -> None:
     grid = _resumed_or_started_over(
         lambda start: edit(initial, job.prompt, guidance, config, callbacks.callbacks, checkpoint, start,
                            input_views=input_views, on_preview=on_preview, device=device),
-        resume, job.id, "edit", callbacks, storage, checkpoint_key)
+        resume, job.id, "edit", callbacks, storage, checkpoint_key, forget)
     compiled = guidance.encoder_compile_seconds
     if compiled is not None and compiled != compiled_before:  # this job's first iteration waited for the compile
         log.info("job %s: the VAE encoder compiled in %.1f s", job.id, compiled)
