@@ -281,7 +281,11 @@ def test_an_attempts_error_is_logged_without_the_urls_credentials(client, caplog
     # a '/' in a password: its head read as a port, or not
     ("https://bob:12/s3cret@hooks.example.com/in", "https://***@hooks.example.com/***"),
     ("https://bob:1234/s3cret/tail@hooks.example.com/in", "https://***@hooks.example.com/***"),
-    ("https://hooks.example.com:8443/in?email=ops@corp.example", "https://hooks.example.com:8443/in?email=***")])
+    # ... or a '?' or '#', which urllib, httpx and browsers read as ending the netloc at a port: the host alone shown
+    ("https://bob:12?s3cret@hooks.example.com/in", "https://bob:***"),
+    ("https://bob:12/s3/cret?s3cret@hooks.example.com/in?token=s3cret", "https://bob:***"),
+    ("https://bob:1234#s3cret@hooks.example.com/in", "https://bob:***"),
+    ("https://hooks.example.com:8443/in?email=ops@corp.example", "https://hooks.example.com:***")])
 def test_an_attempts_logged_error_hides_the_credentials_of_any_url_it_names(location, logged_as):
     """The log's copy of an error had its URLs picked out of the text: one ended at its first "'" (a userinfo or
     query may hold one), a redirect's relative Location (no scheme) went whole, and a Location over 200 characters

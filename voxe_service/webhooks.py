@@ -68,7 +68,11 @@ def log_safe_url(url: str, base: str = "") -> str:
     against ``base``. The userinfo is the netloc's, up to its last '@'. A netloc with no '@' but a ':' followed later
     by an '@' may be a password's start, ended by its unencoded '/', '?' or '#' (``bob:pa/ss@host``, ``bob:12/x@host``,
     whose "12" reads as a port): its userinfo runs to the first '@' after it, and where that ':' also reads as a
-    port's (``host:8443/a@b/c`` too), the path is hidden whole. An '@' in the path of any other netloc
+    port's (``host:8443/a@b/c`` too), the path is hidden whole. Where that '@' comes after a '?' or '#' and the ':'
+    reads as a port's, urllib, httpx and browsers read the '@' as the query's or fragment's (``bob:12?x@host`` as
+    host ``bob``, port 12, query ``x@host``), yet it may end a password holding an unencoded '?' or '#'
+    (``12?x``): only the host is shown (``host:8443/in?email=a@b.example`` as ``host:***``), never what may be a
+    password's head. An '@' in the path of any other netloc
     is the path's (a rule reading up to the last '@' had shown ``/hooks/ops@corp/<token>`` as ``***@corp/<token>``).
     The path keeps its first segment, which tells receivers' endpoints apart, unless it holds an '@', and the rest,
     where the tokens are, is one ``***`` (no rule tells a token from a word reliably); a query pair's name is kept, a
@@ -87,6 +91,8 @@ def log_safe_url(url: str, base: str = "") -> str:
         'https://***@hooks.example.com/hooks/***'
         >>> log_safe_url("https://bob:12/ab/cd@hooks.example.com/in")
         'https://***@hooks.example.com/***'
+        >>> log_safe_url("https://bob:12?ab@hooks.example.com/in")
+        'https://bob:***'
     """
     resolved = urljoin(base, url) if base else url
     try:
@@ -94,7 +100,8 @@ def log_safe_url(url: str, base: str = "") -> str:
         userinfo, guessed = "@" in parts.netloc, False
         netloc_start = resolved.find("//") + 2  # (the scheme holds no '/')
         # where the ':' reads as a port's ('bob:12/x@host' or 'host:8443/a@b/c') the path is hidden whole, and an
-        # '@' past the query's or fragment's start is theirs ('host:8443/in?email=a@b.example')
+        # '@' past the query's or fragment's start may be theirs ('host:8443/in?email=a@b.example') or a password's
+        # end ('bob:12?x@host'): the host alone is shown
         port_readable = _port_readable(parts)
         userinfo_may_end = len(resolved) if not port_readable else min(
             (at for at in (resolved.find("?", netloc_start), resolved.find("#", netloc_start)) if at >= 0),
@@ -102,6 +109,8 @@ def log_safe_url(url: str, base: str = "") -> str:
         if not userinfo and ":" in parts.netloc and "@" in resolved[netloc_start:userinfo_may_end]:
             parts = urlsplit(resolved[:netloc_start] + resolved[resolved.index("@", netloc_start) + 1:])
             userinfo, guessed = True, port_readable
+        elif not userinfo and parts.port is not None and "@" in resolved[userinfo_may_end:]:
+            return f"{parts.scheme + ':' if parts.scheme else ''}//{parts.netloc.rpartition(':')[0]}:***"
     except ValueError:  # e.g. an unclosed "[" of an IPv6 host
         return "<an unreadable URL>"
     authority = ("***@" if userinfo else "") + parts.netloc.rpartition("@")[2]
