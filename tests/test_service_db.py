@@ -105,12 +105,13 @@ READY_SCENE_ROW = (  # a ready scene as written from 0004 (scenes' states) on
     "'scenes/s1/dataset.zip', 10, 'x', 'ready', '2026-01-01 00:00:00+00', '2026-01-01 00:00:00+00')")
 
 
-def job_row_of_0007(state: str) -> str:
+def job_row_of_0007(state: str, job_id: str = "j1") -> str:
     """A job of scene s1 in ``state`` as written from 0007 (its re-send count) on."""
     return ("INSERT INTO jobs (id, scene_id, owner_key_id, prompt, mode, edit_words, params, sds_model, "
             "attention_model, device, state, iteration, total, losses, cancel_requested, completed_stages, requeues, "
-            "created_at, updated_at) VALUES ('j1', 's1', 'local', 'a mic', 'global', '[]', '{}', 'tiny', 'tiny', "
-            f"'cpu', '{state}', 0, 0, '{{}}', false, '[]', 0, '2026-01-01 00:00:00+00', '2026-01-01 00:00:00+00')")
+            f"created_at, updated_at) VALUES ('{job_id}', 's1', 'local', 'a mic', 'global', '[]', '{{}}', 'tiny', "
+            f"'tiny', 'cpu', '{state}', 0, 0, '{{}}', false, '[]', 0, '2026-01-01 00:00:00+00', "
+            "'2026-01-01 00:00:00+00')")
 
 
 def test_a_database_of_the_previous_head_upgrades_in_place(database_url):
@@ -305,6 +306,33 @@ def test_a_scenes_ingest_count_upgrades_from_none_and_back(database_url, before,
     with engine.connect() as conn:
         assert conn.execute(text("SELECT state, task_id FROM scenes")).one() == ("processing", "ingest")
     assert column not in {c["name"] for c in inspect(engine).get_columns("scenes")}
+    engine.dispose()
+
+
+def test_jobs_not_ended_upgrade_to_resume_from_the_old_fixed_checkpoint_key_and_back(database_url):
+    """0019 records the key of each job's live checkpoint (a key of its run's own). A job written before it that had
+    not ended (queued: re-queued after an interrupted edit; running) stored its edit checkpoint at the one fixed key
+    ``checkpoints/edit.safetensors``, which it now records, for its next run to resume from: without it the edit
+    starts over, its progress lost. An ended job records none. Downgrading drops the column, the jobs kept."""
+    from alembic import command
+    from sqlalchemy import inspect, text
+
+    from service_helpers import database_at
+    from voxe_service.models import CANCELED, FAILED, QUEUED, RUNNING, SUCCEEDED
+    from voxe_service.storage import job_key
+
+    states = (QUEUED, RUNNING, SUCCEEDED, FAILED, CANCELED)
+    config, engine = database_at(database_url, "0018_ingest_storage_outages", READY_SCENE_ROW,
+                                 *(job_row_of_0007(state, job_id=f"j-{state}") for state in states))
+    command.upgrade(config, "0019_job_checkpoint_key")
+    with engine.connect() as conn:
+        recorded = dict(conn.execute(text("SELECT id, checkpoint_key FROM jobs")).all())
+    old_fixed_key = {f"j-{state}": job_key(f"j-{state}", "checkpoints/edit.safetensors") for state in (QUEUED, RUNNING)}
+    assert recorded == {**dict.fromkeys(f"j-{state}" for state in states), **old_fixed_key}
+    command.downgrade(config, "0018_ingest_storage_outages")
+    with engine.connect() as conn:
+        assert dict(conn.execute(text("SELECT id, state FROM jobs")).all()) == {f"j-{state}": state for state in states}
+    assert "checkpoint_key" not in {c["name"] for c in inspect(engine).get_columns("jobs")}
     engine.dispose()
 
 
