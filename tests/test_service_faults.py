@@ -2963,6 +2963,62 @@ def test_a_refused_fit_checkpoint_leaves_the_recorded_checkpoints_bytes_as_they_
     assert storage.list(reconstruction_storage_key(rec_id, "checkpoint")) == [recorded]
 
 
+def test_a_fit_checkpoint_whose_record_meets_a_database_outage_is_deleted_and_the_fit_resumes_from_the_last(
+        db, monkeypatch):
+    """The database out of reach as the fit records its checkpoint's key (runtime.record_fit_checkpoint): the bytes
+    just uploaded go (recorded nowhere, they had stayed for good under their run's own name), the checkpoint
+    recorded before keeps its record and bytes, and the run stops as an outage stops a fit: the fit pending saying
+    why, the job back in the queue, nothing failed. Its redelivery resumes the fit from the checkpoint recorded."""
+    import sqlite3
+
+    from sqlalchemy.exc import OperationalError
+
+    from conftest import make_sphere_grid
+    from voxe_core.progress import Progress
+    from voxe_service.storage import get_storage, reconstruction_storage_key
+    from worker import runtime, tasks
+
+    storage, scene = get_storage(db), add_scene()
+    rec_id = add_reconstruction(scene)
+    job_id = add_job(scene, "queued", 0, reconstruction_id=rec_id)
+    monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
+    monkeypatch.setattr(runtime, "OUTAGE_PAUSE_S", 0.0)
+    resumed_from = []
+
+    def fit_checkpointing_at_10_and_20(job, rec, settings, storage, lease, callbacks, checkpoint, device):
+        if rec.checkpoint_key is not None:  # the redelivery
+            resumed_from.append(b"".join(storage.open_range(rec.checkpoint_key)))
+            return make_sphere_grid(8), 100
+        for iteration in (10, 20):
+            checkpoint.write_bytes(f"the fit at {iteration}".encode())
+            callbacks.on_progress(Progress("reconstruct", iteration, 100))
+            callbacks.callbacks.on_checkpoint(str(checkpoint))
+        raise AssertionError("the fit went on past the checkpoint its record failed")
+
+    record = runtime.record_fit_checkpoint
+
+    def down_as_20_is_recorded(rec_id, job_id, run_token, key):
+        if key.endswith("-20.safetensors"):
+            raise OperationalError("UPDATE reconstructions", {}, sqlite3.OperationalError("database is locked"))
+        return record(rec_id, job_id, run_token, key)
+
+    monkeypatch.setattr(tasks, "_fit_grid", fit_checkpointing_at_10_and_20)
+    with monkeypatch.context() as outage:
+        outage.setattr(runtime, "record_fit_checkpoint", down_as_20_is_recorded)
+        result = tasks.reconstruct_task.apply(args=(job_id,))
+    assert result.state == "REJECTED" and result.result.requeue, result.result
+    rec, said = runtime.load_reconstruction(rec_id), "a database outage (the database cannot be reached or is locked)"
+    assert storage.list(reconstruction_storage_key(rec_id, "checkpoint")) == [rec.checkpoint_key]
+    assert rec.checkpoint_key.endswith("-10.safetensors")
+    assert (rec.state, rec.owner_job_id, rec.error) == ("pending", None, f"job {job_id}'s fit: stopped by {said}")
+    job = job_row(job_id)
+    assert (job.state, job.error) == ("running", None)
+    assert job.message.startswith(f"re-queued: reconstruct stopped by {said}"), job.message
+    assert tasks.reconstruct_task.apply(args=(job_id,)).get()["state"] == "done"  # the redelivery
+    assert resumed_from == [b"the fit at 10"]
+    assert storage.list(reconstruction_storage_key(rec_id, "checkpoint")) == []
+
+
 def test_a_fit_checkpoint_replaced_by_the_next_owners_is_deleted(db, tmp_path):
     """The edit deleted the checkpoint a new one replaced, the fit did not: a fit taken over kept its killed owner's
     last checkpoint until the fit succeeded, and for good when it failed. It goes once the new owner records its
