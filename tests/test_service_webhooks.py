@@ -281,11 +281,32 @@ def test_an_attempts_error_is_logged_without_the_urls_credentials(client, caplog
     # a '/' in a password: its head read as a port, or not
     ("https://bob:12/s3cret@hooks.example.com/in", "https://***@hooks.example.com/***"),
     ("https://bob:1234/s3cret/tail@hooks.example.com/in", "https://***@hooks.example.com/***"),
-    # ... or a '?' or '#', which urllib, httpx and browsers read as ending the netloc at a port: the host alone shown
-    ("https://bob:12?s3cret@hooks.example.com/in", "https://bob:***"),
-    ("https://bob:12/s3/cret?s3cret@hooks.example.com/in?token=s3cret", "https://bob:***"),
-    ("https://bob:1234#s3cret@hooks.example.com/in", "https://bob:***"),
-    ("https://hooks.example.com:8443/in?email=ops@corp.example", "https://hooks.example.com:***")])
+    ("https://bob:1_2?s3cret@hooks.example.com/p", "https://***@hooks.example.com/p"),  # not a port
+    ("https://bob: 12?s3cret@hooks.example.com/p", "https://***@hooks.example.com/p"),
+    ("https://host:99999/in?e=s3cret@b", "https://***@b"),
+    # ... or a '?' or '#', which urllib, httpx and browsers read as ending the netloc at a port (or at an empty one):
+    # nothing past the scheme shown, the username (often a token) no more than the password's head
+    ("https://bob:12?s3cret@hooks.example.com/in", "https://***"),
+    ("https://bob:12/s3/cret?s3cret@hooks.example.com/in?token=s3cret", "https://***"),
+    ("https://bob:1234#s3cret@hooks.example.com/in", "https://***"),
+    ("https://bob:12?a=s3cret@hooks.example.com/p?token=s3cret", "https://***"),
+    ("https://bob:00012?s3cret@hooks.example.com/p", "https://***"),
+    ("HTTPS://BOB:12?S3CRET@HOOKS.EXAMPLE.COM/P", "https://***"),
+    ("https://bob:?s3cr=et@hooks.example.com/in", "https://***"),
+    ("https://bob:?x=s3cret@hooks.example.com/in", "https://***"),
+    ("https://bob:?a&s3c=1@hooks.example.com/in", "https://***"),
+    ("https://bob:#s3cret@hooks.example.com/in", "https://***"),
+    ("https://sk_live_s3cret:1?x@hooks.example.com/in", "https://***"),
+    ("https://ops@corp.example:12?s3cret@hooks.example.com/in", "https://***"),
+    ("https://ops@corp.example:12#s3cret@hooks.example.com/in", "https://***"),
+    ("https://[::1]:12?s3cret@hooks.example.com/in", "https://***"),
+    ("https://bob:s3cret@[::1]:8443/in?e=a@b", "https://***"),
+    ("https://hooks.example.com:8443#s3cret@x", "https://***"),
+    ("https://hooks.example.com:8443/in?email=ops@corp.example", "https://***"),
+    ("https://[::1]:8443/in?email=ops@corp.example", "https://***"),
+    # no ':' past an IPv6 host's ']', or no '@' after the netloc: read as written
+    ("https://[::1]/in?email=ops@corp.example", "https://[::1]/in?email=***"),
+    ("https://hooks.example.com:99999/in/s3cret", "https://hooks.example.com:99999/in/***")])
 def test_an_attempts_logged_error_hides_the_credentials_of_any_url_it_names(location, logged_as):
     """The log's copy of an error had its URLs picked out of the text: one ended at its first "'" (a userinfo or
     query may hold one), a redirect's relative Location (no scheme) went whole, and a Location over 200 characters
@@ -313,6 +334,22 @@ def test_an_attempts_logged_error_hides_the_credentials_of_any_url_it_names(loca
     assert "s3cret" in str(refused.value), refused.value
     assert refused.value.logged == ("webhook_url 'http://***@\u2603.net/in?token=***' cannot be sent to: httpx reads "
                                     "it as an invalid URL"), refused.value.logged
+
+
+@pytest.mark.parametrize(("url", "logged_as"), [
+    # an '@' in the username, then a ':' and a password an unencoded '/', '?' or '#' cut short
+    ("https://ops@corp.example:pa/s3cret@hooks.example.com/in", "https://***@hooks.example.com/in"),
+    ("https://ops@corp.example:s3cret?x@hooks.example.com/in", "https://***@hooks.example.com/in"),
+    ("https://ops@corp.example:s3cret#x@hooks.example.com/in", "https://***@hooks.example.com/in"),
+    # no '@' after the netloc: an unreadable port is shown as written (it had been '<an unreadable URL>')
+    ("https://hooks.example.com:abc/in", "https://hooks.example.com:abc/in"),
+    ("https://hooks.example.com:99999/in/s3cret", "https://hooks.example.com:99999/in/***")])
+def test_a_webhook_url_the_sender_cannot_read_is_logged_with_its_credentials_hidden(url, logged_as):
+    """URLs whose port httpx refuses, so no redirect can name them (the rows above): a webhook_url's refusal logs
+    them. Their password had been logged whole where the username held an '@'."""
+    from voxe_service.webhooks import log_safe_url
+
+    assert log_safe_url(url) == logged_as
 
 
 @pytest.mark.parametrize("fail", [False, True])

@@ -28,7 +28,7 @@ from concurrent.futures import Future, TimeoutError as FutureTimeout
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from typing import NamedTuple
-from urllib.parse import urljoin, urlsplit
+from urllib.parse import SplitResult, urljoin, urlsplit
 
 import httpcore
 import httpx
@@ -65,15 +65,10 @@ def log_safe_url(url: str, base: str = "") -> str:
     may hold credentials (``https://user:pass@host/``, ``?token=...``, or in the path, as Slack's and Discord's
     ``/services/T0/B0/<secret>`` and ``/api/webhooks/<id>/<token>`` do) that the owner sees in the delivery's
     ``last_error``, but the operator's logs must not. A relative one (a redirect's Location) is first resolved
-    against ``base``. The userinfo is the netloc's, up to its last '@'. A netloc with no '@' but a ':' followed later
-    by an '@' may be a password's start, ended by its unencoded '/', '?' or '#' (``bob:pa/ss@host``, ``bob:12/x@host``,
-    whose "12" reads as a port): its userinfo runs to the first '@' after it, and where that ':' also reads as a
-    port's (``host:8443/a@b/c`` too), the path is hidden whole. Where that '@' comes after a '?' or '#' and the ':'
-    reads as a port's, urllib, httpx and browsers read the '@' as the query's or fragment's (``bob:12?x@host`` as
-    host ``bob``, port 12, query ``x@host``), yet it may end a password holding an unencoded '?' or '#'
-    (``12?x``): only the host is shown (``host:8443/in?email=a@b.example`` as ``host:***``), never what may be a
-    password's head. An '@' in the path of any other netloc
-    is the path's (a rule reading up to the last '@' had shown ``/hooks/ops@corp/<token>`` as ``***@corp/<token>``).
+    against ``base``. The userinfo is the netloc's, up to its last '@', or past a password an unencoded '/', '?' or
+    '#' cut short (:func:`_split_past_a_password`): where even that cannot be told, as in ``bob:12?x@host``, only
+    the scheme is shown, username included (it is often the token). An '@' in the path of any other netloc is the
+    path's (a rule reading up to the last '@' had shown ``/hooks/ops@corp/<token>`` as ``***@corp/<token>``).
     The path keeps its first segment, which tells receivers' endpoints apart, unless it holds an '@', and the rest,
     where the tokens are, is one ``***`` (no rule tells a token from a word reliably); a query pair's name is kept, a
     pair with no '=' hidden whole.
@@ -91,31 +86,24 @@ def log_safe_url(url: str, base: str = "") -> str:
         'https://***@hooks.example.com/hooks/***'
         >>> log_safe_url("https://bob:12/ab/cd@hooks.example.com/in")
         'https://***@hooks.example.com/***'
-        >>> log_safe_url("https://bob:12?ab@hooks.example.com/in")
-        'https://bob:***'
+        >>> log_safe_url("https://sk_live_TOKEN:12?ab@hooks.example.com/in")
+        'https://***'
+        >>> log_safe_url("https://host:99999/in/tok")
+        'https://host:99999/in/***'
     """
     resolved = urljoin(base, url) if base else url
     try:
         parts = urlsplit(resolved)
-        userinfo, guessed = "@" in parts.netloc, False
-        netloc_start = resolved.find("//") + 2  # (the scheme holds no '/')
-        # where the ':' reads as a port's ('bob:12/x@host' or 'host:8443/a@b/c') the path is hidden whole, and an
-        # '@' past the query's or fragment's start may be theirs ('host:8443/in?email=a@b.example') or a password's
-        # end ('bob:12?x@host'): the host alone is shown
-        port_readable = _port_readable(parts)
-        userinfo_may_end = len(resolved) if not port_readable else min(
-            (at for at in (resolved.find("?", netloc_start), resolved.find("#", netloc_start)) if at >= 0),
-            default=len(resolved))
-        if not userinfo and ":" in parts.netloc and "@" in resolved[netloc_start:userinfo_may_end]:
-            parts = urlsplit(resolved[:netloc_start] + resolved[resolved.index("@", netloc_start) + 1:])
-            userinfo, guessed = True, port_readable
-        elif not userinfo and parts.port is not None and "@" in resolved[userinfo_may_end:]:
-            return f"{parts.scheme + ':' if parts.scheme else ''}//{parts.netloc.rpartition(':')[0]}:***"
+        past_password = _split_past_a_password(resolved, parts)
     except ValueError:  # e.g. an unclosed "[" of an IPv6 host
         return "<an unreadable URL>"
+    scheme = parts.scheme + ":" if parts.scheme else ""
+    if past_password is None:
+        return f"{scheme}//***"
+    parts, userinfo, path_hidden = past_password
     authority = ("***@" if userinfo else "") + parts.netloc.rpartition("@")[2]
     first_segment, _, rest = parts.path.removeprefix("/").partition("/")
-    if "@" in first_segment or (guessed and parts.path.strip("/")):
+    if "@" in first_segment or (path_hidden and parts.path.strip("/")):
         path = "/***"
     elif rest:
         path = f"/{first_segment}/***"
@@ -123,11 +111,36 @@ def log_safe_url(url: str, base: str = "") -> str:
         path = parts.path
     query = "&".join(name + "=***" if has_value else "***"
                      for name, has_value, _ in (pair.partition("=") for pair in parts.query.split("&")))
-    return (f"{parts.scheme + ':' if parts.scheme else ''}{'//' if parts.netloc else ''}{authority}{path}"
+    return (f"{scheme}{'//' if parts.netloc else ''}{authority}{path}"
             f"{'?' + query if parts.query else ''}{'#***' if parts.fragment else ''}")
 
 
-def _port_readable(parts) -> bool:
+def _split_past_a_password(resolved: str, parts: SplitResult) -> tuple[SplitResult, bool, bool] | None:
+    """``resolved``'s parts, whether they hold a userinfo, and whether the path must be hidden whole; None where
+    nothing past the scheme may be shown.
+
+    Where the netloc's host (past its last '@', and past its last ']' for an IPv6 one) holds a ':' and an '@'
+    follows the netloc, that ':' may start a password that an unencoded '/', '?' or '#' cut short (``bob:pa/ss@host``,
+    ``ops@corp:s3/cret@host``): the userinfo runs to that '@'. Where the ':' also reads as a port's (a number, or
+    nothing), the '@' may be the path's (``host:8443/a@b/c``), so the path is hidden whole; and where that '@' comes
+    past a '?' or '#', urllib, httpx and browsers read it as the query's or fragment's (``bob:12?x@host`` as host
+    ``bob``, port 12, query ``x@host``) though ``12?x`` may be a password: None, as neither the username nor the
+    password's head may be shown (``host:8443/in?email=a@b.example`` loses its host with them).
+    """
+    host = parts.netloc.rpartition("@")[2]
+    host_start = resolved.find("//") + 2 + parts.netloc.rfind("@") + 1
+    password_end = resolved.find("@", host_start) if ":" in host.rpartition("]")[2] else -1
+    if password_end < 0:
+        return parts, "@" in parts.netloc, False
+    port_readable = _port_readable(parts)
+    query_or_fragment = min((at for at in (resolved.find("?", host_start), resolved.find("#", host_start)) if at >= 0),
+                            default=len(resolved))
+    if port_readable and password_end > query_or_fragment:
+        return None
+    return urlsplit(resolved[:resolved.find("//") + 2] + resolved[password_end + 1:]), True, port_readable
+
+
+def _port_readable(parts: SplitResult) -> bool:
     """Whether the netloc's port, if any, is a number: not, where a password's '/' cut the netloc short."""
     try:
         parts.port
