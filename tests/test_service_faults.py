@@ -2897,6 +2897,72 @@ def test_a_fit_owner_that_lost_the_fit_never_replaces_the_new_owners_checkpoint(
     assert storage.list(reconstruction_storage_key(rec_id, "checkpoint")) == [recorded]
 
 
+def _set_row(model, row_id: str, **values) -> None:
+    from sqlalchemy import update
+
+    from voxe_service.db import session_scope
+
+    with session_scope() as session:
+        session.execute(update(model).where(model.id == row_id).values(**values))
+
+
+def test_a_start_over_clears_the_jobs_checkpoint_record_only_for_its_holder_and_only_while_it_names_that_key(db):
+    """forget_checkpoint clears jobs.checkpoint_key for the stage starting over: a stalled run whose job another
+    run took over is refused (the checkpoint is the new run's), and a record naming another key (a newer checkpoint)
+    is left as it is."""
+    from voxe_service.models import Job
+    from worker import runtime
+
+    job_id = add_job(add_scene(), "running", 0)
+    _set_row(Job, job_id, run_token="new", checkpoint_key="K")
+    with holding(job_id, "old"), pytest.raises(runtime.RunSuperseded):
+        runtime.forget_checkpoint(job_id, "K")
+    assert job_row(job_id).checkpoint_key == "K"
+    with holding(job_id, "new"):
+        runtime.forget_checkpoint(job_id, "another key")
+        assert job_row(job_id).checkpoint_key == "K"
+        runtime.forget_checkpoint(job_id, "K")
+    assert job_row(job_id).checkpoint_key is None
+
+
+def test_a_start_over_clears_the_fits_checkpoint_record_only_for_its_owner_and_only_while_it_names_that_key(db):
+    """forget_fit_checkpoint clears reconstructions.checkpoint_key for the fit starting over: a run that no longer
+    owns the fit gets LeaseLost (the checkpoint is the new owner's), and a record naming another key is kept."""
+    from voxe_service.models import Reconstruction
+    from worker import runtime
+
+    scene = add_scene()
+    rec_id = add_reconstruction(scene)
+    job_id = add_job(scene, "running", 0, reconstruction_id=rec_id)
+    _set_row(Reconstruction, rec_id, state="running", owner_job_id=job_id, owner_run_token="owner", checkpoint_key="K")
+    with pytest.raises(runtime.LeaseLost):
+        runtime.forget_fit_checkpoint(rec_id, job_id, "stalled", "K")
+    assert runtime.load_reconstruction(rec_id).checkpoint_key == "K"
+    runtime.forget_fit_checkpoint(rec_id, job_id, "owner", "another key")
+    assert runtime.load_reconstruction(rec_id).checkpoint_key == "K"
+    runtime.forget_fit_checkpoint(rec_id, job_id, "owner", "K")
+    assert runtime.load_reconstruction(rec_id).checkpoint_key is None
+
+
+def test_a_database_outage_as_a_start_over_clears_the_checkpoint_record_skips_the_clearing(db, monkeypatch):
+    """Either record's clearing meeting a database outage is skipped, as a progress write is: raised, the start
+    over had become a counted re-queue (a later run finds the record's object gone and starts from the start)."""
+    import sqlite3
+    from sqlalchemy.exc import OperationalError
+
+    from worker import runtime
+
+    @contextlib.contextmanager
+    def down():
+        raise OperationalError("UPDATE", {}, sqlite3.OperationalError("database is locked"))
+        yield
+
+    monkeypatch.setattr(runtime, "session_scope", down)
+    runtime.forget_fit_checkpoint("a reconstruction", "a job", "a run", "K")
+    with holding("a job", "a run"):
+        runtime.forget_checkpoint("a job", "K")
+
+
 def test_a_checkpoint_whose_record_failed_leaves_the_recorded_checkpoints_bytes_as_they_were(db, tmp_path,
                                                                                              monkeypatch):
     """A run stored every checkpoint at one key: one whose record then failed (the database out of reach as it
