@@ -2963,6 +2963,25 @@ def test_a_database_outage_as_a_start_over_clears_the_checkpoint_record_skips_th
         runtime.forget_checkpoint("a job", "K")
 
 
+def test_a_recorded_checkpoint_with_nothing_stored_is_logged_and_its_stage_starts_from_the_start(db, tmp_path,
+                                                                                                 caplog):
+    """A run's recorded checkpoint key naming nothing stored (a start over's record a database blip kept, or 0019's
+    old fixed key) is not gone on from, and the log says so; a stored one is, and no record says nothing."""
+    from voxe_service.storage import get_storage
+    from worker import tasks
+
+    storage = get_storage(db)
+    (tmp_path / "c").write_bytes(b"x")
+    storage.put_file("jobs/j/checkpoints/stored", tmp_path / "c", "application/octet-stream")
+    with caplog.at_level(logging.INFO, logger=tasks.log.name):
+        assert tasks._recorded_checkpoint_stored(storage, "jobs/j/checkpoints/stored", "job j", "edit checkpoint")
+        assert not tasks._recorded_checkpoint_stored(storage, None, "job j", "edit checkpoint")
+        assert not caplog.records
+        assert not tasks._recorded_checkpoint_stored(storage, "jobs/j/checkpoints/gone", "job j", "edit checkpoint")
+    assert caplog.messages == ["job j: its recorded edit checkpoint jobs/j/checkpoints/gone is not stored; starting "
+                               "from the start"]
+
+
 def test_a_checkpoint_whose_record_failed_leaves_the_recorded_checkpoints_bytes_as_they_were(db, tmp_path,
                                                                                              monkeypatch):
     """A run stored every checkpoint at one key: one whose record then failed (the database out of reach as it

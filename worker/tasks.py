@@ -634,7 +634,7 @@ def _fit_grid(job: Job, rec, settings, storage, lease: runtime.LeaseKeeper, call
     lease.renew(total=config.total_iterations)
     resume, checkpoint_key = None, rec.checkpoint_key  # the last owner's, recorded while it owned the fit
     forget = functools.partial(runtime.forget_fit_checkpoint, rec.id, job.id, job.run_token)
-    if checkpoint_key and storage.exists(checkpoint_key):
+    if _recorded_checkpoint_stored(storage, checkpoint_key, f"reconstruction {rec.id}", "checkpoint"):
         resume, _, why = _stored_checkpoint(storage, checkpoint_key, checkpoint, CHECKPOINT_KIND,
                                             CHECKPOINT_FORMAT_VERSION, config, forget)
         if resume is None:
@@ -643,14 +643,21 @@ def _fit_grid(job: Job, rec, settings, storage, lease: runtime.LeaseKeeper, call
             log.info("reconstruction %s: resuming from its checkpoint", rec.id)
             runtime.record_job_event(job.id, "resumed", stage="reconstruct",
                                      detail=f"reconstruction {rec.id} from its stored checkpoint")
-    elif checkpoint_key:
-        log.info("reconstruction %s: its recorded checkpoint %s is not stored; starting from the start", rec.id,
-                 checkpoint_key)
     grid = _resumed_or_started_over(
         lambda start: reconstruct(scene.images, cameras, config, callbacks.callbacks, checkpoint, start, initial,
                                   device), resume, job.id, "reconstruct", callbacks, storage, checkpoint_key,
         forget)
     return grid, config.total_iterations
+
+
+def _recorded_checkpoint_stored(storage, checkpoint_key: str | None, whose: str, what: str) -> bool:
+    """Whether the run recorded ``checkpoint_key`` and it is stored, to go on from; a recorded one that is not (a start
+    over's record a database blip kept, or 0019's old fixed key with nothing stored there) is logged, as the stage
+    starts from the start."""
+    if checkpoint_key and not storage.exists(checkpoint_key):
+        log.info("%s: its recorded %s %s is not stored; starting from the start", whose, what, checkpoint_key)
+        return False
+    return bool(checkpoint_key)
 
 
 def _resumed_or_started_over(run, resume: Path | None, job_id: str, stage: str, callbacks: StageCallbacks, storage,
@@ -695,7 +702,7 @@ def _edit(job: Job, settings, device: str, storage) -> None:
     checkpoint_key = job.checkpoint_key  # the last run's, recorded while it held the job
     forget = functools.partial(runtime.forget_checkpoint, job.id)
     resume, note = None, None
-    if checkpoint_key and storage.exists(checkpoint_key):  # a redelivered / re-queued task: go on from there
+    if _recorded_checkpoint_stored(storage, checkpoint_key, f"job {job.id}", "edit checkpoint"):  # a redelivery
         from voxe_core.edit import EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION
 
         resume, meta, why = _stored_checkpoint(storage, checkpoint_key, checkpoint, EDIT_CHECKPOINT_KIND,
@@ -711,9 +718,6 @@ def _edit(job: Job, settings, device: str, storage) -> None:
         # Where the run goes on from, at once: the row kept what the interrupted run last wrote (begin_stage), which
         # may lie before the checkpoint (progress is written every few seconds, checkpoints every N iterations).
         runtime.update_job(job.id, message=note, **({"iteration": at} if resume is not None else {}))
-    elif checkpoint_key:  # (a start over's record a database blip kept; 0019's old fixed key, nothing stored there)
-        log.info("job %s: its recorded edit checkpoint %s is not stored; the edit starts from the start", job.id,
-                 checkpoint_key)
     input_views = None
     if config.regulariser.startswith("image_"):
         scene = load_images(job, rec.params, settings, storage)
