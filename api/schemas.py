@@ -102,7 +102,7 @@ class ReconstructionParams(Strict):
     )
     rays_per_step: int | None = Field(None, ge=1, le=1 << 20)
     seed: int = Field(presets.SEED, ge=0, le=presets.MAX_SEED)
-    backbone: Literal["auto", "relu_field", "scene"] = Field(
+    backbone: Literal[presets.BACKBONE_CHOICES] = Field(
         presets.BACKBONE, description="relu_field: objects on a transparent background; scene: captured photos with a "
         "background (DVGO-style, SPEC §5); auto: the scene's backbone (decided from its images' alpha)"
     )
@@ -412,7 +412,7 @@ class SceneOut(BaseModel):
     width: int
     height: int
     splits: list[str]
-    backbone: Literal["relu_field", "scene"] | None = Field(
+    backbone: Literal[presets.BACKBONE_KINDS] | None = Field(
         description="what reconstruction backbone auto means for this scene, decided by its processing from all its "
         "training images (relu_field: an object on a transparent background; scene: opaque photos); null while "
         "processing, and for scenes processed before it was recorded")

@@ -137,6 +137,24 @@ def test_each_default_the_cli_and_the_job_schema_share_is_the_presets_one(comman
     assert reconstruction_params({}) == reconstruction_params(service)
 
 
+def test_the_backbone_choices_are_the_presets_ones_and_the_core_registrys():
+    """The kinds presets spell out (it cannot import torch) are the registry's, and the CLI and both schemas offer
+    exactly them (each had its own literal tuple)."""
+    import typing
+
+    from api.schemas import ReconstructionParams, SceneOut
+    from voxe_core.backbones import BACKBONES
+
+    assert presets.BACKBONE_KINDS == tuple(BACKBONES)
+    parser = build_parser()
+    choices = {action.dest: action.choices for action in parser._subparsers._group_actions[0].choices[
+        "reconstruct"]._actions}
+    assert tuple(choices["backbone"]) == presets.BACKBONE_CHOICES == ("auto", *BACKBONES)
+    assert typing.get_args(ReconstructionParams.model_fields["backbone"].annotation) == presets.BACKBONE_CHOICES
+    decided = typing.get_args(SceneOut.model_fields["backbone"].annotation)
+    assert typing.get_args(decided[0]) == presets.BACKBONE_KINDS and decided[1] is type(None)
+
+
 def test_a_submitted_jobs_default_mode_is_the_presets_one():
     from api.schemas import JobCreate
 

@@ -55,6 +55,8 @@ BACKBONE_PRESETS = {"scene": "scene"}
 """Backbone kind -> the preset its fits get when none is named (others: ``RECONSTRUCTION_PRESET``)."""
 BACKBONE_KINDS = ("relu_field", "scene")
 """What "auto" can resolve to (``voxe_core.backbones.BACKBONES``, spelt out: importing it loads torch)."""
+BACKBONE_CHOICES = ("auto", *BACKBONE_KINDS)
+"""What a user may ask for ("auto": decided from the images' alpha)."""
 BACKBONE = "auto"
 """The backbone of a fit when none is named: decided from the images' alpha."""
 TIMESTEP_SCHEDULES = ("paper", "authors")

@@ -12,6 +12,7 @@ from voxe_core.cli.common import (
 )
 from voxe_core.presets import (
     BACKBONE,
+    BACKBONE_CHOICES,
     RECONSTRUCTION_PRESET,
     RECONSTRUCTION_PRESETS,
     SEED,
@@ -35,8 +36,7 @@ def add_parsers(commands, common) -> None:
     rec.add_argument("--checkpoint-every", type=positive_int, default=None,
                      help=f"iterations between --checkpoint's writes (default {CHECKPOINT_EVERY})")
     rec.add_argument("--resume", type=Path, default=None, help="continue from this checkpoint")
-    # voxe_core.backbones.BACKBONE_CHOICES, spelt out: importing it here would load torch for --help.
-    rec.add_argument("--backbone", choices=("auto", "relu_field", "scene"), default=BACKBONE,
+    rec.add_argument("--backbone", choices=BACKBONE_CHOICES, default=BACKBONE,
                      help="relu_field: objects on a transparent background; scene: captured photos with a "
                           "background (DVGO-style, SPEC §5); auto: from the images' alpha")
     add_device_argument(rec)
