@@ -2550,6 +2550,51 @@ def test_an_upload_whose_ingest_kills_its_worker_fails_its_scene_at_the_requeue_
     assert not storage.exists(stored.key)
 
 
+def test_an_object_recorded_but_gone_from_the_storage_fails_naming_what_it_was(db, tmp_path):
+    """A scene's upload or archive, or a job's grid, recorded but no longer in the storage (deleted there: by hand, a
+    bucket's lifecycle rule) had failed the ingest or the stage as "ObjectNotFound: 'scenes/<id>/upload.zip'", a
+    KeyError's quoted key, what it was and what became of it unsaid. The error names what was fetched, its key and
+    that the storage no longer holds it, and no download or unpacked folder is left behind."""
+    import zipfile
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
+    from voxe_service.storage import StorageError, StoredObject, get_storage, scene_key
+    from worker import ingest, inputs, runtime
+
+    storage = get_storage(db)
+    with zipfile.ZipFile(tmp_path / "upload.zip", "w") as zf:
+        zf.writestr("transforms_train.json", "{}")
+    scene = add_scene("processing")
+    stored = storage.put_file(scene_key(scene, "upload.zip"), tmp_path / "upload.zip")
+    with session_scope() as session:  # recorded as the API records an upload, then deleted from the storage
+        row = session.get(Scene, scene)
+        row.storage_key, row.size_bytes, row.sha256 = stored.key, stored.size, stored.sha256
+    storage.delete(stored.key)
+    gone = f"{stored.key}: not in the storage, deleted there since it was recorded"
+    assert ingest.ingest_scene(scene, db, storage, "w@host") == {"scene_id": scene, "state": "failed"}
+    assert scene_row(scene).error == f"ingest: StorageError: scene {scene}'s upload {gone}"
+    assert list((tmp_path / "work" / "ingest").iterdir()) == []
+
+    with session_scope() as session:  # a ready scene whose archive went: a job's unpack of it
+        row = session.get(Scene, scene)
+        row.state, row.error = "ready", None
+        session.flush()
+        session.expunge(row)
+    with pytest.raises(StorageError) as unpacked:
+        with runtime.scene_dataset(row, db, storage):
+            pass
+    assert str(unpacked.value) == f"scene {scene}'s archive {gone}"
+    assert [p.name for p in (tmp_path / "work" / "scenes").iterdir() if p.name != runtime.EVICTION_LOCK] == []
+
+    grid = StoredObject("jobs/j/edited_grid.safetensors", 10, "0" * 64)  # a job's grid, as its artifact row says
+    with pytest.raises(StorageError) as fetched:
+        inputs.fetch_grid("j", "edited_grid.safetensors", db, storage, grid)
+    assert runtime.failure_text(fetched.value) == (f"StorageError: {grid.key}: not in the storage, deleted there "
+                                                   "since it was recorded")
+    assert not runtime.scratch_dir("j", db).joinpath("edited_grid.safetensors").exists()
+
+
 def expire_ingest_hold(scene_id: str) -> None:
     """The lease of the run holding the scene's ingest ran out (its process killed, it is renewed no more)."""
     from sqlalchemy import update

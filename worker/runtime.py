@@ -38,8 +38,8 @@ from voxe_service.models import (
 )
 from voxe_service.queue import requeue_limit_error, storage_outage_limit_error
 from voxe_service.settings import TINY_MODEL, Settings
-from voxe_service.storage import (Storage, StorageError, StorageUnavailable, StoredObject, file_sha256, get_storage,
-                                  job_key)
+from voxe_service.storage import (ObjectNotFound, Storage, StorageError, StorageUnavailable, StoredObject, file_sha256,
+                                  get_storage, job_key)
 
 log = logging.getLogger("voxe.worker")
 
@@ -813,10 +813,14 @@ def fetch(storage: Storage, stored: StoredObject, dest: Path, what: str | None =
     """``stored`` at ``dest``. A file already there is reused only when it holds the recorded bytes: a run that
     lost its job or the fit leaves its own, unpublished, grid in the job's scratch. A download that does not match
     the record (the object truncated or corrupted in the storage) is an error naming ``what`` (default: the key)
-    and both sizes and checksums."""
+    and both sizes and checksums; one the storage no longer holds (deleted there), an error naming ``what`` too
+    (the storage's had said only ``ObjectNotFound: '<key>'``)."""
     if dest.is_file() and _holds(dest, stored):
         return dest
-    storage.get_file(stored.key, dest)
+    try:
+        storage.get_file(stored.key, dest)
+    except ObjectNotFound as exc:
+        raise StorageError(f"{what or stored.key}: not in the storage, deleted there since it was recorded") from exc
     size, sha256 = file_sha256(dest)
     if (size, sha256) != (stored.size, stored.sha256):
         dest.unlink(missing_ok=True)
