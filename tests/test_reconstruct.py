@@ -307,6 +307,12 @@ def test_averaging_returns_the_mean_of_the_final_iterates():
     ("tv_color", math.nan, "tv_density and tv_color must be >= 0 and finite"),
     ("iterations", 500, "iterations takes one whole number per stage, got 500"),  # had been len()'s TypeError
     ("resolutions", "12", "resolutions takes one whole number per stage, got '12'"),
+    # each had named no value (nor, for the entries, which setting had how many)
+    ("iterations", (15, -1), r"iterations must be >= 0 per stage, got \[15, -1\]"),
+    ("rays_per_step", 0, "rays_per_step must be >= 1, got 0"),
+    ("average_from", 1.5, r"average_from must lie in \[0, 1\] and average_every be >= 1, got 1\.5 and 8"),
+    ("average_every", 0, r"average_from must lie in \[0, 1\] and average_every be >= 1, got 1\.0 and 0"),
+    ("resolutions", (12, 16, 24), r"one entry per stage, got \[12, 16, 24\], \[15, 15\] and \[2, 1\]"),
 ])
 def test_a_config_no_fit_can_run_is_refused_when_it_is_made(field, value, message):
     with pytest.raises(ValueError, match=message):

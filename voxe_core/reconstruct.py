@@ -90,7 +90,8 @@ class ReconstructConfig:
                 raise ValueError(f"{name} takes one whole number per stage, got {getattr(self, name)!r}")
         n = len(self.resolutions)
         if not (len(self.iterations) == len(self.image_downsample) == n) or n == 0:
-            raise ValueError("resolutions, iterations and image_downsample need one entry per stage")
+            raise ValueError(f"resolutions, iterations and image_downsample need one entry per stage, got "
+                             f"{list(self.resolutions)}, {list(self.iterations)} and {list(self.image_downsample)}")
         # As EditConfig's: 2.5 rays, iterations or voxels (or True) had passed the range checks below and failed
         # inside the fit (a TypeError from torch.randint or range(), after the earlier stages' work), or run
         # (checkpoint_every 0.5: a checkpoint every step); a seed of 2**64 had overflowed the generator's seed.
@@ -101,8 +102,10 @@ class ReconstructConfig:
                 raise ValueError(f"{name} takes whole numbers, got {value!r}")
         if not 0 <= self.seed <= MAX_SEED:
             raise ValueError(f"seed must lie in [0, {MAX_SEED}] (the service's and the CLI's range), got {self.seed}")
-        if self.rays_per_step < 1 or any(i < 0 for i in self.iterations):
-            raise ValueError("rays_per_step must be >= 1 and iterations >= 0")
+        if self.rays_per_step < 1:
+            raise ValueError(f"rays_per_step must be >= 1, got {self.rays_per_step}")
+        if any(i < 0 for i in self.iterations):
+            raise ValueError(f"iterations must be >= 0 per stage, got {list(self.iterations)}")
         if min(self.resolutions) < 2:  # as a grid's own refusal, but before any stage has run
             raise ValueError(f"grid resolutions must be at least 2, got {list(self.resolutions)}")
         if min(self.image_downsample) < 1:  # 0 had divided by zero after the earlier stages' work, -1 fitted 1x1 px
@@ -125,7 +128,8 @@ class ReconstructConfig:
         if self.images_per_step < 0:
             raise ValueError(f"images_per_step must be >= 0 (0: all images), got {self.images_per_step}")
         if not 0.0 <= self.average_from <= 1.0 or self.average_every < 1:
-            raise ValueError("average_from must lie in [0, 1] and average_every be >= 1")
+            raise ValueError(f"average_from must lie in [0, 1] and average_every be >= 1, got {self.average_from} "
+                             f"and {self.average_every}")
         if not (0 <= self.tv_density <= FLOAT32_MAX and 0 <= self.tv_color <= FLOAT32_MAX) or self.tv_voxels < 1:
             raise ValueError(f"tv_density and tv_color must be >= 0 and finite, and tv_voxels >= 1, got "
                              f"{self.tv_density}, {self.tv_color} and {self.tv_voxels}")
