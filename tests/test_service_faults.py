@@ -1478,6 +1478,47 @@ def test_a_stage_failure_says_what_failed_without_the_workers_paths_or_statement
         assert error.startswith("edit: ") and "no_such_column" in error and "\n" not in error, error
 
 
+def test_a_run_that_lost_its_job_writes_nothing_on_it_waiting_for_the_fit_or_after(db):
+    """A reconstruct run that stalled past its lease (its job taken over by a redelivery) wrote the job's progress
+    as if it still held it: "waiting for the scene's reconstruction" (and the fit's iteration and total) while it
+    waited, and once the fit was done "reused the scene's reconstruction", over the new run's words, or over an
+    ending (the job failed or canceled meanwhile) until its next cancel check stopped it. Those writes are the held
+    run's only, as its progress writes are: the new run's message, iteration and total stay, and no reuse is said."""
+    from voxe_core.progress import StageCancelled
+    from voxe_service.db import session_scope
+    from voxe_service.models import Reconstruction, utcnow
+    from voxe_service.storage import get_storage
+    from worker import runtime, tasks
+
+    storage = get_storage(db)
+    scene = add_scene()
+    rec_id = add_reconstruction(scene, params={"route": "voxelize"})
+    fitter = add_job(scene, "running", 0, reconstruction_id=rec_id)
+    job_id = add_job(scene, "running", 0, stage="reconstruct", reconstruction_id=rec_id, run_token="new",
+                     iteration=3, total=10, message="the new run's words")
+    with session_scope() as session:  # the fit another job runs, its lease live
+        rec = session.get(Reconstruction, rec_id)
+        rec.state, rec.owner_job_id, rec.lease_until = "running", fitter, utcnow() + timedelta(hours=1)
+    stale = runtime.load_job(job_id)
+    stale.run_token = "old"  # the run that lost the job
+
+    def progress():
+        row = job_row(job_id)
+        return row.message, row.iteration, row.total, row.reconstruction_reused
+
+    new_run = ("the new run's words", 3, 10, job_row(job_id).reconstruction_reused)
+    with runtime.holding_job(job_id, "old", db), pytest.raises(StageCancelled):  # (its cancel check finds it lost)
+        tasks._reconstruct(stale, db, "cpu", storage)
+    assert progress() == new_run
+    grid = storage.put_bytes(f"reconstructions/{rec_id}/grid.safetensors", b"G_i")
+    with session_scope() as session:  # the fit done
+        rec = session.get(Reconstruction, rec_id)
+        rec.state, rec.grid_key, rec.grid_size, rec.grid_sha256 = "succeeded", grid.key, grid.size, grid.sha256
+    with runtime.holding_job(job_id, "old", db), pytest.raises(runtime.RunSuperseded):  # (refused its artifact)
+        tasks._reconstruct(stale, db, "cpu", storage)
+    assert progress() == new_run
+
+
 def test_a_fit_that_runs_out_of_memory_fails_its_job_alone_and_a_job_waiting_on_it_takes_it_over(db, monkeypatch):
     """Out of memory is its worker's fault, not the scene's, as when the OOM killer ends the process (whose lapsed
     lease a waiting job takes over): the fitting job fails saying so, and the job waiting on the shared fit (on a

@@ -425,7 +425,7 @@ def _reconstruct(job: Job, settings, device: str, storage) -> None:
                 _record_fit(job, backbone, reconstruct_config(rec.params, backbone=backbone), settings)
         waiting = True
         owner = f" (fitted by job {rec.owner_job_id})" if rec.owner_job_id else ""
-        runtime.update_job(job.id, iteration=rec.iteration, total=rec.total,
+        runtime.update_job(job.id, held_by=job.run_token, iteration=rec.iteration, total=rec.total,
                            message=f"waiting for the scene's reconstruction {rec.id}{owner}")
         if callbacks.should_cancel():
             raise StageCancelled("reconstruct canceled while waiting")
@@ -433,8 +433,8 @@ def _reconstruct(job: Job, settings, device: str, storage) -> None:
 
     rec = runtime.load_reconstruction(rec_id)
     reused = not ran_here and rec.owner_job_id != job.id
-    runtime.update_job(job.id, reconstruction_reused=reused, iteration=rec.total, total=rec.total,
-                       message="reused the scene's reconstruction" if reused else None)
+    runtime.update_job(job.id, held_by=job.run_token, reconstruction_reused=reused, iteration=rec.total,
+                       total=rec.total, message="reused the scene's reconstruction" if reused else None)
     from voxe_core.backbones import load_grid
 
     grid_path = _grid_file(job.id, rec, settings, storage)  # fetched and checked against the record once
