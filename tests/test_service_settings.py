@@ -45,13 +45,25 @@ def fresh_settings(monkeypatch):
     ("VOXE_STAGE_LEASE_S", "inf", "VOXE_STAGE_LEASE_S='inf': Input should be a finite number"),
     # had failed only when first used, deep in SQLAlchemy, kombu or botocore
     ("VOXE_DATABASE_URL", "postgres://u:S3cret@db/voxe",  # the password not printed
-     "VOXE_DATABASE_URL='postgres://u:***@db/voxe': not a SQLAlchemy database URL (Can't load plugin: "
+     "VOXE_DATABASE_URL='postgres://***@db/voxe': not a SQLAlchemy database URL (Can't load plugin: "
      "sqlalchemy.dialects:postgres)"),
     # a base64 password holds '/' and '+': it had been printed whole
-    ("VOXE_DATABASE_URL", "postgres://u:S3cret/x+y@db/voxe", "VOXE_DATABASE_URL='postgres://u:***@db/voxe': not a "
+    ("VOXE_DATABASE_URL", "postgres://u:S3cret/x+y@db/voxe", "VOXE_DATABASE_URL='postgres://***@db/voxe': not a "
                                                              "SQLAlchemy database URL"),
-    ("VOXE_BROKER_URL", "valkey://:S3cret/x@cache:6379/0", "VOXE_BROKER_URL='valkey://:***@cache:6379/0': not a "
+    ("VOXE_BROKER_URL", "valkey://:S3cret/x@cache:6379/0", "VOXE_BROKER_URL='valkey://***@cache:6379/0': not a "
                                                            "broker URL"),
+    # no ':' after the user, an '@' in the user, no ':' after the scheme, a password in the query: printed whole
+    ("VOXE_DATABASE_URL", "postgres://bob@S3cret@db/voxe", "VOXE_DATABASE_URL='postgres://***@db/voxe': not a "
+                                                           "SQLAlchemy database URL"),
+    ("VOXE_DATABASE_URL", "postgres://ops@corp:S3cret@db/voxe", "VOXE_DATABASE_URL='postgres://***@db/voxe': not a "
+                                                                "SQLAlchemy database URL"),
+    ("VOXE_DATABASE_URL", "postgresql//bob:S3cret@db/voxe", "VOXE_DATABASE_URL='/postgresql/***': not a SQLAlchemy "
+                                                            "database URL"),
+    ("VOXE_DATABASE_URL", "postgres://db/voxe?password=S3cret", "VOXE_DATABASE_URL='postgres://db/voxe?password=***': "
+                                                                "not a SQLAlchemy database URL"),
+    ("VOXE_BROKER_URL", "valkey://bob@S3cret@cache:6379/0", "VOXE_BROKER_URL='valkey://***@cache:6379/0': not a "
+                                                            "broker URL"),
+    ("VOXE_BROKER_URL", "redis//:S3cret@cache:6379/0", "VOXE_BROKER_URL='/redis/***': not a broker URL"),
     ("VOXE_BROKER_URL", "redis//localhost:6379", "VOXE_BROKER_URL='redis//localhost:6379': not a broker URL"),
     ("VOXE_S3_ENDPOINT_URL", "minio:9000", "VOXE_S3_ENDPOINT_URL='minio:9000': an S3 endpoint is an http://"),
     # accepted, then botocore's bare "Invalid endpoint: http://" (or "not a valid URI") at the storage's first use

@@ -290,7 +290,12 @@ def get_settings() -> Settings:
 
 
 def _shown(value):
-    """A setting's value as an error may print it: a URL's password hidden (the database and broker URLs carry one), up
-    to the URL's last '@': one holding a '/' (a base64 password's, which SQLAlchemy and kombu read as such) had been
-    printed whole."""
-    return re.sub(r"(://[^/:@]*:).*@", r"\1***@", value) if isinstance(value, str) else value
+    """A setting's value as an error may print it: a URL that may carry credentials (an '@' or a query: the database
+    and broker URLs hold a password) as :func:`voxe_service.webhooks.log_safe_url` logs it. A rule hiding from the
+    first ':' past '://' to the last '@' had printed the password of ``postgres://bob@s3cret@host/db``,
+    ``postgres://ops@corp:s3cret@host/db``, ``redis//bob:s3cret@host`` and ``...?password=s3cret`` whole."""
+    if isinstance(value, str) and ("@" in value or "?" in value):
+        from voxe_service.webhooks import log_safe_url  # (it reads the models: not at the settings' import)
+
+        return log_safe_url(value)
+    return value
