@@ -65,6 +65,10 @@ def fresh_settings(monkeypatch):
                                                             "broker URL"),
     ("VOXE_BROKER_URL", "redis//:S3cret@cache:6379/0", "VOXE_BROKER_URL='/redis/***': not a broker URL"),
     ("VOXE_BROKER_URL", "redis//localhost:6379", "VOXE_BROKER_URL='redis//localhost:6379': not a broker URL"),
+    # an empty model had been a model's name, failing as each job loaded it
+    *((variable, value, f"{variable}={value!r}: must name a model: a hub id, a local folder, or tiny (unset it for "
+                        "the default)")
+      for variable in ("VOXE_SDS_MODEL", "VOXE_ATTENTION_MODEL", "VOXE_CLIP_MODEL") for value in ("", "  ")),
     ("VOXE_S3_ENDPOINT_URL", "minio:9000", "VOXE_S3_ENDPOINT_URL='minio:9000': an S3 endpoint is an http://"),
     # accepted, then botocore's bare "Invalid endpoint: http://" (or "not a valid URI") at the storage's first use
     ("VOXE_S3_ENDPOINT_URL", "http://", "VOXE_S3_ENDPOINT_URL='http://': an S3 endpoint is an http:// or https:// "
@@ -106,6 +110,17 @@ def test_s3_storage_needs_a_bucket_name(fresh_settings):
         fresh_settings.setenv("VOXE_S3_BUCKET", bucket)
         get_settings.cache_clear()
         assert get_settings().s3_bucket == bucket
+
+
+def test_a_model_setting_is_read_without_the_spaces_around_it(fresh_settings):
+    """A pasted ' CompVis/stable-diffusion-v1-4 ' had been kept whole: no hub id nor folder, so every worker reported
+    it missing (advising to download it) and every job was refused."""
+    for variable in ("VOXE_SDS_MODEL", "VOXE_ATTENTION_MODEL", "VOXE_CLIP_MODEL", "VOXE_FID_MODEL"):
+        fresh_settings.setenv(variable, " CompVis/stable-diffusion-v1-4  ")
+    fresh_settings.setenv("VOXE_FID_MODEL", "  ")  # an empty FID model is its default, the file in VOXE_MODEL_DIR
+    settings = get_settings()
+    assert (settings.sds_model, settings.attention_model, settings.clip_model, settings.fid_model) == (
+        "CompVis/stable-diffusion-v1-4", "CompVis/stable-diffusion-v1-4", "CompVis/stable-diffusion-v1-4", "")
 
 
 def test_s3_endpoints_naming_a_host_are_accepted():

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Literal
 from urllib.parse import urlsplit
 
-from pydantic import Field, ValidationError, field_validator, model_validator
+from pydantic import Field, ValidationError, ValidationInfo, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from voxe_core.constants import ATTENTION_MODEL_ID, CLIP_MODEL_ID, SDS_MODEL_ID
@@ -149,6 +149,17 @@ class Settings(BaseSettings):
         artifacts written among the service's own files (/app in the images)."""
         if isinstance(value, str) and not value.strip():
             raise ValueError("must name a folder (unset it for the default)")
+        return value
+
+    @field_validator("sds_model", "attention_model", "clip_model", "fid_model")
+    @classmethod
+    def _model_named(cls, value: str, info: ValidationInfo) -> str:
+        """A model stripped of the spaces around it: ``VOXE_SDS_MODEL=' CompVis/stable-diffusion-v1-4'`` (pasted) had been
+        no hub id and no folder, every worker reporting it missing and every job refused, the advice to download what
+        was already there. An empty one had been taken as a model's name (VOXE_FID_MODEL's is its default)."""
+        value = value.strip()
+        if not value and info.field_name != "fid_model":
+            raise ValueError(f"must name a model: a hub id, a local folder, or {TINY_MODEL} (unset it for the default)")
         return value
 
     @field_validator("database_url")
