@@ -69,6 +69,9 @@ def fresh_settings(monkeypatch):
     *((variable, value, f"{variable}={value!r}: must name a model: a hub id, a local folder, or tiny (unset it for "
                         "the default)")
       for variable in ("VOXE_SDS_MODEL", "VOXE_ATTENTION_MODEL", "VOXE_CLIP_MODEL") for value in ("", "  ")),
+    # recorded in a job's column: accepted, then every submission had failed storing it (a 500 on PostgreSQL)
+    *((variable, "/models/" + "m" * 600, "characters, the most a job records (608 given)")
+      for variable in ("VOXE_SDS_MODEL", "VOXE_ATTENTION_MODEL")),
     ("VOXE_S3_ENDPOINT_URL", "minio:9000", "VOXE_S3_ENDPOINT_URL='minio:9000': an S3 endpoint is an http://"),
     # accepted, then botocore's bare "Invalid endpoint: http://" (or "not a valid URI") at the storage's first use
     ("VOXE_S3_ENDPOINT_URL", "http://", "VOXE_S3_ENDPOINT_URL='http://': an S3 endpoint is an http:// or https:// "
@@ -121,6 +124,16 @@ def test_a_model_setting_is_read_without_the_spaces_around_it(fresh_settings):
     settings = get_settings()
     assert (settings.sds_model, settings.attention_model, settings.clip_model, settings.fid_model) == (
         "CompVis/stable-diffusion-v1-4", "CompVis/stable-diffusion-v1-4", "CompVis/stable-diffusion-v1-4", "")
+
+
+def test_a_model_as_long_as_a_jobs_column_is_accepted_and_one_longer_refused():
+    from voxe_service.models import Job
+
+    for setting in ("sds_model", "attention_model"):
+        longest = Job.__table__.columns[setting].type.length
+        assert getattr(Settings(**{setting: "m" * longest}), setting) == "m" * longest
+        with pytest.raises(ValueError, match=f"at most {longest} characters, the most a job records"):
+            Settings(**{setting: "m" * (longest + 1)})
 
 
 def test_s3_endpoints_naming_a_host_are_accepted():

@@ -156,10 +156,17 @@ class Settings(BaseSettings):
     def _model_named(cls, value: str, info: ValidationInfo) -> str:
         """A model stripped of the spaces around it: ``VOXE_SDS_MODEL=' CompVis/stable-diffusion-v1-4'`` (pasted) had been
         no hub id and no folder, every worker reporting it missing and every job refused, the advice to download what
-        was already there. An empty one had been taken as a model's name (VOXE_FID_MODEL's is its default)."""
+        was already there. An empty one had been taken as a model's name (VOXE_FID_MODEL's is its default). The SDS and
+        attention models are recorded in a job's columns: a longer one had been accepted, then every submission
+        failed storing it (a 500 on PostgreSQL)."""
+        from voxe_service.models import Job
+
         value = value.strip()
         if not value and info.field_name != "fid_model":
             raise ValueError(f"must name a model: a hub id, a local folder, or {TINY_MODEL} (unset it for the default)")
+        column = Job.__table__.columns.get(info.field_name)
+        if column is not None and len(value) > column.type.length:
+            raise ValueError(f"at most {column.type.length} characters, the most a job records ({len(value)} given)")
         return value
 
     @field_validator("database_url")
