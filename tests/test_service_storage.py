@@ -110,6 +110,18 @@ def test_both_backends_agree_on_tmp_keys_and_empty_ranges(storage):
     assert storage.delete_prefix("jobs/t/") == 2 and storage.list() == []
 
 
+def test_deleting_a_key_that_names_no_object_is_a_no_op_on_either_backend(storage):
+    """A missing key, a folder's name and a name under an object's hold no object: S3 deletes them quietly, the
+    local storage had raised IsADirectoryError and NotADirectoryError for the last two."""
+    storage.put_bytes("jobs/f/sub/data.bin", b"kept")
+    for key in ("jobs/f/missing.bin", "jobs/g/missing.bin", "jobs/f/sub", "jobs/f", "jobs/f/sub/data.bin/x"):
+        storage.delete(key)
+        assert storage.list() == ["jobs/f/sub/data.bin"], key
+    assert b"".join(storage.open_range("jobs/f/sub/data.bin")) == b"kept"
+    storage.delete("jobs/f/sub/data.bin")
+    assert storage.list() == [] and not storage.exists("jobs/f/sub/data.bin")
+
+
 def test_a_range_closed_before_its_first_chunk_holds_no_file_or_connection(storage, monkeypatch):
     """A download whose client left before its first chunk: closing the stream had run none of the generator's
     code, so the open file (the S3 response, its connection) stayed held until a garbage collection."""

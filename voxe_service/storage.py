@@ -315,7 +315,10 @@ class LocalStorage(Storage):
 
     def delete(self, key) -> None:
         target = self.path(key)
-        target.unlink(missing_ok=True)
+        try:
+            target.unlink(missing_ok=True)
+        except (IsADirectoryError, NotADirectoryError):  # a folder's name, or a name under a file: no object, which
+            return  # S3 deletes as quietly as a missing one (had raised, failing a cleanup the S3 storage let pass)
         parent = target.parent
         while parent != self.root:  # drop emptied folders
             try:
