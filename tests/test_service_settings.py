@@ -78,6 +78,9 @@ def fresh_settings(monkeypatch):
                                         "URL naming a host"),
     ("VOXE_S3_ENDPOINT_URL", "http://:9000", "VOXE_S3_ENDPOINT_URL='http://:9000': an S3 endpoint is"),
     ("VOXE_S3_ENDPOINT_URL", "http://minio:90000", "VOXE_S3_ENDPOINT_URL='http://minio:90000': an S3 endpoint is"),
+    # taken, then botocore's bare "Provided region_name ... doesn't match a supported format" at the storage's first use
+    *(("VOXE_S3_REGION", region, f"VOXE_S3_REGION={region!r}: an S3 region is up to 63 letters, digits and hyphens")
+      for region in ("eu west 1", "eu-west-1 ", "eu_west_1", "-eu", "r" * 64)),
     # taken, S3 then storing every object under "../x/", "a//b/" or "./" ("/x" quietly read as "x/")
     *(("VOXE_S3_PREFIX", prefix, f"VOXE_S3_PREFIX={prefix!r}: a key prefix is folder names of letters, digits, dots, "
                                  "hyphens and underscores joined by '/' (none of them '.' or '..', no '/' in front), "
@@ -139,6 +142,12 @@ def test_a_model_as_long_as_a_jobs_column_is_accepted_and_one_longer_refused():
 def test_s3_endpoints_naming_a_host_are_accepted():
     for endpoint in ("http://minio:9000", "https://s3.eu-west-1.amazonaws.com", "http://[::1]:9000", "http://10.0.0.5"):
         assert Settings(s3_endpoint_url=endpoint).s3_endpoint_url == endpoint
+
+
+def test_s3_regions_botocore_takes_are_accepted():
+    for region in (None, "us-east-1", "eu-west-1", "auto", "garage", "EU-WEST-1"):  # (R2's "auto", MinIO's own names)
+        assert Settings(s3_region=region).s3_region == region
+    assert Settings(s3_region="").s3_region is None
 
 
 def test_s3_prefixes_naming_folders_are_accepted():

@@ -199,6 +199,22 @@ class Settings(BaseSettings):
                              "any), e.g. http://minio:9000")
         return value
 
+    @field_validator("s3_region")
+    @classmethod
+    def _s3_region(cls, value: str | None) -> str | None:
+        """botocore's rule for a region, checked at start: 'eu west 1' or 'eu-west-1 ' had been taken, then botocore's
+        bare "Provided region_name ... doesn't match a supported format" failed the API's start and every stage a
+        worker ran, naming no setting."""
+        from botocore.exceptions import InvalidRegionError
+        from botocore.utils import validate_region_name
+
+        try:
+            validate_region_name(value)
+        except InvalidRegionError:
+            raise ValueError("an S3 region is up to 63 letters, digits and hyphens (not all digits, no hyphen first "
+                             "or last), e.g. eu-west-1") from None
+        return value
+
     @field_validator("s3_prefix")
     @classmethod
     def _s3_prefix(cls, value: str) -> str:
