@@ -50,6 +50,11 @@ def fresh_settings(monkeypatch):
     # a base64 password holds '/' and '+': it had been printed whole
     ("VOXE_DATABASE_URL", "postgres://u:S3cret/x+y@db/voxe", "VOXE_DATABASE_URL='postgres://***@db/voxe': not a "
                                                              "SQLAlchemy database URL"),
+    # each connection's own empty database: the API's request threads had found no tables, the workers no jobs
+    *(("VOXE_DATABASE_URL", url, "': an in-memory SQLite database is each connection's own, empty one, that no "
+                                 "other thread or process (the workers) sees; name a file, e.g. sqlite:///./var/voxe.db")
+      for url in ("sqlite://", "sqlite:///:memory:", "sqlite+pysqlite:///:memory:",
+                  "sqlite:///file:voxe?mode=memory&cache=shared&uri=true")),
     ("VOXE_BROKER_URL", "valkey://:S3cret/x@cache:6379/0", "VOXE_BROKER_URL='valkey://***@cache:6379/0': not a "
                                                            "broker URL"),
     # no ':' after the user, an '@' in the user, no ':' after the scheme, a password in the query: printed whole

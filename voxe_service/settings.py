@@ -175,10 +175,16 @@ class Settings(BaseSettings):
         from sqlalchemy.engine import make_url
 
         try:
-            make_url(value).get_dialect()  # the dialect's module only: nothing connects
+            url = make_url(value)
+            url.get_dialect()  # the dialect's module only: nothing connects
         except Exception as exc:  # noqa: BLE001 - unparsable, or a dialect SQLAlchemy does not know
             raise ValueError(f"not a SQLAlchemy database URL ({exc}); e.g. sqlite:///./var/voxe.db or "
                              "postgresql+psycopg://user:password@host/db") from None
+        if url.get_backend_name() == "sqlite" and (url.database in (None, "", ":memory:")
+                                                   or url.query.get("mode") == "memory"):
+            # (accepted, the API's request threads had found no tables, "no such table: jobs")
+            raise ValueError("an in-memory SQLite database is each connection's own, empty one, that no other thread "
+                             "or process (the workers) sees; name a file, e.g. sqlite:///./var/voxe.db")
         return value
 
     @field_validator("broker_url")
