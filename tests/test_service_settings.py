@@ -144,6 +144,32 @@ def test_a_model_as_long_as_a_jobs_column_is_accepted_and_one_longer_refused():
             Settings(**{setting: "m" * (longest + 1)})
 
 
+def test_sqlite_files_under_the_home_folder_are_opened_there(fresh_settings, tmp_path):
+    """SQLite opens '~/vx/voxe.db' as written, under a folder '~' of the working directory: the API had failed to
+    start ("unable to open database file"), its folders and migration lock made under the home folder."""
+    from voxe_service.broker import waiting_tasks
+    from voxe_service.db import make_engine, run_migrations
+
+    home = tmp_path / "home"
+    fresh_settings.setenv("HOME", str(home))
+    fresh_settings.chdir(tmp_path)
+    fresh_settings.setenv("VOXE_DATABASE_URL", "sqlite:///~/vx/voxe.db")
+    fresh_settings.setenv("VOXE_BROKER_URL", "sqla+sqlite:///~/vx/broker.db?timeout=5")
+    settings = get_settings()
+    assert (settings.database_url, settings.broker_url) == (f"sqlite:///{home}/vx/voxe.db",
+                                                            f"sqla+sqlite:///{home}/vx/broker.db?timeout=5")
+    run_migrations(settings.database_url)
+    engine = make_engine(settings.database_url)
+    try:
+        with engine.connect() as connection:
+            assert connection.exec_driver_sql("SELECT count(*) FROM jobs").scalar_one() == 0
+    finally:
+        engine.dispose()
+    assert waiting_tasks(settings.broker_url) == set()
+    assert {path.name for path in (home / "vx").iterdir()} >= {"voxe.db", "broker.db"}
+    assert not (tmp_path / "~").exists()
+
+
 def test_s3_endpoints_naming_a_host_are_accepted():
     for endpoint in ("http://minio:9000", "https://s3.eu-west-1.amazonaws.com", "http://[::1]:9000", "http://10.0.0.5"):
         assert Settings(s3_endpoint_url=endpoint).s3_endpoint_url == endpoint

@@ -9,6 +9,7 @@ S3-compatible storage (MinIO) through the same variables.
 from __future__ import annotations
 
 import ipaddress
+import os
 import re
 from functools import lru_cache
 from pathlib import Path
@@ -185,7 +186,7 @@ class Settings(BaseSettings):
             # (accepted, the API's request threads had found no tables, "no such table: jobs")
             raise ValueError("an in-memory SQLite database is each connection's own, empty one, that no other thread "
                              "or process (the workers) sees; name a file, e.g. sqlite:///./var/voxe.db")
-        return value
+        return _sqlite_home_expanded(value)
 
     @field_validator("broker_url")
     @classmethod
@@ -195,7 +196,8 @@ class Settings(BaseSettings):
         scheme = value.split("://", 1)[0] if "://" in value else ""
         if scheme.split("+", 1)[0] not in TRANSPORT_ALIASES:
             raise ValueError("not a broker URL; e.g. redis://host:6379/0 or sqla+sqlite:///./var/broker.db")
-        return value
+        transport, plus, url = value.partition("+")
+        return transport + plus + _sqlite_home_expanded(url) if transport in ("sqla", "sqlalchemy") and plus else value
 
     @field_validator("s3_endpoint_url")
     @classmethod
@@ -283,6 +285,18 @@ class Settings(BaseSettings):
         import torch
 
         return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def _sqlite_home_expanded(url: str) -> str:
+    """``url`` with the '~' of a SQLite file under the home folder expanded (``sqlite:///~/voxe.db``): SQLite opens
+    the name as written, under a folder named '~' in the working directory ("unable to open database file"), where
+    the service had made the folders and the migration lock under the home folder."""
+    from sqlalchemy.engine import make_url
+
+    parsed = make_url(url)
+    if parsed.get_backend_name() != "sqlite" or not (parsed.database or "").startswith("~"):
+        return url
+    return parsed.set(database=os.path.expanduser(parsed.database)).render_as_string(hide_password=False)
 
 
 def _http_url_with_host(url: str) -> bool:
