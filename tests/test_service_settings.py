@@ -170,6 +170,24 @@ def test_sqlite_files_under_the_home_folder_are_opened_there(fresh_settings, tmp
     assert not (tmp_path / "~").exists()
 
 
+def test_folders_under_the_home_folder_are_made_there(fresh_settings, tmp_path):
+    """VOXE_STORAGE_DIR=~/voxe (as env files and compose pass it: no shell expands it) had stored every artifact under
+    a folder named '~' in the working directory; the work and model folders alike."""
+    from voxe_service.storage import get_storage
+
+    home = tmp_path / "home"
+    fresh_settings.setenv("HOME", str(home))
+    fresh_settings.chdir(tmp_path)
+    for variable in ("VOXE_STORAGE_DIR", "VOXE_WORK_DIR", "VOXE_MODEL_DIR"):
+        fresh_settings.setenv(variable, f"~/{variable.lower()}")
+    settings = get_settings()
+    assert (settings.storage_dir, settings.work_dir, settings.model_dir) == (
+        home / "voxe_storage_dir", home / "voxe_work_dir", home / "voxe_model_dir")
+    get_storage(settings).put_bytes("jobs/j/a.txt", b"kept")
+    assert (home / "voxe_storage_dir" / "jobs" / "j" / "a.txt").read_bytes() == b"kept"
+    assert not (tmp_path / "~").exists()
+
+
 def test_s3_endpoints_naming_a_host_are_accepted():
     for endpoint in ("http://minio:9000", "https://s3.eu-west-1.amazonaws.com", "http://[::1]:9000", "http://10.0.0.5"):
         assert Settings(s3_endpoint_url=endpoint).s3_endpoint_url == endpoint

@@ -147,10 +147,11 @@ class Settings(BaseSettings):
     @classmethod
     def _folder_named(cls, value):
         """An empty value (``VOXE_STORAGE_DIR=`` in an env file) had been Path(""), the working directory: the
-        artifacts written among the service's own files (/app in the images)."""
+        artifacts written among the service's own files (/app in the images). A '~' is the home folder, as a shell
+        reads it: ``VOXE_STORAGE_DIR=~/voxe`` had stored the artifacts under a folder named '~' in the working one."""
         if isinstance(value, str) and not value.strip():
             raise ValueError("must name a folder (unset it for the default)")
-        return value
+        return Path(value).expanduser() if isinstance(value, str | Path) else value
 
     @field_validator("sds_model", "attention_model", "clip_model", "fid_model")
     @classmethod
