@@ -55,6 +55,15 @@ def fresh_settings(monkeypatch):
                                  "other thread or process (the workers) sees; name a file, e.g. sqlite:///./var/voxe.db")
       for url in ("sqlite://", "sqlite:///:memory:", "sqlite+pysqlite:///:memory:",
                   "sqlite:///file:voxe?mode=memory&cache=shared&uri=true")),
+    # the SQL broker's database, checked as the metadata's: accepted, the API had queued every job in a database of its
+    # own that no worker read, or failed each submission as kombu first opened it
+    *(("VOXE_BROKER_URL", url, f"VOXE_BROKER_URL={url!r}: an in-memory SQLite database is each connection's own, "
+                               f"empty one, that no other thread or process (the workers) sees; name a file, e.g. "
+                               f"{url.partition('+')[0]}+sqlite:///./var/broker.db")
+      for url in ("sqla+sqlite://", "sqlalchemy+sqlite:///:memory:")),
+    ("VOXE_BROKER_URL", "sqla+postgres://u:S3cret@db/voxe",
+     "VOXE_BROKER_URL='sqla+postgres://***@db/voxe': not 'sqla+' and a SQLAlchemy database URL (Can't load plugin: "
+     "sqlalchemy.dialects:postgres); e.g. sqla+sqlite:///./var/broker.db or sqla+postgresql+psycopg://user:"),
     ("VOXE_BROKER_URL", "valkey://:S3cret/x@cache:6379/0", "VOXE_BROKER_URL='valkey://***@cache:6379/0': not a "
                                                            "broker URL"),
     # no ':' after the user, an '@' in the user, no ':' after the scheme, a password in the query: printed whole

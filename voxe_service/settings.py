@@ -174,20 +174,7 @@ class Settings(BaseSettings):
     @field_validator("database_url")
     @classmethod
     def _database_url(cls, value: str) -> str:
-        from sqlalchemy.engine import make_url
-
-        try:
-            url = make_url(value)
-            url.get_dialect()  # the dialect's module only: nothing connects
-        except Exception as exc:  # noqa: BLE001 - unparsable, or a dialect SQLAlchemy does not know
-            raise ValueError(f"not a SQLAlchemy database URL ({exc}); e.g. sqlite:///./var/voxe.db or "
-                             "postgresql+psycopg://user:password@host/db") from None
-        if url.get_backend_name() == "sqlite" and (url.database in (None, "", ":memory:")
-                                                   or url.query.get("mode") == "memory"):
-            # (accepted, the API's request threads had found no tables, "no such table: jobs")
-            raise ValueError("an in-memory SQLite database is each connection's own, empty one, that no other thread "
-                             "or process (the workers) sees; name a file, e.g. sqlite:///./var/voxe.db")
-        return _sqlite_home_expanded(value)
+        return _shared_sqlalchemy_url(value, "./var/voxe.db")
 
     @field_validator("broker_url")
     @classmethod
@@ -198,7 +185,9 @@ class Settings(BaseSettings):
         if scheme.split("+", 1)[0] not in TRANSPORT_ALIASES:
             raise ValueError("not a broker URL; e.g. redis://host:6379/0 or sqla+sqlite:///./var/broker.db")
         transport, plus, url = value.partition("+")
-        return transport + plus + _sqlite_home_expanded(url) if transport in ("sqla", "sqlalchemy") and plus else value
+        if transport in ("sqla", "sqlalchemy") and plus:  # the SQL transport's database, checked as the metadata's
+            return transport + plus + _shared_sqlalchemy_url(url, "./var/broker.db", transport + plus)
+        return value
 
     @field_validator("s3_endpoint_url")
     @classmethod
@@ -286,6 +275,29 @@ class Settings(BaseSettings):
         import torch
 
         return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def _shared_sqlalchemy_url(url: str, sqlite_file: str, transport: str = "") -> str:
+    """``url`` as the API and the workers open it, a database they share: a SQLAlchemy URL whose dialect SQLAlchemy
+    has (nothing connects), a SQLite one naming a file, its '~' expanded (:func:`_sqlite_home_expanded`); ValueError
+    otherwise, its examples a SQLite file ``sqlite_file`` and PostgreSQL, written after ``transport`` (the broker's
+    ``sqla+``)."""
+    from sqlalchemy.engine import make_url
+
+    sqlite = f"{transport}sqlite:///{sqlite_file}"
+    try:
+        parsed = make_url(url)
+        parsed.get_dialect()  # the dialect's module only: nothing connects
+    except Exception as exc:  # noqa: BLE001 - unparsable, or a dialect SQLAlchemy does not know
+        what = f"{transport!r} and a SQLAlchemy database URL" if transport else "a SQLAlchemy database URL"
+        raise ValueError(f"not {what} ({exc}); e.g. {sqlite} or {transport}postgresql+psycopg://user:password@host/db"
+                         ) from None
+    if parsed.get_backend_name() == "sqlite" and (parsed.database in (None, "", ":memory:")
+                                                  or parsed.query.get("mode") == "memory"):
+        # (accepted, the API's request threads had found no tables, "no such table: jobs")
+        raise ValueError("an in-memory SQLite database is each connection's own, empty one, that no other thread "
+                         f"or process (the workers) sees; name a file, e.g. {sqlite}")
+    return _sqlite_home_expanded(url)
 
 
 def _sqlite_home_expanded(url: str) -> str:
