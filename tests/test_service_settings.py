@@ -92,6 +92,11 @@ def fresh_settings(monkeypatch):
                                         "URL naming a host"),
     ("VOXE_S3_ENDPOINT_URL", "http://:9000", "VOXE_S3_ENDPOINT_URL='http://:9000': an S3 endpoint is"),
     ("VOXE_S3_ENDPOINT_URL", "http://minio:90000", "VOXE_S3_ENDPOINT_URL='http://minio:90000': an S3 endpoint is"),
+    # a host botocore refuses ("Invalid endpoint"), as a compose service named with an underscore is
+    *(("VOXE_S3_ENDPOINT_URL", endpoint, f"VOXE_S3_ENDPOINT_URL={endpoint!r}: an S3 endpoint is an http:// or https:// "
+                                         "URL naming a host (an IP address, or names of letters, digits and hyphens "
+                                         "joined by dots)")
+      for endpoint in ("http://minio_1:9000", "http://mi nio:9000", "http://-minio:9000", "http://[::1", "http://a..b")),
     # taken, then botocore's bare "Provided region_name ... doesn't match a supported format" at the storage's first use
     *(("VOXE_S3_REGION", region, f"VOXE_S3_REGION={region!r}: an S3 region is up to 63 letters, digits and hyphens")
       for region in ("eu west 1", "eu-west-1 ", "eu_west_1", "-eu", "r" * 64)),
@@ -198,7 +203,8 @@ def test_folders_under_the_home_folder_are_made_there(fresh_settings, tmp_path):
 
 
 def test_s3_endpoints_naming_a_host_are_accepted():
-    for endpoint in ("http://minio:9000", "https://s3.eu-west-1.amazonaws.com", "http://[::1]:9000", "http://10.0.0.5"):
+    for endpoint in ("http://minio:9000", "https://s3.eu-west-1.amazonaws.com", "http://[::1]:9000", "http://10.0.0.5",
+                     "http://minio.", "https://s3.example.com/"):
         assert Settings(s3_endpoint_url=endpoint).s3_endpoint_url == endpoint
 
 

@@ -193,8 +193,9 @@ class Settings(BaseSettings):
     @classmethod
     def _endpoint(cls, value: str | None) -> str | None:
         if value is not None and not _http_url_with_host(value):  # (botocore: a bare "Invalid endpoint: http://")
-            raise ValueError("an S3 endpoint is an http:// or https:// URL naming a host (and a port up to 65535, if "
-                             "any), e.g. http://minio:9000")
+            raise ValueError("an S3 endpoint is an http:// or https:// URL naming a host (an IP address, or names of "
+                             "letters, digits and hyphens joined by dots) and a port up to 65535, if any, e.g. "
+                             "http://minio:9000")
         return value
 
     @field_validator("s3_region")
@@ -313,13 +314,17 @@ def _sqlite_home_expanded(url: str) -> str:
 
 
 def _http_url_with_host(url: str) -> bool:
-    """Whether ``url`` is an http(s) URL with a host and, if it has a port, a number from 0 to 65535."""
-    parts = urlsplit(url)
+    """Whether ``url`` is an http(s) URL with a host botocore takes (its own rule: 'minio_1' or 'mi nio' had been
+    accepted, then its bare "Invalid endpoint" failed the storage's first use) and, if it has a port, a number from 0
+    to 65535."""
+    from botocore.utils import is_valid_uri
+
     try:
+        parts = urlsplit(url)  # (ValueError for an unclosed '[')
         parts.port  # (raises ValueError for any other port)
     except ValueError:
         return False
-    return url.startswith(("http://", "https://")) and bool(parts.hostname)
+    return url.startswith(("http://", "https://")) and bool(parts.hostname) and bool(is_valid_uri(url))
 
 
 def is_loopback(host: str) -> bool:
