@@ -217,6 +217,17 @@ def test_a_model_is_refused_only_when_every_worker_reporting_on_it_lacks_it():
     assert API_SETTING.format("VOXE_FID_MODEL") in fid
 
 
+@pytest.mark.parametrize("role, model, folder", [("sds", "/models/sd", "/models/sd"),
+                                                ("attention", "models/sd/v1-4", "models/sd/v1-4"),
+                                                ("clip", "~/models/clip", str(Path("~/models/clip").expanduser()))])
+def test_a_missing_model_folder_is_to_be_filled_not_downloaded(role, model, folder):
+    """A folder no worker has had been advised `hf download /models/sd`, which no hub id is (the hub refuses it)."""
+    (message,) = unavailable_models({role: model}, {"w": {role: {"model": model, "present": False}}})
+    assert f"is not on any worker (w): put the whole model ({ROLES[role].marker}) in the folder {folder!r} on the " \
+           "workers." in message, message
+    assert "hf download" not in message and API_SETTING.format(ROLES[role].variable) in message
+
+
 API_SETTING = "A job loads the model the API's {0} named when the job was submitted (a worker's own {0} only chooses"
 """Where the messages about a missing model say a job's model comes from: a job carries the API's setting at its
 submission; the worker's own setting had been named as the one to change, which changed only its heartbeat."""

@@ -94,10 +94,14 @@ def submission_note(role_name: str) -> str:
 
 
 def how_to_provide(role_name: str, model: str) -> str:
-    """What an operator does about a missing model: put it on the workers, or name another in the API's setting."""
-    if ROLES[role_name].marker is None:
+    """What an operator does about a missing model: put it on the workers, or name another in the API's setting. A
+    folder is filled, not downloaded: ``/models/sd`` had been advised ``hf download /models/sd``, no hub id."""
+    role = ROLES[role_name]
+    if role.marker is None:
         provide = (f"put the TorchScript Inception file at {model!r} on the workers" if model else
                    f"put {INCEPTION_FILE} in the workers' VOXE_MODEL_DIR")
+    elif (folder := local_path(model)) is not None:
+        provide = f"put the whole model ({role.marker}) in the folder {folder!r} on the workers"
     else:
         provide = (f"download it into the workers' Hugging Face cache (HF_HOME) with `hf download {model}` on a "
                    "machine with internet")
