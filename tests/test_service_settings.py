@@ -47,6 +47,18 @@ def fresh_settings(monkeypatch):
     ("VOXE_DATABASE_URL", "postgres://u:S3cret@db/voxe",  # the password not printed
      "VOXE_DATABASE_URL='postgres://***@db/voxe': not a SQLAlchemy database URL (Can't load plugin: "
      "sqlalchemy.dialects:postgres)"),
+    # a driver not installed, or an asyncio one: accepted, then the API's start (or its first connection) had failed
+    ("VOXE_DATABASE_URL", "mssql+pymssql://u:S3cret@db/voxe", "VOXE_DATABASE_URL='mssql+pymssql://***@db/voxe': the "
+                                                              "driver of mssql+pymssql is not installed (No module "
+                                                              "named 'pymssql'); e.g. sqlite:///./var/voxe.db or "
+                                                              "postgresql+psycopg://user:password@host/db"),
+    ("VOXE_DATABASE_URL", "postgresql+psycopg_async://u:S3cret@db/voxe", "': postgresql+psycopg_async is an asyncio "
+                                                                         "driver; the service connects synchronously: "
+                                                                         "e.g. sqlite:///./var/voxe.db"),
+    ("VOXE_BROKER_URL", "sqla+sqlite+aiosqlite:///./var/broker.db", "VOXE_BROKER_URL='sqla+sqlite+aiosqlite:///./var/"
+                                                                    "broker.db': sqlite+aiosqlite is an asyncio driver; "
+                                                                    "the service connects synchronously: e.g. "
+                                                                    "sqla+sqlite:///./var/broker.db"),
     # a base64 password holds '/' and '+': it had been printed whole
     ("VOXE_DATABASE_URL", "postgres://u:S3cret/x+y@db/voxe", "VOXE_DATABASE_URL='postgres://***@db/voxe': not a "
                                                              "SQLAlchemy database URL"),

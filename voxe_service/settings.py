@@ -286,13 +286,20 @@ def _shared_sqlalchemy_url(url: str, sqlite_file: str, transport: str = "") -> s
     from sqlalchemy.engine import make_url
 
     sqlite = f"{transport}sqlite:///{sqlite_file}"
+    examples = f"e.g. {sqlite} or {transport}postgresql+psycopg://user:password@host/db"
     try:
         parsed = make_url(url)
-        parsed.get_dialect()  # the dialect's module only: nothing connects
+        dialect = parsed.get_dialect()  # the dialect's module only: nothing connects
     except Exception as exc:  # noqa: BLE001 - unparsable, or a dialect SQLAlchemy does not know
         what = f"{transport!r} and a SQLAlchemy database URL" if transport else "a SQLAlchemy database URL"
-        raise ValueError(f"not {what} ({exc}); e.g. {sqlite} or {transport}postgresql+psycopg://user:password@host/db"
-                         ) from None
+        raise ValueError(f"not {what} ({exc}); {examples}") from None
+    # (each had been taken, then failed the API's start, or every connection, naming no setting)
+    if dialect.is_async:
+        raise ValueError(f"{parsed.drivername} is an asyncio driver; the service connects synchronously: {examples}")
+    try:
+        dialect.import_dbapi()
+    except ImportError as exc:
+        raise ValueError(f"the driver of {parsed.drivername} is not installed ({exc}); {examples}") from None
     if parsed.get_backend_name() == "sqlite" and (parsed.database in (None, "", ":memory:")
                                                   or parsed.query.get("mode") == "memory"):
         # (accepted, the API's request threads had found no tables, "no such table: jobs")
