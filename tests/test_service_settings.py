@@ -52,9 +52,10 @@ def fresh_settings(monkeypatch):
                                                               "driver of mssql+pymssql is not installed (No module "
                                                               "named 'pymssql'); e.g. sqlite:///./var/voxe.db or "
                                                               "postgresql+psycopg://user:password@host/db"),
-    ("VOXE_DATABASE_URL", "postgresql+psycopg_async://u:S3cret@db/voxe", "': postgresql+psycopg_async is an asyncio "
-                                                                         "driver; the service connects synchronously: "
-                                                                         "e.g. sqlite:///./var/voxe.db"),
+    # (a scheme with a '_' had been shown as a path, '/postgresql+psycopg_async:/***')
+    ("VOXE_DATABASE_URL", "postgresql+psycopg_async://u:S3cret@db/voxe?sslmode=require",
+     "VOXE_DATABASE_URL='postgresql+psycopg_async://***@db/voxe?sslmode=***': postgresql+psycopg_async is an asyncio "
+     "driver; the service connects synchronously: e.g. sqlite:///./var/voxe.db"),
     ("VOXE_BROKER_URL", "sqla+sqlite+aiosqlite:///./var/broker.db", "VOXE_BROKER_URL='sqla+sqlite+aiosqlite:///./var/"
                                                                     "broker.db': sqlite+aiosqlite is an asyncio driver; "
                                                                     "the service connects synchronously: e.g. "
@@ -90,6 +91,8 @@ def fresh_settings(monkeypatch):
     ("VOXE_BROKER_URL", "valkey://bob@S3cret@cache:6379/0", "VOXE_BROKER_URL='valkey://***@cache:6379/0': not a "
                                                             "broker URL"),
     ("VOXE_BROKER_URL", "redis//:S3cret@cache:6379/0", "VOXE_BROKER_URL='/redis/***': not a broker URL"),
+    ("VOXE_BROKER_URL", "sqla+sqlite+aiosqlite:///./S3cret@b.db", "VOXE_BROKER_URL='sqla+sqlite+aiosqlite:///./***': "
+                                                                   "sqlite+aiosqlite is an asyncio driver"),
     ("VOXE_BROKER_URL", "redis//localhost:6379", "VOXE_BROKER_URL='redis//localhost:6379': not a broker URL"),
     # an empty model had been a model's name, failing as each job loaded it
     *((variable, value, f"{variable}={value!r}: must name a model: a hub id, a local folder, or tiny (unset it for "

@@ -376,5 +376,9 @@ def _shown(value):
     if isinstance(value, str) and ("@" in value or "?" in value):
         from voxe_service.webhooks import log_safe_url  # (it reads the models: not at the settings' import)
 
+        scheme, written, rest = value.partition("://")
+        if written and re.fullmatch(r"[A-Za-z][\w+.-]*", scheme):  # as written: urlsplit reads no scheme with a '_'
+            # (had shown 'postgresql+psycopg_async://u:pw@db/voxe' as '/postgresql+psycopg_async:/***')
+            return f"{scheme}://{log_safe_url('//' + rest).removeprefix('//')}"
         return log_safe_url(value)
     return value
