@@ -107,6 +107,10 @@ def fresh_settings(monkeypatch):
                                         "URL naming a host"),
     ("VOXE_S3_ENDPOINT_URL", "http://:9000", "VOXE_S3_ENDPOINT_URL='http://:9000': an S3 endpoint is"),
     ("VOXE_S3_ENDPOINT_URL", "http://minio:90000", "VOXE_S3_ENDPOINT_URL='http://minio:90000': an S3 endpoint is"),
+    # credentials botocore never sends and prints in its errors (in the logs, and /readyz)
+    *(("VOXE_S3_ENDPOINT_URL", endpoint, "VOXE_S3_ENDPOINT_URL='http://***@minio:9000': an S3 endpoint holds no "
+                                         "credentials: they come from AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY")
+      for endpoint in ("http://ak:S3cret@minio:9000", "http://S3cret@minio:9000")),
     # a host botocore refuses ("Invalid endpoint"), as a compose service named with an underscore is
     *(("VOXE_S3_ENDPOINT_URL", endpoint, f"VOXE_S3_ENDPOINT_URL={endpoint!r}: an S3 endpoint is an http:// or https:// "
                                          "URL naming a host (an IP address, or names of letters, digits and hyphens "

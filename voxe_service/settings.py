@@ -196,6 +196,10 @@ class Settings(BaseSettings):
             raise ValueError("an S3 endpoint is an http:// or https:// URL naming a host (an IP address, or names of "
                              "letters, digits and hyphens joined by dots) and a port up to 65535, if any, e.g. "
                              "http://minio:9000")
+        if value is not None and "@" in urlsplit(value).netloc:  # (botocore sends none, and prints them in its errors:
+            # 'Could not connect to the endpoint URL: "http://ak:S3cret@minio:9000/voxe"', in logs and /readyz)
+            raise ValueError("an S3 endpoint holds no credentials: they come from AWS_ACCESS_KEY_ID and "
+                             "AWS_SECRET_ACCESS_KEY (or a profile, an instance role), e.g. http://minio:9000")
         return value
 
     @field_validator("s3_region")
