@@ -25,7 +25,7 @@ from PIL import Image
 import voxe_core.reconstruct
 from voxe_core.backbones import load_grid
 from voxe_core.cli import main
-from voxe_core.cli.common import STAGING_MARKER
+from voxe_core.cli.common import STAGING_MARKER, load_guidance as load_guidance_of_common
 from voxe_core.data import load_scene
 from voxe_core.export import render_views
 from voxe_core.grid import VoxelGrid
@@ -1539,6 +1539,33 @@ def test_edit_asks_for_cuda_graphs_and_a_compiled_encoder_unless_told_not_to(fla
     assert code == 2 and {key: asked[key] for key in expected} == expected
 
 
+def previewing_edit(grid, prompt, guidance, config, callbacks, checkpoint, resume, views, on_preview, **kwargs):
+    """``voxe_core.edit.edit``'s stand-in: previews at every ``preview_every``, and a checkpoint whose header is the
+    one the edit writes (no tensors but G_e's features), at the iterations asked for."""
+    import voxe_core.edit
+    from voxe_core.tensorio import save_tensors
+
+    for iteration in range(0, config.iterations + 1, config.preview_every or config.iterations + 1):
+        on_preview(iteration, torch.zeros(4, 4, 3))
+    meta = {**grid.header(), "prompt": prompt, "initial_sha256": voxe_core.edit.initial_fingerprint(grid),
+            "model": guidance.model_id, "recipe": config.recipe(), "iteration": config.iterations}
+    save_tensors(checkpoint, {"features": grid.features}, voxe_core.edit.EDIT_CHECKPOINT_KIND,
+                 voxe_core.edit.EDIT_CHECKPOINT_VERSION, meta)
+    return grid
+
+
+def stand_in_guidance(loaded: list | None = None):
+    """``voxe_core.cli.edit.load_guidance``'s stand-in: a guidance named as the model asked for, appended to
+    ``loaded``."""
+    def load_guidance(args, model, **kwargs):
+        guidance = SimpleNamespace(device="cpu", model_id=model)
+        if loaded is not None:
+            loaded.append(guidance)
+        return guidance
+
+    return load_guidance
+
+
 def test_a_fresh_edit_leaves_no_earlier_runs_previews_and_a_resumed_one_keeps_its_own(sphere_grid, tmp_path,
                                                                                       monkeypatch):
     """A re-run into the same --out writing fewer previews (fewer iterations, another --preview-every, another
@@ -1546,16 +1573,9 @@ def test_a_fresh_edit_leaves_no_earlier_runs_previews_and_a_resumed_one_keeps_it
     with --resume continues the edit whose previews they are; files of other names stay."""
     import voxe_core.cli.edit as edit_command
     import voxe_core.edit
-    from voxe_core.tensorio import save_tensors
-
-    def previewing_edit(grid, prompt, guidance, config, callbacks, checkpoint, resume, views, on_preview, **kwargs):
-        for iteration in range(0, config.iterations + 1, config.preview_every):
-            on_preview(iteration, torch.zeros(4, 4, 3))
-        save_tensors(checkpoint, {}, voxe_core.edit.EDIT_CHECKPOINT_KIND, voxe_core.edit.EDIT_CHECKPOINT_VERSION, {})
-        return grid
 
     monkeypatch.setattr(voxe_core.edit, "edit", previewing_edit)
-    monkeypatch.setattr(edit_command, "load_guidance", lambda *args, **kwargs: SimpleNamespace(device="cpu"))
+    monkeypatch.setattr(edit_command, "load_guidance", stand_in_guidance())
     sphere_grid.save(tmp_path / "g.safetensors")
     out = tmp_path / "out"
     edit = ["edit", str(tmp_path / "g.safetensors"), "--prompt", "a dog", "--out", str(out), "--device", "cpu", "-q"]
@@ -1569,6 +1589,54 @@ def test_a_fresh_edit_leaves_no_earlier_runs_previews_and_a_resumed_one_keeps_it
     assert previews() == ["notes.txt", "preview_00000.png", "preview_00002.png"]
     assert main([*edit, "--iterations", "3", "--preview-every", "3", "--resume", str(out / "checkpoint.safetensors")]) == 0
     assert previews() == ["notes.txt", "preview_00000.png", "preview_00002.png", "preview_00003.png"]
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"--prompt": "a cat"}, "checkpoint was made for the prompt 'a dog', not 'a cat'"),
+    ({"grid": 20}, "checkpoint grid is (32, 32, 32), the initial grid (20, 20, 20)"),
+    ({"grid": 0.6}, "checkpoint was made from a different initial grid"),
+    ({"--guidance-scale": "50"}, "checkpoint was made with another recipe: guidance_scale 100.0 (now 50.0); resume"),
+    ({"--model": "org/other"}, "checkpoint was made with the model 'org/model', not 'org/other'; resume with that"),
+    ({"--iterations": "1"}, "checkpoint is at iteration 2, past the 1 iterations asked for; ask for at least 2"),
+])
+def test_edit_refuses_a_resume_from_another_jobs_checkpoint_before_it_loads_the_model(
+        change, message, make_sphere_grid, tmp_path, monkeypatch, capsys):
+    """A checkpoint of another grid, scene, prompt, recipe or model, or past the iterations asked for, had been
+    refused only by the edit, after the diffusion model had loaded (minutes, a download maybe); with that model
+    missing, the error had been the model's, not the checkpoint's. Refused now before the model is loaded."""
+    import voxe_core.cli.edit as edit_command
+    import voxe_core.edit
+
+    loaded = []
+    monkeypatch.setattr(voxe_core.edit, "edit", previewing_edit)
+    monkeypatch.setattr(edit_command, "load_guidance", stand_in_guidance(loaded))
+    make_sphere_grid().save(tmp_path / "g.safetensors")
+    out = tmp_path / "out"
+    options = {"--prompt": "a dog", "--model": "org/model", "--iterations": "2"}
+    run = ["--out", str(out), "--device", "cpu", "--preview-every", "0", "-q"]
+    assert main(["edit", str(tmp_path / "g.safetensors"), *sum(options.items(), ()), *run]) == 0
+    assert len(loaded) == 1
+    grid = tmp_path / "g.safetensors"
+    if "grid" in change:
+        grid = tmp_path / "other.safetensors"
+        value = change.pop("grid")
+        (make_sphere_grid(value) if isinstance(value, int) else make_sphere_grid(radius=value)).save(grid)
+    resume = ["edit", str(grid), *sum({**options, **change}.items(), ()), *run,
+              "--resume", str(out / "checkpoint.safetensors")]
+    assert main(resume) == 2
+    assert f"voxe edit: error: {out / 'checkpoint.safetensors'}: {message}" in capsys.readouterr().err
+    assert len(loaded) == 1  # no model loaded for it
+    # the model missing too: the checkpoint's error, not the model's
+    monkeypatch.setattr(edit_command, "load_guidance", load_guidance_of_common)
+    monkeypatch.setenv("HF_HOME", str(tmp_path / "hf"))
+    assert main([*resume, "--offline"]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "model not available" not in err
+    # the same job resumes (its model loaded once it is)
+    monkeypatch.setattr(edit_command, "load_guidance", stand_in_guidance(loaded))
+    assert main(["edit", str(tmp_path / "g.safetensors"), *sum({**options, "--iterations": "3"}.items(), ()), *run,
+                 "--resume", str(out / "checkpoint.safetensors")]) == 0
+    assert len(loaded) == 2
 
 
 @pytest.mark.parametrize("flag", [[], ["--fused-marcher"]])

@@ -106,7 +106,7 @@ from voxe_core.progress import Callbacks, Progress, StageCancelled
 from voxe_core.reconstruct import check_finite_grid, renders_nothing, same_views, views_summary
 from voxe_core.render import RenderConfig, render_image, render_rays
 from voxe_core.schedule import TimestepSchedule
-from voxe_core.tensorio import FormatError, config_recipe, load_tensors, recipe_changes, save_tensors
+from voxe_core.tensorio import FormatError, config_recipe, load_header, load_tensors, recipe_changes, save_tensors
 
 EDIT_CHECKPOINT_KIND = "edit_checkpoint"
 EDIT_CHECKPOINT_VERSION = 1
@@ -329,6 +329,39 @@ def _same_model(recorded, current: str) -> bool:
     return recorded == current or (bool(at) and recorded == hub_id and local_path(hub_id) is None)
 
 
+def check_resume(resume_from, initial_grid: VoxelGrid, prompt: str, config: EditConfig, model: str) -> dict:
+    """The header of the edit checkpoint ``resume_from``, or a FormatError (ValueError: one past
+    ``config.iterations``) for one this run cannot go on from: another grid shape, prompt, initial grid, model
+    (``model``: the guidance's ``model_id``, the name asked for) or recipe. Reads the header alone (and hashes G_i),
+    so a caller refuses a mismatched resume before it loads the guidance: the CLI had loaded the model first, a slow
+    load and, where it was missing, an error about the model instead of the checkpoint's."""
+    meta = load_header(resume_from, EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION)
+    recorded = meta.get("resolution")  # (G_e's grid.header(); its features' shape is checked as they are read)
+    if recorded is not None and tuple(recorded) != tuple(initial_grid.resolution):
+        raise FormatError(f"{resume_from}: checkpoint grid is {tuple(recorded)}, the initial grid "
+                          f"{initial_grid.resolution}")
+    if meta.get("prompt") != str(prompt):
+        raise FormatError(f"{resume_from}: checkpoint was made for the prompt {meta.get('prompt')!r}, not {prompt!r}")
+    if meta.get("initial_sha256") != initial_fingerprint(initial_grid):
+        raise FormatError(f"{resume_from}: checkpoint was made from a different initial grid")
+    # The guidance's model_id, its name as asked for (a hub id, a folder as given, the worker's "tiny"): the same
+    # on every machine. An older worker's checkpoint, which recorded the folder "tiny" resolved to there, is
+    # refused too (the worker starts such a stage over): that folder is no model a run here is asked for.
+    if not _same_model(meta.get("model"), str(model)):
+        raise FormatError(f"{resume_from}: checkpoint was made with the model {meta.get('model')!r}, not "
+                          f"{str(model)!r}; resume with that model, or start afresh")
+    if changed := recipe_changes(resume_from, meta, config):
+        raise FormatError(f"{resume_from}: checkpoint was made with another recipe: {', '.join(changed)}; "
+                          "resume with its settings, or start afresh")
+    start = meta.get("iteration")
+    if isinstance(start, bool) or not isinstance(start, int) or start < 0:
+        raise FormatError(f"{resume_from}: damaged checkpoint: its iteration is {start!r}, not a count of steps")
+    if start > config.iterations:  # it would have returned the checkpoint's later grid as the one asked for
+        raise ValueError(f"{resume_from}: checkpoint is at iteration {start}, past the {config.iterations} "
+                         f"iterations asked for; ask for at least {start}")
+    return meta
+
+
 def _check_views(input_views, device):
     images, cameras = input_views
     images = torch.as_tensor(images)
@@ -454,6 +487,8 @@ def edit(
         raise ValueError("autocast on the CPU runs under bfloat16, where a float16 model fails (its GroupNorm layers "
                          "get float32 inputs for float16 weights): load the guidance in float32 (from_pretrained's "
                          "default on the CPU) or bfloat16, or leave autocast_dtype None")
+    model = str(getattr(guidance, "model_id", ""))
+    resumed = None if resume_from is None else check_resume(resume_from, initial_grid, prompt, config, model)
     memory = PeakMemory(device).start()
     sync = config.sync_timing
     volumetric_reg = None if image_reg else volumetric_regulariser(  # G_i's share computed once
@@ -478,9 +513,10 @@ def edit(
     host_gen = torch.Generator().manual_seed(config.seed)
     device_gen = torch.Generator(device=device).manual_seed(config.seed + 1)
     generators = {"host": host_gen, "device": device_gen}
-    fingerprint = initial_fingerprint(initial_grid) if (checkpoint_path or resume_from) else None
+    fingerprint = (resumed["initial_sha256"] if resumed is not None  # (check_resume found it G_i's)
+                   else initial_fingerprint(initial_grid) if checkpoint_path else None)
     run_meta = {"prompt": str(prompt), "seed": config.seed, "initial_sha256": fingerprint,
-                "regulariser": config.regulariser, "model": str(getattr(guidance, "model_id", "")),
+                "regulariser": config.regulariser, "model": model,
                 "recipe": config.recipe(), "device": device.type}  # the device generator's
 
     start = 0
@@ -489,25 +525,9 @@ def edit(
     nonfinite_steps = 0
     if resume_from is not None:
         tensors, meta = load_edit_checkpoint(resume_from)
-        if tuple(tensors["features"].shape[:3]) != initial_grid.resolution:
-            raise FormatError(
-                f"{resume_from}: checkpoint grid is {tuple(tensors['features'].shape[:3])}, "
-                f"the initial grid {initial_grid.resolution}"
-            )
-        if meta.get("prompt") != str(prompt):
-            raise FormatError(f"{resume_from}: checkpoint was made for the prompt {meta.get('prompt')!r}, not "
-                              f"{prompt!r}")
-        if meta.get("initial_sha256") != fingerprint:
-            raise FormatError(f"{resume_from}: checkpoint was made from a different initial grid")
-        # The guidance's model_id, its name as asked for (a hub id, a folder as given, the worker's "tiny"): the same
-        # on every machine. An older worker's checkpoint, which recorded the folder "tiny" resolved to there, is
-        # refused too (the worker starts such a stage over): that folder is no model a run here is asked for.
-        if not _same_model(meta.get("model"), run_meta["model"]):
-            raise FormatError(f"{resume_from}: checkpoint was made with the model {meta.get('model')!r}, not "
-                              f"{run_meta['model']!r}; resume with that model, or start afresh")
-        if changed := recipe_changes(resume_from, meta, config):
-            raise FormatError(f"{resume_from}: checkpoint was made with another recipe: {', '.join(changed)}; "
-                              "resume with its settings, or start afresh")
+        if tuple(tensors["features"].shape[:3]) != initial_grid.resolution:  # (its header said otherwise, or nothing)
+            raise FormatError(f"{resume_from}: checkpoint grid is {tuple(tensors['features'].shape[:3])}, the initial "
+                              f"grid {initial_grid.resolution}")
         if "views" in tensors and not same_views(tensors["views"], views_record):  # (a checkpoint older than it resumes)
             raise FormatError(f"{resume_from}: checkpoint was made against other input views (images or cameras) "
                               f"for its {config.regulariser} regulariser; resume with the views it was made from, or "
@@ -540,9 +560,6 @@ def edit(
         if isinstance(nonfinite_steps, bool) or not isinstance(nonfinite_steps, int) or not 0 <= nonfinite_steps <= most:
             raise FormatError(f"{resume_from}: damaged checkpoint: its nonfinite_steps is {nonfinite_steps!r}, not a "
                               f"count of steps from 0 to {most} (at iteration {start})")
-        if start > config.iterations:  # it would have returned the checkpoint's later grid as the one asked for
-            raise ValueError(f"{resume_from}: checkpoint is at iteration {start}, past the {config.iterations} "
-                             f"iterations asked for; ask for at least {start}")
         host_gen.set_state(tensors["rng_host"])
         state = tensors["rng_device"]
         if meta.get("device") == device.type or ("device" not in meta and  # (older: told by its state's size)
@@ -752,6 +769,7 @@ __all__ = [
     "EditDiverged",
     "MAX_NONFINITE_GUIDANCE_STEPS",
     "build_prompt",
+    "check_resume",
     "edit",
     "initial_fingerprint",
     "learning_rate",

@@ -88,10 +88,9 @@ def job_params(args: argparse.Namespace) -> dict:
 
 def cmd_edit(args) -> int:
     from voxe_core.backbones import load_grid
-    from voxe_core.edit import EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION, edit
+    from voxe_core.edit import check_resume, edit
     from voxe_core.export import save_png
     from voxe_core.losses import IMAGE_REGULARISERS
-    from voxe_core.tensorio import load_header
 
     if not args.prompt.strip():
         raise ValueError("the edit prompt is empty")
@@ -107,14 +106,14 @@ def cmd_edit(args) -> int:
                          f"{config.regulariser} reads none")
     if args.data is None and (dataset_only := view_options_given(args)):  # (as had these)
         raise ValueError(f"{', '.join(dataset_only)} set how --data's images are read; without --data none are")
-    if args.resume is not None:  # one that is no edit checkpoint (missing, a grid) had waited for the model's load
-        load_header(args.resume, EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION)
+    model = args.model or paper.SDS_MODEL_ID
+    if args.resume is not None:  # one that is no edit checkpoint (missing, a grid), or another job's (grid, prompt,
+        check_resume(args.resume, grid, args.prompt, config, model)  # model, recipe), had waited for the model's load
     writable_folder(args.out)  # (an --out that is a file or not writable had been said after the model loaded)
     views = None
     if args.data is not None:
         scene = load_views(args)
         views = (scene.images, grid.dataset_cameras(scene.cameras))
-    model = args.model or paper.SDS_MODEL_ID
     guidance = load_guidance(args, model, cuda_graphs=None if args.cuda_graphs else False,
                              compile_encoder=None if args.compile_encoder else False)
     if guidance is None:
