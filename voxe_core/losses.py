@@ -22,6 +22,7 @@ from __future__ import annotations
 from typing import Callable, Literal, get_args
 
 import torch
+import torch.nn.functional as F
 
 from voxe_core.devices import full_precision
 
@@ -80,15 +81,24 @@ def correlation_loss(initial_density: torch.Tensor, edited_density: torch.Tensor
             f"density shapes differ: initial {tuple(initial_density.shape)} vs edited {tuple(edited_density.shape)}"
         )
     with full_precision(initial_density):
-        initial, _ = _standardise(initial_density, eps)
+        initial = _standardise(initial_density, eps)
     return _correlation_loss_with(initial, edited_density, eps)
 
 
-def _correlation_loss_with(standardised_initial: torch.Tensor, edited: torch.Tensor, eps: float) -> torch.Tensor:
-    """:func:`correlation_loss` against an initial tensor already through :func:`_standardise`."""
-    with full_precision(standardised_initial, edited):
-        b, _ = _standardise(edited, eps)
-        return 1.0 - (standardised_initial * b).sum()
+def _correlation_loss_with(standardised_initial: tuple[torch.Tensor, torch.Tensor], edited: torch.Tensor,
+                           eps: float) -> torch.Tensor:
+    """:func:`correlation_loss` against an initial tensor already through :func:`_standardise` (its result).
+
+    For unit vectors 1 − â·b̂ = ½‖â − b̂‖²; the latter keeps float32's precision where the grids nearly correlate
+    (as G_e does near G_i), where 1 − â·b̂ had cancelled to rounding noise: 6e-8 or 0 for a true 1.2e-9, -1.2e-7 for
+    G_e = G_i, with a gradient of noise. ``mse_loss``'s fused kernels keep its cost near the dot product's.
+    """
+    a, initial_constant = standardised_initial
+    with full_precision(a, edited):
+        b, edited_constant = _standardise(edited, eps)
+        half_squared_distance = 0.5 * F.mse_loss(b, a, reduction="sum")
+        # Either constant (its vector zero): 1 − â·b̂, exactly 1 with a zero gradient (NaN where the other is NaN).
+        return torch.where(initial_constant | edited_constant, half_squared_distance * 0 + 1, half_squared_distance)
 
 
 def correlation_loss_plus_rgb(initial_features: torch.Tensor, edited_features: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
@@ -170,7 +180,7 @@ def volumetric_regulariser(
     initial_features = initial_features.detach()
     channels = CORRELATED_CHANNELS.get(kind, ())
     with full_precision(initial_features):
-        standardised = [_standardise(initial_features[..., c], eps)[0] for c in channels]
+        standardised = [_standardise(initial_features[..., c], eps) for c in channels]
     initial_density = None if channels else initial_features[..., 0].clone()
 
     def loss(edited_features: torch.Tensor) -> torch.Tensor:
