@@ -183,6 +183,19 @@ def test_a_count_that_is_no_whole_number_is_refused_by_name(name, value):
     assert getattr(EditConfig(**{name: 400}), name) == 400
 
 
+@pytest.mark.parametrize("name, value, rule", [
+    ("batch_size", 0, ">= 1"), ("image_regulariser_rays", -4, ">= 1"), ("lr_decay_every", 0, ">= 1"),
+    ("lr_decay_start", -1, ">= 0"), ("preview_every", -1, ">= 0 (0 turns it off)"),
+    ("checkpoint_every", -250, ">= 0 (0 turns it off)"), ("lr_decay_factor", 1.5, "in (0, 1]"),
+    ("lr_decay_factor", 0.0, "in (0, 1]"), ("lr_decay_factor", math.nan, "in (0, 1]"),
+])
+def test_a_count_or_decay_out_of_range_is_refused_naming_its_setting_and_value(name, value, rule):
+    """They had been refused in pairs and threes naming no value ("lr decay needs every >= 1, start >= 0 and a factor
+    in (0, 1]", "batch_size and image_regulariser_rays must be >= 1"): which was wrong, and how, was left to guess."""
+    with pytest.raises(ValueError, match=rf"^{name} must be {re.escape(rule)}, got {value}$"):
+        EditConfig(**{name: value})
+
+
 @pytest.mark.parametrize("seed", [-1, 2**32, 2**64 - 1])
 def test_a_seed_outside_the_services_range_is_refused(seed):
     """2**64 - 1 had overflowed the device generator's seed + 1 as the edit started; the range is RefineConfig's."""

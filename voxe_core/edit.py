@@ -214,12 +214,14 @@ class EditConfig:
             raise ValueError(f"guidance_scale must be positive and finite in float32, got {self.guidance_scale}")
         if self.autocast_dtype not in (None, *AUTOCAST_DTYPES):
             raise ValueError(f"autocast_dtype must be None, 'bf16' or 'fp16', got {self.autocast_dtype!r}")
-        if self.batch_size < 1 or self.image_regulariser_rays < 1:
-            raise ValueError("batch_size and image_regulariser_rays must be >= 1")
-        if self.lr_decay_every < 1 or self.lr_decay_start < 0 or not 0 < self.lr_decay_factor <= 1:
-            raise ValueError("lr decay needs every >= 1, start >= 0 and a factor in (0, 1]")
-        if self.preview_every < 0 or self.checkpoint_every < 0:
-            raise ValueError("preview_every and checkpoint_every must be >= 0 (0 turns them off)")
+        # Each by its name and value: they had been refused two or three at once, naming no value.
+        for name, least in (("batch_size", 1), ("image_regulariser_rays", 1), ("lr_decay_every", 1),
+                            ("lr_decay_start", 0), ("preview_every", 0), ("checkpoint_every", 0)):
+            if getattr(self, name) < least:
+                off = " (0 turns it off)" if name in ("preview_every", "checkpoint_every") else ""
+                raise ValueError(f"{name} must be >= {least}{off}, got {getattr(self, name)}")
+        if not 0 < self.lr_decay_factor <= 1:  # (NaN too)
+            raise ValueError(f"lr_decay_factor must be in (0, 1], got {self.lr_decay_factor}")
         if not 0.0 <= self.min_zenith_deg <= self.max_zenith_deg <= 180.0:
             raise ValueError(f"need 0 <= min_zenith <= max_zenith <= 180, got {self.min_zenith_deg}, {self.max_zenith_deg}")
         check_fov_x(self.fov_x)
