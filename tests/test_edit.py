@@ -196,6 +196,24 @@ def test_a_count_or_decay_out_of_range_is_refused_naming_its_setting_and_value(n
         EditConfig(**{name: value})
 
 
+@pytest.mark.parametrize("name, value, message", [
+    ("schedule", "authors", "schedule must be a TimestepSchedule, got 'authors'"),
+    ("schedule", {"floor": 0.22}, "schedule must be a TimestepSchedule, got {'floor': 0.22}"),
+    ("render", {"step_ratio": 0.6}, "render must be a RenderConfig, got {'step_ratio': 0.6}"),
+    ("view_words", "false", "view_words takes True or False, got 'false'"),
+    ("lr_decay", 0, "lr_decay takes True or False, got 0"),
+    ("sync_timing", None, "sync_timing takes True or False, got None"),
+    ("prompt_prefix", 5, "prompt_prefix must be a string or None, got 5"),
+])
+def test_a_setting_of_another_type_is_refused_naming_it(name, value, message):
+    """They had been taken: schedule="authors" failed at the edit's first step ("'str' object has no attribute
+    'sample'"), a render dict as the edit began, prompt_prefix 5 in the prompt's check, all naming no setting; and
+    view_words="false" ran with view words."""
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+        EditConfig(**{name: value})
+    assert EditConfig(schedule=TimestepSchedule.authors(), view_words=False, prompt_prefix=None).schedule.floor == 0.22
+
+
 @pytest.mark.parametrize("seed", [-1, 2**32, 2**64 - 1])
 def test_a_seed_outside_the_services_range_is_refused(seed):
     """2**64 - 1 had overflowed the device generator's seed + 1 as the edit started; the range is RefineConfig's."""

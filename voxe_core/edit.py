@@ -225,6 +225,17 @@ class EditConfig:
         if not 0.0 <= self.min_zenith_deg <= self.max_zenith_deg <= 180.0:
             raise ValueError(f"need 0 <= min_zenith <= max_zenith <= 180, got {self.min_zenith_deg}, {self.max_zenith_deg}")
         check_fov_x(self.fov_x)
+        # A value of another type had been taken and failed mid-edit naming no setting (schedule="authors", the CLI's
+        # word for TimestepSchedule.authors(): "'str' object has no attribute 'sample'" after the first preview), or
+        # run the opposite of what was asked (view_words="false", a true string).
+        for name, kind in (("schedule", TimestepSchedule), ("render", RenderConfig)):
+            if not isinstance(getattr(self, name), kind):
+                raise ValueError(f"{name} must be a {kind.__name__}, got {getattr(self, name)!r}")
+        for name in ("lr_decay", "view_words", "sync_timing"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} takes True or False, got {getattr(self, name)!r}")
+        if self.prompt_prefix is not None and not isinstance(self.prompt_prefix, str):
+            raise ValueError(f"prompt_prefix must be a string or None, got {self.prompt_prefix!r}")
 
     @classmethod
     def authors(cls, **overrides) -> "EditConfig":
