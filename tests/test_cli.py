@@ -1541,7 +1541,7 @@ def test_edit_asks_for_cuda_graphs_and_a_compiled_encoder_unless_told_not_to(fla
 
 def previewing_edit(grid, prompt, guidance, config, callbacks, checkpoint, resume, views, on_preview, **kwargs):
     """``voxe_core.edit.edit``'s stand-in: previews at every ``preview_every``, and a checkpoint whose header is the
-    one the edit writes (no tensors but G_e's features), at the iterations asked for."""
+    one the edit writes (no tensors but G_e's features and the views' summary), at the iterations asked for."""
     import voxe_core.edit
     from voxe_core.tensorio import save_tensors
 
@@ -1549,7 +1549,8 @@ def previewing_edit(grid, prompt, guidance, config, callbacks, checkpoint, resum
         on_preview(iteration, torch.zeros(4, 4, 3))
     meta = {**grid.header(), "prompt": prompt, "initial_sha256": voxe_core.edit.initial_fingerprint(grid),
             "model": guidance.model_id, "recipe": config.recipe(), "iteration": config.iterations}
-    save_tensors(checkpoint, {"features": grid.features}, voxe_core.edit.EDIT_CHECKPOINT_KIND,
+    views_record = {} if views is None else {"views": voxe_core.reconstruct.views_summary(*views)}
+    save_tensors(checkpoint, {"features": grid.features, **views_record}, voxe_core.edit.EDIT_CHECKPOINT_KIND,
                  voxe_core.edit.EDIT_CHECKPOINT_VERSION, meta)
     return grid
 
@@ -1637,6 +1638,31 @@ def test_edit_refuses_a_resume_from_another_jobs_checkpoint_before_it_loads_the_
     assert main(["edit", str(tmp_path / "g.safetensors"), *sum({**options, "--iterations": "3"}.items(), ()), *run,
                  "--resume", str(out / "checkpoint.safetensors")]) == 0
     assert len(loaded) == 2
+
+
+def test_edit_refuses_a_resume_against_other_input_views_before_it_loads_the_model(sphere_grid, tmp_path,
+                                                                                    monkeypatch, capsys):
+    """An image-regularised edit resumed with another --data had been refused only by the edit, after the model's
+    load (with that model missing: the model's error, not the checkpoint's)."""
+    import voxe_core.cli.edit as edit_command
+    import voxe_core.edit
+    from test_data import make_synthetic
+
+    loaded = []
+    monkeypatch.setattr(voxe_core.edit, "edit", previewing_edit)
+    monkeypatch.setattr(edit_command, "load_guidance", stand_in_guidance(loaded))
+    sphere_grid.save(tmp_path / "g.safetensors")
+    views, other = make_synthetic(tmp_path / "views"), make_synthetic(tmp_path / "other", n=2)
+    out = tmp_path / "out"
+    edit = ["edit", str(tmp_path / "g.safetensors"), "--prompt", "a dog", "--out", str(out), "--device", "cpu", "-q",
+            "--regulariser", "image_l1", "--preview-every", "0", "--iterations"]
+    assert main([*edit, "2", "--data", str(views)]) == 0
+    resume = [*edit, "3", "--resume", str(out / "checkpoint.safetensors"), "--data"]
+    assert main([*resume, str(other)]) == 2
+    assert "checkpoint was made against other input views (images or cameras) for its image_l1 regulariser" in (
+        capsys.readouterr().err)
+    assert len(loaded) == 1  # none for the refused resume
+    assert main([*resume, str(views)]) == 0 and len(loaded) == 2
 
 
 @pytest.mark.parametrize("flag", [[], ["--fused-marcher"]])

@@ -342,12 +342,14 @@ def _same_model(recorded, current: str) -> bool:
     return recorded == current or (bool(at) and recorded == hub_id and local_path(hub_id) is None)
 
 
-def check_resume(resume_from, initial_grid: VoxelGrid, prompt: str, config: EditConfig, model: str) -> dict:
+def check_resume(resume_from, initial_grid: VoxelGrid, prompt: str, config: EditConfig, model: str,
+                 input_views: tuple[torch.Tensor, Cameras] | None = None) -> dict:
     """The header of the edit checkpoint ``resume_from``, or a FormatError (ValueError: one past
     ``config.iterations``) for one this run cannot go on from: another grid shape, prompt, initial grid, model
-    (``model``: the guidance's ``model_id``, the name asked for) or recipe. Reads the header alone (and hashes G_i),
-    so a caller refuses a mismatched resume before it loads the guidance: the CLI had loaded the model first, a slow
-    load and, where it was missing, an error about the model instead of the checkpoint's."""
+    (``model``: the guidance's ``model_id``, the name asked for), recipe or, under an image regulariser, other
+    ``input_views``. Reads the header and the views' summary alone (and hashes G_i), so a caller refuses a
+    mismatched resume before it loads the guidance: the CLI had loaded the model first, a slow load and, where it
+    was missing, an error about the model instead of the checkpoint's."""
     meta = load_header(resume_from, EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION)
     recorded = meta.get("resolution")  # (G_e's grid.header(); its features' shape is checked as they are read)
     if recorded is not None and tuple(recorded) != tuple(initial_grid.resolution):
@@ -372,7 +374,26 @@ def check_resume(resume_from, initial_grid: VoxelGrid, prompt: str, config: Edit
     if start > config.iterations:  # it would have returned the checkpoint's later grid as the one asked for
         raise ValueError(f"{resume_from}: checkpoint is at iteration {start}, past the {config.iterations} "
                          f"iterations asked for; ask for at least {start}")
+    if config.regulariser in IMAGE_REGULARISERS and input_views is not None:
+        images, cameras = torch.as_tensor(input_views[0]), input_views[1]
+        check_views(images, cameras, "input view images")
+        recorded = _recorded_views(resume_from)  # (none in a checkpoint older than the record: it resumes)
+        if recorded is not None and not same_views(recorded, views_summary(images, cameras)):
+            raise FormatError(f"{resume_from}: checkpoint was made against other input views (images or cameras) "
+                              f"for its {config.regulariser} regulariser; resume with the views it was made from, or "
+                              "start afresh")
     return meta
+
+
+def _recorded_views(path) -> torch.Tensor | None:
+    """The :func:`~voxe_core.reconstruct.views_summary` an edit checkpoint holds (None: none), read alone."""
+    from safetensors import SafetensorError, safe_open
+
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            return handle.get_tensor("views") if "views" in handle.keys() else None
+    except (SafetensorError, OSError, ValueError) as exc:
+        raise FormatError(f"{path}: not a readable safetensors file ({exc})") from exc
 
 
 def _check_views(input_views, device):
@@ -501,7 +522,8 @@ def edit(
                          "get float32 inputs for float16 weights): load the guidance in float32 (from_pretrained's "
                          "default on the CPU) or bfloat16, or leave autocast_dtype None")
     model = str(getattr(guidance, "model_id", ""))
-    resumed = None if resume_from is None else check_resume(resume_from, initial_grid, prompt, config, model)
+    resumed = None if resume_from is None else check_resume(resume_from, initial_grid, prompt, config, model,
+                                                            input_views)
     memory = PeakMemory(device).start()
     sync = config.sync_timing
     volumetric_reg = None if image_reg else volumetric_regulariser(  # G_i's share computed once
@@ -521,7 +543,7 @@ def edit(
     optimizer = _make_adam(param, config)
     views = _check_views(input_views, device) if image_reg else None
     views_record = (views_summary(torch.as_tensor(input_views[0]), input_views[1])
-                    if image_reg and (checkpoint_path or resume_from) else None)
+                    if image_reg and checkpoint_path else None)
 
     host_gen = torch.Generator().manual_seed(config.seed)
     device_gen = torch.Generator(device=device).manual_seed(config.seed + 1)
@@ -541,10 +563,6 @@ def edit(
         if tuple(tensors["features"].shape[:3]) != initial_grid.resolution:  # (its header said otherwise, or nothing)
             raise FormatError(f"{resume_from}: checkpoint grid is {tuple(tensors['features'].shape[:3])}, the initial "
                               f"grid {initial_grid.resolution}")
-        if "views" in tensors and not same_views(tensors["views"], views_record):  # (a checkpoint older than it resumes)
-            raise FormatError(f"{resume_from}: checkpoint was made against other input views (images or cameras) "
-                              f"for its {config.regulariser} regulariser; resume with the views it was made from, or "
-                              "start afresh")
         # One saved before G_e's finiteness was checked (or damaged): its first step had diverged, blamed on half
         # precision, at every resume, where the worker starts a stage over from a checkpoint it cannot go on from.
         # The save's rule, G_e finite, leaves the first moment finite and the second in [0, +inf] (either NaN, or

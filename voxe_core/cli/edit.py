@@ -107,13 +107,15 @@ def cmd_edit(args) -> int:
     if args.data is None and (dataset_only := view_options_given(args)):  # (as had these)
         raise ValueError(f"{', '.join(dataset_only)} set how --data's images are read; without --data none are")
     model = args.model or paper.SDS_MODEL_ID
-    if args.resume is not None:  # one that is no edit checkpoint (missing, a grid), or another job's (grid, prompt,
-        check_resume(args.resume, grid, args.prompt, config, model)  # model, recipe), had waited for the model's load
     writable_folder(args.out)  # (an --out that is a file or not writable had been said after the model loaded)
     views = None
     if args.data is not None:
         scene = load_views(args)
         views = (scene.images, grid.dataset_cameras(scene.cameras))
+    # A --resume that is no edit checkpoint (missing, a grid), or another job's (grid, prompt, model, recipe, input
+    # views), had waited for the model's load.
+    if args.resume is not None:
+        check_resume(args.resume, grid, args.prompt, config, model, views)
     guidance = load_guidance(args, model, cuda_graphs=None if args.cuda_graphs else False,
                              compile_encoder=None if args.compile_encoder else False)
     if guidance is None:
