@@ -7,6 +7,7 @@ plumbing and maths (gradients, shapes, normalisation, loading), never quality.
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import pytest
@@ -707,6 +708,23 @@ def test_loading_says_nothing_of_the_accelerate_it_does_without(tiny_path):
         library.setLevel(level)
     said = [r.getMessage() for r in records] + [str(w.message) for w in warned]
     assert not [text for text in said if "low_cpu_mem_usage" in text or "accelerate" in text], said
+
+
+@pytest.mark.parametrize("resolution", [0, -64, 2.5, True])
+def test_a_resolution_that_is_no_positive_whole_number_is_refused_before_the_weights_load(resolution, tiny_path,
+                                                                                        monkeypatch):
+    """0 had silently meant the model's own resolution, -64 failed at the first SDS step ("Input and output sizes
+    should be greater than 0") after the weights had loaded, 2.5 ran as 2 and True as 1."""
+    import voxe_core.guidance.sds as sds
+
+    def load_stable_diffusion(*args, **kwargs):
+        raise AssertionError("the weights were loaded")
+
+    monkeypatch.setattr(sds, "load_stable_diffusion", load_stable_diffusion)
+    with pytest.raises(ValueError, match=rf"^resolution must be a positive whole number of pixels \(None: the "
+                                         rf"model's\), got {re.escape(repr(resolution))}$"):
+        StableDiffusionGuidance.from_pretrained(str(tiny_path), device="cpu", local_files_only=True,
+                                                resolution=resolution)
 
 
 def test_cuda_graphs_are_refused_off_cuda_and_leave_gradient_free_encodes_eager(guidance, tiny_path):

@@ -45,6 +45,7 @@ processor (:mod:`voxe_core.guidance.attention`).
 from __future__ import annotations
 
 import math
+import numbers
 import os
 import time
 import warnings
@@ -148,6 +149,14 @@ def _check_graph_device(cuda_graphs: bool, device) -> None:
         raise ValueError(f"cuda_graphs needs a CUDA device; this guidance is on {torch.device(device)}")
 
 
+def _check_resolution(resolution) -> None:
+    """A ``resolution`` override is a positive whole number of pixels: 0 had silently meant the model's own, a
+    negative one failed at the first SDS step ("Input and output sizes should be greater than 0"), 2.5 ran as 2."""
+    if resolution is not None and (isinstance(resolution, bool) or not isinstance(resolution, numbers.Integral)
+                                   or resolution < 1):
+        raise ValueError(f"resolution must be a positive whole number of pixels (None: the model's), got {resolution!r}")
+
+
 def _sync(guidance: "StableDiffusionGuidance") -> None:
     if guidance.sync_timing:
         synchronize(guidance.device)
@@ -182,6 +191,7 @@ class StableDiffusionGuidance:
         self.prediction_type = prediction_type(scheduler, model_id)  # refuse an unusable model before moving weights
         check_text_to_image(unet, vae, text_encoder, model_id)
         _check_graph_device(cuda_graphs, device)
+        _check_resolution(resolution)
 
         self.model_id = model_id
         self.device = torch.device(device)
@@ -269,6 +279,7 @@ class StableDiffusionGuidance:
         if compile_encoder is None:
             compile_encoder = device.type == "cuda"
         _check_graph_device(cuda_graphs, device)  # before the weights load
+        _check_resolution(resolution)
         model_str = os.fspath(model)
         unet, vae, text_encoder, tokenizer, scheduler = load_stable_diffusion(
             model_str, dtype, local_files_only, revision, on_message)
