@@ -1665,6 +1665,27 @@ def test_edit_refuses_a_resume_against_other_input_views_before_it_loads_the_mod
     assert main([*resume, str(views)]) == 0 and len(loaded) == 2
 
 
+@pytest.mark.parametrize("prompt", ["---", "?!", "'s ^^"])
+def test_edit_refuses_a_prompt_that_names_nothing_before_it_loads_the_model(prompt, sphere_grid, tmp_path, monkeypatch,
+                                                                            capsys):
+    """The service refuses a prompt of punctuation alone (api.schemas.clean_text); voxe edit had loaded the model and
+    run the whole edit towards "a render of ---"."""
+    import voxe_core.cli.edit as edit_command
+    import voxe_core.edit
+
+    loaded = []
+    monkeypatch.setattr(voxe_core.edit, "edit", previewing_edit)
+    monkeypatch.setattr(edit_command, "load_guidance", stand_in_guidance(loaded))
+    sphere_grid.save(tmp_path / "g.safetensors")
+    edit = ["edit", str(tmp_path / "g.safetensors"), "--out", str(tmp_path / "out"), "--device", "cpu", "-q",
+            "--iterations", "1"]
+    assert main([*edit, f"--prompt={prompt}"]) == 2  # (argparse reads a bare "---" as an option)
+    assert f"voxe edit: error: the edit prompt {prompt!r} has no words: nothing in it names anything" in (
+        capsys.readouterr().err)
+    assert not loaded and not (tmp_path / "out").exists()
+    assert main([*edit, "--prompt", "🐶"]) == 0 and len(loaded) == 1  # a symbol names something
+
+
 @pytest.mark.parametrize("flag", [[], ["--fused-marcher"]])
 def test_edit_marches_its_renders_fused_only_when_asked(flag, sphere_grid, tmp_path, monkeypatch):
     import voxe_core.cli.edit as edit_command
