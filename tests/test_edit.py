@@ -541,6 +541,31 @@ def test_resume_refuses_another_prompt_or_grid(small_sphere, make_sphere_grid, t
     edit(small_sphere, "a dog", tiny_guidance, longer, resume_from=checkpoint)
 
 
+@pytest.mark.parametrize("field, value, message", [
+    ("resolution", 5, "checkpoint grid is 5, the initial grid (20, 20, 20)"),
+    ("resolution", [20, 20], "checkpoint grid is (20, 20), the initial grid (20, 20, 20)"),
+    ("iteration", None, "damaged checkpoint: its iteration is None, not a count of steps"),
+    ("iteration", "1", "damaged checkpoint: its iteration is '1', not a count of steps"),
+    ("iteration", -1, "damaged checkpoint: its iteration is -1, not a count of steps"),
+])
+def test_a_checkpoint_whose_header_is_damaged_is_refused_as_a_format_error(field, value, message, small_sphere,
+                                                                           tmp_path):
+    """check_resume reads the header (before any model is loaded): a damaged one is a FormatError the worker starts
+    the stage over from, not a TypeError failing the job."""
+    from voxe_core.edit import EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION, check_resume
+    from voxe_core.tensorio import FormatError, save_tensors
+
+    checkpoint = tmp_path / "c.safetensors"
+    config = EditConfig(iterations=1, render_size=SIZE)
+    edit(small_sphere, "a dog", FakeGuidance(), config, checkpoint_path=checkpoint)
+    tensors, meta = load_edit_checkpoint(checkpoint)
+    save_tensors(checkpoint, tensors, EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION, {**meta, field: value})
+    with pytest.raises(FormatError, match=f"^{re.escape(f'{checkpoint}: {message}')}"):
+        check_resume(checkpoint, small_sphere, "a dog", dataclasses.replace(config, iterations=2), "")
+    with pytest.raises(FormatError, match=re.escape(message)):
+        edit(small_sphere, "a dog", FakeGuidance(), dataclasses.replace(config, iterations=2), resume_from=checkpoint)
+
+
 @pytest.mark.parametrize("name, value", [("features", math.nan), ("adam_exp_avg", math.nan),
                                          ("adam_exp_avg_sq", math.nan), ("features", math.inf),
                                          ("adam_exp_avg", -math.inf), ("adam_exp_avg_sq", -math.inf)])

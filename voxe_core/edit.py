@@ -352,8 +352,9 @@ def check_resume(resume_from, initial_grid: VoxelGrid, prompt: str, config: Edit
     was missing, an error about the model instead of the checkpoint's."""
     meta = load_header(resume_from, EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION)
     recorded = meta.get("resolution")  # (G_e's grid.header(); its features' shape is checked as they are read)
-    if recorded is not None and tuple(recorded) != tuple(initial_grid.resolution):
-        raise FormatError(f"{resume_from}: checkpoint grid is {tuple(recorded)}, the initial grid "
+    if recorded is not None and recorded != list(initial_grid.resolution):  # (a damaged header's too: no list)
+        raise FormatError(f"{resume_from}: checkpoint grid is "
+                          f"{tuple(recorded) if isinstance(recorded, list) else recorded!r}, the initial grid "
                           f"{initial_grid.resolution}")
     if meta.get("prompt") != str(prompt):
         raise FormatError(f"{resume_from}: checkpoint was made for the prompt {meta.get('prompt')!r}, not {prompt!r}")
