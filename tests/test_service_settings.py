@@ -94,6 +94,16 @@ def fresh_settings(monkeypatch):
     ("VOXE_BROKER_URL", "sqla+sqlite+aiosqlite:///./S3cret@b.db", "VOXE_BROKER_URL='sqla+sqlite+aiosqlite:///./***': "
                                                                    "sqlite+aiosqlite is an asyncio driver"),
     ("VOXE_BROKER_URL", "redis//localhost:6379", "VOXE_BROKER_URL='redis//localhost:6379': not a broker URL"),
+    # the '@host' forgotten: the password read as a port, printed in the value and in SQLAlchemy's (or urllib's) error
+    ("VOXE_DATABASE_URL", "postgresql://bob:S3cret/db", "VOXE_DATABASE_URL='postgresql://***': no host: what follows "
+                                                        "its ':' is no port number (a password whose '@host' was left "
+                                                        "out?); e.g. sqlite:///./var/voxe.db"),
+    ("VOXE_DATABASE_URL", "postgresql+psycopg://bob:S3cret/x?sslmode=require", "VOXE_DATABASE_URL='postgresql+psycopg"
+                                                                               "://***': no host"),
+    ("VOXE_BROKER_URL", "sqla+postgresql://bob:S3cret/db", "VOXE_BROKER_URL='sqla+postgresql://***': no host: what "
+                                                           "follows its ':' is no port number"),
+    ("VOXE_BROKER_URL", "redis://:S3cret/0", "VOXE_BROKER_URL='redis://***': no host: what follows its ':' is no "
+                                             "port number (a password whose '@host' was left out?); e.g. redis://"),
     # an empty model had been a model's name, failing as each job loaded it
     *((variable, value, f"{variable}={value!r}: must name a model: a hub id, a local folder, or tiny (unset it for "
                         "the default)")

@@ -184,6 +184,8 @@ class Settings(BaseSettings):
         scheme = value.split("://", 1)[0] if "://" in value else ""
         if scheme.split("+", 1)[0] not in TRANSPORT_ALIASES:
             raise ValueError("not a broker URL; e.g. redis://host:6379/0 or sqla+sqlite:///./var/broker.db")
+        if _password_as_port(value):
+            raise ValueError(f"{_NO_HOST}; e.g. redis://:password@host:6379/0 or sqla+sqlite:///./var/broker.db")
         transport, plus, url = value.partition("+")
         if transport in ("sqla", "sqlalchemy") and plus:  # the SQL transport's database, checked as the metadata's
             return transport + plus + _shared_sqlalchemy_url(url, "./var/broker.db", transport + plus)
@@ -291,6 +293,8 @@ def _shared_sqlalchemy_url(url: str, sqlite_file: str, transport: str = "") -> s
 
     sqlite = f"{transport}sqlite:///{sqlite_file}"
     examples = f"e.g. {sqlite} or {transport}postgresql+psycopg://user:password@host/db"
+    if _password_as_port(url):  # (SQLAlchemy's own error printed it: "invalid literal for int() ...: 's3cret'")
+        raise ValueError(f"{_NO_HOST}; {examples}")
     try:
         parsed = make_url(url)
         dialect = parsed.get_dialect()  # the dialect's module only: nothing connects
@@ -310,6 +314,18 @@ def _shared_sqlalchemy_url(url: str, sqlite_file: str, transport: str = "") -> s
         raise ValueError("an in-memory SQLite database is each connection's own, empty one, that no other thread "
                          f"or process (the workers) sees; name a file, e.g. {sqlite}")
     return _sqlite_home_expanded(url)
+
+
+_NO_HOST = "no host: what follows its ':' is no port number (a password whose '@host' was left out?)"
+
+
+def _password_as_port(url: str) -> bool:
+    """Whether ``url``, holding no '@', has in its authority a ':' followed by no port number:
+    ``postgresql://bob:s3cret/db`` (its '@host' forgotten) reads as host 'bob', port 's3cret', the password then
+    printed in the parsers' errors."""
+    authority = re.split(r"[/?#]", url.partition("://")[2], maxsplit=1)[0]
+    port = (authority.partition("]")[2] if authority.startswith("[") else authority).partition(":")[2]
+    return "://" in url and "@" not in url and bool(port) and not port.isdigit()
 
 
 def _sqlite_home_expanded(url: str) -> str:
@@ -377,6 +393,8 @@ def _shown(value):
     and broker URLs hold a password) as :func:`voxe_service.webhooks.log_safe_url` logs it. A rule hiding from the
     first ':' past '://' to the last '@' had printed the password of ``postgres://bob@s3cret@host/db``,
     ``postgres://ops@corp:s3cret@host/db``, ``redis//bob:s3cret@host`` and ``...?password=s3cret`` whole."""
+    if isinstance(value, str) and _password_as_port(value):  # (had shown 'postgresql://bob:s3cret/db' whole)
+        return value.partition("://")[0] + "://***"
     if isinstance(value, str) and ("@" in value or "?" in value):
         from voxe_service.webhooks import log_safe_url  # (it reads the models: not at the settings' import)
 
