@@ -187,6 +187,20 @@ def test_a_model_as_long_as_a_jobs_column_is_accepted_and_one_longer_refused():
             Settings(**{setting: "m" * (longest + 1)})
 
 
+def test_a_device_as_long_as_a_jobs_column_is_accepted_and_one_longer_refused(fresh_settings):
+    """Recorded in jobs.device: 'cuda:' and 28 digits had been accepted, then every submission failed storing it
+    (a 500 on PostgreSQL)."""
+    from voxe_service.models import Job
+
+    longest = Job.__table__.columns["device"].type.length
+    device = "cuda:" + "1" * (longest - len("cuda:"))
+    assert Settings(device=device).device == device
+    fresh_settings.setenv("VOXE_DEVICE", device + "1")
+    with pytest.raises(SettingsError, match=f"VOXE_DEVICE='{device}1': at most {longest} characters, the most a job "
+                                            rf"records \({longest + 1} given\)"):
+        get_settings()
+
+
 def test_sqlite_files_under_the_home_folder_are_opened_there(fresh_settings, tmp_path):
     """SQLite opens '~/vx/voxe.db' as written, under a folder '~' of the working directory: the API had failed to
     start ("unable to open database file"), its folders and migration lock made under the home folder."""

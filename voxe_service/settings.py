@@ -161,15 +161,17 @@ class Settings(BaseSettings):
         was already there. An empty one had been taken as a model's name (VOXE_FID_MODEL's is its default). The SDS and
         attention models are recorded in a job's columns: a longer one had been accepted, then every submission
         failed storing it (a 500 on PostgreSQL)."""
-        from voxe_service.models import Job
-
         value = value.strip()
         if not value and info.field_name != "fid_model":
             raise ValueError(f"must name a model: a hub id, a local folder, or {TINY_MODEL} (unset it for the default)")
-        column = Job.__table__.columns.get(info.field_name)
-        if column is not None and len(value) > column.type.length:
-            raise ValueError(f"at most {column.type.length} characters, the most a job records ({len(value)} given)")
-        return value
+        return _fits_a_jobs_column(value, info)
+
+    @field_validator("device")
+    @classmethod
+    def _device_recorded(cls, value: str, info: ValidationInfo) -> str:
+        """Recorded in a job's column: 'cuda:' and 28 digits had been accepted, then every submission failed storing
+        it (a 500 on PostgreSQL)."""
+        return _fits_a_jobs_column(value, info)
 
     @field_validator("database_url")
     @classmethod
@@ -282,6 +284,16 @@ class Settings(BaseSettings):
         import torch
 
         return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def _fits_a_jobs_column(value: str, info: ValidationInfo) -> str:
+    """``value``, if the job's column of the setting (where there is one) holds it; ValueError otherwise."""
+    from voxe_service.models import Job
+
+    column = Job.__table__.columns.get(info.field_name)
+    if column is not None and len(value) > column.type.length:
+        raise ValueError(f"at most {column.type.length} characters, the most a job records ({len(value)} given)")
+    return value
 
 
 def _shared_sqlalchemy_url(url: str, sqlite_file: str, transport: str = "") -> str:
