@@ -732,6 +732,41 @@ def test_reading_the_sql_brokers_waiting_messages_gives_its_connection_back(db):
         gc.enable()
 
 
+def test_a_malformed_waiting_message_is_skipped_said_once_and_the_others_read(tmp_path, caplog):
+    """A single message not of Celery's shape in the SQL broker's table had raised out of waiting_tasks: the reaper
+    took the broker as unreadable, and no queued job's message as lost, until a worker took that message."""
+    import json
+    import logging
+    from base64 import b64encode
+
+    from kombu import Connection
+
+    from voxe_service.broker import register, waiting_tasks
+
+    url = f"sqla+sqlite:///{tmp_path / 'broker.db'}"
+    register()
+
+    def task_message(task, args, chain=None):
+        body = b64encode(json.dumps([args, {}, {"chain": chain}]).encode()).decode()
+        return {"body": body, "headers": {"task": task}, "properties": {}}
+
+    with Connection(url) as conn:
+        channel = conn.default_channel
+        channel._put("voxe", task_message("voxe.edit", ["j1"], chain=[{"task": "voxe.export", "args": ["j1"]}]))
+        for malformed in ({"body": "not base64 at all!"}, {"headers": {}}, task_message("voxe.edit", 5),
+                          {"body": b64encode(b"[[], {}, []]").decode(), "headers": {"task": "voxe.edit"}}):
+            channel._put("voxe", malformed)
+        channel._put("voxe", task_message("voxe.reconstruct", ["j2"]))
+        channel.session.add(channel.message_cls(payload="{not json", queue=channel._get_or_create("voxe")))
+        channel.session.commit()
+        channel.session.close()
+    with caplog.at_level(logging.WARNING, logger="voxe.broker"):
+        for _ in range(2):
+            assert waiting_tasks(url) == {("voxe.edit", "j1"), ("voxe.export", "j1"), ("voxe.reconstruct", "j2")}
+    skipped = [r.getMessage() for r in caplog.records if "is no Celery task message" in r.getMessage()]
+    assert len(skipped) == 5 and all(m.endswith(": skipped") for m in skipped), skipped
+
+
 # ------------------------------------------------------------------------------------------ the connection pool
 def test_racing_first_reads_of_a_keys_webhook_secret_all_get_the_stored_one(db):
     """Requests that have each read the key without a webhook secret make it at once (GET /v1/webhooks/secret, a

@@ -18,6 +18,7 @@ earlier version left invisible go when a process first opens the database.
 
 from __future__ import annotations
 
+import logging
 from base64 import b64decode
 from json import loads
 from queue import Empty
@@ -30,6 +31,8 @@ from sqlalchemy import create_engine, delete, text
 from sqlalchemy.engine import make_url
 
 from voxe_service.db import make_engine
+
+log = logging.getLogger("voxe.broker")
 
 # Options kombu / Celery use themselves; none of them is a create_engine() argument.
 _NOT_ENGINE_OPTIONS = frozenset({
@@ -82,24 +85,40 @@ class Transport(_sqla.Transport):
 def waiting_tasks(url: str) -> set[tuple[str, str]]:
     """(task name, its argument) of every task the broker's waiting messages are to run: each message's own and those
     of the chain it sends next (Celery's message protocol 2: the chain rides in the body). A message a worker has
-    taken is not here (its row went as it was delivered): running, or lost with a worker killed before it ended."""
+    taken is not here (its row went as it was delivered): running, or lost with a worker killed before it ended.
+    A message not of that shape (no JSON, no task) is skipped, as a warning says once: one had made the whole table
+    unreadable, the reaper taking no queued job's message as lost until a worker took it."""
     register()
     tasks = set()
     with Connection(url) as conn:
         channel = conn.default_channel
         try:
-            payloads = channel.session.query(channel.message_cls.payload).filter(
+            rows = channel.session.query(channel.message_cls.id, channel.message_cls.payload).filter(
                 channel.message_cls.visible.is_not(False)).all()
         finally:  # kombu's channel never closes its session, whose connection stayed checked out until collected:
             channel.session.close()  # reapers reading at once ran the broker's pool dry, each read timing out
-        for (payload,) in payloads:
-            message = loads(bytes_to_str(payload))
-            args, _kwargs, embed = loads(b64decode(message["body"]))
-            for task, task_args in ((message["headers"]["task"], args),
-                                    *((step["task"], step.get("args")) for step in embed.get("chain") or ())):
-                if task_args and len(task_args) == 1:  # (one argument each: voxe_service.queue's contract; a
-                    tasks.add((task, task_args[0]))    # message of another shape, `celery call`'s say, is no job's)
+        for message_id, payload in rows:
+            try:
+                message = loads(bytes_to_str(payload))
+                args, _kwargs, embed = loads(b64decode(message["body"]))
+                # (one argument each: voxe_service.queue's contract; a message of another shape, `celery call`'s say,
+                # is no job's)
+                found = {(task, task_args[0]) for task, task_args in (
+                    (message["headers"]["task"], args),
+                    *((step["task"], step.get("args")) for step in embed.get("chain") or ()))
+                    if task_args and len(task_args) == 1}
+            except (ValueError, TypeError, KeyError, AttributeError) as exc:
+                if (url, message_id) not in _malformed_seen:
+                    _malformed_seen.add((url, message_id))
+                    log.warning("the SQL broker's waiting message %s is no Celery task message (%s: %s): skipped",
+                                message_id, type(exc).__name__, exc)
+                continue
+            tasks |= found
     return tasks
+
+
+_malformed_seen: set[tuple[str, int]] = set()
+"""(broker URL, message id) of the malformed waiting messages a warning has named."""
 
 
 def register() -> None:
