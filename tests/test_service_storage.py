@@ -592,3 +592,31 @@ def test_s3_download_broken_off_on_every_retry_is_unavailable(aws_env, moto_endp
                                                  r"but total bytes expected is 10"):
         store.get_file("jobs/a/x.bin", tmp_path / "x.bin")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_scratch_folder_the_sweep_could_not_delete_is_not_counted_removed(tmp_path, monkeypatch, caplog):
+    """A dead process's scratch folder holding a file that could not be deleted had been counted removed all the
+    same (the ingest logging 'removed 2 folder(s)' with one left): it is counted, and gone, once a sweep deletes it."""
+    import logging
+
+    from voxe_service.scratch import OWNER, sweep_unlocked
+
+    for name in ("run-stuck", "run-dead"):  # folders whose processes died: no lock held
+        (tmp_path / name).mkdir()
+        (tmp_path / name / OWNER).touch()
+        (tmp_path / name / f"{name}.bin").write_bytes(b"x")
+    unlink = os.unlink
+
+    def refusing(path, *args, **kwargs):
+        if os.fspath(path).endswith("run-stuck.bin"):
+            raise PermissionError(errno.EACCES, "Permission denied", path)
+        return unlink(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "unlink", refusing)
+    with caplog.at_level(logging.WARNING, logger="voxe.scratch"):
+        assert sweep_unlocked(tmp_path, "run-*") == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run-stuck"]
+    assert [r.getMessage() for r in caplog.records] == [
+        f"scratch folder {tmp_path / 'run-stuck'} could not be removed whole; the next sweep tries again"]
+    monkeypatch.setattr(os, "unlink", unlink)
+    assert sweep_unlocked(tmp_path, "run-*") == 1 and list(tmp_path.iterdir()) == []

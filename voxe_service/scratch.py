@@ -69,5 +69,8 @@ def sweep_unlocked(parent: Path, pattern: str) -> int:
                 shutil.rmtree(folder, ignore_errors=True)
         except OSError:  # in use, removed meanwhile, not a folder, or a filesystem without locks: left alone
             continue
+        if folder.exists():  # (a file rmtree could not delete: it had been counted removed all the same)
+            log.warning("scratch folder %s could not be removed whole; the next sweep tries again", folder)
+            continue
         removed += 1
     return removed
