@@ -245,6 +245,24 @@ def test_folders_under_the_home_folder_are_made_there(fresh_settings, tmp_path):
     assert not (tmp_path / "~").exists()
 
 
+def test_a_folder_setting_is_read_without_the_spaces_around_it(fresh_settings, tmp_path):
+    """VOXE_STORAGE_DIR=' ./var/storage' (pasted, or quoted with a space) had stored every artifact under a folder
+    named ' .' of the working directory, and '~/voxe ' under '~/voxe ' (a trailing space in its name)."""
+    from voxe_service.storage import get_storage
+
+    fresh_settings.setenv("HOME", str(tmp_path / "home"))
+    fresh_settings.chdir(tmp_path)
+    fresh_settings.setenv("VOXE_STORAGE_DIR", " ./var/storage ")
+    fresh_settings.setenv("VOXE_WORK_DIR", "\t~/work ")
+    fresh_settings.setenv("VOXE_MODEL_DIR", f"  {tmp_path / 'models'}\n")
+    settings = get_settings()
+    assert (settings.storage_dir, settings.work_dir, settings.model_dir) == (
+        Path("var/storage"), tmp_path / "home" / "work", tmp_path / "models")
+    get_storage(settings).put_bytes("jobs/j/a.txt", b"kept")
+    assert (tmp_path / "var" / "storage" / "jobs" / "j" / "a.txt").read_bytes() == b"kept"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["var"]
+
+
 def test_s3_endpoints_naming_a_host_are_accepted():
     for endpoint in ("http://minio:9000", "https://s3.eu-west-1.amazonaws.com", "http://[::1]:9000", "http://10.0.0.5",
                      "http://minio.", "https://s3.example.com/"):

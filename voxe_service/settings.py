@@ -148,8 +148,9 @@ class Settings(BaseSettings):
     def _folder_named(cls, value):
         """An empty value (``VOXE_STORAGE_DIR=`` in an env file) had been Path(""), the working directory: the
         artifacts written among the service's own files (/app in the images). A '~' is the home folder, as a shell
-        reads it: ``VOXE_STORAGE_DIR=~/voxe`` had stored the artifacts under a folder named '~' in the working one."""
-        if isinstance(value, str) and not value.strip():
+        reads it: ``VOXE_STORAGE_DIR=~/voxe`` had stored the artifacts under a folder named '~' in the working one. The
+        spaces around it are not the folder's, as a model's are not its (``' ./var'`` had made a folder named ' .')."""
+        if isinstance(value, str) and not (value := value.strip()):
             raise ValueError("must name a folder (unset it for the default)")
         return Path(value).expanduser() if isinstance(value, str | Path) else value
 
