@@ -263,6 +263,30 @@ def test_a_folder_setting_is_read_without_the_spaces_around_it(fresh_settings, t
     assert sorted(p.name for p in tmp_path.iterdir()) == ["var"]
 
 
+def test_a_worker_refuses_at_start_a_cuda_device_its_machine_lacks(tmp_path):
+    """VOXE_DEVICE=cuda:N past this machine's GPUs (or on one with none) had started the worker, then failed every job
+    it took ('Torch not compiled with CUDA enabled', 'invalid device ordinal'); the worker now stops at its start, as
+    `celery -A worker.celery_app worker` imports its app."""
+    import torch
+
+    from service_helpers import service_env
+
+    def start(device: str) -> subprocess.CompletedProcess:
+        env = {**os.environ, **service_env(tmp_path), "VOXE_DEVICE": device, "PYTHONPATH": str(ROOT)}
+        return subprocess.run([sys.executable, "-c", "import worker.celery_app"], cwd=ROOT, env=env,
+                              capture_output=True, text=True, timeout=120)
+
+    count = torch.cuda.device_count()
+    refused = start("cuda:4096")
+    have = (f"this machine has {count} CUDA device" if count else
+            "CUDA is unavailable on this machine (torch sees no CUDA device); name one it has, or cpu, or auto (CUDA "
+            "when available)")
+    assert refused.returncode != 0 and f"SettingsError: bad service settings: VOXE_DEVICE='cuda:4096': {have}" in (
+        refused.stderr), refused.stderr
+    started = start("cpu" if not count else f"cuda:{count - 1}")
+    assert started.returncode == 0, started.stderr
+
+
 def test_s3_endpoints_naming_a_host_are_accepted():
     for endpoint in ("http://minio:9000", "https://s3.eu-west-1.amazonaws.com", "http://[::1]:9000", "http://10.0.0.5",
                      "http://minio.", "https://s3.example.com/"):

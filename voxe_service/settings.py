@@ -11,6 +11,8 @@ from __future__ import annotations
 import ipaddress
 import os
 import re
+import subprocess
+import sys
 from functools import lru_cache
 from pathlib import Path
 from typing import Literal
@@ -399,6 +401,21 @@ def get_settings() -> Settings:
         problems = [(f"VOXE_{'_'.join(map(str, e['loc'])).upper()}={_shown(e['input'])!r}: " if e["loc"] else "")
                     + e["msg"].removeprefix("Value error, ") for e in exc.errors()]
         raise SettingsError("bad service settings: " + "; ".join(problems)) from None
+
+
+def check_worker_device(settings: Settings) -> None:
+    """Refuse, as a worker starts, a CUDA VOXE_DEVICE this machine has no such device for: 'cuda:3' on a machine of
+    one GPU (or of none) had started, then failed every job it took. The devices are counted in a child process:
+    CUDA initialised in a prefork pool's parent is unusable in its children."""
+    if not settings.device.startswith("cuda"):
+        return
+    count = int(subprocess.run([sys.executable, "-c", "import torch; print(torch.cuda.device_count())"],
+                               capture_output=True, text=True, check=True).stdout)
+    if int(settings.device.partition(":")[2] or 0) >= count:
+        have = (f"this machine has {count} CUDA device{'s' if count > 1 else ''} (cuda:0 to cuda:{count - 1})"
+                if count else "CUDA is unavailable on this machine (torch sees no CUDA device)")
+        raise SettingsError(f"bad service settings: VOXE_DEVICE={settings.device!r}: {have}; name one it has, or cpu, "
+                            "or auto (CUDA when available)")
 
 
 def _shown(value):

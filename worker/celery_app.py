@@ -8,5 +8,7 @@ an app with tasks at import. The API sends by task name through its own sender.
 from __future__ import annotations
 
 from voxe_service.queue import create_celery_app
+from voxe_service.settings import check_worker_device, get_settings
 
+check_worker_device(get_settings())  # (a device this machine lacks had failed every job instead)
 app = create_celery_app(include=["worker.tasks"])
