@@ -224,6 +224,13 @@ def test_damaged_or_unknown_sparse_files_are_named(tmp_path, make_sphere_grid):
 @pytest.mark.parametrize("damage, message", [
     (lambda t, m: ({**t, "values": t["values"][:, :3].contiguous()}, m), r"values \(\d+, 3\) and fill \(4,\)"),
     (lambda t, m: ({**t, "fill": t["fill"][:3].contiguous()}, m), r"values \(\d+, 4\) and fill \(3,\)"),
+    # Values and fill agreeing on another channel count: had been expanded to every vertex (a fill of a million
+    # channels, gigabytes) before the dense features' shape was refused.
+    (lambda t, m: ({**t, "values": t["values"][:, :3].contiguous(), "fill": t["fill"][:3].contiguous()}, m),
+     r"damaged sparse grid: values \(\d+, 3\) and fill \(3,\) are not \(N, 4\) and \(4,\)"),
+    (lambda t, m: ({**t, "values": torch.cat([t["values"], t["values"][:, :1]], 1),
+                    "fill": torch.cat([t["fill"], t["fill"][:1]])}, m),
+     r"damaged sparse grid: values \(\d+, 5\) and fill \(5,\) are not \(N, 4\) and \(4,\)"),
     (lambda t, m: (t, {**m, "resolution": [-16, -16, 16]}), "is not 3 positive vertex counts"),
     (lambda t, m: (t, {**m, "resolution": None}), "resolution None is not 3 positive vertex counts"),  # TypeError
     (lambda t, m: (t, {**m, "resolution": [16, 16, 15.9]}), r"resolution \[16, 16, 15.9\] is not 3"),  # cut to 15

@@ -48,6 +48,7 @@ import torch
 GRID_FORMAT_VERSION = 2  # 1: dense only, no ``layout`` key
 LAYOUTS = ("dense", "sparse")
 DEFAULT_MARGIN = 2  # cells kept around the occupied ones (room for an edit's first steps to grow the shape)
+CHANNELS = 4  # features per vertex: raw density, then raw colour (3)
 
 
 def dilate(cells: torch.Tensor, margin: int) -> torch.Tensor:
@@ -132,8 +133,11 @@ def dense_tensors(tensors: dict[str, torch.Tensor], meta: dict) -> dict[str, tor
     for name, tensor in (("values", values), ("fill", fill)):
         if not tensor.is_floating_point():  # an integer or bool tensor had been read as features
             raise ValueError(f"{name} is {tensor.dtype}, not floating point (the format's float32)")
-    if fill.dim() != 1 or values.dim() != 2 or values.shape[1] != fill.shape[0]:
-        raise ValueError(f"values {tuple(values.shape)} and fill {tuple(fill.shape)} are not (N, C) and (C,)")
+    # The channels checked before anything is expanded: a fill of a million (and values to match) had been repeated
+    # at every vertex, gigabytes, before the dense features' shape was found wrong.
+    if fill.dim() != 1 or values.dim() != 2 or values.shape[1] != CHANNELS or fill.shape[0] != CHANNELS:
+        raise ValueError(f"values {tuple(values.shape)} and fill {tuple(fill.shape)} are not (N, {CHANNELS}) and "
+                         f"({CHANNELS},)")
     bits = bits.numpy()
     if bits.size != -(-count // 8):  # exactly the format's ceil(X·Y·Z / 8): a wrong resolution must not fit
         raise ValueError(f"stored_bits holds {bits.size} bytes, not the {-(-count // 8)} of a "
