@@ -259,6 +259,16 @@ def test_damaged_or_unknown_sparse_files_are_named(tmp_path, make_sphere_grid):
     (lambda t, m: ({**t, "values": t["values"].long()}, m), "damaged sparse grid: values is torch.int64, not floating"),
     (lambda t, m: ({**t, "fill": t["fill"] > 0}, m), "damaged sparse grid: fill is torch.bool, not floating point"),
     (lambda t, m: ({**t, "bbox_max": t["bbox_max"].int()}, m), "damaged grid: bbox_max is torch.int32, not floating"),
+    # float8 tensors: a dense file's had loaded (rounded to 3 mantissa bits, or e8m0's no zero), a sparse file's had
+    # escaped as NotImplementedError '"index_copy_cpu" not implemented for 'Float8_e4m3fn''.
+    (lambda t, m: ({**t, "features": t["features"].to(torch.float8_e4m3fn)}, {**m, "layout": "dense"}),
+     "damaged grid: features is torch.float8_e4m3fn, a float of 8 bits"),
+    (lambda t, m: ({**t, "values": t["values"].to(torch.float8_e5m2)}, m),
+     "damaged sparse grid: values is torch.float8_e5m2, a float of 8 bits"),
+    (lambda t, m: ({**t, "fill": t["fill"].to(torch.float8_e4m3fn)}, m),
+     "damaged sparse grid: fill is torch.float8_e4m3fn, a float of 8 bits"),
+    (lambda t, m: ({**t, "bbox_min": t["bbox_min"].to(torch.float8_e4m3fn)}, m),
+     "damaged grid: bbox_min is torch.float8_e4m3fn, a float of 8 bits"),
 ])
 def test_a_grid_file_with_tensors_or_fields_of_the_wrong_shape_or_value_is_a_format_error(
         tmp_path, make_sphere_grid, damage, message):
@@ -507,6 +517,18 @@ def test_a_grid_of_any_dtype_is_written_in_float32(tmp_path, make_sphere_grid, d
     kept = stored_vertices(grid.occupancy_above(0.0).cells, 2)
     assert torch.equal(load_grid(sparse).features[kept], grid.features.float()[kept])
     assert torch.equal(load_grid(dense).features, grid.features.float())
+
+
+@pytest.mark.parametrize("dense", [False, True])
+def test_a_float8_grid_is_refused_when_saved_and_nothing_is_written(tmp_path, make_sphere_grid, dense):
+    """Its sparse save had failed on '"maximum_cpu" not implemented for 'Float8_e4m3fn'', and its dense one written
+    the float8-rounded box (1.2 as 1.25)."""
+    grid = make_sphere_grid(resolution=8).to(torch.float8_e4m3fn)
+    path = tmp_path / "g.safetensors"
+    with pytest.raises(ValueError, match=r"a torch.float8_e4m3fn grid cannot be saved: grid files hold floats of at "
+                                         r"least 16 bits; convert it with .float\(\) first"):
+        grid.save(path, dense=dense)
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_cli_converts_between_layouts(tmp_path, make_sphere_grid, capsys):

@@ -23,7 +23,7 @@ import torch
 from voxe_core.cameras import Cameras
 from voxe_core.constants import FLOAT32_MAX
 from voxe_core.grid import DEFAULT_BOX, GRID_KIND, VoxelGrid, ray_box_intersection
-from voxe_core.gridfile import GRID_FORMAT_VERSION, dense_tensors
+from voxe_core.gridfile import GRID_FORMAT_VERSION, dense_tensors, float_dtype_problem
 from voxe_core.presets import BACKBONE_CHOICES
 from voxe_core.scene_grid import SceneGrid, apply_frame, scene_frame
 from voxe_core.tensorio import FormatError, load_tensors
@@ -56,10 +56,9 @@ def grid_from_state(tensors: dict[str, torch.Tensor], meta: dict) -> VoxelGrid:
         raise FormatError(f"damaged sparse grid: no {exc} in the file") from None
     except ValueError as exc:
         raise FormatError(f"damaged sparse grid: {exc}") from None
-    for name in ("features", "bbox_min", "bbox_max"):
-        if name in tensors and not tensors[name].is_floating_point():  # bool or integer ones had been read as floats
-            raise FormatError(f"damaged grid: {name} is {tensors[name].dtype}, not floating point (the format's "
-                              "float32)")
+    for name in ("features", "bbox_min", "bbox_max"):  # bool, integer or float8 ones had been read as floats
+        if name in tensors and (problem := float_dtype_problem(tensors[name])):
+            raise FormatError(f"damaged grid: {name} is {problem}")
     features = tensors.get("features")
     if features is not None and (features.dim() != 4 or features.shape[-1] != 4):
         raise FormatError(f"damaged grid: features of shape {tuple(features.shape)}, not (X, Y, Z, 4)")

@@ -28,7 +28,9 @@ import torch
 import torch.nn.functional as F
 
 from voxe_core.cameras import Cameras
-from voxe_core.gridfile import DEFAULT_MARGIN, GRID_FORMAT_VERSION, payload_bytes, sparse_tensors
+from voxe_core.gridfile import (
+    DEFAULT_MARGIN, GRID_FORMAT_VERSION, MIN_FLOAT_BITS, float_dtype_problem, payload_bytes, sparse_tensors,
+)
 from voxe_core.tensorio import save_tensors
 from voxe_core.volrend import RaySamples, optical_depth, transmittance
 
@@ -629,7 +631,12 @@ class VoxelGrid(torch.nn.Module):
 
     # ------------------------------------------------------------- storage
     def state_tensors(self) -> dict[str, torch.Tensor]:
-        """The tensors a file holds, float32 as the format says whatever the grid's dtype (a ``.half()`` grid's too)."""
+        """The tensors a file holds, float32 as the format says whatever the grid's dtype (a ``.half()`` grid's too).
+        ValueError for a float8 grid (its save had failed on "maximum_cpu" not implemented, or written a box rounded
+        to 3 bits)."""
+        if float_dtype_problem(self.features):
+            raise ValueError(f"a {self.features.dtype} grid cannot be saved: grid files hold floats of at least "
+                             f"{MIN_FLOAT_BITS} bits; convert it with .float() first")
         return {"features": self.features.detach().float(), "bbox_min": self.bbox_min.float(),
                 "bbox_max": self.bbox_max.float()}
 

@@ -49,6 +49,19 @@ GRID_FORMAT_VERSION = 2  # 1: dense only, no ``layout`` key
 LAYOUTS = ("dense", "sparse")
 DEFAULT_MARGIN = 2  # cells kept around the occupied ones (room for an edit's first steps to grow the shape)
 CHANNELS = 4  # features per vertex: raw density, then raw colour (3)
+MIN_FLOAT_BITS = 16
+"""The narrowest float a grid's values are read from or saved in: float8's (torch's float8_* types) lose them (no
+zero in e8m0, 3 mantissa bits at most), and torch has no index_copy_ or maximum for them."""
+
+
+def float_dtype_problem(tensor: torch.Tensor) -> str | None:
+    """Why ``tensor``'s dtype holds no grid values, in the words after "<name> is"; None when it does."""
+    if not tensor.is_floating_point():  # an integer or bool tensor had been read as features
+        return f"{tensor.dtype}, not floating point (the format's float32)"
+    if torch.finfo(tensor.dtype).bits < MIN_FLOAT_BITS:
+        return (f"{tensor.dtype}, a float of {torch.finfo(tensor.dtype).bits} bits (the format's float32; at least "
+                f"{MIN_FLOAT_BITS} are read)")
+    return None
 
 
 def dilate(cells: torch.Tensor, margin: int) -> torch.Tensor:
@@ -131,8 +144,8 @@ def dense_tensors(tensors: dict[str, torch.Tensor], meta: dict) -> dict[str, tor
     if bits.dtype != torch.uint8 or bits.dim() != 1:
         raise ValueError(f"stored_bits is {bits.dtype} of shape {tuple(bits.shape)}, not a uint8 vector")
     for name, tensor in (("values", values), ("fill", fill)):
-        if not tensor.is_floating_point():  # an integer or bool tensor had been read as features
-            raise ValueError(f"{name} is {tensor.dtype}, not floating point (the format's float32)")
+        if problem := float_dtype_problem(tensor):
+            raise ValueError(f"{name} is {problem}")
     # The channels checked before anything is expanded: a fill of a million (and values to match) had been repeated
     # at every vertex, gigabytes, before the dense features' shape was found wrong.
     if fill.dim() != 1 or values.dim() != 2 or values.shape[1] != CHANNELS or fill.shape[0] != CHANNELS:
