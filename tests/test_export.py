@@ -274,6 +274,17 @@ def test_an_mp4_whose_encoder_failed_is_an_error_and_leaves_the_earlier_file(tmp
     assert [p.name for p in videos.iterdir()] == ["v.mp4"] and (videos / "v.mp4").read_bytes() == b"the earlier video"
 
 
+@pytest.mark.parametrize("name", ["a:b.mp4", "http:b.mp4", "a:b.gif"])
+def test_a_video_named_with_a_colon_in_the_working_folder_is_written(tmp_path, monkeypatch, name):
+    """Regression: ffmpeg was given the relative partial name ('.a:b.partial.mp4') and read it as a URL of protocol
+    '.a': the encode failed ("Protocol not found") after the whole render."""
+    monkeypatch.chdir(tmp_path)
+    path = write_video(name, gradient_frames(3, 16, 16), fps=10)
+    assert str(path) == name and sorted(p.name for p in tmp_path.iterdir()) == [name]
+    if name.endswith(".mp4"):
+        assert len(read_mp4(tmp_path / name)[0]) == 3
+
+
 def test_an_mp4_is_written_by_a_process_without_a_stderr(tmp_path, monkeypatch):
     """A process started with its stderr closed (a daemon) has sys.stderr None: the encoder's log, empty, had been
     written to it all the same, and every finished encode failed (AttributeError) and was removed."""

@@ -191,13 +191,14 @@ class _Mp4Encoder:
     """ffmpeg encoding the RGB frames piped to it into an H.264 MP4 at ``path`` (started at the first frame, which
     gives the size), its exit status checked: imageio-ffmpeg's writer, used before, never read it, so an encode that
     failed (a full disk: "Error writing trailer: No space left on device") had left a torn MP4 as if written.
-    ``shown_as``: the file ``path`` becomes, which its errors name."""
+    ``shown_as``: the file ``path`` becomes, which its errors name. ffmpeg is given ``path`` absolute: a relative
+    name with a ':' ('.a:b.partial.mp4', of 'a:b.mp4') is one it reads as a protocol's URL ("Protocol not found")."""
 
     OUTPUT_OPTIONS = ("-vcodec", "libx264", "-pix_fmt", "yuv420p", "-v", "error", "-colorspace", "smpte170m",
                       "-color_range", "tv", "-crf", "18", "-preset", "medium", "-movflags", "+faststart")
 
     def __init__(self, path: Path, fps: float, shown_as: Path):
-        self.path, self.fps, self.shown_as = path, fps, shown_as
+        self.path, self.fps, self.shown_as = path.absolute(), fps, shown_as
         self._process: subprocess.Popen | None = None
         self._log: list[bytes] = []  # ffmpeg's stderr, read by a thread (a full pipe would stall it)
         self._log_reader: threading.Thread | None = None
