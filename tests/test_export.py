@@ -15,6 +15,7 @@ import trimesh
 from PIL import Image
 
 from conftest import RED_LOGITS
+from voxe_core.cli import main
 from voxe_core.export import (
     default_mesh_level,
     extract_mesh,
@@ -111,6 +112,22 @@ def test_turntable_cameras_ring_geometry():
     forward = -cams.c2w[:, :3, 2]
     assert torch.allclose(forward, -eye / eye.norm(dim=-1, keepdim=True), atol=1e-5)
     assert torch.allclose(cams.fx, torch.full((8,), 0.5 * 40 / math.tan(0.5 * 0.6911)), rtol=1e-4)
+
+
+@pytest.mark.parametrize("elevation", [90.5, 120.0, -91.0, float("nan"), float("inf")])
+def test_a_turntable_elevation_past_the_poles_is_refused_naming_the_range(sphere_grid, tmp_path, capsys, elevation):
+    """Regression: 120 had been taken: a ring seen from 60° up on the far side of each azimuth, its cameras upside
+    down; the CLI rendered it. The poles themselves (a view straight down or up) stay."""
+    with pytest.raises(ValueError, match=rf"a turntable's elevation must lie between -90 and 90 degrees, got "
+                                         rf"{elevation:g}"):
+        turntable_cameras(4, elevation, 8)
+    grid, out = tmp_path / "g.safetensors", tmp_path / "t.gif"
+    sphere_grid.save(grid)
+    assert main(["turntable", str(grid), "--out", str(out), "--elevation", str(elevation), "--quiet"]) == 2
+    assert "between -90 and 90 degrees" in capsys.readouterr().err and not out.exists()
+    for pole in (90.0, -90.0):
+        assert torch.allclose(turntable_cameras(2, pole, 8).c2w[:, :3, 2], torch.tensor([0.0, 0.0, pole / 90]),
+                              atol=1e-6)
 
 
 def test_render_views_matches_render_image_and_shows_the_sphere(sphere_grid):

@@ -126,10 +126,14 @@ def turntable_cameras(
     """``n_frames`` square cameras evenly on a 360° ring ``elevation_deg`` above the horizon, looking at ``centre``.
 
     ``centre``: the grid's ``orbit_centre()`` (None: the origin, where an object grid's object sits), so a
-    capture whose object is off its frame's origin stays in the middle of every frame.
+    capture whose object is off its frame's origin stays in the middle of every frame. ``elevation_deg`` lies in
+    [-90, 90] (ValueError otherwise): past the pole, 120 had turned the ring over, each camera upside down on the far
+    side of the azimuth asked for.
     """
     if n_frames < 1 or size < 1:
         raise ValueError(f"a turntable needs at least one frame of at least 1 pixel, got {n_frames} frames of {size}")
+    if not -90.0 <= elevation_deg <= 90.0:  # (NaN too)
+        raise ValueError(f"a turntable's elevation must lie between -90 and 90 degrees, got {elevation_deg:g}")
     return Cameras.from_fov(ring_poses(n_frames, elevation_deg, radius, centre), fov_x, size, size)
 
 
