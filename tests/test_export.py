@@ -29,6 +29,7 @@ from voxe_core.export import (
     turntable_cameras,
     write_video,
 )
+from voxe_core.files import replacing
 from voxe_core.grid import VoxelGrid
 from voxe_core.presets import VIDEO_MIN_FPS
 from voxe_core.progress import Callbacks, StageCancelled
@@ -87,6 +88,33 @@ def test_a_png_save_that_fails_keeps_the_earlier_file_and_leaves_no_partial_one(
         resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
     assert path.read_bytes() == b"the earlier view"
     assert [p.name for p in tmp_path.iterdir()] == ["view.png"]
+
+
+@pytest.mark.parametrize("letter", ["v", "é"])  # é: two bytes in a name, never cut in half
+@pytest.mark.parametrize("suffix", [".png", ".mp4", ".safetensors"])
+def test_a_file_whose_name_fits_but_whose_partial_name_would_not_is_written(sphere_grid, tmp_path, letter, suffix):
+    """Regression: a name within the 255 bytes a file name may hold, but not 9 bytes within, was refused "File name
+    too long" (naming the file asked for, which fits): its partial file's name, ``.<stem>.partial<suffix>``, did not.
+    Two such names that differ at their end keep their partial files apart."""
+    stem = letter * ((254 - len(suffix)) // len(letter.encode()))
+    names = [stem + end + suffix for end in "12"]
+    for name in names:
+        if suffix == ".png":
+            save_png(tmp_path / name, torch.rand(4, 4, 3))
+        elif suffix == ".mp4":
+            write_video(tmp_path / name, gradient_frames(2, 8, 8), fps=10)
+        else:
+            sphere_grid.save(tmp_path / name)
+    assert sorted(p.name for p in tmp_path.iterdir()) == names and all(len(n.encode()) <= 255 for n in names)
+    with replacing(tmp_path / names[0]) as first, replacing(tmp_path / names[1]) as second:
+        first.write_text("first")
+        second.write_text("second")
+        assert first != second and all(p.name.endswith(suffix) for p in (first, second))
+    assert [(tmp_path / name).read_text() for name in names] == ["first", "second"]
+    too_long = tmp_path / (stem + "123" + suffix)  # refused as it is opened, not once written whole, naming it
+    with pytest.raises(OSError, match="File name too long") as error, replacing(too_long) as partial:
+        partial.write_text("never")
+    assert error.value.filename == str(too_long) and len(list(tmp_path.iterdir())) == 2
 
 
 def test_png_rgba_and_bad_shape(tmp_path):

@@ -26,6 +26,7 @@ from urllib.parse import quote
 import httpx
 
 from voxe_core.constants import TEXTURE_SUFFIXES
+from voxe_core.files import head_that_fits
 from voxe_core.ply_header import read_ply_header
 
 DEFAULT_URL = "http://127.0.0.1:8000"
@@ -753,22 +754,14 @@ SHA256_HEX = re.compile(r"[0-9a-f]{64}")
 
 PART_SUFFIX = ".0123456789abcdef.part"
 """What a part file's name (:func:`_part_file`) adds to its stem (:func:`_part_stem`): the ETag's head."""
-NAME_MAX_BYTES = 255
-"""The longest file name Linux's and macOS's file systems take."""
 
 
 def _part_stem(dest: Path) -> str:
     """The start of the names of the part files of a download to ``dest``: "." and its name; where that and
-    :data:`PART_SUFFIX` would pass :data:`NAME_MAX_BYTES` (an artifact name of 240 characters had failed "File name
-    too long"), the head of it that fits with "~" and a digest of the whole name, so two long names alike at their
-    start keep parts of their own."""
-    stem, room = f".{dest.name}", NAME_MAX_BYTES - len(PART_SUFFIX)
-    if len(os.fsencode(stem)) <= room:
-        return stem
-    mark = "~" + hashlib.sha256(os.fsencode(dest.name)).hexdigest()[:16]
-    while len(os.fsencode(stem + mark)) > room:  # by characters: a name cut inside a UTF-8 one is not printable
-        stem = stem[:-1]
-    return stem + mark
+    :data:`PART_SUFFIX` would pass the 255 bytes of a file name (an artifact name of 240 characters had failed "File
+    name too long"), the head of it that fits with "~" and a digest of the whole name, so two long names alike at
+    their start keep parts of their own (``voxe_core.files.head_that_fits``, as the library's partial files)."""
+    return head_that_fits(f".{dest.name}", PART_SUFFIX, dest.name)
 
 
 def _part_file(dest: Path, sha256: str) -> Path:

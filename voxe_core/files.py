@@ -3,6 +3,8 @@ the final name, nor destroys the one already there."""
 
 from __future__ import annotations
 
+import errno
+import hashlib
 import os
 import stat
 from collections.abc import Iterator
@@ -12,6 +14,8 @@ from pathlib import Path
 SPECIAL_FILES = ((stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISSOCK, "a socket"),
                  (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"))
 """What a path that is neither a regular file nor a folder is, by its mode."""
+NAME_MAX = 255
+"""The longest file name, in bytes, of the filesystems written to (ext4, XFS, Btrfs, tmpfs)."""
 
 
 def unreadable_file(path: str | os.PathLike, kind: str = "a file") -> str | None:
@@ -37,11 +41,41 @@ def unreadable_file(path: str | os.PathLike, kind: str = "a file") -> str | None
     return None
 
 
+def head_that_fits(head: str, tail: str, name: str) -> str:
+    """``head``, or where ``head`` + ``tail`` would pass :data:`NAME_MAX` bytes, its start that fits with ``~`` and 16
+    hex digits of a hash of ``name`` (the file the name is made for) after it: cut by whole characters (one cut inside
+    a UTF-8 character is not printable), and two long names alike at their start keep names of their own."""
+    if len(os.fsencode(head + tail)) <= NAME_MAX:
+        return head
+    mark = "~" + hashlib.sha256(os.fsencode(name)).hexdigest()[:16]
+    while head and len(os.fsencode(head + mark + tail)) > NAME_MAX:
+        head = head[:-1]
+    return head + mark
+
+
+def partial_path(path: Path) -> Path:
+    """``.<stem>.partial<suffix>`` beside ``path``, its stem cut where that would pass :data:`NAME_MAX` bytes
+    (:func:`head_that_fits`): a name that fits had been refused "File name too long", for the 9 bytes the partial
+    name adds. A name too long itself keeps the whole partial name, which fails as it is opened (cut to fit, it
+    would be written whole before the rename was refused).
+
+    Examples:
+        >>> partial_path(Path("out/view.png"))
+        PosixPath('out/.view.partial.png')
+        >>> len(partial_path(Path("é" * 125 + ".png")).name.encode())
+        254
+    """
+    tail = f".partial{path.suffix}"
+    if len(os.fsencode(path.name)) > NAME_MAX:
+        return path.with_name(f".{path.stem}{tail}")
+    return path.with_name(head_that_fits(f".{path.stem}", tail, path.name) + tail)
+
+
 @contextmanager
 def replacing(path: str | os.PathLike) -> Iterator[Path]:
     """A temporary path beside ``path`` to write into; when the block ends without an error it replaces ``path``
     in one rename, otherwise it is removed and ``path`` is left as it was. It keeps ``path``'s suffix (writers
-    pick their format by it) and is hidden (``.<stem>.partial<suffix>``) from listings of the folder. An OSError
+    pick their format by it) and is hidden (:func:`partial_path`) from listings of the folder. An OSError
     about that temporary file (a missing folder, no permission) names ``path``, the file the caller asked for.
 
     Examples:
@@ -61,7 +95,7 @@ def replacing(path: str | os.PathLike) -> Iterator[Path]:
         ('whole', ['notes.txt'])
     """
     path = Path(path)
-    partial = path.with_name(f".{path.stem}.partial{path.suffix}")
+    partial = partial_path(path)
     try:
         yield partial
         os.replace(partial, path)
@@ -70,4 +104,8 @@ def replacing(path: str | os.PathLike) -> Iterator[Path]:
             raise
         raise OSError(exc.errno, exc.strerror, str(path)) from None
     finally:
-        partial.unlink(missing_ok=True)
+        try:
+            partial.unlink(missing_ok=True)
+        except OSError as exc:  # a name too long for any file: none to remove, and its own error had replaced the
+            if exc.errno != errno.ENAMETOOLONG:  # one above, which names the file asked for
+                raise
