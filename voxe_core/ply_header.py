@@ -81,7 +81,8 @@ def ply_fault(path: str | os.PathLike, read_body: bool = True) -> str | None:
     rows do not hold what the header declares (``_ascii_body_fault``) or a binary one that is text. trimesh had
     said "list index out of range" (no end_header), "'flot'" (a type it does not know), "not enough values to
     unpack" (a list property without its two types), "'(' was never closed" (a binary list's length of a float
-    type, even a whole one), "string or file could not be read to its end" (a word in a row), "PLY is unexpected
+    type, even a whole one), "data type '' not understood" (a binary PLY's element without properties, where this
+    check had failed on a division by zero), "string or file could not be read to its end" (a word in a row), "PLY is unexpected
     length!" (a text body under a binary format line, or a binary body not the length its header makes:
     ``_binary_body_fault``), and had dropped a face row holding fewer indices than its count. Without
     ``read_body``, the header's faults only."""
@@ -115,6 +116,9 @@ def ply_fault(path: str | os.PathLike, read_body: bool = True) -> str | None:
                             f"{words[2]!r}, not an integer type (uchar, ushort, uint, or a sized one: uint8 ...)")
                 elements[-1][2].append(words[1 + is_list:-1])
             elif words[:1] == ["end_header"]:
+                if body_format != "ascii" and (bare := next((name for name, _, types in elements if not types), None)):
+                    return (f"its header's element {bare[:20]!r} has no properties, which the loader cannot read in a "
+                            "binary PLY: leave it out, or save the PLY as ASCII")
                 if not read_body:  # the header's lines only (an upload's check: the body may be GBs)
                     return None
                 body = handle.read()
