@@ -307,6 +307,14 @@ def test_a_scene_grid_beyond_the_far_ratio_bound_says_so_rather_than_damaged(tmp
     ("near_samples", 10**12, "near_samples must be at most 4194304 (MAX_NEAR_FAR_SAMPLES), got 1000000000000"),  # 4 TB
     ("foreground_extent", 1e300, "foreground_extent must be a positive length, finite in float32, got 1e+300"),
     ("foreground_extent", True, "foreground_extent must be a positive length, finite in float32, got True"),  # 1
+    # A string or null had been "'<' not supported between instances of 'int' and 'str'", naming no field; a whole
+    # number past float64's range had escaped load_grid as OverflowError "int too large to convert to float".
+    ("foreground_extent", "1.5", "foreground_extent must be a positive length, finite in float32, got '1.5'"),
+    ("foreground_extent", None, "foreground_extent must be a positive length, finite in float32, got None"),
+    ("far_ratio", "1000", "near_samples and far_samples must be >= 1 and far_ratio in (1, 1e+06], got 32, 64, '1000'"),
+    ("far_ratio", None, "near_samples and far_samples must be >= 1 and far_ratio in (1, 1e+06], got 32, 64, None"),
+    ("far_ratio", 10**400, f"near_samples and far_samples must be >= 1 and far_ratio in (1, 1e+06], got 32, 64, "
+                           f"{10**400}"),
 ])
 def test_a_scene_grid_header_it_cannot_render_is_a_format_error(tmp_path, field, value, message):
     """Each had loaded: a sample count of 2.9 cut to 2, JSON's true an extent of 1, and an extent or sample count of

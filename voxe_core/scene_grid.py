@@ -99,8 +99,10 @@ class SceneGrid(VoxelGrid):
     ):
         # A file's header is read through here: its extent of 1e300 (past float32) had loaded and failed the render,
         # JSON's true had been 1; its sample count of 2.9 had been cut to 2, of 1e300 (or 1e12) failed the render.
-        if isinstance(foreground_extent, bool) or not 0 < foreground_extent <= FLOAT32_MAX:
-            raise ValueError(f"foreground_extent must be a positive length, finite in float32, got {foreground_extent}")
+        # A string or null had been "'<' not supported between instances of 'int' and 'str'", naming no field.
+        if not _is_number(foreground_extent) or not 0 < foreground_extent <= FLOAT32_MAX:
+            raise ValueError(f"foreground_extent must be a positive length, finite in float32, got "
+                             f"{foreground_extent!r}")
         for name, count in (("near_samples", near_samples), ("far_samples", far_samples)):
             if isinstance(count, bool) or not isinstance(count, numbers.Integral):
                 raise ValueError(f"{name} must be a whole number, got {count!r}")
@@ -108,9 +110,9 @@ class SceneGrid(VoxelGrid):
                 raise ValueError(f"{name} must be at most {MAX_NEAR_FAR_SAMPLES} (MAX_NEAR_FAR_SAMPLES), got {count}")
         # far_ratio "not in range": an infinite one made the last far bin infinite, and an empty ray's render NaN;
         # so did a finite one whose float32 product with the exit distance overflowed (3e38, or 1e38 times 4).
-        if near_samples < 1 or far_samples < 1 or not 1 < far_ratio <= MAX_FAR_RATIO:
+        if near_samples < 1 or far_samples < 1 or not (_is_number(far_ratio) and 1 < far_ratio <= MAX_FAR_RATIO):
             raise ValueError(f"near_samples and far_samples must be >= 1 and far_ratio in (1, {MAX_FAR_RATIO:g}], "
-                             f"got {near_samples}, {far_samples}, {far_ratio}")
+                             f"got {near_samples}, {far_samples}, {far_ratio!r}")
         fg = float(foreground_extent)
         # Density per unit of the canonical frame, scaled as the ReLU-field grid over the same foreground box.
         density_scale = default_density_scale((-fg,) * 3, (fg,) * 3) if density_scale is None else density_scale
@@ -136,7 +138,7 @@ class SceneGrid(VoxelGrid):
         """The grid a file or checkpoint holds. One saved before far_ratio was bounded may lie past the bound: named
         so, not refused as damaged."""
         far_ratio = meta["far_ratio"]
-        if isinstance(far_ratio, (int, float)) and not isinstance(far_ratio, bool) and far_ratio > MAX_FAR_RATIO:
+        if isinstance(far_ratio, float) and far_ratio > MAX_FAR_RATIO:  # (what a version wrote: float(far_ratio))
             raise FormatError(f"far_ratio {far_ratio:g} is above the largest this version supports "
                               f"({MAX_FAR_RATIO:g}), as a scene grid an older version saved may be: refit the scene "
                               f"with this one")
@@ -332,6 +334,11 @@ def _similarity(frame) -> torch.Tensor:
         raise ValueError(f"frame must be a similarity (a positive scale times a rotation, then a translation; last "
                          f"row 0, 0, 0, 1), got {matrix.tolist()}")
     return matrix.float()
+
+
+def _is_number(value) -> bool:
+    """Whether a header's ``value`` is a real number (JSON's true and false are not)."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 def _holds_a_bool(value) -> bool:
