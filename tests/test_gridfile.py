@@ -241,6 +241,8 @@ def test_damaged_or_unknown_sparse_files_are_named(tmp_path, make_sphere_grid):
     (lambda t, m: (t, {**m, "density_scale": float("nan")}), "density_scale nan is not a positive number"),
     (lambda t, m: (t, {**m, "density_scale": "33"}), "density_scale '33' is not a positive number"),
     (lambda t, m: (t, {**m, "density_scale": True}), "density_scale True is not a positive number"),  # had been 1
+    # (null had loaded with the default scale: every density other than the grid's)
+    (lambda t, m: (t, {**m, "density_scale": None}), "density_scale None is not a positive number"),
     # Past float32 every density is infinite; past float64 (a whole number) Python's "int too large to convert to
     # float" had escaped, naming neither the file nor the field.
     (lambda t, m: (t, {**m, "density_scale": 1e300}), r"density_scale 1e\+300 is not a positive number finite in "),
@@ -339,6 +341,7 @@ def test_a_scene_grid_header_it_cannot_render_is_a_format_error(tmp_path, field,
     ([1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 5.0, 1.0], "frame must be a similarity"),  # last row
     ([True, False, False, 0, False, True, False, 0, False, False, True, 0, 0, 0, 0, 1],  # read as the identity
      "frame must hold numbers, not booleans"),
+    (None, r"frame must be 16 numbers \(a 4x4 matrix\), got None"),  # had loaded as the identity
 ])
 def test_a_scene_grid_whose_frame_is_no_similarity_is_a_format_error(tmp_path, frame, message):
     """Regression: a NaN, infinite or singular frame had loaded, and every camera it moved into the grid's frame

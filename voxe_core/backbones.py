@@ -70,7 +70,7 @@ def grid_from_state(tensors: dict[str, torch.Tensor], meta: dict) -> VoxelGrid:
         if name in tensors and tuple(tensors[name].shape) != (3,):
             raise FormatError(f"damaged grid: {name} of shape {tuple(tensors[name].shape)}, not (3,)")
     scale = meta.get("density_scale")  # compared, not converted: a whole number past float64's range (10**400)
-    if scale is not None and not (isinstance(scale, (int, float)) and not isinstance(scale, bool)  # JSON's true: 1
+    if "density_scale" in meta and not (isinstance(scale, (int, float)) and not isinstance(scale, bool)  # true: 1
                                   and 0 < scale <= FLOAT32_MAX):  # had escaped as "int too large to convert to float"
         raise FormatError(f"damaged grid: density_scale {scale!r} is not a positive number finite in float32 (every "
                           "density would be wrong)")

@@ -144,7 +144,8 @@ class SceneGrid(VoxelGrid):
                               f"with this one")
         return cls(tuple(tensors["features"].shape[:3]), meta["foreground_extent"], meta["activation"],
                    meta["density_scale"], features=tensors["features"], near_samples=meta["near_samples"],
-                   far_samples=meta["far_samples"], far_ratio=meta["far_ratio"], frame=meta["frame"])
+                   far_samples=meta["far_samples"], far_ratio=meta["far_ratio"],
+                   frame=_similarity(meta["frame"]))  # (a null one, which no version wrote, had loaded as no frame)
 
     def skip_density(self, sigma_threshold: float) -> torch.Tensor:
         """``VoxelGrid.skip_density`` in the foreground cube, lowered in each background cell by how far it
