@@ -33,3 +33,28 @@ def test_an_ascii_plys_element_without_properties_is_no_fault(tmp_path):
     path.write_text(f"ply\nformat ascii 1.0\n{_VERTICES}{_FACES}element extra 2\nend_header\n"
                     "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n\n\n")
     assert ply_fault(path) is None
+
+
+@pytest.mark.parametrize("read_body", [True, False])
+@pytest.mark.parametrize("fmt, body", [("ascii", b"0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n"), ("binary_little_endian", _BODY)])
+def test_a_header_line_that_is_not_utf8_is_a_fault_naming_its_line(tmp_path, fmt, body, read_body):
+    """Regression: a comment saved in Latin-1 ('Créé par le scanner') passed the check, header and body, and the
+    loader failed as "cannot read as a mesh: 'utf-8' codec can't decode byte 0xe9 in position 10: invalid
+    continuation byte" (no line; an upload's check had let it through to the ingest). In UTF-8 it loads."""
+    header = f"ply\nformat {fmt} 1.0\ncomment Créé par le scanner\n{_VERTICES}{_FACES}end_header\n"
+    path = tmp_path / "latin.ply"
+    path.write_bytes(header.encode("latin-1") + body)
+    assert ply_fault(path, read_body) == (
+        "its header's line 3, 'comment Cr\ufffd\ufffd par le scanner', is not UTF-8 text, as the loader reads a PLY's "
+        "header (a comment saved in another encoding?): save it as UTF-8, or without that line")
+    path.write_bytes(header.encode() + body)
+    assert ply_fault(path, read_body) is None
+
+
+def test_a_long_utf8_header_line_read_in_pieces_is_no_fault(tmp_path):
+    """A comment longer than the bytes a header line is read in comes in pieces, which may split a character."""
+    path = tmp_path / "long.ply"
+    for prefix in ("comment ", "comment x"):  # the cut within an 'é' or between two
+        path.write_bytes(f"ply\nformat ascii 1.0\n{prefix}{'é' * 1500}\n{_VERTICES}{_FACES}end_header\n"
+                         "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n".encode())
+        assert ply_fault(path) is None

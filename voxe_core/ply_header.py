@@ -14,6 +14,7 @@ Examples:
 
 from __future__ import annotations
 
+import codecs
 import os
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -41,13 +42,13 @@ class PlyHeader:
     faces: int | None  # the count its "element face" line declares (None: no such line, or not a count)
 
 
-def _header_lines(handle: BinaryIO) -> Iterator[str]:
+def _header_lines(handle: BinaryIO) -> Iterator[bytes]:
     """The lines of the header of the PLY open in ``handle`` after its "ply" line (none without one; in capitals, or
-    after a UTF-8 byte order mark, trimesh reads it too), each stripped, the handle left past the last one read;
-    their count and bytes are bounded: a damaged file may hold no newline."""
+    after a UTF-8 byte order mark, trimesh reads it too), as read, the handle left past the last one read; their
+    count and bytes are bounded: a damaged file may hold no newline (a longer line comes in pieces)."""
     if handle.readline(HEADER_LINE_BYTES).removeprefix(UTF8_BOM).strip().lower() == b"ply":
         for _ in range(HEADER_LINES):
-            yield handle.readline(HEADER_LINE_BYTES).decode("utf-8", "replace").strip()
+            yield handle.readline(HEADER_LINE_BYTES)
 
 
 def _count(word: str) -> int | None:
@@ -60,7 +61,8 @@ def read_ply_header(path: str | os.PathLike) -> PlyHeader:
     """The header of the PLY at ``path`` (ASCII before ``end_header``, whatever the body's format)."""
     declared, element, texture_file, faces = set(), None, None, None
     with open(path, "rb") as handle:
-        for text in _header_lines(handle):
+        for line in _header_lines(handle):
+            text = line.decode("utf-8", "replace").strip()
             words = text.split()
             if words[:1] == ["end_header"]:
                 return PlyHeader(True, any(names <= declared for names in TEXTURE_COORDINATES), texture_file, faces)
@@ -79,7 +81,8 @@ def ply_fault(path: str | os.PathLike, read_body: bool = True) -> str | None:
     """What in the PLY at ``path`` the mesh loader (trimesh) would fail on in words of its own, or misread without a
     word, said for a user (the file not named), or None: a header line not of PLY's forms, and an ASCII body whose
     rows do not hold what the header declares (``_ascii_body_fault``) or a binary one that is text. trimesh had
-    said "list index out of range" (no end_header), "'flot'" (a type it does not know), "not enough values to
+    said "list index out of range" (no end_header), "'utf-8' codec can't decode byte 0xe9" (a header line not UTF-8,
+    a Latin-1 comment's 'é'), "'flot'" (a type it does not know), "not enough values to
     unpack" (a list property without its two types), "'(' was never closed" (a binary list's length of a float
     type, even a whole one), "data type '' not understood" (a binary PLY's element without properties, where this
     check had failed on a division by zero), "string or file could not be read to its end" (a word in a row), "PLY is unexpected
@@ -89,8 +92,15 @@ def ply_fault(path: str | os.PathLike, read_body: bool = True) -> str | None:
     elements: list[tuple[str, int, list[list[str]]]] = []  # (name, count, per property its types: a list's two)
     body_format, lines_read = None, 1
     with open(path, "rb") as handle:
-        for text in _header_lines(handle):
+        utf8 = codecs.getincrementaldecoder("utf-8")()  # (a character may span the pieces of a long line)
+        for line in _header_lines(handle):
             lines_read += 1
+            try:  # trimesh decodes the header strictly: it had failed "'utf-8' codec can't decode byte 0xe9 ..."
+                text = utf8.decode(line).strip()
+            except UnicodeDecodeError:
+                return (f"its header's line {lines_read}, {line.decode('utf-8', 'replace').strip()[:60]!r}, is not "
+                        "UTF-8 text, as the loader reads a PLY's header (a comment saved in another encoding?): save "
+                        "it as UTF-8, or without that line")
             words = text.split()
             if lines_read == 2:  # trimesh takes the second line as the format line, whatever it says
                 body_format = words[1].lower() if words[:1] == ["format"] and len(words) > 1 else None
