@@ -58,3 +58,18 @@ def test_a_long_utf8_header_line_read_in_pieces_is_no_fault(tmp_path):
         path.write_bytes(f"ply\nformat ascii 1.0\n{prefix}{'é' * 1500}\n{_VERTICES}{_FACES}end_header\n"
                          "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n".encode())
         assert ply_fault(path) is None
+
+
+@pytest.mark.parametrize("read_body", [True, False])
+@pytest.mark.parametrize("properties, missing", [("xy", "z"), ("yzw", "x"), ("y", "x or z")])
+def test_vertices_without_a_coordinate_are_a_fault_naming_it(tmp_path, properties, missing, read_body):
+    """Regression: the loader had said "cannot read as a mesh: 'z'" (trimesh's KeyError), after an upload's check let
+    the file through; vertices need x, y and z (an element of no vertices needs none)."""
+    path = tmp_path / "flat.ply"
+    vertices = "element vertex 3\n" + "".join(f"property float {name}\n" for name in properties)
+    rows = "".join(" ".join(["0"] * len(properties)) + "\n" for _ in range(3))
+    path.write_text(f"ply\nformat ascii 1.0\n{vertices}{_FACES}end_header\n{rows}3 0 1 2\n")
+    assert ply_fault(path, read_body) == (f"its vertex element has no {missing} property: the loader reads each "
+                                          "vertex's position from its x, y and z")
+    path.write_text(f"ply\nformat ascii 1.0\n{vertices.replace(' 3', ' 0')}end_header\n")
+    assert ply_fault(path, read_body) is None

@@ -82,7 +82,7 @@ def ply_fault(path: str | os.PathLike, read_body: bool = True) -> str | None:
     word, said for a user (the file not named), or None: a header line not of PLY's forms, and an ASCII body whose
     rows do not hold what the header declares (``_ascii_body_fault``) or a binary one that is text. trimesh had
     said "list index out of range" (no end_header), "'utf-8' codec can't decode byte 0xe9" (a header line not UTF-8,
-    a Latin-1 comment's 'é'), "'flot'" (a type it does not know), "not enough values to
+    a Latin-1 comment's 'é'), "'z'" (vertices without a z), "'flot'" (a type it does not know), "not enough values to
     unpack" (a list property without its two types), "'(' was never closed" (a binary list's length of a float
     type, even a whole one), "data type '' not understood" (a binary PLY's element without properties, where this
     check had failed on a division by zero), "string or file could not be read to its end" (a word in a row), "PLY is unexpected
@@ -90,6 +90,7 @@ def ply_fault(path: str | os.PathLike, read_body: bool = True) -> str | None:
     ``_binary_body_fault``), and had dropped a face row holding fewer indices than its count. Without
     ``read_body``, the header's faults only."""
     elements: list[tuple[str, int, list[list[str]]]] = []  # (name, count, per property its types: a list's two)
+    declared = set()  # (element, property) names
     body_format, lines_read = None, 1
     with open(path, "rb") as handle:
         utf8 = codecs.getincrementaldecoder("utf-8")()  # (a character may span the pieces of a long line)
@@ -125,10 +126,15 @@ def ply_fault(path: str | os.PathLike, read_body: bool = True) -> str | None:
                     return (f"its header's line {lines_read}, {text[:60]!r}: a binary list's length is of "
                             f"{words[2]!r}, not an integer type (uchar, ushort, uint, or a sized one: uint8 ...)")
                 elements[-1][2].append(words[1 + is_list:-1])
+                declared.add((elements[-1][0], words[-1]))
             elif words[:1] == ["end_header"]:
                 if body_format != "ascii" and (bare := next((name for name, _, types in elements if not types), None)):
                     return (f"its header's element {bare[:20]!r} has no properties, which the loader cannot read in a "
                             "binary PLY: leave it out, or save the PLY as ASCII")
+                vertices = any(name == "vertex" and count for name, count, _ in elements)
+                if vertices and (missing := [axis for axis in "xyz" if ("vertex", axis) not in declared]):
+                    return (f"its vertex element has no {' or '.join(missing)} property: the loader reads each vertex's "
+                            "position from its x, y and z")
                 if not read_body:  # the header's lines only (an upload's check: the body may be GBs)
                     return None
                 body = handle.read()
