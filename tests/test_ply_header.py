@@ -73,3 +73,22 @@ def test_vertices_without_a_coordinate_are_a_fault_naming_it(tmp_path, propertie
                                           "vertex's position from its x, y and z")
     path.write_text(f"ply\nformat ascii 1.0\n{vertices.replace(' 3', ' 0')}end_header\n")
     assert ply_fault(path, read_body) is None
+
+
+@pytest.mark.parametrize("read_body", [True, False])
+@pytest.mark.parametrize("fmt, extra, fault", [("ascii", "", True), ("ascii", "property uchar red\n", True),
+                                               ("binary_little_endian", "property uchar red\n", True),
+                                               ("binary_little_endian", "", False)])
+def test_faces_whose_corners_are_not_vertex_indices_are_a_fault(tmp_path, fmt, extra, fault, read_body):
+    """Regression: the loader had said "cannot read as a mesh: cannot access local variable 'faces' where it is not
+    associated with a value" (or 'name'): trimesh reads corners from vertex_indices or vertex_index, but a binary
+    face's only property whatever its name (that one loads)."""
+    path = tmp_path / "corners.ply"
+    header = f"ply\nformat {fmt} 1.0\n{_VERTICES}element face 1\nproperty list uchar int corners\n{extra}end_header\n"
+    body = b"0 0 0\n1 0 0\n0 1 0\n3 0 1 2" + (b" 9" if extra else b"") + b"\n" if fmt == "ascii" else \
+        _BODY + (b"\x09" if extra else b"")
+    path.write_bytes(header.encode() + body)
+    assert ply_fault(path, read_body) == ("its face element has no vertex_indices property (nor vertex_index): the "
+                                          "loader reads each face's corners from it" if fault else None)
+    path.write_bytes(header.replace("corners", "vertex_index").encode() + body)
+    assert ply_fault(path, read_body) is None

@@ -82,11 +82,12 @@ def ply_fault(path: str | os.PathLike, read_body: bool = True) -> str | None:
     word, said for a user (the file not named), or None: a header line not of PLY's forms, and an ASCII body whose
     rows do not hold what the header declares (``_ascii_body_fault``) or a binary one that is text. trimesh had
     said "list index out of range" (no end_header), "'utf-8' codec can't decode byte 0xe9" (a header line not UTF-8,
-    a Latin-1 comment's 'é'), "'z'" (vertices without a z), "'flot'" (a type it does not know), "not enough values to
-    unpack" (a list property without its two types), "'(' was never closed" (a binary list's length of a float
-    type, even a whole one), "data type '' not understood" (a binary PLY's element without properties, where this
-    check had failed on a division by zero), "string or file could not be read to its end" (a word in a row), "PLY is unexpected
-    length!" (a text body under a binary format line, or a binary body not the length its header makes:
+    a Latin-1 comment's 'é'), "'z'" (vertices without a z), "cannot access local variable 'faces'" (faces whose
+    corners are not vertex_indices), "'flot'" (a type it does not know), "not enough values to unpack" (a list
+    property without its two types), "'(' was never closed" (a binary list's length of a float type, even a whole
+    one), "data type '' not understood" (a binary PLY's element without properties, where this check had failed on a
+    division by zero), "string or file could not be read to its end" (a word in a row), "PLY is unexpected length!"
+    (a text body under a binary format line, or a binary body not the length its header makes:
     ``_binary_body_fault``), and had dropped a face row holding fewer indices than its count. Without
     ``read_body``, the header's faults only."""
     elements: list[tuple[str, int, list[list[str]]]] = []  # (name, count, per property its types: a list's two)
@@ -133,8 +134,13 @@ def ply_fault(path: str | os.PathLike, read_body: bool = True) -> str | None:
                             "binary PLY: leave it out, or save the PLY as ASCII")
                 vertices = any(name == "vertex" and count for name, count, _ in elements)
                 if vertices and (missing := [axis for axis in "xyz" if ("vertex", axis) not in declared]):
-                    return (f"its vertex element has no {' or '.join(missing)} property: the loader reads each vertex's "
-                            "position from its x, y and z")
+                    return (f"its vertex element has no {' or '.join(missing)} property: the loader reads each "
+                            "vertex's position from its x, y and z")
+                faces = next((types for name, count, types in elements if name == "face" and count), None)
+                if (faces is not None and not {("face", "vertex_indices"), ("face", "vertex_index")} & declared
+                        and (body_format == "ascii" or len(faces) > 1)):  # (a binary face's one property: any name)
+                    return ("its face element has no vertex_indices property (nor vertex_index): the loader reads each "
+                            "face's corners from it")
                 if not read_body:  # the header's lines only (an upload's check: the body may be GBs)
                     return None
                 body = handle.read()
