@@ -92,3 +92,16 @@ def test_faces_whose_corners_are_not_vertex_indices_are_a_fault(tmp_path, fmt, e
                                           "loader reads each face's corners from it" if fault else None)
     path.write_bytes(header.replace("corners", "vertex_index").encode() + body)
     assert ply_fault(path, read_body) is None
+
+
+@pytest.mark.parametrize("tail, fault", [("comment made by me\n", "line 14, after the rows its header declares: "
+                                          "'comment' is not a number"),
+                                         ("\n1 2\nx\n", "line 16, after the rows its header declares: 'x' is not a "
+                                          "number"),
+                                         ("7 8 9\n\n", None)])
+def test_words_after_an_ascii_plys_rows_are_a_fault_naming_the_line(tmp_path, tail, fault):
+    """Regression: the loader had said "cannot read as a mesh: string or file could not be read to its end due to
+    unmatched data" (trimesh parses the rest of the body too); numbers there it leaves alone."""
+    path = tmp_path / "tail.ply"
+    path.write_text(f"ply\nformat ascii 1.0\n{_VERTICES}{_FACES}end_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n{tail}")
+    assert ply_fault(path) == fault

@@ -159,7 +159,8 @@ def _ascii_body_fault(body: bytes, elements: list, header_lines: int) -> str | N
     """What in an ASCII body the rows of ``elements`` (read one a line, as trimesh reads them) hold other than
     their header declares: too few rows (trimesh takes the lines there are: a truncated file, or a header
     overstating a count, had loaded as part of its mesh), a row short of its properties' values (a face of
-    two indices under a count of 3: trimesh had dropped it), or a word that is not a number."""
+    two indices under a count of 3: trimesh had dropped it), or a word that is not a number, in the rows or after
+    them."""
     try:
         rows = body.decode("utf-8").splitlines()  # as trimesh decodes and splits them
     except UnicodeDecodeError:
@@ -194,6 +195,12 @@ def _ascii_body_fault(body: bytes, elements: list, header_lines: int) -> str | N
                 if word := next((word for word in row.split() if not is_numbers(word)), None):
                     return f"line {line + index} ({name} {index + 1}): {word[:20]!r} is not a number"
         first += count
+    rest = rows[first:]  # trimesh reads them too: a word there had failed it, "could not be read to its end"
+    if not is_numbers(" ".join(rest)):
+        for index, row in enumerate(rest):
+            if word := next((word for word in row.split() if not is_numbers(word)), None):
+                return (f"line {header_lines + first + index + 1}, after the rows its header declares: {word[:20]!r} "
+                        "is not a number")
     return None
 
 
