@@ -105,3 +105,21 @@ def test_words_after_an_ascii_plys_rows_are_a_fault_naming_the_line(tmp_path, ta
     path = tmp_path / "tail.ply"
     path.write_text(f"ply\nformat ascii 1.0\n{_VERTICES}{_FACES}end_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n{tail}")
     assert ply_fault(path) == fault
+
+
+@pytest.mark.parametrize("read_body", [True, False])
+@pytest.mark.parametrize("line, fault", [
+    ("\n", "its header's line 3 is empty, which the loader cannot read: remove it"),  # "list index out of range"
+    ("elements 2\n", "its header's line 3, 'elements 2', is not 'element <name> <count>'"),  # "not enough values ..."
+    ("obj_info 2\n", None),  # (any other line: a word of its own)
+])
+def test_a_header_line_the_loader_misreads_is_a_fault_naming_it(tmp_path, line, fault, read_body):
+    """Regression: trimesh fails on an empty header line, and reads a line whose first word holds "element" as one
+    (its own words: in the comments); the check had skipped both. A first word holding "property" is one to it too:
+    such a z or vertex_indices is there (the check had refused the file, which loads)."""
+    path = tmp_path / "odd.ply"
+    path.write_text(f"ply\nformat ascii 1.0\n{line}{_VERTICES}{_FACES}end_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")
+    assert ply_fault(path, read_body) == fault
+    path.write_text(f"ply\nformat ascii 1.0\n{line}{_VERTICES.replace('property float z', 'propertyz float z')}"
+                    f"{_FACES.replace('property list', 'property_ list')}end_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")
+    assert ply_fault(path, read_body) == fault

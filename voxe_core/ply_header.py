@@ -48,7 +48,9 @@ def _header_lines(handle: BinaryIO) -> Iterator[bytes]:
     count and bytes are bounded: a damaged file may hold no newline (a longer line comes in pieces)."""
     if handle.readline(HEADER_LINE_BYTES).removeprefix(UTF8_BOM).strip().lower() == b"ply":
         for _ in range(HEADER_LINES):
-            yield handle.readline(HEADER_LINE_BYTES)
+            if not (line := handle.readline(HEADER_LINE_BYTES)):  # the end of the file
+                return
+            yield line
 
 
 def _count(word: str) -> int | None:
@@ -109,11 +111,13 @@ def ply_fault(path: str | os.PathLike, read_body: bool = True) -> str | None:
                 if body_format not in BODY_FORMATS:
                     return (f"its format line is {text[:60]!r}, not 'format' and one of {', '.join(BODY_FORMATS)} "
                             "(then the version, 1.0)")
-            elif words[:1] == ["element"]:
+            elif not words:  # trimesh had failed on it: "list index out of range"
+                return f"its header's line {lines_read} is empty, which the loader cannot read: remove it"
+            elif "element" in words[0]:  # as trimesh reads them ("elements 3" had failed "not enough values to unpack")
                 if len(words) != 3 or (count := _count(words[2])) is None:
                     return f"its header's line {lines_read}, {text[:60]!r}, is not 'element <name> <count>'"
                 elements.append((words[1], count, []))
-            elif words[:1] == ["property"]:
+            elif "property" in words[0]:  # (its vertices' x, y, z and faces' corners as trimesh finds them)
                 if not elements:
                     return f"its header's line {lines_read}, {text[:60]!r}, is a property before any element"
                 is_list = words[1:2] == ["list"]
