@@ -714,6 +714,66 @@ def test_a_damaged_or_foreign_fit_checkpoint_is_dropped_and_the_fit_starts_over(
     assert get_storage().list(reconstruction_storage_key(rec_id, "checkpoint")) == []
 
 
+@pytest.mark.parametrize("stage", ["reconstruct", "edit"])
+def test_a_checkpoint_deleted_as_it_is_fetched_starts_its_stage_from_the_start(service, monkeypatch, tmp_path, caplog,
+                                                                              stage):
+    """A recorded checkpoint found stored, then deleted before its download (by hand, by a bucket's lifecycle rule)
+    had failed the stage ("edit: ObjectNotFound: '<key>'"; a fit's had failed the shared reconstruction, for every job
+    on it), where one recorded and never stored starts it from the start: so does this one, said once in the log."""
+    import voxe_core.edit
+    import voxe_core.reconstruct
+    from sqlalchemy import update
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Reconstruction
+    from voxe_service.storage import get_storage, reconstruction_storage_key
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    resumed_from = []
+    if stage == "edit":
+        job = _reconstructed_job(client, scene_id, "relu_field")
+        key = _stored_edit_checkpoint(job["id"], _edit_checkpoint(tmp_path / "ours.safetensors"))
+
+        def recorded_edit(initial, prompt, guidance, config, callbacks, checkpoint_path, resume_from, **kwargs):
+            resumed_from.append(resume_from)
+            return initial.clone_grid()
+
+        monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
+        monkeypatch.setattr(voxe_core.edit, "edit", recorded_edit)
+    else:
+        job = client.post("/v1/jobs", json={"scene_id": scene_id, "prompt": "a mic", "params": TINY_FIT}).json()
+        rec_id = job["reconstruction"]["id"]
+        key = reconstruction_storage_key(rec_id, "checkpoint-an-earlier-run.safetensors")
+        get_storage().put_bytes(key, b"the fit at 10")
+        with session_scope() as session:  # (recorded, as the fit's earlier owner left it)
+            session.execute(update(Reconstruction).where(Reconstruction.id == rec_id).values(checkpoint_key=key))
+        fit = voxe_core.reconstruct.reconstruct
+
+        def recorded_fit(images, cameras, config, callbacks, checkpoint_path, resume_from, *args):
+            resumed_from.append(resume_from)
+            return fit(images, cameras, config, callbacks, checkpoint_path, resume_from, *args)
+
+        monkeypatch.setattr(voxe_core.reconstruct, "reconstruct", recorded_fit)
+    storage_type, exists = type(get_storage()), type(get_storage()).exists
+
+    def deleted_once_found(self, name):
+        found = exists(self, name)
+        if name == key:
+            self.delete(name)
+        return found
+
+    monkeypatch.setattr(storage_type, "exists", deleted_once_found)
+    with caplog.at_level("INFO", logger="voxe.worker"):
+        result = getattr(tasks, f"{stage}_task").apply(args=(job["id"],)).get()
+    assert result["state"] == "done", (result, client.get(f"/v1/jobs/{job['id']}").json()["error"])
+    assert resumed_from == [None]
+    assert [m for m in caplog.messages if key in m] == [
+        f"the checkpoint {key} was deleted from the storage as it was fetched; starting from the start"]
+    after = client.get(f"/v1/jobs/{job['id']}").json()
+    assert after["state"] == "running" and after["error"] is None, after  # on to its next stage
+
+
 @pytest.mark.parametrize("canceled", ["between stages", "while re-queued"])
 def test_a_job_canceled_before_its_next_stage_keeps_no_checkpoint_and_no_scratch(service, monkeypatch, canceled):
     """The edit's stored checkpoint (its grid and Adam state) outlives the edit for a redelivery. A job canceled

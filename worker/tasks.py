@@ -54,7 +54,7 @@ from voxe_service.queue import (
     requeue_interrupted, reset_queue, send_evaluations_alone, send_ingest_again, send_queued_again,
 )
 from voxe_service.settings import get_settings, model_label
-from voxe_service.storage import StoredObject, get_storage, job_key, reconstruction_storage_key
+from voxe_service.storage import ObjectNotFound, StoredObject, get_storage, job_key, reconstruction_storage_key
 from worker import runtime
 from worker.celery_app import app
 from worker.evaluation import EvaluationFailed, run_evaluation
@@ -372,10 +372,17 @@ def _stored_checkpoint(storage, key: str, path: Path, kind: str, max_version: in
     object deleted, its record cleared first (``forget(key)``), for one the stage cannot go on from: unreadable, or
     made with another recipe than ``config``'s (a worker of another version, mid rolling upgrade: the stage refuses
     it). Either would fail every redelivery, so the stage starts over instead. Only the header is read (the stage
-    reads the tensors as it resumes): it names a truncated or padded file as unreadable as a whole read does."""
+    reads the tensors as it resumes): it names a truncated or padded file as unreadable as a whole read does.
+    (None, None, None), logged, when the object is gone by the time it is fetched (deleted since it was found stored,
+    by hand or a bucket's lifecycle rule): as one recorded and never stored (``_recorded_checkpoint_stored``), the
+    stage starts from the start, where that had failed it."""
     from voxe_core.tensorio import FormatError, load_header, recipe_changes
 
-    resume = storage.get_file(key, path)
+    try:
+        resume = storage.get_file(key, path)
+    except ObjectNotFound:
+        log.info("the checkpoint %s was deleted from the storage as it was fetched; starting from the start", key)
+        return None, None, None
     try:
         meta = load_header(resume, kind, max_version)
         changed = recipe_changes(resume, meta, config)
@@ -637,9 +644,9 @@ def _fit_grid(job: Job, rec, settings, storage, lease: runtime.LeaseKeeper, call
     if _recorded_checkpoint_stored(storage, checkpoint_key, f"reconstruction {rec.id}", "checkpoint"):
         resume, _, why = _stored_checkpoint(storage, checkpoint_key, checkpoint, CHECKPOINT_KIND,
                                             CHECKPOINT_FORMAT_VERSION, config, forget)
-        if resume is None:
+        if why is not None:
             log.warning("reconstruction %s: the stored checkpoint %s; starting over", rec.id, why)
-        else:
+        elif resume is not None:
             log.info("reconstruction %s: resuming from its checkpoint", rec.id)
             runtime.record_job_event(job.id, "resumed", stage="reconstruct",
                                      detail=f"reconstruction {rec.id} from its stored checkpoint")
@@ -707,10 +714,10 @@ def _edit(job: Job, settings, device: str, storage) -> None:
 
         resume, meta, why = _stored_checkpoint(storage, checkpoint_key, checkpoint, EDIT_CHECKPOINT_KIND,
                                                EDIT_CHECKPOINT_VERSION, config, forget)
-        if resume is None:
+        if why is not None:
             log.warning("job %s: the stored edit checkpoint %s; starting over", job.id, why)
             note = f"the stored edit checkpoint {why}: started over"
-        else:
+        elif resume is not None:
             at = int(meta["iteration"])
             note = f"resumed from the checkpoint at iteration {at}"
             log.info("job %s: edit %s", job.id, note)
