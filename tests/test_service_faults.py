@@ -1519,6 +1519,57 @@ def test_a_run_that_lost_its_job_writes_nothing_on_it_waiting_for_the_fit_or_aft
     assert progress() == new_run
 
 
+def test_a_run_that_lost_its_job_writes_neither_its_model_download_nor_its_preview_on_it(db, monkeypatch):
+    """An edit or refine run that lost its job (stalled past its lease and taken over, or the job ended) still wrote
+    its model's first-use "downloading <model> (N GB)" as the job's message, over the new run's (or an ending's),
+    and a run taken over just after publishing its preview still named it the job's preview. Both are written only
+    while the run holds the job, as its progress is."""
+    from collections import OrderedDict
+
+    import torch
+
+    from voxe_core.guidance.sds import StableDiffusionGuidance
+    from voxe_service.storage import get_storage
+    from worker import runtime, tasks
+
+    class Downloaded(Exception):
+        """The stage stops once the download was said: only its message is looked at."""
+
+    def downloading(path, device, on_message=None, **kwargs):
+        on_message(f"downloading {path} (4.0 GB)")
+        raise Downloaded
+
+    monkeypatch.setattr(runtime, "_GUIDANCE_CACHE", OrderedDict())
+    monkeypatch.setattr(runtime, "resolve_model", lambda model, settings: model)
+    monkeypatch.setattr(StableDiffusionGuidance, "from_pretrained", downloading)
+    storage = get_storage(db)
+    job_id = add_job(add_scene(), "running", 0, mode="local", stage="edit", completed_stages=["reconstruct"],
+                     run_token="new", message="the new run's words")
+    stale = runtime.load_job(job_id)
+    stale.run_token = "old"  # the run that lost the job
+    for stage in (tasks._edit, tasks._refine):
+        with holding(job_id, "old"), pytest.raises(Downloaded):
+            stage(stale, db, "cpu", storage)
+        assert job_row(job_id).message == "the new run's words", stage
+    stale.run_token = "new"  # (held, it is said)
+    with holding(job_id, "new"), pytest.raises(Downloaded):
+        tasks._edit(stale, db, "cpu", storage)
+    assert job_row(job_id).message == "downloading tiny (4.0 GB)"
+
+    runtime.update_job(job_id, run_token="old")
+    stale.run_token, published = "old", runtime.publish_artifact
+
+    def published_as_another_run_takes_the_job_over(*args, **kwargs):
+        artifact = published(*args, **kwargs)
+        runtime.update_job(job_id, run_token="new")
+        return artifact
+
+    monkeypatch.setattr(runtime, "publish_artifact", published_as_another_run_takes_the_job_over)
+    with holding(job_id, "old"):
+        tasks._preview(stale, None, db, storage, "cpu", image=torch.zeros(4, 4, 3))
+    assert job_row(job_id).preview_artifact is None
+
+
 def test_a_fit_that_runs_out_of_memory_fails_its_job_alone_and_a_job_waiting_on_it_takes_it_over(db, monkeypatch):
     """Out of memory is its worker's fault, not the scene's, as when the OOM killer ends the process (whose lapsed
     lease a waiting job takes over): the fitting job fails saying so, and the job waiting on the shared fit (on a

@@ -1247,13 +1247,13 @@ def build_once(settings: Settings, name: str, marker: str, build) -> Path:
     return target
 
 
-def get_guidance(model: str, device: str, settings: Settings, job_id: str | None = None):
+def get_guidance(model: str, device: str, settings: Settings, job: Job | None = None):
     """One StableDiffusionGuidance per (model, device) per worker process, loaded on first use.
 
     At most ``settings.guidance_cache_size`` stay loaded (2: a local job's SDS and attention models):
     before one more loads, the least recently used is freed, so a worker serving other models
-    does not keep every one it ever loaded. A first-use download shows on ``job_id``'s message
-    ("downloading <model> (N GB)").
+    does not keep every one it ever loaded. A first-use download shows on ``job``'s message
+    ("downloading <model> (N GB)") while its run still holds it, as its progress does.
     """
     from voxe_core.guidance.sds import StableDiffusionGuidance
 
@@ -1265,7 +1265,7 @@ def get_guidance(model: str, device: str, settings: Settings, job_id: str | None
         _free_least_recent_guidance()
     path = resolve_model(model, settings)
     log.info("loading guidance model %s on %s", path, device)
-    on_message = (lambda text: update_job(job_id, message=text)) if job_id is not None else None
+    on_message = (lambda text: update_job(job.id, held_by=job.run_token, message=text)) if job is not None else None
     _GUIDANCE_CACHE[key] = StableDiffusionGuidance.from_pretrained(
         path, device=device, on_message=on_message, name=model, cuda_graphs=None if settings.cuda_graphs else False,
         compile_encoder=None if settings.compile_encoder else False)

@@ -354,16 +354,17 @@ def _cleanup(job_id: str, settings) -> None:
     get_storage(settings).discard_prefixes(job_key(job_id, "checkpoints/"))
 
 
-def _preview(job_id: str, grid, settings, storage, device: str, image=None, centre=None) -> None:
-    """Render (or take) a small front view, looking at ``centre`` (G_i's orbit centre), and publish it as preview.png."""
+def _preview(job: Job, grid, settings, storage, device: str, image=None, centre=None) -> None:
+    """Render (or take) a small front view, looking at ``centre`` (G_i's orbit centre), and publish it as preview.png
+    (named the job's preview while its run still holds it)."""
     from voxe_core.export import render_views, save_png, turntable_cameras
 
-    path = runtime.scratch_dir(job_id, settings) / PREVIEW
+    path = runtime.scratch_dir(job.id, settings) / PREVIEW
     if image is None:
         image = render_views(grid, turntable_cameras(1, 20.0, PREVIEW_SIZE, centre=centre), device=device)[0]
     save_png(path, image)
-    runtime.publish_artifact(job_id, PREVIEW, path, "preview", storage)
-    runtime.update_job(job_id, preview_artifact=PREVIEW)
+    runtime.publish_artifact(job.id, PREVIEW, path, "preview", storage)
+    runtime.update_job(job.id, held_by=job.run_token, preview_artifact=PREVIEW)
 
 
 def _stored_checkpoint(storage, key: str, path: Path, kind: str, max_version: int, config,
@@ -448,7 +449,7 @@ def _reconstruct(job: Job, settings, device: str, storage) -> None:
     runtime.publish_artifact(job.id, "initial_grid.safetensors", grid_path, "grid", storage, key=rec.grid_key)
     initial = load_grid(grid_path)
     _record_edit_schedule(job, initial.kind, settings)
-    _preview(job.id, initial, settings, storage, device, centre=_record_orbit_centre(job.id, initial))
+    _preview(job, initial, settings, storage, device, centre=_record_orbit_centre(job.id, initial))
 
 
 def _record_fit(job: Job, backbone: str, config, settings) -> None:
@@ -697,7 +698,7 @@ def _edit(job: Job, settings, device: str, storage) -> None:
     from voxe_core.edit import edit
     from voxe_core.render import fused_marcher_runs_on
 
-    guidance = runtime.get_guidance(job.sds_model, device, settings, job.id)  # first: a missing model fails fast
+    guidance = runtime.get_guidance(job.sds_model, device, settings, job)  # first: a missing model fails fast
     rec = runtime.load_reconstruction(job.reconstruction_id)
     initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, runtime.reconstruction_grid(rec))
     config = _record_edit_schedule(job, initial.kind, settings)  # SPEC §5's schedule for a scene G_i
@@ -736,7 +737,7 @@ def _edit(job: Job, settings, device: str, storage) -> None:
         now = time.monotonic()
         if now - last_preview[0] >= settings.preview_interval_s or iteration >= config.iterations:
             last_preview[0] = now
-            _preview(job.id, None, settings, storage, device, image=image)
+            _preview(job, None, settings, storage, device, image=image)
 
     callbacks = StageCallbacks(job, "edit", settings, note=note,
                                on_checkpoint=lambda path, iteration: storage.put_file(
@@ -762,7 +763,7 @@ def _refine(job: Job, settings, device: str, storage) -> None:
     from voxe_core.refine.renders import iter_mask_overlays
     from voxe_core.refine.storage import save_mask, save_probabilities
 
-    guidance = runtime.get_guidance(job.attention_model, device, settings, job.id)
+    guidance = runtime.get_guidance(job.attention_model, device, settings, job)
     rec = runtime.load_reconstruction(job.reconstruction_id)
     initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, runtime.reconstruction_grid(rec))
     edited = fetch_grid(job.id, "edited_grid.safetensors", settings, storage)
@@ -839,7 +840,7 @@ def _export(job: Job, settings, device: str, storage) -> str | None:
             runtime.publish_artifacts(job.id, [(path.name, path, "mesh")  # (mesh.mtl: mesh.obj's material)
                                                for path in (*written, scratch / "mesh.mtl")], storage)
         callbacks.on_progress(Progress("export", total, total))
-    _preview(job.id, grid, settings, storage, device,
+    _preview(job, grid, settings, storage, device,
              image=first_frame if options.turntable_size <= 512 else None, centre=centre)
     return callbacks.note
 
