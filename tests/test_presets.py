@@ -774,6 +774,98 @@ def test_a_checkpoint_deleted_as_it_is_fetched_starts_its_stage_from_the_start(s
     assert after["state"] == "running" and after["error"] is None, after  # on to its next stage
 
 
+def _storage_refusing(exc):
+    """A stored object's put that raises ``exc`` for a checkpoint (and stores anything else)."""
+    from voxe_service.storage import get_storage
+
+    put = type(get_storage()).put_file
+
+    def put_file(self, key, *args, **kwargs):
+        if "checkpoint" in key:
+            raise exc
+        return put(self, key, *args, **kwargs)
+
+    return put_file
+
+
+@pytest.mark.parametrize("refusal", ["the storage refusing it", "a storage outage", "the disk full"])
+@pytest.mark.parametrize("stage", ["reconstruct", "edit"])
+def test_a_stage_canceled_whose_checkpoint_cannot_be_written_ends_canceled(service, monkeypatch, stage, refusal):
+    """A fit or an edit canceled takes a checkpoint of its steps since the last, and the storage refusing it (access
+    denied) had failed the job (and a fit's shared reconstruction with it: every job on it), a storage outage or a
+    full disk had given the job back to the queue (paused, a counted re-queue) to end canceled only as its redelivery
+    began: the cancel stays a cancel, the checkpoint a best effort (the earlier one stands), said as a warning, and a
+    fit is handed back, not failed."""
+    import errno
+
+    import voxe_core.edit
+    import voxe_core.reconstruct
+    from test_edit import FakeGuidance
+    from voxe_core.constants import MIN_RENDER_SIZE
+    from voxe_service.db import session_scope
+    from voxe_service.models import Reconstruction
+    from voxe_service.storage import StorageError, StorageUnavailable, get_storage
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    module, saver = ((voxe_core.reconstruct, "save_checkpoint") if stage == "reconstruct"
+                     else (voxe_core.edit, "save_edit_checkpoint"))
+    if stage == "reconstruct":
+        job = client.post("/v1/jobs", json={"scene_id": scene_id, "prompt": "a mic", "params": TINY_FIT}).json()
+    else:
+        job = _reconstructed_job(client, scene_id, "relu_field", iterations=4, render_size=MIN_RENDER_SIZE,
+                                 preview_every=0)
+        guidance = FakeGuidance()
+        guidance.encoder_compile_seconds = None
+        monkeypatch.setattr(runtime, "get_guidance", lambda *args: guidance)
+    monkeypatch.setattr(runtime, "OUTAGE_PAUSE_S", 0.0)
+    if refusal == "the disk full":
+        def disk_full(path, *args, **kwargs):
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+        monkeypatch.setattr(module, saver, disk_full)
+    else:
+        exc = (StorageError("AccessDenied: the role may not write checkpoints") if refusal.endswith("it")
+               else StorageUnavailable("SlowDown: throttled"))
+        put = type(get_storage()).put_file
+
+        def put_file(self, key, *args, **kwargs):
+            if "checkpoint" in key:
+                raise exc
+            return put(self, key, *args, **kwargs)
+
+        monkeypatch.setattr(type(get_storage()), "put_file", put_file)
+    run, callbacks_at = getattr(module, stage), 3 if stage == "reconstruct" else 4  # (the callbacks' position)
+
+    def canceled_after_its_first_step(*args, **kwargs):
+        callbacks, asked = args[callbacks_at], []
+
+        def on_progress(report):
+            callbacks.progress(report)
+            if not asked:
+                asked.append(client.post(f"/v1/jobs/{job['id']}/cancel").status_code)
+
+        canceling = dataclasses.replace(callbacks, on_progress=on_progress,
+                                        should_cancel=lambda: bool(asked) or callbacks.should_cancel())
+        return run(*args[:callbacks_at], canceling, *args[callbacks_at + 1:], **kwargs)
+
+    monkeypatch.setattr(module, stage, canceled_after_its_first_step)
+    result = getattr(tasks, f"{stage}_task").apply(args=(job["id"],))
+    after = client.get(f"/v1/jobs/{job['id']}").json()
+    assert (after["state"], after["message"], after["error"]) == ("canceled", f"canceled during {stage}", None), (
+        result.result, after)
+    with session_scope() as session:
+        rec = session.get(Reconstruction, job["reconstruction"]["id"])
+        assert rec.state == ("pending" if stage == "reconstruct" else "succeeded") and rec.error is None
+    warnings = [e["detail"] for e in client.get(f"/v1/jobs/{job['id']}/events").json() if e["kind"] == "warning"]
+    assert len(warnings) == 1, warnings
+    assert warnings[0].startswith("the checkpoint at the cancel could not be written ("), warnings
+    assert warnings[0].endswith("): the earlier checkpoint stands"), warnings
+    assert str(tasks.get_settings().work_dir) not in warnings[0]  # (the worker's paths are its log's)
+    row = runtime.load_job(job["id"])
+    assert (row.requeues, row.storage_outages) == (0, 0)
+
+
 @pytest.mark.parametrize("canceled", ["between stages", "while re-queued"])
 def test_a_job_canceled_before_its_next_stage_keeps_no_checkpoint_and_no_scratch(service, monkeypatch, canceled):
     """The edit's stored checkpoint (its grid and Adam state) outlives the edit for a redelivery. A job canceled

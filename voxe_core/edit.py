@@ -34,7 +34,8 @@ ends with exactly the grid an uninterrupted run would (on CPU; on CUDA only
 as far as the kernels are deterministic: scatter-adds with atomics are not;
 resumed on another device type, the device generator is reseeded from where
 the run stands, its state meaning nothing there). A cancelled run writes a
-checkpoint before it stops (unless G_e is no longer finite: the earlier one stays).
+checkpoint before it stops (unless G_e is no longer finite: the earlier one stays; one that cannot be written is
+said as a warning, the cancel staying a cancel).
 
 Mixed precision. ``autocast_dtype`` ("bf16" / "fp16") runs the guidance (VAE
 encoder forward and UNet) under ``torch.autocast``; on CPU only bfloat16 is
@@ -103,7 +104,7 @@ from voxe_core.losses import (
     volumetric_regulariser,
 )
 from voxe_core.progress import Callbacks, Progress, StageCancelled
-from voxe_core.reconstruct import check_finite_grid, renders_nothing, same_views, views_summary
+from voxe_core.reconstruct import check_finite_grid, checkpoint_at_cancel, renders_nothing, same_views, views_summary
 from voxe_core.render import RenderConfig, render_image, render_rays
 from voxe_core.schedule import TimestepSchedule
 from voxe_core.tensorio import FormatError, config_recipe, load_header, load_tensors, recipe_changes, save_tensors
@@ -780,9 +781,10 @@ def edit(
                 preview(done)
     except StageCancelled:
         # Saved only where G_e is finite, else the earlier checkpoint stands: a step whose finite loss had left it NaN
-        # turned the user's cancel into an EditDiverged here (the job FAILED, not cancelled).
+        # turned the user's cancel into an EditDiverged here (the job FAILED, not cancelled). A best effort, as a
+        # fit's: one the disk or the storage refuses is said, and the cancel stays a cancel.
         if checkpoint_path is not None and done != last_checkpoint and finite():
-            checkpoint(done)
+            checkpoint_at_cancel(callbacks, "edit", lambda: checkpoint(done))
         raise
     check_finite(done)  # before G_e is saved or returned
     if checkpoint_path is not None and (done != last_checkpoint or not Path(checkpoint_path).is_file()):

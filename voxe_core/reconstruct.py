@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -496,6 +496,19 @@ def save_checkpoint(
     save_tensors(path, tensors, kind=CHECKPOINT_KIND, version=CHECKPOINT_FORMAT_VERSION, meta=meta)
 
 
+def checkpoint_at_cancel(callbacks: Callbacks, stage: str, write: Callable[[], None]) -> None:
+    """``write()`` the checkpoint a canceled stage takes of its steps since its last, as a best effort: one that cannot
+    be written (the disk full, a service's storage refusing it or out of reach) is said (``callbacks.warning``; an
+    OSError by its words, not its path), the earlier checkpoint standing, and the cancel stays a cancel. Raised, that
+    error had replaced it: a service's job failed (and its shared fit), or given back to end canceled only later."""
+    try:
+        write()
+    except Exception as exc:  # noqa: BLE001 - see the docstring
+        words = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        callbacks.warning(stage, f"the checkpoint at the cancel could not be written ({type(exc).__name__}: {words}): "
+                          "the earlier checkpoint stands")
+
+
 def load_checkpoint(path) -> tuple[dict[str, torch.Tensor], dict]:
     """The tensors and header ``save_checkpoint`` wrote (``grid_from_state`` makes its grid)."""
     return load_tensors(path, kind=CHECKPOINT_KIND, max_version=CHECKPOINT_FORMAT_VERSION)
@@ -603,7 +616,8 @@ def reconstruct(
     from ``config.seed`` and where the checkpoint stands, reproducibly but not as the
     uninterrupted run would have (runs on two device types never draw alike). Cancellation is
     checked before each iteration (``StageCancelled``); with ``checkpoint_path`` set, a cancelled
-    run writes a checkpoint before it stops (through ``callbacks``, as the periodic ones).
+    run writes a checkpoint before it stops (through ``callbacks``, as the periodic ones; a best effort:
+    :func:`checkpoint_at_cancel`).
 
     Determinism: a run is reproducible under ``config.seed`` on the CPU; on CUDA only as far as
     the kernels are deterministic: the compositing's and the gradients' scatter-adds
@@ -671,7 +685,7 @@ def reconstruct(
                 callbacks.check_cancel("reconstruct")
             except StageCancelled:  # the steps since the last checkpoint are kept for a resume
                 if checkpoint_path is not None and done != last_checkpoint:
-                    checkpoint(stage, iteration)
+                    checkpoint_at_cancel(callbacks, "reconstruct", lambda: checkpoint(stage, iteration))
                 raise
             # Not at 0 (built just above); a run resumed on a refresh iteration refreshes as the uninterrupted one did.
             if iteration % config.occupancy_every == 0 and iteration > 0:
