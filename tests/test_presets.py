@@ -714,6 +714,39 @@ def test_a_damaged_or_foreign_fit_checkpoint_is_dropped_and_the_fit_starts_over(
     assert get_storage().list(reconstruction_storage_key(rec_id, "checkpoint")) == []
 
 
+@pytest.mark.parametrize("then", ["resumed", "started over"])
+def test_an_edit_run_that_lost_its_job_as_it_resumed_writes_no_resume_on_it(service, monkeypatch, tmp_path, then):
+    """An edit run taken over (or its job ended) just after recording its "resumed" event still wrote "resumed from
+    the checkpoint at iteration N" and that iteration as the job's message and progress, over the new run's; one
+    that could not go on from the checkpoint, taken over just after its warning, still set the job's iteration back
+    to 0. Those writes are the held run's only, as its progress writes are."""
+    import voxe_core.edit
+    from voxe_core.tensorio import FormatError
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job = _reconstructed_job(client, scene_id, "relu_field")
+    _stored_edit_checkpoint(job["id"], _edit_checkpoint(tmp_path / "ours.safetensors"))
+    said = runtime.record_job_event if then == "resumed" else runtime.record_warning
+
+    def said_as_another_run_takes_the_job_over(job_id, *args, **fields):
+        said(job_id, *args, **fields)
+        runtime.update_job(job_id, run_token="new", message="the new run's words", iteration=1)
+
+    def edit(initial, prompt, guidance, config, callbacks, checkpoint_path, resume_from, **kwargs):
+        if resume_from is not None and then == "started over":
+            raise FormatError("checkpoint was made against other input views")
+        return initial.clone_grid()
+
+    monkeypatch.setattr(runtime, "record_job_event" if then == "resumed" else "record_warning",
+                        said_as_another_run_takes_the_job_over)
+    monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
+    monkeypatch.setattr(voxe_core.edit, "edit", edit)
+    tasks.edit_task.apply(args=(job["id"],))  # (its grid refused: the run no longer holds the job)
+    after = client.get(f"/v1/jobs/{job['id']}").json()
+    assert (after["message"], after["iteration"]) == ("the new run's words", 1), after
+
+
 @pytest.mark.parametrize("stage", ["reconstruct", "edit"])
 def test_a_checkpoint_deleted_as_it_is_fetched_starts_its_stage_from_the_start(service, monkeypatch, tmp_path, caplog,
                                                                               stage):

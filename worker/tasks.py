@@ -689,7 +689,7 @@ def _resumed_or_started_over(run, resume: Path | None, job_id: str, stage: str, 
         callbacks.note = None  # (the resumed note it replaces)
         callbacks.on_warning(stage, f"the stored {stage} checkpoint could not be gone on from ({exc}): started over")
         with runtime.outage_skipped(f"job {job_id}: {stage}'s iteration set back"):  # (a blip: the next write sets it)
-            runtime.update_job(job_id, iteration=0)
+            runtime.update_job(job_id, held_by=callbacks.run_token, iteration=0)
         return run(None)
 
 
@@ -725,7 +725,8 @@ def _edit(job: Job, settings, device: str, storage) -> None:
             runtime.record_job_event(job.id, "resumed", stage="edit", iteration=at, worker=job.worker_hostname)
         # Where the run goes on from, at once: the row kept what the interrupted run last wrote (begin_stage), which
         # may lie before the checkpoint (progress is written every few seconds, checkpoints every N iterations).
-        runtime.update_job(job.id, message=note, **({"iteration": at} if resume is not None else {}))
+        runtime.update_job(job.id, held_by=job.run_token, message=note,
+                           **({"iteration": at} if resume is not None else {}))
     input_views = None
     if config.regulariser.startswith("image_"):
         scene = load_images(job, rec.params, settings, storage)
