@@ -714,6 +714,50 @@ def test_a_damaged_or_foreign_fit_checkpoint_is_dropped_and_the_fit_starts_over(
     assert get_storage().list(reconstruction_storage_key(rec_id, "checkpoint")) == []
 
 
+@pytest.mark.parametrize("stage", ["reconstruct", "edit"])
+def test_an_unreadable_checkpoint_the_storage_will_not_delete_still_starts_its_stage_over(service, monkeypatch,
+                                                                                          stage, caplog):
+    """A stored checkpoint the stage cannot go on from is deleted as the stage starts over, its record cleared first:
+    the storage refusing that deletion (a role without delete rights, an outage) had failed the stage ("edit:
+    StorageError: ..."; a fit's failed the shared reconstruction, for every job on it) over an object no record names
+    any more. The deletion is a cleanup, as the checkpoint's a start over from edit() makes: its failure is logged,
+    and the stage starts over."""
+    from sqlalchemy import update
+
+    import voxe_core.edit
+    from voxe_service.db import session_scope
+    from voxe_service.models import Reconstruction
+    from voxe_service.storage import StorageError, get_storage, reconstruction_storage_key
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    if stage == "edit":
+        job = _reconstructed_job(client, scene_id, "relu_field")
+        key = _stored_edit_checkpoint(job["id"], b"not a safetensors file")
+        monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
+        monkeypatch.setattr(voxe_core.edit, "edit", lambda initial, *args, **kwargs: initial.clone_grid())
+    else:
+        job = client.post("/v1/jobs", json={"scene_id": scene_id, "prompt": "a mic", "params": TINY_FIT}).json()
+        key = reconstruction_storage_key(job["reconstruction"]["id"], "checkpoint-an-earlier-run.safetensors")
+        get_storage().put_bytes(key, b"not a safetensors file")
+        with session_scope() as session:  # (recorded, as the fit's earlier owner left it)
+            session.execute(update(Reconstruction).where(Reconstruction.id == job["reconstruction"]["id"])
+                            .values(checkpoint_key=key))
+    delete = type(get_storage()).delete
+
+    def refusing_the_checkpoints_deletion(self, name):
+        if name == key:
+            raise StorageError(f"AccessDenied: may not delete {name}")
+        return delete(self, name)
+
+    monkeypatch.setattr(type(get_storage()), "delete", refusing_the_checkpoints_deletion)
+    result = getattr(tasks, f"{stage}_task").apply(args=(job["id"],)).get()
+    assert result["state"] == "done", (result, client.get(f"/v1/jobs/{job['id']}").json()["error"])
+    assert f"could not delete the stored object {key}" in caplog.text
+    after = client.get(f"/v1/jobs/{job['id']}").json()
+    assert after["state"] == "running" and after["error"] is None, after  # on to its next stage
+
+
 @pytest.mark.parametrize("then", ["resumed", "started over"])
 def test_an_edit_run_that_lost_its_job_as_it_resumed_writes_no_resume_on_it(service, monkeypatch, tmp_path, then):
     """An edit run taken over (or its job ended) just after recording its "resumed" event still wrote "resumed from

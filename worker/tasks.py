@@ -394,7 +394,7 @@ def _stored_checkpoint(storage, key: str, path: Path, kind: str, max_version: in
             return resume, meta, None
         why = f"was made with another recipe ({', '.join(changed)}: a worker of another version)"
     forget(key)
-    storage.delete(key)
+    storage.discard(key)  # (a cleanup once no record names it: a storage refusing it fails nothing)
     return None, None, why
 
 
