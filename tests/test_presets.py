@@ -758,6 +758,48 @@ def test_an_unreadable_checkpoint_the_storage_will_not_delete_still_starts_its_s
     assert after["state"] == "running" and after["error"] is None, after  # on to its next stage
 
 
+def test_a_fit_taken_over_as_its_grid_is_stored_goes_on_with_the_other_grid_though_its_own_is_not_deleted(
+        service, monkeypatch, caplog):
+    """A fit taken over by another job between storing its grid (under its run's own key) and recording it deletes
+    that grid and goes on with the fit as the other job left it: the storage refusing that deletion (a role without
+    delete rights, an outage) had failed the job ("reconstruct: StorageError: ...") or re-queued it over an object
+    no record names. It is a cleanup: logged, and the job goes on with the other job's grid."""
+    from voxe_service.models import R_SUCCEEDED
+    from voxe_service.storage import StorageError, get_storage, reconstruction_storage_key
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job = client.post("/v1/jobs", json={"scene_id": scene_id, "prompt": "a mic", "params": TINY_FIT}).json()
+    other = client.post("/v1/jobs", json={"scene_id": scene_id, "prompt": "a yarn mic",
+                                          "params": TINY_FIT}).json()["id"]
+    storage, recorded, ours = get_storage(), runtime.set_reconstruction, []
+
+    def taken_over_as_it_records(rec, job_id, run_token=None, **values):
+        if values.get("state") == R_SUCCEEDED and job_id == job["id"]:  # the other job fitted it meanwhile
+            ours.append(values["grid_key"])
+            grid = storage.put_bytes(reconstruction_storage_key(rec, "grid-the-other-run.safetensors"),
+                                     b"".join(storage.open_range(values["grid_key"])))
+            runtime.update_job(other, run_token="theirs")
+            assert recorded(rec, job_id, run_token, owner_job_id=other, owner_run_token="theirs")
+            assert recorded(rec, other, "theirs", **{**values, "grid_key": grid.key})
+        return recorded(rec, job_id, run_token, **values)
+
+    delete = type(storage).delete
+
+    def refusing_our_grids_deletion(self, name):
+        if name in ours:
+            raise StorageError(f"AccessDenied: may not delete {name}")
+        return delete(self, name)
+
+    monkeypatch.setattr(runtime, "set_reconstruction", taken_over_as_it_records)
+    monkeypatch.setattr(type(storage), "delete", refusing_our_grids_deletion)
+    result = tasks.reconstruct_task.apply(args=(job["id"],)).get()
+    assert result["state"] == "done", (result, client.get(f"/v1/jobs/{job['id']}").json()["error"])
+    assert f"could not delete the stored object {ours[0]}" in caplog.text
+    after = client.get(f"/v1/jobs/{job['id']}").json()
+    assert after["state"] == "running" and after["error"] is None and after["reconstruction"]["reused"], after
+
+
 @pytest.mark.parametrize("then", ["resumed", "started over"])
 def test_an_edit_run_that_lost_its_job_as_it_resumed_writes_no_resume_on_it(service, monkeypatch, tmp_path, then):
     """An edit run taken over (or its job ended) just after recording its "resumed" event still wrote "resumed from

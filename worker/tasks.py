@@ -581,8 +581,8 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
             grid_sha256=stored.sha256, iteration=total, total=total, lease_until=None, finished_at=utcnow(),
             checkpoint_key=None,  # (none is resumed from any more; every run's goes below)
         )
-    if not done:
-        storage.delete(stored.key)
+    if not done:  # (a cleanup: a storage refusing it must not stop the job going on with the fit as it is now)
+        storage.discard(stored.key)
         raise runtime.LeaseLost(f"reconstruction {rec.id}: another job took the fit over before it was stored")
     _discard_unrecorded(storage, rec.id, "checkpoint", None)  # (every run's: the fit is done)
     _discard_unrecorded(storage, rec.id, "grid-", stored.key)
