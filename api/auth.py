@@ -350,6 +350,14 @@ class Idempotency:
                     IdempotencyRecord.idempotency_key == self.key)
 
 
+def replayed_answer(model: type, what: str) -> dict:
+    """The document's 200 of a POST taking an Idempotency-Key: the body its 201 has (``model``, the resource the first
+    request created) and the Idempotent-Replayed header. It had been documented with no body, so a client generated
+    from the document read a retry's answer as empty."""
+    return {"model": model, "description": f"a retry with the same Idempotency-Key: the {what} it created",
+            "headers": {REPLAYED_HEADER: {"description": "true: the answer to a retry", "schema": {"type": "string"}}}}
+
+
 def mark_replayed(response: Response) -> None:
     """A retry answers 200 with ``Idempotent-Replayed: true`` and the resource the first request created."""
     response.status_code = status.HTTP_200_OK

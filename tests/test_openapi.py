@@ -643,3 +643,24 @@ def test_the_one_line_headers_read_from_every_line_are_documented_as_strings(spe
     artifact, events = "/v1/jobs/{job_id}/artifacts/{name}", "/v1/jobs/{job_id}/events"
     for key in ((artifact, "range"), (artifact, "if-range"), (events, "last-event-id")):
         assert documented[key]["anyOf"] == [{"type": "string"}, {"type": "null"}], (key, documented[key])
+
+
+def test_a_retry_s_200_documents_the_body_and_header_it_answers_with(client, spec, dataset, root):  # noqa: F811
+    """A retry with the same Idempotency-Key answers 200 with the resource the first request created and
+    ``Idempotent-Replayed: true``, but the document gave that 200 no body: a client generated from it read the replay
+    as empty (the job it had made lost to it)."""
+    idempotent = {(path, method) for path, operations in spec["paths"].items() for method, operation in operations.items()
+                  if any(p["name"] == "Idempotency-Key" for p in operation.get("parameters", []))}
+    assert {("/v1/scenes", "post"), ("/v1/jobs", "post"), ("/v1/evaluations", "post"), ("/v1/sweeps", "post")} <= idempotent
+    for path, method in idempotent:
+        responses = spec["paths"][path][method]["responses"]
+        assert responses["200"]["content"] == responses["201"]["content"], (path, method)
+        assert "Idempotent-Replayed" in responses["200"]["headers"], (path, method)
+    scene = make_scene(client, dataset, root)
+    body = {"scene_id": scene["id"], "prompt": "a mic made of gold", "mode": "global"}
+    first = client.post("/v1/jobs", json=body, headers={"Idempotency-Key": "retry-1"})
+    retry = client.post("/v1/jobs", json=body, headers={"Idempotency-Key": "retry-1"})
+    assert (first.status_code, retry.status_code, retry.headers["idempotent-replayed"]) == (201, 200, "true")
+    documented = spec["paths"]["/v1/jobs"]["post"]["responses"]["200"]["content"]["application/json"]["schema"]
+    jsonschema.validate(retry.json(), {**documented, "components": spec["components"]})
+    assert retry.json()["id"] == first.json()["id"]

@@ -12,7 +12,7 @@ from collections import Counter
 from fastapi import APIRouter, Response, status
 from sqlalchemy.orm import Session
 
-from api.auth import mark_replayed
+from api.auth import mark_replayed, replayed_answer
 from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep
 from api.http_semantics import StrictRoute
 from api.routes.jobs import job_out
@@ -28,7 +28,7 @@ _QUOTA = {429: {"description": "the key's quota of queued + running jobs is used
 
 
 @router.post("/v1/evaluations", status_code=status.HTTP_201_CREATED, response_model=JobOut,
-             responses={200: {"description": "a retry with the same Idempotency-Key: the evaluation it created"},
+             responses={200: replayed_answer(JobOut, "evaluation"),
                         404: {"description": "a listed job does not exist (or is another key's)"},
                         409: {"description": "a listed job has not succeeded, the workers lack a model it loads, a "
                                              "retry whose Idempotency-Key created an evaluation that has since been "
@@ -52,7 +52,7 @@ def create_evaluation(body: EvaluationCreate, response: Response, session: Sessi
 
 
 @router.post("/v1/sweeps", status_code=status.HTTP_201_CREATED, response_model=SweepOut,
-             responses={200: {"description": "a retry with the same Idempotency-Key: the sweep it created"},
+             responses={200: replayed_answer(SweepOut, "sweep"),
                         404: {"description": "no such scene (or another key's)"},
                         409: {"description": "a scene failed processing (the reason is named), the workers lack "
                                              "a model the jobs load, a retry whose Idempotency-Key created a sweep "

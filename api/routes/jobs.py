@@ -9,7 +9,7 @@ from fastapi import APIRouter, Depends, Header, HTTPException, Query, Request, R
 from fastapi.responses import StreamingResponse
 from sqlalchemy import select
 
-from api.auth import mark_replayed
+from api.auth import mark_replayed, replayed_answer
 from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep
 from api.events import SSE_MEDIA_TYPE
 from api.http_semantics import KEYS_OWN, StrictRoute, combined, only_line
@@ -101,7 +101,7 @@ def _models(job: Job) -> Models:
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=JobOut,
-             responses={200: {"description": "a retry with the same Idempotency-Key: the job it created"},
+             responses={200: replayed_answer(JobOut, "job"),
                         401: {"description": "missing or invalid API key"},
                         404: {"description": "no such scene (or another key's)"},
                         409: {"description": "the scene failed processing (the reason is named), every worker "

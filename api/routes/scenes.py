@@ -7,7 +7,7 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Request, Response, UploadFile, params, status
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from api.auth import mark_replayed
+from api.auth import mark_replayed, replayed_answer
 from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep, StorageDep
 from api.http_semantics import FORM_MEDIA_TYPE, StrictRoute, listed, media_type, sends_body, takes_several
 from api.paging import PageQuery, page_query
@@ -101,7 +101,7 @@ def scene_out(scene) -> SceneOut:
     "",
     status_code=status.HTTP_201_CREATED,
     response_model=SceneOut,
-    responses={200: {"description": "a retry with the same Idempotency-Key: the scene it created"},
+    responses={200: replayed_answer(SceneOut, "scene"),
                401: {"description": "missing or invalid API key"},
                409: {"description": "a retry whose Idempotency-Key created a scene that has since been deleted, or "
                                     "one sent while that first request has not answered yet (Retry-After); or the "
