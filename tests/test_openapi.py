@@ -16,7 +16,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from service_helpers import reset_service_caches, service_env
-from test_service_api import dataset, make_scene  # noqa: F401 - the fixture
+from test_service_api import _published_render, dataset, make_scene  # noqa: F401 - the fixture
 
 # Refusals for reasons a JSON schema cannot state (they relate two fields, or the scene); each is said in the
 # document's descriptions of the fields involved.
@@ -664,3 +664,18 @@ def test_a_retry_s_200_documents_the_body_and_header_it_answers_with(client, spe
     documented = spec["paths"]["/v1/jobs"]["post"]["responses"]["200"]["content"]["application/json"]["schema"]
     jsonschema.validate(retry.json(), {**documented, "components": spec["components"]})
     assert retry.json()["id"] == first.json()["id"]
+
+
+def test_a_download_documents_its_bytes_and_a_head_none(client, spec, root):
+    """A download's 200 and 206 were documented with no body (FastAPI's for a streamed answer), so a client generated
+    from the document read an artifact as empty; the HEAD's 200 was documented as JSON, which it never sends."""
+    operations = spec["paths"]["/v1/jobs/{job_id}/artifacts/{name}"]
+    _, url = _published_render(root)
+    for code, headers in (("200", {}), ("206", {"Range": "bytes=0-9"})):
+        got = client.get(url, headers=headers)
+        assert got.status_code == int(code) and got.content == b"A" * len(got.content) and got.content
+        (media_range, documented), = operations["get"]["responses"][code]["content"].items()
+        assert media_range == "*/*" and documented["schema"] == {"type": "string", "format": "binary"}, code
+        assert got.headers["content-type"] == "image/png"  # (the artifact's own type, which */* admits)
+        assert "content" not in operations["head"]["responses"][code], code
+        assert client.head(url, headers=headers).content == b""
