@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import json
 import logging
+import lzma
 import os
 import re
 import shutil
@@ -41,6 +42,7 @@ import struct
 import uuid
 import warnings
 import zipfile
+import zlib
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
@@ -286,6 +288,8 @@ def extract_zip(source: BinaryIO, dest: Path, budget: _Budget) -> None:
                 raise
             except FileExistsError:
                 raise UploadError(f"entry {info.filename!r} collides with another entry's path") from None
+            except (zlib.error, lzma.LZMAError) as exc:  # (a damaged stream: neither is an OSError, a 500 had been)
+                raise UploadError(f"cannot extract {info.filename!r}: its compressed data is damaged ({exc})") from None
             except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, NotImplementedError,
                     ValueError, RuntimeError) as exc:
                 raise UploadError(f"cannot extract {info.filename!r}: {exc}") from None

@@ -75,6 +75,19 @@ def _scaled_pose(meta):
                                              meta["frames"][1]["transform_matrix"][:3]] + [[0, 0, 0, 1]]
 
 
+def _damaged(folder: Path, compression: int) -> bytes:
+    """The dataset with notes.txt beside it, 64 bytes of whose compressed stream are changed from its 17th on (past
+    LZMA's header; a bad disk, a download patched together): zlib's and lzma's errors on it had escaped the
+    extraction's checks, a 500."""
+    notes = b"".join(b"line %d of the notes\n" % i for i in range(20000))
+    data = bytearray(_zip({**_dataset_entries(folder), "notes.txt": notes}, compression))
+    info = zipfile.ZipFile(io.BytesIO(data)).getinfo("notes.txt")
+    name_length, extra_length = struct.unpack_from("<HH", data, info.header_offset + 26)  # its local header's
+    at = info.header_offset + 30 + name_length + extra_length + 16
+    data[at:at + 64] = bytes(b ^ 0x5A for b in data[at:at + 64])
+    return bytes(data)
+
+
 HOSTILE_UPLOADS = {
     # name: (build(dataset) -> zip bytes, expected status, words in the message)
     "zip slip ..": (lambda d: _zip({**_dataset_entries(d), "../../evil.sh": b"x"}), 422, "'..' path components"),
@@ -95,6 +108,11 @@ HOSTILE_UPLOADS = {
                                              "frame 2 ('./train/r_8'): cannot read image r_8.png (not an image"),
     "decompression bomb": (lambda d: _zip({**_dataset_entries(d), "train/r_8.png": _png((8000, 8000), "1")}), 413,
                            "'train/r_8.png' is 8000x8000 (64000000 pixels), over the limit of 50000000 pixels"),
+    "damaged deflate stream": (lambda d: _damaged(d, zipfile.ZIP_DEFLATED), 422,
+                               "cannot extract 'notes.txt': its compressed data is damaged (Error -3 while "
+                               "decompressing data"),
+    "damaged LZMA stream": (lambda d: _damaged(d, zipfile.ZIP_LZMA), 422,
+                            "cannot extract 'notes.txt': its compressed data is damaged (Corrupt input data)"),
     "mismatched sizes": (lambda d: _zip({**_dataset_entries(d), "train/r_8.png": _png((400, 400))}), 422,
                          "frame 2 ('./train/r_8'): image size 400x400 differs from frame 0"),
     "json not json": (lambda d: _zip({**_dataset_entries(d), "transforms_train.json": b"\x89PNG\r\n"}), 422,
