@@ -290,8 +290,10 @@ def extract_zip(source: BinaryIO, dest: Path, budget: _Budget) -> None:
                 raise UploadError(f"entry {info.filename!r} collides with another entry's path") from None
             except (zlib.error, lzma.LZMAError) as exc:  # (a damaged stream: neither is an OSError, a 500 had been)
                 raise UploadError(f"cannot extract {info.filename!r}: its compressed data is damaged ({exc})") from None
-            except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, NotImplementedError,
-                    ValueError, RuntimeError) as exc:
+            except OSError as exc:  # its text names the staging folder's path on this machine: its reason alone
+                raise UploadError(f"cannot extract {info.filename!r}: {exc.strerror or exc}") from None
+            except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, NotImplementedError, ValueError,
+                    RuntimeError) as exc:
                 raise UploadError(f"cannot extract {info.filename!r}: {exc}") from None
 
 

@@ -113,6 +113,9 @@ HOSTILE_UPLOADS = {
                                "decompressing data"),
     "damaged LZMA stream": (lambda d: _damaged(d, zipfile.ZIP_LZMA), 422,
                             "cannot extract 'notes.txt': its compressed data is damaged (Corrupt input data)"),
+    # The message had named the staging folder's path on the server (the OSError's text)
+    "entry name too long": (lambda d: _zip({**_dataset_entries(d), "n" * 300 + ".txt": b"x"}), 422,
+                            f"cannot extract '{'n' * 300}.txt': File name too long"),
     "mismatched sizes": (lambda d: _zip({**_dataset_entries(d), "train/r_8.png": _png((400, 400))}), 422,
                          "frame 2 ('./train/r_8'): image size 400x400 differs from frame 0"),
     "json not json": (lambda d: _zip({**_dataset_entries(d), "transforms_train.json": b"\x89PNG\r\n"}), 422,
