@@ -254,6 +254,15 @@ def _entry_name(info: zipfile.ZipInfo) -> str:
         return info.filename
 
 
+def _is_folder(info: zipfile.ZipInfo) -> bool:
+    """Whether a zip entry is a folder: zipfile knows one by its trailing "/" only, where a folder may end in "\\"
+    (.NET Framework's ZipFile named entries with backslashes) or, holding nothing, be marked by its attributes alone
+    (MS-DOS's directory bit, a Unix S_IFDIR mode). Extracted as empty files, such folders had made their files' entries
+    "collide with another entry's path"."""
+    marked = info.external_attr & 0x10 or stat.S_ISDIR(info.external_attr >> 16)
+    return info.is_dir() or info.filename.endswith("\\") or (info.file_size == 0 and bool(marked))
+
+
 def extract_zip(source: BinaryIO, dest: Path, budget: _Budget) -> None:
     """Check every entry's name and type first, then stream the entries out under the budget."""
     budget.check_directory(source)
@@ -269,7 +278,7 @@ def extract_zip(source: BinaryIO, dest: Path, budget: _Budget) -> None:
             path = safe_relative(info.filename)
             if stat.S_ISLNK(info.external_attr >> 16):
                 raise UploadError(f"refused entry {info.filename!r}: symbolic links are not allowed")
-            if info.is_dir() or ignored(path):
+            if _is_folder(info) or ignored(path):
                 continue
             if info.flag_bits & 0x1:
                 raise UploadError(f"refused entry {info.filename!r}: encrypted zip entries are not supported")

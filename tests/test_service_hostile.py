@@ -419,6 +419,27 @@ def test_utf8_names_info_zip_stores_without_the_utf8_flag_are_read_as_utf8(clien
         assert name in stored.namelist()
 
 
+@pytest.mark.parametrize("folder_entry", ["attribute", "backslash"])
+def test_folder_entries_without_a_trailing_slash_are_folders(client, dataset, root, folder_entry):  # noqa: F811
+    """A zip may mark its folder entries by their attributes alone (MS-DOS's directory bit, a Unix S_IFDIR mode), or
+    name them, and everything else, with backslashes ("mic\\train\\", as .NET Framework's ZipFile wrote them):
+    zipfile knows a folder by a trailing "/" only, so each was extracted as an empty file and its files refused, "entry
+    'mic/train/r_0.png' collides with another entry's path". They are folders (and the dataset stored whole)."""
+    separator = "\\" if folder_entry == "backslash" else "/"
+    entries = [(f"mic{separator}{name.replace('/', separator)}", data)
+               for name, data in sorted(_dataset_entries(dataset).items())]
+    folders = []
+    for name in ("mic", f"mic{separator}train"):
+        info = zipfile.ZipInfo(name + separator if folder_entry == "backslash" else name)
+        info.external_attr = ((stat.S_IFDIR | 0o755) << 16 | 0x10) if folder_entry == "attribute" else 0
+        folders.append((info, b""))
+    response = client.post("/v1/scenes", files={"archive": ("mic.zip", _zip([*folders, *entries]), "application/zip")})
+    assert response.status_code == 201, response.text
+    assert response.json()["image_count"] == 3
+    with zipfile.ZipFile(root / "storage" / "scenes" / response.json()["id"] / "dataset.zip") as stored:
+        assert sorted(stored.namelist()) == sorted(_dataset_entries(dataset))
+
+
 def test_a_file_named_as_the_workers_mark_is_kept_and_the_stages_read_the_dataset(client, dataset, root):  # noqa: F811
     """A file where a worker writes its mark of an unpacked dataset (a download tool's own marker) is harmless: the
     worker writes its mark over it."""
