@@ -2106,6 +2106,33 @@ def test_delete_scene(client, dataset, root):
 
 
 @BOTH_DATABASES
+def test_deleting_a_scene_whose_canceled_jobs_are_still_stopping_says_to_wait_for_them(client, root):
+    """A running job canceled stays running until its worker's next cancel check: deleting its scene meanwhile had
+    been a 409 saying "cancel them first", to a caller who just had (the cancel had answered 200)."""
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+
+    scene_id = add_ready_scene(0)
+    with session_scope() as session:
+        jobs = [Job(scene_id=scene_id, owner_key_id="local", prompt="a mic", mode="global", params={},
+                    sds_model="tiny", attention_model="tiny", device="cpu", state="running") for _ in range(2)]
+        session.add_all(jobs)
+        session.flush()
+        first, second = (job.id for job in jobs)
+    assert client.post(f"/v1/jobs/{first}/cancel").json()["state"] == "running"  # (until the worker checks)
+    one_left = client.delete(f"/v1/scenes/{scene_id}")
+    assert one_left.status_code == 409 and one_left.json()["detail"] == (
+        f"scene {scene_id!r} has 2 queued or running job(s), 1 of them canceled and still stopping (a running job "
+        "stops within a few iterations): cancel the other 1, then delete the scene once they have ended")
+    client.post(f"/v1/jobs/{second}/cancel")
+    stopping = client.delete(f"/v1/scenes/{scene_id}")
+    assert stopping.status_code == 409 and stopping.json()["detail"] == (
+        f"scene {scene_id!r} has 2 queued or running job(s), 2 of them canceled and still stopping (a running job "
+        "stops within a few iterations): delete the scene once they have ended")
+    assert client.get(f"/v1/scenes/{scene_id}").status_code == 200
+
+
+@BOTH_DATABASES
 def test_a_job_for_a_scene_deleted_while_it_is_created_is_404(client, dataset, root):
     """The steps of creating a job after its scene's lookup, met by a scene deleted in between: a 404 naming it,
     and no row left (the scene's deletion locks it before counting jobs, so no accepted job goes with it)."""

@@ -183,6 +183,7 @@ def list_reconstructions(scene_id: str, session: SessionDep, key: CurrentKey) ->
 
 
 @router.delete("/{scene_id}", status_code=status.HTTP_204_NO_CONTENT,
-               responses={**_ERRORS, 409: {"description": "the scene has queued or running jobs"}})
+               responses={**_ERRORS, 409: {"description": "the scene has queued or running jobs (canceled ones "
+                                                           "still stopping too: the message says which)"}})
 def delete_scene(scene_id: str, session: SessionDep, storage: StorageDep, key: CurrentKey) -> None:
     scenes.delete_scene(session=session, storage=storage, key=key, scene_id=scene_id)

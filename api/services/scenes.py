@@ -206,11 +206,17 @@ def delete_scene(*, session: Session, storage: Storage, key: ApiKey, scene_id: s
     # is either counted here (409) or refused there (404), never accepted and then deleted with the scene.
     if lock_scene(session, scene_id) is None:  # another DELETE's, committed meanwhile: it had been a 204 here too
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"scene {scene_id!r} not found (deleted meanwhile)")
-    active = session.scalar(select(func.count()).select_from(Job)
-                            .where(Job.scene_id == scene_id, Job.state.in_((QUEUED, RUNNING))))
-    if active:
+    active, stopping = session.execute(select(func.count(), func.count().filter(Job.cancel_requested))
+                                       .where(Job.scene_id == scene_id, Job.state.in_((QUEUED, RUNNING)))).one()
+    if active and not stopping:
         raise HTTPException(status.HTTP_409_CONFLICT,
                             f"scene {scene_id!r} has {active} queued or running job(s); cancel them first")
+    if active:  # canceled, running until their worker's next cancel check: "cancel them first" had misled
+        then = "" if stopping == active else f"cancel the other {active - stopping}, then "
+        raise HTTPException(status.HTTP_409_CONFLICT,
+                            f"scene {scene_id!r} has {active} queued or running job(s), {stopping} of them canceled "
+                            f"and still stopping (a running job stops within a few iterations): {then}delete the "
+                            "scene once they have ended")
     job_ids = list(session.scalars(select(Job.id).where(Job.scene_id == scene_id)))
     rec_ids = list(session.scalars(select(Reconstruction.id).where(Reconstruction.scene_id == scene_id)))
     session.delete(scene)  # jobs, artifacts and reconstructions go with it (ON DELETE CASCADE)
