@@ -522,6 +522,17 @@ def check_dataset(root: Path, staging: Path, downsample: int) -> tuple[str, int,
     return fmt, len(frames), width, height, splits
 
 
+_HEIF = re.compile(rb"(?s).{4}ftyp(hei[cmsx]|hev[cmsx]|mif1|msf1)")  # its file type box: size, "ftyp", brand
+
+
+def heif_brand(path: Path) -> str | None:
+    """The brand of a HEIF file, which Pillow does not read (an iPhone's photo: 'heic'); None for another file. Such
+    a photo had been refused as "not an image or damaged"."""
+    with open(path, "rb") as handle:
+        match = _HEIF.match(handle.read(12))
+    return match[1].decode() if match else None
+
+
 def _check_frame_images(root: Path, json_name: str, frames: list[dict], staging: Path) -> tuple[int, int]:
     """Every frame's image exists with a readable header, all of one size (as the loader names them); that size."""
     first = None
@@ -544,6 +555,10 @@ def _check_frame_images(root: Path, json_name: str, frames: list[dict], staging:
         except MemoryError:
             raise
         except Exception as exc:  # as above: any kind Pillow raises means it cannot read the file
+            if brand := heif_brand(path):  # a photo, neither damaged nor anything but an image
+                raise _invalid(f"{where}: cannot read image {path.name}: it is a HEIF image (brand {brand!r}: an "
+                               "iPhone's HEIC photo?), a format not read here: convert it to JPEG or PNG",
+                               staging) from None
             raise _invalid(f"{where}: cannot read image {path.name} (not an image or damaged): {exc}", staging) from None
         if first is None:
             first = (size, file_path)

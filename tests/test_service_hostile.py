@@ -58,6 +58,9 @@ def _png(size: tuple[int, int], mode: str = "RGB") -> bytes:
     return buffer.getvalue()
 
 
+HEIC = b"\x00\x00\x00\x18ftypheic\x00\x00\x00\x00mif1heic" + bytes(100)  # its file type box, then anything
+
+
 def _set(frame: int, key: str, value):
     def change(meta):
         meta["frames"][frame][key] = value
@@ -116,6 +119,10 @@ HOSTILE_UPLOADS = {
     # The message had named the staging folder's path on the server (the OSError's text)
     "entry name too long": (lambda d: _zip({**_dataset_entries(d), "n" * 300 + ".txt": b"x"}), 422,
                             f"cannot extract '{'n' * 300}.txt': File name too long"),
+    # An iPhone's photo (HEIC): it had been said to be "not an image or damaged"
+    "HEIC photo": (lambda d: _zip({**_dataset_entries(d), "train/r_8.png": HEIC}), 422,
+                   "frame 2 ('./train/r_8'): cannot read image r_8.png: it is a HEIF image (brand 'heic': an "
+                   "iPhone's HEIC photo?), a format not read here: convert it to JPEG or PNG"),
     "mismatched sizes": (lambda d: _zip({**_dataset_entries(d), "train/r_8.png": _png((400, 400))}), 422,
                          "frame 2 ('./train/r_8'): image size 400x400 differs from frame 0"),
     "json not json": (lambda d: _zip({**_dataset_entries(d), "transforms_train.json": b"\x89PNG\r\n"}), 422,
