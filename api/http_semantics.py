@@ -446,7 +446,9 @@ def _or_problem(content: dict | None) -> dict:
 def document(schema: dict) -> dict:
     """Add to each operation what middleware and handlers answer: 400 and 415 (a JSON or multipart body; 415 for any
     body sent to a POST or DELETE taking none), 413 (any body), 401, 422 (:class:`StrictRoute`'s query checks), 503
-    and the key schemes (/v1), and an OPTIONS operation per path (204 + Allow; other methods 405 + Allow)."""
+    and the key schemes (/v1), and an OPTIONS operation per path (204 + Allow; other methods 405 + Allow); and the
+    Problem body of each error a /v1 route documents with none (a 404, 409, 412, 416, 429: documented as no body, a
+    client generated from the document could not read why it was refused)."""
     components = schema.setdefault("components", {})
     components.setdefault("securitySchemes", {}).update(SECURITY_SCHEMES)
     components.setdefault("schemas", {})["Problem"] = {
@@ -483,6 +485,10 @@ def document(schema: dict) -> dict:
                     if documented["description"] != answer:
                         documented["description"] += f"; or {answer}"
                         documented["content"] = _or_problem(documented.get("content"))
+                if method != "head":  # the errors a route documents itself answer a Problem too (a HEAD's no body)
+                    for code, documented in responses.items():
+                        if code[0] in "45":
+                            documented.setdefault("content", _PROBLEM)
         methods = ", ".join(m.upper() for m in sorted({*item, "options", *(("head",) if "get" in item else ())}))
         item["options"] = {
             "summary": "The methods this path serves", "operationId": "options" + path.replace("/", "_").replace(

@@ -679,3 +679,24 @@ def test_a_download_documents_its_bytes_and_a_head_none(client, spec, root):
         assert got.headers["content-type"] == "image/png"  # (the artifact's own type, which */* admits)
         assert "content" not in operations["head"]["responses"][code], code
         assert client.head(url, headers=headers).content == b""
+
+
+def test_each_error_a_route_documents_states_the_body_it_answers_with(client, spec, root):
+    """The errors each route documents itself (a 404, 409, 412, 416, 429) had no body in the document, though each
+    answers {"detail": "..."}: a client generated from it could not read why it was refused. (A HEAD's have none.)"""
+    for path, item in spec["paths"].items():
+        for method, operation in item.items():
+            if path.startswith("/v1") and method not in ("head", "options"):
+                for code, answer in operation["responses"].items():
+                    if code[0] in "45":
+                        assert "schema" in answer["content"]["application/json"], (method, path, code)
+    job_id, url = _published_render(root)
+    for path, method, response in (
+            ("/v1/jobs/{job_id}", "get", client.get("/v1/jobs/no-such-job")),
+            ("/v1/jobs/{job_id}/cancel", "post", client.post(f"/v1/jobs/{job_id}/cancel")),  # it succeeded
+            ("/v1/jobs/{job_id}/artifacts/{name}", "get", client.get(url, headers={"Range": "bytes=9999-"})),
+            ("/v1/jobs/{job_id}/artifacts/{name}", "get", client.get(url, headers={"If-Match": '"other"'}))):
+        assert response.status_code in (404, 409, 416, 412), (path, response.text)
+        documented = spec["paths"][path][method]["responses"][str(response.status_code)]
+        schema = documented["content"]["application/json"]["schema"]
+        jsonschema.validate(response.json(), {**schema, "components": spec["components"]})
