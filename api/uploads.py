@@ -555,6 +555,9 @@ def _check_frame_images(root: Path, json_name: str, frames: list[dict], staging:
         except MemoryError:
             raise
         except Exception as exc:  # as above: any kind Pillow raises means it cannot read the file
+            if path.stat().st_size == 0:  # (a failed copy, an empty part): nothing to call damaged
+                raise _invalid(f"{where}: cannot read image {path.name}: the file is empty (0 bytes)",
+                               staging) from None
             if brand := heif_brand(path):  # a photo, neither damaged nor anything but an image
                 raise _invalid(f"{where}: cannot read image {path.name}: it is a HEIF image (brand {brand!r}: an "
                                "iPhone's HEIC photo?), a format not read here: convert it to JPEG or PNG",

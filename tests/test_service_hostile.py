@@ -119,6 +119,9 @@ HOSTILE_UPLOADS = {
     # The message had named the staging folder's path on the server (the OSError's text)
     "entry name too long": (lambda d: _zip({**_dataset_entries(d), "n" * 300 + ".txt": b"x"}), 422,
                             f"cannot extract '{'n' * 300}.txt': File name too long"),
+    # A file cut to nothing (a failed copy, an upload tool's empty part): it had been "not an image or damaged"
+    "empty image": (lambda d: _zip({**_dataset_entries(d), "train/r_8.png": b""}), 422,
+                    "frame 2 ('./train/r_8'): cannot read image r_8.png: the file is empty (0 bytes)"),
     # An iPhone's photo (HEIC): it had been said to be "not an image or damaged"
     "HEIC photo": (lambda d: _zip({**_dataset_entries(d), "train/r_8.png": HEIC}), 422,
                    "frame 2 ('./train/r_8'): cannot read image r_8.png: it is a HEIF image (brand 'heic': an "
