@@ -214,6 +214,17 @@ def test_a_setting_of_another_type_is_refused_naming_it(name, value, message):
     assert EditConfig(schedule=TimestepSchedule.authors(), view_words=False, prompt_prefix=None).schedule.floor == 0.22
 
 
+@pytest.mark.parametrize("low, high", [(-5.0, 90.0), (15.0, 200.0), (60.0, 30.0), (math.nan, 90.0)])
+def test_a_zenith_range_out_of_order_is_refused_naming_its_fields_and_values(low, high):
+    """It had been refused as "need 0 <= min_zenith <= max_zenith <= 180, got 60.0, 30.0": no field of that name, and
+    which value was which left to guess."""
+    with pytest.raises(ValueError, match=rf"^need 0 <= min_zenith_deg <= max_zenith_deg <= 180 \(degrees from straight "
+                                         rf"above\), got min_zenith_deg={low}, max_zenith_deg={high}$"):
+        EditConfig(min_zenith_deg=low, max_zenith_deg=high)
+    assert (EditConfig(min_zenith_deg=0.0, max_zenith_deg=0.0).max_zenith_deg, EditConfig(max_zenith_deg=180.0)
+            .max_zenith_deg) == (0.0, 180.0)
+
+
 @pytest.mark.parametrize("seed", [-1, 2**32, 2**64 - 1])
 def test_a_seed_outside_the_services_range_is_refused(seed):
     """2**64 - 1 had overflowed the device generator's seed + 1 as the edit started; the range is RefineConfig's."""

@@ -223,8 +223,9 @@ class EditConfig:
                 raise ValueError(f"{name} must be >= {least}{off}, got {getattr(self, name)}")
         if not 0 < self.lr_decay_factor <= 1:  # (NaN too)
             raise ValueError(f"lr_decay_factor must be in (0, 1], got {self.lr_decay_factor}")
-        if not 0.0 <= self.min_zenith_deg <= self.max_zenith_deg <= 180.0:
-            raise ValueError(f"need 0 <= min_zenith <= max_zenith <= 180, got {self.min_zenith_deg}, {self.max_zenith_deg}")
+        if not 0.0 <= self.min_zenith_deg <= self.max_zenith_deg <= 180.0:  # (NaN too; had named neither field)
+            raise ValueError(f"need 0 <= min_zenith_deg <= max_zenith_deg <= 180 (degrees from straight above), got "
+                             f"min_zenith_deg={self.min_zenith_deg}, max_zenith_deg={self.max_zenith_deg}")
         check_fov_x(self.fov_x)
         # A value of another type had been taken and failed mid-edit naming no setting (schedule="authors", the CLI's
         # word for TimestepSchedule.authors(): "'str' object has no attribute 'sample'" after the first preview), or
