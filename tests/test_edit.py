@@ -254,6 +254,18 @@ def test_build_prompt_prefix_and_view():
         build_prompt("   ", None)
 
 
+@pytest.mark.parametrize("text", ["a photo of", "A Photo of.", "  a  photo   of "])
+@pytest.mark.parametrize("prefix", ["a photo of", "a photo of ", " a  photo of"])
+def test_a_prompt_of_a_custom_prefix_alone_is_refused(text, prefix):
+    """As "a render of" alone is: a prompt that is only the prefix had been doubled ("a photo of a photo of, side
+    view"), nothing to edit towards; and a prefix with spaces round or in it had been doubled before any prompt
+    ("a photo of  a photo of a dog")."""
+    with pytest.raises(ValueError, match=r"^the edit prompt has only the prefix 'a photo of' and no content$"):
+        build_prompt(text, "side", prefix)
+    assert build_prompt("a photo of a dog", None, prefix) == build_prompt("a dog", None, prefix) == "a photo of a dog"
+    assert build_prompt("a photo of", None, "a sketch of") == "a sketch of a photo of"
+
+
 # ------------------------------------------------------------------ the loop on the real tiny SD
 
 

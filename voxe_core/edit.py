@@ -266,6 +266,9 @@ def build_prompt(text: str, view: str | None, prefix: str | None = RENDER_PREFIX
     body = " ".join(str(text).split()).rstrip(". ").strip()
     if not body:
         raise ValueError("the edit prompt is empty")
+    prefix = " ".join(prefix.split()) if prefix else prefix  # (as the text is: "a photo of " had been doubled)
+    if prefix and body.lower() == prefix.lower():  # (it had been doubled, "a photo of a photo of": nothing to edit)
+        raise ValueError(f"the edit prompt has only the prefix {prefix!r} and no content")
     if prefix and not body.lower().startswith(prefix.lower() + " "):
         body = f"{prefix} {body}"
     if view is not None:
