@@ -225,6 +225,34 @@ def test_a_zenith_range_out_of_order_is_refused_naming_its_fields_and_values(low
             .max_zenith_deg) == (0.0, 180.0)
 
 
+@pytest.mark.parametrize("radius, zeniths, seen", [(1.0, {}, "zenith 15°, azimuth 0°"),
+                                                   (2.0, {}, "zenith 41.5°, azimuth 0°"),
+                                                   (2.0, {"min_zenith_deg": 80.0}, "zenith 80°, azimuth 40.5°")])
+def test_a_radius_that_puts_cameras_inside_the_object_box_is_refused(radius, zeniths, seen, small_sphere):
+    """A radius of 1 (or 2, whose poses near the box's diagonals lie in it) had been taken and every such render
+    started inside the grid's box [-1.5, 1.5]³, in the object."""
+    guidance = FakeGuidance()
+    config = EditConfig(iterations=1, render_size=16, radius=radius, **zeniths)
+    with pytest.raises(ValueError, match=rf"^radius {radius} puts the edit's cameras inside the grid's object box "
+                                         rf"\[-1.5, -1.5, -1.5\] to \[1.5, 1.5, 1.5\] \(one at {seen} about the orbit "
+                                         rf"centre \[0.0, 0.0, 0.0\]\): its renders would start inside the object; give "
+                                         rf"a radius above 2.598, the box's farthest corner from that centre$"):
+        edit(small_sphere, "a dog", guidance, config)
+    assert not guidance.prompts  # refused before the guidance encodes anything
+    with pytest.raises(ValueError, match=r"^radius 1.0 puts the edit's cameras inside the grid's object box "
+                                         r"\[-1.5, -1.5, -1.5\] to \[1.5, 1.5, 1.5\] "):
+        edit(SceneGrid(9, init_density=1.0), "a dog", guidance, EditConfig(iterations=1, render_size=16, radius=1.0))
+
+
+def test_a_radius_outside_the_grids_own_box_edits(make_sphere_grid):
+    """The box is the grid's own: a grid in [-0.5, 0.5]³ edits from radius 1.5."""
+    small = make_sphere_grid(12, radius=0.3)
+    small = VoxelGrid(12, (-0.5,) * 3, (0.5,) * 3, features=small.features.detach().clone())
+    guidance = FakeGuidance()
+    edited = edit(small, "a dog", guidance, EditConfig(iterations=2, render_size=16, radius=1.5))
+    assert len(guidance.calls) == 2 and not torch.equal(edited.features, small.features)
+
+
 @pytest.mark.parametrize("seed", [-1, 2**32, 2**64 - 1])
 def test_a_seed_outside_the_services_range_is_refused(seed):
     """2**64 - 1 had overflowed the device generator's seed + 1 as the edit started; the range is RefineConfig's."""

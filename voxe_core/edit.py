@@ -278,6 +278,37 @@ def build_prompt(text: str, view: str | None, prefix: str | None = RENDER_PREFIX
     return body
 
 
+CAMERA_CHECK_STEP_DEG = 0.5
+"""The lattice of zeniths and azimuths :func:`check_cameras_outside` tries the edit's poses on."""
+
+
+def check_cameras_outside(grid: VoxelGrid, config: EditConfig, centre: torch.Tensor) -> None:
+    """ValueError naming ``config.radius`` when a camera of the edit stands inside ``grid``'s object box (its
+    ``foreground_grid()``'s: a scene grid's foreground cube), where every render starts inside the object: a training
+    pose (zenith in [min_zenith_deg, max_zenith_deg], any azimuth, about ``centre``; tried every
+    :data:`CAMERA_CHECK_STEP_DEG`) or the preview's. A radius of 1 had been taken and rendered from within the grid."""
+    box = grid.foreground_grid()
+    low, high = (corner.detach().cpu().double() for corner in (box.bbox_min, box.bbox_max))
+    steps = max(1, math.ceil((config.max_zenith_deg - config.min_zenith_deg) / CAMERA_CHECK_STEP_DEG))
+    zenith, azimuth = torch.meshgrid(
+        torch.linspace(config.min_zenith_deg, config.max_zenith_deg, steps + 1, dtype=torch.float64),
+        torch.arange(0.0, 360.0, CAMERA_CHECK_STEP_DEG, dtype=torch.float64), indexing="ij")
+    zenith = torch.cat([zenith.reshape(-1), torch.tensor([90.0 - config.preview_elevation_deg], dtype=torch.float64)])
+    azimuth = torch.cat([azimuth.reshape(-1), torch.tensor([config.front_azimuth_deg], dtype=torch.float64)])
+    z, a = torch.deg2rad(zenith), torch.deg2rad(azimuth)
+    centre = centre.detach().cpu().double().reshape(3)
+    eye = centre + config.radius * torch.stack([z.sin() * a.cos(), z.sin() * a.sin(), z.cos()], -1)
+    inside = ((eye > low) & (eye < high)).all(-1).nonzero()
+    if len(inside):
+        at = int(inside[0])
+        farthest = float(torch.maximum((low - centre).abs(), (high - centre).abs()).norm())
+        shown = [[round(float(v), 4) for v in corner] for corner in (low, high, centre)]
+        raise ValueError(f"radius {config.radius} puts the edit's cameras inside the grid's object box {shown[0]} to "
+                         f"{shown[1]} (one at zenith {float(zenith[at]):g}°, azimuth {float(azimuth[at]):g}° about the "
+                         f"orbit centre {shown[2]}): its renders would start inside the object; give a radius above "
+                         f"{farthest:.4g}, the box's farthest corner from that centre")
+
+
 def initial_fingerprint(grid: VoxelGrid) -> str:
     """Short SHA-256 of G_i's features: a checkpoint only resumes against the grid it started from."""
     data = grid.features.detach().to("cpu", torch.float32).contiguous().numpy().tobytes()
@@ -496,7 +527,8 @@ def edit(
     has one, else the initial grid's); G_i, G_e and the input views move there
     once, and the returned grid lives there. A ``device`` other than the
     guidance's is refused at once (every step would copy renders across), as is an initial grid none of whose density
-    the renders sample (:func:`~voxe_core.reconstruct.renders_nothing`: the edit would change nothing). A step whose
+    the renders sample (:func:`~voxe_core.reconstruct.renders_nothing`: the edit would change nothing), and a
+    ``config.radius`` that puts a camera inside its object box (:func:`check_cameras_outside`). A step whose
     loss is not finite raises
     :class:`EditDiverged` before its progress is reported or a checkpoint written (its NaN or infinite gradient
     has reached G_e, which no later step recovers); so does a G_e holding an infinite or NaN feature where a
@@ -516,6 +548,8 @@ def edit(
         )
     # Its NaN had made the first step's loss NaN: an EditDiverged blaming half precision or the lr, after a UNet pass.
     check_finite_grid(initial_grid, "its renders and the regulariser")
+    centre = initial_grid.orbit_centre()  # G_i's, so a resumed run draws the same poses
+    check_cameras_outside(initial_grid, config, centre)
 
     guidance_device = getattr(guidance, "device", None)
     device = resolve_device(device if device is not None else (guidance_device or initial_grid.flat_features.device))
@@ -636,7 +670,6 @@ def edit(
         embedding(view)  # step: the guidance refuses one longer than its text encoder reads
 
     size = config.render_size
-    centre = initial_grid.orbit_centre()  # G_i's, so a resumed run draws the same poses
     preview_cameras = Cameras.from_fov(
         spherical_poses(torch.tensor([config.preview_elevation_deg]), torch.tensor([config.front_azimuth_deg]),
                         config.radius, centre),
@@ -807,6 +840,7 @@ __all__ = [
     "EditDiverged",
     "MAX_NONFINITE_GUIDANCE_STEPS",
     "build_prompt",
+    "check_cameras_outside",
     "check_resume",
     "edit",
     "initial_fingerprint",
