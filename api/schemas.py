@@ -17,8 +17,9 @@ from pydantic import (
 
 from voxe_core import constants as paper
 from voxe_core import presets
-from voxe_core.guidance.prompts import (TEXT_ENCODER_TOKENS, check_edit_words_name_an_edit, check_edit_words_read,
-                                        check_prompt_length, names_something)
+from voxe_core.guidance.prompts import (CLIP_SPECIAL_TOKENS, TEXT_ENCODER_TOKENS, check_edit_words_name_an_edit,
+                                        check_edit_words_read, check_no_special_tokens, check_prompt_length,
+                                        names_something)
 from voxe_service.webhooks import DEFAULT_WEBHOOK_EVENTS, WEBHOOK_EVENTS
 
 T = TypeVar("T")
@@ -51,7 +52,6 @@ EDIT_WORD_PATTERN = rf"^{_ALLOWED}*[^{_WHITESPACE}\x00-\x08\x0e-\x1b\x7f-\x84\x8
 # every string's rule: Strict.)
 _NOT_IN_URL = rf"{_WHITESPACE}\ufeff"
 WEBHOOK_URL_PATTERN = rf"^https?://[^{_NOT_IN_URL}/?#]+[^{_NOT_IN_URL}]*$"
-CLIP_SPECIAL_TOKENS = ("<|startoftext|>", "<|endoftext|>")
 _NO_SPECIAL_TOKENS = (f"nor CLIP's special tokens {' or '.join(CLIP_SPECIAL_TOKENS)} written out (the model reads "
                       "each as its text's start or end)")
 _TEXT_RULE = (" (something that names: a word or number of any script, or a symbol such as an emoji or a currency "
@@ -230,9 +230,7 @@ def clean_text(value: str, what: str, need_words: bool = True) -> str:
     way round from what names an edit or the object (check_edit_words_name_an_edit)."""
     if any(unicodedata.category(c) == "Cc" and not c.isspace() for c in value):
         raise ValueError(f"{what} contains control characters")
-    if special := [token for token in CLIP_SPECIAL_TOKENS if token in value]:
-        raise ValueError(f"{what} contains {' and '.join(map(repr, special))}, which the model reads as the start or "
-                         "end of its text, not as words: remove it")
+    check_no_special_tokens(value, what)
     value = " ".join(value.split())
     if need_words and not names_something(value):
         raise ValueError(f"{what} has no words: nothing in it names anything (a word, number or symbol such as an "

@@ -1747,6 +1747,26 @@ def test_evaluate_refuses_a_text_clip_cannot_read_before_loading_anything(sphere
     assert not (tmp_path / "e").exists()
 
 
+@pytest.mark.parametrize("command,what", [
+    (["edit", "no_grid.safetensors", "--out", "e", "--prompt", "a dog<|endoftext|> in a hat"], "the edit prompt"),
+    (["refine", "no_edit.safetensors", "--initial", "no_grid.safetensors", "--out", "r", "--edit-words", "hat",
+      "--prompt", "<|startoftext|>a dog in a hat"], "the edit prompt"),
+    (["evaluate", "no_grid.safetensors", "--edit", "no_edit.safetensors", "a dog in a hat<|endoftext|>", "--object",
+      "dog", "--out", "v"], "the prompt of no_edit.safetensors"),
+    (["evaluate", "no_grid.safetensors", "--edit", "no_edit.safetensors", "a dog in a hat", "--object",
+      "dog<|endoftext|>", "--out", "v"], "--object"),
+])
+def test_a_text_writing_out_clips_special_tokens_is_refused_before_anything_is_read(command, what, tmp_path,
+                                                                                      monkeypatch, capsys):
+    """As the service refuses it (api.schemas.clean_text): the CLI had taken a prompt CLIP reads as ending (or
+    starting) at the token written out, and run a whole edit, refinement or evaluation towards it."""
+    monkeypatch.chdir(tmp_path)
+    assert main(command) == 2
+    err = capsys.readouterr().err
+    assert f"{what} contains '<|" in err and "which the model reads as the start or end of its text" in err
+    assert "no_grid" not in err.replace(what, "") and list(tmp_path.iterdir()) == []
+
+
 def test_evaluate_into_an_earlier_output_leaves_no_stale_ring_renders(sphere_file, tmp_path):
     from voxe_core.tiny_eval import build_tiny_clip
 

@@ -16,7 +16,7 @@ from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, add_view_arguments, check_device, load_guidance, load_views,
     non_negative_int, positive_int, remove_earlier_outputs, run_stage, seed, view_options_given, writable_folder,
 )
-from voxe_core.guidance.prompts import check_prompt_length, names_something
+from voxe_core.guidance.prompts import check_no_special_tokens, check_prompt_length, names_something
 from voxe_core.presets import BATCH_SIZE, EDIT_SCHEDULES, PREVIEW_EVERY, SEED, TIMESTEP_SCHEDULES, edit_config
 
 _SCENE = EDIT_SCHEDULES["scene"]
@@ -97,6 +97,7 @@ def cmd_edit(args) -> int:
     if not names_something(args.prompt):  # (as the service refuses it; it had run a whole edit towards "---")
         raise ValueError(f"the edit prompt {args.prompt!r} has no words: nothing in it names anything (a word, number "
                          "or symbol such as an emoji does; punctuation alone does not)")
+    check_no_special_tokens(args.prompt, "the edit prompt")
     check_prompt_length(args.prompt, not args.no_view_words)  # (had been said after the model's load, a download maybe)
     check_device(args)  # before the grid is read: a device this machine lacks had been said only after it
     grid = load_grid(args.grid)

@@ -51,7 +51,7 @@ def cmd_evaluate(args) -> int:
         evaluation_steps, format_table,
     )
     from voxe_core.export import save_png
-    from voxe_core.guidance.prompts import check_prompt_length
+    from voxe_core.guidance.prompts import check_no_special_tokens, check_prompt_length
     from voxe_core.guidance.loading import ModelNotAvailableError
     from voxe_core.refine.storage import load_mask
 
@@ -59,7 +59,9 @@ def cmd_evaluate(args) -> int:
     for values in args.edit:
         if len(values) not in (2, 3):
             raise ValueError(f"--edit takes EDITED_GRID PROMPT [MASK], got {len(values)} values: {values}")
+        check_no_special_tokens(values[1], f"the prompt of {values[0]}")
         check_prompt_length(values[1], view_words=False)  # texts CLIP cannot read: before any grid or model is read
+    check_no_special_tokens(args.object, "--object")
     check_source_text_length(args.object)
     if args.data is None and (dataset_only := view_options_given(args)):
         raise ValueError(f"{', '.join(dataset_only)} set how --data's images are read (for FID_input); "

@@ -19,8 +19,8 @@ from voxe_core.cli.common import (
     move_staged, non_negative_int, positive_int, remove_earlier_outputs, run_stage, seed, staging_folder,
     writable_file, writable_folder,
 )
-from voxe_core.guidance.prompts import (check_edit_words_name_an_edit, check_edit_words_read, check_prompt_length,
-                                        prompt_text)
+from voxe_core.guidance.prompts import (check_edit_words_name_an_edit, check_edit_words_read,
+                                        check_no_special_tokens, check_prompt_length, prompt_text)
 from voxe_core.presets import LIFT_START, LIFT_STARTS, SEED, refine_config
 
 
@@ -99,6 +99,7 @@ def cmd_refine(args) -> int:
     # As the refinement will read them, before the grids are read and the model loads (a download, maybe): a word
     # not in the prompt, or a prompt longer than the text encoder reads, had been said only after that.
     view_words = not args.no_view_words
+    check_no_special_tokens(args.prompt, "the edit prompt")
     check_prompt_length(args.prompt, view_words)
     check_edit_words_name_an_edit(prompt_text(args.prompt), words)
     check_edit_words_read(args.prompt, words, view_words)

@@ -139,6 +139,18 @@ def names_something(text: str) -> bool:
     return any(map(_names, clip_pieces(text)))
 
 
+CLIP_SPECIAL_TOKENS = ("<|startoftext|>", "<|endoftext|>")
+"""CLIP's tokenizer reads each, written out in a text, as the text's start or end (no word starts after it)."""
+
+
+def check_no_special_tokens(text: str, what: str) -> None:
+    """ValueError naming ``what`` where ``text`` writes out one of :data:`CLIP_SPECIAL_TOKENS`: the service and the
+    CLI refuse it alike (``voxe edit`` had run a whole edit towards a prompt the model read as ending there)."""
+    if special := [token for token in CLIP_SPECIAL_TOKENS if token in text]:
+        raise ValueError(f"{what} contains {' and '.join(map(repr, special))}, which the model reads as the start or "
+                         "end of its text, not as words: remove it")
+
+
 _STRAIGHT_QUOTES = str.maketrans("‘’‚‛′“”„‟″", "'" * 5 + '"' * 5)
 
 
