@@ -1403,6 +1403,25 @@ def test_turntable_gif_and_bad_suffix(make_sphere_grid, sphere_file, tmp_path, c
     assert "'.webm'" in capsys.readouterr().err
 
 
+def test_a_turntable_faster_than_a_video_holds_is_refused_before_rendering(sphere_file, tmp_path, capsys):
+    """--fps had no ceiling: 1e10 failed in ffmpeg ("Unable to parse "framerate" option value") after the whole
+    render, and 2e6 wrote an MP4 at 1,001,000 fps (a longer clip than asked)."""
+    out = tmp_path / "tt.mp4"
+    for fps in ("1e10", "2e6", "inf"):
+        assert main(["turntable", str(sphere_file), "--out", str(out), "--frames", "2", "--size", "8", "--fps", fps,
+                     "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert f"fps must be a finite number of at least 0.001526 (a frame's delay is at most 655.35 s in a GIF) " \
+               f"and at most 1,000,000 (the fastest rate ffmpeg writes in an MP4), got {float(fps):g}" in err
+        assert not out.exists()
+    assert main(["turntable", str(sphere_file), "--out", str(out), "--frames", "2", "--size", "8", "--fps", "1e6",
+                 "--quiet"]) == 0  # the ceiling itself, at its rate
+    import imageio_ffmpeg
+
+    probe = subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-i", str(out)], capture_output=True, text=True)
+    assert " 1000k fps," in probe.stderr  # (imageio's reader reads "1000k" as 0)
+
+
 def test_export_mesh_ply_glb_and_obj(sphere_grid, sphere_file, tmp_path, capsys):
     ply = tmp_path / "m.ply"
     assert main(["export-mesh", str(sphere_file), "--out", str(ply)]) == 0

@@ -99,11 +99,17 @@ VIDEO_MIN_FPS = 100 / 65535
 encoder fails further down, near 1e-6 fps); one floor for both formats, so the job parameters can state it."""
 
 
+VIDEO_MAX_FPS = 1_000_000
+"""The fastest turntable video: ffmpeg writes a faster MP4 at 1,001,000 fps (a longer clip than asked), and
+refuses above about 2.1e9 fps, after the whole render; one ceiling for both formats (the API's is 120)."""
+
+
 def check_video_fps(fps: float) -> None:
     """ValueError for a frame rate no video holds (Pillow overflowed and ffmpeg wrote nothing, after the whole job)."""
-    if not (fps >= VIDEO_MIN_FPS and math.isfinite(fps)):
+    if not (VIDEO_MIN_FPS <= fps <= VIDEO_MAX_FPS):  # (NaN fails both; infinity the ceiling)
         raise ValueError(f"fps must be a finite number of at least {VIDEO_MIN_FPS:.6f} (a frame's delay is at most "
-                         f"655.35 s in a GIF), got {fps:g}")
+                         f"655.35 s in a GIF) and at most {VIDEO_MAX_FPS:,} (the fastest rate ffmpeg writes in an "
+                         f"MP4), got {fps:g}")
 
 
 @dataclass(frozen=True)
