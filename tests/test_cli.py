@@ -1115,6 +1115,29 @@ def test_render_dataset_views_writes_pngs_and_metrics(sphere_grid, sphere_file, 
     assert f"PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}" in capsys.readouterr().out
 
 
+def test_render_names_views_of_the_longest_image_names_within_the_file_system_s_limit(sphere_file, tmp_path, capsys):
+    """A view is named '000_<image stem>.png': an image named with 255 bytes (the most a name holds) had failed
+    "File name too long". The stem is cut to fit with a hash of the image's name (files.head_that_fits), and
+    views of two such images alike at their start keep names of their own."""
+    from test_data import make_synthetic, pose, write_png
+
+    stems = ["é" * 125 + "a", "é" * 125 + "b", "r_2"]  # 251 bytes, 255 with '.png'
+    for stem in stems:
+        write_png(tmp_path / "data" / "train" / f"{stem}.png")
+    make_synthetic(tmp_path / "data", [{"file_path": f"./train/{stem}", "transform_matrix": pose(translation=(0, 0, 4))}
+                                       for stem in stems])
+    out = tmp_path / "views"
+    assert main(["render", str(sphere_file), "--data", str(tmp_path / "data"), "--split", "train", "--out", str(out),
+                 "--device", "cpu", "--quiet"]) == 0, capsys.readouterr().err
+    names = json.loads((out / "render.json").read_text())["files"]
+    assert sorted(p.name for p in out.iterdir()) == sorted([*names, "render.json"])
+    assert len(names) == 4 and names[2:] == ["002_r_2.png", "metrics.json"]
+    for i, name in enumerate(names[:2]):
+        assert name.startswith(f"{i:03d}_éé") and name.endswith(".png") and len(name.encode()) <= 255
+    assert names[0][4:-21] == names[1][4:-21] and names[0][-21:] != names[1][-21:]  # cut alike, hashes differ
+    assert [v["file"] for v in json.loads((out / "metrics.json").read_text())["per_view"]] == names[:3]
+
+
 def test_render_metrics_that_cannot_be_written_keep_the_earlier_file(tmp_path, fill_disk, capsys):
     """A full disk while metrics.json was written had left it torn, the earlier render's destroyed: it is written
     whole or not at all."""

@@ -16,7 +16,7 @@ from voxe_core.cli.common import (
     EXIT_INTERRUPTED, add_device_argument, add_view_arguments, check_device, load_views, positive_int,
     run_stage, staging_folder, view_options_given, writable_file, writable_folder,
 )
-from voxe_core.files import replacing
+from voxe_core.files import head_that_fits, replacing
 from voxe_core.presets import ExportConfig
 
 
@@ -85,7 +85,9 @@ def cmd_render(args) -> int:
     if args.data is not None:
         scene = load_views(args)
         cameras = grid.dataset_cameras(scene.cameras)
-        names = [f"{i:03d}_{Path(name).stem}.png" for i, name in enumerate(scene.names)]
+        # (cut to fit a name's 255 bytes: an image named with them had failed "File name too long")
+        names = [head_that_fits(f"{i:03d}_{Path(name).stem}", ".png", name) + ".png"
+                 for i, name in enumerate(scene.names)]
     else:
         elevation = ExportConfig.elevation if args.elevation is None else args.elevation
         size = ExportConfig.view_size if args.size is None else args.size
