@@ -144,6 +144,20 @@ def test_the_fill_stays_within_the_values_it_stands_for():
     assert bool(((fill >= lower) & (fill <= torch.tensor(0.3))).all()), fill.tolist()
 
 
+@pytest.mark.parametrize("features, cells, message", [
+    ((8, 8, 8, 4), ((8, 8, 8), torch.bool), r"cells must be a bool tensor of shape \(7, 7, 7\) \(one per cell of "
+                                             r"features \(8, 8, 8, 4\)\), got torch.bool of shape \(8, 8, 8\)$"),
+    ((8, 8, 8, 4), ((7, 7), torch.bool), r"shape \(7, 7, 7\) .* got torch.bool of shape \(7, 7\)$"),
+    ((8, 8, 8, 4), ((7, 7, 7), torch.float32), r"shape \(7, 7, 7\) .* got torch.float32 of shape \(7, 7, 7\)$"),
+    ((8, 8, 8), ((7, 7, 7), torch.bool), r"^features must be shaped \(X, Y, Z, C\), got \(8, 8, 8\)$"),
+])
+def test_cells_or_features_of_the_wrong_shape_are_a_value_error_naming_it(features, cells, message):
+    """They had failed in the mask's indexing: "IndexError: The shape of the mask [9, 9, 9] at index 0 does not
+    match the shape of the indexed tensor [8, 8, 8, 4]", naming neither argument (float cells: NotImplementedError)."""
+    with pytest.raises(ValueError, match=message):
+        sparse_tensors(torch.zeros(features), torch.zeros(cells[0], dtype=cells[1]), margin=1)
+
+
 def test_softplus_and_scene_grids_keep_their_occupancy_and_renders(tmp_path, make_sphere_grid):
     sphere = noisy_sphere(make_sphere_grid, resolution=33)
     softplus = VoxelGrid(33, activation="softplus", features=sphere.features.detach() * 10)

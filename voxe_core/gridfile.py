@@ -106,6 +106,12 @@ def sparse_tensors(features: torch.Tensor, cells: torch.Tensor, margin: int = DE
     """
     if margin < 0:
         raise ValueError(f"margin must be >= 0 cells, got {margin}")
+    if features.dim() != 4:  # (each had failed in the mask's indexing, an IndexError naming neither argument)
+        raise ValueError(f"features must be shaped (X, Y, Z, C), got {tuple(features.shape)}")
+    expected = tuple(n - 1 for n in features.shape[:3])
+    if cells.dtype != torch.bool or tuple(cells.shape) != expected:
+        raise ValueError(f"cells must be a bool tensor of shape {expected} (one per cell of features "
+                         f"{tuple(features.shape)}), got {cells.dtype} of shape {tuple(cells.shape)}")
     features = features.detach().cpu().float()
     mask = stored_vertices(cells.cpu(), margin)
     dropped = features[~mask]
