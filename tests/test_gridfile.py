@@ -436,6 +436,8 @@ def test_a_grid_file_name_holding_a_null_byte_is_a_format_error():
     # a dense file's header resolution had gone unread: a grid of another size loaded
     ("relu_field", {"resolution": [32, 32, 32]}, r"its header's resolution \[32, 32, 32\] is not its features' "
                                                  r"\[8, 8, 8\]$"),
+    # a null one had loaded without that check (as a null density_scale had loaded with a default)
+    ("relu_field", {"resolution": None}, r"its header's resolution None is not its features' \[8, 8, 8\]$"),
     # torch's words had been the message: "shape '[4, 4]' is invalid for input of size 3", "too many dimensions 'str'"
     ("scene", {"frame": [1, 0, 0]}, r"frame must be 16 numbers \(a 4x4 matrix\), got \[1, 0, 0\]$"),
     ("scene", {"frame": ["a"] * 16}, r"frame must be 16 numbers \(a 4x4 matrix\), got \['a', "),

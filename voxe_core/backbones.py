@@ -62,8 +62,8 @@ def grid_from_state(tensors: dict[str, torch.Tensor], meta: dict) -> VoxelGrid:
     features = tensors.get("features")
     if features is not None and (features.dim() != 4 or features.shape[-1] != 4):
         raise FormatError(f"damaged grid: features of shape {tuple(features.shape)}, not (X, Y, Z, 4)")
-    resolution = meta.get("resolution")  # (a dense file's had gone unread: a grid of another size had loaded)
-    if features is not None and resolution is not None and resolution != list(features.shape[:3]):
+    resolution = meta.get("resolution")  # (a dense file's had gone unread: a grid of another size had loaded; a
+    if features is not None and "resolution" in meta and resolution != list(features.shape[:3]):  # null, unchecked)
         raise FormatError(f"damaged grid: its header's resolution {resolution!r} is not its features' "
                           f"{list(features.shape[:3])}")
     for name in ("bbox_min", "bbox_max"):
