@@ -108,6 +108,34 @@ def test_words_after_an_ascii_plys_rows_are_a_fault_naming_the_line(tmp_path, ta
 
 
 @pytest.mark.parametrize("read_body", [True, False])
+@pytest.mark.parametrize("header, fault_line", [
+    (f"comment written before end_header\n{_VERTICES}{_FACES}end_header\n", 3),
+    (f"{_VERTICES}comment no end_header yet\n{_FACES}end_header\n", 7),
+    (f"{_VERTICES}{_FACES}comment end_header\nend_header\n", 9),
+    (f"{_VERTICES}{_FACES}comment end_header\n", 9),  # (it loads, ending there: refused as no end_header before)
+    (f"{_VERTICES}{_FACES}end_header and more\n", None),  # both end the header there
+    (f"comment my_end_header\n{_VERTICES}{_FACES}end_header\n", None),  # not the word
+], ids=["before the elements", "between them", "before the end", "as the end", "after end_header", "within a word"])
+def test_a_header_line_holding_end_header_among_other_words_is_a_fault_naming_it(tmp_path, header, fault_line,
+                                                                                 read_body):
+    """trimesh ends the header at any line holding the word end_header: a comment saying it had passed the check (an
+    upload's too), and the loader then read the lines after it as the body ("string or file could not be read to
+    its end due to unmatched data"). A file the check passes loads."""
+    import trimesh
+
+    path = tmp_path / "comment.ply"
+    path.write_text(f"ply\nformat ascii 1.0\n{header}0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")
+    fault = ply_fault(path, read_body)
+    if fault_line is None:
+        assert fault is None
+        assert len(trimesh.load(path, process=False).faces) == 1
+    else:
+        line = header.splitlines()[fault_line - 3]
+        assert fault == (f"its header's line {fault_line}, {line!r}, holds the word end_header, at which the loader "
+                         "ends the header: reword or remove that line (the header's end is a line of end_header alone)")
+
+
+@pytest.mark.parametrize("read_body", [True, False])
 @pytest.mark.parametrize("line, fault", [
     ("\n", "its header's line 3 is empty, which the loader cannot read: remove it"),  # "list index out of range"
     ("elements 2\n", "its header's line 3, 'elements 2', is not 'element <name> <count>'"),  # "not enough values ..."

@@ -90,8 +90,10 @@ def ply_fault(path: str | os.PathLike, read_body: bool = True) -> str | None:
     one), "data type '' not understood" (a binary PLY's element without properties, where this check had failed on a
     division by zero), "string or file could not be read to its end" (a word in a row), "PLY is unexpected length!"
     (a text body under a binary format line, or a binary body not the length its header makes:
-    ``_binary_body_fault``), and had dropped a face row holding fewer indices than its count. Without
-    ``read_body``, the header's faults only."""
+    ``_binary_body_fault``), and had dropped a face row holding fewer indices than its count; it ends the header at
+    a line holding the word end_header among others (a comment), its later lines read as the body (a file that
+    failed, or one ending there, which this check had said had no end_header). Without ``read_body``, the header's
+    faults only."""
     elements: list[tuple[str, int, list[list[str]]]] = []  # (name, count, per property its types: a list's two)
     declared = set()  # (element, property) names
     body_format, lines_read = None, 1
@@ -113,6 +115,9 @@ def ply_fault(path: str | os.PathLike, read_body: bool = True) -> str | None:
                             "(then the version, 1.0)")
             elif not words:  # trimesh had failed on it: "list index out of range"
                 return f"its header's line {lines_read} is empty, which the loader cannot read: remove it"
+            elif "end_header" in words[1:]:  # trimesh ends the header at it: the lines after it were read as the body
+                return (f"its header's line {lines_read}, {text[:60]!r}, holds the word end_header, at which the loader "
+                        "ends the header: reword or remove that line (the header's end is a line of end_header alone)")
             elif "element" in words[0]:  # as trimesh reads them ("elements 3" had failed "not enough values to unpack")
                 if len(words) != 3 or (count := _count(words[2])) is None:
                     return f"its header's line {lines_read}, {text[:60]!r}, is not 'element <name> <count>'"
