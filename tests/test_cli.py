@@ -1426,6 +1426,31 @@ def test_turntable_gif_and_bad_suffix(make_sphere_grid, sphere_file, tmp_path, c
     assert "'.webm'" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("name, size, message", [
+    ("tt.mp4", 16385, "an MP4 holds frames of at most 16384 pixels a side whose (width + 128) x (height + 128) is "
+                      "under 268,435,456 (16254x16254 at most, square), got 16385x16385: make them smaller, or write "
+                      "a GIF"),
+    ("tt.mp4", 16255, "got 16255x16255"),  # (ffmpeg's "Picture size 16256x16256 is invalid", padded even)
+    ("tt.gif", 65536, "a GIF holds frames of at most 65535 pixels a side, got 65536x65536"),
+])
+def test_a_turntable_of_frames_too_large_for_its_video_is_refused_before_rendering(sphere_file, tmp_path, capsys,
+                                                                                    monkeypatch, name, size, message):
+    """The encoder had refused them after the first frame's render (268 million rays at 16385²): "the video encoder
+    failed (ffmpeg exited with status 187: invalid width x height (16386x16386))"."""
+    import voxe_core.export
+
+    def rendering(*args, **kwargs):
+        raise AssertionError("rendered")
+        yield
+
+    monkeypatch.setattr(voxe_core.export, "iter_views", rendering)
+    out = tmp_path / name
+    assert main(["turntable", str(sphere_file), "--out", str(out), "--frames", "2", "--size", str(size),
+                 "--quiet"]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_a_turntable_faster_than_a_video_holds_is_refused_before_rendering(sphere_file, tmp_path, capsys):
     """--fps had no ceiling: 1e10 failed in ffmpeg ("Unable to parse "framerate" option value") after the whole
     render, and 2e6 wrote an MP4 at 1,001,000 fps (a longer clip than asked)."""

@@ -271,6 +271,20 @@ def test_video_rejects_unknown_suffix_and_bad_frames(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["slowest.gif", "slowest.mp4"]
 
 
+@pytest.mark.parametrize("name, shape, message", [
+    ("wide.mp4", (2, 16385), r"^an MP4 holds frames of at most 16384 pixels a side .*, got 16385x2: make them smaller"),
+    ("tall.mp4", (16386, 2), r", got 2x16386: "),
+    ("wide.gif", (1, 65536), r"^a GIF holds frames of at most 65535 pixels a side, got 65536x1$"),
+])
+def test_frames_too_large_for_their_video_are_refused_before_the_encoder_is_started(tmp_path, name, shape, message):
+    """ffmpeg had refused them in its words ("the video encoder failed (ffmpeg exited with status 187: invalid width x
+    height (16386x2))") and Pillow had overflowed ("int too big to convert"). The widest it takes is written."""
+    with pytest.raises(ValueError, match=message):
+        write_video(tmp_path / name, np.zeros((1, *shape, 3), np.uint8))
+    assert not list(tmp_path.iterdir())
+    assert write_video(tmp_path / "widest.mp4", np.zeros((1, 2, 16384, 3), np.uint8)).stat().st_size > 0
+
+
 def test_a_video_is_whole_or_absent(tmp_path):
     """It is written under a temporary name and renamed when whole: an interrupted encode had left a playable
     video of the frames so far, and an encoder that failed (ffmpeg logs and exits) a 'wrote' with no file."""

@@ -181,6 +181,27 @@ def check_video_output(path: str | os.PathLike, fps: float) -> Path:
     return path
 
 
+MP4_MAX_SIDE = 16384
+"""The widest and tallest frame libx264 encodes ("invalid width x height")."""
+MP4_MAX_PADDED_AREA = 2**28
+"""ffmpeg refuses a frame whose (W + 128)·(H + 128) reaches this ("Picture size 16256x16256 is invalid"): a square
+MP4 is at most 16254 pixels a side."""
+GIF_MAX_SIDE = 65535  # a GIF's screen is 16 bits wide and high (Pillow had overflowed: "int too big to convert")
+
+
+def check_video_size(path: str | os.PathLike, width: int, height: int) -> None:
+    """ValueError for frames of a size the video at ``path`` cannot hold (its suffix picks the format): cheap, so
+    checked before rendering; the encoder had refused them after the first frame's render."""
+    if Path(path).suffix.lower() == ".mp4":
+        padded_w, padded_h = width + width % 2, height + height % 2  # (as :func:`_pad_even` pads them)
+        if max(padded_w, padded_h) > MP4_MAX_SIDE or (padded_w + 128) * (padded_h + 128) >= MP4_MAX_PADDED_AREA:
+            raise ValueError(f"an MP4 holds frames of at most {MP4_MAX_SIDE} pixels a side whose (width + 128) x "
+                             f"(height + 128) is under {MP4_MAX_PADDED_AREA:,} (16254x16254 at most, square), got "
+                             f"{width}x{height}: make them smaller, or write a GIF")
+    elif max(width, height) > GIF_MAX_SIDE:
+        raise ValueError(f"a GIF holds frames of at most {GIF_MAX_SIDE} pixels a side, got {width}x{height}")
+
+
 class VideoEncoderError(OSError):
     """An encode that failed, with the errno its log names (None: none) and its file as ``filename``, never in the
     words (a worker's failure text leaves the files of its disk out). Its own type whatever the errno: an OSError
@@ -330,6 +351,8 @@ class VideoWriter:
                              f"{tuple(pixels.shape)}" + (f", frame 0 {self._shape}" if self._shape else ""))
         if self.appended == self.n_frames:
             raise ValueError(f"{self.path.name} was opened for {self.n_frames} frames; one more was given")
+        if self._shape is None:  # (the encoder's own refusal had said it in ffmpeg's words)
+            check_video_size(self.path, pixels.shape[1], pixels.shape[0])
         self._shape = pixels.shape
         if self._mp4 is not None:
             self._mp4.write(_pad_even(pixels))

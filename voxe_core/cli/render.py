@@ -175,10 +175,12 @@ def _report_metrics(psnr_values, ssim_values, scene, names, out_dir: Path) -> No
 def cmd_turntable(args) -> int:
     from voxe_core.backbones import load_grid
     from voxe_core.export import (
-        GIF_MIN_DELAY_CS, check_video_output, gif_timeline, iter_views, turntable_cameras, write_video,
+        GIF_MIN_DELAY_CS, check_video_output, check_video_size, gif_timeline, iter_views, turntable_cameras,
+        write_video,
     )
 
     check_video_output(args.out, args.fps)  # fail before rendering, not after
+    check_video_size(args.out, args.size, args.size)
     device = check_device(args)
     writable_file(args.out)  # (a folder not writable had failed after the render, imageio's traceback beside it)
     grid = load_grid(args.grid)
