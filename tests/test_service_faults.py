@@ -1747,6 +1747,50 @@ def test_a_fit_whose_grid_record_meets_a_database_outage_leaves_no_orphan_grid_o
     assert runtime.recorded_key(job_id, "initial_grid.safetensors") == rec.grid_key
 
 
+def test_a_fit_whose_grid_record_meets_a_database_outage_is_handed_back_to_the_jobs_waiting_on_it(db, monkeypatch):
+    """The database down exactly as a finished fit recorded its grid: the record raised out of the fit's hand-back, so
+    the fit stayed running, owned by the job gone back to the queue, and another job waiting on it could not take it
+    over before its lease ran out. It is handed back as an outage met anywhere else in the fit is: pending, saying
+    why, at once taken over by the waiting job. A record that went through as its answer was lost stays succeeded."""
+    import sqlite3
+
+    from sqlalchemy.exc import OperationalError
+
+    from conftest import make_sphere_grid
+    from worker import runtime, tasks
+
+    scene = add_scene()
+    rec_id = add_reconstruction(scene, params={"route": "voxelize"})
+    job_id = add_job(scene, "queued", 0, reconstruction_id=rec_id)
+    waiting = add_job(scene, "running", 0, "alive@host", "reconstruct", reconstruction_id=rec_id)
+    monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
+    monkeypatch.setattr(tasks, "_voxelize", lambda *args: make_sphere_grid(8))
+    monkeypatch.setattr(runtime, "OUTAGE_PAUSE_S", 0.0)
+    set_reconstruction = runtime.set_reconstruction
+    for answer_lost in (False, True):
+        def down_as_the_grid_is_recorded(*args, **values):
+            if values.get("state") == "succeeded":
+                if answer_lost:
+                    set_reconstruction(*args, **values)
+                raise OperationalError("UPDATE reconstructions", {}, sqlite3.OperationalError("database is locked"))
+            return set_reconstruction(*args, **values)
+
+        with monkeypatch.context() as outage:
+            outage.setattr(runtime, "set_reconstruction", down_as_the_grid_is_recorded)
+            result = tasks.reconstruct_task.apply(args=(job_id,))
+        assert result.state == "REJECTED" and result.result.requeue, result.result
+        rec = runtime.load_reconstruction(rec_id)
+        if answer_lost:
+            assert (rec.state, rec.owner_job_id, rec.error) == ("succeeded", job_id, None)
+            assert rec.grid_key is not None
+            break
+        said = "a database outage (the database cannot be reached or is locked)"
+        assert (rec.state, rec.owner_job_id, rec.lease_until) == ("pending", None, None)
+        assert rec.error == f"job {job_id}'s fit: stopped by {said}"
+        assert runtime.try_claim_reconstruction(rec_id, waiting, "alive@host", db, allow_failed=False)
+        assert runtime.set_reconstruction(rec_id, waiting, state="pending", owner_job_id=None)  # (let the first refit)
+
+
 @pytest.mark.parametrize("outage", ["storage", "database"])
 def test_a_fit_handed_back_for_an_outage_says_why_on_its_job_and_its_reconstruction(db, monkeypatch, outage):
     """A fit stopped by a storage outage (its grid's upload throttled) or a database outage went back to the queue

@@ -1053,11 +1053,15 @@ def renew_lease(rec_id: str, job_id: str, settings: Settings, run_token: str | N
         ).rowcount == 1
 
 
-def set_reconstruction(rec_id: str, job_id: str, run_token: str | None = None, **values) -> bool:
-    """Change the reconstruction if ``job_id`` (its run ``run_token``, when given) owns it; whether it did."""
+def set_reconstruction(rec_id: str, job_id: str, run_token: str | None = None, *, running: bool = False,
+                       **values) -> bool:
+    """Change the reconstruction if ``job_id`` (its run ``run_token``, when given) owns it (and, with ``running``,
+    the fit still runs: a record of its grid whose answer an outage lost may have made it succeeded); whether it
+    did."""
+    still = [Reconstruction.state == R_RUNNING] if running else []
     with session_scope() as session:
-        return session.execute(update(Reconstruction).where(*_owned(rec_id, job_id, run_token)).values(**values)
-                               ).rowcount == 1
+        return session.execute(update(Reconstruction).where(*_owned(rec_id, job_id, run_token), *still)
+                               .values(**values)).rowcount == 1
 
 
 def record_fit_checkpoint(rec_id: str, job_id: str, run_token: str | None, key: str) -> str | None:

@@ -556,6 +556,11 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
             # Under this run's own name: a run that lost the fit meanwhile never overwrites the recorded grid.
             stored: StoredObject = storage.put_file(
                 reconstruction_storage_key(rec.id, f"grid-{job.run_token or job.id}.safetensors"), path)
+            done = runtime.set_reconstruction(
+                rec.id, job.id, job.run_token, state=R_SUCCEEDED, grid_key=stored.key, grid_size=stored.size,
+                grid_sha256=stored.sha256, iteration=total, total=total, lease_until=None, finished_at=utcnow(),
+                checkpoint_key=None,  # (none is resumed from any more; every run's goes below)
+            )
         except BaseException as exc:  # (each change below applies only while this job still owns the fit)
             outage = _outage(exc)
             fails_the_job = (isinstance(exc, Exception) and not isinstance(exc, NOT_THE_FITS_FAILURE)
@@ -571,16 +576,14 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
             else:  # stopped for the owner's sake (NOT_THE_FITS_FAILURE), an outage, a full disk, or the worker
                 # going down (SystemExit, KeyboardInterrupt, or what a cold shutdown raises in a solo pool's task): a
                 # waiting job, or this one redelivered, takes over from the checkpoint; an outage said (pending with
-                # no error, the fit had read as about to run while its jobs waited out the outage)
-                runtime.set_reconstruction(rec.id, job.id, job.run_token, state=R_PENDING, owner_job_id=None,
-                                           owner_run_token=None, lease_until=None,
-                                           **({"error": f"job {job.id}'s fit: stopped by {outage}"} if outage else {}))
+                # no error, the fit had read as about to run while its jobs waited out the outage). An outage met as
+                # the grid was recorded hands it back too, where the fit had stayed running, its waiting jobs waiting
+                # out the lease; unless the record went through (its answer lost), which leaves it succeeded.
+                runtime.set_reconstruction(
+                    rec.id, job.id, job.run_token, running=True, state=R_PENDING, owner_job_id=None,
+                    owner_run_token=None, lease_until=None,
+                    **({"error": f"job {job.id}'s fit: stopped by {outage}"} if outage else {}))
             raise
-        done = runtime.set_reconstruction(
-            rec.id, job.id, job.run_token, state=R_SUCCEEDED, grid_key=stored.key, grid_size=stored.size,
-            grid_sha256=stored.sha256, iteration=total, total=total, lease_until=None, finished_at=utcnow(),
-            checkpoint_key=None,  # (none is resumed from any more; every run's goes below)
-        )
     if not done:  # (a cleanup: a storage refusing it must not stop the job going on with the fit as it is now)
         storage.discard(stored.key)
         raise runtime.LeaseLost(f"reconstruction {rec.id}: another job took the fit over before it was stored")
