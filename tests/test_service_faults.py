@@ -1757,6 +1757,7 @@ def test_a_fit_whose_grid_record_meets_a_database_outage_is_handed_back_to_the_j
     from sqlalchemy.exc import OperationalError
 
     from conftest import make_sphere_grid
+    from voxe_service.storage import get_storage
     from worker import runtime, tasks
 
     scene = add_scene()
@@ -1782,13 +1783,77 @@ def test_a_fit_whose_grid_record_meets_a_database_outage_is_handed_back_to_the_j
         rec = runtime.load_reconstruction(rec_id)
         if answer_lost:
             assert (rec.state, rec.owner_job_id, rec.error) == ("succeeded", job_id, None)
-            assert rec.grid_key is not None
+            assert rec.grid_key in get_storage(db).list(f"reconstructions/{rec_id}/grid-")  # (the fit's: kept)
             break
         said = "a database outage (the database cannot be reached or is locked)"
         assert (rec.state, rec.owner_job_id, rec.lease_until) == ("pending", None, None)
         assert rec.error == f"job {job_id}'s fit: stopped by {said}"
         assert runtime.try_claim_reconstruction(rec_id, waiting, "alive@host", db, allow_failed=False)
         assert runtime.set_reconstruction(rec_id, waiting, state="pending", owner_job_id=None)  # (let the first refit)
+
+
+@pytest.mark.parametrize("stopped", ["its record met a database outage", "its upload's answer was lost"])
+def test_a_fit_lost_as_its_grid_was_stored_and_stopped_by_an_outage_leaves_no_grid_of_its_own(db, monkeypatch,
+                                                                                                tmp_path, stopped):
+    """A run whose lease lapsed as it stored its grid: another job took the fit over and succeeded, its cleanup of
+    stray grids done, and then this run's upload landed, its record meeting a database outage (or the upload's own
+    answer lost, a storage outage). Its hand-back found the fit another's, and its grid stayed in the storage for
+    good, recorded nowhere. It is deleted once the run learns it lost; the fit and the winner's grid stay as they
+    were. A record that went through as its answer was lost keeps the run's grid: it is the fit's."""
+    import sqlite3
+
+    from sqlalchemy import update
+    from sqlalchemy.exc import OperationalError
+
+    from conftest import make_sphere_grid
+    from voxe_service.db import session_scope
+    from voxe_service.models import Reconstruction
+    from voxe_service.storage import StorageUnavailable, get_storage, reconstruction_storage_key
+    from worker import runtime, tasks
+
+    storage, scene = get_storage(db), add_scene()
+    rec_id = add_reconstruction(scene, params={"route": "voxelize"})
+    job_id = add_job(scene, "queued", 0, reconstruction_id=rec_id)
+    winner = add_job(scene, "running", 0, "alive@host", "reconstruct", reconstruction_id=rec_id)
+    make_sphere_grid(8).save(tmp_path / "winners.safetensors")
+    winners = storage.put_file(reconstruction_storage_key(rec_id, "grid-the-winner.safetensors"),
+                               tmp_path / "winners.safetensors")
+    monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
+    monkeypatch.setattr(tasks, "_voxelize", lambda *args: make_sphere_grid(8))
+    monkeypatch.setattr(runtime, "OUTAGE_PAUSE_S", 0.0)
+
+    def the_winner_took_it_and_succeeded():
+        with session_scope() as session:
+            session.execute(update(Reconstruction).where(Reconstruction.id == rec_id).values(
+                state="succeeded", owner_job_id=winner, owner_run_token=None, grid_key=winners.key,
+                grid_size=winners.size, grid_sha256=winners.sha256, lease_until=None))
+
+    set_reconstruction, put_file = runtime.set_reconstruction, type(storage).put_file
+
+    def down_as_the_grid_is_recorded(*args, **values):
+        if values.get("state") == "succeeded":
+            the_winner_took_it_and_succeeded()
+            raise OperationalError("UPDATE reconstructions", {}, sqlite3.OperationalError("database is locked"))
+        return set_reconstruction(*args, **values)
+
+    def stored_and_its_answer_lost(self, key, path, content_type=None):
+        put_file(self, key, path, content_type)
+        if "/grid-" in key:
+            the_winner_took_it_and_succeeded()
+            raise StorageUnavailable(f"S3 bucket 'voxe': timed out when uploading {key}")
+
+    with monkeypatch.context() as outage:
+        if stopped == "its record met a database outage":
+            outage.setattr(runtime, "set_reconstruction", down_as_the_grid_is_recorded)
+        else:
+            outage.setattr(type(storage), "put_file", stored_and_its_answer_lost)
+        result = tasks.reconstruct_task.apply(args=(job_id,))
+    assert result.state == "REJECTED" and result.result.requeue, result.result
+    rec = runtime.load_reconstruction(rec_id)
+    assert (rec.state, rec.owner_job_id, rec.grid_key) == ("succeeded", winner, winners.key)
+    assert storage.list(reconstruction_storage_key(rec_id, "grid-")) == [winners.key]
+    assert tasks.reconstruct_task.apply(args=(job_id,)).get()["state"] == "done"  # the redelivery: the winner's fit
+    assert runtime.recorded_key(job_id, "initial_grid.safetensors") == winners.key
 
 
 @pytest.mark.parametrize("outage", ["storage", "database"])

@@ -543,7 +543,7 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
             lease.check()
 
         callbacks = StageCallbacks(job, "reconstruct", settings, on_progress, on_checkpoint)
-        grid = None
+        grid = grid_key = None
         try:
             if rec.params.get("route") == "voxelize":  # one step: reported once, at completion
                 grid, total = _voxelize(job, rec, settings, storage), 1
@@ -554,8 +554,8 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
             path = scratch / "initial_grid.safetensors"
             grid.save(path)
             # Under this run's own name: a run that lost the fit meanwhile never overwrites the recorded grid.
-            stored: StoredObject = storage.put_file(
-                reconstruction_storage_key(rec.id, f"grid-{job.run_token or job.id}.safetensors"), path)
+            grid_key = reconstruction_storage_key(rec.id, f"grid-{job.run_token or job.id}.safetensors")
+            stored: StoredObject = storage.put_file(grid_key, path)
             done = runtime.set_reconstruction(
                 rec.id, job.id, job.run_token, state=R_SUCCEEDED, grid_key=stored.key, grid_size=stored.size,
                 grid_sha256=stored.sha256, iteration=total, total=total, lease_until=None, finished_at=utcnow(),
@@ -566,23 +566,25 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
             fails_the_job = (isinstance(exc, Exception) and not isinstance(exc, NOT_THE_FITS_FAILURE)
                              and outage is None and not runtime.worker_in_cold_shutdown())
             if fails_the_job and grid is None and not is_out_of_memory(exc):
-                runtime.set_reconstruction(rec.id, job.id, job.run_token, state=R_FAILED, lease_until=None,
-                                           finished_at=utcnow(), error=runtime.failure_text(exc))
+                handed = runtime.set_reconstruction(rec.id, job.id, job.run_token, state=R_FAILED, lease_until=None,
+                                                    finished_at=utcnow(), error=runtime.failure_text(exc))
             elif is_out_of_memory(exc) or fails_the_job:  # out of memory, or G_i made and not kept (a storage
                 # refusing it): no failure of the fit's; the error recorded, a job still waiting takes over
                 said = "" if grid is None else "its grid could not be stored: "
-                runtime.hand_back_fit(rec.id, job.id, job.run_token,
-                                      f"job {job.id}'s fit: {said}{runtime.failure_text(exc)}")
+                handed = runtime.hand_back_fit(rec.id, job.id, job.run_token,
+                                               f"job {job.id}'s fit: {said}{runtime.failure_text(exc)}")
             else:  # stopped for the owner's sake (NOT_THE_FITS_FAILURE), an outage, a full disk, or the worker
                 # going down (SystemExit, KeyboardInterrupt, or what a cold shutdown raises in a solo pool's task): a
                 # waiting job, or this one redelivered, takes over from the checkpoint; an outage said (pending with
                 # no error, the fit had read as about to run while its jobs waited out the outage). An outage met as
                 # the grid was recorded hands it back too, where the fit had stayed running, its waiting jobs waiting
                 # out the lease; unless the record went through (its answer lost), which leaves it succeeded.
-                runtime.set_reconstruction(
+                handed = runtime.set_reconstruction(
                     rec.id, job.id, job.run_token, running=True, state=R_PENDING, owner_job_id=None,
                     owner_run_token=None, lease_until=None,
                     **({"error": f"job {job.id}'s fit: stopped by {outage}"} if outage else {}))
+            if grid_key is not None and not handed:  # the fit lost meanwhile, its upload maybe stored all the same
+                _discard_unless_recorded(storage, rec.id, grid_key)
             raise
     if not done:  # (a cleanup: a storage refusing it must not stop the job going on with the fit as it is now)
         storage.discard(stored.key)
@@ -607,6 +609,16 @@ def _store_fit_checkpoint(job: Job, rec_id: str, storage, path: str, iteration: 
         raise
     if replaced is not None and replaced != key:
         storage.discard(replaced)
+
+
+def _discard_unless_recorded(storage, rec_id: str, key: str) -> None:
+    """Delete the grid a run stored at ``key`` (or may have: its upload's answer lost) that learnt, handing the fit
+    back, it owns it no more: another job's run took it over, whose success's cleanup of stray grids may be past
+    already, which had left this one stored for good. Kept where it is the fit's grid all the same (its record went
+    through, its answer lost)."""
+    now = runtime.load_reconstruction(rec_id)
+    if now is None or now.grid_key != key:
+        storage.discard(key)
 
 
 def _discard_unrecorded(storage, rec_id: str, prefix: str, recorded: str | None) -> None:
