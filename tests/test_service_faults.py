@@ -3350,6 +3350,54 @@ def test_a_fit_checkpoint_whose_record_meets_a_database_outage_is_deleted_and_th
     assert storage.list(reconstruction_storage_key(rec_id, "checkpoint")) == []
 
 
+def test_a_canceled_fit_whose_checkpoint_at_the_cancel_met_its_lost_fit_writes_no_warning_on_its_job(db,
+                                                                                                       monkeypatch):
+    """A fit canceled after another job took it over (its lease lapsed): the checkpoint a canceled stage takes
+    (voxe_core's checkpoint_at_cancel) was refused, LeaseLost, and said on the job as a warning "the checkpoint at
+    the cancel could not be written (LeaseLost: ...): the earlier checkpoint stands", where the new owner's
+    checkpoint stands, not this run's earlier one. A run that lost its fit says no warning on the job; the job ends
+    canceled, the fit and its checkpoint are the new owner's."""
+    from sqlalchemy import select, update
+
+    from voxe_core.progress import Progress
+    from voxe_core.reconstruct import checkpoint_at_cancel
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, JobEvent, Reconstruction
+    from voxe_service.storage import get_storage, reconstruction_storage_key
+    from worker import runtime, tasks
+
+    storage, scene = get_storage(db), add_scene()
+    rec_id = add_reconstruction(scene)
+    job_id = add_job(scene, "queued", 0, reconstruction_id=rec_id)
+    new_owner = add_job(scene, "running", 0, "alive@host", "reconstruct", reconstruction_id=rec_id)
+    theirs = storage.put_bytes(reconstruction_storage_key(rec_id, "checkpoint-theirs-30.safetensors"), b"30").key
+    monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
+
+    def fit_taken_over_then_canceled(job, rec, settings, storage, lease, callbacks, checkpoint, device):
+        callbacks.on_progress(Progress("reconstruct", 10, 100))
+        with session_scope() as session:
+            session.execute(update(Reconstruction).where(Reconstruction.id == rec_id).values(
+                owner_job_id=new_owner, owner_run_token="theirs", checkpoint_key=theirs))
+            session.execute(update(Job).where(Job.id == job_id).values(cancel_requested=True))
+        checkpoint.write_bytes(b"the fit at 10")
+        checkpoint_at_cancel(callbacks.callbacks, "reconstruct",
+                             lambda: callbacks.callbacks.checkpoint_written(str(checkpoint)))
+        callbacks.callbacks.check_cancel("reconstruct")
+        raise AssertionError("the canceled fit went on")
+
+    monkeypatch.setattr(tasks, "_fit_grid", fit_taken_over_then_canceled)
+    tasks.reconstruct_task.apply(args=(job_id,))
+    job = job_row(job_id)
+    assert (job.state, job.message) == ("canceled", "canceled during reconstruct")
+    with session_scope() as session:
+        warnings = session.scalars(select(JobEvent.detail).where(JobEvent.job_id == job_id,
+                                                                 JobEvent.kind == "warning")).all()
+    assert warnings == []
+    rec = runtime.load_reconstruction(rec_id)
+    assert (rec.state, rec.owner_job_id, rec.checkpoint_key) == ("running", new_owner, theirs)
+    assert storage.list(reconstruction_storage_key(rec_id, "checkpoint")) == [theirs]
+
+
 def test_a_fit_checkpoint_replaced_by_the_next_owners_is_deleted(db, tmp_path):
     """The edit deleted the checkpoint a new one replaced, the fit did not: a fit taken over kept its killed owner's
     last checkpoint until the fit succeeded, and for good when it failed. It goes once the new owner records its

@@ -515,6 +515,7 @@ class StageCallbacks:
         self._last_report: Progress | None = None
         self._written: Progress | None = None
         self._store_checkpoint = on_checkpoint
+        self.lost = False  # a checkpoint refused as the run lost its job or fit: it says no more warnings
         self.peak_memory_gb: float | None = None
         self._peak_written: float | None = None
         self.callbacks = Callbacks(on_progress=self.on_progress, should_cancel=self.should_cancel,
@@ -525,8 +526,14 @@ class StageCallbacks:
         """Say what the stage warns of as a ``warning`` event (the timeline, its webhook, the CLI's line) and keep it
         in the message its progress reports carry, which had replaced it at the next write. In a database outage the
         event is skipped, as a progress write is (it had stopped the stage: a counted re-queue); the message stays
-        for the next progress write to carry."""
+        for the next progress write to carry. A run that lost its job or its fit (a checkpoint refused it) says
+        nothing: the checkpoint at a cancel refused so had said "the earlier checkpoint stands" on the job, where the
+        new owner's does."""
         text = text if stage == self.stage else f"{stage}: {text}"
+        if self.lost:
+            log.info("job %s: %s: not said on the job, as the run lost it or its fit: %s", self.job_id, self.stage,
+                     text)
+            return
         log.warning("job %s: %s: %s", self.job_id, self.stage, text)
         self.note = text if self.note is None else f"{self.note}; {text}"
         with outage_skipped(f"job {self.job_id}: {self.stage}'s warning event"):
@@ -540,17 +547,21 @@ class StageCallbacks:
         one it replaces goes. One whose record failed (refused: the job ended, was deleted or taken over meanwhile;
         or the database out of reach) is deleted: its key is its own, so it is never the recorded checkpoint, whose
         bytes it leaves as they were. A reconstruction's checkpoint is the fit's, recorded by the fit's owner
-        (``worker.tasks``)."""
-        with session_scope() as session:
-            _refuse_if_superseded(self.job_id, lambda: session.scalar(_token_query(self.job_id)))
-        iteration = int(self._last_report.iteration if self._last_report is not None else 0)
-        stored = self._store_checkpoint(path, iteration)
-        own = stored.key if isinstance(stored, StoredObject) else None
+        (``worker.tasks``), which raises :class:`LeaseLost` once another owns it."""
         try:
-            replaced = _record_checkpoint(self.job_id, self.stage, iteration, own)
-        except Exception:
-            if own is not None:
-                get_storage(self.settings).discard(own)
+            with session_scope() as session:
+                _refuse_if_superseded(self.job_id, lambda: session.scalar(_token_query(self.job_id)))
+            iteration = int(self._last_report.iteration if self._last_report is not None else 0)
+            stored = self._store_checkpoint(path, iteration)
+            own = stored.key if isinstance(stored, StoredObject) else None
+            try:
+                replaced = _record_checkpoint(self.job_id, self.stage, iteration, own)
+            except Exception:
+                if own is not None:
+                    get_storage(self.settings).discard(own)
+                raise
+        except (RunSuperseded, LeaseLost):
+            self.lost = True
             raise
         if replaced is not None and replaced != own:
             get_storage(self.settings).discard(replaced)
