@@ -655,6 +655,28 @@ def test_empty_frames(tmp_path):
     assert_names(err, "transforms_train.json", None)
 
 
+@pytest.mark.parametrize("change, frame, message", [
+    (lambda m: m.pop("frames"), None, "'frames' is missing (the list of frames, each with a 'file_path' and a "
+                                      "'transform_matrix')"),
+    (lambda m: m.update(frames=None), None, "'frames' must be a list, got None"),
+    (lambda m: m.update(frames={"r_0": {}}), None, "'frames' must be a list, got {'r_0': {}}"),
+    (lambda m: m["frames"].__setitem__(2, "train/r_2.png"), 2, "frame entry must be an object, got 'train/r_2.png'"),
+    (lambda m: m["frames"][1].update(file_path=None), 1, "'file_path' must be a non-empty string, got None"),
+    (lambda m: m["frames"][1].update(file_path=7), 1, "'file_path' must be a non-empty string, got 7"),
+])
+def test_a_malformed_frames_list_is_refused_showing_what_it_holds(tmp_path, change, frame, message):
+    """Regression: these had said "'frames' is missing or not a list", "frame entry is not an object" and
+    "'file_path' must be a non-empty string", never what the json held instead."""
+    root = make_synthetic(tmp_path / "s")
+    meta = json.loads((root / "transforms_train.json").read_text())
+    change(meta)
+    (root / "transforms_train.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError) as err:
+        load_scene(root)
+    assert str(err.value).endswith(message)
+    assert_names(err, "transforms_train.json", frame)
+
+
 def test_invalid_json(tmp_path):
     root = tmp_path / "s"
     root.mkdir()

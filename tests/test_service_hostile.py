@@ -132,7 +132,7 @@ HOSTILE_UPLOADS = {
                       "transforms_train.json: cannot read as JSON text"),
     "json not an object": (lambda d: _zip({**_dataset_entries(d), "transforms_train.json": b"[1, 2]"}), 422,
                            "top level must be a JSON object, got list"),
-    "no frames": (lambda d: _with_json(d, lambda m: m.pop("frames")), 422, "'frames' is missing or not a list"),
+    "no frames": (lambda d: _with_json(d, lambda m: m.pop("frames")), 422, "'frames' is missing (the list of frames"),
     "empty frames": (lambda d: _with_json(d, lambda m: m.update(frames=[])), 422, "empty split"),
     "frame without pose": (lambda d: _with_json(d, lambda m: m["frames"][1].pop("transform_matrix")), 422,
                            "frame 1 ('./train/r_4'): missing 'transform_matrix'"),

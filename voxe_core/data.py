@@ -205,8 +205,10 @@ def load_scene(
         meta = _read_json(json_path)
     where = _Where(json_path, label=json_path.relative_to(root).as_posix())
     frames = meta.get("frames")
+    if "frames" not in meta:
+        raise where("'frames' is missing (the list of frames, each with a 'file_path' and a 'transform_matrix')")
     if not isinstance(frames, list):
-        raise where("'frames' is missing or not a list")
+        raise where(f"'frames' must be a list, got {_shown(frames)}")
     if not frames:
         raise where("empty split: 'frames' has no entries")
     where.frames = frames
@@ -217,12 +219,12 @@ def load_scene(
     per_frame, paths, models = [], [], []
     for i, frame in enumerate(frames):
         if not isinstance(frame, dict):
-            raise where("frame entry is not an object", i)
+            raise where(f"frame entry must be an object, got {_shown(frame)}", i)
         for key in ("file_path", "transform_matrix"):
             if key not in frame:
                 raise where(f"missing '{key}'", i)
         if not isinstance(frame["file_path"], str) or not frame["file_path"]:
-            raise where("'file_path' must be a non-empty string", i)
+            raise where(f"'file_path' must be a non-empty string, got {_shown(frame['file_path'])}", i)
         if "\0" in frame["file_path"]:
             raise where("'file_path' contains a NUL character", i)
         if (unnamed := _unnameable(frame["file_path"])) is not None:
