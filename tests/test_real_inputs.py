@@ -657,6 +657,19 @@ def test_colmap_text_reads_what_colmap_reads_and_names_a_byte_order_mark(tmp_pat
         read_model(model)
 
 
+def test_colmap_text_keeps_an_image_name_as_written(tmp_path):
+    """Regression: NAME had been rebuilt from whitespace-split fields, so 'my  photo a.png' (as COLMAP writes it)
+    was read as 'my photo a.png', a file the capture does not hold. NAME is the rest of the line after CAMERA_ID
+    (COLMAP trims the line's ends)."""
+    model = write_colmap_model(tmp_path / "m", [("PINHOLE", 16, 12, [12.0, 12.0, 8.0, 6.0])],
+                               [("my  photo a.png", 0, pose_at(0)), ("b\t c.png", 0, pose_at(1))], binary=False)
+    assert [image.name for image in read_model(model)[1]] == ["my  photo a.png", "b\t c.png"]
+    lines = (model / "images.txt").read_text().splitlines()
+    (model / "images.txt").write_text("\n".join(line.replace(" ", "\t ", 9) + " \r" if line.endswith(".png") else line
+                                                for line in lines) + "\n")
+    assert [image.name for image in read_model(model)[1]] == ["my  photo a.png", "b\t c.png"]
+
+
 def test_colmap_points2d_lines_as_colmap_writes_them_are_not_parsed_value_by_value(tmp_path, monkeypatch):
     """The POINTS2D[] check had parsed every X, Y and POINT3D_ID, most of images.txt's read time; a line of plain
     decimals (COLMAP's) now passes in one match. Any other line is parsed value by value as before: it passes

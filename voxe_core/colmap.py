@@ -220,7 +220,7 @@ def _read_images_txt(path: Path) -> list[ColmapImage]:
     while lines and not lines[-1][1].strip():
         lines.pop()
     for (line, text), (points_line, points) in zip(lines[::2], lines[1::2] + [(0, "")]):
-        fields = text.split()
+        fields = text.split(maxsplit=9)  # NAME is the rest of the line, its runs of spaces kept
         if len(fields) < 10:
             raise ColmapError(f"line {line}: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, "
                               f"got {len(fields)} fields", path)
@@ -228,7 +228,7 @@ def _read_images_txt(path: Path) -> list[ColmapImage]:
         image_id = _parse(int, fields[0], "image id", line, path)
         pose = tuple(_parse(float, f, "pose value", line, path) for f in fields[1:8])
         camera_id = _parse(int, fields[8], "camera id", line, path)
-        name = " ".join(fields[9:])
+        name = fields[9].rstrip()
         images.append(ColmapImage(name, camera_id, _pose(pose, f"line {line}: image {image_id} ({name!r})", path)))
     return images
 
