@@ -670,6 +670,27 @@ def test_colmap_text_keeps_an_image_name_as_written(tmp_path):
     assert [image.name for image in read_model(model)[1]] == ["my  photo a.png", "b\t c.png"]
 
 
+def test_colmap_images_sharing_an_id_are_refused_naming_it(tmp_path):
+    """Regression: two images with one id were both kept (COLMAP refuses such a model: "Check failed:
+    images_.emplace(image_id, ...)")."""
+    model = small_model(tmp_path / "b")
+    whole = (model / "images.bin").read_bytes()
+    second = whole.index(b"b.png\0") - 64  # its IMAGE_ID, 4 + 7 * 8 + 4 bytes before its name
+    assert struct.unpack_from("<i", whole, second) == (2,)
+    (model / "images.bin").write_bytes(whole[:second] + struct.pack("<i", 1) + whole[second + 4:])
+    with pytest.raises(ColmapError, match=rf"^images.bin: image 1 \('b.png'\) at byte {second}: duplicate image id "
+                                          r"\('a.png' has it too\)$"):
+        read_model(model)
+    model = small_model(tmp_path / "t", binary=False)
+    lines = (model / "images.txt").read_text().splitlines()
+    second = next(i for i, line in enumerate(lines) if line.startswith("2 "))
+    lines[second] = "1" + lines[second][1:]
+    (model / "images.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(ColmapError, match=rf"^images.txt: line {second + 1}: duplicate image id 1 \('b.png'; line "
+                                          rf"{second - 1}'s 'a.png' has it too\)$"):
+        read_model(model)
+
+
 def test_colmap_points2d_lines_as_colmap_writes_them_are_not_parsed_value_by_value(tmp_path, monkeypatch):
     """The POINTS2D[] check had parsed every X, Y and POINT3D_ID, most of images.txt's read time; a line of plain
     decimals (COLMAP's) now passes in one match. Any other line is parsed value by value as before: it passes

@@ -149,13 +149,17 @@ def _read_cameras_bin(path: Path) -> dict[int, ColmapCamera]:
 
 
 def _read_images_bin(path: Path) -> list[ColmapImage]:
-    reader, images = _Bytes(path), []
+    reader, images, seen = _Bytes(path), [], {}
     for _ in range(reader.count(64, "images")):
         start = reader.at
         (image_id,) = reader.take("<i", "an image id")
         pose = reader.take("<7d", f"image {image_id}'s pose")
         (camera_id,) = reader.take("<i", f"image {image_id}'s camera id")
         name = reader.name()
+        if image_id in seen:
+            raise ColmapError(f"image {image_id} ({name!r}) at byte {start}: duplicate image id "
+                              f"({seen[image_id]!r} has it too)", path)
+        seen[image_id] = name
         points = reader.count(24, f"2-D points of image {image_id}")
         reader.at += 24 * points  # (x, y, point3D id) each: not needed
         images.append(ColmapImage(name, camera_id, _pose(pose, f"image {image_id} ({name!r}) at byte {start}", path)))
@@ -216,7 +220,7 @@ def _read_cameras_txt(path: Path) -> dict[int, ColmapCamera]:
 
 
 def _read_images_txt(path: Path) -> list[ColmapImage]:
-    lines, images = _text_lines(path), []
+    lines, images, seen = _text_lines(path), [], {}
     while lines and not lines[-1][1].strip():
         lines.pop()
     for (line, text), (points_line, points) in zip(lines[::2], lines[1::2] + [(0, "")]):
@@ -229,6 +233,10 @@ def _read_images_txt(path: Path) -> list[ColmapImage]:
         pose = tuple(_parse(float, f, "pose value", line, path) for f in fields[1:8])
         camera_id = _parse(int, fields[8], "camera id", line, path)
         name = fields[9].rstrip()
+        if image_id in seen:
+            raise ColmapError(f"line {line}: duplicate image id {image_id} ({name!r}; line {seen[image_id][0]}'s "
+                              f"{seen[image_id][1]!r} has it too)", path)
+        seen[image_id] = line, name
         images.append(ColmapImage(name, camera_id, _pose(pose, f"line {line}: image {image_id} ({name!r})", path)))
     return images
 
