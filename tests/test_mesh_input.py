@@ -7,6 +7,7 @@ import logging
 import math
 import re
 import os
+import warnings
 from contextlib import ExitStack, contextmanager
 
 
@@ -202,7 +203,8 @@ def _texcoord_ply(header_comment: str = "") -> str:
             + "".join(f"3 {face} 6 0.5 0.5 0.5 0.5 0.5 0.5\n" for face in ("0 2 1", "0 1 3", "0 3 2", "1 2 3")))
 
 
-@pytest.mark.filterwarnings("ignore:lost.ply. the texture its header names:UserWarning")  # (its own test below)
+@pytest.mark.filterwarnings("ignore:lost.ply. the texture its header names:UserWarning")  # (their own tests below)
+@pytest.mark.filterwarnings("ignore:lost.obj. the material library its mtllib names:UserWarning")
 def test_uvs_without_a_material_the_file_gives_load_uncoloured(tmp_path):
     """Texture coordinates without a material the file gives (no mtllib, its .mtl missing, a usemtl the library
     does not define; a PLY's texcoord without its TextureFile) had loaded as a 2×2 texture of trimesh's stand-in grey
@@ -223,6 +225,23 @@ def test_uvs_without_a_material_the_file_gives_load_uncoloured(tmp_path):
         faces = np.arange(len(mesh.faces))
         assert np.allclose(mesh.albedo(faces, np.full((len(faces), 3), 1 / 3)), DEFAULT_ALBEDO), name
         assert shade_mesh(mesh).shading is not None, name
+
+
+def test_an_obj_whose_material_library_is_missing_warns_naming_it(tmp_path):
+    """Regression: an OBJ whose mtllib names a file not beside it (an upload's .mtl under another name) loaded grey
+    without a word; a library found (by its base name, in any case) gives no warning."""
+    (tmp_path / "Model_v2.mtl").write_text("newmtl red\nKd 1 0 0\n")
+    (tmp_path / "lost.obj").write_text("mtllib model.mtl\n" + CUBE_OBJ)
+    with pytest.warns(UserWarning) as caught:
+        mesh = load_mesh(tmp_path / "lost.obj")
+    assert [str(warning.message) for warning in caught] == [
+        "lost.obj: the material library its mtllib names, 'model.mtl', is not found beside it; the mesh loads "
+        "without its materials"]
+    assert not mesh.has_colour and mesh.colour is None
+    (tmp_path / "found.obj").write_text("mtllib C:\\exports\\MODEL_V2.MTL\n" + CUBE_OBJ)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert np.allclose(load_mesh(tmp_path / "found.obj").colour, (1, 0, 0))
 
 
 def test_a_ply_whose_texture_file_is_missing_warns_once_naming_it(tmp_path, caplog):

@@ -155,8 +155,8 @@ def load_mesh(
     without vt) whatever the file's materials; without one, an OBJ's .mtl (a PLY's TextureFile, its vertex or face
     colours) colours it as trimesh reads it (its images and Kd packed into one atlas, ``_atlas``, where parts with
     neither are ``DEFAULT_ALBEDO`` or their vertex colours; a single material's own Kd is the mesh's one ``colour``
-    when it names no image); with no image or Kd the file wrote (its .mtl missing, say), the mesh is uncoloured as
-    one without vt is.
+    when it names no image); with no image or Kd the file wrote (its .mtl missing, say: a warning names it), the mesh
+    is uncoloured as one without vt is.
 
     ``up_axis``: the file's up axis ('y' for OBJ/glTF exports, 'z' for CAD and
     most scanners), turned onto +z. The box is centred on the origin and its
@@ -197,6 +197,9 @@ def load_mesh(
         raise MeshError(f"{path.name}: cannot read as a mesh: {e}") from e
     if library.problem:
         raise MeshError(library.problem)
+    if library.missing is not None:  # trimesh drops it without a word, the mesh grey
+        warnings.warn(f"{path.name}: the material library its mtllib names, {library.missing!r}, is not found beside "
+                      "it; the mesh loads without its materials", stacklevel=2)
     if unread_texture.error is not None:
         warnings.warn(f"{path.name}: the texture its header names (TextureFile) cannot be read "
                       f"({type(unread_texture.error).__name__}: {unread_texture.error}); the mesh loads without it",
@@ -686,6 +689,7 @@ class _MtlBySpec(Mapping):
     def __init__(self, files):
         self.files = files
         self.problem: str | None = None
+        self.missing: str | None = None  # the first .mtl looked up and not found, for ``load_mesh`` to warn of
 
     def __getitem__(self, name: str) -> bytes:
         data = self._file(name)
@@ -703,6 +707,8 @@ class _MtlBySpec(Mapping):
             folder = Path(self.files.parent)
             match = next((path.name for path in sorted(folder.iterdir()) if path.name.lower() == base), None)
             if match is None:
+                if base.endswith(".mtl"):
+                    self.missing = self.missing or name.strip()
                 raise
             return self.files[match]
 
