@@ -227,6 +227,33 @@ def test_uvs_without_a_material_the_file_gives_load_uncoloured(tmp_path):
         assert shade_mesh(mesh).shading is not None, name
 
 
+_COLOURED_PLY = ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+                 "{vertex}element face 1\nproperty list uchar int vertex_indices\n{face}end_header\n"
+                 "0 0 0{v0}\n1 0 0{v1}\n0 1 0{v1}\n3 0 1 2{f}\n")
+_FLOAT_RGB = "property float red\nproperty float green\nproperty float blue\n"
+
+
+@pytest.mark.parametrize("name, text, message", [
+    ("nan.obj", "v 0 0 0 nan 0.5 0.5\nv 1 0 0 1 0 0\nv 0 1 0 0 1 0\nf 1 2 3\n",
+     "nan.obj: line 1, 'v 0 0 0 nan 0.5 0.5': its vertex colour 'nan 0.5 0.5' is not finite (NaN or Inf), which the "
+     "loader would read as black"),
+    ("inf.obj", "v 0 0 0 1 0 0\nv 1 0 0 0 1 0\nv 0 1 0 0 0 -inf\nf 1 2 3\n",
+     "inf.obj: line 3, 'v 0 1 0 0 0 -inf': its vertex colour '0 0 -inf' is not finite"),
+    ("vertex.ply", _COLOURED_PLY.format(vertex=_FLOAT_RGB, face="", v0=" 0.5 nan 0.5", v1=" 1 0 0", f=""),
+     "vertex.ply: its vertex colours (green) contain NaN or Inf, which the loader would read as black"),
+    ("face.ply", _COLOURED_PLY.format(vertex="", face=_FLOAT_RGB, v0="", v1="", f=" nan 0 0"),
+     "face.ply: its face colours (red) contain NaN or Inf, which the loader would read as black"),
+])
+def test_a_colour_that_is_nan_or_inf_is_refused_naming_it(tmp_path, name, text, message):
+    """Regression: a NaN vertex (or face) colour had loaded as black without a word."""
+    (tmp_path / name).write_text(text)
+    with pytest.raises(MeshError) as err:
+        load_mesh(tmp_path / name)
+    assert str(err.value).startswith(message)
+    (tmp_path / name).write_text(re.sub(r"-?(nan|inf)", "0.25", text))  # a finite colour loads
+    assert load_mesh(tmp_path / name).has_colour
+
+
 def test_an_obj_whose_material_library_is_missing_warns_naming_it(tmp_path):
     """Regression: an OBJ whose mtllib names a file not beside it (an upload's .mtl under another name) loaded grey
     without a word; a library found (by its base name, in any case) gives no warning."""

@@ -197,6 +197,8 @@ def load_mesh(
         raise MeshError(f"{path.name}: cannot read as a mesh: {e}") from e
     if library.problem:
         raise MeshError(library.problem)
+    if texture is None and (fault := _ply_colour_fault(parts)):
+        raise MeshError(f"{path.name}: {fault}")
     if library.missing is not None:  # trimesh drops it without a word, the mesh grey
         warnings.warn(f"{path.name}: the material library its mtllib names, {library.missing!r}, is not found beside "
                       "it; the mesh loads without its materials", stacklevel=2)
@@ -292,6 +294,8 @@ _OBJ_WORDS = {**{keyword: re.compile(rf"\n{keyword} (.*)") for keyword in OBJ_CO
               "f": re.compile(r"\nf(?:[^\S\n](.*)|$)", re.M)}
 """The words after the keyword of each line of a text (a newline put first) that trimesh reads as that keyword's
 (a v, vt or vn line where a space follows it; ``_OBJ_UNREAD`` refuses the rest)."""
+_NOT_FINITE = re.compile(r"(?i)nan|inf")
+"""A NaN or Inf in number words (and anything holding those letters, checked value by value then)."""
 _OBJ_UNREAD = re.compile(r"\n(?:([ \t\r\v\f]+)(vt|vn|v|f)(?=\s)|(vt|vn|v|f)([\t\r\v\f]))")
 """The newline before a v, vt, vn or f line trimesh does not read as one: indented, or a tab after its keyword."""
 _OBJ_LONE_CR = re.compile(r"\r[ \t\v\f]*(?:vt|vn|v|f|usemtl)\s")
@@ -361,6 +365,8 @@ def _obj_fault(path: Path, textured: bool = False) -> str | None:
             fault := first(tuple(OBJ_CORNER_FIELDS), _obj_number_fault)):
         return fault
     if _OBJ_BAD_FACE.search("\n" + faces) and (fault := first(("f",), _obj_face_fault)):
+        return fault
+    if _NOT_FINITE.search(" ".join(words["v"])) and (fault := first(("v",), _obj_colour_fault)):
         return fault
     corners = _corner_fields(faces)
     vertices, *fields = _corners_giving(corners)
@@ -461,6 +467,27 @@ def _obj_comment_fault(words: str) -> str:
     """A line's comment after its values, ``words`` (which hold a #), said."""
     return (f"a comment after its values, {words[words.index('#'):][:20]!r}, which the loader reads as values: put it "
             "on a line of its own")
+
+
+def _obj_colour_fault(words: str) -> str | None:
+    """Why a v line's ``words`` hold a vertex colour the loader would read as black (NaN, Inf), or None."""
+    colour = words.split()[3:]
+    return None if np.isfinite(np.array(colour, dtype=np.float64)).all() else (
+        f"its vertex colour {' '.join(colour)!r} is not finite (NaN or Inf), which the loader would read as black")
+
+
+def _ply_colour_fault(parts: list) -> str | None:
+    """Which element of a PLY's (trimesh's raw read of it, in ``parts``' metadata) has a colour value that is NaN or
+    Inf, which trimesh turns into black without a word, or None."""
+    for part in parts:
+        for element, read in getattr(part, "metadata", {}).get("_ply_raw", {}).items():
+            data = read.get("data")
+            names = data.dtype.names or () if isinstance(data, np.ndarray) else tuple(data or ())
+            for name in (name for name in ("red", "green", "blue", "alpha") if name in names):
+                values = np.asarray(data[name])
+                if values.dtype.kind == "f" and not np.isfinite(values).all():
+                    return f"its {element} colours ({name}) contain NaN or Inf, which the loader would read as black"
+    return None
 
 
 def _obj_short_vt_fault(words: str) -> str | None:
