@@ -254,6 +254,24 @@ def test_a_colour_that_is_nan_or_inf_is_refused_naming_it(tmp_path, name, text, 
     assert load_mesh(tmp_path / name).has_colour
 
 
+def test_a_ply_of_triangle_strips_is_refused_saying_so(tmp_path):
+    """Regression: a PLY whose faces are a 'tristrips' element (as VCG and some scanners write them) was refused as
+    "no triangles in the file", and beside a face element its strips were dropped without a word. An empty
+    tristrips element is nothing lost."""
+    head = "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
+    points, strips = "0 0 0\n1 0 0\n0 1 0\n1 1 0\n", "element tristrips {}\nproperty list int int vertex_indices\n"
+    faces = "element face 1\nproperty list uchar int vertex_indices\n"
+    (tmp_path / "strips.ply").write_text(head + strips.format(1) + "end_header\n" + points + "4 0 1 2 3\n")
+    (tmp_path / "both.ply").write_text(head + faces + strips.format(1) + "end_header\n" + points + "3 0 1 2\n"
+                                       "3 1 3 2\n")
+    for name in ("strips.ply", "both.ply"):
+        with pytest.raises(MeshError, match=rf"^{name}: its faces are stored as triangle strips \(a 'tristrips' "
+                                            r"element\), which are not read: save the mesh with a 'face' element"):
+            load_mesh(tmp_path / name)
+    (tmp_path / "none.ply").write_text(head + faces + strips.format(0) + "end_header\n" + points + "3 0 1 2\n")
+    assert len(load_mesh(tmp_path / "none.ply").faces) == 1
+
+
 def test_an_obj_whose_material_library_is_missing_warns_naming_it(tmp_path):
     """Regression: an OBJ whose mtllib names a file not beside it (an upload's .mtl under another name) loaded grey
     without a word; a library found (by its base name, in any case) gives no warning."""

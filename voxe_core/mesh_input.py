@@ -163,8 +163,9 @@ def load_mesh(
     largest half-extent made ``extent``, or less where the mesh would reach past
     ``VIEW_RADIUS`` (``frame`` 1: see ``MESH_FRAMES``). Raises ``MeshError`` naming the file for a mesh or texture not
     there (or a folder, or an empty file), for a malformed file (``ply_header.ply_fault``, ``_obj_fault``: what in it,
-    where), for unreadable, triangle-less, degenerate or non-finite meshes (vertices or UVs), for one of more than
-    ``MAX_MESH_FACES`` triangles, for a texture without UVs and for an .mtl's Kd that is neither one number nor three.
+    where), for unreadable, triangle-less, degenerate or non-finite meshes (vertices, UVs or colours), for a PLY's
+    triangle strips (not read), for one of more than ``MAX_MESH_FACES`` triangles, for a texture without UVs and for
+    an .mtl's Kd that is neither one number nor three.
     """
     import trimesh
     from PIL import Image
@@ -211,6 +212,9 @@ def load_mesh(
         faces = np.asarray(getattr(loaded, "faces", np.empty((0, 3))), dtype=np.int64)
     else:
         vertices, faces, uv = _joined_parts(parts)
+    if any(part.metadata.get("_ply_raw", {}).get("tristrips", {}).get("length") for part in parts):
+        raise MeshError(f"{path.name}: its faces are stored as triangle strips (a 'tristrips' element), which are "
+                        "not read: save the mesh with a 'face' element (triangles or polygons)")
     if len(faces) == 0 or len(vertices) < 3:
         raise MeshError(f"{path.name}: no triangles in the file")
     if len(faces) > MAX_MESH_FACES:  # a binary PLY's polygons, say, which the upload's check cannot count cheaply
