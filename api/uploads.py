@@ -384,6 +384,18 @@ OBJ or a PLY, one is a 422, where it had been dropped and the mesh arrived witho
 mesh (a licence, a scan's data) are no texture and stay ignored."""
 
 
+def _mtllib_names(obj: Path) -> list[str]:
+    """The material libraries the OBJ's ``mtllib`` lines name, each the rest of its line (as trimesh reads it)."""
+    with open(obj, "rb") as handle:
+        return [words[1].strip() for line in handle
+                if len(words := line.decode("utf-8", "replace").split(None, 1)) == 2 and words[0] == "mtllib"]
+
+
+def _base_name(name: str) -> str:
+    """The file name the loader finds a library by (``mesh_input._MtlBySpec``): after either separator, any case."""
+    return re.split(r"[\\/]", name.strip())[-1].lower()
+
+
 def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str = "y") -> Path | None:
     """The upload's mesh (and texture, and material library) copied to ``dest/mesh/`` with its ``shading`` and
     ``up_axis`` options for the ingest, or None when it is not a mesh.
@@ -394,7 +406,7 @@ def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str
     coordinates, which a PLY with an image must declare) and for an OBJ at most one .mtl. The texture is kept as
     ``texture.<ext>``, whatever the OBJ's .mtl or the PLY's TextureFile comment call it. The .mtl keeps its file name,
     which the OBJ's ``mtllib`` names: the loader looks it up (or its base name, in any case) inside the mesh's folder
-    only. A dataset folder is no mesh even with a mesh in it (COLMAP's fused.ply, say).
+    only, so an .mtl under another name (sent without a texture) is a 422. A dataset folder is no mesh even with a mesh in it (COLMAP's fused.ply, say).
     """
     if is_dataset_folder(root):
         return None
@@ -436,6 +448,12 @@ def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str
         if len(libraries) > 1:
             raise UploadError(f"the OBJ comes with several material libraries ({names(libraries)}); send one .mtl")
         library = (libraries or [None])[0]
+        named = _mtllib_names(mesh) if library is not None and texture is None else []  # (a texture: unread)
+        if named and library.name.lower() not in {_base_name(name) for name in named}:
+            raise UploadError(f"the OBJ's mtllib names the material library {named[0]!r}, but the upload's is "
+                              f"{names([library])}: the loader would not find it, and the mesh would load grey; "
+                              f"rename the .mtl to {_base_name(named[0])!r}, or write 'mtllib {library.name}' in the "
+                              "OBJ")
     kept_as = {mesh: f"mesh{mesh.suffix.lower()}"}
     if texture is not None:
         kept_as[texture] = f"texture{texture.suffix.lower()}"

@@ -1083,6 +1083,30 @@ def test_a_bad_mesh_upload_names_the_problem_and_leaves_nothing(tmp_path):
     assert list((tmp_path / "work" / "uploads").iterdir()) == []
 
 
+def test_a_mesh_upload_whose_mtl_is_not_the_one_mtllib_names_is_refused_naming_both(tmp_path):
+    """Regression: an OBJ sent with 'Model_v2.mtl' for its 'mtllib model.mtl' was stored, and the ingest's mesh
+    loaded grey without a word. The library found by its base name in another case (as the loader finds it), or
+    beside a texture (which colours the mesh instead), is taken."""
+    from api.uploads import UploadError
+
+    (tmp_path / "kd.mtl").write_text("newmtl red\nKd 1 0 0\n")
+    (tmp_path / "m.obj").write_text("mtllib model.mtl\n" + CUBE_OBJ)
+    with pytest.raises(UploadError) as info, _stage(tmp_path, [("cube/m.obj", tmp_path / "m.obj"),
+                                                               ("cube/Model_v2.mtl", tmp_path / "kd.mtl")]):
+        pass
+    assert (info.value.status, str(info.value)) == (422, (
+        "the OBJ's mtllib names the material library 'model.mtl', but the upload's is 'Model_v2.mtl': the loader "
+        "would not find it, and the mesh would load grey; rename the .mtl to 'model.mtl', or write 'mtllib "
+        "Model_v2.mtl' in the OBJ"))
+    (tmp_path / "win.obj").write_text("mtllib C:\\exports\\MODEL.MTL\n" + CUBE_OBJ)
+    _, stored, _, _ = _ingest_mesh_upload(tmp_path / "found", [("win.obj", tmp_path / "win.obj"),
+                                                               ("model.mtl", tmp_path / "kd.mtl")])
+    assert "mesh/model.mtl" in stored
+    with _stage(tmp_path, [("m.obj", tmp_path / "m.obj"), ("Model_v2.mtl", tmp_path / "kd.mtl"),
+                           ("skin.png", SPOT / "spot_texture.png")]):
+        pass
+
+
 # ------------------------------------------------------------------ baked shading (meshes without colour)
 def _unit_normals(vertices: np.ndarray) -> np.ndarray:
     return vertices / np.linalg.norm(vertices, axis=1, keepdims=True)
