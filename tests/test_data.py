@@ -677,6 +677,36 @@ def test_a_malformed_frames_list_is_refused_showing_what_it_holds(tmp_path, chan
     assert_names(err, "transforms_train.json", frame)
 
 
+def test_decoding_an_image_holds_one_float_copy_of_it(tmp_path):
+    """Regression: the upload check's load (max_images=1, downsample 8) had held three float32 copies of the first
+    image at full size (its pixels, them divided by 255, them premultiplied): 2 GB for a 50-megapixel photo, under
+    VOXE_MAX_IMAGE_PIXELS. Now one (and the 8-bit one Pillow's pixels pass through); the pixels are as before."""
+    import tracemalloc
+
+    import torch.nn.functional as F
+
+    rgba = np.random.default_rng(0).integers(0, 256, (800, 1000, 4), dtype=np.uint8)
+    root = make_synthetic(tmp_path / "s", n=1)
+    Image.fromarray(rgba, "RGBA").save(root / "train" / "r_0.png")
+    pixels = rgba.astype(np.float64) / 255
+    pixels[..., :3] *= pixels[..., 3:]
+    planes = torch.from_numpy(pixels).permute(2, 0, 1)[None]
+    references = {"box": pixels.reshape(100, 8, 125, 8, 4).mean(axis=(1, 3)),
+                  "bilinear": F.interpolate(planes, size=(100, 125), mode="bilinear", antialias=True,
+                                            align_corners=False)[0].permute(1, 2, 0).clamp(0, 1).numpy()}
+    for resample, boxed in references.items():
+        tracemalloc.start()
+        try:
+            scene = load_scene(root, "train", downsample=8, max_images=1, resample=resample)
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert peak < 1.4 * rgba.size * 4, (resample, peak / (rgba.size * 4))
+        expected = np.clip(boxed[..., :3] + 1 - boxed[..., 3:], 0, 1)
+        assert np.allclose(scene.images[0].numpy(), expected, atol=1e-5), resample
+        assert np.allclose(scene.alphas[0].numpy(), boxed[..., 3], atol=1e-5), resample
+
+
 def test_invalid_json(tmp_path):
     root = tmp_path / "s"
     root.mkdir()

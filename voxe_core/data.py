@@ -637,7 +637,9 @@ def image_pixels(image: Image.Image, alpha: bool = True) -> np.ndarray:
         keyed = (rgb == np.array(image.info["transparency"]) >> 8).all(axis=-1)
         return np.concatenate([rgb / np.float32(255.0), (~keyed).astype(np.float32)[..., None]], axis=2)
     has_alpha = alpha and ("A" in image.mode or "a" in image.mode or "transparency" in image.info)
-    return np.asarray(image.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
+    pixels = np.asarray(image.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32)
+    pixels /= 255.0  # in place: a second float32 copy of a 50-megapixel image is 800 MB more
+    return pixels
 
 
 def _read_image(root: Path, file_path: str, where: _Where, frame: int) -> tuple[np.ndarray, Path, int | None]:
@@ -711,10 +713,11 @@ def _composite_downsampled(arr: np.ndarray, factor: int, resample: str) -> tuple
 
     Filtering premultiplied colour keeps transparent pixels' (arbitrary) colour out of
     the edges; it equals compositing first and filtering after, without 8-bit rounding.
+    ``arr`` is premultiplied in place: the image at full size, whose copies had tripled the upload check's memory.
     """
     h, w = arr.shape[0] // factor, arr.shape[1] // factor
     if arr.shape[2] == 4:
-        arr = np.concatenate([arr[..., :3] * arr[..., 3:], arr[..., 3:]], axis=2)
+        arr[..., :3] *= arr[..., 3:]
     if factor > 1:
         arr = arr[: h * factor, : w * factor]
         if resample == "box":
