@@ -41,10 +41,12 @@ def inline_sources(text: str, tag: str) -> str:
 
 
 # blob: for the media app.js fetches with the key (model-viewer fetches its GLB's URL too, and makes data: and
-# blob: textures); the <style> element in model-viewer's shadow DOM template by its hash.
+# blob: textures); the <style> element in model-viewer's shadow DOM template by its hash. form-action, which
+# default-src does not cover: 'none', as app.js sends every form itself (a form injected into the page, or one of
+# its own submitted before app.js ran, had been free to send its fields anywhere).
 UI_POLICY = (f"default-src 'self'; style-src 'self' {inline_sources(MODEL_VIEWER.read_text(), 'style')}; "
              "img-src 'self' blob: data:; media-src 'self' blob:; connect-src 'self' blob:; object-src 'none'; "
-             "base-uri 'none'; frame-ancestors 'none'")
+             "base-uri 'none'; form-action 'none'; frame-ancestors 'none'")
 
 
 @router.api_route("/", methods=["GET", "HEAD"])
@@ -74,8 +76,9 @@ def mount(app: FastAPI) -> None:
                                swagger_favicon_url=f"{SWAGGER_UI}/favicon-32x32.png",
                                swagger_ui_parameters={"validatorUrl": None})  # its badge is an image from swagger.io
     docs_policy = (f"default-src 'self'; script-src 'self' {inline_sources(docs.body.decode(), 'script')}; "
-                   # blob: the images "Try it out" shows (an artifact's PNG)
-                   "img-src 'self' data: blob:; object-src 'none'; base-uri 'none'; frame-ancestors 'none'")
+                   # blob: the images "Try it out" shows (an artifact's PNG); form-action: a form sends to this origin
+                   "img-src 'self' data: blob:; object-src 'none'; base-uri 'none'; form-action 'self'; "
+                   "frame-ancestors 'none'")
 
     @app.api_route("/docs", methods=["GET", "HEAD"], include_in_schema=False)
     def swagger_ui() -> HTMLResponse:

@@ -40,6 +40,13 @@ def test_pages_forbid_framing_and_foreign_code_and_answer_head(client):
     assert "img-src 'self' data: blob:" in docs_policy  # Swagger UI shows an image answer from a blob: URL
 
 
+def test_no_form_of_a_page_sends_its_fields_elsewhere(client):
+    """form-action, which default-src does not cover, had been in neither policy: a form injected into a page (or one
+    of the UI's own submitted before app.js ran) could send its fields to any site. The UI sends each form itself."""
+    assert "form-action 'none'" in client.get("/").headers["content-security-policy"].split("; ")
+    assert "form-action 'self'" in client.get("/docs").headers["content-security-policy"].split("; ")
+
+
 def test_the_page_served_as_a_static_file_carries_the_ui_s_policy_too(client):
     """The page is also /static/index.html, which had been served with no Content-Security-Policy at all."""
     for path in ("/static/index.html", "/static/app.js"):
