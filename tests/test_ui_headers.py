@@ -99,6 +99,7 @@ class PageControls(HTMLParser):
         self.open_labels = 0
         self.labelled_ids: set[str] = set()
         self.fields: list[tuple[str, bool]] = []
+        self.field_attributes: list[dict] = []
         self.error_slots: list[dict] = []
 
     def handle_starttag(self, tag, attrs):
@@ -109,6 +110,7 @@ class PageControls(HTMLParser):
         elif tag in ("input", "select", "textarea") and attributes.get("type") != "hidden":
             self.fields.append((attributes.get("id") or attributes.get("name"),
                                 bool(self.open_labels or attributes.get("aria-label"))))
+            self.field_attributes.append(attributes)
         if "data-error-for" in attributes or attributes.get("id") in STATUS_LINES:
             self.error_slots.append(attributes)
 
@@ -128,3 +130,22 @@ def test_every_field_is_labelled_and_every_error_is_announced(client):
     assert {slot.get("id") for slot in page.error_slots} >= set(STATUS_LINES)
     assert [slot.get("data-error-for") or slot["id"] for slot in page.error_slots
             if slot.get("aria-live") != "polite"] == []
+
+
+def test_each_field_s_error_is_read_with_it(client):
+    """A field's error slot (and the key field's status line) is its description (aria-describedby): a screen reader
+    moving to a field refused had read nothing of why, the slot being no part of the field. A slot is a field's when
+    it is named by the field's name (a 422's loc: "prompt", "params.iterations"); the upload's, by its three file
+    fields."""
+    page = PageControls()
+    page.feed(client.get("/").text)
+    slot_ids = {slot.get("data-error-for") or slot["id"]: slot.get("id") for slot in page.error_slots}
+    described = {}
+    for field in page.field_attributes:
+        name = field.get("name")
+        slot = ("upload" if field.get("type") == "file" else "key-state" if field.get("id") == "api-key"
+                else next((s for s in (name, f"params.{name}") if s in slot_ids), None))
+        if slot is not None:
+            described[field.get("id") or f"{name}={field.get('value')}"] = (slot_ids[slot], field.get("aria-describedby"))
+    assert len(described) == 14
+    assert {field: ids for field, ids in described.items() if ids[0] is None or ids[0] != ids[1]} == {}
