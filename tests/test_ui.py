@@ -875,6 +875,37 @@ def test_a_refused_key_is_not_asked_with_again_until_another_is_used(live, brows
         assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204  # the other tests expect their own only
 
 
+def test_an_api_with_authentication_off_refusing_the_page_does_not_ask_for_a_key(live, browser, tmp_path,
+                                                                                 monkeypatch):
+    """With authentication off the API serves its own machine only: the page opened through a proxy (or on another
+    address) is refused 401 whatever key it sends. The page had said "a key is needed: enter one and Use it", and
+    then, of any key entered, "this key is refused"."""
+    from fastapi.testclient import TestClient
+
+    from service_helpers import reset_service_caches, service_env
+
+    for key, value in service_env(tmp_path, VOXE_AUTH="off").items():
+        monkeypatch.setenv(key, value)
+    reset_service_caches()
+    from api.main import create_app
+
+    with TestClient(create_app()) as client:  # the API's own answer to a relayed request
+        refusal = client.get("/v1/jobs", headers={"X-Forwarded-For": "192.0.2.7"})
+    reset_service_caches()
+    assert refusal.status_code == 401
+    svc, token, _archive = live
+    driver = browser
+    answer = {"status": 401, "type": "application/json", "body": refusal.text}
+    for key in ("", token):
+        driver.get(f"{svc.base}/")
+        faults(driver, {"/v1/jobs?": answer, "/v1/scenes?": answer})
+        use_key(driver, key)
+        wait_until(lambda: "authentication is off" in text(driver, "#key-state"), 10, what="the refusal said")
+        assert text(driver, "#key-state") == "no key is asked (authentication is off): see why beside the job list"
+        assert text(driver, '[data-error-for="list"]') == f"401: {refusal.json()['detail']}"
+    faults(driver, {})
+
+
 def test_a_key_used_while_the_refused_one_s_job_list_is_read_is_not_said_refused(live, browser):
     """The key-less page's job list still on its way when a good key is used: that page's scenes, refused for no
     key, had named the good key "refused", the page showing that key's jobs beside it."""

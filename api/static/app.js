@@ -570,6 +570,10 @@ async function showJob(jobId, signal) {
  * is refused again. */
 const KEY_REFUSED = new Set([401, 403]);
 const keyRefused = (error) => error instanceof ApiError && KEY_REFUSED.has(error.status);
+/** Whether a refusal is an API's with authentication off, serving only its own machine (api/auth.py's RequireKey:
+ * the page opened on another address, or through a proxy): no key is read, so none helps (the page had said "a key
+ * is needed: enter one", then "this key is refused" of any key entered). */
+const authOff = (error) => /^authentication is off\b/.test(error.message);
 
 /** Whether a failed request may succeed sent again: it got no answer (fetch's TypeError), or a 5xx or 429. */
 const transient = (error) => error instanceof TypeError
@@ -903,8 +907,11 @@ async function route() {
     // A key used meanwhile aborted this page: its scenes' refusal was for the old key (the new one had been named
     // refused).
     if (signal.aborted) return;
-    if (keyRefused(jobsFailure) || keyRefused(scenesFailure)) {  // (both had been asked again every 3 s, for good)
-      $("#key-state").textContent = `${apiKey() ? "this key is refused" : "a key is needed"}: enter one and Use it`;
+    const refused = [jobsFailure, scenesFailure].find(keyRefused);
+    if (refused) {  // (both had been asked again every 3 s, for good)
+      $("#key-state").textContent = authOff(refused)
+        ? "no key is asked (authentication is off): see why beside the job list"
+        : `${apiKey() ? "this key is refused" : "a key is needed"}: enter one and Use it`;
       return;
     }
     await sleep(retryWait(JOB_LIST_POLL_MS, jobsFailure, scenesFailure), signal);
