@@ -906,6 +906,25 @@ def test_an_api_with_authentication_off_refusing_the_page_does_not_ask_for_a_key
     faults(driver, {})
 
 
+def test_a_job_page_opened_in_a_new_tab_asks_for_the_key_and_loads_with_it(live, browser):
+    """A job's link opened in a new tab (a middle click) has no key: sessionStorage is the tab's, and the key is kept
+    nowhere longer. The job page refused 401 now says a key is needed, as the home page does, and loads once one is
+    used; it had said "no key" only, beside the API's 401."""
+    svc, token, _archive = live
+    driver = browser
+    driver.get(f"{svc.base}/")
+    driver.execute_script("sessionStorage.removeItem('voxe.apiKey')")  # a new tab's storage
+    driver.get(f"{svc.base}/#/jobs/not-a-job")
+    driver.refresh()
+    wait_until(lambda: text(driver, '[data-error-for="stream"]').startswith("401: missing API key"), 10,
+               what="the job page refused")
+    assert text(driver, "#key-state") == "a key is needed: enter one and Use it"
+    use_key(driver, token)
+    wait_until(lambda: text(driver, '[data-error-for="stream"]').startswith("404: "), 10,
+               what="the job asked for with the key")
+    assert text(driver, "#key-state") == "key set for this session"
+
+
 def test_a_key_used_while_the_refused_one_s_job_list_is_read_is_not_said_refused(live, browser):
     """The key-less page's job list still on its way when a good key is used: that page's scenes, refused for no
     key, had named the good key "refused", the page showing that key's jobs beside it."""

@@ -575,6 +575,14 @@ const keyRefused = (error) => error instanceof ApiError && KEY_REFUSED.has(error
  * is needed: enter one", then "this key is refused" of any key entered). */
 const authOff = (error) => /^authentication is off\b/.test(error.message);
 
+/** Say beside the key field what a refusal for the key asks for (``where``: where the API's reason is shown). The
+ * job page says it too: opened in a new tab (a middle click on a job's link), which has no key (sessionStorage is
+ * the tab's, and kept nowhere longer: the key is a secret), it had said "no key" only. */
+function sayKeyRefused(error, where) {
+  $("#key-state").textContent = authOff(error) ? `no key is asked (authentication is off): see why ${where}`
+    : `${apiKey() ? "this key is refused" : "a key is needed"}: enter one and Use it`;
+}
+
 /** Whether a failed request may succeed sent again: it got no answer (fetch's TypeError), or a 5xx or 429. */
 const transient = (error) => error instanceof TypeError
   || (error instanceof ApiError && (error.status >= 500 || error.status === 429));
@@ -593,6 +601,7 @@ async function openJob(encodedId, signal) {
       if (signal.aborted) return;
       if (!transient(error)) {  // the job, or the key, is wrong (or the URL's id is no URI-encoded text)
         showApiError(error, "stream");
+        if (keyRefused(error)) sayKeyRefused(error, "below");
         return;
       }
       failure = error;
@@ -909,9 +918,7 @@ async function route() {
     if (signal.aborted) return;
     const refused = [jobsFailure, scenesFailure].find(keyRefused);
     if (refused) {  // (both had been asked again every 3 s, for good)
-      $("#key-state").textContent = authOff(refused)
-        ? "no key is asked (authentication is off): see why beside the job list"
-        : `${apiKey() ? "this key is refused" : "a key is needed"}: enter one and Use it`;
+      sayKeyRefused(refused, "beside the job list");
       return;
     }
     await sleep(retryWait(JOB_LIST_POLL_MS, jobsFailure, scenesFailure), signal);
