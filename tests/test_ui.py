@@ -925,6 +925,35 @@ def test_a_job_page_opened_in_a_new_tab_asks_for_the_key_and_loads_with_it(live,
     assert text(driver, "#key-state") == "key set for this session"
 
 
+def test_an_artifact_s_link_is_its_file_and_a_middle_click_downloads_it_with_the_key(live, browser):
+    """An artifact's link had the href "#": a middle click (or "Open link in new tab") opened the home page in a new
+    tab, saying nothing. It is the file's URL now (a new tab has no key: with authentication on, the API says the
+    key it needs), and a middle click downloads it with the key, as a click does."""
+    svc, token, _archive = live
+    driver = browser
+    job = running_job("aux", state="succeeded", stage="export", completed_stages=["reconstruct", "edit", "export"])
+    artifact = {"name": "a.png", "url": "/v1/jobs/aux/artifacts/a.png", "size": 1, "kind": "image", "sha256": "0" * 64}
+    answer = lambda body, kind="application/json": {"status": 200, "type": kind, "body": body}  # noqa: E731
+    set_key(driver, svc, token)
+    faults(driver, {"/v1/jobs/aux$": answer(json.dumps(job)),
+                    "/v1/jobs/aux/artifacts$": answer(json.dumps([artifact])),
+                    "/v1/jobs/aux/artifacts/": answer("", "image/png"),
+                    "/v1/jobs/aux/events": {"recorded": 1, "timeline": [{"id": 1, "kind": "succeeded"}]}})
+    go(driver, "#/jobs/aux")
+    wait_until(lambda: driver.find_elements("css selector", '#job-artifacts a[data-artifact="a.png"]'), 10,
+               what="the artifact listed")
+    link = driver.find_element("css selector", '#job-artifacts a[data-artifact="a.png"]')
+    assert link.get_attribute("href") == f"{svc.base}{artifact['url']}"
+    driver.execute_script("window.requests = []")
+    middle = """const click = new MouseEvent("auxclick", { button: 1, bubbles: true, cancelable: true });
+                arguments[0].dispatchEvent(click);
+                return click.defaultPrevented;"""
+    assert driver.execute_script(middle, link)  # no new tab opened
+    wait_until(lambda: requested(driver, artifact["url"]), 10, what="the download")
+    assert requested(driver, artifact["url"])[0]["headers"]["Authorization"] == f"Bearer {token}"
+    faults(driver, {})
+
+
 def test_a_key_used_while_the_refused_one_s_job_list_is_read_is_not_said_refused(live, browser):
     """The key-less page's job list still on its way when a good key is used: that page's scenes, refused for no
     key, had named the good key "refused", the page showing that key's jobs beside it."""

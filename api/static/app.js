@@ -676,10 +676,15 @@ async function refreshArtifacts(jobId, signal) {
   for (const artifact of artifacts) {
     const item = document.createElement("li");
     const link = document.createElement("a");
-    link.href = "#";
+    // The file's own URL, which a new tab (the context menu's "Open link in new tab") opens without the key: one with
+    // authentication off is served, another says the key it needs. "#" had opened the home page, saying nothing.
+    link.href = artifact.url;
     link.textContent = artifact.name;
     link.dataset.artifact = artifact.name;
-    link.onclick = async (event) => {
+    // A click, modified (Ctrl, Shift) or not, and a middle click (auxclick) download it with the key: a middle click
+    // had opened "#" in a new tab.
+    link.onclick = link.onauxclick = async (event) => {
+      if (event.button > 1) return;  // (a right click's auxclick: the context menu)
       event.preventDefault();
       showError("artifacts", "");
       try {
