@@ -1409,6 +1409,22 @@ def test_a_long_one_word_prompt_wraps_inside_the_window(live, browser):
     faults(driver, {})
 
 
+def test_a_failed_job_without_a_reason_says_none_was_recorded(live, browser):
+    """A job failed with no error nor message (a row ended by hand, an error of no text): its Message had been blank
+    beside "failed", as if the page had not loaded it."""
+    svc, token, _archive = live
+    driver = browser
+    job = running_job("no-reason", state="failed", eta_seconds=None, overall_eta_seconds=None)
+    answer = lambda body: {"status": 200, "type": "application/json", "body": json.dumps(body)}  # noqa: E731
+    set_key(driver, svc, token)
+    faults(driver, {"/v1/jobs/no-reason$": answer(job), "/v1/jobs/no-reason/artifacts$": answer([]),
+                    "/v1/jobs/no-reason/events": {"recorded": 1, "timeline": [{"id": 1, "kind": "failed"}]}})
+    go(driver, "#/jobs/no-reason")
+    wait_until(lambda: text(driver, "#job-state") == "failed", 10, what="the failed job")
+    assert text(driver, "#job-message") == "(no reason was recorded)"
+    faults(driver, {})
+
+
 def test_docs_render_from_the_vendored_swagger_ui(live, browser):
     svc, _token, _archive = live
     browser.get(f"{svc.base}/docs")

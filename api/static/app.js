@@ -633,7 +633,8 @@ function renderProgress(p) {
   $("#job-eta").textContent = eta(p);
   const losses = Object.entries(p.losses || {});
   $("#job-losses").textContent = losses.length ? losses.map(([k, v]) => `${k} ${Number(v).toPrecision(4)}`).join(" · ") : "–";
-  $("#job-message").textContent = p.error || p.message || "";
+  // A failed job's reason, said missing where none was recorded (its Message had been left blank).
+  $("#job-message").textContent = p.error || p.message || (p.state === "failed" ? "(no reason was recorded)" : "");
   $("#job-cancel").disabled = TERMINAL.has(p.state);
 }
 
