@@ -299,6 +299,15 @@ def test_a_constant_start_without_fitting_steps_is_refused_before_any_work(tmp_p
     assert "no seeds" in capsys.readouterr().err and not out.exists()  # refused before the model is looked for
 
 
+@pytest.mark.parametrize("timestep", [-1, 1000, 5000])
+def test_a_timestep_outside_the_diffusion_schedule_is_refused_at_config_time_naming_the_range(timestep):
+    """Regression: accepted, it was refused by the model only after the first view's render ('timesteps must lie in
+    [0, 999], got [1000]'), after the edit a job had run."""
+    with pytest.raises(ValueError, match=rf"timestep must lie in \[0, 999\] .*got {timestep}$"):
+        RefineConfig(timestep=timestep)
+    assert RefineConfig(timestep=0).timestep == 0 and RefineConfig(timestep=999).timestep == 999
+
+
 @pytest.mark.parametrize("size", [1, 3, 7])
 def test_renders_under_8_px_are_refused_before_any_work(tmp_path, make_sphere_grid, capsys, size):
     """Regression: accepted, a 1 px render's min-max maps are 0 everywhere and 2–3 px ones missed a test sphere from

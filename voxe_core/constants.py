@@ -70,6 +70,9 @@ DEFAULT_REGULARISER_WEIGHT = 200.0
 DEFAULT_ATTENTION_TIMESTEP = 200
 """The fixed diffusion time step (of 1000) of the cross-attention maps."""
 
+DIFFUSION_TIMESTEPS = 1000
+"""Length of Stable Diffusion's training noise schedule: its time steps are 0 to 999."""
+
 REFINE_ITERATIONS = 1500
 """Fitting iterations of the 3D attention grids."""
 

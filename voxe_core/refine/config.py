@@ -13,6 +13,7 @@ from voxe_core.constants import (
     CUT_SIGMA,
     CUT_SMOOTHNESS,
     DEFAULT_ATTENTION_TIMESTEP,
+    DIFFUSION_TIMESTEPS,
     EDIT_SEEDS,
     FLOAT32_MAX,
     MAX_SEED,
@@ -155,6 +156,9 @@ class RefineConfig:
             value = getattr(self, name)  # (a stride of 1.5 had read a lattice of every third pixel)
             if isinstance(value, bool) or not isinstance(value, numbers.Integral):
                 raise ValueError(f"{name} must be a whole number, got {value!r}")
+        if not 0 <= self.timestep < DIFFUSION_TIMESTEPS:  # (the model had refused it, after the first view's render)
+            raise ValueError(f"timestep must lie in [0, {DIFFUSION_TIMESTEPS - 1}] (a step of the diffusion model's "
+                             f"noise schedule; the default: {DEFAULT_ATTENTION_TIMESTEP}), got {self.timestep}")
         if self.render_size < MIN_RENDER_SIZE:
             raise ValueError(f"render_size must be at least {MIN_RENDER_SIZE} px, got {self.render_size}")
         for name in ("views", "rays_per_step", "backprojection_stride"):
