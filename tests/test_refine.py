@@ -263,6 +263,16 @@ def test_the_default_attention_layers_follow_the_models_latent_size(tiny_guidanc
         RefineConfig(resolution_filter="16")
 
 
+@pytest.mark.parametrize("nonsense", [True, False, 16.0])
+def test_a_resolution_filter_that_is_no_whole_number_of_pixels_is_refused_at_config_time(nonsense):
+    """Regression: True (an int to isinstance) had been accepted as 1, a 1x1 query map no layer has, refused by the
+    model only after the first view's render ('no cross-attention layer has a True x True query map')."""
+    with pytest.raises(ValueError, match=rf"resolution_filter must be 'auto', None or a positive number of query-map "
+                                         rf"pixels, got {nonsense}$"):
+        RefineConfig(resolution_filter=nonsense)
+    assert RefineConfig(resolution_filter=np.int64(16)).resolution_filter == 16
+
+
 def test_the_authors_code_maps_but_normalised_and_its_fit_are_the_default_and_the_text_is_one_replace_away():
     config = RefineConfig()
     assert {k: getattr(config, k) for k in SERVICE_MAPS} == SERVICE_MAPS

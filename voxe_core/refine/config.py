@@ -145,8 +145,10 @@ class RefineConfig:
                               ("fit_pixels", ("all", "rendered_positive"))):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}")
+        # (True, an int to isinstance, had been read as 1: no layer has a 1x1 query map, refused after a render)
         if not (self.resolution_filter in ("auto", None)
-                or (isinstance(self.resolution_filter, int) and self.resolution_filter >= 1)):
+                or (isinstance(self.resolution_filter, numbers.Integral) and not isinstance(self.resolution_filter, bool)
+                    and self.resolution_filter >= 1)):
             raise ValueError(f"resolution_filter must be 'auto', None or a positive number of query-map pixels, got "
                              f"{self.resolution_filter!r}")
         if self.edit_token_reduce not in ("mean", "max"):
