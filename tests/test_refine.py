@@ -318,6 +318,14 @@ def test_a_timestep_outside_the_diffusion_schedule_is_refused_at_config_time_nam
     assert RefineConfig(timestep=0).timestep == 0 and RefineConfig(timestep=999).timestep == 999
 
 
+@pytest.mark.parametrize("name", ["iterations", "edit_seeds", "object_seeds", "object_seed_fallback"])
+def test_a_negative_count_is_refused_naming_the_setting_and_its_value(name):
+    """Regression: all four had been refused as 'iterations and seed counts must be non-negative', naming neither."""
+    with pytest.raises(ValueError, match=rf"^{name} must be non-negative, got -3$"):
+        RefineConfig(**{name: -3})
+    assert getattr(RefineConfig(**{name: 0}), name) == 0
+
+
 @pytest.mark.parametrize("size", [1, 3, 7])
 def test_renders_under_8_px_are_refused_before_any_work(tmp_path, make_sphere_grid, capsys, size):
     """Regression: accepted, a 1 px render's min-max maps are 0 everywhere and 2–3 px ones missed a test sphere from

@@ -170,8 +170,9 @@ class RefineConfig:
             raise ValueError(f"backprojection_stride must be below render_size ({self.render_size} px), got "
                              f"{self.backprojection_stride}: the back-projection would read at most one pixel of each "
                              f"view, so it lifts next to nothing (the default: {REFINE_BACKPROJECTION_STRIDE})")
-        if self.iterations < 0 or self.edit_seeds < 0 or self.object_seeds < 0 or self.object_seed_fallback < 0:
-            raise ValueError("iterations and seed counts must be non-negative")
+        for name in ("iterations", "edit_seeds", "object_seeds", "object_seed_fallback"):
+            if getattr(self, name) < 0:  # (one message for all four had named neither the setting nor its value)
+                raise ValueError(f"{name} must be non-negative, got {getattr(self, name)}")
         # As "not in range": NaN fails every comparison, so "x <= 0" let it through (a NaN sigma made the flow NaN).
         # A smoothness beyond float32's range had made the cut's float32 weights infinite (max-flow never returned);
         # near float64's largest their sum still makes the seeds' capacity and the flow infinite ("Infinity" in
