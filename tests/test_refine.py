@@ -1040,6 +1040,22 @@ def test_grids_whose_raw_values_mean_different_densities_are_not_merged(edited, 
         merge(VoxelGrid(8), edited(), torch.ones(8, 8, 8, dtype=torch.bool))
 
 
+def test_grids_of_different_boxes_are_not_merged_and_the_refusal_names_both_boxes(tmp_path, make_sphere_grid,
+                                                                                   capsys):
+    """Regression: 'the initial and edited grids span different boxes', naming neither."""
+    refusal = (r"the initial grid spans the box \[-1.5, -1.5, -1.5\] to \[1.5, 1.5, 1.5\] but the edited grid "
+               r"\[-1.0, -1.5, -1.5\] to \[2.0, 1.5, 1.5\]: is the edit of another reconstruction\?")
+    edited = VoxelGrid(8, bbox_min=(-1.0, -1.5, -1.5), bbox_max=(2.0, 1.5, 1.5))
+    with pytest.raises(ValueError, match=refusal):
+        merge(VoxelGrid(8), edited, torch.ones(8, 8, 8, dtype=torch.bool))
+    make_sphere_grid(8).save(tmp_path / "initial.safetensors")
+    edited.save(tmp_path / "edited.safetensors")
+    assert main(["refine", str(tmp_path / "edited.safetensors"), "--initial", str(tmp_path / "initial.safetensors"),
+                 "--prompt", "a dog wearing a party hat", "--edit-words", "hat", "--out", str(tmp_path / "out"),
+                 "--model", str(tmp_path / "no_model_needed"), "--offline", "--device", "cpu", "--quiet"]) == 2
+    assert re.search(refusal, capsys.readouterr().err) and not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize("changed, refusal", [
     ({"foreground_extent": 4.0}, "the initial grid's foreground_extent is 1.5 but the edited grid's 4.0"),
     ({"frame": [[1, 0, 0, 3], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}, "the initial grid's frame is"),

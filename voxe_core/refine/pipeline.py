@@ -44,7 +44,9 @@ def check_compatible(initial_grid: VoxelGrid, edited_grid: VoxelGrid) -> None:
         raise ValueError(f"the initial grid is {initial_grid.resolution} but the edited grid {edited_grid.resolution}")
     if not (torch.equal(initial_grid.bbox_min.cpu(), edited_grid.bbox_min.cpu())
             and torch.equal(initial_grid.bbox_max.cpu(), edited_grid.bbox_max.cpu())):
-        raise ValueError("the initial and edited grids span different boxes")
+        raise ValueError(f"the initial grid spans the box {initial_grid.bbox_min.tolist()} to "
+                         f"{initial_grid.bbox_max.tolist()} but the edited grid {edited_grid.bbox_min.tolist()} to "
+                         f"{edited_grid.bbox_max.tolist()}: is the edit of another reconstruction?")
     if type(initial_grid) is not type(edited_grid):
         raise ValueError(f"the initial grid is a {type(initial_grid).__name__} but the edited grid a "
                          f"{type(edited_grid).__name__}")
