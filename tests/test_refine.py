@@ -1107,11 +1107,14 @@ def test_sparse_mask_and_probabilities_round_trip(tmp_path):
 
 def test_a_grid_beyond_int32_voxel_indices_is_refused_before_its_probabilities_are_written(tmp_path):
     """As its mask is: 1291³ voxels pass 2^31, and the int32 indices had wrapped (the last voxel, 2,151,685,170,
-    stored as -2,143,282,126), so load_probabilities refused the file it had just written as damaged."""
+    stored as -2,143,282,126), so load_probabilities refused the file it had just written as damaged. The refusal names
+    the grid (it had said only 'grid too large for int32 voxel indices')."""
     n = 1291
     where, p = torch.zeros((), dtype=torch.bool).expand(n, n, n), torch.zeros(()).expand(n, n, n)  # nothing allocated
+    refusal = (r"a grid of \(1291, 1291, 1291\) voxels \(2,151,685,171\) is too large for the files' int32 voxel "
+               r"indices \(fewer than 2,147,483,648 voxels\)")
     for save in (lambda path: save_probabilities(path, p, p, where), lambda path: save_mask(path, where)):
-        with pytest.raises(ValueError, match="grid too large for int32 voxel indices"):
+        with pytest.raises(ValueError, match=refusal):
             save(tmp_path / "big.safetensors")
         assert not (tmp_path / "big.safetensors").exists()
 

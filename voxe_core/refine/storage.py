@@ -25,7 +25,8 @@ def _set_voxels(mask: torch.Tensor) -> torch.Tensor:
     if mask.dim() != 3:
         raise ValueError(f"expected an (X, Y, Z) mask, got shape {tuple(mask.shape)}")
     if mask.numel() >= INDEXABLE_VOXELS:
-        raise ValueError("grid too large for int32 voxel indices")
+        raise ValueError(f"a grid of {tuple(mask.shape)} voxels ({mask.numel():,}) is too large for the files' int32 "
+                         f"voxel indices (fewer than {INDEXABLE_VOXELS:,} voxels)")
     return mask.reshape(-1).nonzero().squeeze(-1)
 
 
