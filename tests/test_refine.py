@@ -318,6 +318,20 @@ def test_a_timestep_outside_the_diffusion_schedule_is_refused_at_config_time_nam
     assert RefineConfig(timestep=0).timestep == 0 and RefineConfig(timestep=999).timestep == 999
 
 
+@pytest.mark.parametrize("name, value, refusal", [
+    ("view_word_prompt", "false", "view_word_prompt takes True or False, got 'false'"),
+    ("smooth_upsampled", 0, "smooth_upsampled takes True or False, got 0"),
+    ("view_word_prompt", None, "view_word_prompt takes True or False, got None"),
+    ("render", None, "render must be a RenderConfig, got None"),
+])
+def test_a_setting_of_another_type_is_refused_naming_it(name, value, refusal):
+    """Regression: view_word_prompt="false" (a true string) had put the view words in the attention prompt, the
+    opposite of what was asked; render=None failed with "'NoneType' object has no attribute 'background'"."""
+    with pytest.raises(ValueError, match=f"^{re.escape(refusal)}$"):
+        RefineConfig(**{name: value})
+    assert RefineConfig(view_word_prompt=False, smooth_upsampled=False).view_word_prompt is False
+
+
 @pytest.mark.parametrize("name", ["iterations", "edit_seeds", "object_seeds", "object_seed_fallback"])
 def test_a_negative_count_is_refused_naming_the_setting_and_its_value(name):
     """Regression: all four had been refused as 'iterations and seed counts must be non-negative', naming neither."""

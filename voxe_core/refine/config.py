@@ -128,6 +128,14 @@ class RefineConfig:
     attention_model: str = ATTENTION_MODEL_ID
 
     def __post_init__(self):
+        # As EditConfig's: a value of another type had been taken, and run the opposite of what was asked
+        # (view_word_prompt="false", a true string, put view words in the prompt) or failed naming no setting
+        # (render=None: "'NoneType' object has no attribute 'background'").
+        for name in ("view_word_prompt", "smooth_upsampled"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} takes True or False, got {getattr(self, name)!r}")
+        if not isinstance(self.render, RenderConfig):
+            raise ValueError(f"render must be a RenderConfig, got {self.render!r}")
         if self.lift_start not in ("backprojection", "constant"):
             raise ValueError(f"lift_start must be 'backprojection' or 'constant', got {self.lift_start!r}")
         if not 0 <= self.backprojection_prior <= FLOAT32_MAX:  # as "not in range": NaN fails every comparison
