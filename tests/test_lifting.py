@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import pytest
 import torch
@@ -255,6 +256,17 @@ def test_a_constant_start_whose_views_miss_the_object_is_refused_though_fresh_vi
         fit_attention_grids(grid, away, maps, maps, config,
                             fresh_view=lambda step: steps.append(step) or (seeing, maps, maps.flip(-1)))
     assert steps == []
+
+
+@pytest.mark.parametrize("shape", [(3, 8, 8, 1), (8, 8)])
+def test_maps_of_another_shape_than_views_height_width_are_refused_naming_it(shape):
+    """They had failed unpacking their shape: 'too many values to unpack (expected 3)', naming neither the maps nor
+    the shape."""
+    cams = Cameras.from_fov(random_hemisphere_poses(3, torch.Generator().manual_seed(1))[0], 0.7, 8, 8)
+    maps = torch.rand(shape)
+    with pytest.raises(ValueError, match=rf"^the maps must be \(views, height, width\), one scalar per pixel, got edit "
+                                         rf"maps of shape {re.escape(str(shape))}$"):
+        fit_attention_grids(cloud_grid(), cams, maps, maps, RefineConfig(render_size=8, iterations=0))
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf])

@@ -206,6 +206,9 @@ def fit_attention_grids(
     the back-projection reads with no iterations. So are views that miss the object, and a back-projection whose
     pixels see none of its density (the fit moves only the vertices they see).
     """
+    if edit_maps.dim() != 3:  # (had failed unpacking its shape: "too many values to unpack (expected 3)")
+        raise ValueError(f"the maps must be (views, height, width), one scalar per pixel, got edit maps of shape "
+                         f"{tuple(edit_maps.shape)}")
     n_views, height, width = edit_maps.shape
     if object_maps.shape != edit_maps.shape:
         raise ValueError(f"edit maps {tuple(edit_maps.shape)} and object maps {tuple(object_maps.shape)} differ")
