@@ -332,6 +332,16 @@ def test_a_setting_of_another_type_is_refused_naming_it(name, value, refusal):
     assert RefineConfig(view_word_prompt=False, smooth_upsampled=False).view_word_prompt is False
 
 
+@pytest.mark.parametrize("name, value", [("sigma", "0.1"), ("lr", None), ("edit_seed_ratio", "1"), ("fov_x", None),
+                                         ("smoothing_sigma", True), ("node_alpha", [0.01])])
+def test_a_setting_that_is_no_number_is_refused_naming_it(name, value):
+    """Regression: a string or None had failed a range test naming no setting ("'<' not supported between instances
+    of 'int' and 'str'", a TypeError), and True had run as 1."""
+    with pytest.raises(ValueError, match=f"^{name} must be a number, got {re.escape(repr(value))}$"):
+        RefineConfig(**{name: value})
+    assert RefineConfig(sigma=np.float32(0.2), lr=np.float64(0.01), smoothness=5).smoothness == 5
+
+
 @pytest.mark.parametrize("name", ["iterations", "edit_seeds", "object_seeds", "object_seed_fallback"])
 def test_a_negative_count_is_refused_naming_the_setting_and_its_value(name):
     """Regression: all four had been refused as 'iterations and seed counts must be non-negative', naming neither."""
