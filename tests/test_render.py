@@ -528,6 +528,18 @@ def test_a_field_of_view_outside_zero_to_pi_is_refused_wherever_it_is_given(fov_
     assert float(Cameras.from_fov(torch.eye(4), math.pi - 1e-3, 4, 4).fx[0]) > 0  # just inside: a positive focal
 
 
+@pytest.mark.parametrize("fov_x", [5e-324, 1e-300, 1e-40])
+def test_a_field_of_view_too_narrow_for_a_float32_focal_is_refused_naming_it(fov_x):
+    """Regression: 5e-324's tangent is 0 (a ZeroDivisionError) and 1e-40's focal, 4e40 pixels, overflowed float32
+    (a RuntimeError from torch.full naming no setting)."""
+    with pytest.raises(ValueError, match=re.escape(f"fov_x {fov_x} radians is too narrow: its focal length across "
+                                                   "4 pixels")):
+        Cameras.from_fov(torch.eye(4), fov_x, 4, 4)
+    narrow = Cameras.from_fov(torch.eye(4), 1e-30, 4, 4)  # 4e30 pixels: held, every ray along the view axis
+    assert float(narrow.fx[0]) == pytest.approx(4e30, rel=1e-6)
+    assert torch.allclose(camera_rays(narrow, 0)[1], torch.tensor([0.0, 0.0, -1.0]).expand(16, 3))
+
+
 @pytest.mark.parametrize("distance", [1e-40, 1e-30, 1.0, 2e19, 1e30, 1e38])
 @pytest.mark.parametrize("direction", [(1.0, 1.0, 1.0), (0.0, 0.0, 1.0), (0.0, 0.0, -1.0), (1e-7, 0.0, 1.0)])
 def test_look_at_aims_a_rotation_at_its_target_from_any_distance(distance, direction):

@@ -84,7 +84,13 @@ class Cameras:
         if c2w.dim() == 2:
             c2w = c2w[None]
         n = c2w.shape[0]
-        focal = 0.5 * width / math.tan(0.5 * fov_x)
+        # A vanishing angle's focal overflows float32 (1e-40 had failed in torch.full, "value cannot be converted
+        # to type float without overflow") or divides by a tangent of 0 (5e-324: a ZeroDivisionError).
+        half_width = math.tan(0.5 * fov_x)
+        focal = 0.5 * width / half_width if half_width > 0 else math.inf
+        if not focal <= torch.finfo(torch.float32).max:
+            raise ValueError(f"fov_x {fov_x} radians is too narrow: its focal length across {width} pixels, "
+                             f"{focal:.3g}, is beyond float32's range (3.4e38)")
         full = lambda v: torch.full((n,), float(v))  # noqa: E731
         return Cameras(c2w, full(focal), full(focal), full(width / 2), full(height / 2), width, height)
 
