@@ -75,3 +75,21 @@ def test_a_ray_grazing_a_face_renders_that_faces_vertices(fused):
         plain = torch.sigmoid(torch.tensor(-10.0)) * opacity + (1 - opacity)
         expected = torch.tensor([[colour, plain, plain], [plain, plain, colour], [plain, plain, plain]])
         torch.testing.assert_close(out.rgb.detach(), expected, atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("fused", [False, True])
+def test_a_ray_in_a_face_of_a_grid_whose_lattice_rounds_inside_it_meets_the_occupied_box(fused):
+    """At 38 vertices in the default box the last vertex lies at -1.5 + 37 · 3/37 = 1.4999998 in float32: the occupied
+    cells' tight box had ended there, and a ray lying in an upper face (y = 1.5) missed it, skipped as empty and
+    rendered blank, where without skipping it rendered the face's density. The tight box ends at the face now."""
+    if fused:
+        require_triton_interpreter()
+    grid = VoxelGrid(38, init_density=0.05)
+    occupancy = grid.occupancy(0.0)
+    assert torch.equal(occupancy.bbox_min, grid.bbox_min) and torch.equal(occupancy.bbox_max, grid.bbox_max)
+    origins, directions, _ = _face_rays(grid.bbox_min, grid.bbox_max)
+    opacity = 1 - math.exp(-float(grid.activate_density(torch.tensor(0.05))) * 3.0)
+    for skip_empty in (False, True):
+        out = render_rays(grid, origins, directions, RenderConfig(fused=fused, skip_empty=skip_empty))
+        assert isinstance(out.samples, torch.Tensor) == fused  # the marcher asked for ran
+        torch.testing.assert_close(out.opacity, torch.full((12,), opacity), atol=1e-5, rtol=0)

@@ -625,8 +625,13 @@ class VoxelGrid(torch.nn.Module):
             hi.append(along.numel() - along.flip(0).argmax())
         vox = self._lattice(cells.device).voxel_size
         occupied = cells.any()
+        # Occupied up to the box's far face: that face itself, not its rounding (bbox_min + 37 · 3/37 is 1.4999998 in
+        # float32, at 38 vertices in the default box; rays lying in the face y = 1.5 had missed the tight box and
+        # been skipped, blank, where the render without skipping showed the face's density).
+        to_face = torch.stack([h == n for h, n in zip(hi, cells.shape)])
+        far = torch.where(to_face, self.bbox_max, self.bbox_min + torch.stack(hi) * vox)
         box_min = torch.where(occupied, self.bbox_min + torch.stack(lo) * vox, self.bbox_min)
-        box_max = torch.where(occupied, self.bbox_min + torch.stack(hi) * vox, self.bbox_min)
+        box_max = torch.where(occupied, far, self.bbox_min)
         return Occupancy(cells, box_min, box_max)
 
     # ------------------------------------------------------------- storage
