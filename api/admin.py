@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import unicodedata
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
@@ -39,6 +40,19 @@ def _count_up_to(most: int):
         return value
 
     return count
+
+
+def name_problem(name: str) -> str | None:
+    """Why ``name`` cannot name a key, None when it can: 1 to 255 characters (its column's), none a control, format
+    or line-breaking character (a tab, a newline or a bidi override would forge or reorder list-keys' rows). Any
+    space separator is fine: str.isprintable had refused a no-break or ideographic space ("山田\u3000太郎")."""
+    if not 1 <= len(name) <= 255:
+        return f"must be 1-255 characters, got {len(name)}"
+    for at, char in enumerate(name):
+        if not (char.isprintable() or unicodedata.category(char) == "Zs"):
+            return (f"must hold no control, format or line-breaking character (one would forge list-keys' rows), "
+                    f"got {char!r} at {at}")
+    return None
 
 
 def cancel_unfinished_jobs(session: Session, key: ApiKey) -> int:
@@ -77,9 +91,8 @@ def main(argv: list[str] | None = None) -> int:
     run_migrations(get_settings().database_url)
     with session_scope() as session:
         if args.command == "create-key":
-            if not args.name.strip() or len(args.name) > 255 or not args.name.isprintable():
-                parser.error("--name must be 1-255 printable characters (a tab or newline would forge list-keys' "
-                             "rows)")
+            if (problem := name_problem(args.name.strip())) is not None:
+                parser.error(f"--name {problem}")
             key, token = create_key(session, args.name.strip(), args.max_active_jobs, args.max_upload_bytes)
             print(f"created key {key.id} ({key.name}); its token, shown only this once:", file=sys.stderr)
             print(token)

@@ -178,7 +178,34 @@ def test_admin_cli_creates_lists_and_revokes_keys(auth_client, capsys):
         assert f"argument {option}: {expected}" in capsys.readouterr().err
     with pytest.raises(SystemExit):  # a name with a tab and a newline had printed a forged row in list-keys
         admin.main(["create-key", "--name", "x\nfake1234abcd\tadmin\tactive"])
-    assert "printable characters" in capsys.readouterr().err
+    assert "forge list-keys' rows), got '\\n' at 1" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name, kept", [
+    ("山田\u3000太郎", "山田\u3000太郎"),  # an ideographic space, as Japanese names are written
+    ("Zoë\u00a0Smith", "Zoë\u00a0Smith"),  # a no-break space
+    ("  " + "a" * 255 + "  ", "a" * 255),  # 255 characters once the spaces around it are cut
+])
+def test_a_key_name_spaced_as_people_write_it_is_kept(auth_client, capsys, name, kept):
+    """Only an ASCII space had counted as one (str.isprintable): a name with a no-break or ideographic space was
+    refused as "must be 1-255 printable characters (a tab or newline would forge list-keys' rows)", as was one
+    under 255 characters but for the spaces the command cuts from its ends."""
+    from api import admin
+
+    assert admin.main(["create-key", "--name", name]) == 0
+    key_id = capsys.readouterr().out.strip().split("_")[1]
+    assert admin.main(["list-keys"]) == 0
+    assert f"{key_id}\t{kept}\tactive" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("name, named", [("x\u2028fake", r"'\u2028'"), ("admin\u202e", r"'\u202e'"),
+                                         ("x\tadmin", r"'\t'"), ("a" * 256, "1-255 characters, got 256")])
+def test_a_key_name_that_could_forge_list_keys_rows_is_refused_naming_why(auth_client, capsys, name, named):
+    from api import admin
+
+    with pytest.raises(SystemExit):
+        admin.main(["create-key", "--name", name])
+    assert named in capsys.readouterr().err
 
 
 @BOTH_DATABASES
