@@ -2,7 +2,7 @@
 
     python -m api.admin create-key --name alice [--max-active-jobs 5] [--max-upload-bytes 10000000000]
     python -m api.admin list-keys
-    python -m api.admin revoke-key <key id>
+    python -m api.admin revoke-key <key id or token>
 
 ``create-key`` prints the token once; only its sha256 is stored, so a lost token means a new key. ``revoke-key``
 also cancels the key's unfinished jobs and fails its scenes still processing.
@@ -17,7 +17,7 @@ import unicodedata
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from api.auth import create_key
+from api.auth import create_key, key_of_token, token_key_id
 from api.services.jobs import request_cancel
 from voxe_service.db import run_migrations, session_scope
 from voxe_service.models import LOCAL_KEY_ID, PROCESSING, TERMINAL_STATES, ApiKey, Job, Scene, utcnow
@@ -55,6 +55,15 @@ def name_problem(name: str) -> str | None:
     return None
 
 
+def key_named(session: Session, given: str) -> tuple[ApiKey | None, str]:
+    """The key ``given`` names, by its id or by its token (what one holding a leaked token has: it had been looked
+    up as an id and printed back, secret and all), and else what to say, never quoting a token's secret."""
+    if (key_id := token_key_id(given)) is not None:
+        return key_of_token(session, given), f"no API key has this token (of key id {key_id!r})"
+    key = session.get(ApiKey, given)
+    return (None if key is None or key.id == LOCAL_KEY_ID else key), f"no API key {given!r}"
+
+
 def cancel_unfinished_jobs(session: Session, key: ApiKey) -> int:
     """Cancel a revoked key's queued and running jobs; how many. They had run on, holding workers for hours, with
     results no key can read and no request able to cancel them."""
@@ -85,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     commands.add_parser("list-keys", help="list keys (never their tokens)")
     revoke = commands.add_parser("revoke-key", help="revoke a key: its token stops working at once, its unfinished "
                                     "jobs are canceled and its scenes still processing failed")
-    revoke.add_argument("key_id")
+    revoke.add_argument("key_id", help="the key's id, or its token (a leaked one, say)")
     args = parser.parse_args(argv)
 
     run_migrations(get_settings().database_url)
@@ -103,9 +112,9 @@ def main(argv: list[str] | None = None) -> int:
                       f"max_active_jobs={key.max_active_jobs or 'default'}\t"
                       f"max_upload_bytes={key.max_upload_bytes or 'default'}")
         else:
-            key = session.get(ApiKey, args.key_id)
-            if key is None or key.id == LOCAL_KEY_ID:
-                print(f"no API key {args.key_id!r} (python -m api.admin list-keys shows them)", file=sys.stderr)
+            key, missing = key_named(session, args.key_id)
+            if key is None:
+                print(f"{missing} (python -m api.admin list-keys shows them)", file=sys.stderr)
                 return 1
             if key.revoked_at is None:
                 key.revoked_at = utcnow()

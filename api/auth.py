@@ -54,15 +54,24 @@ def create_key(session: Session, name: str, max_active_jobs: int | None = None,
     return key, token
 
 
-def authenticate(session: Session, token: str) -> ApiKey | None:
-    """The live key a token belongs to, or None."""
+def token_key_id(token: str) -> str | None:
+    """The key id a token names (``voxe_<key id>_<secret>``); None for text of any other form."""
     match = _TOKEN.match(token)
-    if not match:
-        return None
-    key = session.get(ApiKey, match.group(1))
-    if key is None or key.token_sha256 is None or key.revoked_at is not None:
+    return match.group(1) if match else None
+
+
+def key_of_token(session: Session, token: str) -> ApiKey | None:
+    """The key a token belongs to, revoked or not, or None."""
+    key = session.get(ApiKey, key_id) if (key_id := token_key_id(token)) is not None else None
+    if key is None or key.token_sha256 is None:
         return None
     return key if hmac.compare_digest(key.token_sha256, sha256_hex(token)) else None
+
+
+def authenticate(session: Session, token: str) -> ApiKey | None:
+    """The live key a token belongs to, or None."""
+    key = key_of_token(session, token)
+    return key if key is not None and key.revoked_at is None else None
 
 
 CHALLENGE = {"WWW-Authenticate": "Bearer"}

@@ -208,6 +208,24 @@ def test_a_key_name_that_could_forge_list_keys_rows_is_refused_naming_why(auth_c
     assert named in capsys.readouterr().err
 
 
+def test_revoke_key_given_the_keys_token_revokes_it_and_never_prints_the_token(auth_client, capsys):
+    """The token is what an operator holding a leaked one has: it had been looked up as a key id, "no API key
+    'voxe_<id>_<secret>'" printing the secret into the terminal (and any log of it), the key left live."""
+    from api import admin
+
+    key_id, token = _create_key("leaked")
+    assert admin.main(["revoke-key", token]) == 0
+    err = capsys.readouterr().err
+    assert f"revoked key {key_id} (leaked)" in err and token.rpartition("_")[2] not in err
+    assert auth_client.get("/v1/jobs", headers=bearer(token)).status_code == 401
+    other_id, other = _create_key("other")  # a token of that form no key has: named by its id only, nothing revoked
+    forged = f"voxe_{other_id}_{'x' * 43}"
+    assert admin.main(["revoke-key", forged]) == 1
+    err = capsys.readouterr().err
+    assert f"no API key has this token (of key id {other_id!r})" in err and "x" * 43 not in err
+    assert auth_client.get("/v1/jobs", headers=bearer(other)).status_code == 200
+
+
 @BOTH_DATABASES
 def test_revoking_a_key_cancels_its_unfinished_jobs(auth_client, mic_zip, capsys):
     """Its jobs had run on, holding workers, with results no key could read and no request able to cancel them."""
