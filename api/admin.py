@@ -55,13 +55,18 @@ def name_problem(name: str) -> str | None:
     return None
 
 
+LISTED = " (python -m api.admin list-keys shows them)"
+
+
 def key_named(session: Session, given: str) -> tuple[ApiKey | None, str]:
     """The key ``given`` names, by its id or by its token (what one holding a leaked token has: it had been looked
     up as an id and printed back, secret and all), and else what to say, never quoting a token's secret."""
     if (key_id := token_key_id(given)) is not None:
-        return key_of_token(session, given), f"no API key has this token (of key id {key_id!r})"
-    key = session.get(ApiKey, given)
-    return (None if key is None or key.id == LOCAL_KEY_ID else key), f"no API key {given!r}"
+        return key_of_token(session, given), f"no API key has this token (of key id {key_id!r}){LISTED}"
+    if given == LOCAL_KEY_ID:  # (it had been "no API key 'local'", a key every request acts as with auth off)
+        return None, (f"{LOCAL_KEY_ID!r} is the built-in key that requests act as with authentication off; it has no "
+                      "token to revoke (VOXE_AUTH=on requires a key of every request)")
+    return session.get(ApiKey, given), f"no API key {given!r}{LISTED}"
 
 
 def cancel_unfinished_jobs(session: Session, key: ApiKey) -> int:
@@ -114,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             key, missing = key_named(session, args.key_id)
             if key is None:
-                print(f"{missing} (python -m api.admin list-keys shows them)", file=sys.stderr)
+                print(missing, file=sys.stderr)
                 return 1
             if key.revoked_at is None:
                 key.revoked_at = utcnow()

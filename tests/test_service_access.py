@@ -226,6 +226,16 @@ def test_revoke_key_given_the_keys_token_revokes_it_and_never_prints_the_token(a
     assert auth_client.get("/v1/jobs", headers=bearer(other)).status_code == 200
 
 
+def test_revoke_key_of_the_built_in_local_key_says_what_it_is(auth_client, capsys):
+    """It had answered "no API key 'local' (python -m api.admin list-keys shows them)", a key every request acts as
+    with authentication off, and that list-keys leaves out."""
+    from api import admin
+
+    assert admin.main(["revoke-key", "local"]) == 1
+    assert ("'local' is the built-in key that requests act as with authentication off; it has no token to revoke "
+            "(VOXE_AUTH=on requires a key of every request)") in capsys.readouterr().err
+
+
 @BOTH_DATABASES
 def test_revoking_a_key_cancels_its_unfinished_jobs(auth_client, mic_zip, capsys):
     """Its jobs had run on, holding workers, with results no key could read and no request able to cancel them."""
