@@ -49,9 +49,10 @@ TEXT_PATTERN = rf"^{_ALLOWED}*{_NAMING_CHARACTER}{_ALLOWED}*$"
 EDIT_WORD_PATTERN = rf"^{_ALLOWED}*[^{_WHITESPACE}\x00-\x08\x0e-\x1b\x7f-\x84\x86-\x9f]{_ALLOWED}*$"
 # A webhook URL's: no whitespace, spelt out as str.split()'s and ECMA-262's \s (\ufeff): its \s had been read apart by
 # the document's readers (no \x85, \ufeff) and the server's check (\x85, no \ufeff). (NUL and a lone surrogate are
-# every string's rule: Strict.)
+# every string's rule: Strict.) The scheme in any case (RFC 3986 §3.1), as the checks and the sender read it: "HTTP://"
+# had been refused by this pattern alone.
 _NOT_IN_URL = rf"{_WHITESPACE}\ufeff"
-WEBHOOK_URL_PATTERN = rf"^https?://[^{_NOT_IN_URL}/?#]+[^{_NOT_IN_URL}]*$"
+WEBHOOK_URL_PATTERN = rf"^[Hh][Tt][Tt][Pp][Ss]?://[^{_NOT_IN_URL}/?#]+[^{_NOT_IN_URL}]*$"
 _NO_SPECIAL_TOKENS = (f"nor CLIP's special tokens {' or '.join(CLIP_SPECIAL_TOKENS)} written out (the model reads "
                       "each as its text's start or end)")
 _TEXT_RULE = (" (something that names: a word or number of any script, or a symbol such as an emoji or a currency "

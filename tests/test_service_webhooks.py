@@ -7,6 +7,7 @@ tests/test_service_events.py.
 
 from __future__ import annotations
 
+import json
 import socket
 import time
 from collections import Counter
@@ -1056,6 +1057,29 @@ def test_webhook_events_need_a_url_and_name_known_kinds(client):
         response = test_client.post("/v1/jobs", json={**body, "webhook_url": url})
         assert response.status_code == 422 and response.json()["detail"] == (
             f"webhook_url {url!r} has an invalid port: {problem}")
+
+
+def test_a_webhook_url_whose_scheme_is_written_in_capitals_is_taken_and_delivered_to(client):
+    """URL schemes are case-insensitive (RFC 3986 §3.1), as the checks and the sender read them: the schema's pattern
+    alone had refused "HTTP://host/hook" with a 422 quoting the whole pattern, no word of the scheme's case."""
+    from voxe_service.db import session_scope
+    from voxe_service.jobs import record_event
+
+    test_client, scene = client
+    receiver = WebhookReceiver()
+    try:
+        url = receiver.url.replace("http://", "HTTP://")
+        job = test_client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold",
+                                                 "webhook_url": url, "webhook_events": ["warning"]})
+        assert job.status_code == 201, job.text
+        assert job.json()["webhook_url"] == url
+        with session_scope() as session:
+            record_event(session, job.json()["id"], "warning", stage="refine", detail="the graph cut kept none")
+        [delivery] = deliveries_settled(test_client, job.json()["id"])
+        assert delivery["state"] == "delivered", delivery
+        assert json.loads(receiver.requests[0]["body"])["type"] == "job.warning"
+    finally:
+        receiver.close()
 
 
 def test_a_job_can_subscribe_to_its_warnings(client):
