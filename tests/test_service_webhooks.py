@@ -1165,6 +1165,41 @@ def test_a_job_whose_webhook_name_finds_every_lookup_busy_is_told_to_try_again(c
     assert test_client.post("/v1/jobs", json=body).status_code == 201
 
 
+def test_a_webhook_to_an_international_name_is_checked_as_the_name_the_sender_connects_to(monkeypatch):
+    """The check at creation looked the host up as Python's resolver spells it (IDNA 2003: "straße.example" as
+    "strasse.example", another domain), the sender as httpx does (IDNA 2008: "xn--strae-oqa.example"): a job was
+    accepted or refused by what another domain resolved to ("does not resolve" for a name its deliveries reach)."""
+    import ipaddress
+
+    from voxe_service.models import WebhookDelivery
+    from voxe_service.webhooks import attempt, check_target, webhook_client
+
+    receiver = WebhookReceiver()
+    port = int(receiver.url.rsplit(":", 1)[1].split("/")[0])
+    asked = []
+    real_getaddrinfo = socket.getaddrinfo
+
+    def resolver(host, *args, **kwargs):  # only the sender's spelling of the name resolves, as in DNS here
+        if host not in ("xn--strae-oqa.example", "straße.example", "strasse.example"):
+            return real_getaddrinfo(host, *args, **kwargs)
+        asked.append(host)
+        if host != "xn--strae-oqa.example":
+            raise socket.gaierror(socket.EAI_NONAME, "Name or service not known")
+        return [(socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP, "", ("127.0.0.1", port))]
+
+    monkeypatch.setattr(socket, "getaddrinfo", resolver)
+    networks = [ipaddress.ip_network("127.0.0.1/32")]
+    url = f"http://straße.example:{port}/hook"
+    try:
+        check_target(url, networks, 5.0)  # had raised TargetRefused: "webhook_url host 'straße.example' does not ..."
+        with webhook_client(5.0, networks) as client:
+            delivery = WebhookDelivery(id="msg_1", url=url, payload='{"kind": "succeeded"}')
+            assert attempt(delivery, "whsec_" + "A" * 32, client) == (200, None, None)
+        assert asked == ["xn--strae-oqa.example"] * 2
+    finally:
+        receiver.close()
+
+
 def test_a_webhook_connects_only_to_the_address_its_name_was_checked_as(monkeypatch):
     """DNS rebinding: a name first resolves to an allowed address, then to a refused one. Each attempt resolves
     once and connects to the address it checked: the delivery reaches the allowed receiver (its Host header still

@@ -198,11 +198,13 @@ def check_target(url: str, allow_networks: list[ipaddress._BaseNetwork], timeout
         raise TargetRefused(f"webhook_url {url!r} names port 0, where nothing can listen")
     port = port or (443 if parts.scheme == "https" else 80)
     try:
-        httpx.URL(url)  # as the sender reads it
+        # The name as the sender looks it up (IDNA 2008): Python's resolver spells a name of another script its own
+        # way (IDNA 2003: "straße.example" as "strasse.example", another domain), whose addresses had been checked.
+        sent_to = httpx.URL(url).raw_host.decode("ascii")
     except httpx.InvalidURL as exc:  # e.g. a host IDNA 2008 refuses (a symbol, a soft hyphen), though it resolves
         raise TargetRefused(f"webhook_url {url!r} cannot be sent to: {exc}") from None
     try:
-        allowed_addresses_within(host, port, allow_networks, timeout_s)
+        allowed_addresses_within(sent_to, port, allow_networks, timeout_s)
     except LookupSlotsBusy:
         raise
     except LookupTimedOut:
