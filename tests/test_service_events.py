@@ -390,3 +390,39 @@ def test_a_stream_ends_once_the_key_that_opened_it_is_revoked(in_process, tmp_pa
     assert [e["event"] for e in events] == ["progress", "error"], events
     assert events[-1]["data"] == {"detail": "the API key of this stream was revoked"}
     assert client.get(f"/v1/jobs/{job['id']}").json()["state"] == "queued"  # the job itself goes on
+
+
+def test_a_hub_whose_polls_fail_logs_one_traceback_backs_off_and_says_when_they_succeed_again(monkeypatch, caplog):
+    """With the database down, every poll (twice a second while a stream is open) had logged a warning with its
+    traceback: 7,200 an hour per API process. Now the first failure is logged with its traceback, the next ones a
+    line each, the polls back off while they fail, and the recovery is said."""
+    import logging
+
+    from api.events import EventHub
+
+    polls = []
+
+    def poll(after, fresh, keys):
+        polls.append(time.monotonic())
+        if len(polls) <= 5:
+            raise ConnectionError("the database is unreachable")
+        return {}, {}, {}, set()  # the job is gone: its stream ends
+
+    async def read() -> list[str]:
+        hub = EventHub(0.05, view=lambda job: {})
+        monkeypatch.setattr(hub, "_poll", poll)
+        try:
+            async with aclosing(hub.stream("job1", "key1")) as stream:
+                return [text async for text in stream]
+        finally:
+            await hub.close()
+
+    with caplog.at_level(logging.WARNING, logger="voxe.api"):
+        texts = asyncio.run(read())
+    assert "was deleted" in texts[-1]
+    records = [r for r in caplog.records if r.name == "voxe.api"]
+    assert [r.exc_info is not None for r in records] == [True, False, False, False, False, False], records
+    assert "poll 5 in a row failed" in records[4].getMessage()
+    assert records[-1].getMessage() == "event streams: polls succeed again, after 5 failed in a row"
+    gaps = [later - earlier for earlier, later in zip(polls, polls[1:])]
+    assert gaps[3] > 3 * gaps[0] and gaps[3] >= 0.35, gaps  # 0.05 s doubling per failure: 0.4 s after the 4th
