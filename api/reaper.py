@@ -15,7 +15,8 @@ A job is orphaned when
   stages): the worker whose broker refused that message says so at once (``worker.tasks``: the job is queued
   with no task id, below), and one whose next stage has not started for ``VOXE_JOB_LOST_MESSAGE_TIMEOUT_S`` is
   sent again (a broker that lost what it had accepted; a copy that still comes is skipped or dropped). One
-  between stages whose user asked to cancel it ends canceled at once: no run would see the flag. A message the
+  whose user asked to cancel it ends canceled at once, between stages or once no run renews its hold (its worker
+  died mid-stage, or the run stalled): no run would see the flag. A message the
   broker still delivers later (Redis redelivering hours later) finds the job done or ended
   (skipped), held by a live run (dropped), or waiting, and then runs it, the other copy being
   the one dropped (``worker.runtime.begin_stage``);
@@ -112,7 +113,7 @@ def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[
                          or_(Job.worker_hostname.is_(None), Job.worker_hostname.not_in(alive),
                              Job.run_lease_until < cutoff)),  # (a run that ended without a word on a live worker)
                     and_(between_stages, Job.updated_at < lost_cutoff),  # its next message lost unseen
-                    and_(between_stages, Job.cancel_requested)),  # no run will see the cancel: ended now
+                    Job.cancel_requested),  # no run will see the cancel (none renews a hold): ended now
             )
         ).all()
         alive_now = set(session.scalars(alive)) if running else set()
@@ -123,6 +124,8 @@ def reap_orphaned_jobs(settings: Settings, now: datetime | None = None) -> list[
             if job.run_token is None and job.cancel_requested:  # (a stage not done: its run gave the job back)
                 done = job.stage in (job.completed_stages or [])
                 reason = f"asked between stages, after {job.stage}" if done else f"asked during {job.stage}"
+            elif job.cancel_requested and job.updated_at >= cutoff:  # its run died or stalled, lately
+                reason = f"asked during {job.stage}"
             elif job.worker_hostname not in alive_now:
                 reason = (f"worker {job.worker_hostname or '(unknown)'} stopped while the job was in {job.stage}: "
                           f"no heartbeat and no progress for {timeout:.0f} s (VOXE_JOB_STALE_TIMEOUT_S)")

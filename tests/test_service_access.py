@@ -8,6 +8,7 @@ import hashlib
 import logging
 import threading
 import time
+from datetime import timedelta
 
 import anyio
 import pytest
@@ -15,6 +16,7 @@ from fastapi.testclient import TestClient
 
 from service_helpers import ingest, zip_folder
 from test_service_api import BOTH_DATABASES, JOB, _reset, dataset, root, staged, stored_files  # noqa: F401 - fixtures
+from test_service_faults import add_heartbeat, add_job, add_scene, db, job_row  # noqa: F401 - the reaper's fixtures
 
 
 def _create_key(name: str, **quota) -> tuple[str, str]:
@@ -1135,3 +1137,31 @@ def test_an_anonymous_upload_is_refused_before_its_body_is_read(auth_client):
     sent.clear()
     anyio.run(run, [(b"content-length", b"2000000000"), (b"authorization", f"Bearer {token}".encode())], "")
     assert sent[0]["status"] == 401 and b"invalid or revoked API key" in sent[1]["body"]
+
+
+def test_a_job_canceled_once_no_run_renews_its_hold_ends_at_the_reapers_next_pass_freeing_its_quota_place(
+        db, monkeypatch):  # noqa: F811
+    """A running job whose run stopped renewing its hold (its worker died mid-stage, or the run stalled) and whose
+    user then canceled it (it looked stuck): no run would ever see the flag, and the cancel had refreshed the job, so
+    it stayed running, holding a place of the key's concurrent-job quota (and its scene from deletion: "canceled and
+    still stopping"), until VOXE_JOB_STALE_TIMEOUT_S (15 min) after the cancel. It ends canceled at the next pass,
+    as a job between stages does; one a live run holds is left to stop at its next check."""
+    from api.reaper import reap_orphaned_jobs
+    from api.services.jobs import request_cancel
+    from voxe_service.db import session_scope
+    from voxe_service.models import utcnow
+
+    scene = add_scene()
+    add_heartbeat("alive@host", age_s=1)
+    lapsed = utcnow() - timedelta(seconds=5)
+    dead = add_job(scene, "running", 0, "dead@host", "edit", run_token="t1", run_lease_until=lapsed)
+    stalled = add_job(scene, "running", 0, "alive@host", "edit", run_token="t2", run_lease_until=lapsed)
+    held = add_job(scene, "running", 0, "alive@host", "edit", run_token="t3",
+                   run_lease_until=utcnow() + timedelta(seconds=60))
+    with session_scope() as session:
+        request_cancel(session=session, job_ids=[dead, stalled, held])
+    assert sorted(reap_orphaned_jobs(db)) == sorted([dead, stalled])
+    for job_id in (dead, stalled):
+        ended = job_row(job_id)
+        assert (ended.state, ended.message, ended.run_token) == ("canceled", "canceled: asked during edit", None)
+    assert (job_row(held).state, job_row(held).cancel_requested) == ("running", True)
