@@ -19,7 +19,7 @@ from sqlalchemy.orm import Session
 
 from api.auth import create_key, key_of_token, token_key_id
 from api.services.jobs import request_cancel
-from voxe_service.db import run_migrations, session_scope
+from voxe_service.db import DATABASE_UNAVAILABLE, database_outage, run_migrations, session_scope
 from voxe_service.models import LOCAL_KEY_ID, PROCESSING, TERMINAL_STATES, ApiKey, Job, Scene, utcnow
 from voxe_service.scenes import fail_scene
 from voxe_service.settings import get_settings
@@ -88,6 +88,19 @@ def fail_processing_scenes(session: Session, key: ApiKey) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The command's exit status; a database that is down or unreachable said in a line (it had ended in SQLAlchemy's
+    traceback, a page of it to read the cause out of)."""
+    try:
+        return _command(argv)
+    except DATABASE_UNAVAILABLE as exc:
+        if (why := database_outage(exc)) is None:
+            raise
+        cause = str(getattr(exc, "orig", None) or exc).strip().partition("\n")[0]
+        print(f"python -m api.admin: {why} (VOXE_DATABASE_URL): {cause}", file=sys.stderr)
+        return 1
+
+
+def _command(argv: list[str] | None) -> int:
     parser = argparse.ArgumentParser(prog="python -m api.admin", description="Manage the Vox-E service's API keys.")
     commands = parser.add_subparsers(dest="command", required=True)
     create = commands.add_parser("create-key", help="create a key and print its token (shown only once)")

@@ -238,6 +238,30 @@ def test_revoke_key_of_the_built_in_local_key_says_what_it_is(auth_client, capsy
             "(VOXE_AUTH=on requires a key of every request)") in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("command", [["list-keys"], ["create-key", "--name", "x"], ["revoke-key", "abc"]])
+def test_an_admin_command_facing_a_database_that_is_down_says_so_without_a_traceback(monkeypatch, capsys, command):
+    """It had ended in SQLAlchemy's traceback ("sqlalchemy.exc.OperationalError: (psycopg.OperationalError)
+    connection failed: ..."), a page of it for the operator to read the cause out of."""
+    import socket
+
+    from api import admin
+    from service_helpers import reset_service_caches
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # nothing listens once it is closed
+    monkeypatch.setenv("VOXE_DATABASE_URL", f"postgresql+psycopg://voxe:s3cret@127.0.0.1:{port}/voxe")
+    reset_service_caches()
+    try:
+        assert admin.main(command) == 1
+    finally:
+        reset_service_caches()
+    err = capsys.readouterr().err
+    assert err.startswith("python -m api.admin: the database cannot be reached or is locked (VOXE_DATABASE_URL): "
+                          "connection failed: "), err
+    assert "Traceback" not in err and "s3cret" not in err and len(err.splitlines()) == 1
+
+
 @BOTH_DATABASES
 def test_revoking_a_key_cancels_its_unfinished_jobs(auth_client, mic_zip, capsys):
     """Its jobs had run on, holding workers, with results no key could read and no request able to cancel them."""
