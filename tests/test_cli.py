@@ -922,6 +922,43 @@ def test_a_negative_count_is_refused_naming_its_option(command, flag, capsys):
     assert exc.value.code == 2 and f"argument {flag}: must be at least 0, got -1" in capsys.readouterr().err
 
 
+def _count_options() -> list[tuple[str, str]]:
+    """Every (command, option) of ``voxe`` whose value is a count: the option types of voxe_core.cli.common."""
+    import argparse
+
+    from voxe_core.cli import build_parser
+    from voxe_core.cli.common import int_list, non_negative_int, positive_int
+
+    commands = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return [(name, action.option_strings[0]) for name, parser in commands.choices.items()
+            for action in parser._actions
+            if action.option_strings and action.type in (positive_int, non_negative_int, int_list)]
+
+
+@pytest.mark.parametrize("command, flag", _count_options())
+def test_a_count_too_large_is_refused_naming_its_option_and_its_limit(command, flag, capsys):
+    """A count past 64 bits had been taken, and torch then said only "int too big to convert" (``voxe turntable
+    --frames 99999999999999999999``, ``render --ring``, ``export-mesh --resolution``: no option named) or failed
+    with a traceback (``reconstruct --resolution`` or ``--rays``: "Overflow when unpacking long long")."""
+    for value in ("99999999999999999999", str(2**31)):
+        with pytest.raises(SystemExit) as exc:
+            main([command, flag, value])
+        assert exc.value.code == 2 and f"argument {flag}: must be at most 2147483647, got {value}" in \
+            capsys.readouterr().err
+
+
+def test_the_count_options_found_are_those_a_huge_value_had_failed(sphere_file, tmp_path, capsys):
+    """The options listed above include those that had failed unnamed; a count at the limit is taken."""
+    options = _count_options()
+    for option in (("turntable", "--frames"), ("turntable", "--size"), ("render", "--ring"), ("render", "--size"),
+                   ("export-mesh", "--resolution"), ("reconstruct", "--resolution"), ("reconstruct", "--rays"),
+                   ("reconstruct", "--iterations"), ("refine", "--views"), ("evaluate", "--views"),
+                   ("mesh-to-grid", "--size"), ("edit", "--render-size"), ("convert-grid", "--margin")):
+        assert option in options
+    assert main(["convert-grid", str(sphere_file), "--out", str(tmp_path / "c.safetensors"),
+                 "--margin", "2147483647"]) == 0
+
+
 def test_an_output_that_cannot_be_written_is_refused_before_the_fit_and_a_failed_save_leaves_nothing(
         sphere_file, tmp_path, capsys):
     """reconstruct had fitted first and then failed on its --out (or at its first checkpoint, whose folder it never

@@ -223,6 +223,19 @@ def run_stage(fn, desc: str, unit: str, total: int | None, quiet: bool = False):
             return None
 
 
+MAX_COUNT = 2**31 - 1
+"""The largest count an integer option takes (sizes, views, frames, iterations, rays...): past 64 bits torch had
+said only "int too big to convert" (``voxe turntable --frames 99999999999999999999``: no option named), and near
+them failed in its own words ("cannot be represented as a SymInt", a traceback). Up to it, a count too large for
+the machine is said as out of memory, naming what to ask less of (or takes as long as it asks: Ctrl-C stops it)."""
+
+
+def _at_most_max_count(value: int) -> int:
+    if value > MAX_COUNT:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_COUNT}, got {value}")
+    return value
+
+
 def int_list(text: str) -> list[int]:
     try:
         values = [int(v) for v in text.split(",") if v.strip()]
@@ -230,6 +243,8 @@ def int_list(text: str) -> list[int]:
         raise argparse.ArgumentTypeError(f"expected an integer or a comma-separated list of integers, got {text!r}")
     if not values or any(v < 0 for v in values):
         raise argparse.ArgumentTypeError(f"expected non-negative integers, got {text!r}")
+    for value in values:
+        _at_most_max_count(value)
     return values
 
 
@@ -242,7 +257,7 @@ def positive_int(text: str) -> int:
     value = int(text)
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
+    return _at_most_max_count(value)
 
 
 def positive_seconds(text: str) -> float:
@@ -256,7 +271,7 @@ def non_negative_int(text: str) -> int:
     value = int(text)
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be at least 0, got {value}")
-    return value
+    return _at_most_max_count(value)
 
 
 def seed(text: str) -> int:
