@@ -1477,6 +1477,33 @@ def test_an_artifact_with_a_long_name_downloads_through_a_part_file_of_a_name_th
         (tmp_path / name).unlink()
 
 
+def test_a_download_to_a_folder_is_refused_before_any_byte_is_fetched(tmp_path, monkeypatch, capsys):
+    """``voxe download J --out DIR`` where DIR/a.png is a folder had fetched the whole artifact, then failed its rename
+    with "[Errno 21] Is a directory: '.../.a.png.<etag>.part' -> '.../a.png'", the hidden part file left in DIR."""
+    import voxe_core.cli.service as service
+    from voxe_core.cli import main
+
+    data = b"frame" * 100
+    answer = _serving(data, "a.png")
+    (tmp_path / "a.png").mkdir()
+    (tmp_path / "a.png" / "mine.txt").write_text("kept")
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        with pytest.raises(IsADirectoryError, match=f"^cannot download a.png of job j1 to {tmp_path / 'a.png'}: it "
+                                                    "is a folder; nothing downloaded$"):
+            client.download("j1", "a.png", tmp_path / "a.png")
+    def job_or_artifact(request: httpx.Request) -> httpx.Response:
+        if request.url.path == "/v1/jobs/j1":
+            return httpx.Response(200, json={"id": "j1", "state": "succeeded"})
+        return answer(request)
+
+    monkeypatch.setattr(service, "_client", lambda args: Client(transport=httpx.MockTransport(job_or_artifact)))
+    assert main(["download", "j1", "--out", str(tmp_path), "--quiet"]) == 2
+    assert capsys.readouterr().err == (f"voxe download: error: cannot download a.png of job j1 to "
+                                       f"{tmp_path / 'a.png'}: it is a folder; nothing downloaded\n")
+    assert answer.asked == []  # no byte of it fetched
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["a.png", "mine.txt"]  # no part file left
+
+
 class _CutAt(httpx.SyncByteStream):
     """A body broken off (a connection reset) after its first ``at`` bytes."""
 

@@ -522,6 +522,9 @@ class Client:
         """
         if name in ("", ".", "..") or any(c in name for c in "/\\\0"):  # it names a file inside dest's folder only
             raise ServiceError(f"artifact name {name!r} of job {job_id} is not a plain file name; nothing written")
+        if Path(dest).is_dir():  # (the whole artifact had been fetched, then its rename failed naming the part file)
+            raise IsADirectoryError(f"cannot download {name} of job {job_id} to {dest}: it is a folder; nothing "
+                                    "downloaded")
         listed = {a["name"]: a for a in self.artifacts(job_id)}
         if name not in listed:
             raise ServiceError(f"job {job_id} has no artifact {name!r}; it has {', '.join(sorted(listed)) or 'none'}",
