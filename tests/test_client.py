@@ -2646,3 +2646,37 @@ def test_voxe_sweep_that_cannot_write_its_out_file_keeps_the_earlier_one(tmp_pat
     assert main(["sweep", "--scene", "a=mic", "--out", str(out)]) == 2
     assert "No space left on device" in capsys.readouterr().err
     assert json.loads(out.read_text())["id"] == "s1" and [p.name for p in tmp_path.iterdir()] == ["sweep.json"]
+
+
+@pytest.mark.parametrize("change, now", [("shrinks", 10), ("grows", len(PLANE_OBJ) + 5000)])
+def test_an_upload_whose_file_changes_as_it_is_sent_names_the_file(change, now, api, tmp_path, monkeypatch, capsys):
+    """A file cut short (or still being written) between the upload's opening it and sending it had been h11's
+    traceback, "LocalProtocolError: Too little (much) data for declared Content-Length" (exit 1), naming no file."""
+    import os
+
+    from voxe_core.cli import main
+
+    url, _ = api
+    obj = tmp_path / "plane.obj"
+    send = httpx.Client.send
+
+    def changing_then_sending(self, request, **kwargs):
+        if request.method == "POST" and request.url.path == "/v1/scenes":
+            obj.write_text(PLANE_OBJ)  # as it was opened, then cut short or written on
+            if change == "shrinks":
+                os.truncate(obj, 10)
+            else:
+                with open(obj, "a") as more:
+                    more.write("#" * 5000)
+        return send(self, request, **kwargs)
+
+    monkeypatch.setattr(httpx.Client, "send", changing_then_sending)
+    said = (f"{obj} ({len(PLANE_OBJ)} bytes when the upload opened it, {now} bytes now) changed as it was uploaded "
+            "(still being written?): upload it once it is whole")
+    obj.write_text(PLANE_OBJ)
+    with Client(url) as client:
+        with pytest.raises(ValueError, match=f"^{re.escape(said)}$"):
+            client.upload_scene(obj)
+    obj.write_text(PLANE_OBJ)
+    assert main(["submit", "a plane", "--upload", str(obj), "--api", url, "--quiet"]) == 2
+    assert capsys.readouterr().err == f"voxe submit: error: {said}\n"

@@ -302,9 +302,22 @@ class Client:
         paths = MESH_UPLOADS[kind](path, texture) if kind in MESH_UPLOADS else [path]
         field = "archive" if path.suffix.lower() == ".zip" else "files"
         with ExitStack() as stack:
-            files = [(field, (each.name, stack.enter_context(open(each, "rb")))) for each in paths]
-            return self._record("scene", "POST", "/v1/scenes", files=files, data={"name": name} if name else None,
-                                idempotency_key=_submission_key(idempotency_key))
+            opened = [(each, stack.enter_context(open(each, "rb"))) for each in paths]
+            sizes = [os.fstat(file.fileno()).st_size for _, file in opened]
+            try:
+                return self._record("scene", "POST", "/v1/scenes", files=[(field, (each.name, file))
+                                                                          for each, file in opened],
+                                    data={"name": name} if name else None,
+                                    idempotency_key=_submission_key(idempotency_key))
+            except ServiceError:
+                raise
+            except Exception:  # (h11's "Too little data for declared Content-Length" had been a traceback)
+                if changed := [f"{each} ({size} bytes when the upload opened it, {now} bytes now)"
+                               for (each, file), size in zip(opened, sizes)
+                               if (now := os.fstat(file.fileno()).st_size) != size]:
+                    raise ValueError(f"{', '.join(changed)} changed as it was uploaded (still being written?): "
+                                     "upload it once it is whole") from None
+                raise
 
     def delete_scene(self, scene_id: str) -> None:
         """``DELETE /v1/scenes/{id}``: the scene with its finished jobs and their results (409 while one runs)."""
