@@ -1504,6 +1504,34 @@ def test_a_download_to_a_folder_is_refused_before_any_byte_is_fetched(tmp_path, 
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["a.png", "mine.txt"]  # no part file left
 
 
+def test_a_download_whose_part_file_cannot_be_written_names_it_and_the_bytes_kept(tmp_path):
+    """A part file that could not be written (a full disk; here a file size limit, EFBIG) had failed the download as
+    "[Errno 27] File too large" alone (``voxe download``'s whole message), naming no file, its bytes kept unsaid."""
+    import errno
+    import hashlib
+    import resource
+    import signal
+
+    data = bytes(range(256)) * 400
+    answer = _serving(data)
+    part = tmp_path / f".a.bin.{hashlib.sha256(data).hexdigest()[:16]}.part"
+    limits, ignored = resource.getrlimit(resource.RLIMIT_FSIZE), signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    try:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (30000, limits[1]))
+        with Client(transport=httpx.MockTransport(answer)) as client:
+            with pytest.raises(OSError) as error:
+                client.download("j1", "a.bin", tmp_path / "a.bin")
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, limits)
+        signal.signal(signal.SIGXFSZ, ignored)
+    assert error.value.errno == errno.EFBIG and str(error.value) == (
+        f"[Errno 27] cannot download a.bin of job j1 to {tmp_path / 'a.bin'} (30000 of {len(data)} bytes here, kept "
+        f"in {part} for the next download of it to go on from): File too large")
+    with Client(transport=httpx.MockTransport(answer)) as client:  # and the next one goes on from them
+        assert client.download("j1", "a.bin", tmp_path / "a.bin").read_bytes() == data
+    assert answer.asked == [None, "bytes=30000-"] and [p.name for p in tmp_path.iterdir()] == ["a.bin"]
+
+
 class _CutAt(httpx.SyncByteStream):
     """A body broken off (a connection reset) after its first ``at`` bytes."""
 

@@ -573,6 +573,12 @@ class Client:
                     earlier = 0
                 os.replace(partial, dest)
                 replaced = True  # a part file there now is another download's (a zero-byte artifact's had deleted it)
+            except OSError as exc:
+                if exc.filename is not None:  # (it names its file)
+                    raise
+                held = os.fstat(out.fileno()).st_size  # writing the part failed: a full disk, a file size limit
+                raise OSError(exc.errno, f"cannot download {what} to {dest} ({held} of {expected['size']} bytes "
+                                         f"here{_kept_in(partial, held)}): {exc.strerror or exc}") from None
             finally:
                 if not replaced and not out.seek(0, os.SEEK_END):  # nothing to go on from
                     partial.unlink(missing_ok=True)
