@@ -2708,3 +2708,21 @@ def test_an_upload_whose_file_changes_as_it_is_sent_names_the_file(change, now, 
     obj.write_text(PLANE_OBJ)
     assert main(["submit", "a plane", "--upload", str(obj), "--api", url, "--quiet"]) == 2
     assert capsys.readouterr().err == f"voxe submit: error: {said}\n"
+
+
+def test_an_api_key_no_header_carries_is_refused_without_saying_it_and_one_not_ascii_is_sent(api, capsys):
+    """A key with a line break (a key file's CRLF) had failed every call as "cannot reach the service at URL: Illegal
+    header value b'Bearer <the key>\\r'" (exit 3: try again later; the secret in the log), and one not in ASCII
+    with "'ascii' codec can't encode character ..." (naming no key); UTF-8 is what the service reads."""
+    from voxe_core.cli import main
+
+    url, _ = api
+    for key in ("voxe_k1_secret\r", "voxe_k1_secret\n", "voxe_k1\0secret"):
+        with pytest.raises(ValueError, match="^the API key cannot be sent: it holds a line break, NUL or other "
+                                             "whitespace than spaces and tabs"):
+            Client(url, api_key=key)
+        assert main(["status", "j1", "--api", url, "--api-key", key]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("voxe status: error: the API key cannot be sent") and "secret" not in err
+    assert main(["status", "j1", "--api", url, "--api-key", "voxe_clé"]) == 2  # sent: the service's answer
+    assert "voxe status: error: GET /v1/jobs/j1: HTTP " in capsys.readouterr().err

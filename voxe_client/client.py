@@ -203,8 +203,11 @@ class Client:
         self.retries = retries
         timeout = _checked_timeout(timeout)
         headers = {"accept": "application/json", "accept-encoding": ", ".join(ACCEPTED_ENCODINGS)}
-        if api_key:
-            headers["authorization"] = f"Bearer {api_key}"
+        if api_key:  # (one with a line break, as a key file's CRLF leaves, had failed each call as "cannot reach the
+            if HEADER_BREAKS.search(api_key):  # service: Illegal header value b'Bearer <the key>'", exit 3)
+                raise ValueError("the API key cannot be sent: it holds a line break, NUL or other whitespace than "
+                                 "spaces and tabs (the end of a line of the file it was read from?)")
+            headers["authorization"] = f"Bearer {api_key}".encode()  # UTF-8, as _header_bytes (not ASCII only)
         try:
             url = httpx.URL(self.base_url)
         except httpx.InvalidURL as exc:  # (httpx's own type: a traceback in the CLI, which reports ValueErrors)
