@@ -898,6 +898,10 @@ def test_bad_option_values_exit_2(tmp_path, capsys):
     # had been argparse's "invalid _json_object value: '{...}'", quoting the whole text
     ('{"a": ' + "9" * 5000 + "}", f"a number has more than {sys.get_int_max_str_digits()} digits"),
     ('{"a": 1', "not JSON: Expecting ',' delimiter"),
+    # had been taken, then refused as sent: "Out of range float values are not JSON compliant", no option named
+    ('{"iterations": 1e400}', "not JSON this command reads: the number 1e400 is past a float's range"),
+    ('{"a": [-Infinity]}', "not JSON this command reads: -Infinity is no JSON number"),
+    ('{"a": NaN}', "not JSON this command reads: NaN is no JSON number"),
 ])
 def test_json_options_json_loads_refuses_are_usage_errors_saying_why(text, message, capsys):
     """``--params`` and ``--evaluation``, refused before any request: one usage line, exit 2, no traceback."""

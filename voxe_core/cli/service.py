@@ -30,14 +30,32 @@ def _scene_object(text: str) -> dict:
     return {"scene_id": scene_id.strip(), "object": name.strip()}
 
 
+class _NoJsonNumber(ValueError):
+    """A number of a ``--params`` that no JSON request carries."""
+
+
+def _finite_number(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise _NoJsonNumber(f"the number {text} is past a float's range")
+    return value
+
+
+def _no_constant(name: str):
+    raise _NoJsonNumber(f"{name} is no JSON number")
+
+
 def _json_object(text: str) -> dict:
     """``--params`` and ``--evaluation``: a JSON object, or a usage error saying why not (nesting past the recursion
     limit had escaped argparse as a RecursionError traceback, and a number past Python's int-string limit had been
-    "invalid _json_object value" quoting the whole text)."""
+    "invalid _json_object value" quoting the whole text; 1e400, NaN or Infinity, which Python's json reads, had been
+    refused only as the request was sent, "Out of range float values are not JSON compliant", no option named)."""
     try:
-        value = json.loads(text)
+        value = json.loads(text, parse_float=_finite_number, parse_constant=_no_constant)
     except json.JSONDecodeError as exc:
         raise argparse.ArgumentTypeError(f"not JSON: {exc}") from None
+    except _NoJsonNumber as exc:
+        raise argparse.ArgumentTypeError(f"not JSON this command reads: {exc}") from None
     except RecursionError:
         raise argparse.ArgumentTypeError("not JSON this command reads: its arrays or objects nest too deeply") from None
     except ValueError:  # json.loads' only other ValueError: int() past the int-string limit
