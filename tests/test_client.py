@@ -1564,6 +1564,26 @@ def test_upload_scene_sends_the_display_name_as_the_name_field_and_keeps_the_fil
     assert b'filename="scene.zip"' in bodies[2] and field not in bodies[2]
 
 
+def test_an_upload_of_a_file_whose_name_is_not_utf8_is_refused_naming_it(tmp_path, monkeypatch, capsys):
+    """A file named in another encoding (b"sc\\xffene.zip", a Latin-1 system's) had failed in httpx's multipart
+    encoder, "'utf-8' codec can't encode character '\\udcff' in position 12: surrogates not allowed", naming no file."""
+    import os
+
+    import voxe_core.cli.service as service
+    from voxe_core.cli import main
+
+    sent = []
+    path = Path(os.fsdecode(bytes(tmp_path) + b"/sc\xffene.zip"))
+    path.write_bytes(b"PK\x05\x06" + bytes(18))
+    said = f"cannot upload {tmp_path}/sc\\xffene.zip: its name is not UTF-8, which the upload sends names as: rename it"
+    with Client(transport=httpx.MockTransport(lambda request: sent.append(request))) as client:
+        with pytest.raises(ValueError, match=f"^{re.escape(said)}$"):
+            client.upload_scene(path)
+    monkeypatch.setattr(service, "_client", lambda args: Client(transport=httpx.MockTransport(sent.append)))
+    assert main(["submit", "p", "--upload", str(path)]) == 2
+    assert capsys.readouterr().err == f"voxe submit: error: {said}\n" and sent == []
+
+
 def test_a_folder_upload_is_refused_saying_to_zip_it(tmp_path):
     """A dataset folder given to upload_scene (``voxe submit --upload DIR``) had failed as "[Errno 21] Is a
     directory"; nothing is sent."""

@@ -303,6 +303,13 @@ class Client:
         if texture is not None and kind not in MESH_UPLOADS:
             raise ValueError(f"a texture goes with a mesh upload (.obj or .ply); {path.name} is neither")
         paths = MESH_UPLOADS[kind](path, texture) if kind in MESH_UPLOADS else [path]
+        for each in paths:  # (the multipart encoder had failed: "'utf-8' codec can't encode character '\udcff' ...")
+            try:
+                each.name.encode()
+            except UnicodeEncodeError:
+                shown = os.fsencode(each).decode(errors="backslashreplace")  # (no lone surrogate in the message)
+                raise ValueError(f"cannot upload {shown}: its name is not UTF-8, which the upload sends names as: "
+                                 "rename it") from None
         field = "archive" if path.suffix.lower() == ".zip" else "files"
         with ExitStack() as stack:
             opened = [(each, stack.enter_context(open(each, "rb"))) for each in paths]
