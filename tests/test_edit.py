@@ -15,6 +15,7 @@ import re
 import shutil
 import time
 
+import numpy as np
 import pytest
 import torch
 
@@ -194,6 +195,16 @@ def test_a_count_or_decay_out_of_range_is_refused_naming_its_setting_and_value(n
     in (0, 1]", "batch_size and image_regulariser_rays must be >= 1"): which was wrong, and how, was left to guess."""
     with pytest.raises(ValueError, match=rf"^{name} must be {re.escape(rule)}, got {value}$"):
         EditConfig(**{name: value})
+
+
+@pytest.mark.parametrize("name, value", [("lr", "0.01"), ("guidance_scale", None), ("regulariser_weight", True),
+                                         ("fov_x", None), ("min_zenith_deg", "15"), ("lr_decay_factor", [0.96])])
+def test_a_setting_that_is_no_number_is_refused_naming_it(name, value):
+    """Regression: a string or None had failed a range test naming no setting ("'<' not supported between instances
+    of 'int' and 'str'", a TypeError), and True had run as 1 (RefineConfig shares the check)."""
+    with pytest.raises(ValueError, match=f"^{name} must be a number, got {re.escape(repr(value))}$"):
+        EditConfig(**{name: value})
+    assert EditConfig(lr=np.float32(0.01), guidance_scale=np.float64(7.5), radius=4).radius == 4
 
 
 @pytest.mark.parametrize("name, value, message", [

@@ -107,7 +107,15 @@ from voxe_core.progress import Callbacks, Progress, StageCancelled
 from voxe_core.reconstruct import check_finite_grid, checkpoint_at_cancel, renders_nothing, same_views, views_summary
 from voxe_core.render import RenderConfig, render_image, render_rays
 from voxe_core.schedule import TimestepSchedule
-from voxe_core.tensorio import FormatError, config_recipe, load_header, load_tensors, recipe_changes, save_tensors
+from voxe_core.tensorio import (
+    FormatError,
+    check_numbers,
+    config_recipe,
+    load_header,
+    load_tensors,
+    recipe_changes,
+    save_tensors,
+)
 
 EDIT_CHECKPOINT_KIND = "edit_checkpoint"
 EDIT_CHECKPOINT_VERSION = 1
@@ -188,6 +196,8 @@ class EditConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, numbers.Integral):
                 raise ValueError(f"{name} takes whole numbers, got {value!r}")
+        check_numbers(self, ("lr", "lr_decay_factor", "guidance_scale", "regulariser_weight", "front_azimuth_deg",
+                             "preview_elevation_deg", "radius", "fov_x", "min_zenith_deg", "max_zenith_deg"))
         if not 0 <= self.seed <= MAX_SEED:
             raise ValueError(f"seed must lie in [0, {MAX_SEED}] (the service's and the CLI's range), got {self.seed}")
         if self.iterations < 0:

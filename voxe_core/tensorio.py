@@ -7,6 +7,7 @@ torch >= 2.6). Every file here is plain tensors and a versioned JSON header.
 from __future__ import annotations
 
 import json
+import numbers
 import os
 import re
 import stat
@@ -36,6 +37,16 @@ def config_recipe(config, left_out: Iterable[str]) -> dict:
     for name in left_out:
         del fields[name]
     return json.loads(json.dumps(fields))
+
+
+def check_numbers(config, names: Iterable[str]) -> None:
+    """ValueError naming the first of ``config``'s real-valued settings ``names`` that is no number (numpy floats
+    are): a string or None had failed a range test naming no setting ("'<' not supported between instances of 'int'
+    and 'str'"), and True had run as 1."""
+    for name in names:
+        value = getattr(config, name)
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            raise ValueError(f"{name} must be a number, got {value!r}")
 
 
 def recipe_changes(path: str | os.PathLike, meta: dict, config) -> list[str]:

@@ -34,6 +34,7 @@ from voxe_core.constants import (
 )
 from voxe_core.guidance.prompts import AUTHORS_FRONT_AZIMUTH_DEG
 from voxe_core.render import RenderConfig
+from voxe_core.tensorio import check_numbers
 
 
 class SegmentationError(ValueError):
@@ -136,12 +137,9 @@ class RefineConfig:
                 raise ValueError(f"{name} takes True or False, got {getattr(self, name)!r}")
         if not isinstance(self.render, RenderConfig):
             raise ValueError(f"render must be a RenderConfig, got {self.render!r}")
-        for name in ("smoothing_sigma", "front_azimuth_deg", "fov_x", "lr", "tv_weight", "init_value",
-                     "backprojection_prior", "edit_seed_ratio", "object_seed_margin", "sigma", "smoothness",
-                     "node_alpha"):  # (sigma="0.1" had failed a range test: "'<' not supported between 'int' and 'str'")
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, numbers.Real):
-                raise ValueError(f"{name} must be a number, got {value!r}")
+        check_numbers(self, ("smoothing_sigma", "front_azimuth_deg", "fov_x", "lr", "tv_weight", "init_value",
+                             "backprojection_prior", "edit_seed_ratio", "object_seed_margin", "sigma", "smoothness",
+                             "node_alpha"))
         if self.lift_start not in ("backprojection", "constant"):
             raise ValueError(f"lift_start must be 'backprojection' or 'constant', got {self.lift_start!r}")
         if not 0 <= self.backprojection_prior <= FLOAT32_MAX:  # as "not in range": NaN fails every comparison
