@@ -1525,6 +1525,37 @@ def test_cli_refine_warns_when_the_cut_keeps_nothing(tmp_path, tiny_model, make_
                                                        "grid's "), warning
 
 
+def test_cli_refine_records_every_setting_it_ran_with(tmp_path, tiny_model, make_sphere_grid, monkeypatch):
+    """Regression: refine.json had recorded only the views, render size, iterations and seed, not --sigma,
+    --smoothness, --lr, the seed counts or --lift-start: a result could not be reproduced from it."""
+    import voxe_core.refine.pipeline
+
+    def favouring_the_object(grid, *args, **kwargs):  # (a fit of one step from a constant seeds nothing)
+        edit_field = torch.full((*grid.resolution, 1), -5.0)
+        return edit_field, -edit_field
+
+    monkeypatch.setattr(voxe_core.refine.pipeline, "fit_attention_grids", favouring_the_object)
+    initial = make_sphere_grid(8)
+    initial.save(tmp_path / "initial.safetensors", dense=True)
+    initial.save(tmp_path / "edited.safetensors", dense=True)
+    out = tmp_path / "out"
+    assert main(["refine", str(tmp_path / "edited.safetensors"), "--initial", str(tmp_path / "initial.safetensors"),
+                 "--prompt", "a dog wearing a party hat", "--edit-words", "party hat", "--out", str(out),
+                 "--model", str(tiny_model), "--offline", "--device", "cpu", "--iterations", "1", "--render-size",
+                 "16", "--views", "1", "--preview-views", "0", "--quiet", "--sigma", "0.25", "--smoothness", "3",
+                 "--lr", "0.02", "--tv-weight", "0.5", "--edit-seeds", "7", "--object-seeds", "9", "--lift-start",
+                 "constant", "--smoothing-sigma", "0", "--rays", "64", "--no-view-words", "--seed", "5"]) == 0
+    settings = json.loads((out / "refine.json").read_text())["settings"]
+    assert {name: settings[name] for name in ("sigma", "smoothness", "lr", "tv_weight", "edit_seeds", "object_seeds",
+                                              "lift_start", "smoothing_sigma", "rays_per_step", "view_word_prompt",
+                                              "views", "render_size", "iterations", "seed")} == {
+        "sigma": 0.25, "smoothness": 3.0, "lr": 0.02, "tv_weight": 0.5, "edit_seeds": 7, "object_seeds": 9,
+        "lift_start": "constant", "smoothing_sigma": 0.0, "rays_per_step": 64, "view_word_prompt": False,
+        "views": 1, "render_size": 16, "iterations": 1, "seed": 5}
+    assert settings["fit_views"] == "fixed" and settings["attention_model"] == str(tiny_model)  # what they resolved to
+    assert RefineConfig(**{**settings, "render": RenderConfig(**settings["render"])}).sigma == 0.25  # a config again
+
+
 def test_cli_refine_smoke(tmp_path, tiny_model, make_sphere_grid):
     initial = make_sphere_grid(12)
     edited = initial.clone_grid()

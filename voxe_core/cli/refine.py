@@ -22,6 +22,7 @@ from voxe_core.cli.common import (
 from voxe_core.guidance.prompts import (check_edit_words_name_an_edit, check_edit_words_read,
                                         check_no_special_tokens, check_prompt_length, prompt_text)
 from voxe_core.presets import LIFT_START, LIFT_STARTS, SEED, refine_config
+from voxe_core.tensorio import config_recipe
 
 
 RING_PREVIEWS = ("attention_edit", "attention_object", "probability_edit", "mask", "refined")
@@ -175,8 +176,7 @@ def _write_outputs(folder: Path, result, words: list[str], model: str, config, s
         for name, maps in zip(MAP_PREVIEWS, (result.edit_maps, result.object_maps)):
             save_png(renders / _frame_name(name, i), maps[i].cpu()[..., None].expand(-1, -1, 3))
     summary = {"prompt": result.info["prompt"], "edit_words": words, "model": model,
-               "settings": {"views": config.views, "render_size": config.render_size, "iterations": config.iterations,
-                            "seed": config.seed},
+               "settings": config_recipe(config, ()),  # every one the run used (--sigma, --lift-start, ... had gone unsaid)
                "graph_cut": stats, "masked_voxels": int(result.mask.sum())}
     (folder / "refine.json").write_text(json.dumps(summary, indent=2))
 
