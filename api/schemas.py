@@ -132,8 +132,8 @@ class RefineParams(Strict):
                                                "after upsampling (the authors' code)")
     lr: float = Field(paper.REFINE_LR, gt=0, le=10)
     tv_weight: float = Field(paper.REFINE_TV_WEIGHT, ge=0, le=1e6)
-    render_size: int | None = Field(None, ge=paper.MIN_RENDER_SIZE, le=1024, description="attention render size (default: the edit's)")
-    views: int = Field(paper.REFINE_VIEWS, ge=1, le=1000,
+    render_size: int | None = Field(None, ge=paper.MIN_RENDER_SIZE, le=paper.MAX_RENDER_SIZE, description="attention render size (default: the edit's)")
+    views: int = Field(paper.REFINE_VIEWS, ge=1, le=paper.MAX_REFINE_VIEWS,
                        description="random upper-hemisphere poses whose 2D attention maps are lifted")
     rays_per_step: int = Field(paper.REFINE_RAYS_PER_STEP, ge=1, le=1 << 20)
     edit_seeds: int = Field(paper.EDIT_SEEDS, ge=0, le=10_000_000,
@@ -181,7 +181,7 @@ class JobParams(Strict):
         description=f"edit iterations; on a scene-backbone G_i the default {paper.EDIT_ITERATIONS} means SPEC §5's "
         f"{presets.EDIT_SCHEDULES['scene'].iterations} (any other count runs as given)",
     )
-    render_size: int = Field(paper.RENDER_SIZE, ge=paper.MIN_RENDER_SIZE, le=1024, description="edit render size in pixels")
+    render_size: int = Field(paper.RENDER_SIZE, ge=paper.MIN_RENDER_SIZE, le=paper.MAX_RENDER_SIZE, description="edit render size in pixels")
     guidance_scale: float = Field(paper.DEFAULT_GUIDANCE_SCALE, gt=0, le=1000)
     lr: float = Field(paper.EDIT_LR, gt=0, le=10)
     regulariser: Regulariser = paper.DEFAULT_REGULARISER

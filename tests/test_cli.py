@@ -26,6 +26,7 @@ import voxe_core.reconstruct
 from voxe_core.backbones import load_grid
 from voxe_core.cli import main
 from voxe_core.cli.common import STAGING_MARKER, load_guidance as load_guidance_of_common
+from voxe_core.constants import MAX_REFINE_VIEWS, MAX_RENDER_SIZE
 from voxe_core.data import load_scene
 from voxe_core.export import render_views
 from voxe_core.grid import VoxelGrid
@@ -956,11 +957,25 @@ def test_the_count_options_found_are_those_a_huge_value_had_failed(sphere_file, 
     options = _count_options()
     for option in (("turntable", "--frames"), ("turntable", "--size"), ("render", "--ring"), ("render", "--size"),
                    ("export-mesh", "--resolution"), ("reconstruct", "--resolution"), ("reconstruct", "--rays"),
-                   ("reconstruct", "--iterations"), ("refine", "--views"), ("evaluate", "--views"),
-                   ("mesh-to-grid", "--size"), ("edit", "--render-size"), ("convert-grid", "--margin")):
+                   ("reconstruct", "--iterations"), ("refine", "--rays"), ("evaluate", "--views"),
+                   ("mesh-to-grid", "--size"), ("convert-grid", "--margin")):
         assert option in options
     assert main(["convert-grid", str(sphere_file), "--out", str(tmp_path / "c.safetensors"),
                  "--margin", "2147483647"]) == 0
+
+
+@pytest.mark.parametrize("flag, limit", [("--views", MAX_REFINE_VIEWS), ("--render-size", MAX_RENDER_SIZE)])
+def test_refine_views_or_render_size_beyond_the_services_limit_are_refused_naming_it(flag, limit, capsys):
+    """Regression: they had no upper limit (the API's refine parameters stop at 1000 views and 1024 px): --views
+    100000 went on to render and attend every view."""
+    command = ["refine", "no_such_edit.safetensors", "--initial", "no_such_grid.safetensors", "--prompt", "a dog",
+               "--edit-words", "dog", "--out", "refine"]
+    with pytest.raises(SystemExit) as exc:
+        main([*command, flag, str(limit + 1)])
+    assert exc.value.code == 2
+    assert f"argument {flag}: must be at most {limit} (the service's limit), got {limit + 1}" in capsys.readouterr().err
+    assert main([*command, flag, str(limit)]) == 2  # the limit itself passes: refused only for the missing grids
+    assert "argument" not in capsys.readouterr().err
 
 
 def test_an_output_that_cannot_be_written_is_refused_before_the_fit_and_a_failed_save_leaves_nothing(

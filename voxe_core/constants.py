@@ -50,6 +50,9 @@ MIN_RENDER_SIZE = 8
 render's min-max normalised attention maps are 0 everywhere, and the 2–3 px ones of a test sphere missed it from
 every pose: both ran every attention pass and fit before the cut found no seeds."""
 
+MAX_RENDER_SIZE = 1024
+"""The most pixels a side of the edit's and the refinement's renders may have (the service's bound, and the CLI's)."""
+
 FLOAT32_MAX = 3.4028234663852886e38
 """The largest float32: a setting used in float32 past it is inf there (a finite float64 one had passed the
 "finite" checks and overflowed as an inf would)."""
@@ -92,6 +95,9 @@ REFINE_TV_WEIGHT = 0.01
 
 REFINE_VIEWS = 32
 """Random upper-hemisphere poses whose 2D maps are lifted (ours; the authors use the training views)."""
+
+MAX_REFINE_VIEWS = 1000
+"""The most views a refinement lifts maps from (the service's bound, and the CLI's)."""
 
 REFINE_RAYS_PER_STEP = 8192
 """Rays per attention-grid fitting step."""
