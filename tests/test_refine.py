@@ -674,6 +674,23 @@ def test_with_no_iterations_maps_apart_only_off_the_backprojections_stride_are_r
     assert [p.stage for p in reports] == ["backprojection"] and not prefer_neither(edit, obj)
 
 
+@pytest.mark.parametrize("prior", [1e6, 1e30])
+def test_a_backprojection_prior_that_drowns_the_maps_is_named_as_the_cause(make_sphere_grid, prior):
+    """A prior far above the pixels' weight divides every vertex's average down to grids equal but for rounding (the
+    maps apart everywhere): the cut had said "no seeds ... too few fitting iterations, or maps that do not tell the
+    edit from the object", blaming neither the prior nor any setting that was set."""
+    grid, cameras = make_sphere_grid(10), cameras_around(4, 12, seed=1)
+    edit_maps = torch.linspace(0.2, 0.9, 12).expand(4, 12, 12)
+    config = RefineConfig(iterations=0, backprojection_prior=prior)
+    with pytest.raises(SegmentationError, match=rf"^the back-projected attention grids are equal everywhere but for "
+                                                rf"float32 rounding, though the maps differ .*: backprojection_prior="
+                                                rf"{re.escape(f'{prior:g}')} outweighs the pixels' weight .* lower "
+                                                rf"backprojection_prior \(the default: 0.1\), or fit iterations > 0$"):
+        fit_attention_grids(grid, cameras, edit_maps, edit_maps.flip(-1), config)
+    edit, obj = fit_attention_grids(grid, cameras, edit_maps, edit_maps.flip(-1), RefineConfig(iterations=0))
+    assert not prefer_neither(edit, obj)  # the default prior's grids differ
+
+
 def test_a_constant_start_fit_equal_but_for_the_order_its_gradients_are_summed_in_is_still_named(make_sphere_grid,
                                                                                                  monkeypatch):
     """On CUDA the backward's atomic adds sum each channel's terms in any order, so the two grids differ by rounding

@@ -203,7 +203,8 @@ def fit_attention_grids(
     (:func:`~voxe_core.refine.cut.prefer_neither`) is a SegmentationError naming why (no step fitted, maps that never
     differ, or too few iterations): the cut would find no seeds; maps equal on every pixel are that error before any
     work, from either start, where the fit sees only them (``fit_views="fixed"``), as are maps equal on every pixel
-    the back-projection reads with no iterations. So are views that miss the object, and a back-projection whose
+    the back-projection reads with no iterations, and so is a back-projection a ``backprojection_prior`` that
+    outweighs the pixels leaves equal but for rounding. So are views that miss the object, and a back-projection whose
     pixels see none of its density (the fit moves only the vertices they see).
     """
     if edit_maps.dim() != 3:  # (had failed unpacking its shape: "too many values to unpack (expected 3)")
@@ -266,6 +267,15 @@ def fit_attention_grids(
             f"{keep.numel()} pixels of the {n_views} views see the edited object's box, but none that the "
             f"back-projection reads (one row and column in {config.backprojection_stride}) meets its density: "
             f"{nothing}; lower backprojection_stride, or render larger views")
+    # Maps apart on the pixels read (checked above) back-projected to grids equal but for rounding: the prior, which
+    # every vertex's average divides by, drowned what the pixels gave (the cut had blamed the maps or the iterations).
+    if config.lift_start == "backprojection" and not config.iterations and prefer_neither(start[..., 0], start[..., 1]):
+        raise SegmentationError(
+            f"the back-projected attention grids are equal everywhere but for float32 rounding, though the maps "
+            f"differ on the pixels it reads: backprojection_prior={config.backprojection_prior:g} outweighs the "
+            f"pixels' weight (at most {float(seen.max()):.3g} at a vertex, which gets k·m / (k + prior) from k pixels "
+            f"of value m), so the cut would have no seeds; lower backprojection_prior (the default: "
+            f"{RefineConfig.backprojection_prior:g}), or fit iterations > 0")
     origins, directions, targets = origins[keep], directions[keep], targets[keep]
 
     if config.lift_start == "constant":
