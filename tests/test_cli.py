@@ -964,12 +964,17 @@ def test_the_count_options_found_are_those_a_huge_value_had_failed(sphere_file, 
                  "--margin", "2147483647"]) == 0
 
 
-@pytest.mark.parametrize("flag, limit", [("--views", MAX_REFINE_VIEWS), ("--render-size", MAX_RENDER_SIZE)])
-def test_refine_views_or_render_size_beyond_the_services_limit_are_refused_naming_it(flag, limit, capsys):
-    """Regression: they had no upper limit (the API's refine parameters stop at 1000 views and 1024 px): --views
-    100000 went on to render and attend every view."""
-    command = ["refine", "no_such_edit.safetensors", "--initial", "no_such_grid.safetensors", "--prompt", "a dog",
-               "--edit-words", "dog", "--out", "refine"]
+REFINE_MISSING_GRIDS = ["refine", "no_such_edit.safetensors", "--initial", "no_such_grid.safetensors", "--prompt",
+                        "a dog", "--edit-words", "dog", "--out", "refine"]
+
+
+@pytest.mark.parametrize("command, flag, limit", [(REFINE_MISSING_GRIDS, "--views", MAX_REFINE_VIEWS),
+                                                  (REFINE_MISSING_GRIDS, "--render-size", MAX_RENDER_SIZE),
+                                                  (["edit", "no_such_grid.safetensors", "--prompt", "a dog", "--out",
+                                                    "edit"], "--render-size", MAX_RENDER_SIZE)])
+def test_refine_views_or_render_size_beyond_the_services_limit_are_refused_naming_it(command, flag, limit, capsys):
+    """Regression: they had no upper limit (the API's refine and edit parameters stop at 1000 views and 1024 px):
+    voxe refine --views 100000 went on to render and attend every view, voxe edit --render-size 50000 to render it."""
     with pytest.raises(SystemExit) as exc:
         main([*command, flag, str(limit + 1)])
     assert exc.value.code == 2

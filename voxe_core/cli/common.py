@@ -260,6 +260,17 @@ def positive_int(text: str) -> int:
     return _at_most_max_count(value)
 
 
+def positive_int_at_most(limit: int) -> Callable[[str], int]:
+    """The option type of a positive whole number up to ``limit``, the service's bound for the same parameter: beyond
+    it the CLI had run what a job's parameters refuse (``voxe refine --views 100000`` rendered every view)."""
+    def whole_number(text: str) -> int:
+        value = positive_int(text)
+        if value > limit:
+            raise argparse.ArgumentTypeError(f"must be at most {limit} (the service's limit), got {value}")
+        return value
+    return whole_number
+
+
 def positive_seconds(text: str) -> float:
     value = float(text)
     if not 0 < value < float("inf"):

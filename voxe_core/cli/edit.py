@@ -14,7 +14,7 @@ from pathlib import Path
 from voxe_core import constants as paper
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, add_view_arguments, check_device, load_guidance, load_views,
-    non_negative_int, positive_int, remove_earlier_outputs, run_stage, seed, view_options_given, writable_folder,
+    non_negative_int, positive_int, positive_int_at_most, remove_earlier_outputs, run_stage, seed, view_options_given, writable_folder,
 )
 from voxe_core.guidance.prompts import check_no_special_tokens, check_prompt_length, names_something
 from voxe_core.presets import BATCH_SIZE, EDIT_SCHEDULES, PREVIEW_EVERY, SEED, TIMESTEP_SCHEDULES, edit_config
@@ -45,7 +45,8 @@ def add_parsers(commands, common) -> None:
     ed.add_argument("--iterations", type=non_negative_int, default=None,
                     help=f"default {paper.EDIT_ITERATIONS}; on a scene-backbone grid {paper.EDIT_ITERATIONS} means SPEC "
                          f"§5's {_SCENE.iterations}, as in the service's jobs (any other count runs as given)")
-    ed.add_argument("--render-size", type=positive_int, default=paper.RENDER_SIZE, help="training render size in pixels")
+    ed.add_argument("--render-size", type=positive_int_at_most(paper.MAX_RENDER_SIZE), default=paper.RENDER_SIZE,
+                    help=f"training render size in pixels (at most {paper.MAX_RENDER_SIZE})")
     ed.add_argument("--lr", type=float, default=paper.EDIT_LR, help="Adam's learning rate")
     ed.add_argument("--regulariser", default=paper.DEFAULT_REGULARISER,
                     help="reg3d | reg3d_plus | volumetric_l1 | volumetric_l2 | image_l1 | image_l2 (image_* need --data)")

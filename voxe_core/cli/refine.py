@@ -16,7 +16,7 @@ from pathlib import Path
 from voxe_core import constants as paper
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, check_device, load_guidance,
-    move_staged, non_negative_int, positive_int, remove_earlier_outputs, run_stage, seed, staging_folder,
+    move_staged, non_negative_int, positive_int, positive_int_at_most, remove_earlier_outputs, run_stage, seed, staging_folder,
     writable_file, writable_folder,
 )
 from voxe_core.guidance.prompts import (check_edit_words_name_an_edit, check_edit_words_read,
@@ -59,9 +59,9 @@ def add_parsers(commands, common) -> None:
                      help="Gaussian std (attention cells) of the 2D maps' smoothing (ours before issue 18: 1.0)")
     ref.add_argument("--lr", type=float, default=paper.REFINE_LR, help="Adam's learning rate on the attention grids")
     ref.add_argument("--tv-weight", type=float, default=paper.REFINE_TV_WEIGHT, help="total variation weight of the attention grids")
-    ref.add_argument("--render-size", type=_at_most(paper.MAX_RENDER_SIZE), default=paper.RENDER_SIZE,
+    ref.add_argument("--render-size", type=positive_int_at_most(paper.MAX_RENDER_SIZE), default=paper.RENDER_SIZE,
                      help=f"render / attention-map size in pixels (at most {paper.MAX_RENDER_SIZE})")
-    ref.add_argument("--views", type=_at_most(paper.MAX_REFINE_VIEWS), default=paper.REFINE_VIEWS,
+    ref.add_argument("--views", type=positive_int_at_most(paper.MAX_REFINE_VIEWS), default=paper.REFINE_VIEWS,
                      help=f"random upper-hemisphere views for the 2D maps (at most {paper.MAX_REFINE_VIEWS})")
     ref.add_argument("--rays", type=positive_int, default=paper.REFINE_RAYS_PER_STEP, help="rays per attention-grid step")
     ref.add_argument("--edit-seeds", type=non_negative_int, default=paper.EDIT_SEEDS,
@@ -80,16 +80,6 @@ def add_parsers(commands, common) -> None:
     ref.add_argument("--preview-views", type=non_negative_int, default=4, help="ring views rendered as PNGs (0: none)")
     ref.add_argument("--seed", type=seed, default=SEED)
     ref.set_defaults(run=cmd_refine)
-
-
-def _at_most(limit: int):
-    """A positive whole number up to ``limit``, the service's bound: beyond it had run (and a job's is refused)."""
-    def whole_number(text: str) -> int:
-        value = positive_int(text)
-        if value > limit:
-            raise argparse.ArgumentTypeError(f"must be at most {limit} (the service's limit), got {value}")
-        return value
-    return whole_number
 
 
 def job_params(args: argparse.Namespace) -> dict:
