@@ -22,7 +22,6 @@ from voxe_core.cli.common import (
 from voxe_core.guidance.prompts import (check_edit_words_name_an_edit, check_edit_words_read,
                                         check_no_special_tokens, check_prompt_length, prompt_text)
 from voxe_core.presets import LIFT_START, LIFT_STARTS, SEED, refine_config
-from voxe_core.tensorio import config_recipe
 
 
 RING_PREVIEWS = ("attention_edit", "attention_object", "probability_edit", "mask", "refined")
@@ -155,6 +154,7 @@ def _write_outputs(folder: Path, result, words: list[str], model: str, config, s
     from voxe_core.export import save_png, turntable_cameras
     from voxe_core.refine.renders import iter_attention_views, iter_mask_overlays
     from voxe_core.refine.storage import save_mask, save_probabilities
+    from voxe_core.tensorio import config_recipe
 
     result.refined_grid.save(folder / "refined.safetensors", dense=args.dense)
     save_mask(folder / "mask.safetensors", result.mask, meta={"prompt": result.info["prompt"], "edit_words": words})
