@@ -1792,6 +1792,35 @@ def test_a_fit_whose_grid_record_meets_a_database_outage_is_handed_back_to_the_j
         assert runtime.set_reconstruction(rec_id, waiting, state="pending", owner_job_id=None)  # (let the first refit)
 
 
+def test_a_fit_whose_success_was_recorded_before_the_worker_ran_out_of_memory_stays_succeeded(db, monkeypatch):
+    """The grid's record committed and then the same call raised out of memory (not an outage): the fit's hand-back
+    for an out-of-memory worker checked ownership alone and handed the succeeded fit back, pending for the job waiting
+    on it to fit all over again (a reviewer's reproduction). It hands back only a fit still running."""
+    from conftest import make_sphere_grid
+    from voxe_service.storage import get_storage
+    from worker import runtime, tasks
+
+    scene = add_scene()
+    rec_id = add_reconstruction(scene, params={"route": "voxelize"})
+    job_id = add_job(scene, "queued", 0, reconstruction_id=rec_id)
+    add_job(scene, "running", 0, "alive@host", "reconstruct", reconstruction_id=rec_id)  # waiting on the fit
+    monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
+    monkeypatch.setattr(tasks, "_voxelize", lambda *args: make_sphere_grid(8))
+    set_reconstruction = runtime.set_reconstruction
+
+    def recorded_then_out_of_memory(*args, **values):
+        done = set_reconstruction(*args, **values)
+        if values.get("state") == "succeeded":
+            raise MemoryError("after the commit")
+        return done
+
+    monkeypatch.setattr(runtime, "set_reconstruction", recorded_then_out_of_memory)
+    tasks.reconstruct_task.apply(args=(job_id,))
+    rec = runtime.load_reconstruction(rec_id)
+    assert (rec.state, rec.owner_job_id, rec.error) == ("succeeded", job_id, None)
+    assert rec.grid_key in get_storage(db).list(f"reconstructions/{rec_id}/grid-")  # (kept: the fit's)
+
+
 @pytest.mark.parametrize("stopped", ["its record met a database outage", "its upload's answer was lost"])
 def test_a_fit_lost_as_its_grid_was_stored_and_stopped_by_an_outage_leaves_no_grid_of_its_own(db, monkeypatch,
                                                                                                 tmp_path, stopped):
