@@ -7,8 +7,9 @@ path each job's URL names) and all but a quarter to one API key's jobs (:class:`
 never answers nor a key whose jobs each name a receiver of their own can hold them all while its deliveries pile up. A
 failed attempt (an error, a timeout, a non-2xx) is retried after ``VOXE_WEBHOOK_BACKOFF_S`` doubling per attempt,
 until ``VOXE_WEBHOOK_RETRY_FOR_S`` after the event (the last try at that time); then the delivery is ``failed`` with
-the last error. Claims are conditional updates, so several API processes may send side by side without sending one
-attempt twice. The pool and the shares are this process's own: N API processes hold up to N times as many.
+the last error, as it is at once when the receiver answered 410 Gone (it says it is gone for good). Claims are
+conditional updates, so several API processes may send side by side without sending one attempt twice. The pool and
+the shares are this process's own: N API processes hold up to N times as many.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from voxe_service.db import session_scope
 from voxe_service.models import ApiKey, Job, WebhookDelivery, utcnow
 from voxe_service.settings import Settings
 from voxe_service.webhooks import (
-    DELIVERED, GAVE_UP, PENDING, Claim, InFlight, Shares, TargetRefused, attempt, backoff_s, claim_due, retry_at,
+    DELIVERED, GAVE_UP, GONE, PENDING, Claim, InFlight, Shares, TargetRefused, attempt, backoff_s, claim_due, retry_at,
     webhook_client,
 )
 
@@ -146,7 +147,7 @@ class WebhookSender:
         if error is None:
             values.update(state=DELIVERED, delivered_at=now, next_attempt_at=None)
         else:
-            again = None if refused else retry_at(
+            again = None if refused or status == GONE else retry_at(
                 delivery.created_at, now, delivery.attempts, self.settings.webhook_backoff_s,
                 self.settings.webhook_max_backoff_s, self.settings.webhook_retry_for_s)
             if again is None:

@@ -769,12 +769,13 @@ class WebhookReceiver:
     answered before that many are in flight (a 500 after 10 s waiting for them); ``tls``: (certificate
     file, key file) to serve HTTPS with; ``answer_bytes``: the length of each answer's body, sent as fast as
     the client reads it, or one byte every ``drip_s`` seconds. ``sent``: the body bytes each answer got
-    out before it ended or its client hung up. ``redirect_to``: every answer is a 308 to that location.
+    out before it ended or its client hung up. ``redirect_to``: every answer is a 308 to that location. ``status``,
+    ``headers``: every answer's status and added headers (e.g. a 429 with ``Retry-After``).
     """
 
     def __init__(self, fail_first: bool = False, delay: float = 0.0, host: str = "127.0.0.1", port: int = 0,
                  together: int = 1, tls: tuple[str, str] | None = None, answer_bytes: int = 0, drip_s: float = 0.0,
-                 redirect_to: str | None = None):
+                 redirect_to: str | None = None, status: int = 200, headers: dict[str, str] | None = None):
         self.requests: list[dict] = []
         self.sent: list[int] = []
         receiver, lock, gathered = self, threading.Lock(), threading.Barrier(together, timeout=10)
@@ -791,9 +792,11 @@ class WebhookReceiver:
                 except threading.BrokenBarrierError:
                     failed = True
                 time.sleep(delay)
-                self.send_response(500 if failed else 308 if redirect_to else 200)
+                self.send_response(500 if failed else 308 if redirect_to else status)
                 if redirect_to:
                     self.send_header("location", redirect_to)
+                for name, value in (headers or {}).items():
+                    self.send_header(name, value)
                 self.send_header("content-length", str(answer_bytes))
                 self.end_headers()
                 sent = 0

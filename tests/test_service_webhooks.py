@@ -217,6 +217,23 @@ def test_a_delivery_past_a_thousand_attempts_is_still_recorded(client):
     assert "Connect" in (delivery["last_error"] or ""), delivery
 
 
+@pytest.mark.parametrize("client", [SLOW_RETRIES], indirect=True)
+def test_a_receiver_answering_410_gone_is_not_tried_again(client):
+    """A 410 Gone says the receiver is gone for good: its delivery had been retried for the whole window (24 h by
+    default), every attempt answered 410 again. It fails at its first such answer, its error saying why."""
+    test_client, scene = client
+    gone = WebhookReceiver(status=410)
+    try:
+        delivery = failed_once_more(test_client, scene, url=gone.url)
+    finally:
+        gone.close()
+    assert delivery["state"] == "failed" and delivery["attempts"] == 1 and delivery["last_status"] == 410, delivery
+    assert delivery["next_attempt_at"] is None, delivery
+    assert delivery["last_error"] == ("the receiver answered 410 Gone: it is gone for good, so the delivery is not "
+                                      "tried again (set webhook_url to a receiver that takes it)"), delivery
+    assert len(gone.requests) == 1
+
+
 SNOWMAN = "http://\u2603.net/hook"  # a real name (xn--n3h.net) to the resolver (IDNA 2003), none to httpx (IDNA 2008)
 
 

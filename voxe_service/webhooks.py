@@ -41,6 +41,7 @@ WEBHOOK_EVENTS = ("stage_started", "stage_completed", "warning", "artifact", "pr
                   "canceled")
 DEFAULT_WEBHOOK_EVENTS = ("succeeded", "failed", "canceled")
 PENDING, DELIVERED, GAVE_UP = "pending", "delivered", "failed"
+GONE = 410  # a receiver's "gone for good": its delivery is not tried again
 SECRET_PREFIX = "whsec_"
 ANSWER_READ_BYTES = 64 * 1024  # of a receiver's answer, read and dropped: a usual one ends within (its connection is
 # reused), a flood is cut off (the rest is never read into memory)
@@ -691,7 +692,8 @@ def attempt(delivery: WebhookDelivery, secret: str, client: httpx.Client) -> Att
     when the URL now resolves to a refused address, or is one httpx cannot send to (not worth a retry; it had been
     retried every lease for good, past the retry window, unrecorded).
 
-    The attempt ends by the client's deadline (a timeout error, retried); of the answer, at most
+    A 410 Gone is a :data:`GONE` attempt, which its sender does not retry. The attempt ends by the client's deadline
+    (a timeout error, retried); of the answer, at most
     ``ANSWER_READ_BYTES`` are read. Its status decides: a body still coming at the deadline, or cut off, is dropped
     with the connection (a 2xx whose body dripped past the deadline had been a timeout, so a receiver that took
     the event was sent it again for the whole retry window, and the delivery ended ``failed``).
@@ -727,6 +729,10 @@ def attempt(delivery: WebhookDelivery, secret: str, client: httpx.Client) -> Att
                          "follow no redirect (set webhook_url to where it points)"
                          for where in (location, log_safe_url(location, delivery.url)))
         return Attempt(response.status_code, error, logged)
+    if response.status_code == GONE:  # had been retried for the whole window (24 h) though it says it never comes back
+        error = ("the receiver answered 410 Gone: it is gone for good, so the delivery is not tried again (set "
+                 "webhook_url to a receiver that takes it)")
+        return Attempt(GONE, error, error)
     error = f"the receiver answered {response.status_code}"
     return Attempt(response.status_code, error, error)
 
