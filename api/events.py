@@ -33,8 +33,8 @@ from sqlalchemy import and_, func, or_, select
 
 from api.schemas import JobEventOut
 from voxe_service.db import get_sessionmaker
+from voxe_service.failing import FailingStreak
 from voxe_service.models import TERMINAL_STATES, ApiKey, Job, JobEvent
-from voxe_service.webhooks import backoff_s
 
 log = logging.getLogger("voxe.api")
 
@@ -119,7 +119,7 @@ class EventHub:
             self._watches.remove(watch)
 
     async def _run(self) -> None:
-        failed = 0  # polls failed in a row
+        streak = FailingStreak(log, "event streams", "poll", "polls")
         while self._watches:
             watches, after, fresh = list(self._watches), {}, set()
             keys = {watch.key_id for watch in watches}
@@ -130,13 +130,12 @@ class EventHub:
             try:
                 stamps, jobs, events, revoked = await anyio.to_thread.run_sync(self._poll, after, fresh, keys)
             except Exception as exc:  # noqa: BLE001 - a database hiccup or outage: streams wait for a later poll
-                failed += 1
-                await asyncio.sleep(self._log_failed_poll(failed, exc))
+                # (the first logged with its traceback, the next a line each: a traceback every poll had filled the
+                # log while the database was down, 7,200 an hour; the polls back off up to FAILING_POLL_MAX_DELAY_S)
+                await asyncio.sleep(streak.failed_once_more(exc, self.interval_s, FAILING_POLL_MAX_DELAY_S))
                 continue
             else:
-                if failed:
-                    log.warning("event streams: polls succeed again, after %d failed in a row", failed)
-                    failed = 0
+                streak.succeeded()
                 self._stamps = {job_id: stamp for job_id, stamp in {**self._stamps, **stamps}.items()
                                 if job_id in after}
                 for watch in watches:  # one opened during this poll waits for the next
@@ -157,20 +156,6 @@ class EventHub:
                     watch.polled = True
                     watch.wake.set()
             await asyncio.sleep(self.interval_s)
-
-    def _log_failed_poll(self, failed: int, exc: Exception) -> float:
-        """Log failed poll number ``failed`` (in a row): the first with its traceback, the next ones a line each (a
-        traceback every poll had filled the log while the database was down, 7,200 an hour); the seconds until the
-        next, the interval doubling per failure up to :data:`FAILING_POLL_MAX_DELAY_S`."""
-        longest = max(self.interval_s, FAILING_POLL_MAX_DELAY_S)
-        delay = backoff_s(failed, self.interval_s, longest)
-        if failed == 1:
-            log.warning("event streams: poll failed; next in %g s, backing off up to %g s while polls fail", delay,
-                        longest, exc_info=True)
-        else:
-            log.warning("event streams: poll %d in a row failed; next in %g s: %s: %s", failed, delay,
-                        type(exc).__name__, str(exc).partition("\n")[0])
-        return delay
 
     def _poll(self, after: dict[str, int], fresh: set[str], keys: set[str]):
         """(every watched job's change stamp, the views of the jobs that changed, the events past ``after`` of

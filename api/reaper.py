@@ -69,6 +69,7 @@ from sqlalchemy import and_, func, or_, select
 
 from voxe_service.broker import waiting_tasks
 from voxe_service.db import session_scope, sync_clock
+from voxe_service.failing import FailingStreak
 from voxe_service.jobs import finish_jobs
 from voxe_service.models import (CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, RUNNING, Job, JobEvent, Scene,
                                  WorkerHeartbeat, utcnow)
@@ -328,6 +329,10 @@ class Reaper:
         self._thread.join(timeout=10)
 
     def _run(self) -> None:
+        """Pass after pass: the first of passes failing in a row (the database unreachable) logged with its
+        traceback, the next ones a line each, and the recovery (a traceback every pass had filled the log while
+        the database was down)."""
+        streak = FailingStreak(log, "reaper", "pass", "passes")
         while not self._stop.is_set():
             sync_clock()  # the cut-offs below are read on the database's clock, as the workers write theirs
             try:
@@ -335,6 +340,9 @@ class Reaper:
                 prefixes = [scene_key(s) for s in scenes]
                 prefixes += [job_key(j, "checkpoints/") for j in reap_orphaned_jobs(self.settings)]
                 get_storage(self.settings).discard_prefixes(*prefixes)
-            except Exception:  # noqa: BLE001 - a failed pass is retried on the next one
-                log.warning("reaper pass failed", exc_info=True)
+            except Exception as exc:  # noqa: BLE001 - a failed pass is retried on the next one
+                interval = self.settings.reaper_interval_s  # (not backing off: a pass a minute is no flood)
+                self._stop.wait(streak.failed_once_more(exc, interval, interval))
+                continue
+            streak.succeeded()
             self._stop.wait(self.settings.reaper_interval_s)

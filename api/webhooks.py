@@ -22,10 +22,11 @@ from concurrent.futures import ThreadPoolExecutor
 from sqlalchemy import select, update
 
 from voxe_service.db import session_scope
+from voxe_service.failing import FailingStreak
 from voxe_service.models import ApiKey, Job, WebhookDelivery, utcnow
 from voxe_service.settings import Settings
 from voxe_service.webhooks import (
-    DELIVERED, GAVE_UP, GONE, PENDING, Claim, InFlight, Shares, TargetRefused, attempt, backoff_s, claim_due, retry_at,
+    DELIVERED, GAVE_UP, GONE, PENDING, Claim, InFlight, Shares, TargetRefused, attempt, claim_due, retry_at,
     webhook_client,
 )
 
@@ -66,31 +67,16 @@ class WebhookSender:
         """Pass after pass, backing off while they fail: the first failure is logged with its traceback, the next
         ones a line each, and the recovery too (a traceback every poll interval had filled the log while the
         database was down: 7,200 an hour per API process)."""
-        failed = 0
+        interval = self.settings.webhook_poll_interval_s
+        streak = FailingStreak(log, "webhook sender", "pass", "passes")
         while not self._stop.is_set():
             try:
                 self.send_due()
             except Exception as exc:  # noqa: BLE001 - a database hiccup or outage: try again, later each time
-                failed += 1
-                self._stop.wait(self._log_failed_pass(failed, exc))
+                self._stop.wait(streak.failed_once_more(exc, interval, FAILING_PASS_MAX_DELAY_S))
                 continue
-            if failed:
-                log.warning("webhook sender: passes succeed again, after %d failed in a row", failed)
-                failed = 0
-            self._stop.wait(self.settings.webhook_poll_interval_s)
-
-    def _log_failed_pass(self, failed: int, exc: Exception) -> float:
-        """Log failed pass number ``failed`` (in a row); the seconds until the next."""
-        interval = self.settings.webhook_poll_interval_s
-        longest = max(interval, FAILING_PASS_MAX_DELAY_S)
-        delay = backoff_s(failed, interval, longest)
-        if failed == 1:
-            log.warning("webhook sender: pass failed; next pass in %g s, backing off up to %g s while passes fail",
-                        delay, longest, exc_info=True)
-        else:
-            log.warning("webhook sender: pass %d in a row failed; next in %g s: %s: %s", failed, delay,
-                        type(exc).__name__, str(exc).partition("\n")[0])
-        return delay
+            streak.succeeded()
+            self._stop.wait(interval)
 
     def send_due(self) -> int:
         """Claim what the pool has room for and hand it over; how many attempts were started."""

@@ -413,6 +413,46 @@ def test_a_sql_broker_that_cannot_be_read_stops_no_other_reaper_work(db, monkeyp
     assert reaper.reap_orphaned_jobs(db) == [] and job_row(lost).state == "queued"
 
 
+def test_a_reaper_whose_passes_fail_logs_one_traceback_then_a_line_each_and_says_when_they_succeed_again(
+        monkeypatch, caplog):
+    """With the database down, every reaper pass (a minute apart) had logged 'reaper pass failed' with its whole
+    traceback for as long as the outage lasted. Now the first failed pass is logged with its traceback, the next
+    ones a line each (the error's first line), and the recovery is said; the passes keep their interval."""
+    import threading
+    import types
+
+    from sqlalchemy.exc import OperationalError
+
+    import api.reaper as reaper
+
+    passes, recovered = [], threading.Event()
+
+    def scenes(settings):
+        passes.append(time.monotonic())
+        if len(passes) <= 4:
+            raise OperationalError("SELECT scenes", {}, Exception("connection refused\nIs it running?"))
+        recovered.set()
+        return []
+
+    monkeypatch.setattr(reaper, "sync_clock", lambda: None)
+    monkeypatch.setattr(reaper, "reap_orphaned_scenes", scenes)
+    monkeypatch.setattr(reaper, "reap_orphaned_jobs", lambda settings: [])
+    monkeypatch.setattr(reaper, "get_storage", lambda settings: types.SimpleNamespace(
+        discard_prefixes=lambda *prefixes: None))
+    with caplog.at_level(logging.INFO, logger="voxe.reaper"):
+        running = reaper.Reaper(types.SimpleNamespace(reaper_interval_s=0.05)).start()
+        try:
+            assert recovered.wait(10)
+        finally:
+            running.stop()
+    records = [r for r in caplog.records if r.name == "voxe.reaper"]
+    assert [r.exc_info is not None for r in records] == [True, False, False, False, False], records
+    assert records[0].getMessage() == "reaper: pass failed; next in 0.05 s"
+    assert records[3].getMessage() == ("reaper: pass 4 in a row failed; next in 0.05 s: OperationalError: "
+                                       "(builtins.Exception) connection refused")
+    assert records[4].getMessage() == "reaper: passes succeed again, after 4 failed in a row"
+
+
 def test_a_reaper_pass_meeting_a_broker_outage_fails_nothing_and_a_later_pass_sends_the_jobs(db, monkeypatch):
     """The broker refuses every message (a Redis restarting) during a pass: a dead worker's job, an accepted job
     never sent and a sweep's edit never sent had been failed for good, their checkpoints deleted. Now they wait,
