@@ -5,7 +5,8 @@ connect, send and the whole answer), so a slow or dead receiver holds one pool t
 never a request or a worker; at most half the pool's threads go to one receiver (``scheme://host:port``, whatever
 path each job's URL names) and all but a quarter to one API key's jobs (:class:`Shares`), so neither a receiver that
 never answers nor a key whose jobs each name a receiver of their own can hold them all while its deliveries pile up. A
-failed attempt (an error, a timeout, a non-2xx) is retried after ``VOXE_WEBHOOK_BACKOFF_S`` doubling per attempt,
+failed attempt (an error, a timeout, a non-2xx) is retried after ``VOXE_WEBHOOK_BACKOFF_S`` doubling per attempt
+(or the longer wait a 429's or 503's ``Retry-After`` asks, at most ``VOXE_WEBHOOK_MAX_BACKOFF_S``),
 until ``VOXE_WEBHOOK_RETRY_FOR_S`` after the event (the last try at that time); then the delivery is ``failed`` with
 the last error, as it is at once when the receiver answered 410 Gone (it says it is gone for good). Claims are
 conditional updates, so several API processes may send side by side without sending one attempt twice. The pool and
@@ -26,7 +27,7 @@ from voxe_service.failing import FailingStreak
 from voxe_service.models import ApiKey, Job, WebhookDelivery, utcnow
 from voxe_service.settings import Settings
 from voxe_service.webhooks import (
-    DELIVERED, GAVE_UP, GONE, PENDING, Claim, InFlight, Shares, TargetRefused, attempt, claim_due, retry_at,
+    DELIVERED, GAVE_UP, GONE, PENDING, Attempt, Claim, InFlight, Shares, TargetRefused, attempt, claim_due, retry_at,
     webhook_client,
 )
 
@@ -113,11 +114,11 @@ class WebhookSender:
                 secret = session.scalar(select(ApiKey.webhook_secret).join(Job, Job.owner_key_id == ApiKey.id)
                                         .where(Job.id == delivery.job_id))
             try:
-                status, error, logged = attempt(delivery, secret, self._client)
+                answer = attempt(delivery, secret, self._client)
                 refused = False
             except TargetRefused as exc:
-                status, error, logged, refused = None, str(exc), exc.logged, True
-            self._record(delivery, status, error, logged, refused)
+                answer, refused = Attempt(None, str(exc), exc.logged), True
+            self._record(delivery, answer, refused)
         except Exception:  # noqa: BLE001 - the claim's lease lapses and the next pass retries it
             log.warning("webhook delivery %s: attempt failed", delivery_id, exc_info=True)
         finally:
@@ -126,8 +127,8 @@ class WebhookSender:
                 self._in_flight.by_key -= Counter({claim.key_id: 1})
             self._slots.release()
 
-    def _record(self, delivery: WebhookDelivery, status: int | None, error: str | None, logged: str | None,
-                refused: bool) -> None:
+    def _record(self, delivery: WebhookDelivery, answer: Attempt, refused: bool) -> None:
+        status, error, logged, asked_s = answer
         now = utcnow()
         values: dict = {"last_status": status, "last_error": error}
         if error is None:
@@ -135,7 +136,7 @@ class WebhookSender:
         else:
             again = None if refused or status == GONE else retry_at(
                 delivery.created_at, now, delivery.attempts, self.settings.webhook_backoff_s,
-                self.settings.webhook_max_backoff_s, self.settings.webhook_retry_for_s)
+                self.settings.webhook_max_backoff_s, self.settings.webhook_retry_for_s, asked_s)
             if again is None:
                 values.update(state=GAVE_UP, next_attempt_at=None)
             else:

@@ -234,6 +234,33 @@ def test_a_receiver_answering_410_gone_is_not_tried_again(client):
     assert len(gone.requests) == 1
 
 
+@pytest.mark.parametrize("client", [SLOW_RETRIES], indirect=True)
+@pytest.mark.parametrize(("status", "retry_after", "waited"), [
+    (429, "30", 30), (503, "in 45 s", 45), (503, "7200", 60), (429, "1", 5)])
+def test_a_receivers_retry_after_is_waited_before_its_delivery_is_tried_again(client, status, retry_after, waited):
+    """A receiver answering 429 or 503 with ``Retry-After`` (seconds, or an HTTP-date) had it ignored: its delivery
+    was tried again after the backoff (5 s here), sooner than it asked, adding to its load. Now the next attempt waits
+    what it asked, at most VOXE_WEBHOOK_MAX_BACKOFF_S (60 s here; never sooner than the backoff), and the error says
+    it."""
+    import email.utils
+    from datetime import datetime
+
+    test_client, scene = client
+    if retry_after == "in 45 s":  # an HTTP-date, counted from the answer's Date
+        retry_after = email.utils.formatdate(time.time() + 45, usegmt=True)
+    busy = WebhookReceiver(status=status, headers={"Retry-After": retry_after})
+    try:
+        delivery = failed_once_more(test_client, scene, url=busy.url)
+    finally:
+        busy.close()
+    assert delivery["state"] == "pending" and delivery["last_status"] == status, delivery
+    next_at, event_at = (datetime.fromisoformat(delivery[k]) for k in ("next_attempt_at", "created_at"))
+    assert waited - 1 <= (next_at - event_at).total_seconds() <= waited + 3, delivery
+    asked = round(float(retry_after)) if retry_after.isdigit() else 45
+    assert abs(int(delivery["last_error"].split(" again in ")[1].split(" s")[0]) - asked) <= 1, delivery
+    assert delivery["last_error"].startswith(f"the receiver answered {status}, asking to be tried again in "), delivery
+
+
 SNOWMAN = "http://\u2603.net/hook"  # a real name (xn--n3h.net) to the resolver (IDNA 2003), none to httpx (IDNA 2008)
 
 
@@ -338,8 +365,8 @@ def test_an_attempts_logged_error_hides_the_credentials_of_any_url_it_names(loca
     moved = WebhookReceiver(redirect_to=location)
     try:
         with webhook_client(10.0, [ipaddress.ip_network("127.0.0.1/32")]) as client:
-            status, error, logged = attempt(WebhookDelivery(id="msg_1", url=moved.url, payload="{}"),
-                                            "whsec_" + "A" * 32, client)
+            status, error, logged, _ = attempt(WebhookDelivery(id="msg_1", url=moved.url, payload="{}"),
+                                               "whsec_" + "A" * 32, client)
             with pytest.raises(TargetRefused) as refused:
                 attempt(WebhookDelivery(id="msg_2", url="http://bob:pa'ss-s3cret@\u2603.net/in?token=s3c'ret",
                                         payload="{}"), "whsec_" + "A" * 32, client)
@@ -387,7 +414,7 @@ def test_an_attempt_ends_by_its_deadline_however_slowly_the_receiver_answers(fai
             answer = attempt(WebhookDelivery(id="msg_1", url=dripping.url, payload="{}"), "whsec_" + "A" * 32, client)
         assert time.monotonic() - started < 1.5
         failed = "the receiver answered 500"
-        assert answer == ((500, failed, failed) if fail else (200, None, None))
+        assert answer == ((500, failed, failed, None) if fail else (200, None, None, None))
         assert len(dripping.requests) == 1
     finally:
         dripping.close()
@@ -405,7 +432,7 @@ def test_an_attempt_reads_at_most_a_little_of_the_answer():
     try:
         with webhook_client(10.0, [ipaddress.ip_network("127.0.0.1/32")]) as client:
             assert attempt(WebhookDelivery(id="msg_1", url=flooding.url, payload="{}"), "whsec_" + "A" * 32,
-                           client) == (200, None, None)
+                           client) == (200, None, None, None)
         [sent] = wait_until(lambda: flooding.sent, 10, interval=0.05, what="the receiver to see the hang-up")
         assert sent < 32 * 2**20, sent
     finally:
@@ -426,11 +453,11 @@ def test_a_redirect_is_not_followed_and_its_error_says_where_it_pointed():
             answer = attempt(WebhookDelivery(id="msg_1", url=moved.url, payload="{}"), "whsec_" + "A" * 32, client)
             error = ("the receiver answered 308, a redirect to 'https://hooks.example.com/in': webhooks follow no "
                      "redirect (set webhook_url to where it points)")
-            assert answer == (308, error, error)
+            assert answer == (308, error, error, None)
             long_moved = WebhookReceiver(redirect_to=target.url + "?" + "q" * 500)
             try:
-                _, error, _ = attempt(WebhookDelivery(id="msg_2", url=long_moved.url, payload="{}"),
-                                      "whsec_" + "A" * 32, client)
+                error = attempt(WebhookDelivery(id="msg_2", url=long_moved.url, payload="{}"),
+                                "whsec_" + "A" * 32, client).error
             finally:
                 long_moved.close()
         assert f"a redirect to '{target.url}?qqq" in error and "q" * 300 not in error, error
@@ -1010,8 +1037,8 @@ def test_an_attempt_ends_by_its_deadline_however_slowly_the_name_resolves(monkey
     try:
         with webhook_client(0.5, [ipaddress.ip_network("127.0.0.1/32")]) as client:
             started = time.monotonic()
-            status, error, _ = attempt(WebhookDelivery(id="msg_1", url=f"http://hooks.test:{port}/hook",
-                                                       payload="{}"), "whsec_" + "A" * 32, client)
+            status, error, _, _ = attempt(WebhookDelivery(id="msg_1", url=f"http://hooks.test:{port}/hook",
+                                                          payload="{}"), "whsec_" + "A" * 32, client)
             elapsed = time.monotonic() - started
         assert elapsed < 1.5, elapsed
         assert (status, error) == (None, "ConnectTimeout: webhook_url host 'hooks.test' did not resolve within the "
@@ -1211,7 +1238,7 @@ def test_a_webhook_to_an_international_name_is_checked_as_the_name_the_sender_co
         check_target(url, networks, 5.0)  # had raised TargetRefused: "webhook_url host 'straße.example' does not ..."
         with webhook_client(5.0, networks) as client:
             delivery = WebhookDelivery(id="msg_1", url=url, payload='{"kind": "succeeded"}')
-            assert attempt(delivery, "whsec_" + "A" * 32, client) == (200, None, None)
+            assert attempt(delivery, "whsec_" + "A" * 32, client) == (200, None, None, None)
         assert asked == ["xn--strae-oqa.example"] * 2
     finally:
         receiver.close()
@@ -1245,7 +1272,7 @@ def test_a_webhook_connects_only_to_the_address_its_name_was_checked_as(monkeypa
     try:
         check_target(url, networks, 5.0)
         with webhook_client(5.0, networks) as client:
-            assert attempt(delivery, "whsec_" + "A" * 32, client) == (200, None, None)
+            assert attempt(delivery, "whsec_" + "A" * 32, client) == (200, None, None, None)
             assert answers == []  # the name was resolved once for the attempt, not again for the connection
             with webhook_client(5.0, networks) as fresh:  # (a new connection: the pooled one was checked)
                 with pytest.raises(TargetRefused, match="resolves to 127.0.0.2, a loopback address"):
@@ -1289,7 +1316,7 @@ def test_a_webhook_over_tls_names_the_host_not_the_checked_address(monkeypatch):
     delivery = WebhookDelivery(id="msg_1", url=f"https://hooks.test:{port}/hook", payload="{}")
     try:
         with webhook_client(5.0, [ipaddress.ip_network("127.0.0.1/32")]) as client:
-            status, error, _ = attempt(delivery, "whsec_" + "A" * 32, client)
+            status, error, _, _ = attempt(delivery, "whsec_" + "A" * 32, client)
         assert status is None and error.startswith("ConnectError"), error
         assert asked == ["hooks.test"]
     finally:
@@ -1312,7 +1339,7 @@ def test_a_webhook_client_holds_more_connections_than_httpcores_default(monkeypa
         with webhook_client(8.0, [ipaddress.ip_network("127.0.0.1/32")]) as client:
             with ThreadPoolExecutor(12) as pool:
                 outcomes = list(pool.map(lambda _: attempt(delivery, "whsec_" + "A" * 32, client), range(12)))
-        assert outcomes == [(200, None, None)] * 12
+        assert outcomes == [(200, None, None, None)] * 12
     finally:
         receiver.close()
 
@@ -1342,11 +1369,11 @@ def test_a_webhook_over_tls_is_verified_against_the_host_with_the_operators_cas(
         monkeypatch.delenv("SSL_CERT_FILE", raising=False)
         monkeypatch.delenv("SSL_CERT_DIR", raising=False)
         with webhook_client(5.0, networks) as client:
-            status, error, _ = attempt(delivery, "whsec_" + "A" * 32, client)
+            status, error, _, _ = attempt(delivery, "whsec_" + "A" * 32, client)
         assert status is None and "CERTIFICATE_VERIFY_FAILED" in error, error
         monkeypatch.setenv("SSL_CERT_FILE", str(cert))
         with webhook_client(5.0, networks) as client:
-            assert attempt(delivery, "whsec_" + "A" * 32, client) == (200, None, None)
+            assert attempt(delivery, "whsec_" + "A" * 32, client) == (200, None, None, None)
         assert [r["headers"]["host"] for r in receiver.requests] == [f"hooks.test:{port}"]
     finally:
         receiver.close()

@@ -35,6 +35,7 @@ import httpx
 from sqlalchemy import Integer, func, literal_column, select, update
 from sqlalchemy.orm import Session
 
+from voxe_client.client import _retry_after as asked_wait_s  # (the client's reading of Retry-After: one rule)
 from voxe_service.models import ApiKey, Job, WebhookDelivery, utcnow
 
 WEBHOOK_EVENTS = ("stage_started", "stage_completed", "warning", "artifact", "preview", "succeeded", "failed",
@@ -42,6 +43,7 @@ WEBHOOK_EVENTS = ("stage_started", "stage_completed", "warning", "artifact", "pr
 DEFAULT_WEBHOOK_EVENTS = ("succeeded", "failed", "canceled")
 PENDING, DELIVERED, GAVE_UP = "pending", "delivered", "failed"
 GONE = 410  # a receiver's "gone for good": its delivery is not tried again
+ASKS_TO_WAIT = (429, 503)  # answers whose Retry-After says when to try again
 SECRET_PREFIX = "whsec_"
 ANSWER_READ_BYTES = 64 * 1024  # of a receiver's answer, read and dropped: a usual one ends within (its connection is
 # reused), a flood is cut off (the rest is never read into memory)
@@ -152,10 +154,12 @@ def _port_readable(parts: SplitResult) -> bool:
 
 class Attempt(NamedTuple):
     """One delivery attempt's outcome: the HTTP status or None; the error or None for a 2xx, as the delivery's
-    ``last_error`` keeps it for the URL's owner; and that error as the operator's log may carry it."""
+    ``last_error`` keeps it for the URL's owner; that error as the operator's log may carry it; and the seconds a
+    429's or 503's ``Retry-After`` asked to wait before the next, or None."""
     status: int | None
     error: str | None
     logged: str | None
+    asked_s: float | None = None
 
 
 def new_secret() -> str:
@@ -669,10 +673,12 @@ def backoff_s(attempts: int, base_s: float, max_s: float) -> float:
 
 
 def retry_at(created_at: datetime, now: datetime, attempts: int, base_s: float, max_s: float,
-             retry_for_s: float) -> datetime | None:
-    """When to try again a delivery whose attempt ``attempts`` failed at ``now``: after :func:`backoff_s`, and the
-    last time ``retry_for_s`` after its event; None once that has passed (the delivery has failed). A retry that
-    fell past it had been dropped, so a delivery gave up as much as a backoff early: by default at 23.4 h of 24.
+             retry_for_s: float, asked_s: float | None = None) -> datetime | None:
+    """When to try again a delivery whose attempt ``attempts`` failed at ``now``: after :func:`backoff_s`, or the
+    longer wait its receiver ``asked_s`` for (a 429's or 503's ``Retry-After``, which had been ignored, the receiver
+    tried again sooner than it asked), at most ``max_s`` of it; and the last time ``retry_for_s`` after its event;
+    None once that has passed (the delivery has failed). A retry that fell past it had been dropped, so a delivery
+    gave up as much as a backoff early: by default at 23.4 h of 24.
 
     Examples:
         >>> event = datetime(2026, 1, 1)
@@ -680,11 +686,14 @@ def retry_at(created_at: datetime, now: datetime, attempts: int, base_s: float, 
         datetime.datetime(2026, 1, 2, 0, 0)
         >>> retry_at(event, event + timedelta(hours=24), 31, 5, 3600, 86400) is None
         True
+        >>> [retry_at(event, event, 1, 5, 3600, 86400, asked) - event for asked in (120, 1, 7200)]
+        [datetime.timedelta(seconds=120), datetime.timedelta(seconds=5), datetime.timedelta(seconds=3600)]
     """
     give_up_at = created_at + timedelta(seconds=retry_for_s)
     if now >= give_up_at:
         return None
-    return min(now + timedelta(seconds=backoff_s(attempts, base_s, max_s)), give_up_at)
+    wait = max(backoff_s(attempts, base_s, max_s), min(asked_s or 0.0, max_s))
+    return min(now + timedelta(seconds=wait), give_up_at)
 
 
 def attempt(delivery: WebhookDelivery, secret: str, client: httpx.Client) -> Attempt:
@@ -692,8 +701,9 @@ def attempt(delivery: WebhookDelivery, secret: str, client: httpx.Client) -> Att
     when the URL now resolves to a refused address, or is one httpx cannot send to (not worth a retry; it had been
     retried every lease for good, past the retry window, unrecorded).
 
-    A 410 Gone is a :data:`GONE` attempt, which its sender does not retry. The attempt ends by the client's deadline
-    (a timeout error, retried); of the answer, at most
+    A 410 Gone is a :data:`GONE` attempt, which its sender does not retry; a 429's or 503's ``Retry-After`` (seconds,
+    or an HTTP-date counted from the answer's ``Date``) is the attempt's ``asked_s``. The attempt ends by the client's
+    deadline (a timeout error, retried); of the answer, at most
     ``ANSWER_READ_BYTES`` are read. Its status decides: a body still coming at the deadline, or cut off, is dropped
     with the connection (a 2xx whose body dripped past the deadline had been a timeout, so a receiver that took
     the event was sent it again for the whole retry window, and the delivery ended ``failed``).
@@ -733,8 +743,10 @@ def attempt(delivery: WebhookDelivery, secret: str, client: httpx.Client) -> Att
         error = ("the receiver answered 410 Gone: it is gone for good, so the delivery is not tried again (set "
                  "webhook_url to a receiver that takes it)")
         return Attempt(GONE, error, error)
-    error = f"the receiver answered {response.status_code}"
-    return Attempt(response.status_code, error, error)
+    asked = asked_wait_s(response) if response.status_code in ASKS_TO_WAIT else None
+    error = f"the receiver answered {response.status_code}" + (
+        "" if asked is None else f", asking to be tried again in {asked:.0f} s (Retry-After)")
+    return Attempt(response.status_code, error, error, asked)
 
 
 def shorter(text: str, most: int = 200) -> str:
