@@ -962,7 +962,7 @@ DELAY_SECONDS = re.compile(r"[0-9]+(\.[0-9]+)?")
 and "+5", which none sends as seconds, as a wait)."""
 
 
-def _retry_after(response: httpx.Response) -> float | None:
+def retry_after_s(response: httpx.Response) -> float | None:
     """The seconds its ``Retry-After`` asks to wait before sending the request again (uncapped: one asking more
     than :data:`MAX_RETRY_WAIT_S` is refused, not cut short): a number of seconds, or an HTTP-date (RFC 9110
     §10.2.3; it had been ignored, the request not sent again) counted from the answer's ``Date`` (the server's clock:
@@ -1017,7 +1017,7 @@ def _resend_wait(response: httpx.Response, attempt: int, keyed: bool) -> float |
     :func:`_backoff`, and after a 409 with ``Retry-After`` (the first sending not answered yet). One asking longer
     than :data:`MAX_RETRY_WAIT_S` stands (it had been sent again sooner than asked, in vain; its error names the
     wait)."""
-    asked = _retry_after(response)
+    asked = retry_after_s(response)
     if asked is not None and asked > MAX_RETRY_WAIT_S:
         return None
     if response.status_code in (httpx.codes.SERVICE_UNAVAILABLE, httpx.codes.TOO_MANY_REQUESTS) and asked is not None:
@@ -1158,7 +1158,7 @@ def _raise_for_error(response: httpx.Response, method: str, path: str, keyed: bo
             detail = None
         if detail is None:  # not the API's error (a proxy's HTML, or JSON of its own): it had read "HTTP 502: None"
             detail = response.reason_phrase
-        asked = _retry_after(response) if method in SAFE_METHODS or keyed else None
+        asked = retry_after_s(response) if method in SAFE_METHODS or keyed else None
         later = (f" (the service asks to send it again in {math.ceil(asked)} s, longer than this client waits: "
                  f"{MAX_RETRY_WAIT_S:g} s)" if asked is not None and asked > MAX_RETRY_WAIT_S else "")
         raise ServiceError(f"{method} {path}: HTTP {response.status_code}: {_readable(detail)}{later}",

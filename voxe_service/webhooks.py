@@ -35,7 +35,7 @@ import httpx
 from sqlalchemy import Integer, func, literal_column, select, update
 from sqlalchemy.orm import Session
 
-from voxe_client.client import _retry_after as asked_wait_s  # (the client's reading of Retry-After: one rule)
+from voxe_client.client import retry_after_s as asked_wait_s  # (the client's reading of Retry-After: one rule)
 from voxe_service.models import ApiKey, Job, WebhookDelivery, utcnow
 
 WEBHOOK_EVENTS = ("stage_started", "stage_completed", "warning", "artifact", "preview", "succeeded", "failed",
