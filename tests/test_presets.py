@@ -143,9 +143,9 @@ def test_the_backbone_choices_are_the_presets_ones_and_the_core_registrys():
     import typing
 
     from api.schemas import ReconstructionParams, SceneOut
-    from voxe_core.backbones import BACKBONES
+    from voxe_core.backbones import BACKBONE_CHOICES, BACKBONES
 
-    assert presets.BACKBONE_KINDS == tuple(BACKBONES)
+    assert presets.BACKBONE_KINDS == tuple(BACKBONES) and presets.BACKBONE_CHOICES == BACKBONE_CHOICES
     parser = build_parser()
     choices = {action.dest: action.choices for action in parser._subparsers._group_actions[0].choices[
         "reconstruct"]._actions}

@@ -24,11 +24,11 @@ from voxe_core.cameras import Cameras
 from voxe_core.constants import FLOAT32_MAX
 from voxe_core.grid import DEFAULT_BOX, GRID_KIND, VoxelGrid, ray_box_intersection
 from voxe_core.gridfile import GRID_FORMAT_VERSION, dense_tensors, float_dtype_problem
-from voxe_core.presets import BACKBONE_CHOICES
 from voxe_core.scene_grid import SceneGrid, apply_frame, scene_frame
 from voxe_core.tensorio import FormatError, load_tensors
 
 BACKBONES: dict[str, type[VoxelGrid]] = {cls.kind: cls for cls in (VoxelGrid, SceneGrid)}
+BACKBONE_CHOICES = ("auto", *BACKBONES)  # what a user may ask for: presets.BACKBONE_CHOICES (which cannot import this)
 OPAQUE_ALPHA = 0.5  # a pixel with alpha below this is transparent background
 TRANSPARENT_FRACTION = 0.01  # images with at least this share of transparent pixels are objects on a background
 AIMED_AT_BOX_FRACTION = 0.5  # a ReLU-field fit needs at least this share of the optical axes through its box
