@@ -109,6 +109,7 @@ from voxe_core.render import RenderConfig, render_image, render_rays
 from voxe_core.schedule import TimestepSchedule
 from voxe_core.tensorio import (
     FormatError,
+    check_flags,
     check_numbers,
     config_recipe,
     load_header,
@@ -243,9 +244,7 @@ class EditConfig:
         for name, kind in (("schedule", TimestepSchedule), ("render", RenderConfig)):
             if not isinstance(getattr(self, name), kind):
                 raise ValueError(f"{name} must be a {kind.__name__}, got {getattr(self, name)!r}")
-        for name in ("lr_decay", "view_words", "sync_timing"):
-            if not isinstance(getattr(self, name), bool):
-                raise ValueError(f"{name} takes True or False, got {getattr(self, name)!r}")
+        check_flags(self, ("lr_decay", "view_words", "sync_timing"))
         if self.prompt_prefix is not None and not isinstance(self.prompt_prefix, str):
             raise ValueError(f"prompt_prefix must be a string or None, got {self.prompt_prefix!r}")
 

@@ -45,7 +45,7 @@ import torch
 from voxe_core.cameras import Cameras
 from voxe_core.constants import FLOAT32_MAX, NERF_SYNTHETIC_RADIUS
 from voxe_core.grid import Activation, Occupancy, VoxelGrid, default_density_scale, ray_box_intersection
-from voxe_core.tensorio import FormatError
+from voxe_core.tensorio import FormatError, is_number
 from voxe_core.volrend import RaySamples
 
 CONTRACTED_EXTENT = 2.0  # the contraction maps all of space into [-2, 2]^3
@@ -100,7 +100,7 @@ class SceneGrid(VoxelGrid):
         # A file's header is read through here: its extent of 1e300 (past float32) had loaded and failed the render,
         # JSON's true had been 1; its sample count of 2.9 had been cut to 2, of 1e300 (or 1e12) failed the render.
         # A string or null had been "'<' not supported between instances of 'int' and 'str'", naming no field.
-        if not _is_number(foreground_extent) or not 0 < foreground_extent <= FLOAT32_MAX:
+        if not is_number(foreground_extent) or not 0 < foreground_extent <= FLOAT32_MAX:
             raise ValueError(f"foreground_extent must be a positive length, finite in float32, got "
                              f"{foreground_extent!r}")
         for name, count in (("near_samples", near_samples), ("far_samples", far_samples)):
@@ -110,7 +110,7 @@ class SceneGrid(VoxelGrid):
                 raise ValueError(f"{name} must be at most {MAX_NEAR_FAR_SAMPLES} (MAX_NEAR_FAR_SAMPLES), got {count}")
         # far_ratio "not in range": an infinite one made the last far bin infinite, and an empty ray's render NaN;
         # so did a finite one whose float32 product with the exit distance overflowed (3e38, or 1e38 times 4).
-        if near_samples < 1 or far_samples < 1 or not (_is_number(far_ratio) and 1 < far_ratio <= MAX_FAR_RATIO):
+        if near_samples < 1 or far_samples < 1 or not (is_number(far_ratio) and 1 < far_ratio <= MAX_FAR_RATIO):
             raise ValueError(f"near_samples and far_samples must be >= 1 and far_ratio in (1, {MAX_FAR_RATIO:g}], "
                              f"got {near_samples}, {far_samples}, {far_ratio!r}")
         fg = float(foreground_extent)
@@ -335,11 +335,6 @@ def _similarity(frame) -> torch.Tensor:
         raise ValueError(f"frame must be a similarity (a positive scale times a rotation, then a translation; last "
                          f"row 0, 0, 0, 1), got {matrix.tolist()}")
     return matrix.float()
-
-
-def _is_number(value) -> bool:
-    """Whether a header's ``value`` is a real number (JSON's true and false are not)."""
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 def _holds_a_bool(value) -> bool:

@@ -39,14 +39,26 @@ def config_recipe(config, left_out: Iterable[str]) -> dict:
     return json.loads(json.dumps(fields))
 
 
+def is_number(value) -> bool:
+    """Whether ``value`` is a real number (numpy floats are; True and False, JSON's true and false, are not)."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
 def check_numbers(config, names: Iterable[str]) -> None:
-    """ValueError naming the first of ``config``'s real-valued settings ``names`` that is no number (numpy floats
-    are): a string or None had failed a range test naming no setting ("'<' not supported between instances of 'int'
-    and 'str'"), and True had run as 1."""
+    """ValueError naming the first of ``config``'s real-valued settings ``names`` that is no number
+    (:func:`is_number`): a string or None had failed a range test naming no setting ("'<' not supported between
+    instances of 'int' and 'str'"), and True had run as 1."""
     for name in names:
-        value = getattr(config, name)
-        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        if not is_number(value := getattr(config, name)):
             raise ValueError(f"{name} must be a number, got {value!r}")
+
+
+def check_flags(config, names: Iterable[str]) -> None:
+    """ValueError naming the first of ``config``'s switches ``names`` that is not True or False: a string had run as
+    the opposite of what was asked (view_words="false", a true string)."""
+    for name in names:
+        if not isinstance(value := getattr(config, name), bool):
+            raise ValueError(f"{name} takes True or False, got {value!r}")
 
 
 def recipe_changes(path: str | os.PathLike, meta: dict, config) -> list[str]:

@@ -34,7 +34,7 @@ from voxe_core.constants import (
 )
 from voxe_core.guidance.prompts import AUTHORS_FRONT_AZIMUTH_DEG
 from voxe_core.render import RenderConfig
-from voxe_core.tensorio import check_numbers
+from voxe_core.tensorio import check_flags, check_numbers
 
 
 class SegmentationError(ValueError):
@@ -132,9 +132,7 @@ class RefineConfig:
         # As EditConfig's: a value of another type had been taken, and run the opposite of what was asked
         # (view_word_prompt="false", a true string, put view words in the prompt) or failed naming no setting
         # (render=None: "'NoneType' object has no attribute 'background'").
-        for name in ("view_word_prompt", "smooth_upsampled"):
-            if not isinstance(getattr(self, name), bool):
-                raise ValueError(f"{name} takes True or False, got {getattr(self, name)!r}")
+        check_flags(self, ("view_word_prompt", "smooth_upsampled"))
         if not isinstance(self.render, RenderConfig):
             raise ValueError(f"render must be a RenderConfig, got {self.render!r}")
         check_numbers(self, ("smoothing_sigma", "front_azimuth_deg", "fov_x", "lr", "tv_weight", "init_value",
