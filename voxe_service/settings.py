@@ -15,7 +15,7 @@ import subprocess
 import sys
 from functools import lru_cache
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 from urllib.parse import urlsplit
 
 from pydantic import Field, ValidationError, ValidationInfo, field_validator, model_validator
@@ -23,6 +23,9 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from voxe_core.constants import ATTENTION_MODEL_ID, CLIP_MODEL_ID, SDS_MODEL_ID
 from voxe_service.keys import is_key
+
+if TYPE_CHECKING:
+    from sqlalchemy.engine import URL
 
 TINY_MODEL = "tiny"
 TINY_MODEL_LABEL = "tiny (smoke test, random weights)"
@@ -328,7 +331,7 @@ def _shared_sqlalchemy_url(url: str, sqlite_file: str, transport: str = "") -> s
         # (accepted, the API's request threads had found no tables, "no such table: jobs")
         raise ValueError("an in-memory SQLite database is each connection's own, empty one, that no other thread "
                          f"or process (the workers) sees; name a file, e.g. {sqlite}")
-    return _sqlite_home_expanded(url)
+    return _sqlite_home_expanded(url, parsed)
 
 
 _NO_HOST = "no host: what follows its ':' is no port number (a password whose '@host' was left out?)"
@@ -343,13 +346,11 @@ def _password_as_port(url: str) -> bool:
     return "://" in url and "@" not in url and bool(port) and not port.isdigit()
 
 
-def _sqlite_home_expanded(url: str) -> str:
-    """``url`` with the '~' of a SQLite file under the home folder expanded (``sqlite:///~/voxe.db``): SQLite opens
-    the name as written, under a folder named '~' in the working directory ("unable to open database file"), where
-    the service had made the folders and the migration lock under the home folder."""
-    from sqlalchemy.engine import make_url
-
-    parsed = make_url(url)
+def _sqlite_home_expanded(url: str, parsed: URL) -> str:
+    """``url`` (read as ``parsed``) with the '~' of a SQLite file under the home folder expanded
+    (``sqlite:///~/voxe.db``): SQLite opens the name as written, under a folder named '~' in the working directory
+    ("unable to open database file"), where the service had made the folders and the migration lock under the home
+    folder."""
     if parsed.get_backend_name() != "sqlite" or not (parsed.database or "").startswith("~"):
         return url
     return parsed.set(database=os.path.expanduser(parsed.database)).render_as_string(hide_password=False)
