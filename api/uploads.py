@@ -53,7 +53,8 @@ from PIL import Image
 from voxe_core.data import (DatasetError, colmap_transforms, detect_format, find_image, image_candidates,
                             is_dataset_folder, load_scene, quarter_turn_hint)
 from voxe_core.constants import TEXTURE_SUFFIXES
-from voxe_core.mesh_input import DECIMATE, MAX_MESH_FACES, MESH_FRAMES, MESH_INPUT_SUFFIXES
+from voxe_core.mesh_input import (DECIMATE, MAX_MESH_FACES, MESH_FRAMES, MESH_INPUT_SUFFIXES,
+                                   referenced_base_name)
 from voxe_core.ply_header import ply_fault, read_ply_header
 from voxe_service import datasets
 from voxe_service.datasets import (DATASET_ARCHIVE, MESH_FOLDER, MESH_FORMAT, MESH_NAMES, MESH_OPTIONS, UPLOAD_ARCHIVE,
@@ -391,11 +392,6 @@ def _mtllib_names(obj: Path) -> list[str]:
                 if len(words := line.decode("utf-8", "replace").split(None, 1)) == 2 and words[0] == "mtllib"]
 
 
-def _base_name(name: str) -> str:
-    """The file name the loader finds a library by (``mesh_input._MtlBySpec``): after either separator, any case."""
-    return re.split(r"[\\/]", name.strip())[-1].lower()
-
-
 def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str = "y") -> Path | None:
     """The upload's mesh (and texture, and material library) copied to ``dest/mesh/`` with its ``shading`` and
     ``up_axis`` options for the ingest, or None when it is not a mesh.
@@ -449,11 +445,11 @@ def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str
             raise UploadError(f"the OBJ comes with several material libraries ({names(libraries)}); send one .mtl")
         library = (libraries or [None])[0]
         named = _mtllib_names(mesh) if library is not None and texture is None else []  # (a texture: unread)
-        if named and library.name.lower() not in {_base_name(name) for name in named}:
+        if named and library.name.lower() not in {referenced_base_name(name) for name in named}:
             raise UploadError(f"the OBJ's mtllib names the material library {named[0]!r}, but the upload's is "
                               f"{names([library])}: the loader would not find it, and the mesh would load grey; "
-                              f"rename the .mtl to {_base_name(named[0])!r}, or write 'mtllib {library.name}' in the "
-                              "OBJ")
+                              f"rename the .mtl to {referenced_base_name(named[0])!r}, or write "
+                              f"'mtllib {library.name}' in the OBJ")
     kept_as = {mesh: f"mesh{mesh.suffix.lower()}"}
     if texture is not None:
         kept_as[texture] = f"texture{texture.suffix.lower()}"

@@ -706,6 +706,13 @@ class _PlyTextureWarning(logging.Filter):
         trimesh.exchange.ply.log.removeFilter(self)
 
 
+def referenced_base_name(name: str) -> str:
+    """The name a file an OBJ refers to (an ``mtllib``'s, a ``map_Kd``'s) is found by in the mesh's folder, where the
+    path written is not there: its base name after either separator ('C:\\me\\model.mtl', '../model.mtl'), in any
+    case."""
+    return re.split(r"[\\/]", name.strip())[-1].lower()
+
+
 class _MtlBySpec(Mapping):
     """trimesh's lookup of an OBJ's files (``files``), the .mtl handed over with its colours as the MTL spec reads them.
 
@@ -734,7 +741,7 @@ class _MtlBySpec(Mapping):
         try:
             return self.files[name]
         except (OSError, ValueError):  # not found, or outside the folder
-            base = re.split(r"[\\/]", name.strip())[-1].lower()
+            base = referenced_base_name(name)
             folder = Path(self.files.parent)
             match = next((path.name for path in sorted(folder.iterdir()) if path.name.lower() == base), None)
             if match is None:
