@@ -1,23 +1,27 @@
 """Admin commands for API keys, run on a machine with the service's settings (VOXE_DATABASE_URL).
 
     python -m api.admin create-key --name alice [--max-active-jobs 5] [--max-upload-bytes 10000000000]
+        [--expires-in 90d]
     python -m api.admin list-keys
     python -m api.admin revoke-key <key id or token>
 
-``create-key`` prints the token once; only its sha256 is stored, so a lost token means a new key. ``revoke-key``
-also cancels the key's unfinished jobs and fails its scenes still processing.
+``create-key`` prints the token once; only its sha256 is stored, so a lost token means a new key. A key created with
+``--expires-in`` is refused from then on (401 saying it expired), its jobs and scenes kept. ``revoke-key`` also cancels
+the key's unfinished jobs and fails its scenes still processing.
 """
 
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 import unicodedata
+from datetime import timedelta
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from api.auth import create_key, key_of_token, token_key_id
+from api.auth import create_key, has_expired, key_of_token, token_key_id
 from api.services.jobs import request_cancel
 from voxe_service.db import DATABASE_UNAVAILABLE, database_outage, run_migrations, session_scope
 from voxe_service.models import LOCAL_KEY_ID, PROCESSING, TERMINAL_STATES, ApiKey, Job, Scene, utcnow
@@ -40,6 +44,23 @@ def _count_up_to(most: int):
         return value
 
     return count
+
+
+_DURATION = re.compile(r"(\d+)([smhd])")
+_UNIT_S = {"s": 1, "m": 60, "h": 3600, "d": 86400}
+MOST_LIFETIME_D = 36500
+
+
+def _lifetime(text: str) -> timedelta:
+    """An argument type for how long a key lasts from now: a whole number of seconds, minutes, hours or days ("90d",
+    "12h"), 1 s to 100 years (a later end would not be an expiry, and past year 9999 no datetime holds it)."""
+    if (match := _DURATION.fullmatch(text.strip())) is None:
+        raise argparse.ArgumentTypeError(f"must be a whole number of s, m, h or d (e.g. 90d, 12h), got {text!r}")
+    digits, unit = match.groups()
+    seconds = int(digits) * _UNIT_S[unit] if len(digits) <= 12 else None
+    if seconds is None or not 1 <= seconds <= MOST_LIFETIME_D * _UNIT_S["d"]:
+        raise argparse.ArgumentTypeError(f"must be 1s to {MOST_LIFETIME_D}d (100 years), got {text!r}")
+    return timedelta(seconds=seconds)
 
 
 def name_problem(name: str) -> str | None:
@@ -87,6 +108,10 @@ def fail_processing_scenes(session: Session, key: ApiKey) -> list[str]:
             if fail_scene(session, scene_id, f"its API key {key.id} was revoked while it was processing")]
 
 
+def _expiry(key: ApiKey) -> str:
+    return f"expires {key.expires_at.isoformat(timespec='seconds')}" if key.expires_at else "never expires"
+
+
 def main(argv: list[str] | None = None) -> int:
     """The command's exit status; a database that is down or unreachable said in a line (it had ended in SQLAlchemy's
     traceback, a page of it to read the cause out of)."""
@@ -109,6 +134,8 @@ def _command(argv: list[str] | None) -> int:
                         "VOXE_MAX_ACTIVE_JOBS_PER_KEY)")
     create.add_argument("--max-upload-bytes", type=_count_up_to(2**63 - 1), help="bytes of stored scenes (default: "
                         "VOXE_MAX_UPLOAD_BYTES_PER_KEY)")
+    create.add_argument("--expires-in", type=_lifetime, help="refuse the key this long from now: a whole number of s, "
+                        "m, h or d, e.g. 90d (default: it never expires)")
     commands.add_parser("list-keys", help="list keys (never their tokens)")
     revoke = commands.add_parser("revoke-key", help="revoke a key: its token stops working at once, its unfinished "
                                     "jobs are canceled and its scenes still processing failed")
@@ -120,15 +147,20 @@ def _command(argv: list[str] | None) -> int:
         if args.command == "create-key":
             if (problem := name_problem(args.name.strip())) is not None:
                 parser.error(f"--name {problem}")
-            key, token = create_key(session, args.name.strip(), args.max_active_jobs, args.max_upload_bytes)
-            print(f"created key {key.id} ({key.name}); its token, shown only this once:", file=sys.stderr)
+            expires_at = utcnow() + args.expires_in if args.expires_in else None
+            key, token = create_key(session, args.name.strip(), args.max_active_jobs, args.max_upload_bytes,
+                                    expires_at)
+            print(f"created key {key.id} ({key.name}, {_expiry(key)}); its token, shown only this once:",
+                  file=sys.stderr)
             print(token)
         elif args.command == "list-keys":
             for key in session.scalars(select(ApiKey).where(ApiKey.id != LOCAL_KEY_ID).order_by(ApiKey.created_at)):
-                state = f"revoked {key.revoked_at.isoformat()}" if key.revoked_at else "active"
+                state = (f"revoked {key.revoked_at.isoformat()}" if key.revoked_at else
+                         f"expired {key.expires_at.isoformat()}" if has_expired(key) else "active")
                 print(f"{key.id}\t{key.name}\t{state}\tcreated {key.created_at.isoformat()}\t"
                       f"max_active_jobs={key.max_active_jobs or 'default'}\t"
-                      f"max_upload_bytes={key.max_upload_bytes or 'default'}")
+                      f"max_upload_bytes={key.max_upload_bytes or 'default'}\t"
+                      f"expires_at={key.expires_at.isoformat() if key.expires_at else 'never'}")
         else:
             key, missing = key_named(session, args.key_id)
             if key is None:

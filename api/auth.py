@@ -15,6 +15,7 @@ import ipaddress
 import re
 import secrets
 from dataclasses import dataclass
+from datetime import datetime
 from typing import Annotated
 from urllib.parse import urlsplit
 
@@ -43,12 +44,12 @@ def sha256_hex(text: str) -> str:
 
 
 def create_key(session: Session, name: str, max_active_jobs: int | None = None,
-               max_upload_bytes: int | None = None) -> tuple[ApiKey, str]:
+               max_upload_bytes: int | None = None, expires_at: datetime | None = None) -> tuple[ApiKey, str]:
     """A new key row and its token (the only time the token exists outside the client)."""
     key_id = secrets.token_hex(6)
     token = f"{TOKEN_PREFIX}{key_id}_{secrets.token_urlsafe(32)}"
     key = ApiKey(id=key_id, name=name, token_sha256=sha256_hex(token), max_active_jobs=max_active_jobs,
-                 max_upload_bytes=max_upload_bytes)
+                 max_upload_bytes=max_upload_bytes, expires_at=expires_at)
     session.add(key)
     session.commit()
     return key, token
@@ -68,10 +69,9 @@ def key_of_token(session: Session, token: str) -> ApiKey | None:
     return key if hmac.compare_digest(key.token_sha256, sha256_hex(token)) else None
 
 
-def authenticate(session: Session, token: str) -> ApiKey | None:
-    """The live key a token belongs to, or None."""
-    key = key_of_token(session, token)
-    return key if key is not None and key.revoked_at is None else None
+def has_expired(key: ApiKey) -> bool:
+    """Whether the key is past its ``expires_at`` (a key without one never expires)."""
+    return key.expires_at is not None and key.expires_at <= utcnow()
 
 
 CHALLENGE = {"WWW-Authenticate": "Bearer"}
@@ -100,10 +100,24 @@ def unauthorized(token: str | None) -> str:
             "(keys come from 'python -m api.admin create-key')")
 
 
-def _live_key_id(token: str) -> str | None:
+def refusal(key: ApiKey | None, token: str | None) -> str | None:
+    """The 401's detail for a request presenting ``token`` (``key``: the key it belongs to, None for none); None
+    when the key is live. An expired key is told so and since when: it had answered "invalid or revoked", leaving its
+    holder to guess why a key that had worked stopped. Only the token's holder learns it (the hash matched)."""
+    if key is None or key.revoked_at is not None:
+        return unauthorized(token)
+    if has_expired(key):
+        return (f"API key {key.id} expired at {key.expires_at.isoformat(timespec='seconds')}: ask the service's admin "
+                "for a new key ('python -m api.admin create-key')")
+    return None
+
+
+def _live_key_id(token: str) -> tuple[str | None, str | None]:
+    """(the id of the live key ``token`` belongs to, None), or (None, why it is refused)."""
     with get_sessionmaker()() as session:
-        key = authenticate(session, token)
-        return key.id if key else None
+        key = key_of_token(session, token)
+        refused = refusal(key, token)
+        return (None, refused) if refused is not None else (key.id, None)
 
 
 def off_loopback_address(scope) -> str | None:
@@ -192,11 +206,12 @@ class RequireKey:
             response = JSONResponse({"detail": exc.detail}, exc.status_code, headers=exc.headers)
             return await response(scope, receive, send)
         try:
-            key_id = await anyio.to_thread.run_sync(_live_key_id, token) if token else None
+            key_id, refused = (await anyio.to_thread.run_sync(_live_key_id, token) if token
+                               else (None, unauthorized(token)))
         except DATABASE_UNAVAILABLE as exc:  # outside the app's handlers: answered here, as a route's would be
             return await unavailable(None, exc)(scope, receive, send)
         if key_id is None:
-            response = JSONResponse({"detail": unauthorized(token)}, status.HTTP_401_UNAUTHORIZED, headers=CHALLENGE)
+            response = JSONResponse({"detail": refused}, status.HTTP_401_UNAUTHORIZED, headers=CHALLENGE)
             return await response(scope, receive, send)
         scope.setdefault("state", {})["api_key_id"] = key_id
         await self.app(scope, receive, send)

@@ -11,7 +11,7 @@ from typing import Annotated
 from fastapi import Depends, HTTPException, Request, status
 from sqlalchemy.orm import Session
 
-from api.auth import CHALLENGE, authenticate, idempotency_key, presented_token, unauthorized
+from api.auth import CHALLENGE, idempotency_key, key_of_token, presented_token, refusal
 from voxe_service.db import get_session
 from voxe_service.models import LOCAL_KEY_ID, ApiKey
 from voxe_service.queue import TaskQueue, get_queue
@@ -48,9 +48,9 @@ def current_key(request: Request, session: SessionDep) -> ApiKey:
         return session.get(ApiKey, LOCAL_KEY_ID)
     key_id = getattr(request.state, "api_key_id", None)
     token = presented_token(request)
-    key = session.get(ApiKey, key_id) if key_id else authenticate(session, token) if token else None
-    if key is None or key.revoked_at is not None:
-        raise HTTPException(status.HTTP_401_UNAUTHORIZED, unauthorized(token), headers=CHALLENGE)
+    key = session.get(ApiKey, key_id) if key_id else key_of_token(session, token) if token else None
+    if (refused := refusal(key, token)) is not None:
+        raise HTTPException(status.HTTP_401_UNAUTHORIZED, refused, headers=CHALLENGE)
     return key
 
 

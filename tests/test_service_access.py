@@ -88,6 +88,57 @@ def test_requests_need_a_valid_live_key(auth_client, mic_zip):
     assert auth_client.get("/healthz").status_code == 200  # liveness needs no key
 
 
+def test_an_expired_key_is_401_saying_it_expired_and_list_keys_shows_when(auth_client, capsys):
+    """A key created with --expires-in works until then, and is refused after with a 401 naming the expiry (keys had
+    never expired, and a refused one could only read "invalid or revoked"); list-keys shows each key's expiry."""
+    from api import admin
+    from voxe_service.db import session_scope
+    from voxe_service.models import ApiKey, utcnow
+
+    assert admin.main(["create-key", "--name", "intern", "--expires-in", "90d"]) == 0
+    out = capsys.readouterr()
+    token = out.out.strip()
+    key_id = token.split("_")[1]
+    with session_scope() as session:
+        expires_at = session.get(ApiKey, key_id).expires_at
+    assert abs(expires_at - (utcnow() + timedelta(days=90))) < timedelta(minutes=1)
+    assert f"created key {key_id} (intern, expires {expires_at.isoformat(timespec='seconds')})" in out.err
+    _, lasting = _create_key("lasting")
+    assert auth_client.get("/v1/jobs", headers=bearer(token)).status_code == 200
+    assert admin.main(["list-keys"]) == 0
+    rows = dict(line.split("\t", 1) for line in capsys.readouterr().out.splitlines())
+    assert rows[key_id].startswith("intern\tactive\t") and rows[key_id].endswith(f"expires_at={expires_at.isoformat()}")
+    assert rows[lasting.split("_")[1]].endswith("\texpires_at=never")
+
+    with session_scope() as session:
+        session.get(ApiKey, key_id).expires_at = expired_at = utcnow() - timedelta(seconds=1)
+    for headers in (bearer(token), {"X-API-Key": token}):
+        refused = auth_client.get("/v1/jobs", headers=headers)
+        assert refused.status_code == 401 and refused.headers["www-authenticate"] == "Bearer"
+        assert refused.json()["detail"].startswith(
+            f"API key {key_id} expired at {expired_at.isoformat(timespec='seconds')}: ask the service's admin for a new "
+            "key")
+    # a wrong secret for the expired key's id learns nothing of it
+    forged = auth_client.get("/v1/jobs", headers=bearer(token[:-4] + "AAAA"))
+    assert forged.status_code == 401 and "expired" not in forged.json()["detail"]
+    assert auth_client.get("/v1/jobs", headers=bearer(lasting)).status_code == 200
+    assert admin.main(["list-keys"]) == 0
+    listing = capsys.readouterr().out
+    assert f"{key_id}\tintern\texpired {expired_at.isoformat()}\t" in listing
+
+
+@pytest.mark.parametrize("given, expected", [
+    ("0d", "must be 1s to 36500d (100 years), got '0d'"), ("36501d", "must be 1s to 36500d (100 years), got '36501d'"),
+    ("9" * 40 + "s", "must be 1s to 36500d"), ("90", "must be a whole number of s, m, h or d (e.g. 90d, 12h), got '90'"),
+    ("1.5h", "must be a whole number of s, m, h or d"), ("-1d", "must be a whole number of s, m, h or d")])
+def test_create_key_refuses_an_expiry_it_cannot_keep_naming_why(auth_client, capsys, given, expected):
+    from api import admin
+
+    with pytest.raises(SystemExit):
+        admin.main(["create-key", "--name", "x", f"--expires-in={given}"])
+    assert f"argument --expires-in: {expected}" in capsys.readouterr().err
+
+
 def test_a_request_carrying_two_different_keys_is_401_whichever_comes_first(auth_client):
     """Headers repeated, or both forms: the first line had counted (another reader may take the last), so one request
     acted as either key by the order of its lines."""

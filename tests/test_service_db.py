@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import importlib.util
 import threading
-from datetime import timedelta
+from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
 import pytest
@@ -355,6 +355,38 @@ def test_a_jobs_storage_outage_count_upgrades_from_none_and_back(database_url):
     with engine.connect() as conn:
         assert conn.execute(text("SELECT state, requeues FROM jobs")).one() == ("running", 0)
     assert "storage_outages" not in {c["name"] for c in inspect(engine).get_columns("jobs")}
+    engine.dispose()
+
+
+def test_keys_upgrade_to_never_expiring_and_back(database_url):
+    """0021 gives a key an expiry (NULL: never, as every key written before it); one set is read back as written, and
+    downgrading drops the column, the keys kept, tokens and quotas included."""
+    from alembic import command
+    from sqlalchemy import inspect, text
+    from sqlalchemy.orm import Session
+
+    from service_helpers import database_at
+    from voxe_service.models import ApiKey
+
+    config, engine = database_at(
+        database_url, "0020_job_storage_outages",
+        "INSERT INTO api_keys (id, name, token_sha256, max_active_jobs, created_at) VALUES ('abc123abc123', 'alice', "
+        "'ff', 3, '2026-01-01 00:00:00+00')")
+    command.upgrade(config, "head")
+    with engine.begin() as conn:
+        assert conn.execute(text("SELECT expires_at FROM api_keys WHERE id = 'abc123abc123'")).one() == (None,)
+        conn.execute(text("INSERT INTO api_keys (id, name, token_sha256, created_at, expires_at) VALUES "
+                          "('def456def456', 'bob', 'ee', '2026-01-01 00:00:00+00', '2027-01-01 00:00:00+00')"))
+    command.check(config)
+    with Session(engine) as session:  # read back through the model: an aware UTC datetime on either database
+        assert session.get(ApiKey, "def456def456").expires_at == datetime(2027, 1, 1, tzinfo=timezone.utc)
+    command.downgrade(config, "0020_job_storage_outages")
+    with engine.connect() as conn:
+        assert dict(conn.execute(text("SELECT id, name FROM api_keys WHERE id != 'local'")).all()) == {
+            "abc123abc123": "alice", "def456def456": "bob"}
+        assert conn.execute(text("SELECT token_sha256, max_active_jobs FROM api_keys WHERE id = 'abc123abc123'")
+                            ).one() == ("ff", 3)
+    assert "expires_at" not in {c["name"] for c in inspect(engine).get_columns("api_keys")}
     engine.dispose()
 
 

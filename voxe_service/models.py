@@ -83,7 +83,8 @@ class ApiKey(Base):
     """A client's key. Only the sha256 of the token is stored; the token is shown once, at creation.
 
     Tokens read ``voxe_<id>_<secret>``: the id finds the row, the hash is compared in constant time.
-    Quota columns left NULL fall back to the service-wide defaults.
+    Quota columns left NULL fall back to the service-wide defaults. A key past ``expires_at`` authenticates no more,
+    as a revoked one, but keeps its jobs and scenes (``revoke-key`` cancels and fails them).
     """
 
     __tablename__ = "api_keys"
@@ -95,6 +96,7 @@ class ApiKey(Base):
     max_upload_bytes: Mapped[int | None] = mapped_column(BigInteger, nullable=True)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     revoked_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    expires_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)  # NULL: never expires
     # Signs the key's webhook deliveries (Standard Webhooks "whsec_<base64>"); made when first needed.
     webhook_secret: Mapped[str | None] = mapped_column(String(64), nullable=True)
 
