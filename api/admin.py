@@ -3,11 +3,14 @@
     python -m api.admin create-key --name alice [--max-active-jobs 5] [--max-upload-bytes 10000000000]
         [--expires-in 90d]
     python -m api.admin list-keys
+    python -m api.admin update-key <key id or token> [--max-active-jobs 10|default] [--max-upload-bytes N|default]
+        [--expires-in 30d | --never-expires]
     python -m api.admin revoke-key <key id or token>
 
 ``create-key`` prints the token once; only its sha256 is stored, so a lost token means a new key. A key created with
-``--expires-in`` is refused from then on (401 saying it expired), its jobs and scenes kept. ``revoke-key`` also cancels
-the key's unfinished jobs and fails its scenes still processing.
+``--expires-in`` is refused from then on (401 saying it expired), its jobs and scenes kept. ``update-key`` changes a
+key's quotas (the next request is held to them) or expiry, its token unchanged. ``revoke-key`` also cancels the key's
+unfinished jobs and fails its scenes still processing.
 """
 
 from __future__ import annotations
@@ -30,15 +33,19 @@ from voxe_service.settings import get_settings
 from voxe_service.storage import get_storage, scene_key
 
 
-def _count_up_to(most: int):
+def _count_up_to(most: int, or_default: bool = False):
     """An argument type for a count from 1 to ``most``, the largest its database column holds: more had ended the
-    command in a traceback (SQLite's OverflowError, PostgreSQL's "integer out of range")."""
+    command in a traceback (SQLite's OverflowError, PostgreSQL's "integer out of range"). ``or_default``: "default"
+    is taken too, as None (the key goes back to the setting's value)."""
 
-    def count(text: str) -> int:
+    def count(text: str) -> int | None:
+        if or_default and text == "default":
+            return None
         try:
             value = int(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"must be a whole number, got {text!r}") from None
+            whole = "a whole number or 'default'" if or_default else "a whole number"
+            raise argparse.ArgumentTypeError(f"must be {whole}, got {text!r}") from None
         if not 1 <= value <= most:
             raise argparse.ArgumentTypeError(f"must be 1 to {most}, got {value}")
         return value
@@ -79,14 +86,15 @@ def name_problem(name: str) -> str | None:
 LISTED = " (python -m api.admin list-keys shows them)"
 
 
-def key_named(session: Session, given: str) -> tuple[ApiKey | None, str]:
+def key_named(session: Session, given: str, *, local: str = "it has no token to revoke (VOXE_AUTH=on requires a key "
+              "of every request)") -> tuple[ApiKey | None, str]:
     """The key ``given`` names, by its id or by its token (what one holding a leaked token has: it had been looked
-    up as an id and printed back, secret and all), and else what to say, never quoting a token's secret."""
+    up as an id and printed back, secret and all), and else what to say, never quoting a token's secret. ``local``:
+    why the command does not apply to the built-in local key."""
     if (key_id := token_key_id(given)) is not None:
         return key_of_token(session, given), f"no API key has this token (of key id {key_id!r}){LISTED}"
     if given == LOCAL_KEY_ID:  # (it had been "no API key 'local'", a key every request acts as with auth off)
-        return None, (f"{LOCAL_KEY_ID!r} is the built-in key that requests act as with authentication off; it has no "
-                      "token to revoke (VOXE_AUTH=on requires a key of every request)")
+        return None, f"{LOCAL_KEY_ID!r} is the built-in key that requests act as with authentication off; {local}"
     return session.get(ApiKey, given), f"no API key {given!r}{LISTED}"
 
 
@@ -110,6 +118,23 @@ def fail_processing_scenes(session: Session, key: ApiKey) -> list[str]:
 
 def _expiry(key: ApiKey) -> str:
     return f"expires {key.expires_at.isoformat(timespec='seconds')}" if key.expires_at else "never expires"
+
+
+UPDATES = ("max_active_jobs", "max_upload_bytes", "expires_in")
+
+
+def update_key(session: Session, key: ApiKey, changes: dict) -> str:
+    """Apply ``changes`` (of :data:`UPDATES`; None: the setting's quota, or no expiry) to a key not revoked; what it
+    holds now. Read again by each request, they hold from its next one: quotas had been fixed at creation, so a key
+    outgrown or abused could only be revoked, its jobs canceled, and a new token handed out."""
+    for name in ("max_active_jobs", "max_upload_bytes"):
+        if name in changes:
+            setattr(key, name, changes[name])
+    if "expires_in" in changes:
+        key.expires_at = None if changes["expires_in"] is None else utcnow() + changes["expires_in"]
+    session.commit()
+    return (f"max_active_jobs={key.max_active_jobs or 'default'}, max_upload_bytes={key.max_upload_bytes or 'default'}"
+            f", {_expiry(key)}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -137,10 +162,26 @@ def _command(argv: list[str] | None) -> int:
     create.add_argument("--expires-in", type=_lifetime, help="refuse the key this long from now: a whole number of s, "
                         "m, h or d, e.g. 90d (default: it never expires)")
     commands.add_parser("list-keys", help="list keys (never their tokens)")
+    update = commands.add_parser("update-key", help="change a key's quotas or expiry (its token stays the same)")
+    update.add_argument("key_id", help="the key's id, or its token")
+    update.add_argument("--max-active-jobs", type=_count_up_to(2**31 - 1, or_default=True),
+                        default=argparse.SUPPRESS, help="queued + running jobs, or 'default' "
+                        "(VOXE_MAX_ACTIVE_JOBS_PER_KEY)")
+    update.add_argument("--max-upload-bytes", type=_count_up_to(2**63 - 1, or_default=True),
+                        default=argparse.SUPPRESS, help="bytes of stored scenes, or 'default' "
+                        "(VOXE_MAX_UPLOAD_BYTES_PER_KEY)")
+    expiry = update.add_mutually_exclusive_group()
+    expiry.add_argument("--expires-in", type=_lifetime, default=argparse.SUPPRESS,
+                        help="refuse the key this long from now (an expired key works again until then)")
+    expiry.add_argument("--never-expires", dest="expires_in", action="store_const", const=None,
+                        default=argparse.SUPPRESS, help="the key no longer expires")
     revoke = commands.add_parser("revoke-key", help="revoke a key: its token stops working at once, its unfinished "
                                     "jobs are canceled and its scenes still processing failed")
     revoke.add_argument("key_id", help="the key's id, or its token (a leaked one, say)")
     args = parser.parse_args(argv)
+    changes = {name: getattr(args, name) for name in UPDATES if hasattr(args, name)}
+    if args.command == "update-key" and not changes:
+        update.error("say what to change: --max-active-jobs, --max-upload-bytes, --expires-in or --never-expires")
 
     run_migrations(get_settings().database_url)
     with session_scope() as session:
@@ -161,6 +202,16 @@ def _command(argv: list[str] | None) -> int:
                       f"max_active_jobs={key.max_active_jobs or 'default'}\t"
                       f"max_upload_bytes={key.max_upload_bytes or 'default'}\t"
                       f"expires_at={key.expires_at.isoformat() if key.expires_at else 'never'}")
+        elif args.command == "update-key":
+            key, missing = key_named(session, args.key_id, local=(
+                "its quotas are VOXE_MAX_ACTIVE_JOBS_PER_KEY and VOXE_MAX_UPLOAD_BYTES_PER_KEY, and it has no token "
+                "to expire"))
+            if key is None or key.revoked_at is not None:
+                print(missing if key is None else f"API key {key.id} ({key.name}) was revoked at "
+                      f"{key.revoked_at.isoformat(timespec='seconds')}: a revoked key stays so (create a new one)",
+                      file=sys.stderr)
+                return 1
+            print(f"updated key {key.id} ({key.name}): {update_key(session, key, changes)}", file=sys.stderr)
         else:
             key, missing = key_named(session, args.key_id)
             if key is None:

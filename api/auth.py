@@ -108,7 +108,7 @@ def refusal(key: ApiKey | None, token: str | None) -> str | None:
         return unauthorized(token)
     if has_expired(key):
         return (f"API key {key.id} expired at {key.expires_at.isoformat(timespec='seconds')}: ask the service's admin "
-                "for a new key ('python -m api.admin create-key')")
+                "for a later expiry ('python -m api.admin update-key --expires-in') or a new key")
     return None
 
 

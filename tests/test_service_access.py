@@ -116,8 +116,8 @@ def test_an_expired_key_is_401_saying_it_expired_and_list_keys_shows_when(auth_c
         refused = auth_client.get("/v1/jobs", headers=headers)
         assert refused.status_code == 401 and refused.headers["www-authenticate"] == "Bearer"
         assert refused.json()["detail"].startswith(
-            f"API key {key_id} expired at {expired_at.isoformat(timespec='seconds')}: ask the service's admin for a new "
-            "key")
+            f"API key {key_id} expired at {expired_at.isoformat(timespec='seconds')}: ask the service's admin for a later "
+            "expiry ('python -m api.admin update-key --expires-in') or a new key")
     # a wrong secret for the expired key's id learns nothing of it
     forged = auth_client.get("/v1/jobs", headers=bearer(token[:-4] + "AAAA"))
     assert forged.status_code == 401 and "expired" not in forged.json()["detail"]
@@ -621,6 +621,84 @@ def test_only_a_database_that_cannot_serve_now_is_a_503_a_service_fault_stays_a_
 
 
 # ------------------------------------------------------------------------------------------ quotas
+def test_update_key_changes_a_keys_quotas_and_expiry_and_the_next_request_is_held_to_them(auth_client, mic_zip,
+                                                                                           capsys):
+    """Quotas had been fixed at creation: a key outgrowing its job quota (or abusing its bytes) could only be revoked,
+    its jobs canceled and a new token handed out. update-key changes them, or the expiry, on the same token."""
+    from api import admin
+    from voxe_service.db import session_scope
+    from voxe_service.models import ApiKey, utcnow
+
+    key_id, token = _create_key("growing", max_active_jobs=1)
+    scene = _upload(auth_client, mic_zip, bearer(token)).json()
+    body = {"scene_id": scene["id"], **JOB}
+    assert auth_client.post("/v1/jobs", json=body, headers=bearer(token)).status_code == 201
+    assert auth_client.post("/v1/jobs", json=body, headers=bearer(token)).status_code == 429
+
+    assert admin.main(["update-key", key_id, "--max-active-jobs", "2"]) == 0
+    assert f"updated key {key_id} (growing): max_active_jobs=2, max_upload_bytes=default, never expires" in \
+        capsys.readouterr().err
+    assert auth_client.post("/v1/jobs", json=body, headers=bearer(token)).status_code == 201
+    refused = auth_client.post("/v1/jobs", json=body, headers=bearer(token))
+    assert refused.status_code == 429 and "the limit is 2" in refused.json()["detail"]
+
+    assert admin.main(["update-key", token, "--max-upload-bytes", "1", "--expires-in", "12h"]) == 0  # by its token
+    with session_scope() as session:
+        expires_at = session.get(ApiKey, key_id).expires_at
+    assert abs(expires_at - (utcnow() + timedelta(hours=12))) < timedelta(minutes=1)
+    assert f"max_upload_bytes=1, expires {expires_at.isoformat(timespec='seconds')}" in capsys.readouterr().err
+    over = _upload(auth_client, mic_zip, bearer(token))
+    assert over.status_code == 429 and f"key 'growing' stores {scene['size_bytes']} bytes of scenes, before this " \
+        "upload is read, the limit is 1 " in over.json()["detail"]
+    assert admin.main(["update-key", key_id, "--max-active-jobs", "default", "--max-upload-bytes", "default",
+                       "--never-expires"]) == 0
+    assert "max_active_jobs=default, max_upload_bytes=default, never expires" in capsys.readouterr().err
+    assert auth_client.post("/v1/jobs", json=body, headers=bearer(token)).status_code == 201  # the setting's 3 jobs
+    assert admin.main(["list-keys"]) == 0
+    assert f"{key_id}\tgrowing\tactive\t" in capsys.readouterr().out
+
+    # an expired key is given a later expiry: it works again
+    assert admin.main(["update-key", key_id, "--expires-in", "1s"]) == 0
+    time.sleep(1.1)
+    assert "expired at" in auth_client.get("/v1/jobs", headers=bearer(token)).json()["detail"]
+    assert admin.main(["update-key", key_id, "--expires-in", "30d"]) == 0
+    assert auth_client.get("/v1/jobs", headers=bearer(token)).status_code == 200
+
+
+@pytest.mark.parametrize("argv, code, expected", [
+    (["update-key", "abc"], 2, "say what to change: --max-active-jobs, --max-upload-bytes, --expires-in or "
+                                "--never-expires"),
+    (["update-key", "abc", "--expires-in", "1d", "--never-expires"], 2, "not allowed with argument --expires-in"),
+    (["update-key", "abc", "--max-active-jobs", "none"], 2, "must be a whole number or 'default', got 'none'"),
+    (["update-key", "abc", "--max-active-jobs", "0"], 2, "must be 1 to 2147483647, got 0"),
+    (["update-key", "nosuchkey", "--max-active-jobs", "3"], 1, "no API key 'nosuchkey'"),
+    (["update-key", "local", "--max-active-jobs", "3"], 1, "'local' is the built-in key that requests act as with "
+     "authentication off; its quotas are VOXE_MAX_ACTIVE_JOBS_PER_KEY and VOXE_MAX_UPLOAD_BYTES_PER_KEY"),
+])
+def test_update_key_refuses_what_it_cannot_do_naming_why(auth_client, capsys, argv, code, expected):
+    from api import admin
+
+    try:
+        assert admin.main(argv) == code
+    except SystemExit as exc:
+        assert exc.code == code
+    assert expected in capsys.readouterr().err
+
+
+def test_update_key_of_a_revoked_key_changes_nothing(auth_client, capsys):
+    from api import admin
+    from voxe_service.db import session_scope
+    from voxe_service.models import ApiKey
+
+    key_id, token = _create_key("gone")
+    assert admin.main(["revoke-key", key_id]) == 0
+    assert admin.main(["update-key", key_id, "--never-expires", "--max-active-jobs", "9"]) == 1
+    assert f"API key {key_id} (gone) was revoked at" in capsys.readouterr().err
+    with session_scope() as session:
+        assert session.get(ApiKey, key_id).max_active_jobs is None
+    assert auth_client.get("/v1/jobs", headers=bearer(token)).status_code == 401
+
+
 @BOTH_DATABASES
 def test_concurrent_job_quota_is_429_with_retry_after(auth_client, mic_zip):
     _, token = _create_key("small", max_active_jobs=2)
