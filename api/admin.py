@@ -5,11 +5,13 @@
     python -m api.admin list-keys
     python -m api.admin update-key <key id or token> [--max-active-jobs 10|default] [--max-upload-bytes N|default]
         [--expires-in 30d | --never-expires]
+    python -m api.admin rotate-webhook-secret <key id or token>
     python -m api.admin revoke-key <key id or token>
 
 ``create-key`` prints the token once; only its sha256 is stored, so a lost token means a new key. A key created with
 ``--expires-in`` is refused from then on (401 saying it expired), its jobs and scenes kept. ``update-key`` changes a
-key's quotas (the next request is held to them) or expiry, its token unchanged. ``revoke-key`` also cancels the key's
+key's quotas (the next request is held to them) or expiry, its token unchanged; ``rotate-webhook-secret`` its webhook
+signing secret (its holder reads the new one at GET /v1/webhooks/secret). ``revoke-key`` also cancels the key's
 unfinished jobs and fails its scenes still processing.
 """
 
@@ -25,7 +27,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from api.auth import create_key, has_expired, key_of_token, token_key_id
-from api.services.jobs import request_cancel
+from api.services.jobs import request_cancel, rotate_webhook_secret
 from voxe_service.db import DATABASE_UNAVAILABLE, database_outage, run_migrations, session_scope
 from voxe_service.models import LOCAL_KEY_ID, PROCESSING, TERMINAL_STATES, ApiKey, Job, Scene, utcnow
 from voxe_service.scenes import fail_scene
@@ -86,14 +88,14 @@ def name_problem(name: str) -> str | None:
 LISTED = " (python -m api.admin list-keys shows them)"
 
 
-def key_named(session: Session, given: str, *, local: str = "it has no token to revoke (VOXE_AUTH=on requires a key "
-              "of every request)") -> tuple[ApiKey | None, str]:
+def key_named(session: Session, given: str, *, local: str | None = "it has no token to revoke (VOXE_AUTH=on requires a "
+              "key of every request)") -> tuple[ApiKey | None, str]:
     """The key ``given`` names, by its id or by its token (what one holding a leaked token has: it had been looked
     up as an id and printed back, secret and all), and else what to say, never quoting a token's secret. ``local``:
-    why the command does not apply to the built-in local key."""
+    why the command does not apply to the built-in local key (None: it does)."""
     if (key_id := token_key_id(given)) is not None:
         return key_of_token(session, given), f"no API key has this token (of key id {key_id!r}){LISTED}"
-    if given == LOCAL_KEY_ID:  # (it had been "no API key 'local'", a key every request acts as with auth off)
+    if given == LOCAL_KEY_ID and local is not None:  # (it had been "no API key 'local'", a key requests act as)
         return None, f"{LOCAL_KEY_ID!r} is the built-in key that requests act as with authentication off; {local}"
     return session.get(ApiKey, given), f"no API key {given!r}{LISTED}"
 
@@ -175,6 +177,9 @@ def _command(argv: list[str] | None) -> int:
                         help="refuse the key this long from now (an expired key works again until then)")
     expiry.add_argument("--never-expires", dest="expires_in", action="store_const", const=None,
                         default=argparse.SUPPRESS, help="the key no longer expires")
+    rotate = commands.add_parser("rotate-webhook-secret", help="give a key a new webhook signing secret (the old "
+                                 "one leaked): every delivery attempt from now on is signed with it")
+    rotate.add_argument("key_id", help="the key's id ('local' with authentication off), or its token")
     revoke = commands.add_parser("revoke-key", help="revoke a key: its token stops working at once, its unfinished "
                                     "jobs are canceled and its scenes still processing failed")
     revoke.add_argument("key_id", help="the key's id, or its token (a leaked one, say)")
@@ -212,6 +217,15 @@ def _command(argv: list[str] | None) -> int:
                       file=sys.stderr)
                 return 1
             print(f"updated key {key.id} ({key.name}): {update_key(session, key, changes)}", file=sys.stderr)
+        elif args.command == "rotate-webhook-secret":
+            key, missing = key_named(session, args.key_id, local=None)
+            if key is None:
+                print(missing, file=sys.stderr)
+                return 1
+            rotate_webhook_secret(session=session, key=key)
+            print(f"rotated the webhook secret of key {key.id} ({key.name}): every delivery attempt from now on, a "
+                  "retry of an earlier one included, is signed with the new one, which its holder reads at GET "
+                  "/v1/webhooks/secret", file=sys.stderr)
         else:
             key, missing = key_named(session, args.key_id)
             if key is None:

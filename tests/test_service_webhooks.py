@@ -1173,6 +1173,49 @@ def test_every_webhook_body_carries_its_events_id_which_orders_the_jobs_deliveri
     assert [kind for _, kind in timeline] == kinds
 
 
+def test_a_keys_webhook_secret_rotated_signs_every_attempt_from_then_on(client, capsys):
+    """A key's webhook secret could not be changed: one leaked (a receiver's logs, its config) forged deliveries for
+    good. POST /v1/webhooks/secret/rotate (the key's holder) and rotate-webhook-secret (the admin) replace it; the
+    next delivery is signed with the new one only, and GET /v1/webhooks/secret answers it."""
+    from api import admin
+    from test_service_events import verify
+    from voxe_service.db import session_scope
+    from voxe_service.jobs import record_event
+
+    test_client, scene = client
+    receiver = WebhookReceiver()
+    try:
+        old = test_client.get("/v1/webhooks/secret").json()["secret"]
+        job = test_client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold",
+                                                 "webhook_url": receiver.url, "webhook_events": ["warning"]}).json()
+
+        def delivered(count: int) -> dict:
+            with session_scope() as session:
+                record_event(session, job["id"], "warning", detail=f"warning {count}")
+            wait_until(lambda: len(receiver.requests) == count, timeout=20)
+            return receiver.requests[-1]
+
+        assert verify(old, delivered(1))
+        rotated = test_client.post("/v1/webhooks/secret/rotate")
+        assert rotated.status_code == 200 and rotated.headers["cache-control"] == "no-store"
+        new = rotated.json()["secret"]
+        assert new.startswith("whsec_") and new != old
+        assert test_client.get("/v1/webhooks/secret").json()["secret"] == new
+        signed = delivered(2)
+        assert verify(new, signed) and not verify(old, signed)
+
+        assert admin.main(["rotate-webhook-secret", "local"]) == 0  # authentication off: the local key's
+        assert "rotated the webhook secret of key local" in capsys.readouterr().err
+        newest = test_client.get("/v1/webhooks/secret").json()["secret"]
+        assert newest not in (old, new)
+        signed = delivered(3)
+        assert verify(newest, signed) and not verify(new, signed)
+    finally:
+        receiver.close()
+    assert admin.main(["rotate-webhook-secret", "nosuchkey"]) == 1
+    assert "no API key 'nosuchkey'" in capsys.readouterr().err
+
+
 def test_a_job_whose_webhook_name_finds_every_lookup_busy_is_told_to_try_again(client, monkeypatch):
     """Every lookup slot held by other names a resolver does not answer: a job whose webhook host was never looked
     up is a 503 with Retry-After, not its URL's fault (it had been a 422 saying its host "did not resolve"), and

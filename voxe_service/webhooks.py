@@ -425,6 +425,13 @@ def key_secret(session: Session, key: ApiKey) -> str:
     return key.webhook_secret
 
 
+def rotate_secret(key: ApiKey) -> str:
+    """Give the key a new webhook secret (committed with the caller's transaction); it. Every attempt from then on,
+    a retry of an earlier delivery included, is signed with it: the sender reads the key's secret at each attempt."""
+    key.webhook_secret = new_secret()
+    return key.webhook_secret
+
+
 def enqueue(session: Session, job_id: str, event) -> None:
     """Queue a delivery of ``event`` (a flushed JobEvent) when the job has a webhook wanting its kind.
 

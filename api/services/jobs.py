@@ -346,3 +346,10 @@ def webhook_secret(*, session: Session, key: ApiKey) -> str:
     secret = webhooks.key_secret(session, key)
     session.commit()
     return secret
+
+
+def rotate_webhook_secret(*, session: Session, key: ApiKey) -> str:
+    """A new webhook signing secret for the key, the old one signing nothing from now on."""
+    secret = webhooks.rotate_secret(key)
+    session.commit()
+    return secret
