@@ -16,7 +16,7 @@ What a stream sends (``event:`` names):
   iteration or losses changed since the last one, at most once per interval;
 * and the stream ends after the job's terminal event, or when the server stops (:meth:`EventHub.end_streams`;
   the client resumes with ``Last-Event-ID``), or with an ``error`` event once the job is deleted or the key that
-  opened it is revoked (a revoked token stops working at once, open streams included).
+  opened it is revoked or expires (its token stops working then, open streams included).
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from sqlalchemy import and_, func, or_, select
 from api.schemas import JobEventOut
 from voxe_service.db import get_sessionmaker
 from voxe_service.failing import FailingStreak
-from voxe_service.models import TERMINAL_STATES, ApiKey, Job, JobEvent
+from voxe_service.models import TERMINAL_STATES, ApiKey, Job, JobEvent, utcnow
 
 log = logging.getLogger("voxe.api")
 
@@ -60,7 +60,8 @@ class _Watch:
     events: list[dict] = field(default_factory=list)
     job: dict | None = None
     polled: bool = False
-    revoked: bool = False
+    key_ended: str | None = None
+    """How the stream's key stopped working ("was revoked", "expired at <time>"); None while it works."""
 
 
 def sse(data: dict, event: str, event_id: int | None = None) -> str:
@@ -84,7 +85,7 @@ class EventHub:
 
     async def stream(self, job_id: str, key_id: str, after_id: int = 0) -> AsyncIterator[str]:
         """The job's events after ``after_id`` as SSE text, for key ``key_id``, ending after its terminal event (or
-        at :meth:`end_streams`, or once the key is revoked)."""
+        at :meth:`end_streams`, or once the key is revoked or expires)."""
         watch = _Watch(job_id, after_id, key_id)
         self._watches.append(watch)
         if self._task is None or self._task.done():
@@ -104,8 +105,8 @@ class EventHub:
                 events, watch.events = watch.events, []
                 for event in events:
                     yield sse(event, event["kind"], event["id"])
-                if watch.revoked:
-                    yield sse({"detail": "the API key of this stream was revoked"}, "error")
+                if watch.key_ended:
+                    yield sse({"detail": f"the API key of this stream {watch.key_ended}"}, "error")
                     return
                 if watch.job is None:
                     yield sse({"detail": f"job {job_id!r} was deleted"}, "error")
@@ -128,7 +129,7 @@ class EventHub:
                 if not watch.polled:
                     fresh.add(watch.job_id)
             try:
-                stamps, jobs, events, revoked = await anyio.to_thread.run_sync(self._poll, after, fresh, keys)
+                stamps, jobs, events, ended = await anyio.to_thread.run_sync(self._poll, after, fresh, keys)
             except Exception as exc:  # noqa: BLE001 - a database hiccup or outage: streams wait for a later poll
                 # (the first logged with its traceback, the next a line each: a traceback every poll had filled the
                 # log while the database was down, 7,200 an hour; the polls back off up to FAILING_POLL_MAX_DELAY_S)
@@ -139,8 +140,8 @@ class EventHub:
                 self._stamps = {job_id: stamp for job_id, stamp in {**self._stamps, **stamps}.items()
                                 if job_id in after}
                 for watch in watches:  # one opened during this poll waits for the next
-                    if watch.key_id in revoked:
-                        watch.revoked = True
+                    if watch.key_id in ended:
+                        watch.key_ended = ended[watch.key_id]
                         watch.wake.set()
                         continue
                     new = [e for e in events.get(watch.job_id, ()) if e["id"] > watch.after_id]
@@ -159,7 +160,8 @@ class EventHub:
 
     def _poll(self, after: dict[str, int], fresh: set[str], keys: set[str]):
         """(every watched job's change stamp, the views of the jobs that changed, the events past ``after`` of
-        the jobs that have new ones, the revoked ones of the streams' ``keys``), in one short session.
+        the jobs that have new ones, how each of the streams' ``keys`` that no longer works stopped: "was revoked",
+        "expired at <time>"), in one short session.
 
         A poll where nothing happened costs two index lookups per job and builds nothing: what changed is
         read from ``updated_at`` and the newest event id. Events are read after the job rows, so a job seen
@@ -167,7 +169,10 @@ class EventHub:
         """
         ids = list(after)
         with get_sessionmaker()() as session:
-            revoked = set(session.scalars(select(ApiKey.id).where(ApiKey.id.in_(keys), ApiKey.revoked_at.is_not(None))))
+            ended = {key_id: "was revoked" if revoked_at else f"expired at {expires_at.isoformat(timespec='seconds')}"
+                     for key_id, revoked_at, expires_at in session.execute(
+                         select(ApiKey.id, ApiKey.revoked_at, ApiKey.expires_at).where(
+                             ApiKey.id.in_(keys), or_(ApiKey.revoked_at.is_not(None), ApiKey.expires_at <= utcnow())))}
             updated = dict(session.execute(select(Job.id, Job.updated_at).where(Job.id.in_(ids))).all())
             newest = dict(session.execute(select(JobEvent.job_id, func.max(JobEvent.id))
                                           .where(JobEvent.job_id.in_(ids)).group_by(JobEvent.job_id)).all())
@@ -187,7 +192,7 @@ class EventHub:
                 for e in rows:
                     events.setdefault(e.job_id, []).append(
                         JobEventOut.model_validate(e, from_attributes=True).model_dump(mode="json"))
-        return stamps, jobs, events, revoked
+        return stamps, jobs, events, ended
 
     def end_streams(self) -> None:
         """End every stream, and any opened from now on, at its next wake: the server is stopping, and waits for

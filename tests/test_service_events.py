@@ -365,9 +365,10 @@ def test_a_streams_progress_says_a_cancel_was_requested_while_the_job_runs_on(in
     assert [(e["data"]["state"], e["data"].get("cancel_requested")) for e in events] == [("running", True)], events
 
 
-def test_a_stream_ends_once_the_key_that_opened_it_is_revoked(in_process, tmp_path):
-    """A revoked token stops working at once (README, ``revoke-key``): a stream opened before had gone on
-    delivering the job's events for as long as the job ran."""
+@pytest.mark.parametrize("ending", ["revoked_at", "expires_at"])
+def test_a_stream_ends_once_the_key_that_opened_it_is_revoked_or_expires(in_process, tmp_path, ending):
+    """A revoked token stops working at once (README, ``revoke-key``), an expired one at its expiry: a stream opened
+    before had gone on delivering the job's events for as long as the job ran."""
     from api.auth import create_key
     from voxe_service.db import session_scope
     from voxe_service.models import ApiKey, utcnow
@@ -378,17 +379,20 @@ def test_a_stream_ends_once_the_key_that_opened_it_is_revoked(in_process, tmp_pa
     with session_scope() as session:
         key, _ = create_key(session, "streamer")
         key_id = key.id
+    ended_at = []
 
-    async def on_progress(_job_id, _progress):  # the first snapshot: revoke the key, then read on
-        def revoke():
+    async def on_progress(_job_id, _progress):  # the first snapshot: revoke the key (or pass its expiry), read on
+        def end():
             with session_scope() as session:
-                session.get(ApiKey, key_id).revoked_at = utcnow()
-        await asyncio.to_thread(revoke)
+                setattr(session.get(ApiKey, key_id), ending, utcnow())
+                ended_at.append(getattr(session.get(ApiKey, key_id), ending))
+        await asyncio.to_thread(end)
         return False
 
     [events] = follow([job["id"]], timeout=15, on_progress=on_progress, key_id=key_id)
     assert [e["event"] for e in events] == ["progress", "error"], events
-    assert events[-1]["data"] == {"detail": "the API key of this stream was revoked"}
+    how = "was revoked" if ending == "revoked_at" else f"expired at {ended_at[0].isoformat(timespec='seconds')}"
+    assert events[-1]["data"] == {"detail": f"the API key of this stream {how}"}
     assert client.get(f"/v1/jobs/{job['id']}").json()["state"] == "queued"  # the job itself goes on
 
 
