@@ -235,6 +235,26 @@ def test_api_replicas_starting_at_once_migrate_a_fresh_database_one_after_anothe
     command.check(alembic_config(database_url))
 
 
+def test_a_sqlite_uri_filename_gets_its_folder_and_lock_where_sqlite_opens_it(tmp_path, monkeypatch):
+    """``sqlite:///file:./var/x.db?uri=true`` (SQLite's URI filename): the folder made and the migration lock are
+    those of ./var/x.db, the file SQLite opens; a folder named 'file:.' had been made (and the lock put there) and
+    ./var left missing, SQLite then failing "unable to open database file"."""
+    from sqlalchemy import create_engine, inspect
+
+    from voxe_service.db import run_migrations
+
+    monkeypatch.chdir(tmp_path)
+    url = "sqlite:///file:./var/x.db?uri=true"
+    run_migrations(url)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["var"]
+    assert {"x.db", "x.db.migrate.lock"} <= {p.name for p in (tmp_path / "var").iterdir()}
+    engine = create_engine(url)
+    try:
+        assert "jobs" in inspect(engine).get_table_names()
+    finally:
+        engine.dispose()
+
+
 def test_ply_artifacts_recorded_as_octet_stream_get_their_model_type_and_back(database_url):
     """0016 gives PLY artifacts recorded before the worker named their type model/ply, as it records them now; other
     artifacts keep theirs; downgrading gives the PLY ones back octet-stream. One an earlier worker publishes after it

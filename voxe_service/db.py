@@ -15,7 +15,7 @@ from sqlalchemy.exc import OperationalError, TimeoutError as PoolTimeout
 from sqlalchemy.orm import Session, sessionmaker
 
 from voxe_service import models
-from voxe_service.settings import get_settings
+from voxe_service.settings import get_settings, sqlite_file
 
 log = logging.getLogger("voxe.db")
 
@@ -48,9 +48,9 @@ def database_outage(exc: Exception) -> str | None:
 
 def ensure_sqlite_dir(url: str) -> None:
     """Create the folder of a file-backed SQLite URL (``sqlite:///./var/voxe.db``)."""
-    parsed = make_url(url)
-    if parsed.get_backend_name() == "sqlite" and parsed.database and parsed.database != ":memory:":
-        Path(parsed.database).expanduser().parent.mkdir(parents=True, exist_ok=True)
+    path = sqlite_file(url)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
 
 
 def make_engine(url: str, *, pool_size: int = 5, max_overflow: int = 10, pool_timeout_s: float = 30.0) -> Engine:
@@ -180,13 +180,13 @@ def run_migrations(database_url: str) -> None:
 
 @contextmanager
 def _sqlite_file_lock(database_url: str) -> Iterator[None]:
-    parsed = make_url(database_url)
-    if parsed.get_backend_name() != "sqlite" or not parsed.database or parsed.database == ":memory:":
+    path = sqlite_file(database_url)
+    if path is None:
         yield
         return
     import fcntl
 
-    with open(f"{Path(parsed.database).expanduser()}.migrate.lock", "a") as lock:
+    with open(f"{path}.migrate.lock", "a") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes, or its process dies
         yield
 

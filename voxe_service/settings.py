@@ -16,7 +16,7 @@ import sys
 from functools import lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
-from urllib.parse import urlsplit
+from urllib.parse import unquote, urlsplit
 
 from pydantic import Field, ValidationError, ValidationInfo, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -344,6 +344,25 @@ def _password_as_port(url: str) -> bool:
     authority = re.split(r"[/?#]", url.partition("://")[2], maxsplit=1)[0]
     port = (authority.partition("]")[2] if authority.startswith("[") else authority).partition(":")[2]
     return "://" in url and "@" not in url and bool(port) and not port.isdigit()
+
+
+def sqlite_file(url: str | URL) -> Path | None:
+    """The file SQLite opens for the SQLite database ``url``, None for another database or an in-memory one. A URI
+    filename (``sqlite:///file:./var/voxe.db?uri=true``, SQLAlchemy's uri=true) is read as SQLite reads it: its path,
+    percent-decoded, not the URI as written (whose folder had been made, literally 'file:.', beside the working
+    directory's ./var)."""
+    from sqlalchemy.engine import make_url
+    from sqlalchemy.util import asbool
+
+    parsed = make_url(url)
+    if parsed.get_backend_name() != "sqlite":
+        return None
+    name = parsed.database or ""
+    if asbool(parsed.query.get("uri", False)) and name.startswith("file:"):
+        name = unquote(urlsplit(name).path)
+    if name in ("", ":memory:") or parsed.query.get("mode") == "memory":
+        return None
+    return Path(name).expanduser()
 
 
 def _sqlite_home_expanded(url: str, parsed: URL) -> str:
