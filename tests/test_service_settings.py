@@ -67,7 +67,9 @@ def fresh_settings(monkeypatch):
     *(("VOXE_DATABASE_URL", url, "': an in-memory SQLite database is each connection's own, empty one, that no "
                                  "other thread or process (the workers) sees; name a file, e.g. sqlite:///./var/voxe.db")
       for url in ("sqlite://", "sqlite:///:memory:", "sqlite+pysqlite:///:memory:",
-                  "sqlite:///file:voxe?mode=memory&cache=shared&uri=true")),
+                  "sqlite:///file:voxe?mode=memory&cache=shared&uri=true",
+                  # SQLite's URI filenames of a private database (accepted; the API had found no tables)
+                  "sqlite:///file::memory:?uri=true", "sqlite:///file:?uri=true")),
     # the SQL broker's database, checked as the metadata's: accepted, the API had queued every job in a database of its
     # own that no worker read, or failed each submission as kombu first opened it
     *(("VOXE_BROKER_URL", url, f"VOXE_BROKER_URL={url!r}: an in-memory SQLite database is each connection's own, "

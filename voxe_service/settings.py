@@ -302,14 +302,14 @@ def _fits_a_jobs_column(value: str, info: ValidationInfo) -> str:
     return value
 
 
-def _shared_sqlalchemy_url(url: str, sqlite_file: str, transport: str = "") -> str:
+def _shared_sqlalchemy_url(url: str, example_file: str, transport: str = "") -> str:
     """``url`` as the API and the workers open it, a database they share: a SQLAlchemy URL whose dialect SQLAlchemy
     has (nothing connects), a SQLite one naming a file, its '~' expanded (:func:`_sqlite_home_expanded`); ValueError
-    otherwise, its examples a SQLite file ``sqlite_file`` and PostgreSQL, written after ``transport`` (the broker's
+    otherwise, its examples a SQLite file ``example_file`` and PostgreSQL, written after ``transport`` (the broker's
     ``sqla+``)."""
     from sqlalchemy.engine import make_url
 
-    sqlite = f"{transport}sqlite:///{sqlite_file}"
+    sqlite = f"{transport}sqlite:///{example_file}"
     examples = f"e.g. {sqlite} or {transport}postgresql+psycopg://user:password@host/db"
     if _password_as_port(url):  # (SQLAlchemy's own error printed it: "invalid literal for int() ...: 's3cret'")
         raise ValueError(f"{_NO_HOST}; {examples}")
@@ -326,8 +326,7 @@ def _shared_sqlalchemy_url(url: str, sqlite_file: str, transport: str = "") -> s
         dialect.import_dbapi()
     except ImportError as exc:
         raise ValueError(f"the driver of {parsed.drivername} is not installed ({exc}); {examples}") from None
-    if parsed.get_backend_name() == "sqlite" and (parsed.database in (None, "", ":memory:")
-                                                  or parsed.query.get("mode") == "memory"):
+    if parsed.get_backend_name() == "sqlite" and sqlite_file(parsed) is None:
         # (accepted, the API's request threads had found no tables, "no such table: jobs")
         raise ValueError("an in-memory SQLite database is each connection's own, empty one, that no other thread "
                          f"or process (the workers) sees; name a file, e.g. {sqlite}")
