@@ -453,6 +453,46 @@ def test_a_reaper_whose_passes_fail_logs_one_traceback_then_a_line_each_and_says
     assert records[4].getMessage() == "reaper: passes succeed again, after 4 failed in a row"
 
 
+def test_reading_the_database_clock_while_postgresql_is_down_logs_one_traceback_then_a_line_each(monkeypatch,
+                                                                                                  caplog):
+    """Every heartbeat, reaper pass and stage start reads PostgreSQL's clock (sync_clock): with the database down,
+    each reading had logged "could not read the database's clock" with its whole traceback. Now the first failed
+    reading is logged with its traceback, the next ones a line each, and the recovery is said; the offset stays."""
+    import types
+
+    from sqlalchemy.exc import OperationalError
+
+    from voxe_service import models
+    from voxe_service.db import sync_clock
+
+    class PostgreSQL:
+        dialect = types.SimpleNamespace(name="postgresql")
+        up = True
+
+        def connect(self):
+            if not self.up:
+                raise OperationalError("SELECT clock_timestamp()", {}, Exception("connection refused\nIs it up?"))
+            later = models.system_now() + timedelta(seconds=30)
+            return contextlib.nullcontext(types.SimpleNamespace(
+                execute=lambda statement: types.SimpleNamespace(scalar_one=lambda: later)))
+
+    monkeypatch.setattr(models, "_clock_offset", timedelta(0))  # (put back after the test)
+    database = PostgreSQL()
+    assert abs(sync_clock(database).total_seconds() - 30) < 1
+    database.up = False
+    with caplog.at_level(logging.INFO, logger="voxe.db"):
+        assert [sync_clock(database) for _ in range(4)] == [None] * 4
+        assert abs((models.utcnow() - models.system_now()).total_seconds() - 30) < 1  # the last offset kept
+        database.up = True
+        assert sync_clock(database) is not None
+    records = [r for r in caplog.records if r.name == "voxe.db" and "clock is" not in r.getMessage()]
+    assert [r.exc_info is not None for r in records] == [True, False, False, False, False], records
+    assert records[0].getMessage() == "database clock: reading failed; the last offset measured stays"
+    assert records[3].getMessage() == ("database clock: reading 4 in a row failed; the last offset measured stays: "
+                                       "OperationalError: (builtins.Exception) connection refused")
+    assert records[4].getMessage() == "database clock: readings succeed again, after 4 failed in a row"
+
+
 def test_a_reaper_pass_meeting_a_broker_outage_fails_nothing_and_a_later_pass_sends_the_jobs(db, monkeypatch):
     """The broker refuses every message (a Redis restarting) during a pass: a dead worker's job, an accepted job
     never sent and a sweep's edit never sent had been failed for good, their checkpoints deleted. Now they wait,

@@ -15,6 +15,7 @@ from sqlalchemy.exc import OperationalError, TimeoutError as PoolTimeout
 from sqlalchemy.orm import Session, sessionmaker
 
 from voxe_service import models
+from voxe_service.failing import FailingStreak
 from voxe_service.settings import get_settings, sqlite_file
 
 log = logging.getLogger("voxe.db")
@@ -127,6 +128,11 @@ def locked(session: Session, model, row_id: str):
     return session.scalars(query.with_for_update(of=model)).first()
 
 
+_CLOCK_READINGS = FailingStreak(log, "database clock", "reading", "readings")
+"""This process's readings of the database's clock failing in a row (a traceback at every heartbeat and reaper pass
+had filled the log while PostgreSQL was down)."""
+
+
 def sync_clock(engine: Engine | None = None) -> timedelta | None:
     """Measure this process's clock against the database server's and set ``utcnow``'s offset to it; the offset,
     or None when it could not be measured (logged; the last one stays).
@@ -144,9 +150,10 @@ def sync_clock(engine: Engine | None = None) -> timedelta | None:
                 before = models.system_now()
                 server = connection.execute(text("SELECT clock_timestamp()")).scalar_one()
                 after = models.system_now()
-        except Exception:  # noqa: BLE001 - the database unreachable: the last offset stays until the next try
-            log.warning("could not read the database's clock", exc_info=True)
+        except Exception as exc:  # noqa: BLE001 - the database unreachable: the last offset stays until the next try
+            _CLOCK_READINGS.note_failure(exc, "; the last offset measured stays")
             return None
+        _CLOCK_READINGS.succeeded()
         offset = server - (before + (after - before) / 2)
         if abs(offset.total_seconds()) > CLOCK_WARN_S:
             log.warning("this machine's clock is %.1f s off the database server's: the service uses the "

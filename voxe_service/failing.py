@@ -25,18 +25,22 @@ class FailingStreak:
     def failed_once_more(self, exc: BaseException, interval_s: float, longest_s: float) -> float:
         """Log one more failure, ``exc``; the seconds until the next try: ``interval_s`` doubling per failure, at
         most ``longest_s`` (no less than the interval)."""
-        self.failed += 1
         longest_s = max(interval_s, longest_s)
-        delay = backoff_s(self.failed, interval_s, longest_s)
-        if self.failed == 1:
-            backing_off = (f", backing off up to {longest_s:g} s while {self.many} fail" if longest_s > interval_s
-                           else "")
-            self.log.warning("%s: %s failed; next in %g s%s", self.what, self.one, delay, backing_off,
-                             exc_info=exc)
-        else:
-            self.log.warning("%s: %s %d in a row failed; next in %g s: %s: %s", self.what, self.one, self.failed,
-                             delay, type(exc).__name__, str(exc).partition("\n")[0])
+        delay = backoff_s(self.failed + 1, interval_s, longest_s)
+        backing_off = (f", backing off up to {longest_s:g} s while {self.many} fail"
+                       if longest_s > interval_s and not self.failed else "")
+        self.note_failure(exc, f"; next in {delay:g} s{backing_off}")
         return delay
+
+    def note_failure(self, exc: BaseException, next_try: str = "") -> None:
+        """Log one more failure, ``exc``, of tries whose callers choose when the next comes (``next_try``, said
+        after 'failed', may tell)."""
+        self.failed += 1
+        if self.failed == 1:
+            self.log.warning("%s: %s failed%s", self.what, self.one, next_try, exc_info=exc)
+        else:
+            self.log.warning("%s: %s %d in a row failed%s: %s: %s", self.what, self.one, self.failed, next_try,
+                             type(exc).__name__, str(exc).partition("\n")[0])
 
     def succeeded(self) -> None:
         """Log the recovery, if the tries had been failing."""
