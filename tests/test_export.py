@@ -5,7 +5,10 @@ from __future__ import annotations
 import errno
 import inspect
 import math
+import os
+import stat
 import sys
+from pathlib import Path
 
 import imageio.v2 as imageio
 import numpy as np
@@ -115,6 +118,21 @@ def test_a_file_whose_name_fits_but_whose_partial_name_would_not_is_written(sphe
     with pytest.raises(OSError, match="File name too long") as error, replacing(too_long) as partial:
         partial.write_text("never")
     assert error.value.filename == str(too_long) and len(list(tmp_path.iterdir())) == 2
+
+
+def test_a_replaced_file_keeps_its_permissions_and_a_symlink_stays_one(tmp_path):
+    """Writing over a 0600 file had left it readable by all (the umask's mode of the new file), and writing through a
+    symlink (latest.png -> runs/1/view.png) had put a file of its own in place of the link, the run's left as it was."""
+    run = tmp_path / "runs" / "1"
+    run.mkdir(parents=True)
+    view, latest = run / "view.png", tmp_path / "latest.png"
+    view.write_bytes(b"old")
+    view.chmod(0o600)
+    latest.symlink_to(Path("runs") / "1" / "view.png")
+    save_png(latest, torch.rand(4, 4, 3))
+    assert latest.is_symlink() and os.readlink(latest) == str(Path("runs") / "1" / "view.png")
+    assert Image.open(view).size == (4, 4) and stat.S_IMODE(view.stat().st_mode) == 0o600
+    assert sorted(p.name for p in run.iterdir()) == ["view.png"]
 
 
 def test_png_rgba_and_bad_shape(tmp_path):

@@ -8,7 +8,7 @@ import hashlib
 import os
 import stat
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 SPECIAL_FILES = ((stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISSOCK, "a socket"),
@@ -77,6 +77,8 @@ def replacing(path: str | os.PathLike) -> Iterator[Path]:
     in one rename, otherwise it is removed and ``path`` is left as it was. It keeps ``path``'s suffix (writers
     pick their format by it) and is hidden (:func:`partial_path`) from listings of the folder. An OSError
     about that temporary file (a missing folder, no permission) names ``path``, the file the caller asked for.
+    A file replaced keeps its permissions, and a symlink stays one, its target replaced (the new file had taken the
+    umask's mode, a 0600 file becoming readable by all, and the link had become a file of its own).
 
     Examples:
         >>> import tempfile
@@ -95,10 +97,13 @@ def replacing(path: str | os.PathLike) -> Iterator[Path]:
         ('whole', ['notes.txt'])
     """
     path = Path(path)
-    partial = partial_path(path)
+    target = Path(os.path.realpath(path))
+    partial = partial_path(target)
     try:
         yield partial
-        os.replace(partial, path)
+        with suppress(FileNotFoundError):
+            os.chmod(partial, stat.S_IMODE(os.stat(target).st_mode))
+        os.replace(partial, target)
     except OSError as exc:
         if exc.errno is None or exc.filename != str(partial):
             raise
