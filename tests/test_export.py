@@ -135,6 +135,19 @@ def test_a_replaced_file_keeps_its_permissions_and_a_symlink_stays_one(tmp_path)
     assert sorted(p.name for p in run.iterdir()) == ["view.png"]
 
 
+def test_two_writers_of_one_file_at_once_each_write_a_partial_file_of_their_own(tmp_path):
+    """Two writes of one file at once (two runs given one --out) had shared its partial file: the second's bytes
+    went over the first's, the first to finish renamed that into place, and the other failed "No such file or
+    directory" naming the file asked for. Each now writes its own; the last to finish leaves its file, whole."""
+    target = tmp_path / "notes.txt"
+    with replacing(target) as first:
+        first.write_text("the first, longer text")
+        with replacing(target) as second:
+            second.write_text("second")
+        assert first != second and target.read_text() == "second"
+    assert target.read_text() == "the first, longer text" and [p.name for p in tmp_path.iterdir()] == ["notes.txt"]
+
+
 def test_png_rgba_and_bad_shape(tmp_path):
     rgba = torch.rand(5, 6, 4, generator=torch.Generator().manual_seed(0))
     save_png(tmp_path / "rgba.png", rgba)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import errno
 import hashlib
 import os
+import secrets
 import stat
 from collections.abc import Iterator
 from contextlib import contextmanager, suppress
@@ -53,19 +54,19 @@ def head_that_fits(head: str, tail: str, name: str) -> str:
     return head + mark
 
 
-def partial_path(path: Path) -> Path:
-    """``.<stem>.partial<suffix>`` beside ``path``, its stem cut where that would pass :data:`NAME_MAX` bytes
-    (:func:`head_that_fits`): a name that fits had been refused "File name too long", for the 9 bytes the partial
+def partial_path(path: Path, token: str) -> Path:
+    """``.<stem>.<token>.partial<suffix>`` beside ``path``, its stem cut where that would pass :data:`NAME_MAX` bytes
+    (:func:`head_that_fits`): a name that fits had been refused "File name too long", for the bytes the partial
     name adds. A name too long itself keeps the whole partial name, which fails as it is opened (cut to fit, it
     would be written whole before the rename was refused).
 
     Examples:
-        >>> partial_path(Path("out/view.png"))
-        PosixPath('out/.view.partial.png')
-        >>> len(partial_path(Path("é" * 125 + ".png")).name.encode())
-        254
+        >>> partial_path(Path("out/view.png"), "1f2e3d4c")
+        PosixPath('out/.view.1f2e3d4c.partial.png')
+        >>> len(partial_path(Path("é" * 125 + ".png"), "1f2e3d4c").name.encode())
+        255
     """
-    tail = f".partial{path.suffix}"
+    tail = f".{token}.partial{path.suffix}"
     if len(os.fsencode(path.name)) > NAME_MAX:
         return path.with_name(f".{path.stem}{tail}")
     return path.with_name(head_that_fits(f".{path.stem}", tail, path.name) + tail)
@@ -75,7 +76,9 @@ def partial_path(path: Path) -> Path:
 def replacing(path: str | os.PathLike) -> Iterator[Path]:
     """A temporary path beside ``path`` to write into; when the block ends without an error it replaces ``path``
     in one rename, otherwise it is removed and ``path`` is left as it was. It keeps ``path``'s suffix (writers
-    pick their format by it) and is hidden (:func:`partial_path`) from listings of the folder. An OSError
+    pick their format by it), is hidden (:func:`partial_path`) from listings of the folder, and is this writer's own
+    (a random token in its name: two writers of one file at once had shared one partial file, each writing over the
+    other's bytes, the first to finish renaming that mix into place and the other failing "No such file"). An OSError
     about that temporary file (a missing folder, no permission) names ``path``, the file the caller asked for.
     A file replaced keeps its permissions, and a symlink stays one, its target replaced (the new file had taken the
     umask's mode, a 0600 file becoming readable by all, and the link had become a file of its own).
@@ -98,7 +101,7 @@ def replacing(path: str | os.PathLike) -> Iterator[Path]:
     """
     path = Path(path)
     target = Path(os.path.realpath(path))
-    partial = partial_path(target)
+    partial = partial_path(target, secrets.token_hex(4))
     try:
         yield partial
         with suppress(FileNotFoundError):

@@ -80,7 +80,6 @@ def save_tensors(path: str | os.PathLike, tensors: dict[str, torch.Tensor], kind
     path = Path(path)
     header = json.dumps({"kind": kind, "format_version": version, "meta": meta}, sort_keys=True)
     with replacing(path) as partial:
-        partial.unlink(missing_ok=True)  # (a killed run's, with safetensors' 0600)
         partial.touch()  # the mode a new file gets here (the umask's): safetensors renames its own 0600 file into place
         mode = stat.S_IMODE(partial.stat().st_mode)
         try:

@@ -41,7 +41,7 @@ INTERRUPT_CHECK_S = 0.1
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 """Ctrl-C, and what ``docker stop``, ``timeout`` and systemd send: either cancels a command cleanly (a SIGTERM had
-killed it at once, its hidden partial files such as ``.spot.partial.mp4`` left in the output folder)."""
+killed it at once, its hidden partial files such as ``.spot.<token>.partial.mp4`` left in the output folder)."""
 
 _stop_signals_received: list[int] = []
 """The stop signals the running command received (``sigterm_as_ctrl_c`` starts each command with none)."""
