@@ -135,6 +135,24 @@ def test_a_replaced_file_keeps_its_permissions_and_a_symlink_stays_one(tmp_path)
     assert sorted(p.name for p in run.iterdir()) == ["view.png"]
 
 
+def test_an_obj_written_through_a_symlink_names_the_material_library_beside_it(tmp_path):
+    """latest.obj -> runs/1/mesh.obj: the OBJ is written through the link, and its library with it, runs/1/mesh.mtl,
+    which its mtllib names (the OBJ had named latest.mtl, written beside the link, not beside the OBJ)."""
+    import trimesh
+
+    run = tmp_path / "runs" / "1"
+    run.mkdir(parents=True)
+    (run / "mesh.obj").write_text("old")
+    (tmp_path / "latest.obj").symlink_to(run / "mesh.obj")
+    tri = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]], vertex_colors=[[255, 0, 0, 255]] * 3,
+                          process=False)
+    save_mesh(tri, tmp_path / "latest.obj")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["latest.obj", "runs"]
+    assert sorted(p.name for p in run.iterdir()) == ["mesh.mtl", "mesh.obj"]
+    assert "mtllib mesh.mtl" in (run / "mesh.obj").read_text().splitlines()
+    assert (run / "mesh.mtl").read_text().splitlines()[1] == "Kd 1.000000 0.000000 0.000000"
+
+
 def test_two_writers_of_one_file_at_once_each_write_a_partial_file_of_their_own(tmp_path):
     """Two writes of one file at once (two runs given one --out) had shared its partial file: the second's bytes
     went over the first's, the first to finish renamed that into place, and the other failed "No such file or

@@ -684,7 +684,8 @@ def save_obj(mesh, path: str | os.PathLike) -> Path:
     """Wavefront OBJ with per-vertex colours (``v x y z r g b``, colours in [0, 1]: the extension MeshLab,
     Blender and trimesh read) and a material library ``<stem>.mtl`` beside it whose diffuse colour is the
     mean vertex colour, for importers that ignore vertex colours. Faces are 1-based, counter-clockwise
-    seen from outside (as :func:`extract_mesh` winds them).
+    seen from outside (as :func:`extract_mesh` winds them). Through a symlink the library is the OBJ's own, beside
+    the file it writes (:func:`voxe_core.files.replacing`), named after it.
 
     Examples:
         >>> import tempfile, trimesh
@@ -700,7 +701,7 @@ def save_obj(mesh, path: str | os.PathLike) -> Path:
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     faces = np.asarray(mesh.faces, dtype=np.int64) + 1
     rgb = np.asarray(mesh.visual.vertex_colors, dtype=np.float64)[:, :3] / 255.0
-    mtl = path.with_suffix(".mtl")
+    mtl = Path(os.path.realpath(path)).with_suffix(".mtl")
     kd = rgb.mean(0) if len(rgb) else np.full(3, 0.8)
     # Both or neither: the MTL replaced first, the OBJ naming it only once that has been (the other way round, an
     # MTL that could not be written, a folder of its name, had left a new OBJ over the earlier one)

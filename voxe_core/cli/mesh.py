@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -66,7 +67,7 @@ def cmd_export_mesh(args) -> int:
     device = check_device(args)
     writable_file(args.out)
     if args.out.suffix.lower() == ".obj":  # and the material library beside it, before the mesh is made
-        writable_file(args.out.with_suffix(".mtl"))
+        writable_file(Path(os.path.realpath(args.out)).with_suffix(".mtl"))  # (save_obj's: a symlink's target's)
     grid = load_grid(args.grid).to(device)  # the density lattice is sampled there; marching cubes runs on the CPU
     mesh = extract_mesh(grid, level=args.level, resolution=args.resolution)
     save_mesh(mesh, args.out)
