@@ -493,6 +493,51 @@ def test_reading_the_database_clock_while_postgresql_is_down_logs_one_traceback_
     assert records[4].getMessage() == "database clock: readings succeed again, after 4 failed in a row"
 
 
+def test_a_workers_heartbeats_failing_log_one_traceback_then_a_line_each_and_say_when_they_succeed_again(
+        monkeypatch, caplog):
+    """With the database down, every heartbeat (5 s apart) had logged "worker heartbeat failed" with its whole
+    traceback. Now the first failed one is logged with its traceback, the next ones a line each, and the recovery is
+    said."""
+    import threading
+    import types
+
+    from sqlalchemy.exc import OperationalError
+
+    from worker import runtime, tasks
+
+    beats, recovered = [], threading.Event()
+
+    @contextlib.contextmanager
+    def session_scope():
+        beats.append(time.monotonic())
+        if len(beats) <= 4:
+            raise OperationalError("SELECT worker_heartbeats", {}, Exception("connection refused\nIs it running?"))
+        recovered.set()
+        yield types.SimpleNamespace(get=lambda model, hostname: types.SimpleNamespace())
+
+    monkeypatch.setattr(tasks, "get_settings", lambda: types.SimpleNamespace(worker_heartbeat_s=0.01))
+    monkeypatch.setattr(tasks, "sync_clock", lambda: None)
+    monkeypatch.setattr(tasks, "check_models", lambda settings: {})
+    monkeypatch.setattr(runtime, "session_scope", session_scope)
+    for sweep in ("sweep_scratch", "sweep_scene_datasets", "sweep_ingest_scratch"):
+        monkeypatch.setattr(runtime, sweep, lambda settings: [])
+    monkeypatch.setattr(tasks, "_heartbeat_stop", threading.Event())
+    with caplog.at_level(logging.INFO, logger=tasks.log.name):
+        beating = threading.Thread(target=tasks._beat, args=("w@host", "q", "cpu", {}), daemon=True)
+        beating.start()
+        try:
+            assert recovered.wait(10)
+        finally:
+            tasks._heartbeat_stop.set()
+            beating.join(10)
+    records = [r for r in caplog.records if r.name == tasks.log.name and "heartbeat" in r.getMessage()]
+    assert [r.exc_info is not None for r in records] == [True, False, False, False, False], records
+    assert records[0].getMessage() == "worker w@host: heartbeat failed"
+    assert records[3].getMessage() == ("worker w@host: heartbeat 4 in a row failed: OperationalError: "
+                                       "(builtins.Exception) connection refused")
+    assert records[4].getMessage() == "worker w@host: heartbeats succeed again, after 4 failed in a row"
+
+
 def test_a_reaper_pass_meeting_a_broker_outage_fails_nothing_and_a_later_pass_sends_the_jobs(db, monkeypatch):
     """The broker refuses every message (a Redis restarting) during a pass: a dead worker's job, an accepted job
     never sent and a sweep's edit never sent had been failed for good, their checkpoints deleted. Now they wait,

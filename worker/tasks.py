@@ -42,6 +42,7 @@ from voxe_core.presets import edit_config, export_config, fit_backbone, fit_setu
 from voxe_core.progress import Callbacks, Progress, StageCancelled
 from voxe_service.broker import waiting_tasks
 from voxe_service.db import database_outage, sync_clock
+from voxe_service.failing import FailingStreak
 from voxe_service.models import (
     CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, R_FAILED, R_PENDING, R_SUCCEEDED, RUNNING, TERMINAL_STATES, Job,
     Scene, WorkerHeartbeat, utcnow,
@@ -905,6 +906,8 @@ over the cache's limit and ended ingests' uploads (runtime.sweep_*)."""
 def _beat(hostname: str, queues: str, device: str, models: dict) -> None:
     settings = get_settings()
     next_sweep = time.monotonic()  # at start, then every SCRATCH_SWEEP_S
+    # (a traceback every beat had filled the log while the database was down: 720 an hour)
+    beats = FailingStreak(log, f"worker {hostname}", "heartbeat", "heartbeats")
     while not _heartbeat_stop.is_set():
         sync_clock()  # (a pool process measures its own: _fresh_engine, begin_stage)
         try:
@@ -925,8 +928,10 @@ def _beat(hostname: str, queues: str, device: str, models: dict) -> None:
                     session.add(row)
                 row.pid, row.queues, row.device, row.models, row.last_seen = (
                     os.getpid(), queues, device, models, utcnow())
-        except Exception:  # noqa: BLE001 - a missed heartbeat is not fatal
-            log.warning("worker heartbeat failed", exc_info=True)
+        except Exception as exc:  # noqa: BLE001 - a missed heartbeat is not fatal
+            beats.note_failure(exc)
+        else:
+            beats.succeeded()
         if time.monotonic() >= next_sweep:
             next_sweep = time.monotonic() + SCRATCH_SWEEP_S
             for sweep, done in ((runtime.sweep_scratch, "removed the scratch of %d ended job(s)"),
