@@ -70,6 +70,12 @@ def fresh_settings(monkeypatch):
                   "sqlite:///file:voxe?mode=memory&cache=shared&uri=true",
                   # SQLite's URI filenames of a private database (accepted; the API had found no tables)
                   "sqlite:///file::memory:?uri=true", "sqlite:///file:?uri=true")),
+    # a folder, not a file: accepted, the API's start had failed "unable to open database file", naming no setting
+    ("VOXE_DATABASE_URL", "sqlite:////tmp", "VOXE_DATABASE_URL='sqlite:////tmp': names the folder '/tmp', not a "
+                                           "database file; name a file in it, e.g. sqlite:///./var/voxe.db"),
+    ("VOXE_BROKER_URL", "sqla+sqlite:///./var/", "VOXE_BROKER_URL='sqla+sqlite:///./var/': names the folder 'var', "
+                                                 "not a database file; name a file in it, e.g. "
+                                                 "sqla+sqlite:///./var/broker.db"),
     # the SQL broker's database, checked as the metadata's: accepted, the API had queued every job in a database of its
     # own that no worker read, or failed each submission as kombu first opened it
     *(("VOXE_BROKER_URL", url, f"VOXE_BROKER_URL={url!r}: an in-memory SQLite database is each connection's own, "

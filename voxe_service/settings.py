@@ -330,6 +330,9 @@ def _shared_sqlalchemy_url(url: str, example_file: str, transport: str = "") -> 
         # (accepted, the API's request threads had found no tables, "no such table: jobs")
         raise ValueError("an in-memory SQLite database is each connection's own, empty one, that no other thread "
                          f"or process (the workers) sees; name a file, e.g. {sqlite}")
+    if (path := sqlite_file(parsed)) is not None and (path.is_dir() or str(parsed.database).endswith("/")):
+        # (accepted, the API's start had failed on SQLite's "unable to open database file", naming no setting)
+        raise ValueError(f"names the folder {str(path)!r}, not a database file; name a file in it, e.g. {sqlite}")
     return _sqlite_home_expanded(url, parsed)
 
 
