@@ -41,6 +41,8 @@ def fresh_settings(monkeypatch):
     # an empty folder had been the working directory (/app in the images: artifacts among the service's files)
     ("VOXE_STORAGE_DIR", "", "VOXE_STORAGE_DIR='': must name a folder (unset it for the default)"),
     ("VOXE_WORK_DIR", " ", "VOXE_WORK_DIR=' ': must name a folder"),
+    # taken as no loopback host (authentication on) while .ci/serve listened on its default, 127.0.0.1
+    ("VOXE_HOST", "", "VOXE_HOST='': must name the address the API listens on (unset it for the default, 127.0.0.1)"),
     # accepted, then every stage failed at its start: timedelta(seconds=inf) overflows
     ("VOXE_STAGE_LEASE_S", "inf", "VOXE_STAGE_LEASE_S='inf': Input should be a finite number"),
     # had failed only when first used, deep in SQLAlchemy, kombu or botocore

@@ -159,6 +159,15 @@ class Settings(BaseSettings):
             raise ValueError("must name a folder (unset it for the default)")
         return Path(value).expanduser() if isinstance(value, str | Path) else value
 
+    @field_validator("host")
+    @classmethod
+    def _host_named(cls, value: str) -> str:
+        """An empty one (``VOXE_HOST=`` in an env file) had been taken as a host that is not loopback, authentication
+        turned on, while ``bash .ci/serve`` listened on its default, 127.0.0.1, as for an unset one."""
+        if not value.strip():
+            raise ValueError("must name the address the API listens on (unset it for the default, 127.0.0.1)")
+        return value
+
     @field_validator("sds_model", "attention_model", "clip_model", "fid_model")
     @classmethod
     def _model_named(cls, value: str, info: ValidationInfo) -> str:
