@@ -538,6 +538,56 @@ def test_a_workers_heartbeats_failing_log_one_traceback_then_a_line_each_and_say
     assert records[4].getMessage() == "worker w@host: heartbeats succeed again, after 4 failed in a row"
 
 
+def test_a_workers_model_checks_failing_log_one_traceback_then_a_line_each_and_the_last_answer_stands(monkeypatch,
+                                                                                                       caplog):
+    """A model folder that cannot be read (an NFS cache gone stale) had logged "could not check its models" with its
+    whole traceback at every heartbeat. Now the first failed check is logged with its traceback, the next ones a line
+    each, and the recovery is said; the heartbeats record the last answer meanwhile."""
+    import threading
+    import types
+
+    from worker import runtime, tasks
+
+    checks, recorded, recovered = [], [], threading.Event()
+    answer = {"sds": {"model": "tiny", "present": True}}
+
+    def check_models(settings):
+        checks.append(time.monotonic())
+        if len(checks) <= 4:
+            raise OSError(116, "Stale file handle")
+        recovered.set()
+        return answer
+
+    @contextlib.contextmanager
+    def session_scope():
+        row = types.SimpleNamespace()
+        yield types.SimpleNamespace(get=lambda model, hostname: row)
+        recorded.append(row.models)
+
+    monkeypatch.setattr(tasks, "get_settings", lambda: types.SimpleNamespace(worker_heartbeat_s=0.01))
+    monkeypatch.setattr(tasks, "sync_clock", lambda: None)
+    monkeypatch.setattr(tasks, "check_models", check_models)
+    monkeypatch.setattr(runtime, "session_scope", session_scope)
+    for sweep in ("sweep_scratch", "sweep_scene_datasets", "sweep_ingest_scratch"):
+        monkeypatch.setattr(runtime, sweep, lambda settings: [])
+    monkeypatch.setattr(tasks, "_heartbeat_stop", threading.Event())
+    with caplog.at_level(logging.INFO, logger=tasks.log.name):
+        beating = threading.Thread(target=tasks._beat, args=("w@host", "q", "cpu", answer), daemon=True)
+        beating.start()
+        try:
+            assert recovered.wait(10)
+        finally:
+            tasks._heartbeat_stop.set()
+            beating.join(10)
+    records = [r for r in caplog.records if r.name == tasks.log.name and "models" in r.getMessage()]
+    assert [r.exc_info is not None for r in records] == [True, False, False, False, False], records
+    assert records[0].getMessage() == "worker w@host: check of its models failed; the last answer stands"
+    assert records[3].getMessage() == ("worker w@host: check of its models 4 in a row failed; the last answer stands: "
+                                       "OSError: [Errno 116] Stale file handle")
+    assert records[4].getMessage() == "worker w@host: checks of its models succeed again, after 4 failed in a row"
+    assert recorded[:4] == [answer] * 4
+
+
 def test_a_reaper_pass_meeting_a_broker_outage_fails_nothing_and_a_later_pass_sends_the_jobs(db, monkeypatch):
     """The broker refuses every message (a Redis restarting) during a pass: a dead worker's job, an accepted job
     never sent and a sweep's edit never sent had been failed for good, their checkpoints deleted. Now they wait,

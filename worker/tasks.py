@@ -908,6 +908,7 @@ def _beat(hostname: str, queues: str, device: str, models: dict) -> None:
     next_sweep = time.monotonic()  # at start, then every SCRATCH_SWEEP_S
     # (a traceback every beat had filled the log while the database was down: 720 an hour)
     beats = FailingStreak(log, f"worker {hostname}", "heartbeat", "heartbeats")
+    model_checks = FailingStreak(log, f"worker {hostname}", "check of its models", "checks of its models")
     while not _heartbeat_stop.is_set():
         sync_clock()  # (a pool process measures its own: _fresh_engine, begin_stage)
         try:
@@ -918,8 +919,10 @@ def _beat(hostname: str, queues: str, device: str, models: dict) -> None:
                 if m["present"] != earlier[role]["present"]:
                     log.warning("worker %s: the %s model %s is %s", hostname, role,
                                 model_label(m["model"]) or "(default)", "now present" if m["present"] else "gone")
-        except Exception:  # noqa: BLE001 - an unreadable model folder: the last answer stands, the beat goes on
-            log.warning("worker %s: could not check its models", hostname, exc_info=True)
+        except Exception as exc:  # noqa: BLE001 - an unreadable model folder: the last answer stands, the beat goes on
+            model_checks.note_failure(exc, "; the last answer stands")
+        else:
+            model_checks.succeeded()
         try:
             with runtime.session_scope() as session:
                 row = session.get(WorkerHeartbeat, hostname)
