@@ -1035,6 +1035,20 @@ def test_a_grid_or_checkpoint_named_other_than_safetensors_is_refused(sphere_fil
     assert main(["convert-grid", str(sphere_file), "--out", str(tmp_path / "GRID.SafeTensors"), "--quiet"]) == 0
 
 
+def test_an_output_linked_into_a_folder_that_is_not_there_is_refused_before_the_work(tmp_path):
+    """An output is written through its symlink: one linking into a missing folder had passed the check made before
+    the long stage (its own folder is writable), and failed once the work was done, "No such file or directory"."""
+    from voxe_core.cli.common import writable_file
+
+    link, target = tmp_path / "latest.mp4", tmp_path / "gone" / "spot.mp4"
+    link.symlink_to(target)
+    with pytest.raises(OSError) as error:
+        writable_file(link)
+    assert str(error.value) == f"cannot write {link}: it links to {target}, whose folder is missing"
+    (tmp_path / "gone").mkdir()
+    assert writable_file(link) == link
+
+
 @pytest.mark.parametrize("umask", [0o022, 0o007])
 def test_safetensors_outputs_follow_the_umask_as_other_outputs(sphere_file, tmp_path, umask):
     """safetensors renames its own 0600 temporary file into place: grids and the tiny model's weights had been 0600

@@ -346,10 +346,17 @@ def _make_folder(path: Path) -> None:
 
 
 def writable_file(path: Path) -> Path:
-    """``path`` with its folder made, or OSError now when it cannot be written (before a long stage, not after)."""
+    """``path`` with its folder made, or OSError now when it cannot be written (before a long stage, not after). A
+    symlink's target is what is written (:func:`voxe_core.files.replacing`): its folder is the one checked."""
     _make_folder(path.parent)
-    if path.is_dir() or not os.access(path.parent, os.W_OK):
-        raise OSError(f"cannot write {path}: " + ("it is a folder" if path.is_dir() else "its folder is not writable"))
+    target = Path(os.path.realpath(path))
+    if path.is_dir():
+        raise OSError(f"cannot write {path}: it is a folder")
+    if not os.access(target.parent, os.W_OK):
+        if target.parent == path.parent.resolve():
+            raise OSError(f"cannot write {path}: its folder is not writable")
+        raise OSError(f"cannot write {path}: it links to {target}, whose folder is "
+                      + ("not writable" if target.parent.is_dir() else "missing"))
     return path
 
 
