@@ -1138,6 +1138,25 @@ def _serving(data: bytes, name: str = "a.bin", refuse=lambda request: None):
     return answer
 
 
+def test_a_download_over_a_file_keeps_its_permissions_and_a_symlink_stays_one(tmp_path):
+    """A download over a 0600 file had left it readable by all (the umask's mode of the new file), and one to a
+    symlink (latest.mp4 -> runs/1/spot.mp4) had put a file of its own in place of the link, as outputs written by
+    voxe_core.files.replacing no longer do."""
+    import stat
+
+    data = b"the new turntable" * 100
+    run = tmp_path / "runs" / "1"
+    run.mkdir(parents=True)
+    spot, latest = run / "spot.mp4", tmp_path / "latest.mp4"
+    spot.write_bytes(b"old")
+    spot.chmod(0o600)
+    latest.symlink_to(spot)
+    with Client(transport=httpx.MockTransport(_serving(data, "turntable.mp4"))) as client:
+        assert client.download("j1", "turntable.mp4", latest) == latest
+    assert latest.is_symlink() and spot.read_bytes() == data and stat.S_IMODE(spot.stat().st_mode) == 0o600
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["latest.mp4", "runs"] and list(run.iterdir()) == [spot]
+
+
 def test_a_416_to_a_kept_part_fetches_it_whole_and_an_error_names_the_part_kept(tmp_path, monkeypatch):
     """A 416 to a kept part's Range (bytes no head of the artifact) had failed the download and left the part, so
     every later call was answered 416 again: the part goes and the artifact is fetched whole, once: a 416 to bytes

@@ -26,7 +26,7 @@ from urllib.parse import quote
 import httpx
 
 from voxe_core.constants import TEXTURE_SUFFIXES
-from voxe_core.files import head_that_fits
+from voxe_core.files import head_that_fits, take_the_mode_of
 from voxe_core.ply_header import read_ply_header
 
 DEFAULT_URL = "http://127.0.0.1:8000"
@@ -561,8 +561,9 @@ class Client:
             raise ServiceError(f"artifact {name!r} of job {job_id} is listed with size {size!r}, not a number of "
                                "bytes; nothing written")
         dest.parent.mkdir(parents=True, exist_ok=True)
-        partial = _part_file(dest, expected["sha256"])
-        _drop_other_parts(dest, partial)
+        target = Path(os.path.realpath(dest))  # a symlink's target, as voxe_core.files.replacing writes one
+        partial = _part_file(target, expected["sha256"])
+        _drop_other_parts(target, partial)
         path = f"/v1/jobs/{_segment(job_id)}/artifacts/{_segment(name)}"
         what = f"{name} of job {job_id}"
         replaced = False
@@ -581,7 +582,8 @@ class Client:
                                            f"{expected['size']} bytes with sha256 {expected['sha256']}")
                     out.truncate(0)  # the earlier call's bytes were no head of it (a crash's zeroed tail): once, whole
                     earlier = 0
-                os.replace(partial, dest)
+                take_the_mode_of(target, partial)
+                os.replace(partial, target)
                 replaced = True  # a part file there now is another download's (a zero-byte artifact's had deleted it)
             except OSError as exc:
                 if exc.filename is not None:  # (it names its file)

@@ -72,6 +72,13 @@ def partial_path(path: Path, token: str) -> Path:
     return path.with_name(head_that_fits(f".{path.stem}", tail, path.name) + tail)
 
 
+def take_the_mode_of(target: Path, partial: Path) -> None:
+    """Give ``partial`` the permissions of ``target``, the file it is to replace, if there is one (a new file gets the
+    umask's: a 0600 file replaced had become readable by all)."""
+    with suppress(FileNotFoundError):
+        os.chmod(partial, stat.S_IMODE(os.stat(target).st_mode))
+
+
 @contextmanager
 def replacing(path: str | os.PathLike) -> Iterator[Path]:
     """A temporary path beside ``path`` to write into; when the block ends without an error it replaces ``path``
@@ -104,8 +111,7 @@ def replacing(path: str | os.PathLike) -> Iterator[Path]:
     partial = partial_path(target, secrets.token_hex(4))
     try:
         yield partial
-        with suppress(FileNotFoundError):
-            os.chmod(partial, stat.S_IMODE(os.stat(target).st_mode))
+        take_the_mode_of(target, partial)
         os.replace(partial, target)
     except OSError as exc:
         if exc.errno is None or exc.filename != str(partial):
