@@ -385,11 +385,20 @@ OBJ or a PLY, one is a 422, where it had been dropped and the mesh arrived witho
 mesh (a licence, a scan's data) are no texture and stay ignored."""
 
 
-def _mtllib_names(obj: Path) -> list[str]:
-    """The material libraries the OBJ's ``mtllib`` lines name, each the rest of its line (as trimesh reads it)."""
+def _mtllib_name(obj: Path) -> str | None:
+    """The material library the OBJ names as the loader (trimesh) reads it: the rest of the line after the first
+    "mtllib" in its text, wherever it stands; None where there is none. (Read by its lines' keyword, an OBJ beginning
+    with a byte order mark had named none.)"""
     with open(obj, "rb") as handle:
-        return [words[1].strip() for line in handle
-                if len(words := line.decode("utf-8", "replace").split(None, 1)) == 2 and words[0] == "mtllib"]
+        text = b""
+        while (at := text.find(b"mtllib")) < 0 and (chunk := handle.read(1 << 20)):
+            text = text[-5:] + chunk
+        if at < 0:
+            return None
+        text = text[at + 6:]
+        while b"\n" not in text and (chunk := handle.read(1 << 20)):
+            text += chunk
+    return text.split(b"\n", 1)[0].decode("utf-8", "replace").strip()
 
 
 def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str = "y") -> Path | None:
@@ -402,7 +411,7 @@ def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str
     coordinates, which a PLY with an image must declare) and for an OBJ at most one .mtl. The texture is kept as
     ``texture.<ext>``, whatever the OBJ's .mtl or the PLY's TextureFile comment call it. The .mtl keeps its file name,
     which the OBJ's ``mtllib`` names: the loader looks it up (or its base name, in any case) inside the mesh's folder
-    only, so an .mtl under another name (sent without a texture) is a 422. A dataset folder is no mesh even with a mesh in it (COLMAP's fused.ply, say).
+    only, so an .mtl under another name, or beside an OBJ with no ``mtllib`` (sent without a texture), is a 422. A dataset folder is no mesh even with a mesh in it (COLMAP's fused.ply, say).
     """
     if is_dataset_folder(root):
         return None
@@ -444,11 +453,16 @@ def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str
         if len(libraries) > 1:
             raise UploadError(f"the OBJ comes with several material libraries ({names(libraries)}); send one .mtl")
         library = (libraries or [None])[0]
-        named = _mtllib_names(mesh) if library is not None and texture is None else []  # (a texture: unread)
-        if named and library.name.lower() not in {referenced_base_name(name) for name in named}:
-            raise UploadError(f"the OBJ's mtllib names the material library {named[0]!r}, but the upload's is "
+        checked = library is not None and texture is None  # (beside a texture, the .mtl is not read)
+        named = _mtllib_name(mesh) if checked else None
+        if checked and not named:
+            raise UploadError(f"the upload's material library is {names([library])}, but the OBJ has no mtllib line "
+                              "naming one: the loader would not read it, and the mesh would load grey; write "
+                              f"'mtllib {library.name}' in the OBJ, or send it without the .mtl")
+        if checked and library.name.lower() != referenced_base_name(named):
+            raise UploadError(f"the OBJ's mtllib names the material library {named!r}, but the upload's is "
                               f"{names([library])}: the loader would not find it, and the mesh would load grey; "
-                              f"rename the .mtl to {referenced_base_name(named[0])!r}, or write "
+                              f"rename the .mtl to {referenced_base_name(named)!r}, or write "
                               f"'mtllib {library.name}' in the OBJ")
     kept_as = {mesh: f"mesh{mesh.suffix.lower()}"}
     if texture is not None:

@@ -1107,6 +1107,31 @@ def test_a_mesh_upload_whose_mtl_is_not_the_one_mtllib_names_is_refused_naming_b
         pass
 
 
+def test_a_mesh_upload_whose_obj_names_no_mtl_is_refused_naming_the_mtl(tmp_path):
+    """Regression: an OBJ with no mtllib line sent with 'kd.mtl' was stored, and the ingest's mesh loaded grey
+    without a word (the loader reads only the library an mtllib names). Beside a texture, the .mtl is not read."""
+    from api.uploads import UploadError
+
+    (tmp_path / "kd.mtl").write_text("newmtl red\nKd 1 0 0\n")
+    (tmp_path / "m.obj").write_text(CUBE_OBJ)  # its usemtl red, no mtllib
+    with pytest.raises(UploadError) as info, _stage(tmp_path, [("cube/m.obj", tmp_path / "m.obj"),
+                                                               ("cube/kd.mtl", tmp_path / "kd.mtl")]):
+        pass
+    assert (info.value.status, str(info.value)) == (422, (
+        "the upload's material library is 'kd.mtl', but the OBJ has no mtllib line naming one: the loader would not "
+        "read it, and the mesh would load grey; write 'mtllib kd.mtl' in the OBJ, or send it without the .mtl"))
+    with _stage(tmp_path, [("m.obj", tmp_path / "m.obj"), ("kd.mtl", tmp_path / "kd.mtl"),
+                           ("skin.png", SPOT / "spot_texture.png")]):
+        pass
+    assert list((tmp_path / "work" / "uploads").iterdir()) == []
+    # The library named as the loader reads it: after a byte order mark too (where trimesh finds it)
+    (tmp_path / "bom.obj").write_bytes(b"\xef\xbb\xbfmtllib kd.mtl\n" + CUBE_OBJ.encode())
+    _, stored, _, _ = _ingest_mesh_upload(tmp_path / "bom", [("bom.obj", tmp_path / "bom.obj"),
+                                                             ("kd.mtl", tmp_path / "kd.mtl")])
+    assert "mesh/kd.mtl" in stored
+    assert load_mesh(tmp_path / "bom.obj").colour.tolist() == [1.0, 0.0, 0.0]
+
+
 # ------------------------------------------------------------------ baked shading (meshes without colour)
 def _unit_normals(vertices: np.ndarray) -> np.ndarray:
     return vertices / np.linalg.norm(vertices, axis=1, keepdims=True)
