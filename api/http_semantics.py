@@ -477,14 +477,16 @@ def document(schema: dict) -> dict:
                                                             "(VOXE_MAX_UPLOAD_BYTES; a JSON body over "
                                                             "VOXE_MAX_JSON_BODY_BYTES)", "content": _PROBLEM})
             if path.startswith("/v1"):
+                body = {} if method == "head" else {"content": _PROBLEM}  # a HEAD's answers carry none
                 responses.setdefault("401", {"description": "authentication on (VOXE_AUTH) and no live API key "
-                                                            "sent", "content": _PROBLEM})
+                                                            "sent", **body})
                 operation["security"] = [{"bearer": []}, {"apiKey": []}, {}]
                 for code, answer in (("503", _UNAVAILABLE_503), ("422", _ODD_QUERY_422)):
-                    documented = responses.setdefault(code, {"description": answer, "content": _PROBLEM})
+                    documented = responses.setdefault(code, {"description": answer, **body})
                     if documented["description"] != answer:
                         documented["description"] += f"; or {answer}"
-                        documented["content"] = _or_problem(documented.get("content"))
+                        if body:
+                            documented["content"] = _or_problem(documented.get("content"))
                 if method != "head":  # the errors a route documents itself answer a Problem too (a HEAD's no body)
                     for code, documented in responses.items():
                         if code[0] in "45":
